@@ -1,0 +1,1 @@
+"""Built-in plant definitions (installed as ``prsa_ctrl.plants``)."""

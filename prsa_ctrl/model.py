@@ -1,0 +1,301 @@
+"""The actuator's equations of motion, written once in CasADi (SI units inside).
+
+Two fidelities of one physical model:
+
+``rigid``
+    One rotational degree of freedom. Cage, rollers and screw are slaved to the nut through the
+    rigid kinematics, so their inertia is reflected to the nut; the axial load acts through the
+    lead; Coulomb friction on the quasi-static thread normal forces (it grows with the load) sets
+    the forward efficiency.
+``compliant``
+    Nut, cage (with the rollers' orbit and spin through the screw-roller gearing) and screw are
+    separate bodies; the roller/cage assembly also moves axially. The nut-roller and screw-roller
+    thread contacts follow the paper's IMPACT law on both flanks (with axial backlash), the nut
+    drives the cage through a friction-limited traction (a creep law), and thread friction uses
+    the static/dynamic coefficients with a smooth stiction (Stribeck) curve.
+
+Both include the drive: torque-command saturation and a first-order current loop.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass
+
+import casadi as ca
+
+from .plant import Plant
+
+__all__ = ["FIDELITIES", "PlantModel", "plant_model", "INPUTS"]
+
+FIDELITIES = ("rigid", "compliant")
+
+#: Plant inputs: torque command to the current loop (N m) and external axial load (N,
+#: positive opposing forward screw motion).
+INPUTS = ("motor_torque", "axial_load")
+
+_STATES = {
+    "rigid": ("theta_nut", "omega_nut", "tau_motor"),
+    "compliant": (
+        "theta_nut",
+        "omega_nut",
+        "omega_cage",
+        "x_roller",
+        "v_roller",
+        "delta_screw",
+        "v_screw",
+        "tau_motor",
+    ),
+}
+_STATE_UNITS = {
+    "theta_nut": "rad",
+    "omega_nut": "rad/s",
+    "omega_cage": "rad/s",
+    "x_roller": "m",
+    "v_roller": "m/s",
+    "delta_screw": "m",
+    "v_screw": "m/s",
+    "tau_motor": "N m",
+}
+
+_OUTPUTS_COMMON = (
+    "nut_speed",
+    "cage_speed",
+    "roller_speed",
+    "roller_speed_abs",
+    "screw_velocity",
+    "motor_torque",
+)
+_OUTPUTS = {
+    "rigid": _OUTPUTS_COMMON,
+    "compliant": _OUTPUTS_COMMON + ("contact_force_nut", "contact_force_screw"),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class PlantModel:
+    """Symbolic plant of one fidelity with its compiled CasADi functions.
+
+    Attributes
+    ----------
+    f : casadi.Function
+        ``(x, u) -> dx/dt`` with ``u = [motor_torque (N m), axial_load (N)]``.
+    h : casadi.Function
+        ``(x, u) -> y`` with outputs named in ``output_names``.
+    power : casadi.Function
+        ``(x, u) -> [stored energy (J), motor power (W), load power (W), dissipated power (W)]``.
+    """
+
+    plant: Plant
+    fidelity: str
+    state_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    x: ca.SX
+    u: ca.SX
+    xdot: ca.SX
+    y: ca.SX
+    energy_terms: ca.SX
+    f: ca.Function
+    h: ca.Function
+    power: ca.Function
+
+    @property
+    def nx(self) -> int:
+        return len(self.state_names)
+
+    def index(self, state: str) -> int:
+        return self.state_names.index(state)
+
+    def state_unit(self, state: str) -> str:
+        return _STATE_UNITS[state]
+
+
+def _smooth_sign(v: ca.SX, width: float) -> ca.SX:
+    return ca.tanh(v / width)
+
+
+def _friction_coefficient(plant: Plant, v_slide: ca.SX) -> ca.SX:
+    """Coulomb coefficient with stiction: mu_d + (mu_s - mu_d) exp(-(v/v_s)^2), smooth sign."""
+    p = plant.values
+    mu_s, mu_d = p["friction.static"], p["friction.dynamic"]
+    v_s, v_t = p["friction.stribeck_velocity_m_s"], p["friction.transition_velocity_m_s"]
+    return (mu_d + (mu_s - mu_d) * ca.exp(-((v_slide / v_s) ** 2))) * _smooth_sign(v_slide, v_t)
+
+
+def _smooth_step(p: ca.SX, depth: float) -> ca.SX:
+    """ADAMS STEP(p, 0, 0, depth, 1): cubic ramp, C1, 0 at no penetration and 1 at ``depth``."""
+    s = ca.fmin(ca.fmax(p / depth, 0.0), 1.0)
+    return s * s * (3.0 - 2.0 * s)
+
+
+def _thread_contact(plant: Plant, delta: ca.SX, ddelta: ca.SX, cos_helix: float):
+    """Axial force of one roller-thread interface from its axial compression ``delta`` (m).
+
+    Each of the ``N_R z`` engaged flanks follows the IMPACT law on its normal penetration
+    ``p = delta cos(beta) cos(lambda)``: ``F_n = K p^e + C_max dp/dt STEP(p; 0, d)``. The
+    opposite flank engages after the axial backlash. Returns the axial force on the driven
+    side (N), the total normal force (N, both flanks), the stored elastic energy (J) and the
+    damping power (W).
+    """
+    v = plant.values
+    k, e = plant.contact_stiffness_si, v["contact.exponent"]
+    c_max, depth = plant.contact_damping_si, plant.penetration_m
+    n_c = plant.n_contacts
+    c = math.cos(plant.flank_angle_rad) * cos_helix
+    gap = v["thread.backlash_mm"] * 1e-3 * c
+    axial = 0
+    normal = 0
+    energy = 0
+    damping = 0
+    for sign, pen, rate in ((1.0, delta * c, ddelta * c), (-1.0, -delta * c - gap, -ddelta * c)):
+        engaged = ca.fmax(pen, 0.0)  # max(x, 0)**e keeps the Jacobian finite at first touch
+        ramp = _smooth_step(pen, depth)
+        fn = n_c * (k * engaged**e + c_max * rate * ramp)
+        axial = axial + sign * c * fn
+        normal = normal + fn
+        energy = energy + n_c * k * engaged ** (e + 1.0) / (e + 1.0)
+        damping = damping + n_c * c_max * rate * rate * ramp
+    return axial, normal, energy, damping
+
+
+def _drive(plant: Plant, tau_cmd: ca.SX, tau: ca.SX) -> ca.SX:
+    """Current loop: saturated torque command through a first-order lag; returns d tau/dt."""
+    t_max = plant.torque_limit
+    return (ca.fmin(ca.fmax(tau_cmd, -t_max), t_max) - tau) / plant.current_loop_time_constant_s
+
+
+def _bearing_losses(plant: Plant, omega: ca.SX) -> ca.SX:
+    """Load-independent drag: no-load torque (smooth sign) plus viscous torque, N m."""
+    v = plant.values
+    omega_t = v["friction.transition_velocity_m_s"] / (0.5 * plant.d_nut_m)
+    return v["friction.no_load_torque_n_m"] * _smooth_sign(omega, omega_t) + v[
+        "friction.viscous_n_m_s_per_rad"
+    ] * omega
+
+
+def _cage_inertia(plant: Plant) -> tuple[float, float]:
+    """Rotational inertia about the screw axis seen by the cage (kg m^2) and axial mass (kg).
+
+    Includes the cage, the rollers' orbit (point masses on the orbit radius) and the rollers'
+    absolute spin ``w_P (d_S + d_R) / d_R`` (solid cylinders).
+    """
+    v = plant.values
+    d_s, d_r = plant.d_screw_m, plant.d_roller_m
+    m_r = v["roller.mass_kg"]
+    j_spin = 0.5 * m_r * (0.5 * d_r) ** 2
+    r_orbit = 0.5 * (d_s + d_r)
+    j_cage = v["cage.inertia_kg_m2"] + plant.n_rollers * (
+        m_r * r_orbit**2 + j_spin * ((d_s + d_r) / d_r) ** 2
+    )
+    return j_cage, v["cage.mass_kg"] + plant.n_rollers * m_r
+
+
+def _kinematic_outputs(plant: Plant, omega_nut, omega_cage, v_screw, tau) -> list:
+    d_s, d_r = plant.d_screw_m, plant.d_roller_m
+    return [omega_nut, omega_cage, omega_cage * d_s / d_r, omega_cage * (d_s + d_r) / d_r, v_screw, tau]
+
+
+def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
+    v = plant.values
+    _, omega, tau = ca.vertsplit(x)
+    load = u[1]
+    j_cage, _ = _cage_inertia(plant)
+    a = plant.lead_per_rad
+    j_eq = v["nut.inertia_kg_m2"] + j_cage * plant.cage_ratio**2 + v["screw.mass_kg"] * a**2
+    f_n, f_s = plant.normal_force_factor()
+    k_slip = plant.slip_arm_m
+    t_fric = k_slip * _friction_coefficient(plant, k_slip * omega) * ca.fabs(load) * (f_n + f_s)
+    t_drag = _bearing_losses(plant, omega)
+    xdot = ca.vertcat(omega, (tau - load * a - t_fric - t_drag) / j_eq, _drive(plant, u[0], tau))
+    y = _kinematic_outputs(plant, omega, omega * plant.cage_ratio, omega * a, tau)
+    stored = 0.5 * j_eq * omega**2
+    dissipated = (t_fric + t_drag) * omega
+    return xdot, y, [stored, tau * omega, load * a * omega, dissipated]
+
+
+def _compliant(plant: Plant, x: ca.SX, u: ca.SX):
+    v = plant.values
+    _, w_n, w_p, x_r, v_r, d_sr, v_s, tau = ca.vertsplit(x)
+    load = u[1]
+    d_s, d_n = plant.d_screw_m, plant.d_nut_m
+    j_cage, m_axial = _cage_inertia(plant)
+    # Screw advance per radian of cage rotation (screw-roller helix): v_S = a w_P rigidly.
+    a = plant.lead_per_rad / plant.cage_ratio
+    ddelta_sr = v_r + a * w_p - v_s
+    cos_n, cos_s = math.cos(plant.helix_nut_rad), math.cos(plant.helix_screw_rad)
+    f_nr, n_nut, e_nr, pd_nr = _thread_contact(plant, -x_r, -v_r, cos_n)
+    f_sr, n_screw, e_sr, pd_sr = _thread_contact(plant, d_sr, ddelta_sr, cos_s)
+    # Thread sliding friction, acting on the nut through the effective sliding arm.
+    k_slip = plant.slip_arm_m
+    n_total = ca.fmax(n_nut, 0.0) + ca.fmax(n_screw, 0.0)
+    t_fric = k_slip * _friction_coefficient(plant, k_slip * w_n) * n_total
+    t_drag = _bearing_losses(plant, w_n)
+    # Nut-roller traction drives the cage (rolling with creep, limited by mu_d * normal force).
+    v_slip = 0.5 * d_n * w_n - 0.5 * (d_n + d_s) * w_p
+    n_trac = ca.fmax(n_nut, 0.0) + v["friction.traction_preload_n"]
+    f_t = v["friction.dynamic"] * _smooth_sign(v_slip, v["friction.creep_velocity_m_s"]) * n_trac
+    j_nut, m_s = v["nut.inertia_kg_m2"], v["screw.mass_kg"]
+    xdot = ca.vertcat(
+        w_n,
+        (tau - 0.5 * d_n * f_t - t_fric - t_drag) / j_nut,
+        (0.5 * (d_n + d_s) * f_t - a * f_sr) / j_cage,
+        v_r,
+        (f_nr - f_sr) / m_axial,
+        ddelta_sr,
+        (f_sr - load) / m_s,
+        _drive(plant, u[0], tau),
+    )
+    y = _kinematic_outputs(plant, w_n, w_p, v_s, tau) + [n_nut, n_screw]
+    stored = (
+        0.5 * j_nut * w_n**2
+        + 0.5 * j_cage * w_p**2
+        + 0.5 * m_axial * v_r**2
+        + 0.5 * m_s * v_s**2
+        + e_nr
+        + e_sr
+    )
+    dissipated = (t_fric + t_drag) * w_n + f_t * v_slip + pd_nr + pd_sr
+    return xdot, y, [stored, tau * w_n, load * v_s, dissipated]
+
+
+_CACHE: "weakref.WeakKeyDictionary[Plant, dict[str, PlantModel]]" = weakref.WeakKeyDictionary()
+
+
+def plant_model(plant: Plant, fidelity: str = "compliant") -> PlantModel:
+    """Build (once per plant and fidelity) the CasADi model of ``plant``.
+
+    Parameters
+    ----------
+    plant : Plant
+        A validated plant.
+    fidelity : {"rigid", "compliant"}
+        Model fidelity (see module docstring).
+    """
+    if fidelity not in FIDELITIES:
+        raise ValueError(f"fidelity = {fidelity!r}; expected one of {', '.join(FIDELITIES)}")
+    per_plant = _CACHE.setdefault(plant, {})
+    if fidelity in per_plant:
+        return per_plant[fidelity]
+    names = _STATES[fidelity]
+    x = ca.SX.sym("x", len(names))
+    u = ca.SX.sym("u", 2)
+    xdot, y, terms = (_rigid if fidelity == "rigid" else _compliant)(plant, x, u)
+    y = ca.vertcat(*y)
+    terms = ca.vertcat(*terms)
+    model = PlantModel(
+        plant=plant,
+        fidelity=fidelity,
+        state_names=names,
+        output_names=_OUTPUTS[fidelity],
+        x=x,
+        u=u,
+        xdot=xdot,
+        y=y,
+        energy_terms=terms,
+        f=ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"]),
+        h=ca.Function("h", [x, u], [y], ["x", "u"], ["y"]),
+        power=ca.Function("power", [x, u], [terms], ["x", "u"], ["terms"]),
+    )
+    per_plant[fidelity] = model
+    return model

@@ -1,0 +1,1 @@
+"""Built-in tuning scenes (installed as ``prsa_ctrl.scenes``)."""
