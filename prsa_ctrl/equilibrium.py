@@ -70,8 +70,6 @@ def _guess(model: PlantModel, omega: float, load: float) -> NDArray[np.float64]:
     x[model.index("omega_nut")] = omega
     names = model.state_names
     f_n, f_s = p.normal_force_factor()
-    a = p.lead_per_rad
-    torque = load * a / p.values["friction.efficiency"] if load * omega >= 0 else load * a
     if "omega_cage" in names:
         c_b = math.cos(p.flank_angle_rad)
         k_si, e = p.contact_stiffness_si, p.values["contact.exponent"]
@@ -79,13 +77,13 @@ def _guess(model: PlantModel, omega: float, load: float) -> NDArray[np.float64]:
         def axial(fac: float, cos_l: float) -> float:
             per_contact = abs(load) * fac / p.n_contacts
             pen = (per_contact / k_si) ** (1.0 / e) / (c_b * cos_l)
-            return math.copysign(pen, load)
+            # A pulling load engages the opposite flank, beyond the axial backlash.
+            return pen if load >= 0 else -(pen + p.values["thread.backlash_mm"] * 1e-3)
 
         x[model.index("omega_cage")] = float(k.omega_cage)
         x[model.index("v_screw")] = float(k.v_screw)
         x[model.index("x_roller")] = -axial(f_n, math.cos(p.helix_nut_rad))
         x[model.index("delta_screw")] = axial(f_s, math.cos(p.helix_screw_rad))
-    x[model.index("tau_motor")] = torque
     return x
 
 
@@ -99,10 +97,24 @@ def operating_point(
     SimulationError
         If no equilibrium exists within the motor's torque limit.
     """
+    rigid = plant_model(plant, "rigid")
+    # The rigid nut equation is affine in the motor torque and its steady torque equals the
+    # compliant one (same friction law), so the torque limit is checked before any Newton step.
+    x_r = np.array([0.0, omega_nut, 0.0])
+    acc0 = float(rigid.f(x_r, [0.0, load])[1])
+    x_r[2] = 1.0
+    acc1 = float(rigid.f(x_r, [0.0, load])[1])
+    needed = -acc0 / (acc1 - acc0)
+    if abs(needed) >= plant.torque_limit:
+        raise SimulationError(
+            f"holding {omega_nut:g} rad/s at {load:g} N needs {needed:.3g} N m, beyond the motor "
+            f"limit of {plant.torque_limit:g} N m (drive.torque_limit_n_m); lower the load"
+        )
     model = plant_model(plant, fidelity)
     solver = _solver(model)
     free = model._free  # type: ignore[attr-defined]
     x0 = _guess(model, omega_nut, load)
+    x0[model.index("tau_motor")] = needed
     z0 = np.append(x0[free], x0[model.index("tau_motor")])
     try:
         z = np.asarray(solver(z0, [omega_nut, load])).ravel()
@@ -115,9 +127,4 @@ def operating_point(
     x = x0.copy()
     x[free] = z[:-1]
     torque = float(z[-1])
-    if abs(torque) >= plant.torque_limit:
-        raise SimulationError(
-            f"holding {omega_nut:g} rad/s at {load:g} N needs {torque:.3g} N m, beyond the motor "
-            f"limit of {plant.torque_limit:g} N m (drive.torque_limit_n_m); lower the load"
-        )
     return OperatingPoint(x=x, torque=torque, omega_nut=float(omega_nut), load=float(load))

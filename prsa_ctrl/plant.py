@@ -89,9 +89,18 @@ SCHEMA: Mapping[str, Mapping[str, str]] = {
 _ALLOWED_KEYS = tuple(f"{s}.{k}" for s, keys in SCHEMA.items() for k in keys)
 
 
+def _builtin_root(package: str, folder: str) -> Any:
+    """Where the built-in TOML files live: the installed package data, or, when running from a
+    source checkout that shadows the installed package, the repository folder itself."""
+    try:
+        return resources.files(package)
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parent.parent / folder
+
+
 def builtin_plants() -> list[str]:
     """Names of the plant files shipped with the package (``plants/*.toml``)."""
-    root = resources.files("prsa_ctrl.plants")
+    root = _builtin_root("prsa_ctrl.plants", "plants")
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
 
 
@@ -500,7 +509,7 @@ def _resolve(name_or_path: str | Path | None) -> Path | Any:
         if not path.is_file():
             raise PlantFileError(f"plant file {text!r} not found; expected a readable .toml file")
         return path
-    res = resources.files("prsa_ctrl.plants") / f"{text}.toml"
+    res = _builtin_root("prsa_ctrl.plants", "plants") / f"{text}.toml"
     if not res.is_file():
         raise PlantFileError(
             f"unknown plant {text!r}; expected a built-in name ({', '.join(builtin_plants())}) "

@@ -1,0 +1,166 @@
+import numpy as np
+import pytest
+
+from prsa_ctrl import PID, SimulationError, builtin_plants, energy_balance, load_plant, simulate
+from prsa_ctrl.linear import linearize, predict_load_step
+from prsa_ctrl.paper import OMEGA_300_RPM, default_pid, load_step_study
+from prsa_ctrl.simulation import SimSettings
+
+STEP = [(0.0, 500.0), (0.1, 1500.0)]
+
+
+def _out(r, name):
+    return np.asarray(r.outputs[r.output_labels.index(name)])
+
+
+@pytest.mark.parametrize("name", builtin_plants())
+def test_paper_validation_steady_speeds_within_0p1_percent(name):
+    """Constant 5000 N at 300 rpm (reached after a load step): the compliant model's steady
+    cage, roller and screw speeds sit within 0.1 % of the rigid kinematics."""
+    p = load_plant(name)
+    r = simulate(p, setpoint=OMEGA_300_RPM, load=[(0.0, 500.0), (0.02, 5000.0)], duration=0.4,
+                 controller=default_pid(p), fidelity="compliant")
+    late = r.time > 0.3
+    k = p.kinematics(OMEGA_300_RPM)
+    assert _out(r, "nut_speed")[late].mean() == pytest.approx(OMEGA_300_RPM, rel=1e-4)
+    for sig, ref in (("cage_speed", k.omega_cage), ("roller_speed", k.omega_roller_rel),
+                     ("roller_speed_abs", k.omega_roller_abs), ("screw_velocity", k.v_screw)):
+        got = _out(r, sig)[late].mean()
+        assert abs(got / float(ref) - 1) < 1e-3, (sig, got, float(ref))
+
+
+@pytest.mark.parametrize("fidelity", ["rigid", "compliant"])
+@pytest.mark.parametrize("discrete", [False, True])
+def test_energy_balance_closes(paper_plant, fidelity, discrete):
+    r = simulate(paper_plant, load=STEP, duration=0.3, controller=default_pid(paper_plant),
+                 fidelity=fidelity, discrete=discrete, energy=True)
+    e = energy_balance(r)
+    assert e["work_load_j"] > 0 and e["work_dissipated_j"] > 0 and e["work_motor_j"] > e["work_load_j"]
+    assert e["relative_residual"] < 1e-4, e
+
+
+def test_energy_balance_needs_energy_terms(paper_plant):
+    r = simulate(paper_plant, duration=0.01, controller=default_pid(paper_plant), fidelity="rigid")
+    with pytest.raises(ValueError, match=r"energy=True"):
+        energy_balance(r)
+
+
+@pytest.mark.parametrize("discrete", [False, True])
+def test_linear_closed_loop_predicts_peak_drop_within_5_percent(paper_plant, discrete):
+    pid = default_pid(paper_plant)
+    lin = linearize(paper_plant, OMEGA_300_RPM, 500.0, "compliant", sampled=discrete)
+    pred = predict_load_step(lin, pid, 1000.0, 0.1, 0.3)
+    r = simulate(paper_plant, setpoint=OMEGA_300_RPM, load=STEP, duration=0.3, controller=pid,
+                 fidelity="compliant", discrete=discrete)
+    drop_lin = OMEGA_300_RPM - pred.outputs[pred.output_labels.index("nut_speed")].min()
+    drop_nl = OMEGA_300_RPM - _out(r, "nut_speed").min()
+    assert drop_nl > 0.5
+    assert abs(drop_lin / drop_nl - 1) < 0.05, (drop_lin, drop_nl)
+
+
+def test_table3_scenario_drops_grow_near_linearly(paper_plant):
+    rows = load_step_study(paper_plant, duration=0.45)
+    drops = np.array([r.drop_nut for r in rows])
+    steps = np.array([r.final_load - 500.0 for r in rows])
+    assert np.all(np.diff(drops) > 0)
+    # Near-linear: the drop per newton of step varies by less than 10 % across the steps.
+    per_n = drops / steps
+    assert per_n.max() / per_n.min() < 1.10
+    for r in rows:
+        # Rigid kinematics tie the drops together: cage = ratio * nut, roller = d_S/d_R * cage.
+        assert r.drop_cage == pytest.approx(paper_plant.cage_ratio * r.drop_nut, rel=0.02)
+        assert r.paper_drops is not None
+        f_n, f_s = paper_plant.normal_force_factor()
+        assert r.force_nut_mean == pytest.approx(r.final_load * f_n, rel=0.01)
+        assert r.force_screw_mean == pytest.approx(r.final_load * f_s, rel=0.01)
+        assert r.force_nut_range > 0 and r.force_screw_range > 0
+
+
+def test_load_step_is_a_step_not_a_ramp(paper_plant):
+    """The load input changes between two consecutive samples; the nut decelerates at once."""
+    pid = default_pid(paper_plant)
+    r = simulate(paper_plant, load=[(0.0, 500.0), (0.10005, 1500.0)], duration=0.12, dt=1e-4,
+                 controller=pid, fidelity="rigid")
+    load = np.asarray(r.inputs[1])
+    jump = np.flatnonzero(np.diff(load))
+    assert len(jump) == 1 and load[jump[0]] == 500.0 and load[jump[0] + 1] == 1500.0
+    t = r.time
+    assert np.any(np.isclose(t, 0.10005, atol=1e-12))  # the segment boundary is an output point
+    w = _out(r, "nut_speed")
+    i = int(np.flatnonzero(np.isclose(t, 0.10005, atol=1e-12))[0])
+    assert w[i] == pytest.approx(w[0], abs=1e-6)
+    assert w[i + 1] < w[i] - 1e-3
+
+
+def test_outputs_are_named_and_finite(paper_plant):
+    r = simulate(paper_plant, load=STEP, duration=0.15, controller=default_pid(paper_plant))
+    for name in ("nut_speed", "cage_speed", "roller_speed", "screw_velocity", "motor_torque",
+                 "contact_force_nut", "contact_force_screw"):
+        assert np.all(np.isfinite(_out(r, name)))
+    assert r.input_labels == ["speed_setpoint", "axial_load"]
+    rigid = simulate(paper_plant, load=STEP, duration=0.15, controller=default_pid(paper_plant), fidelity="rigid")
+    assert "contact_force_nut" not in rigid.output_labels
+
+
+def test_p_only_controller_leaves_the_expected_steady_error(paper_plant):
+    pid = PID(kp=0.1)
+    r = simulate(paper_plant, load=STEP, duration=0.5, controller=pid, fidelity="rigid")
+    w = _out(r, "nut_speed")
+    tau = _out(r, "motor_torque")
+    # Proportional law: torque = kp * error at steady state.
+    assert OMEGA_300_RPM - w[-1] == pytest.approx(tau[-1] / pid.kp, rel=1e-4)
+    assert (OMEGA_300_RPM - w[-1]) > (OMEGA_300_RPM - w[0])
+
+
+def test_solver_failure_raises_clear_error(paper_plant):
+    with pytest.raises(SimulationError, match=r"integration failed between t = 0\.1 s and t = 0\.3 s from state \[theta_nut=.*remedy"):
+        simulate(paper_plant, load=[(0, 500.0), (0.1, 1500.0)], duration=0.3,
+                 controller=default_pid(paper_plant), settings=SimSettings(max_steps=10))
+
+
+def test_overload_is_reported_not_nan(paper_plant):
+    with pytest.raises(SimulationError, match=r"needs .* N m, beyond the motor limit of 3 N m"):
+        simulate(paper_plant, load=20000.0, duration=0.1, controller=default_pid(paper_plant))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"duration": -1.0}, r"duration = -1\.0; expected a finite time > 0 s"),
+        ({"load": [(0.1, 500.0)]}, r"load starts at t = 0\.1 s; expected the first point at t = 0"),
+        ({"load": [(0.0, float("nan"))]}, r"load point \(0\.0, nan\) is not finite"),
+        ({"load": "heavy"}, r"load = 'heavy'; expected a number \(N\)"),
+        ({"setpoint": [(0.0, 1.0), (0.0, 2.0)]}, r"setpoint times \[0\.0, 0\.0\] must increase"),
+        ({"fidelity": "exact"}, r"fidelity = 'exact'; expected one of rigid, compliant"),
+        ({"dt": 0.0}, r"dt = 0\.0; expected 0 < dt"),
+    ],
+)
+def test_bad_simulate_arguments(paper_plant, kwargs, match):
+    args = {"duration": 0.1, "controller": PID(0.1, 1.0)}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        simulate(paper_plant, **args)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"kp": -1.0}, r"PID kp = -1\.0; expected a finite number >= 0"),
+    ({"kp": 1.0, "ki": float("inf")}, r"PID ki = inf"),
+    ({"kp": 1.0, "tf": 0.0}, r"PID tf = 0\.0; expected a finite time constant > 0 s"),
+])
+def test_bad_pid(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PID(**kwargs)
+
+
+def test_bad_settings():
+    with pytest.raises(ValueError, match=r"integrator = 'rk4'; expected one of cvodes, idas"):
+        SimSettings(integrator="rk4")
+    with pytest.raises(ValueError, match=r"rtol = 0; expected a tolerance in \(0, 1\)"):
+        SimSettings(rtol=0)
+
+
+def test_idas_and_cvodes_agree(paper_plant):
+    pid = default_pid(paper_plant)
+    a = simulate(paper_plant, load=STEP, duration=0.2, controller=pid, settings=SimSettings("cvodes"))
+    b = simulate(paper_plant, load=STEP, duration=0.2, controller=pid, settings=SimSettings("idas"))
+    assert np.max(np.abs(_out(a, "nut_speed") - _out(b, "nut_speed"))) < 1e-5
