@@ -12,6 +12,7 @@ drops agree within 1.5 % where a Ts/2 measurement delay over-predicts them by up
 from __future__ import annotations
 
 import math
+import weakref
 
 import casadi as ca
 import control
@@ -22,7 +23,7 @@ from .equilibrium import operating_point
 from .model import INPUTS, plant_model
 from .plant import Plant
 
-__all__ = ["linearize", "pid_controller", "closed_loop", "predict_load_step"]
+__all__ = ["linear_core", "linearize", "pid_controller", "closed_loop", "predict_load_step"]
 
 
 def _pade(delay: float, order: int, inp: str, out: str, name: str) -> control.StateSpace:
@@ -34,6 +35,35 @@ def _pade(delay: float, order: int, inp: str, out: str, name: str) -> control.St
         sys.A, sys.B, sys.C, sys.D,
         inputs=[inp], outputs=[out], states=[f"{name}_{k}" for k in range(sys.nstates)], name=name,
     )
+
+
+def linear_core(plant: Plant, omega_nut: float, load: float, fidelity: str = "compliant"):
+    """Jacobians ``(A, B, C, D, op)`` of the plant about an operating point, all states kept
+    (including the nut angle), inputs ``(motor_torque, axial_load)``, outputs the model's."""
+    model = plant_model(plant, fidelity)
+    op = operating_point(plant, omega_nut, load, fidelity)
+    u0 = np.array([op.torque, load])
+    jac = _jacobians(model)
+    mats = tuple(np.asarray(m) for m in jac(op.x, u0))
+    for m in mats:
+        if not np.all(np.isfinite(m)):
+            raise ArithmeticError(
+                f"non-finite Jacobian at {omega_nut} rad/s, {load} N; the contact law must stay "
+                "differentiable (contact.exponent >= 1)"
+            )
+    return (*mats, op)
+
+
+_JACOBIANS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _jacobians(model) -> ca.Function:
+    if model not in _JACOBIANS:
+        _JACOBIANS[model] = ca.Function("linearization", [model.x, model.u], [
+            ca.jacobian(model.xdot, model.x), ca.jacobian(model.xdot, model.u),
+            ca.jacobian(model.y, model.x), ca.jacobian(model.y, model.u),
+        ])
+    return _JACOBIANS[model]
 
 
 def linearize(
@@ -79,21 +109,13 @@ def linearize(
     if pade_order not in range(0, 6):
         raise ValueError(f"pade_order = {pade_order!r}; expected an integer 0..5")
     model = plant_model(plant, fidelity)
-    op = operating_point(plant, omega_nut, load, fidelity)
+    a_full, b, c_full, d, op = linear_core(plant, omega_nut, load, fidelity)
     keep = [i for i, n in enumerate(model.state_names) if n != "theta_nut"]
-    u0 = np.array([op.torque, load])
-    jac = ca.Function("linearization", [model.x, model.u], [
-        ca.jacobian(model.xdot, model.x), ca.jacobian(model.xdot, model.u),
-        ca.jacobian(model.y, model.x), ca.jacobian(model.y, model.u),
-    ])
-    a, b, c, d = (np.asarray(m) for m in jac(op.x, u0))
-    for m in (a, b, c, d):
-        if not np.all(np.isfinite(m)):
-            raise ArithmeticError(f"non-finite Jacobian at {omega_nut} rad/s, {load} N")
+    a, c = a_full[np.ix_(keep, keep)], c_full[:, keep]
     # The plant's actual-torque output is renamed: ``motor_torque`` is the input (command) here.
     out_names = [n if n != "motor_torque" else "motor_torque_actual" for n in model.output_names]
     core = control.ss(
-        a[np.ix_(keep, keep)], b[keep], c[:, keep], d,
+        a, b[keep], c, d,
         states=[model.state_names[i] for i in keep],
         inputs=["torque_command", INPUTS[1]],
         outputs=out_names,
@@ -114,7 +136,7 @@ def linearize(
         outputs=out_names + ["nut_speed_measured"],
         name=f"{plant.name}_{fidelity}_linear".replace(".", "_"),
     )
-    y0 = np.asarray(model.h(op.x, u0)).ravel()
+    y0 = np.asarray(model.h(op.x, [op.torque, load])).ravel()
     sys.operating_point = op
     sys.operating_outputs = dict(zip(out_names, y0.tolist()))
     sys.operating_outputs["nut_speed_measured"] = op.omega_nut

@@ -2,6 +2,11 @@ import os
 
 import matplotlib
 import pytest
+from hypothesis import settings
+
+# Deterministic property tests that leave no example database in the working directory.
+settings.register_profile("prsa", database=None, derandomize=True, deadline=None)
+settings.load_profile("prsa")
 
 matplotlib.use("Agg")
 os.environ.setdefault("PRSA_FAST", "1")

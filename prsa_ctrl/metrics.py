@@ -1,0 +1,217 @@
+"""Load-step and robustness metrics.
+
+Sign convention: the speed error is ``e = setpoint - speed`` (rad/s), so a load increase that
+slows the nut gives a positive error and a positive IE. Integrals run from the step to the end
+of the record, with time measured from the step for ITAE.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "LoadStepMetrics",
+    "Margins",
+    "load_step_metrics",
+    "margins_from_response",
+    "DEFAULT_BAND",
+]
+
+#: Recovery band: the error must stay within this fraction of the peak drop (around the
+#: setpoint) from the recovery time to the end of the record.
+DEFAULT_BAND = 0.05
+
+
+@dataclass(frozen=True)
+class LoadStepMetrics:
+    """Disturbance-rejection metrics of one load step.
+
+    Attributes
+    ----------
+    peak_drop_rad_s : float
+        Largest fall of the speed below its last pre-step sample (the setpoint when the record
+        starts at the step), rad/s.
+    peak_time_s : float
+        Time from the step to the lowest speed, s.
+    recovery_time_s : float
+        Time from the step after which ``|e|`` stays within the band, s (``inf`` if never).
+    ie, iae, itae, ise : float
+        Integrals of e, |e|, t|e| and e^2 after the step (rad, rad, rad s, rad^2/s).
+    steady_state_error_rad_s : float
+        Mean error over the last 10 % of the record, rad/s.
+    overshoot_rad_s : float
+        Largest rise above the setpoint after the lowest point, rad/s.
+    peak_torque_n_m : float
+        Largest |motor torque| after the step, N m (``nan`` when no torque was given).
+    saturated : bool
+        Whether the torque reached the limit (within 0.1 %).
+    """
+
+    peak_drop_rad_s: float
+    peak_time_s: float
+    recovery_time_s: float
+    ie: float
+    iae: float
+    itae: float
+    ise: float
+    steady_state_error_rad_s: float
+    overshoot_rad_s: float
+    peak_torque_n_m: float
+    saturated: bool
+
+    def as_dict(self) -> dict[str, float | bool | None]:
+        """JSON-friendly dict (``inf``/``nan`` become ``None``)."""
+        out: dict[str, float | bool | None] = {}
+        for k, v in asdict(self).items():
+            out[k] = None if isinstance(v, float) and not math.isfinite(v) else v
+        return out
+
+
+def _trapz(y: NDArray[np.float64], t: NDArray[np.float64]) -> float:
+    return float(np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(t)))
+
+
+def load_step_metrics(
+    time: ArrayLike,
+    speed: ArrayLike,
+    setpoint: float,
+    step_time: float,
+    torque: ArrayLike | None = None,
+    torque_limit: float | None = None,
+    band: float = DEFAULT_BAND,
+) -> LoadStepMetrics:
+    """Metrics of a speed response to a load step at ``step_time``.
+
+    Parameters
+    ----------
+    time : array, s
+    speed : array, rad/s
+    setpoint : float, rad/s
+    step_time : float, s
+        Time of the load step; it must lie within the record, with at least two samples after it.
+    torque : array, N m, optional
+    torque_limit : float, N m, optional
+    band : float
+        Recovery band as a fraction of the peak drop (default 5 %).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.linspace(0, 10, 10001)
+    >>> m = load_step_metrics(t, 1 - np.where(t >= 1, (t - 1) * np.exp(-(t - 1)), 0), 1.0, 1.0)
+    >>> round(m.peak_drop_rad_s, 4), round(m.peak_time_s, 3), round(m.ie, 3)
+    (0.3679, 1.0, 0.999)
+    """
+    t = np.asarray(time, dtype=float)
+    y = np.asarray(speed, dtype=float)
+    if t.ndim != 1 or t.shape != y.shape or t.size < 3:
+        raise ValueError(f"time and speed must be 1-D arrays of equal length >= 3; got {t.shape} and {y.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(y))):
+        raise ValueError("time and speed must be finite")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError("time must increase strictly")
+    after = t >= step_time
+    if after.sum() < 2 or not math.isfinite(step_time):
+        raise ValueError(f"step_time = {step_time!r} s; expected a time inside the record [{t[0]}, {t[-1]}] s")
+    if not 0 < band < 1:
+        raise ValueError(f"band = {band!r}; expected a fraction in (0, 1)")
+    before = ~after
+    y_pre = float(y[before][-1]) if before.any() else float(setpoint)
+    ta, ya = t[after], y[after]
+    ts = ta - ta[0]
+    e = setpoint - ya
+    i_min = int(np.argmin(ya))
+    drop = max(y_pre - float(ya[i_min]), 0.0)
+    tol = band * drop
+    outside = np.flatnonzero(np.abs(e) > tol) if drop > 0 else np.array([], dtype=int)
+    if outside.size == 0:
+        recovery = 0.0
+    elif outside[-1] == e.size - 1:
+        recovery = math.inf
+    else:
+        recovery = float(ts[outside[-1] + 1])
+    tail = ts >= 0.9 * ts[-1]
+    overshoot = max(float(np.max(ya[i_min:] - setpoint)), 0.0)
+    if torque is not None:
+        tq = np.abs(np.asarray(torque, dtype=float)[after])
+        peak_t = float(tq.max())
+        sat = bool(torque_limit is not None and peak_t >= 0.999 * torque_limit)
+    else:
+        peak_t, sat = math.nan, False
+    return LoadStepMetrics(
+        peak_drop_rad_s=drop,
+        peak_time_s=float(ts[i_min]),
+        recovery_time_s=recovery,
+        ie=_trapz(e, ta),
+        iae=_trapz(np.abs(e), ta),
+        itae=_trapz(ts * np.abs(e), ta),
+        ise=_trapz(e * e, ta),
+        steady_state_error_rad_s=float(e[tail].mean()),
+        overshoot_rad_s=overshoot,
+        peak_torque_n_m=peak_t,
+        saturated=sat,
+    )
+
+
+@dataclass(frozen=True)
+class Margins:
+    """Robustness of a loop ``L`` from its frequency response on a dense grid.
+
+    Attributes
+    ----------
+    ms, mt : float
+        Peak sensitivity max|1/(1+L)| and peak complementary sensitivity max|L/(1+L)|.
+    gm_db : float
+        Gain margin, dB (``inf`` if the phase never crosses -180 deg).
+    pm_deg : float
+        Phase margin, degrees (``inf`` if |L| never crosses 1).
+    wc_rad_s : float
+        Gain-crossover frequency, rad/s (``nan`` if none).
+    """
+
+    ms: float
+    mt: float
+    gm_db: float
+    pm_deg: float
+    wc_rad_s: float
+
+    def as_dict(self) -> dict[str, float | None]:
+        return {k: (None if not math.isfinite(v) else v) for k, v in asdict(self).items()}
+
+
+def margins_from_response(omega: ArrayLike, loop: ArrayLike) -> Margins:
+    """Ms, Mt, gain and phase margins and crossover from ``L(j omega)`` on a dense grid.
+
+    Crossings are located by linear interpolation between grid points; the smallest margins
+    over all crossings are reported (python-control's ``stability_margins`` alone can report
+    an infinite stability margin where the grid misses the peak).
+    """
+    w = np.asarray(omega, dtype=float)
+    L = np.asarray(loop, dtype=complex)
+    s_mag = np.abs(1.0 / (1.0 + L))
+    t_mag = np.abs(L / (1.0 + L))
+    mag = np.abs(L)
+    phase = np.unwrap(np.angle(L))
+    # Gain crossovers: |L| crosses 1.
+    pm, wc = math.inf, math.nan
+    lm = np.log(mag)
+    for i in np.flatnonzero(np.sign(lm[:-1]) * np.sign(lm[1:]) < 0):
+        f = lm[i] / (lm[i] - lm[i + 1])
+        ph = phase[i] + f * (phase[i + 1] - phase[i])
+        margin = math.degrees((ph + math.pi) % (2 * math.pi))
+        margin = margin if margin <= 180 else margin - 360
+        if abs(margin) < abs(pm):
+            pm, wc = margin, float(w[i] + f * (w[i + 1] - w[i]))
+    # Phase crossovers: phase crosses -180 deg (mod 360).
+    gm = math.inf
+    k = np.floor((phase + math.pi) / (2 * math.pi))
+    for i in np.flatnonzero(np.diff(k) != 0):
+        target = (max(k[i], k[i + 1])) * 2 * math.pi - math.pi
+        f = (target - phase[i]) / (phase[i + 1] - phase[i])
+        m = mag[i] + f * (mag[i + 1] - mag[i])
+        gm = min(gm, -20 * math.log10(m)) if m > 0 else gm
+    return Margins(ms=float(s_mag.max()), mt=float(t_mag.max()), gm_db=gm, pm_deg=pm, wc_rad_s=wc)

@@ -1,0 +1,238 @@
+"""Tuning scenes (``tuning/*.toml``): the operating point, the load step(s), the objective,
+the robustness limits and what the verification must deliver."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+from .errors import SceneError
+from .plant import _builtin_root
+
+__all__ = ["Scene", "load_scene", "builtin_scenes", "DEFAULT_SCENE", "OUTPUTS"]
+
+DEFAULT_SCENE = "paper-load-step"
+
+#: Outputs a scene may ask for; ``nut_speed`` and ``motor_torque`` are always computed.
+OUTPUTS = (
+    "nut_speed",
+    "motor_torque",
+    "cage_speed",
+    "roller_speed",
+    "screw_velocity",
+    "contact_forces",
+)
+
+_SECTIONS: Mapping[str, Mapping[str, type | tuple]] = {
+    "operating": {
+        "setpoint_rpm": float,
+        "initial_load_n": float,
+        "final_loads_n": list,
+        "step_time_s": float,
+        "duration_s": float,
+    },
+    "tuning": {
+        "objective": str,
+        "controller": str,
+        "ms_max": float,
+        "mt_max": float,
+        "aggregate": str,
+        "candidates": int,
+    },
+    "verify": {"fidelity": str, "discrete": bool},
+    "outputs": {"needed": list},
+}
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A load-step tuning scenario (SI units; the file uses rpm for the setpoint).
+
+    Parameters
+    ----------
+    setpoint_rad_s : float, rad/s
+        Nut-speed setpoint.
+    initial_load : float, N
+        Axial load before the step (steady state).
+    final_loads : tuple of float, N
+        Load(s) after the step; several levels are tuned jointly (``aggregate``).
+    step_time : float, s
+    duration : float, s
+        End of the record (the step response lasts ``duration - step_time``).
+    objective : {"ie", "iae", "itae", "ise"}
+    controller : {"pi", "pid"}
+    ms_max, mt_max : float
+        Robustness bounds (``mt_max`` optional).
+    aggregate : {"sum", "worst"}
+        How several load levels are combined.
+    candidates : int
+        How many tuned candidates are verified on the nonlinear simulator.
+    fidelity : {"rigid", "compliant"}
+        Fidelity of the verification.
+    discrete : bool
+        Verify with the sampled controller, ZOH and quantised encoder.
+    outputs : tuple of str
+        Signals the scene needs (see ``OUTPUTS``).
+    """
+
+    name: str = "custom"
+    setpoint_rad_s: float = 300.0 * math.pi / 30.0
+    initial_load: float = 500.0
+    final_loads: tuple[float, ...] = (1500.0,)
+    step_time: float = 0.2
+    duration: float = 0.5
+    objective: str = "iae"
+    controller: str = "pi"
+    ms_max: float = 1.4
+    mt_max: float | None = None
+    aggregate: str = "sum"
+    candidates: int = 3
+    fidelity: str = "compliant"
+    discrete: bool = True
+    outputs: tuple[str, ...] = ("nut_speed", "motor_torque")
+    origin: str = "<scene>"
+
+    def __post_init__(self) -> None:
+        o = self.origin
+
+        def bad(key: str, value: Any, expected: str) -> SceneError:
+            return SceneError(f"{o}: {key} = {value!r}; expected {expected}")
+
+        def finite(key: str, value: Any) -> float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise bad(key, value, "a finite number")
+            return float(value)
+
+        if finite("setpoint", self.setpoint_rad_s) <= 0:
+            raise bad("setpoint", self.setpoint_rad_s, "a positive nut speed")
+        if finite("initial_load", self.initial_load) < 0:
+            raise bad("initial_load", self.initial_load, "a load >= 0 N (compressive)")
+        if not self.final_loads:
+            raise bad("final_loads", list(self.final_loads), "at least one load")
+        for f in self.final_loads:
+            if finite("final_loads", f) < 0:
+                raise bad("final_loads", f, "loads >= 0 N (compressive)")
+            if f == self.initial_load:
+                raise bad("final_loads", f, f"a load different from the initial {self.initial_load:g} N")
+        if finite("step_time", self.step_time) < 0:
+            raise bad("step_time", self.step_time, "a time >= 0 s")
+        if finite("duration", self.duration) <= self.step_time + 1e-3:
+            raise bad("duration", self.duration, f"a time beyond step_time + 1 ms ({self.step_time + 1e-3:g} s)")
+        if self.objective not in ("ie", "iae", "itae", "ise"):
+            raise bad("objective", self.objective, "one of ie, iae, itae, ise")
+        if self.controller not in ("pi", "pid"):
+            raise bad("controller", self.controller, "pi or pid")
+        if not 1.0 < finite("ms_max", self.ms_max) < 10.0:
+            raise bad("ms_max", self.ms_max, "a number in (1, 10)")
+        if self.mt_max is not None and not 0.5 < finite("mt_max", self.mt_max) < 10.0:
+            raise bad("mt_max", self.mt_max, "a number in (0.5, 10)")
+        if self.aggregate not in ("sum", "worst"):
+            raise bad("aggregate", self.aggregate, "sum or worst")
+        if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or not 1 <= self.candidates <= 10:
+            raise bad("candidates", self.candidates, "an integer 1..10")
+        if self.fidelity not in ("rigid", "compliant"):
+            raise bad("fidelity", self.fidelity, "rigid or compliant")
+        if not isinstance(self.discrete, bool):
+            raise bad("discrete", self.discrete, "true or false")
+        for out in self.outputs:
+            if out not in OUTPUTS:
+                raise bad("outputs", out, f"one of {', '.join(OUTPUTS)}")
+
+    @property
+    def setpoint_rpm(self) -> float:
+        return self.setpoint_rad_s * 30.0 / math.pi
+
+    def replace(self, **changes: Any) -> "Scene":
+        """Copy with some fields changed (validated again); unknown names are an error."""
+        allowed = {f.name for f in fields(self)}
+        unknown = sorted(set(changes) - allowed)
+        if unknown:
+            raise SceneError(f"unknown scene field {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
+        return replace(self, **changes)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["final_loads"] = list(self.final_loads)
+        d["outputs"] = list(self.outputs)
+        d["setpoint_rpm"] = self.setpoint_rpm
+        return d
+
+
+def builtin_scenes() -> list[str]:
+    root = _builtin_root("prsa_ctrl.scenes", "tuning")
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def _from_doc(doc: Mapping[str, Any], origin: str) -> Scene:
+    unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description"})
+    if unknown:
+        raise SceneError(f"{origin}: unknown section {unknown[0]!r}; expected one of {', '.join(_SECTIONS)}")
+    kw: dict[str, Any] = {"origin": origin}
+    if "name" in doc:
+        if not isinstance(doc["name"], str):
+            raise SceneError(f"{origin}: name = {doc['name']!r}; expected a string")
+        kw["name"] = doc["name"]
+    for section, keys in _SECTIONS.items():
+        table = doc.get(section, {})
+        if not isinstance(table, Mapping):
+            raise SceneError(f"{origin}: [{section}] must be a table")
+        extra = sorted(set(table) - set(keys))
+        if extra:
+            raise SceneError(
+                f"{origin}: unknown key {section}.{extra[0]}; expected one of "
+                f"{', '.join(f'{section}.{k}' for k in keys)}"
+            )
+        for key, typ in keys.items():
+            if key not in table:
+                continue
+            val = table[key]
+            ok = isinstance(val, typ) and not (typ in (float, int) and isinstance(val, bool))
+            if typ is float and isinstance(val, int) and not isinstance(val, bool):
+                val, ok = float(val), True
+            if not ok:
+                raise SceneError(f"{origin}: {section}.{key} = {val!r}; expected a {typ.__name__}")
+            kw[key] = val
+    mapping = {
+        "setpoint_rpm": ("setpoint_rad_s", lambda v: v * math.pi / 30.0),
+        "initial_load_n": ("initial_load", float),
+        "final_loads_n": ("final_loads", lambda v: tuple(v)),
+        "step_time_s": ("step_time", float),
+        "duration_s": ("duration", float),
+        "needed": ("outputs", lambda v: tuple(v)),
+    }
+    for old, (new, conv) in mapping.items():
+        if old in kw:
+            kw[new] = conv(kw.pop(old))
+    return Scene(**kw)
+
+
+def load_scene(name_or_path: str | Path | None = None) -> Scene:
+    """Load a scene by built-in name (default ``"paper-load-step"``) or path.
+
+    Raises
+    ------
+    SceneError
+        For a missing, unreadable or invalid file (the message names the file and key).
+    """
+    text = str(name_or_path if name_or_path is not None else DEFAULT_SCENE)
+    if isinstance(name_or_path, Path) or text.endswith(".toml") or "/" in text:
+        path = Path(text).expanduser()
+        origin = str(path)
+        if not path.is_file():
+            raise SceneError(f"scene file {text!r} not found; expected a readable .toml file")
+        reader = path
+    else:
+        reader = _builtin_root("prsa_ctrl.scenes", "tuning") / f"{text}.toml"
+        origin = f"{text}.toml (built-in)"
+        if not reader.is_file():
+            raise SceneError(f"unknown scene {text!r}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
+    try:
+        doc = tomllib.loads(reader.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{origin}: invalid TOML ({exc})") from None
+    return _from_doc(doc, origin)

@@ -1,0 +1,121 @@
+"""The main job on the paper plant: tune, verify, beat the baselines at equal or better Ms."""
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from prsa_ctrl import load_plant
+from prsa_ctrl.autotune import PREDICTION_TOLERANCE, tune_actuator
+from prsa_ctrl.cli import main
+from prsa_ctrl.scene import load_scene
+
+
+@pytest.fixture(scope="module")
+def report():
+    return tune_actuator(load_plant(), load_scene())
+
+
+def test_verified_best_respects_ms_and_beats_every_baseline(report):
+    b = report.best
+    assert b.margins.ms <= report.scene.ms_max
+    assert b.pid.kd == 0.0 and b.pid.kp > 0 and b.pid.ki > 0
+    names = [d.name for d in report.baselines]
+    assert any("paper" in n for n in names) and any("SIMC" in n for n in names) and any("PM 60" in n for n in names)
+    for c in report.comparisons:
+        assert c["tuned_ms"] <= c["baseline_ms"] * (1 + 1e-9)
+        assert c["tuned_objective_verified"] < c["baseline_objective_verified"], c
+    assert report.beats_all_baselines
+
+
+def test_prediction_matches_verification_within_10_percent(report):
+    b = report.best
+    assert abs(b.objective_predicted / b.objective_verified - 1) < PREDICTION_TOLERANCE
+    p, v = b.predicted[0], b.verified[0]
+    assert abs(p.iae / v.iae - 1) < 0.10
+    assert abs(p.peak_drop_rad_s / v.peak_drop_rad_s - 1) < 0.05
+    assert not v.saturated and v.recovery_time_s < 0.1
+
+
+def test_verified_best_is_the_lowest_verified_candidate(report):
+    within = [d for d in report.candidates if d.margins.ms <= report.scene.ms_max]
+    assert report.best.objective_verified == min(d.objective_verified for d in within)
+
+
+def test_paper_kp_sweep_trend(report):
+    """The paper's manual design (small Ki) recovers slowly: large IAE, never within band."""
+    paper = next(d for d in report.baselines if "paper" in d.name)
+    assert paper.objective_verified > 3 * report.best.objective_verified
+
+
+def test_cli_writes_json_report(tmp_path, capsys):
+    out = tmp_path / "out.json"
+    rc = main(["--load-step", "500:1500", "--json", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "Tuned PI" in text and "Baselines" in text and "Run time" in text
+    d = json.loads(out.read_text())
+    for key in ("plant", "scene", "gains", "predicted", "verified", "margins", "baselines", "timing_s"):
+        assert key in d
+    assert set(d["gains"]) >= {"kp", "ki", "kd"}
+    for part in ("predicted", "verified"):
+        assert set(d[part]) >= {"peak_drop_rad_s", "recovery_time_s", "iae", "ie", "steady_state_error_rad_s", "peak_torque_n_m"}
+    assert set(d["margins"]) >= {"ms", "mt", "gm_db", "pm_deg"}
+    assert d["beats_all_baselines"] is True
+    assert abs(d["predicted"]["iae"] / d["verified"]["iae"] - 1) < 0.10
+    assert all({"name", "gains", "verified"} <= set(b) for b in d["baselines"])
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["--load-step", "500"], r"'500': expected INITIAL:FINAL"),
+        (["--load-step", "500:abc"], r"'500:abc': expected INITIAL:FINAL"),
+        (["--load-step", "-5:10"], r"'-5:10': load -5 N is not allowed"),
+        (["--load-step", "nan:1"], r"'nan:1': load nan N is not allowed"),
+        (["--load-step", "500:90000"], r"load 90000 N out of range for paper-iprsm"),
+        (["--plant", "nope"], r"unknown plant 'nope'"),
+        (["--scene", "missing.toml"], r"scene file 'missing.toml' not found"),
+        (["--ms-max", "0.9"], r"ms_max = 0\.9; expected a number in \(1, 10\)"),
+        (["--objective", "mse"], r"invalid choice: 'mse'"),
+    ],
+)
+def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, match):
+    out = tmp_path / "keep.json"
+    out.write_text("previous report\n")
+    rc = main([*argv, "--json", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert len([l for l in err if "error" in l]) == 1
+    assert any(__import__("re").search(match, l) for l in err), err
+    assert out.read_text() == "previous report\n"
+
+
+def test_console_script_bad_input_has_no_traceback(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "prsa_ctrl.cli", "--load-step", "500:abc"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=60,
+    )
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("prsa-tune: error:")
+
+
+def test_cli_numerical_failure_exits_3_and_keeps_files(tmp_path, capsys, monkeypatch):
+    import prsa_ctrl.autotune as autotune
+    from prsa_ctrl import SimulationError
+
+    def boom(*args, **kwargs):
+        raise SimulationError("integration failed between t = 0.2 s and t = 0.5 s from state [...]; remedy: ...")
+
+    monkeypatch.setattr(autotune, "tune_actuator", boom)
+    out = tmp_path / "keep.json"
+    out.write_text("previous report\n")
+    rc = main(["--json", str(out)])
+    assert rc == 3
+    assert capsys.readouterr().err.startswith("prsa-tune: numerical failure: integration failed")
+    assert out.read_text() == "previous report\n"
