@@ -1,4 +1,8 @@
 import os
+import tempfile
+
+# Hypothesis keeps its caches outside the working tree (set before it is imported).
+os.environ.setdefault("HYPOTHESIS_STORAGE_DIRECTORY", os.path.join(tempfile.gettempdir(), "prsa-ctrl-hypothesis"))
 
 import matplotlib
 import pytest
