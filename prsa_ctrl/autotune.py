@@ -47,6 +47,8 @@ class Design:
     objective_predicted: float = math.nan
     objective_verified: float = math.nan
     verified_runs: list = field(default_factory=list, repr=False)
+    predicted_error: list = field(default_factory=list, repr=False)
+    predicted_h: float = math.nan
     note: str = ""
 
     def as_dict(self) -> dict:
@@ -79,6 +81,7 @@ class ActuatorTuning:
     timing_s: dict[str, float]
     solver: dict
     warnings: list[str]
+    loops: list = field(default_factory=list, repr=False)
 
     @property
     def beats_all_baselines(self) -> bool:
@@ -153,9 +156,11 @@ def _aggregate(values: list[float], scene: Scene) -> float:
 def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) -> None:
     """Linear load-step metrics of a design, on the same footing as the verification."""
     w0 = scene.setpoint_rad_s
-    design.predicted = []
+    design.predicted, design.predicted_error = [], []
+    design.predicted_h = loops[0].h
     for f1, lp in zip(scene.final_loads, loops):
         tr = lp.trajectory(design.pid.params[:3])
+        design.predicted_error.append(tr["error"])
         t = scene.step_time + lp.h * np.arange(-1, lp.n_steps)
         speed = w0 + np.concatenate([[0.0], -tr["error"]])
         tau0 = _steady_torque(plant, scene, scene.initial_load)
@@ -383,4 +388,5 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         timing_s=timing,
         solver={"name": "ipopt (CasADi)", "runs": runs},
         warnings=warnings_out,
+        loops=loops,
     )

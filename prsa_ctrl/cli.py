@@ -200,7 +200,7 @@ _VALUE_FLAGS = {"--load-step", "--setpoint-rpm", "--step-time", "--duration", "-
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"prsa-tune: note: {message}", file=sys.stderr)
+    print(f"{Path(sys.argv[0]).name if sys.argv and sys.argv[0] else 'prsa'}: note: {message}", file=sys.stderr)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -282,3 +282,60 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     raise SystemExit(main())
+
+
+def build_plot_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="prsa-plot", description="Bode and step-response plots for a plant and given gains (no tuning).")
+    p.add_argument("--plant", default=None, metavar="NAME|PATH")
+    p.add_argument("--scene", default=None, metavar="NAME|PATH")
+    p.add_argument("--kp", type=_positive("--kp"), required=True, help="N m s/rad")
+    p.add_argument("--ki", type=float, default=0.0, help="N m/rad")
+    p.add_argument("--kd", type=float, default=0.0, help="N m s^2/rad")
+    p.add_argument("--load-step", type=parse_load_step, metavar="N0:N1")
+    p.add_argument("--setpoint-rpm", type=_positive("--setpoint-rpm"))
+    p.add_argument("--out", type=Path, default=Path("prsa-plots"), metavar="DIR")
+    return p
+
+
+def plot_main(argv: Sequence[str] | None = None) -> int:
+    """``prsa-plot``: plant and loop Bode plots, sensitivities, load-step and setpoint-step
+    responses for given gains, written as PNG and SVG into ``--out``."""
+    parser = build_plot_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = parser.parse_args(_attach_values(argv))
+        warnings.showwarning = _show_warning
+        from .controller import PID
+        from .plant import load_plant
+        from .scene import load_scene
+
+        plant = load_plant(args.plant)
+        scene = load_scene(args.scene)
+        changes = {}
+        if args.load_step is not None:
+            changes["initial_load"], changes["final_loads"] = args.load_step[0], args.load_step[1][:1]
+        if args.setpoint_rpm is not None:
+            changes["setpoint_rad_s"] = args.setpoint_rpm * math.pi / 30.0
+        if changes:
+            scene = scene.replace(origin="command line", **changes)
+        try:
+            pid = PID(args.kp, args.ki, args.kd, tf=4 * plant.sample_time_s)
+        except ValueError as exc:
+            raise _UsageError(str(exc)) from None
+        if args.out.exists() and not args.out.is_dir():
+            raise _UsageError(f"--out {str(args.out)!r}: exists and is not a directory")
+    except (_UsageError, argparse.ArgumentTypeError, PlantFileError, SceneError) as exc:
+        print(f"prsa-plot: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        from .plots import write_design_plots
+
+        files = write_design_plots(plant, scene, pid, args.out)
+    except (SimulationError, ArithmeticError) as exc:
+        print(f"prsa-plot: numerical failure: {exc}", file=sys.stderr)
+        return 3
+    except ValueError as exc:  # e.g. destabilising gains
+        print(f"prsa-plot: error: {exc}", file=sys.stderr)
+        return 2
+    print("\n".join(str(f) for f in files))
+    return 0

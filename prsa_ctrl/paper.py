@@ -25,6 +25,8 @@ __all__ = [
     "load_step_study",
     "LoadStepRow",
     "format_rows",
+    "gain_study",
+    "GainRun",
 ]
 
 #: Table 2 at 300 rpm, 5000 N: (theoretical, simulated) for cage rad/s, roller rad/s, screw mm/s.
@@ -197,3 +199,49 @@ def format_rows(rows: Sequence[dict[str, object]], floatfmt: str = "{:.4g}") -> 
     ]
     widths = [max(len(c[i]) for c in cells) for i in range(len(keys))]
     return "\n".join("  ".join(c[i].ljust(widths[i]) for i in range(len(keys))).rstrip() for c in cells)
+
+
+@dataclass(frozen=True)
+class GainRun:
+    """One response of a gain study: label, gains, time (s), nut speed (rad/s) and metrics."""
+
+    label: str
+    pid: PID
+    time: np.ndarray
+    speed: np.ndarray
+    metrics: object
+
+
+def gain_study(
+    plant: Plant,
+    vary: str = "kp",
+    factors: Sequence[float] = (0.25, 0.5, 1.0, 1.5),
+    initial_load: float = 500.0,
+    final_load: float = 1500.0,
+    step_time: float = 0.2,
+    duration: float = 0.4,
+    omega_nut: float = OMEGA_300_RPM,
+    discrete: bool = True,
+) -> list[GainRun]:
+    """The paper's PID study: the 500 -> 1500 N step with ``kp`` (small fixed ``ki``, one tenth
+    of the reference) or ``ki`` (reference ``kp``) scaled by ``factors`` around the reference
+    controller :func:`default_pid`. Kd = 0 as in the paper."""
+    from .metrics import load_step_metrics
+    from .simulation import simulate
+
+    if vary not in ("kp", "ki"):
+        raise ValueError(f"vary = {vary!r}; expected 'kp' or 'ki'")
+    ref = default_pid(plant)
+    pre = min(step_time, 2e-3)
+    runs = []
+    for f in factors:
+        pid = PID(ref.kp * f, ref.ki / 10.0) if vary == "kp" else PID(ref.kp, ref.ki * f)
+        r = simulate(plant, setpoint=omega_nut, load=[(0.0, initial_load), (pre, final_load)],
+                     duration=pre + duration - step_time, controller=pid, discrete=discrete)
+        t = np.asarray(r.time) + step_time - pre
+        w = np.asarray(r.outputs[0])
+        m = load_step_metrics(t, w, omega_nut, step_time, np.asarray(r.outputs[5]), plant.torque_limit)
+        label = (f"kp = {pid.kp:.3g} N m s/rad (ki = {pid.ki:.3g})" if vary == "kp"
+                 else f"ki = {pid.ki:.3g} N m/rad (kp = {pid.kp:.3g})")
+        runs.append(GainRun(label, pid, t, w, m))
+    return runs

@@ -51,9 +51,10 @@ def test_paper_kp_sweep_trend(report):
     assert paper.objective_verified > 3 * report.best.objective_verified
 
 
-def test_cli_writes_json_report(tmp_path, capsys):
+def test_cli_writes_json_report_and_plots(tmp_path, capsys):
     out = tmp_path / "out.json"
-    rc = main(["--load-step", "500:1500", "--json", str(out)])
+    plots = tmp_path / "figs"
+    rc = main(["--load-step", "500:1500", "--json", str(out), "--plots", str(plots)])
     assert rc == 0
     text = capsys.readouterr().out
     assert "Tuned PI" in text and "Baselines" in text and "Run time" in text
@@ -68,6 +69,12 @@ def test_cli_writes_json_report(tmp_path, capsys):
     assert abs(d["predicted"]["iae"] / d["verified"]["iae"] - 1) < 0.10
     assert all({"name", "gains", "verified"} <= set(b) for b in d["baselines"])
     assert not list(tmp_path.glob(".*.tmp"))
+    pngs = sorted(plots.glob("*.png"))
+    assert {p.stem for p in pngs} >= {"plant_bode", "loop_bode", "sensitivity", "load_step", "baselines", "landscape", "contact_forces"}
+    for p in pngs:
+        data = p.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+        assert p.with_suffix(".svg").read_text().lstrip().startswith("<?xml")
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,317 @@
+"""Benchmarks (not tests): run time against error, side by side in one run.
+
+``python -m prsa_ctrl.bench [--out DIR] [--fast]`` (or ``prsa-bench``) writes ``bench.json`` and
+``work_precision.png``:
+
+- **work-precision**: wall time against the maximum nut-speed error (rad/s, against a
+  1e-12-tolerance CVODES reference) of the closed-loop load step, for our CasADi integrators
+  (cvodes, idas) over tolerances and fidelities, and for scipy ``solve_ivp`` (LSODA, Radau, BDF)
+  and python-control ``input_output_response`` integrating the *same* model equations
+  (the CasADi right-hand side and, for the implicit methods, its exact Jacobian), each
+  restarted at the load step like ours;
+- **tuning**: our tuner against a Kp-Ki grid search whose every point is verified on the
+  nonlinear simulator;
+- **cold CLI**: ``prsa-tune --load-step 500:1500`` wall time over ``python -c "import control,
+  casadi"``.
+
+Ratios are measured in the same run on the same machine; no target is asserted here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["work_precision", "tuning_benchmark", "cold_cli_benchmark", "main"]
+
+
+class _OverBudget(Exception):
+    pass
+
+
+def _scene_inputs(fast: bool):
+    from .paper import OMEGA_300_RPM
+
+    pre, post = 0.002, (0.02 if fast else 0.1)
+    return OMEGA_300_RPM, [(0.0, 500.0), (pre, 1500.0)], pre + post
+
+
+def _reference_pid(plant):
+    from .controller import PID
+
+    # The tuned design of the paper scene (rounded); fixed so runs are comparable.
+    return PID(0.0849, 14.67) if plant.name == "paper-iprsm" else __import__("prsa_ctrl.paper", fromlist=["x"]).default_pid(plant)
+
+
+def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> dict:
+    """Time (s) and max nut-speed error (rad/s) per method and setting; see module docstring."""
+    import casadi as ca
+    import control
+    from scipy.integrate import solve_ivp
+
+    from . import load_plant
+    from .model import plant_model
+    from .simulation import SimSettings, _build, _value_at, simulate
+
+    plant = plant or load_plant()
+    pid = _reference_pid(plant)
+    ref_w, load, duration = _scene_inputs(fast)
+    dt = 1e-4
+    grid = np.arange(0.0, duration + 0.5 * dt, dt)
+
+    def ours(fidelity, integ, tol):
+        s = SimSettings(integrator=integ, rtol=tol, atol=tol, max_steps=200000)
+        simulate(plant, setpoint=ref_w, load=load, duration=duration, controller=pid, fidelity=fidelity, dt=dt, settings=s)
+        t0 = time.perf_counter()
+        r = simulate(plant, setpoint=ref_w, load=load, duration=duration, controller=pid, fidelity=fidelity, dt=dt, settings=s)
+        return time.perf_counter() - t0, np.interp(grid, r.time, r.outputs[0])
+
+    _, w_ref = ours("compliant", "cvodes", 1e-12)
+    rows = []
+
+    def record(method, setting, fidelity, elapsed, w, finished=True):
+        err = float(np.max(np.abs(w - w_ref))) if finished else math.nan
+        rows.append({"method": method, "setting": setting, "fidelity": fidelity, "time_s": elapsed,
+                     "max_error_rad_s": err, "finished": finished})
+
+    tols = (1e-4, 1e-6, 1e-8) if fast else (1e-4, 1e-6, 1e-8, 1e-10)
+    for fidelity in ("rigid", "compliant"):
+        for integ in ("cvodes", "idas"):
+            for tol in tols:
+                el, w = ours(fidelity, integ, tol)
+                record(f"prsa-ctrl {integ}", f"tol {tol:g}", fidelity, el, w)
+
+    # The same closed-loop equations for scipy and python-control (scaled states).
+    model = plant_model(plant, "compliant")
+    built = _build(model, False)
+    z = ca.SX.sym("z", len(built.scale))
+    p = ca.SX.sym("p", 8)
+    rhs = ca.Function("rhs", [z, p], [built.rhs(z, p)])
+    jac = ca.Function("rhs_jacobian", [z, p], [ca.jacobian(built.rhs(z, p), z)])
+    r0 = simulate(plant, setpoint=ref_w, load=load[0][1], duration=1e-4, controller=pid, fidelity="compliant")
+    x0 = np.asarray(r0.states)[:, 0]
+    z0 = x0 / built.scale
+    bounds = [0.0, load[1][0], duration]
+
+    def params(t0, t1):
+        return [ref_w, _value_at(load, t0), *pid.params, 0.0, t1 - t0]
+
+    def segment_taus(t0, t1):
+        """Normalised output times of one segment: its grid points (the last segment keeps
+        its end) plus the end point, from which the next segment restarts."""
+        last = t1 == bounds[-1]
+        eps = 1e-9 * (t1 - t0)
+        pts = grid[(grid >= t0 - eps) & ((grid <= t1 + eps) if last else (grid < t1 - eps))]
+        taus = (pts - t0) / (t1 - t0)
+        taus = np.minimum(taus, 1.0)
+        return (taus if last and taus[-1] >= 1.0 - 1e-9 else np.append(taus, 1.0)), len(pts)
+
+    def scipy_run(method, tol):
+        t_start = time.perf_counter()
+        zc, ws = z0.copy(), []
+
+        def f(tau, zz, pp):
+            if time.perf_counter() - t_start > budget_s:
+                raise _OverBudget
+            return np.asarray(rhs(zz, pp)).ravel()
+
+        try:
+            for t0, t1 in zip(bounds[:-1], bounds[1:]):
+                pp = params(t0, t1)
+                taus, n_pts = segment_taus(t0, t1)
+                kw = {"jac": (lambda tau, zz, pp=pp: np.asarray(jac(zz, pp)))} if method != "RK45" else {}
+                sol = solve_ivp(f, (0.0, 1.0), zc, method=method, t_eval=taus, rtol=tol, atol=tol, args=(pp,), **kw)
+                if not sol.success:
+                    raise _OverBudget
+                ws.append(sol.y[model.index("omega_nut"), :n_pts] * built.scale[model.index("omega_nut")])
+                zc = sol.y[:, -1]
+        except _OverBudget:
+            return time.perf_counter() - t_start, None
+        return time.perf_counter() - t_start, np.concatenate(ws)
+
+    for method in ("LSODA", "Radau", "BDF"):
+        for tol in tols:
+            el, w = scipy_run(method, tol)
+            record(f"scipy {method}", f"tol {tol:g}", "compliant", el, w if w is not None else w_ref, w is not None)
+
+    def control_run(method, tol):
+        t_start = time.perf_counter()
+
+        def upd(t, zz, u, prm):
+            if time.perf_counter() - t_start > budget_s:
+                raise _OverBudget
+            return np.asarray(rhs(zz, prm["p"])).ravel()
+
+        sys_ = control.nlsys(upd, None, inputs=0, states=len(z0), outputs=len(z0), name="closed_loop")
+        zc, ws = z0.copy(), []
+        try:
+            for t0, t1 in zip(bounds[:-1], bounds[1:]):
+                taus, n_pts = segment_taus(t0, t1)
+                res = control.input_output_response(
+                    sys_, taus, 0, zc, params={"p": params(t0, t1)}, solve_ivp_method=method,
+                    solve_ivp_kwargs={"rtol": tol, "atol": tol},
+                )
+                y = np.asarray(res.states)
+                ws.append(y[model.index("omega_nut"), :n_pts] * built.scale[model.index("omega_nut")])
+                zc = y[:, -1]
+        except (_OverBudget, RuntimeError, ValueError):
+            return time.perf_counter() - t_start, None
+        return time.perf_counter() - t_start, np.concatenate(ws)
+
+    for method in ("RK45", "LSODA"):
+        for tol in tols[:2] if method == "RK45" else tols:
+            el, w = control_run(method, tol)
+            record(f"python-control {method}", f"tol {tol:g}", "compliant", el, w if w is not None else w_ref, w is not None)
+
+    def best_time(prefix, target, fidelity="compliant"):
+        ok = [r["time_s"] for r in rows if r["method"].startswith(prefix) and r["finished"]
+              and r["fidelity"] == fidelity and r["max_error_rad_s"] <= target]
+        return min(ok) if ok else math.inf
+
+    target = 1e-6
+    ours_t = best_time("prsa-ctrl", target)
+    return {
+        "scene": {"plant": plant.name, "pid": pid.as_dict(), "load": load, "duration_s": duration, "dt_s": dt},
+        "rows": rows,
+        "target_error_rad_s": target,
+        "best_time_s": {
+            "prsa-ctrl": ours_t,
+            "scipy": min(best_time(f"scipy {m}", target) for m in ("LSODA", "Radau", "BDF")),
+            "python-control": min(best_time(f"python-control {m}", target) for m in ("RK45", "LSODA")),
+        },
+        "budget_s": budget_s,
+    }
+
+
+def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False) -> dict:
+    """Our tuner (tune + verify the winner) against an n x n Kp-Ki grid with nonlinear
+    verification of every point; objective IAE of the paper scene."""
+    from . import load_plant
+    from .autotune import Design, actuator_loops, verify
+    from .controller import PID
+    from .scene import load_scene
+    from .tuning import tune_loops
+
+    plant = plant or load_plant()
+    scene = load_scene()
+    if fast:
+        scene = scene.replace(duration=scene.step_time + 0.05)
+        n_grid = min(n_grid, 5)
+    t0 = time.perf_counter()
+    loops = actuator_loops(plant, scene)
+    res = tune_loops(loops, objective=scene.objective, ms_max=scene.ms_max)
+    ours = verify(Design("tuned", res.pid, res.margins[0]), plant, scene)
+    t_ours = time.perf_counter() - t0
+    kp0, ki0 = res.pid.kp, res.pid.ki
+    kps = kp0 * np.logspace(-0.7, 0.3, n_grid)
+    kis = ki0 * np.logspace(-1, 0.5, n_grid)
+    t1 = time.perf_counter()
+    best = (math.inf, None)
+    lp = loops[0]
+    for kp in kps:
+        for ki in kis:
+            g = (kp, ki, 0.0)
+            if not lp.is_stable(g) or lp.margins(g).ms > scene.ms_max:
+                continue  # the grid search honours the same Ms bound
+            d = verify(Design("grid", PID(kp, ki), lp.margins(g)), plant, scene)
+            if d.objective_verified < best[0]:
+                best = (d.objective_verified, (kp, ki))
+    t_grid = time.perf_counter() - t1
+    return {
+        "grid": f"{n_grid} x {n_grid}",
+        "ours": {"time_s": t_ours, "iae": ours.objective_verified, "kp": kp0, "ki": ki0},
+        "grid_search": {"time_s": t_grid, "iae": best[0], "kp_ki": best[1]},
+        "speedup": t_grid / t_ours,
+        "ours_no_worse": bool(ours.objective_verified <= best[0] * (1 + 1e-9)),
+    }
+
+
+def cold_cli_benchmark(repeats: int = 3) -> dict:
+    """Median cold wall time of the CLI and of importing python-control and CasADi."""
+    def run(cmd):
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times))
+
+    t_import = run([sys.executable, "-c", "import control, casadi"])
+    t_cli = run([sys.executable, "-m", "prsa_ctrl.cli", "--load-step", "500:1500", "--quiet"])
+    return {"import_control_casadi_s": t_import, "prsa_tune_s": t_cli, "ratio": t_cli / t_import}
+
+
+def _plot(wp: dict, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 5.0), layout="constrained")
+    groups: dict = {}
+    for r in wp["rows"]:
+        if r["finished"]:
+            groups.setdefault(f"{r['method']} ({r['fidelity']})", []).append(r)
+    for name, rs in groups.items():
+        ax.loglog([r["time_s"] for r in rs], [max(r["max_error_rad_s"], 1e-14) for r in rs], "o-", label=name)
+    ax.axhline(wp["target_error_rad_s"], color="k", ls="--", lw=0.8, label="1e-6 rad/s")
+    ax.set_xlabel("wall time (s)")
+    ax.set_ylabel("max nut-speed error (rad/s)")
+    ax.set_title("Work-precision: paper load step, closed loop")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+def _json_safe(obj):
+    """Non-finite floats (unfinished runs, targets never reached) become null."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="prsa-bench", description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("bench-results"))
+    ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
+    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "tuning", "cli"])
+    args = ap.parse_args(argv)
+    import warnings
+
+    warnings.simplefilter("ignore")
+    args.out.mkdir(parents=True, exist_ok=True)
+    result: dict = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}}
+    if "work" not in args.skip:
+        result["work_precision"] = wp = work_precision(fast=args.fast, budget_s=10.0 if args.fast else 60.0)
+        _plot(wp, args.out / "work_precision.png")
+        b = wp["best_time_s"]
+        print(f"work-precision at <= 1e-6 rad/s: prsa-ctrl {b['prsa-ctrl']:.3f} s, scipy {b['scipy']:.3f} s "
+              f"({b['scipy'] / b['prsa-ctrl']:.1f}x), python-control {b['python-control']:.3f} s "
+              f"({b['python-control'] / b['prsa-ctrl']:.1f}x)")
+    if "tuning" not in args.skip:
+        result["tuning"] = tb = tuning_benchmark(fast=args.fast)
+        print(f"tuning: ours {tb['ours']['time_s']:.2f} s (IAE {tb['ours']['iae']:.5g}) vs {tb['grid']} grid "
+              f"{tb['grid_search']['time_s']:.1f} s (IAE {tb['grid_search']['iae']:.5g}): {tb['speedup']:.0f}x")
+    if "cli" not in args.skip:
+        result["cold_cli"] = cb = cold_cli_benchmark(1 if args.fast else 3)
+        print(f"cold CLI: {cb['prsa_tune_s']:.2f} s vs import control, casadi {cb['import_control_casadi_s']:.2f} s: "
+              f"ratio {cb['ratio']:.2f}")
+    from .cli import write_json_atomic
+
+    write_json_atomic(args.out / "bench.json", _json_safe(result))
+    print(f"results: {args.out / 'bench.json'}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
