@@ -19,8 +19,8 @@ from .metrics import LoadStepMetrics, Margins, load_step_metrics
 from .model import _cage_inertia, plant_model
 from .paper import default_pid
 from .plant import Plant
-from .scene import Scene
-from .simulation import SimSettings, simulate
+from .scene import Scene, choose_fidelity
+from .simulation import SimSettings, run
 from .tuning import LoopModel, continuous_loop, drive_loop, tune_loops
 
 __all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs"]
@@ -82,6 +82,7 @@ class ActuatorTuning:
     solver: dict
     warnings: list[str]
     loops: list = field(default_factory=list, repr=False)
+    fidelity_reason: str = ""
 
     @property
     def beats_all_baselines(self) -> bool:
@@ -105,6 +106,8 @@ class ActuatorTuning:
             "beats_all_baselines": self.beats_all_baselines,
             "solver": self.solver,
             "timing_s": self.timing_s,
+            "verification": {"fidelity": self.fidelity_reason, "discrete": self.scene.discrete,
+                             "tolerance": verify_settings(self.scene).rtol},
             "warnings": self.warnings,
         }
 
@@ -114,17 +117,24 @@ def _tf_default(plant: Plant) -> float:
     return 4.0 * plant.sample_time_s
 
 
+def _linear_fidelity(scene: Scene) -> str:
+    """The multi-roller model is periodic in the cage angle; its mean behaviour is the
+    compliant model's, which is linearised instead."""
+    return "compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity
+
+
 def actuator_loops(plant: Plant, scene: Scene) -> list[LoopModel]:
     """One loop model per final load, linearised at the mid load of the step (the response
     to a step is the same from any linearisation point; the mid load keeps the Jacobians
     closest to both ends)."""
-    model = plant_model(plant, scene.fidelity)
+    fidelity = _linear_fidelity(scene)
+    model = plant_model(plant, fidelity)
     i_speed = model.output_names.index("nut_speed")
     i_torque = model.output_names.index("motor_torque")
     horizon = scene.duration - scene.step_time
     loops = []
     for f1 in scene.final_loads:
-        a, b, c, _, _ = linear_core(plant, scene.setpoint_rad_s, 0.5 * (scene.initial_load + f1), scene.fidelity)
+        a, b, c, _, _ = linear_core(plant, scene.setpoint_rad_s, 0.5 * (scene.initial_load + f1), fidelity)
         step = f1 - scene.initial_load
         if scene.discrete:
             loops.append(
@@ -174,24 +184,28 @@ def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene)
 def _steady_torque(plant: Plant, scene: Scene, load: float) -> float:
     from .equilibrium import operating_point
 
-    return operating_point(plant, scene.setpoint_rad_s, load, scene.fidelity).torque
+    return operating_point(plant, scene.setpoint_rad_s, load, _linear_fidelity(scene)).torque
 
 
-#: Verification integrator settings: at rtol = atol = 1e-6 (scaled states) the nut speed of the
-#: sampled compliant loop differs from a 1e-10 reference by ~1e-3 rad/s on the paper step
-#: (0.03 % of the peak drop) at half the cost of the 1e-8 default.
-VERIFY_SETTINGS = SimSettings(rtol=1e-6, atol=1e-6)
+def verify_settings(scene: Scene) -> SimSettings:
+    """Integrator tolerance from the scene's accuracy: ``1e-4 x accuracy`` (clipped to
+    [1e-10, 1e-5]). At 1e-6 (accuracy 1 %) the sampled compliant loop's nut speed differs from a
+    1e-10 reference by ~1e-3 rad/s on the paper step (0.03 % of the peak drop), at half the
+    cost of 1e-8."""
+    tol = min(max(1e-4 * scene.accuracy, 1e-10), 1e-5)
+    return SimSettings(rtol=tol, atol=tol)
 
 
 def verify(design: Design, plant: Plant, scene: Scene) -> Design:
     """Nonlinear load-step runs of a design (one per final load); fills ``design.verified``
     and ``design.verified_runs`` (time s, dict of output arrays) and returns the design."""
+    scene, _ = choose_fidelity(scene)
     ts = plant.sample_time_s
     pre = min(scene.step_time, _PRE_SAMPLES * ts) if scene.discrete else min(scene.step_time, 1e-3)
     offset = scene.step_time - pre
     design.verified, design.verified_runs = [], []
     for f1 in scene.final_loads:
-        r = simulate(
+        r = run(
             plant,
             setpoint=scene.setpoint_rad_s,
             load=[(0.0, scene.initial_load), (pre, f1)],
@@ -199,7 +213,7 @@ def verify(design: Design, plant: Plant, scene: Scene) -> Design:
             controller=design.pid,
             fidelity=scene.fidelity,
             discrete=scene.discrete,
-            settings=VERIFY_SETTINGS,
+            settings=verify_settings(scene),
         )
         t = np.asarray(r.time) + offset
         y = dict(zip(r.output_labels, np.asarray(r.outputs)))
@@ -311,6 +325,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     """
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
+    scene, fidelity_reason = choose_fidelity(scene)
     loops = actuator_loops(plant, scene)
     timing["linearize"] = time.perf_counter() - t0
 
@@ -389,4 +404,5 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         solver={"name": "ipopt (CasADi)", "runs": runs},
         warnings=warnings_out,
         loops=loops,
+        fidelity_reason=fidelity_reason,
     )

@@ -132,7 +132,7 @@ def format_report(rep) -> str:
     out = [
         f"prsa-tune: plant {rep.plant.name}, scene {sc.name}: {sc.setpoint_rpm:g} rpm, "
         f"{sc.initial_load:g} N -> {loads} N at {sc.step_time:g} s",
-        f"verification: {sc.fidelity} model, {'sampled controller (ZOH, quantised encoder)' if sc.discrete else 'continuous controller'}",
+        f"verification: {rep.fidelity_reason}; {'sampled controller (ZOH, quantised encoder)' if sc.discrete else 'continuous controller'}",
         "",
         f"Tuned {sc.controller.upper()} ({b.name}): kp = {b.pid.kp:.5g} N m s/rad, ki = {b.pid.ki:.5g} N m/rad"
         + (f", kd = {b.pid.kd:.5g} N m s^2/rad (tf {b.pid.tf:g} s)" if b.pid.kd else ""),

@@ -44,7 +44,7 @@ def _solver(model: PlantModel) -> ca.Function:
     if model in _SOLVERS:
         return _SOLVERS[model]
     # Unknowns: every state but the angle and the nut speed, plus the torque command.
-    free = [i for i, n in enumerate(model.state_names) if n not in ("theta_nut", "omega_nut")]
+    free = [i for i, n in enumerate(model.state_names) if not n.startswith("theta_") and n != "omega_nut"]
     z = ca.SX.sym("z", len(free) + 1)
     par = ca.SX.sym("p", 2)  # omega_nut, load
     x = [0] * model.nx
@@ -53,7 +53,7 @@ def _solver(model: PlantModel) -> ca.Function:
         x[i] = z[k]
     x = ca.vertcat(*x)
     rhs = model.f(x, ca.vertcat(z[-1], par[1]))
-    eqs = ca.vertcat(*[rhs[i] for i in range(model.nx) if model.state_names[i] != "theta_nut"])
+    eqs = ca.vertcat(*[rhs[i] for i in range(model.nx) if not model.state_names[i].startswith("theta_")])
     g = ca.Function("g", [z, par], [eqs])
     solver = ca.rootfinder(
         "eq", "newton", g, {"abstol": 1e-10, "max_iter": 200, "error_on_fail": True}
@@ -88,9 +88,12 @@ def _guess(model: PlantModel, omega: float, load: float) -> NDArray[np.float64]:
 
 
 def operating_point(
-    plant: Plant, omega_nut: float, load: float, fidelity: str = "compliant"
+    plant: Plant, omega_nut: float, load: float, fidelity: str = "compliant", seed: int = 0
 ) -> OperatingPoint:
     """Equilibrium at constant nut speed ``omega_nut`` (rad/s) and axial load ``load`` (N).
+
+    For the multi-roller fidelity this is the balance at cage angle 0 (the roller runout makes
+    the true steady state periodic).
 
     Raises
     ------
@@ -110,7 +113,7 @@ def operating_point(
             f"holding {omega_nut:g} rad/s at {load:g} N needs {needed:.3g} N m, beyond the motor "
             f"limit of {plant.torque_limit:g} N m (drive.torque_limit_n_m); lower the load"
         )
-    model = plant_model(plant, fidelity)
+    model = plant_model(plant, fidelity, seed)
     solver = _solver(model)
     free = model._free  # type: ignore[attr-defined]
     x0 = _guess(model, omega_nut, load)

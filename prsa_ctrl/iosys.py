@@ -18,8 +18,9 @@ def nonlinear_iosys(plant: Plant, fidelity: str = "compliant") -> control.Nonlin
     (N), the model's named states and outputs (the actual torque output is
     ``motor_torque_actual`` so that it does not clash with the input).
 
-    The nut angle is left out of the states: nothing depends on it, and with it no steady
-    state at non-zero speed would exist for ``find_operating_point``.
+    The angles are left out of the states (held at zero): nothing in the rigid and compliant
+    models depends on them, and with them no steady state at non-zero speed would exist for
+    ``find_operating_point``.
 
     Examples
     --------
@@ -31,7 +32,7 @@ def nonlinear_iosys(plant: Plant, fidelity: str = "compliant") -> control.Nonlin
     """
     model = plant_model(plant, fidelity)
     f, h = model.f, model.h
-    keep = [i for i, n in enumerate(model.state_names) if n != "theta_nut"]
+    keep = [i for i, n in enumerate(model.state_names) if not n.startswith("theta_")]
 
     def full(x):
         xf = np.zeros(model.nx)

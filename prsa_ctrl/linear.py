@@ -15,7 +15,6 @@ import math
 import weakref
 
 import casadi as ca
-import control
 import numpy as np
 
 from .controller import PID
@@ -26,7 +25,9 @@ from .plant import Plant
 __all__ = ["linear_core", "linearize", "pid_controller", "closed_loop", "predict_load_step"]
 
 
-def _pade(delay: float, order: int, inp: str, out: str, name: str) -> control.StateSpace:
+def _pade(delay: float, order: int, inp: str, out: str, name: str) -> "control.StateSpace":
+
+    import control
     if delay <= 0 or order == 0:
         return control.ss([], [], [], [[1.0]], inputs=[inp], outputs=[out], name=name)
     num, den = control.pade(delay, order)
@@ -40,6 +41,11 @@ def _pade(delay: float, order: int, inp: str, out: str, name: str) -> control.St
 def linear_core(plant: Plant, omega_nut: float, load: float, fidelity: str = "compliant"):
     """Jacobians ``(A, B, C, D, op)`` of the plant about an operating point, all states kept
     (including the nut angle), inputs ``(motor_torque, axial_load)``, outputs the model's."""
+    if fidelity not in ("rigid", "compliant"):
+        raise ValueError(
+            f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' (the multi-roller model is "
+            "periodic in the cage angle and has no constant operating point)"
+        )
     model = plant_model(plant, fidelity)
     op = operating_point(plant, omega_nut, load, fidelity)
     u0 = np.array([op.torque, load])
@@ -73,7 +79,7 @@ def linearize(
     fidelity: str = "compliant",
     sampled: bool = True,
     pade_order: int = 2,
-) -> control.StateSpace:
+) -> "control.StateSpace":
     """Linearise the actuator about constant nut speed and axial load.
 
     Parameters
@@ -104,6 +110,8 @@ def linearize(
     >>> P.input_labels
     ['motor_torque', 'axial_load']
     """
+    import control
+
     if not (math.isfinite(omega_nut) and math.isfinite(load)):
         raise ValueError(f"operating point ({omega_nut!r} rad/s, {load!r} N); expected finite values")
     if pade_order not in range(0, 6):
@@ -143,9 +151,11 @@ def linearize(
     return sys
 
 
-def pid_controller(pid: PID, name: str = "pid") -> control.StateSpace:
+def pid_controller(pid: PID, name: str = "pid") -> "control.StateSpace":
     """Continuous PID with inputs ``speed_setpoint`` and ``nut_speed_measured`` (rad/s) and
     output ``motor_torque`` (N m); derivative on the measurement with filter ``tf``."""
+    import control
+
     kp, ki, kd, tf = pid.kp, pid.ki, pid.kd, pid.tf
     # States: integral of the error, derivative-filter state.
     a = np.array([[0.0, 0.0], [0.0, -1.0 / tf]])
@@ -159,9 +169,11 @@ def pid_controller(pid: PID, name: str = "pid") -> control.StateSpace:
     )
 
 
-def closed_loop(sys: control.StateSpace, pid: PID) -> control.StateSpace:
+def closed_loop(sys: control.StateSpace, pid: PID) -> "control.StateSpace":
     """Speed loop of a linearised plant: inputs ``speed_setpoint`` and ``axial_load``; outputs
     the plant's plus ``motor_torque``."""
+    import control
+
     outs = [o for o in sys.output_labels] + ["motor_torque"]
     plant_part = control.ss(sys.A, sys.B, sys.C, sys.D, inputs=sys.input_labels,
                             outputs=sys.output_labels, states=sys.state_labels, name="P")
@@ -176,18 +188,20 @@ def closed_loop(sys: control.StateSpace, pid: PID) -> control.StateSpace:
 
 
 def predict_load_step(
-    sys: control.StateSpace,
+    sys: "control.StateSpace",
     pid: PID,
     load_step: float,
     t_step: float,
     duration: float,
     dt: float = 1e-4,
-) -> control.TimeResponseData:
+) -> "control.TimeResponseData":
     """Linear prediction of a load step of ``load_step`` N at ``t_step`` s.
 
     Returns absolute signals (operating point added back) on a uniform grid of spacing ``dt``;
     the step is exact (the step response of the closed loop, not an interpolated ramp).
     """
+    import control
+
     cl = closed_loop(sys, pid)
     op = sys.operating_point
     if not cl.isctime() or np.any(np.real(cl.poles()) >= 0):

@@ -13,6 +13,10 @@ Two fidelities of one physical model:
     thread contacts follow the paper's IMPACT law on both flanks (with axial backlash), the nut
     drives the cage through a friction-limited traction (a creep law), and thread friction uses
     the static/dynamic coefficients with a smooth stiction (Stribeck) curve.
+``multi-roller``
+    The compliant model with every roller's own nut-side and screw-side contact, offset by
+    seeded position errors and a once-per-spin runout drawn from the plant's tolerances, so
+    load sharing is uneven and the contact forces fluctuate as the rollers turn.
 
 Both include the drive: torque-command saturation and a first-order current loop.
 """
@@ -27,9 +31,9 @@ import casadi as ca
 
 from .plant import Plant
 
-__all__ = ["FIDELITIES", "PlantModel", "plant_model", "INPUTS"]
+__all__ = ["FIDELITIES", "PlantModel", "RollerErrors", "plant_model", "INPUTS"]
 
-FIDELITIES = ("rigid", "compliant")
+FIDELITIES = ("rigid", "compliant", "multi-roller")
 
 #: Plant inputs: torque command to the current loop (N m) and external axial load (N,
 #: positive opposing forward screw motion).
@@ -47,9 +51,21 @@ _STATES = {
         "v_screw",
         "tau_motor",
     ),
+    "multi-roller": (
+        "theta_nut",
+        "omega_nut",
+        "theta_cage",
+        "omega_cage",
+        "x_roller",
+        "v_roller",
+        "delta_screw",
+        "v_screw",
+        "tau_motor",
+    ),
 }
 _STATE_UNITS = {
     "theta_nut": "rad",
+    "theta_cage": "rad",
     "omega_nut": "rad/s",
     "omega_cage": "rad/s",
     "x_roller": "m",
@@ -71,6 +87,17 @@ _OUTPUTS = {
     "rigid": _OUTPUTS_COMMON,
     "compliant": _OUTPUTS_COMMON + ("contact_force_nut", "contact_force_screw"),
 }
+
+
+def _output_names(plant: Plant, fidelity: str) -> tuple[str, ...]:
+    if fidelity != "multi-roller":
+        return _OUTPUTS[fidelity]
+    n = plant.n_rollers
+    return (
+        _OUTPUTS["compliant"]
+        + tuple(f"contact_force_nut_{i + 1}" for i in range(n))
+        + tuple(f"contact_force_screw_{i + 1}" for i in range(n))
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,19 +156,19 @@ def _smooth_step(p: ca.SX, depth: float) -> ca.SX:
     return s * s * (3.0 - 2.0 * s)
 
 
-def _thread_contact(plant: Plant, delta: ca.SX, ddelta: ca.SX, cos_helix: float):
+def _thread_contact(plant: Plant, delta: ca.SX, ddelta: ca.SX, cos_helix: float, n_contacts: int | None = None):
     """Axial force of one roller-thread interface from its axial compression ``delta`` (m).
 
     Each of the ``N_R z`` engaged flanks follows the IMPACT law on its normal penetration
     ``p = delta cos(beta) cos(lambda)``: ``F_n = K p^e + C_max dp/dt STEP(p; 0, d)``. The
     opposite flank engages after the axial backlash. Returns the axial force on the driven
     side (N), the total normal force (N, both flanks), the stored elastic energy (J) and the
-    damping power (W).
+    damping power (W). ``n_contacts`` defaults to all ``N_R z`` flanks of the interface.
     """
     v = plant.values
     k, e = plant.contact_stiffness_si, v["contact.exponent"]
     c_max, depth = plant.contact_damping_si, plant.penetration_m
-    n_c = plant.n_contacts
+    n_c = plant.n_contacts if n_contacts is None else n_contacts
     c = math.cos(plant.flank_angle_rad) * cos_helix
     gap = v["thread.backlash_mm"] * 1e-3 * c
     axial = 0
@@ -259,35 +286,134 @@ def _compliant(plant: Plant, x: ca.SX, u: ca.SX):
     return xdot, y, [stored, tau * w_n, load * v_s, dissipated]
 
 
-_CACHE: "weakref.WeakKeyDictionary[Plant, dict[str, PlantModel]]" = weakref.WeakKeyDictionary()
+@dataclass(frozen=True)
+class RollerErrors:
+    """Per-roller manufacturing errors of the multi-roller fidelity (m, rad).
+
+    ``position_nut`` / ``position_screw``: axial offsets of each roller's flanks at the two
+    interfaces (zero mean over the rollers); ``runout``: amplitude of a once-per-spin axial
+    wobble of the roller thread; ``phase``: its phase.
+    """
+
+    position_nut: tuple[float, ...]
+    position_screw: tuple[float, ...]
+    runout: tuple[float, ...]
+    phase: tuple[float, ...]
+
+    @classmethod
+    def draw(cls, plant: Plant, seed: int) -> "RollerErrors":
+        """Seeded draw from the plant's tolerances (``[tolerance]`` section)."""
+        import numpy as np
+
+        rng = np.random.default_rng(seed)
+        n = plant.n_rollers
+        std = plant.values["tolerance.roller_position_std_um"] * 1e-6
+        run = plant.values["tolerance.roller_runout_um"] * 1e-6
+        p_n = rng.normal(0.0, std, n)
+        p_s = rng.normal(0.0, std, n)
+        if n > 1:
+            p_n -= p_n.mean()
+            p_s -= p_s.mean()
+        return cls(
+            tuple(p_n.tolist()),
+            tuple(p_s.tolist()),
+            tuple((run * rng.uniform(0.5, 1.0, n)).tolist()),
+            tuple(rng.uniform(0.0, 2.0 * math.pi, n).tolist()),
+        )
 
 
-def plant_model(plant: Plant, fidelity: str = "compliant") -> PlantModel:
-    """Build (once per plant and fidelity) the CasADi model of ``plant``.
+def _multi_roller(plant: Plant, x: ca.SX, u: ca.SX, errors: RollerErrors):
+    """Compliant model with each roller's own nut-side and screw-side contact (engaged threads
+    per roller), offset by its position error and runout; the rollers share the cage's axial
+    and rotational motion. The offsets depend on the cage angle, so their forces also act on
+    the cage (generalised forces from the same contact Jacobian keep the energy balance)."""
+    v = plant.values
+    _, w_n, th_p, w_p, x_r, v_r, d_sr, v_s, tau = ca.vertsplit(x)
+    load = u[1]
+    d_s, d_n, d_r = plant.d_screw_m, plant.d_nut_m, plant.d_roller_m
+    j_cage, m_axial = _cage_inertia(plant)
+    a = plant.lead_per_rad / plant.cage_ratio
+    spin = d_s / d_r  # roller spin (relative to the cage) per radian of cage rotation
+    ddelta_sr = v_r + a * w_p - v_s
+    cos_n, cos_s = math.cos(plant.helix_nut_rad), math.cos(plant.helix_screw_rad)
+    z = int(v["thread.engaged_threads"])
+    f_nr = f_sr = n_nut = n_screw = energy = damp = t_cage = n_fric = 0
+    per_nut, per_screw = [], []
+    for i in range(plant.n_rollers):
+        ang = spin * th_p + errors.phase[i]
+        wob = errors.runout[i] * ca.sin(ang)
+        dwob = errors.runout[i] * spin * ca.cos(ang)  # d(wobble)/d(theta_cage)
+        e_n, e_s = errors.position_nut[i] + wob, errors.position_screw[i] + wob
+        fn_i, nn_i, en_i, pn_i = _thread_contact(plant, -x_r - e_n, -v_r - dwob * w_p, cos_n, z)
+        fs_i, ns_i, es_i, ps_i = _thread_contact(plant, d_sr + e_s, ddelta_sr + dwob * w_p, cos_s, z)
+        f_nr, f_sr = f_nr + fn_i, f_sr + fs_i
+        n_nut, n_screw = n_nut + nn_i, n_screw + ns_i
+        n_fric = n_fric + ca.fmax(nn_i, 0.0) + ca.fmax(ns_i, 0.0)
+        energy, damp = energy + en_i + es_i, damp + pn_i + ps_i
+        t_cage = t_cage + fn_i * dwob - fs_i * (a + dwob)
+        per_nut.append(nn_i)
+        per_screw.append(ns_i)
+    k_slip = plant.slip_arm_m
+    t_fric = k_slip * _friction_coefficient(plant, k_slip * w_n) * n_fric
+    t_drag = _bearing_losses(plant, w_n)
+    v_slip = 0.5 * d_n * w_n - 0.5 * (d_n + d_s) * w_p
+    n_trac = ca.fmax(n_nut, 0.0) + v["friction.traction_preload_n"]
+    f_t = v["friction.dynamic"] * _smooth_sign(v_slip, v["friction.creep_velocity_m_s"]) * n_trac
+    j_nut, m_s = v["nut.inertia_kg_m2"], v["screw.mass_kg"]
+    xdot = ca.vertcat(
+        w_n,
+        (tau - 0.5 * d_n * f_t - t_fric - t_drag) / j_nut,
+        w_p,
+        (0.5 * (d_n + d_s) * f_t + t_cage) / j_cage,
+        v_r,
+        (f_nr - f_sr) / m_axial,
+        ddelta_sr,
+        (f_sr - load) / m_s,
+        _drive(plant, u[0], tau),
+    )
+    y = _kinematic_outputs(plant, w_n, w_p, v_s, tau) + [n_nut, n_screw] + per_nut + per_screw
+    stored = (
+        0.5 * j_nut * w_n**2 + 0.5 * j_cage * w_p**2 + 0.5 * m_axial * v_r**2 + 0.5 * m_s * v_s**2 + energy
+    )
+    dissipated = (t_fric + t_drag) * w_n + f_t * v_slip + damp
+    return xdot, y, [stored, tau * w_n, load * v_s, dissipated]
+
+
+_CACHE: "weakref.WeakKeyDictionary[Plant, dict[tuple, PlantModel]]" = weakref.WeakKeyDictionary()
+
+
+def plant_model(plant: Plant, fidelity: str = "compliant", seed: int = 0) -> PlantModel:
+    """Build (once per plant, fidelity and seed) the CasADi model of ``plant``.
 
     Parameters
     ----------
     plant : Plant
         A validated plant.
-    fidelity : {"rigid", "compliant"}
+    fidelity : {"rigid", "compliant", "multi-roller"}
         Model fidelity (see module docstring).
+    seed : int
+        Seed of the per-roller errors drawn from the plant's tolerances (multi-roller only).
     """
     if fidelity not in FIDELITIES:
         raise ValueError(f"fidelity = {fidelity!r}; expected one of {', '.join(FIDELITIES)}")
+    key = (fidelity, int(seed) if fidelity == "multi-roller" else 0)
     per_plant = _CACHE.setdefault(plant, {})
-    if fidelity in per_plant:
-        return per_plant[fidelity]
+    if key in per_plant:
+        return per_plant[key]
     names = _STATES[fidelity]
     x = ca.SX.sym("x", len(names))
     u = ca.SX.sym("u", 2)
-    xdot, y, terms = (_rigid if fidelity == "rigid" else _compliant)(plant, x, u)
+    if fidelity == "multi-roller":
+        xdot, y, terms = _multi_roller(plant, x, u, RollerErrors.draw(plant, key[1]))
+    else:
+        xdot, y, terms = (_rigid if fidelity == "rigid" else _compliant)(plant, x, u)
     y = ca.vertcat(*y)
     terms = ca.vertcat(*terms)
     model = PlantModel(
         plant=plant,
         fidelity=fidelity,
         state_names=names,
-        output_names=_OUTPUTS[fidelity],
+        output_names=_output_names(plant, fidelity),
         x=x,
         u=u,
         xdot=xdot,
@@ -297,5 +423,5 @@ def plant_model(plant: Plant, fidelity: str = "compliant") -> PlantModel:
         h=ca.Function("h", [x, u], [y], ["x", "u"], ["y"]),
         power=ca.Function("power", [x, u], [terms], ["x", "u"], ["terms"]),
     )
-    per_plant[fidelity] = model
+    per_plant[key] = model
     return model

@@ -84,6 +84,7 @@ SCHEMA: Mapping[str, Mapping[str, str]] = {
         "encoder_counts_per_rev": _INT,
         "speed_filter_time_constant_s": _POS,
     },
+    "tolerance": {"roller_position_std_um": _NONNEG, "roller_runout_um": _NONNEG},
 }
 
 _ALLOWED_KEYS = tuple(f"{s}.{k}" for s, keys in SCHEMA.items() for k in keys)

@@ -282,6 +282,7 @@ def step_response_plot(time, nonlinear, linear_time=None, linear=None, setpoint=
 
 def write_standard_plots(report, directory: Path) -> list[Path]:
     """The standard figure set of a tuning report, as PNG and SVG files in ``directory``."""
+    from .autotune import _linear_fidelity
     from .linear import linearize
 
     directory = Path(directory)
@@ -290,14 +291,15 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
     files: list[Path] = []
     lp = report.loops[0]
     figs = {
-        "plant_bode": bode_plant(linearize(report.plant, sc.setpoint_rad_s, sc.initial_load, sc.fidelity, sampled=sc.discrete))[0],
+        "plant_bode": bode_plant(linearize(report.plant, sc.setpoint_rad_s, sc.initial_load, _linear_fidelity(sc),
+                                           sampled=sc.discrete))[0],
         "loop_bode": bode_loop(lp.omega, lp.loop_response(best.pid.params[:3]), best.margins)[0],
         "sensitivity": sensitivity_plot(lp.omega, lp.loop_response(best.pid.params[:3]), sc.ms_max)[0],
         "load_step": load_step_plot(best, sc)[0],
         "baselines": load_step_comparison([best, *report.baselines], sc)[0],
         "landscape": tuning_landscape(lp, sc.objective, sc.ms_max, best.pid, [(b.name, b.pid) for b in report.baselines])[0],
     }
-    if sc.fidelity == "compliant":
+    if sc.fidelity in ("compliant", "multi-roller"):
         # Contact modes ring at kHz: a continuous run on a fine grid shows them unaliased.
         from .simulation import simulate
 
@@ -317,10 +319,12 @@ def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
     """Bode, sensitivity, load-step and setpoint-step figures for given gains (no tuning)."""
     import control
 
-    from .autotune import Design, _predict, actuator_loops, verify
+    from .autotune import Design, _linear_fidelity, _predict, actuator_loops, verify
     from .linear import closed_loop, linearize
+    from .scene import choose_fidelity
     from .simulation import simulate
 
+    scene, _ = choose_fidelity(scene)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     loops = actuator_loops(plant, scene)
@@ -331,7 +335,7 @@ def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
     design = Design("given gains", pid, lp.margins(g))
     _predict(design, loops, plant, scene)
     verify(design, plant, scene)
-    sys = linearize(plant, scene.setpoint_rad_s, scene.initial_load, scene.fidelity, sampled=scene.discrete)
+    sys = linearize(plant, scene.setpoint_rad_s, scene.initial_load, _linear_fidelity(scene), sampled=scene.discrete)
     # Setpoint step of +10 %: nonlinear run and the linear closed loop's prediction.
     w0, dw, t_step, span = scene.setpoint_rad_s, 0.1 * scene.setpoint_rad_s, 0.005, 0.1
     r = simulate(plant, setpoint=[(0.0, w0), (t_step, w0 + dw)], load=scene.initial_load, duration=t_step + span,

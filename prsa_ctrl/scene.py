@@ -12,7 +12,12 @@ from typing import Any, Mapping
 from .errors import SceneError
 from .plant import _builtin_root
 
-__all__ = ["Scene", "load_scene", "builtin_scenes", "DEFAULT_SCENE", "OUTPUTS"]
+__all__ = ["Scene", "load_scene", "builtin_scenes", "choose_fidelity", "DEFAULT_SCENE", "OUTPUTS",
+           "RIGID_RELATIVE_ERROR"]
+
+#: Measured nut-speed error of the rigid fidelity against the compliant one on the paper's load
+#: step, relative to the peak drop (0.116 rad/s of 3.6 rad/s; ``python -m prsa_ctrl.bench``).
+RIGID_RELATIVE_ERROR = 0.035
 
 DEFAULT_SCENE = "paper-load-step"
 
@@ -24,6 +29,7 @@ OUTPUTS = (
     "roller_speed",
     "screw_velocity",
     "contact_forces",
+    "per_roller_forces",
 )
 
 _SECTIONS: Mapping[str, Mapping[str, type | tuple]] = {
@@ -42,7 +48,7 @@ _SECTIONS: Mapping[str, Mapping[str, type | tuple]] = {
         "aggregate": str,
         "candidates": int,
     },
-    "verify": {"fidelity": str, "discrete": bool},
+    "verify": {"fidelity": str, "discrete": bool, "accuracy": float},
     "outputs": {"needed": list},
 }
 
@@ -70,10 +76,14 @@ class Scene:
         How several load levels are combined.
     candidates : int
         How many tuned candidates are verified on the nonlinear simulator.
-    fidelity : {"rigid", "compliant"}
-        Fidelity of the verification.
+    fidelity : {"auto", "rigid", "compliant", "multi-roller"}
+        Fidelity of the verification; ``"auto"`` picks the cheapest that delivers ``outputs``
+        at ``accuracy`` (see :func:`choose_fidelity`).
     discrete : bool
         Verify with the sampled controller, ZOH and quantised encoder.
+    accuracy : float
+        Relative accuracy the verified metrics need (fraction of the peak drop); it also sets
+        the integrator tolerance.
     outputs : tuple of str
         Signals the scene needs (see ``OUTPUTS``).
     """
@@ -90,8 +100,9 @@ class Scene:
     mt_max: float | None = None
     aggregate: str = "sum"
     candidates: int = 3
-    fidelity: str = "compliant"
+    fidelity: str = "auto"
     discrete: bool = True
+    accuracy: float = 0.01
     outputs: tuple[str, ...] = ("nut_speed", "motor_torque")
     origin: str = "<scene>"
 
@@ -133,8 +144,10 @@ class Scene:
             raise bad("aggregate", self.aggregate, "sum or worst")
         if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or not 1 <= self.candidates <= 10:
             raise bad("candidates", self.candidates, "an integer 1..10")
-        if self.fidelity not in ("rigid", "compliant"):
-            raise bad("fidelity", self.fidelity, "rigid or compliant")
+        if self.fidelity not in ("auto", "rigid", "compliant", "multi-roller"):
+            raise bad("fidelity", self.fidelity, "auto, rigid, compliant or multi-roller")
+        if not 1e-6 <= finite("accuracy", self.accuracy) <= 0.5:
+            raise bad("accuracy", self.accuracy, "a relative accuracy in [1e-6, 0.5]")
         if not isinstance(self.discrete, bool):
             raise bad("discrete", self.discrete, "true or false")
         for out in self.outputs:
@@ -236,3 +249,27 @@ def load_scene(name_or_path: str | Path | None = None) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{origin}: invalid TOML ({exc})") from None
     return _from_doc(doc, origin)
+
+
+def choose_fidelity(scene: Scene) -> tuple[Scene, str]:
+    """Resolve ``fidelity = "auto"``: the cheapest model that delivers the scene's outputs at its
+    accuracy. Per-roller forces need the multi-roller model; contact forces the compliant one;
+    speeds and torque alone are served by the rigid model when the scene tolerates its
+    measured error (``RIGID_RELATIVE_ERROR`` of the peak drop), else by the compliant model.
+
+    Returns the scene with the fidelity set and a one-line reason.
+    """
+    if scene.fidelity != "auto":
+        return scene, f"{scene.fidelity} (set by the scene)"
+    needs = set(scene.outputs)
+    if "per_roller_forces" in needs:
+        fid, why = "multi-roller", "per-roller contact forces requested"
+    elif "contact_forces" in needs:
+        fid, why = "compliant", "contact forces requested; rollers identical"
+    elif scene.accuracy >= RIGID_RELATIVE_ERROR:
+        fid, why = "rigid", (f"speeds/torque only at {scene.accuracy:.0%} accuracy; the rigid model's "
+                             f"error is ~{RIGID_RELATIVE_ERROR:.1%} of the drop")
+    else:
+        fid, why = "compliant", (f"speeds/torque at {scene.accuracy:.1%} accuracy; the rigid model's "
+                                 f"~{RIGID_RELATIVE_ERROR:.1%} error is too large")
+    return replace(scene, fidelity=fid), f"{fid} ({why})"

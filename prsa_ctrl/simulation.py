@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import casadi as ca
-import control
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import brentq
@@ -25,7 +24,7 @@ from .errors import SimulationError
 from .model import PlantModel, plant_model
 from .plant import Plant
 
-__all__ = ["simulate", "Profile", "SimSettings", "energy_balance", "INTEGRATORS"]
+__all__ = ["simulate", "run", "SimRun", "Profile", "SimSettings", "energy_balance", "INTEGRATORS"]
 
 INTEGRATORS = ("cvodes", "idas")
 
@@ -76,6 +75,7 @@ def _state_scale(model: PlantModel) -> NDArray[np.float64]:
     defl = (per_contact / p.contact_stiffness_si) ** (1.0 / p.values["contact.exponent"])
     scale = {
         "theta_nut": 10.0,
+        "theta_cage": 10.0,
         "omega_nut": w,
         "omega_cage": w,
         "x_roller": defl,
@@ -189,20 +189,21 @@ def _value_at(pts: list[tuple[float, float]], t: float) -> float:
     return val
 
 
-def _initial_speed(plant: Plant, fidelity: str, ref: float, load: float, pid: PID | None, tau_ff: float):
+def _initial_speed(plant: Plant, fidelity: str, ref: float, load: float, pid: PID | None, tau_ff: float,
+                   seed: int = 0):
     """Closed-loop steady speed (rad/s) and torque (N m) before the first input change."""
     if pid is None or pid.ki > 0:
-        op = operating_point(plant, ref, load, fidelity)
+        op = operating_point(plant, ref, load, fidelity, seed)
         return op, op.torque - tau_ff if pid is not None else 0.0
     if pid.kp == 0:
         raise ValueError("PID with kp = ki = 0 has no steady state; expected kp > 0 or ki > 0")
 
     def residual(w: float) -> float:
-        return operating_point(plant, w, load, fidelity).torque - tau_ff - pid.kp * (ref - w)
+        return operating_point(plant, w, load, fidelity, seed).torque - tau_ff - pid.kp * (ref - w)
 
     span = plant.torque_limit / pid.kp
     w0 = brentq(residual, ref - span, ref + span, xtol=1e-12, rtol=1e-14)
-    return operating_point(plant, w0, load, fidelity), 0.0
+    return operating_point(plant, w0, load, fidelity, seed), 0.0
 
 
 def _fail(exc: Exception, t0: float, t1: float, model: PlantModel, x: NDArray[np.float64]) -> SimulationError:
@@ -229,7 +230,8 @@ def simulate(
     dt: float = 1e-4,
     settings: SimSettings | None = None,
     energy: bool = False,
-) -> control.TimeResponseData:
+    seed: int = 0,
+) -> "control.TimeResponseData":
     """Simulate the actuator's speed loop from steady state.
 
     Parameters
@@ -245,7 +247,7 @@ def simulate(
         torque (open loop) plus ``feedforward_torque``.
     feedforward_torque : float, N m
         Torque added to the controller's command.
-    fidelity : {"rigid", "compliant"}
+    fidelity : {"rigid", "compliant", "multi-roller"}
     discrete : bool
         Run the controller at the plant's sample time with zero-order hold, a one-sample
         computation delay and the quantised encoder, instead of in continuous time.
@@ -254,13 +256,16 @@ def simulate(
     settings : SimSettings, optional
     energy : bool
         Also integrate motor, load and dissipated work (see :func:`energy_balance`).
+    seed : int
+        Seed of the per-roller errors (``fidelity="multi-roller"`` only).
 
     Returns
     -------
     control.TimeResponseData
         Outputs ``nut_speed``, ``cage_speed``, ``roller_speed`` (spin relative to the cage),
         ``roller_speed_abs``, ``screw_velocity`` (m/s), ``motor_torque`` (N m) and, when
-        compliant, ``contact_force_nut`` / ``contact_force_screw`` (total normal force, N);
+        compliant, ``contact_force_nut`` / ``contact_force_screw`` (total normal force, N;
+        multi-roller adds ``contact_force_nut_<i>`` / ``contact_force_screw_<i>`` per roller);
         inputs ``speed_setpoint`` (rad/s) and ``axial_load`` (N). ``result.info`` holds the
         fidelity, integrator and wall time; with ``energy=True``, ``result.energy`` holds the
         work terms.
@@ -278,6 +283,65 @@ def simulate(
     >>> float(r.outputs[0].min()) < 31.4159
     True
     """
+    import control
+
+    r = run(plant, setpoint=setpoint, load=load, duration=duration, controller=controller,
+            feedforward_torque=feedforward_torque, fidelity=fidelity, discrete=discrete, dt=dt,
+            settings=settings, energy=energy, seed=seed)
+    result = control.TimeResponseData(
+        r.time,
+        r.outputs,
+        r.states,
+        r.inputs,
+        output_labels=list(r.output_labels),
+        state_labels=list(r.state_labels),
+        input_labels=["speed_setpoint", "axial_load"],
+        sysname=f"{plant.name}[{fidelity}]",
+        plot_inputs=False,
+    )
+    result.info = r.info
+    if energy:
+        result.energy = r.energy
+    return result
+
+
+@dataclass(frozen=True, eq=False)
+class SimRun:
+    """Plain arrays of one simulation (what :func:`simulate` wraps as TimeResponseData).
+
+    ``outputs`` has one row per ``output_labels`` entry, ``states`` one per ``state_labels``,
+    ``inputs`` the setpoint (rad/s) and load (N) rows.
+    """
+
+    time: NDArray[np.float64]
+    outputs: NDArray[np.float64]
+    states: NDArray[np.float64]
+    inputs: NDArray[np.float64]
+    output_labels: tuple[str, ...]
+    state_labels: tuple[str, ...]
+    info: dict
+    energy: dict | None = None
+
+    def output(self, name: str) -> NDArray[np.float64]:
+        return self.outputs[self.output_labels.index(name)]
+
+
+def run(
+    plant: Plant,
+    *,
+    setpoint: Profile = 31.4159,
+    load: Profile = 500.0,
+    duration: float = 0.6,
+    controller: PID | None = None,
+    feedforward_torque: float = 0.0,
+    fidelity: str = "compliant",
+    discrete: bool = False,
+    dt: float = 1e-4,
+    settings: SimSettings | None = None,
+    energy: bool = False,
+    seed: int = 0,
+) -> SimRun:
+    """:func:`simulate` without python-control: the same run, returned as plain arrays."""
     settings = settings or SimSettings()
     if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration = {duration!r}; expected a finite time > 0 s")
@@ -287,11 +351,11 @@ def simulate(
         raise ValueError(f"feedforward_torque = {feedforward_torque!r}; expected a finite torque in N m")
     sp = _normalise_profile(setpoint, duration, "setpoint", "rad/s")
     ld = _normalise_profile(load, duration, "load", "N")
-    model = plant_model(plant, fidelity)
+    model = plant_model(plant, fidelity, seed)
     built = _build(model, energy)
     started = time.perf_counter()
 
-    op, integral0 = _initial_speed(plant, fidelity, sp[0][1], ld[0][1], controller, feedforward_torque)
+    op, integral0 = _initial_speed(plant, fidelity, sp[0][1], ld[0][1], controller, feedforward_torque, seed)
     gains = controller.params if controller is not None else [0.0, 0.0, 0.0, 1e-3]
     ff = feedforward_torque + (0.0 if controller is not None else op.torque)
     x0 = np.concatenate([op.x, [op.omega_nut, integral0, op.omega_nut], np.zeros(3 if energy else 0)])
@@ -308,18 +372,7 @@ def simulate(
     u_cmd = np.array([_value_at(ld, tk) for tk in t])
     refs = np.array([_value_at(sp, tk) for tk in t])
     y = np.asarray(model.h.map(len(t))(xs[:nx], np.vstack([np.zeros_like(t), u_cmd])))
-    result = control.TimeResponseData(
-        t,
-        y,
-        xs[: nx + 3],
-        np.vstack([refs, u_cmd]),
-        output_labels=list(model.output_names),
-        state_labels=list(model.state_names + _CTRL_STATES),
-        input_labels=["speed_setpoint", "axial_load"],
-        sysname=f"{plant.name}[{fidelity}]",
-        plot_inputs=False,
-    )
-    result.info = {
+    info = {
         "fidelity": fidelity,
         "discrete": bool(discrete),
         "integrator": settings.integrator,
@@ -327,15 +380,19 @@ def simulate(
         "atol": settings.atol,
         "wall_time_s": time.perf_counter() - started,
     }
+    energy_terms = None
     if energy:
         stored = np.asarray(model.power.map(len(t))(xs[:nx], np.vstack([np.zeros_like(t), u_cmd])))[0]
-        result.energy = {
+        energy_terms = {
             "stored": stored,
             "work_motor": xs[-3],
             "work_load": xs[-2],
             "work_dissipated": xs[-1],
         }
-    return result
+    return SimRun(t, y, xs[: nx + 3], np.vstack([refs, u_cmd]), tuple(model.output_names),
+                  tuple(model.state_names + _CTRL_STATES), info, energy_terms)
+
+
 
 
 def _segments(sp, ld, duration: float) -> list[float]:
@@ -434,14 +491,14 @@ def _run_sampled(built, settings, sp, ld, duration, gains, ff, x0):
     return ts * np.arange(n_total + 1), np.hstack(out)
 
 
-def energy_balance(result: control.TimeResponseData) -> dict[str, float]:
+def energy_balance(result) -> dict[str, float]:
     """Energy audit of a simulation run with ``energy=True``.
 
     Returns the motor work, load work, dissipated work and change of stored (kinetic plus
     contact) energy in J, the residual ``W_motor - W_load - W_diss - dE`` and the residual
     relative to the motor work.
     """
-    if not hasattr(result, "energy"):
+    if getattr(result, "energy", None) is None:
         raise ValueError("result has no energy terms; expected simulate(..., energy=True)")
     e = result.energy
     w_m, w_l, w_d = (float(e[k][-1] - e[k][0]) for k in ("work_motor", "work_load", "work_dissipated"))

@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 
 from prsa_ctrl import SceneError
-from prsa_ctrl.scene import Scene, builtin_scenes, load_scene
+from prsa_ctrl.scene import Scene, builtin_scenes, choose_fidelity, load_scene
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "tuning"
 
@@ -18,7 +18,24 @@ def test_paper_scene_is_the_papers_step():
     assert s.name == "paper-load-step"
     assert s.setpoint_rad_s == pytest.approx(300 * math.pi / 30)
     assert (s.initial_load, s.final_loads, s.step_time) == (500.0, (1500.0,), 0.2)
-    assert s.controller == "pi" and s.discrete and s.fidelity == "compliant"
+    assert s.controller == "pi" and s.discrete and s.fidelity == "auto"
+    # Speeds to 1 % need the compliant model (the rigid one is ~3.5 % off the drop).
+    assert choose_fidelity(s)[0].fidelity == "compliant"
+
+
+@pytest.mark.parametrize(
+    "changes, expected",
+    [
+        ({"outputs": ("nut_speed",), "accuracy": 0.1}, "rigid"),
+        ({"outputs": ("nut_speed",), "accuracy": 0.01}, "compliant"),
+        ({"outputs": ("nut_speed", "contact_forces"), "accuracy": 0.2}, "compliant"),
+        ({"outputs": ("per_roller_forces",)}, "multi-roller"),
+        ({"fidelity": "rigid", "outputs": ("contact_forces",)}, "rigid"),
+    ],
+)
+def test_choose_fidelity_picks_the_cheapest_that_delivers(changes, expected):
+    scene, reason = choose_fidelity(Scene().replace(**changes))
+    assert scene.fidelity == expected and reason.startswith(expected)
 
 
 @pytest.mark.parametrize(
