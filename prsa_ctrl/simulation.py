@@ -11,6 +11,7 @@ import math
 import time
 import weakref
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Sequence
 
 import casadi as ca
@@ -29,6 +30,9 @@ __all__ = ["simulate", "run", "SimRun", "Profile", "SimSettings", "energy_balanc
 INTEGRATORS = ("cvodes", "idas")
 
 _CTRL_STATES = ("speed_filtered", "pid_integral", "speed_derivative_state")
+#: Longest stretch of simulated time per integrator call (s); the wall-time budget is checked
+#: between calls, so no run can hang.
+CHUNK_S = 0.1
 _ENERGY_STATES = ("work_motor", "work_load", "work_dissipated")
 # Parameter vector of the closed loop: setpoint, load, kp, ki, kd, tf, feed-forward, duration.
 _NP = 8
@@ -48,12 +52,21 @@ class SimSettings:
         Relative and absolute tolerances.
     max_steps : int
         Step budget per output interval; exceeding it raises :class:`SimulationError`.
+    max_wall_s : float
+        Wall-time budget of one run, s, checked between integration chunks (at most
+        ``CHUNK_S`` of simulated time each); exceeding it raises :class:`SimulationError`.
+    energy_tol : float
+        With ``energy=True`` the run audits itself: an energy-balance residual above this
+        (relative, see :func:`energy_balance`) means the integration is not trustworthy and
+        raises :class:`SimulationError`.
     """
 
     integrator: str = "cvodes"
     rtol: float = 1e-8
     atol: float = 1e-8
     max_steps: int = 20000
+    max_wall_s: float = 120.0
+    energy_tol: float = 1e-4
 
     def __post_init__(self) -> None:
         if self.integrator not in INTEGRATORS:
@@ -64,6 +77,8 @@ class SimSettings:
                 raise ValueError(f"{name} = {v!r}; expected a tolerance in (0, 1)")
         if int(self.max_steps) < 10:
             raise ValueError(f"max_steps = {self.max_steps!r}; expected an integer >= 10")
+        if not (isinstance(self.max_wall_s, (int, float)) and self.max_wall_s > 0):
+            raise ValueError(f"max_wall_s = {self.max_wall_s!r}; expected a positive time in s")
 
 
 def _state_scale(model: PlantModel) -> NDArray[np.float64]:
@@ -206,14 +221,19 @@ def _initial_speed(plant: Plant, fidelity: str, ref: float, load: float, pid: PI
     return operating_point(plant, w0, load, fidelity, seed), 0.0
 
 
-def _fail(exc: Exception, t0: float, t1: float, model: PlantModel, x: NDArray[np.float64]) -> SimulationError:
+_REMEDY = (
+    "loosen rtol/atol, raise max_steps or max_wall_s, or check that the load and gains are "
+    "physical (torque limit, contact stiffness)"
+)
+
+
+def _fail(exc: Exception, t0: float, t1: float, model: PlantModel, x: NDArray[np.float64],
+          what: str = "integration failed", remedy: str = _REMEDY) -> SimulationError:
     names = model.state_names + _CTRL_STATES
     state = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, x))
     reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
     return SimulationError(
-        f"integration failed between t = {t0:.6g} s and t = {t1:.6g} s from state [{state}] "
-        f"({reason}); remedy: loosen rtol/atol, raise max_steps, or check that the load and "
-        "gains are physical (torque limit, contact stiffness)"
+        f"{what} between t = {t0:.6g} s and t = {t1:.6g} s from state [{state}] ({reason}); remedy: {remedy}"
     )
 
 
@@ -389,6 +409,14 @@ def run(
             "work_load": xs[-2],
             "work_dissipated": xs[-1],
         }
+        audit = energy_balance(SimpleNamespace(energy=energy_terms))
+        if audit["relative_residual"] > settings.energy_tol:
+            raise _fail(
+                ValueError(f"energy balance residual {audit['residual_j']:.3g} J, relative "
+                           f"{audit['relative_residual']:.2g} > energy_tol {settings.energy_tol:g}"),
+                0.0, float(t[-1]), model, xs[: nx + 3, -1], what="untrustworthy integration",
+                remedy=f"tighten rtol/atol (now {settings.rtol:g}/{settings.atol:g})",
+            )
     return SimRun(t, y, xs[: nx + 3], np.vstack([refs, u_cmd]), tuple(model.output_names),
                   tuple(model.state_names + _CTRL_STATES), info, energy_terms)
 
@@ -399,13 +427,34 @@ def _segments(sp, ld, duration: float) -> list[float]:
     return sorted({0.0, duration, *[t for t, _ in sp], *[t for t, _ in ld]})
 
 
+def _over_budget(settings: SimSettings, started: float, t: float, model: PlantModel, x) -> None:
+    elapsed = time.perf_counter() - started
+    if elapsed > settings.max_wall_s:
+        raise _fail(
+            TimeoutError(f"wall-time budget max_wall_s = {settings.max_wall_s:g} s used up after {elapsed:.1f} s"),
+            t, t, model, x,
+        )
+
+
+def _chunks(bounds: list[float]) -> list[tuple[float, float]]:
+    """Integration pieces: every input discontinuity starts a piece (a restart), and long
+    segments are cut into pieces of at most ``CHUNK_S``."""
+    out = []
+    for t0, t1 in zip(bounds[:-1], bounds[1:]):
+        n = max(1, math.ceil((t1 - t0) / CHUNK_S - 1e-9))
+        edges = np.linspace(t0, t1, n + 1)
+        out += [(float(a), float(b)) for a, b in zip(edges[:-1], edges[1:])]
+    return out
+
+
 def _run_continuous(built, settings, sp, ld, duration, dt, gains, ff, x0):
     scale = built.scale
     z = x0 / scale
     times = [np.array([0.0])]
     states = [x0[:, None]]
-    bounds = _segments(sp, ld, duration)
-    for t0, t1 in zip(bounds[:-1], bounds[1:]):
+    started = time.perf_counter()
+    for t0, t1 in _chunks(_segments(sp, ld, duration)):
+        _over_budget(settings, started, t0, built.model, z * scale)
         n_out = max(1, int(round((t1 - t0) / dt)))
         integ = _continuous_integrator(built, settings, n_out)
         par = [_value_at(sp, t0), _value_at(ld, t0), *gains, ff, t1 - t0]
@@ -459,6 +508,14 @@ def _sampled_step(built: _Built, settings: SimSettings) -> ca.Function:
     return step
 
 
+def _accumulated(built: _Built, settings: SimSettings, step: ca.Function, n: int) -> ca.Function:
+    """``n`` samples of ``step`` chained (mapaccum), built once per length."""
+    key = (settings, "accum", n)
+    if key not in built.sampled:
+        built.sampled[key] = step.mapaccum(n)
+    return built.sampled[key]
+
+
 def _run_sampled(built, settings, sp, ld, duration, gains, ff, x0):
     model = built.model
     p = model.plant
@@ -477,13 +534,17 @@ def _run_sampled(built, settings, sp, ld, duration, gains, ff, x0):
     ks = sorted({0, n_total, *[min(n_total, int(round(t / ts))) for t, _ in sp + ld]})
     zm = np.concatenate([x0 / scale, mem0])
     out = [x0[:, None]]
+    per_chunk = max(1, int(round(CHUNK_S / ts)))
+    ks = sorted(set(ks) | set(range(0, n_total, per_chunk)))
+    started = time.perf_counter()
     for k0, k1 in zip(ks[:-1], ks[1:]):
         if k1 == k0:
             continue
+        _over_budget(settings, started, k0 * ts, model, zm[: len(scale)] * scale)
         t0 = k0 * ts
         par = [_value_at(sp, t0), _value_at(ld, t0), *gains, ff, ts]
         try:
-            traj = np.asarray(step.mapaccum(k1 - k0)(zm, ca.repmat(ca.DM(par), 1, k1 - k0)))
+            traj = np.asarray(_accumulated(built, settings, step, k1 - k0)(zm, ca.repmat(ca.DM(par), 1, k1 - k0)))
         except RuntimeError as exc:
             raise _fail(exc, t0, k1 * ts, model, zm[: len(scale)] * scale) from None
         out.append(traj[: len(scale)] * scale[:, None])
@@ -496,7 +557,7 @@ def energy_balance(result) -> dict[str, float]:
 
     Returns the motor work, load work, dissipated work and change of stored (kinetic plus
     contact) energy in J, the residual ``W_motor - W_load - W_diss - dE`` and the residual
-    relative to the motor work.
+    relative to the largest of those terms and of the stored energy.
     """
     if getattr(result, "energy", None) is None:
         raise ValueError("result has no energy terms; expected simulate(..., energy=True)")
@@ -504,11 +565,13 @@ def energy_balance(result) -> dict[str, float]:
     w_m, w_l, w_d = (float(e[k][-1] - e[k][0]) for k in ("work_motor", "work_load", "work_dissipated"))
     d_e = float(e["stored"][-1] - e["stored"][0])
     residual = w_m - w_l - w_d - d_e
+    # Relative to the largest energy in play (a run can release stored energy with little motor work).
+    scale = max(abs(w_m), abs(w_l), abs(w_d), abs(d_e), float(np.max(np.abs(e["stored"]))), 1e-300)
     return {
         "work_motor_j": w_m,
         "work_load_j": w_l,
         "work_dissipated_j": w_d,
         "stored_change_j": d_e,
         "residual_j": residual,
-        "relative_residual": abs(residual) / max(abs(w_m), 1e-300),
+        "relative_residual": abs(residual) / scale,
     }

@@ -113,7 +113,7 @@ def test_p_only_controller_leaves_the_expected_steady_error(paper_plant):
 
 
 def test_solver_failure_raises_clear_error(paper_plant):
-    with pytest.raises(SimulationError, match=r"integration failed between t = 0\.1 s and t = 0\.3 s from state \[theta_nut=.*remedy"):
+    with pytest.raises(SimulationError, match=r"integration failed between t = 0\.1 s and t = 0\.2 s from state \[theta_nut=.*remedy"):
         simulate(paper_plant, load=[(0, 500.0), (0.1, 1500.0)], duration=0.3,
                  controller=default_pid(paper_plant), settings=SimSettings(max_steps=10))
 
