@@ -9,6 +9,7 @@
   and python-control ``input_output_response`` integrating the *same* model equations
   (the CasADi right-hand side and, for the implicit methods, its exact Jacobian), each
   restarted at the load step like ours;
+- **fidelity ladder**: each fidelity's error against the multi-roller model and its cost;
 - **tuning**: our tuner against a Kp-Ki grid search whose every point is verified on the
   nonlinear simulator;
 - **cold CLI**: ``prsa-tune --load-step 500:1500`` wall time over ``python -c "import control,
@@ -30,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["work_precision", "tuning_benchmark", "cold_cli_benchmark", "main"]
+__all__ = ["work_precision", "fidelity_ladder", "tuning_benchmark", "cold_cli_benchmark", "main"]
 
 
 class _OverBudget(Exception):
@@ -191,6 +192,34 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> di
     }
 
 
+def fidelity_ladder(plant=None, fast: bool = False) -> dict:
+    """Each fidelity's nut-speed error against the most detailed one (multi-roller with the
+    plant's roller tolerances, 1e-10 tolerance) and its cost, on the paper load step with the
+    sampled controller (as the tuner verifies)."""
+    from . import load_plant
+    from .simulation import SimSettings, run
+
+    plant = plant or load_plant()
+    pid = _reference_pid(plant)
+    ref_w, load, duration = _scene_inputs(fast)
+    kw = dict(setpoint=ref_w, load=load, duration=duration, controller=pid, discrete=True)
+    ref = run(plant, fidelity="multi-roller", settings=SimSettings(rtol=1e-10, atol=1e-10), **kw)
+    w_ref = ref.output("nut_speed")
+    drop = float(ref_w - w_ref.min())
+    rows = []
+    for fidelity in ("rigid", "compliant", "multi-roller"):
+        for tol in (1e-4, 1e-6, 1e-8):
+            s = SimSettings(rtol=tol, atol=tol)
+            run(plant, fidelity=fidelity, settings=s, **kw)  # build once, then time
+            t0 = time.perf_counter()
+            r = run(plant, fidelity=fidelity, settings=s, **kw)
+            el = time.perf_counter() - t0
+            err = float(np.max(np.abs(r.output("nut_speed") - w_ref)))
+            rows.append({"fidelity": fidelity, "tol": tol, "time_s": el, "max_error_rad_s": err,
+                         "error_over_drop": err / drop})
+    return {"reference": "multi-roller, tol 1e-10, sampled controller", "peak_drop_rad_s": drop, "rows": rows}
+
+
 def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False) -> dict:
     """Our tuner (tune + verify the winner) against an n x n Kp-Ki grid with nonlinear
     verification of every point; objective IAE of the paper scene."""
@@ -284,7 +313,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="prsa-bench", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("bench-results"))
     ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "tuning", "cli"])
+    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli"])
     args = ap.parse_args(argv)
     import warnings
 
@@ -298,6 +327,11 @@ def main(argv=None) -> int:
         print(f"work-precision at <= 1e-6 rad/s: prsa-ctrl {b['prsa-ctrl']:.3f} s, scipy {b['scipy']:.3f} s "
               f"({b['scipy'] / b['prsa-ctrl']:.1f}x), python-control {b['python-control']:.3f} s "
               f"({b['python-control'] / b['prsa-ctrl']:.1f}x)")
+    if "fidelity" not in args.skip:
+        result["fidelity_ladder"] = fl = fidelity_ladder(fast=args.fast)
+        for r in fl["rows"]:
+            print(f"fidelity {r['fidelity']:12s} tol {r['tol']:.0e}: {r['time_s']:.3f} s, max error "
+                  f"{r['max_error_rad_s']:.2e} rad/s ({100 * r['error_over_drop']:.2f} % of the drop)")
     if "tuning" not in args.skip:
         result["tuning"] = tb = tuning_benchmark(fast=args.fast)
         print(f"tuning: ours {tb['ours']['time_s']:.2f} s (IAE {tb['ours']['iae']:.5g}) vs {tb['grid']} grid "
