@@ -50,11 +50,13 @@ class Design:
     predicted_error: list = field(default_factory=list, repr=False)
     predicted_h: float = math.nan
     note: str = ""
+    estimator: str = "none"
+    estimation: list = field(default_factory=list)  # per step: speed RMS errors (rad/s)
 
     def as_dict(self) -> dict:
         return {
             "name": self.name,
-            "gains": {"kp": self.pid.kp, "ki": self.pid.ki, "kd": self.pid.kd, "tf": self.pid.tf},
+            "gains": self.pid.as_dict(),
             "margins": self.margins.as_dict(),
             "predicted": self.predicted[0].as_dict() if self.predicted else None,
             "verified": self.verified[0].as_dict() if self.verified else None,
@@ -64,6 +66,8 @@ class Design:
             },
             "objective_predicted": self.objective_predicted,
             "objective_verified": self.objective_verified,
+            "estimator": self.estimator,
+            "estimation": self.estimation,
             "note": self.note,
         }
 
@@ -93,8 +97,10 @@ class ActuatorTuning:
         return {
             "plant": self.plant.name,
             "scene": self.scene.as_dict(),
-            "gains": {"kp": b.pid.kp, "ki": b.pid.ki, "kd": b.pid.kd, "tf": b.pid.tf},
-            "units": {"kp": "N m s/rad", "ki": "N m/rad", "kd": "N m s^2/rad", "tf": "s"},
+            "gains": b.pid.as_dict(),
+            "units": {"kp": "N m s/rad", "ki": "N m/rad", "kd": "N m s^2/rad", "tf": "s", "kff": "1"},
+            "estimator": {"kind": self.scene.estimator, "feedforward": self.scene.feedforward,
+                          "estimation": b.estimation},
             "objective": self.scene.objective,
             "predicted": b.predicted[0].as_dict(),
             "verified": b.verified[0].as_dict(),
@@ -123,10 +129,18 @@ def _linear_fidelity(scene: Scene) -> str:
     return "compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity
 
 
-def actuator_loops(plant: Plant, scene: Scene) -> list[LoopModel]:
+def actuator_loops(plant: Plant, scene: Scene, estimator: str | None = None) -> list[LoopModel]:
     """One loop model per final load, linearised at the mid load of the step (the response
     to a step is the same from any linearisation point; the mid load keeps the Jacobians
-    closest to both ends)."""
+    closest to both ends). ``estimator`` (default: the scene's) selects the speed measurement:
+    ``"none"`` for the drive's filtered difference, ``"kf"`` for the Kalman filter (with the
+    load feed-forward gain as a fourth tuned gain when the scene asks for feed-forward)."""
+    estimator = scene.estimator if estimator is None else estimator
+    kf = None
+    if estimator == "kf":
+        from .estimator import design_kf
+
+        kf = design_kf(plant, scene.load_change_time_s)
     fidelity = _linear_fidelity(scene)
     model = plant_model(plant, fidelity)
     i_speed = model.output_names.index("nut_speed")
@@ -136,7 +150,17 @@ def actuator_loops(plant: Plant, scene: Scene) -> list[LoopModel]:
     for f1 in scene.final_loads:
         a, b, c, _, _ = linear_core(plant, scene.setpoint_rad_s, 0.5 * (scene.initial_load + f1), fidelity)
         step = f1 - scene.initial_load
-        if scene.discrete:
+        if kf is not None:
+            from .estimator import kf_drive_loop
+
+            loops.append(
+                kf_drive_loop(
+                    a, b, c[i_speed], model.index("theta_nut"), kf, tf=_tf_default(plant), horizon=horizon,
+                    step=step, feedforward=scene.feedforward, name=f"step to {f1:g} N (KF)",
+                    outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
+                )
+            )
+        elif scene.discrete:
             loops.append(
                 drive_loop(
                     a, b, c[i_speed], model.index("theta_nut"),
@@ -169,7 +193,7 @@ def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene)
     design.predicted, design.predicted_error = [], []
     design.predicted_h = loops[0].h
     for f1, lp in zip(scene.final_loads, loops):
-        tr = lp.trajectory(design.pid.params[:3])
+        tr = lp.trajectory(design.pid.gains)
         design.predicted_error.append(tr["error"])
         t = scene.step_time + lp.h * np.arange(-1, lp.n_steps)
         speed = w0 + np.concatenate([[0.0], -tr["error"]])
@@ -203,18 +227,22 @@ def verify(design: Design, plant: Plant, scene: Scene) -> Design:
     ts = plant.sample_time_s
     pre = min(scene.step_time, _PRE_SAMPLES * ts) if scene.discrete else min(scene.step_time, 1e-3)
     offset = scene.step_time - pre
-    design.verified, design.verified_runs = [], []
+    design.verified, design.verified_runs, design.estimation = [], [], []
     for f1 in scene.final_loads:
-        r = run(
-            plant,
-            setpoint=scene.setpoint_rad_s,
-            load=[(0.0, scene.initial_load), (pre, f1)],
-            duration=pre + scene.duration - scene.step_time,
-            controller=design.pid,
-            fidelity=scene.fidelity,
-            discrete=scene.discrete,
-            settings=verify_settings(scene),
-        )
+        kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, f1)],
+                  duration=pre + scene.duration - scene.step_time, controller=design.pid,
+                  fidelity=scene.fidelity, settings=verify_settings(scene))
+        if design.estimator == "kf":
+            from .estimator import design_kf, run_estimated
+
+            r = run_estimated(plant, estimator="kf", kf=design_kf(plant, scene.load_change_time_s), **kw)
+            w = r.output("nut_speed")
+            design.estimation.append({
+                "kf_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_estimate") - w) ** 2))),
+                "fd_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_fd") - w) ** 2))),
+            })
+        else:
+            r = run(plant, discrete=scene.discrete, **kw)
         t = np.asarray(r.time) + offset
         y = dict(zip(r.output_labels, np.asarray(r.outputs)))
         design.verified.append(
@@ -304,7 +332,7 @@ def baseline_designs(plant: Plant, scene: Scene, loops: list[LoopModel]) -> list
         i = idx[0]
         kp = 1.0 / abs(shape[i])
         designs.append(Design("PM 60 deg", PID(kp, kp * w[i] / 4.0), lp.margins((kp, kp * w[i] / 4.0, 0))))
-    designs.append(Design("rule of thumb (wc = f_c/10)", ref, lp.margins(ref.params[:3])))
+    designs.append(Design("rule of thumb (wc = f_c/10)", ref, lp.margins(ref.gains)))
     return designs
 
 
@@ -337,15 +365,22 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     def tuned(ms: float) -> Design:
         res = tune_loops(loops, ms_max=ms, **common)
         runs.append({"ms_max": ms, **{k: res.stats[k] for k in ("status", "iterations", "wall_time_s")}})
-        d = Design(f"tuned (Ms <= {ms:.3g})", res.pid, res.margins[0])
+        label = f"tuned (Ms <= {ms:.3g})" + (" + KF" if scene.estimator == "kf" else "") + (" + load FF" if scene.feedforward else "")
+        d = Design(label, res.pid, res.margins[0], estimator=scene.estimator)
         _predict(d, loops, plant, scene)
         return d
 
     ms_levels = [scene.ms_max] + [1 + (scene.ms_max - 1) * f for f in (0.85, 0.7, 0.55, 0.4)][: scene.candidates - 1]
     candidates = [tuned(ms) for ms in ms_levels]
-    baselines = baseline_designs(plant, scene, loops)
+    # Baselines use the drive's standard speed measurement; with an estimator in the scene the
+    # PI tuned without it is a baseline too (the reference for what the estimator buys).
+    plain = loops if scene.estimator == "none" else actuator_loops(plant, scene, estimator="none")
+    baselines = baseline_designs(plant, scene, plain)
+    if scene.estimator != "none":
+        res = tune_loops(plain, ms_max=scene.ms_max, **common)
+        baselines.insert(0, Design(f"tuned PI alone (Ms <= {scene.ms_max:.3g})", res.pid, res.margins[0]))
     for d in baselines:
-        _predict(d, loops, plant, scene)
+        _predict(d, plain, plant, scene)
     timing["tune"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()

@@ -82,6 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ms-max", type=_positive("--ms-max"), help="peak-sensitivity bound (default 1.4)")
     p.add_argument("--objective", choices=("ie", "iae", "itae", "ise"), help="tuning objective")
     p.add_argument("--controller", choices=("pi", "pid"), help="controller structure")
+    p.add_argument("--estimator", choices=("none", "kf"), help="speed measurement: drive difference or Kalman filter")
+    p.add_argument("--feedforward", action="store_true", help="feed the estimated load torque forward (needs --estimator kf)")
     p.add_argument("--json", type=Path, metavar="PATH", help="write the report as JSON (atomically)")
     p.add_argument("--plots", type=Path, metavar="DIR", help="write the standard plots (PNG and SVG) into DIR")
     p.add_argument("--workers", type=int, default=None, help="processes for verification (default: cores)")
@@ -135,7 +137,8 @@ def format_report(rep) -> str:
         f"verification: {rep.fidelity_reason}; {'sampled controller (ZOH, quantised encoder)' if sc.discrete else 'continuous controller'}",
         "",
         f"Tuned {sc.controller.upper()} ({b.name}): kp = {b.pid.kp:.5g} N m s/rad, ki = {b.pid.ki:.5g} N m/rad"
-        + (f", kd = {b.pid.kd:.5g} N m s^2/rad (tf {b.pid.tf:g} s)" if b.pid.kd else ""),
+        + (f", kd = {b.pid.kd:.5g} N m s^2/rad (tf {b.pid.tf:g} s)" if b.pid.kd else "")
+        + (f", load feed-forward gain kff = {b.pid.kff:.3g}" if sc.feedforward else ""),
         f"Margins: Ms {b.margins.ms:.3f}, Mt {b.margins.mt:.3f}, GM {_fmt(b.margins.gm_db)} dB, "
         f"PM {_fmt(b.margins.pm_deg)} deg, crossover {_fmt(b.margins.wc_rad_s)} rad/s",
         "",
@@ -177,6 +180,12 @@ def format_report(rep) -> str:
         f"Run time: linearise {t['linearize']:.2f} s, tune {t['tune']:.2f} s, verify {t['verify']:.2f} s, "
         f"total {t['total']:.2f} s (process {t.get('process', math.nan):.2f} s)"
     )
+    if b.estimation:
+        e = b.estimation[0]
+        out.append(
+            f"Speed estimation (verified run): Kalman filter RMS error {e['kf_speed_rms_rad_s']:.4g} rad/s, "
+            f"finite difference {e['fd_speed_rms_rad_s']:.4g} rad/s"
+        )
     for w in rep.warnings:
         out.append(f"warning: {w}")
     return "\n".join(out)
@@ -228,6 +237,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 changes["setpoint_rad_s"] = v * math.pi / 30.0
             else:
                 changes[field] = v
+        if args.estimator is not None:
+            changes["estimator"] = args.estimator
+        if args.feedforward:
+            changes["feedforward"] = True
         if changes:
             scene = scene.replace(origin="command line", **changes)
         if args.workers is not None and args.workers < 1:

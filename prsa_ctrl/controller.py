@@ -30,15 +30,19 @@ class PID:
         Derivative gain, acting on the measured speed (no setpoint kick).
     tf : float, s
         Time constant of the derivative filter ``kd s / (1 + tf s)``.
+    kff : float
+        Gain of the load-torque feed-forward (dimensionless; used only with an estimator that
+        provides the load torque, see :mod:`prsa_ctrl.estimator`).
     """
 
     kp: float
     ki: float = 0.0
     kd: float = 0.0
     tf: float = 1e-3
+    kff: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("kp", "ki", "kd"):
+        for name in ("kp", "ki", "kd", "kff"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"PID {name} = {v!r}; expected a finite number >= 0")
@@ -49,8 +53,13 @@ class PID:
     def params(self) -> list[float]:
         return [float(self.kp), float(self.ki), float(self.kd), float(self.tf)]
 
+    @property
+    def gains(self) -> list[float]:
+        """``[kp, ki, kd, kff]`` as the loop models take them."""
+        return [float(self.kp), float(self.ki), float(self.kd), float(self.kff)]
+
     def as_dict(self) -> dict[str, float]:
-        return {"kp": self.kp, "ki": self.ki, "kd": self.kd, "tf": self.tf}
+        return {"kp": self.kp, "ki": self.ki, "kd": self.kd, "tf": self.tf, "kff": self.kff}
 
 
 def pid_law(error, integral, derivative, gains, tau_ff, torque_limit: float):

@@ -83,6 +83,7 @@ SCHEMA: Mapping[str, Mapping[str, str]] = {
         "sample_time_s": _POS,
         "encoder_counts_per_rev": _INT,
         "speed_filter_time_constant_s": _POS,
+        "torque_noise_n_m": _NONNEG,
     },
     "tolerance": {"roller_position_std_um": _NONNEG, "roller_runout_um": _NONNEG},
 }

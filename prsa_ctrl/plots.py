@@ -201,7 +201,8 @@ def tuning_landscape(loop, objective: str, ms_max: float, optimum=None, baseline
     kis = ki0 * np.logspace(-1.5, 1, n)
     KP, KI = np.meshgrid(kps, kis)
     grid = np.column_stack([KP.ravel(), KI.ravel(), np.zeros(KP.size)])
-    L = grid @ loop.L
+    n0, ln, d0, ld = loop.parts()
+    L = (n0 + grid @ ln) / (d0 + grid @ ld)
     ms = np.max(1 / np.abs(1 + L), axis=1).reshape(KP.shape)
     stable = np.array([loop.is_stable(g) for g in grid]).reshape(KP.shape)
     obj = np.full(KP.shape, np.nan)
@@ -293,8 +294,8 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
     figs = {
         "plant_bode": bode_plant(linearize(report.plant, sc.setpoint_rad_s, sc.initial_load, _linear_fidelity(sc),
                                            sampled=sc.discrete))[0],
-        "loop_bode": bode_loop(lp.omega, lp.loop_response(best.pid.params[:3]), best.margins)[0],
-        "sensitivity": sensitivity_plot(lp.omega, lp.loop_response(best.pid.params[:3]), sc.ms_max)[0],
+        "loop_bode": bode_loop(lp.omega, lp.loop_response(best.pid.gains), best.margins)[0],
+        "sensitivity": sensitivity_plot(lp.omega, lp.loop_response(best.pid.gains), sc.ms_max)[0],
         "load_step": load_step_plot(best, sc)[0],
         "baselines": load_step_comparison([best, *report.baselines], sc)[0],
         "landscape": tuning_landscape(lp, sc.objective, sc.ms_max, best.pid, [(b.name, b.pid) for b in report.baselines])[0],
@@ -329,7 +330,7 @@ def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
     directory.mkdir(parents=True, exist_ok=True)
     loops = actuator_loops(plant, scene)
     lp = loops[0]
-    g = pid.params[:3]
+    g = pid.gains
     if not lp.is_stable(g):
         raise ValueError(f"the loop with {pid} is unstable on {plant.name}; expected stabilising gains")
     design = Design("given gains", pid, lp.margins(g))

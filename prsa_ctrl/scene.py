@@ -49,6 +49,7 @@ _SECTIONS: Mapping[str, Mapping[str, type | tuple]] = {
         "candidates": int,
     },
     "verify": {"fidelity": str, "discrete": bool, "accuracy": float},
+    "estimator": {"kind": str, "feedforward": bool, "load_change_time_s": float},
     "outputs": {"needed": list},
 }
 
@@ -86,6 +87,13 @@ class Scene:
         the integrator tolerance.
     outputs : tuple of str
         Signals the scene needs (see ``OUTPUTS``).
+    estimator : {"none", "kf"}
+        Speed measurement: the drive's filtered backward difference, or the Kalman filter of
+        :mod:`prsa_ctrl.estimator` (filterpy is imported only then).
+    feedforward : bool
+        Feed the estimated load torque forward (needs ``estimator = "kf"``); its gain is tuned.
+    load_change_time_s : float, s
+        Load random-walk setting of the Kalman filter.
     """
 
     name: str = "custom"
@@ -104,6 +112,9 @@ class Scene:
     discrete: bool = True
     accuracy: float = 0.01
     outputs: tuple[str, ...] = ("nut_speed", "motor_torque")
+    estimator: str = "none"
+    feedforward: bool = False
+    load_change_time_s: float = 1.0
     origin: str = "<scene>"
 
     def __post_init__(self) -> None:
@@ -153,6 +164,16 @@ class Scene:
         for out in self.outputs:
             if out not in OUTPUTS:
                 raise bad("outputs", out, f"one of {', '.join(OUTPUTS)}")
+        if self.estimator not in ("none", "kf"):
+            raise bad("estimator", self.estimator, "none or kf")
+        if not isinstance(self.feedforward, bool):
+            raise bad("feedforward", self.feedforward, "true or false")
+        if self.feedforward and self.estimator != "kf":
+            raise bad("feedforward", self.feedforward, "estimator = kf (the load torque comes from the filter)")
+        if self.estimator == "kf" and not self.discrete:
+            raise bad("estimator", self.estimator, "discrete = true (the filter runs at the sample time)")
+        if finite("load_change_time_s", self.load_change_time_s) <= 0:
+            raise bad("load_change_time_s", self.load_change_time_s, "a positive time in s")
 
     @property
     def setpoint_rpm(self) -> float:
@@ -215,6 +236,7 @@ def _from_doc(doc: Mapping[str, Any], origin: str) -> Scene:
         "step_time_s": ("step_time", float),
         "duration_s": ("duration", float),
         "needed": ("outputs", lambda v: tuple(v)),
+        "kind": ("estimator", str),
     }
     for old, (new, conv) in mapping.items():
         if old in kw:

@@ -468,6 +468,22 @@ def _run_continuous(built, settings, sp, ld, duration, dt, gains, ff, x0):
     return np.concatenate(times), np.hstack(states)
 
 
+def _sample_integrator(built: _Built, settings: SimSettings) -> ca.Function:
+    """Plant-only integrator over one sample with the command held (controller states frozen):
+    ``(x0 = scaled state, p = [torque command N m, load N, sample time s]) -> xf``."""
+    key = (settings, "sample")
+    if key not in built.sampled:
+        model, scale = built.model, built.scale
+        nx = model.nx
+        zp = ca.SX.sym("z", len(scale))
+        pp = ca.SX.sym("p", 3)
+        rates = _plant_rates(model, (zp * scale)[:nx], pp[0], pp[1], built.energy)
+        ode = pp[2] * ca.vertcat(rates[:nx], ca.DM.zeros(3), rates[nx:]) / scale
+        built.sampled[key] = ca.integrator("sample", settings.integrator, {"x": zp, "p": pp, "ode": ode}, 0.0, 1.0,
+                                           _opts(settings))
+    return built.sampled[key]
+
+
 def _sampled_step(built: _Built, settings: SimSettings) -> ca.Function:
     """One controller sample: update the PID from the quantised encoder, hold the previous
     command over the sample (one-sample computation delay) and integrate the plant."""
@@ -478,13 +494,7 @@ def _sampled_step(built: _Built, settings: SimSettings) -> ca.Function:
     nx, nz = model.nx, len(scale)
     ts = p.sample_time_s
     q = 2.0 * math.pi / p.encoder_counts
-    # Plant-only integrator over one sample with the command held (controller states frozen).
-    zp = ca.SX.sym("z", nz)
-    pp = ca.SX.sym("p", 3)  # held torque command, load, sample time
-    xp = zp * scale
-    rates = _plant_rates(model, xp[:nx], pp[0], pp[1], built.energy)
-    ode = pp[2] * ca.vertcat(rates[:nx], ca.DM.zeros(3), rates[nx:]) / scale
-    sample = ca.integrator("sample", settings.integrator, {"x": zp, "p": pp, "ode": ode}, 0.0, 1.0, _opts(settings))
+    sample = _sample_integrator(built, settings)
     # Controller memory: previous quantised angle, filtered derivative, pending command.
     z = ca.SX.sym("z", nz)
     mem = ca.SX.sym("m", 3)

@@ -45,8 +45,10 @@ class LoopModel:
     """Closed loop affine in the gains g = (kp, ki, kd).
 
     ``X[k+1] = (A0 + sum_i g_i A_i) X[k] + Bd``: response to a disturbance step of the stated
-    size from zero initial deviation; the error is ``e[k] = Ce X[k]``; ``L(omega) = sum_i g_i
-    L_i(omega)`` is the loop transfer at the grid frequencies (rad/s).
+    size from zero initial deviation; the error is ``e[k] = Ce X[k]``. The loop transfer at the
+    grid frequencies (rad/s) is ``L = (N0 + sum_i g_i L_i) / (D0 + sum_i g_i D_i)``: numerator
+    and denominator are affine in the gains (``N0 = 0``, ``D = 1`` for a plain PID loop; an
+    estimator whose prediction uses the applied torque makes the denominator depend on them).
     """
 
     A0: NDArray[np.float64]
@@ -60,9 +62,34 @@ class LoopModel:
     tf: float
     name: str = "loop"
     outputs: dict = field(default_factory=dict)  # extra named rows over X (e.g. torque)
+    N0: NDArray[np.complex128] | None = None  # gain-free part of the numerator
+    D0: NDArray[np.complex128] | None = None  # gain-free part of the denominator (default 1)
+    D: NDArray[np.complex128] | None = None  # gain parts of the denominator, shape (3, n_omega)
+
+    def parts(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """``(N0, L, D0, D)`` with the defaults of a plain loop filled in."""
+        n = self.omega.size
+        return (
+            np.zeros(n, complex) if self.N0 is None else self.N0,
+            self.L,
+            np.ones(n, complex) if self.D0 is None else self.D0,
+            np.zeros((self.n_gains, n), complex) if self.D is None else self.D,
+        )
+
+    @property
+    def n_gains(self) -> int:
+        """3 (kp, ki, kd) or 4 (and the load feed-forward gain kff)."""
+        return len(self.A)
+
+    def gvec(self, gains: Sequence[float]) -> NDArray[np.float64]:
+        """Gains padded with zeros to ``n_gains`` entries."""
+        g = np.zeros(self.n_gains)
+        vals = np.asarray(gains, dtype=float)[: self.n_gains]
+        g[: vals.size] = vals
+        return g
 
     def a_cl(self, gains: Sequence[float]) -> NDArray[np.float64]:
-        return self.A0 + sum(g * a for g, a in zip(gains, self.A))
+        return self.A0 + sum(g * a for g, a in zip(self.gvec(gains), self.A))
 
     def spectral_radius(self, gains: Sequence[float]) -> float:
         return float(np.max(np.abs(np.linalg.eigvals(self.a_cl(gains)))))
@@ -71,7 +98,9 @@ class LoopModel:
         return self.spectral_radius(gains) < 1.0 - 1e-9
 
     def loop_response(self, gains: Sequence[float]) -> NDArray[np.complex128]:
-        return np.tensordot(np.asarray(gains, dtype=float), self.L, axes=1)
+        n0, ln, d0, ld = self.parts()
+        g = self.gvec(gains)
+        return (n0 + g @ ln) / (d0 + g @ ld)
 
     def margins(self, gains: Sequence[float]) -> Margins:
         return margins_from_response(self.omega, self.loop_response(gains))
@@ -91,7 +120,7 @@ class LoopModel:
 
     def objectives(self, gains: NDArray[np.float64], kind: str) -> NDArray[np.float64]:
         """Objective for each row of ``gains`` (batched simulation)."""
-        g = np.asarray(gains, float)
+        g = np.asarray(gains, float)[:, : self.n_gains]
         a = self.A0[None] + np.einsum("bi,ijk->bjk", g, np.stack(self.A))
         x = np.zeros((len(g), self.A0.shape[0]))
         e = np.empty((len(g), self.n_steps))
@@ -363,7 +392,7 @@ def _scan_grid(loops, use_d: bool, bounds) -> dict:
     if hit is not None and hit["loops"] == loops:
         return hit
     ref = loops[0]
-    L1 = ref.L[0]
+    L1 = ref.loop_response((1.0, 0.0, 0.0))  # proportional loop at unit gain
     phase = np.unwrap(np.angle(L1))
     cross = np.flatnonzero(phase <= -np.pi)
     i_u = cross[0] if cross.size else L1.size - 1  # no phase crossover: the grid's top
@@ -371,13 +400,16 @@ def _scan_grid(loops, use_d: bool, bounds) -> dict:
     kps = np.logspace(math.log10(kp_u) - 3, math.log10(kp_u), 25)
     ratios = w180 * np.logspace(-4, 0.5, 25)
     kds = [0.0] if not use_d else [0.0, *(np.logspace(-2, 0.5, 6) / w180)]
-    grid = np.array([(kp, kp * r, kp * kd) for kp in kps for r in ratios for kd in kds])
-    grid[:, 1] = np.minimum(grid[:, 1], bounds[1][1])
-    grid[:, 2] = np.minimum(grid[:, 2], bounds[2][1])
+    kffs = [0.0] if ref.n_gains < 4 else [0.0, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0]
+    grid = np.array([(kp, kp * r, kp * kd, kff)[: ref.n_gains]
+                     for kp in kps for r in ratios for kd in kds for kff in kffs])
+    for j in range(1, ref.n_gains):
+        grid[:, j] = np.minimum(grid[:, j], bounds[j][1])
     ms = np.zeros(len(grid))
     mt = np.zeros(len(grid))
     for lp in loops:
-        L = grid @ lp.L  # (n_grid, n_omega)
+        n0, ln, d0, ld = lp.parts()
+        L = (n0 + grid @ ln) / (d0 + grid @ ld)  # (n_grid, n_omega)
         ms = np.maximum(ms, np.max(1 / np.abs(1 + L), axis=1))
         mt = np.maximum(mt, np.max(np.abs(L / (1 + L)), axis=1))
     entry = {"loops": list(loops), "grid": grid, "ms": ms, "mt": mt,
@@ -430,9 +462,15 @@ class _Problem:
     j_ref: float
     has_mt: bool
     has_noise: bool
+    free: list
 
 
 _PROBLEMS: dict = {}
+
+
+def _free_gains(use_d: bool, n_gains: int) -> list[int]:
+    """Indices of the optimised gains: kp, ki, (kd), (kff)."""
+    return [0, 1] + ([2] if use_d else []) + ([3] if n_gains == 4 else [])
 
 
 def _build_problem(loops, objective, use_d, has_mt, has_noise, weights, worst, g_ref) -> _Problem:
@@ -440,13 +478,20 @@ def _build_problem(loops, objective, use_d, has_mt, has_noise, weights, worst, g
     cached = _PROBLEMS.get(key)
     if cached is not None and cached[0] == [lp for lp in loops]:
         return cached[1]
-    g_ref = np.asarray(g_ref, float)
+    ng = loops[0].n_gains
+    g_ref = loops[0].gvec(g_ref)
     scale = np.where(g_ref > 0, g_ref, 1.0)
     if use_d and g_ref[2] <= 0:
         scale[2] = scale[0] / max(scale[1] / scale[0], 1e-12)  # kd ~ kp^2/ki
-    nv = 3 if use_d else 2
+    if ng == 4:
+        scale[3] = 1.0
+    free = _free_gains(use_d, ng)
+    nv = len(free)
     v = ca.MX.sym("v", nv)
-    g = ca.vertcat(v * scale[:nv], *([] if use_d else [0.0]))
+    g_list = [0.0] * ng
+    for j, i in enumerate(free):
+        g_list[i] = v[j] * scale[i]
+    g = ca.vertcat(*g_list)
     cons, objs = [], []
     j_ref = max(_combined([lp.objective(g_ref, objective) for lp in loops], weights, worst), 1e-300)
     for lp in loops:
@@ -454,7 +499,7 @@ def _build_problem(loops, objective, use_d, has_mt, has_noise, weights, worst, g
         # One closed-loop step as an SX function of the state and the (precomputed) matrix.
         xs, As = ca.SX.sym("x", N), ca.SX.sym("A", N, N)
         stepf = ca.Function("stepf", [xs, As], [ca.mtimes(As, xs) + ca.DM(lp.Bd)])
-        acl = ca.DM(lp.A0) + sum(g[i] * ca.DM(lp.A[i]) for i in range(3))
+        acl = ca.DM(lp.A0) + sum(g[i] * ca.DM(lp.A[i]) for i in range(ng))
         traj = stepf.mapaccum("traj", lp.n_steps - 1)(ca.DM.zeros(N), acl)
         e = ca.mtimes(ca.DM(lp.Ce).T, traj)  # e[1..N-1]; e[0] = 0
         tk = ca.DM(lp.h * np.arange(1, lp.n_steps)).T
@@ -468,12 +513,19 @@ def _build_problem(loops, objective, use_d, has_mt, has_noise, weights, worst, g
         if objective == "ie":
             J = _smooth_abs(J, 1e-9 * lp.objective(g_ref, "ie") + 1e-300)
         objs.append(J)
-        re = 1 + ca.mtimes(ca.DM(lp.L.real.T), g)
-        im = ca.mtimes(ca.DM(lp.L.imag.T), g)
-        cons.append(re * re + im * im)  # >= 1/Ms^2
+        # 1 + L = (D + N)/D and L = N/D, with N and D affine in the gains.
+        n0, ln, d0, ld = lp.parts()
+
+        def affine(c0, cg):
+            return (ca.DM(c0.real) + ca.mtimes(ca.DM(cg.real.T), g), ca.DM(c0.imag) + ca.mtimes(ca.DM(cg.imag.T), g))
+
+        w_re, w_im = affine(n0 + d0, ln + ld)
+        d_re, d_im = affine(d0, ld)
+        s_inv = (w_re * w_re + w_im * w_im) / (d_re * d_re + d_im * d_im)
+        cons.append(s_inv)  # |1 + L|^2 >= 1/Ms^2
         if has_mt:
-            lr = re - 1
-            cons.append((re * re + im * im) / (lr * lr + im * im + 1e-300))  # >= 1/Mt^2
+            n_re, n_im = affine(n0, ln)
+            cons.append((w_re * w_re + w_im * w_im) / (n_re * n_re + n_im * n_im + 1e-300))  # >= 1/Mt^2
     if has_noise:
         cons.append(g[0] + g[2] / loops[0].tf)
     if worst:
@@ -492,7 +544,7 @@ def _build_problem(loops, objective, use_d, has_mt, has_noise, weights, worst, g
                       "hessian_approximation": "limited-memory"},
         },
     )
-    prob = _Problem(solver, scale, nv, [lp.omega.size for lp in loops], worst, j_ref, has_mt, has_noise)
+    prob = _Problem(solver, scale, nv, [lp.omega.size for lp in loops], worst, j_ref, has_mt, has_noise, free)
     _PROBLEMS.clear()  # keep one problem: the last loop set tuned
     _PROBLEMS[key] = ([lp for lp in loops], prob)
     return prob
@@ -534,7 +586,9 @@ def tune_loops(
     if weights.shape != (len(loops),) or np.any(weights < 0):
         raise ValueError(f"weights = {list(weights)}; expected {len(loops)} non-negative numbers")
     use_d = controller == "pid"
-    bounds = [(0.0, kp_max), (0.0, ki_max), (0.0, kd_max if use_d else 0.0)]
+    bounds = [(0.0, kp_max), (0.0, ki_max), (0.0, kd_max if use_d else 0.0), (0.0, 1.0)][: loops[0].n_gains]
+    if len({lp.n_gains for lp in loops}) != 1:
+        raise ValueError("loops mix plain and feed-forward structures; expected one structure")
     # Solve against a bound a hair inside the requested one, so the result honours it exactly.
     ms_eff = ms_max * (1 - 1e-7)
     mt_eff = mt_max * (1 - 1e-7) if mt_max else None
@@ -547,7 +601,7 @@ def tune_loops(
         )
     prob = _build_problem(loops, objective, use_d, mt_max is not None, max_noise_gain is not None,
                           weights, worst_case, starts[0])
-    nv, scale = prob.nv, prob.scale
+    nv, scale, free = prob.nv, prob.scale, prob.free
     lbg, ubg = [], []
     for n_w in prob.n_omega:
         lbg += [1.0 / ms_eff**2] * n_w
@@ -558,8 +612,8 @@ def tune_loops(
     if prob.has_noise:
         lbg.append(-ca.inf)
         ubg.append(max_noise_gain)
-    lbx = [b[0] / s for b, s in zip(bounds[:nv], scale[:nv])]
-    ubx = [b[1] / s for b, s in zip(bounds[:nv], scale[:nv])]
+    lbx = [bounds[i][0] / scale[i] for i in free]
+    ubx = [bounds[i][1] / scale[i] for i in free]
     if prob.worst:
         lbg += [0.0] * len(loops)
         ubg += [ca.inf] * len(loops)
@@ -573,13 +627,15 @@ def tune_loops(
     best = (g_scan, value(g_scan), {"return_status": "scan point kept", "iter_count": 0})
     tried = []
     for s0 in starts[:3]:
-        x0 = list(np.asarray(s0, float)[:nv] / scale[:nv])
+        x0 = [float(s0[i]) / scale[i] for i in free]
         if prob.worst:
             x0.append(value(s0) / prob.j_ref * 1.001)
         sol = prob.solver(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         stats = prob.solver.stats()
-        gains = np.zeros(3)
-        gains[:nv] = np.maximum(np.asarray(sol["x"]).ravel()[:nv] * scale[:nv], 0.0)
+        gains = np.zeros(len(scale))
+        xs = np.asarray(sol["x"]).ravel()
+        for j, i in enumerate(free):
+            gains[i] = max(xs[j] * scale[i], 0.0)
         tried.append({"start": [float(x) for x in s0], "status": stats["return_status"], "iterations": stats["iter_count"]})
         # Explicit checks: closed-loop stability and the robustness bounds on the grid.
         feasible = all(lp.is_stable(gains) for lp in loops) and all(
@@ -592,7 +648,8 @@ def tune_loops(
             if stats["success"]:
                 break
     gains, val, stats = best
-    pid = PID(float(gains[0]), float(gains[1]), float(gains[2]), tf=float(loops[0].tf))
+    pid = PID(float(gains[0]), float(gains[1]), float(gains[2]), tf=float(loops[0].tf),
+              kff=float(gains[3]) if len(gains) > 3 else 0.0)
     return TuningResult(
         pid=pid,
         objective=val,

@@ -126,3 +126,20 @@ def test_cli_numerical_failure_exits_3_and_keeps_files(tmp_path, capsys, monkeyp
     assert rc == 3
     assert capsys.readouterr().err.startswith("prsa-tune: numerical failure: integration failed")
     assert out.read_text() == "previous report\n"
+
+
+def test_cli_estimator_and_feedforward(tmp_path, capsys):
+    out = tmp_path / "kf.json"
+    rc = main(["--estimator", "kf", "--feedforward", "--duration", "0.3", "--json", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "load feed-forward gain kff" in text and "Speed estimation" in text
+    d = json.loads(out.read_text())
+    assert d["estimator"] == {"kind": "kf", "feedforward": True, "estimation": d["estimator"]["estimation"]}
+    est = d["estimator"]["estimation"][0]
+    assert est["kf_speed_rms_rad_s"] > 0 and est["fd_speed_rms_rad_s"] > 0
+    pi_alone = next(b for b in d["baselines"] if b["name"].startswith("tuned PI alone"))
+    # Load feed-forward at the same Ms bound: the verified peak drop falls by at least 30 %.
+    assert d["margins"]["ms"] <= 1.4 and pi_alone["margins"]["ms"] <= 1.4 + 1e-9
+    assert d["verified"]["peak_drop_rad_s"] < 0.7 * pi_alone["verified"]["peak_drop_rad_s"]
+    assert d["gains"]["kff"] > 0

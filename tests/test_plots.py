@@ -18,7 +18,7 @@ def setup():
     loops = actuator_loops(plant, scene)
     designs = []
     for name, pid in (("a", PID(0.085, 14.7)), ("b", PID(0.127, 15.9))):
-        d = Design(name, pid, loops[0].margins(pid.params[:3]))
+        d = Design(name, pid, loops[0].margins(pid.gains))
         _predict(d, loops, plant, scene)
         designs.append(verify(d, plant, scene))
     return plant, scene, loops, designs
@@ -38,7 +38,7 @@ def test_bode_plant_has_two_paths(setup):
 def test_loop_plots_mark_margins(setup):
     _, scene, loops, designs = setup
     lp, d = loops[0], designs[0]
-    L = lp.loop_response(d.pid.params[:3])
+    L = lp.loop_response(d.pid.gains)
     fig, axs = bode_loop(lp.omega, L, d.margins)
     texts = [t.get_text() for a in axs for t in a.texts]
     assert any(t.startswith("PM") for t in texts) and any(t.startswith("GM") for t in texts)

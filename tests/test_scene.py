@@ -67,3 +67,17 @@ def test_unknown_scene_and_field():
         load_scene("nope")
     with pytest.raises(SceneError, match=r"unknown scene field 'ms'; allowed: "):
         Scene().replace(ms=1.3)
+
+
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        ({"estimator": "ekf"}, r"estimator = 'ekf'; expected none or kf"),
+        ({"feedforward": True}, r"feedforward = True; expected estimator = kf"),
+        ({"estimator": "kf", "discrete": False}, r"expected discrete = true"),
+        ({"estimator": "kf", "load_change_time_s": 0.0}, r"load_change_time_s = 0\.0; expected a positive time"),
+    ],
+)
+def test_estimator_fields_are_validated(changes, match):
+    with pytest.raises(SceneError, match=match):
+        Scene().replace(**changes)
