@@ -241,49 +241,64 @@ def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
     return xdot, y, [stored, tau * omega, load * a * omega, dissipated]
 
 
-def _compliant(plant: Plant, x: ca.SX, u: ca.SX):
+@dataclass
+class _Contacts:
+    """Thread-contact totals of the compliant models: axial forces on the roller assembly
+    from the nut (``f_nr``) and on the screw (``f_sr``), N; normal forces, N; the normal force
+    friction acts on, N; stored energy, J; damping power, W; torque on the cage, N m."""
+
+    f_nr: ca.SX
+    f_sr: ca.SX
+    n_nut: ca.SX
+    n_screw: ca.SX
+    n_fric: ca.SX
+    energy: ca.SX
+    damping: ca.SX
+    t_cage: ca.SX
+
+
+def _compliant_bodies(plant: Plant, w_n, w_p, v_r, v_s, tau, u, c: _Contacts):
+    """Rates of nut speed, cage speed, roller axial speed, screw speed and motor torque, with
+    the energy terms, given the contact totals (shared by the compliant models)."""
     v = plant.values
-    _, w_n, w_p, x_r, v_r, d_sr, v_s, tau = ca.vertsplit(x)
     load = u[1]
     d_s, d_n = plant.d_screw_m, plant.d_nut_m
     j_cage, m_axial = _cage_inertia(plant)
+    # Thread sliding friction, acting on the nut through the effective sliding arm.
+    k_slip = plant.slip_arm_m
+    t_fric = k_slip * _friction_coefficient(plant, k_slip * w_n) * c.n_fric
+    t_drag = _bearing_losses(plant, w_n)
+    # Nut-roller traction drives the cage (rolling with creep, limited by mu_d * normal force).
+    v_slip = 0.5 * d_n * w_n - 0.5 * (d_n + d_s) * w_p
+    n_trac = ca.fmax(c.n_nut, 0.0) + v["friction.traction_preload_n"]
+    f_t = v["friction.dynamic"] * _smooth_sign(v_slip, v["friction.creep_velocity_m_s"]) * n_trac
+    j_nut, m_s = v["nut.inertia_kg_m2"], v["screw.mass_kg"]
+    rates = {
+        "omega_nut": (tau - 0.5 * d_n * f_t - t_fric - t_drag) / j_nut,
+        "omega_cage": (0.5 * (d_n + d_s) * f_t + c.t_cage) / j_cage,
+        "v_roller": (c.f_nr - c.f_sr) / m_axial,
+        "v_screw": (c.f_sr - load) / m_s,
+        "tau_motor": _drive(plant, u[0], tau),
+    }
+    stored = 0.5 * j_nut * w_n**2 + 0.5 * j_cage * w_p**2 + 0.5 * m_axial * v_r**2 + 0.5 * m_s * v_s**2 + c.energy
+    dissipated = (t_fric + t_drag) * w_n + f_t * v_slip + c.damping
+    y = _kinematic_outputs(plant, w_n, w_p, v_s, tau) + [c.n_nut, c.n_screw]
+    return rates, y, [stored, tau * w_n, load * v_s, dissipated]
+
+
+def _compliant(plant: Plant, x: ca.SX, u: ca.SX):
+    _, w_n, w_p, x_r, v_r, d_sr, v_s, tau = ca.vertsplit(x)
     # Screw advance per radian of cage rotation (screw-roller helix): v_S = a w_P rigidly.
     a = plant.lead_per_rad / plant.cage_ratio
     ddelta_sr = v_r + a * w_p - v_s
     cos_n, cos_s = math.cos(plant.helix_nut_rad), math.cos(plant.helix_screw_rad)
     f_nr, n_nut, e_nr, pd_nr = _thread_contact(plant, -x_r, -v_r, cos_n)
     f_sr, n_screw, e_sr, pd_sr = _thread_contact(plant, d_sr, ddelta_sr, cos_s)
-    # Thread sliding friction, acting on the nut through the effective sliding arm.
-    k_slip = plant.slip_arm_m
-    n_total = ca.fmax(n_nut, 0.0) + ca.fmax(n_screw, 0.0)
-    t_fric = k_slip * _friction_coefficient(plant, k_slip * w_n) * n_total
-    t_drag = _bearing_losses(plant, w_n)
-    # Nut-roller traction drives the cage (rolling with creep, limited by mu_d * normal force).
-    v_slip = 0.5 * d_n * w_n - 0.5 * (d_n + d_s) * w_p
-    n_trac = ca.fmax(n_nut, 0.0) + v["friction.traction_preload_n"]
-    f_t = v["friction.dynamic"] * _smooth_sign(v_slip, v["friction.creep_velocity_m_s"]) * n_trac
-    j_nut, m_s = v["nut.inertia_kg_m2"], v["screw.mass_kg"]
-    xdot = ca.vertcat(
-        w_n,
-        (tau - 0.5 * d_n * f_t - t_fric - t_drag) / j_nut,
-        (0.5 * (d_n + d_s) * f_t - a * f_sr) / j_cage,
-        v_r,
-        (f_nr - f_sr) / m_axial,
-        ddelta_sr,
-        (f_sr - load) / m_s,
-        _drive(plant, u[0], tau),
-    )
-    y = _kinematic_outputs(plant, w_n, w_p, v_s, tau) + [n_nut, n_screw]
-    stored = (
-        0.5 * j_nut * w_n**2
-        + 0.5 * j_cage * w_p**2
-        + 0.5 * m_axial * v_r**2
-        + 0.5 * m_s * v_s**2
-        + e_nr
-        + e_sr
-    )
-    dissipated = (t_fric + t_drag) * w_n + f_t * v_slip + pd_nr + pd_sr
-    return xdot, y, [stored, tau * w_n, load * v_s, dissipated]
+    contacts = _Contacts(f_nr, f_sr, n_nut, n_screw, ca.fmax(n_nut, 0.0) + ca.fmax(n_screw, 0.0),
+                         e_nr + e_sr, pd_nr + pd_sr, -a * f_sr)
+    r, y, terms = _compliant_bodies(plant, w_n, w_p, v_r, v_s, tau, u, contacts)
+    xdot = ca.vertcat(w_n, r["omega_nut"], r["omega_cage"], v_r, r["v_roller"], ddelta_sr, r["v_screw"], r["tau_motor"])
+    return xdot, y, terms
 
 
 @dataclass(frozen=True)
@@ -327,16 +342,13 @@ def _multi_roller(plant: Plant, x: ca.SX, u: ca.SX, errors: RollerErrors):
     per roller), offset by its position error and runout; the rollers share the cage's axial
     and rotational motion. The offsets depend on the cage angle, so their forces also act on
     the cage (generalised forces from the same contact Jacobian keep the energy balance)."""
-    v = plant.values
     _, w_n, th_p, w_p, x_r, v_r, d_sr, v_s, tau = ca.vertsplit(x)
-    load = u[1]
-    d_s, d_n, d_r = plant.d_screw_m, plant.d_nut_m, plant.d_roller_m
-    j_cage, m_axial = _cage_inertia(plant)
+    d_s, d_r = plant.d_screw_m, plant.d_roller_m
     a = plant.lead_per_rad / plant.cage_ratio
     spin = d_s / d_r  # roller spin (relative to the cage) per radian of cage rotation
     ddelta_sr = v_r + a * w_p - v_s
     cos_n, cos_s = math.cos(plant.helix_nut_rad), math.cos(plant.helix_screw_rad)
-    z = int(v["thread.engaged_threads"])
+    z = int(plant.values["thread.engaged_threads"])
     f_nr = f_sr = n_nut = n_screw = energy = damp = t_cage = n_fric = 0
     per_nut, per_screw = [], []
     for i in range(plant.n_rollers):
@@ -353,30 +365,10 @@ def _multi_roller(plant: Plant, x: ca.SX, u: ca.SX, errors: RollerErrors):
         t_cage = t_cage + fn_i * dwob - fs_i * (a + dwob)
         per_nut.append(nn_i)
         per_screw.append(ns_i)
-    k_slip = plant.slip_arm_m
-    t_fric = k_slip * _friction_coefficient(plant, k_slip * w_n) * n_fric
-    t_drag = _bearing_losses(plant, w_n)
-    v_slip = 0.5 * d_n * w_n - 0.5 * (d_n + d_s) * w_p
-    n_trac = ca.fmax(n_nut, 0.0) + v["friction.traction_preload_n"]
-    f_t = v["friction.dynamic"] * _smooth_sign(v_slip, v["friction.creep_velocity_m_s"]) * n_trac
-    j_nut, m_s = v["nut.inertia_kg_m2"], v["screw.mass_kg"]
-    xdot = ca.vertcat(
-        w_n,
-        (tau - 0.5 * d_n * f_t - t_fric - t_drag) / j_nut,
-        w_p,
-        (0.5 * (d_n + d_s) * f_t + t_cage) / j_cage,
-        v_r,
-        (f_nr - f_sr) / m_axial,
-        ddelta_sr,
-        (f_sr - load) / m_s,
-        _drive(plant, u[0], tau),
-    )
-    y = _kinematic_outputs(plant, w_n, w_p, v_s, tau) + [n_nut, n_screw] + per_nut + per_screw
-    stored = (
-        0.5 * j_nut * w_n**2 + 0.5 * j_cage * w_p**2 + 0.5 * m_axial * v_r**2 + 0.5 * m_s * v_s**2 + energy
-    )
-    dissipated = (t_fric + t_drag) * w_n + f_t * v_slip + damp
-    return xdot, y, [stored, tau * w_n, load * v_s, dissipated]
+    contacts = _Contacts(f_nr, f_sr, n_nut, n_screw, n_fric, energy, damp, t_cage)
+    r, y, terms = _compliant_bodies(plant, w_n, w_p, v_r, v_s, tau, u, contacts)
+    xdot = ca.vertcat(w_n, r["omega_nut"], w_p, r["omega_cage"], v_r, r["v_roller"], ddelta_sr, r["v_screw"], r["tau_motor"])
+    return xdot, y + per_nut + per_screw, terms
 
 
 _CACHE: "weakref.WeakKeyDictionary[Plant, dict[tuple, PlantModel]]" = weakref.WeakKeyDictionary()

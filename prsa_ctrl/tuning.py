@@ -107,13 +107,7 @@ class LoopModel:
 
     def error(self, gains: Sequence[float]) -> NDArray[np.float64]:
         """Error sequence e[0..N-1] (numeric)."""
-        a = self.a_cl(gains)
-        x = np.zeros(self.A0.shape[0])
-        out = np.empty(self.n_steps)
-        for k in range(self.n_steps):
-            out[k] = self.Ce @ x
-            x = a @ x + self.Bd
-        return out
+        return self.trajectory(gains)["error"]
 
     def objective(self, gains: Sequence[float], kind: str) -> float:
         return _objective_numeric(self.error(gains), self.h, kind)
