@@ -17,7 +17,6 @@ from typing import Sequence
 import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import brentq
 
 from .controller import PID, pid_law
 from .equilibrium import operating_point
@@ -215,6 +214,8 @@ def _initial_speed(plant: Plant, fidelity: str, ref: float, load: float, pid: PI
 
     def residual(w: float) -> float:
         return operating_point(plant, w, load, fidelity, seed).torque - tau_ff - pid.kp * (ref - w)
+
+    from scipy.optimize import brentq  # only P-only controllers need it (and it costs 0.25 s to import)
 
     span = plant.torque_limit / pid.kp
     w0 = brentq(residual, ref - span, ref + span, xtol=1e-12, rtol=1e-14)
