@@ -21,7 +21,6 @@ Ratios are measured in the same run on the same machine; no target is asserted h
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import subprocess

@@ -140,7 +140,6 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
     K = kf.K.ravel()
     # Full coordinates X = [x (plant, with angle), xh (prior estimate, 4), d, I, w_prev, u_pending]
     ix = slice(0, n)
-    ih = slice(n, n + 4)
     i_d, i_i, i_wp, i_u = n + 4, n + 5, n + 6, n + 7
     N = n + 8
     E = np.eye(N)
@@ -240,7 +239,6 @@ def run_estimated(
     outputs add ``speed_estimate``, ``speed_fd`` (raw backward difference) and
     ``load_torque_estimate`` (N m).
     """
-    import casadi as ca
 
     from .controller import pid_law
     from .model import plant_model
@@ -260,7 +258,7 @@ def run_estimated(
     q = 2.0 * math.pi / plant.encoder_counts
     op, integral = _initial_speed(plant, fidelity, setpoint, ld[0][1], controller, 0.0, seed)
     nx = model.nx
-    i_th, i_w = model.index("theta_nut"), model.index("omega_nut")
+    i_th = model.index("theta_nut")
     z = np.concatenate([op.x, [op.omega_nut, integral, op.omega_nut]]) / scale
     kf = kf or design_kf(plant)
     filt = kf.make_filter([op.x[i_th], op.omega_nut, op.torque, op.torque]) if estimator == "kf" else None

@@ -14,6 +14,8 @@ from __future__ import annotations
 import math
 import weakref
 
+from typing import TYPE_CHECKING
+
 import casadi as ca
 import numpy as np
 
@@ -21,6 +23,9 @@ from .controller import PID
 from .equilibrium import operating_point
 from .model import INPUTS, plant_model
 from .plant import Plant
+
+if TYPE_CHECKING:  # annotations only: python-control is imported where it is used
+    import control
 
 __all__ = ["linear_core", "linearize", "pid_controller", "closed_loop", "predict_load_step"]
 

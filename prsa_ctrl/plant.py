@@ -535,7 +535,9 @@ def load_plant(name_or_path: str | Path | None = None) -> Plant:
         If the file is missing, unreadable or invalid; the message names the file and key.
     """
     src = _resolve(name_or_path)
-    origin = str(src) if isinstance(src, Path) else f"{src.name} (built-in)"
+    builtin = name_or_path is None or not (isinstance(name_or_path, Path) or str(name_or_path).endswith(".toml")
+                                           or "/" in str(name_or_path) or "\\" in str(name_or_path))
+    origin = f"{src.name} (built-in)" if builtin else str(src)
     try:
         doc = tomllib.loads(src.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:

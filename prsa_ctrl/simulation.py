@@ -12,7 +12,7 @@ import time
 import weakref
 from dataclasses import dataclass, field
 from types import SimpleNamespace
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import casadi as ca
 import numpy as np
@@ -23,6 +23,9 @@ from .equilibrium import operating_point
 from .errors import SimulationError
 from .model import PlantModel, plant_model
 from .plant import Plant
+
+if TYPE_CHECKING:  # annotations only: python-control is imported where it is used
+    import control
 
 __all__ = ["simulate", "run", "SimRun", "Profile", "SimSettings", "energy_balance", "INTEGRATORS"]
 

@@ -37,7 +37,6 @@ from .metrics import Margins, margins_from_response
 __all__ = ["LoopModel", "TuningResult", "tune_pid", "tune_loops", "continuous_loop", "drive_loop", "OBJECTIVES"]
 
 OBJECTIVES = ("ie", "iae", "itae", "ise")
-_GAINS = ("kp", "ki", "kd")
 
 
 @dataclass(frozen=True, eq=False)
@@ -595,7 +594,7 @@ def tune_loops(
         )
     prob = _build_problem(loops, objective, use_d, mt_max is not None, max_noise_gain is not None,
                           weights, worst_case, starts[0])
-    nv, scale, free = prob.nv, prob.scale, prob.free
+    scale, free = prob.scale, prob.free
     lbg, ubg = [], []
     for n_w in prob.n_omega:
         lbg += [1.0 / ms_eff**2] * n_w

@@ -1,11 +1,9 @@
 """The main job on the paper plant: tune, verify, beat the baselines at equal or better Ms."""
 
 import json
-import math
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 
 from prsa_ctrl import load_plant

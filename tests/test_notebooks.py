@@ -1,7 +1,6 @@
 """Notebooks are committed without outputs and execute in fast mode (PRSA_FAST=1)."""
 
 import json
-import os
 from pathlib import Path
 
 import pytest

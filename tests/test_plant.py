@@ -1,6 +1,5 @@
 import math
 import re
-import shutil
 import tomllib
 from pathlib import Path
 
