@@ -370,8 +370,6 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         _predict(d, loops, plant, scene)
         return d
 
-    ms_levels = [scene.ms_max] + [1 + (scene.ms_max - 1) * f for f in (0.85, 0.7, 0.55, 0.4)][: scene.candidates - 1]
-    candidates = [tuned(ms) for ms in ms_levels]
     # Baselines use the drive's standard speed measurement; with an estimator in the scene the
     # PI tuned without it is a baseline too (the reference for what the estimator buys).
     plain = loops if scene.estimator == "none" else actuator_loops(plant, scene, estimator="none")
@@ -381,24 +379,34 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         baselines.insert(0, Design(f"tuned PI alone (Ms <= {scene.ms_max:.3g})", res.pid, res.margins[0]))
     for d in baselines:
         _predict(d, plain, plant, scene)
+    # Candidates: the design at the scene's Ms bound, designs at the Ms of every baseline that
+    # is more robust (they double as its equal-Ms comparison), then more robust alternatives
+    # until there are ``scene.candidates``.
+    ms_levels = [scene.ms_max] + sorted({b.margins.ms for b in baselines if b.margins.ms < scene.ms_max}, reverse=True)
+    hedges = [1 + (scene.ms_max - 1) * f for f in (0.85, 0.7, 0.55, 0.4)]
+    ms_levels += hedges[: max(0, scene.candidates - len(ms_levels))]
+    candidates = [tuned(ms) for ms in ms_levels]
     timing["tune"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
     verify_all(candidates + baselines, plant, scene, workers)
     timing["verify"] = time.perf_counter() - t2
     best = min(candidates, key=lambda d: d.objective_verified)
-    # Equal-Ms comparison designs where the verified best does not settle the question.
+    # Equal-Ms comparison designs where the verified best and the candidates do not settle it.
     t3 = time.perf_counter()
-    pending = [b for b in baselines
-               if not (best.margins.ms <= b.margins.ms and best.objective_verified < b.objective_verified)]
-    extra = {id(b): tuned(b.margins.ms) for b in pending}
+
+    def settles(d: Design, b: Design) -> bool:
+        return d.margins.ms <= b.margins.ms * (1 + 1e-9) and d.objective_verified < b.objective_verified
+
+    ours_for = {id(b): next((d for d in [best, *candidates] if settles(d, b)), None) for b in baselines}
+    extra = {id(b): tuned(b.margins.ms) for b in baselines if ours_for[id(b)] is None}
     t4 = time.perf_counter()
     timing["tune"] += t4 - t3
     verify_all(list(extra.values()), plant, scene, workers)
     timing["verify"] += time.perf_counter() - t4
     comparisons = []
     for b in baselines:
-        ours = extra.get(id(b), best)
+        ours = extra.get(id(b)) or ours_for[id(b)]
         comparisons.append(
             {
                 "baseline": b.name,
