@@ -49,7 +49,6 @@ class Design:
     verified_runs: list = field(default_factory=list, repr=False)
     predicted_error: list = field(default_factory=list, repr=False)
     predicted_h: float = math.nan
-    note: str = ""
     estimator: str = "none"
     estimation: list = field(default_factory=list)  # per step: speed RMS errors (rad/s)
 
@@ -68,7 +67,6 @@ class Design:
             "objective_verified": self.objective_verified,
             "estimator": self.estimator,
             "estimation": self.estimation,
-            "note": self.note,
         }
 
 
@@ -192,12 +190,12 @@ def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene)
     w0 = scene.setpoint_rad_s
     design.predicted, design.predicted_error = [], []
     design.predicted_h = loops[0].h
+    tau0 = _steady_torque(plant, scene, scene.initial_load)
     for f1, lp in zip(scene.final_loads, loops):
         tr = lp.trajectory(design.pid.gains)
         design.predicted_error.append(tr["error"])
         t = scene.step_time + lp.h * np.arange(-1, lp.n_steps)
         speed = w0 + np.concatenate([[0.0], -tr["error"]])
-        tau0 = _steady_torque(plant, scene, scene.initial_load)
         torque = tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))])
         design.predicted.append(
             load_step_metrics(t, speed, w0, scene.step_time, torque, plant.torque_limit)

@@ -127,7 +127,7 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
     together; the loop keeps only the estimation error of the angle. With ``feedforward`` the
     load feed-forward gain ``kff`` is a fourth tuned gain (``u += kff * load estimate``).
     """
-    from .tuning import LoopModel, _freq_grid, _ss_response, _zoh
+    from .tuning import LoopModel, _freq_grid, _pid_frequency_parts, _pid_rows, _ss_response, _zoh
 
     ts = kf.ts
     n_steps = max(10, int(round(horizon / ts)))
@@ -159,12 +159,7 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
     A0[i_i, i_i] = 1.0
     A0[i_wp] = w_hat
     A0[i_u] = E[i_i]  # u = kp e + I - kd d (+ kff * load estimate)
-    a_kp = np.zeros((N, N))
-    a_kp[i_u] = e_meas
-    a_ki = np.zeros((N, N))
-    a_ki[i_i] = ts * e_meas
-    a_kd = np.zeros((N, N))
-    a_kd[i_u] = -d_new
+    a_kp, a_ki, a_kd = _pid_rows(N, i_u, i_i, e_meas, d_new, ts)
     a_ff = np.zeros((N, N))
     a_ff[i_u] = tl_hat
     gain_mats = (A0, a_kp, a_ki, a_kd) + ((a_ff,) if feedforward else ())
@@ -206,7 +201,7 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
 
     h_wt, h_wu = kf_tf(np.eye(4)[1], b_th, K[1]), kf_tf(np.eye(4)[1], b_u, 0.0)
     h_lt, h_lu = kf_tf(np.eye(4)[3], b_th, K[3]), kf_tf(np.eye(4)[3], b_u, 0.0)
-    c = [np.ones_like(zi), ts * zi / (1 - zi), (1 - beta) * (1 - zi) / (ts * (1 - beta * zi))]
+    c = _pid_frequency_parts(zi, ts, beta)
     Lg = [ci * h_wt * p_th * zi for ci in c]
     Dg = [ci * h_wu * zi for ci in c]
     if feedforward:  # u += kff * load estimate

@@ -249,6 +249,25 @@ def continuous_loop(
     return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce, h, n_steps, omega, L, tf, name=sys.name)
 
 
+def _pid_rows(n_state: int, i_u: int, i_i: int, e_meas, d_new, ts: float):
+    """Gain matrices of the sampled PID ``u = kp e + I - kd d``, ``I += Ts ki e``: rows ``e_meas``
+    (error) and ``d_new`` (filtered derivative) over the loop state; shared by every drive loop
+    so that they all run the law :func:`prsa_ctrl.simulation.simulate` runs."""
+    a_kp = np.zeros((n_state, n_state))
+    a_kp[i_u] = e_meas
+    a_ki = np.zeros((n_state, n_state))
+    a_ki[i_i] = ts * e_meas
+    a_kd = np.zeros((n_state, n_state))
+    a_kd[i_u] = -d_new
+    return a_kp, a_ki, a_kd
+
+
+def _pid_frequency_parts(zi, ts: float, beta: float) -> list:
+    """Frequency responses of the same law per unit kp, ki, kd (``zi = exp(-j w Ts)``), acting
+    on the measured speed."""
+    return [np.ones_like(zi), ts * zi / (1 - zi), (1 - beta) * (1 - zi) / (ts * (1 - beta * zi))]
+
+
 def drive_loop(
     a: NDArray,
     b: NDArray,
@@ -315,12 +334,7 @@ def drive_loop(
     A0[i_d] = d_new
     A0[i_i, i_i] = 1.0
     A0[i_u, i_i] = 1.0  # u = kp e + I - kd d
-    a_kp = np.zeros((N, N))
-    a_kp[i_u] = e_meas
-    a_ki = np.zeros((N, N))
-    a_ki[i_i] = ts * e_meas
-    a_kd = np.zeros((N, N))
-    a_kd[i_u] = -d_new
+    a_kp, a_ki, a_kd = _pid_rows(N, i_u, i_i, e_meas, d_new, ts)
     bdv = np.zeros(N)
     bdv[:n] = bdist * step
     bdv[i_th] = inc_d * step
@@ -333,7 +347,7 @@ def drive_loop(
     p_inc = zi * (_ss_response(ad, bu[:, None], inc_x[None, :], omega, lambda w: np.exp(1j * w * ts)) + inc_u)
     meas = (1 - alpha) / (1 - alpha * zi) / ts
     base = zi * meas * p_inc  # computation delay, filter, backward difference, plant
-    L = np.vstack([base, base * ts * zi / (1 - zi), base * (1 - beta) * (1 - zi) / (ts * (1 - beta * zi))])
+    L = np.vstack([base * c for c in _pid_frequency_parts(zi, ts, beta)])
     extra = {
         k: np.concatenate([np.asarray(r, float).ravel()[rest], np.zeros(5)]) for k, r in (outputs or {}).items()
     }
