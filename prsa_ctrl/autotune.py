@@ -16,7 +16,8 @@ import numpy as np
 from .controller import PID
 from .linear import linear_core
 from .metrics import LoadStepMetrics, Margins, load_step_metrics
-from .model import _cage_inertia, plant_model
+from .model import plant_model
+from .options import DERIVATIVE_FILTER_SAMPLES
 from .paper import default_pid
 from .plant import Plant
 from .scene import Scene, choose_fidelity
@@ -117,8 +118,8 @@ class ActuatorTuning:
 
 
 def _tf_default(plant: Plant) -> float:
-    """Derivative-filter time constant: four controller samples (s)."""
-    return 4.0 * plant.sample_time_s
+    """Derivative-filter time constant, s (``DERIVATIVE_FILTER_SAMPLES`` controller samples)."""
+    return DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s
 
 
 def _linear_fidelity(scene: Scene) -> str:
@@ -287,11 +288,6 @@ def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int |
         _POOL_JOB = None
 
 
-def _j_eq(plant: Plant) -> float:
-    j_cage, _ = _cage_inertia(plant)
-    return plant.values["nut.inertia_kg_m2"] + j_cage * plant.cage_ratio**2 + plant.values["screw.mass_kg"] * plant.lead_per_rad**2
-
-
 def baseline_designs(plant: Plant, scene: Scene, loops: list[LoopModel]) -> list[Design]:
     """Reference designs every report carries.
 
@@ -319,7 +315,7 @@ def baseline_designs(plant: Plant, scene: Scene, loops: list[LoopModel]) -> list
     if best is not None:
         designs.append(Design("paper Kp sweep (small Ki)", PID(best[0], ki_small), lp.margins((best[0], ki_small, 0))))
     theta = plant.current_loop_time_constant_s + plant.speed_filter_s + (1.5 * plant.sample_time_s if scene.discrete else 0.0)
-    kc = _j_eq(plant) / (2.0 * theta)
+    kc = plant.reflected_inertia_kg_m2 / (2.0 * theta)
     designs.append(Design("SIMC (tau_c = theta)", PID(kc, kc / (8.0 * theta)), lp.margins((kc, kc / (8 * theta), 0))))
     # PM 60: L = kp (L1 + (wc/4) L2); find wc where the phase is -120 deg.
     w = lp.omega

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Sequence
 
 from .errors import PlantFileError, SceneError, SimulationError
+from .options import CONTROLLERS, ESTIMATORS
 
 __all__ = ["main", "parse_load_step", "write_json_atomic"]
 
@@ -81,8 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=_positive("--duration"), help="end of the record, s")
     p.add_argument("--ms-max", type=_positive("--ms-max"), help="peak-sensitivity bound (default 1.4)")
     p.add_argument("--objective", choices=("ie", "iae", "itae", "ise"), help="tuning objective")
-    p.add_argument("--controller", choices=("pi", "pid"), help="controller structure")
-    p.add_argument("--estimator", choices=("none", "kf"), help="speed measurement: drive difference or Kalman filter")
+    p.add_argument("--controller", choices=CONTROLLERS, help="controller structure")
+    p.add_argument("--estimator", choices=ESTIMATORS, help="speed measurement: drive difference or Kalman filter")
     p.add_argument("--feedforward", action="store_true", help="feed the estimated load torque forward (needs --estimator kf)")
     p.add_argument("--json", type=Path, metavar="PATH", help="write the report as JSON (atomically)")
     p.add_argument("--plots", type=Path, metavar="DIR", help="write the standard plots (PNG and SVG) into DIR")

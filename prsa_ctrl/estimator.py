@@ -68,14 +68,6 @@ class KFDesign:
         return kf
 
 
-def _reflected_inertia(plant: Plant) -> float:
-    from .model import _cage_inertia
-
-    j_cage, _ = _cage_inertia(plant)
-    return (plant.values["nut.inertia_kg_m2"] + j_cage * plant.cage_ratio**2
-            + plant.values["screw.mass_kg"] * plant.lead_per_rad**2)
-
-
 def design_kf(plant: Plant, load_change_time_s: float = DEFAULT_LOAD_CHANGE_TIME_S) -> KFDesign:
     """Design the speed/load Kalman filter of ``plant`` (see module docstring).
 
@@ -93,7 +85,7 @@ def design_kf(plant: Plant, load_change_time_s: float = DEFAULT_LOAD_CHANGE_TIME
     from scipy.linalg import solve_discrete_are
 
     ts = plant.sample_time_s
-    j = _reflected_inertia(plant)
+    j = plant.reflected_inertia_kg_m2
     t_c = plant.current_loop_time_constant_s
     a = np.array([[0, 1, 0, 0], [0, 0, 1 / j, -1 / j], [0, 0, -1 / t_c, 0], [0, 0, 0, 0]], float)
     b = np.array([[0], [0], [1 / t_c], [0]], float)

@@ -14,9 +14,8 @@ __all__ = ["nonlinear_iosys"]
 
 
 def nonlinear_iosys(plant: Plant, fidelity: str = "compliant") -> control.NonlinearIOSystem:
-    """Open-loop nonlinear plant with inputs ``motor_torque`` (command, N m) and ``axial_load``
-    (N), the model's named states and outputs (the actual torque output is
-    ``motor_torque_actual`` so that it does not clash with the input).
+    """Open-loop nonlinear plant with inputs ``torque_command`` (N m) and ``axial_load`` (N),
+    the model's named states and outputs (``motor_torque`` is the actual torque, N m).
 
     The angles are left out of the states (held at zero): nothing in the rigid and compliant
     models depends on them, and with them no steady state at non-zero speed would exist for
@@ -28,7 +27,7 @@ def nonlinear_iosys(plant: Plant, fidelity: str = "compliant") -> control.Nonlin
     >>> from prsa_ctrl import load_plant, nonlinear_iosys
     >>> sys = nonlinear_iosys(load_plant(), "rigid")
     >>> sys.input_labels
-    ['motor_torque', 'axial_load']
+    ['torque_command', 'axial_load']
     """
     model = plant_model(plant, fidelity)
     f, h = model.f, model.h
@@ -45,7 +44,7 @@ def nonlinear_iosys(plant: Plant, fidelity: str = "compliant") -> control.Nonlin
     def outfcn(t, x, u, params):
         return np.asarray(h(full(x), u)).ravel()
 
-    outputs = [n if n != "motor_torque" else "motor_torque_actual" for n in model.output_names]
+    outputs = list(model.output_names)
     return control.nlsys(
         updfcn,
         outfcn,

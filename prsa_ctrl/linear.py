@@ -22,6 +22,7 @@ import numpy as np
 from .controller import PID
 from .equilibrium import operating_point
 from .model import INPUTS, plant_model
+from .options import SETPOINT_RAD_S
 from .plant import Plant
 
 if TYPE_CHECKING:  # annotations only: python-control is imported where it is used
@@ -79,7 +80,7 @@ def _jacobians(model) -> ca.Function:
 
 def linearize(
     plant: Plant,
-    omega_nut: float = 31.4159,
+    omega_nut: float = SETPOINT_RAD_S,
     load: float = 500.0,
     fidelity: str = "compliant",
     sampled: bool = True,
@@ -102,10 +103,10 @@ def linearize(
     Returns
     -------
     control.StateSpace
-        Inputs ``motor_torque`` (torque command, N m) and ``axial_load`` (N); outputs the
-        plant's (``nut_speed`` rad/s, ``screw_velocity`` m/s, ...) plus
-        ``nut_speed_measured`` (rad/s), the speed the controller sees; the actual motor torque
-        is ``motor_torque_actual`` (N m). Signals are deviations
+        Inputs ``torque_command`` (N m) and ``axial_load`` (N); outputs the plant's
+        (``nut_speed`` rad/s, ``screw_velocity`` m/s, ``motor_torque`` the actual torque after
+        the current loop, N m, ...) plus ``nut_speed_measured`` (rad/s), the speed the
+        controller sees. Signals are deviations
         from the operating point, which is stored in ``sys.operating_point``.
 
     Examples
@@ -113,7 +114,7 @@ def linearize(
     >>> from prsa_ctrl import load_plant, linearize
     >>> P = linearize(load_plant(), omega_nut=31.4159, load=1000.0)
     >>> P.input_labels
-    ['motor_torque', 'axial_load']
+    ['torque_command', 'axial_load']
     """
     import control
 
@@ -125,12 +126,11 @@ def linearize(
     a_full, b, c_full, d, op = linear_core(plant, omega_nut, load, fidelity)
     keep = [i for i, n in enumerate(model.state_names) if n != "theta_nut"]
     a, c = a_full[np.ix_(keep, keep)], c_full[:, keep]
-    # The plant's actual-torque output is renamed: ``motor_torque`` is the input (command) here.
-    out_names = [n if n != "motor_torque" else "motor_torque_actual" for n in model.output_names]
+    out_names = list(model.output_names)
     core = control.ss(
         a, b[keep], c, d,
         states=[model.state_names[i] for i in keep],
-        inputs=["torque_command", INPUTS[1]],
+        inputs=["torque_command_delayed", INPUTS[1]],
         outputs=out_names,
         name="plant",
     )
@@ -140,7 +140,7 @@ def linearize(
         [[-1 / t_f]], [[1 / t_f]], [[1.0]], [[0.0]],
         inputs=["nut_speed"], outputs=["nut_speed_measured"], states=["speed_filter"], name="filter",
     )
-    parts = [_pade(1.5 * ts, pade_order, INPUTS[0], "torque_command", "command_delay"), core, filt]
+    parts = [_pade(1.5 * ts, pade_order, INPUTS[0], "torque_command_delayed", "command_delay"), core, filt]
     sys = control.interconnect(
         parts,
         inplist=list(INPUTS),
@@ -158,7 +158,7 @@ def linearize(
 
 def pid_controller(pid: PID, name: str = "pid") -> "control.StateSpace":
     """Continuous PID with inputs ``speed_setpoint`` and ``nut_speed_measured`` (rad/s) and
-    output ``motor_torque`` (N m); derivative on the measurement with filter ``tf``."""
+    output ``torque_command`` (N m); derivative on the measurement with filter ``tf``."""
     import control
 
     kp, ki, kd, tf = pid.kp, pid.ki, pid.kd, pid.tf
@@ -169,17 +169,17 @@ def pid_controller(pid: PID, name: str = "pid") -> "control.StateSpace":
     d = np.array([[kp, -kp - kd / tf]])
     return control.ss(
         a, b, c, d,
-        inputs=["speed_setpoint", "nut_speed_measured"], outputs=["motor_torque"],
+        inputs=["speed_setpoint", "nut_speed_measured"], outputs=["torque_command"],
         states=["pid_integral", "pid_derivative"], name=name,
     )
 
 
 def closed_loop(sys: control.StateSpace, pid: PID) -> "control.StateSpace":
     """Speed loop of a linearised plant: inputs ``speed_setpoint`` and ``axial_load``; outputs
-    the plant's plus ``motor_torque``."""
+    the plant's plus ``torque_command`` (N m)."""
     import control
 
-    outs = [o for o in sys.output_labels] + ["motor_torque"]
+    outs = [o for o in sys.output_labels] + ["torque_command"]
     plant_part = control.ss(sys.A, sys.B, sys.C, sys.D, inputs=sys.input_labels,
                             outputs=sys.output_labels, states=sys.state_labels, name="P")
     return control.interconnect(
@@ -216,7 +216,7 @@ def predict_load_step(
     resp = control.step_response(cl, T=t[after] - t_step, input=1)
     y = np.zeros((cl.noutputs, t.size))
     y[:, after] = load_step * np.asarray(resp.outputs).reshape(cl.noutputs, -1)
-    base = dict(sys.operating_outputs, motor_torque=op.torque)
+    base = dict(sys.operating_outputs, torque_command=op.torque)
     for i, name in enumerate(cl.output_labels):
         y[i] += base[name]
     return control.TimeResponseData(

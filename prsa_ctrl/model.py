@@ -33,11 +33,11 @@ from .plant import Plant
 
 __all__ = ["FIDELITIES", "PlantModel", "RollerErrors", "plant_model", "INPUTS"]
 
-FIDELITIES = ("rigid", "compliant", "multi-roller")
+from .options import FIDELITIES  # noqa: E402  (re-exported)
 
 #: Plant inputs: torque command to the current loop (N m) and external axial load (N,
 #: positive opposing forward screw motion).
-INPUTS = ("motor_torque", "axial_load")
+INPUTS = ("torque_command", "axial_load")
 
 _STATES = {
     "rigid": ("theta_nut", "omega_nut", "tau_motor"),
@@ -107,7 +107,8 @@ class PlantModel:
     Attributes
     ----------
     f : casadi.Function
-        ``(x, u) -> dx/dt`` with ``u = [motor_torque (N m), axial_load (N)]``.
+        ``(x, u) -> dx/dt`` with ``u = [torque_command (N m), axial_load (N)]``; the output
+        ``motor_torque`` is the actual torque after saturation and the current loop.
     h : casadi.Function
         ``(x, u) -> y`` with outputs named in ``output_names``.
     power : casadi.Function
@@ -201,23 +202,6 @@ def _bearing_losses(plant: Plant, omega: ca.SX) -> ca.SX:
     ] * omega
 
 
-def _cage_inertia(plant: Plant) -> tuple[float, float]:
-    """Rotational inertia about the screw axis seen by the cage (kg m^2) and axial mass (kg).
-
-    Includes the cage, the rollers' orbit (point masses on the orbit radius) and the rollers'
-    absolute spin ``w_P (d_S + d_R) / d_R`` (solid cylinders).
-    """
-    v = plant.values
-    d_s, d_r = plant.d_screw_m, plant.d_roller_m
-    m_r = v["roller.mass_kg"]
-    j_spin = 0.5 * m_r * (0.5 * d_r) ** 2
-    r_orbit = 0.5 * (d_s + d_r)
-    j_cage = v["cage.inertia_kg_m2"] + plant.n_rollers * (
-        m_r * r_orbit**2 + j_spin * ((d_s + d_r) / d_r) ** 2
-    )
-    return j_cage, v["cage.mass_kg"] + plant.n_rollers * m_r
-
-
 def _kinematic_outputs(plant: Plant, omega_nut, omega_cage, v_screw, tau) -> list:
     d_s, d_r = plant.d_screw_m, plant.d_roller_m
     return [omega_nut, omega_cage, omega_cage * d_s / d_r, omega_cage * (d_s + d_r) / d_r, v_screw, tau]
@@ -227,9 +211,8 @@ def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
     v = plant.values
     _, omega, tau = ca.vertsplit(x)
     load = u[1]
-    j_cage, _ = _cage_inertia(plant)
     a = plant.lead_per_rad
-    j_eq = v["nut.inertia_kg_m2"] + j_cage * plant.cage_ratio**2 + v["screw.mass_kg"] * a**2
+    j_eq = plant.reflected_inertia_kg_m2
     f_n, f_s = plant.normal_force_factor()
     k_slip = plant.slip_arm_m
     t_fric = k_slip * _friction_coefficient(plant, k_slip * omega) * ca.fabs(load) * (f_n + f_s)
@@ -263,7 +246,7 @@ def _compliant_bodies(plant: Plant, w_n, w_p, v_r, v_s, tau, u, c: _Contacts):
     v = plant.values
     load = u[1]
     d_s, d_n = plant.d_screw_m, plant.d_nut_m
-    j_cage, m_axial = _cage_inertia(plant)
+    j_cage, m_axial = plant.cage_inertia_kg_m2, plant.roller_assembly_mass_kg
     # Thread sliding friction, acting on the nut through the effective sliding arm.
     k_slip = plant.slip_arm_m
     t_fric = k_slip * _friction_coefficient(plant, k_slip * w_n) * c.n_fric

@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from .controller import PID
+from .options import SETPOINT_RAD_S
 from .plant import Plant
 
 __all__ = [
@@ -41,7 +42,7 @@ PAPER_TABLE3 = {1000.0: (1.10, 0.62, 3.42), 1500.0: (2.32, 1.19, 6.65), 2000.0: 
 #: paper text's nut-side fluctuation ranges (N) for the 1000 N and 2000 N steps.
 PAPER_TABLE4 = {"mean_1500": (2930.0, 2570.0), "nut_fluctuation": {1000.0: 785.0, 2000.0: 1345.0}}
 
-OMEGA_300_RPM = 300.0 * 2.0 * np.pi / 60.0
+OMEGA_300_RPM = SETPOINT_RAD_S
 
 
 def default_pid(plant: Plant) -> PID:
@@ -50,14 +51,7 @@ def default_pid(plant: Plant) -> PID:
     Crossover a decade below the current-loop bandwidth, ``kp = J_eq w_c`` with the rigid
     reflected inertia, and the integral corner five times below crossover (``ki = kp w_c / 5``).
     """
-    from .model import _cage_inertia
-
-    j_cage, _ = _cage_inertia(plant)
-    j_eq = (
-        plant.values["nut.inertia_kg_m2"]
-        + j_cage * plant.cage_ratio**2
-        + plant.values["screw.mass_kg"] * plant.lead_per_rad**2
-    )
+    j_eq = plant.reflected_inertia_kg_m2
     w_c = 2.0 * np.pi * plant.values["drive.current_loop_bandwidth_hz"] / 10.0
     kp = j_eq * w_c
     return PID(kp=kp, ki=kp * w_c / 5.0)

@@ -402,6 +402,40 @@ class Plant:
         f_n, f_s = self.normal_force_factor()
         return self.lead_per_rad * (1.0 / eta - 1.0) / (mu * (f_n + f_s))
 
+    @property
+    def cage_inertia_kg_m2(self) -> float:
+        """Rotational inertia about the screw axis seen by the cage, kg m^2.
+
+        The cage itself, the rollers' orbit (point masses on the orbit radius
+        ``(d_S + d_R)/2``) and the rollers' absolute spin ``w_P (d_S + d_R)/d_R`` (solid
+        cylinders of diameter ``d_R``).
+        """
+        d_s, d_r = self.d_screw_m, self.d_roller_m
+        m_r = self._v("roller.mass_kg")
+        j_spin = 0.5 * m_r * (0.5 * d_r) ** 2
+        r_orbit = 0.5 * (d_s + d_r)
+        return self._v("cage.inertia_kg_m2") + self.n_rollers * (
+            m_r * r_orbit**2 + j_spin * ((d_s + d_r) / d_r) ** 2
+        )
+
+    @property
+    def roller_assembly_mass_kg(self) -> float:
+        """Axially moving mass of the cage with its rollers, kg."""
+        return self._v("cage.mass_kg") + self.n_rollers * self._v("roller.mass_kg")
+
+    @property
+    def reflected_inertia_kg_m2(self) -> float:
+        """Total inertia seen at the nut through the rigid kinematics, kg m^2:
+        ``J_nut + J_cage (w_P/w_N)^2 + m_screw (L/2 pi)^2``.
+
+        Examples
+        --------
+        >>> round(load_plant().reflected_inertia_kg_m2 * 1e4, 3)  # kg cm^2
+        2.019
+        """
+        return (self._v("nut.inertia_kg_m2") + self.cage_inertia_kg_m2 * self.cage_ratio**2
+                + self._v("screw.mass_kg") * self.lead_per_rad**2)
+
     # --- kinematics ---------------------------------------------------------------------------
     def kinematics(self, omega_nut: ArrayLike) -> Kinematics:
         """Rigid-body kinematics for nut speed(s) ``omega_nut`` (rad/s).

@@ -70,7 +70,7 @@ def bode_plant(sys, omega: np.ndarray | None = None, axes=None):
     omega = np.logspace(-1, 5, 600) if omega is None else omega
     fig, axs = _axes(axes, 2, figsize=(7.0, 5.5))
     i_out = sys.output_labels.index("nut_speed")
-    for j, (inp, unit) in enumerate((("motor_torque", "rad/s per N m"), ("axial_load", "rad/s per N"))):
+    for j, (inp, unit) in enumerate((("torque_command", "rad/s per N m"), ("axial_load", "rad/s per N"))):
         k = sys.input_labels.index(inp)
         resp = np.asarray(control.frequency_response(sys[i_out, k], omega).complex).ravel()
         _bode_axes(axs, omega, resp, f"nut speed / {inp.replace('_', ' ')} ({unit})", _COLORS[j])

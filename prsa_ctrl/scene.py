@@ -10,14 +10,12 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from .errors import SceneError
+from .options import AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, OBJECTIVES, RIGID_RELATIVE_ERROR
 from .plant import _builtin_root
 
 __all__ = ["Scene", "load_scene", "builtin_scenes", "choose_fidelity", "DEFAULT_SCENE", "OUTPUTS",
            "RIGID_RELATIVE_ERROR"]
 
-#: Measured nut-speed error of the rigid fidelity against the compliant one on the paper's load
-#: step, relative to the peak drop (0.116 rad/s of 3.6 rad/s; ``python -m prsa_ctrl.bench``).
-RIGID_RELATIVE_ERROR = 0.035
 
 DEFAULT_SCENE = "paper-load-step"
 
@@ -143,19 +141,19 @@ class Scene:
             raise bad("step_time", self.step_time, "a time >= 0 s")
         if finite("duration", self.duration) <= self.step_time + 1e-3:
             raise bad("duration", self.duration, f"a time beyond step_time + 1 ms ({self.step_time + 1e-3:g} s)")
-        if self.objective not in ("ie", "iae", "itae", "ise"):
+        if self.objective not in OBJECTIVES:
             raise bad("objective", self.objective, "one of ie, iae, itae, ise")
-        if self.controller not in ("pi", "pid"):
+        if self.controller not in CONTROLLERS:
             raise bad("controller", self.controller, "pi or pid")
         if not 1.0 < finite("ms_max", self.ms_max) < 10.0:
             raise bad("ms_max", self.ms_max, "a number in (1, 10)")
         if self.mt_max is not None and not 0.5 < finite("mt_max", self.mt_max) < 10.0:
             raise bad("mt_max", self.mt_max, "a number in (0.5, 10)")
-        if self.aggregate not in ("sum", "worst"):
+        if self.aggregate not in AGGREGATES:
             raise bad("aggregate", self.aggregate, "sum or worst")
         if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or not 1 <= self.candidates <= 10:
             raise bad("candidates", self.candidates, "an integer 1..10")
-        if self.fidelity not in ("auto", "rigid", "compliant", "multi-roller"):
+        if self.fidelity not in ("auto", *FIDELITIES):
             raise bad("fidelity", self.fidelity, "auto, rigid, compliant or multi-roller")
         if not 1e-6 <= finite("accuracy", self.accuracy) <= 0.5:
             raise bad("accuracy", self.accuracy, "a relative accuracy in [1e-6, 0.5]")
@@ -164,7 +162,7 @@ class Scene:
         for out in self.outputs:
             if out not in OUTPUTS:
                 raise bad("outputs", out, f"one of {', '.join(OUTPUTS)}")
-        if self.estimator not in ("none", "kf"):
+        if self.estimator not in ESTIMATORS:
             raise bad("estimator", self.estimator, "none or kf")
         if not isinstance(self.feedforward, bool):
             raise bad("feedforward", self.feedforward, "true or false")

@@ -36,7 +36,7 @@ from .metrics import Margins, margins_from_response
 
 __all__ = ["LoopModel", "TuningResult", "tune_pid", "tune_loops", "continuous_loop", "drive_loop", "OBJECTIVES"]
 
-OBJECTIVES = ("ie", "iae", "itae", "ise")
+from .options import CONTROLLERS, OBJECTIVES  # noqa: E402  (OBJECTIVES re-exported)
 
 
 @dataclass(frozen=True, eq=False)
@@ -601,7 +601,7 @@ def tune_loops(
     t_start = time.perf_counter()
     if objective not in OBJECTIVES:
         raise ValueError(f"objective = {objective!r}; expected one of {', '.join(OBJECTIVES)}")
-    if controller not in ("pi", "pid"):
+    if controller not in CONTROLLERS:
         raise ValueError(f"controller = {controller!r}; expected 'pi' or 'pid'")
     if isinstance(ms_max, bool) or not (isinstance(ms_max, (int, float)) and 1.0 < ms_max < 10.0):
         raise ValueError(f"ms_max = {ms_max!r}; expected a number in (1, 10)")
