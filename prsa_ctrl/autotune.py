@@ -172,6 +172,14 @@ def actuator_loops(plant: Plant, scene: Scene, estimator: str | None = None) -> 
             import control
 
             t_f = plant.speed_filter_s
+            # The continuous controller measures speed, never the angle: the nut-angle state is
+            # a pure integrator nothing depends on (its column is zero) and would leave a pole
+            # at exactly 0 for every gain, so it is removed.
+            i_th = model.index("theta_nut")
+            if np.any(a[:, i_th] != 0) or np.any(c[:, i_th] != 0):
+                raise ArithmeticError("the linearised plant depends on the absolute nut angle")
+            keep = [i for i in range(a.shape[0]) if i != i_th]
+            a, b, c = a[np.ix_(keep, keep)], b[keep], c[:, keep]
             n = a.shape[0]
             # Plant plus speed filter; the filtered speed is fed back.
             aa = np.block([[a, np.zeros((n, 1))], [c[i_speed][None, :] / t_f, -np.ones((1, 1)) / t_f]])
@@ -199,7 +207,8 @@ def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene)
         speed = w0 + np.concatenate([[0.0], -tr["error"]])
         torque = tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))])
         design.predicted.append(
-            load_step_metrics(t, speed, w0, scene.step_time, torque, plant.torque_limit)
+            load_step_metrics(t, speed, w0, scene.step_time, torque, plant.torque_limit,
+                              direction=1 if f1 >= scene.initial_load else -1)
         )
     design.objective_predicted = _aggregate([getattr(m, scene.objective) for m in design.predicted], scene)
 
@@ -231,21 +240,24 @@ def verify(design: Design, plant: Plant, scene: Scene) -> Design:
         kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, f1)],
                   duration=pre + scene.duration - scene.step_time, controller=design.pid,
                   fidelity=scene.fidelity, settings=verify_settings(scene))
+        measurement = "encoder"
+        kf = None
         if design.estimator == "kf":
-            from .estimator import design_kf, run_estimated
+            from .estimator import design_kf
 
-            r = run_estimated(plant, estimator="kf", kf=design_kf(plant, scene.load_change_time_s), **kw)
+            measurement, kf = "kf", design_kf(plant, scene.load_change_time_s)
+        r = run(plant, discrete=scene.discrete, measurement=measurement, kf=kf, **kw)
+        if design.estimator == "kf":
             w = r.output("nut_speed")
             design.estimation.append({
-                "kf_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_estimate") - w) ** 2))),
+                "kf_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_measured") - w) ** 2))),
                 "fd_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_fd") - w) ** 2))),
             })
-        else:
-            r = run(plant, discrete=scene.discrete, **kw)
         t = np.asarray(r.time) + offset
         y = dict(zip(r.output_labels, np.asarray(r.outputs)))
         design.verified.append(
-            load_step_metrics(t, y["nut_speed"], scene.setpoint_rad_s, scene.step_time, y["motor_torque"], plant.torque_limit)
+            load_step_metrics(t, y["nut_speed"], scene.setpoint_rad_s, scene.step_time, y["motor_torque"],
+                              plant.torque_limit, direction=1 if f1 >= scene.initial_load else -1)
         )
         design.verified_runs.append((t, y))
     design.objective_verified = _aggregate([getattr(m, scene.objective) for m in design.verified], scene)

@@ -17,7 +17,11 @@ Noise model, from the plant's sensor section:
   a feed-forward peak drop of 2.04 / 2.14 / 2.26 rad/s and, with a 14-bit encoder, a speed RMS error
   4.96 / 5.7 / 5.9 times below backward differences): ``sigma_L^2 = tau_rated^2 Ts / T``.
 
-filterpy is imported only by the functions that run or design a filter.
+This module only designs the filter (and its linear loop model for the tuner); the filter
+runs inside the one sampled-loop simulator as the measurement block
+:class:`prsa_ctrl.measurement.KalmanSpeed` (``run(..., discrete=True, measurement="kf")``).
+filterpy is imported only by :meth:`KFDesign.make_filter`, the reference the tests hold the
+in-loop filter against.
 """
 
 from __future__ import annotations
@@ -201,102 +205,3 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
         Dg.append(-h_lu * zi)
     return LoopModel(mats[0], tuple(mats[1:]), bdv, ce, ts, n_steps, omega, np.vstack(Lg), tf, name=name,
                      outputs=extra, N0=None, D0=None, D=np.vstack(Dg))
-
-
-def run_estimated(
-    plant: Plant,
-    *,
-    setpoint: float,
-    load,
-    duration: float,
-    controller,
-    estimator: str = "kf",
-    kf: KFDesign | None = None,
-    fidelity: str = "compliant",
-    settings=None,
-    seed: int = 0,
-):
-    """Sampled closed loop with the speed measured by a Kalman filter (``estimator="kf"``) or
-    by the drive's filtered backward difference (``"fd"``), one controller sample at a time.
-
-    Each sample: quantise the encoder angle, update the estimator, run the PID on the speed
-    estimate, add ``controller.kff`` times the estimated load torque (KF only), hold the
-    previous command (one-sample delay) with the current-measurement noise as torque ripple
-    (seeded), and integrate the plant. Returns a :class:`prsa_ctrl.simulation.SimRun` whose
-    outputs add ``speed_estimate``, ``speed_fd`` (raw backward difference) and
-    ``load_torque_estimate`` (N m).
-    """
-
-    from .controller import pid_law
-    from .model import plant_model
-    from .simulation import SimRun, SimSettings, _build, _initial_speed, _normalise_profile, _sample_integrator, _value_at
-
-    if estimator not in ("kf", "fd"):
-        raise ValueError(f"estimator = {estimator!r}; expected 'kf' or 'fd'")
-    if controller.kff and estimator != "kf":
-        raise ValueError("kff > 0 needs the load-torque estimate; expected estimator='kf'")
-    settings = settings or SimSettings()
-    ld = _normalise_profile(load, duration, "load", "N")
-    model = plant_model(plant, fidelity, seed)
-    built = _build(model, False)
-    sample = _sample_integrator(built, settings)
-    scale = built.scale
-    ts = plant.sample_time_s
-    q = 2.0 * math.pi / plant.encoder_counts
-    op, integral = _initial_speed(plant, fidelity, setpoint, ld[0][1], controller, 0.0, seed)
-    nx = model.nx
-    i_th = model.index("theta_nut")
-    z = np.concatenate([op.x, [op.omega_nut, integral, op.omega_nut]]) / scale
-    kf = kf or design_kf(plant)
-    filt = kf.make_filter([op.x[i_th], op.omega_nut, op.torque, op.torque]) if estimator == "kf" else None
-    rng = np.random.default_rng(seed)
-    sigma_t = plant.values["sensor.torque_noise_n_m"]
-    alpha = math.exp(-ts / plant.speed_filter_s)
-    beta = math.exp(-ts / controller.tf)
-    gains = controller.params
-    integral = op.torque - controller.kff * op.torque  # steady state: u = I + kff * load estimate
-    th_prev = math.floor((op.x[i_th] - op.omega_nut * ts) / q) * q
-    w_f = w_prev = op.omega_nut
-    d = 0.0
-    u_pend = op.torque
-    n = int(round(duration / ts))
-    t = ts * np.arange(n + 1)
-    xs = np.empty((nx, n + 1))
-    est = np.empty((3, n + 1))
-    for k in range(n + 1):
-        x = z * scale
-        xs[:, k] = x[:nx]
-        th_q = math.floor(x[i_th] / q) * q
-        w_fd = (th_q - th_prev) / ts
-        th_prev = th_q
-        if filt is not None:
-            filt.update(np.array([[th_q]]))
-            w_meas, tl_hat = float(filt.x[1, 0]), float(filt.x[3, 0])
-        else:
-            w_f = alpha * w_f + (1 - alpha) * w_fd
-            w_meas, tl_hat = w_f, 0.0
-        est[:, k] = (w_meas, w_fd, tl_hat)
-        if k == n:
-            break
-        d = beta * d + (1 - beta) * (w_meas - w_prev) / ts
-        w_prev = w_meas
-        u, u_sat, dint = pid_law(setpoint - w_meas, integral, d, gains, controller.kff * tl_hat, plant.torque_limit)
-        integral += ts * float(dint)
-        applied = u_pend + (rng.normal(0.0, sigma_t) if sigma_t > 0 else 0.0)
-        z = np.asarray(sample(x0=z, p=[applied, _value_at(ld, t[k]), ts])["xf"]).ravel()
-        if filt is not None:
-            filt.predict(u=np.array([[u_pend]]))
-        u_pend = float(u_sat)
-    if not np.all(np.isfinite(xs)):
-        from .errors import SimulationError
-
-        raise SimulationError(
-            f"non-finite state in the estimated loop before t = {t[-1]:g} s; remedy: tighten rtol/atol or check the gains"
-        )
-    u0 = np.vstack([np.zeros_like(t), [_value_at(ld, tk) for tk in t]])
-    y = np.asarray(model.h.map(len(t))(xs, u0))
-    return SimRun(
-        t, np.vstack([y, est]), xs, np.vstack([np.full_like(t, setpoint), u0[1]]),
-        tuple(model.output_names) + ("speed_estimate", "speed_fd", "load_torque_estimate"),
-        tuple(model.state_names), {"fidelity": fidelity, "discrete": True, "estimator": estimator},
-    )

@@ -1,7 +1,8 @@
 """Load-step and robustness metrics.
 
 Sign convention: the speed error is ``e = setpoint - speed`` (rad/s), so a load increase that
-slows the nut gives a positive error and a positive IE. Integrals run from the step to the end
+slows the nut gives a positive error and a positive IE, and a load decrease (the nut speeds
+up) a negative one; peak excursion, overshoot and recovery follow the step's direction. Integrals run from the step to the end
 of the record, with time measured from the step for ITAE.
 """
 
@@ -28,27 +29,38 @@ DEFAULT_BAND = 0.05
 
 @dataclass(frozen=True)
 class LoadStepMetrics:
-    """Disturbance-rejection metrics of one load step.
+    """Disturbance-rejection metrics of one load step (signed for load decreases).
+
+    A load increase slows the nut (the speed *drops*), a decrease speeds it up (the speed
+    *rises*); ``direction`` says which, and every metric follows it.
 
     Attributes
     ----------
     peak_drop_rad_s : float
-        Largest fall of the speed below its last pre-step sample (the setpoint when the record
-        starts at the step), rad/s.
+        Size of the largest excursion of the speed from its last pre-step sample (the setpoint
+        when the record starts at the step) in the disturbance's direction, rad/s (>= 0): the
+        drop for a load increase, the rise for a decrease.
+    peak_deviation_rad_s : float
+        The same excursion, signed: speed minus pre-step speed at the extreme (negative for a
+        drop, positive for a rise), rad/s.
     peak_time_s : float
-        Time from the step to the lowest speed, s.
+        Time from the step to the extreme, s.
     recovery_time_s : float
         Time from the step after which ``|e|`` stays within the band, s (``inf`` if never).
     ie, iae, itae, ise : float
-        Integrals of e, |e|, t|e| and e^2 after the step (rad, rad, rad s, rad^2/s).
+        Integrals of e, |e|, t|e| and e^2 after the step (rad, rad, rad s, rad^2/s); ``ie`` is
+        negative when the speed rises above the setpoint.
     steady_state_error_rad_s : float
         Mean error over the last 10 % of the record, rad/s.
     overshoot_rad_s : float
-        Largest rise above the setpoint after the lowest point, rad/s.
+        Largest excursion past the setpoint on the other side after the extreme (a rise above
+        it after a drop, a fall below it after a rise), rad/s (>= 0).
     peak_torque_n_m : float
         Largest |motor torque| after the step, N m (``nan`` when no torque was given).
     saturated : bool
         Whether the torque reached the limit (within 0.1 %).
+    direction : int
+        +1 for a load increase (speed drops), -1 for a decrease (speed rises).
     """
 
     peak_drop_rad_s: float
@@ -62,6 +74,8 @@ class LoadStepMetrics:
     overshoot_rad_s: float
     peak_torque_n_m: float
     saturated: bool
+    peak_deviation_rad_s: float = 0.0
+    direction: int = 1
 
     def as_dict(self) -> dict[str, float | bool | None]:
         """JSON-friendly dict (``inf``/``nan`` become ``None``)."""
@@ -83,6 +97,7 @@ def load_step_metrics(
     torque: ArrayLike | None = None,
     torque_limit: float | None = None,
     band: float = DEFAULT_BAND,
+    direction: int | None = None,
 ) -> LoadStepMetrics:
     """Metrics of a speed response to a load step at ``step_time``.
 
@@ -96,15 +111,22 @@ def load_step_metrics(
     torque : array, N m, optional
     torque_limit : float, N m, optional
     band : float
-        Recovery band as a fraction of the peak drop (default 5 %).
+        Recovery band as a fraction of the peak excursion (default 5 %).
+    direction : {1, -1}, optional
+        +1 for a load increase (the speed drops), -1 for a decrease (it rises). Default: the
+        sign of the larger excursion of the response.
 
     Examples
     --------
     >>> import numpy as np
     >>> t = np.linspace(0, 10, 10001)
-    >>> m = load_step_metrics(t, 1 - np.where(t >= 1, (t - 1) * np.exp(-(t - 1)), 0), 1.0, 1.0)
+    >>> bump = np.where(t >= 1, (t - 1) * np.exp(-(t - 1)), 0)
+    >>> m = load_step_metrics(t, 1 - bump, 1.0, 1.0)
     >>> round(m.peak_drop_rad_s, 4), round(m.peak_time_s, 3), round(m.ie, 3)
     (0.3679, 1.0, 0.999)
+    >>> up = load_step_metrics(t, 1 + bump, 1.0, 1.0, direction=-1)
+    >>> round(up.peak_deviation_rad_s, 4), round(up.ie, 3)
+    (0.3679, -0.999)
     """
     t = np.asarray(time, dtype=float)
     y = np.asarray(speed, dtype=float)
@@ -114,18 +136,26 @@ def load_step_metrics(
         raise ValueError("time and speed must be finite")
     if np.any(np.diff(t) <= 0):
         raise ValueError("time must increase strictly")
+    if not (isinstance(step_time, (int, float, np.floating)) and math.isfinite(step_time)):
+        raise ValueError(f"step_time = {step_time!r} s; expected a finite time inside the record")
     after = t >= step_time
-    if after.sum() < 2 or not math.isfinite(step_time):
+    if after.sum() < 2:
         raise ValueError(f"step_time = {step_time!r} s; expected a time inside the record [{t[0]}, {t[-1]}] s")
     if not 0 < band < 1:
         raise ValueError(f"band = {band!r}; expected a fraction in (0, 1)")
+    if direction not in (None, 1, -1):
+        raise ValueError(f"direction = {direction!r}; expected 1 (load increase), -1 (decrease) or None")
     before = ~after
     y_pre = float(y[before][-1]) if before.any() else float(setpoint)
     ta, ya = t[after], y[after]
     ts = ta - ta[0]
     e = setpoint - ya
-    i_min = int(np.argmin(ya))
-    drop = max(y_pre - float(ya[i_min]), 0.0)
+    if direction is None:
+        direction = 1 if (y_pre - ya.min()) >= (ya.max() - y_pre) else -1
+    # In the disturbance's own direction: s * (y_pre - y) grows as the speed departs.
+    dev = direction * (y_pre - ya)
+    i_ext = int(np.argmax(dev))
+    drop = max(float(dev[i_ext]), 0.0)
     tol = band * drop
     outside = np.flatnonzero(np.abs(e) > tol) if drop > 0 else np.array([], dtype=int)
     if outside.size == 0:
@@ -135,7 +165,7 @@ def load_step_metrics(
     else:
         recovery = float(ts[outside[-1] + 1])
     tail = ts >= 0.9 * ts[-1]
-    overshoot = max(float(np.max(ya[i_min:] - setpoint)), 0.0)
+    overshoot = max(float(np.max(-direction * (setpoint - ya[i_ext:]))), 0.0)
     if torque is not None:
         tq = np.abs(np.asarray(torque, dtype=float)[after])
         peak_t = float(tq.max())
@@ -144,7 +174,7 @@ def load_step_metrics(
         peak_t, sat = math.nan, False
     return LoadStepMetrics(
         peak_drop_rad_s=drop,
-        peak_time_s=float(ts[i_min]),
+        peak_time_s=float(ts[i_ext]),
         recovery_time_s=recovery,
         ie=_trapz(e, ta),
         iae=_trapz(np.abs(e), ta),
@@ -154,6 +184,8 @@ def load_step_metrics(
         overshoot_rad_s=overshoot,
         peak_torque_n_m=peak_t,
         saturated=sat,
+        peak_deviation_rad_s=-direction * drop,
+        direction=direction,
     )
 
 

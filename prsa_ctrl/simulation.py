@@ -1,8 +1,30 @@
-"""Nonlinear closed-loop simulation with CasADi's implicit integrators.
+"""Nonlinear closed-loop simulation with CasADi's implicit integrators: one simulator.
 
-Inputs are piecewise constant (load and setpoint steps); every discontinuity starts a new
-integration segment, so a step is a step and never a ramp. Integrators are built once per
-plant, fidelity and settings and reused across calls (only their parameters change).
+:func:`run` is the one implementation (plain arrays, no python-control); :func:`simulate` is
+the same run returned as python-control ``TimeResponseData`` (``run(...).to_response()``).
+
+Two controller forms:
+
+continuous (``discrete=False``)
+    The PID runs inside the ODE on the low-pass-filtered nut speed. Every input discontinuity
+    starts a new integration segment at its exact time, so a step is a step and never a ramp.
+sampled (``discrete=True``)
+    The drive's real loop, one function per controller sample (:func:`_sample_law`, the only
+    place the per-sample law is written): quantise the encoder angle, measure the speed with a
+    pluggable block (:mod:`prsa_ctrl.measurement`: filtered backward difference or Kalman
+    filter), run the PID, and hold the previous command over the sample (one-sample
+    computation delay, zero-order hold) while the plant is integrated.
+
+Input events in the sampled loop: a **load** change acts on the plant at its exact time, also
+between samples (that sample's integration is split at the event); a **setpoint** change is
+seen by the controller at the first sample at or after it (the drive reads its setpoint only
+then), and the returned input row shows the setpoint the controller used at each sample.
+``info["events"]`` lists each event with the time it acted.
+
+Integrators are built once per plant, fidelity, measurement and settings and reused across
+calls (only their parameters change). Every run is bounded before it starts (output size) and
+while it runs (a wall-time budget checked between integration chunks, with an injectable
+clock), and can audit its own energy balance.
 """
 
 from __future__ import annotations
@@ -12,7 +34,7 @@ import time
 import weakref
 from dataclasses import dataclass, field
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import casadi as ca
 import numpy as np
@@ -21,22 +43,39 @@ from numpy.typing import NDArray
 from .controller import PID, pid_law
 from .equilibrium import operating_point
 from .errors import SimulationError
+from .measurement import SpeedMeasurement, measurement_for
 from .model import PlantModel, plant_model
+from .options import SETPOINT_RAD_S
 from .plant import Plant
 
 if TYPE_CHECKING:  # annotations only: python-control is imported where it is used
     import control
 
-__all__ = ["simulate", "run", "SimRun", "Profile", "SimSettings", "energy_balance", "INTEGRATORS"]
+    from .estimator import KFDesign
+
+__all__ = ["simulate", "run", "SimRun", "Profile", "SimSettings", "energy_balance", "INTEGRATORS",
+           "MAX_OUTPUT_POINTS", "INPUT_LABELS"]
 
 INTEGRATORS = ("cvodes", "idas")
 
+#: Input rows of every run: the speed setpoint the controller used (rad/s) and the axial load
+#: on the screw (N).
+INPUT_LABELS = ("speed_setpoint", "axial_load")
 _CTRL_STATES = ("speed_filtered", "pid_integral", "speed_derivative_state")
+_SAMPLED_STATES = ("pid_integral", "speed_derivative_state")
+#: Extra output rows of a sampled run: the torque command applied to the current loop during
+#: the sample that starts at each time (N m), the speed the PID used (rad/s), the raw backward
+#: difference of the quantised angle (rad/s) and the load-torque estimate (N m, 0 without an
+#: observer).
+_SAMPLED_OUTPUTS = ("torque_command", "speed_measured", "speed_fd", "load_torque_estimate")
 #: Longest stretch of simulated time per integrator call (s); the wall-time budget is checked
 #: between calls, so no run can hang.
 CHUNK_S = 0.1
-_ENERGY_STATES = ("work_motor", "work_load", "work_dissipated")
-# Parameter vector of the closed loop: setpoint, load, kp, ki, kd, tf, feed-forward, duration.
+#: Largest number of output points (time samples) one run may return: 2e6 points of ~16 rows
+#: are ~256 MB. Checked before anything is allocated.
+MAX_OUTPUT_POINTS = 2_000_000
+# Parameter vector of the continuous closed loop: setpoint, load, kp, ki, kd, tf, feed-forward,
+# duration.
 _NP = 8
 
 
@@ -60,7 +99,10 @@ class SimSettings:
     energy_tol : float
         With ``energy=True`` the run audits itself: an energy-balance residual above this
         (relative, see :func:`energy_balance`) means the integration is not trustworthy and
-        raises :class:`SimulationError`.
+        raises :class:`SimulationError`; ``inf`` switches the audit off.
+    clock : callable
+        Returns the time in s that the budget is measured with (default
+        ``time.perf_counter``; tests inject a fake clock). Not part of the settings' identity.
     """
 
     integrator: str = "cvodes"
@@ -69,18 +111,26 @@ class SimSettings:
     max_steps: int = 20000
     max_wall_s: float = 120.0
     energy_tol: float = 1e-4
+    clock: Callable[[], float] = field(default=time.perf_counter, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator = {self.integrator!r}; expected one of {', '.join(INTEGRATORS)}")
         for name in ("rtol", "atol"):
             v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not (0 < v < 1):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < 1):
                 raise ValueError(f"{name} = {v!r}; expected a tolerance in (0, 1)")
-        if int(self.max_steps) < 10:
-            raise ValueError(f"max_steps = {self.max_steps!r}; expected an integer >= 10")
-        if not (isinstance(self.max_wall_s, (int, float)) and self.max_wall_s > 0):
+        if isinstance(self.max_steps, bool) or not isinstance(self.max_steps, (int, float)) \
+                or not math.isfinite(self.max_steps) or not 10 <= self.max_steps <= 1e9:
+            raise ValueError(f"max_steps = {self.max_steps!r}; expected an integer in [10, 1e9]")
+        if isinstance(self.max_wall_s, bool) or not isinstance(self.max_wall_s, (int, float)) \
+                or not (self.max_wall_s > 0 and math.isfinite(self.max_wall_s)):
             raise ValueError(f"max_wall_s = {self.max_wall_s!r}; expected a positive time in s")
+        if isinstance(self.energy_tol, bool) or not isinstance(self.energy_tol, (int, float)) \
+                or not self.energy_tol > 0:
+            raise ValueError(f"energy_tol = {self.energy_tol!r}; expected a relative tolerance > 0 (inf: no audit)")
+        if not callable(self.clock):
+            raise ValueError(f"clock = {self.clock!r}; expected a callable returning seconds")
 
 
 def _state_scale(model: PlantModel) -> NDArray[np.float64]:
@@ -101,6 +151,8 @@ def _state_scale(model: PlantModel) -> NDArray[np.float64]:
         "v_screw": p.lead_per_rad * w,
         "tau_motor": p.torque_limit,
     }
+    # A model may declare the typical magnitudes of states it adds (e.g. friction states).
+    scale.update(getattr(model, "state_scales", None) or {})
     return np.array([scale[n] for n in model.state_names])
 
 
@@ -109,11 +161,12 @@ class _Built:
     """Closed-loop functions of one plant model (built once)."""
 
     model: PlantModel
-    scale: NDArray[np.float64]
+    scale: NDArray[np.float64]  # plant states (+ continuous controller states) (+ energy)
+    plant_scale: NDArray[np.float64]  # plant states (+ energy): the sampled loop's plant part
     energy: bool
-    rhs: ca.Function  # (z, p) -> dz/dt in scaled, duration-normalised time
+    rhs: ca.Function  # continuous loop: (z, p) -> dz/dt in scaled, duration-normalised time
     continuous: dict = field(default_factory=dict)  # (settings, n_out) -> integrator
-    sampled: dict = field(default_factory=dict)  # settings -> one-sample integrator
+    sampled: dict = field(default_factory=dict)  # (settings, measurement key, ...) -> functions
 
 
 _BUILT: "weakref.WeakKeyDictionary[PlantModel, dict[bool, _Built]]" = weakref.WeakKeyDictionary()
@@ -134,7 +187,9 @@ def _build(model: PlantModel, energy: bool) -> _Built:
     p = model.plant
     nx = model.nx
     ctrl_scale = [100.0, p.torque_limit, 100.0]  # rad/s, N m, rad/s
-    scale = np.concatenate([_state_scale(model), ctrl_scale, np.ones(3 if energy else 0)])
+    e_scale = np.ones(3 if energy else 0)
+    x_scale = _state_scale(model)
+    scale = np.concatenate([x_scale, ctrl_scale, e_scale])
     z = ca.SX.sym("z", len(scale))
     par = ca.SX.sym("p", _NP)
     ref, load, gains, tau_ff, duration = par[0], par[1], par[2:6], par[6], par[7]
@@ -150,7 +205,7 @@ def _build(model: PlantModel, energy: bool) -> _Built:
         plant_rates[:nx], (w_n - w_f) / p.speed_filter_s, dintegral, derivative, plant_rates[nx:]
     )
     rhs = duration * rates / scale
-    built = _Built(model, scale, energy, ca.Function("rhs", [z, par], [rhs]))
+    built = _Built(model, scale, np.concatenate([x_scale, e_scale]), energy, ca.Function("rhs", [z, par], [rhs]))
     cache[energy] = built
     return built
 
@@ -175,9 +230,13 @@ def _continuous_integrator(built: _Built, settings: SimSettings, n_out: int) -> 
     return built.continuous[key]
 
 
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
 def _normalise_profile(profile: Profile, duration: float, what: str, unit: str) -> list[tuple[float, float]]:
-    if isinstance(profile, (int, float)) and not isinstance(profile, bool):
-        pts = [(0.0, float(profile))]
+    if _is_number(profile):
+        pts = [(0.0, float(profile))]  # type: ignore[arg-type]
     else:
         try:
             pts = [(float(t), float(v)) for t, v in profile]  # type: ignore[union-attr]
@@ -198,30 +257,49 @@ def _normalise_profile(profile: Profile, duration: float, what: str, unit: str) 
     return pts
 
 
+def _values_at(pts: list[tuple[float, float]], t: NDArray[np.float64] | float) -> NDArray[np.float64]:
+    """Value of a piecewise-constant profile at time(s) ``t``: the last point at or before t."""
+    times = np.array([tk for tk, _ in pts])
+    vals = np.array([vk for _, vk in pts])
+    idx = np.searchsorted(times, np.asarray(t, dtype=float) + 1e-12, side="right") - 1
+    return vals[np.clip(idx, 0, len(vals) - 1)]
+
+
 def _value_at(pts: list[tuple[float, float]], t: float) -> float:
-    val = pts[0][1]
-    for tk, vk in pts:
-        if tk <= t + 1e-12:
-            val = vk
-    return val
+    return float(_values_at(pts, t))
 
 
-def _initial_speed(plant: Plant, fidelity: str, ref: float, load: float, pid: PID | None, tau_ff: float,
-                   seed: int = 0):
-    """Closed-loop steady speed (rad/s) and torque (N m) before the first input change."""
+def _initial_state(plant: Plant, fidelity: str, ref: float, load: float, pid: PID | None, tau_ff: float,
+                   seed: int, observer_ff: bool):
+    """Closed-loop steady state before the first input change.
+
+    Returns the operating point and the PID integral (N m). With an integral action the speed
+    sits on the setpoint and the integral holds the rest of the torque; a P-only controller
+    settles where ``kp (ref - w) + tau_ff (+ kff * load torque estimate) = torque(w)``.
+    ``observer_ff``: the load-torque estimate (equal to the steady torque) is fed forward
+    with ``pid.kff``.
+    """
+    kff = pid.kff if (pid is not None and observer_ff) else 0.0
     if pid is None or pid.ki > 0:
         op = operating_point(plant, ref, load, fidelity, seed)
-        return op, op.torque - tau_ff if pid is not None else 0.0
+        return op, (op.torque * (1.0 - kff) - tau_ff) if pid is not None else 0.0
     if pid.kp == 0:
         raise ValueError("PID with kp = ki = 0 has no steady state; expected kp > 0 or ki > 0")
 
     def residual(w: float) -> float:
-        return operating_point(plant, w, load, fidelity, seed).torque - tau_ff - pid.kp * (ref - w)
+        tau = operating_point(plant, w, load, fidelity, seed).torque
+        return tau * (1.0 - kff) - tau_ff - pid.kp * (ref - w)
 
     from scipy.optimize import brentq  # only P-only controllers need it (and it costs 0.25 s to import)
 
     span = plant.torque_limit / pid.kp
-    w0 = brentq(residual, ref - span, ref + span, xtol=1e-12, rtol=1e-14)
+    try:
+        w0 = brentq(residual, ref - span, ref + span, xtol=1e-12, rtol=1e-14, maxiter=200)
+    except (ValueError, SimulationError, RuntimeError):
+        raise SimulationError(
+            f"no steady state of the P-only loop (kp = {pid.kp:g} N m s/rad) at {ref:g} rad/s and {load:g} N "
+            "within the torque limit; remedy: raise kp, add an integral gain or lower the load"
+        ) from None
     return operating_point(plant, w0, load, fidelity, seed), 0.0
 
 
@@ -231,9 +309,8 @@ _REMEDY = (
 )
 
 
-def _fail(exc: Exception, t0: float, t1: float, model: PlantModel, x: NDArray[np.float64],
+def _fail(exc: Exception, t0: float, t1: float, names: Sequence[str], x: NDArray[np.float64],
           what: str = "integration failed", remedy: str = _REMEDY) -> SimulationError:
-    names = model.state_names + _CTRL_STATES
     state = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, x))
     reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
     return SimulationError(
@@ -241,100 +318,52 @@ def _fail(exc: Exception, t0: float, t1: float, model: PlantModel, x: NDArray[np
     )
 
 
-def simulate(
-    plant: Plant,
-    *,
-    setpoint: Profile = 31.4159,
-    load: Profile = 500.0,
-    duration: float = 0.6,
-    controller: PID | None = None,
-    feedforward_torque: float = 0.0,
-    fidelity: str = "compliant",
-    discrete: bool = False,
-    dt: float = 1e-4,
-    settings: SimSettings | None = None,
-    energy: bool = False,
-    seed: int = 0,
-) -> "control.TimeResponseData":
-    """Simulate the actuator's speed loop from steady state.
+class _Budget:
+    """The wall-time budget of one run, on the settings' clock."""
 
-    Parameters
-    ----------
-    plant : Plant
-    setpoint : float or list of (time_s, rad/s)
-        Nut-speed setpoint, piecewise constant.
-    load : float or list of (time_s, N)
-        Axial load on the screw, piecewise constant (e.g. ``[(0, 500), (0.2, 1500)]``).
-    duration : float, s
-    controller : PID, optional
-        Speed controller. Without one the torque command is held at the initial equilibrium
-        torque (open loop) plus ``feedforward_torque``.
-    feedforward_torque : float, N m
-        Torque added to the controller's command.
-    fidelity : {"rigid", "compliant", "multi-roller"}
-    discrete : bool
-        Run the controller at the plant's sample time with zero-order hold, a one-sample
-        computation delay and the quantised encoder, instead of in continuous time.
-    dt : float, s
-        Output spacing in continuous mode (discrete mode outputs every sample).
-    settings : SimSettings, optional
-    energy : bool
-        Also integrate motor, load and dissipated work (see :func:`energy_balance`).
-    seed : int
-        Seed of the per-roller errors (``fidelity="multi-roller"`` only).
+    def __init__(self, settings: SimSettings) -> None:
+        self.settings = settings
+        self.started = settings.clock()
 
-    Returns
-    -------
-    control.TimeResponseData
-        Outputs ``nut_speed``, ``cage_speed``, ``roller_speed`` (spin relative to the cage),
-        ``roller_speed_abs``, ``screw_velocity`` (m/s), ``motor_torque`` (N m) and, when
-        compliant, ``contact_force_nut`` / ``contact_force_screw`` (total normal force, N;
-        multi-roller adds ``contact_force_nut_<i>`` / ``contact_force_screw_<i>`` per roller);
-        inputs ``speed_setpoint`` (rad/s) and ``axial_load`` (N). ``result.info`` holds the
-        fidelity, integrator and wall time; with ``energy=True``, ``result.energy`` holds the
-        work terms.
+    def check(self, t: float, names: Sequence[str], x) -> None:
+        elapsed = self.settings.clock() - self.started
+        if elapsed > self.settings.max_wall_s:
+            state = ", ".join(f"{n}={v:.6g}" for n, v in zip(names, x))
+            raise SimulationError(
+                f"run stopped at t = {t:.6g} s: wall-time budget max_wall_s = {self.settings.max_wall_s:g} s used up "
+                f"after {elapsed:.3g} s (state [{state}]); remedy: raise max_wall_s, loosen rtol/atol or shorten "
+                "the run"
+            )
 
-    Raises
-    ------
-    SimulationError
-        If the integrator fails (the message names the time, the state and a remedy).
-
-    Examples
-    --------
-    >>> from prsa_ctrl import load_plant, simulate, PID
-    >>> r = simulate(load_plant(), load=[(0, 500), (0.05, 1500)], duration=0.1,
-    ...              controller=PID(0.5, 20.0), fidelity="rigid")
-    >>> float(r.outputs[0].min()) < 31.4159
-    True
-    """
-    import control
-
-    r = run(plant, setpoint=setpoint, load=load, duration=duration, controller=controller,
-            feedforward_torque=feedforward_torque, fidelity=fidelity, discrete=discrete, dt=dt,
-            settings=settings, energy=energy, seed=seed)
-    result = control.TimeResponseData(
-        r.time,
-        r.outputs,
-        r.states,
-        r.inputs,
-        output_labels=list(r.output_labels),
-        state_labels=list(r.state_labels),
-        input_labels=["speed_setpoint", "axial_load"],
-        sysname=f"{plant.name}[{fidelity}]",
-        plot_inputs=False,
-    )
-    result.info = r.info
-    if energy:
-        result.energy = r.energy
-    return result
+    @property
+    def elapsed(self) -> float:
+        return self.settings.clock() - self.started
 
 
 @dataclass(frozen=True, eq=False)
 class SimRun:
-    """Plain arrays of one simulation (what :func:`simulate` wraps as TimeResponseData).
+    """Plain arrays of one simulation; :meth:`to_response` wraps them as python-control data.
 
-    ``outputs`` has one row per ``output_labels`` entry, ``states`` one per ``state_labels``,
-    ``inputs`` the setpoint (rad/s) and load (N) rows.
+    Attributes
+    ----------
+    time : ndarray, s
+    outputs : ndarray
+        One row per ``output_labels`` entry: the model's outputs (``nut_speed`` rad/s,
+        ``motor_torque`` the actual torque N m, ...) followed by ``torque_command`` (N m) and
+        ``speed_measured`` (rad/s), and in sampled runs ``speed_fd`` (rad/s) and
+        ``load_torque_estimate`` (N m).
+    states : ndarray
+        One row per ``state_labels`` entry: the plant's states, then the controller's.
+    inputs : ndarray
+        ``speed_setpoint`` (rad/s, as the controller used it) and ``axial_load`` (N) rows.
+    output_labels, state_labels, input_labels : tuple of str
+    info : dict
+        Fidelity, controller form, measurement, integrator, tolerances, wall time (s) and the
+        input events with the time each acted (``events``).
+    energy : dict or None
+        With ``energy=True``: cumulative ``work_motor``, ``work_load``, ``work_dissipated`` and
+        the ``stored`` energy, J (see :func:`energy_balance`).
+    sysname : str
     """
 
     time: NDArray[np.float64]
@@ -345,15 +374,92 @@ class SimRun:
     state_labels: tuple[str, ...]
     info: dict
     energy: dict | None = None
+    input_labels: tuple[str, ...] = INPUT_LABELS
+    sysname: str = ""
 
     def output(self, name: str) -> NDArray[np.float64]:
+        """The output row ``name``."""
+        if name not in self.output_labels:
+            raise KeyError(f"output {name!r}; expected one of {', '.join(self.output_labels)}")
         return self.outputs[self.output_labels.index(name)]
+
+    def to_response(self) -> "control.TimeResponseData":
+        """This run as python-control ``TimeResponseData`` (a :class:`SimResponse` that also
+        carries ``info`` and ``energy``)."""
+        return _response_class()(self)
+
+
+_RESPONSE_CLASS: list = []
+
+
+def _response_class():
+    """``SimResponse``: python-control ``TimeResponseData`` with the run's ``info`` and
+    ``energy`` declared (built on first use, so python-control is imported only here)."""
+    if _RESPONSE_CLASS:
+        return _RESPONSE_CLASS[0]
+    import control
+
+    class SimResponse(control.TimeResponseData):
+        """Time response of :func:`simulate`: python-control's ``TimeResponseData`` plus
+
+        Attributes
+        ----------
+        info : dict
+            As :attr:`SimRun.info`.
+        energy : dict or None
+            As :attr:`SimRun.energy`.
+        """
+
+        info: dict
+        energy: dict | None
+
+        def __init__(self, r: SimRun) -> None:
+            super().__init__(
+                r.time, r.outputs, r.states, r.inputs,
+                output_labels=list(r.output_labels), state_labels=list(r.state_labels),
+                input_labels=list(r.input_labels), sysname=r.sysname, plot_inputs=False,
+            )
+            self.info = r.info
+            self.energy = r.energy
+
+    _RESPONSE_CLASS.append(SimResponse)
+    return SimResponse
+
+
+def simulate(plant: Plant, **kwargs: Any) -> "control.TimeResponseData":
+    """Simulate the actuator's speed loop from steady state: :func:`run` returned as
+    python-control ``TimeResponseData`` (``run(plant, **kwargs).to_response()``).
+
+    Takes exactly :func:`run`'s keyword arguments.
+
+    Returns
+    -------
+    control.TimeResponseData
+        With ``info`` and ``energy`` attributes (see :class:`SimRun`).
+
+    Examples
+    --------
+    >>> from prsa_ctrl import load_plant, simulate, PID
+    >>> r = simulate(load_plant(), load=[(0, 500), (0.05, 1500)], duration=0.1,
+    ...              controller=PID(0.5, 20.0), fidelity="rigid")
+    >>> float(r.outputs[0].min()) < 31.4159
+    True
+    """
+    return run(plant, **kwargs).to_response()
+
+
+def _check_number(name: str, v: Any, lo: float, hi: float, unit: str, lo_open: bool = True) -> float:
+    ok = _is_number(v) and math.isfinite(float(v)) and (v > lo if lo_open else v >= lo) and v <= hi
+    if not ok:
+        lo_s = f"> {lo:g}" if lo_open else f">= {lo:g}"
+        raise ValueError(f"{name} = {v!r}; expected a finite number {lo_s} and <= {hi:g} {unit}".rstrip())
+    return float(v)
 
 
 def run(
     plant: Plant,
     *,
-    setpoint: Profile = 31.4159,
+    setpoint: Profile = SETPOINT_RAD_S,
     load: Profile = 500.0,
     duration: float = 0.6,
     controller: PID | None = None,
@@ -361,52 +467,158 @@ def run(
     fidelity: str = "compliant",
     discrete: bool = False,
     dt: float = 1e-4,
+    measurement: "str | SpeedMeasurement" = "encoder",
+    kf: "KFDesign | None" = None,
+    torque_noise: bool = False,
     settings: SimSettings | None = None,
     energy: bool = False,
     seed: int = 0,
 ) -> SimRun:
-    """:func:`simulate` without python-control: the same run, returned as plain arrays."""
-    settings = settings or SimSettings()
-    if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
-        raise ValueError(f"duration = {duration!r}; expected a finite time > 0 s")
-    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0 < dt <= duration):
-        raise ValueError(f"dt = {dt!r}; expected 0 < dt <= duration ({duration} s)")
-    if not math.isfinite(feedforward_torque):
-        raise ValueError(f"feedforward_torque = {feedforward_torque!r}; expected a finite torque in N m")
+    """Simulate the actuator's speed loop from steady state (the one simulator).
+
+    Parameters
+    ----------
+    plant : Plant
+    setpoint : float or list of (time_s, rad/s)
+        Nut-speed setpoint, piecewise constant. In a sampled run a change is seen by the
+        controller at the first sample at or after its time.
+    load : float or list of (time_s, N)
+        Axial load on the screw, piecewise constant (e.g. ``[(0, 500), (0.2, 1500)]``); a
+        change acts on the plant at its exact time, also between controller samples.
+    duration : float, s
+        Length of the run. A sampled run ends at the last sample at or before it.
+    controller : PID, optional
+        Speed controller. Without one the torque command is held at the initial equilibrium
+        torque (open loop) plus ``feedforward_torque``.
+    feedforward_torque : float, N m
+        Torque added to the controller's command.
+    fidelity : {"rigid", "compliant", "multi-roller"}
+    discrete : bool
+        Run the drive's sampled loop (plant sample time, zero-order hold, one-sample
+        computation delay, quantised encoder) instead of a continuous controller.
+    dt : float, s
+        Output spacing in continuous mode (a sampled run outputs every sample).
+    measurement : {"encoder", "kf"} or SpeedMeasurement
+        Sampled runs only: the speed the PID acts on, the filtered encoder difference
+        (default) or the Kalman filter ``kf``, which also estimates the load torque that
+        ``controller.kff`` feeds forward.
+    kf : KFDesign, optional
+        Filter for ``measurement="kf"`` (default :func:`prsa_ctrl.estimator.design_kf`).
+    torque_noise : bool
+        Sampled runs only: add the plant's current-measurement noise
+        (``sensor.torque_noise_n_m``, seeded by ``seed``) to the applied torque as ripple.
+    settings : SimSettings, optional
+    energy : bool
+        Also integrate motor, load and dissipated work (see :func:`energy_balance`); the run
+        then audits its energy balance against ``settings.energy_tol``.
+    seed : int
+        Seed of the per-roller errors (``fidelity="multi-roller"``) and of the torque noise.
+
+    Returns
+    -------
+    SimRun
+
+    Raises
+    ------
+    ValueError
+        For an invalid argument (the message names it and what was expected), or a run whose
+        output would exceed ``MAX_OUTPUT_POINTS`` points.
+    SimulationError
+        If the integrator fails, the budget is used up or the energy audit fails (the message
+        names the time, the state and a remedy).
+
+    Examples
+    --------
+    >>> from prsa_ctrl import load_plant, PID
+    >>> r = run(load_plant(), load=[(0, 500), (0.0101, 1500)], duration=0.02,
+    ...         controller=PID(0.085, 14.7), fidelity="rigid", discrete=True)
+    >>> r.info["events"][0]["acts_at_s"], r.output_labels[-4:]
+    (0.0101, ('torque_command', 'speed_measured', 'speed_fd', 'load_torque_estimate'))
+    """
+    settings = SimSettings() if settings is None else settings
+    if not isinstance(plant, Plant):
+        raise ValueError(f"plant = {plant!r}; expected a Plant (see prsa_ctrl.load_plant)")
+    if not isinstance(settings, SimSettings):
+        raise ValueError(f"settings = {settings!r}; expected a SimSettings")
+    if controller is not None and not isinstance(controller, PID):
+        raise ValueError(f"controller = {controller!r}; expected a PID or None")
+    if not isinstance(discrete, bool):
+        raise ValueError(f"discrete = {discrete!r}; expected True or False")
+    duration = _check_number("duration", duration, 0.0, 1e6, "s")
+    feedforward_torque = _check_number("feedforward_torque", feedforward_torque, -1e6, 1e6, "N m", lo_open=False)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed = {seed!r}; expected an integer >= 0")
+    if discrete:
+        ts = plant.sample_time_s
+        n_points = math.floor(duration / ts + 1e-9) + 1
+        if n_points < 2:
+            raise ValueError(f"duration = {duration!r} s is shorter than the sample time {ts:g} s")
+        size_msg = f"duration {duration:g} s at the sample time {ts:g} s"
+    else:
+        if not (_is_number(dt) and math.isfinite(dt) and 0 < dt <= duration):
+            raise ValueError(f"dt = {dt!r}; expected 0 < dt <= duration ({duration} s)")
+        n_points = int(duration / dt) + 1
+        size_msg = f"duration {duration:g} s at dt = {dt:g} s"
+    if n_points > MAX_OUTPUT_POINTS:
+        raise ValueError(f"{size_msg} gives {n_points:.3g} output points; expected at most "
+                         f"{MAX_OUTPUT_POINTS:.0e} (shorten the run or coarsen dt)")
     sp = _normalise_profile(setpoint, duration, "setpoint", "rad/s")
     ld = _normalise_profile(load, duration, "load", "N")
     model = plant_model(plant, fidelity, seed)
-    built = _build(model, energy)
-    started = time.perf_counter()
-
-    op, integral0 = _initial_speed(plant, fidelity, sp[0][1], ld[0][1], controller, feedforward_torque, seed)
-    gains = controller.params if controller is not None else [0.0, 0.0, 0.0, 1e-3]
-    ff = feedforward_torque + (0.0 if controller is not None else op.torque)
-    x0 = np.concatenate([op.x, [op.omega_nut, integral0, op.omega_nut], np.zeros(3 if energy else 0)])
-
     if discrete:
-        t, xs = _run_sampled(built, settings, sp, ld, duration, gains, ff, x0)
+        meas = measurement_for(plant, measurement, kf)
+    elif measurement != "encoder" or torque_noise:
+        raise ValueError(f"measurement = {measurement!r}, torque_noise = {torque_noise!r}; expected the defaults "
+                         "in continuous mode (estimators and noise belong to the sampled loop: discrete=True)")
     else:
-        t, xs = _run_continuous(built, settings, sp, ld, duration, dt, gains, ff, x0)
+        meas = None
+    if controller is not None and controller.kff > 0 and not (meas is not None and meas.estimates_load):
+        raise ValueError(f"PID kff = {controller.kff:g} needs a load-torque estimate; expected discrete=True "
+                         "with measurement='kf'")
+    built = _build(model, energy)
+    budget = _Budget(settings)
+
+    op, integral0 = _initial_state(plant, fidelity, sp[0][1], ld[0][1], controller, feedforward_torque, seed,
+                                   observer_ff=meas is not None and meas.estimates_load)
+    gains = controller.params if controller is not None else [0.0, 0.0, 0.0, 1e-3]
+    kff = controller.kff if controller is not None else 0.0
+    ff = feedforward_torque + (0.0 if controller is not None else op.torque)
+    e0 = np.zeros(3 if energy else 0)
+    if discrete:
+        assert meas is not None
+        t, xs, extra, refs, loads, state_labels, events = _run_sampled(
+            built, settings, budget, meas, sp, ld, n_points - 1, gains, kff, ff, op, integral0, e0, torque_noise,
+            seed)
+    else:
+        x0 = np.concatenate([op.x, [op.omega_nut, integral0, op.omega_nut], e0])
+        t, xs = _run_continuous(built, settings, budget, sp, ld, duration, dt, gains, ff, x0)
+        refs, loads = _values_at(sp, t), _values_at(ld, t)
+        extra = _continuous_extras(model, xs, refs, gains, ff, plant.torque_limit)
+        state_labels = tuple(model.state_names) + _CTRL_STATES
+        events = [{"input": name, "time_s": tk, "acts_at_s": tk}
+                  for name, prof in (("speed_setpoint", sp), ("axial_load", ld)) for tk, _ in prof[1:]]
+    n_ctrl = len(state_labels) - model.nx
     if not np.all(np.isfinite(xs)):
         bad = int(np.argmax(~np.all(np.isfinite(xs), axis=0)))
-        raise _fail(ValueError("non-finite state"), t[max(bad - 1, 0)], t[bad], model, xs[:, max(bad - 1, 0)])
+        raise _fail(ValueError("non-finite state"), t[max(bad - 1, 0)], t[bad], state_labels, xs[:, max(bad - 1, 0)])
 
     nx = model.nx
-    u_cmd = np.array([_value_at(ld, tk) for tk in t])
-    refs = np.array([_value_at(sp, tk) for tk in t])
-    y = np.asarray(model.h.map(len(t))(xs[:nx], np.vstack([np.zeros_like(t), u_cmd])))
+    u_in = np.vstack([extra[0], loads])
+    y = np.asarray(model.h.map(len(t))(xs[:nx], u_in))
+    out_labels = tuple(model.output_names) + (_SAMPLED_OUTPUTS if discrete else _SAMPLED_OUTPUTS[:2])
     info = {
         "fidelity": fidelity,
         "discrete": bool(discrete),
+        "measurement": meas.name if meas is not None else "continuous filter",
         "integrator": settings.integrator,
         "rtol": settings.rtol,
         "atol": settings.atol,
-        "wall_time_s": time.perf_counter() - started,
+        "events": events,
+        "wall_time_s": budget.elapsed,
     }
     energy_terms = None
     if energy:
-        stored = np.asarray(model.power.map(len(t))(xs[:nx], np.vstack([np.zeros_like(t), u_cmd])))[0]
+        stored = np.asarray(model.power.map(len(t))(xs[:nx], u_in))[0]
         energy_terms = {
             "stored": stored,
             "work_motor": xs[-3],
@@ -418,26 +630,11 @@ def run(
             raise _fail(
                 ValueError(f"energy balance residual {audit['residual_j']:.3g} J, relative "
                            f"{audit['relative_residual']:.2g} > energy_tol {settings.energy_tol:g}"),
-                0.0, float(t[-1]), model, xs[: nx + 3, -1], what="untrustworthy integration",
+                0.0, float(t[-1]), state_labels, xs[: nx + n_ctrl, -1], what="untrustworthy integration",
                 remedy=f"tighten rtol/atol (now {settings.rtol:g}/{settings.atol:g})",
             )
-    return SimRun(t, y, xs[: nx + 3], np.vstack([refs, u_cmd]), tuple(model.output_names),
-                  tuple(model.state_names + _CTRL_STATES), info, energy_terms)
-
-
-
-
-def _segments(sp, ld, duration: float) -> list[float]:
-    return sorted({0.0, duration, *[t for t, _ in sp], *[t for t, _ in ld]})
-
-
-def _over_budget(settings: SimSettings, started: float, t: float, model: PlantModel, x) -> None:
-    elapsed = time.perf_counter() - started
-    if elapsed > settings.max_wall_s:
-        raise _fail(
-            TimeoutError(f"wall-time budget max_wall_s = {settings.max_wall_s:g} s used up after {elapsed:.1f} s"),
-            t, t, model, x,
-        )
+    return SimRun(t, np.vstack([y, extra]), xs[: nx + n_ctrl], np.vstack([refs, loads]), out_labels,
+                  state_labels, info, energy_terms, INPUT_LABELS, f"{plant.name}[{fidelity}]")
 
 
 def _chunks(bounds: list[float]) -> list[tuple[float, float]]:
@@ -451,119 +648,207 @@ def _chunks(bounds: list[float]) -> list[tuple[float, float]]:
     return out
 
 
-def _run_continuous(built, settings, sp, ld, duration, dt, gains, ff, x0):
+def _run_continuous(built, settings, budget, sp, ld, duration, dt, gains, ff, x0):
     scale = built.scale
+    names = tuple(built.model.state_names) + _CTRL_STATES
     z = x0 / scale
     times = [np.array([0.0])]
     states = [x0[:, None]]
-    started = time.perf_counter()
-    for t0, t1 in _chunks(_segments(sp, ld, duration)):
-        _over_budget(settings, started, t0, built.model, z * scale)
+    bounds = sorted({0.0, duration, *[t for t, _ in sp], *[t for t, _ in ld]})
+    for t0, t1 in _chunks(bounds):
+        budget.check(t0, names, z * scale)
         n_out = max(1, int(round((t1 - t0) / dt)))
         integ = _continuous_integrator(built, settings, n_out)
         par = [_value_at(sp, t0), _value_at(ld, t0), *gains, ff, t1 - t0]
         try:
             zf = np.asarray(integ(x0=z, p=par)["xf"])
         except RuntimeError as exc:
-            raise _fail(exc, t0, t1, built.model, z * scale) from None
+            raise _fail(exc, t0, t1, names, z * scale) from None
         times.append(t0 + (t1 - t0) * np.arange(1, n_out + 1) / n_out)
         states.append(zf * scale[:, None])
         z = zf[:, -1]
     return np.concatenate(times), np.hstack(states)
 
 
+def _continuous_extras(model: PlantModel, xs, refs, gains, ff, torque_limit: float) -> NDArray[np.float64]:
+    """Torque command and filtered speed of the continuous controller at each output time."""
+    nx = model.nx
+    w_f, integral, w_d = xs[nx], xs[nx + 1], xs[nx + 2]
+    kp, _, kd, tf = gains
+    u = kp * (refs - w_f) + integral - kd * (w_f - w_d) / tf + ff
+    return np.vstack([np.clip(u, -torque_limit, torque_limit), w_f])
+
+
+# --- the sampled loop --------------------------------------------------------------------------
+# Memory carried from sample to sample: previous quantised angle (rad), PID integral (N m),
+# derivative-filter state (rad/s^2), previous measured speed (rad/s), pending command (N m),
+# then the measurement block's memory, then this sample's reported values (_SAMPLED_OUTPUTS).
+_MEM_HEAD = ("encoder_angle_prev", "pid_integral", "speed_derivative_state", "speed_measured_prev",
+             "torque_command_pending")
+# Per-sample parameters: setpoint (rad/s), load at the sample start and after an event inside
+# the sample (N), the event's position in the sample (0..1, 0 = none), torque ripple (N m),
+# kp, ki, kd, tf, kff, feed-forward torque (N m).
+_NPS = 11
+
+
 def _sample_integrator(built: _Built, settings: SimSettings) -> ca.Function:
-    """Plant-only integrator over one sample with the command held (controller states frozen):
-    ``(x0 = scaled state, p = [torque command N m, load N, sample time s]) -> xf``."""
-    key = (settings, "sample")
+    """Plant-only integrator with the command held: ``(x0 = scaled plant state (+ energy),
+    p = [torque N m, load N, interval s]) -> xf``."""
+    key = (settings, "plant")
     if key not in built.sampled:
-        model, scale = built.model, built.scale
+        model, scale = built.model, built.plant_scale
         nx = model.nx
         zp = ca.SX.sym("z", len(scale))
         pp = ca.SX.sym("p", 3)
         rates = _plant_rates(model, (zp * scale)[:nx], pp[0], pp[1], built.energy)
-        ode = pp[2] * ca.vertcat(rates[:nx], ca.DM.zeros(3), rates[nx:]) / scale
+        ode = pp[2] * rates / scale
         built.sampled[key] = ca.integrator("sample", settings.integrator, {"x": zp, "p": pp, "ode": ode}, 0.0, 1.0,
                                            _opts(settings))
     return built.sampled[key]
 
 
-def _sampled_step(built: _Built, settings: SimSettings) -> ca.Function:
-    """One controller sample: update the PID from the quantised encoder, hold the previous
-    command over the sample (one-sample computation delay) and integrate the plant."""
-    if settings in built.sampled:
-        return built.sampled[settings]
-    model, scale = built.model, built.scale
+def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, split: bool) -> ca.Function:
+    """One controller sample of the drive (the only place the per-sample law is written).
+
+    At the sampling instant: quantise the encoder angle, let the measurement block update,
+    filter the derivative, run the PID (with the block's load-torque estimate fed forward by
+    ``kff``) and store the new command. Over the sample: apply the command stored at the
+    previous sample (one-sample computation delay, zero-order hold, plus optional ripple) and
+    integrate the plant, split at a load event inside the sample when ``split``; then let the
+    measurement block predict with the applied command.
+
+    ``(zm = [scaled plant state; memory], p = per-sample parameters) -> zm at the next sample``
+    """
+    key = (settings, meas.key(), split)
+    if key in built.sampled:
+        return built.sampled[key]
+    model, scale = built.model, built.plant_scale
     p = model.plant
-    nx, nz = model.nx, len(scale)
+    nz, nx = len(scale), model.nx
+    n_meas = len(meas.memory_names)
+    nm = len(_MEM_HEAD) + n_meas + len(_SAMPLED_OUTPUTS)
     ts = p.sample_time_s
     q = 2.0 * math.pi / p.encoder_counts
-    sample = _sample_integrator(built, settings)
-    # Controller memory: previous quantised angle, filtered derivative, pending command.
-    z = ca.SX.sym("z", nz)
-    mem = ca.SX.sym("m", 3)
-    par = ca.SX.sym("p", _NP)
-    x = z * scale
-    gains = par[2:6]
-    theta_q = ca.floor(x[model.index("theta_nut")] / q) * q
-    w_meas = (theta_q - mem[0]) / ts
-    alpha = math.exp(-ts / p.speed_filter_s)
-    w_f_old = x[nx]
-    w_f = alpha * w_f_old + (1 - alpha) * w_meas
+    integ = _sample_integrator(built, settings)
+    zm = ca.SX.sym("zm", nz + nm)
+    par = ca.SX.sym("p", _NPS)
+    z, mem = zm[:nz], zm[nz:]
+    ref, load_a, load_b, frac, ripple = par[0], par[1], par[2], par[3], par[4]
+    gains, kff, tau_ff = par[5:9], par[9], par[10]
+    th_prev, integral, deriv_old, w_prev, u_pend = mem[0], mem[1], mem[2], mem[3], mem[4]
+    m_meas = mem[5 : 5 + n_meas]
+
+    theta = (z * scale)[model.index("theta_nut")]
+    theta_q = ca.floor(theta / q) * q
+    w_fd = (theta_q - th_prev) / ts
+    w_meas, tl_hat, m_meas = meas.update(m_meas, theta_q, th_prev)
     beta = ca.exp(-ts / gains[3])
-    deriv = beta * mem[1] + (1 - beta) * (w_f - w_f_old) / ts
-    u, _, dintegral = pid_law(par[0] - w_f, x[nx + 1], deriv, gains, par[6], p.torque_limit)
-    integral = x[nx + 1] + ts * dintegral
-    zf = sample(x0=z, p=ca.vertcat(mem[2], par[1], ts))["xf"]
-    xf = zf * scale
-    xf = ca.vertcat(xf[:nx], w_f, integral, w_f, xf[nx + 3 :])
-    step = ca.Function("step", [ca.vertcat(z, mem), par], [ca.vertcat(xf / scale, theta_q, deriv, u)])
-    built.sampled[settings] = step
-    return step
+    deriv = beta * deriv_old + (1 - beta) * (w_meas - w_prev) / ts
+    _, u_sat, dintegral = pid_law(ref - w_meas, integral, deriv, gains, tau_ff + kff * tl_hat, p.torque_limit)
+    applied = u_pend + ripple
+    if split:
+        z = integ(x0=z, p=ca.vertcat(applied, load_a, frac * ts))["xf"]
+        z = integ(x0=z, p=ca.vertcat(applied, load_b, (1 - frac) * ts))["xf"]
+    else:
+        z = integ(x0=z, p=ca.vertcat(applied, load_a, ts))["xf"]
+    m_meas = meas.predict(m_meas, u_pend)
+    mem_next = ca.vertcat(theta_q, integral + ts * dintegral, deriv, w_meas, u_sat, m_meas,
+                          u_pend, w_meas, w_fd, tl_hat)
+    law = ca.Function("sample_law", [zm, par], [ca.vertcat(z, mem_next)])
+    built.sampled[key] = law
+    return law
 
 
-def _accumulated(built: _Built, settings: SimSettings, step: ca.Function, n: int) -> ca.Function:
-    """``n`` samples of ``step`` chained (mapaccum), built once per length."""
-    key = (settings, "accum", n)
+def _accumulated(built: _Built, law: ca.Function, n: int) -> ca.Function:
+    """``n`` samples of ``law`` chained (mapaccum), built once per law and length."""
+    key = (law, "accum", n)
     if key not in built.sampled:
-        built.sampled[key] = step.mapaccum(n)
+        built.sampled[key] = law.mapaccum(n)
     return built.sampled[key]
 
 
-def _run_sampled(built, settings, sp, ld, duration, gains, ff, x0):
+def _sample_events(ld, sp, ts: float, n: int):
+    """Per-sample load columns and the event log of a sampled run (see the module docstring)."""
+    t_samples = ts * np.arange(n)
+    load_a = _values_at(ld, t_samples)
+    load_b = load_a.copy()
+    frac = np.zeros(n)
+    events = []
+    for t_e, value in ld[1:]:
+        k = math.floor(t_e / ts + 1e-9)
+        inside = t_e - k * ts > 1e-9 * ts
+        if k >= n:
+            raise ValueError(f"load change at {t_e:g} s comes after the last sample ({(n - 1) * ts:g} s); "
+                             "expected it earlier or a longer duration")
+        if inside:
+            if frac[k] > 0:
+                raise ValueError(f"two load changes inside the sample starting at {k * ts:g} s; expected at most one "
+                                 f"per sample time ({ts:g} s)")
+            frac[k] = (t_e - k * ts) / ts
+            load_b[k] = value
+        events.append({"input": "axial_load", "time_s": t_e, "acts_at_s": t_e})
+    for t_e, _ in sp[1:]:
+        k = math.ceil(t_e / ts - 1e-9)
+        if k >= n:
+            raise ValueError(f"setpoint change at {t_e:g} s comes after the last sample ({(n - 1) * ts:g} s); "
+                             "expected it earlier or a longer duration")
+        events.append({"input": "speed_setpoint", "time_s": t_e, "acts_at_s": round(k * ts, 12)})
+    return load_a, load_b, frac, sorted(events, key=lambda e: e["time_s"])
+
+
+def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, integral0, e0, torque_noise, seed):
+    """Samples ``0 .. n``: the first ``n`` advance the plant to ``t_n``; the one at ``t_n`` is
+    evaluated too, so that what the drive measured and commanded there is reported."""
     model = built.model
     p = model.plant
     ts = p.sample_time_s
-    n_total = int(round(duration / ts))
-    if n_total < 1:
-        raise ValueError(f"duration {duration} s is shorter than the sample time {ts} s")
-    step = _sampled_step(built, settings)
-    scale = built.scale
+    scale = built.plant_scale
+    nz, nx = len(scale), model.nx
+    n_meas = len(meas.memory_names)
+    t = ts * np.arange(n + 1)
+    load_a, load_b, frac, events = _sample_events(ld, sp, ts, n)
+    load_a, load_b, frac = (np.append(v, v[-1]) for v in (load_a, load_b, frac))
+    frac[-1] = 0.0
+    refs = _values_at(sp, t)
+    sigma = p.values["sensor.torque_noise_n_m"]
+    ripple = (np.random.default_rng(seed).normal(0.0, sigma, n + 1) if torque_noise and sigma > 0
+              else np.zeros(n + 1))
+    cols = np.vstack([refs, load_a, load_b, frac, ripple,
+                      np.tile(np.r_[gains, kff, ff][:, None], (1, n + 1))])
     q = 2.0 * math.pi / p.encoder_counts
-    theta0 = x0[model.index("theta_nut")]
-    # Steady start: the previous sample saw the same speed; the held command is the current one.
-    w0 = x0[model.index("omega_nut")]
-    mem0 = [math.floor((theta0 - w0 * ts) / q) * q, 0.0, x0[model.index("tau_motor")]]
-    # Discontinuities are applied at the nearest sample boundary.
-    ks = sorted({0, n_total, *[min(n_total, int(round(t / ts))) for t, _ in sp + ld]})
-    zm = np.concatenate([x0 / scale, mem0])
-    out = [x0[:, None]]
+    theta0, w0 = op.x[model.index("theta_nut")], op.omega_nut
+    mem0 = [math.floor((theta0 - w0 * ts) / q) * q, integral0, 0.0, w0, op.torque,
+            *meas.initial(theta0, w0, op.torque), *np.zeros(len(_SAMPLED_OUTPUTS))]
+    zm = np.concatenate([np.concatenate([op.x, e0]) / scale, mem0])
+    names = tuple(model.state_names) + ("energy",) * len(e0) + _MEM_HEAD + meas.memory_names
+    plain = _sample_law(built, settings, meas, split=False)
+    splits = np.flatnonzero(frac > 0)
     per_chunk = max(1, int(round(CHUNK_S / ts)))
-    ks = sorted(set(ks) | set(range(0, n_total, per_chunk)))
-    started = time.perf_counter()
-    for k0, k1 in zip(ks[:-1], ks[1:]):
-        if k1 == k0:
-            continue
-        _over_budget(settings, started, k0 * ts, model, zm[: len(scale)] * scale)
-        t0 = k0 * ts
-        par = [_value_at(sp, t0), _value_at(ld, t0), *gains, ff, ts]
+    out = []
+    k0 = 0
+    while k0 <= n:
+        budget.check(k0 * ts, names, zm[:nz] * scale)
+        if frac[k0] > 0:
+            k1, law = k0 + 1, _sample_law(built, settings, meas, split=True)
+        else:
+            later = splits[splits > k0]
+            k1 = min(k0 + per_chunk, n + 1, int(later[0]) if later.size else n + 1)
+            law = _accumulated(built, plain, k1 - k0) if k1 - k0 > 1 else plain
         try:
-            traj = np.asarray(_accumulated(built, settings, step, k1 - k0)(zm, ca.repmat(ca.DM(par), 1, k1 - k0)))
+            traj = np.asarray(law(zm, cols[:, k0:k1]))
         except RuntimeError as exc:
-            raise _fail(exc, t0, k1 * ts, model, zm[: len(scale)] * scale) from None
-        out.append(traj[: len(scale)] * scale[:, None])
+            raise _fail(exc, k0 * ts, k1 * ts, names, np.concatenate([zm[:nz] * scale, zm[nz:]])) from None
+        out.append(traj)
         zm = traj[:, -1]
-    return ts * np.arange(n_total + 1), np.hstack(out)
+        k0 = k1
+    traj = np.hstack(out)
+    plant_x = np.hstack([np.concatenate([op.x, e0])[:, None], traj[:nz, :n] * scale[:, None]])
+    mem = np.hstack([np.asarray(mem0, float)[:, None], traj[nz:, :n]])
+    ctrl = np.vstack([mem[1:3], mem[5 : 5 + n_meas]])
+    extra = traj[nz + len(_MEM_HEAD) + n_meas :, :]
+    xs = np.vstack([plant_x[:nx], ctrl, plant_x[nx:]])
+    state_labels = tuple(model.state_names) + _SAMPLED_STATES + tuple(meas.memory_names)
+    return t, xs, extra, refs, _values_at(ld, t), state_labels, events
 
 
 def energy_balance(result) -> dict[str, float]:

@@ -126,7 +126,15 @@ def test_overload_is_reported_not_nan(paper_plant):
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"duration": -1.0}, r"duration = -1\.0; expected a finite time > 0 s"),
+        ({"duration": -1.0}, r"duration = -1\.0; expected a finite number > 0 and <= 1e\+06 s"),
+        ({"duration": float("nan")}, r"duration = nan; expected a finite number"),
+        ({"duration": 1.0, "dt": 1e-10}, r"duration 1 s at dt = 1e-10 s gives 1e\+10 output points; expected at most 2e\+06"),
+        ({"discrete": True, "duration": 1e5}, r"duration 100000 s at the sample time 0\.00025 s gives .* output points"),
+        ({"measurement": "ekf", "discrete": True}, r"measurement = 'ekf'; expected 'encoder', 'kf'"),
+        ({"measurement": "kf"}, r"estimators and noise belong to the sampled loop"),
+        ({"controller": PID(0.1, 1.0, kff=0.5), "discrete": True}, r"PID kff = 0\.5 needs a load-torque estimate"),
+        ({"load": [(0.0, 500.0), (0.01005, 900.0), (0.0101, 1000.0)], "discrete": True},
+         r"two load changes inside the sample starting at 0\.01 s"),
         ({"load": [(0.1, 500.0)]}, r"load starts at t = 0\.1 s; expected the first point at t = 0"),
         ({"load": [(0.0, float("nan"))]}, r"load point \(0\.0, nan\) is not finite"),
         ({"load": "heavy"}, r"load = 'heavy'; expected a number \(N\)"),
@@ -164,3 +172,103 @@ def test_idas_and_cvodes_agree(paper_plant):
     a = simulate(paper_plant, load=STEP, duration=0.2, controller=pid, settings=SimSettings("cvodes"))
     b = simulate(paper_plant, load=STEP, duration=0.2, controller=pid, settings=SimSettings("idas"))
     assert np.max(np.abs(_out(a, "nut_speed") - _out(b, "nut_speed"))) < 1e-5
+
+
+# --- the one sampled-loop simulator: events, signs, steady starts ---------------------------------
+
+TS = 0.25e-3
+
+
+@pytest.mark.parametrize("t_step", [0.0101, 0.0011, 0.01, 0.1000625, 0.10012])
+def test_off_grid_load_step_acts_within_one_sample(paper_plant, t_step):
+    """A load step between controller samples acts on the plant at its own time: the speed
+    leaves its steady value in the first sample after the step, never at a chunk boundary."""
+    from prsa_ctrl.simulation import run
+
+    dur = t_step + 0.02
+    r = run(paper_plant, load=[(0.0, 500.0), (t_step, 1500.0)], duration=dur, controller=PID(0.085, 14.7),
+            fidelity="rigid", discrete=True)
+    w = r.output("nut_speed")
+    left = np.flatnonzero(np.abs(w - w[0]) > 0.02)
+    assert left.size, "the step never reached the plant"
+    onset = r.time[left[0]]
+    assert t_step < onset <= t_step + TS + 1e-12, (t_step, onset)
+    # The step's size is the same wherever it falls: 20 ms later the drop is the on-grid one.
+    ref = run(paper_plant, load=[(0.0, 500.0), (0.01, 1500.0)], duration=0.03, controller=PID(0.085, 14.7),
+              fidelity="rigid", discrete=True)
+    assert w.min() == pytest.approx(ref.output("nut_speed").min(), abs=0.02)
+    ev = r.info["events"]
+    assert ev == [{"input": "axial_load", "time_s": t_step, "acts_at_s": t_step}]
+    load = r.inputs[1]
+    assert np.all(load[r.time < t_step - 1e-12] == 500.0) and np.all(load[r.time >= t_step] == 1500.0)
+
+
+def test_off_grid_setpoint_step_is_read_at_the_next_sample(paper_plant):
+    from prsa_ctrl.simulation import run
+
+    r = run(paper_plant, setpoint=[(0.0, 30.0), (0.0101, 31.0)], load=500.0, duration=0.02,
+            controller=PID(0.085, 14.7), fidelity="rigid", discrete=True)
+    assert r.info["events"][0]["acts_at_s"] == pytest.approx(0.01025)
+    sp = r.inputs[0]
+    k = int(np.flatnonzero(sp == 31.0)[0])
+    assert r.time[k] == pytest.approx(0.01025)
+    # The command responds at that sample (the PID sees the new error) and is applied one
+    # sample later (computation delay).
+    u = r.output("torque_command")
+    assert u[k] == pytest.approx(u[0], abs=1e-3) and u[k + 1] > u[0] + 0.05
+
+
+def _verify_step(plant, f0, f1):
+    from prsa_ctrl.metrics import load_step_metrics
+    from prsa_ctrl.simulation import run
+
+    r = run(plant, load=[(0.0, f0), (0.002, f1)], duration=0.2, controller=PID(0.085, 14.7),
+            fidelity="rigid", discrete=True)
+    return load_step_metrics(r.time, r.output("nut_speed"), OMEGA_300_RPM, 0.002, r.output("motor_torque"),
+                             plant.torque_limit, direction=1 if f1 >= f0 else -1)
+
+
+def test_load_decrease_metrics_are_signed(paper_plant):
+    """1500 -> 500 N speeds the nut up: the excursion is a rise of the same size as the
+    500 -> 1500 N drop (near-linear loop), and the integral error is negative."""
+    up = _verify_step(paper_plant, 500.0, 1500.0)
+    down = _verify_step(paper_plant, 1500.0, 500.0)
+    assert up.peak_deviation_rad_s < -1.0 and down.peak_deviation_rad_s > 1.0
+    assert down.peak_drop_rad_s == pytest.approx(up.peak_drop_rad_s, rel=0.1)
+    assert down.ie < 0 < up.ie and down.iae == pytest.approx(up.iae, rel=0.1)
+    assert down.direction == -1 and up.direction == 1
+    assert down.recovery_time_s == pytest.approx(up.recovery_time_s, rel=0.2)
+
+
+@pytest.mark.parametrize("measurement, kff", [("encoder", 0.0), ("kf", 0.0), ("kf", 0.8)])
+def test_p_only_sampled_loop_starts_in_steady_state(paper_plant, measurement, kff):
+    """No input change: a P-only loop (with or without the observer's feed-forward) must stay
+    where it started, i.e. the initial integral and speed are the loop's true steady state."""
+    from prsa_ctrl.simulation import run
+
+    r = run(paper_plant, load=1000.0, duration=0.05, controller=PID(0.1, kff=kff), fidelity="rigid",
+            discrete=True, measurement=measurement)
+    w = r.output("nut_speed")
+    # (encoder quantisation alone moves it by a few mrad/s; a wrong start would move it by rad/s)
+    assert np.max(np.abs(w - w[0])) < 0.01, np.max(np.abs(w - w[0]))
+    tau = r.output("motor_torque")
+    # Steady P-only law: kp (ref - w) + kff * load estimate = torque (means over the run, as
+    # quantisation dithers the single samples).
+    law = 0.1 * (OMEGA_300_RPM - w.mean()) + kff * r.output("load_torque_estimate").mean()
+    assert law == pytest.approx(tau.mean(), rel=2e-3)
+
+
+def test_simulate_is_run_as_time_response(paper_plant):
+    import inspect
+
+    from prsa_ctrl.simulation import run
+
+    kw = dict(load=STEP, duration=0.12, controller=default_pid(paper_plant), fidelity="rigid", discrete=True,
+              energy=True)
+    r = run(paper_plant, **kw)
+    resp = simulate(paper_plant, **kw)
+    np.testing.assert_array_equal(resp.outputs, r.outputs)
+    assert list(resp.output_labels) == list(r.output_labels) and resp.info["events"] == r.info["events"]
+    assert energy_balance(resp) == energy_balance(r)
+    assert type(resp).__name__ == "SimResponse" and "energy" in type(resp).__annotations__
+    assert "plant" in inspect.signature(simulate).parameters
