@@ -15,6 +15,8 @@ __version__ = "0.1.0"
 _LAZY = {
     "PID": "controller",
     "simulate": "simulation",
+    "run": "simulation",
+    "SimRun": "simulation",
     "SimSettings": "simulation",
     "energy_balance": "simulation",
     "operating_point": "equilibrium",
@@ -25,6 +27,14 @@ _LAZY = {
     "nonlinear_iosys": "iosys",
     "kinematics_table": "paper",
     "load_step_study": "paper",
+    "tune_pid": "tuning",
+    "tune_loops": "tuning",
+    "tune_actuator": "autotune",
+    "verify": "autotune",
+    "load_scene": "scene",
+    "Scene": "scene",
+    "load_step_metrics": "metrics",
+    "design_kf": "estimator",
 }
 
 __all__ = [
