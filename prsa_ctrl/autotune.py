@@ -133,7 +133,19 @@ def actuator_loops(plant: Plant, scene: Scene, estimator: str | None = None) -> 
     to a step is the same from any linearisation point; the mid load keeps the Jacobians
     closest to both ends). ``estimator`` (default: the scene's) selects the speed measurement:
     ``"none"`` for the drive's filtered difference, ``"kf"`` for the Kalman filter (with the
-    load feed-forward gain as a fourth tuned gain when the scene asks for feed-forward)."""
+    load feed-forward gain as a fourth tuned gain when the scene asks for feed-forward).
+
+    Parameters
+    ----------
+    plant : Plant
+    scene : Scene
+    estimator : {"none", "kf"}, optional
+
+    Returns
+    -------
+    list of LoopModel
+        Sampled drive loops (``scene.discrete``) or continuous loops, one per final load.
+    """
     estimator = scene.estimator if estimator is None else estimator
     kf = None
     if estimator == "kf":
@@ -303,6 +315,13 @@ def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int |
 def baseline_designs(plant: Plant, scene: Scene, loops: list[LoopModel]) -> list[Design]:
     """Reference designs every report carries.
 
+    Parameters
+    ----------
+    plant : Plant
+    scene : Scene
+    loops : list of LoopModel
+        From :func:`actuator_loops` (the margins and predictions are computed on them).
+
     - ``paper Kp sweep``: the paper's manual approach, a Kp sweep with a small fixed Ki
       (one tenth of the rule-of-thumb Ki) and Kd = 0, keeping the Kp with the best predicted
       objective among the sweep points a manual tuner would accept (stable, Ms <= 2).
@@ -344,6 +363,14 @@ def baseline_designs(plant: Plant, scene: Scene, loops: list[LoopModel]) -> list
 
 def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> ActuatorTuning:
     """Tune, verify and compare (see module docstring).
+
+    Parameters
+    ----------
+    plant : Plant
+    scene : Scene
+    workers : int, optional
+        Verification processes (default: up to 4 where the machine has the cores;
+        ``PRSA_WORKERS=1`` forces serial runs).
 
     1. Linearise at each load step's mid load and build the sampled loop models.
     2. Tune at the scene's Ms bound, plus ``candidates - 1`` more robust alternatives.

@@ -117,6 +117,28 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
     """Loop model of the sampled drive with the Kalman filter in the loop (see
     :func:`prsa_ctrl.tuning.drive_loop` for the plain one).
 
+    Parameters
+    ----------
+    a, b : ndarray
+        Continuous plant Jacobians with the nut angle kept (inputs torque command, load).
+    c_speed : ndarray
+        Output row of the nut speed.
+    angle_index : int
+        Index of the nut angle state.
+    kf : KFDesign
+    tf : float, s
+        Derivative-filter time constant.
+    horizon : float, s
+    step : float, N
+        Load step of the objective's disturbance.
+    feedforward : bool
+        Tune the load feed-forward gain ``kff`` as a fourth gain.
+    omega : array, rad/s, optional
+        Frequency grid (default up to the Nyquist frequency).
+    name : str
+    outputs : dict, optional
+        Extra output rows to record along the trajectory.
+
     Per sample: the filter updates with the angle, the PID acts on the estimated speed (plus the
     estimated load torque if ``feedforward``), the command is applied one sample later, and the
     filter predicts with the applied command. The absolute angle and its estimate drift

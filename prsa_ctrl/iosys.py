@@ -17,6 +17,11 @@ def nonlinear_iosys(plant: Plant, fidelity: str = "compliant") -> control.Nonlin
     """Open-loop nonlinear plant with inputs ``torque_command`` (N m) and ``axial_load`` (N),
     the model's named states and outputs (``motor_torque`` is the actual torque, N m).
 
+    Parameters
+    ----------
+    plant : Plant
+    fidelity : {"rigid", "compliant"}
+
     The angles are left out of the states (held at zero): nothing in the rigid and compliant
     models depends on them, and with them no steady state at non-zero speed would exist for
     ``find_operating_point``.

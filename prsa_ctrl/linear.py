@@ -46,7 +46,21 @@ def _pade(delay: float, order: int, inp: str, out: str, name: str) -> "control.S
 
 def linear_core(plant: Plant, omega_nut: float, load: float, fidelity: str = "compliant"):
     """Jacobians ``(A, B, C, D, op)`` of the plant about an operating point, all states kept
-    (including the nut angle), inputs ``(motor_torque, axial_load)``, outputs the model's."""
+    (including the nut angle), inputs ``(torque_command, axial_load)``, outputs the model's.
+
+    Parameters
+    ----------
+    plant : Plant
+    omega_nut : float, rad/s
+    load : float, N
+    fidelity : {"rigid", "compliant"}
+
+    Returns
+    -------
+    A, B, C, D : ndarray
+        SI units of the model's states (``model.state_names``), inputs and outputs.
+    op : OperatingPoint
+    """
     if fidelity not in ("rigid", "compliant"):
         raise ValueError(
             f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' (the multi-roller model is "
@@ -158,7 +172,14 @@ def linearize(
 
 def pid_controller(pid: PID, name: str = "pid") -> "control.StateSpace":
     """Continuous PID with inputs ``speed_setpoint`` and ``nut_speed_measured`` (rad/s) and
-    output ``torque_command`` (N m); derivative on the measurement with filter ``tf``."""
+    output ``torque_command`` (N m); derivative on the measurement with filter ``tf``.
+
+    Parameters
+    ----------
+    pid : PID
+    name : str
+        System name.
+    """
     import control
 
     kp, ki, kd, tf = pid.kp, pid.ki, pid.kd, pid.tf
@@ -176,7 +197,14 @@ def pid_controller(pid: PID, name: str = "pid") -> "control.StateSpace":
 
 def closed_loop(sys: control.StateSpace, pid: PID) -> "control.StateSpace":
     """Speed loop of a linearised plant: inputs ``speed_setpoint`` and ``axial_load``; outputs
-    the plant's plus ``torque_command`` (N m)."""
+    the plant's plus ``torque_command`` (N m).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        From :func:`linearize`.
+    pid : PID
+    """
     import control
 
     outs = [o for o in sys.output_labels] + ["torque_command"]
@@ -201,6 +229,15 @@ def predict_load_step(
     dt: float = 1e-4,
 ) -> "control.TimeResponseData":
     """Linear prediction of a load step of ``load_step`` N at ``t_step`` s.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        From :func:`linearize`.
+    pid : PID
+    load_step : float, N
+        Change of the axial load.
+    t_step, duration, dt : float, s
 
     Returns absolute signals (operating point added back) on a uniform grid of spacing ``dt``;
     the step is exact (the step response of the closed loop, not an interpolated ramp).

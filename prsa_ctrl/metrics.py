@@ -218,6 +218,13 @@ class Margins:
 def margins_from_response(omega: ArrayLike, loop: ArrayLike) -> Margins:
     """Ms, Mt, gain and phase margins and crossover from ``L(j omega)`` on a dense grid.
 
+    Parameters
+    ----------
+    omega : array, rad/s
+        Increasing frequencies.
+    loop : array of complex
+        Loop transfer ``L(j omega)`` at those frequencies.
+
     Crossings are located by linear interpolation between grid points; the smallest margins
     over all crossings are reported (python-control's ``stability_margins`` alone can report
     an infinite stability margin where the grid misses the peak).

@@ -48,10 +48,25 @@ RIGID_RELATIVE_ERROR = 0.035
 
 
 def rpm_to_rad_s(rpm: float) -> float:
-    """Convert a speed in rpm to rad/s."""
+    """Convert a speed in rpm to rad/s.
+
+    Parameters
+    ----------
+    rpm : float, rpm
+
+    Examples
+    --------
+    >>> round(rpm_to_rad_s(300.0), 4)
+    31.4159
+    """
     return rpm * 2.0 * math.pi / 60.0
 
 
 def rad_s_to_rpm(rad_s: float) -> float:
-    """Convert a speed in rad/s to rpm."""
+    """Convert a speed in rad/s to rpm.
+
+    Parameters
+    ----------
+    rad_s : float, rad/s
+    """
     return rad_s * 60.0 / (2.0 * math.pi)

@@ -50,6 +50,15 @@ def default_pid(plant: Plant) -> PID:
 
     Crossover a decade below the current-loop bandwidth, ``kp = J_eq w_c`` with the rigid
     reflected inertia, and the integral corner five times below crossover (``ki = kp w_c / 5``).
+
+    Parameters
+    ----------
+    plant : Plant
+
+    Returns
+    -------
+    PID
+        Gains in N m s/rad and N m/rad.
     """
     j_eq = plant.reflected_inertia_kg_m2
     w_c = 2.0 * np.pi * plant.values["drive.current_loop_bandwidth_hz"] / 10.0
@@ -142,6 +151,25 @@ def load_step_study(
     Drops are the peak fall of each speed below its pre-step value. Contact-force mean is
     taken over the second half of the post-step window; the range is max - min from the step
     to the end (the paper's "fluctuation range").
+
+    Parameters
+    ----------
+    plant : Plant
+    final_loads : sequence of float, N
+        Axial load after each step (one run per value).
+    initial_load : float, N
+    step_time, duration : float, s
+    controller : PID, optional
+        Default :func:`default_pid`.
+    omega_nut : float, rad/s
+        Speed setpoint.
+    fidelity : {"rigid", "compliant", "multi-roller"}
+    discrete : bool
+        Sampled controller (see :func:`prsa_ctrl.run`).
+
+    Returns
+    -------
+    list of LoadStepRow
     """
     from .simulation import simulate
 
@@ -184,7 +212,20 @@ def load_step_study(
 
 
 def format_rows(rows: Sequence[dict[str, object]], floatfmt: str = "{:.4g}") -> str:
-    """Plain-text table of dict rows (same keys in every row)."""
+    """Plain-text table of dict rows (same keys in every row).
+
+    Parameters
+    ----------
+    rows : sequence of dict
+    floatfmt : str
+        Format of float cells.
+
+    Examples
+    --------
+    >>> print(format_rows([{"a": 1.23456, "b": "x"}]))
+    a      b
+    1.235  x
+    """
     if not rows:
         return ""
     keys = list(rows[0])
@@ -219,7 +260,23 @@ def gain_study(
 ) -> list[GainRun]:
     """The paper's PID study: the 500 -> 1500 N step with ``kp`` (small fixed ``ki``, one tenth
     of the reference) or ``ki`` (reference ``kp``) scaled by ``factors`` around the reference
-    controller :func:`default_pid`. Kd = 0 as in the paper."""
+    controller :func:`default_pid`. Kd = 0 as in the paper.
+
+    Parameters
+    ----------
+    plant : Plant
+    vary : {"kp", "ki"}
+    factors : sequence of float
+        Multiples of the reference gain.
+    initial_load, final_load : float, N
+    step_time, duration : float, s
+    omega_nut : float, rad/s
+    discrete : bool
+
+    Returns
+    -------
+    list of GainRun
+    """
     from .metrics import load_step_metrics
     from .simulation import simulate
 

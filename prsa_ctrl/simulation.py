@@ -430,7 +430,11 @@ def simulate(plant: Plant, **kwargs: Any) -> "control.TimeResponseData":
     """Simulate the actuator's speed loop from steady state: :func:`run` returned as
     python-control ``TimeResponseData`` (``run(plant, **kwargs).to_response()``).
 
-    Takes exactly :func:`run`'s keyword arguments.
+    Parameters
+    ----------
+    plant : Plant
+    **kwargs
+        Exactly :func:`run`'s keyword arguments.
 
     Returns
     -------
@@ -853,6 +857,11 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
 
 def energy_balance(result) -> dict[str, float]:
     """Energy audit of a simulation run with ``energy=True``.
+
+    Parameters
+    ----------
+    result : SimRun or TimeResponseData
+        From :func:`run` or :func:`simulate` with ``energy=True``.
 
     Returns the motor work, load work, dissipated work and change of stored (kinetic plus
     contact) energy in J, the residual ``W_motor - W_load - W_diss - dE`` and the residual
