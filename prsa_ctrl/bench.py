@@ -15,7 +15,9 @@
 - **cold CLI**: ``prsa-tune --load-step 500:1500`` wall time over ``python -c "import control,
   casadi"``.
 
-Ratios are measured in the same run on the same machine; no target is asserted here.
+Every time is the median of ``repeats`` runs (default 3; ``--fast``: 1) after a warm-up run,
+never the best run; ratios are measured in the same run on the same machine; no target is
+asserted here.
 """
 
 from __future__ import annotations
@@ -37,6 +39,19 @@ class _OverBudget(Exception):
     pass
 
 
+def _timed(fn, repeats: int):
+    """Median wall time (s) of ``repeats`` calls of ``fn`` and the last call's result. A call
+    that returns ``(False, result)`` did not finish (over budget): it is not repeated."""
+    times, out = [], None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        finished, out = fn()
+        times.append(time.perf_counter() - t0)
+        if not finished:
+            break
+    return float(np.median(times)), out, times
+
+
 def _scene_inputs(fast: bool):
     from .paper import OMEGA_300_RPM
 
@@ -51,8 +66,20 @@ def _reference_pid(plant):
     return PID(0.0849, 14.67) if plant.name == "paper-iprsm" else __import__("prsa_ctrl.paper", fromlist=["x"]).default_pid(plant)
 
 
-def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> dict:
-    """Time (s) and max nut-speed error (rad/s) per method and setting; see module docstring."""
+def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repeats: int = 3) -> dict:
+    """Time (s) and max nut-speed error (rad/s) per method and setting; see module docstring.
+
+    Parameters
+    ----------
+    plant : Plant, optional
+        Default: the paper plant.
+    fast : bool
+        Short horizon and fewer tolerances.
+    budget_s : float, s
+        Wall-time budget of one scipy/python-control run (a run over it counts as unfinished).
+    repeats : int
+        Timed runs per setting; the median is reported.
+    """
     import casadi as ca
     import control
     from scipy.integrate import solve_ivp
@@ -67,14 +94,19 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> di
     dt = 1e-4
     grid = np.arange(0.0, duration + 0.5 * dt, dt)
 
-    def ours(fidelity, integ, tol):
+    def ours(fidelity, integ, tol, n=repeats):
         s = SimSettings(integrator=integ, rtol=tol, atol=tol, max_steps=200000)
-        simulate(plant, setpoint=ref_w, load=load, duration=duration, controller=pid, fidelity=fidelity, dt=dt, settings=s)
-        t0 = time.perf_counter()
-        r = simulate(plant, setpoint=ref_w, load=load, duration=duration, controller=pid, fidelity=fidelity, dt=dt, settings=s)
-        return time.perf_counter() - t0, np.interp(grid, r.time, r.outputs[0])
 
-    _, w_ref = ours("compliant", "cvodes", 1e-12)
+        def once():
+            r = simulate(plant, setpoint=ref_w, load=load, duration=duration, controller=pid, fidelity=fidelity,
+                         dt=dt, settings=s)
+            return True, r
+
+        once()  # builds the integrators (once per setting), not timed
+        el, r, _ = _timed(once, n)
+        return el, np.interp(grid, r.time, r.outputs[0])
+
+    _, w_ref = ours("compliant", "cvodes", 1e-12, 1)
     rows = []
 
     def record(method, setting, fidelity, elapsed, w, finished=True):
@@ -115,6 +147,13 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> di
         return (taus if last and taus[-1] >= 1.0 - 1e-9 else np.append(taus, 1.0)), len(pts)
 
     def scipy_run(method, tol):
+        el, w, _ = _timed(lambda: _finished(scipy_once(method, tol)), repeats)
+        return el, w
+
+    def _finished(w):
+        return w is not None, w
+
+    def scipy_once(method, tol):
         t_start = time.perf_counter()
         zc, ws = z0.copy(), []
 
@@ -134,8 +173,8 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> di
                 ws.append(sol.y[model.index("omega_nut"), :n_pts] * built.scale[model.index("omega_nut")])
                 zc = sol.y[:, -1]
         except _OverBudget:
-            return time.perf_counter() - t_start, None
-        return time.perf_counter() - t_start, np.concatenate(ws)
+            return None
+        return np.concatenate(ws)
 
     for method in ("LSODA", "Radau", "BDF"):
         for tol in tols:
@@ -143,6 +182,10 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> di
             record(f"scipy {method}", f"tol {tol:g}", "compliant", el, w if w is not None else w_ref, w is not None)
 
     def control_run(method, tol):
+        el, w, _ = _timed(lambda: _finished(control_once(method, tol)), repeats)
+        return el, w
+
+    def control_once(method, tol):
         t_start = time.perf_counter()
 
         def upd(t, zz, u, prm):
@@ -163,8 +206,8 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> di
                 ws.append(y[model.index("omega_nut"), :n_pts] * built.scale[model.index("omega_nut")])
                 zc = y[:, -1]
         except (_OverBudget, RuntimeError, ValueError):
-            return time.perf_counter() - t_start, None
-        return time.perf_counter() - t_start, np.concatenate(ws)
+            return None
+        return np.concatenate(ws)
 
     for method in ("RK45", "LSODA"):
         for tol in tols[:2] if method == "RK45" else tols:
@@ -188,13 +231,22 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0) -> di
             "python-control": min(best_time(f"python-control {m}", target) for m in ("RK45", "LSODA")),
         },
         "budget_s": budget_s,
+        "repeats": repeats,
     }
 
 
-def fidelity_ladder(plant=None, fast: bool = False) -> dict:
+def fidelity_ladder(plant=None, fast: bool = False, repeats: int = 3) -> dict:
     """Each fidelity's nut-speed error against the most detailed one (multi-roller with the
     plant's roller tolerances, 1e-10 tolerance) and its cost, on the paper load step with the
-    sampled controller (as the tuner verifies)."""
+    sampled controller (as the tuner verifies).
+
+    Parameters
+    ----------
+    plant : Plant, optional
+    fast : bool
+    repeats : int
+        Timed runs per setting; the median is reported.
+    """
     from . import load_plant
     from .simulation import SimSettings, run
 
@@ -210,18 +262,27 @@ def fidelity_ladder(plant=None, fast: bool = False) -> dict:
         for tol in (1e-4, 1e-6, 1e-8):
             s = SimSettings(rtol=tol, atol=tol)
             run(plant, fidelity=fidelity, settings=s, **kw)  # build once, then time
-            t0 = time.perf_counter()
-            r = run(plant, fidelity=fidelity, settings=s, **kw)
-            el = time.perf_counter() - t0
+            el, r, _ = _timed(lambda: (True, run(plant, fidelity=fidelity, settings=s, **kw)), repeats)
             err = float(np.max(np.abs(r.output("nut_speed") - w_ref)))
             rows.append({"fidelity": fidelity, "tol": tol, "time_s": el, "max_error_rad_s": err,
                          "error_over_drop": err / drop})
     return {"reference": "multi-roller, tol 1e-10, sampled controller", "peak_drop_rad_s": drop, "rows": rows}
 
 
-def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False) -> dict:
+def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: int = 3) -> dict:
     """Our tuner (tune + verify the winner) against an n x n Kp-Ki grid with nonlinear
-    verification of every point; objective IAE of the paper scene."""
+    verification of every point; objective IAE of the paper scene.
+
+    Parameters
+    ----------
+    plant : Plant, optional
+    n_grid : int
+        Grid points per gain.
+    fast : bool
+    repeats : int
+        Timed runs of our tuner (median reported). The grid is timed once: it is already the
+        sum of ``n_grid**2`` verifications.
+    """
     from . import load_plant
     from .autotune import Design, actuator_loops, verify
     from .controller import PID
@@ -233,11 +294,12 @@ def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False) -> dict:
     if fast:
         scene = scene.replace(duration=scene.step_time + 0.05)
         n_grid = min(n_grid, 5)
-    t0 = time.perf_counter()
-    loops = actuator_loops(plant, scene)
-    res = tune_loops(loops, objective=scene.objective, ms_max=scene.ms_max)
-    ours = verify(Design("tuned", res.pid, res.margins[0]), plant, scene)
-    t_ours = time.perf_counter() - t0
+    def tune_and_verify():
+        loops = actuator_loops(plant, scene)
+        res = tune_loops(loops, objective=scene.objective, ms_max=scene.ms_max)
+        return True, (loops, res, verify(Design("tuned", res.pid, res.margins[0]), plant, scene))
+
+    t_ours, (loops, res, ours), _ = _timed(tune_and_verify, repeats)
     kp0, ki0 = res.pid.kp, res.pid.ki
     kps = kp0 * np.logspace(-0.7, 0.3, n_grid)
     kis = ki0 * np.logspace(-1, 0.5, n_grid)
@@ -261,23 +323,32 @@ def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False) -> dict:
         "ours": {"time_s": t_ours, "iae": ours.objective_verified, "kp": kp0, "ki": ki0},
         "grid_search": {"time_s": t_grid, "iae": best[0], "kp_ki": best[1], "points_verified": verified},
         "speedup": t_grid / t_ours,
+        "repeats": repeats,
         "ours_no_worse": bool(ours.objective_verified <= best[0] * (1 + 1e-9)),
     }
 
 
 def cold_cli_benchmark(repeats: int = 3) -> dict:
-    """Median cold wall time of the CLI and of importing python-control and CasADi."""
-    def run(cmd):
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
-            times.append(time.perf_counter() - t0)
-        return float(np.median(times))
+    """Median cold wall time of the CLI and of importing python-control and CasADi, run in
+    turn (A B A B ...) so that drift of the machine's speed hits both.
 
-    t_import = run([sys.executable, "-c", "import control, casadi"])
-    t_cli = run([sys.executable, "-m", "prsa_ctrl.cli", "--load-step", "500:1500", "--quiet"])
-    return {"import_control_casadi_s": t_import, "prsa_tune_s": t_cli, "ratio": t_cli / t_import}
+    Parameters
+    ----------
+    repeats : int
+        Runs of each command.
+    """
+    def run(cmd):
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+        return time.perf_counter() - t0
+
+    imp, cli = [], []
+    for _ in range(repeats):
+        imp.append(run([sys.executable, "-c", "import control, casadi"]))
+        cli.append(run([sys.executable, "-m", "prsa_ctrl.cli", "--load-step", "500:1500", "--quiet"]))
+    ratios = [c / i for c, i in zip(cli, imp)]
+    return {"import_control_casadi_s": float(np.median(imp)), "prsa_tune_s": float(np.median(cli)),
+            "ratio": float(np.median(ratios)), "repeats": repeats}
 
 
 def _plot(wp: dict, path: Path) -> None:
@@ -316,30 +387,38 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("bench-results"))
     ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
     ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli"])
+    ap.add_argument("--repeats", type=int, default=None, help="timed runs per measurement, median reported "
+                    "(default 3; 1 with --fast)")
     args = ap.parse_args(argv)
+    repeats = args.repeats or (1 if args.fast else 3)
+    if not 1 <= repeats <= 20:
+        print(f"prsa-bench: --repeats {repeats}; expected 1..20", file=sys.stderr)
+        return 2
     import warnings
 
     warnings.simplefilter("ignore")
     args.out.mkdir(parents=True, exist_ok=True)
-    result: dict = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}}
+    result: dict = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}, "repeats": repeats,
+                    "statistic": "median"}
     if "work" not in args.skip:
-        result["work_precision"] = wp = work_precision(fast=args.fast, budget_s=10.0 if args.fast else 60.0)
+        result["work_precision"] = wp = work_precision(fast=args.fast, budget_s=10.0 if args.fast else 60.0,
+                                                    repeats=repeats)
         _plot(wp, args.out / "work_precision.png")
         b = wp["best_time_s"]
         print(f"work-precision at <= 1e-6 rad/s: prsa-ctrl {b['prsa-ctrl']:.3f} s, scipy {b['scipy']:.3f} s "
               f"({b['scipy'] / b['prsa-ctrl']:.1f}x), python-control {b['python-control']:.3f} s "
               f"({b['python-control'] / b['prsa-ctrl']:.1f}x)")
     if "fidelity" not in args.skip:
-        result["fidelity_ladder"] = fl = fidelity_ladder(fast=args.fast)
+        result["fidelity_ladder"] = fl = fidelity_ladder(fast=args.fast, repeats=repeats)
         for r in fl["rows"]:
             print(f"fidelity {r['fidelity']:12s} tol {r['tol']:.0e}: {r['time_s']:.3f} s, max error "
                   f"{r['max_error_rad_s']:.2e} rad/s ({100 * r['error_over_drop']:.2f} % of the drop)")
     if "tuning" not in args.skip:
-        result["tuning"] = tb = tuning_benchmark(fast=args.fast)
+        result["tuning"] = tb = tuning_benchmark(fast=args.fast, repeats=repeats)
         print(f"tuning: ours {tb['ours']['time_s']:.2f} s (IAE {tb['ours']['iae']:.5g}) vs {tb['grid']} grid "
               f"{tb['grid_search']['time_s']:.1f} s (IAE {tb['grid_search']['iae']:.5g}): {tb['speedup']:.0f}x")
     if "cli" not in args.skip:
-        result["cold_cli"] = cb = cold_cli_benchmark(1 if args.fast else 3)
+        result["cold_cli"] = cb = cold_cli_benchmark(repeats)
         print(f"cold CLI: {cb['prsa_tune_s']:.2f} s vs import control, casadi {cb['import_control_casadi_s']:.2f} s: "
               f"ratio {cb['ratio']:.2f}")
     from .cli import write_json_atomic
