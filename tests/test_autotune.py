@@ -132,7 +132,7 @@ def test_cli_writes_json_report_and_plots(tmp_path, capsys):
         (["--load-step", "500:90000"], r"load 90000 N out of range for paper-iprsm"),
         (["--plant", "nope"], r"unknown plant 'nope'"),
         (["--scene", "missing.toml"], r"scene file 'missing.toml' not found"),
-        (["--ms-max", "0.9"], r"ms_max = 0\.9; expected a number in \(1, 10\)"),
+        (["--ms-max", "0.9"], r"--ms-max 0\.9: expected a peak sensitivity in \(1, 10\)"),
         (["--objective", "mse"], r"invalid choice: 'mse'"),
     ],
 )
@@ -190,3 +190,25 @@ def test_cli_estimator_and_feedforward(tmp_path, capsys):
     assert d["margins"]["ms"] <= 1.4 and pi_alone["margins"]["ms"] <= 1.4 + 1e-9
     assert d["verified"]["peak_drop_rad_s"] < 0.7 * pi_alone["verified"]["peak_drop_rad_s"]
     assert d["gains"]["kff"] > 0
+
+
+def test_a_design_whose_verified_run_misbehaves_is_flagged_and_never_wins():
+    """A 10 ms speed loop on the paper plant: every design drives the nut backwards and never
+    recovers. The report must say so (status, flags, warnings), and no flagged design may be
+    reported as beating a baseline."""
+    plant = load_plant().with_params({"sensor.sample_time_s": 0.01})
+    rep = tune_actuator(plant, load_scene().replace(candidates=1))
+    assert rep.status.startswith("flagged: ")
+    assert any("reverses" in f for f in rep.best.flags) and any("never recovers" in f for f in rep.best.flags)
+    assert not any(c["beaten"] for c in rep.comparisons) and not rep.beats_all_baselines
+    d = rep.as_dict()
+    assert d["status"] == rep.status and d["best"]["flags"] == rep.best.flags
+    assert any("reverses" in w for w in rep.warnings)
+
+
+def test_healthy_report_has_status_ok(report):
+    assert report.status == "ok" and report.best.healthy and report.as_dict()["status"] == "ok"
+    # The paper's manual design never settles into the band: flagged, so it can be beaten but
+    # could never be the best.
+    paper = next(d for d in report.baselines if "paper" in d.name)
+    assert any("never recovers" in f for f in paper.flags)
