@@ -86,7 +86,7 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
 
     from . import load_plant
     from .model import plant_model
-    from .simulation import SimSettings, _build, _value_at, simulate
+    from .simulation import SimSettings, _build, simulate
 
     plant = plant or load_plant()
     pid = _reference_pid(plant)
@@ -125,16 +125,17 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
     model = plant_model(plant, "compliant")
     built = _build(model, False)
     z = ca.SX.sym("z", len(built.scale))
-    p = ca.SX.sym("p", 8)
-    rhs = ca.Function("rhs", [z, p], [built.rhs(z, p)])
-    jac = ca.Function("rhs_jacobian", [z, p], [ca.jacobian(built.rhs(z, p), z)])
+    p = ca.SX.sym("p", 10)  # see simulation._NP; the inputs are constant between steps here
+    rhs = ca.Function("rhs", [z, p], [built.rhs(z, p, 0.0)])
+    jac = ca.Function("rhs_jacobian", [z, p], [ca.jacobian(built.rhs(z, p, 0.0), z)])
     r0 = simulate(plant, setpoint=ref_w, load=load[0][1], duration=1e-4, controller=pid, fidelity="compliant")
     x0 = np.asarray(r0.states)[:, 0]
     z0 = x0 / built.scale
     bounds = [0.0, load[1][0], duration]
 
     def params(t0, t1):
-        return [ref_w, _value_at(load, t0), *pid.params, 0.0, t1 - t0]
+        load_t0 = [v for t, v in load if t <= t0 + 1e-12][-1]
+        return [ref_w, load_t0, *pid.params, 0.0, t1 - t0, 0.0, 0.0]
 
     def segment_taus(t0, t1):
         """Normalised output times of one segment: its grid points (the last segment keeps

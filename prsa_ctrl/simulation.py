@@ -53,8 +53,8 @@ if TYPE_CHECKING:  # annotations only: python-control is imported where it is us
 
     from .estimator import KFDesign
 
-__all__ = ["simulate", "run", "SimRun", "Profile", "SimSettings", "energy_balance", "INTEGRATORS",
-           "MAX_OUTPUT_POINTS", "INPUT_LABELS"]
+__all__ = ["simulate", "run", "SimRun", "Profile", "PiecewiseLinear", "SimSettings", "energy_balance",
+           "INTEGRATORS", "MAX_OUTPUT_POINTS", "INPUT_LABELS"]
 
 INTEGRATORS = ("cvodes", "idas")
 
@@ -74,12 +74,41 @@ CHUNK_S = 0.1
 #: Largest number of output points (time samples) one run may return: 2e6 points of ~16 rows
 #: are ~256 MB. Checked before anything is allocated.
 MAX_OUTPUT_POINTS = 2_000_000
-# Parameter vector of the continuous closed loop: setpoint, load, kp, ki, kd, tf, feed-forward,
-# duration.
-_NP = 8
+# Parameter vector of the continuous closed loop: setpoint (rad/s) and load (N) at the segment
+# start, kp, ki, kd, tf, feed-forward (N m), segment duration (s), setpoint and load slopes (per s).
+_NP = 10
 
 
-Profile = float | Sequence[tuple[float, float]]
+@dataclass(frozen=True)
+class PiecewiseLinear:
+    """An input profile linear between its points, constant after the last one.
+
+    Parameters
+    ----------
+    points : sequence of (time_s, value)
+        The first at t = 0; times non-decreasing. Two points at the same time make a step
+        there (from the first value to the second), so ramps and steps mix:
+        ``[(0, 500), (0.1, 500), (0.1, 1500), (0.3, 1000)]`` holds 500 N, steps to 1500 N at
+        0.1 s and ramps down to 1000 N at 0.3 s.
+
+    Examples
+    --------
+    >>> ramp = PiecewiseLinear([(0.0, 500.0), (0.1, 1500.0)])
+    >>> ramp.points[-1]
+    (0.1, 1500.0)
+    """
+
+    points: tuple[tuple[float, float], ...]
+
+    def __post_init__(self) -> None:
+        try:
+            pts = tuple((float(t), float(v)) for t, v in self.points)
+        except (TypeError, ValueError):
+            raise ValueError(f"points = {self.points!r}; expected a list of (time_s, value) pairs") from None
+        object.__setattr__(self, "points", pts)
+
+
+Profile = float | Sequence[tuple[float, float]] | PiecewiseLinear
 
 
 @dataclass(frozen=True)
@@ -164,7 +193,7 @@ class _Built:
     scale: NDArray[np.float64]  # plant states (+ continuous controller states) (+ energy)
     plant_scale: NDArray[np.float64]  # plant states (+ energy): the sampled loop's plant part
     energy: bool
-    rhs: ca.Function  # continuous loop: (z, p) -> dz/dt in scaled, duration-normalised time
+    rhs: ca.Function  # continuous loop: (z, p, tau) -> dz/dtau in scaled, duration-normalised time
     continuous: dict = field(default_factory=dict)  # (settings, n_out) -> integrator
     sampled: dict = field(default_factory=dict)  # (settings, measurement key, ...) -> functions
 
@@ -192,7 +221,10 @@ def _build(model: PlantModel, energy: bool) -> _Built:
     scale = np.concatenate([x_scale, ctrl_scale, e_scale])
     z = ca.SX.sym("z", len(scale))
     par = ca.SX.sym("p", _NP)
-    ref, load, gains, tau_ff, duration = par[0], par[1], par[2:6], par[6], par[7]
+    tau = ca.SX.sym("tau")  # segment time normalised to [0, 1]
+    gains, tau_ff, duration = par[2:6], par[6], par[7]
+    ref = par[0] + par[8] * duration * tau
+    load = par[1] + par[9] * duration * tau
     x_all = z * scale
     x = x_all[:nx]
     w_f, integral, w_d = x_all[nx], x_all[nx + 1], x_all[nx + 2]
@@ -205,7 +237,8 @@ def _build(model: PlantModel, energy: bool) -> _Built:
         plant_rates[:nx], (w_n - w_f) / p.speed_filter_s, dintegral, derivative, plant_rates[nx:]
     )
     rhs = duration * rates / scale
-    built = _Built(model, scale, np.concatenate([x_scale, e_scale]), energy, ca.Function("rhs", [z, par], [rhs]))
+    built = _Built(model, scale, np.concatenate([x_scale, e_scale]), energy,
+                   ca.Function("rhs", [z, par, tau], [rhs]))
     cache[energy] = built
     return built
 
@@ -224,7 +257,8 @@ def _continuous_integrator(built: _Built, settings: SimSettings, n_out: int) -> 
     if key not in built.continuous:
         z = ca.SX.sym("z", len(built.scale))
         par = ca.SX.sym("p", _NP)
-        dae = {"x": z, "p": par, "ode": built.rhs(z, par)}
+        tau = ca.SX.sym("tau")
+        dae = {"x": z, "p": par, "t": tau, "ode": built.rhs(z, par, tau)}
         grid = list(np.linspace(0.0, 1.0, n_out + 1)[1:])
         built.continuous[key] = ca.integrator("segment", settings.integrator, dae, 0.0, grid, _opts(settings))
     return built.continuous[key]
@@ -234,15 +268,45 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
-def _normalise_profile(profile: Profile, duration: float, what: str, unit: str) -> list[tuple[float, float]]:
+@dataclass(frozen=True)
+class _Prof:
+    """A normalised input profile: at each breakpoint ``t[i]`` the value becomes ``v[i]`` and
+    then changes with slope ``s[i]`` (per s) until the next breakpoint. ``jump[i]`` says
+    whether the value is discontinuous there (a step event)."""
+
+    t: NDArray[np.float64]
+    v: NDArray[np.float64]
+    s: NDArray[np.float64]
+    jump: NDArray[np.bool_]
+
+    def at(self, t: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        """Value at time(s) ``t`` (after any step at exactly ``t``)."""
+        tt = np.asarray(t, dtype=float)
+        i = np.clip(np.searchsorted(self.t, tt + 1e-12, side="right") - 1, 0, len(self.t) - 1)
+        return self.v[i] + self.s[i] * np.maximum(tt - self.t[i], 0.0)
+
+    def slope_at(self, t: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        tt = np.asarray(t, dtype=float)
+        i = np.clip(np.searchsorted(self.t, tt + 1e-12, side="right") - 1, 0, len(self.t) - 1)
+        return self.s[i]
+
+    @property
+    def breaks(self) -> NDArray[np.float64]:
+        """Breakpoints after t = 0 (steps and kinks)."""
+        return self.t[1:]
+
+
+def _normalise_profile(profile: Profile, duration: float, what: str, unit: str) -> _Prof:
+    linear = isinstance(profile, PiecewiseLinear)
     if _is_number(profile):
         pts = [(0.0, float(profile))]  # type: ignore[arg-type]
     else:
         try:
-            pts = [(float(t), float(v)) for t, v in profile]  # type: ignore[union-attr]
+            pts = list(profile.points) if linear else [(float(t), float(v)) for t, v in profile]  # type: ignore
         except (TypeError, ValueError):
             raise ValueError(
-                f"{what} = {profile!r}; expected a number ({unit}) or a list of (time_s, value) pairs"
+                f"{what} = {profile!r}; expected a number ({unit}), a list of (time_s, value) steps or a "
+                "PiecewiseLinear profile"
             ) from None
     if not pts:
         raise ValueError(f"{what} = {profile!r}; expected at least one value")
@@ -252,21 +316,38 @@ def _normalise_profile(profile: Profile, duration: float, what: str, unit: str) 
     if pts[0][0] != 0.0:
         raise ValueError(f"{what} starts at t = {pts[0][0]} s; expected the first point at t = 0")
     times = [t for t, _ in pts]
-    if any(b <= a for a, b in zip(times, times[1:])) or times[-1] >= duration:
+    if linear:
+        bad = any(b < a for a, b in zip(times, times[1:])) or any(
+            a == b == c for a, b, c in zip(times, times[1:], times[2:]))
+        if bad or times[-1] >= duration:
+            raise ValueError(f"{what} times {times} must not decrease (two equal times make a step, three are "
+                             f"ambiguous) and must stay below the duration {duration} s")
+    elif any(b <= a for a, b in zip(times, times[1:])) or times[-1] >= duration:
         raise ValueError(f"{what} times {times} must increase strictly and stay below the duration {duration} s")
-    return pts
+    # Breakpoints: the first and last value given at each distinct time.
+    first: dict[float, float] = {}
+    last: dict[float, float] = {}
+    for t, v in pts:
+        first.setdefault(t, v)
+        last[t] = v
+    bt = sorted(first)
+    bv = [last[t] for t in bt]
+    if linear:
+        bs = [(first[t1] - bv[i]) / (t1 - bt[i]) for i, t1 in enumerate(bt[1:])] + [0.0]
+        bj = [False] + [first[t] != last[t] for t in bt[1:]]
+    else:
+        bs = [0.0] * len(bt)
+        bj = [False] + [True] * (len(bt) - 1)
+    return _Prof(np.array(bt), np.array(bv), np.array(bs), np.array(bj, dtype=bool))
 
 
-def _values_at(pts: list[tuple[float, float]], t: NDArray[np.float64] | float) -> NDArray[np.float64]:
-    """Value of a piecewise-constant profile at time(s) ``t``: the last point at or before t."""
-    times = np.array([tk for tk, _ in pts])
-    vals = np.array([vk for _, vk in pts])
-    idx = np.searchsorted(times, np.asarray(t, dtype=float) + 1e-12, side="right") - 1
-    return vals[np.clip(idx, 0, len(vals) - 1)]
+def _values_at(prof: _Prof, t: NDArray[np.float64] | float) -> NDArray[np.float64]:
+    """Value of a profile at time(s) ``t``."""
+    return prof.at(t)
 
 
-def _value_at(pts: list[tuple[float, float]], t: float) -> float:
-    return float(_values_at(pts, t))
+def _value_at(prof: _Prof, t: float) -> float:
+    return float(prof.at(t))
 
 
 def _initial_state(plant: Plant, fidelity: str, ref: float, load: float, pid: PID | None, tau_ff: float,
@@ -483,12 +564,14 @@ def run(
     Parameters
     ----------
     plant : Plant
-    setpoint : float or list of (time_s, rad/s)
-        Nut-speed setpoint, piecewise constant. In a sampled run a change is seen by the
-        controller at the first sample at or after its time.
-    load : float or list of (time_s, N)
-        Axial load on the screw, piecewise constant (e.g. ``[(0, 500), (0.2, 1500)]``); a
-        change acts on the plant at its exact time, also between controller samples.
+    setpoint : float, list of (time_s, rad/s) or PiecewiseLinear
+        Nut-speed setpoint: a list of pairs is piecewise constant (steps), a
+        :class:`PiecewiseLinear` ramps between its points. A sampled controller reads it at
+        each sample (a step at the first sample at or after its time).
+    load : float, list of (time_s, N) or PiecewiseLinear
+        Axial load on the screw, steps (e.g. ``[(0, 500), (0.2, 1500)]``) or ramps; it acts on
+        the plant exactly, also between controller samples (the integration is split at every
+        step or kink). The run starts in steady state at the t = 0 values.
     duration : float, s
         Length of the run. A sampled run ends at the last sample at or before it.
     controller : PID, optional
@@ -582,7 +665,7 @@ def run(
     built = _build(model, energy)
     budget = _Budget(settings)
 
-    op, integral0 = _initial_state(plant, fidelity, sp[0][1], ld[0][1], controller, feedforward_torque, seed,
+    op, integral0 = _initial_state(plant, fidelity, float(sp.v[0]), float(ld.v[0]), controller, feedforward_torque, seed,
                                    observer_ff=meas is not None and meas.estimates_load)
     gains = controller.params if controller is not None else [0.0, 0.0, 0.0, 1e-3]
     kff = controller.kff if controller is not None else 0.0
@@ -599,8 +682,8 @@ def run(
         refs, loads = _values_at(sp, t), _values_at(ld, t)
         extra = _continuous_extras(model, xs, refs, gains, ff, plant.torque_limit)
         state_labels = tuple(model.state_names) + _CTRL_STATES
-        events = [{"input": name, "time_s": tk, "acts_at_s": tk}
-                  for name, prof in (("speed_setpoint", sp), ("axial_load", ld)) for tk, _ in prof[1:]]
+        events = [{"input": name, "time_s": float(tk), "acts_at_s": float(tk)}
+                  for name, prof in (("speed_setpoint", sp), ("axial_load", ld)) for tk in prof.t[prof.jump]]
     n_ctrl = len(state_labels) - model.nx
     if not np.all(np.isfinite(xs)):
         bad = int(np.argmax(~np.all(np.isfinite(xs), axis=0)))
@@ -658,12 +741,13 @@ def _run_continuous(built, settings, budget, sp, ld, duration, dt, gains, ff, x0
     z = x0 / scale
     times = [np.array([0.0])]
     states = [x0[:, None]]
-    bounds = sorted({0.0, duration, *[t for t, _ in sp], *[t for t, _ in ld]})
+    bounds = sorted({0.0, duration, *sp.t.tolist(), *ld.t.tolist()})
     for t0, t1 in _chunks(bounds):
         budget.check(t0, names, z * scale)
         n_out = max(1, int(round((t1 - t0) / dt)))
         integ = _continuous_integrator(built, settings, n_out)
-        par = [_value_at(sp, t0), _value_at(ld, t0), *gains, ff, t1 - t0]
+        par = [_value_at(sp, t0), _value_at(ld, t0), *gains, ff, t1 - t0, float(sp.slope_at(t0)),
+               float(ld.slope_at(t0))]
         try:
             zf = np.asarray(integ(x0=z, p=par)["xf"])
         except RuntimeError as exc:
@@ -689,25 +773,26 @@ def _continuous_extras(model: PlantModel, xs, refs, gains, ff, torque_limit: flo
 # then the measurement block's memory, then this sample's reported values (_SAMPLED_OUTPUTS).
 _MEM_HEAD = ("encoder_angle_prev", "pid_integral", "speed_derivative_state", "speed_measured_prev",
              "torque_command_pending")
-# Per-sample parameters: setpoint (rad/s), load at the sample start and after an event inside
-# the sample (N), the event's position in the sample (0..1, 0 = none), torque ripple (N m),
-# kp, ki, kd, tf, kff, feed-forward torque (N m).
-_NPS = 11
+# Per-sample parameters: setpoint (rad/s); load (N) and its slope (N/s) at the sample start;
+# load and slope after a breakpoint inside the sample; the breakpoint's position in the sample
+# (0..1, 0 = none); torque ripple (N m); kp, ki, kd, tf, kff; feed-forward torque (N m).
+_NPS = 13
 
 
 def _sample_integrator(built: _Built, settings: SimSettings) -> ca.Function:
     """Plant-only integrator with the command held: ``(x0 = scaled plant state (+ energy),
-    p = [torque N m, load N, interval s]) -> xf``."""
+    p = [torque N m, load N at the start, load slope N/s, interval s]) -> xf``."""
     key = (settings, "plant")
     if key not in built.sampled:
         model, scale = built.model, built.plant_scale
         nx = model.nx
         zp = ca.SX.sym("z", len(scale))
-        pp = ca.SX.sym("p", 3)
-        rates = _plant_rates(model, (zp * scale)[:nx], pp[0], pp[1], built.energy)
-        ode = pp[2] * rates / scale
-        built.sampled[key] = ca.integrator("sample", settings.integrator, {"x": zp, "p": pp, "ode": ode}, 0.0, 1.0,
-                                           _opts(settings))
+        pp = ca.SX.sym("p", 4)
+        tau = ca.SX.sym("tau")
+        rates = _plant_rates(model, (zp * scale)[:nx], pp[0], pp[1] + pp[2] * pp[3] * tau, built.energy)
+        ode = pp[3] * rates / scale
+        built.sampled[key] = ca.integrator("sample", settings.integrator, {"x": zp, "p": pp, "t": tau, "ode": ode},
+                                           0.0, 1.0, _opts(settings))
     return built.sampled[key]
 
 
@@ -737,8 +822,8 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
     zm = ca.SX.sym("zm", nz + nm)
     par = ca.SX.sym("p", _NPS)
     z, mem = zm[:nz], zm[nz:]
-    ref, load_a, load_b, frac, ripple = par[0], par[1], par[2], par[3], par[4]
-    gains, kff, tau_ff = par[5:9], par[9], par[10]
+    ref, load_a, slope_a, load_b, slope_b, frac, ripple = (par[i] for i in range(7))
+    gains, kff, tau_ff = par[7:11], par[11], par[12]
     th_prev, integral, deriv_old, w_prev, u_pend = mem[0], mem[1], mem[2], mem[3], mem[4]
     m_meas = mem[5 : 5 + n_meas]
 
@@ -751,10 +836,10 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
     _, u_sat, dintegral = pid_law(ref - w_meas, integral, deriv, gains, tau_ff + kff * tl_hat, p.torque_limit)
     applied = u_pend + ripple
     if split:
-        z = integ(x0=z, p=ca.vertcat(applied, load_a, frac * ts))["xf"]
-        z = integ(x0=z, p=ca.vertcat(applied, load_b, (1 - frac) * ts))["xf"]
+        z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, frac * ts))["xf"]
+        z = integ(x0=z, p=ca.vertcat(applied, load_b, slope_b, (1 - frac) * ts))["xf"]
     else:
-        z = integ(x0=z, p=ca.vertcat(applied, load_a, ts))["xf"]
+        z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, ts))["xf"]
     m_meas = meas.predict(m_meas, u_pend)
     mem_next = ca.vertcat(theta_q, integral + ts * dintegral, deriv, w_meas, u_sat, m_meas,
                           u_pend, w_meas, w_fd, tl_hat)
@@ -771,33 +856,37 @@ def _accumulated(built: _Built, law: ca.Function, n: int) -> ca.Function:
     return built.sampled[key]
 
 
-def _sample_events(ld, sp, ts: float, n: int):
-    """Per-sample load columns and the event log of a sampled run (see the module docstring)."""
+def _sample_events(ld: _Prof, sp: _Prof, ts: float, n: int):
+    """Per-sample load columns and the event log of a sampled run (see the module docstring).
+
+    Samples ``0 .. n-1`` advance the plant. A load breakpoint (step or ramp kink) strictly
+    inside a sample splits that sample's integration there; at most one per sample.
+    """
     t_samples = ts * np.arange(n)
-    load_a = _values_at(ld, t_samples)
-    load_b = load_a.copy()
+    load_a, slope_a = ld.at(t_samples), ld.slope_at(t_samples)
+    load_b, slope_b = load_a.copy(), slope_a.copy()
     frac = np.zeros(n)
     events = []
-    for t_e, value in ld[1:]:
+    for t_e, value, slope, jump in zip(ld.t[1:], ld.v[1:], ld.s[1:], ld.jump[1:]):
         k = math.floor(t_e / ts + 1e-9)
-        inside = t_e - k * ts > 1e-9 * ts
         if k >= n:
             raise ValueError(f"load change at {t_e:g} s comes after the last sample ({(n - 1) * ts:g} s); "
                              "expected it earlier or a longer duration")
-        if inside:
+        if t_e - k * ts > 1e-9 * ts:
             if frac[k] > 0:
                 raise ValueError(f"two load changes inside the sample starting at {k * ts:g} s; expected at most one "
-                                 f"per sample time ({ts:g} s)")
+                                 f"per sample time ({ts:g} s): resample the load profile")
             frac[k] = (t_e - k * ts) / ts
-            load_b[k] = value
-        events.append({"input": "axial_load", "time_s": t_e, "acts_at_s": t_e})
-    for t_e, _ in sp[1:]:
+            load_b[k], slope_b[k] = value, slope
+        if jump:
+            events.append({"input": "axial_load", "time_s": float(t_e), "acts_at_s": float(t_e)})
+    for t_e in sp.t[1:][sp.jump[1:]]:
         k = math.ceil(t_e / ts - 1e-9)
         if k >= n:
             raise ValueError(f"setpoint change at {t_e:g} s comes after the last sample ({(n - 1) * ts:g} s); "
                              "expected it earlier or a longer duration")
-        events.append({"input": "speed_setpoint", "time_s": t_e, "acts_at_s": round(k * ts, 12)})
-    return load_a, load_b, frac, sorted(events, key=lambda e: e["time_s"])
+        events.append({"input": "speed_setpoint", "time_s": float(t_e), "acts_at_s": round(k * ts, 12)})
+    return load_a, slope_a, load_b, slope_b, frac, sorted(events, key=lambda e: e["time_s"])
 
 
 def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, integral0, e0, torque_noise, seed):
@@ -810,14 +899,14 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     nz, nx = len(scale), model.nx
     n_meas = len(meas.memory_names)
     t = ts * np.arange(n + 1)
-    load_a, load_b, frac, events = _sample_events(ld, sp, ts, n)
-    load_a, load_b, frac = (np.append(v, v[-1]) for v in (load_a, load_b, frac))
+    load_a, slope_a, load_b, slope_b, frac, events = _sample_events(ld, sp, ts, n)
+    load_a, slope_a, load_b, slope_b, frac = (np.append(v, v[-1]) for v in (load_a, slope_a, load_b, slope_b, frac))
     frac[-1] = 0.0
     refs = _values_at(sp, t)
     sigma = p.values["sensor.torque_noise_n_m"]
     ripple = (np.random.default_rng(seed).normal(0.0, sigma, n + 1) if torque_noise and sigma > 0
               else np.zeros(n + 1))
-    cols = np.vstack([refs, load_a, load_b, frac, ripple,
+    cols = np.vstack([refs, load_a, slope_a, load_b, slope_b, frac, ripple,
                       np.tile(np.r_[gains, kff, ff][:, None], (1, n + 1))])
     q = 2.0 * math.pi / p.encoder_counts
     theta0, w0 = op.x[model.index("theta_nut")], op.omega_nut

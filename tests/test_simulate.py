@@ -272,3 +272,59 @@ def test_simulate_is_run_as_time_response(paper_plant):
     assert energy_balance(resp) == energy_balance(r)
     assert type(resp).__name__ == "SimResponse" and "energy" in type(resp).__annotations__
     assert "plant" in inspect.signature(simulate).parameters
+
+
+# --- ramps and duty cycles --------------------------------------------------------------------
+
+def _ramp_runs(paper_plant, discrete):
+    """A 500 -> 1500 N ramp with both kinks between samples, against the same ramp as steps
+    on the sample grid holding the ramp's value at each sample's midpoint (second-order close)
+    and at its start (what ignoring the slope inside a sample would give, first order)."""
+    from prsa_ctrl.simulation import PiecewiseLinear, run
+
+    t0, t1, dur = 0.0101, 0.0601, 0.08
+    # A 26-bit encoder: the 20-bit quantum would dither the two runs apart by ~1e-3 rad/s.
+    paper_plant = paper_plant.with_params({"sensor.encoder_counts_per_rev": 2**26})
+    kw = dict(duration=dur, controller=PID(0.085, 14.7), fidelity="rigid", discrete=discrete,
+              settings=SimSettings(rtol=1e-10, atol=1e-10))
+    ramp = run(paper_plant, load=PiecewiseLinear([(0.0, 500.0), (t0, 500.0), (t1, 1500.0)]), **kw)
+
+    def f(t):
+        return 500.0 + 1000.0 * np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
+
+    grid = np.arange(0.0, dur - 1e-12, TS)
+    mid = run(paper_plant, load=[(float(t), float(f(t + TS / 2))) for t in grid], **kw)
+    left = run(paper_plant, load=[(float(t), float(f(t))) for t in grid], **kw)
+    return ramp, mid, left, f
+
+
+@pytest.mark.parametrize("discrete", [True, False])
+def test_load_ramp_is_integrated_exactly(paper_plant, discrete):
+    ramp, mid, left, f = _ramp_runs(paper_plant, discrete)
+    np.testing.assert_allclose(ramp.inputs[1], f(ramp.time), rtol=0, atol=1e-9)
+    w = ramp.output("nut_speed")
+    err_mid = np.max(np.abs(w - np.interp(ramp.time, mid.time, mid.output("nut_speed"))))
+    err_left = np.max(np.abs(w - np.interp(ramp.time, left.time, left.output("nut_speed"))))
+    assert OMEGA_300_RPM - w.min() > 0.5  # the ramp loads the loop
+    assert err_mid < 5e-4, err_mid  # the midpoint steps are second-order close: ~2e-4 of a 0.52 rad/s drop
+    assert err_left > 5 * err_mid, (err_left, err_mid)  # a slope-blind run would be this far off
+    assert ramp.info["events"] == []  # kinks are not steps
+
+
+def test_mixed_steps_and_ramps_and_profile_errors(paper_plant):
+    from prsa_ctrl.simulation import PiecewiseLinear, run
+
+    prof = PiecewiseLinear([(0.0, 500.0), (0.01, 500.0), (0.01, 1500.0), (0.03, 1000.0)])
+    r = run(paper_plant, load=prof, duration=0.04, controller=PID(0.085, 14.7), fidelity="rigid", discrete=True)
+    assert r.info["events"] == [{"input": "axial_load", "time_s": 0.01, "acts_at_s": 0.01}]
+    assert r.inputs[1][r.time >= 0.03][0] == pytest.approx(1000.0)
+    k = int(np.argmin(np.abs(r.time - 0.02)))
+    assert r.inputs[1][k] == pytest.approx(1250.0)
+    for pts, match in [
+        ([(0.0, 1.0), (0.2, 2.0), (0.1, 3.0)], r"must not decrease"),
+        ([(0.0, 1.0), (0.1, 2.0), (0.1, 3.0), (0.1, 4.0)], r"three are ambiguous"),
+        ([(0.0, 1.0), (0.1, float("inf"))], r"is not finite"),
+        ("ramp", r"expected a list of \(time_s, value\) pairs"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            run(paper_plant, load=PiecewiseLinear(pts), duration=0.2, controller=PID(0.1, 1.0), fidelity="rigid")
