@@ -33,6 +33,7 @@ import math
 import time
 import weakref
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
@@ -106,6 +107,63 @@ class PiecewiseLinear:
         except (TypeError, ValueError):
             raise ValueError(f"points = {self.points!r}; expected a list of (time_s, value) pairs") from None
         object.__setattr__(self, "points", pts)
+
+    @classmethod
+    def from_csv(cls, path: "str | Path", column: str = "axial_load_n", *, max_rows: int = 1_000_000) -> "PiecewiseLinear":
+        """A measured trace from a CSV file with a header: ``time_s`` and ``column``.
+
+        Times must start at 0 and increase strictly; values must be finite. The trace is used
+        as a piecewise-linear profile (at most one point per controller sample in a sampled
+        run: resample faster traces).
+
+        Parameters
+        ----------
+        path : str or Path
+        column : str
+            Header of the value column (default ``axial_load_n``, N).
+        max_rows : int
+            Largest number of rows read.
+
+        Raises
+        ------
+        ValueError
+            One line naming the file, the row (1 = first data row) and the column.
+        """
+        import csv
+
+        p = Path(path)
+        try:
+            with p.open(newline="") as fh:
+                reader = csv.reader(fh)
+                header = [h.strip() for h in next(reader, [])]
+                if "time_s" not in header or column not in header:
+                    raise ValueError(f"{p}: header {header}; expected columns 'time_s' and {column!r}")
+                it, iv = header.index("time_s"), header.index(column)
+                pts: list[tuple[float, float]] = []
+                for row_no, row in enumerate(reader, start=1):
+                    if not row or all(not c.strip() for c in row):
+                        continue
+                    if row_no > max_rows:
+                        raise ValueError(f"{p}: more than {max_rows} rows; expected a shorter trace")
+                    try:
+                        t, v = float(row[it]), float(row[iv])
+                    except (IndexError, ValueError):
+                        raise ValueError(f"{p}: row {row_no}: {row!r}; expected numbers in 'time_s' and {column!r}") \
+                            from None
+                    if not (math.isfinite(t) and math.isfinite(v)):
+                        raise ValueError(f"{p}: row {row_no}: time_s = {t!r}, {column} = {v!r}; expected finite numbers")
+                    if pts and t <= pts[-1][0]:
+                        raise ValueError(f"{p}: row {row_no}: time_s = {t!r} after {pts[-1][0]!r}; expected increasing times")
+                    pts.append((t, v))
+        except OSError as exc:
+            raise ValueError(f"{p}: cannot read ({exc.strerror}); expected a readable CSV file") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"{p}: not a text file; expected a CSV file") from None
+        if len(pts) < 2:
+            raise ValueError(f"{p}: {len(pts)} data rows; expected at least 2")
+        if pts[0][0] != 0.0:
+            raise ValueError(f"{p}: row 1: time_s = {pts[0][0]!r}; expected the trace to start at 0")
+        return cls(tuple(pts))
 
 
 Profile = float | Sequence[tuple[float, float]] | PiecewiseLinear
