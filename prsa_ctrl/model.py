@@ -1,24 +1,94 @@
 """The actuator's equations of motion, written once in CasADi (SI units inside).
 
-Two fidelities of one physical model:
-
+Fidelities of one physical model
+--------------------------------
 ``rigid``
     One rotational degree of freedom. Cage, rollers and screw are slaved to the nut through the
     rigid kinematics, so their inertia is reflected to the nut; the axial load acts through the
-    lead; Coulomb friction on the quasi-static thread normal forces (it grows with the load) sets
-    the forward efficiency.
+    lead; thread friction (below) on the quasi-static thread normal forces (it grows with the
+    load) sets the forward efficiency.
 ``compliant``
-    Nut, cage (with the rollers' orbit and spin through the screw-roller gearing) and screw are
-    separate bodies; the roller/cage assembly also moves axially. The nut-roller and screw-roller
-    thread contacts follow the paper's IMPACT law on both flanks (with axial backlash), the nut
-    drives the cage through a friction-limited traction (a creep law), and thread friction uses
-    the static/dynamic coefficients with a smooth stiction (Stribeck) curve.
+    Nut, cage (with the rollers' orbit and spin through the screw-roller gearing), roller
+    assembly (axially) and screw are separate bodies. The nut-roller and screw-roller thread
+    contacts follow the paper's IMPACT law on both flanks (with axial backlash); the nut drives
+    the cage through a friction-limited traction (a creep law); thread friction as below.
 ``multi-roller``
     The compliant model with every roller's own nut-side and screw-side contact, offset by
     seeded position errors and a once-per-spin runout drawn from the plant's tolerances, so
     load sharing is uneven and the contact forces fluctuate as the rollers turn.
 
-Both include the drive: torque-command saturation and a first-order current loop.
+All include the drive: torque-command saturation and a first-order current loop.
+
+Axial kinematics of the inverted design (derivation)
+----------------------------------------------------
+Bodies: the nut rotates (angle ``th_N``) and is axially fixed in the housing by its bearings;
+the screw translates (``x_S``) and does not rotate; the cage/carrier turns (``th_P``) and, with
+the rollers, is free axially (the paper's ADAMS model: cylindrical joint cage-ground); each
+roller turns (absolute ``th_R``) and translates (``x_R``) with the cage. The screw-roller gearing
+forces pure rolling at the screw, ``th_R - th_P = th_P d_S / d_R``; rolling at the nut pitch
+circle gives the cage ratio ``th_P = th_N d_N / (d_N + d_S)``.
+
+A thread of signed lead ``L`` (right hand > 0) has its flank at axial position
+``x_body + L/(2 pi) * (psi - th_body)`` at the polar angle ``psi`` around its own axis. At a
+contact both flanks are at the same axial position. The screw-roller contact sits at
+``psi = th_P`` on the screw and ``th_P + pi`` on the roller; the nut-roller contact at
+``psi = th_P`` on both (the roller's outer side). With ``th_S = 0``::
+
+    screw-roller:  x_R - x_S = th_P/(2 pi) * (L_S + L_R d_S/d_R)
+    nut-roller:    x_R - x_N = 1/(2 pi) * (L_N (th_P - th_N) + L_R th_P d_S/d_R)
+
+The inverted design's matching rule is ``d_S = n d_R`` with the roller (single start, lead
+``P``) of the opposite hand to the screw, ``L_R = -P``, ``L_S = L_N = n P``: the screw-roller
+helices are matched, so ``x_R - x_S = 0`` -- **the rollers (and their cage) travel axially with
+the screw** -- and the nut-roller relation collapses to ``x_R - x_N = -n P th_N / (2 pi)``
+(sign = hand convention), independent of the cage angle: the rollers move relative to the
+nut by the lead per nut turn, which is where the helix motion happens (the paper: rollers
+"moving axially relative to the nut"). Summing both relations gives ``x_S - x_N = -L th_N/(2 pi)``
+for any diameters, so the screw lead is exact; if ``d_S != n d_R`` (Table 1: 14.0 vs 14.4 mm)
+the matched side would make the rollers walk along the screw and out of the nut, which no
+steady state allows -- the geometry report flags it and the model uses the matched helices.
+
+Consequences used below (``a = L / 2 pi``, m/rad):
+
+* nut-roller axial compression ``delta_N = a th_N - x_R`` (state ``x_roller = x_R - a th_N``,
+  the roller assembly's axial position relative to where the nut's helix carries it);
+  its generalised forces: torque ``-a F_N`` on the nut, ``+F_N`` on the roller assembly,
+  nothing on the cage (the spin and orbit torques of the helical flank force cancel through
+  the gearing, ``d delta_N / d th_P = 0``);
+* screw-roller compression ``delta_S = x_R - x_S`` (state ``delta_screw``): a pure axial
+  spring, ``+F_S`` on the screw, ``-F_S`` on the roller assembly, no torque on the cage;
+* the load path is screw -> screw-roller contact -> rollers -> nut-roller helix -> nut torque;
+  the cage is driven only by the nut-roller traction and carries none of the load torque.
+
+Before this derivation the model held the rollers axially with the nut (``delta_N = -x_R``)
+and put the helix in the screw-roller contact (``delta_S = x_R + (a/c) th_P - x_S``, ``c`` the
+cage ratio), so the whole load torque flowed nut -> traction -> cage -> screw thread.
+``_build(..., roller_axial="nut")`` keeps that assumption for comparison only
+(``tests/test_physics.py`` measures the difference).
+
+Thread friction: Stribeck curve with Karnopp stiction
+-----------------------------------------------------
+The Coulomb part of the nut's loss torque is ``T_c(v) = k mu(v) N + T_0`` where ``N`` is the
+thread normal force, ``k`` the effective sliding arm that gives the plant's forward efficiency
+at speed (:attr:`Plant.slip_arm_m`), ``T_0`` the load-independent no-load torque and
+``mu(v) = mu_d + (mu_s - mu_d) exp(-(v/v_s)^2)`` the Stribeck curve (Armstrong-Helouvry,
+Dupont, Canudas de Wit, Automatica 30(7) 1994), with ``v = a w_N`` the screw speed and ``v_s``
+``friction.stribeck_velocity_m_s``. Stiction follows Karnopp's stick band (D. Karnopp,
+J. Dyn. Sys. Meas. Control 107(1):100-103, 1985): for ``|w_N| <= w_b`` (``w_b = v_t / a``,
+``v_t = friction.transition_velocity_m_s``) friction balances every other torque on the nut
+``T_net`` up to the breakaway torque ``T_s = k mu_s N + T_0`` and adds a restoring damping
+``J w / tau_stick`` (``STICK_TIME_CONSTANT_S``), so a stuck nut decays to exactly zero speed and
+stays there while ``|T_net| < T_s`` (no creep); beyond ``2 w_b`` it slides on ``T_c(v) sign(w)``;
+a C1 cubic blends the two in between. The law is odd in ``w`` (reversal symmetric), has no
+state, and has finite derivatives everywhere (no division by ``w``). At 300 rpm it equals the
+previous smooth-sign law to 1e-12 (efficiency = ``friction.efficiency``); at 0.05 and 0.01
+rad/s the load-dependent losses sit on the static branch (implied efficiency 0.826 / 0.825 on
+the paper plant, instead of 0.93 / 0.98 with the old ``tanh(v/v_t)`` sign).
+Why not LuGre (Canudas de Wit et al., IEEE TAC 40(3) 1995): it adds a bristle state whose
+stiffness (presliding displacement) has no source for this plant, relaxes at ~1e4 1/s at 300
+rpm (a stiff extra pole in every linearised tuning model) and drifts under oscillating forces
+below breakaway (Dupont et al., IEEE TAC 47(5) 2002); Karnopp gives exact stiction, the same
+sliding curve and no new state. Presliding/hysteresis are out of its scope.
 """
 
 from __future__ import annotations
@@ -31,7 +101,8 @@ import casadi as ca
 
 from .plant import Plant
 
-__all__ = ["FIDELITIES", "PlantModel", "RollerErrors", "plant_model", "INPUTS"]
+__all__ = ["FIDELITIES", "PlantModel", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
+           "stick_band_rad_s", "STICK_TIME_CONSTANT_S"]
 
 from .options import FIDELITIES  # noqa: E402  (re-exported)
 
@@ -68,9 +139,9 @@ _STATE_UNITS = {
     "theta_cage": "rad",
     "omega_nut": "rad/s",
     "omega_cage": "rad/s",
-    "x_roller": "m",
-    "v_roller": "m/s",
-    "delta_screw": "m",
+    "x_roller": "m",  # x_R - a th_N: minus the nut-side axial compression
+    "v_roller": "m/s",  # absolute axial speed of the roller assembly (= v_screw at steady state)
+    "delta_screw": "m",  # x_R - x_S: screw-side axial compression
     "v_screw": "m/s",
     "tau_motor": "N m",
 }
@@ -139,16 +210,56 @@ class PlantModel:
         return _STATE_UNITS[state]
 
 
-def _smooth_sign(v: ca.SX, width: float) -> ca.SX:
-    return ca.tanh(v / width)
+#: Time constant (s) with which Karnopp's stick band pulls a stuck nut to exactly zero speed
+#: (a numerical device of the stick phase: fast against the loop, slow against nothing stiff).
+STICK_TIME_CONSTANT_S = 1e-4
 
 
-def _friction_coefficient(plant: Plant, v_slide: ca.SX) -> ca.SX:
-    """Coulomb coefficient with stiction: mu_d + (mu_s - mu_d) exp(-(v/v_s)^2), smooth sign."""
+def stribeck_coefficient(plant: Plant, v_screw):
+    """Stribeck friction coefficient at screw speed ``v_screw`` (m/s), magnitude:
+    ``mu_d + (mu_s - mu_d) exp(-(v/v_s)^2)``.
+
+    Examples
+    --------
+    >>> from prsa_ctrl import load_plant
+    >>> p = load_plant()
+    >>> round(float(stribeck_coefficient(p, 0.0)), 6), round(float(stribeck_coefficient(p, 0.01)), 6)
+    (0.3, 0.25)
+    """
     p = plant.values
     mu_s, mu_d = p["friction.static"], p["friction.dynamic"]
-    v_s, v_t = p["friction.stribeck_velocity_m_s"], p["friction.transition_velocity_m_s"]
-    return (mu_d + (mu_s - mu_d) * ca.exp(-((v_slide / v_s) ** 2))) * _smooth_sign(v_slide, v_t)
+    return mu_d + (mu_s - mu_d) * ca.exp(-((v_screw / p["friction.stribeck_velocity_m_s"]) ** 2))
+
+
+def stick_band_rad_s(plant: Plant) -> float:
+    """Half-width ``w_b`` (rad/s of the nut) of Karnopp's stick band: ``v_t / (L / 2 pi)``.
+
+    Below ``w_b`` the nut sticks, beyond ``2 w_b`` it slides (module docstring).
+    """
+    return plant.values["friction.transition_velocity_m_s"] / plant.lead_per_rad
+
+
+def _nut_friction(plant: Plant, omega: ca.SX, normal: ca.SX, t_net: ca.SX, inertia: float) -> ca.SX:
+    """Coulomb-type loss torque on the nut (N m): Stribeck sliding torque with Karnopp stiction.
+
+    ``normal``: thread normal force carried (N, >= 0); ``t_net``: every other torque on the
+    nut's degree of freedom (N m; motor, load/contact, traction, viscous); ``inertia``: the
+    inertia of that degree of freedom (kg m^2), which sets the stick-phase restoring damping.
+    """
+    v = plant.values
+    k_slip = plant.slip_arm_m
+    t0 = v["friction.no_load_torque_n_m"]
+    slide = k_slip * stribeck_coefficient(plant, plant.lead_per_rad * omega) * normal + t0
+    breakaway = k_slip * v["friction.static"] * normal + t0
+    stick = ca.fmin(ca.fmax(t_net + inertia / STICK_TIME_CONSTANT_S * omega, -breakaway), breakaway)
+    # 1 inside the band |w| <= w_b, 0 beyond 2 w_b, C1 cubic in between.
+    blend = 1.0 - _smooth_step(ca.fabs(omega) / stick_band_rad_s(plant) - 1.0, 1.0)
+    return blend * stick + (1.0 - blend) * slide * ca.sign(omega)
+
+
+def _viscous(plant: Plant, omega: ca.SX) -> ca.SX:
+    """Viscous drag torque (grease churning, iron losses), N m."""
+    return plant.values["friction.viscous_n_m_s_per_rad"] * omega
 
 
 def _smooth_step(p: ca.SX, depth: float) -> ca.SX:
@@ -193,34 +304,24 @@ def _drive(plant: Plant, tau_cmd: ca.SX, tau: ca.SX) -> ca.SX:
     return (ca.fmin(ca.fmax(tau_cmd, -t_max), t_max) - tau) / plant.current_loop_time_constant_s
 
 
-def _bearing_losses(plant: Plant, omega: ca.SX) -> ca.SX:
-    """Load-independent drag: no-load torque (smooth sign) plus viscous torque, N m."""
-    v = plant.values
-    omega_t = v["friction.transition_velocity_m_s"] / (0.5 * plant.d_nut_m)
-    return v["friction.no_load_torque_n_m"] * _smooth_sign(omega, omega_t) + v[
-        "friction.viscous_n_m_s_per_rad"
-    ] * omega
-
-
 def _kinematic_outputs(plant: Plant, omega_nut, omega_cage, v_screw, tau) -> list:
     d_s, d_r = plant.d_screw_m, plant.d_roller_m
     return [omega_nut, omega_cage, omega_cage * d_s / d_r, omega_cage * (d_s + d_r) / d_r, v_screw, tau]
 
 
 def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
-    v = plant.values
     _, omega, tau = ca.vertsplit(x)
     load = u[1]
     a = plant.lead_per_rad
     j_eq = plant.reflected_inertia_kg_m2
     f_n, f_s = plant.normal_force_factor()
-    k_slip = plant.slip_arm_m
-    t_fric = k_slip * _friction_coefficient(plant, k_slip * omega) * ca.fabs(load) * (f_n + f_s)
-    t_drag = _bearing_losses(plant, omega)
-    xdot = ca.vertcat(omega, (tau - load * a - t_fric - t_drag) / j_eq, _drive(plant, u[0], tau))
+    t_visc = _viscous(plant, omega)
+    t_net = tau - load * a - t_visc
+    t_fric = _nut_friction(plant, omega, ca.fabs(load) * (f_n + f_s), t_net, j_eq)
+    xdot = ca.vertcat(omega, (t_net - t_fric) / j_eq, _drive(plant, u[0], tau))
     y = _kinematic_outputs(plant, omega, omega * plant.cage_ratio, omega * a, tau)
     stored = 0.5 * j_eq * omega**2
-    dissipated = (t_fric + t_drag) * omega
+    dissipated = (t_fric + t_visc) * omega
     return xdot, y, [stored, tau * omega, load * a * omega, dissipated]
 
 
@@ -228,7 +329,8 @@ def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
 class _Contacts:
     """Thread-contact totals of the compliant models: axial forces on the roller assembly
     from the nut (``f_nr``) and on the screw (``f_sr``), N; normal forces, N; the normal force
-    friction acts on, N; stored energy, J; damping power, W; torque on the cage, N m."""
+    friction acts on, N; stored energy, J; damping power, W; generalised torques of the
+    contacts on the cage (``t_cage``) and on the nut (``t_nut``), N m."""
 
     f_nr: ca.SX
     f_sr: ca.SX
@@ -238,6 +340,7 @@ class _Contacts:
     energy: ca.SX
     damping: ca.SX
     t_cage: ca.SX
+    t_nut: ca.SX
 
 
 def _compliant_bodies(plant: Plant, w_n, w_p, v_r, v_s, tau, u, c: _Contacts):
@@ -247,40 +350,57 @@ def _compliant_bodies(plant: Plant, w_n, w_p, v_r, v_s, tau, u, c: _Contacts):
     load = u[1]
     d_s, d_n = plant.d_screw_m, plant.d_nut_m
     j_cage, m_axial = plant.cage_inertia_kg_m2, plant.roller_assembly_mass_kg
-    # Thread sliding friction, acting on the nut through the effective sliding arm.
-    k_slip = plant.slip_arm_m
-    t_fric = k_slip * _friction_coefficient(plant, k_slip * w_n) * c.n_fric
-    t_drag = _bearing_losses(plant, w_n)
+    j_nut, m_s = v["nut.inertia_kg_m2"], v["screw.mass_kg"]
     # Nut-roller traction drives the cage (rolling with creep, limited by mu_d * normal force).
     v_slip = 0.5 * d_n * w_n - 0.5 * (d_n + d_s) * w_p
     n_trac = ca.fmax(c.n_nut, 0.0) + v["friction.traction_preload_n"]
-    f_t = v["friction.dynamic"] * _smooth_sign(v_slip, v["friction.creep_velocity_m_s"]) * n_trac
-    j_nut, m_s = v["nut.inertia_kg_m2"], v["screw.mass_kg"]
+    f_t = v["friction.dynamic"] * ca.tanh(v_slip / v["friction.creep_velocity_m_s"]) * n_trac
+    # Thread sliding friction on the nut (Stribeck + Karnopp stiction, module docstring).
+    t_visc = _viscous(plant, w_n)
+    t_net = tau - 0.5 * d_n * f_t + c.t_nut - t_visc
+    t_fric = _nut_friction(plant, w_n, c.n_fric, t_net, j_nut)
     rates = {
-        "omega_nut": (tau - 0.5 * d_n * f_t - t_fric - t_drag) / j_nut,
+        "omega_nut": (t_net - t_fric) / j_nut,
         "omega_cage": (0.5 * (d_n + d_s) * f_t + c.t_cage) / j_cage,
         "v_roller": (c.f_nr - c.f_sr) / m_axial,
         "v_screw": (c.f_sr - load) / m_s,
         "tau_motor": _drive(plant, u[0], tau),
     }
     stored = 0.5 * j_nut * w_n**2 + 0.5 * j_cage * w_p**2 + 0.5 * m_axial * v_r**2 + 0.5 * m_s * v_s**2 + c.energy
-    dissipated = (t_fric + t_drag) * w_n + f_t * v_slip + c.damping
+    dissipated = (t_fric + t_visc) * w_n + f_t * v_slip + c.damping
     y = _kinematic_outputs(plant, w_n, w_p, v_s, tau) + [c.n_nut, c.n_screw]
     return rates, y, [stored, tau * w_n, load * v_s, dissipated]
 
 
-def _compliant(plant: Plant, x: ca.SX, u: ca.SX):
+def _axial_kinematics(plant: Plant, roller_axial: str, w_n, w_p, v_r, v_s):
+    """Rates of the nut-side and screw-side axial compressions (m/s) and the helix leads
+    (m/rad) that enter the nut and cage torques, for the chosen roller axial assumption.
+
+    ``"screw"`` (the mechanism, module docstring): ``delta_N = a th_N - x_R``,
+    ``delta_S = x_R - x_S``. ``"nut"`` (the former assumption, kept for comparison):
+    ``delta_N = -x_R``, ``delta_S = x_R + (a/c) th_P - x_S``.
+    Returns ``(d delta_N/dt, d delta_S/dt, lead on the nut, lead on the cage)``.
+    """
+    a = plant.lead_per_rad
+    if roller_axial == "screw":
+        return a * w_n - v_r, v_r - v_s, a, 0.0
+    if roller_axial == "nut":
+        a_cage = a / plant.cage_ratio
+        return -v_r, v_r + a_cage * w_p - v_s, 0.0, a_cage
+    raise ValueError(f"roller_axial = {roller_axial!r}; expected 'screw' or 'nut'")
+
+
+def _compliant(plant: Plant, x: ca.SX, u: ca.SX, roller_axial: str = "screw"):
     _, w_n, w_p, x_r, v_r, d_sr, v_s, tau = ca.vertsplit(x)
-    # Screw advance per radian of cage rotation (screw-roller helix): v_S = a w_P rigidly.
-    a = plant.lead_per_rad / plant.cage_ratio
-    ddelta_sr = v_r + a * w_p - v_s
+    dd_nr, dd_sr, a_nut, a_cage = _axial_kinematics(plant, roller_axial, w_n, w_p, v_r, v_s)
     cos_n, cos_s = math.cos(plant.helix_nut_rad), math.cos(plant.helix_screw_rad)
-    f_nr, n_nut, e_nr, pd_nr = _thread_contact(plant, -x_r, -v_r, cos_n)
-    f_sr, n_screw, e_sr, pd_sr = _thread_contact(plant, d_sr, ddelta_sr, cos_s)
+    # x_roller is minus the nut-side compression under both assumptions.
+    f_nr, n_nut, e_nr, pd_nr = _thread_contact(plant, -x_r, dd_nr, cos_n)
+    f_sr, n_screw, e_sr, pd_sr = _thread_contact(plant, d_sr, dd_sr, cos_s)
     contacts = _Contacts(f_nr, f_sr, n_nut, n_screw, ca.fmax(n_nut, 0.0) + ca.fmax(n_screw, 0.0),
-                         e_nr + e_sr, pd_nr + pd_sr, -a * f_sr)
+                         e_nr + e_sr, pd_nr + pd_sr, -a_cage * f_sr, -a_nut * f_nr)
     r, y, terms = _compliant_bodies(plant, w_n, w_p, v_r, v_s, tau, u, contacts)
-    xdot = ca.vertcat(w_n, r["omega_nut"], r["omega_cage"], v_r, r["v_roller"], ddelta_sr, r["v_screw"], r["tau_motor"])
+    xdot = ca.vertcat(w_n, r["omega_nut"], r["omega_cage"], -dd_nr, r["v_roller"], dd_sr, r["v_screw"], r["tau_motor"])
     return xdot, y, terms
 
 
@@ -320,16 +440,15 @@ class RollerErrors:
         )
 
 
-def _multi_roller(plant: Plant, x: ca.SX, u: ca.SX, errors: RollerErrors):
+def _multi_roller(plant: Plant, x: ca.SX, u: ca.SX, errors: RollerErrors, roller_axial: str = "screw"):
     """Compliant model with each roller's own nut-side and screw-side contact (engaged threads
     per roller), offset by its position error and runout; the rollers share the cage's axial
     and rotational motion. The offsets depend on the cage angle, so their forces also act on
     the cage (generalised forces from the same contact Jacobian keep the energy balance)."""
     _, w_n, th_p, w_p, x_r, v_r, d_sr, v_s, tau = ca.vertsplit(x)
     d_s, d_r = plant.d_screw_m, plant.d_roller_m
-    a = plant.lead_per_rad / plant.cage_ratio
+    dd_nr, dd_sr, a_nut, a_cage = _axial_kinematics(plant, roller_axial, w_n, w_p, v_r, v_s)
     spin = d_s / d_r  # roller spin (relative to the cage) per radian of cage rotation
-    ddelta_sr = v_r + a * w_p - v_s
     cos_n, cos_s = math.cos(plant.helix_nut_rad), math.cos(plant.helix_screw_rad)
     z = int(plant.values["thread.engaged_threads"])
     f_nr = f_sr = n_nut = n_screw = energy = damp = t_cage = n_fric = 0
@@ -339,52 +458,40 @@ def _multi_roller(plant: Plant, x: ca.SX, u: ca.SX, errors: RollerErrors):
         wob = errors.runout[i] * ca.sin(ang)
         dwob = errors.runout[i] * spin * ca.cos(ang)  # d(wobble)/d(theta_cage)
         e_n, e_s = errors.position_nut[i] + wob, errors.position_screw[i] + wob
-        fn_i, nn_i, en_i, pn_i = _thread_contact(plant, -x_r - e_n, -v_r - dwob * w_p, cos_n, z)
-        fs_i, ns_i, es_i, ps_i = _thread_contact(plant, d_sr + e_s, ddelta_sr + dwob * w_p, cos_s, z)
+        fn_i, nn_i, en_i, pn_i = _thread_contact(plant, -x_r - e_n, dd_nr - dwob * w_p, cos_n, z)
+        fs_i, ns_i, es_i, ps_i = _thread_contact(plant, d_sr + e_s, dd_sr + dwob * w_p, cos_s, z)
         f_nr, f_sr = f_nr + fn_i, f_sr + fs_i
         n_nut, n_screw = n_nut + nn_i, n_screw + ns_i
         n_fric = n_fric + ca.fmax(nn_i, 0.0) + ca.fmax(ns_i, 0.0)
         energy, damp = energy + en_i + es_i, damp + pn_i + ps_i
-        t_cage = t_cage + fn_i * dwob - fs_i * (a + dwob)
+        t_cage = t_cage + fn_i * dwob - fs_i * (a_cage + dwob)
         per_nut.append(nn_i)
         per_screw.append(ns_i)
-    contacts = _Contacts(f_nr, f_sr, n_nut, n_screw, n_fric, energy, damp, t_cage)
+    contacts = _Contacts(f_nr, f_sr, n_nut, n_screw, n_fric, energy, damp, t_cage, -a_nut * f_nr)
     r, y, terms = _compliant_bodies(plant, w_n, w_p, v_r, v_s, tau, u, contacts)
-    xdot = ca.vertcat(w_n, r["omega_nut"], w_p, r["omega_cage"], v_r, r["v_roller"], ddelta_sr, r["v_screw"], r["tau_motor"])
+    xdot = ca.vertcat(w_n, r["omega_nut"], w_p, r["omega_cage"], -dd_nr, r["v_roller"], dd_sr, r["v_screw"],
+                      r["tau_motor"])
     return xdot, y + per_nut + per_screw, terms
 
 
 _CACHE: "weakref.WeakKeyDictionary[Plant, dict[tuple, PlantModel]]" = weakref.WeakKeyDictionary()
 
 
-def plant_model(plant: Plant, fidelity: str = "compliant", seed: int = 0) -> PlantModel:
-    """Build (once per plant, fidelity and seed) the CasADi model of ``plant``.
-
-    Parameters
-    ----------
-    plant : Plant
-        A validated plant.
-    fidelity : {"rigid", "compliant", "multi-roller"}
-        Model fidelity (see module docstring).
-    seed : int
-        Seed of the per-roller errors drawn from the plant's tolerances (multi-roller only).
-    """
-    if fidelity not in FIDELITIES:
-        raise ValueError(f"fidelity = {fidelity!r}; expected one of {', '.join(FIDELITIES)}")
-    key = (fidelity, int(seed) if fidelity == "multi-roller" else 0)
-    per_plant = _CACHE.setdefault(plant, {})
-    if key in per_plant:
-        return per_plant[key]
+def _build(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "screw") -> PlantModel:
+    """Build a model (uncached). ``roller_axial="nut"`` selects the former, superseded
+    assumption that the rollers stay axially with the nut (comparison only, module docstring)."""
     names = _STATES[fidelity]
     x = ca.SX.sym("x", len(names))
     u = ca.SX.sym("u", 2)
     if fidelity == "multi-roller":
-        xdot, y, terms = _multi_roller(plant, x, u, RollerErrors.draw(plant, key[1]))
+        xdot, y, terms = _multi_roller(plant, x, u, RollerErrors.draw(plant, seed), roller_axial)
+    elif fidelity == "compliant":
+        xdot, y, terms = _compliant(plant, x, u, roller_axial)
     else:
-        xdot, y, terms = (_rigid if fidelity == "rigid" else _compliant)(plant, x, u)
+        xdot, y, terms = _rigid(plant, x, u)
     y = ca.vertcat(*y)
     terms = ca.vertcat(*terms)
-    model = PlantModel(
+    return PlantModel(
         plant=plant,
         fidelity=fidelity,
         state_names=names,
@@ -398,5 +505,37 @@ def plant_model(plant: Plant, fidelity: str = "compliant", seed: int = 0) -> Pla
         h=ca.Function("h", [x, u], [y], ["x", "u"], ["y"]),
         power=ca.Function("power", [x, u], [terms], ["x", "u"], ["terms"]),
     )
-    per_plant[key] = model
-    return model
+
+
+def plant_model(plant: Plant, fidelity: str = "compliant", seed: int = 0) -> PlantModel:
+    """Build (once per plant, fidelity and seed) the CasADi model of ``plant``.
+
+    Parameters
+    ----------
+    plant : Plant
+        A validated plant.
+    fidelity : {"rigid", "compliant", "multi-roller"}
+        Model fidelity (see module docstring).
+    seed : int
+        Seed of the per-roller errors drawn from the plant's tolerances (multi-roller only).
+
+    Returns
+    -------
+    PlantModel
+        States ``state_names`` (units from :meth:`PlantModel.state_unit`), inputs
+        ``[torque_command (N m), axial_load (N)]``.
+
+    Examples
+    --------
+    >>> from prsa_ctrl import load_plant
+    >>> m = plant_model(load_plant(), "rigid")
+    >>> m.state_names, m.nx
+    (('theta_nut', 'omega_nut', 'tau_motor'), 3)
+    """
+    if fidelity not in FIDELITIES:
+        raise ValueError(f"fidelity = {fidelity!r}; expected one of {', '.join(FIDELITIES)}")
+    key = (fidelity, int(seed) if fidelity == "multi-roller" else 0)
+    per_plant = _CACHE.setdefault(plant, {})
+    if key not in per_plant:
+        per_plant[key] = _build(plant, fidelity, key[1])
+    return per_plant[key]

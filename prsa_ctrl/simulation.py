@@ -233,7 +233,7 @@ def _state_scale(model: PlantModel) -> NDArray[np.float64]:
         "omega_nut": w,
         "omega_cage": w,
         "x_roller": defl,
-        "v_roller": defl * 1e3,
+        "v_roller": p.lead_per_rad * w,  # the rollers travel axially with the screw
         "delta_screw": defl,
         "v_screw": p.lead_per_rad * w,
         "tau_motor": p.torque_limit,
