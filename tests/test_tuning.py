@@ -27,8 +27,10 @@ def test_beats_matlab_pidtune_at_the_same_ms():
     assert res.ms <= ms_matlab
     assert _ms_dense(P3, res.pid) <= ms_matlab * (1 + 1e-3)
     assert res.objective < ie_matlab
-    assert res.objective == pytest.approx(1 / res.pid.ki, rel=1e-3)
+    assert res.objective == pytest.approx(1 / res.pid.ki, rel=1e-9)  # IE to infinity, exact
     assert res.stats["status"] == "Solve_Succeeded"
+    assert res.status == "optimal" and res.converged and not res.warnings
+    assert res.ms == pytest.approx(_ms_dense(P3, res.pid), rel=1e-4)  # the reported Ms is the true one
 
 
 def test_pid_improves_on_pi_at_equal_ms():
@@ -79,6 +81,9 @@ def test_tuner_never_returns_an_unstable_loop(k, t2, t3, tz, objective, ms_max):
         ({"ms_max": 0.9}, r"ms_max = 0\.9; expected a number in \(1, 10\)"),
         ({"mt_max": 0.1}, r"mt_max = 0\.1"),
         ({"max_noise_gain": -1.0}, r"max_noise_gain = -1\.0"),
+        ({"step": float("nan")}, r"^step = nan; expected a finite non-zero step size"),
+        ({"kp_max": -1.0}, r"^kp_max = -1\.0; expected a positive number"),
+        ({"tf": 0.0}, r"^tf = 0\.0; expected a positive finite time constant in s"),
     ],
 )
 def test_bad_tuner_arguments(kwargs, match):
