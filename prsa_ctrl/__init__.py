@@ -28,6 +28,7 @@ _LAZY = {
     "kinematics_table": "paper",
     "load_step_study": "paper",
     "tune_pid": "tuning",
+    "Tuner": "tuning",
     "tune_loops": "tuning",
     "tune_actuator": "autotune",
     "verify": "autotune",

@@ -22,7 +22,7 @@ from .paper import default_pid
 from .plant import Plant
 from .scene import Scene, choose_fidelity
 from .simulation import SimSettings, run
-from .tuning import LoopModel, continuous_loop, drive_loop, tune_loops
+from .tuning import LoopModel, Tuner, continuous_loop, drive_loop
 
 __all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs"]
 
@@ -56,6 +56,7 @@ class Design:
     estimator: str = "none"
     estimation: list = field(default_factory=list)  # per step: speed RMS errors (rad/s)
     flags: list[str] = field(default_factory=list)  # health checks the verified runs failed
+    tuner_status: str = "optimal"  # the tuner's status for tuned designs (see TuningResult.status)
 
     @property
     def healthy(self) -> bool:
@@ -255,6 +256,7 @@ def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
     - the nut reverses (the speed crosses zero against a non-zero setpoint);
     - the speed never recovers into the recovery band;
     - the torque sits at its limit for more than ``SATURATION_FRACTION`` of the time after the step;
+    - the tuner did not converge to an optimum whose bounds hold (``TuningResult.status``);
     - the verified objective departs from the linear prediction by more than
       ``max(scene.accuracy, PREDICTION_TOLERANCE)`` (relative): the linear model the design
       was optimised on does not describe what happened. (Below ``PREDICTION_TOLERANCE`` a
@@ -275,6 +277,8 @@ def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
         One sentence per failed check (empty when healthy).
     """
     flags = []
+    if not design.tuner_status.startswith("optimal"):
+        flags.append(f"the tuner did not converge ({design.tuner_status})")
     w0 = scene.setpoint_rad_s
     for f1, m, (t, y) in zip(scene.final_loads, design.verified, design.verified_runs):
         w = y["nut_speed"]
@@ -346,7 +350,7 @@ _POOL_JOB: tuple | None = None
 def _verify_job(i: int):
     designs, plant, scene = _POOL_JOB  # type: ignore[misc]
     d = verify(designs[i], plant, scene)
-    return d.verified, d.verified_runs, d.objective_verified
+    return d.verified, d.verified_runs, d.objective_verified, d.estimation
 
 
 def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int | None = None) -> None:
@@ -370,8 +374,8 @@ def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int |
     try:
         ctx = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(max_workers=min(workers, len(rest)), mp_context=ctx) as pool:
-            for d, (ver, runs, obj) in zip(rest, pool.map(_verify_job, range(len(rest)))):
-                d.verified, d.verified_runs, d.objective_verified = ver, runs, obj
+            for d, (ver, runs, obj, est) in zip(rest, pool.map(_verify_job, range(len(rest)))):
+                d.verified, d.verified_runs, d.objective_verified, d.estimation = ver, runs, obj, est
     finally:
         _POOL_JOB = None
 
@@ -462,15 +466,16 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     timing["linearize"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    common = dict(objective=scene.objective, controller=scene.controller, mt_max=scene.mt_max,
-                  worst_case=scene.aggregate == "worst")
+    common = dict(objective=scene.objective, controller=scene.controller, worst_case=scene.aggregate == "worst")
+    tuner = Tuner(loops, **common)  # one scan grid and NLP for every Ms level
     runs: list[dict] = []
 
     def tuned(ms: float) -> Design:
-        res = tune_loops(loops, ms_max=ms, **common)
-        runs.append({"ms_max": ms, **{k: res.stats[k] for k in ("status", "iterations", "wall_time_s")}})
+        res = tuner.tune(ms_max=ms, mt_max=scene.mt_max)
+        runs.append({"ms_max": ms, "result": res.status,
+                     **{k: res.stats[k] for k in ("status", "iterations", "wall_time_s")}})
         label = f"tuned (Ms <= {ms:.3g})" + (" + KF" if scene.estimator == "kf" else "") + (" + load FF" if scene.feedforward else "")
-        d = Design(label, res.pid, res.margins[0], estimator=scene.estimator)
+        d = Design(label, res.pid, res.margins[0], estimator=scene.estimator, tuner_status=res.status)
         _predict(d, loops, plant, scene)
         return d
 
@@ -479,7 +484,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     plain = loops if scene.estimator == "none" else actuator_loops(plant, scene, estimator="none")
     baselines = baseline_designs(plant, scene, plain)
     if scene.estimator != "none":
-        res = tune_loops(plain, ms_max=scene.ms_max, **common)
+        res = Tuner(plain, **common).tune(ms_max=scene.ms_max, mt_max=scene.mt_max)
         baselines.insert(0, Design(f"tuned PI alone (Ms <= {scene.ms_max:.3g})", res.pid, res.margins[0]))
     for d in baselines:
         _predict(d, plain, plant, scene)

@@ -204,26 +204,36 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
         row = np.zeros(N)
         row[ix] = np.asarray(r, float).ravel()
         extra[k] = (row @ Mi)[keep]
-    # Frequency response: L = N/D with N, D affine in the gains (see LoopModel).
+    # Frequency response: L = N/D with N, D affine in the gains (see LoopModel), at any
+    # frequencies (the tuner refines its Ms search off the grid).
     if omega is None:
         omega = _freq_grid(1e-1, math.pi / ts * 0.999, 500)
-    zf = np.exp(1j * omega * ts)
-    zi = 1.0 / zf
-    p_th = _ss_response(ad, bu[:, None], c_th[None, :], omega, lambda w: np.exp(1j * w * ts))  # applied torque -> angle
     a_kf = kf.F @ (np.eye(4) - np.outer(K, kf.H.ravel()))
     b_th, b_u = kf.F @ K, kf.G.ravel()
     ikh = np.eye(4) - np.outer(K, kf.H.ravel())
 
-    def kf_tf(row, b_in, d_in):
-        return _ss_response(a_kf, b_in[:, None], (row @ ikh)[None, :], omega, lambda w: np.exp(1j * w * ts)) + d_in
+    def response(w):
+        w = np.atleast_1d(np.asarray(w, dtype=float))
+        zi = np.exp(-1j * w * ts)
 
-    h_wt, h_wu = kf_tf(np.eye(4)[1], b_th, K[1]), kf_tf(np.eye(4)[1], b_u, 0.0)
-    h_lt, h_lu = kf_tf(np.eye(4)[3], b_th, K[3]), kf_tf(np.eye(4)[3], b_u, 0.0)
-    c = _pid_frequency_parts(zi, ts, beta)
-    Lg = [ci * h_wt * p_th * zi for ci in c]
-    Dg = [ci * h_wu * zi for ci in c]
-    if feedforward:  # u += kff * load estimate
-        Lg.append(-h_lt * p_th * zi)
-        Dg.append(-h_lu * zi)
-    return LoopModel(mats[0], tuple(mats[1:]), bdv, ce, ts, n_steps, omega, np.vstack(Lg), tf, name=name,
-                     outputs=extra, N0=None, D0=None, D=np.vstack(Dg))
+        def z_of(x):
+            return np.exp(1j * x * ts)
+
+        p_th = _ss_response(ad, bu[:, None], c_th[None, :], w, z_of)  # applied torque -> angle
+
+        def kf_tf(row, b_in, d_in):
+            return _ss_response(a_kf, b_in[:, None], (row @ ikh)[None, :], w, z_of) + d_in
+
+        h_wt, h_wu = kf_tf(np.eye(4)[1], b_th, K[1]), kf_tf(np.eye(4)[1], b_u, 0.0)
+        h_lt, h_lu = kf_tf(np.eye(4)[3], b_th, K[3]), kf_tf(np.eye(4)[3], b_u, 0.0)
+        c = _pid_frequency_parts(zi, ts, beta)
+        Lg = [ci * h_wt * p_th * zi for ci in c]
+        Dg = [ci * h_wu * zi for ci in c]
+        if feedforward:  # u += kff * load estimate
+            Lg.append(-h_lt * p_th * zi)
+            Dg.append(-h_lu * zi)
+        return None, np.vstack(Lg), None, np.vstack(Dg)
+
+    _, L, _, D = response(omega)
+    return LoopModel(mats[0], tuple(mats[1:]), bdv, ce, ts, n_steps, omega, L, tf, name=name,
+                     outputs=extra, N0=None, D0=None, D=D, response=response, nyquist=math.pi / ts)
