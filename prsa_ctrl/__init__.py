@@ -36,6 +36,8 @@ _LAZY = {
     "Scene": "scene",
     "load_step_metrics": "metrics",
     "design_kf": "estimator",
+    "export_controller": "export",
+    "PiecewiseLinear": "simulation",
 }
 
 __all__ = [

@@ -1,0 +1,201 @@
+"""Drive export: the exported discrete controller reproduces the simulated sampled loop."""
+
+import json
+import math
+import tomllib
+
+import control
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from prsa_ctrl import PID, load_plant, run
+from prsa_ctrl.export import DISCRETISATIONS, dumps, export_controller, pid_biquad
+from prsa_ctrl.filters import FirstOrderLowPass, Notch, SecondOrderLowPass
+
+PLANT = load_plant()
+TS = PLANT.sample_time_s
+
+
+def _exported_law(d, setpoint, measured, integral0, speed_prev0):
+    """The drive's speed PID run from the exported dict only (its stated equations)."""
+    law = d["speed_controller"]["discrete"]
+    ts, kp, ki, kd = law["sample_time_s"], law["kp_n_m_s_per_rad"], law["ki_n_m_per_rad"], law["kd_n_m_s2_per_rad"]
+    beta, k_aw, lim = law["beta"], law["anti_windup_gain_per_s"], law["torque_limit_n_m"]
+    tau_ff = law["feedforward_torque_n_m"]
+    integral, deriv, w_prev = integral0, 0.0, speed_prev0
+    out = np.empty(len(measured))
+    for k, (ref, w) in enumerate(zip(setpoint, measured)):
+        e = ref - w
+        deriv = beta * deriv + (1 - beta) * (w - w_prev) / ts
+        u = kp * e + integral - kd * deriv + tau_ff
+        us = min(max(u, -lim), lim)
+        integral += ts * (ki * e + k_aw * (us - u))
+        w_prev = w
+        out[k] = us
+    return out
+
+
+def _round_trip(pid, duration=0.03, load=((0, 500.0), (0.0101, 1500.0)), saturated=False):
+    r = run(PLANT, load=list(load), duration=duration, controller=pid, fidelity="rigid", discrete=True)
+    u_sim = r.output("torque_command")
+    at_limit = np.sum(np.abs(u_sim) >= PLANT.torque_limit * (1 - 1e-12))
+    assert (at_limit > 10) if saturated else (at_limit == 0)
+    assert np.ptp(u_sim) > 0.3  # the load step moved the command (about 0.5 N m unsaturated)
+    d = export_controller(pid, PLANT, fmt="toml")
+    d = tomllib.loads(dumps(d, "toml"))  # from the written file
+    u = _exported_law(d, r.inputs[0], r.output("speed_measured"), r.states[r.state_labels.index("pid_integral"), 0],
+                      r.output("nut_speed")[0])
+    # the command computed at sample k is the one applied during sample k + 1
+    return np.max(np.abs(u[:-1] - u_sim[1:]))
+
+
+@pytest.mark.parametrize("pid", [PID(0.085, 14.7), PID(0.06, 9.0, kd=2e-5, tf=5e-4)], ids=["PI", "PID"])
+def test_exported_discrete_law_reproduces_the_sampled_run(pid):
+    assert _round_trip(pid) < 1e-9
+
+
+def test_round_trip_holds_through_saturation():
+    """A 9 kN load pulse drives the command into the 3 N m limit: the anti-windup path of the
+    exported law (k_aw = ki/kp) reproduces the simulated command too."""
+    err = _round_trip(PID(0.085, 14.7), duration=0.04, load=((0, 500.0), (0.0101, 9000.0), (0.02, 500.0)),
+                      saturated=True)
+    assert err < 1e-9
+
+
+@settings(max_examples=15, deadline=None, derandomize=True)
+@given(kp=st.floats(0.04, 0.15), ki=st.floats(2.0, 25.0), kd=st.sampled_from([0.0, 1e-5, 3e-5]),
+       tf=st.floats(2.5e-4, 2e-3))
+def test_hypothesis_round_trip_over_gains(kp, ki, kd, tf):
+    assert _round_trip(PID(kp, ki, kd=kd, tf=tf), duration=0.02) < 1e-9
+
+
+def _coeffs(tfz):
+    num, den = np.trim_zeros(np.asarray(tfz.num[0][0], float), "f"), np.asarray(tfz.den[0][0], float)
+    return num / den[0], den / den[0]
+
+
+def _pad(v):
+    return np.concatenate([v, np.zeros(3 - len(v))])
+
+
+@pytest.mark.parametrize("pid", [PID(0.085), PID(0.085, 14.7), PID(0.06, 9.0, kd=2e-5, tf=5e-4),
+                                 PID(0.06, 0.0, kd=2e-5, tf=5e-4)], ids=["P", "PI", "PID", "PD"])
+@pytest.mark.parametrize("method, c2d", [("forward_euler", "euler"), ("backward_euler", "backward_diff"),
+                                         ("tustin", "tustin")])
+def test_alternative_forms_match_python_control_c2d(pid, method, c2d):
+    d = export_controller(pid, PLANT, fmt="json")
+    got = d["speed_controller"]["alternatives"][method]
+    cz = control.sample_system(pid.to_tf(), TS, c2d)
+    num, den = _coeffs(cz)
+    mine = np.r_[[got[k] for k in ("b0", "b1", "b2")], 1.0, got["a1"], got["a2"]]
+    if pid.ki > 0 or pid.kd > 0:  # (python-control keeps a P as 0.085 (z - 1)/(z - 1))
+        ref = np.r_[_pad(num), _pad(den)]
+        assert np.max(np.abs(mine - ref)) <= 1e-12 * np.max(np.abs(ref))
+    z = np.exp(1j * 2 * math.pi * np.geomspace(1.0, 0.45 / TS, 100) * TS)
+    c_z = (got["b0"] + got["b1"] / z + got["b2"] / z**2) / (1 + got["a1"] / z + got["a2"] / z**2)
+    np.testing.assert_allclose(c_z, cz(z), rtol=1e-12)
+    assert got["substitution"] == DISCRETISATIONS[method][0]
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(kp=st.floats(1e-3, 10.0), ki=st.floats(0.0, 1e3), kd=st.floats(0.0, 1e-3), tf=st.floats(1e-4, 1e-2),
+       ts=st.floats(5e-5, 1e-3))
+def test_hypothesis_exported_forms_equal_the_pid_transfer_functions(kp, ki, kd, tf, ts):
+    pid = PID(kp, ki, kd=kd, tf=tf)
+    # the simulator's law, from the exported numbers, equals PID.to_tf(dt) (the tuner's model)
+    law = export_controller(pid, PLANT, fmt="json")["speed_controller"]["discrete"]
+    ts_l = law["sample_time_s"]
+    z = np.exp(1j * 2 * math.pi * np.geomspace(1.0, 0.45 / ts_l, 50) * ts_l)
+    c_law = law["kp_n_m_s_per_rad"] + law["integral_gain_ts_ki_n_m_s_per_rad"] / (z - 1) + \
+        law["kd_n_m_s2_per_rad"] * (1 - law["beta"]) * (z - 1) / (ts_l * (z - law["beta"]))
+    np.testing.assert_allclose(c_law, pid.to_tf(ts_l)(z), rtol=1e-10)
+    # the substitution forms equal C(s) at s = N(z)/(Ts D(z))
+    for name, (_, (n1, n0), (d1, d0)) in DISCRETISATIONS.items():
+        c = pid_biquad(pid, ts, name)
+        zz = np.exp(1j * 2 * math.pi * np.geomspace(1.0, 0.45 / ts, 50) * ts)
+        s = (n1 * zz + n0) / (ts * (d1 * zz + d0))
+        c_s = kp + ki / s + kd * s / (1 + tf * s)
+        c_z = (c["b0"] + c["b1"] / zz + c["b2"] / zz**2) / (1 + c["a1"] / zz + c["a2"] / zz**2)
+        np.testing.assert_allclose(c_z, c_s, rtol=1e-9)
+
+
+@pytest.mark.parametrize("pid", [PID(0.085), PID(0.085, 14.7), PID(0.06, 9.0, kd=2e-5, tf=5e-4),
+                                 PID(0.06, 0.0, kd=2e-5, tf=5e-4)], ids=["P", "PI", "PID", "PD"])
+def test_error_biquad_is_the_simulated_law(pid):
+    """The exported biquad of the simulated law equals PID.to_tf(dt) (the sampled C(z))."""
+    got = export_controller(pid, PLANT, fmt="toml")["speed_controller"]["discrete"]["error_biquad"]
+    num, den = _coeffs(pid.to_tf(TS))
+    mine = np.r_[[got[k] for k in ("b0", "b1", "b2")], 1.0, got["a1"], got["a2"]]
+    ref = np.r_[_pad(num), _pad(den)]
+    assert np.max(np.abs(mine - ref)) <= 1e-12 * np.max(np.abs(ref))
+
+
+def test_vendor_and_per_unit_forms():
+    pid = PID(0.085, 14.7, kd=1e-5, tf=5e-4)
+    d = export_controller(pid, PLANT, fmt="json", rated_torque_n_m=3.0, rated_speed_rpm=3000.0)
+    v, pu = d["speed_controller"]["vendor"], d["speed_controller"]["per_unit"]
+    assert v["kp_n_m_s_per_rad"] == 0.085
+    assert v["tn_s"] == pytest.approx(0.085 / 14.7, rel=1e-15)
+    assert v["tv_s"] == pytest.approx(1e-5 / 0.085, rel=1e-15)
+    assert v["kp_n_m_per_rpm"] == pytest.approx(0.085 * 2 * math.pi / 60, rel=1e-15)
+    assert v["kv_per_s"] is None and "position loop" in v["note"]
+    w_r = 3000.0 * 2 * math.pi / 60
+    assert pu["kp_pu"] == pytest.approx(0.085 * w_r / 3.0, rel=1e-15)
+    assert pu["ki_pu_per_s"] == pytest.approx(14.7 * w_r / 3.0, rel=1e-15)
+    law = d["speed_controller"]["discrete"]
+    assert law["beta"] == math.exp(-TS / 5e-4)
+    assert law["anti_windup_gain_per_s"] == pytest.approx(14.7 / 0.085, rel=1e-15)
+    assert law["computation_delay_samples"] == 1
+    assert d["sample_time_s"] == TS and d["plant"] == PLANT.name and d["prsa_ctrl_version"]
+    m = d["speed_measurement"]
+    a = math.exp(-TS / PLANT.speed_filter_s)
+    assert m["a"] == a and m["biquad"]["a1"] == pytest.approx(-a, rel=1e-15)
+    assert m["biquad"]["b0"] == pytest.approx(1 - a, rel=1e-15)
+    # the P controller has no reset time: null in JSON, absent in TOML (no null there)
+    assert export_controller(PID(0.085), PLANT, fmt="json")["speed_controller"]["vendor"]["tn_s"] is None
+    t = export_controller(PID(0.085), PLANT, fmt="toml")["speed_controller"]["vendor"]
+    assert "tn_s" not in t and "kv_per_s" not in t
+
+
+def test_text_round_trips_and_filters():
+    filters = [Notch(1200.0, 300.0, -20.0), ("speed_measurement", SecondOrderLowPass(1500.0, 0.7)),
+               ("torque_command", FirstOrderLowPass(900.0))]
+    pid = PID(0.085, 14.7, kd=1e-5, tf=5e-4)
+    dt = export_controller(pid, PLANT, fmt="toml", rated_torque_n_m=3.0, rated_speed_rpm=3000.0, filters=filters)
+    text = dumps(dt, "toml")
+    assert tomllib.loads(text) == dt
+    dj = export_controller(pid, PLANT, fmt="json", filters=filters)
+    assert json.loads(dumps(dj, "json")) == dj
+    f = dt["filters"]
+    assert [x["place"] for x in f] == ["torque_command", "speed_measurement", "torque_command"]
+    assert f[0]["biquad_tustin_prewarped"] == Notch(1200.0, 300.0, -20.0).biquad(TS).as_dict()
+    assert f[2]["biquad_matched"] == FirstOrderLowPass(900.0).biquad(TS, "matched").as_dict()
+    with pytest.raises(ValueError, match=r"kv_per_s = None; expected a number, string, bool or list"):
+        dumps({"a": {"kv_per_s": None}}, "toml")
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"fmt": "yaml"}, r"fmt = 'yaml'; expected one of json, toml"),
+    ({"fmt": "toml", "rated_torque_n_m": -1.0, "rated_speed_rpm": 3000.0}, r"rated_torque_n_m = -1.0; expected"),
+    ({"fmt": "toml", "rated_torque_n_m": 3.0}, r"expected both \(for the per-unit gains\) or neither"),
+    ({"fmt": "toml", "filters": ["notch"]}, r"filters entry 'notch'; expected a Filter or a \(place, Filter\)"),
+    ({"fmt": "toml", "filters": [("speed", Notch(100.0, 10.0))]}, r"filters entry \('speed'"),
+    ({"fmt": "toml", "filters": [Notch(2100.0, 100.0)]}, r"notch frequency 2100 Hz at ts = 0.00025 s; expected "
+                                                         r"below the Nyquist frequency 2000 Hz"),
+])
+def test_bad_arguments(kwargs, match):
+    with pytest.raises(ValueError, match=match) as info:
+        export_controller(PID(0.085, 14.7), PLANT, **kwargs)
+    assert "\n" not in str(info.value)
+    with pytest.raises(ValueError, match=r"PID kff = 0.5; expected 0"):
+        export_controller(PID(0.085, 14.7, kff=0.5), PLANT, fmt="json")
+    with pytest.raises(ValueError, match=r"ts = 0; expected a finite sample time > 0 s"):
+        pid_biquad(PID(0.085), 0, "tustin")
+    with pytest.raises(ValueError, match=r"method = 'zoh'; expected one of forward_euler, backward_euler, tustin"):
+        pid_biquad(PID(0.085), TS, "zoh")
+    with pytest.raises(ValueError, match=r"pid = 0.085; expected a prsa_ctrl.PID"):
+        export_controller(0.085, PLANT, fmt="json")
+    with pytest.raises(ValueError, match=r"fmt = 'xml'"):
+        dumps({}, "xml")
