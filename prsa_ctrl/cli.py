@@ -1,110 +1,386 @@
-"""``prsa-tune``: tune the speed loop for a load step, verify, compare with baselines.
+"""``prsa-tune`` (tune the speed loop for a load step, verify, compare with baselines) and
+``prsa-plot`` (figures and margins for given gains).
 
-Exit codes: 0 success, 2 bad input (one line naming the value), 3 numerical failure.
-Heavy modules are imported only after the arguments, the plant and the scene are validated.
+Exit codes, the same for both tools:
+
+* 0 -- success (warnings, if any, are printed after the result);
+* 2 -- bad input: one line ``prsa-tune: error: ...`` naming the value as typed and what was
+  expected (flags, plant and scene files, output paths); nothing is written;
+* 3 -- numerical failure: one line ``prsa-tune: numerical failure: ...``; nothing is written;
+* 130 -- interrupted (Ctrl-C): the run stops within a second, one line, no output presented as
+  complete.
+
+Every flag is checked in the user's unit before any heavy import; the scene is checked against
+the plant (:func:`prsa_ctrl.scene.check_against_plant`); output paths are checked before the
+expensive work and written by :mod:`prsa_ctrl.output` (atomic, never onto an input file).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import re
 import os
+import signal
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Callable, Iterator, Sequence
 
-from .errors import PlantFileError, SceneError, SimulationError
-from .options import CONTROLLERS, ESTIMATORS
+from .errors import GeometryWarning, PlantFileError, SceneError, SimulationError
+from .options import CONTROLLERS, ESTIMATORS, OBJECTIVES
+from .output import OutputError
 
-__all__ = ["main", "parse_load_step", "write_json_atomic"]
+__all__ = ["main", "plot_main", "parse_load_step", "write_json_atomic", "format_report", "build_parser",
+           "build_plot_parser", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED"]
 
 _T_START = time.perf_counter()
 
+EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
+
+#: Seconds between Ctrl-C and a forced exit when a solver does not hand control back.
+INTERRUPT_GRACE_S = 0.8
+
+#: Gain ranges accepted by ``prsa-plot`` (SI): far beyond any sensible speed loop of a roller
+#: screw (tuned kp ~0.1 N m s/rad), but finite so that every matrix stays representable.
+KP_RANGE = (1e-9, 1e4)
+KI_RANGE = (0.0, 1e7)
+KD_RANGE = (0.0, 1e2)
+WORKERS_MAX = 64
+
 
 class _UsageError(Exception):
-    pass
+    """Bad input: exit 2 with the message."""
 
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2, no usage dump
+        m = re.match(r"argument (\S+): (--\S+ .*)$", message, re.S)
+        if m and m.group(2).split()[0] in m.group(1).split("/"):
+            message = m.group(2)  # our converters already name the flag
         raise _UsageError(message)
 
 
+# --- flag values ---------------------------------------------------------------------------------
+
+def _number(flag: str, lo: float, hi: float, unit: str, what: str, lo_open: bool = False,
+            hi_open: bool = False) -> Callable[[str], float]:
+    """Converter for a finite number in a stated range; messages quote the text as typed."""
+    lb = "(" if lo_open else "["
+    rb = ")" if hi_open else "]"
+    rng = f"{lb}{lo:g}, {hi:g}{rb}" + (f" {unit}" if unit else "")
+
+    def conv(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected {what} in {rng}") from None
+        ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+        if not ok:
+            raise argparse.ArgumentTypeError(f"{flag} {text}" + (f" {unit}" if unit and math.isfinite(v) else "")
+                                             + f": expected {what} in {rng}")
+        return v
+
+    return conv
+
+
+def _integer(flag: str, lo: int, hi: int, what: str) -> Callable[[str], int]:
+    def conv(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected {what} {lo}..{hi}") from None
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"{flag} {text}: expected {what} {lo}..{hi}")
+        return v
+
+    return conv
+
+
+def _path_text(flag: str) -> Callable[[str], str]:
+    def conv(text: str) -> str:
+        if not text.strip():
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected a path")
+        if "\x00" in text:
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: a path may not contain NUL characters")
+        return text
+
+    return conv
+
+
 def parse_load_step(text: str) -> tuple[float, tuple[float, ...]]:
-    """Parse ``INITIAL:FINAL[,FINAL...]`` (N), e.g. ``500:1500`` or ``500:1000,1500,2000``."""
+    """Parse ``INITIAL:FINAL[,FINAL...]`` (N), e.g. ``500:1500`` or ``500:1000,1500,2000``.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        One line quoting ``text``: malformed, non-finite or negative loads, a final load equal
+        to the initial one, more than ``MAX_LOAD_LEVELS`` levels. Whether the plant can hold
+        the loads is checked against the plant (:func:`prsa_ctrl.scene.check_against_plant`).
+
+    Examples
+    --------
+    >>> parse_load_step("500:1000,1500")
+    (500.0, (1000.0, 1500.0))
+    """
+    from .scene import MAX_LOAD_LEVELS
+
     expected = "expected INITIAL:FINAL[,FINAL...] in newtons >= 0, e.g. 500:1500"
     parts = text.split(":")
     if len(parts) != 2 or not parts[0].strip() or not parts[1].strip():
         raise argparse.ArgumentTypeError(f"{text!r}: {expected}")
+    tokens = parts[1].split(",")
+    if len(tokens) > MAX_LOAD_LEVELS:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r}...: {len(tokens)} load levels; expected at most {MAX_LOAD_LEVELS}")
     try:
         initial = float(parts[0])
-        finals = tuple(float(p) for p in parts[1].split(","))
+        finals = tuple(float(p) for p in tokens)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: {expected}") from None
-    for v in (initial, *finals):
+    for tok, v in zip((parts[0], *tokens), (initial, *finals)):
         if not math.isfinite(v) or v < 0:
-            raise argparse.ArgumentTypeError(f"{text!r}: load {v:g} N is not allowed; {expected}")
+            raise argparse.ArgumentTypeError(f"{text!r}: load {tok.strip()} N is not allowed; {expected}")
     for f in finals:
         if f == initial:
             raise argparse.ArgumentTypeError(f"{text!r}: final load equals the initial load; expected a step")
     return initial, finals
 
 
-def _positive(name: str):
-    def conv(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
-        if not math.isfinite(v) or v <= 0:
-            raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number > 0")
-        return v
+def _load_step_flag(text: str) -> tuple[float, tuple[float, ...]]:
+    try:
+        return parse_load_step(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"--load-step {exc}") from None
 
-    return conv
+
+# --- parsers -------------------------------------------------------------------------------------
+
+def _common_flags(p: argparse.ArgumentParser) -> None:
+    from .scene import SETPOINT_MAX_RPM
+
+    p.add_argument("--plant", default=None, type=_path_text("--plant"), metavar="NAME|PATH",
+                   help="built-in plant name or a plant .toml file (default: paper-iprsm)")
+    p.add_argument("--scene", default=None, type=_path_text("--scene"), metavar="NAME|PATH",
+                   help="built-in scene name or a scene .toml file (default: paper-load-step)")
+    p.add_argument("--load-step", type=_load_step_flag, metavar="N0:N1[,N2...]",
+                   help="initial and final axial load(s), N, compressive >= 0; at most what the motor can hold "
+                        "at the setpoint (default: the scene's, 500:1500)")
+    p.add_argument("--setpoint-rpm", metavar="RPM",
+                   type=_number("--setpoint-rpm", 0.0, SETPOINT_MAX_RPM, "rpm", "a nut speed", lo_open=True),
+                   help=f"nut-speed setpoint, rpm, in (0, {SETPOINT_MAX_RPM:g}] (default: the scene's, 300)")
+    p.add_argument("--verbose", action="store_true",
+                   help="progress lines on stderr, solver diagnostics and notes about the plant (geometry)")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """Argument parser of ``prsa-tune``."""
     p = _Parser(
-        prog="prsa-tune",
+        prog="prsa-tune", allow_abbrev=False,
         description="Tune the nut-speed PI/PID of an inverted planetary roller screw actuator "
-        "for a load step, verify on the nonlinear simulator, compare with baselines.",
+        "for a load step, verify on the nonlinear simulator, compare with baselines. "
+        "Exit codes: 0 ok, 2 bad input, 3 numerical failure, 130 interrupted.",
     )
-    p.add_argument("--load-step", type=parse_load_step, metavar="N0:N1[,N2...]",
-                   help="initial and final axial load(s) in N (default: the scene's, 500:1500)")
-    p.add_argument("--plant", default=None, metavar="NAME|PATH", help="built-in plant name or .toml (default paper-iprsm)")
-    p.add_argument("--scene", default=None, metavar="NAME|PATH", help="built-in scene name or .toml (default paper-load-step)")
-    p.add_argument("--setpoint-rpm", type=_positive("--setpoint-rpm"), help="nut-speed setpoint, rpm")
-    p.add_argument("--step-time", type=_positive("--step-time"), help="time of the load step, s")
-    p.add_argument("--duration", type=_positive("--duration"), help="end of the record, s")
-    p.add_argument("--ms-max", type=_positive("--ms-max"), help="peak-sensitivity bound (default 1.4)")
-    p.add_argument("--objective", choices=("ie", "iae", "itae", "ise"), help="tuning objective")
-    p.add_argument("--controller", choices=CONTROLLERS, help="controller structure")
+    _common_flags(p)
+    p.add_argument("--step-time", metavar="S", type=_number("--step-time", 0.0, 1e4, "s", "a time", lo_open=True),
+                   help="time of the load step, s; at least 8 controller samples after t = 0 (default: the scene's)")
+    p.add_argument("--duration", metavar="S", type=_number("--duration", 0.0, 1e4, "s", "a time", lo_open=True),
+                   help="end of the record, s; at least 80 controller samples after the step and at most "
+                        "40000 samples in all (default: the scene's)")
+    p.add_argument("--ms-max", metavar="MS", type=_number("--ms-max", 1.0, 10.0, "", "a peak sensitivity",
+                                                          lo_open=True, hi_open=True),
+                   help="peak-sensitivity bound, in (1, 10) (default: the scene's, 1.4)")
+    p.add_argument("--mt-max", metavar="MT", type=_number("--mt-max", 1.0, 10.0, "", "a peak complementary sensitivity",
+                                                          lo_open=True, hi_open=True),
+                   help="peak complementary-sensitivity bound, in (1, 10); Mt >= 1 with integral action "
+                        "(default: the scene's, none)")
+    p.add_argument("--objective", choices=OBJECTIVES, help="tuning objective (default: the scene's, iae)")
+    p.add_argument("--controller", choices=CONTROLLERS, help="controller structure (default: the scene's, pi)")
     p.add_argument("--estimator", choices=ESTIMATORS, help="speed measurement: drive difference or Kalman filter")
     p.add_argument("--feedforward", action="store_true", help="feed the estimated load torque forward (needs --estimator kf)")
-    p.add_argument("--json", type=Path, metavar="PATH", help="write the report as JSON (atomically)")
-    p.add_argument("--plots", type=Path, metavar="DIR", help="write the standard plots (PNG and SVG) into DIR")
-    p.add_argument("--workers", type=int, default=None, help="processes for verification (default: cores)")
+    p.add_argument("--json", type=_path_text("--json"), metavar="PATH",
+                   help="write the report as JSON (atomically; never onto an input file; symlinks are written through)")
+    p.add_argument("--plots", type=_path_text("--plots"), metavar="DIR",
+                   help="write the standard plots (PNG and SVG) into DIR (created if missing)")
+    p.add_argument("--workers", type=_integer("--workers", 1, WORKERS_MAX, "an integer"), default=None,
+                   help="processes for verification (default: cores, at most 4)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     return p
 
 
-def write_json_atomic(path: Path, data: dict) -> None:
-    """Write JSON to a temporary file beside ``path`` and rename it into place."""
-    text = json.dumps(data, indent=2, allow_nan=False, default=float)
-    directory = path.resolve().parent
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+def build_plot_parser() -> argparse.ArgumentParser:
+    """Argument parser of ``prsa-plot``."""
+    p = _Parser(
+        prog="prsa-plot", allow_abbrev=False,
+        description="Bode, sensitivity, load-step and setpoint-step figures for a plant and given gains (no tuning), "
+        "and the margins (Ms, Mt, GM, PM, crossover) they give. Unstable or marginal gains are plotted "
+        "with a warning (time responses of an unstable loop are not drawn). "
+        "Exit codes: 0 ok, 2 bad input, 3 numerical failure, 130 interrupted.",
+    )
+    p.add_argument("--kp", required=True, metavar="KP",
+                   type=_number("--kp", KP_RANGE[0], KP_RANGE[1], "N m s/rad", "a proportional gain"),
+                   help=f"proportional gain, N m s/rad, in [{KP_RANGE[0]:g}, {KP_RANGE[1]:g}] (required)")
+    p.add_argument("--ki", default=0.0, metavar="KI", type=_number("--ki", *KI_RANGE, "N m/rad", "an integral gain"),
+                   help=f"integral gain, N m/rad, in [0, {KI_RANGE[1]:g}] (default 0: P or PD only)")
+    p.add_argument("--kd", default=0.0, metavar="KD", type=_number("--kd", *KD_RANGE, "N m s^2/rad", "a derivative gain"),
+                   help=f"derivative gain, N m s^2/rad, in [0, {KD_RANGE[1]:g}] (default 0), filtered with "
+                        "tf = 4 sample times")
+    _common_flags(p)
+    p.add_argument("--plots", "--out", dest="out", default="prsa-plots", type=_path_text("--plots"), metavar="DIR",
+                   help="folder for the PNG and SVG files (default: ./prsa-plots, created if missing; "
+                        "not created when the run fails)")
+    return p
+
+
+_VALUE_FLAGS = {"--load-step", "--setpoint-rpm", "--step-time", "--duration", "--ms-max", "--mt-max", "--kp",
+                "--ki", "--kd", "--workers"}
+
+
+def _attach_values(argv: Sequence[str]) -> list[str]:
+    """``--load-step -5:10`` would read ``-5:10`` as an option; glue values to their flag so
+    that such a value reaches the validator and is reported by name."""
+    out: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a.startswith("--") and a.partition("=")[2] == "--":
+            raise _UsageError(f"{a.partition('=')[0]} '--': expected a value")
+        if a in _VALUE_FLAGS:
+            nxt = next(it, None)
+            if nxt == "--":  # argparse would drop it and hand the converter nothing
+                raise _UsageError(f"{a} '--': expected a value")
+            out.append(a if nxt is None else f"{a}={nxt}")
+        else:
+            out.append(a)
+    return out
+
+
+# --- run-time guards: Ctrl-C, solver chatter, warnings ------------------------------------------
+
+class _Run:
+    """State of one command invocation: the program name, the interrupt flag, the watchdog,
+    the original stderr descriptor and the directories created so far."""
+
+    def __init__(self, prog: str) -> None:
+        self.prog = prog
+        self.interrupted = False
+        self.reported = False
+        self.lock = threading.Lock()
+        self.timer: threading.Timer | None = None
+        self.err_fd = 2
+        self.created: list[Path] = []
+        self.pid = os.getpid()
+        self.argv: list[str] = []
+
+    def say(self, line: str) -> bool:
+        """Print the final one-line message once (main thread or watchdog, whichever first)."""
+        with self.lock:
+            if self.reported:
+                return False
+            self.reported = True
+        data = (line + "\n").encode("utf-8", "replace")
+        try:
+            sys.stderr.flush()
+            sys.stderr.fileno()
+            real = True
+        except Exception:  # noqa: BLE001 - not a real file (pytest capture, StringIO)
+            real = False
+        if real:
+            os.write(self.err_fd, data)  # the terminal's stderr even while solver output is captured
+        else:
+            print(line, file=sys.stderr)
+        return True
+
+    def interrupt_line(self) -> str:
+        return f"{self.prog}: interrupted (Ctrl-C); no output written"
+
+    def force_exit(self) -> None:  # watchdog thread: a solver kept control after Ctrl-C
+        from .output import cleanup_temporaries, remove_created
+
+        cleanup_temporaries()
+        remove_created(self.created)
+        try:
+            import multiprocessing
+
+            for child in multiprocessing.active_children():
+                child.kill()
+        except Exception:  # noqa: BLE001 - best effort
+            pass
+        self.say(self.interrupt_line())
+        os._exit(EXIT_INTERRUPTED)
+
+    def on_sigint(self, signum, frame) -> None:
+        if os.getpid() != self.pid:  # a forked worker: the parent reports
+            os._exit(EXIT_INTERRUPTED)
+        self.interrupted = True
+        if self.timer is None:
+            self.timer = threading.Timer(INTERRUPT_GRACE_S, self.force_exit)
+            self.timer.daemon = True
+            self.timer.start()
+        raise KeyboardInterrupt
+
+    def check(self) -> None:
+        """Raise KeyboardInterrupt if Ctrl-C came while a solver swallowed it."""
+        if self.interrupted:
+            raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _guard(run: _Run) -> Iterator[None]:
+    """Install the Ctrl-C handler for the duration of a command (main thread only)."""
+    old = None
+    if threading.current_thread() is threading.main_thread():
+        old = signal.signal(signal.SIGINT, run.on_sigint)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        yield
+    finally:
+        if run.timer is not None:
+            run.timer.cancel()
+        if old is not None:
+            # After an interrupt a second delivery may still be pending (a solver that caught
+            # the first re-raises it): ignore it, the command is ending with exit 130 anyway.
+            signal.signal(signal.SIGINT, signal.SIG_IGN if run.interrupted else old)
+
+
+@contextlib.contextmanager
+def _native_output(run: _Run, lines: list[str]) -> Iterator[None]:
+    """Collect what the solvers print -- C code (IPOPT, SUNDIALS) on descriptors 1 and 2, and
+    CasADi through Python's ``sys.stdout``/``sys.stderr`` -- in a temporary file; the lines
+    are returned in ``lines`` (shown with ``--verbose``, otherwise counted in one note). The
+    command's own final line goes to the saved terminal descriptor (:meth:`_Run.say`)."""
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = {fd: os.dup(fd) for fd in (1, 2)}
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    sink = tempfile.TemporaryFile()
+    text_sink = open(os.dup(sink.fileno()), "w", buffering=1, encoding="utf-8", errors="replace")
+    old_streams = sys.stdout, sys.stderr
+    sys.stdout = sys.stderr = text_sink
+    for fd in (1, 2):
+        os.dup2(sink.fileno(), fd)
+    run.err_fd = saved[2]
+    try:
+        yield
+    finally:
+        with contextlib.suppress(Exception):
+            text_sink.flush()
+        for fd in (1, 2):
+            os.dup2(saved[fd], fd)
+        run.err_fd = 2
+        sys.stdout, sys.stderr = old_streams
+        text_sink.close()
+        for fd in saved.values():
+            os.close(fd)
+        sink.seek(0)
+        text = sink.read().decode("utf-8", "replace")
+        sink.close()
+        lines.extend(l for l in text.splitlines() if l.strip())
 
 
 def _fmt(v) -> str:
@@ -119,6 +395,12 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def _fmt_margin(v: float) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "none"
+    return "inf" if math.isinf(v) else f"{v:.4g}"
+
+
 def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
     cells = [list(header)] + [[_fmt(c) for c in r] for r in rows]
     widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
@@ -127,17 +409,25 @@ def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
     return "\n".join(lines)
 
 
-def format_report(rep) -> str:
-    """Readable text report of an :class:`~prsa_ctrl.autotune.ActuatorTuning`."""
+def _scene_header(sc, overrides: Sequence[str] = ()) -> str:
+    loads = ", ".join(f"{f:g}" for f in sc.final_loads)
+    bounds = f"Ms <= {sc.ms_max:g}" + (f", Mt <= {sc.mt_max:g}" if sc.mt_max is not None else "")
+    name = f"scene {sc.name}" + (f" with {' '.join(overrides)}" if overrides else "")
+    return (f"{name}: {sc.setpoint_rpm:g} rpm, {sc.initial_load:g} N -> {loads} N at {sc.step_time:g} s, "
+            f"record to {sc.duration:g} s; {sc.objective.upper()}, {sc.controller.upper()}, {bounds}")
+
+
+def format_report(rep, overrides: Sequence[str] = ()) -> str:
+    """Readable text report of an :class:`~prsa_ctrl.autotune.ActuatorTuning`; ``overrides``
+    are the command-line flags that changed the scene (named in the header)."""
     sc, b = rep.scene, rep.best
     obj = sc.objective.upper()
-    loads = ", ".join(f"{f:g}" for f in sc.final_loads)
+    label = b.name[len("tuned "):] if b.name.startswith("tuned ") else f"({b.name})"
     out = [
-        f"prsa-tune: plant {rep.plant.name}, scene {sc.name}: {sc.setpoint_rpm:g} rpm, "
-        f"{sc.initial_load:g} N -> {loads} N at {sc.step_time:g} s",
+        f"prsa-tune: plant {rep.plant.name}, {_scene_header(sc, overrides)}",
         f"verification: {rep.fidelity_reason}; {'sampled controller (ZOH, quantised encoder)' if sc.discrete else 'continuous controller'}",
         "",
-        f"Tuned {sc.controller.upper()} ({b.name}): kp = {b.pid.kp:.5g} N m s/rad, ki = {b.pid.ki:.5g} N m/rad"
+        f"Tuned {sc.controller.upper()} {label}: kp = {b.pid.kp:.5g} N m s/rad, ki = {b.pid.ki:.5g} N m/rad"
         + (f", kd = {b.pid.kd:.5g} N m s^2/rad (tf {b.pid.tf:g} s)" if b.pid.kd else "")
         + (f", load feed-forward gain kff = {b.pid.kff:.3g}" if sc.feedforward else ""),
         f"Margins: Ms {b.margins.ms:.3f}, Mt {b.margins.mt:.3f}, GM {_fmt(b.margins.gm_db)} dB, "
@@ -160,10 +450,10 @@ def format_report(rep) -> str:
     for k, f1 in enumerate(sc.final_loads):
         pm, vm = b.predicted[k], b.verified[k]
         rows = []
-        for label, attr in fields:
+        for lab, attr in fields:
             p, v = getattr(pm, attr), getattr(vm, attr)
             diff = (p / v - 1) * 100 if isinstance(v, float) and not isinstance(v, bool) and v and math.isfinite(v) and math.isfinite(p) else None
-            rows.append([label, p, v, f"{diff:+.1f} %" if diff is not None else "-"])
+            rows.append([lab, p, v, f"{diff:+.1f} %" if diff is not None else "-"])
         out.append(f"Load step {sc.initial_load:g} -> {f1:g} N")
         out.append(_table(["metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows))
         out.append("")
@@ -192,164 +482,468 @@ def format_report(rep) -> str:
     return "\n".join(out)
 
 
-def _attach_values(argv: Sequence[str]) -> list[str]:
-    """``--load-step -5:10`` would read ``-5:10`` as an option; glue values to their flag so
-    that such a value reaches the validator and is reported by name."""
-    out: list[str] = []
-    it = iter(argv)
-    for a in it:
-        if a in _VALUE_FLAGS:
-            nxt = next(it, None)
-            out.append(a if nxt is None else f"{a}={nxt}")
+def write_json_atomic(path: str | os.PathLike, data: dict, inputs: Sequence[str | os.PathLike] = ()) -> Path:
+    """Write JSON through :func:`prsa_ctrl.output.write_text` (atomic, never onto ``inputs``)."""
+    from .output import write_text
+
+    text = json.dumps(data, indent=2, allow_nan=False, default=float)
+    return write_text(path, text + "\n", inputs, flag="--json")
+
+
+# --- error translation ---------------------------------------------------------------------------
+
+#: Messages of numpy/scipy/CasADi that mean "the numbers left the representable range".
+_INTERNAL = ("must not contain infs or nans", "failed to find a finite solution", "maximum allowed dimension",
+             "array is too big", "unable to allocate", "singular matrix", "math domain error", "overflow",
+             "division by zero", "invalid value encountered", "must be finite")
+
+
+def _describe_failure(exc: BaseException, what: str) -> tuple[int, str]:
+    """Map an exception of the expensive phase to (exit code, one line without internal names)."""
+    if isinstance(exc, (MemoryError,)) or "maximum allowed dimension" in str(exc).lower() or \
+            "unable to allocate" in str(exc).lower():
+        return EXIT_BAD_INPUT, f"error: {what} needs more memory than this machine has; shorten --duration or use fewer load levels"
+    if isinstance(exc, (PlantFileError, SceneError, OutputError)):
+        return EXIT_BAD_INPUT, f"error: {_one_line(exc)}"
+    if isinstance(exc, SimulationError):
+        return EXIT_NUMERICAL, f"numerical failure: {_one_line(exc)}"
+    msg = str(exc).lower()
+    if isinstance(exc, (ArithmeticError, FloatingPointError)) or any(k in msg for k in _INTERNAL) \
+            or re.search(r"\b(nan|inf)\b", msg):
+        return EXIT_NUMERICAL, (f"numerical failure: {what} produced non-finite numbers "
+                                f"({type(exc).__name__}); check the plant values and the operating point")
+    if isinstance(exc, ValueError):  # our own messages (e.g. no gains meet the robustness bound)
+        return EXIT_NUMERICAL, f"numerical failure: {_one_line(exc)}"
+    return EXIT_NUMERICAL, f"numerical failure: {what} failed ({type(exc).__name__}); rerun with --verbose for details"
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def _status_says_interrupted(obj: Any, depth: int = 0) -> bool:
+    """True if a solver status anywhere in a result says the user stopped it (IPOPT's
+    ``User_Requested_Stop``: CasADi turns Ctrl-C into that status instead of an exception)."""
+    if depth > 6:
+        return False
+    if isinstance(obj, str):
+        return "user_requested_stop" in obj.lower() or "interrupted" in obj.lower()
+    if isinstance(obj, dict):
+        return any(_status_says_interrupted(v, depth + 1) for k, v in obj.items()
+                   if isinstance(v, (dict, list, tuple)) or "status" in str(k).lower())
+    if isinstance(obj, (list, tuple)):
+        return any(_status_says_interrupted(v, depth + 1) for v in obj)
+    return False
+
+
+# --- shared set-up -------------------------------------------------------------------------------
+
+def _input_files(args) -> list[str]:
+    files = []
+    for v in (getattr(args, "plant", None), getattr(args, "scene", None)):
+        if v is not None and os.path.exists(v):
+            files.append(v)
+    return files
+
+
+def _load_and_override(args, run: _Run, plot: bool = False):
+    """Plant and scene with the command-line overrides, checked against each other."""
+    from .plant import load_plant
+    from .scene import check_against_plant, load_scene
+
+    plant = load_plant(args.plant)
+    scene = load_scene(args.scene)
+    changes: dict[str, Any] = {}
+    typed: dict[str, str] = {}
+    overrides: list[str] = []
+    raw = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in run.argv if a.startswith("--") and "=" in a}
+    if args.load_step is not None:
+        initial, finals = args.load_step
+        if plot:
+            finals = finals[:1]
+        changes["initial_load"], changes["final_loads"] = initial, finals
+        typed["initial_load"] = typed["final_loads"] = f"--load-step {raw.get('--load-step', '')!r}"
+        overrides.append(f"--load-step {raw.get('--load-step', '')}")
+    if args.setpoint_rpm is not None:
+        changes["setpoint_rad_s"] = args.setpoint_rpm * math.pi / 30.0
+        typed["setpoint_rad_s"] = f"--setpoint-rpm {raw.get('--setpoint-rpm', args.setpoint_rpm)}"
+        overrides.append(typed["setpoint_rad_s"])
+    for arg, fieldname, flag in (("step_time", "step_time", "--step-time"), ("duration", "duration", "--duration"),
+                                 ("ms_max", "ms_max", "--ms-max"), ("mt_max", "mt_max", "--mt-max"),
+                                 ("objective", "objective", "--objective"),
+                                 ("controller", "controller", "--controller"), ("estimator", "estimator", "--estimator")):
+        v = getattr(args, arg, None)
+        if v is None:
+            continue
+        changes[fieldname] = v
+        typed[fieldname] = f"{flag} {raw.get(flag, v)}"
+        overrides.append(typed[fieldname])
+    if getattr(args, "feedforward", False):
+        changes["feedforward"] = True
+        overrides.append("--feedforward")
+    if changes:
+        try:
+            scene = scene.replace(origin="command line", **changes)
+        except SceneError as exc:
+            raise _UsageError(_cross_check_message(exc, typed, scene, changes)) from None
+    check_against_plant(scene, plant, typed)
+    return plant, scene, overrides
+
+
+def _cross_check_message(exc: SceneError, typed: dict[str, str], scene, changes: dict) -> str:
+    """A scene field rejected after overrides: say it with the flags as typed."""
+    msg = str(exc)
+    if msg.startswith("command line: duration") and ("duration" in typed or "step_time" in typed):
+        who = " and ".join(typed[k] for k in ("step_time", "duration") if k in typed)
+        st = changes.get("step_time", scene.step_time)
+        du = changes.get("duration", scene.duration)
+        return f"{who}: the record ends at {du:g} s, before the load step at {st:g} s has any response; expected a duration beyond the step time"
+    return msg.replace("command line: ", "command line (with " + ", ".join(typed.values()) + "): ") if typed else msg
+
+
+def _show_notes(run: _Run, notes: list[warnings.WarningMessage], native: list[str], verbose: bool, quiet: bool) -> None:
+    """Notes after the result: Python warnings (deduplicated; geometry notes of built-in plants
+    only with --verbose) and one line for solver diagnostics."""
+    if quiet:
+        return
+    seen = set()
+    for w in notes:
+        text = str(w.message)
+        if text in seen:
+            continue
+        seen.add(text)
+        if issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose:
+            continue
+        print(f"{run.prog}: note: {text}", file=sys.stderr)
+    if native:
+        if verbose:
+            for line in native:
+                print(f"{run.prog}: solver: {line}", file=sys.stderr)
         else:
-            out.append(a)
-    return out
+            print(f"{run.prog}: note: the numerical solvers printed {len(native)} diagnostic lines "
+                  "(shown with --verbose)", file=sys.stderr)
 
 
-_VALUE_FLAGS = {"--load-step", "--setpoint-rpm", "--step-time", "--duration", "--ms-max"}
+def _progress(run: _Run, verbose: bool, text: str) -> None:
+    if verbose:
+        print(f"{run.prog}: {text}", file=sys.stderr, flush=True)
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"{Path(sys.argv[0]).name if sys.argv and sys.argv[0] else 'prsa'}: note: {message}", file=sys.stderr)
+def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
+    """Common frame of both commands: Ctrl-C guard, one-line errors, exit codes."""
+    code = _invoke_inner(prog, argv, body)
+    if code == EXIT_INTERRUPTED and argv is None:
+        # The process itself (console script, python -m): end now with 130. A second SIGINT
+        # delivery left pending by a solver, or an atexit hook of a solver library, would
+        # otherwise turn the exit into a death by SIGINT.
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(EXIT_INTERRUPTED)
+    return code
 
+
+def _invoke_inner(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
+    run = _Run(prog)
+    with _guard(run):
+        try:
+            run.argv = _attach_values(list(sys.argv[1:] if argv is None else argv))
+            return body(run, run.argv)
+        except KeyboardInterrupt:
+            from .output import cleanup_temporaries, remove_created
+
+            cleanup_temporaries()
+            remove_created(run.created)
+            run.say(run.interrupt_line())
+            return EXIT_INTERRUPTED
+        except (_UsageError, argparse.ArgumentTypeError, PlantFileError, SceneError, OutputError) as exc:
+            from .output import remove_created
+
+            remove_created(run.created)
+            if run.interrupted:
+                run.say(run.interrupt_line())
+                return EXIT_INTERRUPTED
+            run.say(f"{prog}: error: {_one_line(exc)}")
+            return EXIT_BAD_INPUT
+        except Exception as exc:  # noqa: BLE001 - a bug must not print a traceback either
+            from .output import remove_created
+
+            remove_created(run.created)
+            if run.interrupted:
+                run.say(run.interrupt_line())
+                return EXIT_INTERRUPTED
+            code, line = _describe_failure(exc, f"{prog} {' '.join(run.argv)}".strip())
+            run.say(f"{prog}: {line}")
+            return code
+
+
+# --- prsa-tune -----------------------------------------------------------------------------------
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    argv = list(sys.argv[1:] if argv is None else argv)
+    """``prsa-tune``; returns the exit code (0, 2, 3 or 130, see the module docstring)."""
+    return _invoke("prsa-tune", argv, _tune_body)
+
+
+def _tune_body(run: _Run, argv: list[str]) -> int:
+    from .output import check_directory, check_writable
+
+    if "-h" in argv or "--help" in argv:
+        build_parser().print_help()
+        return EXIT_OK
+    args = build_parser().parse_args(argv)
+    notes: list[warnings.WarningMessage] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        plant, scene, overrides = _load_and_override(args, run)
+        inputs = _input_files(args)
+        if args.json is not None:
+            check_writable(args.json, inputs, "--json")
+        if args.plots is not None:
+            check_directory(args.plots, "--plots")
+            if args.json is not None and os.path.realpath(args.plots) == os.path.realpath(args.json):
+                raise _UsageError(f"--plots {args.plots!r} and --json {args.json!r} name the same path")
+        notes.extend(caught)
+    run.check()
+    native: list[str] = []
+    what = f"tuning {plant.name} at {scene.setpoint_rpm:g} rpm, {scene.initial_load:g} N -> " \
+           f"{', '.join(f'{f:g}' for f in scene.final_loads)} N"
+    _progress(run, args.verbose, f"{what}: linearise, tune, verify ...")
     try:
-        args = parser.parse_args(_attach_values(argv))
-        warnings.showwarning = _show_warning
-        if args.quiet:
-            warnings.simplefilter("ignore")
-        from .plant import load_plant
-        from .scene import load_scene
+        with warnings.catch_warnings(record=True) as caught, _native_output(run, native):
+            warnings.simplefilter("always")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", GeometryWarning)
+                from .autotune import tune_actuator
 
-        plant = load_plant(args.plant)
-        scene = load_scene(args.scene)
-        changes = {}
-        if args.load_step is not None:
-            changes["initial_load"], changes["final_loads"] = args.load_step
-        for arg, field in (("setpoint_rpm", None), ("step_time", "step_time"), ("duration", "duration"),
-                           ("ms_max", "ms_max"), ("objective", "objective"), ("controller", "controller")):
-            v = getattr(args, arg)
-            if v is None:
-                continue
-            if arg == "setpoint_rpm":
-                changes["setpoint_rad_s"] = v * math.pi / 30.0
-            else:
-                changes[field] = v
-        if args.estimator is not None:
-            changes["estimator"] = args.estimator
-        if args.feedforward:
-            changes["feedforward"] = True
-        if changes:
-            scene = scene.replace(origin="command line", **changes)
-        if args.workers is not None and args.workers < 1:
-            raise _UsageError(f"--workers {args.workers}: expected an integer >= 1")
-        if args.json is not None and not args.json.resolve().parent.is_dir():
-            raise _UsageError(f"--json {str(args.json)!r}: directory does not exist")
-        if args.plots is not None and args.plots.exists() and not args.plots.is_dir():
-            raise _UsageError(f"--plots {str(args.plots)!r}: exists and is not a directory")
-        # Out-of-range loads are bad input too: check the motor can hold every level.
-        from .equilibrium import operating_point
-
-        for f in (scene.initial_load, *scene.final_loads):
-            try:
-                operating_point(plant, scene.setpoint_rad_s, f, "rigid")
-            except SimulationError as exc:
-                raise _UsageError(f"load {f:g} N out of range for {plant.name}: {exc}") from None
-    except (_UsageError, argparse.ArgumentTypeError) as exc:
-        print(f"prsa-tune: error: {exc}", file=sys.stderr)
-        return 2
-    except (PlantFileError, SceneError) as exc:
-        print(f"prsa-tune: error: {exc}", file=sys.stderr)
-        return 2
-
-    try:
-        from .autotune import tune_actuator
-
-        rep = tune_actuator(plant, scene, workers=args.workers)
-    except (SimulationError, ArithmeticError) as exc:
-        print(f"prsa-tune: numerical failure: {exc}", file=sys.stderr)
-        return 3
-    except ValueError as exc:  # e.g. no gains meet the robustness bound
-        print(f"prsa-tune: error: {exc}", file=sys.stderr)
-        return 3
+                rep = tune_actuator(plant, scene, workers=args.workers)
+            notes.extend(caught)
+        run.check()
+        if _status_says_interrupted(rep.as_dict()):
+            raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:  # noqa: BLE001 - translated into one line at this boundary
+        run.check()
+        code, line = _describe_failure(exc, what)
+        if args.verbose:  # the internal detail, for a bug report; never a traceback
+            print(f"{run.prog}: detail: {type(exc).__name__}: {_one_line(exc)[:500]}", file=sys.stderr)
+        run.say(f"{run.prog}: {line}")
+        return code
     rep.timing_s["process"] = time.perf_counter() - _T_START
-    if args.plots is not None:
-        from .plots import write_standard_plots
-
-        args.plots.mkdir(parents=True, exist_ok=True)
-        rep.plot_files = write_standard_plots(rep, args.plots)
-    if args.json is not None:
-        data = rep.as_dict()
-        data["timing_s"] = dict(rep.timing_s)
-        write_json_atomic(args.json, data)
+    _progress(run, args.verbose, "writing outputs")
+    try:
+        if args.plots is not None:
+            rep.plot_files = _publish_report_plots(run, rep, args.plots, inputs)
+        if args.json is not None:
+            data = rep.as_dict()
+            data["timing_s"] = dict(rep.timing_s)
+            run.check()
+            write_json_atomic(args.json, data, inputs)
+    except OutputError:
+        raise
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        code, line = _describe_failure(exc, "writing the outputs")
+        run.say(f"{run.prog}: {line}")
+        return code
     if not args.quiet:
-        print(format_report(rep))
+        print(format_report(rep, overrides))
         if args.json is not None:
             print(f"JSON report: {args.json}")
         if args.plots is not None:
             print(f"plots: {', '.join(str(p) for p in rep.plot_files)}")
-    return 0
+    _show_notes(run, notes, native, args.verbose, args.quiet)
+    return EXIT_OK
 
 
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+def _publish_report_plots(run: _Run, rep, directory: str, inputs: Sequence[str]) -> list[Path]:
+    """Render the standard plots into a private staging folder, then write each through the
+    output writer into ``directory`` (created only now, and taken back if this fails)."""
+    from .plots import write_standard_plots
+
+    return _staged(run, lambda staging: write_standard_plots(rep, staging), directory, inputs)
 
 
-def build_plot_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="prsa-plot", description="Bode and step-response plots for a plant and given gains (no tuning).")
-    p.add_argument("--plant", default=None, metavar="NAME|PATH")
-    p.add_argument("--scene", default=None, metavar="NAME|PATH")
-    p.add_argument("--kp", type=_positive("--kp"), required=True, help="N m s/rad")
-    p.add_argument("--ki", type=float, default=0.0, help="N m/rad")
-    p.add_argument("--kd", type=float, default=0.0, help="N m s^2/rad")
-    p.add_argument("--load-step", type=parse_load_step, metavar="N0:N1")
-    p.add_argument("--setpoint-rpm", type=_positive("--setpoint-rpm"))
-    p.add_argument("--out", type=Path, default=Path("prsa-plots"), metavar="DIR")
-    return p
+def _staged(run: _Run, render: Callable[[Path], list[Path]], directory: str, inputs: Sequence[str]) -> list[Path]:
+    """``render`` writes files into a private staging folder; each is then written through
+    :func:`prsa_ctrl.output.write_file` into ``directory`` (created only now)."""
+    import shutil
+
+    from .output import make_directory, write_file
+
+    staging = tempfile.mkdtemp(prefix="prsa-plots.prsa-tmp-")
+    try:
+        files = render(Path(staging))
+        run.check()
+        run.created.extend(make_directory(directory, "--plots"))
+        out = []
+        for f in files:
+            src = str(f)
+            out.append(Path(directory) / Path(f).name)
+            write_file(out[-1], lambda tmp, src=src: shutil.copyfile(src, tmp), inputs, "--plots")
+        return out
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+# --- prsa-plot -----------------------------------------------------------------------------------
+
+def _stability(lp, gains) -> str:
+    """"stable", "marginal" or "unstable" (``LoopModel.stability`` when the tuner has it;
+    else from the spectral radius of the sampled closed loop with a 1e-6 tolerance)."""
+    if hasattr(lp, "stability"):
+        return lp.stability(gains)
+    rho = lp.spectral_radius(gains)
+    if rho < 1.0 - 1e-6:
+        return "stable"
+    return "marginal" if rho <= 1.0 + 1e-6 else "unstable"
+
+
+def _design_figures(plant, scene, pid, loops, stability: str) -> dict:
+    """Figures for gains that :func:`prsa_ctrl.plots.write_design_plots` refuses (marginal or
+    unstable loops): frequency plots always, time responses unless unstable."""
+    import numpy as np
+
+    from .autotune import Design, _linear_fidelity, _predict, verify
+    from .linear import closed_loop, linearize
+    from .plots import bode_loop, bode_plant, load_step_plot, sensitivity_plot, step_response_plot
+    from .scene import choose_fidelity
+    from .simulation import simulate
+
+    scene, _ = choose_fidelity(scene)
+    lp = loops[0]
+    g = pid.gains
+    design = Design("given gains", pid, lp.margins(g))
+    ts = plant.sample_time_s if scene.discrete else None
+    sys_lin = linearize(plant, scene.setpoint_rad_s, scene.initial_load, _linear_fidelity(scene), sampled=scene.discrete)
+    L = lp.loop_response(g)
+    figs = {
+        "plant_bode": bode_plant(sys_lin, sample_time_s=ts)[0],
+        "loop_bode": bode_loop(lp.omega, L, design.margins, sample_time_s=ts)[0],
+        "sensitivity": sensitivity_plot(lp.omega, L, scene.ms_max, mt_max=scene.mt_max, sample_time_s=ts)[0],
+    }
+    title = "UNSTABLE closed loop" if stability == "unstable" else "marginally stable closed loop"
+    for fig in figs.values():
+        fig.suptitle(f"{title}: kp = {pid.kp:g}, ki = {pid.ki:g}, kd = {pid.kd:g}", color="tab:red", fontsize=10)
+    if stability == "unstable":
+        return figs
+    import control
+
+    _predict(design, loops, plant, scene)
+    verify(design, plant, scene)
+    figs["load_step"] = load_step_plot(design, scene, torque_limit=plant.torque_limit)[0]
+    w0, dw, t_step, span = scene.setpoint_rad_s, 0.1 * scene.setpoint_rad_s, 0.005, 0.1
+    r = simulate(plant, setpoint=[(0.0, w0), (t_step, w0 + dw)], load=scene.initial_load, duration=t_step + span,
+                 controller=pid, fidelity=scene.fidelity, discrete=scene.discrete)
+    cl = closed_loop(sys_lin, pid)
+    tl = np.linspace(0.0, span, 2001)
+    lin = control.step_response(cl, T=tl, input=0)
+    y_lin = w0 + dw * np.asarray(lin.outputs).reshape(cl.noutputs, -1)[cl.output_labels.index("nut_speed")]
+    figs["setpoint_step"] = step_response_plot(
+        np.asarray(r.time), np.asarray(r.outputs[0]), tl + t_step, y_lin, setpoint=None,
+        title=f"Setpoint step {w0:.2f} -> {w0 + dw:.2f} rad/s at {scene.initial_load:g} N ({title})",
+    )[0]
+    return figs
 
 
 def plot_main(argv: Sequence[str] | None = None) -> int:
     """``prsa-plot``: plant and loop Bode plots, sensitivities, load-step and setpoint-step
-    responses for given gains, written as PNG and SVG into ``--out``."""
-    parser = build_plot_parser()
-    argv = list(sys.argv[1:] if argv is None else argv)
-    try:
-        args = parser.parse_args(_attach_values(argv))
-        warnings.showwarning = _show_warning
-        from .controller import PID
-        from .plant import load_plant
-        from .scene import load_scene
+    responses for given gains, written as PNG and SVG into ``--plots`` (alias ``--out``),
+    and the margins printed; returns the exit code (0, 2, 3 or 130)."""
+    return _invoke("prsa-plot", argv, _plot_body)
 
-        plant = load_plant(args.plant)
-        scene = load_scene(args.scene)
-        changes = {}
-        if args.load_step is not None:
-            changes["initial_load"], changes["final_loads"] = args.load_step[0], args.load_step[1][:1]
-        if args.setpoint_rpm is not None:
-            changes["setpoint_rad_s"] = args.setpoint_rpm * math.pi / 30.0
-        if changes:
-            scene = scene.replace(origin="command line", **changes)
+
+def _plot_body(run: _Run, argv: list[str]) -> int:
+    from .output import check_directory
+
+    if "-h" in argv or "--help" in argv:
+        build_plot_parser().print_help()
+        return EXIT_OK
+    args = build_plot_parser().parse_args(argv)
+    notes: list[warnings.WarningMessage] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        plant, scene, _ = _load_and_override(args, run, plot=True)
+        from .controller import PID
+        from .options import DERIVATIVE_FILTER_SAMPLES
+
         try:
-            pid = PID(args.kp, args.ki, args.kd, tf=4 * plant.sample_time_s)
+            pid = PID(args.kp, args.ki, args.kd, tf=DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s)
         except ValueError as exc:
             raise _UsageError(str(exc)) from None
-        if args.out.exists() and not args.out.is_dir():
-            raise _UsageError(f"--out {str(args.out)!r}: exists and is not a directory")
-    except (_UsageError, argparse.ArgumentTypeError, PlantFileError, SceneError) as exc:
-        print(f"prsa-plot: error: {exc}", file=sys.stderr)
-        return 2
+        check_directory(args.out, "--plots")
+        inputs = _input_files(args)
+        notes.extend(caught)
+    run.check()
+    native: list[str] = []
+    what = f"plotting kp = {args.kp:g}, ki = {args.ki:g}, kd = {args.kd:g} on {plant.name}"
+    _progress(run, args.verbose, f"{what} ...")
     try:
-        from .plots import write_design_plots
+        with warnings.catch_warnings(record=True) as caught, _native_output(run, native):
+            warnings.simplefilter("always")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", GeometryWarning)
+                from .autotune import actuator_loops
+                from .scene import choose_fidelity
 
-        files = write_design_plots(plant, scene, pid, args.out)
-    except (SimulationError, ArithmeticError) as exc:
-        print(f"prsa-plot: numerical failure: {exc}", file=sys.stderr)
-        return 3
-    except ValueError as exc:  # e.g. destabilising gains
-        print(f"prsa-plot: error: {exc}", file=sys.stderr)
-        return 2
+                loops = actuator_loops(plant, choose_fidelity(scene)[0])
+                state = _stability(loops[0], pid.gains)
+                m = loops[0].margins(pid.gains)
+                figs = None if state == "stable" else _design_figures(plant, scene, pid, loops, state)
+                files = None
+                if state == "stable":
+                    from .plots import write_design_plots
+
+                    files = _staged(run, lambda staging: write_design_plots(plant, scene, pid, staging), args.out, inputs)
+            notes.extend(caught)
+        run.check()
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:  # noqa: BLE001 - translated at this boundary
+        run.check()
+        code, line = _describe_failure(exc, what)
+        if args.verbose:  # the internal detail, for a bug report; never a traceback
+            print(f"{run.prog}: detail: {type(exc).__name__}: {_one_line(exc)[:500]}", file=sys.stderr)
+        run.say(f"{run.prog}: {line}")
+        return code
+    if files is None:
+        files = _write_figures(run, figs, args.out, inputs)
+    print(f"prsa-plot: plant {plant.name}, {_scene_header(scene)}")
+    print(f"gains: kp = {args.kp:g} N m s/rad, ki = {args.ki:g} N m/rad, kd = {args.kd:g} N m s^2/rad")
+    print(f"Margins: Ms {m.ms:.3f}, Mt {m.mt:.3f}, GM {_fmt_margin(m.gm_db)} dB, PM {_fmt_margin(m.pm_deg)} deg, "
+          f"crossover {_fmt_margin(m.wc_rad_s)} rad/s"
+          + (" (frequency-response values; not margins of a stable loop)" if state == "unstable" else ""))
+    if state == "unstable":
+        print(f"warning: the closed loop is UNSTABLE with these gains on {plant.name}; only the frequency plots "
+              "were drawn (time responses diverge)")
+    elif state == "marginal":
+        why = ("P-only (ki = 0) leaves a steady error after a load step" if args.ki == 0
+               else "a closed-loop pole sits on the stability boundary")
+        print(f"warning: marginally stable: {why}")
+    elif m.ms > scene.ms_max * (1 + 1e-3):
+        print(f"warning: Ms {m.ms:.3f} exceeds the scene's bound {scene.ms_max:g}")
     print("\n".join(str(f) for f in files))
-    return 0
+    _show_notes(run, notes, native, args.verbose, False)
+    return EXIT_OK
+
+
+def _write_figures(run: _Run, figs: dict, directory: str, inputs: Sequence[str]) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    from .output import make_directory, write_file
+
+    run.check()
+    run.created.extend(make_directory(directory, "--plots"))
+    files: list[Path] = []
+    for name, fig in figs.items():
+        for ext in ("png", "svg"):
+            path = Path(directory) / f"{name}.{ext}"
+            write_file(path, lambda tmp, fig=fig, ext=ext: fig.savefig(tmp, format=ext, dpi=150), inputs, "--plots")
+            files.append(path)
+        plt.close(fig)
+    return files
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -14,10 +14,36 @@ from .options import AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, OBJECTIVES
 from .plant import _builtin_root
 
 __all__ = ["Scene", "load_scene", "builtin_scenes", "choose_fidelity", "DEFAULT_SCENE", "OUTPUTS",
-           "RIGID_RELATIVE_ERROR"]
+           "RIGID_RELATIVE_ERROR", "check_against_plant", "holding_capacity_n", "SETPOINT_MAX_RPM",
+           "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES", "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS", "MIN_LOAD_STEP_N"]
 
 
 DEFAULT_SCENE = "paper-load-step"
+
+#: Highest nut-speed setpoint accepted, rpm: roller-screw catalogues rate nut speeds up to
+#: ~5000 rpm (d n limits of the rolling contacts); the contact models are not validated beyond.
+SETPOINT_MAX_RPM = 6000.0
+#: Lowest setpoint as a multiple of the speed at which the screw moves at the Stribeck velocity:
+#: at 1x (3 rpm on paper-iprsm) the verified run of the paper plant goes non-finite, at 3x
+#: (10 rpm) it is fine; 5x keeps a margin.
+STICTION_MARGIN = 5.0
+#: Controller samples of steady running needed before an event (load step): the verification
+#: starts this many samples before it (``autotune._PRE_SAMPLES``) so that the sampled
+#: controller, the speed filter and the ZOH are in their steady state when the load moves.
+PRE_EVENT_SAMPLES = 8
+#: Controller samples needed after the event: the fastest closed loop a sampled drive reaches
+#: has a time constant of ~10 samples (crossover <= ~0.1 / Ts); the peak and the recovery need
+#: at least 8 such time constants in the record.
+POST_EVENT_SAMPLES = 80
+#: Largest record, in controller samples over the whole duration: the tuner's prediction and
+#: the verification record hold one point per sample and per load level (40 000 samples =
+#: 10 s at 4 kHz, ~8 s of run time per verified second today).
+MAX_RECORD_SAMPLES = 40_000
+#: Most load levels per scene (each costs a linearisation, a tuner horizon and verified runs).
+MAX_LOAD_LEVELS = 20
+#: Smallest load step, N: smaller steps drown in the encoder quantisation and the metrics
+#: become relative differences of numbers at numerical zero.
+MIN_LOAD_STEP_N = 1.0
 
 #: Outputs a scene may ask for; ``nut_speed`` and ``motor_torque`` are always computed.
 OUTPUTS = (
@@ -114,6 +140,9 @@ class Scene:
     feedforward: bool = False
     load_change_time_s: float = 1.0
     origin: str = "<scene>"
+    #: Validated ``[spec]``, ``[robust]`` and ``[uncertainty]`` sections (see
+    #: :func:`prsa_ctrl.uncertainty.parse_scene_sections`); empty when the file has none.
+    robust: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False)
 
     def __post_init__(self) -> None:
         o = self.origin
@@ -126,8 +155,8 @@ class Scene:
                 raise bad(key, value, "a finite number")
             return float(value)
 
-        if finite("setpoint", self.setpoint_rad_s) <= 0:
-            raise bad("setpoint", self.setpoint_rad_s, "a positive nut speed")
+        if finite("setpoint_rad_s", self.setpoint_rad_s) <= 0:
+            raise bad("setpoint_rpm", float(f"{self.setpoint_rpm:.12g}"), "a positive nut speed in rpm")
         if finite("initial_load", self.initial_load) < 0:
             raise bad("initial_load", self.initial_load, "a load >= 0 N (compressive)")
         if not self.final_loads:
@@ -137,8 +166,8 @@ class Scene:
                 raise bad("final_loads", f, "loads >= 0 N (compressive)")
             if f == self.initial_load:
                 raise bad("final_loads", f, f"a load different from the initial {self.initial_load:g} N")
-        if finite("step_time", self.step_time) < 0:
-            raise bad("step_time", self.step_time, "a time >= 0 s")
+        if finite("step_time", self.step_time) <= 0:
+            raise bad("step_time", self.step_time, "a time > 0 s (the loop starts in steady state before the load step)")
         if finite("duration", self.duration) <= self.step_time + 1e-3:
             raise bad("duration", self.duration, f"a time beyond step_time + 1 ms ({self.step_time + 1e-3:g} s)")
         if self.objective not in OBJECTIVES:
@@ -147,8 +176,9 @@ class Scene:
             raise bad("controller", self.controller, "pi or pid")
         if not 1.0 < finite("ms_max", self.ms_max) < 10.0:
             raise bad("ms_max", self.ms_max, "a number in (1, 10)")
-        if self.mt_max is not None and not 0.5 < finite("mt_max", self.mt_max) < 10.0:
-            raise bad("mt_max", self.mt_max, "a number in (0.5, 10)")
+        if self.mt_max is not None and not 1.0 < finite("mt_max", self.mt_max) < 10.0:
+            # Mt = max|T| >= |T(0)| = 1 with integral action: a bound <= 1 cannot be met.
+            raise bad("mt_max", self.mt_max, "a number in (1, 10)")
         if self.aggregate not in AGGREGATES:
             raise bad("aggregate", self.aggregate, "sum or worst")
         if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or not 1 <= self.candidates <= 10:
@@ -199,9 +229,9 @@ def builtin_scenes() -> list[str]:
 
 
 def _from_doc(doc: Mapping[str, Any], origin: str) -> Scene:
-    unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description"})
+    unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description", "spec", "robust", "uncertainty"})
     if unknown:
-        raise SceneError(f"{origin}: unknown section {unknown[0]!r}; expected one of {', '.join(_SECTIONS)}")
+        raise SceneError(f"{origin}: unknown section {unknown[0]!r}; expected one of {', '.join([*_SECTIONS, 'spec', 'robust', 'uncertainty'])}")
     kw: dict[str, Any] = {"origin": origin}
     if "name" in doc:
         if not isinstance(doc["name"], str):
@@ -236,9 +266,16 @@ def _from_doc(doc: Mapping[str, Any], origin: str) -> Scene:
         "needed": ("outputs", lambda v: tuple(v)),
         "kind": ("estimator", str),
     }
+    rpm = kw.get("setpoint_rpm")
+    if rpm is not None and not (math.isfinite(rpm) and 0 < rpm <= SETPOINT_MAX_RPM):
+        raise SceneError(f"{origin}: operating.setpoint_rpm = {rpm!r}; expected a nut speed in (0, {SETPOINT_MAX_RPM:g}] rpm")
     for old, (new, conv) in mapping.items():
         if old in kw:
             kw[new] = conv(kw.pop(old))
+    if {"spec", "robust", "uncertainty"} & set(doc):
+        from .uncertainty import parse_scene_sections
+
+        kw["robust"] = parse_scene_sections(doc, origin)
     return Scene(**kw)
 
 
@@ -293,3 +330,107 @@ def choose_fidelity(scene: Scene) -> tuple[Scene, str]:
         fid, why = "compliant", (f"speeds/torque at {scene.accuracy:.1%} accuracy; the rigid model's "
                                  f"~{RIGID_RELATIVE_ERROR:.1%} error is too large")
     return replace(scene, fidelity=fid), f"{fid} ({why})"
+
+
+def holding_capacity_n(plant: Any, setpoint_rad_s: float) -> float:
+    """Largest axial load, N, the motor can hold at a nut speed (rad/s) at constant speed:
+    ``(T_max - T_0 - b w) 2 pi eta / L`` with the torque limit ``T_max``, the no-load torque
+    ``T_0``, the viscous coefficient ``b``, the forward efficiency ``eta`` and the lead ``L``
+    (the rigid operating point of :mod:`prsa_ctrl.equilibrium`, solved for the load).
+
+    Examples
+    --------
+    >>> from prsa_ctrl import load_plant
+    >>> round(holding_capacity_n(load_plant(), 300 * math.pi / 30))
+    7949
+    """
+    v = plant.values
+    spare = plant.torque_limit - v["friction.no_load_torque_n_m"] - v["friction.viscous_n_m_s_per_rad"] * setpoint_rad_s
+    return spare * v["friction.efficiency"] / plant.lead_per_rad
+
+
+def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | None = None) -> None:
+    """Refuse a scene the plant cannot run: a setpoint in the stiction band or beyond
+    ``SETPOINT_MAX_RPM``, a load the motor cannot hold, a load step too small or too many
+    levels, an event closer to t = 0 or to the end than ``PRE_EVENT_SAMPLES`` /
+    ``POST_EVENT_SAMPLES`` controller samples, a record above ``MAX_RECORD_SAMPLES``.
+
+    Parameters
+    ----------
+    scene : Scene
+    plant : Plant
+    typed : mapping, optional
+        Field name -> how the user typed it (``{"step_time": "--step-time 1e-9"}``); fields not
+        in it are named by their scene-file key.
+
+    Raises
+    ------
+    SceneError
+        One line naming the value, the limit and why.
+    """
+    typed = dict(typed or {})
+    keys = {"setpoint_rad_s": "operating.setpoint_rpm", "initial_load": "operating.initial_load_n",
+            "final_loads": "operating.final_loads_n", "step_time": "operating.step_time_s",
+            "duration": "operating.duration_s"}
+
+    def label(name: str, value: Any) -> str:
+        if name in typed:
+            return typed[name]
+        return f"{scene.origin}: {keys[name]} = {value}"
+
+    ts = plant.sample_time_s
+    rpm = scene.setpoint_rpm
+    rpm_min = STICTION_MARGIN * plant.values["friction.stribeck_velocity_m_s"] / plant.lead_per_rad * 30.0 / math.pi
+    if not rpm_min <= rpm <= SETPOINT_MAX_RPM:
+        raise SceneError(
+            f"{label('setpoint_rad_s', f'{rpm:.6g}')}: expected a nut speed in [{rpm_min:.3g}, {SETPOINT_MAX_RPM:g}] rpm "
+            f"for {plant.name} (below, the screw moves slower than {STICTION_MARGIN:g} x friction.stribeck_velocity_m_s = "
+            f"{plant.values['friction.stribeck_velocity_m_s']:g} m/s and the friction is in its stiction transition, where "
+            f"the linear model does not hold; above, beyond roller-screw speed ratings)"
+        )
+    cap = holding_capacity_n(plant, scene.setpoint_rad_s)
+    if cap <= 0:
+        raise SceneError(
+            f"{label('setpoint_rad_s', f'{rpm:.6g}')}: {plant.name} cannot even turn at {rpm:.6g} rpm: the drag torque "
+            f"exceeds drive.torque_limit_n_m = {plant.torque_limit:g} N m"
+        )
+    if len(scene.final_loads) > MAX_LOAD_LEVELS:
+        raise SceneError(f"{label('final_loads', list(scene.final_loads))}: {len(scene.final_loads)} load levels; "
+                         f"expected at most {MAX_LOAD_LEVELS}")
+    for name, loads in (("initial_load", (scene.initial_load,)), ("final_loads", scene.final_loads)):
+        for f in loads:
+            if f > cap:
+                raise SceneError(
+                    f"{label(name, f'{f:g}')}: load {f:g} N out of range for {plant.name}: at {rpm:.6g} rpm the motor "
+                    f"holds at most {cap:.0f} N (drive.torque_limit_n_m = {plant.torque_limit:g} N m, lead "
+                    f"{plant.lead_m * 1e3:g} mm, efficiency {plant.values['friction.efficiency']:g})"
+                )
+    if len(set(scene.final_loads)) != len(scene.final_loads):
+        raise SceneError(f"{label('final_loads', list(scene.final_loads))}: repeated load level; expected distinct levels")
+    for f in scene.final_loads:
+        if abs(f - scene.initial_load) < MIN_LOAD_STEP_N:
+            raise SceneError(
+                f"{label('final_loads', f'{f:g}')}: step of {abs(f - scene.initial_load):.3g} N from "
+                f"{scene.initial_load:g} N; expected a load step of at least {MIN_LOAD_STEP_N:g} N"
+            )
+    before, after = PRE_EVENT_SAMPLES * ts, POST_EVENT_SAMPLES * ts
+    if scene.step_time < before * (1 - 1e-9):
+        raise SceneError(
+            f"{label('step_time', f'{scene.step_time:g}')}: the load step needs at least {PRE_EVENT_SAMPLES} controller "
+            f"samples of steady running before it ({before:g} s at sensor.sample_time_s = {ts:g} s); expected a step "
+            f"time >= {before:g} s"
+        )
+    if scene.duration - scene.step_time < after * (1 - 1e-9):
+        name = "duration" if "duration" in typed or "step_time" not in typed else "step_time"
+        raise SceneError(
+            f"{label(name, f'{getattr(scene, name):g}')}: only {scene.duration - scene.step_time:.3g} s after the load "
+            f"step; the peak and the recovery need at least {POST_EVENT_SAMPLES} controller samples ({after:g} s at "
+            f"sensor.sample_time_s = {ts:g} s); expected duration >= step time + {after:g} s"
+        )
+    n = scene.duration / ts
+    if n > MAX_RECORD_SAMPLES:
+        raise SceneError(
+            f"{label('duration', f'{scene.duration:g}')}: the record would hold {n:.3g} controller samples "
+            f"(sensor.sample_time_s = {ts:g} s); the limit is {MAX_RECORD_SAMPLES} samples, a duration of at most "
+            f"{MAX_RECORD_SAMPLES * ts:g} s"
+        )
