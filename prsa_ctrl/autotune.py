@@ -17,17 +17,17 @@ from .controller import PID
 from .linear import linear_core
 from .metrics import LoadStepMetrics, Margins, load_step_metrics
 from .model import plant_model
-from .options import DERIVATIVE_FILTER_SAMPLES
+from .options import DERIVATIVE_FILTER_SAMPLES, RAD_S_PER_RPM
 from .paper import default_pid
 from .plant import Plant
-from .scene import Scene, choose_fidelity
+from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
 from .simulation import SimSettings, run
 from .tuning import LoopModel, Tuner, continuous_loop, drive_loop
 
 __all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs"]
 
 #: Samples of steady state simulated before the step (the run starts in equilibrium).
-_PRE_SAMPLES = 8
+_PRE_SAMPLES = PRE_EVENT_SAMPLES
 #: Relative disagreement between predicted and verified objective that triggers a warning.
 PREDICTION_TOLERANCE = 0.10
 #: A verified run that holds the torque at its limit for more than this fraction of the time
@@ -116,6 +116,11 @@ class ActuatorTuning:
             "scene": self.scene.as_dict(),
             "gains": b.pid.as_dict(),
             "units": {"kp": "N m s/rad", "ki": "N m/rad", "kd": "N m s^2/rad", "tf": "s", "kff": "1"},
+            "sample_time_s": self.plant.sample_time_s if self.scene.discrete else None,
+            "integral_time_s": b.pid.kp / b.pid.ki if b.pid.ki > 0 else None,
+            "gains_per_rpm": {"kp_n_m_per_rpm": b.pid.kp * RAD_S_PER_RPM,
+                              "ki_n_m_per_rev": b.pid.ki * 2.0 * math.pi,
+                              "kd_n_m_s_per_rpm": b.pid.kd * RAD_S_PER_RPM},
             "estimator": {"kind": self.scene.estimator, "feedforward": self.scene.feedforward,
                           "estimation": b.estimation},
             "objective": self.scene.objective,

@@ -208,6 +208,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the standard plots (PNG and SVG) into DIR (created if missing)")
     p.add_argument("--workers", type=_integer("--workers", 1, WORKERS_MAX, "an integer"), default=None,
                    help="processes for verification (default: cores, at most 4)")
+    p.add_argument("--export", type=_path_text("--export"), metavar="PATH.json|PATH.toml",
+                   help="write the tuned gains in a drive's terms (continuous and discrete forms, Kp/Tn, "
+                        "biquads) as JSON or TOML, chosen by the suffix")
+    p.add_argument("--accept-unconverged", action="store_true",
+                   help="exit 0 even when the best design is flagged (tuner not converged or a verified run "
+                        "that reverses, never recovers, saturates or departs from the linear model); default: exit 3")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     return p
 
@@ -432,6 +438,11 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         + (f", load feed-forward gain kff = {b.pid.kff:.3g}" if sc.feedforward else ""),
         f"Margins: Ms {b.margins.ms:.3f}, Mt {b.margins.mt:.3f}, GM {_fmt(b.margins.gm_db)} dB, "
         f"PM {_fmt(b.margins.pm_deg)} deg, crossover {_fmt(b.margins.wc_rad_s)} rad/s",
+        "Drive terms: "
+        + (f"sample time {rep.plant.sample_time_s * 1e3:.4g} ms, " if sc.discrete else "continuous controller, ")
+        + (f"integral time Ti = kp/ki = {b.pid.kp / b.pid.ki * 1e3:.4g} ms, " if b.pid.ki > 0 else "no integral action, ")
+        + f"kp = {b.pid.kp * 2 * math.pi / 60:.4g} N m/rpm",
+        f"Status: {rep.status}",
         "",
     ]
     fields = [
@@ -469,7 +480,7 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
     t = rep.timing_s
     out.append(
         f"Run time: linearise {t['linearize']:.2f} s, tune {t['tune']:.2f} s, verify {t['verify']:.2f} s, "
-        f"total {t['total']:.2f} s (process {t.get('process', math.nan):.2f} s)"
+        f"total {t['total']:.2f} s" + (f" (process {t['process']:.2f} s)" if "process" in t else "")
     )
     if b.estimation:
         e = b.estimation[0]
@@ -698,6 +709,12 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         inputs = _input_files(args)
         if args.json is not None:
             check_writable(args.json, inputs, "--json")
+        if args.export is not None:
+            if os.path.splitext(args.export)[1].lower() not in (".json", ".toml"):
+                raise _UsageError(f"--export {args.export!r}: expected a path ending in .json or .toml")
+            check_writable(args.export, inputs, "--export")
+            if args.json is not None and os.path.realpath(args.export) == os.path.realpath(args.json):
+                raise _UsageError(f"--export {args.export!r} and --json {args.json!r} name the same path")
         if args.plots is not None:
             check_directory(args.plots, "--plots")
             if args.json is not None and os.path.realpath(args.plots) == os.path.realpath(args.json):
@@ -739,6 +756,17 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             data["timing_s"] = dict(rep.timing_s)
             run.check()
             write_json_atomic(args.json, data, inputs)
+        if args.export is not None:
+            from .export import dumps, export_controller
+            from .output import write_text
+
+            fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
+            exported = export_controller(rep.best.pid, rep.plant, fmt=fmt) if rep.best.pid.kff == 0 else None
+            if exported is None:
+                run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
+                        "(kff > 0), which the drive export does not describe; nothing exported")
+            else:
+                write_text(args.export, dumps(exported, fmt), inputs, flag="--export")
     except OutputError:
         raise
     except KeyboardInterrupt:
@@ -753,7 +781,13 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             print(f"JSON report: {args.json}")
         if args.plots is not None:
             print(f"plots: {', '.join(str(p) for p in rep.plot_files)}")
+        if args.export is not None and rep.best.pid.kff == 0:
+            print(f"drive export: {args.export}")
     _show_notes(run, notes, native, args.verbose, args.quiet)
+    if rep.status != "ok" and not args.accept_unconverged:
+        run.say(f"{run.prog}: the best design is flagged ({rep.status}); its numbers are reported above but "
+                "are not a trustworthy design (use --accept-unconverged to exit 0)")
+        return EXIT_NUMERICAL
     return EXIT_OK
 
 

@@ -10,6 +10,7 @@ import math
 __all__ = [
     "SETPOINT_RPM",
     "SETPOINT_RAD_S",
+    "RAD_S_PER_RPM",
     "OBJECTIVES",
     "FIDELITIES",
     "CONTROLLERS",
@@ -25,6 +26,9 @@ __all__ = [
 SETPOINT_RPM = 300.0
 #: The same in rad/s (31.4159...).
 SETPOINT_RAD_S = SETPOINT_RPM * 2.0 * math.pi / 60.0
+
+#: One rpm in rad/s (gains "per rpm" multiply the SI gain by this).
+RAD_S_PER_RPM = 2.0 * math.pi / 60.0
 
 #: Integral error criteria the tuner minimises (see :func:`prsa_ctrl.tune_pid`).
 OBJECTIVES = ("ie", "iae", "itae", "ise")

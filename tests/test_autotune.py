@@ -212,3 +212,37 @@ def test_healthy_report_has_status_ok(report):
     # could never be the best.
     paper = next(d for d in report.baselines if "paper" in d.name)
     assert any("never recovers" in f for f in paper.flags)
+
+
+def test_cli_exports_drive_gains(tmp_path, capsys):
+    import tomllib
+
+    out, js = tmp_path / "drive.toml", tmp_path / "r.json"
+    assert main(["--duration", "0.3", "--export", str(out), "--json", str(js), "--quiet"]) == 0
+    exported = tomllib.loads(out.read_text())
+    gains = json.loads(js.read_text())["gains"]
+    text = json.dumps(exported)
+    assert str(gains["kp"])[:6] in text and str(gains["ki"])[:6] in text
+    assert main(["--export", str(tmp_path / "drive.txt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "expected a path ending in .json or .toml" in err[0]
+    assert not (tmp_path / "drive.txt").exists()
+
+
+def test_cli_flagged_best_exits_3_unless_accepted(tmp_path, capsys):
+    """The 10 ms drive of the health check, through the CLI: the report is printed and the JSON
+    says what is wrong, but the exit code does not pretend success."""
+    from importlib.resources import files
+
+    src = files("prsa_ctrl.plants").joinpath("paper-iprsm.toml").read_text()
+    text = src.replace("sample_time_s = { value = 2.5e-4", "sample_time_s = { value = 1e-2")
+    assert text != src
+    plant = tmp_path / "slow.toml"
+    plant.write_text(text)
+    js = tmp_path / "r.json"
+    argv = ["--plant", str(plant), "--duration", "1.2", "--json", str(js)]
+    assert main(argv) == 3
+    captured = capsys.readouterr()
+    assert "Status: flagged" in captured.out and "--accept-unconverged" in captured.err
+    assert json.loads(js.read_text())["status"].startswith("flagged: ")
+    assert main(argv + ["--accept-unconverged", "--quiet"]) == 0
