@@ -1,0 +1,108 @@
+"""Robust tuning: one NLP over scenario models; generic plant arrays."""
+
+import math
+
+import numpy as np
+import pytest
+
+from prsa_ctrl import SceneError
+from prsa_ctrl.plant import load_plant
+from prsa_ctrl.robust import operating_points, scenarios, tune_robust, tune_robust_actuator
+from prsa_ctrl.scene import load_scene
+from prsa_ctrl.uncertainty import uncertainty_model
+
+
+@pytest.fixture(scope="module")
+def robust_run():
+    return tune_robust_actuator(load_plant(), load_scene("robust-load-step"))
+
+
+def test_scenarios_are_nominal_vertices_and_samples():
+    p, s = load_plant(), load_scene("robust-load-step")
+    sc = scenarios(p, s)
+    kinds = [x.kind for x in sc]
+    assert kinds == ["nominal"] + ["vertex"] * 4 + ["sample"] * 3
+    unc = uncertainty_model(p, s)
+    lo = {e.key: e.low for e in unc.entries}
+    hi = {e.key: e.high for e in unc.entries}
+    assert {tuple(sorted(v.values.items())) for v in sc if v.kind == "vertex"} == {
+        tuple(sorted({k: (lo[k] if b else hi[k]) for k, b in zip(sorted(lo), bits)}.items()))
+        for bits in [(0, 0), (0, 1), (1, 0), (1, 1)]}
+    # seeded: the same scenarios again
+    assert [x.values for x in scenarios(p, s)] == [x.values for x in sc]
+    assert [x.values for x in scenarios(p, s, seed=2)][5:] != [x.values for x in sc][5:]
+
+
+def test_scenario_bound_is_checked_before_any_model_is_built():
+    p, s = load_plant(), load_scene("robust-load-step")
+    with pytest.raises(SceneError, match="max_scenarios"):
+        scenarios(p, s, samples=100, max_scenarios=16)
+
+
+def test_operating_range_crosses_setpoints_and_loads():
+    s = load_scene("robust-load-step")
+    s2 = s.replace(robust={**s.robust, "robust": {**s.robust["robust"], "setpoints_rpm": [150.0, 300.0],
+                                                   "final_loads_n": [1000.0, 2000.0]}})
+    ops = operating_points(s2)
+    assert len(ops) == 4 and ops[0] == (pytest.approx(150 * math.pi / 30), 1000.0)
+
+
+def test_robust_design_meets_ms_on_every_scenario_and_nominal_does_not(robust_run):
+    r = robust_run
+    c = r.comparison
+    rob, nom = c["designs"]["robust"], c["designs"]["nominal"]
+    assert len(rob["per_scenario"]) == len(r.scenarios) == 8
+    # Recomputed from the loop models, not read from the tuner's report.
+    for lp in r.loops:
+        assert lp.is_stable(r.robust.gains)
+        assert lp.margins(r.robust.gains).ms <= load_scene("robust-load-step").ms_max * (1 + 1e-9)
+    assert rob["ms_violations"] == 0 and rob["all_stable"]
+    # The nominal design is fragile on this scene: it breaks the bound at some corners.
+    assert nom["ms_violations"] >= 1 and nom["max_ms"] > 1.6
+    # ... and it meets it on the nominal scenario, where it was tuned.
+    nominal_ms = [p["ms"] for p, s in zip(nom["per_scenario"], r.scenarios) if s.kind == "nominal"]
+    assert max(nominal_ms) <= 1.4 * (1 + 1e-6)
+    # Worst-case objective: the robust design is the optimum over the scenarios, so no design
+    # that satisfies every Ms bound - here a down-scaled nominal design - beats it.
+    assert rob["worst_objective"] == pytest.approx(max(lp.objective(r.robust.gains, "iae") for lp in r.loops))
+
+
+def test_robust_design_is_a_local_optimum_of_the_worst_case(robust_run):
+    r = robust_run
+    base = max(lp.objective(r.robust.gains, "iae") for lp in r.loops)
+    g0 = np.array(r.robust.gains[:2])
+    for dk in ([1.03, 1.0], [1.0, 1.03], [0.97, 1.0], [1.0, 0.97]):
+        g = list(g0 * dk) + [0.0]
+        feasible = all(lp.is_stable(g) and lp.margins(g).ms <= 1.4 for lp in r.loops)
+        if feasible:
+            assert max(lp.objective(g, "iae") for lp in r.loops) >= base * (1 - 1e-3)
+
+
+def test_generic_plant_array_like_systune():
+    import control
+
+    plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
+    r = tune_robust(plants, objective="iae", ms_max=1.6, aggregate="worst", n_steps=400)
+    assert len(r.margins) == 3 and all(m.ms <= 1.6 * (1 + 1e-9) for m in r.margins)
+    from prsa_ctrl.tuning import tune_pid
+
+    single = tune_pid(plants[0], objective="iae", ms_max=1.6, n_steps=400)
+    # tuned for the low-gain plant alone, the PI breaks the bound on the high-gain one
+    from prsa_ctrl.tuning import continuous_loop
+
+    lp = continuous_loop(control.ss(plants[2]), tf=single.pid.tf, horizon=10.0)
+    assert lp.margins(single.pid.gains).ms > 1.6
+    mean = tune_robust(plants, objective="iae", ms_max=1.6, aggregate="mean", n_steps=400)
+    assert np.mean(mean.per_loop) <= np.mean(r.per_loop) * (1 + 1e-3)
+    assert max(r.per_loop) <= max(mean.per_loop) * (1 + 1e-3)
+
+
+@pytest.mark.parametrize("bad, match", [([], "at least one"), ("median", "aggregate")])
+def test_generic_bad_arguments(bad, match):
+    import control
+
+    with pytest.raises(ValueError, match=match):
+        if bad == []:
+            tune_robust([])
+        else:
+            tune_robust([control.tf([1], [1, 1, 1])], aggregate=bad)
