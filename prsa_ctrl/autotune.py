@@ -313,9 +313,18 @@ def verify_settings(scene: Scene) -> SimSettings:
     return SimSettings(rtol=tol, atol=tol)
 
 
-def verify(design: Design, plant: Plant, scene: Scene) -> Design:
+def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0) -> Design:
     """Nonlinear load-step runs of a design (one per final load); fills ``design.verified``
-    and ``design.verified_runs`` (time s, dict of output arrays) and returns the design."""
+    and ``design.verified_runs`` (time s, dict of output arrays) and returns the design.
+
+    Parameters
+    ----------
+    design : Design
+    plant : Plant
+    scene : Scene
+    seed : int
+        Seed of the per-roller errors (multi-roller fidelity).
+    """
     scene, _ = choose_fidelity(scene)
     ts = plant.sample_time_s
     pre = min(scene.step_time, _PRE_SAMPLES * ts) if scene.discrete else min(scene.step_time, 1e-3)
@@ -324,7 +333,7 @@ def verify(design: Design, plant: Plant, scene: Scene) -> Design:
     for f1 in scene.final_loads:
         kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, f1)],
                   duration=pre + scene.duration - scene.step_time, controller=design.pid,
-                  fidelity=scene.fidelity, settings=verify_settings(scene))
+                  fidelity=scene.fidelity, settings=verify_settings(scene), seed=seed)
         measurement = "encoder"
         kf = None
         if design.estimator == "kf":

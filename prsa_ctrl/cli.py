@@ -211,6 +211,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export", type=_path_text("--export"), metavar="PATH.json|PATH.toml",
                    help="write the tuned gains in a drive's terms (continuous and discrete forms, Kp/Tn, "
                         "biquads) as JSON or TOML, chosen by the suffix")
+    p.add_argument("--robust", action="store_true",
+                   help="also tune one design over the scenario models of the plant's and scene's [uncertainty] "
+                        "(default: when the scene has a [robust] section) and compare it with the nominal design")
+    p.add_argument("--monte-carlo", metavar="N", type=_integer("--monte-carlo", 0, 1_000_000, "a sample count"),
+                   default=None, help="verify the designs on N seeded samples of the uncertainty and report the "
+                                      "yield against the scene's [spec] (default: the scene's [robust] monte_carlo; 0: off)")
+    p.add_argument("--seed", metavar="S", type=_integer("--seed", 0, 2**31 - 1, "a seed"), default=None,
+                   help="Monte-Carlo seed (default: the scene's, else 0); sample i depends only on (seed, i)")
+    p.add_argument("--scheduler", metavar="local|tcp://HOST:PORT", type=_path_text("--scheduler"), default=None,
+                   help="run the Monte Carlo on Dask: 'local' starts a LocalCluster, an address connects to a "
+                        "running scheduler (needs pip install 'prsa-ctrl[dask]')")
     p.add_argument("--accept-unconverged", action="store_true",
                    help="exit 0 even when the best design is flagged (tuner not converged or a verified run "
                         "that reverses, never recovers, saturates or departs from the linear model); default: exit 3")
@@ -709,6 +720,20 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         inputs = _input_files(args)
         if args.json is not None:
             check_writable(args.json, inputs, "--json")
+        if args.scheduler is not None:
+            from importlib.util import find_spec
+
+            from .montecarlo import scene_options
+
+            n_mc = args.monte_carlo if args.monte_carlo is not None else scene_options(scene)["samples"]
+            if not n_mc:
+                raise _UsageError(f"--scheduler {args.scheduler!r}: expected --monte-carlo N (or a scene with "
+                                  "[robust] monte_carlo) to run on it")
+            if args.scheduler != "local" and not args.scheduler.startswith(("tcp://", "tls://")):
+                raise _UsageError(f"--scheduler {args.scheduler!r}: expected 'local' or an address like "
+                                  "tcp://HOST:8786")
+            if find_spec("distributed") is None:
+                raise _UsageError(f"--scheduler {args.scheduler!r} needs Dask: pip install 'prsa-ctrl[dask]'")
         if args.export is not None:
             if os.path.splitext(args.export)[1].lower() not in (".json", ".toml"):
                 raise _UsageError(f"--export {args.export!r}: expected a path ending in .json or .toml")
@@ -733,6 +758,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 from .autotune import tune_actuator
 
                 rep = tune_actuator(plant, scene, workers=args.workers)
+                robust_rep, mc = _robust_and_monte_carlo(run, args, plant, rep)
             notes.extend(caught)
         run.check()
         if _status_says_interrupted(rep.as_dict()):
@@ -754,6 +780,10 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         if args.json is not None:
             data = rep.as_dict()
             data["timing_s"] = dict(rep.timing_s)
+            if robust_rep is not None:
+                data["robust"] = robust_rep.as_dict()
+            if mc is not None:
+                data["monte_carlo"] = mc.as_dict()
             run.check()
             write_json_atomic(args.json, data, inputs)
         if args.export is not None:
@@ -777,6 +807,12 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         return code
     if not args.quiet:
         print(format_report(rep, overrides))
+        if robust_rep is not None:
+            print(_format_robust(robust_rep))
+        if mc is not None:
+            from .montecarlo import format_report as format_mc
+
+            print(format_mc(mc))
         if args.json is not None:
             print(f"JSON report: {args.json}")
         if args.plots is not None:
@@ -789,6 +825,52 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 "are not a trustworthy design (use --accept-unconverged to exit 0)")
         return EXIT_NUMERICAL
     return EXIT_OK
+
+
+def _robust_and_monte_carlo(run: _Run, args, plant, rep):
+    """The robust design (``--robust`` or a scene ``[robust]`` section) and the Monte-Carlo
+    verification (``--monte-carlo N`` or the scene's setting) of the report's designs."""
+    from .montecarlo import scene_options
+
+    scene = rep.scene
+    opts = scene_options(scene)
+    has_robust = bool((getattr(scene, "robust", None) or {}).get("robust"))
+    robust_rep = None
+    if args.robust or has_robust:
+        from .robust import tune_robust_actuator
+
+        _progress(run, args.verbose, "robust tuning over the scenario models ...")
+        robust_rep = tune_robust_actuator(plant, scene)
+        run.check()
+    n = args.monte_carlo if args.monte_carlo is not None else opts["samples"]
+    if not n:
+        return robust_rep, None
+    from .montecarlo import run_monte_carlo
+
+    designs = {rep.best.name: rep.best.pid}
+    if robust_rep is not None:
+        designs = {"nominal design": robust_rep.nominal, "robust design": robust_rep.robust, **designs}
+    for b in rep.baselines:
+        designs.setdefault(b.name, b.pid)
+    seed = args.seed if args.seed is not None else opts["seed"]
+    _progress(run, args.verbose, f"Monte Carlo: {n} samples of {len(designs)} designs ...")
+    mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler, workers=args.workers,
+                         quiet=args.quiet)
+    return robust_rep, mc
+
+
+def _format_robust(rr) -> str:
+    """Nominal against robust design on the same scenario models."""
+    comp = rr.comparison
+    obj = comp["objective"].upper()
+    out = [f"Robust tuning over {len(rr.scenarios)} scenario models ({comp.get('aggregate', 'worst')} {obj}; "
+           f"Ms bound {comp['ms_max']:g} on every model)"]
+    rows = []
+    for name, pid in (("nominal", rr.nominal), ("robust", rr.robust)):
+        d = comp["designs"][name]
+        rows.append([name, pid.kp, pid.ki, d["max_ms"], d["ms_violations"], d["worst_objective"], d["mean_objective"]])
+    out.append(_table(["design", "kp", "ki", "max Ms", "models over the Ms bound", f"worst {obj}", f"mean {obj}"], rows))
+    return "\n".join(out) + "\n"
 
 
 def _publish_report_plots(run: _Run, rep, directory: str, inputs: Sequence[str]) -> list[Path]:

@@ -272,7 +272,7 @@ def _identity(plant, scene) -> tuple[str, str]:
 
 def _replay_cmd(plant, scene, seed: int, index: int, pid) -> str:
     p, s = _identity(plant, scene)
-    g = pid.as_dict()
+    g = {k: float(v) for k, v in pid.as_dict().items()}
     cmd = (f"python -m prsa_ctrl.montecarlo --plant {p} --scene {s} --seed {seed} --index {index} "
            f"--kp {g['kp']!r} --ki {g['ki']!r} --kd {g['kd']!r} --tf {g['tf']!r}")
     return cmd + (f" --kff {g['kff']!r}" if g.get("kff") else "")
@@ -302,7 +302,8 @@ def _build_report(job: _Job, plant, scene, rows: list, n: int, backend: str, wor
             pct[met] = {f"p{q}": float(np.percentile(col, q, method="inverted_cdf")) for q in PERCENTILES}
             pct[met]["max"] = float(np.max(col))
         w = int(np.argmax(sev)) if len(rows) else None
-        failures = int(np.sum(~np.all(np.isfinite(m[:, :10]), axis=1)))
+        # A failed run leaves every metric at inf; a run that never recovers only its recovery time.
+        failures = int(np.sum(~np.isfinite(m[:, METRICS.index("peak_drop_rad_s")]))) if len(rows) else 0
         out.append(DesignYield(
             name, pid.as_dict(), k, len(rows), k / len(rows) if len(rows) else math.nan,
             wilson_interval(k, len(rows)), pct,

@@ -246,3 +246,28 @@ def test_cli_flagged_best_exits_3_unless_accepted(tmp_path, capsys):
     assert "Status: flagged" in captured.out and "--accept-unconverged" in captured.err
     assert json.loads(js.read_text())["status"].startswith("flagged: ")
     assert main(argv + ["--accept-unconverged", "--quiet"]) == 0
+
+
+def test_cli_robust_scene_with_monte_carlo(tmp_path, capsys):
+    """The robust scene through the CLI with a small Monte Carlo: nominal and robust designs,
+    their yields with Wilson intervals in the JSON, and the same numbers on a second run."""
+    js = tmp_path / "r.json"
+    argv = ["--scene", "robust-load-step", "--monte-carlo", "6", "--seed", "3", "--json", str(js), "--quiet",
+            "--workers", "1"]
+    assert main(argv) == 0
+    d = json.loads(js.read_text())
+    assert d["robust"]["comparison"]["designs"]["robust"]["ms_violations"] == 0
+    mc = d["monte_carlo"]
+    assert mc["complete"] and mc["samples"] == 6 and mc["seed"] == 3
+    names = [x["name"] for x in mc["designs"]]
+    assert names[:2] == ["nominal design", "robust design"]
+    for x in mc["designs"]:
+        lo, hi = x["yield_ci95"]
+        assert 0 <= lo <= x["yield"] <= hi <= 1 and x["passed"] == round(x["yield"] * 6)
+    first = [x["passed"] for x in mc["designs"]]
+    assert main(argv) == 0
+    assert [x["passed"] for x in json.loads(js.read_text())["monte_carlo"]["designs"]] == first
+    assert main(["--monte-carlo", "-1"]) == 2
+    assert main(["--scheduler", "local"]) == 2  # a scheduler without samples to run
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("prsa-tune: ") for line in err)
