@@ -372,17 +372,6 @@ def _plot(wp: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _json_safe(obj):
-    """Non-finite floats (unfinished runs, targets never reached) become null."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    return obj
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="prsa-bench", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("bench-results"))
@@ -423,8 +412,9 @@ def main(argv=None) -> int:
         print(f"cold CLI: {cb['prsa_tune_s']:.2f} s vs import control, casadi {cb['import_control_casadi_s']:.2f} s: "
               f"ratio {cb['ratio']:.2f}")
     from .cli import write_json_atomic
+    from .output import json_safe
 
-    write_json_atomic(args.out / "bench.json", _json_safe(result))
+    write_json_atomic(args.out / "bench.json", json_safe(result))
     print(f"results: {args.out / 'bench.json'}")
     return 0
 

@@ -23,6 +23,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from .output import json_safe
 from .errors import GeometryWarning, SimulationError
 
 __all__ = ["MonteCarloReport", "MonteCarloInterrupted", "run_monte_carlo", "format_report", "wilson_interval",
@@ -228,23 +229,11 @@ class MonteCarloReport:
                                "parameters": {k: v.tolist() for k, v in s["values"].items()},
                                "metrics": {name: {m: _json_list(s["metrics"][:, j, k]) for k, m in enumerate(METRICS)}
                                            for j, name in enumerate(s["design_names"])}}
-        return _json_safe(d)
+        return json_safe(d)
 
 
 def _json_list(a) -> list:
     return [None if not math.isfinite(float(x)) else float(x) for x in a]
-
-
-def _json_safe(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return _json_safe(obj.item())
-    return obj
 
 
 def _passes(metrics: np.ndarray, spec: Mapping[str, Any], torque_limit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -687,7 +676,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (PlantFileError, SceneError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(_json_safe(out), indent=2))
+    print(json.dumps(json_safe(out), indent=2))
     return 0
 
 
