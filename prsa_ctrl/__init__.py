@@ -37,6 +37,9 @@ _LAZY = {
     "load_step_metrics": "metrics",
     "design_kf": "estimator",
     "export_controller": "export",
+    "fit_plant": "fit",
+    "FitResult": "fit",
+    "FitError": "fit",
     "PiecewiseLinear": "simulation",
 }
 

@@ -1,0 +1,241 @@
+"""``prsa-fit``: calibrate a plant file from measured drive data, or design the experiment.
+
+``prsa-fit DATA.csv [DATA2.csv ...] --out MY.toml [--json REPORT.json] [--plant BASE]
+[--fit KEY,...] [--validate OTHER.csv ...] [--columns name=header,...] [--torque-constant KT]
+[--load N]``
+
+``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
+[--f-min HZ] [--f-max HZ] [--amplitude A] [--offset A]``
+
+Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge.
+Output paths are checked before the fit; every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from .errors import PlantFileError
+
+__all__ = ["main", "build_parser", "plant_toml"]
+
+
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
+        raise _UsageError(message)
+
+
+def _number(flag: str, positive: bool = True):
+    def conv(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected a number") from None
+        if not math.isfinite(v) or (positive and v <= 0):
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected a finite number{' > 0' if positive else ''}")
+        return v
+
+    return conv
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="prsa-fit", description="Fit a plant file to measured drive data (grey-box, with 95 % CIs), "
+                "or write an excitation signal for the experiment.")
+    p.add_argument("data", nargs="*", metavar="DATA.csv", help="time-domain records to fit")
+    p.add_argument("--out", required=True, metavar="PATH", help="output plant .toml (or excitation .csv with --design)")
+    p.add_argument("--json", metavar="PATH", help="JSON report")
+    p.add_argument("--plant", default=None, metavar="NAME|PATH", help="base plant (default paper-iprsm)")
+    p.add_argument("--fit", default=None, metavar="KEY,...", help="plant keys to fit (default: inertia, efficiency, "
+                   "no-load torque, viscous, current-loop bandwidth)")
+    p.add_argument("--validate", nargs="+", default=[], metavar="CSV", help="records not fitted; their fit %% is reported")
+    p.add_argument("--columns", default=None, metavar="name=header,...", help="map other CSV headers to the standard names")
+    p.add_argument("--torque-constant", type=_number("--torque-constant"), metavar="N_M_PER_A",
+                   help="torque constant for a current_a column, N m/A")
+    p.add_argument("--load", type=_number("--load", positive=False), metavar="N", help="constant axial load, N, "
+                   "for files without a load column")
+    p.add_argument("--fidelity", default="rigid", choices=("rigid", "compliant"), help="model fidelity (default rigid)")
+    p.add_argument("--segment", type=_number("--segment"), default=0.1, metavar="S",
+                   help="multiple-shooting segment length, s (default 0.1)")
+    p.add_argument("--delay-samples", type=int, default=0, metavar="N", help="samples between a logged command and "
+                   "the sample it acts from (default 0)")
+    p.add_argument("--design", choices=("multisine", "chirp", "steps"), help="write an excitation signal instead of fitting")
+    p.add_argument("--duration", type=_number("--duration"), default=4.0, metavar="S", help="excitation length, s")
+    p.add_argument("--sample-time", type=_number("--sample-time"), default=2.5e-4, metavar="S", help="sample time, s")
+    p.add_argument("--f-min", type=_number("--f-min"), default=1.0, metavar="HZ", help="lowest frequency, Hz")
+    p.add_argument("--f-max", type=_number("--f-max"), default=200.0, metavar="HZ", help="highest frequency, Hz")
+    p.add_argument("--amplitude", type=_number("--amplitude"), default=20.0, metavar="A",
+                   help="peak excursion (rad/s for a speed setpoint)")
+    p.add_argument("--offset", type=_number("--offset", positive=False), default=30.0, metavar="A", help="mean value")
+    return p
+
+
+def _toml_string(text: str) -> str:
+    return json.dumps(text, ensure_ascii=False)
+
+
+def plant_toml(base_text: str, plant, name: str, keys: Sequence[str]) -> str:
+    """The base plant file's text with the fitted keys' values and sources replaced.
+
+    Parameters
+    ----------
+    base_text : str
+        The base plant file (TOML), whose layout and comments are kept.
+    plant : Plant
+        The fitted plant (values and sources).
+    name : str
+        The new plant name.
+    keys : sequence of str
+        Plant keys to rewrite (``section.key``).
+    """
+    out, section, done = [], None, set()
+    for line in base_text.splitlines():
+        m_sec = re.match(r"^\s*\[([A-Za-z_]+)\]\s*$", line)
+        if m_sec:
+            section = m_sec.group(1)
+        m_name = re.match(r"^name\s*=", line)
+        if m_name and section is None:
+            line = f"name = {_toml_string(name)}"
+        m_key = re.match(r"^(\s*)([A-Za-z0-9_]+)\s*=\s*\{.*\}\s*$", line)
+        if m_key and section is not None and f"{section}.{m_key.group(2)}" in keys:
+            full = f"{section}.{m_key.group(2)}"
+            line = (f"{m_key.group(1)}{m_key.group(2)} = {{ value = {plant.values[full]!r}, "
+                    f"source = {_toml_string(plant.sources[full])} }}")
+            done.add(full)
+        out.append(line)
+    missing = [k for k in keys if k not in done]
+    if missing:
+        raise PlantFileError(f"base plant file has no one-line entry for {', '.join(missing)}; expected "
+                             "'key = { value = ..., source = \"...\" }' lines like the built-in plants")
+    return "\n".join(out) + "\n"
+
+
+def _write_outputs(files: dict[str, tuple[str, str]], inputs: Sequence[str]) -> None:
+    """The one place that writes files: ``{path: (flag, text)}``, each atomically."""
+    from .output import write_text
+
+    for path, (flag, text) in files.items():
+        write_text(path, text, inputs=inputs, flag=flag)
+
+
+def _check_outputs(paths: dict[str, str], inputs: Sequence[str]) -> None:
+    from .output import check_writable
+
+    for flag, path in paths.items():
+        check_writable(path, inputs=inputs, flag=flag)
+
+
+def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
+    """Text of the base plant file and its path (None for a built-in)."""
+    from .plant import _resolve
+
+    src = _resolve(plant_arg)
+    return src.read_text(encoding="utf-8"), (str(src) if isinstance(src, Path) else None)
+
+
+def _design(args) -> int:
+    import numpy as np
+
+    from .fitdata import design_excitation
+
+    t, v = design_excitation(args.design, duration_s=args.duration, sample_time_s=args.sample_time,
+                             f_min_hz=args.f_min, f_max_hz=args.f_max, amplitude=args.amplitude, offset=args.offset)
+    _check_outputs({"--out": args.out}, [])
+    lines = ["# prsa-fit --design " + args.design + ": speed setpoint (rad/s) for the drive's speed loop",
+             "time_s,setpoint_rad_s"]
+    lines += [f"{a:.9g},{b:.9g}" for a, b in zip(t, np.asarray(v))]
+    _write_outputs({args.out: ("--out", "\n".join(lines) + "\n")}, [])
+    print(f"wrote {args.out}: {args.design}, {len(t)} samples, {args.duration:g} s")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``prsa-fit``; returns the exit code."""
+    from .fitdata import DataError, load_record, parse_columns
+    from .output import OutputError
+
+    try:
+        args = build_parser().parse_args(argv)
+        if args.design:
+            if args.data:
+                raise _UsageError(f"--design with data files {' '.join(args.data)}; expected one or the other")
+            return _design(args)
+        if not args.data:
+            raise _UsageError("no data file; expected prsa-fit DATA.csv [...] --out PLANT.toml (or --design)")
+        from .fit import FITTABLE
+        from .plant import load_plant
+
+        keys = None
+        if args.fit is not None:
+            keys = [k.strip() for k in args.fit.split(",") if k.strip()]
+            for k in keys:
+                if k not in FITTABLE:
+                    raise _UsageError(f"--fit {args.fit!r}: unknown key {k!r}; expected some of {', '.join(FITTABLE)}")
+            if not keys:
+                raise _UsageError(f"--fit {args.fit!r}: expected at least one key")
+        if not 0 <= args.delay_samples <= 10:
+            raise _UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
+        plant = load_plant(args.plant)
+        base_text, base_path = _base_text(args.plant)
+        inputs = [*args.data, *args.validate] + ([base_path] if base_path else [])
+        outs = {"--out": args.out}
+        if args.json:
+            outs["--json"] = args.json
+        _check_outputs(outs, inputs)
+        columns = parse_columns(args.columns) if args.columns else None
+        opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
+        records = [load_record(f, **opts) for f in args.data]
+        validate = [load_record(f, **opts) for f in args.validate]
+    except (_UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
+        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        return 2
+    from .fit import FitError, fit_plant
+
+    try:
+        result = fit_plant(records, plant, keys=keys, fidelity=args.fidelity, validate=validate,
+                           segment_s=args.segment, delay_samples=args.delay_samples)
+    except FitError as exc:
+        print(f"prsa-fit: {exc}", file=sys.stderr)
+        return 3
+    except ValueError as exc:
+        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        return 2
+    name = Path(args.out).stem
+    text = plant_toml(base_text, result.plant, name, result.keys)
+    import tomllib
+
+    from .plant import Plant
+
+    Plant.from_dict(tomllib.loads(text), origin=args.out)  # what is written must load
+    files = {args.out: ("--out", text)}
+    if args.json:
+        files[args.json] = ("--json", json.dumps(result.report(), indent=2) + "\n")
+    try:
+        _write_outputs(files, inputs)
+    except OutputError as exc:
+        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        return 2
+    for k, v in result.parameters.items():
+        lo, hi = v["ci95"]
+        print(f"{k} = {v['value']:.6g} {v['unit']} (95 % CI {lo:.6g}..{hi:.6g})")
+    j = result.reflected_inertia_kg_m2
+    print(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
+    for f, pct in result.fit_percent.items():
+        print(f"fit {pct:.2f} % on {f}")
+    for w in result.warnings:
+        print(f"warning: {w}")
+    print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,436 @@
+"""Measured data for plant calibration: loading and validating drive logs, and experiment design.
+
+A time-domain record is a CSV file with a header row. Standard column names (SI units):
+
+``time_s``
+    Sample time, s (strictly increasing, evenly spaced).
+``torque_command_n_m``
+    Torque command the speed loop sent to the current loop, N m (or ``current_a`` with a
+    torque constant, N m/A).
+``nut_angle_rad``
+    Encoder angle of the nut, rad (may be missing when the speed is given).
+``nut_speed_rad_s``
+    Measured nut speed, rad/s: the backward difference of the encoder angle over one sample
+    (may be missing when the angle is given).
+``axial_load_n``
+    Axial load on the screw, N (may be missing when it is constant and given separately).
+
+Other header names are mapped with ``columns={"nut_angle_rad": "enc_pos", ...}``. Every error
+is a :class:`DataError` (a ``ValueError``) whose one-line message names the file, the column and
+the row (the file's line number, header = line 1).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "DataError",
+    "Record",
+    "STANDARD_COLUMNS",
+    "parse_columns",
+    "load_record",
+    "record_from_arrays",
+    "design_excitation",
+    "DESIGNS",
+    "MIN_SAMPLES",
+]
+
+#: Standard column names of a time-domain record.
+STANDARD_COLUMNS = ("time_s", "torque_command_n_m", "nut_angle_rad", "nut_speed_rad_s", "axial_load_n")
+_CURRENT = "current_a"
+_ALL_COLUMNS = STANDARD_COLUMNS + (_CURRENT,)
+#: Fewest samples a record may have.
+MIN_SAMPLES = 50
+#: Largest relative deviation of a sample interval from the median interval.
+SAMPLING_TOL = 0.01
+#: Largest record length accepted (samples), so every fit is bounded before it starts.
+MAX_SAMPLES = 2_000_000
+_RPM = 60.0 / (2.0 * math.pi)
+
+
+class DataError(ValueError):
+    """A measured-data file or array is unusable; the message names file, column and row."""
+
+
+@dataclass(frozen=True, eq=False)
+class Record:
+    """One validated time-domain record (SI units, evenly sampled).
+
+    Attributes
+    ----------
+    name : str
+        Where the data came from (file path as the user typed it, or a label).
+    time_s : ndarray, s
+    torque_command_n_m : ndarray, N m
+    nut_angle_rad : ndarray or None, rad
+    nut_speed_rad_s : ndarray or None, rad/s
+    axial_load_n : ndarray, N
+    warnings : tuple of str
+        Non-fatal findings (e.g. a load that never changes).
+    """
+
+    name: str
+    time_s: NDArray[np.float64]
+    torque_command_n_m: NDArray[np.float64]
+    nut_angle_rad: NDArray[np.float64] | None
+    nut_speed_rad_s: NDArray[np.float64] | None
+    axial_load_n: NDArray[np.float64]
+    warnings: tuple[str, ...] = field(default=())
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return len(self.time_s)
+
+    @property
+    def sample_time_s(self) -> float:
+        """Mean sample interval, s."""
+        return float((self.time_s[-1] - self.time_s[0]) / (self.n - 1))
+
+    @property
+    def speed_rad_s(self) -> NDArray[np.float64]:
+        """Measured speed (rad/s, length ``n - 1``, interval k -> k+1): the speed column, or
+        the difference of the angle column over one sample."""
+        if self.nut_angle_rad is not None:
+            return np.diff(self.nut_angle_rad) / np.diff(self.time_s)
+        return self.nut_speed_rad_s[1:]
+
+    def to_csv(self, path: str | Path) -> None:
+        """Write the record with the standard column names (used by tests and examples)."""
+        cols = {"time_s": self.time_s, "torque_command_n_m": self.torque_command_n_m}
+        if self.nut_angle_rad is not None:
+            cols["nut_angle_rad"] = self.nut_angle_rad
+        if self.nut_speed_rad_s is not None:
+            cols["nut_speed_rad_s"] = self.nut_speed_rad_s
+        cols["axial_load_n"] = self.axial_load_n
+        data = np.column_stack(list(cols.values()))
+        np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
+
+
+def parse_columns(text: str) -> dict[str, str]:
+    """Parse ``name=header,name=header`` into ``{standard name: header in the file}``.
+
+    Examples
+    --------
+    >>> parse_columns("nut_angle_rad=enc,time_s=t")
+    {'nut_angle_rad': 'enc', 'time_s': 't'}
+    """
+    out: dict[str, str] = {}
+    for part in text.split(","):
+        name, sep, header = part.partition("=")
+        name, header = name.strip(), header.strip()
+        if not sep or not name or not header:
+            raise DataError(f"--columns {text!r}: {part!r} is not name=header; expected e.g. nut_angle_rad=enc_pos")
+        if name not in _ALL_COLUMNS:
+            raise DataError(f"--columns {text!r}: unknown name {name!r}; expected one of {', '.join(_ALL_COLUMNS)}")
+        if name in out:
+            raise DataError(f"--columns {text!r}: {name!r} mapped twice; expected each name once")
+        out[name] = header
+    return out
+
+
+def _finite_positive(value: float | None, what: str) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise DataError(f"{what} = {value!r}; expected a finite number > 0")
+    return float(value)
+
+
+def load_record(
+    path: str | Path,
+    *,
+    columns: Mapping[str, str] | None = None,
+    torque_constant_n_m_per_a: float | None = None,
+    load_n: float | None = None,
+    min_samples: int = MIN_SAMPLES,
+    sampling_tol: float = SAMPLING_TOL,
+) -> Record:
+    """Read and validate one time-domain CSV record.
+
+    Parameters
+    ----------
+    path : str or Path
+        CSV file with a header row (comma separated; ``#`` comment lines before the header are
+        skipped).
+    columns : mapping, optional
+        ``{standard name: header in the file}`` for files with other header names.
+    torque_constant_n_m_per_a : float, optional
+        Torque constant, N m/A: the torque command is ``current_a`` times it.
+    load_n : float, optional
+        Constant axial load, N, when the file has no load column.
+    min_samples : int
+        Fewest samples accepted.
+    sampling_tol : float
+        Largest relative deviation of any sample interval from the median one.
+
+    Returns
+    -------
+    Record
+
+    Raises
+    ------
+    DataError
+        One line naming the file, the column and the row of the first problem.
+    """
+    name = str(path)
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"{name}: data file not found; expected a readable CSV file")
+    mapping = dict(columns or {})
+    for std in mapping:
+        if std not in _ALL_COLUMNS:
+            raise DataError(f"{name}: column mapping for unknown name {std!r}; expected one of {', '.join(_ALL_COLUMNS)}")
+    try:
+        with p.open(newline="", encoding="utf-8") as fh:
+            lines = list(enumerate(csv.reader(fh), start=1))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise DataError(f"{name}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
+    lines = [(i, row) for i, row in lines if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#")]
+    if not lines:
+        raise DataError(f"{name}: no header row; expected a CSV header with {', '.join(STANDARD_COLUMNS)}")
+    if len(lines) - 1 > MAX_SAMPLES:
+        raise DataError(f"{name}: {len(lines) - 1} rows; expected at most {MAX_SAMPLES} (cut the record)")
+    header_line, header = lines[0]
+    header = [h.strip() for h in header]
+    reverse = {h: std for std, h in mapping.items()}
+    for std, h in mapping.items():
+        if h not in header:
+            raise DataError(f"{name}: column {h!r} (mapped to {std}) not in the header; the header has {', '.join(header)}")
+    std_names = []
+    for h in header:
+        std = reverse.get(h, h)
+        if std not in _ALL_COLUMNS:
+            raise DataError(
+                f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(_ALL_COLUMNS)} "
+                "or a mapping --columns name=header"
+            )
+        if std in std_names:
+            raise DataError(f"{name}: column {h!r} (line {header_line}) gives {std} twice; expected each column once")
+        std_names.append(std)
+    rows = lines[1:]
+    data = np.empty((len(rows), len(header)))
+    for r, (line_no, row) in enumerate(rows):
+        if len(row) != len(header):
+            raise DataError(f"{name}: line {line_no} has {len(row)} fields; expected {len(header)} like the header")
+        for c, cell in enumerate(row):
+            try:
+                data[r, c] = float(cell)
+            except ValueError:
+                raise DataError(
+                    f"{name}: column {header[c]!r} line {line_no}: {cell.strip()!r} is not a number; expected a finite number"
+                ) from None
+    arrays = {std: data[:, c] for c, std in enumerate(std_names)}
+    line_of = [ln for ln, _ in rows]
+    headers = {std: h for std, h in zip(std_names, header)}
+    return _validate(name, arrays, headers, line_of, torque_constant_n_m_per_a, load_n, min_samples, sampling_tol)
+
+
+def record_from_arrays(
+    name: str,
+    time_s: Sequence[float],
+    torque_command_n_m: Sequence[float],
+    *,
+    nut_angle_rad: Sequence[float] | None = None,
+    nut_speed_rad_s: Sequence[float] | None = None,
+    axial_load_n: Sequence[float] | float | None = None,
+    min_samples: int = MIN_SAMPLES,
+    sampling_tol: float = SAMPLING_TOL,
+) -> Record:
+    """Validate arrays (SI units, same length) into a :class:`Record`; rows are 0-based indices.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.arange(100) * 2.5e-4
+    >>> r = record_from_arrays("demo", t, np.sin(t * 100), nut_angle_rad=np.cos(t * 50), axial_load_n=500.0)
+    >>> r.n, r.sample_time_s
+    (100, 0.00025)
+    """
+    arrays = {"time_s": np.asarray(time_s, float), "torque_command_n_m": np.asarray(torque_command_n_m, float)}
+    if nut_angle_rad is not None:
+        arrays["nut_angle_rad"] = np.asarray(nut_angle_rad, float)
+    if nut_speed_rad_s is not None:
+        arrays["nut_speed_rad_s"] = np.asarray(nut_speed_rad_s, float)
+    load_const = None
+    if axial_load_n is not None and np.ndim(axial_load_n) == 0:
+        load_const = float(axial_load_n)  # type: ignore[arg-type]
+    elif axial_load_n is not None:
+        arrays["axial_load_n"] = np.asarray(axial_load_n, float)
+    n = len(arrays["time_s"])
+    for k, a in arrays.items():
+        if a.ndim != 1 or len(a) != n:
+            raise DataError(f"{name}: column {k!r} has shape {a.shape}; expected ({n},) like time_s")
+    headers = {k: k for k in arrays}
+    return _validate(name, arrays, headers, list(range(n)), None, load_const, min_samples, sampling_tol,
+                     row_word="row")
+
+
+def _validate(name, arrays, headers, line_of, k_t, load_n, min_samples, sampling_tol, row_word="line") -> Record:
+    k_t = _finite_positive(k_t, "torque constant (N m/A)")
+    if load_n is not None and (isinstance(load_n, bool) or not math.isfinite(load_n)):
+        raise DataError(f"load = {load_n!r}; expected a finite axial load in N")
+    if "time_s" not in arrays:
+        raise DataError(f"{name}: missing required column 'time_s'; expected it (or a mapping --columns time_s=HEADER)")
+    if "torque_command_n_m" not in arrays:
+        if _CURRENT in arrays and k_t is None:
+            raise DataError(f"{name}: column {headers[_CURRENT]!r} is a current; expected a torque constant (--torque-constant N m/A)")
+        if _CURRENT not in arrays:
+            raise DataError(
+                f"{name}: missing required column 'torque_command_n_m'; expected it, or 'current_a' with a torque constant"
+            )
+    elif _CURRENT in arrays:
+        raise DataError(f"{name}: both 'torque_command_n_m' and 'current_a' given; expected one of them")
+    if "nut_angle_rad" not in arrays and "nut_speed_rad_s" not in arrays:
+        raise DataError(f"{name}: missing column 'nut_angle_rad' or 'nut_speed_rad_s'; expected at least one of them")
+    if "axial_load_n" not in arrays and load_n is None:
+        raise DataError(f"{name}: missing column 'axial_load_n'; expected it, or a constant load (--load N)")
+    if "axial_load_n" in arrays and load_n is not None:
+        raise DataError(f"{name}: has an 'axial_load_n' column and a constant load {load_n:g} N was given; expected one of them")
+    n = len(arrays["time_s"])
+    if n < min_samples:
+        raise DataError(f"{name}: {n} samples; expected at least {min_samples}")
+    for std, a in arrays.items():
+        bad = np.flatnonzero(~np.isfinite(a))
+        if bad.size:
+            raise DataError(f"{name}: column {headers[std]!r} {row_word} {line_of[bad[0]]}: {float(a[bad[0]])!r}; expected a finite number")
+    t = arrays["time_s"]
+    dt = np.diff(t)
+    bad = np.flatnonzero(dt <= 0)
+    if bad.size:
+        k = bad[0] + 1
+        what = "duplicated" if dt[bad[0]] == 0 else "goes backwards"
+        raise DataError(
+            f"{name}: column {headers['time_s']!r} {row_word} {line_of[k]}: time {float(t[k])!r} s {what}; expected strictly increasing time"
+        )
+    med = float(np.median(dt))
+    dev = np.abs(dt - med) / med
+    bad = np.flatnonzero(dev > sampling_tol)
+    if bad.size:
+        k = bad[0] + 1
+        raise DataError(
+            f"{name}: column {headers['time_s']!r} {row_word} {line_of[k]}: interval {dt[bad[0]]:.6g} s differs from the "
+            f"median {med:.6g} s by {100 * dev[bad[0]]:.2g} %; expected even sampling within {100 * sampling_tol:g} %"
+        )
+    torque = arrays["torque_command_n_m"] if "torque_command_n_m" in arrays else arrays[_CURRENT] * k_t
+    tq_name = "torque_command_n_m" if "torque_command_n_m" in arrays else _CURRENT
+    load = arrays["axial_load_n"] if "axial_load_n" in arrays else np.full(n, float(load_n))
+    for std, a in ((tq_name, torque), *((k, arrays[k]) for k in ("nut_angle_rad", "nut_speed_rad_s") if k in arrays)):
+        if np.ptp(a) <= 1e-12 * max(1.0, float(np.max(np.abs(a)))):
+            raise DataError(
+                f"{name}: column {headers[std]!r} {row_word}s {line_of[0]}..{line_of[-1]}: constant {float(a[0])!r}; "
+                "expected an excited signal (nothing to fit)"
+            )
+    warns = []
+    if "nut_angle_rad" in arrays and "nut_speed_rad_s" in arrays:
+        d_angle = np.diff(arrays["nut_angle_rad"]) / dt
+        speed = arrays["nut_speed_rad_s"][1:]
+        ref = float(np.sqrt(np.mean(d_angle**2)))
+        if ref > 0 and float(np.sqrt(np.mean(speed**2))) > 0:
+            ratio = float(np.sqrt(np.mean(speed**2))) / ref
+            for factor, unit in ((_RPM, "rpm"), (1.0 / _RPM, "rev/s... or the angle in rev")):
+                if abs(ratio / factor - 1.0) < 0.1:
+                    raise DataError(
+                        f"{name}: column {headers['nut_speed_rad_s']!r} {row_word}s {line_of[1]}..{line_of[-1]}: "
+                        f"speed is {ratio:.3g} x the angle's derivative (looks like {unit}); expected rad/s "
+                        "(convert it or drop the column)"
+                    )
+            if abs(ratio - 1.0) > 0.25:
+                warns.append(f"{name}: speed and angle disagree (RMS ratio {ratio:.3g}); the angle is used for the fit")
+    if "axial_load_n" in arrays and np.ptp(load) <= 1e-9 * max(1.0, float(np.max(np.abs(load)))):
+        warns.append(f"{name}: axial load constant at {load[0]:g} N")
+    return Record(
+        name=name,
+        time_s=t.copy(),
+        torque_command_n_m=np.array(torque, float),
+        nut_angle_rad=np.array(arrays["nut_angle_rad"]) if "nut_angle_rad" in arrays else None,
+        nut_speed_rad_s=np.array(arrays["nut_speed_rad_s"]) if "nut_speed_rad_s" in arrays else None,
+        axial_load_n=np.array(load, float),
+        warnings=tuple(warns),
+    )
+
+
+# --- experiment design ------------------------------------------------------------------------
+
+#: Excitation kinds of :func:`design_excitation`.
+DESIGNS = ("multisine", "chirp", "steps")
+
+
+def design_excitation(
+    kind: str,
+    *,
+    duration_s: float = 4.0,
+    sample_time_s: float = 2.5e-4,
+    f_min_hz: float = 1.0,
+    f_max_hz: float = 200.0,
+    amplitude: float = 20.0,
+    offset: float = 30.0,
+    seed: int = 0,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Excitation signal for a calibration experiment (speed setpoint in rad/s or torque in N m).
+
+    Parameters
+    ----------
+    kind : {"multisine", "chirp", "steps"}
+        ``multisine``: random-phase multisine (Schroeder-like, seeded) on a log grid of
+        frequencies in ``[f_min_hz, f_max_hz]``, RMS ``amplitude / sqrt(2)``; ``chirp``: logarithmic
+        sweep; ``steps``: a staircase through both directions (``offset +/- amplitude``,
+        ``-offset``, ...), each level held ``duration_s / 8``.
+    duration_s, sample_time_s : float, s
+    f_min_hz, f_max_hz : float, Hz
+    amplitude, offset : float
+        Peak excursion and mean, in the unit of the signal (rad/s for a speed setpoint).
+    seed : int
+        Seed of the multisine phases.
+
+    Returns
+    -------
+    time_s, value : ndarray
+
+    Examples
+    --------
+    >>> t, v = design_excitation("steps", duration_s=0.8, sample_time_s=1e-3)
+    >>> len(t), float(v.max()) > 0 > float(v.min())
+    (800, True)
+    """
+    if kind not in DESIGNS:
+        raise ValueError(f"design = {kind!r}; expected one of {', '.join(DESIGNS)}")
+    duration_s = _finite_positive(duration_s, "duration (s)")
+    sample_time_s = _finite_positive(sample_time_s, "sample time (s)")
+    f_min_hz = _finite_positive(f_min_hz, "minimum frequency (Hz)")
+    f_max_hz = _finite_positive(f_max_hz, "maximum frequency (Hz)")
+    amplitude = _finite_positive(amplitude, "amplitude")
+    if not math.isfinite(offset):
+        raise ValueError(f"offset = {offset!r}; expected a finite number")
+    n = int(round(duration_s / sample_time_s))
+    if not MIN_SAMPLES <= n <= MAX_SAMPLES:
+        raise ValueError(f"duration {duration_s:g} s at {sample_time_s:g} s gives {n} samples; expected {MIN_SAMPLES}..{MAX_SAMPLES}")
+    if not f_min_hz < f_max_hz <= 0.5 / sample_time_s:
+        raise ValueError(
+            f"frequency band {f_min_hz:g}..{f_max_hz:g} Hz; expected f_min < f_max <= Nyquist {0.5 / sample_time_s:g} Hz"
+        )
+    t = np.arange(n) * sample_time_s
+    if kind == "multisine":
+        rng = np.random.default_rng(seed)
+        f0 = 1.0 / duration_s
+        k = np.unique(np.round(np.geomspace(max(f_min_hz, f0), f_max_hz, 24) / f0).astype(int))
+        phases = rng.uniform(0, 2 * np.pi, len(k))
+        v = np.sum(np.sin(2 * np.pi * np.outer(t, k * f0) + phases), axis=1)
+        v = offset + amplitude * v / np.max(np.abs(v))
+    elif kind == "chirp":
+        from scipy.signal import chirp
+
+        v = offset + amplitude * chirp(t, f_min_hz, t[-1], f_max_hz, method="logarithmic")
+    else:
+        levels = np.array([1.0, 0.5, -0.5, -1.0, -0.25, 0.25, 1.0, 0.0])
+        idx = np.minimum((t / duration_s * len(levels)).astype(int), len(levels) - 1)
+        v = levels[idx] * (abs(offset) + amplitude)
+    return t, v
