@@ -302,7 +302,13 @@ def fit_plant(
     corr = np.nan_to_num(corr)
     names = ", ".join(r.name for r in records)
     params = {}
-    warns: list[str] = []
+    warns: list[str] = [
+        # Measured on synthetic data (tests/test_fit.py, PRSA_SLOW=1): the residual is dominated by
+        # model error at zero-speed crossings, not white noise, and the truth fell inside these
+        # intervals for 3 of 75 estimates. Said on every fit until the intervals are corrected.
+        "the 95 % intervals assume white residuals and are too narrow when the model is not exact "
+        "(on synthetic data they held the truth for 3 of 75 estimates): read them as lower bounds"
+    ]
     for rec in (*records, *validate):
         warns += list(rec.warnings)
     overrides = {}
