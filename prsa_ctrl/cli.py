@@ -758,11 +758,12 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 from .autotune import tune_actuator
 
                 rep = tune_actuator(plant, scene, workers=args.workers)
+                run.check()
+                if _status_says_interrupted(rep.as_dict()):
+                    raise KeyboardInterrupt
                 robust_rep, mc = _robust_and_monte_carlo(run, args, plant, rep)
             notes.extend(caught)
         run.check()
-        if _status_says_interrupted(rep.as_dict()):
-            raise KeyboardInterrupt
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - translated into one line at this boundary

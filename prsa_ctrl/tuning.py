@@ -1714,18 +1714,29 @@ def tune_pid(
         raise ValueError(f"plant has {sys.noutputs} outputs; expected one (SISO feedback path)")
     a, b, c, d = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
     auto_horizon = horizon is None
+    default_note = None
     if horizon is None or tf is None or max_noise_gain is None:
         w135, ph_top = _phase_frequency(a, b[:, :1], c, d[:, :1])
-        if w135 is None and (horizon is None or tf is None):
-            raise ValueError(
-                "the plant's phase never reaches -135 deg; pass horizon= (s), tf= (s) and a "
-                "max_noise_gain= bound, since robustness alone does not limit the gains"
-            )
-        if ph_top > -0.75 * np.pi + 1e-3 and max_noise_gain is None and not math.isfinite(limits["kp_max"]):
-            raise ValueError(
-                f"the plant's phase is {math.degrees(ph_top):.0f} deg at high frequency (above -135 deg), so robustness "
-                "alone does not limit the gains; pass max_noise_gain= (or kp_max=)"
-            )
+        unbounded = ph_top > -0.75 * np.pi + 1e-3 and max_noise_gain is None and not math.isfinite(limits["kp_max"])
+        if unbounded or (w135 is None and (horizon is None or tf is None)):
+            # Robustness alone does not limit the gains (Ms -> 1 as they grow, e.g. 1/(s-1)): the
+            # default design puts the crossover about a decade above the plant's fastest pole or
+            # zero w0, by bounding the controller's high-frequency gain at 10 / |P(j w0)|.
+            poles, zeros = _plant_roots(a, b[:, :1], c, d[:, :1])
+            mags = np.abs(np.concatenate([poles, zeros]))
+            mags = mags[(mags > 0) & np.isfinite(mags)]
+            w0 = float(mags.max()) if mags.size else 1.0
+            p0 = abs(complex(_ss_response(a, b[:, :1], c, np.array([w0]))[0] + d[0, 0]))
+            if max_noise_gain is None and not math.isfinite(limits["kp_max"]):
+                max_noise_gain = 10.0 / p0
+                default_note = (f"robustness alone does not limit the gains of this plant (phase "
+                                f"{math.degrees(ph_top):.0f} deg at high frequency): tuned with the default noise-gain "
+                                f"bound max_noise_gain = 10/|P(j w0)| = {max_noise_gain:.4g} at w0 = {w0:.4g} rad/s "
+                                "(crossover about a decade above the plant's fastest pole or zero); pass "
+                                "max_noise_gain= to choose")
+            if w135 is None:
+                horizon = horizon if horizon is not None else 4.0 / w0
+                tf = tf if tf is not None else 0.01 / w0
         if w135 is not None:
             horizon = horizon if horizon is not None else 40.0 / w135
             tf = tf if tf is not None else 0.1 / w135
@@ -1737,4 +1748,6 @@ def tune_pid(
         if not (auto_horizon and res.stats["horizon_short"]):
             break
         horizon *= 4.0
+    if default_note is not None:
+        res.warnings.insert(0, default_note)
     return res

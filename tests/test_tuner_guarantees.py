@@ -134,8 +134,14 @@ def test_open_loop_unstable_plants_are_tuned():
     r1 = tune_pid(1 / (s - 1), max_noise_gain=10.0)
     assert r1.status == "optimal" and r1.pid.kp <= 10.0 * (1 + 1e-9)
     assert np.all(closed_loop_poles(1 / (s - 1), r1.pid).real < 0)
-    with pytest.raises(ValueError, match=r"robustness alone does not limit the gains; pass max_noise_gain="):
-        tune_pid(1 / (s - 1))
+    # Default arguments: robustness alone does not bound the gains of 1/(s-1) (Ms -> 1 as they
+    # grow), so the default design bounds the controller's high-frequency gain at
+    # 10/|P(j w0)| (w0 = 1 rad/s, the unstable pole) and says so.
+    r2 = tune_pid(1 / (s - 1))
+    assert r2.status == "optimal" and np.all(closed_loop_poles(1 / (s - 1), r2.pid).real < 0)
+    assert r2.pid.kp <= 10.0 * np.sqrt(2.0) * (1 + 1e-9) and r2.pid.kp > 1.0
+    assert "default noise-gain bound" in r2.warnings[0]
+    assert true_peaks(1 / (s - 1), r2.pid)[0] <= 1.4 * (1 + 1e-9)
 
 
 def test_lags_with_delay_from_microseconds_to_hours_scale_exactly():

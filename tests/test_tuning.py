@@ -91,9 +91,14 @@ def test_bad_tuner_arguments(kwargs, match):
         tune_pid(P3, n_steps=200, **kwargs)
 
 
-def test_pure_integrator_needs_explicit_limits():
-    with pytest.raises(ValueError, match=r"phase never reaches -135 deg; pass horizon="):
-        tune_pid(control.tf([1.0], [1.0, 0.0]))
+def test_pure_integrator_gets_the_stated_default_bound():
+    """1/s: robustness alone never limits the gains, so the default design bounds the
+    controller's high-frequency gain (10/|P(j w0)| = 10 at w0 = 1 rad/s) and says so."""
+    r = tune_pid(control.tf([1.0], [1.0, 0.0]))
+    assert r.status == "optimal" and r.pid.kp == pytest.approx(10.0, rel=1e-5) and r.ms <= 1.4 * (1 + 1e-9)
+    assert "default noise-gain bound max_noise_gain = 10/|P(j w0)| = 10 at w0 = 1 rad/s" in r.warnings[0]
+    explicit = tune_pid(control.tf([1.0], [1.0, 0.0]), max_noise_gain=3.0, horizon=10.0, tf=0.01)
+    assert explicit.pid.kp == pytest.approx(3.0, rel=1e-5) and not explicit.warnings[:1] == r.warnings[:1]
 
 
 def test_discrete_and_mimo_plants_are_rejected():
