@@ -94,6 +94,14 @@ def _newton(fun: ca.Function, z0: NDArray[np.float64], par: list[float], scale: 
         if not (np.all(np.isfinite(g)) and np.all(np.isfinite(jac))):
             raise RuntimeError(f"non-finite residual or Jacobian at iteration {it}")
         if np.linalg.cond(jac) > 1e15:
+            # A continuum of equilibria (e.g. the roller assembly floating in its backlash at
+            # exactly 0 N): the minimum-norm Newton step goes to the nearest one; if it does not
+            # close the residual, a body has lost all its contacts.
+            dz = np.linalg.lstsq(jac, -g, rcond=None)[0]
+            g_new = np.asarray(fun(z + dz, par)[0], dtype=float).ravel()
+            g_ref = np.abs(jac) @ np.abs(scale) + np.abs(g)
+            if np.all(np.isfinite(g_new)) and np.all(np.abs(g_new) <= 1e-9 * np.maximum(g_ref, 1e-300)):
+                return z + dz, it
             raise RuntimeError(f"singular Jacobian at iteration {it} (a body lost all its contacts)")
         dz = np.linalg.solve(jac, -g)
         size = np.linalg.norm(dz / scale)

@@ -354,3 +354,17 @@ def test_measured_force_trace_from_csv(paper_plant, tmp_path):
             PiecewiseLinear.from_csv(bad)
     with pytest.raises(ValueError, match=r"cannot read"):
         PiecewiseLinear.from_csv(tmp_path / "missing.csv")
+
+
+def test_zero_load_start_is_a_steady_state(paper_plant):
+    """At exactly 0 N the roller assembly floats in its backlash (a continuum of equilibria):
+    the operating point is the nearest one, and the loop starts steady from it."""
+    from prsa_ctrl import operating_point
+    from prsa_ctrl.simulation import run
+
+    op = operating_point(paper_plant, OMEGA_300_RPM, 0.0, "compliant")
+    assert op.torque > 0  # the no-load torque
+    r = run(paper_plant, load=[(0.0, 0.0), (0.01, 1500.0)], duration=0.03, controller=PID(0.085, 14.7),
+            discrete=True, energy=True)
+    w = r.output("nut_speed")
+    assert np.max(np.abs(w[r.time < 0.01] - w[0])) < 0.01 and w.min() < w[0] - 1.0
