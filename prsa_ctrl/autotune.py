@@ -53,6 +53,7 @@ class Design:
     verified_runs: list = field(default_factory=list, repr=False)
     predicted_error: list = field(default_factory=list, repr=False)
     predicted_h: float = math.nan
+    predicted_start_speed: float = math.nan  # rad/s before the step (below the setpoint for P-only)
     estimator: str = "none"
     estimation: list = field(default_factory=list)  # per step: speed RMS errors (rad/s)
     flags: list[str] = field(default_factory=list)  # health checks the verified runs failed
@@ -234,12 +235,19 @@ def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene)
     w0 = scene.setpoint_rad_s
     design.predicted, design.predicted_error = [], []
     design.predicted_h = loops[0].h
-    tau0 = _steady_torque(plant, scene, scene.initial_load)
+    w_pre, tau0 = w0, _steady_torque(plant, scene, scene.initial_load)
+    if design.pid.ki == 0:  # P-only: the loop settles below the setpoint before the step too
+        from .simulation import _initial_state
+
+        op, _ = _initial_state(plant, _linear_fidelity(scene), w0, scene.initial_load, design.pid, 0.0, 0,
+                               observer_ff=design.estimator == "kf")
+        w_pre, tau0 = op.omega_nut, op.torque
+    design.predicted_start_speed = w_pre
     for f1, lp in zip(scene.final_loads, loops):
         tr = lp.trajectory(design.pid.gains)
         design.predicted_error.append(tr["error"])
         t = scene.step_time + lp.h * np.arange(-1, lp.n_steps)
-        speed = w0 + np.concatenate([[0.0], -tr["error"]])
+        speed = w_pre + np.concatenate([[0.0], -tr["error"]])
         torque = tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))])
         design.predicted.append(
             load_step_metrics(t, speed, w0, scene.step_time, torque, plant.torque_limit,

@@ -917,58 +917,17 @@ def _stability(lp, gains) -> str:
     return "marginal" if rho <= 1.0 + 1e-6 else "unstable"
 
 
-def _design_figures(plant, scene, pid, loops, stability: str) -> dict:
-    """Figures for gains that :func:`prsa_ctrl.plots.write_design_plots` refuses (marginal or
-    unstable loops): frequency plots always, time responses unless unstable."""
-    import numpy as np
-
-    from .autotune import Design, _linear_fidelity, _predict, verify
-    from .linear import closed_loop, linearize
-    from .plots import bode_loop, bode_plant, load_step_plot, sensitivity_plot, step_response_plot
-    from .scene import choose_fidelity
-    from .simulation import simulate
-
-    scene, _ = choose_fidelity(scene)
-    lp = loops[0]
-    g = pid.gains
-    design = Design("given gains", pid, lp.margins(g))
-    ts = plant.sample_time_s if scene.discrete else None
-    sys_lin = linearize(plant, scene.setpoint_rad_s, scene.initial_load, _linear_fidelity(scene), sampled=scene.discrete)
-    L = lp.loop_response(g)
-    figs = {
-        "plant_bode": bode_plant(sys_lin, sample_time_s=ts)[0],
-        "loop_bode": bode_loop(lp.omega, L, design.margins, sample_time_s=ts)[0],
-        "sensitivity": sensitivity_plot(lp.omega, L, scene.ms_max, mt_max=scene.mt_max, sample_time_s=ts)[0],
-    }
-    title = "UNSTABLE closed loop" if stability == "unstable" else "marginally stable closed loop"
-    for fig in figs.values():
-        fig.suptitle(f"{title}: kp = {pid.kp:g}, ki = {pid.ki:g}, kd = {pid.kd:g}", color="tab:red", fontsize=10)
-    if stability == "unstable":
-        return figs
-    import control
-
-    _predict(design, loops, plant, scene)
-    verify(design, plant, scene)
-    figs["load_step"] = load_step_plot(design, scene, torque_limit=plant.torque_limit)[0]
-    w0, dw, t_step, span = scene.setpoint_rad_s, 0.1 * scene.setpoint_rad_s, 0.005, 0.1
-    r = simulate(plant, setpoint=[(0.0, w0), (t_step, w0 + dw)], load=scene.initial_load, duration=t_step + span,
-                 controller=pid, fidelity=scene.fidelity, discrete=scene.discrete)
-    cl = closed_loop(sys_lin, pid)
-    tl = np.linspace(0.0, span, 2001)
-    lin = control.step_response(cl, T=tl, input=0)
-    y_lin = w0 + dw * np.asarray(lin.outputs).reshape(cl.noutputs, -1)[cl.output_labels.index("nut_speed")]
-    figs["setpoint_step"] = step_response_plot(
-        np.asarray(r.time), np.asarray(r.outputs[0]), tl + t_step, y_lin, setpoint=None,
-        title=f"Setpoint step {w0:.2f} -> {w0 + dw:.2f} rad/s at {scene.initial_load:g} N ({title})",
-    )[0]
-    return figs
-
-
 def plot_main(argv: Sequence[str] | None = None) -> int:
     """``prsa-plot``: plant and loop Bode plots, sensitivities, load-step and setpoint-step
     responses for given gains, written as PNG and SVG into ``--plots`` (alias ``--out``),
     and the margins printed; returns the exit code (0, 2, 3 or 130)."""
     return _invoke("prsa-plot", argv, _plot_body)
+
+
+def _plot_figures(plant, scene, pid, state, loops):
+    from .plots import design_figures
+
+    return design_figures(plant, scene, pid, state, loops)
 
 
 def _plot_body(run: _Run, argv: list[str]) -> int:
@@ -1007,7 +966,7 @@ def _plot_body(run: _Run, argv: list[str]) -> int:
                 loops = actuator_loops(plant, choose_fidelity(scene)[0])
                 state = _stability(loops[0], pid.gains)
                 m = loops[0].margins(pid.gains)
-                figs = None if state == "stable" else _design_figures(plant, scene, pid, loops, state)
+                figs = None if state == "stable" else _plot_figures(plant, scene, pid, state, loops)
                 files = None
                 if state == "stable":
                     from .plots import write_design_plots

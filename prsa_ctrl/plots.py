@@ -20,6 +20,7 @@ import matplotlib.ticker
 import numpy as np
 
 __all__ = [
+    "design_figures",
     "bode_plant",
     "bode_loop",
     "sensitivity_plot",
@@ -198,7 +199,9 @@ def sensitivity_plot(omega, loop, ms_max: float | None = None, ax=None, mt_max: 
 def _prediction_series(design, scene, k: int = 0):
     """Linear prediction of a design as time (s) and speed (rad/s)."""
     lp_t = scene.step_time + np.arange(-1, len(design.predicted_error[k])) * design.predicted_h
-    return lp_t, scene.setpoint_rad_s + np.concatenate([[0.0], -design.predicted_error[k]])
+    start = getattr(design, "predicted_start_speed", math.nan)
+    start = start if math.isfinite(start) else scene.setpoint_rad_s
+    return lp_t, start + np.concatenate([[0.0], -design.predicted_error[k]])
 
 
 def _objective_of(m, objective: str) -> float:
@@ -643,8 +646,26 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
     return files
 
 
-def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
-    """Bode, sensitivity, load-step and setpoint-step figures for given gains (no tuning)."""
+def design_figures(plant, scene, pid, stability: str | None = None, loops=None) -> dict:
+    """Bode, sensitivity, load-step and setpoint-step figures for given gains (no tuning).
+
+    Parameters
+    ----------
+    plant : Plant
+    scene : Scene
+    pid : PID
+    stability : {"stable", "marginal", "unstable"}, optional
+        The loop's class (default: from the loop model). Marginal and unstable loops are drawn
+        with a red warning title; an unstable one gets the frequency plots only (its time
+        responses diverge).
+    loops : list of LoopModel, optional
+        The scene's loop models (default :func:`prsa_ctrl.autotune.actuator_loops`).
+
+    Returns
+    -------
+    dict
+        Figure name -> matplotlib Figure.
+    """
     import control
 
     from .autotune import Design, _linear_fidelity, _predict, actuator_loops, verify
@@ -653,18 +674,32 @@ def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
     from .simulation import simulate
 
     scene, _ = choose_fidelity(scene)
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    loops = actuator_loops(plant, scene)
+    loops = actuator_loops(plant, scene) if loops is None else loops
     lp = loops[0]
     g = pid.gains
-    if not lp.is_stable(g):
-        raise ValueError(f"the loop with {pid} is unstable on {plant.name}; expected stabilising gains")
+    stability = stability or (lp.stability(g) if hasattr(lp, "stability") else
+                              ("stable" if lp.is_stable(g) else "unstable"))
     design = Design("given gains", pid, lp.margins(g))
-    _predict(design, loops, plant, scene)
-    verify(design, plant, scene)
     ts = plant.sample_time_s if scene.discrete else None
     sys = linearize(plant, scene.setpoint_rad_s, scene.initial_load, _linear_fidelity(scene), sampled=scene.discrete)
+    L = lp.loop_response(g)
+    figs = {
+        "plant_bode": bode_plant(sys, sample_time_s=ts)[0],
+        "loop_bode": bode_loop(lp.omega, L, design.margins, operating_point=_mid_load_text(scene, 0),
+                               sample_time_s=ts)[0],
+        "sensitivity": sensitivity_plot(lp.omega, L, scene.ms_max, mt_max=scene.mt_max, sample_time_s=ts)[0],
+    }
+    figs["sensitivity"].axes[0].set_title(f"S and T at {_mid_load_text(scene, 0)}", fontsize=10)
+    label = {"marginal": "marginally stable closed loop", "unstable": "UNSTABLE closed loop"}.get(stability)
+    if label:
+        for fig in figs.values():
+            fig.suptitle(f"{label}: kp = {pid.kp:g}, ki = {pid.ki:g}, kd = {pid.kd:g}", color="tab:red", fontsize=10)
+    if stability == "unstable":
+        return figs
+    _predict(design, loops, plant, scene)
+    verify(design, plant, scene)
+    figs["load_step"] = load_step_plot(design, scene, k=None if len(scene.final_loads) > 1 else 0,
+                                       torque_limit=plant.torque_limit)[0]
     # Setpoint step of +10 %: nonlinear run and the linear closed loop's prediction.
     w0, dw, t_step, span = scene.setpoint_rad_s, 0.1 * scene.setpoint_rad_s, 0.005, 0.1
     r = simulate(plant, setpoint=[(0.0, w0), (t_step, w0 + dw)], load=scene.initial_load, duration=t_step + span,
@@ -673,22 +708,42 @@ def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
     tl = np.linspace(0.0, span, 2001)
     lin = control.step_response(cl, T=tl, input=0)
     y_lin = w0 + dw * np.asarray(lin.outputs).reshape(cl.noutputs, -1)[cl.output_labels.index("nut_speed")]
-    L = lp.loop_response(g)
-    figs = {
-        "plant_bode": bode_plant(sys, sample_time_s=ts)[0],
-        "loop_bode": bode_loop(lp.omega, L, design.margins, operating_point=_mid_load_text(scene, 0),
-                               sample_time_s=ts)[0],
-        "sensitivity": sensitivity_plot(lp.omega, L, scene.ms_max, mt_max=scene.mt_max, sample_time_s=ts)[0],
-        "load_step": load_step_plot(design, scene, k=None if len(scene.final_loads) > 1 else 0,
-                                    torque_limit=plant.torque_limit)[0],
-        "setpoint_step": step_response_plot(
-            np.asarray(r.time), np.asarray(r.outputs[0]), tl + t_step, y_lin, setpoint=None,
-            title=f"Setpoint step {w0:.2f} -> {w0 + dw:.2f} rad/s at {scene.initial_load:g} N",
-        )[0],
-    }
-    figs["sensitivity"].axes[0].set_title(f"S and T at {_mid_load_text(scene, 0)}", fontsize=10)
+    figs["setpoint_step"] = step_response_plot(
+        np.asarray(r.time), np.asarray(r.outputs[0]), tl + t_step, y_lin, setpoint=None,
+        title=f"Setpoint step {w0:.2f} -> {w0 + dw:.2f} rad/s at {scene.initial_load:g} N"
+              + (f" ({label})" if label else ""),
+    )[0]
+    return figs
+
+
+def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
+    """:func:`design_figures` of stabilising gains, saved as PNG and SVG into ``directory``.
+
+    Parameters
+    ----------
+    plant, scene, pid
+        As :func:`design_figures`.
+    directory : Path
+        Created if missing.
+
+    Raises
+    ------
+    ValueError
+        If the gains do not stabilise the loop.
+    """
+    from .autotune import actuator_loops
+    from .scene import choose_fidelity
+
+    scene, _ = choose_fidelity(scene)
+    loops = actuator_loops(plant, scene)
+    if not loops[0].is_stable(pid.gains):
+        raise ValueError(f"the loop with {pid} is unstable on {plant.name}; expected stabilising gains")
+    figs = design_figures(plant, scene, pid, "stable", loops)
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
     for name, fig in figs.items():
         files += save_figure(fig, directory / name)
         plt.close(fig)
     return files
+
