@@ -8,14 +8,25 @@ interval is one 3-stage Radau IIA collocation step (order 5, L-stable for the st
 and current loop) with the recorded command held (zero-order hold) and the recorded load.
 The residual is the measured encoder angle minus the model angle at every sample (or, without
 an angle column, the measured speed minus the model's one-sample angle difference), weighted
-by the encoder quantisation noise ``q / sqrt(12)``. The whole problem -- scaled, bounded
-parameters, segment initial states and collocation states -- is solved by ipopt with exact
-CasADi derivatives.
+by the encoder quantisation noise ``q / sqrt(12)``. Data where the nut is near standstill or
+reversing (``|speed|`` below about 1 rad/s, or a sign change between samples) are left out and
+the record is cut there into separate segments: the friction law is not smooth there
+(Karnopp stick band, Stribeck drop), one collocation step per sample does not resolve the
+stick-slip transition, and that model error biased every parameter by many standard errors.
+The problem -- scaled, bounded parameters, segment initial states and collocation states -- is
+solved by a constrained Gauss-Newton method with exact CasADi derivatives (three state-only
+warm-up steps, then bounded parameter steps).
 
-Confidence: the sensitivity of the residuals to the parameters (and the segment initial
-states) follows from the collocation equations by the implicit-function theorem; with the
-residual variance it gives the covariance, 95 % intervals (normal approximation), the
-correlation matrix and identifiability warnings.
+Confidence: the sensitivity of the residuals to the parameters (segment initial states
+projected out) follows from the collocation equations by the implicit-function theorem. The
+covariance is a sandwich with a prewhitened Newey-West (HAC) estimate of the score covariance
+(coloured residuals: quantisation, the speed loop, model error), which equals the classic
+``s^2 (J^T J)^-1`` for white residuals; it gives 95 % intervals (normal approximation), the
+correlation matrix and identifiability warnings. Measured coverage (tests/test_fit.py,
+``PRSA_SLOW=1``): see the README's calibration section.
+
+Frequency responses (:func:`fit_frf`): the rigid model linearised at the measurement's speed and
+load, sampled as the drive measures it, fitted on the log response.
 """
 
 from __future__ import annotations
@@ -28,10 +39,11 @@ from typing import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from .fitdata import Record
+from .fitdata import FrfRecord, Record
 from .plant import Plant
 
-__all__ = ["fit_plant", "FitResult", "FitError", "FITTABLE", "DEFAULT_KEYS", "fit_percent"]
+__all__ = ["fit_plant", "fit_frf", "frf_response", "fit_figures", "FitResult", "FitError", "FITTABLE", "DEFAULT_KEYS", "FRF_KEYS",
+           "fit_percent"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`_bounds`).
 FITTABLE: Mapping[str, tuple[str, str]] = {
@@ -43,6 +55,10 @@ FITTABLE: Mapping[str, tuple[str, str]] = {
 }
 #: Keys fitted when none are chosen.
 DEFAULT_KEYS = tuple(FITTABLE)
+#: Keys an FRF-only fit estimates by default: the response at speed shows the inertia and the
+#: current loop; efficiency and no-load torque do not enter the linearisation at speed, and the
+#: viscous corner (b / J, well below 1 Hz) lies under the usual lowest measured frequency.
+FRF_KEYS = ("nut.inertia_kg_m2", "drive.current_loop_bandwidth_hz")
 
 # 3-stage Radau IIA (order 5): stage times and coefficients; the last stage is the step end.
 _S6 = math.sqrt(6.0)
@@ -55,6 +71,13 @@ _RADAU_A = (
 _Z95 = 1.959963984540054
 #: Budget of one fit: total sample intervals of all records.
 MAX_INTERVALS = 200_000
+#: A Gauss-Newton attempt whose constraint residual fell by less than 10 % over this many
+#: iterations is given up (the next attempt starts differently).
+STALL_ITERATIONS = 15
+#: Converged when every parameter step is below this fraction of its standard error (or ``tol``).
+STEP_SE_FRACTION = 1e-3
+#: Shortest multiple-shooting segment (sample intervals); shorter stretches of usable data are left out.
+MIN_SEGMENT = 20
 
 
 class FitError(RuntimeError):
@@ -81,8 +104,14 @@ class FitResult:
         (one-sample angle difference) over the shooting segments.
     warnings : list of str
     solver : dict
-        Solver name, status, iterations, final objective, residual standard deviation (in the
-        unit of the residual), number of residuals, segments.
+        Solver name, status, iterations (and over all attempts), final objective, residual
+        standard deviation (in the unit of the residual), number of residuals, segments,
+        left-out samples, covariance method with its HAC bandwidth, the residuals' lag-1
+        autocorrelation and how much wider the intervals are than white-residual ones.
+    traces : dict
+        Per record ``{"time_s", "measured", "model"}`` (nut speed, rad/s) and per frequency
+        response ``{"frequency_hz", "measured", "model"}`` (complex, (rad/s)/(N m)), for
+        :func:`fit_figures`.
     """
 
     plant: Plant
@@ -173,14 +202,50 @@ class _Seg:
     n: int  # intervals
 
 
-def _segments(records: Sequence[Record], segment_samples: int) -> list[_Seg]:
-    segs = []
+def _segments(records: Sequence[Record], segment_samples: int, refs=None, min_speed_rad_s: float = 0.0,
+              margin: int = 2) -> tuple[list[_Seg], int]:
+    """Multiple-shooting segments of about ``segment_samples`` intervals, and the samples left out.
+
+    Intervals where the (smoothed) data speed is below ``min_speed_rad_s`` within ``margin``
+    samples (speed reversals, standstill) are left out: there the friction law is not smooth
+    (Karnopp stick band, Stribeck drop) and one collocation step per sample misses the
+    stick-slip transition, a model error that would bias the fit and make its residuals
+    coloured. Every stretch in between starts a segment of its own with a free initial state.
+    Stretches shorter than ``MIN_SEGMENT`` intervals are left out too.
+    """
+    segs, left_out = [], 0
     for r, rec in enumerate(records):
         n_int = rec.n - 1
-        n_seg = max(1, int(round(n_int / segment_samples)))
-        edges = np.linspace(0, n_int, n_seg + 1).round().astype(int)
-        segs += [_Seg(r, int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:])]
-    return segs
+        ok = np.ones(n_int, bool)
+        if refs is not None and min_speed_rad_s > 0:
+            # mean speed over each interval (angle difference), lightly smoothed against noise
+            v = np.diff(refs[r][0]) / np.diff(rec.time_s)
+            v = np.convolve(v, np.ones(3) / 3, mode="same") if len(v) >= 3 else v
+            slow = np.abs(v) < min_speed_rad_s
+            flip = np.signbit(v[:-1]) != np.signbit(v[1:])  # a reversal faster than one sample
+            slow[:-1] |= flip
+            slow[1:] |= flip
+            if margin:
+                slow = np.convolve(slow.astype(float), np.ones(2 * margin + 1), mode="same") > 0
+            ok = ~slow
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(int), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            if b - a < MIN_SEGMENT:
+                continue
+            n_seg = max(1, int(round((b - a) / segment_samples)))
+            cuts = np.linspace(a, b, n_seg + 1).round().astype(int)
+            segs += [_Seg(r, int(c0), int(c1 - c0)) for c0, c1 in zip(cuts[:-1], cuts[1:])]
+        left_out += n_int - int(ok.sum()) + sum(int(b - a) for a, b in zip(edges[::2], edges[1::2]) if b - a < MIN_SEGMENT)
+    return segs, left_out
+
+
+def _min_speed(plant: Plant) -> float:
+    """Default speed (rad/s of the nut) below which data are left out of a fit: three Stribeck
+    velocities plus the Karnopp blend band (``2 w_b``), where the friction law is not smooth."""
+    from .model import stick_band_rad_s
+
+    v_s = plant.values["friction.stribeck_velocity_m_s"] / plant.lead_per_rad
+    return 3.0 * v_s + 2.0 * stick_band_rad_s(plant)
 
 
 def _reference(rec: Record, plant: Plant) -> NDArray[np.float64]:
@@ -204,6 +269,7 @@ def fit_plant(
     records: Sequence[Record],
     plant: Plant | None = None,
     *,
+    frf: Sequence[FrfRecord] = (),
     keys: Sequence[str] | None = None,
     fidelity: str = "rigid",
     validate: Sequence[Record] = (),
@@ -212,6 +278,7 @@ def fit_plant(
     substeps: int = 1,
     max_iter: int = 50,
     tol: float = 1e-8,
+    min_speed_rad_s: float | None = None,
 ) -> FitResult:
     """Fit plant parameters to measured time-domain records (output error through the model).
 
@@ -219,11 +286,17 @@ def fit_plant(
     ----------
     records : sequence of Record
         Records to fit (see :func:`prsa_ctrl.fitdata.load_record`); they share the parameters.
+        May be empty when ``frf`` is given: the fit then uses the frequency responses alone
+        (:func:`fit_frf`).
     plant : Plant, optional
         Base plant (default: the built-in default plant); its values are the initial guess and
         its sensor's encoder resolution sets the residual weights.
+    frf : sequence of FrfRecord
+        Measured frequency responses (torque command -> nut speed). With time-domain records
+        they validate the fitted plant (fit % and traces for the Bode overlay); alone they are
+        fitted.
     keys : sequence of str, optional
-        Plant keys to fit (default :data:`DEFAULT_KEYS`).
+        Plant keys to fit (default :data:`DEFAULT_KEYS`; :data:`FRF_KEYS` for an FRF-only fit).
     fidelity : {"rigid", "compliant"}
         Model fidelity.
     validate : sequence of Record
@@ -237,9 +310,14 @@ def fit_plant(
         Samples between a logged command and the sample it acts from (0: the logged command
         is held over the interval that follows it, as in the toolkit's simulator).
     max_iter : int
-        ipopt iteration budget.
+        Gauss-Newton iteration budget (plus three state-only warm-up steps).
     tol : float
-        ipopt convergence tolerance.
+        Convergence tolerance of the parameter step (scaled units).
+    min_speed_rad_s : float, rad/s, optional
+        Data where the nut speed is below this (speed reversals, standstill) are left out (the
+        friction law is not smooth there; see :func:`_segments`). Default: three Stribeck
+        velocities plus the Karnopp blend band of the base plant (about 1 rad/s for the paper
+        plant); 0 keeps every sample.
 
     Returns
     -------
@@ -255,7 +333,9 @@ def fit_plant(
     from .plant import load_plant
 
     plant = load_plant() if plant is None else plant
-    records = list(records)
+    records, frf = list(records), list(frf)
+    if not records and frf:
+        return fit_frf(frf, plant, keys=keys, delay_samples=delay_samples)
     if not records:
         raise ValueError("records = []; expected at least one data record")
     keys = tuple(DEFAULT_KEYS if keys is None else keys)
@@ -272,6 +352,10 @@ def fit_plant(
         raise ValueError(f"substeps = {substeps!r}; expected an integer 1..8")
     if not (math.isfinite(segment_s) and segment_s > 0):
         raise ValueError(f"segment_s = {segment_s!r}; expected a time > 0 s")
+    if min_speed_rad_s is None:
+        min_speed_rad_s = _min_speed(plant)
+    if isinstance(min_speed_rad_s, bool) or not (math.isfinite(min_speed_rad_s) and min_speed_rad_s >= 0):
+        raise ValueError(f"min_speed_rad_s = {min_speed_rad_s!r}; expected a speed >= 0 rad/s")
     ts = records[0].sample_time_s
     for rec in (*records, *validate):
         if abs(rec.sample_time_s / ts - 1) > 1e-3:
@@ -287,54 +371,109 @@ def fit_plant(
     s0 = np.clip(s0, lo, hi)
     scales = np.array([b[2] for b in bounds])
 
-    fit_run = _Problem(plant, keys, scales, fidelity, records, ts, segment_s, delay_samples, substeps)
-    try:  # two bounded attempts: a cautious and a bolder trust region for the parameter steps
-        sol = fit_run.solve(s0, lo, hi, max_iter, tol, fixed=False, box=0.3)
-    except FitError:
-        sol = fit_run.solve(s0, lo, hi, max_iter, tol, fixed=False, box=1.0)
+    fit_run = _Problem(plant, keys, scales, fidelity, records, ts, segment_s, delay_samples, substeps,
+                       min_speed_rad_s)
+    # Bounded attempts, each given up early when it stalls: a cautious trust region for the
+    # parameter steps, the same after a state-only warm-up, a bolder one.
+    attempts = ((0.3, 0), (0.3, 3), (1.0, 3))
+    spent = 0
+    for i, (box, warm) in enumerate(attempts):
+        try:
+            sol = fit_run.solve(s0, lo, hi, max_iter, tol, fixed=False, box=box, warm=warm)
+            break
+        except FitError:
+            spent += fit_run.last_iterations
+            if i == len(attempts) - 1:
+                raise
     s_opt = sol["s"]
-    cov_s, sigma, n_res, jac_cols = fit_run.covariance(sol)
+    cov_s, sigma, n_res, jac_cols, cov_info = fit_run.covariance(sol)
     values = s_opt * scales
     cov = cov_s * np.outer(scales, scales)
+    names = ", ".join(r.name for r in records)
+    warns = [w for rec in (*records, *validate, *frf) for w in rec.warnings]
+    if fit_run.left_out:
+        total_int = sum(r.n - 1 for r in records)
+        warns.append(f"{fit_run.left_out} of {total_int} sample intervals at |speed| < {min_speed_rad_s:.3g} rad/s "
+                     "(speed reversals, standstill) left out: the friction law is not smooth there")
+    if cov_info["residual_autocorrelation_lag1"] > 0.5:
+        warns.append(f"residuals strongly coloured (lag-1 autocorrelation {cov_info['residual_autocorrelation_lag1']:.2f}): "
+                     "the intervals are widened for it (HAC) but stay optimistic (measured: 73 % coverage on AR(1) "
+                     "noise of 0.95); look for unmodelled dynamics or a filtered encoder signal")
+    params, corr, fitted, reflected = _finish(plant, keys, values, cov, lo * scales, hi * scales, names, warns)
+    fit_pct = dict(sol["fit_percent"])
+    traces = dict(sol["traces"])
+    for rec in validate:
+        vrun = _Problem(fitted, keys, scales, fidelity, [rec], ts, segment_s, delay_samples, substeps,
+                        min_speed_rad_s)
+        vsol = vrun.solve(s_opt, s_opt, s_opt, max_iter, tol, fixed=True)
+        fit_pct.update(vsol["fit_percent"])
+        traces.update(vsol["traces"])
+    for fr in frf:  # frequency responses given with time-domain data validate the fitted plant
+        g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n,
+                         sample_time_s=_frf_ts(fr, fitted), delay_samples=delay_samples)
+        fit_pct[fr.name] = round(_frf_fit_percent(fr.response, g), 3)
+        traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
+    solver = {
+        "name": "constrained Gauss-Newton (multiple shooting, Radau IIA collocation per sample, exact CasADi derivatives)",
+        "status": sol["status"],
+        "iterations": sol["iterations"],
+        "attempts": i + 1,
+        "iterations_all_attempts": spent + sol["iterations"],
+        "objective": sol["objective"],
+        "residual_std": float(sigma),
+        "residual_unit": fit_run.residual_unit,
+        "residuals": int(n_res),
+        "segments": len(fit_run.segs),
+        "left_out_samples": int(fit_run.left_out),
+        "min_speed_rad_s": float(min_speed_rad_s),
+        "fidelity": fidelity,
+        **cov_info,
+    }
+    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces)
+
+
+def _finish(plant, keys, values, cov, lo, hi, names, warns):
+    """Parameters with 95 % CIs, correlation, identifiability warnings, the fitted plant and the
+    reflected inertia, from fitted values and their covariance (file units; ``lo``/``hi`` bounds)."""
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
     corr = np.nan_to_num(corr)
-    names = ", ".join(r.name for r in records)
-    params = {}
-    warns: list[str] = [
-        # Measured on synthetic data (tests/test_fit.py, PRSA_SLOW=1): the residual is dominated by
-        # model error at zero-speed crossings, not white noise, and the truth fell inside these
-        # intervals for 3 of 75 estimates. Said on every fit until the intervals are corrected.
-        "the 95 % intervals assume white residuals and are too narrow when the model is not exact "
-        "(on synthetic data they held the truth for 3 of 75 estimates): read them as lower bounds"
-    ]
-    for rec in (*records, *validate):
-        warns += list(rec.warnings)
-    overrides = {}
+    params, overrides = {}, {}
     for i, k in enumerate(keys):
         unit = FITTABLE[k][0]
         ci = [float(values[i] - _Z95 * std[i]), float(values[i] + _Z95 * std[i])]
         params[k] = {"value": float(values[i]), "ci95": ci, "unit": unit}
         overrides[k] = float(values[i])
         width = _Z95 * std[i]
-        if not np.isfinite(width) or width > 0.5 * max(abs(values[i]), 1e-3 * (hi[i] - lo[i]) * scales[i]):
+        if not np.isfinite(width) or width > 0.5 * max(abs(values[i]), 1e-3 * (hi[i] - lo[i])):
             warns.append(f"{k} is not identifiable from this data (95 % CI +/- {width:.3g} {unit} around "
                          f"{values[i]:.4g}): {_REMEDY_KEY.get(k, 'excite it more')}")
-        if values[i] <= lo[i] * scales[i] * (1 + 1e-6) + 1e-15 or values[i] >= hi[i] * scales[i] * (1 - 1e-6):
-            warns.append(f"{k} = {values[i]:.4g} {unit} is at its bound [{lo[i] * scales[i]:.4g}, {hi[i] * scales[i]:.4g}]")
+        if values[i] <= lo[i] * (1 + 1e-6) + 1e-15 or values[i] >= hi[i] * (1 - 1e-6):
+            warns.append(f"{k} = {values[i]:.4g} {unit} is at its bound [{lo[i]:.4g}, {hi[i]:.4g}]: its interval "
+                         "is not reliable")
     for i in range(len(keys)):
         for j in range(i + 1, len(keys)):
             if abs(corr[i, j]) > 0.95:
                 warns.append(f"{keys[i]} and {keys[j]} are strongly correlated ({corr[i, j]:+.3f}): "
-                             "the data cannot separate them")
-    fitted = plant.with_params(overrides, name=f"{plant.name}-fit")
-    srcs = dict(fitted.sources)
-    for k in keys:
-        lo_ci, hi_ci = params[k]["ci95"]
-        srcs[k] = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g})"
-    fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
-                   description=fitted.description)
+                             "the data cannot separate them, and their intervals hold only if the model is "
+                             "exact (record load changes, speed levels in both directions)")
+    with _warnings.catch_warnings():
+        _warnings.simplefilter("ignore")  # the base plant's own geometry notes were given when it loaded
+        fitted = plant.with_params(overrides, name=f"{plant.name}-fit")
+        srcs = dict(fitted.sources)
+        for k in keys:
+            lo_ci, hi_ci = params[k]["ci95"]
+            srcs[k] = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g})"
+        unc = {k: v for k, v in (getattr(plant, "uncertainty", None) or {}).items() if k not in keys}
+        fit_unc = _uncertainty_entries(fitted, params, names, std)
+        unc.update(fit_unc)
+        for k in keys:
+            if k not in fit_unc:
+                warns.append(f"{k}: no [uncertainty] entry written (its interval is degenerate or leaves the "
+                             "physical range)")
+        fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
+                       description=fitted.description, uncertainty=unc)
     extra = plant.reflected_inertia_kg_m2 - plant.values["nut.inertia_kg_m2"]
     j_ref = fitted.reflected_inertia_kg_m2
     if "nut.inertia_kg_m2" in params:
@@ -342,23 +481,355 @@ def fit_plant(
     else:
         ci = [j_ref, j_ref]
     reflected = {"value": float(j_ref), "ci95": ci, "unit": "kg m^2"}
-    fit_pct = dict(sol["fit_percent"])
-    for rec in validate:
-        vrun = _Problem(fitted, keys, scales, fidelity, [rec], ts, segment_s, delay_samples, substeps)
-        vsol = vrun.solve(s_opt, s_opt, s_opt, max_iter, tol, fixed=True)
-        fit_pct.update(vsol["fit_percent"])
+    return params, corr, fitted, reflected
+
+
+def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std) -> dict:
+    """``[uncertainty]`` entries of the fitted keys: a normal distribution with the fit's standard
+    deviation, truncated at the 95 % interval (1.96 sigma) or closer where the key's physical
+    range or the plant's cross-checks end; a key at a bound of its range (e.g. no-load torque 0)
+    gets a uniform distribution from that bound to its interval's far end. Keys whose interval
+    is degenerate or invalid are left out (the fit's warnings say why)."""
+    from .errors import PlantFileError
+    from .plant import SCHEMA
+
+    out = {}
+    for (k, v), sd in zip(params.items(), std):
+        value = v["value"]
+        lo_ci, hi_ci = v["ci95"]
+        if not (np.isfinite(sd) and sd > 0):
+            continue
+        section, sub = k.split(".")
+        kind = SCHEMA[section][sub]
+        floor = 0.0 if kind in ("positive", "non-negative", "fraction in (0, 1]") else -math.inf
+        ceil = 1.0 if kind == "fraction in (0, 1]" else math.inf
+        src = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g}; sigma from the fit's covariance)"
+        trunc = min(_Z95, (value - floor) / sd * (1 - 1e-9), (ceil - value) / sd * (1 - 1e-9))
+        if trunc >= 0.1:
+            entry = {"dist": "normal", "sigma": float(sd), "truncate": float(round(trunc, 6) if trunc < _Z95 else _Z95),
+                     "source": src}
+            ends = (value - entry["truncate"] * sd, value + entry["truncate"] * sd)
+        elif kind == "non-negative" and value - floor < 0.1 * sd:
+            entry = {"dist": "uniform", "low": float(floor), "high": float(max(hi_ci, value + sd)), "source": src}
+            ends = (entry["low"], entry["high"])
+        else:
+            continue
+        try:
+            for e in ends:
+                fitted.with_params({k: e})
+        except PlantFileError:
+            continue
+        out[k] = entry
+    return out
+
+
+# --- frequency-response fit -------------------------------------------------------------------
+
+
+def _frf_ts(fr: FrfRecord, plant: Plant) -> float:
+    return plant.sample_time_s if fr.sample_time_s is None else fr.sample_time_s
+
+
+_LIN_CACHE: dict = {}
+
+
+def _linear_function(plant: Plant, keys: Sequence[str]):
+    """CasADi ``(speed, load, p) -> (A, B)`` of the rigid model at steady speed, with the values
+    of ``keys`` as ``p`` (the holding torque follows from the parameters, the current loop is at
+    rest). Built once per plant and key set."""
+    import casadi as ca
+
+    ck = (id(plant), tuple(keys))
+    hit = _LIN_CACHE.get(ck)
+    if hit is not None and hit[0] is plant:
+        return hit[1], hit[2]
+    f, names = _symbolic_rhs(plant, keys, "rigid")
+    i_w, i_tau = names.index("omega_nut"), names.index("tau_motor")
+    w0, f0 = ca.SX.sym("w0"), ca.SX.sym("f0")
+    p = ca.SX.sym("p", len(keys))
+    x = ca.SX.sym("x", len(names))
+    u = ca.SX.sym("u", 2)
+    xdot = f(x, u, p)
+    x_free = ca.vertcat(*[0 if i != i_w else w0 for i in range(len(names))])
+    acc0 = ca.substitute(xdot[i_w], ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
+    d_acc = ca.substitute(ca.jacobian(xdot[i_w], x[i_tau]), ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
+    tau0 = -acc0 / d_acc  # the rigid nut's acceleration is affine in the motor torque
+    x_op = ca.vertcat(*[tau0 if i == i_tau else x_free[i] for i in range(len(names))])
+    sub = lambda e: ca.substitute(e, ca.vertcat(x, u), ca.vertcat(x_op, tau0, f0))  # noqa: E731
+    fun = ca.Function("lin", [w0, f0, p], [sub(ca.jacobian(xdot, x)), sub(ca.jacobian(xdot, u[0]))])
+    _LIN_CACHE.clear()
+    _LIN_CACHE[ck] = (plant, fun, names)
+    return fun, names
+
+
+def _frf_eval(fun, names, p, frequency_hz, speed, load, ts, delay):
+    from scipy.linalg import expm
+
+    a, b = (np.asarray(m, float) for m in fun(speed, load, p))
+    nx = a.shape[0]
+    i_th, i_w = names.index("theta_nut"), names.index("omega_nut")
+    s = 2j * np.pi * np.asarray(frequency_hz, float)
+    if ts <= 0:  # continuous: C (sI - A)^-1 B on the speed
+        out = np.array([np.linalg.solve(si * np.eye(nx) - a, b[:, 0])[i_w] for si in s])
+    else:  # the drive's sampled response: command held over a sample, speed = backward angle difference / ts
+        m = np.zeros((nx + 1, nx + 1))
+        m[:nx, :nx], m[:nx, nx] = a * ts, b[:, 0] * ts
+        e = expm(m)
+        phi, gam = e[:nx, :nx], e[:nx, nx]
+        z = np.exp(s * ts)
+        th = np.array([np.linalg.solve(zi * np.eye(nx) - phi, gam)[i_th] for zi in z])
+        out = (1 - 1 / z) / ts * th
+    if delay:
+        out = out * np.exp(-s * ts * delay) if ts > 0 else out
+    if not np.all(np.isfinite(out)):
+        raise FitError("model frequency response not finite; remedy: start from a closer base plant (--plant)")
+    return out
+
+
+def frf_response(
+    plant: Plant,
+    frequency_hz,
+    *,
+    speed_rad_s: float = 30.0,
+    load_n: float = 0.0,
+    sample_time_s: float | None = None,
+    delay_samples: int = 0,
+) -> NDArray[np.complex128]:
+    """Frequency response torque command (N m) -> nut speed (rad/s) of the rigid model at speed.
+
+    Parameters
+    ----------
+    plant : Plant
+    frequency_hz : array, Hz
+    speed_rad_s : float, rad/s
+        Steady nut speed of the linearisation.
+    load_n : float, N
+        Axial load.
+    sample_time_s : float, s, optional
+        The drive's sample time (default the plant's ``sensor.sample_time_s``): the response is
+        the sampled one, command held over a sample and speed the backward difference of the
+        angle; 0 gives the continuous response.
+    delay_samples : int
+        Extra command delay, samples.
+
+    Returns
+    -------
+    ndarray of complex, (rad/s)/(N m)
+
+    Examples
+    --------
+    >>> from prsa_ctrl import load_plant
+    >>> import warnings; warnings.simplefilter("ignore")
+    >>> p = load_plant()
+    >>> g = frf_response(p, [10.0], sample_time_s=0.0)
+    >>> round(float(abs(g[0]) * 2 * np.pi * 10 * p.reflected_inertia_kg_m2), 2)  # 1 / (J s) at 10 Hz
+    1.0
+    """
+    fun, names = _linear_function(plant, ())
+    ts = plant.sample_time_s if sample_time_s is None else float(sample_time_s)
+    return _frf_eval(fun, names, np.zeros(0), frequency_hz, speed_rad_s, load_n, ts, delay_samples)
+
+
+def _frf_fit_percent(measured, model) -> float:
+    """Fit % of a frequency response on its complex logarithm (magnitude and phase alike)."""
+    lm, lg = np.log(measured), np.log(model)
+    d = np.angle(np.exp(1j * (lm.imag - lg.imag)))
+    err = np.sqrt(np.sum((lm.real - lg.real) ** 2 + d**2))
+    ref = np.sqrt(np.sum((lm.real - lm.real.mean()) ** 2 + (np.unwrap(lm.imag) - np.unwrap(lm.imag).mean()) ** 2))
+    return float(100.0 * (1.0 - err / ref)) if ref > 0 else float("nan")
+
+
+def fit_frf(
+    frf: Sequence[FrfRecord],
+    plant: Plant | None = None,
+    *,
+    keys: Sequence[str] | None = None,
+    delay_samples: int = 0,
+    max_nfev: int = 200,
+) -> FitResult:
+    """Fit plant parameters to measured frequency responses (torque command -> nut speed).
+
+    The model response is the rigid model linearised at each record's speed and load, sampled
+    as the drive measures it (:func:`frf_response`). The residual of a point is the complex
+    logarithm of model / measured (log magnitude and wrapped phase), weighted by the coherence
+    ``gamma^2``: the log-response variance is proportional to ``(1 - gamma^2) / gamma^2``
+    (Bendat & Piersol), so the weight is ``sqrt(gamma^2 / (1 - gamma^2))`` (capped at coherence
+    0.999); without coherence all points weigh the same. Bounded least squares
+    (``scipy.optimize.least_squares``, trust-region reflective) on scaled parameters; 95 % CIs
+    from the Jacobian at the optimum with the residual variance.
+
+    Parameters
+    ----------
+    frf : sequence of FrfRecord
+    plant : Plant, optional
+        Base plant and initial guess.
+    keys : sequence of str, optional
+        Keys to fit (default :data:`FRF_KEYS`).
+    delay_samples : int
+        Extra command delay, samples.
+    max_nfev : int
+        Budget of model evaluations.
+
+    Returns
+    -------
+    FitResult
+    """
+    from scipy.optimize import least_squares
+
+    from .plant import load_plant
+
+    plant = load_plant() if plant is None else plant
+    frf = list(frf)
+    if not frf:
+        raise ValueError("frf = []; expected at least one frequency response")
+    keys = tuple(FRF_KEYS if keys is None else keys)
+    for k in keys:
+        if k not in FITTABLE:
+            raise ValueError(f"fit key {k!r}; expected one of {', '.join(FITTABLE)}")
+    if not keys or len(set(keys)) != len(keys):
+        raise ValueError(f"fit keys {', '.join(keys)}; expected one or more keys, each once")
+    if not (isinstance(delay_samples, int) and 0 <= delay_samples <= 10):
+        raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..10")
+    ts_fit = min(_frf_ts(fr, plant) or plant.sample_time_s for fr in frf)
+    bounds = [_bounds(plant, k, ts_fit) for k in keys]
+    scales = np.array([b[2] for b in bounds])
+    lo = np.array([b[0] for b in bounds]) / scales
+    hi = np.array([b[1] for b in bounds]) / scales
+    s0 = np.clip(np.array([plant.values[k] for k in keys]) / scales, lo, hi)
+    fun, names = _linear_function(plant, keys)
+    weights = []
+    for fr in frf:
+        if fr.coherence is None:
+            weights.append(np.ones(fr.n))
+        else:
+            c = np.minimum(fr.coherence, 0.999)
+            weights.append(np.sqrt(c / (1 - c)))
+    wmax = max(float(np.max(w)) for w in weights)
+    weights = [w / wmax for w in weights]
+
+    def resid(sv):
+        out = []
+        for fr, w in zip(frf, weights):
+            g = _frf_eval(fun, names, sv * scales, fr.frequency_hz, fr.speed_rad_s, fr.load_n, _frf_ts(fr, plant),
+                          delay_samples)
+            d = np.log(g) - np.log(fr.response)
+            out += [w * d.real, w * np.angle(np.exp(1j * d.imag))]
+        return np.concatenate(out)
+
+    sol = least_squares(resid, s0, bounds=(lo, hi), x_scale=1.0, max_nfev=max_nfev, method="trf")
+    if not sol.success:
+        raise FitError(f"FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
+                       f"{sol.nfev} evaluations; remedy: check the response's units ((rad/s)/(N m)) and operating "
+                       "point, fit fewer parameters (--fit) or start from a closer base plant (--plant)")
+    r, jac = sol.fun, sol.jac
+    n_res, npar = len(r), len(keys)
+    dof = max(n_res - npar, 1)
+    s2 = float(r @ r) / dof
+    cn = np.linalg.norm(jac, axis=0)
+    cn[cn == 0] = 1.0
+    inv = np.linalg.pinv((jac / cn).T @ (jac / cn), rcond=1e-12, hermitian=True) / np.outer(cn, cn)
+    cov = s2 * inv * np.outer(scales, scales)
+    values = sol.x * scales
+    names_txt = ", ".join(fr.name for fr in frf)
+    warns = [w for fr in frf for w in fr.warnings]
+    params, corr, fitted, reflected = _finish(plant, keys, values, cov, lo * scales, hi * scales, names_txt, warns)
+    fit_pct, traces = {}, {}
+    for fr in frf:
+        g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n,
+                         sample_time_s=_frf_ts(fr, plant), delay_samples=delay_samples)
+        fit_pct[fr.name] = round(_frf_fit_percent(fr.response, g), 3)
+        traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
     solver = {
-        "name": "constrained Gauss-Newton (multiple shooting, Radau IIA collocation per sample, exact CasADi derivatives)",
-        "status": sol["status"],
-        "iterations": sol["iterations"],
-        "objective": sol["objective"],
-        "residual_std": float(sigma),
-        "residual_unit": fit_run.residual_unit,
+        "name": "bounded least squares on the log frequency response (scipy trust-region reflective)",
+        "status": "converged",
+        "iterations": int(sol.nfev),
+        "objective": float(0.5 * r @ r),
+        "residual_std": float(math.sqrt(s2)),
+        "residual_unit": "log response (coherence weighted)",
         "residuals": int(n_res),
-        "segments": len(fit_run.segs),
-        "fidelity": fidelity,
+        "fidelity": "rigid",
+        "covariance": "classic (residual variance x inverse Gauss-Newton matrix)",
     }
-    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, sol["traces"])
+    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces)
+
+
+def _figure_stem(name: str, used: set) -> str:
+    import re
+    from pathlib import PurePath
+
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", PurePath(name).stem) or "data"
+    out, i = stem, 2
+    while out in used:
+        out, i = f"{stem}-{i}", i + 1
+    used.add(out)
+    return out
+
+
+def fit_figures(result: FitResult) -> dict:
+    """Figures of a fit: per time-domain record the measured and simulated nut speed with the
+    residual below; per frequency response a Bode overlay (measured vs fitted model).
+
+    Parameters
+    ----------
+    result : FitResult
+
+    Returns
+    -------
+    dict
+        ``{file stem: matplotlib Figure}`` (``<record>-fit`` and ``<response>-bode``); the
+        caller saves and closes them.
+    """
+    import matplotlib.pyplot as plt
+
+    figs, used = {}, set()
+    for name, tr in result.traces.items():
+        stem = _figure_stem(name, used)
+        if "time_s" in tr:
+            t = np.asarray(tr["time_s"], float)
+            meas, mod = np.asarray(tr["measured"], float), np.asarray(tr["model"], float)
+            gap = np.flatnonzero(np.diff(t) > 1.5 * float(np.median(np.diff(t))))
+            t, meas, mod = (np.insert(a, gap + 1, np.nan) for a in (t, meas, mod))
+            fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5.5), height_ratios=(2, 1))
+            ax1.plot(t, meas, lw=0.8, color="0.5", label="measured (angle difference)")
+            ax1.plot(t, mod, lw=1.0, color="C0", label="fitted model")
+            ax1.set_ylabel("nut speed (rad/s)")
+            ax1.set_title(f"{name}: fit {result.fit_percent.get(name, float('nan')):.1f} %")
+            ax1.legend(loc="best", fontsize=8)
+            ax2.plot(t, meas - mod, lw=0.6, color="C3")
+            ax2.axhline(0.0, color="0.3", lw=0.5)
+            ax2.set_ylabel("residual (rad/s)")
+            ax2.set_xlabel("time (s)")
+            for ax in (ax1, ax2):
+                ax.grid(True, alpha=0.3)
+            fig.tight_layout()
+            figs[f"{stem}-fit"] = fig
+        else:
+            f = np.asarray(tr["frequency_hz"], float)
+            gm, gf = np.asarray(tr["measured"]), np.asarray(tr["model"])
+            fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5.5))
+            ax1.semilogx(f, 20 * np.log10(np.abs(gm)), ".", ms=4, color="0.4", label="measured")
+            ax1.semilogx(f, 20 * np.log10(np.abs(gf)), "-", color="C0", label="fitted model")
+            ax1.set_ylabel("|G| (dB re 1 rad/s per N m)")
+            ax1.set_title(f"{name}: fit {result.fit_percent.get(name, float('nan')):.1f} %")
+            ax1.legend(loc="best", fontsize=8)
+            pm = np.degrees(np.unwrap(np.angle(gm)))
+            pf = np.degrees(np.unwrap(np.angle(gf)))
+            ax2.semilogx(f, pm, ".", ms=4, color="0.4")
+            ax2.semilogx(f, pf, "-", color="C0")
+            ax2.set_ylabel("phase (deg)")
+            ax2.set_xlabel("frequency (Hz)")
+            for ax in (ax1, ax2):
+                ax.grid(True, which="both", alpha=0.3)
+            fig.tight_layout()
+            figs[f"{stem}-bode"] = fig
+    return figs
+
+
+def figure_names(names: Sequence[str], frf_names: Sequence[str] = ()) -> list[str]:
+    """File stems :func:`fit_figures` will use for these record and response names (in order:
+    fitted and validation records, then responses), so output paths can be checked first."""
+    used: set = set()
+    return [f"{_figure_stem(n, used)}-fit" for n in names] + [f"{_figure_stem(n, used)}-bode" for n in frf_names]
 
 
 _REMEDY_KEY = {
@@ -395,7 +866,8 @@ class _Problem:
     least-squares problem for ``(s, X0)``.
     """
 
-    def __init__(self, plant, keys, scales, fidelity, records, ts, segment_s, delay, substeps=1):
+    def __init__(self, plant, keys, scales, fidelity, records, ts, segment_s, delay, substeps=1,
+                 min_speed_rad_s=0.0):
         import casadi as ca
 
         self.plant, self.records, self.ts = plant, records, ts
@@ -409,10 +881,15 @@ class _Problem:
         self.nsub = nsub = int(substeps)
         self.ns = ns = 3 * nsub  # collocation stages per sample interval
         seg_n = max(2, int(round(segment_s / ts)))
-        self.segs = segs = _segments(records, seg_n)
+        refs = [_reference(r, plant) for r in records]
+        self.segs, self.left_out = _segments(records, seg_n, refs, min_speed_rad_s)
+        segs = self.segs
+        if not segs:
+            raise ValueError(f"{', '.join(r.name for r in records)}: no stretch of at least {MIN_SEGMENT} samples "
+                             f"with |speed| >= {min_speed_rad_s:.3g} rad/s; expected data at speed (not only "
+                             "standstill and reversals)")
         q = 2 * math.pi / plant.encoder_counts
         self.sigma0 = max(q / math.sqrt(12.0), 1e-9)
-        refs = [_reference(r, plant) for r in records]
         w_scale = max(max(float(np.max(np.abs(r[1]))) for r in refs), 1.0)
         sc = np.ones(nx)
         sc[i_th] = max(w_scale * ts, 1e-6)
@@ -454,6 +931,8 @@ class _Problem:
         fun = ca.Function("coll", [xs, K, u, h, p],
                           [res, ca.jacobian(res, kv), ca.jacobian(res, xs), ca.jacobian(res, p)])
         self.blocks = fun.map(M, "serial")
+        # The collocation residual alone (line-search merits need no Jacobians).
+        self.residual_blocks = ca.Function("coll_res", [xs, K, u, h, p], [res]).map(M, "serial")
         # Segment bookkeeping: first interval and sample offsets.
         self.first = np.cumsum([0] + [sg.n for sg in segs[:-1]])
         n3 = ns * nx
@@ -580,32 +1059,18 @@ class _Problem:
             out.append((r_lin, j_s, j_x, z))
         return res, out
 
-    def _segment_terms(self, V, X0, s):
-        """Per segment: largest scaled collocation residual and objective at a trial point."""
-        nseg = len(self.segs)
-        try:
-            K, x0 = self._physical(V, X0)
-            r = np.abs(np.asarray(self.blocks(self._starts(K, x0), K, self.U, self.H[None, :], s * self.scales)[0]))
-        except RuntimeError:
-            return np.full(nseg, np.inf), np.full(nseg, np.inf)
-        g = np.array([float(np.max(r[:, self.first[i]:self.first[i] + sg.n])) for i, sg in enumerate(self.segs)])
-        f = np.array([0.5 * float(e @ e) for e in self.residuals(V, X0)])
-        bad = ~(np.isfinite(g) & np.isfinite(f))
-        g[bad], f[bad] = np.inf, np.inf
-        return g, f
-
     def _merit_terms(self, V, X0, s):
         """Largest scaled collocation residual and the objective at a trial point."""
         try:
             K, x0 = self._physical(V, X0)
-            r = np.asarray(self.blocks(self._starts(K, x0), K, self.U, self.H[None, :], s * self.scales)[0])
+            r = np.asarray(self.residual_blocks(self._starts(K, x0), K, self.U, self.H[None, :], s * self.scales))
             g = float(np.max(np.abs(r)))
             f = 0.5 * sum(float(e @ e) for e in self.residuals(V, X0))
         except RuntimeError:
             return float("inf"), float("inf")
         return (g, f) if np.isfinite(g) and np.isfinite(f) else (float("inf"), float("inf"))
 
-    def solve(self, s0, lo, hi, max_iter, tol, fixed, box=0.3):
+    def solve(self, s0, lo, hi, max_iter, tol, fixed, box=0.3, warm=3):
         from scipy.optimize import lsq_linear
 
         nx, nseg, npar = self.nx, len(self.segs), self.npar
@@ -614,15 +1079,22 @@ class _Problem:
         s = np.array(s0, float)
         status, it = "maximum iterations", 0
         free_steps = 3
-        # Warm-up: a few steps on the states alone (parameters held) bring the trajectories
+        # Warm-up: ``warm`` steps on the states alone (parameters held) bring the trajectories
         # close to the data before the parameters move.
-        warm = 0
+        warm = 0 if fixed else int(warm)
         g_norm = f_val = float("nan")
+        g_hist: list[float] = []
         for it in range(1, int(max_iter) + warm + 1):
             res, lin = self.linearise(V, X0, s)
             g_norm = float(np.max(np.abs(res)))
+            g_hist.append(g_norm)
+            if (len(g_hist) > warm + STALL_ITERATIONS and g_norm > 1e-6
+                    and g_norm > 0.9 * g_hist[-1 - STALL_ITERATIONS]):
+                status = "stalled"  # the constraint residual no longer falls: give this attempt up early
+                break
             f_val = 0.5 * sum(float(r @ r) for r in self.residuals(V, X0))
             js, rv, backs = _condense(lin)
+            se = None
             if fixed or npar == 0 or it <= warm:
                 d_s = np.zeros(npar)
             else:
@@ -632,6 +1104,12 @@ class _Problem:
                 lb_s, ub_s = np.maximum(lo - s, -box), np.minimum(hi - s, box)
                 sol = lsq_linear(js / cn, -rv, bounds=(lb_s * cn, ub_s * cn), method="bvls", max_iter=100)
                 d_s = sol.x / cn
+                # Standard errors of the scaled parameters (white-residual estimate): a step far
+                # below them changes nothing the intervals can resolve.
+                dof = max(len(rv) - npar - nx * nseg, 1)
+                s2 = float(rv @ rv) / dof
+                inv = np.linalg.pinv((js / cn).T @ (js / cn), rcond=1e-12, hermitian=True)
+                se = np.sqrt(np.clip(np.diag(inv), 0.0, None) * s2) / cn
             d_x0 = np.concatenate([back(d_s) for back in backs])
             step = {"s": d_s, "X0": d_x0}
             step["V"] = np.concatenate([
@@ -658,14 +1136,15 @@ class _Problem:
                     status = "diverged"
                     break
             V, X0, s = V1, X1, s1
-            small = float(np.max(np.abs(alpha * d_s))) if npar else 0.0
-            if it > warm and accepted and g1 < 1e-8 and small < tol and float(np.max(np.abs(alpha * step["X0"]))) < 1e-3:
+            small = bool(np.all(np.abs(alpha * d_s) < np.maximum(tol, STEP_SE_FRACTION * se))) if npar and se is not None else True
+            if it > warm and accepted and g1 < 1e-8 and small and float(np.max(np.abs(alpha * step["X0"]))) < 1e-3:
                 status = "converged"
                 g_norm, f_val = g1, f1
                 break
         else:
             if not np.isfinite(g_norm):
                 status = "diverged"
+        self.last_iterations = it
         if status != "converged":
             raise FitError(
                 f"fit did not converge: Gauss-Newton status {status!r} after {it} iterations (constraint residual "
@@ -696,21 +1175,70 @@ class _Problem:
         return out, traces
 
     def covariance(self, sol):
-        """Covariance of the scaled parameters, residual std (residual unit), residual count, columns."""
+        """Covariance of the scaled parameters (HAC sandwich), residual std, residual count, columns, info.
+
+        The residuals of a real fit are not white: quantisation and the speed loop colour the
+        noise, and any model error is smooth in time. The covariance is therefore the sandwich
+        ``A^-1 Omega A^-1`` (``A = J^T J`` of the condensed Jacobian, segment initial states
+        projected out) with ``Omega`` the Newey-West (Bartlett-kernel) long-run covariance of the
+        scores ``J_k r_k`` summed within each segment (segments have free initial states, so they
+        are independent); the bandwidth is the Newey-West rule or the lag where the pooled
+        residual autocorrelation falls below its ``2/sqrt(N)`` band, whichever is larger (bounded
+        by a quarter segment). With white residuals it equals the classic ``s^2 A^-1``.
+        """
         V, X0, s = sol["V"], sol["X0"], sol["s"]
         nx, nseg, npar = self.nx, len(self.segs), self.npar
         _, lin = self.linearise(V, X0, s)
         js, r, _ = _condense(lin)
+        lens = [len(item[0]) for item in lin]
         n_rows = len(r)
         n_cols = npar + nx * nseg
         dof = max(n_rows - n_cols, 1)
         s2 = float(r @ r) / dof
         cn = np.linalg.norm(js, axis=0)
         cn[cn == 0] = 1.0
-        inv = np.linalg.pinv((js / cn).T @ (js / cn), rcond=1e-12, hermitian=True) / np.outer(cn, cn)
-        cov = s2 * inv
+        jn = js / cn
+        a_inv = np.linalg.pinv(jn.T @ jn, rcond=1e-12, hermitian=True)
+        bounds = np.cumsum([0] + lens)
+        parts = [slice(int(bounds[i]), int(bounds[i + 1])) for i in range(len(lens))]
+        # Pooled residual autocorrelation within segments, lags 1..max_lag.
+        n_min = min(lens)
+        max_lag = max(1, min(n_min // 4, 200))
+        den = float(r @ r)
+        acf = np.array([sum(float(r[p][l:] @ r[p][:-l]) for p in parts if len(r[p]) > l) / den
+                        for l in range(1, max_lag + 1)]) if den > 0 else np.zeros(max_lag)
+        band = 2.0 / math.sqrt(max(n_rows, 1))
+        below = np.flatnonzero(np.abs(acf) < band)
+        lag_acf = int(below[0]) if below.size else max_lag  # lags before the first one inside the band
+        lag_nw = int(4 * (float(np.mean(lens)) / 100.0) ** (2.0 / 9.0))
+        L = int(min(max(lag_nw, lag_acf), max_lag))
+        # Prewhitened HAC (Andrews & Monahan, Econometrica 60(4) 1992): a VAR(1) on the scores
+        # takes out the bulk of the colour, Bartlett-kernel Newey-West on what is left, recoloured.
+        gs = [jn[p] * r[p][:, None] for p in parts]
+        s_lag = sum(g[1:].T @ g[:-1] for g in gs if len(g) > 1)
+        s_0 = sum(g[:-1].T @ g[:-1] for g in gs if len(g) > 1)
+        a_var = s_lag @ np.linalg.pinv(s_0, rcond=1e-12)
+        u_, sv, vt = np.linalg.svd(a_var)  # keep it away from a unit root (their adjustment)
+        a_var = (u_ * np.minimum(sv, 0.97)) @ vt
+        omega = np.zeros((npar, npar))
+        for g in gs:
+            e = g.copy()
+            e[1:] -= g[:-1] @ a_var.T
+            omega += e.T @ e
+            for l in range(1, min(L, len(e) - 1) + 1):
+                c = e[l:].T @ e[:-l]
+                omega += (1.0 - l / (L + 1.0)) * (c + c.T)
+        recolour = np.linalg.inv(np.eye(npar) - a_var)
+        omega = recolour @ omega @ recolour.T
+        omega *= n_rows / dof
+        cov_hac = a_inv @ omega @ a_inv
+        cov = cov_hac / np.outer(cn, cn)
         unit_sigma = self.sigma0 if self.use_angle else self.sigma0 / self.ts
-        return cov, math.sqrt(s2) * unit_sigma, n_rows, n_cols
+        info = {"covariance": "prewhitened (VAR(1)) Newey-West HAC sandwich over segments",
+                "hac_bandwidth_samples": L, "residual_acf_band_lag": lag_acf,
+                "residual_autocorrelation_lag1": float(acf[0]) if len(acf) else 0.0,
+                "ci_widening_vs_white": float(np.sqrt(np.max(np.diag(cov_hac) / np.maximum(s2 * np.diag(a_inv), 1e-300))))}
+        return cov, math.sqrt(s2) * unit_sigma, n_rows, n_cols, info
 
 
 def _condense(lin):

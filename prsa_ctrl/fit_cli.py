@@ -1,8 +1,8 @@
 """``prsa-fit``: calibrate a plant file from measured drive data, or design the experiment.
 
-``prsa-fit DATA.csv [DATA2.csv ...] --out MY.toml [--json REPORT.json] [--plant BASE]
-[--fit KEY,...] [--validate OTHER.csv ...] [--columns name=header,...] [--torque-constant KT]
-[--load N]``
+``prsa-fit [DATA.csv ...] [--frf FRF.csv ...] --out MY.toml [--json REPORT.json] [--plots DIR]
+[--plant BASE] [--fit KEY,...] [--validate OTHER.csv ...] [--columns name=header,...]
+[--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N] [--coherence-min C]``
 
 ``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
 [--f-min HZ] [--f-max HZ] [--amplitude A] [--offset A]``
@@ -54,6 +54,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", nargs="*", metavar="DATA.csv", help="time-domain records to fit")
     p.add_argument("--out", required=True, metavar="PATH", help="output plant .toml (or excitation .csv with --design)")
     p.add_argument("--json", metavar="PATH", help="JSON report")
+    p.add_argument("--frf", nargs="+", default=[], metavar="FRF.csv", help="frequency responses torque command -> "
+                   "nut speed (frequency_hz, magnitude_db, phase_deg[, coherence] or real, imag): fitted alone "
+                   "without DATA.csv, otherwise used to validate the fit")
+    p.add_argument("--frf-speed", type=_number("--frf-speed", positive=False), default=30.0, metavar="RAD_S",
+                   help="nut speed during the FRF measurement, rad/s (default 30)")
+    p.add_argument("--frf-load", type=_number("--frf-load", positive=False), default=None, metavar="N",
+                   help="axial load during the FRF measurement, N (default --load, else 0)")
+    p.add_argument("--coherence-min", type=_number("--coherence-min", positive=False), default=0.8, metavar="C",
+                   help="FRF points with a lower coherence are dropped (default 0.8)")
+    p.add_argument("--plots", metavar="DIR", help="write residual, overlay and Bode figures (PNG) into DIR "
+                   "(created if missing)")
     p.add_argument("--plant", default=None, metavar="NAME|PATH", help="base plant (default paper-iprsm)")
     p.add_argument("--fit", default=None, metavar="KEY,...", help="plant keys to fit (default: inertia, efficiency, "
                    "no-load torque, viscous, current-loop bandwidth)")
@@ -83,30 +94,54 @@ def _toml_string(text: str) -> str:
     return json.dumps(text, ensure_ascii=False)
 
 
+def _toml_value(v) -> str:
+    if isinstance(v, str):
+        return _toml_string(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return repr(float(v)) if isinstance(v, float) else repr(v)
+
+
+def _uncertainty_line(key: str, entry) -> str:
+    fields = ", ".join(f"{k} = {_toml_value(v)}" for k, v in entry.items())
+    return f"{_toml_string(key)} = {{ {fields} }}"
+
+
 def plant_toml(base_text: str, plant, name: str, keys: Sequence[str]) -> str:
-    """The base plant file's text with the fitted keys' values and sources replaced.
+    """The base plant file's text with the fitted keys' values, sources and uncertainty replaced.
 
     Parameters
     ----------
     base_text : str
         The base plant file (TOML), whose layout and comments are kept.
     plant : Plant
-        The fitted plant (values and sources).
+        The fitted plant (values, sources and ``uncertainty``: each fitted key's entry there
+        replaces the base file's entry for that key in the ``[uncertainty]`` section, which is
+        added at the end when the base file has none).
     name : str
         The new plant name.
     keys : sequence of str
         Plant keys to rewrite (``section.key``).
     """
     out, section, done = [], None, set()
+    unc = dict(getattr(plant, "uncertainty", None) or {})
+    new_unc = [k for k in keys if k in unc]
+    unc_header = None
     for line in base_text.splitlines():
         m_sec = re.match(r"^\s*\[([A-Za-z_]+)\]\s*$", line)
         if m_sec:
             section = m_sec.group(1)
+            if section == "uncertainty":
+                unc_header = len(out)
         m_name = re.match(r"^name\s*=", line)
         if m_name and section is None:
             line = f"name = {_toml_string(name)}"
+        if section == "uncertainty":
+            m_unc = re.match(r'^\s*"?([A-Za-z0-9_.]+)"?\s*=', line)
+            if m_unc and m_unc.group(1) in keys:
+                continue  # replaced by the fit's entry below
         m_key = re.match(r"^(\s*)([A-Za-z0-9_]+)\s*=\s*\{.*\}\s*$", line)
-        if m_key and section is not None and f"{section}.{m_key.group(2)}" in keys:
+        if m_key and section not in (None, "uncertainty") and f"{section}.{m_key.group(2)}" in keys:
             full = f"{section}.{m_key.group(2)}"
             line = (f"{m_key.group(1)}{m_key.group(2)} = {{ value = {plant.values[full]!r}, "
                     f"source = {_toml_string(plant.sources[full])} }}")
@@ -116,6 +151,13 @@ def plant_toml(base_text: str, plant, name: str, keys: Sequence[str]) -> str:
     if missing:
         raise PlantFileError(f"base plant file has no one-line entry for {', '.join(missing)}; expected "
                              "'key = { value = ..., source = \"...\" }' lines like the built-in plants")
+    lines = [_uncertainty_line(k, unc[k]) for k in new_unc]
+    if lines:
+        if unc_header is None:
+            out += ["", "# What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.uncertainty)",
+                    "[uncertainty]"]
+            unc_header = len(out) - 1
+        out[unc_header + 1:unc_header + 1] = lines
     return "\n".join(out) + "\n"
 
 
@@ -160,7 +202,7 @@ def _design(args) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``prsa-fit``; returns the exit code."""
-    from .fitdata import DataError, load_record, parse_columns
+    from .fitdata import DataError, load_frf, load_record, parse_columns
     from .output import OutputError
 
     try:
@@ -169,8 +211,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.data:
                 raise _UsageError(f"--design with data files {' '.join(args.data)}; expected one or the other")
             return _design(args)
-        if not args.data:
-            raise _UsageError("no data file; expected prsa-fit DATA.csv [...] --out PLANT.toml (or --design)")
+        if not args.data and not args.frf:
+            raise _UsageError("no data file; expected prsa-fit DATA.csv [...] [--frf FRF.csv] --out PLANT.toml "
+                              "(or --design)")
+        if not 0 <= args.coherence_min < 1:
+            raise _UsageError(f"--coherence-min {args.coherence_min!r}: expected 0 <= C < 1")
         from .fit import FITTABLE
         from .plant import load_plant
 
@@ -186,22 +231,36 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise _UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
         plant = load_plant(args.plant)
         base_text, base_path = _base_text(args.plant)
-        inputs = [*args.data, *args.validate] + ([base_path] if base_path else [])
+        inputs = [*args.data, *args.validate, *args.frf] + ([base_path] if base_path else [])
         outs = {"--out": args.out}
         if args.json:
             outs["--json"] = args.json
         _check_outputs(outs, inputs)
+        plot_paths = []
+        if args.plots is not None:
+            from .fit import figure_names
+            from .output import check_directory
+
+            check_directory(args.plots, "--plots")
+            stems = figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf)
+            plot_paths = [str(Path(args.plots) / f"{stem}.png") for stem in stems]
+            _check_outputs({f"--plots {q}": q for q in plot_paths if Path(args.plots).is_dir()}, inputs)
         columns = parse_columns(args.columns) if args.columns else None
         opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
         records = [load_record(f, **opts) for f in args.data]
         validate = [load_record(f, **opts) for f in args.validate]
+        if args.validate and not args.data:
+            raise _UsageError("--validate without DATA.csv; expected time-domain records to fit first")
+        frf_load = args.frf_load if args.frf_load is not None else (args.load or 0.0)
+        frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
+                for f in args.frf]
     except (_UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     from .fit import FitError, fit_plant
 
     try:
-        result = fit_plant(records, plant, keys=keys, fidelity=args.fidelity, validate=validate,
+        result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
                            segment_s=args.segment, delay_samples=args.delay_samples)
     except FitError as exc:
         print(f"prsa-fit: {exc}", file=sys.stderr)
@@ -215,11 +274,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from .plant import Plant
 
-    Plant.from_dict(tomllib.loads(text), origin=args.out)  # what is written must load
+    Plant.from_dict(tomllib.loads(text), origin=args.out)  # what is written must load (with its [uncertainty])
     files = {args.out: ("--out", text)}
     if args.json:
-        files[args.json] = ("--json", json.dumps(result.report(), indent=2) + "\n")
+        from .output import json_safe
+
+        files[args.json] = ("--json", json.dumps(json_safe(result.report()), indent=2) + "\n")
     try:
+        if args.plots is not None:
+            plot_paths = _write_plots(result, args.plots, inputs)
         _write_outputs(files, inputs)
     except OutputError as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
@@ -234,7 +297,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
+    if args.plots is not None:
+        print("plots: " + ", ".join(plot_paths))
     return 0
+
+
+def _write_plots(result, directory: str, inputs: Sequence[str]) -> list[str]:
+    """Write :func:`prsa_ctrl.fit.fit_figures` as PNG files into ``directory`` (created if missing)."""
+    import matplotlib.pyplot as plt
+
+    from .fit import fit_figures
+    from .output import make_directory, write_file
+
+    make_directory(directory, "--plots")
+    out = []
+    for stem, fig in fit_figures(result).items():
+        path = Path(directory) / f"{stem}.png"
+        try:
+            write_file(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=120), inputs, "--plots")
+        finally:
+            plt.close(fig)
+        out.append(str(path))
+    return out
 
 
 if __name__ == "__main__":  # pragma: no cover

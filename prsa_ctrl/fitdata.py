@@ -41,6 +41,12 @@ __all__ = [
     "design_excitation",
     "DESIGNS",
     "MIN_SAMPLES",
+    "FrfRecord",
+    "load_frf",
+    "frf_from_arrays",
+    "frf_from_record",
+    "FRF_COLUMNS",
+    "COHERENCE_MIN",
 ]
 
 #: Standard column names of a time-domain record.
@@ -434,3 +440,303 @@ def design_excitation(
         idx = np.minimum((t / duration_s * len(levels)).astype(int), len(levels) - 1)
         v = levels[idx] * (abs(offset) + amplitude)
     return t, v
+
+
+# --- frequency-response data ------------------------------------------------------------------
+
+#: Column names of a frequency-response file: ``frequency_hz`` and either magnitude/phase or
+#: real/imaginary part, optionally ``coherence``.
+FRF_COLUMNS = ("frequency_hz", "magnitude_db", "phase_deg", "real", "imag", "coherence")
+#: Points with a lower coherence are dropped (and counted in the record's warnings).
+COHERENCE_MIN = 0.8
+#: Fewest frequency points a response must keep.
+MIN_FRF_POINTS = 5
+
+
+@dataclass(frozen=True, eq=False)
+class FrfRecord:
+    """A measured frequency response from torque command (N m) to nut speed (rad/s).
+
+    Attributes
+    ----------
+    name : str
+    frequency_hz : ndarray, Hz
+        Strictly increasing, > 0.
+    response : ndarray of complex, (rad/s)/(N m)
+    coherence : ndarray or None
+    speed_rad_s : float, rad/s
+        Mean nut speed of the measurement (the operating point of the linearisation).
+    load_n : float, N
+        Axial load during the measurement.
+    dropped : int
+        Points dropped for coherence below the threshold.
+    warnings : tuple of str
+    sample_time_s : float or None, s
+        Sample time of the drive that measured it (None: the plant's ``sensor.sample_time_s``;
+        0: a continuous-time response).
+    """
+
+    name: str
+    frequency_hz: NDArray[np.float64]
+    response: NDArray[np.complex128]
+    coherence: NDArray[np.float64] | None
+    speed_rad_s: float
+    load_n: float
+    dropped: int = 0
+    warnings: tuple[str, ...] = field(default=())
+    sample_time_s: float | None = None
+
+    @property
+    def n(self) -> int:
+        """Number of frequency points kept."""
+        return len(self.frequency_hz)
+
+    def to_csv(self, path: str | Path) -> None:
+        """Write the response as ``frequency_hz, magnitude_db, phase_deg[, coherence]``."""
+        cols = {"frequency_hz": self.frequency_hz, "magnitude_db": 20 * np.log10(np.abs(self.response)),
+                "phase_deg": np.degrees(np.unwrap(np.angle(self.response)))}
+        if self.coherence is not None:
+            cols["coherence"] = self.coherence
+        data = np.column_stack(list(cols.values()))
+        np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
+
+
+def frf_from_arrays(
+    name: str,
+    frequency_hz: Sequence[float],
+    response: Sequence[complex],
+    *,
+    coherence: Sequence[float] | None = None,
+    speed_rad_s: float = 30.0,
+    load_n: float = 0.0,
+    coherence_min: float = COHERENCE_MIN,
+    row_of: Sequence[int] | None = None,
+    row_word: str = "row",
+    column: str = "frequency_hz",
+    sample_time_s: float | None = None,
+) -> FrfRecord:
+    """Validate a frequency response (torque command -> nut speed) into an :class:`FrfRecord`.
+
+    Parameters
+    ----------
+    name : str
+        Label (file name) used in messages.
+    frequency_hz : sequence of float, Hz
+    response : sequence of complex, (rad/s)/(N m)
+    coherence : sequence of float in [0, 1], optional
+        Points below ``coherence_min`` are dropped and counted.
+    speed_rad_s : float, rad/s
+        Nut speed at which the response was measured (operating point).
+    load_n : float, N
+        Axial load during the measurement.
+    coherence_min : float
+        Points with a lower coherence are dropped.
+    sample_time_s : float, s, optional
+        Sample time of the drive's measurement (None: the plant's; 0: continuous).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> f = np.geomspace(1, 300, 20)
+    >>> g = 1 / (2.4e-4 * 2j * np.pi * f)
+    >>> frf_from_arrays("demo", f, g, coherence=np.r_[np.ones(19), 0.3]).dropped
+    1
+    """
+    f = np.asarray(frequency_hz, float)
+    g = np.asarray(response, complex)
+    rows = list(row_of) if row_of is not None else list(range(len(f)))
+    if f.ndim != 1 or g.shape != f.shape:
+        raise DataError(f"{name}: response has shape {g.shape}; expected {f.shape} like frequency_hz")
+    for what, val in (("speed (rad/s)", speed_rad_s), ("load (N)", load_n), ("coherence threshold", coherence_min)):
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
+            raise DataError(f"{name}: {what} = {val!r}; expected a finite number")
+    if not 0.0 <= coherence_min < 1.0:
+        raise DataError(f"{name}: coherence threshold {coherence_min!r}; expected 0 <= c < 1")
+    bad = np.flatnonzero(~np.isfinite(f) | ~np.isfinite(g))
+    if bad.size:
+        raise DataError(f"{name}: {row_word} {rows[bad[0]]}: not a finite number; expected finite frequency and response")
+    bad = np.flatnonzero(f <= 0)
+    if bad.size:
+        raise DataError(f"{name}: column {column!r} {row_word} {rows[bad[0]]}: {float(f[bad[0]])!r} Hz; expected a frequency > 0")
+    bad = np.flatnonzero(np.diff(f) <= 0)
+    if bad.size:
+        k = bad[0] + 1
+        raise DataError(f"{name}: column {column!r} {row_word} {rows[k]}: {float(f[k])!r} Hz after {float(f[k - 1])!r} Hz; "
+                        "expected strictly increasing frequencies")
+    bad = np.flatnonzero(np.abs(g) == 0)
+    if bad.size:
+        raise DataError(f"{name}: {row_word} {rows[bad[0]]}: zero response; expected a magnitude > 0")
+    coh = None
+    dropped = 0
+    warns = []
+    if coherence is not None:
+        coh = np.asarray(coherence, float)
+        if coh.shape != f.shape:
+            raise DataError(f"{name}: coherence has shape {coh.shape}; expected {f.shape} like frequency_hz")
+        bad = np.flatnonzero(~np.isfinite(coh) | (coh < 0) | (coh > 1))
+        if bad.size:
+            raise DataError(f"{name}: column 'coherence' {row_word} {rows[bad[0]]}: {float(coh[bad[0]])!r}; expected 0..1")
+        keep = coh >= coherence_min
+        dropped = int(np.sum(~keep))
+        if dropped:
+            warns.append(f"{name}: {dropped} of {len(f)} points with coherence below {coherence_min:g} dropped")
+        f, g, coh = f[keep], g[keep], coh[keep]
+    if len(f) < MIN_FRF_POINTS:
+        raise DataError(f"{name}: {len(f)} frequency points left (after the coherence threshold {coherence_min:g}); "
+                        f"expected at least {MIN_FRF_POINTS}")
+    if sample_time_s is not None and (isinstance(sample_time_s, bool) or not math.isfinite(sample_time_s)
+                                      or sample_time_s < 0):
+        raise DataError(f"{name}: sample time {sample_time_s!r}; expected a time >= 0 s")
+    if sample_time_s and f[-1] >= 0.5 / sample_time_s:
+        raise DataError(f"{name}: frequency {f[-1]:g} Hz at or above the Nyquist frequency {0.5 / sample_time_s:g} Hz "
+                        f"of the {sample_time_s:g} s sample time; expected lower frequencies")
+    return FrfRecord(name, f, g, coh, float(speed_rad_s), float(load_n), dropped, tuple(warns),
+                     None if sample_time_s is None else float(sample_time_s))
+
+
+def load_frf(
+    path: str | Path,
+    *,
+    speed_rad_s: float = 30.0,
+    load_n: float = 0.0,
+    coherence_min: float = COHERENCE_MIN,
+    sample_time_s: float | None = None,
+) -> FrfRecord:
+    """Read a frequency-response CSV (torque command -> nut speed, (rad/s)/(N m)).
+
+    Columns: ``frequency_hz`` and ``magnitude_db, phase_deg`` (dB of (rad/s)/(N m), degrees) or
+    ``real, imag``, optionally ``coherence`` (0..1). ``#`` comment lines before the header are
+    skipped.
+
+    Parameters
+    ----------
+    path : str or Path
+    speed_rad_s : float, rad/s
+        Nut speed during the measurement.
+    load_n : float, N
+        Axial load during the measurement.
+    coherence_min : float
+        Points with a lower coherence are dropped.
+    sample_time_s : float, s, optional
+        Sample time of the drive's measurement (None: the plant's; 0: continuous).
+
+    Returns
+    -------
+    FrfRecord
+
+    Raises
+    ------
+    DataError
+        One line naming the file, column and line of the first problem.
+    """
+    name = str(path)
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"{name}: frequency-response file not found; expected a readable CSV file")
+    try:
+        with p.open(newline="", encoding="utf-8") as fh:
+            lines = list(enumerate(csv.reader(fh), start=1))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise DataError(f"{name}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
+    lines = [(i, row) for i, row in lines if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#")]
+    if not lines:
+        raise DataError(f"{name}: no header row; expected frequency_hz,magnitude_db,phase_deg[,coherence]")
+    header_line, header = lines[0]
+    header = [h.strip() for h in header]
+    for h in header:
+        if h not in FRF_COLUMNS:
+            raise DataError(f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(FRF_COLUMNS)}")
+    if len(set(header)) != len(header):
+        raise DataError(f"{name}: a column appears twice in the header (line {header_line}); expected each once")
+    polar = {"magnitude_db", "phase_deg"} <= set(header)
+    cart = {"real", "imag"} <= set(header)
+    if "frequency_hz" not in header or polar == cart:
+        raise DataError(f"{name}: header {', '.join(header)}; expected frequency_hz with magnitude_db,phase_deg "
+                        "or with real,imag (one pair)")
+    rows = lines[1:]
+    if len(rows) > MAX_SAMPLES:
+        raise DataError(f"{name}: {len(rows)} rows; expected at most {MAX_SAMPLES}")
+    data = np.empty((len(rows), len(header)))
+    for r, (line_no, row) in enumerate(rows):
+        if len(row) != len(header):
+            raise DataError(f"{name}: line {line_no} has {len(row)} fields; expected {len(header)} like the header")
+        for c, cell in enumerate(row):
+            try:
+                v = float(cell)
+            except ValueError:
+                v = float("nan")
+            if not math.isfinite(v):
+                raise DataError(f"{name}: column {header[c]!r} line {line_no}: {cell.strip()!r}; expected a finite number")
+            data[r, c] = v
+    col = {h: data[:, i] for i, h in enumerate(header)}
+    if polar:
+        g = 10 ** (col["magnitude_db"] / 20) * np.exp(1j * np.radians(col["phase_deg"]))
+    else:
+        g = col["real"] + 1j * col["imag"]
+    return frf_from_arrays(name, col["frequency_hz"], g, coherence=col.get("coherence"), speed_rad_s=speed_rad_s,
+                           load_n=load_n, coherence_min=coherence_min, row_of=[ln for ln, _ in rows], row_word="line",
+                           sample_time_s=sample_time_s)
+
+
+def frf_from_record(
+    record: Record,
+    period_s: float,
+    *,
+    skip_periods: int = 1,
+    f_max_hz: float | None = None,
+    coherence_min: float = COHERENCE_MIN,
+    power_floor: float = 1e-3,
+) -> FrfRecord:
+    """Frequency response torque command -> measured speed from a record of a periodic excitation.
+
+    The record (e.g. a multisine on the speed setpoint with the drive's loop closed, period
+    ``period_s``) is cut into whole periods after ``skip_periods`` transient ones; per period the
+    FFT of the logged command and of the measured speed (the angle's backward difference) are
+    taken, and at every line whose command power is above ``power_floor`` times the largest,
+    the H1 estimate ``sum(conj(U) Y) / sum(|U|^2)`` and the coherence over the periods. The
+    operating point is the record's mean speed and load.
+
+    Parameters
+    ----------
+    record : Record
+    period_s : float, s
+        Period of the excitation (a whole number of samples).
+    skip_periods : int
+        Leading periods dropped (transient).
+    f_max_hz : float, Hz, optional
+        Highest line kept (default: below Nyquist).
+    coherence_min : float
+        Lines with a lower coherence are dropped (needs at least two periods).
+    power_floor : float
+        Relative command power below which a line counts as not excited.
+
+    Returns
+    -------
+    FrfRecord
+    """
+    ts = record.sample_time_s
+    n = int(round(period_s / ts))
+    if not (math.isfinite(period_s) and period_s > 0) or abs(n * ts - period_s) > 1e-6 * period_s or n < 8:
+        raise DataError(f"{record.name}: period {period_s!r} s; expected a whole number (>= 8) of {ts:g} s samples")
+    if not (isinstance(skip_periods, int) and skip_periods >= 0):
+        raise DataError(f"{record.name}: skip_periods = {skip_periods!r}; expected an integer >= 0")
+    speed = np.concatenate([[np.nan], record.speed_rad_s])  # sample k: (angle_k - angle_k-1) / ts
+    m = (record.n - 1) // n - skip_periods  # sample 0 has no speed: start at 1
+    if m < 2:
+        raise DataError(f"{record.name}: {record.n} samples hold fewer than {skip_periods + 2} periods of {period_s:g} s; "
+                        "expected a longer record (two periods at least after the skipped ones)")
+    start = 1 + skip_periods * n
+    u = record.torque_command_n_m[start:start + m * n].reshape(m, n)
+    y = speed[start:start + m * n].reshape(m, n)
+    uf, yf = np.fft.rfft(u, axis=1)[:, 1:], np.fft.rfft(y, axis=1)[:, 1:]
+    f = np.arange(1, uf.shape[1] + 1) / period_s
+    suu, syy = np.sum(np.abs(uf) ** 2, 0), np.sum(np.abs(yf) ** 2, 0)
+    suy = np.sum(np.conj(uf) * yf, 0)
+    keep = (suu > power_floor * np.max(suu)) & (f < 0.5 / ts) & (f <= (f_max_hz or np.inf))
+    if not np.any(keep):
+        raise DataError(f"{record.name}: no excited line; expected a periodic excitation of period {period_s:g} s")
+    coh = np.abs(suy[keep]) ** 2 / (suu[keep] * syy[keep])
+    return frf_from_arrays(record.name, f[keep], suy[keep] / suu[keep], coherence=coh,
+                           speed_rad_s=float(np.mean(speed[start:start + m * n])),
+                           load_n=float(np.mean(record.axial_load_n[start:start + m * n])),
+                           coherence_min=coherence_min, sample_time_s=ts)
