@@ -26,7 +26,12 @@ if TYPE_CHECKING:
     from .estimator import KFDesign
     from .plant import Plant
 
-__all__ = ["SpeedMeasurement", "EncoderDifference", "KalmanSpeed", "measurement_for"]
+__all__ = ["SpeedMeasurement", "EncoderDifference", "KalmanSpeed", "measurement_for", "PositionLoop",
+           "POSITION_SENSORS"]
+
+#: What a position loop can measure: the nut angle from the motor encoder (rad) or the screw
+#: position from a linear scale on the screw (m).
+POSITION_SENSORS = ("nut_angle", "screw_position")
 
 
 class SpeedMeasurement:
@@ -149,3 +154,120 @@ def measurement_for(plant: "Plant", kind: "str | SpeedMeasurement", kf: "KFDesig
         return KalmanSpeed(kf)
     raise ValueError(f"measurement = {kind!r}; expected 'encoder', 'kf' or a SpeedMeasurement")
 
+
+
+def _gain(name: str, v: object, unit: str, lo: float = 0.0, lo_open: bool = False, hi: float = math.inf) -> float:
+    ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) \
+        and (v > lo if lo_open else v >= lo) and v <= hi
+    if not ok:
+        rel = ">" if lo_open else ">="
+        raise ValueError(f"PositionLoop {name} = {v!r}; expected a finite number {rel} {lo:g}"
+                         + (f" and <= {hi:g}" if math.isfinite(hi) else "") + f" {unit}".rstrip())
+    return float(v)
+
+
+@dataclass(frozen=True)
+class PositionLoop:
+    """The position loop of the drive, an outer block of the one sampled-loop law.
+
+    Every ``rate``-th controller sample (the position-loop sample ``Tp = rate Ts``) it reads the
+    position, compares it with the motion profile's position and computes the speed reference
+    of the speed PI, held until its next sample::
+
+        e      = (p_ref - p_meas) / a                      position error in nut radians
+        I     <- I + Tp ki e                               (PI only)
+        w_ref  = kv e + I + kvff v_ref / a                 nut speed reference, rad/s
+        tau_ff = kaff J a_ref / a                          torque feed-forward, N m
+
+    with ``a`` the lead per radian (m/rad; ``a = 1`` when the nut angle itself is the loop's
+    unit), ``J`` :attr:`Plant.reflected_inertia_kg_m2` and ``p_ref, v_ref, a_ref`` the profile's
+    position (m), speed (m/s) and acceleration (m/s^2). Expressing the error in nut radians
+    makes ``kv`` the vendor's ``Kv`` [1/s] whichever position is measured.
+
+    Parameters
+    ----------
+    kv : float, 1/s
+        Position gain (``Kv``): nut speed reference per nut-angle error.
+    ki : float, 1/s^2
+        Integral gain of a position PI (0: P).
+    kvff : float
+        Velocity feed-forward gain (dimensionless, 1 = full).
+    kaff : float
+        Acceleration (torque) feed-forward gain (dimensionless, 1 = the reflected inertia).
+    measured : {"nut_angle", "screw_position"}
+        ``nut_angle``: the quantised motor encoder (the speed loop's sensor);
+        ``screw_position``: a linear scale on the screw of resolution ``scale_resolution_m``,
+        which sees the thread-contact deflection the encoder does not.
+    rate : int
+        Position-loop sample time in controller samples (1 = every sample).
+    scale_resolution_m : float, m
+        Resolution of the linear scale (``measured="screw_position"`` only).
+
+    Examples
+    --------
+    >>> PositionLoop(kv=100.0, kvff=1.0).memory_names
+    ('position_integral', 'speed_reference', 'torque_feedforward', 'position_error')
+    """
+
+    kv: float
+    ki: float = 0.0
+    kvff: float = 1.0
+    kaff: float = 0.0
+    measured: str = "nut_angle"
+    rate: int = 1
+    scale_resolution_m: float = 1e-7
+    name = "position"
+    memory_names = ("position_integral", "speed_reference", "torque_feedforward", "position_error")
+    #: Per-sample inputs of the block: position (loop unit), speed (m/s), acceleration (m/s^2)
+    #: of the profile, 1 at a position-loop sample (else 0), then kv, ki, kvff, kaff (parameters,
+    #: so that one compiled law serves every gain set).
+    n_inputs = 8
+
+    def __post_init__(self) -> None:
+        _gain("kv", self.kv, "1/s")
+        _gain("ki", self.ki, "1/s^2")
+        _gain("kvff", self.kvff, "", hi=2.0)
+        _gain("kaff", self.kaff, "", hi=2.0)
+        if self.kv == 0 and self.ki == 0:
+            raise ValueError("PositionLoop kv = ki = 0; expected a position gain kv > 0 (or ki > 0)")
+        if self.measured not in POSITION_SENSORS:
+            raise ValueError(f"PositionLoop measured = {self.measured!r}; expected one of {', '.join(POSITION_SENSORS)}")
+        if isinstance(self.rate, bool) or not isinstance(self.rate, int) or not 1 <= self.rate <= 1000:
+            raise ValueError(f"PositionLoop rate = {self.rate!r}; expected an integer number of controller samples "
+                             "in [1, 1000]")
+        _gain("scale_resolution_m", self.scale_resolution_m, "m", lo_open=True, hi=1e-3)
+
+    def unit_m(self, lead_per_rad: float) -> float:
+        """Metres of screw travel per unit of the measured position (``a`` for the nut angle in
+        rad, 1 for the screw position in m)."""
+        return lead_per_rad if self.measured == "nut_angle" else 1.0
+
+    def initial(self) -> list[float]:
+        """Memory at rest on the profile's start (no error, no integral, no reference)."""
+        return [0.0, 0.0, 0.0, 0.0]
+
+    def update(self, mem, p_meas, inputs, ts: float, lead_per_rad: float, inertia: float):
+        """One controller sample: ``(speed reference rad/s, torque feed-forward N m, memory)``.
+
+        ``p_meas`` in the measured unit (rad or m), ``inputs`` the block's per-sample inputs,
+        ``ts`` the controller sample time (s), ``lead_per_rad`` (m/rad), ``inertia`` (kg m^2).
+        """
+        a = lead_per_rad
+        p_ref, v_ref, acc_ref, active = inputs[0], inputs[1], inputs[2], inputs[3]
+        kv, ki, kvff, kaff = inputs[4], inputs[5], inputs[6], inputs[7]
+        e_rad = (p_ref - p_meas) * (self.unit_m(a) / a)
+        integral = mem[0] + active * (self.rate * ts) * ki * e_rad
+        w_ref = kv * e_rad + integral + kvff * v_ref / a
+        tau_ff = kaff * inertia * acc_ref / a
+        w_ref = ca.if_else(active > 0.5, w_ref, mem[1])
+        tau_ff = ca.if_else(active > 0.5, tau_ff, mem[2])
+        e_keep = ca.if_else(active > 0.5, e_rad, mem[3])
+        return w_ref, tau_ff, ca.vertcat(integral, w_ref, tau_ff, e_keep)
+
+    def key(self) -> tuple:
+        return ("position", self.measured, self.rate, self.scale_resolution_m)
+
+    @property
+    def gains(self) -> list[float]:
+        """``[kv, ki, kvff, kaff]``, the per-sample gain inputs."""
+        return [float(self.kv), float(self.ki), float(self.kvff), float(self.kaff)]

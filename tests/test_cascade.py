@@ -1,0 +1,368 @@
+"""Position loop over the speed loop (prsa_ctrl.cascade, measurement.PositionLoop, simulation.run
+with position=...): steady start, tracking, reversal through stiction, hunting of a position PI,
+slower position rate, the move scene, the linear cascade model, joint vs sequential tuning and
+the drive export of the position loop."""
+
+import dataclasses
+import math
+import tomllib
+import warnings
+
+import numpy as np
+import pytest
+
+from prsa_ctrl import PID, load_plant
+from prsa_ctrl.cascade import (CascadeModel, export_cascade, hunting, is_move_scene, load_move_scene, main_move,
+                               move_metrics, sequential_design, simulate_move, tune_cascade, verify_design)
+from prsa_ctrl.errors import SceneError
+from prsa_ctrl.export import dumps
+from prsa_ctrl.measurement import POSITION_SENSORS, PositionLoop
+from prsa_ctrl.model import stick_band_rad_s
+from prsa_ctrl.motion import out_and_back, s_curve
+from prsa_ctrl.simulation import run
+
+PI = PID(0.0809, 13.56)
+
+
+@pytest.fixture(scope="module")
+def plant():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_plant()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return load_move_scene("paper-move")
+
+
+def _err_m(r, plant):
+    unit = plant.lead_per_rad if r.info["position_loop"]["measured"] == "nut_angle" else 1.0
+    return (r.output("position_reference") - r.output("position_measured")) * unit
+
+
+def test_paper_move_scene(scene):
+    assert is_move_scene("paper-move") and not is_move_scene("paper-load-step") and not is_move_scene(None)
+    assert (scene.distance_m, scene.max_speed_m_s, scene.load_n) == (0.01, 0.03, 1500.0)
+    m = scene.motion()
+    # The load appears in the middle of the move and is held; the hold step comes after the move.
+    assert scene.load_at_s == pytest.approx(0.5 * (m.t0[0] + m.end_time))
+    assert scene.loads() == [(0.0, 0.0), (scene.load_at_s, 1500.0), (scene.hold_step_s, 3000.0)]
+    assert m.final_position == pytest.approx(0.01, rel=1e-12) and scene.hold_step_s > m.end_time
+    assert POSITION_SENSORS == ("nut_angle", "screw_position")
+
+
+@pytest.mark.parametrize("edit, match", [
+    ('distance_mm = "10"', r"move\.distance_mm = '10'; expected a finite non-zero travel in mm"),
+    ("distance_mm = 0.0", r"move\.distance_mm = 0\.0"),
+    ("speed_mm_s = 30.0", r"unknown key move\.speed_mm_s"),
+    ('profile = "sine"', r"move\.profile = 'sine'; expected one of trapezoidal, s-curve"),
+    ('measured = "tacho"', r"move\.measured = 'tacho'"),
+    ("position_rate = 0", r"move\.position_rate = 0"),
+    ("load_time_s = 5.0", r"move\.load_time_s = 5\.0; expected a time in s inside the move"),
+])
+def test_move_scene_errors_name_file_and_key(tmp_path, edit, match):
+    key = edit.split(" = ")[0]
+    lines = [ln for ln in (load_move_scene.__globals__["_scene_path"]("paper-move")[0]).read_text().splitlines()
+             if not ln.startswith(key + " ")]
+    text = "\n".join(lines).replace("[move]", "[move]\n" + edit, 1)
+    f = tmp_path / "bad-move.toml"
+    f.write_text(text)
+    with pytest.raises(SceneError, match=match) as exc:
+        load_move_scene(f)
+    assert str(f) in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_move_scene_structure_errors(tmp_path):
+    f = tmp_path / "m.toml"
+    f.write_text('[move]\nprofile = "s-curve"\ndistance_mm = 1.0\nmax_speed_mm_s = 10.0\nacceleration_m_s2 = 1.0\n')
+    with pytest.raises(SceneError, match=r"m\.toml: move\.jerk_m_s3 missing"):
+        load_move_scene(f)
+    f.write_text('[move]\nprofile = "trapezoidal"\ndistance_mm = 1.0\nmax_speed_mm_s = 10.0\n')
+    with pytest.raises(SceneError, match=r"move\.acceleration_m_s2 missing"):
+        load_move_scene(f)
+    f.write_text('[move]\nprofile = "trapezoidal"\n[operating]\nsetpoint_rpm = 300.0\n')
+    with pytest.raises(SceneError, match=r"unknown section 'operating'"):
+        load_move_scene(f)
+    f.write_text('[move]\nprofile = "trapezoidal"\ndistance_mm = 1.0\nmax_speed_mm_s = 10.0\nacceleration_m_s2 = 1.0\n'
+                 '[cascade]\nms_max = 0.9\n')
+    with pytest.raises(SceneError, match=r"cascade\.ms_max = 0\.9"):
+        load_move_scene(f)
+    with pytest.raises(SceneError, match="not found"):
+        load_move_scene(tmp_path / "none.toml")
+
+
+def test_position_loop_arguments():
+    with pytest.raises(ValueError, match="PositionLoop kv = -1"):
+        PositionLoop(kv=-1.0)
+    with pytest.raises(ValueError, match="PositionLoop measured = 'x'"):
+        PositionLoop(kv=1.0, measured="x")
+    with pytest.raises(ValueError, match="PositionLoop rate = 0"):
+        PositionLoop(kv=1.0, rate=0)
+    with pytest.raises(ValueError, match="kv = ki = 0"):
+        PositionLoop(kv=0.0)
+
+
+def test_run_position_arguments(plant):
+    pos = PositionLoop(kv=40.0)
+    with pytest.raises(ValueError, match="expected discrete=True"):
+        run(plant, controller=PI, position=pos, fidelity="rigid", duration=0.01)
+    with pytest.raises(ValueError, match="expected a speed PI"):
+        run(plant, controller=PID(0.08), position=pos, fidelity="rigid", discrete=True, duration=0.01)
+    with pytest.raises(ValueError, match="expected a PositionLoop"):
+        run(plant, controller=PI, motion=s_curve(0.001, 0.01, 0.5, 50.0), fidelity="rigid", discrete=True,
+            duration=0.01)
+
+
+@pytest.mark.parametrize("measured", ["nut_angle", "screw_position"])
+def test_holds_at_rest_in_steady_state(plant, measured):
+    """No move, 1500 N held from t = 0: the compliant actuator stays exactly where it started
+    (the run starts in its steady state; a wrong initial integral or measurement memory would
+    move it)."""
+    r = run(plant, load=1500.0, duration=0.03, controller=PI, fidelity="compliant", discrete=True,
+            position=PositionLoop(kv=40.0, measured=measured))
+    x = r.states
+    for name in ("theta_nut", "omega_nut", "tau_motor", "delta_screw", "x_roller"):
+        row = x[r.state_labels.index(name)]
+        assert np.max(np.abs(row - row[0])) <= 1e-9 * max(abs(row[0]), 1e-6), name
+    assert np.all(_err_m(r, plant) == 0.0)
+    assert np.all(r.output("speed_reference") == 0.0)
+
+
+def test_screw_position_is_the_scale_reading(plant):
+    """With a linear scale the loop reads x_S = a th_N + x_roller - delta_screw, quantised."""
+    pos = PositionLoop(kv=40.0, measured="screw_position", scale_resolution_m=1e-8)
+    m = s_curve(2e-4, 0.01, 0.5, 50.0).shifted(0.005)
+    r = run(plant, load=[(0, 1000.0)], duration=0.04, controller=PI, fidelity="compliant", discrete=True,
+            position=pos, motion=m)
+    s = r.states
+    xs = plant.lead_per_rad * s[r.state_labels.index("theta_nut")] + s[r.state_labels.index("x_roller")] \
+        - s[r.state_labels.index("delta_screw")]
+    assert np.allclose(r.output("position_measured"), np.floor(xs / 1e-8) * 1e-8, rtol=0, atol=1e-15)
+    # The reference is the profile added to the reading at t = 0.
+    assert np.allclose(r.output("position_reference") - r.output("position_measured")[0], m.at(r.time)[0],
+                       rtol=0, atol=1e-15)
+
+
+def test_velocity_feedforward_and_the_kv_following_error(plant):
+    """P position loop without feed-forward: at constant speed the speed PI's integral makes
+    the speed exact, so kv e = v/a: the following error is v/kv (the definition of Kv).
+    With full velocity and acceleration feed-forward it is far smaller."""
+    m = s_curve(0.004, 0.02, 0.5, 50.0).shifted(0.005)
+    kv = 60.0
+    r0 = run(plant, load=0.0, duration=m.end_time, controller=PI, fidelity="rigid", discrete=True,
+             position=PositionLoop(kv=kv, kvff=0.0), motion=m)
+    cruise = (r0.time > m.t0[0] + 0.14) & (r0.time < m.t0[0] + 0.18)
+    assert np.all(m.at(r0.time[cruise])[1] == pytest.approx(0.02, rel=1e-12))
+    assert np.mean(_err_m(r0, plant)[cruise]) == pytest.approx(0.02 / kv, rel=0.02)
+    r1 = run(plant, load=0.0, duration=m.end_time, controller=PI, fidelity="rigid", discrete=True,
+             position=PositionLoop(kv=kv, kvff=1.0, kaff=1.0), motion=m)
+    assert np.max(np.abs(_err_m(r1, plant))) < 0.1 * np.max(np.abs(_err_m(r0, plant)))
+    # The torque feed-forward is J acc/a exactly.
+    acc = m.at(r1.time)[2]
+    assert np.allclose(r1.output("torque_feedforward"), plant.reflected_inertia_kg_m2 * acc / plant.lead_per_rad,
+                       rtol=1e-12, atol=1e-15)
+
+
+def test_slower_position_rate_holds_the_reference(plant):
+    m = s_curve(5e-4, 0.01, 0.5, 50.0).shifted(0.002)
+    r = run(plant, load=0.0, duration=0.03, controller=PI, fidelity="rigid", discrete=True,
+            position=PositionLoop(kv=40.0, kvff=1.0, rate=4), motion=m)
+    w = r.output("speed_reference")
+    k = np.arange(w.size)
+    changes = np.flatnonzero(np.diff(w) != 0) + 1
+    assert changes.size > 10 and np.all(k[changes] % 4 == 0)
+
+
+def test_reversal_through_stiction_without_hunting(plant):
+    """Out and back under 1500 N with a P position loop: the nut reverses in both directions
+    through the stick band, settles in the window, creeps in without reversing and does not
+    hunt."""
+    m = out_and_back("s-curve", 2e-4, 0.01, 0.5, 50.0, dwell_s=0.03).shifted(0.005)
+    r = run(plant, load=1500.0, duration=m.end_time + 0.1, controller=PI, fidelity="compliant", discrete=True,
+            position=PositionLoop(kv=40.0, kvff=1.0, kaff=1.0), motion=m)
+    w = r.output("nut_speed")
+    band = stick_band_rad_s(plant)
+    assert np.max(w) > 20.0 and np.min(w) < -20.0
+    end = r.time > m.end_time + 0.05
+    e = _err_m(r, plant)
+    assert np.max(np.abs(e[end])) < 2e-6
+    assert abs(w[end][-1]) < abs(w[end][0]) / 3  # creeping in, decaying
+    h = hunting(r.time[end], e[end], w[end], window_m=2e-6, stick_band_rad_s=band)
+    assert not h["oscillating"] and h["reversals"] == 0
+
+
+def test_position_pi_hunts_against_stiction(plant):
+    """The classic limit cycle: a position integral winds up while the nut sticks, breaks it
+    loose, overshoots and sticks on the other side. The P loop (same kv) settles."""
+    m = out_and_back("s-curve", 2e-5, 0.003, 0.5, 50.0, dwell_s=0.05).shifted(0.01)
+    out = {}
+    for kip in (0.0, 2000.0):
+        r = run(plant, load=1500.0, duration=1.6, controller=PI, fidelity="rigid", discrete=True,
+                position=PositionLoop(kv=42.0, ki=kip), motion=m)
+        tail = r.time > 0.8
+        out[kip] = hunting(r.time[tail], _err_m(r, plant)[tail], r.output("nut_speed")[tail], window_m=2e-6,
+                           stick_band_rad_s=stick_band_rad_s(plant))
+    assert not out[0.0]["oscillating"] and out[0.0]["reversals"] == 0
+    assert out[2000.0]["oscillating"] and out[2000.0]["reversals"] >= 5
+    assert 0.1 < out[2000.0]["period_s"] < 0.4
+
+
+def test_hunting_detector_on_synthetic_records():
+    t = np.linspace(0.0, 1.0, 4001)
+    w = 5.0 * np.sin(2 * np.pi * 5 * t)
+    e = 1e-6 * np.cos(2 * np.pi * 5 * t)
+    h = hunting(t, e, w, window_m=2e-6, stick_band_rad_s=0.003)
+    assert h["oscillating"] and h["reversals"] == 9 and h["period_s"] == pytest.approx(0.2, rel=0.01)
+    decaying = hunting(t, e * np.exp(-20 * t), w * (t < 0.15), window_m=2e-6, stick_band_rad_s=0.003)
+    assert not decaying["oscillating"]
+
+
+def test_metrics_of_a_move(plant, scene):
+    sc = dataclasses.replace(scene, fidelity="rigid")
+    r = simulate_move(plant, sc, PI, PositionLoop(kv=42.0, kvff=1.0, kaff=1.0))
+    mm = move_metrics(r, plant, sc)
+    e = _err_m(r, plant)
+    t = r.time
+    assert mm.peak_following_error_m == pytest.approx(np.max(np.abs(e[(t >= sc.start_s) & (t < sc.hold_step_s)])))
+    assert mm.holding_deviation_m == pytest.approx(np.max(np.abs(e[t >= sc.hold_step_s])))
+    assert mm.holding_deviation_m > 0 and mm.peak_torque_n_m < plant.torque_limit
+    assert math.isfinite(mm.settling_time_s) and mm.final_error_m == pytest.approx(e[-1])
+    assert not mm.hunting["oscillating"]
+
+
+def test_linear_cascade_matches_the_drive_loop_model(plant, scene):
+    """The cascade model's speed loop (position loop opened) is the project's drive loop model
+    (tuning.drive_loop) of the same plant and PI, to rounding."""
+    from prsa_ctrl.linear import linear_core
+    from prsa_ctrl.model import plant_model
+    from prsa_ctrl.tuning import drive_loop
+
+    sc = dataclasses.replace(scene, fidelity="rigid")
+    cm = CascadeModel(plant, sc)
+    model = plant_model(plant, "rigid")
+    a, b, c, _, _ = linear_core(plant, cm.w_lin, sc.load_n, "rigid")
+    lp = drive_loop(a, b, c[model.output_names.index("nut_speed")], model.index("theta_nut"), ts=plant.sample_time_s,
+                    speed_filter=plant.speed_filter_s, tf=1e-3, horizon=0.05, step=100.0)
+    w = np.geomspace(1.0, 1e4, 50)
+    ours = cm.loops([PI.kp, PI.ki, 40.0, 0.0, 1.0, 1.0], w)["speed_open"]
+    theirs = lp.loop_response([PI.kp, PI.ki, 0.0], w)
+    assert np.allclose(ours, theirs, rtol=1e-9, atol=0)
+    # Closing the position loop changes the inner loop: judged both ways.
+    closed = cm.loops([PI.kp, PI.ki, 40.0, 0.0, 1.0, 1.0], w)["speed_closed"]
+    assert np.max(np.abs(closed - ours)) > 1e-3 * np.max(np.abs(ours))
+
+
+def test_linear_model_time_response_matches_its_frequency_response(plant, scene):
+    """The time-domain closed loop (what the tuner's objective integrates) and the loop
+    transfer functions (what its Ms constraints see) are the same system: the steady error of
+    the P cascade at constant speed without feed-forward is v/kv in both."""
+    sc = dataclasses.replace(scene, fidelity="rigid", load_n=0.0, hold_step_n=100.0)
+    cm = CascadeModel(plant, sc)
+    g = [PI.kp, PI.ki, 50.0, 0.0, 0.0, 0.0]
+    e = cm.error(g, "move")
+    m = sc.motion()
+    t = np.arange(e.size) * cm.ts
+    cruise = (t > m.t0[0] + 0.15) & (t < m.t0[0] + 0.25)
+    assert np.mean(e[cruise]) == pytest.approx(sc.max_speed_m_s / 50.0, rel=0.01)
+    assert cm.spectral_radius(g) < 1
+
+
+@pytest.fixture(scope="module")
+def designs(plant, scene):
+    sc = dataclasses.replace(scene, fidelity="rigid")
+    cm = CascadeModel(plant, sc)
+    seq = sequential_design(plant, sc, cm)
+    joint = tune_cascade(plant, sc, baseline=seq, cm=cm)
+    for d in (seq, joint):
+        verify_design(plant, sc, d)
+    return sc, cm, seq, joint
+
+
+def test_joint_beats_sequential_at_equal_ms(designs):
+    sc, cm, seq, joint = designs
+    for d in (seq, joint):
+        # The reported Ms are the true ones (recomputed here on another dense grid).
+        again = cm.ms(d.gains, n_dense=30011)
+        for k in ("speed_closed", "speed_open", "position"):
+            assert d.ms[k] <= sc.ms_max * (1 + 1e-5)
+            assert again[k] == pytest.approx(d.ms[k], rel=1e-4)
+        assert cm.spectral_radius(d.gains) < 1
+    assert joint.method == "joint"
+    assert joint.objective < seq.objective
+    assert joint.linear["rms_following_error_m"] < seq.linear["rms_following_error_m"]
+    # ... and on the nonlinear model.
+    assert joint.verified.rms_following_error_m < seq.verified.rms_following_error_m
+    assert joint.verified.peak_following_error_m < seq.verified.peak_following_error_m
+    assert joint.verified.holding_deviation_m < seq.verified.holding_deviation_m
+
+
+def test_position_export_reproduces_the_simulated_law(plant, designs):
+    """Round trip: the exported position law, run in plain numpy on the positions the drive
+    measured, gives the speed references and torque feed-forward of the simulated loop to 1e-9."""
+    sc, cm, seq, joint = designs
+    # A position PI, so that the exported integral is exercised too.
+    joint = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0))
+    for fmt in ("toml", "json"):
+        d = export_cascade(joint, plant, fmt=fmt)
+        if fmt == "toml":
+            d = tomllib.loads(dumps(d, "toml"))
+        pc = d["position_controller"]
+        assert pc["kv_per_s"] == joint.position.kv and pc["sample_time_s"] == plant.sample_time_s
+    r = simulate_move(plant, sc, joint.speed, joint.position, duration=0.3, loads=sc.loads()[:2])
+    a, jm = pc["lead_m_per_rad"], pc["torque_per_acceleration_n_m_s2_per_rad"]
+    m = sc.motion()
+    _, v_ref, acc_ref = m.at(r.time)
+    e = r.output("position_reference") - r.output("position_measured")  # nut rad
+    integ = np.cumsum(pc["sample_time_s"] * pc["ki_per_s2"] * e)
+    w_ref = pc["kv_per_s"] * e + integ + pc["velocity_feedforward"] * v_ref / a
+    assert np.allclose(w_ref, r.output("speed_reference"), rtol=1e-9, atol=1e-9 * np.max(np.abs(w_ref)))
+    assert np.allclose(jm * acc_ref / a, r.output("torque_feedforward"), rtol=1e-9, atol=1e-12)
+
+
+def test_cli_move_scene_bad_flags_exit_2(tmp_path, capsys):
+    class Args:
+        scene = "paper-move"
+        plant = None
+        json = None
+        export = str(tmp_path / "drive.txt")
+    assert main_move(type("R", (), {"prog": "prsa-tune"})(), Args()) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--export" in err and "drive.txt" in err
+    Args.export, Args.setpoint_rpm = None, 100.0
+    assert main_move(type("R", (), {"prog": "prsa-tune"})(), Args()) == 2
+    assert "--setpoint-rpm does not apply to a move scene" in capsys.readouterr().err
+    assert not (tmp_path / "drive.txt").exists()
+
+
+def test_speed_loop_scene_loader_points_to_the_move_scene():
+    from prsa_ctrl.scene import load_scene
+
+    with pytest.raises(SceneError, match=r"paper-move\.toml \(built-in\): a move scene"):
+        load_scene("paper-move")
+
+
+def test_screw_side_error_shows_the_thread_deflection(plant, scene):
+    """Nut-angle feedback holds the nut exactly, but the 1500 N step compresses the threads:
+    the screw's true position is off by the extra deflection, which a linear scale would see."""
+    m_short = dataclasses.replace(scene, distance_m=2e-4, start_s=0.005, hold_delay_s=0.02, hold_duration_s=0.06)
+    r = simulate_move(plant, m_short, PI, PositionLoop(kv=40.0, kvff=1.0, kaff=1.0))
+    mm = move_metrics(r, plant, m_short)
+    x = r.states
+    ds = x[r.state_labels.index("x_roller")] - x[r.state_labels.index("delta_screw")]
+    # Screw error = nut-side error plus the change of the contact deflection since t = 0.
+    count_m = plant.lead_per_rad * 2 * math.pi / plant.encoder_counts  # the encoder reading is quantised
+    assert mm.screw_final_error_m == pytest.approx(mm.final_error_m - (ds[-1] - ds[0]), rel=0, abs=count_m)
+    assert abs(ds[-1] - ds[0]) > 1e-7
+
+
+def test_bandwidth_ratio_option(plant, designs):
+    sc, cm, seq, joint = designs
+    sc5 = dataclasses.replace(sc, bandwidth_ratio=5.0)
+    d = tune_cascade(plant, sc5, baseline=seq, cm=cm)
+    assert d.method == "joint"
+    assert d.speed.kp / plant.reflected_inertia_kg_m2 >= 5.0 * d.position.kv * (1 - 1e-6)
+    assert joint.speed.kp / plant.reflected_inertia_kg_m2 < 5.0 * joint.position.kv  # the option is active
+    assert max(d.ms["speed_closed"], d.ms["speed_open"], d.ms["position"]) <= sc.ms_max * (1 + 1e-5)
+    # A constraint can only cost: the ratio-limited design is no better than the free one.
+    assert d.objective >= joint.objective * (1 - 1e-6)
