@@ -13,7 +13,11 @@
 - **tuning**: our tuner against a Kp-Ki grid search whose every point is verified on the
   nonlinear simulator;
 - **cold CLI**: ``prsa-tune --load-step 500:1500`` wall time over ``python -c "import control,
-  casadi"``.
+  casadi"``;
+- **Monte Carlo**: 1000 compliant sampled-loop verifications of the paper scene, serial, 2
+  processes and a Dask LocalCluster, in turn (results must agree bit for bit);
+- **robust tuning**: 16 scenario models against nominal tuning;
+- **targets**: issue 10's speed targets against these medians (``bench.json["targets"]``).
 
 Every time is the median of ``repeats`` runs (default 3; ``--fast``: 1) after a warm-up run,
 never the best run; ratios are measured in the same run on the same machine; no target is
@@ -32,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["work_precision", "fidelity_ladder", "tuning_benchmark", "cold_cli_benchmark", "main"]
+__all__ = ["work_precision", "fidelity_ladder", "tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark",
+           "robust_tuning_benchmark", "targets", "main"]
 
 
 class _OverBudget(Exception):
@@ -94,8 +99,8 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
     dt = 1e-4
     grid = np.arange(0.0, duration + 0.5 * dt, dt)
 
-    def ours(fidelity, integ, tol, n=repeats):
-        s = SimSettings(integrator=integ, rtol=tol, atol=tol, max_steps=200000)
+    def ours(fidelity, integ, tol, n=repeats, jit=False):
+        s = SimSettings(integrator=integ, rtol=tol, atol=tol, max_steps=200000, jit=jit)
 
         def once():
             r = simulate(plant, setpoint=ref_w, load=load, duration=duration, controller=pid, fidelity=fidelity,
@@ -117,9 +122,10 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
     tols = (1e-4, 1e-6, 1e-8) if fast else (1e-4, 1e-6, 1e-8, 1e-10)
     for fidelity in ("rigid", "compliant"):
         for integ in ("cvodes", "idas"):
-            for tol in tols:
-                el, w = ours(fidelity, integ, tol)
-                record(f"prsa-ctrl {integ}", f"tol {tol:g}", fidelity, el, w)
+            for jit in (False, True):  # the same integrator on compiled model code (SimSettings.jit)
+                for tol in tols:
+                    el, w = ours(fidelity, integ, tol, jit=jit)
+                    record(f"prsa-ctrl {integ}" + (" jit" if jit else ""), f"tol {tol:g}", fidelity, el, w)
 
     # The same closed-loop equations for scipy and python-control (scaled states).
     model = plant_model(plant, "compliant")
@@ -228,6 +234,9 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
         "target_error_rad_s": target,
         "best_time_s": {
             "prsa-ctrl": ours_t,
+            "prsa-ctrl (interpreted, no jit)": min(
+                [r["time_s"] for r in rows if r["method"] in ("prsa-ctrl cvodes", "prsa-ctrl idas") and r["finished"]
+                 and r["fidelity"] == "compliant" and r["max_error_rad_s"] <= target] or [math.inf]),
             "scipy": min(best_time(f"scipy {m}", target) for m in ("LSODA", "Radau", "BDF")),
             "python-control": min(best_time(f"python-control {m}", target) for m in ("RK45", "LSODA")),
         },
@@ -329,6 +338,94 @@ def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: 
     }
 
 
+def monte_carlo_benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, backends=("serial", "process", "dask"),
+                          scene: str = "paper-load-step") -> dict:
+    """``n`` sampled-loop verifications (the scene's fidelity: compliant for the paper scene) of
+    the paper design on the plant's uncertainty samples: serial, ``workers`` processes and a
+    Dask LocalCluster (start-up included), in turn, median of ``repeats``; the backends must
+    agree bit for bit (:func:`prsa_ctrl.montecarlo.benchmark`).
+
+    Parameters
+    ----------
+    n : int
+        Samples per run.
+    workers : int
+        Processes of the pool and of the LocalCluster.
+    repeats : int
+        Runs per backend (median reported).
+    backends : sequence of str
+        Subset of ``("serial", "process", "dask")``; "dask" is skipped when Dask is missing.
+    scene : str
+        Scene name or file.
+    """
+    from .montecarlo import benchmark
+    from .scene import load_scene
+
+    backends = list(backends)
+    if "dask" in backends:
+        try:
+            import dask.distributed  # noqa: F401
+        except ImportError:
+            backends.remove("dask")
+    return benchmark(n=n, workers=workers, repeats=repeats, scene=load_scene(scene), backends=backends)
+
+
+def robust_tuning_benchmark(n_scenarios: int = 16, repeats: int = 3) -> dict:
+    """Robust tuning over ``n_scenarios`` scenario models of the robust scene (nominal, the 4
+    vertices of its uncertainty box and seeded interior samples) against nominal tuning
+    (:func:`prsa_ctrl.robust.tune_robust_actuator` times both, same machine, same call); the
+    median of the per-run ratios over ``repeats`` runs.
+
+    Parameters
+    ----------
+    n_scenarios : int
+        Scenario models in the robust NLP (>= 5).
+    repeats : int
+    """
+    from . import load_plant
+    from .robust import scenarios, tune_robust_actuator
+    from .scene import load_scene
+
+    plant, scene = load_plant(), load_scene("robust-load-step")
+    scens = scenarios(plant, scene, samples=n_scenarios - 5)
+    runs = []
+    for _ in range(max(1, repeats)):
+        r = tune_robust_actuator(plant, scene, scens=scens)
+        runs.append(dict(r.timing_s))
+    ratio = [t["tune_robust"] / t["tune_nominal"] for t in runs]
+    return {"scenarios": len(scens), "runs_s": runs,
+            "median_tune_nominal_s": float(np.median([t["tune_nominal"] for t in runs])),
+            "median_tune_robust_s": float(np.median([t["tune_robust"] for t in runs])),
+            "median_ratio": float(np.median(ratio)), "ratios": ratio, "repeats": repeats}
+
+
+def targets(result: dict) -> dict:
+    """Issue 10's speed targets against the measured medians in ``result`` (those present)."""
+    out = {}
+    mc = result.get("monte_carlo")
+    if mc:
+        med = mc["median_s"]
+        fastest = min(v for k, v in med.items() if k != "serial") if len(med) > 1 else med["serial"]
+        out["monte_carlo_1000_le_20s"] = {"target": 20.0 * mc["n"] / 1000, "measured_s": fastest,
+                                          "met": fastest <= 20.0 * mc["n"] / 1000}
+        if "parallel_efficiency" in mc:
+            eff = mc["parallel_efficiency"]
+            out["parallel_efficiency_ge_0.8"] = {"measured": eff, "met": eff >= 0.8}
+        if "dask_overhead" in mc:
+            out["dask_overhead_le_0.15"] = {"measured": mc["dask_overhead"], "met": mc["dask_overhead"] <= 0.15}
+        out["backends_identical"] = {"met": bool(mc["identical"])}
+    rb = result.get("robust_tuning")
+    if rb:
+        out["robust_16_le_5x_nominal"] = {"measured": rb["median_ratio"], "met": rb["median_ratio"] <= 5.0}
+    wp = result.get("work_precision")
+    if wp:
+        b = wp["best_time_s"]
+        ratio = b["scipy"] / b["prsa-ctrl"]
+        out["work_precision_ge_30x_scipy"] = {"measured": ratio, "met": ratio >= 30.0,
+                                              "without_jit": b["scipy"] / b["prsa-ctrl (interpreted, no jit)"]}
+    return out
+
+
 def cold_cli_benchmark(repeats: int = 3) -> dict:
     """Median cold wall time of the CLI and of importing python-control and CasADi, run in
     turn (A B A B ...) so that drift of the machine's speed hits both.
@@ -376,13 +473,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="prsa-bench", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("bench-results"))
     ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli"])
+    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust"])
+    ap.add_argument("--samples", type=int, default=None, help="Monte-Carlo samples per run (default 1000; 100 with --fast)")
+    ap.add_argument("--workers", type=int, default=2, help="processes / Dask workers of the Monte-Carlo benchmark")
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per measurement, median reported "
                     "(default 3; 1 with --fast)")
     args = ap.parse_args(argv)
     repeats = args.repeats or (1 if args.fast else 3)
     if not 1 <= repeats <= 20:
         print(f"prsa-bench: --repeats {repeats}; expected 1..20", file=sys.stderr)
+        return 2
+    n_mc = args.samples if args.samples is not None else (100 if args.fast else 1000)
+    if not 1 <= n_mc <= 100_000 or not 1 <= args.workers <= 64:
+        print(f"prsa-bench: --samples {n_mc} --workers {args.workers}; expected 1..100000 and 1..64", file=sys.stderr)
         return 2
     import warnings
 
@@ -407,10 +510,26 @@ def main(argv=None) -> int:
         result["tuning"] = tb = tuning_benchmark(fast=args.fast, repeats=repeats)
         print(f"tuning: ours {tb['ours']['time_s']:.2f} s (IAE {tb['ours']['iae']:.5g}) vs {tb['grid']} grid "
               f"{tb['grid_search']['time_s']:.1f} s (IAE {tb['grid_search']['iae']:.5g}): {tb['speedup']:.0f}x")
+    if "montecarlo" not in args.skip:
+        result["monte_carlo"] = mc = monte_carlo_benchmark(n=n_mc, workers=args.workers, repeats=repeats)
+        med = mc["median_s"]
+        print(f"monte carlo ({mc['n']} {mc['fidelity']} verifications, {mc['scene']}): "
+              + ", ".join(f"{k} {v:.1f} s" for k, v in med.items())
+              + (f"; parallel efficiency {100 * mc['parallel_efficiency']:.0f} %" if "parallel_efficiency" in mc else "")
+              + (f"; dask overhead {100 * mc['dask_overhead']:+.0f} %" if "dask_overhead" in mc else "")
+              + f"; identical {mc['identical']}")
+    if "robust" not in args.skip:
+        result["robust_tuning"] = rb = robust_tuning_benchmark(repeats=repeats)
+        print(f"robust tuning ({rb['scenarios']} scenarios): {rb['median_tune_robust_s']:.2f} s vs nominal "
+              f"{rb['median_tune_nominal_s']:.2f} s: ratio {rb['median_ratio']:.1f}x (median of per-run ratios)")
     if "cli" not in args.skip:
         result["cold_cli"] = cb = cold_cli_benchmark(repeats)
         print(f"cold CLI: {cb['prsa_tune_s']:.2f} s vs import control, casadi {cb['import_control_casadi_s']:.2f} s: "
               f"ratio {cb['ratio']:.2f}")
+    result["targets"] = tg = targets(result)
+    for k, v in tg.items():
+        print(f"target {k}: {'met' if v['met'] else 'NOT met'}" + (f" ({v['measured']:.3g})" if "measured" in v else "")
+              + (f" ({v['measured_s']:.3g} s)" if "measured_s" in v else ""))
     from .cli import write_json_atomic
     from .output import json_safe
 

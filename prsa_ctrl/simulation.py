@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 from .controller import PID, pid_law
 from .equilibrium import operating_point
 from .errors import SimulationError
-from .measurement import SpeedMeasurement, measurement_for
+from .measurement import PositionLoop, SpeedMeasurement, measurement_for
 from .model import PlantModel, plant_model
 from .options import SETPOINT_RAD_S
 from .plant import Plant
@@ -53,11 +53,15 @@ if TYPE_CHECKING:  # annotations only: python-control is imported where it is us
     import control
 
     from .estimator import KFDesign
+    from .motion import MotionProfile
 
 __all__ = ["simulate", "run", "SimRun", "Profile", "PiecewiseLinear", "SimSettings", "energy_balance",
            "INTEGRATORS", "MAX_OUTPUT_POINTS", "INPUT_LABELS"]
 
-INTEGRATORS = ("cvodes", "idas")
+INTEGRATORS = ("cvodes", "idas", "radau")
+#: Stages of the fixed-step ``"radau"`` integrator (Radau IIA: 1 = implicit Euler, order 1;
+#: 2 = order 3; 3 = order 5; all L-stable and stiffly accurate).
+RADAU_STAGES = (1, 2, 3)
 
 #: Input rows of every run: the speed setpoint the controller used (rad/s) and the axial load
 #: on the screw (N).
@@ -175,9 +179,19 @@ class SimSettings:
 
     Parameters
     ----------
-    integrator : {"cvodes", "idas"}
+    integrator : {"cvodes", "idas", "radau"}
+        ``"cvodes"`` (default, the reference) and ``"idas"`` are SUNDIALS' adaptive implicit
+        integrators. ``"radau"`` is a fixed-step, linearly implicit Radau IIA integrator written
+        in CasADi SX (``substeps`` steps of ``stages`` stages per controller sample, each with
+        ``newton`` simplified Newton iterations on the exact Jacobian at the step start): one
+        sample is a plain expression, so a whole chunk of samples runs as one ``mapaccum``'d
+        function without integrator restarts. Its error is not controlled by ``rtol``/``atol``
+        (they are unused); it is measured against a tight CVODES reference
+        (:func:`fixed_step_error`) and the fast path is only chosen where that error is inside
+        the scene's accuracy (see ``README``). In continuous mode it takes ``substeps`` steps per
+        output interval.
     rtol, atol : float
-        Relative and absolute tolerances.
+        Relative and absolute tolerances (adaptive integrators).
     max_steps : int
         Step budget per output interval; exceeding it raises :class:`SimulationError`.
     max_wall_s : float
@@ -190,6 +204,20 @@ class SimSettings:
     clock : callable
         Returns the time in s that the budget is measured with (default
         ``time.perf_counter``; tests inject a fake clock). Not part of the settings' identity.
+    substeps : int
+        ``"radau"`` only: fixed steps per controller sample (1..64).
+    stages : {1, 2, 3}
+        ``"radau"`` only: Radau IIA stages.
+    newton : int
+        ``"radau"`` only: simplified Newton iterations per step (1..4), a fixed number (no
+        convergence test: the error is measured instead, and a diverging step ends in a
+        non-finite state, which the run reports as a :class:`SimulationError`).
+    jit : bool
+        ``"cvodes"``/``"idas"``: evaluate the model's right-hand side and its Jacobian as C code
+        compiled once per model into a per-user cache (``$PRSA_CTRL_CACHE``, else
+        ``$XDG_CACHE_HOME/prsa-ctrl`` or ``~/.cache/prsa-ctrl``; keyed by the hash of the
+        generated code). Same equations, same tolerances; without a C compiler the run falls
+        back to CasADi's interpreter with a warning.
     """
 
     integrator: str = "cvodes"
@@ -199,10 +227,22 @@ class SimSettings:
     max_wall_s: float = 120.0
     energy_tol: float = 1e-4
     clock: Callable[[], float] = field(default=time.perf_counter, compare=False, hash=False, repr=False)
+    substeps: int = 4
+    stages: int = 2
+    newton: int = 1
+    jit: bool = False
 
     def __post_init__(self) -> None:
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator = {self.integrator!r}; expected one of {', '.join(INTEGRATORS)}")
+        for name, lo, hi in (("substeps", 1, 64), ("newton", 1, 4)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise ValueError(f"{name} = {v!r}; expected an integer in [{lo}, {hi}]")
+        if isinstance(self.stages, bool) or self.stages not in RADAU_STAGES:
+            raise ValueError(f"stages = {self.stages!r}; expected one of {', '.join(map(str, RADAU_STAGES))}")
+        if not isinstance(self.jit, bool):
+            raise ValueError(f"jit = {self.jit!r}; expected True or False")
         for name in ("rtol", "atol"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < 1):
@@ -310,15 +350,205 @@ def _opts(settings: SimSettings) -> dict:
     }
 
 
+# --- fixed-step Radau IIA (SimSettings(integrator="radau")) ------------------------------------
+
+def _radau_tableau(stages: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Butcher matrix ``A`` and nodes ``c`` of the ``stages``-stage Radau IIA method (Hairer &
+    Wanner, Solving ODEs II, Table IV.5.5); the last row of ``A`` is the weights (stiffly
+    accurate), so the step's result is the last stage value."""
+    if stages == 1:
+        return np.array([[1.0]]), np.array([1.0])
+    if stages == 2:
+        return np.array([[5.0 / 12.0, -1.0 / 12.0], [3.0 / 4.0, 1.0 / 4.0]]), np.array([1.0 / 3.0, 1.0])
+    r6 = math.sqrt(6.0)
+    a = np.array([[(88.0 - 7.0 * r6) / 360.0, (296.0 - 169.0 * r6) / 1800.0, (-2.0 + 3.0 * r6) / 225.0],
+                  [(296.0 + 169.0 * r6) / 1800.0, (88.0 + 7.0 * r6) / 360.0, (-2.0 - 3.0 * r6) / 225.0],
+                  [(16.0 - r6) / 36.0, (16.0 + r6) / 36.0, 1.0 / 9.0]])
+    return a, np.array([(4.0 - r6) / 10.0, (4.0 + r6) / 10.0, 1.0])
+
+
+#: Sparse LU kernels by matrix sparsity (shared by every plant of one structure, so a plant
+#: with other parameter values does not rebuild them).
+_LU_KERNELS: dict[str, tuple[ca.Function, ca.Function]] = {}
+
+
+def _lu_kernels(sp: ca.Sparsity) -> tuple[ca.Function, ca.Function]:
+    """``factor(M) -> lu`` and ``solve(lu, b) -> M^-1 b`` for square matrices of sparsity ``sp``:
+    Gaussian elimination in the given order (no pivoting) on the structural nonzeros only.
+
+    Used on ``I - h (A kron J)`` of a dissipative plant, whose diagonal dominates the elimination;
+    a vanishing pivot gives a non-finite state, which the run reports as a SimulationError (it
+    never passes silently)."""
+    key = sp.serialize()
+    if key in _LU_KERNELS:
+        return _LU_KERNELS[key]
+    n = sp.size1()
+    m = ca.SX.sym("m", sp)
+    a = [[m[i, j] if sp.has_nz(i, j) else None for j in range(n)] for i in range(n)]
+    lower: list[list] = [[None] * n for _ in range(n)]
+    for k in range(n):
+        if a[k][k] is None:
+            raise ValueError(f"structurally zero pivot {k} in the Radau iteration matrix")
+        for i in range(k + 1, n):
+            if a[i][k] is None:
+                continue
+            lik = a[i][k] / a[k][k]
+            lower[i][k] = lik
+            for j in range(k + 1, n):
+                if a[k][j] is not None:
+                    a[i][j] = -lik * a[k][j] if a[i][j] is None else a[i][j] - lik * a[k][j]
+    entries = [lower[i][k] for i in range(n) for k in range(i) if lower[i][k] is not None] + \
+              [a[i][j] for i in range(n) for j in range(i, n) if a[i][j] is not None]
+    lu = ca.vertcat(*entries)
+    factor = ca.Function("radau_lu_factor", [m], [lu])
+    lus = ca.SX.sym("lu", lu.numel())
+    b = ca.SX.sym("b", n)
+    it = iter(range(lu.numel()))
+    lo = [[next(it) if lower[i][k] is not None else None for k in range(i)] for i in range(n)]
+    up = [[next(it) if a[i][j] is not None else None for j in range(i, n)] for i in range(n)]
+    y: list = []
+    for i in range(n):
+        yi = b[i]
+        for k in range(i):
+            if lo[i][k] is not None:
+                yi = yi - lus[lo[i][k]] * y[k]
+        y.append(yi)
+    x: list = [None] * n
+    for i in reversed(range(n)):
+        xi = y[i]
+        for j in range(i + 1, n):
+            if up[i][j - i] is not None:
+                xi = xi - lus[up[i][j - i]] * x[j]
+        x[i] = xi / lus[up[i][0]]
+    solve = ca.Function("radau_lu_solve", [lus, b], [ca.vertcat(*x)])
+    _LU_KERNELS[key] = (factor, solve)
+    return factor, solve
+
+
+def _radau_step(f: ca.Function, nz: int, npar: int, settings: SimSettings, span: float) -> ca.Function:
+    """``(x0, p, tau0) -> x`` after ``span`` of normalised time from ``tau0``: ``settings.substeps``
+    Radau IIA steps of ``f(z, p, tau) -> dz/dtau``, each solving its stage equations
+    ``Z_i = x + h sum_j a_ij f(Z_j)`` with ``settings.newton`` simplified Newton iterations
+    from ``Z_i = x`` on the iteration matrix ``I - h (A kron J(x))`` (exact Jacobian at the
+    step start, factorised once per step). One Newton iteration makes it a linearly implicit
+    (Rosenbrock-type) Radau method: still L-stable, the 25.8 kHz contact mode and the stiff
+    traction creep are damped, not resolved. A plain SX expression: no restarts, no
+    convergence loop, a fixed cost per step."""
+    a_mat, c = _radau_tableau(settings.stages)
+    s = settings.stages
+    z = ca.SX.sym("z", nz)
+    p = ca.SX.sym("p", npar)
+    tau = ca.SX.sym("tau")
+    jac = ca.Function("radau_dfdz", [z, p, tau], [ca.jacobian(f(z, p, tau), z)])
+    h = span / settings.substeps
+    j_sym = ca.SX.sym("j", jac.sparsity_out(0))
+    iter_mat = ca.Function("radau_iteration_matrix", [j_sym],
+                           [ca.SX.eye(s * nz) - h * ca.kron(ca.SX(ca.DM(a_mat)), j_sym)])
+    factor, solve = _lu_kernels(iter_mat.sparsity_out(0))
+    x0 = ca.SX.sym("x0", nz)
+    tau0 = ca.SX.sym("tau0")
+    x = x0
+    for k in range(settings.substeps):
+        t_k = tau0 + k * h
+        lu = factor(iter_mat(jac(x, p, t_k)))
+        stages = [x] * s
+        for _ in range(settings.newton):
+            rates = [f(stages[i], p, t_k + c[i] * h) for i in range(s)]
+            g = ca.vertcat(*[stages[i] - x - h * sum(a_mat[i, j] * rates[j] for j in range(s)) for i in range(s)])
+            dz = solve(lu, g)
+            stages = [stages[i] - dz[i * nz:(i + 1) * nz] for i in range(s)]
+        x = stages[-1]
+    return ca.Function("radau_step", [x0, p, tau0], [x], ["x0", "p", "tau0"], ["xf"])
+
+
+#: Compiled right-hand sides loaded in this process, by code hash (see ``SimSettings.jit``).
+_COMPILED: dict[str, ca.Function] = {}
+
+
+def jit_cache_dir() -> Path:
+    """Directory of the compiled right-hand sides (``SimSettings(jit=True)``):
+    ``$PRSA_CTRL_CACHE/jit``, else ``$XDG_CACHE_HOME/prsa-ctrl/jit`` or ``~/.cache/prsa-ctrl/jit``."""
+    import os
+
+    root = os.environ.get("PRSA_CTRL_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "prsa-ctrl")
+    return Path(root) / "jit"
+
+
+def _compiled(fun: ca.Function) -> ca.Function | None:
+    """``fun`` and its Jacobian as C code compiled once into :func:`jit_cache_dir` (keyed by the
+    hash of the code, the CasADi version and the compiler) and loaded as an external function;
+    ``None`` with a warning when no C compiler is found or compiling fails (the caller then
+    uses CasADi's interpreter: same equations, slower)."""
+    import hashlib
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+    import warnings
+
+    cg = ca.CodeGenerator(f"{fun.name()}.c", {"with_header": False})
+    cg.add(fun)
+    cg.add(fun.jacobian())
+    code = cg.dump()
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    key = hashlib.sha256("\n".join([code, ca.__version__, str(cc)]).encode()).hexdigest()[:24]
+    if key in _COMPILED:
+        return _COMPILED[key]
+    if cc is None:
+        warnings.warn("SimSettings(jit=True): no C compiler found (set CC); using CasADi's interpreter", stacklevel=3)
+        return None
+    folder = jit_cache_dir()
+    lib = folder / f"{fun.name()}_{key}.so"
+    if not lib.exists():
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=folder) as tmp:
+                src, out = Path(tmp) / "f.c", Path(tmp) / "f.so"
+                src.write_text(code)
+                res = subprocess.run([cc, "-O2", "-shared", "-fPIC", str(src), "-o", str(out), "-lm"],
+                                     capture_output=True, text=True, timeout=600)
+                if res.returncode != 0:
+                    raise OSError(res.stderr.strip().splitlines()[-1] if res.stderr.strip() else f"exit {res.returncode}")
+                os.replace(out, lib)  # atomic: a concurrent worker never loads a half-written library
+        except (OSError, subprocess.SubprocessError) as exc:
+            warnings.warn(f"SimSettings(jit=True): compiling with {cc} into {folder} failed ({exc}); using CasADi's "
+                          "interpreter", stacklevel=3)
+            return None
+    ext = ca.external(fun.name(), str(lib))
+    _COMPILED[key] = ext
+    return ext
+
+
+def _ode_dae(z: ca.SX, par: ca.SX, tau: ca.SX, ode: ca.SX, settings: SimSettings) -> dict:
+    """The integrator's ODE, as compiled code when ``settings.jit`` (and a compiler works)."""
+    ext = _compiled(ca.Function("prsa_ode", [z, par, tau], [ode])) if settings.jit else None
+    if ext is None:
+        return {"x": z, "p": par, "t": tau, "ode": ode}
+    zm, pm, tm = ca.MX.sym("z", z.numel()), ca.MX.sym("p", par.numel()), ca.MX.sym("tau")
+    return {"x": zm, "p": pm, "t": tm, "ode": ext(zm, pm, tm)}
+
+
 def _continuous_integrator(built: _Built, settings: SimSettings, n_out: int) -> ca.Function:
     key = (settings, n_out)
     if key not in built.continuous:
         z = ca.SX.sym("z", len(built.scale))
         par = ca.SX.sym("p", _NP)
         tau = ca.SX.sym("tau")
-        dae = {"x": z, "p": par, "t": tau, "ode": built.rhs(z, par, tau)}
-        grid = list(np.linspace(0.0, 1.0, n_out + 1)[1:])
-        built.continuous[key] = ca.integrator("segment", settings.integrator, dae, 0.0, grid, _opts(settings))
+        if settings.integrator == "radau":
+            # substeps fixed steps per output interval, all intervals chained (mapaccum)
+            f = ca.Function("rhs_scaled", [z, par, tau], [built.rhs(z, par, tau)])
+            step = _radau_step(f, len(built.scale), _NP, settings, 1.0 / n_out)
+            chain = step.mapaccum("radau_chain", n_out, [0], [0])
+            x0 = ca.MX.sym("x0", len(built.scale))
+            pm = ca.MX.sym("p", _NP)
+            taus = ca.DM(np.arange(n_out) / n_out).T
+            xf = chain(x0, ca.repmat(pm, 1, n_out), taus)
+            built.continuous[key] = ca.Function("segment", [x0, pm], [xf], ["x0", "p"], ["xf"])
+        else:
+            dae = _ode_dae(z, par, tau, built.rhs(z, par, tau), settings)
+            grid = list(np.linspace(0.0, 1.0, n_out + 1)[1:])
+            built.continuous[key] = ca.integrator("segment", settings.integrator, dae, 0.0, grid, _opts(settings))
     return built.continuous[key]
 
 
@@ -616,6 +846,8 @@ def run(
     settings: SimSettings | None = None,
     energy: bool = False,
     seed: int = 0,
+    position: "PositionLoop | None" = None,
+    motion: "MotionProfile | None" = None,
 ) -> SimRun:
     """Simulate the actuator's speed loop from steady state (the one simulator).
 
@@ -658,6 +890,15 @@ def run(
         then audits its energy balance against ``settings.energy_tol``.
     seed : int
         Seed of the per-roller errors (``fidelity="multi-roller"``) and of the torque noise.
+    position : PositionLoop, optional
+        Sampled runs only: a position loop over the speed PI (``controller``, which then needs
+        an integral gain). The run starts at rest (``setpoint`` is not used: the position loop
+        gives the speed reference, reported in the ``speed_setpoint`` input row) and the
+        outputs gain ``position_measured``, ``position_reference`` (rad or m, see
+        ``PositionLoop.measured``), ``speed_reference`` (rad/s) and ``torque_feedforward`` (N m).
+    motion : MotionProfile, optional
+        The move the position loop follows, m of screw travel from the position measured at
+        t = 0 (default: hold that position).
 
     Returns
     -------
@@ -693,6 +934,24 @@ def run(
     feedforward_torque = _check_number("feedforward_torque", feedforward_torque, -1e6, 1e6, "N m", lo_open=False)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed = {seed!r}; expected an integer >= 0")
+    if position is not None or motion is not None:
+        from .motion import MotionProfile
+
+        if not isinstance(position, PositionLoop):
+            raise ValueError(f"position = {position!r}; expected a PositionLoop (with motion = a MotionProfile)")
+        if motion is None:
+            motion = MotionProfile((), (), (), (), (), 0.0)
+        if not isinstance(motion, MotionProfile):
+            raise ValueError(f"motion = {motion!r}; expected a MotionProfile (prsa_ctrl.motion)")
+        if motion.t0 and motion.t0[0] < 0:
+            raise ValueError(f"motion starts at {motion.t0[0]!r} s; expected a start at t >= 0")
+        if not discrete:
+            raise ValueError("position = PositionLoop(...) with discrete = False; expected discrete=True (the position "
+                             "loop runs in the drive's sampled loop)")
+        if controller is None or controller.ki <= 0:
+            raise ValueError(f"controller = {controller!r} with a position loop; expected a speed PI (ki > 0) that "
+                             "holds the load at rest")
+        setpoint = 0.0
     if discrete:
         ts = plant.sample_time_s
         n_points = math.floor(duration / ts + 1e-9) + 1
@@ -733,7 +992,9 @@ def run(
         assert meas is not None
         t, xs, extra, refs, loads, state_labels, events = _run_sampled(
             built, settings, budget, meas, sp, ld, n_points - 1, gains, kff, ff, op, integral0, e0, torque_noise,
-            seed)
+            seed, outer=position, motion=motion)
+        if position is not None:  # the speed reference the position loop gave is the setpoint used
+            refs = extra[len(_SAMPLED_OUTPUTS) + _POSITION_OUTPUTS.index("speed_reference")]
     else:
         x0 = np.concatenate([op.x, [op.omega_nut, integral0, op.omega_nut], e0])
         t, xs = _run_continuous(built, settings, budget, sp, ld, duration, dt, gains, ff, x0)
@@ -750,7 +1011,8 @@ def run(
     nx = model.nx
     u_in = np.vstack([extra[0], loads])
     y = np.asarray(model.h.map(len(t))(xs[:nx], u_in))
-    out_labels = tuple(model.output_names) + (_SAMPLED_OUTPUTS if discrete else _SAMPLED_OUTPUTS[:2])
+    out_labels = tuple(model.output_names) + (_SAMPLED_OUTPUTS if discrete else _SAMPLED_OUTPUTS[:2]) \
+        + (_POSITION_OUTPUTS if position is not None else ())
     info = {
         "fidelity": fidelity,
         "discrete": bool(discrete),
@@ -761,6 +1023,10 @@ def run(
         "events": events,
         "wall_time_s": budget.elapsed,
     }
+    if position is not None:
+        info["position_loop"] = {"measured": position.measured, "rate": position.rate, "kv_per_s": position.kv,
+                                 "ki_per_s2": position.ki, "kvff": position.kvff, "kaff": position.kaff,
+                                 "position_unit": "rad" if position.measured == "nut_angle" else "m"}
     energy_terms = None
     if energy:
         stored = np.asarray(model.power.map(len(t))(xs[:nx], u_in))[0]
@@ -849,12 +1115,38 @@ def _sample_integrator(built: _Built, settings: SimSettings) -> ca.Function:
         tau = ca.SX.sym("tau")
         rates = _plant_rates(model, (zp * scale)[:nx], pp[0], pp[1] + pp[2] * pp[3] * tau, built.energy)
         ode = pp[3] * rates / scale
-        built.sampled[key] = ca.integrator("sample", settings.integrator, {"x": zp, "p": pp, "t": tau, "ode": ode},
-                                           0.0, 1.0, _opts(settings))
+        if settings.integrator == "radau":
+            step = _radau_step(ca.Function("plant_scaled", [zp, pp, tau], [ode]), len(scale), 4, settings, 1.0)
+            x0 = ca.SX.sym("x0", len(scale))
+            built.sampled[key] = ca.Function("sample", [x0, pp], [step(x0, pp, 0.0)], ["x0", "p"], ["xf"])
+        else:
+            built.sampled[key] = ca.integrator("sample", settings.integrator, _ode_dae(zp, pp, tau, ode, settings),
+                                               0.0, 1.0, _opts(settings))
     return built.sampled[key]
 
 
-def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, split: bool) -> ca.Function:
+#: Extra output rows of a sampled run with a position loop: the position it measured and its
+#: reference (rad of the nut or m of the screw, ``PositionLoop.measured``), the speed reference
+#: it gave the speed loop (rad/s) and its torque feed-forward (N m).
+_POSITION_OUTPUTS = ("position_measured", "position_reference", "speed_reference", "torque_feedforward")
+
+
+def _measured_position(model: PlantModel, x, theta_q, outer: "PositionLoop"):
+    """The position the position loop reads: the quantised nut angle (rad), or the screw
+    position ``x_S = a th_N + x_roller - delta_screw`` (m; ``a th_N`` in the rigid model)
+    quantised at the linear scale's resolution."""
+    if outer.measured == "nut_angle":
+        return theta_q
+    p = model.plant
+    x_s = p.lead_per_rad * x[model.index("theta_nut")]
+    if "delta_screw" in model.state_names:
+        x_s = x_s + x[model.index("x_roller")] - x[model.index("delta_screw")]
+    res = outer.scale_resolution_m
+    return ca.floor(x_s / res) * res
+
+
+def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, split: bool,
+                outer: "PositionLoop | None" = None) -> ca.Function:
     """One controller sample of the drive (the only place the per-sample law is written).
 
     At the sampling instant: quantise the encoder angle, let the measurement block update,
@@ -864,21 +1156,29 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
     integrate the plant, split at a load event inside the sample when ``split``; then let the
     measurement block predict with the applied command.
 
+    With an ``outer`` block (a :class:`~prsa_ctrl.measurement.PositionLoop`), the speed
+    reference is not the setpoint column but what the block computes at the same instant from
+    the measured position (the quantised nut angle, or the screw position quantised at the
+    linear scale's resolution), and its torque feed-forward adds to the command. Its memory
+    follows the measurement block's; its reported values (``_POSITION_OUTPUTS``) follow
+    ``_SAMPLED_OUTPUTS``; its per-sample inputs follow the ``_NPS`` parameters.
+
     ``(zm = [scaled plant state; memory], p = per-sample parameters) -> zm at the next sample``
     """
-    key = (settings, meas.key(), split)
+    key = (settings, meas.key(), split, outer.key() if outer is not None else None)
     if key in built.sampled:
         return built.sampled[key]
     model, scale = built.model, built.plant_scale
     p = model.plant
     nz, nx = len(scale), model.nx
     n_meas = len(meas.memory_names)
-    nm = len(_MEM_HEAD) + n_meas + len(_SAMPLED_OUTPUTS)
+    n_outer = len(outer.memory_names) if outer is not None else 0
+    nm = len(_MEM_HEAD) + n_meas + n_outer + len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer else 0)
     ts = p.sample_time_s
     q = 2.0 * math.pi / p.encoder_counts
     integ = _sample_integrator(built, settings)
     zm = ca.SX.sym("zm", nz + nm)
-    par = ca.SX.sym("p", _NPS)
+    par = ca.SX.sym("p", _NPS + (outer.n_inputs if outer is not None else 0))
     z, mem = zm[:nz], zm[nz:]
     ref, load_a, slope_a, load_b, slope_b, frac, ripple = (par[i] for i in range(7))
     gains, kff, tau_ff = par[7:11], par[11], par[12]
@@ -891,6 +1191,13 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
     w_meas, tl_hat, m_meas = meas.update(m_meas, theta_q, th_prev)
     beta = ca.exp(-ts / gains[3])
     deriv = beta * deriv_old + (1 - beta) * (w_meas - w_prev) / ts
+    if outer is not None:
+        m_outer = mem[5 + n_meas : 5 + n_meas + n_outer]
+        p_meas = _measured_position(model, z * scale, theta_q, outer)
+        p_ref = par[_NPS]
+        ref, tau_pos, m_outer = outer.update(m_outer, p_meas, par[_NPS:], ts, p.lead_per_rad,
+                                             p.reflected_inertia_kg_m2)
+        tau_ff = tau_ff + tau_pos
     _, u_sat, dintegral = pid_law(ref - w_meas, integral, deriv, gains, tau_ff + kff * tl_hat, p.torque_limit)
     applied = u_pend + ripple
     if split:
@@ -900,7 +1207,8 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
         z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, ts))["xf"]
     m_meas = meas.predict(m_meas, u_pend)
     mem_next = ca.vertcat(theta_q, integral + ts * dintegral, deriv, w_meas, u_sat, m_meas,
-                          u_pend, w_meas, w_fd, tl_hat)
+                          *([m_outer] if outer is not None else []), u_pend, w_meas, w_fd, tl_hat,
+                          *([p_meas, p_ref, ref, tau_pos] if outer is not None else []))
     law = ca.Function("sample_law", [zm, par], [ca.vertcat(z, mem_next)])
     built.sampled[key] = law
     return law
@@ -947,9 +1255,14 @@ def _sample_events(ld: _Prof, sp: _Prof, ts: float, n: int):
     return load_a, slope_a, load_b, slope_b, frac, sorted(events, key=lambda e: e["time_s"])
 
 
-def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, integral0, e0, torque_noise, seed):
+def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, integral0, e0, torque_noise, seed,
+                 outer=None, motion=None):
     """Samples ``0 .. n``: the first ``n`` advance the plant to ``t_n``; the one at ``t_n`` is
-    evaluated too, so that what the drive measured and commanded there is reported."""
+    evaluated too, so that what the drive measured and commanded there is reported.
+
+    With a position loop ``outer`` the reference is ``motion`` (a
+    :class:`~prsa_ctrl.motion.MotionProfile`, m) added to the position measured at t = 0, read
+    at each position-loop sample (every ``outer.rate``-th controller sample)."""
     model = built.model
     p = model.plant
     ts = p.sample_time_s
@@ -967,12 +1280,29 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     cols = np.vstack([refs, load_a, slope_a, load_b, slope_b, frac, ripple,
                       np.tile(np.r_[gains, kff, ff][:, None], (1, n + 1))])
     q = 2.0 * math.pi / p.encoder_counts
+    if outer is not None:
+        # A position run starts at rest: the encoder reads the middle of a count, so that no
+        # rounding at a count edge flickers the reading (the plant does not depend on the angle).
+        from dataclasses import replace as _replace
+
+        x_mid = np.array(op.x, dtype=float)
+        x_mid[model.index("theta_nut")] = 0.5 * q
+        op = _replace(op, x=x_mid)
     theta0, w0 = op.x[model.index("theta_nut")], op.omega_nut
+    n_outer = len(outer.memory_names) if outer is not None else 0
+    if outer is not None:
+        p_meas0 = float(_measured_position(model, op.x, math.floor(theta0 / q) * q, outer))
+        p_ref, v_ref, a_ref = motion.at(t)
+        active = (np.arange(n + 1) % outer.rate == 0).astype(float)
+        cols = np.vstack([cols, p_meas0 + p_ref / outer.unit_m(p.lead_per_rad), v_ref, a_ref, active,
+                          np.tile(np.asarray(outer.gains)[:, None], (1, n + 1))])
     mem0 = [math.floor((theta0 - w0 * ts) / q) * q, integral0, 0.0, w0, op.torque,
-            *meas.initial(theta0, w0, op.torque), *np.zeros(len(_SAMPLED_OUTPUTS))]
+            *meas.initial(theta0, w0, op.torque), *(outer.initial() if outer is not None else []),
+            *np.zeros(len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer is not None else 0))]
     zm = np.concatenate([np.concatenate([op.x, e0]) / scale, mem0])
-    names = tuple(model.state_names) + ("energy",) * len(e0) + _MEM_HEAD + meas.memory_names
-    plain = _sample_law(built, settings, meas, split=False)
+    names = tuple(model.state_names) + ("energy",) * len(e0) + _MEM_HEAD + meas.memory_names \
+        + (outer.memory_names if outer is not None else ())
+    plain = _sample_law(built, settings, meas, split=False, outer=outer)
     splits = np.flatnonzero(frac > 0)
     per_chunk = max(1, int(round(CHUNK_S / ts)))
     out = []
@@ -980,7 +1310,7 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     while k0 <= n:
         budget.check(k0 * ts, names, zm[:nz] * scale)
         if frac[k0] > 0:
-            k1, law = k0 + 1, _sample_law(built, settings, meas, split=True)
+            k1, law = k0 + 1, _sample_law(built, settings, meas, split=True, outer=outer)
         else:
             later = splits[splits > k0]
             k1 = min(k0 + per_chunk, n + 1, int(later[0]) if later.size else n + 1)
@@ -995,10 +1325,11 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     traj = np.hstack(out)
     plant_x = np.hstack([np.concatenate([op.x, e0])[:, None], traj[:nz, :n] * scale[:, None]])
     mem = np.hstack([np.asarray(mem0, float)[:, None], traj[nz:, :n]])
-    ctrl = np.vstack([mem[1:3], mem[5 : 5 + n_meas]])
-    extra = traj[nz + len(_MEM_HEAD) + n_meas :, :]
+    ctrl = np.vstack([mem[1:3], mem[5 : 5 + n_meas + n_outer]])
+    extra = traj[nz + len(_MEM_HEAD) + n_meas + n_outer :, :]
     xs = np.vstack([plant_x[:nx], ctrl, plant_x[nx:]])
-    state_labels = tuple(model.state_names) + _SAMPLED_STATES + tuple(meas.memory_names)
+    state_labels = tuple(model.state_names) + _SAMPLED_STATES + tuple(meas.memory_names) \
+        + (tuple(outer.memory_names) if outer is not None else ())
     return t, xs, extra, refs, _values_at(ld, t), state_labels, events
 
 
@@ -1030,3 +1361,46 @@ def energy_balance(result) -> dict[str, float]:
         "residual_j": residual,
         "relative_residual": abs(residual) / scale,
     }
+
+
+def fixed_step_error(plant: Plant, settings: SimSettings | None = None, reference: SimSettings | None = None,
+                     **run_kwargs: Any) -> dict[str, float]:
+    """Measured nut-speed error of a run with ``settings`` (default the fixed-step
+    ``SimSettings(integrator="radau")``) against the same run with a tight CVODES reference
+    (default rtol = atol = 1e-10).
+
+    Parameters
+    ----------
+    plant : Plant
+    settings, reference : SimSettings, optional
+    **run_kwargs
+        :func:`run`'s other keyword arguments (the scenario: setpoint, load, controller, ...).
+
+    Returns
+    -------
+    dict
+        ``max_error_rad_s`` (largest nut-speed difference, rad/s), ``max_deviation_rad_s``
+        (largest deviation of the reference's nut speed from its start, rad/s, e.g. the
+        peak drop of a load step) and ``relative`` (their ratio: compare it with a scene's
+        ``accuracy``).
+    """
+    settings = SimSettings(integrator="radau") if settings is None else settings
+    reference = SimSettings(rtol=1e-10, atol=1e-10) if reference is None else reference
+    w_ref = run(plant, settings=reference, **run_kwargs).output("nut_speed")
+    w = run(plant, settings=settings, **run_kwargs).output("nut_speed")
+    err = float(np.max(np.abs(w - w_ref)))
+    dev = float(np.max(np.abs(w_ref - w_ref[0])))
+    return {"max_error_rad_s": err, "max_deviation_rad_s": dev, "relative": err / dev if dev > 0 else math.inf}
+
+
+def fast_settings(plant: Plant, accuracy: float, settings: SimSettings | None = None, margin: float = 0.5,
+                  **run_kwargs: Any) -> tuple[SimSettings | None, dict[str, float]]:
+    """The fixed-step settings when their measured error (:func:`fixed_step_error`, on the
+    scenario ``run_kwargs``) is inside ``margin * accuracy`` of the reference's deviation,
+    else ``None`` (keep the adaptive reference integrator). Returns the choice and the
+    measurement, which a report should quote."""
+    settings = SimSettings(integrator="radau") if settings is None else settings
+    if not (_is_number(accuracy) and 0 < accuracy < 1):
+        raise ValueError(f"accuracy = {accuracy!r}; expected a relative accuracy in (0, 1)")
+    measured = fixed_step_error(plant, settings, **run_kwargs)
+    return (settings if measured["relative"] <= margin * accuracy else None), measured

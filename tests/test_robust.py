@@ -106,3 +106,30 @@ def test_generic_bad_arguments(bad, match):
             tune_robust([])
         else:
             tune_robust([control.tf([1], [1, 1, 1])], aggregate=bad)
+
+
+@pytest.mark.parametrize("objective, aggregate", [("iae", "worst"), ("itae", "mean")])
+def test_mapped_per_loop_objective_is_the_expanded_one(monkeypatch, objective, aggregate):
+    """The robust NLP's objective from one per-loop function mapped over the scenarios (built
+    once) reaches the same design as the per-scenario expansion it replaces."""
+    import control
+
+    from prsa_ctrl import tuning as T
+
+    plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
+    kw = dict(objective=objective, ms_max=1.6, aggregate=aggregate, n_steps=480)  # with a two-rate tail
+    used = []
+    mapped = T.Tuner._mapped_objectives
+
+    def spy(self, g, eps):
+        out = mapped(self, g, eps)
+        used.append(out is not None)
+        return out
+
+    monkeypatch.setattr(T.Tuner, "_mapped_objectives", spy)
+    fast = tune_robust(plants, **kw)
+    assert used and all(used)
+    monkeypatch.setattr(T.Tuner, "_mapped_objectives", lambda self, g, eps: None)
+    slow = tune_robust(plants, **kw)
+    np.testing.assert_allclose(fast.pid.gains, slow.pid.gains, rtol=1e-6)
+    np.testing.assert_allclose(fast.per_loop, slow.per_loop, rtol=1e-6)
