@@ -1,6 +1,15 @@
-"""The toolkit's main job: tune the actuator's speed loop for a load-step scene, verify the
-best candidates and the baselines on the nonlinear simulator, and report predicted against
-verified metrics."""
+"""The toolkit's main job: tune the actuator's speed loop for a load-step or duty-cycle scene,
+verify the best candidates and the baselines on the nonlinear simulator, and report predicted
+against verified metrics.
+
+A duty-cycle scene (:attr:`Scene.is_profile`) is tuned on its actual profile: the sampled loop
+model takes the load as its mean over every controller sample and the setpoint as the
+controller reads it at every sample (:func:`prsa_ctrl.tuning.drive_loop`), and the
+verification runs the nonlinear simulator on the same profile. A 2-DOF setpoint weight
+``b != 1`` is verified as the equivalent 1-DOF loop behind the reference prefilter
+``F(z) = (b kp (1 - z^-1) + Ts ki z^-1) / (kp (1 - z^-1) + Ts ki z^-1)`` (identical while the
+torque is not saturated; the simulator's back-calculation anti-windup then acts on the
+prefiltered error)."""
 
 from __future__ import annotations
 
@@ -15,7 +24,7 @@ import numpy as np
 
 from .controller import PID
 from .linear import linear_core
-from .metrics import LoadStepMetrics, Margins, load_step_metrics
+from .metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics
 from .model import plant_model
 from .options import DERIVATIVE_FILTER_SAMPLES, RAD_S_PER_RPM
 from .paper import default_pid
@@ -24,7 +33,8 @@ from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
 from .simulation import SimSettings, run
 from .tuning import LoopModel, Tuner, continuous_loop, drive_loop
 
-__all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs"]
+__all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs", "duty_record",
+           "setpoint_prefilter"]
 
 #: Samples of steady state simulated before the step (the run starts in equilibrium).
 _PRE_SAMPLES = PRE_EVENT_SAMPLES
@@ -33,6 +43,9 @@ PREDICTION_TOLERANCE = 0.10
 #: A verified run that holds the torque at its limit for more than this fraction of the time
 #: after the step is flagged.
 SATURATION_FRACTION = 0.10
+#: A duty-cycle record whose mean error over its last 10 % exceeds this fraction of its peak
+#: error has not settled after the last change of the profile (flagged).
+DUTY_SETTLE_BAND = 0.05
 
 
 @dataclass
@@ -180,6 +193,18 @@ def actuator_loops(plant: Plant, scene: Scene, estimator: str | None = None) -> 
     model = plant_model(plant, fidelity)
     i_speed = model.output_names.index("nut_speed")
     i_torque = model.output_names.index("motor_torque")
+    if scene.is_profile:
+        loops = []
+        for case in scene.cases:
+            rec = duty_record(plant, scene, case)
+            a, b, c, _, _ = linear_core(plant, rec["w_lin"], rec["f_lin"], fidelity)
+            loops.append(drive_loop(
+                a, b, c[i_speed], model.index("theta_nut"), ts=plant.sample_time_s, speed_filter=plant.speed_filter_s,
+                tf=_tf_default(plant), horizon=scene.duration, name=case,
+                outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
+                load_sequence=rec["load_sequence"], setpoint_sequence=rec["setpoint_sequence"],
+                setpoint_weight=scene.setpoint_weight))
+        return loops
     horizon = scene.duration - scene.step_time
     loops = []
     for f1 in scene.final_loads:
@@ -227,7 +252,111 @@ def actuator_loops(plant: Plant, scene: Scene, estimator: str | None = None) -> 
 
 
 def _aggregate(values: list[float], scene: Scene) -> float:
-    return float(max(values)) if scene.aggregate == "worst" else float(np.sum(values))
+    if scene.aggregate == "worst":
+        return float(max(values))
+    if scene.is_profile and scene.goal == "mix":
+        return float((1.0 - scene.setpoint_share) * values[0] + scene.setpoint_share * values[1])
+    return float(np.sum(values))
+
+
+def _n_samples(plant: Plant, scene: Scene) -> int:
+    return max(10, int(round(scene.duration / plant.sample_time_s)))
+
+
+def duty_record(plant: Plant, scene: Scene, case: str) -> dict:
+    """One record of a duty-cycle scene, as the loop model and the verification see it.
+
+    Parameters
+    ----------
+    plant : Plant
+    scene : Scene
+        A duty-cycle scene (``scene.is_profile``).
+    case : {"load profile", "setpoint profile"}
+        One of ``scene.cases``.
+
+    Returns
+    -------
+    dict
+        ``load`` and ``setpoint`` (simulator profiles, N and rad/s), ``load_sequence`` (mean
+        load deviation over each controller sample, N, or None), ``setpoint_sequence``
+        (setpoint deviation the controller reads at each sample, rad/s, or None), ``t``
+        (sample times, s), ``setpoint_at`` (setpoint at them, rad/s), ``load_steps`` ((time s,
+        signed size N) of each load step), ``breaks`` (every change, s) and the linearisation
+        point ``w_lin`` (rad/s), ``f_lin`` (N): the middle of the profile's range.
+    """
+    from .simulation import PiecewiseLinear, _normalise_profile
+
+    ts = plant.sample_time_s
+    n = _n_samples(plant, scene)
+    t = ts * np.arange(n + 1)
+    w0, f0 = scene.setpoint_rad_s, scene.initial_load
+    out: dict = {"t": t, "load_sequence": None, "setpoint_sequence": None, "load_steps": [], "breaks": [],
+                 "load": f0, "setpoint": w0, "w_lin": w0, "f_lin": f0}
+    if case == "load profile":
+        pts = scene.load_profile
+        prof = _normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
+        # Exact mean over each sample interval: integral of the piecewise-linear load.
+        edges = ts * np.arange(n + 1)
+        seg_len = np.append(np.diff(prof.t), np.inf)
+        lens = np.clip(edges[:, None] - prof.t[None, :], 0.0, seg_len[None, :])
+        integral = lens @ prof.v + (lens * lens) @ prof.s / 2.0
+        out["load_sequence"] = np.diff(integral) / ts - f0
+        out["load"] = PiecewiseLinear(pts)
+        out["load_steps"] = [(float(tk), float(prof.v[i] - prof.at(tk - 1e-9)))
+                             for i, tk in enumerate(prof.t) if prof.jump[i]]
+        out["breaks"] = [float(x) for x in prof.t[1:]]
+        vals = [v for _, v in pts]
+        out["f_lin"] = 0.5 * (min(vals) + max(vals))
+        out["setpoint_at"] = np.full(n + 1, w0)
+    else:
+        pts = scene.setpoint_profile
+        prof = _normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
+        r = prof.at(t)
+        out["setpoint_sequence"] = r - w0
+        out["setpoint_sequence"][0] = 0.0
+        out["setpoint"] = PiecewiseLinear(pts)
+        out["breaks"] = [float(x) for x in prof.t[1:]]
+        vals = [v for _, v in pts]
+        out["w_lin"] = 0.5 * (min(vals) + max(vals))
+        out["setpoint_at"] = r
+    return out
+
+
+def setpoint_prefilter(r: np.ndarray, pid: PID, ts: float, b: float) -> np.ndarray:
+    """Reference prefilter that makes the 1-DOF sampled PI(D) act like the 2-DOF law
+    ``u = kp (b r - y) + I``, ``I += Ts ki (r - y)`` (derivative on the measurement):
+    ``F(z) = (b kp (1 - z^-1) + Ts ki z^-1) / (kp (1 - z^-1) + Ts ki z^-1)``, unity at DC.
+
+    Parameters
+    ----------
+    r : array, rad/s
+        Setpoint read at each sample (from a steady start, ``r[0]`` held before).
+    pid : PID
+    ts : float, s
+    b : float
+        Setpoint weight in [0, 1].
+
+    Returns
+    -------
+    array, rad/s
+        The prefiltered setpoint, sample by sample.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rf = setpoint_prefilter(np.r_[0.0, np.ones(400)], PID(0.1, 10.0), 2.5e-4, 0.5)
+    >>> float(rf[1]), round(float(rf[-1]), 3)
+    (0.5, 1.0)
+    """
+    r = np.asarray(r, float)
+    if b == 1.0 or pid.kp <= 0:
+        return r.copy()
+    kp, kit = pid.kp, ts * pid.ki
+    rf = np.empty_like(r)
+    rf[0] = r[0]
+    for k in range(1, r.size):
+        rf[k] = b * r[k] + ((kit - kp * b) * r[k - 1] - (kit - kp) * rf[k - 1]) / kp
+    return rf
 
 
 def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) -> None:
@@ -235,6 +364,19 @@ def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene)
     w0 = scene.setpoint_rad_s
     design.predicted, design.predicted_error = [], []
     design.predicted_h = loops[0].h
+    if scene.is_profile:
+        tau0 = _steady_torque(plant, scene, scene.initial_load)
+        design.predicted_start_speed = w0
+        for case, lp in zip(scene.cases, loops):
+            rec = duty_record(plant, scene, case)
+            tr = lp.trajectory(design.pid.gains)
+            design.predicted_error.append(tr["error"])
+            t = rec["t"][: lp.n_steps]
+            r = rec["setpoint_at"][: lp.n_steps]
+            design.predicted.append(profile_metrics(t, r - tr["error"], r, tau0 + tr["motor_torque"],
+                                                    plant.torque_limit, rec["load_steps"], rec["breaks"]))
+        design.objective_predicted = _aggregate([getattr(m, scene.objective) for m in design.predicted], scene)
+        return
     w_pre, tau0 = w0, _steady_torque(plant, scene, scene.initial_load)
     if design.pid.ki == 0:  # P-only: the loop settles below the setpoint before the step too
         from .simulation import _initial_state
@@ -293,17 +435,22 @@ def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
     if not design.tuner_status.startswith("optimal"):
         flags.append(f"the tuner did not converge ({design.tuner_status})")
     w0 = scene.setpoint_rad_s
-    for f1, m, (t, y) in zip(scene.final_loads, design.verified, design.verified_runs):
+    for case, m, (t, y) in zip(scene.cases, design.verified, design.verified_runs):
         w = y["nut_speed"]
         if w0 != 0 and np.any(np.sign(w) == -np.sign(w0)):
             ext = float(w.min() if w0 > 0 else w.max())
-            flags.append(f"step to {f1:g} N: the nut reverses (speed reaches {ext:.3g} rad/s at setpoint {w0:.4g})")
-        if not math.isfinite(m.recovery_time_s):
-            flags.append(f"step to {f1:g} N: the speed never recovers into the band")
+            flags.append(f"{case}: the nut reverses (speed reaches {ext:.3g} rad/s at setpoint {w0:.4g})")
+        if isinstance(m, ProfileMetrics):
+            if abs(m.final_error_rad_s) > DUTY_SETTLE_BAND * max(abs(m.peak_deviation_rad_s), 1e-300):
+                flags.append(f"{case}: the speed does not settle: the error at the end of the record is "
+                             f"{m.final_error_rad_s:.3g} rad/s, more than {100 * DUTY_SETTLE_BAND:g} % of the peak "
+                             f"{abs(m.peak_deviation_rad_s):.3g} rad/s")
+        elif not math.isfinite(m.recovery_time_s):
+            flags.append(f"{case}: the speed never recovers into the band")
         after = t >= scene.step_time
         sat = float(np.mean(np.abs(y["motor_torque"][after]) >= 0.999 * plant.torque_limit))
         if sat > SATURATION_FRACTION:
-            flags.append(f"step to {f1:g} N: the torque is at its limit for {100 * sat:.0f} % of the run")
+            flags.append(f"{case}: the torque is at its limit for {100 * sat:.0f} % of the run")
     p, v = design.objective_predicted, design.objective_verified
     limit = max(scene.accuracy, PREDICTION_TOLERANCE)
     if math.isfinite(p) and math.isfinite(v) and p != 0 and abs(v / p - 1) > limit:
@@ -335,6 +482,8 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0) -> Design:
     """
     scene, _ = choose_fidelity(scene)
     ts = plant.sample_time_s
+    if scene.is_profile:
+        return _verify_profile(design, plant, scene, seed)
     pre = min(scene.step_time, _PRE_SAMPLES * ts) if scene.discrete else min(scene.step_time, 1e-3)
     offset = scene.step_time - pre
     design.verified, design.verified_runs, design.estimation = [], [], []
@@ -361,6 +510,34 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0) -> Design:
             load_step_metrics(t, y["nut_speed"], scene.setpoint_rad_s, scene.step_time, y["motor_torque"],
                               plant.torque_limit, direction=1 if f1 >= scene.initial_load else -1)
         )
+        design.verified_runs.append((t, y))
+    design.objective_verified = _aggregate([getattr(m, scene.objective) for m in design.verified], scene)
+    return design
+
+
+def _verify_profile(design: Design, plant: Plant, scene: Scene, seed: int) -> Design:
+    """:func:`verify` on a duty cycle: one sampled nonlinear run per record, over the whole
+    record, with the scene's profiles (a setpoint weight ``b != 1`` through
+    :func:`setpoint_prefilter`)."""
+    from .simulation import PiecewiseLinear
+
+    ts = plant.sample_time_s
+    design.verified, design.verified_runs, design.estimation = [], [], []
+    for case in scene.cases:
+        rec = duty_record(plant, scene, case)
+        setpoint = rec["setpoint"]
+        if case == "setpoint profile" and scene.setpoint_weight != 1.0:
+            rf = setpoint_prefilter(rec["setpoint_at"], design.pid, ts, scene.setpoint_weight)
+            n_pts = int(np.searchsorted(rec["t"], scene.duration - 1e-9 * ts))  # points before the end
+            setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
+        r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=scene.duration,
+                controller=design.pid, fidelity=scene.fidelity, settings=verify_settings(scene), seed=seed)
+        t = np.asarray(r.time)
+        y = dict(zip(r.output_labels, np.asarray(r.outputs)))
+        ref = rec["setpoint_at"][: t.size]
+        y["setpoint"] = ref
+        design.verified.append(profile_metrics(t, y["nut_speed"], ref, y["motor_torque"], plant.torque_limit,
+                                               rec["load_steps"], rec["breaks"]))
         design.verified_runs.append((t, y))
     design.objective_verified = _aggregate([getattr(m, scene.objective) for m in design.verified], scene)
     return design
@@ -489,6 +666,8 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
 
     t1 = time.perf_counter()
     common = dict(objective=scene.objective, controller=scene.controller, worst_case=scene.aggregate == "worst")
+    if scene.is_profile and scene.goal == "mix":
+        common["weights"] = [1.0 - scene.setpoint_share, scene.setpoint_share]
     tuner = Tuner(loops, **common)  # one scan grid and NLP for every Ms level
     runs: list[dict] = []
 
@@ -575,7 +754,12 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
             warnings_out.append(f"{d.name}: {f}")
     for c in comparisons:
         if not c["beaten"]:
-            warnings_out.append(f"baseline {c['baseline']!r} is not beaten at equal or better Ms")
+            mt_note = ""
+            b_mt = next((b.margins.mt for b in baselines if b.name == c["baseline"]), math.nan)
+            if scene.mt_max is not None and b_mt > scene.mt_max:
+                mt_note = (f" (the comparison design also keeps Mt <= {scene.mt_max:g}; the baseline reaches "
+                           f"Mt {b_mt:.3g})")
+            warnings_out.append(f"baseline {c['baseline']!r} is not beaten at equal or better Ms{mt_note}")
     return ActuatorTuning(
         plant=plant,
         scene=scene,

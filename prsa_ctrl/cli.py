@@ -1,4 +1,4 @@
-"""``prsa-tune`` (tune the speed loop for a load step, verify, compare with baselines) and
+"""``prsa-tune`` (tune the speed loop for a load step or a duty cycle, verify, compare with baselines) and
 ``prsa-plot`` (figures and margins for given gains).
 
 Exit codes, the same for both tools:
@@ -166,7 +166,8 @@ def _common_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plant", default=None, type=_path_text("--plant"), metavar="NAME|PATH",
                    help="built-in plant name or a plant .toml file (default: paper-iprsm)")
     p.add_argument("--scene", default=None, type=_path_text("--scene"), metavar="NAME|PATH",
-                   help="built-in scene name or a scene .toml file (default: paper-load-step)")
+                   help="built-in scene name or a scene .toml file (default: paper-load-step); duty-cycle "
+                        "scenes (load/setpoint profiles, CSV traces): duty-ramp, duty-trace")
     p.add_argument("--load-step", type=_load_step_flag, metavar="N0:N1[,N2...]",
                    help="initial and final axial load(s), N, compressive >= 0; at most what the motor can hold "
                         "at the setpoint (default: the scene's, 500:1500)")
@@ -430,8 +431,46 @@ def _scene_header(sc, overrides: Sequence[str] = ()) -> str:
     loads = ", ".join(f"{f:g}" for f in sc.final_loads)
     bounds = f"Ms <= {sc.ms_max:g}" + (f", Mt <= {sc.mt_max:g}" if sc.mt_max is not None else "")
     name = f"scene {sc.name}" + (f" with {' '.join(overrides)}" if overrides else "")
+    if sc.is_profile:
+        goal = {"load": "load rejection", "setpoint": "setpoint tracking",
+                "mix": f"mix, setpoint share {sc.setpoint_share:g}"}[sc.goal]
+        b = f", setpoint weight b = {sc.setpoint_weight:g}" if sc.setpoint_profile is not None else ""
+        return (f"{name}: duty cycle ({sc.profile_source}) from {sc.setpoint_rpm:g} rpm, {sc.initial_load:g} N, "
+                f"record to {sc.duration:g} s; {sc.objective.upper()} over the record ({goal}{b}), "
+                f"{sc.controller.upper()}, {bounds}")
     return (f"{name}: {sc.setpoint_rpm:g} rpm, {sc.initial_load:g} N -> {loads} N at {sc.step_time:g} s, "
             f"record to {sc.duration:g} s; {sc.objective.upper()}, {sc.controller.upper()}, {bounds}")
+
+
+def _diff_text(p, v) -> str:
+    ok = isinstance(v, float) and not isinstance(v, bool) and v and math.isfinite(v) and math.isfinite(p)
+    return f"{(p / v - 1) * 100:+.1f} %" if ok else "-"
+
+
+def _profile_tables(sc, b) -> list[str]:
+    """Predicted against verified metrics of each duty-cycle record, then its load steps."""
+    out = []
+    fields = [("IAE over the record (rad)", "iae"), ("ITAE (rad s)", "itae"), ("ISE (rad^2/s)", "ise"),
+              ("peak error (rad/s)", "peak_deviation_rad_s"), ("peak error time (s)", "peak_time_s"),
+              ("RMS error (rad/s)", "rms_error_rad_s"), ("final error (rad/s)", "final_error_rad_s"),
+              ("peak torque (N m)", "peak_torque_n_m"), ("time at torque limit", "saturated_fraction")]
+    for k, case in enumerate(sc.cases):
+        pm, vm = b.predicted[k], b.verified[k]
+        rows = [[lab, getattr(pm, attr), getattr(vm, attr),
+                 "-" if attr in ("final_error_rad_s", "saturated_fraction") else _diff_text(getattr(pm, attr), getattr(vm, attr))]
+                for lab, attr in fields]
+        out.append(f"Duty cycle, {case} (error = setpoint - speed over the whole record)")
+        out.append(_table(["metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows))
+        if vm.steps:
+            rows = []
+            for (t_s, ms_v), ms_p in zip(zip(vm.step_times_s, vm.steps), pm.steps):
+                rows.append([f"{t_s:g} s", "up" if ms_v.direction > 0 else "down", ms_p.peak_drop_rad_s,
+                             ms_v.peak_drop_rad_s, ms_v.recovery_time_s, ms_v.iae])
+            out.append("Load steps in the profile (verified recovery within 5 % of the step's peak, until the next change)")
+            out.append(_table(["step at", "load", "predicted peak (rad/s)", "verified peak (rad/s)",
+                               "recovery (s)", "IAE to next change (rad)"], rows))
+        out.append("")
+    return out
 
 
 def format_report(rep, overrides: Sequence[str] = ()) -> str:
@@ -469,6 +508,8 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         ("peak torque (N m)", "peak_torque_n_m"),
         ("torque saturated", "saturated"),
     ]
+    if sc.is_profile:
+        out.extend(_profile_tables(sc, b))
     for k, f1 in enumerate(sc.final_loads):
         pm, vm = b.predicted[k], b.verified[k]
         rows = []
@@ -579,6 +620,19 @@ def _load_and_override(args, run: _Run, plot: bool = False):
     typed: dict[str, str] = {}
     overrides: list[str] = []
     raw = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in run.argv if a.startswith("--") and "=" in a}
+    if scene.is_profile:
+        for flag in ("--robust", "--monte-carlo", "--scheduler"):
+            v = getattr(args, flag[2:].replace("-", "_"), None)
+            if v:
+                raise _UsageError(f"{flag}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
+                                  "load-step scene (the robust and Monte-Carlo studies run load steps)")
+        for flag, v in (("--load-step", args.load_step), ("--step-time", getattr(args, "step_time", None)),
+                        ("--setpoint-rpm", args.setpoint_rpm if scene.setpoint_profile is not None else None),
+                        ("--estimator", getattr(args, "estimator", None) if getattr(args, "estimator", None) != "none" else None)):
+            if v is not None:
+                raise _UsageError(f"{flag} {raw.get(flag, v)!r}: scene {scene.name} is a duty cycle ({scene.profile_source}); "
+                                  f"expected its profile to set the {'load' if flag != '--setpoint-rpm' else 'setpoint'} "
+                                  "and events (edit the scene file to change them)")
     if args.load_step is not None:
         initial, finals = args.load_step
         if plot:
@@ -615,7 +669,7 @@ def _load_and_override(args, run: _Run, plot: bool = False):
 def _cross_check_message(exc: SceneError, typed: dict[str, str], scene, changes: dict) -> str:
     """A scene field rejected after overrides: say it with the flags as typed."""
     msg = str(exc)
-    if msg.startswith("command line: duration") and ("duration" in typed or "step_time" in typed):
+    if msg.startswith("command line: duration") and ("duration" in typed or "step_time" in typed) and not scene.is_profile:
         who = " and ".join(typed[k] for k in ("step_time", "duration") if k in typed)
         st = changes.get("step_time", scene.step_time)
         du = changes.get("duration", scene.duration)
@@ -713,6 +767,12 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         build_parser().print_help()
         return EXIT_OK
     args = build_parser().parse_args(argv)
+    from .cascade import is_move_scene  # issue 12: a scene with a [move] section tunes the cascade
+
+    if is_move_scene(args.scene):
+        from .cascade import main_move
+
+        return main_move(run, args)
     notes: list[warnings.WarningMessage] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -747,8 +807,9 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         notes.extend(caught)
     run.check()
     native: list[str] = []
-    what = f"tuning {plant.name} at {scene.setpoint_rpm:g} rpm, {scene.initial_load:g} N -> " \
-           f"{', '.join(f'{f:g}' for f in scene.final_loads)} N"
+    what = (f"tuning {plant.name} on the {scene.name} duty cycle" if scene.is_profile else
+            f"tuning {plant.name} at {scene.setpoint_rpm:g} rpm, {scene.initial_load:g} N -> "
+            f"{', '.join(f'{f:g}' for f in scene.final_loads)} N")
     _progress(run, args.verbose, f"{what}: linearise, tune, verify ...")
     try:
         with warnings.catch_warnings(record=True) as caught, _native_output(run, native):

@@ -13,11 +13,14 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from typing import Sequence
 
 __all__ = [
     "LoadStepMetrics",
+    "ProfileMetrics",
     "Margins",
     "load_step_metrics",
+    "profile_metrics",
     "margins_from_response",
     "DEFAULT_BAND",
 ]
@@ -186,6 +189,144 @@ def load_step_metrics(
         saturated=sat,
         peak_deviation_rad_s=-direction * drop,
         direction=direction,
+    )
+
+
+@dataclass(frozen=True)
+class ProfileMetrics:
+    """Tracking metrics of a duty-cycle record (load and/or setpoint profile).
+
+    The error is ``e = setpoint - speed`` at every sample of the whole record (the setpoint
+    as the scene's profile gives it at that time), so the integrals cover every event of the
+    duty cycle; time for ITAE runs from the start of the record.
+
+    Attributes
+    ----------
+    ie, iae, itae, ise : float
+        Integrals of e, |e|, t|e| and e^2 over the record (rad, rad, rad s, rad^2/s).
+    peak_deviation_rad_s : float
+        The error of largest magnitude, signed (positive: the nut is slower than the
+        setpoint), rad/s.
+    peak_time_s : float
+        When it happens, s from the start of the record.
+    rms_error_rad_s : float
+        Root-mean-square error over the record, rad/s.
+    final_error_rad_s : float
+        Mean error over the last 10 % of the record, rad/s.
+    peak_torque_n_m : float
+        Largest |motor torque|, N m (``nan`` without a torque record).
+    saturated_fraction : float
+        Fraction of the samples with the torque at its limit (within 0.1 %).
+    saturated : bool
+        Whether the torque reached the limit.
+    steps : tuple of LoadStepMetrics
+        The load-step metrics of every load step of the profile, each over the window from
+        the step to the next change of the profile (or the end of the record).
+    step_times_s : tuple of float
+        The times of those steps, s.
+    """
+
+    ie: float
+    iae: float
+    itae: float
+    ise: float
+    peak_deviation_rad_s: float
+    peak_time_s: float
+    rms_error_rad_s: float
+    final_error_rad_s: float
+    peak_torque_n_m: float
+    saturated_fraction: float
+    saturated: bool
+    steps: tuple = ()
+    step_times_s: tuple = ()
+
+    @property
+    def peak_drop_rad_s(self) -> float:
+        """``|peak_deviation_rad_s|`` (the size of the largest error), rad/s."""
+        return abs(self.peak_deviation_rad_s)
+
+    def as_dict(self) -> dict:
+        """JSON-friendly dict (``inf``/``nan`` become ``None``; steps as dicts)."""
+        out: dict = {}
+        for k in ("ie", "iae", "itae", "ise", "peak_deviation_rad_s", "peak_time_s", "rms_error_rad_s",
+                  "final_error_rad_s", "peak_torque_n_m", "saturated_fraction", "saturated"):
+            v = getattr(self, k)
+            out[k] = None if isinstance(v, float) and not math.isfinite(v) else v
+        out["steps"] = [dict(m.as_dict(), time_s=t) for m, t in zip(self.steps, self.step_times_s)]
+        return out
+
+
+def profile_metrics(
+    time: ArrayLike,
+    speed: ArrayLike,
+    setpoint: ArrayLike,
+    torque: ArrayLike | None = None,
+    torque_limit: float | None = None,
+    load_steps: Sequence[tuple[float, float]] = (),
+    breaks: Sequence[float] = (),
+    band: float = DEFAULT_BAND,
+) -> ProfileMetrics:
+    """Metrics of a speed record under a duty cycle.
+
+    Parameters
+    ----------
+    time : array, s
+    speed : array, rad/s
+    setpoint : array, rad/s
+        The setpoint at each time (a profile evaluated at ``time``), or a constant.
+    torque : array, N m, optional
+    torque_limit : float, N m, optional
+    load_steps : sequence of (time s, signed size N)
+        The load steps of the profile; each gets :func:`load_step_metrics` on its window.
+    breaks : sequence of float, s
+        Every change of the profiles (steps and ramp kinks): a step's window ends at the next.
+    band : float
+        Recovery band of the step metrics.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.linspace(0.0, 1.0, 1001)
+    >>> m = profile_metrics(t, np.where(t < 0.5, 10.0, 9.0), 10.0)
+    >>> round(m.iae, 3), m.peak_deviation_rad_s, round(m.final_error_rad_s, 3)
+    (0.5, 1.0, 1.0)
+    """
+    t = np.asarray(time, dtype=float)
+    y = np.asarray(speed, dtype=float)
+    r = np.broadcast_to(np.asarray(setpoint, dtype=float), y.shape)
+    if t.ndim != 1 or t.shape != y.shape or t.size < 3:
+        raise ValueError(f"time and speed must be 1-D arrays of equal length >= 3; got {t.shape} and {y.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(y)) and np.all(np.isfinite(r))):
+        raise ValueError("time, speed and setpoint must be finite")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError("time must increase strictly")
+    e = r - y
+    tt = t - t[0]
+    i_pk = int(np.argmax(np.abs(e)))
+    tail = tt >= 0.9 * tt[-1]
+    if torque is not None:
+        tq = np.abs(np.asarray(torque, dtype=float))
+        peak_t = float(tq.max())
+        frac = float(np.mean(tq >= 0.999 * torque_limit)) if torque_limit is not None else 0.0
+    else:
+        peak_t, frac = math.nan, 0.0
+    steps, times = [], []
+    cuts = sorted(float(b) for b in breaks)
+    for t_s, size in load_steps:
+        nxt = next((b for b in cuts if b > t_s + 1e-12), math.inf)
+        win = (t >= t_s - (t[1] - t[0]) * 1.5) & (t < nxt)
+        if np.sum(t[win] >= t_s) < 3:
+            continue
+        steps.append(load_step_metrics(t[win], y[win], float(r[win][-1]), t_s,
+                                       None if torque is None else np.asarray(torque, float)[win], torque_limit,
+                                       band=band, direction=1 if size > 0 else -1))
+        times.append(float(t_s))
+    return ProfileMetrics(
+        ie=_trapz(e, t), iae=_trapz(np.abs(e), t), itae=_trapz(tt * np.abs(e), t), ise=_trapz(e * e, t),
+        peak_deviation_rad_s=float(e[i_pk]), peak_time_s=float(tt[i_pk]),
+        rms_error_rad_s=float(np.sqrt(np.mean(e * e))), final_error_rad_s=float(e[tail].mean()),
+        peak_torque_n_m=peak_t, saturated_fraction=frac, saturated=frac > 0,
+        steps=tuple(steps), step_times_s=tuple(times),
     )
 
 

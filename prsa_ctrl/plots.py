@@ -26,6 +26,8 @@ __all__ = [
     "sensitivity_plot",
     "load_step_plot",
     "load_step_comparison",
+    "duty_cycle_plot",
+    "duty_cycle_comparison",
     "baseline_pairs_plot",
     "binding_level",
     "tuning_landscape",
@@ -337,6 +339,89 @@ def load_step_plot(design, scene, k: int | None = 0, ax=None, window: float | No
     return fig, axs
 
 
+def _duty_input(scene, case: str, t: np.ndarray) -> tuple[np.ndarray, str]:
+    """The profile a duty-cycle record follows, at times ``t``: load (N) or setpoint (rpm)."""
+    from .simulation import PiecewiseLinear, _normalise_profile
+
+    if case == "load profile":
+        prof = _normalise_profile(PiecewiseLinear(scene.load_profile), float(t[-1]) + 1.0, "load", "N")
+        return prof.at(t), "axial load (N)"
+    prof = _normalise_profile(PiecewiseLinear(scene.setpoint_profile), float(t[-1]) + 1.0, "setpoint", "rad/s")
+    return prof.at(t) * 30.0 / math.pi, "setpoint (rpm)"
+
+
+def duty_cycle_plot(design, scene, k: int = 0, torque_limit: float | None = None):
+    """A duty-cycle record: the profile (load or setpoint) on top, the speed error ``setpoint -
+    speed`` verified (nonlinear) and predicted (linear) in the middle, the motor torque below.
+
+    Parameters
+    ----------
+    design : Design
+        Verified and predicted (:func:`prsa_ctrl.autotune.verify`, ``_predict``).
+    scene : Scene
+        A duty-cycle scene (``scene.is_profile``).
+    k : int
+        Record to show (index into ``scene.cases``).
+    torque_limit : float, N m, optional
+        Drawn in the torque panel when within the plotted range.
+
+    Returns
+    -------
+    fig, [profile axis, error axis, torque axis]
+    """
+    case = scene.cases[k]
+    fig, axs = plt.subplots(3, 1, sharex=True, figsize=(7.0, 6.5), height_ratios=[1.0, 2.0, 1.2],
+                            layout="constrained")
+    t, y = design.verified_runs[k]
+    prof, label = _duty_input(scene, case, t)
+    axs[0].plot(t, prof, color="k", lw=1.0)
+    axs[0].set_ylabel(label)
+    err = y["setpoint"] - y["nut_speed"]
+    m = design.verified[k]
+    obj = scene.objective
+    axs[1].plot(t, err, color="C0", lw=1.0,
+                label=f"verified (nonlinear): {obj.upper()} {_objective_of(m, obj):.3g}{_OBJ_UNITS.get(obj, '')}")
+    if design.predicted_error:
+        e_p = design.predicted_error[k]
+        axs[1].plot(t[: e_p.size], e_p, "--", color="C1", lw=1.0,
+                    label=f"predicted (linear): {obj.upper()} {_objective_of(design.predicted[k], obj):.3g}"
+                          f"{_OBJ_UNITS.get(obj, '')}")
+    axs[1].axhline(0.0, color="k", lw=0.5)
+    axs[1].plot([m.peak_time_s + t[0]], [m.peak_deviation_rad_s], "o", color="C3", ms=4,
+                label=f"peak error {m.peak_deviation_rad_s:.3g} rad/s")
+    axs[1].set_ylabel("speed error (rad/s)")
+    axs[1].legend(fontsize=7, loc="best")
+    axs[2].plot(t, y["motor_torque"], color="C2", lw=1.0)
+    if torque_limit is not None and np.max(np.abs(y["motor_torque"])) > 0.8 * torque_limit:
+        axs[2].axhline(torque_limit, color="C3", ls="--", lw=0.8)
+    axs[2].set_ylabel("motor torque (N m)")
+    axs[2].set_xlabel("time (s)")
+    axs[2].set_xlim(float(t[0]), float(t[-1]))
+    for a in axs:
+        a.grid(True, alpha=0.3)
+    axs[0].set_title(f"{design.name}: {case} ({scene.name}), Ms {design.margins.ms:.2f}"
+                     + (", FLAGGED" if getattr(design, "flags", None) else ""), fontsize=10)
+    return fig, list(axs)
+
+
+def duty_cycle_comparison(designs: Sequence, scene, k: int = 0, ax=None):
+    """Verified speed errors of several designs over a duty-cycle record, each labelled with
+    its Ms and the scene's objective."""
+    fig, (a,) = _axes(ax)
+    for i, d in enumerate(designs):
+        t, y = d.verified_runs[k]
+        a.plot(t, y["setpoint"] - y["nut_speed"], color=_COLORS[i % len(_COLORS)], lw=0.9,
+               label=_design_label(d, scene.objective, k))
+    a.axhline(0.0, color="k", lw=0.5)
+    a.set_xlabel("time (s)")
+    a.set_ylabel("speed error (rad/s)")
+    a.set_xlim(float(designs[0].verified_runs[k][0][0]), float(designs[0].verified_runs[k][0][-1]))
+    a.set_title(f"{scene.cases[k].capitalize()} of {scene.name} (verified, nonlinear)")
+    a.grid(True, alpha=0.3)
+    a.legend(fontsize=7, loc="best")
+    return fig, [a]
+
+
 def load_step_comparison(designs: Sequence, scene, k: int = 0, ax=None, window: float | None = None):
     """Verified load-step responses of several designs, each labelled with its Ms and the
     scene's objective (draw designs of equal Ms together: see :func:`baseline_pairs_plot`)."""
@@ -586,6 +671,8 @@ def _comparison_pairs(report) -> list[tuple]:
 
 
 def _mid_load_text(scene, k: int) -> str:
+    if getattr(scene, "is_profile", False):
+        return f"{scene.setpoint_rad_s * 30.0 / math.pi:.0f} rpm, {scene.initial_load:g} N (start of the {scene.name} duty cycle)"
     f0, f1 = scene.initial_load, scene.final_loads[k]
     return f"{scene.setpoint_rad_s * 30.0 / math.pi:.0f} rpm, {0.5 * (f0 + f1):g} N (mid load of {f0:g} -> {f1:g} N)"
 
@@ -597,6 +684,8 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
     ``load_step`` (every load level, binding one highlighted, torque below), ``baselines`` (each
     baseline beside the tuned design at equal or lower Ms), ``landscape`` (objective over
     kp-ki with the Ms and, if set, Mt boundaries) and, for compliant models, ``contact_forces``.
+    A duty-cycle scene gets ``duty_cycle`` (``duty_cycle_load`` / ``duty_cycle_setpoint`` for a
+    mix) instead of ``load_step``, and ``baselines`` as the verified errors over its record.
     """
     from .autotune import _linear_fidelity
     from .linear import linearize
@@ -616,17 +705,23 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
                                            sampled=sc.discrete), sample_time_s=ts)[0],
         "loop_bode": bode_loop(lp.omega, L, margins, operating_point=_mid_load_text(sc, kb), sample_time_s=ts)[0],
         "sensitivity": sensitivity_plot(lp.omega, L, sc.ms_max, mt_max=sc.mt_max, sample_time_s=ts)[0],
-        "load_step": load_step_plot(best, sc, k=None if len(sc.final_loads) > 1 else 0,
-                                    torque_limit=plant.torque_limit)[0],
         "landscape": tuning_landscape(report.loops, sc.objective, sc.ms_max, best.pid,
                                       [(b.name, b.pid) for b in report.baselines], mt_max=sc.mt_max,
                                       aggregate=sc.aggregate)[0],
     }
     figs["sensitivity"].axes[0].set_title(f"S and T at {_mid_load_text(sc, kb)}", fontsize=10)
-    pairs = _comparison_pairs(report)
-    figs["baselines"] = (baseline_pairs_plot(pairs, sc)[0] if pairs
-                         else load_step_comparison([best, *report.baselines], sc, k=kb)[0])
-    if sc.fidelity in ("compliant", "multi-roller"):
+    if sc.is_profile:
+        for k, case in enumerate(sc.cases):
+            name = "duty_cycle" + ("" if len(sc.cases) == 1 else "_" + case.split()[0])
+            figs[name] = duty_cycle_plot(best, sc, k, torque_limit=plant.torque_limit)[0]
+        figs["baselines"] = duty_cycle_comparison([best, *report.baselines], sc, k=kb)[0]
+    else:
+        figs["load_step"] = load_step_plot(best, sc, k=None if len(sc.final_loads) > 1 else 0,
+                                           torque_limit=plant.torque_limit)[0]
+        pairs = _comparison_pairs(report)
+        figs["baselines"] = (baseline_pairs_plot(pairs, sc)[0] if pairs
+                             else load_step_comparison([best, *report.baselines], sc, k=kb)[0])
+    if sc.fidelity in ("compliant", "multi-roller") and not sc.is_profile:
         # Contact modes ring at kHz: a continuous run on a fine grid shows them unaliased.
         from .simulation import simulate
 
@@ -698,8 +793,13 @@ def design_figures(plant, scene, pid, stability: str | None = None, loops=None) 
         return figs
     _predict(design, loops, plant, scene)
     verify(design, plant, scene)
-    figs["load_step"] = load_step_plot(design, scene, k=None if len(scene.final_loads) > 1 else 0,
-                                       torque_limit=plant.torque_limit)[0]
+    if scene.is_profile:
+        for k, case in enumerate(scene.cases):
+            name = "duty_cycle" + ("" if len(scene.cases) == 1 else "_" + case.split()[0])
+            figs[name] = duty_cycle_plot(design, scene, k, torque_limit=plant.torque_limit)[0]
+    else:
+        figs["load_step"] = load_step_plot(design, scene, k=None if len(scene.final_loads) > 1 else 0,
+                                           torque_limit=plant.torque_limit)[0]
     # Setpoint step of +10 %: nonlinear run and the linear closed loop's prediction.
     w0, dw, t_step, span = scene.setpoint_rad_s, 0.1 * scene.setpoint_rad_s, 0.005, 0.1
     r = simulate(plant, setpoint=[(0.0, w0), (t_step, w0 + dw)], load=scene.initial_load, duration=t_step + span,

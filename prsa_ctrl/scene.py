@@ -1,5 +1,33 @@
-"""Tuning scenes (``tuning/*.toml``): the operating point, the load step(s), the objective,
-the robustness limits and what the verification must deliver."""
+"""Tuning scenes (``tuning/*.toml``): the operating point, the load step(s) or a duty cycle,
+the objective, the robustness limits and what the verification must deliver.
+
+Duty cycles
+-----------
+Instead of ``initial_load_n`` / ``final_loads_n`` / ``step_time_s`` a scene may describe its
+load, and its setpoint, as a profile over the record (``[operating]``):
+
+``load_profile_n = [[t_s, F_n], ...]``
+    Piecewise linear. The first row is at ``t_s = 0`` (the steady state the record starts
+    in); times increase strictly. A row ``[t_s, F_n]`` ramps linearly from the previous
+    row's value to ``F_n`` at ``t_s``; a row ``[t_s, F_n, "step"]`` holds the previous value
+    until ``t_s`` and steps to ``F_n`` there. After the last row the value is held.
+``load_trace_csv = "file.csv"``
+    A measured force trace, path relative to the scene file: a header row with the columns
+    ``time_s`` and ``axial_load_n`` (lines starting with ``#`` before it are comments), then
+    one row per sample, times strictly increasing from 0, every value finite; it is used as
+    a piecewise-linear profile. Errors name the file's line.
+``setpoint_profile_rpm`` / ``setpoint_trace_csv``
+    The same for the nut-speed setpoint (rpm; CSV column ``setpoint_rpm``). A sampled drive
+    reads it at each controller sample.
+
+``[tuning] goal`` says what the tuner optimises: ``"load"`` (load rejection on the load
+profile at the constant setpoint), ``"setpoint"`` (tracking of the setpoint profile at the
+constant load) or ``"mix"`` (both records, weighted ``1 - setpoint_share`` and
+``setpoint_share``; both profiles needed). ``setpoint_weight`` is the 2-DOF setpoint weight
+``b`` in [0, 1] on the proportional path, ``u = kp (b r - y) + I``; the integral acts on
+``r - y``. The objective (``iae``, ``itae`` or ``ise``) integrates the tracking error
+``setpoint - speed`` over the whole record.
+"""
 
 from __future__ import annotations
 
@@ -11,11 +39,17 @@ from typing import Any, Mapping
 
 from .errors import SceneError
 from .options import AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, OBJECTIVES, RIGID_RELATIVE_ERROR
+
+#: What a duty-cycle scene tunes for (see the module docstring).
+GOALS = ("load", "setpoint", "mix")
+#: Most rows of a profile or a CSV trace (one per controller sample at most: 40 000 samples).
+MAX_PROFILE_ROWS = 40_000
 from .plant import _builtin_root
 
 __all__ = ["Scene", "load_scene", "builtin_scenes", "choose_fidelity", "DEFAULT_SCENE", "OUTPUTS",
            "RIGID_RELATIVE_ERROR", "check_against_plant", "holding_capacity_n", "SETPOINT_MAX_RPM",
-           "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES", "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS", "MIN_LOAD_STEP_N"]
+           "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES", "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS", "MIN_LOAD_STEP_N",
+           "GOALS", "read_trace_csv", "profile_rows"]
 
 
 DEFAULT_SCENE = "paper-load-step"
@@ -63,6 +97,10 @@ _SECTIONS: Mapping[str, Mapping[str, type | tuple]] = {
         "final_loads_n": list,
         "step_time_s": float,
         "duration_s": float,
+        "load_profile_n": list,
+        "load_trace_csv": str,
+        "setpoint_profile_rpm": list,
+        "setpoint_trace_csv": str,
     },
     "tuning": {
         "objective": str,
@@ -71,6 +109,9 @@ _SECTIONS: Mapping[str, Mapping[str, type | tuple]] = {
         "mt_max": float,
         "aggregate": str,
         "candidates": int,
+        "goal": str,
+        "setpoint_weight": float,
+        "setpoint_share": float,
     },
     "verify": {"fidelity": str, "discrete": bool, "accuracy": float},
     "estimator": {"kind": str, "feedforward": bool, "load_change_time_s": float},
@@ -118,6 +159,21 @@ class Scene:
         Feed the estimated load torque forward (needs ``estimator = "kf"``); its gain is tuned.
     load_change_time_s : float, s
         Load random-walk setting of the Kalman filter.
+    load_profile : tuple of (time s, N), optional
+        Duty-cycle load, piecewise linear in :class:`prsa_ctrl.simulation.PiecewiseLinear`'s
+        convention (two points at one time make a step). With a profile, ``initial_load`` is
+        its t = 0 value, ``final_loads`` is empty and ``step_time`` is the time of its first
+        change (all three are set from the profile).
+    setpoint_profile : tuple of (time s, rad/s), optional
+        Duty-cycle setpoint, the same way (``setpoint_rad_s`` is its t = 0 value).
+    goal : {"auto", "load", "setpoint", "mix"}
+        What the tuner optimises on a duty cycle (``"auto"``: from the profiles given).
+    setpoint_weight : float
+        2-DOF setpoint weight b in [0, 1] on the proportional path.
+    setpoint_share : float
+        Weight of the setpoint-tracking objective in ``goal = "mix"``, in (0, 1).
+    profile_source : str
+        Where the profiles came from (reported).
     """
 
     name: str = "custom"
@@ -143,6 +199,12 @@ class Scene:
     #: Validated ``[spec]``, ``[robust]`` and ``[uncertainty]`` sections (see
     #: :func:`prsa_ctrl.uncertainty.parse_scene_sections`); empty when the file has none.
     robust: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    load_profile: tuple[tuple[float, float], ...] | None = None
+    setpoint_profile: tuple[tuple[float, float], ...] | None = None
+    goal: str = "auto"
+    setpoint_weight: float = 1.0
+    setpoint_share: float = 0.5
+    profile_source: str = ""
 
     def __post_init__(self) -> None:
         o = self.origin
@@ -155,20 +217,25 @@ class Scene:
                 raise bad(key, value, "a finite number")
             return float(value)
 
+        self._check_duty(bad, finite)
+
         if finite("setpoint_rad_s", self.setpoint_rad_s) <= 0:
             raise bad("setpoint_rpm", float(f"{self.setpoint_rpm:.12g}"), "a positive nut speed in rpm")
         if finite("initial_load", self.initial_load) < 0:
             raise bad("initial_load", self.initial_load, "a load >= 0 N (compressive)")
-        if not self.final_loads:
+        if not self.final_loads and not self.is_profile:
             raise bad("final_loads", list(self.final_loads), "at least one load")
         for f in self.final_loads:
             if finite("final_loads", f) < 0:
                 raise bad("final_loads", f, "loads >= 0 N (compressive)")
             if f == self.initial_load:
                 raise bad("final_loads", f, f"a load different from the initial {self.initial_load:g} N")
-        if finite("step_time", self.step_time) <= 0:
+        if self.is_profile:
+            if finite("duration", self.duration) <= self.profile_end():
+                raise bad("duration", self.duration, f"a time beyond the profile's last point at {self.profile_end():g} s")
+        elif finite("step_time", self.step_time) <= 0:
             raise bad("step_time", self.step_time, "a time > 0 s (the loop starts in steady state before the load step)")
-        if finite("duration", self.duration) <= self.step_time + 1e-3:
+        if not self.is_profile and finite("duration", self.duration) <= self.step_time + 1e-3:
             raise bad("duration", self.duration, f"a time beyond step_time + 1 ms ({self.step_time + 1e-3:g} s)")
         if self.objective not in OBJECTIVES:
             raise bad("objective", self.objective, "one of ie, iae, itae, ise")
@@ -203,6 +270,82 @@ class Scene:
         if finite("load_change_time_s", self.load_change_time_s) <= 0:
             raise bad("load_change_time_s", self.load_change_time_s, "a positive time in s")
 
+    def _check_duty(self, bad, finite) -> None:
+        """Validate the duty-cycle fields and derive the step fields from the profiles."""
+        if not self.is_profile:
+            if self.goal not in ("auto", "load"):
+                raise bad("goal", self.goal, "'load' for a load-step scene (setpoint and mix goals need a "
+                          "setpoint_profile_rpm / load_profile_n duty cycle)")
+            if self.setpoint_weight != 1.0:
+                raise bad("setpoint_weight", self.setpoint_weight, "1 without a setpoint profile")
+            return
+        firsts = []
+        for key, prof, unit, lo in (("load_profile", self.load_profile, "N", 0.0),
+                                    ("setpoint_profile", self.setpoint_profile, "rad/s", None)):
+            if prof is None:
+                continue
+            pts = _check_points(prof, f"{self.origin}: {key}", unit)
+            for _, v in pts:
+                if lo is not None and v < lo:
+                    raise bad(key, v, f"values >= {lo:g} {unit}")
+                if lo is None and v <= 0:
+                    raise bad(key, v, "positive nut speeds (rad/s)")
+            object.__setattr__(self, key, pts)
+            firsts.append(_first_change(pts))
+        if self.load_profile is not None:
+            object.__setattr__(self, "initial_load", self.load_profile[0][1])
+        if self.setpoint_profile is not None:
+            object.__setattr__(self, "setpoint_rad_s", self.setpoint_profile[0][1])
+        if all(f is None for f in firsts):
+            raise bad("load_profile" if self.load_profile is not None else "setpoint_profile",
+                      [list(p) for p in (self.load_profile or self.setpoint_profile)][:4],
+                      "a profile that changes (a constant is initial_load_n / setpoint_rpm)")
+        object.__setattr__(self, "final_loads", ())
+        object.__setattr__(self, "step_time", min(f for f in firsts if f is not None))
+        have = {"load": self.load_profile is not None, "setpoint": self.setpoint_profile is not None}
+        if self.goal == "auto":
+            object.__setattr__(self, "goal", "mix" if all(have.values()) else ("load" if have["load"] else "setpoint"))
+        if self.goal not in GOALS:
+            raise bad("goal", self.goal, "one of load, setpoint, mix")
+        need = {"load": "a load profile and no setpoint profile (load rejection at a constant setpoint)",
+                "setpoint": "a setpoint profile and no load profile (tracking at a constant load)",
+                "mix": "both a load and a setpoint profile"}[self.goal]
+        if (self.goal == "mix") != all(have.values()) or (self.goal != "mix" and not have[self.goal]):
+            raise bad("goal", self.goal, f"{need}; the scene has "
+                      + " and ".join(k + " profile" for k, v in have.items() if v))
+        if not 0.0 <= finite("setpoint_weight", self.setpoint_weight) <= 1.0:
+            raise bad("setpoint_weight", self.setpoint_weight, "a setpoint weight b in [0, 1]")
+        if not 0.0 < finite("setpoint_share", self.setpoint_share) < 1.0:
+            raise bad("setpoint_share", self.setpoint_share, "a weight in (0, 1) of the setpoint objective in the mix")
+        if self.robust:
+            raise SceneError(f"{self.origin}: [spec]/[robust]/[uncertainty] with a duty cycle; expected them in a load-step "
+                             "scene (the robust and Monte-Carlo studies run load steps)")
+        if self.objective == "ie":
+            raise bad("objective", self.objective, "iae, itae or ise on a duty cycle (the signed integral IE "
+                      "cancels between its events)")
+        if not self.discrete:
+            raise bad("discrete", self.discrete, "true on a duty cycle (the tuner's profile model is the sampled drive)")
+        if self.estimator != "none":
+            raise bad("estimator", self.estimator, "none on a duty cycle (the Kalman-filter loop takes load steps only)")
+
+    @property
+    def is_profile(self) -> bool:
+        """Whether the scene is a duty cycle (a load or setpoint profile) rather than load steps."""
+        return self.load_profile is not None or self.setpoint_profile is not None
+
+    @property
+    def cases(self) -> list[str]:
+        """One label per record the scene tunes and verifies: one per load step, or the duty
+        cycle's load and/or setpoint records (``goal``)."""
+        if not self.is_profile:
+            return [f"step to {f:g} N" for f in self.final_loads]
+        return {"load": ["load profile"], "setpoint": ["setpoint profile"],
+                "mix": ["load profile", "setpoint profile"]}[self.goal]
+
+    def profile_end(self) -> float:
+        """Time of the last breakpoint of the duty cycle, s (0 for a step scene)."""
+        return max((p[-1][0] for p in (self.load_profile, self.setpoint_profile) if p is not None), default=0.0)
+
     @property
     def setpoint_rpm(self) -> float:
         return self.setpoint_rad_s * 30.0 / math.pi
@@ -220,7 +363,154 @@ class Scene:
         d["final_loads"] = list(self.final_loads)
         d["outputs"] = list(self.outputs)
         d["setpoint_rpm"] = self.setpoint_rpm
+        for key in ("load_profile", "setpoint_profile"):
+            d[key] = None if getattr(self, key) is None else [list(p) for p in getattr(self, key)]
         return d
+
+
+def _check_points(points: Any, where: str, unit: str) -> tuple[tuple[float, float], ...]:
+    """Validate profile points in the PiecewiseLinear convention (first at t = 0, times
+    non-decreasing, at most two at one time = a step)."""
+    try:
+        pts = tuple((float(t), float(v)) for t, v in points)
+    except (TypeError, ValueError):
+        raise SceneError(f"{where} = {points!r}; expected (time_s, value) pairs") from None
+    if len(pts) < 2 or len(pts) > 2 * MAX_PROFILE_ROWS:
+        raise SceneError(f"{where}: {len(pts)} points; expected 2 to {MAX_PROFILE_ROWS} rows")
+    for i, (t, v) in enumerate(pts):
+        if not (math.isfinite(t) and math.isfinite(v)):
+            raise SceneError(f"{where}: point {i + 1} = ({t!r}, {v!r}); expected a finite time (s) and value ({unit})")
+    if pts[0][0] != 0.0:
+        raise SceneError(f"{where}: first time {pts[0][0]!r} s; expected 0 (the record starts in steady state)")
+    for i in range(1, len(pts)):
+        if pts[i][0] < pts[i - 1][0] or (i >= 2 and pts[i][0] == pts[i - 1][0] == pts[i - 2][0]):
+            raise SceneError(f"{where}: point {i + 1} at {pts[i][0]!r} s after {pts[i - 1][0]!r} s; "
+                             "expected increasing times (one repeated time = a step)")
+    return pts
+
+
+def _first_change(pts: tuple[tuple[float, float], ...]) -> float | None:
+    """Time at which a profile first leaves its t = 0 value (None if it never does)."""
+    v0 = pts[0][1]
+    for i in range(1, len(pts)):
+        if pts[i][1] != v0:
+            return pts[i - 1][0]
+    return None
+
+
+def profile_rows(rows: Any, where: str, scale: float = 1.0) -> tuple[tuple[float, float], ...]:
+    """Profile points from the scene file's rows ``[t_s, value]`` (ramp to the value at
+    ``t_s``) or ``[t_s, value, "step"]`` (hold the previous value until ``t_s``, step there).
+
+    Parameters
+    ----------
+    rows : list of lists
+        As written in the file.
+    where : str
+        ``"<file>: operating.load_profile_n"``, for the messages.
+    scale : float
+        Factor to SI (e.g. rpm -> rad/s).
+
+    Returns
+    -------
+    tuple of (time s, value)
+        In :class:`prsa_ctrl.simulation.PiecewiseLinear`'s convention.
+
+    Examples
+    --------
+    >>> profile_rows([[0, 500], [0.1, 500], [0.2, 1500], [0.3, 800, "step"]], "demo")
+    ((0.0, 500.0), (0.1, 500.0), (0.2, 1500.0), (0.3, 1500.0), (0.3, 800.0))
+    """
+    if not isinstance(rows, list) or len(rows) < 2:
+        raise SceneError(f"{where} = {rows!r}; expected a list of at least 2 rows [t_s, value] or [t_s, value, \"step\"]")
+    if len(rows) > MAX_PROFILE_ROWS:
+        raise SceneError(f"{where}: {len(rows)} rows; expected at most {MAX_PROFILE_ROWS}")
+    pts: list[tuple[float, float]] = []
+    prev_t = None
+    for i, row in enumerate(rows, start=1):
+        ok = isinstance(row, list) and len(row) in (2, 3) and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in row[:2]) and (
+            len(row) == 2 or row[2] == "step")
+        if not ok:
+            raise SceneError(f"{where}: row {i} = {row!r}; expected [t_s, value] (ramp to value at t_s) or "
+                             "[t_s, value, \"step\"] (step to value at t_s)")
+        t, v = float(row[0]), float(row[1]) * scale
+        if not (math.isfinite(t) and math.isfinite(v)):
+            raise SceneError(f"{where}: row {i} = {row!r}; expected finite numbers")
+        if i == 1:
+            if t != 0.0 or len(row) == 3:
+                raise SceneError(f"{where}: row 1 = {row!r}; expected [0, value] (the steady state the record starts in)")
+        elif t <= prev_t:
+            raise SceneError(f"{where}: row {i} = {row!r}: time {t:g} s after {prev_t:g} s; expected strictly increasing times")
+        if len(row) == 3:
+            pts.append((t, pts[-1][1]))
+        pts.append((t, v))
+        prev_t = t
+    return tuple(pts)
+
+
+def read_trace_csv(path: Path, column: str, where: str, scale: float = 1.0) -> tuple[tuple[float, float], ...]:
+    """A measured trace from CSV (see the module docstring): strict, one line per problem.
+
+    Parameters
+    ----------
+    path : Path
+    column : str
+        ``axial_load_n`` (N) or ``setpoint_rpm`` (rpm).
+    where : str
+        How the scene names the file (for the messages).
+    scale : float
+        Factor to SI.
+
+    Raises
+    ------
+    SceneError
+        Naming the file, the line and the value: a missing column, a non-number, a non-finite
+        value, a time that does not increase, a trace that does not start at 0.
+    """
+    import csv
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SceneError(f"{where}: file {str(path)!r} not found; expected a CSV file next to the scene") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{where}: {str(path)!r} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
+    name = path.name
+    lines = text.splitlines()
+    if len(lines) > MAX_PROFILE_ROWS + 200:
+        raise SceneError(f"{where}: {name} has {len(lines)} lines; expected at most {MAX_PROFILE_ROWS} rows")
+    rows = list(csv.reader(lines))
+    i = 0
+    while i < len(rows) and (not rows[i] or rows[i][0].lstrip().startswith("#")):
+        i += 1
+    if i == len(rows):
+        raise SceneError(f"{where}: {name} has no header; expected a row 'time_s,{column}'")
+    header = [h.strip() for h in rows[i]]
+    if "time_s" not in header or column not in header:
+        raise SceneError(f"{where}: {name} line {i + 1}: header {','.join(header)!r}; expected columns 'time_s' and {column!r}")
+    it, iv = header.index("time_s"), header.index(column)
+    pts: list[tuple[float, float]] = []
+    for j in range(i + 1, len(rows)):
+        row = rows[j]
+        if not row or all(not c.strip() for c in row):
+            continue
+        try:
+            t, v = float(row[it]), float(row[iv])
+        except (IndexError, ValueError):
+            raise SceneError(f"{where}: {name} line {j + 1}: {','.join(row)!r}; expected numbers in 'time_s' and {column!r}") from None
+        if not (math.isfinite(t) and math.isfinite(v)):
+            raise SceneError(f"{where}: {name} line {j + 1}: time_s = {row[it].strip()}, {column} = {row[iv].strip()}; "
+                             "expected finite numbers")
+        if not pts and t != 0.0:
+            raise SceneError(f"{where}: {name} line {j + 1}: time_s = {row[it].strip()}; expected the trace to start at 0")
+        if pts and t <= pts[-1][0]:
+            raise SceneError(f"{where}: {name} line {j + 1}: time_s = {row[it].strip()} after {pts[-1][0]:g}; "
+                             "expected strictly increasing times")
+        pts.append((t, v * scale))
+    if len(pts) < 2:
+        raise SceneError(f"{where}: {name} has {len(pts)} data rows; expected at least 2")
+    return tuple(pts)
 
 
 def builtin_scenes() -> list[str]:
@@ -228,7 +518,7 @@ def builtin_scenes() -> list[str]:
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
 
 
-def _from_doc(doc: Mapping[str, Any], origin: str) -> Scene:
+def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
     unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description", "spec", "robust", "uncertainty"})
     if unknown:
         raise SceneError(f"{origin}: unknown section {unknown[0]!r}; expected one of {', '.join([*_SECTIONS, 'spec', 'robust', 'uncertainty'])}")
@@ -266,6 +556,7 @@ def _from_doc(doc: Mapping[str, Any], origin: str) -> Scene:
         "needed": ("outputs", lambda v: tuple(v)),
         "kind": ("estimator", str),
     }
+    _duty_from_doc(kw, origin, base)
     rpm = kw.get("setpoint_rpm")
     if rpm is not None and not (math.isfinite(rpm) and 0 < rpm <= SETPOINT_MAX_RPM):
         raise SceneError(f"{origin}: operating.setpoint_rpm = {rpm!r}; expected a nut speed in (0, {SETPOINT_MAX_RPM:g}] rpm")
@@ -277,6 +568,50 @@ def _from_doc(doc: Mapping[str, Any], origin: str) -> Scene:
 
         kw["robust"] = parse_scene_sections(doc, origin)
     return Scene(**kw)
+
+
+def _duty_from_doc(kw: dict, origin: str, base: Any) -> None:
+    """Turn the duty-cycle keys of ``[operating]`` into profile fields (in place)."""
+    rpm_scale = math.pi / 30.0
+    sources = []
+    for what, rows_key, csv_key, column, scale, field_name in (
+            ("load", "load_profile_n", "load_trace_csv", "axial_load_n", 1.0, "load_profile"),
+            ("setpoint", "setpoint_profile_rpm", "setpoint_trace_csv", "setpoint_rpm", rpm_scale, "setpoint_profile")):
+        rows, csv_name = kw.pop(rows_key, None), kw.pop(csv_key, None)
+        if rows is not None and csv_name is not None:
+            raise SceneError(f"{origin}: operating.{rows_key} and operating.{csv_key} both given; expected one {what} profile")
+        if rows is not None:
+            kw[field_name] = profile_rows(rows, f"{origin}: operating.{rows_key}", scale)
+            sources.append(f"{what}: {len(rows)} rows in the scene")
+        elif csv_name is not None:
+            where = f"{origin}: operating.{csv_key} = {csv_name!r}"
+            if base is None or not csv_name.strip():
+                raise SceneError(f"{where}: expected a CSV path relative to a scene file")
+            path = Path(csv_name)
+            path = path if path.is_absolute() else base / csv_name
+            kw[field_name] = read_trace_csv(Path(str(path)), column, where, scale)
+            sources.append(f"{what}: {csv_name} ({len(kw[field_name])} rows)")
+    if "load_profile" in kw:
+        for key in ("initial_load_n", "final_loads_n", "step_time_s"):
+            if key in kw:
+                raise SceneError(f"{origin}: operating.{key} with a load profile; expected the load from the profile alone "
+                                 "(its first row is the initial load, its changes are the events)")
+    if "setpoint_profile" in kw and "setpoint_rpm" in kw:
+        raise SceneError(f"{origin}: operating.setpoint_rpm with a setpoint profile; expected the setpoint from the profile "
+                         "alone (its first row is the initial setpoint)")
+    if "setpoint_profile" in kw and "load_profile" not in kw:
+        for key in ("final_loads_n", "step_time_s"):
+            if key in kw:
+                raise SceneError(f"{origin}: operating.{key} with a setpoint profile; expected initial_load_n alone "
+                                 "(the load is constant while the setpoint follows its profile)")
+    if sources:
+        kw["profile_source"] = "; ".join(sources)
+    for key in ("setpoint_profile",):
+        if key in kw:
+            top = max(v for _, v in kw[key]) / rpm_scale
+            if top > SETPOINT_MAX_RPM:
+                raise SceneError(f"{origin}: operating.setpoint_profile_rpm reaches {top:.6g} rpm; expected at most "
+                                 f"{SETPOINT_MAX_RPM:g} rpm")
 
 
 def load_scene(name_or_path: str | Path | None = None) -> Scene:
@@ -294,9 +629,11 @@ def load_scene(name_or_path: str | Path | None = None) -> Scene:
         if not path.is_file():
             raise SceneError(f"scene file {text!r} not found; expected a readable .toml file")
         reader = path
+        base = path.parent
     else:
         reader = _builtin_root("prsa_ctrl.scenes", "tuning") / f"{text}.toml"
         origin = f"{text}.toml (built-in)"
+        base = _builtin_root("prsa_ctrl.scenes", "tuning")
         if not reader.is_file():
             raise SceneError(f"unknown scene {text!r}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
     try:
@@ -305,7 +642,10 @@ def load_scene(name_or_path: str | Path | None = None) -> Scene:
         raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{origin}: invalid TOML ({exc})") from None
-    return _from_doc(doc, origin)
+    if "move" in doc:  # a position-cascade scene (prsa_ctrl.cascade.load_move_scene reads it)
+        raise SceneError(f"{origin}: a move scene ([move] section, position cascade); expected a speed-loop scene "
+                         "here (prsa-tune --scene tunes move scenes)")
+    return _from_doc(doc, origin, base)
 
 
 def choose_fidelity(scene: Scene) -> tuple[Scene, str]:
@@ -385,9 +725,12 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
         raise SceneError(
             f"{label('setpoint_rad_s', f'{rpm:.6g}')}: expected a nut speed in [{rpm_min:.3g}, {SETPOINT_MAX_RPM:g}] rpm "
             f"for {plant.name} (below, the screw moves slower than {STICTION_MARGIN:g} x friction.stribeck_velocity_m_s = "
-            f"{plant.values['friction.stribeck_velocity_m_s']:g} m/s and the friction is in its stiction transition, where "
+            f"{plant.values['friction.stribeck_velocity_m_s']:g} m/s and the friction is on the steep part of its Stribeck curve (static to dynamic coefficient), where "
             f"the linear model does not hold; above, beyond roller-screw speed ratings)"
         )
+    if scene.is_profile:
+        _check_profile_against_plant(scene, plant, label, rpm_min)
+        return
     cap = holding_capacity_n(plant, scene.setpoint_rad_s)
     if cap <= 0:
         raise SceneError(
@@ -434,3 +777,55 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
             f"(sensor.sample_time_s = {ts:g} s); the limit is {MAX_RECORD_SAMPLES} samples, a duration of at most "
             f"{MAX_RECORD_SAMPLES * ts:g} s"
         )
+
+
+def _check_profile_against_plant(scene: Scene, plant: Any, label, rpm_min: float) -> None:
+    """The duty-cycle half of :func:`check_against_plant`: every setpoint of the profile in the
+    speed range, every load within what the motor holds at the slowest setpoint of the
+    profile, at least ``PRE_EVENT_SAMPLES`` samples of steady running before the first change
+    and ``POST_EVENT_SAMPLES`` after the last one, breakpoints at least one controller sample
+    apart (the sampled run splits a sample at one load change at most), the record within
+    ``MAX_RECORD_SAMPLES``."""
+    ts = plant.sample_time_s
+    o = scene.origin
+    sp = scene.setpoint_profile or ((0.0, scene.setpoint_rad_s),)
+    rpms = [v * 30.0 / math.pi for _, v in sp]
+    lo_rpm, hi_rpm = min(rpms), max(rpms)
+    if scene.setpoint_profile is not None and not rpm_min <= lo_rpm <= hi_rpm <= SETPOINT_MAX_RPM:
+        raise SceneError(
+            f"{o}: operating.setpoint_profile_rpm spans {lo_rpm:.6g} to {hi_rpm:.6g} rpm; expected nut speeds in "
+            f"[{rpm_min:.3g}, {SETPOINT_MAX_RPM:g}] rpm for {plant.name} (below, the friction is on the steep part of "
+            "its Stribeck curve, where the linear model does not hold)")
+    slowest = min(v for _, v in sp)
+    cap = holding_capacity_n(plant, slowest)
+    loads = [v for _, v in scene.load_profile] if scene.load_profile is not None else [scene.initial_load]
+    key = "operating.load_profile_n" if scene.load_profile is not None else "operating.initial_load_n"
+    if max(loads) > cap:
+        raise SceneError(
+            f"{o}: {key} reaches {max(loads):g} N; out of range for {plant.name}: at {slowest * 30 / math.pi:.6g} rpm the "
+            f"motor holds at most {cap:.0f} N (drive.torque_limit_n_m = {plant.torque_limit:g} N m)")
+    before, after = PRE_EVENT_SAMPLES * ts, POST_EVENT_SAMPLES * ts
+    if scene.step_time < before * (1 - 1e-9):
+        raise SceneError(
+            f"{o}: the profile first changes at {scene.step_time:g} s; expected at least {PRE_EVENT_SAMPLES} controller "
+            f"samples of steady running before it ({before:g} s at sensor.sample_time_s = {ts:g} s)")
+    end = scene.profile_end()
+    if scene.duration - end < after * (1 - 1e-9):
+        raise SceneError(
+            f"{label('duration', f'{scene.duration:g}')}: the profile's last point is at {end:g} s; the response to it "
+            f"needs {POST_EVENT_SAMPLES} controller samples ({after:g} s); expected duration >= {end + after:g} s")
+    for name, prof in (("load_profile_n", scene.load_profile), ("setpoint_profile_rpm", scene.setpoint_profile)):
+        if prof is None:
+            continue
+        times = sorted({t for t, _ in prof})
+        gaps = [b - a for a, b in zip(times, times[1:])]
+        if gaps and min(gaps) < ts * (1 - 1e-9):
+            i = gaps.index(min(gaps))
+            raise SceneError(
+                f"{o}: operating.{name.replace('_n', '').replace('_rpm', '')} points at {times[i]:g} s and {times[i + 1]:g} s "
+                f"are {min(gaps):.3g} s apart; expected at least one controller sample ({ts:g} s): resample the trace")
+    n = scene.duration / ts
+    if n > MAX_RECORD_SAMPLES:
+        raise SceneError(
+            f"{label('duration', f'{scene.duration:g}')}: the record would hold {n:.3g} controller samples; the limit "
+            f"is {MAX_RECORD_SAMPLES} samples, a duration of at most {MAX_RECORD_SAMPLES * ts:g} s")

@@ -140,6 +140,11 @@ class LoopModel:
 
     ``X[k+1] = (A0 + sum_i g_i A_i) X[k] + Bd``: response to a disturbance step of the stated
     size from zero initial deviation, sampled every ``h`` s; the error is ``e[k] = Ce X[k]``.
+    A *profile* loop (``profile`` set, shape ``(n_steps, N)``) takes one input per sample
+    instead, ``X[k+1] = A X[k] + profile[k]``, held at ``profile[-1]`` after the horizon: a
+    load or setpoint duty cycle (by linearity, any sum of scaled, shifted steps and ramps);
+    its ``Bd`` is then a representative step (the profile's largest deviation held from the
+    start), which the tuner's scan uses only to rank start points.
     The loop transfer at the grid frequencies ``omega`` (rad/s) is
     ``L = (N0 + sum_i g_i L_i) / (D0 + sum_i g_i D_i)``: numerator and denominator are affine in
     the gains (``N0 = 0``, ``D = 1`` for a plain PID loop; an estimator whose prediction uses the
@@ -168,6 +173,22 @@ class LoopModel:
     response: Callable | None = None  # omega (rad/s) -> (N0, L, D0, D) off the grid
     nyquist: float | None = None  # rad/s, sampled loops
     _memo: dict = field(default_factory=dict, repr=False)  # gain-free responses on fixed grids
+    profile: NDArray[np.float64] | None = None  # per-sample input (n_steps, N) of a profile loop
+
+    def __post_init__(self) -> None:
+        if self.profile is not None:
+            prof = np.asarray(self.profile, float)
+            if prof.shape != (self.n_steps, self.A0.shape[0]) or not np.all(np.isfinite(prof)):
+                raise ValueError(f"profile of shape {prof.shape}; expected finite numbers of shape "
+                                 f"({self.n_steps}, {self.A0.shape[0]}) (one input per sample over the horizon)")
+            object.__setattr__(self, "profile", prof)
+
+    def _input(self, k: int) -> NDArray[np.float64]:
+        """Additive input of the transition ``k -> k + 1`` (``Bd``, or the profile's row ``k``;
+        after the horizon the profile's last row)."""
+        if self.profile is None:
+            return self.Bd
+        return self.profile[min(k, self.n_steps - 1)]
 
     # ---- frequency domain ----------------------------------------------------------------
 
@@ -352,7 +373,7 @@ class LoopModel:
         e = np.empty((len(g), self.n_steps))
         for k in range(self.n_steps):
             e[:, k] = x @ self.Ce
-            x = np.einsum("bjk,bk->bj", a, x) + self.Bd
+            x = np.einsum("bjk,bk->bj", a, x) + self._input(k)
         return np.array([_objective_numeric(row, self.h, kind) for row in e])
 
     def objective_to_infinity(self, gains: Sequence[float], kind: str, rtol: float = TAIL_RTOL) -> tuple[float, float]:
@@ -375,21 +396,34 @@ class LoopModel:
         """
         if kind not in OBJECTIVES:
             raise ValueError(f"objective = {kind!r}; expected one of {', '.join(OBJECTIVES)}")
+        if kind == "ie" and self.profile is not None:
+            raise ValueError(f"objective 'ie' on the profile loop {self.name!r}: the signed integral of a duty "
+                             "cycle's error cancels between its events; expected iae, itae or ise")
         if self.stability(gains) != "stable":
             return math.inf, math.inf
         a = self.a_cl(gains)
         n = a.shape[0]
         eye = np.eye(n)
-        x_inf = np.linalg.solve(eye - a, self.Bd)
+        b_end = self._input(self.n_steps)
+        x_inf = np.linalg.solve(eye - a, b_end)
         e_inf = float(self.Ce @ x_inf)
         e_hor = self.error(gains)
         if abs(e_inf) > 1e-9 * max(float(np.max(np.abs(e_hor))), 1e-300):
             return math.inf, math.inf
         h = self.h
+        # z_k = x_k - x_inf, e_k = Ce z_k: from k = 0 (a step loop starts at z = -x_inf), or,
+        # for a profile loop, from the end of the horizon (its samples summed as they are).
+        z, k, total = -x_inf, 0, 0.0
+        if self.profile is not None:
+            x = np.zeros(n)
+            for j in range(self.n_steps):
+                x = a @ x + self.profile[j]
+            z, k = x - x_inf, self.n_steps
+            total = _objective_numeric(e_hor, h, kind)
         if kind == "ie":
             return abs(float(-h * self.Ce @ np.linalg.solve(eye - a, x_inf))), 0.0
         if kind == "ise":
-            return float(h * _gramian_form(a, self.Ce, x_inf)), 0.0
+            return float(total + h * _gramian_form(a, self.Ce, z)), 0.0
         rho = float(np.max(np.abs(np.linalg.eigvals(a))))
         r = 0.5 * (1.0 + rho)
         q = r * r
@@ -400,7 +434,6 @@ class LoopModel:
             rows[j] = row
             row = row @ a
         a_blk = np.linalg.matrix_power(a, blk)
-        z, k, total = -x_inf, 0, 0.0  # z_k = x_k - x_inf, e_k = Ce z_k
         while True:
             e = rows @ z
             if kind == "iae":
@@ -426,7 +459,7 @@ class LoopModel:
         xs = np.empty((self.n_steps, x.size))
         for k in range(self.n_steps):
             xs[k] = x
-            x = a @ x + self.Bd
+            x = a @ x + self._input(k)
         out = {"error": xs @ self.Ce}
         out.update({name: xs @ row for name, row in self.outputs.items()})
         return out
@@ -680,16 +713,23 @@ def continuous_loop(
     return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce, h, n_steps, omega, L, tf, name=sys.name, response=response)
 
 
-def _pid_rows(n_state: int, i_u: int, i_i: int, e_meas, d_new, ts: float):
+def _pid_rows(n_state: int, i_u: int, i_i: int, e_meas, d_new, ts: float, ref=None, weight: float = 1.0):
     """Gain matrices of the sampled PID ``u = kp e + I - kd d``, ``I += Ts ki e``: rows ``e_meas``
     (error) and ``d_new`` (filtered derivative) over the loop state; shared by every drive loop
-    so that they all run the law :func:`prsa_ctrl.simulation.simulate` runs."""
+    so that they all run the law :func:`prsa_ctrl.simulation.simulate` runs.
+
+    With a reference row ``ref`` (the setpoint deviation held in the loop state), the 2-DOF law
+    ``u = kp (b r - y) + I - kd d``, ``I += Ts ki (r - y)`` with setpoint weight ``b = weight``
+    (``e_meas`` is then ``-y``): still affine in the gains."""
     a_kp = np.zeros((n_state, n_state))
     a_kp[i_u] = e_meas
     a_ki = np.zeros((n_state, n_state))
     a_ki[i_i] = ts * e_meas
     a_kd = np.zeros((n_state, n_state))
     a_kd[i_u] = -d_new
+    if ref is not None:
+        a_kp[i_u] = a_kp[i_u] + weight * np.asarray(ref, float)
+        a_ki[i_i] = a_ki[i_i] + ts * np.asarray(ref, float)
     return a_kp, a_ki, a_kd
 
 
@@ -709,10 +749,13 @@ def drive_loop(
     speed_filter: float,
     tf: float,
     horizon: float,
-    step: float,
+    step: float | None = None,
     omega: NDArray[np.float64] | None = None,
     name: str = "drive",
     outputs: dict[str, NDArray] | None = None,
+    load_sequence: NDArray[np.float64] | None = None,
+    setpoint_sequence: NDArray[np.float64] | None = None,
+    setpoint_weight: float = 1.0,
 ) -> LoopModel:
     """Loop model of the sampled drive (see module docstring) around a continuous linear plant.
 
@@ -736,15 +779,28 @@ def drive_loop(
     horizon : float, s
         Response length the tuner simulates (it adds the tail beyond it).
     step : float, N
-        Load step size.
+        Load step size (a step loop; leave it out for a duty-cycle loop).
     omega : array, rad/s, optional
         Constraint grid; by default 500 log-spaced points from 0.1 rad/s to the Nyquist
         frequency ``pi/ts``, plus points at and around the sampled plant's resonances.
+    load_sequence : array, N, optional
+        Duty cycle: the load's deviation from its t = 0 value averaged over each sample
+        interval ``[k Ts, (k + 1) Ts)``, one per sample of the horizon (``round(horizon/ts)``).
+        The zero-order-hold input of the mean is exact for the integral of the load over the
+        sample, so a step between samples or a ramp enters with its exact impulse.
+    setpoint_sequence : array, rad/s, optional
+        Duty cycle: the setpoint's deviation from its t = 0 value as the controller reads it at
+        each sample ``k = 0 .. n_steps`` (first entry 0). The loop then carries the reference
+        as a state and its error is the tracking error ``r - speed``.
+    setpoint_weight : float
+        2-DOF setpoint weight ``b`` in [0, 1] on the proportional path,
+        ``u = kp (b r - y) + I``, ``I += Ts ki (r - y)`` (1: the plain PID).
 
     Returns
     -------
     LoopModel
-        Sampled (``nyquist = pi/ts``) with an exact frequency-response function.
+        Sampled (``nyquist = pi/ts``) with an exact frequency-response function; a profile
+        loop (``profile`` set) with one of the sequences.
 
     Examples
     --------
@@ -760,10 +816,29 @@ def drive_loop(
     speed_filter = _number("speed_filter", speed_filter, lo=0.0, expected="a positive finite time constant in s")
     tf = _number("tf", tf, lo=0.0, expected="a positive finite time constant in s")
     horizon = _number("horizon", horizon, lo=0.0, expected="a positive finite time in s")
-    step = _number("step", step, expected="a finite step size in N")
+    duty = load_sequence is not None or setpoint_sequence is not None
+    if duty:
+        step = 0.0 if step is None else _number("step", step, expected="a finite step size in N")
+    elif step is None:
+        raise ValueError("step = None; expected a load step size in N (or a load_sequence / setpoint_sequence)")
+    else:
+        step = _number("step", step, expected="a finite step size in N")
     n_steps = max(10, int(round(horizon / ts)))
     if n_steps > MAX_STEPS:
         raise ValueError(f"horizon = {horizon!r} s is {n_steps} samples of {ts:g} s; expected at most {MAX_STEPS}")
+    b_w = _number("setpoint_weight", setpoint_weight, lo=0.0, hi=1.0, lo_open=False, hi_open=False,
+                  expected="a setpoint weight b in [0, 1]")
+    seq_d = seq_r = None
+    if load_sequence is not None:
+        seq_d = np.asarray(load_sequence, float)
+        if seq_d.shape != (n_steps,) or not np.all(np.isfinite(seq_d)):
+            raise ValueError(f"load_sequence of shape {seq_d.shape}; expected {n_steps} finite loads in N "
+                             f"(one per sample of the {horizon:g} s horizon)")
+    if setpoint_sequence is not None:
+        seq_r = np.asarray(setpoint_sequence, float)
+        if seq_r.shape != (n_steps + 1,) or not np.all(np.isfinite(seq_r)) or seq_r[0] != 0.0:
+            raise ValueError(f"setpoint_sequence of shape {seq_r.shape}; expected {n_steps + 1} finite setpoint "
+                             "deviations in rad/s starting at 0 (one per sample, both ends included)")
     ad_full, bd_full = _zoh(np.asarray(a, float), np.asarray(b, float), ts)
     rest = [i for i in range(ad_full.shape[0]) if i != angle_index]
     ad = ad_full[np.ix_(rest, rest)]
@@ -775,7 +850,8 @@ def drive_loop(
     beta = math.exp(-ts / tf)
     # X = [x (without the angle), angle increment over the last sample, w_f, dfilt, I, u_pending]
     i_th, i_wf, i_d, i_i, i_u = n, n + 1, n + 2, n + 3, n + 4
-    N = n + 5
+    i_r = n + 5  # reference (setpoint deviation) state of a setpoint duty cycle
+    N = n + 5 + (seq_r is not None)
     E = np.eye(N)
     w_m = E[i_th] / ts  # backward-difference speed
     w_f_new = alpha * E[i_wf] + (1 - alpha) * w_m
@@ -790,12 +866,26 @@ def drive_loop(
     A0[i_d] = d_new
     A0[i_i, i_i] = 1.0
     A0[i_u, i_i] = 1.0  # u = kp e + I - kd d
-    a_kp, a_ki, a_kd = _pid_rows(N, i_u, i_i, e_meas, d_new, ts)
+    a_kp, a_ki, a_kd = _pid_rows(N, i_u, i_i, e_meas, d_new, ts, ref=E[i_r] if seq_r is not None else None,
+                                 weight=b_w)
     bdv = np.zeros(N)
     bdv[:n] = bdist * step
     bdv[i_th] = inc_d * step
     ce = np.zeros(N)
     ce[:n] = -c_w
+    profile = None
+    if duty:
+        # Per-sample inputs; Bd becomes the representative step (largest deviation from t = 0).
+        profile = np.zeros((n_steps, N))
+        if seq_d is not None:
+            profile[:, :n] = seq_d[:, None] * bdist[None, :]
+            profile[:, i_th] = seq_d * inc_d
+            big = float(seq_d[np.argmax(np.abs(seq_d))])
+            bdv[:n], bdv[i_th] = bdist * big, inc_d * big
+        if seq_r is not None:
+            profile[:, i_r] = seq_r[1:]
+            ce[i_r] = 1.0
+            bdv[i_r] = float(seq_r[np.argmax(np.abs(seq_r))])
     nyq = math.pi / ts
     if omega is None:
         lam = np.linalg.eigvals(ad) if n else np.array([], complex)
@@ -813,10 +903,10 @@ def drive_loop(
 
     L = response(omega)[1]
     extra = {
-        k: np.concatenate([np.asarray(r, float).ravel()[rest], np.zeros(5)]) for k, r in (outputs or {}).items()
+        k: np.concatenate([np.asarray(r, float).ravel()[rest], np.zeros(N - n)]) for k, r in (outputs or {}).items()
     }
     return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce, ts, n_steps, omega, L, tf, name=name, outputs=extra,
-                     response=response, nyquist=nyq)
+                     response=response, nyquist=nyq, profile=profile)
 
 
 @dataclass
@@ -1142,6 +1232,69 @@ class Tuner:
     def _n_slot(self) -> int:
         return 4 + 4 * self.loops[0].n_gains
 
+    def _mapped_objectives(self, g, eps) -> list | None:
+        """The time-domain objective of every loop from ONE per-loop function mapped over the
+        loops (robust tuning: M scenario models of one structure), or ``None`` where that does
+        not apply (one loop, the "ie" objective, duty-cycle profiles, loops of different sizes
+        or horizons), in which case each loop is expanded as before.
+
+        The per-loop function (the two-rate trajectory of ``_build_nlp``, the loop's matrices
+        as inputs on the union of their sparsity patterns) is expanded to SX once; the NLP then
+        stays MX (``expand=False``), so building it costs one loop, not M (measured on 16
+        scenarios of robust-load-step: 18 s -> 1 s, same solution to ~1e-10)."""
+        loops = self.loops
+        if self.objective not in ("iae", "itae", "ise") or len(loops) < 2 \
+                or any(lp.profile is not None for lp in loops):
+            return None
+        lp0 = loops[0]
+        n, ng, n_steps = lp0.A0.shape[0], lp0.n_gains, lp0.n_steps
+        if any(lp.A0.shape[0] != n or lp.n_steps != n_steps or lp.n_gains != ng for lp in loops):
+            return None
+        n_fine, m = _two_rate(n_steps)
+        n_coarse = (n_steps - n_fine) // m
+        pattern = np.zeros((n, n), bool)
+        for lp in loops:
+            pattern |= np.asarray(lp.A0) != 0
+            for a in lp.A:
+                pattern |= np.asarray(a) != 0
+        rows, cols = np.nonzero(pattern)
+        sp = ca.Sparsity.triplet(n, n, [int(i) for i in rows], [int(j) for j in cols])
+        gs = ca.SX.sym("g", ng)
+        a0 = ca.SX.sym("a0", sp)
+        ai = [ca.SX.sym(f"a{i}", sp) for i in range(ng)]
+        bd, ce, e_s, h = ca.SX.sym("bd", n), ca.SX.sym("ce", n), ca.SX.sym("eps"), ca.SX.sym("h")
+        acl = a0 + sum(gs[i] * ai[i] for i in range(ng))
+        xs, a_s, bs = ca.SX.sym("x", n), ca.SX.sym("A", sp), ca.SX.sym("b", n)
+        traj = ca.Function("stepf", [xs, a_s, bs], [ca.mtimes(a_s, xs) + bs]).mapaccum("traj", n_fine - 1)(
+            ca.DM.zeros(n), acl, bd)
+        e = ca.mtimes(ce.T, traj)  # e[1..n_fine-1]; e[0] = 0
+        tk, wk = np.arange(1, n_fine, dtype=float), np.ones(n_fine - 1)
+        if n_coarse > 0:
+            a_m, b_m = acl, bd
+            for _ in range(int(math.log2(m))):
+                a_m, b_m = ca.mtimes(a_m, a_m), ca.mtimes(a_m, b_m) + b_m
+            a_ms = ca.SX.sym("Am", a_m.sparsity())
+            tail = ca.Function("stepm", [xs, a_ms, bs], [ca.mtimes(a_ms, xs) + bs]).mapaccum("tail", n_coarse)(
+                traj[:, -1], a_m, b_m)
+            e = ca.horzcat(e, ca.mtimes(ce.T, tail))
+            tk = np.concatenate([tk, n_fine - 1 + m * np.arange(1, n_coarse + 1)])
+            wk = np.concatenate([wk, np.full(n_coarse, float(m))])
+        tk, wk = ca.DM(tk).T * h, ca.DM(wk).T * h
+        j = {"iae": ca.sum2(wk * _smooth_abs(e, e_s)), "itae": ca.sum2(wk * tk * _smooth_abs(e, e_s)),
+             "ise": ca.sum2(wk * e * e)}[self.objective]
+        per_loop = ca.Function("loop_objective", [gs, a0, *ai, bd, ce, e_s, h], [j])
+        nl = len(loops)
+
+        def cat(mats):
+            return ca.horzcat(*[ca.project(ca.DM(np.asarray(a, float)), sp) for a in mats])
+
+        row = per_loop.map(nl)(
+            ca.repmat(g, 1, nl), cat([lp.A0 for lp in loops]), *[cat([lp.A[i] for lp in loops]) for i in range(ng)],
+            ca.horzcat(*[ca.DM(np.asarray(lp.Bd, float).ravel()) for lp in loops]),
+            ca.horzcat(*[ca.DM(np.asarray(lp.Ce, float).ravel()) for lp in loops]),
+            ca.vertcat(*[eps[k] for k in range(nl)]).T, ca.DM([float(lp.h) for lp in loops]).T)
+        return [row[k] for k in range(nl)]
+
     def _build_nlp(self, has_mt: bool, has_noise: bool) -> _NLP:
         """NLP in scaled gains ``v`` with parameters ``p = [scale (ng), eps (per loop), j_ref,
         extra frequencies (per loop, _SLOTS x (4 + 4 ng))]``."""
@@ -1161,12 +1314,15 @@ class Tuner:
             g_list[i] = v[j] * scale[i]
         g = ca.vertcat(*g_list)
         cons_s, cons_t, objs = [], [], []
+        mapped = self._mapped_objectives(g, eps)
         for jl, lp in enumerate(loops):
             N = lp.A0.shape[0]
             acl = ca.DM(lp.A0) + sum(g[i] * ca.DM(lp.A[i]) for i in range(ng))
             bd = ca.DM(lp.Bd)
             ce = ca.DM(lp.Ce)
-            if self.objective == "ie":
+            if mapped is not None:
+                J = mapped[jl]
+            elif self.objective == "ie":
                 # Exact IE to infinity: h Ce (I - A)^-2 b (zero steady error under integral action).
                 a_s, b_s = ca.SX.sym("A", N, N), ca.SX.sym("b", N)
                 m_s = ca.SX.eye(N) - a_s
@@ -1177,8 +1333,10 @@ class Tuner:
                 stepf = ca.Function("stepf", [xs, As, bs], [ca.mtimes(As, xs) + bs])
                 # Two rates: every sample over the transient, then every m-th sample on the tail
                 # (exact m-step map); the reported objective is always the full one to infinity.
-                n_fine, m = _two_rate(lp.n_steps)
-                traj = stepf.mapaccum("traj", n_fine - 1)(ca.DM.zeros(N), acl, bd)
+                n_fine, m = _two_rate(lp.n_steps) if lp.profile is None else (lp.n_steps, 1)
+                # A profile loop (duty cycle): its own input at every sample, all at full rate.
+                traj = stepf.mapaccum("traj", n_fine - 1)(
+                    ca.DM.zeros(N), acl, bd if lp.profile is None else ca.DM(lp.profile[: n_fine - 1].T))
                 e = ca.mtimes(ce.T, traj)  # e[1..n_fine-1]; e[0] = 0
                 tk = lp.h * np.arange(1, n_fine)
                 wk = np.full(n_fine - 1, lp.h)
@@ -1246,8 +1404,9 @@ class Tuner:
             "tuner", "ipopt", {"x": var, "p": p, "f": f, "g": ca.vertcat(*cons)},
             {
                 "print_time": False,
-                # Expanding to SX costs ~0.5 s once per Tuner but makes each solve ~10x faster.
-                "expand": True,
+                # Expanding to SX costs ~0.5 s once per Tuner but makes each solve ~10x faster;
+                # mapped per-loop objectives are SX already (expanding would unroll the map).
+                "expand": mapped is None,
                 "error_on_fail": False,
                 "ipopt": {"print_level": 0, "sb": "yes", "max_iter": _IPOPT_MAX_ITER, "tol": 1e-8,
                           "hessian_approximation": "limited-memory"},
