@@ -42,8 +42,8 @@ from numpy.typing import NDArray
 from .fitdata import FrfRecord, Record
 from .plant import Plant
 
-__all__ = ["fit_plant", "fit_frf", "frf_response", "fit_figures", "FitResult", "FitError", "FITTABLE", "DEFAULT_KEYS", "FRF_KEYS",
-           "fit_percent"]
+__all__ = ["fit_plant", "fit_frf", "frf_response", "axial_mode", "fit_figures", "FitResult", "FitError", "FITTABLE",
+           "DEFAULT_KEYS", "FRF_KEYS", "FRF_KEYS_COMPLIANT", "DELAY_KEY", "fit_percent"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`_bounds`).
 FITTABLE: Mapping[str, tuple[str, str]] = {
@@ -52,13 +52,29 @@ FITTABLE: Mapping[str, tuple[str, str]] = {
     "friction.no_load_torque_n_m": ("N m", "no-load (Coulomb) drag torque"),
     "friction.viscous_n_m_s_per_rad": ("N m s/rad", "viscous coefficient"),
     "drive.current_loop_bandwidth_hz": ("Hz", "current-loop bandwidth"),
+    "drive.command_delay_s": ("s", "command delay (logged command to the moment it acts; not a plant-file key)"),
+    "contact.stiffness_n_per_mm_e": ("N/mm^e", "IMPACT thread-contact stiffness (compliant fidelity: the axial mode)"),
+    "contact.damping_n_s_per_mm": ("N s/mm", "IMPACT thread-contact damping (compliant fidelity: the axial mode)"),
 }
+#: The fitted command delay: a dead time between the logged torque command and the moment it
+#: acts, beyond the zero-order hold. The plant file has no such key (the toolkit models the
+#: drive's one-sample computation delay in the sampled loop and the rest of the drive as the
+#: first-order current loop), so the delay is reported, not written; its first-order
+#: equivalent is ``FitResult.delay["equivalent_current_loop_bandwidth_hz"]``.
+DELAY_KEY = "drive.command_delay_s"
+#: Fittable keys that are not plant-file keys.
+PSEUDO_KEYS = (DELAY_KEY,)
+#: Keys that only the compliant fidelity depends on.
+CONTACT_KEYS = ("contact.stiffness_n_per_mm_e", "contact.damping_n_s_per_mm")
 #: Keys fitted when none are chosen.
-DEFAULT_KEYS = tuple(FITTABLE)
+DEFAULT_KEYS = ("nut.inertia_kg_m2", "friction.efficiency", "friction.no_load_torque_n_m",
+                "friction.viscous_n_m_s_per_rad", "drive.current_loop_bandwidth_hz")
 #: Keys an FRF-only fit estimates by default: the response at speed shows the inertia and the
 #: current loop; efficiency and no-load torque do not enter the linearisation at speed, and the
-#: viscous corner (b / J, well below 1 Hz) lies under the usual lowest measured frequency.
+#: viscous corner (b / J, well below 1 Hz) lies under the usual lowest measured frequency. With
+#: the compliant fidelity the contact stiffness is added (:data:`FRF_KEYS_COMPLIANT`).
 FRF_KEYS = ("nut.inertia_kg_m2", "drive.current_loop_bandwidth_hz")
+FRF_KEYS_COMPLIANT = FRF_KEYS + ("contact.stiffness_n_per_mm_e",)
 
 # 3-stage Radau IIA (order 5): stage times and coefficients; the last stage is the step end.
 _S6 = math.sqrt(6.0)
@@ -112,6 +128,14 @@ class FitResult:
         Per record ``{"time_s", "measured", "model"}`` (nut speed, rad/s) and per frequency
         response ``{"frequency_hz", "measured", "model"}`` (complex, (rad/s)/(N m)), for
         :func:`fit_figures`.
+    delay : dict or None
+        When ``drive.command_delay_s`` was fitted: the delay (``value``, ``ci95``, s; ``samples``)
+        and how it maps to the plant file, which has no delay key:
+        ``equivalent_current_loop_bandwidth_hz`` (``value``, ``ci95``) is the first-order current
+        loop with the same low-frequency phase lag, ``1 / (2 pi (1 / (2 pi f_c) + T_d))``,
+        for a log whose command is the applied one (the toolkit's simulator logs it so); a drive
+        that logs the computed command shows its one-sample computation delay, which the tuner
+        already models, in ``T_d`` too (subtract ``sample_time_s``).
     """
 
     plant: Plant
@@ -123,11 +147,18 @@ class FitResult:
     warnings: list
     solver: dict
     traces: dict = field(default_factory=dict, repr=False)
+    delay: dict | None = None
+
+    @property
+    def plant_keys(self) -> tuple[str, ...]:
+        """The fitted keys that are plant-file keys (the delay is not)."""
+        return tuple(k for k in self.keys if k not in PSEUDO_KEYS)
 
     def report(self) -> dict:
         """JSON-ready report (stable keys: ``parameters``, ``reflected_inertia_kg_m2``,
-        ``fit_percent``, ``warnings``, ``solver``, plus ``correlation``)."""
-        return {
+        ``fit_percent``, ``warnings``, ``solver``, plus ``correlation`` and, when the delay was
+        fitted, ``delay``)."""
+        out = {
             "parameters": self.parameters,
             "reflected_inertia_kg_m2": self.reflected_inertia_kg_m2,
             "fit_percent": self.fit_percent,
@@ -135,6 +166,9 @@ class FitResult:
             "solver": self.solver,
             "correlation": {"keys": list(self.keys), "matrix": np.round(self.correlation, 6).tolist()},
         }
+        if self.delay is not None:
+            out["delay"] = self.delay
+        return out
 
 
 class _SymbolicPlant(Plant):
@@ -192,7 +226,30 @@ def _bounds(plant: Plant, key: str, ts: float) -> tuple[float, float, float]:
         return 0.0, 0.01 * t_max, max(v, 1e-5 * t_max)
     if key == "drive.current_loop_bandwidth_hz":
         return 10.0, min(1e5, 10.0 / ts), v
+    if key == "contact.stiffness_n_per_mm_e":  # the axial mode frequency goes with K^(1/(2e))
+        return max(v / 30.0, 1e1), min(v * 30.0, 1e9), v
+    if key == "contact.damping_n_s_per_mm":
+        return 0.0, min(max(100.0 * v, 1e3), 1e5), max(v, 1.0)
     raise ValueError(f"--fit key {key!r}; expected one of {', '.join(FITTABLE)}")
+
+
+def _plant_value(plant: Plant, key: str, delay_s: float = 0.0) -> float:
+    """Initial value of a fitted key (the delay is no plant key: ``delay_s``)."""
+    return delay_s if key == DELAY_KEY else plant.values[key]
+
+
+def _check_keys(keys: Sequence[str], fidelity: str) -> tuple[str, ...]:
+    keys = tuple(keys)
+    for k in keys:
+        if k not in FITTABLE:
+            raise ValueError(f"fit key {k!r}; expected one of {', '.join(FITTABLE)}")
+    if not keys or len(set(keys)) != len(keys):
+        raise ValueError(f"fit keys {', '.join(keys)}; expected one or more keys, each once")
+    contact = [k for k in keys if k in CONTACT_KEYS]
+    if contact and fidelity != "compliant":
+        raise ValueError(f"fit key {contact[0]!r} with fidelity {fidelity!r}; expected fidelity 'compliant' "
+                         "(only the compliant model has the thread contacts)")
+    return keys
 
 
 @dataclass
@@ -335,17 +392,17 @@ def fit_plant(
     plant = load_plant() if plant is None else plant
     records, frf = list(records), list(frf)
     if not records and frf:
-        return fit_frf(frf, plant, keys=keys, delay_samples=delay_samples)
+        return fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=delay_samples)
     if not records:
         raise ValueError("records = []; expected at least one data record")
     keys = tuple(DEFAULT_KEYS if keys is None else keys)
     if not keys:
         raise ValueError("keys = (); expected at least one plant key to fit")
-    for k in keys:
-        if k not in FITTABLE:
-            raise ValueError(f"fit key {k!r}; expected one of {', '.join(FITTABLE)}")
-    if len(set(keys)) != len(keys):
-        raise ValueError(f"fit keys {', '.join(keys)}; expected each key once")
+    keys = _check_keys(keys, fidelity)
+    if DELAY_KEY in keys:
+        raise ValueError(f"fit key {DELAY_KEY!r} with time-domain records; expected it in a frequency-response fit "
+                         "(--frf without DATA.csv): in closed-loop records it is not separable from the current-loop "
+                         "bandwidth, give the integer delay_samples (--delay-samples) instead")
     if not (isinstance(delay_samples, int) and 0 <= delay_samples <= 10):
         raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..10")
     if not (isinstance(substeps, int) and 1 <= substeps <= 8):
@@ -399,7 +456,8 @@ def fit_plant(
         warns.append(f"residuals strongly coloured (lag-1 autocorrelation {cov_info['residual_autocorrelation_lag1']:.2f}): "
                      "the intervals are widened for it (HAC) but stay optimistic (measured: 73 % coverage on AR(1) "
                      "noise of 0.95); look for unmodelled dynamics or a filtered encoder signal")
-    params, corr, fitted, reflected = _finish(plant, keys, values, cov, lo * scales, hi * scales, names, warns)
+    params, corr, fitted, reflected, delay = _finish(plant, keys, values, cov, lo * scales, hi * scales, names, warns,
+                                                         ts)
     fit_pct = dict(sol["fit_percent"])
     traces = dict(sol["traces"])
     for rec in validate:
@@ -410,7 +468,8 @@ def fit_plant(
         traces.update(vsol["traces"])
     for fr in frf:  # frequency responses given with time-domain data validate the fitted plant
         g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n,
-                         sample_time_s=_frf_ts(fr, fitted), delay_samples=delay_samples)
+                         sample_time_s=_frf_ts(fr, fitted), delay_samples=delay_samples,
+                         fidelity=fidelity if fr.load_n else "rigid")
         fit_pct[fr.name] = round(_frf_fit_percent(fr.response, g), 3)
         traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
     solver = {
@@ -432,43 +491,58 @@ def fit_plant(
     return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces)
 
 
-def _finish(plant, keys, values, cov, lo, hi, names, warns):
-    """Parameters with 95 % CIs, correlation, identifiability warnings, the fitted plant and the
-    reflected inertia, from fitted values and their covariance (file units; ``lo``/``hi`` bounds)."""
+def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None):
+    """Parameters with 95 % CIs, correlation, identifiability warnings, the fitted plant, the
+    reflected inertia and the delay block (None unless the delay was fitted), from fitted values
+    and their covariance (file units; ``lo``/``hi`` bounds; ``ts`` the sample time, s)."""
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
     corr = np.nan_to_num(corr)
+    ts = plant.sample_time_s if ts is None else ts
     params, overrides = {}, {}
     for i, k in enumerate(keys):
         unit = FITTABLE[k][0]
         ci = [float(values[i] - _Z95 * std[i]), float(values[i] + _Z95 * std[i])]
         params[k] = {"value": float(values[i]), "ci95": ci, "unit": unit}
-        overrides[k] = float(values[i])
+        if k not in PSEUDO_KEYS:
+            overrides[k] = float(values[i])
         width = _Z95 * std[i]
-        if not np.isfinite(width) or width > 0.5 * max(abs(values[i]), 1e-3 * (hi[i] - lo[i])):
+        floor = 0.2 * ts if k == DELAY_KEY else 1e-3 * (hi[i] - lo[i])  # a delay of 0 is a value like any
+        if not np.isfinite(width) or width > 0.5 * max(abs(values[i]), floor):
             warns.append(f"{k} is not identifiable from this data (95 % CI +/- {width:.3g} {unit} around "
                          f"{values[i]:.4g}): {_REMEDY_KEY.get(k, 'excite it more')}")
         if values[i] <= lo[i] * (1 + 1e-6) + 1e-15 or values[i] >= hi[i] * (1 - 1e-6):
             warns.append(f"{k} = {values[i]:.4g} {unit} is at its bound [{lo[i]:.4g}, {hi[i]:.4g}]: its interval "
-                         "is not reliable")
+                         "is not reliable" + ("; move the bracket with delay_samples (--delay-samples)"
+                                              if k == DELAY_KEY else ""))
     for i in range(len(keys)):
         for j in range(i + 1, len(keys)):
             if abs(corr[i, j]) > 0.95:
-                warns.append(f"{keys[i]} and {keys[j]} are strongly correlated ({corr[i, j]:+.3f}): "
-                             "the data cannot separate them, and their intervals hold only if the model is "
-                             "exact (record load changes, speed levels in both directions)")
+                pair = {keys[i], keys[j]}
+                if pair == {DELAY_KEY, "drive.current_loop_bandwidth_hz"}:
+                    warns.append(f"{DELAY_KEY} and drive.current_loop_bandwidth_hz are strongly correlated "
+                                 f"({corr[i, j]:+.3f}): below the current-loop bandwidth both only add the phase "
+                                 "lag w (1 / (2 pi f_c) + T_d), so the data inform their sum (the delay block's "
+                                 "equivalent bandwidth) but cannot separate them; measure up to the current-loop "
+                                 "bandwidth or fit one of them")
+                else:
+                    warns.append(f"{keys[i]} and {keys[j]} are strongly correlated ({corr[i, j]:+.3f}): "
+                                 "the data cannot separate them, and their intervals hold only if the model is "
+                                 "exact (record load changes, speed levels in both directions)")
+    plant_keys = [k for k in keys if k not in PSEUDO_KEYS]
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")  # the base plant's own geometry notes were given when it loaded
         fitted = plant.with_params(overrides, name=f"{plant.name}-fit")
         srcs = dict(fitted.sources)
-        for k in keys:
+        for k in plant_keys:
             lo_ci, hi_ci = params[k]["ci95"]
             srcs[k] = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g})"
         unc = {k: v for k, v in (getattr(plant, "uncertainty", None) or {}).items() if k not in keys}
-        fit_unc = _uncertainty_entries(fitted, params, names, std)
+        fit_unc = _uncertainty_entries(fitted, {k: params[k] for k in plant_keys}, names,
+                                       [std[keys.index(k)] for k in plant_keys])
         unc.update(fit_unc)
-        for k in keys:
+        for k in plant_keys:
             if k not in fit_unc:
                 warns.append(f"{k}: no [uncertainty] entry written (its interval is degenerate or leaves the "
                              "physical range)")
@@ -481,7 +555,34 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns):
     else:
         ci = [j_ref, j_ref]
     reflected = {"value": float(j_ref), "ci95": ci, "unit": "kg m^2"}
-    return params, corr, fitted, reflected
+    delay = None
+    if DELAY_KEY in keys:
+        delay = _delay_block(fitted, keys, values, cov, ts)
+    return params, corr, fitted, reflected, delay
+
+
+def _delay_block(fitted: Plant, keys, values, cov, ts: float) -> dict:
+    """The fitted delay and its first-order equivalent current loop (delta-method CI)."""
+    i_d = keys.index(DELAY_KEY)
+    t_d = float(values[i_d])
+    f_c = fitted.values["drive.current_loop_bandwidth_hz"]
+    tau = 1.0 / (2 * math.pi * f_c)
+    f_eq = 1.0 / (2 * math.pi * (tau + t_d))
+    # gradient of f_eq in (T_d, f_c); f_c only when fitted
+    grad = np.zeros(len(keys))
+    grad[i_d] = -2 * math.pi * f_eq**2
+    if "drive.current_loop_bandwidth_hz" in keys:
+        grad[keys.index("drive.current_loop_bandwidth_hz")] = f_eq**2 / f_c**2
+    sd_eq = float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+    sd_d = float(np.sqrt(max(cov[i_d, i_d], 0.0)))
+    return {
+        "value": t_d, "ci95": [t_d - _Z95 * sd_d, t_d + _Z95 * sd_d], "unit": "s", "samples": t_d / ts,
+        "equivalent_current_loop_bandwidth_hz": {"value": f_eq, "ci95": [f_eq - _Z95 * sd_eq, f_eq + _Z95 * sd_eq],
+                                                 "unit": "Hz"},
+        "plant_file": "not written: the plant file has no delay key (the tuner models the drive's one-sample "
+                      "computation delay and the current loop only); the equivalent first-order current-loop "
+                      "bandwidth carries the same low-frequency phase lag",
+    }
 
 
 def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std) -> dict:
@@ -533,55 +634,139 @@ def _frf_ts(fr: FrfRecord, plant: Plant) -> float:
 _LIN_CACHE: dict = {}
 
 
-def _linear_function(plant: Plant, keys: Sequence[str]):
-    """CasADi ``(speed, load, p) -> (A, B)`` of the rigid model at steady speed, with the values
-    of ``keys`` as ``p`` (the holding torque follows from the parameters, the current loop is at
-    rest). Built once per plant and key set."""
-    import casadi as ca
+class _Linear:
+    """``(speed, load, p) -> (A, B)`` of a fidelity's model linearised at steady speed and load,
+    with the values of the plant keys ``keys`` as ``p``; ``i_th`` and ``i_w`` index the nut angle
+    and speed states. Built once per plant, key set and fidelity (:func:`_linear`)."""
 
-    ck = (id(plant), tuple(keys))
+    def __init__(self, plant: Plant, keys: Sequence[str], fidelity: str):
+        import casadi as ca
+
+        self.plant, self.keys, self.fidelity = plant, tuple(keys), fidelity
+        f, names = _symbolic_rhs(plant, keys, fidelity)
+        self.names = names
+        self.i_th, self.i_w = names.index("theta_nut"), names.index("omega_nut")
+        i_w, i_tau = self.i_w, names.index("tau_motor")
+        w0, f0 = ca.SX.sym("w0"), ca.SX.sym("f0")
+        p = ca.SX.sym("p", len(keys))
+        x = ca.SX.sym("x", len(names))
+        u = ca.SX.sym("u", 2)
+        xdot = f(x, u, p)
+        if fidelity == "rigid":
+            x_free = ca.vertcat(*[0 if i != i_w else w0 for i in range(len(names))])
+            acc0 = ca.substitute(xdot[i_w], ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
+            d_acc = ca.substitute(ca.jacobian(xdot[i_w], x[i_tau]), ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
+            tau0 = -acc0 / d_acc  # the rigid nut's acceleration is affine in the motor torque
+            x_op = ca.vertcat(*[tau0 if i == i_tau else x_free[i] for i in range(len(names))])
+            sub = lambda e: ca.substitute(e, ca.vertcat(x, u), ca.vertcat(x_op, tau0, f0))  # noqa: E731
+            self._rigid = ca.Function("lin", [w0, f0, p], [sub(ca.jacobian(xdot, x)), sub(ca.jacobian(xdot, u[0]))])
+            return
+        # Compliant: the steady state at speed w0 and load f0 has theta free, the roller assembly
+        # and the screw at the screw speed a w0; unknowns z = (cage speed, x_roller, delta_screw,
+        # motor torque = command) make the nut, cage, roller and screw accelerations zero.
+        a = plant.lead_per_rad
+        z = ca.SX.sym("z", 4)
+        idx = {n: i for i, n in enumerate(names)}
+        xs = [0] * len(names)
+        xs[idx["omega_nut"]], xs[idx["v_roller"]], xs[idx["v_screw"]] = w0, a * w0, a * w0
+        xs[idx["omega_cage"]], xs[idx["x_roller"]], xs[idx["delta_screw"]], xs[idx["tau_motor"]] = z[0], z[1], z[2], z[3]
+        x_op = ca.vertcat(*xs)
+        rows = [idx[n] for n in ("omega_nut", "omega_cage", "v_roller", "v_screw")]
+        r = f(x_op, ca.vertcat(z[3], f0), p)[rows]
+        self._steady = ca.Function("steady", [z, w0, f0, p], [r, ca.jacobian(r, z)])
+        self._state = ca.Function("state", [z, w0], [x_op])
+        self._jac = ca.Function("lin_ab", [x, u, p], [ca.jacobian(xdot, x), ca.jacobian(xdot, u[0])])
+
+    def _guess(self, speed: float, load: float, pv) -> np.ndarray:
+        """Initial steady state of the compliant model: rigid cage ratio, Hertz deflections for
+        the load on both interfaces, the rigid holding torque."""
+        pl = self.plant
+        vals = dict(pl.values)
+        vals.update({k: float(v) for k, v in zip(self.keys, pv)})
+        k_si = vals["contact.stiffness_n_per_mm_e"] * 1000.0 ** vals["contact.exponent"]
+        e = vals["contact.exponent"]
+        cb = math.cos(pl.flank_angle_rad)
+        out = []
+        for helix in (pl.helix_nut_rad, pl.helix_screw_rad):
+            c = cb * math.cos(helix)
+            d = (abs(load) / (pl.n_contacts * k_si * c ** (e + 1))) ** (1.0 / e) / c
+            out.append(d if load >= 0 else -(d + vals["thread.backlash_mm"] * 1e-3))
+        tau = load * pl.lead_per_rad / vals["friction.efficiency"] + vals["friction.no_load_torque_n_m"] \
+            + vals["friction.viscous_n_m_s_per_rad"] * speed
+        return np.array([speed * pl.cage_ratio, -out[0], out[1], tau])
+
+    def __call__(self, speed: float, load: float, pv):
+        pv = np.asarray(pv, float)
+        if self.fidelity == "rigid":
+            a, b = self._rigid(speed, load, pv)
+            return np.asarray(a, float), np.asarray(b, float)
+        if abs(load) < 1e-9 * self.plant.rated_load_n:
+            raise ValueError(f"load_n = {load!r} for a compliant frequency response; expected the measurement's "
+                             "axial load (> 0 N): without load the thread contacts sit in the backlash and no "
+                             "axial mode exists")
+        z = self._guess(speed, load, pv)
+        zs = np.abs(z) + np.array([1.0, 1e-9, 1e-9, 1e-3 * self.plant.torque_limit])
+        r, jz = (np.asarray(m, float).ravel() if i == 0 else np.asarray(m, float) for i, m in
+                 enumerate(self._steady(z, speed, load, pv)))
+        for _ in range(60):  # damped Newton, bounded
+            step = -np.linalg.lstsq(jz * zs, r, rcond=None)[0] * zs
+            nr, alpha = np.linalg.norm(r), 1.0
+            for _ in range(30):
+                r1, j1 = self._steady(z + alpha * step, speed, load, pv)
+                r1 = np.asarray(r1, float).ravel()
+                if np.all(np.isfinite(r1)) and np.linalg.norm(r1) <= (1 - 1e-4 * alpha) * nr:
+                    break
+                alpha *= 0.5
+            z = z + alpha * step
+            r, jz = r1, np.asarray(j1, float)
+            if np.all(np.abs(alpha * step) <= 1e-13 * zs):
+                break
+        if not np.all(np.isfinite(z)) or np.linalg.norm(r) > 1e-6 * max(nr, 1.0) and np.linalg.norm(r) > 1e-3:
+            raise FitError(f"no steady state of the compliant model at {speed:g} rad/s and {load:g} N "
+                           f"(residual {np.linalg.norm(r):.3g}); remedy: check the operating point (--frf-speed, "
+                           "--frf-load) or start from a closer base plant (--plant)")
+        x_op = np.asarray(self._state(z, speed), float).ravel()
+        a, b = self._jac(x_op, [z[3], load], pv)
+        return np.asarray(a, float), np.asarray(b, float)
+
+
+def _linear(plant: Plant, keys: Sequence[str], fidelity: str = "rigid") -> _Linear:
+    ck = (id(plant), tuple(keys), fidelity)
     hit = _LIN_CACHE.get(ck)
     if hit is not None and hit[0] is plant:
-        return hit[1], hit[2]
-    f, names = _symbolic_rhs(plant, keys, "rigid")
-    i_w, i_tau = names.index("omega_nut"), names.index("tau_motor")
-    w0, f0 = ca.SX.sym("w0"), ca.SX.sym("f0")
-    p = ca.SX.sym("p", len(keys))
-    x = ca.SX.sym("x", len(names))
-    u = ca.SX.sym("u", 2)
-    xdot = f(x, u, p)
-    x_free = ca.vertcat(*[0 if i != i_w else w0 for i in range(len(names))])
-    acc0 = ca.substitute(xdot[i_w], ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
-    d_acc = ca.substitute(ca.jacobian(xdot[i_w], x[i_tau]), ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
-    tau0 = -acc0 / d_acc  # the rigid nut's acceleration is affine in the motor torque
-    x_op = ca.vertcat(*[tau0 if i == i_tau else x_free[i] for i in range(len(names))])
-    sub = lambda e: ca.substitute(e, ca.vertcat(x, u), ca.vertcat(x_op, tau0, f0))  # noqa: E731
-    fun = ca.Function("lin", [w0, f0, p], [sub(ca.jacobian(xdot, x)), sub(ca.jacobian(xdot, u[0]))])
-    _LIN_CACHE.clear()
-    _LIN_CACHE[ck] = (plant, fun, names)
-    return fun, names
+        return hit[1]
+    lin = _Linear(plant, keys, fidelity)
+    if len(_LIN_CACHE) > 8:
+        _LIN_CACHE.clear()
+    _LIN_CACHE[ck] = (plant, lin)
+    return lin
 
 
-def _frf_eval(fun, names, p, frequency_hz, speed, load, ts, delay):
+def _frf_eval(lin: _Linear, p, frequency_hz, speed, load, ts, delay_s):
+    """Model response torque command -> nut speed at ``frequency_hz`` (sampled when ``ts > 0``)
+    with a command delay of ``delay_s`` seconds."""
     from scipy.linalg import expm
 
-    a, b = (np.asarray(m, float) for m in fun(speed, load, p))
+    a, b = lin(speed, load, p)
     nx = a.shape[0]
-    i_th, i_w = names.index("theta_nut"), names.index("omega_nut")
+    i_th, i_w = lin.i_th, lin.i_w
     s = 2j * np.pi * np.asarray(frequency_hz, float)
+    eye = np.eye(nx)[None, :, :]
     if ts <= 0:  # continuous: C (sI - A)^-1 B on the speed
-        out = np.array([np.linalg.solve(si * np.eye(nx) - a, b[:, 0])[i_w] for si in s])
+        rhs = np.broadcast_to(b[:, :1].astype(complex), (len(s), nx, 1))
+        out = np.linalg.solve(s[:, None, None] * eye - a[None], rhs)[:, i_w, 0]
     else:  # the drive's sampled response: command held over a sample, speed = backward angle difference / ts
         m = np.zeros((nx + 1, nx + 1))
         m[:nx, :nx], m[:nx, nx] = a * ts, b[:, 0] * ts
         e = expm(m)
         phi, gam = e[:nx, :nx], e[:nx, nx]
         z = np.exp(s * ts)
-        th = np.array([np.linalg.solve(zi * np.eye(nx) - phi, gam)[i_th] for zi in z])
+        rhs = np.broadcast_to(gam[:, None].astype(complex), (len(z), nx, 1))
+        th = np.linalg.solve(z[:, None, None] * eye - phi[None], rhs)[:, i_th, 0]
         out = (1 - 1 / z) / ts * th
-    if delay:
-        out = out * np.exp(-s * ts * delay) if ts > 0 else out
-    if not np.all(np.isfinite(out)):
+    if delay_s:
+        out = out * np.exp(-s * delay_s)
+    if not np.all(np.isfinite(out)) or np.any(out == 0):
         raise FitError("model frequency response not finite; remedy: start from a closer base plant (--plant)")
     return out
 
@@ -594,8 +779,10 @@ def frf_response(
     load_n: float = 0.0,
     sample_time_s: float | None = None,
     delay_samples: int = 0,
+    delay_s: float = 0.0,
+    fidelity: str = "rigid",
 ) -> NDArray[np.complex128]:
-    """Frequency response torque command (N m) -> nut speed (rad/s) of the rigid model at speed.
+    """Frequency response torque command (N m) -> nut speed (rad/s) of the model at speed.
 
     Parameters
     ----------
@@ -604,13 +791,18 @@ def frf_response(
     speed_rad_s : float, rad/s
         Steady nut speed of the linearisation.
     load_n : float, N
-        Axial load.
+        Axial load (the compliant fidelity needs one: it closes the thread contacts).
     sample_time_s : float, s, optional
         The drive's sample time (default the plant's ``sensor.sample_time_s``): the response is
         the sampled one, command held over a sample and speed the backward difference of the
         angle; 0 gives the continuous response.
     delay_samples : int
         Extra command delay, samples.
+    delay_s : float, s
+        Extra command delay, seconds (added to ``delay_samples``).
+    fidelity : {"rigid", "compliant"}
+        Model linearised: rigid (inertia and current loop) or compliant (with the thread
+        contacts' axial modes, :func:`axial_mode`).
 
     Returns
     -------
@@ -625,9 +817,80 @@ def frf_response(
     >>> round(float(abs(g[0]) * 2 * np.pi * 10 * p.reflected_inertia_kg_m2), 2)  # 1 / (J s) at 10 Hz
     1.0
     """
-    fun, names = _linear_function(plant, ())
+    if fidelity not in ("rigid", "compliant"):
+        raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' for a frequency response")
+    lin = _linear(plant, (), fidelity)
     ts = plant.sample_time_s if sample_time_s is None else float(sample_time_s)
-    return _frf_eval(fun, names, np.zeros(0), frequency_hz, speed_rad_s, load_n, ts, delay_samples)
+    delay = float(delay_s) + (int(delay_samples) * ts if ts > 0 else 0.0)
+    return _frf_eval(lin, np.zeros(0), frequency_hz, speed_rad_s, load_n, ts, delay)
+
+
+def axial_mode(plant: Plant, *, speed_rad_s: float = 30.0, load_n: float = 800.0) -> dict:
+    """The compliant model's axial mode as torque command -> nut speed sees it.
+
+    The screw (with its load mass) on the thread-contact stiffness, linearised at the speed and
+    load: the lowest oscillatory pole pair (resonance) and zero pair (anti-resonance) of the
+    response, and how much the mode changes the response against the rigid model (infinitely
+    stiff contacts, the same inertia reflected through the lead).
+
+    Parameters
+    ----------
+    plant : Plant
+    speed_rad_s : float, rad/s
+    load_n : float, N
+        Axial load (> 0: it closes the contacts; the linearised stiffness grows with it).
+
+    Returns
+    -------
+    dict
+        ``resonance_hz``, ``damping_ratio``, ``antiresonance_hz``, ``reflected_axial_inertia_ratio``
+        (screw mass through the lead over the nut inertia), ``max_effect_db`` and
+        ``max_effect_deg`` (largest change of magnitude and phase against the rigid model up to
+        the Nyquist frequency of ``sensor.sample_time_s``, continuous response) and ``at_hz``.
+
+    Examples
+    --------
+    >>> from prsa_ctrl import load_plant
+    >>> import warnings; warnings.simplefilter("ignore")
+    >>> m = axial_mode(load_plant())
+    >>> round(m["resonance_hz"], -2), m["max_effect_db"] < 0.5
+    (2400.0, True)
+    """
+    from scipy.linalg import eigvals
+
+    lin = _linear(plant, (), "compliant")
+    a, b = lin(speed_rad_s, load_n, np.zeros(0))
+    nx = a.shape[0]
+    ev = np.linalg.eigvals(a)
+    osc = sorted((e for e in ev if e.imag > 1e-3 * abs(e)), key=abs)
+    if not osc:
+        raise ValueError(f"{plant.name}: no oscillatory axial mode at {load_n:g} N; expected a loaded contact")
+    res = osc[0]
+    c = np.zeros(nx)
+    c[lin.i_w] = 1.0
+    mm = np.block([[a, b[:, :1]], [c[None, :], np.zeros((1, 1))]])
+    nn = np.zeros_like(mm)
+    nn[:nx, :nx] = np.eye(nx)
+    with np.errstate(all="ignore"):
+        zeros = eigvals(mm, nn)
+    zeros = sorted((z for z in zeros if np.isfinite(z) and z.imag > 1e-3 * abs(z)), key=abs)
+    f_nyq = 0.5 / plant.sample_time_s
+    f = np.unique(np.concatenate([np.geomspace(1.0, f_nyq, 600), abs(res) / 2 / np.pi * np.linspace(0.9, 1.1, 401)]))
+    f = f[f <= f_nyq]
+    g = frf_response(plant, f, speed_rad_s=speed_rad_s, load_n=load_n, sample_time_s=0.0, fidelity="compliant")
+    g0 = frf_response(plant, f, speed_rad_s=speed_rad_s, load_n=load_n, sample_time_s=0.0, fidelity="rigid")
+    d = np.log(g / g0)
+    i = int(np.argmax(np.abs(d)))
+    return {
+        "resonance_hz": float(abs(res) / (2 * np.pi)),
+        "damping_ratio": float(-res.real / abs(res)),
+        "antiresonance_hz": float(abs(zeros[0]) / (2 * np.pi)) if zeros else float("nan"),
+        "reflected_axial_inertia_ratio": float(plant.values["screw.mass_kg"] * plant.lead_per_rad**2
+                                               / plant.values["nut.inertia_kg_m2"]),
+        "max_effect_db": float(20 / math.log(10) * np.max(np.abs(d.real))),
+        "max_effect_deg": float(np.degrees(np.max(np.abs(d.imag)))),
+        "at_hz": float(f[i]),
+    }
 
 
 def _frf_fit_percent(measured, model) -> float:
@@ -644,19 +907,22 @@ def fit_frf(
     plant: Plant | None = None,
     *,
     keys: Sequence[str] | None = None,
+    fidelity: str = "rigid",
     delay_samples: int = 0,
     max_nfev: int = 200,
 ) -> FitResult:
     """Fit plant parameters to measured frequency responses (torque command -> nut speed).
 
-    The model response is the rigid model linearised at each record's speed and load, sampled
-    as the drive measures it (:func:`frf_response`). The residual of a point is the complex
-    logarithm of model / measured (log magnitude and wrapped phase), weighted by the coherence
+    The model response is the model linearised at each record's speed and load, sampled as the
+    drive measures it (:func:`frf_response`). The residual of a point is the complex logarithm
+    of model / measured (log magnitude and wrapped phase), weighted by the coherence
     ``gamma^2``: the log-response variance is proportional to ``(1 - gamma^2) / gamma^2``
     (Bendat & Piersol), so the weight is ``sqrt(gamma^2 / (1 - gamma^2))`` (capped at coherence
     0.999); without coherence all points weigh the same. Bounded least squares
     (``scipy.optimize.least_squares``, trust-region reflective) on scaled parameters; 95 % CIs
-    from the Jacobian at the optimum with the residual variance.
+    from the Jacobian at the optimum with the residual variance. A fitted contact stiffness
+    starts from the best point of a log-spaced scan of its range (a narrow resonance gives the
+    least-squares problem local minima).
 
     Parameters
     ----------
@@ -664,7 +930,14 @@ def fit_frf(
     plant : Plant, optional
         Base plant and initial guess.
     keys : sequence of str, optional
-        Keys to fit (default :data:`FRF_KEYS`).
+        Keys to fit (default :data:`FRF_KEYS`, with the compliant fidelity
+        :data:`FRF_KEYS_COMPLIANT`). ``drive.command_delay_s`` fits a continuous command delay
+        (s, the phase slope ``-w T_d``; it replaces ``delay_samples``, which then only sets its
+        initial value); the contact keys need ``fidelity="compliant"``.
+    fidelity : {"rigid", "compliant"}
+        Model linearised. The compliant model shows the axial mode (:func:`axial_mode`); a
+        warning names ``contact.stiffness_n_per_mm_e`` when the responses do not reach the mode
+        or the mode changes them by less than their noise.
     delay_samples : int
         Extra command delay, samples.
     max_nfev : int
@@ -682,21 +955,27 @@ def fit_frf(
     frf = list(frf)
     if not frf:
         raise ValueError("frf = []; expected at least one frequency response")
-    keys = tuple(FRF_KEYS if keys is None else keys)
-    for k in keys:
-        if k not in FITTABLE:
-            raise ValueError(f"fit key {k!r}; expected one of {', '.join(FITTABLE)}")
-    if not keys or len(set(keys)) != len(keys):
-        raise ValueError(f"fit keys {', '.join(keys)}; expected one or more keys, each once")
+    if fidelity not in ("rigid", "compliant"):
+        raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' for a frequency-response fit")
+    keys = _check_keys(FRF_KEYS_COMPLIANT if keys is None and fidelity == "compliant" else
+                       FRF_KEYS if keys is None else keys, fidelity)
     if not (isinstance(delay_samples, int) and 0 <= delay_samples <= 10):
         raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..10")
     ts_fit = min(_frf_ts(fr, plant) or plant.sample_time_s for fr in frf)
-    bounds = [_bounds(plant, k, ts_fit) for k in keys]
+    bounds = []
+    for k in keys:
+        if k == DELAY_KEY:
+            bounds.append((0.0, (delay_samples + 10) * ts_fit, ts_fit))
+        else:
+            bounds.append(_bounds(plant, k, ts_fit))
     scales = np.array([b[2] for b in bounds])
     lo = np.array([b[0] for b in bounds]) / scales
     hi = np.array([b[1] for b in bounds]) / scales
-    s0 = np.clip(np.array([plant.values[k] for k in keys]) / scales, lo, hi)
-    fun, names = _linear_function(plant, keys)
+    s0 = np.clip(np.array([_plant_value(plant, k, (delay_samples + 0.25) * ts_fit) for k in keys]) / scales, lo, hi)
+    pkeys = [k for k in keys if k not in PSEUDO_KEYS]
+    i_p = [keys.index(k) for k in pkeys]
+    i_d = keys.index(DELAY_KEY) if DELAY_KEY in keys else None
+    lin = _linear(plant, pkeys, fidelity)
     weights = []
     for fr in frf:
         if fr.coherence is None:
@@ -707,15 +986,37 @@ def fit_frf(
     wmax = max(float(np.max(w)) for w in weights)
     weights = [w / wmax for w in weights]
 
+    def delay_of(sv, fr):
+        ts = _frf_ts(fr, plant)
+        return sv[i_d] * scales[i_d] if i_d is not None else (delay_samples * ts if ts > 0 else 0.0)
+
     def resid(sv):
         out = []
+        pv = (sv * scales)[i_p]
         for fr, w in zip(frf, weights):
-            g = _frf_eval(fun, names, sv * scales, fr.frequency_hz, fr.speed_rad_s, fr.load_n, _frf_ts(fr, plant),
-                          delay_samples)
+            g = _frf_eval(lin, pv, fr.frequency_hz, fr.speed_rad_s, fr.load_n, _frf_ts(fr, plant), delay_of(sv, fr))
             d = np.log(g) - np.log(fr.response)
             out += [w * d.real, w * np.angle(np.exp(1j * d.imag))]
         return np.concatenate(out)
 
+    if "contact.stiffness_n_per_mm_e" in keys:  # bounded scan of the stiffness: the start of the fit
+        i_k = keys.index("contact.stiffness_n_per_mm_e")
+        best = None
+        n_mag = sum(fr.n for fr in frf)
+        for sk in np.geomspace(lo[i_k], hi[i_k], 31):
+            sv = s0.copy()
+            sv[i_k] = sk
+            try:
+                rv = resid(sv)
+            except (FitError, np.linalg.LinAlgError, ValueError):
+                continue
+            # the log-magnitude offset (an inertia error of the start) profiled out
+            mag = np.concatenate([rv[sum(fr.n for fr in frf[:j]) * 2:][:fr.n] for j, fr in enumerate(frf)])
+            cost = float(np.sum(rv**2) - n_mag * np.mean(mag) ** 2)
+            if best is None or cost < best[0]:
+                best = (cost, sk)
+        if best is not None:
+            s0[i_k] = best[1]
     sol = least_squares(resid, s0, bounds=(lo, hi), x_scale=1.0, max_nfev=max_nfev, method="trf")
     if not sol.success:
         raise FitError(f"FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
@@ -732,11 +1033,14 @@ def fit_frf(
     values = sol.x * scales
     names_txt = ", ".join(fr.name for fr in frf)
     warns = [w for fr in frf for w in fr.warnings]
-    params, corr, fitted, reflected = _finish(plant, keys, values, cov, lo * scales, hi * scales, names_txt, warns)
+    params, corr, fitted, reflected, delay = _finish(plant, keys, values, cov, lo * scales, hi * scales, names_txt,
+                                                     warns, ts_fit)
+    if "contact.stiffness_n_per_mm_e" in keys:
+        warns += _mode_warnings(fitted, frf, math.sqrt(s2) / np.sqrt(np.mean(np.concatenate(weights) ** 2)))
     fit_pct, traces = {}, {}
     for fr in frf:
         g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n,
-                         sample_time_s=_frf_ts(fr, plant), delay_samples=delay_samples)
+                         sample_time_s=_frf_ts(fr, plant), delay_s=delay_of(sol.x, fr), fidelity=fidelity)
         fit_pct[fr.name] = round(_frf_fit_percent(fr.response, g), 3)
         traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
     solver = {
@@ -747,10 +1051,45 @@ def fit_frf(
         "residual_std": float(math.sqrt(s2)),
         "residual_unit": "log response (coherence weighted)",
         "residuals": int(n_res),
-        "fidelity": "rigid",
+        "fidelity": fidelity,
         "covariance": "classic (residual variance x inverse Gauss-Newton matrix)",
     }
-    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces)
+    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay)
+
+
+def _mode_warnings(fitted: Plant, frf: Sequence[FrfRecord], noise_log: float) -> list[str]:
+    """Warnings naming the contact stiffness when the responses cannot show the axial mode: they
+    end below it, or the mode changes them (in their band) by less than three times their noise
+    (``noise_log``: residual standard deviation of the log response, unweighted)."""
+    out = []
+    key = "contact.stiffness_n_per_mm_e"
+    for fr in frf:
+        try:
+            m = axial_mode(fitted, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n)
+        except (ValueError, FitError):
+            continue
+        f_top = float(np.max(fr.frequency_hz))
+        f_first = min(m["resonance_hz"], m["antiresonance_hz"]) if math.isfinite(m["antiresonance_hz"]) \
+            else m["resonance_hz"]
+        ts = _frf_ts(fr, fitted)
+        g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n, sample_time_s=ts,
+                         fidelity="compliant")
+        g0 = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n, sample_time_s=ts,
+                          fidelity="rigid")
+        effect = float(np.max(np.abs(np.log(g / g0))))
+        if f_top < 0.9 * f_first:
+            out.append(f"{key}: {fr.name} ends at {f_top:.4g} Hz, below the axial mode (anti-resonance "
+                       f"{m['antiresonance_hz']:.4g} Hz, resonance {m['resonance_hz']:.4g} Hz at the fitted stiffness): "
+                       "the data see at most the mode's low-frequency tail, so the stiffness rests on the model's "
+                       "inertia split and its interval is not reliable; measure up to the mode or leave the "
+                       "stiffness out of --fit")
+        elif effect < 3.0 * noise_log:
+            out.append(f"{key}: the axial mode ({m['resonance_hz']:.4g} Hz) changes {fr.name} by at most "
+                       f"{20 / math.log(10) * effect:.2g} dB at the measured frequencies, under three times the "
+                       f"response's noise ({20 / math.log(10) * noise_log:.2g} dB): the reflected axial mass is "
+                       f"{100 * m['reflected_axial_inertia_ratio']:.2g} % of the nut inertia, too small for "
+                       "torque -> nut speed to show the mode; the stiffness is not identifiable from it")
+    return out
 
 
 def _figure_stem(name: str, used: set) -> str:
@@ -838,6 +1177,10 @@ _REMEDY_KEY = {
     "friction.viscous_n_m_s_per_rad": "record several speed levels",
     "drive.current_loop_bandwidth_hz": "excite higher frequencies (multisine up to a few hundred Hz) or fix it with --fit",
     "nut.inertia_kg_m2": "excite accelerations (multisine or speed steps)",
+    "drive.command_delay_s": "measure up to the current-loop bandwidth, or fix the delay (leave it out of --fit)",
+    "contact.stiffness_n_per_mm_e": "measure a frequency response that covers the axial mode (under load), "
+                                    "or leave the stiffness out of --fit",
+    "contact.damping_n_s_per_mm": "measure the axial mode's peak with a fine frequency resolution",
 }
 
 

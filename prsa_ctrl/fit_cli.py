@@ -1,8 +1,9 @@
 """``prsa-fit``: calibrate a plant file from measured drive data, or design the experiment.
 
 ``prsa-fit [DATA.csv ...] [--frf FRF.csv ...] --out MY.toml [--json REPORT.json] [--plots DIR]
-[--plant BASE] [--fit KEY,...] [--validate OTHER.csv ...] [--columns name=header,...]
-[--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N] [--coherence-min C]``
+[--plant BASE] [--fit KEY,...] [--fidelity rigid|compliant] [--validate OTHER.csv ...]
+[--columns name=header,...] [--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N]
+[--coherence-min C] [--delay-samples N]``
 
 ``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
 [--f-min HZ] [--f-max HZ] [--amplitude A] [--offset A]``
@@ -67,7 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(created if missing)")
     p.add_argument("--plant", default=None, metavar="NAME|PATH", help="base plant (default paper-iprsm)")
     p.add_argument("--fit", default=None, metavar="KEY,...", help="plant keys to fit (default: inertia, efficiency, "
-                   "no-load torque, viscous, current-loop bandwidth)")
+                   "no-load torque, viscous, current-loop bandwidth; FRF only: inertia, current-loop bandwidth, with "
+                   "--fidelity compliant also contact.stiffness_n_per_mm_e); drive.command_delay_s fits a continuous "
+                   "command delay from --frf data")
     p.add_argument("--validate", nargs="+", default=[], metavar="CSV", help="records not fitted; their fit %% is reported")
     p.add_argument("--columns", default=None, metavar="name=header,...", help="map other CSV headers to the standard names")
     p.add_argument("--torque-constant", type=_number("--torque-constant"), metavar="N_M_PER_A",
@@ -269,7 +272,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     name = Path(args.out).stem
-    text = plant_toml(base_text, result.plant, name, result.keys)
+    text = plant_toml(base_text, result.plant, name, result.plant_keys)
+    if result.delay is not None:  # not a plant-file key: said in a comment, reported in the JSON
+        d, eq = result.delay, result.delay["equivalent_current_loop_bandwidth_hz"]
+        text += (f"\n# prsa-fit: command delay {d['value']:.6g} s (95 % CI {d['ci95'][0]:.6g}..{d['ci95'][1]:.6g}, "
+                 f"{d['samples']:.3g} samples) is not a plant-file key; a first-order current loop of "
+                 f"{eq['value']:.6g} Hz has the same low-frequency phase lag\n")
     import tomllib
 
     from .plant import Plant
@@ -290,6 +298,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     for k, v in result.parameters.items():
         lo, hi = v["ci95"]
         print(f"{k} = {v['value']:.6g} {v['unit']} (95 % CI {lo:.6g}..{hi:.6g})")
+    if result.delay is not None:
+        eq = result.delay["equivalent_current_loop_bandwidth_hz"]
+        print(f"  (not written to the plant file: no delay key; equivalent current-loop bandwidth {eq['value']:.6g} Hz, "
+              f"95 % CI {eq['ci95'][0]:.6g}..{eq['ci95'][1]:.6g})")
     j = result.reflected_inertia_kg_m2
     print(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
     for f, pct in result.fit_percent.items():
