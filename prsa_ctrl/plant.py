@@ -28,6 +28,7 @@ __all__ = [
     "GeometryReport",
     "load_plant",
     "builtin_plants",
+    "plant_file_path",
     "DEFAULT_PLANT",
     "SCHEMA",
     "PLAUSIBLE",
@@ -602,6 +603,28 @@ class Plant:
             warnings.warn(f"{o}: " + "; ".join(msgs), GeometryWarning, stacklevel=4)
         object.__setattr__(report, "messages", tuple(msgs))
         return report
+
+
+def plant_file_path(name_or_path: str | Path | None = None) -> Path | Any:
+    """The plant file a name or path refers to, as :func:`load_plant` resolves it.
+
+    Parameters
+    ----------
+    name_or_path : str or Path, optional
+        A built-in plant name (``plants/*.toml``, default ``paper-iprsm``) or a path to a .toml file.
+
+    Returns
+    -------
+    Path or importlib.resources.abc.Traversable
+        Readable with ``.read_text()``: the installed package data, or the repository's
+        ``plants/`` folder when a source checkout shadows the installed package.
+
+    Examples
+    --------
+    >>> plant_file_path("paper-iprsm").name
+    'paper-iprsm.toml'
+    """
+    return _resolve(name_or_path)
 
 
 def _resolve(name_or_path: str | Path | None) -> Path | Any:

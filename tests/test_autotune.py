@@ -232,9 +232,9 @@ def test_cli_exports_drive_gains(tmp_path, capsys):
 def test_cli_flagged_best_exits_3_unless_accepted(tmp_path, capsys):
     """The 10 ms drive of the health check, through the CLI: the report is printed and the JSON
     says what is wrong, but the exit code does not pretend success."""
-    from importlib.resources import files
+    from prsa_ctrl.plant import plant_file_path
 
-    src = files("prsa_ctrl.plants").joinpath("paper-iprsm.toml").read_text()
+    src = plant_file_path("paper-iprsm").read_text()
     text = src.replace("sample_time_s = { value = 2.5e-4", "sample_time_s = { value = 1e-2")
     assert text != src
     plant = tmp_path / "slow.toml"
