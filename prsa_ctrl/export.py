@@ -191,15 +191,24 @@ def _check_positive(name: str, v: Any, unit: str) -> float | None:
     return float(v)
 
 
-def _placed_filters(filters: Iterable) -> list[tuple[str, Filter]]:
+def _placed_filters(filters: Iterable) -> list[tuple[str, Filter, str]]:
+    """``(place, filter, method the simulator runs)``; a ``LoopFilter`` keeps its own place and
+    discretisation, a bare Filter sits on the torque command (Tustin, prewarped)."""
+    from .filters import LoopFilter
+
     out = []
     for item in filters:
+        if isinstance(item, LoopFilter):
+            out.append((item.place, item.filter,
+                        "biquad_tustin_prewarped" if item.method == "tustin" and item.prewarp else
+                        ("biquad_" + item.method if item.method != "tustin" else "biquad_tustin")))
+            continue
         place, f = ("torque_command", item) if isinstance(item, Filter) else (
             item if isinstance(item, tuple) and len(item) == 2 else (None, item))
         if place not in FILTER_PLACES or not isinstance(f, Filter):
             raise ValueError(f"filters entry {item!r}; expected a Filter or a (place, Filter) pair with place one "
                              f"of {', '.join(FILTER_PLACES)}")
-        out.append((place, f))
+        out.append((place, f, "biquad_tustin_prewarped"))
     return out
 
 
@@ -404,12 +413,17 @@ def export_controller(
                 "formula": "y[k] = b0 x[k] + b1 x[k-1] + b2 x[k-2] - a1 y[k-1] - a2 y[k-2]; tustin: s = K (z - 1)/"
                            "(z + 1), K = w0/tan(w0 Ts/2) at the corner/centre w0; zoh: step invariant; matched: "
                            "z = exp(s Ts), zeros at infinity at z = 0, DC gain matched",
-                "simulated": False,
+                **({"biquad_tustin": f.biquad(ts, "tustin", False).as_dict()} if sim == "biquad_tustin" else {}),
+                "simulated": True,
+                "simulated_biquad": sim,
             }
-            for place, f in placed
+            for place, f, sim in placed
         ]
-        out["filters_note"] = ("the filters are exported for the drive; prsa-ctrl's sampled-loop simulator of this "
-                               "version does not run them (simulated = false)")
+        out["filters_note"] = (
+            "the sampled-loop simulator runs each filter as its simulated_biquad, in the order listed: "
+            "speed_measurement filters on w[k] before the PID (e, I and the derivative all use the filtered speed); "
+            "torque_command filters on us[k], then min(max(y, -torque_limit), torque_limit) is stored and applied "
+            "over the next sample (the biquad recursion keeps its unlimited y)")
     return out
 
 

@@ -51,7 +51,7 @@ if TYPE_CHECKING:
     import control
 
 __all__ = ["Filter", "DiscreteBiquad", "FirstOrderLowPass", "SecondOrderLowPass", "Notch", "GeneralBiquad",
-           "METHODS", "filter_from_dict"]
+           "METHODS", "filter_from_dict", "PLACES", "LoopFilter", "loop_filters"]
 
 #: Discretisation methods of :meth:`Filter.biquad`.
 METHODS = ("tustin", "zoh", "matched")
@@ -524,3 +524,102 @@ def filter_from_dict(d: dict) -> Filter:
     if missing:
         raise ValueError(f"filter {d['kind']!r} lacks {', '.join(missing)}; expected {', '.join(names)}")
     return cls(**{n: d[n] for n in names if n in d})
+
+
+#: Where a filter sits in the drive's sampled loop (:func:`prsa_ctrl.simulation.run`): on the
+#: measured speed the PID acts on, or on the PID's torque command before the one-sample
+#: computation delay and zero-order hold.
+PLACES = ("speed_measurement", "torque_command")
+
+
+@dataclass(frozen=True)
+class LoopFilter:
+    """A filter placed in the drive's sampled speed loop, run as the discrete biquad
+    :meth:`Filter.biquad` gives at the plant's sample time (what the drive export writes).
+
+    ``place = "speed_measurement"``: the speed the PID acts on (proportional, integral and
+    derivative paths) is the measurement block's speed through this biquad.
+    ``place = "torque_command"``: the PID's (limited) command goes through this biquad and is
+    limited again to the torque limit before the one-sample delay and zero-order hold; the
+    biquad's own recursion runs on its unlimited output. Several filters at one place run in
+    series in the order given.
+
+    Parameters
+    ----------
+    filter : Filter
+        The continuous filter (unit DC gain).
+    place : {"speed_measurement", "torque_command"}
+    method : {"tustin", "zoh", "matched"}
+        Discretisation (:meth:`Filter.biquad`).
+    prewarp : bool
+        Tustin prewarped at the filter's characteristic frequency.
+
+    Examples
+    --------
+    >>> lf = LoopFilter(Notch(300.0, 120.0, -20.0), "torque_command")
+    >>> round(abs(complex(lf.biquad(2.5e-4).frequency_response([2 * math.pi * 300.0])[0])), 9)
+    0.1
+    """
+
+    filter: Filter
+    place: str = "torque_command"
+    method: str = "tustin"
+    prewarp: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.filter, Filter):
+            raise ValueError(f"filter = {self.filter!r}; expected a Filter (FirstOrderLowPass, SecondOrderLowPass, "
+                             "Notch or GeneralBiquad)")
+        if self.place not in PLACES:
+            raise ValueError(f"filter place = {self.place!r}; expected one of {', '.join(PLACES)}")
+        if self.method not in METHODS:
+            raise ValueError(f"filter method = {self.method!r}; expected one of {', '.join(METHODS)}")
+        if not isinstance(self.prewarp, bool):
+            raise ValueError(f"filter prewarp = {self.prewarp!r}; expected True or False")
+
+    def biquad(self, ts: float) -> DiscreteBiquad:
+        """The biquad the drive runs at the sample time ``ts`` (s)."""
+        return self.filter.biquad(ts, self.method, self.prewarp)
+
+    def to_dict(self, ts: float | None = None) -> dict:
+        """:meth:`Filter.to_dict` with the place (and the discretisation used in the loop)."""
+        out = {"place": self.place, **self.filter.to_dict(ts, self.method, self.prewarp)}
+        return out
+
+
+def loop_filters(filters: object, ts: float | None = None) -> tuple[LoopFilter, ...]:
+    """Normalise a user's filter list: ``LoopFilter`` items, ``(place, Filter)`` pairs or a bare
+    ``Filter`` (placed on the torque command, as the drive export places it); with ``ts`` (s) each biquad is formed once so
+    that a frequency at or above Nyquist is refused here, with one line.
+
+    Parameters
+    ----------
+    filters : sequence or None
+    ts : float, optional, s
+
+    Returns
+    -------
+    tuple of LoopFilter
+    """
+    if filters is None:
+        return ()
+    if isinstance(filters, (Filter, LoopFilter)):
+        filters = [filters]
+    if isinstance(filters, (str, bytes, dict)) or not hasattr(filters, "__iter__"):
+        raise ValueError(f"filters = {filters!r}; expected a list of LoopFilter or (place, Filter) pairs")
+    out = []
+    for item in filters:
+        if isinstance(item, LoopFilter):
+            lf = item
+        elif isinstance(item, Filter):
+            lf = LoopFilter(item)
+        elif isinstance(item, tuple) and len(item) == 2 and isinstance(item[0], str):
+            lf = LoopFilter(item[1], item[0])
+        else:
+            raise ValueError(f"filter entry = {item!r}; expected a LoopFilter, a Filter or a (place, Filter) pair")
+        if ts is not None:
+            lf.biquad(ts)
+        out.append(lf)
+    if len(out) > 8:
+        raise ValueError(f"{len(out)} filters; expected at most 8 in one loop")
+    return tuple(out)

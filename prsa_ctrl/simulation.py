@@ -53,6 +53,7 @@ if TYPE_CHECKING:  # annotations only: python-control is imported where it is us
     import control
 
     from .estimator import KFDesign
+    from .filters import LoopFilter
     from .motion import MotionProfile
 
 __all__ = ["simulate", "run", "SimRun", "Profile", "PiecewiseLinear", "SimSettings", "energy_balance",
@@ -848,6 +849,7 @@ def run(
     seed: int = 0,
     position: "PositionLoop | None" = None,
     motion: "MotionProfile | None" = None,
+    filters: "Sequence[LoopFilter] | None" = None,
 ) -> SimRun:
     """Simulate the actuator's speed loop from steady state (the one simulator).
 
@@ -899,6 +901,13 @@ def run(
     motion : MotionProfile, optional
         The move the position loop follows, m of screw travel from the position measured at
         t = 0 (default: hold that position).
+    filters : sequence of LoopFilter, optional
+        Sampled runs only: speed-measurement and torque-command filters
+        (:class:`prsa_ctrl.filters.LoopFilter`, or ``(place, Filter)`` pairs), each run as the
+        discrete biquad the drive export writes. The outputs gain ``speed_unfiltered`` (the
+        measurement block's speed before the speed-measurement filters, rad/s) and
+        ``torque_command_unfiltered`` (the PID's limited command before the torque-command
+        filters, N m); ``speed_measured`` is the filtered speed the PID acted on.
 
     Returns
     -------
@@ -952,6 +961,15 @@ def run(
             raise ValueError(f"controller = {controller!r} with a position loop; expected a speed PI (ki > 0) that "
                              "holds the load at rest")
         setpoint = 0.0
+    if filters is not None:
+        from .filters import loop_filters
+
+        filters = loop_filters(filters, plant.sample_time_s if discrete else None)
+        if filters and not discrete:
+            raise ValueError(f"filters = {filters!r} with discrete = False; expected discrete=True (the filters run in "
+                             "the drive's sampled loop)")
+    else:
+        filters = ()
     if discrete:
         ts = plant.sample_time_s
         n_points = math.floor(duration / ts + 1e-9) + 1
@@ -992,7 +1010,7 @@ def run(
         assert meas is not None
         t, xs, extra, refs, loads, state_labels, events = _run_sampled(
             built, settings, budget, meas, sp, ld, n_points - 1, gains, kff, ff, op, integral0, e0, torque_noise,
-            seed, outer=position, motion=motion)
+            seed, outer=position, motion=motion, filters=filters)
         if position is not None:  # the speed reference the position loop gave is the setpoint used
             refs = extra[len(_SAMPLED_OUTPUTS) + _POSITION_OUTPUTS.index("speed_reference")]
     else:
@@ -1012,7 +1030,7 @@ def run(
     u_in = np.vstack([extra[0], loads])
     y = np.asarray(model.h.map(len(t))(xs[:nx], u_in))
     out_labels = tuple(model.output_names) + (_SAMPLED_OUTPUTS if discrete else _SAMPLED_OUTPUTS[:2]) \
-        + (_POSITION_OUTPUTS if position is not None else ())
+        + (_POSITION_OUTPUTS if position is not None else ()) + (_FILTER_OUTPUTS if filters else ())
     info = {
         "fidelity": fidelity,
         "discrete": bool(discrete),
@@ -1023,6 +1041,8 @@ def run(
         "events": events,
         "wall_time_s": budget.elapsed,
     }
+    if filters:
+        info["filters"] = [lf.to_dict(plant.sample_time_s) for lf in filters]
     if position is not None:
         info["position_loop"] = {"measured": position.measured, "rate": position.rate, "kv_per_s": position.kv,
                                  "ki_per_s2": position.ki, "kvff": position.kvff, "kaff": position.kaff,
@@ -1129,6 +1149,21 @@ def _sample_integrator(built: _Built, settings: SimSettings) -> ca.Function:
 #: reference (rad of the nut or m of the screw, ``PositionLoop.measured``), the speed reference
 #: it gave the speed loop (rad/s) and its torque feed-forward (N m).
 _POSITION_OUTPUTS = ("position_measured", "position_reference", "speed_reference", "torque_feedforward")
+#: Extra output rows of a sampled run with filters (:class:`prsa_ctrl.filters.LoopFilter`): the
+#: measurement block's speed before the speed-measurement filters (rad/s) and the PID's limited
+#: command before the torque-command filters (N m).
+_FILTER_OUTPUTS = ("speed_unfiltered", "torque_command_unfiltered")
+#: Memory of one filter biquad (direct form I: last two inputs and outputs) and its per-sample
+#: parameters (b0, b1, b2, a1, a2).
+_FILTER_MEMORY = ("x1", "x2", "y1", "y2")
+_FILTER_NP = 5
+
+
+def _biquad_step(x, mem, c):
+    """``y = b0 x + b1 x1 + b2 x2 - a1 y1 - a2 y2`` and the shifted memory (direct form I, the
+    recursion of :meth:`prsa_ctrl.filters.DiscreteBiquad.step`)."""
+    y = c[0] * x + c[1] * mem[0] + c[2] * mem[1] - c[3] * mem[2] - c[4] * mem[3]
+    return y, [x, mem[0], y, mem[2]]
 
 
 def _measured_position(model: PlantModel, x, theta_q, outer: "PositionLoop"):
@@ -1146,7 +1181,7 @@ def _measured_position(model: PlantModel, x, theta_q, outer: "PositionLoop"):
 
 
 def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, split: bool,
-                outer: "PositionLoop | None" = None) -> ca.Function:
+                outer: "PositionLoop | None" = None, places: tuple[str, ...] = ()) -> ca.Function:
     """One controller sample of the drive (the only place the per-sample law is written).
 
     At the sampling instant: quantise the encoder angle, let the measurement block update,
@@ -1163,9 +1198,17 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
     follows the measurement block's; its reported values (``_POSITION_OUTPUTS``) follow
     ``_SAMPLED_OUTPUTS``; its per-sample inputs follow the ``_NPS`` parameters.
 
+    ``places`` (one entry per :class:`~prsa_ctrl.filters.LoopFilter`, in order) adds the
+    filters' biquads: ``speed_measurement`` ones filter the measured speed before the PID (its
+    error, integral and derivative all act on the filtered speed), ``torque_command`` ones
+    filter the PID's limited command, which is limited again before it is stored for the next
+    sample. Their memory (``_FILTER_MEMORY`` each) follows the position loop's; their
+    coefficients (``_FILTER_NP`` each) follow the other per-sample parameters; their reported
+    values (``_FILTER_OUTPUTS``) come last.
+
     ``(zm = [scaled plant state; memory], p = per-sample parameters) -> zm at the next sample``
     """
-    key = (settings, meas.key(), split, outer.key() if outer is not None else None)
+    key = (settings, meas.key(), split, outer.key() if outer is not None else None, tuple(places))
     if key in built.sampled:
         return built.sampled[key]
     model, scale = built.model, built.plant_scale
@@ -1173,12 +1216,15 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
     nz, nx = len(scale), model.nx
     n_meas = len(meas.memory_names)
     n_outer = len(outer.memory_names) if outer is not None else 0
-    nm = len(_MEM_HEAD) + n_meas + n_outer + len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer else 0)
+    n_filt = len(_FILTER_MEMORY) * len(places)
+    nm = len(_MEM_HEAD) + n_meas + n_outer + n_filt + len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer else 0) \
+        + (len(_FILTER_OUTPUTS) if places else 0)
     ts = p.sample_time_s
     q = 2.0 * math.pi / p.encoder_counts
     integ = _sample_integrator(built, settings)
     zm = ca.SX.sym("zm", nz + nm)
-    par = ca.SX.sym("p", _NPS + (outer.n_inputs if outer is not None else 0))
+    n_par_outer = _NPS + (outer.n_inputs if outer is not None else 0)
+    par = ca.SX.sym("p", n_par_outer + _FILTER_NP * len(places))
     z, mem = zm[:nz], zm[nz:]
     ref, load_a, slope_a, load_b, slope_b, frac, ripple = (par[i] for i in range(7))
     gains, kff, tau_ff = par[7:11], par[11], par[12]
@@ -1189,6 +1235,18 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
     theta_q = ca.floor(theta / q) * q
     w_fd = (theta_q - th_prev) / ts
     w_meas, tl_hat, m_meas = meas.update(m_meas, theta_q, th_prev)
+    m_filt = mem[5 + n_meas + n_outer : 5 + n_meas + n_outer + n_filt]
+    filt_next: list = [None] * len(places)
+
+    def run_filters(x, place):
+        for i, pl in enumerate(places):
+            if pl == place:
+                c = par[n_par_outer + _FILTER_NP * i : n_par_outer + _FILTER_NP * (i + 1)]
+                x, filt_next[i] = _biquad_step(x, m_filt[4 * i : 4 * i + 4], c)
+        return x
+
+    w_raw = w_meas
+    w_meas = run_filters(w_meas, "speed_measurement")
     beta = ca.exp(-ts / gains[3])
     deriv = beta * deriv_old + (1 - beta) * (w_meas - w_prev) / ts
     if outer is not None:
@@ -1199,6 +1257,9 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
                                              p.reflected_inertia_kg_m2)
         tau_ff = tau_ff + tau_pos
     _, u_sat, dintegral = pid_law(ref - w_meas, integral, deriv, gains, tau_ff + kff * tl_hat, p.torque_limit)
+    u_pid = u_sat
+    if "torque_command" in places:
+        u_sat = ca.fmin(ca.fmax(run_filters(u_sat, "torque_command"), -p.torque_limit), p.torque_limit)
     applied = u_pend + ripple
     if split:
         z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, frac * ts))["xf"]
@@ -1207,8 +1268,10 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
         z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, ts))["xf"]
     m_meas = meas.predict(m_meas, u_pend)
     mem_next = ca.vertcat(theta_q, integral + ts * dintegral, deriv, w_meas, u_sat, m_meas,
-                          *([m_outer] if outer is not None else []), u_pend, w_meas, w_fd, tl_hat,
-                          *([p_meas, p_ref, ref, tau_pos] if outer is not None else []))
+                          *([m_outer] if outer is not None else []), *[v for f in filt_next for v in f],
+                          u_pend, w_meas, w_fd, tl_hat,
+                          *([p_meas, p_ref, ref, tau_pos] if outer is not None else []),
+                          *([w_raw, u_pid] if places else []))
     law = ca.Function("sample_law", [zm, par], [ca.vertcat(z, mem_next)])
     built.sampled[key] = law
     return law
@@ -1256,7 +1319,7 @@ def _sample_events(ld: _Prof, sp: _Prof, ts: float, n: int):
 
 
 def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, integral0, e0, torque_noise, seed,
-                 outer=None, motion=None):
+                 outer=None, motion=None, filters=()):
     """Samples ``0 .. n``: the first ``n`` advance the plant to ``t_n``; the one at ``t_n`` is
     evaluated too, so that what the drive measured and commanded there is reported.
 
@@ -1296,13 +1359,22 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
         active = (np.arange(n + 1) % outer.rate == 0).astype(float)
         cols = np.vstack([cols, p_meas0 + p_ref / outer.unit_m(p.lead_per_rad), v_ref, a_ref, active,
                           np.tile(np.asarray(outer.gains)[:, None], (1, n + 1))])
+    places = tuple(lf.place for lf in filters)
+    n_filt = len(_FILTER_MEMORY) * len(places)
+    if filters:  # coefficients as per-sample parameters (one compiled law per filter structure)
+        coef = np.concatenate([[bq.b0, bq.b1, bq.b2, bq.a1, bq.a2] for bq in (lf.biquad(ts) for lf in filters)])
+        cols = np.vstack([cols, np.tile(coef[:, None], (1, n + 1))])
+    # Filters start in steady state: past inputs and outputs at the steady speed or torque (unit DC gain).
+    filt0 = [v for pl in places for v in [w0 if pl == "speed_measurement" else op.torque] * 4]
     mem0 = [math.floor((theta0 - w0 * ts) / q) * q, integral0, 0.0, w0, op.torque,
-            *meas.initial(theta0, w0, op.torque), *(outer.initial() if outer is not None else []),
-            *np.zeros(len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer is not None else 0))]
+            *meas.initial(theta0, w0, op.torque), *(outer.initial() if outer is not None else []), *filt0,
+            *np.zeros(len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer is not None else 0)
+                      + (len(_FILTER_OUTPUTS) if filters else 0))]
     zm = np.concatenate([np.concatenate([op.x, e0]) / scale, mem0])
+    filt_names = tuple(f"filter{i + 1}_{pl}_{m}" for i, pl in enumerate(places) for m in _FILTER_MEMORY)
     names = tuple(model.state_names) + ("energy",) * len(e0) + _MEM_HEAD + meas.memory_names \
-        + (outer.memory_names if outer is not None else ())
-    plain = _sample_law(built, settings, meas, split=False, outer=outer)
+        + (outer.memory_names if outer is not None else ()) + filt_names
+    plain = _sample_law(built, settings, meas, split=False, outer=outer, places=places)
     splits = np.flatnonzero(frac > 0)
     per_chunk = max(1, int(round(CHUNK_S / ts)))
     out = []
@@ -1310,7 +1382,7 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     while k0 <= n:
         budget.check(k0 * ts, names, zm[:nz] * scale)
         if frac[k0] > 0:
-            k1, law = k0 + 1, _sample_law(built, settings, meas, split=True, outer=outer)
+            k1, law = k0 + 1, _sample_law(built, settings, meas, split=True, outer=outer, places=places)
         else:
             later = splits[splits > k0]
             k1 = min(k0 + per_chunk, n + 1, int(later[0]) if later.size else n + 1)
@@ -1325,11 +1397,11 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     traj = np.hstack(out)
     plant_x = np.hstack([np.concatenate([op.x, e0])[:, None], traj[:nz, :n] * scale[:, None]])
     mem = np.hstack([np.asarray(mem0, float)[:, None], traj[nz:, :n]])
-    ctrl = np.vstack([mem[1:3], mem[5 : 5 + n_meas + n_outer]])
-    extra = traj[nz + len(_MEM_HEAD) + n_meas + n_outer :, :]
+    ctrl = np.vstack([mem[1:3], mem[5 : 5 + n_meas + n_outer + n_filt]])
+    extra = traj[nz + len(_MEM_HEAD) + n_meas + n_outer + n_filt :, :]
     xs = np.vstack([plant_x[:nx], ctrl, plant_x[nx:]])
     state_labels = tuple(model.state_names) + _SAMPLED_STATES + tuple(meas.memory_names) \
-        + (tuple(outer.memory_names) if outer is not None else ())
+        + (tuple(outer.memory_names) if outer is not None else ()) + filt_names
     return t, xs, extra, refs, _values_at(ld, t), state_labels, events
 
 

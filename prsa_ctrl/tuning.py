@@ -174,6 +174,7 @@ class LoopModel:
     nyquist: float | None = None  # rad/s, sampled loops
     _memo: dict = field(default_factory=dict, repr=False)  # gain-free responses on fixed grids
     profile: NDArray[np.float64] | None = None  # per-sample input (n_steps, N) of a profile loop
+    noise: Callable | None = None  # omega (rad/s) -> (n_gains, n_omega): C F per unit gain (noise_peak)
 
     def __post_init__(self) -> None:
         if self.profile is not None:
@@ -294,6 +295,38 @@ class LoopModel:
             else:
                 out[key], out["w_" + key] = top, float(w[np.argmax(mag)])
         return out
+
+    def noise_response(self, gains: Sequence[float], omega: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """Noise-to-command transfer ``C F S`` at ``omega`` (rad/s): from a speed-measurement
+        noise (rad/s, added to the raw encoder-difference speed) to the torque command (N m);
+        ``F`` is every filter on the path (the drive's speed filter and the loop filters) and
+        ``S = 1/(1 + L)``. Needs ``noise`` (:func:`drive_loop` sets it)."""
+        if self.noise is None:
+            raise ValueError(f"loop {self.name!r} has no noise-gain response; expected a drive_loop model")
+        w = np.atleast_1d(np.asarray(omega, float))
+        g = self.gvec(gains)
+        return (g @ np.asarray(self.noise(w), complex)) / (1.0 + self.loop_response(g, w))
+
+    def noise_peak(self, gains: Sequence[float]) -> dict:
+        """True peak noise gain ``Mks = max |C F S|`` (N m per rad/s; see
+        :meth:`noise_response`) up to Nyquist, located like :meth:`peaks` (dense grid refined
+        at the closed-loop poles, polished by a zoom search). Returns ``{"mks", "w_mks"}``
+        (rad/s)."""
+        g = self.gvec(gains)
+        w, _ = self._peak_grid(g)
+        mag = np.abs(self.noise_response(g, w))
+        top = float(mag.max())
+        left = np.concatenate([[-np.inf], mag[:-1]])
+        right = np.concatenate([mag[1:], [-np.inf]])
+        cand = np.flatnonzero((mag >= left) & (mag >= right) & (mag >= 0.99 * top))
+        cand = cand[np.argsort(-mag[cand])][:6]
+        lo = np.log(w[np.maximum(cand - 1, 0)])
+        hi = np.log(w[np.minimum(cand + 1, w.size - 1)])
+        x, v = _zoom_max(lambda xs: np.abs(self.noise_response(g, np.exp(xs))), lo, hi)
+        i = int(np.argmax(v)) if v.size else -1
+        if v.size and v[i] > top:
+            return {"mks": float(v[i]), "w_mks": float(math.exp(x[i]))}
+        return {"mks": top, "w_mks": float(w[np.argmax(mag)])}
 
     def margins(self, gains: Sequence[float], peaks: dict | None = None) -> Margins:
         """Ms, Mt (true peaks, see :meth:`peaks`; pass its result as ``peaks`` to reuse it),
@@ -756,6 +789,7 @@ def drive_loop(
     load_sequence: NDArray[np.float64] | None = None,
     setpoint_sequence: NDArray[np.float64] | None = None,
     setpoint_weight: float = 1.0,
+    filters: Sequence = (),
 ) -> LoopModel:
     """Loop model of the sampled drive (see module docstring) around a continuous linear plant.
 
@@ -795,6 +829,11 @@ def drive_loop(
     setpoint_weight : float
         2-DOF setpoint weight ``b`` in [0, 1] on the proportional path,
         ``u = kp (b r - y) + I``, ``I += Ts ki (r - y)`` (1: the plain PID).
+    filters : sequence of LoopFilter or (place, DiscreteBiquad) pairs
+        Loop filters run as the sampled simulator runs them: ``speed_measurement`` biquads on
+        the filtered speed before the PID, ``torque_command`` biquads on the PID's command
+        before the computation delay (each with 4 states, direct form I). A ``LoopFilter`` is
+        discretised at ``ts``.
 
     Returns
     -------
@@ -839,6 +878,7 @@ def drive_loop(
         if seq_r.shape != (n_steps + 1,) or not np.all(np.isfinite(seq_r)) or seq_r[0] != 0.0:
             raise ValueError(f"setpoint_sequence of shape {seq_r.shape}; expected {n_steps + 1} finite setpoint "
                              "deviations in rad/s starting at 0 (one per sample, both ends included)")
+    fl = _loop_biquads(filters, ts)
     ad_full, bd_full = _zoh(np.asarray(a, float), np.asarray(b, float), ts)
     rest = [i for i in range(ad_full.shape[0]) if i != angle_index]
     ad = ad_full[np.ix_(rest, rest)]
@@ -851,12 +891,21 @@ def drive_loop(
     # X = [x (without the angle), angle increment over the last sample, w_f, dfilt, I, u_pending]
     i_th, i_wf, i_d, i_i, i_u = n, n + 1, n + 2, n + 3, n + 4
     i_r = n + 5  # reference (setpoint deviation) state of a setpoint duty cycle
-    N = n + 5 + (seq_r is not None)
+    i_f = n + 5 + (seq_r is not None)  # 4 states per loop filter: x1, x2, y1, y2
+    N = i_f + 4 * len(fl)
     E = np.eye(N)
     w_m = E[i_th] / ts  # backward-difference speed
     w_f_new = alpha * E[i_wf] + (1 - alpha) * w_m
-    d_new = beta * E[i_d] + (1 - beta) * (w_f_new - E[i_wf]) / ts
-    e_meas = -w_f_new
+    filt_rows: dict[int, NDArray] = {}  # state index -> its next-value row (gain-free filters)
+    w_pid, w_pid_prev = w_f_new, E[i_wf]
+    for j, (place, bq) in enumerate(fl):
+        if place == "speed_measurement":
+            k = i_f + 4 * j
+            y = bq.b0 * w_pid + bq.b1 * E[k] + bq.b2 * E[k + 1] - bq.a1 * E[k + 2] - bq.a2 * E[k + 3]
+            filt_rows.update({k: w_pid, k + 1: E[k], k + 2: y, k + 3: E[k + 2]})
+            w_pid, w_pid_prev = y, E[k + 2]
+    d_new = beta * E[i_d] + (1 - beta) * (w_pid - w_pid_prev) / ts
+    e_meas = -w_pid
     A0 = np.zeros((N, N))
     A0[:n, :n] = ad
     A0[:n, i_u] = bu
@@ -868,6 +917,22 @@ def drive_loop(
     A0[i_u, i_i] = 1.0  # u = kp e + I - kd d
     a_kp, a_ki, a_kd = _pid_rows(N, i_u, i_i, e_meas, d_new, ts, ref=E[i_r] if seq_r is not None else None,
                                  weight=b_w)
+    for k, row in filt_rows.items():
+        A0[k] = row
+    mats = (A0, a_kp, a_ki, a_kd)
+    cmd = [m[i_u].copy() for m in mats]  # the PID's command, one row per (gain-free, kp, ki, kd) part
+    for j, (place, bq) in enumerate(fl):
+        if place == "torque_command":
+            k = i_f + 4 * j
+            for part, m in zip(cmd, mats):
+                m[k] = part
+            A0[k + 1], A0[k + 3] = E[k], E[k + 2]
+            rest_row = bq.b1 * E[k] + bq.b2 * E[k + 1] - bq.a1 * E[k + 2] - bq.a2 * E[k + 3]
+            cmd = [bq.b0 * part + (rest_row if q == 0 else 0.0) for q, part in enumerate(cmd)]
+            for part, m in zip(cmd, mats):
+                m[k + 2] = part
+    for part, m in zip(cmd, mats):
+        m[i_u] = part
     bdv = np.zeros(N)
     bdv[:n] = bdist * step
     bdv[i_th] = inc_d * step
@@ -898,15 +963,47 @@ def drive_loop(
         # Torque command -> angle increment: z^-1 (inc_x (zI - Ad)^-1 bu + inc_u).
         p_inc = zi * (_ss_response(ad, bu[:, None], inc_x[None, :], w, lambda x: np.exp(1j * x * ts)) + inc_u)
         meas = (1 - alpha) / (1 - alpha * zi) / ts
-        base = zi * meas * p_inc  # computation delay, filter, backward difference, plant
+        f_loop = _filters_response(fl, w)
+        base = zi * meas * p_inc * f_loop  # computation delay, filters, backward difference, plant
         return None, np.vstack([base * c for c in _pid_frequency_parts(zi, ts, beta)]), None, None
+
+    def noise(w):
+        w = np.asarray(w, float)
+        zi = np.exp(-1j * w * ts)
+        f_all = (1 - alpha) / (1 - alpha * zi) * _filters_response(fl, w)
+        return np.vstack([f_all * c for c in _pid_frequency_parts(zi, ts, beta)])
 
     L = response(omega)[1]
     extra = {
         k: np.concatenate([np.asarray(r, float).ravel()[rest], np.zeros(N - n)]) for k, r in (outputs or {}).items()
     }
     return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce, ts, n_steps, omega, L, tf, name=name, outputs=extra,
-                     response=response, nyquist=nyq, profile=profile)
+                     response=response, nyquist=nyq, profile=profile, noise=noise)
+
+
+def _loop_biquads(filters, ts: float) -> list:
+    """``[(place, DiscreteBiquad)]`` from LoopFilter items or ``(place, DiscreteBiquad)`` pairs."""
+    from .filters import PLACES, DiscreteBiquad, LoopFilter
+
+    out = []
+    for item in filters or ():
+        if isinstance(item, LoopFilter):
+            out.append((item.place, item.biquad(ts)))
+        elif isinstance(item, tuple) and len(item) == 2 and item[0] in PLACES and isinstance(item[1], DiscreteBiquad):
+            if abs(item[1].ts - ts) > 1e-12 * ts:
+                raise ValueError(f"filter biquad at ts = {item[1].ts!r} s; expected the loop's sample time {ts!r} s")
+            out.append(item)
+        else:
+            raise ValueError(f"filter = {item!r}; expected a LoopFilter or a (place, DiscreteBiquad) pair")
+    return out
+
+
+def _filters_response(fl: list, w: NDArray[np.float64]) -> NDArray[np.complex128]:
+    """Product of the loop filters' frequency responses at ``w`` (rad/s)."""
+    out = np.ones(np.shape(w), complex)
+    for _, bq in fl:
+        out = out * bq.frequency_response(w)
+    return out
 
 
 @dataclass

@@ -109,7 +109,7 @@ def test_bad_plant_files_name_key_and_file(tmp_path, edit, match):
 
 
 def test_unknown_plant_names_the_value_and_choices():
-    with pytest.raises(PlantFileError, match=r"unknown plant 'nope'; expected a built-in name \(iprsm-60, iprsm-90, paper-iprsm\)"):
+    with pytest.raises(PlantFileError, match=r"unknown plant 'nope'; expected a built-in name \(iprsm-60, iprsm-90, paper-heavy-slide, paper-iprsm\)"):
         load_plant("nope")
     with pytest.raises(PlantFileError, match=r"plant file 'missing\.toml' not found"):
         load_plant("missing.toml")

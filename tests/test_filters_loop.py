@@ -1,0 +1,225 @@
+"""Filters in the one sampled-loop simulator, in the linear loop model and in the tuner (issue 12)."""
+
+import math
+import os
+import tomllib
+import warnings
+
+import numpy as np
+import pytest
+
+from prsa_ctrl import PID, load_plant, run
+from prsa_ctrl.export import dumps, export_controller
+from prsa_ctrl.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
+from prsa_ctrl.filtertune import loop_builder, tune_filtered
+from prsa_ctrl.linear import linear_core
+from prsa_ctrl.model import plant_model
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    PAPER = load_plant()
+    HEAVY = load_plant("paper-heavy-slide")
+TS = PAPER.sample_time_s
+W0 = 31.4159
+# The gains-only optimum of the heavy slide at Ms 1.4 (500/1000/1500 N loops) and the notch
+# tuned with the gains (tune_filtered, Ms <= 1.4, Mks <= 0.05 N m s/rad; see the README).
+PI_GAINS_ONLY = PID(0.013337668483668632, 1.1216889020417093)
+PI_NOTCH = PID(0.04057480192257684, 4.008310897790402)
+NOTCH = LoopFilter(Notch(234.70921126764233, 35.23186297447368, -39.99999069182893), "torque_command")
+
+
+def _biquad(c, x, mem0):
+    """Direct form I from the memory ``(x1, x2, y1, y2)`` the run started with."""
+    x1, x2, y1, y2 = mem0
+    out = np.empty(len(x))
+    for k, xk in enumerate(x):
+        yk = c["b0"] * xk + c["b1"] * x1 + c["b2"] * x2 - c["a1"] * y1 - c["a2"] * y2
+        x2, x1, y2, y1 = x1, xk, y1, yk
+        out[k] = yk
+    return out
+
+
+def _mem0(r, i, place):
+    return [r.states[r.state_labels.index(f"filter{i}_{place}_{m}"), 0] for m in ("x1", "x2", "y1", "y2")]
+
+
+def _step_run(plant, pid, filters, fidelity="compliant", duration=0.11, f1=1500.0):
+    return run(plant, setpoint=W0, load=[(0, 500.0), (0.01, f1)], duration=duration, controller=pid,
+               fidelity=fidelity, discrete=True, filters=filters)
+
+
+def test_simulator_runs_each_filter_as_its_biquad():
+    """speed_measured is the speed-measurement biquad of speed_unfiltered, and the command
+    applied in sample k + 1 is the limited torque-command biquad of the PID's command at k."""
+    fl = [LoopFilter(SecondOrderLowPass(600.0, 0.7), "speed_measurement"), LoopFilter(Notch(300.0, 100.0, -20.0))]
+    r = _step_run(PAPER, PID(0.085, 14.7), fl, fidelity="rigid", duration=0.03)
+    y = dict(zip(r.output_labels, np.asarray(r.outputs)))
+    w_f = _biquad(fl[0].biquad(TS).as_dict(), y["speed_unfiltered"], _mem0(r, 1, "speed_measurement"))
+    assert np.max(np.abs(w_f - y["speed_measured"])) < 1e-9
+    u_f = np.clip(_biquad(fl[1].biquad(TS).as_dict(), y["torque_command_unfiltered"], _mem0(r, 2, "torque_command")),
+                  -3.0, 3.0)
+    assert np.ptp(u_f) > 0.3  # the load step moved the command
+    assert np.max(np.abs(u_f[:-1] - y["torque_command"][1:])) < 1e-9
+    # without filters the run is the one it always was (same law, no filter rows)
+    r0 = _step_run(PAPER, PID(0.085, 14.7), None, fidelity="rigid", duration=0.03)
+    assert "speed_unfiltered" not in r0.output_labels and r.info["filters"][1]["kind"] == "notch"
+
+
+def test_notch_at_the_mode_removes_it_from_the_command():
+    """Heavy slide, gains-only PI: the load step to 1500 N rings the contact mode in the torque
+    command; a -40 dB notch at the mode's frequency there (from the linearisation at 1500 N,
+    ~280 Hz) takes the 200-300 Hz band of the command down by more than 10x."""
+    a, _, _, _, _ = linear_core(HEAVY, W0, 1500.0, "compliant")
+    lam = np.linalg.eigvals(a)
+    osc = lam[(lam.imag > 2 * math.pi * 100) & (lam.imag < 2 * math.pi * 1000)]
+    f_mode = float(np.abs(osc[0]) / (2 * math.pi))
+    assert 250.0 < f_mode < 300.0
+
+    def band(filters):
+        r = _step_run(HEAVY, PID(0.02, 2.0), filters)
+        u = r.output("torque_command")[60:]  # after the step
+        spec = np.abs(np.fft.rfft((u - u.mean()) * np.hanning(u.size)))
+        f = np.fft.rfftfreq(u.size, TS)
+        return float(spec[(f > 200) & (f < 300)].max())
+    plain, notched = band(None), band([LoopFilter(Notch(f_mode, 60.0, -40.0))])
+    assert notched < plain / 10
+
+
+def test_lowpass_corner_as_specified():
+    """A first-order speed low-pass at 100 Hz: the measured speed's response to the raw speed
+    has its -3 dB point at 100 Hz (prewarped Tustin)."""
+    bq = LoopFilter(FirstOrderLowPass(100.0), "speed_measurement").biquad(TS)
+    assert abs(abs(complex(bq.frequency_response([2 * math.pi * 100.0])[0])) - 1 / math.sqrt(2)) < 1e-12
+    r = _step_run(PAPER, PID(0.085, 14.7), [LoopFilter(FirstOrderLowPass(100.0), "speed_measurement")],
+                  fidelity="rigid", duration=0.03)
+    y = dict(zip(r.output_labels, np.asarray(r.outputs)))
+    w_f = _biquad(bq.as_dict(), y["speed_unfiltered"], _mem0(r, 1, "speed_measurement"))
+    assert np.max(np.abs(w_f - y["speed_measured"])) < 1e-9
+
+
+def _heavy_loop(filters, horizon=0.1, load=1000.0):
+    m = plant_model(HEAVY, "compliant")
+    a, b, c, _, _ = linear_core(HEAVY, W0, load, "compliant")
+    return loop_builder(a, b, c[m.output_names.index("nut_speed")], m.index("theta_nut"), ts=TS,
+                        speed_filter=HEAVY.speed_filter_s, tf=1e-3, horizon=horizon, step=1000.0)(filters)
+
+
+@pytest.mark.parametrize("pid, filters", [(PI_GAINS_ONLY, None), (PI_NOTCH, NOTCH)], ids=["gains", "notch"])
+def test_linear_model_with_filters_predicts_the_nonlinear_run(pid, filters):
+    """The loop model with the filter (linearised at 1000 N) against the sampled nonlinear
+    compliant run 500 -> 1500 N: peak speed drop within 2 %, IAE over 0.1 s within 8 %."""
+    lp = _heavy_loop(filters)
+    e = lp.trajectory(pid.gains)["error"]
+    r = _step_run(HEAVY, pid, [filters] if filters else None)
+    t = np.asarray(r.time)
+    ev = (W0 - r.output("nut_speed"))[t >= 0.01][: e.size]
+    assert abs(ev.max() / e.max() - 1) < 0.02
+    assert abs(np.sum(np.abs(ev)) / np.sum(np.abs(e)) - 1) < 0.08
+
+
+def test_loop_model_filters_are_in_the_loop_transfer():
+    """L with a filter is L without it times the biquad's response (either place), and the
+    noise gain |C F S| falls where a low-pass cuts."""
+    base = _heavy_loop(None)
+    w = np.array([50.0, 500.0, 1500.0, 5000.0])
+    for place in ("torque_command", "speed_measurement"):
+        lf = LoopFilter(Notch(250.0, 60.0, -30.0), place)
+        lp = _heavy_loop(lf)
+        ratio = lp.loop_response(PI_NOTCH.gains, w) / base.loop_response(PI_NOTCH.gains, w)
+        assert np.allclose(ratio, lf.biquad(TS).frequency_response(w), rtol=1e-9, atol=0)
+        # and the state-space matrices are the same loop: equal closed-loop poles either place
+    p_t = np.sort_complex(_heavy_loop(LoopFilter(Notch(250.0, 60.0, -30.0))).poles(PI_NOTCH.gains))
+    p_s = np.sort_complex(_heavy_loop(LoopFilter(Notch(250.0, 60.0, -30.0), "speed_measurement")).poles(PI_NOTCH.gains))
+    # (poles at z = 0 are defective, found to ~1e-8 only)
+    assert np.allclose(np.sort(np.abs(p_t)), np.sort(np.abs(p_s)), atol=1e-7)
+    lp_lp = _heavy_loop(LoopFilter(FirstOrderLowPass(200.0), "speed_measurement"))
+    hi = np.array([8000.0])
+    assert abs(lp_lp.noise_response(PI_NOTCH.gains, hi)[0]) < 0.5 * abs(base.noise_response(PI_NOTCH.gains, hi)[0])
+
+
+def test_tuned_notch_beats_gains_alone_at_equal_ms_and_mks():
+    """One loop (1000 N, 50 ms horizon), Ms <= 1.4 and Mks <= 0.05 N m s/rad for both designs:
+    the notch tuned with the gains gives a lower IAE than the gains alone, and the reported Ms
+    and Mks are the true peaks of the returned loop (recomputed here)."""
+    bld = lambda f=None: _heavy_loop(f, horizon=0.05)  # noqa: E731
+    from prsa_ctrl.filtertune import loop_builder as _lb  # noqa: F401 (the builder protocol)
+    g = tune_filtered([bld], ts=TS, kind=None, start_gains=(0.02, 2.6), max_noise_gain=0.05)
+    n = tune_filtered([bld], ts=TS, kind="notch", start_gains=(g.pid.kp, g.pid.ki), max_noise_gain=0.05)
+    assert g.converged and n.converged
+    assert n.objective < 0.7 * g.objective
+    for d in (g, n):
+        lp = bld(d.filter)
+        assert lp.peaks(d.pid.gains)["ms"] <= 1.4 and abs(lp.peaks(d.pid.gains)["ms"] - d.ms) < 1e-9
+        assert lp.noise_peak(d.pid.gains)["mks"] <= 0.05
+    assert 150.0 < n.filter.filter.centre_hz < 350.0  # at the contact mode
+
+
+def test_exported_filters_and_pi_reproduce_the_simulated_commands():
+    """Round trip with filters: from the written TOML, the speed-measurement biquad, the PI
+    law and the torque-command biquad (limited) reproduce the simulated command to 1e-9."""
+    pid = PID(0.085, 14.7)
+    fl = [LoopFilter(SecondOrderLowPass(700.0, 0.8), "speed_measurement"), LoopFilter(Notch(400.0, 150.0, -25.0))]
+    r = _step_run(PAPER, pid, fl, fidelity="rigid", duration=0.03)
+    y = dict(zip(r.output_labels, np.asarray(r.outputs)))
+    d = tomllib.loads(dumps(export_controller(pid, PAPER, fmt="toml", filters=fl), "toml"))
+    assert all(f["simulated"] for f in d["filters"])
+
+    def biquad_run(f, x, i):  # the exported coefficients, from the run's initial filter memory
+        return _biquad(f[f["simulated_biquad"]], x, _mem0(r, i, f["place"]))
+
+    law = d["speed_controller"]["discrete"]
+    w = biquad_run(d["filters"][0], y["speed_unfiltered"], 1)
+    integral = r.states[r.state_labels.index("pid_integral"), 0]
+    u = np.empty(w.size)
+    for k, (ref, wk) in enumerate(zip(r.inputs[0], w)):
+        e = ref - wk
+        v = law["kp_n_m_s_per_rad"] * e + integral
+        us = min(max(v, -law["torque_limit_n_m"]), law["torque_limit_n_m"])
+        integral += law["sample_time_s"] * (law["ki_n_m_per_rad"] * e + law["anti_windup_gain_per_s"] * (us - v))
+        u[k] = us
+    u_pi = u.copy()
+    u = np.clip(biquad_run(d["filters"][1], u_pi, 2), -law["torque_limit_n_m"], law["torque_limit_n_m"])
+    assert np.ptp(u) > 0.3
+    assert np.max(np.abs(u[:-1] - y["torque_command"][1:])) < 1e-9
+    # sensitive: a 1 % change of the notch's b1 shows
+    d["filters"][1][d["filters"][1]["simulated_biquad"]]["b1"] *= 1.01
+    u2 = np.clip(biquad_run(d["filters"][1], u_pi, 2), -3, 3)
+    assert np.max(np.abs(u2[:-1] - y["torque_command"][1:])) > 1e-6
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"filters": "notch"}, r"filters = 'notch'; expected a list of LoopFilter or \(place, Filter\) pairs"),
+    ({"filters": [("speed", Notch(300.0, 100.0))]}, r"filter place = 'speed'; expected one of speed_measurement, "),
+    ({"filters": [Notch(2100.0, 100.0)]}, r"notch frequency 2100 Hz at ts = 0.00025 s; expected below the Nyquist"),
+    ({"filters": [Notch(300.0, 100.0)], "discrete": False}, r"with discrete = False; expected discrete=True"),
+    ({"filters": [3.0]}, r"filter entry = 3.0; expected a LoopFilter, a Filter or a \(place, Filter\) pair"),
+])
+def test_bad_filter_inputs_rejected_with_one_line(kwargs, match):
+    kw = dict(load=500.0, duration=0.01, controller=PID(0.085, 14.7), fidelity="rigid", discrete=True)
+    kw.update(kwargs)
+    with pytest.raises(ValueError, match=match) as exc:
+        run(PAPER, **kw)
+    assert "\n" not in str(exc.value)
+
+
+def test_bad_tuning_inputs_rejected_with_one_line():
+    bld = lambda f=None: _heavy_loop(f, horizon=0.05)  # noqa: E731
+    for kw, match in [({"kind": "band"}, r"kind = 'band'; expected one of notch, lowpass1, lowpass2 or None"),
+                      ({"place": "motor"}, r"place = 'motor'; expected one of"),
+                      ({"max_noise_gain": -1.0}, r"max_noise_gain = -1.0; expected a positive finite number"),
+                      ({"start_gains": (0.0, 1.0)}, r"start_gains = \(0.0, 1.0\); expected \(kp, ki\) > 0")]:
+        args = dict(ts=TS, start_gains=(0.02, 2.6))
+        args.update(kw)
+        with pytest.raises(ValueError, match=match):
+            tune_filtered([bld], **args)
+    assert loop_filters(None) == () and loop_filters(Notch(300.0, 100.0))[0].place == "torque_command"
+
+
+@pytest.mark.skipif(not os.environ.get("PRSA_SLOW"), reason="slow evidence (PRSA_SLOW=1): the README case")
+def test_readme_case_three_loops():
+    """The README case: Ms <= 1.4 and Mks <= 0.05 at 500, 1000 and 1500 N, objective at 1000 N."""
+    blds = [lambda f=None, L=L: _heavy_loop(f, horizon=0.3, load=L) for L in (1000.0, 500.0, 1500.0)]
+    g = tune_filtered(blds[:1], blds[1:], ts=TS, kind=None, start_gains=(0.0217, 2.6), max_noise_gain=0.05)
+    n = tune_filtered(blds[:1], blds[1:], ts=TS, kind="notch", start_gains=(g.pid.kp, g.pid.ki), max_noise_gain=0.05)
+    assert g.converged and n.converged and n.objective < 0.35 * g.objective
+    assert n.ms <= 1.4 and n.mks <= 0.05 and g.ms <= 1.4 and g.mks <= 0.05
