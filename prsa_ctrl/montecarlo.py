@@ -529,7 +529,8 @@ def _run_dask(job: _Job, chunks: list, workers: int, scheduler: str, took) -> No
     cluster = None
     if scheduler == "local":
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None)
+                               dashboard_address=None,  # no dashboard; its HTTP server on a free port,
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})  # not 8787 (may be taken)
         client = Client(cluster)
     else:
         client = Client(scheduler, timeout=30)

@@ -103,10 +103,21 @@ def test_dask_local_cluster_gives_bit_identical_results(serial, setup):
     distributed = pytest.importorskip("distributed", reason="Dask is an optional extra: pip install 'prsa-ctrl[dask]'")
     p, s = setup
     # A real 2-worker cluster on the loopback address, reached like a remote one (tcp://...).
+    # Port 8787 (Dask's default HTTP port) is held busy, as another cluster on the machine would:
+    # the cluster must not depend on it (it failed here with "Port 8787 is already in use").
+    import socket
+
+    busy = socket.socket()
+    try:
+        busy.bind(("0.0.0.0", 8787))
+        busy.listen()
+    except OSError:  # already taken by something else: the same condition
+        pass
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", processes=True,
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster:
         das = mc.run_monte_carlo(p, s, {"fast": FAST, "slow": SLOW}, N, seed=7, scheduler=cluster.scheduler_address,
                                  workers=2, chunk=3, quiet=True)
+    busy.close()
     assert das.backend == "dask" and das.complete
     assert np.array_equal(das.samples["metrics"], serial.samples["metrics"], equal_nan=True)
     assert das.samples["values"].keys() == serial.samples["values"].keys()
