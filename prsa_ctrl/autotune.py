@@ -459,6 +459,39 @@ def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
     return flags
 
 
+def integral_warning(design: Design, scene: Scene) -> str | None:
+    """A warning (not a flag) when a duty-cycle record cannot inform the integral gain: the
+    integral time ``Ti = kp / ki`` is longer than the record (or ``ki = 0``), so the
+    objective barely depends on ``ki`` and the tuner's value is arbitrary. Typical for
+    ``goal = "setpoint"`` at a constant load: the viscous plant follows setpoint changes on the
+    proportional action, and the design then holds a load change only slowly (the integral
+    removes a load's speed offset over several ``Ti``).
+
+    It is a warning rather than a health flag: the design does what its objective asks and the
+    nonlinear verification agrees with the prediction (flags mark designs whose verified runs
+    contradict the design); what is missing is information in the scene, which the message
+    says how to add.
+
+    Returns
+    -------
+    str or None
+    """
+    if not scene.is_profile or scene.controller not in ("pi", "pid"):
+        return None
+    kp, ki = design.pid.kp, design.pid.ki
+    record = scene.duration
+    ti = kp / ki if ki > 0 else math.inf
+    if ti <= record:
+        return None
+    ti_text = f"Ti = {ti:.3g} s" if math.isfinite(ti) else "ki = 0"
+    if scene.goal == "setpoint":
+        return (f"the setpoint-only goal does not inform the integral gain ({ti_text} > record {record:g} s): the "
+                "objective hardly changes with ki, so this design holds a load change only slowly; use goal = "
+                "\"mix\" with a load profile (or a load-step scene) to tune ki for load rejection")
+    return (f"the integral time is longer than the record ({ti_text} > {record:g} s): the record does not show the "
+            "integral's effect and does not inform ki; lengthen the record or add load changes")
+
+
 def verify_settings(scene: Scene) -> SimSettings:
     """Integrator tolerance from the scene's accuracy: ``1e-4 x accuracy`` (clipped to
     [1e-10, 1e-5]). At 1e-6 (accuracy 1 %) the sampled compliant loop's nut speed differs from a
@@ -752,6 +785,9 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     for d in candidates + baselines + list(extra.values()):
         for f in d.flags:
             warnings_out.append(f"{d.name}: {f}")
+    w_int = integral_warning(best, scene)
+    if w_int:
+        warnings_out.append(f"{best.name}: {w_int}")
     for c in comparisons:
         if not c["beaten"]:
             mt_note = ""

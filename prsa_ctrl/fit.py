@@ -85,6 +85,9 @@ _RADAU_A = (
     ((16 - _S6) / 36, (16 + _S6) / 36, 1 / 9),
 )
 _Z95 = 1.959963984540054
+#: Above this correlation the data cannot separate two fitted keys (warning; a key this
+#: correlated with an unidentifiable one is not identified either).
+_CORR_SEPARATE = 0.95
 #: Budget of one fit: total sample intervals of all records.
 MAX_INTERVALS = 200_000
 #: A Gauss-Newton attempt whose constraint residual fell by less than 10 % over this many
@@ -109,7 +112,11 @@ class FitResult:
     plant : Plant
         The base plant with the fitted values (``Plant.with_params``); sources say ``fit: ...``.
     parameters : dict
-        ``{key: {"value": v, "ci95": [lo, hi], "unit": u}}`` in file units.
+        ``{key: {"value": v, "ci95": [lo, hi], "unit": u, "kept_base": bool}}`` in file units
+        (no ``kept_base`` for the delay, which is never written).
+        A key with ``kept_base`` true was not identifiable from the data (:func:`fit_plant`):
+        ``value`` and ``ci95`` are what the fit with it free gave, ``written`` the base value the
+        plant keeps and ``reason`` why; the other keys are refitted with it held there.
     reflected_inertia_kg_m2 : dict
         The total inertia at the nut in the same form, kg m^2.
     correlation : ndarray
@@ -128,6 +135,10 @@ class FitResult:
         Per record ``{"time_s", "measured", "model"}`` (nut speed, rad/s) and per frequency
         response ``{"frequency_hz", "measured", "model"}`` (complex, (rad/s)/(N m)), for
         :func:`fit_figures`.
+    not_identified : dict
+        ``{key: reason}`` for the fitted keys that the data of this fit cannot inform (95 % CI
+        wider than the key's physical range, more than +/- 50 % of the value, or at a bound of
+        the range; :func:`_not_identified`).
     delay : dict or None
         When ``drive.command_delay_s`` was fitted: the delay (``value``, ``ci95``, s; ``samples``)
         and how it maps to the plant file, which has no delay key:
@@ -148,11 +159,18 @@ class FitResult:
     solver: dict
     traces: dict = field(default_factory=dict, repr=False)
     delay: dict | None = None
+    not_identified: dict = field(default_factory=dict)
 
     @property
     def plant_keys(self) -> tuple[str, ...]:
-        """The fitted keys that are plant-file keys (the delay is not)."""
-        return tuple(k for k in self.keys if k not in PSEUDO_KEYS)
+        """The fitted keys written into the plant file (not the delay, not the keys kept at the
+        base value)."""
+        return tuple(k for k in self.keys if k not in PSEUDO_KEYS and not self.parameters[k].get("kept_base"))
+
+    @property
+    def kept_base(self) -> tuple[str, ...]:
+        """Keys the data could not inform: the plant file keeps their base value and source."""
+        return tuple(k for k, v in self.parameters.items() if v.get("kept_base"))
 
     def report(self) -> dict:
         """JSON-ready report (stable keys: ``parameters``, ``reflected_inertia_kg_m2``,
@@ -336,8 +354,20 @@ def fit_plant(
     max_iter: int = 50,
     tol: float = 1e-8,
     min_speed_rad_s: float | None = None,
+    keep_unidentified: bool = True,
 ) -> FitResult:
     """Fit plant parameters to measured time-domain records (output error through the model).
+
+    Keys the data cannot inform (:func:`_not_identified`: a 95 % CI wider than the key's
+    physical range or than +/- 50 % of the value, or a value at a bound of the range) keep the
+    base plant's value and source in the fitted plant and get no ``[uncertainty]`` entry from
+    the fit; their report entry says ``"kept_base": true`` with the reason. The other keys keep
+    the values and intervals of the fit with every key free: those intervals allow for the
+    unidentifiable keys being unknown (a refit with them held at base values would give
+    narrower intervals conditional on values the data do not support, and fails outright
+    when the data contradict them). The fit % of the plant as written (base values for the
+    kept keys) is reported beside the free fit's (``solver["fit_percent_written"]``) and a
+    warning names the records it fits worse.
 
     Parameters
     ----------
@@ -375,6 +405,8 @@ def fit_plant(
         friction law is not smooth there; see :func:`_segments`). Default: three Stribeck
         velocities plus the Karnopp blend band of the base plant (about 1 rad/s for the paper
         plant); 0 keeps every sample.
+    keep_unidentified : bool
+        False writes every fitted value into the plant, identifiable or not.
 
     Returns
     -------
@@ -391,8 +423,18 @@ def fit_plant(
 
     plant = load_plant() if plant is None else plant
     records, frf = list(records), list(frf)
+
     if not records and frf:
-        return fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=delay_samples)
+        return fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=delay_samples,
+                       keep_unidentified=keep_unidentified)
+    return _fit_records(records, plant, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
+                        segment_s=segment_s, delay_samples=delay_samples, substeps=substeps, max_iter=max_iter,
+                        tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified)
+
+
+def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
+                 min_speed_rad_s, keep_unidentified) -> FitResult:
+    """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
     keys = tuple(DEFAULT_KEYS if keys is None else keys)
@@ -456,14 +498,26 @@ def fit_plant(
         warns.append(f"residuals strongly coloured (lag-1 autocorrelation {cov_info['residual_autocorrelation_lag1']:.2f}): "
                      "the intervals are widened for it (HAC) but stay optimistic (measured: 73 % coverage on AR(1) "
                      "noise of 0.95); look for unmodelled dynamics or a filtered encoder signal")
-    params, corr, fitted, reflected, delay = _finish(plant, keys, values, cov, lo * scales, hi * scales, names, warns,
-                                                         ts)
+    params, corr, fitted, reflected, delay, reasons = _finish(plant, keys, values, cov, lo * scales, hi * scales,
+                                                              names, warns, ts, keep_unidentified)
     fit_pct = dict(sol["fit_percent"])
     traces = dict(sol["traces"])
-    for rec in validate:
+    kept = [k for k in keys if params[k].get("kept_base")]
+    s_written = np.array([plant.values[k] / sc if k in kept else sv for k, sv, sc in zip(keys, s_opt, scales)])
+    written_pct = None
+    if kept:  # the plant as written (base values for the kept keys) on the fitted records
+        wsol = fit_run.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
+        written_pct = dict(wsol["fit_percent"])
+        worse = [f"{n} {written_pct[n]:.2f} % (free fit {fit_pct[n]:.2f} %)" for n in written_pct
+                 if written_pct[n] < fit_pct[n] - 1.0]
+        if worse:
+            warns.append(f"the plant as written, with {', '.join(kept)} at the base value{'s' if len(kept) > 1 else ''}, "
+                         f"fits {'; '.join(worse)}: the data inform a combination of the kept keys but not each "
+                         "one; record the excitation the warnings above name to identify them")
+    for rec in validate:  # the plant as written
         vrun = _Problem(fitted, keys, scales, fidelity, [rec], ts, segment_s, delay_samples, substeps,
                         min_speed_rad_s)
-        vsol = vrun.solve(s_opt, s_opt, s_opt, max_iter, tol, fixed=True)
+        vsol = vrun.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
         fit_pct.update(vsol["fit_percent"])
         traces.update(vsol["traces"])
     for fr in frf:  # frequency responses given with time-domain data validate the fitted plant
@@ -488,37 +542,66 @@ def fit_plant(
         "fidelity": fidelity,
         **cov_info,
     }
-    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces)
+    if written_pct is not None:
+        solver["fit_percent_written"] = written_pct
+    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, None, reasons)
 
 
-def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None):
+def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_unidentified=True):
     """Parameters with 95 % CIs, correlation, identifiability warnings, the fitted plant, the
-    reflected inertia and the delay block (None unless the delay was fitted), from fitted values
-    and their covariance (file units; ``lo``/``hi`` bounds; ``ts`` the sample time, s)."""
+    reflected inertia, the delay block (None unless the delay was fitted) and the reasons of the
+    keys not identified, from fitted values and their covariance (file units; ``lo``/``hi``
+    bounds; ``ts`` the sample time, s). With ``keep_unidentified`` those keys keep the base
+    plant's value, source and ``[uncertainty]`` entry."""
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
     corr = np.nan_to_num(corr)
     ts = plant.sample_time_s if ts is None else ts
-    params, overrides = {}, {}
+    params, overrides, reasons = {}, {}, {}
     for i, k in enumerate(keys):
         unit = FITTABLE[k][0]
         ci = [float(values[i] - _Z95 * std[i]), float(values[i] + _Z95 * std[i])]
         params[k] = {"value": float(values[i]), "ci95": ci, "unit": unit}
-        if k not in PSEUDO_KEYS:
+        if k not in PSEUDO_KEYS:  # the delay is never written, so never kept either
             overrides[k] = float(values[i])
+            params[k]["kept_base"] = False
         width = _Z95 * std[i]
         floor = 0.2 * ts if k == DELAY_KEY else 1e-3 * (hi[i] - lo[i])  # a delay of 0 is a value like any
+        u = _unit_text(unit)
         if not np.isfinite(width) or width > 0.5 * max(abs(values[i]), floor):
-            warns.append(f"{k} is not identifiable from this data (95 % CI +/- {width:.3g} {unit} around "
+            warns.append(f"{k} is not identifiable from this data (95 % CI +/- {width:.3g}{u} around "
                          f"{values[i]:.4g}): {_REMEDY_KEY.get(k, 'excite it more')}")
         if values[i] <= lo[i] * (1 + 1e-6) + 1e-15 or values[i] >= hi[i] * (1 - 1e-6):
-            warns.append(f"{k} = {values[i]:.4g} {unit} is at its bound [{lo[i]:.4g}, {hi[i]:.4g}]: its interval "
+            warns.append(f"{k} = {values[i]:.4g}{u} is at its bound [{lo[i]:.4g}, {hi[i]:.4g}]: its interval "
                          "is not reliable" + ("; move the bracket with delay_samples (--delay-samples)"
                                               if k == DELAY_KEY else ""))
+        reason = _not_identified(k, float(values[i]), float(width), _physical_range(plant, k, lo[i], hi[i]), floor)
+        if reason:
+            reasons[k] = reason
+    # A key the data cannot separate from an unidentifiable one is not identified either: its
+    # narrow interval holds only with the other at its (unsupported) fitted value or bound.
+    for _ in range(len(keys)):
+        more = {}
+        for i, k in enumerate(keys):
+            if k in reasons:
+                continue
+            j = next((j for j, kk in enumerate(keys) if kk in reasons and abs(corr[i, j]) > _CORR_SEPARATE), None)
+            if j is not None:
+                more[k] = (f"strongly correlated ({corr[i, j]:+.3f}) with {keys[j]}, which the data cannot inform: "
+                           "only their combination is identified")
+        if not more:
+            break
+        reasons.update(more)
+    for k, reason in reasons.items():
+        if keep_unidentified and k not in PSEUDO_KEYS:
+            del overrides[k]
+            params[k].update(kept_base=True, written=plant.values[k], reason=reason)
+            warns.append(f"{k} kept at the base value {plant.values[k]:.6g}{_unit_text(FITTABLE[k][0])} in the plant "
+                         f"file (not identifiable: {reason})")
     for i in range(len(keys)):
         for j in range(i + 1, len(keys)):
-            if abs(corr[i, j]) > 0.95:
+            if abs(corr[i, j]) > _CORR_SEPARATE:
                 pair = {keys[i], keys[j]}
                 if pair == {DELAY_KEY, "drive.current_loop_bandwidth_hz"}:
                     warns.append(f"{DELAY_KEY} and drive.current_loop_bandwidth_hz are strongly correlated "
@@ -530,7 +613,7 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None):
                     warns.append(f"{keys[i]} and {keys[j]} are strongly correlated ({corr[i, j]:+.3f}): "
                                  "the data cannot separate them, and their intervals hold only if the model is "
                                  "exact (record load changes, speed levels in both directions)")
-    plant_keys = [k for k in keys if k not in PSEUDO_KEYS]
+    plant_keys = [k for k in keys if k not in PSEUDO_KEYS and not params[k]["kept_base"]]
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")  # the base plant's own geometry notes were given when it loaded
         fitted = plant.with_params(overrides, name=f"{plant.name}-fit")
@@ -538,19 +621,21 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None):
         for k in plant_keys:
             lo_ci, hi_ci = params[k]["ci95"]
             srcs[k] = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g})"
-        unc = {k: v for k, v in (getattr(plant, "uncertainty", None) or {}).items() if k not in keys}
+        unc = {k: v for k, v in (getattr(plant, "uncertainty", None) or {}).items() if k not in plant_keys}
         fit_unc = _uncertainty_entries(fitted, {k: params[k] for k in plant_keys}, names,
-                                       [std[keys.index(k)] for k in plant_keys])
+                                       [std[keys.index(k)] for k in plant_keys],
+                                       [_physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)])
+                                        for k in plant_keys])
         unc.update(fit_unc)
         for k in plant_keys:
             if k not in fit_unc:
                 warns.append(f"{k}: no [uncertainty] entry written (its interval is degenerate or leaves the "
                              "physical range)")
         fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
-                       description=fitted.description, uncertainty=unc)
+                       description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc)
     extra = plant.reflected_inertia_kg_m2 - plant.values["nut.inertia_kg_m2"]
     j_ref = fitted.reflected_inertia_kg_m2
-    if "nut.inertia_kg_m2" in params:
+    if "nut.inertia_kg_m2" in plant_keys:
         ci = [c + extra for c in params["nut.inertia_kg_m2"]["ci95"]]
     else:
         ci = [j_ref, j_ref]
@@ -558,7 +643,39 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None):
     delay = None
     if DELAY_KEY in keys:
         delay = _delay_block(fitted, keys, values, cov, ts)
-    return params, corr, fitted, reflected, delay
+    return params, corr, fitted, reflected, delay, reasons
+
+
+def _unit_text(unit: str) -> str:
+    """`` N m`` for a unit, nothing for a dimensionless key (``-``)."""
+    return "" if unit in ("-", "") else f" {unit}"
+
+
+def _physical_range(plant: Plant, key: str, lo: float, hi: float) -> tuple[float, float]:
+    """Where a fitted key can physically lie, file units: the fit's bounds ``lo..hi``
+    (:func:`_bounds`, e.g. the no-load torque below half the motor's torque limit) within the
+    plausible range of :data:`prsa_ctrl.plant.PLAUSIBLE`."""
+    from .plant import PLAUSIBLE
+
+    p_lo, p_hi, _ = PLAUSIBLE.get(key, (-math.inf, math.inf, ""))
+    return max(float(lo), float(p_lo)), min(float(hi), float(p_hi))
+
+
+def _not_identified(key: str, value: float, half_width: float, rng: tuple[float, float], floor: float) -> str | None:
+    """Why the data cannot inform ``key`` (None when they can): its 95 % interval (``value +/-
+    half_width``) is wider than the physical range ``rng``, wider than +/- 50 % of the value
+    (``floor`` for values near 0), or the value sits at an end of the range."""
+    lo, hi = rng
+    if not math.isfinite(half_width):
+        return "its 95 % CI is not finite"
+    if 2 * half_width > hi - lo:
+        return (f"its 95 % CI {value - half_width:.6g}..{value + half_width:.6g} is wider than its physical range "
+                f"{lo:.6g}..{hi:.6g}")
+    if value <= lo * (1 + 1e-6) + 1e-15 or value >= hi * (1 - 1e-6):
+        return f"the fit ends at a bound of its range {lo:.6g}..{hi:.6g}"
+    if half_width > 0.5 * max(abs(value), floor):
+        return f"its 95 % CI +/- {half_width:.3g} is more than half the value {value:.6g}"
+    return None
 
 
 def _delay_block(fitted: Plant, keys, values, cov, ts: float) -> dict:
@@ -585,17 +702,19 @@ def _delay_block(fitted: Plant, keys, values, cov, ts: float) -> dict:
     }
 
 
-def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std) -> dict:
+def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=None) -> dict:
     """``[uncertainty]`` entries of the fitted keys: a normal distribution with the fit's standard
     deviation, truncated at the 95 % interval (1.96 sigma) or closer where the key's physical
     range or the plant's cross-checks end; a key at a bound of its range (e.g. no-load torque 0)
     gets a uniform distribution from that bound to its interval's far end. Keys whose interval
-    is degenerate or invalid are left out (the fit's warnings say why)."""
+    is degenerate or invalid are left out (the fit's warnings say why). ``ranges``: each key's
+    physical range (:func:`_physical_range`); no entry reaches beyond it."""
     from .errors import PlantFileError
     from .plant import SCHEMA
 
     out = {}
-    for (k, v), sd in zip(params.items(), std):
+    ranges = ranges if ranges is not None else [(-math.inf, math.inf)] * len(params)
+    for (k, v), sd, (r_lo, r_hi) in zip(params.items(), std, ranges):
         value = v["value"]
         lo_ci, hi_ci = v["ci95"]
         if not (np.isfinite(sd) and sd > 0):
@@ -604,6 +723,9 @@ def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std) -> dic
         kind = SCHEMA[section][sub]
         floor = 0.0 if kind in ("positive", "non-negative", "fraction in (0, 1]") else -math.inf
         ceil = 1.0 if kind == "fraction in (0, 1]" else math.inf
+        floor, ceil = max(floor, r_lo), min(ceil, r_hi)
+        if not floor <= value <= ceil:
+            continue
         src = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g}; sigma from the fit's covariance)"
         trunc = min(_Z95, (value - floor) / sd * (1 - 1e-9), (ceil - value) / sd * (1 - 1e-9))
         if trunc >= 0.1:
@@ -611,7 +733,8 @@ def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std) -> dic
                      "source": src}
             ends = (value - entry["truncate"] * sd, value + entry["truncate"] * sd)
         elif kind == "non-negative" and value - floor < 0.1 * sd:
-            entry = {"dist": "uniform", "low": float(floor), "high": float(max(hi_ci, value + sd)), "source": src}
+            entry = {"dist": "uniform", "low": float(floor), "high": float(min(max(hi_ci, value + sd), ceil)),
+                     "source": src}
             ends = (entry["low"], entry["high"])
         else:
             continue
@@ -910,6 +1033,7 @@ def fit_frf(
     fidelity: str = "rigid",
     delay_samples: int = 0,
     max_nfev: int = 200,
+    keep_unidentified: bool = True,
 ) -> FitResult:
     """Fit plant parameters to measured frequency responses (torque command -> nut speed).
 
@@ -942,6 +1066,8 @@ def fit_frf(
         Extra command delay, samples.
     max_nfev : int
         Budget of model evaluations.
+    keep_unidentified : bool
+        Keys the responses cannot inform keep the base value (see :func:`fit_plant`).
 
     Returns
     -------
@@ -1033,8 +1159,8 @@ def fit_frf(
     values = sol.x * scales
     names_txt = ", ".join(fr.name for fr in frf)
     warns = [w for fr in frf for w in fr.warnings]
-    params, corr, fitted, reflected, delay = _finish(plant, keys, values, cov, lo * scales, hi * scales, names_txt,
-                                                     warns, ts_fit)
+    params, corr, fitted, reflected, delay, reasons = _finish(plant, keys, values, cov, lo * scales, hi * scales, names_txt,
+                                                              warns, ts_fit, keep_unidentified)
     if "contact.stiffness_n_per_mm_e" in keys:
         warns += _mode_warnings(fitted, frf, math.sqrt(s2) / np.sqrt(np.mean(np.concatenate(weights) ** 2)))
     fit_pct, traces = {}, {}
@@ -1054,7 +1180,7 @@ def fit_frf(
         "fidelity": fidelity,
         "covariance": "classic (residual variance x inverse Gauss-Newton matrix)",
     }
-    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay)
+    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay, reasons)
 
 
 def _mode_warnings(fitted: Plant, frf: Sequence[FrfRecord], noise_log: float) -> list[str]:

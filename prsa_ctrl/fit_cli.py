@@ -3,13 +3,23 @@
 ``prsa-fit [DATA.csv ...] [--frf FRF.csv ...] --out MY.toml [--json REPORT.json] [--plots DIR]
 [--plant BASE] [--fit KEY,...] [--fidelity rigid|compliant] [--validate OTHER.csv ...]
 [--columns name=header,...] [--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N]
-[--coherence-min C] [--delay-samples N]``
+[--coherence-min C] [--delay-samples N] [--verbose]``
 
 ``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
-[--f-min HZ] [--f-max HZ] [--amplitude A] [--offset A]``
+[--f-min HZ] [--f-max HZ] [--amplitude RAD_S] [--offset RAD_S]``
 
 Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge.
-Output paths are checked before the fit; every file is written atomically.
+Output paths are checked before the fit (two outputs on one path are refused); every file is
+written atomically. Python warnings (e.g. the base plant's geometry note) are shown after the
+result as one ``prsa-fit: note:`` line each; the geometry note of a built-in plant only with
+``--verbose``, as in ``prsa-tune``.
+
+Keys the data cannot inform keep the base plant's value and source in the written file
+(:func:`prsa_ctrl.fit.fit_plant`); the output names them and the JSON marks them
+``"kept_base": true`` with the reason.
+
+An excitation design is a nut-speed setpoint: its peak ``|offset| + amplitude`` must stay within
+:data:`DESIGN_MAX_SPEED_RAD_S` (the tuner's speed limit, ``prsa_ctrl.scene.SETPOINT_MAX_RPM``).
 """
 
 from __future__ import annotations
@@ -19,12 +29,17 @@ import json
 import math
 import re
 import sys
+import warnings
 from pathlib import Path
 from typing import Sequence
 
-from .errors import PlantFileError
+from .errors import GeometryWarning, PlantFileError
 
-__all__ = ["main", "build_parser", "plant_toml"]
+__all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
+
+#: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
+#: speed range the tuner accepts (:data:`prsa_ctrl.scene.SETPOINT_MAX_RPM`, 6000 rpm).
+DESIGN_MAX_SPEED_RAD_S = 6000.0 * math.pi / 30.0
 
 
 class _UsageError(Exception):
@@ -33,17 +48,19 @@ class _UsageError(Exception):
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2, no usage dump
-        raise _UsageError(message)
+        # argparse says "argument --duration: '-1': ..."; the tools say "--duration '-1': ..."
+        raise _UsageError(re.sub(r"^argument (-[-\w]+)(?:/-[-\w]+)*: ", r"\1 ", message))
 
 
 def _number(flag: str, positive: bool = True):
+    """Converter of a number flag; the message names the value as typed (argparse adds the flag)."""
     def conv(text: str) -> float:
         try:
             v = float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected a number") from None
+            raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
         if not math.isfinite(v) or (positive and v <= 0):
-            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected a finite number{' > 0' if positive else ''}")
+            raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number{' > 0' if positive else ''}")
         return v
 
     return conv
@@ -87,9 +104,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sample-time", type=_number("--sample-time"), default=2.5e-4, metavar="S", help="sample time, s")
     p.add_argument("--f-min", type=_number("--f-min"), default=1.0, metavar="HZ", help="lowest frequency, Hz")
     p.add_argument("--f-max", type=_number("--f-max"), default=200.0, metavar="HZ", help="highest frequency, Hz")
-    p.add_argument("--amplitude", type=_number("--amplitude"), default=20.0, metavar="A",
-                   help="peak excursion (rad/s for a speed setpoint)")
-    p.add_argument("--offset", type=_number("--offset", positive=False), default=30.0, metavar="A", help="mean value")
+    p.add_argument("--amplitude", type=_number("--amplitude"), default=20.0, metavar="RAD_S",
+                   help="peak excursion of the speed setpoint, rad/s (|offset| + amplitude at most "
+                   f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = 6000 rpm)")
+    p.add_argument("--offset", type=_number("--offset", positive=False), default=30.0, metavar="RAD_S",
+                   help="mean of the speed setpoint, rad/s")
+    p.add_argument("--verbose", action="store_true", help="also show the geometry note of a built-in base plant")
     return p
 
 
@@ -110,7 +130,10 @@ def _uncertainty_line(key: str, entry) -> str:
     return f"{_toml_string(key)} = {{ {fields} }}"
 
 
-def plant_toml(base_text: str, plant, name: str, keys: Sequence[str]) -> str:
+_ONE_LINE_DESCRIPTION = r"""^description\s*=\s*("(?:[^"\\]|\\.)*"|'[^']*')\s*(#.*)?$"""
+
+
+def plant_toml(base_text: str, plant, name: str, keys: Sequence[str], description: str | None = None) -> str:
     """The base plant file's text with the fitted keys' values, sources and uncertainty replaced.
 
     Parameters
@@ -125,8 +148,15 @@ def plant_toml(base_text: str, plant, name: str, keys: Sequence[str]) -> str:
         The new plant name.
     keys : sequence of str
         Plant keys to rewrite (``section.key``).
+    description : str, optional
+        The new top-level description (replaces the base's, or follows the name line).
     """
     out, section, done = [], None, set()
+    has_desc = False
+    for line in base_text.splitlines():
+        if re.match(r"^\s*\[", line):
+            break
+        has_desc = has_desc or bool(re.match(r"^description\s*=", line))
     unc = dict(getattr(plant, "uncertainty", None) or {})
     new_unc = [k for k in keys if k in unc]
     unc_header = None
@@ -139,6 +169,11 @@ def plant_toml(base_text: str, plant, name: str, keys: Sequence[str]) -> str:
         m_name = re.match(r"^name\s*=", line)
         if m_name and section is None:
             line = f"name = {_toml_string(name)}"
+            if description is not None and not has_desc:
+                out.append(line)
+                line = f"description = {_toml_string(description)}"
+        if description is not None and section is None and re.match(_ONE_LINE_DESCRIPTION, line):
+            line = f"description = {_toml_string(description)}"  # a multi-line one is kept as it is
         if section == "uncertainty":
             m_unc = re.match(r'^\s*"?([A-Za-z0-9_.]+)"?\s*=', line)
             if m_unc and m_unc.group(1) in keys:
@@ -187,11 +222,30 @@ def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
     return src.read_text(encoding="utf-8"), (str(src) if isinstance(src, Path) else None)
 
 
-def _design(args) -> int:
+def _typed(argv: Sequence[str], flag: str, value: float) -> str:
+    """A flag's value as the user typed it (``--flag V`` or ``--flag=V``), else the default."""
+    for i, a in enumerate(argv):
+        if a == flag and i + 1 < len(argv):
+            return argv[i + 1]
+        if a.startswith(flag + "="):
+            return a[len(flag) + 1:]
+    return f"{value:g} (default)"
+
+
+def _design(args, argv: Sequence[str]) -> int:
     import numpy as np
 
     from .fitdata import design_excitation
 
+    if args.json:
+        raise _UsageError(f"--json {args.json!r} with --design; expected no JSON report (the design writes only the "
+                          "excitation CSV named by --out)")
+    peak = abs(args.offset) + args.amplitude
+    if peak > DESIGN_MAX_SPEED_RAD_S:
+        raise _UsageError(f"--amplitude {_typed(argv, '--amplitude', args.amplitude)} with --offset "
+                          f"{_typed(argv, '--offset', args.offset)}: the setpoint reaches "
+                          f"{peak:.6g} rad/s ({peak * 30 / math.pi:.6g} rpm); expected |offset| + amplitude <= "
+                          f"{DESIGN_MAX_SPEED_RAD_S:.6g} rad/s (6000 rpm, the tuner's speed limit)")
     t, v = design_excitation(args.design, duration_s=args.duration, sample_time_s=args.sample_time,
                              f_min_hz=args.f_min, f_max_hz=args.f_max, amplitude=args.amplitude, offset=args.offset)
     _check_outputs({"--out": args.out}, [])
@@ -204,7 +258,28 @@ def _design(args) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``prsa-fit``; returns the exit code."""
+    """Entry point of ``prsa-fit``; returns the exit code.
+
+    Python warnings raised on the way are collected and shown after the result, one
+    ``prsa-fit: note:`` line each (never Python's two-line format); the geometry note of a
+    built-in plant only with ``--verbose``.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code = _main(argv)
+    seen = set()
+    for w in caught:
+        text = " ".join(str(w.message).split())
+        if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose):
+            continue
+        seen.add(text)
+        print(f"prsa-fit: note: {text}", file=sys.stderr)
+    return code
+
+
+def _main(argv: Sequence[str]) -> int:
     from .fitdata import DataError, load_frf, load_record, parse_columns
     from .output import OutputError
 
@@ -213,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.design:
             if args.data:
                 raise _UsageError(f"--design with data files {' '.join(args.data)}; expected one or the other")
-            return _design(args)
+            return _design(args, argv)
         if not args.data and not args.frf:
             raise _UsageError("no data file; expected prsa-fit DATA.csv [...] [--frf FRF.csv] --out PLANT.toml "
                               "(or --design)")
@@ -238,6 +313,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         outs = {"--out": args.out}
         if args.json:
             outs["--json"] = args.json
+        from .output import check_distinct
+
+        check_distinct(outs)
         _check_outputs(outs, inputs)
         plot_paths = []
         if args.plots is not None:
@@ -245,6 +323,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             from .output import check_directory
 
             check_directory(args.plots, "--plots")
+            check_distinct({"--plots": args.plots, **outs})
             stems = figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf)
             plot_paths = [str(Path(args.plots) / f"{stem}.png") for stem in stems]
             _check_outputs({f"--plots {q}": q for q in plot_paths if Path(args.plots).is_dir()}, inputs)
@@ -272,7 +351,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     name = Path(args.out).stem
-    text = plant_toml(base_text, result.plant, name, result.plant_keys)
+    fitted_from = ", ".join(Path(f).name for f in [*args.data, *([] if args.data else args.frf)])
+    description = (f"{plant.name} calibrated by prsa-fit from {fitted_from}"
+                   + (f" (fitted: {', '.join(result.plant_keys)}" if result.plant_keys else " (no key identifiable")
+                   + (f"; kept at the base values: {', '.join(result.kept_base)})" if result.kept_base else ")")
+                   + (f"; base: {plant.description}" if plant.description else ""))
+    text = plant_toml(base_text, result.plant, name, result.plant_keys, description)
     if result.delay is not None:  # not a plant-file key: said in a comment, reported in the JSON
         d, eq = result.delay, result.delay["equivalent_current_loop_bandwidth_hz"]
         text += (f"\n# prsa-fit: command delay {d['value']:.6g} s (95 % CI {d['ci95'][0]:.6g}..{d['ci95'][1]:.6g}, "
@@ -282,7 +366,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from .plant import Plant
 
-    Plant.from_dict(tomllib.loads(text), origin=args.out)  # what is written must load (with its [uncertainty])
+    with warnings.catch_warnings():  # its geometry notes are the base plant's, given when it loaded
+        warnings.simplefilter("ignore", GeometryWarning)
+        Plant.from_dict(tomllib.loads(text), origin=args.out)  # what is written must load (with its [uncertainty])
     files = {args.out: ("--out", text)}
     if args.json:
         from .output import json_safe
@@ -295,9 +381,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OutputError as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
+    from .fit import _unit_text
+
     for k, v in result.parameters.items():
         lo, hi = v["ci95"]
-        print(f"{k} = {v['value']:.6g} {v['unit']} (95 % CI {lo:.6g}..{hi:.6g})")
+        u = _unit_text(v["unit"])
+        line = f"{k} = {v['value']:.6g}{u} (95 % CI {lo:.6g}..{hi:.6g})"
+        if v.get("kept_base"):
+            line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
+        print(line)
     if result.delay is not None:
         eq = result.delay["equivalent_current_loop_bandwidth_hz"]
         print(f"  (not written to the plant file: no delay key; equivalent current-loop bandwidth {eq['value']:.6g} Hz, "

@@ -151,6 +151,25 @@ def _finite_positive(value: float | None, what: str) -> float | None:
     return float(value)
 
 
+def _read_rows(p: Path, name: str) -> list[tuple[int, list[str]]]:
+    """The non-empty, non-comment rows of a CSV file with their line numbers. UTF-8 with or
+    without a byte-order mark (Excel's "CSV UTF-8" export); streamed, so that a file with more
+    than ``MAX_SAMPLES`` data rows is refused when its row ``MAX_SAMPLES + 2`` is reached,
+    without holding the rest in memory."""
+    rows = []
+    try:
+        with p.open(newline="", encoding="utf-8-sig") as fh:
+            for i, row in enumerate(csv.reader(fh), start=1):
+                if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#"):
+                    rows.append((i, row))
+                    if len(rows) > MAX_SAMPLES + 1:
+                        raise DataError(f"{name}: more than {MAX_SAMPLES} data rows (line {i}); expected at most "
+                                        f"{MAX_SAMPLES} (cut the record)")
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise DataError(f"{name}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
+    return rows
+
+
 def load_record(
     path: str | Path,
     *,
@@ -195,12 +214,7 @@ def load_record(
     for std in mapping:
         if std not in _ALL_COLUMNS:
             raise DataError(f"{name}: column mapping for unknown name {std!r}; expected one of {', '.join(_ALL_COLUMNS)}")
-    try:
-        with p.open(newline="", encoding="utf-8") as fh:
-            lines = list(enumerate(csv.reader(fh), start=1))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DataError(f"{name}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
-    lines = [(i, row) for i, row in lines if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#")]
+    lines = _read_rows(p, name)
     if not lines:
         raise DataError(f"{name}: no header row; expected a CSV header with {', '.join(STANDARD_COLUMNS)}")
     if len(lines) - 1 > MAX_SAMPLES:
@@ -633,12 +647,7 @@ def load_frf(
     p = Path(path)
     if not p.is_file():
         raise DataError(f"{name}: frequency-response file not found; expected a readable CSV file")
-    try:
-        with p.open(newline="", encoding="utf-8") as fh:
-            lines = list(enumerate(csv.reader(fh), start=1))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DataError(f"{name}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
-    lines = [(i, row) for i, row in lines if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#")]
+    lines = _read_rows(p, name)
     if not lines:
         raise DataError(f"{name}: no header row; expected frequency_hz,magnitude_db,phase_deg[,coherence]")
     header_line, header = lines[0]

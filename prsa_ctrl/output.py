@@ -30,7 +30,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-__all__ = ["OutputError", "TEMP_MARK", "json_safe", "check_writable", "check_directory", "write_text", "write_file",
+__all__ = ["OutputError", "TEMP_MARK", "json_safe", "check_writable", "check_distinct", "check_directory", "write_text",
+           "write_file",
            "make_directory", "remove_created", "live_temporaries", "cleanup_temporaries"]
 
 #: Marker in the name of every temporary file: ``.NAME.prsa-tmp-XXXXXXXX``.
@@ -130,6 +131,36 @@ def check_writable(path: str | os.PathLike, inputs: Iterable[str | os.PathLike] 
         raise OutputError(f"{what}: directory {os.path.dirname(text) or '.'!r} does not exist")
     _probe(parent, what)
     return Path(target)
+
+
+def check_distinct(paths: "dict[str, str | os.PathLike | None]") -> None:
+    """Refuse two outputs of one run that name the same file (the second write would replace
+    the first): compared by resolved path and, for existing files, by inode.
+
+    Parameters
+    ----------
+    paths : dict
+        ``{flag: path as typed}``; ``None`` paths are skipped.
+
+    Raises
+    ------
+    OutputError
+        ``--out 'a.toml' and --json 'a.toml' name the same path; expected different files``.
+
+    Examples
+    --------
+    >>> check_distinct({"--out": "a.toml", "--json": "./a.toml"})
+    Traceback (most recent call last):
+    ...
+    prsa_ctrl.output.OutputError: --out 'a.toml' and --json './a.toml' name the same path; expected different files
+    """
+    items = [(f, os.fspath(p)) for f, p in paths.items() if p is not None]
+    for i, (fa, pa) in enumerate(items):
+        for fb, pb in items[i + 1:]:
+            same = os.path.realpath(pa) == os.path.realpath(pb) or (
+                os.path.exists(pa) and os.path.exists(pb) and _same(pa, pb))
+            if same:
+                raise OutputError(f"{fa} {pa!r} and {fb} {pb!r} name the same path; expected different files")
 
 
 def _existing_ancestor(path: str) -> str:

@@ -29,6 +29,7 @@ __all__ = [
     "duty_cycle_plot",
     "duty_cycle_comparison",
     "baseline_pairs_plot",
+    "duty_cycle_pairs_plot",
     "binding_level",
     "tuning_landscape",
     "gain_study_plot",
@@ -485,6 +486,58 @@ def baseline_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, axe
     return fig, axs[:n]
 
 
+def duty_cycle_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, axes=None):
+    """The duty-cycle form of :func:`baseline_pairs_plot`: each baseline beside the tuned
+    design at the same (or lower) Ms, one panel per ``(baseline, tuned)`` pair, showing the
+    verified speed error ``setpoint - speed`` over the record (labels: Ms and the scene's
+    objective), so that a baseline at a higher Ms is never compared with the tuned design at
+    the scene's bound.
+
+    Parameters
+    ----------
+    pairs : sequence of (Design, Design)
+        Baseline and its equal-Ms tuned comparison (``ActuatorTuning.comparisons``), verified
+        on the duty cycle.
+    scene : Scene
+        A duty-cycle scene (``scene.is_profile``).
+    k : int or None
+        Record (index into ``scene.cases``); ``None``: the binding record of each tuned design.
+
+    Returns
+    -------
+    fig, list of axes (one per pair)
+    """
+    n = len(pairs)
+    if axes is None:
+        cols = 2 if n > 1 else 1
+        rows = math.ceil(n / cols)
+        fig, axs = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.4 * rows), layout="constrained", squeeze=False)
+        axs = list(axs.ravel())
+        for extra in axs[n:]:
+            extra.set_visible(False)
+    else:
+        fig, axs = _axes(axes)
+    obj = scene.objective
+    for a, (b, d) in zip(axs, pairs):
+        kk = binding_level(d, scene) if k is None else k
+        for des, c in ((b, "C7"), (d, "C0")):
+            t, y = des.verified_runs[kk]
+            a.plot(t, y["setpoint"] - y["nut_speed"], color=c, lw=1.2, label=_design_label(des, obj, kk))
+        a.axhline(0.0, color="k", lw=0.5)
+        t0 = b.verified_runs[kk][0]
+        a.set_xlim(float(t0[0]), float(t0[-1]))
+        a.set_title(f"vs {b.name}: Ms {b.margins.ms:.2f}, {scene.cases[kk]}", fontsize=9)
+        a.set_xlabel("time (s)")
+        a.set_ylabel("speed error (rad/s)")
+        a.grid(True, alpha=0.3)
+        a.legend(fontsize=7, loc="best")
+    if axes is None:
+        mt = getattr(scene, "mt_max", None)
+        fig.suptitle(f"Baselines against the tuned design at equal or lower Ms on the {scene.name} duty cycle"
+                     + (f" (tuned designs also keep Mt <= {mt:g})" if mt else "") + "; verified, nonlinear", fontsize=10)
+    return fig, axs[:n]
+
+
 def tuning_landscape(loop, objective: str, ms_max: float, optimum=None, baselines=(), ax=None, n: int = 40,
                      mt_max: float | None = None, aggregate: str = "sum"):
     """Objective contours over (kp, ki) for a loop model with the Ms = ms_max boundary (and
@@ -685,7 +738,8 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
     baseline beside the tuned design at equal or lower Ms), ``landscape`` (objective over
     kp-ki with the Ms and, if set, Mt boundaries) and, for compliant models, ``contact_forces``.
     A duty-cycle scene gets ``duty_cycle`` (``duty_cycle_load`` / ``duty_cycle_setpoint`` for a
-    mix) instead of ``load_step``, and ``baselines`` as the verified errors over its record.
+    mix) instead of ``load_step``, and ``baselines`` as the verified errors over its record, each
+    baseline beside the tuned design at equal or lower Ms (:func:`duty_cycle_pairs_plot`).
     """
     from .autotune import _linear_fidelity
     from .linear import linearize
@@ -714,7 +768,9 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
         for k, case in enumerate(sc.cases):
             name = "duty_cycle" + ("" if len(sc.cases) == 1 else "_" + case.split()[0])
             figs[name] = duty_cycle_plot(best, sc, k, torque_limit=plant.torque_limit)[0]
-        figs["baselines"] = duty_cycle_comparison([best, *report.baselines], sc, k=kb)[0]
+        pairs = _comparison_pairs(report)
+        figs["baselines"] = (duty_cycle_pairs_plot(pairs, sc)[0] if pairs
+                             else duty_cycle_comparison([best, *report.baselines], sc, k=kb)[0])
     else:
         figs["load_step"] = load_step_plot(best, sc, k=None if len(sc.final_loads) > 1 else 0,
                                            torque_limit=plant.torque_limit)[0]

@@ -14,8 +14,14 @@ load, and its setpoint, as a profile over the record (``[operating]``):
 ``load_trace_csv = "file.csv"``
     A measured force trace, path relative to the scene file: a header row with the columns
     ``time_s`` and ``axial_load_n`` (lines starting with ``#`` before it are comments), then
-    one row per sample, times strictly increasing from 0, every value finite; it is used as
-    a piecewise-linear profile. Errors name the file's line.
+    one row per sample, times strictly increasing from 0, every value finite, loads >= 0 N;
+    it is used as a piecewise-linear profile. UTF-8, with or without a byte-order mark (Excel
+    exports); at most ``MAX_PROFILE_ROWS`` rows and ``MAX_TRACE_BYTES`` bytes (refused before
+    reading, or as soon as the row limit is passed). Errors name the file, line and column
+    and the value as typed, also for a value the plant cannot take (a load the motor cannot
+    hold). The run starts in steady state at the first row's value: the trace must hold it
+    for ``PRE_EVENT_SAMPLES`` controller samples before it first changes (a measured trace
+    that is noisy from its second row needs such a steady lead-in; the message says how long).
 ``setpoint_profile_rpm`` / ``setpoint_trace_csv``
     The same for the nut-speed setpoint (rpm; CSV column ``setpoint_rpm``). A sampled drive
     reads it at each controller sample.
@@ -44,6 +50,9 @@ from .options import AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, OBJECTIVES
 GOALS = ("load", "setpoint", "mix")
 #: Most rows of a profile or a CSV trace (one per controller sample at most: 40 000 samples).
 MAX_PROFILE_ROWS = 40_000
+#: Largest CSV trace file, bytes (40 000 rows of up to ~400 characters; a larger file is refused
+#: before it is read).
+MAX_TRACE_BYTES = 16 * 1024 * 1024
 from .plant import _builtin_root
 
 __all__ = ["Scene", "load_scene", "builtin_scenes", "choose_fidelity", "DEFAULT_SCENE", "OUTPUTS",
@@ -205,6 +214,9 @@ class Scene:
     setpoint_weight: float = 1.0
     setpoint_share: float = 0.5
     profile_source: str = ""
+    #: Where each point of a CSV trace came from: ``{"load_profile": (file, column, ((line,
+    #: typed value), ...))}`` (messages name the line; empty for profiles written in the scene).
+    trace_lines: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:
         o = self.origin
@@ -359,7 +371,7 @@ class Scene:
         return replace(self, **changes)
 
     def as_dict(self) -> dict[str, Any]:
-        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "trace_lines"}
         d["final_loads"] = list(self.final_loads)
         d["outputs"] = list(self.outputs)
         d["setpoint_rpm"] = self.setpoint_rpm
@@ -449,68 +461,108 @@ def profile_rows(rows: Any, where: str, scale: float = 1.0) -> tuple[tuple[float
     return tuple(pts)
 
 
-def read_trace_csv(path: Path, column: str, where: str, scale: float = 1.0) -> tuple[tuple[float, float], ...]:
+def read_trace_csv(path: Path, column: str, where: str, scale: float = 1.0,
+                   lines_out: list | None = None) -> tuple[tuple[float, float], ...]:
     """A measured trace from CSV (see the module docstring): strict, one line per problem.
 
     Parameters
     ----------
     path : Path
     column : str
-        ``axial_load_n`` (N) or ``setpoint_rpm`` (rpm).
+        ``axial_load_n`` (N, >= 0) or ``setpoint_rpm`` (rpm, > 0 and at most
+        ``SETPOINT_MAX_RPM``).
     where : str
         How the scene names the file (for the messages).
     scale : float
         Factor to SI.
+    lines_out : list, optional
+        Receives ``(line number, value as typed)`` of each point, for later messages.
 
     Raises
     ------
     SceneError
         Naming the file, the line and the value: a missing column, a non-number, a non-finite
-        value, a time that does not increase, a trace that does not start at 0.
+        or out-of-range value, a time that does not increase, a trace that does not start at 0,
+        a file above ``MAX_TRACE_BYTES`` or ``MAX_PROFILE_ROWS`` rows (checked before and while
+        reading: memory stays bounded).
     """
     import csv
 
+    name = path.name
     try:
-        text = path.read_text(encoding="utf-8")
+        size = path.stat().st_size
+        if not path.is_file():
+            raise SceneError(f"{where}: {str(path)!r} is not a regular file; expected a CSV file")
+        if size > MAX_TRACE_BYTES:
+            raise SceneError(f"{where}: {name} has {size} bytes; expected at most {MAX_TRACE_BYTES} bytes "
+                             f"({MAX_PROFILE_ROWS} rows): resample the trace")
+        fh = path.open(encoding="utf-8-sig", newline="")  # utf-8-sig: a byte-order mark (Excel) is dropped
     except FileNotFoundError:
         raise SceneError(f"{where}: file {str(path)!r} not found; expected a CSV file next to the scene") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise SceneError(f"{where}: {str(path)!r} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
-    name = path.name
-    lines = text.splitlines()
-    if len(lines) > MAX_PROFILE_ROWS + 200:
-        raise SceneError(f"{where}: {name} has {len(lines)} lines; expected at most {MAX_PROFILE_ROWS} rows")
-    rows = list(csv.reader(lines))
-    i = 0
-    while i < len(rows) and (not rows[i] or rows[i][0].lstrip().startswith("#")):
-        i += 1
-    if i == len(rows):
-        raise SceneError(f"{where}: {name} has no header; expected a row 'time_s,{column}'")
-    header = [h.strip() for h in rows[i]]
-    if "time_s" not in header or column not in header:
-        raise SceneError(f"{where}: {name} line {i + 1}: header {','.join(header)!r}; expected columns 'time_s' and {column!r}")
-    it, iv = header.index("time_s"), header.index(column)
+    lo_ok = (lambda v: v >= 0.0, "loads >= 0 N (compressive)") if column == "axial_load_n" else (
+        lambda v: 0.0 < v <= SETPOINT_MAX_RPM, f"nut speeds in (0, {SETPOINT_MAX_RPM:g}] rpm")
     pts: list[tuple[float, float]] = []
-    for j in range(i + 1, len(rows)):
-        row = rows[j]
-        if not row or all(not c.strip() for c in row):
-            continue
-        try:
-            t, v = float(row[it]), float(row[iv])
-        except (IndexError, ValueError):
-            raise SceneError(f"{where}: {name} line {j + 1}: {','.join(row)!r}; expected numbers in 'time_s' and {column!r}") from None
-        if not (math.isfinite(t) and math.isfinite(v)):
-            raise SceneError(f"{where}: {name} line {j + 1}: time_s = {row[it].strip()}, {column} = {row[iv].strip()}; "
-                             "expected finite numbers")
-        if not pts and t != 0.0:
-            raise SceneError(f"{where}: {name} line {j + 1}: time_s = {row[it].strip()}; expected the trace to start at 0")
-        if pts and t <= pts[-1][0]:
-            raise SceneError(f"{where}: {name} line {j + 1}: time_s = {row[it].strip()} after {pts[-1][0]:g}; "
-                             "expected strictly increasing times")
-        pts.append((t, v * scale))
+    typed: list[tuple[int, str]] = []
+    header = None
+    it = iv = 0
+    try:
+        with fh:
+            for j, row in enumerate(csv.reader(fh), start=1):
+                if j > MAX_PROFILE_ROWS + 200:
+                    raise SceneError(f"{where}: {name} has more than {MAX_PROFILE_ROWS + 200} lines; expected at most "
+                                     f"{MAX_PROFILE_ROWS} rows: resample the trace")
+                if header is None:
+                    if not row or row[0].lstrip().startswith("#") or all(not c.strip() for c in row):
+                        continue
+                    header = [h.strip() for h in row]
+                    if "time_s" not in header or column not in header:
+                        raise SceneError(f"{where}: {name} line {j}: header {','.join(header)!r}; expected columns "
+                                         f"'time_s' and {column!r}")
+                    it, iv = header.index("time_s"), header.index(column)
+                    continue
+                if not row or all(not c.strip() for c in row):
+                    continue
+                try:
+                    t, v = float(row[it]), float(row[iv])
+                except (IndexError, ValueError):
+                    raise SceneError(f"{where}: {name} line {j}: {','.join(row)!r}; expected numbers in 'time_s' and "
+                                     f"{column!r}") from None
+                if not (math.isfinite(t) and math.isfinite(v)):
+                    raise SceneError(f"{where}: {name} line {j}: time_s = {row[it].strip()}, {column} = "
+                                     f"{row[iv].strip()}; expected finite numbers")
+                if not lo_ok[0](v):
+                    raise SceneError(f"{where}: {name} line {j}: {column} = {row[iv].strip()}; expected {lo_ok[1]}")
+                if not pts and t != 0.0:
+                    raise SceneError(f"{where}: {name} line {j}: time_s = {row[it].strip()}; expected the trace to "
+                                     "start at 0")
+                if pts and t <= pts[-1][0]:
+                    raise SceneError(f"{where}: {name} line {j}: time_s = {row[it].strip()} after {pts[-1][0]:g}; "
+                                     "expected strictly increasing times")
+                pts.append((t, v * scale))
+                typed.append((j, row[iv].strip()))
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"{where}: {str(path)!r} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
+    except csv.Error as exc:
+        raise SceneError(f"{where}: {name} cannot be parsed as CSV ({exc}); expected comma-separated rows") from None
+    if header is None:
+        raise SceneError(f"{where}: {name} has no header; expected a row 'time_s,{column}'")
     if len(pts) < 2:
         raise SceneError(f"{where}: {name} has {len(pts)} data rows; expected at least 2")
+    if lines_out is not None:
+        lines_out.extend(typed)
     return tuple(pts)
+
+
+def _trace_point(scene: "Scene", key: str, index: int) -> str | None:
+    """``file line N: column = typed`` for point ``index`` of a profile read from CSV."""
+    info = scene.trace_lines.get(key)
+    prof = getattr(scene, key)
+    if not info or prof is None or len(info[2]) != len(prof) or not 0 <= index < len(prof):
+        return None
+    line, typed = info[2][index]
+    return f"{info[0]} line {line}: {info[1]} = {typed}"
 
 
 def builtin_scenes() -> list[str]:
@@ -589,7 +641,9 @@ def _duty_from_doc(kw: dict, origin: str, base: Any) -> None:
                 raise SceneError(f"{where}: expected a CSV path relative to a scene file")
             path = Path(csv_name)
             path = path if path.is_absolute() else base / csv_name
-            kw[field_name] = read_trace_csv(Path(str(path)), column, where, scale)
+            lines: list = []
+            kw[field_name] = read_trace_csv(Path(str(path)), column, where, scale, lines)
+            kw.setdefault("trace_lines", {})[field_name] = (csv_name, column, tuple(lines))
             sources.append(f"{what}: {csv_name} ({len(kw[field_name])} rows)")
     if "load_profile" in kw:
         for key in ("initial_load_n", "final_loads_n", "step_time_s"):
@@ -792,6 +846,13 @@ def _check_profile_against_plant(scene: Scene, plant: Any, label, rpm_min: float
     rpms = [v * 30.0 / math.pi for _, v in sp]
     lo_rpm, hi_rpm = min(rpms), max(rpms)
     if scene.setpoint_profile is not None and not rpm_min <= lo_rpm <= hi_rpm <= SETPOINT_MAX_RPM:
+        bad_i = next(i for i, r in enumerate(rpms) if not rpm_min <= r <= SETPOINT_MAX_RPM)
+        at = _trace_point(scene, "setpoint_profile", bad_i)
+        if at:
+            raise SceneError(
+                f"{o}: operating.setpoint_trace_csv: {at}; expected nut speeds in [{rpm_min:.3g}, {SETPOINT_MAX_RPM:g}] "
+                f"rpm for {plant.name} (below, the friction is on the steep part of its Stribeck curve, where the "
+                "linear model does not hold)")
         raise SceneError(
             f"{o}: operating.setpoint_profile_rpm spans {lo_rpm:.6g} to {hi_rpm:.6g} rpm; expected nut speeds in "
             f"[{rpm_min:.3g}, {SETPOINT_MAX_RPM:g}] rpm for {plant.name} (below, the friction is on the steep part of "
@@ -801,14 +862,32 @@ def _check_profile_against_plant(scene: Scene, plant: Any, label, rpm_min: float
     loads = [v for _, v in scene.load_profile] if scene.load_profile is not None else [scene.initial_load]
     key = "operating.load_profile_n" if scene.load_profile is not None else "operating.initial_load_n"
     if max(loads) > cap:
+        at = _trace_point(scene, "load_profile", loads.index(max(loads)))
+        if at:
+            raise SceneError(
+                f"{o}: operating.load_trace_csv: {at}; out of range for {plant.name}: at {slowest * 30 / math.pi:.6g} "
+                f"rpm the motor holds at most {cap:.0f} N (drive.torque_limit_n_m = {plant.torque_limit:g} N m)")
         raise SceneError(
             f"{o}: {key} reaches {max(loads):g} N; out of range for {plant.name}: at {slowest * 30 / math.pi:.6g} rpm the "
             f"motor holds at most {cap:.0f} N (drive.torque_limit_n_m = {plant.torque_limit:g} N m)")
     before, after = PRE_EVENT_SAMPLES * ts, POST_EVENT_SAMPLES * ts
     if scene.step_time < before * (1 - 1e-9):
+        first = [(k, p) for k, p in (("load_profile", scene.load_profile), ("setpoint_profile", scene.setpoint_profile))
+                 if p is not None and _first_change(p) is not None and _first_change(p) < before * (1 - 1e-9)]
+        key, prof = first[0]
+        i = next(i for i in range(1, len(prof)) if prof[i][1] != prof[0][1])
+        info = scene.trace_lines.get(key)
+        if info and len(info[2]) == len(prof):
+            fix = (f"start the trace {info[0]} with a steady lead-in: hold the first value ({info[1]} = "
+                   f"{info[2][0][1]}) for at least {before:g} s, e.g. add a row at time_s = {before:g} with the first "
+                   f"value and shift the later rows by {before:g} s (line {info[2][i][0]} is the first change)")
+        else:
+            fix = (f"add a row [{before:g}, first value] before the first change and shift the later rows by "
+                   f"{before:g} s")
         raise SceneError(
-            f"{o}: the profile first changes at {scene.step_time:g} s; expected at least {PRE_EVENT_SAMPLES} controller "
-            f"samples of steady running before it ({before:g} s at sensor.sample_time_s = {ts:g} s)")
+            f"{o}: the {key.replace('_', ' ')} first changes at {scene.step_time:g} s; the run starts in steady state at "
+            f"the first value and needs at least {PRE_EVENT_SAMPLES} controller samples of it ({before:g} s at "
+            f"sensor.sample_time_s = {ts:g} s) before the first change: {fix}")
     end = scene.profile_end()
     if scene.duration - end < after * (1 - 1e-9):
         raise SceneError(

@@ -114,7 +114,8 @@ def test_profile_checked_against_the_plant(paper_plant):
     with pytest.raises(SceneError, match=r"reaches 9000 N; out of range"):
         check_against_plant(Scene(**base), paper_plant)
     early = Scene(load_profile=profile_rows([[0, 500], [0.001, 1500]], "x"), duration=0.1)
-    with pytest.raises(SceneError, match=r"first changes at 0 s; expected at least 8 controller samples"):
+    with pytest.raises(SceneError, match=r"first changes at 0 s; the run starts in steady state at the first value "
+                       r"and needs at least 8 controller samples .* add a row \[0\.002, first value\]"):
         check_against_plant(early, paper_plant)
     late = Scene(load_profile=profile_rows([[0, 500], [0.01, 500], [0.05, 1500]], "x"), duration=0.06)
     with pytest.raises(SceneError, match=r"expected duration >= 0\.07 s"):
@@ -233,9 +234,21 @@ def _tune_cli(tmp_path, capsys, *argv):
 
 
 @pytest.mark.parametrize("name", ["duty-ramp", "duty-trace"])
-def test_duty_scenes_tuned_and_verified_end_to_end(tmp_path, capsys, name):
-    rc, text, data = _tune_cli(tmp_path, capsys, "--scene", name, "--mt-max", "1.3")
+def test_duty_scenes_tuned_and_verified_end_to_end(tmp_path, capsys, monkeypatch, name):
+    import prsa_ctrl.plots as plots_mod
+
+    drawn = []
+    real = plots_mod.duty_cycle_pairs_plot
+    monkeypatch.setattr(plots_mod, "duty_cycle_pairs_plot", lambda pairs, sc, **k: drawn.append(pairs) or real(pairs, sc, **k))
+    plots = ["--plots", str(tmp_path / "figs")] if name == "duty-ramp" else []
+    rc, text, data = _tune_cli(tmp_path, capsys, "--scene", name, "--mt-max", "1.3", *plots)
     assert rc == 0, text
+    if plots:  # review finding 10: each baseline is drawn beside the tuned design at its Ms, as for load steps
+        (pairs,) = drawn
+        assert [b.name for b, _ in pairs] == [c["baseline"] for c in data["comparisons"]]
+        for (b, d), c in zip(pairs, data["comparisons"]):
+            assert d.margins.ms <= b.margins.ms * (1 + 1e-6) and d.pid.as_dict() == c["tuned_gains"]
+        assert (tmp_path / "figs" / "baselines.png").stat().st_size > 10_000
     assert f"scene {name} with --mt-max 1.3: duty cycle" in text
     assert "Duty cycle, load profile" in text
     assert data["status"] == "ok" and data["objective"] == "iae"
@@ -293,3 +306,98 @@ def test_mix_goal_weights_two_records(paper_plant):
     assert labels[0].startswith("verified (nonlinear): IAE") and labels[1].startswith("predicted (linear): IAE")
     fig, (ax,) = duty_cycle_comparison([b, *rep.baselines], rep.scene, k=0)
     assert len(ax.lines) == 1 + len(rep.baselines) + 1  # designs + zero line
+
+
+# --- review findings 6-9 and 11 ----------------------------------------------------------------
+
+def _trace_scene(tmp_path, body: bytes | str, column="axial_load_n"):
+    path = tmp_path / "tr.csv"
+    path.write_bytes(body if isinstance(body, bytes) else body.encode())
+    key = "load_trace_csv" if column == "axial_load_n" else "setpoint_trace_csv"
+    extra = "setpoint_rpm = 300.0" if column == "axial_load_n" else "initial_load_n = 500.0"
+    (tmp_path / "s.toml").write_text(f"[operating]\n{extra}\n{key} = 'tr.csv'\nduration_s = 0.3\n")
+    return str(tmp_path / "s.toml")
+
+
+def test_csv_trace_with_a_byte_order_mark_is_read(tmp_path):
+    body = "time_s,axial_load_n\n0,500\n0.01,500\n0.05,700\n"
+    sc = load_scene(_trace_scene(tmp_path, b"\xef\xbb\xbf" + body.encode()))
+    assert sc.load_profile == ((0.0, 500.0), (0.01, 500.0), (0.05, 700.0))
+
+
+def test_csv_trace_values_named_by_file_line_and_column(tmp_path, paper_plant):
+    with pytest.raises(SceneError, match=r"tr\.csv line 3: axial_load_n = -7e2; expected loads >= 0 N") as e:
+        load_scene(_trace_scene(tmp_path, "time_s,axial_load_n\n0,500\n0.05,-7e2\n"))
+    assert "load_profile =" not in str(e.value)
+    with pytest.raises(SceneError, match=r"tr\.csv line 2: setpoint_rpm = 0; expected nut speeds in \(0, 6000\] rpm"):
+        load_scene(_trace_scene(tmp_path, "time_s,setpoint_rpm\n0,0\n0.05,300\n", "setpoint_rpm"))
+    sc = load_scene(_trace_scene(tmp_path, "# log\ntime_s,axial_load_n\n0,500\n0.01,500\n0.05,1e12\n"))
+    with pytest.raises(SceneError, match=r"operating\.load_trace_csv: tr\.csv line 5: axial_load_n = 1e12; out of range"):
+        check_against_plant(sc, paper_plant)
+    sc = load_scene(_trace_scene(tmp_path, "time_s,setpoint_rpm\n0,300\n0.01,300\n0.05,2\n", "setpoint_rpm"))
+    with pytest.raises(SceneError, match=r"tr\.csv line 4: setpoint_rpm = 2; expected nut speeds in"):
+        check_against_plant(sc, paper_plant)
+
+
+def test_csv_trace_size_refused_before_reading(tmp_path, monkeypatch):
+    import prsa_ctrl.scene as scene_mod
+
+    rows = "".join(f"{i * 1e-3:.3f},500\n" for i in range(60))
+    path = _trace_scene(tmp_path, "time_s,axial_load_n\n" + rows)
+    monkeypatch.setattr(scene_mod, "MAX_TRACE_BYTES", 200)
+    real_open = Path.open
+
+    def no_csv_read(self, *a, **k):
+        if self.suffix == ".csv":
+            pytest.fail(f"{self} was opened")
+        return real_open(self, *a, **k)
+
+    monkeypatch.setattr(Path, "open", no_csv_read)
+    with pytest.raises(SceneError, match=r"tr\.csv has \d+ bytes; expected at most 200 bytes"):
+        load_scene(path)
+    monkeypatch.undo()
+    # the row limit stops the reader at the limit, not after the whole file
+    monkeypatch.setattr(scene_mod, "MAX_PROFILE_ROWS", 5)
+    with pytest.raises(SceneError, match=r"tr\.csv has more than 205 lines; expected at most 5 rows"):
+        load_scene(_trace_scene(tmp_path, "time_s,axial_load_n\n" + "".join(
+            f"{i * 1e-3:.3f},500\n" for i in range(400))))
+
+
+def test_noisy_trace_says_how_to_start_in_steady_state(tmp_path, paper_plant):
+    rng = np.random.default_rng(0)
+    rows = "".join(f"{i * 1e-3:.3f},{500 + rng.normal(0, 5):.2f}\n" for i in range(100))
+    sc = load_scene(_trace_scene(tmp_path, "time_s,axial_load_n\n" + rows))
+    with pytest.raises(SceneError, match=r"load profile first changes at 0 s; .* start the trace tr\.csv with a steady "
+                       r"lead-in: hold the first value \(axial_load_n = [\d.]+\) for at least 0\.002 s.*line 3 is "
+                       r"the first change") as e:
+        check_against_plant(sc, paper_plant)
+    assert "\n" not in str(e.value)
+
+
+def test_setpoint_goal_warns_that_it_does_not_inform_the_integral(paper_plant):
+    from prsa_ctrl.autotune import integral_warning
+
+    sp = Scene(setpoint_profile=profile_rows([[0, 300], [0.05, 300], [0.06, 400]], "x", math.pi / 30),
+               initial_load=500.0, duration=0.2)
+    loops = actuator_loops(paper_plant, sp)
+    slow, fast = PID(0.107, 0.053), PID(0.085, 14.7)  # Ti 2 s (the reviewer's design) and 5.8 ms
+    msg = integral_warning(Design("t", slow, loops[0].margins(slow.gains)), sp)
+    assert msg and "setpoint-only goal does not inform the integral gain (Ti = 2.02 s > record 0.2 s)" in msg
+    assert "goal = \"mix\"" in msg
+    assert integral_warning(Design("t", fast, loops[0].margins(fast.gains)), sp) is None
+    ld = load_scene("duty-ramp")
+    assert integral_warning(Design("t", fast, loops[0].margins(fast.gains)), ld) is None
+    assert "longer than the record" in integral_warning(Design("t", slow, loops[0].margins(slow.gains)), ld)
+
+
+def test_setpoint_only_duty_cycle_reports_the_integral_warning(tmp_path, capsys):
+    scene = tmp_path / "sp.toml"
+    scene.write_text('name = "sp"\n[operating]\ninitial_load_n = 500.0\nsetpoint_profile_rpm = [[0.0, 300.0], '
+                     '[0.05, 300.0], [0.06, 400.0]]\nduration_s = 0.2\n[tuning]\nobjective = "iae"\ncontroller = "pi"\n'
+                     'ms_max = 1.4\n[verify]\nfidelity = "rigid"\ndiscrete = true\naccuracy = 0.05\n')
+    rc, text, data = _tune_cli(tmp_path, capsys, "--scene", str(scene))
+    assert rc == 0 and data["status"] == "ok"  # a warning, not a flag: the design does what its goal asks
+    ti = data["gains"]["kp"] / data["gains"]["ki"]
+    assert ti > 0.2
+    (w,) = [w for w in data["warnings"] if "does not inform the integral gain" in w]
+    assert f"Ti = {ti:.3g} s > record 0.2 s" in w and w in text

@@ -202,6 +202,106 @@ def test_constant_load_leaves_efficiency_unidentified(base):
     assert "friction.efficiency" in text
     # but the inertia and the current loop are still found
     assert abs(result.parameters["nut.inertia_kg_m2"]["value"] / 1.5e-4 - 1) < 0.03
+    # Review finding 2: what the data cannot inform keeps the base value and source; the report says why.
+    p = result.parameters
+    assert p["friction.efficiency"]["kept_base"] and "friction.efficiency" in result.kept_base
+    assert any(w in p["friction.efficiency"]["reason"] for w in ("physical range", "bound", "correlated"))
+    assert not p["nut.inertia_kg_m2"]["kept_base"] and "nut.inertia_kg_m2" in result.plant_keys
+    for k in result.kept_base:
+        assert result.plant.values[k] == base.values[k] == p[k]["written"]
+        assert result.plant.sources[k] == base.sources[k] and k not in result.plant_keys
+        assert result.plant.uncertainty.get(k) == base.uncertainty.get(k)  # the base's entry, not the fit's
+    assert result.plant.values["nut.inertia_kg_m2"] == p["nut.inertia_kg_m2"]["value"]
+    # the written plant's own fit % is reported beside the free fit's
+    assert set(result.solver["fit_percent_written"]) == set(result.fit_percent)
+    # without the option every fitted value is written (the old behaviour, for studies)
+    raw = fit_plant([toolkit_record(truth, "multisine")], base, keep_unidentified=False)
+    assert not raw.kept_base and raw.plant.values["friction.efficiency"] == raw.parameters["friction.efficiency"]["value"]
+
+
+def test_uncertainty_entries_stay_in_the_physical_range(base):
+    """Review finding 2: an interval reaching past the key's physical range (no-load torque up
+    to 3.6 N m on a 3 N m motor) never becomes a wider [uncertainty] entry."""
+    from prsa_ctrl.fit import _bounds, _physical_range, _uncertainty_entries
+
+    k = "friction.no_load_torque_n_m"
+    lo, hi, _ = _bounds(base, k, TS)
+    rng = _physical_range(base, k, lo, hi)
+    assert rng == (0.0, 0.5 * base.torque_limit)
+    for value, sd in ((0.1, 1.8), (0.0005, 0.02), (0.3, 0.1)):
+        params = {k: {"value": value, "ci95": [value - 1.96 * sd, value + 1.96 * sd], "unit": "N m"}}
+        (entry,) = _uncertainty_entries(base, params, "x.csv", [sd], [rng]).values()
+        top = entry["high"] if entry["dist"] == "uniform" else value + entry["truncate"] * entry["sigma"]
+        bottom = entry["low"] if entry["dist"] == "uniform" else value - entry["truncate"] * entry["sigma"]
+        assert rng[0] <= bottom and top <= rng[1] * (1 + 1e-12), (value, sd, entry)
+
+
+def test_cli_keeps_unidentified_keys_at_base_and_prints_clean(base, tmp_path, capsys):
+    """Review findings 2, 3, 5 on one constant-load multisine."""
+    from prsa_ctrl.fit_cli import main
+
+    truth = base.with_params(PERTURBED["issue"])
+    csv = tmp_path / "ms.csv"
+    toolkit_record(truth, "multisine").to_csv(csv)
+    out, rep = tmp_path / "o16.toml", tmp_path / "o16.json"
+    assert main([str(csv), "--out", str(out), "--json", str(rep)]) == 0
+    cap = capsys.readouterr()
+    doc, report = tomllib.loads(out.read_text()), json.loads(rep.read_text())
+    base_doc = tomllib.loads((Path(__file__).resolve().parent.parent / "plants" / "paper-iprsm.toml").read_text())
+    kept = [k for k, v in report["parameters"].items() if v["kept_base"]]
+    assert "friction.efficiency" in kept
+    for k in kept:
+        sec, key = k.split(".")
+        assert doc[sec][key] == base_doc[sec][key]  # value and source as in the base file
+        assert report["parameters"][k]["reason"]
+        assert not doc["uncertainty"].get(k, {}).get("source", "").startswith("fit:")
+    # every [uncertainty] entry the fit wrote lies within the key's plausible range
+    from prsa_ctrl.plant import PLAUSIBLE
+    from prsa_ctrl.uncertainty import plant_uncertainty
+
+    for u in plant_uncertainty(load_plant(out)).entries:
+        if u.source.startswith("fit:"):
+            lo, hi, _ = PLAUSIBLE[u.key]
+            assert lo <= u.low and u.high <= hi
+    assert doc["nut"]["inertia_kg_m2"]["source"].startswith("fit: ")
+    # finding 5: a fitted description, no dangling unit dash
+    assert "ms.csv" in doc["description"] and "prsa-fit" in doc["description"]
+    assert " - (95 % CI" not in cap.out and "friction.efficiency = " in cap.out
+    assert "not identifiable, the plant keeps the base value 0.85" in cap.out
+    # finding 3: no Python warning format on stderr; the built-in geometry note only with --verbose
+    assert "GeometryWarning" not in cap.err and "plant = cls(" not in cap.err and "geometry" not in cap.err
+    assert main([str(csv), "--out", str(tmp_path / "v.toml"), "--verbose", "--fit", "nut.inertia_kg_m2"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err and all(line.startswith("prsa-fit: note: ") for line in err)
+    assert any("geometry does not close" in line for line in err)
+
+
+def test_cli_same_path_and_design_bounds_refused_before_work(csv_files, tmp_path, capsys, monkeypatch):
+    """Review findings 1 and 4: one line, exit 2, nothing written, no fit started."""
+    import prsa_ctrl.fit as fit_mod
+    from prsa_ctrl.fit_cli import main
+
+    _, paths = csv_files
+    monkeypatch.setattr(fit_mod, "fit_plant", lambda *a, **k: pytest.fail("the fit ran"))
+    same = tmp_path / "o4.toml"
+    for argv in ([paths[0], "--out", str(same), "--json", str(same)],
+                 [paths[0], "--out", str(same), "--json", str(tmp_path / "." / "o4.toml")],
+                 [paths[0], "--out", str(same), "--plots", str(same)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "name the same path" in err, err
+    assert not same.exists()
+    exc = tmp_path / "exc.csv"
+    for argv, text in ((["--amplitude", "1e9"], "--amplitude 1e9 with --offset 30 (default): the setpoint reaches"),
+                       (["--offset", "-700"], "expected |offset| + amplitude <= 628.319 rad/s"),
+                       (["--json", str(tmp_path / "j.json")], "--json"),
+                       (["--duration", "-1"], "prsa-fit: error: --duration '-1': expected a finite number > 0")):
+        assert main(["--design", "chirp", "--out", str(exc), *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and text in err, err
+        assert "--duration: --duration" not in err
+    assert not exc.exists() and not (tmp_path / "j.json").exists()
+    assert main(["--design", "chirp", "--out", str(exc), "--amplitude", "590", "--offset", "-38", "--duration", "0.1"]) == 0
 
 
 def test_validation_record_and_fixed_keys(base):
@@ -270,7 +370,8 @@ def test_cli_fit_writes_plant_and_report_and_tune_uses_it(csv_files, tmp_path):
     report = json.loads(rep.read_text())
     assert set(report) >= {"parameters", "reflected_inertia_kg_m2", "fit_percent", "warnings", "solver"}
     for k in DEFAULT_KEYS:
-        assert set(report["parameters"][k]) == {"value", "ci95", "unit"}
+        assert set(report["parameters"][k]) == {"value", "ci95", "unit", "kept_base"}
+        assert report["parameters"][k]["kept_base"] is False  # three experiments inform every key
     assert doc["nut"]["inertia_kg_m2"]["value"] == report["parameters"]["nut.inertia_kg_m2"]["value"]
     assert set(report["fit_percent"]) == set(paths)
     assert abs(report["reflected_inertia_kg_m2"]["value"] / load_plant(out).reflected_inertia_kg_m2 - 1) < 1e-12

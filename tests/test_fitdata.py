@@ -141,3 +141,19 @@ def test_design_excitation(kind):
         assert abs(float(np.max(np.abs(v - 20))) - 10) < 1e-6 * 10 or float(np.max(np.abs(v - 20))) <= 10 + 1e-9
     with pytest.raises(ValueError, match="Nyquist"):
         design_excitation(kind, duration_s=1.0, sample_time_s=1e-3, f_max_hz=600)
+
+
+def test_byte_order_mark_and_streamed_row_limit(tmp_path, monkeypatch):
+    """Review findings 6 and 8: an Excel "CSV UTF-8" export (BOM) is read; a file over the row
+    limit is refused when the limit is passed, naming the line."""
+    import prsa_ctrl.fitdata as fd
+
+    t = np.arange(300) * 2.5e-4
+    rows = "".join(f"{a:.7f},{0.1 + 0.05 * math.sin(200 * a):.6f},{30 * a:.9f},800\n" for a in t)
+    p = tmp_path / "bom.csv"
+    p.write_bytes(b"\xef\xbb\xbf" + ("time_s,torque_command_n_m,nut_angle_rad,axial_load_n\n" + rows).encode())
+    rec = fd.load_record(p)
+    assert rec.n == 300
+    monkeypatch.setattr(fd, "MAX_SAMPLES", 100)
+    with pytest.raises(fd.DataError, match=r"bom\.csv: more than 100 data rows \(line 102\); expected at most 100"):
+        fd.load_record(p)
