@@ -492,16 +492,56 @@ def integral_warning(design: Design, scene: Scene) -> str | None:
             "integral's effect and does not inform ki; lengthen the record or add load changes")
 
 
-def verify_settings(scene: Scene) -> SimSettings:
-    """Integrator tolerance from the scene's accuracy: ``1e-4 x accuracy`` (clipped to
-    [1e-10, 1e-5]). At 1e-6 (accuracy 1 %) the sampled compliant loop's nut speed differs from a
-    1e-10 reference by ~1e-3 rad/s on the paper step (0.03 % of the peak drop), at half the
-    cost of 1e-8."""
+#: The fixed-step settings :func:`verify_settings` offers where their measured error is inside
+#: the scene's accuracy: Radau IIA, 2 stages (order 3), 8 steps per controller sample, the
+#: per-sample law compiled (``SimSettings.jit``).
+FAST_VERIFY = SimSettings(integrator="radau", stages=2, substeps=8, jit=True)
+
+
+def verify_settings(scene: Scene, plant: Plant | None = None, pid: PID | None = None) -> SimSettings:
+    """Integrator settings of the verification runs.
+
+    Parameters
+    ----------
+    scene : Scene
+    plant : Plant, optional
+        With a plant (and a sampled load-step scene): the fixed-step :data:`FAST_VERIFY` where
+        its nut-speed error against a tight CVODES reference (1e-9), measured on the scene's first
+        load step with ``pid`` (default :func:`~prsa_ctrl.paper.default_pid`), is inside half
+        the scene's accuracy (:func:`prsa_ctrl.simulation.fast_settings`); otherwise, and
+        without a plant, the adaptive integrator below.
+    pid : PID, optional
+
+    The adaptive integrator's tolerance follows the scene's accuracy: ``1e-4 x accuracy``
+    (clipped to [1e-10, 1e-5]). At 1e-6 (accuracy 1 %) the sampled compliant loop's nut speed
+    differs from a 1e-10 reference by ~1e-3 rad/s on the paper step (0.03 % of the peak drop),
+    at half the cost of 1e-8.
+    """
     tol = min(max(1e-4 * scene.accuracy, 1e-10), 1e-5)
-    return SimSettings(rtol=tol, atol=tol)
+    adaptive = SimSettings(rtol=tol, atol=tol)
+    if plant is None:
+        return adaptive
+    fast, _ = fast_verify_settings(scene, plant, pid)
+    return fast or adaptive
 
 
-def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0) -> Design:
+def fast_verify_settings(scene: Scene, plant: Plant, pid: PID | None = None) -> tuple[SimSettings | None, dict]:
+    """:data:`FAST_VERIFY` if its measured error on ``scene``'s first load step is inside half
+    the scene's accuracy, else ``None``; with the measurement (``relative`` error, or a
+    ``reason`` where the fast path does not apply: continuous or duty-cycle scenes)."""
+    from .simulation import fast_settings
+
+    scene, _ = choose_fidelity(scene)
+    if not scene.discrete or scene.is_profile:
+        return None, {"reason": "fixed-step fast path: sampled load-step scenes only"}
+    pre = min(scene.step_time, _PRE_SAMPLES * plant.sample_time_s)
+    kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, scene.final_loads[0])],
+              duration=pre + scene.duration - scene.step_time, controller=pid or default_pid(plant),
+              fidelity=scene.fidelity, discrete=True)
+    return fast_settings(plant, scene.accuracy, FAST_VERIFY, reference=SimSettings(rtol=1e-9, atol=1e-9), **kw)
+
+
+def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0, settings: SimSettings | None = None) -> Design:
     """Nonlinear load-step runs of a design (one per final load); fills ``design.verified``
     and ``design.verified_runs`` (time s, dict of output arrays) and returns the design.
 
@@ -512,18 +552,21 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0) -> Design:
     scene : Scene
     seed : int
         Seed of the per-roller errors (multi-roller fidelity).
+    settings : SimSettings, optional
+        Integrator settings (default :func:`verify_settings` of the scene).
     """
     scene, _ = choose_fidelity(scene)
     ts = plant.sample_time_s
+    settings = verify_settings(scene) if settings is None else settings
     if scene.is_profile:
-        return _verify_profile(design, plant, scene, seed)
+        return _verify_profile(design, plant, scene, seed, settings)
     pre = min(scene.step_time, _PRE_SAMPLES * ts) if scene.discrete else min(scene.step_time, 1e-3)
     offset = scene.step_time - pre
     design.verified, design.verified_runs, design.estimation = [], [], []
     for f1 in scene.final_loads:
         kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, f1)],
                   duration=pre + scene.duration - scene.step_time, controller=design.pid,
-                  fidelity=scene.fidelity, settings=verify_settings(scene), seed=seed)
+                  fidelity=scene.fidelity, settings=settings, seed=seed)
         measurement = "encoder"
         kf = None
         if design.estimator == "kf":
@@ -548,7 +591,7 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0) -> Design:
     return design
 
 
-def _verify_profile(design: Design, plant: Plant, scene: Scene, seed: int) -> Design:
+def _verify_profile(design: Design, plant: Plant, scene: Scene, seed: int, settings: SimSettings) -> Design:
     """:func:`verify` on a duty cycle: one sampled nonlinear run per record, over the whole
     record, with the scene's profiles (a setpoint weight ``b != 1`` through
     :func:`setpoint_prefilter`)."""
@@ -564,7 +607,7 @@ def _verify_profile(design: Design, plant: Plant, scene: Scene, seed: int) -> De
             n_pts = int(np.searchsorted(rec["t"], scene.duration - 1e-9 * ts))  # points before the end
             setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
         r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=scene.duration,
-                controller=design.pid, fidelity=scene.fidelity, settings=verify_settings(scene), seed=seed)
+                controller=design.pid, fidelity=scene.fidelity, settings=settings, seed=seed)
         t = np.asarray(r.time)
         y = dict(zip(r.output_labels, np.asarray(r.outputs)))
         ref = rec["setpoint_at"][: t.size]

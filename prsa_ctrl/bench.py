@@ -15,7 +15,8 @@
 - **cold CLI**: ``prsa-tune --load-step 500:1500`` wall time over ``python -c "import control,
   casadi"``;
 - **Monte Carlo**: 1000 compliant sampled-loop verifications of the paper scene, serial, 2
-  processes and a Dask LocalCluster, in turn (results must agree bit for bit);
+  processes and a Dask LocalCluster, in turn (results must agree bit for bit), with the
+  integrator the run chose and its measured error, and the serial CPU time per sample;
 - **robust tuning**: 16 scenario models against nominal tuning;
 - **targets**: issue 10's speed targets against these medians (``bench.json["targets"]``).
 
@@ -491,8 +492,9 @@ def main(argv=None) -> int:
 
     warnings.simplefilter("ignore")
     args.out.mkdir(parents=True, exist_ok=True)
-    result: dict = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}, "repeats": repeats,
-                    "statistic": "median"}
+    result: dict = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
+                                "load_average_1_5_15": list(os.getloadavg()) if hasattr(os, "getloadavg") else None},
+                    "repeats": repeats, "statistic": "median"}
     if "work" not in args.skip:
         result["work_precision"] = wp = work_precision(fast=args.fast, budget_s=10.0 if args.fast else 60.0,
                                                     repeats=repeats)
@@ -517,7 +519,12 @@ def main(argv=None) -> int:
               + ", ".join(f"{k} {v:.1f} s" for k, v in med.items())
               + (f"; parallel efficiency {100 * mc['parallel_efficiency']:.0f} %" if "parallel_efficiency" in mc else "")
               + (f"; dask overhead {100 * mc['dask_overhead']:+.0f} %" if "dask_overhead" in mc else "")
-              + f"; identical {mc['identical']}")
+              + f"; identical {mc['identical']}"
+              + (f"; serial CPU {1e3 * mc['cpu_per_sample_s']:.1f} ms/sample" if "cpu_per_sample_s" in mc else ""))
+        ig = mc["integration"]
+        print(f"monte carlo integrator: {ig['integrator']}" + (f" (measured error {ig['relative']:.2g} of the "
+              f"deviation, accuracy {ig['accuracy']:g}; one-off check {ig['check_s']:.1f} s)" if ig.get("relative")
+              is not None else f" ({ig['reason']})") + f"; warm-up (check + compile) {mc['warm_up_s']:.1f} s")
     if "robust" not in args.skip:
         result["robust_tuning"] = rb = robust_tuning_benchmark(repeats=repeats)
         print(f"robust tuning ({rb['scenarios']} scenarios): {rb['median_tune_robust_s']:.2f} s vs nominal "

@@ -66,6 +66,15 @@ def _solver(model: PlantModel, rest: bool) -> ca.Function:
     per_model = _SOLVERS.setdefault(model, {})
     if rest in per_model:
         return per_model[rest]
+    fam = getattr(model, "family", None)
+    if fam is not None:  # a member of a parametric family: the family's solver with its values
+        if ("solver", rest) not in fam.cache:
+            fam.cache[("solver", rest)] = _solver(fam, rest)
+        fun_theta, theta = fam.cache[("solver", rest)], ca.DM(list(model.theta))
+        per_model[rest] = fun = lambda z, par: fun_theta(z, par, theta)
+        return fun
+    n_theta = getattr(model, "n_theta", None)  # the family model itself: theta is an input
+    theta = ca.SX.sym("theta", n_theta) if n_theta is not None else None
     free = _free(model)
     z = ca.SX.sym("z", len(free) + (0 if rest else 1))
     par = ca.SX.sym("p", 3)  # omega_nut, load, torque command (used at rest only)
@@ -74,11 +83,11 @@ def _solver(model: PlantModel, rest: bool) -> ca.Function:
     for k, i in enumerate(free):
         x[i] = z[k]
     x = ca.vertcat(*x)
-    rhs = model.f(x, ca.vertcat(par[2] if rest else z[-1], par[1]))
+    rhs = model.f(x, ca.vertcat(par[2] if rest else z[-1], par[1]), *([] if theta is None else [theta]))
     skip = ("omega_nut",) if rest else ()
     eqs = ca.vertcat(*[rhs[i] for i, n in enumerate(model.state_names)
                        if not n.startswith("theta_") and n not in skip])
-    fun = ca.Function("g", [z, par], [eqs, ca.jacobian(eqs, z)])
+    fun = ca.Function("g", [z, par] + ([] if theta is None else [theta]), [eqs, ca.jacobian(eqs, z)])
     per_model[rest] = fun
     return fun
 

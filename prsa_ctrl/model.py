@@ -95,13 +95,14 @@ from __future__ import annotations
 
 import math
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import casadi as ca
 
 from .plant import Plant
 
 __all__ = ["FIDELITIES", "PlantModel", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
+           "ParametricModel", "parametric_family", "register_member",
            "stick_band_rad_s", "STICK_TIME_CONSTANT_S"]
 
 from .options import FIDELITIES  # noqa: E402  (re-exported)
@@ -184,6 +185,11 @@ class PlantModel:
         ``(x, u) -> y`` with outputs named in ``output_names``.
     power : casadi.Function
         ``(x, u) -> [stored energy (J), motor power (W), load power (W), dissipated power (W)]``.
+    family : ParametricModel or None
+        For a member of a parametric family (:func:`register_member`): the family whose
+        equations this model is, with ``theta`` (the family's parameter values) filled in.
+    theta : tuple of float
+        The member's values of ``family.keys`` (file units); empty otherwise.
     """
 
     plant: Plant
@@ -198,6 +204,8 @@ class PlantModel:
     f: ca.Function
     h: ca.Function
     power: ca.Function
+    family: "ParametricModel | None" = None
+    theta: tuple = ()
 
     @property
     def nx(self) -> int:
@@ -480,17 +488,7 @@ _CACHE: "weakref.WeakKeyDictionary[Plant, dict[tuple, PlantModel]]" = weakref.We
 def _build(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "screw") -> PlantModel:
     """Build a model (uncached). ``roller_axial="nut"`` selects the former, superseded
     assumption that the rollers stay axially with the nut (comparison only, module docstring)."""
-    names = _STATES[fidelity]
-    x = ca.SX.sym("x", len(names))
-    u = ca.SX.sym("u", 2)
-    if fidelity == "multi-roller":
-        xdot, y, terms = _multi_roller(plant, x, u, RollerErrors.draw(plant, seed), roller_axial)
-    elif fidelity == "compliant":
-        xdot, y, terms = _compliant(plant, x, u, roller_axial)
-    else:
-        xdot, y, terms = _rigid(plant, x, u)
-    y = ca.vertcat(*y)
-    terms = ca.vertcat(*terms)
+    names, x, u, xdot, y, terms = _equations(plant, fidelity, seed, roller_axial)
     return PlantModel(
         plant=plant,
         fidelity=fidelity,
@@ -505,6 +503,20 @@ def _build(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "scre
         h=ca.Function("h", [x, u], [y], ["x", "u"], ["y"]),
         power=ca.Function("power", [x, u], [terms], ["x", "u"], ["terms"]),
     )
+
+
+def _equations(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "screw"):
+    """State names, symbols ``x``, ``u`` and the expressions ``xdot``, ``y``, energy terms."""
+    names = _STATES[fidelity]
+    x = ca.SX.sym("x", len(names))
+    u = ca.SX.sym("u", 2)
+    if fidelity == "multi-roller":
+        xdot, y, terms = _multi_roller(plant, x, u, RollerErrors.draw(plant, seed), roller_axial)
+    elif fidelity == "compliant":
+        xdot, y, terms = _compliant(plant, x, u, roller_axial)
+    else:
+        xdot, y, terms = _rigid(plant, x, u)
+    return names, x, u, xdot, ca.vertcat(*y), ca.vertcat(*terms)
 
 
 def plant_model(plant: Plant, fidelity: str = "compliant", seed: int = 0) -> PlantModel:
@@ -537,5 +549,200 @@ def plant_model(plant: Plant, fidelity: str = "compliant", seed: int = 0) -> Pla
     key = (fidelity, int(seed) if fidelity == "multi-roller" else 0)
     per_plant = _CACHE.setdefault(plant, {})
     if key not in per_plant:
-        per_plant[key] = _build(plant, fidelity, key[1])
+        member = _member_model(plant, fidelity, key[1])
+        per_plant[key] = member if member is not None else _build(plant, fidelity, key[1])
     return per_plant[key]
+
+
+# --- parametric families (one model for the plants of a Monte-Carlo run) ----------------------
+
+@dataclass(frozen=True, eq=False)
+class ParametricModel:
+    """The equations of one fidelity with some plant values as CasADi parameters ``theta``.
+
+    Built once for a base plant; every plant that differs from it only in ``keys`` (a
+    *member*, see :func:`register_member`) is this model with its own ``theta``, so the
+    simulator's functions (and their compiled code) serve all members. Same equations as
+    :func:`plant_model` builds for each member (checked against a direct build, see
+    :func:`parametric_family`); only the order of constant folding differs (rounding level).
+
+    Attributes
+    ----------
+    plant : Plant
+        The base plant (the numbers of every key not in ``keys``).
+    keys : tuple of str
+        The parameters, ``section.key`` in file units.
+    f, h, power : casadi.Function
+        As :class:`PlantModel`'s, with a third input ``theta``.
+    """
+
+    plant: Plant
+    fidelity: str
+    seed: int
+    keys: tuple[str, ...]
+    state_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    f: ca.Function
+    h: ca.Function
+    power: ca.Function
+    cache: dict = field(default_factory=dict, repr=False)  # the simulator's functions of this family
+
+    @property
+    def nx(self) -> int:
+        return len(self.state_names)
+
+    def index(self, state: str) -> int:
+        return self.state_names.index(state)
+
+    @property
+    def n_theta(self) -> int:
+        return len(self.keys)
+
+    def theta_of(self, plant: Plant) -> tuple[float, ...]:
+        return tuple(float(plant.values[k]) for k in self.keys)
+
+    def bind(self, plant: Plant) -> PlantModel:
+        """``plant``'s model: these equations with ``theta`` = its values (no rebuild of the
+        equations: one symbolic call with the numbers folded in)."""
+        theta = self.theta_of(plant)
+        x = ca.SX.sym("x", self.nx)
+        u = ca.SX.sym("u", 2)
+        th = ca.DM(theta) if theta else ca.DM.zeros(0, 1)
+        xdot, y, terms = self.f(x, u, th), self.h(x, u, th), self.power(x, u, th)
+        return PlantModel(
+            plant=plant, fidelity=self.fidelity, state_names=self.state_names, output_names=self.output_names,
+            x=x, u=u, xdot=xdot, y=y, energy_terms=terms,
+            f=ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"]),
+            h=ca.Function("h", [x, u], [y], ["x", "u"], ["y"]),
+            power=ca.Function("power", [x, u], [terms], ["x", "u"], ["terms"]),
+            family=self, theta=theta,
+        )
+
+
+#: Member plant -> (base plant, keys that may differ), see :func:`register_member`.
+_MEMBERS: "weakref.WeakKeyDictionary[Plant, tuple[Plant, tuple[str, ...]]]" = weakref.WeakKeyDictionary()
+#: (base plant's values, fidelity, seed, keys) -> ParametricModel, or None where no key can be a
+#: parameter. Keyed by content, not identity, so that worker processes forked after a family was
+#: built (or that rebuild the same plant) reuse it and its functions; at most 8 kept.
+_FAMILIES: dict[tuple, "ParametricModel | None"] = {}
+
+
+def _parameter_candidate(key: str) -> bool:
+    """Keys that may be parameters: not read as numbers by the sampled loop (``sensor.*``,
+    the torque limit) and not structural (integers: starts, counts, engaged threads)."""
+    from .plant import SCHEMA
+
+    section, sub = key.split(".")
+    return section != "sensor" and key != "drive.torque_limit_n_m" and SCHEMA[section][sub] != "positive integer"
+
+
+def _symbolic_build(base: Plant, fidelity: str, seed: int, keys: tuple[str, ...]) -> ParametricModel:
+    theta = ca.SX.sym("theta", len(keys))
+    view = object.__new__(Plant)  # the base plant with SX symbols for ``keys`` (no validation)
+    for name in ("name", "sources", "origin", "description", "uncertainty"):
+        object.__setattr__(view, name, getattr(base, name))
+    values = dict(base.values)
+    values.update({k: theta[i] for i, k in enumerate(keys)})
+    object.__setattr__(view, "values", values)
+    states, x, u, xdot, y, terms = _equations(view, fidelity, seed)
+    args, names = [x, u, theta], ["x", "u", "theta"]
+    return ParametricModel(
+        plant=base, fidelity=fidelity, seed=seed, keys=keys, state_names=states,
+        output_names=_output_names(base, fidelity),
+        f=ca.Function("f", args, [xdot], names, ["xdot"]),
+        h=ca.Function("h", args, [y], names, ["y"]),
+        power=ca.Function("power", args, [terms], names, ["terms"]),
+    )
+
+
+def _test_points(names: tuple[str, ...], n: int = 6):
+    """Seeded states and inputs around typical magnitudes (both thread flanks, both directions)."""
+    import numpy as np
+
+    mag = {"omega_nut": 40.0, "omega_cage": 20.0, "x_roller": 3e-5, "delta_screw": 3e-5, "v_roller": 2e-3,
+           "v_screw": 2e-3, "tau_motor": 1.0}
+    rng = np.random.default_rng(12345)
+    for _ in range(n):
+        x = [mag.get(k, 1.0) * rng.uniform(-1.0, 1.0) for k in names]
+        yield x, [rng.uniform(-2.0, 2.0), rng.uniform(-3000.0, 3000.0)]
+
+
+def _agrees(a: PlantModel, b: PlantModel) -> bool:
+    """The two models' f, h and power agree to 1e-9 (relative) at the test points, all finite."""
+    import numpy as np
+
+    for x, u in _test_points(a.state_names):
+        for fa, fb in ((a.f, b.f), (a.h, b.h), (a.power, b.power)):
+            va, vb = np.asarray(fa(x, u), float), np.asarray(fb(x, u), float)
+            if not (np.all(np.isfinite(va)) and np.all(np.isfinite(vb))):
+                return False
+            if np.any(np.abs(va - vb) > 1e-9 * np.maximum(np.abs(vb), 1e-12 * max(1.0, float(np.max(np.abs(vb)))))):
+                return False
+    return True
+
+
+def _has_nan_constant(fam: ParametricModel) -> bool:
+    """A value that went through ``float``/``math`` as a symbol leaves a NaN constant behind."""
+    for fun in (fam.f, fam.h, fam.power):
+        for k in range(fun.n_instructions()):
+            if fun.instruction_id(k) == ca.OP_CONST and math.isnan(fun.instruction_constant(k)):
+                return True
+    return False
+
+
+def parametric_family(base: Plant, fidelity: str, keys, seed: int = 0) -> ParametricModel | None:
+    """The model of ``base`` with the values of ``keys`` as parameters (built once per base
+    plant, fidelity, seed and key set), or ``None`` when none of them can be one.
+
+    A key becomes a parameter when the equations use it symbolically: the family is checked
+    for NaN constants (a value that went through ``float``/``math``) and against a direct
+    build of ``base`` at seeded test states (f, h, power to 1e-9); a key that fails is left
+    out (members differing in it get their own model).
+    """
+    key = (tuple(sorted(base.values.items())), fidelity, int(seed), tuple(sorted(keys)))
+    if key in _FAMILIES:
+        return _FAMILIES[key]
+    cands = tuple(k for k in key[3] if _parameter_candidate(k))
+    ref = plant_model(base, fidelity, seed)
+
+    def ok(ks: tuple[str, ...]) -> ParametricModel | None:
+        try:
+            fam = _symbolic_build(base, fidelity, int(seed), ks)
+        except (RuntimeError, TypeError, ValueError, ZeroDivisionError):
+            return None
+        return fam if not _has_nan_constant(fam) and _agrees(fam.bind(base), ref) else None
+
+    fam = ok(cands) if cands else None
+    if fam is None and len(cands) > 1:
+        good = tuple(k for k in cands if ok((k,)) is not None)
+        fam = ok(good) if good else None
+    while len(_FAMILIES) >= 8:
+        del _FAMILIES[next(iter(_FAMILIES))]
+    _FAMILIES[key] = fam
+    return fam
+
+
+def register_member(plant: Plant, base: Plant, keys) -> None:
+    """Declare that ``plant`` differs from ``base`` only in ``keys`` (e.g. one Monte-Carlo
+    sample): :func:`plant_model` then gives it the parametric family's model (same equations,
+    shared simulator functions) where every differing key is a parameter of the family."""
+    _MEMBERS[plant] = (base, tuple(sorted(keys)))
+
+
+def _member_model(plant: Plant, fidelity: str, seed: int) -> PlantModel | None:
+    entry = _MEMBERS.get(plant)
+    if entry is None:
+        return None
+    base, keys = entry
+    differ = {k for k in plant.values if plant.values[k] != base.values[k]}
+    fam = parametric_family(base, fidelity, keys, seed)
+    if fam is None or not differ <= set(fam.keys):
+        return None
+    member = fam.bind(plant)
+    if differ and not fam.cache.get("checked"):
+        # once per family: a member with other values against its direct build
+        if not _agrees(member, _build(plant, fidelity, seed)):
+            _FAMILIES[(tuple(sorted(base.values.items())), fidelity, int(seed), keys)] = None
+            return None
+        fam.cache["checked"] = True
+    return member

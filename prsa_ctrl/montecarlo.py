@@ -75,6 +75,7 @@ class _Job:
     ops: tuple  # ((setpoint rad/s, final load N), ...)
     spec: dict
     seed: int
+    settings: Any = None  # SimSettings of every verification run (None: autotune.verify_settings)
 
 
 _WORKER_CACHE: dict[str, tuple] = {}
@@ -116,14 +117,18 @@ def _evaluate(job: _Job, index: int) -> tuple[int, dict, int, np.ndarray, list]:
     import inspect
 
     from .autotune import Design, actuator_loops, verify
+    from .model import register_member
     from .uncertainty import apply
 
     plant, scene = _prepared(job)
     values, op, roller_seed = draw_sample(job.unc, job.ops, job.seed, index)
     sp, f1 = job.ops[op]
     p_i = apply(plant, values, name=f"{plant.name} sample {index}") if values else plant
+    if values:  # one parametric model (and one compiled law) serves every sample
+        register_member(p_i, plant, job.unc.keys)
     sc = scene.replace(setpoint_rad_s=sp, final_loads=(f1,))
     kw = {"seed": roller_seed} if "seed" in inspect.signature(verify).parameters else {}
+    kw["settings"] = job.settings
     out = np.full((len(job.designs), len(METRICS)), np.inf)
     errors: list = [None] * len(job.designs)
     loop = None
@@ -148,6 +153,94 @@ def _evaluate(job: _Job, index: int) -> tuple[int, dict, int, np.ndarray, list]:
         else:
             row[10] = row[11] = math.nan
     return index, values, op, out, errors
+
+
+#: Integrator choices of :func:`run_monte_carlo`.
+INTEGRATOR_CHOICES = ("auto", "fast", "reference")
+_SETTINGS_CACHE: dict = {}
+
+
+def verification_settings(plant, scene, unc, ops: Sequence, pid, integrator: str = "auto") -> tuple[Any, dict]:
+    """The integrator settings of every Monte-Carlo verification run, and why.
+
+    ``"reference"``: the scene's adaptive integrator (:func:`prsa_ctrl.autotune.verify_settings`).
+    ``"fast"``: :data:`prsa_ctrl.autotune.FAST_VERIFY` without a measurement (a replay of a run
+    that measured it). ``"auto"``: the compiled fixed-step :data:`prsa_ctrl.autotune.FAST_VERIFY`
+    where its nut-speed error against a tight CVODES reference (rtol = atol = 1e-9) is inside
+    half the scene's accuracy at every check point: the nominal plant, the two extreme corners
+    of the uncertainty box (every parameter at its low end, every one at its high end) and each
+    parameter alone at its low and its high end, at the first and last operating point, with
+    ``pid``; else the reference. (On the paper plant the worst point is the stiffest contact
+    alone, not a corner.) Not a bound over the whole box: the largest measured error is
+    reported. Deterministic (every worker and a replay make the same choice); measured once
+    per process.
+
+    Returns
+    -------
+    (SimSettings, dict)
+        The settings and a record: ``integrator``, the largest measured ``relative`` error
+        (``None`` when not measured), the ``accuracy`` and the ``reason``.
+    """
+    from .autotune import fast_verify_settings, verify_settings
+    from .scene import choose_fidelity
+    from .uncertainty import apply
+
+    if integrator not in INTEGRATOR_CHOICES:
+        raise ValueError(f"integrator = {integrator!r}; expected one of {', '.join(INTEGRATOR_CHOICES)}")
+    sc, _ = choose_fidelity(scene)
+    reference = verify_settings(sc)
+    if integrator == "reference":
+        return reference, {"integrator": reference.integrator, "rtol": reference.rtol, "relative": None,
+                           "accuracy": sc.accuracy, "reason": "integrator = 'reference'"}
+    if integrator == "fast":
+        from .autotune import FAST_VERIFY
+
+        return FAST_VERIFY, {"integrator": "radau", "stages": FAST_VERIFY.stages, "substeps": FAST_VERIFY.substeps,
+                             "jit": FAST_VERIFY.jit, "relative": None, "accuracy": sc.accuracy,
+                             "reason": "integrator = 'fast'"}
+    key = (tuple(sorted(plant.values.items())), repr(sc), repr(unc.as_dict()), tuple(ops), repr(pid))
+    if key in _SETTINGS_CACHE:
+        return _SETTINGS_CACHE[key]
+    from .model import register_member
+
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        points = [apply(plant, {})]  # a copy: the nominal plant's own model stays as it is
+    register_member(points[0], plant, unc.keys)
+    if unc.keys:
+        corners = [{e.key: getattr(e, end) for e in unc.entries} for end in ("low", "high")]
+        corners += [{e.key: getattr(e, end)} for e in unc.entries for end in ("low", "high")]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", GeometryWarning)
+            for c in corners:
+                points.append(apply(plant, c))
+                register_member(points[-1], plant, unc.keys)  # shares the samples' compiled law
+    worst, fast = 0.0, None
+    try:
+        for p_k in points:
+            for sp, f1 in dict.fromkeys([ops[0], ops[-1]]):
+                fast, meas = fast_verify_settings(sc.replace(setpoint_rad_s=sp, final_loads=(f1,)), p_k, pid)
+                if fast is None:
+                    raise _NotFast(meas.get("reason") or f"fixed-step error {meas['relative']:.3g} of the deviation "
+                                   f"above half the accuracy {sc.accuracy:g}")
+                worst = max(worst, meas["relative"])
+        out = (fast, {"integrator": fast.integrator, "stages": fast.stages, "substeps": fast.substeps,
+                      "jit": fast.jit, "relative": worst, "accuracy": sc.accuracy, "check_points": len(points),
+                      "check_s": time.perf_counter() - t0,
+                      "reason": "fixed-step error inside half the accuracy at every check point"})
+    except _NotFast as exc:
+        out = (reference, {"integrator": reference.integrator, "rtol": reference.rtol, "relative": None,
+                           "accuracy": sc.accuracy, "reason": str(exc)})
+    except SimulationError as exc:
+        out = (reference, {"integrator": reference.integrator, "rtol": reference.rtol, "relative": None,
+                           "accuracy": sc.accuracy, "reason": f"fixed-step check failed: {str(exc).splitlines()[0]}"})
+    _SETTINGS_CACHE[key] = out
+    return out
+
+
+class _NotFast(Exception):
+    pass
 
 
 def _run_chunk(job: _Job, indices: Sequence[int]) -> list:
@@ -216,13 +309,14 @@ class MonteCarloReport:
     designs: list[DesignYield]
     wall_time_s: float
     samples: dict = field(default_factory=dict, repr=False)  # index, values, op, metrics arrays
+    integration: dict = field(default_factory=dict)  # the verification runs' integrator and its measured error
 
     def as_dict(self, include_samples: bool = False) -> dict[str, Any]:
         d = {"samples": self.n, "samples_done": self.n_done, "seed": self.seed, "backend": self.backend,
              "workers": self.workers, "complete": self.complete, "spec": self.spec,
              "uncertainty": self.uncertainty, "operating_points": self.operating_points,
              "designs": [x.as_dict() for x in self.designs], "wall_time_s": self.wall_time_s,
-             "sample_seed": "numpy.random.SeedSequence([seed, index])"}
+             "sample_seed": "numpy.random.SeedSequence([seed, index])", "integration": self.integration}
         if include_samples:
             s = self.samples
             d["per_sample"] = {"index": s["index"].tolist(), "operating_point": s["op"].tolist(),
@@ -259,11 +353,12 @@ def _identity(plant, scene) -> tuple[str, str]:
     return p, s
 
 
-def _replay_cmd(plant, scene, seed: int, index: int, pid) -> str:
+def _replay_cmd(plant, scene, seed: int, index: int, pid, settings=None) -> str:
     p, s = _identity(plant, scene)
     g = {k: float(v) for k, v in pid.as_dict().items()}
+    integ = "fast" if settings is not None and settings.integrator == "radau" else "reference"
     cmd = (f"python -m prsa_ctrl.montecarlo --plant {p} --scene {s} --seed {seed} --index {index} "
-           f"--kp {g['kp']!r} --ki {g['ki']!r} --kd {g['kd']!r} --tf {g['tf']!r}")
+           f"--integrator {integ} --kp {g['kp']!r} --ki {g['ki']!r} --kd {g['kd']!r} --tf {g['tf']!r}")
     return cmd + (f" --kff {g['kff']!r}" if g.get("kff") else "")
 
 
@@ -300,7 +395,7 @@ def _build_report(job: _Job, plant, scene, rows: list, n: int, backend: str, wor
             {kk: float(values[kk][w]) for kk in keys} if w is not None else {},
             {met: float(m[w, c]) for c, met in enumerate(METRICS)} if w is not None else {},
             failures,
-            _replay_cmd(plant, scene, job.seed, int(idx[w]), pid) if w is not None else ""))
+            _replay_cmd(plant, scene, job.seed, int(idx[w]), pid, job.settings) if w is not None else ""))
     return MonteCarloReport(
         n, len(rows), job.seed, backend, workers, complete, dict(job.spec), job.unc.as_dict(),
         [{"setpoint_rad_s": a, "final_load_n": b} for a, b in job.ops], out, wall,
@@ -404,6 +499,7 @@ def run_monte_carlo(
     quiet: bool = False,
     spec: Mapping[str, Any] | None = None,
     unc=None,
+    integrator: str = "auto",
 ) -> MonteCarloReport:
     """Verify designs on ``n`` seeded samples of the plant's (and scene's) uncertainty.
 
@@ -431,6 +527,10 @@ def run_monte_carlo(
         Stderr bar (default: when stderr is a terminal and not ``quiet``), or ``f(done, total)``.
     spec : dict, optional
         Bounds (default the scene's ``[spec]``).
+    integrator : {"auto", "reference"}
+        ``"auto"``: the compiled fixed-step integrator where its measured error is inside the
+        scene's accuracy (:func:`verification_settings`, quoted in ``report.integration``),
+        else the scene's adaptive one; ``"reference"``: always the adaptive one.
 
     Returns
     -------
@@ -466,8 +566,10 @@ def run_monte_carlo(
     workers = workers or (1 if backend == "serial" else (os.cpu_count() or 1))
     spec = dict((getattr(scene, "robust", None) or {}).get("spec", {}) if spec is None else spec)
     unc = uncertainty_model(plant, scene) if unc is None else unc
-    job = _Job(uuid.uuid4().hex, _plant_doc(plant), scene, _as_design_tuples(designs), unc,
-               tuple(operating_points(scene)), spec, int(seed))
+    design_tuples = _as_design_tuples(designs)
+    ops = tuple(operating_points(scene))
+    settings, integration = verification_settings(plant, scene, unc, ops, design_tuples[0][1], integrator)
+    job = _Job(uuid.uuid4().hex, _plant_doc(plant), scene, design_tuples, unc, ops, spec, int(seed), settings)
     if chunk is None:
         chunk = int(min(64, max(8, math.ceil(n / (8 * workers)))))
     chunks = [list(range(a, min(a + chunk, n))) for a in range(0, n, chunk)]
@@ -495,9 +597,12 @@ def run_monte_carlo(
     except KeyboardInterrupt:
         bar.close()
         rep = _build_report(job, plant, scene, rows, n, backend, workers, False, time.perf_counter() - t0, designs)
+        rep.integration = integration
         raise MonteCarloInterrupted(rep) from None
     bar.close()
-    return _build_report(job, plant, scene, rows, n, backend, workers, complete, time.perf_counter() - t0, designs)
+    rep = _build_report(job, plant, scene, rows, n, backend, workers, complete, time.perf_counter() - t0, designs)
+    rep.integration = integration
+    return rep
 
 
 def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
@@ -565,14 +670,17 @@ def scene_options(scene) -> dict[str, int]:
 
 # --- replay, figures, benchmark ------------------------------------------------------------------
 
-def replay_sample(plant, scene, pid, seed: int, index: int) -> dict[str, Any]:
-    """Re-run one sample of one design: its parameter values, operating point and metrics."""
+def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "auto") -> dict[str, Any]:
+    """Re-run one sample of one design: its parameter values, operating point and metrics
+    (with the integrator choice :func:`run_monte_carlo` made for that design first in line)."""
     from .robust import operating_points
     from .uncertainty import uncertainty_model
 
     unc = uncertainty_model(plant, scene)
+    ops = tuple(operating_points(scene))
+    settings, _ = verification_settings(plant, scene, unc, ops, pid, integrator)
     job = _Job("replay-" + uuid.uuid4().hex, _plant_doc(plant), scene, (("replay", pid, "none"),), unc,
-               tuple(operating_points(scene)), dict((scene.robust or {}).get("spec", {})), int(seed))
+               ops, dict((scene.robust or {}).get("spec", {})), int(seed), settings)
     i, values, op, m, err = _run_chunk(job, [index])[0]
     ok, sev = _passes(m, job.spec, plant.torque_limit)
     return {"index": i, "parameters": values, "operating_point": job.ops[op],
@@ -617,7 +725,13 @@ def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, sce
     paper design on the scene's samples (default the robust scene): serial, ``workers``
     processes, Dask LocalCluster of ``workers`` (cluster start-up included). ``spec``
     defaults to no bounds (pure verifications; the scene's ``ms`` bound would add a
-    linearisation per sample). Also checks that the backends agree bit for bit."""
+    linearisation per sample). Also checks that the backends agree bit for bit.
+
+    A warm-up run of 2 samples first makes the one-off integrator choice
+    (:func:`verification_settings`, its time reported as ``integration["check_s"]``) and
+    compiles the law into the per-user cache; the timed runs reuse both (the check is cached
+    in-process, the compiled law on disk). ``cpu_per_sample_s``: CPU time of the serial runs
+    per sample (less sensitive to a loaded machine than wall time)."""
     from .paper import default_pid
     from .plant import load_plant
     from .scene import load_scene
@@ -626,17 +740,23 @@ def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, sce
     scene = scene or load_scene("robust-load-step")
     pid = default_pid(plant)
     times: dict[str, list[float]] = {}
+    cpu: list[float] = []
     ref = None
     identical = True
+    t = time.perf_counter()
+    warm = run_monte_carlo(plant, scene, {"paper": pid}, 2, seed=0, quiet=True, spec={} if spec is None else spec)
+    warm_s = time.perf_counter() - t
     # In turn (serial, process, dask, serial, ...), so that drift of a shared machine's speed
     # hits every backend alike.
     for _ in range(repeats):
         for b in backends:
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, backend=b,
                                 workers=1 if b == "serial" else workers, quiet=quiet,
                                 spec={} if spec is None else spec)
             times.setdefault(b, []).append(time.perf_counter() - t)
+            if b == "serial":
+                cpu.append((time.process_time() - c) / n)
             if ref is None:
                 ref = r.samples["metrics"]
             elif not np.array_equal(ref, r.samples["metrics"], equal_nan=True):
@@ -646,7 +766,10 @@ def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, sce
 
     out: dict[str, Any] = {"n": n, "workers": workers, "repeats": repeats, "median_s": med, "runs_s": times,
                            "identical": identical, "fidelity": choose_fidelity(scene)[0].fidelity,
-                           "scene": scene.name, "plant": plant.name}
+                           "scene": scene.name, "plant": plant.name, "integration": warm.integration,
+                           "warm_up_s": warm_s}
+    if cpu:
+        out["cpu_per_sample_s"] = float(np.median(cpu))
     if "serial" in med and "process" in med:
         out["parallel_efficiency"] = med["serial"] / (workers * med["process"])
     if "process" in med and "dask" in med:
@@ -669,6 +792,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--scene", default="robust-load-step")
     ap.add_argument("--seed", type=int, required=True)
     ap.add_argument("--index", type=int, required=True)
+    ap.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto",
+                    help="the run's integrator choice (its replay command names it)")
     for g in ("kp", "ki", "kd", "tf", "kff"):
         ap.add_argument(f"--{g}", type=float, default=0.0 if g in ("kd", "kff") else None, required=g in ("kp", "ki"))
     a = ap.parse_args(argv)
@@ -678,7 +803,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         pid = PID(a.kp, a.ki, a.kd, kff=a.kff, **kw)
         if a.seed < 0 or a.index < 0:
             raise ValueError(f"--seed {a.seed} --index {a.index}; expected integers >= 0")
-        out = replay_sample(plant, scene, pid, a.seed, a.index)
+        out = replay_sample(plant, scene, pid, a.seed, a.index, a.integrator)
     except (PlantFileError, SceneError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

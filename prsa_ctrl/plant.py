@@ -466,7 +466,11 @@ class Plant:
         """
         eta = self._v("friction.efficiency")
         mu = self._v("friction.dynamic")
-        if eta >= 1.0 or mu == 0.0:
+        try:
+            lossless = bool(eta >= 1.0 or mu == 0.0)
+        except RuntimeError:  # CasADi symbols (prsa_ctrl.model.parametric_family): the formula, 0 at eta = 1
+            lossless = False
+        if lossless:
             return 0.0
         f_n, f_s = self.normal_force_factor()
         return self.lead_per_rad * (1.0 / eta - 1.0) / (mu * (f_n + f_s))

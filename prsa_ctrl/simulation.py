@@ -57,7 +57,8 @@ if TYPE_CHECKING:  # annotations only: python-control is imported where it is us
     from .motion import MotionProfile
 
 __all__ = ["simulate", "run", "SimRun", "Profile", "PiecewiseLinear", "SimSettings", "energy_balance",
-           "INTEGRATORS", "MAX_OUTPUT_POINTS", "INPUT_LABELS"]
+           "INTEGRATORS", "MAX_OUTPUT_POINTS", "INPUT_LABELS", "fixed_step_error", "fast_settings", "jit_cache_dir",
+           "RADAU_STAGES"]
 
 INTEGRATORS = ("cvodes", "idas", "radau")
 #: Stages of the fixed-step ``"radau"`` integrator (Radau IIA: 1 = implicit Euler, order 1;
@@ -217,8 +218,11 @@ class SimSettings:
         ``"cvodes"``/``"idas"``: evaluate the model's right-hand side and its Jacobian as C code
         compiled once per model into a per-user cache (``$PRSA_CTRL_CACHE``, else
         ``$XDG_CACHE_HOME/prsa-ctrl`` or ``~/.cache/prsa-ctrl``; keyed by the hash of the
-        generated code). Same equations, same tolerances; without a C compiler the run falls
-        back to CasADi's interpreter with a warning.
+        generated code). ``"radau"``: compile the whole per-sample law of the sampled loop
+        (plant steps, measurement, PID) the same way, once per law (a few seconds of ``cc -O1``
+        the first time; all members of a parametric family share it, see
+        :func:`prsa_ctrl.model.register_member`). Same equations, same tolerances; without a C
+        compiler the run falls back to CasADi's interpreter with a warning.
     """
 
     integrator: str = "cvodes"
@@ -295,21 +299,59 @@ class _Built:
     rhs: ca.Function  # continuous loop: (z, p, tau) -> dz/dtau in scaled, duration-normalised time
     continuous: dict = field(default_factory=dict)  # (settings, n_out) -> integrator
     sampled: dict = field(default_factory=dict)  # (settings, measurement key, ...) -> functions
+    # Member of a parametric family (model.register_member): the family's parameter values,
+    # carried through the sampled loop as constant plant states between the physical states and
+    # the energy terms (scale 1, zero rate), so that one law serves every member.
+    theta0: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
 
 _BUILT: "weakref.WeakKeyDictionary[PlantModel, dict[bool, _Built]]" = weakref.WeakKeyDictionary()
 
 
-def _plant_rates(model: PlantModel, x, u, load, energy: bool):
-    """Plant state rates, followed by the motor, load and dissipated powers when ``energy``."""
-    uu = ca.vertcat(u, load)
+def _plant_rates(model: PlantModel, x, u, load, energy: bool, theta=None):
+    """Plant state rates, followed by the motor, load and dissipated powers when ``energy``
+    (``theta``: the parameters of a :class:`~prsa_ctrl.model.ParametricModel`)."""
+    args = (x, ca.vertcat(u, load)) + (() if theta is None else (theta,))
     if not energy:
-        return model.f(x, uu)
-    return ca.vertcat(model.f(x, uu), model.power(x, uu)[1:])
+        return model.f(*args)
+    return ca.vertcat(model.f(*args), model.power(*args)[1:])
 
 
-def _build(model: PlantModel, energy: bool) -> _Built:
+class _Bounded(dict):
+    """A dict that forgets its oldest entries beyond ``cap`` (functions shared by a family)."""
+
+    cap = 64
+
+    def __setitem__(self, key, value) -> None:
+        super().__setitem__(key, value)
+        while len(self) > self.cap:
+            del self[next(iter(self))]
+
+
+def _member_built(model: PlantModel, energy: bool) -> _Built:
+    """A family member's functions: the family's (built once, shared) with the member's
+    parameters as the initial values of the constant states (see ``_Built.theta0``)."""
+    fam = model.family
+    key = ("built", energy)
+    if key not in fam.cache:
+        x_scale = _state_scale(fam)
+        e_scale = np.ones(3 if energy else 0)
+        plant_scale = np.concatenate([x_scale, np.ones(fam.n_theta), e_scale])
+        fam.cache[key] = _Built(fam, plant_scale, plant_scale, energy, None, _Bounded(), _Bounded())
+    b = fam.cache[key]
+    return _Built(fam, b.scale, b.plant_scale, energy, None, b.continuous, b.sampled,
+                  np.asarray(model.theta, dtype=float))
+
+
+def _build(model: PlantModel, energy: bool, shared: bool = False) -> _Built:
+    """The closed-loop functions of ``model``; with ``shared`` (sampled fixed-step runs) a
+    member of a parametric family gets its family's."""
     cache = _BUILT.setdefault(model, {})
+    if shared and model.family is not None:
+        key = ("member", energy)
+        if key not in cache:
+            cache[key] = _member_built(model, energy)
+        return cache[key]
     if energy in cache:
         return cache[energy]
     p = model.plant
@@ -476,9 +518,9 @@ def jit_cache_dir() -> Path:
     return Path(root) / "jit"
 
 
-def _compiled(fun: ca.Function) -> ca.Function | None:
-    """``fun`` and its Jacobian as C code compiled once into :func:`jit_cache_dir` (keyed by the
-    hash of the code, the CasADi version and the compiler) and loaded as an external function;
+def _compiled(fun: ca.Function, jacobian: bool = True, flags: tuple[str, ...] = ("-O2",)) -> ca.Function | None:
+    """``fun`` (and its Jacobian) as C code compiled once into :func:`jit_cache_dir` (keyed by the
+    hash of the code, the CasADi version, the compiler and ``flags``) and loaded as an external function;
     ``None`` with a warning when no C compiler is found or compiling fails (the caller then
     uses CasADi's interpreter: same equations, slower)."""
     import hashlib
@@ -490,10 +532,11 @@ def _compiled(fun: ca.Function) -> ca.Function | None:
 
     cg = ca.CodeGenerator(f"{fun.name()}.c", {"with_header": False})
     cg.add(fun)
-    cg.add(fun.jacobian())
+    if jacobian:
+        cg.add(fun.jacobian())
     code = cg.dump()
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
-    key = hashlib.sha256("\n".join([code, ca.__version__, str(cc)]).encode()).hexdigest()[:24]
+    key = hashlib.sha256("\n".join([code, ca.__version__, str(cc), *flags]).encode()).hexdigest()[:24]
     if key in _COMPILED:
         return _COMPILED[key]
     if cc is None:
@@ -507,7 +550,7 @@ def _compiled(fun: ca.Function) -> ca.Function | None:
             with tempfile.TemporaryDirectory(dir=folder) as tmp:
                 src, out = Path(tmp) / "f.c", Path(tmp) / "f.so"
                 src.write_text(code)
-                res = subprocess.run([cc, "-O2", "-shared", "-fPIC", str(src), "-o", str(out), "-lm"],
+                res = subprocess.run([cc, *flags, "-shared", "-fPIC", str(src), "-o", str(out), "-lm"],
                                      capture_output=True, text=True, timeout=600)
                 if res.returncode != 0:
                     raise OSError(res.stderr.strip().splitlines()[-1] if res.stderr.strip() else f"exit {res.returncode}")
@@ -997,7 +1040,7 @@ def run(
     if controller is not None and controller.kff > 0 and not (meas is not None and meas.estimates_load):
         raise ValueError(f"PID kff = {controller.kff:g} needs a load-torque estimate; expected discrete=True "
                          "with measurement='kf'")
-    built = _build(model, energy)
+    built = _build(model, energy, shared=discrete and position is None and settings.integrator == "radau")
     budget = _Budget(settings)
 
     op, integral0 = _initial_state(plant, fidelity, float(sp.v[0]), float(ld.v[0]), controller, feedforward_torque, seed,
@@ -1005,7 +1048,7 @@ def run(
     gains = controller.params if controller is not None else [0.0, 0.0, 0.0, 1e-3]
     kff = controller.kff if controller is not None else 0.0
     ff = feedforward_torque + (0.0 if controller is not None else op.torque)
-    e0 = np.zeros(3 if energy else 0)
+    e0 = np.concatenate([built.theta0, np.zeros(3 if energy else 0)])  # (theta0: family parameters)
     if discrete:
         assert meas is not None
         t, xs, extra, refs, loads, state_labels, events = _run_sampled(
@@ -1130,10 +1173,15 @@ def _sample_integrator(built: _Built, settings: SimSettings) -> ca.Function:
     if key not in built.sampled:
         model, scale = built.model, built.plant_scale
         nx = model.nx
+        n_theta = getattr(model, "n_theta", 0)  # parameters of a family: constant states after x
         zp = ca.SX.sym("z", len(scale))
         pp = ca.SX.sym("p", 4)
         tau = ca.SX.sym("tau")
-        rates = _plant_rates(model, (zp * scale)[:nx], pp[0], pp[1] + pp[2] * pp[3] * tau, built.energy)
+        x_all = zp * scale
+        rates = _plant_rates(model, x_all[:nx], pp[0], pp[1] + pp[2] * pp[3] * tau, built.energy,
+                             x_all[nx:nx + n_theta] if n_theta else None)
+        if n_theta:
+            rates = ca.vertcat(rates[:nx], ca.SX.zeros(n_theta), rates[nx:])
         ode = pp[3] * rates / scale
         if settings.integrator == "radau":
             step = _radau_step(ca.Function("plant_scaled", [zp, pp, tau], [ode]), len(scale), 4, settings, 1.0)
@@ -1278,10 +1326,19 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
 
 
 def _accumulated(built: _Built, law: ca.Function, n: int) -> ca.Function:
-    """``n`` samples of ``law`` chained (mapaccum), built once per law and length."""
+    """``n`` samples of ``law`` chained (mapaccum), built once per law and length; with
+    ``SimSettings(integrator="radau", jit=True)`` the law is compiled C code (once per law)."""
     key = (law, "accum", n)
     if key not in built.sampled:
-        built.sampled[key] = law.mapaccum(n)
+        settings = next((k[0] for k, v in list(built.sampled.items())
+                         if v is law and isinstance(k, tuple) and isinstance(k[0], SimSettings)), None)
+        fun = law
+        if settings is not None and settings.jit and settings.integrator == "radau":
+            ckey = (law, "compiled")
+            if ckey not in built.sampled:
+                built.sampled[ckey] = _compiled(law, jacobian=False, flags=("-O1",)) or law
+            fun = built.sampled[ckey]
+        built.sampled[key] = fun.mapaccum(n)
     return built.sampled[key]
 
 
@@ -1466,13 +1523,13 @@ def fixed_step_error(plant: Plant, settings: SimSettings | None = None, referenc
 
 
 def fast_settings(plant: Plant, accuracy: float, settings: SimSettings | None = None, margin: float = 0.5,
-                  **run_kwargs: Any) -> tuple[SimSettings | None, dict[str, float]]:
-    """The fixed-step settings when their measured error (:func:`fixed_step_error`, on the
-    scenario ``run_kwargs``) is inside ``margin * accuracy`` of the reference's deviation,
-    else ``None`` (keep the adaptive reference integrator). Returns the choice and the
-    measurement, which a report should quote."""
+                  reference: SimSettings | None = None, **run_kwargs: Any) -> tuple[SimSettings | None, dict[str, float]]:
+    """The fixed-step settings when their measured error (:func:`fixed_step_error` against
+    ``reference``, on the scenario ``run_kwargs``) is inside ``margin * accuracy`` of the
+    reference's deviation, else ``None`` (keep the adaptive reference integrator). Returns the
+    choice and the measurement, which a report should quote."""
     settings = SimSettings(integrator="radau") if settings is None else settings
     if not (_is_number(accuracy) and 0 < accuracy < 1):
         raise ValueError(f"accuracy = {accuracy!r}; expected a relative accuracy in (0, 1)")
-    measured = fixed_step_error(plant, settings, **run_kwargs)
+    measured = fixed_step_error(plant, settings, reference, **run_kwargs)
     return (settings if measured["relative"] <= margin * accuracy else None), measured
