@@ -17,7 +17,7 @@ Linear model of the sampled cascade (:class:`CascadeModel`)
     (:func:`prsa_ctrl.linear.linear_core`), discretised with a zero-order hold, under exactly
     the per-sample law the simulator runs (encoder difference and speed filter, speed PI with
     Euler integral, one-sample computation delay; position P/PI with velocity and acceleration
-    feed-forward, at the speed-loop rate). Its loop transfer functions at the three
+    feed-forward, at the speed-loop rate). Its loop transfer functions at the four
     loop-breaking points, with ``G`` the torque-command-to-angle response (delay included),
     ``G_p`` the same to the measured position (rad), ``W`` the speed measurement,
     ``C_s = kp + ki Ts z^-1/(1 - z^-1)``, ``C_p = kv + kip Ts/(1 - z^-1)``::
@@ -25,8 +25,9 @@ Linear model of the sampled cascade (:class:`CascadeModel`)
         speed loop, position loop closed:  L_sc = W G C_s / (1 + G_p C_s C_p)
         speed loop, position loop opened:  L_so = W G C_s
         position loop, speed loop closed:  L_p  = G_p C_s C_p / (1 + W G C_s)
+        torque command (both loops broken at the plant input):  L_t = G_p C_s C_p + W G C_s
 
-    Ms = max |1/(1 + L)| at each. The linearisation ignores stiction (at rest the nut
+    Ms = max |1/(1 + L)| at each (:data:`BREAKING_POINTS`). The linearisation ignores stiction (at rest the nut
     sticks, which the nonlinear verification includes).
 
 Tuning (:func:`tune_cascade`)
@@ -34,7 +35,7 @@ Tuning (:func:`tune_cascade`)
     one CasADi/ipopt NLP, minimising ``w_f mean(e_move^2)/e_f0^2 + w_h mean(e_hold^2)/e_h0^2``
     (following error over the move with its load step, position deviation after the load
     step while holding; normalised by the baseline's values) subject to
-    ``|S| <= Ms`` at all three points on a frequency grid, with an optional bandwidth ratio
+    ``|S| <= Ms`` at all four points on a frequency grid, with an optional bandwidth ratio
     ``kp/J >= ratio kv``. The true Ms of the result is verified on a dense grid with local
     refinement; a violated bound adds its frequency and solves again.
     *sequential* (the baseline): the speed PI tuned alone by :func:`prsa_ctrl.tuning.tune_loops`
@@ -70,8 +71,14 @@ POSITION_SENSORS = ("nut_angle", "screw_position")
 
 __all__ = ["MoveScene", "load_move_scene", "is_move_scene", "MoveMetrics", "move_metrics", "hunting",
            "simulate_move", "CascadeModel", "CascadeDesign", "tune_cascade", "sequential_design",
-           "export_cascade", "main_move", "verify_design", "CASCADE_GAINS", "MS_RTOL"]
+           "export_cascade", "main_move", "verify_design", "write_move_plots", "format_move_report",
+           "check_move_against_plant", "MOVE_FLAGS", "CASCADE_GAINS", "MS_RTOL",
+           "BREAKING_POINTS", "POSITION_LAW"]
 
+#: The loop-breaking points whose Ms the tuning bounds (:meth:`CascadeModel.loops`): the speed
+#: loop with the position loop closed and opened, the position loop, the torque command (both
+#: loops broken at the plant input).
+BREAKING_POINTS = ("speed_closed", "speed_open", "position", "torque")
 #: Relative tolerance of the verified Ms against the bound (the reported Ms is the true one).
 MS_RTOL = 1e-5
 #: Gains of a cascade design, in this order: speed kp (N m s/rad), ki (N m/rad); position kv
@@ -86,7 +93,8 @@ _MOVE_KEYS: Mapping[str, tuple[type, str]] = {
     "jerk_m_s3": (float, "a jerk > 0 in m/s^3"),
     "start_s": (float, "a start time >= 0 s"),
     "measured": (str, "one of " + ", ".join(POSITION_SENSORS)),
-    "position_rate": (int, "an integer number of controller samples in [1, 1000]"),
+    "position_rate": (int, "1 (the cascade tuner models the position loop at the speed-loop rate; "
+                      "PositionLoop(rate=...) simulates slower rates)"),
     "initial_load_n": (float, "a finite load in N"),
     "load_n": (float, "a finite load in N (the load that appears during the move)"),
     "load_time_s": (float, "a time in s inside the move"),
@@ -119,7 +127,8 @@ class MoveScene:
         When the move starts (the axis holds at rest before).
     measured : {"nut_angle", "screw_position"}
     position_rate : int
-        Position-loop sample time in controller samples.
+        Position-loop sample time in controller samples (a scene file accepts 1 only: the
+        cascade tuner models the position loop at the speed-loop rate).
     initial_load_n, load_n : float, N
         Load at the start and the load that appears at ``load_time_s`` (default: the middle
         of the move), then held.
@@ -137,6 +146,8 @@ class MoveScene:
         Weights of the two parts of the tuning objective.
     bandwidth_ratio : float or None
         Smallest ratio of the speed loop's to the position loop's bandwidth (``kp/J >= ratio kv``).
+    typed : dict
+        The ``[move]`` values as the file typed them (named in error messages).
     """
 
     name: str
@@ -163,6 +174,8 @@ class MoveScene:
     weight_holding: float = 1.0
     bandwidth_ratio: float | None = None
     description: str = ""
+    #: The ``[move]`` values as the file typed them (for error messages).
+    typed: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def motion(self) -> MotionProfile:
         """The move, m of screw travel (:mod:`prsa_ctrl.motion`)."""
@@ -254,7 +267,7 @@ def _parse_move(doc: Mapping[str, Any], origin: str) -> MoveScene:
         raise bad("move", "start_s")
     if kw.get("measured", "nut_angle") not in POSITION_SENSORS:
         raise bad("move", "measured")
-    if not 1 <= kw.get("position_rate", 1) <= 1000:
+    if kw.get("position_rate", 1) != 1:
         raise bad("move", "position_rate")
     if kw.get("fidelity", "compliant") not in ("rigid", "compliant"):
         raise bad("move", "fidelity")
@@ -271,6 +284,7 @@ def _parse_move(doc: Mapping[str, Any], origin: str) -> MoveScene:
         raise SceneError(f"{origin}: cascade.weight_following = cascade.weight_holding = 0; expected a positive weight")
     if kw.get("bandwidth_ratio", 1.0) < 1:
         raise bad("cascade", "bandwidth_ratio")
+    kw["typed"] = dict(doc.get("move", {}))
     kw["distance_m"] = kw.pop("distance_mm") * 1e-3
     kw["max_speed_m_s"] = kw.pop("max_speed_mm_s") * 1e-3
     if "window_um" in kw:
@@ -281,6 +295,75 @@ def _parse_move(doc: Mapping[str, Any], origin: str) -> MoveScene:
         raise SceneError(f"{origin}: move.load_time_s = {sc.load_time_s!r}; expected a time in s inside the move "
                          f"[{m.t0[0]:.6g}, {m.end_time:.6g}]")
     return sc
+
+
+def check_move_against_plant(scene: MoveScene, plant: "Plant") -> None:
+    """Refuse a move the plant cannot run, before any tuning (``prsa-tune`` exit 2), as
+    :func:`prsa_ctrl.scene.check_against_plant` does for speed-loop scenes: a cruise speed
+    outside the speed range of the speed-loop scenes (the cascade is linearised there), a load
+    the motor cannot hold while moving (steady torque at cruise speed plus the inertia torque
+    of the peak acceleration) or at rest after the hold step, a run longer than
+    ``MAX_RECORD_SAMPLES`` controller samples.
+
+    Parameters
+    ----------
+    scene : MoveScene
+    plant : Plant
+
+    Raises
+    ------
+    SceneError
+        One line naming the file, the key and its value as typed, the limit and why.
+    """
+    from .equilibrium import steady_torque
+    from .scene import MAX_RECORD_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN
+
+    o, a, ts = scene.origin, plant.lead_per_rad, plant.sample_time_s
+
+    def label(key: str, value: float) -> str:
+        return f"{o}: move.{key} = {scene.typed.get(key, value)!r}"
+
+    mm_s_per_rpm = a * math.pi / 30.0 * 1e3
+    v_min = STICTION_MARGIN * plant.values["friction.stribeck_velocity_m_s"] * 1e3
+    v_max = SETPOINT_MAX_RPM * mm_s_per_rpm
+    v = scene.max_speed_m_s * 1e3
+    if not v_min <= v <= v_max:
+        raise SceneError(
+            f"{label('max_speed_mm_s', v)}: expected a speed in [{v_min:.3g}, {v_max:.4g}] mm/s for {plant.name} "
+            f"(the nut speeds [{v_min / mm_s_per_rpm:.3g}, {SETPOINT_MAX_RPM:g}] rpm of the speed-loop scenes: below, "
+            "the friction is on the steep part of its Stribeck curve, where the cascade's linearisation at the "
+            "cruise speed does not hold; above, beyond roller-screw speed ratings)")
+    w = scene.max_speed_m_s / a
+    inertia = plant.reflected_inertia_kg_m2 * scene.acceleration_m_s2 / a
+    limit = plant.torque_limit
+    for key, f in (("initial_load_n", scene.initial_load_n), ("load_n", scene.load_n)):
+        need = max(abs(steady_torque(plant, w, f)), abs(steady_torque(plant, -w, f))) + inertia
+        if not need < limit:
+            raise SceneError(
+                f"{label(key, f)}: moving at {v:g} mm/s ({w:.4g} rad/s) against {f:g} N needs {need:.3g} N m "
+                f"(with {inertia:.3g} N m to accelerate at {scene.acceleration_m_s2:g} m/s^2), beyond the motor limit "
+                f"of {limit:g} N m (drive.torque_limit_n_m); expected a smaller load")
+    if scene.hold_step_n:
+        f = scene.load_n + scene.hold_step_n
+        need = abs(steady_torque(plant, 0.0, f))
+        if not need < limit:
+            raise SceneError(
+                f"{label('hold_step_n', scene.hold_step_n)}: holding {f:g} N at rest needs {need:.3g} N m, beyond the "
+                f"motor limit of {limit:g} N m (drive.torque_limit_n_m); expected a smaller step")
+    n = scene.duration_s / ts
+    if n > MAX_RECORD_SAMPLES:
+        m = scene.motion()
+        move_s = m.end_time - m.t0[0]
+        parts = {"distance_mm": move_s, "start_s": scene.start_s,
+                 "hold_duration_s": scene.hold_duration_s if scene.hold_step_n else 0.0,
+                 "hold_delay_s": scene.hold_delay_s}
+        key = max(parts, key=parts.get)
+        value = scene.distance_m * 1e3 if key == "distance_mm" else getattr(scene, key)
+        raise SceneError(
+            f"{label(key, value)}: the run would last {scene.duration_s:.4g} s (a {move_s:.4g} s move), "
+            f"{n:.3g} controller samples (sensor.sample_time_s = {ts:g} s); the limit is {MAX_RECORD_SAMPLES} samples, "
+            f"a run of at most {MAX_RECORD_SAMPLES * ts:g} s; expected a shorter "
+            + ("move (or a higher move.max_speed_mm_s)" if key == "distance_mm" else "time"))
 
 
 def _scene_path(name_or_path: "str | Path") -> tuple[Path | Any, str]:
@@ -745,6 +828,8 @@ class CascadeDesign:
     verified: MoveMetrics | None = None
     notes: list = field(default_factory=list)
     solver: dict = field(default_factory=dict)
+    #: The nonlinear run of :func:`verify_design` (for the figures; not in :meth:`as_dict`).
+    run: Any = field(default=None, repr=False, compare=False)
 
     @property
     def gains(self) -> list[float]:
@@ -805,7 +890,7 @@ def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None 
 
     def worst(g) -> float:
         pk = cm.ms(g)
-        return max(pk["speed_closed"], pk["speed_open"], pk["position"]) if cm.spectral_radius(g) < 1 else math.inf
+        return max(pk[k] for k in BREAKING_POINTS) if cm.spectral_radius(g) < 1 else math.inf
 
     def attempt(ms_speed: float):
         """Speed PI at ``ms_speed``; the smallest ratio that keeps every Ms <= ms_max (None if
@@ -853,6 +938,23 @@ def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None 
                      f"closed (any ratio in {min(ratios):g}..{max(ratios):g}): re-tuned at Ms {ms_speed:.4g} for equal Ms")
     return _design(cm, "sequential", g, scene.weight_following + scene.weight_holding, notes,
                    {"speed_tuner_status": res.status, "ratio": ratio, "speed_ms_bound": ms_speed})
+
+
+def _gains_from_solution(x, lbx, ubx, free, scale) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The scaled NLP solution projected onto its bounds, and the six gains it gives
+    (:data:`CASCADE_GAINS`). Ipopt may end a hair outside its bounds (``kaff = -9e-9`` for a
+    1 um move), which :class:`~prsa_ctrl.measurement.PositionLoop` rightly refuses.
+
+    >>> x, g = _gains_from_solution([1.0, 1.0, 1.0, 1.0, -9e-9], [1e-3] * 3 + [0.0] * 2, [1e3] * 3 + [1.5] * 2,
+    ...                             [0, 1, 2, 4, 5], [0.08, 10.0, 40.0, 160.0, 1.0, 1.0])
+    >>> float(g[5]), float(g[2])
+    (0.0, 40.0)
+    """
+    x = np.clip(np.asarray(x, float).ravel(), np.asarray(lbx, float), np.asarray(ubx, float))
+    gv = np.zeros(6)
+    for k, i in enumerate(free):
+        gv[i] = x[k] * scale[i]
+    return x, gv
 
 
 def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | None = None,
@@ -916,8 +1018,9 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
         one_r = (1 + r[0], r[1])
         d = (1 + q[0] + r[0], q[1] + r[1])
         m2 = sc.ms_max ** 2 * (1 - 1e-4)
-        cons = [m2 * _abs2(d) - _abs2(one_q), m2 * _abs2(one_r) - 1, m2 * _abs2(d) - _abs2(one_r)]
-        lbg = [0.0] * (3 * len(omegas))
+        cons = [m2 * _abs2(d) - _abs2(one_q), m2 * _abs2(one_r) - 1, m2 * _abs2(d) - _abs2(one_r),
+                m2 * _abs2(d) - 1]
+        lbg = [0.0] * (4 * len(omegas))
         if sc.bandwidth_ratio is not None:
             cons.append(g[0] / cm.inertia - sc.bandwidth_ratio * g[2])
             lbg.append(0.0)
@@ -933,19 +1036,16 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
                                                     "ipopt.tol": 1e-8})
         sol = solver(x0=x, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ca.inf)
         st = solver.stats()
-        x = np.asarray(sol["x"]).ravel()
-        gv = np.zeros(6)
-        for k, i in enumerate(free):
-            gv[i] = x[k] * scale[i]
+        x, gv = _gains_from_solution(sol["x"], lbx, ubx, free, scale)
         solver_info = {"status": st["return_status"], "iterations": int(st["iter_count"]), "rounds": rnd + 1,
                        "grid_points": len(omegas)}
         pk = cm.ms(gv)
-        worst = max(("speed_closed", "speed_open", "position"), key=lambda k: pk[k])
+        worst = max(BREAKING_POINTS, key=lambda k: pk[k])
         stable = cm.spectral_radius(gv) < 1
         if stable and pk[worst] <= sc.ms_max * (1 + MS_RTOL):
             best = gv
             break
-        omegas = sorted(set(omegas) | {pk[f"w_{k}"] for k in ("speed_closed", "speed_open", "position")})
+        omegas = sorted(set(omegas) | {pk[f"w_{k}"] for k in BREAKING_POINTS})
         notes.append(f"round {rnd + 1}: verified Ms {pk[worst]:.5g} at {worst} (w = {pk['w_' + worst]:.5g} rad/s)"
                      f"{'' if stable else ', unstable'}; frequencies added")
     if best is None:
@@ -965,10 +1065,22 @@ def verify_design(plant: "Plant", scene: MoveScene, design: CascadeDesign, fidel
     """
     r = simulate_move(plant, scene, design.speed, design.position, fidelity=fidelity)
     design.verified = move_metrics(r, plant, scene)
+    design.run = r
     return design.verified
 
 
 # --- export -----------------------------------------------------------------------------------
+
+#: The position loop's per-sample law as the drive export states it (``position_controller.law``):
+#: each right-hand side is an expression in the exported fields of ``position_controller`` and
+#: the signals ``p_ref, p_meas, v_ref, acc_ref, I_prev`` (the same law as
+#: :meth:`prsa_ctrl.measurement.PositionLoop.update`).
+POSITION_LAW = {
+    "e": "(p_ref - p_meas) * error_to_rad",
+    "I": "I_prev + sample_time_s * ki_per_s2 * e",
+    "w_ref": "kv_per_s * e + I + velocity_feedforward * v_ref / lead_m_per_rad",
+    "tau_ff": "torque_per_acceleration_n_m_s2_per_rad * acc_ref / lead_m_per_rad",
+}
 
 def export_cascade(design: CascadeDesign, plant: "Plant", *, fmt: str) -> dict:
     """Drive export of a cascade: the speed PI as :func:`prsa_ctrl.export.export_controller`
@@ -993,10 +1105,15 @@ def export_cascade(design: CascadeDesign, plant: "Plant", *, fmt: str) -> dict:
     ts = plant.sample_time_s
     tp = ts * pos.rate
     a = plant.lead_per_rad
+    inertia = float(plant.reflected_inertia_kg_m2)
     out["loop"] = "position over speed"
     ctrl = out["speed_controller"]
     if "vendor" in ctrl and isinstance(ctrl["vendor"], dict):
         ctrl["vendor"]["kv_per_s"] = float(pos.kv)
+        ctrl["vendor"]["note"] = ("Tn = kp/ki (integral/reset time), Tv = kd/kp (derivative time), per-rpm gains use "
+                                  "1 rpm = 2 pi/60 rad/s; Kv = kv_per_s is the gain of the position loop over this "
+                                  "speed loop (see position_controller)")
+    law = dict(POSITION_LAW)
     out["position_controller"] = {
         "measured": pos.measured,
         "sample_time_s": tp,
@@ -1006,14 +1123,20 @@ def export_cascade(design: CascadeDesign, plant: "Plant", *, fmt: str) -> dict:
         "tn_s": float(pos.kv / pos.ki) if pos.ki > 0 else None,
         "velocity_feedforward": float(pos.kvff),
         "acceleration_feedforward": float(pos.kaff),
-        "torque_per_acceleration_n_m_s2_per_rad": float(pos.kaff * plant.reflected_inertia_kg_m2),
+        "reflected_inertia_kg_m2": inertia,
+        "torque_per_acceleration_n_m_s2_per_rad": float(pos.kaff) * inertia,
         "lead_m_per_rad": a,
-        "formula": "e[k] = p_ref[k] - p_meas[k] (nut angle, rad) or (p_ref[k] - p_meas[k])/a (screw position, m, "
-                   "a = lead_m_per_rad): the error in rad of the nut; I[k] = I[k-1] + Tp ki e[k]; "
-                   "w_ref[k] = kv e[k] + I[k] + kvff v_ref[k]/a (rad/s, v_ref in m/s); "
-                   "tau_ff[k] = kaff J acc_ref[k]/a (N m, acc_ref in m/s^2) added to the speed PI's command; "
-                   "both held for Tp",
-        "discretisation": "backward Euler integral (I updated before use), zero-order hold of w_ref over Tp",
+        "error_to_rad": 1.0 if pos.measured == "nut_angle" else 1.0 / a,
+        "law": law,
+        "formula": "; ".join(f"{k}[k] = {v}" for k, v in law.items())
+                   + " (p_ref, p_meas in the measured unit: rad of the nut for nut_angle, m for screw_position; "
+                     "v_ref in m/s, acc_ref in m/s^2 of screw travel; I_prev = I[k-1], 0 at rest); w_ref (rad/s) "
+                     "is the speed PI's reference and tau_ff (N m) is added to its command u[k]; both held for "
+                     "sample_time_s. torque_per_acceleration_n_m_s2_per_rad already contains "
+                     "acceleration_feedforward (= acceleration_feedforward reflected_inertia_kg_m2): do not "
+                     "multiply by it again",
+        "discretisation": "explicit sum for the integral (I updated with e[k] before use), zero-order hold of w_ref "
+                          "and tau_ff over sample_time_s",
     }
     if fmt == "toml":
         out["position_controller"] = {k: v for k, v in out["position_controller"].items() if v is not None}
@@ -1037,21 +1160,170 @@ def _finite_json(obj: Any) -> Any:
     return obj
 
 
+#: ``prsa-tune`` options a move scene honours; every other option is refused (exit 2).
+MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose")
+
+
+def _refused_flag(args: Any, run: Any) -> str | None:
+    """The first ``prsa-tune`` option given that a move scene does not honour, as typed."""
+    from .cli import build_parser
+
+    raw = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in getattr(run, "argv", None) or []
+           if a.startswith("--") and "=" in a}
+    for action in build_parser()._actions:
+        if not action.option_strings or action.dest in MOVE_FLAGS or action.dest == "help":
+            continue
+        value = getattr(args, action.dest, action.default)
+        if value is None or value is False or value == action.default:
+            continue
+        flag = action.option_strings[-1]
+        return flag if value is True else f"{flag} {raw.get(flag, value)}"
+    return None
+
+
+def write_move_plots(plant: "Plant", scene: MoveScene, designs: "list[CascadeDesign]", directory: "str | Path") -> list[Path]:
+    """Figures of a move scene, PNG and SVG (matplotlib is imported here only): the move
+    (position, following error, nut speed and motor torque of each design against time) and
+    the hold (position deviation after the hold step, nut and screw side).
+
+    Parameters
+    ----------
+    plant : Plant
+    scene : MoveScene
+    designs : list of CascadeDesign
+        Verified designs (:func:`verify_design` keeps their runs).
+    directory : str or Path
+        Existing folder the files are written into.
+
+    Returns
+    -------
+    list of Path
+        ``move.png``, ``move.svg``, ``hold.png``, ``hold.svg``.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .plots import save_figure
+
+    directory = Path(directory)
+    m = scene.motion()
+    runs = []
+    for d in designs:
+        r = d.run if d.run is not None else simulate_move(plant, scene, d.speed, d.position)
+        runs.append((d, r))
+    fig, ax = plt.subplots(4, 1, sharex=True, figsize=(7.5, 8.0), layout="constrained")
+    t_end = scene.hold_step_s if scene.hold_step_n else scene.duration_s
+    for n, (d, r) in enumerate(runs):
+        t = np.asarray(r.time)
+        unit = plant.lead_per_rad if d.position.measured == "nut_angle" else 1.0
+        keep = t <= t_end
+        label = f"{d.method} (Kv {d.position.kv:.3g} 1/s)"
+        if n == 0:
+            ax[0].plot(t[keep], r.output("position_reference")[keep] * unit * 1e3, "k--", lw=1.0, label="reference")
+            ax[2].plot(t[keep], m.at(t[keep])[1] / plant.lead_per_rad, "k--", lw=1.0, label="profile")
+        ax[0].plot(t[keep], r.output("position_measured")[keep] * unit * 1e3, lw=1.2, label=label)
+        ax[1].plot(t[keep], _error_m(r, plant)[keep] * 1e6, lw=1.2, label=label)
+        ax[2].plot(t[keep], r.output("nut_speed")[keep], lw=1.2, label=label)
+        ax[3].plot(t[keep], r.output("motor_torque")[keep], lw=1.2, label=label)
+    for a_ in ax:
+        a_.axvline(scene.load_at_s, color="0.6", lw=0.8, ls=":")
+        a_.grid(True, alpha=0.3)
+    ax[1].axhspan(-scene.window_m * 1e6, scene.window_m * 1e6, color="0.9", zorder=0)
+    ax[0].set_ylabel("position (mm)")
+    ax[1].set_ylabel("following error (um)")
+    ax[2].set_ylabel("nut speed (rad/s)")
+    ax[3].set_ylabel("motor torque (N m)")
+    ax[3].axhline(plant.torque_limit, color="r", lw=0.8, ls="--")
+    ax[3].set_xlabel("time (s)")
+    ax[0].legend(fontsize=8)
+    ax[0].set_title(f"{scene.name}: {scene.distance_m * 1e3:g} mm move at {scene.max_speed_m_s * 1e3:g} mm/s, "
+                    f"{scene.load_n:g} N at {scene.load_at_s:.3g} s (dotted)", fontsize=9)
+    files = save_figure(fig, directory / "move")
+    plt.close(fig)
+    if scene.hold_step_n:
+        fig, ax = plt.subplots(1, 1, figsize=(7.5, 4.0), layout="constrained")
+        for d, r in runs:
+            t = np.asarray(r.time)
+            keep = t >= scene.hold_step_s - 0.005
+            ax.plot(t[keep], _error_m(r, plant)[keep] * 1e6, lw=1.2,
+                    label=f"{d.method}: max {d.verified.holding_deviation_m * 1e6:.3g} um" if d.verified else d.method)
+        ax.axhspan(-scene.window_m * 1e6, scene.window_m * 1e6, color="0.9", zorder=0)
+        ax.axvline(scene.hold_step_s, color="0.6", lw=0.8, ls=":")
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("position deviation (um)")
+        ax.set_title(f"holding: {scene.hold_step_n:g} N step at {scene.hold_step_s:.3g} s "
+                     f"({'nut angle' if scene.measured == 'nut_angle' else 'screw position'} measured)", fontsize=9)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+        files += save_figure(fig, directory / "hold")
+        plt.close(fig)
+    return files
+
+
+def format_move_report(plant: "Plant", scene: MoveScene, designs: "list[CascadeDesign]", prog: str = "prsa-tune") -> str:
+    """The text report of a move scene: each design's gains, its true Ms at the four
+    loop-breaking points, the verified (nonlinear) metrics and the linear model's.
+
+    Returns
+    -------
+    str
+    """
+    w_lin = scene.max_speed_m_s / plant.lead_per_rad
+    lines = [f"{prog}: plant {plant.name}, move scene {scene.name}: {scene.distance_m * 1e3:g} mm at "
+             f"{scene.max_speed_m_s * 1e3:g} mm/s ({scene.profile}), load {scene.load_n:g} N at {scene.load_at_s:.4g} s, "
+             f"hold step {scene.hold_step_n:g} N; Ms <= {scene.ms_max:g} at each loop-breaking point: speed loop "
+             "(position loop closed / opened), position loop, torque command (both loops broken at the plant input)"]
+    for d in designs:
+        v = d.verified
+        ki = f", ki {d.position.ki:.4g} 1/s^2" if scene.position_controller == "pi" or d.position.ki > 0 else ""
+        lines.append(
+            f"  {d.method:10s} kp {d.speed.kp:.4g} N m s/rad, ki {d.speed.ki:.4g} N m/rad, Kv {d.position.kv:.4g} 1/s"
+            f"{ki}, kvff {d.position.kvff:.3g}, kaff {d.position.kaff:.3g}; Ms speed(closed/open) "
+            f"{d.ms['speed_closed']:.3f}/{d.ms['speed_open']:.3f}, position {d.ms['position']:.3f}, torque command "
+            f"{d.ms['torque']:.3f}")
+        if v is not None:
+            lines.append(
+                f"  {'':10s} verified ({scene.fidelity}): following error peak {v.peak_following_error_m * 1e6:.3f} um, "
+                f"RMS {v.rms_following_error_m * 1e6:.3f} um; holding deviation {v.holding_deviation_m * 1e6:.3f} um; "
+                f"settling {v.settling_time_s * 1e3:.2f} ms; overshoot {v.overshoot_m * 1e6:.3f} um; peak torque "
+                f"{v.peak_torque_n_m:.3f} N m; hunting {'YES' if v.hunting['oscillating'] else 'no'}")
+        lin = d.linear
+        ratio = (f" ({lin['holding_deviation_m'] / v.holding_deviation_m:.2g} x the verified)"
+                 if v is not None and v.holding_deviation_m > 0 else "")
+        lines.append(
+            f"  {'':10s} linear model the tuner optimises (linearised at the cruise speed {w_lin:.4g} rad/s, "
+            f"{scene.load_n:g} N): following error peak {lin['peak_following_error_m'] * 1e6:.3f} um, RMS "
+            f"{lin['rms_following_error_m'] * 1e6:.3f} um; holding deviation {lin['holding_deviation_m'] * 1e6:.3f} um"
+            f"{ratio}: at rest the nut sticks, which the linearisation at speed does not see; the verified "
+            "numbers are the truth")
+        if v is not None and v.screw_final_error_m is not None and scene.measured == "nut_angle":
+            lines.append(f"  {'':10s} screw (load side, not seen by the nut encoder): holding "
+                         f"deviation {v.screw_holding_deviation_m * 1e6:.3f} um, final error "
+                         f"{v.screw_final_error_m * 1e6:.3f} um")
+    for d in designs:
+        lines += [f"  note ({d.method}): {n}" for n in d.notes]
+    return "\n".join(lines)
+
+
 def main_move(run: Any, args: Any) -> int:
     """``prsa-tune --scene <move scene>``: tune the cascade jointly and sequentially, verify
-    both on the nonlinear model, print the comparison, write ``--json``/``--export``.
+    both on the nonlinear model, print the comparison, write ``--json``/``--export``/``--plots``.
 
     Parameters
     ----------
     run : cli._Run
-        The CLI's run context (``say``, ``prog``).
+        The CLI's run context (``say``, ``prog``, ``argv``, ``created``).
     args : argparse.Namespace
-        Parsed ``prsa-tune`` arguments (``--plant``, ``--scene``, ``--json``, ``--export``).
+        Parsed ``prsa-tune`` arguments. Honoured: :data:`MOVE_FLAGS` (``--plant``, ``--scene``,
+        ``--json``, ``--export``, ``--plots``, ``--quiet``, ``--verbose``); any other option
+        given is refused in one line (exit 2).
 
     Returns
     -------
     int
-        Exit code (0 ok, 2 bad input).
+        Exit code (0 ok, 2 bad input, 3 numerical failure).
     """
     import json
     import os
@@ -1059,37 +1331,57 @@ def main_move(run: Any, args: Any) -> int:
     import warnings
 
     from .export import dumps
-    from .output import OutputError, check_writable, write_text
+    from .output import OutputError, check_directory, check_distinct, check_writable, write_text
     from .plant import load_plant
 
     prog = getattr(run, "prog", "prsa-tune")
-    ignored = [f for f in ("load_step", "setpoint_rpm", "step_time", "duration", "ms_max", "mt_max", "objective",
-                           "controller", "robust", "monte_carlo") if getattr(args, f, None) not in (None, False)]
+    quiet, verbose = bool(getattr(args, "quiet", False)), bool(getattr(args, "verbose", False))
+
+    def progress(text: str) -> None:
+        if verbose:
+            print(f"{prog}: {text}", file=sys.stderr, flush=True)
+
+    def fail(line: str) -> None:
+        say = getattr(run, "say", None)
+        if callable(say):
+            say(f"{prog}: {line}")
+        else:
+            print(f"{prog}: {line}", file=sys.stderr)
+
+    json_path, export_path, plots_dir = (getattr(args, f, None) for f in ("json", "export", "plots"))
     try:
+        refused = _refused_flag(args, run)
         scene = load_move_scene(args.scene)
+        if refused:
+            raise ValueError(f"{refused} does not apply to a move scene ({scene.name}); expected only --plant, --json, "
+                             "--export, --plots, --quiet and --verbose")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             plant = load_plant(getattr(args, "plant", None))
+        check_move_against_plant(scene, plant)
         inputs = [v for v in (getattr(args, "plant", None), args.scene) if v is not None and os.path.exists(v)]
-        if ignored:
-            raise ValueError(f"--{ignored[0].replace('_', '-')} does not apply to a move scene ({scene.name}); "
-                             "expected only --plant, --json and --export")
-        for flag in ("json", "export"):
-            path = getattr(args, flag, None)
+        if export_path is not None and os.path.splitext(export_path)[1].lower() not in (".json", ".toml"):
+            raise ValueError(f"--export {export_path!r}: expected a path ending in .json or .toml")
+        check_distinct({"--json": json_path, "--export": export_path, "--plots": plots_dir})
+        for flag, path in (("--json", json_path), ("--export", export_path)):
             if path is not None:
-                if flag == "export" and os.path.splitext(path)[1].lower() not in (".json", ".toml"):
-                    raise ValueError(f"--export {path!r}: expected a path ending in .json or .toml")
-                check_writable(path, inputs, f"--{flag}")
+                check_writable(path, inputs, flag)
+        if plots_dir is not None:
+            check_directory(plots_dir, "--plots")
     except (SceneError, ValueError, OutputError) as exc:  # PlantFileError is a ValueError
-        print(f"{prog}: {' '.join(str(exc).split())}", file=sys.stderr)
+        fail(f"error: {' '.join(str(exc).split())}")
         return 2
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
+            progress(f"move scene {scene.name}: linearising the cascade at {scene.max_speed_m_s * 1e3:g} mm/s")
             cm = CascadeModel(plant, scene)
+            progress("sequential design (speed PI alone, then the position gain) ...")
             seq = sequential_design(plant, scene, cm)
+            progress("joint design (one NLP over all gains) ...")
             joint = tune_cascade(plant, scene, baseline=seq, cm=cm)
             for d in (seq, joint):
+                progress(f"verifying the {d.method} design on the nonlinear {scene.fidelity} model ...")
                 verify_design(plant, scene, d)
     except KeyboardInterrupt:
         raise
@@ -1097,33 +1389,33 @@ def main_move(run: Any, args: Any) -> int:
         from .cli import _describe_failure
 
         code, line = _describe_failure(exc, f"tuning the cascade of {scene.name}")
-        print(f"{prog}: {line}", file=sys.stderr)
+        if verbose:
+            print(f"{prog}: detail: {type(exc).__name__}: {' '.join(str(exc).split())[:500]}", file=sys.stderr)
+        fail(line)
         return code
-    lines = [f"{prog}: plant {plant.name}, move scene {scene.name}: {scene.distance_m * 1e3:g} mm at "
-             f"{scene.max_speed_m_s * 1e3:g} mm/s ({scene.profile}), load {scene.load_n:g} N at {scene.load_at_s:.4g} s, "
-             f"hold step {scene.hold_step_n:g} N; Ms <= {scene.ms_max:g} at every loop-breaking point"]
-    for d in (seq, joint):
-        v = d.verified
-        lines.append(
-            f"  {d.method:10s} kp {d.speed.kp:.4g} N m s/rad, ki {d.speed.ki:.4g} N m/rad, Kv {d.position.kv:.4g} 1/s, "
-            f"kvff {d.position.kvff:.3g}, kaff {d.position.kaff:.3g}; Ms speed(closed/open) "
-            f"{d.ms['speed_closed']:.3f}/{d.ms['speed_open']:.3f}, position {d.ms['position']:.3f}")
-        lines.append(
-            f"  {'':10s} verified ({scene.fidelity}): following error peak {v.peak_following_error_m * 1e6:.3f} um, RMS "
-            f"{v.rms_following_error_m * 1e6:.3f} um; holding deviation {v.holding_deviation_m * 1e6:.3f} um; settling "
-            f"{v.settling_time_s * 1e3:.2f} ms; overshoot {v.overshoot_m * 1e6:.3f} um; peak torque "
-            f"{v.peak_torque_n_m:.3f} N m; hunting {'YES' if v.hunting['oscillating'] else 'no'}")
-        if v.screw_final_error_m is not None and scene.measured == "nut_angle":
-            lines.append(f"  {'':10s} screw (load side, not seen by the nut encoder): holding "
-                         f"deviation {v.screw_holding_deviation_m * 1e6:.3f} um, final error "
-                         f"{v.screw_final_error_m * 1e6:.3f} um")
-    for d in (seq, joint):
-        lines += [f"  note ({d.method}): {n}" for n in d.notes]
-    print("\n".join(lines))
     data = _finite_json({"plant": plant.name, "scene": scene.name, "sequential": seq.as_dict(), "joint": joint.as_dict()})
-    if getattr(args, "json", None) is not None:
-        write_text(args.json, json.dumps(data, indent=2, allow_nan=False) + "\n", inputs, flag="--json")
-    if getattr(args, "export", None) is not None:
-        fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
-        write_text(args.export, dumps(export_cascade(joint, plant, fmt=fmt), fmt), inputs, flag="--export")
+    plot_files: list = []
+    if plots_dir is not None:
+        progress("writing the figures ...")
+        if hasattr(run, "created"):
+            from .cli import _staged
+
+            plot_files = _staged(run, lambda staging: write_move_plots(plant, scene, [seq, joint], staging),
+                                 plots_dir, inputs)
+        else:
+            os.makedirs(plots_dir, exist_ok=True)
+            plot_files = write_move_plots(plant, scene, [seq, joint], plots_dir)
+    if json_path is not None:
+        write_text(json_path, json.dumps(data, indent=2, allow_nan=False) + "\n", inputs, flag="--json")
+    if export_path is not None:
+        fmt = os.path.splitext(export_path)[1].lower().lstrip(".")
+        write_text(export_path, dumps(export_cascade(joint, plant, fmt=fmt), fmt), inputs, flag="--export")
+    if not quiet:
+        print(format_move_report(plant, scene, [seq, joint], prog))
+        if json_path is not None:
+            print(f"JSON report: {json_path}")
+        if export_path is not None:
+            print(f"drive export: {export_path}")
+        if plot_files:
+            print(f"plots: {', '.join(str(p) for p in plot_files)}")
     return 0

@@ -442,9 +442,19 @@ def _scene_header(sc, overrides: Sequence[str] = ()) -> str:
             f"record to {sc.duration:g} s; {sc.objective.upper()}, {sc.controller.upper()}, {bounds}")
 
 
+def _pct_text(diff: float) -> str:
+    """A signed percentage to 0.1 %; a difference that rounds to zero is "0.0 %", never "-0.0 %".
+
+    >>> _pct_text(-0.04), _pct_text(0.04), _pct_text(-1.25)
+    ('0.0 %', '0.0 %', '-1.2 %')
+    """
+    text = f"{diff:+.1f}"
+    return ("0.0" if float(text) == 0.0 else text) + " %"
+
+
 def _diff_text(p, v) -> str:
     ok = isinstance(v, float) and not isinstance(v, bool) and v and math.isfinite(v) and math.isfinite(p)
-    return f"{(p / v - 1) * 100:+.1f} %" if ok else "-"
+    return _pct_text((p / v - 1) * 100) if ok else "-"
 
 
 def _profile_tables(sc, b) -> list[str]:
@@ -516,7 +526,7 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         for lab, attr in fields:
             p, v = getattr(pm, attr), getattr(vm, attr)
             diff = (p / v - 1) * 100 if isinstance(v, float) and not isinstance(v, bool) and v and math.isfinite(v) and math.isfinite(p) else None
-            rows.append([lab, p, v, f"{diff:+.1f} %" if diff is not None else "-"])
+            rows.append([lab, p, v, _pct_text(diff) if diff is not None else "-"])
         out.append(f"Load step {sc.initial_load:g} -> {f1:g} N")
         out.append(_table(["metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows))
         out.append("")
@@ -626,9 +636,13 @@ def _load_and_override(args, run: _Run, plot: bool = False):
             if v:
                 raise _UsageError(f"{flag}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
                                   "load-step scene (the robust and Monte-Carlo studies run load steps)")
+        estimator = getattr(args, "estimator", None)
+        if estimator not in (None, "none"):
+            raise _UsageError(f"--estimator {raw.get('--estimator', estimator)}: scene {scene.name} is a duty cycle "
+                              f"({scene.profile_source}); expected --estimator none (the Kalman-filter loop is tuned and "
+                              "verified on load steps only, not on a duty-cycle record)")
         for flag, v in (("--load-step", args.load_step), ("--step-time", getattr(args, "step_time", None)),
-                        ("--setpoint-rpm", args.setpoint_rpm if scene.setpoint_profile is not None else None),
-                        ("--estimator", getattr(args, "estimator", None) if getattr(args, "estimator", None) != "none" else None)):
+                        ("--setpoint-rpm", args.setpoint_rpm if scene.setpoint_profile is not None else None)):
             if v is not None:
                 raise _UsageError(f"{flag} {raw.get(flag, v)!r}: scene {scene.name} is a duty cycle ({scene.profile_source}); "
                                   f"expected its profile to set the {'load' if flag != '--setpoint-rpm' else 'setpoint'} "
@@ -842,6 +856,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         if args.json is not None:
             data = rep.as_dict()
             data["timing_s"] = dict(rep.timing_s)
+            _add_setpoint_weight(data, rep.scene)
             if robust_rep is not None:
                 data["robust"] = robust_rep.as_dict()
             if mc is not None:
@@ -853,7 +868,8 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             from .output import write_text
 
             fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
-            exported = export_controller(rep.best.pid, rep.plant, fmt=fmt) if rep.best.pid.kff == 0 else None
+            exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
+                                         setpoint_weight=_setpoint_weight(rep.scene)) if rep.best.pid.kff == 0 else None
             if exported is None:
                 run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
                         "(kff > 0), which the drive export does not describe; nothing exported")
@@ -887,6 +903,36 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 "are not a trustworthy design (use --accept-unconverged to exit 0)")
         return EXIT_NUMERICAL
     return EXIT_OK
+
+
+def _setpoint_weight(scene) -> float:
+    """The 2-DOF setpoint weight b the design runs with (1 unless a duty cycle's setpoint
+    profile sets ``[tuning] setpoint_weight``)."""
+    return float(getattr(scene, "setpoint_weight", 1.0)) if getattr(scene, "setpoint_profile", None) is not None else 1.0
+
+
+def _add_setpoint_weight(data: dict, scene) -> None:
+    """Put b into every ``gains`` block of the JSON report (the controller law is
+    ``u = kp (b r - y) + I``; b = 1 for load-step scenes)."""
+    b = _setpoint_weight(scene)
+
+    def walk(obj, depth: int = 0) -> None:
+        if depth > 6:
+            return
+        if isinstance(obj, dict):
+            for k, v in obj.items():
+                if k == "gains" and isinstance(v, dict) and "kp" in v:
+                    v.setdefault("b", b)
+                else:
+                    walk(v, depth + 1)
+        elif isinstance(obj, list):
+            for v in obj:
+                walk(v, depth + 1)
+
+    walk(data)
+    units = data.get("units")
+    if isinstance(units, dict):
+        units.setdefault("b", "dimensionless (2-DOF setpoint weight: u = kp (b r - y) + I)")
 
 
 def _robust_and_monte_carlo(run: _Run, args, plant, rep):

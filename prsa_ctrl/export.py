@@ -17,12 +17,16 @@ Discrete law exactly as the simulator's sampled drive runs it at sample ``k`` (t
 
     e[k]   = w_ref[k] - w[k]
     d[k]   = beta d[k-1] + (1 - beta) (w[k] - w[k-1]) / Ts          beta = exp(-Ts/tf)
-    u[k]   = kp e[k] + I[k] - kd d[k] + tau_ff
+    u[k]   = kp (b w_ref[k] - w[k]) + I[k] - kd d[k] + tau_ff      (b = 1: kp e[k])
     us[k]  = min(max(u[k], -u_max), u_max)
     I[k+1] = I[k] + Ts (ki e[k] + (ki/kp) (us[k] - u[k]))          (explicit Euler, tracking anti-windup)
     the command us[k] is applied over [(k+1) Ts, (k+2) Ts)          (one-sample computation delay, ZOH)
 
-i.e. ``C(z) = kp + ki Ts/(z - 1) + kd (1 - beta)(z - 1)/(Ts (z - beta))`` (the same as
+with the 2-DOF setpoint weight ``b`` (``setpoint_weight``, dimensionless, 1 unless a duty
+cycle's ``[tuning] setpoint_weight`` sets it; the simulator runs ``b != 1`` as the 1-DOF law on
+the setpoint through :func:`prsa_ctrl.autotune.setpoint_prefilter`, the same law while the
+command is within the limit), i.e. from the error
+``C(z) = kp + ki Ts/(z - 1) + kd (1 - beta)(z - 1)/(Ts (z - beta))`` (the same as
 :meth:`prsa_ctrl.controller.PID.to_tf` with ``dt = Ts``). ``w`` is the drive's speed
 measurement: the backward difference of the quantised encoder angle through a first-order
 low-pass ``w[k] = a w[k-1] + (1 - a)(theta[k] - theta[k-1])/Ts``, ``a = exp(-Ts/tau_w)``.
@@ -220,6 +224,7 @@ def export_controller(
     rated_torque_n_m: float | None = None,
     rated_speed_rpm: float | None = None,
     filters: Iterable = (),
+    setpoint_weight: float = 1.0,
 ) -> dict:
     """Everything a drive needs for the speed PI(D) and its filters at the plant's sample time.
 
@@ -239,6 +244,9 @@ def export_controller(
     filters : iterable of Filter or (place, Filter)
         Extra filters, ``place`` one of ``"torque_command"`` (default) and
         ``"speed_measurement"``; each is exported continuous and as biquads at the sample time.
+    setpoint_weight : float
+        2-DOF setpoint weight ``b`` in [0, 1] (dimensionless) of the proportional term,
+        ``u = kp (b w_ref - w) + I`` (the scene's ``[tuning] setpoint_weight``; 1: the 1-DOF law).
 
     Returns
     -------
@@ -270,6 +278,10 @@ def export_controller(
     if pid.kff > 0:
         raise ValueError(f"PID kff = {pid.kff:g}; expected 0 (the export covers the encoder-difference speed "
                          "measurement; the Kalman load-torque feed-forward is not exported)")
+    if isinstance(setpoint_weight, bool) or not isinstance(setpoint_weight, (int, float)) \
+            or not 0.0 <= setpoint_weight <= 1.0:
+        raise ValueError(f"setpoint_weight = {setpoint_weight!r}; expected a setpoint weight b in [0, 1]")
+    b_w = float(setpoint_weight)
     placed = _placed_filters(filters)
     null = fmt == "json"
 
@@ -286,7 +298,9 @@ def export_controller(
 
     continuous = {
         "transfer_function": "C(s) = kp + ki/s + kd s/(1 + tf s), error e = w_ref - w; derivative on the measured "
-                             "speed w (no setpoint kick)",
+                             "speed w (no setpoint kick); 2-DOF: u = kp (b w_ref - w) + ki integral(e) - kd s/(1 + tf s) w "
+                             "with b = setpoint_weight",
+        "setpoint_weight": b_w,
         "kp_n_m_s_per_rad": kp,
         "ki_n_m_per_rad": ki,
         "kd_n_m_s2_per_rad": kd,
@@ -313,7 +327,7 @@ def export_controller(
         "equations": [
             "e[k] = w_ref[k] - w[k]",
             "d[k] = beta d[k-1] + (1 - beta) (w[k] - w[k-1]) / Ts",
-            "u[k] = kp e[k] + I[k] - kd d[k] + tau_ff",
+            "u[k] = kp (b w_ref[k] - w[k]) + I[k] - kd d[k] + tau_ff   (b = setpoint_weight; b = 1: kp e[k])",
             "us[k] = min(max(u[k], -torque_limit), torque_limit)",
             "I[k+1] = I[k] + Ts (ki e[k] + k_aw (us[k] - u[k]))",
             "us[k] is applied over [(k+1) Ts, (k+2) Ts) (one-sample computation delay, zero-order hold)",
@@ -324,6 +338,12 @@ def export_controller(
         "ki_n_m_per_rad": ki,
         "kd_n_m_s2_per_rad": kd,
         "tf_s": tf,
+        "setpoint_weight": b_w,
+        "setpoint_weight_note": "b of u = kp (b w_ref - w) + I (dimensionless); the integral acts on the whole error "
+                                "e = w_ref - w. The simulator runs b != 1 as this speed PI with b = 1 on the setpoint "
+                                "filtered by F(z) = (b kp (1 - 1/z) + Ts ki/z)/(kp (1 - 1/z) + Ts ki/z) "
+                                "(prsa_ctrl.autotune.setpoint_prefilter): the same command while it is within the "
+                                "torque limit; in steady state at w_ref = w the integral holds I = u - kp (b - 1) w_ref",
         "beta": beta,
         "integral_gain_ts_ki_n_m_s_per_rad": ts * ki,
         "anti_windup_gain_per_s": ki / max(kp, 1e-9),
@@ -333,7 +353,8 @@ def export_controller(
         "feedforward_torque_n_m": 0.0,
         "error_biquad": simulated_biquad(pid, ts),
         "error_biquad_note": "the same law as one biquad on e for a constant setpoint: u[k] = b0 e[k] + b1 e[k-1] "
-                             "+ b2 e[k-2] - a1 u[k-1] - a2 u[k-2] (unsaturated; b in N m s/rad)",
+                             "+ b2 e[k-2] - a1 u[k-1] - a2 u[k-2] (unsaturated; b in N m s/rad; with "
+                             "setpoint_weight != 1 it describes the response to the measurement only)",
     }
     alternatives: dict[str, Any] = {
         "note": "C(s) discretised by substitution as one biquad on the error e (derivative on the error too): "
@@ -396,6 +417,7 @@ def export_controller(
             "kp": "N m s/rad",
             "ki": "N m/rad",
             "kd": "N m s^2/rad",
+            "setpoint_weight": "dimensionless (2-DOF weight b of the setpoint in the proportional term)",
             "biquad": "b0..b2 in output per input unit, a1, a2 dimensionless, a0 = 1",
         },
         "speed_measurement": measurement,

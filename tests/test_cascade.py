@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID, load_plant
-from prsa_ctrl.cascade import (CascadeModel, export_cascade, hunting, is_move_scene, load_move_scene, main_move,
-                               move_metrics, sequential_design, simulate_move, tune_cascade, verify_design)
+from prsa_ctrl.cascade import (BREAKING_POINTS, CascadeModel, export_cascade, hunting, is_move_scene, load_move_scene,
+                               main_move, move_metrics, sequential_design, simulate_move, tune_cascade, verify_design)
 from prsa_ctrl.errors import SceneError
 from prsa_ctrl.export import dumps
 from prsa_ctrl.measurement import POSITION_SENSORS, PositionLoop
@@ -59,6 +59,8 @@ def test_paper_move_scene(scene):
     ('profile = "sine"', r"move\.profile = 'sine'; expected one of trapezoidal, s-curve"),
     ('measured = "tacho"', r"move\.measured = 'tacho'"),
     ("position_rate = 0", r"move\.position_rate = 0"),
+    ("position_rate = 2", r"move\.position_rate = 2; expected 1 \(the cascade tuner models the position loop at the "
+                          r"speed-loop rate"),
     ("load_time_s = 5.0", r"move\.load_time_s = 5\.0; expected a time in s inside the move"),
 ])
 def test_move_scene_errors_name_file_and_key(tmp_path, edit, match):
@@ -284,7 +286,7 @@ def test_joint_beats_sequential_at_equal_ms(designs):
     for d in (seq, joint):
         # The reported Ms are the true ones (recomputed here on another dense grid).
         again = cm.ms(d.gains, n_dense=30011)
-        for k in ("speed_closed", "speed_open", "position"):
+        for k in BREAKING_POINTS:
             assert d.ms[k] <= sc.ms_max * (1 + 1e-5)
             assert again[k] == pytest.approx(d.ms[k], rel=1e-4)
         assert cm.spectral_radius(d.gains) < 1
@@ -297,27 +299,58 @@ def test_joint_beats_sequential_at_equal_ms(designs):
     assert joint.verified.holding_deviation_m < seq.verified.holding_deviation_m
 
 
+def _exported_position_law(pc, p_ref, p_meas, v_ref, acc_ref):
+    """The position law evaluated from the exported ``law`` expressions and fields only."""
+    fields = {k: v for k, v in pc.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    law = pc["law"]
+    assert set(law) == {"e", "I", "w_ref", "tau_ff"}
+    for k, expr in law.items():  # the human formula states the same law
+        assert f"{k}[k] = {expr}" in pc["formula"]
+    integ, w_ref, tau_ff = 0.0, np.empty(p_ref.size), np.empty(p_ref.size)
+    for k in range(p_ref.size):
+        env = {**fields, "p_ref": p_ref[k], "p_meas": p_meas[k], "v_ref": v_ref[k], "acc_ref": acc_ref[k],
+               "I_prev": integ}
+        for name in ("e", "I", "w_ref", "tau_ff"):
+            env[name] = eval(law[name], {"__builtins__": {}}, env)  # noqa: S307 - our own export
+        integ, w_ref[k], tau_ff[k] = env["I"], env["w_ref"], env["tau_ff"]
+    return w_ref, tau_ff
+
+
 def test_position_export_reproduces_the_simulated_law(plant, designs):
-    """Round trip: the exported position law, run in plain numpy on the positions the drive
-    measured, gives the speed references and torque feed-forward of the simulated loop to 1e-9."""
+    """Round trip: the exported position law (its ``law`` expressions over the exported fields,
+    nothing from the plant), run on the positions the drive measured, gives the speed references,
+    the torque feed-forward and, through the exported speed PI, the torque command of the
+    simulated loop to 1e-9."""
     sc, cm, seq, joint = designs
-    # A position PI, so that the exported integral is exercised too.
-    joint = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0))
+    # A position PI and a partial acceleration feed-forward, so that the exported integral and
+    # the feed-forward gain (applied once) are exercised.
+    joint = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0, kaff=0.6))
     for fmt in ("toml", "json"):
         d = export_cascade(joint, plant, fmt=fmt)
-        if fmt == "toml":
-            d = tomllib.loads(dumps(d, "toml"))
+        d = tomllib.loads(dumps(d, "toml")) if fmt == "toml" else __import__("json").loads(dumps(d, "json"))
         pc = d["position_controller"]
         assert pc["kv_per_s"] == joint.position.kv and pc["sample_time_s"] == plant.sample_time_s
-    r = simulate_move(plant, sc, joint.speed, joint.position, duration=0.3, loads=sc.loads()[:2])
-    a, jm = pc["lead_m_per_rad"], pc["torque_per_acceleration_n_m_s2_per_rad"]
-    m = sc.motion()
-    _, v_ref, acc_ref = m.at(r.time)
-    e = r.output("position_reference") - r.output("position_measured")  # nut rad
-    integ = np.cumsum(pc["sample_time_s"] * pc["ki_per_s2"] * e)
-    w_ref = pc["kv_per_s"] * e + integ + pc["velocity_feedforward"] * v_ref / a
-    assert np.allclose(w_ref, r.output("speed_reference"), rtol=1e-9, atol=1e-9 * np.max(np.abs(w_ref)))
-    assert np.allclose(jm * acc_ref / a, r.output("torque_feedforward"), rtol=1e-9, atol=1e-12)
+        assert "absent" not in d["speed_controller"]["vendor"]["note"]
+        r = simulate_move(plant, sc, joint.speed, joint.position, duration=0.3, loads=sc.loads()[:2])
+        _, v_ref, acc_ref = sc.motion().at(r.time)
+        w_ref, tau_ff = _exported_position_law(pc, r.output("position_reference"), r.output("position_measured"),
+                                               v_ref, acc_ref)
+        assert np.allclose(w_ref, r.output("speed_reference"), rtol=1e-9, atol=1e-9 * np.max(np.abs(w_ref)))
+        assert np.max(np.abs(tau_ff)) > 0.05
+        assert np.allclose(tau_ff, r.output("torque_feedforward"), rtol=1e-9, atol=1e-12)
+        # The whole torque command through the exported speed PI (explicit Euler, anti-windup).
+        law = d["speed_controller"]["discrete"]
+        kp, ki, k_aw, lim = (law[k] for k in ("kp_n_m_s_per_rad", "ki_n_m_per_rad", "anti_windup_gain_per_s",
+                                              "torque_limit_n_m"))
+        integ = r.states[r.state_labels.index("pid_integral"), 0]
+        us = np.empty(w_ref.size)
+        for k, (wr, w, ff) in enumerate(zip(w_ref, r.output("speed_measured"), tau_ff)):
+            e = wr - w
+            u = kp * e + integ + ff
+            us[k] = min(max(u, -lim), lim)
+            integ += law["sample_time_s"] * (ki * e + k_aw * (us[k] - u))
+        tc = r.output("torque_command")  # the command computed at sample k is applied at k + 1
+        assert np.max(np.abs(us[:-1] - tc[1:])) < 1e-9 * max(1.0, np.max(np.abs(tc)))
 
 
 def test_cli_move_scene_bad_flags_exit_2(tmp_path, capsys):
@@ -331,7 +364,8 @@ def test_cli_move_scene_bad_flags_exit_2(tmp_path, capsys):
     assert err.count("\n") == 1 and "--export" in err and "drive.txt" in err
     Args.export, Args.setpoint_rpm = None, 100.0
     assert main_move(type("R", (), {"prog": "prsa-tune"})(), Args()) == 2
-    assert "--setpoint-rpm does not apply to a move scene" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("prsa-tune: error: --setpoint-rpm 100.0 does not apply to a move scene")
     assert not (tmp_path / "drive.txt").exists()
 
 
@@ -363,6 +397,61 @@ def test_bandwidth_ratio_option(plant, designs):
     assert d.method == "joint"
     assert d.speed.kp / plant.reflected_inertia_kg_m2 >= 5.0 * d.position.kv * (1 - 1e-6)
     assert joint.speed.kp / plant.reflected_inertia_kg_m2 < 5.0 * joint.position.kv  # the option is active
-    assert max(d.ms["speed_closed"], d.ms["speed_open"], d.ms["position"]) <= sc.ms_max * (1 + 1e-5)
+    assert max(d.ms[k] for k in BREAKING_POINTS) <= sc.ms_max * (1 + 1e-5)
     # A constraint can only cost: the ratio-limited design is no better than the free one.
     assert d.objective >= joint.objective * (1 - 1e-6)
+
+
+def test_gains_are_projected_onto_the_nlp_bounds():
+    """Ipopt's result may sit a hair outside a bound (kaff = -9e-9 for a 1 um move): the design
+    is built from the projected gains, which PositionLoop accepts."""
+    from prsa_ctrl.cascade import _gains_from_solution
+
+    lbx, ubx = [1e-3, 1e-3, 1e-3, 0.0, 0.0], [1e3, 1e3, 1e3, 1.5, 1.5]
+    x, g = _gains_from_solution([0.5, 2.0, 1e3 + 1e-9, 1.5 + 2e-9, -9.2e-9], lbx, ubx, [0, 1, 2, 4, 5],
+                                [0.08, 10.0, 40.0, 160.0, 1.0, 1.0])
+    assert list(x) == [0.5, 2.0, 1e3, 1.5, 0.0]
+    assert g[5] == 0.0 and g[4] == 1.5 and g[2] == 4e4 and g[3] == 0.0
+    PositionLoop(kv=g[2], ki=g[3], kvff=g[4], kaff=g[5])  # no error
+
+
+def test_cli_move_scene_plots_quiet_json_export(tmp_path, capsys):
+    """A short rigid move through prsa-tune: --quiet prints nothing, --plots writes the move and
+    hold figures (PNG + SVG), --json and --export hold both designs and the joint law."""
+    import json
+
+    from prsa_ctrl.cascade import _scene_path
+    from prsa_ctrl.cli import main
+
+    text = _scene_path("paper-move")[0].read_text()
+    for key, value in (("distance_mm", "2.0"), ("fidelity", '"rigid"'), ("hold_duration_s", "0.06"),
+                       ("hold_delay_s", "0.03")):
+        text = "\n".join(f"{key} = {value}" if ln.startswith(key + " ") else ln for ln in text.splitlines())
+    f = tmp_path / "short.toml"
+    f.write_text(text)
+    out = tmp_path / "figs"
+    rc = main(["--scene", str(f), "--quiet", "--plots", str(out), "--json", str(tmp_path / "c.json"),
+               "--export", str(tmp_path / "d.toml")])
+    cap = capsys.readouterr()
+    assert rc == 0 and cap.out == "" and cap.err == ""
+    assert sorted(p.name for p in out.iterdir()) == ["hold.png", "hold.svg", "move.png", "move.svg"]
+    assert all(p.stat().st_size > 1000 for p in out.iterdir())
+    data = json.loads((tmp_path / "c.json").read_text())
+    for name in ("sequential", "joint"):
+        assert max(data[name]["ms"][k] for k in BREAKING_POINTS) <= 1.4 * (1 + 1e-5)
+    pc = tomllib.loads((tmp_path / "d.toml").read_text())["position_controller"]
+    assert pc["kv_per_s"] == data["joint"]["position"]["kv_per_s"]
+    assert "kaff" not in pc["law"]["tau_ff"] and "acceleration_feedforward" not in pc["law"]["tau_ff"]
+
+
+def test_text_report_names_every_bound_and_the_position_integral(plant, designs):
+    from prsa_ctrl.cascade import format_move_report
+
+    sc, cm, seq, joint = designs
+    pi = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0))
+    text = format_move_report(plant, dataclasses.replace(sc, position_controller="pi"), [seq, pi])
+    assert "speed loop (position loop closed / opened), position loop, torque command" in text
+    assert f"torque command {pi.ms['torque']:.3f}" in text and "ki 800 1/s^2" in text
+    lin, ver = joint.linear["holding_deviation_m"], joint.verified.holding_deviation_m
+    assert f"holding deviation {lin * 1e6:.3f} um ({lin / ver:.2g} x the verified)" in text
+    assert "ki 800" not in format_move_report(plant, sc, [seq, joint])

@@ -23,13 +23,13 @@ def _exported_law(d, setpoint, measured, integral0, speed_prev0):
     law = d["speed_controller"]["discrete"]
     ts, kp, ki, kd = law["sample_time_s"], law["kp_n_m_s_per_rad"], law["ki_n_m_per_rad"], law["kd_n_m_s2_per_rad"]
     beta, k_aw, lim = law["beta"], law["anti_windup_gain_per_s"], law["torque_limit_n_m"]
-    tau_ff = law["feedforward_torque_n_m"]
+    tau_ff, b = law["feedforward_torque_n_m"], law["setpoint_weight"]
     integral, deriv, w_prev = integral0, 0.0, speed_prev0
     out = np.empty(len(measured))
     for k, (ref, w) in enumerate(zip(setpoint, measured)):
         e = ref - w
         deriv = beta * deriv + (1 - beta) * (w - w_prev) / ts
-        u = kp * e + integral - kd * deriv + tau_ff
+        u = kp * (b * ref - w) + integral - kd * deriv + tau_ff
         us = min(max(u, -lim), lim)
         integral += ts * (ki * e + k_aw * (us - u))
         w_prev = w
@@ -54,6 +54,42 @@ def _round_trip(pid, duration=0.03, load=((0, 500.0), (0.0101, 1500.0)), saturat
 @pytest.mark.parametrize("pid", [PID(0.085, 14.7), PID(0.06, 9.0, kd=2e-5, tf=5e-4)], ids=["PI", "PID"])
 def test_exported_discrete_law_reproduces_the_sampled_run(pid):
     assert _round_trip(pid) < 1e-9
+
+
+@pytest.mark.parametrize("b", [0.0, 0.5])
+def test_setpoint_weight_round_trip_against_the_prefiltered_run(b):
+    """A 2-DOF setpoint weight b != 1: the exported law ``u = kp (b r - y) + I`` on the raw
+    setpoint gives the command of the simulated loop, which runs the 1-DOF PI on the setpoint
+    through autotune.setpoint_prefilter (as the duty-cycle verification does)."""
+    from prsa_ctrl.autotune import setpoint_prefilter
+    from prsa_ctrl.simulation import PiecewiseLinear
+
+    pid = PID(0.085, 14.7)
+    n = 160
+    t = np.arange(n) * TS
+    r_raw = np.where(t >= 0.01, 40.0, 30.0)  # a 10 rad/s setpoint step at sample 40
+    rf = setpoint_prefilter(r_raw, pid, TS, b)
+    assert np.max(np.abs(rf - r_raw)) > 1.0  # the weight changes the setpoint seen by the PI
+    r = run(PLANT, setpoint=PiecewiseLinear(tuple(zip(t.tolist(), rf.tolist()))), load=500.0,
+            duration=n * TS, controller=pid, fidelity="rigid", discrete=True)
+    u_sim = r.output("torque_command")[:n]
+    assert np.max(np.abs(u_sim)) < PLANT.torque_limit and np.ptp(u_sim) > 0.1  # moved by the step, unsaturated
+    assert np.allclose(r.inputs[0][: u_sim.size], rf[: u_sim.size], rtol=0, atol=1e-9)
+    for fmt in ("toml", "json"):
+        d = export_controller(pid, PLANT, fmt=fmt, setpoint_weight=b)
+        d = tomllib.loads(dumps(d, "toml")) if fmt == "toml" else json.loads(dumps(d, "json"))
+        assert d["speed_controller"]["continuous"]["setpoint_weight"] == b
+        assert "setpoint_weight" in d["units"]
+        # Both start in steady state at the command u0: the 1-DOF integral is u0, the 2-DOF
+        # one u0 - kp (b - 1) r0 (the proportional term is kp (b - 1) r0 there).
+        u0 = r.states[r.state_labels.index("pid_integral"), 0]
+        u = _exported_law(d, r_raw[: u_sim.size], r.output("speed_measured")[: u_sim.size],
+                          u0 - pid.kp * (b - 1) * r_raw[0], r.output("nut_speed")[0])
+        assert np.max(np.abs(u[:-1] - u_sim[1:])) < 1e-9
+    # ... and the 1-DOF export (b = 1) does not reproduce it.
+    d1 = export_controller(pid, PLANT, fmt="json")
+    u1 = _exported_law(d1, r_raw[: u_sim.size], r.output("speed_measured")[: u_sim.size], u0, r.output("nut_speed")[0])
+    assert np.max(np.abs(u1[:-1] - u_sim[1:])) > 0.1
 
 
 def test_round_trip_holds_through_saturation():
@@ -203,6 +239,7 @@ def test_text_round_trips_and_filters():
     ({"fmt": "toml", "filters": [("speed", Notch(100.0, 10.0))]}, r"filters entry \('speed'"),
     ({"fmt": "toml", "filters": [Notch(2100.0, 100.0)]}, r"notch frequency 2100 Hz at ts = 0.00025 s; expected "
                                                          r"below the Nyquist frequency 2000 Hz"),
+    ({"fmt": "toml", "setpoint_weight": 1.5}, r"setpoint_weight = 1\.5; expected a setpoint weight b in \[0, 1\]"),
 ])
 def test_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match) as info:

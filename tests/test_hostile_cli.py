@@ -200,3 +200,109 @@ def test_help_describes_every_option(capsys):
     text = capsys.readouterr().out
     assert "default: ./prsa-plots" in re.sub(r"\s+", " ", text).replace("prsa- plots", "prsa-plots")
     assert "--plots DIR" in text and "Exit codes" in text
+
+
+# --- move scenes (prsa_ctrl.cascade.main_move) and duty-cycle details -----------------------------
+
+@pytest.fixture
+def cascade_stand_in(monkeypatch):
+    """The cascade's expensive work replaced by a counting stand-in (exit 3 if reached)."""
+    import prsa_ctrl.cascade as cascade
+
+    calls = []
+
+    def fake(*a, **k):
+        calls.append(a)
+        raise SimulationError("stand-in for the cascade tuner at t = 0 s; remedy: none")
+
+    monkeypatch.setattr(cascade, "CascadeModel", fake)
+    return calls
+
+
+def _move_file(tmp_path, **edits):
+    from prsa_ctrl.cascade import _scene_path
+
+    text = _scene_path("paper-move")[0].read_text()
+    for key, value in edits.items():
+        text = re.sub(rf"(?m)^{key} = .*$", f"{key} = {value}", text)
+    f = tmp_path / "move.toml"
+    f.write_text(text)
+    return str(f)
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("position_rate", "2", r"move\.position_rate = 2; expected 1"),
+    ("load_n", "9000.0", r"move\.load_n = 9000\.0: moving at 30 mm/s .* beyond the motor limit of 3 N m"),
+    ("hold_step_n", "8000.0", r"move\.hold_step_n = 8000\.0: holding 9500 N at rest .* beyond the motor limit"),
+    ("max_speed_mm_s", "1e6", r"move\.max_speed_mm_s = 1000000\.0: expected a speed in \[0\.5, 200\] mm/s"),
+    ("max_speed_mm_s", "0.01", r"move\.max_speed_mm_s = 0\.01: expected a speed in"),
+    ("distance_mm", "1000.0", r"move\.distance_mm = 1000\.0: the run would last 33\.\d+ s .* limit is 40000 samples"),
+    ("distance_mm", "1e9", r"move\.distance_mm = 1000000000\.0: the run would last"),
+    ("hold_duration_s", "20.0", r"move\.hold_duration_s = 20\.0: the run would last"),
+])
+def test_move_scene_beyond_the_plant_is_refused_before_tuning(capsys, tmp_path, cascade_stand_in, key, value, match):
+    rc = main(["--scene", _move_file(tmp_path, **{key: value})])
+    line = _outcome(capsys, rc, cascade_stand_in)
+    assert rc == 2 and re.search(match, line), line
+
+
+def test_paper_move_reaches_the_tuner(capsys, cascade_stand_in):
+    assert main(["--scene", "paper-move"]) == 3 and len(cascade_stand_in) == 1
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["--estimator", "kf"], "--estimator kf"), (["--seed", "3"], "--seed 3"), (["--workers", "2"], "--workers 2"),
+    (["--feedforward"], "--feedforward"), (["--accept-unconverged"], "--accept-unconverged"),
+    (["--robust"], "--robust"), (["--ms-max", "1.3"], "--ms-max 1.3"), (["--setpoint-rpm", "100"], "--setpoint-rpm 100"),
+    (["--monte-carlo", "5"], "--monte-carlo 5"), (["--objective", "ise"], "--objective ise"),
+])
+def test_move_scene_refuses_flags_it_does_not_honour(capsys, cascade_stand_in, argv, flag):
+    rc = main(["--scene", "paper-move", *argv])
+    line = _outcome(capsys, rc, cascade_stand_in)
+    assert f"{flag} does not apply to a move scene (paper-move)" in line
+
+
+def test_move_scene_outputs_must_differ(capsys, tmp_path, cascade_stand_in):
+    same = str(tmp_path / "x.toml")
+    rc = main(["--scene", "paper-move", "--export", same, "--json", same])
+    assert "name the same path" in _outcome(capsys, rc, cascade_stand_in)
+    rc = main(["--scene", "paper-move", "--plots", str(tmp_path / "p"), "--json", str(tmp_path / "p")])
+    assert "name the same path" in _outcome(capsys, rc, cascade_stand_in)
+    assert not (tmp_path / "x.toml").exists() and not (tmp_path / "p").exists()
+
+
+def _duty_scene(tmp_path):
+    f = tmp_path / "duty.toml"
+    f.write_text('name = "duty"\n[operating]\ninitial_load_n = 500.0\n'
+                 'setpoint_profile_rpm = [[0.0, 300.0], [0.05, 400.0, "step"]]\nduration_s = 0.2\n'
+                 '[tuning]\nsetpoint_weight = 0.5\n[verify]\nfidelity = "rigid"\ndiscrete = true\n')
+    return str(f)
+
+
+def test_kalman_filter_on_a_duty_cycle_names_the_real_reason(capsys, tmp_path, stand_in):
+    rc = main(["--scene", _duty_scene(tmp_path), "--estimator", "kf"])
+    line = _outcome(capsys, rc, stand_in)
+    assert "--estimator kf" in line and "Kalman-filter loop" in line and "load steps only" in line
+    assert "expected its profile to set" not in line
+
+
+def test_percent_differences_never_print_minus_zero():
+    from prsa_ctrl.cli import _diff_text, _pct_text
+
+    assert _diff_text(0.99999, 1.0) == "0.0 %" and _diff_text(1.00001, 1.0) == "0.0 %"
+    assert _pct_text(-0.04) == "0.0 %" and _pct_text(-0.0) == "0.0 %" and _pct_text(-0.06) == "-0.1 %" and _pct_text(2.0) == "+2.0 %"
+
+
+def test_json_gains_carry_the_setpoint_weight(tmp_path):
+    from prsa_ctrl.cli import _add_setpoint_weight
+    from prsa_ctrl.scene import load_scene
+
+    data = {"gains": {"kp": 0.1, "ki": 10.0}, "units": {"kp": "N m s/rad"},
+            "best": {"gains": {"kp": 0.1, "ki": 10.0}}, "baselines": [{"gains": {"kp": 0.2, "ki": 1.0}}]}
+    _add_setpoint_weight(data, load_scene(_duty_scene(tmp_path)))
+    assert data["gains"]["b"] == data["best"]["gains"]["b"] == data["baselines"][0]["gains"]["b"] == 0.5
+    assert "b" in data["units"]
+    data = {"gains": {"kp": 0.1, "ki": 10.0}}
+    _add_setpoint_weight(data, load_scene("paper-load-step"))
+    assert data["gains"]["b"] == 1.0
