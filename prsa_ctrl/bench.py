@@ -18,6 +18,9 @@
   processes and a Dask LocalCluster, in turn (results must agree bit for bit), with the
   integrator the run chose and its measured error, and the serial CPU time per sample;
 - **robust tuning**: 16 scenario models against nominal tuning;
+- **fit**: ``fit_plant`` on a 4 s, 4 kHz closed-loop record (16001 samples) simulated by the
+  toolkit on a perturbed plant (issue 11's run-time figure): wall and CPU time, solver
+  iterations and attempts, fitted errors against the truth;
 - **targets**: issue 10's speed targets against these medians (``bench.json["targets"]``).
 
 Every time is the median of ``repeats`` runs (default 3; ``--fast``: 1) after a warm-up run,
@@ -38,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["work_precision", "fidelity_ladder", "tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark",
-           "robust_tuning_benchmark", "targets", "main"]
+           "robust_tuning_benchmark", "fit_benchmark", "targets", "main"]
 
 
 class _OverBudget(Exception):
@@ -400,6 +403,85 @@ def robust_tuning_benchmark(n_scenarios: int = 16, repeats: int = 3) -> dict:
             "median_ratio": float(np.median(ratio)), "ratios": ratio, "repeats": repeats}
 
 
+#: Issue 11's perturbed plant (inertia -25 %, efficiency 0.88, no-load 0.03 N m, viscous
+#: 1.5e-4 N m s/rad, current loop 1200 Hz), the truth of the fit benchmark.
+FIT_TRUTH = {"nut.inertia_kg_m2": 1.5e-4, "friction.efficiency": 0.88, "friction.no_load_torque_n_m": 0.03,
+             "friction.viscous_n_m_s_per_rad": 1.5e-4, "drive.current_loop_bandwidth_hz": 1200.0}
+
+
+def fit_record(duration_s: float = 4.0, seed: int = 0):
+    """The fit benchmark's record: a closed-loop run of the toolkit's simulator on the plant
+    :data:`FIT_TRUTH`, sampled at 4 kHz.
+
+    Multisine speed setpoint 30 +- 20 rad/s (2..150 Hz, 2.5 ms steps), PI speed loop
+    (Kp 0.05 N m s/rad, Ki 2 N m/rad), axial load steps every 0.5 s (200, 1500, 300, 2500 N in
+    turn), nut angle through the 20-bit encoder with 1e-5 rad of Gaussian interpolation noise
+    before quantisation.
+
+    Parameters
+    ----------
+    duration_s : float, s
+        Record length.
+    seed : int
+        Seed of the multisine phases and of the angle noise.
+
+    Returns
+    -------
+    (Record, Plant)
+        The record and the true plant.
+    """
+    from . import PID, load_plant
+    from .fitdata import design_excitation, record_from_arrays
+    from .simulation import run
+
+    truth = load_plant().with_params(FIT_TRUTH)
+    t, v = design_excitation("multisine", duration_s=duration_s, sample_time_s=2.5e-3, f_min_hz=2, f_max_hz=150,
+                             amplitude=20, offset=30, seed=seed)
+    load = [(0.5 * k, (200.0, 1500.0, 300.0, 2500.0)[k % 4]) for k in range(int(math.ceil(duration_s / 0.5)))]
+    r = run(truth, setpoint=list(zip(t.tolist(), v.tolist())), load=load, duration=duration_s,
+            controller=PID(0.05, 2.0), fidelity="rigid", discrete=True)
+    theta = r.states[r.state_labels.index("theta_nut")]
+    q = 2 * math.pi / truth.encoder_counts
+    noise = 1e-5 * np.random.default_rng(seed).standard_normal(theta.shape)
+    angle = np.floor((theta + noise) / q) * q
+    rec = record_from_arrays(f"sim-{duration_s:g}s", r.time, r.output("torque_command"), nut_angle_rad=angle,
+                             axial_load_n=r.inputs[1])
+    return rec, truth
+
+
+def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
+    """Wall and CPU time of :func:`prsa_ctrl.fit.fit_plant` (default keys, default base plant)
+    on :func:`fit_record`; medians of ``repeats`` runs after the record is made (the first run
+    includes the one-off imports of the solver's SciPy modules).
+
+    Parameters
+    ----------
+    duration_s : float, s
+        Record length (4 s: issue 11's figure, <= 30 s on the reference machine).
+    repeats : int
+        Timed fits.
+    """
+    from .fit import fit_plant
+
+    rec, truth = fit_record(duration_s)
+    wall, cpu, res = [], [], None
+    for _ in range(max(1, repeats)):
+        t0, c0 = time.perf_counter(), time.process_time()
+        res = fit_plant([rec])
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    errors = {k: {"fitted": v["value"], "truth": truth.values[k],
+                  "relative_error": v["value"] / truth.values[k] - 1,
+                  "truth_in_ci95": bool(v["ci95"][0] <= truth.values[k] <= v["ci95"][1])}
+              for k, v in res.parameters.items()}
+    sv = res.solver
+    return {"record": rec.name, "samples": rec.n, "sample_time_s": rec.sample_time_s,
+            "median_wall_s": float(np.median(wall)), "median_cpu_s": float(np.median(cpu)),
+            "wall_s": wall, "cpu_s": cpu, "iterations": sv["iterations"], "attempts": sv["attempts"],
+            "iterations_all_attempts": sv["iterations_all_attempts"], "status": sv["status"],
+            "fit_percent": res.fit_percent[rec.name], "parameters": errors, "repeats": repeats}
+
+
 def targets(result: dict) -> dict:
     """Issue 10's speed targets against the measured medians in ``result`` (those present)."""
     out = {}
@@ -418,6 +500,9 @@ def targets(result: dict) -> dict:
     rb = result.get("robust_tuning")
     if rb:
         out["robust_16_le_5x_nominal"] = {"measured": rb["median_ratio"], "met": rb["median_ratio"] <= 5.0}
+    ft = result.get("fit")
+    if ft:
+        out["fit_4s_le_30s"] = {"target": 30.0, "measured_s": ft["median_wall_s"], "met": ft["median_wall_s"] <= 30.0}
     wp = result.get("work_precision")
     if wp:
         b = wp["best_time_s"]
@@ -474,7 +559,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="prsa-bench", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("bench-results"))
     ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust"])
+    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust", "fit"])
     ap.add_argument("--samples", type=int, default=None, help="Monte-Carlo samples per run (default 1000; 100 with --fast)")
     ap.add_argument("--workers", type=int, default=2, help="processes / Dask workers of the Monte-Carlo benchmark")
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per measurement, median reported "
@@ -529,6 +614,13 @@ def main(argv=None) -> int:
         result["robust_tuning"] = rb = robust_tuning_benchmark(repeats=repeats)
         print(f"robust tuning ({rb['scenarios']} scenarios): {rb['median_tune_robust_s']:.2f} s vs nominal "
               f"{rb['median_tune_nominal_s']:.2f} s: ratio {rb['median_ratio']:.1f}x (median of per-run ratios)")
+    if "fit" not in args.skip:
+        result["fit"] = ft = fit_benchmark(repeats=repeats)
+        worst = max(abs(v["relative_error"]) for v in ft["parameters"].values())
+        print(f"fit ({ft['samples']} samples, {ft['sample_time_s'] * 1e3:g} ms): wall {ft['median_wall_s']:.1f} s, "
+              f"CPU {ft['median_cpu_s']:.1f} s; {ft['iterations']} iterations, {ft['attempts']} attempt(s); "
+              f"largest parameter error {100 * worst:.3g} %; truth in every 95 % CI "
+              f"{all(v['truth_in_ci95'] for v in ft['parameters'].values())}")
     if "cli" not in args.skip:
         result["cold_cli"] = cb = cold_cli_benchmark(repeats)
         print(f"cold CLI: {cb['prsa_tune_s']:.2f} s vs import control, casadi {cb['import_control_casadi_s']:.2f} s: "

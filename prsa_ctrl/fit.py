@@ -473,8 +473,11 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     fit_run = _Problem(plant, keys, scales, fidelity, records, ts, segment_s, delay_samples, substeps,
                        min_speed_rad_s)
     # Bounded attempts, each given up early when it stalls: a cautious trust region for the
-    # parameter steps, the same after a state-only warm-up, a bolder one.
-    attempts = ((0.3, 0), (0.3, 3), (1.0, 3))
+    # parameter steps after a state-only warm-up, the same without it, a bolder one. The
+    # warm-up first: without it, parameter steps taken while the trajectories are still far
+    # from the data can lead the iteration into a stall (a 4 s record took 33 wasted
+    # iterations before the warm-up attempt converged in 9).
+    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))
     spent = 0
     for i, (box, warm) in enumerate(attempts):
         try:
@@ -1397,11 +1400,15 @@ class _Problem:
                 rows.append((K[:, 3 * m + j] - x_start - (h / nsub) * acc) / ca.DM(sc))
         res = ca.vertcat(*rows)
         kv = ca.vec(K)
+        # Dense Jacobian blocks, evaluated into preallocated NumPy buffers (no DM conversion:
+        # that cost twice the evaluation itself); the parameters are one column for all intervals.
         fun = ca.Function("coll", [xs, K, u, h, p],
-                          [res, ca.jacobian(res, kv), ca.jacobian(res, xs), ca.jacobian(res, p)])
-        self.blocks = fun.map(M, "serial")
+                          [res, ca.densify(ca.jacobian(res, kv)), ca.densify(ca.jacobian(res, xs)),
+                           ca.densify(ca.jacobian(res, p))])
+        self.blocks = _Buffered(fun.map("coll_map", "serial", M, [4], []))
         # The collocation residual alone (line-search merits need no Jacobians).
-        self.residual_blocks = ca.Function("coll_res", [xs, K, u, h, p], [res]).map(M, "serial")
+        self.residual_blocks = _Buffered(ca.Function("coll_res", [xs, K, u, h, p], [res])
+                                         .map("coll_res_map", "serial", M, [4], []))
         # Segment bookkeeping: first interval and sample offsets.
         self.first = np.cumsum([0] + [sg.n for sg in segs[:-1]])
         n3 = ns * nx
@@ -1479,11 +1486,12 @@ class _Problem:
         nx, n3, npar, M = self.nx, self.n3, self.npar, self.M
         K, x0 = self._physical(V, X0)
         xs = self._starts(K, x0)
-        res, jk, jxs, jp = self.blocks(xs, K, self.U, self.H[None, :], s * self.scales)
-        res = np.asarray(res)  # n3 x M
-        jk = np.asarray(jk).reshape(n3, M, n3)  # rows, interval, cols
-        jxs = np.asarray(jxs).reshape(n3, M, nx)
-        jp = np.asarray(jp).reshape(n3, M, npar)
+        res, jk, jxs, jp = self.blocks(xs, K, self.U, self.H, s * self.scales)
+        res = res.reshape(n3, M, order="F")
+        # Column-major blocks side by side -> (rows, interval, cols of the block).
+        jk = jk.reshape(n3, n3, M, order="F").transpose(0, 2, 1)
+        jxs = jxs.reshape(n3, nx, M, order="F").transpose(0, 2, 1)
+        jp = jp.reshape(n3, npar, M, order="F").transpose(0, 2, 1)
         if not (np.all(np.isfinite(res)) and np.all(np.isfinite(jk)) and np.all(np.isfinite(jp))):
             bad = int(np.argmax(~np.all(np.isfinite(res), axis=0)))
             raise FitError(f"model not finite at interval {bad} (t = {bad * self.ts:.6g} s); remedy: check the "
@@ -1532,7 +1540,7 @@ class _Problem:
         """Largest scaled collocation residual and the objective at a trial point."""
         try:
             K, x0 = self._physical(V, X0)
-            r = np.asarray(self.residual_blocks(self._starts(K, x0), K, self.U, self.H[None, :], s * self.scales))
+            (r,) = self.residual_blocks(self._starts(K, x0), K, self.U, self.H, s * self.scales)
             g = float(np.max(np.abs(r)))
             f = 0.5 * sum(float(e @ e) for e in self.residuals(V, X0))
         except RuntimeError:
@@ -1708,6 +1716,35 @@ class _Problem:
                 "residual_autocorrelation_lag1": float(acf[0]) if len(acf) else 0.0,
                 "ci_widening_vs_white": float(np.sqrt(np.max(np.diag(cov_hac) / np.maximum(s2 * np.diag(a_inv), 1e-300))))}
         return cov, math.sqrt(s2) * unit_sigma, n_rows, n_cols, info
+
+
+class _Buffered:
+    """A CasADi function evaluated straight from and into NumPy arrays (``Function.buffer``).
+
+    Inputs are taken in column-major order and checked for size; outputs are new flat
+    column-major arrays of the outputs' nonzeros (dense outputs: every entry).
+    """
+
+    def __init__(self, fun):
+        self.fun = fun
+        self.n_in = [int(fun.nnz_in(i)) for i in range(fun.n_in())]
+        self.n_out = [int(fun.nnz_out(i)) for i in range(fun.n_out())]
+
+    def __call__(self, *args):
+        if len(args) != len(self.n_in):
+            raise ValueError(f"{self.fun.name()}: {len(args)} inputs; expected {len(self.n_in)}")
+        flat = [np.ascontiguousarray(np.asarray(a, dtype=float).ravel(order="F")) for a in args]
+        for i, (a, n) in enumerate(zip(flat, self.n_in)):
+            if a.size != n:  # the buffer interface reads exactly n values: never hand it fewer
+                raise ValueError(f"{self.fun.name()}: input {i} has {a.size} values; expected {n}")
+        outs = [np.empty(n) for n in self.n_out]
+        buf, evaluate = self.fun.buffer()  # a fresh buffer per call: thread-safe, references held here
+        for i, a in enumerate(flat):
+            buf.set_arg(i, a)
+        for i, o in enumerate(outs):
+            buf.set_res(i, o)
+        evaluate()
+        return outs
 
 
 def _condense(lin):
