@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 
 from .controller import PID
 from .filters import PLACES, DiscreteBiquad, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass
-from .tuning import LoopModel, _smooth_abs, _two_rate
+from .tuning import LoopModel, _smooth_abs, _two_rate_error
 
 __all__ = ["TUNABLE", "FilteredDesign", "tune_filtered", "FilterBounds", "loop_builder", "dominant_resonance_hz"]
 
@@ -387,23 +387,8 @@ def tune_filtered(
     for jl in range(n_obj):
         bs, lp = bases[jl], start_loops[jl]
         acl = a_cl(bs)
-        N = lp.A0.shape[0]
-        xs, As, bsx = ca.SX.sym("x", N), ca.SX.sym("A", N, N), ca.SX.sym("b", N)
-        stepf = ca.Function("stepf", [xs, As, bsx], [ca.mtimes(As, xs) + bsx])
-        n_fine, m = _two_rate(lp.n_steps)
-        bd, ce = ca.DM(lp.Bd), ca.DM(lp.Ce)
-        traj = stepf.mapaccum("traj", n_fine - 1)(ca.DM.zeros(N), acl, bd)
-        e = ca.mtimes(ce.T, traj)
-        wk = np.full(n_fine - 1, lp.h)
-        n_coarse = (lp.n_steps - n_fine) // m
-        if n_coarse > 0:
-            a_m, b_m = acl, bd
-            for _ in range(int(math.log2(m))):
-                a_m, b_m = ca.mtimes(a_m, a_m), ca.mtimes(a_m, b_m) + b_m
-            tail = stepf.mapaccum("tail", n_coarse)(traj[:, -1], a_m, b_m)
-            e = ca.horzcat(e, ca.mtimes(ce.T, tail))
-            wk = np.concatenate([wk, np.full(n_coarse, m * lp.h)])
-        objs.append(ca.sum2(ca.DM(wk).T * _smooth_abs(e, eps[jl])))
+        e, _, w = _two_rate_error(acl, ca.DM(lp.Bd), ca.DM(lp.Ce), lp.n_steps)
+        objs.append(ca.sum2(ca.DM(lp.h * w).T * _smooth_abs(e, eps[jl])))
     f_obj = sum(objs) / j_ref
 
     def freq_cons(bs: _Basis, w: NDArray, inv_ms2: float, mks: float | None):

@@ -441,6 +441,20 @@ def load_step_comparison(designs: Sequence, scene, k: int = 0, ax=None, window: 
     return fig, [a]
 
 
+def _pair_panels(n: int, axes=None):
+    """``n`` panels for the baseline/tuned pair plots: a new figure with two columns (the unused
+    last panel hidden), or the given axes."""
+    if axes is not None:
+        return _axes(axes)
+    cols = 2 if n > 1 else 1
+    rows = math.ceil(n / cols)
+    fig, axs = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.4 * rows), layout="constrained", squeeze=False)
+    axs = list(axs.ravel())
+    for extra in axs[n:]:
+        extra.set_visible(False)
+    return fig, axs
+
+
 def baseline_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, axes=None):
     """Each baseline beside the tuned design at the same (or lower) Ms: one panel per
     ``(baseline, tuned)`` pair of verified designs, so that a baseline at a higher Ms is never
@@ -455,15 +469,7 @@ def baseline_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, axe
         Load level; ``None``: the binding level of each tuned design.
     """
     n = len(pairs)
-    if axes is None:
-        cols = 2 if n > 1 else 1
-        rows = math.ceil(n / cols)
-        fig, axs = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.4 * rows), layout="constrained", squeeze=False)
-        axs = list(axs.ravel())
-        for extra in axs[n:]:
-            extra.set_visible(False)
-    else:
-        fig, axs = _axes(axes)
+    fig, axs = _pair_panels(n, axes)
     obj = scene.objective
     for a, (b, d) in zip(axs, pairs):
         kk = binding_level(d, scene) if k is None else k
@@ -508,15 +514,7 @@ def duty_cycle_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, a
     fig, list of axes (one per pair)
     """
     n = len(pairs)
-    if axes is None:
-        cols = 2 if n > 1 else 1
-        rows = math.ceil(n / cols)
-        fig, axs = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.4 * rows), layout="constrained", squeeze=False)
-        axs = list(axs.ravel())
-        for extra in axs[n:]:
-            extra.set_visible(False)
-    else:
-        fig, axs = _axes(axes)
+    fig, axs = _pair_panels(n, axes)
     obj = scene.objective
     for a, (b, d) in zip(axs, pairs):
         kk = binding_level(d, scene) if k is None else k

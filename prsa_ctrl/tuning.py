@@ -280,20 +280,7 @@ class LoopModel:
         out = {"exact": True, "omega": w, "L": L}
         funcs = {"ms": lambda Lv: 1 / np.abs(1 + Lv), "mt": lambda Lv: np.abs(Lv / (1 + Lv))}
         for key, f in funcs.items():
-            mag = f(L)
-            top = float(mag.max())
-            left = np.concatenate([[-np.inf], mag[:-1]])
-            right = np.concatenate([mag[1:], [-np.inf]])
-            cand = np.flatnonzero((mag >= left) & (mag >= right) & (mag >= 0.99 * top))
-            cand = cand[np.argsort(-mag[cand])][:6]
-            lo = np.log(w[np.maximum(cand - 1, 0)])
-            hi = np.log(w[np.minimum(cand + 1, w.size - 1)])
-            x, v = _zoom_max(lambda xs: f(self.loop_response(g, np.exp(xs))), lo, hi)
-            i = int(np.argmax(v)) if v.size else -1
-            if v.size and v[i] > top:
-                out[key], out["w_" + key] = float(v[i]), float(math.exp(x[i]))
-            else:
-                out[key], out["w_" + key] = top, float(w[np.argmax(mag)])
+            out[key], out["w_" + key] = _polished_peak(lambda wv: f(self.loop_response(g, wv)), w, f(L))
         return out
 
     def noise_response(self, gains: Sequence[float], omega: NDArray[np.float64]) -> NDArray[np.complex128]:
@@ -314,19 +301,9 @@ class LoopModel:
         (rad/s)."""
         g = self.gvec(gains)
         w, _ = self._peak_grid(g)
-        mag = np.abs(self.noise_response(g, w))
-        top = float(mag.max())
-        left = np.concatenate([[-np.inf], mag[:-1]])
-        right = np.concatenate([mag[1:], [-np.inf]])
-        cand = np.flatnonzero((mag >= left) & (mag >= right) & (mag >= 0.99 * top))
-        cand = cand[np.argsort(-mag[cand])][:6]
-        lo = np.log(w[np.maximum(cand - 1, 0)])
-        hi = np.log(w[np.minimum(cand + 1, w.size - 1)])
-        x, v = _zoom_max(lambda xs: np.abs(self.noise_response(g, np.exp(xs))), lo, hi)
-        i = int(np.argmax(v)) if v.size else -1
-        if v.size and v[i] > top:
-            return {"mks": float(v[i]), "w_mks": float(math.exp(x[i]))}
-        return {"mks": top, "w_mks": float(w[np.argmax(mag)])}
+        mks, w_mks = _polished_peak(lambda wv: np.abs(self.noise_response(g, wv)), w,
+                                    np.abs(self.noise_response(g, w)))
+        return {"mks": mks, "w_mks": w_mks}
 
     def margins(self, gains: Sequence[float], peaks: dict | None = None) -> Margins:
         """Ms, Mt (true peaks, see :meth:`peaks`; pass its result as ``peaks`` to reuse it),
@@ -496,6 +473,25 @@ class LoopModel:
         out = {"error": xs @ self.Ce}
         out.update({name: xs @ row for name, row in self.outputs.items()})
         return out
+
+
+def _polished_peak(f, w: NDArray[np.float64], mag: NDArray[np.float64]) -> tuple[float, float]:
+    """The peak of ``f(omega)`` (a magnitude, vectorised over rad/s) given its values ``mag`` on
+    the grid ``w``: the up to six highest local maxima within 1 % of the grid's top, each
+    polished by :func:`_zoom_max` between its neighbours. Returns ``(peak, omega)``; the grid's
+    top when the search finds nothing higher."""
+    top = float(mag.max())
+    left = np.concatenate([[-np.inf], mag[:-1]])
+    right = np.concatenate([mag[1:], [-np.inf]])
+    cand = np.flatnonzero((mag >= left) & (mag >= right) & (mag >= 0.99 * top))
+    cand = cand[np.argsort(-mag[cand])][:6]
+    lo = np.log(w[np.maximum(cand - 1, 0)])
+    hi = np.log(w[np.minimum(cand + 1, w.size - 1)])
+    x, v = _zoom_max(lambda xs: f(np.exp(xs)), lo, hi)
+    i = int(np.argmax(v)) if v.size else -1
+    if v.size and v[i] > top:
+        return float(v[i]), float(math.exp(x[i]))
+    return top, float(w[np.argmax(mag)])
 
 
 def _zoom_max(f, lo: NDArray, hi: NDArray, n: int = 41, passes: int = 7) -> tuple[NDArray, NDArray]:
@@ -1066,6 +1062,36 @@ def _two_rate(n_steps: int, n_fine: int = 200, m: int = 8) -> tuple[int, int]:
     return (n_steps, 1) if n_steps <= 2 * n_fine else (n_fine, m)
 
 
+def _two_rate_error(acl, bd, ce, n_steps: int, profile: NDArray[np.float64] | None = None):
+    """The error ``e = ce' x`` of the sampled loop ``x[k+1] = acl x[k] + b[k]`` from rest, as a
+    CasADi row ``e[1..]`` (``e[0] = 0``): every sample over the transient, then every ``m``-th
+    sample on the tail through the exact ``m``-step map (:func:`_two_rate`). ``b = bd`` at every
+    sample (a step), or ``profile`` (a duty cycle: one input row per sample, all at full rate).
+
+    Returns ``(e, k, w)``: the error row, each value's sample index and its weight in samples
+    (multiply both by the sample time)."""
+    n = bd.numel()
+    n_fine, m = _two_rate(n_steps) if profile is None else (n_steps, 1)
+    xs, bs = ca.SX.sym("x", n), ca.SX.sym("b", n)
+    a_s = ca.SX.sym("A", acl.sparsity())
+    traj = ca.Function("stepf", [xs, a_s, bs], [ca.mtimes(a_s, xs) + bs]).mapaccum("traj", n_fine - 1)(
+        ca.DM.zeros(n), acl, bd if profile is None else ca.DM(profile[: n_fine - 1].T))
+    e = ca.mtimes(ce.T, traj)  # e[1..n_fine-1]; e[0] = 0
+    k, w = np.arange(1, n_fine, dtype=float), np.ones(n_fine - 1)
+    n_coarse = (n_steps - n_fine) // m
+    if n_coarse > 0:
+        a_m, b_m = acl, bd
+        for _ in range(int(math.log2(m))):
+            a_m, b_m = ca.mtimes(a_m, a_m), ca.mtimes(a_m, b_m) + b_m
+        a_ms = ca.SX.sym("Am", a_m.sparsity())
+        tail = ca.Function("stepm", [xs, a_ms, bs], [ca.mtimes(a_ms, xs) + bs]).mapaccum("tail", n_coarse)(
+            traj[:, -1], a_m, b_m)
+        e = ca.horzcat(e, ca.mtimes(ce.T, tail))
+        k = np.concatenate([k, n_fine - 1 + m * np.arange(1, n_coarse + 1)])
+        w = np.concatenate([w, np.full(n_coarse, float(m))])
+    return e, k, w
+
+
 def _free_gains(use_d: bool, n_gains: int) -> list[int]:
     """Indices of the optimised gains: kp, ki, (kd), (kff)."""
     return [0, 1] + ([2] if use_d else []) + ([3] if n_gains == 4 else [])
@@ -1347,8 +1373,6 @@ class Tuner:
         n, ng, n_steps = lp0.A0.shape[0], lp0.n_gains, lp0.n_steps
         if any(lp.A0.shape[0] != n or lp.n_steps != n_steps or lp.n_gains != ng for lp in loops):
             return None
-        n_fine, m = _two_rate(n_steps)
-        n_coarse = (n_steps - n_fine) // m
         pattern = np.zeros((n, n), bool)
         for lp in loops:
             pattern |= np.asarray(lp.A0) != 0
@@ -1361,22 +1385,8 @@ class Tuner:
         ai = [ca.SX.sym(f"a{i}", sp) for i in range(ng)]
         bd, ce, e_s, h = ca.SX.sym("bd", n), ca.SX.sym("ce", n), ca.SX.sym("eps"), ca.SX.sym("h")
         acl = a0 + sum(gs[i] * ai[i] for i in range(ng))
-        xs, a_s, bs = ca.SX.sym("x", n), ca.SX.sym("A", sp), ca.SX.sym("b", n)
-        traj = ca.Function("stepf", [xs, a_s, bs], [ca.mtimes(a_s, xs) + bs]).mapaccum("traj", n_fine - 1)(
-            ca.DM.zeros(n), acl, bd)
-        e = ca.mtimes(ce.T, traj)  # e[1..n_fine-1]; e[0] = 0
-        tk, wk = np.arange(1, n_fine, dtype=float), np.ones(n_fine - 1)
-        if n_coarse > 0:
-            a_m, b_m = acl, bd
-            for _ in range(int(math.log2(m))):
-                a_m, b_m = ca.mtimes(a_m, a_m), ca.mtimes(a_m, b_m) + b_m
-            a_ms = ca.SX.sym("Am", a_m.sparsity())
-            tail = ca.Function("stepm", [xs, a_ms, bs], [ca.mtimes(a_ms, xs) + bs]).mapaccum("tail", n_coarse)(
-                traj[:, -1], a_m, b_m)
-            e = ca.horzcat(e, ca.mtimes(ce.T, tail))
-            tk = np.concatenate([tk, n_fine - 1 + m * np.arange(1, n_coarse + 1)])
-            wk = np.concatenate([wk, np.full(n_coarse, float(m))])
-        tk, wk = ca.DM(tk).T * h, ca.DM(wk).T * h
+        e, k, w = _two_rate_error(acl, bd, ce, n_steps)
+        tk, wk = ca.DM(k).T * h, ca.DM(w).T * h
         j = {"iae": ca.sum2(wk * _smooth_abs(e, e_s)), "itae": ca.sum2(wk * tk * _smooth_abs(e, e_s)),
              "ise": ca.sum2(wk * e * e)}[self.objective]
         per_loop = ca.Function("loop_objective", [gs, a0, *ai, bd, ce, e_s, h], [j])
@@ -1426,27 +1436,10 @@ class Tuner:
                 ief = ca.Function("ie", [a_s, b_s], [-lp.h * ca.mtimes(ce.T, ca.solve(ca.mtimes(m_s, m_s), b_s))])
                 J = _smooth_abs(ief(acl, bd), eps[jl])
             else:
-                xs, As, bs = ca.SX.sym("x", N), ca.SX.sym("A", N, N), ca.SX.sym("b", N)
-                stepf = ca.Function("stepf", [xs, As, bs], [ca.mtimes(As, xs) + bs])
-                # Two rates: every sample over the transient, then every m-th sample on the tail
-                # (exact m-step map); the reported objective is always the full one to infinity.
-                n_fine, m = _two_rate(lp.n_steps) if lp.profile is None else (lp.n_steps, 1)
-                # A profile loop (duty cycle): its own input at every sample, all at full rate.
-                traj = stepf.mapaccum("traj", n_fine - 1)(
-                    ca.DM.zeros(N), acl, bd if lp.profile is None else ca.DM(lp.profile[: n_fine - 1].T))
-                e = ca.mtimes(ce.T, traj)  # e[1..n_fine-1]; e[0] = 0
-                tk = lp.h * np.arange(1, n_fine)
-                wk = np.full(n_fine - 1, lp.h)
-                n_coarse = (lp.n_steps - n_fine) // m
-                if n_coarse > 0:
-                    a_m, b_m = acl, bd
-                    for _ in range(int(math.log2(m))):
-                        a_m, b_m = ca.mtimes(a_m, a_m), ca.mtimes(a_m, b_m) + b_m
-                    tail = stepf.mapaccum("tail", n_coarse)(traj[:, -1], a_m, b_m)
-                    e = ca.horzcat(e, ca.mtimes(ce.T, tail))
-                    tk = np.concatenate([tk, lp.h * (n_fine - 1 + m * np.arange(1, n_coarse + 1))])
-                    wk = np.concatenate([wk, np.full(n_coarse, m * lp.h)])
-                tk, wk = ca.DM(tk).T, ca.DM(wk).T
+                # Two rates (a profile loop: its own input at every sample, all at full rate); the
+                # reported objective is always the full one to infinity.
+                e, k, w = _two_rate_error(acl, bd, ce, lp.n_steps, lp.profile)
+                tk, wk = ca.DM(lp.h * k).T, ca.DM(lp.h * w).T
                 J = {
                     "iae": ca.sum2(wk * _smooth_abs(e, eps[jl])),
                     "itae": ca.sum2(wk * tk * _smooth_abs(e, eps[jl])),
