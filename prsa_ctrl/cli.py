@@ -775,7 +775,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _tune_body(run: _Run, argv: list[str]) -> int:
-    from .output import check_directory, check_writable
+    from .output import check_directory, check_distinct, check_writable
 
     if "-h" in argv or "--help" in argv:
         build_parser().print_help()
@@ -812,12 +812,9 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if os.path.splitext(args.export)[1].lower() not in (".json", ".toml"):
                 raise _UsageError(f"--export {args.export!r}: expected a path ending in .json or .toml")
             check_writable(args.export, inputs, "--export")
-            if args.json is not None and os.path.realpath(args.export) == os.path.realpath(args.json):
-                raise _UsageError(f"--export {args.export!r} and --json {args.json!r} name the same path")
         if args.plots is not None:
             check_directory(args.plots, "--plots")
-            if args.json is not None and os.path.realpath(args.plots) == os.path.realpath(args.json):
-                raise _UsageError(f"--plots {args.plots!r} and --json {args.json!r} name the same path")
+        check_distinct({"--json": args.json, "--export": args.export, "--plots": args.plots})
         notes.extend(caught)
     run.check()
     native: list[str] = []
