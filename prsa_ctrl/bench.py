@@ -342,12 +342,12 @@ def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: 
     }
 
 
-def monte_carlo_benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, backends=("serial", "process", "dask"),
-                          scene: str = "paper-load-step") -> dict:
+def monte_carlo_benchmark(n: int = 1000, workers: int = 2, repeats: int = 3,
+                          backends=("serial", "process", "dask", "dask-running"), scene: str = "paper-load-step") -> dict:
     """``n`` sampled-loop verifications (the scene's fidelity: compliant for the paper scene) of
-    the paper design on the plant's uncertainty samples: serial, ``workers`` processes and a
-    Dask LocalCluster (start-up included), in turn, median of ``repeats``; the backends must
-    agree bit for bit (:func:`prsa_ctrl.montecarlo.benchmark`).
+    the paper design on the plant's uncertainty samples: serial, ``workers`` processes, a Dask
+    LocalCluster started and stopped in each run, and one already running, in turn, median of
+    ``repeats``; the backends must agree bit for bit (:func:`prsa_ctrl.montecarlo.benchmark`).
 
     Parameters
     ----------
@@ -358,7 +358,8 @@ def monte_carlo_benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, bac
     repeats : int
         Runs per backend (median reported).
     backends : sequence of str
-        Subset of ``("serial", "process", "dask")``; "dask" is skipped when Dask is missing.
+        Subset of ``("serial", "process", "dask", "dask-running")``; the Dask ones are skipped
+        when Dask is missing.
     scene : str
         Scene name or file.
     """
@@ -366,11 +367,10 @@ def monte_carlo_benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, bac
     from .scene import load_scene
 
     backends = list(backends)
-    if "dask" in backends:
-        try:
-            import dask.distributed  # noqa: F401
-        except ImportError:
-            backends.remove("dask")
+    try:
+        import dask.distributed  # noqa: F401
+    except ImportError:
+        backends = [b for b in backends if not b.startswith("dask")]
     return benchmark(n=n, workers=workers, repeats=repeats, scene=load_scene(scene), backends=backends)
 
 
@@ -494,8 +494,12 @@ def targets(result: dict) -> dict:
         if "parallel_efficiency" in mc:
             eff = mc["parallel_efficiency"]
             out["parallel_efficiency_ge_0.8"] = {"measured": eff, "met": eff >= 0.8}
+        if "dask_running_overhead" in mc:
+            out["dask_overhead_le_0.15_running_cluster"] = {"measured": mc["dask_running_overhead"],
+                                                             "met": mc["dask_running_overhead"] <= 0.15}
         if "dask_overhead" in mc:
-            out["dask_overhead_le_0.15"] = {"measured": mc["dask_overhead"], "met": mc["dask_overhead"] <= 0.15}
+            out["dask_overhead_le_0.15_cluster_start_included"] = {"measured": mc["dask_overhead"],
+                                                                   "met": mc["dask_overhead"] <= 0.15}
         out["backends_identical"] = {"met": bool(mc["identical"])}
     rb = result.get("robust_tuning")
     if rb:
@@ -603,7 +607,10 @@ def main(argv=None) -> int:
         print(f"monte carlo ({mc['n']} {mc['fidelity']} verifications, {mc['scene']}): "
               + ", ".join(f"{k} {v:.1f} s" for k, v in med.items())
               + (f"; parallel efficiency {100 * mc['parallel_efficiency']:.0f} %" if "parallel_efficiency" in mc else "")
-              + (f"; dask overhead {100 * mc['dask_overhead']:+.0f} %" if "dask_overhead" in mc else "")
+              + (f"; dask overhead {100 * mc['dask_running_overhead']:+.1f} % on a running cluster"
+                 if "dask_running_overhead" in mc else "")
+              + (f", {100 * mc['dask_overhead']:+.1f} % with the LocalCluster started and stopped in the run"
+                 if "dask_overhead" in mc else "")
               + f"; identical {mc['identical']}"
               + (f"; serial CPU {1e3 * mc['cpu_per_sample_s']:.1f} ms/sample" if "cpu_per_sample_s" in mc else ""))
         ig = mc["integration"]

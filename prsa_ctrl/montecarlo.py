@@ -492,7 +492,7 @@ def run_monte_carlo(
     n: int,
     seed: int = 0,
     backend: str | None = None,
-    scheduler: str | None = None,
+    scheduler: Any = None,
     workers: int | None = None,
     chunk: int | None = None,
     progress: bool | Callable[[int, int], None] | None = None,
@@ -516,9 +516,10 @@ def run_monte_carlo(
         Sample ``i`` uses ``SeedSequence([seed, i])`` only.
     backend : {"serial", "process", "dask"}, optional
         Default "dask" when ``scheduler`` is given, else "process" with ``workers > 1``, else "serial".
-    scheduler : str, optional
-        ``"local"`` (start a LocalCluster of ``workers`` processes on 127.0.0.1) or a scheduler
-        address ``tcp://HOST:8786``.
+    scheduler : str or dask.distributed.Client, optional
+        ``"local"`` (start a LocalCluster of ``workers`` processes on 127.0.0.1 for this call),
+        a scheduler address ``tcp://HOST:8786``, or a connected ``Client`` (reused, left open:
+        several runs on one running cluster skip its ~1 s start-up).
     workers : int, optional
         Processes for "process"/"local" (default: CPU count).
     chunk : int, optional
@@ -557,12 +558,16 @@ def run_monte_carlo(
         scheduler = "local"
     if scheduler is not None and backend != "dask":
         raise ValueError(f"scheduler = {scheduler!r} needs backend = 'dask' (got {backend!r})")
-    if scheduler is not None and scheduler != "local" and not str(scheduler).startswith(("tcp://", "tls://", "inproc://")):
-        raise ValueError(f"scheduler = {scheduler!r}; expected 'local' or an address like tcp://HOST:8786")
+    if scheduler is not None and not _is_client(scheduler) and (not isinstance(scheduler, str) or (
+            scheduler != "local" and not scheduler.startswith(("tcp://", "tls://", "inproc://")))):
+        raise ValueError(f"scheduler = {scheduler!r}; expected 'local', an address like tcp://HOST:8786 "
+                         "or a dask.distributed.Client")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 512):
         raise ValueError(f"workers = {workers!r}; expected an integer 1..512")
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or not 1 <= chunk <= 10_000):
         raise ValueError(f"chunk = {chunk!r}; expected an integer 1..10000")
+    if _is_client(scheduler):
+        workers = len(scheduler.scheduler_info().get("workers", {})) or 1
     workers = workers or (1 if backend == "serial" else (os.cpu_count() or 1))
     spec = dict((getattr(scene, "robust", None) or {}).get("spec", {}) if spec is None else spec)
     unc = uncertainty_model(plant, scene) if unc is None else unc
@@ -626,16 +631,36 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
         pool.shutdown(wait=False, cancel_futures=True)
 
 
-def _run_dask(job: _Job, chunks: list, workers: int, scheduler: str, took) -> None:
+def _local_cluster(workers: int):
+    """A LocalCluster of ``workers`` single-threaded processes on 127.0.0.1."""
+    import dask
+    from dask.distributed import LocalCluster
+
+    # The workers' statistical profiler (a stack sample every 10 ms) costs ~3 % of a worker's
+    # CPU; nothing reads it here.
+    with dask.config.set({"distributed.worker.profile.enabled": False}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                            dashboard_address=None,  # no dashboard; its HTTP server on a free port,
+                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})  # not 8787 (may be taken)
+
+
+def _is_client(x) -> bool:
+    """A connected dask.distributed Client (duck-typed: Dask is imported only on its path)."""
+    return not isinstance(x, str) and callable(getattr(x, "submit", None)) and callable(getattr(x, "scatter", None))
+
+
+def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took) -> None:
     try:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import Client, as_completed
     except ImportError:
         raise ValueError("scheduler needs Dask: pip install \"prsa-ctrl[dask]\" (dask[distributed])") from None
+
     cluster = None
-    if scheduler == "local":
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None,  # no dashboard; its HTTP server on a free port,
-                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})  # not 8787 (may be taken)
+    own = not _is_client(scheduler)
+    if not own:
+        client = scheduler
+    elif scheduler == "local":
+        cluster = _local_cluster(workers)
         client = Client(cluster)
     else:
         client = Client(scheduler, timeout=30)
@@ -649,7 +674,8 @@ def _run_dask(job: _Job, chunks: list, workers: int, scheduler: str, took) -> No
             client.cancel(futures)
             raise
     finally:
-        client.close()
+        if own:
+            client.close()
         if cluster is not None:
             cluster.close()
 
@@ -719,11 +745,14 @@ def plot_report(report: MonteCarloReport, path=None, metric: str = "peak_drop_ra
 
 
 def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, scene=None,
-              backends: Sequence[str] = ("serial", "process", "dask"), quiet: bool = True,
+              backends: Sequence[str] = ("serial", "process", "dask", "dask-running"), quiet: bool = True,
               spec: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Wall time (s, median of ``repeats``, backends run in turn) of ``n`` verifications of the
     paper design on the scene's samples (default the robust scene): serial, ``workers``
-    processes, Dask LocalCluster of ``workers`` (cluster start-up included). ``spec``
+    processes, a Dask LocalCluster of ``workers`` started for each run (``"dask"``, start-up
+    and shut-down included, as ``--scheduler local``) and one already running
+    (``"dask-running"``, a ``Client`` passed in, as ``--scheduler tcp://...``; started once,
+    its start-up reported as ``cluster_start_s``). ``spec``
     defaults to no bounds (pure verifications; the scene's ``ms`` bound would add a
     linearisation per sample). Also checks that the backends agree bit for bit.
 
@@ -746,21 +775,40 @@ def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, sce
     t = time.perf_counter()
     warm = run_monte_carlo(plant, scene, {"paper": pid}, 2, seed=0, quiet=True, spec={} if spec is None else spec)
     warm_s = time.perf_counter() - t
+    running = cluster = None
+    if "dask-running" in backends:
+        from dask.distributed import Client
+
+        t = time.perf_counter()
+        cluster = _local_cluster(workers)
+        running = Client(cluster)
+        cluster_start_s = time.perf_counter() - t
+        run_monte_carlo(plant, scene, {"paper": pid}, 2 * workers, seed=0, scheduler=running, quiet=True, chunk=1,
+                        spec={} if spec is None else spec)  # the workers' imports, as a warm-up
     # In turn (serial, process, dask, serial, ...), so that drift of a shared machine's speed
     # hits every backend alike.
-    for _ in range(repeats):
-        for b in backends:
-            t, c = time.perf_counter(), time.process_time()
-            r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, backend=b,
-                                workers=1 if b == "serial" else workers, quiet=quiet,
-                                spec={} if spec is None else spec)
-            times.setdefault(b, []).append(time.perf_counter() - t)
-            if b == "serial":
-                cpu.append((time.process_time() - c) / n)
-            if ref is None:
-                ref = r.samples["metrics"]
-            elif not np.array_equal(ref, r.samples["metrics"], equal_nan=True):
-                identical = False
+    try:
+        for _ in range(repeats):
+            for b in backends:
+                t, c = time.perf_counter(), time.process_time()
+                if b == "dask-running":
+                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, scheduler=running, quiet=quiet,
+                                        spec={} if spec is None else spec)
+                else:
+                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, backend=b,
+                                        workers=1 if b == "serial" else workers, quiet=quiet,
+                                        spec={} if spec is None else spec)
+                times.setdefault(b, []).append(time.perf_counter() - t)
+                if b == "serial":
+                    cpu.append((time.process_time() - c) / n)
+                if ref is None:
+                    ref = r.samples["metrics"]
+                elif not np.array_equal(ref, r.samples["metrics"], equal_nan=True):
+                    identical = False
+    finally:
+        if running is not None:
+            running.close()
+            cluster.close()
     med = {b: float(np.median(v)) for b, v in times.items()}
     from .scene import choose_fidelity
 
@@ -774,6 +822,9 @@ def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, sce
         out["parallel_efficiency"] = med["serial"] / (workers * med["process"])
     if "process" in med and "dask" in med:
         out["dask_overhead"] = med["dask"] / med["process"] - 1
+    if "process" in med and "dask-running" in med:
+        out["dask_running_overhead"] = med["dask-running"] / med["process"] - 1
+        out["cluster_start_s"] = cluster_start_s
     return out
 
 

@@ -117,7 +117,14 @@ def test_dask_local_cluster_gives_bit_identical_results(serial, setup):
                                   dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster:
         das = mc.run_monte_carlo(p, s, {"fast": FAST, "slow": SLOW}, N, seed=7, scheduler=cluster.scheduler_address,
                                  workers=2, chunk=3, quiet=True)
+        # A connected Client is reused (a running cluster: no start-up) and left open.
+        with distributed.Client(cluster) as client:
+            reused = mc.run_monte_carlo(p, s, {"fast": FAST, "slow": SLOW}, N, seed=7, scheduler=client, chunk=2,
+                                        quiet=True)
+            assert client.status == "running" and client.submit(sum, [1, 2]).result() == 3
     busy.close()
+    assert reused.backend == "dask" and reused.workers == 2 and reused.complete
+    assert np.array_equal(reused.samples["metrics"], serial.samples["metrics"], equal_nan=True)
     assert das.backend == "dask" and das.complete
     assert np.array_equal(das.samples["metrics"], serial.samples["metrics"], equal_nan=True)
     assert das.samples["values"].keys() == serial.samples["values"].keys()

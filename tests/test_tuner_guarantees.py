@@ -190,6 +190,37 @@ def test_reused_tuner_equals_a_fresh_one():
     assert tune_loops([lp], objective="iae", ms_max=1.3, kp_max=50.0).pid == fresh.pid
 
 
+
+def test_multi_loop_true_ms_holds_on_every_plant_and_a_reused_tuner_equals_a_fresh_one():
+    """Several loops (robust tuning): the NLP holds Ms on a coarse subset of each grid plus the
+    verified peaks; every plant's independently searched peak is within the bound, and a
+    Tuner reused at another bound (its ranking caches) gives the fresh Tuner's design."""
+    plants = [1 / ((s + 1) * (s**2 / w**2 + 2 * z * s / w + 1)) for w, z in ((8.0, 0.03), (10.0, 0.02), (13.0, 0.05))]
+    loops = [continuous_loop(p, tf=0.05, horizon=30.0, n_steps=900) for p in plants]
+    t = Tuner(loops, objective="iae", worst_case=True)
+    first = t.tune(ms_max=1.5)
+    second = t.tune(ms_max=1.3)
+    fresh = Tuner(loops, objective="iae", worst_case=True).tune(ms_max=1.3)
+    assert second.pid == fresh.pid and second.objective == fresh.objective
+    for r, bound in ((first, 1.5), (second, 1.3)):
+        assert r.converged
+        for p in plants:
+            ms, _ = true_peaks(p, r.pid)
+            assert ms <= bound * (1 + 1e-6)
+    assert max(true_peaks(p, first.pid)[0] for p in plants) == pytest.approx(1.5, rel=1e-4)  # active
+
+
+def test_trajectory_memo_returns_fresh_arrays():
+    lp = continuous_loop(P2, tf=0.1, horizon=20.0, n_steps=300)
+    g = (1.0, 0.5, 0.0)
+    e = lp.error(g)
+    e[:] = 1e9  # a caller scribbling on its copy
+    assert np.array_equal(lp.error(g), lp._trajectory(g)["error"])
+    for k in range(6):  # bounded: the memo keeps a few trajectories
+        lp.error((1.0 + k, 0.5, 0.0))
+    assert len(lp._memo["trajectory"]) <= 4
+
+
 # ---- 5. stability classes ----------------------------------------------------------------------
 
 def test_stability_classes():
