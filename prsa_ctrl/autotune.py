@@ -628,6 +628,12 @@ def _verify_job(i: int):
     return d.verified, d.verified_runs, d.objective_verified, d.estimation
 
 
+def default_workers() -> int:
+    """Processes of a parallel verification when none are asked for: ``$PRSA_WORKERS``, else
+    the machine's cores, at most 4."""
+    return int(os.environ.get("PRSA_WORKERS", "0")) or min(os.cpu_count() or 1, 4)
+
+
 def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int | None = None) -> None:
     """Verify several designs, in parallel worker processes where the machine has cores.
 
@@ -640,7 +646,7 @@ def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int |
     verify(designs[0], plant, scene)  # builds (and caches) the integrators before any fork
     rest = designs[1:]
     if workers is None:
-        workers = int(os.environ.get("PRSA_WORKERS", "0")) or min(os.cpu_count() or 1, 4)
+        workers = default_workers()
     if workers <= 1 or len(rest) < 2 or "fork" not in multiprocessing.get_all_start_methods():
         for d in rest:
             verify(d, plant, scene)

@@ -208,7 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots", type=_path_text("--plots"), metavar="DIR",
                    help="write the standard plots (PNG and SVG) into DIR (created if missing)")
     p.add_argument("--workers", type=_integer("--workers", 1, WORKERS_MAX, "an integer"), default=None,
-                   help="processes for verification (default: cores, at most 4)")
+                   help="processes for verification and Monte Carlo, or the workers of --scheduler local "
+                        "(default: cores, at most 4)")
     p.add_argument("--export", type=_path_text("--export"), metavar="PATH.json|PATH.toml",
                    help="write the tuned gains in a drive's terms (continuous and discrete forms, Kp/Tn, "
                         "biquads) as JSON or TOML, chosen by the suffix")
@@ -729,6 +730,11 @@ def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[st
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
                 stream.flush()
+        with contextlib.suppress(Exception):  # no worker may outlive us (they ignore SIGINT)
+            import multiprocessing
+
+            for child in multiprocessing.active_children():
+                child.kill()
         os._exit(EXIT_INTERRUPTED)
     return code
 
@@ -959,8 +965,11 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
         designs.setdefault(b.name, b.pid)
     seed = args.seed if args.seed is not None else opts["seed"]
     _progress(run, args.verbose, f"Monte Carlo: {n} samples of {len(designs)} designs ...")
-    mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler, workers=args.workers,
-                         quiet=args.quiet)
+    from .autotune import default_workers
+
+    # Like the verification: in parallel on the machine's cores unless --workers says otherwise.
+    mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
+                         workers=args.workers or default_workers(), quiet=args.quiet)
     return robust_rep, mc
 
 

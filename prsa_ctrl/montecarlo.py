@@ -627,6 +627,12 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:
                 took(f.result())
+    except BaseException:
+        # Ctrl-C or a failed chunk: stop the workers now (they ignore SIGINT, and a chunk already
+        # queued would keep them running after this process has exited).
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.terminate()
+        raise
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
 

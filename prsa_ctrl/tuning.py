@@ -4,7 +4,9 @@ The tuner works on a *loop model*: the closed loop discretised exactly (zero-ord
 plant, the controller's own difference equations), which is affine in the gains, plus the
 loop transfer function, which is affine in the gains too. The objective (IE, IAE, ITAE or ISE
 of the error after a disturbance step) is a smooth CasADi expression of the gains; Ms (and
-optionally Mt) are enforced at every frequency of the loop's grid as ``|1 + L|^2 >= 1/Ms^2``.
+optionally Mt) are enforced at every frequency of the loop's grid as ``|1 + L|^2 >= 1/Ms^2``
+(with several loops, e.g. robust tuning's scenario models, at ~64 of them per loop plus its
+resonance points: the verification below holds the rest).
 
 Guarantees of a :class:`TuningResult` (each one checked after the solve, not assumed):
 

@@ -150,6 +150,59 @@ def test_ctrl_c_returns_partial_results_marked_incomplete(setup):
     assert "INTERRUPTED" in mc.format_report(rep)
 
 
+_ORPHAN_SCRIPT = """
+import multiprocessing, os, sys
+from prsa_ctrl import montecarlo as mc
+from prsa_ctrl.controller import PID
+from prsa_ctrl.plant import load_plant
+from prsa_ctrl.scene import load_scene
+
+def interrupt(done, total):
+    if done >= 1:
+        print(" ".join(str(c.pid) for c in multiprocessing.active_children()), flush=True)
+        raise KeyboardInterrupt
+
+try:
+    mc.run_monte_carlo(load_plant(), load_scene("robust-load-step"), {"a": PID(0.05, 5.0, tf=1e-3)}, 200,
+                       backend="process", workers=2, chunk=10, integrator="reference", progress=interrupt)
+except mc.MonteCarloInterrupted:
+    pass
+os._exit(130)  # as prsa-tune ends after Ctrl-C: no atexit hooks
+"""
+
+
+def test_ctrl_c_in_a_process_pool_leaves_no_worker_running(tmp_path):
+    """After Ctrl-C the pool's workers (which ignore SIGINT) are stopped, also when the process
+    then ends at once as the CLI does: none keeps computing queued chunks as an orphan."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "pids.txt"
+    with open(out, "w") as f:
+        proc = subprocess.run([sys.executable, "-c", _ORPHAN_SCRIPT], stdout=f, stderr=subprocess.DEVNULL,
+                              timeout=300, cwd=tmp_path)
+    assert proc.returncode == 130
+    pids = [int(x) for x in out.read_text().split()]
+    assert len(pids) == 2
+
+    def running(pid):
+        try:
+            with open(f"/proc/{pid}/status") as st:
+                return not any(line.startswith("State:") and "Z" in line for line in st)
+        except FileNotFoundError:
+            return False
+
+    deadline = time.monotonic() + 20  # terminated workers end at once; a generous bound, not a speed test
+    while any(running(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [p for p in pids if running(p)]
+    for p in alive:
+        os.kill(p, 9)
+    assert not alive
+
+
 @pytest.mark.parametrize("kw, match", [
     ({"n": 0}, "n = 0"),
     ({"n": 2.5}, "n = 2.5"),
