@@ -1350,8 +1350,9 @@ class Tuner:
     def _ranked(self, ms_eff, mt_eff, noise, hi) -> NDArray[np.int64]:
         """Scan indices within the bounds, stable in every loop, best objective first.
 
-        With several loops (robust tuning: the ranking simulated every loop at every scan
-        point, ~0.4 s for 16 loops) the order is exact only where it is used: the reference
+        With several loops and the worst-case objective (robust tuning: the ranking simulated
+        every loop at every scan point, ~0.4 s for 16 loops) the order is exact only where it
+        is used (a mean over loops has no useful bound; it ranks every point): the reference
         loop and the loop that is worst at its best point are simulated everywhere, which
         bounds every point's aggregate from below; the other loops are simulated in batches of
         points taken in order of that bound, until ``_RANK_TOP`` points are known stable in
@@ -1379,8 +1380,7 @@ class Tuner:
             return cand
         best0 = cand[int(np.argmin(sc["obj"][0, cand]))]
         self._evaluate(range(nl), np.array([best0]))
-        v = np.where(sc["stable"][:, best0] == 1, sc["obj"][:, best0], np.inf) * (1.0 if self.worst_case else self.weights)
-        hard = int(np.argmax(v))
+        hard = int(np.argmax(np.where(sc["stable"][:, best0] == 1, sc["obj"][:, best0], np.inf)))
         self._evaluate([hard], cand)
         cand = cand[sc["stable"][hard, cand] == 1]
         part = [0] if hard == 0 else [0, hard]
