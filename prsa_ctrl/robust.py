@@ -268,8 +268,14 @@ def tune_robust(
     """
     import control
 
+    if isinstance(plants, (str, bytes)) or not hasattr(plants, "__iter__"):
+        raise ValueError(f"plants = {plants!r}; expected a list of python-control LTI plants")
+    plants = list(plants)
     if not plants:
         raise ValueError("plants = []; expected at least one LTI plant")
+    for i, p in enumerate(plants):
+        if not isinstance(p, control.LTI):
+            raise ValueError(f"plants[{i}] = {p!r}; expected a python-control LTI plant (tf or ss)")
     if aggregate not in ("worst", "mean"):
         raise ValueError(f"aggregate = {aggregate!r}; expected 'worst' or 'mean'")
     if len(plants) > 256:

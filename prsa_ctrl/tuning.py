@@ -87,12 +87,14 @@ _SLOTS = 12
 #: loop's resonance points; every true peak is still verified on the full grid and beyond), and
 #: frequency slots per loop (added in clusters, see ``Tuner._solve_from``).
 _MULTI_ROWS = 64
-_MULTI_SLOTS = 20
+_MULTI_SLOTS = 40
 #: Scan points ranked exactly before the start points are chosen (several loops).
 _RANK_TOP = 50
 #: Restarts from distinct scan points when a solve does not converge.
 _STARTS = 3
 _IPOPT_MAX_ITER = 400
+#: Decades the peak search may extend below a loop model's grid (where |L| < 100 at its low end).
+_LOW_DECADES = 8
 
 
 # --------------------------------------------------------------------------------------------
@@ -240,8 +242,9 @@ class LoopModel:
     def _peak_grid(self, gains) -> tuple[NDArray[np.float64], NDArray[np.complex128]]:
         """Dense frequencies for the peak search and ``L`` there: a 600-point log grid a decade
         beyond the model's grid (up to Nyquist on sampled loops), the model's grid, and points
-        around every closed-loop pole's frequency (where sharp resonance peaks sit). The
-        gain-free parts on the fixed points are computed once per loop model."""
+        around every closed-loop pole's frequency (where sharp resonance peaks sit), extended
+        below the grid while ``|L| < 100`` there. The gain-free parts on the fixed points are
+        computed once per loop model."""
         lo = self.omega[0] / 10.0
         hi = self.nyquist if self.nyquist else self.omega[-1] * 10.0
         fixed = self._memo.get("dense")
@@ -251,13 +254,22 @@ class LoopModel:
             pm = self.parts()
             fixed = (np.concatenate([w_d, self.omega]),) + tuple(np.concatenate([a, b], axis=-1) for a, b in zip(pd, pm))
             self._memo["dense"] = fixed
+        g = self.gvec(gains)
+        # Below the model's grid: while |L| < 100 at the low end (|T| not yet within 1 % of its
+        # low-frequency limit), the crossover and |S| or |T| peaks may lie lower (a slow plant in
+        # a robust set, a low-gain design): extend by decades, at most _LOW_DECADES, 40 points each.
+        lo_g = lo
+        for _ in range(_LOW_DECADES):
+            if not abs(self.loop_response(g, np.array([lo_g]))[0]) < 100.0:
+                break
+            lo_g /= 10.0
+        low = np.logspace(math.log10(lo_g), math.log10(lo), int(round(40 * math.log10(lo / lo_g))) + 1)[:-1]
         lam = self.poles(gains)
         lam = lam[np.abs(lam) > 1e-300]
         wd = np.abs(np.angle(lam)) / self.h
         sig = np.abs(np.log(np.abs(lam))) / self.h
         extra = (wd[:, None] + sig[:, None] * np.array([-2.0, -1.0, -0.5, -0.2, 0.0, 0.2, 0.5, 1.0, 2.0])).ravel()
-        extra = extra[(extra > lo) & (extra < hi)]
-        g = self.gvec(gains)
+        extra = np.concatenate([low, extra[(extra > lo_g) & (extra < hi)]])
         w = np.concatenate([fixed[0], extra])
         n0, ln, d0, ld = fixed[1:]
         L = (n0 + g @ ln) / (d0 + g @ ld)
@@ -715,6 +727,8 @@ def continuous_loop(
     if d[0, d_idx] != 0:
         raise ValueError("disturbance feeds through to the output directly; expected a strictly proper path")
     n = a.shape[0]
+    if n == 0:
+        raise ValueError("plant has no states (zero or a static gain); expected a strictly proper plant with dynamics")
     if n:
         # Balance (diagonal similarity) so that companion forms with widely spread
         # coefficients (fast Pade delays, 1e-6 s lags) discretise and solve accurately.
@@ -1617,7 +1631,9 @@ class Tuner:
             var, f = v, sum(float(w) * J for w, J in zip(self.weights, objs)) / j_ref
         ip = {"print_level": 0, "sb": "yes", "max_iter": _IPOPT_MAX_ITER, "tol": 1e-8,
               "hessian_approximation": "limited-memory"}
-        base = {"print_time": False, "error_on_fail": False}
+        # Trial points with an unstable loop overflow the objective; ipopt backs off from them,
+        # and CasADi's warning per evaluation (thousands in a warm-started re-solve) says nothing.
+        base = {"print_time": False, "error_on_fail": False, "show_eval_warnings": False}
         # Expanding to SX costs ~0.5 s once per Tuner but makes each solve ~10x faster; mapped
         # per-loop objectives are SX already (expanding would unroll the map).
         solver = ca.nlpsol("tuner", "ipopt", {"x": var, "p": p, "f": f, "g": ca.vertcat(*cons)},

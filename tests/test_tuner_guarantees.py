@@ -210,6 +210,35 @@ def test_multi_loop_true_ms_holds_on_every_plant_and_a_reused_tuner_equals_a_fre
     assert max(true_peaks(p, first.pid)[0] for p in plants) == pytest.approx(1.5, rel=1e-4)  # active
 
 
+def test_peaks_and_crossover_below_the_model_grid_are_found():
+    """A low-gain design puts the crossover and a sharp |S| resonance decades below the loop
+    model's grid (the slow plant of a robust set): the peak search extends below the grid
+    while |L| < 100 there, so Ms, Mt and the crossover are the true ones (the independent
+    200k-point search from 1e-7 rad/s)."""
+    from prsa_ctrl.controller import PID
+
+    plant = 5e-5 / (s * (s + 1))
+    lp = continuous_loop(plant, tf=0.1, horizon=40.0, n_steps=800)
+    pid = PID(1.18e-3, 1.30e-4, 0.0, tf=0.1)
+    assert lp.omega[0] / 10 > 1e-4  # the resonance (~8e-5 rad/s) is below the model's grid
+    ms, mt = true_peaks(plant, pid, w_lo=1e-7, w_hi=1e3)
+    assert ms > 100  # a sharp low-frequency resonance
+    m = lp.margins(pid.gains)
+    assert m.ms == pytest.approx(ms, rel=1e-6) and m.mt == pytest.approx(mt, rel=1e-6)
+    # a crossover below the grid: a PI on 1/(s+1)^2 with tiny gains crosses at ~ ki rad/s
+    plant2 = 1 / (s + 1) ** 2
+    lp2 = continuous_loop(plant2, tf=0.1, horizon=40.0, n_steps=800)
+    pid2 = PID(1e-4, 1e-6, 0.0, tf=0.1)
+    ln, ld = _loop_poly(plant2, pid2)
+    w = np.logspace(-8, -1, 700_001)
+    mag = np.abs(np.polyval(ln, 1j * w) / np.polyval(ld, 1j * w))
+    wc = w[np.flatnonzero(np.diff(np.sign(mag - 1)))[0]]
+    assert wc < lp2.omega[0] / 10
+    m2 = lp2.margins(pid2.gains)
+    assert m2.wc_rad_s == pytest.approx(wc, rel=1e-4)
+    assert 0.99 < m2.mt <= true_peaks(plant2, pid2, w_lo=1e-9, w_hi=1e3)[1] * (1 + 1e-9)
+
+
 def test_trajectory_memo_returns_fresh_arrays():
     lp = continuous_loop(P2, tf=0.1, horizon=20.0, n_steps=300)
     g = (1.0, 0.5, 0.0)
