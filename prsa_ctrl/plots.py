@@ -455,6 +455,22 @@ def _pair_panels(n: int, axes=None):
     return fig, axs
 
 
+def _finish_pair_panel(a, title: str, ylabel: str, legend_loc: str) -> None:
+    """Title, axis labels, grid and legend of one baseline/tuned pair panel."""
+    a.set_title(title, fontsize=9)
+    a.set_xlabel("time (s)")
+    a.set_ylabel(ylabel)
+    a.grid(True, alpha=0.3)
+    a.legend(fontsize=7, loc=legend_loc)
+
+
+def _pairs_suptitle(fig, scene, where: str) -> None:
+    """The pair figures' title (``where``: e.g. " on the <scene> duty cycle")."""
+    mt = getattr(scene, "mt_max", None)
+    fig.suptitle(f"Baselines against the tuned design at equal or lower Ms{where}"
+                 + (f" (tuned designs also keep Mt <= {mt:g})" if mt else "") + "; verified, nonlinear", fontsize=10)
+
+
 def baseline_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, axes=None):
     """Each baseline beside the tuned design at the same (or lower) Ms: one panel per
     ``(baseline, tuned)`` pair of verified designs, so that a baseline at a higher Ms is never
@@ -479,16 +495,10 @@ def baseline_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, axe
         a.axhline(scene.setpoint_rad_s, color="k", lw=0.6)
         a.set_xlim(*_window([b.verified_runs[kk][0], d.verified_runs[kk][0]], [b.verified[kk], d.verified[kk]],
                             scene.step_time, None, floor=0.03))
-        a.set_title(f"vs {b.name}: Ms {b.margins.ms:.2f}, load {scene.initial_load:g} -> {scene.final_loads[kk]:g} N",
-                    fontsize=9)
-        a.set_xlabel("time (s)")
-        a.set_ylabel("nut speed (rad/s)")
-        a.grid(True, alpha=0.3)
-        a.legend(fontsize=7, loc="lower right")
+        _finish_pair_panel(a, f"vs {b.name}: Ms {b.margins.ms:.2f}, load {scene.initial_load:g} -> "
+                              f"{scene.final_loads[kk]:g} N", "nut speed (rad/s)", "lower right")
     if axes is None:
-        mt = getattr(scene, "mt_max", None)
-        fig.suptitle("Baselines against the tuned design at equal or lower Ms"
-                     + (f" (tuned designs also keep Mt <= {mt:g})" if mt else "") + "; verified, nonlinear", fontsize=10)
+        _pairs_suptitle(fig, scene, "")
     return fig, axs[:n]
 
 
@@ -524,15 +534,9 @@ def duty_cycle_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, a
         a.axhline(0.0, color="k", lw=0.5)
         t0 = b.verified_runs[kk][0]
         a.set_xlim(float(t0[0]), float(t0[-1]))
-        a.set_title(f"vs {b.name}: Ms {b.margins.ms:.2f}, {scene.cases[kk]}", fontsize=9)
-        a.set_xlabel("time (s)")
-        a.set_ylabel("speed error (rad/s)")
-        a.grid(True, alpha=0.3)
-        a.legend(fontsize=7, loc="best")
+        _finish_pair_panel(a, f"vs {b.name}: Ms {b.margins.ms:.2f}, {scene.cases[kk]}", "speed error (rad/s)", "best")
     if axes is None:
-        mt = getattr(scene, "mt_max", None)
-        fig.suptitle(f"Baselines against the tuned design at equal or lower Ms on the {scene.name} duty cycle"
-                     + (f" (tuned designs also keep Mt <= {mt:g})" if mt else "") + "; verified, nonlinear", fontsize=10)
+        _pairs_suptitle(fig, scene, f" on the {scene.name} duty cycle")
     return fig, axs[:n]
 
 
