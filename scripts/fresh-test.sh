@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# The README's test command: a fresh virtual environment with the newest releases of every
+# dependency (as a newcomer gets them today), then the whole test suite.
+#   bash scripts/fresh-test.sh [pytest arguments]
+# The environment lives outside the checkout (PRSA_TEST_VENV, default: a folder in $TMPDIR) and
+# is rebuilt from scratch at every run, so packages installed earlier cannot mask a new release.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+venv="${PRSA_TEST_VENV:-${TMPDIR:-/tmp}/prsa-ctrl-test-venv}"
+python3 -m venv --clear "$venv"
+"$venv/bin/python" -m pip install --quiet --upgrade pip
+"$venv/bin/python" -m pip install --quiet --upgrade --upgrade-strategy eager ".[test,notebooks,dask]"
+echo "fresh environment $venv:"
+"$venv/bin/python" -m pip list --format=freeze 2>/dev/null \
+  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|dask|distributed|pytest|hypothesis)==' \
+  | tr '\n' ' '
+echo
+export MPLBACKEND=Agg
+# The tests import the installed (non-editable) package, so a file missing from the package data
+# fails here as it would for a user (`python -m pytest` would put the checkout first on sys.path).
+"$venv/bin/pytest" -q "$@"
