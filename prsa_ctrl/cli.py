@@ -293,6 +293,11 @@ class _Run:
         self.created: list[Path] = []
         self.pid = os.getpid()
         self.argv: list[str] = []
+        #: True while the outputs are renamed into place: Ctrl-C is remembered, not raised, so
+        #: that the outputs end all old or all new (:func:`_commit`).
+        self.defer = False
+        #: Output files in place (the interrupt line names them).
+        self.written: list[str] = []
 
     def say(self, line: str) -> bool:
         """Print the final one-line message once (main thread or watchdog, whichever first)."""
@@ -314,6 +319,9 @@ class _Run:
         return True
 
     def interrupt_line(self) -> str:
+        if self.written:
+            return (f"{self.prog}: interrupted (Ctrl-C) after the outputs were written complete: "
+                    f"{', '.join(self.written)}")
         return f"{self.prog}: interrupted (Ctrl-C); no output written"
 
     def force_exit(self) -> None:  # watchdog thread: a solver kept control after Ctrl-C
@@ -335,6 +343,8 @@ class _Run:
         if os.getpid() != self.pid:  # a forked worker: the parent reports
             os._exit(EXIT_INTERRUPTED)
         self.interrupted = True
+        if self.defer:  # outputs being renamed into place: finish them, then stop (_commit)
+            return
         if self.timer is None:
             self.timer = threading.Timer(INTERRUPT_GRACE_S, self.force_exit)
             self.timer.daemon = True
@@ -348,8 +358,11 @@ class _Run:
 
 
 @contextlib.contextmanager
-def _guard(run: _Run) -> Iterator[None]:
-    """Install the Ctrl-C handler for the duration of a command (main thread only)."""
+def _guard(run: _Run, process: bool = False) -> Iterator[None]:
+    """Install the Ctrl-C handler for the duration of a command (main thread only). For the
+    process itself (``process``), SIGINT is blocked from the end of the command to the exit:
+    :func:`_invoke` turns a pending one into exit 130 with its line (never a death by SIGINT
+    or a traceback after the command finished)."""
     old = None
     if threading.current_thread() is threading.main_thread():
         old = signal.signal(signal.SIGINT, run.on_sigint)
@@ -358,6 +371,8 @@ def _guard(run: _Run) -> Iterator[None]:
     finally:
         if run.timer is not None:
             run.timer.cancel()
+        if process and old is not None:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         if old is not None:
             # After an interrupt a second delivery may still be pending (a solver that caught
             # the first re-raises it): ignore it, the command is ending with exit 130 anyway.
@@ -556,12 +571,29 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
     return "\n".join(out)
 
 
-def write_json_atomic(path: str | os.PathLike, data: dict, inputs: Sequence[str | os.PathLike] = ()) -> Path:
-    """Write JSON through :func:`prsa_ctrl.output.write_text` (atomic, never onto ``inputs``)."""
+def write_json_atomic(path: str | os.PathLike, data: dict, inputs: Sequence[str | os.PathLike] = (),
+                      transaction=None) -> Path:
+    """Write JSON through :func:`prsa_ctrl.output.write_text` (atomic, never onto ``inputs``);
+    with a :class:`prsa_ctrl.output.Transaction`, staged in it (renamed at its commit)."""
     from .output import write_text
 
-    text = json.dumps(data, indent=2, allow_nan=False, default=float)
-    return write_text(path, text + "\n", inputs, flag="--json")
+    text = json.dumps(data, indent=2, allow_nan=False, default=float) + "\n"
+    if transaction is not None:
+        return transaction.stage(path, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--json")
+    return write_text(path, text, inputs, flag="--json")
+
+
+def _commit(run: _Run, outputs) -> None:
+    """Rename every staged output into place with Ctrl-C deferred (all old or all new), then
+    honour a Ctrl-C that came meanwhile (exit 130 naming the files written)."""
+    run.check()
+    run.defer = True
+    try:
+        outputs.commit()
+        run.written = list(outputs.written)
+    finally:
+        run.defer = False
+    run.check()
 
 
 # --- error translation ---------------------------------------------------------------------------
@@ -612,11 +644,14 @@ def _status_says_interrupted(obj: Any, depth: int = 0) -> bool:
 
 # --- shared set-up -------------------------------------------------------------------------------
 
-def _input_files(args) -> list[str]:
+def _input_files(args, scene=None) -> list[str]:
+    """Every file the run reads: the plant and scene files given as paths and the scene's CSV
+    traces (the built-in files are protected by :func:`prsa_ctrl.output.package_roots`)."""
     files = []
     for v in (getattr(args, "plant", None), getattr(args, "scene", None)):
         if v is not None and os.path.exists(v):
             files.append(v)
+    files.extend(getattr(scene, "input_files", ()))
     return files
 
 
@@ -722,7 +757,16 @@ def _progress(run: _Run, verbose: bool, text: str) -> None:
 
 def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
     """Common frame of both commands: Ctrl-C guard, one-line errors, exit codes."""
-    code = _invoke_inner(prog, argv, body)
+    run = _Run(prog)
+    code = _invoke_inner(run, argv, body)
+    if argv is None and code != EXIT_INTERRUPTED and signal.SIGINT in _pending_signals():
+        # Ctrl-C after the command finished (blocked by _guard): exit 130 with its line.
+        run.reported = False
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        run.say(run.interrupt_line())
+        code = EXIT_INTERRUPTED
     if code == EXIT_INTERRUPTED and argv is None:
         # The process itself (console script, python -m): end now with 130. A second SIGINT
         # delivery left pending by a solver, or an atexit hook of a solver library, would
@@ -739,9 +783,16 @@ def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[st
     return code
 
 
-def _invoke_inner(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
-    run = _Run(prog)
-    with _guard(run):
+def _pending_signals() -> set:
+    try:
+        return set(signal.sigpending())
+    except (AttributeError, OSError):  # pragma: no cover - not POSIX
+        return set()
+
+
+def _invoke_inner(run: _Run, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
+    prog = run.prog
+    with _guard(run, process=argv is None):
         try:
             run.argv = _attach_values(list(sys.argv[1:] if argv is None else argv))
             return body(run, run.argv)
@@ -797,7 +848,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         plant, scene, overrides = _load_and_override(args, run)
-        inputs = _input_files(args)
+        inputs = _input_files(args, scene)
         if args.json is not None:
             check_writable(args.json, inputs, "--json")
         if args.scheduler is not None:
@@ -853,9 +904,12 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         return code
     rep.timing_s["process"] = time.perf_counter() - _T_START
     _progress(run, args.verbose, "writing outputs")
+    from .output import Transaction
+
+    outputs = Transaction(inputs)  # all outputs or none (issue 20, hostile 4 and 17)
     try:
         if args.plots is not None:
-            rep.plot_files = _publish_report_plots(run, rep, args.plots, inputs)
+            rep.plot_files = _publish_report_plots(run, rep, args.plots, inputs, outputs)
         if args.json is not None:
             data = rep.as_dict()
             data["timing_s"] = dict(rep.timing_s)
@@ -865,10 +919,9 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if mc is not None:
                 data["monte_carlo"] = mc.as_dict()
             run.check()
-            write_json_atomic(args.json, data, inputs)
+            write_json_atomic(args.json, data, inputs, transaction=outputs)
         if args.export is not None:
             from .export import dumps, export_controller
-            from .output import write_text
 
             fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
             exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
@@ -877,7 +930,9 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
                         "(kff > 0), which the drive export does not describe; nothing exported")
             else:
-                write_text(args.export, dumps(exported, fmt), inputs, flag="--export")
+                text = dumps(exported, fmt)
+                outputs.stage(args.export, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--export")
+        _commit(run, outputs)
     except OutputError:
         raise
     except KeyboardInterrupt:
@@ -886,6 +941,8 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         code, line = _describe_failure(exc, "writing the outputs")
         run.say(f"{run.prog}: {line}")
         return code
+    finally:
+        outputs.abort()  # takes back what was not committed (nothing after the commit)
     if not args.quiet:
         print(format_report(rep, overrides))
         if robust_rep is not None:
@@ -987,33 +1044,41 @@ def _format_robust(rr) -> str:
     return "\n".join(out) + "\n"
 
 
-def _publish_report_plots(run: _Run, rep, directory: str, inputs: Sequence[str]) -> list[Path]:
-    """Render the standard plots into a private staging folder, then write each through the
-    output writer into ``directory`` (created only now, and taken back if this fails)."""
+def _publish_report_plots(run: _Run, rep, directory: str, inputs: Sequence[str], outputs=None) -> list[Path]:
+    """Render the standard plots into a private staging folder, then stage each in the run's
+    output transaction for ``directory`` (created only now, and taken back if this fails)."""
     from .plots import write_standard_plots
 
-    return _staged(run, lambda staging: write_standard_plots(rep, staging), directory, inputs)
+    return _staged(run, lambda staging: write_standard_plots(rep, staging), directory, inputs, outputs)
 
 
-def _staged(run: _Run, render: Callable[[Path], list[Path]], directory: str, inputs: Sequence[str]) -> list[Path]:
-    """``render`` writes files into a private staging folder; each is then written through
-    :func:`prsa_ctrl.output.write_file` into ``directory`` (created only now)."""
+def _staged(run: _Run, render: Callable[[Path], list[Path]], directory: str, inputs: Sequence[str],
+            outputs=None) -> list[Path]:
+    """``render`` writes files into a private staging folder; each is then staged in the
+    :class:`prsa_ctrl.output.Transaction` ``outputs`` (one of its own, committed here, if
+    ``None``) for ``directory`` (created only now)."""
     import shutil
 
-    from .output import make_directory, write_file
+    from .output import Transaction
 
+    own = outputs is None
+    tr = Transaction(inputs) if own else outputs
     staging = tempfile.mkdtemp(prefix="prsa-plots.prsa-tmp-")
     try:
         files = render(Path(staging))
         run.check()
-        run.created.extend(make_directory(directory, "--plots"))
+        tr.make_directory(directory, "--plots")
         out = []
         for f in files:
             src = str(f)
             out.append(Path(directory) / Path(f).name)
-            write_file(out[-1], lambda tmp, src=src: shutil.copyfile(src, tmp), inputs, "--plots")
+            tr.stage(out[-1], lambda tmp, src=src: shutil.copyfile(src, tmp), "--plots", listed=False)
+        if own:
+            _commit(run, tr)
         return out
     finally:
+        if own:
+            tr.abort()  # no-op after the commit
         shutil.rmtree(staging, ignore_errors=True)
 
 
@@ -1062,7 +1127,7 @@ def _plot_body(run: _Run, argv: list[str]) -> int:
         except ValueError as exc:
             raise _UsageError(str(exc)) from None
         check_directory(args.out, "--plots")
-        inputs = _input_files(args)
+        inputs = _input_files(args, scene)
         notes.extend(caught)
     run.check()
     native: list[str] = []
@@ -1120,17 +1185,20 @@ def _plot_body(run: _Run, argv: list[str]) -> int:
 def _write_figures(run: _Run, figs: dict, directory: str, inputs: Sequence[str]) -> list[Path]:
     import matplotlib.pyplot as plt
 
-    from .output import make_directory, write_file
+    from .output import Transaction
 
     run.check()
-    run.created.extend(make_directory(directory, "--plots"))
     files: list[Path] = []
-    for name, fig in figs.items():
-        for ext in ("png", "svg"):
-            path = Path(directory) / f"{name}.{ext}"
-            write_file(path, lambda tmp, fig=fig, ext=ext: fig.savefig(tmp, format=ext, dpi=150), inputs, "--plots")
-            files.append(path)
-        plt.close(fig)
+    with Transaction(inputs) as tr:
+        tr.make_directory(directory, "--plots")
+        for name, fig in figs.items():
+            for ext in ("png", "svg"):
+                path = Path(directory) / f"{name}.{ext}"
+                tr.stage(path, lambda tmp, fig=fig, ext=ext: fig.savefig(tmp, format=ext, dpi=150), "--plots",
+                         listed=False)
+                files.append(path)
+            plt.close(fig)
+        _commit(run, tr)
     return files
 
 

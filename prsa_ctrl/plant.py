@@ -669,7 +669,7 @@ def load_plant(name_or_path: str | Path | None = None) -> Plant:
                                            or "/" in str(name_or_path) or "\\" in str(name_or_path))
     origin = f"{src.name} (built-in)" if builtin else str(src)
     try:
-        doc = tomllib.loads(src.read_text(encoding="utf-8"))
+        doc = tomllib.loads(src.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise PlantFileError(f"{origin}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as exc:

@@ -38,6 +38,7 @@ constant load) or ``"mix"`` (both records, weighted ``1 - setpoint_share`` and
 from __future__ import annotations
 
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -359,6 +360,12 @@ class Scene:
         return max((p[-1][0] for p in (self.load_profile, self.setpoint_profile) if p is not None), default=0.0)
 
     @property
+    def input_files(self) -> tuple[str, ...]:
+        """Resolved paths of the files the scene read besides its own TOML (CSV traces): inputs
+        of the run, never outputs."""
+        return tuple(info[3] for info in self.trace_lines.values() if len(info) > 3)
+
+    @property
     def setpoint_rpm(self) -> float:
         return self.setpoint_rad_s * 30.0 / math.pi
 
@@ -643,7 +650,7 @@ def _duty_from_doc(kw: dict, origin: str, base: Any) -> None:
             path = path if path.is_absolute() else base / csv_name
             lines: list = []
             kw[field_name] = read_trace_csv(Path(str(path)), column, where, scale, lines)
-            kw.setdefault("trace_lines", {})[field_name] = (csv_name, column, tuple(lines))
+            kw.setdefault("trace_lines", {})[field_name] = (csv_name, column, tuple(lines), os.path.realpath(str(path)))
             sources.append(f"{what}: {csv_name} ({len(kw[field_name])} rows)")
     if "load_profile" in kw:
         for key in ("initial_load_n", "final_loads_n", "step_time_s"):
@@ -691,7 +698,7 @@ def load_scene(name_or_path: str | Path | None = None) -> Scene:
         if not reader.is_file():
             raise SceneError(f"unknown scene {text!r}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
     try:
-        doc = tomllib.loads(reader.read_text(encoding="utf-8"))
+        doc = tomllib.loads(reader.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as exc:
