@@ -860,11 +860,11 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if not n_mc:
                 raise _UsageError(f"--scheduler {args.scheduler!r}: expected --monte-carlo N (or a scene with "
                                   "[robust] monte_carlo) to run on it")
-            if args.scheduler != "local" and not args.scheduler.startswith(("tcp://", "tls://")):
-                raise _UsageError(f"--scheduler {args.scheduler!r}: expected 'local' or an address like "
-                                  "tcp://HOST:8786")
+            address = _scheduler_address(args.scheduler)
             if find_spec("distributed") is None:
                 raise _UsageError(f"--scheduler {args.scheduler!r} needs Dask: pip install 'prsa-ctrl[dask]'")
+            if address is not None:
+                _probe_scheduler(args.scheduler, *address)
         if args.export is not None:
             if os.path.splitext(args.export)[1].lower() not in (".json", ".toml"):
                 raise _UsageError(f"--export {args.export!r}: expected a path ending in .json or .toml")
@@ -963,6 +963,54 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 "are not a trustworthy design (use --accept-unconverged to exit 0)")
         return EXIT_NUMERICAL
     return EXIT_OK
+
+
+#: Seconds the up-front connection to a ``--scheduler`` address may take.
+SCHEDULER_CONNECT_TIMEOUT_S = 5.0
+_SCHEDULER_RE = re.compile(r"tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+)(?::(\d+))?")
+
+
+def _scheduler_address(text: str) -> tuple[str, int] | None:
+    """``--scheduler`` checked before any work: ``None`` for ``local``, else ``(host, port)``
+    of ``tcp://HOST:PORT`` (port 1..65535). TLS (``tls://``) needs a security configuration
+    (certificates) the command does not take; any other form is refused.
+
+    Raises
+    ------
+    _UsageError
+        One line naming ``--scheduler`` and the text as typed.
+    """
+    if text == "local":
+        return None
+    expected = "expected 'local' or tcp://HOST:PORT, e.g. tcp://127.0.0.1:8786"
+    if text.startswith("tls://"):
+        raise _UsageError(f"--scheduler {text!r}: a TLS scheduler needs certificates (a Dask security "
+                          f"configuration) that prsa-tune does not take; {expected}")
+    m = _SCHEDULER_RE.fullmatch(text)
+    if m is None:
+        raise _UsageError(f"--scheduler {text!r}: {expected}")
+    if m.group(2) is None:
+        raise _UsageError(f"--scheduler {text!r}: no port; {expected}")
+    port = int(m.group(2))
+    if not 1 <= port <= 65535:
+        raise _UsageError(f"--scheduler {text!r}: port {m.group(2)} out of range; expected a TCP port 1..65535")
+    return m.group(1).strip("[]"), port
+
+
+def _probe_scheduler(text: str, host: str, port: int) -> None:
+    """Open (and close) a TCP connection to the scheduler, bounded by
+    ``SCHEDULER_CONNECT_TIMEOUT_S``, so that an unreachable address stops the run before the
+    tuning, not after it."""
+    import socket
+
+    try:
+        with socket.create_connection((host, port), timeout=SCHEDULER_CONNECT_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        why = "no answer" if isinstance(exc, socket.timeout) else (exc.strerror or type(exc).__name__)
+        raise _UsageError(f"--scheduler {text!r}: cannot connect to {host}:{port} within "
+                          f"{SCHEDULER_CONNECT_TIMEOUT_S:g} s ({why}); expected the address of a running Dask "
+                          "scheduler (dask scheduler --host HOST --port PORT), or 'local'") from None
 
 
 def _setpoint_weight(scene) -> float:
