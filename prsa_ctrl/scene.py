@@ -797,6 +797,14 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
             f"{plant.values['friction.stribeck_velocity_m_s']:g} m/s and the friction is on the steep part of its Stribeck curve (static to dynamic coefficient), where "
             f"the linear model does not hold; above, beyond roller-screw speed ratings)"
         )
+    quantum = 2 * math.pi / (plant.encoder_counts * ts)  # one count per sample, rad/s
+    slowest = min(v for _, v in (scene.setpoint_profile or ((0.0, scene.setpoint_rad_s),)))
+    if quantum > slowest:
+        raise SceneError(
+            f"{plant.origin}: sensor.encoder_counts_per_rev = {plant.encoder_counts}: one count per controller sample is "
+            f"{quantum:.4g} rad/s ({quantum * 30 / math.pi:.4g} rpm), more than the setpoint {slowest * 30 / math.pi:.6g} "
+            f"rpm of {scene.origin}: the drive could not measure the speed it controls; expected a finer encoder "
+            f"(at least {math.ceil(2 * math.pi / (slowest * ts))} counts per revolution at sensor.sample_time_s = {ts:g} s)")
     if scene.is_profile:
         _check_profile_against_plant(scene, plant, label, rpm_min)
         return
