@@ -288,7 +288,7 @@ class Scene:
         lo, hi = LOAD_CHANGE_TIME_RANGE_S
         if not lo <= finite("load_change_time_s", self.load_change_time_s) <= hi:
             raise bad("estimator.load_change_time_s", self.load_change_time_s,
-                      f"a time in [{lo:g}, {hi:g}] s (the Kalman filter's load random-walk time: from a few controller "
+                      f"a positive time in [{lo:g}, {hi:g}] s (the Kalman filter's load random-walk time: from a few controller "
                       "samples to a load that practically never changes; beyond, its process noise underflows)")
 
     def _check_duty(self, bad, finite) -> None:
