@@ -468,13 +468,58 @@ def _pct_text(diff: float) -> str:
     return ("0.0" if float(text) == 0.0 else text) + " %"
 
 
-def _diff_text(p, v) -> str:
-    ok = isinstance(v, float) and not isinstance(v, bool) and v and math.isfinite(v) and math.isfinite(p)
-    return _pct_text((p / v - 1) * 100) if ok else "-"
+def _diff_text(p, v, res: float = 0.0) -> str:
+    """Difference of the prediction ``p`` from the verified value ``v``: the percentage
+    ``(p - v) / |v|`` (:func:`prsa_ctrl.metrics.relative_difference`, the one definition the
+    warnings use too) where both values reach the metric's resolution ``res``; below it the
+    absolute difference ``p - v`` marked "abs." (a percentage of a value at numerical zero
+    means nothing); "-" where undefined.
+
+    >>> _diff_text(1.776e-15, 3.829e-06, res=0.0365), _diff_text(3.67, 3.651, res=0.0365)
+    ('-3.83e-06 abs.', '+0.5 %')
+    """
+    from .metrics import relative_difference
+
+    finite = all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in (p, v))
+    if not finite:
+        return "-"
+    d = relative_difference(p, v)
+    if d is not None and abs(p) >= res and abs(v) >= res:
+        return _pct_text(100 * d)
+    return f"{p - v:+.3g} abs."
 
 
-def _profile_tables(sc, b) -> list[str]:
+def _resolutions(rep, drop: float, window: float) -> Callable[[str], float]:
+    """Metric name -> its resolution in the report's verified runs (:func:`prsa_ctrl.metrics.metric_resolution`)."""
+    from .metrics import metric_resolution
+
+    sc = rep.scene
+    return lambda name: metric_resolution(name, accuracy=sc.accuracy, drop_rad_s=drop,
+                                          sample_time_s=rep.plant.sample_time_s, window_s=window,
+                                          torque_limit_n_m=rep.plant.torque_limit)
+
+
+_DIFF_NOTE = ("difference = (predicted - verified) / |verified|; where either value is below the metric's resolution "
+              "(the verification accuracy in its unit: {speed:.3g} rad/s for speeds, one sample for times) the absolute "
+              "difference predicted - verified (abs.)")
+
+
+def _beaten_text(c: dict, obj: str) -> str:
+    """The verdict of a baseline comparison with its reason when the baseline is not beaten."""
+    if c["beaten"]:
+        return "yes"
+    if c.get("tuned_flags"):
+        return "no: tuned design flagged"
+    if c["tuned_ms"] > c["baseline_ms"] * (1 + 1e-9):
+        return "no: tuned Ms higher"
+    if not c["tuned_objective_verified"] < c["baseline_objective_verified"]:
+        return f"no: {obj} not lower"
+    return "no"
+
+
+def _profile_tables(rep) -> list[str]:
     """Predicted against verified metrics of each duty-cycle record, then its load steps."""
+    sc, b = rep.scene, rep.best
     out = []
     fields = [("IAE over the record (rad)", "iae"), ("ITAE (rad s)", "itae"), ("ISE (rad^2/s)", "ise"),
               ("peak error (rad/s)", "peak_deviation_rad_s"), ("peak error time (s)", "peak_time_s"),
@@ -482,11 +527,14 @@ def _profile_tables(sc, b) -> list[str]:
               ("peak torque (N m)", "peak_torque_n_m"), ("time at torque limit", "saturated_fraction")]
     for k, case in enumerate(sc.cases):
         pm, vm = b.predicted[k], b.verified[k]
+        res = _resolutions(rep, vm.peak_deviation_rad_s, sc.duration)
         rows = [[lab, getattr(pm, attr), getattr(vm, attr),
-                 "-" if attr in ("final_error_rad_s", "saturated_fraction") else _diff_text(getattr(pm, attr), getattr(vm, attr))]
+                 "-" if attr in ("final_error_rad_s", "saturated_fraction")
+                 else _diff_text(getattr(pm, attr), getattr(vm, attr), res(attr))]
                 for lab, attr in fields]
         out.append(f"Duty cycle, {case} (error = setpoint - speed over the whole record)")
         out.append(_table(["metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows))
+        out.append(_DIFF_NOTE.format(speed=res("peak_deviation_rad_s")))
         if vm.steps:
             rows = []
             for (t_s, ms_v), ms_p in zip(zip(vm.step_times_s, vm.steps), pm.steps):
@@ -535,23 +583,24 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         ("torque saturated", "saturated"),
     ]
     if sc.is_profile:
-        out.extend(_profile_tables(sc, b))
+        out.extend(_profile_tables(rep))
     for k, f1 in enumerate(sc.final_loads):
         pm, vm = b.predicted[k], b.verified[k]
+        res = _resolutions(rep, vm.peak_drop_rad_s, sc.duration - sc.step_time)
         rows = []
         for lab, attr in fields:
             p, v = getattr(pm, attr), getattr(vm, attr)
-            diff = (p / v - 1) * 100 if isinstance(v, float) and not isinstance(v, bool) and v and math.isfinite(v) and math.isfinite(p) else None
-            rows.append([lab, p, v, _pct_text(diff) if diff is not None else "-"])
+            rows.append([lab, p, v, _diff_text(p, v, res(attr))])
         out.append(f"Load step {sc.initial_load:g} -> {f1:g} N")
         out.append(_table(["metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows))
+        out.append(_DIFF_NOTE.format(speed=res("peak_drop_rad_s")))
         out.append("")
     rows = []
     comp = {c["baseline"]: c for c in rep.comparisons}
     for d in rep.baselines:
         c = comp[d.name]
         rows.append([d.name, d.pid.kp, d.pid.ki, d.margins.ms, d.objective_verified,
-                     c["tuned_objective_verified"], c["tuned_ms"], c["beaten"]])
+                     c["tuned_objective_verified"], c["tuned_ms"], _beaten_text(c, obj)])
     out.append(f"Baselines ({obj}, verified; tuned at equal or better Ms)")
     out.append(_table(["baseline", "kp", "ki", "Ms", obj, f"tuned {obj}", "tuned Ms", "beaten"], rows))
     out.append("")
@@ -1065,9 +1114,10 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
 
     designs = {rep.best.name: rep.best.pid}
     if robust_rep is not None:
-        designs = {"nominal design": robust_rep.nominal, "robust design": robust_rep.robust, **designs}
+        designs = {"nominal design": robust_rep.nominal, "robust design": robust_rep.robust}
+        _add_design(designs, rep.best.name, rep.best.pid)
     for b in rep.baselines:
-        designs.setdefault(b.name, b.pid)
+        _add_design(designs, b.name, b.pid)
     seed = args.seed if args.seed is not None else opts["seed"]
     _progress(run, args.verbose, f"Monte Carlo: {n} samples of {len(designs)} designs ...")
     from .autotune import default_workers
@@ -1076,6 +1126,15 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
     mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
                          workers=args.workers or default_workers(), quiet=args.quiet)
     return robust_rep, mc
+
+
+def _add_design(designs: dict, name: str, pid) -> None:
+    """Add a design to verify unless one with the same gains is there already (one name per
+    design: the robust study's nominal design is the tuned design when their gains agree)."""
+    key = (pid.kp, pid.ki, pid.kd, pid.tf, pid.kff)
+    if name in designs or any((p.kp, p.ki, p.kd, p.tf, p.kff) == key for p in designs.values()):
+        return
+    designs[name] = pid
 
 
 def _format_robust(rr) -> str:
