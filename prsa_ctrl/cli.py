@@ -7,12 +7,16 @@ Exit codes, the same for both tools:
 * 2 -- bad input: one line ``prsa-tune: error: ...`` naming the value as typed and what was
   expected (flags, plant and scene files, output paths); nothing is written;
 * 3 -- numerical failure: one line ``prsa-tune: numerical failure: ...``; nothing is written;
-* 130 -- interrupted (Ctrl-C): the run stops within a second, one line, no output presented as
-  complete.
+* 130 -- interrupted (Ctrl-C), at any moment up to the exit: the run stops within a second with
+  one line; the outputs are all old or all new, and the line says which ("no output written",
+  or "after the outputs were written complete: ...").
 
 Every flag is checked in the user's unit before any heavy import; the scene is checked against
-the plant (:func:`prsa_ctrl.scene.check_against_plant`); output paths are checked before the
-expensive work and written by :mod:`prsa_ctrl.output` (atomic, never onto an input file).
+the plant (:func:`prsa_ctrl.scene.check_against_plant`), ``--scheduler`` is parsed and connected
+to (bounded by ``SCHEDULER_CONNECT_TIMEOUT_S``); output paths are checked before the expensive
+work and written by :mod:`prsa_ctrl.output` in one :class:`~prsa_ctrl.output.Transaction`
+(atomic, all or nothing, never onto an input file -- plant, scene, CSV traces -- nor into the
+package's own files).
 """
 
 from __future__ import annotations
