@@ -181,6 +181,11 @@ SPEED_FILTER_MAX_SAMPLES = 100.0
 TORQUE_NOISE_MAX_FRACTION = 0.1
 
 
+_CONSISTENCY_KEYS = ("drive.torque_limit_n_m", "screw.rated_load_n", "screw.lead_mm", "friction.efficiency",
+                     "friction.no_load_torque_n_m", "sensor.torque_noise_n_m", "sensor.sample_time_s",
+                     "sensor.speed_filter_time_constant_s", "friction.traction_preload_n")
+
+
 def _check_consistency(v: Mapping[str, float], o: str) -> None:
     """Cross-checks between keys of a plant file that catch unit mistakes a single range
     cannot (:data:`TORQUE_LIMIT_MAX_RATIO`, :data:`SPEED_FILTER_MAX_SAMPLES`,
@@ -366,7 +371,7 @@ class Plant:
     def __post_init__(self) -> None:
         object.__setattr__(self, "values", MappingProxyType(dict(self.values)))
         object.__setattr__(self, "sources", MappingProxyType(dict(self.sources)))
-        if all(k in self.values for k in _ALLOWED_KEYS):
+        if all(isinstance(self.values.get(k), (int, float)) for k in _CONSISTENCY_KEYS):  # not symbolic (fit)
             _check_consistency(self.values, self.origin)
         object.__setattr__(self, "geometry", self._check_geometry())
 
