@@ -555,7 +555,9 @@ def _plot(wp: dict, path: Path) -> None:
     ax.set_title("Work-precision: paper load step, closed loop")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
-    fig.savefig(path, dpi=150)
+    from .output import write_file
+
+    write_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=150), flag="--out")  # atomic, as bench.json
     plt.close(fig)
 
 
