@@ -24,7 +24,7 @@ import numpy as np
 
 from .controller import PID
 from .linear import linear_core
-from .metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics
+from .metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics, relative_difference
 from .model import plant_model
 from .options import DERIVATIVE_FILTER_SAMPLES, RAD_S_PER_RPM
 from .paper import default_pid
@@ -453,9 +453,10 @@ def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
             flags.append(f"{case}: the torque is at its limit for {100 * sat:.0f} % of the run")
     p, v = design.objective_predicted, design.objective_verified
     limit = max(scene.accuracy, PREDICTION_TOLERANCE)
-    if math.isfinite(p) and math.isfinite(v) and p != 0 and abs(v / p - 1) > limit:
-        flags.append(f"verified {scene.objective.upper()} {v:.4g} departs from the linear prediction {p:.4g} by "
-                     f"{100 * (v / p - 1):+.1f} % (more than {100 * limit:g} %)")
+    diff = relative_difference(p, v)  # the report's one definition: (predicted - verified) / |verified|
+    if diff is not None and p != 0 and abs(diff) > limit:
+        flags.append(f"verified {scene.objective.upper()} {v:.4g} departs from the linear prediction {p:.4g}: "
+                     f"difference {100 * diff:+.1f} % (more than {100 * limit:g} %)")
     return flags
 
 
@@ -825,11 +826,11 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     warnings_out = []
     for d in candidates + baselines + list(extra.values()):
         departed = any("departs from the linear prediction" in f for f in d.flags)  # said once, as a flag
-        if not departed and d.objective_verified > 0 \
-                and abs(d.objective_predicted / d.objective_verified - 1) > PREDICTION_TOLERANCE:
+        diff = relative_difference(d.objective_predicted, d.objective_verified)
+        if not departed and d.objective_verified > 0 and diff is not None and abs(diff) > PREDICTION_TOLERANCE:
             warnings_out.append(
                 f"{d.name}: predicted {scene.objective.upper()} {d.objective_predicted:.4g} differs from verified "
-                f"{d.objective_verified:.4g} by {100 * (d.objective_predicted / d.objective_verified - 1):+.1f} %"
+                f"{d.objective_verified:.4g}: difference {100 * diff:+.1f} %"
             )
     for d in candidates + baselines + list(extra.values()):
         for f in d.flags:

@@ -555,13 +555,46 @@ def _plot(wp: dict, path: Path) -> None:
     ax.set_title("Work-precision: paper load step, closed loop")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
-    fig.savefig(path, dpi=150)
+    from .output import write_file
+
+    write_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=150), flag="--out")  # atomic, as bench.json
     plt.close(fig)
 
 
+class _UsageError(Exception):
+    """Bad input: one line, exit 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
+        raise _UsageError(" ".join(message.split()))
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="prsa-bench", description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("bench-results"))
+    """``prsa-bench``; returns the exit code (0, or 2 with one line for bad input)."""
+    try:
+        return _main(argv)
+    except _UsageError as exc:
+        print(f"prsa-bench: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _check_out(text: str) -> Path:
+    """``--out DIR`` checked before any benchmark runs (:func:`prsa_ctrl.output.check_directory`:
+    a file, a device, a symlink loop, an unwritable place or the package's own folders are
+    refused)."""
+    from .output import OutputError, check_directory
+
+    try:
+        check_directory(text, "--out")
+    except OutputError as exc:
+        raise _UsageError(str(exc)) from None
+    return Path(text)
+
+
+def _main(argv=None) -> int:
+    ap = _Parser(prog="prsa-bench", description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="bench-results", help="folder for bench.json and the figure (created if missing)")
     ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
     ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust", "fit"])
     ap.add_argument("--samples", type=int, default=None, help="Monte-Carlo samples per run (default 1000; 100 with --fast)")
@@ -569,18 +602,24 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per measurement, median reported "
                     "(default 3; 1 with --fast)")
     args = ap.parse_args(argv)
-    repeats = args.repeats or (1 if args.fast else 3)
+    repeats = args.repeats if args.repeats is not None else (1 if args.fast else 3)
     if not 1 <= repeats <= 20:
-        print(f"prsa-bench: --repeats {repeats}; expected 1..20", file=sys.stderr)
-        return 2
+        raise _UsageError(f"--repeats {repeats}: expected timed runs per measurement 1..20")
     n_mc = args.samples if args.samples is not None else (100 if args.fast else 1000)
-    if not 1 <= n_mc <= 100_000 or not 1 <= args.workers <= 64:
-        print(f"prsa-bench: --samples {n_mc} --workers {args.workers}; expected 1..100000 and 1..64", file=sys.stderr)
-        return 2
+    if not 1 <= n_mc <= 100_000:
+        raise _UsageError(f"--samples {n_mc}: expected Monte-Carlo samples 1..100000")
+    if not 1 <= args.workers <= 64:
+        raise _UsageError(f"--workers {args.workers}: expected 1..64")
+    args.out = _check_out(args.out)
     import warnings
 
+    from .output import OutputError, make_directory
+
     warnings.simplefilter("ignore")
-    args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        make_directory(args.out, "--out")
+    except OutputError as exc:
+        raise _UsageError(str(exc)) from None
     result: dict = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                 "load_average_1_5_15": list(os.getloadavg()) if hasattr(os, "getloadavg") else None},
                     "repeats": repeats, "statistic": "median"}

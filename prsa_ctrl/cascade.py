@@ -380,7 +380,7 @@ def _read(name_or_path: "str | Path") -> tuple[dict | None, str]:
     try:
         if not path.is_file():
             return None, origin
-        return tomllib.loads(path.read_text(encoding="utf-8")), origin
+        return tomllib.loads(path.read_text(encoding="utf-8-sig")), origin  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as exc:
@@ -1331,7 +1331,7 @@ def main_move(run: Any, args: Any) -> int:
     import warnings
 
     from .export import dumps
-    from .output import OutputError, check_directory, check_distinct, check_writable, write_text
+    from .output import OutputError, Transaction, check_directory, check_distinct, check_writable
     from .plant import load_plant
 
     prog = getattr(run, "prog", "prsa-tune")
@@ -1395,21 +1395,30 @@ def main_move(run: Any, args: Any) -> int:
         return code
     data = _finite_json({"plant": plant.name, "scene": scene.name, "sequential": seq.as_dict(), "joint": joint.as_dict()})
     plot_files: list = []
-    if plots_dir is not None:
-        progress("writing the figures ...")
-        if hasattr(run, "created"):
-            from .cli import _staged
+    with Transaction(inputs) as outputs:  # all outputs or none, as for speed-loop scenes
+        if plots_dir is not None:
+            progress("writing the figures ...")
+            if hasattr(run, "created"):
+                from .cli import _staged
 
-            plot_files = _staged(run, lambda staging: write_move_plots(plant, scene, [seq, joint], staging),
-                                 plots_dir, inputs)
+                plot_files = _staged(run, lambda staging: write_move_plots(plant, scene, [seq, joint], staging),
+                                     plots_dir, inputs, outputs)
+            else:
+                os.makedirs(plots_dir, exist_ok=True)
+                plot_files = write_move_plots(plant, scene, [seq, joint], plots_dir)
+        if json_path is not None:
+            text = json.dumps(data, indent=2, allow_nan=False) + "\n"
+            outputs.stage(json_path, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--json")
+        if export_path is not None:
+            fmt = os.path.splitext(export_path)[1].lower().lstrip(".")
+            exported = dumps(export_cascade(joint, plant, fmt=fmt), fmt)
+            outputs.stage(export_path, lambda tmp: tmp.write_text(exported, encoding="utf-8"), "--export")
+        if hasattr(run, "created"):
+            from .cli import _commit
+
+            _commit(run, outputs)
         else:
-            os.makedirs(plots_dir, exist_ok=True)
-            plot_files = write_move_plots(plant, scene, [seq, joint], plots_dir)
-    if json_path is not None:
-        write_text(json_path, json.dumps(data, indent=2, allow_nan=False) + "\n", inputs, flag="--json")
-    if export_path is not None:
-        fmt = os.path.splitext(export_path)[1].lower().lstrip(".")
-        write_text(export_path, dumps(export_cascade(joint, plant, fmt=fmt), fmt), inputs, flag="--export")
+            outputs.commit()
     if not quiet:
         print(format_move_report(plant, scene, [seq, joint], prog))
         if json_path is not None:

@@ -7,12 +7,16 @@ Exit codes, the same for both tools:
 * 2 -- bad input: one line ``prsa-tune: error: ...`` naming the value as typed and what was
   expected (flags, plant and scene files, output paths); nothing is written;
 * 3 -- numerical failure: one line ``prsa-tune: numerical failure: ...``; nothing is written;
-* 130 -- interrupted (Ctrl-C): the run stops within a second, one line, no output presented as
-  complete.
+* 130 -- interrupted (Ctrl-C), at any moment up to the exit: the run stops within a second with
+  one line; the outputs are all old or all new, and the line says which ("no output written",
+  or "after the outputs were written complete: ...").
 
 Every flag is checked in the user's unit before any heavy import; the scene is checked against
-the plant (:func:`prsa_ctrl.scene.check_against_plant`); output paths are checked before the
-expensive work and written by :mod:`prsa_ctrl.output` (atomic, never onto an input file).
+the plant (:func:`prsa_ctrl.scene.check_against_plant`), ``--scheduler`` is parsed and connected
+to (bounded by ``SCHEDULER_CONNECT_TIMEOUT_S``); output paths are checked before the expensive
+work and written by :mod:`prsa_ctrl.output` in one :class:`~prsa_ctrl.output.Transaction`
+(atomic, all or nothing, never onto an input file -- plant, scene, CSV traces -- nor into the
+package's own files).
 """
 
 from __future__ import annotations
@@ -293,6 +297,11 @@ class _Run:
         self.created: list[Path] = []
         self.pid = os.getpid()
         self.argv: list[str] = []
+        #: True while the outputs are renamed into place: Ctrl-C is remembered, not raised, so
+        #: that the outputs end all old or all new (:func:`_commit`).
+        self.defer = False
+        #: Output files in place (the interrupt line names them).
+        self.written: list[str] = []
 
     def say(self, line: str) -> bool:
         """Print the final one-line message once (main thread or watchdog, whichever first)."""
@@ -314,6 +323,9 @@ class _Run:
         return True
 
     def interrupt_line(self) -> str:
+        if self.written:
+            return (f"{self.prog}: interrupted (Ctrl-C) after the outputs were written complete: "
+                    f"{', '.join(self.written)}")
         return f"{self.prog}: interrupted (Ctrl-C); no output written"
 
     def force_exit(self) -> None:  # watchdog thread: a solver kept control after Ctrl-C
@@ -335,6 +347,8 @@ class _Run:
         if os.getpid() != self.pid:  # a forked worker: the parent reports
             os._exit(EXIT_INTERRUPTED)
         self.interrupted = True
+        if self.defer:  # outputs being renamed into place: finish them, then stop (_commit)
+            return
         if self.timer is None:
             self.timer = threading.Timer(INTERRUPT_GRACE_S, self.force_exit)
             self.timer.daemon = True
@@ -348,8 +362,11 @@ class _Run:
 
 
 @contextlib.contextmanager
-def _guard(run: _Run) -> Iterator[None]:
-    """Install the Ctrl-C handler for the duration of a command (main thread only)."""
+def _guard(run: _Run, process: bool = False) -> Iterator[None]:
+    """Install the Ctrl-C handler for the duration of a command (main thread only). For the
+    process itself (``process``), SIGINT is blocked from the end of the command to the exit:
+    :func:`_invoke` turns a pending one into exit 130 with its line (never a death by SIGINT
+    or a traceback after the command finished)."""
     old = None
     if threading.current_thread() is threading.main_thread():
         old = signal.signal(signal.SIGINT, run.on_sigint)
@@ -358,6 +375,8 @@ def _guard(run: _Run) -> Iterator[None]:
     finally:
         if run.timer is not None:
             run.timer.cancel()
+        if process and old is not None:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         if old is not None:
             # After an interrupt a second delivery may still be pending (a solver that caught
             # the first re-raises it): ignore it, the command is ending with exit 130 anyway.
@@ -453,13 +472,58 @@ def _pct_text(diff: float) -> str:
     return ("0.0" if float(text) == 0.0 else text) + " %"
 
 
-def _diff_text(p, v) -> str:
-    ok = isinstance(v, float) and not isinstance(v, bool) and v and math.isfinite(v) and math.isfinite(p)
-    return _pct_text((p / v - 1) * 100) if ok else "-"
+def _diff_text(p, v, res: float = 0.0) -> str:
+    """Difference of the prediction ``p`` from the verified value ``v``: the percentage
+    ``(p - v) / |v|`` (:func:`prsa_ctrl.metrics.relative_difference`, the one definition the
+    warnings use too) where both values reach the metric's resolution ``res``; below it the
+    absolute difference ``p - v`` marked "abs." (a percentage of a value at numerical zero
+    means nothing); "-" where undefined.
+
+    >>> _diff_text(1.776e-15, 3.829e-06, res=0.0365), _diff_text(3.67, 3.651, res=0.0365)
+    ('-3.83e-06 abs.', '+0.5 %')
+    """
+    from .metrics import relative_difference
+
+    finite = all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in (p, v))
+    if not finite:
+        return "-"
+    d = relative_difference(p, v)
+    if d is not None and abs(p) >= res and abs(v) >= res:
+        return _pct_text(100 * d)
+    return f"{p - v:+.3g} abs."
 
 
-def _profile_tables(sc, b) -> list[str]:
+def _resolutions(rep, drop: float, window: float) -> Callable[[str], float]:
+    """Metric name -> its resolution in the report's verified runs (:func:`prsa_ctrl.metrics.metric_resolution`)."""
+    from .metrics import metric_resolution
+
+    sc = rep.scene
+    return lambda name: metric_resolution(name, accuracy=sc.accuracy, drop_rad_s=drop,
+                                          sample_time_s=rep.plant.sample_time_s, window_s=window,
+                                          torque_limit_n_m=rep.plant.torque_limit)
+
+
+_DIFF_NOTE = ("difference = (predicted - verified) / |verified|; where either value is below the metric's resolution "
+              "(the verification accuracy in its unit: {speed:.3g} rad/s for speeds, one sample for times) the absolute "
+              "difference predicted - verified (abs.)")
+
+
+def _beaten_text(c: dict, obj: str) -> str:
+    """The verdict of a baseline comparison with its reason when the baseline is not beaten."""
+    if c["beaten"]:
+        return "yes"
+    if c.get("tuned_flags"):
+        return "no: tuned design flagged"
+    if c["tuned_ms"] > c["baseline_ms"] * (1 + 1e-9):
+        return "no: tuned Ms higher"
+    if not c["tuned_objective_verified"] < c["baseline_objective_verified"]:
+        return f"no: {obj} not lower"
+    return "no"
+
+
+def _profile_tables(rep) -> list[str]:
     """Predicted against verified metrics of each duty-cycle record, then its load steps."""
+    sc, b = rep.scene, rep.best
     out = []
     fields = [("IAE over the record (rad)", "iae"), ("ITAE (rad s)", "itae"), ("ISE (rad^2/s)", "ise"),
               ("peak error (rad/s)", "peak_deviation_rad_s"), ("peak error time (s)", "peak_time_s"),
@@ -467,11 +531,14 @@ def _profile_tables(sc, b) -> list[str]:
               ("peak torque (N m)", "peak_torque_n_m"), ("time at torque limit", "saturated_fraction")]
     for k, case in enumerate(sc.cases):
         pm, vm = b.predicted[k], b.verified[k]
+        res = _resolutions(rep, vm.peak_deviation_rad_s, sc.duration)
         rows = [[lab, getattr(pm, attr), getattr(vm, attr),
-                 "-" if attr in ("final_error_rad_s", "saturated_fraction") else _diff_text(getattr(pm, attr), getattr(vm, attr))]
+                 "-" if attr in ("final_error_rad_s", "saturated_fraction")
+                 else _diff_text(getattr(pm, attr), getattr(vm, attr), res(attr))]
                 for lab, attr in fields]
         out.append(f"Duty cycle, {case} (error = setpoint - speed over the whole record)")
         out.append(_table(["metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows))
+        out.append(_DIFF_NOTE.format(speed=res("peak_deviation_rad_s")))
         if vm.steps:
             rows = []
             for (t_s, ms_v), ms_p in zip(zip(vm.step_times_s, vm.steps), pm.steps):
@@ -520,23 +587,24 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         ("torque saturated", "saturated"),
     ]
     if sc.is_profile:
-        out.extend(_profile_tables(sc, b))
+        out.extend(_profile_tables(rep))
     for k, f1 in enumerate(sc.final_loads):
         pm, vm = b.predicted[k], b.verified[k]
+        res = _resolutions(rep, vm.peak_drop_rad_s, sc.duration - sc.step_time)
         rows = []
         for lab, attr in fields:
             p, v = getattr(pm, attr), getattr(vm, attr)
-            diff = (p / v - 1) * 100 if isinstance(v, float) and not isinstance(v, bool) and v and math.isfinite(v) and math.isfinite(p) else None
-            rows.append([lab, p, v, _pct_text(diff) if diff is not None else "-"])
+            rows.append([lab, p, v, _diff_text(p, v, res(attr))])
         out.append(f"Load step {sc.initial_load:g} -> {f1:g} N")
         out.append(_table(["metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows))
+        out.append(_DIFF_NOTE.format(speed=res("peak_drop_rad_s")))
         out.append("")
     rows = []
     comp = {c["baseline"]: c for c in rep.comparisons}
     for d in rep.baselines:
         c = comp[d.name]
         rows.append([d.name, d.pid.kp, d.pid.ki, d.margins.ms, d.objective_verified,
-                     c["tuned_objective_verified"], c["tuned_ms"], c["beaten"]])
+                     c["tuned_objective_verified"], c["tuned_ms"], _beaten_text(c, obj)])
     out.append(f"Baselines ({obj}, verified; tuned at equal or better Ms)")
     out.append(_table(["baseline", "kp", "ki", "Ms", obj, f"tuned {obj}", "tuned Ms", "beaten"], rows))
     out.append("")
@@ -556,12 +624,29 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
     return "\n".join(out)
 
 
-def write_json_atomic(path: str | os.PathLike, data: dict, inputs: Sequence[str | os.PathLike] = ()) -> Path:
-    """Write JSON through :func:`prsa_ctrl.output.write_text` (atomic, never onto ``inputs``)."""
+def write_json_atomic(path: str | os.PathLike, data: dict, inputs: Sequence[str | os.PathLike] = (),
+                      transaction=None) -> Path:
+    """Write JSON through :func:`prsa_ctrl.output.write_text` (atomic, never onto ``inputs``);
+    with a :class:`prsa_ctrl.output.Transaction`, staged in it (renamed at its commit)."""
     from .output import write_text
 
-    text = json.dumps(data, indent=2, allow_nan=False, default=float)
-    return write_text(path, text + "\n", inputs, flag="--json")
+    text = json.dumps(data, indent=2, allow_nan=False, default=float) + "\n"
+    if transaction is not None:
+        return transaction.stage(path, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--json")
+    return write_text(path, text, inputs, flag="--json")
+
+
+def _commit(run: _Run, outputs) -> None:
+    """Rename every staged output into place with Ctrl-C deferred (all old or all new), then
+    honour a Ctrl-C that came meanwhile (exit 130 naming the files written)."""
+    run.check()
+    run.defer = True
+    try:
+        outputs.commit()
+        run.written = list(outputs.written)
+    finally:
+        run.defer = False
+    run.check()
 
 
 # --- error translation ---------------------------------------------------------------------------
@@ -612,11 +697,14 @@ def _status_says_interrupted(obj: Any, depth: int = 0) -> bool:
 
 # --- shared set-up -------------------------------------------------------------------------------
 
-def _input_files(args) -> list[str]:
+def _input_files(args, scene=None) -> list[str]:
+    """Every file the run reads: the plant and scene files given as paths and the scene's CSV
+    traces (the built-in files are protected by :func:`prsa_ctrl.output.package_roots`)."""
     files = []
     for v in (getattr(args, "plant", None), getattr(args, "scene", None)):
         if v is not None and os.path.exists(v):
             files.append(v)
+    files.extend(getattr(scene, "input_files", ()))
     return files
 
 
@@ -722,7 +810,16 @@ def _progress(run: _Run, verbose: bool, text: str) -> None:
 
 def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
     """Common frame of both commands: Ctrl-C guard, one-line errors, exit codes."""
-    code = _invoke_inner(prog, argv, body)
+    run = _Run(prog)
+    code = _invoke_inner(run, argv, body)
+    if argv is None and code != EXIT_INTERRUPTED and signal.SIGINT in _pending_signals():
+        # Ctrl-C after the command finished (blocked by _guard): exit 130 with its line.
+        run.reported = False
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        run.say(run.interrupt_line())
+        code = EXIT_INTERRUPTED
     if code == EXIT_INTERRUPTED and argv is None:
         # The process itself (console script, python -m): end now with 130. A second SIGINT
         # delivery left pending by a solver, or an atexit hook of a solver library, would
@@ -739,9 +836,16 @@ def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[st
     return code
 
 
-def _invoke_inner(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
-    run = _Run(prog)
-    with _guard(run):
+def _pending_signals() -> set:
+    try:
+        return set(signal.sigpending())
+    except (AttributeError, OSError):  # pragma: no cover - not POSIX
+        return set()
+
+
+def _invoke_inner(run: _Run, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
+    prog = run.prog
+    with _guard(run, process=argv is None):
         try:
             run.argv = _attach_values(list(sys.argv[1:] if argv is None else argv))
             return body(run, run.argv)
@@ -797,7 +901,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         plant, scene, overrides = _load_and_override(args, run)
-        inputs = _input_files(args)
+        inputs = _input_files(args, scene)
         if args.json is not None:
             check_writable(args.json, inputs, "--json")
         if args.scheduler is not None:
@@ -809,11 +913,11 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if not n_mc:
                 raise _UsageError(f"--scheduler {args.scheduler!r}: expected --monte-carlo N (or a scene with "
                                   "[robust] monte_carlo) to run on it")
-            if args.scheduler != "local" and not args.scheduler.startswith(("tcp://", "tls://")):
-                raise _UsageError(f"--scheduler {args.scheduler!r}: expected 'local' or an address like "
-                                  "tcp://HOST:8786")
+            address = _scheduler_address(args.scheduler)
             if find_spec("distributed") is None:
                 raise _UsageError(f"--scheduler {args.scheduler!r} needs Dask: pip install 'prsa-ctrl[dask]'")
+            if address is not None:
+                _probe_scheduler(args.scheduler, *address)
         if args.export is not None:
             if os.path.splitext(args.export)[1].lower() not in (".json", ".toml"):
                 raise _UsageError(f"--export {args.export!r}: expected a path ending in .json or .toml")
@@ -853,9 +957,12 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         return code
     rep.timing_s["process"] = time.perf_counter() - _T_START
     _progress(run, args.verbose, "writing outputs")
+    from .output import Transaction
+
+    outputs = Transaction(inputs)  # all outputs or none (issue 20, hostile 4 and 17)
     try:
         if args.plots is not None:
-            rep.plot_files = _publish_report_plots(run, rep, args.plots, inputs)
+            rep.plot_files = _publish_report_plots(run, rep, args.plots, inputs, outputs)
         if args.json is not None:
             data = rep.as_dict()
             data["timing_s"] = dict(rep.timing_s)
@@ -865,10 +972,9 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if mc is not None:
                 data["monte_carlo"] = mc.as_dict()
             run.check()
-            write_json_atomic(args.json, data, inputs)
+            write_json_atomic(args.json, data, inputs, transaction=outputs)
         if args.export is not None:
             from .export import dumps, export_controller
-            from .output import write_text
 
             fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
             exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
@@ -877,7 +983,9 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
                         "(kff > 0), which the drive export does not describe; nothing exported")
             else:
-                write_text(args.export, dumps(exported, fmt), inputs, flag="--export")
+                text = dumps(exported, fmt)
+                outputs.stage(args.export, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--export")
+        _commit(run, outputs)
     except OutputError:
         raise
     except KeyboardInterrupt:
@@ -886,6 +994,8 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         code, line = _describe_failure(exc, "writing the outputs")
         run.say(f"{run.prog}: {line}")
         return code
+    finally:
+        outputs.abort()  # takes back what was not committed (nothing after the commit)
     if not args.quiet:
         print(format_report(rep, overrides))
         if robust_rep is not None:
@@ -906,6 +1016,54 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 "are not a trustworthy design (use --accept-unconverged to exit 0)")
         return EXIT_NUMERICAL
     return EXIT_OK
+
+
+#: Seconds the up-front connection to a ``--scheduler`` address may take.
+SCHEDULER_CONNECT_TIMEOUT_S = 5.0
+_SCHEDULER_RE = re.compile(r"tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+)(?::(\d+))?")
+
+
+def _scheduler_address(text: str) -> tuple[str, int] | None:
+    """``--scheduler`` checked before any work: ``None`` for ``local``, else ``(host, port)``
+    of ``tcp://HOST:PORT`` (port 1..65535). TLS (``tls://``) needs a security configuration
+    (certificates) the command does not take; any other form is refused.
+
+    Raises
+    ------
+    _UsageError
+        One line naming ``--scheduler`` and the text as typed.
+    """
+    if text == "local":
+        return None
+    expected = "expected 'local' or tcp://HOST:PORT, e.g. tcp://127.0.0.1:8786"
+    if text.startswith("tls://"):
+        raise _UsageError(f"--scheduler {text!r}: a TLS scheduler needs certificates (a Dask security "
+                          f"configuration) that prsa-tune does not take; {expected}")
+    m = _SCHEDULER_RE.fullmatch(text)
+    if m is None:
+        raise _UsageError(f"--scheduler {text!r}: {expected}")
+    if m.group(2) is None:
+        raise _UsageError(f"--scheduler {text!r}: no port; {expected}")
+    port = int(m.group(2))
+    if not 1 <= port <= 65535:
+        raise _UsageError(f"--scheduler {text!r}: port {m.group(2)} out of range; expected a TCP port 1..65535")
+    return m.group(1).strip("[]"), port
+
+
+def _probe_scheduler(text: str, host: str, port: int) -> None:
+    """Open (and close) a TCP connection to the scheduler, bounded by
+    ``SCHEDULER_CONNECT_TIMEOUT_S``, so that an unreachable address stops the run before the
+    tuning, not after it."""
+    import socket
+
+    try:
+        with socket.create_connection((host, port), timeout=SCHEDULER_CONNECT_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        why = "no answer" if isinstance(exc, socket.timeout) else (exc.strerror or type(exc).__name__)
+        raise _UsageError(f"--scheduler {text!r}: cannot connect to {host}:{port} within "
+                          f"{SCHEDULER_CONNECT_TIMEOUT_S:g} s ({why}); expected the address of a running Dask "
+                          "scheduler (dask scheduler --host HOST --port PORT), or 'local'") from None
 
 
 def _setpoint_weight(scene) -> float:
@@ -960,9 +1118,10 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
 
     designs = {rep.best.name: rep.best.pid}
     if robust_rep is not None:
-        designs = {"nominal design": robust_rep.nominal, "robust design": robust_rep.robust, **designs}
+        designs = {"nominal design": robust_rep.nominal, "robust design": robust_rep.robust}
+        _add_design(designs, rep.best.name, rep.best.pid)
     for b in rep.baselines:
-        designs.setdefault(b.name, b.pid)
+        _add_design(designs, b.name, b.pid)
     seed = args.seed if args.seed is not None else opts["seed"]
     _progress(run, args.verbose, f"Monte Carlo: {n} samples of {len(designs)} designs ...")
     from .autotune import default_workers
@@ -971,6 +1130,15 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
     mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
                          workers=args.workers or default_workers(), quiet=args.quiet)
     return robust_rep, mc
+
+
+def _add_design(designs: dict, name: str, pid) -> None:
+    """Add a design to verify unless one with the same gains is there already (one name per
+    design: the robust study's nominal design is the tuned design when their gains agree)."""
+    key = (pid.kp, pid.ki, pid.kd, pid.tf, pid.kff)
+    if name in designs or any((p.kp, p.ki, p.kd, p.tf, p.kff) == key for p in designs.values()):
+        return
+    designs[name] = pid
 
 
 def _format_robust(rr) -> str:
@@ -987,33 +1155,41 @@ def _format_robust(rr) -> str:
     return "\n".join(out) + "\n"
 
 
-def _publish_report_plots(run: _Run, rep, directory: str, inputs: Sequence[str]) -> list[Path]:
-    """Render the standard plots into a private staging folder, then write each through the
-    output writer into ``directory`` (created only now, and taken back if this fails)."""
+def _publish_report_plots(run: _Run, rep, directory: str, inputs: Sequence[str], outputs=None) -> list[Path]:
+    """Render the standard plots into a private staging folder, then stage each in the run's
+    output transaction for ``directory`` (created only now, and taken back if this fails)."""
     from .plots import write_standard_plots
 
-    return _staged(run, lambda staging: write_standard_plots(rep, staging), directory, inputs)
+    return _staged(run, lambda staging: write_standard_plots(rep, staging), directory, inputs, outputs)
 
 
-def _staged(run: _Run, render: Callable[[Path], list[Path]], directory: str, inputs: Sequence[str]) -> list[Path]:
-    """``render`` writes files into a private staging folder; each is then written through
-    :func:`prsa_ctrl.output.write_file` into ``directory`` (created only now)."""
+def _staged(run: _Run, render: Callable[[Path], list[Path]], directory: str, inputs: Sequence[str],
+            outputs=None) -> list[Path]:
+    """``render`` writes files into a private staging folder; each is then staged in the
+    :class:`prsa_ctrl.output.Transaction` ``outputs`` (one of its own, committed here, if
+    ``None``) for ``directory`` (created only now)."""
     import shutil
 
-    from .output import make_directory, write_file
+    from .output import Transaction
 
+    own = outputs is None
+    tr = Transaction(inputs) if own else outputs
     staging = tempfile.mkdtemp(prefix="prsa-plots.prsa-tmp-")
     try:
         files = render(Path(staging))
         run.check()
-        run.created.extend(make_directory(directory, "--plots"))
+        tr.make_directory(directory, "--plots")
         out = []
         for f in files:
             src = str(f)
             out.append(Path(directory) / Path(f).name)
-            write_file(out[-1], lambda tmp, src=src: shutil.copyfile(src, tmp), inputs, "--plots")
+            tr.stage(out[-1], lambda tmp, src=src: shutil.copyfile(src, tmp), "--plots", listed=False)
+        if own:
+            _commit(run, tr)
         return out
     finally:
+        if own:
+            tr.abort()  # no-op after the commit
         shutil.rmtree(staging, ignore_errors=True)
 
 
@@ -1062,7 +1238,7 @@ def _plot_body(run: _Run, argv: list[str]) -> int:
         except ValueError as exc:
             raise _UsageError(str(exc)) from None
         check_directory(args.out, "--plots")
-        inputs = _input_files(args)
+        inputs = _input_files(args, scene)
         notes.extend(caught)
     run.check()
     native: list[str] = []
@@ -1120,17 +1296,20 @@ def _plot_body(run: _Run, argv: list[str]) -> int:
 def _write_figures(run: _Run, figs: dict, directory: str, inputs: Sequence[str]) -> list[Path]:
     import matplotlib.pyplot as plt
 
-    from .output import make_directory, write_file
+    from .output import Transaction
 
     run.check()
-    run.created.extend(make_directory(directory, "--plots"))
     files: list[Path] = []
-    for name, fig in figs.items():
-        for ext in ("png", "svg"):
-            path = Path(directory) / f"{name}.{ext}"
-            write_file(path, lambda tmp, fig=fig, ext=ext: fig.savefig(tmp, format=ext, dpi=150), inputs, "--plots")
-            files.append(path)
-        plt.close(fig)
+    with Transaction(inputs) as tr:
+        tr.make_directory(directory, "--plots")
+        for name, fig in figs.items():
+            for ext in ("png", "svg"):
+                path = Path(directory) / f"{name}.{ext}"
+                tr.stage(path, lambda tmp, fig=fig, ext=ext: fig.savefig(tmp, format=ext, dpi=150), "--plots",
+                         listed=False)
+                files.append(path)
+            plt.close(fig)
+        _commit(run, tr)
     return files
 
 

@@ -23,11 +23,80 @@ __all__ = [
     "profile_metrics",
     "margins_from_response",
     "DEFAULT_BAND",
+    "relative_difference",
+    "metric_resolution",
 ]
 
 #: Recovery band: the error must stay within this fraction of the peak drop (around the
 #: setpoint) from the recovery time to the end of the record.
 DEFAULT_BAND = 0.05
+
+
+def relative_difference(predicted: float, verified: float) -> float | None:
+    """The one definition of "difference" in reports and warnings: ``(predicted - verified) /
+    |verified|``, how far the linear prediction is from the verified (nonlinear) value, as a
+    fraction; ``None`` where it is undefined (a non-finite value, a verified value of zero).
+
+    Examples
+    --------
+    >>> relative_difference(1.1, 1.0), relative_difference(1.0, 0.0)
+    (0.10000000000000009, None)
+    """
+    if isinstance(predicted, bool) or isinstance(verified, bool):
+        return None
+    try:
+        p, v = float(predicted), float(verified)
+    except (TypeError, ValueError):
+        return None
+    if not (math.isfinite(p) and math.isfinite(v)) or v == 0:
+        return None
+    return (p - v) / abs(v)
+
+
+#: Metric name -> its kind, for :func:`metric_resolution`.
+_KINDS = {"peak_drop_rad_s": "speed", "peak_deviation_rad_s": "speed", "steady_state_error_rad_s": "speed",
+          "overshoot_rad_s": "speed", "rms_error_rad_s": "speed", "final_error_rad_s": "speed",
+          "peak_time_s": "time", "recovery_time_s": "time", "ie": "ie", "iae": "ie", "itae": "itae", "ise": "ise",
+          "peak_torque_n_m": "torque"}
+
+
+def metric_resolution(name: str, *, accuracy: float, drop_rad_s: float, sample_time_s: float, window_s: float,
+                      torque_limit_n_m: float) -> float:
+    """Smallest value of a metric that a verified run resolves: the verification's accuracy
+    expressed in the metric's unit. A relative difference between a prediction and a verified
+    value means something only where both exceed it.
+
+    Parameters
+    ----------
+    name : str
+        Metric attribute (``"steady_state_error_rad_s"``, ``"iae"``, ...).
+    accuracy : float
+        The scene's relative accuracy (a fraction of the peak drop).
+    drop_rad_s : float, rad/s
+        The verified peak drop (deviation) the accuracy refers to.
+    sample_time_s : float, s
+        Controller sample time (the time grid of the sampled record).
+    window_s : float, s
+        Length of the integration window (step to the end of the record).
+    torque_limit_n_m : float, N m
+
+    Returns
+    -------
+    float
+        Speeds: ``accuracy * drop`` (rad/s); times: one sample (s); IE/IAE: the speed
+        resolution over one sample (rad); ITAE: that times the window (rad s); ISE: the squared
+        speed resolution over one sample (rad^2/s); torques: 0.1 % of the torque limit (N m);
+        0 for an unknown name.
+
+    Examples
+    --------
+    >>> metric_resolution("steady_state_error_rad_s", accuracy=0.01, drop_rad_s=3.65, sample_time_s=2.5e-4,
+    ...                   window_s=0.3, torque_limit_n_m=3.0)
+    0.0365
+    """
+    w = accuracy * abs(drop_rad_s)
+    return {"speed": w, "time": sample_time_s, "ie": w * sample_time_s, "itae": w * sample_time_s * window_s,
+            "ise": w * w * sample_time_s, "torque": 1e-3 * torque_limit_n_m}.get(_KINDS.get(name, ""), 0.0)
 
 
 @dataclass(frozen=True)

@@ -135,7 +135,8 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
     "drive.current_loop_bandwidth_hz": (10.0, 1e5, "servo drives 0.5 to 5 kHz"),
     "sensor.sample_time_s": (1e-6, 0.02, "speed loops run at 50 Hz to 100 kHz (servo drives 1 to 16 kHz); the "
                              "tuner's prediction and the verification record hold one point per sample"),
-    "sensor.encoder_counts_per_rev": (4, 2**32, "quadrature encoders to 32-bit absolute encoders"),
+    "sensor.encoder_counts_per_rev": (64, 2**32, "counts per revolution: the coarsest incremental encoders "
+                                      "(16 lines, x4 quadrature) to 32-bit absolute encoders"),
     "sensor.speed_filter_time_constant_s": (1e-7, 1.0, "speed-measurement filter of a servo drive, ~0.1 ms"),
     "sensor.torque_noise_n_m": (0.0, 1e3, "current-measurement noise, a fraction of the torque limit"),
     "tolerance.roller_position_std_um": (0.0, 50.0, "lead deviation of precision to transport grades stays "
@@ -159,6 +160,67 @@ def builtin_plants() -> list[str]:
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
 
 
+def _likely_mistake(key: str, v: float) -> str:
+    """The unit mistake a value outside ``PLAUSIBLE`` most likely is (empty if none stands out)."""
+    if key == "sensor.encoder_counts_per_rev" and v <= 32:
+        return f"; a resolution in bits typed as counts? {v:g} bits = {2 ** int(v)} counts"
+    return ""
+
+
+#: Largest torque limit as a multiple of the torque that drives the screw's rated load
+#: (``rated_load L / (2 pi eta)``): static load ratings are ~2-3x the dynamic one, and a
+#: rotor's acceleration torque is of the same order; 20x is beyond any real pairing of motor
+#: and screw (the built-in plants: 1.3x to 1.6x), while a torque in mN m typed as N m is 1000x.
+TORQUE_LIMIT_MAX_RATIO = 20.0
+#: Slowest speed-measurement filter, in controller samples (25 ms at 4 kHz): beyond it the
+#: measurement lags every speed loop a sampled drive can close (crossover ~0.01..0.1 / Ts);
+#: a time constant in ms typed as s is 1000x.
+SPEED_FILTER_MAX_SAMPLES = 100.0
+#: Largest torque-measurement noise as a fraction of the torque limit (current sensing is
+#: ~0.1-1 % of the peak current).
+TORQUE_NOISE_MAX_FRACTION = 0.1
+
+
+_CONSISTENCY_KEYS = ("drive.torque_limit_n_m", "screw.rated_load_n", "screw.lead_mm", "friction.efficiency",
+                     "friction.no_load_torque_n_m", "sensor.torque_noise_n_m", "sensor.sample_time_s",
+                     "sensor.speed_filter_time_constant_s", "friction.traction_preload_n")
+
+
+def _check_consistency(v: Mapping[str, float], o: str) -> None:
+    """Cross-checks between keys of a plant file that catch unit mistakes a single range
+    cannot (:data:`TORQUE_LIMIT_MAX_RATIO`, :data:`SPEED_FILTER_MAX_SAMPLES`,
+    :data:`TORQUE_NOISE_MAX_FRACTION`, drag below the torque limit, traction preload at most
+    the rated load)."""
+    t_lim = v["drive.torque_limit_n_m"]
+    t_rated = v["screw.rated_load_n"] * v["screw.lead_mm"] * 1e-3 / (2 * math.pi * v["friction.efficiency"])
+    if t_lim > TORQUE_LIMIT_MAX_RATIO * t_rated:
+        force = t_lim * 2 * math.pi * v["friction.efficiency"] / (v["screw.lead_mm"] * 1e-3)
+        raise PlantFileError(
+            f"{o}: drive.torque_limit_n_m = {t_lim:g} N m would push {force:.3g} N through the screw, "
+            f"{t_lim / t_rated:.0f} x its screw.rated_load_n = {v['screw.rated_load_n']:g} N (which needs {t_rated:.3g} N m "
+            f"at screw.lead_mm = {v['screw.lead_mm']:g}, friction.efficiency = {v['friction.efficiency']:g}); expected at "
+            f"most {TORQUE_LIMIT_MAX_RATIO:g} x that ({TORQUE_LIMIT_MAX_RATIO * t_rated:.3g} N m); a torque in mN m typed as N m?")
+    if v["friction.no_load_torque_n_m"] >= t_lim:
+        raise PlantFileError(
+            f"{o}: friction.no_load_torque_n_m = {v['friction.no_load_torque_n_m']:g} N m is not below "
+            f"drive.torque_limit_n_m = {t_lim:g} N m (the motor could not even turn the unloaded screw); check both units")
+    if v["sensor.torque_noise_n_m"] > TORQUE_NOISE_MAX_FRACTION * t_lim:
+        raise PlantFileError(
+            f"{o}: sensor.torque_noise_n_m = {v['sensor.torque_noise_n_m']:g} N m is more than "
+            f"{TORQUE_NOISE_MAX_FRACTION:.0%} of drive.torque_limit_n_m = {t_lim:g} N m (current sensing is ~0.1-1 % of "
+            "the peak); check its unit (N m RMS per sample)")
+    ts, tf = v["sensor.sample_time_s"], v["sensor.speed_filter_time_constant_s"]
+    if tf > SPEED_FILTER_MAX_SAMPLES * ts:
+        raise PlantFileError(
+            f"{o}: sensor.speed_filter_time_constant_s = {tf:g} s is {tf / ts:.0f} controller samples "
+            f"(sensor.sample_time_s = {ts:g} s); expected at most {SPEED_FILTER_MAX_SAMPLES:g} samples "
+            f"({SPEED_FILTER_MAX_SAMPLES * ts:g} s): a time constant in ms typed as s?")
+    if v["friction.traction_preload_n"] > v["screw.rated_load_n"]:
+        raise PlantFileError(
+            f"{o}: friction.traction_preload_n = {v['friction.traction_preload_n']:g} N exceeds screw.rated_load_n = "
+            f"{v['screw.rated_load_n']:g} N; expected a preload of at most the rated load")
+
+
 def _check_value(kind: str, key: str, value: Any, origin: str) -> float:
     where = f"{origin}: {key}"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -179,7 +241,7 @@ def _check_value(kind: str, key: str, value: Any, origin: str) -> float:
         if not lo <= v <= hi:
             raise PlantFileError(
                 f"{where} = {value!r} is outside the plausible range [{lo:g}, {hi:g}] ({why}); "
-                "check the value and its unit"
+                "check the value and its unit" + _likely_mistake(key, v)
             )
     return v
 
@@ -309,6 +371,8 @@ class Plant:
     def __post_init__(self) -> None:
         object.__setattr__(self, "values", MappingProxyType(dict(self.values)))
         object.__setattr__(self, "sources", MappingProxyType(dict(self.sources)))
+        if all(isinstance(self.values.get(k), (int, float)) for k in _CONSISTENCY_KEYS):  # not symbolic (fit)
+            _check_consistency(self.values, self.origin)
         object.__setattr__(self, "geometry", self._check_geometry())
 
     # --- construction -------------------------------------------------------------------------
@@ -669,7 +733,7 @@ def load_plant(name_or_path: str | Path | None = None) -> Plant:
                                            or "/" in str(name_or_path) or "\\" in str(name_or_path))
     origin = f"{src.name} (built-in)" if builtin else str(src)
     try:
-        doc = tomllib.loads(src.read_text(encoding="utf-8"))
+        doc = tomllib.loads(src.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise PlantFileError(f"{origin}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as exc:

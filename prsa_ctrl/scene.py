@@ -38,6 +38,7 @@ constant load) or ``"mix"`` (both records, weighted ``1 - setpoint_share`` and
 from __future__ import annotations
 
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -87,6 +88,11 @@ MAX_LOAD_LEVELS = 20
 #: Smallest load step, N: smaller steps drown in the encoder quantisation and the metrics
 #: become relative differences of numbers at numerical zero.
 MIN_LOAD_STEP_N = 1.0
+#: Range of ``[estimator] load_change_time_s``, s: the Kalman filter's load random walk has the
+#: variance ``T_rated^2 Ts / t`` per sample; 1 ms is 4 samples of a 4 kHz drive (a faster
+#: "change" is noise, not load), and beyond 1000 s the variance is ~1e-10 of the rated torque
+#: squared per sample (1e300 underflows the Riccati equation).
+LOAD_CHANGE_TIME_RANGE_S = (1e-3, 1e3)
 
 #: Outputs a scene may ask for; ``nut_speed`` and ``motor_torque`` are always computed.
 OUTPUTS = (
@@ -279,8 +285,11 @@ class Scene:
             raise bad("feedforward", self.feedforward, "estimator = kf (the load torque comes from the filter)")
         if self.estimator == "kf" and not self.discrete:
             raise bad("estimator", self.estimator, "discrete = true (the filter runs at the sample time)")
-        if finite("load_change_time_s", self.load_change_time_s) <= 0:
-            raise bad("load_change_time_s", self.load_change_time_s, "a positive time in s")
+        lo, hi = LOAD_CHANGE_TIME_RANGE_S
+        if not lo <= finite("load_change_time_s", self.load_change_time_s) <= hi:
+            raise bad("estimator.load_change_time_s", self.load_change_time_s,
+                      f"a positive time in [{lo:g}, {hi:g}] s (the Kalman filter's load random-walk time: from a few controller "
+                      "samples to a load that practically never changes; beyond, its process noise underflows)")
 
     def _check_duty(self, bad, finite) -> None:
         """Validate the duty-cycle fields and derive the step fields from the profiles."""
@@ -357,6 +366,12 @@ class Scene:
     def profile_end(self) -> float:
         """Time of the last breakpoint of the duty cycle, s (0 for a step scene)."""
         return max((p[-1][0] for p in (self.load_profile, self.setpoint_profile) if p is not None), default=0.0)
+
+    @property
+    def input_files(self) -> tuple[str, ...]:
+        """Resolved paths of the files the scene read besides its own TOML (CSV traces): inputs
+        of the run, never outputs."""
+        return tuple(info[3] for info in self.trace_lines.values() if len(info) > 3)
 
     @property
     def setpoint_rpm(self) -> float:
@@ -643,7 +658,7 @@ def _duty_from_doc(kw: dict, origin: str, base: Any) -> None:
             path = path if path.is_absolute() else base / csv_name
             lines: list = []
             kw[field_name] = read_trace_csv(Path(str(path)), column, where, scale, lines)
-            kw.setdefault("trace_lines", {})[field_name] = (csv_name, column, tuple(lines))
+            kw.setdefault("trace_lines", {})[field_name] = (csv_name, column, tuple(lines), os.path.realpath(str(path)))
             sources.append(f"{what}: {csv_name} ({len(kw[field_name])} rows)")
     if "load_profile" in kw:
         for key in ("initial_load_n", "final_loads_n", "step_time_s"):
@@ -691,7 +706,7 @@ def load_scene(name_or_path: str | Path | None = None) -> Scene:
         if not reader.is_file():
             raise SceneError(f"unknown scene {text!r}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
     try:
-        doc = tomllib.loads(reader.read_text(encoding="utf-8"))
+        doc = tomllib.loads(reader.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as exc:
@@ -782,9 +797,18 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
             f"{plant.values['friction.stribeck_velocity_m_s']:g} m/s and the friction is on the steep part of its Stribeck curve (static to dynamic coefficient), where "
             f"the linear model does not hold; above, beyond roller-screw speed ratings)"
         )
+    quantum = 2 * math.pi / (plant.encoder_counts * ts)  # one count per sample, rad/s
+    slowest = min(v for _, v in (scene.setpoint_profile or ((0.0, scene.setpoint_rad_s),)))
+    if quantum > slowest:
+        raise SceneError(
+            f"{plant.origin}: sensor.encoder_counts_per_rev = {plant.encoder_counts}: one count per controller sample is "
+            f"{quantum:.4g} rad/s ({quantum * 30 / math.pi:.4g} rpm), more than the setpoint {slowest * 30 / math.pi:.6g} "
+            f"rpm of {scene.origin}: the drive could not measure the speed it controls; expected a finer encoder "
+            f"(at least {math.ceil(2 * math.pi / (slowest * ts))} counts per revolution at sensor.sample_time_s = {ts:g} s)")
     if scene.is_profile:
         _check_profile_against_plant(scene, plant, label, rpm_min)
         return
+    _check_robust_against_plant(scene, plant, rpm_min)
     cap = holding_capacity_n(plant, scene.setpoint_rad_s)
     if cap <= 0:
         raise SceneError(
@@ -831,6 +855,72 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
             f"(sensor.sample_time_s = {ts:g} s); the limit is {MAX_RECORD_SAMPLES} samples, a duration of at most "
             f"{MAX_RECORD_SAMPLES * ts:g} s"
         )
+
+
+#: Plant keys that set the holding capacity (:func:`holding_capacity_n`) or the lowest speed
+#: (``STICTION_MARGIN``): their uncertain supports are checked against the operating range.
+_CAPACITY_KEYS = ("drive.torque_limit_n_m", "friction.no_load_torque_n_m", "friction.viscous_n_m_s_per_rad",
+                  "friction.efficiency", "friction.stribeck_velocity_m_s")
+
+
+def _capacity_n(values: Mapping[str, float], lead_per_rad: float, setpoint_rad_s: float) -> float:
+    """:func:`holding_capacity_n` from a values mapping (file units)."""
+    spare = (values["drive.torque_limit_n_m"] - values["friction.no_load_torque_n_m"]
+             - values["friction.viscous_n_m_s_per_rad"] * setpoint_rad_s)
+    return spare * values["friction.efficiency"] / lead_per_rad
+
+
+def _check_robust_against_plant(scene: Scene, plant: Any, rpm_min: float) -> None:
+    """The ``[robust]`` operating range and the ``[uncertainty]`` supports against the plant,
+    before any work: every ``robust.setpoints_rpm`` in the speed range, every
+    ``robust.final_loads_n`` a step of at least ``MIN_LOAD_STEP_N`` the motor can hold at the
+    slowest setpoint, the uncertainty model valid (:func:`prsa_ctrl.uncertainty.uncertainty_model`,
+    which also checks supports jointly), and at every corner of the supports of the keys that
+    set the capacity the loads still held (e.g. an uncertain torque limit 0.3..3 N m)."""
+    sections = getattr(scene, "robust", None) or {}
+    if not sections:
+        return
+    import itertools
+
+    from .uncertainty import uncertainty_model
+
+    o = scene.origin
+    rob = sections.get("robust", {})
+    rpms = list(rob.get("setpoints_rpm", [])) or [scene.setpoint_rpm]
+    loads = list(rob.get("final_loads_n", [])) or list(scene.final_loads)
+    for v in rob.get("setpoints_rpm", []):
+        if not rpm_min <= v <= SETPOINT_MAX_RPM:
+            raise SceneError(f"{o}: robust.setpoints_rpm: {v:g} rpm; expected nut speeds in [{rpm_min:.3g}, "
+                             f"{SETPOINT_MAX_RPM:g}] rpm for {plant.name} (below, the friction is on the steep part "
+                             "of its Stribeck curve; above, beyond roller-screw speed ratings)")
+    for f in rob.get("final_loads_n", []):
+        if abs(f - scene.initial_load) < MIN_LOAD_STEP_N:
+            raise SceneError(f"{o}: robust.final_loads_n: {f:g} N is a step of {abs(f - scene.initial_load):.3g} N from "
+                             f"operating.initial_load_n = {scene.initial_load:g} N; expected a load step of at least "
+                             f"{MIN_LOAD_STEP_N:g} N")
+    slowest = min(rpms) * math.pi / 30.0
+    top = max([*loads, scene.initial_load])
+    cap = holding_capacity_n(plant, slowest)
+    if "final_loads_n" in rob and max(loads) > cap:
+        raise SceneError(f"{o}: robust.final_loads_n: {max(loads):g} N out of range for {plant.name}: at {min(rpms):g} "
+                         f"rpm the motor holds at most {cap:.0f} N (drive.torque_limit_n_m = {plant.torque_limit:g} N m); "
+                         f"expected loads up to {cap:.0f} N")
+    model = uncertainty_model(plant, scene)
+    entries = [e for e in model.entries if e.key in _CAPACITY_KEYS]
+    for ends in itertools.product((0, 1), repeat=len(entries)):
+        values = dict(plant.values)
+        values.update({e.key: (e.low, e.high)[k] for e, k in zip(entries, ends)})
+        at = ", ".join(f"{e.key} = {values[e.key]:g}" for e in entries)
+        low_rpm = STICTION_MARGIN * values["friction.stribeck_velocity_m_s"] / plant.lead_per_rad * 30.0 / math.pi
+        if min(rpms) < low_rpm:
+            raise SceneError(f"{o}: [uncertainty] {at} (a corner of the supports): the slowest setpoint {min(rpms):g} rpm "
+                             f"is in the stiction band (below {low_rpm:.3g} rpm); expected a narrower "
+                             "friction.stribeck_velocity_m_s support or faster setpoints")
+        c = _capacity_n(values, plant.lead_per_rad, slowest)
+        if top > c:
+            raise SceneError(f"{o}: [uncertainty] {at} (a corner of the supports): the motor holds at most {max(c, 0):.0f} N "
+                             f"at {min(rpms):g} rpm, less than the load {top:g} N the scene steps to; expected supports "
+                             "that can hold every load (e.g. a torque-limit range whose low end holds the largest load)")
 
 
 def _check_profile_against_plant(scene: Scene, plant: Any, label, rpm_min: float) -> None:
