@@ -97,6 +97,13 @@ STALL_ITERATIONS = 15
 STEP_SE_FRACTION = 1e-3
 #: Shortest multiple-shooting segment (sample intervals); shorter stretches of usable data are left out.
 MIN_SEGMENT = 20
+#: Identifiability tolerance: a direction of the column-scaled parameter Jacobian (each column
+#: of unit norm, segment initial states projected out) whose singular value is below this
+#: fraction of the largest carries no information from the data. Round-off puts an exactly
+#: singular direction near 1e-15 and a perturbation of the Jacobian at 1e-10 near 1e-10; weakly
+#: but truly excited directions of the built-in experiments lie above 1e-3. Along such a
+#: direction the interval is the whole stretch the physical ranges allow (:func:`_null_extent`).
+RANK_RTOL = 1e-6
 
 
 class FitError(RuntimeError):
@@ -502,7 +509,9 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
                      "the intervals are widened for it (HAC) but stay optimistic (measured: 73 % coverage on AR(1) "
                      "noise of 0.95); look for unmodelled dynamics or a filtered encoder signal")
     params, corr, fitted, reflected, delay, reasons = _finish(plant, keys, values, cov, lo * scales, hi * scales,
-                                                              names, warns, ts, keep_unidentified)
+                                                              names, warns, ts, keep_unidentified,
+                                                              fit_run.null_scaled * scales[:, None],
+                                                              np.array(cov_info["singular_value_ratios"]))
     fit_pct = dict(sol["fit_percent"])
     traces = dict(sol["traces"])
     kept = [k for k in keys if params[k].get("kept_base")]
@@ -550,26 +559,35 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, None, reasons)
 
 
-def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_unidentified=True):
+def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_unidentified=True, null=None,
+            ratios=None):
     """Parameters with 95 % CIs, correlation, identifiability warnings, the fitted plant, the
     reflected inertia, the delay block (None unless the delay was fitted) and the reasons of the
     keys not identified, from fitted values and their covariance (file units; ``lo``/``hi``
-    bounds; ``ts`` the sample time, s). With ``keep_unidentified`` those keys keep the base
-    plant's value, source and ``[uncertainty]`` entry."""
+    bounds; ``ts`` the sample time, s). ``null``: the directions the data do not inform
+    (columns, file units; :func:`_info_split`) and ``ratios`` the singular values over the
+    largest: a key's interval spans how far those directions move it within the physical
+    ranges (:func:`_null_extent`) plus the covariance's interval. With ``keep_unidentified``
+    the keys not identified keep the base plant's value, source and ``[uncertainty]`` entry."""
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
     corr = np.nan_to_num(corr)
     ts = plant.sample_time_s if ts is None else ts
-    params, overrides, reasons = {}, {}, {}
+    null = np.zeros((len(keys), 0)) if null is None else np.asarray(null, float)
+    ranges = [_physical_range(plant, k, lo[i], hi[i]) if k not in PSEUDO_KEYS else (lo[i], hi[i])
+              for i, k in enumerate(keys)]
+    ext_lo, ext_hi = _null_extent(values, null, [r[0] for r in ranges], [r[1] for r in ranges])
+    params, overrides, reasons, in_null = {}, {}, {}, set()
     for i, k in enumerate(keys):
         unit = FITTABLE[k][0]
-        ci = [float(values[i] - _Z95 * std[i]), float(values[i] + _Z95 * std[i])]
+        ci = [float(ext_lo[i] - _Z95 * std[i]), float(ext_hi[i] + _Z95 * std[i])]
         params[k] = {"value": float(values[i]), "ci95": ci, "unit": unit}
         if k not in PSEUDO_KEYS:  # the delay is never written, so never kept either
             overrides[k] = float(values[i])
             params[k]["kept_base"] = False
-        width = _Z95 * std[i]
+        width = max(ci[1] - values[i], values[i] - ci[0])
+        std[i] = width / _Z95  # the honest standard deviation (uninformed directions included)
         floor = 0.2 * ts if k == DELAY_KEY else 1e-3 * (hi[i] - lo[i])  # a delay of 0 is a value like any
         u = _unit_text(unit)
         if not np.isfinite(width) or width > 0.5 * max(abs(values[i]), floor):
@@ -580,16 +598,27 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
                          "is not reliable" + ("; move the bracket with delay_samples (--delay-samples)"
                                               if k == DELAY_KEY else ""))
         reason = _not_identified(k, float(values[i]), float(width), _physical_range(plant, k, lo[i], hi[i]), floor)
+        mates = _null_mates(keys, null / np.array([max(r[1] - r[0], 1e-300) for r in ranges])[:, None], i)
+        if mates is not None:  # moves along an uninformed direction: the data do not set it
+            in_null.add(k)
+            small = float(np.min(ratios)) if ratios is not None and len(ratios) else 0.0
+            reason = (f"the data inform only its combination with {', '.join(mates) or 'nothing else'} (a direction of "
+                      f"the scaled Jacobian with singular value {small:.1e} x the largest, below the tolerance "
+                      f"{RANK_RTOL:g}): the physical ranges alone bound it to {ext_lo[i]:.6g}..{ext_hi[i]:.6g}")
         if reason:
             reasons[k] = reason
     # A key the data cannot separate from an unidentifiable one is not identified either: its
     # narrow interval holds only with the other at its (unsupported) fitted value or bound.
+    # (Not for a key left free by an uninformed direction: the covariance has no part along
+    # it, so a correlation with it says nothing; the keys that share the direction are found
+    # by :func:`_null_extent`.)
     for _ in range(len(keys)):
         more = {}
         for i, k in enumerate(keys):
             if k in reasons:
                 continue
-            j = next((j for j, kk in enumerate(keys) if kk in reasons and abs(corr[i, j]) > _CORR_SEPARATE), None)
+            j = next((j for j, kk in enumerate(keys) if kk in reasons and kk not in in_null
+                      and abs(corr[i, j]) > _CORR_SEPARATE), None)
             if j is not None:
                 more[k] = (f"strongly correlated ({corr[i, j]:+.3f}) with {keys[j]}, which the data cannot inform: "
                            "only their combination is identified")
@@ -647,6 +676,72 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
     if DELAY_KEY in keys:
         delay = _delay_block(fitted, keys, values, cov, ts)
     return params, corr, fitted, reflected, delay, reasons
+
+
+def _info_split(jn: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Rank-revealing split of a column-scaled Jacobian ``jn`` (columns of unit norm).
+
+    Returns ``(a_inv, null, ratios)``: the pseudo-inverse of ``jn^T jn`` on the directions the
+    data inform (singular value at least :data:`RANK_RTOL` times the largest), a basis of the
+    directions they do not (columns, in ``jn``'s coordinates; may have no columns) and every
+    singular value over the largest. The decision does not hinge on round-off: an exactly
+    singular direction (1e-15) and one perturbed at 1e-10 fall on the same side of 1e-6.
+    """
+    _, sv, vt = np.linalg.svd(np.asarray(jn, float), full_matrices=False)
+    n = jn.shape[1]
+    if sv.size < n:  # fewer residuals than parameters: the missing directions are null too
+        sv = np.concatenate([sv, np.zeros(n - sv.size)])
+        vt = np.linalg.svd(np.vstack([jn, np.zeros((n - jn.shape[0], n))]), full_matrices=True)[2]
+    top = float(sv[0]) if sv.size and sv[0] > 0 else 0.0
+    ratios = sv / top if top > 0 else np.zeros_like(sv)
+    keep = ratios >= RANK_RTOL
+    a_inv = (vt[keep].T / sv[keep] ** 2) @ vt[keep]
+    return a_inv, vt[~keep].T, ratios
+
+
+def _null_extent(values, null, lo, hi) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """How far each parameter can move along the uninformed directions ``null`` (columns, file
+    units) while every parameter stays in its range ``lo..hi``: per key the smallest and largest
+    value of ``values + null @ t`` over that polytope (one small linear programme per key and
+    end). Without uninformed directions both are ``values``."""
+    values = np.asarray(values, float)
+    if null.size == 0:
+        return values.copy(), values.copy()
+    from scipy.optimize import linprog
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    lo, hi = np.minimum(lo, values), np.maximum(hi, values)  # the fitted point is always inside
+    ny = null / span[:, None]
+    a_ub = np.vstack([ny, -ny])
+    b_ub = np.concatenate([(hi - values) / span, (values - lo) / span])
+    ext_lo, ext_hi = values.copy(), values.copy()
+    for k in range(len(values)):
+        if not np.any(np.abs(ny[k]) > 1e-12):
+            continue
+        for sign, out in ((1.0, ext_lo), (-1.0, ext_hi)):
+            res = linprog(sign * ny[k], A_ub=a_ub, b_ub=b_ub, bounds=[(None, None)] * ny.shape[1], method="highs")
+            out[k] = values[k] + span[k] * (float(ny[k] @ res.x) if res.status == 0 else -sign * math.inf)
+    return np.clip(ext_lo, lo, None), np.clip(ext_hi, None, hi)
+
+
+#: A key takes part in an uninformed direction when its component in a unit vector of that
+#: direction (each key scaled by its physical range) exceeds this. Structural non-identifiability
+#: gives components of order 0.1..1; round-off and a Jacobian perturbed at 1e-10 give 1e-8 or less.
+NULL_LOADING = 1e-3
+
+
+def _null_mates(keys, null, i) -> list[str] | None:
+    """The other keys sharing an uninformed direction with key ``i`` (None when key ``i`` has no
+    part in one, :data:`NULL_LOADING`): only their combination is identified. ``null``:
+    the directions' columns with each key scaled by its physical range."""
+    if null.size == 0:
+        return None
+    unit = null / np.maximum(np.linalg.norm(null, axis=0), 1e-300)
+    cols = np.flatnonzero(np.abs(unit[i]) > NULL_LOADING)
+    if cols.size == 0:
+        return None
+    return [keys[j] for j in range(len(keys)) if j != i and np.any(np.abs(unit[j, cols]) > NULL_LOADING)]
 
 
 def _unit_text(unit: str) -> str:
@@ -1157,13 +1252,15 @@ def fit_frf(
     s2 = float(r @ r) / dof
     cn = np.linalg.norm(jac, axis=0)
     cn[cn == 0] = 1.0
-    inv = np.linalg.pinv((jac / cn).T @ (jac / cn), rcond=1e-12, hermitian=True) / np.outer(cn, cn)
+    a_inv, null, ratios = _info_split(jac / cn)
+    inv = a_inv / np.outer(cn, cn)
     cov = s2 * inv * np.outer(scales, scales)
+    null = null / cn[:, None] * scales[:, None]
     values = sol.x * scales
     names_txt = ", ".join(fr.name for fr in frf)
     warns = [w for fr in frf for w in fr.warnings]
     params, corr, fitted, reflected, delay, reasons = _finish(plant, keys, values, cov, lo * scales, hi * scales, names_txt,
-                                                              warns, ts_fit, keep_unidentified)
+                                                              warns, ts_fit, keep_unidentified, null, ratios)
     if "contact.stiffness_n_per_mm_e" in keys:
         warns += _mode_warnings(fitted, frf, math.sqrt(s2) / np.sqrt(np.mean(np.concatenate(weights) ** 2)))
     fit_pct, traces = {}, {}
@@ -1675,7 +1772,7 @@ class _Problem:
         cn = np.linalg.norm(js, axis=0)
         cn[cn == 0] = 1.0
         jn = js / cn
-        a_inv = np.linalg.pinv(jn.T @ jn, rcond=1e-12, hermitian=True)
+        a_inv, null, ratios = _info_split(jn)
         bounds = np.cumsum([0] + lens)
         parts = [slice(int(bounds[i]), int(bounds[i + 1])) for i in range(len(lens))]
         # Pooled residual autocorrelation within segments, lags 1..max_lag.
@@ -1714,7 +1811,10 @@ class _Problem:
         info = {"covariance": "prewhitened (VAR(1)) Newey-West HAC sandwich over segments",
                 "hac_bandwidth_samples": L, "residual_acf_band_lag": lag_acf,
                 "residual_autocorrelation_lag1": float(acf[0]) if len(acf) else 0.0,
-                "ci_widening_vs_white": float(np.sqrt(np.max(np.diag(cov_hac) / np.maximum(s2 * np.diag(a_inv), 1e-300))))}
+                "ci_widening_vs_white": float(np.sqrt(np.max(np.diag(cov_hac) / np.maximum(s2 * np.diag(a_inv), 1e-300)))),
+                "singular_value_ratios": [float(x) for x in ratios], "rank_tolerance": RANK_RTOL,
+                "uninformed_directions": int(null.shape[1])}
+        self.null_scaled = null / cn[:, None]  # uninformed directions in the scaled parameters
         return cov, math.sqrt(s2) * unit_sigma, n_rows, n_cols, info
 
 
