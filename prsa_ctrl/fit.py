@@ -429,7 +429,8 @@ def fit_plant(
     from .plant import load_plant
 
     plant = load_plant() if plant is None else plant
-    records, frf = list(records), list(frf)
+    records, frf, validate = list(records), list(frf), list(validate)
+    records, validate, frf = _checked_inputs(records, validate, frf, plant)
 
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=delay_samples,
@@ -437,6 +438,180 @@ def fit_plant(
     return _fit_records(records, plant, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
                         segment_s=segment_s, delay_samples=delay_samples, substeps=substeps, max_iter=max_iter,
                         tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified)
+
+
+#: Largest relative difference between a record's sample time and the plant's
+#: ``sensor.sample_time_s``: the model holds each logged command over one logged sample, as the
+#: drive does, so a log at another rate (or with time in another unit) is not this drive's loop.
+SAMPLE_TIME_RTOL = 0.01
+#: Unit slips the torque-balance check recognises: the factor by which the apparent inertia
+#: (:func:`_apparent_inertia`) divides the plant's, and what it means for which column.
+_UNIT_SLIPS = (
+    (60.0 / (2 * math.pi), "speed in rpm"), (180.0 / math.pi, "speed in deg/s"), (1.0 / (2 * math.pi), "speed in rev/s"),
+    (1e-3, "torque in mN m"),
+)
+#: The apparent inertia names a unit slip when it is within this factor of the plant's reflected
+#: inertia divided by the slip's factor and more than :data:`UNIT_PLANT_FACTOR` away from the
+#: plant's own; beyond ``1 / 20 .. 20`` times the plant's (the fit's inertia bounds) it cannot be
+#: this plant in any case.
+UNIT_SLIP_FACTOR = 2.0
+#: A logged torque command beyond this multiple of the plant's torque limit is not this drive's.
+TORQUE_OVER_LIMIT = 10.0
+UNIT_PLANT_FACTOR = 3.0
+
+
+def _data_key(rec) -> bytes:
+    """Bytes that are equal exactly when two records hold the same data: the same measured arrays
+    at the same sample time (to 9 digits; a clock shifted by a constant is the same record)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    if isinstance(rec, Record):
+        arrays = (np.array([float(f"{rec.sample_time_s:.9g}")]), rec.torque_command_n_m, rec.nut_angle_rad,
+                  rec.nut_speed_rad_s, rec.axial_load_n)
+    else:
+        arrays = (rec.frequency_hz, rec.response, rec.coherence, np.array([rec.speed_rad_s, rec.load_n]))
+    for a in arrays:
+        h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
+    return h.digest()
+
+
+def _dedupe(items: list, earlier: Sequence = ()):
+    """``items`` without those whose data equal an earlier item's (or one of ``earlier``): the
+    item kept gets a warning naming the dropped one (the same data twice would count its noise
+    as new information and narrow the intervals by sqrt(2)). With ``earlier``: ``(items,
+    notes)``, the notes naming the items dropped for being one of ``earlier``."""
+    import dataclasses
+
+    first = {_data_key(e): e.name for e in earlier}
+    out, where, notes = [], {}, []
+    for it in items:
+        key = _data_key(it)
+        if key in first or key in where:
+            msg = (f"{it.name} holds the same data as {first.get(key) or out[where[key]].name}: used once (the same "
+                   "data twice would narrow the intervals by sqrt(2) without new information)")
+            if key in where:
+                out[where[key]] = dataclasses.replace(out[where[key]], warnings=(*out[where[key]].warnings, msg))
+            else:
+                notes.append(msg.replace("used once", "not a validation (it is fitted)"))
+            continue
+        where[key] = len(out)
+        out.append(it)
+    return (out, notes) if earlier else out
+
+
+def _motor_torque(rec: Record, plant: Plant, clip: bool = True) -> NDArray[np.float64]:
+    """The torque command through the plant's first-order current loop (clipped at its limit
+    unless ``clip`` is false), N m."""
+    from scipy.signal import lfilter
+
+    a = math.exp(-rec.sample_time_s / plant.current_loop_time_constant_s)
+    cmd = np.clip(rec.torque_command_n_m, -plant.torque_limit, plant.torque_limit) if clip else rec.torque_command_n_m
+
+    return np.concatenate([[cmd[0]], lfilter([1 - a], [1, -a], cmd[:-1], zi=[a * cmd[0]])[0]])
+
+
+def _apparent_inertia(rec: Record, plant: Plant) -> float | None:
+    """The inertia (kg m^2) the record's torque balance shows, from the data alone.
+
+    Over windows of ``m`` samples the change of the measured speed is regressed on the integrals
+    of the motor torque (the command through the current loop), of the speed sign, the speed,
+    the load and the load times the speed sign (Coulomb, viscous and load friction): the first
+    coefficient is ``1 / J``. Integrals of the clean command as regressors keep the speed noise
+    out of them. None when the regression does not explain the data (R^2 < 0.5) or the speed
+    does not respond to the torque.
+    """
+    v = rec.speed_rad_s  # interval means
+    if len(v) < 40:
+        return None
+    tau = _motor_torque(rec, plant, clip=False)  # unclipped: a unit slip shows in full
+    tau = 0.5 * (tau[:-1] + tau[1:])
+    sg = np.sign(v)
+    f = rec.axial_load_n[:-1]
+    ts = rec.sample_time_s
+    cols = np.column_stack([tau, sg, v, f, f * sg]) * ts
+    c = np.vstack([np.zeros(cols.shape[1]), np.cumsum(cols, axis=0)])
+    m = max(4, min(40, len(v) // 20))
+    j = np.arange(len(v) - m)
+    dv = v[j + m] - v[j]
+    x = c[j + m] - c[j]  # integral over the intervals j..j+m-1 (mid-interval to mid-interval)
+    scale = np.maximum(np.linalg.norm(x, axis=0), 1e-300)
+    beta, *_ = np.linalg.lstsq(x / scale, dv, rcond=None)
+    beta = beta / scale
+    ss = float(np.sum((dv - dv.mean()) ** 2))
+    if ss <= 0 or beta[0] <= 0:
+        return None
+    r2 = 1.0 - float(np.sum((dv - x @ beta) ** 2)) / ss
+    return 1.0 / float(beta[0]) if r2 >= 0.5 else None
+
+
+def _check_units(rec: Record, plant: Plant) -> None:
+    """Refuse a record whose torque balance shows a unit slip (:func:`_apparent_inertia` against
+    the plant's reflected inertia, :data:`_UNIT_SLIPS`) or an inertia no fit of this plant can reach."""
+    peak = float(np.max(np.abs(rec.torque_command_n_m)))
+    if peak > TORQUE_OVER_LIMIT * plant.torque_limit:
+        raise ValueError(f"{rec.name}: column torque_command_n_m reaches {peak:.6g}, {peak / plant.torque_limit:.3g} x "
+                         f"the plant's torque limit {plant.torque_limit:.6g} N m; expected N m (mN m? a current "
+                         "without --torque-constant?) or the actuator's own plant (--plant)")
+    j_app = _apparent_inertia(rec, plant)
+    if j_app is None:
+        return
+    j_pl = plant.reflected_inertia_kg_m2
+    ratio = j_pl / j_app
+    col = "nut_angle_rad" if rec.nut_angle_rad is not None else "nut_speed_rad_s"
+    what = (f"{rec.name}: the torque balance of torque_command_n_m and {col} shows an inertia of {j_app:.3g} kg m^2, "
+            f"{ratio:.3g} x smaller than the plant's {j_pl:.3g} kg m^2")
+    if abs(math.log(ratio)) > math.log(UNIT_PLANT_FACTOR):
+        for factor, slip in _UNIT_SLIPS:
+            if abs(math.log(ratio / factor)) < math.log(UNIT_SLIP_FACTOR):
+                column = "torque_command_n_m" if "torque" in slip else col
+                angle = " (or the angle in deg / rev)" if column == "nut_angle_rad" else ""
+                raise ValueError(f"{what}: column {column} looks like {slip}{angle}; expected SI units "
+                                 "(N m, rad, rad/s): convert the column (or, if it is SI, give a plant with the "
+                                 "actuator's inertia, --plant)")
+    if not 1 / 20 <= ratio <= 20:
+        raise ValueError(f"{what}; expected within a factor 20 of the plant (the fit's range): check the units of "
+                         f"torque_command_n_m and {col}, or give the actuator's own plant (--plant)")
+
+
+def _checked_inputs(records, validate, frf, plant):
+    """Inputs of a fit after the checks that need the plant: duplicate data used once (with a
+    warning), each record's sample time equal to the plant's within :data:`SAMPLE_TIME_RTOL`,
+    no unit slip in the torque balance (:func:`_check_units`), FRF points at or above the
+    drive's Nyquist frequency dropped (a warning each; too few left: ValueError)."""
+    from .fitdata import MIN_FRF_POINTS
+
+    import dataclasses
+
+    records = _dedupe(records)
+    frf = _dedupe(frf)
+    if validate:
+        validate, notes = _dedupe(validate, records)
+        if notes:
+            records[0] = dataclasses.replace(records[0], warnings=(*records[0].warnings, *notes))
+    ts_pl = plant.sample_time_s
+    for rec in (*records, *validate):
+        if abs(rec.sample_time_s / ts_pl - 1.0) > SAMPLE_TIME_RTOL:
+            raise ValueError(f"{rec.name}: column time_s gives a sample time of {rec.sample_time_s:.6g} s; expected the "
+                             f"plant's sensor.sample_time_s {ts_pl:.6g} s within {100 * SAMPLE_TIME_RTOL:g} % (time in "
+                             "another unit? a log at another rate than the drive's loop? or give the drive's plant)")
+        _check_units(rec, plant)
+    out = []
+    for fr in frf:
+        ts = _frf_ts(fr, plant)
+        if ts > 0 and fr.frequency_hz[-1] >= 0.5 / ts:
+            keep = fr.frequency_hz < 0.5 / ts
+            n_drop = int(np.sum(~keep))
+            if int(np.sum(keep)) < MIN_FRF_POINTS:
+                raise ValueError(f"{fr.name}: {int(np.sum(keep))} frequency points below the drive's Nyquist frequency "
+                                 f"{0.5 / ts:g} Hz (sample time {ts:g} s); expected at least {MIN_FRF_POINTS}")
+            note = (f"{fr.name}: {n_drop} points at or above the drive's Nyquist frequency {0.5 / ts:g} Hz "
+                    f"(sample time {ts:g} s) dropped: a sampled drive cannot measure them")
+            fr = dataclasses.replace(fr, frequency_hz=fr.frequency_hz[keep], response=fr.response[keep],
+                                     coherence=None if fr.coherence is None else fr.coherence[keep],
+                                     warnings=(*fr.warnings, note))
+        out.append(fr)
+    return records, validate, out
 
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
@@ -1179,6 +1354,7 @@ def fit_frf(
     frf = list(frf)
     if not frf:
         raise ValueError("frf = []; expected at least one frequency response")
+    frf = _checked_inputs([], [], frf, plant)[2]
     if fidelity not in ("rigid", "compliant"):
         raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' for a frequency-response fit")
     keys = _check_keys(FRF_KEYS_COMPLIANT if keys is None and fidelity == "compliant" else

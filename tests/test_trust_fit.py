@@ -93,3 +93,107 @@ def test_info_split_tolerance_is_stated_and_scale_free():
     j[:, 3] = j[:, 2] + 1e-2 * rng.standard_normal(200)  # weakly but truly informed: kept
     _, null, _ = _info_split(j / np.linalg.norm(j, axis=0))
     assert null.shape == (4, 0)
+
+
+# --- item 2 (hostile 9): the same record twice ---------------------------------------------------
+
+
+def test_duplicate_record_used_once_with_a_warning(base, truth, multisine):
+    from dataclasses import replace
+
+    one = fit_plant([multisine], base, keys=("nut.inertia_kg_m2", "drive.current_loop_bandwidth_hz"))
+    copy = replace(multisine, name="copy.csv", time_s=multisine.time_s + 5.0)  # same data, shifted clock
+    two = fit_plant([multisine, copy], base, keys=("nut.inertia_kg_m2", "drive.current_loop_bandwidth_hz"))
+    for k in one.keys:  # not narrowed by sqrt(2)
+        assert two.parameters[k]["ci95"] == pytest.approx(one.parameters[k]["ci95"], rel=1e-9)
+    assert any("copy.csv holds the same data as multisine-0" in w and "once" in w for w in two.warnings)
+    # a validation record that is a fitted one is no validation: said, not counted
+    val = fit_plant([multisine], base, keys=("nut.inertia_kg_m2",), validate=[copy])
+    assert "copy.csv" not in val.fit_percent and any("copy.csv" in w and "not a validation" in w for w in val.warnings)
+
+
+def test_duplicate_frf_used_once(base, truth):
+    from prsa_ctrl.fit import fit_frf, frf_response
+    from prsa_ctrl.fitdata import frf_from_arrays
+
+    f = np.geomspace(5, 600, 40)
+    rng = np.random.default_rng(1)
+    g = frf_response(truth, f, load_n=800.0) * np.exp(0.02 * (rng.standard_normal(40) + 1j * rng.standard_normal(40)))
+    a, b = frf_from_arrays("a.csv", f, g, load_n=800.0), frf_from_arrays("b.csv", f, g, load_n=800.0)
+    one, two = fit_frf([a], base), fit_frf([a, b], base)
+    for k in one.keys:
+        assert two.parameters[k]["ci95"] == pytest.approx(one.parameters[k]["ci95"], rel=1e-6)
+    assert any("b.csv holds the same data as a.csv" in w for w in two.warnings)
+
+
+# --- item 3 (hostile 6): units checked against the plant's physics --------------------------------
+
+
+def _speed_only(rec, factor=1.0, name="speed.csv"):
+    from prsa_ctrl.fitdata import record_from_arrays
+
+    v = np.concatenate([[rec.speed_rad_s[0]], rec.speed_rad_s]) * factor
+    return record_from_arrays(name, rec.time_s, rec.torque_command_n_m, nut_speed_rad_s=v, axial_load_n=rec.axial_load_n)
+
+
+@pytest.mark.parametrize("case", list(PERTURBED))
+@pytest.mark.parametrize("kind", ["multisine", "load-steps", "staircase"])
+def test_torque_balance_finds_rpm_and_passes_rad_s(base, case, kind):
+    from prsa_ctrl.fit import _check_units
+
+    rec = toolkit_record(base.with_params(PERTURBED[case]), kind)
+    _check_units(rec, base)
+    _check_units(_speed_only(rec), base)  # SI speed: accepted
+    with pytest.raises(ValueError, match=r"column nut_speed_rad_s looks like speed in rpm"):
+        _check_units(_speed_only(rec, 60 / (2 * math.pi)), base)
+    with pytest.raises(ValueError, match=r"column torque_command_n_m reaches .* torque limit"):
+        from dataclasses import replace
+
+        _check_units(replace(rec, torque_command_n_m=rec.torque_command_n_m * 1e3), base)
+
+
+def test_cli_rpm_speed_without_angle_exit_2_one_line(multisine, tmp_path, capsys):
+    from prsa_ctrl.fit_cli import main
+
+    csv = tmp_path / "rpm.csv"
+    _speed_only(multisine, 60 / (2 * math.pi)).to_csv(csv)
+    out = tmp_path / "o.toml"
+    assert main([str(csv), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nut_speed_rad_s" in err[0] and "rpm" in err[0] and "Traceback" not in err[0]
+    assert not out.exists()
+
+
+# --- item 4 (hostile 7): sample time and Nyquist -----------------------------------------------------
+
+
+def test_sample_time_compared_with_the_plant(base, multisine, tmp_path, capsys):
+    from dataclasses import replace
+
+    from prsa_ctrl.fit_cli import main
+
+    fast = replace(multisine, time_s=multisine.time_s * 1e-9)
+    with pytest.raises(ValueError, match=r"time_s .* sample time of 2\.5e-13 s; expected the plant's sensor"):
+        fit_plant([fast], base)
+    csv = tmp_path / "ns.csv"
+    fast.to_csv(csv)
+    assert main([str(csv), "--out", str(tmp_path / "o.toml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "time_s" in err[0] and "1 %" in err[0]
+    assert list(tmp_path.iterdir()) == [csv]
+
+
+def test_frf_points_above_nyquist_dropped_with_a_note(base, truth):
+    from prsa_ctrl.fit import fit_frf, frf_response
+    from prsa_ctrl.fitdata import frf_from_arrays
+
+    nyq = 0.5 / base.sample_time_s
+    f = np.geomspace(5, 3 * nyq, 60)
+    g = frf_response(truth, f, load_n=800.0, sample_time_s=0.0)  # what an analyser beyond the drive sees
+    full = fit_frf([frf_from_arrays("wide.csv", f, g, load_n=800.0)], base)
+    below = f < nyq
+    ref = fit_frf([frf_from_arrays("wide.csv", f[below], g[below], load_n=800.0)], base)
+    assert any("wide.csv" in w and "Nyquist" in w and f"{int(np.sum(~below))} points" in w for w in full.warnings)
+    assert np.max(full.traces["wide.csv"]["frequency_hz"]) < nyq
+    for k in full.keys:
+        assert full.parameters[k]["value"] == pytest.approx(ref.parameters[k]["value"], rel=1e-9)
