@@ -689,6 +689,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
                                                               np.array(cov_info["singular_value_ratios"]))
     fit_pct = dict(sol["fit_percent"])
     traces = dict(sol["traces"])
+    _add_simulations(traces, fit_run.simulate(sol, fitted))
     kept = [k for k in keys if params[k].get("kept_base")]
     s_written = np.array([plant.values[k] / sc if k in kept else sv for k, sv, sc in zip(keys, s_opt, scales)])
     written_pct = None
@@ -707,6 +708,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
         vsol = vrun.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
         fit_pct.update(vsol["fit_percent"])
         traces.update(vsol["traces"])
+        _add_simulations(traces, vrun.simulate(vsol, fitted))
     for fr in frf:  # frequency responses given with time-domain data validate the fitted plant
         g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n,
                          sample_time_s=_frf_ts(fr, fitted), delay_samples=delay_samples,
@@ -732,6 +734,13 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     if written_pct is not None:
         solver["fit_percent_written"] = written_pct
     return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, None, reasons)
+
+
+def _add_simulations(traces: dict, sims: dict) -> None:
+    """Attach each record's continuous simulation (:meth:`_Problem.simulate`) to its trace as ``"simulated"``."""
+    for name, sim in sims.items():
+        if name in traces:
+            traces[name]["simulated"] = sim
 
 
 def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_unidentified=True, null=None,
@@ -1526,13 +1535,12 @@ def fit_figures(result: FitResult) -> dict:
     for name, tr in result.traces.items():
         stem = _figure_stem(name, used)
         if "time_s" in tr:
-            t = np.asarray(tr["time_s"], float)
-            meas, mod = np.asarray(tr["measured"], float), np.asarray(tr["model"], float)
-            gap = np.flatnonzero(np.diff(t) > 1.5 * float(np.median(np.diff(t))))
-            t, meas, mod = (np.insert(a, gap + 1, np.nan) for a in (t, meas, mod))
+            t, meas, mod, label, joins = _overlay_data(tr)
             fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5.5), height_ratios=(2, 1))
             ax1.plot(t, meas, lw=0.8, color="0.5", label="measured (angle difference)")
-            ax1.plot(t, mod, lw=1.0, color="C0", label="fitted model")
+            ax1.plot(t, mod, lw=1.0, color="C0", label=label)
+            for tj in joins:  # only when the shooting segments themselves are shown
+                ax1.axvline(tj, color="C1", lw=0.4, alpha=0.5)
             ax1.set_ylabel("nut speed (rad/s)")
             ax1.set_title(f"{name}: fit {result.fit_percent.get(name, float('nan')):.1f} %")
             ax1.legend(loc="best", fontsize=8)
@@ -1564,6 +1572,26 @@ def fit_figures(result: FitResult) -> dict:
             fig.tight_layout()
             figs[f"{stem}-bode"] = fig
     return figs
+
+
+def _overlay_data(tr: dict):
+    """What a record's overlay figure plots: ``(time_s, measured, model, model label, join
+    times)``. The model is the continuous simulation of the fitted plant when there is one
+    (:meth:`_Problem.simulate`: no segment joins, so no resets that look like model error);
+    otherwise the shooting segments, each drawn apart (NaN between them) with its start marked.
+    Gaps in the data (left-out stretches) are broken with NaN too."""
+    sim = tr.get("simulated")
+    if sim is not None:
+        t, meas, mod = (np.asarray(sim[k], float) for k in ("time_s", "measured", "model"))
+        breaks, joins, label = np.zeros(0, int), [], "fitted plant, one continuous simulation"
+    else:
+        t, meas, mod = (np.asarray(tr[k], float) for k in ("time_s", "measured", "model"))
+        breaks = np.asarray(tr.get("joins", np.zeros(0, int)), int)
+        joins = [float(t[j]) for j in breaks]
+        label = "fitted model (shooting segments; each starts at a marked join)"
+    gap = np.flatnonzero(np.diff(t) > 1.5 * float(np.median(np.diff(t))))
+    cut = np.union1d(gap + 1, breaks)
+    return (*(np.insert(a, cut, np.nan) for a in (t, meas, mod)), label, joins)
 
 
 def figure_names(names: Sequence[str], frf_names: Sequence[str] = ()) -> list[str]:
@@ -1616,6 +1644,7 @@ class _Problem:
         import casadi as ca
 
         self.plant, self.records, self.ts = plant, records, ts
+        self.fidelity, self.delay = fidelity, int(delay)
         self.scales = np.asarray(scales, float)
         f, names = _symbolic_rhs(plant, keys, fidelity)
         self.names = names
@@ -1906,6 +1935,51 @@ class _Problem:
         out["fit_percent"], out["traces"] = self._fit_percent(self.thetas(V, X0))
         return out
 
+    def simulate(self, sol, plant: Plant) -> dict:
+        """One continuous simulation of ``plant`` per record (the figures' model trace).
+
+        From the fitted initial state of the record's first segment to the record's end, with
+        the logged command (held over each sample, ``delay`` samples late) and load, through
+        the left-out stretches too: no segment joins, so nothing in the trace is a reset of the
+        multiple shooting. CVODES (BDF, stiff), one sample per step of a ``mapaccum``.
+
+        Returns
+        -------
+        dict
+            ``{record name: {"time_s", "measured", "model"}}`` (nut speed over each sample
+            interval, rad/s, at the interval's end); a record whose simulation fails is left out.
+        """
+        import casadi as ca
+
+        f, names = _symbolic_rhs(plant, (), self.fidelity)
+        nx, sc = len(names), self.S
+        x = ca.SX.sym("x", nx)
+        u = ca.SX.sym("u", 2)
+        h = ca.SX.sym("h")
+        ode = h * f(x * ca.DM(sc), u, ca.DM.zeros(0)) / ca.DM(sc)
+        step = ca.integrator("fit_sim", "cvodes", {"x": x, "p": ca.vertcat(u, h), "ode": ode}, 0.0, 1.0,
+                             {"abstol": 1e-9, "reltol": 1e-8, "max_num_steps": 20000})
+        _, x0 = self._physical(sol["V"], sol["X0"])
+        out = {}
+        for r, rec in enumerate(self.records):
+            g = next((g for g, sg in enumerate(self.segs) if sg.rec == r), None)
+            if g is None or rec.name in out:
+                continue
+            k0 = self.segs[g].k0
+            ks = np.arange(k0, rec.n - 1)
+            kd = np.clip(ks - self.delay, 0, None)
+            pu = np.vstack([rec.torque_command_n_m[kd], rec.axial_load_n[ks], np.diff(rec.time_s)[ks]])
+            try:
+                xs = np.asarray(step.mapaccum("fit_sim_acc", len(ks), ["x0"], ["xf"])(
+                    x0=x0[:, g] / sc, p=pu)["xf"], float) * sc[:, None]
+            except RuntimeError:
+                continue
+            th = np.concatenate([[x0[self.i_th, g]], xs[self.i_th]])
+            v = np.diff(th) / np.diff(rec.time_s[k0:])
+            if np.all(np.isfinite(v)):
+                out[rec.name] = {"time_s": rec.time_s[k0 + 1:], "measured": rec.speed_rad_s[k0:], "model": v}
+        return out
+
     def _fit_percent(self, thetas):
         """Speed fit % per record from the model angles at the samples of each segment."""
         per: dict[str, tuple] = {}
@@ -1913,15 +1987,17 @@ class _Problem:
             rec = self.records[sg.rec]
             v_model = np.diff(th) / np.diff(rec.time_s[sg.k0:sg.k0 + sg.n + 1])
             v_meas = rec.speed_rad_s[sg.k0:sg.k0 + sg.n]
-            m, mm, tt = per.setdefault(rec.name, ([], [], []))
+            m, mm, tt, jj = per.setdefault(rec.name, ([], [], [], []))
+            jj.append(sum(len(a) for a in m))
             m.append(v_meas)
             mm.append(v_model)
             tt.append(rec.time_s[sg.k0 + 1:sg.k0 + sg.n + 1])
         out, traces = {}, {}
-        for name, (m, mm, tt) in per.items():
+        for name, (m, mm, tt, jj) in per.items():
             a, b = np.concatenate(m), np.concatenate(mm)
             out[name] = round(fit_percent(a, b), 3)
-            traces[name] = {"time_s": np.concatenate(tt), "measured": a, "model": b}
+            # joins: index of each segment's first sample in these arrays (its own initial state)
+            traces[name] = {"time_s": np.concatenate(tt), "measured": a, "model": b, "joins": np.array(jj[1:], int)}
         return out, traces
 
     def covariance(self, sol):

@@ -197,3 +197,47 @@ def test_frf_points_above_nyquist_dropped_with_a_note(base, truth):
     assert np.max(full.traces["wide.csv"]["frequency_hz"]) < nyq
     for k in full.keys:
         assert full.parameters[k]["value"] == pytest.approx(ref.parameters[k]["value"], rel=1e-9)
+
+
+# --- item 6: overlay figures without shooting-join spikes ---------------------------------------------
+
+
+def _independent_record(truth):
+    from independent_actuator import simulate_independent
+
+    from prsa_ctrl.fitdata import design_excitation, record_from_arrays
+
+    ts = 2.5e-4
+    n = int(round(0.4 / ts))
+    t = np.arange(n) * ts
+    _, sp = design_excitation("multisine", duration_s=n * ts, sample_time_s=ts, f_min_hz=5, f_max_hz=150,
+                              amplitude=20, offset=30)
+    load = np.select([t < 0.1, t < 0.2, t < 0.3], [200.0, 1500.0, 300.0], 2500.0)
+    d = simulate_independent(
+        inertia_kg_m2=truth.reflected_inertia_kg_m2, lead_m=truth.lead_m, efficiency=0.88, no_load_torque_n_m=0.03,
+        viscous_n_m_s_per_rad=1.5e-4, current_loop_bandwidth_hz=1200.0, torque_limit_n_m=truth.torque_limit,
+        setpoint_rad_s=sp, load_n=load, sample_time_s=ts, seed=1)
+    return record_from_arrays("independent", d["time_s"], d["torque_command_n_m"], nut_angle_rad=d["nut_angle_rad"],
+                              axial_load_n=d["axial_load_n"])
+
+
+def test_overlay_shows_one_continuous_simulation(base, truth):
+    """On b18c321 the overlay drew the shooting segments: at a join the model jumped by 2.5 rad/s
+    (the measured speed never changes by more than 1.4 rad/s in a sample) and the residual panel
+    showed 2.3 rad/s there."""
+    from prsa_ctrl.fit import fit_figures
+
+    rec = _independent_record(truth)
+    result = fit_plant([rec], base)
+    fig = fit_figures(result)["independent-fit"]
+    ax1, ax2 = fig.axes[:2]
+    meas, model = (np.asarray(line.get_ydata(), float) for line in ax1.lines[:2])
+    t = np.asarray(ax1.lines[1].get_xdata(), float)
+    assert np.all(np.isfinite(model)) and np.all(np.isfinite(t))  # one run, no segment breaks
+    assert t[0] <= rec.time_s[1] + 1e-12 and t[-1] == pytest.approx(rec.time_s[-1])  # the whole record
+    step_model, step_meas = np.max(np.abs(np.diff(model))), np.max(np.abs(np.diff(meas)))
+    assert step_model <= 1.2 * step_meas, (step_model, step_meas)
+    resid = np.asarray(ax2.lines[0].get_ydata(), float)
+    assert np.max(np.abs(resid)) < 1.0
+    np.testing.assert_allclose(resid, meas - model)
+    assert "continuous simulation" in ax1.get_legend().get_texts()[1].get_text()
