@@ -362,6 +362,7 @@ def fit_plant(
     tol: float = 1e-8,
     min_speed_rad_s: float | None = None,
     keep_unidentified: bool = True,
+    uncertainty: str = "keep",
 ) -> FitResult:
     """Fit plant parameters to measured time-domain records (output error through the model).
 
@@ -414,6 +415,12 @@ def fit_plant(
         plant); 0 keeps every sample.
     keep_unidentified : bool
         False writes every fitted value into the plant, identifiable or not.
+    uncertainty : {"keep", "fit"}
+        The fitted plant's ``[uncertainty]`` entries of the fitted keys: ``"keep"`` the base
+        plant's (the user's assumptions) unless one is narrower than the fit's 95 % interval or
+        does not hold the fitted value (then the fit's, with a warning), and none where the base
+        has none; ``"fit"`` the fit's own for every fitted key (a normal with the fit's sigma,
+        truncated at its 95 % interval).
 
     Returns
     -------
@@ -432,12 +439,15 @@ def fit_plant(
     records, frf, validate = list(records), list(frf), list(validate)
     records, validate, frf = _checked_inputs(records, validate, frf, plant)
 
+    if uncertainty not in UNCERTAINTY_MODES:
+        raise ValueError(f"uncertainty = {uncertainty!r}; expected one of {', '.join(map(repr, UNCERTAINTY_MODES))}")
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=delay_samples,
-                       keep_unidentified=keep_unidentified)
+                       keep_unidentified=keep_unidentified, uncertainty=uncertainty)
     return _fit_records(records, plant, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
                         segment_s=segment_s, delay_samples=delay_samples, substeps=substeps, max_iter=max_iter,
-                        tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified)
+                        tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
+                        uncertainty=uncertainty)
 
 
 #: Largest relative difference between a record's sample time and the plant's
@@ -615,7 +625,7 @@ def _checked_inputs(records, validate, frf, plant):
 
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
-                 min_speed_rad_s, keep_unidentified) -> FitResult:
+                 min_speed_rad_s, keep_unidentified, uncertainty="keep") -> FitResult:
     """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
@@ -686,7 +696,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     params, corr, fitted, reflected, delay, reasons = _finish(plant, keys, values, cov, lo * scales, hi * scales,
                                                               names, warns, ts, keep_unidentified,
                                                               fit_run.null_scaled * scales[:, None],
-                                                              np.array(cov_info["singular_value_ratios"]))
+                                                              np.array(cov_info["singular_value_ratios"]), uncertainty)
     fit_pct = dict(sol["fit_percent"])
     traces = dict(sol["traces"])
     _add_simulations(traces, fit_run.simulate(sol, fitted))
@@ -744,7 +754,7 @@ def _add_simulations(traces: dict, sims: dict) -> None:
 
 
 def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_unidentified=True, null=None,
-            ratios=None):
+            ratios=None, uncertainty="keep"):
     """Parameters with 95 % CIs, correlation, identifiability warnings, the fitted plant, the
     reflected inertia, the delay block (None unless the delay was fitted) and the reasons of the
     keys not identified, from fitted values and their covariance (file units; ``lo``/``hi``
@@ -752,7 +762,8 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
     (columns, file units; :func:`_info_split`) and ``ratios`` the singular values over the
     largest: a key's interval spans how far those directions move it within the physical
     ranges (:func:`_null_extent`) plus the covariance's interval. With ``keep_unidentified``
-    the keys not identified keep the base plant's value, source and ``[uncertainty]`` entry."""
+    the keys not identified keep the base plant's value, source and ``[uncertainty]`` entry;
+    ``uncertainty`` says what the fitted keys' entries become (:func:`_uncertainty_choice`)."""
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
@@ -837,16 +848,20 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
         for k in plant_keys:
             lo_ci, hi_ci = params[k]["ci95"]
             srcs[k] = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g})"
-        unc = {k: v for k, v in (getattr(plant, "uncertainty", None) or {}).items() if k not in plant_keys}
+        base_unc = dict(getattr(plant, "uncertainty", None) or {})
+        unc = {k: v for k, v in base_unc.items() if k not in plant_keys}
         fit_unc = _uncertainty_entries(fitted, {k: params[k] for k in plant_keys}, names,
                                        [std[keys.index(k)] for k in plant_keys],
                                        [_physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)])
                                         for k in plant_keys])
-        unc.update(fit_unc)
         for k in plant_keys:
-            if k not in fit_unc:
-                warns.append(f"{k}: no [uncertainty] entry written (its interval is degenerate or leaves the "
-                             "physical range)")
+            choice, note = _uncertainty_choice(fitted, k, base_unc.get(k), fit_unc.get(k), params[k]["ci95"],
+                                               _physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)]),
+                                               uncertainty)
+            if choice is not None:
+                unc[k] = choice
+            if note:
+                warns.append(note)
         fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
                        description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc)
     extra = plant.reflected_inertia_kg_m2 - plant.values["nut.inertia_kg_m2"]
@@ -982,6 +997,49 @@ def _delay_block(fitted: Plant, keys, values, cov, ts: float) -> dict:
                       "computation delay and the current loop only); the equivalent first-order current-loop "
                       "bandwidth carries the same low-frequency phase lag",
     }
+
+
+#: What a fit writes into the fitted plant's ``[uncertainty]`` for a fitted key: ``"keep"`` the
+#: base plant's own entry (the user's assumption) unless it is narrower than the fit's 95 %
+#: interval or does not hold the fitted value (then the fit's entry), and no entry where the base
+#: has none; ``"fit"`` the fit's entry (:func:`_uncertainty_entries`) for every fitted key.
+UNCERTAINTY_MODES = ("keep", "fit")
+
+
+def _entry_support(fitted: Plant, key: str, entry) -> tuple[float, float] | None:
+    """Support ``(low, high)`` of a base ``[uncertainty]`` entry around the fitted plant's value
+    (None when it is not valid there, e.g. absolute bounds that exclude the fitted value)."""
+    from .errors import PlantFileError
+    from .uncertainty import plant_uncertainty
+
+    try:
+        p = Plant(name=fitted.name, values=fitted.values, sources=fitted.sources, uncertainty={key: entry})
+        (u,) = plant_uncertainty(p).entries
+    except (PlantFileError, ValueError):
+        return None
+    return float(u.low), float(u.high)
+
+
+def _uncertainty_choice(fitted: Plant, key: str, base_entry, fit_entry, ci95, rng, mode: str):
+    """The ``[uncertainty]`` entry written for a fitted key and a note (or None) saying why it
+    is not the user's: see :data:`UNCERTAINTY_MODES`. Never narrower than the fit's 95 %
+    interval (clipped to the key's physical range ``rng``)."""
+    if base_entry is None and mode == "keep":
+        return None, None  # the user assumed no spread there; the fit's own entry only when asked ("fit")
+    if base_entry is None or mode == "fit":
+        if fit_entry is None:
+            return None, (f"{key}: no [uncertainty] entry written (its interval is degenerate or leaves the "
+                          "physical range)")
+        return fit_entry, None
+    support = _entry_support(fitted, key, base_entry)
+    lo_ci, hi_ci = max(ci95[0], rng[0]), min(ci95[1], rng[1])
+    if support is not None and support[1] - support[0] >= (hi_ci - lo_ci) * (1 - 1e-9):
+        return base_entry, None
+    why = ("does not hold the fitted value" if support is None else
+           f"({support[0]:.6g}..{support[1]:.6g}) is narrower than the fit's 95 % interval {lo_ci:.6g}..{hi_ci:.6g}")
+    if fit_entry is None:
+        return base_entry, f"{key}: the base plant's [uncertainty] entry {why}; kept (the fit's interval is degenerate)"
+    return fit_entry, f"{key}: the base plant's [uncertainty] entry {why}: the fit's entry is written instead"
 
 
 def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=None) -> dict:
@@ -1298,13 +1356,19 @@ def axial_mode(plant: Plant, *, speed_rad_s: float = 30.0, load_n: float = 800.0
     }
 
 
+#: A response whose log varies by less than this (RMS, nepers and radians) has no spread to
+#: normalise a fit % by (a constant response: round-off gave "fit -6.4e17 %").
+FRF_SPREAD_MIN = 1e-6
+
+
 def _frf_fit_percent(measured, model) -> float:
-    """Fit % of a frequency response on its complex logarithm (magnitude and phase alike)."""
+    """Fit % of a frequency response on its complex logarithm (magnitude and phase alike); NaN
+    when the measured response does not vary (RMS spread of its log below :data:`FRF_SPREAD_MIN`)."""
     lm, lg = np.log(measured), np.log(model)
     d = np.angle(np.exp(1j * (lm.imag - lg.imag)))
     err = np.sqrt(np.sum((lm.real - lg.real) ** 2 + d**2))
     ref = np.sqrt(np.sum((lm.real - lm.real.mean()) ** 2 + (np.unwrap(lm.imag) - np.unwrap(lm.imag).mean()) ** 2))
-    return float(100.0 * (1.0 - err / ref)) if ref > 0 else float("nan")
+    return float(100.0 * (1.0 - err / ref)) if ref > FRF_SPREAD_MIN * math.sqrt(len(lm)) else float("nan")
 
 
 def fit_frf(
@@ -1316,6 +1380,7 @@ def fit_frf(
     delay_samples: int = 0,
     max_nfev: int = 200,
     keep_unidentified: bool = True,
+    uncertainty: str = "keep",
 ) -> FitResult:
     """Fit plant parameters to measured frequency responses (torque command -> nut speed).
 
@@ -1350,6 +1415,8 @@ def fit_frf(
         Budget of model evaluations.
     keep_unidentified : bool
         Keys the responses cannot inform keep the base value (see :func:`fit_plant`).
+    uncertainty : {"keep", "fit"}
+        The fitted keys' ``[uncertainty]`` entries (see :func:`fit_plant`).
 
     Returns
     -------
@@ -1364,6 +1431,8 @@ def fit_frf(
     if not frf:
         raise ValueError("frf = []; expected at least one frequency response")
     frf = _checked_inputs([], [], frf, plant)[2]
+    if uncertainty not in UNCERTAINTY_MODES:
+        raise ValueError(f"uncertainty = {uncertainty!r}; expected one of {', '.join(map(repr, UNCERTAINTY_MODES))}")
     if fidelity not in ("rigid", "compliant"):
         raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' for a frequency-response fit")
     keys = _check_keys(FRF_KEYS_COMPLIANT if keys is None and fidelity == "compliant" else
@@ -1445,7 +1514,8 @@ def fit_frf(
     names_txt = ", ".join(fr.name for fr in frf)
     warns = [w for fr in frf for w in fr.warnings]
     params, corr, fitted, reflected, delay, reasons = _finish(plant, keys, values, cov, lo * scales, hi * scales, names_txt,
-                                                              warns, ts_fit, keep_unidentified, null, ratios)
+                                                              warns, ts_fit, keep_unidentified, null, ratios,
+                                                              uncertainty)
     if "contact.stiffness_n_per_mm_e" in keys:
         warns += _mode_warnings(fitted, frf, math.sqrt(s2) / np.sqrt(np.mean(np.concatenate(weights) ** 2)))
     fit_pct, traces = {}, {}
