@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from .fitdata import FrfRecord, Record
 from .plant import Plant
 
-__all__ = ["fit_plant", "fit_frf", "frf_response", "axial_mode", "fit_figures", "FitResult", "FitError", "FITTABLE",
+__all__ = ["fit_plant", "fit_frf", "frf_response", "frf_operating_point_error", "axial_mode", "fit_figures", "FitResult", "FitError", "FITTABLE",
            "DEFAULT_KEYS", "FRF_KEYS", "FRF_KEYS_COMPLIANT", "DELAY_KEY", "fit_percent"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`_bounds`).
@@ -465,6 +465,10 @@ _UNIT_SLIPS = (
 #: plant's own; beyond ``1 / 20 .. 20`` times the plant's (the fit's inertia bounds) it cannot be
 #: this plant in any case.
 UNIT_SLIP_FACTOR = 2.0
+#: Operating point of a measured frequency response: nut speed at most 6000 rpm (the tuner's
+#: limit), axial load at most this many rated loads of the plant.
+FRF_SPEED_MAX_RAD_S = 6000.0 * math.pi / 30.0
+FRF_LOAD_MAX_RATED = 2.0
 #: A logged torque command beyond this multiple of the plant's torque limit is not this drive's.
 TORQUE_OVER_LIMIT = 10.0
 UNIT_PLANT_FACTOR = 3.0
@@ -584,11 +588,32 @@ def _check_units(rec: Record, plant: Plant) -> None:
                          f"torque_command_n_m and {col}, or give the actuator's own plant (--plant)")
 
 
+def frf_operating_point_error(plant: Plant, speed_rad_s: float, load_n: float) -> tuple[str, str] | None:
+    """What is wrong with a frequency response's operating point for ``plant``, or None.
+
+    Returns
+    -------
+    tuple or None
+        ``("speed", expected)`` for a nut speed (rad/s) inside the friction's stick band (the
+        linearisation needs motion) or above :data:`FRF_SPEED_MAX_RAD_S`; ``("load", expected)``
+        for an axial load (N) above :data:`FRF_LOAD_MAX_RATED` rated loads.
+    """
+    v_min, v_max, f_max = _min_speed(plant), FRF_SPEED_MAX_RAD_S, FRF_LOAD_MAX_RATED * plant.rated_load_n
+    if not v_min <= abs(speed_rad_s) <= v_max:
+        return "speed", (f"expected a nut speed with {v_min:.3g} <= |speed| <= {v_max:.6g} rad/s (the linearisation "
+                         "needs motion above the friction's stick band; 6000 rpm is the tuner's limit)")
+    if abs(load_n) > f_max:
+        return "load", (f"expected |load| <= {f_max:.6g} N ({FRF_LOAD_MAX_RATED:g} x the plant's rated load "
+                        f"{plant.rated_load_n:.6g} N)")
+    return None
+
+
 def _checked_inputs(records, validate, frf, plant):
     """Inputs of a fit after the checks that need the plant: duplicate data used once (with a
     warning), each record's sample time equal to the plant's within :data:`SAMPLE_TIME_RTOL`,
     no unit slip in the torque balance (:func:`_check_units`), FRF points at or above the
-    drive's Nyquist frequency dropped (a warning each; too few left: ValueError)."""
+    drive's Nyquist frequency dropped (a warning each; too few left: ValueError), each response's
+    operating point within :data:`FRF_SPEED_MAX_RAD_S` and :data:`FRF_LOAD_MAX_RATED`."""
     from .fitdata import MIN_FRF_POINTS
 
     import dataclasses
@@ -608,6 +633,11 @@ def _checked_inputs(records, validate, frf, plant):
         _check_units(rec, plant)
     out = []
     for fr in frf:
+        bad = frf_operating_point_error(plant, fr.speed_rad_s, fr.load_n)
+        if bad:
+            field_, expected = bad
+            value = fr.speed_rad_s if field_ == "speed" else fr.load_n
+            raise ValueError(f"{fr.name}: {field_} = {value!r}; {expected}")
         ts = _frf_ts(fr, plant)
         if ts > 0 and fr.frequency_hz[-1] >= 0.5 / ts:
             keep = fr.frequency_hz < 0.5 / ts

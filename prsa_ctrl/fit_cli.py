@@ -39,8 +39,6 @@ __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
 #: Exit code of a run stopped by Ctrl-C (as ``prsa-tune``).
 EXIT_INTERRUPTED = 130
-#: Largest axial load of a frequency-response measurement (``--frf-load``), in rated loads of the plant.
-FRF_LOAD_MAX_RATED = 2.0
 
 #: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
 #: speed range the tuner accepts (:data:`prsa_ctrl.scene.SETPOINT_MAX_RPM`, 6000 rpm).
@@ -422,20 +420,14 @@ def _probe_plots(directory: str, names: Sequence[str], inputs: Sequence[str]) ->
 
 
 def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> None:
-    """The FRF operating point (``--frf-speed``, ``--frf-load``) against the plant: a speed
-    above the friction's non-smooth band and within the tuner's speed limit, a load within
-    :data:`FRF_LOAD_MAX_RATED` rated loads."""
-    from .fit import _min_speed
+    """The FRF operating point (``--frf-speed``, ``--frf-load``) checked before the fit, the
+    flag named (:func:`prsa_ctrl.fit.frf_operating_point_error`)."""
+    from .fit import frf_operating_point_error
 
-    v_min = _min_speed(plant)
-    if not v_min <= abs(speed) <= DESIGN_MAX_SPEED_RAD_S:
-        raise _UsageError(f"--frf-speed {_typed(argv, '--frf-speed', speed)}: expected a nut speed with {v_min:.3g} <= "
-                          f"|speed| <= {DESIGN_MAX_SPEED_RAD_S:.6g} rad/s (the linearisation needs motion above the "
-                          "friction's stick band; 6000 rpm is the tuner's limit)")
-    f_max = FRF_LOAD_MAX_RATED * plant.rated_load_n
-    if abs(load) > f_max:
-        raise _UsageError(f"--frf-load {_typed(argv, '--frf-load', load)}: expected |load| <= {f_max:.6g} N "
-                          f"({FRF_LOAD_MAX_RATED:g} x the plant's rated load {plant.rated_load_n:.6g} N)")
+    bad = frf_operating_point_error(plant, speed, load)
+    if bad:
+        flag, value = ("--frf-speed", speed) if bad[0] == "speed" else ("--frf-load", load)
+        raise _UsageError(f"{flag} {_typed(argv, flag, value)}: {bad[1]}")
 
 
 def _main(argv: Sequence[str], created: list | None = None) -> int:

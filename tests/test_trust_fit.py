@@ -468,3 +468,15 @@ def test_constant_frf_gives_no_absurd_fit_percent(tmp_path, capsys):
     out = capsys.readouterr().out
     (line,) = [ln for ln in out.splitlines() if ln.startswith("fit ")]
     assert "n/a" in line and "e+" not in line and "e17" not in line
+
+
+@pytest.mark.parametrize("speed,load,match", [(0.0, 800.0, "speed = 0.0"), (1e6, 800.0, "speed = 1000000.0"),
+                                              (30.0, 1e9, "load = 1000000000.0")])
+def test_fit_frf_operating_point_checked(base, truth, speed, load, match):
+    from prsa_ctrl.fit import fit_frf, frf_response
+    from prsa_ctrl.fitdata import frf_from_arrays
+
+    f = np.geomspace(5, 600, 30)
+    fr = frf_from_arrays("op.csv", f, frf_response(truth, f, load_n=800.0), speed_rad_s=speed, load_n=load)
+    with pytest.raises(ValueError, match=f"op.csv: {match}; expected"):
+        fit_frf([fr], base)
