@@ -829,7 +829,8 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
             small = float(np.min(ratios)) if ratios is not None and len(ratios) else 0.0
             reason = (f"the data inform only its combination with {', '.join(mates) or 'nothing else'} (a direction of "
                       f"the scaled Jacobian with singular value {small:.1e} x the largest, below the tolerance "
-                      f"{RANK_RTOL:g}): the physical ranges alone bound it to {ext_lo[i]:.6g}..{ext_hi[i]:.6g}")
+                      f"{RANK_RTOL:g}): the physical ranges alone bound it to {ext_lo[i]:.6g}..{ext_hi[i]:.6g}; "
+                      f"{_REMEDY_KEY.get(k, 'excite it more')}")
         if reason:
             reasons[k] = reason
     # A key the data cannot separate from an unidentifiable one is not identified either: its
@@ -858,7 +859,9 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
                          f"file (not identifiable: {reason})")
     for i in range(len(keys)):
         for j in range(i + 1, len(keys)):
-            if abs(corr[i, j]) > _CORR_SEPARATE:
+            # (a key on an uninformed direction: its reason names the combination; the
+            # covariance has no part along that direction, so its correlations say nothing)
+            if abs(corr[i, j]) > _CORR_SEPARATE and keys[i] not in in_null and keys[j] not in in_null:
                 pair = {keys[i], keys[j]}
                 if pair == {DELAY_KEY, "drive.current_loop_bandwidth_hz"}:
                     warns.append(f"{DELAY_KEY} and drive.current_loop_bandwidth_hz are strongly correlated "
