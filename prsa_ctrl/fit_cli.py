@@ -170,6 +170,7 @@ def plant_toml(base_text: str, plant, name: str, keys: Sequence[str], descriptio
     """
     import tomllib
 
+    base_text = base_text.removeprefix("\ufeff")  # a byte-order mark is no TOML
     unc = dict(getattr(plant, "uncertainty", None) or {})
     unc_keys = [k for k in keys if k in unc] if uncertainty_keys is None else list(uncertainty_keys)
     base_doc = tomllib.loads(base_text)
