@@ -22,8 +22,15 @@ projected out) follows from the collocation equations by the implicit-function t
 covariance is a sandwich with a prewhitened Newey-West (HAC) estimate of the score covariance
 (coloured residuals: quantisation, the speed loop, model error), which equals the classic
 ``s^2 (J^T J)^-1`` for white residuals; it gives 95 % intervals (normal approximation), the
-correlation matrix and identifiability warnings. Measured coverage (tests/test_fit.py,
-``PRSA_SLOW=1``): see the README's calibration section.
+correlation matrix and identifiability warnings. Identifiability is decided on the singular
+values of the column-scaled parameter Jacobian (:data:`RANK_RTOL`, far above round-off): along
+a direction the data do not inform, the intervals span what the physical ranges allow and the
+keys on it keep the base plant's values. Measured coverage (tests/test_fit.py, ``PRSA_SLOW=1``):
+see the README's calibration section.
+
+Inputs are checked against the plant before the fit (:func:`_checked_inputs`): duplicate data,
+the sample time, a unit slip in the torque balance, FRF points above the drive's Nyquist
+frequency. The overlay figures show one continuous simulation of the fitted plant.
 
 Frequency responses (:func:`fit_frf`): the rigid model linearised at the measurement's speed and
 load, sampled as the drive measures it, fitted on the log response.

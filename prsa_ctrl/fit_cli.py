@@ -8,15 +8,19 @@
 ``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
 [--f-min HZ] [--f-max HZ] [--amplitude RAD_S] [--offset RAD_S]``
 
-Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge.
-Output paths are checked before the fit (two outputs on one path are refused); every file is
-written atomically. Python warnings (e.g. the base plant's geometry note) are shown after the
+Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge,
+130 interrupted (Ctrl-C: one line, the files and folders this run made are taken back).
+Output and figure paths are checked before the fit, the way they will be written (two outputs
+on one path, a symlink loop, a name too long are refused); every file is written atomically.
+The base plant (``--plant``) is parsed and its fitted file's text checked before the fit too. Python warnings (e.g. the base plant's geometry note) are shown after the
 result as one ``prsa-fit: note:`` line each; the geometry note of a built-in plant only with
 ``--verbose``, as in ``prsa-tune``.
 
 Keys the data cannot inform keep the base plant's value and source in the written file
 (:func:`prsa_ctrl.fit.fit_plant`); the output names them and the JSON marks them
-``"kept_base": true`` with the reason.
+``"kept_base": true`` with the reason. The base file's ``[uncertainty]`` entries are kept (an
+entry narrower than the fit's 95 % interval, or one that does not hold the fitted value, is
+replaced by the fit's); ``--uncertainty-from-fit`` writes the fit's own for every fitted key.
 
 An excitation design is a nut-speed setpoint: its peak ``|offset| + amplitude`` must stay within
 :data:`DESIGN_MAX_SPEED_RAD_S` (the tuner's speed limit, ``prsa_ctrl.scene.SETPOINT_MAX_RPM``).
