@@ -580,8 +580,8 @@ def _check_units(rec: Record, plant: Plant) -> None:
     j_pl = plant.reflected_inertia_kg_m2
     ratio = j_pl / j_app
     col = "nut_angle_rad" if rec.nut_angle_rad is not None else "nut_speed_rad_s"
-    what = (f"{rec.name}: the torque balance of torque_command_n_m and {col} shows an inertia of {j_app:.3g} kg m^2, "
-            f"{ratio:.3g} x smaller than the plant's {j_pl:.3g} kg m^2")
+    what = (f"{rec.name}: the torque balance of torque_command_n_m and {col} shows an inertia of {j_app:.3g} kg m^2 "
+            f"where the plant has {j_pl:.3g} kg m^2 (ratio {ratio:.3g})")
     if abs(math.log(ratio)) > math.log(UNIT_PLANT_FACTOR):
         for factor, slip in _UNIT_SLIPS:
             if abs(math.log(ratio / factor)) < math.log(UNIT_SLIP_FACTOR):
