@@ -22,8 +22,15 @@ projected out) follows from the collocation equations by the implicit-function t
 covariance is a sandwich with a prewhitened Newey-West (HAC) estimate of the score covariance
 (coloured residuals: quantisation, the speed loop, model error), which equals the classic
 ``s^2 (J^T J)^-1`` for white residuals; it gives 95 % intervals (normal approximation), the
-correlation matrix and identifiability warnings. Measured coverage (tests/test_fit.py,
-``PRSA_SLOW=1``): see the README's calibration section.
+correlation matrix and identifiability warnings. Identifiability is decided on the singular
+values of the column-scaled parameter Jacobian (:data:`RANK_RTOL`, far above round-off): along
+a direction the data do not inform, the intervals span what the physical ranges allow and the
+keys on it keep the base plant's values. Measured coverage (tests/test_fit.py, ``PRSA_SLOW=1``):
+see the README's calibration section.
+
+Inputs are checked against the plant before the fit (:func:`_checked_inputs`): duplicate data,
+the sample time, a unit slip in the torque balance, FRF points above the drive's Nyquist
+frequency. The overlay figures show one continuous simulation of the fitted plant.
 
 Frequency responses (:func:`fit_frf`): the rigid model linearised at the measurement's speed and
 load, sampled as the drive measures it, fitted on the log response.
@@ -42,7 +49,7 @@ from numpy.typing import NDArray
 from .fitdata import FrfRecord, Record
 from .plant import Plant
 
-__all__ = ["fit_plant", "fit_frf", "frf_response", "axial_mode", "fit_figures", "FitResult", "FitError", "FITTABLE",
+__all__ = ["fit_plant", "fit_frf", "frf_response", "frf_operating_point_error", "axial_mode", "fit_figures", "FitResult", "FitError", "FITTABLE",
            "DEFAULT_KEYS", "FRF_KEYS", "FRF_KEYS_COMPLIANT", "DELAY_KEY", "fit_percent"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`_bounds`).
@@ -97,6 +104,13 @@ STALL_ITERATIONS = 15
 STEP_SE_FRACTION = 1e-3
 #: Shortest multiple-shooting segment (sample intervals); shorter stretches of usable data are left out.
 MIN_SEGMENT = 20
+#: Identifiability tolerance: a direction of the column-scaled parameter Jacobian (each column
+#: of unit norm, segment initial states projected out) whose singular value is below this
+#: fraction of the largest carries no information from the data. Round-off puts an exactly
+#: singular direction near 1e-15 and a perturbation of the Jacobian at 1e-10 near 1e-10; weakly
+#: but truly excited directions of the built-in experiments lie above 1e-3. Along such a
+#: direction the interval is the whole stretch the physical ranges allow (:func:`_null_extent`).
+RANK_RTOL = 1e-6
 
 
 class FitError(RuntimeError):
@@ -355,6 +369,7 @@ def fit_plant(
     tol: float = 1e-8,
     min_speed_rad_s: float | None = None,
     keep_unidentified: bool = True,
+    uncertainty: str = "keep",
 ) -> FitResult:
     """Fit plant parameters to measured time-domain records (output error through the model).
 
@@ -407,6 +422,12 @@ def fit_plant(
         plant); 0 keeps every sample.
     keep_unidentified : bool
         False writes every fitted value into the plant, identifiable or not.
+    uncertainty : {"keep", "fit"}
+        The fitted plant's ``[uncertainty]`` entries of the fitted keys: ``"keep"`` the base
+        plant's (the user's assumptions) unless one is narrower than the fit's 95 % interval or
+        does not hold the fitted value (then the fit's, with a warning), and none where the base
+        has none; ``"fit"`` the fit's own for every fitted key (a normal with the fit's sigma,
+        truncated at its 95 % interval).
 
     Returns
     -------
@@ -422,18 +443,226 @@ def fit_plant(
     from .plant import load_plant
 
     plant = load_plant() if plant is None else plant
-    records, frf = list(records), list(frf)
+    records, frf, validate = list(records), list(frf), list(validate)
+    records, validate, frf = _checked_inputs(records, validate, frf, plant)
 
+    if uncertainty not in UNCERTAINTY_MODES:
+        raise ValueError(f"uncertainty = {uncertainty!r}; expected one of {', '.join(map(repr, UNCERTAINTY_MODES))}")
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=delay_samples,
-                       keep_unidentified=keep_unidentified)
+                       keep_unidentified=keep_unidentified, uncertainty=uncertainty)
     return _fit_records(records, plant, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
                         segment_s=segment_s, delay_samples=delay_samples, substeps=substeps, max_iter=max_iter,
-                        tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified)
+                        tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
+                        uncertainty=uncertainty)
+
+
+#: Largest relative difference between a record's sample time and the plant's
+#: ``sensor.sample_time_s``: the model holds each logged command over one logged sample, as the
+#: drive does, so a log at another rate (or with time in another unit) is not this drive's loop.
+SAMPLE_TIME_RTOL = 0.01
+#: Unit slips the torque-balance check recognises: the factor by which the apparent inertia
+#: (:func:`_apparent_inertia`) divides the plant's, and what it means for which column.
+_UNIT_SLIPS = (
+    (60.0 / (2 * math.pi), "speed in rpm"), (180.0 / math.pi, "speed in deg/s"), (1.0 / (2 * math.pi), "speed in rev/s"),
+    (1e-3, "torque in mN m"),
+)
+#: The apparent inertia names a unit slip when it is within this factor of the plant's reflected
+#: inertia divided by the slip's factor and more than :data:`UNIT_PLANT_FACTOR` away from the
+#: plant's own; beyond ``1 / 20 .. 20`` times the plant's (the fit's inertia bounds) it cannot be
+#: this plant in any case.
+UNIT_SLIP_FACTOR = 2.0
+#: Operating point of a measured frequency response: nut speed at most 6000 rpm (the tuner's
+#: limit), axial load at most this many rated loads of the plant.
+FRF_SPEED_MAX_RAD_S = 6000.0 * math.pi / 30.0
+FRF_LOAD_MAX_RATED = 2.0
+#: A logged torque command beyond this multiple of the plant's torque limit is not this drive's.
+TORQUE_OVER_LIMIT = 10.0
+UNIT_PLANT_FACTOR = 3.0
+
+
+def _data_key(rec) -> bytes:
+    """Bytes that are equal exactly when two records hold the same data: the same measured arrays
+    at the same sample time (to 9 digits; a clock shifted by a constant is the same record)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    if isinstance(rec, Record):
+        arrays = (np.array([float(f"{rec.sample_time_s:.9g}")]), rec.torque_command_n_m, rec.nut_angle_rad,
+                  rec.nut_speed_rad_s, rec.axial_load_n)
+    else:
+        arrays = (rec.frequency_hz, rec.response, rec.coherence, np.array([rec.speed_rad_s, rec.load_n]))
+    for a in arrays:
+        h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
+    return h.digest()
+
+
+def _dedupe(items: list, earlier: Sequence = ()):
+    """``items`` without those whose data equal an earlier item's (or one of ``earlier``): the
+    item kept gets a warning naming the dropped one (the same data twice would count its noise
+    as new information and narrow the intervals by sqrt(2)). With ``earlier``: ``(items,
+    notes)``, the notes naming the items dropped for being one of ``earlier``."""
+    import dataclasses
+
+    first = {_data_key(e): e.name for e in earlier}
+    out, where, notes = [], {}, []
+    for it in items:
+        key = _data_key(it)
+        if key in first or key in where:
+            msg = (f"{it.name} holds the same data as {first.get(key) or out[where[key]].name}: used once (the same "
+                   "data twice would narrow the intervals by sqrt(2) without new information)")
+            if key in where:
+                out[where[key]] = dataclasses.replace(out[where[key]], warnings=(*out[where[key]].warnings, msg))
+            else:
+                notes.append(msg.replace("used once", "not a validation (it is fitted)"))
+            continue
+        where[key] = len(out)
+        out.append(it)
+    return (out, notes) if earlier else out
+
+
+def _motor_torque(rec: Record, plant: Plant, clip: bool = True) -> NDArray[np.float64]:
+    """The torque command through the plant's first-order current loop (clipped at its limit
+    unless ``clip`` is false), N m."""
+    from scipy.signal import lfilter
+
+    a = math.exp(-rec.sample_time_s / plant.current_loop_time_constant_s)
+    cmd = np.clip(rec.torque_command_n_m, -plant.torque_limit, plant.torque_limit) if clip else rec.torque_command_n_m
+
+    return np.concatenate([[cmd[0]], lfilter([1 - a], [1, -a], cmd[:-1], zi=[a * cmd[0]])[0]])
+
+
+def _apparent_inertia(rec: Record, plant: Plant) -> float | None:
+    """The inertia (kg m^2) the record's torque balance shows, from the data alone.
+
+    Over windows of ``m`` samples the change of the measured speed is regressed on the integrals
+    of the motor torque (the command through the current loop), of the speed sign, the speed,
+    the load and the load times the speed sign (Coulomb, viscous and load friction): the first
+    coefficient is ``1 / J``. Integrals of the clean command as regressors keep the speed noise
+    out of them. None when the regression does not explain the data (R^2 < 0.5) or the speed
+    does not respond to the torque.
+    """
+    v = rec.speed_rad_s  # interval means
+    if len(v) < 40:
+        return None
+    tau = _motor_torque(rec, plant, clip=False)  # unclipped: a unit slip shows in full
+    tau = 0.5 * (tau[:-1] + tau[1:])
+    sg = np.sign(v)
+    f = rec.axial_load_n[:-1]
+    ts = rec.sample_time_s
+    cols = np.column_stack([tau, sg, v, f, f * sg]) * ts
+    c = np.vstack([np.zeros(cols.shape[1]), np.cumsum(cols, axis=0)])
+    m = max(4, min(40, len(v) // 20))
+    j = np.arange(len(v) - m)
+    dv = v[j + m] - v[j]
+    x = c[j + m] - c[j]  # integral over the intervals j..j+m-1 (mid-interval to mid-interval)
+    scale = np.maximum(np.linalg.norm(x, axis=0), 1e-300)
+    beta, *_ = np.linalg.lstsq(x / scale, dv, rcond=None)
+    beta = beta / scale
+    ss = float(np.sum((dv - dv.mean()) ** 2))
+    if ss <= 0 or beta[0] <= 0:
+        return None
+    r2 = 1.0 - float(np.sum((dv - x @ beta) ** 2)) / ss
+    return 1.0 / float(beta[0]) if r2 >= 0.5 else None
+
+
+def _check_units(rec: Record, plant: Plant) -> None:
+    """Refuse a record whose torque balance shows a unit slip (:func:`_apparent_inertia` against
+    the plant's reflected inertia, :data:`_UNIT_SLIPS`) or an inertia no fit of this plant can reach."""
+    peak = float(np.max(np.abs(rec.torque_command_n_m)))
+    if peak > TORQUE_OVER_LIMIT * plant.torque_limit:
+        raise ValueError(f"{rec.name}: column torque_command_n_m reaches {peak:.6g}, {peak / plant.torque_limit:.3g} x "
+                         f"the plant's torque limit {plant.torque_limit:.6g} N m; expected N m (mN m? a current "
+                         "without --torque-constant?) or the actuator's own plant (--plant)")
+    j_app = _apparent_inertia(rec, plant)
+    if j_app is None:
+        return
+    j_pl = plant.reflected_inertia_kg_m2
+    ratio = j_pl / j_app
+    col = "nut_angle_rad" if rec.nut_angle_rad is not None else "nut_speed_rad_s"
+    what = (f"{rec.name}: the torque balance of torque_command_n_m and {col} shows an inertia of {j_app:.3g} kg m^2 "
+            f"where the plant has {j_pl:.3g} kg m^2 (ratio {ratio:.3g})")
+    if abs(math.log(ratio)) > math.log(UNIT_PLANT_FACTOR):
+        for factor, slip in _UNIT_SLIPS:
+            if abs(math.log(ratio / factor)) < math.log(UNIT_SLIP_FACTOR):
+                column = "torque_command_n_m" if "torque" in slip else col
+                angle = " (or the angle in deg / rev)" if column == "nut_angle_rad" else ""
+                raise ValueError(f"{what}: column {column} looks like {slip}{angle}; expected SI units "
+                                 "(N m, rad, rad/s): convert the column (or, if it is SI, give a plant with the "
+                                 "actuator's inertia, --plant)")
+    if not 1 / 20 <= ratio <= 20:
+        raise ValueError(f"{what}; expected within a factor 20 of the plant (the fit's range): check the units of "
+                         f"torque_command_n_m and {col}, or give the actuator's own plant (--plant)")
+
+
+def frf_operating_point_error(plant: Plant, speed_rad_s: float, load_n: float) -> tuple[str, str] | None:
+    """What is wrong with a frequency response's operating point for ``plant``, or None.
+
+    Returns
+    -------
+    tuple or None
+        ``("speed", expected)`` for a nut speed (rad/s) inside the friction's stick band (the
+        linearisation needs motion) or above :data:`FRF_SPEED_MAX_RAD_S`; ``("load", expected)``
+        for an axial load (N) above :data:`FRF_LOAD_MAX_RATED` rated loads.
+    """
+    v_min, v_max, f_max = _min_speed(plant), FRF_SPEED_MAX_RAD_S, FRF_LOAD_MAX_RATED * plant.rated_load_n
+    if not v_min <= abs(speed_rad_s) <= v_max:
+        return "speed", (f"expected a nut speed with {v_min:.3g} <= |speed| <= {v_max:.6g} rad/s (the linearisation "
+                         "needs motion above the friction's stick band; 6000 rpm is the tuner's limit)")
+    if abs(load_n) > f_max:
+        return "load", (f"expected |load| <= {f_max:.6g} N ({FRF_LOAD_MAX_RATED:g} x the plant's rated load "
+                        f"{plant.rated_load_n:.6g} N)")
+    return None
+
+
+def _checked_inputs(records, validate, frf, plant):
+    """Inputs of a fit after the checks that need the plant: duplicate data used once (with a
+    warning), each record's sample time equal to the plant's within :data:`SAMPLE_TIME_RTOL`,
+    no unit slip in the torque balance (:func:`_check_units`), FRF points at or above the
+    drive's Nyquist frequency dropped (a warning each; too few left: ValueError), each response's
+    operating point within :data:`FRF_SPEED_MAX_RAD_S` and :data:`FRF_LOAD_MAX_RATED`."""
+    from .fitdata import MIN_FRF_POINTS
+
+    import dataclasses
+
+    records = _dedupe(records)
+    frf = _dedupe(frf)
+    if validate:
+        validate, notes = _dedupe(validate, records)
+        if notes:
+            records[0] = dataclasses.replace(records[0], warnings=(*records[0].warnings, *notes))
+    ts_pl = plant.sample_time_s
+    for rec in (*records, *validate):
+        if abs(rec.sample_time_s / ts_pl - 1.0) > SAMPLE_TIME_RTOL:
+            raise ValueError(f"{rec.name}: column time_s gives a sample time of {rec.sample_time_s:.6g} s; expected the "
+                             f"plant's sensor.sample_time_s {ts_pl:.6g} s within {100 * SAMPLE_TIME_RTOL:g} % (time in "
+                             "another unit? a log at another rate than the drive's loop? or give the drive's plant)")
+        _check_units(rec, plant)
+    out = []
+    for fr in frf:
+        bad = frf_operating_point_error(plant, fr.speed_rad_s, fr.load_n)
+        if bad:
+            field_, expected = bad
+            value = fr.speed_rad_s if field_ == "speed" else fr.load_n
+            raise ValueError(f"{fr.name}: {field_} = {value!r}; {expected}")
+        ts = _frf_ts(fr, plant)
+        if ts > 0 and fr.frequency_hz[-1] >= 0.5 / ts:
+            keep = fr.frequency_hz < 0.5 / ts
+            n_drop = int(np.sum(~keep))
+            if int(np.sum(keep)) < MIN_FRF_POINTS:
+                raise ValueError(f"{fr.name}: {int(np.sum(keep))} frequency points below the drive's Nyquist frequency "
+                                 f"{0.5 / ts:g} Hz (sample time {ts:g} s); expected at least {MIN_FRF_POINTS}")
+            note = (f"{fr.name}: {n_drop} points at or above the drive's Nyquist frequency {0.5 / ts:g} Hz "
+                    f"(sample time {ts:g} s) dropped: a sampled drive cannot measure them")
+            fr = dataclasses.replace(fr, frequency_hz=fr.frequency_hz[keep], response=fr.response[keep],
+                                     coherence=None if fr.coherence is None else fr.coherence[keep],
+                                     warnings=(*fr.warnings, note))
+        out.append(fr)
+    return records, validate, out
 
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
-                 min_speed_rad_s, keep_unidentified) -> FitResult:
+                 min_speed_rad_s, keep_unidentified, uncertainty="keep") -> FitResult:
     """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
@@ -502,9 +731,12 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
                      "the intervals are widened for it (HAC) but stay optimistic (measured: 73 % coverage on AR(1) "
                      "noise of 0.95); look for unmodelled dynamics or a filtered encoder signal")
     params, corr, fitted, reflected, delay, reasons = _finish(plant, keys, values, cov, lo * scales, hi * scales,
-                                                              names, warns, ts, keep_unidentified)
+                                                              names, warns, ts, keep_unidentified,
+                                                              fit_run.null_scaled * scales[:, None],
+                                                              np.array(cov_info["singular_value_ratios"]), uncertainty)
     fit_pct = dict(sol["fit_percent"])
     traces = dict(sol["traces"])
+    _add_simulations(traces, fit_run.simulate(sol, fitted))
     kept = [k for k in keys if params[k].get("kept_base")]
     s_written = np.array([plant.values[k] / sc if k in kept else sv for k, sv, sc in zip(keys, s_opt, scales)])
     written_pct = None
@@ -523,6 +755,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
         vsol = vrun.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
         fit_pct.update(vsol["fit_percent"])
         traces.update(vsol["traces"])
+        _add_simulations(traces, vrun.simulate(vsol, fitted))
     for fr in frf:  # frequency responses given with time-domain data validate the fitted plant
         g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n,
                          sample_time_s=_frf_ts(fr, fitted), delay_samples=delay_samples,
@@ -550,26 +783,43 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, None, reasons)
 
 
-def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_unidentified=True):
+def _add_simulations(traces: dict, sims: dict) -> None:
+    """Attach each record's continuous simulation (:meth:`_Problem.simulate`) to its trace as ``"simulated"``."""
+    for name, sim in sims.items():
+        if name in traces:
+            traces[name]["simulated"] = sim
+
+
+def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_unidentified=True, null=None,
+            ratios=None, uncertainty="keep"):
     """Parameters with 95 % CIs, correlation, identifiability warnings, the fitted plant, the
     reflected inertia, the delay block (None unless the delay was fitted) and the reasons of the
     keys not identified, from fitted values and their covariance (file units; ``lo``/``hi``
-    bounds; ``ts`` the sample time, s). With ``keep_unidentified`` those keys keep the base
-    plant's value, source and ``[uncertainty]`` entry."""
+    bounds; ``ts`` the sample time, s). ``null``: the directions the data do not inform
+    (columns, file units; :func:`_info_split`) and ``ratios`` the singular values over the
+    largest: a key's interval spans how far those directions move it within the physical
+    ranges (:func:`_null_extent`) plus the covariance's interval. With ``keep_unidentified``
+    the keys not identified keep the base plant's value, source and ``[uncertainty]`` entry;
+    ``uncertainty`` says what the fitted keys' entries become (:func:`_uncertainty_choice`)."""
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
     corr = np.nan_to_num(corr)
     ts = plant.sample_time_s if ts is None else ts
-    params, overrides, reasons = {}, {}, {}
+    null = np.zeros((len(keys), 0)) if null is None else np.asarray(null, float)
+    ranges = [_physical_range(plant, k, lo[i], hi[i]) if k not in PSEUDO_KEYS else (lo[i], hi[i])
+              for i, k in enumerate(keys)]
+    ext_lo, ext_hi = _null_extent(values, null, [r[0] for r in ranges], [r[1] for r in ranges])
+    params, overrides, reasons, in_null = {}, {}, {}, set()
     for i, k in enumerate(keys):
         unit = FITTABLE[k][0]
-        ci = [float(values[i] - _Z95 * std[i]), float(values[i] + _Z95 * std[i])]
+        ci = [float(ext_lo[i] - _Z95 * std[i]), float(ext_hi[i] + _Z95 * std[i])]
         params[k] = {"value": float(values[i]), "ci95": ci, "unit": unit}
         if k not in PSEUDO_KEYS:  # the delay is never written, so never kept either
             overrides[k] = float(values[i])
             params[k]["kept_base"] = False
-        width = _Z95 * std[i]
+        width = max(ci[1] - values[i], values[i] - ci[0])
+        std[i] = width / _Z95  # the honest standard deviation (uninformed directions included)
         floor = 0.2 * ts if k == DELAY_KEY else 1e-3 * (hi[i] - lo[i])  # a delay of 0 is a value like any
         u = _unit_text(unit)
         if not np.isfinite(width) or width > 0.5 * max(abs(values[i]), floor):
@@ -580,16 +830,28 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
                          "is not reliable" + ("; move the bracket with delay_samples (--delay-samples)"
                                               if k == DELAY_KEY else ""))
         reason = _not_identified(k, float(values[i]), float(width), _physical_range(plant, k, lo[i], hi[i]), floor)
+        mates = _null_mates(keys, null / np.array([max(r[1] - r[0], 1e-300) for r in ranges])[:, None], i)
+        if mates is not None:  # moves along an uninformed direction: the data do not set it
+            in_null.add(k)
+            small = float(np.min(ratios)) if ratios is not None and len(ratios) else 0.0
+            reason = (f"the data inform only its combination with {', '.join(mates) or 'nothing else'} (a direction of "
+                      f"the scaled Jacobian with singular value {small:.1e} x the largest, below the tolerance "
+                      f"{RANK_RTOL:g}): the physical ranges alone bound it to {ext_lo[i]:.6g}..{ext_hi[i]:.6g}; "
+                      f"{_REMEDY_KEY.get(k, 'excite it more')}")
         if reason:
             reasons[k] = reason
     # A key the data cannot separate from an unidentifiable one is not identified either: its
     # narrow interval holds only with the other at its (unsupported) fitted value or bound.
+    # (Not for a key left free by an uninformed direction: the covariance has no part along
+    # it, so a correlation with it says nothing; the keys that share the direction are found
+    # by :func:`_null_extent`.)
     for _ in range(len(keys)):
         more = {}
         for i, k in enumerate(keys):
             if k in reasons:
                 continue
-            j = next((j for j, kk in enumerate(keys) if kk in reasons and abs(corr[i, j]) > _CORR_SEPARATE), None)
+            j = next((j for j, kk in enumerate(keys) if kk in reasons and kk not in in_null
+                      and abs(corr[i, j]) > _CORR_SEPARATE), None)
             if j is not None:
                 more[k] = (f"strongly correlated ({corr[i, j]:+.3f}) with {keys[j]}, which the data cannot inform: "
                            "only their combination is identified")
@@ -604,7 +866,9 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
                          f"file (not identifiable: {reason})")
     for i in range(len(keys)):
         for j in range(i + 1, len(keys)):
-            if abs(corr[i, j]) > _CORR_SEPARATE:
+            # (a key on an uninformed direction: its reason names the combination; the
+            # covariance has no part along that direction, so its correlations say nothing)
+            if abs(corr[i, j]) > _CORR_SEPARATE and keys[i] not in in_null and keys[j] not in in_null:
                 pair = {keys[i], keys[j]}
                 if pair == {DELAY_KEY, "drive.current_loop_bandwidth_hz"}:
                     warns.append(f"{DELAY_KEY} and drive.current_loop_bandwidth_hz are strongly correlated "
@@ -624,16 +888,20 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
         for k in plant_keys:
             lo_ci, hi_ci = params[k]["ci95"]
             srcs[k] = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g})"
-        unc = {k: v for k, v in (getattr(plant, "uncertainty", None) or {}).items() if k not in plant_keys}
+        base_unc = dict(getattr(plant, "uncertainty", None) or {})
+        unc = {k: v for k, v in base_unc.items() if k not in plant_keys}
         fit_unc = _uncertainty_entries(fitted, {k: params[k] for k in plant_keys}, names,
                                        [std[keys.index(k)] for k in plant_keys],
                                        [_physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)])
                                         for k in plant_keys])
-        unc.update(fit_unc)
         for k in plant_keys:
-            if k not in fit_unc:
-                warns.append(f"{k}: no [uncertainty] entry written (its interval is degenerate or leaves the "
-                             "physical range)")
+            choice, note = _uncertainty_choice(fitted, k, base_unc.get(k), fit_unc.get(k), params[k]["ci95"],
+                                               _physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)]),
+                                               uncertainty)
+            if choice is not None:
+                unc[k] = choice
+            if note:
+                warns.append(note)
         fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
                        description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc)
     extra = plant.reflected_inertia_kg_m2 - plant.values["nut.inertia_kg_m2"]
@@ -647,6 +915,72 @@ def _finish(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uniden
     if DELAY_KEY in keys:
         delay = _delay_block(fitted, keys, values, cov, ts)
     return params, corr, fitted, reflected, delay, reasons
+
+
+def _info_split(jn: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Rank-revealing split of a column-scaled Jacobian ``jn`` (columns of unit norm).
+
+    Returns ``(a_inv, null, ratios)``: the pseudo-inverse of ``jn^T jn`` on the directions the
+    data inform (singular value at least :data:`RANK_RTOL` times the largest), a basis of the
+    directions they do not (columns, in ``jn``'s coordinates; may have no columns) and every
+    singular value over the largest. The decision does not hinge on round-off: an exactly
+    singular direction (1e-15) and one perturbed at 1e-10 fall on the same side of 1e-6.
+    """
+    _, sv, vt = np.linalg.svd(np.asarray(jn, float), full_matrices=False)
+    n = jn.shape[1]
+    if sv.size < n:  # fewer residuals than parameters: the missing directions are null too
+        sv = np.concatenate([sv, np.zeros(n - sv.size)])
+        vt = np.linalg.svd(np.vstack([jn, np.zeros((n - jn.shape[0], n))]), full_matrices=True)[2]
+    top = float(sv[0]) if sv.size and sv[0] > 0 else 0.0
+    ratios = sv / top if top > 0 else np.zeros_like(sv)
+    keep = ratios >= RANK_RTOL
+    a_inv = (vt[keep].T / sv[keep] ** 2) @ vt[keep]
+    return a_inv, vt[~keep].T, ratios
+
+
+def _null_extent(values, null, lo, hi) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """How far each parameter can move along the uninformed directions ``null`` (columns, file
+    units) while every parameter stays in its range ``lo..hi``: per key the smallest and largest
+    value of ``values + null @ t`` over that polytope (one small linear programme per key and
+    end). Without uninformed directions both are ``values``."""
+    values = np.asarray(values, float)
+    if null.size == 0:
+        return values.copy(), values.copy()
+    from scipy.optimize import linprog
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    lo, hi = np.minimum(lo, values), np.maximum(hi, values)  # the fitted point is always inside
+    ny = null / span[:, None]
+    a_ub = np.vstack([ny, -ny])
+    b_ub = np.concatenate([(hi - values) / span, (values - lo) / span])
+    ext_lo, ext_hi = values.copy(), values.copy()
+    for k in range(len(values)):
+        if not np.any(np.abs(ny[k]) > 1e-12):
+            continue
+        for sign, out in ((1.0, ext_lo), (-1.0, ext_hi)):
+            res = linprog(sign * ny[k], A_ub=a_ub, b_ub=b_ub, bounds=[(None, None)] * ny.shape[1], method="highs")
+            out[k] = values[k] + span[k] * (float(ny[k] @ res.x) if res.status == 0 else -sign * math.inf)
+    return np.clip(ext_lo, lo, None), np.clip(ext_hi, None, hi)
+
+
+#: A key takes part in an uninformed direction when its component in a unit vector of that
+#: direction (each key scaled by its physical range) exceeds this. Structural non-identifiability
+#: gives components of order 0.1..1; round-off and a Jacobian perturbed at 1e-10 give 1e-8 or less.
+NULL_LOADING = 1e-3
+
+
+def _null_mates(keys, null, i) -> list[str] | None:
+    """The other keys sharing an uninformed direction with key ``i`` (None when key ``i`` has no
+    part in one, :data:`NULL_LOADING`): only their combination is identified. ``null``:
+    the directions' columns with each key scaled by its physical range."""
+    if null.size == 0:
+        return None
+    unit = null / np.maximum(np.linalg.norm(null, axis=0), 1e-300)
+    cols = np.flatnonzero(np.abs(unit[i]) > NULL_LOADING)
+    if cols.size == 0:
+        return None
+    return [keys[j] for j in range(len(keys)) if j != i and np.any(np.abs(unit[j, cols]) > NULL_LOADING)]
 
 
 def _unit_text(unit: str) -> str:
@@ -703,6 +1037,49 @@ def _delay_block(fitted: Plant, keys, values, cov, ts: float) -> dict:
                       "computation delay and the current loop only); the equivalent first-order current-loop "
                       "bandwidth carries the same low-frequency phase lag",
     }
+
+
+#: What a fit writes into the fitted plant's ``[uncertainty]`` for a fitted key: ``"keep"`` the
+#: base plant's own entry (the user's assumption) unless it is narrower than the fit's 95 %
+#: interval or does not hold the fitted value (then the fit's entry), and no entry where the base
+#: has none; ``"fit"`` the fit's entry (:func:`_uncertainty_entries`) for every fitted key.
+UNCERTAINTY_MODES = ("keep", "fit")
+
+
+def _entry_support(fitted: Plant, key: str, entry) -> tuple[float, float] | None:
+    """Support ``(low, high)`` of a base ``[uncertainty]`` entry around the fitted plant's value
+    (None when it is not valid there, e.g. absolute bounds that exclude the fitted value)."""
+    from .errors import PlantFileError
+    from .uncertainty import plant_uncertainty
+
+    try:
+        p = Plant(name=fitted.name, values=fitted.values, sources=fitted.sources, uncertainty={key: entry})
+        (u,) = plant_uncertainty(p).entries
+    except (PlantFileError, ValueError):
+        return None
+    return float(u.low), float(u.high)
+
+
+def _uncertainty_choice(fitted: Plant, key: str, base_entry, fit_entry, ci95, rng, mode: str):
+    """The ``[uncertainty]`` entry written for a fitted key and a note (or None) saying why it
+    is not the user's: see :data:`UNCERTAINTY_MODES`. Never narrower than the fit's 95 %
+    interval (clipped to the key's physical range ``rng``)."""
+    if base_entry is None and mode == "keep":
+        return None, None  # the user assumed no spread there; the fit's own entry only when asked ("fit")
+    if base_entry is None or mode == "fit":
+        if fit_entry is None:
+            return None, (f"{key}: no [uncertainty] entry written (its interval is degenerate or leaves the "
+                          "physical range)")
+        return fit_entry, None
+    support = _entry_support(fitted, key, base_entry)
+    lo_ci, hi_ci = max(ci95[0], rng[0]), min(ci95[1], rng[1])
+    if support is not None and support[1] - support[0] >= (hi_ci - lo_ci) * (1 - 1e-9):
+        return base_entry, None
+    why = ("does not hold the fitted value" if support is None else
+           f"({support[0]:.6g}..{support[1]:.6g}) is narrower than the fit's 95 % interval {lo_ci:.6g}..{hi_ci:.6g}")
+    if fit_entry is None:
+        return base_entry, f"{key}: the base plant's [uncertainty] entry {why}; kept (the fit's interval is degenerate)"
+    return fit_entry, f"{key}: the base plant's [uncertainty] entry {why}: the fit's entry is written instead"
 
 
 def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=None) -> dict:
@@ -1019,13 +1396,19 @@ def axial_mode(plant: Plant, *, speed_rad_s: float = 30.0, load_n: float = 800.0
     }
 
 
+#: A response whose log varies by less than this (RMS, nepers and radians) has no spread to
+#: normalise a fit % by (a constant response: round-off gave "fit -6.4e17 %").
+FRF_SPREAD_MIN = 1e-6
+
+
 def _frf_fit_percent(measured, model) -> float:
-    """Fit % of a frequency response on its complex logarithm (magnitude and phase alike)."""
+    """Fit % of a frequency response on its complex logarithm (magnitude and phase alike); NaN
+    when the measured response does not vary (RMS spread of its log below :data:`FRF_SPREAD_MIN`)."""
     lm, lg = np.log(measured), np.log(model)
     d = np.angle(np.exp(1j * (lm.imag - lg.imag)))
     err = np.sqrt(np.sum((lm.real - lg.real) ** 2 + d**2))
     ref = np.sqrt(np.sum((lm.real - lm.real.mean()) ** 2 + (np.unwrap(lm.imag) - np.unwrap(lm.imag).mean()) ** 2))
-    return float(100.0 * (1.0 - err / ref)) if ref > 0 else float("nan")
+    return float(100.0 * (1.0 - err / ref)) if ref > FRF_SPREAD_MIN * math.sqrt(len(lm)) else float("nan")
 
 
 def fit_frf(
@@ -1037,6 +1420,7 @@ def fit_frf(
     delay_samples: int = 0,
     max_nfev: int = 200,
     keep_unidentified: bool = True,
+    uncertainty: str = "keep",
 ) -> FitResult:
     """Fit plant parameters to measured frequency responses (torque command -> nut speed).
 
@@ -1071,6 +1455,8 @@ def fit_frf(
         Budget of model evaluations.
     keep_unidentified : bool
         Keys the responses cannot inform keep the base value (see :func:`fit_plant`).
+    uncertainty : {"keep", "fit"}
+        The fitted keys' ``[uncertainty]`` entries (see :func:`fit_plant`).
 
     Returns
     -------
@@ -1084,6 +1470,9 @@ def fit_frf(
     frf = list(frf)
     if not frf:
         raise ValueError("frf = []; expected at least one frequency response")
+    frf = _checked_inputs([], [], frf, plant)[2]
+    if uncertainty not in UNCERTAINTY_MODES:
+        raise ValueError(f"uncertainty = {uncertainty!r}; expected one of {', '.join(map(repr, UNCERTAINTY_MODES))}")
     if fidelity not in ("rigid", "compliant"):
         raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' for a frequency-response fit")
     keys = _check_keys(FRF_KEYS_COMPLIANT if keys is None and fidelity == "compliant" else
@@ -1157,13 +1546,16 @@ def fit_frf(
     s2 = float(r @ r) / dof
     cn = np.linalg.norm(jac, axis=0)
     cn[cn == 0] = 1.0
-    inv = np.linalg.pinv((jac / cn).T @ (jac / cn), rcond=1e-12, hermitian=True) / np.outer(cn, cn)
+    a_inv, null, ratios = _info_split(jac / cn)
+    inv = a_inv / np.outer(cn, cn)
     cov = s2 * inv * np.outer(scales, scales)
+    null = null / cn[:, None] * scales[:, None]
     values = sol.x * scales
     names_txt = ", ".join(fr.name for fr in frf)
     warns = [w for fr in frf for w in fr.warnings]
     params, corr, fitted, reflected, delay, reasons = _finish(plant, keys, values, cov, lo * scales, hi * scales, names_txt,
-                                                              warns, ts_fit, keep_unidentified)
+                                                              warns, ts_fit, keep_unidentified, null, ratios,
+                                                              uncertainty)
     if "contact.stiffness_n_per_mm_e" in keys:
         warns += _mode_warnings(fitted, frf, math.sqrt(s2) / np.sqrt(np.mean(np.concatenate(weights) ** 2)))
     fit_pct, traces = {}, {}
@@ -1253,13 +1645,12 @@ def fit_figures(result: FitResult) -> dict:
     for name, tr in result.traces.items():
         stem = _figure_stem(name, used)
         if "time_s" in tr:
-            t = np.asarray(tr["time_s"], float)
-            meas, mod = np.asarray(tr["measured"], float), np.asarray(tr["model"], float)
-            gap = np.flatnonzero(np.diff(t) > 1.5 * float(np.median(np.diff(t))))
-            t, meas, mod = (np.insert(a, gap + 1, np.nan) for a in (t, meas, mod))
+            t, meas, mod, label, joins = _overlay_data(tr)
             fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5.5), height_ratios=(2, 1))
             ax1.plot(t, meas, lw=0.8, color="0.5", label="measured (angle difference)")
-            ax1.plot(t, mod, lw=1.0, color="C0", label="fitted model")
+            ax1.plot(t, mod, lw=1.0, color="C0", label=label)
+            for tj in joins:  # only when the shooting segments themselves are shown
+                ax1.axvline(tj, color="C1", lw=0.4, alpha=0.5)
             ax1.set_ylabel("nut speed (rad/s)")
             ax1.set_title(f"{name}: fit {result.fit_percent.get(name, float('nan')):.1f} %")
             ax1.legend(loc="best", fontsize=8)
@@ -1291,6 +1682,26 @@ def fit_figures(result: FitResult) -> dict:
             fig.tight_layout()
             figs[f"{stem}-bode"] = fig
     return figs
+
+
+def _overlay_data(tr: dict):
+    """What a record's overlay figure plots: ``(time_s, measured, model, model label, join
+    times)``. The model is the continuous simulation of the fitted plant when there is one
+    (:meth:`_Problem.simulate`: no segment joins, so no resets that look like model error);
+    otherwise the shooting segments, each drawn apart (NaN between them) with its start marked.
+    Gaps in the data (left-out stretches) are broken with NaN too."""
+    sim = tr.get("simulated")
+    if sim is not None:
+        t, meas, mod = (np.asarray(sim[k], float) for k in ("time_s", "measured", "model"))
+        breaks, joins, label = np.zeros(0, int), [], "fitted plant, one continuous simulation"
+    else:
+        t, meas, mod = (np.asarray(tr[k], float) for k in ("time_s", "measured", "model"))
+        breaks = np.asarray(tr.get("joins", np.zeros(0, int)), int)
+        joins = [float(t[j]) for j in breaks]
+        label = "fitted model (shooting segments; each starts at a marked join)"
+    gap = np.flatnonzero(np.diff(t) > 1.5 * float(np.median(np.diff(t))))
+    cut = np.union1d(gap + 1, breaks)
+    return (*(np.insert(a, cut, np.nan) for a in (t, meas, mod)), label, joins)
 
 
 def figure_names(names: Sequence[str], frf_names: Sequence[str] = ()) -> list[str]:
@@ -1343,6 +1754,7 @@ class _Problem:
         import casadi as ca
 
         self.plant, self.records, self.ts = plant, records, ts
+        self.fidelity, self.delay = fidelity, int(delay)
         self.scales = np.asarray(scales, float)
         f, names = _symbolic_rhs(plant, keys, fidelity)
         self.names = names
@@ -1633,6 +2045,51 @@ class _Problem:
         out["fit_percent"], out["traces"] = self._fit_percent(self.thetas(V, X0))
         return out
 
+    def simulate(self, sol, plant: Plant) -> dict:
+        """One continuous simulation of ``plant`` per record (the figures' model trace).
+
+        From the fitted initial state of the record's first segment to the record's end, with
+        the logged command (held over each sample, ``delay`` samples late) and load, through
+        the left-out stretches too: no segment joins, so nothing in the trace is a reset of the
+        multiple shooting. CVODES (BDF, stiff), one sample per step of a ``mapaccum``.
+
+        Returns
+        -------
+        dict
+            ``{record name: {"time_s", "measured", "model"}}`` (nut speed over each sample
+            interval, rad/s, at the interval's end); a record whose simulation fails is left out.
+        """
+        import casadi as ca
+
+        f, names = _symbolic_rhs(plant, (), self.fidelity)
+        nx, sc = len(names), self.S
+        x = ca.SX.sym("x", nx)
+        u = ca.SX.sym("u", 2)
+        h = ca.SX.sym("h")
+        ode = h * f(x * ca.DM(sc), u, ca.DM.zeros(0)) / ca.DM(sc)
+        step = ca.integrator("fit_sim", "cvodes", {"x": x, "p": ca.vertcat(u, h), "ode": ode}, 0.0, 1.0,
+                             {"abstol": 1e-9, "reltol": 1e-8, "max_num_steps": 20000})
+        _, x0 = self._physical(sol["V"], sol["X0"])
+        out = {}
+        for r, rec in enumerate(self.records):
+            g = next((g for g, sg in enumerate(self.segs) if sg.rec == r), None)
+            if g is None or rec.name in out:
+                continue
+            k0 = self.segs[g].k0
+            ks = np.arange(k0, rec.n - 1)
+            kd = np.clip(ks - self.delay, 0, None)
+            pu = np.vstack([rec.torque_command_n_m[kd], rec.axial_load_n[ks], np.diff(rec.time_s)[ks]])
+            try:
+                xs = np.asarray(step.mapaccum("fit_sim_acc", len(ks), ["x0"], ["xf"])(
+                    x0=x0[:, g] / sc, p=pu)["xf"], float) * sc[:, None]
+            except RuntimeError:
+                continue
+            th = np.concatenate([[x0[self.i_th, g]], xs[self.i_th]])
+            v = np.diff(th) / np.diff(rec.time_s[k0:])
+            if np.all(np.isfinite(v)):
+                out[rec.name] = {"time_s": rec.time_s[k0 + 1:], "measured": rec.speed_rad_s[k0:], "model": v}
+        return out
+
     def _fit_percent(self, thetas):
         """Speed fit % per record from the model angles at the samples of each segment."""
         per: dict[str, tuple] = {}
@@ -1640,15 +2097,17 @@ class _Problem:
             rec = self.records[sg.rec]
             v_model = np.diff(th) / np.diff(rec.time_s[sg.k0:sg.k0 + sg.n + 1])
             v_meas = rec.speed_rad_s[sg.k0:sg.k0 + sg.n]
-            m, mm, tt = per.setdefault(rec.name, ([], [], []))
+            m, mm, tt, jj = per.setdefault(rec.name, ([], [], [], []))
+            jj.append(sum(len(a) for a in m))
             m.append(v_meas)
             mm.append(v_model)
             tt.append(rec.time_s[sg.k0 + 1:sg.k0 + sg.n + 1])
         out, traces = {}, {}
-        for name, (m, mm, tt) in per.items():
+        for name, (m, mm, tt, jj) in per.items():
             a, b = np.concatenate(m), np.concatenate(mm)
             out[name] = round(fit_percent(a, b), 3)
-            traces[name] = {"time_s": np.concatenate(tt), "measured": a, "model": b}
+            # joins: index of each segment's first sample in these arrays (its own initial state)
+            traces[name] = {"time_s": np.concatenate(tt), "measured": a, "model": b, "joins": np.array(jj[1:], int)}
         return out, traces
 
     def covariance(self, sol):
@@ -1675,7 +2134,7 @@ class _Problem:
         cn = np.linalg.norm(js, axis=0)
         cn[cn == 0] = 1.0
         jn = js / cn
-        a_inv = np.linalg.pinv(jn.T @ jn, rcond=1e-12, hermitian=True)
+        a_inv, null, ratios = _info_split(jn)
         bounds = np.cumsum([0] + lens)
         parts = [slice(int(bounds[i]), int(bounds[i + 1])) for i in range(len(lens))]
         # Pooled residual autocorrelation within segments, lags 1..max_lag.
@@ -1714,7 +2173,10 @@ class _Problem:
         info = {"covariance": "prewhitened (VAR(1)) Newey-West HAC sandwich over segments",
                 "hac_bandwidth_samples": L, "residual_acf_band_lag": lag_acf,
                 "residual_autocorrelation_lag1": float(acf[0]) if len(acf) else 0.0,
-                "ci_widening_vs_white": float(np.sqrt(np.max(np.diag(cov_hac) / np.maximum(s2 * np.diag(a_inv), 1e-300))))}
+                "ci_widening_vs_white": float(np.sqrt(np.max(np.diag(cov_hac) / np.maximum(s2 * np.diag(a_inv), 1e-300)))),
+                "singular_value_ratios": [float(x) for x in ratios], "rank_tolerance": RANK_RTOL,
+                "uninformed_directions": int(null.shape[1])}
+        self.null_scaled = null / cn[:, None]  # uninformed directions in the scaled parameters
         return cov, math.sqrt(s2) * unit_sigma, n_rows, n_cols, info
 
 

@@ -8,15 +8,19 @@
 ``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
 [--f-min HZ] [--f-max HZ] [--amplitude RAD_S] [--offset RAD_S]``
 
-Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge.
-Output paths are checked before the fit (two outputs on one path are refused); every file is
-written atomically. Python warnings (e.g. the base plant's geometry note) are shown after the
+Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge,
+130 interrupted (Ctrl-C: one line, the files and folders this run made are taken back).
+Output and figure paths are checked before the fit, the way they will be written (two outputs
+on one path, a symlink loop, a name too long are refused); every file is written atomically.
+The base plant (``--plant``) is parsed and its fitted file's text checked before the fit too. Python warnings (e.g. the base plant's geometry note) are shown after the
 result as one ``prsa-fit: note:`` line each; the geometry note of a built-in plant only with
 ``--verbose``, as in ``prsa-tune``.
 
 Keys the data cannot inform keep the base plant's value and source in the written file
 (:func:`prsa_ctrl.fit.fit_plant`); the output names them and the JSON marks them
-``"kept_base": true`` with the reason.
+``"kept_base": true`` with the reason. The base file's ``[uncertainty]`` entries are kept (an
+entry narrower than the fit's 95 % interval, or one that does not hold the fitted value, is
+replaced by the fit's); ``--uncertainty-from-fit`` writes the fit's own for every fitted key.
 
 An excitation design is a nut-speed setpoint: its peak ``|offset| + amplitude`` must stay within
 :data:`DESIGN_MAX_SPEED_RAD_S` (the tuner's speed limit, ``prsa_ctrl.scene.SETPOINT_MAX_RPM``).
@@ -36,6 +40,9 @@ from typing import Sequence
 from .errors import GeometryWarning, PlantFileError
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
+
+#: Exit code of a run stopped by Ctrl-C (as ``prsa-tune``).
+EXIT_INTERRUPTED = 130
 
 #: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
 #: speed range the tuner accepts (:data:`prsa_ctrl.scene.SETPOINT_MAX_RPM`, 6000 rpm).
@@ -109,6 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
                    f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = 6000 rpm)")
     p.add_argument("--offset", type=_number("--offset", positive=False), default=30.0, metavar="RAD_S",
                    help="mean of the speed setpoint, rad/s")
+    p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
+                   "keys' [uncertainty] entries (default: keep the base plant's entries, replaced only where one is "
+                   "narrower than the fit's 95 %% interval)")
     p.add_argument("--verbose", action="store_true", help="also show the geometry note of a built-in base plant")
     return p
 
@@ -133,35 +143,111 @@ def _uncertainty_line(key: str, entry) -> str:
 _ONE_LINE_DESCRIPTION = r"""^description\s*=\s*("(?:[^"\\]|\\.)*"|'[^']*')\s*(#.*)?$"""
 
 
-def plant_toml(base_text: str, plant, name: str, keys: Sequence[str], description: str | None = None) -> str:
+def plant_toml(base_text: str, plant, name: str, keys: Sequence[str], description: str | None = None,
+               uncertainty_keys: Sequence[str] | None = None) -> str:
     """The base plant file's text with the fitted keys' values, sources and uncertainty replaced.
+
+    The base file's layout and comments are kept where its lines have the built-in plants'
+    spelling (``[section]`` headers, one ``key = { value = ..., source = "..." }`` line per
+    key, ``"section.key" = { ... }`` uncertainty lines; spaces and trailing comments allowed).
+    The result is parsed back and compared with what it must hold; for any other valid TOML
+    spelling (dotted keys, sub-tables, multi-line tables ...) the whole file is written afresh
+    from the plant instead (same values and sources, the base's comments lost, a header line
+    says so).
 
     Parameters
     ----------
     base_text : str
-        The base plant file (TOML), whose layout and comments are kept.
+        The base plant file (TOML).
     plant : Plant
-        The fitted plant (values, sources and ``uncertainty``: each fitted key's entry there
-        replaces the base file's entry for that key in the ``[uncertainty]`` section, which is
-        added at the end when the base file has none).
+        The fitted plant (values, sources and ``uncertainty``).
     name : str
         The new plant name.
     keys : sequence of str
         Plant keys to rewrite (``section.key``).
     description : str, optional
         The new top-level description (replaces the base's, or follows the name line).
+    uncertainty_keys : sequence of str, optional
+        Keys whose ``[uncertainty]`` entry is rewritten from ``plant.uncertainty`` (removed when
+        it has none; a section is added at the end when the base file has none). Default: the
+        ``keys`` that have an entry in ``plant.uncertainty``.
     """
+    import tomllib
+
+    base_text = base_text.removeprefix("\ufeff")  # a byte-order mark is no TOML
+    unc = dict(getattr(plant, "uncertainty", None) or {})
+    unc_keys = [k for k in keys if k in unc] if uncertainty_keys is None else list(uncertainty_keys)
+    base_doc = tomllib.loads(base_text)
+    try:
+        text = _rewrite(base_text, plant, name, keys, description, unc, unc_keys)
+        ok = _holds(tomllib.loads(text), base_doc, plant, name, keys, description, unc, unc_keys)
+    except (PlantFileError, tomllib.TOMLDecodeError):
+        ok = False
+    return text if ok else _fresh(base_doc, plant, name, keys, description, unc, unc_keys)
+
+
+def _expected(base_doc: dict, plant, name: str, keys, description, unc: dict, unc_keys) -> dict:
+    """The document a rewritten plant file must parse to."""
+    import copy
+
+    doc = copy.deepcopy(base_doc)
+    doc["name"] = name
+    if description is not None:
+        doc["description"] = description
+    for k in keys:
+        section, sub = k.split(".")
+        doc[section][sub] = {"value": plant.values[k], "source": plant.sources[k]}
+    old = doc.get("uncertainty", {})
+    new = {k: v for k, v in old.items() if k not in unc_keys}
+    new.update({k: unc[k] for k in unc_keys if k in unc})
+    if new or "uncertainty" in doc:
+        doc["uncertainty"] = new
+    return doc
+
+
+def _holds(doc: dict, base_doc: dict, plant, name, keys, description, unc, unc_keys) -> bool:
+    """Whether a rewritten file's document is exactly the expected one (values compared as numbers)."""
+    want = _expected(base_doc, plant, name, keys, description, unc, unc_keys)
+    if description is None:  # a multi-line description is kept as it is
+        want["description"] = doc.get("description", want.get("description"))
+    return doc == want
+
+
+def _fresh(base_doc: dict, plant, name: str, keys, description, unc: dict, unc_keys) -> str:
+    """The whole plant file written from scratch (any spelling of the base file)."""
+    doc = _expected(base_doc, plant, name, keys, description, unc, unc_keys)
+    out = ["# Written by prsa-fit: the base plant file's TOML spelling could not be kept line by line, so its "
+           "comments are not repeated here.", f"name = {_toml_string(doc['name'])}"]
+    if "description" in doc:
+        out.append(f"description = {_toml_string(doc['description'])}")
+    for section, table in doc.items():
+        if section in ("name", "description", "uncertainty"):
+            continue
+        out += ["", f"[{section}]"]
+        for key, entry in table.items():
+            fields = ", ".join(f"{f} = {_toml_value(v)}" for f, v in entry.items())
+            out.append(f"{key} = {{ {fields} }}")
+    if doc.get("uncertainty"):
+        out += ["", "[uncertainty]"] + [_uncertainty_line(k, e) for k, e in doc["uncertainty"].items()]
+    return "\n".join(out) + "\n"
+
+
+_SECTION = re.compile(r"^\s*\[\s*([A-Za-z_]+)\s*\]\s*(#.*)?$")
+_KEY_LINE = re.compile(r"^(\s*)([A-Za-z0-9_]+)\s*=\s*\{[^#]*\}\s*(#.*)?$")
+
+
+def _rewrite(base_text: str, plant, name: str, keys, description, unc: dict, unc_keys) -> str:
+    """Line-by-line rewrite of the base file (its layout and comments kept); :func:`plant_toml`
+    checks the result."""
     out, section, done = [], None, set()
     has_desc = False
     for line in base_text.splitlines():
         if re.match(r"^\s*\[", line):
             break
         has_desc = has_desc or bool(re.match(r"^description\s*=", line))
-    unc = dict(getattr(plant, "uncertainty", None) or {})
-    new_unc = [k for k in keys if k in unc]
     unc_header = None
     for line in base_text.splitlines():
-        m_sec = re.match(r"^\s*\[([A-Za-z_]+)\]\s*$", line)
+        m_sec = _SECTION.match(line)
         if m_sec:
             section = m_sec.group(1)
             if section == "uncertainty":
@@ -176,20 +262,19 @@ def plant_toml(base_text: str, plant, name: str, keys: Sequence[str], descriptio
             line = f"description = {_toml_string(description)}"  # a multi-line one is kept as it is
         if section == "uncertainty":
             m_unc = re.match(r'^\s*"?([A-Za-z0-9_.]+)"?\s*=', line)
-            if m_unc and m_unc.group(1) in keys:
-                continue  # replaced by the fit's entry below
-        m_key = re.match(r"^(\s*)([A-Za-z0-9_]+)\s*=\s*\{.*\}\s*$", line)
+            if m_unc and m_unc.group(1) in unc_keys:
+                continue  # replaced by the new entry below (or removed)
+        m_key = _KEY_LINE.match(line)
         if m_key and section not in (None, "uncertainty") and f"{section}.{m_key.group(2)}" in keys:
             full = f"{section}.{m_key.group(2)}"
             line = (f"{m_key.group(1)}{m_key.group(2)} = {{ value = {plant.values[full]!r}, "
-                    f"source = {_toml_string(plant.sources[full])} }}")
+                    f"source = {_toml_string(plant.sources[full])} }}" + (f"  {m_key.group(3)}" if m_key.group(3) else ""))
             done.add(full)
         out.append(line)
     missing = [k for k in keys if k not in done]
     if missing:
-        raise PlantFileError(f"base plant file has no one-line entry for {', '.join(missing)}; expected "
-                             "'key = { value = ..., source = \"...\" }' lines like the built-in plants")
-    lines = [_uncertainty_line(k, unc[k]) for k in new_unc]
+        raise PlantFileError(f"base plant file has no one-line entry for {', '.join(missing)}")
+    lines = [_uncertainty_line(k, unc[k]) for k in unc_keys if k in unc]
     if lines:
         if unc_header is None:
             out += ["", "# What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.uncertainty)",
@@ -199,12 +284,16 @@ def plant_toml(base_text: str, plant, name: str, keys: Sequence[str], descriptio
     return "\n".join(out) + "\n"
 
 
-def _write_outputs(files: dict[str, tuple[str, str]], inputs: Sequence[str]) -> None:
-    """The one place that writes files: ``{path: (flag, text)}``, each atomically."""
+def _write_outputs(files: dict[str, tuple[str, str]], inputs: Sequence[str], created: list | None = None) -> None:
+    """The one place that writes files: ``{path: (flag, text)}``, each atomically; the new ones
+    are added to ``created`` (taken back when the run fails or is interrupted later)."""
     from .output import write_text
 
     for path, (flag, text) in files.items():
+        existed = Path(path).exists()
         write_text(path, text, inputs=inputs, flag=flag)
+        if created is not None and not existed:
+            created.append(Path(path))
 
 
 def _check_outputs(paths: dict[str, str], inputs: Sequence[str]) -> None:
@@ -223,13 +312,15 @@ def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
 
 
 def _typed(argv: Sequence[str], flag: str, value: float) -> str:
-    """A flag's value as the user typed it (``--flag V`` or ``--flag=V``), else the default."""
+    """A flag's value as the user typed it (``--flag V`` or ``--flag=V``; the last one, as
+    argparse takes it), else the default."""
+    found = None
     for i, a in enumerate(argv):
         if a == flag and i + 1 < len(argv):
-            return argv[i + 1]
-        if a.startswith(flag + "="):
-            return a[len(flag) + 1:]
-    return f"{value:g} (default)"
+            found = argv[i + 1]
+        elif a.startswith(flag + "="):
+            found = a[len(flag) + 1:]
+    return found if found is not None else f"{value:g} (default)"
 
 
 def _design(args, argv: Sequence[str]) -> int:
@@ -266,9 +357,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        code = _main(argv)
+    created: list = []  # files and directories this run made, taken back when it is interrupted
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            code = _main(argv, created)
+    except KeyboardInterrupt:
+        _take_back(created)
+        print("prsa-fit: interrupted (Ctrl-C); nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
     seen = set()
     for w in caught:
         text = " ".join(str(w.message).split())
@@ -279,9 +376,70 @@ def main(argv: Sequence[str] | None = None) -> int:
     return code
 
 
-def _main(argv: Sequence[str]) -> int:
+def _take_back(created: list) -> None:
+    """Remove what a failed or interrupted run wrote: its files, then its (then empty) directories."""
+    from .output import cleanup_temporaries, remove_created
+
+    cleanup_temporaries()
+    for item in reversed(created):
+        if isinstance(item, Path) and item.is_file():
+            item.unlink(missing_ok=True)
+    remove_created([d for d in created if isinstance(d, Path) and d.is_dir()])
+    created.clear()
+
+
+def _probe_output(path: str, inputs: Sequence[str], flag: str) -> None:
+    """Check an output path up front the way it will be written: the rules of
+    :func:`prsa_ctrl.output.check_writable`, then the atomic write's temporary file created and
+    removed in the target's directory (a name too long, a symlink loop or a full directory
+    fails here, before the fit)."""
+    import os
+    import tempfile
+
+    from .output import TEMP_MARK, OutputError, check_writable
+
+    what = f"{flag} {path!r}"
+    try:
+        target = check_writable(path, inputs=inputs, flag=flag)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}{TEMP_MARK}", dir=target.parent)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        if isinstance(exc, OutputError):
+            raise
+        raise _UsageError(f"{what}: cannot be written ({exc.strerror or exc}); expected a writable file path "
+                          "(a shorter name, no symlink loop)") from None
+
+
+def _probe_plots(directory: str, names: Sequence[str], inputs: Sequence[str]) -> None:
+    """Check every figure path of ``--plots`` up front (in the directory, or where it will be created)."""
+    from .output import check_directory
+
+    check_directory(directory, "--plots")
+    d = Path(directory)
+    anc = d
+    while not anc.exists():
+        anc = anc.parent
+    for name in names:
+        _probe_output(str(d / name) if d.is_dir() else str(anc / name), inputs, "--plots")
+
+
+def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> None:
+    """The FRF operating point (``--frf-speed``, ``--frf-load``) checked before the fit, the
+    flag named (:func:`prsa_ctrl.fit.frf_operating_point_error`)."""
+    from .fit import frf_operating_point_error
+
+    bad = frf_operating_point_error(plant, speed, load)
+    if bad:
+        flag, value = ("--frf-speed", speed) if bad[0] == "speed" else ("--frf-load", load)
+        raise _UsageError(f"{flag} {_typed(argv, flag, value)}: {bad[1]}")
+
+
+def _main(argv: Sequence[str], created: list | None = None) -> int:
     from .fitdata import DataError, load_frf, load_record, parse_columns
     from .output import OutputError
+
+    created = [] if created is None else created
 
     try:
         args = build_parser().parse_args(argv)
@@ -309,6 +467,12 @@ def _main(argv: Sequence[str]) -> int:
             raise _UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
         plant = load_plant(args.plant)
         base_text, base_path = _base_text(args.plant)
+        # the fitted plant file can be written for any spelling of the base (checked before the fit)
+        plant_toml(base_text, plant, Path(args.out).stem,
+                   [k for k in (keys or FITTABLE) if k in plant.values], "check")
+        frf_load = args.frf_load if args.frf_load is not None else (args.load or 0.0)
+        if args.frf:
+            _check_frf_point(plant, args.frf_speed, frf_load, argv)
         inputs = [*args.data, *args.validate, *args.frf] + ([base_path] if base_path else [])
         outs = {"--out": args.out}
         if args.json:
@@ -316,34 +480,37 @@ def _main(argv: Sequence[str]) -> int:
         from .output import check_distinct
 
         check_distinct(outs)
-        _check_outputs(outs, inputs)
+        for flag, path in outs.items():
+            _probe_output(path, inputs, flag)
         plot_paths = []
         if args.plots is not None:
             from .fit import figure_names
-            from .output import check_directory
 
-            check_directory(args.plots, "--plots")
             check_distinct({"--plots": args.plots, **outs})
             stems = figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf)
             plot_paths = [str(Path(args.plots) / f"{stem}.png") for stem in stems]
-            _check_outputs({f"--plots {q}": q for q in plot_paths if Path(args.plots).is_dir()}, inputs)
+            _probe_plots(args.plots, [f"{stem}.png" for stem in stems], inputs)
         columns = parse_columns(args.columns) if args.columns else None
         opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
         records = [load_record(f, **opts) for f in args.data]
         validate = [load_record(f, **opts) for f in args.validate]
         if args.validate and not args.data:
             raise _UsageError("--validate without DATA.csv; expected time-domain records to fit first")
-        frf_load = args.frf_load if args.frf_load is not None else (args.load or 0.0)
         frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
                 for f in args.frf]
     except (_UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # e.g. an input path that is a symlink loop
+        print(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
+              "expected readable files", file=sys.stderr)
+        return 2
     from .fit import FitError, fit_plant
 
     try:
         result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
-                           segment_s=args.segment, delay_samples=args.delay_samples)
+                           segment_s=args.segment, delay_samples=args.delay_samples,
+                           uncertainty="fit" if args.uncertainty_from_fit else "keep")
     except FitError as exc:
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
@@ -356,7 +523,9 @@ def _main(argv: Sequence[str]) -> int:
                    + (f" (fitted: {', '.join(result.plant_keys)}" if result.plant_keys else " (no key identifiable")
                    + (f"; kept at the base values: {', '.join(result.kept_base)})" if result.kept_base else ")")
                    + (f"; base: {plant.description}" if plant.description else ""))
-    text = plant_toml(base_text, result.plant, name, result.plant_keys, description)
+    base_unc = dict(plant.uncertainty or {})
+    unc_keys = [k for k in result.plant_keys if result.plant.uncertainty.get(k) != base_unc.get(k)]
+    text = plant_toml(base_text, result.plant, name, result.plant_keys, description, unc_keys)
     if result.delay is not None:  # not a plant-file key: said in a comment, reported in the JSON
         d, eq = result.delay, result.delay["equivalent_current_loop_bandwidth_hz"]
         text += (f"\n# prsa-fit: command delay {d['value']:.6g} s (95 % CI {d['ci95'][0]:.6g}..{d['ci95'][1]:.6g}, "
@@ -376,10 +545,12 @@ def _main(argv: Sequence[str]) -> int:
         files[args.json] = ("--json", json.dumps(json_safe(result.report()), indent=2) + "\n")
     try:
         if args.plots is not None:
-            plot_paths = _write_plots(result, args.plots, inputs)
-        _write_outputs(files, inputs)
-    except OutputError as exc:
-        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+            plot_paths = _write_plots(result, args.plots, inputs, created)
+        _write_outputs(files, inputs, created)
+    except (OutputError, OSError) as exc:  # all or nothing: the figures of this run are taken back
+        _take_back(created)
+        print(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
+              file=sys.stderr)
         return 2
     from .fit import _unit_text
 
@@ -397,7 +568,8 @@ def _main(argv: Sequence[str]) -> int:
     j = result.reflected_inertia_kg_m2
     print(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
     for f, pct in result.fit_percent.items():
-        print(f"fit {pct:.2f} % on {f}")
+        print(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
+              f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
@@ -406,22 +578,28 @@ def _main(argv: Sequence[str]) -> int:
     return 0
 
 
-def _write_plots(result, directory: str, inputs: Sequence[str]) -> list[str]:
-    """Write :func:`prsa_ctrl.fit.fit_figures` as PNG files into ``directory`` (created if missing)."""
+def _write_plots(result, directory: str, inputs: Sequence[str], created: list) -> list[str]:
+    """Write :func:`prsa_ctrl.fit.fit_figures` as PNG files into ``directory`` (created if
+    missing); the directories made and the files written are added to ``created``."""
     import matplotlib.pyplot as plt
 
     from .fit import fit_figures
     from .output import make_directory, write_file
 
-    make_directory(directory, "--plots")
+    created += make_directory(directory, "--plots")
     out = []
-    for stem, fig in fit_figures(result).items():
-        path = Path(directory) / f"{stem}.png"
-        try:
+    figs = fit_figures(result)
+    try:
+        for stem, fig in figs.items():
+            path = Path(directory) / f"{stem}.png"
+            existed = path.exists()
             write_file(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=120), inputs, "--plots")
-        finally:
+            if not existed:
+                created.append(path)
+            out.append(str(path))
+    finally:
+        for fig in figs.values():
             plt.close(fig)
-        out.append(str(path))
     return out
 
 

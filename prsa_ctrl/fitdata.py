@@ -59,6 +59,9 @@ MIN_SAMPLES = 50
 SAMPLING_TOL = 0.01
 #: Largest record length accepted (samples), so every fit is bounded before it starts.
 MAX_SAMPLES = 2_000_000
+#: Largest data file read (bytes), checked before reading: ``MAX_SAMPLES`` rows of up to 256
+#: bytes (a record written with 17 significant digits takes about 120 bytes a row).
+MAX_FILE_BYTES = 256 * MAX_SAMPLES
 _RPM = 60.0 / (2.0 * math.pi)
 
 
@@ -155,8 +158,16 @@ def _read_rows(p: Path, name: str) -> list[tuple[int, list[str]]]:
     """The non-empty, non-comment rows of a CSV file with their line numbers. UTF-8 with or
     without a byte-order mark (Excel's "CSV UTF-8" export); streamed, so that a file with more
     than ``MAX_SAMPLES`` data rows is refused when its row ``MAX_SAMPLES + 2`` is reached,
-    without holding the rest in memory."""
+    without holding the rest in memory; a file larger than ``MAX_FILE_BYTES`` is refused before
+    it is opened."""
     rows = []
+    try:
+        size = p.stat().st_size
+    except OSError as exc:
+        raise DataError(f"{name}: cannot be read ({exc.strerror or exc}); expected a UTF-8 CSV file") from None
+    if size > MAX_FILE_BYTES:
+        raise DataError(f"{name}: {size} bytes; expected at most {MAX_FILE_BYTES} bytes ({MAX_SAMPLES} rows of up to "
+                        f"{MAX_FILE_BYTES // MAX_SAMPLES} bytes; cut the record)")
     try:
         with p.open(newline="", encoding="utf-8-sig") as fh:
             for i, row in enumerate(csv.reader(fh), start=1):

@@ -362,7 +362,8 @@ def test_cli_fit_writes_plant_and_report_and_tune_uses_it(csv_files, tmp_path):
 
     _, paths = csv_files
     out, rep, figs = tmp_path / "my-actuator.toml", tmp_path / "report.json", tmp_path / "figs"
-    assert main([*paths, "--out", str(out), "--json", str(rep), "--plots", str(figs)]) == 0
+    # --uncertainty-from-fit: the fit's intervals as [uncertainty] (issue 20: the default keeps the user's)
+    assert main([*paths, "--out", str(out), "--json", str(rep), "--plots", str(figs), "--uncertainty-from-fit"]) == 0
     doc = tomllib.loads(out.read_text())
     assert doc["name"] == "my-actuator"
     src = doc["nut"]["inertia_kg_m2"]["source"]
@@ -444,7 +445,7 @@ def test_plant_toml_adds_an_uncertainty_section_when_the_base_has_none(base):
     text, _ = _base_text(None)
     no_unc = text[:text.index("[uncertainty]")]
     truth = base.with_params(PERTURBED["issue"])
-    res = fit_plant([toolkit_record(truth, "multisine")], base, keys=["nut.inertia_kg_m2"])
+    res = fit_plant([toolkit_record(truth, "multisine")], base, keys=["nut.inertia_kg_m2"], uncertainty="fit")
     out = plant_toml(no_unc, res.plant, "mine", res.keys)
     doc = tomllib.loads(out)
     assert doc["nut"]["inertia_kg_m2"]["value"] == res.parameters["nut.inertia_kg_m2"]["value"]

@@ -158,7 +158,9 @@ def test_stiffness_recovered_when_the_sweep_covers_the_mode(heavy):
     assert abs(k["value"] / TRUE_K - 1) < 0.02 and _covers(res, K_KEY, TRUE_K), k
     for key, v in TRUTH_RIGID.items():
         assert _covers(res, key, v), key
-    assert not any(K_KEY in w for w in res.warnings), res.warnings
+    # (issue 20: the note that the base [uncertainty] entry 5e4..2e5 no longer holds the fitted value is no
+    # identifiability warning)
+    assert not any(K_KEY in w and "[uncertainty]" not in w for w in res.warnings), res.warnings
     assert res.plant.sources[K_KEY].startswith("fit: frf-0 (95 % CI ")
     assert res.plant.uncertainty[K_KEY]["dist"] == "normal"
 
