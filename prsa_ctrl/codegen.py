@@ -28,10 +28,12 @@ rad per count)::
     uf    = min(max(torque-command biquads of us, -T_max), T_max)
     return the command stored at the previous sample (one-sample computation delay), store uf
 
-(``'`` marks the value of the previous sample.) The speed and position differences are taken in
-integer counts, so the code keeps its resolution over any travel also in ``float``; the
-simulator takes them in rad, which differs by round-off only (tests: <= 1e-12 relative in
-double on the paper load-step and move scenes).
+(``'`` marks the value of the previous sample.) By default (``differences="counts"``) the speed
+and position differences are taken in integer counts, so the code keeps its resolution over any
+travel also in ``float``; the simulator takes them from the angles in rad, which differs by
+round-off only (measured 6.2e-13 of the largest command in double on the paper move scene).
+``differences="angle"`` writes the simulator's own operations: in double the generated code
+then reproduces the simulator's command bit for bit (compiled with ``-ffp-contract=off``).
 
 :class:`ReferenceLaw` runs the same law in Python exactly as the simulator writes it (angles in
 rad, the simulator's order of operations): it reproduces a recorded run's torque command
@@ -399,6 +401,12 @@ def _check_real(real: str) -> str:
     return real
 
 
+def _check_differences(differences: str) -> bool:
+    if differences not in ("counts", "angle"):
+        raise ValueError(f"differences = {differences!r}; expected 'counts' or 'angle'")
+    return differences == "counts"
+
+
 def _constants(law: DriveLaw) -> list[tuple[str, float, str]]:
     """``(NAME, value, comment)`` of every constant the code uses."""
     c = [("TS", law.ts, "sample time, s"),
@@ -458,7 +466,8 @@ def _header_comment(law: DriveLaw, lang: str) -> list[str]:
     return lines
 
 
-def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", header: str | None = None) -> tuple[str, str]:
+def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", header: str | None = None,
+           differences: str = "counts") -> tuple[str, str]:
     """The law as C99: ``(header text, source text)``.
 
     The header declares ``<name>_real`` (``float`` or ``double``), the state struct
@@ -480,6 +489,10 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
     real : {"double", "float"}
     header : str, optional
         File name the source includes (default ``<name>.h``).
+    differences : {"counts", "angle"}
+        ``"counts"``: speed and position differences in integer counts (full resolution at
+        any travel, also in float; the drive's choice); ``"angle"``: as the simulator, from the
+        angles in rad (double: the simulator's command bit for bit).
 
     Returns
     -------
@@ -488,6 +501,7 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
     if not isinstance(law, DriveLaw):
         raise ValueError(f"law = {law!r}; expected a DriveLaw (see drive_law)")
     n, real = _check_name(name), _check_real(real)
+    by_counts = _check_differences(differences)
     header = header or f"{n}.h"
     R = f"{n}_real"
     p = law.position
@@ -530,11 +544,12 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
     c = ["/*", *[" * " + s for s in _header_comment(law, "c")], " */", f'#include "{header}"', ""]
     for cname, v, comment in _constants(law):
         c.append(f"static const {R} {cname} = ({R}){_lit(v)}; /* {comment} */")
-    c += ["", f"static {R} clamp({R} x) {{ return x > T_MAX ? T_MAX : (x < -T_MAX ? -T_MAX : x); }}", "",
-          f"static {R} biquad({R} x, {R} *m, {R} b0, {R} b1, {R} b2, {R} a1, {R} a2)", "{",
-          f"    {R} y = b0 * x + b1 * m[0] + b2 * m[1] - a1 * m[2] - a2 * m[3];",
-          "    m[1] = m[0]; m[0] = x; m[3] = m[2]; m[2] = y;", "    return y;", "}", "",
-          f"void {n}_init({n}_state *s, {init_args})", "{",
+    c += ["", f"static {R} clamp({R} x) {{ return x > T_MAX ? T_MAX : (x < -T_MAX ? -T_MAX : x); }}", ""]
+    if ns or nt:
+        c += [f"static {R} biquad({R} x, {R} *m, {R} b0, {R} b1, {R} b2, {R} a1, {R} a2)", "{",
+              f"    {R} y = b0 * x + b1 * m[0] + b2 * m[1] - a1 * m[2] - a2 * m[3];",
+              "    m[1] = m[0]; m[0] = x; m[3] = m[2]; m[2] = y;", "    return y;", "}", ""]
+    c += [f"void {n}_init({n}_state *s, {init_args})", "{",
           "    s->count_prev = count_prev;", "    s->w_filt = speed0;", "    s->w_prev = speed0;",
           f"    s->deriv = ({R})0;", "    s->integral = integral0;", "    s->u_pending = torque0;",
           "    s->speed = speed0;", "    s->command_unfiltered = torque0;"]
@@ -549,7 +564,9 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
           f"    {R} w, d, e, u, us, uf, out;", f"    {R} ref = {'speed_ref' if p is None else f'({R})0'};",
           f"    {R} tau_ff = TAU_FF;",
           f"    /* encoder difference in counts (keeps full resolution at any travel) */",
-          f"    w = A_W * s->w_filt + ONE_MINUS_A_W * (({R})(count - s->count_prev) * RAD_PER_COUNT) / TS;",
+          f"    w = A_W * s->w_filt + ONE_MINUS_A_W * (({R})(count - s->count_prev) * RAD_PER_COUNT) / TS;" if by_counts
+          else f"    w = A_W * s->w_filt + ONE_MINUS_A_W * (({R})count * RAD_PER_COUNT - ({R})s->count_prev * "
+               "RAD_PER_COUNT) / TS;",
           "    s->w_filt = w;"]
     for i in range(ns):
         c.append(f"    w = biquad(w, s->sf[{i}], SF{i}_B0, SF{i}_B1, SF{i}_B2, SF{i}_A1, SF{i}_A2);")
@@ -557,7 +574,9 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
     if p is not None:
         pc = "position_count" if scale else "count"
         c += [f"    if (s->phase == 0) {{  /* position-loop sample */",
-              f"        {R} ep = (pos_ref / UNIT_M - ({R})({pc} - s->position_zero) * POS_PER_COUNT) * ERR_TO_RAD;",
+              f"        {R} ep = (pos_ref / UNIT_M - ({R})({pc} - s->position_zero) * POS_PER_COUNT) * ERR_TO_RAD;"
+              if by_counts else f"        {R} ep = ((({R})s->position_zero * POS_PER_COUNT + pos_ref / UNIT_M) - "
+                                f"({R}){pc} * POS_PER_COUNT) * ERR_TO_RAD;",
               "        s->p_integral = s->p_integral + TP_KIP * ep;",
               "        s->w_ref = KV * ep + s->p_integral + KVFF * vel_ref / LEAD;",
               "        s->tau_p = KAFF_J * acc_ref / LEAD;", "    }",
@@ -576,7 +595,7 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
     return "\n".join(h), "\n".join(c)
 
 
-def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double") -> str:
+def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double", differences: str = "counts") -> str:
     """The law as an IEC 61131-3 Structured Text FUNCTION_BLOCK.
 
     Inputs: ``Reset`` (BOOL: load the ``Init*`` values and output ``InitTorque``), ``EncCount``
@@ -592,10 +611,13 @@ def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double") -> s
         Name of the function block.
     real : {"double", "float"}
         ``LREAL`` or ``REAL``.
+    differences : {"counts", "angle"}
+        As :func:`c_code`.
     """
     if not isinstance(law, DriveLaw):
         raise ValueError(f"law = {law!r}; expected a DriveLaw (see drive_law)")
     n, R = _check_name(name), REAL_TYPES[_check_real(real)]
+    by_counts = _check_differences(differences)
     p = law.position
     ns, nt = len(law.speed_biquads), len(law.torque_biquads)
     scale = p is not None and p.measured != "nut_angle"
@@ -646,7 +668,9 @@ def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double") -> s
     out += ["    TorqueCmd := InitTorque;", "    Speed := InitSpeed;", "    CommandUnfiltered := InitTorque;",
             "    RETURN;", "END_IF;", "",
             "(* encoder difference in counts *)",
-            f"W := A_W * WFilt + ONE_MINUS_A_W * (LINT_TO_{R}(EncCount - CountPrev) * RAD_PER_COUNT) / TS;",
+            f"W := A_W * WFilt + ONE_MINUS_A_W * (LINT_TO_{R}(EncCount - CountPrev) * RAD_PER_COUNT) / TS;" if by_counts
+            else f"W := A_W * WFilt + ONE_MINUS_A_W * (LINT_TO_{R}(EncCount) * RAD_PER_COUNT - LINT_TO_{R}(CountPrev) "
+                 "* RAD_PER_COUNT) / TS;",
             "WFilt := W;"]
     for i in range(ns):
         out += [f"Y := SF{i}_B0 * W + SF{i}_B1 * SF{i}_X1 + SF{i}_B2 * SF{i}_X2 - SF{i}_A1 * SF{i}_Y1 - SF{i}_A2 * SF{i}_Y2;",
@@ -657,7 +681,9 @@ def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double") -> s
     else:
         pc = "PosCount" if scale else "EncCount"
         out += ["IF Phase = 0 THEN (* position-loop sample *)",
-                f"    Ep := (PosRef / UNIT_M - LINT_TO_{R}({pc} - PosZero) * POS_PER_COUNT) * ERR_TO_RAD;",
+                f"    Ep := (PosRef / UNIT_M - LINT_TO_{R}({pc} - PosZero) * POS_PER_COUNT) * ERR_TO_RAD;" if by_counts
+                else f"    Ep := ((LINT_TO_{R}(PosZero) * POS_PER_COUNT + PosRef / UNIT_M) - LINT_TO_{R}({pc}) * "
+                     "POS_PER_COUNT) * ERR_TO_RAD;",
                 "    PIntegral := PIntegral + TP_KIP * Ep;",
                 "    WRef := KV * Ep + PIntegral + KVFF * VelRef / LEAD;",
                 "    TauP := KAFF_J * AccRef / LEAD;", "END_IF;",
@@ -679,7 +705,7 @@ def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double") -> s
 
 def export_code(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | None", path: "str | Path", *,
                 filters: Iterable = (), real: str = "double", name: str | None = None,
-                delay_samples: int = 1) -> list[Path]:
+                delay_samples: int = 1, differences: str = "counts") -> list[Path]:
     """Write the controller as code, chosen by the suffix of ``path``: ``.c`` writes the C source
     and its header (``.h``) beside it, ``.st`` the Structured Text function block.
 
@@ -696,6 +722,8 @@ def export_code(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | No
         Identifier prefix (C) or function-block name (ST); default the file's stem when it is an
         identifier, else ``prsa_ctrl``.
     delay_samples : {0, 1}
+    differences : {"counts", "angle"}
+        See :func:`c_code`.
 
     Returns
     -------
@@ -707,15 +735,16 @@ def export_code(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | No
     if suffix not in CODE_SUFFIXES:
         raise ValueError(f"path = {str(path)!r}; expected a file name ending in {' or '.join(CODE_SUFFIXES)}")
     _check_real(real)
+    _check_differences(differences)
     law = controller if isinstance(controller, DriveLaw) else drive_law(controller, plant, filters=filters,
                                                                         delay_samples=delay_samples)
     if name is None:
         name = path.stem if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,40}", path.stem) else "prsa_ctrl"
     if suffix == ".st":
-        path.write_text(st_code(law, name=name, real=real))
+        path.write_text(st_code(law, name=name, real=real, differences=differences))
         return [path]
     hpath = path.with_suffix(".h")
-    h, c = c_code(law, name=name, real=real, header=hpath.name)
+    h, c = c_code(law, name=name, real=real, header=hpath.name, differences=differences)
     hpath.write_text(h)
     path.write_text(c)
     return [path, hpath]
