@@ -1161,7 +1161,7 @@ def _finite_json(obj: Any) -> Any:
 
 
 #: ``prsa-tune`` options a move scene honours; every other option is refused (exit 2).
-MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose")
+MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real")
 
 
 def _refused_flag(args: Any, run: Any) -> str | None:
@@ -1360,12 +1360,16 @@ def main_move(run: Any, args: Any) -> int:
             plant = load_plant(getattr(args, "plant", None))
         check_move_against_plant(scene, plant)
         inputs = [v for v in (getattr(args, "plant", None), args.scene) if v is not None and os.path.exists(v)]
-        if export_path is not None and os.path.splitext(export_path)[1].lower() not in (".json", ".toml"):
-            raise ValueError(f"--export {export_path!r}: expected a path ending in .json or .toml")
+        if export_path is not None and os.path.splitext(export_path)[1].lower() not in (".json", ".toml", ".c", ".st"):
+            raise ValueError(f"--export {export_path!r}: expected a path ending in .json, .toml, .c or .st")
         check_distinct({"--json": json_path, "--export": export_path, "--plots": plots_dir})
         for flag, path in (("--json", json_path), ("--export", export_path)):
             if path is not None:
                 check_writable(path, inputs, flag)
+        if export_path is not None and os.path.splitext(export_path)[1].lower() == ".c":  # issue 24: + the header
+            from .codegen import check_code_export
+
+            check_code_export(export_path, inputs, "--export")
         if plots_dir is not None:
             check_directory(plots_dir, "--plots")
     except (SceneError, ValueError, OutputError) as exc:  # PlantFileError is a ValueError
@@ -1409,7 +1413,12 @@ def main_move(run: Any, args: Any) -> int:
         write_text(json_path, json.dumps(data, indent=2, allow_nan=False) + "\n", inputs, flag="--json")
     if export_path is not None:
         fmt = os.path.splitext(export_path)[1].lower().lstrip(".")
-        write_text(export_path, dumps(export_cascade(joint, plant, fmt=fmt), fmt), inputs, flag="--export")
+        if fmt in ("c", "st"):  # issue 24: the discrete cascade as code (prsa_ctrl.codegen)
+            from .codegen import write_code_export
+
+            write_code_export(export_path, joint, plant, inputs, real=getattr(args, "export_real", "double"))
+        else:
+            write_text(export_path, dumps(export_cascade(joint, plant, fmt=fmt), fmt), inputs, flag="--export")
     if not quiet:
         print(format_move_report(plant, scene, [seq, joint], prog))
         if json_path is not None:

@@ -210,9 +210,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_integer("--workers", 1, WORKERS_MAX, "an integer"), default=None,
                    help="processes for verification and Monte Carlo, or the workers of --scheduler local "
                         "(default: cores, at most 4)")
-    p.add_argument("--export", type=_path_text("--export"), metavar="PATH.json|PATH.toml",
+    p.add_argument("--export", type=_path_text("--export"), metavar="PATH.json|PATH.toml|PATH.c|PATH.st",
                    help="write the tuned gains in a drive's terms (continuous and discrete forms, Kp/Tn, "
-                        "biquads) as JSON or TOML, chosen by the suffix")
+                        "biquads) as JSON or TOML, or the complete discrete controller as C (PATH.c and PATH.h) "
+                        "or IEC 61131-3 Structured Text (PATH.st), chosen by the suffix")
+    p.add_argument("--export-real", choices=("double", "float"), default="double",
+                   help="floating-point type of a .c/.st export (default double)")
     p.add_argument("--robust", action="store_true",
                    help="also tune one design over the scenario models of the plant's and scene's [uncertainty] "
                         "(default: when the scene has a [robust] section) and compare it with the nominal design")
@@ -815,9 +818,13 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if find_spec("distributed") is None:
                 raise _UsageError(f"--scheduler {args.scheduler!r} needs Dask: pip install 'prsa-ctrl[dask]'")
         if args.export is not None:
-            if os.path.splitext(args.export)[1].lower() not in (".json", ".toml"):
-                raise _UsageError(f"--export {args.export!r}: expected a path ending in .json or .toml")
+            if os.path.splitext(args.export)[1].lower() not in (".json", ".toml", ".c", ".st"):
+                raise _UsageError(f"--export {args.export!r}: expected a path ending in .json, .toml, .c or .st")
             check_writable(args.export, inputs, "--export")
+            if os.path.splitext(args.export)[1].lower() == ".c":  # issue 24: the header beside the source
+                from .codegen import check_code_export
+
+                check_code_export(args.export, inputs, "--export")
         if args.plots is not None:
             check_directory(args.plots, "--plots")
         check_distinct({"--json": args.json, "--export": args.export, "--plots": args.plots})
@@ -871,12 +878,19 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             from .output import write_text
 
             fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
-            exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
-                                         setpoint_weight=_setpoint_weight(rep.scene)) if rep.best.pid.kff == 0 else None
+            if fmt in ("c", "st"):  # issue 24: the discrete controller as code (prsa_ctrl.codegen)
+                from .codegen import write_code_export
+
+                exported = None if rep.best.pid.kff else write_code_export(
+                    args.export, rep.best.pid, rep.plant, inputs, real=args.export_real,
+                    setpoint_weight=_setpoint_weight(rep.scene))
+            else:
+                exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
+                                             setpoint_weight=_setpoint_weight(rep.scene)) if rep.best.pid.kff == 0 else None
             if exported is None:
                 run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
                         "(kff > 0), which the drive export does not describe; nothing exported")
-            else:
+            elif fmt not in ("c", "st"):
                 write_text(args.export, dumps(exported, fmt), inputs, flag="--export")
     except OutputError:
         raise

@@ -22,7 +22,7 @@ rad per count)::
       w_ref  = kv e_p + I_p + kvff v_ref / lead
       tau_p  = (kaff J) acc_ref / lead
     e     = w_ref - w
-    u     = kp e + I - kd d + (tau_ff + tau_p)
+    u     = kp (b w_ref - w) + I - kd d + (tau_ff + tau_p)           b: 2-DOF setpoint weight (1: kp e)
     us    = min(max(u, -T_max), T_max)
     I     = I + Ts (ki e + k_aw (us - u))                            k_aw = ki/max(kp, 1e-9)
     uf    = min(max(torque-command biquads of us, -T_max), T_max)
@@ -53,6 +53,7 @@ True
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,7 +70,8 @@ if TYPE_CHECKING:
     from .simulation import SimRun
 
 __all__ = ["DriveLaw", "PositionLaw", "drive_law", "ReferenceLaw", "replay_inputs", "c_code", "st_code",
-           "export_code", "CODE_SUFFIXES", "REAL_TYPES"]
+           "export_code", "code_texts", "code_files", "check_code_export", "write_code_export", "CODE_SUFFIXES",
+           "REAL_TYPES"]
 
 #: File suffixes :func:`export_code` writes (``--export PATH.c`` / ``PATH.st``).
 CODE_SUFFIXES = (".c", ".st")
@@ -137,6 +139,9 @@ class DriveLaw:
     delay_samples : {0, 1}
         1: the step returns the command computed at the previous sample (the simulator's
         one-sample computation delay); 0: the command just computed.
+    setpoint_weight : float
+        2-DOF weight ``b`` of the speed reference in the proportional term,
+        ``u = kp (b w_ref - w) + I ...`` (1: the 1-DOF law; see :mod:`prsa_ctrl.export`).
     plant : str
         Plant name (for the header comment).
     """
@@ -154,6 +159,7 @@ class DriveLaw:
     torque_biquads: tuple[_Biquad, ...] = ()
     position: PositionLaw | None = None
     delay_samples: int = 1
+    setpoint_weight: float = 1.0
     plant: str = ""
 
     @property
@@ -187,7 +193,7 @@ def position_law(position: "PositionLoop", plant: "Plant") -> PositionLaw:
 
 def drive_law(controller: "PID | CascadeDesign", plant: "Plant", *, filters: Iterable = (),
               position: "PositionLoop | None" = None, feedforward_torque_n_m: float = 0.0,
-              delay_samples: int = 1) -> DriveLaw:
+              delay_samples: int = 1, setpoint_weight: float = 1.0) -> DriveLaw:
     """The sampled drive's complete per-sample law for ``controller`` on ``plant``.
 
     Parameters
@@ -205,6 +211,8 @@ def drive_law(controller: "PID | CascadeDesign", plant: "Plant", *, filters: Ite
         Constant torque feed-forward (``run(feedforward_torque=...)``).
     delay_samples : {0, 1}
         Computation delay of the returned command (1: as simulated).
+    setpoint_weight : float
+        2-DOF setpoint weight ``b`` in [0, 1] (the scene's ``[tuning] setpoint_weight``).
 
     Returns
     -------
@@ -225,6 +233,9 @@ def drive_law(controller: "PID | CascadeDesign", plant: "Plant", *, filters: Ite
                          "speed measurement; the Kalman load-torque feed-forward is not generated)")
     if delay_samples not in (0, 1) or isinstance(delay_samples, bool):
         raise ValueError(f"delay_samples = {delay_samples!r}; expected 0 or 1")
+    b = _finite("setpoint_weight", setpoint_weight, 0.0)
+    if b > 1.0:
+        raise ValueError(f"setpoint_weight = {setpoint_weight!r}; expected a setpoint weight b in [0, 1]")
     ts = float(plant.sample_time_s)
     lfs = loop_filters(filters, ts)
     bq = {pl: tuple(tuple(lf.biquad(ts).as_dict().values()) for lf in lfs if lf.place == pl)
@@ -239,7 +250,7 @@ def drive_law(controller: "PID | CascadeDesign", plant: "Plant", *, filters: Ite
     return DriveLaw(ts, float(plant.torque_limit), 2.0 * math.pi / plant.encoder_counts,
                     math.exp(-ts / float(plant.speed_filter_s)), float(controller.kp), float(controller.ki),
                     float(controller.kd), float(controller.tf), _finite("feedforward_torque_n_m", feedforward_torque_n_m),
-                    bq["speed_measurement"], bq["torque_command"], pos, int(delay_samples), plant.name)
+                    bq["speed_measurement"], bq["torque_command"], pos, int(delay_samples), b, plant.name)
 
 
 # --- the law in Python, exactly as the simulator writes it ---------------------------------------
@@ -304,7 +315,7 @@ class ReferenceLaw:
                 self.tau_p = pl.kaff * pl.inertia_kg_m2 * acc_ref_m_s2 / pl.lead_m_per_rad
             ref, tau_ff = self.w_ref, tau_ff + self.tau_p
         err = ref - w
-        u = lw.kp * err + self.integral - lw.kd * deriv + tau_ff
+        u = lw.kp * (lw.setpoint_weight * ref - w) + self.integral - lw.kd * deriv + tau_ff
         lim = lw.torque_limit_n_m
         us = min(max(u, -lim), lim)
         self.integral = self.integral + ts * (lw.ki * err + lw.ki / max(lw.kp, 1e-9) * (us - u))
@@ -415,6 +426,7 @@ def _constants(law: DriveLaw) -> list[tuple[str, float, str]]:
          ("A_W", law.speed_filter_a, "speed filter a = exp(-Ts/tau_w)"),
          ("ONE_MINUS_A_W", 1 - law.speed_filter_a, "1 - a"),
          ("KP", law.kp, "speed PI proportional gain, N m s/rad"),
+         ("B_SP", law.setpoint_weight, "2-DOF setpoint weight b (u = kp (b w_ref - w) + I ...)"),
          ("KI", law.ki, "speed PI integral gain, N m/rad"),
          ("KD", law.kd, "derivative gain, N m s^2/rad (on the measured speed)"),
          ("BETA", law.beta, "derivative filter beta = exp(-Ts/tf)"),
@@ -582,7 +594,7 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
               "        s->tau_p = KAFF_J * acc_ref / LEAD;", "    }",
               f"    s->phase = s->phase + 1 >= {p.rate} ? 0 : s->phase + 1;",
               "    ref = s->w_ref;", "    tau_ff = tau_ff + s->tau_p;"]
-    c += ["    e = ref - w;", "    u = KP * e + s->integral - KD * d + tau_ff;", "    us = clamp(u);",
+    c += ["    e = ref - w;", "    u = KP * (B_SP * ref - w) + s->integral - KD * d + tau_ff;", "    us = clamp(u);",
           "    s->integral = s->integral + TS * (KI * e + K_AW * (us - u));", "    uf = us;"]
     for i in range(nt):
         c.append(f"    uf = biquad(uf, s->tf[{i}], TF{i}_B0, TF{i}_B1, TF{i}_B2, TF{i}_A1, TF{i}_A2);")
@@ -689,7 +701,7 @@ def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double", diff
                 "    TauP := KAFF_J * AccRef / LEAD;", "END_IF;",
                 "Phase := Phase + 1;", f"IF Phase >= {p.rate} THEN", "    Phase := 0;", "END_IF;",
                 "Ref := WRef;", "TauFF := TAU_FF + TauP;"]
-    out += ["E := Ref - W;", "U := KP * E + Integral - KD * D + TauFF;", "Us := MIN(MAX(U, -T_MAX), T_MAX);",
+    out += ["E := Ref - W;", "U := KP * (B_SP * Ref - W) + Integral - KD * D + TauFF;", "Us := MIN(MAX(U, -T_MAX), T_MAX);",
             "Integral := Integral + TS * (KI * E + K_AW * (Us - U));", "Uf := Us;"]
     for i in range(nt):
         out += [f"Y := TF{i}_B0 * Uf + TF{i}_B1 * TF{i}_X1 + TF{i}_B2 * TF{i}_X2 - TF{i}_A1 * TF{i}_Y1 - TF{i}_A2 * TF{i}_Y2;",
@@ -705,7 +717,7 @@ def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double", diff
 
 def export_code(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | None", path: "str | Path", *,
                 filters: Iterable = (), real: str = "double", name: str | None = None,
-                delay_samples: int = 1, differences: str = "counts") -> list[Path]:
+                delay_samples: int = 1, differences: str = "counts", setpoint_weight: float = 1.0) -> list[Path]:
     """Write the controller as code, chosen by the suffix of ``path``: ``.c`` writes the C source
     and its header (``.h``) beside it, ``.st`` the Structured Text function block.
 
@@ -724,36 +736,67 @@ def export_code(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | No
     delay_samples : {0, 1}
     differences : {"counts", "angle"}
         See :func:`c_code`.
+    setpoint_weight : float
+        2-DOF setpoint weight b in [0, 1] (see :func:`drive_law`).
 
     Returns
     -------
     list of Path
         The files written.
     """
+    texts = code_texts(controller, plant, path, filters=filters, real=real, name=name, delay_samples=delay_samples,
+                       differences=differences, setpoint_weight=setpoint_weight)
+    for f, text in texts.items():
+        f.write_text(text)
+    return list(texts)
+
+
+def code_texts(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | None", path: "str | Path", *,
+               filters: Iterable = (), real: str = "double", name: str | None = None, delay_samples: int = 1,
+               differences: str = "counts", setpoint_weight: float = 1.0) -> dict[Path, str]:
+    """What :func:`export_code` writes: ``{file: text}`` (same parameters)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in CODE_SUFFIXES:
         raise ValueError(f"path = {str(path)!r}; expected a file name ending in {' or '.join(CODE_SUFFIXES)}")
     _check_real(real)
     _check_differences(differences)
-    law = controller if isinstance(controller, DriveLaw) else drive_law(controller, plant, filters=filters,
-                                                                        delay_samples=delay_samples)
+    law = controller if isinstance(controller, DriveLaw) else drive_law(
+        controller, plant, filters=filters, delay_samples=delay_samples, setpoint_weight=setpoint_weight)
     if name is None:
         name = path.stem if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,40}", path.stem) else "prsa_ctrl"
     if suffix == ".st":
-        path.write_text(st_code(law, name=name, real=real, differences=differences))
-        return [path]
+        return {path: st_code(law, name=name, real=real, differences=differences)}
     hpath = path.with_suffix(".h")
     h, c = c_code(law, name=name, real=real, header=hpath.name, differences=differences)
-    hpath.write_text(h)
-    path.write_text(c)
-    return [path, hpath]
+    return {path: c, hpath: h}
 
 
 def code_files(path: "str | Path") -> list[Path]:
-    """The files :func:`export_code` writes for ``path`` (to check them before any work)."""
+    """The files :func:`export_code` writes for ``path`` (the source and its header for ``.c``)."""
     path = Path(path)
-    return [path, path.with_suffix(".h")] if path.suffix.lower() == ".c" else [path]
+    return [path, path.with_suffix(path.suffix[:-1] + "h")] if path.suffix.lower() == ".c" else [path]
+
+
+def check_code_export(path: "str | os.PathLike", inputs: Iterable = (), flag: str = "--export") -> None:
+    """Check, before any work, that every file a code export writes (``.c`` and its ``.h``, or
+    ``.st``) can be written and is no input (one-line :class:`prsa_ctrl.output.OutputError`)."""
+    from .output import check_writable
+
+    for f in code_files(path):
+        check_writable(f if f == Path(path) else str(f), list(inputs), flag if f == Path(path) else f"{flag} (header)")
+
+
+def write_code_export(path: "str | os.PathLike", controller: "PID | CascadeDesign", plant: "Plant", inputs: Iterable = (),
+                      flag: str = "--export", *, filters: Iterable = (), real: str = "double",
+                      setpoint_weight: float = 1.0) -> list[Path]:
+    """The CLI's code export: :func:`code_texts` written atomically with
+    :func:`prsa_ctrl.output.write_text` (never onto an input). Returns the files written."""
+    from .output import write_text
+
+    texts = code_texts(controller, plant, os.fspath(path), filters=filters, real=real, setpoint_weight=setpoint_weight)
+    inputs = list(inputs)
+    return [write_text(f if f == Path(path) else str(f), text, inputs, flag) for f, text in texts.items()]
 
 
 def max_relative_difference(a: Sequence[float], b: Sequence[float]) -> float:

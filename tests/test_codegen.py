@@ -366,3 +366,93 @@ def test_zero_delay_returns_the_command_just_computed(load_step):
     law, inp, _ = load_step
     u0 = ReferenceLaw(replace(law, delay_samples=0)).run(inp)
     assert max_relative_difference(u0[:-1], inp["torque_command"][1:]) <= REL
+
+
+@pytest.mark.parametrize("b", [0.0, 0.5])
+def test_setpoint_weight_against_the_prefiltered_run(plant, b, tmp_path):
+    """b != 1: the generated law on the raw setpoint gives the command of the simulated loop,
+    which runs the 1-DOF PI on the setpoint through autotune.setpoint_prefilter (the same
+    command while unsaturated; the prefilter's algebra differs from the 2-DOF law in round-off)."""
+    from prsa_ctrl.autotune import setpoint_prefilter
+    from prsa_ctrl.simulation import PiecewiseLinear
+
+    pid, ts, n = PID(0.085, 14.7), plant.sample_time_s, 160
+    t = np.arange(n) * ts
+    r_raw = np.where(t >= 0.01, 40.0, 30.0)
+    rf = setpoint_prefilter(r_raw, pid, ts, b)
+    r = run(plant, setpoint=PiecewiseLinear(tuple(zip(t.tolist(), rf.tolist()))), load=500.0, duration=n * ts,
+            controller=pid, fidelity="rigid", discrete=True)
+    inp = {k: (v[:n] if isinstance(v, np.ndarray) else v) for k, v in replay_inputs(r, plant).items()}
+    assert np.max(np.abs(inp["speed_ref_rad_s"] - rf)) < 1e-9 and np.max(np.abs(rf - r_raw)) > 1.0
+    inp["speed_ref_rad_s"] = r_raw
+    inp["init"]["integral0_n_m"] -= pid.kp * (b - 1) * r_raw[0]
+    law = drive_law(pid, plant, setpoint_weight=b)
+    u = ReferenceLaw(law).run(inp)
+    assert max_relative_difference(u, inp["torque_command"]) < 1e-9
+    if CC is not None:
+        assert max_relative_difference(_run_c(_build(law, tmp_path, "double"), law, inp), inp["torque_command"]) < 1e-9
+    assert max_relative_difference(_run_st(st_code(law), law, inp), inp["torque_command"]) < 1e-9
+    from dataclasses import replace
+
+    assert max_relative_difference(ReferenceLaw(replace(law, setpoint_weight=1.0)).run(inp), inp["torque_command"]) > 0.05
+
+
+# --- prsa-tune --export PATH.c / PATH.st --------------------------------------------------------
+
+def test_cli_export_c_writes_source_and_header(tmp_path, capsys):
+    from prsa_ctrl.cli import main
+
+    out = tmp_path / "speed.c"
+    assert main(["--quiet", "--export", str(out), "--json", str(tmp_path / "r.json")]) == 0
+    assert out.exists() and (tmp_path / "speed.h").exists()
+    import json
+
+    best = json.loads((tmp_path / "r.json").read_text())["best"]
+    kp = float(re.search(r"KP = \(speed_real\)([0-9.e+-]+);", out.read_text()).group(1))
+    assert kp == best["gains"]["kp"] and best["gains"]["b"] == 1.0
+    if CC is not None:
+        res = subprocess.run([CC, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-c", str(out), "-o",
+                              str(tmp_path / "speed.o")], capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stderr
+
+
+def test_cli_export_st_float(tmp_path):
+    from prsa_ctrl.cli import main
+
+    out = tmp_path / "Speed.st"
+    assert main(["--quiet", "--export", str(out), "--export-real", "float"]) == 0
+    text = out.read_text()
+    assert text.startswith("FUNCTION_BLOCK Speed") and "LREAL" not in text
+    st_to_python(text.replace("REAL", "LREAL").replace("LINT_TO_LLREAL", "LINT_TO_LREAL"))  # parses in the subset
+
+
+def test_cli_export_bad_suffix_and_header_onto_an_input(tmp_path, capsys):
+    from prsa_ctrl.cli import main
+
+    assert main(["--export", str(tmp_path / "x.cpp")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "expected a path ending in .json, .toml, .c or .st" in err[0]
+    plant = tmp_path / "mine.h"  # a plant file whose name the header of --export mine.c would take
+    from prsa_ctrl.plant import plant_file_path
+
+    plant.write_text(plant_file_path("paper-iprsm").read_text())
+    before = plant.read_text()
+    assert main(["--plant", str(plant), "--export", str(tmp_path / "mine.c")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mine.h" in err[0] and "--export (header)" in err[0]
+    assert plant.read_text() == before and not (tmp_path / "mine.c").exists()
+
+
+def test_cli_move_scene_export_st(tmp_path):
+    """The cascade of the move scene as a function block (position loop with feed-forward)."""
+    from prsa_ctrl.cli import main
+
+    out = tmp_path / "Axis.st"
+    assert main(["--scene", "paper-move", "--quiet", "--export", str(out), "--json", str(tmp_path / "m.json")]) == 0
+    import json
+
+    joint = json.loads((tmp_path / "m.json").read_text())["joint"]
+    text = out.read_text()
+    kv = float(re.search(r"KV : LREAL := ([0-9.e+-]+);", text).group(1))
+    assert kv == joint["position"]["kv_per_s"]
+    st_to_python(text)
