@@ -1161,7 +1161,7 @@ def _finite_json(obj: Any) -> Any:
 
 
 #: ``prsa-tune`` options a move scene honours; every other option is refused (exit 2).
-MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real")
+MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real", "export_template", "motor")
 
 
 def _refused_flag(args: Any, run: Any) -> str | None:
@@ -1370,6 +1370,10 @@ def main_move(run: Any, args: Any) -> int:
             from .codegen import check_code_export
 
             check_code_export(export_path, inputs, "--export")
+        if getattr(args, "motor", None) is not None or getattr(args, "export_template", None) is not None:
+            from .driveparams import check_cli_options
+
+            check_cli_options(args)  # issue 24: bad --motor / --export-template exit 2 before tuning
         if plots_dir is not None:
             check_directory(plots_dir, "--plots")
     except (SceneError, ValueError, OutputError) as exc:  # PlantFileError is a ValueError
@@ -1418,7 +1422,12 @@ def main_move(run: Any, args: Any) -> int:
 
             write_code_export(export_path, joint, plant, inputs, real=getattr(args, "export_real", "double"))
         else:
-            write_text(export_path, dumps(export_cascade(joint, plant, fmt=fmt), fmt), inputs, flag="--export")
+            exported = export_cascade(joint, plant, fmt=fmt)
+            if getattr(args, "motor", None) is not None or getattr(args, "export_template", None) is not None:
+                from .driveparams import cli_export_data
+
+                exported = cli_export_data(args, exported, joint, plant)
+            write_text(export_path, dumps(exported, fmt), inputs, flag="--export")
     if not quiet:
         print(format_move_report(plant, scene, [seq, joint], prog))
         if json_path is not None:

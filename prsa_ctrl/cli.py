@@ -216,6 +216,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "or IEC 61131-3 Structured Text (PATH.st), chosen by the suffix")
     p.add_argument("--export-real", choices=("double", "float"), default="double",
                    help="floating-point type of a .c/.st export (default double)")
+    p.add_argument("--export-template", metavar="NAME|PATH.toml",
+                   help="with --export PATH.toml|.json: write the drive parameter set of this template (built-in: "
+                        "generic, cia402, siemens-sinamics, beckhoff-ax8000; or a copy you edited)")
+    p.add_argument("--motor", metavar="PATH.toml|KEY=VALUE,...",
+                   help="motor data for current-based gains: a TOML file with [motor] or e.g. "
+                        "torque_constant_n_m_per_a=0.9,rated_torque_n_m=3,rated_current_a=4 (or back_emf_v_per_krpm)")
     p.add_argument("--robust", action="store_true",
                    help="also tune one design over the scenario models of the plant's and scene's [uncertainty] "
                         "(default: when the scene has a [robust] section) and compare it with the nominal design")
@@ -825,6 +831,13 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 from .codegen import check_code_export
 
                 check_code_export(args.export, inputs, "--export")
+        if args.motor is not None or args.export_template is not None:  # issue 24: drive units, parameter sets
+            from .driveparams import check_cli_options
+
+            try:
+                check_cli_options(args)
+            except ValueError as exc:
+                raise _UsageError(str(exc)) from None
         if args.plots is not None:
             check_directory(args.plots, "--plots")
         check_distinct({"--json": args.json, "--export": args.export, "--plots": args.plots})
@@ -887,6 +900,10 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             else:
                 exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
                                              setpoint_weight=_setpoint_weight(rep.scene)) if rep.best.pid.kff == 0 else None
+                if exported is not None and (args.motor is not None or args.export_template is not None):
+                    from .driveparams import cli_export_data
+
+                    exported = cli_export_data(args, exported, rep.best.pid, rep.plant)
             if exported is None:
                 run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
                         "(kff > 0), which the drive export does not describe; nothing exported")

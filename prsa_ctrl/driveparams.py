@@ -397,12 +397,13 @@ def fill_template(template: "str | Path | dict", controller: "PID | Any", plant:
             entry["si_unit"] = QUANTITIES[prm["quantity"]][0]
             entry["applies"] = True
         out["parameter"].append(entry)
-    unconfirmed = [p["index"] for p in out["parameter"] if not p["confirmed"]]
-    if unconfirmed or not doc["template"].get("speed_pi_form_confirmed", True):
-        out["export"]["not_confirmed"] = (
-            f"check before use: {', '.join(unconfirmed) or 'no parameter'}"
-            + ("" if doc["template"].get("speed_pi_form_confirmed", True) else "; the PI form (speed_pi_form)")
-            + " could not be confirmed in the vendor's public documentation (see each source)")
+    parts = [", ".join(p["index"] for p in out["parameter"] if not p["confirmed"])]
+    if not doc["template"].get("speed_pi_form_confirmed", True):
+        parts.append("the PI form (speed_pi_form)")
+    parts = [x for x in parts if x]
+    if parts:
+        out["export"]["not_confirmed"] = (f"check before use: {' and '.join(parts)}: not confirmed in the vendor's "
+                                          "public documentation (see each source)")
     return out
 
 
@@ -468,3 +469,53 @@ def dumps_parameter_set(filled: dict) -> str:
 
     d = {"format": "prsa-ctrl drive parameter set", **filled}
     return dumps(d, "toml")
+
+
+# --- prsa-tune hooks ------------------------------------------------------------------------------
+
+def check_cli_options(args: Any) -> tuple[MotorData | None, dict | None]:
+    """``--motor`` and ``--export-template`` of ``prsa-tune``, checked before any tuning: the
+    motor data and the loaded template (ValueError with one line naming the value as typed)."""
+    motor_text, tpl_name = getattr(args, "motor", None), getattr(args, "export_template", None)
+    export = getattr(args, "export", None)
+    motor = None
+    if motor_text is not None:
+        try:
+            motor = parse_motor(motor_text)
+        except ValueError as exc:
+            raise ValueError(f"--motor {motor_text!r}: {exc}") from None
+    template = None
+    if tpl_name is not None:
+        if export is None or Path(export).suffix.lower() not in (".toml", ".json"):
+            raise ValueError(f"--export-template {tpl_name!r} needs --export PATH.toml or PATH.json; expected the "
+                             "file the filled parameter set is written to")
+        try:
+            template = load_template(tpl_name)
+        except ValueError as exc:
+            raise ValueError(f"--export-template {tpl_name!r}: {exc}") from None
+    return motor, template
+
+
+def cli_export_data(args: Any, exported: dict, controller: "PID | Any", plant: "Plant") -> dict:
+    """What ``--export PATH.toml|.json`` writes given ``--motor``/``--export-template``: the filled
+    parameter set (with ``--export-template``), else the drive export with a ``drive_units``
+    block (with ``--motor``), else ``exported`` unchanged."""
+    motor, template = check_cli_options(args)
+    motor = motor if motor is not None else motor_from_plant(plant)
+    if template is not None:
+        return {"format": "prsa-ctrl drive parameter set", **fill_template(template, controller, plant, motor)}
+    if motor is None:
+        return exported
+    pid, pos = (controller, None) if isinstance(controller, PID) else (controller.speed, controller.position)
+    out = dict(exported)
+    out["drive_units"] = drive_units(pid, motor, pos, float(plant.reflected_inertia_kg_m2) if pos is not None else None)
+    out["drive_units"]["motor"] = {k: v for k, v in motor.__dict__.items() if v is not None and v != ""}
+    if getattr(args, "export", "").lower().endswith(".toml"):
+        out["drive_units"] = _drop_none(out["drive_units"])
+    return out
+
+
+def _drop_none(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _drop_none(v) for k, v in d.items() if v is not None}
+    return d

@@ -229,3 +229,40 @@ def test_float32_storage_effect_is_small_but_not_zero(plant, speed_run):
             p["value"] = float(np.float32(p["value"]))
     err = _round_trip(dumps_parameter_set(filled), plant, speed_run, None, None)["speed"]
     assert 1e-12 < err < 1e-6
+
+
+# --- prsa-tune --motor / --export-template ---------------------------------------------------
+
+def test_cli_export_template_and_motor(tmp_path, capsys):
+    from prsa_ctrl.cli import main
+
+    out = tmp_path / "ax.toml"
+    assert main(["--quiet", "--export", str(out), "--export-template", "beckhoff-ax8000", "--motor",
+                 "torque_constant_n_m_per_a=0.9,rated_torque_n_m=3", "--json", str(tmp_path / "r.json")]) == 0
+    import json
+
+    gains = json.loads((tmp_path / "r.json").read_text())["best"]["gains"]
+    d = tomllib.loads(out.read_text())
+    vals = read_parameter_set(d)
+    assert vals["speed_kp"] == gains["kp"] and vals["speed_tn"] == pytest.approx(gains["kp"] / gains["ki"], rel=1e-15)
+    assert d["template"]["name"] == "beckhoff-ax8000" and d["motor"]["torque_constant_n_m_per_a"] == 0.9
+    units = tmp_path / "units.json"
+    assert main(["--quiet", "--export", str(units), "--motor", "torque_constant_n_m_per_a=0.9"]) == 0
+    du = json.loads(units.read_text())["drive_units"]["speed"]
+    assert du["kp_a_per_rad_s"] == pytest.approx(gains["kp"] / 0.9, rel=1e-15)
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--export-template", "nope", "--export", "x.toml"], "--export-template 'nope': template 'nope'; expected"),
+    (["--motor", "kt=1"], "--motor 'kt=1': motor 'kt=1': unknown motor key 'kt'"),
+    (["--export-template", "generic"], "--export-template 'generic' needs --export PATH.toml or PATH.json"),
+    (["--export-template", "generic", "--export", "x.c"], "needs --export PATH.toml or PATH.json"),
+])
+def test_cli_bad_template_or_motor_one_line(argv, match, tmp_path, capsys, monkeypatch):
+    from prsa_ctrl.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0]
+    assert not list(tmp_path.iterdir())
