@@ -456,3 +456,13 @@ def test_cli_move_scene_export_st(tmp_path):
     kv = float(re.search(r"KV : LREAL := ([0-9.e+-]+);", text).group(1))
     assert kv == joint["position"]["kv_per_s"]
     st_to_python(text)
+
+
+def test_replay_refuses_runs_the_code_does_not_describe(plant):
+    r = run(plant, load=500.0, duration=0.01, controller=PID(0.085, 14.7), fidelity="rigid")
+    with pytest.raises(ValueError, match="run is continuous"):
+        replay_inputs(r, plant)
+    r = run(plant, load=500.0, duration=0.01, controller=PID(0.085, 14.7), fidelity="rigid", discrete=True,
+            measurement="kf")
+    with pytest.raises(ValueError, match="run measured the speed with 'kf'"):
+        replay_inputs(r, plant)
