@@ -1161,7 +1161,7 @@ def _finite_json(obj: Any) -> Any:
 
 
 #: ``prsa-tune`` options a move scene honours; every other option is refused (exit 2).
-MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose")
+MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real", "export_template", "motor")
 
 
 def _refused_flag(args: Any, run: Any) -> str | None:
@@ -1360,12 +1360,20 @@ def main_move(run: Any, args: Any) -> int:
             plant = load_plant(getattr(args, "plant", None))
         check_move_against_plant(scene, plant)
         inputs = [v for v in (getattr(args, "plant", None), args.scene) if v is not None and os.path.exists(v)]
-        if export_path is not None and os.path.splitext(export_path)[1].lower() not in (".json", ".toml"):
-            raise ValueError(f"--export {export_path!r}: expected a path ending in .json or .toml")
+        if export_path is not None and os.path.splitext(export_path)[1].lower() not in (".json", ".toml", ".c", ".st"):
+            raise ValueError(f"--export {export_path!r}: expected a path ending in .json, .toml, .c or .st")
         check_distinct({"--json": json_path, "--export": export_path, "--plots": plots_dir})
         for flag, path in (("--json", json_path), ("--export", export_path)):
             if path is not None:
                 check_writable(path, inputs, flag)
+        if export_path is not None and os.path.splitext(export_path)[1].lower() == ".c":  # issue 24: + the header
+            from .codegen import check_code_export
+
+            check_code_export(export_path, inputs, "--export")
+        if getattr(args, "motor", None) is not None or getattr(args, "export_template", None) is not None:
+            from .driveparams import check_cli_options
+
+            check_cli_options(args)  # issue 24: bad --motor / --export-template exit 2 before tuning
         if plots_dir is not None:
             check_directory(plots_dir, "--plots")
     except (SceneError, ValueError, OutputError) as exc:  # PlantFileError is a ValueError
@@ -1411,8 +1419,18 @@ def main_move(run: Any, args: Any) -> int:
             outputs.stage(json_path, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--json")
         if export_path is not None:
             fmt = os.path.splitext(export_path)[1].lower().lstrip(".")
-            exported = dumps(export_cascade(joint, plant, fmt=fmt), fmt)
-            outputs.stage(export_path, lambda tmp: tmp.write_text(exported, encoding="utf-8"), "--export")
+            if fmt in ("c", "st"):  # the discrete cascade as code (prsa_ctrl.codegen)
+                from .codegen import stage_code_export
+
+                stage_code_export(outputs, export_path, joint, plant, real=getattr(args, "export_real", "double"))
+            else:
+                exported = export_cascade(joint, plant, fmt=fmt)
+                if getattr(args, "motor", None) is not None or getattr(args, "export_template", None) is not None:
+                    from .driveparams import cli_export_data
+
+                    exported = cli_export_data(args, exported, joint, plant)
+                text = dumps(exported, fmt)
+                outputs.stage(export_path, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--export")
         if hasattr(run, "created"):
             from .cli import _commit
 

@@ -214,9 +214,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_integer("--workers", 1, WORKERS_MAX, "an integer"), default=None,
                    help="processes for verification and Monte Carlo, or the workers of --scheduler local "
                         "(default: cores, at most 4)")
-    p.add_argument("--export", type=_path_text("--export"), metavar="PATH.json|PATH.toml",
+    p.add_argument("--export", type=_path_text("--export"), metavar="PATH.json|PATH.toml|PATH.c|PATH.st",
                    help="write the tuned gains in a drive's terms (continuous and discrete forms, Kp/Tn, "
-                        "biquads) as JSON or TOML, chosen by the suffix")
+                        "biquads) as JSON or TOML, or the complete discrete controller as C (PATH.c and PATH.h) "
+                        "or IEC 61131-3 Structured Text (PATH.st), chosen by the suffix")
+    p.add_argument("--export-real", choices=("double", "float"), default="double",
+                   help="floating-point type of a .c/.st export (default double)")
+    p.add_argument("--export-template", metavar="NAME|PATH.toml",
+                   help="with --export PATH.toml|.json: write the drive parameter set of this template (built-in: "
+                        "generic, cia402, siemens-sinamics, beckhoff-ax8000; or a copy you edited)")
+    p.add_argument("--motor", metavar="PATH.toml|KEY=VALUE,...",
+                   help="motor data for current-based gains: a TOML file with [motor] or e.g. "
+                        "torque_constant_n_m_per_a=0.9,rated_torque_n_m=3,rated_current_a=4 (or back_emf_v_per_krpm)")
     p.add_argument("--robust", action="store_true",
                    help="also tune one design over the scenario models of the plant's and scene's [uncertainty] "
                         "(default: when the scene has a [robust] section) and compare it with the nominal design")
@@ -919,9 +928,20 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if address is not None:
                 _probe_scheduler(args.scheduler, *address)
         if args.export is not None:
-            if os.path.splitext(args.export)[1].lower() not in (".json", ".toml"):
-                raise _UsageError(f"--export {args.export!r}: expected a path ending in .json or .toml")
+            if os.path.splitext(args.export)[1].lower() not in (".json", ".toml", ".c", ".st"):
+                raise _UsageError(f"--export {args.export!r}: expected a path ending in .json, .toml, .c or .st")
             check_writable(args.export, inputs, "--export")
+            if os.path.splitext(args.export)[1].lower() == ".c":  # issue 24: the header beside the source
+                from .codegen import check_code_export
+
+                check_code_export(args.export, inputs, "--export")
+        if args.motor is not None or args.export_template is not None:  # issue 24: drive units, parameter sets
+            from .driveparams import check_cli_options
+
+            try:
+                check_cli_options(args)
+            except ValueError as exc:
+                raise _UsageError(str(exc)) from None
         if args.plots is not None:
             check_directory(args.plots, "--plots")
         check_distinct({"--json": args.json, "--export": args.export, "--plots": args.plots})
@@ -977,12 +997,23 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             from .export import dumps, export_controller
 
             fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
-            exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
-                                         setpoint_weight=_setpoint_weight(rep.scene)) if rep.best.pid.kff == 0 else None
+            if fmt in ("c", "st"):  # issue 24: the discrete controller as code (prsa_ctrl.codegen)
+                from .codegen import stage_code_export
+
+                exported = None if rep.best.pid.kff else stage_code_export(
+                    outputs, args.export, rep.best.pid, rep.plant, real=args.export_real,
+                    setpoint_weight=_setpoint_weight(rep.scene))
+            else:
+                exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
+                                             setpoint_weight=_setpoint_weight(rep.scene)) if rep.best.pid.kff == 0 else None
+                if exported is not None and (args.motor is not None or args.export_template is not None):
+                    from .driveparams import cli_export_data
+
+                    exported = cli_export_data(args, exported, rep.best.pid, rep.plant)
             if exported is None:
                 run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
                         "(kff > 0), which the drive export does not describe; nothing exported")
-            else:
+            elif fmt not in ("c", "st"):
                 text = dumps(exported, fmt)
                 outputs.stage(args.export, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--export")
         _commit(run, outputs)

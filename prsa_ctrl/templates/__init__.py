@@ -1,0 +1,1 @@
+"""Drive parameter-set templates (data files, see prsa_ctrl.driveparams)."""
