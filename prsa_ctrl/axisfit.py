@@ -59,7 +59,7 @@ from numpy.typing import NDArray
 
 from .logformat import AxisLog
 
-__all__ = ["LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "DEFAULTS", "PARAMETERS", "simulate_axis",
+__all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
            "idim_estimate", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES"]
 
@@ -290,7 +290,8 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
         Closed loop from the reference with the log's controller (default when it has one), or
         open loop from the logged command (drifts for an integrating axis).
     x0 : (float, float), optional
-        Initial position m and speed m/s (default: the first logged position, at rest).
+        Initial position m and speed m/s (default: the first logged position, at rest). The
+        controller's past positions are taken on that motion (``q(k-1) = x0 - v0 dt``).
 
     Returns
     -------
@@ -327,7 +328,7 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
     d = c.command_delay_samples
     r = log.reference_m
     buf = [0.0] * d
-    q_prev = qf_prev = x
+    q_prev, qf_prev = x - v * h, x - 1.5 * v * h
     integ = 0.0
     for k in range(n):
         q[k], vs[k] = x, v
@@ -427,8 +428,9 @@ def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
     controller, the test signal added at the drive input) and measure the errors."""
     theta = plant.theta
     gain = log.gain_n_per_unit
-    tr = simulate_axis(theta, log, gain=gain, force_limit_n=plant.values["drive.force_limit_n"])
     vm = measured_velocity(log)
+    tr = simulate_axis(theta, log, gain=gain, force_limit_n=plant.values["drive.force_limit_n"],
+                       x0=(float(log.position_m[0]), float(vm[0])))
     fm, fs = gain * log.command, gain * tr.command
     pairs = {"position": (log.position_m, tr.position_m), "velocity": (vm, tr.velocity_m_s), "force": (fm, fs)}
     closed = log.controller is not None and log.reference_m is not None
@@ -475,31 +477,39 @@ def idim_estimate(logs: Sequence[AxisLog], min_speed_fraction: float = 0.05) -> 
     return th, informed
 
 
-def _hac_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int, acf_tol: float = 0.05):
-    """Parameter covariance of a least-squares fit whose residuals are correlated in time:
-    ``A^-1 B A^-1`` with ``A = J'J`` and ``B`` the Bartlett-weighted (Newey-West) long-run variance
-    of the per-sample scores. The residual rows are channel-major (``n_time`` rows per channel).
-    The bandwidth is the first lag where every score component's autocorrelation is below
-    ``acf_tol`` (at most ``n_time // 10``). Returns (covariance, bandwidth)."""
+#: Contiguous blocks of the batch-means covariance (:func:`_batch_covariance`).
+COVARIANCE_BLOCKS = 10
+
+
+def _batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int, blocks: int = COVARIANCE_BLOCKS):
+    """Parameter covariance of a least-squares fit whose residuals are correlated in time.
+
+    Sandwich ``A^-1 B A^-1`` with ``A = J'J`` and ``B`` the batch-means (cluster) long-run
+    variance of the scores ``J' r``: the record is cut into ``blocks`` contiguous pieces, each
+    piece's summed score is one draw, ``B = G/(G-1) sum_g S_g S_g'``. The residual rows are
+    channel-major (``n_time`` rows per channel). Intervals then use Student's t with ``G - 1``
+    degrees of freedom (:func:`_t95`), since ``B`` rests on ``G`` draws only.
+
+    Returns
+    -------
+    (ndarray, int)
+        Covariance and the number of blocks used.
+    """
     p = J.shape[1]
     s = (J * r[:, None]).reshape(-1, n_time, p).sum(axis=0)  # per-time scores, summed over channels
-    s = s - s.mean(axis=0)
-    L_max = max(1, n_time // 10)
-    nfft = 1 << int(math.ceil(math.log2(2 * n_time)))
-    spec = np.fft.rfft(s, nfft, axis=0)
-    acov = np.fft.irfft(spec * spec.conj(), nfft, axis=0)[:L_max + 1]  # autocovariances, lags 0..L_max
-    var0 = np.where(acov[0] > 0, acov[0], 1.0)
-    below = np.all(np.abs(acov / var0) < acf_tol, axis=1)
-    L = int(np.argmax(below)) if below.any() else L_max
-    L = max(L, 1)
-    B = s.T @ s
-    for lag in range(1, L + 1):
-        w = 1.0 - lag / (L + 1.0)
-        G = s[lag:].T @ s[:-lag]
-        B += w * (G + G.T)
-    A = J.T @ J
-    Ainv = np.linalg.pinv(A)
-    return Ainv @ B @ Ainv, L
+    g = int(min(blocks, max(2, n_time // 50)))
+    edges = np.linspace(0, n_time, g + 1).astype(int)
+    S = np.array([s[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
+    B = g / (g - 1.0) * (S.T @ S)
+    Ainv = np.linalg.pinv(J.T @ J)
+    return Ainv @ B @ Ainv, g
+
+
+def _t95(dof: int) -> float:
+    """Two-sided 95 % quantile of Student's t with ``dof`` degrees of freedom."""
+    from scipy.stats import t
+
+    return float(t.ppf(0.975, dof))
 
 
 @dataclass(frozen=True)
@@ -512,7 +522,7 @@ class AxisFit:
     start: Mapping[str, float]
     replays: Sequence[AxisReplay]
     covariance: NDArray[np.float64]
-    bandwidth_samples: int
+    blocks: int
     status: str
     iterations: int
     warnings: Sequence[str]
@@ -524,16 +534,16 @@ class AxisFit:
                 "iterations": self.iterations, "cost": self.cost, "solver_message": self.message,
                 "method": "output error of the closed-loop replay from the reference (position and force, each "
                           "weighted by its residual RMS at the inverse-dynamic start), started from inverse-dynamic "
-                          "least squares; 95 % intervals from the sandwich covariance with a Newey-West long-run "
-                          f"variance of the scores (bandwidth {self.bandwidth_samples} samples: residuals are "
-                          "correlated in time)",
+                          "least squares; 95 % intervals from the sandwich covariance with a batch-means long-run "
+                          f"variance of the scores ({self.blocks} contiguous blocks, Student's t with "
+                          f"{self.blocks - 1} degrees of freedom: the residuals are correlated in time)",
                 "parameters": {k: dict(v) for k, v in self.parameters.items()},
                 "equivalent": {k: dict(v) for k, v in self.equivalent.items()},
                 "inverse_dynamic_start": dict(self.start),
                 "replay": [r.report() for r in self.replays], "warnings": list(self.warnings)}
 
 
-def _equivalents(theta, cov) -> dict:
+def _equivalents(theta, cov, z: float) -> dict:
     """Load-side equivalents with 95 % intervals (linear combinations of the parameters)."""
     vs = SMALL_SPEED_M_S
     combos = {
@@ -551,7 +561,7 @@ def _equivalents(theta, cov) -> dict:
         g = np.asarray(g, dtype=float)
         val = float(g @ theta)
         sd = float(math.sqrt(max(g @ cov @ g, 0.0)))
-        out[k] = {"value": val, "ci95": [val - _Z95 * sd, val + _Z95 * sd], "std": sd, "unit": unit, "meaning": meaning}
+        out[k] = {"value": val, "ci95": [val - z * sd, val + z * sd], "std": sd, "unit": unit, "meaning": meaning}
     return out
 
 
@@ -610,10 +620,12 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     skip = METRIC_SKIP_SAMPLES
     flim = base.values["drive.force_limit_n"]
 
+    starts = [(float(lg.position_m[0]), float(measured_velocity(lg)[0])) for lg in logs]
+
     def channels(theta):
         out = []
-        for lg in logs:
-            tr = simulate_axis(theta, lg, force_limit_n=flim)
+        for lg, x0 in zip(logs, starts):
+            tr = simulate_axis(theta, lg, force_limit_n=flim, x0=x0)
             out.append((tr.position_m[skip:] - lg.position_m[skip:], lg.gain_n_per_unit * (tr.command[skip:] - lg.command[skip:])))
         return out
 
@@ -641,7 +653,8 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     theta[free] = sol.x
     n_time = sum(lg.n - skip for lg in logs)
     # residual rows: [positions of all logs; forces of all logs] -> channel-major with n_time rows each
-    cov_free, L = _hac_covariance(sol.jac, sol.fun, n_time)
+    cov_free, L = _batch_covariance(sol.jac, sol.fun, n_time)
+    z = _t95(L - 1)
     cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
     cov[np.ix_(free, free)] = cov_free
     at_bound = [PARAMETERS[j] for j, x in zip(free, sol.x) if x <= lb[list(free).index(j)] * (1 + 1e-9) + 1e-12]
@@ -652,23 +665,24 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     for j, k in enumerate(PARAMETERS):
         sd = float(math.sqrt(max(cov[j, j], 0.0)))
         v = float(theta[j])
-        entry = {"value": v, "ci95": [v - _Z95 * sd, v + _Z95 * sd], "std": sd, "unit": _UNITS[k],
+        entry = {"value": v, "ci95": [v - z * sd, v + z * sd], "std": sd, "unit": _UNITS[k],
                  "start": float(theta0[j])}
         if not informed[j]:
             entry["kept_base"] = True
             sources[k] = base.sources[k]
         else:
-            sources[k] = f"fit: {names} (95 % CI {v - _Z95 * sd:.6g}..{v + _Z95 * sd:.6g}; closed-loop output error)"
+            sources[k] = f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g}; closed-loop output error)"
             lo = 0.0 if j else 1e-12
-            trunc = min(_Z95, (v - lo) / sd * (1 - 1e-9)) if sd > 0 else 0.0
+            sig = z * sd / _Z95  # a normal whose +-1.96 sigma is the 95 % interval
+            trunc = min(_Z95, (v - lo) / sig * (1 - 1e-9)) if sd > 0 else 0.0
             if sd > 0 and trunc >= 0.1:
-                unc[k] = {"dist": "normal", "sigma": sd, "truncate": round(trunc, 6) if trunc < _Z95 else _Z95,
-                          "source": f"fit: {names} (95 % CI {v - _Z95 * sd:.6g}..{v + _Z95 * sd:.6g})"}
+                unc[k] = {"dist": "normal", "sigma": sig, "truncate": round(trunc, 6) if trunc < _Z95 else _Z95,
+                          "source": f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})"}
         params[k] = entry
         values[k] = v
     fitted = LinearAxisPlant(name=name, values={**base.values, **values}, sources={**base.sources, **sources},
                              description=f"linear axis calibrated by prsa-fit from {names} (closed-loop output error)",
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
-    return AxisFit(fitted, params, _equivalents(theta, cov), dict(zip(PARAMETERS, map(float, theta0))), replays,
+    return AxisFit(fitted, params, _equivalents(theta, cov, z), dict(zip(PARAMETERS, map(float, theta0))), replays,
                    cov, L, status, int(sol.nfev), warnings, float(sol.cost), str(sol.message))
