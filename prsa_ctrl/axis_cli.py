@@ -83,6 +83,7 @@ def _parser() -> argparse.ArgumentParser:
 def run(argv: Sequence[str]) -> int:
     """Entry point for the described-log modes; returns the exit code."""
     from .axisfit import AxisFitError, AxisPlantError
+    from .errors import SimulationError
     from .logformat import LogFormatError
     from .output import OutputError
 
@@ -94,7 +95,7 @@ def run(argv: Sequence[str]) -> int:
     except (_UsageError, argparse.ArgumentTypeError, LogFormatError, AxisPlantError, OutputError, ValueError) as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
-    except AxisFitError as exc:
+    except (AxisFitError, SimulationError) as exc:
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
 

@@ -322,7 +322,7 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
             q[k], vs[k] = x, v
             f = min(max(g * applied[k], -flim), flim) + ext[k]
             x, v = _step(x, v, f, m, fvp, fvn, fcp, fcn, h)
-        return _Trace(q, vs, log.command.copy())
+        return _finite(_Trace(q, vs, log.command.copy()), log)
     kp, kv, ki, sat = c.kp, c.kv, c.ki, c.saturation
     avg = c.velocity_estimate == "average2-difference"
     d = c.command_delay_samples
@@ -355,7 +355,20 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
         x, v = _step(x, v, f, m, fvp, fvn, fcp, fcn, h)
     if d and log.command_logged == "as-applied":
         cmd = np.r_[test[:d], cmd[:n - d] - test[:n - d] + test[d:]]
-    return _Trace(q, vs, cmd)
+    return _finite(_Trace(q, vs, cmd), log)
+
+
+def _finite(tr: _Trace, log: AxisLog) -> _Trace:
+    """The trace, or a SimulationError naming the first sample where the replay left the finite numbers."""
+    bad = ~(np.isfinite(tr.position_m) & np.isfinite(tr.velocity_m_s) & np.isfinite(tr.command))
+    if bad.any():
+        from .errors import SimulationError
+
+        k = int(np.argmax(bad))
+        raise SimulationError(f"replay of {log.name} diverged at t = {log.time_s[k]:.6g} s (sample {k}: position "
+                              f"{tr.position_m[k]!r} m, speed {tr.velocity_m_s[k]!r} m/s); check the controller gains "
+                              "and the plant's mass and friction (an unstable closed loop)")
+    return tr
 
 
 # --- measured signals and errors -------------------------------------------------------------------
