@@ -234,7 +234,7 @@ def test_an_unstable_replay_raises_a_clear_error_not_nan():
     n = 2000
     t = np.arange(n) * H
     r = np.where(t > 0.01, 0.01, 0.0)
-    ctl = ControllerSpec("position-p/velocity-p", 150.0, 250.0, 0.0, "difference", 1e300, H)
+    ctl = ControllerSpec("position-p/velocity-p", 150.0, 250.0, 0.0, "difference", math.inf, H)
     log = AxisLog("unstable", t, np.zeros(n), np.zeros(n), "V", GAIN, H, reference_m=r, controller=ctl)
     with pytest.raises(SimulationError, match="diverged at t ="):
         simulate_axis((0.01, 0.0, 0.0, 0.0, 0.0), log)  # 10 g behind a loop tuned for 80 kg
