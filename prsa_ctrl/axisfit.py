@@ -306,9 +306,10 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
     closed = (c is not None and log.reference_m is not None) if closed_loop is None else closed_loop
     if closed and (c is None or log.reference_m is None):
         raise ValueError(f"log {log.name!r}: closed_loop=True needs a controller and a reference")
-    n, h = log.n, log.sample_time_s
-    ext = np.zeros(n) if log.load_n is None else log.load_n
-    test = np.zeros(n) if log.test_signal is None else log.test_signal
+    n, h = log.n, float(log.sample_time_s)
+    # plain Python floats in the loop: faster than numpy scalars, and overflow gives inf (caught below)
+    ext = [0.0] * n if log.load_n is None else log.load_n.tolist()
+    test = [0.0] * n if log.test_signal is None else log.test_signal.tolist()
     q = np.empty(n)
     vs = np.empty(n)
     cmd = np.empty(n)
@@ -317,7 +318,7 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
     if not closed:
         d = 0 if c is None else c.command_delay_samples
         shift = d if log.command_logged == "as-computed" else 0
-        applied = np.r_[np.zeros(shift), log.command[:n - shift]] if shift else log.command
+        applied = (np.r_[np.zeros(shift), log.command[:n - shift]] if shift else log.command).tolist()
         for k in range(n):
             q[k], vs[k] = x, v
             f = min(max(g * applied[k], -flim), flim) + ext[k]
@@ -326,7 +327,7 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
     kp, kv, ki, sat = c.kp, c.kv, c.ki, c.saturation
     avg = c.velocity_estimate == "average2-difference"
     d = c.command_delay_samples
-    r = log.reference_m
+    r = log.reference_m.tolist()
     buf = [0.0] * d
     q_prev, qf_prev = x - v * h, x - 1.5 * v * h
     integ = 0.0
@@ -354,7 +355,8 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
         f = min(max(g * (ua + test[k]), -flim), flim) + ext[k]
         x, v = _step(x, v, f, m, fvp, fvn, fcp, fcn, h)
     if d and log.command_logged == "as-applied":
-        cmd = np.r_[test[:d], cmd[:n - d] - test[:n - d] + test[d:]]
+        tst = np.asarray(test)
+        cmd = np.r_[tst[:d], cmd[:n - d] - tst[:n - d] + tst[d:]]
     return _finite(_Trace(q, vs, cmd), log)
 
 
