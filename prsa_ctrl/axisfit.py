@@ -48,6 +48,7 @@ Only ``axis.mass_kg`` is required; every other key has the default listed in :da
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -543,10 +544,15 @@ class AxisFit:
     warnings: Sequence[str]
     cost: float = math.nan
     message: str = ""
+    delay_costs: Mapping[int, float] = field(default_factory=dict)
 
     def report(self) -> dict:
         return {"mechanism": MECHANISM, "coordinates": "load (m, N)", "status": self.status,
                 "iterations": self.iterations, "cost": self.cost, "solver_message": self.message,
+                "delay_check": {"cost_by_command_delay_samples": {str(k): v for k, v in sorted(self.delay_costs.items())},
+                                "note": "each alternative delay refitted with the same weights for at most "
+                                        f"{DELAY_CHECK_EVALUATIONS} replays (its cost bounds its optimum from above); "
+                                        "lower is better"},
                 "method": "output error of the closed-loop replay from the reference (position and force, each "
                           "weighted by its residual RMS at the inverse-dynamic start), started from inverse-dynamic "
                           "least squares; 95 % intervals from the sandwich covariance with a batch-means long-run "
@@ -580,8 +586,51 @@ def _equivalents(theta, cov, z: float) -> dict:
     return out
 
 
+#: An alternative command delay is reported when its fit's cost is lower by more than this fraction.
+DELAY_MARGIN = 0.05
+#: Replays spent on each alternative delay (its cost at the bound is an upper bound of its optimum,
+#: so a warning it triggers holds; a missing warning means "not better within this budget").
+DELAY_CHECK_EVALUATIONS = 4
+
+
+def _starts(logs: Sequence[AxisLog]) -> list[tuple[float, float]]:
+    """Each log's initial position (m) and measured speed (m/s), where its replay starts."""
+    return [(float(lg.position_m[0]), float(measured_velocity(lg)[0])) for lg in logs]
+
+
+def _channels(theta, logs: Sequence[AxisLog], flim: float, starts, skip: int = METRIC_SKIP_SAMPLES):
+    """Position (m) and force (N) errors of each log's replay from sample ``skip`` on."""
+    out = []
+    for lg, x0 in zip(logs, starts):
+        tr = simulate_axis(theta, lg, force_limit_n=flim, x0=x0)
+        out.append((tr.position_m[skip:] - lg.position_m[skip:], lg.gain_n_per_unit * (tr.command[skip:] - lg.command[skip:])))
+    return out
+
+
+def _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts, strict: bool = True):
+    """Least-squares output-error fit of the parameters ``free`` (the others stay at ``theta0``),
+    position and force errors weighted by ``sig`` (m, N). Raises AxisFitError when it does not
+    converge within ``max_evaluations`` replays (``strict=False``: returns the best point found,
+    whose cost bounds the optimum from above)."""
+    from scipy.optimize import least_squares
+
+    def resid(x):
+        th = theta0.copy()
+        th[free] = x
+        ch = _channels(th, logs, flim, starts)
+        return np.concatenate([np.concatenate([c[0] for c in ch]) / sig[0], np.concatenate([c[1] for c in ch]) / sig[1]])
+
+    scale = np.maximum(np.abs(theta0[free]), 1e-3 * max(abs(theta0[0]), 1.0))
+    sol = least_squares(resid, x0, bounds=(lb, np.inf), x_scale=scale, diff_step=1e-6, method="trf",
+                        max_nfev=max_evaluations, xtol=1e-10, ftol=1e-10, gtol=1e-10)
+    if strict and sol.status <= 0:
+        raise AxisFitError(f"output-error fit did not converge within {max_evaluations} replays (cost {sol.cost:.6g}); "
+                           "expected a log whose controller description reproduces the command")
+    return sol
+
+
 def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evaluations: int = 60,
-                    name: str = "fitted") -> AxisFit:
+                    name: str = "fitted", check_delay: bool = True) -> AxisFit:
     """Calibrate a linear axis on closed-loop logs.
 
     1. Inverse-dynamic least squares (:func:`idim_estimate`) gives the start.
@@ -604,6 +653,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
         Bound on the replays of the output-error fit.
     name : str
         Name of the fitted plant.
+    check_delay : bool
+        Also fit with the command delay one sample shorter and longer than described and warn
+        when one of them lowers the cost by more than :data:`DELAY_MARGIN`.
 
     Returns
     -------
@@ -614,8 +666,6 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     AxisFitError
         The logs do not move the axis, or the fit does not converge within the bound.
     """
-    from scipy.optimize import least_squares
-
     if not logs:
         raise ValueError("logs: expected at least one log")
     theta0, informed = idim_estimate(logs)
@@ -635,35 +685,30 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     skip = METRIC_SKIP_SAMPLES
     flim = base.values["drive.force_limit_n"]
 
-    starts = [(float(lg.position_m[0]), float(measured_velocity(lg)[0])) for lg in logs]
-
-    def channels(theta):
-        out = []
-        for lg, x0 in zip(logs, starts):
-            tr = simulate_axis(theta, lg, force_limit_n=flim, x0=x0)
-            out.append((tr.position_m[skip:] - lg.position_m[skip:], lg.gain_n_per_unit * (tr.command[skip:] - lg.command[skip:])))
-        return out
-
-    ch0 = channels(theta0)
-    sig_q = math.sqrt(np.mean(np.concatenate([c[0] for c in ch0]) ** 2)) or 1e-12
-    sig_f = math.sqrt(np.mean(np.concatenate([c[1] for c in ch0]) ** 2)) or 1e-12
+    starts = _starts(logs)
+    ch0 = _channels(theta0, logs, flim, starts)
+    sig = (math.sqrt(np.mean(np.concatenate([c[0] for c in ch0]) ** 2)) or 1e-12,
+           math.sqrt(np.mean(np.concatenate([c[1] for c in ch0]) ** 2)) or 1e-12)
     free = np.flatnonzero(informed)
-
-    def resid(x):
-        th = theta0.copy()
-        th[free] = x
-        ch = channels(th)
-        return np.concatenate([np.concatenate([c[0] for c in ch]) / sig_q, np.concatenate([c[1] for c in ch]) / sig_f])
-
-    scale = np.maximum(np.abs(theta0[free]), 1e-3 * max(abs(theta0[0]), 1.0) * np.r_[1, np.ones(free.size - 1)][:free.size])
     lb = np.where(free == 0, 1e-6 * theta0[0], 0.0)
     x0 = np.clip(theta0[free], lb, None)
-    sol = least_squares(resid, x0, bounds=(lb, np.inf), x_scale=scale, diff_step=1e-6, method="trf",
-                        max_nfev=max_evaluations, xtol=1e-10, ftol=1e-10, gtol=1e-10)
-    status = "converged" if sol.status > 0 else "stopped at the evaluation bound"
-    if sol.status <= 0:
-        raise AxisFitError(f"output-error fit did not converge within {max_evaluations} replays (cost {sol.cost:.6g}); "
-                           "expected a log whose controller description reproduces the command")
+    sol = _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts)
+    delays = {}
+    d0 = logs[0].controller.command_delay_samples if logs[0].controller is not None else None
+    if check_delay and d0 is not None and all(lg.controller is not None for lg in logs):
+        delays[d0] = float(sol.cost)
+        for d in (d0 - 1, d0 + 1):
+            if 0 <= d <= 10:
+                alt = [dataclasses.replace(lg, controller=dataclasses.replace(lg.controller, command_delay_samples=d))
+                       for lg in logs]
+                alt_sol = _output_error(alt, theta0, free, sol.x, lb, sig, flim, DELAY_CHECK_EVALUATIONS, starts,
+                                        strict=False)
+                delays[d] = float(alt_sol.cost)
+        best = min(delays, key=delays.get)
+        if best != d0 and delays[best] < (1.0 - DELAY_MARGIN) * delays[d0]:
+            warnings.append(f"a command delay of {best} samples fits better than the described {d0} (cost "
+                            f"{delays[best]:.6g} against {delays[d0]:.6g}, more than {100 * DELAY_MARGIN:g} % lower); "
+                            "check [controller] command_delay_samples and [command] logged")
     theta = theta0.copy()
     theta[free] = sol.x
     n_time = sum(lg.n - skip for lg in logs)
@@ -700,4 +745,4 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
     return AxisFit(fitted, params, _equivalents(theta, cov, z), dict(zip(PARAMETERS, map(float, theta0))), replays,
-                   cov, L, status, int(sol.nfev), warnings, float(sol.cost), str(sol.message))
+                   cov, L, "converged", int(sol.nfev), warnings, float(sol.cost), str(sol.message), delays)

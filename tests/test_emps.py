@@ -238,3 +238,18 @@ def test_an_unstable_replay_raises_a_clear_error_not_nan():
     log = AxisLog("unstable", t, np.zeros(n), np.zeros(n), "V", GAIN, H, reference_m=r, controller=ctl)
     with pytest.raises(SimulationError, match="diverged at t ="):
         simulate_axis((0.01, 0.0, 0.0, 0.0, 0.0), log)  # 10 g behind a loop tuned for 80 kg
+
+
+def test_a_log_described_one_sample_off_is_detected():
+    t, qm, r, u = _generate(5, n=4000)
+    from prsa_ctrl.logformat import AxisLog, ControllerSpec
+
+    wrong = ControllerSpec("position-p/velocity-p", KP, KV, 0.0, "average2-difference", 10.0, H, command_delay_samples=1)
+    log = AxisLog("syn", t, qm, u, "V", GAIN, H, reference_m=r, controller=wrong)
+    fit = fit_linear_axis([log], _base())
+    costs = fit.delay_costs
+    assert set(costs) == {0, 1, 2} and min(costs, key=costs.get) == 0
+    assert any("command delay of 0 samples fits better than the described 1" in w for w in fit.warnings)
+    right = fit_linear_axis([dataclasses.replace(log, controller=dataclasses.replace(wrong, command_delay_samples=0))],
+                            _base())
+    assert not any("command delay" in w for w in right.warnings)
