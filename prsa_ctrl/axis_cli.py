@@ -273,9 +273,11 @@ def _plots(directory: str, replays, inputs) -> list[str]:
     for i, r in enumerate(replays):
         fig, ax = plt.subplots(3, 1, sharex=True, figsize=(9, 7))
         t = r.time_s
-        ax[0].plot(t, 1e3 * (r.position_measured - r.position_measured.mean()), label="measured")
-        ax[0].plot(t, 1e3 * (r.position_simulated - r.position_measured.mean()), "--", label="simulated")
-        ax[0].set_ylabel("position - mean, mm")
+        base, what = ((r.reference_m, "position error (reference - position), um") if r.reference_m is not None
+                      else (r.position_measured.mean(), "position - mean, um"))
+        ax[0].plot(t, 1e6 * (base - r.position_measured), label="measured")
+        ax[0].plot(t, 1e6 * (base - r.position_simulated), "--", label="simulated")
+        ax[0].set_ylabel(what)
         ax[1].plot(t, r.velocity_measured, label="measured")
         ax[1].plot(t, r.velocity_simulated, "--", label="simulated")
         ax[1].set_ylabel("velocity, m/s")

@@ -422,6 +422,7 @@ class AxisReplay:
     force_simulated: NDArray[np.float64]
     errors_percent: Mapping[str, float]
     fit_percent: Mapping[str, float]
+    reference_m: NDArray[np.float64] | None = None
 
     def report(self) -> dict:
         return {"log": self.name, "replay": "closed loop from the reference" if self.closed_loop else
@@ -451,7 +452,8 @@ def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
     pairs = {"position": (log.position_m, tr.position_m), "velocity": (vm, tr.velocity_m_s), "force": (fm, fs)}
     closed = log.controller is not None and log.reference_m is not None
     return AxisReplay(log.name, closed, log.time_s, log.position_m, tr.position_m, vm, tr.velocity_m_s, fm, fs,
-                      {k: relative_error(*p) for k, p in pairs.items()}, {k: _fit_percent(*p) for k, p in pairs.items()})
+                      {k: relative_error(*p) for k, p in pairs.items()}, {k: _fit_percent(*p) for k, p in pairs.items()},
+                      log.reference_m)
 
 
 # --- calibration ------------------------------------------------------------------------------------

@@ -67,8 +67,9 @@ def _profile(rng, n):
     return r[:n]
 
 
-def _generate(seed, n=6000, sub=40):
-    """Independent closed-loop generator (not the library's exact solution)."""
+def _generate(seed, n=6000, sub=40, pulses=None):
+    """Independent closed-loop generator (not the library's exact solution); ``pulses`` (V) is
+    added to the controller output at the drive input and is part of the logged command."""
     rng = np.random.default_rng(seed)
     m, fvp, fvn, fcp, fcn = TRUTH
     r = _profile(rng, n)
@@ -82,7 +83,7 @@ def _generate(seed, n=6000, sub=40):
         qf = 0.5 * (qk + qprev)
         dq = (qf - qfprev) / H
         qprev, qfprev = qk, qf
-        u[k] = min(10.0, max(-10.0, KV * (KP * (r[k] - qk) - dq)))
+        u[k] = min(10.0, max(-10.0, KV * (KP * (r[k] - qk) - dq))) + (0.0 if pulses is None else pulses[k])
         f = GAIN * u[k]
         for _ in range(sub):
             if v > 0:
@@ -253,3 +254,23 @@ def test_a_log_described_one_sample_off_is_detected():
     right = fit_linear_axis([dataclasses.replace(log, controller=dataclasses.replace(wrong, command_delay_samples=0))],
                             _base())
     assert not any("command delay" in w for w in right.warnings)
+
+
+def test_a_test_signal_at_the_drive_input_is_replayed(tmp_path):
+    """A cross-test-like record: a 0/2 V pulse train (period 0.5 s) added to the controller output
+    at the drive input, logged inside the command and in its own column."""
+    import scipy.io
+
+    n = 3000
+    pulses = np.where((np.arange(n) * H) % 0.5 < 0.1, 2.0, 0.0)
+    t, qm, r, u = _generate(7, n=n, pulses=pulses)
+    mat = tmp_path / "pulses.mat"
+    scipy.io.savemat(mat, {"t": t[:, None], "qm": qm[:, None], "qg": r[:, None], "vir": u[:, None],
+                           "pulses_N": pulses[:, None], "gtau": GAIN, "kp": KP, "kv": KV})
+    log = load_axis_log(mat, load_log_format(EXAMPLE / "log.toml"))
+    assert log.test_signal is not None and log.test_signal.max() == 2.0
+    truth = _base().with_values(dict(zip(PARAMETERS, TRUTH)), {k: "test: truth" for k in PARAMETERS})
+    with_pulses = replay_axis(truth, log).errors_percent
+    without = replay_axis(truth, dataclasses.replace(log, test_signal=None)).errors_percent
+    assert with_pulses["force"] < 0.5 and with_pulses["velocity"] < 0.5
+    assert without["force"] > 10 * with_pulses["force"]
