@@ -394,7 +394,13 @@ def _filtered_position(log: AxisLog) -> NDArray[np.float64]:
 
 
 def relative_error(y: NDArray[np.float64], y_sim: NDArray[np.float64], skip: int = METRIC_SKIP_SAMPLES) -> float:
-    """``100 * ||y - y_sim|| / ||y||`` over the samples from ``skip`` on, %."""
+    """``100 * ||y - y_sim|| / ||y||`` over the samples from ``skip`` on, %.
+
+    Examples
+    --------
+    >>> round(relative_error([1.0, 2.0, 2.0], [1.0, 2.0, 1.0], skip=0), 4)
+    33.3333
+    """
     y, y_sim = np.asarray(y)[skip:], np.asarray(y_sim)[skip:]
     den = float(np.linalg.norm(y))
     return math.inf if den == 0 else 100.0 * float(np.linalg.norm(y - y_sim)) / den
