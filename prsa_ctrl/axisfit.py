@@ -618,7 +618,8 @@ def _channels(theta, logs: Sequence[AxisLog], flim: float, starts, skip: int = M
 def _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts, strict: bool = True):
     """Least-squares output-error fit of the parameters ``free`` (the others stay at ``theta0``),
     position and force errors weighted by ``sig`` (m, N). Raises AxisFitError when it does not
-    converge within ``max_evaluations`` replays (``strict=False``: returns the best point found,
+    converge within ``max_evaluations`` residual evaluations (each Jacobian adds one replay per free
+    parameter) (``strict=False``: returns the best point found,
     whose cost bounds the optimum from above)."""
     from scipy.optimize import least_squares
 
@@ -645,10 +646,11 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     2. Output error: the closed loop is replayed from the reference with the logged controller
        (:func:`simulate_axis`) and ``M, Fv+, Fv-, Fc+, Fc-`` minimise the weighted sum of squared
        position and force errors (``scipy.optimize.least_squares``, trust region, at most
-       ``max_evaluations`` replays per parameter set). Logs without a described controller are
+       ``max_evaluations`` residual evaluations, each Jacobian by forward differences: at most
+       ``max_evaluations * 6`` replays of each log). Logs without a described controller are
        replayed open loop from the logged command.
-    3. 95 % intervals from the sandwich covariance with a Newey-West long-run variance
-       (:func:`_hac_covariance`): the residuals of a real axis are correlated over many samples,
+    3. 95 % intervals from the sandwich covariance with a batch-means long-run variance and
+       Student's t (:func:`_batch_covariance`): the residuals of a real axis are correlated over many samples,
        and intervals that treat them as white would be far too narrow.
 
     Parameters
@@ -658,7 +660,7 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     base : LinearAxisPlant
         Supplies every value the fit does not estimate (drive gain, force limit, sensor).
     max_evaluations : int
-        Bound on the replays of the output-error fit.
+        Bound on the residual evaluations of the output-error fit.
     name : str
         Name of the fitted plant.
     check_delay : bool
@@ -741,10 +743,10 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
         else:
             sources[k] = f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g}; closed-loop output error)"
             lo = 0.0 if j else 1e-12
-            sig = z * sd / _Z95  # a normal whose +-1.96 sigma is the 95 % interval
-            trunc = min(_Z95, (v - lo) / sig * (1 - 1e-9)) if sd > 0 else 0.0
+            sig_k = z * sd / _Z95  # a normal whose +-1.96 sigma is the 95 % interval
+            trunc = min(_Z95, (v - lo) / sig_k * (1 - 1e-9)) if sd > 0 else 0.0
             if sd > 0 and trunc >= 0.1:
-                unc[k] = {"dist": "normal", "sigma": sig, "truncate": round(trunc, 6) if trunc < _Z95 else _Z95,
+                unc[k] = {"dist": "normal", "sigma": sig_k, "truncate": round(trunc, 6) if trunc < _Z95 else _Z95,
                           "source": f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})"}
         params[k] = entry
         values[k] = v
