@@ -47,7 +47,8 @@ force on the load: ``unit`` N | kN) follow the same pattern.
 
 The controller, when described, is checked against the log before anything else: the command
 it computes from the logged position and reference (plus the test signal) must reproduce the
-logged command within ``check_tolerance``. This is also how units that disagree with the data
+logged command within ``check_tolerance`` (relative 2-norm error), and better than with the
+command shifted by 1 or 2 samples (:data:`ALIGNMENT_RATIO`). This is also how units that disagree with the data
 are caught (a position in mm declared as m scales the reconstructed command by 1000).
 
 The controller law (``k`` = sample, ``dt`` = ``sample_time_s``)::
@@ -87,6 +88,9 @@ MAX_SAMPLES = 2_000_000
 MIN_SAMPLES = 50
 #: Largest relative deviation of a sample interval from the declared sample time.
 SAMPLING_TOL = 0.01
+#: A log is refused when the command reconstructed with a shift of 1 or 2 samples matches it
+#: with less than this fraction of the described alignment's error (the description is off).
+ALIGNMENT_RATIO = 0.5
 
 _POSITION_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
 _SPEED_UNITS = {"m/s": 1.0, "mm/s": 1e-3}
@@ -580,11 +584,16 @@ def _check_reproduction(log: AxisLog, fmt: LogFormat) -> None:
         raise LogFormatError(f"{log.name}: [command] {fmt.doc['command']['name']!r} is all zero; expected the "
                              "controller output")
     rel = float(np.linalg.norm(rec - log.command)) / norm
+    best = min((float(np.linalg.norm(np.roll(rec, s)[3:-3] - log.command[3:-3])) / norm, s) for s in (-2, -1, 1, 2))
+    shift_hint = (f"a shift of {best[1]:+d} samples gives {100 * best[0]:.3g} % (check [command] logged and "
+                  "[controller] command_delay_samples)")
     if rel > c.check_tolerance:
-        best = min(((float(np.linalg.norm(np.roll(rec, s)[3:-3] - log.command[3:-3])) / norm, s) for s in (-2, -1, 1, 2)))
-        hint = (f"; a shift of {best[1]:+d} samples gives {100 * best[0]:.3g} % (check [command] logged and "
-                "[controller] command_delay_samples)" if best[0] <= c.check_tolerance else
-                "; check the gains, the units of [position], [reference] and [command], and the structure")
+        hint = (shift_hint if best[0] <= c.check_tolerance else
+                "check the gains, the units of [position], [reference] and [command], and the structure")
         raise LogFormatError(f"{fmt.path}: [controller] does not reproduce {Path(log.name).name}'s command "
                              f"{fmt.doc['command']['name']!r}: relative error {100 * rel:.3g} %, expected at most "
-                             f"{100 * c.check_tolerance:.3g} % (check_tolerance){hint}")
+                             f"{100 * c.check_tolerance:.3g} % (check_tolerance); {hint}")
+    if best[0] < ALIGNMENT_RATIO * rel:
+        raise LogFormatError(f"{fmt.path}: [controller] reproduces {Path(log.name).name}'s command "
+                             f"{fmt.doc['command']['name']!r} with a relative error of {100 * rel:.3g} %, but {shift_hint}: "
+                             "expected the described alignment to fit best")

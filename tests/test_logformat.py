@@ -167,3 +167,13 @@ def test_output_path_checked_before_the_fit(files, capsys):
     assert code == 2 and "--out" in err and "does not exist" in err
     code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(mat)])
     assert code == 2 and "input file" in err
+
+
+def test_a_loose_tolerance_still_refuses_a_log_that_fits_better_shifted(files):
+    d, mat, fmt, (t, qm, qg, vir) = files
+    late = np.r_[vir[0], vir[:-1]]
+    scipy.io.savemat(mat, {"t": t[:, None], "qm": qm[:, None], "qg": qg[:, None], "vir": late[:, None],
+                           "gtau": GAIN, "kp": KP, "kv": KV})
+    fmt.write_text(GOOD + "check_tolerance = 0.9\n")
+    with pytest.raises(LogFormatError, match=r"a shift of \+1 samples gives .*expected the described alignment"):
+        load_axis_log(mat, load_log_format(fmt))
