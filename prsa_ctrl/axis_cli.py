@@ -6,12 +6,13 @@
     last fraction ``F`` of each log is left out of the fit and replayed afterwards (reported under
     ``holdout`` in the JSON).
 
-``prsa-fit --validate PLANT.toml LOG... --log-format FORMAT.toml [--json R.json] [--traces T.csv]
+``prsa-fit --validate PLANT.toml LOG... [--log-format FORMAT.toml] [--json R.json] [--traces T.csv]
 [--plots DIR]``
     Replay each log through the plant (closed loop from the reference when the log describes its
     controller, with the log's test signal added at the drive input; open loop from the logged
     command otherwise) and report, per log, ``100 ||y - y_sim|| / ||y||`` of position, velocity
-    and force, and the fit %.
+    and force, and the fit %. Without ``--log-format`` a log must be a CSV file with the standard
+    columns (:data:`prsa_ctrl.logformat.DEFAULT_CSV_FORMAT`), replayed open loop.
 
 Reached from :func:`prsa_ctrl.fit_cli.main` when ``--log-format`` is given or ``--validate`` names
 a ``.toml`` plant. Exit codes: 0 success, 2 bad input (one line naming the value, nothing
@@ -101,12 +102,17 @@ def run(argv: Sequence[str]) -> int:
 
 
 def _load_logs(args, paths: Sequence[str]):
-    from .logformat import load_axis_log, load_log_format
+    from .logformat import DEFAULT_CSV_FORMAT, load_axis_log, load_log_format
 
     if not args.log_format:
-        raise _UsageError("no --log-format; expected --log-format FORMAT.toml describing the logs' columns, units "
-                          "and controller")
-    fmt = load_log_format(args.log_format)
+        other = [p for p in paths if not p.lower().endswith(".csv")]
+        if other:
+            raise _UsageError(f"{other[0]}: no --log-format; expected --log-format FORMAT.toml describing the log's "
+                              "variables, units and controller (only a CSV log with the standard columns time_s, "
+                              "position_m, force_n needs none)")
+        fmt = DEFAULT_CSV_FORMAT
+    else:
+        fmt = load_log_format(args.log_format)
     return fmt, [load_axis_log(p, fmt) for p in paths]
 
 

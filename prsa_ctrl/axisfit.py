@@ -448,7 +448,9 @@ class AxisReplay:
 
 def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
     """Replay ``log`` through ``plant`` (closed loop from the reference when the log describes its
-    controller, the test signal added at the drive input) and measure the errors."""
+    controller, the test signal added at the drive input; open loop from the logged command
+    otherwise) and measure the errors. The replay starts at the first logged position with the
+    measured speed (:func:`measured_velocity`: the log's speed signal, else the derived one)."""
     theta = plant.theta
     gain = log.gain_n_per_unit
     vm = measured_velocity(log)

@@ -75,7 +75,7 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["LogFormatError", "LogFormat", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
+__all__ = ["LogFormatError", "LogFormat", "DEFAULT_CSV_FORMAT", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
            "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES", "MAX_SAMPLES", "MIN_SAMPLES"]
 
 #: Controller structures understood.
@@ -235,6 +235,18 @@ class AxisLog:
                        gain_n_per_unit=self.gain_n_per_unit, sample_time_s=self.sample_time_s,
                        controller=self.controller, resolution_m=self.resolution_m,
                        command_logged=self.command_logged, sources=self.sources, **cut)
+
+
+#: The description of a CSV log with the standard linear-axis columns (no controller: replays run
+#: open loop from the logged force): ``time_s``, ``position_m``, ``force_n`` and, optionally,
+#: ``reference_m``, ``speed_m_s``, ``load_n``.
+DEFAULT_CSV_FORMAT = LogFormat(
+    path="standard CSV columns (time_s, position_m, force_n[, reference_m, speed_m_s, load_n])",
+    doc={"format": "csv", "axis": "linear", "time": {"name": "time_s", "unit": "s"},
+         "position": {"name": "position_m", "unit": "m"}, "command": {"name": "force_n", "unit": "N"},
+         "reference": {"name": "reference_m", "unit": "m", "optional": True},
+         "speed": {"name": "speed_m_s", "unit": "m/s", "optional": True},
+         "load": {"name": "load_n", "unit": "N", "optional": True}})
 
 
 # --- the description ---------------------------------------------------------------------------

@@ -154,7 +154,7 @@ def test_validate_needs_a_log_format_and_refuses_fit_flags(files, capsys):
     plant = d / "p.toml"
     plant.write_text('mechanism = "linear-axis"\n[axis]\nmass_kg = { value = 10.0, source = "test" }\n')
     code, _, err = _run(capsys, ["--validate", str(plant), str(mat)])
-    assert code == 2 and "--log-format" in err
+    assert code == 2 and "--log-format" in err and str(mat) in err
     code, _, err = _run(capsys, ["--validate", str(plant), str(mat), "--log-format", str(fmt), "--out", str(d / "x.toml")])
     assert code == 2 and "--out" in err and not (d / "x.toml").exists()
     code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "x.toml"), "--traces", "t.csv"])
@@ -177,3 +177,27 @@ def test_a_loose_tolerance_still_refuses_a_log_that_fits_better_shifted(files):
     fmt.write_text(GOOD + "check_tolerance = 0.9\n")
     with pytest.raises(LogFormatError, match=r"a shift of \+1 samples gives .*expected the described alignment"):
         load_axis_log(mat, load_log_format(fmt))
+
+
+def test_validate_a_standard_csv_without_a_description_runs_open_loop(tmp_path, capsys):
+    """Standard columns (time_s, position_m, speed_m_s, force_n): replayed open loop from the logged
+    force; a free mass under a constant force is reproduced exactly (exact zero-order-hold replay)."""
+    n, m, f = 200, 2.0, 4.0
+    t = np.arange(n) * H
+    x = 0.5 * f / m * t ** 2
+    path = tmp_path / "free.csv"
+    v = f / m * t  # the logged speed also sets the replay's initial speed (0 here)
+    path.write_text("time_s,position_m,speed_m_s,force_n\n"
+                    + "".join(f"{a:.17g},{b:.17g},{c:.17g},{f}\n" for a, b, c in zip(t, x, v)))
+    plant = tmp_path / "p.toml"
+    plant.write_text(f'mechanism = "linear-axis"\n[axis]\nmass_kg = {{ value = {m}, source = "test" }}\n')
+    rj = tmp_path / "r.json"
+    code, out, err = _run(capsys, ["--validate", str(plant), str(path), "--json", str(rj)])
+    assert code == 0, err
+    import json
+
+    rep = json.loads(rj.read_text())["replay"][0]
+    assert rep["replay"] == "open loop from the logged command"
+    e = rep["errors_percent"]
+    assert e["position"] < 1e-9 and e["velocity"] < 1e-9 and e["force"] == 0.0
+    assert "open loop" in out
