@@ -551,7 +551,8 @@ def load_axis_log(path: str | Path, fmt: LogFormat) -> AxisLog:
     return log
 
 
-def reconstruct_command(log: AxisLog, position_m: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+def reconstruct_command(log: AxisLog, position_m: NDArray[np.float64] | None = None,
+                        with_test_signal: bool = True) -> NDArray[np.float64]:
     """The command the described controller computes from a position record, command unit.
 
     Parameters
@@ -560,6 +561,8 @@ def reconstruct_command(log: AxisLog, position_m: NDArray[np.float64] | None = N
         A log with a controller and a reference.
     position_m : ndarray, optional
         Positions fed to the controller, m (default: the logged ones).
+    with_test_signal : bool
+        Add the log's test signal (as the drive input and the logged command hold it).
 
     Returns
     -------
@@ -582,15 +585,17 @@ def reconstruct_command(log: AxisLog, position_m: NDArray[np.float64] | None = N
     if c.ki:
         u = u + c.kv * c.ki * h * np.cumsum(e_v)  # no anti-windup: checked against the log
     u = np.clip(u, -c.saturation, c.saturation)
-    return u + (0.0 if log.test_signal is None else log.test_signal)
+    return u + (0.0 if log.test_signal is None or not with_test_signal else log.test_signal)
 
 
 def _check_reproduction(log: AxisLog, fmt: LogFormat) -> None:
     c = log.controller
-    rec = reconstruct_command(log)
-    if log.command_logged == "as-applied" and c.command_delay_samples:
+    rec = reconstruct_command(log, with_test_signal=False)
+    if log.command_logged == "as-applied" and c.command_delay_samples:  # the controller output d samples late
         d = c.command_delay_samples
         rec = np.r_[np.zeros(d), rec[:-d]]
+    if log.test_signal is not None:  # the test signal is logged at the sample it acts in
+        rec = rec + log.test_signal
     norm = float(np.linalg.norm(log.command))
     if norm == 0:
         raise LogFormatError(f"{log.name}: [command] {fmt.doc['command']['name']!r} is all zero; expected the "

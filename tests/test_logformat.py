@@ -201,3 +201,14 @@ def test_validate_a_standard_csv_without_a_description_runs_open_loop(tmp_path, 
     e = rep["errors_percent"]
     assert e["position"] < 1e-9 and e["velocity"] < 1e-9 and e["force"] == 0.0
     assert "open loop" in out
+
+
+def test_as_applied_log_with_a_delay_is_reconstructed_with_the_shift(files):
+    d, mat, fmt, (t, qm, qg, vir) = files
+    late = np.r_[0.0, vir[:-1]]
+    scipy.io.savemat(mat, {"t": t[:, None], "qm": qm[:, None], "qg": qg[:, None], "vir": late[:, None],
+                           "gtau": GAIN, "kp": KP, "kv": KV})
+    text = GOOD.replace('gain = "gtau"', 'gain = "gtau"\nlogged = "as-applied"') + "command_delay_samples = 1\n"
+    fmt.write_text(text)
+    log = load_axis_log(mat, load_log_format(fmt))
+    assert log.command_logged == "as-applied" and log.controller.command_delay_samples == 1
