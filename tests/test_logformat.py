@@ -212,3 +212,23 @@ def test_as_applied_log_with_a_delay_is_reconstructed_with_the_shift(files):
     fmt.write_text(text)
     log = load_axis_log(mat, load_log_format(fmt))
     assert log.command_logged == "as-applied" and log.controller.command_delay_samples == 1
+
+
+def test_a_pi_velocity_loop_is_reconstructed(files):
+    d, mat, fmt, (t, qm, qg, vir) = files
+    ki = 20.0
+    u, integ = np.empty_like(qm), 0.0
+    for k in range(qm.size):  # u = kv (e_v + ki * dt * sum of e_v), e_v = kp (qg - qm) - dq
+        q1 = qm[k - 1] if k else qm[0]
+        q2 = qm[k - 2] if k >= 2 else q1 if k == 1 else qm[0]
+        ev = KP * (qg[k] - qm[k]) - ((qm[k] + q1) / 2 - (q1 + q2) / 2) / H
+        integ += ki * H * ev
+        u[k] = min(10.0, max(-10.0, KV * (ev + integ)))
+    scipy.io.savemat(mat, {"t": t[:, None], "qm": qm[:, None], "qg": qg[:, None], "vir": u[:, None],
+                           "gtau": GAIN, "kp": KP, "kv": KV})
+    fmt.write_text(GOOD.replace("position-p/velocity-p", "position-p/velocity-pi") + "ki = 20.0\ncheck_tolerance = 1e-9\n")
+    log = load_axis_log(mat, load_log_format(fmt))
+    assert log.controller.ki == ki
+    fmt.write_text(GOOD.replace("position-p/velocity-p", "position-p/velocity-pi") + "ki = 40.0\n")
+    with pytest.raises(LogFormatError, match="does not reproduce"):
+        load_axis_log(mat, load_log_format(fmt))
