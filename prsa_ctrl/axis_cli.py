@@ -187,6 +187,8 @@ def _fit(args) -> int:
         raise _UsageError("no log; expected prsa-fit LOG... --log-format FORMAT.toml --out FITTED.toml")
     if not args.out:
         raise _UsageError("no --out; expected --out FITTED.toml for the fitted plant")
+    if not args.log_format:
+        raise _UsageError(f"--log-format {args.log_format!r}: expected a log description FORMAT.toml to fit with")
     inputs = [*args.data, args.log_format or "", *([args.plant] if args.plant else [])]
     _check({"--out": args.out, "--json": args.json}, inputs, args.plots)
     fmt, logs = _load_logs(args, args.data)
