@@ -356,6 +356,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     built-in plant only with ``--verbose``.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
+    from .axis_cli import run as _axis_run, wants_axis_mode  # described logs, linear axes (issue 21)
+
+    if wants_axis_mode(argv):
+        return _axis_run(argv)
     verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
     created: list = []  # files and directories this run made, taken back when it is interrupted
     try:

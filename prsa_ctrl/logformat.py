@@ -1,0 +1,616 @@
+"""Log descriptions (``prsa-fit --log-format FILE``): logs as drives and test benches write them.
+
+A log description is a small TOML file that says which column (CSV) or variable (MATLAB
+``.mat``, read with :func:`scipy.io.loadmat`) holds which signal, in which unit, with which
+gain, and which controller was running while the log was written. Example (the EMPS benchmark,
+``examples/emps/log.toml``)::
+
+    format = "mat"                  # "mat" or "csv"; default: from the data file's extension
+    axis = "linear"                 # load coordinates: position in m, force in N
+
+    [time]
+    name = "t"
+    unit = "s"                      # s | ms
+
+    [position]                      # measured load position
+    name = "qm"
+    unit = "m"                      # m | mm | um
+    resolution = 5e-8               # optional: encoder quantum, in the same unit
+
+    [reference]                     # position reference given to the controller (optional)
+    name = "qg"
+    unit = "m"
+
+    [command]                       # controller output as logged
+    name = "vir"
+    unit = "V"                      # V | A | N (N needs no gain)
+    gain = "gtau"                   # N per command unit: a number or a variable of the .mat file
+    logged = "as-computed"          # as-computed (default) | as-applied
+
+    [test_signal]                   # additive signal at the drive input (optional)
+    name = "pulses_N"
+    unit = "V"                      # same unit as the command
+    optional = true                 # the column may be absent (then: zero)
+
+    [controller]                    # what ran while logging (optional; without it: open loop)
+    structure = "position-p/velocity-p"    # or "position-p/velocity-pi" (with ki)
+    kp = "kp"                       # position gain, 1/s
+    kv = "kv"                       # velocity gain, command unit per m/s
+    velocity_estimate = "average2-difference"   # or "difference"
+    saturation = 10.0               # symmetric limit of the controller output, command unit
+    sample_time_s = 0.001
+    command_delay_samples = 0       # samples between computing a command and applying it
+    check_tolerance = 0.03          # largest ||reconstructed - logged|| / ||logged|| of the command
+
+Optional sections ``[speed]`` (measured speed: ``unit`` m/s | mm/s) and ``[load]`` (external
+force on the load: ``unit`` N | kN) follow the same pattern.
+
+The controller, when described, is checked against the log before anything else: the command
+it computes from the logged position and reference (plus the test signal) must reproduce the
+logged command within ``check_tolerance`` (relative 2-norm error), and better than with the
+command shifted by 1 or 2 samples (:data:`ALIGNMENT_RATIO`). This is also how units that disagree with the data
+are caught (a position in mm declared as m scales the reconstructed command by 1000).
+
+The controller law (``k`` = sample, ``dt`` = ``sample_time_s``)::
+
+    qf(k) = (q(k) + q(k-1)) / 2                      # velocity_estimate = "average2-difference"
+    dq(k) = (qf(k) - qf(k-1)) / dt                   #   ("difference": dq(k) = (q(k) - q(k-1)) / dt)
+    u(k)  = kv * (kp * (r(k) - q(k)) - dq(k)) [+ ki * kv * dt * sum of kp*(r - q) - dq]   # PI: ki
+    command(k) = clip(u(k), -saturation, saturation) + test_signal(k)
+    force acting on the load from sample k + command_delay_samples on: gain * command(k)
+
+Every problem is a :class:`LogFormatError` (a ``ValueError``) with one line naming the file and
+the key, column or variable.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["LogFormatError", "LogFormat", "DEFAULT_CSV_FORMAT", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
+           "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES", "MAX_SAMPLES", "MIN_SAMPLES"]
+
+#: Controller structures understood.
+STRUCTURES = ("position-p/velocity-p", "position-p/velocity-pi")
+#: Velocity estimates of the controller.
+VELOCITY_ESTIMATES = ("average2-difference", "difference")
+#: Longest log accepted (samples), so that every replay and fit is bounded before it starts.
+MAX_SAMPLES = 2_000_000
+#: Fewest samples a log may have.
+MIN_SAMPLES = 50
+#: Largest relative deviation of a sample interval from the declared sample time.
+SAMPLING_TOL = 0.01
+#: A log is refused when the command reconstructed with a shift of 1 or 2 samples matches it
+#: with less than this fraction of the described alignment's error (the description is off).
+ALIGNMENT_RATIO = 0.5
+
+_POSITION_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
+_SPEED_UNITS = {"m/s": 1.0, "mm/s": 1e-3}
+_TIME_UNITS = {"s": 1.0, "ms": 1e-3}
+_FORCE_UNITS = {"N": 1.0, "kN": 1e3}
+_COMMAND_UNITS = ("V", "A", "N")
+_SIGNALS = {  # section -> (required, allowed units)
+    "time": (True, _TIME_UNITS),
+    "position": (True, _POSITION_UNITS),
+    "reference": (False, _POSITION_UNITS),
+    "command": (True, None),
+    "test_signal": (False, None),
+    "speed": (False, _SPEED_UNITS),
+    "load": (False, _FORCE_UNITS),
+}
+_TOP_KEYS = {"format", "axis", "description", *_SIGNALS, "controller"}
+_SIGNAL_KEYS = {"name", "unit", "resolution", "gain", "logged", "optional"}
+_CONTROLLER_KEYS = {"structure", "kp", "kv", "ki", "velocity_estimate", "saturation", "sample_time_s",
+                    "command_delay_samples", "check_tolerance"}
+
+
+class LogFormatError(ValueError):
+    """A log description or a log does not hold what it should; one line naming file and key."""
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """The controller that ran while logging (gains resolved to numbers, SI position units).
+
+    Attributes
+    ----------
+    structure : str
+        One of :data:`STRUCTURES`.
+    kp : float
+        Position-loop gain, 1/s.
+    kv : float
+        Velocity-loop gain, command unit per m/s.
+    ki : float
+        Velocity-loop integral gain, 1/s (0 for a P velocity loop).
+    velocity_estimate : str
+        One of :data:`VELOCITY_ESTIMATES`.
+    saturation : float
+        Symmetric limit of the controller output, command unit.
+    sample_time_s : float
+        Controller sample time, s.
+    command_delay_samples : int
+        Samples between computing a command and applying it at the drive.
+    check_tolerance : float
+        Largest relative error of the reconstructed command accepted.
+    sources : dict
+        Where each value came from (``"log.toml"`` or ``"DATA.mat: kp"``).
+    """
+
+    structure: str
+    kp: float
+    kv: float
+    ki: float
+    velocity_estimate: str
+    saturation: float
+    sample_time_s: float
+    command_delay_samples: int = 0
+    check_tolerance: float = 0.03
+    sources: Mapping[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class LogFormat:
+    """A parsed log description (:func:`load_log_format`); gains may still be variable names."""
+
+    path: str
+    doc: Mapping[str, Any]
+
+    def section(self, name: str) -> Mapping[str, Any] | None:
+        return self.doc.get(name)
+
+
+@dataclass(frozen=True)
+class AxisLog:
+    """A linear-axis log in SI load coordinates (m, N, s).
+
+    Attributes
+    ----------
+    name : str
+        The log file as given.
+    time_s, position_m : ndarray
+        Sample times, s (from 0) and measured load position, m.
+    command : ndarray
+        Controller output as logged, command unit (includes the test signal when there is one).
+    command_unit : str
+        ``V``, ``A`` or ``N``.
+    gain_n_per_unit : float
+        Drive gain, N per command unit (force on the load = gain * command).
+    reference_m, test_signal, speed_m_s, load_n : ndarray or None
+        Position reference, m; additive test signal at the drive input, command unit; measured
+        speed, m/s; external force on the load, N.
+    controller : ControllerSpec or None
+        The controller that ran (None: replays run open loop from the logged command).
+    resolution_m : float or None
+        Encoder quantum, m (None: not given).
+    sample_time_s : float
+        Sample time, s.
+    command_logged : str
+        ``as-computed`` or ``as-applied``.
+    sources : dict
+        Where the gain and the controller values came from.
+    """
+
+    name: str
+    time_s: NDArray[np.float64]
+    position_m: NDArray[np.float64]
+    command: NDArray[np.float64]
+    command_unit: str
+    gain_n_per_unit: float
+    sample_time_s: float
+    reference_m: NDArray[np.float64] | None = None
+    test_signal: NDArray[np.float64] | None = None
+    speed_m_s: NDArray[np.float64] | None = None
+    load_n: NDArray[np.float64] | None = None
+    controller: ControllerSpec | None = None
+    resolution_m: float | None = None
+    command_logged: str = "as-computed"
+    sources: Mapping[str, str] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.time_s.size)
+
+    @property
+    def force_n(self) -> NDArray[np.float64]:
+        """Logged command as a force on the load, N."""
+        return self.gain_n_per_unit * self.command
+
+    def window(self, start: int, stop: int) -> "AxisLog":
+        """The samples ``start:stop`` as a log of their own (time restarts at 0)."""
+        if not 0 <= start < stop <= self.n or stop - start < MIN_SAMPLES:
+            raise ValueError(f"window {start}:{stop} of {self.n} samples; expected at least {MIN_SAMPLES} samples inside")
+        cut = {k: (None if getattr(self, k) is None else getattr(self, k)[start:stop])
+               for k in ("position_m", "command", "reference_m", "test_signal", "speed_m_s", "load_n")}
+        t = self.time_s[start:stop] - self.time_s[start]
+        return AxisLog(name=f"{self.name}[{start}:{stop}]", time_s=t, command_unit=self.command_unit,
+                       gain_n_per_unit=self.gain_n_per_unit, sample_time_s=self.sample_time_s,
+                       controller=self.controller, resolution_m=self.resolution_m,
+                       command_logged=self.command_logged, sources=self.sources, **cut)
+
+
+#: The description of a CSV log with the standard linear-axis columns (no controller: replays run
+#: open loop from the logged force): ``time_s``, ``position_m``, ``force_n`` and, optionally,
+#: ``reference_m``, ``speed_m_s``, ``load_n``.
+DEFAULT_CSV_FORMAT = LogFormat(
+    path="standard CSV columns (time_s, position_m, force_n[, reference_m, speed_m_s, load_n])",
+    doc={"format": "csv", "axis": "linear", "time": {"name": "time_s", "unit": "s"},
+         "position": {"name": "position_m", "unit": "m"}, "command": {"name": "force_n", "unit": "N"},
+         "reference": {"name": "reference_m", "unit": "m", "optional": True},
+         "speed": {"name": "speed_m_s", "unit": "m/s", "optional": True},
+         "load": {"name": "load_n", "unit": "N", "optional": True}})
+
+
+# --- the description ---------------------------------------------------------------------------
+
+
+def _err(path: str, where: str, text: str) -> LogFormatError:
+    return LogFormatError(f"{path}: {where}: {text}")
+
+
+def load_log_format(path: str | Path) -> LogFormat:
+    """Read and check a log description (keys, units, structure), before any data is read.
+
+    Parameters
+    ----------
+    path : str or Path
+        The TOML file.
+
+    Returns
+    -------
+    LogFormat
+
+    Raises
+    ------
+    LogFormatError
+        One line naming the file and the key.
+    """
+    name = str(path)
+    p = Path(path)
+    if not p.is_file():
+        raise LogFormatError(f"--log-format {name!r}: file not found; expected a readable TOML log description")
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LogFormatError(f"{name}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise LogFormatError(f"{name}: invalid TOML ({exc})") from None
+    for k in doc:
+        if k not in _TOP_KEYS:
+            raise _err(name, f"key {k!r}", f"unknown; expected some of {', '.join(sorted(_TOP_KEYS))}")
+    fmt = doc.get("format")
+    if fmt is not None and fmt not in ("mat", "csv"):
+        raise _err(name, f"format = {fmt!r}", "expected \"mat\" or \"csv\"")
+    axis = doc.get("axis", "linear")
+    if axis != "linear":
+        raise _err(name, f"axis = {axis!r}", "expected \"linear\" (load coordinates m, N; rotary logs are not "
+                   "supported by --log-format yet)")
+    for sec, (required, units) in _SIGNALS.items():
+        s = doc.get(sec)
+        if s is None:
+            if required:
+                raise _err(name, f"[{sec}]", "missing; expected a section with name and unit")
+            continue
+        if not isinstance(s, dict):
+            raise _err(name, f"{sec}", "expected a [section] with name and unit")
+        for k in s:
+            if k not in _SIGNAL_KEYS:
+                raise _err(name, f"[{sec}] {k}", f"unknown key; expected some of {', '.join(sorted(_SIGNAL_KEYS))}")
+        if not isinstance(s.get("name"), str) or not s["name"].strip():
+            raise _err(name, f"[{sec}] name", "missing; expected the column or variable name as a string")
+        unit = s.get("unit")
+        allowed = units if units is not None else _COMMAND_UNITS
+        if unit not in allowed:
+            raise _err(name, f"[{sec}] unit = {unit!r}", f"expected one of {', '.join(allowed)}")
+    cmd = doc["command"]
+    if cmd["unit"] != "N" and "gain" not in cmd:
+        raise _err(name, f"[command] unit = {cmd['unit']!r}", "needs gain (N per command unit: a number or a "
+                   "variable name)")
+    if cmd.get("logged", "as-computed") not in ("as-computed", "as-applied"):
+        raise _err(name, f"[command] logged = {cmd['logged']!r}", "expected \"as-computed\" or \"as-applied\"")
+    ts = doc.get("test_signal")
+    if ts is not None and ts["unit"] != cmd["unit"]:
+        raise _err(name, f"[test_signal] unit = {ts['unit']!r}", f"expected the command's unit {cmd['unit']!r} (it "
+                   "is added to the controller output)")
+    res = doc["position"].get("resolution")
+    if res is not None and not _is_positive_number(res):
+        raise _err(name, f"[position] resolution = {res!r}", "expected a number > 0 (position unit)")
+    ctl = doc.get("controller")
+    if ctl is not None:
+        _check_controller(name, ctl, has_reference="reference" in doc)
+    return LogFormat(path=name, doc=doc)
+
+
+def _is_positive_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+
+def _check_controller(name: str, ctl: Any, has_reference: bool) -> None:
+    if not isinstance(ctl, dict):
+        raise _err(name, "controller", "expected a [controller] section")
+    for k in ctl:
+        if k not in _CONTROLLER_KEYS:
+            raise _err(name, f"[controller] {k}", f"unknown key; expected some of {', '.join(sorted(_CONTROLLER_KEYS))}")
+    st = ctl.get("structure")
+    if st not in STRUCTURES:
+        raise _err(name, f"[controller] structure = {st!r}", f"expected one of {', '.join(STRUCTURES)}")
+    if not has_reference:
+        raise _err(name, "[controller]", "needs a [reference] section (the position reference the controller followed)")
+    need = ["kp", "kv", "saturation", "sample_time_s"] + (["ki"] if st.endswith("pi") else [])
+    for k in need:
+        if k not in ctl:
+            raise _err(name, f"[controller] {k}", "missing; expected a number" + (" or a variable name"
+                                                                                  if k in ("kp", "kv", "ki") else ""))
+    if "ki" in ctl and not st.endswith("pi"):
+        raise _err(name, "[controller] ki", f"given for structure {st!r}; expected position-p/velocity-pi")
+    for k in ("saturation", "sample_time_s"):
+        if not _is_positive_number(ctl[k]):
+            raise _err(name, f"[controller] {k} = {ctl[k]!r}", "expected a number > 0")
+    ve = ctl.get("velocity_estimate", "average2-difference")
+    if ve not in VELOCITY_ESTIMATES:
+        raise _err(name, f"[controller] velocity_estimate = {ve!r}", f"expected one of {', '.join(VELOCITY_ESTIMATES)}")
+    d = ctl.get("command_delay_samples", 0)
+    if isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= 10:
+        raise _err(name, f"[controller] command_delay_samples = {d!r}", "expected an integer 0..10")
+    tol = ctl.get("check_tolerance", 0.03)
+    if not _is_positive_number(tol) or tol >= 1:
+        raise _err(name, f"[controller] check_tolerance = {tol!r}", "expected a number in (0, 1)")
+
+
+# --- the data ----------------------------------------------------------------------------------
+
+
+class _Source:
+    """The columns (CSV) or variables (.mat) of one data file."""
+
+    def __init__(self, path: str, fmt: str):
+        self.path, self.fmt = path, fmt
+        p = Path(path)
+        if not p.is_file():
+            raise LogFormatError(f"{path}: log file not found; expected a readable {fmt} file")
+        self.data: dict[str, np.ndarray] = self._read_mat(p) if fmt == "mat" else self._read_csv(p)
+
+    def _read_mat(self, p: Path) -> dict[str, np.ndarray]:
+        import scipy.io
+
+        try:
+            raw = scipy.io.loadmat(str(p))
+        except NotImplementedError:
+            raise LogFormatError(f"{self.path}: MATLAB v7.3 (HDF5) file; expected a v5/v7 .mat file (save with "
+                                 "-v7)") from None
+        except (OSError, ValueError, TypeError) as exc:
+            raise LogFormatError(f"{self.path}: cannot be read as a MATLAB .mat file ({exc})") from None
+        out = {}
+        for k, v in raw.items():
+            if k.startswith("__") or not isinstance(v, np.ndarray) or v.dtype.kind not in "fiub":
+                continue
+            out[k] = np.asarray(v, dtype=float)
+        return out
+
+    def _read_csv(self, p: Path) -> dict[str, np.ndarray]:
+        try:
+            with p.open(newline="", encoding="utf-8-sig") as fh:
+                rows = [(i, r) for i, r in enumerate(csv.reader(fh), start=1)
+                        if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+        except (OSError, UnicodeDecodeError, csv.Error) as exc:
+            raise LogFormatError(f"{self.path}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
+        if not rows:
+            raise LogFormatError(f"{self.path}: no header row; expected a CSV header naming the columns")
+        if len(rows) - 1 > MAX_SAMPLES:
+            raise LogFormatError(f"{self.path}: {len(rows) - 1} rows; expected at most {MAX_SAMPLES} (cut the log)")
+        header = [h.strip() for h in rows[0][1]]
+        data = np.empty((len(rows) - 1, len(header)))
+        for r, (line, row) in enumerate(rows[1:]):
+            if len(row) != len(header):
+                raise LogFormatError(f"{self.path}: line {line} has {len(row)} fields; expected {len(header)} like the header")
+            for c, cell in enumerate(row):
+                try:
+                    data[r, c] = float(cell)
+                except ValueError:
+                    raise LogFormatError(f"{self.path}: column {header[c]!r} line {line}: {cell.strip()!r} is not a "
+                                         "number; expected a finite number") from None
+        return {h: data[:, c] for c, h in enumerate(header)}
+
+    def names(self) -> str:
+        return ", ".join(self.data) or "nothing"
+
+    def signal(self, key: str, var: str, n: int | None) -> np.ndarray:
+        what = "column" if self.fmt == "csv" else "variable"
+        if var not in self.data:
+            raise LogFormatError(f"{self.path}: {key} names {what} {var!r}, not in the file; it has {self.names()}")
+        v = self.data[var]
+        if v.ndim == 2 and 1 in v.shape:
+            v = v.ravel()
+        if v.ndim != 1 or v.size < 2:
+            raise LogFormatError(f"{self.path}: {what} {var!r} ({key}) has shape {self.data[var].shape}; expected a "
+                                 "vector (one value per sample)")
+        if n is not None and v.size != n:
+            raise LogFormatError(f"{self.path}: {what} {var!r} ({key}) has {v.size} samples; expected {n} like the time")
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            raise LogFormatError(f"{self.path}: {what} {var!r} ({key}) sample {bad[0]}: {v[bad[0]]}; expected finite values")
+        return v.astype(float)
+
+    def scalar(self, key: str, value: Any, fmt_path: str) -> tuple[float, str]:
+        """A number given in the description, or the name of a scalar variable of the file."""
+        if isinstance(value, str):
+            if self.fmt != "mat":
+                raise LogFormatError(f"{fmt_path}: {key} = {value!r}: variable names work for .mat files only; "
+                                     "expected a number")
+            if value not in self.data:
+                raise LogFormatError(f"{self.path}: {key} names variable {value!r}, not in the file; it has {self.names()}")
+            v = self.data[value]
+            if v.size != 1:
+                raise LogFormatError(f"{self.path}: variable {value!r} ({key}) has shape {v.shape}; expected a scalar")
+            x, src = float(v.ravel()[0]), f"{Path(self.path).name}: {value}"
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            x, src = float(value), Path(fmt_path).name
+        else:
+            raise LogFormatError(f"{fmt_path}: {key} = {value!r}; expected a number or a variable name")
+        if not math.isfinite(x) or x <= 0:
+            raise LogFormatError(f"{self.path if isinstance(value, str) else fmt_path}: {key} = {x!r}"
+                                 f"{' (variable ' + repr(value) + ')' if isinstance(value, str) else ''}; expected a "
+                                 "finite number > 0")
+        return x, src
+
+
+def load_axis_log(path: str | Path, fmt: LogFormat) -> AxisLog:
+    """Read a log as its description says, convert it to SI and check it against the controller.
+
+    Parameters
+    ----------
+    path : str or Path
+        The data file (CSV with a header row, or MATLAB v5/v7 ``.mat``).
+    fmt : LogFormat
+        The description (:func:`load_log_format`).
+
+    Returns
+    -------
+    AxisLog
+
+    Raises
+    ------
+    LogFormatError
+        One line naming the file and the column, variable or key: missing signals, signals of
+        different lengths, non-finite values, a time base that disagrees with the controller's
+        sample time, a controller that does not reproduce the logged command.
+    """
+    name = str(path)
+    doc = fmt.doc
+    kind = doc.get("format") or ("mat" if name.lower().endswith(".mat") else "csv")
+    src = _Source(name, kind)
+    t_sec = doc["time"]
+    t = src.signal("[time] name", t_sec["name"], None) * _TIME_UNITS[t_sec["unit"]]
+    n = t.size
+    if n < MIN_SAMPLES or n > MAX_SAMPLES:
+        raise LogFormatError(f"{name}: {n} samples; expected {MIN_SAMPLES}..{MAX_SAMPLES}")
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        k = int(np.flatnonzero(dt <= 0)[0]) + 1
+        raise LogFormatError(f"{name}: [time] {t_sec['name']!r} sample {k}: not increasing; expected strictly increasing times")
+    ctl_doc = doc.get("controller")
+    h = float(ctl_doc["sample_time_s"]) if ctl_doc else float(np.median(dt))
+    worst = float(np.max(np.abs(dt - h)) / h)
+    if worst > SAMPLING_TOL:
+        what = (f"[controller] sample_time_s = {h:g}" if ctl_doc else "its median interval")
+        raise LogFormatError(f"{name}: [time] {t_sec['name']!r} (unit {t_sec['unit']!r}): sample interval "
+                             f"{float(np.median(dt)):.6g} s deviates {100 * worst:.3g} % from {what}; expected evenly "
+                             f"spaced samples within {100 * SAMPLING_TOL:g} % (check the time unit)")
+
+    def sig(sec: str) -> np.ndarray | None:
+        s = doc.get(sec)
+        if s is None:
+            return None
+        if s.get("optional") and s["name"] not in src.data:
+            return None
+        return src.signal(f"[{sec}] name", s["name"], n)
+
+    pos_unit = _POSITION_UNITS[doc["position"]["unit"]]
+    q = sig("position") * pos_unit
+    ref = sig("reference")
+    ref = None if ref is None else ref * _POSITION_UNITS[doc["reference"]["unit"]]
+    cmd_sec = doc["command"]
+    cmd = sig("command")
+    test = sig("test_signal")
+    speed = sig("speed")
+    speed = None if speed is None else speed * _SPEED_UNITS[doc["speed"]["unit"]]
+    load = sig("load")
+    load = None if load is None else load * _FORCE_UNITS[doc["load"]["unit"]]
+    sources: dict[str, str] = {}
+    if cmd_sec["unit"] == "N":
+        gain, sources["gain"] = 1.0, "command logged in N"
+    else:
+        gain, sources["gain"] = src.scalar("[command] gain", cmd_sec["gain"], fmt.path)
+    res = doc["position"].get("resolution")
+    controller = None
+    if ctl_doc:
+        vals = {}
+        for k in ("kp", "kv", "ki"):
+            if k in ctl_doc:
+                vals[k], sources[f"controller.{k}"] = src.scalar(f"[controller] {k}", ctl_doc[k], fmt.path)
+        controller = ControllerSpec(
+            structure=ctl_doc["structure"], kp=vals["kp"], kv=vals["kv"], ki=vals.get("ki", 0.0),
+            velocity_estimate=ctl_doc.get("velocity_estimate", "average2-difference"),
+            saturation=float(ctl_doc["saturation"]), sample_time_s=h,
+            command_delay_samples=int(ctl_doc.get("command_delay_samples", 0)),
+            check_tolerance=float(ctl_doc.get("check_tolerance", 0.03)), sources=dict(sources))
+    log = AxisLog(name=name, time_s=t - t[0], position_m=q, command=cmd, command_unit=cmd_sec["unit"],
+                  gain_n_per_unit=gain, sample_time_s=h, reference_m=ref, test_signal=test, speed_m_s=speed,
+                  load_n=load, controller=controller, resolution_m=None if res is None else float(res) * pos_unit,
+                  command_logged=cmd_sec.get("logged", "as-computed"), sources=sources)
+    if controller is not None:
+        _check_reproduction(log, fmt)
+    return log
+
+
+def reconstruct_command(log: AxisLog, position_m: NDArray[np.float64] | None = None,
+                        with_test_signal: bool = True) -> NDArray[np.float64]:
+    """The command the described controller computes from a position record, command unit.
+
+    Parameters
+    ----------
+    log : AxisLog
+        A log with a controller and a reference.
+    position_m : ndarray, optional
+        Positions fed to the controller, m (default: the logged ones).
+    with_test_signal : bool
+        Add the log's test signal (as the drive input and the logged command hold it).
+
+    Returns
+    -------
+    ndarray
+        ``clip(u, -saturation, saturation) + test_signal`` per sample, as computed (no delay).
+    """
+    c = log.controller
+    if c is None or log.reference_m is None:
+        raise ValueError(f"log {log.name!r}: no controller or reference; expected a described closed loop")
+    q = log.position_m if position_m is None else np.asarray(position_m, dtype=float)
+    h = c.sample_time_s
+    q1 = np.r_[q[0], q[:-1]]
+    if c.velocity_estimate == "average2-difference":
+        qf = 0.5 * (q + q1)
+        dq = np.diff(np.r_[qf[0], qf]) / h
+    else:
+        dq = (q - q1) / h
+    e_v = c.kp * (log.reference_m - q) - dq
+    u = c.kv * e_v
+    if c.ki:
+        u = u + c.kv * c.ki * h * np.cumsum(e_v)  # no anti-windup: checked against the log
+    u = np.clip(u, -c.saturation, c.saturation)
+    return u + (0.0 if log.test_signal is None or not with_test_signal else log.test_signal)
+
+
+def _check_reproduction(log: AxisLog, fmt: LogFormat) -> None:
+    c = log.controller
+    rec = reconstruct_command(log, with_test_signal=False)
+    if log.command_logged == "as-applied" and c.command_delay_samples:  # the controller output d samples late
+        d = c.command_delay_samples
+        rec = np.r_[np.zeros(d), rec[:-d]]
+    if log.test_signal is not None:  # the test signal is logged at the sample it acts in
+        rec = rec + log.test_signal
+    norm = float(np.linalg.norm(log.command))
+    if norm == 0:
+        raise LogFormatError(f"{log.name}: [command] {fmt.doc['command']['name']!r} is all zero; expected the "
+                             "controller output")
+    rel = float(np.linalg.norm(rec - log.command)) / norm
+    best = min((float(np.linalg.norm(np.roll(rec, s)[3:-3] - log.command[3:-3])) / norm, s) for s in (-2, -1, 1, 2))
+    shift_hint = (f"a shift of {best[1]:+d} samples gives {100 * best[0]:.3g} % (check [command] logged and "
+                  "[controller] command_delay_samples)")
+    if rel > c.check_tolerance:
+        hint = (shift_hint if best[0] <= c.check_tolerance else
+                "check the gains, the units of [position], [reference] and [command], and the structure")
+        raise LogFormatError(f"{fmt.path}: [controller] does not reproduce {Path(log.name).name}'s command "
+                             f"{fmt.doc['command']['name']!r}: relative error {100 * rel:.3g} %, expected at most "
+                             f"{100 * c.check_tolerance:.3g} % (check_tolerance); {hint}")
+    if best[0] < ALIGNMENT_RATIO * rel:
+        raise LogFormatError(f"{fmt.path}: [controller] reproduces {Path(log.name).name}'s command "
+                             f"{fmt.doc['command']['name']!r} with a relative error of {100 * rel:.3g} %, but {shift_hint}: "
+                             "expected the described alignment to fit best")
