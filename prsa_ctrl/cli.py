@@ -818,6 +818,10 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if os.path.splitext(args.export)[1].lower() not in (".json", ".toml"):
                 raise _UsageError(f"--export {args.export!r}: expected a path ending in .json or .toml")
             check_writable(args.export, inputs, "--export")
+            if scene.feedforward:
+                raise _UsageError(f"--export {args.export!r} with --feedforward: the drive export does not describe the "
+                                  "Kalman filter's load-torque feed-forward (kff > 0); expected --export without "
+                                  "--feedforward (or no --export)")
         if args.plots is not None:
             check_directory(args.plots, "--plots")
         check_distinct({"--json": args.json, "--export": args.export, "--plots": args.plots})
@@ -853,6 +857,11 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         return code
     rep.timing_s["process"] = time.perf_counter() - _T_START
     _progress(run, args.verbose, "writing outputs")
+    if args.export is not None:  # before any output is written: all or nothing
+        export_pid, export_design = _export_choice(rep, robust_rep)
+        if export_pid is None:
+            run.say(f"{run.prog}: --export {args.export}: {export_design['why']}; nothing written")
+            return EXIT_NUMERICAL if robust_rep is not None else EXIT_BAD_INPUT
     try:
         if args.plots is not None:
             rep.plot_files = _publish_report_plots(run, rep, args.plots, inputs)
@@ -862,6 +871,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             _add_setpoint_weight(data, rep.scene)
             if robust_rep is not None:
                 data["robust"] = robust_rep.as_dict()
+                data["recommended"] = data["robust"]["recommended"]
             if mc is not None:
                 data["monte_carlo"] = mc.as_dict()
             run.check()
@@ -871,13 +881,9 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             from .output import write_text
 
             fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
-            exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
-                                         setpoint_weight=_setpoint_weight(rep.scene)) if rep.best.pid.kff == 0 else None
-            if exported is None:
-                run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
-                        "(kff > 0), which the drive export does not describe; nothing exported")
-            else:
-                write_text(args.export, dumps(exported, fmt), inputs, flag="--export")
+            exported = export_controller(export_pid, rep.plant, fmt=fmt, setpoint_weight=_setpoint_weight(rep.scene),
+                                         design=export_design)
+            write_text(args.export, dumps(exported, fmt), inputs, flag="--export")
     except OutputError:
         raise
     except KeyboardInterrupt:
@@ -898,8 +904,8 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             print(f"JSON report: {args.json}")
         if args.plots is not None:
             print(f"plots: {', '.join(str(p) for p in rep.plot_files)}")
-        if args.export is not None and rep.best.pid.kff == 0:
-            print(f"drive export: {args.export}")
+        if args.export is not None:
+            print(f"drive export: {args.export} holds the {export_design['name']} ({export_design['chosen_by']})")
     _show_notes(run, notes, native, args.verbose, args.quiet)
     if rep.status != "ok" and not args.accept_unconverged:
         run.say(f"{run.prog}: the best design is flagged ({rep.status}); its numbers are reported above but "
@@ -970,7 +976,28 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
     # Like the verification: in parallel on the machine's cores unless --workers says otherwise.
     mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
                          workers=args.workers or default_workers(), quiet=args.quiet)
+    if robust_rep is not None:
+        robust_rep.recommend(mc)
     return robust_rep, mc
+
+
+def _export_choice(rep, robust_rep) -> tuple[Any, dict]:
+    """The design ``--export`` writes and how it was chosen: the robust study's recommended
+    design (:meth:`prsa_ctrl.robust.RobustTuning.recommend`) when there is one, else the
+    tuned design; ``(None, {"why": ...})`` when there is none to export."""
+    if robust_rep is not None:
+        r = robust_rep.recommended or robust_rep.recommend()
+        if r.get("design") is None:
+            return None, {"why": f"no design recommended ({r['why']})"}
+        d = {"name": f"{r['design']} design", "chosen_by": "recommended by the robust study", "why": r["why"],
+             "basis": r["basis"]}
+        if r.get("yield") is not None:
+            d["yield"] = r["yield"]
+        return robust_rep.design(r["design"]), d
+    if rep.best.pid.kff != 0:
+        return None, {"why": "the best design feeds the Kalman filter's load estimate forward (kff > 0), which the "
+                             "drive export does not describe"}
+    return rep.best.pid, {"name": rep.best.name, "chosen_by": "the tuned design (no robust study)"}
 
 
 def _format_robust(rr) -> str:
@@ -982,8 +1009,17 @@ def _format_robust(rr) -> str:
     rows = []
     for name, pid in (("nominal", rr.nominal), ("robust", rr.robust)):
         d = comp["designs"][name]
-        rows.append([name, pid.kp, pid.ki, d["max_ms"], d["ms_violations"], d["worst_objective"], d["mean_objective"]])
+        bad = "unstable" if not d["all_stable"] else None
+        rows.append([name, pid.kp, pid.ki, bad or d["max_ms"], d["ms_violations"], bad or d["worst_objective"],
+                     bad or d["mean_objective"]])
     out.append(_table(["design", "kp", "ki", "max Ms", "models over the Ms bound", f"worst {obj}", f"mean {obj}"], rows))
+    unstable = {name: sum(1 for p in comp["designs"][name]["per_scenario"] if not p["stable"])
+                for name in ("nominal", "robust")}
+    for name, k in unstable.items():
+        if k:
+            out.append(f"{name}: closed loop unstable on {k} of {len(rr.scenarios)} scenario models")
+    r = rr.recommended or rr.recommend()
+    out.append(f"recommended: {r['design'] + ' design' if r.get('design') else 'none'} ({r['why']})")
     return "\n".join(out) + "\n"
 
 
