@@ -42,6 +42,8 @@ __all__ = ["main", "plot_main", "parse_load_step", "write_json_atomic", "format_
 _T_START = time.perf_counter()
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
+#: Exit code after SIGTERM (128 + 15): handled like Ctrl-C (workers stopped, one line, nothing written).
+EXIT_TERMINATED = 128 + signal.SIGTERM
 
 #: Seconds between Ctrl-C and a forced exit when a solver does not hand control back.
 INTERRUPT_GRACE_S = 0.8
@@ -293,6 +295,8 @@ class _Run:
         self.created: list[Path] = []
         self.pid = os.getpid()
         self.argv: list[str] = []
+        self.cause = "Ctrl-C"  # or "SIGTERM"
+        self.exit_code = EXIT_INTERRUPTED  # EXIT_TERMINATED after SIGTERM
 
     def say(self, line: str) -> bool:
         """Print the final one-line message once (main thread or watchdog, whichever first)."""
@@ -314,7 +318,7 @@ class _Run:
         return True
 
     def interrupt_line(self) -> str:
-        return f"{self.prog}: interrupted (Ctrl-C); no output written"
+        return f"{self.prog}: interrupted ({self.cause}); no output written"
 
     def force_exit(self) -> None:  # watchdog thread: a solver kept control after Ctrl-C
         from .output import cleanup_temporaries, remove_created
@@ -329,7 +333,15 @@ class _Run:
         except Exception:  # noqa: BLE001 - best effort
             pass
         self.say(self.interrupt_line())
-        os._exit(EXIT_INTERRUPTED)
+        os._exit(self.exit_code)
+
+    def on_sigterm(self, signum, frame) -> None:
+        """SIGTERM ends the command like Ctrl-C (its workers stopped), with exit 143."""
+        if os.getpid() != self.pid:  # a forked worker (stopped by the parent): end now
+            os._exit(EXIT_TERMINATED)
+        if not self.interrupted:
+            self.cause, self.exit_code = "SIGTERM", EXIT_TERMINATED
+        self.on_sigint(signum, frame)
 
     def on_sigint(self, signum, frame) -> None:
         if os.getpid() != self.pid:  # a forked worker: the parent reports
@@ -350,9 +362,10 @@ class _Run:
 @contextlib.contextmanager
 def _guard(run: _Run) -> Iterator[None]:
     """Install the Ctrl-C handler for the duration of a command (main thread only)."""
-    old = None
+    old = old_term = None
     if threading.current_thread() is threading.main_thread():
         old = signal.signal(signal.SIGINT, run.on_sigint)
+        old_term = signal.signal(signal.SIGTERM, run.on_sigterm)
     try:
         yield
     finally:
@@ -362,6 +375,7 @@ def _guard(run: _Run) -> Iterator[None]:
             # After an interrupt a second delivery may still be pending (a solver that caught
             # the first re-raises it): ignore it, the command is ending with exit 130 anyway.
             signal.signal(signal.SIGINT, signal.SIG_IGN if run.interrupted else old)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN if run.interrupted else old_term)
 
 
 @contextlib.contextmanager
@@ -723,7 +737,7 @@ def _progress(run: _Run, verbose: bool, text: str) -> None:
 def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[str]], int]) -> int:
     """Common frame of both commands: Ctrl-C guard, one-line errors, exit codes."""
     code = _invoke_inner(prog, argv, body)
-    if code == EXIT_INTERRUPTED and argv is None:
+    if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) and argv is None:
         # The process itself (console script, python -m): end now with 130. A second SIGINT
         # delivery left pending by a solver, or an atexit hook of a solver library, would
         # otherwise turn the exit into a death by SIGINT.
@@ -735,7 +749,7 @@ def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[st
 
             for child in multiprocessing.active_children():
                 child.kill()
-        os._exit(EXIT_INTERRUPTED)
+        os._exit(code)
     return code
 
 
@@ -751,14 +765,14 @@ def _invoke_inner(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, l
             cleanup_temporaries()
             remove_created(run.created)
             run.say(run.interrupt_line())
-            return EXIT_INTERRUPTED
+            return run.exit_code
         except (_UsageError, argparse.ArgumentTypeError, PlantFileError, SceneError, OutputError) as exc:
             from .output import remove_created
 
             remove_created(run.created)
             if run.interrupted:
                 run.say(run.interrupt_line())
-                return EXIT_INTERRUPTED
+                return run.exit_code
             run.say(f"{prog}: error: {_one_line(exc)}")
             return EXIT_BAD_INPUT
         except Exception as exc:  # noqa: BLE001 - a bug must not print a traceback either
@@ -767,7 +781,7 @@ def _invoke_inner(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, l
             remove_created(run.created)
             if run.interrupted:
                 run.say(run.interrupt_line())
-                return EXIT_INTERRUPTED
+                return run.exit_code
             code, line = _describe_failure(exc, f"{prog} {' '.join(run.argv)}".strip())
             run.say(f"{prog}: {line}")
             return code
