@@ -255,6 +255,8 @@ class RobustTuning:
         for name, d in c["designs"].items():
             lines.append(f"{name:<10} {d['gains']['kp']:9.4g} {d['gains']['ki']:9.4g} {d['max_ms']:7.3f} "
                          f"{d['ms_violations']:8d} {d['worst_objective']:10.4g} {d['mean_objective']:10.4g}")
+        r = self.recommended or self.recommend()
+        lines.append(f"recommended: {r['design'] + ' design' if r.get('design') else 'none'} ({r['why']})")
         return "\n".join(lines)
 
 
