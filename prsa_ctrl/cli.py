@@ -375,7 +375,7 @@ def _guard(run: _Run) -> Iterator[None]:
             # After an interrupt a second delivery may still be pending (a solver that caught
             # the first re-raises it): ignore it, the command is ending with exit 130 anyway.
             signal.signal(signal.SIGINT, signal.SIG_IGN if run.interrupted else old)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN if run.interrupted else old_term)
+            signal.signal(signal.SIGTERM, old_term)  # never left ignored: children would inherit SIG_IGN
 
 
 @contextlib.contextmanager

@@ -262,9 +262,9 @@ def _pool_init(job: _Job, parent: int | None = None) -> None:
 
 
 def _end_with_parent(parent: int | None) -> None:
-    """Linux: have the kernel send this worker SIGTERM when its parent process dies (killed by
-    a signal it does not handle, e.g. SIGKILL), so no worker outlives the run as an orphan;
-    elsewhere (or without ``parent``) a no-op."""
+    """Linux: have the kernel send this worker SIGKILL when its parent process dies (killed by
+    a signal it does not handle, e.g. SIGTERM or SIGKILL), so no worker outlives the run as an
+    orphan; elsewhere (or without ``parent``) a no-op."""
     if parent is None or not sys.platform.startswith("linux"):
         return
     try:
@@ -272,7 +272,7 @@ def _end_with_parent(parent: int | None) -> None:
         import signal
 
         libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # best effort: the parent's handlers stop the workers too
         return
     if os.getppid() != parent:  # the parent died before prctl took effect
@@ -647,10 +647,11 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
             for f in done:
                 took(f.result())
     except BaseException:
-        # Ctrl-C or a failed chunk: stop the workers now (they ignore SIGINT, and a chunk already
-        # queued would keep them running after this process has exited).
+        # Ctrl-C, SIGTERM or a failed chunk: stop the workers now (they ignore SIGINT, may have
+        # inherited an ignored SIGTERM, and a chunk already queued would keep them running after
+        # this process has exited). They only compute: SIGKILL loses nothing.
         for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            proc.terminate()
+            proc.kill()
         raise
     finally:
         pool.shutdown(wait=False, cancel_futures=True)

@@ -323,3 +323,22 @@ def test_sigterm_in_a_monte_carlo_pool_stops_the_workers_and_says_so(tmp_path):
     lines = [l for l in err.read_text().splitlines() if l.strip()]
     assert code == 143 and lines[-1] == "prsa-tune: interrupted (SIGTERM); no output written"
     assert not (tmp_path / "r.json").exists()
+
+
+def test_an_interrupted_command_does_not_leave_sigterm_ignored():
+    """After an interrupted in-process command SIGTERM has its old handler again: an ignored
+    SIGTERM would be inherited by every later child process (whose workers then survive
+    ``terminate()``)."""
+    from prsa_ctrl import cli
+
+    def body(run, argv):
+        run.interrupted = True
+        raise KeyboardInterrupt
+
+    old_int, old_term = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        assert cli._invoke_inner("prsa-tune", [], body) == cli.EXIT_INTERRUPTED
+        assert signal.getsignal(signal.SIGTERM) is old_term
+    finally:
+        signal.signal(signal.SIGINT, old_int)
+        signal.signal(signal.SIGTERM, old_term)
