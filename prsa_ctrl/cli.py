@@ -46,6 +46,8 @@ __all__ = ["main", "plot_main", "parse_load_step", "write_json_atomic", "format_
 _T_START = time.perf_counter()
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
+#: Exit code after SIGTERM (128 + 15): handled like Ctrl-C (workers stopped, one line, nothing written).
+EXIT_TERMINATED = 128 + signal.SIGTERM
 
 #: Seconds between Ctrl-C and a forced exit when a solver does not hand control back.
 INTERRUPT_GRACE_S = 0.8
@@ -311,6 +313,8 @@ class _Run:
         self.defer = False
         #: Output files in place (the interrupt line names them).
         self.written: list[str] = []
+        self.cause = "Ctrl-C"  # or "SIGTERM"
+        self.exit_code = EXIT_INTERRUPTED  # EXIT_TERMINATED after SIGTERM
 
     def say(self, line: str) -> bool:
         """Print the final one-line message once (main thread or watchdog, whichever first)."""
@@ -333,9 +337,9 @@ class _Run:
 
     def interrupt_line(self) -> str:
         if self.written:
-            return (f"{self.prog}: interrupted (Ctrl-C) after the outputs were written complete: "
+            return (f"{self.prog}: interrupted ({self.cause}) after the outputs were written complete: "
                     f"{', '.join(self.written)}")
-        return f"{self.prog}: interrupted (Ctrl-C); no output written"
+        return f"{self.prog}: interrupted ({self.cause}); no output written"
 
     def force_exit(self) -> None:  # watchdog thread: a solver kept control after Ctrl-C
         from .output import cleanup_temporaries, remove_created
@@ -350,7 +354,15 @@ class _Run:
         except Exception:  # noqa: BLE001 - best effort
             pass
         self.say(self.interrupt_line())
-        os._exit(EXIT_INTERRUPTED)
+        os._exit(self.exit_code)
+
+    def on_sigterm(self, signum, frame) -> None:
+        """SIGTERM ends the command like Ctrl-C (its workers stopped), with exit 143."""
+        if os.getpid() != self.pid:  # a forked worker (stopped by the parent): end now
+            os._exit(EXIT_TERMINATED)
+        if not self.interrupted:
+            self.cause, self.exit_code = "SIGTERM", EXIT_TERMINATED
+        self.on_sigint(signum, frame)
 
     def on_sigint(self, signum, frame) -> None:
         if os.getpid() != self.pid:  # a forked worker: the parent reports
@@ -372,13 +384,14 @@ class _Run:
 
 @contextlib.contextmanager
 def _guard(run: _Run, process: bool = False) -> Iterator[None]:
-    """Install the Ctrl-C handler for the duration of a command (main thread only). For the
-    process itself (``process``), SIGINT is blocked from the end of the command to the exit:
-    :func:`_invoke` turns a pending one into exit 130 with its line (never a death by SIGINT
-    or a traceback after the command finished)."""
-    old = None
+    """Install the Ctrl-C and SIGTERM handlers for the duration of a command (main thread only).
+    For the process itself (``process``), SIGINT is blocked from the end of the command to the
+    exit: :func:`_invoke` turns a pending one into exit 130 with its line (never a death by
+    SIGINT or a traceback after the command finished)."""
+    old = old_term = None
     if threading.current_thread() is threading.main_thread():
         old = signal.signal(signal.SIGINT, run.on_sigint)
+        old_term = signal.signal(signal.SIGTERM, run.on_sigterm)
     try:
         yield
     finally:
@@ -390,6 +403,7 @@ def _guard(run: _Run, process: bool = False) -> Iterator[None]:
             # After an interrupt a second delivery may still be pending (a solver that caught
             # the first re-raises it): ignore it, the command is ending with exit 130 anyway.
             signal.signal(signal.SIGINT, signal.SIG_IGN if run.interrupted else old)
+            signal.signal(signal.SIGTERM, old_term)  # never left ignored: children would inherit SIG_IGN
 
 
 @contextlib.contextmanager
@@ -821,7 +835,7 @@ def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[st
     """Common frame of both commands: Ctrl-C guard, one-line errors, exit codes."""
     run = _Run(prog)
     code = _invoke_inner(run, argv, body)
-    if argv is None and code != EXIT_INTERRUPTED and signal.SIGINT in _pending_signals():
+    if argv is None and code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and signal.SIGINT in _pending_signals():
         # Ctrl-C after the command finished (blocked by _guard): exit 130 with its line.
         run.reported = False
         for stream in (sys.stdout, sys.stderr):
@@ -829,7 +843,7 @@ def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[st
                 stream.flush()
         run.say(run.interrupt_line())
         code = EXIT_INTERRUPTED
-    if code == EXIT_INTERRUPTED and argv is None:
+    if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) and argv is None:
         # The process itself (console script, python -m): end now with 130. A second SIGINT
         # delivery left pending by a solver, or an atexit hook of a solver library, would
         # otherwise turn the exit into a death by SIGINT.
@@ -841,7 +855,7 @@ def _invoke(prog: str, argv: Sequence[str] | None, body: Callable[[_Run, list[st
 
             for child in multiprocessing.active_children():
                 child.kill()
-        os._exit(EXIT_INTERRUPTED)
+        os._exit(code)
     return code
 
 
@@ -864,14 +878,14 @@ def _invoke_inner(run: _Run, argv: Sequence[str] | None, body: Callable[[_Run, l
             cleanup_temporaries()
             remove_created(run.created)
             run.say(run.interrupt_line())
-            return EXIT_INTERRUPTED
+            return run.exit_code
         except (_UsageError, argparse.ArgumentTypeError, PlantFileError, SceneError, OutputError) as exc:
             from .output import remove_created
 
             remove_created(run.created)
             if run.interrupted:
                 run.say(run.interrupt_line())
-                return EXIT_INTERRUPTED
+                return run.exit_code
             run.say(f"{prog}: error: {_one_line(exc)}")
             return EXIT_BAD_INPUT
         except Exception as exc:  # noqa: BLE001 - a bug must not print a traceback either
@@ -880,7 +894,7 @@ def _invoke_inner(run: _Run, argv: Sequence[str] | None, body: Callable[[_Run, l
             remove_created(run.created)
             if run.interrupted:
                 run.say(run.interrupt_line())
-                return EXIT_INTERRUPTED
+                return run.exit_code
             code, line = _describe_failure(exc, f"{prog} {' '.join(run.argv)}".strip())
             run.say(f"{prog}: {line}")
             return code
@@ -935,6 +949,10 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                 from .codegen import check_code_export
 
                 check_code_export(args.export, inputs, "--export")
+            if scene.feedforward:
+                raise _UsageError(f"--export {args.export!r} with --feedforward: the drive export does not describe the "
+                                  "Kalman filter's load-torque feed-forward (kff > 0); expected --export without "
+                                  "--feedforward (or no --export)")
         if args.motor is not None or args.export_template is not None:  # issue 24: drive units, parameter sets
             from .driveparams import check_cli_options
 
@@ -977,6 +995,11 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         return code
     rep.timing_s["process"] = time.perf_counter() - _T_START
     _progress(run, args.verbose, "writing outputs")
+    if args.export is not None:  # before any output is written: all or nothing
+        export_pid, export_design = _export_choice(rep, robust_rep)
+        if export_pid is None:
+            run.say(f"{run.prog}: --export {args.export}: {export_design['why']}; nothing written")
+            return EXIT_NUMERICAL if robust_rep is not None else EXIT_BAD_INPUT
     from .output import Transaction
 
     outputs = Transaction(inputs)  # all outputs or none (issue 20, hostile 4 and 17)
@@ -989,6 +1012,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             _add_setpoint_weight(data, rep.scene)
             if robust_rep is not None:
                 data["robust"] = robust_rep.as_dict()
+                data["recommended"] = data["robust"]["recommended"]
             if mc is not None:
                 data["monte_carlo"] = mc.as_dict()
             run.check()
@@ -1000,20 +1024,15 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             if fmt in ("c", "st"):  # issue 24: the discrete controller as code (prsa_ctrl.codegen)
                 from .codegen import stage_code_export
 
-                exported = None if rep.best.pid.kff else stage_code_export(
-                    outputs, args.export, rep.best.pid, rep.plant, real=args.export_real,
-                    setpoint_weight=_setpoint_weight(rep.scene))
+                stage_code_export(outputs, args.export, export_pid, rep.plant, real=args.export_real,
+                                  setpoint_weight=_setpoint_weight(rep.scene))
             else:
-                exported = export_controller(rep.best.pid, rep.plant, fmt=fmt,
-                                             setpoint_weight=_setpoint_weight(rep.scene)) if rep.best.pid.kff == 0 else None
-                if exported is not None and (args.motor is not None or args.export_template is not None):
+                exported = export_controller(export_pid, rep.plant, fmt=fmt, setpoint_weight=_setpoint_weight(rep.scene),
+                                             design=export_design)
+                if args.motor is not None or args.export_template is not None:
                     from .driveparams import cli_export_data
 
-                    exported = cli_export_data(args, exported, rep.best.pid, rep.plant)
-            if exported is None:
-                run.say(f"{run.prog}: --export: the best design feeds the Kalman filter's load estimate forward "
-                        "(kff > 0), which the drive export does not describe; nothing exported")
-            elif fmt not in ("c", "st"):
+                    exported = cli_export_data(args, exported, export_pid, rep.plant)
                 text = dumps(exported, fmt)
                 outputs.stage(args.export, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--export")
         _commit(run, outputs)
@@ -1039,8 +1058,8 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
             print(f"JSON report: {args.json}")
         if args.plots is not None:
             print(f"plots: {', '.join(str(p) for p in rep.plot_files)}")
-        if args.export is not None and rep.best.pid.kff == 0:
-            print(f"drive export: {args.export}")
+        if args.export is not None:
+            print(f"drive export: {args.export} holds the {export_design['name']} ({export_design['chosen_by']})")
     _show_notes(run, notes, native, args.verbose, args.quiet)
     if rep.status != "ok" and not args.accept_unconverged:
         run.say(f"{run.prog}: the best design is flagged ({rep.status}); its numbers are reported above but "
@@ -1160,6 +1179,8 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
     # Like the verification: in parallel on the machine's cores unless --workers says otherwise.
     mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
                          workers=args.workers or default_workers(), quiet=args.quiet)
+    if robust_rep is not None:
+        robust_rep.recommend(mc)
     return robust_rep, mc
 
 
@@ -1172,6 +1193,25 @@ def _add_design(designs: dict, name: str, pid) -> None:
     designs[name] = pid
 
 
+def _export_choice(rep, robust_rep) -> tuple[Any, dict]:
+    """The design ``--export`` writes and how it was chosen: the robust study's recommended
+    design (:meth:`prsa_ctrl.robust.RobustTuning.recommend`) when there is one, else the
+    tuned design; ``(None, {"why": ...})`` when there is none to export."""
+    if robust_rep is not None:
+        r = robust_rep.recommended or robust_rep.recommend()
+        if r.get("design") is None:
+            return None, {"why": f"no design recommended ({r['why']})"}
+        d = {"name": f"{r['design']} design", "chosen_by": "recommended by the robust study", "why": r["why"],
+             "basis": r["basis"]}
+        if r.get("yield") is not None:
+            d["yield"] = r["yield"]
+        return robust_rep.design(r["design"]), d
+    if rep.best.pid.kff != 0:
+        return None, {"why": "the best design feeds the Kalman filter's load estimate forward (kff > 0), which the "
+                             "drive export does not describe"}
+    return rep.best.pid, {"name": rep.best.name, "chosen_by": "the tuned design (no robust study)"}
+
+
 def _format_robust(rr) -> str:
     """Nominal against robust design on the same scenario models."""
     comp = rr.comparison
@@ -1181,8 +1221,17 @@ def _format_robust(rr) -> str:
     rows = []
     for name, pid in (("nominal", rr.nominal), ("robust", rr.robust)):
         d = comp["designs"][name]
-        rows.append([name, pid.kp, pid.ki, d["max_ms"], d["ms_violations"], d["worst_objective"], d["mean_objective"]])
+        bad = "unstable" if not d["all_stable"] else None
+        rows.append([name, pid.kp, pid.ki, bad or d["max_ms"], d["ms_violations"], bad or d["worst_objective"],
+                     bad or d["mean_objective"]])
     out.append(_table(["design", "kp", "ki", "max Ms", "models over the Ms bound", f"worst {obj}", f"mean {obj}"], rows))
+    unstable = {name: sum(1 for p in comp["designs"][name]["per_scenario"] if not p["stable"])
+                for name in ("nominal", "robust")}
+    for name, k in unstable.items():
+        if k:
+            out.append(f"{name}: closed loop unstable on {k} of {len(rr.scenarios)} scenario models")
+    r = rr.recommended or rr.recommend()
+    out.append(f"recommended: {r['design'] + ' design' if r.get('design') else 'none'} ({r['why']})")
     return "\n".join(out) + "\n"
 
 

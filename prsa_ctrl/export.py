@@ -225,6 +225,7 @@ def export_controller(
     rated_speed_rpm: float | None = None,
     filters: Iterable = (),
     setpoint_weight: float = 1.0,
+    design: dict | None = None,
 ) -> dict:
     """Everything a drive needs for the speed PI(D) and its filters at the plant's sample time.
 
@@ -247,6 +248,10 @@ def export_controller(
     setpoint_weight : float
         2-DOF setpoint weight ``b`` in [0, 1] (dimensionless) of the proportional term,
         ``u = kp (b w_ref - w) + I`` (the scene's ``[tuning] setpoint_weight``; 1: the 1-DOF law).
+    design : dict, optional
+        Which design the file holds and why (``name``, ``why`` and optional ``basis``,
+        ``yield``: str or float), written as the ``design`` table (e.g. the robust study's
+        recommended design).
 
     Returns
     -------
@@ -282,6 +287,9 @@ def export_controller(
             or not 0.0 <= setpoint_weight <= 1.0:
         raise ValueError(f"setpoint_weight = {setpoint_weight!r}; expected a setpoint weight b in [0, 1]")
     b_w = float(setpoint_weight)
+    if design is not None and (not isinstance(design, dict) or not isinstance(design.get("name"), str) or not all(
+            isinstance(v, (str, float, int)) and not isinstance(v, bool) for v in design.values())):
+        raise ValueError(f"design = {design!r}; expected a dict with a 'name' and str or number values")
     placed = _placed_filters(filters)
     null = fmt == "json"
 
@@ -409,6 +417,7 @@ def export_controller(
         "prsa_ctrl_version": __version__,
         "plant": plant.name,
         "loop": "speed",
+        **({"design": dict(design)} if design is not None else {}),
         "sample_time_s": ts,
         "torque_limit_n_m": float(plant.torque_limit),
         "units": {

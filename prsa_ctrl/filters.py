@@ -75,6 +75,22 @@ def _check_ts(ts: object) -> float:
     return _finite("ts", ts, 0.0, 1e3, "s")
 
 
+#: Lowest filter frequency (Hz) a constructor accepts (below it ``1/w0^2`` leaves the float range).
+MIN_HZ = 1e-6
+#: Lowest ``w0 ts`` (rad per sample, ``w0 = 2 pi f`` at the filter's lowest frequency) that
+#: :meth:`Filter.biquad` discretises: below it the biquad's coefficients cancel to round-off
+#: (its DC gain is off by ~1e-16/(w0 ts)^2, 1e-6 at this limit) or leave the float range.
+MIN_W_TS = 1e-5
+
+
+def _hz(name: str, v: object) -> float:
+    """A filter frequency (Hz) in ``[MIN_HZ, 1e9]``, or a one-line ValueError naming ``name``."""
+    f = _finite(name, v, 0.0, 1e9, "Hz")
+    if f < MIN_HZ:
+        raise ValueError(f"{name} = {v!r}; expected a finite number >= {MIN_HZ:g} and <= 1e+09 Hz")
+    return f
+
+
 @dataclass(frozen=True)
 class DiscreteBiquad:
     """Normalised discrete biquad ``(b0 + b1/z + b2/z^2) / (1 + a1/z + a2/z^2)`` at sample time
@@ -179,6 +195,9 @@ class Filter:
     def _highest_hz(self) -> float:
         return self.characteristic_hz
 
+    def _lowest_hz(self) -> float:
+        return self.characteristic_hz
+
     @property
     def order(self) -> int:
         return 2 if self.coefficients()[1][0] != 0.0 else 1
@@ -229,6 +248,11 @@ class Filter:
         if not hi < nyq:
             raise ValueError(f"{self.kind} frequency {hi:g} Hz at ts = {ts:g} s; expected below the Nyquist "
                              f"frequency {nyq:g} Hz")
+        lo = self._lowest_hz()
+        if 2.0 * math.pi * lo * ts < MIN_W_TS:
+            raise ValueError(f"ts = {ts!r} s for a {self.kind} at {lo:g} Hz; expected ts >= "
+                             f"{MIN_W_TS / (2.0 * math.pi * lo):.3g} s (2 pi f ts >= {MIN_W_TS:g}: shorter sample "
+                             "times leave the biquad's coefficients to round-off)")
 
     def biquad(self, ts: float, method: str = "tustin", prewarp: bool = True) -> DiscreteBiquad:
         """The filter discretised at the sample time ``ts`` (s) as normalised biquad
@@ -276,7 +300,11 @@ class Filter:
         else:
             b, a = self._matched(ts)
         a0 = a[0]
-        return DiscreteBiquad(b[0] / a0, b[1] / a0, b[2] / a0, a[1] / a0, a[2] / a0, ts)
+        c = [b[0] / a0, b[1] / a0, b[2] / a0, a[1] / a0, a[2] / a0]
+        if not all(math.isfinite(x) for x in c):  # guarded above; never a "b0 = nan" from here
+            raise ValueError(f"ts = {ts!r} s with {self!r} ({method}): non-finite biquad coefficients; expected a "
+                             "sample time within the filter's range")
+        return DiscreteBiquad(*c, ts)
 
     def _zoh(self, ts: float) -> tuple[list[float], list[float]]:
         from scipy.linalg import expm
@@ -355,12 +383,12 @@ class FirstOrderLowPass(Filter):
     kind: ClassVar[str] = "lowpass1"
 
     def __post_init__(self) -> None:
-        _finite("corner_hz", self.corner_hz, 0.0, 1e9, "Hz")
+        _hz("corner_hz", self.corner_hz)
 
     @classmethod
     def from_time_constant(cls, tau_s: float) -> "FirstOrderLowPass":
         """Low-pass with time constant ``tau_s`` (s): ``corner_hz = 1/(2 pi tau_s)``."""
-        return cls(1.0 / (2.0 * math.pi * _finite("tau_s", tau_s, 0.0, 1e9, "s")))
+        return cls(1.0 / (2.0 * math.pi * _finite("tau_s", tau_s, 0.0, 1e5, "s")))
 
     @property
     def characteristic_hz(self) -> float:
@@ -391,7 +419,7 @@ class SecondOrderLowPass(Filter):
     kind: ClassVar[str] = "lowpass2"
 
     def __post_init__(self) -> None:
-        _finite("corner_hz", self.corner_hz, 0.0, 1e9, "Hz")
+        _hz("corner_hz", self.corner_hz)
         _finite("damping", self.damping, 0.0, 100.0)
 
     @property
@@ -428,7 +456,7 @@ class Notch(Filter):
     kind: ClassVar[str] = "notch"
 
     def __post_init__(self) -> None:
-        _finite("centre_hz", self.centre_hz, 0.0, 1e9, "Hz")
+        _hz("centre_hz", self.centre_hz)
         _finite("width_hz", self.width_hz, 0.0, 4.0 * self.centre_hz, "Hz (up to 4 x centre_hz)")
         _finite("depth_db", self.depth_db, -120.0, 0.0, "dB", lo_open=False)
 
@@ -478,9 +506,9 @@ class GeneralBiquad(Filter):
     kind: ClassVar[str] = "biquad"
 
     def __post_init__(self) -> None:
-        _finite("zero_hz", self.zero_hz, 0.0, 1e9, "Hz")
+        _hz("zero_hz", self.zero_hz)
         _finite("zero_damping", self.zero_damping, 0.0, 100.0, lo_open=False)
-        _finite("pole_hz", self.pole_hz, 0.0, 1e9, "Hz")
+        _hz("pole_hz", self.pole_hz)
         _finite("pole_damping", self.pole_damping, 0.0, 100.0)
 
     @property
@@ -489,6 +517,9 @@ class GeneralBiquad(Filter):
 
     def _highest_hz(self) -> float:
         return float(max(self.zero_hz, self.pole_hz))
+
+    def _lowest_hz(self) -> float:
+        return float(min(self.zero_hz, self.pole_hz))
 
     def coefficients(self):
         wz, wp = 2.0 * math.pi * self.zero_hz, 2.0 * math.pi * self.pole_hz

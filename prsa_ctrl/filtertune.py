@@ -51,6 +51,13 @@ __all__ = ["TUNABLE", "FilteredDesign", "tune_filtered", "FilterBounds", "loop_b
 TUNABLE = {"notch": ("centre_hz", "width_hz", "depth_db"), "lowpass1": ("corner_hz",),
            "lowpass2": ("corner_hz",)}
 _MAX_ROUNDS = 12
+#: A tuned filter is kept only if it lowers the objective by at least this fraction against the
+#: gains alone under the same bounds (else the status says that no filter helps).
+MIN_BENEFIT = 0.01
+#: A tuned notch is kept only if it is at least this deep (dB) ...
+MIN_NOTCH_DEPTH_DB = 3.0
+#: ... and its centre lies within this factor of a loop's dominant resonance (the mode).
+MODE_FACTOR = 1.5
 _HESSIAN = "limited-memory"  # measured faster than "exact" on the heavy-slide case (13 s vs 22 s)
 _IPOPT_MAX_ITER = 500
 
@@ -100,10 +107,16 @@ class FilteredDesign:
     mks : float
         Largest true noise gain ``max |C F S|`` (N m per rad/s) over the constraint loops.
     status : str
-        ``"optimal"`` for a converged ipopt solve whose verified bounds hold, else
+        ``"optimal"``: a converged ipopt solve whose verified bounds hold and, with a filter,
+        a filter that earns its place (:func:`tune_filtered`); ``"no <kind> helps: <why>"``:
+        the best filter found does not (too shallow, away from the mode or no lower
+        objective than the gains alone), so the design returned is the gains alone
+        (``filter`` None) and the rejected filter is in ``stats["rejected_filter"]``;
         ``"not converged: ..."``.
     stats : dict
-        Rounds, iterations, added frequencies, wall time (s), the active bounds.
+        Rounds, iterations, added frequencies, wall time (s), the active bounds; with a filter
+        also ``reference_objective`` / ``reference_status`` (the gains alone) and
+        ``mode_hz`` (each loop's dominant resonance).
     """
 
     pid: PID
@@ -116,6 +129,10 @@ class FilteredDesign:
 
     @property
     def converged(self) -> bool:
+        """The returned design is a verified optimum (with its filter, or the gains alone when no
+        filter helps)."""
+        if self.status.startswith("no ") and " helps: " in self.status:
+            return self.stats.get("reference_status") == "optimal"
         return self.status.startswith("optimal")
 
     def as_dict(self) -> dict:
@@ -242,6 +259,7 @@ def tune_filtered(
     bounds: FilterBounds | None = None,
     ms_max: float = 1.4,
     max_noise_gain: float | None = None,
+    reference: FilteredDesign | None = None,
 ) -> FilteredDesign:
     """Tune the speed PI (kp, ki) and, with ``kind``, one filter's parameters in one NLP.
 
@@ -270,12 +288,24 @@ def tune_filtered(
         Bound on the true Ms of every loop, in (1, 10).
     max_noise_gain : float, optional
         Bound on the true ``Mks = max |C F S|`` (N m per rad/s) of every loop.
+    reference : FilteredDesign, optional
+        The gains-alone design of the same loops and bounds (``kind=None``), to judge the
+        filter against; computed here when not given.
 
     Returns
     -------
     FilteredDesign
+        With a filter, ``status`` is ``"optimal"`` only if the verified filter design earns its
+        place: its objective is at least ``MIN_BENEFIT`` (1 %) below the gains alone's under
+        the same bounds and, for a notch, it is at least ``MIN_NOTCH_DEPTH_DB`` (3 dB) deep
+        with its centre within a factor ``MODE_FACTOR`` (1.5) of a loop's dominant resonance
+        (:func:`dominant_resonance_hz`). Otherwise the gains-alone design is returned with the
+        status ``"no <kind> helps: <why>"`` -- never a 0 dB notch, or a notch away from the
+        mode, labelled optimal.
     """
     t0 = time.perf_counter()
+    if reference is not None and not (isinstance(reference, FilteredDesign) and reference.filter is None):
+        raise ValueError(f"reference = {reference!r}; expected the FilteredDesign of tune_filtered(kind=None)")
     if kind is not None and kind not in TUNABLE:
         raise ValueError(f"kind = {kind!r}; expected one of {', '.join(TUNABLE)} or None")
     if place not in PLACES:
@@ -511,5 +541,50 @@ def tune_filtered(
     stats["per_loop_ms"] = [pk["ms"] for pk in pks]
     stats["per_loop_mks"] = [nk["mks"] for nk in nks]
     pid = PID(float(gains[0]), float(gains[1]), tf=float(loops[0].tf))
-    return FilteredDesign(pid, lf, float(obj), float(max(pk["ms"] for pk in pks)),
-                          float(max(nk["mks"] for nk in nks)), status, stats)
+    design = FilteredDesign(pid, lf, float(obj), float(max(pk["ms"] for pk in pks)),
+                            float(max(nk["mks"] for nk in nks)), status, stats)
+    if kind is None:
+        return design
+    if reference is None:
+        try:
+            reference = tune_filtered(objective_builders, constraint_builders, ts=ts, kind=None, place=place,
+                                      start_gains=start_gains, ms_max=ms_max, max_noise_gain=max_noise_gain)
+        except ValueError:  # no verified gains-alone design: the filter is judged on its own
+            reference = None
+    modes = [dominant_resonance_hz(bs.lp_rest) for bs in bases]
+    return _judged(design, reference, kind, modes)
+
+
+def _judged(design: FilteredDesign, reference: FilteredDesign | None, kind: str, modes: list[float]) -> FilteredDesign:
+    """``design`` if its filter earns its place (see :func:`tune_filtered`), else the gains-alone
+    ``reference`` with the status ``"no <kind> helps: <why>"``."""
+    f = design.filter.filter
+    stats = design.stats
+    stats["mode_hz"] = modes
+    ref_obj = reference.objective if reference is not None else math.inf
+    stats["reference_objective"] = ref_obj
+    stats["reference_status"] = reference.status if reference is not None else "no verified design"
+    why = []
+    if isinstance(f, Notch):
+        near = min(modes, key=lambda m: abs(math.log(f.centre_hz / m)))
+        if -f.depth_db < MIN_NOTCH_DEPTH_DB:
+            why.append(f"its depth {f.depth_db:.3g} dB is shallower than -{MIN_NOTCH_DEPTH_DB:g} dB")
+        if abs(math.log(f.centre_hz / near)) > math.log(MODE_FACTOR):
+            why.append(f"its centre {f.centre_hz:.4g} Hz is more than {MODE_FACTOR:g}x away from the mode at "
+                       f"{near:.4g} Hz")
+    if not design.objective <= (1.0 - MIN_BENEFIT) * ref_obj:
+        why.append(f"the objective {design.objective:.4g} is not {100 * MIN_BENEFIT:g} % below the gains alone's "
+                   f"{ref_obj:.4g} (same bounds)")
+    if not why or reference is None:
+        if why:  # nothing to fall back on: keep the filter, say what is wrong with it
+            design.status = f"not converged: the {kind} does not earn its place ({'; '.join(why)}) and the gains " \
+                            "alone have no verified design"
+        return design
+    desc = ", ".join(f"{k} {v:.4g}" for k, v in f.parameters().items() if k != "quality")
+    rej = dict(reference.stats)
+    rej.update(mode_hz=modes, reference_objective=ref_obj, reference_status=reference.status,
+               rejected_filter={**design.filter.to_dict(), "objective": design.objective, "ms": design.ms,
+                                "mks": design.mks, "status": design.status},
+               wall_time_s=reference.stats.get("wall_time_s", 0.0) + stats.get("wall_time_s", 0.0))
+    status = f"no {kind} helps: the best {kind} found ({desc}) is rejected: {'; '.join(why)}; returned the gains alone"
+    return FilteredDesign(reference.pid, None, reference.objective, reference.ms, reference.mks, status, rej)

@@ -252,12 +252,31 @@ def _run_chunk(job: _Job, indices: Sequence[int]) -> list:
 _POOL_JOB: _Job | None = None
 
 
-def _pool_init(job: _Job) -> None:
+def _pool_init(job: _Job, parent: int | None = None) -> None:
     import signal
 
     global _POOL_JOB
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
+    _end_with_parent(parent)
     _POOL_JOB = job
+
+
+def _end_with_parent(parent: int | None) -> None:
+    """Linux: have the kernel send this worker SIGKILL when its parent process dies (killed by
+    a signal it does not handle, e.g. SIGTERM or SIGKILL), so no worker outlives the run as an
+    orphan; elsewhere (or without ``parent``) a no-op."""
+    if parent is None or not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # best effort: the parent's handlers stop the workers too
+        return
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
 
 
 def _pool_chunk(indices: Sequence[int]) -> list:
@@ -620,7 +639,7 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
         return
     method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context(method),
-                               initializer=_pool_init, initargs=(job,))
+                               initializer=_pool_init, initargs=(job, os.getpid()))
     try:
         pending = {pool.submit(_pool_chunk, c) for c in chunks}
         while pending:
@@ -628,10 +647,11 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
             for f in done:
                 took(f.result())
     except BaseException:
-        # Ctrl-C or a failed chunk: stop the workers now (they ignore SIGINT, and a chunk already
-        # queued would keep them running after this process has exited).
+        # Ctrl-C, SIGTERM or a failed chunk: stop the workers now (they ignore SIGINT, may have
+        # inherited an ignored SIGTERM, and a chunk already queued would keep them running after
+        # this process has exited). They only compute: SIGKILL loses nothing.
         for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            proc.terminate()
+            proc.kill()
         raise
     finally:
         pool.shutdown(wait=False, cancel_futures=True)

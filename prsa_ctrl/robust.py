@@ -48,6 +48,9 @@ def operating_points(scene) -> list[tuple[float, float]]:
     """The scene's operating range: (setpoint rad/s, final load N) for every setpoint in
     ``[robust] setpoints_rpm`` (default the scene's) and every final load in
     ``[robust] final_loads_n`` (default the scene's)."""
+    if getattr(scene, "is_profile", False):
+        raise SceneError(f"{scene.origin}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
+                         "load-step scene (the robust and Monte-Carlo studies run load steps)")
     rob = (getattr(scene, "robust", None) or {}).get("robust", {})
     sps = [v * math.pi / 30.0 for v in rob.get("setpoints_rpm", [])] or [scene.setpoint_rad_s]
     loads = rob.get("final_loads_n") or list(scene.final_loads)
@@ -164,13 +167,86 @@ class RobustTuning:
     uncertainty: UncertaintyModel
     results: dict = field(default_factory=dict, repr=False)  # name -> TuningResult
     loops: list = field(default_factory=list, repr=False)
+    recommended: dict = field(default_factory=dict)  # see :meth:`recommend`
 
     def as_dict(self) -> dict[str, Any]:
-        return {"nominal_gains": self.nominal.as_dict(), "robust_gains": self.robust.as_dict(),
-                "uncertainty": self.uncertainty.as_dict(), "comparison": self.comparison,
-                "timing_s": self.timing_s,
-                "solver": {k: {kk: r.stats.get(kk) for kk in ("status", "iterations", "wall_time_s")}
-                           for k, r in self.results.items()}}
+        """Plain data for strict JSON (through :func:`prsa_ctrl.output.json_safe`: an unstable
+        scenario's infinite Ms/objective becomes null, its ``stable`` flag says why)."""
+        from .output import json_safe
+
+        return json_safe({"nominal_gains": self.nominal.as_dict(), "robust_gains": self.robust.as_dict(),
+                          "recommended": self.recommended or self.recommend(),
+                          "uncertainty": self.uncertainty.as_dict(), "comparison": self.comparison,
+                          "timing_s": self.timing_s,
+                          "solver": {k: {kk: r.stats.get(kk) for kk in ("status", "iterations", "wall_time_s")}
+                                     for k, r in self.results.items()}})
+
+    def design(self, name: str):
+        """The PID of design ``name`` (``"nominal"`` or ``"robust"``)."""
+        return {"nominal": self.nominal, "robust": self.robust}[name]
+
+    def recommend(self, monte_carlo=None, names: dict | None = None) -> dict[str, Any]:
+        """The design to use, ranked by the yield against the scene's ``[spec]`` -- the spec
+        the designs are judged by -- and stored in :attr:`recommended`.
+
+        With a Monte-Carlo report: the design (nominal or robust) with the most samples
+        inside the spec; a tie goes to fewer scenario models over the Ms bound, then the
+        lower worst-case objective. A design that meets the spec on no sample is never
+        recommended (``design`` None). Without one: the spec is not checked; the ranking is
+        the scenario models' Ms bound, then the worst-case objective, and ``yield`` is None.
+
+        Parameters
+        ----------
+        monte_carlo : MonteCarloReport, optional
+        names : dict, optional
+            This study's design name -> its name in the Monte-Carlo report (default
+            ``"nominal design"``, ``"robust design"``).
+
+        Returns
+        -------
+        dict
+            ``design`` (``"nominal"``, ``"robust"`` or None), ``gains``, ``yield`` (fraction)
+            with ``passed``/``samples``/``yield_ci95``, ``basis`` and ``why`` (one sentence).
+        """
+        names = names or {"nominal": "nominal design", "robust": "robust design"}
+        comp = self.comparison["designs"]
+        lin = {k: (comp[k]["ms_violations"], comp[k]["worst_objective"]) for k in ("nominal", "robust")}
+        obj = self.comparison["objective"].upper()
+        ylds = {}
+        if monte_carlo is not None:
+            by_name = {d.name: d for d in monte_carlo.designs}
+            ylds = {k: by_name[v] for k, v in names.items() if v in by_name and by_name[v].n > 0}
+        if len(ylds) == 2:
+            order = sorted(ylds, key=lambda k: (-ylds[k].passed, *lin[k]))
+            best, other = order
+            yb, yo = ylds[best], ylds[other]
+            rec: dict[str, Any] = {"basis": f"Monte-Carlo yield against the scene's [spec] ({yb.n} samples)"}
+            txt = {k: f"{k} {100 * ylds[k].yield_:.1f} % ({ylds[k].passed}/{ylds[k].n})" for k in ylds}
+            if yb.passed == 0:
+                rec.update(design=None, why=f"neither design meets the spec on any sample ({txt[best]}, {txt[other]}); "
+                           "widen the spec or narrow the uncertainty")
+                self.recommended = rec
+                return rec
+            if yb.passed > yo.passed:
+                why = f"higher yield: {txt[best]} against {txt[other]}"
+            else:
+                why = (f"equal yield ({txt[best]}, {txt[other]}); {best} has "
+                       + ("fewer models over the Ms bound" if lin[best][0] < lin[other][0] else f"the lower worst {obj}"))
+            if yb.passed < yb.n:
+                why += f"; {yb.n - yb.passed} of {yb.n} samples still fail the spec"
+            rec.update(design=best, gains=self.design(best).as_dict(), **{"yield": yb.yield_}, passed=yb.passed,
+                       samples=yb.n, yield_ci95=list(yb.ci95), why=why)
+        else:
+            best = min(("robust", "nominal"), key=lambda k: lin[k])
+            other = "nominal" if best == "robust" else "robust"
+            def worst(k: str) -> str:
+                return f"worst {obj} {lin[k][1]:.4g}" if math.isfinite(lin[k][1]) else "unstable on a model"
+            why = (f"{best}: {lin[best][0]} of {len(self.scenarios)} scenario models over the Ms bound, {worst(best)} "
+                   f"({other}: {lin[other][0]}, {worst(other)}); the [spec] was not checked (no Monte Carlo run)")
+            rec = {"basis": "scenario models (Ms bound, then the worst-case objective); spec not checked",
+                   "design": best, "gains": self.design(best).as_dict(), "yield": None, "why": why}
+        self.recommended = rec
+        return rec
 
     def format(self) -> str:
         c = self.comparison
@@ -179,6 +255,8 @@ class RobustTuning:
         for name, d in c["designs"].items():
             lines.append(f"{name:<10} {d['gains']['kp']:9.4g} {d['gains']['ki']:9.4g} {d['max_ms']:7.3f} "
                          f"{d['ms_violations']:8d} {d['worst_objective']:10.4g} {d['mean_objective']:10.4g}")
+        r = self.recommended or self.recommend()
+        lines.append(f"recommended: {r['design'] + ' design' if r.get('design') else 'none'} ({r['why']})")
         return "\n".join(lines)
 
 
