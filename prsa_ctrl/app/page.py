@@ -128,8 +128,11 @@ class AppPage:
         self.mt.on_change("value_throttled", lambda attr, old, new: self.request())
         self.plant_select.on_change("value", lambda attr, old, new: self._switch("plant", new))
         self.scene_select.on_change("value", lambda attr, old, new: self._switch("scene", new))
-        self.plant_upload.on_change("value", lambda attr, old, new: self._upload("plant", self.plant_upload))
-        self.scene_upload.on_change("value", lambda attr, old, new: self._upload("scene", self.scene_upload))
+        # value and filename arrive in one patch, value first: read both once the patch is applied
+        self.plant_upload.on_change("value", lambda attr, old, new: self.doc.add_next_tick_callback(
+            partial(self._upload, "plant", self.plant_upload)))
+        self.scene_upload.on_change("value", lambda attr, old, new: self.doc.add_next_tick_callback(
+            partial(self._upload, "scene", self.scene_upload)))
         self.verify_button.on_click(self._verify)
         self.cancel_button.on_click(lambda: self._cancel.set())
         self.clear_manual.on_click(self._clear_manual)
@@ -150,7 +153,7 @@ class AppPage:
 
     def _figures(self) -> None:
         self.resp = figure(title="Predicted load-step response (first load level)", x_axis_label="time (s)",
-                           y_axis_label="nut speed (rad/s)", **_PLOT)
+                           y_axis_label="nut speed (rad/s)", css_classes=["prsa-response"], **_PLOT)
         self.src = {k: ColumnDataSource(data={"t": [], "w": []}) for k in ("opt", "man", "opt_ver", "man_ver")}
         self.base_src = ColumnDataSource(data={"t": [], "w": [], "name": [], "color": []})
         self.resp.multi_line("t", "w", source=self.base_src, color="color", line_width=1, alpha=0.8,
@@ -167,7 +170,7 @@ class AppPage:
 
         self.land = figure(title="Kp-Ki landscape: objective (colour), Ms bound (line); click sets manual gains",
                            x_axis_label="kp (N m s/rad)", y_axis_label="ki (N m/rad)", tools="tap,pan,wheel_zoom,reset",
-                           **_PLOT)
+                           css_classes=["prsa-landscape"], **_PLOT)
         self.land_img = ColumnDataSource(data={"image": [], "x": [], "y": [], "dw": [], "dh": []})
         self.cmap = LinearColorMapper(palette="Viridis256", nan_color="#dddddd")
         self.land.image(image="image", x="x", y="y", dw="dw", dh="dh", source=self.land_img, color_mapper=self.cmap)
@@ -442,13 +445,22 @@ class AppPage:
         self._after_switch(kind, notes)
 
     def _upload(self, kind: str, widget: FileInput) -> None:
-        if not widget.value:
+        value = widget.value
+        if not value:
             return
         try:
-            content = base64.b64decode(widget.value)
-            notes = self.session.upload(kind, widget.filename or f"uploaded-{kind}.toml", content)
+            name = widget.filename
+        except Exception:  # noqa: BLE001 - bokeh's UnsetValueError: no name came with the file
+            name = None
+        value = value[0] if isinstance(value, list) else value
+        name = (name[0] if isinstance(name, list) else name) or f"uploaded-{kind}.toml"
+        try:
+            notes = self.session.upload(kind, name, base64.b64decode(value))
         except AppInputError as exc:
             self._show_error(str(exc))
+            return
+        except Exception as exc:  # noqa: BLE001 - one line in the page, never a traceback
+            self._show_error(f"{name}: cannot be read ({one_line(exc)})")
             return
         self._after_switch(kind, notes)
 
