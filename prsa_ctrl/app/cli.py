@@ -62,12 +62,22 @@ def serve(plant: str | None = None, scene: str | None = None, port: int = 0):
     for i in range(attempts):
         p = port or _free_port()
         try:
+            _probe(p)  # tornado leaks its socket when the bind fails
             return Server({"/": app}, address="127.0.0.1", port=p, num_procs=1,
                           allow_websocket_origin=[f"127.0.0.1:{p}", f"localhost:{p}"])
         except OSError:
             if i == attempts - 1:
                 raise
     raise AssertionError("unreachable")
+
+
+def _probe(port: int) -> None:
+    """Raise OSError if ``port`` cannot be bound on 127.0.0.1 (as the server binds it)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
 
 
 def _free_port() -> int:
