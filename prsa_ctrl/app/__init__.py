@@ -19,7 +19,7 @@ from functools import partial
 __all__ = ["application", "show"]
 
 
-def application(plant: str | None = None, scene: str | None = None):
+def application(plant: str | None = None, scene: str | None = None, warm: bool = False):
     """The app as a Bokeh :class:`~bokeh.application.Application`.
 
     Parameters
@@ -28,6 +28,9 @@ def application(plant: str | None = None, scene: str | None = None):
         Built-in name or path of the plant and of the load-step scene (defaults:
         ``paper-iprsm``, ``paper-load-step``). Checked at once: a bad one raises
         :class:`~prsa_ctrl.app.session.AppInputError` (one line).
+    warm : bool
+        Prepare each next page's session (loop models, Tuner, first design, landscape) in a
+        background thread, so that pages open with their numbers ready (``prsa-app`` does).
 
     Returns
     -------
@@ -36,11 +39,12 @@ def application(plant: str | None = None, scene: str | None = None):
     from bokeh.application import Application
     from bokeh.application.handlers.function import FunctionHandler
 
-    from .page import make_document
+    from .page import WarmSessions, make_document
     from .session import AppSession
 
     AppSession(plant, scene).close()  # bad files fail here, not in the browser
-    return Application(FunctionHandler(partial(make_document, plant=plant, scene=scene)))
+    pool = WarmSessions(plant, scene) if warm else None
+    return Application(FunctionHandler(partial(make_document, plant=plant, scene=scene, warm=pool)))
 
 
 def show(plant: str | None = None, scene: str | None = None, notebook_url: str = "localhost:8888"):

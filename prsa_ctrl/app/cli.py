@@ -57,7 +57,7 @@ def serve(plant: str | None = None, scene: str | None = None, port: int = 0):
 
     from . import application
 
-    app = application(plant, scene)
+    app = application(plant, scene, warm=True)
     attempts = 20 if port == 0 else 1  # a free port can be taken between the probe and the bind
     for i in range(attempts):
         p = port or _free_port()

@@ -53,9 +53,10 @@ class AppPage:
         Initial plant and scene (built-in name or path), as ``prsa-app --plant/--scene`` give.
     """
 
-    def __init__(self, doc, plant: str | None = None, scene: str | None = None) -> None:
+    def __init__(self, doc, plant: str | None = None, scene: str | None = None,
+                 session: AppSession | None = None) -> None:
         self.doc = doc
-        self.session = AppSession(plant, scene)
+        self.session = session if session is not None else AppSession(plant, scene)
         self.settings = self.session.default_settings()
         self.manual_gains: tuple[float, float, float] | None = None
         self.opt: View | None = None
@@ -167,6 +168,8 @@ class AppPage:
                        legend_label="manual verified")
         self.resp.legend.location = "bottom_right"
         self.resp.legend.label_text_font_size = "8pt"
+        self.resp.legend.click_policy = "hide"
+        self.resp.legend.background_fill_alpha = 0.6
 
         self.land = figure(title="Kp-Ki landscape: objective (colour), Ms bound (line); click sets manual gains",
                            x_axis_label="kp (N m s/rad)", y_axis_label="ki (N m/rad)", tools="tap,pan,wheel_zoom,reset",
@@ -304,6 +307,7 @@ class AppPage:
         if self.contour is None:
             self.contour = self.land.contour(kp, ki, ms, levels=[settings.ms_max], line_color="#b00020", line_width=2)
         self.contour.set_data(data)
+        self.status.text = f'<span data-k="status" data-seq="{seq}" data-landscape="{seq}">ready</span>'
         self.land.title.text = (f"Kp-Ki landscape: log10 {settings.objective.upper()} (colour, grey: unstable), "
                                 f"Ms = {settings.ms_max:g} (red line); click sets manual gains"
                                 + (f"; kd = {land['kd']:.3g} fixed" if land["kd"] else ""))
@@ -550,6 +554,37 @@ if (navigator.clipboard) { navigator.clipboard.writeText(text); }
 """
 
 
-def make_document(doc, plant: str | None = None, scene: str | None = None) -> AppPage:
+class WarmSessions:
+    """Sessions prepared ahead in a background thread (loop models, Tuner, first design,
+    baselines and landscape built), so a new page starts with its numbers ready: each
+    :meth:`take` hands one over and starts preparing the next."""
+
+    def __init__(self, plant: str | None = None, scene: str | None = None) -> None:
+        self.plant, self.scene = plant, scene
+        self._lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-warm")
+        self._next = self._pool.submit(self._build)
+
+    def _build(self) -> AppSession:
+        s = AppSession(self.plant, self.scene)
+        st = s.default_settings()
+        opt = s.tuned(st)
+        base = s.baselines(st)
+        s.landscape(st, [opt.pid] + [b.pid for b in base], kd=opt.pid.kd)
+        return s
+
+    def take(self) -> AppSession:
+        """A prepared session (waits for the one in preparation), or a plain new one if that
+        preparation failed."""
+        with self._lock:
+            fut, self._next = self._next, self._pool.submit(self._build)
+        try:
+            return fut.result()
+        except Exception:  # noqa: BLE001 - the page reports the same error itself
+            return AppSession(self.plant, self.scene)
+
+
+def make_document(doc, plant: str | None = None, scene: str | None = None,
+                  warm: WarmSessions | None = None) -> AppPage:
     """Build the app into a Bokeh document (the server's and the notebook's entry point)."""
-    return AppPage(doc, plant, scene)
+    return AppPage(doc, plant, scene, session=warm.take() if warm is not None else None)
