@@ -248,3 +248,20 @@ def test_copy_as_code_runs_to_the_shown_gains(app_page):
     ns: dict = {}
     exec(compile(code.replace("print(", "(lambda *a: None)("), "<copied>", "exec"), ns)
     assert f"{ns['result'].pid.kp:.6g}" == _text(page, "opt-kp")
+
+
+@pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="set PRSA_SLOW=1 (robust tuning + Monte Carlo, ~20 s)")
+def test_robust_and_monte_carlo_with_progress_and_cancel(app_page):
+    page = app_page
+    page.locator(".prsa-samples input").fill("40")
+    page.locator(".prsa-samples input").press("Enter")
+    page.locator(".prsa-robust button").click()
+    page.locator("[data-k='rprogress'][data-stage='Monte Carlo']").wait_for()
+    page.locator(".prsa-robust-cancel button").click()
+    page.locator("[data-k='rprogress'][data-state='cancelled']").wait_for()
+    done = int(page.locator("[data-k='rprogress']").get_attribute("data-done"))
+    assert 0 < done < 40
+    passed, samples = _text(page, "mc-optimum-yield").split("/")
+    assert int(samples) == done and 0 <= int(passed) <= done
+    assert float(_text(page, "mc-robust-maxms")) <= 1.4 * (1 + 1e-3)
+    _shot(page, "app-robust.png")

@@ -28,7 +28,8 @@ from bokeh.plotting import figure
 from bokeh.plotting.contour import contour_data
 
 from ..options import OBJECTIVES
-from .session import FIDELITIES, AppInputError, AppSession, Settings, View, builtin_names, one_line
+from .session import (FIDELITIES, AppInputError, AppSession, Cancelled, Settings, View, builtin_names, one_line,
+                      robust_study)
 
 __all__ = ["AppPage", "make_document"]
 
@@ -103,6 +104,12 @@ class AppPage:
                                     css_classes=["prsa-verify"])
         self.cancel_button = Button(label="Cancel", disabled=True, css_classes=["prsa-cancel"])
         self.progress = Div(text="", css_classes=["prsa-progress"], sizing_mode="stretch_width")
+        self.samples = TextInput(title="Monte-Carlo samples", value="40", css_classes=["prsa-samples"])
+        self.robust_button = Button(label="Robust tuning + Monte-Carlo yield", css_classes=["prsa-robust"])
+        self.robust_cancel = Button(label="Cancel", disabled=True, css_classes=["prsa-robust-cancel"])
+        self.robust_out = Div(text="", css_classes=["prsa-robust-out"], sizing_mode="stretch_width")
+        self._rcancel = threading.Event()
+        self._robust_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-robust")
         self.clear_manual = Button(label="Clear manual design", css_classes=["prsa-clear-manual"])
         self.export_which = RadioButtonGroup(labels=["export optimum", "export manual"], active=0)
         self.files = ColumnDataSource(data={"name": [], "text": [], "mime": []})
@@ -137,17 +144,21 @@ class AppPage:
         self.verify_button.on_click(self._verify)
         self.cancel_button.on_click(lambda: self._cancel.set())
         self.clear_manual.on_click(self._clear_manual)
+        self.robust_button.on_click(self._robust)
+        self.robust_cancel.on_click(lambda: self._rcancel.set())
         self.export_which.on_change("active", lambda attr, old, new: self._refresh_outputs())
         self.land.on_event(Tap, self._tap)
 
         controls = column(self.plant_select, self.plant_upload, self.scene_select, self.scene_upload,
                           self.objective, self.controller, self.ms, self.mt_on, self.mt, self.noise, self.loads,
                           self.fidelity, row(self.verify_button, self.cancel_button), self.progress,
+                          self.samples, row(self.robust_button, self.robust_cancel),
                           self.clear_manual, self.export_which, self.dl_drive, self.dl_report,
                           self.copy_cli, self.copy_py, width=330)
         views = column(self.error, self.status, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
                        row(self.mag, self.st, sizing_mode="stretch_width"),
-                       row(self.phase, self.code, sizing_mode="stretch_width"), sizing_mode="stretch_width")
+                       row(self.phase, self.code, sizing_mode="stretch_width"), self.robust_out,
+                       sizing_mode="stretch_width")
         self.doc.add_root(column(self.title, row(controls, views, sizing_mode="stretch_width"),
                                  sizing_mode="stretch_width"))
         self.doc.title = "prsa-app: speed-loop tuning"
@@ -528,9 +539,80 @@ class AppPage:
         self.progress.text = f"<div data-k='progress' data-state='{note or 'done'}'>verification {note or 'done'}</div>"
         self._redraw()
 
+    # ---- robust tuning and Monte Carlo ---------------------------------------------------
+
+    def _robust(self) -> None:
+        if self.opt is None:
+            return
+        try:
+            n = int(self.samples.value.strip())
+            if not 1 <= n <= 10_000:
+                raise ValueError
+        except ValueError:
+            self._show_error(f"Monte-Carlo samples {self.samples.value!r}: expected an integer in 1..10000")
+            return
+        designs = {"optimum": self.opt.pid, **({"manual": self.man.pid} if self.man else {})}
+        self._rcancel = threading.Event()
+        self.robust_button.disabled = True
+        self.robust_cancel.disabled = False
+        self._robust_progress("robust tuning", 0, n)
+        self._robust_pool.submit(self._robust_work, self.settings, designs, n, self._rcancel)
+
+    def _robust_work(self, settings, designs, n, cancel) -> None:
+        def progress(stage, done, total):
+            self.doc.add_next_tick_callback(partial(self._robust_progress, stage, done, total))
+
+        try:
+            out = robust_study(self.session, settings, designs, n, progress, cancel.is_set)
+            note = ""
+        except Cancelled as exc:
+            out, note = None, str(exc)
+        except Exception as exc:  # noqa: BLE001 - one line in the page
+            out, note = None, f"robust study failed: {one_line(exc)}"
+        self.doc.add_next_tick_callback(partial(self._robust_done, settings, out, note))
+
+    def _robust_progress(self, stage, done, total) -> None:
+        pct = 100.0 * done / max(total, 1)
+        self.robust_out.text = (f"<div data-k='rprogress' data-stage='{stage}' data-done='{done}' data-total='{total}'>"
+                                f"{html.escape(stage)}: {done}/{total} samples"
+                                f"<div style='background:#eee;width:300px;height:8px'><div style='background:#2ca02c;"
+                                f"width:{pct:.0f}%;height:8px'></div></div></div>")
+
+    def _robust_done(self, settings, out, note) -> None:
+        self.robust_button.disabled = False
+        self.robust_cancel.disabled = True
+        if out is None:
+            self.robust_out.text = f"<div data-k='rprogress' data-state='stopped'>{html.escape(note)}</div>"
+            return
+        mc = out["monte_carlo"]
+        state = "done" if mc["complete"] else "cancelled"
+        r = out["robust"]
+        rows = []
+        for d in mc["designs"]:
+            name = d["name"]
+            lo, hi = d["yield_ci95"]
+            comp = out["comparison"].get(name, {})
+            rows.append(f"<tr><td>{html.escape(name)}</td><td data-k='mc-{name}-kp'>{d['gains']['kp']:.6g}</td>"
+                        f"<td data-k='mc-{name}-ki'>{d['gains']['ki']:.6g}</td>"
+                        f"<td data-k='mc-{name}-maxms'>{_fmt(comp.get('max_ms', math.nan), '.4f')}</td>"
+                        f"<td data-k='mc-{name}-worst'>{_fmt(comp.get('worst_objective', math.nan), '.5g')}</td>"
+                        f"<td data-k='mc-{name}-yield'>{d['passed']}/{d['samples']}</td>"
+                        f"<td data-k='mc-{name}-ci'>[{lo:.3f}, {hi:.3f}]</td></tr>")
+        head = ("design", "kp", "ki", f"max Ms over scenarios", f"worst {settings.objective.upper()}",
+                "passed/samples", "yield 95 % CI")
+        self.robust_out.text = (
+            f"<div data-k='rprogress' data-state='{state}' data-done='{mc['samples_done']}'>"
+            f"<b>Robust tuning and Monte-Carlo yield</b> ({state}: {mc['samples_done']} of {mc['samples']} samples, seed "
+            f"{mc['seed']}; spec {html.escape(str(mc['spec']))}; robust design kp {r['kp']:.6g}, ki {r['ki']:.6g};"
+            " the noise-gain bound is not part of the robust problem)</div>"
+            "<table style='font-size:12px'><tr>" + "".join(f"<th style='padding:2px 6px'>{h}</th>" for h in head)
+            + "</tr>" + "".join(rows) + "</table>")
+
     def _destroyed(self, session_context) -> None:
         self._seq += 1
         self._cancel.set()
+        self._rcancel.set()
+        self._robust_pool.shutdown(wait=False, cancel_futures=True)
         self._tune_pool.shutdown(wait=False, cancel_futures=True)
         self._verify_pool.shutdown(wait=False, cancel_futures=True)
         self.session.close()

@@ -513,3 +513,65 @@ def builtin_names() -> tuple[list[str], list[str]]:
             continue
         scenes.append(name)
     return builtin_plants(), scenes
+
+
+class Cancelled(Exception):
+    """Raised inside a long study when the page's cancel was pressed."""
+
+
+def robust_study(session: AppSession, s: Settings, designs: dict, n: int,
+                 progress: Callable[[str, int, int], None] | None = None,
+                 cancelled: Callable[[], bool] | None = None, seed: int = 0) -> dict:
+    """Robust tuning over the plant's documented uncertainty, then Monte-Carlo yield.
+
+    Runs :func:`prsa_ctrl.robust.tune_robust_actuator` on the page's scene (its Ms/Mt bounds;
+    the noise-gain bound is not part of the robust problem) and
+    :func:`prsa_ctrl.montecarlo.run_monte_carlo` (serial, seeded) of ``designs`` plus the
+    robust design on ``n`` samples. ``progress(stage, done, total)`` reports; ``cancelled()``
+    is polled between the stages and after every chunk of samples (the robust NLP itself is
+    not interruptible).
+
+    Returns
+    -------
+    dict
+        ``robust`` (gains dict), ``comparison`` (per design: ``max_ms``, ``worst_objective``
+        over the scenario models), ``monte_carlo`` (the report's ``as_dict()``: ``complete``
+        false when cancelled, yields over the samples done).
+
+    Raises
+    ------
+    Cancelled
+        When cancelled before any sample finished.
+    """
+    from ..montecarlo import MonteCarloInterrupted, run_monte_carlo
+    from ..robust import tune_robust_actuator
+
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 10_000:
+        raise AppInputError(f"samples {n!r}: expected an integer in 1..10000")
+    scene = session.scene_for(s)
+    if progress is not None:
+        progress("robust tuning", 0, n)
+    rr = tune_robust_actuator(session.plant, scene)
+    if cancelled is not None and cancelled():
+        raise Cancelled("cancelled after the robust tuning")
+    every = {**designs, "robust": rr.robust}
+    comparison = {}
+    if rr.loops:
+        from ..robust import compare_designs
+
+        comp = compare_designs(every, rr.loops, rr.scenarios, scene.objective, scene.ms_max)
+        comparison = {k: {"max_ms": v["max_ms"], "worst_objective": v["worst_objective"]}
+                      for k, v in comp["designs"].items()}
+
+    def step(done: int, total: int) -> None:
+        if progress is not None:
+            progress("Monte Carlo", done, total)
+        if cancelled is not None and cancelled():
+            raise KeyboardInterrupt  # run_monte_carlo turns it into its partial report
+
+    try:
+        rep = run_monte_carlo(session.plant, scene, every, n=n, seed=seed, backend="serial", progress=step,
+                              quiet=True)
+    except MonteCarloInterrupted as exc:
+        rep = exc.report
+    return {"robust": rr.robust.as_dict(), "comparison": comparison, "monte_carlo": rep.as_dict()}
