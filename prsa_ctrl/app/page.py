@@ -598,12 +598,14 @@ class AppPage:
                         f"<td data-k='mc-{name}-worst'>{_fmt(comp.get('worst_objective', math.nan), '.5g')}</td>"
                         f"<td data-k='mc-{name}-yield'>{d['passed']}/{d['samples']}</td>"
                         f"<td data-k='mc-{name}-ci'>[{lo:.3f}, {hi:.3f}]</td></tr>")
-        head = ("design", "kp", "ki", f"max Ms over scenarios", f"worst {settings.objective.upper()}",
+        spec_text = (f"spec {html.escape(str(mc['spec']))}" if mc["spec"] else
+                     "the scene has no [spec]: a sample passes when its run is finite")
+        head = ("design", "kp", "ki", "max Ms over scenarios", f"worst {settings.objective.upper()}",
                 "passed/samples", "yield 95 % CI")
         self.robust_out.text = (
             f"<div data-k='rprogress' data-state='{state}' data-done='{mc['samples_done']}'>"
             f"<b>Robust tuning and Monte-Carlo yield</b> ({state}: {mc['samples_done']} of {mc['samples']} samples, seed "
-            f"{mc['seed']}; spec {html.escape(str(mc['spec']))}; robust design kp {r['kp']:.6g}, ki {r['ki']:.6g};"
+            f"{mc['seed']}; {spec_text}; robust design kp {r['kp']:.6g}, ki {r['ki']:.6g};"
             " the noise-gain bound is not part of the robust problem)</div>"
             "<table style='font-size:12px'><tr>" + "".join(f"<th style='padding:2px 6px'>{h}</th>" for h in head)
             + "</tr>" + "".join(rows) + "</table>")
