@@ -162,3 +162,15 @@ def test_robust_study_cancel_keeps_the_finished_samples(session):
         ref = run_monte_carlo(session.plant, session.scene_for(s0), {"optimum": opt.pid, "robust": PID(**out["robust"])},
                               n=mc["samples_done"], backend="serial", quiet=True)
         assert [d["passed"] for d in ref.as_dict()["designs"]] == [d["passed"] for d in mc["designs"]]
+
+
+def test_show_in_a_notebook_serves_the_app_from_the_kernel():
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_code_cell("from prsa_ctrl.app import show\napp = show()\ntype(app).__name__")]
+    nbclient.NotebookClient(nb, timeout=120, kernel_name="python3").execute()
+    outs = nb.cells[0].outputs
+    html_out = [o["data"]["text/html"] for o in outs if "text/html" in o.get("data", {})]
+    assert len(html_out) == 1 and "/autoload.js?bokeh-autoload-element=" in html_out[0]
+    assert outs[-1]["data"]["text/plain"] == "'Application'"
