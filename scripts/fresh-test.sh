@@ -9,10 +9,22 @@ cd "$(dirname "$0")/.."
 venv="${PRSA_TEST_VENV:-${TMPDIR:-/tmp}/prsa-ctrl-test-venv}"
 python3 -m venv --clear "$venv"
 "$venv/bin/python" -m pip install --quiet --upgrade pip
-"$venv/bin/python" -m pip install --quiet --upgrade --upgrade-strategy eager ".[test,notebooks,dask]"
+"$venv/bin/python" -m pip install --quiet --upgrade --upgrade-strategy eager ".[test,notebooks,dask,app]" "playwright>=1.40"
+# The browser tests (tests/test_app_browser.py) drive Debian's Chromium (Playwright's own browser
+# download cannot work here): install it where missing and possible; without it they skip with
+# one line, and under CI=true they fail.
+if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "installing Debian's chromium for the browser tests"
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } >/dev/null \
+      || echo "could not install chromium: the browser tests will skip (fail under CI=true)"
+  else
+    echo "no chromium and no root apt-get: the browser tests will skip (fail under CI=true)"
+  fi
+fi
 echo "fresh environment $venv:"
 "$venv/bin/python" -m pip list --format=freeze 2>/dev/null \
-  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|dask|distributed|pytest|hypothesis)==' \
+  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|dask|distributed|pytest|hypothesis|bokeh|playwright)==' \
   | tr '\n' ' '
 echo
 export MPLBACKEND=Agg

@@ -1,0 +1,136 @@
+"""``prsa-app``: serve the tuning app on the loopback interface.
+
+Exit codes: 0 after Ctrl-C or a normal stop, 2 for bad input (flags, plant or scene files, a
+port in use, the ``app`` extra missing), one line ``prsa-app: error: ...`` and no traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Sequence
+
+__all__ = ["main", "build_parser", "serve"]
+
+PROG = "prsa-app"
+
+
+class _Usage(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2 (argparse prints the usage too)
+        raise _Usage(message)
+
+
+def _port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--port {text!r}: expected an integer port in [0, 65535] (0: a free one)") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"--port {text}: expected an integer port in [0, 65535] (0: a free one)")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description="Interactive speed-loop tuning in the browser (serves on 127.0.0.1).")
+    p.add_argument("--plant", help="built-in plant name or plant .toml file (default paper-iprsm)")
+    p.add_argument("--scene", help="built-in load-step scene name or scene .toml file (default paper-load-step)")
+    p.add_argument("--port", type=_port, default=0, help="port on 127.0.0.1 (default 0: a free port, printed)")
+    p.add_argument("--no-browser", action="store_true", help="do not open a browser")
+    return p
+
+
+def serve(plant: str | None = None, scene: str | None = None, port: int = 0):
+    """Start (not run) the Bokeh server on 127.0.0.1; returns it (``server.port`` is the port).
+
+    Raises
+    ------
+    AppInputError
+        A bad plant or scene (one line).
+    OSError
+        The port cannot be bound.
+    """
+    from bokeh.server.server import Server
+
+    from . import application
+
+    app = application(plant, scene, warm=True)
+    attempts = 20 if port == 0 else 1  # a free port can be taken between the probe and the bind
+    for i in range(attempts):
+        p = port or _free_port()
+        try:
+            _probe(p)  # tornado leaks its socket when the bind fails
+            return Server({"/": app}, address="127.0.0.1", port=p, num_procs=1,
+                          allow_websocket_origin=[f"127.0.0.1:{p}", f"localhost:{p}"])
+        except OSError:
+            if i == attempts - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+def _probe(port: int) -> None:
+    """Raise OSError if ``port`` cannot be bound on 127.0.0.1 (as the server binds it)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
+
+
+def _free_port() -> int:
+    """A port the OS reports free on 127.0.0.1."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``prsa-app``; returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if "-h" in argv or "--help" in argv:
+        build_parser().print_help()
+        return 0
+    try:
+        args = build_parser().parse_args(argv)
+    except _Usage as exc:
+        print(f"{PROG}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    try:
+        import bokeh  # noqa: F401
+    except ImportError:
+        print(f"{PROG}: error: the app needs its optional dependencies; expected them installed: "
+              "pip install \"prsa-ctrl[app]\"", file=sys.stderr)
+        return 2
+    from .session import AppInputError
+
+    try:
+        server = serve(args.plant, args.scene, args.port)
+    except AppInputError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"{PROG}: error: --port {args.port}: cannot listen on 127.0.0.1 ({exc.strerror or exc}); expected a free "
+              "port (0 picks one)", file=sys.stderr)
+        return 2
+    url = f"http://127.0.0.1:{server.port}/"
+    print(f"{PROG}: serving {url} (Ctrl-C to stop)", flush=True)
+    try:
+        server.start()
+        if not args.no_browser:
+            import webbrowser
+
+            server.io_loop.add_callback(webbrowser.open, url)
+        server.io_loop.start()
+    except KeyboardInterrupt:
+        print(f"{PROG}: stopped (Ctrl-C)", file=sys.stderr)
+        return 0
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,577 @@
+"""The app's model: one plant and scene, the tuner, the designs the page shows, no GUI code.
+
+Everything the browser page displays is computed here, with the toolkit's public functions
+(:class:`prsa_ctrl.tuning.Tuner`, :func:`prsa_ctrl.autotune.actuator_loops`,
+:func:`prsa_ctrl.autotune.baseline_designs`, :func:`prsa_ctrl.autotune.verify`,
+:func:`prsa_ctrl.export.export_controller`), so the numbers on the page are the toolkit's. The
+session keeps one :class:`~prsa_ctrl.tuning.Tuner` per loop set (objective, controller, load
+levels): a change of a bound (Ms, Mt, noise gain) re-solves on it without rebuilding the NLP.
+
+Units are SI: gains ``kp`` N m s/rad, ``ki`` N m/rad, ``kd`` N m s^2/rad; speeds rad/s; loads N.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import tempfile
+import threading
+import warnings
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..autotune import Design, actuator_loops, baseline_designs, health_flags, verify
+from ..autotune import _predict  # the report's linear prediction; no public name yet
+from ..cli import parse_load_step
+from ..controller import PID
+from ..errors import PlantFileError, SceneError
+from ..options import OBJECTIVES, RAD_S_PER_RPM
+from ..plant import Plant, builtin_plants, load_plant
+from ..scene import Scene, builtin_scenes, check_against_plant, load_scene
+from ..tuning import Tuner
+
+__all__ = ["AppInputError", "Settings", "View", "AppSession", "FIDELITIES", "LANDSCAPE_POINTS"]
+
+#: Verification fidelities offered (``Scene.fidelity``).
+FIDELITIES = ("auto", "rigid", "compliant", "multi-roller")
+#: Grid points per axis of the Kp-Ki landscape.
+LANDSCAPE_POINTS = 41
+#: Tuners kept per session (one per objective, controller and load levels), oldest dropped.
+_MAX_TUNERS = 8
+
+
+class AppInputError(ValueError):
+    """Bad input from the page or the command line; ``str(exc)`` is the one line to show."""
+
+
+def one_line(exc: BaseException) -> str:
+    """The exception's message on one line (as the CLI prints it)."""
+    return " ".join(str(exc).split())
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What the page's controls set.
+
+    Attributes
+    ----------
+    objective : {"ie", "iae", "itae", "ise"}
+    controller : {"pi", "pid"}
+    ms_max : float
+        Bound on the true peak sensitivity, in (1, 10).
+    mt_max : float or None
+        Bound on the true peak complementary sensitivity, in (1, 10), or none.
+    max_noise_gain : float or None, N m s/rad
+        Bound on the controller's high-frequency gain ``kp + kd/tf``, or none.
+    load_step : str
+        ``INITIAL:FINAL[,FINAL...]`` in N, as typed (the ``prsa-tune --load-step`` syntax).
+    fidelity : str
+        Verification fidelity (:data:`FIDELITIES`).
+    """
+
+    objective: str = "iae"
+    controller: str = "pi"
+    ms_max: float = 1.4
+    mt_max: float | None = None
+    max_noise_gain: float | None = None
+    load_step: str = "500:1500"
+    fidelity: str = "auto"
+
+
+@dataclass
+class View:
+    """One design as the page shows it.
+
+    Attributes
+    ----------
+    design : Design
+        Gains, true margins of the first load level's loop and the linear prediction.
+    omega : array, rad/s
+        Dense frequency grid of the loop (the one its true peaks were located on).
+    loop : array of complex
+        Loop transfer ``L(j omega)`` (first load level).
+    t : list of arrays, s
+        Time of the predicted response per load level.
+    speed : list of arrays, rad/s
+        Predicted nut speed per load level.
+    status : str
+        The tuner's status (``"manual"`` for a design set by hand).
+    noise_gain : float, N m s/rad
+        The controller's high-frequency gain ``kp + kd/tf``.
+    """
+
+    design: Design
+    omega: np.ndarray
+    loop: np.ndarray
+    t: list
+    speed: list
+    status: str
+    noise_gain: float
+
+    @property
+    def pid(self) -> PID:
+        return self.design.pid
+
+    def drive_terms(self, ts: float) -> dict[str, float | None]:
+        """The gains as a drive takes them: SI gains, ``Ti = kp/ki`` (s), gains per rpm."""
+        p = self.pid
+        return {"kp_n_m_s_per_rad": p.kp, "ki_n_m_per_rad": p.ki, "kd_n_m_s2_per_rad": p.kd,
+                "ti_s": p.kp / p.ki if p.ki > 0 else None, "kp_n_m_per_rpm": p.kp * RAD_S_PER_RPM,
+                "ki_n_m_per_rev": p.ki * 2.0 * math.pi, "sample_time_s": ts}
+
+
+class AppSession:
+    """Plant, scene, tuners and designs of one app page (thread-safe through one lock).
+
+    Parameters
+    ----------
+    plant : str or Path, optional
+        Built-in plant name or path to a plant ``.toml`` file (default ``paper-iprsm``).
+    scene : str or Path, optional
+        Built-in scene name or path to a load-step scene ``.toml`` file (default
+        ``paper-load-step``).
+
+    Raises
+    ------
+    AppInputError
+        One line naming the file or value and what was expected (the CLI's message).
+    """
+
+    def __init__(self, plant: str | Path | None = None, scene: str | Path | None = None) -> None:
+        self._lock = threading.RLock()
+        self._tmp: tempfile.TemporaryDirectory | None = None
+        self.notes: list[str] = []
+        self.plant, self.plant_label, notes_p = _load_plant(plant)
+        self.base_scene, self.scene_label, notes_s = _load_scene(scene)
+        self.notes = notes_p + notes_s
+        _check_scene_plant(self.base_scene, self.plant)
+        self._tuners: dict = {}
+        self._loops: dict = {}
+        self._baselines: dict = {}
+        self._landscapes: dict = {}
+
+    # ---- inputs -------------------------------------------------------------------------
+
+    def default_settings(self) -> Settings:
+        """Settings from the scene file (its objective, controller, bounds and load step)."""
+        sc = self.base_scene
+        return Settings(objective=sc.objective, controller=sc.controller, ms_max=sc.ms_max, mt_max=sc.mt_max,
+                        load_step=f"{sc.initial_load:g}:" + ",".join(f"{f:g}" for f in sc.final_loads),
+                        fidelity=sc.fidelity)
+
+    def set_plant(self, name_or_path: str | Path, label: str | None = None) -> list[str]:
+        """Switch to another plant (checked against the scene first); returns its notes."""
+        plant, plabel, notes = _load_plant(name_or_path, label)
+        _check_scene_plant(self.base_scene, plant)
+        with self._lock:
+            self.plant, self.plant_label = plant, plabel
+            self._clear()
+        return notes
+
+    def set_scene(self, name_or_path: str | Path, label: str | None = None) -> list[str]:
+        """Switch to another load-step scene (checked against the plant first); returns its notes."""
+        scene, slabel, notes = _load_scene(name_or_path, label)
+        _check_scene_plant(scene, self.plant)
+        with self._lock:
+            self.base_scene, self.scene_label = scene, slabel
+            self._clear()
+        return notes
+
+    def upload(self, kind: str, filename: str, content: bytes) -> list[str]:
+        """Load an uploaded plant or scene file (``kind`` ``"plant"`` or ``"scene"``).
+
+        The file is stored under its own name in a private temporary folder, and every message
+        names it as uploaded (``filename``), exactly as the CLI names a file given as
+        ``--plant FILENAME`` in its folder.
+        """
+        if kind not in ("plant", "scene"):
+            raise ValueError(f"kind = {kind!r}; expected 'plant' or 'scene'")
+        name = Path(str(filename)).name or f"uploaded-{kind}.toml"
+        if self._tmp is None:
+            self._tmp = tempfile.TemporaryDirectory(prefix="prsa-app-")
+        folder = Path(self._tmp.name) / f"{kind}-{len(list(Path(self._tmp.name).iterdir()))}"
+        folder.mkdir()
+        path = folder / name
+        path.write_bytes(content)
+        try:
+            if kind == "plant":
+                return self.set_plant(str(path), label=name)
+            return self.set_scene(str(path), label=name)
+        except AppInputError as exc:
+            raise AppInputError(str(exc).replace(str(path), name)) from None
+
+    def scene_for(self, s: Settings) -> Scene:
+        """The scene with the page's settings, checked against the plant (one-line errors)."""
+        if s.objective not in OBJECTIVES:
+            raise AppInputError(f"objective {s.objective!r}: expected one of {', '.join(OBJECTIVES)}")
+        if s.controller not in ("pi", "pid"):
+            raise AppInputError(f"controller {s.controller!r}: expected pi or pid")
+        if s.fidelity not in FIDELITIES:
+            raise AppInputError(f"fidelity {s.fidelity!r}: expected one of {', '.join(FIDELITIES)}")
+        for what, v in (("Ms bound", s.ms_max), ("Mt bound", s.mt_max)):
+            if v is not None and not (isinstance(v, (int, float)) and 1.0 < v < 10.0):
+                raise AppInputError(f"{what} {v!r}: expected a number in (1, 10)")
+        if s.max_noise_gain is not None and not (math.isfinite(s.max_noise_gain) and s.max_noise_gain > 0):
+            raise AppInputError(f"noise-gain bound {s.max_noise_gain!r}: expected a positive number in N m s/rad")
+        try:
+            initial, finals = parse_load_step(s.load_step.strip())
+        except argparse.ArgumentTypeError as exc:
+            raise AppInputError(f"load step {one_line(exc)}") from None
+        typed = {"initial_load": f"load step {s.load_step!r}", "final_loads": f"load step {s.load_step!r}"}
+        try:
+            scene = self.base_scene.replace(origin="app", objective=s.objective, controller=s.controller,
+                                            ms_max=s.ms_max, mt_max=s.mt_max, initial_load=initial,
+                                            final_loads=finals, fidelity=s.fidelity)
+            check_against_plant(scene, self.plant, typed)
+        except SceneError as exc:
+            raise AppInputError(one_line(exc)) from None
+        return scene
+
+    # ---- tuning -------------------------------------------------------------------------
+
+    def _key(self, scene: Scene) -> tuple:
+        return (scene.objective, scene.controller, scene.initial_load, scene.final_loads)
+
+    def loops(self, scene: Scene) -> list:
+        """Loop models of the scene's load levels (cached per load levels)."""
+        key = (scene.initial_load, scene.final_loads)
+        with self._lock:
+            if key not in self._loops:
+                self._loops[key] = actuator_loops(self.plant, scene)
+            return self._loops[key]
+
+    def tuner(self, scene: Scene) -> Tuner:
+        """The session's Tuner of the scene's loop set (built once, reused for every bound)."""
+        key = self._key(scene)
+        with self._lock:
+            if key not in self._tuners:
+                if len(self._tuners) >= _MAX_TUNERS:
+                    self._tuners.pop(next(iter(self._tuners)))
+                self._tuners[key] = Tuner(self.loops(scene), objective=scene.objective, controller=scene.controller,
+                                          worst_case=scene.aggregate == "worst")
+            return self._tuners[key]
+
+    def tuned(self, s: Settings) -> View:
+        """The optimal design under the settings' bounds (``Tuner.tune`` on the session's tuner)."""
+        scene = self.scene_for(s)
+        with self._lock:
+            res = self.tuner(scene).tune(ms_max=s.ms_max, mt_max=s.mt_max, max_noise_gain=s.max_noise_gain)
+            d = Design(f"optimum (Ms <= {s.ms_max:.3g})", res.pid, res.margins[0], tuner_status=res.status)
+            return self._view(d, scene, res.status)
+
+    def manual(self, s: Settings, kp: float, ki: float, kd: float = 0.0) -> View:
+        """A design set by hand: its true margins and linear prediction on the same loops."""
+        for name, v in (("kp", kp), ("ki", ki), ("kd", kd)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise AppInputError(f"manual {name} {v!r}: expected a finite number >= 0")
+        if kp <= 0:
+            raise AppInputError(f"manual kp {kp!r}: expected a positive gain in N m s/rad")
+        scene = self.scene_for(s)
+        with self._lock:
+            lp = self.loops(scene)[0]
+            pid = PID(float(kp), float(ki), float(kd), tf=lp.tf)
+            d = Design("manual", pid, lp.margins(pid.gains))  # not tuned: no tuner status to flag
+            return self._view(d, scene, "manual")
+
+    def baselines(self, s: Settings) -> list[View]:
+        """The report's baseline designs (paper Kp sweep, SIMC, PM 60 deg, rule of thumb)."""
+        scene = self.scene_for(s)
+        key = (self._key(scene))
+        with self._lock:
+            if key not in self._baselines:
+                loops = self.loops(scene)
+                self._baselines[key] = [self._view(d, scene, "baseline")
+                                        for d in baseline_designs(self.plant, scene, loops)]
+            return self._baselines[key]
+
+    def stability(self, s: Settings, pid: PID) -> str:
+        """``"stable"``, ``"marginal"`` or ``"unstable"`` on every load level's loop (worst)."""
+        scene = self.scene_for(s)
+        order = ("stable", "marginal", "unstable")
+        return max((lp.stability(pid.gains) for lp in self.loops(scene)), key=order.index)
+
+    def _view(self, d: Design, scene: Scene, status: str) -> View:
+        loops = self.loops(scene)
+        lp = loops[0]
+        pk = lp.peaks(d.pid.gains)
+        stable = all(l.is_stable(d.pid.gains) for l in loops)
+        ts, speeds = [], []
+        if stable:
+            _predict(d, loops, self.plant, scene)
+            for err, l in zip(d.predicted_error, loops):
+                ts.append(scene.step_time + l.h * np.arange(-1, l.n_steps))
+                speeds.append(d.predicted_start_speed + np.concatenate([[0.0], -np.asarray(err)]))
+        return View(design=d, omega=np.asarray(pk["omega"]), loop=np.asarray(pk["L"]), t=ts, speed=speeds,
+                    status=status if stable else "unstable", noise_gain=d.pid.kp + d.pid.kd / d.pid.tf)
+
+    # ---- landscape ----------------------------------------------------------------------
+
+    def landscape(self, s: Settings, centre: list[PID], kd: float = 0.0) -> dict:
+        """The Kp-Ki plane around ``centre`` designs: objective and grid Ms (first load level).
+
+        Returns
+        -------
+        dict
+            ``kp`` (N m s/rad), ``ki`` (N m/rad) axes; ``objective`` (the scene's objective
+            summed/worst over the load levels as the tuner sees it, nan where unstable) and
+            ``ms`` (max |S| on the loop's grid, inf where unstable), shape ``(n_ki, n_kp)``.
+        """
+        scene = self.scene_for(s)
+        kp_hi = 1.6 * max(p.kp for p in centre)
+        ki_hi = 1.6 * max(p.ki for p in centre)
+        key = (self._key(scene), round(kp_hi, 12), round(ki_hi, 12), kd)
+        with self._lock:
+            if key in self._landscapes:
+                return self._landscapes[key]
+            loops = self.loops(scene)
+            n = LANDSCAPE_POINTS
+            kp = np.linspace(kp_hi / n, kp_hi, n)
+            ki = np.linspace(0.0, ki_hi, n)
+            kk, ii = np.meshgrid(kp, ki)
+            ng = loops[0].n_gains
+            g = np.zeros((kk.size, ng))
+            g[:, 0], g[:, 1] = kk.ravel(), ii.ravel()
+            if ng > 2:
+                g[:, 2] = kd
+            stable = np.array([all(lp.is_stable(x) for lp in loops) for x in g])
+            obj = np.full(kk.size, np.nan)
+            vals = [lp.objectives(g[stable], scene.objective) for lp in loops]
+            obj[stable] = np.max(vals, axis=0) if scene.aggregate == "worst" else np.sum(vals, axis=0)
+            L = g @ loops[0].L
+            ms = np.max(1.0 / np.abs(1.0 + L), axis=1)
+            ms[~stable] = np.inf
+            out = {"kp": kp, "ki": ki, "objective": obj.reshape(kk.shape), "ms": ms.reshape(kk.shape), "kd": kd}
+            if len(self._landscapes) > 8:
+                self._landscapes.clear()
+            self._landscapes[key] = out
+            return out
+
+    # ---- verification -------------------------------------------------------------------
+
+    def verify(self, s: Settings, views: list[View], progress: Callable[[int, int, str], None] | None = None,
+               cancelled: Callable[[], bool] | None = None) -> list[View]:
+        """Run each design on the nonlinear simulator (``prsa_ctrl.autotune.verify``) and check
+        its health; ``progress(done, total, name)`` is called before and after each design.
+        Returns the views whose designs now carry ``verified``/``verified_runs``/``flags``;
+        stops early (returning those done) when ``cancelled()`` turns true."""
+        scene = self.scene_for(s)
+        done = []
+        for i, v in enumerate(views):
+            if cancelled is not None and cancelled():
+                break
+            if progress is not None:
+                progress(i, len(views), v.design.name)
+            d = replace(v.design, verified=[], verified_runs=[], flags=[])
+            if v.status == "unstable":
+                d.flags = ["the loop is unstable: not simulated"]
+            else:
+                verify(d, self.plant, scene)
+                d.flags = health_flags(d, self.plant, scene)
+            done.append(replace(v, design=d))
+        if progress is not None:
+            progress(len(done), len(views), "")
+        return done
+
+    # ---- export and code ----------------------------------------------------------------
+
+    def export_files(self, s: Settings, view: View, extra: dict | None = None) -> dict[str, str]:
+        """The drive file (TOML, :func:`prsa_ctrl.export.export_controller`) and the JSON report
+        of a design: ``{file name: text}``."""
+        from ..export import dumps, export_controller
+
+        scene = self.scene_for(s)
+        drive = dumps(export_controller(view.pid, self.plant, fmt="toml"), "toml")
+        report = {
+            "plant": self.plant.name, "plant_file": self.plant_label, "scene": scene.as_dict(),
+            "bounds": {"ms_max": s.ms_max, "mt_max": s.mt_max, "max_noise_gain_n_m_s_per_rad": s.max_noise_gain},
+            "design": view.design.as_dict(), "tuner_status": view.status,
+            "drive_terms": view.drive_terms(self.plant.sample_time_s),
+            "units": {"kp": "N m s/rad", "ki": "N m/rad", "kd": "N m s^2/rad", "tf": "s"},
+            **(extra or {}),
+        }
+        return {"speed-controller.toml": drive, "prsa-app-report.json": json.dumps(_finite(report), indent=2)}
+
+    def code(self, s: Settings) -> tuple[str, str]:
+        """The equivalent ``prsa-tune`` command line and Python call of the settings."""
+        args = ["prsa-tune", "--plant", self.plant_label, "--scene", self.scene_label,
+                "--load-step", s.load_step.replace(" ", ""), "--objective", s.objective,
+                "--controller", s.controller, "--ms-max", f"{s.ms_max:g}"]
+        if s.mt_max is not None:
+            args += ["--mt-max", f"{s.mt_max:g}"]
+        cli = " ".join(shlex.quote(a) for a in args)
+        if s.max_noise_gain is not None:
+            cli += "  # prsa-tune has no noise-gain flag: the bound applies to the Python call only"
+        scene_args = (f"objective={s.objective!r}, controller={s.controller!r}, ms_max={s.ms_max!r}, "
+                      f"mt_max={s.mt_max!r}, initial_load={_initial(s)!r}, final_loads={_finals(s)!r}, "
+                      f"fidelity={s.fidelity!r}")
+        py = "\n".join([
+            "from prsa_ctrl import Tuner, load_plant, load_scene",
+            "from prsa_ctrl.autotune import actuator_loops",
+            "",
+            f"plant = load_plant({self.plant_label!r})",
+            f"scene = load_scene({self.scene_label!r}).replace({scene_args})",
+            "tuner = Tuner(actuator_loops(plant, scene), objective=scene.objective, controller=scene.controller)",
+            f"result = tuner.tune(ms_max={s.ms_max!r}, mt_max={s.mt_max!r}, max_noise_gain={s.max_noise_gain!r})",
+            "print(result.status, result.pid, result.ms)",
+        ])
+        return cli, py
+
+    # ---- housekeeping -------------------------------------------------------------------
+
+    def _clear(self) -> None:
+        self._tuners.clear()
+        self._loops.clear()
+        self._baselines.clear()
+        self._landscapes.clear()
+
+    def close(self) -> None:
+        """Remove the uploaded files."""
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+
+def _initial(s: Settings) -> float:
+    return parse_load_step(s.load_step.strip())[0]
+
+
+def _finals(s: Settings) -> tuple[float, ...]:
+    return parse_load_step(s.load_step.strip())[1]
+
+
+def _finite(x):
+    """JSON-safe copy: non-finite floats become None."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def _notes(caught: list) -> list[str]:
+    out = []
+    for w in caught:
+        line = " ".join(str(w.message).split())
+        if line not in out:
+            out.append(line)
+    return out
+
+
+def _load_plant(name_or_path, label: str | None = None) -> tuple[Plant, str, list[str]]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            plant = load_plant(name_or_path)
+        except PlantFileError as exc:
+            raise AppInputError(one_line(exc)) from None
+    text = str(name_or_path) if name_or_path is not None else plant.name
+    return plant, label or text, _notes(caught)
+
+
+def _load_scene(name_or_path, label: str | None = None) -> tuple[Scene, str, list[str]]:
+    from ..cascade import is_move_scene
+
+    text = label or (str(name_or_path) if name_or_path is not None else "paper-load-step")
+    if is_move_scene(name_or_path):
+        raise AppInputError(f"scene {text!r} is a move (cascade) scene; expected a load-step scene (tune it with "
+                            f"prsa-tune --scene {text})")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            scene = load_scene(name_or_path)
+        except SceneError as exc:
+            raise AppInputError(one_line(exc)) from None
+    if scene.is_profile:
+        raise AppInputError(f"scene {text!r} is a duty cycle ({scene.profile_source}); expected a load-step scene "
+                            f"(tune it with prsa-tune --scene {text})")
+    return scene, text, _notes(caught)
+
+
+def _check_scene_plant(scene: Scene, plant: Plant) -> None:
+    try:
+        check_against_plant(scene, plant)
+    except SceneError as exc:
+        raise AppInputError(one_line(exc)) from None
+
+
+def builtin_names() -> tuple[list[str], list[str]]:
+    """Built-in plant names and load-step scene names (the choices of the page)."""
+    scenes = []
+    for name in builtin_scenes():
+        try:
+            _load_scene(name)
+        except AppInputError:
+            continue
+        scenes.append(name)
+    return builtin_plants(), scenes
+
+
+class Cancelled(Exception):
+    """Raised inside a long study when the page's cancel was pressed."""
+
+
+def robust_study(session: AppSession, s: Settings, designs: dict, n: int,
+                 progress: Callable[[str, int, int], None] | None = None,
+                 cancelled: Callable[[], bool] | None = None, seed: int = 0) -> dict:
+    """Robust tuning over the plant's documented uncertainty, then Monte-Carlo yield.
+
+    Runs :func:`prsa_ctrl.robust.tune_robust_actuator` on the page's scene (its Ms/Mt bounds;
+    the noise-gain bound is not part of the robust problem) and
+    :func:`prsa_ctrl.montecarlo.run_monte_carlo` (serial, seeded) of ``designs`` plus the
+    robust design on ``n`` samples. ``progress(stage, done, total)`` reports; ``cancelled()``
+    is polled between the stages and after every chunk of samples (the robust NLP itself is
+    not interruptible).
+
+    Returns
+    -------
+    dict
+        ``robust`` (gains dict), ``comparison`` (per design: ``max_ms``, ``worst_objective``
+        over the scenario models), ``monte_carlo`` (the report's ``as_dict()``: ``complete``
+        false when cancelled, yields over the samples done).
+
+    Raises
+    ------
+    Cancelled
+        When cancelled before any sample finished.
+    """
+    from ..montecarlo import MonteCarloInterrupted, run_monte_carlo
+    from ..robust import tune_robust_actuator
+
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 10_000:
+        raise AppInputError(f"samples {n!r}: expected an integer in 1..10000")
+    scene = session.scene_for(s)
+    if progress is not None:
+        progress("robust tuning", 0, n)
+    rr = tune_robust_actuator(session.plant, scene)
+    if cancelled is not None and cancelled():
+        raise Cancelled("cancelled after the robust tuning")
+    every = {**designs, "robust": rr.robust}
+    comparison = {}
+    if rr.loops:
+        from ..robust import compare_designs
+
+        comp = compare_designs(every, rr.loops, rr.scenarios, scene.objective, scene.ms_max)
+        comparison = {k: {"max_ms": v["max_ms"], "worst_objective": v["worst_objective"]}
+                      for k, v in comp["designs"].items()}
+
+    def step(done: int, total: int) -> None:
+        if progress is not None:
+            progress("Monte Carlo", done, total)
+        if cancelled is not None and cancelled():
+            raise KeyboardInterrupt  # run_monte_carlo turns it into its partial report
+
+    try:
+        rep = run_monte_carlo(session.plant, scene, every, n=n, seed=seed, backend="serial", progress=step,
+                              quiet=True)
+    except MonteCarloInterrupted as exc:
+        rep = exc.report
+    return {"robust": rr.robust.as_dict(), "comparison": comparison, "monte_carlo": rep.as_dict()}

@@ -1,0 +1,176 @@
+"""prsa-app without a browser: the command line, the session model behind the page, the
+Bokeh document and the notebook entry point."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import replace
+
+import pytest
+
+pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip install '.[app]')")
+
+from prsa_ctrl import PID, load_plant, load_scene  # noqa: E402
+from prsa_ctrl.app.cli import main  # noqa: E402
+from prsa_ctrl.app.session import AppInputError, AppSession, Settings  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def session():
+    s = AppSession()
+    yield s
+    s.close()
+
+
+def _fresh(**bounds):
+    from prsa_ctrl.autotune import actuator_loops
+    from prsa_ctrl.tuning import tune_loops
+
+    plant, scene = load_plant(), load_scene()
+    return tune_loops(actuator_loops(plant, scene), objective=scene.objective, controller=scene.controller, **bounds)
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--plant", "nope"], "prsa-app: error: unknown plant 'nope'; expected a built-in name"),
+    (["--plant", "missing.toml"], "prsa-app: error: plant file 'missing.toml' not found"),
+    (["--scene", "duty-ramp"], "prsa-app: error: scene 'duty-ramp' is a duty cycle"),
+    (["--scene", "paper-move"], "prsa-app: error: scene 'paper-move' is a move (cascade) scene"),
+    (["--port", "70000"], "prsa-app: error: argument --port: --port 70000: expected an integer port in [0, 65535]"),
+    (["--port", "x"], "prsa-app: error: argument --port: --port 'x': expected an integer port"),
+    (["--bogus"], "prsa-app: error: unrecognized arguments: --bogus"),
+])
+def test_bad_flags_and_files_one_line_exit_2(argv, expected, capsys):
+    assert main(argv) == 2
+    out = capsys.readouterr()
+    assert out.out == ""
+    assert out.err.startswith(expected) and out.err.count("\n") == 1, out.err
+
+
+def test_port_in_use_is_one_line_exit_2(capsys):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        assert main(["--port", str(port), "--no-browser"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"prsa-app: error: --port {port}: cannot listen on 127.0.0.1") and err.count("\n") == 1
+
+
+def test_core_commands_do_not_import_the_app_stack():
+    code = ("import sys, prsa_ctrl.cli, prsa_ctrl.autotune, prsa_ctrl.tuning; "
+            "print(any(m.split('.')[0] in ('bokeh', 'tornado', 'panel') for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_bounds_retune_on_one_tuner_to_the_fresh_tuners_result(session):
+    s0 = session.default_settings()
+    first = session.tuned(s0)
+    tuner = session.tuner(session.scene_for(s0))
+    for bounds in ({"ms_max": 1.55}, {"ms_max": 1.5, "mt_max": 1.3}, {"ms_max": 1.6, "max_noise_gain": 0.09}):
+        v = session.tuned(replace(s0, **bounds))
+        ref = _fresh(**bounds)
+        assert session.tuner(session.scene_for(replace(s0, **bounds))) is tuner  # reused, not rebuilt
+        assert v.pid.gains == ref.pid.gains and v.status == ref.status
+        assert v.design.margins.ms == pytest.approx(ref.ms, rel=1e-12)
+    assert v.noise_gain <= 0.09 * (1 + 1e-6) and v.pid.kp < _fresh(ms_max=1.6).pid.kp  # the bound is active
+    assert first.pid.gains == _fresh(ms_max=s0.ms_max).pid.gains
+
+
+def test_bad_settings_are_one_line_errors(session):
+    s0 = session.default_settings()
+    with pytest.raises(AppInputError, match=r"^load step '500:1e9': load 1e\+09 N out of range for paper-iprsm"):
+        session.tuned(replace(s0, load_step="500:1e9"))
+    with pytest.raises(AppInputError, match=r"^load step '500-1500': expected INITIAL:FINAL"):
+        session.tuned(replace(s0, load_step="500-1500"))
+    with pytest.raises(AppInputError, match=r"^Ms bound 0.9: expected a number in \(1, 10\)"):
+        session.tuned(replace(s0, ms_max=0.9))
+    with pytest.raises(AppInputError, match=r"^manual kp 0.0: expected a positive gain"):
+        session.manual(s0, 0.0, 1.0)
+
+
+def test_uploaded_plant_is_named_as_uploaded_and_leaves_the_session_intact(tmp_path):
+    s = AppSession()
+    try:
+        with pytest.raises(AppInputError) as info:
+            s.upload("plant", "my-plant.toml", b"[nut\n")
+        assert str(info.value).startswith("my-plant.toml: invalid TOML")
+        assert s.plant.name == "paper-iprsm"  # the old plant stays
+        from prsa_ctrl.plant import plant_file_path
+
+        s.upload("plant", "copy.toml", plant_file_path("iprsm-60").read_text().encode())
+        assert s.plant.name == load_plant("iprsm-60").name and s.plant_label == "copy.toml"
+    finally:
+        s.close()
+
+
+def test_copy_as_code_is_the_same_tuning(session):
+    s = replace(session.default_settings(), ms_max=1.5, mt_max=1.35)
+    cli, py = session.code(s)
+    assert cli == ("prsa-tune --plant paper-iprsm --scene paper-load-step --load-step 500:1500 --objective iae "
+                   "--controller pi --ms-max 1.5 --mt-max 1.35")
+    ns: dict = {}
+    exec(compile(py.replace("print(", "(lambda *a: None)("), "<copied>", "exec"), ns)
+    assert ns["result"].pid.gains == session.tuned(s).pid.gains
+
+
+def test_document_builds_and_the_notebook_entry_returns_the_application():
+    from bokeh.application import Application
+    from bokeh.document import Document
+
+    from prsa_ctrl.app import application
+    from prsa_ctrl.app.page import make_document
+
+    doc = Document()
+    page = make_document(doc)
+    try:
+        assert len(doc.roots) == 1 and doc.title.startswith("prsa-app")
+        assert page.settings == Settings(objective="iae", controller="pi", ms_max=1.4, mt_max=None,
+                                         load_step="500:1500", fidelity="auto")
+    finally:
+        page._destroyed(None)
+    assert isinstance(application(), Application)
+    with pytest.raises(AppInputError, match="unknown plant 'nope'"):
+        application(plant="nope")
+
+
+def test_robust_study_cancel_keeps_the_finished_samples(session):
+    """Cancel after the first chunk: the report says incomplete and its yields cover exactly
+    the samples done, which are the first samples of the seeded stream (same as a run of that
+    size)."""
+    import os
+
+    from prsa_ctrl.app.session import robust_study
+    from prsa_ctrl.montecarlo import run_monte_carlo
+
+    s0 = session.default_settings()
+    opt = session.tuned(s0)
+    calls = []
+    out = robust_study(session, s0, {"optimum": opt.pid}, 40, progress=lambda *a: calls.append(a),
+                       cancelled=lambda: len(calls) >= 2)
+    mc = out["monte_carlo"]
+    assert calls[0] == ("robust tuning", 0, 40) and calls[1][0] == "Monte Carlo"
+    assert mc["complete"] is False and mc["samples"] == 40 and 0 < mc["samples_done"] < 40
+    assert [d["name"] for d in mc["designs"]] == ["optimum", "robust"]
+    assert all(d["samples"] == mc["samples_done"] for d in mc["designs"])
+    assert out["comparison"]["robust"]["max_ms"] <= s0.ms_max * (1 + 1e-3)  # robust holds Ms on every scenario
+    assert out["comparison"]["optimum"]["max_ms"] > out["comparison"]["robust"]["max_ms"]
+    if os.environ.get("PRSA_SLOW") == "1":  # the same samples as a fresh run of that size
+        ref = run_monte_carlo(session.plant, session.scene_for(s0), {"optimum": opt.pid, "robust": PID(**out["robust"])},
+                              n=mc["samples_done"], backend="serial", quiet=True)
+        assert [d["passed"] for d in ref.as_dict()["designs"]] == [d["passed"] for d in mc["designs"]]
+
+
+def test_show_in_a_notebook_serves_the_app_from_the_kernel():
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_code_cell("from prsa_ctrl.app import show\napp = show()\ntype(app).__name__")]
+    nbclient.NotebookClient(nb, timeout=120, kernel_name="python3").execute()
+    outs = nb.cells[0].outputs
+    html_out = [o["data"]["text/html"] for o in outs if "text/html" in o.get("data", {})]
+    assert len(html_out) == 1 and "/autoload.js?bokeh-autoload-element=" in html_out[0]
+    assert outs[-1]["data"]["text/plain"] == "'Application'"
