@@ -1569,10 +1569,13 @@ class Tuner:
             if mapped is not None:
                 J = mapped[jl]
             elif self.objective == "ie":
-                # Exact IE to infinity: h Ce (I - A)^-2 b (zero steady error under integral action).
+                # Exact IE to infinity: h Ce (I - A)^-1 (I - A)^-1 b (zero steady error under
+                # integral action), as two solves: the product (I - A)^2 squares the condition
+                # number (~1e65 for a 6th-order Pade delay at a 1e-5 s sample) and its symbolic QR
+                # returned an IE 400x too small that jumped between iterates (issue 20).
                 a_s, b_s = ca.SX.sym("A", N, N), ca.SX.sym("b", N)
                 m_s = ca.SX.eye(N) - a_s
-                ief = ca.Function("ie", [a_s, b_s], [-lp.h * ca.mtimes(ce.T, ca.solve(ca.mtimes(m_s, m_s), b_s))])
+                ief = ca.Function("ie", [a_s, b_s], [-lp.h * ca.mtimes(ce.T, ca.solve(m_s, ca.solve(m_s, b_s)))])
                 J = _smooth_abs(ief(acl, bd), eps[jl])
             else:
                 # Two rates (a profile loop: its own input at every sample, all at full rate); the
