@@ -1328,6 +1328,30 @@ def _two_rate_error(acl, bd, ce, n_steps: int, profile: NDArray[np.float64] | No
     return e, k, w
 
 
+def _steady_command(lp: LoopModel) -> float | None:
+    """Steady control command ``u_ss`` (plant-input units) that holds a continuous loop's plant
+    at zero output against its disturbance step: ``a x + b u + b_d = 0``, ``c x = 0``; None for
+    a loop without a continuous model or where that system is singular (no unique ``u_ss``)."""
+    if lp.continuous is None:
+        return None
+    memo = lp._memo
+    if "u_ss" not in memo:
+        c0, mats, bdc = lp.continuous
+        n = c0.shape[0] - 2
+        k = np.zeros((n + 1, n + 1))
+        k[:n, :n] = c0[:n, :n]
+        k[:n, n] = mats[1][:n, n]
+        k[n, :n] = lp.Ce[:n]
+        rhs = np.concatenate([-bdc[:n], [0.0]])
+        try:
+            sol = np.linalg.solve(k, rhs)
+            ok = np.all(np.isfinite(sol)) and np.linalg.norm(k @ sol - rhs) <= 1e-9 * max(np.linalg.norm(rhs), 1e-300)
+        except np.linalg.LinAlgError:
+            ok = False
+        memo["u_ss"] = float(sol[n]) if ok else None
+    return memo["u_ss"]
+
+
 def _free_gains(use_d: bool, n_gains: int) -> list[int]:
     """Indices of the optimised gains: kp, ki, (kd), (kff)."""
     return [0, 1] + ([2] if use_d else []) + ([3] if n_gains == 4 else [])
@@ -1762,6 +1786,11 @@ class Tuner:
             ce = ca.DM(lp.Ce)
             if mapped is not None:
                 J = mapped[jl]
+            elif self.objective == "ie" and _steady_command(lp) is not None:
+                # A continuous loop: the Euler integral state sums the error, I_inf = h sum e_k, and
+                # at steady state ki I_inf = u_ss, the plant's steady command against the
+                # disturbance (gain-free): IE = |u_ss| / ki exactly, no ill-conditioned solve.
+                J = _smooth_abs(_steady_command(lp) / g[1], eps[jl])
             elif self.objective == "ie":
                 # Exact IE to infinity: h Ce (I - A)^-1 (I - A)^-1 b (zero steady error under
                 # integral action), as two solves: the product (I - A)^2 squares the condition
