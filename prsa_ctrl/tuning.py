@@ -2587,13 +2587,16 @@ def tune_pid(
         tf = _number("tf", tf, lo=0.0, expected="a positive finite time constant in s")
     n_steps = _int_steps("n_steps", n_steps)
     limits = {k: _gain_limit(k, v) for k, v in (("kp_max", kp_max), ("ki_max", ki_max), ("kd_max", kd_max))}
-    if not isinstance(plant, control.LTI):
-        raise ValueError(f"plant = {plant!r}; expected a python-control LTI system (tf or ss)")
-    sys = control.ss(plant)
-    if not sys.isctime():
-        raise ValueError(f"plant {sys.name!r} is discrete-time; expected a continuous-time LTI system")
-    if sys.noutputs != 1:
-        raise ValueError(f"plant has {sys.noutputs} outputs; expected one (SISO feedback path)")
+    sys = _checked_plant(plant)
+    # Scale invariance: a plant of gain k0 far from 1 is tuned as P/k0 (L = (P/k0)(k0 C), the same
+    # loop), its gains divided by k0 and its objective multiplied by k0 (ISE: k0^2) after.
+    k0 = _gain_scale(sys)
+    if k0 != 1.0:
+        sys = control.ss(sys.A, sys.B, np.asarray(sys.C) / k0, np.asarray(sys.D) / k0,
+                         inputs=sys.input_labels, outputs=sys.output_labels, name=sys.name)
+        limits = {k: v * k0 for k, v in limits.items()}
+        if max_noise_gain is not None:
+            max_noise_gain = float(max_noise_gain) * k0
     a, b, c, d = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
     auto_horizon = horizon is None
     default_note = None
@@ -2613,7 +2616,7 @@ def tune_pid(
                 max_noise_gain = 10.0 / p0
                 default_note = (f"robustness alone does not limit the gains of this plant (phase "
                                 f"{math.degrees(ph_top):.0f} deg at high frequency): tuned with the default noise-gain "
-                                f"bound max_noise_gain = 10/|P(j w0)| = {max_noise_gain:.4g} at w0 = {w0:.4g} rad/s "
+                                f"bound max_noise_gain = 10/|P(j w0)| = {max_noise_gain / k0:.4g} at w0 = {w0:.4g} rad/s "
                                 "(crossover about a decade above the plant's fastest pole or zero); pass "
                                 "max_noise_gain= to choose")
             if w135 is None:
@@ -2630,6 +2633,103 @@ def tune_pid(
         if not (auto_horizon and res.stats["horizon_short"]):
             break
         horizon *= 4.0
+    if k0 != 1.0:
+        res = _rescaled(res, k0, limits)
     if default_note is not None:
         res.warnings.insert(0, default_note)
     return res
+
+
+#: Largest plant order :func:`tune_pid` accepts (states of its state-space realisation): the
+#: tuner's work grows as the cube of the order (order 20: ~3 s, 100: ~2 min, 800: 38 GiB).
+MAX_ORDER = 40
+#: Plant gains |P(j w_ref)| outside [1/_GAIN_SPAN, _GAIN_SPAN] are normalised (see tune_pid).
+_GAIN_SPAN = 1e3
+
+
+def _checked_plant(plant):
+    """``plant`` as a continuous SISO state space with finite matrices and dynamics, or a
+    ValueError naming ``plant`` and what was expected (one line, before any work)."""
+    import control
+
+    desc = " ".join(repr(plant).split())  # one line
+    if len(desc) > 200:
+        desc = desc[:200] + "..."
+    if not isinstance(plant, control.LTI):
+        raise ValueError(f"plant = {desc}; expected a python-control LTI system (tf or ss)")
+    if isinstance(plant, control.TransferFunction):
+        coefs = [np.asarray(x, float) for row in (plant.num, plant.den) for r in row for x in r]
+        if not all(np.all(np.isfinite(x)) for x in coefs):
+            raise ValueError(f"plant = {desc} has non-finite (nan/inf) coefficients; expected finite numbers")
+    if plant.noutputs != 1:
+        raise ValueError(f"plant has {plant.noutputs} outputs; expected one (SISO feedback path)")
+    if isinstance(plant, control.TransferFunction):
+        den = np.trim_zeros(np.atleast_1d(np.asarray(plant.den[0][0], float)), "f")
+        if den.size - 1 > MAX_ORDER:
+            raise ValueError(f"plant of order {den.size - 1}; expected at most MAX_ORDER = {MAX_ORDER} states "
+                             "(reduce it first, e.g. control.balred or control.minreal)")
+    try:
+        sys = control.ss(plant)
+    except (ValueError, TypeError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        raise ValueError(f"plant = {desc} has no state-space realisation ({exc}); expected a proper "
+                         "continuous LTI system with finite coefficients") from None
+    if not sys.isctime():
+        raise ValueError(f"plant {sys.name!r} is discrete-time; expected a continuous-time LTI system")
+    a, b, c, d = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
+    n = a.shape[0]
+    if n > MAX_ORDER:
+        raise ValueError(f"plant of order {n}; expected at most MAX_ORDER = {MAX_ORDER} states "
+                         "(reduce it first, e.g. control.balred or control.minreal)")
+    if not all(np.all(np.isfinite(m)) for m in (a, b, c, d)):
+        raise ValueError("plant matrices contain inf or NaN; expected finite numbers")
+    if n == 0 or not np.any(b[:, 0]) or not np.any(c):
+        kind = "zero" if not np.any(d) else "a static gain"
+        raise ValueError(f"plant = {desc} is {kind} (no dynamics from the control input to the output); "
+                         "expected a strictly proper plant with dynamics")
+    lam = np.linalg.eigvals(a)
+    osc = lam[(np.abs(lam) > 0) & (np.abs(lam.real) <= 1e-12 * np.abs(lam))]
+    if osc.size:
+        raise ValueError(f"plant has undamped poles on the imaginary axis at +-{np.abs(osc.imag).max():.6g} rad/s; "
+                         "expected damped poles (the loop response is infinite there), e.g. a damping ratio of 1e-6")
+    return sys
+
+
+def _gain_scale(sys) -> float:
+    """1, or the plant's gain ``|P(j w_ref)|`` (``w_ref`` the geometric mean of its extreme
+    pole/zero magnitudes) where that lies outside ``[1/_GAIN_SPAN, _GAIN_SPAN]``; a ValueError
+    where it is not a finite positive number (a plant too small or large for double precision)."""
+    a, b, c, d = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
+    poles, zeros = _plant_roots(a, b[:, :1], c, d[:, :1])
+    mags = np.abs(np.concatenate([poles, zeros]))
+    mags = mags[(mags > 0) & np.isfinite(mags)]
+    w_ref = math.sqrt(float(mags.min()) * float(mags.max())) if mags.size else 1.0
+    with np.errstate(all="ignore"):
+        k0 = abs(complex(_ss_response(a, b[:, :1], c, np.array([w_ref]))[0] + d[0, 0]))
+    if not (math.isfinite(k0) and k0 > 0 and math.isfinite(1 / k0)):
+        raise ValueError(f"plant gain |P(j {w_ref:.4g})| = {k0:.3g} is not a finite positive number in double "
+                         "precision; expected a plant of finite, non-zero gain")
+    return 1.0 if 1 / _GAIN_SPAN <= k0 <= _GAIN_SPAN else k0
+
+
+def _rescaled(res: TuningResult, k0: float, limits: dict) -> TuningResult:
+    """A result of the normalised plant ``P/k0`` in the units of ``P``: gains / k0, objectives
+    * k0 (ISE * k0^2); a ValueError where a number leaves double precision."""
+    f = k0 * k0 if res.kind == "ise" else k0
+    pid = res.pid
+    gains = [pid.kp / k0, pid.ki / k0, pid.kd / k0]
+    obj = res.objective * f
+    if not (all(math.isfinite(x) for x in gains) and math.isfinite(obj)) or (pid.ki > 0 and gains[1] == 0.0):
+        raise ValueError(f"plant gain {k0:.3g}: the tuned gains or the {res.kind.upper()} ({res.objective:.3g} x {f:.3g}) "
+                         "leave double precision; expected a plant gain nearer 1 (rescale its units)")
+    stats = dict(res.stats)
+    for key in ("objective_horizon", "objective_sampled", "tail_bound"):
+        if key in stats:
+            stats[key] = stats[key] * f
+    names = ("kp", "ki", "kd")
+    warnings = [w for w in res.warnings if not any(w.startswith(f"{n} = ") for n in names)]
+    for i, n in enumerate(names):
+        lim = limits[f"{n}_max"]
+        if math.isfinite(lim) and lim > 0 and gains[i] * k0 >= lim * (1 - 1e-6):
+            warnings.append(f"{n} = {gains[i]:.6g} is at its bound {n}_max = {lim / k0:g}")
+    return replace(res, pid=PID(gains[0], gains[1], gains[2], tf=pid.tf, kff=pid.kff), objective=obj,
+                   per_loop=[v * f for v in res.per_loop], stats=stats, warnings=warnings)
