@@ -2641,8 +2641,8 @@ def tune_pid(
 
 
 #: Largest plant order :func:`tune_pid` accepts (states of its state-space realisation): the
-#: tuner's work grows as the cube of the order (order 20: ~3 s, 100: ~2 min, 800: 38 GiB).
-MAX_ORDER = 40
+#: tuner's work grows as the cube of the order (order 20: ~3 s, 30: ~30 s, 100: ~2 min, 800: 38 GiB).
+MAX_ORDER = 30
 #: Plant gains |P(j w_ref)| outside [1/_GAIN_SPAN, _GAIN_SPAN] are normalised (see tune_pid).
 _GAIN_SPAN = 1e3
 
