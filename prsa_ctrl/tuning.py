@@ -2553,7 +2553,11 @@ def tune_pid(
     plant : control.LTI
         Continuous transfer function or state space; control input first, optional second
         (or ``disturbance``-named) input for the load; one output. Open-loop unstable plants
-        are fine (stability is judged on the closed loop).
+        are fine (stability is judged on the closed loop). At most ``MAX_ORDER`` (30) states,
+        finite coefficients, dynamics from the control input to the output and no undamped
+        poles on the imaginary axis (other than at 0); anything else is refused with a
+        ValueError before any work. A plant whose gain is far from 1 (e.g. 1e-12 or 1e200) is
+        tuned as ``P/k0`` and its gains scaled back (they scale inversely with the plant gain).
     objective : {"ie", "iae", "itae", "ise"}
         Integral (to infinity) of the error after a disturbance step of size ``step``.
     controller : {"pi", "pid"}
@@ -2584,6 +2588,11 @@ def tune_pid(
     Returns
     -------
     TuningResult
+        ``objective`` is that of the CONTINUOUS closed loop with the returned gains (IE and
+        ISE in closed form, IAE and ITAE integrated to a relative ``CONT_RTOL``), not that of
+        the sampled stand-in the optimiser works on (``stats["objective_sampled"]``);
+        ``status`` is ``"optimal"`` only where an independent first-order check of the true
+        problem holds (see :class:`TuningResult`).
 
     Examples
     --------
