@@ -73,6 +73,8 @@ __all__ = [
     "STABILITY",
     "TAIL_RTOL",
     "CONT_RTOL",
+    "KKT_TOL",
+    "MAX_ORDER",
     "MS_RTOL",
 ]
 
