@@ -90,6 +90,11 @@ def true_iae(plant, kp, ki, kd, tf, n=4000):
     return i2 + (i2 - i1) / 3.0
 
 
+def stable(plant, kp, ki, kd, tf):
+    """Closed-loop poles of ``control.feedback(P C)`` in the open left half plane."""
+    return bool(np.max(control.feedback(plant * controller(kp, ki, kd, tf), 1).poles().real) < 0)
+
+
 def _pid(r):
     return r.pid.kp, r.pid.ki, r.pid.kd, r.pid.tf
 
@@ -99,35 +104,58 @@ def _pid(r):
 
 
 def brute_ie(plant, ms_max, tf, use_d, kp_ref, w_lo, w_hi):
-    """Largest ki (IE = 1/ki) with Ms <= ms_max: for each (kp, kd) the largest ki on the Ms
-    boundary by bisection; (kp, kd) by a grid of +-50 % around ``kp_ref`` (kd from 0 to
-    kp * 3 tf ... 3 kp/w) and a shrinking compass search."""
+    """Largest ki (IE = 1/ki) with a stable loop and Ms <= ms_max.
+
+    For each (kp, kd): Ms of a 49-point log grid of ki (1e-2 .. 1e6) on 20 000 frequencies;
+    from the first grid point that is stable and within the bound, upwards to the first that is
+    not (a loop cannot turn unstable inside that interval: its Nyquist curve would have to
+    cross -1, where Ms is infinite), then bisection. (kp, kd) by a zoom grid: 5 x 5 points
+    (kp from 0.25 to 4 times ``kp_ref``, kd from 0 to 16 kp_ref tf at first) around the best,
+    the span shrinking by 0.6 where the centre stays best, 10 levels. (With PID the optimum
+    sits on a ridge where two peaks of |S| are equal; a grid search may stop short of it.) The reported ki is then checked with the
+    refined Ms (:func:`true_ms`)."""
     w = np.logspace(math.log10(w_lo), math.log10(w_hi), 20_000)
     p = _plant_response(plant, w)
+    jw = 1j * w
+
+    def ms_dense(kp, ki, kd):
+        ki = np.atleast_1d(ki)[:, None]
+        c = kp + ki / jw + kd * jw / (tf * jw + 1)
+        return np.max(1 / np.abs(1 + p * c), axis=1)
+
+    kis = np.logspace(-2, 6, 49)
 
     def ki_max(kp, kd):
-        lo, hi = 0.0, 1.0
-        while true_ms(plant, kp, hi, kd, tf, w_lo, w_hi, p, w) <= ms_max and hi < 1e9:
-            lo, hi = hi, 2 * hi
+        if kp <= 0 or kd < 0:
+            return 0.0
+        ok = ms_dense(kp, kis, kd) <= ms_max
+        start = next((i for i in np.flatnonzero(ok) if stable(plant, kp, kis[i], kd, tf)), None)
+        if start is None:
+            return 0.0
+        end = start
+        while end + 1 < kis.size and ok[end + 1]:
+            end += 1
+        lo, hi = kis[end], kis[min(end + 1, kis.size - 1)]
         for _ in range(40):
             mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if true_ms(plant, kp, mid, kd, tf, w_lo, w_hi, p, w) <= ms_max else (lo, mid)
+            lo, hi = (mid, hi) if ms_dense(kp, mid, kd)[0] <= ms_max else (lo, mid)
         return lo
 
-    kps = kp_ref * np.linspace(0.5, 1.5, 11)
-    kds = [0.0] if not use_d else list(kp_ref * tf * np.array([0.0, 0.5, 1.0, 2.0, 4.0]))
-    best = max(((ki_max(kp, kd), kp, kd) for kp in kps for kd in kds))
+    kd_span = 16 * kp_ref * tf if use_d else 0.0
+    best = max((ki_max(kp, kd), kp, kd) for kp in kp_ref * np.logspace(-0.6, 0.6, 9)
+               for kd in (np.linspace(0.0, kd_span, 9) if use_d else [0.0]))
+    span = [0.5, 0.5 * kd_span]
+    for _ in range(10):
+        ki, kp, kd = best
+        for a in np.linspace(-1, 1, 5):
+            for b in (np.linspace(-1, 1, 5) if use_d else [0.0]):
+                kp2, kd2 = kp * math.exp(a * span[0]), max(kd + b * span[1], 0.0)
+                best = max(best, (ki_max(kp2, kd2), kp2, kd2))
+        if best[1:] == (kp, kd):
+            span = [x * 0.6 for x in span]
     ki, kp, kd = best
-    step = [0.05 * kp, 0.5 * kd if kd > 0 else kp_ref * tf]
-    for _ in range(12):
-        moved = False
-        for dk, dd in ((1, 0), (-1, 0)) + (((0, 1), (0, -1)) if use_d else ()):
-            kp2, kd2 = kp + dk * step[0], max(kd + dd * step[1], 0.0)
-            k2 = ki_max(kp2, kd2)
-            if k2 > ki:
-                ki, kp, kd, moved = k2, kp2, kd2, True
-        if not moved:
-            step = [x / 2 for x in step]
+    while true_ms(plant, kp, ki, kd, tf, w_lo, w_hi, p, w) > ms_max:  # the refined peak decides
+        ki *= 1 - 1e-6
     return ki, kp, kd
 
 
@@ -141,10 +169,15 @@ def test_servo_ie_is_optimal_against_a_brute_force(controller_kind, ms_max):
     ms = true_ms(plant, kp, ki, kd, tf, 1.0, 1e7)
     assert ms <= ms_max * (1 + 1e-9)
     assert ms >= ms_max * (1 - 1e-3)  # the bound is active at this optimum
+    assert stable(plant, kp, ki, kd, tf)
     assert r.ms == pytest.approx(ms, rel=1e-6)
     ki_bf, _, _ = brute_ie(plant, ms_max, tf, controller_kind == "pid", kp, 1.0, 1e7)
-    # Within 0.5 % of the brute force (the brute force may be a hair worse, never much better).
+    # Within 0.5 % of the brute force or better (the tuner's point is independently verified
+    # stable and within the bound above; with PID the brute force stops up to 3 % short on the
+    # ridge where two peaks of |S| are equal).
     assert ki >= ki_bf * (1 - 5e-3), (ki, ki_bf)
+    if controller_kind == "pi":
+        assert ki == pytest.approx(ki_bf, rel=5e-3)
 
 
 def brute_iae(plant, ms_max, tf, use_d, g_ref, w_lo, w_hi, rng):
@@ -193,7 +226,7 @@ def test_servo_iae_is_optimal_against_a_brute_force(controller_kind, ms_max):
         assert ms >= ms_max * (1 - 1e-3)
     best = brute_iae(plant, ms_max, tf, controller_kind == "pid", (kp, ki, kd if kd > 0 else kp * tf),
                      1.0, 1e7, np.random.default_rng(20))
-    assert iae <= best * (1 + 5e-3), (iae, best)
+    assert iae == pytest.approx(best, rel=5e-3)
 
 
 # --------------------------------------------------------------------------------------------
@@ -227,7 +260,7 @@ def test_no_better_feasible_point_near_a_reported_optimum(case):
     p = _plant_response(plant, w)
 
     def value(g):
-        if true_ms(plant, *g, tf, w_lo, w_hi, p, w) > ms_max:
+        if true_ms(plant, *g, tf, w_lo, w_hi, p, w) > ms_max or not stable(plant, *g, tf):
             return math.inf
         return 1.0 / g[1] if obj == "ie" else true_iae(plant, *g, tf)
 
@@ -383,3 +416,11 @@ def test_plant_gain_scales_the_gains_inversely(exponent, objective):
 def test_objective_beyond_double_precision_is_refused():
     with pytest.raises(ValueError, match=r"leave double precision"):
         tune_pid(_scaled(1e200), objective="ise")
+
+
+def test_a_non_finite_objective_is_never_reported(monkeypatch):
+    import prsa_ctrl.tuning as tuning
+
+    monkeypatch.setattr(tuning.LoopModel, "true_objective", lambda self, gains, kind: (math.nan, 0.0))
+    with pytest.raises(ValueError, match="objective is not finite"):
+        tune_pid(P3, objective="ie")
