@@ -2169,7 +2169,7 @@ class Tuner:
     def _polish(self, gains, ms_max, mt_max, noise, hi) -> NDArray | None:
         """A local solve of the TRUE problem from ``gains`` (SLSQP in log gains, central
         differences of ``_FD_STEP / 10``): the reported objective (:meth:`LoopModel.
-        _smooth_objective`) under every local peak of |S| (and |T|) within 5 % of its bound,
+        _smooth_objective`) under the top peak of |S| (and |T|) and every local one within 10 % of its bound,
         each tracked in a bracket of +-0.3 in log frequency around where it was, the noise bound
         and the gain bounds. The ipopt solve works on a stand-in (sampled loop, smoothed
         ``|e|``, two-rate samples, the bound on fixed frequencies), whose optimum can miss the
