@@ -741,6 +741,10 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         The verified-best design, the other candidates, the baselines, the comparisons,
         timings (s) and warnings.
     """
+    if not isinstance(plant, Plant):
+        raise TypeError(f"plant = {plant!r}; expected a prsa_ctrl Plant (e.g. prsa_ctrl.load_plant('paper-iprsm'))")
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene = {scene!r}; expected a prsa_ctrl Scene (e.g. prsa_ctrl.load_scene(...))")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     scene, fidelity_reason = choose_fidelity(scene)
