@@ -78,10 +78,18 @@ def test_a_scene_trace_csv_is_an_input_and_never_an_output(tmp_path):
     assert (tmp_path / "duty-trace.csv").read_bytes() == before
 
 
-@pytest.mark.parametrize("flag, folder, name", [("--json", PLANTS, "zz-trust-test.json"),
-                                                ("--export", SCENES, "zz-trust-test.toml")])
-def test_outputs_inside_the_package_data_are_refused(tmp_path, flag, folder, name):
-    target = folder / name
+def _installed_folder(package):
+    """Where the installed package keeps its data (the repository's folder in an editable
+    install, site-packages otherwise): the place a user's run must not write into."""
+    from importlib.resources import files
+
+    return Path(os.fspath(files(package)))
+
+
+@pytest.mark.parametrize("flag, package, name", [("--json", "prsa_ctrl.plants", "zz-trust-test.json"),
+                                                 ("--export", "prsa_ctrl.scenes", "zz-trust-test.toml")])
+def test_outputs_inside_the_package_data_are_refused(tmp_path, flag, package, name):
+    target = _installed_folder(package) / name
     assert not target.exists()
     try:
         p = _run([flag, str(target)], tmp_path)
