@@ -238,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Monte-Carlo seed (default: the scene's, else 0); sample i depends only on (seed, i)")
     p.add_argument("--scheduler", metavar="local|tcp://HOST:PORT", type=_path_text("--scheduler"), default=None,
                    help="run the Monte Carlo on Dask: 'local' starts a LocalCluster, an address connects to a "
-                        "running scheduler (needs pip install 'prsa-ctrl[dask]')")
+                        "running scheduler (needs pip install 'prsa-ctrl[dask]', or '.[dask]' in a checkout)")
     p.add_argument("--accept-unconverged", action="store_true",
                    help="exit 0 even when the best design is flagged (tuner not converged or a verified run "
                         "that reverses, never recovers, saturates or departs from the linear model); default: exit 3")
@@ -938,7 +938,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
                                   "[robust] monte_carlo) to run on it")
             address = _scheduler_address(args.scheduler)
             if find_spec("distributed") is None:
-                raise _UsageError(f"--scheduler {args.scheduler!r} needs Dask: pip install 'prsa-ctrl[dask]'")
+                raise _UsageError(f"--scheduler {args.scheduler!r} needs Dask: pip install 'prsa-ctrl[dask]', or '.[dask]' in a checkout")
             if address is not None:
                 _probe_scheduler(args.scheduler, *address)
         if args.export is not None:
@@ -1059,7 +1059,8 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         if args.plots is not None:
             print(f"plots: {', '.join(str(p) for p in rep.plot_files)}")
         if args.export is not None:
-            print(f"drive export: {args.export} holds the {export_design['name']} ({export_design['chosen_by']})")
+            print(f"drive export: {args.export} holds the design {export_design['name']!r}, "
+                  f"{export_design['chosen_by']}")
     _show_notes(run, notes, native, args.verbose, args.quiet)
     if rep.status != "ok" and not args.accept_unconverged:
         run.say(f"{run.prog}: the best design is flagged ({rep.status}); its numbers are reported above but "

@@ -360,6 +360,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     if wants_axis_mode(argv):
         return _axis_run(argv)
+    mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
+    if mat is not None:  # a MATLAB log has no fixed columns: only a log description says what it holds
+        print(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
+              "--log-format FILE.toml (an example: examples/emps/log.toml)", file=sys.stderr)
+        return 2
     verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
     created: list = []  # files and directories this run made, taken back when it is interrupted
     try:

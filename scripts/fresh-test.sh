@@ -8,6 +8,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 venv="${PRSA_TEST_VENV:-${TMPDIR:-/tmp}/prsa-ctrl-test-venv}"
 python3 -m venv --clear "$venv"
+# setuptools reuses build/ when its files look newer than the sources (a copied tree): start clean.
+rm -rf build ./*.egg-info
 "$venv/bin/python" -m pip install --quiet --upgrade pip
 "$venv/bin/python" -m pip install --quiet --upgrade --upgrade-strategy eager ".[test,notebooks,dask,app]" "playwright>=1.40"
 # The browser tests (tests/test_app_browser.py) drive Debian's Chromium (Playwright's own browser

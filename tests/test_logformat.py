@@ -232,3 +232,17 @@ def test_a_pi_velocity_loop_is_reconstructed(files):
     fmt.write_text(GOOD.replace("position-p/velocity-p", "position-p/velocity-pi") + "ki = 40.0\n")
     with pytest.raises(LogFormatError, match="does not reproduce"):
         load_axis_log(mat, load_log_format(fmt))
+
+
+def test_a_mat_log_without_a_log_description_is_one_line(tmp_path, capsys):
+    """A .mat log given to prsa-fit without --log-format: one line pointing at --log-format, exit 2
+    (it used to be parsed as a CSV: "'utf-8' codec can't decode byte ...")."""
+    from prsa_ctrl.fit_cli import main
+
+    log = tmp_path / "record.mat"
+    log.write_bytes(b"MATLAB 5.0 MAT-file" + bytes(200))
+    out = tmp_path / "fitted.toml"
+    assert main([str(log), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--log-format" in err[0] and "record.mat" in err[0]
+    assert not out.exists()

@@ -220,7 +220,7 @@ def test_report_json_and_export_name_the_recommended_design(tmp_path, capsys):
     t = tomllib.loads(exp.read_text())
     assert t["design"]["name"] == "nominal design" and t["design"]["yield"] == nom["yield"]
     assert t["speed_controller"]["continuous"]["kp_n_m_s_per_rad"] == d["robust"]["nominal_gains"]["kp"]
-    assert f"drive export: {exp} holds the nominal design (recommended by the robust study)" in text
+    assert f"drive export: {exp} holds the design 'nominal design', recommended by the robust study" in text
 
 
 def test_unstable_scenario_is_reported_and_the_json_is_written(tmp_path, capsys):
