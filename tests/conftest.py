@@ -29,3 +29,21 @@ def _close_figures():
     import matplotlib.pyplot as plt
 
     plt.close("all")
+
+
+@pytest.fixture
+def stand_in(monkeypatch):
+    """The tuner replaced by a counting stand-in that fails (exit 3 if a CLI reaches it): a test
+    of input checking asserts ``not stand_in``, i.e. the refusal came before any tuning."""
+    import prsa_ctrl.autotune as autotune
+    from prsa_ctrl import SimulationError
+
+    calls = []
+
+    def fake(*a, **k):
+        calls.append(a)
+        raise SimulationError("stand-in for the tuner at t = 0 s; remedy: none")
+
+    monkeypatch.setattr(autotune, "tune_actuator", fake)
+    monkeypatch.setattr(autotune, "actuator_loops", fake)
+    return calls

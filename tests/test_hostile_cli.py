@@ -19,20 +19,6 @@ PAPER_CAPACITY_N = (3.0 - 0.02 - 1e-4 * 300 * math.pi / 30) * 0.85 * 2 * math.pi
 STICTION_RPM = 5 * 1e-4 / (2e-3 / (2 * math.pi)) * 30 / math.pi  # screw slower than 5x the Stribeck velocity
 
 
-@pytest.fixture
-def stand_in(monkeypatch):
-    import prsa_ctrl.autotune as autotune
-
-    calls = []
-
-    def fake(*a, **k):
-        calls.append(a)
-        raise SimulationError("stand-in for the tuner at t = 0 s; remedy: none")
-
-    monkeypatch.setattr(autotune, "tune_actuator", fake)
-    monkeypatch.setattr(autotune, "actuator_loops", fake)
-    return calls
-
 
 def _outcome(capsys, rc, calls, prog="prsa-tune"):
     cap = capsys.readouterr()

@@ -32,19 +32,6 @@ def _scene_set(doc: str, key: str, value: str) -> str:
     return pat.sub(lambda m: f"{key} = {value} ", doc, count=1)
 
 
-@pytest.fixture
-def stand_in(monkeypatch):
-    import prsa_ctrl.autotune as autotune
-
-    calls = []
-
-    def fake(*a, **k):
-        calls.append(a)
-        raise SimulationError("stand-in for the tuner at t = 0 s; remedy: none")
-
-    monkeypatch.setattr(autotune, "tune_actuator", fake)
-    return calls
-
 
 def _one_line(capsys) -> str:
     err = capsys.readouterr().err

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import pytest
 
-from prsa_ctrl import SimulationError
 from prsa_ctrl.cli import main
 
 REPO = Path(__file__).resolve().parent.parent
@@ -52,19 +51,6 @@ def _one_error(proc, *needles):
         assert n in lines[0], (n, lines[0])
     return lines[0]
 
-
-@pytest.fixture
-def stand_in(monkeypatch):
-    import prsa_ctrl.autotune as autotune
-
-    calls = []
-
-    def fake(*a, **k):
-        calls.append(a)
-        raise SimulationError("stand-in for the tuner at t = 0 s; remedy: none")
-
-    monkeypatch.setattr(autotune, "tune_actuator", fake)
-    return calls
 
 
 # --- hostile 1, 2: inputs and the package's own files are never outputs -------------------------
