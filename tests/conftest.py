@@ -18,9 +18,14 @@ os.environ.setdefault("PRSA_FAST", "1")
 
 @pytest.fixture(scope="session")
 def paper_plant():
+    """The built-in paper plant, loaded once (its geometry note silenced)."""
+    import warnings
+
     from prsa_ctrl import load_plant
 
-    return load_plant("paper-iprsm")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_plant("paper-iprsm")
 
 
 @pytest.fixture(autouse=True)

@@ -6,12 +6,11 @@ the drive export of the position loop."""
 import dataclasses
 import math
 import tomllib
-import warnings
 
 import numpy as np
 import pytest
 
-from prsa_ctrl import PID, load_plant
+from prsa_ctrl import PID
 from prsa_ctrl.cascade import (BREAKING_POINTS, CascadeModel, export_cascade, hunting, is_move_scene, load_move_scene,
                                main_move, move_metrics, sequential_design, simulate_move, tune_cascade, verify_design)
 from prsa_ctrl.errors import SceneError
@@ -25,10 +24,8 @@ PI = PID(0.0809, 13.56)
 
 
 @pytest.fixture(scope="module")
-def plant():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return load_plant()
+def plant(paper_plant):
+    return paper_plant
 
 
 @pytest.fixture(scope="module")

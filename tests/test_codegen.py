@@ -13,12 +13,11 @@ import math
 import re
 import shutil
 import subprocess
-import warnings
 
 import numpy as np
 import pytest
 
-from prsa_ctrl import PID, load_plant
+from prsa_ctrl import PID
 from prsa_ctrl.cascade import load_move_scene, simulate_move
 from prsa_ctrl.codegen import (DriveLaw, ReferenceLaw, c_code, drive_law, export_code, max_relative_difference,
                                replay_inputs, st_code)
@@ -35,10 +34,8 @@ FILTERS = (LoopFilter(Notch(1200.0, 300.0, -20.0), "torque_command"),
 
 
 @pytest.fixture(scope="module")
-def plant():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return load_plant()
+def plant(paper_plant):
+    return paper_plant
 
 
 @pytest.fixture(scope="module")

@@ -11,12 +11,11 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-import warnings
 
 import numpy as np
 import pytest
 
-from prsa_ctrl import PID, load_plant
+from prsa_ctrl import PID
 from prsa_ctrl.cascade import CascadeDesign, load_move_scene, simulate_move
 from prsa_ctrl.codegen import ReferenceLaw, drive_law, max_relative_difference, replay_inputs
 from prsa_ctrl.driveparams import (MotorData, builtin_templates, controller_from_parameter_set, drive_units,
@@ -34,10 +33,8 @@ MOTOR = MotorData(0.9, rated_current_a=4.0, rated_torque_n_m=3.0, rated_speed_rp
 
 
 @pytest.fixture(scope="module")
-def plant():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return load_plant()
+def plant(paper_plant):
+    return paper_plant
 
 
 @pytest.fixture(scope="module")

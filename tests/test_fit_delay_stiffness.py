@@ -35,10 +35,8 @@ def _noisy(truth, f, seed, *, fidelity="rigid", delay_s=0.0, noise=0.02, load=80
 
 
 @pytest.fixture(scope="module")
-def base():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return load_plant()
+def base(paper_plant):
+    return paper_plant
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from prsa_ctrl import load_plant
 from prsa_ctrl.fit import fit_plant
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -20,10 +19,8 @@ TRUTH = PERTURBED["issue"]
 
 
 @pytest.fixture(scope="module")
-def base():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return load_plant()
+def base(paper_plant):
+    return paper_plant
 
 
 @pytest.fixture(scope="module")
