@@ -250,7 +250,7 @@ def test_copy_as_code_runs_to_the_shown_gains(app_page):
     assert f"{ns['result'].pid.kp:.6g}" == _text(page, "opt-kp")
 
 
-@pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="set PRSA_SLOW=1 (robust tuning + Monte Carlo, ~20 s)")
+@pytest.mark.slow  # robust tuning + Monte Carlo, ~20 s
 def test_robust_and_monte_carlo_with_progress_and_cancel(app_page):
     page = app_page
     page.locator(".prsa-samples input").fill("40")

@@ -2,7 +2,6 @@
 
 import json
 import math
-import os
 import sys
 import tomllib
 from pathlib import Path
@@ -99,7 +98,7 @@ def _z_scores(result, truth):
     "issue",
     "heavy-lossy",
     # the third direction takes a second solver attempt (~10 s): with the slow studies
-    pytest.param("light-fast", marks=pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="set PRSA_SLOW=1")),
+    pytest.param("light-fast", marks=pytest.mark.slow),
 ])
 def test_toolkit_round_trip(base, case):
     truth = base.with_params(PERTURBED[case])
@@ -326,7 +325,7 @@ def test_bad_arguments_and_non_convergence(base):
         fit_plant([rec], base, max_iter=1)
 
 
-@pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="20-seed CI coverage study: set PRSA_SLOW=1 (~6 min)")
+@pytest.mark.slow  # 20-seed CI coverage study (~6 min)
 @pytest.mark.parametrize("case", list(PERTURBED))
 def test_ci_coverage_over_20_seeds(base, case):
     """Issue 11: for each parameter, the truth inside its 95 % CI in >= 90 % of 20 seeds."""
