@@ -95,7 +95,8 @@ def _set(section, key, value):
         (_set("friction", "static", "0.1"), r"friction\.static = 0\.1 is below friction\.dynamic"),
         (_set("contact", "exponent", "0.8"), r"contact\.exponent = 0\.8; expected >= 1"),
         (_set("roller", "pitch_diameter_mm", "6.0"), r"roller\.pitch_diameter_mm = 6\.0 cannot fit"),
-        (lambda d: re.sub(r"^mass_kg = .*\n", "", d, count=1, flags=re.M), r"missing key screw\.mass_kg"),
+        # issue 21: screw.mass_kg now has a documented default; a required key is still refused
+        (lambda d: re.sub(r"^inertia_kg_m2 = .*\n", "", d, count=1, flags=re.M), r"missing key nut\.inertia_kg_m2; expected it"),
         (lambda d: d.replace('source = "paper Table 1 (Quantity)"', 'source = ""'), r"roller\.count\.source = ''"),
         (lambda d: d.replace("[drive]", "[drive\n"), r"invalid TOML"),
     ],

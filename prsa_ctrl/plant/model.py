@@ -630,10 +630,9 @@ _FAMILIES: dict[tuple, "ParametricModel | None"] = {}
 def _parameter_candidate(key: str) -> bool:
     """Keys that may be parameters: not read as numbers by the sampled loop (``sensor.*``,
     the torque limit) and not structural (integers: starts, counts, engaged threads)."""
-    from .plantfile import SCHEMA
+    from .schema import KIND
 
-    section, sub = key.split(".")
-    return section != "sensor" and key != "drive.torque_limit_n_m" and SCHEMA[section][sub] != "positive integer"
+    return not key.startswith("sensor.") and key != "drive.torque_limit_n_m" and KIND[key] != "positive integer"
 
 
 def _symbolic_build(base: Plant, fidelity: str, seed: int, keys: tuple[str, ...]) -> ParametricModel:
