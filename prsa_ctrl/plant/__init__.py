@@ -42,6 +42,7 @@ _EXPORTS = {
     "register_member": "model",
     "steady_torque": "equilibrium",
     "stick_band_rad_s": "model",
+    "screw_axis_springs": "model",
     "stribeck_coefficient": "model",
     "uncertainty_model": "uncertainty",
 }

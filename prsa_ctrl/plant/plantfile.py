@@ -41,6 +41,7 @@ __all__ = [
 ]
 
 DEFAULT_PLANT = "paper-iprsm"
+_STEEL_KG_M3 = 7850.0  # density of steel, kg/m^3 (as the defaults of plant/schema.py)
 
 def _builtin_root(package: str, folder: str) -> Any:
     """Where the built-in TOML files live: the installed package data, or, when running from a
@@ -438,6 +439,9 @@ class Plant:
                 raise PlantFileError(
                     f"{self.name}: unknown parameter {key!r}; allowed: {', '.join(self.values)}"
                 )
+            if key in self.defaulted and sources[key].startswith("derived:"):
+                raise PlantFileError(f"{self.name}: {key} = {v!r} cannot be set: it is {sources[key]}; expected a "
+                                     "value for the key it is derived from")
             values[key] = _check_value(KIND[key], key, v, f"{self.name} override")
             sources[key] = "override"
         defaulted = self.defaulted - set(overrides)
@@ -669,6 +673,14 @@ class Plant:
         if v["axis.fixed_ends"] == 2:
             return ea * span / (x * (span - x))
         return ea / x
+
+    @property
+    def screw_axial_mass_kg(self) -> float:
+        """Axially moving mass of the screw shaft, kg: a steel cylinder of the root diameter over
+        the bearing span (the whole shaft moves when its support bearing deflects; lumped into
+        one body, see :func:`prsa_ctrl.plant.model.plant_model`)."""
+        v = self.values
+        return _STEEL_KG_M3 * math.pi / 4.0 * (v["screw.root_diameter_mm"] * 1e-3) ** 2 * v["axis.bearing_span_mm"] * 1e-3
 
     def axial_stiffness_n_per_m(self, stroke_position_mm=None):
         """Axial stiffness between the motor-side helix and the carriage, N/m: the screw shaft

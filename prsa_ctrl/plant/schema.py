@@ -232,8 +232,17 @@ def keys_of(mechanism: str) -> tuple[str, ...]:
     if mechanism in SCREW_DRIVEN:
         return _CORE + _SCREW_AXIS
     if mechanism == "linear-axis":
-        return _LINEAR + _CORE
+        return _LINEAR_KEYS
     return _CORE
+
+
+def _grouped(keys: tuple[str, ...]) -> tuple[str, ...]:
+    """``keys`` with each section's keys together, sections in order of first appearance."""
+    sections = dict.fromkeys(k.split(".")[0] for k in keys)
+    return tuple(k for s in sections for k in keys if k.split(".")[0] == s)
+
+
+_LINEAR_KEYS = _grouped(_LINEAR + _CORE)
 
 
 #: Keys a plant file must give, per mechanism (the minimal plant file). ``mechanism`` itself
@@ -301,13 +310,17 @@ DEFAULTS = {
     "nut.lead_mm": (lambda v, m: v["screw.lead_mm"], "default: equal to screw.lead_mm (the threads mesh)"),
     "nut.starts": (lambda v, m: v["screw.starts"], "default: equal to screw.starts (the threads mesh)"),
     "roller.starts": (1, "default: single-start rollers (all catalogue roller screws)"),
-    "roller.pitch_diameter_mm": (lambda v, m: v["screw.pitch_diameter_mm"] / v["screw.starts"],
-                                 "default: the inverted design's matching rule d_S = n_S d_R"),
+    "roller.pitch_diameter_mm": (lambda v, m: v["screw.pitch_diameter_mm"] / (v["screw.starts"] - 2.0)
+                                 if m == "roller-screw" and v["screw.starts"] > 2 else
+                                 v["screw.pitch_diameter_mm"] / v["screw.starts"],
+                                 {"roller-screw": "default: the standard design's matching rule d_S = (n_S - 2) d_R",
+                                  "*": "default: the inverted design's matching rule d_S = n_S d_R"}),
     "roller.lead_mm": (lambda v, m: v["screw.lead_mm"] / v["screw.starts"],
                        "default: one thread pitch (screw.lead_mm / screw.starts), single-start rollers"),
     "nut.pitch_diameter_mm": (lambda v, m: v["screw.pitch_diameter_mm"] + 2.0 * v["roller.pitch_diameter_mm"],
                               "default: closed geometry d_N = d_S + 2 d_R"),
-    "roller.count": (lambda v, m: min(10, math.floor(0.9 * math.pi * (v["screw.starts"] + 1))),
+    "roller.count": (lambda v, m: min(10, math.floor(0.9 * math.pi * (v["screw.pitch_diameter_mm"]
+                                                                       / v["roller.pitch_diameter_mm"] + 1))),
                      "default: 10 rollers (the paper), fewer where they would not fit on the orbit"),
     "roller.mass_kg": (lambda v, m: _STEEL_KG_M3 * math.pi / 4 * (v["roller.pitch_diameter_mm"] * 1e-3) ** 3 * 30.0 / 3.6,
                        "default: solid steel cylinder of the roller pitch diameter, 8.3 diameters long (the paper's 3.6 x 30 mm)"),
