@@ -284,7 +284,7 @@ def _parse(doc: Mapping[str, Any], origin: str):
             raise PlantFileError(f"{origin}: both mounting and axis.fixed_ends given; expected one of them")
         mounting, m_src, _ = _text_key(doc, "mounting", tuple(MOUNTINGS), DEFAULT_MOUNTING, origin)
         values["axis.fixed_ends"] = float(MOUNTINGS[mounting])
-        sources["axis.fixed_ends"] = f"mounting = {mounting!r}: {m_src}"
+        sources["axis.fixed_ends"] = f"{m_src} (mounting = {mounting!r})"
     defaulted = _fill_defaults(values, sources, mechanism, origin)
     if mechanism in SCREW_DRIVEN:
         _check_screw_axis(values, origin)
@@ -519,15 +519,17 @@ class Plant:
     def roller_spin_ratios(self) -> tuple[float, float]:
         """Roller spin per unit cage speed: (relative to the cage, relative to ground).
 
-        Rolling without slip at both pitch circles: inverted (nut turns, screw still)
+        Rolling without slip at both pitch circles, one sign convention for both designs
+        (relative spin = absolute spin - cage speed): inverted (nut turns, screw still)
         ``(d_S / d_R, (d_S + d_R) / d_R)``; screw-driven roller screw (screw turns, nut still)
-        ``(d_N / d_R, (d_S + d_R) / d_R)`` in magnitude; 0 where there are no rollers.
+        ``(-d_N / d_R, -(d_S + d_R) / d_R)`` (the rollers spin against the carrier's orbit);
+        0 where there are no rollers.
         """
         d_s, d_n, d_r = self.d_screw_m, self.d_nut_m, self.d_roller_m
         if self.mechanism == "inverted-roller-screw":
             return d_s / d_r, (d_s + d_r) / d_r
         if self.mechanism == "roller-screw":
-            return d_n / d_r, (d_s + d_r) / d_r
+            return -d_n / d_r, -(d_s + d_r) / d_r
         return 0.0, 0.0
 
     @property
