@@ -1,9 +1,13 @@
-"""Plant definitions: loading, validation, geometry matching and rigid kinematics.
+"""Plant definitions: loading, validation, defaults, geometry matching and rigid kinematics.
 
-A plant file (``plants/*.toml``) holds one table per component; every parameter is an inline
-table ``{ value = ..., source = "..." }`` so that its origin (paper table, paper text, or
-``"assumption: <why>"``) travels with it. Key names carry their units; inside the library
-everything is SI.
+A plant file (``plants/*.toml``) names its ``mechanism`` (default ``inverted-roller-screw``;
+:data:`prsa_ctrl.plant.schema.MECHANISMS`) and holds one table per component; every parameter
+is an inline table ``{ value = ..., source = "..." }`` so that its origin (paper table, paper
+text, catalogue, or ``"assumption: <why>"``) travels with it. Only a few keys are required
+per mechanism (:data:`~prsa_ctrl.plant.schema.REQUIRED`); every other key takes its documented
+default with that default's source (:data:`~prsa_ctrl.plant.schema.DEFAULTS`), and
+:func:`describe_plant` (``prsa-tune --show-plant``) lists every value, given or defaulted. Key
+names carry their units; inside the library everything is SI.
 """
 
 from __future__ import annotations

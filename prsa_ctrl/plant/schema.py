@@ -259,11 +259,6 @@ REQUIRED: Mapping[str, tuple[str, ...]] = {
 }
 
 Rule = Callable[[Mapping[str, float], str], float]
-#: ``key -> (value or rule, source)``: the default of every key a file may leave out. A rule
-#: ``f(values, mechanism)`` derives the value from keys before it in this table (or given);
-#: a source given as a mapping is per mechanism (``"*"``: the others). The source becomes the
-#: plant's source of the key (``Plant.sources``), so a defaulted value says where it came from.
-DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]] = {}
 
 _STEEL_KG_M3 = 7850.0  # density of steel, kg/m^3
 _LOAD_COORDINATES_LEAD_MM = 2000.0 * math.pi  # 1 m of travel per radian: a linear axis in load coordinates
@@ -277,7 +272,14 @@ def _linear_or(rule: Rule, linear: Rule) -> Rule:
     return lambda v, m: linear(v, m) if m == "linear-axis" else rule(v, m)
 
 
-DEFAULTS = {
+#: ``key -> (value or rule, source)``: the default of every key a file may leave out. A rule
+#: ``f(values, mechanism)`` derives the value from other values (given or defaulted; the
+#: reader evaluates each rule once its inputs exist); a source given as a mapping is per
+#: mechanism (``"*"``: the others). The source becomes the plant's source of the key
+#: (``Plant.sources``), so a defaulted value says where it came from: ``"default: ..."`` (a
+#: typical value and why), ``"derived: ..."`` (follows from other keys; cannot be overridden)
+#: or ``"assumption: ..."`` (an engineering estimate).
+DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]] = {
     # the linear axis's own keys
     "friction.coulomb_positive_n": (0.0, "default: no Coulomb friction (frictionless guide)"),
     "friction.coulomb_negative_n": (0.0, "default: no Coulomb friction (frictionless guide)"),
