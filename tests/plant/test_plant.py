@@ -12,7 +12,7 @@ from prsa_ctrl import GeometryWarning, PlantFileError, builtin_plants, load_plan
 from prsa_ctrl.plant.plantfile import SCHEMA, Plant
 from prsa_ctrl.plant.schema import keys_of
 
-PLANT_DIR = Path(__file__).resolve().parent.parent / "plants"
+PLANT_DIR = Path(__file__).resolve().parents[2] / "plants"
 ALL_PLANTS = builtin_plants()
 
 
