@@ -19,7 +19,7 @@ from prsa_ctrl.plant import linear_core, operating_point, plant_model, steady_to
 from prsa_ctrl.plant.uncertainty import plant_uncertainty
 from prsa_ctrl.studies import montecarlo as mc
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 STEEL = 7850.0
 SCREW_PLANTS = ("ballscrew-32x10", "rollerscrew-30x5")
 

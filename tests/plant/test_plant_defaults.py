@@ -12,7 +12,7 @@ from prsa_ctrl.cli.tune import main as tune_main
 from prsa_ctrl.plant import describe_plant
 from prsa_ctrl.plant.schema import DEFAULTS, KIND, MECHANISMS, REQUIRED, keys_of
 
-PLANT_DIR = Path(__file__).resolve().parent.parent / "plants"
+PLANT_DIR = Path(__file__).resolve().parents[2] / "plants"
 
 MINIMAL_IPRSM = '''
 name = "mini"
