@@ -35,7 +35,7 @@ extensions = [
     "prsa_docs",               # docs/_ext: API pages and the plant-key table from the code
 ]
 
-exclude_patterns = ["_build", "**/.ipynb_checkpoints", "app/*.png"]
+exclude_patterns = ["_build", "**/.ipynb_checkpoints"]
 source_suffix = {".rst": "restructuredtext", ".md": "myst-nb", ".ipynb": "myst-nb"}
 root_doc = "index"
 
