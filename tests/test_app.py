@@ -24,8 +24,8 @@ def session():
 
 
 def _fresh(**bounds):
-    from prsa_ctrl.autotune import actuator_loops
-    from prsa_ctrl.tuning import tune_loops
+    from prsa_ctrl.studies.autotune import actuator_loops
+    from prsa_ctrl.tuning.tuner import tune_loops
 
     plant, scene = load_plant(), load_scene()
     return tune_loops(actuator_loops(plant, scene), objective=scene.objective, controller=scene.controller, **bounds)
@@ -60,7 +60,7 @@ def test_port_in_use_is_one_line_exit_2(capsys):
 
 
 def test_core_commands_do_not_import_the_app_stack():
-    code = ("import sys, prsa_ctrl.cli, prsa_ctrl.autotune, prsa_ctrl.tuning; "
+    code = ("import sys, prsa_ctrl.cli.tune, prsa_ctrl.studies.autotune, prsa_ctrl.tuning.tuner; "
             "print(any(m.split('.')[0] in ('bokeh', 'tornado', 'panel') for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
@@ -99,7 +99,7 @@ def test_uploaded_plant_is_named_as_uploaded_and_leaves_the_session_intact(tmp_p
             s.upload("plant", "my-plant.toml", b"[nut\n")
         assert str(info.value).startswith("my-plant.toml: invalid TOML")
         assert s.plant.name == "paper-iprsm"  # the old plant stays
-        from prsa_ctrl.plant import plant_file_path
+        from prsa_ctrl.plant.plantfile import plant_file_path
 
         s.upload("plant", "copy.toml", plant_file_path("iprsm-60").read_text().encode())
         assert s.plant.name == load_plant("iprsm-60").name and s.plant_label == "copy.toml"
@@ -144,7 +144,7 @@ def test_robust_study_cancel_keeps_the_finished_samples(session):
     import os
 
     from prsa_ctrl.app.session import robust_study
-    from prsa_ctrl.montecarlo import run_monte_carlo
+    from prsa_ctrl.studies.montecarlo import run_monte_carlo
 
     s0 = session.default_settings()
     opt = session.tuned(s0)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID, load_plant, run
-from prsa_ctrl.export import dumps, export_controller
-from prsa_ctrl.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
-from prsa_ctrl.filtertune import loop_builder, tune_filtered
-from prsa_ctrl.linear import linear_core
-from prsa_ctrl.model import plant_model
+from prsa_ctrl.io.export import dumps, export_controller
+from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
+from prsa_ctrl.tuning.filtered import loop_builder, tune_filtered
+from prsa_ctrl.plant.linear import linear_core
+from prsa_ctrl.plant.model import plant_model
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -142,7 +142,7 @@ def test_tuned_notch_beats_gains_alone_at_equal_ms_and_mks():
     the notch tuned with the gains gives a lower IAE than the gains alone, and the reported Ms
     and Mks are the true peaks of the returned loop (recomputed here)."""
     bld = lambda f=None: _heavy_loop(f, horizon=0.05)  # noqa: E731
-    from prsa_ctrl.filtertune import loop_builder as _lb  # noqa: F401 (the builder protocol)
+    from prsa_ctrl.tuning.filtered import loop_builder as _lb  # noqa: F401 (the builder protocol)
     g = tune_filtered([bld], ts=TS, kind=None, start_gains=(0.02, 2.6), max_noise_gain=0.05)
     n = tune_filtered([bld], ts=TS, kind="notch", start_gains=(g.pid.kp, g.pid.ki), max_noise_gain=0.05)
     assert g.converged and n.converged

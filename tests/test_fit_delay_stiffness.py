@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import load_plant
-from prsa_ctrl.controller import PID
-from prsa_ctrl.fit import DELAY_KEY, FRF_KEYS_COMPLIANT, axial_mode, fit_frf, fit_plant, frf_response
-from prsa_ctrl.fitdata import frf_from_arrays, record_from_arrays
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.identification.fit import DELAY_KEY, FRF_KEYS_COMPLIANT, axial_mode, fit_frf, fit_plant, frf_response
+from prsa_ctrl.identification.data import frf_from_arrays, record_from_arrays
 
 TS = 2.5e-4
 K_KEY = "contact.stiffness_n_per_mm_e"
@@ -95,7 +95,7 @@ def _simulated_frf_computed_command_log(truth, seed=0):
     """A drive's Bode measurement simulated by the toolkit's sampled loop (rigid), where the
     drive logs the command it computes at a sample (applied one sample later), not the applied
     one: the response from the logged command carries one sample of delay."""
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     period, periods = 0.125, 4
     n = int(round(period / TS))
@@ -199,7 +199,7 @@ def test_bad_arguments_one_line(base):
 
 
 def test_cli_delay_and_compliant(base, heavy, tmp_path, capsys):
-    from prsa_ctrl.fit_cli import main
+    from prsa_ctrl.cli.fit import main
 
     truth = base.with_params(TRUTH_RIGID)
     path = tmp_path / "bode.csv"
