@@ -4,7 +4,7 @@
   table, then every public name documented by autodoc (numpydoc docstrings). Nothing is listed
   by hand, so the reference follows the code when modules inside a subpackage are split or moved.
 - ``prsa-api-toplevel``: the names of ``prsa_ctrl.__all__``, each linked to the subpackage page
-  that documents it (a name that no page documents is a build error).
+  that documents it (a name that no subpackage exports is documented on the top-level page).
 - ``prsa-plant-keys``: every key of a plant file (``prsa_ctrl.plant.SCHEMA``) with its unit, kind,
   plausible range and reason (``PLAUSIBLE``), and the value and source in the built-in
   ``paper-iprsm`` plant.
@@ -68,14 +68,28 @@ def _has(name: str) -> bool:
     return True
 
 
-def public_names(module: str) -> list[str]:
+def public_names(module: str) -> list[tuple[str, str]]:
+    """``(name, where)`` for every public name of ``module``; ``where`` is relative to ``module``.
+
+    ``where`` is the name itself, except where a submodule of the same name shadows it (after
+    the submodule is imported, ``module.name`` is that submodule): then the object is documented
+    where it is defined, ``submodule.name``. Submodules listed in ``__all__`` are skipped.
+    """
     mod = importlib.import_module(module)
-    return [n for n in mod.__all__ if not inspect.ismodule(getattr(mod, n))]
+    out = []
+    for n in mod.__all__:
+        obj = getattr(mod, n)
+        if not inspect.ismodule(obj):
+            out.append((n, n))
+        elif hasattr(obj, n) and not inspect.ismodule(getattr(obj, n)):
+            out.append((n, f"{obj.__name__[len(module) + 1:]}.{n}"))
+    return out
 
 
-def _auto(module: str, name: str) -> list[str]:
-    obj = getattr(importlib.import_module(module), name)
-    full = f"{module}.{name}"
+def _auto(module: str, where: str) -> list[str]:
+    full = f"{module}.{where}"
+    obj = importlib.import_module(full.rsplit(".", 1)[0])
+    obj = getattr(obj, full.rsplit(".", 1)[1])
     if inspect.isclass(obj) and issubclass(obj, BaseException):
         return [f".. autoexception:: {full}", "   :members:", ""]
     if inspect.isclass(obj):
@@ -93,10 +107,10 @@ class ApiDirective(SphinxDirective):
         names = public_names(module)
         lines = [f".. automodule:: {module}", "   :no-members:", "", ".. autosummary::",
                  "   :nosignatures:", ""]
-        lines += [f"   {n}" for n in names]
+        lines += [f"   {where}" for _, where in names]
         lines.append("")
-        for n in names:
-            lines += _auto(module, n)
+        for _, where in names:
+            lines += _auto(module, where)
         return self._parse(lines)
 
     def _parse(self, lines):
@@ -116,16 +130,21 @@ class TopLevelDirective(ApiDirective):
         where = {}
         for module in documented_modules():
             mod = importlib.import_module(module)
-            for n in public_names(module):
-                where.setdefault((n, id(getattr(mod, n))), f"{module}.{n}")
-        rows = []
+            for n, at in public_names(module):
+                obj = importlib.import_module(f"{module}.{at}".rsplit(".", 1)[0])
+                where.setdefault((n, id(getattr(obj, n))), f"{module}.{at}")
+        rows, alone = [], []
         for n in prsa_ctrl.__all__:
             target = where.get((n, id(getattr(prsa_ctrl, n))))
-            if target is None:
-                raise self.error(f"prsa_ctrl.{n} is documented on no API page: add it to the __all__ of "
-                                 "the subpackage that defines it")
+            if target is None:  # exported at the top only: documented on this page
+                alone.append(n)
+                target = f"prsa_ctrl.{n}"
             rows += [f"   * - ``prsa_ctrl.{n}``", f"     - :py:obj:`{target}`"]
         lines = [".. list-table::", "   :header-rows: 1", "", "   * - name", "     - documented as", *rows, ""]
+        if alone:
+            lines += ["Exported by ``prsa_ctrl`` but by none of its subpackages:", ""]
+            for n in alone:
+                lines += _auto("prsa_ctrl", n)
         return self._parse(lines)
 
 
