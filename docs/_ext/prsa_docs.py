@@ -86,17 +86,61 @@ def public_names(module: str) -> list[tuple[str, str]]:
     return out
 
 
+def _object(full: str):
+    parent, name = full.rsplit(".", 1)
+    return getattr(importlib.import_module(parent), name)
+
+
+def _is_data(obj) -> bool:
+    return not (inspect.isclass(obj) or callable(obj))
+
+
+def _attr_docs(module: str) -> dict:
+    from sphinx.pycode import ModuleAnalyzer
+
+    try:
+        return ModuleAnalyzer.for_module(module).find_attr_docs()
+    except Exception:  # no source: nothing to find
+        return {}
+
+
+def _data_doc(package: str, name: str, obj) -> list[str]:
+    """The ``#:`` comment that documents a constant where it is assigned (a submodule of the
+    package: autodoc, which reads the comments of the module it is given, does not find it)."""
+    pkg = importlib.import_module(package)
+    subs = [package] + [m.name for m in pkgutil.walk_packages(getattr(pkg, "__path__", []), prefix=f"{package}.")]
+    if ("", name) in _attr_docs(package):
+        return []
+    for sub in subs:
+        try:
+            mod = importlib.import_module(sub)
+        except ImportError:  # an optional dependency of that module is missing: it defines no constant here
+            continue
+        if vars(mod).get(name) is obj and sub != package:  # in ``package`` itself autodoc finds it
+            docs = _attr_docs(sub)
+            if ("", name) in docs:
+                lines = [line for line in docs[("", name)] if line.strip()]
+                escape_bars(None, "data", name, obj, {}, lines)
+                return lines
+    return []
+
+
 def _auto(module: str, where: str) -> list[str]:
     full = f"{module}.{where}"
-    obj = importlib.import_module(full.rsplit(".", 1)[0])
-    obj = getattr(obj, full.rsplit(".", 1)[1])
+    obj = _object(full)
     if inspect.isclass(obj) and issubclass(obj, BaseException):
         return [f".. autoexception:: {full}", "   :members:", ""]
     if inspect.isclass(obj):
         return [f".. autoclass:: {full}", "   :members:", ""]
     if callable(obj):
         return [f".. autofunction:: {full}", ""]
-    return [f".. autodata:: {full}", "   :no-value:", "", f"   ``{type(obj).__name__}``", ""]
+    value = repr(obj)
+    lines = [f".. autodata:: {full}"]
+    lines += ["   :no-value:"] if len(value) > 70 else []
+    lines.append("")
+    doc = _data_doc(module, where.rsplit(".", 1)[-1], obj)
+    lines += [f"   {line}" for line in doc] or [f"   ``{type(obj).__name__}``"]
+    return lines + [""]
 
 
 class ApiDirective(SphinxDirective):
@@ -105,12 +149,17 @@ class ApiDirective(SphinxDirective):
     def run(self):
         module = self.arguments[0]
         names = public_names(module)
-        lines = [f".. automodule:: {module}", "   :no-members:", "", ".. autosummary::",
-                 "   :nosignatures:", ""]
-        lines += [f"   {where}" for _, where in names]
-        lines.append("")
-        for _, where in names:
+        api = [w for _, w in names if not _is_data(_object(f"{module}.{w}"))]
+        data = [w for _, w in names if _is_data(_object(f"{module}.{w}"))]
+        lines = [f".. automodule:: {module}", "   :no-members:", ""]
+        if api:
+            lines += [".. autosummary::", "   :nosignatures:", "", *[f"   {w}" for w in api], ""]
+        for where in api:
             lines += _auto(module, where)
+        if data:
+            lines += [".. rubric:: Constants", ""]
+            for where in data:
+                lines += _auto(module, where)
         return self._parse(lines)
 
     def _parse(self, lines):
