@@ -124,3 +124,14 @@ def test_every_notebook_is_a_tutorial(site):
     for name in notebooks:
         assert (DOCS / "tutorials" / f"{name}.ipynb").resolve() == (ROOT / "notebooks" / f"{name}.ipynb").resolve()
         assert (site / "tutorials" / f"{name}.html").is_file(), f"tutorial {name} not rendered"
+
+
+def test_docs_pages_hold_no_editing_leftovers():
+    """No page keeps an editing instruction or a merge marker (the README once kept one at a heading)."""
+    bad = []
+    for page in DOCS.rglob("*.md"):
+        text = page.read_text(encoding="utf-8")
+        for marker in ('" of README.md', "from its\nheading up to", "<<<<<<<", ">>>>>>>", "\n=======\n"):
+            if marker in text:
+                bad.append(f"{page.relative_to(ROOT)}: {marker!r}")
+    assert bad == []
