@@ -11,7 +11,7 @@ python3 -m venv --clear "$venv"
 # setuptools reuses build/ when its files look newer than the sources (a copied tree): start clean.
 rm -rf build ./*.egg-info
 "$venv/bin/python" -m pip install --quiet --upgrade pip
-"$venv/bin/python" -m pip install --quiet --upgrade --upgrade-strategy eager ".[test,notebooks,dask,app]" "playwright>=1.40"
+"$venv/bin/python" -m pip install --quiet --upgrade --upgrade-strategy eager ".[test,notebooks,dask,app,docs]" "playwright>=1.40"
 # The browser tests (tests/app/test_app_browser.py) drive Debian's Chromium (Playwright's own browser
 # download cannot work here): install it where missing and possible; without it they skip with
 # one line, and under CI=true they fail.
@@ -26,7 +26,7 @@ if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/
 fi
 echo "fresh environment $venv:"
 "$venv/bin/python" -m pip list --format=freeze 2>/dev/null \
-  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|dask|distributed|pytest|hypothesis|bokeh|playwright)==' \
+  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|dask|distributed|pytest|hypothesis|bokeh|playwright|sphinx)==' \
   | tr '\n' ' '
 echo
 export MPLBACKEND=Agg

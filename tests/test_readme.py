@@ -1,11 +1,19 @@
 """The README says what the code does: its examples are run and compared with the code's output."""
 
 import contextlib
+import importlib.util
 import io
+import os
 import re
+import shlex
+import shutil
+import subprocess
+import sys
 import tomllib
 import warnings
 from pathlib import Path
+
+import pytest
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 
@@ -58,3 +66,88 @@ def test_readme_export_example_is_what_the_export_writes():
     shown = tomllib.loads(shown_text)
     assert shown, "the README's example parses to an empty document"
     assert _subset_mismatches(shown, real) == []
+
+
+# --- every snippet of the README is run (or, for install and test commands, checked) ---------
+
+ROOT = README.parent
+_TEXT = README.read_text(encoding="utf-8")
+_PYTHON = [body for _, body in _blocks(_TEXT, "python")]
+_SHELL = [line.strip() for _, body in _blocks(_TEXT, "bash") for line in body.splitlines()
+          if line.strip() and not line.strip().startswith("#")]
+#: The documentation build of tests/test_docs.py (kept equal to its BUILD_ARGS, checked below).
+_DOCS_BUILD = ["-W", "--keep-going", "-b", "html", "docs"]
+
+
+def test_readme_is_short():
+    n = len(_TEXT.splitlines())
+    assert n < 250, f"README.md has {n} lines; the manual is docs/, the README stays under 250"
+
+
+@pytest.mark.parametrize("index", range(len(_PYTHON)))
+def test_readme_python_snippet_runs(index, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(_PYTHON[index], f"README.md python snippet {index + 1}", "exec"), {})
+    assert "nan" not in out.getvalue().lower()
+
+
+def _extras():
+    return set(tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"])
+
+
+def _script(name):
+    found = shutil.which(name, path=os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")]))
+    assert found, f"{name} is not installed next to {sys.executable}"
+    return found
+
+
+def _check_install(words):
+    """``pip install .`` or ``pip install ".[extra,...]"``, every extra defined in pyproject.toml."""
+    assert words[:2] == ["pip", "install"] and len(words) == 3, f"unexpected install command {words}"
+    target = words[2]
+    assert target == "." or (target.startswith(".[") and target.endswith("]")), target
+    unknown = set(target[2:-1].split(",")) - _extras() if target != "." else set()
+    assert not unknown, f"README installs extras that pyproject.toml does not define: {unknown}"
+
+
+@pytest.mark.parametrize("line", _SHELL)
+def test_readme_shell_line_runs_or_is_checked(line, tmp_path):
+    """Install commands name real extras; the test command is the one CI runs; the docs build is
+    test_docs.py's; every prsa-* command runs (exit 0) and writes what it says, in a temp dir."""
+    for part in (p.strip() for p in line.split("&&")):
+        words = shlex.split(part)
+        if words[:2] == ["pip", "install"]:
+            _check_install(words)
+        elif words == ["bash", "scripts/fresh-test.sh"]:
+            assert (ROOT / "scripts" / "fresh-test.sh").is_file()
+            assert "bash scripts/fresh-test.sh" in (ROOT / ".ci" / "run").read_text()
+        elif words[0] == "sphinx-build":
+            assert words[1:-1] == _DOCS_BUILD and not words[-1].startswith(("docs", ".")), words
+            spec = importlib.util.spec_from_file_location("_test_docs", ROOT / "tests" / "test_docs.py")
+            docs_test = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(docs_test)
+            assert docs_test.BUILD_ARGS + ["docs"] == _DOCS_BUILD
+        elif words[0].startswith("prsa-"):
+            env = {**os.environ, "MPLBACKEND": "Agg"}
+            proc = subprocess.run([_script(words[0]), *words[1:]], cwd=tmp_path, env=env, capture_output=True,
+                                  text=True, timeout=300)
+            assert proc.returncode == 0, f"{part}: exit {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+            for flag in ("--json", "--export", "--plots"):
+                if flag in words:
+                    target = tmp_path / words[words.index(flag) + 1]
+                    assert target.exists(), f"{part}: {flag} wrote nothing"
+        else:
+            pytest.fail(f"README shell line not covered by the tests: {part!r}")
+
+
+def test_readme_links_resolve():
+    """Every relative link of the README names a file of the repository (the docs pages)."""
+    bad = []
+    for target in re.findall(r"\]\(([^)]+)\)", _TEXT):
+        if target.startswith(("http://", "https://", "#")):
+            continue
+        if not (ROOT / target.split("#")[0]).exists():
+            bad.append(target)
+    assert bad == [], f"README links to missing files: {bad}"
