@@ -1181,7 +1181,7 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
     mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
                          workers=args.workers or default_workers(), quiet=args.quiet)
     if robust_rep is not None:
-        robust_rep.recommend(mc)
+        robust_rep = robust_rep.with_recommendation(mc)
     return robust_rep, mc
 
 
