@@ -29,6 +29,7 @@ _EXPORTS = {
     "SETPOINT_MAX_RPM": "scene",
     "Scene": "scene",
     "SetpointStep": "responses",
+    "stable_design_responses": "responses",
     "actuator_loops": "autotune",
     "baseline_designs": "autotune",
     "benchmark": "montecarlo",

@@ -27,7 +27,8 @@ from .scene import Scene, choose_fidelity
 
 control = module("control")
 
-__all__ = ["FigureData", "SetpointStep", "ContactRun", "design_responses", "report_responses", "binding_level",
+__all__ = ["FigureData", "SetpointStep", "ContactRun", "design_responses", "stable_design_responses",
+           "report_responses", "binding_level",
            "objective_value", "duty_input", "SETPOINT_STEP_FRACTION", "CONTACT_RUN_S"]
 
 #: Size of the setpoint step of :func:`design_responses`, relative to the scene's setpoint.
@@ -216,6 +217,21 @@ def design_responses(plant: Plant, scene: Scene, pid: PID, stability: str | None
         step = _setpoint_step(plant, scene, pid, sys)
     return FigureData(plant, scene, design, stability, sys, 0, lp.omega, lp.loop_response(g), design.margins,
                       plant.sample_time_s if scene.discrete else None, tuple(loops), setpoint_step=step)
+
+
+def stable_design_responses(plant: Plant, scene: Scene, pid: PID) -> FigureData:
+    """:func:`design_responses` of stabilising gains.
+
+    Raises
+    ------
+    ValueError
+        If the gains do not stabilise the loop (first load level).
+    """
+    scene, _ = choose_fidelity(scene)
+    loops = actuator_loops(plant, scene)
+    if not loops[0].is_stable(pid.gains):
+        raise ValueError(f"the loop with {pid} is unstable on {plant.name}; expected stabilising gains")
+    return design_responses(plant, scene, pid, "stable", loops)
 
 
 def report_responses(report: ActuatorTuning) -> FigureData:
