@@ -1005,7 +1005,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
     outputs = Transaction(inputs)  # all outputs or none (issue 20, hostile 4 and 17)
     try:
         if args.plots is not None:
-            rep.plot_files = _publish_report_plots(run, rep, args.plots, inputs, outputs)
+            plot_files = _publish_report_plots(run, rep, args.plots, inputs, outputs)
         if args.json is not None:
             data = rep.as_dict()
             data["timing_s"] = dict(rep.timing_s)
@@ -1057,7 +1057,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         if args.json is not None:
             print(f"JSON report: {args.json}")
         if args.plots is not None:
-            print(f"plots: {', '.join(str(p) for p in rep.plot_files)}")
+            print(f"plots: {', '.join(str(p) for p in plot_files)}")
         if args.export is not None:
             print(f"drive export: {args.export} holds the design {export_design['name']!r}, "
                   f"{export_design['chosen_by']}")
