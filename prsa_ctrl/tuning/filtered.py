@@ -45,7 +45,9 @@ from ..drive.pid import PID
 from ..options import MS_MAX_DEFAULT, check_peak_bound
 from ..results import is_converged, status_head
 from ..drive.filters import PLACES, DiscreteBiquad, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass
-from .tuner import LoopModel, _smooth_abs, _two_rate_error
+from .tuner import LoopModel, drive_loop
+# Private helpers of the tuner's NLP, until tuning/tuner.py makes them public (h-tuner25).
+from .tuner import _smooth_abs, _two_rate_error
 
 __all__ = ["TUNABLE", "FilteredDesign", "tune_filtered", "FilterBounds", "loop_builder", "dominant_resonance_hz"]
 
@@ -217,8 +219,6 @@ def loop_builder(a, b, c_speed, angle_index: int, *, ts: float, speed_filter: fl
                  step: float, fixed: Sequence[LoopFilter] = (), name: str = "drive") -> Callable:
     """``biquad or None -> LoopModel``: :func:`prsa_ctrl.tuning.tuner.drive_loop` of a linearised
     plant with the ``fixed`` filters and, when given, one more ``(place, DiscreteBiquad)``."""
-    from .tuner import drive_loop
-
     def build(extra=None) -> LoopModel:
         fl = list(fixed) + ([extra] if extra is not None else [])
         return drive_loop(a, b, c_speed, angle_index, ts=ts, speed_filter=speed_filter, tf=tf, horizon=horizon,
