@@ -164,3 +164,32 @@ def test_report_pairs_come_from_the_report(small):
     (pair,) = rep.comparison_pairs()
     assert pair[0] is b and pair[1].pid == above.pid and pair[1].verified_runs
     assert np.isfinite(rep.best.objective_verified)
+
+
+def test_report_figures_only_draw(small, monkeypatch):
+    """A report's figure data (loop response, landscape, baseline pairs) is computed once in
+    studies; drawing it evaluates no loop model grid, simulation or verification."""
+    import matplotlib.pyplot as plt
+
+    from prsa_ctrl.plots import loop
+
+    plant, scene, loops, d = small
+    v = checked(verify(d, plant, scene), plant, scene)
+    b = checked(verify(Design("base", PID(0.05, 5.0), loops[0].margins((0.05, 5.0, 0.0))), plant, scene),
+                plant, scene)
+    comp = {"baseline": "base", "tuned": v.name, "tuned_gains": v.pid.as_dict()}
+    rep = ActuatorTuning(plant, scene, v, (v,), (b,), (comp,), {}, {}, (), tuple(loops), "")
+    data = responses.report_responses(rep)
+    assert data.landscape is not None and data.landscape.objective.shape == (40, 40) and len(data.pairs) == 1
+
+    def boom(*a, **k):
+        raise AssertionError("a figure computed")
+
+    for n in ("landscape", "report_responses", "design_responses"):
+        monkeypatch.setattr(loop, n, boom)
+    for n in ("verify", "predict", "simulate", "landscape"):
+        monkeypatch.setattr(responses, n, boom)
+    figs = loop.draw_report_figures(data)
+    assert set(figs) == {"plant_bode", "loop_bode", "sensitivity", "landscape", "load_step", "baselines"}
+    for f in figs.values():
+        plt.close(f)

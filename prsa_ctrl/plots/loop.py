@@ -25,8 +25,8 @@ import numpy as np
 
 from .._lazy import module
 from ..sim.metrics import margins_from_response
-from ..studies.responses import (FigureData, binding_level, design_responses, duty_input, objective_value,
-                                 report_responses, stable_design_responses)
+from ..studies.responses import (FigureData, Landscape, binding_level, design_responses, duty_input, landscape,
+                                 objective_value, report_responses, stable_design_responses)
 
 control = module("control")
 
@@ -533,41 +533,25 @@ def tuning_landscape(loop, objective: str, ms_max: float, optimum=None, baseline
     Mt = mt_max when given), the unstable region, the optimum and baselines (``(name, PID)``
     pairs) marked.
 
-    ``loop`` may be a list of loop models (one per load level): the objective is then their
-    ``aggregate`` ("sum" or "worst") and Ms, Mt the largest over the levels, as the tuner sees
-    them. Grid points where any level is unstable are left out of the coloured contours, so the
-    hatched background shows through exactly there (the contours stop at the last grid cell
-    with all four corners stable).
+    ``loop`` is a :class:`~prsa_ctrl.studies.responses.Landscape` (drawn as it is), or a loop
+    model or a list of them (one per load level), evaluated by
+    :func:`~prsa_ctrl.studies.responses.landscape` around the optimum and baselines: the
+    objective is then their ``aggregate`` ("sum" or "worst") and Ms, Mt the largest over the
+    levels, as the tuner sees them. Grid points where any level is unstable are left out of the
+    coloured contours, so the hatched background shows through exactly there (the contours stop
+    at the last grid cell with all four corners stable).
     """
-    loops = list(loop) if isinstance(loop, (list, tuple)) else [loop]
+    land = loop if isinstance(loop, Landscape) else landscape(
+        loop, objective, ([optimum] if optimum is not None else []) + [p for _, p in baselines], n, aggregate)
     fig, (a,) = _axes(ax, figsize=(7.0, 6.0))
-    pts = [optimum] + [p for _, p in baselines] if optimum is not None else [p for _, p in baselines]
-    kp0 = np.median([p.kp for p in pts]) if pts else 1.0
-    ki0 = np.median([p.ki for p in pts]) if pts else 1.0
-    kps = kp0 * np.logspace(-1, math.log10(4), n)
-    kis = ki0 * np.logspace(-1.5, 1, n)
-    KP, KI = np.meshgrid(kps, kis)
-    grid = np.column_stack([KP.ravel(), KI.ravel(), np.zeros(KP.size)])
-    ms = np.zeros(KP.size)
-    mt = np.zeros(KP.size)
-    stable = np.ones(KP.size, bool)
-    for lp in loops:
-        n0, ln, d0, ld = lp.parts()
-        L = (n0 + grid @ ln) / (d0 + grid @ ld)
-        ms = np.maximum(ms, np.max(1 / np.abs(1 + L), axis=1))
-        mt = np.maximum(mt, np.max(np.abs(L / (1 + L)), axis=1))
-        stable &= np.array([lp.is_stable(g) for g in grid])
-    obj = np.full(KP.size, np.nan)
-    idx = np.flatnonzero(stable)
-    if idx.size:
-        vals = np.array([lp.objectives(grid[idx], objective) for lp in loops])
-        obj[idx] = vals.max(axis=0) if aggregate == "worst" else vals.sum(axis=0)
-    obj, ms, mt = (v.reshape(KP.shape) for v in (obj, ms, mt))
+    KP, KI = np.meshgrid(land.kp, land.ki)
+    kps, kis, obj, ms, mt, stable = land.kp, land.ki, land.objective, land.ms, land.mt, land.stable
     # Unstable background: hatched grey behind the contours.
     a.add_patch(matplotlib.patches.Rectangle((0, 0), 1, 1, transform=a.transAxes, facecolor="0.88",
                                              edgecolor="0.5", hatch="//", lw=0, zorder=0))
     cs = a.contourf(KP, KI, np.log10(obj), levels=20, cmap="viridis", zorder=1)
-    what = objective.upper() if len(loops) == 1 else f"{aggregate} of {objective.upper()} over {len(loops)} levels"
+    what = (objective.upper() if land.levels == 1
+            else f"{land.aggregate} of {objective.upper()} over {land.levels} levels")
     fig.colorbar(cs, ax=a, label=f"log10 {what}")
     halo = [matplotlib.patheffects.withStroke(linewidth=3.5, foreground="k")]
     ms_c = np.where(stable.reshape(KP.shape), ms, np.nan)
@@ -734,9 +718,8 @@ def draw_report_figures(data: FigureData) -> dict:
     :func:`~prsa_ctrl.studies.responses.report_responses`; figure name -> Figure."""
     sc, best = data.scene, data.design
     figs = _frequency_figures(data)
-    figs["landscape"] = tuning_landscape(list(data.loops), sc.objective, sc.ms_max, best.pid,
-                                         [(b.name, b.pid) for b in data.baselines], mt_max=sc.mt_max,
-                                         aggregate=sc.aggregate)[0]
+    figs["landscape"] = tuning_landscape(data.landscape, sc.objective, sc.ms_max, best.pid,
+                                         [(b.name, b.pid) for b in data.baselines], mt_max=sc.mt_max)[0]
     figs.update(_time_figures(data, None if len(sc.final_loads) > 1 else 0))
     pairs = list(data.pairs)
     if sc.is_profile:

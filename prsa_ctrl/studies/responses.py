@@ -27,7 +27,7 @@ from .scene import Scene, choose_fidelity
 
 control = module("control")
 
-__all__ = ["FigureData", "SetpointStep", "ContactRun", "design_responses", "stable_design_responses",
+__all__ = ["FigureData", "SetpointStep", "ContactRun", "Landscape", "landscape", "design_responses", "stable_design_responses",
            "report_responses", "binding_level",
            "objective_value", "duty_input", "SETPOINT_STEP_FRACTION", "CONTACT_RUN_S"]
 
@@ -84,6 +84,84 @@ class ContactRun:
 
 
 @dataclass(frozen=True)
+class Landscape:
+    """The objective and the peaks Ms, Mt over a (kp, ki) grid, ``kd = 0`` (:func:`landscape`).
+
+    Attributes
+    ----------
+    kp : array, N m s/rad
+        Grid axis (``n`` values).
+    ki : array, N m/rad
+        Grid axis (``n`` values).
+    objective : array
+        Shape ``(n_ki, n_kp)``: the objective (aggregated over the levels), nan where a level is
+        unstable.
+    ms, mt : array
+        Same shape: the largest Ms and Mt over the levels on the loops' frequency grids.
+    stable : bool array
+        Same shape: every level stable.
+    aggregate : {"sum", "worst"}
+    levels : int
+        Loop models (load levels) aggregated.
+    """
+
+    kp: np.ndarray
+    ki: np.ndarray
+    objective: np.ndarray
+    ms: np.ndarray
+    mt: np.ndarray
+    stable: np.ndarray
+    aggregate: str
+    levels: int
+
+
+def landscape(loops, objective: str, centre=(), n: int = 40, aggregate: str = "sum") -> Landscape:
+    """Evaluate the loop models over a log grid of (kp, ki) around the median of ``centre``.
+
+    Parameters
+    ----------
+    loops : LoopModel or list of LoopModel
+        One per load level.
+    objective : str
+        One of :data:`prsa_ctrl.options.OBJECTIVES`.
+    centre : sequence of PID
+        Designs the grid is centred on (kp from 0.1 to 4 x, ki from 0.03 to 10 x their median);
+        none: kp, ki around 1.
+    n : int
+        Grid points per axis.
+    aggregate : {"sum", "worst"}
+        How the levels' objectives combine.
+
+    Returns
+    -------
+    Landscape
+    """
+    loops = list(loops) if isinstance(loops, (list, tuple)) else [loops]
+    pts = list(centre)
+    kp0 = np.median([p.kp for p in pts]) if pts else 1.0
+    ki0 = np.median([p.ki for p in pts]) if pts else 1.0
+    kps = kp0 * np.logspace(-1, math.log10(4), n)
+    kis = ki0 * np.logspace(-1.5, 1, n)
+    KP, KI = np.meshgrid(kps, kis)
+    grid = np.column_stack([KP.ravel(), KI.ravel(), np.zeros(KP.size)])
+    ms = np.zeros(KP.size)
+    mt = np.zeros(KP.size)
+    stable = np.ones(KP.size, bool)
+    for lp in loops:
+        n0, ln, d0, ld = lp.parts()
+        L = (n0 + grid @ ln) / (d0 + grid @ ld)
+        ms = np.maximum(ms, np.max(1 / np.abs(1 + L), axis=1))
+        mt = np.maximum(mt, np.max(np.abs(L / (1 + L)), axis=1))
+        stable &= np.array([lp.is_stable(g) for g in grid])
+    obj = np.full(KP.size, np.nan)
+    idx = np.flatnonzero(stable)
+    if idx.size:
+        vals = np.array([lp.objectives(grid[idx], objective) for lp in loops])
+        obj[idx] = vals.max(axis=0) if aggregate == "worst" else vals.sum(axis=0)
+    return Landscape(kps, kis, *(v.reshape(KP.shape) for v in (obj, ms, mt, stable)), aggregate, len(loops))
+
+
+@dataclass(frozen=True)
 class FigureData:
     """Everything the standard figures draw (frozen; computed by :func:`design_responses` or
     :func:`report_responses`).
@@ -113,6 +191,8 @@ class FigureData:
         ``(baseline, verified tuned design at equal or lower Ms)`` (:meth:`ActuatorTuning.comparison_pairs`).
     setpoint_step : SetpointStep or None
     contact : ContactRun or None
+    landscape : Landscape or None
+        A report's objective over kp-ki around the best design and the baselines.
     """
 
     plant: Plant
@@ -130,6 +210,7 @@ class FigureData:
     pairs: tuple = field(default=(), repr=False)
     setpoint_step: SetpointStep | None = field(default=None, repr=False)
     contact: ContactRun | None = field(default=None, repr=False)
+    landscape: Landscape | None = field(default=None, repr=False)
 
 
 def objective_value(metrics, objective: str) -> float:
@@ -254,6 +335,8 @@ def report_responses(report: ActuatorTuning) -> FigureData:
     contact = None
     if sc.fidelity in ("compliant", "multi-roller") and not sc.is_profile:
         contact = _contact_run(plant, sc, best.pid, kb)
+    land = landscape(list(report.loops), sc.objective, [best.pid, *(b.pid for b in report.baselines)],
+                     aggregate=sc.aggregate)
     return FigureData(plant, sc, best, "stable", _plant_linear(plant, sc), kb, lp.omega, lp.loop_response(g),
                       lp.margins(g), plant.sample_time_s if sc.discrete else None, tuple(report.loops),
-                      tuple(report.baselines), tuple(report.comparison_pairs()), contact=contact)
+                      tuple(report.baselines), tuple(report.comparison_pairs()), contact=contact, landscape=land)
