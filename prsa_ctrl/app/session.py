@@ -25,8 +25,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..studies.autotune import Design, actuator_loops, baseline_designs, health_flags, verify
-from ..studies.autotune import _predict  # the report's linear prediction; no public name yet
+from ..studies.autotune import Design, actuator_loops, baseline_designs, checked, predict, verify
 from ..cli.tune import parse_load_step
 from ..drive.pid import PID
 from ..errors import PlantFileError, SceneError
@@ -302,7 +301,7 @@ class AppSession:
         stable = all(l.is_stable(d.pid.gains) for l in loops)
         ts, speeds = [], []
         if stable:
-            _predict(d, loops, self.plant, scene)
+            d = predict(d, loops, self.plant, scene)
             for err, l in zip(d.predicted_error, loops):
                 ts.append(scene.step_time + l.h * np.arange(-1, l.n_steps))
                 speeds.append(d.predicted_start_speed + np.concatenate([[0.0], -np.asarray(err)]))
@@ -366,12 +365,11 @@ class AppSession:
                 break
             if progress is not None:
                 progress(i, len(views), v.design.name)
-            d = replace(v.design, verified=[], verified_runs=[], flags=[])
+            d = replace(v.design, verified=(), verified_runs=(), flags=())
             if v.status == "unstable":
-                d.flags = ["the loop is unstable: not simulated"]
+                d = replace(d, flags=("the loop is unstable: not simulated",))
             else:
-                verify(d, self.plant, scene)
-                d.flags = health_flags(d, self.plant, scene)
+                d = checked(verify(d, self.plant, scene), self.plant, scene)
             done.append(replace(v, design=d))
         if progress is not None:
             progress(len(done), len(views), "")

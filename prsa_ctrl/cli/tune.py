@@ -1012,7 +1012,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
     outputs = Transaction(inputs)  # all outputs or none (issue 20, hostile 4 and 17)
     try:
         if args.plots is not None:
-            rep.plot_files = _publish_report_plots(run, rep, args.plots, inputs, outputs)
+            plot_files = _publish_report_plots(run, rep, args.plots, inputs, outputs)
         if args.json is not None:
             data = rep.as_dict()
             data["timing_s"] = dict(rep.timing_s)
@@ -1064,7 +1064,7 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         if args.json is not None:
             print(f"JSON report: {args.json}")
         if args.plots is not None:
-            print(f"plots: {', '.join(str(p) for p in rep.plot_files)}")
+            print(f"plots: {', '.join(str(p) for p in plot_files)}")
         if args.export is not None:
             print(f"drive export: {args.export} holds the design {export_design['name']!r}, "
                   f"{export_design['chosen_by']}")
@@ -1188,7 +1188,7 @@ def _robust_and_monte_carlo(run: _Run, args, plant, rep):
     mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
                          workers=args.workers or default_workers(), quiet=args.quiet)
     if robust_rep is not None:
-        robust_rep.recommend(mc)
+        robust_rep = robust_rep.with_recommendation(mc)
     return robust_rep, mc
 
 

@@ -349,7 +349,7 @@ class Filter:
         :meth:`DiscreteBiquad.step`."""
         return self.biquad(ts, method, prewarp).step(x, initial)
 
-    def to_dict(self, ts: float | None = None, method: str = "tustin", prewarp: bool = True) -> dict:
+    def as_dict(self, ts: float | None = None, method: str = "tustin", prewarp: bool = True) -> dict:
         """Kind, parameters, continuous coefficients and (with ``ts``) the biquad."""
         (n2, n1, n0), (d2, d1, d0) = self.coefficients()
         out: dict = {"kind": self.kind, **self.parameters(),
@@ -360,6 +360,10 @@ class Filter:
                                               if method == "tustin" and prewarp else "")
             out["biquad"] = bq.as_dict()
         return out
+
+    def to_dict(self, ts: float | None = None, method: str = "tustin", prewarp: bool = True) -> dict:
+        """Deprecated alias of :meth:`as_dict` (kept for existing callers and notebooks)."""
+        return self.as_dict(ts, method, prewarp)
 
 
 @dataclass(frozen=True)
@@ -534,7 +538,7 @@ _KINDS = {c.kind: c for c in (FirstOrderLowPass, SecondOrderLowPass, Notch, Gene
 
 
 def filter_from_dict(d: dict) -> Filter:
-    """A filter from ``{"kind": ..., parameters...}`` (the inverse of :meth:`Filter.to_dict`,
+    """A filter from ``{"kind": ..., parameters...}`` (the inverse of :meth:`Filter.as_dict`,
     derived entries ignored).
 
     Parameters
@@ -612,10 +616,13 @@ class LoopFilter:
         """The biquad the drive runs at the sample time ``ts`` (s)."""
         return self.filter.biquad(ts, self.method, self.prewarp)
 
+    def as_dict(self, ts: float | None = None) -> dict:
+        """:meth:`Filter.as_dict` with the place (and the discretisation used in the loop)."""
+        return {"place": self.place, **self.filter.as_dict(ts, self.method, self.prewarp)}
+
     def to_dict(self, ts: float | None = None) -> dict:
-        """:meth:`Filter.to_dict` with the place (and the discretisation used in the loop)."""
-        out = {"place": self.place, **self.filter.to_dict(ts, self.method, self.prewarp)}
-        return out
+        """Deprecated alias of :meth:`as_dict` (kept for existing callers and notebooks)."""
+        return self.as_dict(ts)
 
 
 def loop_filters(filters: object, ts: float | None = None) -> tuple[LoopFilter, ...]:

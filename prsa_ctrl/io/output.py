@@ -30,12 +30,13 @@ A replaced file is a new inode: other hard links to the old file keep the old co
 
 from __future__ import annotations
 
-import math
 import os
 import stat
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterable
+
+from ..results import json_safe  # defined with the result objects; re-exported here
 
 __all__ = ["OutputError", "TEMP_MARK", "json_safe", "check_writable", "check_distinct", "check_directory", "write_text",
            "write_file", "Transaction", "package_roots",
@@ -454,24 +455,3 @@ def cleanup_temporaries() -> None:
         except OSError:
             pass
         _LIVE.discard(tmp)
-
-
-def json_safe(obj: Any) -> Any:
-    """``obj`` with non-finite floats (unfinished runs, targets never reached, infinite
-    margins) as ``None`` and numpy scalars as Python numbers, ready for strict JSON.
-
-    Examples
-    --------
-    >>> json_safe({"a": float("inf"), "b": [1.0, float("nan")], "c": "x"})
-    {'a': None, 'b': [1.0, None], 'c': 'x'}
-    """
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if type(obj).__module__ == "numpy" and hasattr(obj, "item") and getattr(obj, "ndim", 1) == 0:
-        return json_safe(obj.item())
-    return obj
-

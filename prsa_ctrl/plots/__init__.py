@@ -15,6 +15,7 @@ _EXPORTS = {
     "gain_study_plot": "loop",
     "load_step_comparison": "loop",
     "load_step_plot": "loop",
+    "plot_report": "montecarlo",
     "save_figure": "loop",
     "sensitivity_plot": "loop",
     "step_response_plot": "loop",

@@ -3,7 +3,11 @@ load-step responses (nonlinear verification against linear prediction, tuned aga
 baselines), the tuning landscape, the paper-style gain studies and contact forces.
 
 Every function takes an optional ``ax`` (or ``axes``), returns ``(fig, axes)`` and never calls
-``plt.show()``. This module is the only one that imports matplotlib.
+``plt.show()``. Figures draw result objects: the numbers they show are computed in
+:mod:`prsa_ctrl.studies` (:class:`~prsa_ctrl.studies.responses.FigureData`); the writers that take
+a plant or a report get that record from :func:`~prsa_ctrl.studies.responses.design_responses` /
+:func:`~prsa_ctrl.studies.responses.report_responses` first. Only :mod:`prsa_ctrl.plots` imports
+matplotlib.
 """
 
 from __future__ import annotations
@@ -19,8 +23,17 @@ import matplotlib.patheffects
 import matplotlib.ticker
 import numpy as np
 
+from .._lazy import module
+from ..sim.metrics import margins_from_response
+from ..studies.responses import (FigureData, Landscape, binding_level, design_responses, duty_input, landscape,
+                                 objective_value, report_responses, stable_design_responses)
+
+control = module("control")
+
 __all__ = [
     "design_figures",
+    "draw_design_figures",
+    "draw_report_figures",
     "bode_plant",
     "bode_loop",
     "sensitivity_plot",
@@ -101,8 +114,6 @@ def bode_plant(sys, omega: np.ndarray | None = None, axes=None, sample_time_s: f
     sample_time_s : float, s, optional
         Controller sample time of a sampled loop: the Nyquist frequency ``pi/Ts`` is marked.
     """
-    import control
-
     omega = np.logspace(-1, 5, 600) if omega is None else omega
     fig, axs = _axes(axes, 2, figsize=(7.0, 5.5))
     i_out = sys.output_labels.index("nut_speed")
@@ -138,8 +149,6 @@ def bode_loop(omega, loop, margins=None, axes=None, label: str = "L", operating_
     sample_time_s : float, s, optional
         Marks the Nyquist frequency ``pi/Ts`` of a sampled loop.
     """
-    from ..sim.metrics import margins_from_response
-
     m = margins or margins_from_response(omega, loop)
     fig, axs = _axes(axes, 2, figsize=(7.0, 5.5))
     _bode_axes(axs, omega, loop, label)
@@ -207,26 +216,15 @@ def _prediction_series(design, scene, k: int = 0):
     return lp_t, start + np.concatenate([[0.0], -design.predicted_error[k]])
 
 
-def _objective_of(m, objective: str) -> float:
-    return float(getattr(m, objective, getattr(m, "iae")))
-
-
 def _design_label(d, objective: str, k: int | None = 0, scene=None) -> str:
     """``name: Ms 1.40, IAE 0.0265`` (objective of level ``k``, or the aggregate when None)."""
-    val = d.objective_verified if k is None else _objective_of(d.verified[k], objective)
+    val = d.objective_verified if k is None else objective_value(d.verified[k], objective)
     unit = _OBJ_UNITS.get(objective, "")
     flagged = ", FLAGGED" if getattr(d, "flags", None) else ""  # failed a health check (autotune.health_flags)
     return f"{d.name}: Ms {d.margins.ms:.2f}, {objective.upper()} {val:.3g}{unit}{flagged}"
 
 
 _OBJ_UNITS = {"ie": " rad", "iae": " rad", "itae": " rad s", "ise": " rad^2/s"}
-
-
-def binding_level(design, scene) -> int:
-    """Index of the load level whose verified objective is largest (the worst case that
-    binds a ``worst`` aggregate and dominates a ``sum``)."""
-    vals = [_objective_of(m, scene.objective) for m in design.verified]
-    return int(np.argmax(vals)) if vals else 0
 
 
 def _window(runs_t, metrics, step_time: float, window: float | None, floor: float = 0.02):
@@ -305,7 +303,7 @@ def load_step_plot(design, scene, k: int | None = 0, ax=None, window: float | No
                   label=f"recovered after {m.recovery_time_s * 1e3:.1f} ms")
     # Metrics box on the side away from the excursion, with room made for it.
     below = y_b["nut_speed"][i_pk] < w0
-    lines = [f"{obj.upper()} {_objective_of(m, obj):.4g}{_OBJ_UNITS.get(obj, '')}",
+    lines = [f"{obj.upper()} {objective_value(m, obj):.4g}{_OBJ_UNITS.get(obj, '')}",
              f"peak time {m.peak_time_s * 1e3:.1f} ms",
              f"recovery {m.recovery_time_s * 1e3:.1f} ms" if math.isfinite(m.recovery_time_s) else "no recovery in record"]
     a.text(0.98, 0.04 if below else 0.96, "\n".join(lines), transform=a.transAxes, ha="right",
@@ -340,17 +338,6 @@ def load_step_plot(design, scene, k: int | None = 0, ax=None, window: float | No
     return fig, axs
 
 
-def _duty_input(scene, case: str, t: np.ndarray) -> tuple[np.ndarray, str]:
-    """The profile a duty-cycle record follows, at times ``t``: load (N) or setpoint (rpm)."""
-    from ..sim.simulate import PiecewiseLinear, _normalise_profile
-
-    if case == "load profile":
-        prof = _normalise_profile(PiecewiseLinear(scene.load_profile), float(t[-1]) + 1.0, "load", "N")
-        return prof.at(t), "axial load (N)"
-    prof = _normalise_profile(PiecewiseLinear(scene.setpoint_profile), float(t[-1]) + 1.0, "setpoint", "rad/s")
-    return prof.at(t) * 30.0 / math.pi, "setpoint (rpm)"
-
-
 def duty_cycle_plot(design, scene, k: int = 0, torque_limit: float | None = None):
     """A duty-cycle record: the profile (load or setpoint) on top, the speed error ``setpoint -
     speed`` verified (nonlinear) and predicted (linear) in the middle, the motor torque below.
@@ -358,7 +345,7 @@ def duty_cycle_plot(design, scene, k: int = 0, torque_limit: float | None = None
     Parameters
     ----------
     design : Design
-        Verified and predicted (:func:`prsa_ctrl.studies.autotune.verify`, ``_predict``).
+        Verified and predicted (:func:`prsa_ctrl.studies.autotune.verify`, :func:`~prsa_ctrl.studies.autotune.predict`).
     scene : Scene
         A duty-cycle scene (``scene.is_profile``).
     k : int
@@ -374,18 +361,18 @@ def duty_cycle_plot(design, scene, k: int = 0, torque_limit: float | None = None
     fig, axs = plt.subplots(3, 1, sharex=True, figsize=(7.0, 6.5), height_ratios=[1.0, 2.0, 1.2],
                             layout="constrained")
     t, y = design.verified_runs[k]
-    prof, label = _duty_input(scene, case, t)
+    prof, label = duty_input(scene, case, t)
     axs[0].plot(t, prof, color="k", lw=1.0)
     axs[0].set_ylabel(label)
     err = y["setpoint"] - y["nut_speed"]
     m = design.verified[k]
     obj = scene.objective
     axs[1].plot(t, err, color="C0", lw=1.0,
-                label=f"verified (nonlinear): {obj.upper()} {_objective_of(m, obj):.3g}{_OBJ_UNITS.get(obj, '')}")
+                label=f"verified (nonlinear): {obj.upper()} {objective_value(m, obj):.3g}{_OBJ_UNITS.get(obj, '')}")
     if design.predicted_error:
         e_p = design.predicted_error[k]
         axs[1].plot(t[: e_p.size], e_p, "--", color="C1", lw=1.0,
-                    label=f"predicted (linear): {obj.upper()} {_objective_of(design.predicted[k], obj):.3g}"
+                    label=f"predicted (linear): {obj.upper()} {objective_value(design.predicted[k], obj):.3g}"
                           f"{_OBJ_UNITS.get(obj, '')}")
     axs[1].axhline(0.0, color="k", lw=0.5)
     axs[1].plot([m.peak_time_s + t[0]], [m.peak_deviation_rad_s], "o", color="C3", ms=4,
@@ -546,41 +533,25 @@ def tuning_landscape(loop, objective: str, ms_max: float, optimum=None, baseline
     Mt = mt_max when given), the unstable region, the optimum and baselines (``(name, PID)``
     pairs) marked.
 
-    ``loop`` may be a list of loop models (one per load level): the objective is then their
-    ``aggregate`` ("sum" or "worst") and Ms, Mt the largest over the levels, as the tuner sees
-    them. Grid points where any level is unstable are left out of the coloured contours, so the
-    hatched background shows through exactly there (the contours stop at the last grid cell
-    with all four corners stable).
+    ``loop`` is a :class:`~prsa_ctrl.studies.responses.Landscape` (drawn as it is), or a loop
+    model or a list of them (one per load level), evaluated by
+    :func:`~prsa_ctrl.studies.responses.landscape` around the optimum and baselines: the
+    objective is then their ``aggregate`` ("sum" or "worst") and Ms, Mt the largest over the
+    levels, as the tuner sees them. Grid points where any level is unstable are left out of the
+    coloured contours, so the hatched background shows through exactly there (the contours stop
+    at the last grid cell with all four corners stable).
     """
-    loops = list(loop) if isinstance(loop, (list, tuple)) else [loop]
+    land = loop if isinstance(loop, Landscape) else landscape(
+        loop, objective, ([optimum] if optimum is not None else []) + [p for _, p in baselines], n, aggregate)
     fig, (a,) = _axes(ax, figsize=(7.0, 6.0))
-    pts = [optimum] + [p for _, p in baselines] if optimum is not None else [p for _, p in baselines]
-    kp0 = np.median([p.kp for p in pts]) if pts else 1.0
-    ki0 = np.median([p.ki for p in pts]) if pts else 1.0
-    kps = kp0 * np.logspace(-1, math.log10(4), n)
-    kis = ki0 * np.logspace(-1.5, 1, n)
-    KP, KI = np.meshgrid(kps, kis)
-    grid = np.column_stack([KP.ravel(), KI.ravel(), np.zeros(KP.size)])
-    ms = np.zeros(KP.size)
-    mt = np.zeros(KP.size)
-    stable = np.ones(KP.size, bool)
-    for lp in loops:
-        n0, ln, d0, ld = lp.parts()
-        L = (n0 + grid @ ln) / (d0 + grid @ ld)
-        ms = np.maximum(ms, np.max(1 / np.abs(1 + L), axis=1))
-        mt = np.maximum(mt, np.max(np.abs(L / (1 + L)), axis=1))
-        stable &= np.array([lp.is_stable(g) for g in grid])
-    obj = np.full(KP.size, np.nan)
-    idx = np.flatnonzero(stable)
-    if idx.size:
-        vals = np.array([lp.objectives(grid[idx], objective) for lp in loops])
-        obj[idx] = vals.max(axis=0) if aggregate == "worst" else vals.sum(axis=0)
-    obj, ms, mt = (v.reshape(KP.shape) for v in (obj, ms, mt))
+    KP, KI = np.meshgrid(land.kp, land.ki)
+    kps, kis, obj, ms, mt, stable = land.kp, land.ki, land.objective, land.ms, land.mt, land.stable
     # Unstable background: hatched grey behind the contours.
     a.add_patch(matplotlib.patches.Rectangle((0, 0), 1, 1, transform=a.transAxes, facecolor="0.88",
                                              edgecolor="0.5", hatch="//", lw=0, zorder=0))
     cs = a.contourf(KP, KI, np.log10(obj), levels=20, cmap="viridis", zorder=1)
-    what = objective.upper() if len(loops) == 1 else f"{aggregate} of {objective.upper()} over {len(loops)} levels"
+    what = (objective.upper() if land.levels == 1
+            else f"{land.aggregate} of {objective.upper()} over {land.levels} levels")
     fig.colorbar(cs, ax=a, label=f"log10 {what}")
     halo = [matplotlib.patheffects.withStroke(linewidth=3.5, foreground="k")]
     ms_c = np.where(stable.reshape(KP.shape), ms, np.nan)
@@ -702,29 +673,6 @@ def step_response_plot(time, nonlinear, linear_time=None, linear=None, setpoint=
     return fig, [a]
 
 
-def _comparison_pairs(report) -> list[tuple]:
-    """``(baseline, tuned design at equal or lower Ms)`` for every comparison of a report; a
-    comparison design the report does not keep (tuned above the scene's Ms bound) is rebuilt
-    from its stored gains and verified again."""
-    from ..studies.autotune import Design, _predict, verify
-    from ..drive.pid import PID
-
-    pool = [report.best, *report.candidates]
-    pairs = []
-    for c in getattr(report, "comparisons", []):
-        b = next((d for d in report.baselines if d.name == c["baseline"]), None)
-        if b is None or not b.verified_runs:
-            continue
-        d = next((x for x in pool if x.pid.as_dict() == c["tuned_gains"] and x.verified_runs), None)
-        if d is None:
-            pid = PID(**c["tuned_gains"])
-            d = Design(c["tuned"], pid, report.loops[0].margins(pid.gains), estimator=report.scene.estimator)
-            _predict(d, report.loops, report.plant, report.scene)
-            verify(d, report.plant, report.scene)
-        pairs.append((b, d))
-    return pairs
-
-
 def _mid_load_text(scene, k: int) -> str:
     if getattr(scene, "is_profile", False):
         return f"{scene.setpoint_rad_s * 30.0 / math.pi:.0f} rpm, {scene.initial_load:g} N (start of the {scene.name} duty cycle)"
@@ -732,8 +680,73 @@ def _mid_load_text(scene, k: int) -> str:
     return f"{scene.setpoint_rad_s * 30.0 / math.pi:.0f} rpm, {0.5 * (f0 + f1):g} N (mid load of {f0:g} -> {f1:g} N)"
 
 
+def _save_all(figs: dict, directory: Path) -> list[Path]:
+    """Save every figure as PNG and SVG into ``directory`` (created) and close it."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
+    for name, fig in figs.items():
+        files += save_figure(fig, directory / name)
+        plt.close(fig)
+    return files
+
+
+def _frequency_figures(data: FigureData) -> dict:
+    """Plant Bode, loop Bode and sensitivity figures of a :class:`FigureData`."""
+    sc, ts = data.scene, data.sample_time_s
+    figs = {
+        "plant_bode": bode_plant(data.plant_linear, sample_time_s=ts)[0],
+        "loop_bode": bode_loop(data.omega, data.loop, data.margins, operating_point=_mid_load_text(sc, data.level),
+                               sample_time_s=ts)[0],
+        "sensitivity": sensitivity_plot(data.omega, data.loop, sc.ms_max, mt_max=sc.mt_max, sample_time_s=ts)[0],
+    }
+    figs["sensitivity"].axes[0].set_title(f"S and T at {_mid_load_text(sc, data.level)}", fontsize=10)
+    return figs
+
+
+def _time_figures(data: FigureData, k: int | None) -> dict:
+    """The verified design's duty-cycle records, or its load step(s) (``k``: level, None all)."""
+    sc, d = data.scene, data.design
+    if sc.is_profile:
+        return {"duty_cycle" + ("" if len(sc.cases) == 1 else "_" + case.split()[0]):
+                duty_cycle_plot(d, sc, i, torque_limit=data.plant.torque_limit)[0] for i, case in enumerate(sc.cases)}
+    return {"load_step": load_step_plot(d, sc, k=k, torque_limit=data.plant.torque_limit)[0]}
+
+
+def draw_report_figures(data: FigureData) -> dict:
+    """The standard figure set of a tuning report (see :func:`write_standard_plots`), drawn from
+    :func:`~prsa_ctrl.studies.responses.report_responses`; figure name -> Figure."""
+    sc, best = data.scene, data.design
+    figs = _frequency_figures(data)
+    figs["landscape"] = tuning_landscape(data.landscape, sc.objective, sc.ms_max, best.pid,
+                                         [(b.name, b.pid) for b in data.baselines], mt_max=sc.mt_max)[0]
+    figs.update(_time_figures(data, None if len(sc.final_loads) > 1 else 0))
+    pairs = list(data.pairs)
+    if sc.is_profile:
+        figs["baselines"] = (duty_cycle_pairs_plot(pairs, sc)[0] if pairs
+                             else duty_cycle_comparison([best, *data.baselines], sc, k=data.level)[0])
+    else:
+        figs["baselines"] = (baseline_pairs_plot(pairs, sc)[0] if pairs
+                             else load_step_comparison([best, *data.baselines], sc, k=data.level)[0])
+    if data.contact is not None:
+        c = data.contact
+        fig, axs = contact_force_plot(c.time_s, c.outputs, static=c.static_n)
+        axs[0].set_title(f"Thread contact forces, load {sc.initial_load:g} -> {c.final_load_n:g} N at "
+                         f"{sc.setpoint_rad_s * 30.0 / math.pi:.0f} rpm")
+        figs["contact_forces"] = fig
+    return figs
+
+
 def write_standard_plots(report, directory: Path) -> list[Path]:
     """The standard figure set of a tuning report, as PNG and SVG files in ``directory``.
+
+    Parameters
+    ----------
+    report : ActuatorTuning or FigureData
+        A report is turned into its :class:`~prsa_ctrl.studies.responses.FigureData` by
+        :func:`~prsa_ctrl.studies.responses.report_responses` first.
+    directory : Path
+        Created if missing.
 
     Files: ``plant_bode``, ``loop_bode``, ``sensitivity`` (at the binding load level),
     ``load_step`` (every load level, binding one highlighted, torque below), ``baselines`` (each
@@ -743,74 +756,48 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
     mix) instead of ``load_step``, and ``baselines`` as the verified errors over its record, each
     baseline beside the tuned design at equal or lower Ms (:func:`duty_cycle_pairs_plot`).
     """
-    from ..studies.autotune import _linear_fidelity
-    from ..plant.linear import linearize
-
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    sc, best, plant = report.scene, report.best, report.plant
-    files: list[Path] = []
-    kb = binding_level(best, sc)
-    lp = report.loops[kb] if len(report.loops) > kb else report.loops[0]
-    ts = plant.sample_time_s if sc.discrete else None
-    g = best.pid.gains
-    L = lp.loop_response(g)
-    margins = lp.margins(g)
-    figs = {
-        "plant_bode": bode_plant(linearize(plant, sc.setpoint_rad_s, sc.initial_load, _linear_fidelity(sc),
-                                           sampled=sc.discrete), sample_time_s=ts)[0],
-        "loop_bode": bode_loop(lp.omega, L, margins, operating_point=_mid_load_text(sc, kb), sample_time_s=ts)[0],
-        "sensitivity": sensitivity_plot(lp.omega, L, sc.ms_max, mt_max=sc.mt_max, sample_time_s=ts)[0],
-        "landscape": tuning_landscape(report.loops, sc.objective, sc.ms_max, best.pid,
-                                      [(b.name, b.pid) for b in report.baselines], mt_max=sc.mt_max,
-                                      aggregate=sc.aggregate)[0],
-    }
-    figs["sensitivity"].axes[0].set_title(f"S and T at {_mid_load_text(sc, kb)}", fontsize=10)
-    if sc.is_profile:
-        for k, case in enumerate(sc.cases):
-            name = "duty_cycle" + ("" if len(sc.cases) == 1 else "_" + case.split()[0])
-            figs[name] = duty_cycle_plot(best, sc, k, torque_limit=plant.torque_limit)[0]
-        pairs = _comparison_pairs(report)
-        figs["baselines"] = (duty_cycle_pairs_plot(pairs, sc)[0] if pairs
-                             else duty_cycle_comparison([best, *report.baselines], sc, k=kb)[0])
-    else:
-        figs["load_step"] = load_step_plot(best, sc, k=None if len(sc.final_loads) > 1 else 0,
-                                           torque_limit=plant.torque_limit)[0]
-        pairs = _comparison_pairs(report)
-        figs["baselines"] = (baseline_pairs_plot(pairs, sc)[0] if pairs
-                             else load_step_comparison([best, *report.baselines], sc, k=kb)[0])
-    if sc.fidelity in ("compliant", "multi-roller") and not sc.is_profile:
-        # Contact modes ring at kHz: a continuous run on a fine grid shows them unaliased.
-        from ..sim.simulate import simulate
-
-        f1 = sc.final_loads[kb]
-        pre = min(sc.step_time, 2e-3)
-        r = simulate(plant, setpoint=sc.setpoint_rad_s, load=[(0.0, sc.initial_load), (pre, f1)],
-                     duration=pre + 0.03, controller=best.pid, dt=1e-5)
-        y = dict(zip(r.output_labels, np.asarray(r.outputs)))
-        t = np.asarray(r.time) + sc.step_time - pre
-        k_n, k_s = plant.normal_force_factor()
-        fig, axs = contact_force_plot(t, y, static=(f1 * k_n, f1 * k_s))
-        axs[0].set_title(f"Thread contact forces, load {sc.initial_load:g} -> {f1:g} N at {sc.setpoint_rad_s * 30.0 / math.pi:.0f} rpm")
-        figs["contact_forces"] = fig
-    for name, fig in figs.items():
-        files += save_figure(fig, directory / name)
-        plt.close(fig)
-    return files
+    data = report if isinstance(report, FigureData) else report_responses(report)
+    return _save_all(draw_report_figures(data), directory)
 
 
-def design_figures(plant, scene, pid, stability: str | None = None, loops=None) -> dict:
+def draw_design_figures(data: FigureData) -> dict:
+    """Bode, sensitivity, load-step and setpoint-step figures of given gains, drawn from
+    :func:`~prsa_ctrl.studies.responses.design_responses`; figure name -> Figure.
+
+    Marginal and unstable loops are drawn with a red warning title; an unstable one gets the
+    frequency plots only (its time responses diverge).
+    """
+    sc, pid = data.scene, data.design.pid
+    figs = _frequency_figures(data)
+    label = {"marginal": "marginally stable closed loop", "unstable": "UNSTABLE closed loop"}.get(data.stability)
+    if label:
+        for fig in figs.values():
+            fig.suptitle(f"{label}: kp = {pid.kp:g}, ki = {pid.ki:g}, kd = {pid.kd:g}", color="tab:red", fontsize=10)
+    if data.stability == "unstable" or data.setpoint_step is None:
+        return figs
+    figs.update(_time_figures(data, None if len(sc.final_loads) > 1 else 0))
+    st = data.setpoint_step
+    figs["setpoint_step"] = step_response_plot(
+        st.time_s, st.speed_rad_s, st.linear_time_s, st.linear_speed_rad_s, setpoint=None,
+        title=f"Setpoint step {st.from_rad_s:.2f} -> {st.to_rad_s:.2f} rad/s at {st.load_n:g} N"
+              + (f" ({label})" if label else ""),
+    )[0]
+    return figs
+
+
+def design_figures(plant, scene=None, pid=None, stability: str | None = None, loops=None) -> dict:
     """Bode, sensitivity, load-step and setpoint-step figures for given gains (no tuning).
 
     Parameters
     ----------
-    plant : Plant
+    plant : Plant or FigureData
+        A :class:`~prsa_ctrl.studies.responses.FigureData` is drawn as it is; a plant (with
+        ``scene``, ``pid`` and optionally ``stability``, ``loops``) is first turned into one by
+        :func:`~prsa_ctrl.studies.responses.design_responses`.
     scene : Scene
     pid : PID
     stability : {"stable", "marginal", "unstable"}, optional
-        The loop's class (default: from the loop model). Marginal and unstable loops are drawn
-        with a red warning title; an unstable one gets the frequency plots only (its time
-        responses diverge).
+        The loop's class (default: from the loop model).
     loops : list of LoopModel, optional
         The scene's loop models (default :func:`prsa_ctrl.studies.autotune.actuator_loops`).
 
@@ -819,63 +806,14 @@ def design_figures(plant, scene, pid, stability: str | None = None, loops=None) 
     dict
         Figure name -> matplotlib Figure.
     """
-    import control
-
-    from ..studies.autotune import Design, _linear_fidelity, _predict, actuator_loops, verify
-    from ..plant.linear import closed_loop, linearize
-    from ..studies.scene import choose_fidelity
-    from ..sim.simulate import simulate
-
-    scene, _ = choose_fidelity(scene)
-    loops = actuator_loops(plant, scene) if loops is None else loops
-    lp = loops[0]
-    g = pid.gains
-    stability = stability or (lp.stability(g) if hasattr(lp, "stability") else
-                              ("stable" if lp.is_stable(g) else "unstable"))
-    design = Design("given gains", pid, lp.margins(g))
-    ts = plant.sample_time_s if scene.discrete else None
-    sys = linearize(plant, scene.setpoint_rad_s, scene.initial_load, _linear_fidelity(scene), sampled=scene.discrete)
-    L = lp.loop_response(g)
-    figs = {
-        "plant_bode": bode_plant(sys, sample_time_s=ts)[0],
-        "loop_bode": bode_loop(lp.omega, L, design.margins, operating_point=_mid_load_text(scene, 0),
-                               sample_time_s=ts)[0],
-        "sensitivity": sensitivity_plot(lp.omega, L, scene.ms_max, mt_max=scene.mt_max, sample_time_s=ts)[0],
-    }
-    figs["sensitivity"].axes[0].set_title(f"S and T at {_mid_load_text(scene, 0)}", fontsize=10)
-    label = {"marginal": "marginally stable closed loop", "unstable": "UNSTABLE closed loop"}.get(stability)
-    if label:
-        for fig in figs.values():
-            fig.suptitle(f"{label}: kp = {pid.kp:g}, ki = {pid.ki:g}, kd = {pid.kd:g}", color="tab:red", fontsize=10)
-    if stability == "unstable":
-        return figs
-    _predict(design, loops, plant, scene)
-    verify(design, plant, scene)
-    if scene.is_profile:
-        for k, case in enumerate(scene.cases):
-            name = "duty_cycle" + ("" if len(scene.cases) == 1 else "_" + case.split()[0])
-            figs[name] = duty_cycle_plot(design, scene, k, torque_limit=plant.torque_limit)[0]
-    else:
-        figs["load_step"] = load_step_plot(design, scene, k=None if len(scene.final_loads) > 1 else 0,
-                                           torque_limit=plant.torque_limit)[0]
-    # Setpoint step of +10 %: nonlinear run and the linear closed loop's prediction.
-    w0, dw, t_step, span = scene.setpoint_rad_s, 0.1 * scene.setpoint_rad_s, 0.005, 0.1
-    r = simulate(plant, setpoint=[(0.0, w0), (t_step, w0 + dw)], load=scene.initial_load, duration=t_step + span,
-                 controller=pid, fidelity=scene.fidelity, discrete=scene.discrete)
-    cl = closed_loop(sys, pid)
-    tl = np.linspace(0.0, span, 2001)
-    lin = control.step_response(cl, T=tl, input=0)
-    y_lin = w0 + dw * np.asarray(lin.outputs).reshape(cl.noutputs, -1)[cl.output_labels.index("nut_speed")]
-    figs["setpoint_step"] = step_response_plot(
-        np.asarray(r.time), np.asarray(r.outputs[0]), tl + t_step, y_lin, setpoint=None,
-        title=f"Setpoint step {w0:.2f} -> {w0 + dw:.2f} rad/s at {scene.initial_load:g} N"
-              + (f" ({label})" if label else ""),
-    )[0]
-    return figs
+    data = plant if isinstance(plant, FigureData) else design_responses(plant, scene, pid, stability, loops)
+    return draw_design_figures(data)
 
 
 def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
-    """:func:`design_figures` of stabilising gains, saved as PNG and SVG into ``directory``.
+    """:func:`design_figures` of stabilising gains
+    (:func:`~prsa_ctrl.studies.responses.stable_design_responses`), saved as PNG and SVG into
+    ``directory``.
 
     Parameters
     ----------
@@ -889,19 +827,4 @@ def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
     ValueError
         If the gains do not stabilise the loop.
     """
-    from ..studies.autotune import actuator_loops
-    from ..studies.scene import choose_fidelity
-
-    scene, _ = choose_fidelity(scene)
-    loops = actuator_loops(plant, scene)
-    if not loops[0].is_stable(pid.gains):
-        raise ValueError(f"the loop with {pid} is unstable on {plant.name}; expected stabilising gains")
-    figs = design_figures(plant, scene, pid, "stable", loops)
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    files: list[Path] = []
-    for name, fig in figs.items():
-        files += save_figure(fig, directory / name)
-        plt.close(fig)
-    return files
-
+    return _save_all(draw_design_figures(stable_design_responses(plant, scene, pid)), directory)

@@ -18,23 +18,30 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..drive.estimator import design_kf
 from ..drive.pid import PID
-from ..plant.linear import linear_core
-from ..sim.metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics, relative_difference
-from ..plant.model import plant_model
-from ..options import DERIVATIVE_FILTER_SAMPLES, RAD_S_PER_RPM
-from .paper import default_pid
+from ..options import RAD_S_PER_RPM
+from ..plant.equilibrium import operating_point
 from ..plant.plantfile import Plant
+from ..results import is_ok
+from ..sim.metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics, relative_difference
+from ..sim.simulate import PiecewiseLinear, SimSettings, fast_settings, run
+# Private name of the simulator, until sim/ makes it public (h-simfit).
+from ..sim.simulate import _initial_state
+from ..tuning.scene_loops import actuator_loops, duty_record, linear_fidelity
+from ..tuning.tuner import LoopModel, Tuner
+from .paper import default_pid
 from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
-from ..sim.simulate import SimSettings, run
-from ..tuning.tuner import LoopModel, Tuner, continuous_loop, drive_loop
+
 
 __all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs", "duty_record",
-           "setpoint_prefilter"]
+           "setpoint_prefilter", "predict", "verify", "verify_all", "checked", "health_flags", "prediction_warnings",
+           "integral_warning", "verify_settings", "fast_verify_settings", "default_workers", "linear_fidelity",
+           "FAST_VERIFY", "PREDICTION_TOLERANCE"]
 
 #: Samples of steady state simulated before the step (the run starts in equilibrium).
 _PRE_SAMPLES = PRE_EVENT_SAMPLES
@@ -48,34 +55,51 @@ SATURATION_FRACTION = 0.10
 DUTY_SETTLE_BAND = 0.05
 
 
-@dataclass
+@dataclass(frozen=True)
 class Design:
     """One controller with its predicted (linear) and verified (nonlinear) load-step metrics.
 
-    ``predicted`` / ``verified`` hold one :class:`LoadStepMetrics` per final load of the scene;
-    ``objective_*`` aggregate them as the scene says (sum or worst).
+    Frozen: :func:`predict`, :func:`verify` and :func:`checked` return new designs.
+    ``predicted`` / ``verified`` hold one :class:`LoadStepMetrics` (duty cycle:
+    :class:`ProfileMetrics`) per final load (record) of the scene; ``objective_*`` aggregate
+    them as the scene says (sum or worst). ``status`` (:mod:`prsa_ctrl.results`) is
+    ``"unverified"`` before :func:`verify`, then ``"ok"`` or ``"flagged: <checks failed>"``
+    (from ``flags``, the health checks of :func:`health_flags`).
     """
 
     name: str
     pid: PID
     margins: Margins
-    predicted: list[LoadStepMetrics] = field(default_factory=list)
-    verified: list[LoadStepMetrics] = field(default_factory=list)
+    predicted: tuple = ()
+    verified: tuple = ()
     objective_predicted: float = math.nan
     objective_verified: float = math.nan
-    verified_runs: list = field(default_factory=list, repr=False)
-    predicted_error: list = field(default_factory=list, repr=False)
+    verified_runs: tuple = field(default=(), repr=False)  # per level: (time s, {output: array})
+    predicted_error: tuple = field(default=(), repr=False)  # per level: speed error, rad/s, per sample
     predicted_h: float = math.nan
     predicted_start_speed: float = math.nan  # rad/s before the step (below the setpoint for P-only)
     estimator: str = "none"
-    estimation: list = field(default_factory=list)  # per step: speed RMS errors (rad/s)
-    flags: list[str] = field(default_factory=list)  # health checks the verified runs failed
+    estimation: tuple = ()  # per step: speed RMS errors (rad/s)
+    flags: tuple[str, ...] = ()  # health checks the verified runs failed
     tuner_status: str = "optimal"  # the tuner's status for tuned designs (see TuningResult.status)
+    warnings: tuple[str, ...] = ()  # caveats that are not health flags (prediction gap below the flag limit)
 
     @property
     def healthy(self) -> bool:
         """Whether the verified runs passed every health check (see :func:`health_flags`)."""
         return not self.flags
+
+    @property
+    def status(self) -> str:
+        """``"unverified"``, ``"ok"`` or ``"flagged: ..."`` (see :data:`prsa_ctrl.results.STATUSES`)."""
+        if self.flags:
+            return "flagged: " + "; ".join(self.flags)
+        return "ok" if self.verified else "unverified"
+
+    @property
+    def ok(self) -> bool:
+        """Verified and healthy."""
+        return is_ok(self.status)
 
     def as_dict(self) -> dict:
         return {
@@ -91,26 +115,31 @@ class Design:
             "objective_predicted": self.objective_predicted,
             "objective_verified": self.objective_verified,
             "estimator": self.estimator,
-            "estimation": self.estimation,
+            "estimation": [dict(e) for e in self.estimation],
             "flags": list(self.flags),
         }
 
 
-@dataclass
+@dataclass(frozen=True)
 class ActuatorTuning:
-    """Report of :func:`tune_actuator`."""
+    """Report of :func:`tune_actuator` (frozen).
+
+    ``comparison_designs`` are the verified designs tuned at a baseline's Ms that the report
+    compares with it but does not keep as candidates (tuned above the scene's Ms bound).
+    """
 
     plant: Plant
     scene: Scene
     best: Design
-    candidates: list[Design]
-    baselines: list[Design]
-    comparisons: list[dict]
+    candidates: tuple[Design, ...]
+    baselines: tuple[Design, ...]
+    comparisons: tuple[dict, ...]
     timing_s: dict[str, float]
     solver: dict
-    warnings: list[str]
-    loops: list = field(default_factory=list, repr=False)
+    warnings: tuple[str, ...]
+    loops: tuple = field(default=(), repr=False)
     fidelity_reason: str = ""
+    comparison_designs: tuple[Design, ...] = field(default=(), repr=False)
 
     @property
     def beats_all_baselines(self) -> bool:
@@ -121,6 +150,23 @@ class ActuatorTuning:
         """``"ok"``, or ``"flagged: ..."`` when every candidate failed a health check and the
         reported best is only the least bad of them."""
         return "ok" if self.best.healthy else "flagged: " + "; ".join(self.best.flags)
+
+    @property
+    def ok(self) -> bool:
+        """The reported best passed every health check."""
+        return is_ok(self.status)
+
+    def comparison_pairs(self) -> list[tuple[Design, Design]]:
+        """``(baseline, verified tuned design at equal or lower Ms)`` for every comparison whose
+        baseline was verified, in the order of :attr:`comparisons`."""
+        pool = [self.best, *self.candidates, *self.comparison_designs]
+        pairs = []
+        for c in self.comparisons:
+            b = next((d for d in self.baselines if d.name == c["baseline"]), None)
+            d = next((x for x in pool if x.pid.as_dict() == c["tuned_gains"] and x.verified_runs), None)
+            if b is not None and b.verified_runs and d is not None:
+                pairs.append((b, d))
+        return pairs
 
     def as_dict(self) -> dict:
         b = self.best
@@ -136,7 +182,7 @@ class ActuatorTuning:
                               "ki_n_m_per_rev": b.pid.ki * 2.0 * math.pi,
                               "kd_n_m_s_per_rpm": b.pid.kd * RAD_S_PER_RPM},
             "estimator": {"kind": self.scene.estimator, "feedforward": self.scene.feedforward,
-                          "estimation": b.estimation},
+                          "estimation": [dict(e) for e in b.estimation]},
             "objective": self.scene.objective,
             "predicted": b.predicted[0].as_dict(),
             "verified": b.verified[0].as_dict(),
@@ -144,111 +190,14 @@ class ActuatorTuning:
             "best": b.as_dict(),
             "candidates": [c.as_dict() for c in self.candidates],
             "baselines": [d.as_dict() for d in self.baselines],
-            "comparisons": self.comparisons,
+            "comparisons": list(self.comparisons),
             "beats_all_baselines": self.beats_all_baselines,
             "solver": self.solver,
             "timing_s": self.timing_s,
             "verification": {"fidelity": self.fidelity_reason, "discrete": self.scene.discrete,
                              "tolerance": verify_settings(self.scene).rtol},
-            "warnings": self.warnings,
+            "warnings": list(self.warnings),
         }
-
-
-def _tf_default(plant: Plant) -> float:
-    """Derivative-filter time constant, s (``DERIVATIVE_FILTER_SAMPLES`` controller samples)."""
-    return DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s
-
-
-def _linear_fidelity(scene: Scene) -> str:
-    """The multi-roller model is periodic in the cage angle; its mean behaviour is the
-    compliant model's, which is linearised instead."""
-    return "compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity
-
-
-def actuator_loops(plant: Plant, scene: Scene, estimator: str | None = None) -> list[LoopModel]:
-    """One loop model per final load, linearised at the mid load of the step (the response
-    to a step is the same from any linearisation point; the mid load keeps the Jacobians
-    closest to both ends). ``estimator`` (default: the scene's) selects the speed measurement:
-    ``"none"`` for the drive's filtered difference, ``"kf"`` for the Kalman filter (with the
-    load feed-forward gain as a fourth tuned gain when the scene asks for feed-forward).
-
-    Parameters
-    ----------
-    plant : Plant
-    scene : Scene
-    estimator : {"none", "kf"}, optional
-
-    Returns
-    -------
-    list of LoopModel
-        Sampled drive loops (``scene.discrete``) or continuous loops, one per final load.
-    """
-    estimator = scene.estimator if estimator is None else estimator
-    kf = None
-    if estimator == "kf":
-        from ..drive.estimator import design_kf
-
-        kf = design_kf(plant, scene.load_change_time_s)
-    fidelity = _linear_fidelity(scene)
-    model = plant_model(plant, fidelity)
-    i_speed = model.output_names.index("nut_speed")
-    i_torque = model.output_names.index("motor_torque")
-    if scene.is_profile:
-        loops = []
-        for case in scene.cases:
-            rec = duty_record(plant, scene, case)
-            a, b, c, _, _ = linear_core(plant, rec["w_lin"], rec["f_lin"], fidelity)
-            loops.append(drive_loop(
-                a, b, c[i_speed], model.index("theta_nut"), ts=plant.sample_time_s, speed_filter=plant.speed_filter_s,
-                tf=_tf_default(plant), horizon=scene.duration, name=case,
-                outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
-                load_sequence=rec["load_sequence"], setpoint_sequence=rec["setpoint_sequence"],
-                setpoint_weight=scene.setpoint_weight))
-        return loops
-    horizon = scene.duration - scene.step_time
-    loops = []
-    for f1 in scene.final_loads:
-        a, b, c, _, _ = linear_core(plant, scene.setpoint_rad_s, 0.5 * (scene.initial_load + f1), fidelity)
-        step = f1 - scene.initial_load
-        if kf is not None:
-            from ..drive.estimator import kf_drive_loop
-
-            loops.append(
-                kf_drive_loop(
-                    a, b, c[i_speed], model.index("theta_nut"), kf, tf=_tf_default(plant), horizon=horizon,
-                    step=step, feedforward=scene.feedforward, name=f"step to {f1:g} N (KF)",
-                    outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
-                )
-            )
-        elif scene.discrete:
-            loops.append(
-                drive_loop(
-                    a, b, c[i_speed], model.index("theta_nut"),
-                    ts=plant.sample_time_s, speed_filter=plant.speed_filter_s, tf=_tf_default(plant),
-                    horizon=horizon, step=step, name=f"step to {f1:g} N",
-                    outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
-                )
-            )
-        else:
-            import control
-
-            t_f = plant.speed_filter_s
-            # The continuous controller measures speed, never the angle: the nut-angle state is
-            # a pure integrator nothing depends on (its column is zero) and would leave a pole
-            # at exactly 0 for every gain, so it is removed.
-            i_th = model.index("theta_nut")
-            if np.any(a[:, i_th] != 0) or np.any(c[:, i_th] != 0):
-                raise ArithmeticError("the linearised plant depends on the absolute nut angle")
-            keep = [i for i in range(a.shape[0]) if i != i_th]
-            a, b, c = a[np.ix_(keep, keep)], b[keep], c[:, keep]
-            n = a.shape[0]
-            # Plant plus speed filter; the filtered speed is fed back.
-            aa = np.block([[a, np.zeros((n, 1))], [c[i_speed][None, :] / t_f, -np.ones((1, 1)) / t_f]])
-            bb = np.vstack([b, np.zeros((1, 2))])
-            cc = np.concatenate([np.zeros(n), [1.0]])[None, :]
-            sys = control.ss(aa, bb, cc, np.zeros((1, 2)))
-            loops.append(continuous_loop(sys, tf=_tf_default(plant), horizon=horizon, n_steps=int(round(horizon / 1e-4)), step=step))
-    return loops
 
 
 def _aggregate(values: list[float], scene: Scene) -> float:
@@ -257,69 +206,6 @@ def _aggregate(values: list[float], scene: Scene) -> float:
     if scene.is_profile and scene.goal == "mix":
         return float((1.0 - scene.setpoint_share) * values[0] + scene.setpoint_share * values[1])
     return float(np.sum(values))
-
-
-def _n_samples(plant: Plant, scene: Scene) -> int:
-    return max(10, int(round(scene.duration / plant.sample_time_s)))
-
-
-def duty_record(plant: Plant, scene: Scene, case: str) -> dict:
-    """One record of a duty-cycle scene, as the loop model and the verification see it.
-
-    Parameters
-    ----------
-    plant : Plant
-    scene : Scene
-        A duty-cycle scene (``scene.is_profile``).
-    case : {"load profile", "setpoint profile"}
-        One of ``scene.cases``.
-
-    Returns
-    -------
-    dict
-        ``load`` and ``setpoint`` (simulator profiles, N and rad/s), ``load_sequence`` (mean
-        load deviation over each controller sample, N, or None), ``setpoint_sequence``
-        (setpoint deviation the controller reads at each sample, rad/s, or None), ``t``
-        (sample times, s), ``setpoint_at`` (setpoint at them, rad/s), ``load_steps`` ((time s,
-        signed size N) of each load step), ``breaks`` (every change, s) and the linearisation
-        point ``w_lin`` (rad/s), ``f_lin`` (N): the middle of the profile's range.
-    """
-    from ..sim.simulate import PiecewiseLinear, _normalise_profile
-
-    ts = plant.sample_time_s
-    n = _n_samples(plant, scene)
-    t = ts * np.arange(n + 1)
-    w0, f0 = scene.setpoint_rad_s, scene.initial_load
-    out: dict = {"t": t, "load_sequence": None, "setpoint_sequence": None, "load_steps": [], "breaks": [],
-                 "load": f0, "setpoint": w0, "w_lin": w0, "f_lin": f0}
-    if case == "load profile":
-        pts = scene.load_profile
-        prof = _normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
-        # Exact mean over each sample interval: integral of the piecewise-linear load.
-        edges = ts * np.arange(n + 1)
-        seg_len = np.append(np.diff(prof.t), np.inf)
-        lens = np.clip(edges[:, None] - prof.t[None, :], 0.0, seg_len[None, :])
-        integral = lens @ prof.v + (lens * lens) @ prof.s / 2.0
-        out["load_sequence"] = np.diff(integral) / ts - f0
-        out["load"] = PiecewiseLinear(pts)
-        out["load_steps"] = [(float(tk), float(prof.v[i] - prof.at(tk - 1e-9)))
-                             for i, tk in enumerate(prof.t) if prof.jump[i]]
-        out["breaks"] = [float(x) for x in prof.t[1:]]
-        vals = [v for _, v in pts]
-        out["f_lin"] = 0.5 * (min(vals) + max(vals))
-        out["setpoint_at"] = np.full(n + 1, w0)
-    else:
-        pts = scene.setpoint_profile
-        prof = _normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
-        r = prof.at(t)
-        out["setpoint_sequence"] = r - w0
-        out["setpoint_sequence"][0] = 0.0
-        out["setpoint"] = PiecewiseLinear(pts)
-        out["breaks"] = [float(x) for x in prof.t[1:]]
-        vals = [v for _, v in pts]
-        out["w_lin"] = 0.5 * (min(vals) + max(vals))
-        out["setpoint_at"] = r
-    return out
 
 
 def setpoint_prefilter(r: np.ndarray, pid: PID, ts: float, b: float) -> np.ndarray:
@@ -359,49 +245,61 @@ def setpoint_prefilter(r: np.ndarray, pid: PID, ts: float, b: float) -> np.ndarr
     return rf
 
 
-def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) -> None:
-    """Linear load-step metrics of a design, on the same footing as the verification."""
+def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) -> Design:
+    """The design with its linear load-step (or duty-cycle) metrics, on the same footing as
+    the verification (a new :class:`Design`; the argument is left as it is).
+
+    Parameters
+    ----------
+    design : Design
+    loops : list of LoopModel
+        The scene's loop models (:func:`actuator_loops`), one per load level or record.
+    plant : Plant
+    scene : Scene
+
+    Returns
+    -------
+    Design
+        With ``predicted`` (metrics per level), ``predicted_error`` (speed error per sample,
+        rad/s), ``predicted_h`` (s), ``predicted_start_speed`` (rad/s) and
+        ``objective_predicted``.
+    """
     w0 = scene.setpoint_rad_s
-    design.predicted, design.predicted_error = [], []
-    design.predicted_h = loops[0].h
+    predicted, errors = [], []
     if scene.is_profile:
         tau0 = _steady_torque(plant, scene, scene.initial_load)
-        design.predicted_start_speed = w0
+        w_pre = w0
         for case, lp in zip(scene.cases, loops):
             rec = duty_record(plant, scene, case)
             tr = lp.trajectory(design.pid.gains)
-            design.predicted_error.append(tr["error"])
+            errors.append(tr["error"])
             t = rec["t"][: lp.n_steps]
             r = rec["setpoint_at"][: lp.n_steps]
-            design.predicted.append(profile_metrics(t, r - tr["error"], r, tau0 + tr["motor_torque"],
-                                                    plant.torque_limit, rec["load_steps"], rec["breaks"]))
-        design.objective_predicted = _aggregate([getattr(m, scene.objective) for m in design.predicted], scene)
-        return
-    w_pre, tau0 = w0, _steady_torque(plant, scene, scene.initial_load)
-    if design.pid.ki == 0:  # P-only: the loop settles below the setpoint before the step too
-        from ..sim.simulate import _initial_state
-
-        op, _ = _initial_state(plant, _linear_fidelity(scene), w0, scene.initial_load, design.pid, 0.0, 0,
-                               observer_ff=design.estimator == "kf")
-        w_pre, tau0 = op.omega_nut, op.torque
-    design.predicted_start_speed = w_pre
-    for f1, lp in zip(scene.final_loads, loops):
-        tr = lp.trajectory(design.pid.gains)
-        design.predicted_error.append(tr["error"])
-        t = scene.step_time + lp.h * np.arange(-1, lp.n_steps)
-        speed = w_pre + np.concatenate([[0.0], -tr["error"]])
-        torque = tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))])
-        design.predicted.append(
-            load_step_metrics(t, speed, w0, scene.step_time, torque, plant.torque_limit,
-                              direction=1 if f1 >= scene.initial_load else -1)
-        )
-    design.objective_predicted = _aggregate([getattr(m, scene.objective) for m in design.predicted], scene)
+            predicted.append(profile_metrics(t, r - tr["error"], r, tau0 + tr["motor_torque"],
+                                             plant.torque_limit, rec["load_steps"], rec["breaks"]))
+    else:
+        w_pre, tau0 = w0, _steady_torque(plant, scene, scene.initial_load)
+        if design.pid.ki == 0:  # P-only: the loop settles below the setpoint before the step too
+            op, _ = _initial_state(plant, linear_fidelity(scene), w0, scene.initial_load, design.pid, 0.0, 0,
+                                   observer_ff=design.estimator == "kf")
+            w_pre, tau0 = op.omega_nut, op.torque
+        for f1, lp in zip(scene.final_loads, loops):
+            tr = lp.trajectory(design.pid.gains)
+            errors.append(tr["error"])
+            t = scene.step_time + lp.h * np.arange(-1, lp.n_steps)
+            speed = w_pre + np.concatenate([[0.0], -tr["error"]])
+            torque = tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))])
+            predicted.append(
+                load_step_metrics(t, speed, w0, scene.step_time, torque, plant.torque_limit,
+                                  direction=1 if f1 >= scene.initial_load else -1)
+            )
+    return replace(design, predicted=tuple(predicted), predicted_error=tuple(errors), predicted_h=loops[0].h,
+                   predicted_start_speed=w_pre,
+                   objective_predicted=_aggregate([getattr(m, scene.objective) for m in predicted], scene))
 
 
 def _steady_torque(plant: Plant, scene: Scene, load: float) -> float:
-    from ..plant.equilibrium import operating_point
-
-    return operating_point(plant, scene.setpoint_rad_s, load, _linear_fidelity(scene)).torque
+    return operating_point(plant, scene.setpoint_rad_s, load, linear_fidelity(scene)).torque
 
 
 def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
@@ -530,8 +428,6 @@ def fast_verify_settings(scene: Scene, plant: Plant, pid: PID | None = None) -> 
     """:data:`FAST_VERIFY` if its measured error on ``scene``'s first load step is inside half
     the scene's accuracy, else ``None``; with the measurement (``relative`` error, or a
     ``reason`` where the fast path does not apply: continuous or duty-cycle scenes)."""
-    from ..sim.simulate import fast_settings
-
     scene, _ = choose_fidelity(scene)
     if not scene.discrete or scene.is_profile:
         return None, {"reason": "fixed-step fast path: sampled load-step scenes only"}
@@ -543,8 +439,10 @@ def fast_verify_settings(scene: Scene, plant: Plant, pid: PID | None = None) -> 
 
 
 def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0, settings: SimSettings | None = None) -> Design:
-    """Nonlinear load-step runs of a design (one per final load); fills ``design.verified``
-    and ``design.verified_runs`` (time s, dict of output arrays) and returns the design.
+    """Nonlinear load-step runs of a design (one per final load; a duty cycle: one per record).
+
+    The package's one argument order for verification: the design first, then what it is
+    verified on (``plant``, ``scene``). The argument is not changed.
 
     Parameters
     ----------
@@ -555,15 +453,29 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0, settings: 
         Seed of the per-roller errors (multi-roller fidelity).
     settings : SimSettings, optional
         Integrator settings (default :func:`verify_settings` of the scene).
+
+    Returns
+    -------
+    Design
+        A new design with ``verified`` (metrics per level), ``verified_runs`` (time s, dict of
+        output arrays), ``estimation`` (Kalman-filter designs: speed RMS errors, rad/s) and
+        ``objective_verified``; its ``flags`` are those of ``design`` (see :func:`checked`).
     """
     scene, _ = choose_fidelity(scene)
-    ts = plant.sample_time_s
     settings = verify_settings(scene) if settings is None else settings
-    if scene.is_profile:
-        return _verify_profile(design, plant, scene, seed, settings)
+    runs = _profile_runs if scene.is_profile else _load_step_runs
+    verified, verified_runs, estimation = runs(design, plant, scene, seed, settings)
+    return replace(design, verified=tuple(verified), verified_runs=tuple(verified_runs),
+                   estimation=tuple(estimation),
+                   objective_verified=_aggregate([getattr(m, scene.objective) for m in verified], scene))
+
+
+def _load_step_runs(design: Design, plant: Plant, scene: Scene, seed: int, settings: SimSettings) -> tuple:
+    """:func:`verify` on a load-step scene: ``(metrics, runs, estimation)`` per final load."""
+    ts = plant.sample_time_s
     pre = min(scene.step_time, _PRE_SAMPLES * ts) if scene.discrete else min(scene.step_time, 1e-3)
     offset = scene.step_time - pre
-    design.verified, design.verified_runs, design.estimation = [], [], []
+    verified, verified_runs, estimation = [], [], []
     for f1 in scene.final_loads:
         kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, f1)],
                   duration=pre + scene.duration - scene.step_time, controller=design.pid,
@@ -571,35 +483,30 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0, settings: 
         measurement = "encoder"
         kf = None
         if design.estimator == "kf":
-            from ..drive.estimator import design_kf
-
             measurement, kf = "kf", design_kf(plant, scene.load_change_time_s)
         r = run(plant, discrete=scene.discrete, measurement=measurement, kf=kf, **kw)
         if design.estimator == "kf":
             w = r.output("nut_speed")
-            design.estimation.append({
+            estimation.append({
                 "kf_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_measured") - w) ** 2))),
                 "fd_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_fd") - w) ** 2))),
             })
         t = np.asarray(r.time) + offset
         y = dict(zip(r.output_labels, np.asarray(r.outputs)))
-        design.verified.append(
+        verified.append(
             load_step_metrics(t, y["nut_speed"], scene.setpoint_rad_s, scene.step_time, y["motor_torque"],
                               plant.torque_limit, direction=1 if f1 >= scene.initial_load else -1)
         )
-        design.verified_runs.append((t, y))
-    design.objective_verified = _aggregate([getattr(m, scene.objective) for m in design.verified], scene)
-    return design
+        verified_runs.append((t, y))
+    return verified, verified_runs, estimation
 
 
-def _verify_profile(design: Design, plant: Plant, scene: Scene, seed: int, settings: SimSettings) -> Design:
+def _profile_runs(design: Design, plant: Plant, scene: Scene, seed: int, settings: SimSettings) -> tuple:
     """:func:`verify` on a duty cycle: one sampled nonlinear run per record, over the whole
     record, with the scene's profiles (a setpoint weight ``b != 1`` through
-    :func:`setpoint_prefilter`)."""
-    from ..sim.simulate import PiecewiseLinear
-
+    :func:`setpoint_prefilter`); ``(metrics, runs, [])``."""
     ts = plant.sample_time_s
-    design.verified, design.verified_runs, design.estimation = [], [], []
+    verified, verified_runs = [], []
     for case in scene.cases:
         rec = duty_record(plant, scene, case)
         setpoint = rec["setpoint"]
@@ -613,20 +520,42 @@ def _verify_profile(design: Design, plant: Plant, scene: Scene, seed: int, setti
         y = dict(zip(r.output_labels, np.asarray(r.outputs)))
         ref = rec["setpoint_at"][: t.size]
         y["setpoint"] = ref
-        design.verified.append(profile_metrics(t, y["nut_speed"], ref, y["motor_torque"], plant.torque_limit,
-                                               rec["load_steps"], rec["breaks"]))
-        design.verified_runs.append((t, y))
-    design.objective_verified = _aggregate([getattr(m, scene.objective) for m in design.verified], scene)
-    return design
+        verified.append(profile_metrics(t, y["nut_speed"], ref, y["motor_torque"], plant.torque_limit,
+                                        rec["load_steps"], rec["breaks"]))
+        verified_runs.append((t, y))
+    return verified, verified_runs, []
+
+
+def checked(design: Design, plant: Plant, scene: Scene) -> Design:
+    """The verified design with its health ``flags`` (:func:`health_flags`) and its
+    ``warnings`` (:func:`prediction_warnings`), as a new design."""
+    flags = tuple(health_flags(design, plant, scene))
+    return replace(design, flags=flags, warnings=tuple(prediction_warnings(replace(design, flags=flags), scene)))
+
+
+def prediction_warnings(design: Design, scene: Scene) -> list[str]:
+    """A warning when the verified objective differs from the predicted one by more than
+    ``PREDICTION_TOLERANCE`` (relative) but the gap is not already a health flag.
+
+    Returns
+    -------
+    list of str
+        Empty, or one sentence (without the design's name).
+    """
+    departed = any("departs from the linear prediction" in f for f in design.flags)  # said once, as a flag
+    diff = relative_difference(design.objective_predicted, design.objective_verified)
+    if departed or not design.objective_verified > 0 or diff is None or not abs(diff) > PREDICTION_TOLERANCE:
+        return []
+    return [f"predicted {scene.objective.upper()} {design.objective_predicted:.4g} differs from verified "
+            f"{design.objective_verified:.4g}: difference {100 * diff:+.1f} %"]
 
 
 _POOL_JOB: tuple | None = None
 
 
-def _verify_job(i: int):
+def _verify_job(i: int) -> Design:
     designs, plant, scene = _POOL_JOB  # type: ignore[misc]
-    d = verify(designs[i], plant, scene)
-    return d.verified, d.verified_runs, d.objective_verified, d.estimation
+    return verify(designs[i], plant, scene)
 
 
 def default_workers() -> int:
@@ -635,29 +564,27 @@ def default_workers() -> int:
     return int(os.environ.get("PRSA_WORKERS", "0")) or min(os.cpu_count() or 1, 4)
 
 
-def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int | None = None) -> None:
-    """Verify several designs, in parallel worker processes where the machine has cores.
+def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int | None = None) -> list[Design]:
+    """:func:`verify` of several designs, in parallel worker processes where the machine has
+    cores; the verified designs in the same order (the arguments are not changed).
 
     The workers are forked after the simulator's integrators are built, so each inherits them
     instead of rebuilding; ``PRSA_WORKERS=1`` forces serial runs.
     """
     global _POOL_JOB
     if not designs:
-        return
-    verify(designs[0], plant, scene)  # builds (and caches) the integrators before any fork
-    rest = designs[1:]
+        return []
+    first = verify(designs[0], plant, scene)  # builds (and caches) the integrators before any fork
+    rest = list(designs[1:])
     if workers is None:
         workers = default_workers()
     if workers <= 1 or len(rest) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        for d in rest:
-            verify(d, plant, scene)
-        return
+        return [first, *(verify(d, plant, scene) for d in rest)]
     _POOL_JOB = (rest, plant, scene)
     try:
         ctx = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(max_workers=min(workers, len(rest)), mp_context=ctx) as pool:
-            for d, (ver, runs, obj, est) in zip(rest, pool.map(_verify_job, range(len(rest)))):
-                d.verified, d.verified_runs, d.objective_verified, d.estimation = ver, runs, obj, est
+            return [first, *pool.map(_verify_job, range(len(rest)))]
     finally:
         _POOL_JOB = None
 
@@ -763,9 +690,8 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         runs.append({"ms_max": ms, "result": res.status,
                      **{k: res.stats[k] for k in ("status", "iterations", "wall_time_s")}})
         label = f"tuned (Ms <= {ms:.3g})" + (" + KF" if scene.estimator == "kf" else "") + (" + load FF" if scene.feedforward else "")
-        d = Design(label, res.pid, res.margins[0], estimator=scene.estimator, tuner_status=res.status)
-        _predict(d, loops, plant, scene)
-        return d
+        return predict(Design(label, res.pid, res.margins[0], estimator=scene.estimator, tuner_status=res.status),
+                       loops, plant, scene)
 
     # Baselines use the drive's standard speed measurement; with an estimator in the scene the
     # PI tuned without it is a baseline too (the reference for what the estimator buys).
@@ -774,8 +700,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     if scene.estimator != "none":
         res = Tuner(plain, **common).tune(ms_max=scene.ms_max, mt_max=scene.mt_max)
         baselines.insert(0, Design(f"tuned PI alone (Ms <= {scene.ms_max:.3g})", res.pid, res.margins[0]))
-    for d in baselines:
-        _predict(d, plain, plant, scene)
+    baselines = [predict(d, plain, plant, scene) for d in baselines]
     # Candidates: the design at the scene's Ms bound, designs at the Ms of every baseline that
     # is more robust (they double as its equal-Ms comparison), then more robust alternatives
     # until there are ``scene.candidates``.
@@ -786,10 +711,9 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     timing["tune"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    verify_all(candidates + baselines, plant, scene, workers)
+    done = [checked(d, plant, scene) for d in verify_all(candidates + baselines, plant, scene, workers)]
+    candidates, baselines = done[: len(candidates)], done[len(candidates):]
     timing["verify"] = time.perf_counter() - t2
-    for d in candidates + baselines:
-        d.flags = health_flags(d, plant, scene)
     best = _best(candidates)
     # Equal-Ms comparison designs where the verified best and the candidates do not settle it.
     t3 = time.perf_counter()
@@ -801,9 +725,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     extra = {id(b): tuned(b.margins.ms) for b in baselines if ours_for[id(b)] is None}
     t4 = time.perf_counter()
     timing["tune"] += t4 - t3
-    verify_all(list(extra.values()), plant, scene, workers)
-    for d in extra.values():
-        d.flags = health_flags(d, plant, scene)
+    extra = dict(zip(extra, (checked(d, plant, scene) for d in verify_all(list(extra.values()), plant, scene, workers))))
     timing["verify"] += time.perf_counter() - t4
     comparisons = []
     for b in baselines:
@@ -827,15 +749,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     best = _best([best, *[d for d in extra.values() if d.margins.ms <= scene.ms_max]])
     timing["total"] = time.perf_counter() - t0
 
-    warnings_out = []
-    for d in candidates + baselines + list(extra.values()):
-        departed = any("departs from the linear prediction" in f for f in d.flags)  # said once, as a flag
-        diff = relative_difference(d.objective_predicted, d.objective_verified)
-        if not departed and d.objective_verified > 0 and diff is not None and abs(diff) > PREDICTION_TOLERANCE:
-            warnings_out.append(
-                f"{d.name}: predicted {scene.objective.upper()} {d.objective_predicted:.4g} differs from verified "
-                f"{d.objective_verified:.4g}: difference {100 * diff:+.1f} %"
-            )
+    warnings_out = [f"{d.name}: {w}" for d in candidates + baselines + list(extra.values()) for w in d.warnings]
     for d in candidates + baselines + list(extra.values()):
         for f in d.flags:
             warnings_out.append(f"{d.name}: {f}")
@@ -854,12 +768,13 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         plant=plant,
         scene=scene,
         best=best,
-        candidates=candidates + [d for d in extra.values() if d.margins.ms <= scene.ms_max],
-        baselines=baselines,
-        comparisons=comparisons,
+        candidates=tuple(candidates + [d for d in extra.values() if d.margins.ms <= scene.ms_max]),
+        baselines=tuple(baselines),
+        comparisons=tuple(comparisons),
         timing_s=timing,
         solver={"name": "ipopt (CasADi)", "runs": runs},
-        warnings=warnings_out,
-        loops=loops,
+        warnings=tuple(warnings_out),
+        loops=tuple(loops),
         fidelity_reason=fidelity_reason,
+        comparison_designs=tuple(d for d in extra.values() if d.margins.ms > scene.ms_max),
     )

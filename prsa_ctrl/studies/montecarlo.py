@@ -12,22 +12,39 @@ the job (plant, scene, designs) is sent once per worker.
 
 from __future__ import annotations
 
+import ctypes
+import inspect
 import math
+import multiprocessing
 import os
+import signal
 import sys
 import time
 import uuid
 import warnings
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from ..io.output import json_safe
+from .._lazy import module
+from ..drive.pid import PID
 from ..errors import GeometryWarning, SimulationError
+from ..plant.model import register_member
+from ..plant.plantfile import Plant
+from ..plant.uncertainty import apply, uncertainty_model
+from ..results import is_ok, json_safe
+from ..tuning.robust import operating_points
+from .autotune import FAST_VERIFY, Design, actuator_loops, fast_verify_settings, verify, verify_settings
+from .scene import choose_fidelity
 
-__all__ = ["MonteCarloReport", "MonteCarloInterrupted", "run_monte_carlo", "format_report", "wilson_interval",
-           "draw_sample", "replay_sample", "benchmark", "plot_report", "scene_options", "METRICS", "BACKENDS"]
+dask = module("dask")
+distributed = module("dask.distributed")
+
+__all__ = ["MonteCarloReport", "DesignYield", "MonteCarloInterrupted", "run_monte_carlo", "format_report",
+           "wilson_interval", "draw_sample", "replay_sample", "benchmark", "scene_options", "verification_settings",
+           "METRICS", "BACKENDS"]
 
 #: Metrics recorded per design and sample (worst over the sample's load steps).
 METRICS = ("peak_drop_rad_s", "recovery_time_s", "ie", "iae", "itae", "ise", "overshoot_rad_s",
@@ -90,9 +107,6 @@ def _prepared(job: _Job) -> tuple:
     """The job's plant and resolved scene, built once per worker process."""
     got = _WORKER_CACHE.get(job.token)
     if got is None:
-        from ..plant.plantfile import Plant
-        from .scene import choose_fidelity
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", GeometryWarning)
             plant = Plant(**job.plant_doc)
@@ -114,12 +128,6 @@ def draw_sample(unc, ops: Sequence, seed: int, index: int) -> tuple[dict[str, fl
 
 def _evaluate(job: _Job, index: int) -> tuple[int, dict, int, np.ndarray, list]:
     """All designs on sample ``index``: metrics array (designs x METRICS) and error messages."""
-    import inspect
-
-    from .autotune import Design, actuator_loops, verify
-    from ..plant.model import register_member
-    from ..plant.uncertainty import apply
-
     plant, scene = _prepared(job)
     values, op, roller_seed = draw_sample(job.unc, job.ops, job.seed, index)
     sp, f1 = job.ops[op]
@@ -133,9 +141,8 @@ def _evaluate(job: _Job, index: int) -> tuple[int, dict, int, np.ndarray, list]:
     errors: list = [None] * len(job.designs)
     loop = None
     for j, (name, pid, est) in enumerate(job.designs):
-        d = Design(name, pid, None, estimator=est)
         try:
-            verify(d, p_i, sc, **kw)
+            d = verify(Design(name, pid, None, estimator=est), p_i, sc, **kw)
         except SimulationError as exc:
             errors[j] = str(exc).splitlines()[0]
             continue
@@ -181,10 +188,6 @@ def verification_settings(plant, scene, unc, ops: Sequence, pid, integrator: str
         The settings and a record: ``integrator``, the largest measured ``relative`` error
         (``None`` when not measured), the ``accuracy`` and the ``reason``.
     """
-    from .autotune import fast_verify_settings, verify_settings
-    from .scene import choose_fidelity
-    from ..plant.uncertainty import apply
-
     if integrator not in INTEGRATOR_CHOICES:
         raise ValueError(f"integrator = {integrator!r}; expected one of {', '.join(INTEGRATOR_CHOICES)}")
     sc, _ = choose_fidelity(scene)
@@ -193,16 +196,12 @@ def verification_settings(plant, scene, unc, ops: Sequence, pid, integrator: str
         return reference, {"integrator": reference.integrator, "rtol": reference.rtol, "relative": None,
                            "accuracy": sc.accuracy, "reason": "integrator = 'reference'"}
     if integrator == "fast":
-        from .autotune import FAST_VERIFY
-
         return FAST_VERIFY, {"integrator": "radau", "stages": FAST_VERIFY.stages, "substeps": FAST_VERIFY.substeps,
                              "jit": FAST_VERIFY.jit, "relative": None, "accuracy": sc.accuracy,
                              "reason": "integrator = 'fast'"}
     key = (tuple(sorted(plant.values.items())), repr(sc), repr(unc.as_dict()), tuple(ops), repr(pid))
     if key in _SETTINGS_CACHE:
         return _SETTINGS_CACHE[key]
-    from ..plant.model import register_member
-
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", GeometryWarning)
@@ -253,8 +252,6 @@ _POOL_JOB: _Job | None = None
 
 
 def _pool_init(job: _Job, parent: int | None = None) -> None:
-    import signal
-
     global _POOL_JOB
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
     _end_with_parent(parent)
@@ -268,9 +265,6 @@ def _end_with_parent(parent: int | None) -> None:
     if parent is None or not sys.platform.startswith("linux"):
         return
     try:
-        import ctypes
-        import signal
-
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # best effort: the parent's handlers stop the workers too
@@ -286,7 +280,7 @@ def _pool_chunk(indices: Sequence[int]) -> list:
 
 # --- report --------------------------------------------------------------------------------------
 
-@dataclass
+@dataclass(frozen=True)
 class DesignYield:
     """Monte-Carlo outcome of one design."""
 
@@ -311,10 +305,15 @@ class DesignYield:
                 "simulation_failures": self.failures}
 
 
-@dataclass
+@dataclass(frozen=True)
 class MonteCarloReport:
-    """Result of :func:`run_monte_carlo`. ``complete`` is false when the run was interrupted
-    (then ``n_done < n`` and the yields cover only the finished samples)."""
+    """Result of :func:`run_monte_carlo` (frozen). ``complete`` is false when the run was
+    interrupted (then ``n_done < n`` and the yields cover only the finished samples).
+
+    ``status`` is ``"ok"`` for a complete run and ``"interrupted: <done> of <n> samples"``
+    otherwise (:data:`prsa_ctrl.results.STATUSES`); ``warnings`` name the designs whose
+    runs failed to simulate on some samples.
+    """
 
     n: int
     n_done: int
@@ -329,6 +328,18 @@ class MonteCarloReport:
     wall_time_s: float
     samples: dict = field(default_factory=dict, repr=False)  # index, values, op, metrics arrays
     integration: dict = field(default_factory=dict)  # the verification runs' integrator and its measured error
+
+    @property
+    def status(self) -> str:
+        return "ok" if self.complete else f"interrupted: {self.n_done} of {self.n} samples"
+
+    @property
+    def ok(self) -> bool:
+        return is_ok(self.status)
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        return tuple(f"{d.name}: {d.failures} of {d.n} samples failed to simulate" for d in self.designs if d.failures)
 
     def as_dict(self, include_samples: bool = False) -> dict[str, Any]:
         d = {"samples": self.n, "samples_done": self.n_done, "seed": self.seed, "backend": self.backend,
@@ -382,7 +393,7 @@ def _replay_cmd(plant, scene, seed: int, index: int, pid, settings=None) -> str:
 
 
 def _build_report(job: _Job, plant, scene, rows: list, n: int, backend: str, workers: int, complete: bool,
-                  wall: float, designs) -> MonteCarloReport:
+                  wall: float, integration: dict) -> MonteCarloReport:
     rows = sorted(rows, key=lambda r: r[0])
     idx = np.array([r[0] for r in rows], dtype=int)
     ops = np.array([r[2] for r in rows], dtype=int)
@@ -417,8 +428,9 @@ def _build_report(job: _Job, plant, scene, rows: list, n: int, backend: str, wor
             _replay_cmd(plant, scene, job.seed, int(idx[w]), pid, job.settings) if w is not None else ""))
     return MonteCarloReport(
         n, len(rows), job.seed, backend, workers, complete, dict(job.spec), job.unc.as_dict(),
-        [{"setpoint_rad_s": a, "final_load_n": b} for a, b in job.ops], out, wall,
-        {"index": idx, "op": ops, "values": values, "metrics": metrics, "design_names": [d[0] for d in job.designs]})
+        [{"setpoint_rad_s": a, "final_load_n": b} for a, b in job.ops], tuple(out), wall,
+        {"index": idx, "op": ops, "values": values, "metrics": metrics, "design_names": [d[0] for d in job.designs]},
+        integration)
 
 
 def format_report(report: MonteCarloReport) -> str:
@@ -487,8 +499,6 @@ class MonteCarloInterrupted(KeyboardInterrupt):
 # --- driver --------------------------------------------------------------------------------------
 
 def _as_design_tuples(designs) -> tuple:
-    from ..drive.pid import PID
-
     out = []
     items = designs.items() if isinstance(designs, Mapping) else [(getattr(d, "name", f"design {i}"), d)
                                                                    for i, d in enumerate(designs)]
@@ -562,9 +572,6 @@ def run_monte_carlo(
     MonteCarloInterrupted
         On Ctrl-C, with the partial report (``complete = False``).
     """
-    from ..tuning.robust import operating_points
-    from ..plant.uncertainty import uncertainty_model
-
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= MAX_SAMPLES:
         raise ValueError(f"n = {n!r}; expected a number of samples in 1..{MAX_SAMPLES}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -620,19 +627,15 @@ def run_monte_carlo(
         complete = len(rows) == n
     except KeyboardInterrupt:
         bar.close()
-        rep = _build_report(job, plant, scene, rows, n, backend, workers, False, time.perf_counter() - t0, designs)
-        rep.integration = integration
+        rep = _build_report(job, plant, scene, rows, n, backend, workers, False, time.perf_counter() - t0,
+                            integration)
         raise MonteCarloInterrupted(rep) from None
     bar.close()
-    rep = _build_report(job, plant, scene, rows, n, backend, workers, complete, time.perf_counter() - t0, designs)
-    rep.integration = integration
-    return rep
+    return _build_report(job, plant, scene, rows, n, backend, workers, complete, time.perf_counter() - t0,
+                         integration)
 
 
 def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
-    import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
     if workers <= 1:
         for c in chunks:
             took(_run_chunk(job, c))
@@ -659,13 +662,11 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
 
 def _local_cluster(workers: int):
     """A LocalCluster of ``workers`` single-threaded processes on 127.0.0.1."""
-    import dask
-    from dask.distributed import LocalCluster
-
+    local_cluster = distributed.LocalCluster  # imported before the config is changed, as Dask expects
     # The workers' statistical profiler (a stack sample every 10 ms) costs ~3 % of a worker's
     # CPU; nothing reads it here.
     with dask.config.set({"distributed.worker.profile.enabled": False}):
-        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+        return local_cluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                             dashboard_address=None,  # no dashboard; its HTTP server on a free port,
                             scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})  # not 8787 (may be taken)
 
@@ -677,7 +678,7 @@ def _is_client(x) -> bool:
 
 def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took) -> None:
     try:
-        from dask.distributed import Client, as_completed
+        Client, as_completed = distributed.Client, distributed.as_completed
     except ImportError:
         raise ValueError("scheduler needs Dask: pip install \"prsa-ctrl[dask]\" (dask[distributed])") from None
 
@@ -725,9 +726,6 @@ def scene_options(scene) -> dict[str, int]:
 def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "auto") -> dict[str, Any]:
     """Re-run one sample of one design: its parameter values, operating point and metrics
     (with the integrator choice :func:`run_monte_carlo` made for that design first in line)."""
-    from ..tuning.robust import operating_points
-    from ..plant.uncertainty import uncertainty_model
-
     unc = uncertainty_model(plant, scene)
     ops = tuple(operating_points(scene))
     settings, _ = verification_settings(plant, scene, unc, ops, pid, integrator)
@@ -737,37 +735,6 @@ def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "a
     ok, sev = _passes(m, job.spec, plant.torque_limit)
     return {"index": i, "parameters": values, "operating_point": job.ops[op],
             "metrics": dict(zip(METRICS, map(float, m[0]))), "passes_spec": bool(ok[0]), "error": err[0]}
-
-
-def plot_report(report: MonteCarloReport, path=None, metric: str = "peak_drop_rad_s"):
-    """Histograms of ``metric`` per design and a parameter-vs-metric scatter (one panel per
-    uncertain parameter), spec bound dashed. Returns the figure (saved when ``path`` is given)."""
-    import matplotlib.pyplot as plt
-
-    s = report.samples
-    keys = list(s["values"])
-    k = METRICS.index(metric)
-    fig, axes = plt.subplots(1, 1 + len(keys), figsize=(4.2 * (1 + len(keys)), 3.4), squeeze=False)
-    ax = axes[0, 0]
-    for j, name in enumerate(s["design_names"]):
-        col = s["metrics"][:, j, k]
-        col = col[np.isfinite(col)]
-        ax.hist(col, bins=30, alpha=0.6, label=name)
-        for kk, key in enumerate(keys):
-            axes[0, 1 + kk].scatter(s["values"][key], s["metrics"][:, j, k], s=6, alpha=0.6, label=name)
-    for a in axes[0]:
-        if metric in report.spec:
-            (a.axvline if a is ax else a.axhline)(report.spec[metric], color="k", ls="--", lw=1)
-    ax.set_xlabel(metric)
-    ax.set_ylabel("samples")
-    ax.legend(fontsize=8)
-    for kk, key in enumerate(keys):
-        axes[0, 1 + kk].set_xlabel(key)
-        axes[0, 1 + kk].set_ylabel(metric)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=120)
-    return fig
 
 
 def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, scene=None,

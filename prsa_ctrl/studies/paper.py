@@ -16,6 +16,8 @@ import numpy as np
 from ..drive.pid import PID
 from ..options import SETPOINT_RAD_S
 from ..plant.plantfile import Plant
+from ..sim.metrics import load_step_metrics
+from ..sim.simulate import simulate
 
 __all__ = [
     "PAPER_TABLE2",
@@ -171,8 +173,6 @@ def load_step_study(
     -------
     list of LoadStepRow
     """
-    from ..sim.simulate import simulate
-
     pid = controller or default_pid(plant)
     rows = []
     for f1 in final_loads:
@@ -277,9 +277,6 @@ def gain_study(
     -------
     list of GainRun
     """
-    from ..sim.metrics import load_step_metrics
-    from ..sim.simulate import simulate
-
     if vary not in ("kp", "ki"):
         raise ValueError(f"vary = {vary!r}; expected 'kp' or 'ki'")
     ref = default_pid(plant)

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import casadi as ca
@@ -42,8 +42,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..drive.pid import PID
+from ..options import MS_MAX_DEFAULT, check_peak_bound
+from ..results import is_converged, status_head
 from ..drive.filters import PLACES, DiscreteBiquad, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass
-from .tuner import LoopModel, _smooth_abs, _two_rate_error
+from .tuner import LoopModel, drive_loop
+# Private helpers of the tuner's NLP, until tuning/tuner.py makes them public (h-tuner25).
+from .tuner import _smooth_abs, _two_rate_error
 
 __all__ = ["TUNABLE", "FilteredDesign", "tune_filtered", "FilterBounds", "loop_builder", "dominant_resonance_hz"]
 
@@ -90,7 +94,7 @@ class FilterBounds:
                                  f"[{lim[0]:g}, {lim[1]:g}]" + (" and lo > 0" if name != "depth_db" else ""))
 
 
-@dataclass
+@dataclass(frozen=True)
 class FilteredDesign:
     """Outcome of :func:`tune_filtered`.
 
@@ -112,11 +116,14 @@ class FilteredDesign:
         the best filter found does not (too shallow, away from the mode or no lower
         objective than the gains alone), so the design returned is the gains alone
         (``filter`` None) and the rejected filter is in ``stats["rejected_filter"]``;
-        ``"not converged: ..."``.
+        ``"not converged: ..."`` (vocabulary: :data:`prsa_ctrl.results.STATUSES`).
     stats : dict
         Rounds, iterations, added frequencies, wall time (s), the active bounds; with a filter
         also ``reference_objective`` / ``reference_status`` (the gains alone) and
         ``mode_hz`` (each loop's dominant resonance).
+    warnings : tuple of str
+        Every caveat of the result, one line each (a rejected filter, a design that is not a
+        verified optimum).
     """
 
     pid: PID
@@ -126,19 +133,26 @@ class FilteredDesign:
     mks: float
     status: str
     stats: dict = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
 
     @property
     def converged(self) -> bool:
         """The returned design is a verified optimum (with its filter, or the gains alone when no
-        filter helps)."""
-        if self.status.startswith("no ") and " helps: " in self.status:
+        filter helps: then the gains alone's own status, ``stats["reference_status"]``, decides)."""
+        if status_head(self.status) == "no <kind> helps":
             return self.stats.get("reference_status") == "optimal"
-        return self.status.startswith("optimal")
+        return is_converged(self.status)
+
+    @property
+    def ok(self) -> bool:
+        """The design may be reported as good: :attr:`converged` (the returned design is a
+        verified optimum)."""
+        return self.converged
 
     def as_dict(self) -> dict:
-        return {"pid": self.pid.as_dict(), "filter": self.filter.to_dict() if self.filter else None,
+        return {"pid": self.pid.as_dict(), "filter": self.filter.as_dict() if self.filter else None,
                 "objective": self.objective, "ms": self.ms, "mks": self.mks, "status": self.status,
-                "stats": {k: v for k, v in self.stats.items() if k != "runs"}}
+                "stats": {k: v for k, v in self.stats.items() if k != "runs"}, "warnings": list(self.warnings)}
 
 
 def _sx_biquad(kind: str, theta, ts: float):
@@ -205,8 +219,6 @@ def loop_builder(a, b, c_speed, angle_index: int, *, ts: float, speed_filter: fl
                  step: float, fixed: Sequence[LoopFilter] = (), name: str = "drive") -> Callable:
     """``biquad or None -> LoopModel``: :func:`prsa_ctrl.tuning.tuner.drive_loop` of a linearised
     plant with the ``fixed`` filters and, when given, one more ``(place, DiscreteBiquad)``."""
-    from .tuner import drive_loop
-
     def build(extra=None) -> LoopModel:
         fl = list(fixed) + ([extra] if extra is not None else [])
         return drive_loop(a, b, c_speed, angle_index, ts=ts, speed_filter=speed_filter, tf=tf, horizon=horizon,
@@ -257,7 +269,7 @@ def tune_filtered(
     start_gains: Sequence[float],
     start_filter: Sequence[float] | None = None,
     bounds: FilterBounds | None = None,
-    ms_max: float = 1.4,
+    ms_max: float = MS_MAX_DEFAULT,
     max_noise_gain: float | None = None,
     reference: FilteredDesign | None = None,
 ) -> FilteredDesign:
@@ -310,8 +322,7 @@ def tune_filtered(
         raise ValueError(f"kind = {kind!r}; expected one of {', '.join(TUNABLE)} or None")
     if place not in PLACES:
         raise ValueError(f"place = {place!r}; expected one of {', '.join(PLACES)}")
-    if not (isinstance(ms_max, (int, float)) and math.isfinite(ms_max) and 1.0 < ms_max < 10.0):
-        raise ValueError(f"ms_max = {ms_max!r}; expected a number in (1, 10)")
+    check_peak_bound("ms_max", ms_max)
     if max_noise_gain is not None and not (isinstance(max_noise_gain, (int, float)) and math.isfinite(max_noise_gain)
                                            and max_noise_gain > 0):
         raise ValueError(f"max_noise_gain = {max_noise_gain!r}; expected a positive finite number (N m s/rad) or None")
@@ -542,7 +553,7 @@ def tune_filtered(
     stats["per_loop_mks"] = [nk["mks"] for nk in nks]
     pid = PID(float(gains[0]), float(gains[1]), tf=float(loops[0].tf))
     design = FilteredDesign(pid, lf, float(obj), float(max(pk["ms"] for pk in pks)),
-                            float(max(nk["mks"] for nk in nks)), status, stats)
+                            float(max(nk["mks"] for nk in nks)), status, stats, _status_warnings(status))
     if kind is None:
         return design
     if reference is None:
@@ -559,11 +570,10 @@ def _judged(design: FilteredDesign, reference: FilteredDesign | None, kind: str,
     """``design`` if its filter earns its place (see :func:`tune_filtered`), else the gains-alone
     ``reference`` with the status ``"no <kind> helps: <why>"``."""
     f = design.filter.filter
-    stats = design.stats
-    stats["mode_hz"] = modes
     ref_obj = reference.objective if reference is not None else math.inf
-    stats["reference_objective"] = ref_obj
-    stats["reference_status"] = reference.status if reference is not None else "no verified design"
+    stats = {**design.stats, "mode_hz": modes, "reference_objective": ref_obj,
+             "reference_status": reference.status if reference is not None else "no verified design"}
+    design = replace(design, stats=stats)
     why = []
     if isinstance(f, Notch):
         near = min(modes, key=lambda m: abs(math.log(f.centre_hz / m)))
@@ -577,14 +587,21 @@ def _judged(design: FilteredDesign, reference: FilteredDesign | None, kind: str,
                    f"{ref_obj:.4g} (same bounds)")
     if not why or reference is None:
         if why:  # nothing to fall back on: keep the filter, say what is wrong with it
-            design.status = f"not converged: the {kind} does not earn its place ({'; '.join(why)}) and the gains " \
-                            "alone have no verified design"
+            status = (f"not converged: the {kind} does not earn its place ({'; '.join(why)}) and the gains "
+                      "alone have no verified design")
+            design = replace(design, status=status, warnings=_status_warnings(status))
         return design
     desc = ", ".join(f"{k} {v:.4g}" for k, v in f.parameters().items() if k != "quality")
     rej = dict(reference.stats)
     rej.update(mode_hz=modes, reference_objective=ref_obj, reference_status=reference.status,
-               rejected_filter={**design.filter.to_dict(), "objective": design.objective, "ms": design.ms,
+               rejected_filter={**design.filter.as_dict(), "objective": design.objective, "ms": design.ms,
                                 "mks": design.mks, "status": design.status},
                wall_time_s=reference.stats.get("wall_time_s", 0.0) + stats.get("wall_time_s", 0.0))
     status = f"no {kind} helps: the best {kind} found ({desc}) is rejected: {'; '.join(why)}; returned the gains alone"
-    return FilteredDesign(reference.pid, None, reference.objective, reference.ms, reference.mks, status, rej)
+    return FilteredDesign(reference.pid, None, reference.objective, reference.ms, reference.mks, status, rej,
+                          (*reference.warnings, status))
+
+
+def _status_warnings(status: str) -> tuple[str, ...]:
+    """The one-line caveat of a design whose status is not a verified optimum (else none)."""
+    return () if is_converged(status) else (f"filter tuning {status}",)

@@ -12,14 +12,20 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
 import numpy as np
 
+from .._lazy import module
 from ..errors import SceneError
-from .tuner import LoopModel, TuningResult, continuous_loop, tune_loops
+from ..options import MS_MAX_DEFAULT
 from ..plant.uncertainty import UncertaintyModel, apply, uncertainty_model
+from ..results import is_converged, is_ok, json_safe
+from .scene_loops import actuator_loops
+from .tuner import LoopModel, TuningResult, continuous_loop, tune_loops
+
+control = module("control")
 
 __all__ = ["Scenario", "RobustTuning", "scenarios", "scenario_loops", "tune_robust_actuator",
            "compare_designs", "tune_robust", "operating_points"]
@@ -110,8 +116,6 @@ def scenarios(plant, scene, *, unc: UncertaintyModel | None = None, vertices: bo
 
 def scenario_loops(plant, scene, scens: Sequence[Scenario]) -> list[LoopModel]:
     """One loop model per scenario (linearised at the scenario's mid load and setpoint)."""
-    from ..studies.autotune import actuator_loops
-
     cache: dict = {}
     loops = []
     for s in scens:
@@ -155,25 +159,47 @@ def compare_designs(designs: dict, loops: Sequence[LoopModel], scens: Sequence[S
     return out
 
 
-@dataclass
+@dataclass(frozen=True)
 class RobustTuning:
-    """Nominal and robust designs of a scene and their comparison on the same scenario models."""
+    """Nominal and robust designs of a scene and their comparison on the same scenario models
+    (frozen: :meth:`with_recommendation` returns a new study with :attr:`recommended` set).
+
+    ``status`` is ``"optimal"`` when both tunings are verified optima, else ``"not converged:
+    ..."`` naming the design(s) that are not (:data:`prsa_ctrl.results.STATUSES`); ``warnings``
+    are the two tunings' warnings, each prefixed with its design's name.
+    """
 
     nominal: Any  # PID
     robust: Any  # PID
-    scenarios: list[Scenario]
+    scenarios: tuple[Scenario, ...]
     comparison: dict
     timing_s: dict
     uncertainty: UncertaintyModel
     results: dict = field(default_factory=dict, repr=False)  # name -> TuningResult
-    loops: list = field(default_factory=list, repr=False)
+    loops: tuple = field(default=(), repr=False)
     recommended: dict = field(default_factory=dict)  # see :meth:`recommend`
 
-    def as_dict(self) -> dict[str, Any]:
-        """Plain data for strict JSON (through :func:`prsa_ctrl.io.output.json_safe`: an unstable
-        scenario's infinite Ms/objective becomes null, its ``stable`` flag says why)."""
-        from ..io.output import json_safe
+    @property
+    def status(self) -> str:
+        bad = [f"{k} {r.status}" for k, r in self.results.items() if not is_converged(r.status)]
+        return "not converged: " + "; ".join(bad) if bad else "optimal"
 
+    @property
+    def converged(self) -> bool:
+        """Both designs are verified optima."""
+        return is_converged(self.status)
+
+    @property
+    def ok(self) -> bool:
+        return is_ok(self.status)
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        return tuple(f"{k} design: {w}" for k, r in self.results.items() for w in r.warnings)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain data for strict JSON (through :func:`prsa_ctrl.results.json_safe`: an unstable
+        scenario's infinite Ms/objective becomes null, its ``stable`` flag says why)."""
         return json_safe({"nominal_gains": self.nominal.as_dict(), "robust_gains": self.robust.as_dict(),
                           "recommended": self.recommended or self.recommend(),
                           "uncertainty": self.uncertainty.as_dict(), "comparison": self.comparison,
@@ -185,9 +211,14 @@ class RobustTuning:
         """The PID of design ``name`` (``"nominal"`` or ``"robust"``)."""
         return {"nominal": self.nominal, "robust": self.robust}[name]
 
+    def with_recommendation(self, monte_carlo=None, names: dict | None = None) -> "RobustTuning":
+        """A copy of the study with :attr:`recommended` = :meth:`recommend` ``(monte_carlo, names)``."""
+        return replace(self, recommended=self.recommend(monte_carlo, names))
+
     def recommend(self, monte_carlo=None, names: dict | None = None) -> dict[str, Any]:
         """The design to use, ranked by the yield against the scene's ``[spec]`` -- the spec
-        the designs are judged by -- and stored in :attr:`recommended`.
+        the designs are judged by (the study is not changed: :meth:`with_recommendation`
+        returns one that keeps it in :attr:`recommended`).
 
         With a Monte-Carlo report: the design (nominal or robust) with the most samples
         inside the spec; a tie goes to fewer scenario models over the Ms bound, then the
@@ -225,7 +256,6 @@ class RobustTuning:
             if yb.passed == 0:
                 rec.update(design=None, why=f"neither design meets the spec on any sample ({txt[best]}, {txt[other]}); "
                            "widen the spec or narrow the uncertainty")
-                self.recommended = rec
                 return rec
             if yb.passed > yo.passed:
                 why = f"higher yield: {txt[best]} against {txt[other]}"
@@ -245,7 +275,6 @@ class RobustTuning:
                    f"({other}: {lin[other][0]}, {worst(other)}); the [spec] was not checked (no Monte Carlo run)")
             rec = {"basis": "scenario models (Ms bound, then the worst-case objective); spec not checked",
                    "design": best, "gains": self.design(best).as_dict(), "yield": None, "why": why}
-        self.recommended = rec
         return rec
 
     def format(self) -> str:
@@ -299,7 +328,8 @@ def tune_robust_actuator(plant, scene, *, scens: Sequence[Scenario] | None = Non
     timing["tune_robust"] = time.perf_counter() - t2
     comp = compare_designs({"nominal": nom.pid, "robust": rob_res.pid}, loops, scens, scene.objective, scene.ms_max)
     comp["aggregate"] = aggregate
-    return RobustTuning(nom.pid, rob_res.pid, scens, comp, timing, unc, {"nominal": nom, "robust": rob_res}, loops)
+    return RobustTuning(nom.pid, rob_res.pid, tuple(scens), comp, timing, unc, {"nominal": nom, "robust": rob_res},
+                        tuple(loops))
 
 
 def tune_robust(
@@ -307,7 +337,7 @@ def tune_robust(
     *,
     objective: str = "iae",
     controller: str = "pi",
-    ms_max: float = 1.4,
+    ms_max: float = MS_MAX_DEFAULT,
     mt_max: float | None = None,
     aggregate: str = "worst",
     weights: Sequence[float] | None = None,
@@ -344,8 +374,6 @@ def tune_robust(
     >>> all(m.ms <= 1.6 + 1e-6 for m in r.margins)
     True
     """
-    import control
-
     if isinstance(plants, (str, bytes)) or not hasattr(plants, "__iter__"):
         raise ValueError(f"plants = {plants!r}; expected a list of python-control LTI plants")
     plants = list(plants)

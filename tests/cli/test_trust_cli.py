@@ -361,14 +361,15 @@ def test_differences_are_percentages_only_above_the_resolution():
 
 
 def test_table_and_flag_use_one_definition_of_the_difference():
+    import dataclasses
+
     from prsa_ctrl import load_plant, load_scene
     from prsa_ctrl.studies.autotune import health_flags, tune_actuator
     from prsa_ctrl.cli.tune import _diff_text
 
     rep = tune_actuator(load_plant(), load_scene(), workers=1)
-    d = rep.best
-    v = d.objective_verified
-    d.objective_predicted = v * 1e-3  # a prediction 1000x too small
+    v = rep.best.objective_verified
+    d = dataclasses.replace(rep.best, objective_predicted=v * 1e-3)  # a prediction 1000x too small (Design is frozen)
     flag = next(f for f in health_flags(d, rep.plant, rep.scene) if "departs from the linear prediction" in f)
     assert "-99.9 %" in flag and _diff_text(d.objective_predicted, v) == "-99.9 %", flag
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import load_plant, linearize
-from prsa_ctrl.studies.autotune import Design, _predict, actuator_loops, verify
+from prsa_ctrl.studies.autotune import Design, actuator_loops, predict, verify
 from prsa_ctrl.cli.tune import plot_main
 from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.studies.paper import gain_study
@@ -19,8 +19,7 @@ def setup():
     loops = actuator_loops(plant, scene)
     designs = []
     for name, pid in (("tuned (Ms <= 1.4)", PID(0.085, 14.7)), ("b", PID(0.127, 15.9))):
-        d = Design(name, pid, loops[0].margins(pid.gains))
-        _predict(d, loops, plant, scene)
+        d = predict(Design(name, pid, loops[0].margins(pid.gains)), loops, plant, scene)
         designs.append(verify(d, plant, scene))
     return plant, scene, loops, designs
 
@@ -32,8 +31,7 @@ def multi():
     scene = load_scene().replace(duration=0.28, final_loads=(1000.0, 2500.0), objective="itae")
     loops = actuator_loops(plant, scene)
     pid = PID(0.085, 14.7)
-    d = Design("tuned (Ms <= 1.4)", pid, loops[0].margins(pid.gains))
-    _predict(d, loops, plant, scene)
+    d = predict(Design("tuned (Ms <= 1.4)", pid, loops[0].margins(pid.gains)), loops, plant, scene)
     return plant, scene, loops, verify(d, plant, scene)
 
 

@@ -202,7 +202,7 @@ def test_a_design_whose_verified_run_misbehaves_is_flagged_and_never_wins():
     assert any("reverses" in f for f in rep.best.flags) and any("never recovers" in f for f in rep.best.flags)
     assert not any(c["beaten"] for c in rep.comparisons) and not rep.beats_all_baselines
     d = rep.as_dict()
-    assert d["status"] == rep.status and d["best"]["flags"] == rep.best.flags
+    assert d["status"] == rep.status and d["best"]["flags"] == list(rep.best.flags)
     assert any("reverses" in w for w in rep.warnings)
 
 

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from prsa_ctrl import PID, SceneError
-from prsa_ctrl.studies.autotune import Design, _predict, actuator_loops, duty_record, setpoint_prefilter, tune_actuator, verify
+from prsa_ctrl.studies.autotune import Design, actuator_loops, predict, duty_record, setpoint_prefilter, tune_actuator, verify
 from prsa_ctrl.cli.tune import main
 from prsa_ctrl.plant.linear import linear_core
 from prsa_ctrl.plant.model import plant_model
@@ -202,9 +202,8 @@ def test_setpoint_weight_prediction_matches_the_simulator(paper_plant):
     peaks = []
     for b in (0.3, 1.0):
         sc = scene.replace(setpoint_weight=b)
-        d = Design("b", pid, None)
-        _predict(d, actuator_loops(paper_plant, sc), paper_plant, sc)
-        verify(d, paper_plant, sc)
+        d = predict(Design("b", pid, None), actuator_loops(paper_plant, sc), paper_plant, sc)
+        d = verify(d, paper_plant, sc)
         assert d.objective_verified == pytest.approx(d.objective_predicted, rel=0.01)
         peaks.append(max(d.verified_runs[0][1]["nut_speed"]))
     assert peaks[0] < peaks[1] - 0.1  # less overshoot with a smaller setpoint weight

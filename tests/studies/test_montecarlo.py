@@ -237,7 +237,9 @@ def test_progress_bar_draws_when_asked(capsys):
 
 
 def test_figures(serial, tmp_path):
-    fig = mc.plot_report(serial, tmp_path / "mc.png")
+    from prsa_ctrl.plots.montecarlo import plot_report  # moved out of studies: figures live in plots/
+
+    fig = plot_report(serial, tmp_path / "mc.png")
     assert (tmp_path / "mc.png").stat().st_size > 0 and len(fig.axes) == 3
 
 

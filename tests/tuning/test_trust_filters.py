@@ -186,7 +186,9 @@ def test_recommend_ranks_by_the_yield_against_the_spec():
 
     r = rt.recommend(MC(132, 10))
     assert r["design"] == "nominal" and r["yield"] == 0.66 and r["passed"] == 132 and r["samples"] == 200
-    assert "66.0 % (132/200)" in r["why"] and "5.0 % (10/200)" in r["why"] and rt.recommended is r
+    assert "66.0 % (132/200)" in r["why"] and "5.0 % (10/200)" in r["why"]
+    # Frozen study: recommend() leaves it as it is; with_recommendation() returns a copy that keeps it.
+    assert rt.recommended == {} and rt.with_recommendation(MC(132, 10)).recommended == r
     assert rt.recommend(MC(10, 132))["design"] == "robust"
     none = rt.recommend(MC(0, 0))
     assert none["design"] is None and "neither design meets the spec" in none["why"]

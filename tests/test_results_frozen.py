@@ -1,0 +1,195 @@
+"""Issue 22: result objects with one shape (frozen, ``status`` from one vocabulary, ``warnings``,
+``as_dict``), verification that returns new objects, and figures that only draw."""
+
+import dataclasses
+import inspect
+import math
+
+import numpy as np
+import pytest
+
+from prsa_ctrl.drive.filters import LoopFilter, Notch
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.results import STATUSES, is_converged, is_ok, status_head
+from prsa_ctrl.studies import autotune, montecarlo, responses
+from prsa_ctrl.studies.autotune import ActuatorTuning, Design, actuator_loops, checked, predict, verify
+from prsa_ctrl.studies.montecarlo import DesignYield, MonteCarloReport
+from prsa_ctrl.studies.scene import load_scene
+from prsa_ctrl.tuning.filtered import FilteredDesign
+from prsa_ctrl.tuning.robust import RobustTuning
+
+
+@pytest.fixture(scope="module")
+def small(paper_plant):
+    """The paper plant, a short rigid load-step scene, its loops and the paper's PI predicted."""
+    scene = load_scene().replace(duration=0.3, fidelity="rigid", accuracy=0.05)
+    loops = actuator_loops(paper_plant, scene)
+    pid = PID(0.085, 14.7, tf=4 * paper_plant.sample_time_s)
+    d = predict(Design("paper PI", pid, loops[0].margins(pid.gains)), loops, paper_plant, scene)
+    return paper_plant, scene, loops, d
+
+
+def test_verify_returns_a_new_design_and_leaves_its_argument(small):
+    plant, scene, _, d = small
+    before = dataclasses.asdict(d)
+    v = verify(d, plant, scene)
+    assert v is not d and d.verified == () and d.verified_runs == () and math.isnan(d.objective_verified)
+    assert dataclasses.asdict(d).keys() == before.keys() and d.status == "unverified"
+    assert len(v.verified) == len(scene.final_loads) and v.objective_verified > 0
+    assert v.status == "ok" and v.ok and v.pid == d.pid and v.predicted == d.predicted
+    c = checked(v, plant, scene)
+    assert c is not v and c.flags == () and v.flags == ()
+
+
+def test_predict_returns_a_new_design(small):
+    plant, scene, loops, d = small
+    bare = Design("x", d.pid, d.margins)
+    p = predict(bare, loops, plant, scene)
+    assert bare.predicted == () and math.isnan(bare.objective_predicted)
+    assert p.objective_predicted == pytest.approx(d.objective_predicted, rel=0, abs=0)
+
+
+@pytest.mark.parametrize("cls", [Design, ActuatorTuning, FilteredDesign, RobustTuning, MonteCarloReport, DesignYield])
+def test_results_are_frozen_with_status_warnings_and_as_dict(cls):
+    assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen
+    names = {f.name for f in dataclasses.fields(cls)} | {n for n, _ in inspect.getmembers(cls)}
+    if cls is not DesignYield:
+        assert {"status", "warnings", "as_dict"} <= names, cls
+        # converged / ok are derived from status (properties), never stored beside it
+        fields = {f.name for f in dataclasses.fields(cls)}
+        assert "converged" not in fields and "ok" not in fields
+        assert isinstance(getattr(cls, "ok"), property)
+
+
+def test_frozen_design_rejects_assignment(small):
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        small[3].flags = ("x",)
+
+
+def test_status_vocabulary():
+    assert status_head("optimal") == "optimal" and is_converged("optimal (acceptable level)")
+    assert status_head("not proven optimal: residual 3e-2 > 1e-3") == "not proven optimal"
+    assert not is_converged("not proven optimal: residual") and not is_ok("not converged: x")
+    assert status_head("no lowpass1 helps: the objective is not 1 % below") == "no <kind> helps"
+    assert is_ok("ok") and not is_ok("flagged: the nut reverses") and status_head("interrupted: 2 of 5 samples")
+    for bad in ("fine", "optimalish", "", "flagged nut"):
+        with pytest.raises(ValueError, match="status = "):
+            status_head(bad)
+    assert set(STATUSES) >= {"optimal", "not converged", "ok", "flagged", "unverified", "interrupted"}
+
+
+def test_filtered_design_status_and_filter_as_dict():
+    pid = PID(0.1, 10.0)
+    lf = LoopFilter(Notch(300.0, 90.0, -20.0), "torque_command")
+    assert lf.as_dict(2.5e-4) == lf.to_dict(2.5e-4) and lf.as_dict()["kind"] == "notch"  # to_dict: deprecated alias
+    good = FilteredDesign(pid, lf, 0.01, 1.4, 0.1, "optimal")
+    assert good.converged and good.ok and good.as_dict()["filter"] == lf.as_dict() and good.as_dict()["warnings"] == []
+    bad = FilteredDesign(pid, None, 0.01, 1.4, 0.1, "not converged: ipopt failed", warnings=("x",))
+    assert not bad.converged and not bad.ok and bad.as_dict()["warnings"] == ["x"]
+    rejected = FilteredDesign(pid, None, 0.01, 1.4, 0.1, "no notch helps: too shallow",
+                              {"reference_status": "optimal"})
+    assert rejected.converged and rejected.ok
+
+
+def test_robust_recommendation_returns_a_new_study():
+    comp = {"objective": "iae", "ms_max": 1.4, "designs": {
+        "nominal": {"ms_violations": 2, "worst_objective": 0.03}, "robust": {"ms_violations": 0, "worst_objective": 0.08}}}
+    rt = RobustTuning(PID(0.085, 14.7), PID(0.045, 6.8), (object(),) * 3, comp, {}, None)
+    rec = rt.recommend(None)
+    assert rt.recommended == {} and rec["design"] == "robust"
+    rt2 = rt.with_recommendation(None)
+    assert rt2 is not rt and rt2.recommended == rec and rt.recommended == {}
+    assert rt.status == "optimal" and rt.warnings == ()
+
+
+def test_monte_carlo_report_status():
+    y = DesignYield("a", {}, 1, 2, 0.5, (0.1, 0.9), {}, None, {}, {}, 1, "")
+    full = MonteCarloReport(2, 2, 0, "serial", 1, True, {}, {}, [], (y,), 0.0)
+    part = dataclasses.replace(full, n=5, complete=False)
+    assert full.status == "ok" and full.ok and part.status == "interrupted: 2 of 5 samples" and not part.ok
+    assert full.warnings == ("a: 1 of 2 samples failed to simulate",)
+
+
+def test_figures_only_draw(small, monkeypatch):
+    """The figure data is computed in studies; drawing it calls no simulation, tuning or verification."""
+    import matplotlib.pyplot as plt
+
+    from prsa_ctrl.plots import loop
+
+    plant, scene, loops, d = small
+    data = responses.design_responses(plant, scene, d.pid, loops=loops)
+    assert data.design.verified and data.setpoint_step is not None and data.stability == "stable"
+
+    def boom(*a, **k):
+        raise AssertionError("a figure computed")
+
+    for mod, names in ((responses, ("verify", "predict", "simulate", "actuator_loops", "linearize")),
+                       (autotune, ("verify", "predict", "run", "actuator_loops")),
+                       (loop, ("design_responses", "report_responses", "stable_design_responses"))):
+        for n in names:
+            monkeypatch.setattr(mod, n, boom)
+    figs = loop.draw_design_figures(data)
+    assert set(figs) == {"plant_bode", "loop_bode", "sensitivity", "load_step", "setpoint_step"}
+    same = loop.design_figures(data)  # a FigureData is drawn as it is
+    assert set(same) == set(figs)
+    for f in (*figs.values(), *same.values()):
+        plt.close(f)
+
+
+def test_no_matplotlib_outside_plots_in_studies_and_tuning():
+    import pathlib
+
+    import prsa_ctrl
+
+    root = pathlib.Path(prsa_ctrl.__file__).parent
+    for rel in ("studies/autotune.py", "studies/montecarlo.py", "studies/responses.py", "studies/paper.py",
+                "tuning/filtered.py", "tuning/robust.py", "tuning/scene_loops.py"):
+        text = (root / rel).read_text()
+        assert "import matplotlib" not in text and 'module("matplotlib' not in text, rel
+        assert "from ..io" not in text and "import _predict" not in text, rel
+        assert len(text.splitlines()) < 1000, rel
+
+
+def test_report_pairs_come_from_the_report(small):
+    """The comparison designs are verified once by tune_actuator and kept in the report (the
+    figures used to tune and verify them again)."""
+    plant, scene, loops, d = small
+    v = checked(verify(d, plant, scene), plant, scene)
+    b = checked(verify(Design("base", PID(0.05, 5.0), loops[0].margins((0.05, 5.0, 0.0))), plant, scene),
+                plant, scene)
+    above = dataclasses.replace(v, name="tuned (Ms <= 1.6)")
+    comp = {"baseline": "base", "tuned": above.name, "tuned_gains": above.pid.as_dict()}
+    rep = ActuatorTuning(plant, scene, v, (v,), (b,), (comp,), {}, {}, (), tuple(loops), "",
+                         comparison_designs=(above,))
+    (pair,) = rep.comparison_pairs()
+    assert pair[0] is b and pair[1].pid == above.pid and pair[1].verified_runs
+    assert np.isfinite(rep.best.objective_verified)
+
+
+def test_report_figures_only_draw(small, monkeypatch):
+    """A report's figure data (loop response, landscape, baseline pairs) is computed once in
+    studies; drawing it evaluates no loop model grid, simulation or verification."""
+    import matplotlib.pyplot as plt
+
+    from prsa_ctrl.plots import loop
+
+    plant, scene, loops, d = small
+    v = checked(verify(d, plant, scene), plant, scene)
+    b = checked(verify(Design("base", PID(0.05, 5.0), loops[0].margins((0.05, 5.0, 0.0))), plant, scene),
+                plant, scene)
+    comp = {"baseline": "base", "tuned": v.name, "tuned_gains": v.pid.as_dict()}
+    rep = ActuatorTuning(plant, scene, v, (v,), (b,), (comp,), {}, {}, (), tuple(loops), "")
+    data = responses.report_responses(rep)
+    assert data.landscape is not None and data.landscape.objective.shape == (40, 40) and len(data.pairs) == 1
+
+    def boom(*a, **k):
+        raise AssertionError("a figure computed")
+
+    for n in ("landscape", "report_responses", "design_responses"):
+        monkeypatch.setattr(loop, n, boom)
+    for n in ("verify", "predict", "simulate", "landscape"):
+        monkeypatch.setattr(responses, n, boom)
+    figs = loop.draw_report_figures(data)
+    assert set(figs) == {"plant_bode", "loop_bode", "sensitivity", "landscape", "load_step", "baselines"}
+    for f in figs.values():
+        plt.close(f)
