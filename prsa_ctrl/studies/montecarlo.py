@@ -99,8 +99,10 @@ _WORKER_CACHE: dict[str, tuple] = {}
 
 
 def _plant_doc(plant) -> dict:
+    """The plant as plain data for a worker process (its mappings are read-only proxies)."""
     return {"name": plant.name, "values": dict(plant.values), "sources": dict(plant.sources),
-            "origin": plant.origin, "description": plant.description}
+            "origin": plant.origin, "description": plant.description, "mechanism": plant.mechanism,
+            "defaulted": frozenset(plant.defaulted), "mechanism_source": plant.mechanism_source}
 
 
 def _prepared(job: _Job) -> tuple:
