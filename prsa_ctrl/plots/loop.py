@@ -342,12 +342,12 @@ def load_step_plot(design, scene, k: int | None = 0, ax=None, window: float | No
 
 def _duty_input(scene, case: str, t: np.ndarray) -> tuple[np.ndarray, str]:
     """The profile a duty-cycle record follows, at times ``t``: load (N) or setpoint (rpm)."""
-    from ..sim.simulate import PiecewiseLinear, _normalise_profile
+    from ..sim.signals import PiecewiseLinear, normalise_profile
 
     if case == "load profile":
-        prof = _normalise_profile(PiecewiseLinear(scene.load_profile), float(t[-1]) + 1.0, "load", "N")
+        prof = normalise_profile(PiecewiseLinear(scene.load_profile), float(t[-1]) + 1.0, "load", "N")
         return prof.at(t), "axial load (N)"
-    prof = _normalise_profile(PiecewiseLinear(scene.setpoint_profile), float(t[-1]) + 1.0, "setpoint", "rad/s")
+    prof = normalise_profile(PiecewiseLinear(scene.setpoint_profile), float(t[-1]) + 1.0, "setpoint", "rad/s")
     return prof.at(t) * 30.0 / math.pi, "setpoint (rpm)"
 
 

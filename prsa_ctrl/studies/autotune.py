@@ -30,7 +30,8 @@ from ..options import DERIVATIVE_FILTER_SAMPLES, RAD_S_PER_RPM
 from .paper import default_pid
 from ..plant.plantfile import Plant
 from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
-from ..sim.simulate import SimSettings, run
+from ..sim.integrators import SimSettings
+from ..sim.simulate import run
 from ..tuning.tuner import LoopModel, Tuner, continuous_loop, drive_loop
 
 __all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs", "duty_record",
@@ -284,7 +285,7 @@ def duty_record(plant: Plant, scene: Scene, case: str) -> dict:
         signed size N) of each load step), ``breaks`` (every change, s) and the linearisation
         point ``w_lin`` (rad/s), ``f_lin`` (N): the middle of the profile's range.
     """
-    from ..sim.simulate import PiecewiseLinear, _normalise_profile
+    from ..sim.signals import PiecewiseLinear, normalise_profile
 
     ts = plant.sample_time_s
     n = _n_samples(plant, scene)
@@ -294,7 +295,7 @@ def duty_record(plant: Plant, scene: Scene, case: str) -> dict:
                  "load": f0, "setpoint": w0, "w_lin": w0, "f_lin": f0}
     if case == "load profile":
         pts = scene.load_profile
-        prof = _normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
+        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
         # Exact mean over each sample interval: integral of the piecewise-linear load.
         edges = ts * np.arange(n + 1)
         seg_len = np.append(np.diff(prof.t), np.inf)
@@ -310,7 +311,7 @@ def duty_record(plant: Plant, scene: Scene, case: str) -> dict:
         out["setpoint_at"] = np.full(n + 1, w0)
     else:
         pts = scene.setpoint_profile
-        prof = _normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
+        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
         r = prof.at(t)
         out["setpoint_sequence"] = r - w0
         out["setpoint_sequence"][0] = 0.0
@@ -379,9 +380,9 @@ def _predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene)
         return
     w_pre, tau0 = w0, _steady_torque(plant, scene, scene.initial_load)
     if design.pid.ki == 0:  # P-only: the loop settles below the setpoint before the step too
-        from ..sim.simulate import _initial_state
+        from ..sim.simulate import initial_state
 
-        op, _ = _initial_state(plant, _linear_fidelity(scene), w0, scene.initial_load, design.pid, 0.0, 0,
+        op, _ = initial_state(plant, _linear_fidelity(scene), w0, scene.initial_load, design.pid, 0.0, 0,
                                observer_ff=design.estimator == "kf")
         w_pre, tau0 = op.omega_nut, op.torque
     design.predicted_start_speed = w_pre
@@ -596,7 +597,7 @@ def _verify_profile(design: Design, plant: Plant, scene: Scene, seed: int, setti
     """:func:`verify` on a duty cycle: one sampled nonlinear run per record, over the whole
     record, with the scene's profiles (a setpoint weight ``b != 1`` through
     :func:`setpoint_prefilter`)."""
-    from ..sim.simulate import PiecewiseLinear
+    from ..sim.signals import PiecewiseLinear
 
     ts = plant.sample_time_s
     design.verified, design.verified_runs, design.estimation = [], [], []
