@@ -47,6 +47,8 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .sampled import zoh
+
 if TYPE_CHECKING:
     import control
 
@@ -307,8 +309,6 @@ class Filter:
         return DiscreteBiquad(*c, ts)
 
     def _zoh(self, ts: float) -> tuple[list[float], list[float]]:
-        from scipy.linalg import expm
-
         (n2, n1, n0), (d2, d1, d0) = self.coefficients()
         if self.order == 2:  # controllable canonical form of (n2 s^2 + n1 s + n0)/(s^2 + ...)
             n2, n1, n0, d1, d0 = n2 / d2, n1 / d2, n0 / d2, d1 / d2, d0 / d2
@@ -321,11 +321,7 @@ class Filter:
             bvec = np.array([[1.0]])
             c = np.array([[n0 / d1 - n1 * d0 / d1 / d1]])
             dd = n1 / d1
-        n = a.shape[0]
-        m = np.zeros((n + 1, n + 1))
-        m[:n, :n], m[:n, n:] = a * ts, bvec * ts
-        e = expm(m)
-        ad, bd = e[:n, :n], e[:n, n:]
+        ad, bd = zoh(a, bvec, ts)
         den = np.poly(ad)
         num = np.poly(ad - bd @ c) - den + dd * den  # C (zI - A)^-1 B + D over det(zI - A)
         pad = [0.0] * (3 - len(den))
