@@ -35,9 +35,9 @@ _LAZY = {
     "load_step_metrics": "sim.metrics",
     "design_kf": "drive.estimator",
     "export_controller": "io.export",
-    "fit_plant": "identification.fit",
-    "FitResult": "identification.fit",
-    "FitError": "identification.fit",
+    "fit_plant": "identification.timedomain",
+    "FitResult": "identification.common",
+    "FitError": "errors",
     "PiecewiseLinear": "sim.signals",
     "Design": "studies.autotune",
     "ActuatorTuning": "studies.autotune",
@@ -54,7 +54,7 @@ _LAZY = {
     "MoveScene": "tuning.cascade",
     "run_monte_carlo": "studies.montecarlo",
     "MonteCarloReport": "studies.montecarlo",
-    "fit_frf": "identification.fit",
+    "fit_frf": "identification.frf",
 }
 
 _EAGER = {

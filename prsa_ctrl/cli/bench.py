@@ -452,7 +452,7 @@ def fit_record(duration_s: float = 4.0, seed: int = 0):
 
 
 def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
-    """Wall and CPU time of :func:`prsa_ctrl.identification.fit.fit_plant` (default keys, default base plant)
+    """Wall and CPU time of :func:`prsa_ctrl.identification.timedomain.fit_plant` (default keys, default base plant)
     on :func:`fit_record`; medians of ``repeats`` runs after the record is made (the first run
     includes the one-off imports of the solver's SciPy modules).
 
@@ -463,7 +463,7 @@ def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
     repeats : int
         Timed fits.
     """
-    from ..identification.fit import fit_plant
+    from ..identification.timedomain import fit_plant
 
     rec, truth = fit_record(duration_s)
     wall, cpu, res = [], [], None
