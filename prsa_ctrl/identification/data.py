@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
+import scipy.signal
 from numpy.typing import NDArray
 
 from ..errors import DataError
@@ -456,9 +457,7 @@ def design_excitation(
         v = np.sum(np.sin(2 * np.pi * np.outer(t, k * f0) + phases), axis=1)
         v = offset + amplitude * v / np.max(np.abs(v))
     elif kind == "chirp":
-        from scipy.signal import chirp
-
-        v = offset + amplitude * chirp(t, f_min_hz, t[-1], f_max_hz, method="logarithmic")
+        v = offset + amplitude * scipy.signal.chirp(t, f_min_hz, t[-1], f_max_hz, method="logarithmic")
     else:
         levels = np.array([1.0, 0.5, -0.5, -1.0, -0.25, 0.25, 1.0, 0.0])
         idx = np.minimum((t / duration_s * len(levels)).astype(int), len(levels) - 1)

@@ -73,6 +73,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+import scipy.io
 from numpy.typing import NDArray
 
 from .data import MAX_SAMPLES, MIN_SAMPLES
@@ -377,8 +378,6 @@ class _Source:
         self.data: dict[str, np.ndarray] = self._read_mat(p) if fmt == "mat" else self._read_csv(p)
 
     def _read_mat(self, p: Path) -> dict[str, np.ndarray]:
-        import scipy.io
-
         try:
             raw = scipy.io.loadmat(str(p))
         except NotImplementedError:
