@@ -168,11 +168,11 @@ def ss_response(a: ArrayLike, b: ArrayLike, c: ArrayLike, omega: ArrayLike,
     [(1+0j), (0.5-0.5j)]
     """
     a = np.asarray(a, float)
+    w = np.atleast_1d(np.asarray(omega, float))
+    if a.shape[0] == 0:  # no state: no dynamic part (checked first: an empty b cannot be reshaped)
+        return np.zeros(w.size, complex)
     b = np.asarray(b, float).reshape(a.shape[0], -1)[:, :1]
     c = np.asarray(c, float).reshape(1, -1)
-    w = np.atleast_1d(np.asarray(omega, float))
-    if a.shape[0] == 0:
-        return np.zeros(w.size, complex)
     s = np.asarray(z_of_w(w) if z_of_w else 1j * w, complex)
     m = s[:, None, None] * np.eye(a.shape[0]) - a[None]
     x = np.linalg.solve(m, np.broadcast_to(b.astype(complex), (w.size,) + b.shape))
