@@ -33,8 +33,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solve_discrete_are
 
+from .._lazy import module
 from ..plant.plantfile import Plant
 from .sampled import freq_grid, pid_frequency_parts, pid_rows, ss_response, zoh
+
+kalman = module("filterpy.kalman")  # only the reference filter (KFDesign.make_filter) needs filterpy
 
 __all__ = ["KFDesign", "design_kf", "kf_drive_loop", "DEFAULT_LOAD_CHANGE_TIME_S"]
 
@@ -63,9 +66,7 @@ class KFDesign:
 
     def make_filter(self, x0: NDArray[np.float64]):
         """A filterpy ``KalmanFilter`` with this design, started in steady state at ``x0``."""
-        from filterpy.kalman import KalmanFilter
-
-        kf = KalmanFilter(dim_x=4, dim_z=1, dim_u=1)
+        kf = kalman.KalmanFilter(dim_x=4, dim_z=1, dim_u=1)
         kf.F, kf.B, kf.H = self.F.copy(), self.G.copy(), self.H.copy()
         kf.Q, kf.R = self.Q.copy(), np.array([[self.R]])
         kf.x = np.asarray(x0, dtype=float).reshape(4, 1)

@@ -42,15 +42,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import MISSING, dataclass, fields
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._lazy import module
 from .sampled import zoh
 
-if TYPE_CHECKING:
-    import control
+control = module("control")  # only Filter.continuous_tf needs python-control
 
 __all__ = ["Filter", "DiscreteBiquad", "FirstOrderLowPass", "SecondOrderLowPass", "Notch", "GeneralBiquad",
            "METHODS", "filter_from_dict", "PLACES", "LoopFilter", "loop_filters"]
@@ -215,8 +215,6 @@ class Filter:
         -------
         control.TransferFunction
         """
-        import control
-
         n, d = self.coefficients()
         if self.order == 1:  # drop the zero s^2 terms so the system stays first order
             n, d = n[1:], d[1:]
