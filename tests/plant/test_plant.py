@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from prsa_ctrl import GeometryWarning, PlantFileError, builtin_plants, load_plant
 from prsa_ctrl.plant.plantfile import SCHEMA, Plant
 
-PLANT_DIR = Path(__file__).resolve().parent.parent / "plants"
+PLANT_DIR = Path(__file__).resolve().parents[2] / "plants"
 ALL_PLANTS = builtin_plants()
 
 
