@@ -15,7 +15,7 @@ _LAZY = {
     "simulate": "sim.simulate",
     "run": "sim.simulate",
     "SimRun": "sim.simulate",
-    "SimSettings": "sim.simulate",
+    "SimSettings": "sim.integrators",
     "energy_balance": "sim.simulate",
     "operating_point": "plant.equilibrium",
     "plant_model": "plant.model",
@@ -35,10 +35,10 @@ _LAZY = {
     "load_step_metrics": "sim.metrics",
     "design_kf": "drive.estimator",
     "export_controller": "io.export",
-    "fit_plant": "identification.fit",
-    "FitResult": "identification.fit",
-    "FitError": "identification.fit",
-    "PiecewiseLinear": "sim.simulate",
+    "fit_plant": "identification.timedomain",
+    "FitResult": "identification.common",
+    "FitError": "errors",
+    "PiecewiseLinear": "sim.signals",
     "Design": "studies.autotune",
     "ActuatorTuning": "studies.autotune",
     "LoopModel": "tuning.tuner",
@@ -54,7 +54,7 @@ _LAZY = {
     "MoveScene": "tuning.cascade",
     "run_monte_carlo": "studies.montecarlo",
     "MonteCarloReport": "studies.montecarlo",
-    "fit_frf": "identification.fit",
+    "fit_frf": "identification.frf",
 }
 
 _EAGER = {

@@ -3,7 +3,7 @@
 Every message names the value that was received and what was expected.
 """
 
-__all__ = ["PlantFileError", "SceneError", "SimulationError", "GeometryWarning"]
+__all__ = ["PlantFileError", "SceneError", "SimulationError", "GeometryWarning", "DataError", "FitError"]
 
 
 class PlantFileError(ValueError):
@@ -20,3 +20,11 @@ class SimulationError(RuntimeError):
 
 class GeometryWarning(UserWarning):
     """The roller-screw geometry does not close exactly (residuals are reported)."""
+
+
+class DataError(ValueError):
+    """A measured-data file or array is unusable; the message names file, column and row."""
+
+
+class FitError(RuntimeError):
+    """The fit did not converge; the message names the solver status and a remedy."""

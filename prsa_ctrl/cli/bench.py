@@ -95,7 +95,8 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
 
     from .. import load_plant
     from ..plant.model import plant_model
-    from ..sim.simulate import SimSettings, _build, simulate
+    from ..sim.integrators import SimSettings, build
+    from ..sim.simulate import simulate
 
     plant = plant or load_plant()
     pid = _reference_pid(plant)
@@ -133,9 +134,9 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
 
     # The same closed-loop equations for scipy and python-control (scaled states).
     model = plant_model(plant, "compliant")
-    built = _build(model, False)
+    built = build(model, False)
     z = ca.SX.sym("z", len(built.scale))
-    p = ca.SX.sym("p", 10)  # see simulation._NP; the inputs are constant between steps here
+    p = ca.SX.sym("p", 10)  # see sim.integrators._NP; the inputs are constant between steps here
     rhs = ca.Function("rhs", [z, p], [built.rhs(z, p, 0.0)])
     jac = ca.Function("rhs_jacobian", [z, p], [ca.jacobian(built.rhs(z, p, 0.0), z)])
     r0 = simulate(plant, setpoint=ref_w, load=load[0][1], duration=1e-4, controller=pid, fidelity="compliant")
@@ -262,7 +263,8 @@ def fidelity_ladder(plant=None, fast: bool = False, repeats: int = 3) -> dict:
         Timed runs per setting; the median is reported.
     """
     from .. import load_plant
-    from ..sim.simulate import SimSettings, run
+    from ..sim.integrators import SimSettings
+    from ..sim.simulate import run
 
     plant = plant or load_plant()
     pid = _reference_pid(plant)
@@ -450,7 +452,7 @@ def fit_record(duration_s: float = 4.0, seed: int = 0):
 
 
 def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
-    """Wall and CPU time of :func:`prsa_ctrl.identification.fit.fit_plant` (default keys, default base plant)
+    """Wall and CPU time of :func:`prsa_ctrl.identification.timedomain.fit_plant` (default keys, default base plant)
     on :func:`fit_record`; medians of ``repeats`` runs after the record is made (the first run
     includes the one-off imports of the solver's SciPy modules).
 
@@ -461,7 +463,7 @@ def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
     repeats : int
         Timed fits.
     """
-    from ..identification.fit import fit_plant
+    from ..identification.timedomain import fit_plant
 
     rec, truth = fit_record(duration_s)
     wall, cpu, res = [], [], None

@@ -17,7 +17,7 @@ result as one ``prsa-fit: note:`` line each; the geometry note of a built-in pla
 ``--verbose``, as in ``prsa-tune``.
 
 Keys the data cannot inform keep the base plant's value and source in the written file
-(:func:`prsa_ctrl.identification.fit.fit_plant`); the output names them and the JSON marks them
+(:func:`prsa_ctrl.identification.timedomain.fit_plant`); the output names them and the JSON marks them
 ``"kept_base": true`` with the reason. The base file's ``[uncertainty]`` entries are kept (an
 entry narrower than the fit's 95 % interval, or one that does not hold the fitted value, is
 replaced by the fit's); ``--uncertainty-from-fit`` writes the fit's own for every fitted key.
@@ -435,8 +435,8 @@ def _probe_plots(directory: str, names: Sequence[str], inputs: Sequence[str]) ->
 
 def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> None:
     """The FRF operating point (``--frf-speed``, ``--frf-load``) checked before the fit, the
-    flag named (:func:`prsa_ctrl.identification.fit.frf_operating_point_error`)."""
-    from ..identification.fit import frf_operating_point_error
+    flag named (:func:`prsa_ctrl.identification.common.frf_operating_point_error`)."""
+    from ..identification.common import frf_operating_point_error
 
     bad = frf_operating_point_error(plant, speed, load)
     if bad:
@@ -461,7 +461,7 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
                               "(or --design)")
         if not 0 <= args.coherence_min < 1:
             raise _UsageError(f"--coherence-min {args.coherence_min!r}: expected 0 <= C < 1")
-        from ..identification.fit import FITTABLE
+        from ..identification.common import FITTABLE
         from ..plant.plantfile import load_plant
 
         keys = None
@@ -493,7 +493,7 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
             _probe_output(path, inputs, flag)
         plot_paths = []
         if args.plots is not None:
-            from ..identification.fit import figure_names
+            from ..plots.fit import figure_names
 
             check_distinct({"--plots": args.plots, **outs})
             stems = figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf)
@@ -514,7 +514,8 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
         print(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
               "expected readable files", file=sys.stderr)
         return 2
-    from ..identification.fit import FitError, fit_plant
+    from ..errors import FitError
+    from ..identification.timedomain import fit_plant
 
     try:
         result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
@@ -561,11 +562,11 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
         print(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
               file=sys.stderr)
         return 2
-    from ..identification.fit import _unit_text
+    from ..identification.common import unit_text
 
     for k, v in result.parameters.items():
         lo, hi = v["ci95"]
-        u = _unit_text(v["unit"])
+        u = unit_text(v["unit"])
         line = f"{k} = {v['value']:.6g}{u} (95 % CI {lo:.6g}..{hi:.6g})"
         if v.get("kept_base"):
             line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
@@ -588,11 +589,11 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
 
 
 def _write_plots(result, directory: str, inputs: Sequence[str], created: list) -> list[str]:
-    """Write :func:`prsa_ctrl.identification.fit.fit_figures` as PNG files into ``directory`` (created if
+    """Write :func:`prsa_ctrl.plots.fit.fit_figures` as PNG files into ``directory`` (created if
     missing); the directories made and the files written are added to ``created``."""
     import matplotlib.pyplot as plt
 
-    from ..identification.fit import fit_figures
+    from ..plots.fit import fit_figures
     from ..io.output import make_directory, write_file
 
     created += make_directory(directory, "--plots")

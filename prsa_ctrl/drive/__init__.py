@@ -1,4 +1,4 @@
-"""What runs in the drive: the PID law, filters, speed measurement, the Kalman estimator, motion profiles, drive parameter units."""
+"""What runs in the drive: the PID law, filters, speed measurement, the Kalman estimator, motion profiles, drive parameter units, and the sampled-loop algebra (zero-order hold, per-sample PID rows)."""
 
 from .._lazy import lazy_exports
 
@@ -33,6 +33,7 @@ _EXPORTS = {
     "dumps_parameter_set": "params",
     "fill_template": "params",
     "filter_from_dict": "filters",
+    "freq_grid": "sampled",
     "kf_drive_loop": "estimator",
     "load_motor": "params",
     "load_template": "params",
@@ -41,10 +42,14 @@ _EXPORTS = {
     "motor_from_plant": "params",
     "out_and_back": "motion",
     "parse_motor": "params",
+    "pid_frequency_parts": "sampled",
     "pid_law": "pid",
+    "pid_rows": "sampled",
     "read_parameter_set": "params",
     "s_curve": "motion",
+    "ss_response": "sampled",
     "trapezoidal": "motion",
+    "zoh": "sampled",
 }
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

@@ -31,9 +31,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import expm
+from scipy.linalg import solve_discrete_are
 
+from .._lazy import module
 from ..plant.plantfile import Plant
+from .sampled import freq_grid, pid_frequency_parts, pid_rows, ss_response, zoh
+
+kalman = module("filterpy.kalman")  # only the reference filter (KFDesign.make_filter) needs filterpy
 
 __all__ = ["KFDesign", "design_kf", "kf_drive_loop", "DEFAULT_LOAD_CHANGE_TIME_S"]
 
@@ -62,9 +66,7 @@ class KFDesign:
 
     def make_filter(self, x0: NDArray[np.float64]):
         """A filterpy ``KalmanFilter`` with this design, started in steady state at ``x0``."""
-        from filterpy.kalman import KalmanFilter
-
-        kf = KalmanFilter(dim_x=4, dim_z=1, dim_u=1)
+        kf = kalman.KalmanFilter(dim_x=4, dim_z=1, dim_u=1)
         kf.F, kf.B, kf.H = self.F.copy(), self.G.copy(), self.H.copy()
         kf.Q, kf.R = self.Q.copy(), np.array([[self.R]])
         kf.x = np.asarray(x0, dtype=float).reshape(4, 1)
@@ -86,17 +88,12 @@ def design_kf(plant: Plant, load_change_time_s: float = DEFAULT_LOAD_CHANGE_TIME
     """
     if not (load_change_time_s > 0 and math.isfinite(load_change_time_s)):
         raise ValueError(f"load_change_time_s = {load_change_time_s!r}; expected a positive time in s")
-    from scipy.linalg import solve_discrete_are
-
     ts = plant.sample_time_s
     j = plant.reflected_inertia_kg_m2
     t_c = plant.current_loop_time_constant_s
     a = np.array([[0, 1, 0, 0], [0, 0, 1 / j, -1 / j], [0, 0, -1 / t_c, 0], [0, 0, 0, 0]], float)
     b = np.array([[0], [0], [1 / t_c], [0]], float)
-    blk = np.zeros((5, 5))
-    blk[:4, :4], blk[:4, 4:] = a * ts, b * ts
-    e = expm(blk)
-    F, G = e[:4, :4], e[:4, 4:]
+    F, G = zoh(a, b, ts)
     q = 2 * math.pi / plant.encoder_counts
     R = q * q / 12.0
     tau_rated = plant.rated_load_n * plant.lead_per_rad / plant.values["friction.efficiency"]
@@ -145,11 +142,11 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
     together; the loop keeps only the estimation error of the angle. With ``feedforward`` the
     load feed-forward gain ``kff`` is a fourth tuned gain (``u += kff * load estimate``).
     """
-    from ..tuning.tuner import LoopModel, _freq_grid, _pid_frequency_parts, _pid_rows, _ss_response, _zoh
+    from ..tuning.tuner import LoopModel  # a layer up: this builder belongs with the loop builders in tuning/
 
     ts = kf.ts
     n_steps = max(10, int(round(horizon / ts)))
-    ad, bd_all = _zoh(np.asarray(a, float), np.asarray(b, float), ts)
+    ad, bd_all = zoh(np.asarray(a, float), np.asarray(b, float), ts)
     bu, bdist = bd_all[:, 0], bd_all[:, 1]
     n = ad.shape[0]
     c_w = np.asarray(c_speed, float).ravel()
@@ -177,7 +174,7 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
     A0[i_i, i_i] = 1.0
     A0[i_wp] = w_hat
     A0[i_u] = E[i_i]  # u = kp e + I - kd d (+ kff * load estimate)
-    a_kp, a_ki, a_kd = _pid_rows(N, i_u, i_i, e_meas, d_new, ts)
+    a_kp, a_ki, a_kd = pid_rows(N, i_u, i_i, e_meas, d_new, ts)
     a_ff = np.zeros((N, N))
     a_ff[i_u] = tl_hat
     gain_mats = (A0, a_kp, a_ki, a_kd) + ((a_ff,) if feedforward else ())
@@ -207,7 +204,7 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
     # Frequency response: L = N/D with N, D affine in the gains (see LoopModel), at any
     # frequencies (the tuner refines its Ms search off the grid).
     if omega is None:
-        omega = _freq_grid(1e-1, math.pi / ts * 0.999, 500)
+        omega = freq_grid(1e-1, math.pi / ts * 0.999, 500)
     a_kf = kf.F @ (np.eye(4) - np.outer(K, kf.H.ravel()))
     b_th, b_u = kf.F @ K, kf.G.ravel()
     ikh = np.eye(4) - np.outer(K, kf.H.ravel())
@@ -219,14 +216,14 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
         def z_of(x):
             return np.exp(1j * x * ts)
 
-        p_th = _ss_response(ad, bu[:, None], c_th[None, :], w, z_of)  # applied torque -> angle
+        p_th = ss_response(ad, bu[:, None], c_th[None, :], w, z_of)  # applied torque -> angle
 
         def kf_tf(row, b_in, d_in):
-            return _ss_response(a_kf, b_in[:, None], (row @ ikh)[None, :], w, z_of) + d_in
+            return ss_response(a_kf, b_in[:, None], (row @ ikh)[None, :], w, z_of) + d_in
 
         h_wt, h_wu = kf_tf(np.eye(4)[1], b_th, K[1]), kf_tf(np.eye(4)[1], b_u, 0.0)
         h_lt, h_lu = kf_tf(np.eye(4)[3], b_th, K[3]), kf_tf(np.eye(4)[3], b_u, 0.0)
-        c = _pid_frequency_parts(zi, ts, beta)
+        c = pid_frequency_parts(zi, ts, beta)
         Lg = [ci * h_wt * p_th * zi for ci in c]
         Dg = [ci * h_wu * zi for ci in c]
         if feedforward:  # u += kff * load estimate

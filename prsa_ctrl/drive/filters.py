@@ -42,13 +42,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import MISSING, dataclass, fields
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-if TYPE_CHECKING:
-    import control
+from .._lazy import module
+from .sampled import zoh
+
+control = module("control")  # only Filter.continuous_tf needs python-control
 
 __all__ = ["Filter", "DiscreteBiquad", "FirstOrderLowPass", "SecondOrderLowPass", "Notch", "GeneralBiquad",
            "METHODS", "filter_from_dict", "PLACES", "LoopFilter", "loop_filters"]
@@ -213,8 +215,6 @@ class Filter:
         -------
         control.TransferFunction
         """
-        import control
-
         n, d = self.coefficients()
         if self.order == 1:  # drop the zero s^2 terms so the system stays first order
             n, d = n[1:], d[1:]
@@ -307,8 +307,6 @@ class Filter:
         return DiscreteBiquad(*c, ts)
 
     def _zoh(self, ts: float) -> tuple[list[float], list[float]]:
-        from scipy.linalg import expm
-
         (n2, n1, n0), (d2, d1, d0) = self.coefficients()
         if self.order == 2:  # controllable canonical form of (n2 s^2 + n1 s + n0)/(s^2 + ...)
             n2, n1, n0, d1, d0 = n2 / d2, n1 / d2, n0 / d2, d1 / d2, d0 / d2
@@ -321,11 +319,7 @@ class Filter:
             bvec = np.array([[1.0]])
             c = np.array([[n0 / d1 - n1 * d0 / d1 / d1]])
             dd = n1 / d1
-        n = a.shape[0]
-        m = np.zeros((n + 1, n + 1))
-        m[:n, :n], m[:n, n:] = a * ts, bvec * ts
-        e = expm(m)
-        ad, bd = e[:n, :n], e[:n, n:]
+        ad, bd = zoh(a, bvec, ts)
         den = np.poly(ad)
         num = np.poly(ad - bd @ c) - den + dd * den  # C (zI - A)^-1 B + D over det(zI - A)
         pad = [0.0] * (3 - len(den))

@@ -1,6 +1,7 @@
-"""Calibration: measured data and log formats, time- and frequency-domain fits, the linear-axis fit."""
+"""Calibration: measured data and log formats, time- and frequency-domain fits (what they share: common), the linear-axis fit. Their figures: :mod:`prsa_ctrl.plots.fit`."""
 
 from .._lazy import lazy_exports
+from ..errors import DataError, FitError
 
 _EXPORTS = {
     "AxisFit": "axis",
@@ -12,42 +13,42 @@ _EXPORTS = {
     "ControllerSpec": "logformat",
     "DEFAULTS": "axis",
     "DEFAULT_CSV_FORMAT": "logformat",
-    "DEFAULT_KEYS": "fit",
-    "DELAY_KEY": "fit",
+    "DEFAULT_KEYS": "common",
+    "DELAY_KEY": "common",
     "DESIGNS": "data",
-    "DataError": "data",
-    "FITTABLE": "fit",
+    "FITTABLE": "common",
     "FRF_COLUMNS": "data",
-    "FRF_KEYS": "fit",
-    "FRF_KEYS_COMPLIANT": "fit",
-    "FitError": "fit",
-    "FitResult": "fit",
+    "FRF_KEYS": "common",
+    "FRF_KEYS_COMPLIANT": "common",
+    "FitResult": "common",
     "FrfRecord": "data",
     "LinearAxisPlant": "axis",
     "LogFormat": "logformat",
     "LogFormatError": "logformat",
-    "MAX_SAMPLES": "logformat",
+    "MAX_SAMPLES": "data",
     "MECHANISM": "axis",
     "METRIC_SKIP_SAMPLES": "axis",
     "MIN_SAMPLES": "data",
     "PARAMETERS": "axis",
+    "RANK_RTOL": "common",
     "Record": "data",
     "SMALL_SPEED_M_S": "axis",
     "STANDARD_COLUMNS": "data",
     "STRUCTURES": "logformat",
+    "UNCERTAINTY_MODES": "common",
     "VELOCITY_ESTIMATES": "logformat",
-    "axial_mode": "fit",
+    "axial_mode": "frf",
     "axis_plant_toml": "axis",
     "design_excitation": "data",
-    "fit_figures": "fit",
-    "fit_frf": "fit",
+    "fit_frf": "frf",
     "fit_linear_axis": "axis",
-    "fit_percent": "fit",
-    "fit_plant": "fit",
+    "fit_percent": "timedomain",
+    "fit_plant": "timedomain",
+    "frf_fit_percent": "frf",
     "frf_from_arrays": "data",
     "frf_from_record": "data",
-    "frf_operating_point_error": "fit",
-    "frf_response": "fit",
+    "frf_operating_point_error": "common",
+    "frf_response": "frf",
     "idim_estimate": "axis",
     "load_axis_log": "logformat",
     "load_axis_plant": "axis",
@@ -63,4 +64,5 @@ _EXPORTS = {
     "simulate_axis": "axis",
 }
 
-__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
+# The exceptions live in prsa_ctrl.errors; they stay importable from here, where they were.
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS, {"DataError": DataError, "FitError": FitError})

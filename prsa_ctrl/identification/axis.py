@@ -49,6 +49,7 @@ Only ``axis.mass_kg`` is required; every other key has the default listed in :da
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -57,8 +58,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.signal import butter, filtfilt
 
+from .._lazy import module
+from ..errors import SimulationError
 from .logformat import AxisLog
+
+stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
 
 __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
@@ -185,8 +192,6 @@ def load_axis_plant(path: str | Path) -> LinearAxisPlant:
 
 
 def _toml_str(text: str) -> str:
-    import json
-
     return json.dumps(text, ensure_ascii=False)
 
 
@@ -365,8 +370,6 @@ def _finite(tr: _Trace, log: AxisLog) -> _Trace:
     """The trace, or a SimulationError naming the first sample where the replay left the finite numbers."""
     bad = ~(np.isfinite(tr.position_m) & np.isfinite(tr.velocity_m_s) & np.isfinite(tr.command))
     if bad.any():
-        from ..errors import SimulationError
-
         k = int(np.argmax(bad))
         raise SimulationError(f"replay of {log.name} diverged at t = {log.time_s[k]:.6g} s (sample {k}: position "
                               f"{tr.position_m[k]!r} m, speed {tr.velocity_m_s[k]!r} m/s); check the controller gains "
@@ -387,8 +390,6 @@ def measured_velocity(log: AxisLog) -> NDArray[np.float64]:
 
 
 def _filtered_position(log: AxisLog) -> NDArray[np.float64]:
-    from scipy.signal import butter, filtfilt
-
     b, a = butter(4, 0.2)  # cutoff fs/10 (normalised to Nyquist fs/2)
     return filtfilt(b, a, log.position_m)
 
@@ -533,9 +534,7 @@ def _batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: in
 
 def _t95(dof: int) -> float:
     """Two-sided 95 % quantile of Student's t with ``dof`` degrees of freedom."""
-    from scipy.stats import t
-
-    return float(t.ppf(0.975, dof))
+    return float(stats.t.ppf(0.975, dof))
 
 
 @dataclass(frozen=True)
@@ -623,7 +622,6 @@ def _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts
     converge within ``max_evaluations`` residual evaluations (each Jacobian adds one replay per free
     parameter) (``strict=False``: returns the best point found,
     whose cost bounds the optimum from above)."""
-    from scipy.optimize import least_squares
 
     def resid(x):
         th = theta0.copy()

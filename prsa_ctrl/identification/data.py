@@ -29,10 +29,12 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
+import scipy.signal
 from numpy.typing import NDArray
 
+from ..errors import DataError
+
 __all__ = [
-    "DataError",
     "Record",
     "STANDARD_COLUMNS",
     "parse_columns",
@@ -41,6 +43,7 @@ __all__ = [
     "design_excitation",
     "DESIGNS",
     "MIN_SAMPLES",
+    "MAX_SAMPLES",
     "FrfRecord",
     "load_frf",
     "frf_from_arrays",
@@ -53,20 +56,17 @@ __all__ = [
 STANDARD_COLUMNS = ("time_s", "torque_command_n_m", "nut_angle_rad", "nut_speed_rad_s", "axial_load_n")
 _CURRENT = "current_a"
 _ALL_COLUMNS = STANDARD_COLUMNS + (_CURRENT,)
-#: Fewest samples a record may have.
+#: Fewest samples a record (and a controller log, :mod:`prsa_ctrl.identification.logformat`) may have.
 MIN_SAMPLES = 50
 #: Largest relative deviation of a sample interval from the median interval.
 SAMPLING_TOL = 0.01
-#: Largest record length accepted (samples), so every fit is bounded before it starts.
+#: Largest record (and controller log) length accepted (samples), so every fit and replay is
+#: bounded before it starts.
 MAX_SAMPLES = 2_000_000
 #: Largest data file read (bytes), checked before reading: ``MAX_SAMPLES`` rows of up to 256
 #: bytes (a record written with 17 significant digits takes about 120 bytes a row).
 MAX_FILE_BYTES = 256 * MAX_SAMPLES
 _RPM = 60.0 / (2.0 * math.pi)
-
-
-class DataError(ValueError):
-    """A measured-data file or array is unusable; the message names file, column and row."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -457,9 +457,7 @@ def design_excitation(
         v = np.sum(np.sin(2 * np.pi * np.outer(t, k * f0) + phases), axis=1)
         v = offset + amplitude * v / np.max(np.abs(v))
     elif kind == "chirp":
-        from scipy.signal import chirp
-
-        v = offset + amplitude * chirp(t, f_min_hz, t[-1], f_max_hz, method="logarithmic")
+        v = offset + amplitude * scipy.signal.chirp(t, f_min_hz, t[-1], f_max_hz, method="logarithmic")
     else:
         levels = np.array([1.0, 0.5, -0.5, -1.0, -0.25, 0.25, 1.0, 0.0])
         idx = np.minimum((t / duration_s * len(levels)).astype(int), len(levels) - 1)

@@ -73,19 +73,18 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+import scipy.io
 from numpy.typing import NDArray
 
+from .data import MAX_SAMPLES, MIN_SAMPLES
+
 __all__ = ["LogFormatError", "LogFormat", "DEFAULT_CSV_FORMAT", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
-           "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES", "MAX_SAMPLES", "MIN_SAMPLES"]
+           "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES"]
 
 #: Controller structures understood.
 STRUCTURES = ("position-p/velocity-p", "position-p/velocity-pi")
 #: Velocity estimates of the controller.
 VELOCITY_ESTIMATES = ("average2-difference", "difference")
-#: Longest log accepted (samples), so that every replay and fit is bounded before it starts.
-MAX_SAMPLES = 2_000_000
-#: Fewest samples a log may have.
-MIN_SAMPLES = 50
 #: Largest relative deviation of a sample interval from the declared sample time.
 SAMPLING_TOL = 0.01
 #: A log is refused when the command reconstructed with a shift of 1 or 2 samples matches it
@@ -379,8 +378,6 @@ class _Source:
         self.data: dict[str, np.ndarray] = self._read_mat(p) if fmt == "mat" else self._read_csv(p)
 
     def _read_mat(self, p: Path) -> dict[str, np.ndarray]:
-        import scipy.io
-
         try:
             raw = scipy.io.loadmat(str(p))
         except NotImplementedError:

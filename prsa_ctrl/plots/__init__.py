@@ -12,6 +12,8 @@ _EXPORTS = {
     "duty_cycle_comparison": "loop",
     "duty_cycle_pairs_plot": "loop",
     "duty_cycle_plot": "loop",
+    "figure_names": "fit",
+    "fit_figures": "fit",
     "gain_study_plot": "loop",
     "load_step_comparison": "loop",
     "load_step_plot": "loop",

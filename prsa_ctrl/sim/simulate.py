@@ -29,41 +29,38 @@ clock), and can audit its own energy balance.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-import time
-import weakref
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
-from ..drive.pid import PID, pid_law
-from ..plant.equilibrium import operating_point
-from ..errors import SimulationError
+from .._lazy import module
+from ..drive.filters import LoopFilter, loop_filters
 from ..drive.measurement import PositionLoop, SpeedMeasurement, measurement_for
-from ..plant.model import PlantModel, plant_model
+from ..drive.motion import MotionProfile
+from ..drive.pid import PID, pid_law
+from ..errors import SimulationError
 from ..options import SETPOINT_RAD_S
+from ..plant.equilibrium import operating_point
+from ..plant.model import PlantModel, plant_model
 from ..plant.plantfile import Plant
+from .integrators import Built, SimSettings, accumulated, build, continuous_integrator, sample_integrator
+from .signals import NormalisedProfile, Profile, is_number, normalise_profile
 
-if TYPE_CHECKING:  # annotations only: python-control is imported where it is used
-    import control
-
+if TYPE_CHECKING:  # annotations only
     from ..drive.estimator import KFDesign
-    from ..drive.filters import LoopFilter
-    from ..drive.motion import MotionProfile
 
-__all__ = ["simulate", "run", "SimRun", "Profile", "PiecewiseLinear", "SimSettings", "energy_balance",
-           "INTEGRATORS", "MAX_OUTPUT_POINTS", "INPUT_LABELS", "fixed_step_error", "fast_settings", "jit_cache_dir",
-           "RADAU_STAGES"]
+control = module("control")  # only SimRun.to_response needs python-control
+optimize = module("scipy.optimize")  # only P-only controllers need it (and it costs 0.25 s to import)
 
-INTEGRATORS = ("cvodes", "idas", "radau")
-#: Stages of the fixed-step ``"radau"`` integrator (Radau IIA: 1 = implicit Euler, order 1;
-#: 2 = order 3; 3 = order 5; all L-stable and stiffly accurate).
-RADAU_STAGES = (1, 2, 3)
+__all__ = ["simulate", "run", "SimRun", "energy_balance", "initial_state", "MAX_OUTPUT_POINTS", "INPUT_LABELS",
+           "fixed_step_error", "fast_settings"]
+
 
 #: Input rows of every run: the speed setpoint the controller used (rad/s) and the axial load
 #: on the screw (N).
@@ -81,616 +78,42 @@ CHUNK_S = 0.1
 #: Largest number of output points (time samples) one run may return: 2e6 points of ~16 rows
 #: are ~256 MB. Checked before anything is allocated.
 MAX_OUTPUT_POINTS = 2_000_000
-# Parameter vector of the continuous closed loop: setpoint (rad/s) and load (N) at the segment
-# start, kp, ki, kd, tf, feed-forward (N m), segment duration (s), setpoint and load slopes (per s).
-_NP = 10
 
 
-@dataclass(frozen=True)
-class PiecewiseLinear:
-    """An input profile linear between its points, constant after the last one.
-
-    Parameters
-    ----------
-    points : sequence of (time_s, value)
-        The first at t = 0; times non-decreasing. Two points at the same time make a step
-        there (from the first value to the second), so ramps and steps mix:
-        ``[(0, 500), (0.1, 500), (0.1, 1500), (0.3, 1000)]`` holds 500 N, steps to 1500 N at
-        0.1 s and ramps down to 1000 N at 0.3 s.
-
-    Examples
-    --------
-    >>> ramp = PiecewiseLinear([(0.0, 500.0), (0.1, 1500.0)])
-    >>> ramp.points[-1]
-    (0.1, 1500.0)
-    """
-
-    points: tuple[tuple[float, float], ...]
-
-    def __post_init__(self) -> None:
-        try:
-            pts = tuple((float(t), float(v)) for t, v in self.points)
-        except (TypeError, ValueError):
-            raise ValueError(f"points = {self.points!r}; expected a list of (time_s, value) pairs") from None
-        object.__setattr__(self, "points", pts)
-
-    @classmethod
-    def from_csv(cls, path: "str | Path", column: str = "axial_load_n", *, max_rows: int = 1_000_000) -> "PiecewiseLinear":
-        """A measured trace from a CSV file with a header: ``time_s`` and ``column``.
-
-        Times must start at 0 and increase strictly; values must be finite. The trace is used
-        as a piecewise-linear profile (at most one point per controller sample in a sampled
-        run: resample faster traces).
-
-        Parameters
-        ----------
-        path : str or Path
-        column : str
-            Header of the value column (default ``axial_load_n``, N).
-        max_rows : int
-            Largest number of rows read.
-
-        Raises
-        ------
-        ValueError
-            One line naming the file, the row (1 = first data row) and the column.
-        """
-        import csv
-
-        p = Path(path)
-        try:
-            with p.open(newline="") as fh:
-                reader = csv.reader(fh)
-                header = [h.strip() for h in next(reader, [])]
-                if "time_s" not in header or column not in header:
-                    raise ValueError(f"{p}: header {header}; expected columns 'time_s' and {column!r}")
-                it, iv = header.index("time_s"), header.index(column)
-                pts: list[tuple[float, float]] = []
-                for row_no, row in enumerate(reader, start=1):
-                    if not row or all(not c.strip() for c in row):
-                        continue
-                    if row_no > max_rows:
-                        raise ValueError(f"{p}: more than {max_rows} rows; expected a shorter trace")
-                    try:
-                        t, v = float(row[it]), float(row[iv])
-                    except (IndexError, ValueError):
-                        raise ValueError(f"{p}: row {row_no}: {row!r}; expected numbers in 'time_s' and {column!r}") \
-                            from None
-                    if not (math.isfinite(t) and math.isfinite(v)):
-                        raise ValueError(f"{p}: row {row_no}: time_s = {t!r}, {column} = {v!r}; expected finite numbers")
-                    if pts and t <= pts[-1][0]:
-                        raise ValueError(f"{p}: row {row_no}: time_s = {t!r} after {pts[-1][0]!r}; expected increasing times")
-                    pts.append((t, v))
-        except OSError as exc:
-            raise ValueError(f"{p}: cannot read ({exc.strerror}); expected a readable CSV file") from None
-        except UnicodeDecodeError:
-            raise ValueError(f"{p}: not a text file; expected a CSV file") from None
-        if len(pts) < 2:
-            raise ValueError(f"{p}: {len(pts)} data rows; expected at least 2")
-        if pts[0][0] != 0.0:
-            raise ValueError(f"{p}: row 1: time_s = {pts[0][0]!r}; expected the trace to start at 0")
-        return cls(tuple(pts))
-
-
-Profile = float | Sequence[tuple[float, float]] | PiecewiseLinear
-
-
-@dataclass(frozen=True)
-class SimSettings:
-    """Integrator settings. Tolerances apply to states scaled to order one.
-
-    Parameters
-    ----------
-    integrator : {"cvodes", "idas", "radau"}
-        ``"cvodes"`` (default, the reference) and ``"idas"`` are SUNDIALS' adaptive implicit
-        integrators. ``"radau"`` is a fixed-step, linearly implicit Radau IIA integrator written
-        in CasADi SX (``substeps`` steps of ``stages`` stages per controller sample, each with
-        ``newton`` simplified Newton iterations on the exact Jacobian at the step start): one
-        sample is a plain expression, so a whole chunk of samples runs as one ``mapaccum``'d
-        function without integrator restarts. Its error is not controlled by ``rtol``/``atol``
-        (they are unused); it is measured against a tight CVODES reference
-        (:func:`fixed_step_error`) and the fast path is only chosen where that error is inside
-        the scene's accuracy (see ``README``). In continuous mode it takes ``substeps`` steps per
-        output interval.
-    rtol, atol : float
-        Relative and absolute tolerances (adaptive integrators).
-    max_steps : int
-        Step budget per output interval; exceeding it raises :class:`SimulationError`.
-    max_wall_s : float
-        Wall-time budget of one run, s, checked between integration chunks (at most
-        ``CHUNK_S`` of simulated time each); exceeding it raises :class:`SimulationError`.
-    energy_tol : float
-        With ``energy=True`` the run audits itself: an energy-balance residual above this
-        (relative, see :func:`energy_balance`) means the integration is not trustworthy and
-        raises :class:`SimulationError`; ``inf`` switches the audit off.
-    clock : callable
-        Returns the time in s that the budget is measured with (default
-        ``time.perf_counter``; tests inject a fake clock). Not part of the settings' identity.
-    substeps : int
-        ``"radau"`` only: fixed steps per controller sample (1..64).
-    stages : {1, 2, 3}
-        ``"radau"`` only: Radau IIA stages.
-    newton : int
-        ``"radau"`` only: simplified Newton iterations per step (1..4), a fixed number (no
-        convergence test: the error is measured instead, and a diverging step ends in a
-        non-finite state, which the run reports as a :class:`SimulationError`).
-    jit : bool
-        ``"cvodes"``/``"idas"``: evaluate the model's right-hand side and its Jacobian as C code
-        compiled once per model into a per-user cache (``$PRSA_CTRL_CACHE``, else
-        ``$XDG_CACHE_HOME/prsa-ctrl`` or ``~/.cache/prsa-ctrl``; keyed by the hash of the
-        generated code). ``"radau"``: compile the whole per-sample law of the sampled loop
-        (plant steps, measurement, PID) the same way, once per law (a few seconds of ``cc -O1``
-        the first time; all members of a parametric family share it, see
-        :func:`prsa_ctrl.plant.model.register_member`). Same equations, same tolerances; without a C
-        compiler the run falls back to CasADi's interpreter with a warning.
-    """
-
-    integrator: str = "cvodes"
-    rtol: float = 1e-8
-    atol: float = 1e-8
-    max_steps: int = 20000
-    max_wall_s: float = 120.0
-    energy_tol: float = 1e-4
-    clock: Callable[[], float] = field(default=time.perf_counter, compare=False, hash=False, repr=False)
-    substeps: int = 4
-    stages: int = 2
-    newton: int = 1
-    jit: bool = False
-
-    def __post_init__(self) -> None:
-        if self.integrator not in INTEGRATORS:
-            raise ValueError(f"integrator = {self.integrator!r}; expected one of {', '.join(INTEGRATORS)}")
-        for name, lo, hi in (("substeps", 1, 64), ("newton", 1, 4)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
-                raise ValueError(f"{name} = {v!r}; expected an integer in [{lo}, {hi}]")
-        if isinstance(self.stages, bool) or self.stages not in RADAU_STAGES:
-            raise ValueError(f"stages = {self.stages!r}; expected one of {', '.join(map(str, RADAU_STAGES))}")
-        if not isinstance(self.jit, bool):
-            raise ValueError(f"jit = {self.jit!r}; expected True or False")
-        for name in ("rtol", "atol"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < 1):
-                raise ValueError(f"{name} = {v!r}; expected a tolerance in (0, 1)")
-        if isinstance(self.max_steps, bool) or not isinstance(self.max_steps, (int, float)) \
-                or not math.isfinite(self.max_steps) or not 10 <= self.max_steps <= 1e9:
-            raise ValueError(f"max_steps = {self.max_steps!r}; expected an integer in [10, 1e9]")
-        if isinstance(self.max_wall_s, bool) or not isinstance(self.max_wall_s, (int, float)) \
-                or not (self.max_wall_s > 0 and math.isfinite(self.max_wall_s)):
-            raise ValueError(f"max_wall_s = {self.max_wall_s!r}; expected a positive time in s")
-        if isinstance(self.energy_tol, bool) or not isinstance(self.energy_tol, (int, float)) \
-                or not self.energy_tol > 0:
-            raise ValueError(f"energy_tol = {self.energy_tol!r}; expected a relative tolerance > 0 (inf: no audit)")
-        if not callable(self.clock):
-            raise ValueError(f"clock = {self.clock!r}; expected a callable returning seconds")
-
-
-def _state_scale(model: PlantModel) -> NDArray[np.float64]:
-    """Typical magnitude of each state, so that tolerances mean the same for all of them."""
-    p = model.plant
-    w = 100.0
-    f_rated = p.rated_load_n
-    per_contact = f_rated * max(p.normal_force_factor()) / p.n_contacts
-    defl = (per_contact / p.contact_stiffness_si) ** (1.0 / p.values["contact.exponent"])
-    scale = {
-        "theta_nut": 10.0,
-        "theta_cage": 10.0,
-        "omega_nut": w,
-        "omega_cage": w,
-        "x_roller": defl,
-        "v_roller": p.lead_per_rad * w,  # the rollers travel axially with the screw
-        "delta_screw": defl,
-        "v_screw": p.lead_per_rad * w,
-        "tau_motor": p.torque_limit,
-    }
-    # A model may declare the typical magnitudes of states it adds (e.g. friction states).
-    scale.update(getattr(model, "state_scales", None) or {})
-    return np.array([scale[n] for n in model.state_names])
-
-
-@dataclass(eq=False)
-class _Built:
-    """Closed-loop functions of one plant model (built once)."""
-
-    model: PlantModel
-    scale: NDArray[np.float64]  # plant states (+ continuous controller states) (+ energy)
-    plant_scale: NDArray[np.float64]  # plant states (+ energy): the sampled loop's plant part
-    energy: bool
-    rhs: ca.Function  # continuous loop: (z, p, tau) -> dz/dtau in scaled, duration-normalised time
-    continuous: dict = field(default_factory=dict)  # (settings, n_out) -> integrator
-    sampled: dict = field(default_factory=dict)  # (settings, measurement key, ...) -> functions
-    # Member of a parametric family (model.register_member): the family's parameter values,
-    # carried through the sampled loop as constant plant states between the physical states and
-    # the energy terms (scale 1, zero rate), so that one law serves every member.
-    theta0: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
-
-
-_BUILT: "weakref.WeakKeyDictionary[PlantModel, dict[bool, _Built]]" = weakref.WeakKeyDictionary()
-
-
-def _plant_rates(model: PlantModel, x, u, load, energy: bool, theta=None):
-    """Plant state rates, followed by the motor, load and dissipated powers when ``energy``
-    (``theta``: the parameters of a :class:`~prsa_ctrl.plant.model.ParametricModel`)."""
-    args = (x, ca.vertcat(u, load)) + (() if theta is None else (theta,))
-    if not energy:
-        return model.f(*args)
-    return ca.vertcat(model.f(*args), model.power(*args)[1:])
-
-
-class _Bounded(dict):
-    """A dict that forgets its oldest entries beyond ``cap`` (functions shared by a family)."""
-
-    cap = 64
-
-    def __setitem__(self, key, value) -> None:
-        super().__setitem__(key, value)
-        while len(self) > self.cap:
-            del self[next(iter(self))]
-
-
-def _member_built(model: PlantModel, energy: bool) -> _Built:
-    """A family member's functions: the family's (built once, shared) with the member's
-    parameters as the initial values of the constant states (see ``_Built.theta0``)."""
-    fam = model.family
-    key = ("built", energy)
-    if key not in fam.cache:
-        x_scale = _state_scale(fam)
-        e_scale = np.ones(3 if energy else 0)
-        plant_scale = np.concatenate([x_scale, np.ones(fam.n_theta), e_scale])
-        fam.cache[key] = _Built(fam, plant_scale, plant_scale, energy, None, _Bounded(), _Bounded())
-    b = fam.cache[key]
-    return _Built(fam, b.scale, b.plant_scale, energy, None, b.continuous, b.sampled,
-                  np.asarray(model.theta, dtype=float))
-
-
-def _build(model: PlantModel, energy: bool, shared: bool = False) -> _Built:
-    """The closed-loop functions of ``model``; with ``shared`` (sampled fixed-step runs) a
-    member of a parametric family gets its family's."""
-    cache = _BUILT.setdefault(model, {})
-    if shared and model.family is not None:
-        key = ("member", energy)
-        if key not in cache:
-            cache[key] = _member_built(model, energy)
-        return cache[key]
-    if energy in cache:
-        return cache[energy]
-    p = model.plant
-    nx = model.nx
-    ctrl_scale = [100.0, p.torque_limit, 100.0]  # rad/s, N m, rad/s
-    e_scale = np.ones(3 if energy else 0)
-    x_scale = _state_scale(model)
-    scale = np.concatenate([x_scale, ctrl_scale, e_scale])
-    z = ca.SX.sym("z", len(scale))
-    par = ca.SX.sym("p", _NP)
-    tau = ca.SX.sym("tau")  # segment time normalised to [0, 1]
-    gains, tau_ff, duration = par[2:6], par[6], par[7]
-    ref = par[0] + par[8] * duration * tau
-    load = par[1] + par[9] * duration * tau
-    x_all = z * scale
-    x = x_all[:nx]
-    w_f, integral, w_d = x_all[nx], x_all[nx + 1], x_all[nx + 2]
-    tf = gains[3]
-    derivative = (w_f - w_d) / tf
-    u, _, dintegral = pid_law(ref - w_f, integral, derivative, gains, tau_ff, p.torque_limit)
-    w_n = x[model.index("omega_nut")]
-    plant_rates = _plant_rates(model, x, u, load, energy)
-    rates = ca.vertcat(
-        plant_rates[:nx], (w_n - w_f) / p.speed_filter_s, dintegral, derivative, plant_rates[nx:]
-    )
-    rhs = duration * rates / scale
-    built = _Built(model, scale, np.concatenate([x_scale, e_scale]), energy,
-                   ca.Function("rhs", [z, par, tau], [rhs]))
-    cache[energy] = built
-    return built
-
-
-def _opts(settings: SimSettings) -> dict:
-    return {
-        "abstol": settings.atol,
-        "reltol": settings.rtol,
-        "max_num_steps": int(settings.max_steps),
-        "print_stats": False,
-    }
-
-
-# --- fixed-step Radau IIA (SimSettings(integrator="radau")) ------------------------------------
-
-def _radau_tableau(stages: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Butcher matrix ``A`` and nodes ``c`` of the ``stages``-stage Radau IIA method (Hairer &
-    Wanner, Solving ODEs II, Table IV.5.5); the last row of ``A`` is the weights (stiffly
-    accurate), so the step's result is the last stage value."""
-    if stages == 1:
-        return np.array([[1.0]]), np.array([1.0])
-    if stages == 2:
-        return np.array([[5.0 / 12.0, -1.0 / 12.0], [3.0 / 4.0, 1.0 / 4.0]]), np.array([1.0 / 3.0, 1.0])
-    r6 = math.sqrt(6.0)
-    a = np.array([[(88.0 - 7.0 * r6) / 360.0, (296.0 - 169.0 * r6) / 1800.0, (-2.0 + 3.0 * r6) / 225.0],
-                  [(296.0 + 169.0 * r6) / 1800.0, (88.0 + 7.0 * r6) / 360.0, (-2.0 - 3.0 * r6) / 225.0],
-                  [(16.0 - r6) / 36.0, (16.0 + r6) / 36.0, 1.0 / 9.0]])
-    return a, np.array([(4.0 - r6) / 10.0, (4.0 + r6) / 10.0, 1.0])
-
-
-#: Sparse LU kernels by matrix sparsity (shared by every plant of one structure, so a plant
-#: with other parameter values does not rebuild them).
-_LU_KERNELS: dict[str, tuple[ca.Function, ca.Function]] = {}
-
-
-def _lu_kernels(sp: ca.Sparsity) -> tuple[ca.Function, ca.Function]:
-    """``factor(M) -> lu`` and ``solve(lu, b) -> M^-1 b`` for square matrices of sparsity ``sp``:
-    Gaussian elimination in the given order (no pivoting) on the structural nonzeros only.
-
-    Used on ``I - h (A kron J)`` of a dissipative plant, whose diagonal dominates the elimination;
-    a vanishing pivot gives a non-finite state, which the run reports as a SimulationError (it
-    never passes silently)."""
-    key = sp.serialize()
-    if key in _LU_KERNELS:
-        return _LU_KERNELS[key]
-    n = sp.size1()
-    m = ca.SX.sym("m", sp)
-    a = [[m[i, j] if sp.has_nz(i, j) else None for j in range(n)] for i in range(n)]
-    lower: list[list] = [[None] * n for _ in range(n)]
-    for k in range(n):
-        if a[k][k] is None:
-            raise ValueError(f"structurally zero pivot {k} in the Radau iteration matrix")
-        for i in range(k + 1, n):
-            if a[i][k] is None:
-                continue
-            lik = a[i][k] / a[k][k]
-            lower[i][k] = lik
-            for j in range(k + 1, n):
-                if a[k][j] is not None:
-                    a[i][j] = -lik * a[k][j] if a[i][j] is None else a[i][j] - lik * a[k][j]
-    entries = [lower[i][k] for i in range(n) for k in range(i) if lower[i][k] is not None] + \
-              [a[i][j] for i in range(n) for j in range(i, n) if a[i][j] is not None]
-    lu = ca.vertcat(*entries)
-    factor = ca.Function("radau_lu_factor", [m], [lu])
-    lus = ca.SX.sym("lu", lu.numel())
-    b = ca.SX.sym("b", n)
-    it = iter(range(lu.numel()))
-    lo = [[next(it) if lower[i][k] is not None else None for k in range(i)] for i in range(n)]
-    up = [[next(it) if a[i][j] is not None else None for j in range(i, n)] for i in range(n)]
-    y: list = []
-    for i in range(n):
-        yi = b[i]
-        for k in range(i):
-            if lo[i][k] is not None:
-                yi = yi - lus[lo[i][k]] * y[k]
-        y.append(yi)
-    x: list = [None] * n
-    for i in reversed(range(n)):
-        xi = y[i]
-        for j in range(i + 1, n):
-            if up[i][j - i] is not None:
-                xi = xi - lus[up[i][j - i]] * x[j]
-        x[i] = xi / lus[up[i][0]]
-    solve = ca.Function("radau_lu_solve", [lus, b], [ca.vertcat(*x)])
-    _LU_KERNELS[key] = (factor, solve)
-    return factor, solve
-
-
-def _radau_step(f: ca.Function, nz: int, npar: int, settings: SimSettings, span: float) -> ca.Function:
-    """``(x0, p, tau0) -> x`` after ``span`` of normalised time from ``tau0``: ``settings.substeps``
-    Radau IIA steps of ``f(z, p, tau) -> dz/dtau``, each solving its stage equations
-    ``Z_i = x + h sum_j a_ij f(Z_j)`` with ``settings.newton`` simplified Newton iterations
-    from ``Z_i = x`` on the iteration matrix ``I - h (A kron J(x))`` (exact Jacobian at the
-    step start, factorised once per step). One Newton iteration makes it a linearly implicit
-    (Rosenbrock-type) Radau method: still L-stable, the 25.8 kHz contact mode and the stiff
-    traction creep are damped, not resolved. A plain SX expression: no restarts, no
-    convergence loop, a fixed cost per step."""
-    a_mat, c = _radau_tableau(settings.stages)
-    s = settings.stages
-    z = ca.SX.sym("z", nz)
-    p = ca.SX.sym("p", npar)
-    tau = ca.SX.sym("tau")
-    jac = ca.Function("radau_dfdz", [z, p, tau], [ca.jacobian(f(z, p, tau), z)])
-    h = span / settings.substeps
-    j_sym = ca.SX.sym("j", jac.sparsity_out(0))
-    iter_mat = ca.Function("radau_iteration_matrix", [j_sym],
-                           [ca.SX.eye(s * nz) - h * ca.kron(ca.SX(ca.DM(a_mat)), j_sym)])
-    factor, solve = _lu_kernels(iter_mat.sparsity_out(0))
-    x0 = ca.SX.sym("x0", nz)
-    tau0 = ca.SX.sym("tau0")
-    x = x0
-    for k in range(settings.substeps):
-        t_k = tau0 + k * h
-        lu = factor(iter_mat(jac(x, p, t_k)))
-        stages = [x] * s
-        for _ in range(settings.newton):
-            rates = [f(stages[i], p, t_k + c[i] * h) for i in range(s)]
-            g = ca.vertcat(*[stages[i] - x - h * sum(a_mat[i, j] * rates[j] for j in range(s)) for i in range(s)])
-            dz = solve(lu, g)
-            stages = [stages[i] - dz[i * nz:(i + 1) * nz] for i in range(s)]
-        x = stages[-1]
-    return ca.Function("radau_step", [x0, p, tau0], [x], ["x0", "p", "tau0"], ["xf"])
-
-
-#: Compiled right-hand sides loaded in this process, by code hash (see ``SimSettings.jit``).
-_COMPILED: dict[str, ca.Function] = {}
-
-
-def jit_cache_dir() -> Path:
-    """Directory of the compiled right-hand sides (``SimSettings(jit=True)``):
-    ``$PRSA_CTRL_CACHE/jit``, else ``$XDG_CACHE_HOME/prsa-ctrl/jit`` or ``~/.cache/prsa-ctrl/jit``."""
-    import os
-
-    root = os.environ.get("PRSA_CTRL_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "prsa-ctrl")
-    return Path(root) / "jit"
-
-
-def _compiled(fun: ca.Function, jacobian: bool = True, flags: tuple[str, ...] = ("-O2",)) -> ca.Function | None:
-    """``fun`` (and its Jacobian) as C code compiled once into :func:`jit_cache_dir` (keyed by the
-    hash of the code, the CasADi version, the compiler and ``flags``) and loaded as an external function;
-    ``None`` with a warning when no C compiler is found or compiling fails (the caller then
-    uses CasADi's interpreter: same equations, slower)."""
-    import hashlib
-    import os
-    import shutil
-    import subprocess
-    import tempfile
-    import warnings
-
-    cg = ca.CodeGenerator(f"{fun.name()}.c", {"with_header": False})
-    cg.add(fun)
-    if jacobian:
-        cg.add(fun.jacobian())
-    code = cg.dump()
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
-    key = hashlib.sha256("\n".join([code, ca.__version__, str(cc), *flags]).encode()).hexdigest()[:24]
-    if key in _COMPILED:
-        return _COMPILED[key]
-    if cc is None:
-        warnings.warn("SimSettings(jit=True): no C compiler found (set CC); using CasADi's interpreter", stacklevel=3)
-        return None
-    folder = jit_cache_dir()
-    lib = folder / f"{fun.name()}_{key}.so"
-    if not lib.exists():
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=folder) as tmp:
-                src, out = Path(tmp) / "f.c", Path(tmp) / "f.so"
-                src.write_text(code)
-                res = subprocess.run([cc, *flags, "-shared", "-fPIC", str(src), "-o", str(out), "-lm"],
-                                     capture_output=True, text=True, timeout=600)
-                if res.returncode != 0:
-                    raise OSError(res.stderr.strip().splitlines()[-1] if res.stderr.strip() else f"exit {res.returncode}")
-                os.replace(out, lib)  # atomic: a concurrent worker never loads a half-written library
-        except (OSError, subprocess.SubprocessError) as exc:
-            warnings.warn(f"SimSettings(jit=True): compiling with {cc} into {folder} failed ({exc}); using CasADi's "
-                          "interpreter", stacklevel=3)
-            return None
-    ext = ca.external(fun.name(), str(lib))
-    _COMPILED[key] = ext
-    return ext
-
-
-def _ode_dae(z: ca.SX, par: ca.SX, tau: ca.SX, ode: ca.SX, settings: SimSettings) -> dict:
-    """The integrator's ODE, as compiled code when ``settings.jit`` (and a compiler works)."""
-    ext = _compiled(ca.Function("prsa_ode", [z, par, tau], [ode])) if settings.jit else None
-    if ext is None:
-        return {"x": z, "p": par, "t": tau, "ode": ode}
-    zm, pm, tm = ca.MX.sym("z", z.numel()), ca.MX.sym("p", par.numel()), ca.MX.sym("tau")
-    return {"x": zm, "p": pm, "t": tm, "ode": ext(zm, pm, tm)}
-
-
-def _continuous_integrator(built: _Built, settings: SimSettings, n_out: int) -> ca.Function:
-    key = (settings, n_out)
-    if key not in built.continuous:
-        z = ca.SX.sym("z", len(built.scale))
-        par = ca.SX.sym("p", _NP)
-        tau = ca.SX.sym("tau")
-        if settings.integrator == "radau":
-            # substeps fixed steps per output interval, all intervals chained (mapaccum)
-            f = ca.Function("rhs_scaled", [z, par, tau], [built.rhs(z, par, tau)])
-            step = _radau_step(f, len(built.scale), _NP, settings, 1.0 / n_out)
-            chain = step.mapaccum("radau_chain", n_out, [0], [0])
-            x0 = ca.MX.sym("x0", len(built.scale))
-            pm = ca.MX.sym("p", _NP)
-            taus = ca.DM(np.arange(n_out) / n_out).T
-            xf = chain(x0, ca.repmat(pm, 1, n_out), taus)
-            built.continuous[key] = ca.Function("segment", [x0, pm], [xf], ["x0", "p"], ["xf"])
-        else:
-            dae = _ode_dae(z, par, tau, built.rhs(z, par, tau), settings)
-            grid = list(np.linspace(0.0, 1.0, n_out + 1)[1:])
-            built.continuous[key] = ca.integrator("segment", settings.integrator, dae, 0.0, grid, _opts(settings))
-    return built.continuous[key]
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
-
-
-@dataclass(frozen=True)
-class _Prof:
-    """A normalised input profile: at each breakpoint ``t[i]`` the value becomes ``v[i]`` and
-    then changes with slope ``s[i]`` (per s) until the next breakpoint. ``jump[i]`` says
-    whether the value is discontinuous there (a step event)."""
-
-    t: NDArray[np.float64]
-    v: NDArray[np.float64]
-    s: NDArray[np.float64]
-    jump: NDArray[np.bool_]
-
-    def at(self, t: NDArray[np.float64] | float) -> NDArray[np.float64]:
-        """Value at time(s) ``t`` (after any step at exactly ``t``)."""
-        tt = np.asarray(t, dtype=float)
-        i = np.clip(np.searchsorted(self.t, tt + 1e-12, side="right") - 1, 0, len(self.t) - 1)
-        return self.v[i] + self.s[i] * np.maximum(tt - self.t[i], 0.0)
-
-    def slope_at(self, t: NDArray[np.float64] | float) -> NDArray[np.float64]:
-        tt = np.asarray(t, dtype=float)
-        i = np.clip(np.searchsorted(self.t, tt + 1e-12, side="right") - 1, 0, len(self.t) - 1)
-        return self.s[i]
-
-    @property
-    def breaks(self) -> NDArray[np.float64]:
-        """Breakpoints after t = 0 (steps and kinks)."""
-        return self.t[1:]
-
-
-def _normalise_profile(profile: Profile, duration: float, what: str, unit: str) -> _Prof:
-    linear = isinstance(profile, PiecewiseLinear)
-    if _is_number(profile):
-        pts = [(0.0, float(profile))]  # type: ignore[arg-type]
-    else:
-        try:
-            pts = list(profile.points) if linear else [(float(t), float(v)) for t, v in profile]  # type: ignore
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"{what} = {profile!r}; expected a number ({unit}), a list of (time_s, value) steps or a "
-                "PiecewiseLinear profile"
-            ) from None
-    if not pts:
-        raise ValueError(f"{what} = {profile!r}; expected at least one value")
-    for t, v in pts:
-        if not (math.isfinite(t) and math.isfinite(v)):
-            raise ValueError(f"{what} point ({t}, {v}) is not finite; expected finite time (s) and value ({unit})")
-    if pts[0][0] != 0.0:
-        raise ValueError(f"{what} starts at t = {pts[0][0]} s; expected the first point at t = 0")
-    times = [t for t, _ in pts]
-    if linear:
-        bad = any(b < a for a, b in zip(times, times[1:])) or any(
-            a == b == c for a, b, c in zip(times, times[1:], times[2:]))
-        if bad or times[-1] >= duration:
-            raise ValueError(f"{what} times {times} must not decrease (two equal times make a step, three are "
-                             f"ambiguous) and must stay below the duration {duration} s")
-    elif any(b <= a for a, b in zip(times, times[1:])) or times[-1] >= duration:
-        raise ValueError(f"{what} times {times} must increase strictly and stay below the duration {duration} s")
-    # Breakpoints: the first and last value given at each distinct time.
-    first: dict[float, float] = {}
-    last: dict[float, float] = {}
-    for t, v in pts:
-        first.setdefault(t, v)
-        last[t] = v
-    bt = sorted(first)
-    bv = [last[t] for t in bt]
-    if linear:
-        bs = [(first[t1] - bv[i]) / (t1 - bt[i]) for i, t1 in enumerate(bt[1:])] + [0.0]
-        bj = [False] + [first[t] != last[t] for t in bt[1:]]
-    else:
-        bs = [0.0] * len(bt)
-        bj = [False] + [True] * (len(bt) - 1)
-    return _Prof(np.array(bt), np.array(bv), np.array(bs), np.array(bj, dtype=bool))
-
-
-def _values_at(prof: _Prof, t: NDArray[np.float64] | float) -> NDArray[np.float64]:
-    """Value of a profile at time(s) ``t``."""
-    return prof.at(t)
-
-
-def _value_at(prof: _Prof, t: float) -> float:
-    return float(prof.at(t))
-
-
-def _initial_state(plant: Plant, fidelity: str, ref: float, load: float, pid: PID | None, tau_ff: float,
-                   seed: int, observer_ff: bool):
+def initial_state(plant: Plant, fidelity: str, ref: float, load: float, pid: PID | None, tau_ff: float,
+                  seed: int, observer_ff: bool):
     """Closed-loop steady state before the first input change.
 
-    Returns the operating point and the PID integral (N m). With an integral action the speed
-    sits on the setpoint and the integral holds the rest of the torque; a P-only controller
-    settles where ``kp (ref - w) + tau_ff (+ kff * load torque estimate) = torque(w)``.
-    ``observer_ff``: the load-torque estimate (equal to the steady torque) is fed forward
-    with ``pid.kff``.
+    With an integral action the speed sits on the setpoint and the integral holds the rest of
+    the torque; a P-only controller settles where
+    ``kp (ref - w) + tau_ff (+ kff * load torque estimate) = torque(w)``.
+
+    Parameters
+    ----------
+    plant : Plant
+    fidelity : {"rigid", "compliant", "multi-roller"}
+    ref : float, rad/s
+        Nut-speed setpoint at t = 0.
+    load : float, N
+        Axial load at t = 0.
+    pid : PID or None
+        The speed controller (None: open loop, the equilibrium torque is held).
+    tau_ff : float, N m
+        Feed-forward torque added to the command.
+    seed : int
+        Seed of the per-roller errors (``fidelity="multi-roller"``).
+    observer_ff : bool
+        The load-torque estimate (equal to the steady torque) is fed forward with ``pid.kff``.
+
+    Returns
+    -------
+    (OperatingPoint, float)
+        The operating point and the PID integral, N m.
+
+    Raises
+    ------
+    SimulationError
+        A P-only loop without a steady state within the torque limit.
     """
     kff = pid.kff if (pid is not None and observer_ff) else 0.0
     if pid is None or pid.ki > 0:
@@ -703,11 +126,9 @@ def _initial_state(plant: Plant, fidelity: str, ref: float, load: float, pid: PI
         tau = operating_point(plant, w, load, fidelity, seed).torque
         return tau * (1.0 - kff) - tau_ff - pid.kp * (ref - w)
 
-    from scipy.optimize import brentq  # only P-only controllers need it (and it costs 0.25 s to import)
-
     span = plant.torque_limit / pid.kp
     try:
-        w0 = brentq(residual, ref - span, ref + span, xtol=1e-12, rtol=1e-14, maxiter=200)
+        w0 = optimize.brentq(residual, ref - span, ref + span, xtol=1e-12, rtol=1e-14, maxiter=200)
     except (ValueError, SimulationError, RuntimeError):
         raise SimulationError(
             f"no steady state of the P-only loop (kp = {pid.kp:g} N m s/rad) at {ref:g} rad/s and {load:g} N "
@@ -810,8 +231,6 @@ def _response_class():
     ``energy`` declared (built on first use, so python-control is imported only here)."""
     if _RESPONSE_CLASS:
         return _RESPONSE_CLASS[0]
-    import control
-
     class SimResponse(control.TimeResponseData):
         """Time response of :func:`simulate`: python-control's ``TimeResponseData`` plus
 
@@ -866,7 +285,7 @@ def simulate(plant: Plant, **kwargs: Any) -> "control.TimeResponseData":
 
 
 def _check_number(name: str, v: Any, lo: float, hi: float, unit: str, lo_open: bool = True) -> float:
-    ok = _is_number(v) and math.isfinite(float(v)) and (v > lo if lo_open else v >= lo) and v <= hi
+    ok = is_number(v) and math.isfinite(float(v)) and (v > lo if lo_open else v >= lo) and v <= hi
     if not ok:
         lo_s = f"> {lo:g}" if lo_open else f">= {lo:g}"
         raise ValueError(f"{name} = {v!r}; expected a finite number {lo_s} and <= {hi:g} {unit}".rstrip())
@@ -987,8 +406,6 @@ def run(
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed = {seed!r}; expected an integer >= 0")
     if position is not None or motion is not None:
-        from ..drive.motion import MotionProfile
-
         if not isinstance(position, PositionLoop):
             raise ValueError(f"position = {position!r}; expected a PositionLoop (with motion = a MotionProfile)")
         if motion is None:
@@ -1005,8 +422,6 @@ def run(
                              "holds the load at rest")
         setpoint = 0.0
     if filters is not None:
-        from ..drive.filters import loop_filters
-
         filters = loop_filters(filters, plant.sample_time_s if discrete else None)
         if filters and not discrete:
             raise ValueError(f"filters = {filters!r} with discrete = False; expected discrete=True (the filters run in "
@@ -1020,15 +435,15 @@ def run(
             raise ValueError(f"duration = {duration!r} s is shorter than the sample time {ts:g} s")
         size_msg = f"duration {duration:g} s at the sample time {ts:g} s"
     else:
-        if not (_is_number(dt) and math.isfinite(dt) and 0 < dt <= duration):
+        if not (is_number(dt) and math.isfinite(dt) and 0 < dt <= duration):
             raise ValueError(f"dt = {dt!r}; expected 0 < dt <= duration ({duration} s)")
         n_points = int(duration / dt) + 1
         size_msg = f"duration {duration:g} s at dt = {dt:g} s"
     if n_points > MAX_OUTPUT_POINTS:
         raise ValueError(f"{size_msg} gives {n_points:.3g} output points; expected at most "
                          f"{MAX_OUTPUT_POINTS:.0e} (shorten the run or coarsen dt)")
-    sp = _normalise_profile(setpoint, duration, "setpoint", "rad/s")
-    ld = _normalise_profile(load, duration, "load", "N")
+    sp = normalise_profile(setpoint, duration, "setpoint", "rad/s")
+    ld = normalise_profile(load, duration, "load", "N")
     model = plant_model(plant, fidelity, seed)
     if discrete:
         meas = measurement_for(plant, measurement, kf)
@@ -1040,11 +455,11 @@ def run(
     if controller is not None and controller.kff > 0 and not (meas is not None and meas.estimates_load):
         raise ValueError(f"PID kff = {controller.kff:g} needs a load-torque estimate; expected discrete=True "
                          "with measurement='kf'")
-    built = _build(model, energy, shared=discrete and position is None and settings.integrator == "radau")
+    built = build(model, energy, shared=discrete and position is None and settings.integrator == "radau")
     budget = _Budget(settings)
 
-    op, integral0 = _initial_state(plant, fidelity, float(sp.v[0]), float(ld.v[0]), controller, feedforward_torque, seed,
-                                   observer_ff=meas is not None and meas.estimates_load)
+    op, integral0 = initial_state(plant, fidelity, float(sp.v[0]), float(ld.v[0]), controller, feedforward_torque, seed,
+                                  observer_ff=meas is not None and meas.estimates_load)
     gains = controller.params if controller is not None else [0.0, 0.0, 0.0, 1e-3]
     kff = controller.kff if controller is not None else 0.0
     ff = feedforward_torque + (0.0 if controller is not None else op.torque)
@@ -1059,7 +474,7 @@ def run(
     else:
         x0 = np.concatenate([op.x, [op.omega_nut, integral0, op.omega_nut], e0])
         t, xs = _run_continuous(built, settings, budget, sp, ld, duration, dt, gains, ff, x0)
-        refs, loads = _values_at(sp, t), _values_at(ld, t)
+        refs, loads = sp.at(t), ld.at(t)
         extra = _continuous_extras(model, xs, refs, gains, ff, plant.torque_limit)
         state_labels = tuple(model.state_names) + _CTRL_STATES
         events = [{"input": name, "time_s": float(tk), "acts_at_s": float(tk)}
@@ -1132,8 +547,8 @@ def _run_continuous(built, settings, budget, sp, ld, duration, dt, gains, ff, x0
     for t0, t1 in _chunks(bounds):
         budget.check(t0, names, z * scale)
         n_out = max(1, int(round((t1 - t0) / dt)))
-        integ = _continuous_integrator(built, settings, n_out)
-        par = [_value_at(sp, t0), _value_at(ld, t0), *gains, ff, t1 - t0, float(sp.slope_at(t0)),
+        integ = continuous_integrator(built, settings, n_out)
+        par = [float(sp.at(t0)), float(ld.at(t0)), *gains, ff, t1 - t0, float(sp.slope_at(t0)),
                float(ld.slope_at(t0))]
         try:
             zf = np.asarray(integ(x0=z, p=par)["xf"])
@@ -1164,33 +579,6 @@ _MEM_HEAD = ("encoder_angle_prev", "pid_integral", "speed_derivative_state", "sp
 # load and slope after a breakpoint inside the sample; the breakpoint's position in the sample
 # (0..1, 0 = none); torque ripple (N m); kp, ki, kd, tf, kff; feed-forward torque (N m).
 _NPS = 13
-
-
-def _sample_integrator(built: _Built, settings: SimSettings) -> ca.Function:
-    """Plant-only integrator with the command held: ``(x0 = scaled plant state (+ energy),
-    p = [torque N m, load N at the start, load slope N/s, interval s]) -> xf``."""
-    key = (settings, "plant")
-    if key not in built.sampled:
-        model, scale = built.model, built.plant_scale
-        nx = model.nx
-        n_theta = getattr(model, "n_theta", 0)  # parameters of a family: constant states after x
-        zp = ca.SX.sym("z", len(scale))
-        pp = ca.SX.sym("p", 4)
-        tau = ca.SX.sym("tau")
-        x_all = zp * scale
-        rates = _plant_rates(model, x_all[:nx], pp[0], pp[1] + pp[2] * pp[3] * tau, built.energy,
-                             x_all[nx:nx + n_theta] if n_theta else None)
-        if n_theta:
-            rates = ca.vertcat(rates[:nx], ca.SX.zeros(n_theta), rates[nx:])
-        ode = pp[3] * rates / scale
-        if settings.integrator == "radau":
-            step = _radau_step(ca.Function("plant_scaled", [zp, pp, tau], [ode]), len(scale), 4, settings, 1.0)
-            x0 = ca.SX.sym("x0", len(scale))
-            built.sampled[key] = ca.Function("sample", [x0, pp], [step(x0, pp, 0.0)], ["x0", "p"], ["xf"])
-        else:
-            built.sampled[key] = ca.integrator("sample", settings.integrator, _ode_dae(zp, pp, tau, ode, settings),
-                                               0.0, 1.0, _opts(settings))
-    return built.sampled[key]
 
 
 #: Extra output rows of a sampled run with a position loop: the position it measured and its
@@ -1228,7 +616,7 @@ def _measured_position(model: PlantModel, x, theta_q, outer: "PositionLoop"):
     return ca.floor(x_s / res) * res
 
 
-def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, split: bool,
+def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, split: bool,
                 outer: "PositionLoop | None" = None, places: tuple[str, ...] = ()) -> ca.Function:
     """One controller sample of the drive (the only place the per-sample law is written).
 
@@ -1269,7 +657,7 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
         + (len(_FILTER_OUTPUTS) if places else 0)
     ts = p.sample_time_s
     q = 2.0 * math.pi / p.encoder_counts
-    integ = _sample_integrator(built, settings)
+    integ = sample_integrator(built, settings)
     zm = ca.SX.sym("zm", nz + nm)
     n_par_outer = _NPS + (outer.n_inputs if outer is not None else 0)
     par = ca.SX.sym("p", n_par_outer + _FILTER_NP * len(places))
@@ -1325,24 +713,7 @@ def _sample_law(built: _Built, settings: SimSettings, meas: SpeedMeasurement, sp
     return law
 
 
-def _accumulated(built: _Built, law: ca.Function, n: int) -> ca.Function:
-    """``n`` samples of ``law`` chained (mapaccum), built once per law and length; with
-    ``SimSettings(integrator="radau", jit=True)`` the law is compiled C code (once per law)."""
-    key = (law, "accum", n)
-    if key not in built.sampled:
-        settings = next((k[0] for k, v in list(built.sampled.items())
-                         if v is law and isinstance(k, tuple) and isinstance(k[0], SimSettings)), None)
-        fun = law
-        if settings is not None and settings.jit and settings.integrator == "radau":
-            ckey = (law, "compiled")
-            if ckey not in built.sampled:
-                built.sampled[ckey] = _compiled(law, jacobian=False, flags=("-O1",)) or law
-            fun = built.sampled[ckey]
-        built.sampled[key] = fun.mapaccum(n)
-    return built.sampled[key]
-
-
-def _sample_events(ld: _Prof, sp: _Prof, ts: float, n: int):
+def _sample_events(ld: NormalisedProfile, sp: NormalisedProfile, ts: float, n: int):
     """Per-sample load columns and the event log of a sampled run (see the module docstring).
 
     Samples ``0 .. n-1`` advance the plant. A load breakpoint (step or ramp kink) strictly
@@ -1393,7 +764,7 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     load_a, slope_a, load_b, slope_b, frac, events = _sample_events(ld, sp, ts, n)
     load_a, slope_a, load_b, slope_b, frac = (np.append(v, v[-1]) for v in (load_a, slope_a, load_b, slope_b, frac))
     frac[-1] = 0.0
-    refs = _values_at(sp, t)
+    refs = sp.at(t)
     sigma = p.values["sensor.torque_noise_n_m"]
     ripple = (np.random.default_rng(seed).normal(0.0, sigma, n + 1) if torque_noise and sigma > 0
               else np.zeros(n + 1))
@@ -1403,11 +774,9 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     if outer is not None:
         # A position run starts at rest: the encoder reads the middle of a count, so that no
         # rounding at a count edge flickers the reading (the plant does not depend on the angle).
-        from dataclasses import replace as _replace
-
         x_mid = np.array(op.x, dtype=float)
         x_mid[model.index("theta_nut")] = 0.5 * q
-        op = _replace(op, x=x_mid)
+        op = dataclasses.replace(op, x=x_mid)
     theta0, w0 = op.x[model.index("theta_nut")], op.omega_nut
     n_outer = len(outer.memory_names) if outer is not None else 0
     if outer is not None:
@@ -1443,7 +812,7 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
         else:
             later = splits[splits > k0]
             k1 = min(k0 + per_chunk, n + 1, int(later[0]) if later.size else n + 1)
-            law = _accumulated(built, plain, k1 - k0) if k1 - k0 > 1 else plain
+            law = accumulated(built, plain, k1 - k0) if k1 - k0 > 1 else plain
         try:
             traj = np.asarray(law(zm, cols[:, k0:k1]))
         except RuntimeError as exc:
@@ -1459,7 +828,7 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     xs = np.vstack([plant_x[:nx], ctrl, plant_x[nx:]])
     state_labels = tuple(model.state_names) + _SAMPLED_STATES + tuple(meas.memory_names) \
         + (tuple(outer.memory_names) if outer is not None else ()) + filt_names
-    return t, xs, extra, refs, _values_at(ld, t), state_labels, events
+    return t, xs, extra, refs, ld.at(t), state_labels, events
 
 
 def energy_balance(result) -> dict[str, float]:
@@ -1529,7 +898,7 @@ def fast_settings(plant: Plant, accuracy: float, settings: SimSettings | None = 
     reference's deviation, else ``None`` (keep the adaptive reference integrator). Returns the
     choice and the measurement, which a report should quote."""
     settings = SimSettings(integrator="radau") if settings is None else settings
-    if not (_is_number(accuracy) and 0 < accuracy < 1):
+    if not (is_number(accuracy) and 0 < accuracy < 1):
         raise ValueError(f"accuracy = {accuracy!r}; expected a relative accuracy in (0, 1)")
     measured = fixed_step_error(plant, settings, reference, **run_kwargs)
     return (settings if measured["relative"] <= margin * accuracy else None), measured

@@ -29,9 +29,9 @@ from ..plant.equilibrium import operating_point
 from ..plant.plantfile import Plant
 from ..results import is_ok
 from ..sim.metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics, relative_difference
-from ..sim.simulate import PiecewiseLinear, SimSettings, fast_settings, run
-# Private name of the simulator, until sim/ makes it public (h-simfit).
-from ..sim.simulate import _initial_state
+from ..sim.integrators import SimSettings
+from ..sim.signals import PiecewiseLinear
+from ..sim.simulate import fast_settings, initial_state, run
 from ..tuning.scene_loops import actuator_loops, duty_record, linear_fidelity
 from ..tuning.tuner import LoopModel, Tuner
 from .paper import default_pid
@@ -280,7 +280,7 @@ def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) 
     else:
         w_pre, tau0 = w0, _steady_torque(plant, scene, scene.initial_load)
         if design.pid.ki == 0:  # P-only: the loop settles below the setpoint before the step too
-            op, _ = _initial_state(plant, linear_fidelity(scene), w0, scene.initial_load, design.pid, 0.0, 0,
+            op, _ = initial_state(plant, linear_fidelity(scene), w0, scene.initial_load, design.pid, 0.0, 0,
                                    observer_ff=design.estimator == "kf")
             w_pre, tau0 = op.omega_nut, op.torque
         for f1, lp in zip(scene.final_loads, loops):

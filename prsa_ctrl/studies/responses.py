@@ -19,9 +19,8 @@ from ..drive.pid import PID
 from ..plant.linear import closed_loop, linearize
 from ..plant.plantfile import Plant
 from ..sim.metrics import Margins
-from ..sim.simulate import PiecewiseLinear, simulate
-# Private name of the simulator, until sim/ makes it public (h-simfit: sim.signals.normalise_profile).
-from ..sim.simulate import _normalise_profile
+from ..sim.signals import PiecewiseLinear, normalise_profile
+from ..sim.simulate import simulate
 from .autotune import ActuatorTuning, Design, actuator_loops, linear_fidelity, predict, verify
 from .scene import Scene, choose_fidelity
 
@@ -229,9 +228,9 @@ def duty_input(scene: Scene, case: str, t: np.ndarray) -> tuple[np.ndarray, str]
     """The profile a duty-cycle record follows, at times ``t`` (s): load (N) or setpoint (rpm),
     with its axis label."""
     if case == "load profile":
-        prof = _normalise_profile(PiecewiseLinear(scene.load_profile), float(t[-1]) + 1.0, "load", "N")
+        prof = normalise_profile(PiecewiseLinear(scene.load_profile), float(t[-1]) + 1.0, "load", "N")
         return prof.at(t), "axial load (N)"
-    prof = _normalise_profile(PiecewiseLinear(scene.setpoint_profile), float(t[-1]) + 1.0, "setpoint", "rad/s")
+    prof = normalise_profile(PiecewiseLinear(scene.setpoint_profile), float(t[-1]) + 1.0, "setpoint", "rad/s")
     return prof.at(t) * 30.0 / math.pi, "setpoint (rpm)"
 
 

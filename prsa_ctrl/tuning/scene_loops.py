@@ -16,9 +16,7 @@ from ..options import DERIVATIVE_FILTER_SAMPLES
 from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from ..plant.plantfile import Plant
-from ..sim.simulate import PiecewiseLinear
-# Private name of the simulator, until sim/ makes it public (h-simfit: sim.signals.normalise_profile).
-from ..sim.simulate import _normalise_profile
+from ..sim.signals import PiecewiseLinear, normalise_profile
 from .tuner import LoopModel, continuous_loop, drive_loop
 
 __all__ = ["actuator_loops", "duty_record", "linear_fidelity", "derivative_filter_s"]
@@ -152,7 +150,7 @@ def duty_record(plant: Plant, scene, case: str) -> dict:
                  "load": f0, "setpoint": w0, "w_lin": w0, "f_lin": f0}
     if case == "load profile":
         pts = scene.load_profile
-        prof = _normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
+        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
         # Exact mean over each sample interval: integral of the piecewise-linear load.
         edges = ts * np.arange(n + 1)
         seg_len = np.append(np.diff(prof.t), np.inf)
@@ -168,7 +166,7 @@ def duty_record(plant: Plant, scene, case: str) -> dict:
         out["setpoint_at"] = np.full(n + 1, w0)
     else:
         pts = scene.setpoint_profile
-        prof = _normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
+        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
         r = prof.at(t)
         out["setpoint_sequence"] = r - w0
         out["setpoint_sequence"][0] = 0.0

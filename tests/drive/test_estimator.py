@@ -10,7 +10,8 @@ from prsa_ctrl import PID, load_plant
 from prsa_ctrl.drive.estimator import design_kf, kf_drive_loop
 from prsa_ctrl.plant.linear import linear_core
 from prsa_ctrl.plant.model import plant_model
-from prsa_ctrl.sim.simulate import SimSettings, run
+from prsa_ctrl.sim.integrators import SimSettings
+from prsa_ctrl.sim.simulate import run
 from prsa_ctrl.tuning.tuner import drive_loop, tune_loops
 
 PLANT = load_plant()

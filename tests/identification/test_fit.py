@@ -10,7 +10,9 @@ import pytest
 
 from prsa_ctrl import load_plant
 from prsa_ctrl.drive.pid import PID
-from prsa_ctrl.identification.fit import DEFAULT_KEYS, FitError, fit_plant
+from prsa_ctrl.errors import FitError
+from prsa_ctrl.identification.common import DEFAULT_KEYS
+from prsa_ctrl.identification.timedomain import fit_plant
 from prsa_ctrl.identification.data import design_excitation, record_from_arrays
 
 from independent_actuator import simulate_independent  # noqa: E402
@@ -125,17 +127,18 @@ def test_toolkit_round_trip(base, case):
 def test_reversals_left_out_and_segments_cut_there(base):
     """The staircase reverses faster than one sample: the sign change alone marks it, and no
     segment spans a reversal."""
-    import prsa_ctrl.identification.fit as fit_mod
+    import prsa_ctrl.identification.timedomain as fit_mod
+    from prsa_ctrl.identification.common import default_min_speed
 
     truth = base.with_params(PERTURBED["issue"])
     rec = toolkit_record(truth, "staircase")
     ref = fit_mod._reference(rec, base)
-    segs, left = fit_mod._segments([rec], 400, [ref], fit_mod._min_speed(base))
+    segs, left = fit_mod._segments([rec], 400, [ref], default_min_speed(base))
     v = rec.speed_rad_s
     for sg in segs:
         seg_v = v[sg.k0:sg.k0 + sg.n]
         assert np.all(seg_v > 0) or np.all(seg_v < 0)
-        assert np.min(np.abs(seg_v)) > 0.5 * fit_mod._min_speed(base)
+        assert np.min(np.abs(seg_v)) > 0.5 * default_min_speed(base)
     assert 0 < left < 0.3 * (rec.n - 1)
     segs0, left0 = fit_mod._segments([rec], 400, [ref], 0.0)
     assert left0 == 0 and sum(sg.n for sg in segs0) == rec.n - 1
@@ -219,10 +222,10 @@ def test_constant_load_leaves_efficiency_unidentified(base):
 def test_uncertainty_entries_stay_in_the_physical_range(base):
     """Review finding 2: an interval reaching past the key's physical range (no-load torque up
     to 3.6 N m on a 3 N m motor) never becomes a wider [uncertainty] entry."""
-    from prsa_ctrl.identification.fit import _bounds, _physical_range, _uncertainty_entries
+    from prsa_ctrl.identification.common import _physical_range, _uncertainty_entries, key_bounds
 
     k = "friction.no_load_torque_n_m"
-    lo, hi, _ = _bounds(base, k, TS)
+    lo, hi, _ = key_bounds(base, k, TS)
     rng = _physical_range(base, k, lo, hi)
     assert rng == (0.0, 0.5 * base.torque_limit)
     for value, sd in ((0.1, 1.8), (0.0005, 0.02), (0.3, 0.1)):
@@ -275,7 +278,7 @@ def test_cli_keeps_unidentified_keys_at_base_and_prints_clean(base, tmp_path, ca
 
 def test_cli_same_path_and_design_bounds_refused_before_work(csv_files, tmp_path, capsys, monkeypatch):
     """Review findings 1 and 4: one line, exit 2, nothing written, no fit started."""
-    import prsa_ctrl.identification.fit as fit_mod
+    import prsa_ctrl.identification.timedomain as fit_mod
     from prsa_ctrl.cli.fit import main
 
     _, paths = csv_files
@@ -412,7 +415,7 @@ def test_cli_bad_input_exit_2_nothing_written(csv_files, tmp_path, capsys):
 
 
 def test_cli_non_convergence_exit_3(csv_files, tmp_path, monkeypatch, capsys):
-    import prsa_ctrl.identification.fit as fit_mod
+    import prsa_ctrl.identification.timedomain as fit_mod
     from prsa_ctrl.cli.fit import main
 
     _, paths = csv_files
@@ -476,7 +479,7 @@ def test_long_record_converges_in_the_first_attempt():
 def test_buffered_evaluation_matches_casadi_and_checks_sizes():
     import casadi as ca
 
-    from prsa_ctrl.identification.fit import _Buffered
+    from prsa_ctrl.identification.timedomain import _Buffered
 
     x, p = ca.SX.sym("x", 2), ca.SX.sym("p")
     e = ca.vertcat(p * x[0] ** 2, ca.sin(x[1]))

@@ -10,7 +10,9 @@ import pytest
 
 from prsa_ctrl import load_plant
 from prsa_ctrl.drive.pid import PID
-from prsa_ctrl.identification.fit import DELAY_KEY, FRF_KEYS_COMPLIANT, axial_mode, fit_frf, fit_plant, frf_response
+from prsa_ctrl.identification.common import DELAY_KEY, FRF_KEYS_COMPLIANT
+from prsa_ctrl.identification.frf import axial_mode, fit_frf, frf_response
+from prsa_ctrl.identification.timedomain import fit_plant
 from prsa_ctrl.identification.data import frf_from_arrays, record_from_arrays
 
 TS = 2.5e-4

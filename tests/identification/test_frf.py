@@ -10,7 +10,9 @@ import pytest
 
 from prsa_ctrl import load_plant
 from prsa_ctrl.drive.pid import PID
-from prsa_ctrl.identification.fit import FRF_KEYS, fit_frf, fit_plant, frf_response
+from prsa_ctrl.identification.common import FRF_KEYS
+from prsa_ctrl.identification.frf import fit_frf, frf_response
+from prsa_ctrl.identification.timedomain import fit_plant
 from prsa_ctrl.identification.data import DataError, FrfRecord, frf_from_arrays, load_frf
 
 from test_fit import PERTURBED, toolkit_record  # noqa: E402

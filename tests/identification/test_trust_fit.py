@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from prsa_ctrl.identification.fit import fit_plant
+from prsa_ctrl.identification.timedomain import fit_plant
 
 from test_fit import PERTURBED, toolkit_record  # noqa: E402
 
@@ -60,20 +60,20 @@ def test_constant_load_efficiency_unidentified_on_every_seed(base, truth, seed):
 def test_identifiability_survives_a_perturbed_jacobian(base, multisine, monkeypatch, level):
     """The same decision with the scaled Jacobian perturbed far above round-off (a criterion at
     round-off level would flip here on every machine)."""
-    import prsa_ctrl.identification.fit as F
+    import prsa_ctrl.identification.timedomain as F
 
-    split = F._info_split
+    split = F.info_split
     rng = np.random.default_rng(7)
 
     def perturbed(jn):
         return split(jn * (1 + level * rng.standard_normal(jn.shape)))
 
-    monkeypatch.setattr(F, "_info_split", perturbed)
+    monkeypatch.setattr(F, "info_split", perturbed)
     _check_constant_load(fit_plant([multisine], base), base)
 
 
 def test_info_split_tolerance_is_stated_and_scale_free():
-    from prsa_ctrl.identification.fit import RANK_RTOL, _info_split
+    from prsa_ctrl.identification.common import RANK_RTOL, info_split
 
     rng = np.random.default_rng(0)
     j = rng.standard_normal((200, 4))
@@ -81,12 +81,12 @@ def test_info_split_tolerance_is_stated_and_scale_free():
     for noise in (0.0, 1e-10, 1e-8):
         jj = j * (1 + noise * rng.standard_normal(j.shape))
         jn = jj / np.linalg.norm(jj, axis=0)
-        a_inv, null, ratios = _info_split(jn)
+        a_inv, null, ratios = info_split(jn)
         assert null.shape == (4, 1) and abs(abs(null[2, 0]) - abs(null[3, 0])) < 1e-6
         assert np.all(np.isfinite(a_inv)) and np.max(np.abs(a_inv)) < 1e3
     assert 1e-8 < RANK_RTOL < 1e-3
     j[:, 3] = j[:, 2] + 1e-2 * rng.standard_normal(200)  # weakly but truly informed: kept
-    _, null, _ = _info_split(j / np.linalg.norm(j, axis=0))
+    _, null, _ = info_split(j / np.linalg.norm(j, axis=0))
     assert null.shape == (4, 0)
 
 
@@ -108,7 +108,7 @@ def test_duplicate_record_used_once_with_a_warning(base, truth, multisine):
 
 
 def test_duplicate_frf_used_once(base, truth):
-    from prsa_ctrl.identification.fit import fit_frf, frf_response
+    from prsa_ctrl.identification.frf import fit_frf, frf_response
     from prsa_ctrl.identification.data import frf_from_arrays
 
     f = np.geomspace(5, 600, 40)
@@ -134,7 +134,7 @@ def _speed_only(rec, factor=1.0, name="speed.csv"):
 @pytest.mark.parametrize("case", list(PERTURBED))
 @pytest.mark.parametrize("kind", ["multisine", "load-steps", "staircase"])
 def test_torque_balance_finds_rpm_and_passes_rad_s(base, case, kind):
-    from prsa_ctrl.identification.fit import _check_units
+    from prsa_ctrl.identification.common import _check_units
 
     rec = toolkit_record(base.with_params(PERTURBED[case]), kind)
     _check_units(rec, base)
@@ -179,7 +179,7 @@ def test_sample_time_compared_with_the_plant(base, multisine, tmp_path, capsys):
 
 
 def test_frf_points_above_nyquist_dropped_with_a_note(base, truth):
-    from prsa_ctrl.identification.fit import fit_frf, frf_response
+    from prsa_ctrl.identification.frf import fit_frf, frf_response
     from prsa_ctrl.identification.data import frf_from_arrays
 
     nyq = 0.5 / base.sample_time_s
@@ -220,7 +220,7 @@ def test_overlay_shows_one_continuous_simulation(base, truth):
     """On b18c321 the overlay drew the shooting segments: at a join the model jumped by 2.5 rad/s
     (the measured speed never changes by more than 1.4 rad/s in a sample) and the residual panel
     showed 2.3 rad/s there."""
-    from prsa_ctrl.identification.fit import fit_figures
+    from prsa_ctrl.plots.fit import fit_figures
 
     rec = _independent_record(truth)
     result = fit_plant([rec], base)
@@ -326,7 +326,8 @@ def _run(argv):
 
 
 def test_ctrl_c_exit_130_one_line_nothing_left(one_csv, tmp_path, capsys, monkeypatch):
-    import prsa_ctrl.identification.fit as F
+    import prsa_ctrl.identification.timedomain as F
+    import prsa_ctrl.plots.fit as P
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
@@ -337,7 +338,7 @@ def test_ctrl_c_exit_130_one_line_nothing_left(one_csv, tmp_path, capsys, monkey
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "interrupted" in err[0] and "Traceback" not in err[0]
     monkeypatch.undo()
-    monkeypatch.setattr(F, "fit_figures", interrupted)  # Ctrl-C while the figures are drawn
+    monkeypatch.setattr(P, "fit_figures", interrupted)  # Ctrl-C while the figures are drawn
     assert _run([one_csv, "--out", str(out), "--plots", str(plots), "--fit", "nut.inertia_kg_m2"]) == 130
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
@@ -392,7 +393,7 @@ def test_plant_toml_keeps_layout_where_it_can(base):
 
 
 def _no_fit(monkeypatch):
-    import prsa_ctrl.identification.fit as F
+    import prsa_ctrl.identification.timedomain as F
 
     def fail(*a, **k):
         raise AssertionError("the fit ran before the output paths were checked")
@@ -424,7 +425,7 @@ def test_cli_bad_output_paths_refused_before_the_fit(one_csv, tmp_path, capsys, 
 
 @pytest.mark.parametrize("flag,value", [("--frf-speed", "0"), ("--frf-speed", "1e6"), ("--frf-load", "1e9")])
 def test_cli_frf_operating_point_checked(flag, value, tmp_path, capsys, monkeypatch, base, truth):
-    from prsa_ctrl.identification.fit import frf_response
+    from prsa_ctrl.identification.frf import frf_response
     from prsa_ctrl.identification.data import frf_from_arrays
 
     _no_fit(monkeypatch)
@@ -468,7 +469,7 @@ def test_constant_frf_gives_no_absurd_fit_percent(tmp_path, capsys):
 @pytest.mark.parametrize("speed,load,match", [(0.0, 800.0, "speed = 0.0"), (1e6, 800.0, "speed = 1000000.0"),
                                               (30.0, 1e9, "load = 1000000000.0")])
 def test_fit_frf_operating_point_checked(base, truth, speed, load, match):
-    from prsa_ctrl.identification.fit import fit_frf, frf_response
+    from prsa_ctrl.identification.frf import fit_frf, frf_response
     from prsa_ctrl.identification.data import frf_from_arrays
 
     f = np.geomspace(5, 600, 30)

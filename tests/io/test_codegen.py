@@ -371,7 +371,7 @@ def test_setpoint_weight_against_the_prefiltered_run(plant, b, tmp_path):
     which runs the 1-DOF PI on the setpoint through autotune.setpoint_prefilter (the same
     command while unsaturated; the prefilter's algebra differs from the 2-DOF law in round-off)."""
     from prsa_ctrl.studies.autotune import setpoint_prefilter
-    from prsa_ctrl.sim.simulate import PiecewiseLinear
+    from prsa_ctrl.sim.signals import PiecewiseLinear
 
     pid, ts, n = PID(0.085, 14.7), plant.sample_time_s, 160
     t = np.arange(n) * ts

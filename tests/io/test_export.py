@@ -62,7 +62,7 @@ def test_setpoint_weight_round_trip_against_the_prefiltered_run(b):
     setpoint gives the command of the simulated loop, which runs the 1-DOF PI on the setpoint
     through autotune.setpoint_prefilter (as the duty-cycle verification does)."""
     from prsa_ctrl.studies.autotune import setpoint_prefilter
-    from prsa_ctrl.sim.simulate import PiecewiseLinear
+    from prsa_ctrl.sim.signals import PiecewiseLinear
 
     pid = PID(0.085, 14.7)
     n = 160

@@ -7,7 +7,8 @@ import pytest
 from prsa_ctrl import load_plant
 from prsa_ctrl.plant import model as M
 from prsa_ctrl.studies.paper import default_pid
-from prsa_ctrl.sim.simulate import SimSettings, run
+from prsa_ctrl.sim.integrators import SimSettings
+from prsa_ctrl.sim.simulate import run
 from prsa_ctrl.plant.uncertainty import apply
 
 PLANT = load_plant()
@@ -52,7 +53,7 @@ def test_member_run_shares_one_law_and_matches_the_direct_run():
     a, b = _member(VALUES), _member({**VALUES, "nut.inertia_kg_m2": 1.1e-4})
     ra, rb = run(a, **kw), run(b, **kw)
     direct = run(apply(PLANT, VALUES), **kw)
-    from prsa_ctrl.sim.simulate import _BUILT
+    from prsa_ctrl.sim.integrators import _BUILT
 
     built_a = _BUILT[M.plant_model(a, "compliant")][("member", False)]
     built_b = _BUILT[M.plant_model(b, "compliant")][("member", False)]

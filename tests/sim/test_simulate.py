@@ -4,7 +4,7 @@ import pytest
 from prsa_ctrl import PID, SimulationError, builtin_plants, energy_balance, load_plant, simulate
 from prsa_ctrl.plant.linear import linearize, predict_load_step
 from prsa_ctrl.studies.paper import OMEGA_300_RPM, default_pid, load_step_study
-from prsa_ctrl.sim.simulate import SimSettings
+from prsa_ctrl.sim.integrators import SimSettings
 
 STEP = [(0.0, 500.0), (0.1, 1500.0)]
 
@@ -283,7 +283,8 @@ def _ramp_runs(paper_plant, discrete):
     """A 500 -> 1500 N ramp with both kinks between samples, against the same ramp as steps
     on the sample grid holding the ramp's value at each sample's midpoint (second-order close)
     and at its start (what ignoring the slope inside a sample would give, first order)."""
-    from prsa_ctrl.sim.simulate import PiecewiseLinear, run
+    from prsa_ctrl.sim.signals import PiecewiseLinear
+    from prsa_ctrl.sim.simulate import run
 
     t0, t1, dur = 0.0101, 0.0601, 0.08
     # A 26-bit encoder: the 20-bit quantum would dither the two runs apart by ~1e-3 rad/s.
@@ -315,7 +316,8 @@ def test_load_ramp_is_integrated_exactly(paper_plant, discrete):
 
 
 def test_mixed_steps_and_ramps_and_profile_errors(paper_plant):
-    from prsa_ctrl.sim.simulate import PiecewiseLinear, run
+    from prsa_ctrl.sim.signals import PiecewiseLinear
+    from prsa_ctrl.sim.simulate import run
 
     prof = PiecewiseLinear([(0.0, 500.0), (0.01, 500.0), (0.01, 1500.0), (0.03, 1000.0)])
     r = run(paper_plant, load=prof, duration=0.04, controller=PID(0.085, 14.7), fidelity="rigid", discrete=True)
@@ -334,7 +336,8 @@ def test_mixed_steps_and_ramps_and_profile_errors(paper_plant):
 
 
 def test_measured_force_trace_from_csv(paper_plant, tmp_path):
-    from prsa_ctrl.sim.simulate import PiecewiseLinear, run
+    from prsa_ctrl.sim.signals import PiecewiseLinear
+    from prsa_ctrl.sim.simulate import run
 
     f = tmp_path / "trace.csv"
     t = np.arange(0.0, 0.04, 1e-3)

@@ -43,7 +43,8 @@ def _independent_iae(report, pid):
     tighter tolerance) and integrated here, independently of ``verify``."""
     import numpy as np
 
-    from prsa_ctrl.sim.simulate import SimSettings, run
+    from prsa_ctrl.sim.integrators import SimSettings
+    from prsa_ctrl.sim.simulate import run
 
     sc = report.scene
     r = run(report.plant, setpoint=sc.setpoint_rad_s, load=[(0.0, sc.initial_load), (sc.step_time, sc.final_loads[0])],

@@ -1,0 +1,861 @@
+"""Grey-box calibration of a plant from measured drive data (output error, confidence intervals).
+
+The model is the toolkit's own CasADi model (:mod:`prsa_ctrl.plant.model`) with the fitted plant
+values as symbols, so the fitted plant is exactly what the tuner uses. Each record is cut into
+multiple-shooting segments (each with its own free initial state, so that an open-loop
+integration of the recorded torque command cannot drift over a long record); every sample
+interval is one 3-stage Radau IIA collocation step (order 5, L-stable for the stiff friction
+and current loop) with the recorded command held (zero-order hold) and the recorded load.
+The residual is the measured encoder angle minus the model angle at every sample (or, without
+an angle column, the measured speed minus the model's one-sample angle difference), weighted
+by the encoder quantisation noise ``q / sqrt(12)``. Data where the nut is near standstill or
+reversing (``|speed|`` below about 1 rad/s, or a sign change between samples) are left out and
+the record is cut there into separate segments: the friction law is not smooth there
+(Karnopp stick band, Stribeck drop), one collocation step per sample does not resolve the
+stick-slip transition, and that model error biased every parameter by many standard errors.
+The problem -- scaled, bounded parameters, segment initial states and collocation states -- is
+solved by a constrained Gauss-Newton method with exact CasADi derivatives (three state-only
+warm-up steps, then bounded parameter steps).
+
+Confidence: the sensitivity of the residuals to the parameters (segment initial states
+projected out) follows from the collocation equations by the implicit-function theorem. The
+covariance is a sandwich with a prewhitened Newey-West (HAC) estimate of the score covariance
+(coloured residuals: quantisation, the speed loop, model error), which equals the classic
+``s^2 (J^T J)^-1`` for white residuals; it gives 95 % intervals (normal approximation), the
+correlation matrix and identifiability warnings. Identifiability is decided on the singular
+values of the column-scaled parameter Jacobian (:data:`RANK_RTOL`, far above round-off): along
+a direction the data do not inform, the intervals span what the physical ranges allow and the
+keys on it keep the base plant's values. Measured coverage (tests/test_fit.py, ``PRSA_SLOW=1``):
+see the README's calibration section.
+
+Inputs are checked against the plant before the fit (:func:`_checked_inputs`): duplicate data,
+the sample time, a unit slip in the torque balance, FRF points above the drive's Nyquist
+frequency. The overlay figures show one continuous simulation of the fitted plant.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import casadi as ca
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import lsq_linear
+from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse.linalg import splu
+
+from ..errors import FitError
+from ..plant.plantfile import Plant, load_plant
+from ..sim.integrators import radau_tableau
+from .common import (DEFAULT_KEYS, DELAY_KEY, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
+                     default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
+from .data import FrfRecord, Record
+from .frf import fit_frf, frf_fit_percent, frf_response
+
+__all__ = ["fit_plant", "fit_percent", "MAX_INTERVALS", "STALL_ITERATIONS", "STEP_SE_FRACTION", "MIN_SEGMENT"]
+
+# 3-stage Radau IIA (order 5, :func:`prsa_ctrl.sim.integrators.radau_tableau`): stage times and
+# coefficients of one collocation step; the last stage is the step end.
+_A3, _C3 = radau_tableau(3)
+_RADAU_A = tuple(tuple(row) for row in _A3.tolist())
+_RADAU_C = tuple(_C3.tolist())
+#: Budget of one fit: total sample intervals of all records.
+MAX_INTERVALS = 200_000
+#: A Gauss-Newton attempt whose constraint residual fell by less than 10 % over this many
+#: iterations is given up (the next attempt starts differently).
+STALL_ITERATIONS = 15
+#: Converged when every parameter step is below this fraction of its standard error (or ``tol``).
+STEP_SE_FRACTION = 1e-3
+#: Shortest multiple-shooting segment (sample intervals); shorter stretches of usable data are left out.
+MIN_SEGMENT = 20
+
+
+@dataclass
+class _Seg:
+    rec: int
+    k0: int  # first sample of the segment
+    n: int  # intervals
+
+
+def _segments(records: Sequence[Record], segment_samples: int, refs=None, min_speed_rad_s: float = 0.0,
+              margin: int = 2) -> tuple[list[_Seg], int]:
+    """Multiple-shooting segments of about ``segment_samples`` intervals, and the samples left out.
+
+    Intervals where the (smoothed) data speed is below ``min_speed_rad_s`` within ``margin``
+    samples (speed reversals, standstill) are left out: there the friction law is not smooth
+    (Karnopp stick band, Stribeck drop) and one collocation step per sample misses the
+    stick-slip transition, a model error that would bias the fit and make its residuals
+    coloured. Every stretch in between starts a segment of its own with a free initial state.
+    Stretches shorter than ``MIN_SEGMENT`` intervals are left out too.
+    """
+    segs, left_out = [], 0
+    for r, rec in enumerate(records):
+        n_int = rec.n - 1
+        ok = np.ones(n_int, bool)
+        if refs is not None and min_speed_rad_s > 0:
+            # mean speed over each interval (angle difference), lightly smoothed against noise
+            v = np.diff(refs[r][0]) / np.diff(rec.time_s)
+            v = np.convolve(v, np.ones(3) / 3, mode="same") if len(v) >= 3 else v
+            slow = np.abs(v) < min_speed_rad_s
+            flip = np.signbit(v[:-1]) != np.signbit(v[1:])  # a reversal faster than one sample
+            slow[:-1] |= flip
+            slow[1:] |= flip
+            if margin:
+                slow = np.convolve(slow.astype(float), np.ones(2 * margin + 1), mode="same") > 0
+            ok = ~slow
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(int), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            if b - a < MIN_SEGMENT:
+                continue
+            n_seg = max(1, int(round((b - a) / segment_samples)))
+            cuts = np.linspace(a, b, n_seg + 1).round().astype(int)
+            segs += [_Seg(r, int(c0), int(c1 - c0)) for c0, c1 in zip(cuts[:-1], cuts[1:])]
+        left_out += n_int - int(ok.sum()) + sum(int(b - a) for a, b in zip(edges[::2], edges[1::2]) if b - a < MIN_SEGMENT)
+    return segs, left_out
+
+
+def _reference(rec: Record, plant: Plant) -> NDArray[np.float64]:
+    """Data-based reference trajectory (nx=3 rigid-like rows: angle, speed, torque) per sample."""
+    t = rec.time_s
+    if rec.nut_angle_rad is not None:
+        theta = rec.nut_angle_rad.astype(float)
+    else:
+        theta = np.concatenate([[0.0], np.cumsum(rec.nut_speed_rad_s[1:] * np.diff(t))])
+    omega = np.gradient(theta, t)
+    a = math.exp(-(t[1] - t[0]) / plant.current_loop_time_constant_s)
+    cmd = np.clip(rec.torque_command_n_m, -plant.torque_limit, plant.torque_limit)
+    tau = np.empty_like(cmd)
+    tau[0] = cmd[0]
+    for k in range(1, len(cmd)):
+        tau[k] = a * tau[k - 1] + (1 - a) * cmd[k - 1]
+    return np.vstack([theta, omega, tau])
+
+
+def fit_plant(
+    records: Sequence[Record],
+    plant: Plant | None = None,
+    *,
+    frf: Sequence[FrfRecord] = (),
+    keys: Sequence[str] | None = None,
+    fidelity: str = "rigid",
+    validate: Sequence[Record] = (),
+    segment_s: float = 0.1,
+    delay_samples: int = 0,
+    substeps: int = 1,
+    max_iter: int = 50,
+    tol: float = 1e-8,
+    min_speed_rad_s: float | None = None,
+    keep_unidentified: bool = True,
+    uncertainty: str = "keep",
+) -> FitResult:
+    """Fit plant parameters to measured time-domain records (output error through the model).
+
+    Keys the data cannot inform (:func:`_not_identified`: a 95 % CI wider than the key's
+    physical range or than +/- 50 % of the value, or a value at a bound of the range) keep the
+    base plant's value and source in the fitted plant and get no ``[uncertainty]`` entry from
+    the fit; their report entry says ``"kept_base": true`` with the reason. The other keys keep
+    the values and intervals of the fit with every key free: those intervals allow for the
+    unidentifiable keys being unknown (a refit with them held at base values would give
+    narrower intervals conditional on values the data do not support, and fails outright
+    when the data contradict them). The fit % of the plant as written (base values for the
+    kept keys) is reported beside the free fit's (``solver["fit_percent_written"]``) and a
+    warning names the records it fits worse.
+
+    Parameters
+    ----------
+    records : sequence of Record
+        Records to fit (see :func:`prsa_ctrl.identification.data.load_record`); they share the parameters.
+        May be empty when ``frf`` is given: the fit then uses the frequency responses alone
+        (:func:`fit_frf`).
+    plant : Plant, optional
+        Base plant (default: the built-in default plant); its values are the initial guess and
+        its sensor's encoder resolution sets the residual weights.
+    frf : sequence of FrfRecord
+        Measured frequency responses (torque command -> nut speed). With time-domain records
+        they validate the fitted plant (fit % and traces for the Bode overlay); alone they are
+        fitted.
+    keys : sequence of str, optional
+        Plant keys to fit (default :data:`DEFAULT_KEYS`; :data:`FRF_KEYS` for an FRF-only fit).
+    fidelity : {"rigid", "compliant"}
+        Model fidelity.
+    validate : sequence of Record
+        Records not fitted; their fit % is reported (only the segments' initial states are fitted).
+    segment_s : float, s
+        Length of a multiple-shooting segment.
+    substeps : int
+        Radau IIA steps per sample interval (more resolve fast friction transitions at speed
+        reversals better; cost grows in proportion).
+    delay_samples : int
+        Samples between a logged command and the sample it acts from (0: the logged command
+        is held over the interval that follows it, as in the toolkit's simulator).
+    max_iter : int
+        Gauss-Newton iteration budget (plus three state-only warm-up steps).
+    tol : float
+        Convergence tolerance of the parameter step (scaled units).
+    min_speed_rad_s : float, rad/s, optional
+        Data where the nut speed is below this (speed reversals, standstill) are left out (the
+        friction law is not smooth there; see :func:`_segments`). Default: three Stribeck
+        velocities plus the Karnopp blend band of the base plant (about 1 rad/s for the paper
+        plant); 0 keeps every sample.
+    keep_unidentified : bool
+        False writes every fitted value into the plant, identifiable or not.
+    uncertainty : {"keep", "fit"}
+        The fitted plant's ``[uncertainty]`` entries of the fitted keys: ``"keep"`` the base
+        plant's (the user's assumptions) unless one is narrower than the fit's 95 % interval or
+        does not hold the fitted value (then the fit's, with a warning), and none where the base
+        has none; ``"fit"`` the fit's own for every fitted key (a normal with the fit's sigma,
+        truncated at its 95 % interval).
+
+    Returns
+    -------
+    FitResult
+
+    Raises
+    ------
+    ValueError
+        Bad arguments (unknown key, too long records, ...).
+    FitError
+        The solver did not converge (status and remedy in the message).
+    """
+    plant = load_plant() if plant is None else plant
+    records, frf, validate = list(records), list(frf), list(validate)
+    records, validate, frf = checked_inputs(records, validate, frf, plant)
+
+    if uncertainty not in UNCERTAINTY_MODES:
+        raise ValueError(f"uncertainty = {uncertainty!r}; expected one of {', '.join(map(repr, UNCERTAINTY_MODES))}")
+    if not records and frf:
+        return fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=delay_samples,
+                       keep_unidentified=keep_unidentified, uncertainty=uncertainty)
+    return _fit_records(records, plant, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
+                        segment_s=segment_s, delay_samples=delay_samples, substeps=substeps, max_iter=max_iter,
+                        tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
+                        uncertainty=uncertainty)
+
+
+def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
+                 min_speed_rad_s, keep_unidentified, uncertainty="keep") -> FitResult:
+    """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
+    if not records:
+        raise ValueError("records = []; expected at least one data record")
+    keys = tuple(DEFAULT_KEYS if keys is None else keys)
+    if not keys:
+        raise ValueError("keys = (); expected at least one plant key to fit")
+    keys = check_keys(keys, fidelity)
+    if DELAY_KEY in keys:
+        raise ValueError(f"fit key {DELAY_KEY!r} with time-domain records; expected it in a frequency-response fit "
+                         "(--frf without DATA.csv): in closed-loop records it is not separable from the current-loop "
+                         "bandwidth, give the integer delay_samples (--delay-samples) instead")
+    if not (isinstance(delay_samples, int) and 0 <= delay_samples <= 10):
+        raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..10")
+    if not (isinstance(substeps, int) and 1 <= substeps <= 8):
+        raise ValueError(f"substeps = {substeps!r}; expected an integer 1..8")
+    if not (math.isfinite(segment_s) and segment_s > 0):
+        raise ValueError(f"segment_s = {segment_s!r}; expected a time > 0 s")
+    if min_speed_rad_s is None:
+        min_speed_rad_s = default_min_speed(plant)
+    if isinstance(min_speed_rad_s, bool) or not (math.isfinite(min_speed_rad_s) and min_speed_rad_s >= 0):
+        raise ValueError(f"min_speed_rad_s = {min_speed_rad_s!r}; expected a speed >= 0 rad/s")
+    ts = records[0].sample_time_s
+    for rec in (*records, *validate):
+        if abs(rec.sample_time_s / ts - 1) > 1e-3:
+            raise ValueError(f"{rec.name}: sample time {rec.sample_time_s:g} s differs from {ts:g} s of "
+                             f"{records[0].name}; expected one sample time for all records")
+    total = sum(r.n - 1 for r in (*records, *validate))
+    if total > MAX_INTERVALS:
+        raise ValueError(f"records hold {total} sample intervals; expected at most {MAX_INTERVALS} (shorten them)")
+    bounds = [key_bounds(plant, k, ts) for k in keys]
+    s0 = np.array([plant.values[k] / b[2] for k, b in zip(keys, bounds)])
+    lo = np.array([b[0] / b[2] for b in bounds])
+    hi = np.array([b[1] / b[2] for b in bounds])
+    s0 = np.clip(s0, lo, hi)
+    scales = np.array([b[2] for b in bounds])
+
+    fit_run = _Problem(plant, keys, scales, fidelity, records, ts, segment_s, delay_samples, substeps,
+                       min_speed_rad_s)
+    # Bounded attempts, each given up early when it stalls: a cautious trust region for the
+    # parameter steps after a state-only warm-up, the same without it, a bolder one. The
+    # warm-up first: without it, parameter steps taken while the trajectories are still far
+    # from the data can lead the iteration into a stall (a 4 s record took 33 wasted
+    # iterations before the warm-up attempt converged in 9).
+    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))
+    spent = 0
+    for i, (box, warm) in enumerate(attempts):
+        try:
+            sol = fit_run.solve(s0, lo, hi, max_iter, tol, fixed=False, box=box, warm=warm)
+            break
+        except FitError:
+            spent += fit_run.last_iterations
+            if i == len(attempts) - 1:
+                raise
+    s_opt = sol["s"]
+    cov_s, sigma, n_res, jac_cols, cov_info = fit_run.covariance(sol)
+    values = s_opt * scales
+    cov = cov_s * np.outer(scales, scales)
+    names = ", ".join(r.name for r in records)
+    warns = [w for rec in (*records, *validate, *frf) for w in rec.warnings]
+    if fit_run.left_out:
+        total_int = sum(r.n - 1 for r in records)
+        warns.append(f"{fit_run.left_out} of {total_int} sample intervals at |speed| < {min_speed_rad_s:.3g} rad/s "
+                     "(speed reversals, standstill) left out: the friction law is not smooth there")
+    if cov_info["residual_autocorrelation_lag1"] > 0.5:
+        warns.append(f"residuals strongly coloured (lag-1 autocorrelation {cov_info['residual_autocorrelation_lag1']:.2f}): "
+                     "the intervals are widened for it (HAC) but stay optimistic (measured: 73 % coverage on AR(1) "
+                     "noise of 0.95); look for unmodelled dynamics or a filtered encoder signal")
+    params, corr, fitted, reflected, delay, reasons = finish_fit(plant, keys, values, cov, lo * scales, hi * scales,
+                                                              names, warns, ts, keep_unidentified,
+                                                              fit_run.null_scaled * scales[:, None],
+                                                              np.array(cov_info["singular_value_ratios"]), uncertainty)
+    fit_pct = dict(sol["fit_percent"])
+    traces = dict(sol["traces"])
+    _add_simulations(traces, fit_run.simulate(sol, fitted))
+    kept = [k for k in keys if params[k].get("kept_base")]
+    s_written = np.array([plant.values[k] / sc if k in kept else sv for k, sv, sc in zip(keys, s_opt, scales)])
+    written_pct = None
+    if kept:  # the plant as written (base values for the kept keys) on the fitted records
+        wsol = fit_run.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
+        written_pct = dict(wsol["fit_percent"])
+        worse = [f"{n} {written_pct[n]:.2f} % (free fit {fit_pct[n]:.2f} %)" for n in written_pct
+                 if written_pct[n] < fit_pct[n] - 1.0]
+        if worse:
+            warns.append(f"the plant as written, with {', '.join(kept)} at the base value{'s' if len(kept) > 1 else ''}, "
+                         f"fits {'; '.join(worse)}: the data inform a combination of the kept keys but not each "
+                         "one; record the excitation the warnings above name to identify them")
+    for rec in validate:  # the plant as written
+        vrun = _Problem(fitted, keys, scales, fidelity, [rec], ts, segment_s, delay_samples, substeps,
+                        min_speed_rad_s)
+        vsol = vrun.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
+        fit_pct.update(vsol["fit_percent"])
+        traces.update(vsol["traces"])
+        _add_simulations(traces, vrun.simulate(vsol, fitted))
+    for fr in frf:  # frequency responses given with time-domain data validate the fitted plant
+        g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n,
+                         sample_time_s=frf_sample_time(fr, fitted), delay_samples=delay_samples,
+                         fidelity=fidelity if fr.load_n else "rigid")
+        fit_pct[fr.name] = round(frf_fit_percent(fr.response, g), 3)
+        traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
+    solver = {
+        "name": "constrained Gauss-Newton (multiple shooting, Radau IIA collocation per sample, exact CasADi derivatives)",
+        "status": sol["status"],
+        "iterations": sol["iterations"],
+        "attempts": i + 1,
+        "iterations_all_attempts": spent + sol["iterations"],
+        "objective": sol["objective"],
+        "residual_std": float(sigma),
+        "residual_unit": fit_run.residual_unit,
+        "residuals": int(n_res),
+        "segments": len(fit_run.segs),
+        "left_out_samples": int(fit_run.left_out),
+        "min_speed_rad_s": float(min_speed_rad_s),
+        "fidelity": fidelity,
+        **cov_info,
+    }
+    if written_pct is not None:
+        solver["fit_percent_written"] = written_pct
+    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, None, reasons)
+
+
+def _add_simulations(traces: dict, sims: dict) -> None:
+    """Attach each record's continuous simulation (:meth:`_Problem.simulate`) to its trace as ``"simulated"``."""
+    for name, sim in sims.items():
+        if name in traces:
+            traces[name]["simulated"] = sim
+
+
+def fit_percent(measured: NDArray[np.float64], model: NDArray[np.float64]) -> float:
+    """Normalised-RMS fit, % : ``100 (1 - |y - y_model| / |y - mean(y)|)``.
+
+    Examples
+    --------
+    >>> fit_percent(np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 3.0]))
+    100.0
+    """
+    den = float(np.linalg.norm(measured - np.mean(measured)))
+    if den == 0:
+        return float("nan")
+    return float(100.0 * (1.0 - np.linalg.norm(measured - model) / den))
+
+
+class _Problem:
+    """Collocation equations, residuals and the constrained Gauss-Newton solver of a fit.
+
+    Unknowns (all scaled): ``V`` the stage states of every sample interval (deviations from a
+    data-based reference, in units of ``state_scale``), ``X0`` each segment's initial state,
+    ``s`` the parameters in units of their scale. The residuals are linear in ``V`` and ``X0``;
+    each Gauss-Newton step linearises the collocation equations, eliminates ``V`` segment by
+    segment (sparse LU of the block-bidiagonal equations) and solves a small bounded linear
+    least-squares problem for ``(s, X0)``.
+    """
+
+    def __init__(self, plant, keys, scales, fidelity, records, ts, segment_s, delay, substeps=1,
+                 min_speed_rad_s=0.0):
+        self.plant, self.records, self.ts = plant, records, ts
+        self.fidelity, self.delay = fidelity, int(delay)
+        self.scales = np.asarray(scales, float)
+        f, names = symbolic_rhs(plant, keys, fidelity)
+        self.names = names
+        nx = self.nx = len(names)
+        npar = self.npar = len(keys)
+        self.i_th = i_th = names.index("theta_nut")
+        i_w, i_tau = names.index("omega_nut"), names.index("tau_motor")
+        self.nsub = nsub = int(substeps)
+        self.ns = ns = 3 * nsub  # collocation stages per sample interval
+        seg_n = max(2, int(round(segment_s / ts)))
+        refs = [_reference(r, plant) for r in records]
+        self.segs, self.left_out = _segments(records, seg_n, refs, min_speed_rad_s)
+        segs = self.segs
+        if not segs:
+            raise ValueError(f"{', '.join(r.name for r in records)}: no stretch of at least {MIN_SEGMENT} samples "
+                             f"with |speed| >= {min_speed_rad_s:.3g} rad/s; expected data at speed (not only "
+                             "standstill and reversals)")
+        q = 2 * math.pi / plant.encoder_counts
+        self.sigma0 = max(q / math.sqrt(12.0), 1e-9)
+        w_scale = max(max(float(np.max(np.abs(r[1]))) for r in refs), 1.0)
+        sc = np.ones(nx)
+        sc[i_th] = max(w_scale * ts, 1e-6)
+        sc[i_w] = 0.1 * w_scale
+        sc[i_tau] = 0.1 * plant.torque_limit
+        self.S = sc
+        uu, hh, xr0, xrs = [], [], [], []
+        for sg in segs:
+            rec, ref = records[sg.rec], refs[sg.rec]
+            ks = np.arange(sg.k0, sg.k0 + sg.n)
+            kd = np.clip(ks - delay, 0, None)
+            uu.append(np.vstack([rec.torque_command_n_m[kd], rec.axial_load_n[ks]]))
+            hh.append(np.diff(rec.time_s)[ks])
+            full = np.zeros((nx, rec.n))
+            full[[i_th, i_w, i_tau]] = ref
+            xr0.append(full[:, sg.k0])
+            st = [full[:, ks] + (m + c) / nsub * (full[:, ks + 1] - full[:, ks]) for m in range(nsub) for c in _RADAU_C]
+            xrs.append(np.stack(st, axis=1).reshape(nx, ns * sg.n, order="F"))
+        self.U, self.H = np.hstack(uu), np.concatenate(hh)
+        self.XR, self.XR0 = np.hstack(xrs), np.column_stack(xr0)
+        self.M = M = self.U.shape[1]
+        self.use_angle = all(r.nut_angle_rad is not None for r in records)
+        self.residual_unit = "rad (encoder angle)" if self.use_angle else "rad/s (speed)"
+        # One interval: scaled collocation residual and its Jacobians, mapped over all intervals.
+        xs = ca.SX.sym("xs", nx)
+        K = ca.SX.sym("K", nx, ns)
+        u = ca.SX.sym("u", 2)
+        h = ca.SX.sym("h")
+        p = ca.SX.sym("p", npar)
+        fk = [f(K[:, j], u, p) for j in range(ns)]
+        rows = []
+        for m in range(nsub):  # nsub Radau steps of h / nsub, each from the previous step's end
+            x_start = xs if m == 0 else K[:, 3 * m - 1]
+            for j in range(3):
+                acc = sum(_RADAU_A[j][l] * fk[3 * m + l] for l in range(3))
+                rows.append((K[:, 3 * m + j] - x_start - (h / nsub) * acc) / ca.DM(sc))
+        res = ca.vertcat(*rows)
+        kv = ca.vec(K)
+        # Dense Jacobian blocks, evaluated into preallocated NumPy buffers (no DM conversion:
+        # that cost twice the evaluation itself); the parameters are one column for all intervals.
+        fun = ca.Function("coll", [xs, K, u, h, p],
+                          [res, ca.densify(ca.jacobian(res, kv)), ca.densify(ca.jacobian(res, xs)),
+                           ca.densify(ca.jacobian(res, p))])
+        self.blocks = _Buffered(fun.map("coll_map", "serial", M, [4], []))
+        # The collocation residual alone (line-search merits need no Jacobians).
+        self.residual_blocks = _Buffered(ca.Function("coll_res", [xs, K, u, h, p], [res])
+                                         .map("coll_res_map", "serial", M, [4], []))
+        # Segment bookkeeping: first interval and sample offsets.
+        self.first = np.cumsum([0] + [sg.n for sg in segs[:-1]])
+        n3 = ns * nx
+        # Sparse pattern of one segment's block-bidiagonal equations (same for all lengths n).
+        self._patterns = {}
+        self.n3 = n3
+
+    # --- evaluation -----------------------------------------------------------------------
+    def _physical(self, V, X0):
+        nx, M = self.nx, self.M
+        K = self.XR + V.reshape(M * self.ns, nx).T * self.S[:, None]
+        x0 = self.XR0 + X0.reshape(len(self.segs), nx).T * self.S[:, None]
+        return K, x0
+
+    def _starts(self, K, x0):
+        ends = K[:, self.ns - 1::self.ns]
+        xs = np.empty((self.nx, self.M))
+        for g, sg in enumerate(self.segs):
+            m0 = self.first[g]
+            xs[:, m0] = x0[:, g]
+            xs[:, m0 + 1:m0 + sg.n] = ends[:, m0:m0 + sg.n - 1]
+        return xs
+
+    def thetas(self, V, X0):
+        """Model angle (rad) at every sample of every segment, segment after segment."""
+        K, x0 = self._physical(V, X0)
+        ends = K[self.i_th, self.ns - 1::self.ns]
+        out = []
+        for g, sg in enumerate(self.segs):
+            m0 = self.first[g]
+            out.append(np.concatenate([[x0[self.i_th, g]], ends[m0:m0 + sg.n]]))
+        return out
+
+    def residuals(self, V, X0):
+        """Weighted residual vectors per segment (dimensionless: in units of the quantisation noise)."""
+        out = []
+        for g, (sg, th) in enumerate(zip(self.segs, self.thetas(V, X0))):
+            rec = self.records[sg.rec]
+            if self.use_angle:
+                out.append((th - rec.nut_angle_rad[sg.k0:sg.k0 + sg.n + 1]) / self.sigma0)
+            else:
+                h = np.diff(rec.time_s[sg.k0:sg.k0 + sg.n + 1])
+                meas = rec.nut_speed_rad_s[sg.k0 + 1:sg.k0 + sg.n + 1]
+                out.append((np.diff(th) / h - meas) / (self.sigma0 / self.ts))
+        return out
+
+    def _a_matrices(self, g):
+        """d(residual)/d(V of the segment) (sparse) and d(residual)/d(X0 of the segment) (dense)."""
+        sg = self.segs[g]
+        nx, n3, n = self.nx, self.n3, sg.n
+        col_end = np.arange(n) * n3 + (self.ns - 1) * nx + self.i_th  # end-stage angle of each interval
+        w = self.S[self.i_th] / self.sigma0
+        if self.use_angle:
+            a_v = csr_matrix((np.full(n, w), (np.arange(1, n + 1), col_end)), shape=(n + 1, n * n3))
+            a_x = np.zeros((n + 1, nx))
+            a_x[0, self.i_th] = w
+        else:
+            h = np.diff(self.records[sg.rec].time_s[sg.k0:sg.k0 + n + 1])
+            wv = w * self.ts / h
+            rows = np.concatenate([np.arange(n), np.arange(1, n)])
+            cols = np.concatenate([col_end, col_end[:-1]])
+            vals = np.concatenate([wv, -wv[1:]])
+            a_v = csr_matrix((vals, (rows, cols)), shape=(n, n * n3))
+            a_x = np.zeros((n, nx))
+            a_x[0, self.i_th] = -wv[0]
+        return a_v, a_x
+
+    def linearise(self, V, X0, s):
+        """Constraint residual, and per segment: the condensed residual and Jacobian columns."""
+        nx, n3, npar, M = self.nx, self.n3, self.npar, self.M
+        K, x0 = self._physical(V, X0)
+        xs = self._starts(K, x0)
+        res, jk, jxs, jp = self.blocks(xs, K, self.U, self.H, s * self.scales)
+        res = res.reshape(n3, M, order="F")
+        # Column-major blocks side by side -> (rows, interval, cols of the block).
+        jk = jk.reshape(n3, n3, M, order="F").transpose(0, 2, 1)
+        jxs = jxs.reshape(n3, nx, M, order="F").transpose(0, 2, 1)
+        jp = jp.reshape(n3, npar, M, order="F").transpose(0, 2, 1)
+        if not (np.all(np.isfinite(res)) and np.all(np.isfinite(jk)) and np.all(np.isfinite(jp))):
+            bad = int(np.argmax(~np.all(np.isfinite(res), axis=0)))
+            raise FitError(f"model not finite at interval {bad} (t = {bad * self.ts:.6g} s); remedy: check the "
+                           "data's units and sample time, or start from a closer base plant (--plant)")
+        jk = jk * np.tile(self.S, self.ns)[None, None, :]
+        jxs = jxs * self.S[None, None, :]
+        jp = jp * self.scales[None, None, :]
+        resid = self.residuals(V, X0)
+        out = []
+        for g, sg in enumerate(self.segs):
+            m0, n = self.first[g], sg.n
+            sl = slice(m0, m0 + n)
+            # Block-bidiagonal equations of the segment.
+            ii, jj = np.meshgrid(np.arange(n3), np.arange(n3), indexing="ij")
+            rows = [(np.arange(n)[:, None, None] * n3 + ii[None]).ravel()]
+            cols = [(np.arange(n)[:, None, None] * n3 + jj[None]).ravel()]
+            vals = [np.moveaxis(jk[:, sl, :], 1, 0).ravel()]
+            if n > 1:
+                ia, ib = np.meshgrid(np.arange(n3), np.arange(nx), indexing="ij")
+                rows.append((np.arange(1, n)[:, None, None] * n3 + ia[None]).ravel())
+                cols.append((np.arange(n - 1)[:, None, None] * n3 + (self.ns - 1) * nx + ib[None]).ravel())
+                vals.append(np.moveaxis(jxs[:, m0 + 1:m0 + n, :], 1, 0).ravel())
+            gv = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                            shape=(n * n3, n * n3)).tocsc()
+            g_res = res[:, sl].T.ravel()
+            g_s = np.moveaxis(jp[:, sl, :], 1, 0).reshape(n * n3, npar)
+            g_x0 = np.zeros((n * n3, nx))
+            g_x0[:n3] = jxs[:, m0, :]
+            try:
+                lu = splu(gv)
+                z = lu.solve(np.column_stack([g_res, g_s, g_x0]))
+            except RuntimeError as exc:
+                raise FitError(f"collocation equations singular in segment {g} ({exc}); remedy: shorter "
+                               "segments or a closer base plant (--plant)") from None
+            if not np.all(np.isfinite(z)):
+                raise FitError(f"collocation equations singular in segment {g}; remedy: shorter segments "
+                               "or a closer base plant (--plant)")
+            a_v, a_x = self._a_matrices(g)
+            r_lin = resid[g] - a_v @ z[:, 0]
+            j_s = -(a_v @ z[:, 1:1 + npar])
+            j_x = a_x - a_v @ z[:, 1 + npar:]
+            out.append((r_lin, j_s, j_x, z))
+        return res, out
+
+    def _merit_terms(self, V, X0, s):
+        """Largest scaled collocation residual and the objective at a trial point."""
+        try:
+            K, x0 = self._physical(V, X0)
+            (r,) = self.residual_blocks(self._starts(K, x0), K, self.U, self.H, s * self.scales)
+            g = float(np.max(np.abs(r)))
+            f = 0.5 * sum(float(e @ e) for e in self.residuals(V, X0))
+        except RuntimeError:
+            return float("inf"), float("inf")
+        return (g, f) if np.isfinite(g) and np.isfinite(f) else (float("inf"), float("inf"))
+
+    def solve(self, s0, lo, hi, max_iter, tol, fixed, box=0.3, warm=3):
+        nx, nseg, npar = self.nx, len(self.segs), self.npar
+        V = np.zeros(self.n3 * self.M)
+        X0 = np.zeros(nx * nseg)
+        s = np.array(s0, float)
+        status, it = "maximum iterations", 0
+        free_steps = 3
+        # Warm-up: ``warm`` steps on the states alone (parameters held) bring the trajectories
+        # close to the data before the parameters move.
+        warm = 0 if fixed else int(warm)
+        g_norm = f_val = float("nan")
+        g_hist: list[float] = []
+        for it in range(1, int(max_iter) + warm + 1):
+            res, lin = self.linearise(V, X0, s)
+            g_norm = float(np.max(np.abs(res)))
+            g_hist.append(g_norm)
+            if (len(g_hist) > warm + STALL_ITERATIONS and g_norm > 1e-6
+                    and g_norm > 0.9 * g_hist[-1 - STALL_ITERATIONS]):
+                status = "stalled"  # the constraint residual no longer falls: give this attempt up early
+                break
+            f_val = 0.5 * sum(float(r @ r) for r in self.residuals(V, X0))
+            js, rv, backs = _condense(lin)
+            se = None
+            if fixed or npar == 0 or it <= warm:
+                d_s = np.zeros(npar)
+            else:
+                cn = np.linalg.norm(js, axis=0)
+                cn[cn == 0] = 1.0
+                # ``box``: trust region of one step, in units of the parameter scales
+                lb_s, ub_s = np.maximum(lo - s, -box), np.minimum(hi - s, box)
+                sol = lsq_linear(js / cn, -rv, bounds=(lb_s * cn, ub_s * cn), method="bvls", max_iter=100)
+                d_s = sol.x / cn
+                # Standard errors of the scaled parameters (white-residual estimate): a step far
+                # below them changes nothing the intervals can resolve.
+                dof = max(len(rv) - npar - nx * nseg, 1)
+                s2 = float(rv @ rv) / dof
+                inv = np.linalg.pinv((js / cn).T @ (js / cn), rcond=1e-12, hermitian=True)
+                se = np.sqrt(np.clip(np.diag(inv), 0.0, None) * s2) / cn
+            d_x0 = np.concatenate([back(d_s) for back in backs])
+            step = {"s": d_s, "X0": d_x0}
+            step["V"] = np.concatenate([
+                -(z[:, 0] + z[:, 1:1 + npar] @ d_s + z[:, 1 + npar:] @ d_x0[g * nx:(g + 1) * nx])
+                for g, (*_, z) in enumerate(lin)])
+            alpha, accepted = 1.0, False
+            for _ in range(12):
+                V1, X1, s1 = V + alpha * step["V"], X0 + alpha * step["X0"], np.clip(s + alpha * d_s, lo, hi)
+                g1, f1 = self._merit_terms(V1, X1, s1)
+                if np.isfinite(g1) and (g1 < (1 - 1e-4 * alpha) * g_norm
+                                        or (g1 <= max(g_norm, 1e-8) and f1 <= f_val * (1 + 1e-9) + 1e-12)):
+                    accepted = True
+                    break
+                alpha *= 0.5
+            if not accepted:  # a bounded number of full (non-monotone) steps, then give up
+                free_steps -= 1
+                if free_steps < 0:
+                    status = "line search failed"
+                    break
+                alpha = 1.0
+                V1, X1, s1 = V + step["V"], X0 + step["X0"], np.clip(s + d_s, lo, hi)
+                g1, f1 = self._merit_terms(V1, X1, s1)
+                if not np.isfinite(g1):
+                    status = "diverged"
+                    break
+            V, X0, s = V1, X1, s1
+            small = bool(np.all(np.abs(alpha * d_s) < np.maximum(tol, STEP_SE_FRACTION * se))) if npar and se is not None else True
+            if it > warm and accepted and g1 < 1e-8 and small and float(np.max(np.abs(alpha * step["X0"]))) < 1e-3:
+                status = "converged"
+                g_norm, f_val = g1, f1
+                break
+        else:
+            if not np.isfinite(g_norm):
+                status = "diverged"
+        self.last_iterations = it
+        if status != "converged":
+            raise FitError(
+                f"fit did not converge: Gauss-Newton status {status!r} after {it} iterations (constraint residual "
+                f"{g_norm:.3g}); remedy: check the data (units, that the command drives this actuator, sample time), "
+                "fit fewer parameters (--fit), start from a closer base plant (--plant) or use shorter segments"
+            )
+        self._final = (V, X0, s)
+        out = {"V": V, "X0": X0, "s": s, "status": status, "iterations": it, "objective": f_val}
+        out["fit_percent"], out["traces"] = self._fit_percent(self.thetas(V, X0))
+        return out
+
+    def simulate(self, sol, plant: Plant) -> dict:
+        """One continuous simulation of ``plant`` per record (the figures' model trace).
+
+        From the fitted initial state of the record's first segment to the record's end, with
+        the logged command (held over each sample, ``delay`` samples late) and load, through
+        the left-out stretches too: no segment joins, so nothing in the trace is a reset of the
+        multiple shooting. CVODES (BDF, stiff), one sample per step of a ``mapaccum``.
+
+        Returns
+        -------
+        dict
+            ``{record name: {"time_s", "measured", "model"}}`` (nut speed over each sample
+            interval, rad/s, at the interval's end); a record whose simulation fails is left out.
+        """
+        f, names = symbolic_rhs(plant, (), self.fidelity)
+        nx, sc = len(names), self.S
+        x = ca.SX.sym("x", nx)
+        u = ca.SX.sym("u", 2)
+        h = ca.SX.sym("h")
+        ode = h * f(x * ca.DM(sc), u, ca.DM.zeros(0)) / ca.DM(sc)
+        step = ca.integrator("fit_sim", "cvodes", {"x": x, "p": ca.vertcat(u, h), "ode": ode}, 0.0, 1.0,
+                             {"abstol": 1e-9, "reltol": 1e-8, "max_num_steps": 20000})
+        _, x0 = self._physical(sol["V"], sol["X0"])
+        out = {}
+        for r, rec in enumerate(self.records):
+            g = next((g for g, sg in enumerate(self.segs) if sg.rec == r), None)
+            if g is None or rec.name in out:
+                continue
+            k0 = self.segs[g].k0
+            ks = np.arange(k0, rec.n - 1)
+            kd = np.clip(ks - self.delay, 0, None)
+            pu = np.vstack([rec.torque_command_n_m[kd], rec.axial_load_n[ks], np.diff(rec.time_s)[ks]])
+            try:
+                xs = np.asarray(step.mapaccum("fit_sim_acc", len(ks), ["x0"], ["xf"])(
+                    x0=x0[:, g] / sc, p=pu)["xf"], float) * sc[:, None]
+            except RuntimeError:
+                continue
+            th = np.concatenate([[x0[self.i_th, g]], xs[self.i_th]])
+            v = np.diff(th) / np.diff(rec.time_s[k0:])
+            if np.all(np.isfinite(v)):
+                out[rec.name] = {"time_s": rec.time_s[k0 + 1:], "measured": rec.speed_rad_s[k0:], "model": v}
+        return out
+
+    def _fit_percent(self, thetas):
+        """Speed fit % per record from the model angles at the samples of each segment."""
+        per: dict[str, tuple] = {}
+        for sg, th in zip(self.segs, thetas):
+            rec = self.records[sg.rec]
+            v_model = np.diff(th) / np.diff(rec.time_s[sg.k0:sg.k0 + sg.n + 1])
+            v_meas = rec.speed_rad_s[sg.k0:sg.k0 + sg.n]
+            m, mm, tt, jj = per.setdefault(rec.name, ([], [], [], []))
+            jj.append(sum(len(a) for a in m))
+            m.append(v_meas)
+            mm.append(v_model)
+            tt.append(rec.time_s[sg.k0 + 1:sg.k0 + sg.n + 1])
+        out, traces = {}, {}
+        for name, (m, mm, tt, jj) in per.items():
+            a, b = np.concatenate(m), np.concatenate(mm)
+            out[name] = round(fit_percent(a, b), 3)
+            # joins: index of each segment's first sample in these arrays (its own initial state)
+            traces[name] = {"time_s": np.concatenate(tt), "measured": a, "model": b, "joins": np.array(jj[1:], int)}
+        return out, traces
+
+    def covariance(self, sol):
+        """Covariance of the scaled parameters (HAC sandwich), residual std, residual count, columns, info.
+
+        The residuals of a real fit are not white: quantisation and the speed loop colour the
+        noise, and any model error is smooth in time. The covariance is therefore the sandwich
+        ``A^-1 Omega A^-1`` (``A = J^T J`` of the condensed Jacobian, segment initial states
+        projected out) with ``Omega`` the Newey-West (Bartlett-kernel) long-run covariance of the
+        scores ``J_k r_k`` summed within each segment (segments have free initial states, so they
+        are independent); the bandwidth is the Newey-West rule or the lag where the pooled
+        residual autocorrelation falls below its ``2/sqrt(N)`` band, whichever is larger (bounded
+        by a quarter segment). With white residuals it equals the classic ``s^2 A^-1``.
+        """
+        V, X0, s = sol["V"], sol["X0"], sol["s"]
+        nx, nseg, npar = self.nx, len(self.segs), self.npar
+        _, lin = self.linearise(V, X0, s)
+        js, r, _ = _condense(lin)
+        lens = [len(item[0]) for item in lin]
+        n_rows = len(r)
+        n_cols = npar + nx * nseg
+        dof = max(n_rows - n_cols, 1)
+        s2 = float(r @ r) / dof
+        cn = np.linalg.norm(js, axis=0)
+        cn[cn == 0] = 1.0
+        jn = js / cn
+        a_inv, null, ratios = info_split(jn)
+        bounds = np.cumsum([0] + lens)
+        parts = [slice(int(bounds[i]), int(bounds[i + 1])) for i in range(len(lens))]
+        # Pooled residual autocorrelation within segments, lags 1..max_lag.
+        n_min = min(lens)
+        max_lag = max(1, min(n_min // 4, 200))
+        den = float(r @ r)
+        acf = np.array([sum(float(r[p][l:] @ r[p][:-l]) for p in parts if len(r[p]) > l) / den
+                        for l in range(1, max_lag + 1)]) if den > 0 else np.zeros(max_lag)
+        band = 2.0 / math.sqrt(max(n_rows, 1))
+        below = np.flatnonzero(np.abs(acf) < band)
+        lag_acf = int(below[0]) if below.size else max_lag  # lags before the first one inside the band
+        lag_nw = int(4 * (float(np.mean(lens)) / 100.0) ** (2.0 / 9.0))
+        L = int(min(max(lag_nw, lag_acf), max_lag))
+        # Prewhitened HAC (Andrews & Monahan, Econometrica 60(4) 1992): a VAR(1) on the scores
+        # takes out the bulk of the colour, Bartlett-kernel Newey-West on what is left, recoloured.
+        gs = [jn[p] * r[p][:, None] for p in parts]
+        s_lag = sum(g[1:].T @ g[:-1] for g in gs if len(g) > 1)
+        s_0 = sum(g[:-1].T @ g[:-1] for g in gs if len(g) > 1)
+        a_var = s_lag @ np.linalg.pinv(s_0, rcond=1e-12)
+        u_, sv, vt = np.linalg.svd(a_var)  # keep it away from a unit root (their adjustment)
+        a_var = (u_ * np.minimum(sv, 0.97)) @ vt
+        omega = np.zeros((npar, npar))
+        for g in gs:
+            e = g.copy()
+            e[1:] -= g[:-1] @ a_var.T
+            omega += e.T @ e
+            for l in range(1, min(L, len(e) - 1) + 1):
+                c = e[l:].T @ e[:-l]
+                omega += (1.0 - l / (L + 1.0)) * (c + c.T)
+        recolour = np.linalg.inv(np.eye(npar) - a_var)
+        omega = recolour @ omega @ recolour.T
+        omega *= n_rows / dof
+        cov_hac = a_inv @ omega @ a_inv
+        cov = cov_hac / np.outer(cn, cn)
+        unit_sigma = self.sigma0 if self.use_angle else self.sigma0 / self.ts
+        info = {"covariance": "prewhitened (VAR(1)) Newey-West HAC sandwich over segments",
+                "hac_bandwidth_samples": L, "residual_acf_band_lag": lag_acf,
+                "residual_autocorrelation_lag1": float(acf[0]) if len(acf) else 0.0,
+                "ci_widening_vs_white": float(np.sqrt(np.max(np.diag(cov_hac) / np.maximum(s2 * np.diag(a_inv), 1e-300)))),
+                "singular_value_ratios": [float(x) for x in ratios], "rank_tolerance": RANK_RTOL,
+                "uninformed_directions": int(null.shape[1])}
+        self.null_scaled = null / cn[:, None]  # uninformed directions in the scaled parameters
+        return cov, math.sqrt(s2) * unit_sigma, n_rows, n_cols, info
+
+
+class _Buffered:
+    """A CasADi function evaluated straight from and into NumPy arrays (``Function.buffer``).
+
+    Inputs are taken in column-major order and checked for size; outputs are new flat
+    column-major arrays of the outputs' nonzeros (dense outputs: every entry).
+    """
+
+    def __init__(self, fun):
+        self.fun = fun
+        self.n_in = [int(fun.nnz_in(i)) for i in range(fun.n_in())]
+        self.n_out = [int(fun.nnz_out(i)) for i in range(fun.n_out())]
+
+    def __call__(self, *args):
+        if len(args) != len(self.n_in):
+            raise ValueError(f"{self.fun.name()}: {len(args)} inputs; expected {len(self.n_in)}")
+        flat = [np.ascontiguousarray(np.asarray(a, dtype=float).ravel(order="F")) for a in args]
+        for i, (a, n) in enumerate(zip(flat, self.n_in)):
+            if a.size != n:  # the buffer interface reads exactly n values: never hand it fewer
+                raise ValueError(f"{self.fun.name()}: input {i} has {a.size} values; expected {n}")
+        outs = [np.empty(n) for n in self.n_out]
+        buf, evaluate = self.fun.buffer()  # a fresh buffer per call: thread-safe, references held here
+        for i, a in enumerate(flat):
+            buf.set_arg(i, a)
+        for i, o in enumerate(outs):
+            buf.set_res(i, o)
+        evaluate()
+        return outs
+
+
+def _condense(lin):
+    """Eliminate each segment's initial state from the linearised least-squares problem.
+
+    Returns the parameter Jacobian and residual with the initial-state directions projected
+    out (their normal equations are the Schur complement for the parameters) and, per segment,
+    a function giving the initial-state step for a parameter step.
+    """
+    js_parts, r_parts, backs = [], [], []
+    for r_lin, j_s, j_x, _ in lin:
+        q, rr = np.linalg.qr(j_x)
+        keep = np.abs(np.diag(rr)) > 1e-12 * max(1.0, float(np.max(np.abs(rr))))
+        q, rr = q[:, keep], rr[np.ix_(keep, keep)]
+        js_parts.append(j_s - q @ (q.T @ j_s))
+        r_parts.append(r_lin - q @ (q.T @ r_lin))
+
+        def back(d_s, q=q, rr=rr, keep=keep, r_lin=r_lin, j_s=j_s):
+            out = np.zeros(len(keep))
+            out[keep] = -np.linalg.solve(rr, q.T @ (r_lin + j_s @ d_s))
+            return out
+
+        backs.append(back)
+    return np.vstack(js_parts), np.concatenate(r_parts), backs
