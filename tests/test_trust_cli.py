@@ -236,15 +236,16 @@ def test_ctrl_c_while_the_outputs_are_renamed_leaves_all_old_or_all_new(tmp_path
 
 _INTERRUPT_AFTER_THE_COMMAND = """
 import os, signal, sys
-import prsa_ctrl.cli.tune as cli
-inner = cli._invoke_inner
+import prsa_ctrl.cli.common as cli
+from prsa_ctrl.cli.tune import main
+inner = cli.invoke_inner
 def wrapped(*a, **k):
     code = inner(*a, **k)
     os.kill(os.getpid(), signal.SIGINT)
     return code
-cli._invoke_inner = wrapped
+cli.invoke_inner = wrapped
 sys.argv = ["prsa-tune", "--json", "j.json", "--quiet"]
-raise SystemExit(cli.main())
+raise SystemExit(main())
 """
 
 
@@ -351,7 +352,7 @@ def test_encoder_in_bits_from_the_console_entry(tmp_path):
 # --- section 4: the report ------------------------------------------------------------------------
 
 def test_differences_are_percentages_only_above_the_resolution():
-    from prsa_ctrl.cli.tune import _diff_text
+    from prsa_ctrl.cli.report import diff_text as _diff_text
 
     assert _diff_text(1.4e-14, 1.4e-4, res=0.0365) == "-0.00014 abs."
     assert _diff_text(1.4e-14, 1.4e-4) == "-100.0 %"  # no resolution given: a plain relative difference
@@ -363,7 +364,7 @@ def test_differences_are_percentages_only_above_the_resolution():
 def test_table_and_flag_use_one_definition_of_the_difference():
     from prsa_ctrl import load_plant, load_scene
     from prsa_ctrl.studies.autotune import health_flags, tune_actuator
-    from prsa_ctrl.cli.tune import _diff_text
+    from prsa_ctrl.cli.report import diff_text as _diff_text
 
     rep = tune_actuator(load_plant(), load_scene(), workers=1)
     d = rep.best
@@ -374,7 +375,7 @@ def test_table_and_flag_use_one_definition_of_the_difference():
 
 
 def test_a_baseline_not_beaten_says_why_in_the_table():
-    from prsa_ctrl.cli.tune import _beaten_text
+    from prsa_ctrl.cli.report import beaten_text as _beaten_text
 
     base = {"beaten": False, "tuned_flags": [], "tuned_ms": 1.4, "baseline_ms": 1.5,
             "tuned_objective_verified": 0.01, "baseline_objective_verified": 0.02}

@@ -329,7 +329,7 @@ def test_an_interrupted_command_does_not_leave_sigterm_ignored():
     """After an interrupted in-process command SIGTERM has its old handler again: an ignored
     SIGTERM would be inherited by every later child process (whose workers then survive
     ``terminate()``)."""
-    from prsa_ctrl.cli import tune as cli
+    from prsa_ctrl.cli import common as cli
 
     def body(run, argv):
         run.interrupted = True
@@ -337,7 +337,7 @@ def test_an_interrupted_command_does_not_leave_sigterm_ignored():
 
     old_int, old_term = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     try:
-        assert cli._invoke_inner(cli._Run("prsa-tune"), [], body) == cli.EXIT_INTERRUPTED
+        assert cli.invoke_inner(cli.Run("prsa-tune"), [], body) == cli.EXIT_INTERRUPTED
         assert signal.getsignal(signal.SIGTERM) is old_term
     finally:
         signal.signal(signal.SIGINT, old_int)

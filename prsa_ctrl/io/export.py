@@ -60,9 +60,10 @@ from ..drive.filters import Filter, FirstOrderLowPass
 
 if TYPE_CHECKING:
     from ..plant.plantfile import Plant
+    from ..tuning.cascade import CascadeDesign
 
-__all__ = ["export_controller", "dumps", "FORMATS", "FILTER_PLACES", "pid_biquad", "simulated_biquad",
-           "DISCRETISATIONS"]
+__all__ = ["export_controller", "export_cascade", "dumps", "FORMATS", "FILTER_PLACES", "pid_biquad",
+           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW"]
 
 #: Output formats of :func:`dumps`.
 FORMATS = ("json", "toml")
@@ -455,6 +456,79 @@ def export_controller(
             "speed_measurement filters on w[k] before the PID (e, I and the derivative all use the filtered speed); "
             "torque_command filters on us[k], then min(max(y, -torque_limit), torque_limit) is stored and applied "
             "over the next sample (the biquad recursion keeps its unlimited y)")
+    return out
+
+
+# --- cascade (position loop over the speed loop) ------------------------------------------------
+
+#: The position loop's per-sample law as the drive export states it (``position_controller.law``):
+#: each right-hand side is an expression in the exported fields of ``position_controller`` and
+#: the signals ``p_ref, p_meas, v_ref, acc_ref, I_prev`` (the same law as
+#: :meth:`prsa_ctrl.drive.measurement.PositionLoop.update`).
+POSITION_LAW = {
+    "e": "(p_ref - p_meas) * error_to_rad",
+    "I": "I_prev + sample_time_s * ki_per_s2 * e",
+    "w_ref": "kv_per_s * e + I + velocity_feedforward * v_ref / lead_m_per_rad",
+    "tau_ff": "torque_per_acceleration_n_m_s2_per_rad * acc_ref / lead_m_per_rad",
+}
+
+
+def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str) -> dict:
+    """Drive export of a cascade: the speed PI as :func:`prsa_ctrl.io.export.export_controller`
+    gives it, plus the position loop (``Kv`` [1/s], integral gain, feed-forward gains, the
+    acceleration feed-forward as a torque per acceleration, the position-loop sample time and
+    the discrete law).
+
+    Parameters
+    ----------
+    design : CascadeDesign
+    plant : Plant
+    fmt : {"json", "toml"}
+
+    Returns
+    -------
+    dict
+    """
+    out = export_controller(design.speed, plant, fmt=fmt)
+    pos = design.position
+    ts = plant.sample_time_s
+    tp = ts * pos.rate
+    a = plant.lead_per_rad
+    inertia = float(plant.reflected_inertia_kg_m2)
+    out["loop"] = "position over speed"
+    ctrl = out["speed_controller"]
+    if "vendor" in ctrl and isinstance(ctrl["vendor"], dict):
+        ctrl["vendor"]["kv_per_s"] = float(pos.kv)
+        ctrl["vendor"]["note"] = ("Tn = kp/ki (integral/reset time), Tv = kd/kp (derivative time), per-rpm gains use "
+                                  "1 rpm = 2 pi/60 rad/s; Kv = kv_per_s is the gain of the position loop over this "
+                                  "speed loop (see position_controller)")
+    law = dict(POSITION_LAW)
+    out["position_controller"] = {
+        "measured": pos.measured,
+        "sample_time_s": tp,
+        "kv_per_s": float(pos.kv),
+        "kv_m_min_per_mm": float(pos.kv) * 60.0 / 1000.0,  # (m/min of speed) per mm of error
+        "ki_per_s2": float(pos.ki),
+        "tn_s": float(pos.kv / pos.ki) if pos.ki > 0 else None,
+        "velocity_feedforward": float(pos.kvff),
+        "acceleration_feedforward": float(pos.kaff),
+        "reflected_inertia_kg_m2": inertia,
+        "torque_per_acceleration_n_m_s2_per_rad": float(pos.kaff) * inertia,
+        "lead_m_per_rad": a,
+        "error_to_rad": 1.0 if pos.measured == "nut_angle" else 1.0 / a,
+        "law": law,
+        "formula": "; ".join(f"{k}[k] = {v}" for k, v in law.items())
+                   + " (p_ref, p_meas in the measured unit: rad of the nut for nut_angle, m for screw_position; "
+                     "v_ref in m/s, acc_ref in m/s^2 of screw travel; I_prev = I[k-1], 0 at rest); w_ref (rad/s) "
+                     "is the speed PI's reference and tau_ff (N m) is added to its command u[k]; both held for "
+                     "sample_time_s. torque_per_acceleration_n_m_s2_per_rad already contains "
+                     "acceleration_feedforward (= acceleration_feedforward reflected_inertia_kg_m2): do not "
+                     "multiply by it again",
+        "discretisation": "explicit sum for the integral (I updated with e[k] before use), zero-order hold of w_ref "
+                          "and tau_ff over sample_time_s",
+    }
+    if fmt == "toml":
+        out["position_controller"] = {k: v for k, v in out["position_controller"].items() if v is not None}
     return out
 
 

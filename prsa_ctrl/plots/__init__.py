@@ -20,6 +20,7 @@ _EXPORTS = {
     "step_response_plot": "loop",
     "tuning_landscape": "loop",
     "write_design_plots": "loop",
+    "write_move_plots": "move",
     "write_standard_plots": "loop",
 }
 
