@@ -256,10 +256,10 @@ def test_export_with_load_feedforward_is_refused_up_front(tmp_path, capsys):
 # --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------
 
 def test_monte_carlo_replay_on_a_duty_scene_is_one_line(capsys):
-    from prsa_ctrl.studies import montecarlo as mc
+    from prsa_ctrl.cli.montecarlo import main as mc_main
     from prsa_ctrl.tuning.robust import operating_points
 
-    code = mc.main(["--scene", "duty-trace", "--seed", "0", "--index", "0", "--kp", "0.05", "--ki", "5"])
+    code = mc_main(["--scene", "duty-trace", "--seed", "0", "--index", "0", "--kp", "0.05", "--ki", "5"])
     err = [l for l in capsys.readouterr().err.splitlines() if l.startswith("error")]
     assert code == 2 and len(err) == 1 and "duty cycle" in err[0] and "load-step scene" in err[0]
     with pytest.raises(SceneError, match="is a duty cycle"):

@@ -1,4 +1,4 @@
-"""The command-line front ends (prsa-tune, prsa-plot, prsa-fit, prsa-bench)."""
+"""The command-line front ends (prsa-tune, prsa-plot, prsa-fit, prsa-bench, the Monte-Carlo replay)."""
 
 from .._lazy import lazy_exports
 

@@ -376,7 +376,7 @@ def _replay_cmd(plant, scene, seed: int, index: int, pid, settings=None) -> str:
     p, s = _identity(plant, scene)
     g = {k: float(v) for k, v in pid.as_dict().items()}
     integ = "fast" if settings is not None and settings.integrator == "radau" else "reference"
-    cmd = (f"python -m prsa_ctrl.studies.montecarlo --plant {p} --scene {s} --seed {seed} --index {index} "
+    cmd = (f"python -m prsa_ctrl.cli.montecarlo --plant {p} --scene {s} --seed {seed} --index {index} "
            f"--integrator {integ} --kp {g['kp']!r} --ki {g['ki']!r} --kd {g['kd']!r} --tf {g['tf']!r}")
     return cmd + (f" --kff {g['kff']!r}" if g.get("kff") else "")
 
@@ -852,41 +852,3 @@ def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, sce
         out["dask_running_overhead"] = med["dask-running"] / med["process"] - 1
         out["cluster_start_s"] = cluster_start_s
     return out
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m prsa_ctrl.studies.montecarlo``: replay one Monte-Carlo sample of one design."""
-    import argparse
-    import json
-
-    from ..drive.pid import PID
-    from ..errors import PlantFileError, SceneError
-    from ..plant.plantfile import load_plant
-    from .scene import load_scene
-
-    ap = argparse.ArgumentParser(prog="python -m prsa_ctrl.studies.montecarlo", description=main.__doc__)
-    ap.add_argument("--plant", default=None)
-    ap.add_argument("--scene", default="robust-load-step")
-    ap.add_argument("--seed", type=int, required=True)
-    ap.add_argument("--index", type=int, required=True)
-    ap.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto",
-                    help="the run's integrator choice (its replay command names it)")
-    for g in ("kp", "ki", "kd", "tf", "kff"):
-        ap.add_argument(f"--{g}", type=float, default=0.0 if g in ("kd", "kff") else None, required=g in ("kp", "ki"))
-    a = ap.parse_args(argv)
-    try:
-        plant, scene = load_plant(a.plant), load_scene(a.scene)
-        kw = {"tf": a.tf} if a.tf else {}
-        pid = PID(a.kp, a.ki, a.kd, kff=a.kff, **kw)
-        if a.seed < 0 or a.index < 0:
-            raise ValueError(f"--seed {a.seed} --index {a.index}; expected integers >= 0")
-        out = replay_sample(plant, scene, pid, a.seed, a.index, a.integrator)
-    except (PlantFileError, SceneError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(json_safe(out), indent=2))
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
