@@ -30,7 +30,6 @@ asserted here.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import subprocess
@@ -39,6 +38,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from .common import EXIT_BAD_INPUT, Parser, UsageError, one_line, write_json_atomic
 
 __all__ = ["work_precision", "fidelity_ladder", "tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark",
            "robust_tuning_benchmark", "fit_benchmark", "targets", "main"]
@@ -561,22 +562,13 @@ def _plot(wp: dict, path: Path) -> None:
     plt.close(fig)
 
 
-class _UsageError(Exception):
-    """Bad input: one line, exit 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
-        raise _UsageError(" ".join(message.split()))
-
-
 def main(argv=None) -> int:
     """``prsa-bench``; returns the exit code (0, or 2 with one line for bad input)."""
     try:
         return _main(argv)
-    except _UsageError as exc:
-        print(f"prsa-bench: error: {exc}", file=sys.stderr)
-        return 2
+    except UsageError as exc:
+        print(f"prsa-bench: error: {one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 def _check_out(text: str) -> Path:
@@ -588,12 +580,12 @@ def _check_out(text: str) -> Path:
     try:
         check_directory(text, "--out")
     except OutputError as exc:
-        raise _UsageError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     return Path(text)
 
 
 def _main(argv=None) -> int:
-    ap = _Parser(prog="prsa-bench", description=__doc__.splitlines()[0])
+    ap = Parser(prog="prsa-bench", description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="bench-results", help="folder for bench.json and the figure (created if missing)")
     ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
     ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust", "fit"])
@@ -604,12 +596,12 @@ def _main(argv=None) -> int:
     args = ap.parse_args(argv)
     repeats = args.repeats if args.repeats is not None else (1 if args.fast else 3)
     if not 1 <= repeats <= 20:
-        raise _UsageError(f"--repeats {repeats}: expected timed runs per measurement 1..20")
+        raise UsageError(f"--repeats {repeats}: expected timed runs per measurement 1..20")
     n_mc = args.samples if args.samples is not None else (100 if args.fast else 1000)
     if not 1 <= n_mc <= 100_000:
-        raise _UsageError(f"--samples {n_mc}: expected Monte-Carlo samples 1..100000")
+        raise UsageError(f"--samples {n_mc}: expected Monte-Carlo samples 1..100000")
     if not 1 <= args.workers <= 64:
-        raise _UsageError(f"--workers {args.workers}: expected 1..64")
+        raise UsageError(f"--workers {args.workers}: expected 1..64")
     args.out = _check_out(args.out)
     import warnings
 
@@ -619,7 +611,7 @@ def _main(argv=None) -> int:
     try:
         make_directory(args.out, "--out")
     except OutputError as exc:
-        raise _UsageError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     result: dict = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                 "load_average_1_5_15": list(os.getloadavg()) if hasattr(os, "getloadavg") else None},
                     "repeats": repeats, "statistic": "median"}
@@ -675,7 +667,6 @@ def _main(argv=None) -> int:
     for k, v in tg.items():
         print(f"target {k}: {'met' if v['met'] else 'NOT met'}" + (f" ({v['measured']:.3g})" if "measured" in v else "")
               + (f" ({v['measured_s']:.3g} s)" if "measured_s" in v else ""))
-    from .tune import write_json_atomic
     from ..io.output import json_safe
 
     write_json_atomic(args.out / "bench.json", json_safe(result))

@@ -37,6 +37,7 @@ _EXPORTS = {
     "replay_inputs": "codegen",
     "simulated_biquad": "export",
     "st_code": "codegen",
+    "toml_value": "export",
     "write_code_export": "codegen",
     "write_file": "output",
     "write_text": "output",

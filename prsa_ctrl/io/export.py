@@ -63,7 +63,7 @@ if TYPE_CHECKING:
     from ..tuning.cascade import CascadeDesign
 
 __all__ = ["export_controller", "export_cascade", "dumps", "FORMATS", "FILTER_PLACES", "pid_biquad",
-           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW"]
+           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW", "toml_value"]
 
 #: Output formats of :func:`dumps`.
 FORMATS = ("json", "toml")
@@ -540,7 +540,18 @@ def _toml_key(k: str) -> str:
     return k if k and all(c.isalnum() and c.isascii() or c in "_-" for c in k) else json.dumps(k)
 
 
-def _toml_value(v: Any, where: str) -> str:
+def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
+    """A TOML value: bool, integer, finite float (all digits, ``repr``), string (a JSON string,
+    ASCII with ``\\uXXXX`` escapes unless ``ascii_only`` is false), or a list of those.
+
+    Raises
+    ------
+    ValueError
+        A non-finite number, None or another type, naming ``where``.
+
+    >>> toml_value([1, 2.5, "x"]), toml_value(True), toml_value("µ", ascii_only=False)
+    ('[1, 2.5, "x"]', 'true', '"µ"')
+    """
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, np.integer)):
@@ -552,9 +563,9 @@ def _toml_value(v: Any, where: str) -> str:
         r = repr(f)
         return r if any(c in r for c in ".en") else r + ".0"
     if isinstance(v, str):
-        return json.dumps(v)  # a JSON string (ASCII, \uXXXX escapes) is a TOML basic string
+        return json.dumps(v, ensure_ascii=ascii_only)  # a JSON string is a TOML basic string
     if isinstance(v, (list, tuple)) and not any(isinstance(x, dict) for x in v):
-        return "[" + ", ".join(_toml_value(x, where) for x in v) + "]"
+        return "[" + ", ".join(toml_value(x, where, ascii_only=ascii_only) for x in v) + "]"
     raise ValueError(f"{where} = {v!r}; expected a number, string, bool or list of those (TOML has no null)")
 
 
@@ -564,7 +575,7 @@ def _toml_table(d: dict, path: list[str], lines: list[str]) -> None:
         if isinstance(v, dict) or (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
             tables.append((k, v))
         else:
-            lines.append(f"{_toml_key(k)} = {_toml_value(v, '.'.join(path + [k]))}")
+            lines.append(f"{_toml_key(k)} = {toml_value(v, '.'.join(path + [k]))}")
     for k, v in tables:
         sub = path + [_toml_key(k)]
         if isinstance(v, dict):
