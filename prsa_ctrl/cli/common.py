@@ -81,15 +81,22 @@ class Parser(argparse.ArgumentParser):
 # --- flag values ---------------------------------------------------------------------------------
 
 def number(flag: str, lo: float = -math.inf, hi: float = math.inf, unit: str = "", what: str = "a number",
-           lo_open: bool = False, hi_open: bool = False) -> Callable[[str], float]:
+           lo_open: bool = False, hi_open: bool = False, *, quoted: bool = False,
+           not_a_number: str | None = None) -> Callable[[str], float]:
     """Converter of a number flag: a finite number in ``[lo, hi]`` (``lo_open``/``hi_open``: the
-    bound excluded). The messages name the flag and the text as typed, ``FLAG 'TEXT': expected
-    WHAT in RANGE UNIT`` (the range is left out when a bound is infinite: ``what`` says it then).
+    bound excluded). The messages name the flag and the text as typed: ``FLAG 'TEXT': expected
+    WHAT in RANGE UNIT`` for text that is no number (``not_a_number`` instead of ``what`` if
+    given), ``FLAG TEXT UNIT: expected ...`` for a number out of range (``quoted``: ``'TEXT'``).
+    The range is left out when a bound is infinite (``what`` says it then).
 
     >>> number("--duration", 0.0, 1e4, "s", "a time", lo_open=True)("0")
     Traceback (most recent call last):
     ...
     argparse.ArgumentTypeError: --duration 0 s: expected a time in (0, 10000] s
+    >>> number("--segment", 0.0, what="a finite number > 0", lo_open=True, quoted=True)("-1")
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentTypeError: --segment '-1': expected a finite number > 0
     """
     lb = "(" if lo_open else "["
     rb = ")" if hi_open else "]"
@@ -100,10 +107,11 @@ def number(flag: str, lo: float = -math.inf, hi: float = math.inf, unit: str = "
         try:
             v = float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected {what}{rng}") from None
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected {not_a_number or what}{rng}") from None
         ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
         if not ok:
-            raise argparse.ArgumentTypeError(f"{flag} {text}" + (f" {unit}" if unit and math.isfinite(v) else "")
+            shown = repr(text) if quoted else text
+            raise argparse.ArgumentTypeError(f"{flag} {shown}" + (f" {unit}" if unit and math.isfinite(v) else "")
                                              + f": expected {what}{rng}")
         return v
 

@@ -49,13 +49,13 @@ DESIGN_MAX_SPEED_RAD_S = 6000.0 * math.pi / 30.0
 
 
 def _positive(flag: str):
-    """Converter of a number flag > 0."""
-    return number(flag, 0.0, what="a finite number > 0", lo_open=True)
+    """Converter of a number flag > 0 (messages quote the text: ``--duration '-1': ...``)."""
+    return number(flag, 0.0, what="a finite number > 0", lo_open=True, quoted=True, not_a_number="a number")
 
 
 def _finite(flag: str):
     """Converter of a finite number flag."""
-    return number(flag, what="a finite number")
+    return number(flag, what="a finite number", quoted=True, not_a_number="a number")
 
 
 def build_parser() -> argparse.ArgumentParser:
