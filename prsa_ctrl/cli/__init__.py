@@ -1,4 +1,5 @@
-"""The command-line front ends (prsa-tune, prsa-plot, prsa-fit, prsa-bench, the Monte-Carlo replay)."""
+"""The command-line front ends (prsa-tune, prsa-plot, prsa-fit, the Monte-Carlo replay); the benchmarks
+are outside the package (``python benchmarks/bench.py``)."""
 
 from .._lazy import lazy_exports
 
@@ -12,23 +13,15 @@ _EXPORTS = {
     "MOVE_FLAGS": "tune",
     "build_parser": "tune",
     "build_plot_parser": "plot",
-    "cold_cli_benchmark": "bench",
-    "fidelity_ladder": "bench",
-    "fit_benchmark": "bench",
     "format_move_report": "report",
     "format_report": "report",
     "format_robust": "report",
     "main": "tune",
-    "monte_carlo_benchmark": "bench",
     "parse_load_step": "inputs",
     "plant_toml": "fit",
     "plot_main": "plot",
-    "robust_tuning_benchmark": "bench",
     "run": "axis",
-    "targets": "bench",
-    "tuning_benchmark": "bench",
     "wants_axis_mode": "axis",
-    "work_precision": "bench",
     "write_json_atomic": "common",
 }
 

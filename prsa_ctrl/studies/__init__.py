@@ -32,7 +32,6 @@ _EXPORTS = {
     "Scene": "scene",
     "actuator_loops": "autotune",
     "baseline_designs": "autotune",
-    "benchmark": "montecarlo",
     "builtin_scenes": "scene",
     "check_against_plant": "scene",
     "check_move_against_plant": "move",
@@ -40,6 +39,7 @@ _EXPORTS = {
     "default_pid": "paper",
     "draw_sample": "montecarlo",
     "duty_record": "autotune",
+    "fidelity_ladder": "accuracy",
     "following_error_m": "move",
     "format_report": "montecarlo",
     "format_rows": "paper",
@@ -49,6 +49,7 @@ _EXPORTS = {
     "is_move_scene": "scenefile",
     "kinematics_table": "paper",
     "load_move_scene": "movescene",
+    "local_cluster": "montecarlo",
     "load_scene": "scene",
     "load_step_study": "paper",
     "locate_scene": "scenefile",
@@ -69,6 +70,7 @@ _EXPORTS = {
     "tune_move": "move",
     "verify_design": "move",
     "wilson_interval": "montecarlo",
+    "work_precision": "accuracy",
 }
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

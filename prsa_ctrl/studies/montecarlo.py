@@ -27,7 +27,7 @@ from ..io.output import json_safe
 from ..errors import GeometryWarning, SimulationError
 
 __all__ = ["MonteCarloReport", "MonteCarloInterrupted", "run_monte_carlo", "format_report", "wilson_interval",
-           "draw_sample", "replay_sample", "benchmark", "plot_report", "scene_options", "METRICS", "BACKENDS"]
+           "draw_sample", "replay_sample", "plot_report", "scene_options", "local_cluster", "METRICS", "BACKENDS"]
 
 #: Metrics recorded per design and sample (worst over the sample's load steps).
 METRICS = ("peak_drop_rad_s", "recovery_time_s", "ie", "iae", "itae", "ise", "overshoot_rad_s",
@@ -657,8 +657,8 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
         pool.shutdown(wait=False, cancel_futures=True)
 
 
-def _local_cluster(workers: int):
-    """A LocalCluster of ``workers`` single-threaded processes on 127.0.0.1."""
+def local_cluster(workers: int):
+    """A Dask LocalCluster of ``workers`` single-threaded processes on 127.0.0.1."""
     import dask
     from dask.distributed import LocalCluster
 
@@ -686,7 +686,7 @@ def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took) -> None:
     if not own:
         client = scheduler
     elif scheduler == "local":
-        cluster = _local_cluster(workers)
+        cluster = local_cluster(workers)
         client = Client(cluster)
     else:
         client = Client(scheduler, timeout=30)
@@ -720,7 +720,7 @@ def scene_options(scene) -> dict[str, int]:
     return {"samples": int(rob.get("monte_carlo", 0)), "seed": int(rob.get("seed", 0))}
 
 
-# --- replay, figures, benchmark ------------------------------------------------------------------
+# --- replay, figures ----------------------------------------------------------------------------
 
 def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "auto") -> dict[str, Any]:
     """Re-run one sample of one design: its parameter values, operating point and metrics
@@ -768,87 +768,3 @@ def plot_report(report: MonteCarloReport, path=None, metric: str = "peak_drop_ra
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
-
-
-def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, scene=None,
-              backends: Sequence[str] = ("serial", "process", "dask", "dask-running"), quiet: bool = True,
-              spec: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Wall time (s, median of ``repeats``, backends run in turn) of ``n`` verifications of the
-    paper design on the scene's samples (default the robust scene): serial, ``workers``
-    processes, a Dask LocalCluster of ``workers`` started for each run (``"dask"``, start-up
-    and shut-down included, as ``--scheduler local``) and one already running
-    (``"dask-running"``, a ``Client`` passed in, as ``--scheduler tcp://...``; started once,
-    its start-up reported as ``cluster_start_s``). ``spec``
-    defaults to no bounds (pure verifications; the scene's ``ms`` bound would add a
-    linearisation per sample). Also checks that the backends agree bit for bit.
-
-    A warm-up run of 2 samples first makes the one-off integrator choice
-    (:func:`verification_settings`, its time reported as ``integration["check_s"]``) and
-    compiles the law into the per-user cache; the timed runs reuse both (the check is cached
-    in-process, the compiled law on disk). ``cpu_per_sample_s``: CPU time of the serial runs
-    per sample (less sensitive to a loaded machine than wall time)."""
-    from .paper import default_pid
-    from ..plant.plantfile import load_plant
-    from .scene import load_scene
-
-    plant = plant or load_plant()
-    scene = scene or load_scene("robust-load-step")
-    pid = default_pid(plant)
-    times: dict[str, list[float]] = {}
-    cpu: list[float] = []
-    ref = None
-    identical = True
-    t = time.perf_counter()
-    warm = run_monte_carlo(plant, scene, {"paper": pid}, 2, seed=0, quiet=True, spec={} if spec is None else spec)
-    warm_s = time.perf_counter() - t
-    running = cluster = None
-    if "dask-running" in backends:
-        from dask.distributed import Client
-
-        t = time.perf_counter()
-        cluster = _local_cluster(workers)
-        running = Client(cluster)
-        cluster_start_s = time.perf_counter() - t
-        run_monte_carlo(plant, scene, {"paper": pid}, 2 * workers, seed=0, scheduler=running, quiet=True, chunk=1,
-                        spec={} if spec is None else spec)  # the workers' imports, as a warm-up
-    # In turn (serial, process, dask, serial, ...), so that drift of a shared machine's speed
-    # hits every backend alike.
-    try:
-        for _ in range(repeats):
-            for b in backends:
-                t, c = time.perf_counter(), time.process_time()
-                if b == "dask-running":
-                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, scheduler=running, quiet=quiet,
-                                        spec={} if spec is None else spec)
-                else:
-                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, backend=b,
-                                        workers=1 if b == "serial" else workers, quiet=quiet,
-                                        spec={} if spec is None else spec)
-                times.setdefault(b, []).append(time.perf_counter() - t)
-                if b == "serial":
-                    cpu.append((time.process_time() - c) / n)
-                if ref is None:
-                    ref = r.samples["metrics"]
-                elif not np.array_equal(ref, r.samples["metrics"], equal_nan=True):
-                    identical = False
-    finally:
-        if running is not None:
-            running.close()
-            cluster.close()
-    med = {b: float(np.median(v)) for b, v in times.items()}
-    from .scene import choose_fidelity
-
-    out: dict[str, Any] = {"n": n, "workers": workers, "repeats": repeats, "median_s": med, "runs_s": times,
-                           "identical": identical, "fidelity": choose_fidelity(scene)[0].fidelity,
-                           "scene": scene.name, "plant": plant.name, "integration": warm.integration,
-                           "warm_up_s": warm_s}
-    if cpu:
-        out["cpu_per_sample_s"] = float(np.median(cpu))
-    if "serial" in med and "process" in med:
-        out["parallel_efficiency"] = med["serial"] / (workers * med["process"])
-    if "process" in med and "dask" in med:
-        out["dask_overhead"] = med["dask"] / med["process"] - 1
-    if "process" in med and "dask-running" in med:
-        out["dask_running_overhead"] = med["dask-running"] / med["process"] - 1
-        out["cluster_start_s"] = cluster_start_s
-    return out
