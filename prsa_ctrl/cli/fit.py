@@ -286,9 +286,9 @@ def _check_outputs(paths: dict[str, str], inputs: Sequence[str]) -> None:
 
 def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
     """Text of the base plant file and its path (None for a built-in)."""
-    from ..plant.plantfile import _resolve
+    from ..plant.plantfile import plant_file_path
 
-    src = _resolve(plant_arg)
+    src = plant_file_path(plant_arg)
     return src.read_text(encoding="utf-8"), (str(src) if isinstance(src, Path) else None)
 
 
