@@ -43,7 +43,7 @@ from typing import Any, Sequence  # noqa: E402
 from .._lazy import module  # noqa: E402
 from ..errors import GeometryWarning  # noqa: E402
 from ..io.output import OutputError, Transaction, check_directory, check_distinct, check_writable, json_safe  # noqa: E402
-from ..options import CONTROLLERS, ESTIMATORS, OBJECTIVES  # noqa: E402
+from ..options import CONTROLLERS, ESTIMATORS, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE  # noqa: E402
 from ..plant.plantfile import load_plant  # noqa: E402
 from ..studies.movescene import MoveScene  # noqa: E402
 from ..studies.scene import load_scene  # noqa: E402
@@ -84,12 +84,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", metavar="S", type=number("--duration", 0.0, 1e4, "s", "a time", lo_open=True),
                    help="end of the record, s; at least 80 controller samples after the step and at most "
                         "40000 samples in all (default: the scene's)")
-    p.add_argument("--ms-max", metavar="MS", type=number("--ms-max", 1.0, 10.0, "", "a peak sensitivity",
+    lo, hi = PEAK_BOUND_RANGE
+    p.add_argument("--ms-max", metavar="MS", type=number("--ms-max", lo, hi, "", "a peak sensitivity",
                                                           lo_open=True, hi_open=True),
-                   help="peak-sensitivity bound, in (1, 10) (default: the scene's, 1.4)")
-    p.add_argument("--mt-max", metavar="MT", type=number("--mt-max", 1.0, 10.0, "", "a peak complementary sensitivity",
+                   help=f"peak-sensitivity bound, in ({lo:g}, {hi:g}) (default: the scene's, {MS_MAX_DEFAULT:g})")
+    p.add_argument("--mt-max", metavar="MT", type=number("--mt-max", lo, hi, "", "a peak complementary sensitivity",
                                                           lo_open=True, hi_open=True),
-                   help="peak complementary-sensitivity bound, in (1, 10); Mt >= 1 with integral action "
+                   help=f"peak complementary-sensitivity bound, in ({lo:g}, {hi:g}); Mt >= 1 with integral action "
                         "(default: the scene's, none)")
     p.add_argument("--objective", choices=OBJECTIVES, help="tuning objective (default: the scene's, iae)")
     p.add_argument("--controller", choices=CONTROLLERS, help="controller structure (default: the scene's, pi)")

@@ -44,7 +44,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from ..errors import SceneError
-from ..options import AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, OBJECTIVES, RIGID_RELATIVE_ERROR
+from ..options import (AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE,
+                       RIGID_RELATIVE_ERROR)
 from .movescene import MoveScene, parse_move_scene
 from .scenefile import (DEFAULT_SCENE, LOAD_CHANGE_TIME_RANGE_S, MAX_LOAD_LEVELS, MAX_RECORD_SAMPLES, MIN_LOAD_STEP_N,
                         POST_EVENT_SAMPLES, PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes,
@@ -169,7 +170,7 @@ class Scene:
     duration: float = 0.5
     objective: str = "iae"
     controller: str = "pi"
-    ms_max: float = 1.4
+    ms_max: float = MS_MAX_DEFAULT
     mt_max: float | None = None
     aggregate: str = "sum"
     candidates: int = 3
@@ -229,11 +230,12 @@ class Scene:
             raise bad("objective", self.objective, "one of ie, iae, itae, ise")
         if self.controller not in CONTROLLERS:
             raise bad("controller", self.controller, "pi or pid")
-        if not 1.0 < finite("ms_max", self.ms_max) < 10.0:
-            raise bad("ms_max", self.ms_max, "a number in (1, 10)")
-        if self.mt_max is not None and not 1.0 < finite("mt_max", self.mt_max) < 10.0:
+        lo, hi = PEAK_BOUND_RANGE
+        if not lo < finite("ms_max", self.ms_max) < hi:
+            raise bad("ms_max", self.ms_max, f"a number in ({lo:g}, {hi:g})")
+        if self.mt_max is not None and not lo < finite("mt_max", self.mt_max) < hi:
             # Mt = max|T| >= |T(0)| = 1 with integral action: a bound <= 1 cannot be met.
-            raise bad("mt_max", self.mt_max, "a number in (1, 10)")
+            raise bad("mt_max", self.mt_max, f"a number in ({lo:g}, {hi:g})")
         if self.aggregate not in AGGREGATES:
             raise bad("aggregate", self.aggregate, "sum or worst")
         if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or not 1 <= self.candidates <= 10:
