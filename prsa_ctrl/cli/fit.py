@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
-from ..io.export import toml_value
 from .common import EXIT_INTERRUPTED, Parser, UsageError, number
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
@@ -108,12 +107,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _toml_string(text: str) -> str:
-    return toml_value(text, ascii_only=False)
-
-
 def _toml_value(v) -> str:
+    """A TOML value as the plant files write it (:func:`prsa_ctrl.io.export.toml_value`, non-ASCII
+    text kept)."""
+    from ..io.export import toml_value  # CasADi (drive.pid): not before the flags are checked
+
     return toml_value(v, ascii_only=False)
+
+
+_toml_string = _toml_value
 
 
 def _uncertainty_line(key: str, entry) -> str:

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Sequence
 
 from .._lazy import module
-from ..drive.pid import PID
 from ..errors import GeometryWarning
 from ..io.output import Transaction, check_directory
 from ..options import DERIVATIVE_FILTER_SAMPLES
@@ -92,6 +91,8 @@ def _plot_body(run: Run, argv: list[str]) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         plant, scene, _ = load_and_override(args, run, plot=True)
+        from ..drive.pid import PID  # CasADi: after the flags are checked
+
         try:
             pid = PID(args.kp, args.ki, args.kd, tf=DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s)
         except ValueError as exc:
