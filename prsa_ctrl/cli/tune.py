@@ -44,7 +44,7 @@ from .._lazy import module  # noqa: E402
 from ..errors import GeometryWarning  # noqa: E402
 from ..io.output import OutputError, Transaction, check_directory, check_distinct, check_writable, json_safe  # noqa: E402
 from ..options import CONTROLLERS, ESTIMATORS, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE  # noqa: E402
-from ..plant.plantfile import load_plant  # noqa: E402
+from ..plant.plantfile import load_plant, show_plant  # noqa: E402
 from ..studies.movescene import MoveScene  # noqa: E402
 from ..studies.scene import load_scene  # noqa: E402
 from ..studies.scenefile import is_move_scene  # noqa: E402
@@ -79,6 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
         "Exit codes: 0 ok, 2 bad input, 3 numerical failure, 130 interrupted.",
     )
     scene_flags(p)
+    p.add_argument("--show-plant", type=path_text("--show-plant"), metavar="NAME|PATH",
+                   help="print every value of the plant with its unit and source (given or default), then exit")
     p.add_argument("--step-time", metavar="S", type=number("--step-time", 0.0, 1e4, "s", "a time", lo_open=True),
                    help="time of the load step, s; at least 8 controller samples after t = 0 (default: the scene's)")
     p.add_argument("--duration", metavar="S", type=number("--duration", 0.0, 1e4, "s", "a time", lo_open=True),
@@ -143,6 +145,9 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         build_parser().print_help()
         return EXIT_OK
     args = build_parser().parse_args(argv)
+    if args.show_plant is not None:  # issue 21: the plant's values with their sources
+        print(show_plant(args.show_plant))
+        return EXIT_OK
     notes: list[warnings.WarningMessage] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

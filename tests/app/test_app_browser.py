@@ -30,7 +30,7 @@ from prsa_ctrl import PID, load_plant, load_scene  # noqa: E402
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--no-first-run", "--disable-sync"]
 TIMEOUT_MS = 60_000
-SHOTS = Path(__file__).resolve().parents[1] / "docs" / "app"
+SHOTS = Path(__file__).resolve().parents[2] / "docs" / "app"
 
 
 def _chromium() -> str | None:
@@ -250,7 +250,7 @@ def test_copy_as_code_runs_to_the_shown_gains(app_page):
     assert f"{ns['result'].pid.kp:.6g}" == _text(page, "opt-kp")
 
 
-@pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="set PRSA_SLOW=1 (robust tuning + Monte Carlo, ~20 s)")
+@pytest.mark.slow  # robust tuning + Monte Carlo, ~20 s
 def test_robust_and_monte_carlo_with_progress_and_cancel(app_page):
     page = app_page
     page.locator(".prsa-samples input").fill("40")

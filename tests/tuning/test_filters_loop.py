@@ -1,7 +1,6 @@
 """Filters in the one sampled-loop simulator, in the linear loop model and in the tuner (issue 12)."""
 
 import math
-import os
 import tomllib
 import warnings
 
@@ -215,7 +214,7 @@ def test_bad_tuning_inputs_rejected_with_one_line():
     assert loop_filters(None) == () and loop_filters(Notch(300.0, 100.0))[0].place == "torque_command"
 
 
-@pytest.mark.skipif(not os.environ.get("PRSA_SLOW"), reason="slow evidence (PRSA_SLOW=1): the README case")
+@pytest.mark.slow  # slow evidence: the README case
 def test_readme_case_three_loops():
     """The README case: Ms <= 1.4 and Mks <= 0.05 at 500, 1000 and 1500 N, objective at 1000 N."""
     blds = [lambda f=None, L=L: _heavy_loop(f, horizon=0.3, load=L) for L in (1000.0, 500.0, 1500.0)]

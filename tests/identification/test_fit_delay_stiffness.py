@@ -2,7 +2,6 @@
 
 import json
 import math
-import os
 import tomllib
 import warnings
 
@@ -233,7 +232,7 @@ def test_cli_delay_and_compliant(base, heavy, tmp_path, capsys):
 # --- coverage (slow) ----------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="set PRSA_SLOW=1")
+@pytest.mark.slow
 def test_delay_and_stiffness_intervals_cover_the_truth_in_20_seeds(base, heavy):
     truth = base.with_params(TRUTH_RIGID)
     f = np.arange(8.0, 1600.0, 8.0)

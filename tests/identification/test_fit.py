@@ -2,8 +2,6 @@
 
 import json
 import math
-import os
-import sys
 import tomllib
 from pathlib import Path
 
@@ -15,7 +13,6 @@ from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.identification.fit import DEFAULT_KEYS, FitError, fit_plant
 from prsa_ctrl.identification.data import design_excitation, record_from_arrays
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from independent_actuator import simulate_independent  # noqa: E402
 
 TS = 2.5e-4
@@ -99,7 +96,7 @@ def _z_scores(result, truth):
     "issue",
     "heavy-lossy",
     # the third direction takes a second solver attempt (~10 s): with the slow studies
-    pytest.param("light-fast", marks=pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="set PRSA_SLOW=1")),
+    pytest.param("light-fast", marks=pytest.mark.slow),
 ])
 def test_toolkit_round_trip(base, case):
     truth = base.with_params(PERTURBED[case])
@@ -247,7 +244,7 @@ def test_cli_keeps_unidentified_keys_at_base_and_prints_clean(base, tmp_path, ca
     assert main([str(csv), "--out", str(out), "--json", str(rep)]) == 0
     cap = capsys.readouterr()
     doc, report = tomllib.loads(out.read_text()), json.loads(rep.read_text())
-    base_doc = tomllib.loads((Path(__file__).resolve().parent.parent / "plants" / "paper-iprsm.toml").read_text())
+    base_doc = tomllib.loads((Path(__file__).resolve().parents[2] / "plants" / "paper-iprsm.toml").read_text())
     kept = [k for k, v in report["parameters"].items() if v["kept_base"]]
     assert "friction.efficiency" in kept
     for k in kept:
@@ -326,7 +323,7 @@ def test_bad_arguments_and_non_convergence(base):
         fit_plant([rec], base, max_iter=1)
 
 
-@pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="20-seed CI coverage study: set PRSA_SLOW=1 (~6 min)")
+@pytest.mark.slow  # 20-seed CI coverage study (~6 min)
 @pytest.mark.parametrize("case", list(PERTURBED))
 def test_ci_coverage_over_20_seeds(base, case):
     """Issue 11: for each parameter, the truth inside its 95 % CI in >= 90 % of 20 seeds."""

@@ -22,7 +22,7 @@ import pytest
 
 from prsa_ctrl.cli.tune import main
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 SCENES = REPO / "tuning"
 PLANTS = REPO / "plants"
 
@@ -260,7 +260,7 @@ def test_ctrl_c_after_the_command_finished_is_exit_130_with_one_line(tmp_path):
 # --- hostile 19: prsa-bench --out and --repeats -------------------------------------------------
 
 #: The benchmarks, outside the package (issue 22): ``python benchmarks/bench.py``.
-BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "bench.py"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench.py"
 
 
 def _bench_module():
