@@ -476,7 +476,7 @@ def _load_plant(name_or_path, label: str | None = None) -> tuple[Plant, str, lis
 
 
 def _load_scene(name_or_path, label: str | None = None) -> tuple[Scene, str, list[str]]:
-    from ..tuning.cascade import is_move_scene
+    from ..studies.scenefile import is_move_scene
 
     text = label or (str(name_or_path) if name_or_path is not None else "paper-load-step")
     if is_move_scene(name_or_path):

@@ -29,6 +29,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from .common import Parser, UsageError
+
 __all__ = ["wants_axis_mode", "run"]
 
 
@@ -44,15 +46,6 @@ def wants_axis_mode(argv: Sequence[str]) -> bool:
     return False
 
 
-class _UsageError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:
-        raise _UsageError(re.sub(r"^argument (-[-\w]+)(?:/-[-\w]+)*: ", r"\1 ", message))
-
-
 def _fraction(text: str) -> float:
     try:
         v = float(text)
@@ -64,7 +57,7 @@ def _fraction(text: str) -> float:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="prsa-fit", description="Fit or validate a linear-axis plant on logs described by --log-format.",
+    p = Parser(prog="prsa-fit", flag_first=True, description="Fit or validate a linear-axis plant on logs described by --log-format.",
                 allow_abbrev=False)
     p.add_argument("data", nargs="*", metavar="LOG", help="logs (CSV or MATLAB .mat) to fit")
     p.add_argument("--log-format", metavar="FORMAT.toml", help="log description (prsa_ctrl.identification.logformat)")
@@ -93,7 +86,7 @@ def run(argv: Sequence[str]) -> int:
         if args.validate:
             return _validate(args)
         return _fit(args)
-    except (_UsageError, argparse.ArgumentTypeError, LogFormatError, AxisPlantError, OutputError, ValueError) as exc:
+    except (UsageError, argparse.ArgumentTypeError, LogFormatError, AxisPlantError, OutputError, ValueError) as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     except (AxisFitError, SimulationError) as exc:
@@ -107,7 +100,7 @@ def _load_logs(args, paths: Sequence[str]):
     if not args.log_format:
         other = [p for p in paths if not p.lower().endswith(".csv")]
         if other:
-            raise _UsageError(f"{other[0]}: no --log-format; expected --log-format FORMAT.toml describing the log's "
+            raise UsageError(f"{other[0]}: no --log-format; expected --log-format FORMAT.toml describing the log's "
                               "variables, units and controller (only a CSV log with the standard columns time_s, "
                               "position_m, force_n needs none)")
         fmt = DEFAULT_CSV_FORMAT
@@ -173,7 +166,7 @@ def _base_plant(args, logs):
             srcs["sensor.encoder_resolution_m"] = f"estimate: smallest position step in {Path(lg.name).name}"
     for other in logs[1:]:
         if not math.isclose(other.gain_n_per_unit, lg.gain_n_per_unit, rel_tol=1e-9):
-            raise _UsageError(f"{other.name}: drive gain {other.gain_n_per_unit:g} differs from {lg.name}'s "
+            raise UsageError(f"{other.name}: drive gain {other.gain_n_per_unit:g} differs from {lg.name}'s "
                               f"{lg.gain_n_per_unit:g}; expected logs of one axis")
     return base.with_values(vals, srcs)
 
@@ -182,13 +175,13 @@ def _fit(args) -> int:
     from ..identification.axis import axis_plant_toml, fit_linear_axis, replay_axis
 
     if args.traces:
-        raise _UsageError(f"--traces {args.traces!r} without --validate; expected it with --validate PLANT.toml LOG")
+        raise UsageError(f"--traces {args.traces!r} without --validate; expected it with --validate PLANT.toml LOG")
     if not args.data:
-        raise _UsageError("no log; expected prsa-fit LOG... --log-format FORMAT.toml --out FITTED.toml")
+        raise UsageError("no log; expected prsa-fit LOG... --log-format FORMAT.toml --out FITTED.toml")
     if not args.out:
-        raise _UsageError("no --out; expected --out FITTED.toml for the fitted plant")
+        raise UsageError("no --out; expected --out FITTED.toml for the fitted plant")
     if not args.log_format:
-        raise _UsageError(f"--log-format {args.log_format!r}: expected a log description FORMAT.toml to fit with")
+        raise UsageError(f"--log-format {args.log_format!r}: expected a log description FORMAT.toml to fit with")
     inputs = [*args.data, args.log_format or "", *([args.plant] if args.plant else [])]
     _check({"--out": args.out, "--json": args.json}, inputs, args.plots)
     fmt, logs = _load_logs(args, args.data)
@@ -238,13 +231,13 @@ def _validate(args) -> int:
     plant_path, *paths = args.validate
     paths = [*paths, *args.data]
     if args.out:
-        raise _UsageError(f"--out {args.out!r} with --validate; expected --json/--traces/--plots for a validation")
+        raise UsageError(f"--out {args.out!r} with --validate; expected --json/--traces/--plots for a validation")
     if args.holdout or args.plant:
-        raise _UsageError("--holdout/--plant with --validate; expected them only when fitting")
+        raise UsageError("--holdout/--plant with --validate; expected them only when fitting")
     if not paths:
-        raise _UsageError(f"--validate {plant_path}: no log; expected --validate PLANT.toml LOG...")
+        raise UsageError(f"--validate {plant_path}: no log; expected --validate PLANT.toml LOG...")
     if args.traces and len(paths) > 1:
-        raise _UsageError(f"--traces {args.traces!r} with {len(paths)} logs; expected one log (one row per sample)")
+        raise UsageError(f"--traces {args.traces!r} with {len(paths)} logs; expected one log (one row per sample)")
     inputs = [plant_path, *paths, args.log_format or ""]
     _check({"--json": args.json, "--traces": args.traces}, inputs, args.plots)
     plant = load_axis_plant(plant_path)

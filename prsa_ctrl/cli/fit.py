@@ -38,43 +38,27 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
+from .common import EXIT_INTERRUPTED, Parser, UsageError, number
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
-
-#: Exit code of a run stopped by Ctrl-C (as ``prsa-tune``).
-EXIT_INTERRUPTED = 130
 
 #: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
 #: speed range the tuner accepts (:data:`prsa_ctrl.studies.scene.SETPOINT_MAX_RPM`, 6000 rpm).
 DESIGN_MAX_SPEED_RAD_S = 6000.0 * math.pi / 30.0
 
 
-class _UsageError(Exception):
-    pass
+def _positive(flag: str):
+    """Converter of a number flag > 0 (messages quote the text: ``--duration '-1': ...``)."""
+    return number(flag, 0.0, what="a finite number > 0", lo_open=True, quoted=True, not_a_number="a number")
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
-        # argparse says "argument --duration: '-1': ..."; the tools say "--duration '-1': ..."
-        raise _UsageError(re.sub(r"^argument (-[-\w]+)(?:/-[-\w]+)*: ", r"\1 ", message))
-
-
-def _number(flag: str, positive: bool = True):
-    """Converter of a number flag; the message names the value as typed (argparse adds the flag)."""
-    def conv(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
-        if not math.isfinite(v) or (positive and v <= 0):
-            raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number{' > 0' if positive else ''}")
-        return v
-
-    return conv
+def _finite(flag: str):
+    """Converter of a finite number flag."""
+    return number(flag, what="a finite number", quoted=True, not_a_number="a number")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="prsa-fit", description="Fit a plant file to measured drive data (grey-box, with 95 % CIs), "
+    p = Parser(prog="prsa-fit", flag_first=True, description="Fit a plant file to measured drive data (grey-box, with 95 % CIs), "
                 "or write an excitation signal for the experiment.")
     p.add_argument("data", nargs="*", metavar="DATA.csv", help="time-domain records to fit")
     p.add_argument("--out", required=True, metavar="PATH", help="output plant .toml (or excitation .csv with --design)")
@@ -82,11 +66,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frf", nargs="+", default=[], metavar="FRF.csv", help="frequency responses torque command -> "
                    "nut speed (frequency_hz, magnitude_db, phase_deg[, coherence] or real, imag): fitted alone "
                    "without DATA.csv, otherwise used to validate the fit")
-    p.add_argument("--frf-speed", type=_number("--frf-speed", positive=False), default=30.0, metavar="RAD_S",
+    p.add_argument("--frf-speed", type=_finite("--frf-speed"), default=30.0, metavar="RAD_S",
                    help="nut speed during the FRF measurement, rad/s (default 30)")
-    p.add_argument("--frf-load", type=_number("--frf-load", positive=False), default=None, metavar="N",
+    p.add_argument("--frf-load", type=_finite("--frf-load"), default=None, metavar="N",
                    help="axial load during the FRF measurement, N (default --load, else 0)")
-    p.add_argument("--coherence-min", type=_number("--coherence-min", positive=False), default=0.8, metavar="C",
+    p.add_argument("--coherence-min", type=_finite("--coherence-min"), default=0.8, metavar="C",
                    help="FRF points with a lower coherence are dropped (default 0.8)")
     p.add_argument("--plots", metavar="DIR", help="write residual, overlay and Bode figures (PNG) into DIR "
                    "(created if missing)")
@@ -97,24 +81,24 @@ def build_parser() -> argparse.ArgumentParser:
                    "command delay from --frf data")
     p.add_argument("--validate", nargs="+", default=[], metavar="CSV", help="records not fitted; their fit %% is reported")
     p.add_argument("--columns", default=None, metavar="name=header,...", help="map other CSV headers to the standard names")
-    p.add_argument("--torque-constant", type=_number("--torque-constant"), metavar="N_M_PER_A",
+    p.add_argument("--torque-constant", type=_positive("--torque-constant"), metavar="N_M_PER_A",
                    help="torque constant for a current_a column, N m/A")
-    p.add_argument("--load", type=_number("--load", positive=False), metavar="N", help="constant axial load, N, "
+    p.add_argument("--load", type=_finite("--load"), metavar="N", help="constant axial load, N, "
                    "for files without a load column")
     p.add_argument("--fidelity", default="rigid", choices=("rigid", "compliant"), help="model fidelity (default rigid)")
-    p.add_argument("--segment", type=_number("--segment"), default=0.1, metavar="S",
+    p.add_argument("--segment", type=_positive("--segment"), default=0.1, metavar="S",
                    help="multiple-shooting segment length, s (default 0.1)")
     p.add_argument("--delay-samples", type=int, default=0, metavar="N", help="samples between a logged command and "
                    "the sample it acts from (default 0)")
     p.add_argument("--design", choices=("multisine", "chirp", "steps"), help="write an excitation signal instead of fitting")
-    p.add_argument("--duration", type=_number("--duration"), default=4.0, metavar="S", help="excitation length, s")
-    p.add_argument("--sample-time", type=_number("--sample-time"), default=2.5e-4, metavar="S", help="sample time, s")
-    p.add_argument("--f-min", type=_number("--f-min"), default=1.0, metavar="HZ", help="lowest frequency, Hz")
-    p.add_argument("--f-max", type=_number("--f-max"), default=200.0, metavar="HZ", help="highest frequency, Hz")
-    p.add_argument("--amplitude", type=_number("--amplitude"), default=20.0, metavar="RAD_S",
+    p.add_argument("--duration", type=_positive("--duration"), default=4.0, metavar="S", help="excitation length, s")
+    p.add_argument("--sample-time", type=_positive("--sample-time"), default=2.5e-4, metavar="S", help="sample time, s")
+    p.add_argument("--f-min", type=_positive("--f-min"), default=1.0, metavar="HZ", help="lowest frequency, Hz")
+    p.add_argument("--f-max", type=_positive("--f-max"), default=200.0, metavar="HZ", help="highest frequency, Hz")
+    p.add_argument("--amplitude", type=_positive("--amplitude"), default=20.0, metavar="RAD_S",
                    help="peak excursion of the speed setpoint, rad/s (|offset| + amplitude at most "
                    f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = 6000 rpm)")
-    p.add_argument("--offset", type=_number("--offset", positive=False), default=30.0, metavar="RAD_S",
+    p.add_argument("--offset", type=_finite("--offset"), default=30.0, metavar="RAD_S",
                    help="mean of the speed setpoint, rad/s")
     p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
                    "keys' [uncertainty] entries (default: keep the base plant's entries, replaced only where one is "
@@ -123,16 +107,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _toml_string(text: str) -> str:
-    return json.dumps(text, ensure_ascii=False)
-
-
 def _toml_value(v) -> str:
-    if isinstance(v, str):
-        return _toml_string(v)
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    return repr(float(v)) if isinstance(v, float) else repr(v)
+    """A TOML value as the plant files write it (:func:`prsa_ctrl.io.export.toml_value`, non-ASCII
+    text kept)."""
+    from ..io.export import toml_value  # CasADi (drive.pid): not before the flags are checked
+
+    return toml_value(v, ascii_only=False)
+
+
+_toml_string = _toml_value
 
 
 def _uncertainty_line(key: str, entry) -> str:
@@ -305,9 +288,9 @@ def _check_outputs(paths: dict[str, str], inputs: Sequence[str]) -> None:
 
 def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
     """Text of the base plant file and its path (None for a built-in)."""
-    from ..plant.plantfile import _resolve
+    from ..plant.plantfile import plant_file_path
 
-    src = _resolve(plant_arg)
+    src = plant_file_path(plant_arg)
     return src.read_text(encoding="utf-8"), (str(src) if isinstance(src, Path) else None)
 
 
@@ -329,11 +312,11 @@ def _design(args, argv: Sequence[str]) -> int:
     from ..identification.data import design_excitation
 
     if args.json:
-        raise _UsageError(f"--json {args.json!r} with --design; expected no JSON report (the design writes only the "
+        raise UsageError(f"--json {args.json!r} with --design; expected no JSON report (the design writes only the "
                           "excitation CSV named by --out)")
     peak = abs(args.offset) + args.amplitude
     if peak > DESIGN_MAX_SPEED_RAD_S:
-        raise _UsageError(f"--amplitude {_typed(argv, '--amplitude', args.amplitude)} with --offset "
+        raise UsageError(f"--amplitude {_typed(argv, '--amplitude', args.amplitude)} with --offset "
                           f"{_typed(argv, '--offset', args.offset)}: the setpoint reaches "
                           f"{peak:.6g} rad/s ({peak * 30 / math.pi:.6g} rpm); expected |offset| + amplitude <= "
                           f"{DESIGN_MAX_SPEED_RAD_S:.6g} rad/s (6000 rpm, the tuner's speed limit)")
@@ -416,7 +399,7 @@ def _probe_output(path: str, inputs: Sequence[str], flag: str) -> None:
     except OSError as exc:
         if isinstance(exc, OutputError):
             raise
-        raise _UsageError(f"{what}: cannot be written ({exc.strerror or exc}); expected a writable file path "
+        raise UsageError(f"{what}: cannot be written ({exc.strerror or exc}); expected a writable file path "
                           "(a shorter name, no symlink loop)") from None
 
 
@@ -441,7 +424,7 @@ def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> N
     bad = frf_operating_point_error(plant, speed, load)
     if bad:
         flag, value = ("--frf-speed", speed) if bad[0] == "speed" else ("--frf-load", load)
-        raise _UsageError(f"{flag} {_typed(argv, flag, value)}: {bad[1]}")
+        raise UsageError(f"{flag} {_typed(argv, flag, value)}: {bad[1]}")
 
 
 def _main(argv: Sequence[str], created: list | None = None) -> int:
@@ -454,13 +437,13 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
         args = build_parser().parse_args(argv)
         if args.design:
             if args.data:
-                raise _UsageError(f"--design with data files {' '.join(args.data)}; expected one or the other")
+                raise UsageError(f"--design with data files {' '.join(args.data)}; expected one or the other")
             return _design(args, argv)
         if not args.data and not args.frf:
-            raise _UsageError("no data file; expected prsa-fit DATA.csv [...] [--frf FRF.csv] --out PLANT.toml "
+            raise UsageError("no data file; expected prsa-fit DATA.csv [...] [--frf FRF.csv] --out PLANT.toml "
                               "(or --design)")
         if not 0 <= args.coherence_min < 1:
-            raise _UsageError(f"--coherence-min {args.coherence_min!r}: expected 0 <= C < 1")
+            raise UsageError(f"--coherence-min {args.coherence_min!r}: expected 0 <= C < 1")
         from ..identification.common import FITTABLE
         from ..plant.plantfile import load_plant
 
@@ -469,11 +452,11 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
             keys = [k.strip() for k in args.fit.split(",") if k.strip()]
             for k in keys:
                 if k not in FITTABLE:
-                    raise _UsageError(f"--fit {args.fit!r}: unknown key {k!r}; expected some of {', '.join(FITTABLE)}")
+                    raise UsageError(f"--fit {args.fit!r}: unknown key {k!r}; expected some of {', '.join(FITTABLE)}")
             if not keys:
-                raise _UsageError(f"--fit {args.fit!r}: expected at least one key")
+                raise UsageError(f"--fit {args.fit!r}: expected at least one key")
         if not 0 <= args.delay_samples <= 10:
-            raise _UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
+            raise UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
         plant = load_plant(args.plant)
         base_text, base_path = _base_text(args.plant)
         # the fitted plant file can be written for any spelling of the base (checked before the fit)
@@ -504,10 +487,10 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
         records = [load_record(f, **opts) for f in args.data]
         validate = [load_record(f, **opts) for f in args.validate]
         if args.validate and not args.data:
-            raise _UsageError("--validate without DATA.csv; expected time-domain records to fit first")
+            raise UsageError("--validate without DATA.csv; expected time-domain records to fit first")
         frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
                 for f in args.frf]
-    except (_UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
+    except (UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # e.g. an input path that is a symlink loop

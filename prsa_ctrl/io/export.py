@@ -60,9 +60,10 @@ from ..drive.filters import Filter, FirstOrderLowPass
 
 if TYPE_CHECKING:
     from ..plant.plantfile import Plant
+    from ..tuning.cascade import CascadeDesign
 
-__all__ = ["export_controller", "dumps", "FORMATS", "FILTER_PLACES", "pid_biquad", "simulated_biquad",
-           "DISCRETISATIONS"]
+__all__ = ["export_controller", "export_cascade", "dumps", "FORMATS", "FILTER_PLACES", "pid_biquad",
+           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW", "toml_value"]
 
 #: Output formats of :func:`dumps`.
 FORMATS = ("json", "toml")
@@ -458,6 +459,79 @@ def export_controller(
     return out
 
 
+# --- cascade (position loop over the speed loop) ------------------------------------------------
+
+#: The position loop's per-sample law as the drive export states it (``position_controller.law``):
+#: each right-hand side is an expression in the exported fields of ``position_controller`` and
+#: the signals ``p_ref, p_meas, v_ref, acc_ref, I_prev`` (the same law as
+#: :meth:`prsa_ctrl.drive.measurement.PositionLoop.update`).
+POSITION_LAW = {
+    "e": "(p_ref - p_meas) * error_to_rad",
+    "I": "I_prev + sample_time_s * ki_per_s2 * e",
+    "w_ref": "kv_per_s * e + I + velocity_feedforward * v_ref / lead_m_per_rad",
+    "tau_ff": "torque_per_acceleration_n_m_s2_per_rad * acc_ref / lead_m_per_rad",
+}
+
+
+def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str) -> dict:
+    """Drive export of a cascade: the speed PI as :func:`prsa_ctrl.io.export.export_controller`
+    gives it, plus the position loop (``Kv`` [1/s], integral gain, feed-forward gains, the
+    acceleration feed-forward as a torque per acceleration, the position-loop sample time and
+    the discrete law).
+
+    Parameters
+    ----------
+    design : CascadeDesign
+    plant : Plant
+    fmt : {"json", "toml"}
+
+    Returns
+    -------
+    dict
+    """
+    out = export_controller(design.speed, plant, fmt=fmt)
+    pos = design.position
+    ts = plant.sample_time_s
+    tp = ts * pos.rate
+    a = plant.lead_per_rad
+    inertia = float(plant.reflected_inertia_kg_m2)
+    out["loop"] = "position over speed"
+    ctrl = out["speed_controller"]
+    if "vendor" in ctrl and isinstance(ctrl["vendor"], dict):
+        ctrl["vendor"]["kv_per_s"] = float(pos.kv)
+        ctrl["vendor"]["note"] = ("Tn = kp/ki (integral/reset time), Tv = kd/kp (derivative time), per-rpm gains use "
+                                  "1 rpm = 2 pi/60 rad/s; Kv = kv_per_s is the gain of the position loop over this "
+                                  "speed loop (see position_controller)")
+    law = dict(POSITION_LAW)
+    out["position_controller"] = {
+        "measured": pos.measured,
+        "sample_time_s": tp,
+        "kv_per_s": float(pos.kv),
+        "kv_m_min_per_mm": float(pos.kv) * 60.0 / 1000.0,  # (m/min of speed) per mm of error
+        "ki_per_s2": float(pos.ki),
+        "tn_s": float(pos.kv / pos.ki) if pos.ki > 0 else None,
+        "velocity_feedforward": float(pos.kvff),
+        "acceleration_feedforward": float(pos.kaff),
+        "reflected_inertia_kg_m2": inertia,
+        "torque_per_acceleration_n_m_s2_per_rad": float(pos.kaff) * inertia,
+        "lead_m_per_rad": a,
+        "error_to_rad": 1.0 if pos.measured == "nut_angle" else 1.0 / a,
+        "law": law,
+        "formula": "; ".join(f"{k}[k] = {v}" for k, v in law.items())
+                   + " (p_ref, p_meas in the measured unit: rad of the nut for nut_angle, m for screw_position; "
+                     "v_ref in m/s, acc_ref in m/s^2 of screw travel; I_prev = I[k-1], 0 at rest); w_ref (rad/s) "
+                     "is the speed PI's reference and tau_ff (N m) is added to its command u[k]; both held for "
+                     "sample_time_s. torque_per_acceleration_n_m_s2_per_rad already contains "
+                     "acceleration_feedforward (= acceleration_feedforward reflected_inertia_kg_m2): do not "
+                     "multiply by it again",
+        "discretisation": "explicit sum for the integral (I updated with e[k] before use), zero-order hold of w_ref "
+                          "and tau_ff over sample_time_s",
+    }
+    if fmt == "toml":
+        out["position_controller"] = {k: v for k, v in out["position_controller"].items() if v is not None}
+    return out
+
+
 # --- writers -----------------------------------------------------------------------------------
 
 def _toml_key(k: str) -> str:
@@ -466,7 +540,18 @@ def _toml_key(k: str) -> str:
     return k if k and all(c.isalnum() and c.isascii() or c in "_-" for c in k) else json.dumps(k)
 
 
-def _toml_value(v: Any, where: str) -> str:
+def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
+    """A TOML value: bool, integer, finite float (all digits, ``repr``), string (a JSON string,
+    ASCII with ``\\uXXXX`` escapes unless ``ascii_only`` is false), or a list of those.
+
+    Raises
+    ------
+    ValueError
+        A non-finite number, None or another type, naming ``where``.
+
+    >>> toml_value([1, 2.5, "x"]), toml_value(True), toml_value("µ", ascii_only=False)
+    ('[1, 2.5, "x"]', 'true', '"µ"')
+    """
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, np.integer)):
@@ -478,9 +563,9 @@ def _toml_value(v: Any, where: str) -> str:
         r = repr(f)
         return r if any(c in r for c in ".en") else r + ".0"
     if isinstance(v, str):
-        return json.dumps(v)  # a JSON string (ASCII, \uXXXX escapes) is a TOML basic string
+        return json.dumps(v, ensure_ascii=ascii_only)  # a JSON string is a TOML basic string
     if isinstance(v, (list, tuple)) and not any(isinstance(x, dict) for x in v):
-        return "[" + ", ".join(_toml_value(x, where) for x in v) + "]"
+        return "[" + ", ".join(toml_value(x, where, ascii_only=ascii_only) for x in v) + "]"
     raise ValueError(f"{where} = {v!r}; expected a number, string, bool or list of those (TOML has no null)")
 
 
@@ -490,7 +575,7 @@ def _toml_table(d: dict, path: list[str], lines: list[str]) -> None:
         if isinstance(v, dict) or (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
             tables.append((k, v))
         else:
-            lines.append(f"{_toml_key(k)} = {_toml_value(v, '.'.join(path + [k]))}")
+            lines.append(f"{_toml_key(k)} = {toml_value(v, '.'.join(path + [k]))}")
     for k, v in tables:
         sub = path + [_toml_key(k)]
         if isinstance(v, dict):

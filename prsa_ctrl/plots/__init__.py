@@ -9,6 +9,8 @@ _EXPORTS = {
     "bode_plant": "loop",
     "contact_force_plot": "loop",
     "design_figures": "loop",
+    "draw_design_figures": "loop",
+    "draw_report_figures": "loop",
     "duty_cycle_comparison": "loop",
     "duty_cycle_pairs_plot": "loop",
     "duty_cycle_plot": "loop",
@@ -23,6 +25,7 @@ _EXPORTS = {
     "step_response_plot": "loop",
     "tuning_landscape": "loop",
     "write_design_plots": "loop",
+    "write_move_plots": "move",
     "write_standard_plots": "loop",
 }
 

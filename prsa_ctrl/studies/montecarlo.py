@@ -43,7 +43,7 @@ dask = module("dask")
 distributed = module("dask.distributed")
 
 __all__ = ["MonteCarloReport", "DesignYield", "MonteCarloInterrupted", "run_monte_carlo", "format_report",
-           "wilson_interval", "draw_sample", "replay_sample", "benchmark", "scene_options", "verification_settings",
+           "wilson_interval", "draw_sample", "replay_sample", "scene_options", "verification_settings", "local_cluster",
            "METRICS", "BACKENDS"]
 
 #: Metrics recorded per design and sample (worst over the sample's load steps).
@@ -389,7 +389,7 @@ def _replay_cmd(plant, scene, seed: int, index: int, pid, settings=None) -> str:
     p, s = _identity(plant, scene)
     g = {k: float(v) for k, v in pid.as_dict().items()}
     integ = "fast" if settings is not None and settings.integrator == "radau" else "reference"
-    cmd = (f"python -m prsa_ctrl.studies.montecarlo --plant {p} --scene {s} --seed {seed} --index {index} "
+    cmd = (f"python -m prsa_ctrl.cli.montecarlo --plant {p} --scene {s} --seed {seed} --index {index} "
            f"--integrator {integ} --kp {g['kp']!r} --ki {g['ki']!r} --kd {g['kd']!r} --tf {g['tf']!r}")
     return cmd + (f" --kff {g['kff']!r}" if g.get("kff") else "")
 
@@ -662,13 +662,13 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
         pool.shutdown(wait=False, cancel_futures=True)
 
 
-def _local_cluster(workers: int):
-    """A LocalCluster of ``workers`` single-threaded processes on 127.0.0.1."""
-    local_cluster = distributed.LocalCluster  # imported before the config is changed, as Dask expects
+def local_cluster(workers: int):
+    """A Dask LocalCluster of ``workers`` single-threaded processes on 127.0.0.1."""
+    cluster_class = distributed.LocalCluster  # imported before the config is changed, as Dask expects
     # The workers' statistical profiler (a stack sample every 10 ms) costs ~3 % of a worker's
     # CPU; nothing reads it here.
     with dask.config.set({"distributed.worker.profile.enabled": False}):
-        return local_cluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+        return cluster_class(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                             dashboard_address=None,  # no dashboard; its HTTP server on a free port,
                             scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})  # not 8787 (may be taken)
 
@@ -689,7 +689,7 @@ def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took) -> None:
     if not own:
         client = scheduler
     elif scheduler == "local":
-        cluster = _local_cluster(workers)
+        cluster = local_cluster(workers)
         client = Client(cluster)
     else:
         client = Client(scheduler, timeout=30)
@@ -723,7 +723,7 @@ def scene_options(scene) -> dict[str, int]:
     return {"samples": int(rob.get("monte_carlo", 0)), "seed": int(rob.get("seed", 0))}
 
 
-# --- replay, figures, benchmark ------------------------------------------------------------------
+# --- replay, figures ----------------------------------------------------------------------------
 
 def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "auto") -> dict[str, Any]:
     """Re-run one sample of one design: its parameter values, operating point and metrics
@@ -739,123 +739,3 @@ def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "a
             "metrics": dict(zip(METRICS, map(float, m[0]))), "passes_spec": bool(ok[0]), "error": err[0]}
 
 
-def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, scene=None,
-              backends: Sequence[str] = ("serial", "process", "dask", "dask-running"), quiet: bool = True,
-              spec: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Wall time (s, median of ``repeats``, backends run in turn) of ``n`` verifications of the
-    paper design on the scene's samples (default the robust scene): serial, ``workers``
-    processes, a Dask LocalCluster of ``workers`` started for each run (``"dask"``, start-up
-    and shut-down included, as ``--scheduler local``) and one already running
-    (``"dask-running"``, a ``Client`` passed in, as ``--scheduler tcp://...``; started once,
-    its start-up reported as ``cluster_start_s``). ``spec``
-    defaults to no bounds (pure verifications; the scene's ``ms`` bound would add a
-    linearisation per sample). Also checks that the backends agree bit for bit.
-
-    A warm-up run of 2 samples first makes the one-off integrator choice
-    (:func:`verification_settings`, its time reported as ``integration["check_s"]``) and
-    compiles the law into the per-user cache; the timed runs reuse both (the check is cached
-    in-process, the compiled law on disk). ``cpu_per_sample_s``: CPU time of the serial runs
-    per sample (less sensitive to a loaded machine than wall time)."""
-    from .paper import default_pid
-    from ..plant.plantfile import load_plant
-    from .scene import load_scene
-
-    plant = plant or load_plant()
-    scene = scene or load_scene("robust-load-step")
-    pid = default_pid(plant)
-    times: dict[str, list[float]] = {}
-    cpu: list[float] = []
-    ref = None
-    identical = True
-    t = time.perf_counter()
-    warm = run_monte_carlo(plant, scene, {"paper": pid}, 2, seed=0, quiet=True, spec={} if spec is None else spec)
-    warm_s = time.perf_counter() - t
-    running = cluster = None
-    if "dask-running" in backends:
-        from dask.distributed import Client
-
-        t = time.perf_counter()
-        cluster = _local_cluster(workers)
-        running = Client(cluster)
-        cluster_start_s = time.perf_counter() - t
-        run_monte_carlo(plant, scene, {"paper": pid}, 2 * workers, seed=0, scheduler=running, quiet=True, chunk=1,
-                        spec={} if spec is None else spec)  # the workers' imports, as a warm-up
-    # In turn (serial, process, dask, serial, ...), so that drift of a shared machine's speed
-    # hits every backend alike.
-    try:
-        for _ in range(repeats):
-            for b in backends:
-                t, c = time.perf_counter(), time.process_time()
-                if b == "dask-running":
-                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, scheduler=running, quiet=quiet,
-                                        spec={} if spec is None else spec)
-                else:
-                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, backend=b,
-                                        workers=1 if b == "serial" else workers, quiet=quiet,
-                                        spec={} if spec is None else spec)
-                times.setdefault(b, []).append(time.perf_counter() - t)
-                if b == "serial":
-                    cpu.append((time.process_time() - c) / n)
-                if ref is None:
-                    ref = r.samples["metrics"]
-                elif not np.array_equal(ref, r.samples["metrics"], equal_nan=True):
-                    identical = False
-    finally:
-        if running is not None:
-            running.close()
-            cluster.close()
-    med = {b: float(np.median(v)) for b, v in times.items()}
-    from .scene import choose_fidelity
-
-    out: dict[str, Any] = {"n": n, "workers": workers, "repeats": repeats, "median_s": med, "runs_s": times,
-                           "identical": identical, "fidelity": choose_fidelity(scene)[0].fidelity,
-                           "scene": scene.name, "plant": plant.name, "integration": warm.integration,
-                           "warm_up_s": warm_s}
-    if cpu:
-        out["cpu_per_sample_s"] = float(np.median(cpu))
-    if "serial" in med and "process" in med:
-        out["parallel_efficiency"] = med["serial"] / (workers * med["process"])
-    if "process" in med and "dask" in med:
-        out["dask_overhead"] = med["dask"] / med["process"] - 1
-    if "process" in med and "dask-running" in med:
-        out["dask_running_overhead"] = med["dask-running"] / med["process"] - 1
-        out["cluster_start_s"] = cluster_start_s
-    return out
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m prsa_ctrl.studies.montecarlo``: replay one Monte-Carlo sample of one design."""
-    import argparse
-    import json
-
-    from ..drive.pid import PID
-    from ..errors import PlantFileError, SceneError
-    from ..plant.plantfile import load_plant
-    from .scene import load_scene
-
-    ap = argparse.ArgumentParser(prog="python -m prsa_ctrl.studies.montecarlo", description=main.__doc__)
-    ap.add_argument("--plant", default=None)
-    ap.add_argument("--scene", default="robust-load-step")
-    ap.add_argument("--seed", type=int, required=True)
-    ap.add_argument("--index", type=int, required=True)
-    ap.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto",
-                    help="the run's integrator choice (its replay command names it)")
-    for g in ("kp", "ki", "kd", "tf", "kff"):
-        ap.add_argument(f"--{g}", type=float, default=0.0 if g in ("kd", "kff") else None, required=g in ("kp", "ki"))
-    a = ap.parse_args(argv)
-    try:
-        plant, scene = load_plant(a.plant), load_scene(a.scene)
-        kw = {"tf": a.tf} if a.tf else {}
-        pid = PID(a.kp, a.ki, a.kd, kff=a.kff, **kw)
-        if a.seed < 0 or a.index < 0:
-            raise ValueError(f"--seed {a.seed} --index {a.index}; expected integers >= 0")
-        out = replay_sample(plant, scene, pid, a.seed, a.index, a.integrator)
-    except (PlantFileError, SceneError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(json_safe(out), indent=2))
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())

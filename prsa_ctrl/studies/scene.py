@@ -39,13 +39,17 @@ from __future__ import annotations
 
 import math
 import os
-import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
 from ..errors import SceneError
-from ..options import AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, OBJECTIVES, RIGID_RELATIVE_ERROR
+from ..options import (AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE,
+                       RIGID_RELATIVE_ERROR)
+from .movescene import MoveScene, parse_move_scene
+from .scenefile import (DEFAULT_SCENE, LOAD_CHANGE_TIME_RANGE_S, MAX_LOAD_LEVELS, MAX_RECORD_SAMPLES, MIN_LOAD_STEP_N,
+                        POST_EVENT_SAMPLES, PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes,
+                        is_move_scene, locate_scene, read_scene_doc)
 
 #: What a duty-cycle scene tunes for (see the module docstring).
 GOALS = ("load", "setpoint", "mix")
@@ -54,45 +58,12 @@ MAX_PROFILE_ROWS = 40_000
 #: Largest CSV trace file, bytes (40 000 rows of up to ~400 characters; a larger file is refused
 #: before it is read).
 MAX_TRACE_BYTES = 16 * 1024 * 1024
-from ..plant.plantfile import _builtin_root
 
 __all__ = ["Scene", "load_scene", "builtin_scenes", "choose_fidelity", "DEFAULT_SCENE", "OUTPUTS",
            "RIGID_RELATIVE_ERROR", "check_against_plant", "holding_capacity_n", "SETPOINT_MAX_RPM",
            "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES", "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS", "MIN_LOAD_STEP_N",
-           "GOALS", "read_trace_csv", "profile_rows"]
+           "GOALS", "read_trace_csv", "profile_rows", "is_move_scene", "require_speed_scene"]
 
-
-DEFAULT_SCENE = "paper-load-step"
-
-#: Highest nut-speed setpoint accepted, rpm: roller-screw catalogues rate nut speeds up to
-#: ~5000 rpm (d n limits of the rolling contacts); the contact models are not validated beyond.
-SETPOINT_MAX_RPM = 6000.0
-#: Lowest setpoint as a multiple of the speed at which the screw moves at the Stribeck velocity:
-#: at 1x (3 rpm on paper-iprsm) the verified run of the paper plant goes non-finite, at 3x
-#: (10 rpm) it is fine; 5x keeps a margin.
-STICTION_MARGIN = 5.0
-#: Controller samples of steady running needed before an event (load step): the verification
-#: starts this many samples before it (``autotune._PRE_SAMPLES``) so that the sampled
-#: controller, the speed filter and the ZOH are in their steady state when the load moves.
-PRE_EVENT_SAMPLES = 8
-#: Controller samples needed after the event: the fastest closed loop a sampled drive reaches
-#: has a time constant of ~10 samples (crossover <= ~0.1 / Ts); the peak and the recovery need
-#: at least 8 such time constants in the record.
-POST_EVENT_SAMPLES = 80
-#: Largest record, in controller samples over the whole duration: the tuner's prediction and
-#: the verification record hold one point per sample and per load level (40 000 samples =
-#: 10 s at 4 kHz, ~8 s of run time per verified second today).
-MAX_RECORD_SAMPLES = 40_000
-#: Most load levels per scene (each costs a linearisation, a tuner horizon and verified runs).
-MAX_LOAD_LEVELS = 20
-#: Smallest load step, N: smaller steps drown in the encoder quantisation and the metrics
-#: become relative differences of numbers at numerical zero.
-MIN_LOAD_STEP_N = 1.0
-#: Range of ``[estimator] load_change_time_s``, s: the Kalman filter's load random walk has the
-#: variance ``T_rated^2 Ts / t`` per sample; 1 ms is 4 samples of a 4 kHz drive (a faster
-#: "change" is noise, not load), and beyond 1000 s the variance is ~1e-10 of the rated torque
-#: squared per sample (1e300 underflows the Riccati equation).
-LOAD_CHANGE_TIME_RANGE_S = (1e-3, 1e3)
 
 #: Outputs a scene may ask for; ``nut_speed`` and ``motor_torque`` are always computed.
 OUTPUTS = (
@@ -199,7 +170,7 @@ class Scene:
     duration: float = 0.5
     objective: str = "iae"
     controller: str = "pi"
-    ms_max: float = 1.4
+    ms_max: float = MS_MAX_DEFAULT
     mt_max: float | None = None
     aggregate: str = "sum"
     candidates: int = 3
@@ -259,11 +230,12 @@ class Scene:
             raise bad("objective", self.objective, "one of ie, iae, itae, ise")
         if self.controller not in CONTROLLERS:
             raise bad("controller", self.controller, "pi or pid")
-        if not 1.0 < finite("ms_max", self.ms_max) < 10.0:
-            raise bad("ms_max", self.ms_max, "a number in (1, 10)")
-        if self.mt_max is not None and not 1.0 < finite("mt_max", self.mt_max) < 10.0:
+        lo, hi = PEAK_BOUND_RANGE
+        if not lo < finite("ms_max", self.ms_max) < hi:
+            raise bad("ms_max", self.ms_max, f"a number in ({lo:g}, {hi:g})")
+        if self.mt_max is not None and not lo < finite("mt_max", self.mt_max) < hi:
             # Mt = max|T| >= |T(0)| = 1 with integral action: a bound <= 1 cannot be met.
-            raise bad("mt_max", self.mt_max, "a number in (1, 10)")
+            raise bad("mt_max", self.mt_max, f"a number in ({lo:g}, {hi:g})")
         if self.aggregate not in AGGREGATES:
             raise bad("aggregate", self.aggregate, "sum or worst")
         if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or not 1 <= self.candidates <= 10:
@@ -580,11 +552,6 @@ def _trace_point(scene: "Scene", key: str, index: int) -> str | None:
     return f"{info[0]} line {line}: {info[1]} = {typed}"
 
 
-def builtin_scenes() -> list[str]:
-    root = _builtin_root("prsa_ctrl.scenes", "tuning")
-    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
-
-
 def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
     unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description", "spec", "robust", "uncertainty"})
     if unknown:
@@ -683,38 +650,36 @@ def _duty_from_doc(kw: dict, origin: str, base: Any) -> None:
                                  f"{SETPOINT_MAX_RPM:g} rpm")
 
 
-def load_scene(name_or_path: str | Path | None = None) -> Scene:
-    """Load a scene by built-in name (default ``"paper-load-step"``) or path.
+def load_scene(name_or_path: str | Path | None = None) -> Scene | MoveScene:
+    """Load a scene by built-in name (default ``"paper-load-step"``) or path: a speed-loop
+    scene (:class:`Scene`), or a move scene (:class:`~prsa_ctrl.studies.move.MoveScene`) for a
+    file with a ``[move]`` section (:func:`~prsa_ctrl.studies.scenefile.is_move_scene`).
 
     Raises
     ------
     SceneError
         For a missing, unreadable or invalid file (the message names the file and key).
     """
-    text = str(name_or_path if name_or_path is not None else DEFAULT_SCENE)
-    if isinstance(name_or_path, Path) or text.endswith(".toml") or "/" in text:
-        path = Path(text).expanduser()
-        origin = str(path)
-        if not path.is_file():
-            raise SceneError(f"scene file {text!r} not found; expected a readable .toml file")
-        reader = path
-        base = path.parent
-    else:
-        reader = _builtin_root("prsa_ctrl.scenes", "tuning") / f"{text}.toml"
-        origin = f"{text}.toml (built-in)"
-        base = _builtin_root("prsa_ctrl.scenes", "tuning")
-        if not reader.is_file():
-            raise SceneError(f"unknown scene {text!r}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
-    try:
-        doc = tomllib.loads(reader.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"{origin}: invalid TOML ({exc})") from None
-    if "move" in doc:  # a position-cascade scene (prsa_ctrl.tuning.cascade.load_move_scene reads it)
-        raise SceneError(f"{origin}: a move scene ([move] section, position cascade); expected a speed-loop scene "
-                         "here (prsa-tune --scene tunes move scenes)")
+    reader, origin, base = locate_scene(name_or_path)
+    doc = read_scene_doc(reader, origin)
+    if "move" in doc:  # a position-cascade scene
+        return parse_move_scene(doc, origin)
     return _from_doc(doc, origin, base)
+
+
+def require_speed_scene(scene: Scene | MoveScene) -> Scene:
+    """``scene`` if it is a speed-loop scene; a move scene is refused where a load step or duty
+    cycle is needed (``prsa-plot``, the Monte-Carlo study).
+
+    Raises
+    ------
+    SceneError
+        One line naming the file.
+    """
+    if isinstance(scene, MoveScene):
+        raise SceneError(f"{scene.origin}: a move scene ([move] section, position cascade); expected a speed-loop "
+                         "scene here (prsa-tune --scene tunes move scenes)")
+    return scene
 
 
 def choose_fidelity(scene: Scene) -> tuple[Scene, str]:

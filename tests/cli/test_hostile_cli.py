@@ -206,7 +206,7 @@ def cascade_stand_in(monkeypatch):
 
 
 def _move_file(tmp_path, **edits):
-    from prsa_ctrl.tuning.cascade import _scene_path
+    from prsa_ctrl.studies.scenefile import locate_scene as _scene_path
 
     text = _scene_path("paper-move")[0].read_text()
     for key, value in edits.items():
@@ -274,7 +274,7 @@ def test_kalman_filter_on_a_duty_cycle_names_the_real_reason(capsys, tmp_path, s
 
 
 def test_percent_differences_never_print_minus_zero():
-    from prsa_ctrl.cli.tune import _diff_text, _pct_text
+    from prsa_ctrl.cli.report import diff_text as _diff_text, pct_text as _pct_text
 
     assert _diff_text(0.99999, 1.0) == "0.0 %" and _diff_text(1.00001, 1.0) == "0.0 %"
     assert _pct_text(-0.04) == "0.0 %" and _pct_text(-0.0) == "0.0 %" and _pct_text(-0.06) == "-0.1 %" and _pct_text(2.0) == "+2.0 %"

@@ -236,15 +236,16 @@ def test_ctrl_c_while_the_outputs_are_renamed_leaves_all_old_or_all_new(tmp_path
 
 _INTERRUPT_AFTER_THE_COMMAND = """
 import os, signal, sys
-import prsa_ctrl.cli.tune as cli
-inner = cli._invoke_inner
+import prsa_ctrl.cli.common as cli
+from prsa_ctrl.cli.tune import main
+inner = cli.invoke_inner
 def wrapped(*a, **k):
     code = inner(*a, **k)
     os.kill(os.getpid(), signal.SIGINT)
     return code
-cli._invoke_inner = wrapped
+cli.invoke_inner = wrapped
 sys.argv = ["prsa-tune", "--json", "j.json", "--quiet"]
-raise SystemExit(cli.main())
+raise SystemExit(main())
 """
 
 
@@ -258,17 +259,31 @@ def test_ctrl_c_after_the_command_finished_is_exit_130_with_one_line(tmp_path):
 
 # --- hostile 19: prsa-bench --out and --repeats -------------------------------------------------
 
+#: The benchmarks, outside the package (issue 22): ``python benchmarks/bench.py``.
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench.py"
+
+
+def _bench_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench", BENCH)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench
+
+
 @pytest.mark.parametrize("out", ["/etc/passwd", "/proc/x", "loop"])
 def test_bench_out_is_checked_in_one_line(tmp_path, out):
     (tmp_path / "loop").symlink_to(tmp_path / "loop")
-    p = _run(["--out", out, "--fast"], tmp_path, module="prsa_ctrl.cli.bench")
-    _one_error(p, "prsa-bench: error: --out")
+    p = subprocess.run([sys.executable, str(BENCH), "--out", out, "--fast"], cwd=tmp_path, env=_env(),
+                       capture_output=True, text=True, timeout=300)
+    _one_error(p, "bench: error: --out")
 
 
 @pytest.mark.parametrize("args, needle", [(["--repeats", "0"], "--repeats 0"), (["--repeats", "21"], "--repeats 21"),
                                           (["--repeats", "x"], "--repeats"), (["--samples", "0"], "--samples 0")])
 def test_bench_bad_counts_are_refused_before_any_benchmark(tmp_path, monkeypatch, capsys, args, needle):
-    import prsa_ctrl.cli.bench as bench
+    bench = _bench_module()
 
     def never(*a, **k):
         raise AssertionError("a benchmark ran")
@@ -351,7 +366,7 @@ def test_encoder_in_bits_from_the_console_entry(tmp_path):
 # --- section 4: the report ------------------------------------------------------------------------
 
 def test_differences_are_percentages_only_above_the_resolution():
-    from prsa_ctrl.cli.tune import _diff_text
+    from prsa_ctrl.cli.report import diff_text as _diff_text
 
     assert _diff_text(1.4e-14, 1.4e-4, res=0.0365) == "-0.00014 abs."
     assert _diff_text(1.4e-14, 1.4e-4) == "-100.0 %"  # no resolution given: a plain relative difference
@@ -365,7 +380,7 @@ def test_table_and_flag_use_one_definition_of_the_difference():
 
     from prsa_ctrl import load_plant, load_scene
     from prsa_ctrl.studies.autotune import health_flags, tune_actuator
-    from prsa_ctrl.cli.tune import _diff_text
+    from prsa_ctrl.cli.report import diff_text as _diff_text
 
     rep = tune_actuator(load_plant(), load_scene(), workers=1)
     v = rep.best.objective_verified
@@ -375,7 +390,7 @@ def test_table_and_flag_use_one_definition_of_the_difference():
 
 
 def test_a_baseline_not_beaten_says_why_in_the_table():
-    from prsa_ctrl.cli.tune import _beaten_text
+    from prsa_ctrl.cli.report import beaten_text as _beaten_text
 
     base = {"beaten": False, "tuned_flags": [], "tuned_ms": 1.4, "baseline_ms": 1.5,
             "tuned_objective_verified": 0.01, "baseline_objective_verified": 0.02}

@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID
-from prsa_ctrl.tuning.cascade import CascadeDesign, load_move_scene, simulate_move
+from prsa_ctrl.studies.move import simulate_move
+from prsa_ctrl.studies.movescene import load_move_scene
+from prsa_ctrl.tuning.cascade import CascadeDesign
 from prsa_ctrl.io.codegen import ReferenceLaw, drive_law, max_relative_difference, replay_inputs
 from prsa_ctrl.drive.params import (MotorData, builtin_templates, controller_from_parameter_set, drive_units,
                                    dumps_parameter_set, fill_template, load_template, motor_from_plant, parse_motor,

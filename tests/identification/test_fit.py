@@ -465,7 +465,7 @@ def test_long_record_converges_in_the_first_attempt():
     # Issue 11's run-time record, 1 s of it (4001 samples): the first attempt (state-only warm-up
     # before the parameters move) converges; moving the parameters at once stalled after 16
     # iterations before a second attempt converged in 9. An iteration budget, not a clock.
-    from prsa_ctrl.cli.bench import FIT_TRUTH, fit_record
+    from prsa_ctrl.identification.synthetic import FIT_TRUTH, fit_record
 
     rec, truth = fit_record(1.0)
     assert rec.n == 4001

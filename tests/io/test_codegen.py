@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID
-from prsa_ctrl.tuning.cascade import load_move_scene, simulate_move
+from prsa_ctrl.studies.move import simulate_move
+from prsa_ctrl.studies.movescene import load_move_scene
 from prsa_ctrl.io.codegen import (DriveLaw, ReferenceLaw, c_code, drive_law, export_code, max_relative_difference,
                                replay_inputs, st_code)
 from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch

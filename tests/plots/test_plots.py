@@ -3,7 +3,7 @@ import pytest
 
 from prsa_ctrl import load_plant, linearize
 from prsa_ctrl.studies.autotune import Design, actuator_loops, predict, verify
-from prsa_ctrl.cli.tune import plot_main
+from prsa_ctrl.cli.plot import plot_main
 from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.studies.paper import gain_study
 from prsa_ctrl.plots.loop import (baseline_pairs_plot, binding_level, bode_loop, bode_plant, contact_force_plot,

@@ -9,6 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from prsa_ctrl.studies import montecarlo as mc
+from prsa_ctrl.cli.montecarlo import main as mc_main
 from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.plant.plantfile import load_plant
 from prsa_ctrl.studies.scene import load_scene
@@ -73,7 +74,7 @@ def test_report_yield_is_recomputed_from_the_samples(serial, setup):
     # the slower design drops further and is more robust
     assert np.all(m[:, 1, 0] > m[:, 0, 0]) and np.all(m[:, 1, mc.METRICS.index("ms")] < m[:, 0, mc.METRICS.index("ms")])
     text = mc.format_report(serial)
-    assert "yield" in text and "95 % CI" in text and "replay: python -m prsa_ctrl.studies.montecarlo" in text
+    assert "yield" in text and "95 % CI" in text and "replay: python -m prsa_ctrl.cli.montecarlo" in text
     d = serial.as_dict(include_samples=True)
     json.dumps(d, allow_nan=False)
     assert d["complete"] is True and d["designs"][0]["yield_ci95"][0] <= d["designs"][0]["yield"]
@@ -246,9 +247,9 @@ def test_figures(serial, tmp_path):
 def test_replay_command_line(serial, capsys):
     d = serial.designs[0]
     args = d.replay.split()[3:]
-    assert mc.main(args) == 0
+    assert mc_main(args) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["index"] == d.worst_index and math.isclose(out["metrics"]["peak_drop_rad_s"],
                                                            d.worst_metrics["peak_drop_rad_s"], rel_tol=0, abs_tol=0)
-    assert mc.main(["--seed", "1", "--index", "0", "--kp", "-1", "--ki", "1"]) == 2
+    assert mc_main(["--seed", "1", "--index", "0", "--kp", "-1", "--ki", "1"]) == 2
     assert "kp = -1" in capsys.readouterr().err

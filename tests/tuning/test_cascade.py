@@ -11,8 +11,11 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID
-from prsa_ctrl.tuning.cascade import (BREAKING_POINTS, CascadeModel, export_cascade, hunting, is_move_scene, load_move_scene,
-                               main_move, move_metrics, sequential_design, simulate_move, tune_cascade, verify_design)
+from prsa_ctrl.io.export import export_cascade
+from prsa_ctrl.studies.move import hunting, move_metrics, simulate_move, verify_design
+from prsa_ctrl.studies.movescene import load_move_scene
+from prsa_ctrl.studies.scenefile import is_move_scene
+from prsa_ctrl.tuning.cascade import BREAKING_POINTS, CascadeModel, sequential_design, tune_cascade
 from prsa_ctrl.errors import SceneError
 from prsa_ctrl.io.export import dumps
 from prsa_ctrl.drive.measurement import POSITION_SENSORS, PositionLoop
@@ -62,7 +65,7 @@ def test_paper_move_scene(scene):
 ])
 def test_move_scene_errors_name_file_and_key(tmp_path, edit, match):
     key = edit.split(" = ")[0]
-    lines = [ln for ln in (load_move_scene.__globals__["_scene_path"]("paper-move")[0]).read_text().splitlines()
+    lines = [ln for ln in (load_move_scene.__globals__["locate_scene"]("paper-move")[0]).read_text().splitlines()
              if not ln.startswith(key + " ")]
     text = "\n".join(lines).replace("[move]", "[move]\n" + edit, 1)
     f = tmp_path / "bad-move.toml"
@@ -351,26 +354,27 @@ def test_position_export_reproduces_the_simulated_law(plant, designs):
 
 
 def test_cli_move_scene_bad_flags_exit_2(tmp_path, capsys):
-    class Args:
-        scene = "paper-move"
-        plant = None
-        json = None
-        export = str(tmp_path / "drive.txt")
-    assert main_move(type("R", (), {"prog": "prsa-tune"})(), Args()) == 2
+    from prsa_ctrl.cli.tune import main
+
+    assert main(["--scene", "paper-move", "--export", str(tmp_path / "drive.txt")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--export" in err and "drive.txt" in err
-    Args.export, Args.setpoint_rpm = None, 100.0
-    assert main_move(type("R", (), {"prog": "prsa-tune"})(), Args()) == 2
+    assert main(["--scene", "paper-move", "--setpoint-rpm", "100.0"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("prsa-tune: error: --setpoint-rpm 100.0 does not apply to a move scene")
     assert not (tmp_path / "drive.txt").exists()
 
 
 def test_speed_loop_scene_loader_points_to_the_move_scene():
-    from prsa_ctrl.studies.scene import load_scene
+    """One loader for both kinds (issue 22): a [move] scene loads as a MoveScene; where a
+    speed-loop scene is needed it is refused with the message the loader gave before."""
+    from prsa_ctrl.studies.movescene import MoveScene
+    from prsa_ctrl.studies.scene import load_scene, require_speed_scene
 
+    sc = load_scene("paper-move")
+    assert isinstance(sc, MoveScene) and sc == load_move_scene("paper-move")
     with pytest.raises(SceneError, match=r"paper-move\.toml \(built-in\): a move scene"):
-        load_scene("paper-move")
+        require_speed_scene(sc)
 
 
 def test_screw_side_error_shows_the_thread_deflection(plant, scene):
@@ -417,7 +421,7 @@ def test_cli_move_scene_plots_quiet_json_export(tmp_path, capsys):
     hold figures (PNG + SVG), --json and --export hold both designs and the joint law."""
     import json
 
-    from prsa_ctrl.tuning.cascade import _scene_path
+    from prsa_ctrl.studies.scenefile import locate_scene as _scene_path
     from prsa_ctrl.cli.tune import main
 
     text = _scene_path("paper-move")[0].read_text()
@@ -442,7 +446,7 @@ def test_cli_move_scene_plots_quiet_json_export(tmp_path, capsys):
 
 
 def test_text_report_names_every_bound_and_the_position_integral(plant, designs):
-    from prsa_ctrl.tuning.cascade import format_move_report
+    from prsa_ctrl.cli.report import format_move_report
 
     sc, cm, seq, joint = designs
     pi = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0))

@@ -258,10 +258,10 @@ def test_export_with_load_feedforward_is_refused_up_front(tmp_path, capsys):
 # --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------
 
 def test_monte_carlo_replay_on_a_duty_scene_is_one_line(capsys):
-    from prsa_ctrl.studies import montecarlo as mc
+    from prsa_ctrl.cli.montecarlo import main as mc_main
     from prsa_ctrl.tuning.robust import operating_points
 
-    code = mc.main(["--scene", "duty-trace", "--seed", "0", "--index", "0", "--kp", "0.05", "--ki", "5"])
+    code = mc_main(["--scene", "duty-trace", "--seed", "0", "--index", "0", "--kp", "0.05", "--ki", "5"])
     err = [l for l in capsys.readouterr().err.splitlines() if l.startswith("error")]
     assert code == 2 and len(err) == 1 and "duty cycle" in err[0] and "load-step scene" in err[0]
     with pytest.raises(SceneError, match="is a duty cycle"):
@@ -331,7 +331,7 @@ def test_an_interrupted_command_does_not_leave_sigterm_ignored():
     """After an interrupted in-process command SIGTERM has its old handler again: an ignored
     SIGTERM would be inherited by every later child process (whose workers then survive
     ``terminate()``)."""
-    from prsa_ctrl.cli import tune as cli
+    from prsa_ctrl.cli import common as cli
 
     def body(run, argv):
         run.interrupted = True
@@ -339,7 +339,7 @@ def test_an_interrupted_command_does_not_leave_sigterm_ignored():
 
     old_int, old_term = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     try:
-        assert cli._invoke_inner(cli._Run("prsa-tune"), [], body) == cli.EXIT_INTERRUPTED
+        assert cli.invoke_inner(cli.Run("prsa-tune"), [], body) == cli.EXIT_INTERRUPTED
         assert signal.getsignal(signal.SIGTERM) is old_term
     finally:
         signal.signal(signal.SIGINT, old_int)

@@ -1,15 +1,15 @@
 """Benchmarks (not tests): run time against error, side by side in one run.
 
-``python -m prsa_ctrl.cli.bench [--out DIR] [--fast]`` (or ``prsa-bench``) writes ``bench.json`` and
-``work_precision.png``:
+``python benchmarks/bench.py [--out DIR] [--fast] [--repeats N] [--skip ...]`` (from a checkout, with
+prsa-ctrl installed: ``pip install -e '.[test]'``) writes ``bench.json`` and ``work_precision.png``:
 
-- **work-precision**: wall time against the maximum nut-speed error (rad/s, against a
+- **work-precision** (:func:`prsa_ctrl.studies.accuracy.work_precision`): wall time against the maximum nut-speed error (rad/s, against a
   1e-12-tolerance CVODES reference) of the closed-loop load step, for our CasADi integrators
   (cvodes, idas) over tolerances and fidelities, and for scipy ``solve_ivp`` (LSODA, Radau, BDF)
   and python-control ``input_output_response`` integrating the *same* model equations
   (the CasADi right-hand side and, for the implicit methods, its exact Jacobian), each
   restarted at the load step like ours;
-- **fidelity ladder**: each fidelity's error against the multi-roller model and its cost;
+- **fidelity ladder** (:func:`prsa_ctrl.studies.accuracy.fidelity_ladder`): each fidelity's error against the multi-roller model and its cost;
 - **tuning**: our tuner against a Kp-Ki grid search whose every point is verified on the
   nonlinear simulator;
 - **cold CLI**: ``prsa-tune --load-step 500:1500`` wall time over ``python -c "import control,
@@ -18,7 +18,7 @@
   processes and a Dask LocalCluster, in turn (results must agree bit for bit), with the
   integrator the run chose and its measured error, and the serial CPU time per sample;
 - **robust tuning**: 16 scenario models against nominal tuning;
-- **fit**: ``fit_plant`` on a 4 s, 4 kHz closed-loop record (16001 samples) simulated by the
+- **fit**: ``fit_plant`` on :func:`prsa_ctrl.identification.synthetic.fit_record`, a 4 s, 4 kHz closed-loop record (16001 samples) simulated by the
   toolkit on a perturbed plant (issue 11's run-time figure): wall and CPU time, solver
   iterations and attempts, fitted errors against the truth;
 - **targets**: issue 10's speed targets against these medians (``bench.json["targets"]``).
@@ -30,259 +30,26 @@ asserted here.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["work_precision", "fidelity_ladder", "tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark",
-           "robust_tuning_benchmark", "fit_benchmark", "targets", "main"]
+from prsa_ctrl.plant.plantfile import load_plant
+from prsa_ctrl.studies.montecarlo import local_cluster, run_monte_carlo
+from prsa_ctrl.studies.paper import default_pid
+from prsa_ctrl.studies.scene import choose_fidelity, load_scene
+from prsa_ctrl.cli.common import EXIT_BAD_INPUT, Parser, UsageError, one_line, write_json_atomic
+from prsa_ctrl.identification.synthetic import fit_record
+from prsa_ctrl.studies.accuracy import fidelity_ladder, timed, work_precision
 
-
-class _OverBudget(Exception):
-    pass
-
-
-def _timed(fn, repeats: int):
-    """Median wall time (s) of ``repeats`` calls of ``fn`` and the last call's result. A call
-    that returns ``(False, result)`` did not finish (over budget): it is not repeated."""
-    times, out = [], None
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        finished, out = fn()
-        times.append(time.perf_counter() - t0)
-        if not finished:
-            break
-    return float(np.median(times)), out, times
-
-
-def _scene_inputs(fast: bool):
-    from ..studies.paper import OMEGA_300_RPM
-
-    pre, post = 0.002, (0.02 if fast else 0.1)
-    return OMEGA_300_RPM, [(0.0, 500.0), (pre, 1500.0)], pre + post
-
-
-def _reference_pid(plant):
-    from ..drive.pid import PID
-
-    # The tuned design of the paper scene (rounded); fixed so runs are comparable.
-    return PID(0.0849, 14.67) if plant.name == "paper-iprsm" else __import__("prsa_ctrl.studies.paper", fromlist=["x"]).default_pid(plant)
-
-
-def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repeats: int = 3) -> dict:
-    """Time (s) and max nut-speed error (rad/s) per method and setting; see module docstring.
-
-    Parameters
-    ----------
-    plant : Plant, optional
-        Default: the paper plant.
-    fast : bool
-        Short horizon and fewer tolerances.
-    budget_s : float, s
-        Wall-time budget of one scipy/python-control run (a run over it counts as unfinished).
-    repeats : int
-        Timed runs per setting; the median is reported.
-    """
-    import casadi as ca
-    import control
-    from scipy.integrate import solve_ivp
-
-    from .. import load_plant
-    from ..plant.model import plant_model
-    from ..sim.integrators import SimSettings, build
-    from ..sim.simulate import simulate
-
-    plant = plant or load_plant()
-    pid = _reference_pid(plant)
-    ref_w, load, duration = _scene_inputs(fast)
-    dt = 1e-4
-    grid = np.arange(0.0, duration + 0.5 * dt, dt)
-
-    def ours(fidelity, integ, tol, n=repeats, jit=False):
-        s = SimSettings(integrator=integ, rtol=tol, atol=tol, max_steps=200000, jit=jit)
-
-        def once():
-            r = simulate(plant, setpoint=ref_w, load=load, duration=duration, controller=pid, fidelity=fidelity,
-                         dt=dt, settings=s)
-            return True, r
-
-        once()  # builds the integrators (once per setting), not timed
-        el, r, _ = _timed(once, n)
-        return el, np.interp(grid, r.time, r.outputs[0])
-
-    _, w_ref = ours("compliant", "cvodes", 1e-12, 1)
-    rows = []
-
-    def record(method, setting, fidelity, elapsed, w, finished=True):
-        err = float(np.max(np.abs(w - w_ref))) if finished else math.nan
-        rows.append({"method": method, "setting": setting, "fidelity": fidelity, "time_s": elapsed,
-                     "max_error_rad_s": err, "finished": finished})
-
-    tols = (1e-4, 1e-6, 1e-8) if fast else (1e-4, 1e-6, 1e-8, 1e-10)
-    for fidelity in ("rigid", "compliant"):
-        for integ in ("cvodes", "idas"):
-            for jit in (False, True):  # the same integrator on compiled model code (SimSettings.jit)
-                for tol in tols:
-                    el, w = ours(fidelity, integ, tol, jit=jit)
-                    record(f"prsa-ctrl {integ}" + (" jit" if jit else ""), f"tol {tol:g}", fidelity, el, w)
-
-    # The same closed-loop equations for scipy and python-control (scaled states).
-    model = plant_model(plant, "compliant")
-    built = build(model, False)
-    z = ca.SX.sym("z", len(built.scale))
-    p = ca.SX.sym("p", 10)  # see sim.integrators._NP; the inputs are constant between steps here
-    rhs = ca.Function("rhs", [z, p], [built.rhs(z, p, 0.0)])
-    jac = ca.Function("rhs_jacobian", [z, p], [ca.jacobian(built.rhs(z, p, 0.0), z)])
-    r0 = simulate(plant, setpoint=ref_w, load=load[0][1], duration=1e-4, controller=pid, fidelity="compliant")
-    x0 = np.asarray(r0.states)[:, 0]
-    z0 = x0 / built.scale
-    bounds = [0.0, load[1][0], duration]
-
-    def params(t0, t1):
-        load_t0 = [v for t, v in load if t <= t0 + 1e-12][-1]
-        return [ref_w, load_t0, *pid.params, 0.0, t1 - t0, 0.0, 0.0]
-
-    def segment_taus(t0, t1):
-        """Normalised output times of one segment: its grid points (the last segment keeps
-        its end) plus the end point, from which the next segment restarts."""
-        last = t1 == bounds[-1]
-        eps = 1e-9 * (t1 - t0)
-        pts = grid[(grid >= t0 - eps) & ((grid <= t1 + eps) if last else (grid < t1 - eps))]
-        taus = (pts - t0) / (t1 - t0)
-        taus = np.minimum(taus, 1.0)
-        return (taus if last and taus[-1] >= 1.0 - 1e-9 else np.append(taus, 1.0)), len(pts)
-
-    def scipy_run(method, tol):
-        el, w, _ = _timed(lambda: _finished(scipy_once(method, tol)), repeats)
-        return el, w
-
-    def _finished(w):
-        return w is not None, w
-
-    def scipy_once(method, tol):
-        t_start = time.perf_counter()
-        zc, ws = z0.copy(), []
-
-        def f(tau, zz, pp):
-            if time.perf_counter() - t_start > budget_s:
-                raise _OverBudget
-            return np.asarray(rhs(zz, pp)).ravel()
-
-        try:
-            for t0, t1 in zip(bounds[:-1], bounds[1:]):
-                pp = params(t0, t1)
-                taus, n_pts = segment_taus(t0, t1)
-                kw = {"jac": (lambda tau, zz, pp=pp: np.asarray(jac(zz, pp)))} if method != "RK45" else {}
-                sol = solve_ivp(f, (0.0, 1.0), zc, method=method, t_eval=taus, rtol=tol, atol=tol, args=(pp,), **kw)
-                if not sol.success:
-                    raise _OverBudget
-                ws.append(sol.y[model.index("omega_nut"), :n_pts] * built.scale[model.index("omega_nut")])
-                zc = sol.y[:, -1]
-        except _OverBudget:
-            return None
-        return np.concatenate(ws)
-
-    for method in ("LSODA", "Radau", "BDF"):
-        for tol in tols:
-            el, w = scipy_run(method, tol)
-            record(f"scipy {method}", f"tol {tol:g}", "compliant", el, w if w is not None else w_ref, w is not None)
-
-    def control_run(method, tol):
-        el, w, _ = _timed(lambda: _finished(control_once(method, tol)), repeats)
-        return el, w
-
-    def control_once(method, tol):
-        t_start = time.perf_counter()
-
-        def upd(t, zz, u, prm):
-            if time.perf_counter() - t_start > budget_s:
-                raise _OverBudget
-            return np.asarray(rhs(zz, prm["p"])).ravel()
-
-        sys_ = control.nlsys(upd, None, inputs=0, states=len(z0), outputs=len(z0), name="closed_loop")
-        zc, ws = z0.copy(), []
-        try:
-            for t0, t1 in zip(bounds[:-1], bounds[1:]):
-                taus, n_pts = segment_taus(t0, t1)
-                res = control.input_output_response(
-                    sys_, taus, 0, zc, params={"p": params(t0, t1)}, solve_ivp_method=method,
-                    solve_ivp_kwargs={"rtol": tol, "atol": tol},
-                )
-                y = np.asarray(res.states)
-                ws.append(y[model.index("omega_nut"), :n_pts] * built.scale[model.index("omega_nut")])
-                zc = y[:, -1]
-        except (_OverBudget, RuntimeError, ValueError):
-            return None
-        return np.concatenate(ws)
-
-    for method in ("RK45", "LSODA"):
-        for tol in tols[:2] if method == "RK45" else tols:
-            el, w = control_run(method, tol)
-            record(f"python-control {method}", f"tol {tol:g}", "compliant", el, w if w is not None else w_ref, w is not None)
-
-    def best_time(prefix, target, fidelity="compliant"):
-        ok = [r["time_s"] for r in rows if r["method"].startswith(prefix) and r["finished"]
-              and r["fidelity"] == fidelity and r["max_error_rad_s"] <= target]
-        return min(ok) if ok else math.inf
-
-    target = 1e-6
-    ours_t = best_time("prsa-ctrl", target)
-    return {
-        "scene": {"plant": plant.name, "pid": pid.as_dict(), "load": load, "duration_s": duration, "dt_s": dt},
-        "rows": rows,
-        "target_error_rad_s": target,
-        "best_time_s": {
-            "prsa-ctrl": ours_t,
-            "prsa-ctrl (interpreted, no jit)": min(
-                [r["time_s"] for r in rows if r["method"] in ("prsa-ctrl cvodes", "prsa-ctrl idas") and r["finished"]
-                 and r["fidelity"] == "compliant" and r["max_error_rad_s"] <= target] or [math.inf]),
-            "scipy": min(best_time(f"scipy {m}", target) for m in ("LSODA", "Radau", "BDF")),
-            "python-control": min(best_time(f"python-control {m}", target) for m in ("RK45", "LSODA")),
-        },
-        "budget_s": budget_s,
-        "repeats": repeats,
-    }
-
-
-def fidelity_ladder(plant=None, fast: bool = False, repeats: int = 3) -> dict:
-    """Each fidelity's nut-speed error against the most detailed one (multi-roller with the
-    plant's roller tolerances, 1e-10 tolerance) and its cost, on the paper load step with the
-    sampled controller (as the tuner verifies).
-
-    Parameters
-    ----------
-    plant : Plant, optional
-    fast : bool
-    repeats : int
-        Timed runs per setting; the median is reported.
-    """
-    from .. import load_plant
-    from ..sim.integrators import SimSettings
-    from ..sim.simulate import run
-
-    plant = plant or load_plant()
-    pid = _reference_pid(plant)
-    ref_w, load, duration = _scene_inputs(fast)
-    kw = dict(setpoint=ref_w, load=load, duration=duration, controller=pid, discrete=True)
-    ref = run(plant, fidelity="multi-roller", settings=SimSettings(rtol=1e-10, atol=1e-10), **kw)
-    w_ref = ref.output("nut_speed")
-    drop = float(ref_w - w_ref.min())
-    rows = []
-    for fidelity in ("rigid", "compliant", "multi-roller"):
-        for tol in (1e-4, 1e-6, 1e-8):
-            s = SimSettings(rtol=tol, atol=tol)
-            run(plant, fidelity=fidelity, settings=s, **kw)  # build once, then time
-            el, r, _ = _timed(lambda: (True, run(plant, fidelity=fidelity, settings=s, **kw)), repeats)
-            err = float(np.max(np.abs(r.output("nut_speed") - w_ref)))
-            rows.append({"fidelity": fidelity, "tol": tol, "time_s": el, "max_error_rad_s": err,
-                         "error_over_drop": err / drop})
-    return {"reference": "multi-roller, tol 1e-10, sampled controller", "peak_drop_rad_s": drop, "rows": rows}
+__all__ = ["tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark", "robust_tuning_benchmark",
+           "fit_benchmark", "targets", "main", "work_precision", "fidelity_ladder"]
 
 
 def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: int = 3) -> dict:
@@ -299,11 +66,11 @@ def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: 
         Timed runs of our tuner (median reported). The grid is timed once: it is already the
         sum of ``n_grid**2`` verifications.
     """
-    from .. import load_plant
-    from ..studies.autotune import Design, actuator_loops, verify
-    from ..drive.pid import PID
-    from ..studies.scene import load_scene
-    from ..tuning.tuner import tune_loops
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.studies.autotune import Design, actuator_loops, verify
+    from prsa_ctrl.drive.pid import PID
+    from prsa_ctrl.studies.scene import load_scene
+    from prsa_ctrl.tuning.tuner import tune_loops
 
     plant = plant or load_plant()
     scene = load_scene()
@@ -315,7 +82,7 @@ def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: 
         res = tune_loops(loops, objective=scene.objective, ms_max=scene.ms_max)
         return True, (loops, res, verify(Design("tuned", res.pid, res.margins[0]), plant, scene))
 
-    t_ours, (loops, res, ours), _ = _timed(tune_and_verify, repeats)
+    t_ours, (loops, res, ours), _ = timed(tune_and_verify, repeats)
     kp0, ki0 = res.pid.kp, res.pid.ki
     kps = kp0 * np.logspace(-0.7, 0.3, n_grid)
     kis = ki0 * np.logspace(-1, 0.5, n_grid)
@@ -344,12 +111,13 @@ def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: 
     }
 
 
+
 def monte_carlo_benchmark(n: int = 1000, workers: int = 2, repeats: int = 3,
                           backends=("serial", "process", "dask", "dask-running"), scene: str = "paper-load-step") -> dict:
     """``n`` sampled-loop verifications (the scene's fidelity: compliant for the paper scene) of
     the paper design on the plant's uncertainty samples: serial, ``workers`` processes, a Dask
     LocalCluster started and stopped in each run, and one already running, in turn, median of
-    ``repeats``; the backends must agree bit for bit (:func:`prsa_ctrl.studies.montecarlo.benchmark`).
+    ``repeats``; the backends must agree bit for bit (:func:`_backends`).
 
     Parameters
     ----------
@@ -365,15 +133,91 @@ def monte_carlo_benchmark(n: int = 1000, workers: int = 2, repeats: int = 3,
     scene : str
         Scene name or file.
     """
-    from ..studies.montecarlo import benchmark
-    from ..studies.scene import load_scene
-
     backends = list(backends)
     try:
         import dask.distributed  # noqa: F401
     except ImportError:
         backends = [b for b in backends if not b.startswith("dask")]
-    return benchmark(n=n, workers=workers, repeats=repeats, scene=load_scene(scene), backends=backends)
+    return _backends(n=n, workers=workers, repeats=repeats, scene=load_scene(scene), backends=backends)
+
+
+
+def _backends(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, scene=None,
+              backends: Sequence[str] = ("serial", "process", "dask", "dask-running"), quiet: bool = True,
+              spec: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Wall time (s, median of ``repeats``, backends run in turn) of ``n`` verifications of the
+    paper design on the scene's samples (default the robust scene): serial, ``workers``
+    processes, a Dask LocalCluster of ``workers`` started for each run (``"dask"``, start-up
+    and shut-down included, as ``--scheduler local``) and one already running
+    (``"dask-running"``, a ``Client`` passed in, as ``--scheduler tcp://...``; started once,
+    its start-up reported as ``cluster_start_s``). ``spec``
+    defaults to no bounds (pure verifications; the scene's ``ms`` bound would add a
+    linearisation per sample). Also checks that the backends agree bit for bit.
+
+    A warm-up run of 2 samples first makes the one-off integrator choice
+    (:func:`verification_settings`, its time reported as ``integration["check_s"]``) and
+    compiles the law into the per-user cache; the timed runs reuse both (the check is cached
+    in-process, the compiled law on disk). ``cpu_per_sample_s``: CPU time of the serial runs
+    per sample (less sensitive to a loaded machine than wall time)."""
+    plant = plant or load_plant()
+    scene = scene or load_scene("robust-load-step")
+    pid = default_pid(plant)
+    times: dict[str, list[float]] = {}
+    cpu: list[float] = []
+    ref = None
+    identical = True
+    t = time.perf_counter()
+    warm = run_monte_carlo(plant, scene, {"paper": pid}, 2, seed=0, quiet=True, spec={} if spec is None else spec)
+    warm_s = time.perf_counter() - t
+    running = cluster = None
+    if "dask-running" in backends:
+        from dask.distributed import Client
+
+        t = time.perf_counter()
+        cluster = local_cluster(workers)
+        running = Client(cluster)
+        cluster_start_s = time.perf_counter() - t
+        run_monte_carlo(plant, scene, {"paper": pid}, 2 * workers, seed=0, scheduler=running, quiet=True, chunk=1,
+                        spec={} if spec is None else spec)  # the workers' imports, as a warm-up
+    # In turn (serial, process, dask, serial, ...), so that drift of a shared machine's speed
+    # hits every backend alike.
+    try:
+        for _ in range(repeats):
+            for b in backends:
+                t, c = time.perf_counter(), time.process_time()
+                if b == "dask-running":
+                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, scheduler=running, quiet=quiet,
+                                        spec={} if spec is None else spec)
+                else:
+                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, backend=b,
+                                        workers=1 if b == "serial" else workers, quiet=quiet,
+                                        spec={} if spec is None else spec)
+                times.setdefault(b, []).append(time.perf_counter() - t)
+                if b == "serial":
+                    cpu.append((time.process_time() - c) / n)
+                if ref is None:
+                    ref = r.samples["metrics"]
+                elif not np.array_equal(ref, r.samples["metrics"], equal_nan=True):
+                    identical = False
+    finally:
+        if running is not None:
+            running.close()
+            cluster.close()
+    med = {b: float(np.median(v)) for b, v in times.items()}
+    out: dict[str, Any] = {"n": n, "workers": workers, "repeats": repeats, "median_s": med, "runs_s": times,
+                           "identical": identical, "fidelity": choose_fidelity(scene)[0].fidelity,
+                           "scene": scene.name, "plant": plant.name, "integration": warm.integration,
+                           "warm_up_s": warm_s}
+    if cpu:
+        out["cpu_per_sample_s"] = float(np.median(cpu))
+    if "serial" in med and "process" in med:
+        out["parallel_efficiency"] = med["serial"] / (workers * med["process"])
+    if "process" in med and "dask" in med:
+        out["dask_overhead"] = med["dask"] / med["process"] - 1
+    if "process" in med and "dask-running" in med:
+        out["dask_running_overhead"] = med["dask-running"] / med["process"] - 1
+        out["cluster_start_s"] = cluster_start_s
+    return out
 
 
 def robust_tuning_benchmark(n_scenarios: int = 16, repeats: int = 3) -> dict:
@@ -388,9 +232,9 @@ def robust_tuning_benchmark(n_scenarios: int = 16, repeats: int = 3) -> dict:
         Scenario models in the robust NLP (>= 5).
     repeats : int
     """
-    from .. import load_plant
-    from ..tuning.robust import scenarios, tune_robust_actuator
-    from ..studies.scene import load_scene
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.tuning.robust import scenarios, tune_robust_actuator
+    from prsa_ctrl.studies.scene import load_scene
 
     plant, scene = load_plant(), load_scene("robust-load-step")
     scens = scenarios(plant, scene, samples=n_scenarios - 5)
@@ -405,50 +249,6 @@ def robust_tuning_benchmark(n_scenarios: int = 16, repeats: int = 3) -> dict:
             "median_ratio": float(np.median(ratio)), "ratios": ratio, "repeats": repeats}
 
 
-#: Issue 11's perturbed plant (inertia -25 %, efficiency 0.88, no-load 0.03 N m, viscous
-#: 1.5e-4 N m s/rad, current loop 1200 Hz), the truth of the fit benchmark.
-FIT_TRUTH = {"nut.inertia_kg_m2": 1.5e-4, "friction.efficiency": 0.88, "friction.no_load_torque_n_m": 0.03,
-             "friction.viscous_n_m_s_per_rad": 1.5e-4, "drive.current_loop_bandwidth_hz": 1200.0}
-
-
-def fit_record(duration_s: float = 4.0, seed: int = 0):
-    """The fit benchmark's record: a closed-loop run of the toolkit's simulator on the plant
-    :data:`FIT_TRUTH`, sampled at 4 kHz.
-
-    Multisine speed setpoint 30 +- 20 rad/s (2..150 Hz, 2.5 ms steps), PI speed loop
-    (Kp 0.05 N m s/rad, Ki 2 N m/rad), axial load steps every 0.5 s (200, 1500, 300, 2500 N in
-    turn), nut angle through the 20-bit encoder with 1e-5 rad of Gaussian interpolation noise
-    before quantisation.
-
-    Parameters
-    ----------
-    duration_s : float, s
-        Record length.
-    seed : int
-        Seed of the multisine phases and of the angle noise.
-
-    Returns
-    -------
-    (Record, Plant)
-        The record and the true plant.
-    """
-    from .. import PID, load_plant
-    from ..identification.data import design_excitation, record_from_arrays
-    from ..sim.simulate import run
-
-    truth = load_plant().with_params(FIT_TRUTH)
-    t, v = design_excitation("multisine", duration_s=duration_s, sample_time_s=2.5e-3, f_min_hz=2, f_max_hz=150,
-                             amplitude=20, offset=30, seed=seed)
-    load = [(0.5 * k, (200.0, 1500.0, 300.0, 2500.0)[k % 4]) for k in range(int(math.ceil(duration_s / 0.5)))]
-    r = run(truth, setpoint=list(zip(t.tolist(), v.tolist())), load=load, duration=duration_s,
-            controller=PID(0.05, 2.0), fidelity="rigid", discrete=True)
-    theta = r.states[r.state_labels.index("theta_nut")]
-    q = 2 * math.pi / truth.encoder_counts
-    noise = 1e-5 * np.random.default_rng(seed).standard_normal(theta.shape)
-    angle = np.floor((theta + noise) / q) * q
-    rec = record_from_arrays(f"sim-{duration_s:g}s", r.time, r.output("torque_command"), nut_angle_rad=angle,
-                             axial_load_n=r.inputs[1])
-    return rec, truth
 
 
 def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
@@ -463,7 +263,7 @@ def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
     repeats : int
         Timed fits.
     """
-    from ..identification.timedomain import fit_plant
+    from prsa_ctrl.identification.timedomain import fit_plant
 
     rec, truth = fit_record(duration_s)
     wall, cpu, res = [], [], None
@@ -482,6 +282,7 @@ def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
             "wall_s": wall, "cpu_s": cpu, "iterations": sv["iterations"], "attempts": sv["attempts"],
             "iterations_all_attempts": sv["iterations_all_attempts"], "status": sv["status"],
             "fit_percent": res.fit_percent[rec.name], "parameters": errors, "repeats": repeats}
+
 
 
 def targets(result: dict) -> dict:
@@ -518,6 +319,7 @@ def targets(result: dict) -> dict:
     return out
 
 
+
 def cold_cli_benchmark(repeats: int = 3) -> dict:
     """Median cold wall time of the CLI and of importing python-control and CasADi, run in
     turn (A B A B ...) so that drift of the machine's speed hits both.
@@ -541,6 +343,7 @@ def cold_cli_benchmark(repeats: int = 3) -> dict:
             "ratio": float(np.median(ratios)), "repeats": repeats}
 
 
+
 def _plot(wp: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
@@ -557,45 +360,37 @@ def _plot(wp: dict, path: Path) -> None:
     ax.set_title("Work-precision: paper load step, closed loop")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
-    from ..io.output import write_file
+    from prsa_ctrl.io.output import write_file
 
     write_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=150), flag="--out")  # atomic, as bench.json
     plt.close(fig)
 
-
-class _UsageError(Exception):
-    """Bad input: one line, exit 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
-        raise _UsageError(" ".join(message.split()))
 
 
 def main(argv=None) -> int:
     """``prsa-bench``; returns the exit code (0, or 2 with one line for bad input)."""
     try:
         return _main(argv)
-    except _UsageError as exc:
-        print(f"prsa-bench: error: {exc}", file=sys.stderr)
-        return 2
+    except UsageError as exc:
+        print(f"bench: error: {one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 def _check_out(text: str) -> Path:
     """``--out DIR`` checked before any benchmark runs (:func:`prsa_ctrl.io.output.check_directory`:
     a file, a device, a symlink loop, an unwritable place or the package's own folders are
     refused)."""
-    from ..io.output import OutputError, check_directory
+    from prsa_ctrl.io.output import OutputError, check_directory
 
     try:
         check_directory(text, "--out")
     except OutputError as exc:
-        raise _UsageError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     return Path(text)
 
 
 def _main(argv=None) -> int:
-    ap = _Parser(prog="prsa-bench", description=__doc__.splitlines()[0])
+    ap = Parser(prog="benchmarks/bench.py", description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="bench-results", help="folder for bench.json and the figure (created if missing)")
     ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
     ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust", "fit"])
@@ -606,22 +401,22 @@ def _main(argv=None) -> int:
     args = ap.parse_args(argv)
     repeats = args.repeats if args.repeats is not None else (1 if args.fast else 3)
     if not 1 <= repeats <= 20:
-        raise _UsageError(f"--repeats {repeats}: expected timed runs per measurement 1..20")
+        raise UsageError(f"--repeats {repeats}: expected timed runs per measurement 1..20")
     n_mc = args.samples if args.samples is not None else (100 if args.fast else 1000)
     if not 1 <= n_mc <= 100_000:
-        raise _UsageError(f"--samples {n_mc}: expected Monte-Carlo samples 1..100000")
+        raise UsageError(f"--samples {n_mc}: expected Monte-Carlo samples 1..100000")
     if not 1 <= args.workers <= 64:
-        raise _UsageError(f"--workers {args.workers}: expected 1..64")
+        raise UsageError(f"--workers {args.workers}: expected 1..64")
     args.out = _check_out(args.out)
     import warnings
 
-    from ..io.output import OutputError, make_directory
+    from prsa_ctrl.io.output import OutputError, make_directory
 
     warnings.simplefilter("ignore")
     try:
         make_directory(args.out, "--out")
     except OutputError as exc:
-        raise _UsageError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     result: dict = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                 "load_average_1_5_15": list(os.getloadavg()) if hasattr(os, "getloadavg") else None},
                     "repeats": repeats, "statistic": "median"}
@@ -677,8 +472,7 @@ def _main(argv=None) -> int:
     for k, v in tg.items():
         print(f"target {k}: {'met' if v['met'] else 'NOT met'}" + (f" ({v['measured']:.3g})" if "measured" in v else "")
               + (f" ({v['measured_s']:.3g} s)" if "measured_s" in v else ""))
-    from .tune import write_json_atomic
-    from ..io.output import json_safe
+    from prsa_ctrl.io.output import json_safe
 
     write_json_atomic(args.out / "bench.json", json_safe(result))
     print(f"results: {args.out / 'bench.json'}")

@@ -1,0 +1,517 @@
+"""What every command-line front end shares: the one-line argument parser, flag converters, exit
+codes, the run wrapper (Ctrl-C and SIGTERM, solver output, one-line errors) and the output
+helpers.
+
+Exit codes, the same for every tool (``prsa-tune``, ``prsa-plot``, ``prsa-fit``, ``prsa-mc``):
+
+* ``EXIT_OK`` 0 -- success (warnings, if any, are printed after the result);
+* ``EXIT_BAD_INPUT`` 2 -- bad input: one line ``PROG: error: ...`` naming the value as typed and
+  what was expected (flags, plant and scene files, output paths); nothing is written;
+* ``EXIT_NUMERICAL`` 3 -- numerical failure: one line ``PROG: numerical failure: ...``; nothing
+  is written;
+* ``EXIT_INTERRUPTED`` 130 -- interrupted (Ctrl-C), at any moment up to the exit: the run stops
+  within a second with one line; the outputs are all old or all new, and the line says which
+  ("no output written", or "after the outputs were written complete: ...");
+* ``EXIT_TERMINATED`` 143 -- the same after SIGTERM.
+
+A command is a ``body(run, argv) -> exit code`` handed to :func:`invoke`, which installs the
+signal handlers (:func:`guard`), turns :class:`UsageError` and the input errors into exit 2 and
+anything else into one line (:func:`describe_failure`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import re
+import shutil
+import signal
+import sys
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+from ..errors import GeometryWarning, PlantFileError, SceneError, SimulationError
+from ..io.output import OutputError, Transaction, cleanup_temporaries, remove_created, write_text
+
+__all__ = ["EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
+           "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
+           "Run", "guard", "native_output", "invoke", "invoke_inner", "describe_failure", "one_line",
+           "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic"]
+
+EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
+#: Exit code after SIGTERM (128 + 15): handled like Ctrl-C (workers stopped, one line, nothing written).
+EXIT_TERMINATED = 128 + signal.SIGTERM
+
+#: Seconds between Ctrl-C and a forced exit when a solver does not hand control back.
+INTERRUPT_GRACE_S = 0.8
+
+
+class UsageError(Exception):
+    """Bad input: exit 2 with the message."""
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: :meth:`error` raises :class:`UsageError`
+    (exit 2 at the command's boundary) instead of printing the usage and exiting.
+
+    argparse says ``argument --x: MESSAGE``; when ``MESSAGE`` already starts with the flag (the
+    converters of this module name it) the prefix is dropped. With ``flag_first`` (prsa-fit)
+    every such message becomes ``--x MESSAGE``.
+    """
+
+    def __init__(self, *args: Any, flag_first: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.flag_first = flag_first
+
+    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
+        m = re.match(r"argument (\S+): (--\S+ .*)$", message, re.S)
+        if m and m.group(2).split()[0] in m.group(1).split("/"):
+            message = m.group(2)  # our converters already name the flag
+        elif self.flag_first:
+            message = re.sub(r"^argument (-[-\w]+)(?:/-[-\w]+)*: ", r"\1 ", message)
+        raise UsageError(message)
+
+
+# --- flag values ---------------------------------------------------------------------------------
+
+def number(flag: str, lo: float = -math.inf, hi: float = math.inf, unit: str = "", what: str = "a number",
+           lo_open: bool = False, hi_open: bool = False, *, quoted: bool = False,
+           not_a_number: str | None = None) -> Callable[[str], float]:
+    """Converter of a number flag: a finite number in ``[lo, hi]`` (``lo_open``/``hi_open``: the
+    bound excluded). The messages name the flag and the text as typed: ``FLAG 'TEXT': expected
+    WHAT in RANGE UNIT`` for text that is no number (``not_a_number`` instead of ``what`` if
+    given), ``FLAG TEXT UNIT: expected ...`` for a number out of range (``quoted``: ``'TEXT'``).
+    The range is left out when a bound is infinite (``what`` says it then).
+
+    >>> number("--duration", 0.0, 1e4, "s", "a time", lo_open=True)("0")
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentTypeError: --duration 0 s: expected a time in (0, 10000] s
+    >>> number("--segment", 0.0, what="a finite number > 0", lo_open=True, quoted=True)("-1")
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentTypeError: --segment '-1': expected a finite number > 0
+    """
+    lb = "(" if lo_open else "["
+    rb = ")" if hi_open else "]"
+    bounded = math.isfinite(lo) and math.isfinite(hi)
+    rng = (f" in {lb}{lo:g}, {hi:g}{rb}" + (f" {unit}" if unit else "")) if bounded else ""
+
+    def conv(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected {not_a_number or what}{rng}") from None
+        ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+        if not ok:
+            shown = repr(text) if quoted else text
+            raise argparse.ArgumentTypeError(f"{flag} {shown}" + (f" {unit}" if unit and math.isfinite(v) else "")
+                                             + f": expected {what}{rng}")
+        return v
+
+    return conv
+
+
+def integer(flag: str, lo: int, hi: int, what: str) -> Callable[[str], int]:
+    """Converter of an integer flag in ``lo..hi``; the messages name the flag and the text as typed."""
+    def conv(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected {what} {lo}..{hi}") from None
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"{flag} {text}: expected {what} {lo}..{hi}")
+        return v
+
+    return conv
+
+
+def path_text(flag: str) -> Callable[[str], str]:
+    """Converter of a path flag: not blank, no NUL character (the text is returned as typed)."""
+    def conv(text: str) -> str:
+        if not text.strip():
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected a path")
+        if "\x00" in text:
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}: a path may not contain NUL characters")
+        return text
+
+    return conv
+
+def attach_values(argv: Sequence[str], value_flags: Iterable[str] = ()) -> list[str]:
+    """``--load-step -5:10`` would read ``-5:10`` as an option; glue values to their flag so
+    that such a value reaches the validator and is reported by name (``value_flags``: the flags
+    that take a value which may start with ``-``)."""
+    value_flags = set(value_flags)
+    out: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a.startswith("--") and a.partition("=")[2] == "--":
+            raise UsageError(f"{a.partition('=')[0]} '--': expected a value")
+        if a in value_flags:
+            nxt = next(it, None)
+            if nxt == "--":  # argparse would drop it and hand the converter nothing
+                raise UsageError(f"{a} '--': expected a value")
+            out.append(a if nxt is None else f"{a}={nxt}")
+        else:
+            out.append(a)
+    return out
+
+
+# --- run-time guards: Ctrl-C, solver chatter, warnings ------------------------------------------
+
+class Run:
+    """State of one command invocation: the program name, the interrupt flag, the watchdog,
+    the original stderr descriptor and the directories created so far."""
+
+    def __init__(self, prog: str) -> None:
+        self.prog = prog
+        self.interrupted = False
+        self.reported = False
+        self.lock = threading.Lock()
+        self.timer: threading.Timer | None = None
+        self.err_fd = 2
+        self.created: list[Path] = []
+        self.pid = os.getpid()
+        self.argv: list[str] = []
+        #: True while the outputs are renamed into place: Ctrl-C is remembered, not raised, so
+        #: that the outputs end all old or all new (:func:`commit`).
+        self.defer = False
+        #: Output files in place (the interrupt line names them).
+        self.written: list[str] = []
+        self.cause = "Ctrl-C"  # or "SIGTERM"
+        self.exit_code = EXIT_INTERRUPTED  # EXIT_TERMINATED after SIGTERM
+
+    def say(self, line: str) -> bool:
+        """Print the final one-line message once (main thread or watchdog, whichever first)."""
+        with self.lock:
+            if self.reported:
+                return False
+            self.reported = True
+        data = (line + "\n").encode("utf-8", "replace")
+        try:
+            sys.stderr.flush()
+            sys.stderr.fileno()
+            real = True
+        except Exception:  # noqa: BLE001 - not a real file (pytest capture, StringIO)
+            real = False
+        if real:
+            os.write(self.err_fd, data)  # the terminal's stderr even while solver output is captured
+        else:
+            print(line, file=sys.stderr)
+        return True
+
+    def interrupt_line(self) -> str:
+        if self.written:
+            return (f"{self.prog}: interrupted ({self.cause}) after the outputs were written complete: "
+                    f"{', '.join(self.written)}")
+        return f"{self.prog}: interrupted ({self.cause}); no output written"
+
+    def force_exit(self) -> None:  # watchdog thread: a solver kept control after Ctrl-C
+        cleanup_temporaries()
+        remove_created(self.created)
+        try:
+            import multiprocessing
+
+            for child in multiprocessing.active_children():
+                child.kill()
+        except Exception:  # noqa: BLE001 - best effort
+            pass
+        self.say(self.interrupt_line())
+        os._exit(self.exit_code)
+
+    def on_sigterm(self, signum, frame) -> None:
+        """SIGTERM ends the command like Ctrl-C (its workers stopped), with exit 143."""
+        if os.getpid() != self.pid:  # a forked worker (stopped by the parent): end now
+            os._exit(EXIT_TERMINATED)
+        if not self.interrupted:
+            self.cause, self.exit_code = "SIGTERM", EXIT_TERMINATED
+        self.on_sigint(signum, frame)
+
+    def on_sigint(self, signum, frame) -> None:
+        if os.getpid() != self.pid:  # a forked worker: the parent reports
+            os._exit(EXIT_INTERRUPTED)
+        self.interrupted = True
+        if self.defer:  # outputs being renamed into place: finish them, then stop (commit)
+            return
+        if self.timer is None:
+            self.timer = threading.Timer(INTERRUPT_GRACE_S, self.force_exit)
+            self.timer.daemon = True
+            self.timer.start()
+        raise KeyboardInterrupt
+
+    def check(self) -> None:
+        """Raise KeyboardInterrupt if Ctrl-C came while a solver swallowed it."""
+        if self.interrupted:
+            raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def guard(run: Run, process: bool = False) -> Iterator[None]:
+    """Install the Ctrl-C and SIGTERM handlers for the duration of a command (main thread only).
+    For the process itself (``process``), SIGINT is blocked from the end of the command to the
+    exit: :func:`invoke` turns a pending one into exit 130 with its line (never a death by
+    SIGINT or a traceback after the command finished)."""
+    old = old_term = None
+    if threading.current_thread() is threading.main_thread():
+        old = signal.signal(signal.SIGINT, run.on_sigint)
+        old_term = signal.signal(signal.SIGTERM, run.on_sigterm)
+    try:
+        yield
+    finally:
+        if run.timer is not None:
+            run.timer.cancel()
+        if process and old is not None:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        if old is not None:
+            # After an interrupt a second delivery may still be pending (a solver that caught
+            # the first re-raises it): ignore it, the command is ending with exit 130 anyway.
+            signal.signal(signal.SIGINT, signal.SIG_IGN if run.interrupted else old)
+            signal.signal(signal.SIGTERM, old_term)  # never left ignored: children would inherit SIG_IGN
+
+
+@contextlib.contextmanager
+def native_output(run: Run, lines: list[str]) -> Iterator[None]:
+    """Collect what the solvers print -- C code (IPOPT, SUNDIALS) on descriptors 1 and 2, and
+    CasADi through Python's ``sys.stdout``/``sys.stderr`` -- in a temporary file; the lines
+    are returned in ``lines`` (shown with ``--verbose``, otherwise counted in one note). The
+    command's own final line goes to the saved terminal descriptor (:meth:`Run.say`)."""
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = {fd: os.dup(fd) for fd in (1, 2)}
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    sink = tempfile.TemporaryFile()
+    text_sink = open(os.dup(sink.fileno()), "w", buffering=1, encoding="utf-8", errors="replace")
+    old_streams = sys.stdout, sys.stderr
+    sys.stdout = sys.stderr = text_sink
+    for fd in (1, 2):
+        os.dup2(sink.fileno(), fd)
+    run.err_fd = saved[2]
+    try:
+        yield
+    finally:
+        with contextlib.suppress(Exception):
+            text_sink.flush()
+        for fd in (1, 2):
+            os.dup2(saved[fd], fd)
+        run.err_fd = 2
+        sys.stdout, sys.stderr = old_streams
+        text_sink.close()
+        for fd in saved.values():
+            os.close(fd)
+        sink.seek(0)
+        text = sink.read().decode("utf-8", "replace")
+        sink.close()
+        lines.extend(l for l in text.splitlines() if l.strip())
+
+
+def write_json_atomic(path: str | os.PathLike, data: dict, inputs: Sequence[str | os.PathLike] = (),
+                      transaction=None) -> Path:
+    """Write JSON through :func:`prsa_ctrl.io.output.write_text` (atomic, never onto ``inputs``);
+    with a :class:`prsa_ctrl.io.output.Transaction`, staged in it (renamed at its commit)."""
+    text = json.dumps(data, indent=2, allow_nan=False, default=float) + "\n"
+    if transaction is not None:
+        return transaction.stage(path, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--json")
+    return write_text(path, text, inputs, flag="--json")
+
+
+def commit(run: Run, outputs) -> None:
+    """Rename every staged output into place with Ctrl-C deferred (all old or all new), then
+    honour a Ctrl-C that came meanwhile (exit 130 naming the files written)."""
+    run.check()
+    run.defer = True
+    try:
+        outputs.commit()
+        run.written = list(outputs.written)
+    finally:
+        run.defer = False
+    run.check()
+
+
+def staged(run: Run, render: Callable[[Path], list[Path]], directory: str, inputs: Sequence[str],
+            outputs=None) -> list[Path]:
+    """``render`` writes files into a private staging folder; each is then staged in the
+    :class:`prsa_ctrl.io.output.Transaction` ``outputs`` (one of its own, committed here, if
+    ``None``) for ``directory`` (created only now)."""
+    own = outputs is None
+    tr = Transaction(inputs) if own else outputs
+    staging = tempfile.mkdtemp(prefix="prsa-plots.prsa-tmp-")
+    try:
+        files = render(Path(staging))
+        run.check()
+        tr.make_directory(directory, "--plots")
+        out = []
+        for f in files:
+            src = str(f)
+            out.append(Path(directory) / Path(f).name)
+            tr.stage(out[-1], lambda tmp, src=src: shutil.copyfile(src, tmp), "--plots", listed=False)
+        if own:
+            commit(run, tr)
+        return out
+    finally:
+        if own:
+            tr.abort()  # no-op after the commit
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+# --- error translation ---------------------------------------------------------------------------
+
+#: Messages of numpy/scipy/CasADi that mean "the numbers left the representable range".
+_INTERNAL = ("must not contain infs or nans", "failed to find a finite solution", "maximum allowed dimension",
+             "array is too big", "unable to allocate", "singular matrix", "math domain error", "overflow",
+             "division by zero", "invalid value encountered", "must be finite")
+
+
+def describe_failure(exc: BaseException, what: str) -> tuple[int, str]:
+    """Map an exception of the expensive phase to (exit code, one line without internal names)."""
+    if isinstance(exc, (MemoryError,)) or "maximum allowed dimension" in str(exc).lower() or \
+            "unable to allocate" in str(exc).lower():
+        return EXIT_BAD_INPUT, f"error: {what} needs more memory than this machine has; shorten --duration or use fewer load levels"
+    if isinstance(exc, (PlantFileError, SceneError, OutputError)):
+        return EXIT_BAD_INPUT, f"error: {one_line(exc)}"
+    if isinstance(exc, SimulationError):
+        return EXIT_NUMERICAL, f"numerical failure: {one_line(exc)}"
+    msg = str(exc).lower()
+    if isinstance(exc, (ArithmeticError, FloatingPointError)) or any(k in msg for k in _INTERNAL) \
+            or re.search(r"\b(nan|inf)\b", msg):
+        return EXIT_NUMERICAL, (f"numerical failure: {what} produced non-finite numbers "
+                                f"({type(exc).__name__}); check the plant values and the operating point")
+    if isinstance(exc, ValueError):  # our own messages (e.g. no gains meet the robustness bound)
+        return EXIT_NUMERICAL, f"numerical failure: {one_line(exc)}"
+    return EXIT_NUMERICAL, f"numerical failure: {what} failed ({type(exc).__name__}); rerun with --verbose for details"
+
+
+def one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def status_says_interrupted(obj: Any, depth: int = 0) -> bool:
+    """True if a solver status anywhere in a result says the user stopped it (IPOPT's
+    ``User_Requested_Stop``: CasADi turns Ctrl-C into that status instead of an exception)."""
+    if depth > 6:
+        return False
+    if isinstance(obj, str):
+        return "user_requested_stop" in obj.lower() or "interrupted" in obj.lower()
+    if isinstance(obj, dict):
+        return any(status_says_interrupted(v, depth + 1) for k, v in obj.items()
+                   if isinstance(v, (dict, list, tuple)) or "status" in str(k).lower())
+    if isinstance(obj, (list, tuple)):
+        return any(status_says_interrupted(v, depth + 1) for v in obj)
+    return False
+
+
+# --- notes and the command frame -----------------------------------------------------------------
+
+def show_notes(run: Run, notes: list[warnings.WarningMessage], native: list[str], verbose: bool, quiet: bool) -> None:
+    """Notes after the result: Python warnings (deduplicated; geometry notes of built-in plants
+    only with --verbose) and one line for solver diagnostics."""
+    if quiet:
+        return
+    seen = set()
+    for w in notes:
+        text = str(w.message)
+        if text in seen:
+            continue
+        seen.add(text)
+        if issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose:
+            continue
+        print(f"{run.prog}: note: {text}", file=sys.stderr)
+    if native:
+        if verbose:
+            for line in native:
+                print(f"{run.prog}: solver: {line}", file=sys.stderr)
+        else:
+            print(f"{run.prog}: note: the numerical solvers printed {len(native)} diagnostic lines "
+                  "(shown with --verbose)", file=sys.stderr)
+
+
+def progress(run: Run, verbose: bool, text: str) -> None:
+    """A progress line on stderr (``--verbose`` only)."""
+    if verbose:
+        print(f"{run.prog}: {text}", file=sys.stderr, flush=True)
+
+
+def invoke(prog: str, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
+           value_flags: Iterable[str] = ()) -> int:
+    """Common frame of the commands: Ctrl-C guard, one-line errors, exit codes.
+
+    Parameters
+    ----------
+    prog : str
+        The command's name (first word of its messages).
+    argv : list of str or None
+        The arguments (None: ``sys.argv[1:]``, the process itself: exit 130 ends it at once).
+    body : callable
+        ``body(run, argv) -> exit code``.
+    value_flags : iterable of str
+        Flags whose value may start with ``-`` (:func:`attach_values`).
+    """
+    run = Run(prog)
+    code = invoke_inner(run, argv, body, value_flags)
+    if argv is None and code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and signal.SIGINT in _pending_signals():
+        # Ctrl-C after the command finished (blocked by guard): exit 130 with its line.
+        run.reported = False
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        run.say(run.interrupt_line())
+        code = EXIT_INTERRUPTED
+    if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) and argv is None:
+        # The process itself (console script, python -m): end now with 130. A second SIGINT
+        # delivery left pending by a solver, or an atexit hook of a solver library, would
+        # otherwise turn the exit into a death by SIGINT.
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        with contextlib.suppress(Exception):  # no worker may outlive us (they ignore SIGINT)
+            import multiprocessing
+
+            for child in multiprocessing.active_children():
+                child.kill()
+        os._exit(code)
+    return code
+
+
+def _pending_signals() -> set:
+    try:
+        return set(signal.sigpending())
+    except (AttributeError, OSError):  # pragma: no cover - not POSIX
+        return set()
+
+
+def invoke_inner(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
+                 value_flags: Iterable[str] = ()) -> int:
+    """:func:`invoke` without the end of the process: the guarded body and its error lines."""
+    prog = run.prog
+    with guard(run, process=argv is None):
+        try:
+            run.argv = attach_values(list(sys.argv[1:] if argv is None else argv), value_flags)
+            return body(run, run.argv)
+        except KeyboardInterrupt:
+            cleanup_temporaries()
+            remove_created(run.created)
+            run.say(run.interrupt_line())
+            return run.exit_code
+        except (UsageError, argparse.ArgumentTypeError, PlantFileError, SceneError, OutputError) as exc:
+            remove_created(run.created)
+            if run.interrupted:
+                run.say(run.interrupt_line())
+                return run.exit_code
+            run.say(f"{prog}: error: {one_line(exc)}")
+            return EXIT_BAD_INPUT
+        except Exception as exc:  # noqa: BLE001 - a bug must not print a traceback either
+            remove_created(run.created)
+            if run.interrupted:
+                run.say(run.interrupt_line())
+                return run.exit_code
+            code, line = describe_failure(exc, f"{prog} {' '.join(run.argv)}".strip())
+            run.say(f"{prog}: {line}")
+            return code

@@ -1,0 +1,291 @@
+"""Move scenes: the ``[move]`` and ``[cascade]`` sections of a scene file (e.g. ``paper-move``).
+
+A *move scene* says which move the actuator makes (:mod:`prsa_ctrl.drive.motion`), which loads
+appear during it and while holding, what the position loop measures, and the robustness bound
+of the tuning. :func:`prsa_ctrl.studies.scene.load_scene` returns a :class:`MoveScene` for a
+file with a ``[move]`` section; :mod:`prsa_ctrl.studies.move` checks it against a plant,
+simulates, measures and tunes it (:mod:`prsa_ctrl.tuning.cascade`).
+
+This module imports no numerical library beyond numpy, so that loading a scene stays cheap.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from ..drive.motion import PROFILE_KINDS, MotionProfile, plan
+from ..errors import SceneError
+from ..options import MS_MAX_DEFAULT, PEAK_BOUND_RANGE, check_peak_bound
+from .scenefile import locate_scene, read_scene_doc
+
+__all__ = ["MoveScene", "parse_move_scene", "load_move_scene", "POSITION_SENSORS"]
+
+#: What the position loop may measure (the same as :data:`prsa_ctrl.drive.measurement.POSITION_SENSORS`,
+#: which imports CasADi).
+POSITION_SENSORS = ("nut_angle", "screw_position")
+
+_MOVE_KEYS: Mapping[str, tuple[type, str]] = {
+    "profile": (str, "one of " + ", ".join(PROFILE_KINDS)),
+    "distance_mm": (float, "a finite non-zero travel in mm"),
+    "max_speed_mm_s": (float, "a speed > 0 in mm/s"),
+    "acceleration_m_s2": (float, "an acceleration > 0 in m/s^2"),
+    "jerk_m_s3": (float, "a jerk > 0 in m/s^3"),
+    "start_s": (float, "a start time >= 0 s"),
+    "measured": (str, "one of " + ", ".join(POSITION_SENSORS)),
+    "position_rate": (int, "1 (the cascade tuner models the position loop at the speed-loop rate; "
+                      "PositionLoop(rate=...) simulates slower rates)"),
+    "initial_load_n": (float, "a finite load in N"),
+    "load_n": (float, "a finite load in N (the load that appears during the move)"),
+    "load_time_s": (float, "a time in s inside the move"),
+    "hold_step_n": (float, "a finite non-zero load step in N"),
+    "hold_delay_s": (float, "a delay > 0 s after the end of the move"),
+    "hold_duration_s": (float, "a time > 0 s"),
+    "window_um": (float, "a settling window > 0 in um"),
+    "fidelity": (str, "'rigid' or 'compliant'"),
+}
+_CASCADE_KEYS: Mapping[str, tuple[type, str]] = {
+    "ms_max": (float, f"a peak-sensitivity bound in ({PEAK_BOUND_RANGE[0]:g}, {PEAK_BOUND_RANGE[1]:g})"),
+    "position_controller": (str, "'p' or 'pi'"),
+    "weight_following": (float, "a weight >= 0"),
+    "weight_holding": (float, "a weight >= 0"),
+    "bandwidth_ratio": (float, "a ratio >= 1 of speed-loop to position-loop bandwidth"),
+}
+_REQUIRED = ("profile", "distance_mm", "max_speed_mm_s", "acceleration_m_s2")
+
+
+@dataclass(frozen=True)
+class MoveScene:
+    """A positioning scene (the ``[move]`` and ``[cascade]`` sections of a scene file).
+
+    Attributes (SI)
+    ---------------
+    profile : {"trapezoidal", "s-curve"}
+    distance_m, max_speed_m_s, acceleration_m_s2, jerk_m_s3 : float
+        The move (jerk only for the S-curve).
+    start_s : float, s
+        When the move starts (the axis holds at rest before).
+    measured : {"nut_angle", "screw_position"}
+    position_rate : int
+        Position-loop sample time in controller samples (a scene file accepts 1 only: the
+        cascade tuner models the position loop at the speed-loop rate).
+    initial_load_n, load_n : float, N
+        Load at the start and the load that appears at ``load_time_s`` (default: the middle
+        of the move), then held.
+    hold_step_n : float, N
+        Load step applied while holding, ``hold_delay_s`` after the end of the move; the run
+        lasts ``hold_duration_s`` after it.
+    window_m : float, m
+        Settling window of the position.
+    fidelity : {"rigid", "compliant"}
+        Model of the verification runs.
+    ms_max : float
+        Bound on the peak sensitivity at every loop-breaking point.
+    position_controller : {"p", "pi"}
+    weight_following, weight_holding : float
+        Weights of the two parts of the tuning objective.
+    bandwidth_ratio : float or None
+        Smallest ratio of the speed loop's to the position loop's bandwidth (``kp/J >= ratio kv``).
+    typed : dict
+        The ``[move]`` values as the file typed them (named in error messages).
+    """
+
+    name: str
+    origin: str
+    profile: str
+    distance_m: float
+    max_speed_m_s: float
+    acceleration_m_s2: float
+    jerk_m_s3: float | None = None
+    start_s: float = 0.01
+    measured: str = "nut_angle"
+    position_rate: int = 1
+    initial_load_n: float = 0.0
+    load_n: float = 0.0
+    load_time_s: float | None = None
+    hold_step_n: float = 0.0
+    hold_delay_s: float = 0.1
+    hold_duration_s: float = 0.15
+    window_m: float = 2e-6
+    fidelity: str = "compliant"
+    ms_max: float = MS_MAX_DEFAULT
+    position_controller: str = "p"
+    weight_following: float = 1.0
+    weight_holding: float = 1.0
+    bandwidth_ratio: float | None = None
+    description: str = ""
+    #: The ``[move]`` values as the file typed them (for error messages).
+    typed: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    def motion(self) -> MotionProfile:
+        """The move, m of screw travel (:mod:`prsa_ctrl.drive.motion`)."""
+        return plan(self.profile, self.distance_m, self.max_speed_m_s, self.acceleration_m_s2,
+                    self.jerk_m_s3).shifted(self.start_s)
+
+    @property
+    def move_end_s(self) -> float:
+        return self.motion().end_time
+
+    @property
+    def load_at_s(self) -> float:
+        """Time the move's load appears, s (the middle of the move by default)."""
+        m = self.motion()
+        return self.load_time_s if self.load_time_s is not None else 0.5 * (m.t0[0] + m.end_time)
+
+    @property
+    def hold_step_s(self) -> float:
+        return self.move_end_s + self.hold_delay_s
+
+    @property
+    def duration_s(self) -> float:
+        return self.hold_step_s + self.hold_duration_s if self.hold_step_n else self.move_end_s + self.hold_delay_s
+
+    def loads(self) -> list[tuple[float, float]]:
+        """Load steps ``(time s, N)`` of the run."""
+        pts = [(0.0, self.initial_load_n)]
+        if self.load_n != self.initial_load_n:
+            pts.append((self.load_at_s, self.load_n))
+        if self.hold_step_n:
+            pts.append((self.hold_step_s, self.load_n + self.hold_step_n))
+        return pts
+
+
+def _check(origin: str, section: str, key: str, val: Any, spec: tuple[type, str]) -> Any:
+    typ, expected = spec
+    if typ is float and isinstance(val, int) and not isinstance(val, bool):
+        val = float(val)
+    if not isinstance(val, typ) or isinstance(val, bool):
+        raise SceneError(f"{origin}: {section}.{key} = {val!r}; expected {expected}")
+    if typ is float and not math.isfinite(val):
+        raise SceneError(f"{origin}: {section}.{key} = {val!r}; expected {expected}")
+    return val
+
+
+def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
+    """A :class:`MoveScene` from the TOML document of a scene file with a ``[move]`` section.
+
+    Parameters
+    ----------
+    doc : mapping
+        The parsed TOML document.
+    origin : str
+        The file as the messages name it.
+
+    Raises
+    ------
+    SceneError
+        Unknown section or key, a value of the wrong type or range (one line naming the file
+        and the key).
+    """
+    allowed = {"name", "description", "move", "cascade"}
+    unknown = sorted(set(doc) - allowed)
+    if unknown:
+        raise SceneError(f"{origin}: unknown section {unknown[0]!r} in a move scene; expected move, cascade")
+    kw: dict[str, Any] = {"origin": origin, "name": doc.get("name", Path(origin.split(" ")[0]).stem)}
+    if not isinstance(kw["name"], str):
+        raise SceneError(f"{origin}: name = {kw['name']!r}; expected a string")
+    if "description" in doc:
+        if not isinstance(doc["description"], str):
+            raise SceneError(f"{origin}: description = {doc['description']!r}; expected a string")
+        kw["description"] = doc["description"]
+    for section, keys in (("move", _MOVE_KEYS), ("cascade", _CASCADE_KEYS)):
+        table = doc.get(section, {})
+        if not isinstance(table, Mapping):
+            raise SceneError(f"{origin}: [{section}] must be a table")
+        extra = sorted(set(table) - set(keys))
+        if extra:
+            raise SceneError(f"{origin}: unknown key {section}.{extra[0]}; expected one of "
+                             + ", ".join(f"{section}.{k}" for k in keys))
+        for key, val in table.items():
+            kw[key] = _check(origin, section, key, val, keys[key])
+    for key in _REQUIRED:
+        if key not in kw:
+            raise SceneError(f"{origin}: move.{key} missing; expected {_MOVE_KEYS[key][1]}")
+
+    def bad(section: str, key: str) -> SceneError:
+        spec = (_MOVE_KEYS if section == "move" else _CASCADE_KEYS)[key]
+        return SceneError(f"{origin}: {section}.{key} = {kw[key]!r}; expected {spec[1]}")
+
+    if kw["profile"] not in PROFILE_KINDS:
+        raise bad("move", "profile")
+    if kw["distance_mm"] == 0:
+        raise bad("move", "distance_mm")
+    for key in ("max_speed_mm_s", "acceleration_m_s2", "jerk_m_s3", "hold_delay_s", "hold_duration_s", "window_um"):
+        if key in kw and not kw[key] > 0:
+            raise bad("move", key)
+    if kw["profile"] == "s-curve" and "jerk_m_s3" not in kw:
+        raise SceneError(f"{origin}: move.jerk_m_s3 missing; expected a jerk > 0 in m/s^3 for profile = 's-curve'")
+    if kw["profile"] == "trapezoidal" and "jerk_m_s3" in kw:
+        raise SceneError(f"{origin}: move.jerk_m_s3 = {kw['jerk_m_s3']!r} with profile = 'trapezoidal'; expected no "
+                         "jerk (a trapezoidal move has infinite jerk) or profile = 's-curve'")
+    if kw.get("start_s", 0.0) < 0:
+        raise bad("move", "start_s")
+    if kw.get("measured", "nut_angle") not in POSITION_SENSORS:
+        raise bad("move", "measured")
+    if kw.get("position_rate", 1) != 1:
+        raise bad("move", "position_rate")
+    if kw.get("fidelity", "compliant") not in ("rigid", "compliant"):
+        raise bad("move", "fidelity")
+    if "hold_step_n" in kw and kw["hold_step_n"] == 0:
+        raise bad("move", "hold_step_n")
+    try:
+        check_peak_bound("cascade.ms_max", kw.get("ms_max", MS_MAX_DEFAULT))
+    except ValueError:
+        raise bad("cascade", "ms_max") from None
+    if kw.get("position_controller", "p") not in ("p", "pi"):
+        raise bad("cascade", "position_controller")
+    for key in ("weight_following", "weight_holding"):
+        if kw.get(key, 1.0) < 0:
+            raise bad("cascade", key)
+    if kw.get("weight_following", 1.0) + kw.get("weight_holding", 1.0) == 0:
+        raise SceneError(f"{origin}: cascade.weight_following = cascade.weight_holding = 0; expected a positive weight")
+    if kw.get("bandwidth_ratio", 1.0) < 1:
+        raise bad("cascade", "bandwidth_ratio")
+    kw["typed"] = dict(doc.get("move", {}))
+    kw["distance_m"] = kw.pop("distance_mm") * 1e-3
+    kw["max_speed_m_s"] = kw.pop("max_speed_mm_s") * 1e-3
+    if "window_um" in kw:
+        kw["window_m"] = kw.pop("window_um") * 1e-6
+    sc = MoveScene(**kw)
+    m = sc.motion()
+    if sc.load_time_s is not None and not (m.t0[0] <= sc.load_time_s <= m.end_time):
+        raise SceneError(f"{origin}: move.load_time_s = {sc.load_time_s!r}; expected a time in s inside the move "
+                         f"[{m.t0[0]:.6g}, {m.end_time:.6g}]")
+    return sc
+
+
+def load_move_scene(name_or_path: "str | Path") -> MoveScene:
+    """Load a move scene by built-in name (``"paper-move"``) or path.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+
+    Returns
+    -------
+    MoveScene
+
+    Raises
+    ------
+    SceneError
+        Missing or unreadable file, invalid TOML, unknown section or key, a value of the
+        wrong type or range (one line naming the file and the key).
+
+    Examples
+    --------
+    >>> sc = load_move_scene("paper-move")
+    >>> sc.distance_m, sc.max_speed_m_s, sc.load_n
+    (0.01, 0.03, 1500.0)
+    """
+    try:
+        reader, origin, _ = locate_scene(name_or_path)
+    except SceneError:
+        raise SceneError(f"scene {str(name_or_path)!r} not found; expected a built-in name or a readable "
+                         ".toml file") from None
+    doc = read_scene_doc(reader, origin)
+    if "move" not in doc:
+        raise SceneError(f"{origin}: no [move] section; expected a move scene")
+    return parse_move_scene(doc, origin)
+
