@@ -12,11 +12,11 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "PID": "drive.pid",
-    "simulate": "sim.simulate",
-    "run": "sim.simulate",
-    "SimRun": "sim.simulate",
+    "simulate": "sim.engine",
+    "run": "sim.engine",
+    "SimRun": "sim.engine",
     "SimSettings": "sim.integrators",
-    "energy_balance": "sim.simulate",
+    "energy_balance": "sim.engine",
     "operating_point": "plant.equilibrium",
     "plant_model": "plant.model",
     "linearize": "plant.linear",

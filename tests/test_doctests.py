@@ -17,9 +17,9 @@ MODULES = sorted(m.name for m in pkgutil.walk_packages(prsa_ctrl.__path__, "prsa
 
 
 def test_every_module_is_collected():
-    assert {"prsa_ctrl.sim.simulate", "prsa_ctrl.tuning.tuner", "prsa_ctrl.plant.plantfile"} <= set(MODULES)
+    assert {"prsa_ctrl.sim.engine", "prsa_ctrl.tuning.tuner", "prsa_ctrl.plant.plantfile"} <= set(MODULES)
     # The examples are found (a silently empty run would pass every module).
-    assert doctest.testmod(importlib.import_module("prsa_ctrl.sim.simulate"), verbose=False).attempted >= 5
+    assert doctest.testmod(importlib.import_module("prsa_ctrl.sim.engine"), verbose=False).attempted >= 5
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -555,7 +555,7 @@ def filter_from_dict(d: dict) -> Filter:
     return cls(**{n: d[n] for n in names if n in d})
 
 
-#: Where a filter sits in the drive's sampled loop (:func:`prsa_ctrl.sim.simulate.run`): on the
+#: Where a filter sits in the drive's sampled loop (:func:`prsa_ctrl.sim.engine.run`): on the
 #: measured speed the PID acts on, or on the PID's torque command before the one-sample
 #: computation delay and zero-order hold.
 PLACES = ("speed_measurement", "torque_command")

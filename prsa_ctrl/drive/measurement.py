@@ -3,7 +3,7 @@
 The drive samples the quantised encoder angle once per controller sample. A measurement block
 turns that angle into the speed the PID acts on (and, for an observer, an estimate of the load
 torque). Each block is written in CasADi so the whole per-sample law of
-:mod:`prsa_ctrl.sim.simulate` (quantise, measure, PID, one-sample delay, integrate the plant) is
+:mod:`prsa_ctrl.sim.engine` (quantise, measure, PID, one-sample delay, integrate the plant) is
 one compiled function, whichever measurement is plugged in.
 
 A block has a memory vector (carried from sample to sample) and two steps:

@@ -6,7 +6,7 @@ sample (zero-order hold) and runs the PID ``u = kp e + I - kd d``, ``I += Ts ki 
 derivative filtered with ``beta = exp(-Ts / tf)``. Every linear model of that loop (the
 tuner's loop models, the Kalman-filter loop, the FRF fit's sampled response, the drive
 filters' ZOH discretisation) takes its discretisation and its PID rows from here, so they all
-run the law :func:`prsa_ctrl.sim.simulate.run` simulates.
+run the law :func:`prsa_ctrl.sim.engine.run` simulates.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..drive.pid import PID
 from ..plant.plantfile import load_plant
-from ..sim.simulate import run
+from ..sim.engine import run
 from .data import design_excitation, record_from_arrays
 
 __all__ = ["FIT_TRUTH", "fit_record"]

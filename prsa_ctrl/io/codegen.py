@@ -1,7 +1,7 @@
 """The complete discrete controller of the drive as code: dependency-free C and IEC 61131-3 ST.
 
 :func:`drive_law` collects, as plain numbers, everything the sampled drive of
-:mod:`prsa_ctrl.sim.simulate` computes at each controller sample (``simulation._sample_law``):
+:mod:`prsa_ctrl.sim.engine` computes at each controller sample (``simulation._sample_law``):
 the encoder-difference speed measurement with its first-order filter, the speed-measurement
 biquads, the speed PI(D) with back-calculation anti-windup, the torque-command biquads, the
 torque limit and the one-sample computation delay, and (for a cascade) the position loop with
@@ -68,7 +68,7 @@ if TYPE_CHECKING:
     from ..drive.measurement import PositionLoop
     from .output import Transaction
     from ..plant.plantfile import Plant
-    from ..sim.simulate import SimRun
+    from ..sim.engine import SimRun
 
 __all__ = ["DriveLaw", "PositionLaw", "drive_law", "ReferenceLaw", "replay_inputs", "c_code", "st_code",
            "export_code", "code_texts", "code_files", "check_code_export", "write_code_export", "CODE_SUFFIXES",
@@ -204,7 +204,7 @@ def drive_law(controller: "PID | CascadeDesign", plant: "Plant", *, filters: Ite
     plant : Plant
         Sample time (s), torque limit (N m), encoder counts per rev, speed-filter time constant (s).
     filters : iterable of LoopFilter, (place, Filter) or Filter
-        Loop filters, as :func:`prsa_ctrl.sim.simulate.run` takes them (a bare Filter sits on
+        Loop filters, as :func:`prsa_ctrl.sim.engine.run` takes them (a bare Filter sits on
         the torque command), each run as its :meth:`LoopFilter.biquad`.
     position : PositionLoop, optional
         Position loop over the speed PI (taken from a CascadeDesign when not given).

@@ -6,7 +6,7 @@ Every function is built once per plant model, fidelity and settings and kept: in
 :class:`Built` (the ``_BUILT`` cache, weakly keyed by the model), in the LU kernel cache (by
 matrix sparsity, shared by every plant of one structure) and in the compiled-code cache (by the
 hash of the generated code, in this process and on disk, :func:`jit_cache_dir`). The per-sample
-law of the sampled loop is written in :mod:`prsa_ctrl.sim.simulate`; it is built from
+law of the sampled loop is written in :mod:`prsa_ctrl.sim.engine`; it is built from
 :func:`sample_integrator` and chained by :func:`accumulated`.
 """
 
@@ -58,7 +58,7 @@ class SimSettings:
         sample is a plain expression, so a whole chunk of samples runs as one ``mapaccum``'d
         function without integrator restarts. Its error is not controlled by ``rtol``/``atol``
         (they are unused); it is measured against a tight CVODES reference
-        (:func:`~prsa_ctrl.sim.simulate.fixed_step_error`) and the fast path is only chosen where that error is inside
+        (:func:`~prsa_ctrl.sim.engine.fixed_step_error`) and the fast path is only chosen where that error is inside
         the scene's accuracy (see ``README``). In continuous mode it takes ``substeps`` steps per
         output interval.
     rtol, atol : float
@@ -67,10 +67,10 @@ class SimSettings:
         Step budget per output interval; exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
     max_wall_s : float
         Wall-time budget of one run, s, checked between integration chunks (at most
-        :data:`~prsa_ctrl.sim.simulate.CHUNK_S` of simulated time each); exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
+        :data:`~prsa_ctrl.sim.engine.CHUNK_S` of simulated time each); exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
     energy_tol : float
         With ``energy=True`` the run audits itself: an energy-balance residual above this
-        (relative, see :func:`~prsa_ctrl.sim.simulate.energy_balance`) means the integration is not trustworthy and
+        (relative, see :func:`~prsa_ctrl.sim.engine.energy_balance`) means the integration is not trustworthy and
         raises :class:`~prsa_ctrl.errors.SimulationError`; ``inf`` switches the audit off.
     clock : callable
         Returns the time in s that the budget is measured with (default

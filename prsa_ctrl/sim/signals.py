@@ -1,7 +1,7 @@
 """Input signals of a simulation run: profiles (numbers, steps, piecewise-linear ramps) and
 their one normalised form.
 
-A profile given to :func:`prsa_ctrl.sim.simulate.run` (setpoint in rad/s, load in N) is a
+A profile given to :func:`prsa_ctrl.sim.engine.run` (setpoint in rad/s, load in N) is a
 number, a list of ``(time_s, value)`` steps or a :class:`PiecewiseLinear` ramp;
 :func:`normalise_profile` checks it once and turns it into a :class:`NormalisedProfile`
 (breakpoints, values, slopes and which breakpoints are steps), the form the simulator,

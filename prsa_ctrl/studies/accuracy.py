@@ -19,7 +19,7 @@ from ..drive.pid import PID
 from ..plant.model import plant_model
 from ..plant.plantfile import load_plant
 from ..sim.integrators import SimSettings, build
-from ..sim.simulate import run, simulate
+from ..sim.engine import run, simulate
 from .paper import OMEGA_300_RPM, default_pid
 
 control = module("control")  # python-control, imported when its runs start

@@ -31,7 +31,7 @@ from ..results import is_ok
 from ..sim.metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics, relative_difference
 from ..sim.integrators import SimSettings
 from ..sim.signals import PiecewiseLinear
-from ..sim.simulate import fast_settings, initial_state, run
+from ..sim.engine import fast_settings, initial_state, run
 from ..tuning.scene_loops import actuator_loops, duty_record, linear_fidelity
 from ..tuning.tuner import LoopModel, Tuner
 from .paper import default_pid
@@ -407,7 +407,7 @@ def verify_settings(scene: Scene, plant: Plant | None = None, pid: PID | None = 
         With a plant (and a sampled load-step scene): the fixed-step :data:`FAST_VERIFY` where
         its nut-speed error against a tight CVODES reference (1e-9), measured on the scene's first
         load step with ``pid`` (default :func:`~prsa_ctrl.studies.paper.default_pid`), is inside half
-        the scene's accuracy (:func:`prsa_ctrl.sim.simulate.fast_settings`); otherwise, and
+        the scene's accuracy (:func:`prsa_ctrl.sim.engine.fast_settings`); otherwise, and
         without a plant, the adaptive integrator below.
     pid : PID, optional
 

@@ -5,7 +5,7 @@ compares (:func:`tune_move`: sequential rule and joint NLP, :mod:`prsa_ctrl.tuni
 
 Simulation
     :func:`simulate_move` runs the move in the one sampled-loop simulator
-    (:func:`prsa_ctrl.sim.simulate.run` with a :class:`~prsa_ctrl.drive.measurement.PositionLoop`),
+    (:func:`prsa_ctrl.sim.engine.run` with a :class:`~prsa_ctrl.drive.measurement.PositionLoop`),
     from rest, on the nonlinear model (Stribeck friction with Karnopp stiction, both
     directions; compliant threads). :func:`move_metrics` gives peak and RMS following error,
     settling time into the position window, overshoot, peak torque, the holding deviation
@@ -30,14 +30,14 @@ from ..drive.pid import PID
 from ..errors import SceneError
 from ..plant.equilibrium import steady_torque
 from ..plant.model import stick_band_rad_s
-from ..sim.simulate import run
+from ..sim.engine import run
 from ..tuning import cascade
 from .movescene import MoveScene
 from .scenefile import MAX_RECORD_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN
 
 if TYPE_CHECKING:
     from ..plant.plantfile import Plant
-    from ..sim.simulate import SimRun
+    from ..sim.engine import SimRun
     from ..tuning.cascade import CascadeDesign
 
 __all__ = ["check_move_against_plant", "simulate_move", "MoveMetrics", "following_error_m", "hunting",

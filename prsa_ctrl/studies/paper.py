@@ -17,7 +17,7 @@ from ..drive.pid import PID
 from ..options import SETPOINT_RAD_S
 from ..plant.plantfile import Plant
 from ..sim.metrics import load_step_metrics
-from ..sim.simulate import simulate
+from ..sim.engine import simulate
 
 __all__ = [
     "PAPER_TABLE2",

@@ -20,7 +20,7 @@ from ..plant.linear import closed_loop, linearize
 from ..plant.plantfile import Plant
 from ..sim.metrics import Margins
 from ..sim.signals import PiecewiseLinear, normalise_profile
-from ..sim.simulate import simulate
+from ..sim.engine import simulate
 from .autotune import ActuatorTuning, Design, actuator_loops, linear_fidelity, predict, verify
 from .scene import Scene, choose_fidelity
 

@@ -146,7 +146,7 @@ class Scene:
     load_change_time_s : float, s
         Load random-walk setting of the Kalman filter.
     load_profile : tuple of (time s, N), optional
-        Duty-cycle load, piecewise linear in :class:`prsa_ctrl.sim.simulate.PiecewiseLinear`'s
+        Duty-cycle load, piecewise linear in :class:`prsa_ctrl.sim.engine.PiecewiseLinear`'s
         convention (two points at one time make a step). With a profile, ``initial_load`` is
         its t = 0 value, ``final_loads`` is empty and ``step_time`` is the time of its first
         change (all three are set from the profile).
@@ -413,7 +413,7 @@ def profile_rows(rows: Any, where: str, scale: float = 1.0) -> tuple[tuple[float
     Returns
     -------
     tuple of (time s, value)
-        In :class:`prsa_ctrl.sim.simulate.PiecewiseLinear`'s convention.
+        In :class:`prsa_ctrl.sim.engine.PiecewiseLinear`'s convention.
 
     Examples
     --------

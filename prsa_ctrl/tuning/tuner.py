@@ -976,7 +976,7 @@ def continuous_loop(
 def _pid_rows(n_state: int, i_u: int, i_i: int, e_meas, d_new, ts: float, ref=None, weight: float = 1.0):
     """Gain matrices of the sampled PID ``u = kp e + I - kd d``, ``I += Ts ki e``: rows ``e_meas``
     (error) and ``d_new`` (filtered derivative) over the loop state; shared by every drive loop
-    so that they all run the law :func:`prsa_ctrl.sim.simulate.simulate` runs.
+    so that they all run the law :func:`prsa_ctrl.sim.engine.simulate` runs.
 
     With a reference row ``ref`` (the setpoint deviation held in the loop state), the 2-DOF law
     ``u = kp (b r - y) + I - kd d``, ``I += Ts ki (r - y)`` with setpoint weight ``b = weight``

@@ -25,7 +25,7 @@ from prsa_ctrl.drive.params import (MotorData, builtin_templates, controller_fro
                                    read_parameter_set)
 from prsa_ctrl.drive.measurement import PositionLoop
 from prsa_ctrl.studies.scene import load_scene
-from prsa_ctrl.sim.simulate import run
+from prsa_ctrl.sim.engine import run
 
 REL = 1e-12
 SPEED = PID(0.085, 14.7)

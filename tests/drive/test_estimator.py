@@ -11,7 +11,7 @@ from prsa_ctrl.drive.estimator import design_kf, kf_drive_loop
 from prsa_ctrl.plant.linear import linear_core
 from prsa_ctrl.plant.model import plant_model
 from prsa_ctrl.sim.integrators import SimSettings
-from prsa_ctrl.sim.simulate import run
+from prsa_ctrl.sim.engine import run
 from prsa_ctrl.tuning.tuner import drive_loop, tune_loops
 
 PLANT = load_plant()
@@ -93,7 +93,7 @@ def test_feedforward_cuts_the_verified_drop_by_30_percent_at_the_same_ms():
     res = tune_loops([ff], ms_max=1.4)
     assert res.ms <= 1.4 and res.pid.kff > 0
     load = [(0.0, 500.0), (0.002, 1500.0)]
-    from prsa_ctrl.sim.simulate import run
+    from prsa_ctrl.sim.engine import run
 
     r_pi = run(PLANT, setpoint=W0, load=load, duration=0.1, controller=pi, discrete=True, settings=SETTINGS)
     r_ff = run(PLANT, setpoint=W0, load=load, duration=0.1, controller=res.pid, kf=kf, settings=SETTINGS,

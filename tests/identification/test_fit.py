@@ -42,7 +42,7 @@ def toolkit_record(plant, kind, seed=0, name=None):
     This is the one place that turns a simulation into measured data (switch here when the
     simulator's outputs change).
     """
-    from prsa_ctrl.sim.simulate import run
+    from prsa_ctrl.sim.engine import run
 
     if kind == "multisine":
         t, v = design_excitation("multisine", duration_s=DURATION, sample_time_s=2.5e-3, f_min_hz=5, f_max_hz=150,

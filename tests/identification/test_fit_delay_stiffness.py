@@ -96,7 +96,7 @@ def _simulated_frf_computed_command_log(truth, seed=0):
     """A drive's Bode measurement simulated by the toolkit's sampled loop (rigid), where the
     drive logs the command it computes at a sample (applied one sample later), not the applied
     one: the response from the logged command carries one sample of delay."""
-    from prsa_ctrl.sim.simulate import run
+    from prsa_ctrl.sim.engine import run
 
     period, periods = 0.125, 4
     n = int(round(period / TS))

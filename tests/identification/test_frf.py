@@ -28,7 +28,7 @@ def measured_frf(truth, *, speed=30.0, load=800.0, f_max=600.0, seed=0, name=Non
     (closed loop), the FFT of the logged torque command and measured speed (backward difference of
     the 20-bit encoder angle) over whole periods, averaged; H1 and coherence at the excited lines.
     Simulated by the toolkit's sampled loop (rigid), not by the linear model that is fitted."""
-    from prsa_ctrl.sim.simulate import run
+    from prsa_ctrl.sim.engine import run
 
     n = int(round(PERIOD_S / TS))
     k = np.arange(1, int(f_max * PERIOD_S) + 1)

@@ -25,7 +25,7 @@ from prsa_ctrl.io.codegen import (DriveLaw, ReferenceLaw, c_code, drive_law, exp
 from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch
 from prsa_ctrl.drive.measurement import PositionLoop
 from prsa_ctrl.studies.scene import load_scene
-from prsa_ctrl.sim.simulate import run
+from prsa_ctrl.sim.engine import run
 
 REL = 1e-12  # the bound: max |difference| / max |recorded command|, double
 SPEED_PID = PID(0.085, 14.7, kd=2e-5, tf=5e-4)

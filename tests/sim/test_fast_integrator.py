@@ -7,7 +7,7 @@ import pytest
 
 from prsa_ctrl import PID, load_plant
 from prsa_ctrl.sim.integrators import SimSettings
-from prsa_ctrl.sim.simulate import energy_balance, fast_settings, fixed_step_error, run
+from prsa_ctrl.sim.engine import energy_balance, fast_settings, fixed_step_error, run
 
 PLANT = load_plant()
 W300 = 31.41592653589793

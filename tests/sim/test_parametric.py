@@ -8,7 +8,7 @@ from prsa_ctrl import load_plant
 from prsa_ctrl.plant import model as M
 from prsa_ctrl.studies.paper import default_pid
 from prsa_ctrl.sim.integrators import SimSettings
-from prsa_ctrl.sim.simulate import run
+from prsa_ctrl.sim.engine import run
 from prsa_ctrl.plant.uncertainty import apply
 
 PLANT = load_plant()

@@ -44,7 +44,7 @@ def _independent_iae(report, pid):
     import numpy as np
 
     from prsa_ctrl.sim.integrators import SimSettings
-    from prsa_ctrl.sim.simulate import run
+    from prsa_ctrl.sim.engine import run
 
     sc = report.scene
     r = run(report.plant, setpoint=sc.setpoint_rad_s, load=[(0.0, sc.initial_load), (sc.step_time, sc.final_loads[0])],

@@ -21,7 +21,7 @@ from prsa_ctrl.io.export import dumps
 from prsa_ctrl.drive.measurement import POSITION_SENSORS, PositionLoop
 from prsa_ctrl.plant.model import stick_band_rad_s
 from prsa_ctrl.drive.motion import out_and_back, s_curve
-from prsa_ctrl.sim.simulate import run
+from prsa_ctrl.sim.engine import run
 
 PI = PID(0.0809, 13.56)
 
