@@ -3,7 +3,8 @@
 Every message names the value that was received and what was expected.
 """
 
-__all__ = ["PlantFileError", "SceneError", "SimulationError", "GeometryWarning", "DataError", "FitError"]
+__all__ = ["PlantFileError", "SceneError", "SimulationError", "GeometryWarning", "DataError", "FitError",
+           "LogFormatError", "AxisPlantError", "AxisFitError", "OutputError", "MonteCarloInterrupted"]
 
 
 class PlantFileError(ValueError):
@@ -28,3 +29,31 @@ class DataError(ValueError):
 
 class FitError(RuntimeError):
     """The fit did not converge; the message names the solver status and a remedy."""
+
+
+class LogFormatError(ValueError):
+    """A log description or a log does not hold what it should; one line naming file and key."""
+
+
+class AxisPlantError(ValueError):
+    """A linear-axis plant file is malformed; one line naming the file and key."""
+
+
+class AxisFitError(RuntimeError):
+    """The fit did not converge or the data do not inform the parameters; says which and why."""
+
+
+class OutputError(ValueError):
+    """An output path cannot (or must not) be written; the message names it as typed."""
+
+
+class MonteCarloInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo`.
+
+    ``report`` (a :class:`~prsa_ctrl.studies.montecarlo.MonteCarloReport`) holds the finished
+    samples with ``complete = False`` (never to be written as a complete result).
+    """
+
+    def __init__(self, report) -> None:
+        super().__init__("Monte Carlo interrupted")
+        self.report = report

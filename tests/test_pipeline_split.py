@@ -32,7 +32,7 @@ MY_MODULES = ["cli/common.py", "cli/tune.py", "cli/plot.py", "cli/inputs.py", "c
               "studies/scene.py", "tuning/cascade.py", "io/export.py", "plots/move.py", "studies/accuracy.py",
               "identification/synthetic.py"]
 #: Private names still crossing a module boundary, each owned by another part of the redesign.
-KNOWN = {("prsa_ctrl.plant.plantfile", "_builtin_root"), ("prsa_ctrl.tuning.tuner", "_resonance_points"),
+KNOWN = {("prsa_ctrl.plant.plantfile", "builtin_root"), ("prsa_ctrl.tuning.tuner", "_resonance_points"),
          ("prsa_ctrl.sim.engine", "_build")}
 
 

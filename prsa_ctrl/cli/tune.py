@@ -277,7 +277,7 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
 
     def drive_options() -> None:
         if args.motor is not None or args.export_template is not None:  # issue 24: drive units, parameter sets
-            from ..drive.params import check_cli_options
+            from ..io.driveparams import check_cli_options
 
             try:
                 check_cli_options(args)
@@ -395,7 +395,7 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
     else:
         exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=result["export"][1])
     if args.motor is not None or args.export_template is not None:
-        from ..drive.params import cli_export_data
+        from ..io.driveparams import cli_export_data
 
         exported = cli_export_data(args, exported, design, plant)
     text = dumps(exported, fmt)

@@ -62,7 +62,7 @@ from scipy.optimize import least_squares
 from scipy.signal import butter, filtfilt
 
 from .._lazy import module
-from ..errors import SimulationError
+from ..errors import AxisFitError, AxisPlantError, SimulationError
 from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
@@ -100,10 +100,6 @@ _SECTIONS = {"axis": ("mass_kg",), "friction": ("coulomb_positive_n", "coulomb_n
                                                  "viscous_negative_n_s_per_m"),
              "drive": ("gain_n_per_unit", "force_limit_n", "command_unit"),
              "sensor": ("sample_time_s", "encoder_resolution_m")}
-
-
-class AxisPlantError(ValueError):
-    """A linear-axis plant file is malformed; one line naming the file and key."""
 
 
 @dataclass(frozen=True)
@@ -466,10 +462,6 @@ def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
 
 
 # --- calibration ------------------------------------------------------------------------------------
-
-
-class AxisFitError(RuntimeError):
-    """The fit did not converge or the data do not inform the parameters; says which and why."""
 
 
 def _idim_rows(log: AxisLog, min_speed_fraction: float):

@@ -195,17 +195,15 @@ def symbolic_rhs(plant: Plant, keys: Sequence[str], fidelity: str):
         values[k] = p[i]
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")
-        sym = _SymbolicPlant(name=plant.name, values=values, sources=plant.sources, origin=plant.origin)
+        sym = _SymbolicPlant(name=plant.name, values=values, sources=plant.sources, origin=plant.origin,
+                             mechanism=plant.mechanism)
     names = model_equations.plant_model(plant, fidelity).state_names
     x = ca.SX.sym("x", len(names))
     u = ca.SX.sym("u", 2)
-    builders = {"rigid": getattr(model_equations, "_rigid", None),
-                "compliant": getattr(model_equations, "_compliant", None)}
-    build = builders.get(fidelity)
-    if build is None:
+    if fidelity not in ("rigid", "compliant"):
         raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' for a fit")
     try:
-        xdot = build(sym, x, u)[0]
+        xdot = model_equations.state_derivative(sym, fidelity, x, u)[0]
     except TypeError as exc:  # an equation that needs a numeric value of a fitted key
         raise ValueError(f"the {fidelity} model cannot take {', '.join(keys)} as fitted symbols ({exc}); "
                          "expected fewer --fit keys") from None

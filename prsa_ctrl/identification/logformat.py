@@ -76,6 +76,7 @@ import numpy as np
 import scipy.io
 from numpy.typing import NDArray
 
+from ..errors import LogFormatError
 from .data import MAX_SAMPLES, MIN_SAMPLES
 
 __all__ = ["LogFormatError", "LogFormat", "DEFAULT_CSV_FORMAT", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
@@ -109,10 +110,6 @@ _TOP_KEYS = {"format", "axis", "description", *_SIGNALS, "controller"}
 _SIGNAL_KEYS = {"name", "unit", "resolution", "gain", "logged", "optional"}
 _CONTROLLER_KEYS = {"structure", "kp", "kv", "ki", "velocity_estimate", "saturation", "sample_time_s",
                     "command_delay_samples", "check_tolerance"}
-
-
-class LogFormatError(ValueError):
-    """A log description or a log does not hold what it should; one line naming file and key."""
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
+from ..errors import OutputError
 from ..results import json_safe  # defined with the result objects; re-exported here
 
 __all__ = ["OutputError", "TEMP_MARK", "json_safe", "check_writable", "check_distinct", "check_directory", "write_text",
@@ -46,10 +47,6 @@ __all__ = ["OutputError", "TEMP_MARK", "json_safe", "check_writable", "check_dis
 TEMP_MARK = ".prsa-tmp-"
 
 _LIVE: set[str] = set()
-
-
-class OutputError(ValueError):
-    """An output path cannot (or must not) be written; the message names it as typed."""
 
 
 def _umask() -> int:
@@ -84,12 +81,12 @@ def package_roots() -> list[str]:
     """Resolved folders of the package's own files: its modules and the built-in plants and
     scenes (installed package data, or the repository's ``plants/`` and ``tuning/`` in an
     editable install). No output is written inside them."""
-    from ..plant.plantfile import _builtin_root
+    from ..plant.plantfile import builtin_root
 
     roots = [os.path.dirname(os.path.realpath(__file__))]
     for pkg, folder in (("prsa_ctrl.plants", "plants"), ("prsa_ctrl.scenes", "tuning")):
         try:
-            roots.append(os.path.realpath(os.fspath(_builtin_root(pkg, folder))))
+            roots.append(os.path.realpath(os.fspath(builtin_root(pkg, folder))))
         except TypeError:  # a resource container that is not a folder (zip): nothing to write into
             pass
     return roots

@@ -127,7 +127,7 @@ import casadi as ca
 
 from .plantfile import Plant
 
-__all__ = ["FIDELITIES", "PlantModel", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
+__all__ = ["FIDELITIES", "PlantModel", "state_derivative", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
            "ParametricModel", "parametric_family", "register_member",
            "stick_band_rad_s", "STICK_TIME_CONSTANT_S", "screw_axis_springs"]
 
@@ -644,6 +644,22 @@ def _state_scales(plant: Plant, names: tuple[str, ...]) -> "dict | None":
     return {"x_roller": plant.rated_load_n / k_b, "delta_screw": plant.rated_load_n / k_h}
 
 
+def state_derivative(plant: Plant, fidelity: str, x: ca.SX, u: ca.SX, roller_axial: str = "screw"):
+    """Symbolic ``(xdot, outputs, energy terms)`` of the ``rigid`` or ``compliant`` model.
+
+    ``plant``'s values may be CasADi symbols (the fits differentiate through them); ``x`` and
+    ``u`` are the state and input symbols in the order of :func:`plant_model`'s names. The
+    multi-roller model draws its roller errors and is built by :func:`plant_model` only.
+    """
+    if fidelity == "compliant" and plant.screw_driven:
+        return _screw_driven(plant, x, u)
+    if fidelity == "compliant" and plant.mechanism != "linear-axis":
+        return _compliant(plant, x, u, roller_axial)
+    if fidelity in ("rigid", "compliant"):
+        return _rigid(plant, x, u)
+    raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant'")
+
+
 def _equations(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "screw"):
     """State names, symbols ``x``, ``u`` and the expressions ``xdot``, ``y``, energy terms."""
     names = _state_names(plant, fidelity)
@@ -651,14 +667,8 @@ def _equations(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "
     u = ca.SX.sym("u", 2)
     if fidelity == "multi-roller":
         xdot, y, terms = _multi_roller(plant, x, u, RollerErrors.draw(plant, seed), roller_axial)
-    elif fidelity == "compliant" and plant.screw_driven:
-        xdot, y, terms = _screw_driven(plant, x, u)
-    elif fidelity == "compliant" and plant.mechanism == "linear-axis":
-        xdot, y, terms = _rigid(plant, x, u)
-    elif fidelity == "compliant":
-        xdot, y, terms = _compliant(plant, x, u, roller_axial)
     else:
-        xdot, y, terms = _rigid(plant, x, u)
+        xdot, y, terms = state_derivative(plant, fidelity, x, u, roller_axial)
     return names, x, u, xdot, ca.vertcat(*y), ca.vertcat(*terms)
 
 

@@ -47,7 +47,7 @@ __all__ = [
 DEFAULT_PLANT = "paper-iprsm"
 _STEEL_KG_M3 = 7850.0  # density of steel, kg/m^3 (as the defaults of plant/schema.py)
 
-def _builtin_root(package: str, folder: str) -> Any:
+def builtin_root(package: str, folder: str) -> Any:
     """Where the built-in TOML files live: the installed package data, or, when running from a
     source checkout that shadows the installed package, the repository folder itself."""
     try:
@@ -58,7 +58,7 @@ def _builtin_root(package: str, folder: str) -> Any:
 
 def builtin_plants() -> list[str]:
     """Names of the plant files shipped with the package (``plants/*.toml``)."""
-    root = _builtin_root("prsa_ctrl.plants", "plants")
+    root = builtin_root("prsa_ctrl.plants", "plants")
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
 
 
@@ -918,7 +918,7 @@ def _resolve(name_or_path: str | Path | None) -> Path | Any:
         if not path.is_file():
             raise PlantFileError(f"plant file {text!r} not found; expected a readable .toml file")
         return path
-    res = _builtin_root("prsa_ctrl.plants", "plants") / f"{text}.toml"
+    res = builtin_root("prsa_ctrl.plants", "plants") / f"{text}.toml"
     if not res.is_file():
         raise PlantFileError(
             f"unknown plant {text!r}; expected a built-in name ({', '.join(builtin_plants())}) "

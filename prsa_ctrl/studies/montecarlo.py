@@ -30,7 +30,7 @@ import numpy as np
 
 from .._lazy import module
 from ..drive.pid import PID
-from ..errors import GeometryWarning, SimulationError
+from ..errors import GeometryWarning, MonteCarloInterrupted, SimulationError
 from ..plant.model import register_member
 from ..plant.plantfile import Plant
 from ..plant.uncertainty import apply, uncertainty_model
@@ -487,15 +487,6 @@ class _Progress:
         if self.enabled:
             sys.stderr.write("\n")
             sys.stderr.flush()
-
-
-class MonteCarloInterrupted(KeyboardInterrupt):
-    """Ctrl-C during :func:`run_monte_carlo`; ``report`` holds the finished samples with
-    ``complete = False`` (never to be written as a complete result)."""
-
-    def __init__(self, report: MonteCarloReport) -> None:
-        super().__init__("Monte Carlo interrupted")
-        self.report = report
 
 
 # --- driver --------------------------------------------------------------------------------------

@@ -16,7 +16,8 @@ import numpy as np
 
 from .._lazy import module
 from ..drive.pid import PID
-from ..plant.linear import closed_loop, linearize
+from ..drive.linear_loop import closed_loop
+from ..plant.linear import linearize
 from ..plant.plantfile import Plant
 from ..sim.metrics import Margins
 from ..sim.signals import PiecewiseLinear, normalise_profile

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import SceneError
-from ..plant.plantfile import _builtin_root
+from ..plant.plantfile import builtin_root
 
 __all__ = ["DEFAULT_SCENE", "SETPOINT_MAX_RPM", "STICTION_MARGIN", "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES",
            "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS", "MIN_LOAD_STEP_N", "LOAD_CHANGE_TIME_RANGE_S",
@@ -55,7 +55,7 @@ LOAD_CHANGE_TIME_RANGE_S = (1e-3, 1e3)
 
 def scene_root() -> Any:
     """The folder of the built-in scene files (package data, or ``tuning/`` of a checkout)."""
-    return _builtin_root("prsa_ctrl.scenes", "tuning")
+    return builtin_root("prsa_ctrl.scenes", "tuning")
 
 
 def builtin_scenes() -> list[str]:

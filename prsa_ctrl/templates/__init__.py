@@ -1,1 +1,1 @@
-"""Drive parameter-set templates (data files, see prsa_ctrl.drive.params)."""
+"""Drive parameter-set templates (data files, see prsa_ctrl.io.driveparams)."""

@@ -30,6 +30,7 @@ _EXPORTS = {
     "dominant_resonance_hz": "filtered",
     "drive_loop": "tuner",
     "duty_record": "scene_loops",
+    "kf_drive_loop": "scene_loops",
     "linear_fidelity": "scene_loops",
     "loop_builder": "filtered",
     "operating_points": "robust",

@@ -47,8 +47,8 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import expm
 
+from ..drive.sampled import zoh
 from ..drive.measurement import PositionLoop
 from ..drive.pid import PID
 from ..options import DERIVATIVE_FILTER_SAMPLES
@@ -118,10 +118,8 @@ class CascadeModel:
         self.w_lin, self.load_lin = w_cruise, scene.load_n
         A, B, _, _, _ = linear_core(plant, w_cruise, scene.load_n, fid)
         n = A.shape[0]
-        M = np.zeros((n + 2, n + 2))
-        M[:n, :n], M[:n, n:] = A, B
-        E = expm(M * ts)
-        self.Ad, self.bu, self.bd = E[:n, :n], E[:n, n], E[:n, n + 1]
+        Ad, Bd = zoh(A, B, ts)
+        self.Ad, self.bu, self.bd = Ad, Bd[:, 0], Bd[:, 1]
         self.n = n
         self.c_th = np.eye(n)[model.index("theta_nut")]
         if scene.measured == "nut_angle":

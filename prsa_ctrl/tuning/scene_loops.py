@@ -8,10 +8,14 @@ The builders the tuners, the robust study and the verification share (:func:`act
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numpy.typing import NDArray
 
 from .._lazy import module
-from ..drive.estimator import design_kf, kf_drive_loop
+from ..drive.estimator import KFDesign, design_kf
+from ..drive.sampled import freq_grid, pid_frequency_parts, pid_rows, ss_response, zoh
 from ..options import DERIVATIVE_FILTER_SAMPLES
 from ..plant.linear import linear_core
 from ..plant.model import plant_model
@@ -19,7 +23,7 @@ from ..plant.plantfile import Plant
 from ..sim.signals import PiecewiseLinear, normalise_profile
 from .tuner import LoopModel, continuous_loop, drive_loop
 
-__all__ = ["actuator_loops", "duty_record", "linear_fidelity", "derivative_filter_s"]
+__all__ = ["actuator_loops", "duty_record", "linear_fidelity", "derivative_filter_s", "kf_drive_loop"]
 
 control = module("control")
 
@@ -176,3 +180,130 @@ def duty_record(plant: Plant, scene, case: str) -> dict:
         out["w_lin"] = 0.5 * (min(vals) + max(vals))
         out["setpoint_at"] = r
     return out
+
+
+def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, horizon: float, step: float,
+                  feedforward: bool, omega: NDArray | None = None, name: str = "drive+KF",
+                  outputs: dict | None = None):
+    """Loop model of the sampled drive with the Kalman filter in the loop (see
+    :func:`prsa_ctrl.tuning.tuner.drive_loop` for the plain one).
+
+    Parameters
+    ----------
+    a, b : ndarray
+        Continuous plant Jacobians with the nut angle kept (inputs torque command, load).
+    c_speed : ndarray
+        Output row of the nut speed.
+    angle_index : int
+        Index of the nut angle state.
+    kf : KFDesign
+    tf : float, s
+        Derivative-filter time constant.
+    horizon : float, s
+    step : float, N
+        Load step of the objective's disturbance.
+    feedforward : bool
+        Tune the load feed-forward gain ``kff`` as a fourth gain.
+    omega : array, rad/s, optional
+        Frequency grid (default up to the Nyquist frequency).
+    name : str
+    outputs : dict, optional
+        Extra output rows to record along the trajectory.
+
+    Per sample: the filter updates with the angle, the PID acts on the estimated speed (plus the
+    estimated load torque if ``feedforward``), the command is applied one sample later, and the
+    filter predicts with the applied command. The absolute angle and its estimate drift
+    together; the loop keeps only the estimation error of the angle. With ``feedforward`` the
+    load feed-forward gain ``kff`` is a fourth tuned gain (``u += kff * load estimate``).
+    """
+
+    ts = kf.ts
+    n_steps = max(10, int(round(horizon / ts)))
+    ad, bd_all = zoh(np.asarray(a, float), np.asarray(b, float), ts)
+    bu, bdist = bd_all[:, 0], bd_all[:, 1]
+    n = ad.shape[0]
+    c_w = np.asarray(c_speed, float).ravel()
+    c_th = np.eye(n)[angle_index]
+    beta = math.exp(-ts / tf)
+    K = kf.K.ravel()
+    # Full coordinates X = [x (plant, with angle), xh (prior estimate, 4), d, I, w_prev, u_pending]
+    ix = slice(0, n)
+    i_d, i_i, i_wp, i_u = n + 4, n + 5, n + 6, n + 7
+    N = n + 8
+    E = np.eye(N)
+    innov = np.zeros(N)
+    innov[ix] = c_th
+    innov[n] = -1.0  # theta - theta_hat
+    post = [E[n + r] + K[r] * innov for r in range(4)]  # posterior estimate rows
+    w_hat, tl_hat = post[1], post[3]
+    d_new = beta * E[i_d] + (1 - beta) * (w_hat - E[i_wp]) / ts
+    e_meas = -w_hat
+    A0 = np.zeros((N, N))
+    A0[ix, ix] = ad
+    A0[ix, i_u] = bu
+    for r in range(4):
+        A0[n + r] = sum(kf.F[r, c] * post[c] for c in range(4)) + kf.G[r, 0] * E[i_u]
+    A0[i_d] = d_new
+    A0[i_i, i_i] = 1.0
+    A0[i_wp] = w_hat
+    A0[i_u] = E[i_i]  # u = kp e + I - kd d (+ kff * load estimate)
+    a_kp, a_ki, a_kd = pid_rows(N, i_u, i_i, e_meas, d_new, ts)
+    a_ff = np.zeros((N, N))
+    a_ff[i_u] = tl_hat
+    gain_mats = (A0, a_kp, a_ki, a_kd) + ((a_ff,) if feedforward else ())
+    bdv = np.zeros(N)
+    bdv[ix] = bdist * step
+    ce = np.zeros(N)
+    ce[ix] = -c_w
+    # Drop the common drift: replace theta_hat by eps = theta_hat - theta, then delete theta.
+    M = np.eye(N)
+    M[n, angle_index] = -1.0
+    Mi = np.linalg.inv(M)
+    keep = [i for i in range(N) if i != angle_index]
+    mats = []
+    for A_ in gain_mats:
+        At = M @ A_ @ Mi
+        col = np.delete(At[:, angle_index], angle_index)
+        if np.max(np.abs(col)) > 1e-9 * max(1.0, np.max(np.abs(At))):
+            raise ArithmeticError("the loop depends on the absolute angle; expected only angle differences")
+        mats.append(At[np.ix_(keep, keep)])
+    bdv = (M @ bdv)[keep]
+    ce = (ce @ Mi)[keep]
+    extra = {}
+    for k, r in (outputs or {}).items():
+        row = np.zeros(N)
+        row[ix] = np.asarray(r, float).ravel()
+        extra[k] = (row @ Mi)[keep]
+    # Frequency response: L = N/D with N, D affine in the gains (see LoopModel), at any
+    # frequencies (the tuner refines its Ms search off the grid).
+    if omega is None:
+        omega = freq_grid(1e-1, math.pi / ts * 0.999, 500)
+    a_kf = kf.F @ (np.eye(4) - np.outer(K, kf.H.ravel()))
+    b_th, b_u = kf.F @ K, kf.G.ravel()
+    ikh = np.eye(4) - np.outer(K, kf.H.ravel())
+
+    def response(w):
+        w = np.atleast_1d(np.asarray(w, dtype=float))
+        zi = np.exp(-1j * w * ts)
+
+        def z_of(x):
+            return np.exp(1j * x * ts)
+
+        p_th = ss_response(ad, bu[:, None], c_th[None, :], w, z_of)  # applied torque -> angle
+
+        def kf_tf(row, b_in, d_in):
+            return ss_response(a_kf, b_in[:, None], (row @ ikh)[None, :], w, z_of) + d_in
+
+        h_wt, h_wu = kf_tf(np.eye(4)[1], b_th, K[1]), kf_tf(np.eye(4)[1], b_u, 0.0)
+        h_lt, h_lu = kf_tf(np.eye(4)[3], b_th, K[3]), kf_tf(np.eye(4)[3], b_u, 0.0)
+        c = pid_frequency_parts(zi, ts, beta)
+        Lg = [ci * h_wt * p_th * zi for ci in c]
+        Dg = [ci * h_wu * zi for ci in c]
+        if feedforward:  # u += kff * load estimate
+            Lg.append(-h_lt * p_th * zi)
+            Dg.append(-h_lu * zi)
+        return None, np.vstack(Lg), None, np.vstack(Dg)
+
+    _, L, _, D = response(omega)
+    return LoopModel(mats[0], tuple(mats[1:]), bdv, ce, ts, n_steps, omega, L, tf, name=name,
+                     outputs=extra, N0=None, D0=None, D=D, response=response, nyquist=math.pi / ts)

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID, SimulationError, builtin_plants, energy_balance, load_plant, simulate
-from prsa_ctrl.plant.linear import linearize, predict_load_step
+from prsa_ctrl.drive.linear_loop import predict_load_step
+from prsa_ctrl.plant.linear import linearize
 from prsa_ctrl.studies.paper import OMEGA_300_RPM, default_pid, load_step_study
 from prsa_ctrl.sim.integrators import SimSettings
 

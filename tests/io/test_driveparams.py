@@ -1,4 +1,4 @@
-"""Drive units and vendor parameter sets (prsa_ctrl.drive.params, prsa_ctrl/templates/*.toml).
+"""Drive units and vendor parameter sets (prsa_ctrl.io.driveparams, prsa_ctrl/templates/*.toml).
 
 Round trip per template: fill it with a design, write it as TOML, read the text back, convert
 each value from its unit to SI, rebuild the controller from the file alone and run the
@@ -20,7 +20,7 @@ from prsa_ctrl.studies.move import simulate_move
 from prsa_ctrl.studies.movescene import load_move_scene
 from prsa_ctrl.tuning.cascade import CascadeDesign
 from prsa_ctrl.io.codegen import ReferenceLaw, drive_law, max_relative_difference, replay_inputs
-from prsa_ctrl.drive.params import (MotorData, builtin_templates, controller_from_parameter_set, drive_units,
+from prsa_ctrl.io.driveparams import (MotorData, builtin_templates, controller_from_parameter_set, drive_units,
                                    dumps_parameter_set, fill_template, load_template, motor_from_plant, parse_motor,
                                    read_parameter_set)
 from prsa_ctrl.drive.measurement import PositionLoop

@@ -38,7 +38,7 @@ from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
-from .pid import PID
+from ..drive.pid import PID
 
 if TYPE_CHECKING:
     from .measurement import PositionLoop
@@ -449,7 +449,7 @@ def controller_from_parameter_set(values: Mapping[str, float], *, measured: str 
     pid = PID(kp, ki)
     if "position_kv" not in values:
         return pid, None
-    from .measurement import PositionLoop
+    from ..drive.measurement import PositionLoop
 
     if "acceleration_feedforward" not in values and "torque_per_acceleration" in values:
         raise ValueError("parameter set gives the acceleration feed-forward as a torque per acceleration only; expected "
@@ -465,7 +465,7 @@ def controller_from_parameter_set(values: Mapping[str, float], *, measured: str 
 
 def dumps_parameter_set(filled: dict) -> str:
     """A filled parameter set as TOML (readable with ``tomllib``; see :func:`prsa_ctrl.io.export.dumps`)."""
-    from ..io.export import dumps
+    from .export import dumps
 
     d = {"format": "prsa-ctrl drive parameter set", **filled}
     return dumps(d, "toml")
