@@ -151,6 +151,13 @@ def _int_steps(name: str, value) -> int:
     return int(value)
 
 
+def _check_mks(mks_max) -> float | None:
+    """``mks_max`` as a float, None for no bound, or a ValueError naming it."""
+    if mks_max is None:
+        return None
+    return _number("mks_max", mks_max, lo=0.0, expected="a positive finite number or None")
+
+
 def _check_bounds(ms_max, mt_max, max_noise_gain):
     ms = _number("ms_max", ms_max, lo=1.0, hi=10.0, expected="a number in (1, 10)")
     mt = None if mt_max is None else _number("mt_max", mt_max, lo=1.0, hi=10.0,
@@ -331,12 +338,14 @@ class LoopModel:
         return out
 
     def noise_response(self, gains: Sequence[float], omega: NDArray[np.float64]) -> NDArray[np.complex128]:
-        """Noise-to-command transfer ``C F S`` at ``omega`` (rad/s): from a speed-measurement
-        noise (rad/s, added to the raw encoder-difference speed) to the torque command (N m);
-        ``F`` is every filter on the path (the drive's speed filter and the loop filters) and
-        ``S = 1/(1 + L)``. Needs ``noise`` (:func:`drive_loop` sets it)."""
+        """Noise-to-command transfer ``C F S`` at ``omega`` (rad/s): from a measurement noise
+        (output units; a drive loop: rad/s added to the raw encoder-difference speed) to the
+        control signal (plant-input units; a drive loop: the torque command, N m); ``F`` is
+        every filter on the path (a drive loop: its speed filter and loop filters; a continuous
+        loop: its measurement filter, if any) and ``S = 1/(1 + L)``. Needs ``noise``
+        (:func:`drive_loop` and :func:`continuous_loop` set it)."""
         if self.noise is None:
-            raise ValueError(f"loop {self.name!r} has no noise-gain response; expected a drive_loop model")
+            raise ValueError(f"loop {self.name!r} has no noise-gain response; expected a drive_loop or continuous_loop model")
         w = np.atleast_1d(np.asarray(omega, float))
         g = self.gvec(gains)
         return (g @ np.asarray(self.noise(w), complex)) / (1.0 + self.loop_response(g, w))
@@ -345,12 +354,28 @@ class LoopModel:
         """True peak noise gain ``Mks = max |C F S|`` (N m per rad/s; see
         :meth:`noise_response`) up to Nyquist, located like :meth:`peaks` (dense grid refined
         at the closed-loop poles, polished by a zoom search). Returns ``{"mks", "w_mks"}``
-        (rad/s)."""
+        (rad/s). A continuous loop (no Nyquist frequency) is also searched six decades above
+        its dense grid, where ``|C F S|`` approaches its high-frequency limit (e.g. ``kp + kd/tf``
+        of a PID with a derivative filter and no measurement filter)."""
         g = self.gvec(gains)
-        w, _ = self._peak_grid(g)
+        w = self._noise_grid(g)
         mks, w_mks = _polished_peak(lambda wv: np.abs(self.noise_response(g, wv)), w,
                                     np.abs(self.noise_response(g, w)))
         return {"mks": mks, "w_mks": w_mks}
+
+    def _noise_grid(self, g) -> NDArray[np.float64]:
+        """The peak grid (:meth:`_peak_grid`), extended six decades up on a continuous loop."""
+        w, _ = self._peak_grid(g)
+        if self.nyquist is None:
+            w = np.concatenate([w, w[-1] * np.logspace(0.0, 6.0, 121)[1:]])
+        return w
+
+    def _magnitude(self, g, key: str, w: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``|S|`` (``key`` "ms"), ``|T|`` ("mt") or ``|C F S|`` ("mks") at ``w`` (rad/s)."""
+        if key == "mks":
+            return np.abs(self.noise_response(g, w))
+        Lv = self.loop_response(g, w)
+        return 1 / np.abs(1 + Lv) if key == "ms" else np.abs(Lv / (1 + Lv))
 
     def margins(self, gains: Sequence[float], peaks: dict | None = None) -> Margins:
         """Ms, Mt (true peaks, see :meth:`peaks`; pass its result as ``peaks`` to reuse it),
@@ -565,16 +590,20 @@ class LoopModel:
         return self._sampled_continuous(acl, bdc, kind, self.h / 2.0, 1e-10)[0]
 
     def local_peaks(self, gains: Sequence[float], key: str, floor: float) -> list[tuple[float, float]]:
-        """Every local maximum of ``|S|`` (``key`` "ms") or ``|T|`` ("mt") at or above ``floor``:
+        """Every local maximum of ``|S|`` (``key`` "ms"), ``|T|`` ("mt") or ``|C F S|`` ("mks") at or above ``floor``:
         ``[(value, omega rad/s)]``, each polished like :meth:`peaks` (several near-equal peaks
         make the peak a non-smooth function of the gains; each one is a constraint of its own)."""
         g = self.gvec(gains)
         f = (lambda Lv: 1 / np.abs(1 + Lv)) if key == "ms" else (lambda Lv: np.abs(Lv / (1 + Lv)))
-        if self.response is None:
+        if key == "mks":  # |C F S|: needs ``noise`` and ``response``
+            w = self._noise_grid(g)
+            mag = self._magnitude(g, key, w)
+        elif self.response is None:
             w, L = self.omega, self.loop_response(g)
+            mag = f(L)
         else:
             w, L = self._peak_grid(g)
-        mag = f(L)
+            mag = f(L)
         left = np.concatenate([[-np.inf], mag[:-1]])
         right = np.concatenate([mag[1:], [-np.inf]])
         cand = np.flatnonzero((mag >= left) & (mag >= right) & (mag >= 0.99 * floor))
@@ -582,7 +611,10 @@ class LoopModel:
             return [(float(mag[i]), float(w[i])) for i in cand if mag[i] >= floor]
         lo = np.log(w[np.maximum(cand - 1, 0)])
         hi = np.log(w[np.minimum(cand + 1, w.size - 1)])
-        x, v = _zoom_max(lambda xs: f(self.loop_response(g, np.exp(xs))), lo, hi)
+        if key == "mks":
+            x, v = _zoom_max(lambda xs: self._magnitude(g, key, np.exp(xs)), lo, hi)
+        else:
+            x, v = _zoom_max(lambda xs: f(self.loop_response(g, np.exp(xs))), lo, hi)
         out = []
         for i, c in enumerate(cand):
             val, wv = (float(v[i]), float(math.exp(x[i]))) if v[i] > mag[c] else (float(mag[c]), float(w[c]))
@@ -592,14 +624,13 @@ class LoopModel:
 
     def active_band(self, gains: Sequence[float], key: str, floor: float, n: int = 7,
                     rel: float = 1e-4) -> NDArray[np.float64]:
-        """Frequencies (rad/s) near the peaks of ``|S|`` (``key`` "ms") or ``|T|`` ("mt") at or
+        """Frequencies (rad/s) near the peaks of ``|S|`` (``key`` "ms"), ``|T|`` ("mt") or ``|C F S|`` ("mks") at or
         above ``floor``: around each such local peak, up to ``n`` points spread over the band
         (+-0.1 in log frequency searched on 401 points) where the magnitude stays within
         ``rel`` of the peak, the peak included. A flat or double peak (the optimum of a peak-constrained
         design often touches the bound at a degenerate point) is then represented by the
         constraint gradients of both its sides (the epsilon-active set of the semi-infinite
         constraint)."""
-        f = (lambda Lv: 1 / np.abs(1 + Lv)) if key == "ms" else (lambda Lv: np.abs(Lv / (1 + Lv)))
         g = self.gvec(gains)
         out = []
         for vp, wp in self.local_peaks(g, key, floor):
@@ -607,7 +638,7 @@ class LoopModel:
                 out.append(wp)
                 continue
             ws = wp * np.exp(np.linspace(-0.1, 0.1, 401))
-            inside = ws[f(self.loop_response(g, ws)) >= vp * (1 - rel)]
+            inside = ws[self._magnitude(g, key, ws) >= vp * (1 - rel)]
             if inside.size > n:
                 inside = inside[np.round(np.linspace(0, inside.size - 1, n)).astype(int)]
             out.extend(list(inside) + [wp])
@@ -969,8 +1000,13 @@ def continuous_loop(
     c_bd = np.zeros(N)
     c_bd[:n] = b[:, d_idx] * step
     L = response(omega)[1]
+
+    def noise(w):  # the controller per unit gain: u = C(-y_measured)
+        jw = 1j * np.asarray(w, float)
+        return np.vstack([np.ones_like(jw), 1 / jw, jw / (1 + jw * tf)])
+
     return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce, h, n_steps, omega, L, tf, name=sys.name, response=response,
-                     continuous=(c0, (c_kp, c_ki, c_kd), c_bd))
+                     continuous=(c0, (c_kp, c_ki, c_kd), c_bd), noise=noise)
 
 
 def _pid_rows(n_state: int, i_u: int, i_i: int, e_meas, d_new, ts: float, ref=None, weight: float = 1.0):
@@ -1268,6 +1304,9 @@ class TuningResult:
         Whether ``status`` starts with ``"optimal"``.
     warnings : list of str
         Every caveat of the result, one line each.
+    mks : float or None
+        True peak noise sensitivity ``max |C F S|`` over the loops (:meth:`LoopModel.noise_peak`;
+        control-signal units per measured-output unit), None where a loop has no noise path.
     """
 
     pid: PID
@@ -1279,6 +1318,7 @@ class TuningResult:
     status: str = "optimal"
     converged: bool = True
     warnings: list[str] = field(default_factory=list)
+    mks: float | None = None
 
     @property
     def ms(self) -> float:
@@ -1420,6 +1460,12 @@ class _NLP:
     n_slots: int
     warm_nlp: tuple | None = None  # (nlp function, options) of the warm-start solver
     _warm: ca.Function | None = None
+    has_mks: bool = False  # rows |C F S| <= Mks after the Ms (and Mt) rows of each loop
+
+    @property
+    def n_kinds(self) -> int:
+        """Peak constraints per frequency row: Ms, and Mt and Mks where bounded."""
+        return 1 + int(self.has_mt) + int(self.has_mks)
 
     def warm(self) -> ca.Function:
         """The warm-start solver (same problem), built on first use."""
@@ -1561,15 +1607,20 @@ class Tuner:
                 "stable": np.full((nl, len(grid)), -1, np.int8), "obj": np.full((nl, len(grid)), np.nan)}
 
     def _scan_peak(self, grid: NDArray[np.float64], key: str) -> NDArray[np.float64]:
-        """Largest |S| (``key`` "ms") or |T| ("mt") over every loop's grid, per scan point."""
+        """Largest |S| (``key`` "ms"), |T| ("mt") or |C F S| ("mks") over every loop's grid, per
+        scan point."""
         out = np.zeros(len(grid))
         for lp in self.loops:
             pn0, pln, pd0, pld = lp.parts()
+            kn = np.asarray(lp.noise(lp.omega), complex) if key == "mks" else None
             for s in range(0, len(grid), 1000):
                 gg = grid[s : s + 1000]
                 with np.errstate(all="ignore"):
                     L = (pn0 + gg @ pln) / (pd0 + gg @ pld)
-                    m = 1 / np.abs(1 + L) if key == "ms" else np.abs(L / (1 + L))
+                    if key == "mks":
+                        m = np.abs((gg[:, : kn.shape[0]] @ kn) / (1 + L))
+                    else:
+                        m = 1 / np.abs(1 + L) if key == "ms" else np.abs(L / (1 + L))
                     out[s : s + 1000] = np.maximum(out[s : s + 1000], np.max(m, axis=1))
         out[~np.isfinite(out)] = np.inf
         return out
@@ -1581,7 +1632,14 @@ class Tuner:
             sc["mt"] = self._scan_peak(sc["grid"], "mt")
         return sc["mt"]
 
-    def _ranked(self, ms_eff, mt_eff, noise, hi) -> NDArray[np.int64]:
+    def _scan_mks(self) -> NDArray[np.float64]:
+        """The scan's Mks on the loops' grids (computed on the first call with an Mks bound)."""
+        sc = self._scan_data()
+        if sc.get("mks") is None:
+            sc["mks"] = self._scan_peak(sc["grid"], "mks")
+        return sc["mks"]
+
+    def _ranked(self, ms_eff, mt_eff, noise, hi, mks_eff=None) -> NDArray[np.int64]:
         """Scan indices within the bounds, stable in every loop, best objective first.
 
         With several loops and the worst-case objective (robust tuning: the ranking simulated
@@ -1600,6 +1658,8 @@ class Tuner:
             ok &= self._scan_mt() <= mt_eff
         if noise is not None:
             ok &= grid[:, 0] + (grid[:, 2] / self.loops[0].tf) <= noise
+        if mks_eff is not None:
+            ok &= self._scan_mks() <= mks_eff
         for i, lim in enumerate(hi):
             ok &= grid[:, i] <= lim
         cand = np.flatnonzero(ok)
@@ -1667,10 +1727,10 @@ class Tuner:
 
     # ---- NLP ----------------------------------------------------------------------------
 
-    def _nlp(self, has_mt: bool, has_noise: bool) -> _NLP:
-        key = (has_mt, has_noise)
+    def _nlp(self, has_mt: bool, has_noise: bool, has_mks: bool = False) -> _NLP:
+        key = (has_mt, has_noise) + ((True,) if has_mks else ())
         if key not in self._nlps:
-            self._nlps[key] = self._build_nlp(has_mt, has_noise)
+            self._nlps[key] = self._build_nlp(has_mt, has_noise, has_mks)
         return self._nlps[key]
 
     def _grid_rows(self, jl: int) -> NDArray[np.int64]:
@@ -1709,8 +1769,10 @@ class Tuner:
     def _n_slots(self) -> int:
         return _SLOTS if len(self.loops) == 1 else _MULTI_SLOTS
 
-    def _n_slot(self) -> int:
-        return 4 + 4 * self.loops[0].n_gains
+    def _n_slot(self, mks: bool = False) -> int:
+        """Numbers per extra frequency: N0, D0 (re, im), L and D per gain (re, im), and with an
+        Mks bound the noise path ``C F`` per gain (re, im)."""
+        return 4 + (6 if mks else 4) * self.loops[0].n_gains
 
     def _mapped_objectives(self, g, eps) -> list | None:
         """The time-domain objective of every loop from ONE per-loop function mapped over the
@@ -1759,18 +1821,20 @@ class Tuner:
             ca.vertcat(*[eps[k] for k in range(nl)]).T, ca.DM([float(lp.h) for lp in loops]).T)
         return [row[k] for k in range(nl)]
 
-    def _build_nlp(self, has_mt: bool, has_noise: bool) -> _NLP:
+    def _build_nlp(self, has_mt: bool, has_noise: bool, has_mks: bool = False) -> _NLP:
         """NLP in scaled gains ``v`` with parameters ``p = [scale (ng), eps (per loop), j_ref,
-        extra frequencies (per loop, n_slots x (4 + 4 ng))]``."""
+        1/Ms^2, 1/Mt^2, extra frequencies (per loop, n_slots x (4 + 4 ng), with an Mks bound
+        4 + 6 ng) and row scales (per loop), 1/Mks^2 (with an Mks bound)]``."""
         loops = self.loops
         ng, nl = loops[0].n_gains, len(loops)
         free = _free_gains(self.use_d, ng)
         nv = len(free)
-        ns = self._n_slot()
+        ns = self._n_slot(has_mks)
         v = ca.MX.sym("v", nv)
         n_sl = self._n_slots()
-        per_loop = [n_sl * ns + 2 * (self._grid_rows(jl).size + n_sl) for jl in range(nl)]
-        p = ca.MX.sym("p", ng + nl + 3 + sum(per_loop))
+        per_loop = [n_sl * ns + (3 if has_mks else 2) * (self._grid_rows(jl).size + n_sl) for jl in range(nl)]
+        p = ca.MX.sym("p", ng + nl + 3 + sum(per_loop) + (1 if has_mks else 0))
+        inv_mks2 = p[-1] if has_mks else None
         scale, eps, j_ref = p[:ng], p[ng : ng + nl], p[ng + nl]
         inv_ms2, inv_mt2 = p[ng + nl + 1], p[ng + nl + 2]
         offs = np.concatenate([[ng + nl + 3], ng + nl + 3 + np.cumsum(per_loop)]).astype(int)
@@ -1778,7 +1842,7 @@ class Tuner:
         for j, i in enumerate(free):
             g_list[i] = v[j] * scale[i]
         g = ca.vertcat(*g_list)
-        cons_s, cons_t, objs = [], [], []
+        cons_s, cons_t, cons_k, objs = [], [], [], []
         rows = [self._grid_rows(jl) for jl in range(nl)]
         mapped = self._mapped_objectives(g, eps)
         for jl, lp in enumerate(loops):
@@ -1844,11 +1908,22 @@ class Tuner:
             if has_mt:
                 nn = ca.vertcat(n_re * n_re + n_im * n_im, (sn_re * sn_re + sn_im * sn_im).T)
                 cons_t.append((ww - inv_mt2 * nn) * norm_t)
+            if has_mks:
+                # |C F S| <= Mks: |N + D|^2 - |D|^2 |g K|^2 / Mks^2 >= 0, K the noise path per gain.
+                kg = np.asarray(lp.noise(lp.omega[rows[jl]]), complex)
+                k_re, k_im = ca.mtimes(ca.DM(kg.real.T), g), ca.mtimes(ca.DM(kg.imag.T), g)
+                q_kr, q_ki = q[4 + 4 * ng : 4 + 5 * ng, :], q[4 + 5 * ng : 4 + 6 * ng, :]
+                sk_re, sk_im = ca.mtimes(gt, q_kr), ca.mtimes(gt, q_ki)
+                kk = ca.vertcat(k_re * k_re + k_im * k_im, (sk_re * sk_re + sk_im * sk_im).T)
+                norm_k = p[off + n_sl * ns + 2 * n_c : off + n_sl * ns + 3 * n_c]
+                cons_k.append((ww - inv_mks2 * dd * kk) * norm_k)
         cons = []
         for jl in range(nl):
             cons.append(cons_s[jl])
             if has_mt:
                 cons.append(cons_t[jl])
+            if has_mks:
+                cons.append(cons_k[jl])
         if has_noise:
             cons.append(g[0] + g[2] / loops[0].tf)
         if self.worst_case:
@@ -1875,10 +1950,11 @@ class Tuner:
             # multipliers (a few constraint rows changed); built on first use.
             warm = (fun, {**base, "ipopt": {**ip, "warm_start_init_point": "yes", "warm_start_bound_push": 1e-9,
                                             "warm_start_mult_bound_push": 1e-9, "warm_start_slack_bound_push": 1e-9}})
-        return _NLP(solver, free, [r.size for r in rows], has_mt, has_noise, n_sl, warm)
+        return _NLP(solver, free, [r.size for r in rows], has_mt, has_noise, n_sl, warm, has_mks=has_mks)
 
-    def _params(self, scale, eps, j_ref, inv_ms2, inv_mt2, slots, g0) -> NDArray:
-        ns = self._n_slot()
+    def _params(self, scale, eps, j_ref, inv_ms2, inv_mt2, slots, g0, inv_mks2=None) -> NDArray:
+        mks = inv_mks2 is not None
+        ns = self._n_slot(mks)
         out = [np.asarray(scale, float), np.asarray(eps, float), np.array([j_ref, inv_ms2, inv_mt2])]
         g0 = self.loops[0].gvec(g0)
         for jl, (lp, ws) in enumerate(zip(self.loops, slots)):
@@ -1887,20 +1963,29 @@ class Tuner:
             blk[:, 2] = 1.0
             if ws:
                 n0, ln, d0, ld = lp.parts_at(np.asarray(ws, float))
+                kn = np.asarray(lp.noise(np.asarray(ws, float)), complex) if mks else None
                 for k in range(len(ws)):
                     blk[k] = np.concatenate([[n0[k].real, n0[k].imag, d0[k].real, d0[k].imag],
-                                             ln[:, k].real, ln[:, k].imag, ld[:, k].real, ld[:, k].imag])
+                                             ln[:, k].real, ln[:, k].imag, ld[:, k].real, ld[:, k].imag]
+                                            + ([kn[:, k].real, kn[:, k].imag] if mks else []))
             out.append(blk.ravel())
             # Row scales: 1 / (|N + D|^2 + |D|^2) and 1 / (|N + D|^2 + |N|^2) at the start point.
             pn0, pln, pd0, pld = self._nlp_parts(jl)
             ng = len(g0)
             s_n = blk[:, 0] + 1j * blk[:, 1] + (blk[:, 4 : 4 + ng] + 1j * blk[:, 4 + ng : 4 + 2 * ng]) @ g0
-            s_d = blk[:, 2] + 1j * blk[:, 3] + (blk[:, 4 + 2 * ng : 4 + 3 * ng] + 1j * blk[:, 4 + 3 * ng :]) @ g0
+            s_d = blk[:, 2] + 1j * blk[:, 3] + (blk[:, 4 + 2 * ng : 4 + 3 * ng] + 1j * blk[:, 4 + 3 * ng : 4 + 4 * ng]) @ g0
             nv = np.concatenate([pn0 + g0 @ pln, s_n])
             dv = np.concatenate([pd0 + g0 @ pld, s_d])
             wv = np.abs(nv + dv) ** 2
             out.append(1.0 / np.maximum(wv + np.abs(dv) ** 2, 1e-300))
             out.append(1.0 / np.maximum(wv + np.abs(nv) ** 2, 1e-300))
+            if mks:  # 1 / (|N + D|^2 + |D|^2 |g K|^2 / Mks^2) at the start point
+                rows_w = lp.omega[self._grid_rows(jl)]
+                kv = np.concatenate([g0 @ np.asarray(lp.noise(rows_w), complex),
+                                     (blk[:, 4 + 4 * ng : 4 + 5 * ng] + 1j * blk[:, 4 + 5 * ng :]) @ g0])
+                out.append(1.0 / np.maximum(wv + np.abs(dv) ** 2 * np.abs(kv) ** 2 * inv_mks2, 1e-300))
+        if mks:
+            out.append(np.array([inv_mks2]))
         return np.concatenate(out)
 
     def _value(self, gains) -> float:
@@ -1909,7 +1994,8 @@ class Tuner:
                 for lp in self.loops]
         return _combined(vals, self.weights, self.worst_case)
 
-    def _solve_from(self, nlp: _NLP, g0, ms_max, mt_max, noise, hi, typical) -> tuple[_Candidate | None, dict]:
+    def _solve_from(self, nlp: _NLP, g0, ms_max, mt_max, noise, hi, typical,
+                    mks_max=None) -> tuple[_Candidate | None, dict]:
         """ipopt from one scan point, then verify (stability, true peaks) and re-solve with the
         frequencies where a true peak exceeded its bound, until the bounds hold."""
         loops = self.loops
@@ -1954,13 +2040,16 @@ class Tuner:
             else:
                 pk0 = lp.peaks(g0, mt=mt_max is not None)
                 ws0 = {pk0["w_ms"]} | ({pk0["w_mt"]} if mt_max is not None else set()) if pk0["exact"] else set()
+            if mks_max is not None:
+                ws0 |= {lp.noise_peak(g0)["w_mks"]}
             slots.append(sorted({w for w0 in ws0 for w in (self._cluster(lp, w0) if multi else [w0])}))
         ms_eff = ms_max * (1 - 1e-5)
         mt_eff = mt_max * (1 - 1e-5) if mt_max is not None else None
+        mks_eff = mks_max * (1 - 1e-5) if mks_max is not None else None
         info: dict = {"start": [float(x) for x in g0], "iterations": 0, "rounds": 0}
         sol: dict = {}
         for rnd in range(2 * nlp.n_slots + 1):
-            lbg = [0.0] * sum((n_w + nlp.n_slots) * (2 if nlp.has_mt else 1) for n_w in nlp.n_omega)
+            lbg = [0.0] * sum((n_w + nlp.n_slots) * nlp.n_kinds for n_w in nlp.n_omega)
             ubg = [ca.inf] * len(lbg)
             if nlp.has_noise:
                 lbg.append(-ca.inf)
@@ -1968,7 +2057,8 @@ class Tuner:
             if self.worst_case:
                 lbg += [0.0] * len(loops)
                 ubg += [ca.inf] * len(loops)
-            prm = self._params(scale, eps, j_ref, ms_eff**-2, (mt_eff or 1.0) ** -2, slots, g0)
+            prm = self._params(scale, eps, j_ref, ms_eff**-2, (mt_eff or 1.0) ** -2, slots, g0,
+                               None if mks_eff is None else mks_eff**-2)
             if rnd and multi:
                 warm = nlp.warm()
                 sol = warm(x0=x0, p=prm, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg, lam_x0=sol["lam_x"], lam_g0=sol["lam_g"])
@@ -1993,14 +2083,18 @@ class Tuner:
                 info["result"] = "noise bound not met"
                 return None, info
             pks = [lp.peaks(gains, mt=mt_max is not None) for lp in loops]
+            if mks_max is not None:
+                for lp, pk in zip(loops, pks):
+                    pk.update(lp.noise_peak(gains))
             viol, grid_only_bad, full = False, False, False
             for j, pk in enumerate(pks):
                 bad_s = pk["ms"] > ms_max
                 bad_t = mt_max is not None and pk["mt"] > mt_max
+                bad_k = mks_max is not None and pk["mks"] > mks_max
                 if not pk["exact"]:
-                    grid_only_bad |= bad_s or bad_t
+                    grid_only_bad |= bad_s or bad_t or bad_k
                     continue
-                for bad, key in ((bad_s, "ms"), (bad_t, "mt")):
+                for bad, key in ((bad_s, "ms"), (bad_t, "mt"), (bad_k, "mks")):
                     if not bad:
                         continue
                     viol = True
@@ -2009,8 +2103,10 @@ class Tuner:
                         # Already constrained there: the solve's tolerance, tighten the bound.
                         if key == "ms":
                             ms_eff *= (ms_max / pk["ms"]) * (1 - 1e-6)
-                        else:
+                        elif key == "mt":
                             mt_eff *= (mt_max / pk["mt"]) * (1 - 1e-6)
+                        else:
+                            mks_eff *= (mks_max / pk["mks"]) * (1 - 1e-6)
                     else:
                         # A new region gets the peak with its neighbours; a peak inside a region
                         # already held (it moved by less than the cluster's span) only itself.
@@ -2031,7 +2127,7 @@ class Tuner:
                 idx, active = 0, False
                 for n in n_s:
                     active |= bool(np.any(lam[idx : idx + n] < -1e-8))
-                    idx += n * (2 if nlp.has_mt else 1)
+                    idx += n * nlp.n_kinds
                 info["result"] = "verified"
                 return _Candidate(gains, dict(st), pks, math.nan, active, bool(st["success"])), info
             if full:
@@ -2044,14 +2140,14 @@ class Tuner:
 
     # ---- verification of optimality -------------------------------------------------------
 
-    def _first_order(self, gains, ms_max, mt_max, noise, hi, typical) -> dict:
+    def _first_order(self, gains, ms_max, mt_max, noise, hi, typical, mks_max=None) -> dict:
         """First-order optimality of ``gains`` checked on the TRUE problem, independently of
         ipopt: the reported objective (:meth:`LoopModel.true_objective`, at a fixed resolution
         so that it is smooth) and the true local peaks of |S| and |T| (each a constraint of
         its own), differentiated by central differences of ``_FD_STEP`` in log gain (a gain at
         0 by a forward difference of ``_FD_STEP`` times its typical size).
 
-        Active set: peaks within ``MS_RTOL`` of their bound, the noise and upper gain bounds
+        Active set: peaks (of |S|, |T| and, with ``mks_max``, |C F S|) within ``MS_RTOL`` of their bound, the noise and upper gain bounds
         within 1e-6, gains at 0; with ``worst_case``, every loop within 1e-3 of the worst.
         Stationarity: the residual ``min || sum_j lam_j grad log f_j + sum_i mu_i grad c_i ||``
         over ``lam, mu >= 0``, ``sum lam = 1`` (``c_i`` the constraints relative to their bound),
@@ -2116,18 +2212,20 @@ class Tuner:
             names.append("objective")
         cons, active = [], []
         for lp in loops:
-            for key, bound in (("ms", ms_max), ("mt", mt_max)):
+            for key, bound in (("ms", ms_max), ("mt", mt_max), ("mks", mks_max)):
                 if bound is None:
                     continue
                 for w in lp.active_band(g0, key, bound * (1 - MS_RTOL)):
                     if key == "ms":
                         cfun = lambda g, lp=lp, w=w: 1 / abs(1 + lp.loop_response(g, np.array([w]))[0])
+                    elif key == "mks":
+                        cfun = lambda g, lp=lp, w=w: abs(lp.noise_response(g, np.array([w]))[0])
                     else:
                         cfun = lambda g, lp=lp, w=w: abs(1 / (1 + 1 / lp.loop_response(g, np.array([w]))[0]))
                     if lp.response is None:
                         continue  # grid-only loops: no off-grid response to differentiate
                     cons.append(grad(cfun) / bound)
-                    active.append(f"{'Ms' if key == 'ms' else 'Mt'} of loop {lp.name!r} at {w:.6g} rad/s")
+                    active.append(f"{dict(ms='Ms', mt='Mt', mks='Mks')[key]} of loop {lp.name!r} at {w:.6g} rad/s")
         jac_lin = np.zeros((ng, len(steps)))  # d g_i / d variable
         for k, (i, logv, d) in enumerate(steps):
             jac_lin[i, k] = g0[i] if logv else (typical[i] if typical[i] > 0 else 1.0)
@@ -2166,7 +2264,7 @@ class Tuner:
         return {"ok": res <= KKT_TOL, "residual": res, "active": names + active,
                 "gradient": [float(x) for x in (G @ np.full(G.shape[1], 1.0 / G.shape[1]))]}
 
-    def _polish(self, gains, ms_max, mt_max, noise, hi) -> NDArray | None:
+    def _polish(self, gains, ms_max, mt_max, noise, hi, mks_max=None) -> NDArray | None:
         """A local solve of the TRUE problem from ``gains`` (SLSQP in log gains, central
         differences of ``_FD_STEP / 10``): the reported objective (:meth:`LoopModel.
         _smooth_objective`) under the top peak of |S| (and |T|) and every local one within 10 % of its bound,
@@ -2186,6 +2284,7 @@ class Tuner:
             return None
         ms_eff = ms_max * (1 - 1e-5)
         mt_eff = None if mt_max is None else mt_max * (1 - 1e-5)
+        mks_eff = None if mks_max is None else mks_max * (1 - 1e-5)
 
         def gains_of(y):
             g = g0.copy()
@@ -2197,7 +2296,9 @@ class Tuner:
             if lp.response is None:
                 return None
             pk0 = lp.peaks(g0, mt=mt_eff is not None)
-            for key, bound in (("ms", ms_eff), ("mt", mt_eff)):
+            if mks_eff is not None:
+                pk0.update(lp.noise_peak(g0))
+            for key, bound in (("ms", ms_eff), ("mt", mt_eff), ("mks", mks_eff)):
                 if bound is not None:  # the top peak and every local peak within 10 % of the bound
                     floor = min(0.9 * bound, pk0[key] * (1 - 1e-9))
                     tracked += [(lp, key, bound, math.log(w)) for _, w in lp.local_peaks(g0, key, floor)]
@@ -2206,7 +2307,10 @@ class Tuner:
             out = []
             for lp, key, bound, lw in tracked:
                 f = (lambda Lv: 1 / np.abs(1 + Lv)) if key == "ms" else (lambda Lv: np.abs(Lv / (1 + Lv)))
-                _, v = _zoom_max(lambda xs: f(lp.loop_response(g, np.exp(xs))), np.array([lw - 0.3]), np.array([lw + 0.3]))
+                if key == "mks":
+                    _, v = _zoom_max(lambda xs: lp._magnitude(g, key, np.exp(xs)), np.array([lw - 0.3]), np.array([lw + 0.3]))
+                else:
+                    _, v = _zoom_max(lambda xs: f(lp.loop_response(g, np.exp(xs))), np.array([lw - 0.3]), np.array([lw + 0.3]))
                 out.append(float(v[0]) / bound)
             return np.array(out)
 
@@ -2269,6 +2373,8 @@ class Tuner:
             pk = lp.peaks(g, mt=mt_max is not None)
             if pk["ms"] > ms_max or (mt_max is not None and pk["mt"] > mt_max):
                 return None
+            if mks_max is not None and lp.noise_peak(g)["mks"] > mks_max:
+                return None
         if noise is not None and g[0] + g[2] / loops[0].tf > noise * (1 + 1e-9):
             return None
         old = _combined([lp._smooth_objective(g0, kind) for lp in loops], w, self.worst_case)
@@ -2286,6 +2392,7 @@ class Tuner:
         kp_max: float | None = None,
         ki_max: float | None = None,
         kd_max: float | None = None,
+        mks_max: float | None = None,
     ) -> TuningResult:
         """Optimal gains under the bounds; see :class:`TuningResult` for what is guaranteed.
 
@@ -2297,10 +2404,18 @@ class Tuner:
             Bound on the true peak complementary sensitivity, in (1, 10).
         max_noise_gain : float, optional
             Bound on the controller's high-frequency gain ``kp + kd/tf`` (loop units, e.g.
-            N m s/rad), needed where robustness alone does not limit the gains.
+            N m s/rad), needed where robustness alone does not limit the gains. It bounds
+            the controller alone at infinite frequency, not the noise gain of the loop: for
+            that, use ``mks_max``.
         kp_max, ki_max, kd_max : float, optional
             Upper gain bounds (loop units; None or inf: none). The result does not depend on
             them once they exceed the optimum.
+        mks_max : float, optional
+            Bound on the true peak noise sensitivity ``Mks = max over frequency of |C F S|``
+            (:meth:`LoopModel.noise_peak`; loop units: control signal per measured-output unit,
+            e.g. N m s/rad), the loop as tuned including every filter on the noise path;
+            enforced like Ms (grid rows, then the true peak verified and its frequency added
+            until it holds). Needs loops with a noise path (``continuous_loop``, ``drive_loop``).
 
         Returns
         -------
@@ -2308,12 +2423,16 @@ class Tuner:
         """
         t_start = time.perf_counter()
         ms_max, mt_max, noise = _check_bounds(ms_max, mt_max, max_noise_gain)
+        mks_max = _check_mks(mks_max)
+        if mks_max is not None and any(lp.noise is None or lp.response is None for lp in self.loops):
+            raise ValueError("mks_max given for loops without a noise path; expected continuous_loop or drive_loop models")
         ng = self.loops[0].n_gains
         hi = [_gain_limit("kp_max", kp_max), _gain_limit("ki_max", ki_max),
               _gain_limit("kd_max", kd_max) if self.use_d else 0.0, 1.0][:ng]
         ms_eff = ms_max * (1 - 1e-6)
         mt_eff = mt_max * (1 - 1e-6) if mt_max is not None else None
-        order = self._ranked(ms_eff, mt_eff, noise, hi)
+        mks_eff = mks_max * (1 - 1e-6) if mks_max is not None else None
+        order = self._ranked(ms_eff, mt_eff, noise, hi, mks_eff)
         if not order.size:
             sc = self._scan_data()
             probe = np.flatnonzero(sc["ms"] <= ms_eff)[:20]
@@ -2326,13 +2445,14 @@ class Tuner:
                 f"no stabilising {self.controller.upper()} gains meet Ms <= {ms_max:g}"
                 + (f", Mt <= {mt_max:g}" if mt_max is not None else "")
                 + (f", kp + kd/tf <= {noise:g}" if noise is not None else "")
+                + (f", Mks <= {mks_max:g}" if mks_max is not None else "")
                 + " on the scan; relax the constraints"
             )
-        nlp = self._nlp(mt_max is not None, noise is not None)
+        nlp = self._nlp(mt_max is not None, noise is not None, mks_max is not None)
         runs, cands = [], []
         typical = np.max(self._scan_data()["grid"][order[:20]], axis=0)
         for g0 in self._starts(order):
-            cand, info = self._solve_from(nlp, g0, ms_max, mt_max, noise, hi, typical)
+            cand, info = self._solve_from(nlp, g0, ms_max, mt_max, noise, hi, typical, mks_max)
             runs.append(info)
             if cand is not None:
                 cand.value = self._value(cand.gains)
@@ -2355,7 +2475,8 @@ class Tuner:
             for i in order[:50]:
                 g = self._scan_data()["grid"][i]
                 pks = [lp.peaks(g) for lp in self.loops]
-                if all(pk["ms"] <= ms_max and (mt_max is None or pk["mt"] <= mt_max) for pk in pks):
+                if all(pk["ms"] <= ms_max and (mt_max is None or pk["mt"] <= mt_max) for pk in pks) and (
+                        mks_max is None or all(lp.noise_peak(g)["mks"] <= mks_max for lp in self.loops)):
                     best = _Candidate(np.array(g, float), {"return_status": "scan point kept", "iter_count": 0},
                                       pks, self._value(g), False, False)
                     break
@@ -2368,17 +2489,17 @@ class Tuner:
             status = f"not converged: scan point kept (ipopt: {ipopt_status}; {runs[0].get('result', '') if runs else ''})"
         gains, peaks = best.gains, best.peaks
         # "optimal" is decided here, on the true problem, not by ipopt's exit status.
-        first = self._first_order(gains, ms_max, mt_max, noise, hi, typical)
+        first = self._first_order(gains, ms_max, mt_max, noise, hi, typical, mks_max)
         polished = False
         for _ in range(_POLISH_ROUNDS):
             if first["ok"] or best.stats.get("return_status") == "scan point kept":
                 break
-            pol = self._polish(gains, ms_max, mt_max, noise, hi)
+            pol = self._polish(gains, ms_max, mt_max, noise, hi, mks_max)
             if pol is None:
                 break
             gains, polished = pol, True
             peaks = [lp.peaks(gains) for lp in self.loops]
-            first = self._first_order(gains, ms_max, mt_max, noise, hi, typical)
+            first = self._first_order(gains, ms_max, mt_max, noise, hi, typical, mks_max)
         if first["ok"]:
             status = "optimal"
         elif best.stats.get("return_status") != "scan point kept":
@@ -2422,7 +2543,11 @@ class Tuner:
                 warnings.append(f"{names[i]} = {gains[i]:.6g} is at its bound {names[i]}_max = {lim:g}")
         pid = PID(float(gains[0]), float(gains[1]), float(gains[2]), tf=float(self.loops[0].tf),
                   kff=float(gains[3]) if len(gains) > 3 else 0.0)
+        mks = None
+        if all(lp.noise is not None and lp.response is not None for lp in self.loops):
+            mks = max(lp.noise_peak(gains)["mks"] for lp in self.loops)
         return TuningResult(
+            mks=mks,
             pid=pid,
             objective=_combined(inf_vals, self.weights, self.worst_case),
             kind=self.objective,
@@ -2469,6 +2594,7 @@ def tune_loops(
     kd_max: float | None = None,
     weights: Sequence[float] | None = None,
     worst_case: bool = False,
+    mks_max: float | None = None,
 ) -> TuningResult:
     """Optimise PI/PID gains for one or several loop models: ``Tuner(loops, ...).tune(...)``.
 
@@ -2478,7 +2604,7 @@ def tune_loops(
         Loop models of the same structure (e.g. one per load level).
     objective, controller, weights, worst_case
         See :class:`Tuner`.
-    ms_max, mt_max, max_noise_gain, kp_max, ki_max, kd_max
+    ms_max, mt_max, max_noise_gain, kp_max, ki_max, kd_max, mks_max
         See :meth:`Tuner.tune`.
 
     Returns
@@ -2508,7 +2634,7 @@ def tune_loops(
         tuner = Tuner(loops, objective=objective, controller=controller, weights=weights, worst_case=worst_case)
         _RECENT[:] = [(loops, key, tuner)]
     return tuner.tune(ms_max=ms_max, mt_max=mt_max, max_noise_gain=max_noise_gain,
-                      kp_max=kp_max, ki_max=ki_max, kd_max=kd_max)
+                      kp_max=kp_max, ki_max=ki_max, kd_max=kd_max, mks_max=mks_max)
 
 
 def _phase_frequency(a, b, c, d) -> tuple[float | None, float]:
@@ -2547,6 +2673,7 @@ def tune_pid(
     kp_max: float | None = None,
     ki_max: float | None = None,
     kd_max: float | None = None,
+    mks_max: float | None = None,
 ) -> TuningResult:
     """Tune a PI (default) or PID for load-disturbance rejection on any SISO LTI plant.
 
@@ -2568,9 +2695,16 @@ def tune_pid(
         Bounds on the true peak sensitivity and (optionally) complementary sensitivity, in
         (1, 10).
     max_noise_gain : float, optional
-        Bound on the controller's high-frequency gain ``kp + kd/tf`` (actuator effort / noise
-        amplification, plant-input units per output unit), needed where robustness alone does
-        not limit the gains (the plant's phase stays above -135 deg at high frequency).
+        Bound on the controller's high-frequency gain ``kp + kd/tf`` (plant-input units per
+        output unit), needed where robustness alone does not limit the gains (the plant's phase
+        stays above -135 deg at high frequency). It bounds the controller alone at infinite
+        frequency, not the loop's noise gain ``max |C S|`` (which may be larger: use
+        ``mks_max`` for that).
+    mks_max : float, optional
+        Bound on the true peak noise sensitivity ``Mks = max over omega of |C(j omega) S(j
+        omega)|`` (plant-input units per output unit) of the loop as tuned; the peak is found
+        on a dense grid refined near it (six decades beyond the plant's dynamics, where ``|C
+        S|`` tends to its high-frequency limit). Given, it replaces the default noise-gain bound.
     disturbance : str or int, optional
         Name or index of the disturbance input (default: the second input, else the control
         input).
@@ -2610,6 +2744,7 @@ def tune_pid(
     if controller not in CONTROLLERS:
         raise ValueError(f"controller = {controller!r}; expected 'pi' or 'pid'")
     _check_bounds(ms_max, mt_max, max_noise_gain)
+    mks_max = _check_mks(mks_max)
     step = _number("step", step, expected="a finite non-zero step size")
     if step == 0.0:
         raise ValueError("step = 0.0; expected a finite non-zero step size")
@@ -2629,12 +2764,15 @@ def tune_pid(
         limits = {k: v * k0 for k, v in limits.items()}
         if max_noise_gain is not None:
             max_noise_gain = float(max_noise_gain) * k0
+        if mks_max is not None:
+            mks_max = mks_max * k0
     a, b, c, d = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
     auto_horizon = horizon is None
     default_note = None
     if horizon is None or tf is None or max_noise_gain is None:
         w135, ph_top = _phase_frequency(a, b[:, :1], c, d[:, :1])
-        unbounded = ph_top > -0.75 * np.pi + 1e-3 and max_noise_gain is None and not math.isfinite(limits["kp_max"])
+        unbounded = (ph_top > -0.75 * np.pi + 1e-3 and max_noise_gain is None and mks_max is None
+                     and not math.isfinite(limits["kp_max"]))
         if unbounded or (w135 is None and (horizon is None or tf is None)):
             # Robustness alone does not limit the gains (Ms -> 1 as they grow, e.g. 1/(s-1)): the
             # default design puts the crossover about a decade above the plant's fastest pole or
@@ -2644,7 +2782,7 @@ def tune_pid(
             mags = mags[(mags > 0) & np.isfinite(mags)]
             w0 = float(mags.max()) if mags.size else 1.0
             p0 = abs(complex(_ss_response(a, b[:, :1], c, np.array([w0]))[0] + d[0, 0]))
-            if max_noise_gain is None and not math.isfinite(limits["kp_max"]):
+            if max_noise_gain is None and mks_max is None and not math.isfinite(limits["kp_max"]):
                 max_noise_gain = 10.0 / p0
                 default_note = (f"robustness alone does not limit the gains of this plant (phase "
                                 f"{math.degrees(ph_top):.0f} deg at high frequency): tuned with the default noise-gain "
@@ -2661,7 +2799,7 @@ def tune_pid(
     for _ in range(3):
         loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step)
         res = Tuner([loop], objective=objective, controller=controller).tune(
-            ms_max=ms_max, mt_max=mt_max, max_noise_gain=max_noise_gain, **limits)
+            ms_max=ms_max, mt_max=mt_max, max_noise_gain=max_noise_gain, mks_max=mks_max, **limits)
         if not (auto_horizon and res.stats["horizon_short"]):
             break
         horizon *= 4.0
@@ -2764,4 +2902,5 @@ def _rescaled(res: TuningResult, k0: float, limits: dict) -> TuningResult:
         if math.isfinite(lim) and lim > 0 and gains[i] * k0 >= lim * (1 - 1e-6):
             warnings.append(f"{n} = {gains[i]:.6g} is at its bound {n}_max = {lim / k0:g}")
     return replace(res, pid=PID(gains[0], gains[1], gains[2], tf=pid.tf, kff=pid.kff), objective=obj,
+                   mks=None if res.mks is None else res.mks / k0,
                    per_loop=[v * f for v in res.per_loop], stats=stats, warnings=warnings)
