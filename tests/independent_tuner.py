@@ -1,0 +1,94 @@
+"""Independent brute-force references for the generic tuner (issue 25).
+
+Nothing here calls prsa_ctrl: the loop is evaluated from the plant's polynomial coefficients
+(numpy.polyval) on a dense log grid, the delay as the exact ``exp(-j w L)``, and the optima are
+found by bisection / bounded scalar search in scipy. The objective is IE after a unit load step
+at the plant input, which for a controller with integral action is exactly ``1/ki``: the
+optimum is the largest feasible ``ki``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+#: Dense grid (rad/s) for the peaks: 12000 points over 9 decades plus the high-frequency limit.
+W = np.logspace(-4, 5, 12000)
+
+
+def loop_parts(num, den, delay=0.0, w=W):
+    """P(jw) of num/den (highest power first) with an exact delay."""
+    s = 1j * w
+    return np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * delay)
+
+
+def controller(kp, ki, kd=0.0, tf=0.0, filt=None, w=W):
+    """C(jw) F(jw): PID kp + ki/s + kd s/(1 + tf s) times the filter ``filt = (order, Tf)``."""
+    s = 1j * w
+    c = kp + ki / s + kd * s / (1 + tf * s)
+    if filt is not None:
+        order, t = filt
+        c = c / ((t * s + 1) if order == 1 else (t * t * s * s / 2 + t * s + 1))
+    return c
+
+
+def peaks(p, c):
+    """(Ms, Mt, Mks) on the grid, the last one also at the high-frequency limit."""
+    L = p * c
+    S = 1 / (1 + L)
+    return float(np.max(np.abs(S))), float(np.max(np.abs(L * S))), float(np.max(np.abs(c * S)))
+
+
+def stable(num, den, kp, ki, kd=0.0, tf=0.0, filt=None):
+    """Closed-loop stability from the characteristic polynomial (rational loops only)."""
+    s_poly = np.array([1.0, 0.0])
+    # C = (kd s^2 + (kp + kd?)..): build C F as a ratio of polynomials
+    cn = np.polyadd(np.polymul([kp, ki], [tf, 1.0]), [kd, 0.0, 0.0])
+    cd = np.polymul(s_poly, [tf, 1.0])
+    if filt is not None:
+        order, t = filt
+        cd = np.polymul(cd, [t, 1.0] if order == 1 else [t * t / 2, t, 1.0])
+    char = np.polyadd(np.polymul(den, cd), np.polymul(num, cn))
+    return bool(np.all(np.roots(np.trim_zeros(char, "f")).real < 0))
+
+
+def max_ki(num, den, kp, ms, mt=None, mks=None, kd=0.0, tf=0.0, filt=None, delay=0.0, p=None):
+    """Largest ki (bisection in log ki) meeting the bounds at fixed kp, kd; 0 if none."""
+    p = loop_parts(num, den, delay) if p is None else p
+
+    def ok(ki):
+        m = peaks(p, controller(kp, ki, kd, tf, filt))
+        good = m[0] <= ms and (mt is None or m[1] <= mt) and (mks is None or m[2] <= mks)
+        return good and (delay > 0 or stable(num, den, kp, ki, kd, tf, filt))
+
+    lo, hi = 1e-6, 1e4
+    if not ok(lo):
+        return 0.0
+    for _ in range(70):
+        mid = np.sqrt(lo * hi)
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    return lo
+
+
+def best_pi(num, den, ms, mt=None, mks=None, filt=None, delay=0.0, kp_hi=50.0, n=300):
+    """Brute-force IE-optimal PI: kp on a grid, then a bounded scalar search around the best."""
+    p = loop_parts(num, den, delay)
+    kps = np.linspace(kp_hi / n, kp_hi, n)
+    vals = [max_ki(num, den, k, ms, mt, mks, filt=filt, delay=delay, p=p) for k in kps]
+    i = int(np.argmax(vals))
+    lo, hi = kps[max(i - 1, 0)], kps[min(i + 1, n - 1)]
+    r = minimize_scalar(lambda k: -max_ki(num, den, k, ms, mt, mks, filt=filt, delay=delay, p=p),
+                        bounds=(lo, hi), method="bounded", options={"xatol": 1e-7 * kp_hi})
+    return float(r.x), float(-r.fun)
+
+
+def best_pi_filtered(num, den, order, ms, mt, mks, t_lo, t_hi, kp_hi=50.0):
+    """Brute-force IE-optimal PI with the filter time constant also searched (golden section in
+    log Tf on top of :func:`best_pi`)."""
+    def neg(lt):
+        return -best_pi(num, den, ms, mt, mks, filt=(order, float(np.exp(lt))), kp_hi=kp_hi, n=60)[1]
+
+    r = minimize_scalar(neg, bounds=(np.log(t_lo), np.log(t_hi)), method="bounded", options={"xatol": 1e-4})
+    t = float(np.exp(r.x))
+    kp, ki = best_pi(num, den, ms, mt, mks, filt=(order, t), kp_hi=kp_hi)
+    return t, kp, ki
