@@ -865,6 +865,11 @@ def continuous_loop(
     disturbance: str | int | None = None,
     step: float = 1.0,
     omega: NDArray[np.float64] | None = None,
+    filter_order: int = 0,
+    filter_tf: float | None = None,
+    ideal: bool = False,
+    delay: float = 0.0,
+    delay_order: int = 8,
 ) -> LoopModel:
     """Loop model of a continuous SISO LTI plant under a continuous PID.
 
@@ -889,6 +894,23 @@ def continuous_loop(
     omega : array, rad/s, optional
         Frequency grid of the Ms/Mt constraints; by default 600 log-spaced points spanning the
         plant's poles and zeros, refined around each of them.
+    filter_order : {0, 1, 2}
+        Measurement filter on the whole controller, ``C(s) F(s)``: none (0), ``F = 1/(Tf s + 1)``
+        (1) or ``F = 1/(Tf^2 s^2/2 + Tf s + 1)`` (2, as Soltesz-Grimholt-Skogestad / Hast et al.
+        and JuliaSim's ``filter_order=2``). The controller acts on the filtered measurement;
+        the objective is that of the unfiltered output.
+    filter_tf : float, s
+        The filter's time constant ``Tf`` (needed with ``filter_order`` 1 or 2).
+    ideal : bool
+        Ideal derivative ``kd s`` (no derivative filter; ``tf`` then plays no part in the law):
+        the derivative of the filtered measurement, or with ``filter_order=0`` that of the
+        plant output, which needs a plant of relative degree 2 or more.
+    delay : float, s
+        Output (equivalently input) delay ``e^{-s delay}`` of the plant. The frequency response
+        (Ms, Mt, Mks, margins) uses the exact ``e^{-j omega delay}``; the time response (the
+        objective) a Pade approximant of order ``delay_order`` in series with the plant.
+    delay_order : int
+        Pade order of the delay in the time response (1 .. 12).
 
     Returns
     -------
@@ -909,6 +931,8 @@ def continuous_loop(
     step = _number("step", step, expected="a finite non-zero step size")
     if step == 0.0:
         raise ValueError("step = 0.0; expected a finite non-zero step size")
+    filter_order, filter_tf, ideal, delay, delay_order = _check_structure(filter_order, filter_tf, ideal, delay,
+                                                                          delay_order)
     sys = control.ss(plant)
     if not sys.isctime():
         raise ValueError(f"plant {sys.name!r} is discrete-time; expected a continuous-time LTI system")
@@ -944,6 +968,12 @@ def continuous_loop(
         a, (tb, _) = matrix_balance(a, permute=False, separate=True)
         b = b / tb[:, None]
         c = c * tb[None, :]
+    c_plant = c
+    # The delay's Pade model and the measurement filter in series with the plant output (extra
+    # plant states): c is then the row of the output the controller measures, c_err that of the
+    # (delayed, unfiltered) output the objective integrates; without them both are c.
+    a, b, c, c_err = _series_output(a, b, c, delay, delay_order, filter_order, filter_tf)
+    n = a.shape[0]
     h = horizon / n_steps
     ad, bd_all = _zoh(a, b, h)
     bu, bdist = bd_all[:, :1], bd_all[:, d_idx : d_idx + 1]
@@ -958,15 +988,20 @@ def continuous_loop(
     A0[n + 1, n + 1] = gam
     ce = np.zeros(N)
     ce[:n] = -c[0]
-    # u = kp e + ki I + kd (e - z)/tf
+    # u = kp e + ki I + kd (e - z)/tf (ideal: kd de/dt, a row over the plant states)
+    d_row = _ideal_derivative_row(a, b, c, N) if ideal else (ce - np.eye(N)[n + 1]) / tf
     a_kp = np.zeros((N, N))
     a_kp[:n, :] = bu @ ce[None, :]
     a_ki = np.zeros((N, N))
     a_ki[:n, n] = bu[:, 0]
     a_kd = np.zeros((N, N))
-    a_kd[:n, :] = bu @ ((ce - np.eye(N)[n + 1]) / tf)[None, :]
+    a_kd[:n, :] = bu @ d_row[None, :]
     bdv = np.zeros(N)
     bdv[:n] = bdist[:, 0] * step
+    ce_obj = ce
+    if c_err is not c:
+        ce_obj = np.zeros(N)
+        ce_obj[:n] = -c_err[0]
     poles, zeros = _plant_roots(a, b[:, :1], c, d[:, :1])
     if omega is None:
         mags = np.abs(np.concatenate([poles, zeros]))
@@ -981,11 +1016,20 @@ def continuous_loop(
             raise ValueError("omega must be an increasing 1-D array of positive finite frequencies (rad/s)")
 
     b_u = b[:, :1].copy()
+    exact = delay > 0 or filter_order > 0 or ideal
+    a_p, b_p = a[: c_plant.shape[1], : c_plant.shape[1]].copy(), b_u[: c_plant.shape[1]].copy()
+
+    def deriv(jw):
+        return jw if ideal else jw / (1 + jw * tf)
 
     def response(w):
-        p_u = _ss_response(a, b_u, c, w)
         jw = 1j * np.asarray(w, float)
-        return None, np.vstack([p_u, p_u / jw, p_u * jw / (1 + jw * tf)]), None, None
+        if not exact:
+            p_u = _ss_response(a, b_u, c, w)
+            return None, np.vstack([p_u, p_u / jw, p_u * jw / (1 + jw * tf)]), None, None
+        # Exact: the plant's own response, e^{-j w delay} and the filter (no Pade in frequency).
+        p_u = _ss_response(a_p, b_p, c_plant, w) * np.exp(-jw * delay) * _filter_response(filter_order, filter_tf, jw)
+        return None, np.vstack([p_u, p_u / jw, p_u * deriv(jw)]), None, None
 
     # The continuous closed loop itself, same state: x' = a x + b u + b_d d, I' = e, z' = (e - z)/tf.
     c0 = np.zeros((N, N))
@@ -996,17 +1040,93 @@ def continuous_loop(
     c_kp, c_ki, c_kd = (np.zeros((N, N)) for _ in range(3))
     c_kp[:n] = b[:, :1] @ ce[None, :]
     c_ki[:n, n] = b[:, 0]
-    c_kd[:n] = b[:, :1] @ ((ce - np.eye(N)[n + 1]) / tf)[None, :]
+    c_kd[:n] = b[:, :1] @ d_row[None, :]
     c_bd = np.zeros(N)
     c_bd[:n] = b[:, d_idx] * step
     L = response(omega)[1]
 
-    def noise(w):  # the controller per unit gain: u = C(-y_measured)
+    def noise(w):  # the controller per unit gain, filter included: u = C F (-(y + noise))
         jw = 1j * np.asarray(w, float)
-        return np.vstack([np.ones_like(jw), 1 / jw, jw / (1 + jw * tf)])
+        f = _filter_response(filter_order, filter_tf, jw) if filter_order else 1.0
+        return np.vstack([np.ones_like(jw) * f, f / jw, f * deriv(jw)])
 
-    return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce, h, n_steps, omega, L, tf, name=sys.name, response=response,
+    return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce_obj, h, n_steps, omega, L, tf, name=sys.name, response=response,
                      continuous=(c0, (c_kp, c_ki, c_kd), c_bd), noise=noise)
+
+
+def _check_structure(filter_order, filter_tf, ideal, delay, delay_order):
+    """The loop-structure arguments of :func:`continuous_loop` checked (ValueError naming one)."""
+    if isinstance(filter_order, bool) or filter_order not in (0, 1, 2):
+        raise ValueError(f"filter_order = {filter_order!r}; expected 0 (none), 1 or 2")
+    if filter_order:
+        filter_tf = _number("filter_tf", filter_tf, lo=0.0, expected="a positive finite time constant in s")
+    if not isinstance(ideal, (bool, np.bool_)):
+        raise ValueError(f"ideal = {ideal!r}; expected True or False")
+    delay = _number("delay", delay, lo=0.0, lo_open=False, expected="a finite delay >= 0 s")
+    if isinstance(delay_order, bool) or not isinstance(delay_order, numbers.Integral) or not 1 <= delay_order <= 12:
+        raise ValueError(f"delay_order = {delay_order!r}; expected an integer in [1, 12]")
+    return int(filter_order), filter_tf, bool(ideal), delay, int(delay_order)
+
+
+def _filter_ss(order: int, t: float) -> tuple[NDArray, NDArray, NDArray]:
+    """State space ``(A, B, C)`` of the measurement filter 1/(t s + 1) or 1/(t^2 s^2/2 + t s + 1)."""
+    if order == 1:
+        return np.array([[-1.0 / t]]), np.array([[1.0 / t]]), np.array([[1.0]])
+    return (np.array([[0.0, 1.0], [-2.0 / (t * t), -2.0 / t]]), np.array([[0.0], [2.0 / (t * t)]]),
+            np.array([[1.0, 0.0]]))
+
+
+def _filter_response(order: int, t: float | None, jw) -> NDArray[np.complex128]:
+    """``F(j omega)`` of the measurement filter (1 without one)."""
+    if not order:
+        return np.ones_like(jw)
+    return 1.0 / (t * jw + 1.0) if order == 1 else 1.0 / (t * t * jw * jw / 2.0 + t * jw + 1.0)
+
+
+def _series_output(a, b, c, delay: float, delay_order: int, filter_order: int, filter_tf):
+    """The plant ``(a, b, c)`` with the delay's Pade model and the measurement filter in series
+    with its output: ``(a, b, c_measured, c_objective)`` (the last is ``c`` itself, the same
+    object, when neither is present)."""
+    c_err = c
+    if delay > 0:
+        import control
+
+        num, den = control.pade(delay, delay_order)
+        pd = control.ss(control.tf(num, den))
+        ap, bp, cp, dp = (np.asarray(m, float) for m in (pd.A, pd.B, pd.C, pd.D))
+        from scipy.linalg import matrix_balance
+
+        ap, (tp, _) = matrix_balance(ap, permute=False, separate=True)
+        bp, cp = bp / tp[:, None], cp * tp[None, :]
+        a, b, c = _cascade(a, b, c, ap, bp, cp, float(dp[0, 0]))
+        c_err = c
+    if filter_order:
+        af, bf, cf = _filter_ss(filter_order, filter_tf)
+        a, b, c_meas = _cascade(a, b, c, af, bf, cf, 0.0)
+        return a, b, c_meas, np.hstack([c, np.zeros((1, af.shape[0]))])
+    return a, b, c, c_err
+
+
+def _cascade(a, b, c, a2, b2, c2, d2: float):
+    """``(a, b, c)`` followed by ``(a2, b2, c2, d2)`` on its output: the series system's matrices."""
+    n, m = a.shape[0], a2.shape[0]
+    big = np.zeros((n + m, n + m))
+    big[:n, :n] = a
+    big[n:, :n] = b2 @ c
+    big[n:, n:] = a2
+    return big, np.vstack([b, np.zeros((m, b.shape[1]))]), np.hstack([d2 * c, c2])
+
+
+def _ideal_derivative_row(a, b, c, n_total: int) -> NDArray[np.float64]:
+    """The error's time derivative ``-c (a x + b u)`` as a row over the closed-loop state, which
+    needs ``c b = 0`` (relative degree 2 or more from the control input to the measurement)."""
+    if abs(float(c[0] @ b[:, 0])) > 1e-12 * max(float(np.abs(c).max() * np.abs(b).max()), 1e-300):
+        raise ValueError("ideal = True on a measurement of relative degree 1 (the ideal derivative feeds the "
+                         "control input through); expected a measurement filter (filter_order=1 or 2) or a plant "
+                         "of relative degree 2 or more")
+    row = np.zeros(n_total)
+    row[: a.shape[0]] = -(c[0] @ a)
+    return row
 
 
 def _pid_rows(n_state: int, i_u: int, i_i: int, e_meas, d_new, ts: float, ref=None, weight: float = 1.0):
@@ -1307,6 +1427,10 @@ class TuningResult:
     mks : float or None
         True peak noise sensitivity ``max |C F S|`` over the loops (:meth:`LoopModel.noise_peak`;
         control-signal units per measured-output unit), None where a loop has no noise path.
+    filter : dict or None
+        :func:`tune_pid` with a measurement filter or an ideal derivative: ``order`` (0, 1, 2),
+        ``tf_s`` (the filter's time constant, s; None without a filter) and ``derivative``
+        (``"ideal"`` or ``"filtered"``); the law is ``C(s) F(s)``.
     """
 
     pid: PID
@@ -1319,6 +1443,7 @@ class TuningResult:
     converged: bool = True
     warnings: list[str] = field(default_factory=list)
     mks: float | None = None
+    filter: dict | None = None
 
     @property
     def ms(self) -> float:
@@ -2637,9 +2762,10 @@ def tune_loops(
                       kp_max=kp_max, ki_max=ki_max, kd_max=kd_max, mks_max=mks_max)
 
 
-def _phase_frequency(a, b, c, d) -> tuple[float | None, float]:
-    """Frequency (rad/s) where the plant's phase crosses -135 deg (first from above, else the
-    first crossing), on a grid spanning its poles and zeros; and the phase (rad) at the top."""
+def _phase_frequency(a, b, c, d, delay: float = 0.0) -> tuple[float | None, float]:
+    """Frequency (rad/s) where the plant's phase (with its exact delay, s) crosses -135 deg (first
+    from above, else the first crossing), on a grid spanning its poles and zeros; and the phase
+    (rad) at the top."""
     poles, zeros = _plant_roots(a, b, c, d)
     mags = np.abs(np.concatenate([poles, zeros]))
     mags = mags[(mags > 0) & np.isfinite(mags)]
@@ -2647,6 +2773,8 @@ def _phase_frequency(a, b, c, d) -> tuple[float | None, float]:
         mags = np.array([1.0])
     w = np.logspace(math.log10(mags.min() / 1e3), math.log10(mags.max() * 1e3), 4000)
     resp = _ss_response(a, b, c, w) + d[0, 0]
+    if delay > 0:
+        resp = resp * np.exp(-1j * w * delay)
     ph = np.unwrap(np.angle(resp))
     x = ph + 0.75 * np.pi
     cross = np.flatnonzero(np.sign(x[:-1]) != np.sign(x[1:]))
@@ -2674,6 +2802,11 @@ def tune_pid(
     ki_max: float | None = None,
     kd_max: float | None = None,
     mks_max: float | None = None,
+    filter_order: int = 0,
+    filter_tf: float | None = None,
+    ideal: bool = False,
+    delay: float = 0.0,
+    delay_order: int = 8,
 ) -> TuningResult:
     """Tune a PI (default) or PID for load-disturbance rejection on any SISO LTI plant.
 
@@ -2705,6 +2838,26 @@ def tune_pid(
         omega)|`` (plant-input units per output unit) of the loop as tuned; the peak is found
         on a dense grid refined near it (six decades beyond the plant's dynamics, where ``|C
         S|`` tends to its high-frequency limit). Given, it replaces the default noise-gain bound.
+        With a measurement filter, ``C`` is the controller with its filter, ``C F``.
+    filter_order : {0, 1, 2}
+        Measurement filter on the whole controller, ``C(s) F(s)`` with ``F = 1/(Tf s + 1)`` (1)
+        or ``1/(Tf^2 s^2/2 + Tf s + 1)`` (2); 0: none (the default, as before).
+    filter_tf : float, s, optional
+        The filter's time constant; by default (None) a decision variable: the objective's
+        optimum over ``Tf`` (a log scan over five decades below ``1/w135`` then a bounded
+        Brent search, each point a full tuning), reported in ``result.filter``.
+    ideal : bool
+        Ideal derivative ``kd s`` (PID without a derivative filter; ``tf`` unused). Without a
+        measurement filter it needs a plant of relative degree 2 or more and no ``mks_max``
+        (``|C S|`` then grows without bound with frequency, so the reported Mks is inf).
+    delay : float, s
+        Exact plant delay ``e^{-s delay}`` (on the plant output, so on the control and the
+        disturbance path alike). Ms, Mt, Mks and the margins use the exact ``e^{-j omega
+        delay}``; the objective's time response uses a Pade approximant of order
+        ``delay_order`` (its effect on the reported objective is checked against order
+        ``delay_order + 2`` and reported in ``stats["delay_pade_change"]``).
+    delay_order : int
+        Pade order of the delay in the time response (1 .. 12, default 8).
     disturbance : str or int, optional
         Name or index of the disturbance input (default: the second input, else the control
         input).
@@ -2745,6 +2898,15 @@ def tune_pid(
         raise ValueError(f"controller = {controller!r}; expected 'pi' or 'pid'")
     _check_bounds(ms_max, mt_max, max_noise_gain)
     mks_max = _check_mks(mks_max)
+    filter_order, _, ideal, delay, delay_order = _check_structure(
+        filter_order, 1.0 if filter_tf is None else filter_tf, ideal, delay, delay_order)
+    if filter_tf is not None and not filter_order:
+        raise ValueError(f"filter_tf = {filter_tf!r} without a filter; expected filter_order = 1 or 2")
+    if ideal and controller != "pid":
+        raise ValueError("ideal = True with controller = 'pi'; expected controller = 'pid' (the ideal derivative)")
+    if ideal and not filter_order and mks_max is not None:
+        raise ValueError("mks_max with an ideal PID and no measurement filter: |C S| grows without bound with "
+                         "frequency; expected filter_order = 1 or 2")
     step = _number("step", step, expected="a finite non-zero step size")
     if step == 0.0:
         raise ValueError("step = 0.0; expected a finite non-zero step size")
@@ -2769,8 +2931,8 @@ def tune_pid(
     a, b, c, d = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
     auto_horizon = horizon is None
     default_note = None
-    if horizon is None or tf is None or max_noise_gain is None:
-        w135, ph_top = _phase_frequency(a, b[:, :1], c, d[:, :1])
+    if horizon is None or tf is None or max_noise_gain is None or (filter_order and filter_tf is None):
+        w135, ph_top = _phase_frequency(a, b[:, :1], c, d[:, :1], delay)
         unbounded = (ph_top > -0.75 * np.pi + 1e-3 and max_noise_gain is None and mks_max is None
                      and not math.isfinite(limits["kp_max"]))
         if unbounded or (w135 is None and (horizon is None or tf is None)):
@@ -2795,19 +2957,124 @@ def tune_pid(
         if w135 is not None:
             horizon = horizon if horizon is not None else 40.0 / w135
             tf = tf if tf is not None else 0.1 / w135
-    res = None
-    for _ in range(3):
-        loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step)
-        res = Tuner([loop], objective=objective, controller=controller).tune(
-            ms_max=ms_max, mt_max=mt_max, max_noise_gain=max_noise_gain, mks_max=mks_max, **limits)
-        if not (auto_horizon and res.stats["horizon_short"]):
-            break
-        horizon *= 4.0
+    structure = {"filter_order": filter_order, "ideal": ideal, "delay": delay, "delay_order": delay_order}
+    bounds = {"ms_max": ms_max, "mt_max": mt_max, "max_noise_gain": max_noise_gain, "mks_max": mks_max, **limits}
+
+    def solve(t_filter, hor):
+        """One tuning at the filter time constant ``t_filter``; the horizon lengthened as before."""
+        res = None
+        for _ in range(3):
+            loop = continuous_loop(sys, tf=tf, horizon=hor, n_steps=n_steps, disturbance=disturbance, step=step,
+                                   **({**structure, "filter_tf": t_filter} if (filter_order or ideal or delay) else {}))
+            res = Tuner([loop], objective=objective, controller=controller).tune(**bounds)
+            if not (auto_horizon and res.stats["horizon_short"]):
+                break
+            hor *= 4.0
+        return res, hor
+
+    if filter_order and filter_tf is None:
+        res, horizon = _optimal_filter(solve, horizon, 1.0 / (w135 if w135 is not None else 100.0 / horizon))
+    else:
+        res, horizon = solve(filter_tf, horizon)
+    if filter_order or ideal or delay:
+        res = _with_structure(res, sys, tf, horizon, n_steps, disturbance, step, {**structure, "filter_tf": filter_tf},
+                              objective)
     if k0 != 1.0:
         res = _rescaled(res, k0, limits)
     if default_note is not None:
         res.warnings.insert(0, default_note)
     return res
+
+
+#: The filter time constant's search range (tune_pid, ``filter_tf=None``): these decades below 1/w135.
+_FILTER_DECADES = 4
+#: Log-scan points over that range before the bounded Brent search.
+_FILTER_SCAN = 9
+
+
+def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[TuningResult, float]:
+    """The measurement filter's time constant as a decision variable: the tuned objective (each
+    value a full tuning by ``solve(Tf, horizon)``) scanned on ``_FILTER_SCAN`` log points over
+    ``[t_ref 10^-_FILTER_DECADES, t_ref]``, then minimised by a bounded Brent search (log Tf,
+    1e-3 absolute, at most 30 evaluations) between the best point's neighbours. Its own
+    first-order check: the objective's slope in log Tf by central differences (+-0.01), relative
+    to the objective, must be within ``KKT_TOL`` unless Tf sits at an end of the range; else
+    the status says so. Results not proven optimal or infeasible count as infinite."""
+    from scipy.optimize import minimize_scalar
+
+    cache: dict = {}
+
+    def value(lt: float) -> float:
+        key = float(lt)
+        if key not in cache:
+            try:
+                r, hor = solve(math.exp(key), horizon)
+                cache[key] = (r.objective if r.converged else math.inf, r, hor)
+            except ValueError:
+                cache[key] = (math.inf, None, None)
+        return cache[key][0]
+
+    lo_all, hi_all = math.log(t_ref) - _FILTER_DECADES * math.log(10.0), math.log(t_ref)
+    grid = np.linspace(lo_all, hi_all, _FILTER_SCAN)
+    vals = np.array([value(x) for x in grid])
+    if not np.any(np.isfinite(vals)):
+        raise ValueError(f"no filter time constant in [{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s gives a "
+                         "tuning proven optimal under the bounds; relax the constraints or pass filter_tf=")
+    i = int(np.argmin(vals))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    minimize_scalar(value, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3, "maxiter": 30})
+    best = min(cache, key=lambda k: cache[k][0])
+    v0, res, hor = cache[best]
+    at_bound = best - lo_all < 0.02 or hi_all - best < 0.02
+    vp, vm = value(best + 0.01), value(best - 0.01)
+    slope = (vp - vm) / (0.02 * v0) if math.isfinite(vp) and math.isfinite(vm) else math.inf
+    ok = at_bound or abs(slope) <= KKT_TOL
+    info = {"tf_s": math.exp(best), "range_s": [math.exp(lo_all), math.exp(hi_all)], "evaluations": len(cache),
+            "slope_log_tf": slope, "at_bound": at_bound, "first_order_ok": ok}
+    stats = {**res.stats, "filter_search": info}
+    res = replace(res, stats=stats)
+    if not ok:
+        res = replace(res, status=f"not proven optimal: objective slope {slope:.3g} per unit log Tf > {KKT_TOL:g} at "
+                                  f"the filter time constant {math.exp(best):.6g} s", converged=False,
+                      warnings=res.warnings + ["the filter time constant is not proven optimal (see stats['filter_search'])"])
+    elif at_bound:
+        res = replace(res, warnings=res.warnings + [
+            f"the filter time constant {math.exp(best):.4g} s is at an end of its search range "
+            f"[{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s (the objective keeps improving that way)"])
+    return res, hor
+
+
+def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: int, disturbance, step: float,
+                    structure: dict, objective: str) -> TuningResult:
+    """``res`` with its loop structure stated: ``filter`` (order, Tf, derivative ideal or filtered),
+    the delay's Pade check (the objective recomputed with the Pade order + 2:
+    ``stats["delay_pade_change"]``, relative; a warning above 1e-4) and, for an ideal PID
+    without a measurement filter, Mks = inf (|C S| grows as kd omega)."""
+    warnings = list(res.warnings)
+    stats = dict(res.stats)
+    order, ideal, delay = structure["filter_order"], structure["ideal"], structure["delay"]
+    t_filter = stats.get("filter_search", {}).get("tf_s", structure.get("filter_tf"))
+    filt = None
+    if order or ideal:
+        filt = {"order": order, "tf_s": t_filter if order else None,
+                "derivative": "ideal" if ideal else "filtered"}
+    mks = res.mks
+    if ideal:
+        warnings.append("ideal derivative: the law is (kp + ki/s + kd s) F(s); pid.tf is not part of it")
+        if not order and res.pid.kd > 0:
+            mks = math.inf
+    if delay > 0:
+        g = (res.pid.kp, res.pid.ki, res.pid.kd)
+        loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
+                               **{**structure, "delay_order": structure["delay_order"] + 2, "filter_tf": t_filter})
+        v2 = loop.true_objective(g, objective)[0]
+        change = abs(v2 - res.objective) / res.objective
+        stats["delay_pade_change"] = change
+        stats["delay_s"] = delay
+        if change > 1e-4:
+            warnings.append(f"the objective changes by {100 * change:.3g} % with the delay's Pade order "
+                            f"{structure['delay_order']} -> {structure['delay_order'] + 2}; raise delay_order")
+    return replace(res, filter=filt, mks=mks, stats=stats, warnings=warnings)
 
 
 #: Largest plant order :func:`tune_pid` accepts (states of its state-space realisation): the
