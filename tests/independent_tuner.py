@@ -92,3 +92,50 @@ def best_pi_filtered(num, den, order, ms, mt, mks, t_lo, t_hi, kp_hi=50.0):
     t = float(np.exp(r.x))
     kp, ki = best_pi(num, den, ms, mt, mks, filt=(order, t), kp_hi=kp_hi)
     return t, kp, ki
+
+
+def best_filtered_pid(num, den, order, ms, mt, mks, starts, w=None, log_tf=None):
+    """IE-optimal ideal PID times the filter ``F`` of ``order`` (Tf free, or fixed at
+    ``exp(log_tf)``) by SLSQP on the semi-infinite problem discretised on a dense grid: one smooth
+    constraint per frequency for each bound (``|1 + L|^2 >= 1/Ms^2``, ``|L|^2 <= Mt^2 |1 + L|^2``,
+    ``|C F|^2 <= Mks^2 |1 + L|^2``), from each of ``starts`` (kp, ki, kd, Tf); the best verified
+    point (peaks re-evaluated on :data:`W`). Returns ``(kp, ki, kd, Tf)``."""
+    from scipy.optimize import minimize
+
+    w = np.logspace(-3, 3, 3000) if w is None else w
+    p = loop_parts(num, den, w=w)
+    s = 1j * w
+
+    def parts(x):
+        kp, ki, kd = x[:3]
+        t = np.exp(x[3]) if log_tf is None else np.exp(log_tf)
+        c = controller(kp, ki, kd, 0.0, (order, t), w=w)
+        L = p * c
+        return c, L
+
+    def cons(x):
+        c, L = parts(x)
+        a = np.abs(1 + L) ** 2
+        out = [a * ms * ms - 1.0]
+        if mt is not None:
+            out.append(mt * mt * a - np.abs(L) ** 2)
+        if mks is not None:
+            out.append((mks * mks * a - np.abs(c) ** 2) / mks ** 2)
+        return np.concatenate(out)
+
+    best = None
+    for x0 in starts:
+        x0 = np.array([x0[0], x0[1], x0[2], np.log(x0[3])], float)
+        if log_tf is not None:
+            x0[3] = log_tf
+        r = minimize(lambda x: -x[1], x0, method="SLSQP", constraints=[{"type": "ineq", "fun": cons}],
+                     bounds=[(0, None), (1e-6, None), (0, None), (-12, 3)], options={"maxiter": 300, "ftol": 1e-12})
+        x = r.x
+        t = np.exp(x[3]) if log_tf is None else np.exp(log_tf)
+        pk = peaks(loop_parts(num, den), controller(x[0], x[1], x[2], 0.0, (order, t)))
+        tol = 1 + 1e-4  # the 3000-point grid of the solve vs the dense grid of the check
+        ok = pk[0] <= ms * tol and (mt is None or pk[1] <= mt * tol) and (mks is None or pk[2] <= mks * tol)
+        ok = ok and stable(num, den, x[0], x[1], x[2], 0.0, (order, t))
+        if ok and (best is None or x[1] > best[1]):
+            best = (float(x[0]), float(x[1]), float(x[2]), float(t))
+    return best
