@@ -18,6 +18,9 @@ __all__ = [
     "ESTIMATORS",
     "DERIVATIVE_FILTER_SAMPLES",
     "RIGID_RELATIVE_ERROR",
+    "MS_MAX_DEFAULT",
+    "PEAK_BOUND_RANGE",
+    "check_peak_bound",
     "rpm_to_rad_s",
     "rad_s_to_rpm",
 ]
@@ -32,7 +35,7 @@ RAD_S_PER_RPM = 2.0 * math.pi / 60.0
 
 #: Integral error criteria the tuner minimises (see :func:`prsa_ctrl.tune_pid`).
 OBJECTIVES = ("ie", "iae", "itae", "ise")
-#: Model fidelities, cheapest first (see :mod:`prsa_ctrl.model`).
+#: Model fidelities, cheapest first (see :mod:`prsa_ctrl.plant.model`).
 FIDELITIES = ("rigid", "compliant", "multi-roller")
 #: Speed-controller structures.
 CONTROLLERS = ("pi", "pid")
@@ -50,6 +53,44 @@ DERIVATIVE_FILTER_SAMPLES = 4
 #: 0.101 rad/s of 3.64 rad/s = 2.78 %, rounded up). A scene whose ``accuracy`` is at least this
 #: may be verified on the rigid model.
 RIGID_RELATIVE_ERROR = 0.028
+
+#: Default bound on the peak sensitivity Ms = max|1/(1 + L)| (Astrom-Hagglund's robust
+#: range 1.2-2.0; 1.4 keeps a gain margin of at least 3.5 and a phase margin of at least 41 deg).
+MS_MAX_DEFAULT = 1.4
+
+#: Open interval in which a peak bound (Ms, Mt) is accepted: at 1 no controller is feasible,
+#: above 10 the bound no longer means robustness.
+PEAK_BOUND_RANGE = (1.0, 10.0)
+
+
+def check_peak_bound(name: str, value, *, optional: bool = False) -> float | None:
+    """A peak bound (Ms, Mt) as a float in :data:`PEAK_BOUND_RANGE`, or a ValueError naming it.
+
+    Parameters
+    ----------
+    name : str
+        The argument's name, used in the message.
+    value : float or None
+        The bound, dimensionless.
+    optional : bool
+        Accept ``None`` (no bound).
+
+    Examples
+    --------
+    >>> check_peak_bound("ms_max", 1.4)
+    1.4
+    >>> check_peak_bound("ms_max", 0.9)
+    Traceback (most recent call last):
+    ...
+    ValueError: ms_max = 0.9; expected a number in (1, 10)
+    """
+    lo, hi = PEAK_BOUND_RANGE
+    if value is None and optional:
+        return None
+    expected = f"a number in ({lo:g}, {hi:g})" + (" or None" if optional else "")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (lo < float(value) < hi):
+        raise ValueError(f"{name} = {value!r}; expected {expected}")
+    return float(value)
 
 
 def rpm_to_rad_s(rpm: float) -> float:

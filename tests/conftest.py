@@ -40,7 +40,7 @@ def _close_figures():
 def stand_in(monkeypatch):
     """The tuner replaced by a counting stand-in that fails (exit 3 if a CLI reaches it): a test
     of input checking asserts ``not stand_in``, i.e. the refusal came before any tuning."""
-    import prsa_ctrl.autotune as autotune
+    import prsa_ctrl.studies.autotune as autotune
     from prsa_ctrl import SimulationError
 
     calls = []

@@ -1,7 +1,7 @@
 """An actuator simulator written independently of prsa_ctrl's model and simulator (plain scipy).
 
 Same physics as the rigid fidelity, written from the plant's physical meaning rather than from
-prsa_ctrl.model: one rotating inertia (nut + rotor + reflected cage/rollers + screw mass), a
+prsa_ctrl.plant.model: one rotating inertia (nut + rotor + reflected cage/rollers + screw mass), a
 first-order current loop on the saturated command, the axial load through the lead, thread
 friction that gives the forward efficiency at speed, a no-load drag torque and a viscous torque.
 Different on purpose: the friction sign is smoothed with ``w / sqrt(w^2 + eps^2)`` (not tanh),

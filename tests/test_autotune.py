@@ -7,9 +7,9 @@ import sys
 import pytest
 
 from prsa_ctrl import load_plant
-from prsa_ctrl.autotune import PREDICTION_TOLERANCE, tune_actuator
-from prsa_ctrl.cli import main
-from prsa_ctrl.scene import load_scene
+from prsa_ctrl.studies.autotune import PREDICTION_TOLERANCE, tune_actuator
+from prsa_ctrl.cli.tune import main
+from prsa_ctrl.studies.scene import load_scene
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +43,7 @@ def _independent_iae(report, pid):
     tighter tolerance) and integrated here, independently of ``verify``."""
     import numpy as np
 
-    from prsa_ctrl.simulation import SimSettings, run
+    from prsa_ctrl.sim.simulate import SimSettings, run
 
     sc = report.scene
     r = run(report.plant, setpoint=sc.setpoint_rad_s, load=[(0.0, sc.initial_load), (sc.step_time, sc.final_loads[0])],
@@ -149,7 +149,7 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, match):
 
 def test_console_script_bad_input_has_no_traceback(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "prsa_ctrl.cli", "--load-step", "500:abc"],
+        [sys.executable, "-m", "prsa_ctrl.cli.tune", "--load-step", "500:abc"],
         capture_output=True, text=True, cwd=tmp_path, timeout=60,
     )
     assert proc.returncode == 2
@@ -158,7 +158,7 @@ def test_console_script_bad_input_has_no_traceback(tmp_path):
 
 
 def test_cli_numerical_failure_exits_3_and_keeps_files(tmp_path, capsys, monkeypatch):
-    import prsa_ctrl.autotune as autotune
+    import prsa_ctrl.studies.autotune as autotune
     from prsa_ctrl import SimulationError
 
     def boom(*args, **kwargs):
@@ -232,7 +232,7 @@ def test_cli_exports_drive_gains(tmp_path, capsys):
 def test_cli_flagged_best_exits_3_unless_accepted(tmp_path, capsys):
     """The 10 ms drive of the health check, through the CLI: the report is printed and the JSON
     says what is wrong, but the exit code does not pretend success."""
-    from prsa_ctrl.plant import plant_file_path
+    from prsa_ctrl.plant.plantfile import plant_file_path
 
     src = plant_file_path("paper-iprsm").read_text()
     text = src.replace("sample_time_s = { value = 2.5e-4", "sample_time_s = { value = 1e-2")

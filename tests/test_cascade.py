@@ -1,4 +1,4 @@
-"""Position loop over the speed loop (prsa_ctrl.cascade, measurement.PositionLoop, simulation.run
+"""Position loop over the speed loop (prsa_ctrl.tuning.cascade, measurement.PositionLoop, simulation.run
 with position=...): steady start, tracking, reversal through stiction, hunting of a position PI,
 slower position rate, the move scene, the linear cascade model, joint vs sequential tuning and
 the drive export of the position loop."""
@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID
-from prsa_ctrl.cascade import (BREAKING_POINTS, CascadeModel, export_cascade, hunting, is_move_scene, load_move_scene,
+from prsa_ctrl.tuning.cascade import (BREAKING_POINTS, CascadeModel, export_cascade, hunting, is_move_scene, load_move_scene,
                                main_move, move_metrics, sequential_design, simulate_move, tune_cascade, verify_design)
 from prsa_ctrl.errors import SceneError
-from prsa_ctrl.export import dumps
-from prsa_ctrl.measurement import POSITION_SENSORS, PositionLoop
-from prsa_ctrl.model import stick_band_rad_s
-from prsa_ctrl.motion import out_and_back, s_curve
-from prsa_ctrl.simulation import run
+from prsa_ctrl.io.export import dumps
+from prsa_ctrl.drive.measurement import POSITION_SENSORS, PositionLoop
+from prsa_ctrl.plant.model import stick_band_rad_s
+from prsa_ctrl.drive.motion import out_and_back, s_curve
+from prsa_ctrl.sim.simulate import run
 
 PI = PID(0.0809, 13.56)
 
@@ -233,9 +233,9 @@ def test_metrics_of_a_move(plant, scene):
 def test_linear_cascade_matches_the_drive_loop_model(plant, scene):
     """The cascade model's speed loop (position loop opened) is the project's drive loop model
     (tuning.drive_loop) of the same plant and PI, to rounding."""
-    from prsa_ctrl.linear import linear_core
-    from prsa_ctrl.model import plant_model
-    from prsa_ctrl.tuning import drive_loop
+    from prsa_ctrl.plant.linear import linear_core
+    from prsa_ctrl.plant.model import plant_model
+    from prsa_ctrl.tuning.tuner import drive_loop
 
     sc = dataclasses.replace(scene, fidelity="rigid")
     cm = CascadeModel(plant, sc)
@@ -367,7 +367,7 @@ def test_cli_move_scene_bad_flags_exit_2(tmp_path, capsys):
 
 
 def test_speed_loop_scene_loader_points_to_the_move_scene():
-    from prsa_ctrl.scene import load_scene
+    from prsa_ctrl.studies.scene import load_scene
 
     with pytest.raises(SceneError, match=r"paper-move\.toml \(built-in\): a move scene"):
         load_scene("paper-move")
@@ -402,7 +402,7 @@ def test_bandwidth_ratio_option(plant, designs):
 def test_gains_are_projected_onto_the_nlp_bounds():
     """Ipopt's result may sit a hair outside a bound (kaff = -9e-9 for a 1 um move): the design
     is built from the projected gains, which PositionLoop accepts."""
-    from prsa_ctrl.cascade import _gains_from_solution
+    from prsa_ctrl.tuning.cascade import _gains_from_solution
 
     lbx, ubx = [1e-3, 1e-3, 1e-3, 0.0, 0.0], [1e3, 1e3, 1e3, 1.5, 1.5]
     x, g = _gains_from_solution([0.5, 2.0, 1e3 + 1e-9, 1.5 + 2e-9, -9.2e-9], lbx, ubx, [0, 1, 2, 4, 5],
@@ -417,8 +417,8 @@ def test_cli_move_scene_plots_quiet_json_export(tmp_path, capsys):
     hold figures (PNG + SVG), --json and --export hold both designs and the joint law."""
     import json
 
-    from prsa_ctrl.cascade import _scene_path
-    from prsa_ctrl.cli import main
+    from prsa_ctrl.tuning.cascade import _scene_path
+    from prsa_ctrl.cli.tune import main
 
     text = _scene_path("paper-move")[0].read_text()
     for key, value in (("distance_mm", "2.0"), ("fidelity", '"rigid"'), ("hold_duration_s", "0.06"),
@@ -442,7 +442,7 @@ def test_cli_move_scene_plots_quiet_json_export(tmp_path, capsys):
 
 
 def test_text_report_names_every_bound_and_the_position_integral(plant, designs):
-    from prsa_ctrl.cascade import format_move_report
+    from prsa_ctrl.tuning.cascade import format_move_report
 
     sc, cm, seq, joint = designs
     pi = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0))

@@ -1,4 +1,4 @@
-"""Generated controller code (prsa_ctrl.codegen) against the simulator's own per-sample law.
+"""Generated controller code (prsa_ctrl.io.codegen) against the simulator's own per-sample law.
 
 Recorded sampled runs of the paper load-step scene and of the paper move scene give the inputs
 (encoder counts, references) and the torque command the simulator applied. The Python
@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID
-from prsa_ctrl.cascade import load_move_scene, simulate_move
-from prsa_ctrl.codegen import (DriveLaw, ReferenceLaw, c_code, drive_law, export_code, max_relative_difference,
+from prsa_ctrl.tuning.cascade import load_move_scene, simulate_move
+from prsa_ctrl.io.codegen import (DriveLaw, ReferenceLaw, c_code, drive_law, export_code, max_relative_difference,
                                replay_inputs, st_code)
-from prsa_ctrl.filters import FirstOrderLowPass, LoopFilter, Notch
-from prsa_ctrl.measurement import PositionLoop
-from prsa_ctrl.scene import load_scene
-from prsa_ctrl.simulation import run
+from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch
+from prsa_ctrl.drive.measurement import PositionLoop
+from prsa_ctrl.studies.scene import load_scene
+from prsa_ctrl.sim.simulate import run
 
 REL = 1e-12  # the issue's bound: max |difference| / max |recorded command|, double
 SPEED_PID = PID(0.085, 14.7, kd=2e-5, tf=5e-4)
@@ -327,7 +327,7 @@ def test_export_code_writes_by_suffix(plant, tmp_path):
 
 
 def test_export_code_of_a_cascade_design(plant, tmp_path):
-    from prsa_ctrl.cascade import CascadeDesign
+    from prsa_ctrl.tuning.cascade import CascadeDesign
 
     d = CascadeDesign("joint", MOVE_PID, PositionLoop(kv=102.7, kvff=1.0, kaff=1.0), {}, {}, {}, 0.0)
     law = drive_law(d, plant)
@@ -370,8 +370,8 @@ def test_setpoint_weight_against_the_prefiltered_run(plant, b, tmp_path):
     """b != 1: the generated law on the raw setpoint gives the command of the simulated loop,
     which runs the 1-DOF PI on the setpoint through autotune.setpoint_prefilter (the same
     command while unsaturated; the prefilter's algebra differs from the 2-DOF law in round-off)."""
-    from prsa_ctrl.autotune import setpoint_prefilter
-    from prsa_ctrl.simulation import PiecewiseLinear
+    from prsa_ctrl.studies.autotune import setpoint_prefilter
+    from prsa_ctrl.sim.simulate import PiecewiseLinear
 
     pid, ts, n = PID(0.085, 14.7), plant.sample_time_s, 160
     t = np.arange(n) * ts
@@ -397,7 +397,7 @@ def test_setpoint_weight_against_the_prefiltered_run(plant, b, tmp_path):
 # --- prsa-tune --export PATH.c / PATH.st --------------------------------------------------------
 
 def test_cli_export_c_writes_source_and_header(tmp_path, capsys):
-    from prsa_ctrl.cli import main
+    from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "speed.c"
     assert main(["--quiet", "--export", str(out), "--json", str(tmp_path / "r.json")]) == 0
@@ -414,7 +414,7 @@ def test_cli_export_c_writes_source_and_header(tmp_path, capsys):
 
 
 def test_cli_export_st_float(tmp_path):
-    from prsa_ctrl.cli import main
+    from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "Speed.st"
     assert main(["--quiet", "--export", str(out), "--export-real", "float"]) == 0
@@ -424,13 +424,13 @@ def test_cli_export_st_float(tmp_path):
 
 
 def test_cli_export_bad_suffix_and_header_onto_an_input(tmp_path, capsys):
-    from prsa_ctrl.cli import main
+    from prsa_ctrl.cli.tune import main
 
     assert main(["--export", str(tmp_path / "x.cpp")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "expected a path ending in .json, .toml, .c or .st" in err[0]
     plant = tmp_path / "mine.h"  # a plant file whose name the header of --export mine.c would take
-    from prsa_ctrl.plant import plant_file_path
+    from prsa_ctrl.plant.plantfile import plant_file_path
 
     plant.write_text(plant_file_path("paper-iprsm").read_text())
     before = plant.read_text()
@@ -442,7 +442,7 @@ def test_cli_export_bad_suffix_and_header_onto_an_input(tmp_path, capsys):
 
 def test_cli_move_scene_export_st(tmp_path):
     """The cascade of the move scene as a function block (position loop with feed-forward)."""
-    from prsa_ctrl.cli import main
+    from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "Axis.st"
     assert main(["--scene", "paper-move", "--quiet", "--export", str(out), "--json", str(tmp_path / "m.json")]) == 0

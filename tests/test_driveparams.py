@@ -1,8 +1,8 @@
-"""Drive units and vendor parameter sets (prsa_ctrl.driveparams, prsa_ctrl/templates/*.toml).
+"""Drive units and vendor parameter sets (prsa_ctrl.drive.params, prsa_ctrl/templates/*.toml).
 
 Round trip per template: fill it with a design, write it as TOML, read the text back, convert
 each value from its unit to SI, rebuild the controller from the file alone and run the
-toolkit's per-sample law (prsa_ctrl.codegen.ReferenceLaw) on the inputs of a recorded run: the
+toolkit's per-sample law (prsa_ctrl.io.codegen.ReferenceLaw) on the inputs of a recorded run: the
 recorded torque command comes back to round-off.
 """
 
@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID
-from prsa_ctrl.cascade import CascadeDesign, load_move_scene, simulate_move
-from prsa_ctrl.codegen import ReferenceLaw, drive_law, max_relative_difference, replay_inputs
-from prsa_ctrl.driveparams import (MotorData, builtin_templates, controller_from_parameter_set, drive_units,
+from prsa_ctrl.tuning.cascade import CascadeDesign, load_move_scene, simulate_move
+from prsa_ctrl.io.codegen import ReferenceLaw, drive_law, max_relative_difference, replay_inputs
+from prsa_ctrl.drive.params import (MotorData, builtin_templates, controller_from_parameter_set, drive_units,
                                    dumps_parameter_set, fill_template, load_template, motor_from_plant, parse_motor,
                                    read_parameter_set)
-from prsa_ctrl.measurement import PositionLoop
-from prsa_ctrl.scene import load_scene
-from prsa_ctrl.simulation import run
+from prsa_ctrl.drive.measurement import PositionLoop
+from prsa_ctrl.studies.scene import load_scene
+from prsa_ctrl.sim.simulate import run
 
 REL = 1e-12
 SPEED = PID(0.085, 14.7)
@@ -231,7 +231,7 @@ def test_float32_storage_effect_is_small_but_not_zero(plant, speed_run):
 # --- prsa-tune --motor / --export-template ---------------------------------------------------
 
 def test_cli_export_template_and_motor(tmp_path, capsys):
-    from prsa_ctrl.cli import main
+    from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "ax.toml"
     assert main(["--quiet", "--export", str(out), "--export-template", "beckhoff-ax8000", "--motor",
@@ -256,7 +256,7 @@ def test_cli_export_template_and_motor(tmp_path, capsys):
     (["--export-template", "generic", "--export", "x.c"], "needs --export PATH.toml or PATH.json"),
 ])
 def test_cli_bad_template_or_motor_one_line(argv, match, tmp_path, capsys, monkeypatch):
-    from prsa_ctrl.cli import main
+    from prsa_ctrl.cli.tune import main
 
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2

@@ -11,12 +11,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from prsa_ctrl import PID, SceneError
-from prsa_ctrl.autotune import Design, _predict, actuator_loops, duty_record, setpoint_prefilter, tune_actuator, verify
-from prsa_ctrl.cli import main
-from prsa_ctrl.linear import linear_core
-from prsa_ctrl.model import plant_model
-from prsa_ctrl.scene import Scene, check_against_plant, load_scene, profile_rows
-from prsa_ctrl.tuning import Tuner, drive_loop
+from prsa_ctrl.studies.autotune import Design, _predict, actuator_loops, duty_record, setpoint_prefilter, tune_actuator, verify
+from prsa_ctrl.cli.tune import main
+from prsa_ctrl.plant.linear import linear_core
+from prsa_ctrl.plant.model import plant_model
+from prsa_ctrl.studies.scene import Scene, check_against_plant, load_scene, profile_rows
+from prsa_ctrl.tuning.tuner import Tuner, drive_loop
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "tuning"
 
@@ -235,7 +235,7 @@ def _tune_cli(tmp_path, capsys, *argv):
 
 @pytest.mark.parametrize("name", ["duty-ramp", "duty-trace"])
 def test_duty_scenes_tuned_and_verified_end_to_end(tmp_path, capsys, monkeypatch, name):
-    import prsa_ctrl.plots as plots_mod
+    import prsa_ctrl.plots.loop as plots_mod
 
     drawn = []
     real = plots_mod.duty_cycle_pairs_plot
@@ -298,7 +298,7 @@ def test_mix_goal_weights_two_records(paper_plant):
     assert b.objective_verified == pytest.approx(0.75 * b.verified[0].iae + 0.25 * b.verified[1].iae, rel=1e-12)
     assert b.objective_verified == pytest.approx(b.objective_predicted, rel=0.02)
     # Figures: the profile, the verified and predicted error with the scene's objective, the torque.
-    from prsa_ctrl.plots import duty_cycle_comparison, duty_cycle_plot
+    from prsa_ctrl.plots.loop import duty_cycle_comparison, duty_cycle_plot
 
     fig, axs = duty_cycle_plot(b, rep.scene, k=1, torque_limit=paper_plant.torque_limit)
     assert axs[0].get_ylabel() == "setpoint (rpm)" and max(axs[0].lines[0].get_ydata()) == pytest.approx(33.0 * 30 / math.pi)
@@ -340,7 +340,7 @@ def test_csv_trace_values_named_by_file_line_and_column(tmp_path, paper_plant):
 
 
 def test_csv_trace_size_refused_before_reading(tmp_path, monkeypatch):
-    import prsa_ctrl.scene as scene_mod
+    import prsa_ctrl.studies.scene as scene_mod
 
     rows = "".join(f"{i * 1e-3:.3f},500\n" for i in range(60))
     path = _trace_scene(tmp_path, "time_s,axial_load_n\n" + rows)
@@ -375,7 +375,7 @@ def test_noisy_trace_says_how_to_start_in_steady_state(tmp_path, paper_plant):
 
 
 def test_setpoint_goal_warns_that_it_does_not_inform_the_integral(paper_plant):
-    from prsa_ctrl.autotune import integral_warning
+    from prsa_ctrl.studies.autotune import integral_warning
 
     sp = Scene(setpoint_profile=profile_rows([[0, 300], [0.05, 300], [0.06, 400]], "x", math.pi / 30),
                initial_load=500.0, duration=0.2)

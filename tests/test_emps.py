@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from prsa_ctrl.axisfit import (DEFAULTS, PARAMETERS, LinearAxisPlant, fit_linear_axis, load_axis_plant,
+from prsa_ctrl.identification.axis import (DEFAULTS, PARAMETERS, LinearAxisPlant, fit_linear_axis, load_axis_plant,
                                replay_axis)
-from prsa_ctrl.fit_cli import main
-from prsa_ctrl.logformat import load_axis_log, load_log_format
+from prsa_ctrl.cli.fit import main
+from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "emps"
@@ -157,7 +157,7 @@ def test_synthetic_closed_loop_log_recovered_within_its_intervals(tmp_path, seed
 
 
 def test_plant_file_round_trip_and_minimal_file(tmp_path):
-    from prsa_ctrl.axisfit import axis_plant_toml
+    from prsa_ctrl.identification.axis import axis_plant_toml
 
     p = tmp_path / "min.toml"
     p.write_text('mechanism = "linear-axis"\n[axis]\nmass_kg = { value = 12.5, source = "test: given" }\n')
@@ -218,7 +218,7 @@ def test_published_model_replay_and_the_benchmarks_own_convention():
     bench = dataclasses.replace(
         log, reference_m=r_on_sim_clock, sample_time_s=tec, command_logged="as-applied",
         controller=dataclasses.replace(log.controller, command_delay_samples=1, sample_time_s=tec))
-    from prsa_ctrl.axisfit import measured_velocity, relative_error, simulate_axis
+    from prsa_ctrl.identification.axis import measured_velocity, relative_error, simulate_axis
 
     tr = simulate_axis(ref.theta, bench, x0=(0.0, 0.0))
     vm = measured_velocity(log)
@@ -229,8 +229,8 @@ def test_published_model_replay_and_the_benchmarks_own_convention():
 
 def test_an_unstable_replay_raises_a_clear_error_not_nan():
     from prsa_ctrl.errors import SimulationError
-    from prsa_ctrl.logformat import AxisLog, ControllerSpec
-    from prsa_ctrl.axisfit import simulate_axis
+    from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec
+    from prsa_ctrl.identification.axis import simulate_axis
 
     n = 2000
     t = np.arange(n) * H
@@ -243,7 +243,7 @@ def test_an_unstable_replay_raises_a_clear_error_not_nan():
 
 def test_a_log_described_one_sample_off_is_detected():
     t, qm, r, u = _generate(5, n=4000)
-    from prsa_ctrl.logformat import AxisLog, ControllerSpec
+    from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec
 
     wrong = ControllerSpec("position-p/velocity-p", KP, KV, 0.0, "average2-difference", 10.0, H, command_delay_samples=1)
     log = AxisLog("syn", t, qm, u, "V", GAIN, H, reference_m=r, controller=wrong)

@@ -7,11 +7,11 @@ import pytest
 from scipy.stats import chi2
 
 from prsa_ctrl import PID, load_plant
-from prsa_ctrl.estimator import design_kf, kf_drive_loop
-from prsa_ctrl.linear import linear_core
-from prsa_ctrl.model import plant_model
-from prsa_ctrl.simulation import SimSettings, run
-from prsa_ctrl.tuning import drive_loop, tune_loops
+from prsa_ctrl.drive.estimator import design_kf, kf_drive_loop
+from prsa_ctrl.plant.linear import linear_core
+from prsa_ctrl.plant.model import plant_model
+from prsa_ctrl.sim.simulate import SimSettings, run
+from prsa_ctrl.tuning.tuner import drive_loop, tune_loops
 
 PLANT = load_plant()
 SETTINGS = SimSettings(rtol=1e-6, atol=1e-6)
@@ -92,7 +92,7 @@ def test_feedforward_cuts_the_verified_drop_by_30_percent_at_the_same_ms():
     res = tune_loops([ff], ms_max=1.4)
     assert res.ms <= 1.4 and res.pid.kff > 0
     load = [(0.0, 500.0), (0.002, 1500.0)]
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     r_pi = run(PLANT, setpoint=W0, load=load, duration=0.1, controller=pi, discrete=True, settings=SETTINGS)
     r_ff = run(PLANT, setpoint=W0, load=load, duration=0.1, controller=res.pid, kf=kf, settings=SETTINGS,
@@ -147,8 +147,8 @@ def test_filterpy_is_imported_only_with_an_estimator(tmp_path):
     import subprocess
 
     code = ("import sys, warnings; warnings.simplefilter('ignore');"
-            "from prsa_ctrl.cli import main; main(['--quiet', '--duration', '0.25']);"
-            "print(sorted(m for m in ('filterpy', 'matplotlib', 'control', 'prsa_ctrl.plots') if m in sys.modules))")
+            "from prsa_ctrl.cli.tune import main; main(['--quiet', '--duration', '0.25']);"
+            "print(sorted(m for m in ('filterpy', 'matplotlib', 'control', 'prsa_ctrl.plots.loop') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().splitlines()[-1] == "[]"

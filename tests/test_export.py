@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import PID, load_plant, run
-from prsa_ctrl.export import DISCRETISATIONS, dumps, export_controller, pid_biquad
-from prsa_ctrl.filters import FirstOrderLowPass, Notch, SecondOrderLowPass
+from prsa_ctrl.io.export import DISCRETISATIONS, dumps, export_controller, pid_biquad
+from prsa_ctrl.drive.filters import FirstOrderLowPass, Notch, SecondOrderLowPass
 
 PLANT = load_plant()
 TS = PLANT.sample_time_s
@@ -61,8 +61,8 @@ def test_setpoint_weight_round_trip_against_the_prefiltered_run(b):
     """A 2-DOF setpoint weight b != 1: the exported law ``u = kp (b r - y) + I`` on the raw
     setpoint gives the command of the simulated loop, which runs the 1-DOF PI on the setpoint
     through autotune.setpoint_prefilter (as the duty-cycle verification does)."""
-    from prsa_ctrl.autotune import setpoint_prefilter
-    from prsa_ctrl.simulation import PiecewiseLinear
+    from prsa_ctrl.studies.autotune import setpoint_prefilter
+    from prsa_ctrl.sim.simulate import PiecewiseLinear
 
     pid = PID(0.085, 14.7)
     n = 160

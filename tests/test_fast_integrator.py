@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID, load_plant
-from prsa_ctrl.simulation import SimSettings, energy_balance, fast_settings, fixed_step_error, run
+from prsa_ctrl.sim.simulate import SimSettings, energy_balance, fast_settings, fixed_step_error, run
 
 PLANT = load_plant()
 W300 = 31.41592653589793
@@ -117,7 +117,7 @@ def test_bad_fixed_step_settings(kwargs, match):
 # --- compiled right-hand side (SimSettings(jit=True)) ----------------------------------------
 
 def test_jit_runs_the_same_equations_from_a_per_user_cache(tmp_path, monkeypatch):
-    import prsa_ctrl.simulation as S
+    import prsa_ctrl.sim.simulate as S
 
     monkeypatch.setenv("PRSA_CTRL_CACHE", str(tmp_path))
     monkeypatch.setattr(S, "_COMPILED", {})
@@ -135,7 +135,7 @@ def test_jit_runs_the_same_equations_from_a_per_user_cache(tmp_path, monkeypatch
 
 
 def test_jit_without_a_compiler_falls_back_with_a_note(tmp_path, monkeypatch):
-    import prsa_ctrl.simulation as S
+    import prsa_ctrl.sim.simulate as S
 
     monkeypatch.setenv("PRSA_CTRL_CACHE", str(tmp_path))
     monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))

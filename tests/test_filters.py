@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.signal import lfilter
 
-from prsa_ctrl.filters import (FirstOrderLowPass, GeneralBiquad, Notch, SecondOrderLowPass,
+from prsa_ctrl.drive.filters import (FirstOrderLowPass, GeneralBiquad, Notch, SecondOrderLowPass,
                                filter_from_dict)
-from prsa_ctrl.measurement import EncoderDifference
+from prsa_ctrl.drive.measurement import EncoderDifference
 
 TS = 2.5e-4  # s, the paper plant's sample time
 FILTERS = [

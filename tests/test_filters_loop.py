@@ -1,7 +1,6 @@
 """Filters in the one sampled-loop simulator, in the linear loop model and in the tuner (issue 12)."""
 
 import math
-import os
 import tomllib
 import warnings
 
@@ -9,11 +8,11 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID, load_plant, run
-from prsa_ctrl.export import dumps, export_controller
-from prsa_ctrl.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
-from prsa_ctrl.filtertune import loop_builder, tune_filtered
-from prsa_ctrl.linear import linear_core
-from prsa_ctrl.model import plant_model
+from prsa_ctrl.io.export import dumps, export_controller
+from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
+from prsa_ctrl.tuning.filtered import loop_builder, tune_filtered
+from prsa_ctrl.plant.linear import linear_core
+from prsa_ctrl.plant.model import plant_model
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -142,7 +141,7 @@ def test_tuned_notch_beats_gains_alone_at_equal_ms_and_mks():
     the notch tuned with the gains gives a lower IAE than the gains alone, and the reported Ms
     and Mks are the true peaks of the returned loop (recomputed here)."""
     bld = lambda f=None: _heavy_loop(f, horizon=0.05)  # noqa: E731
-    from prsa_ctrl.filtertune import loop_builder as _lb  # noqa: F401 (the builder protocol)
+    from prsa_ctrl.tuning.filtered import loop_builder as _lb  # noqa: F401 (the builder protocol)
     g = tune_filtered([bld], ts=TS, kind=None, start_gains=(0.02, 2.6), max_noise_gain=0.05)
     n = tune_filtered([bld], ts=TS, kind="notch", start_gains=(g.pid.kp, g.pid.ki), max_noise_gain=0.05)
     assert g.converged and n.converged
@@ -215,7 +214,7 @@ def test_bad_tuning_inputs_rejected_with_one_line():
     assert loop_filters(None) == () and loop_filters(Notch(300.0, 100.0))[0].place == "torque_command"
 
 
-@pytest.mark.skipif(not os.environ.get("PRSA_SLOW"), reason="slow evidence (PRSA_SLOW=1): the README case")
+@pytest.mark.slow  # slow evidence: the README case
 def test_readme_case_three_loops():
     """The README case: Ms <= 1.4 and Mks <= 0.05 at 500, 1000 and 1500 N, objective at 1000 N."""
     blds = [lambda f=None, L=L: _heavy_loop(f, horizon=0.3, load=L) for L in (1000.0, 500.0, 1500.0)]

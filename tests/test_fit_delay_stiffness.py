@@ -2,7 +2,6 @@
 
 import json
 import math
-import os
 import tomllib
 import warnings
 
@@ -10,9 +9,9 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import load_plant
-from prsa_ctrl.controller import PID
-from prsa_ctrl.fit import DELAY_KEY, FRF_KEYS_COMPLIANT, axial_mode, fit_frf, fit_plant, frf_response
-from prsa_ctrl.fitdata import frf_from_arrays, record_from_arrays
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.identification.fit import DELAY_KEY, FRF_KEYS_COMPLIANT, axial_mode, fit_frf, fit_plant, frf_response
+from prsa_ctrl.identification.data import frf_from_arrays, record_from_arrays
 
 TS = 2.5e-4
 K_KEY = "contact.stiffness_n_per_mm_e"
@@ -95,7 +94,7 @@ def _simulated_frf_computed_command_log(truth, seed=0):
     """A drive's Bode measurement simulated by the toolkit's sampled loop (rigid), where the
     drive logs the command it computes at a sample (applied one sample later), not the applied
     one: the response from the logged command carries one sample of delay."""
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     period, periods = 0.125, 4
     n = int(round(period / TS))
@@ -199,7 +198,7 @@ def test_bad_arguments_one_line(base):
 
 
 def test_cli_delay_and_compliant(base, heavy, tmp_path, capsys):
-    from prsa_ctrl.fit_cli import main
+    from prsa_ctrl.cli.fit import main
 
     truth = base.with_params(TRUTH_RIGID)
     path = tmp_path / "bode.csv"
@@ -233,7 +232,7 @@ def test_cli_delay_and_compliant(base, heavy, tmp_path, capsys):
 # --- coverage (slow) ----------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(os.environ.get("PRSA_SLOW") != "1", reason="set PRSA_SLOW=1")
+@pytest.mark.slow
 def test_delay_and_stiffness_intervals_cover_the_truth_in_20_seeds(base, heavy):
     truth = base.with_params(TRUTH_RIGID)
     f = np.arange(8.0, 1600.0, 8.0)

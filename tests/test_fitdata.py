@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from prsa_ctrl.fitdata import (
+from prsa_ctrl.identification.data import (
     DataError,
     design_excitation,
     load_record,
@@ -146,7 +146,7 @@ def test_design_excitation(kind):
 def test_byte_order_mark_and_streamed_row_limit(tmp_path, monkeypatch):
     """Review findings 6 and 8: an Excel "CSV UTF-8" export (BOM) is read; a file over the row
     limit is refused when the limit is passed, naming the line."""
-    import prsa_ctrl.fitdata as fd
+    import prsa_ctrl.identification.data as fd
 
     t = np.arange(300) * 2.5e-4
     rows = "".join(f"{a:.7f},{0.1 + 0.05 * math.sin(200 * a):.6f},{30 * a:.9f},800\n" for a in t)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import load_plant
-from prsa_ctrl.controller import PID
-from prsa_ctrl.fit import FRF_KEYS, fit_frf, fit_plant, frf_response
-from prsa_ctrl.fitdata import DataError, FrfRecord, frf_from_arrays, load_frf
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.identification.fit import FRF_KEYS, fit_frf, fit_plant, frf_response
+from prsa_ctrl.identification.data import DataError, FrfRecord, frf_from_arrays, load_frf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_fit import PERTURBED, toolkit_record  # noqa: E402
@@ -28,7 +28,7 @@ def measured_frf(truth, *, speed=30.0, load=800.0, f_max=600.0, seed=0, name=Non
     (closed loop), the FFT of the logged torque command and measured speed (backward difference of
     the 20-bit encoder angle) over whole periods, averaged; H1 and coherence at the excited lines.
     Simulated by the toolkit's sampled loop (rigid), not by the linear model that is fitted."""
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     n = int(round(PERIOD_S / TS))
     k = np.arange(1, int(f_max * PERIOD_S) + 1)
@@ -181,7 +181,7 @@ def test_frf_fit_bad_arguments(base, measured):
 
 
 def test_cli_frf_only_writes_plant_json_and_bode(base, measured, tmp_path):
-    from prsa_ctrl.fit_cli import main
+    from prsa_ctrl.cli.fit import main
 
     fr = measured["light-fast"]
     path = tmp_path / "bode.csv"
@@ -203,7 +203,7 @@ def test_cli_frf_only_writes_plant_json_and_bode(base, measured, tmp_path):
 
 def test_frf_from_a_logged_periodic_record(base, measured):
     """frf_from_record on the drive's log gives the same response as the FFT written in this test."""
-    from prsa_ctrl.fitdata import frf_from_record, record_from_arrays
+    from prsa_ctrl.identification.data import frf_from_record, record_from_arrays
 
     truth = base.with_params(PERTURBED["issue"])
     r = _RUNS["issue"]  # the drive run behind measured["issue"]
@@ -222,7 +222,7 @@ def test_frf_from_a_logged_periodic_record(base, measured):
 
 
 def test_cli_frf_bad_input_exit_2_nothing_written(tmp_path, capsys):
-    from prsa_ctrl.fit_cli import main
+    from prsa_ctrl.cli.fit import main
 
     bad = tmp_path / "bode.csv"
     bad.write_text("frequency_hz,magnitude_db,phase_deg\n10,20,-90\n5,14,-91\n")

@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import SceneError, load_plant
-from prsa_ctrl.cli import main
-from prsa_ctrl.scene import (MAX_RECORD_SAMPLES, POST_EVENT_SAMPLES, PRE_EVENT_SAMPLES, Scene, check_against_plant,
+from prsa_ctrl.cli.tune import main
+from prsa_ctrl.studies.scene import (MAX_RECORD_SAMPLES, POST_EVENT_SAMPLES, PRE_EVENT_SAMPLES, Scene, check_against_plant,
                              holding_capacity_n, load_scene)
 
 PLANT = load_plant()
@@ -24,7 +24,7 @@ TS = PLANT.sample_time_s
 
 
 def test_pre_event_samples_match_the_verification():
-    from prsa_ctrl import autotune
+    from prsa_ctrl.studies import autotune
 
     assert PRE_EVENT_SAMPLES == autotune._PRE_SAMPLES
 
@@ -74,7 +74,7 @@ def test_scene_step_at_zero_is_refused_by_the_api():
 def test_ctrl_c_during_the_run_exits_130_with_one_line(tmp_path):
     """SIGINT once the tuner has started (the --verbose progress line is the trigger)."""
     out = tmp_path / "r.json"
-    proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.cli", "--verbose", "--json", str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.cli.tune", "--verbose", "--json", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     first = proc.stderr.readline()
     assert first.startswith("prsa-tune: tuning paper-iprsm"), first
@@ -86,7 +86,7 @@ def test_ctrl_c_during_the_run_exits_130_with_one_line(tmp_path):
 
 
 def test_interrupt_swallowed_by_a_solver_still_exits_130(tmp_path, capsys, monkeypatch):
-    import prsa_ctrl.autotune as autotune
+    import prsa_ctrl.studies.autotune as autotune
 
     def swallowing(*a, **k):  # what IPOPT does: turns SIGINT into a status and returns
         try:
@@ -106,7 +106,7 @@ def test_interrupt_swallowed_by_a_solver_still_exits_130(tmp_path, capsys, monke
 
 
 def test_user_requested_stop_status_counts_as_interrupt(capsys, monkeypatch):
-    import prsa_ctrl.autotune as autotune
+    import prsa_ctrl.studies.autotune as autotune
 
     class Rep:
         def as_dict(self):

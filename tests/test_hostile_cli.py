@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import SimulationError
-from prsa_ctrl.cli import main, plot_main
+from prsa_ctrl.cli.tune import main, plot_main
 
 PAPER_CAPACITY_N = (3.0 - 0.02 - 1e-4 * 300 * math.pi / 30) * 0.85 * 2 * math.pi / 2e-3  # at 300 rpm
 STICTION_RPM = 5 * 1e-4 / (2e-3 / (2 * math.pi)) * 30 / math.pi  # screw slower than 5x the Stribeck velocity
@@ -157,7 +157,7 @@ def test_events_and_sizes_the_physics_cannot_serve_are_refused(capsys, stand_in,
     (ZeroDivisionError("float division by zero"), 3, "float division"),
 ])
 def test_internal_messages_are_translated_at_the_boundary(capsys, monkeypatch, exc, code, hidden):
-    import prsa_ctrl.autotune as autotune
+    import prsa_ctrl.studies.autotune as autotune
 
     def fake(*a, **k):
         raise exc
@@ -177,7 +177,7 @@ def test_geometry_note_never_precedes_an_error(capsys, stand_in):
 
 
 def test_help_describes_every_option(capsys):
-    from prsa_ctrl.cli import build_parser, build_plot_parser
+    from prsa_ctrl.cli.tune import build_parser, build_plot_parser
 
     for parser in (build_parser(), build_plot_parser()):
         for action in parser._actions:
@@ -188,12 +188,12 @@ def test_help_describes_every_option(capsys):
     assert "--plots DIR" in text and "Exit codes" in text
 
 
-# --- move scenes (prsa_ctrl.cascade.main_move) and duty-cycle details -----------------------------
+# --- move scenes (prsa_ctrl.tuning.cascade.main_move) and duty-cycle details -----------------------------
 
 @pytest.fixture
 def cascade_stand_in(monkeypatch):
     """The cascade's expensive work replaced by a counting stand-in (exit 3 if reached)."""
-    import prsa_ctrl.cascade as cascade
+    import prsa_ctrl.tuning.cascade as cascade
 
     calls = []
 
@@ -206,7 +206,7 @@ def cascade_stand_in(monkeypatch):
 
 
 def _move_file(tmp_path, **edits):
-    from prsa_ctrl.cascade import _scene_path
+    from prsa_ctrl.tuning.cascade import _scene_path
 
     text = _scene_path("paper-move")[0].read_text()
     for key, value in edits.items():
@@ -274,15 +274,15 @@ def test_kalman_filter_on_a_duty_cycle_names_the_real_reason(capsys, tmp_path, s
 
 
 def test_percent_differences_never_print_minus_zero():
-    from prsa_ctrl.cli import _diff_text, _pct_text
+    from prsa_ctrl.cli.tune import _diff_text, _pct_text
 
     assert _diff_text(0.99999, 1.0) == "0.0 %" and _diff_text(1.00001, 1.0) == "0.0 %"
     assert _pct_text(-0.04) == "0.0 %" and _pct_text(-0.0) == "0.0 %" and _pct_text(-0.06) == "-0.1 %" and _pct_text(2.0) == "+2.0 %"
 
 
 def test_json_gains_carry_the_setpoint_weight(tmp_path):
-    from prsa_ctrl.cli import _add_setpoint_weight
-    from prsa_ctrl.scene import load_scene
+    from prsa_ctrl.cli.tune import _add_setpoint_weight
+    from prsa_ctrl.studies.scene import load_scene
 
     data = {"gains": {"kp": 0.1, "ki": 10.0}, "units": {"kp": "N m s/rad"},
             "best": {"gains": {"kp": 0.1, "ki": 10.0}}, "baselines": [{"gains": {"kp": 0.2, "ki": 1.0}}]}

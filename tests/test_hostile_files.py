@@ -10,9 +10,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import PlantFileError, SimulationError, load_plant
-from prsa_ctrl.cli import main
-from prsa_ctrl.plant import PLAUSIBLE, SCHEMA
-from prsa_ctrl.scene import load_scene
+from prsa_ctrl.cli.tune import main
+from prsa_ctrl.plant.plantfile import PLAUSIBLE, SCHEMA
+from prsa_ctrl.studies.scene import load_scene
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER = (ROOT / "plants" / "paper-iprsm.toml").read_text()
@@ -85,7 +85,7 @@ def test_any_plant_value_is_accepted_in_range_or_refused_by_key(tmp_path_factory
 
 
 def test_every_builtin_plant_is_plausible():
-    from prsa_ctrl.plant import builtin_plants
+    from prsa_ctrl.plant.plantfile import builtin_plants
 
     for name in builtin_plants():
         p = load_plant(name)
@@ -137,7 +137,7 @@ def test_solver_chatter_becomes_one_note_or_nothing(tmp_path, capfd, monkeypatch
     the user sees the one error line only."""
     import os
 
-    import prsa_ctrl.autotune as autotune
+    import prsa_ctrl.studies.autotune as autotune
 
     def chatty(*a, **k):
         for i in range(1000):

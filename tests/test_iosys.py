@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import load_plant, nonlinear_iosys, operating_point, run
-from prsa_ctrl.model import plant_model
+from prsa_ctrl.plant.model import plant_model
 
 
 @pytest.mark.parametrize("fidelity", ["rigid", "compliant"])

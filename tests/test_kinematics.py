@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import builtin_plants, load_plant
-from prsa_ctrl.paper import OMEGA_300_RPM, PAPER_TABLE2, kinematics_table
+from prsa_ctrl.studies.paper import OMEGA_300_RPM, PAPER_TABLE2, kinematics_table
 
 PLANTS = builtin_plants()
 

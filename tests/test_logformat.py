@@ -1,4 +1,4 @@
-"""Log descriptions (prsa_ctrl.logformat) and the described-log modes of prsa-fit: bad inputs get
+"""Log descriptions (prsa_ctrl.identification.logformat) and the described-log modes of prsa-fit: bad inputs get
 one line naming the file and the key, column or variable, exit 2, and nothing is written."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import scipy.io
 
-from prsa_ctrl.fit_cli import main
-from prsa_ctrl.logformat import LogFormatError, load_axis_log, load_log_format
+from prsa_ctrl.cli.fit import main
+from prsa_ctrl.identification.logformat import LogFormatError, load_axis_log, load_log_format
 
 KP, KV, GAIN, H = 160.0, 240.0, 35.0, 1e-3
 
@@ -237,7 +237,7 @@ def test_a_pi_velocity_loop_is_reconstructed(files):
 def test_a_mat_log_without_a_log_description_is_one_line(tmp_path, capsys):
     """A .mat log given to prsa-fit without --log-format: one line pointing at --log-format, exit 2
     (it used to be parsed as a CSV: "'utf-8' codec can't decode byte ...")."""
-    from prsa_ctrl.fit_cli import main
+    from prsa_ctrl.cli.fit import main
 
     log = tmp_path / "record.mat"
     log.write_bytes(b"MATLAB 5.0 MAT-file" + bytes(200))

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from prsa_ctrl.metrics import load_step_metrics, margins_from_response
+from prsa_ctrl.sim.metrics import load_step_metrics, margins_from_response
 
 T = np.linspace(0.0, 20.0, 200001)
 

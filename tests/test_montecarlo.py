@@ -8,11 +8,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from prsa_ctrl import montecarlo as mc
-from prsa_ctrl.controller import PID
-from prsa_ctrl.plant import load_plant
-from prsa_ctrl.scene import load_scene
-from prsa_ctrl.uncertainty import uncertainty_model
+from prsa_ctrl.studies import montecarlo as mc
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.plant.plantfile import load_plant
+from prsa_ctrl.studies.scene import load_scene
+from prsa_ctrl.plant.uncertainty import uncertainty_model
 
 # Two designs of the robust scene: a fast one tuned on the nominal plant and a slower one.
 FAST = PID(0.0849, 14.67, tf=1e-3)
@@ -73,7 +73,7 @@ def test_report_yield_is_recomputed_from_the_samples(serial, setup):
     # the slower design drops further and is more robust
     assert np.all(m[:, 1, 0] > m[:, 0, 0]) and np.all(m[:, 1, mc.METRICS.index("ms")] < m[:, 0, mc.METRICS.index("ms")])
     text = mc.format_report(serial)
-    assert "yield" in text and "95 % CI" in text and "replay: python -m prsa_ctrl.montecarlo" in text
+    assert "yield" in text and "95 % CI" in text and "replay: python -m prsa_ctrl.studies.montecarlo" in text
     d = serial.as_dict(include_samples=True)
     json.dumps(d, allow_nan=False)
     assert d["complete"] is True and d["designs"][0]["yield_ci95"][0] <= d["designs"][0]["yield"]
@@ -152,10 +152,10 @@ def test_ctrl_c_returns_partial_results_marked_incomplete(setup):
 
 _ORPHAN_SCRIPT = """
 import multiprocessing, os, sys
-from prsa_ctrl import montecarlo as mc
-from prsa_ctrl.controller import PID
-from prsa_ctrl.plant import load_plant
-from prsa_ctrl.scene import load_scene
+from prsa_ctrl.studies import montecarlo as mc
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.plant.plantfile import load_plant
+from prsa_ctrl.studies.scene import load_scene
 
 def interrupt(done, total):
     if done >= 1:

@@ -1,4 +1,4 @@
-"""Motion profiles (prsa_ctrl.motion): exact rest-to-rest moves, limits, continuity, reversal."""
+"""Motion profiles (prsa_ctrl.drive.motion): exact rest-to-rest moves, limits, continuity, reversal."""
 
 import math
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from prsa_ctrl.motion import MotionProfile, out_and_back, plan, s_curve, trapezoidal
+from prsa_ctrl.drive.motion import MotionProfile, out_and_back, plan, s_curve, trapezoidal
 
 distances = st.floats(1e-6, 0.5).flatmap(lambda d: st.sampled_from([d, -d]))
 speeds = st.floats(1e-3, 1.0)

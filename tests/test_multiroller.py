@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID, energy_balance, load_plant, simulate
-from prsa_ctrl.model import RollerErrors, plant_model
+from prsa_ctrl.plant.model import RollerErrors, plant_model
 
 PLANT = load_plant()
 STEP = [(0.0, 500.0), (0.02, 1500.0)]

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from prsa_ctrl import output
-from prsa_ctrl.cli import main, plot_main
-from prsa_ctrl.output import OutputError, check_directory, check_writable, make_directory, write_file, write_text
+from prsa_ctrl.io import output
+from prsa_ctrl.cli.tune import main, plot_main
+from prsa_ctrl.io.output import OutputError, check_directory, check_writable, make_directory, write_file, write_text
 
 PLANT_DIR = Path(__file__).resolve().parent.parent / "plants"
 
@@ -133,7 +133,7 @@ def test_any_path_text_is_written_or_refused_with_one_line(tmp_path_factory, nam
 
 @pytest.fixture
 def no_tuning(monkeypatch):
-    import prsa_ctrl.autotune as autotune
+    import prsa_ctrl.studies.autotune as autotune
 
     calls = []
     monkeypatch.setattr(autotune, "tune_actuator", lambda *a, **k: calls.append(a) or pytest.fail("tuner reached"))
@@ -173,7 +173,7 @@ def test_bad_output_paths_exit_2_before_the_work(tmp_path, capsys, no_tuning, fl
 
 
 def test_prsa_plot_leaves_no_directory_behind_on_failure(tmp_path, capsys, monkeypatch):
-    import prsa_ctrl.autotune as autotune
+    import prsa_ctrl.studies.autotune as autotune
     from prsa_ctrl import SimulationError
 
     def boom(*a, **k):

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import load_plant
-from prsa_ctrl import model as M
-from prsa_ctrl.paper import default_pid
-from prsa_ctrl.simulation import SimSettings, run
-from prsa_ctrl.uncertainty import apply
+from prsa_ctrl.plant import model as M
+from prsa_ctrl.studies.paper import default_pid
+from prsa_ctrl.sim.simulate import SimSettings, run
+from prsa_ctrl.plant.uncertainty import apply
 
 PLANT = load_plant()
 KEYS = ("contact.stiffness_n_per_mm_e", "drive.current_loop_bandwidth_hz", "friction.efficiency",
@@ -52,7 +52,7 @@ def test_member_run_shares_one_law_and_matches_the_direct_run():
     a, b = _member(VALUES), _member({**VALUES, "nut.inertia_kg_m2": 1.1e-4})
     ra, rb = run(a, **kw), run(b, **kw)
     direct = run(apply(PLANT, VALUES), **kw)
-    from prsa_ctrl.simulation import _BUILT
+    from prsa_ctrl.sim.simulate import _BUILT
 
     built_a = _BUILT[M.plant_model(a, "compliant")][("member", False)]
     built_b = _BUILT[M.plant_model(b, "compliant")][("member", False)]
@@ -63,9 +63,9 @@ def test_member_run_shares_one_law_and_matches_the_direct_run():
 
 
 def test_monte_carlo_quotes_its_integrator_and_agrees_with_the_reference():
-    from prsa_ctrl import montecarlo as mc
-    from prsa_ctrl.controller import PID
-    from prsa_ctrl.scene import load_scene
+    from prsa_ctrl.studies import montecarlo as mc
+    from prsa_ctrl.drive.pid import PID
+    from prsa_ctrl.studies.scene import load_scene
 
     scene = load_scene("robust-load-step")
     pid = PID(0.0849, 14.67, tf=1e-3)

@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import PID, SimulationError, builtin_plants, energy_balance, load_plant
-from prsa_ctrl import model as M
-from prsa_ctrl.equilibrium import MAX_NEWTON_ITER, operating_point, steady_torque
-from prsa_ctrl.simulation import run
+from prsa_ctrl.plant import model as M
+from prsa_ctrl.plant.equilibrium import MAX_NEWTON_ITER, operating_point, steady_torque
+from prsa_ctrl.sim.simulate import run
 
 PLANT = load_plant()
 W300 = 31.4159

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import GeometryWarning, PlantFileError, builtin_plants, load_plant
-from prsa_ctrl.plant import SCHEMA, Plant
+from prsa_ctrl.plant.plantfile import SCHEMA, Plant
 
 PLANT_DIR = Path(__file__).resolve().parent.parent / "plants"
 ALL_PLANTS = builtin_plants()

@@ -2,14 +2,14 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import load_plant, linearize
-from prsa_ctrl.autotune import Design, _predict, actuator_loops, verify
-from prsa_ctrl.cli import plot_main
-from prsa_ctrl.controller import PID
-from prsa_ctrl.paper import gain_study
-from prsa_ctrl.plots import (baseline_pairs_plot, binding_level, bode_loop, bode_plant, contact_force_plot,
+from prsa_ctrl.studies.autotune import Design, _predict, actuator_loops, verify
+from prsa_ctrl.cli.tune import plot_main
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.studies.paper import gain_study
+from prsa_ctrl.plots.loop import (baseline_pairs_plot, binding_level, bode_loop, bode_plant, contact_force_plot,
                              gain_study_plot, load_step_comparison, load_step_plot, sensitivity_plot,
                              step_response_plot, tuning_landscape)
-from prsa_ctrl.scene import load_scene
+from prsa_ctrl.studies.scene import load_scene
 
 
 @pytest.fixture(scope="module")

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import SceneError
-from prsa_ctrl.plant import load_plant
-from prsa_ctrl.robust import operating_points, scenarios, tune_robust, tune_robust_actuator
-from prsa_ctrl.scene import load_scene
-from prsa_ctrl.uncertainty import uncertainty_model
+from prsa_ctrl.plant.plantfile import load_plant
+from prsa_ctrl.tuning.robust import operating_points, scenarios, tune_robust, tune_robust_actuator
+from prsa_ctrl.studies.scene import load_scene
+from prsa_ctrl.plant.uncertainty import uncertainty_model
 
 
 @pytest.fixture(scope="module")
@@ -84,11 +84,11 @@ def test_generic_plant_array_like_systune():
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     r = tune_robust(plants, objective="iae", ms_max=1.6, aggregate="worst", n_steps=400)
     assert len(r.margins) == 3 and all(m.ms <= 1.6 * (1 + 1e-9) for m in r.margins)
-    from prsa_ctrl.tuning import tune_pid
+    from prsa_ctrl.tuning.tuner import tune_pid
 
     single = tune_pid(plants[0], objective="iae", ms_max=1.6, n_steps=400)
     # tuned for the low-gain plant alone, the PI breaks the bound on the high-gain one
-    from prsa_ctrl.tuning import continuous_loop
+    from prsa_ctrl.tuning.tuner import continuous_loop
 
     lp = continuous_loop(control.ss(plants[2]), tf=single.pid.tf, horizon=10.0)
     assert lp.margins(single.pid.gains).ms > 1.6
@@ -114,7 +114,7 @@ def test_mapped_per_loop_objective_is_the_expanded_one(monkeypatch, objective, a
     once) reaches the same design as the per-scenario expansion it replaces."""
     import control
 
-    from prsa_ctrl import tuning as T
+    from prsa_ctrl.tuning import tuner as T
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     kw = dict(objective=objective, ms_max=1.6, aggregate=aggregate, n_steps=480)  # with a two-rate tail
@@ -142,7 +142,7 @@ def test_coarse_constraint_grid_reaches_the_full_grid_design(monkeypatch, object
     every loop's true peak and is as good as with every grid row in the NLP."""
     import control
 
-    from prsa_ctrl import tuning as T
+    from prsa_ctrl.tuning import tuner as T
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     kw = dict(objective=objective, ms_max=1.6, aggregate=aggregate, n_steps=480)
@@ -171,8 +171,8 @@ def test_lower_bound_ranking_keeps_the_exact_top(monkeypatch):
     """With several loops and the worst-case objective the scan ranks by lower bounds and
     simulates every loop only where the top of the order is decided: that top is the one of
     the full ranking (the mean objective ranks every point, as one loop does)."""
-    from prsa_ctrl import tuning as T
-    from prsa_ctrl.robust import scenario_loops
+    from prsa_ctrl.tuning import tuner as T
+    from prsa_ctrl.tuning.robust import scenario_loops
 
     p, s = load_plant(), load_scene("robust-load-step")
     loops = scenario_loops(p, s, scenarios(p, s))
@@ -199,7 +199,7 @@ def test_slot_budget_holds_ms_and_mt_with_resonances_near_nyquist():
     20 slots it fell back to a scan point 60 % worse)."""
     import control
 
-    from prsa_ctrl import tuning as T
+    from prsa_ctrl.tuning import tuner as T
 
     s = control.tf("s")
     nn, dd = control.pade(0.3, 3)

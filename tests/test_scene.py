@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 
 from prsa_ctrl import SceneError
-from prsa_ctrl.scene import Scene, builtin_scenes, choose_fidelity, load_scene
+from prsa_ctrl.studies.scene import Scene, builtin_scenes, choose_fidelity, load_scene
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "tuning"
 

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID, SimulationError, builtin_plants, energy_balance, load_plant, simulate
-from prsa_ctrl.linear import linearize, predict_load_step
-from prsa_ctrl.paper import OMEGA_300_RPM, default_pid, load_step_study
-from prsa_ctrl.simulation import SimSettings
+from prsa_ctrl.plant.linear import linearize, predict_load_step
+from prsa_ctrl.studies.paper import OMEGA_300_RPM, default_pid, load_step_study
+from prsa_ctrl.sim.simulate import SimSettings
 
 STEP = [(0.0, 500.0), (0.1, 1500.0)]
 
@@ -183,7 +183,7 @@ TS = 0.25e-3
 def test_off_grid_load_step_acts_within_one_sample(paper_plant, t_step):
     """A load step between controller samples acts on the plant at its own time: the speed
     leaves its steady value in the first sample after the step, never at a chunk boundary."""
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     dur = t_step + 0.02
     r = run(paper_plant, load=[(0.0, 500.0), (t_step, 1500.0)], duration=dur, controller=PID(0.085, 14.7),
@@ -204,7 +204,7 @@ def test_off_grid_load_step_acts_within_one_sample(paper_plant, t_step):
 
 
 def test_off_grid_setpoint_step_is_read_at_the_next_sample(paper_plant):
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     r = run(paper_plant, setpoint=[(0.0, 30.0), (0.0101, 31.0)], load=500.0, duration=0.02,
             controller=PID(0.085, 14.7), fidelity="rigid", discrete=True)
@@ -219,8 +219,8 @@ def test_off_grid_setpoint_step_is_read_at_the_next_sample(paper_plant):
 
 
 def _verify_step(plant, f0, f1):
-    from prsa_ctrl.metrics import load_step_metrics
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.metrics import load_step_metrics
+    from prsa_ctrl.sim.simulate import run
 
     r = run(plant, load=[(0.0, f0), (0.002, f1)], duration=0.2, controller=PID(0.085, 14.7),
             fidelity="rigid", discrete=True)
@@ -244,7 +244,7 @@ def test_load_decrease_metrics_are_signed(paper_plant):
 def test_p_only_sampled_loop_starts_in_steady_state(paper_plant, measurement, kff):
     """No input change: a P-only loop (with or without the observer's feed-forward) must stay
     where it started, i.e. the initial integral and speed are the loop's true steady state."""
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     r = run(paper_plant, load=1000.0, duration=0.05, controller=PID(0.1, kff=kff), fidelity="rigid",
             discrete=True, measurement=measurement)
@@ -261,7 +261,7 @@ def test_p_only_sampled_loop_starts_in_steady_state(paper_plant, measurement, kf
 def test_simulate_is_run_as_time_response(paper_plant):
     import inspect
 
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     kw = dict(load=STEP, duration=0.12, controller=default_pid(paper_plant), fidelity="rigid", discrete=True,
               energy=True)
@@ -280,7 +280,7 @@ def _ramp_runs(paper_plant, discrete):
     """A 500 -> 1500 N ramp with both kinks between samples, against the same ramp as steps
     on the sample grid holding the ramp's value at each sample's midpoint (second-order close)
     and at its start (what ignoring the slope inside a sample would give, first order)."""
-    from prsa_ctrl.simulation import PiecewiseLinear, run
+    from prsa_ctrl.sim.simulate import PiecewiseLinear, run
 
     t0, t1, dur = 0.0101, 0.0601, 0.08
     # A 26-bit encoder: the 20-bit quantum would dither the two runs apart by ~1e-3 rad/s.
@@ -312,7 +312,7 @@ def test_load_ramp_is_integrated_exactly(paper_plant, discrete):
 
 
 def test_mixed_steps_and_ramps_and_profile_errors(paper_plant):
-    from prsa_ctrl.simulation import PiecewiseLinear, run
+    from prsa_ctrl.sim.simulate import PiecewiseLinear, run
 
     prof = PiecewiseLinear([(0.0, 500.0), (0.01, 500.0), (0.01, 1500.0), (0.03, 1000.0)])
     r = run(paper_plant, load=prof, duration=0.04, controller=PID(0.085, 14.7), fidelity="rigid", discrete=True)
@@ -331,7 +331,7 @@ def test_mixed_steps_and_ramps_and_profile_errors(paper_plant):
 
 
 def test_measured_force_trace_from_csv(paper_plant, tmp_path):
-    from prsa_ctrl.simulation import PiecewiseLinear, run
+    from prsa_ctrl.sim.simulate import PiecewiseLinear, run
 
     f = tmp_path / "trace.csv"
     t = np.arange(0.0, 0.04, 1e-3)
@@ -360,7 +360,7 @@ def test_zero_load_start_is_a_steady_state(paper_plant):
     """At exactly 0 N the roller assembly floats in its backlash (a continuum of equilibria):
     the operating point is the nearest one, and the loop starts steady from it."""
     from prsa_ctrl import operating_point
-    from prsa_ctrl.simulation import run
+    from prsa_ctrl.sim.simulate import run
 
     op = operating_point(paper_plant, OMEGA_300_RPM, 0.0, "compliant")
     assert op.torque > 0  # the no-load torque

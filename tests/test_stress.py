@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import PID, SimulationError, energy_balance, load_plant, simulate
-from prsa_ctrl.simulation import SimSettings
+from prsa_ctrl.sim.simulate import SimSettings
 
 PLANT = load_plant()
 

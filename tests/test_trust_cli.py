@@ -4,7 +4,7 @@ the package's own files and are written all or nothing; a symlink loop, a name t
 line (exit 2); Ctrl-C at any moment ends with exit 130 and one true line; the report's
 differences and verdicts say what the numbers say.
 
-Subprocess tests run the real console entry (``python -m prsa_ctrl.cli``); the in-process ones
+Subprocess tests run the real console entry (``python -m prsa_ctrl.cli.tune``); the in-process ones
 replace the expensive work by a stand-in that counts its calls (a step budget of zero for
 refused input)."""
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from prsa_ctrl.cli import main
+from prsa_ctrl.cli.tune import main
 
 REPO = Path(__file__).resolve().parent.parent
 SCENES = REPO / "tuning"
@@ -33,7 +33,7 @@ def _env():
     return env
 
 
-def _run(args, cwd, module="prsa_ctrl.cli", timeout=300):
+def _run(args, cwd, module="prsa_ctrl.cli.tune", timeout=300):
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=_env(), capture_output=True,
                           text=True, timeout=timeout)
 
@@ -87,7 +87,7 @@ def test_outputs_inside_the_package_data_are_refused(tmp_path, flag, package, na
 
 
 def test_the_built_in_plant_file_itself_is_refused_before_any_work(tmp_path, stand_in, capsys):
-    from prsa_ctrl.plant import plant_file_path
+    from prsa_ctrl.plant.plantfile import plant_file_path
 
     path = Path(str(plant_file_path("paper-iprsm")))
     before = path.read_bytes()
@@ -130,7 +130,7 @@ def test_symlink_loop_outputs_are_refused_in_one_line_before_any_work(tmp_path, 
 
 def test_a_failing_output_leaves_every_other_output_as_it_was(tmp_path, monkeypatch):
     """Transaction: the second file's producer fails -> the first target keeps its old content."""
-    from prsa_ctrl.output import Transaction
+    from prsa_ctrl.io.output import Transaction
 
     (tmp_path / "a.json").write_text("old a")
     with pytest.raises(RuntimeError):
@@ -214,7 +214,7 @@ def replace(a, b):
         fired.append(1)
         os.kill(os.getpid(), signal.SIGINT)
 os.replace = replace
-from prsa_ctrl.cli import main
+from prsa_ctrl.cli.tune import main
 sys.argv = ["prsa-tune", "--json", "j.json", "--export", "e.json"]
 raise SystemExit(main())
 """
@@ -236,7 +236,7 @@ def test_ctrl_c_while_the_outputs_are_renamed_leaves_all_old_or_all_new(tmp_path
 
 _INTERRUPT_AFTER_THE_COMMAND = """
 import os, signal, sys
-import prsa_ctrl.cli as cli
+import prsa_ctrl.cli.tune as cli
 inner = cli._invoke_inner
 def wrapped(*a, **k):
     code = inner(*a, **k)
@@ -261,14 +261,14 @@ def test_ctrl_c_after_the_command_finished_is_exit_130_with_one_line(tmp_path):
 @pytest.mark.parametrize("out", ["/etc/passwd", "/proc/x", "loop"])
 def test_bench_out_is_checked_in_one_line(tmp_path, out):
     (tmp_path / "loop").symlink_to(tmp_path / "loop")
-    p = _run(["--out", out, "--fast"], tmp_path, module="prsa_ctrl.bench")
+    p = _run(["--out", out, "--fast"], tmp_path, module="prsa_ctrl.cli.bench")
     _one_error(p, "prsa-bench: error: --out")
 
 
 @pytest.mark.parametrize("args, needle", [(["--repeats", "0"], "--repeats 0"), (["--repeats", "21"], "--repeats 21"),
                                           (["--repeats", "x"], "--repeats"), (["--samples", "0"], "--samples 0")])
 def test_bench_bad_counts_are_refused_before_any_benchmark(tmp_path, monkeypatch, capsys, args, needle):
-    import prsa_ctrl.bench as bench
+    import prsa_ctrl.cli.bench as bench
 
     def never(*a, **k):
         raise AssertionError("a benchmark ran")
@@ -327,7 +327,7 @@ def test_plant_unit_mistakes_stop_in_one_line_naming_the_key(tmp_path, key, valu
 
 def test_the_built_in_plants_pass_the_cross_checks():
     from prsa_ctrl import load_plant
-    from prsa_ctrl.plant import TORQUE_LIMIT_MAX_RATIO, builtin_plants
+    from prsa_ctrl.plant.plantfile import TORQUE_LIMIT_MAX_RATIO, builtin_plants
 
     for name in builtin_plants():
         v = load_plant(name).values
@@ -351,7 +351,7 @@ def test_encoder_in_bits_from_the_console_entry(tmp_path):
 # --- section 4: the report ------------------------------------------------------------------------
 
 def test_differences_are_percentages_only_above_the_resolution():
-    from prsa_ctrl.cli import _diff_text
+    from prsa_ctrl.cli.tune import _diff_text
 
     assert _diff_text(1.4e-14, 1.4e-4, res=0.0365) == "-0.00014 abs."
     assert _diff_text(1.4e-14, 1.4e-4) == "-100.0 %"  # no resolution given: a plain relative difference
@@ -362,8 +362,8 @@ def test_differences_are_percentages_only_above_the_resolution():
 
 def test_table_and_flag_use_one_definition_of_the_difference():
     from prsa_ctrl import load_plant, load_scene
-    from prsa_ctrl.autotune import health_flags, tune_actuator
-    from prsa_ctrl.cli import _diff_text
+    from prsa_ctrl.studies.autotune import health_flags, tune_actuator
+    from prsa_ctrl.cli.tune import _diff_text
 
     rep = tune_actuator(load_plant(), load_scene(), workers=1)
     d = rep.best
@@ -374,7 +374,7 @@ def test_table_and_flag_use_one_definition_of_the_difference():
 
 
 def test_a_baseline_not_beaten_says_why_in_the_table():
-    from prsa_ctrl.cli import _beaten_text
+    from prsa_ctrl.cli.tune import _beaten_text
 
     base = {"beaten": False, "tuned_flags": [], "tuned_ms": 1.4, "baseline_ms": 1.5,
             "tuned_objective_verified": 0.01, "baseline_objective_verified": 0.02}
@@ -385,8 +385,8 @@ def test_a_baseline_not_beaten_says_why_in_the_table():
 
 
 def test_one_name_per_design_in_the_monte_carlo():
-    from prsa_ctrl.cli import _add_design
-    from prsa_ctrl.controller import PID
+    from prsa_ctrl.cli.tune import _add_design
+    from prsa_ctrl.drive.pid import PID
 
     designs = {"nominal design": PID(0.08, 14.0), "robust design": PID(0.04, 4.0)}
     _add_design(designs, "tuned (Ms <= 1.4)", PID(0.08, 14.0))

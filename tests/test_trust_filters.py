@@ -17,9 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import SceneError, load_plant
-from prsa_ctrl.cli import main as tune_main
-from prsa_ctrl.filters import METHODS, FirstOrderLowPass, GeneralBiquad, Notch, SecondOrderLowPass
-from prsa_ctrl.scene import load_scene
+from prsa_ctrl.cli.tune import main as tune_main
+from prsa_ctrl.drive.filters import METHODS, FirstOrderLowPass, GeneralBiquad, Notch, SecondOrderLowPass
+from prsa_ctrl.studies.scene import load_scene
 
 
 
@@ -78,10 +78,10 @@ def mode163():
     """The heavy-slide plant made heavier and less damped through its own keys: the thread
     contact's axial mode at 163 Hz with damping ratio 0.0005 (linearised at 300 rpm, 1000 N;
     a ~44 dB peak of |L| over its running median), one loop, 50 ms horizon."""
-    from prsa_ctrl.filtertune import loop_builder, tune_filtered
-    from prsa_ctrl.linear import linear_core
-    from prsa_ctrl.model import plant_model
-    from prsa_ctrl.uncertainty import apply
+    from prsa_ctrl.tuning.filtered import loop_builder, tune_filtered
+    from prsa_ctrl.plant.linear import linear_core
+    from prsa_ctrl.plant.model import plant_model
+    from prsa_ctrl.plant.uncertainty import apply
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -113,7 +113,7 @@ def _gains_alone_grid_best(lp, ms_max=1.4):
 
 
 def test_notch_started_at_the_mode_acts_on_it_and_pays(mode163):
-    from prsa_ctrl.filtertune import tune_filtered
+    from prsa_ctrl.tuning.filtered import tune_filtered
 
     ts, f_mode, bld, ref = mode163
     n = tune_filtered([bld], ts=ts, kind="notch", start_gains=(ref.pid.kp, ref.pid.ki), reference=ref)
@@ -137,7 +137,7 @@ def test_notch_that_cannot_reach_the_mode_is_not_labelled_optimal(mode163):
     """Search box 221-884 Hz (a start at 442 Hz), the mode at 163 Hz outside it: the old tuner
     returned the 442 Hz notch as "optimal"; now the status says no notch helps and why, and
     the design returned is the gains alone."""
-    from prsa_ctrl.filtertune import tune_filtered
+    from prsa_ctrl.tuning.filtered import tune_filtered
 
     ts, f_mode, bld, ref = mode163
     n = tune_filtered([bld], ts=ts, kind="notch", start_gains=(ref.pid.kp, ref.pid.ki),
@@ -171,9 +171,9 @@ def _robust_scene(tmp_path, name, *, relative=0.5, setpoints="[300.0]", spec=Non
 def test_recommend_ranks_by_the_yield_against_the_spec():
     """Unit check of the ranking: robust 10/200 against nominal 132/200 recommends the nominal
     design; both at 0 recommends none; without Monte Carlo the spec is said to be unchecked."""
-    from prsa_ctrl.controller import PID
-    from prsa_ctrl.montecarlo import DesignYield, wilson_interval
-    from prsa_ctrl.robust import RobustTuning
+    from prsa_ctrl.drive.pid import PID
+    from prsa_ctrl.studies.montecarlo import DesignYield, wilson_interval
+    from prsa_ctrl.tuning.robust import RobustTuning
 
     comp = {"objective": "iae", "ms_max": 1.4, "designs": {
         "nominal": {"ms_violations": 2, "worst_objective": 0.03}, "robust": {"ms_violations": 0, "worst_objective": 0.08}}}
@@ -256,8 +256,8 @@ def test_export_with_load_feedforward_is_refused_up_front(tmp_path, capsys):
 # --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------
 
 def test_monte_carlo_replay_on_a_duty_scene_is_one_line(capsys):
-    from prsa_ctrl import montecarlo as mc
-    from prsa_ctrl.robust import operating_points
+    from prsa_ctrl.studies import montecarlo as mc
+    from prsa_ctrl.tuning.robust import operating_points
 
     code = mc.main(["--scene", "duty-trace", "--seed", "0", "--index", "0", "--kp", "0.05", "--ki", "5"])
     err = [l for l in capsys.readouterr().err.splitlines() if l.startswith("error")]
@@ -292,7 +292,7 @@ def test_sigterm_in_a_monte_carlo_pool_stops_the_workers_and_says_so(tmp_path):
     scene = _robust_scene(tmp_path, "mc", mc=400)
     out, err = tmp_path / "out.txt", tmp_path / "err.txt"
     with open(out, "w") as fo, open(err, "w") as fe:
-        proc = subprocess.Popen([sys.executable, "-c", "import sys; from prsa_ctrl.cli import main; sys.exit(main())",
+        proc = subprocess.Popen([sys.executable, "-c", "import sys; from prsa_ctrl.cli.tune import main; sys.exit(main())",
                                  "--scene", scene, "--workers", "2", "--json", str(tmp_path / "r.json")],
                                 stdout=fo, stderr=fe, cwd=tmp_path)
         first: set = set()
@@ -329,7 +329,7 @@ def test_an_interrupted_command_does_not_leave_sigterm_ignored():
     """After an interrupted in-process command SIGTERM has its old handler again: an ignored
     SIGTERM would be inherited by every later child process (whose workers then survive
     ``terminate()``)."""
-    from prsa_ctrl import cli
+    from prsa_ctrl.cli import tune as cli
 
     def body(run, argv):
         run.interrupted = True

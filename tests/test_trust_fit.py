@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from prsa_ctrl.fit import fit_plant
+from prsa_ctrl.identification.fit import fit_plant
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_fit import PERTURBED, toolkit_record  # noqa: E402
@@ -62,7 +62,7 @@ def test_constant_load_efficiency_unidentified_on_every_seed(base, truth, seed):
 def test_identifiability_survives_a_perturbed_jacobian(base, multisine, monkeypatch, level):
     """The same decision with the scaled Jacobian perturbed far above round-off (a criterion at
     round-off level would flip here on every machine)."""
-    import prsa_ctrl.fit as F
+    import prsa_ctrl.identification.fit as F
 
     split = F._info_split
     rng = np.random.default_rng(7)
@@ -75,7 +75,7 @@ def test_identifiability_survives_a_perturbed_jacobian(base, multisine, monkeypa
 
 
 def test_info_split_tolerance_is_stated_and_scale_free():
-    from prsa_ctrl.fit import RANK_RTOL, _info_split
+    from prsa_ctrl.identification.fit import RANK_RTOL, _info_split
 
     rng = np.random.default_rng(0)
     j = rng.standard_normal((200, 4))
@@ -110,8 +110,8 @@ def test_duplicate_record_used_once_with_a_warning(base, truth, multisine):
 
 
 def test_duplicate_frf_used_once(base, truth):
-    from prsa_ctrl.fit import fit_frf, frf_response
-    from prsa_ctrl.fitdata import frf_from_arrays
+    from prsa_ctrl.identification.fit import fit_frf, frf_response
+    from prsa_ctrl.identification.data import frf_from_arrays
 
     f = np.geomspace(5, 600, 40)
     rng = np.random.default_rng(1)
@@ -127,7 +127,7 @@ def test_duplicate_frf_used_once(base, truth):
 
 
 def _speed_only(rec, factor=1.0, name="speed.csv"):
-    from prsa_ctrl.fitdata import record_from_arrays
+    from prsa_ctrl.identification.data import record_from_arrays
 
     v = np.concatenate([[rec.speed_rad_s[0]], rec.speed_rad_s]) * factor
     return record_from_arrays(name, rec.time_s, rec.torque_command_n_m, nut_speed_rad_s=v, axial_load_n=rec.axial_load_n)
@@ -136,7 +136,7 @@ def _speed_only(rec, factor=1.0, name="speed.csv"):
 @pytest.mark.parametrize("case", list(PERTURBED))
 @pytest.mark.parametrize("kind", ["multisine", "load-steps", "staircase"])
 def test_torque_balance_finds_rpm_and_passes_rad_s(base, case, kind):
-    from prsa_ctrl.fit import _check_units
+    from prsa_ctrl.identification.fit import _check_units
 
     rec = toolkit_record(base.with_params(PERTURBED[case]), kind)
     _check_units(rec, base)
@@ -150,7 +150,7 @@ def test_torque_balance_finds_rpm_and_passes_rad_s(base, case, kind):
 
 
 def test_cli_rpm_speed_without_angle_exit_2_one_line(multisine, tmp_path, capsys):
-    from prsa_ctrl.fit_cli import main
+    from prsa_ctrl.cli.fit import main
 
     csv = tmp_path / "rpm.csv"
     _speed_only(multisine, 60 / (2 * math.pi)).to_csv(csv)
@@ -167,7 +167,7 @@ def test_cli_rpm_speed_without_angle_exit_2_one_line(multisine, tmp_path, capsys
 def test_sample_time_compared_with_the_plant(base, multisine, tmp_path, capsys):
     from dataclasses import replace
 
-    from prsa_ctrl.fit_cli import main
+    from prsa_ctrl.cli.fit import main
 
     fast = replace(multisine, time_s=multisine.time_s * 1e-9)
     with pytest.raises(ValueError, match=r"time_s .* sample time of 2\.5e-13 s; expected the plant's sensor"):
@@ -181,8 +181,8 @@ def test_sample_time_compared_with_the_plant(base, multisine, tmp_path, capsys):
 
 
 def test_frf_points_above_nyquist_dropped_with_a_note(base, truth):
-    from prsa_ctrl.fit import fit_frf, frf_response
-    from prsa_ctrl.fitdata import frf_from_arrays
+    from prsa_ctrl.identification.fit import fit_frf, frf_response
+    from prsa_ctrl.identification.data import frf_from_arrays
 
     nyq = 0.5 / base.sample_time_s
     f = np.geomspace(5, 3 * nyq, 60)
@@ -202,7 +202,7 @@ def test_frf_points_above_nyquist_dropped_with_a_note(base, truth):
 def _independent_record(truth):
     from independent_actuator import simulate_independent
 
-    from prsa_ctrl.fitdata import design_excitation, record_from_arrays
+    from prsa_ctrl.identification.data import design_excitation, record_from_arrays
 
     ts = 2.5e-4
     n = int(round(0.4 / ts))
@@ -222,7 +222,7 @@ def test_overlay_shows_one_continuous_simulation(base, truth):
     """On b18c321 the overlay drew the shooting segments: at a join the model jumped by 2.5 rad/s
     (the measured speed never changes by more than 1.4 rad/s in a sample) and the residual panel
     showed 2.3 rad/s there."""
-    from prsa_ctrl.fit import fit_figures
+    from prsa_ctrl.identification.fit import fit_figures
 
     rec = _independent_record(truth)
     result = fit_plant([rec], base)
@@ -251,7 +251,7 @@ def three_records(truth):
 def test_fitted_plant_keeps_the_users_uncertainty(base, three_records):
     """On b18c321 the fitted plant's [uncertainty] for the inertia was the fit's own sigma (a
     +/- 0.001 % spread), replacing the user's +/- 30 %: Monte Carlo on it showed no spread."""
-    from prsa_ctrl.uncertainty import plant_uncertainty
+    from prsa_ctrl.plant.uncertainty import plant_uncertainty
 
     res = fit_plant(three_records, base)
     assert "nut.inertia_kg_m2" in res.plant_keys
@@ -270,8 +270,8 @@ def test_fitted_plant_keeps_the_users_uncertainty(base, three_records):
 
 
 def test_an_assumption_narrower_than_the_fit_is_replaced(base, three_records):
-    from prsa_ctrl.plant import Plant
-    from prsa_ctrl.uncertainty import plant_uncertainty
+    from prsa_ctrl.plant.plantfile import Plant
+    from prsa_ctrl.plant.uncertainty import plant_uncertainty
 
     narrow = {**base.uncertainty, "drive.current_loop_bandwidth_hz": {
         "dist": "uniform", "relative": 1e-6, "source": "assumption: far too sure"}}
@@ -290,8 +290,8 @@ def test_an_assumption_narrower_than_the_fit_is_replaced(base, three_records):
 def test_cli_keeps_the_base_uncertainty_lines(three_records, tmp_path):
     import tomllib
 
-    from prsa_ctrl.fit_cli import main
-    from prsa_ctrl.plant import plant_file_path
+    from prsa_ctrl.cli.fit import main
+    from prsa_ctrl.plant.plantfile import plant_file_path
 
     paths = []
     for r in three_records:
@@ -319,7 +319,7 @@ def one_csv(multisine, tmp_path_factory):
 
 def _run(argv):
     """prsa-fit's exit code; a KeyboardInterrupt that escapes main (b18c321) counts as a failure."""
-    from prsa_ctrl.fit_cli import main
+    from prsa_ctrl.cli.fit import main
 
     try:
         return main(argv)
@@ -328,7 +328,7 @@ def _run(argv):
 
 
 def test_ctrl_c_exit_130_one_line_nothing_left(one_csv, tmp_path, capsys, monkeypatch):
-    import prsa_ctrl.fit as F
+    import prsa_ctrl.identification.fit as F
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
@@ -363,8 +363,8 @@ def _variants(text):
 def test_cli_writes_the_fit_for_every_toml_spelling(variant, one_csv, tmp_path, capsys):
     import tomllib
 
-    from prsa_ctrl.plant import load_plant as lp
-    from prsa_ctrl.plant import plant_file_path
+    from prsa_ctrl.plant.plantfile import load_plant as lp
+    from prsa_ctrl.plant.plantfile import plant_file_path
 
     text = _variants(plant_file_path().read_text())[variant]
     base_file = tmp_path / "base.toml"
@@ -382,8 +382,8 @@ def test_cli_writes_the_fit_for_every_toml_spelling(variant, one_csv, tmp_path, 
 
 
 def test_plant_toml_keeps_layout_where_it_can(base):
-    from prsa_ctrl.fit_cli import plant_toml
-    from prsa_ctrl.plant import plant_file_path
+    from prsa_ctrl.cli.fit import plant_toml
+    from prsa_ctrl.plant.plantfile import plant_file_path
 
     text = _variants(plant_file_path().read_text())["trailing-comment"]
     p = base.with_params({"nut.inertia_kg_m2": 1.6e-4})
@@ -394,7 +394,7 @@ def test_plant_toml_keeps_layout_where_it_can(base):
 
 
 def _no_fit(monkeypatch):
-    import prsa_ctrl.fit as F
+    import prsa_ctrl.identification.fit as F
 
     def fail(*a, **k):
         raise AssertionError("the fit ran before the output paths were checked")
@@ -426,8 +426,8 @@ def test_cli_bad_output_paths_refused_before_the_fit(one_csv, tmp_path, capsys, 
 
 @pytest.mark.parametrize("flag,value", [("--frf-speed", "0"), ("--frf-speed", "1e6"), ("--frf-load", "1e9")])
 def test_cli_frf_operating_point_checked(flag, value, tmp_path, capsys, monkeypatch, base, truth):
-    from prsa_ctrl.fit import frf_response
-    from prsa_ctrl.fitdata import frf_from_arrays
+    from prsa_ctrl.identification.fit import frf_response
+    from prsa_ctrl.identification.data import frf_from_arrays
 
     _no_fit(monkeypatch)
     f = np.geomspace(5, 600, 30)
@@ -439,8 +439,8 @@ def test_cli_frf_operating_point_checked(flag, value, tmp_path, capsys, monkeypa
 
 
 def test_huge_log_refused_before_reading(tmp_path, monkeypatch):
-    import prsa_ctrl.fitdata as FD
-    from prsa_ctrl.fitdata import DataError, load_frf, load_record
+    import prsa_ctrl.identification.data as FD
+    from prsa_ctrl.identification.data import DataError, load_frf, load_record
 
     big = tmp_path / "big.csv"
     with open(big, "wb") as fh:  # sparse: 2 GB on paper, nothing on disk
@@ -456,7 +456,7 @@ def test_huge_log_refused_before_reading(tmp_path, monkeypatch):
 
 
 def test_constant_frf_gives_no_absurd_fit_percent(tmp_path, capsys):
-    from prsa_ctrl.fitdata import frf_from_arrays
+    from prsa_ctrl.identification.data import frf_from_arrays
 
     f = np.geomspace(5, 600, 30)
     csv = tmp_path / "const.csv"
@@ -470,8 +470,8 @@ def test_constant_frf_gives_no_absurd_fit_percent(tmp_path, capsys):
 @pytest.mark.parametrize("speed,load,match", [(0.0, 800.0, "speed = 0.0"), (1e6, 800.0, "speed = 1000000.0"),
                                               (30.0, 1e9, "load = 1000000000.0")])
 def test_fit_frf_operating_point_checked(base, truth, speed, load, match):
-    from prsa_ctrl.fit import fit_frf, frf_response
-    from prsa_ctrl.fitdata import frf_from_arrays
+    from prsa_ctrl.identification.fit import fit_frf, frf_response
+    from prsa_ctrl.identification.data import frf_from_arrays
 
     f = np.geomspace(5, 600, 30)
     fr = frf_from_arrays("op.csv", f, frf_response(truth, f, load_n=800.0), speed_rad_s=speed, load_n=load)

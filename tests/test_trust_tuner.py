@@ -16,7 +16,7 @@ import pytest
 from scipy.linalg import expm, matrix_balance
 from scipy.optimize import minimize_scalar
 
-from prsa_ctrl.tuning import tune_pid
+from prsa_ctrl.tuning.tuner import tune_pid
 
 _GRID = [(c, m) for c in ("pi", "pid") for m in (1.4, 2.0)]
 
@@ -359,7 +359,7 @@ def test_bad_plants_get_one_clear_line(plant, match):
 
 
 def test_high_order_plant_is_refused_before_any_work(monkeypatch):
-    import prsa_ctrl.tuning as tuning
+    import prsa_ctrl.tuning.tuner as tuning
 
     def boom(*args, **kwargs):
         raise AssertionError("work started")
@@ -419,7 +419,7 @@ def test_objective_beyond_double_precision_is_refused():
 
 
 def test_a_non_finite_objective_is_never_reported(monkeypatch):
-    import prsa_ctrl.tuning as tuning
+    import prsa_ctrl.tuning.tuner as tuning
 
     monkeypatch.setattr(tuning.LoopModel, "true_objective", lambda self, gains, kind: (math.nan, 0.0))
     with pytest.raises(ValueError, match="objective is not finite"):

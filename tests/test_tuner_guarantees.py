@@ -14,8 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 
-import prsa_ctrl.tuning as tuning
-from prsa_ctrl.tuning import Tuner, continuous_loop, drive_loop, tune_loops, tune_pid
+import prsa_ctrl.tuning.tuner as tuning
+from prsa_ctrl.tuning.tuner import Tuner, continuous_loop, drive_loop, tune_loops, tune_pid
 
 s = control.tf("s")
 RESONANT = 1 / ((s + 1) * (s**2 / 100 + 0.004 * s + 1))  # zeta = 0.02 at 10 rad/s
@@ -53,7 +53,7 @@ def true_peaks(plant, pid, w_lo=1e-4, w_hi=1e4):
 
 
 def control_pid(g, tf):
-    from prsa_ctrl.controller import PID
+    from prsa_ctrl.drive.pid import PID
 
     return PID(g[0], g[1], g[2], tf=tf)
 
@@ -215,7 +215,7 @@ def test_peaks_and_crossover_below_the_model_grid_are_found():
     model's grid (the slow plant of a robust set): the peak search extends below the grid
     while |L| < 100 there, so Ms, Mt and the crossover are the true ones (the independent
     200k-point search from 1e-7 rad/s)."""
-    from prsa_ctrl.controller import PID
+    from prsa_ctrl.drive.pid import PID
 
     plant = 5e-5 / (s * (s + 1))
     lp = continuous_loop(plant, tf=0.1, horizon=40.0, n_steps=800)

@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prsa_ctrl import PlantFileError, SceneError
-from prsa_ctrl.plant import Plant, builtin_plants, load_plant
-from prsa_ctrl.scene import _from_doc, load_scene
-from prsa_ctrl.uncertainty import parse_scene_sections, uncertainty_model
+from prsa_ctrl.plant.plantfile import Plant, builtin_plants, load_plant
+from prsa_ctrl.studies.scene import _from_doc, load_scene
+from prsa_ctrl.plant.uncertainty import parse_scene_sections, uncertainty_model
 
 ROOT = Path(__file__).resolve().parent.parent
 _DOC = tomllib.loads((ROOT / "plants" / "paper-iprsm.toml").read_text())

@@ -10,8 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-from prsa_ctrl.axisfit import fit_linear_axis, load_axis_plant
-from prsa_ctrl.logformat import load_axis_log, load_log_format
+from prsa_ctrl.identification.axis import fit_linear_axis, load_axis_plant
+from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
 
 HERE = Path(__file__).resolve().parent
 

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from prsa_ctrl.axisfit import fit_linear_axis, load_axis_plant, simulate_axis
-from prsa_ctrl.logformat import load_axis_log, load_log_format
+from prsa_ctrl.identification.axis import fit_linear_axis, load_axis_plant, simulate_axis
+from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
 
 HERE = Path(__file__).resolve().parent
 

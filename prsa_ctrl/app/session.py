@@ -1,10 +1,10 @@
 """The app's model: one plant and scene, the tuner, the designs the page shows, no GUI code.
 
 Everything the browser page displays is computed here, with the toolkit's public functions
-(:class:`prsa_ctrl.tuning.Tuner`, :func:`prsa_ctrl.autotune.actuator_loops`,
-:func:`prsa_ctrl.autotune.baseline_designs`, :func:`prsa_ctrl.autotune.verify`,
-:func:`prsa_ctrl.export.export_controller`), so the numbers on the page are the toolkit's. The
-session keeps one :class:`~prsa_ctrl.tuning.Tuner` per loop set (objective, controller, load
+(:class:`prsa_ctrl.tuning.tuner.Tuner`, :func:`prsa_ctrl.studies.autotune.actuator_loops`,
+:func:`prsa_ctrl.studies.autotune.baseline_designs`, :func:`prsa_ctrl.studies.autotune.verify`,
+:func:`prsa_ctrl.io.export.export_controller`), so the numbers on the page are the toolkit's. The
+session keeps one :class:`~prsa_ctrl.tuning.tuner.Tuner` per loop set (objective, controller, load
 levels): a change of a bound (Ms, Mt, noise gain) re-solves on it without rebuilding the NLP.
 
 Units are SI: gains ``kp`` N m s/rad, ``ki`` N m/rad, ``kd`` N m s^2/rad; speeds rad/s; loads N.
@@ -25,15 +25,15 @@ from typing import Callable
 
 import numpy as np
 
-from ..autotune import Design, actuator_loops, baseline_designs, health_flags, verify
-from ..autotune import _predict  # the report's linear prediction; no public name yet
-from ..cli import parse_load_step
-from ..controller import PID
+from ..studies.autotune import Design, actuator_loops, baseline_designs, health_flags, verify
+from ..studies.autotune import _predict  # the report's linear prediction; no public name yet
+from ..cli.tune import parse_load_step
+from ..drive.pid import PID
 from ..errors import PlantFileError, SceneError
 from ..options import OBJECTIVES, RAD_S_PER_RPM
-from ..plant import Plant, builtin_plants, load_plant
-from ..scene import Scene, builtin_scenes, check_against_plant, load_scene
-from ..tuning import Tuner
+from ..plant.plantfile import Plant, builtin_plants, load_plant
+from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
+from ..tuning.tuner import Tuner
 
 __all__ = ["AppInputError", "Settings", "View", "AppSession", "FIDELITIES", "LANDSCAPE_POINTS"]
 
@@ -355,7 +355,7 @@ class AppSession:
 
     def verify(self, s: Settings, views: list[View], progress: Callable[[int, int, str], None] | None = None,
                cancelled: Callable[[], bool] | None = None) -> list[View]:
-        """Run each design on the nonlinear simulator (``prsa_ctrl.autotune.verify``) and check
+        """Run each design on the nonlinear simulator (``prsa_ctrl.studies.autotune.verify``) and check
         its health; ``progress(done, total, name)`` is called before and after each design.
         Returns the views whose designs now carry ``verified``/``verified_runs``/``flags``;
         stops early (returning those done) when ``cancelled()`` turns true."""
@@ -380,9 +380,9 @@ class AppSession:
     # ---- export and code ----------------------------------------------------------------
 
     def export_files(self, s: Settings, view: View, extra: dict | None = None) -> dict[str, str]:
-        """The drive file (TOML, :func:`prsa_ctrl.export.export_controller`) and the JSON report
+        """The drive file (TOML, :func:`prsa_ctrl.io.export.export_controller`) and the JSON report
         of a design: ``{file name: text}``."""
-        from ..export import dumps, export_controller
+        from ..io.export import dumps, export_controller
 
         scene = self.scene_for(s)
         drive = dumps(export_controller(view.pid, self.plant, fmt="toml"), "toml")
@@ -411,7 +411,7 @@ class AppSession:
                       f"fidelity={s.fidelity!r}")
         py = "\n".join([
             "from prsa_ctrl import Tuner, load_plant, load_scene",
-            "from prsa_ctrl.autotune import actuator_loops",
+            "from prsa_ctrl.studies.autotune import actuator_loops",
             "",
             f"plant = load_plant({self.plant_label!r})",
             f"scene = load_scene({self.scene_label!r}).replace({scene_args})",
@@ -478,7 +478,7 @@ def _load_plant(name_or_path, label: str | None = None) -> tuple[Plant, str, lis
 
 
 def _load_scene(name_or_path, label: str | None = None) -> tuple[Scene, str, list[str]]:
-    from ..cascade import is_move_scene
+    from ..tuning.cascade import is_move_scene
 
     text = label or (str(name_or_path) if name_or_path is not None else "paper-load-step")
     if is_move_scene(name_or_path):
@@ -524,9 +524,9 @@ def robust_study(session: AppSession, s: Settings, designs: dict, n: int,
                  cancelled: Callable[[], bool] | None = None, seed: int = 0) -> dict:
     """Robust tuning over the plant's documented uncertainty, then Monte-Carlo yield.
 
-    Runs :func:`prsa_ctrl.robust.tune_robust_actuator` on the page's scene (its Ms/Mt bounds;
+    Runs :func:`prsa_ctrl.tuning.robust.tune_robust_actuator` on the page's scene (its Ms/Mt bounds;
     the noise-gain bound is not part of the robust problem) and
-    :func:`prsa_ctrl.montecarlo.run_monte_carlo` (serial, seeded) of ``designs`` plus the
+    :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo` (serial, seeded) of ``designs`` plus the
     robust design on ``n`` samples. ``progress(stage, done, total)`` reports; ``cancelled()``
     is polled between the stages and after every chunk of samples (the robust NLP itself is
     not interruptible).
@@ -543,8 +543,8 @@ def robust_study(session: AppSession, s: Settings, designs: dict, n: int,
     Cancelled
         When cancelled before any sample finished.
     """
-    from ..montecarlo import MonteCarloInterrupted, run_monte_carlo
-    from ..robust import tune_robust_actuator
+    from ..studies.montecarlo import MonteCarloInterrupted, run_monte_carlo
+    from ..tuning.robust import tune_robust_actuator
 
     if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 10_000:
         raise AppInputError(f"samples {n!r}: expected an integer in 1..10000")
@@ -557,7 +557,7 @@ def robust_study(session: AppSession, s: Settings, designs: dict, n: int,
     every = {**designs, "robust": rr.robust}
     comparison = {}
     if rr.loops:
-        from ..robust import compare_designs
+        from ..tuning.robust import compare_designs
 
         comp = compare_designs(every, rr.loops, rr.scenarios, scene.objective, scene.ms_max)
         comparison = {k: {"max_ms": v["max_ms"], "worst_objective": v["worst_objective"]}

@@ -1,1 +1,1 @@
-"""Drive parameter-set templates (data files, see prsa_ctrl.driveparams)."""
+"""Drive parameter-set templates (data files, see prsa_ctrl.drive.params)."""

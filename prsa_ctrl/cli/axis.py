@@ -1,0 +1,309 @@
+"""``prsa-fit`` for logs described by ``--log-format`` (linear axes in load coordinates).
+
+``prsa-fit LOG... --log-format FORMAT.toml --out FITTED.toml [--json FIT.json] [--plant BASE.toml]
+[--holdout FRACTION] [--plots DIR]``
+    Fit a ``linear-axis`` plant (:mod:`prsa_ctrl.identification.axis`) on the logs; with ``--holdout F`` the
+    last fraction ``F`` of each log is left out of the fit and replayed afterwards (reported under
+    ``holdout`` in the JSON).
+
+``prsa-fit --validate PLANT.toml LOG... [--log-format FORMAT.toml] [--json R.json] [--traces T.csv]
+[--plots DIR]``
+    Replay each log through the plant (closed loop from the reference when the log describes its
+    controller, with the log's test signal added at the drive input; open loop from the logged
+    command otherwise) and report, per log, ``100 ||y - y_sim|| / ||y||`` of position, velocity
+    and force, and the fit %. Without ``--log-format`` a log must be a CSV file with the standard
+    columns (:data:`prsa_ctrl.identification.logformat.DEFAULT_CSV_FORMAT`), replayed open loop.
+
+Reached from :func:`prsa_ctrl.cli.fit.main` when ``--log-format`` is given or ``--validate`` names
+a ``.toml`` plant. Exit codes: 0 success, 2 bad input (one line naming the value, nothing
+written), 3 the fit did not converge.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Sequence
+
+__all__ = ["wants_axis_mode", "run"]
+
+
+def wants_axis_mode(argv: Sequence[str]) -> bool:
+    """True when the arguments ask for a described log (``--log-format``) or validate a plant file."""
+    for i, a in enumerate(argv):
+        if a == "--log-format" or a.startswith("--log-format="):
+            return True
+        if a == "--validate" and i + 1 < len(argv) and argv[i + 1].lower().endswith(".toml"):
+            return True
+        if a.startswith("--validate=") and a.lower().endswith(".toml"):
+            return True
+    return False
+
+
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:
+        raise _UsageError(re.sub(r"^argument (-[-\w]+)(?:/-[-\w]+)*: ", r"\1 ", message))
+
+
+def _fraction(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a number in (0, 0.9)") from None
+    if not 0 < v < 0.9:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a number in (0, 0.9)")
+    return v
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="prsa-fit", description="Fit or validate a linear-axis plant on logs described by --log-format.",
+                allow_abbrev=False)
+    p.add_argument("data", nargs="*", metavar="LOG", help="logs (CSV or MATLAB .mat) to fit")
+    p.add_argument("--log-format", metavar="FORMAT.toml", help="log description (prsa_ctrl.identification.logformat)")
+    p.add_argument("--validate", nargs="+", metavar="PLANT.toml LOG", help="a linear-axis plant file, then the logs "
+                   "to replay through it")
+    p.add_argument("--out", metavar="PATH", help="fitted plant file (.toml)")
+    p.add_argument("--json", metavar="PATH", help="JSON report")
+    p.add_argument("--plant", metavar="BASE.toml", help="base linear-axis plant: values the fit does not estimate")
+    p.add_argument("--holdout", type=_fraction, metavar="FRACTION", help="leave the last FRACTION of each log out "
+                   "of the fit and replay it afterwards")
+    p.add_argument("--traces", metavar="T.csv", help="with --validate: measured and simulated position and force "
+                   "per sample")
+    p.add_argument("--plots", metavar="DIR", help="overlay figures (PNG) of each replay")
+    return p
+
+
+def run(argv: Sequence[str]) -> int:
+    """Entry point for the described-log modes; returns the exit code."""
+    from ..identification.axis import AxisFitError, AxisPlantError
+    from ..errors import SimulationError
+    from ..identification.logformat import LogFormatError
+    from ..io.output import OutputError
+
+    try:
+        args = _parser().parse_args(list(argv))
+        if args.validate:
+            return _validate(args)
+        return _fit(args)
+    except (_UsageError, argparse.ArgumentTypeError, LogFormatError, AxisPlantError, OutputError, ValueError) as exc:
+        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        return 2
+    except (AxisFitError, SimulationError) as exc:
+        print(f"prsa-fit: {exc}", file=sys.stderr)
+        return 3
+
+
+def _load_logs(args, paths: Sequence[str]):
+    from ..identification.logformat import DEFAULT_CSV_FORMAT, load_axis_log, load_log_format
+
+    if not args.log_format:
+        other = [p for p in paths if not p.lower().endswith(".csv")]
+        if other:
+            raise _UsageError(f"{other[0]}: no --log-format; expected --log-format FORMAT.toml describing the log's "
+                              "variables, units and controller (only a CSV log with the standard columns time_s, "
+                              "position_m, force_n needs none)")
+        fmt = DEFAULT_CSV_FORMAT
+    else:
+        fmt = load_log_format(args.log_format)
+    return fmt, [load_axis_log(p, fmt) for p in paths]
+
+
+def _check(outs: dict[str, str | None], inputs: Sequence[str], plots: str | None) -> None:
+    from ..io.output import check_directory, check_distinct, check_writable
+
+    outs = {k: v for k, v in outs.items() if v is not None}
+    check_distinct({**outs, **({"--plots": plots} if plots else {})})
+    for flag, path in outs.items():
+        check_writable(path, inputs=inputs, flag=flag)
+    if plots is not None:
+        check_directory(plots, "--plots")
+
+
+def _write(files: dict[str, tuple[str, str]], inputs: Sequence[str]) -> None:
+    from ..io.output import write_text
+
+    for path, (flag, text) in files.items():
+        write_text(path, text, inputs=inputs, flag=flag)
+
+
+def _json(obj) -> str:
+    from ..io.output import json_safe
+
+    return json.dumps(json_safe(obj), indent=2) + "\n"
+
+
+def _base_plant(args, logs):
+    """The base plant: ``--plant`` or defaults, with what the logs say about drive and sensor."""
+    import numpy as np
+
+    from ..identification.axis import DEFAULTS, LinearAxisPlant, load_axis_plant
+
+    if args.plant:
+        base = load_axis_plant(args.plant)
+    else:
+        vals = {k: v for k, (v, _) in DEFAULTS.items()}
+        srcs = {k: s for k, (_, s) in DEFAULTS.items()}
+        vals["axis.mass_kg"], srcs["axis.mass_kg"] = 1.0, "default: placeholder, replaced by the fit"
+        base = LinearAxisPlant("base", vals, srcs, command_unit=logs[0].command_unit)
+    lg = logs[0]
+    fmt_name = Path(args.log_format).name
+    vals, srcs = {}, {}
+    vals["drive.gain_n_per_unit"] = lg.gain_n_per_unit
+    srcs["drive.gain_n_per_unit"] = f"log: {lg.sources.get('gain', fmt_name)}"
+    vals["sensor.sample_time_s"], srcs["sensor.sample_time_s"] = lg.sample_time_s, f"log: {fmt_name}"
+    if lg.controller is not None:
+        vals["drive.force_limit_n"] = lg.controller.saturation * lg.gain_n_per_unit
+        srcs["drive.force_limit_n"] = f"log: {fmt_name} [controller] saturation x drive gain"
+    if lg.resolution_m is not None:
+        vals["sensor.encoder_resolution_m"] = lg.resolution_m
+        srcs["sensor.encoder_resolution_m"] = f"log: {fmt_name} [position] resolution"
+    elif not args.plant:
+        steps = np.abs(np.diff(lg.position_m))
+        steps = steps[steps > 0]
+        if steps.size:
+            vals["sensor.encoder_resolution_m"] = float(steps.min())
+            srcs["sensor.encoder_resolution_m"] = f"estimate: smallest position step in {Path(lg.name).name}"
+    for other in logs[1:]:
+        if not math.isclose(other.gain_n_per_unit, lg.gain_n_per_unit, rel_tol=1e-9):
+            raise _UsageError(f"{other.name}: drive gain {other.gain_n_per_unit:g} differs from {lg.name}'s "
+                              f"{lg.gain_n_per_unit:g}; expected logs of one axis")
+    return base.with_values(vals, srcs)
+
+
+def _fit(args) -> int:
+    from ..identification.axis import axis_plant_toml, fit_linear_axis, replay_axis
+
+    if args.traces:
+        raise _UsageError(f"--traces {args.traces!r} without --validate; expected it with --validate PLANT.toml LOG")
+    if not args.data:
+        raise _UsageError("no log; expected prsa-fit LOG... --log-format FORMAT.toml --out FITTED.toml")
+    if not args.out:
+        raise _UsageError("no --out; expected --out FITTED.toml for the fitted plant")
+    if not args.log_format:
+        raise _UsageError(f"--log-format {args.log_format!r}: expected a log description FORMAT.toml to fit with")
+    inputs = [*args.data, args.log_format or "", *([args.plant] if args.plant else [])]
+    _check({"--out": args.out, "--json": args.json}, inputs, args.plots)
+    fmt, logs = _load_logs(args, args.data)
+    base = _base_plant(args, logs)
+    fit_logs, held = logs, []
+    if args.holdout:
+        fit_logs, held = [], []
+        for lg in logs:
+            cut = int(round(lg.n * (1 - args.holdout)))
+            fit_logs.append(lg.window(0, cut))
+            held.append(lg.window(cut, lg.n))
+    result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)
+    text = axis_plant_toml(result.plant)
+    report = result.report()
+    if held:
+        report["holdout"] = {"fraction": args.holdout, "note": "fitted on the first part of each log, replayed on the "
+                             "rest (closed loop from the reference, starting from the logged position at rest)",
+                             "replay": [replay_axis(result.plant, h).report() for h in held]}
+    files = {args.out: ("--out", text)}
+    if args.json:
+        files[args.json] = ("--json", _json(report))
+    plots = _plots(args.plots, result.replays, inputs) if args.plots else []
+    _write(files, inputs)
+    for k, v in result.equivalent.items():
+        lo, hi = v["ci95"]
+        print(f"{k} = {v['value']:.6g} {v['unit']} (95 % CI {lo:.6g}..{hi:.6g})")
+    for r in result.replays:
+        _print_replay(r.report())
+    for h in report.get("holdout", {}).get("replay", []):
+        _print_replay(h, prefix="held out: ")
+    for w in result.warnings:
+        print(f"warning: {w}")
+    print(f"wrote {args.out}" + (f" and {args.json}" if args.json else "") + (f"; plots: {', '.join(plots)}" if plots else ""))
+    return 0
+
+
+def _print_replay(rep: dict, prefix: str = "") -> None:
+    e, f = rep["errors_percent"], rep["fit_percent"]
+    print(f"{prefix}{rep['log']}: replay errors position {e['position']:.4g} %, velocity {e['velocity']:.4g} %, "
+          f"force {e['force']:.4g} % (fit {f['position']:.3f} / {f['velocity']:.3f} / {f['force']:.3f} %; "
+          f"{rep['replay']})")
+
+
+def _validate(args) -> int:
+    from ..identification.axis import load_axis_plant, replay_axis
+
+    plant_path, *paths = args.validate
+    paths = [*paths, *args.data]
+    if args.out:
+        raise _UsageError(f"--out {args.out!r} with --validate; expected --json/--traces/--plots for a validation")
+    if args.holdout or args.plant:
+        raise _UsageError("--holdout/--plant with --validate; expected them only when fitting")
+    if not paths:
+        raise _UsageError(f"--validate {plant_path}: no log; expected --validate PLANT.toml LOG...")
+    if args.traces and len(paths) > 1:
+        raise _UsageError(f"--traces {args.traces!r} with {len(paths)} logs; expected one log (one row per sample)")
+    inputs = [plant_path, *paths, args.log_format or ""]
+    _check({"--json": args.json, "--traces": args.traces}, inputs, args.plots)
+    plant = load_axis_plant(plant_path)
+    fmt, logs = _load_logs(args, paths)
+    replays = [replay_axis(plant, lg) for lg in logs]
+    files = {}
+    if args.json:
+        files[args.json] = ("--json", _json({"plant": plant_path, "replay": [r.report() for r in replays]}))
+    if args.traces:
+        files[args.traces] = ("--traces", replays[0].traces_csv())
+    plots = _plots(args.plots, replays, inputs) if args.plots else []
+    _write(files, inputs)
+    for r in replays:
+        _print_replay(r.report())
+        if not r.closed_loop:
+            print(f"note: {r.name} has no controller description: replayed open loop from the logged command (an "
+                  "integrating axis drifts)")
+    if files or plots:
+        print("wrote " + ", ".join([*files, *plots]))
+    return 0
+
+
+def _plots(directory: str, replays, inputs) -> list[str]:
+    """Overlay figures (tracking error, velocity, force: measured vs simulated), one PNG per replay."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from ..io.output import make_directory, write_file
+
+    make_directory(directory, "--plots")
+    out = []
+    for i, r in enumerate(replays):
+        fig, ax = plt.subplots(3, 1, sharex=True, figsize=(9, 7))
+        t = r.time_s
+        base, what = ((r.reference_m, "position error (reference - position), um") if r.reference_m is not None
+                      else (r.position_measured.mean(), "position - mean, um"))
+        ax[0].plot(t, 1e6 * (base - r.position_measured), label="measured")
+        ax[0].plot(t, 1e6 * (base - r.position_simulated), "--", label="simulated")
+        ax[0].set_ylabel(what)
+        ax[1].plot(t, r.velocity_measured, label="measured")
+        ax[1].plot(t, r.velocity_simulated, "--", label="simulated")
+        ax[1].set_ylabel("velocity, m/s")
+        ax[2].plot(t, r.force_measured, label="measured")
+        ax[2].plot(t, r.force_simulated, "--", label="simulated")
+        ax[2].set_ylabel("force, N")
+        ax[2].set_xlabel("time, s")
+        e = r.errors_percent
+        fig.suptitle(f"{Path(r.name).name}: errors position {e['position']:.3g} %, velocity {e['velocity']:.3g} %, "
+                     f"force {e['force']:.3g} %")
+        for a in ax:
+            a.grid(True, alpha=0.3)
+            a.legend(loc="upper right")
+        stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(r.name).name)
+        path = Path(directory) / f"replay-{i + 1}-{stem}.png"
+        try:
+            write_file(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=110), inputs, "--plots")
+        finally:
+            plt.close(fig)
+        out.append(str(path))
+    return out

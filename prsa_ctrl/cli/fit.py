@@ -1,0 +1,616 @@
+"""``prsa-fit``: calibrate a plant file from measured drive data, or design the experiment.
+
+``prsa-fit [DATA.csv ...] [--frf FRF.csv ...] --out MY.toml [--json REPORT.json] [--plots DIR]
+[--plant BASE] [--fit KEY,...] [--fidelity rigid|compliant] [--validate OTHER.csv ...]
+[--columns name=header,...] [--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N]
+[--coherence-min C] [--delay-samples N] [--verbose]``
+
+``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
+[--f-min HZ] [--f-max HZ] [--amplitude RAD_S] [--offset RAD_S]``
+
+Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge,
+130 interrupted (Ctrl-C: one line, the files and folders this run made are taken back).
+Output and figure paths are checked before the fit, the way they will be written (two outputs
+on one path, a symlink loop, a name too long are refused); every file is written atomically.
+The base plant (``--plant``) is parsed and its fitted file's text checked before the fit too. Python warnings (e.g. the base plant's geometry note) are shown after the
+result as one ``prsa-fit: note:`` line each; the geometry note of a built-in plant only with
+``--verbose``, as in ``prsa-tune``.
+
+Keys the data cannot inform keep the base plant's value and source in the written file
+(:func:`prsa_ctrl.identification.fit.fit_plant`); the output names them and the JSON marks them
+``"kept_base": true`` with the reason. The base file's ``[uncertainty]`` entries are kept (an
+entry narrower than the fit's 95 % interval, or one that does not hold the fitted value, is
+replaced by the fit's); ``--uncertainty-from-fit`` writes the fit's own for every fitted key.
+
+An excitation design is a nut-speed setpoint: its peak ``|offset| + amplitude`` must stay within
+:data:`DESIGN_MAX_SPEED_RAD_S` (the tuner's speed limit, ``prsa_ctrl.studies.scene.SETPOINT_MAX_RPM``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+import warnings
+from pathlib import Path
+from typing import Sequence
+
+from ..errors import GeometryWarning, PlantFileError
+
+__all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
+
+#: Exit code of a run stopped by Ctrl-C (as ``prsa-tune``).
+EXIT_INTERRUPTED = 130
+
+#: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
+#: speed range the tuner accepts (:data:`prsa_ctrl.studies.scene.SETPOINT_MAX_RPM`, 6000 rpm).
+DESIGN_MAX_SPEED_RAD_S = 6000.0 * math.pi / 30.0
+
+
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
+        # argparse says "argument --duration: '-1': ..."; the tools say "--duration '-1': ..."
+        raise _UsageError(re.sub(r"^argument (-[-\w]+)(?:/-[-\w]+)*: ", r"\1 ", message))
+
+
+def _number(flag: str, positive: bool = True):
+    """Converter of a number flag; the message names the value as typed (argparse adds the flag)."""
+    def conv(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
+        if not math.isfinite(v) or (positive and v <= 0):
+            raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number{' > 0' if positive else ''}")
+        return v
+
+    return conv
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="prsa-fit", description="Fit a plant file to measured drive data (grey-box, with 95 % CIs), "
+                "or write an excitation signal for the experiment.")
+    p.add_argument("data", nargs="*", metavar="DATA.csv", help="time-domain records to fit")
+    p.add_argument("--out", required=True, metavar="PATH", help="output plant .toml (or excitation .csv with --design)")
+    p.add_argument("--json", metavar="PATH", help="JSON report")
+    p.add_argument("--frf", nargs="+", default=[], metavar="FRF.csv", help="frequency responses torque command -> "
+                   "nut speed (frequency_hz, magnitude_db, phase_deg[, coherence] or real, imag): fitted alone "
+                   "without DATA.csv, otherwise used to validate the fit")
+    p.add_argument("--frf-speed", type=_number("--frf-speed", positive=False), default=30.0, metavar="RAD_S",
+                   help="nut speed during the FRF measurement, rad/s (default 30)")
+    p.add_argument("--frf-load", type=_number("--frf-load", positive=False), default=None, metavar="N",
+                   help="axial load during the FRF measurement, N (default --load, else 0)")
+    p.add_argument("--coherence-min", type=_number("--coherence-min", positive=False), default=0.8, metavar="C",
+                   help="FRF points with a lower coherence are dropped (default 0.8)")
+    p.add_argument("--plots", metavar="DIR", help="write residual, overlay and Bode figures (PNG) into DIR "
+                   "(created if missing)")
+    p.add_argument("--plant", default=None, metavar="NAME|PATH", help="base plant (default paper-iprsm)")
+    p.add_argument("--fit", default=None, metavar="KEY,...", help="plant keys to fit (default: inertia, efficiency, "
+                   "no-load torque, viscous, current-loop bandwidth; FRF only: inertia, current-loop bandwidth, with "
+                   "--fidelity compliant also contact.stiffness_n_per_mm_e); drive.command_delay_s fits a continuous "
+                   "command delay from --frf data")
+    p.add_argument("--validate", nargs="+", default=[], metavar="CSV", help="records not fitted; their fit %% is reported")
+    p.add_argument("--columns", default=None, metavar="name=header,...", help="map other CSV headers to the standard names")
+    p.add_argument("--torque-constant", type=_number("--torque-constant"), metavar="N_M_PER_A",
+                   help="torque constant for a current_a column, N m/A")
+    p.add_argument("--load", type=_number("--load", positive=False), metavar="N", help="constant axial load, N, "
+                   "for files without a load column")
+    p.add_argument("--fidelity", default="rigid", choices=("rigid", "compliant"), help="model fidelity (default rigid)")
+    p.add_argument("--segment", type=_number("--segment"), default=0.1, metavar="S",
+                   help="multiple-shooting segment length, s (default 0.1)")
+    p.add_argument("--delay-samples", type=int, default=0, metavar="N", help="samples between a logged command and "
+                   "the sample it acts from (default 0)")
+    p.add_argument("--design", choices=("multisine", "chirp", "steps"), help="write an excitation signal instead of fitting")
+    p.add_argument("--duration", type=_number("--duration"), default=4.0, metavar="S", help="excitation length, s")
+    p.add_argument("--sample-time", type=_number("--sample-time"), default=2.5e-4, metavar="S", help="sample time, s")
+    p.add_argument("--f-min", type=_number("--f-min"), default=1.0, metavar="HZ", help="lowest frequency, Hz")
+    p.add_argument("--f-max", type=_number("--f-max"), default=200.0, metavar="HZ", help="highest frequency, Hz")
+    p.add_argument("--amplitude", type=_number("--amplitude"), default=20.0, metavar="RAD_S",
+                   help="peak excursion of the speed setpoint, rad/s (|offset| + amplitude at most "
+                   f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = 6000 rpm)")
+    p.add_argument("--offset", type=_number("--offset", positive=False), default=30.0, metavar="RAD_S",
+                   help="mean of the speed setpoint, rad/s")
+    p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
+                   "keys' [uncertainty] entries (default: keep the base plant's entries, replaced only where one is "
+                   "narrower than the fit's 95 %% interval)")
+    p.add_argument("--verbose", action="store_true", help="also show the geometry note of a built-in base plant")
+    return p
+
+
+def _toml_string(text: str) -> str:
+    return json.dumps(text, ensure_ascii=False)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, str):
+        return _toml_string(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return repr(float(v)) if isinstance(v, float) else repr(v)
+
+
+def _uncertainty_line(key: str, entry) -> str:
+    fields = ", ".join(f"{k} = {_toml_value(v)}" for k, v in entry.items())
+    return f"{_toml_string(key)} = {{ {fields} }}"
+
+
+_ONE_LINE_DESCRIPTION = r"""^description\s*=\s*("(?:[^"\\]|\\.)*"|'[^']*')\s*(#.*)?$"""
+
+
+def plant_toml(base_text: str, plant, name: str, keys: Sequence[str], description: str | None = None,
+               uncertainty_keys: Sequence[str] | None = None) -> str:
+    """The base plant file's text with the fitted keys' values, sources and uncertainty replaced.
+
+    The base file's layout and comments are kept where its lines have the built-in plants'
+    spelling (``[section]`` headers, one ``key = { value = ..., source = "..." }`` line per
+    key, ``"section.key" = { ... }`` uncertainty lines; spaces and trailing comments allowed).
+    The result is parsed back and compared with what it must hold; for any other valid TOML
+    spelling (dotted keys, sub-tables, multi-line tables ...) the whole file is written afresh
+    from the plant instead (same values and sources, the base's comments lost, a header line
+    says so).
+
+    Parameters
+    ----------
+    base_text : str
+        The base plant file (TOML).
+    plant : Plant
+        The fitted plant (values, sources and ``uncertainty``).
+    name : str
+        The new plant name.
+    keys : sequence of str
+        Plant keys to rewrite (``section.key``).
+    description : str, optional
+        The new top-level description (replaces the base's, or follows the name line).
+    uncertainty_keys : sequence of str, optional
+        Keys whose ``[uncertainty]`` entry is rewritten from ``plant.uncertainty`` (removed when
+        it has none; a section is added at the end when the base file has none). Default: the
+        ``keys`` that have an entry in ``plant.uncertainty``.
+    """
+    import tomllib
+
+    base_text = base_text.removeprefix("\ufeff")  # a byte-order mark is no TOML
+    unc = dict(getattr(plant, "uncertainty", None) or {})
+    unc_keys = [k for k in keys if k in unc] if uncertainty_keys is None else list(uncertainty_keys)
+    base_doc = tomllib.loads(base_text)
+    try:
+        text = _rewrite(base_text, plant, name, keys, description, unc, unc_keys)
+        ok = _holds(tomllib.loads(text), base_doc, plant, name, keys, description, unc, unc_keys)
+    except (PlantFileError, tomllib.TOMLDecodeError):
+        ok = False
+    return text if ok else _fresh(base_doc, plant, name, keys, description, unc, unc_keys)
+
+
+def _expected(base_doc: dict, plant, name: str, keys, description, unc: dict, unc_keys) -> dict:
+    """The document a rewritten plant file must parse to."""
+    import copy
+
+    doc = copy.deepcopy(base_doc)
+    doc["name"] = name
+    if description is not None:
+        doc["description"] = description
+    for k in keys:
+        section, sub = k.split(".")
+        doc[section][sub] = {"value": plant.values[k], "source": plant.sources[k]}
+    old = doc.get("uncertainty", {})
+    new = {k: v for k, v in old.items() if k not in unc_keys}
+    new.update({k: unc[k] for k in unc_keys if k in unc})
+    if new or "uncertainty" in doc:
+        doc["uncertainty"] = new
+    return doc
+
+
+def _holds(doc: dict, base_doc: dict, plant, name, keys, description, unc, unc_keys) -> bool:
+    """Whether a rewritten file's document is exactly the expected one (values compared as numbers)."""
+    want = _expected(base_doc, plant, name, keys, description, unc, unc_keys)
+    if description is None:  # a multi-line description is kept as it is
+        want["description"] = doc.get("description", want.get("description"))
+    return doc == want
+
+
+def _fresh(base_doc: dict, plant, name: str, keys, description, unc: dict, unc_keys) -> str:
+    """The whole plant file written from scratch (any spelling of the base file)."""
+    doc = _expected(base_doc, plant, name, keys, description, unc, unc_keys)
+    out = ["# Written by prsa-fit: the base plant file's TOML spelling could not be kept line by line, so its "
+           "comments are not repeated here.", f"name = {_toml_string(doc['name'])}"]
+    if "description" in doc:
+        out.append(f"description = {_toml_string(doc['description'])}")
+    for section, table in doc.items():
+        if section in ("name", "description", "uncertainty"):
+            continue
+        out += ["", f"[{section}]"]
+        for key, entry in table.items():
+            fields = ", ".join(f"{f} = {_toml_value(v)}" for f, v in entry.items())
+            out.append(f"{key} = {{ {fields} }}")
+    if doc.get("uncertainty"):
+        out += ["", "[uncertainty]"] + [_uncertainty_line(k, e) for k, e in doc["uncertainty"].items()]
+    return "\n".join(out) + "\n"
+
+
+_SECTION = re.compile(r"^\s*\[\s*([A-Za-z_]+)\s*\]\s*(#.*)?$")
+_KEY_LINE = re.compile(r"^(\s*)([A-Za-z0-9_]+)\s*=\s*\{[^#]*\}\s*(#.*)?$")
+
+
+def _rewrite(base_text: str, plant, name: str, keys, description, unc: dict, unc_keys) -> str:
+    """Line-by-line rewrite of the base file (its layout and comments kept); :func:`plant_toml`
+    checks the result."""
+    out, section, done = [], None, set()
+    has_desc = False
+    for line in base_text.splitlines():
+        if re.match(r"^\s*\[", line):
+            break
+        has_desc = has_desc or bool(re.match(r"^description\s*=", line))
+    unc_header = None
+    for line in base_text.splitlines():
+        m_sec = _SECTION.match(line)
+        if m_sec:
+            section = m_sec.group(1)
+            if section == "uncertainty":
+                unc_header = len(out)
+        m_name = re.match(r"^name\s*=", line)
+        if m_name and section is None:
+            line = f"name = {_toml_string(name)}"
+            if description is not None and not has_desc:
+                out.append(line)
+                line = f"description = {_toml_string(description)}"
+        if description is not None and section is None and re.match(_ONE_LINE_DESCRIPTION, line):
+            line = f"description = {_toml_string(description)}"  # a multi-line one is kept as it is
+        if section == "uncertainty":
+            m_unc = re.match(r'^\s*"?([A-Za-z0-9_.]+)"?\s*=', line)
+            if m_unc and m_unc.group(1) in unc_keys:
+                continue  # replaced by the new entry below (or removed)
+        m_key = _KEY_LINE.match(line)
+        if m_key and section not in (None, "uncertainty") and f"{section}.{m_key.group(2)}" in keys:
+            full = f"{section}.{m_key.group(2)}"
+            line = (f"{m_key.group(1)}{m_key.group(2)} = {{ value = {plant.values[full]!r}, "
+                    f"source = {_toml_string(plant.sources[full])} }}" + (f"  {m_key.group(3)}" if m_key.group(3) else ""))
+            done.add(full)
+        out.append(line)
+    missing = [k for k in keys if k not in done]
+    if missing:
+        raise PlantFileError(f"base plant file has no one-line entry for {', '.join(missing)}")
+    lines = [_uncertainty_line(k, unc[k]) for k in unc_keys if k in unc]
+    if lines:
+        if unc_header is None:
+            out += ["", "# What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.plant.uncertainty)",
+                    "[uncertainty]"]
+            unc_header = len(out) - 1
+        out[unc_header + 1:unc_header + 1] = lines
+    return "\n".join(out) + "\n"
+
+
+def _write_outputs(files: dict[str, tuple[str, str]], inputs: Sequence[str], created: list | None = None) -> None:
+    """The one place that writes files: ``{path: (flag, text)}``, each atomically; the new ones
+    are added to ``created`` (taken back when the run fails or is interrupted later)."""
+    from ..io.output import write_text
+
+    for path, (flag, text) in files.items():
+        existed = Path(path).exists()
+        write_text(path, text, inputs=inputs, flag=flag)
+        if created is not None and not existed:
+            created.append(Path(path))
+
+
+def _check_outputs(paths: dict[str, str], inputs: Sequence[str]) -> None:
+    from ..io.output import check_writable
+
+    for flag, path in paths.items():
+        check_writable(path, inputs=inputs, flag=flag)
+
+
+def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
+    """Text of the base plant file and its path (None for a built-in)."""
+    from ..plant.plantfile import _resolve
+
+    src = _resolve(plant_arg)
+    return src.read_text(encoding="utf-8"), (str(src) if isinstance(src, Path) else None)
+
+
+def _typed(argv: Sequence[str], flag: str, value: float) -> str:
+    """A flag's value as the user typed it (``--flag V`` or ``--flag=V``; the last one, as
+    argparse takes it), else the default."""
+    found = None
+    for i, a in enumerate(argv):
+        if a == flag and i + 1 < len(argv):
+            found = argv[i + 1]
+        elif a.startswith(flag + "="):
+            found = a[len(flag) + 1:]
+    return found if found is not None else f"{value:g} (default)"
+
+
+def _design(args, argv: Sequence[str]) -> int:
+    import numpy as np
+
+    from ..identification.data import design_excitation
+
+    if args.json:
+        raise _UsageError(f"--json {args.json!r} with --design; expected no JSON report (the design writes only the "
+                          "excitation CSV named by --out)")
+    peak = abs(args.offset) + args.amplitude
+    if peak > DESIGN_MAX_SPEED_RAD_S:
+        raise _UsageError(f"--amplitude {_typed(argv, '--amplitude', args.amplitude)} with --offset "
+                          f"{_typed(argv, '--offset', args.offset)}: the setpoint reaches "
+                          f"{peak:.6g} rad/s ({peak * 30 / math.pi:.6g} rpm); expected |offset| + amplitude <= "
+                          f"{DESIGN_MAX_SPEED_RAD_S:.6g} rad/s (6000 rpm, the tuner's speed limit)")
+    t, v = design_excitation(args.design, duration_s=args.duration, sample_time_s=args.sample_time,
+                             f_min_hz=args.f_min, f_max_hz=args.f_max, amplitude=args.amplitude, offset=args.offset)
+    _check_outputs({"--out": args.out}, [])
+    lines = ["# prsa-fit --design " + args.design + ": speed setpoint (rad/s) for the drive's speed loop",
+             "time_s,setpoint_rad_s"]
+    lines += [f"{a:.9g},{b:.9g}" for a, b in zip(t, np.asarray(v))]
+    _write_outputs({args.out: ("--out", "\n".join(lines) + "\n")}, [])
+    print(f"wrote {args.out}: {args.design}, {len(t)} samples, {args.duration:g} s")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``prsa-fit``; returns the exit code.
+
+    Python warnings raised on the way are collected and shown after the result, one
+    ``prsa-fit: note:`` line each (never Python's two-line format); the geometry note of a
+    built-in plant only with ``--verbose``.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    from .axis import run as _axis_run, wants_axis_mode  # described logs, linear axes (issue 21)
+
+    if wants_axis_mode(argv):
+        return _axis_run(argv)
+    mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
+    if mat is not None:  # a MATLAB log has no fixed columns: only a log description says what it holds
+        print(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
+              "--log-format FILE.toml (an example: examples/emps/log.toml)", file=sys.stderr)
+        return 2
+    verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
+    created: list = []  # files and directories this run made, taken back when it is interrupted
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            code = _main(argv, created)
+    except KeyboardInterrupt:
+        _take_back(created)
+        print("prsa-fit: interrupted (Ctrl-C); nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    seen = set()
+    for w in caught:
+        text = " ".join(str(w.message).split())
+        if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose):
+            continue
+        seen.add(text)
+        print(f"prsa-fit: note: {text}", file=sys.stderr)
+    return code
+
+
+def _take_back(created: list) -> None:
+    """Remove what a failed or interrupted run wrote: its files, then its (then empty) directories."""
+    from ..io.output import cleanup_temporaries, remove_created
+
+    cleanup_temporaries()
+    for item in reversed(created):
+        if isinstance(item, Path) and item.is_file():
+            item.unlink(missing_ok=True)
+    remove_created([d for d in created if isinstance(d, Path) and d.is_dir()])
+    created.clear()
+
+
+def _probe_output(path: str, inputs: Sequence[str], flag: str) -> None:
+    """Check an output path up front the way it will be written: the rules of
+    :func:`prsa_ctrl.io.output.check_writable`, then the atomic write's temporary file created and
+    removed in the target's directory (a name too long, a symlink loop or a full directory
+    fails here, before the fit)."""
+    import os
+    import tempfile
+
+    from ..io.output import TEMP_MARK, OutputError, check_writable
+
+    what = f"{flag} {path!r}"
+    try:
+        target = check_writable(path, inputs=inputs, flag=flag)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}{TEMP_MARK}", dir=target.parent)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        if isinstance(exc, OutputError):
+            raise
+        raise _UsageError(f"{what}: cannot be written ({exc.strerror or exc}); expected a writable file path "
+                          "(a shorter name, no symlink loop)") from None
+
+
+def _probe_plots(directory: str, names: Sequence[str], inputs: Sequence[str]) -> None:
+    """Check every figure path of ``--plots`` up front (in the directory, or where it will be created)."""
+    from ..io.output import check_directory
+
+    check_directory(directory, "--plots")
+    d = Path(directory)
+    anc = d
+    while not anc.exists():
+        anc = anc.parent
+    for name in names:
+        _probe_output(str(d / name) if d.is_dir() else str(anc / name), inputs, "--plots")
+
+
+def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> None:
+    """The FRF operating point (``--frf-speed``, ``--frf-load``) checked before the fit, the
+    flag named (:func:`prsa_ctrl.identification.fit.frf_operating_point_error`)."""
+    from ..identification.fit import frf_operating_point_error
+
+    bad = frf_operating_point_error(plant, speed, load)
+    if bad:
+        flag, value = ("--frf-speed", speed) if bad[0] == "speed" else ("--frf-load", load)
+        raise _UsageError(f"{flag} {_typed(argv, flag, value)}: {bad[1]}")
+
+
+def _main(argv: Sequence[str], created: list | None = None) -> int:
+    from ..identification.data import DataError, load_frf, load_record, parse_columns
+    from ..io.output import OutputError
+
+    created = [] if created is None else created
+
+    try:
+        args = build_parser().parse_args(argv)
+        if args.design:
+            if args.data:
+                raise _UsageError(f"--design with data files {' '.join(args.data)}; expected one or the other")
+            return _design(args, argv)
+        if not args.data and not args.frf:
+            raise _UsageError("no data file; expected prsa-fit DATA.csv [...] [--frf FRF.csv] --out PLANT.toml "
+                              "(or --design)")
+        if not 0 <= args.coherence_min < 1:
+            raise _UsageError(f"--coherence-min {args.coherence_min!r}: expected 0 <= C < 1")
+        from ..identification.fit import FITTABLE
+        from ..plant.plantfile import load_plant
+
+        keys = None
+        if args.fit is not None:
+            keys = [k.strip() for k in args.fit.split(",") if k.strip()]
+            for k in keys:
+                if k not in FITTABLE:
+                    raise _UsageError(f"--fit {args.fit!r}: unknown key {k!r}; expected some of {', '.join(FITTABLE)}")
+            if not keys:
+                raise _UsageError(f"--fit {args.fit!r}: expected at least one key")
+        if not 0 <= args.delay_samples <= 10:
+            raise _UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
+        plant = load_plant(args.plant)
+        base_text, base_path = _base_text(args.plant)
+        # the fitted plant file can be written for any spelling of the base (checked before the fit)
+        plant_toml(base_text, plant, Path(args.out).stem,
+                   [k for k in (keys or FITTABLE) if k in plant.values], "check")
+        frf_load = args.frf_load if args.frf_load is not None else (args.load or 0.0)
+        if args.frf:
+            _check_frf_point(plant, args.frf_speed, frf_load, argv)
+        inputs = [*args.data, *args.validate, *args.frf] + ([base_path] if base_path else [])
+        outs = {"--out": args.out}
+        if args.json:
+            outs["--json"] = args.json
+        from ..io.output import check_distinct
+
+        check_distinct(outs)
+        for flag, path in outs.items():
+            _probe_output(path, inputs, flag)
+        plot_paths = []
+        if args.plots is not None:
+            from ..identification.fit import figure_names
+
+            check_distinct({"--plots": args.plots, **outs})
+            stems = figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf)
+            plot_paths = [str(Path(args.plots) / f"{stem}.png") for stem in stems]
+            _probe_plots(args.plots, [f"{stem}.png" for stem in stems], inputs)
+        columns = parse_columns(args.columns) if args.columns else None
+        opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
+        records = [load_record(f, **opts) for f in args.data]
+        validate = [load_record(f, **opts) for f in args.validate]
+        if args.validate and not args.data:
+            raise _UsageError("--validate without DATA.csv; expected time-domain records to fit first")
+        frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
+                for f in args.frf]
+    except (_UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
+        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # e.g. an input path that is a symlink loop
+        print(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
+              "expected readable files", file=sys.stderr)
+        return 2
+    from ..identification.fit import FitError, fit_plant
+
+    try:
+        result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
+                           segment_s=args.segment, delay_samples=args.delay_samples,
+                           uncertainty="fit" if args.uncertainty_from_fit else "keep")
+    except FitError as exc:
+        print(f"prsa-fit: {exc}", file=sys.stderr)
+        return 3
+    except ValueError as exc:
+        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        return 2
+    name = Path(args.out).stem
+    fitted_from = ", ".join(Path(f).name for f in [*args.data, *([] if args.data else args.frf)])
+    description = (f"{plant.name} calibrated by prsa-fit from {fitted_from}"
+                   + (f" (fitted: {', '.join(result.plant_keys)}" if result.plant_keys else " (no key identifiable")
+                   + (f"; kept at the base values: {', '.join(result.kept_base)})" if result.kept_base else ")")
+                   + (f"; base: {plant.description}" if plant.description else ""))
+    base_unc = dict(plant.uncertainty or {})
+    unc_keys = [k for k in result.plant_keys if result.plant.uncertainty.get(k) != base_unc.get(k)]
+    text = plant_toml(base_text, result.plant, name, result.plant_keys, description, unc_keys)
+    if result.delay is not None:  # not a plant-file key: said in a comment, reported in the JSON
+        d, eq = result.delay, result.delay["equivalent_current_loop_bandwidth_hz"]
+        text += (f"\n# prsa-fit: command delay {d['value']:.6g} s (95 % CI {d['ci95'][0]:.6g}..{d['ci95'][1]:.6g}, "
+                 f"{d['samples']:.3g} samples) is not a plant-file key; a first-order current loop of "
+                 f"{eq['value']:.6g} Hz has the same low-frequency phase lag\n")
+    import tomllib
+
+    from ..plant.plantfile import Plant
+
+    with warnings.catch_warnings():  # its geometry notes are the base plant's, given when it loaded
+        warnings.simplefilter("ignore", GeometryWarning)
+        Plant.from_dict(tomllib.loads(text), origin=args.out)  # what is written must load (with its [uncertainty])
+    files = {args.out: ("--out", text)}
+    if args.json:
+        from ..io.output import json_safe
+
+        files[args.json] = ("--json", json.dumps(json_safe(result.report()), indent=2) + "\n")
+    try:
+        if args.plots is not None:
+            plot_paths = _write_plots(result, args.plots, inputs, created)
+        _write_outputs(files, inputs, created)
+    except (OutputError, OSError) as exc:  # all or nothing: the figures of this run are taken back
+        _take_back(created)
+        print(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
+              file=sys.stderr)
+        return 2
+    from ..identification.fit import _unit_text
+
+    for k, v in result.parameters.items():
+        lo, hi = v["ci95"]
+        u = _unit_text(v["unit"])
+        line = f"{k} = {v['value']:.6g}{u} (95 % CI {lo:.6g}..{hi:.6g})"
+        if v.get("kept_base"):
+            line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
+        print(line)
+    if result.delay is not None:
+        eq = result.delay["equivalent_current_loop_bandwidth_hz"]
+        print(f"  (not written to the plant file: no delay key; equivalent current-loop bandwidth {eq['value']:.6g} Hz, "
+              f"95 % CI {eq['ci95'][0]:.6g}..{eq['ci95'][1]:.6g})")
+    j = result.reflected_inertia_kg_m2
+    print(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
+    for f, pct in result.fit_percent.items():
+        print(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
+              f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
+    for w in result.warnings:
+        print(f"warning: {w}")
+    print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
+    if args.plots is not None:
+        print("plots: " + ", ".join(plot_paths))
+    return 0
+
+
+def _write_plots(result, directory: str, inputs: Sequence[str], created: list) -> list[str]:
+    """Write :func:`prsa_ctrl.identification.fit.fit_figures` as PNG files into ``directory`` (created if
+    missing); the directories made and the files written are added to ``created``."""
+    import matplotlib.pyplot as plt
+
+    from ..identification.fit import fit_figures
+    from ..io.output import make_directory, write_file
+
+    created += make_directory(directory, "--plots")
+    out = []
+    figs = fit_figures(result)
+    try:
+        for stem, fig in figs.items():
+            path = Path(directory) / f"{stem}.png"
+            existed = path.exists()
+            write_file(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=120), inputs, "--plots")
+            if not existed:
+                created.append(path)
+            out.append(str(path))
+    finally:
+        for fig in figs.values():
+            plt.close(fig)
+    return out
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,521 @@
+"""Drive units and vendor parameter sets: the tuned loops in the units a drive takes.
+
+**Motor data** (:class:`MotorData`): torque constant ``k_T`` (N m per A RMS; or from the
+back-EMF constant, line-to-line RMS volts per 1000 rpm: ``k_T = sqrt(3) k_E/(1000 2 pi/60)``
+for a sinusoidal permanent-magnet motor, from the power balance ``3 E_ph I = T w``), rated current
+(A RMS), rated torque (N m), rated speed (rpm) and pole pairs. From Python
+(``MotorData(...)``), a small TOML file with a ``[motor]`` table (:func:`load_motor`), a
+``key=value,...`` text (:func:`parse_motor`, the CLI's ``--motor``), or the plant's values
+``motor.<key>`` when a plant schema carries them (:func:`motor_from_plant`; the current schema has
+no motor section, so this returns None there).
+
+**Drive units** (:func:`drive_units`): the speed PI as current per speed (A/(rad/s), A/rpm), per
+unit of rated torque, and the position loop's ``Kv`` in 1/s and (m/min)/mm, with the
+conventions stated in the output.
+
+**Vendor parameter sets** are data files (``prsa_ctrl/templates/*.toml``, or any copy the user
+edits): each ``[[parameter]]`` names a drive object (index or parameter number), the toolkit
+quantity it holds (:data:`QUANTITIES`), the unit the drive expects (:data:`UNIT_FACTORS` gives
+the conversion), whether the index and unit were confirmed in the vendor's public documentation,
+and the source. :func:`fill_template` writes the values; :func:`read_parameter_set` converts a
+filled file back to SI and :func:`controller_from_parameter_set` rebuilds the controller from it.
+
+Examples
+--------
+>>> m = MotorData.from_back_emf(75.0, rated_torque_n_m=3.0)
+>>> round(m.torque_constant_n_m_per_a, 4)
+1.2405
+>>> round(drive_units(PID(0.085, 14.7), m)["speed"]["kp_a_per_rad_s"], 5)
+0.06852
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, fields
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Mapping
+
+from .pid import PID
+
+if TYPE_CHECKING:
+    from .measurement import PositionLoop
+    from ..plant.plantfile import Plant
+
+__all__ = ["MotorData", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
+           "builtin_templates", "load_template", "fill_template", "read_parameter_set",
+           "controller_from_parameter_set", "dumps_parameter_set"]
+
+_RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
+
+
+def _positive(name: str, v: Any, unit: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)) or float(v) <= 0:
+        raise ValueError(f"{name} = {v!r}; expected a finite number > 0 {unit}".rstrip())
+    return float(v)
+
+
+@dataclass(frozen=True)
+class MotorData:
+    """Motor data the drive units need (SI; currents RMS).
+
+    Parameters
+    ----------
+    torque_constant_n_m_per_a : float, N m/A
+        Torque per RMS phase current.
+    rated_current_a : float, A, optional
+    rated_torque_n_m : float, N m, optional
+    rated_speed_rpm : float, rpm, optional
+    pole_pairs : int, optional
+        For drives whose speeds are electrical (rad/s electrical = pole_pairs x mechanical).
+    source : str
+        Where the numbers come from (data sheet, measurement).
+    """
+
+    torque_constant_n_m_per_a: float
+    rated_current_a: float | None = None
+    rated_torque_n_m: float | None = None
+    rated_speed_rpm: float | None = None
+    pole_pairs: int | None = None
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        _positive("torque_constant_n_m_per_a", self.torque_constant_n_m_per_a, "N m/A")
+        for name, unit in (("rated_current_a", "A"), ("rated_torque_n_m", "N m"), ("rated_speed_rpm", "rpm")):
+            if getattr(self, name) is not None:
+                _positive(name, getattr(self, name), unit)
+        if self.pole_pairs is not None and (isinstance(self.pole_pairs, bool) or not isinstance(self.pole_pairs, int)
+                                            or not 1 <= self.pole_pairs <= 1000):
+            raise ValueError(f"pole_pairs = {self.pole_pairs!r}; expected an integer in [1, 1000]")
+
+    @classmethod
+    def from_back_emf(cls, back_emf_v_per_krpm: float, **kwargs: Any) -> "MotorData":
+        """From the back-EMF constant ``k_E`` in V (line-to-line RMS) per 1000 rpm:
+        ``k_T = sqrt(3) k_E / (1000 rpm in rad/s)`` (N m per A RMS, sinusoidal PM motor, no losses)."""
+        ke = _positive("back_emf_v_per_krpm", back_emf_v_per_krpm, "V/(1000 rpm)")
+        kwargs.setdefault("source", f"from back-EMF {ke:g} V/krpm (line-to-line RMS): k_T = sqrt(3) k_E/(1000 rpm)")
+        return cls(math.sqrt(3.0) * ke / (1000.0 * _RPM), **kwargs)
+
+
+_MOTOR_KEYS = {f.name for f in fields(MotorData)} | {"back_emf_v_per_krpm"}
+
+
+def _motor_from_mapping(d: Mapping[str, Any], where: str) -> MotorData:
+    unknown = sorted(set(d) - _MOTOR_KEYS)
+    if unknown:
+        raise ValueError(f"{where}: unknown motor key {unknown[0]!r}; expected {', '.join(sorted(_MOTOR_KEYS))}")
+    d = dict(d)
+    if "torque_constant_n_m_per_a" in d and "back_emf_v_per_krpm" in d:
+        raise ValueError(f"{where}: both torque_constant_n_m_per_a and back_emf_v_per_krpm; expected one of them")
+    if "back_emf_v_per_krpm" in d:
+        ke = d.pop("back_emf_v_per_krpm")
+        return MotorData.from_back_emf(ke, **d)
+    if "torque_constant_n_m_per_a" not in d:
+        raise ValueError(f"{where}: no torque_constant_n_m_per_a (or back_emf_v_per_krpm); expected the motor's torque "
+                         "constant")
+    return MotorData(**d)
+
+
+def load_motor(path: "str | Path") -> MotorData:
+    """Motor data from a TOML file with a ``[motor]`` table (keys as :class:`MotorData`, or
+    ``back_emf_v_per_krpm`` instead of the torque constant)."""
+    p = Path(path)
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"motor file {str(path)!r}: {' '.join(str(exc).split())}; expected a TOML file with a "
+                         "[motor] table") from None
+    if not isinstance(doc.get("motor"), dict):
+        raise ValueError(f"motor file {str(path)!r} has no [motor] table; expected one")
+    return _motor_from_mapping(doc["motor"], f"motor file {str(path)!r}")
+
+
+def parse_motor(text: str) -> MotorData:
+    """Motor data from ``path.toml`` or ``key=value,key=value`` (the CLI's ``--motor``)."""
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError(f"motor = {text!r}; expected a TOML file or key=value,... (e.g. torque_constant_n_m_per_a=0.9)")
+    if "=" not in text:
+        return load_motor(text)
+    d: dict[str, Any] = {}
+    for item in text.split(","):
+        key, sep, val = item.partition("=")
+        key = key.strip()
+        try:
+            num = float(val)
+        except ValueError:
+            num = None
+        if not sep or num is None:
+            raise ValueError(f"motor {item.strip()!r}; expected key=number")
+        d[key] = int(num) if key == "pole_pairs" and num.is_integer() else num
+    return _motor_from_mapping(d, f"motor {text!r}")
+
+
+def motor_from_plant(plant: "Plant") -> MotorData | None:
+    """Motor data from the plant's values ``motor.<key>`` (file units as the keys say), when the
+    plant schema has them; None otherwise."""
+    vals = {k.split(".", 1)[1]: v for k, v in getattr(plant, "values", {}).items() if k.startswith("motor.")}
+    if not vals:
+        return None
+    if "pole_pairs" in vals:
+        vals["pole_pairs"] = int(vals["pole_pairs"])
+    vals = {k: v for k, v in vals.items() if k in _MOTOR_KEYS}
+    return _motor_from_mapping(vals, f"plant {plant.name} [motor]")
+
+
+# --- drive units -------------------------------------------------------------------------------
+
+def drive_units(pid: PID, motor: MotorData | None = None, position: "PositionLoop | None" = None,
+                inertia_kg_m2: float | None = None) -> dict:
+    """The speed PI (and a position loop) in the units drives use, with the conventions.
+
+    Parameters
+    ----------
+    pid : PID
+        Speed PI(D), SI gains on the motor shaft (N m s/rad, N m/rad).
+    motor : MotorData, optional
+        Needed for the current-based and per-unit gains.
+    position : PositionLoop, optional
+    inertia_kg_m2 : float, kg m^2, optional
+        Reflected inertia of the acceleration feed-forward.
+
+    Returns
+    -------
+    dict
+        ``speed`` (and ``position``) blocks; every key ends in its unit.
+    """
+    if not isinstance(pid, PID):
+        raise ValueError(f"pid = {pid!r}; expected a prsa_ctrl.PID")
+    kp, ki = float(pid.kp), float(pid.ki)
+    speed: dict[str, Any] = {
+        "convention": "ideal (parallel-equivalent) PI: u = Kp (e + (1/Tn) integral(e)) = kp e + ki integral(e), "
+                      "Tn = kp/ki the integral (reset) time; a series PI Kp' (1 + 1/(Ti s)) with the same Kp, Ti = Tn "
+                      "is the same controller; a parallel PI with Ki given directly takes ki",
+        "kp_n_m_s_per_rad": kp, "kp_n_m_per_rpm": kp * _RPM, "ki_n_m_per_rad": ki,
+        "tn_s": kp / ki if ki > 0 else None, "tn_ms": 1e3 * kp / ki if ki > 0 else None,
+    }
+    out: dict[str, Any] = {"speed": speed}
+    if motor is not None:
+        kt = motor.torque_constant_n_m_per_a
+        speed.update(kp_a_per_rad_s=kp / kt, kp_a_per_rpm=kp * _RPM / kt, ki_a_per_rad=ki / kt,
+                     torque_constant_n_m_per_a=kt)
+        if motor.pole_pairs:
+            speed["kp_a_per_electrical_rad_s"] = kp / kt / motor.pole_pairs
+        if motor.rated_torque_n_m:
+            tr = motor.rated_torque_n_m
+            speed.update(kp_rated_torque_per_rad_s=kp / tr, kp_percent_rated_torque_per_rpm=100.0 * kp * _RPM / tr)
+            if motor.rated_speed_rpm:
+                wr = motor.rated_speed_rpm * _RPM
+                speed.update(kp_pu=kp * wr / tr, ki_pu_per_s=ki * wr / tr)
+        speed["units_note"] = ("currents RMS; A/(rad/s) = (N m s/rad)/k_T; per unit of rated torque: torque command "
+                               "in units of T_rated per rad/s of speed error; *_pu: torque in T_rated per speed in "
+                               "rated speed (Kp_pu = kp w_r/T_r, dimensionless; Ki_pu = ki w_r/T_r, 1/s)")
+    if position is not None:
+        kv = float(position.kv)
+        pos: dict[str, Any] = {
+            "convention": "P (or PI) on the position error: speed reference = Kv e + ki integral(e) + kvff v_ref; "
+                          "Kv [1/s] = speed per position error in consistent units (screw m/s per m = nut rad/s per "
+                          "rad); (m/min)/mm = 0.06 x 1/s (also written 1000/min)",
+            "kv_per_s": kv, "kv_m_min_per_mm": kv * 60.0 / 1000.0, "ki_per_s2": float(position.ki),
+            "velocity_feedforward": float(position.kvff), "acceleration_feedforward": float(position.kaff),
+        }
+        if inertia_kg_m2 is not None:
+            j = _positive("inertia_kg_m2", inertia_kg_m2, "kg m^2")
+            pos["torque_per_acceleration_n_m_s2_per_rad"] = float(position.kaff) * j
+            if motor is not None:
+                pos["current_per_acceleration_a_s2_per_rad"] = float(position.kaff) * j / motor.torque_constant_n_m_per_a
+        out["position"] = pos
+    return out
+
+
+# --- vendor parameter sets -----------------------------------------------------------------------
+
+#: Toolkit quantities a parameter may hold: name -> (SI unit, description).
+QUANTITIES: Mapping[str, tuple[str, str]] = {
+    "speed_kp": ("N m s/rad", "speed PI proportional gain kp"),
+    "speed_ki": ("N m/rad", "speed PI integral gain ki"),
+    "speed_tn": ("s", "speed PI integral (reset) time Tn = kp/ki"),
+    "position_kv": ("1/s", "position gain Kv"),
+    "position_ki": ("1/s^2", "position-loop integral gain"),
+    "velocity_feedforward": ("1", "velocity feed-forward gain (1 = full)"),
+    "acceleration_feedforward": ("1", "acceleration feed-forward gain (1 = the reflected inertia)"),
+    "torque_per_acceleration": ("N m s^2/rad", "acceleration feed-forward kaff J"),
+    "sample_time": ("s", "speed-loop sample time"),
+}
+
+#: Units a parameter may be given in: unit -> (SI unit, what it needs, factor): drive value =
+#: SI value x factor x (1/k_T if it needs "kt", 1/T_rated if "rated_torque").
+UNIT_FACTORS: Mapping[str, tuple[str, str, float]] = {
+    "N m s/rad": ("N m s/rad", "", 1.0),
+    "N m/rpm": ("N m s/rad", "", _RPM),
+    "A/(rad/s)": ("N m s/rad", "kt", 1.0),
+    "mA/(rad/s)": ("N m s/rad", "kt", 1e3),
+    "A/rpm": ("N m s/rad", "kt", _RPM),
+    "rated torque/(rad/s)": ("N m s/rad", "rated_torque", 1.0),
+    "% rated torque/rpm": ("N m s/rad", "rated_torque", 100.0 * _RPM),
+    "N m/rad": ("N m/rad", "", 1.0),
+    "A/rad": ("N m/rad", "kt", 1.0),
+    "s": ("s", "", 1.0),
+    "ms": ("s", "", 1e3),
+    "0.1 ms": ("s", "", 1e4),
+    "us": ("s", "", 1e6),
+    "1/s": ("1/s", "", 1.0),
+    "(m/min)/mm": ("1/s", "", 0.06),
+    "1000/min": ("1/s", "", 0.06),
+    "1/s^2": ("1/s^2", "", 1.0),
+    "1": ("1", "", 1.0),
+    "%": ("1", "", 100.0),
+    "N m s^2/rad": ("N m s^2/rad", "", 1.0),
+    "A s^2/rad": ("N m s^2/rad", "kt", 1.0),
+}
+
+_TEMPLATE_KEYS = ("index", "name", "quantity", "unit", "datatype", "confirmed", "source")  # + optional min, max
+
+
+def builtin_templates() -> list[str]:
+    """Names of the parameter-set templates shipped in ``prsa_ctrl/templates``."""
+    return sorted(p.name[:-5] for p in resources.files("prsa_ctrl").joinpath("templates").iterdir()
+                  if p.name.endswith(".toml"))
+
+
+def _template_text(name_or_path: "str | Path") -> tuple[str, str]:
+    p = Path(name_or_path)
+    if p.suffix == ".toml" and p.exists():
+        return p.read_text(encoding="utf-8"), str(p)
+    if str(name_or_path) in builtin_templates():
+        f = resources.files("prsa_ctrl").joinpath("templates", f"{name_or_path}.toml")
+        return f.read_text(encoding="utf-8"), f"template {name_or_path}"
+    raise ValueError(f"template {str(name_or_path)!r}; expected a template file (.toml) or one of "
+                     f"{', '.join(builtin_templates())}")
+
+
+def load_template(name_or_path: "str | Path") -> dict:
+    """A parameter-set template (built-in name or path), checked: every parameter names a known
+    quantity and unit of the same SI dimension and says whether it was confirmed."""
+    text, origin = _template_text(name_or_path)
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{origin}: {' '.join(str(exc).split())}; expected TOML") from None
+    if not isinstance(doc.get("template"), dict) or not isinstance(doc.get("parameter"), list) or not doc["parameter"]:
+        raise ValueError(f"{origin}: expected a [template] table and [[parameter]] entries")
+    for i, prm in enumerate(doc["parameter"]):
+        where = f"{origin}: parameter {i + 1} ({prm.get('index', '?')})"
+        missing = [k for k in _TEMPLATE_KEYS if k not in prm]
+        if missing:
+            raise ValueError(f"{where} lacks {', '.join(missing)}; expected {', '.join(_TEMPLATE_KEYS)}")
+        if prm["quantity"] not in QUANTITIES:
+            raise ValueError(f"{where}: quantity {prm['quantity']!r}; expected one of {', '.join(QUANTITIES)}")
+        if prm["unit"] not in UNIT_FACTORS:
+            raise ValueError(f"{where}: unit {prm['unit']!r}; expected one of {', '.join(UNIT_FACTORS)}")
+        if UNIT_FACTORS[prm["unit"]][0] != QUANTITIES[prm["quantity"]][0]:
+            raise ValueError(f"{where}: unit {prm['unit']!r} is not a unit of {prm['quantity']} "
+                             f"({QUANTITIES[prm['quantity']][0]})")
+        if not isinstance(prm["confirmed"], bool):
+            raise ValueError(f"{where}: confirmed = {prm['confirmed']!r}; expected true or false")
+    doc["template"].setdefault("origin", origin)
+    return doc
+
+
+def _factor(unit: str, motor: MotorData | None, where: str) -> float:
+    _, needs, f = UNIT_FACTORS[unit]
+    if needs == "kt":
+        if motor is None:
+            raise ValueError(f"{where}: unit {unit!r} needs the motor's torque constant; expected motor data "
+                             "(--motor / motor=MotorData(...))")
+        return f / motor.torque_constant_n_m_per_a
+    if needs == "rated_torque":
+        if motor is None or motor.rated_torque_n_m is None:
+            raise ValueError(f"{where}: unit {unit!r} needs the motor's rated torque; expected motor data with "
+                             "rated_torque_n_m")
+        return f / motor.rated_torque_n_m
+    return f
+
+
+def _si_values(pid: PID, position: "PositionLoop | None", plant: "Plant") -> dict[str, float | None]:
+    kp, ki = float(pid.kp), float(pid.ki)
+    j = float(plant.reflected_inertia_kg_m2)
+    pos = position
+    return {"speed_kp": kp, "speed_ki": ki, "speed_tn": kp / ki if ki > 0 else None,
+            "position_kv": None if pos is None else float(pos.kv),
+            "position_ki": None if pos is None else float(pos.ki),
+            "velocity_feedforward": None if pos is None else float(pos.kvff),
+            "acceleration_feedforward": None if pos is None else float(pos.kaff),
+            "torque_per_acceleration": None if pos is None else float(pos.kaff) * j,
+            "sample_time": float(plant.sample_time_s)}
+
+
+def fill_template(template: "str | Path | dict", controller: "PID | Any", plant: "Plant",
+                  motor: MotorData | None = None) -> dict:
+    """The template with each parameter's ``value`` in its unit (and ``value_si``).
+
+    Parameters
+    ----------
+    template : str, Path or dict
+        Built-in name, a template file, or a loaded template.
+    controller : PID or CascadeDesign
+    plant : Plant
+    motor : MotorData, optional
+        Needed for current-based or per-unit units. Default: :func:`motor_from_plant`.
+
+    Returns
+    -------
+    dict
+        Plain data (write it with :func:`dumps_parameter_set`). A position-loop parameter of a
+        speed-only design gets ``applies = false`` and no value.
+    """
+    doc = template if isinstance(template, dict) else load_template(template)
+    pid, pos = (controller, None) if isinstance(controller, PID) else (getattr(controller, "speed", None),
+                                                                        getattr(controller, "position", None))
+    if not isinstance(pid, PID):
+        raise ValueError(f"controller = {controller!r}; expected a PID or a CascadeDesign")
+    motor = motor if motor is not None else motor_from_plant(plant)
+    si = _si_values(pid, pos, plant)
+    from .. import __version__
+
+    out = {"template": dict(doc["template"]),
+           "export": {"prsa_ctrl_version": __version__, "plant": plant.name, "sample_time_s": float(plant.sample_time_s),
+                      "note": "value is in the parameter's unit, value_si in the quantity's SI unit; a drive that "
+                              "stores the value in a narrower type (REAL32, scaled integers) rounds it"},
+           "parameter": []}
+    if motor is not None:
+        out["motor"] = {k: v for k, v in motor.__dict__.items() if v is not None and v != ""}
+    for i, prm in enumerate(doc["parameter"]):
+        entry = {k: prm[k] for k in prm if k not in ("value", "value_si", "applies")}
+        v = si[prm["quantity"]]
+        if v is None:
+            entry["applies"] = False
+        else:
+            value = v * _factor(prm["unit"], motor, f"parameter {prm['index']}")
+            lo, hi = prm.get("min", -math.inf), prm.get("max", math.inf)
+            if not lo <= value <= hi:
+                raise ValueError(f"parameter {prm['index']} ({prm['name']}) = {value:.6g} {prm['unit']}; expected a value "
+                                 f"in [{lo:g}, {hi:g}] as the template says the drive accepts")
+            entry["value"] = value
+            entry["value_si"] = v
+            entry["si_unit"] = QUANTITIES[prm["quantity"]][0]
+            entry["applies"] = True
+        out["parameter"].append(entry)
+    parts = [", ".join(p["index"] for p in out["parameter"] if not p["confirmed"])]
+    if not doc["template"].get("speed_pi_form_confirmed", True):
+        parts.append("the PI form (speed_pi_form)")
+    parts = [x for x in parts if x]
+    if parts:
+        out["export"]["not_confirmed"] = (f"check before use: {' and '.join(parts)}: not confirmed in the vendor's "
+                                          "public documentation (see each source)")
+    return out
+
+
+def read_parameter_set(data: "dict | str | Path", motor: MotorData | None = None) -> dict[str, float]:
+    """SI values of a filled parameter set (dict, TOML text or file), from each parameter's
+    ``value`` and ``unit`` only (``value_si`` is ignored): ``{quantity: value}``. Motor data for
+    current-based units comes from ``motor`` or the file's ``[motor]`` table."""
+    if isinstance(data, Path) or (isinstance(data, str) and data.endswith(".toml") and "\n" not in data):
+        data = Path(data).read_text(encoding="utf-8")
+    if isinstance(data, str):
+        data = tomllib.loads(data)
+    if motor is None and isinstance(data.get("motor"), dict):
+        motor = _motor_from_mapping({k: v for k, v in data["motor"].items()}, "parameter set [motor]")
+    out: dict[str, float] = {}
+    for prm in data.get("parameter", []):
+        if not prm.get("applies", True) or "value" not in prm:
+            continue
+        if prm["unit"] not in UNIT_FACTORS or prm["quantity"] not in QUANTITIES:
+            raise ValueError(f"parameter {prm.get('index')}: unit {prm['unit']!r} / quantity {prm['quantity']!r}; "
+                             "expected those of a template")
+        v = float(prm["value"]) / _factor(prm["unit"], motor, f"parameter {prm.get('index')}")
+        q = prm["quantity"]
+        if q in out and abs(v - out[q]) > 1e-9 * max(abs(v), abs(out[q])):
+            raise ValueError(f"parameter {prm.get('index')}: {q} = {v:.12g} {QUANTITIES[q][0]} differs from the "
+                             f"{out[q]:.12g} another parameter of the set gives; expected one value")
+        out.setdefault(q, v)
+    return out
+
+
+def controller_from_parameter_set(values: Mapping[str, float], *, measured: str = "nut_angle", rate: int = 1,
+                                  missing_from: "PositionLoop | None" = None) -> tuple[PID, "PositionLoop | None"]:
+    """The speed PI (and position loop) a parameter set describes, from :func:`read_parameter_set`.
+
+    ``ki`` is ``speed_ki`` or ``speed_kp/speed_tn``; the acceleration feed-forward comes from
+    ``acceleration_feedforward`` (dimensionless; a set with only ``torque_per_acceleration``
+    needs the inertia to rebuild it and is refused). Position-loop quantities the set does not
+    carry (a vendor set without feed-forward objects) come from ``missing_from`` (the drive's
+    other settings), else 0."""
+    if "speed_kp" not in values:
+        raise ValueError("parameter set has no speed_kp; expected the speed controller's proportional gain")
+    kp = values["speed_kp"]
+    ki = values["speed_ki"] if "speed_ki" in values else (kp / values["speed_tn"] if "speed_tn" in values else 0.0)
+    pid = PID(kp, ki)
+    if "position_kv" not in values:
+        return pid, None
+    from .measurement import PositionLoop
+
+    if "acceleration_feedforward" not in values and "torque_per_acceleration" in values:
+        raise ValueError("parameter set gives the acceleration feed-forward as a torque per acceleration only; expected "
+                         "acceleration_feedforward too (or rebuild it with the inertia)")
+    base = {"position_ki": 0.0, "velocity_feedforward": 0.0, "acceleration_feedforward": 0.0}
+    if missing_from is not None:
+        base = {"position_ki": missing_from.ki, "velocity_feedforward": missing_from.kvff,
+                "acceleration_feedforward": missing_from.kaff}
+    v = {**base, **values}
+    return pid, PositionLoop(kv=v["position_kv"], ki=v["position_ki"], kvff=v["velocity_feedforward"],
+                             kaff=v["acceleration_feedforward"], measured=measured, rate=rate)
+
+
+def dumps_parameter_set(filled: dict) -> str:
+    """A filled parameter set as TOML (readable with ``tomllib``; see :func:`prsa_ctrl.io.export.dumps`)."""
+    from ..io.export import dumps
+
+    d = {"format": "prsa-ctrl drive parameter set", **filled}
+    return dumps(d, "toml")
+
+
+# --- prsa-tune hooks ------------------------------------------------------------------------------
+
+def check_cli_options(args: Any) -> tuple[MotorData | None, dict | None]:
+    """``--motor`` and ``--export-template`` of ``prsa-tune``, checked before any tuning: the
+    motor data and the loaded template (ValueError with one line naming the value as typed)."""
+    motor_text, tpl_name = getattr(args, "motor", None), getattr(args, "export_template", None)
+    export = getattr(args, "export", None)
+    motor = None
+    if motor_text is not None:
+        try:
+            motor = parse_motor(motor_text)
+        except ValueError as exc:
+            raise ValueError(f"--motor {motor_text!r}: {exc}") from None
+    template = None
+    if tpl_name is not None:
+        if export is None or Path(export).suffix.lower() not in (".toml", ".json"):
+            raise ValueError(f"--export-template {tpl_name!r} needs --export PATH.toml or PATH.json; expected the "
+                             "file the filled parameter set is written to")
+        try:
+            template = load_template(tpl_name)
+        except ValueError as exc:
+            raise ValueError(f"--export-template {tpl_name!r}: {exc}") from None
+    return motor, template
+
+
+def cli_export_data(args: Any, exported: dict, controller: "PID | Any", plant: "Plant") -> dict:
+    """What ``--export PATH.toml|.json`` writes given ``--motor``/``--export-template``: the filled
+    parameter set (with ``--export-template``), else the drive export with a ``drive_units``
+    block (with ``--motor``), else ``exported`` unchanged."""
+    motor, template = check_cli_options(args)
+    motor = motor if motor is not None else motor_from_plant(plant)
+    if template is not None:
+        return {"format": "prsa-ctrl drive parameter set", **fill_template(template, controller, plant, motor)}
+    if motor is None:
+        return exported
+    pid, pos = (controller, None) if isinstance(controller, PID) else (controller.speed, controller.position)
+    out = dict(exported)
+    out["drive_units"] = drive_units(pid, motor, pos, float(plant.reflected_inertia_kg_m2) if pos is not None else None)
+    out["drive_units"]["motor"] = {k: v for k, v in motor.__dict__.items() if v is not None and v != ""}
+    if getattr(args, "export", "").lower().endswith(".toml"):
+        out["drive_units"] = _drop_none(out["drive_units"])
+    return out
+
+
+def _drop_none(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _drop_none(v) for k, v in d.items() if v is not None}
+    return d

@@ -1,0 +1,760 @@
+"""The ``linear-axis`` plant: a screw axis described by its load-side equivalents, its closed-loop
+replay and its calibration from closed-loop logs (:mod:`prsa_ctrl.identification.logformat`).
+
+Model (load coordinates: position ``x`` in m, force in N)::
+
+    M x'' = F_drive + F_load - F_f(x')
+    F_f(v) = Fc+ + Fv+ v          for v > 0
+    F_f(v) = -Fc- + Fv- v         for v < 0
+    at v = 0 the axis sticks while -Fc- <= F_drive + F_load <= Fc+
+
+``Fc+`` and ``Fc-`` are magnitudes (N); Coulomb friction plus a constant offset (gravity, a
+sensor offset) is the same model with ``Fc+ = Fc + offset`` and ``Fc- = Fc - offset``; ``Fv+``
+and ``Fv-`` are the viscous coefficients per direction (N s/m). No Stribeck term: the fit would
+need constant-speed phases near zero speed to inform it (see :func:`fit_linear_axis`).
+
+Between two controller samples the drive force is constant (zero-order hold), so the motion is
+a linear ODE per direction of motion: it is integrated exactly (exponential solution, the
+zero-speed crossing time in closed form, then stick or reversal in the rest of the sample). No
+step size, no tolerance, no chattering at zero speed.
+
+Plant file (TOML, ``mechanism = "linear-axis"``), every value with its source::
+
+    name = "emps-fitted"
+    description = "..."
+    mechanism = "linear-axis"
+    coordinates = "load"                       # m, N
+
+    [axis]
+    mass_kg = { value = 95.1, source = "fit: DATA_EMPS.mat ..." }
+    [friction]
+    coulomb_positive_n = { value = ..., source = "..." }         # Fc+, N (>= 0)
+    coulomb_negative_n = { value = ..., source = "..." }         # Fc-, N (>= 0, a magnitude)
+    viscous_positive_n_s_per_m = { value = ..., source = "..." } # Fv+, N s/m (>= 0)
+    viscous_negative_n_s_per_m = { value = ..., source = "..." } # Fv-, N s/m (>= 0)
+    [drive]
+    gain_n_per_unit = { value = 35.15, source = "..." }          # force per command unit
+    command_unit = "V"
+    force_limit_n = { value = 351.5, source = "..." }            # saturation x gain
+    [sensor]
+    sample_time_s = { value = 0.001, source = "..." }
+    encoder_resolution_m = { value = 5e-8, source = "..." }
+    [uncertainty]                                                 # as in prsa_ctrl.plant.uncertainty
+    "axis.mass_kg" = { dist = "normal", sigma = ..., truncate = 1.959964, source = "fit: ..." }
+
+Only ``axis.mass_kg`` is required; every other key has the default listed in :data:`DEFAULTS`
+(with its source). Keys carry their units in their names.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .logformat import AxisLog
+
+__all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "DEFAULTS", "PARAMETERS", "simulate_axis",
+           "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
+           "idim_estimate", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES"]
+
+MECHANISM = "linear-axis"
+_Z95 = 1.959963984540054
+#: Speed at which ``friction_positive_n``/``friction_negative_n`` are reported, m/s.
+SMALL_SPEED_M_S = 1e-3
+#: Samples left out at the start of every replay error (the zero-phase filter's edge; the
+#: benchmark's own script keeps samples from n_border = 50, 1-based, on).
+METRIC_SKIP_SAMPLES = 49
+#: Fitted parameters, in this order (plant keys).
+PARAMETERS = ("axis.mass_kg", "friction.viscous_positive_n_s_per_m", "friction.viscous_negative_n_s_per_m",
+              "friction.coulomb_positive_n", "friction.coulomb_negative_n")
+_UNITS = {"axis.mass_kg": "kg", "friction.viscous_positive_n_s_per_m": "N s/m",
+          "friction.viscous_negative_n_s_per_m": "N s/m", "friction.coulomb_positive_n": "N",
+          "friction.coulomb_negative_n": "N", "drive.gain_n_per_unit": "N per command unit",
+          "drive.force_limit_n": "N", "sensor.sample_time_s": "s", "sensor.encoder_resolution_m": "m"}
+#: Key -> (default value, source). ``axis.mass_kg`` has no default.
+DEFAULTS: Mapping[str, tuple[float, str]] = {
+    "friction.coulomb_positive_n": (0.0, "default: no Coulomb friction (frictionless guide)"),
+    "friction.coulomb_negative_n": (0.0, "default: no Coulomb friction (frictionless guide)"),
+    "friction.viscous_positive_n_s_per_m": (0.0, "default: no viscous friction"),
+    "friction.viscous_negative_n_s_per_m": (0.0, "default: no viscous friction"),
+    "drive.gain_n_per_unit": (1.0, "default: command logged in N (gain 1)"),
+    "drive.force_limit_n": (math.inf, "default: no force limit"),
+    "sensor.sample_time_s": (1e-3, "default: typical 1 kHz position-loop rate"),
+    "sensor.encoder_resolution_m": (0.0, "default: position not quantised"),
+}
+_SECTIONS = {"axis": ("mass_kg",), "friction": ("coulomb_positive_n", "coulomb_negative_n", "viscous_positive_n_s_per_m",
+                                                 "viscous_negative_n_s_per_m"),
+             "drive": ("gain_n_per_unit", "force_limit_n", "command_unit"),
+             "sensor": ("sample_time_s", "encoder_resolution_m")}
+
+
+class AxisPlantError(ValueError):
+    """A linear-axis plant file is malformed; one line naming the file and key."""
+
+
+@dataclass(frozen=True)
+class LinearAxisPlant:
+    """A linear axis in load coordinates; ``values`` SI by key (``section.key``), ``sources`` alike."""
+
+    name: str
+    values: Mapping[str, float]
+    sources: Mapping[str, str]
+    description: str = ""
+    command_unit: str = "V"
+    uncertainty: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+
+    @property
+    def theta(self) -> NDArray[np.float64]:
+        """The fitted parameters :data:`PARAMETERS` as a vector."""
+        return np.array([self.values[k] for k in PARAMETERS])
+
+    def with_values(self, values: Mapping[str, float], sources: Mapping[str, str]) -> "LinearAxisPlant":
+        v, s = dict(self.values), dict(self.sources)
+        v.update(values)
+        s.update(sources)
+        return LinearAxisPlant(self.name, v, s, self.description, self.command_unit, dict(self.uncertainty))
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any], origin: str) -> "LinearAxisPlant":
+        """Build and check a plant from a parsed TOML document (``origin`` names it in errors)."""
+        if doc.get("mechanism") != MECHANISM:
+            raise AxisPlantError(f"{origin}: mechanism = {doc.get('mechanism')!r}; expected {MECHANISM!r}")
+        known = {"name", "description", "mechanism", "coordinates", "uncertainty", *_SECTIONS}
+        for k in doc:
+            if k not in known:
+                raise AxisPlantError(f"{origin}: key {k!r}: unknown; expected some of {', '.join(sorted(known))}")
+        if doc.get("coordinates", "load") != "load":
+            raise AxisPlantError(f"{origin}: coordinates = {doc['coordinates']!r}; expected \"load\" (m, N)")
+        values, sources = {}, {}
+        unit = "V"
+        for sec, keys in _SECTIONS.items():
+            tab = doc.get(sec, {})
+            if not isinstance(tab, dict):
+                raise AxisPlantError(f"{origin}: {sec}: expected a [{sec}] table")
+            for k in tab:
+                if k not in keys:
+                    raise AxisPlantError(f"{origin}: [{sec}] {k}: unknown key; expected some of {', '.join(keys)}")
+            for k in keys:
+                full = f"{sec}.{k}"
+                if k == "command_unit":
+                    unit = tab.get(k, "V")
+                    if unit not in ("V", "A", "N"):
+                        raise AxisPlantError(f"{origin}: [drive] command_unit = {unit!r}; expected V, A or N")
+                    continue
+                if k not in tab:
+                    if full not in DEFAULTS:
+                        raise AxisPlantError(f"{origin}: [{sec}] {k}: missing; expected {{ value = ..., source = \"...\" }}")
+                    values[full], sources[full] = DEFAULTS[full]
+                    continue
+                e = tab[k]
+                if not (isinstance(e, dict) and "value" in e and isinstance(e.get("source"), str)):
+                    raise AxisPlantError(f"{origin}: [{sec}] {k} = {e!r}; expected {{ value = ..., source = \"...\" }}")
+                v = e["value"]
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v):
+                    raise AxisPlantError(f"{origin}: [{sec}] {k} value = {v!r}; expected a number")
+                positive = full in ("axis.mass_kg", "drive.gain_n_per_unit", "drive.force_limit_n", "sensor.sample_time_s")
+                if (positive and not v > 0) or (not positive and not v >= 0) or (math.isinf(v) and full != "drive.force_limit_n"):
+                    raise AxisPlantError(f"{origin}: [{sec}] {k} value = {v!r}; expected a finite number "
+                                         f"{'> 0' if positive else '>= 0'}")
+                values[full], sources[full] = float(v), e["source"]
+        unc = doc.get("uncertainty", {})
+        for k, e in unc.items():
+            if k not in values or not isinstance(e, dict):
+                raise AxisPlantError(f"{origin}: [uncertainty] {k!r}: expected a plant key with an inline table")
+        return cls(name=str(doc.get("name", Path(origin).stem)), values=values, sources=sources,
+                   description=str(doc.get("description", "")), command_unit=unit, uncertainty=dict(unc))
+
+
+def load_axis_plant(path: str | Path) -> LinearAxisPlant:
+    """Read a ``linear-axis`` plant file; :class:`AxisPlantError` names the file and key."""
+    p = Path(path)
+    if not p.is_file():
+        raise AxisPlantError(f"plant file {str(path)!r} not found; expected a readable .toml file")
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise AxisPlantError(f"{path}: cannot be read as TOML ({exc})") from None
+    return LinearAxisPlant.from_dict(doc, origin=str(path))
+
+
+def _toml_str(text: str) -> str:
+    import json
+
+    return json.dumps(text, ensure_ascii=False)
+
+
+def axis_plant_toml(plant: LinearAxisPlant) -> str:
+    """The plant as a TOML file (every value with its source; ``[uncertainty]`` when there is one)."""
+    lines = [f"name = {_toml_str(plant.name)}"]
+    if plant.description:
+        lines.append(f"description = {_toml_str(plant.description)}")
+    lines += [f"mechanism = {_toml_str(MECHANISM)}", 'coordinates = "load"  # position m, force N']
+    for sec, keys in _SECTIONS.items():
+        lines += ["", f"[{sec}]"]
+        for k in keys:
+            if k == "command_unit":
+                lines.append(f"command_unit = {_toml_str(plant.command_unit)}")
+                continue
+            full = f"{sec}.{k}"
+            v = plant.values[full]
+            if math.isinf(v):
+                continue  # the default (no limit) is what a missing key means
+            lines.append(f"{k} = {{ value = {v!r}, source = {_toml_str(plant.sources[full])} }}")
+    if plant.uncertainty:
+        lines += ["", "# What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.plant.uncertainty)",
+                  "[uncertainty]"]
+        for k, e in plant.uncertainty.items():
+            fields = ", ".join(f"{a} = {_toml_str(b) if isinstance(b, str) else repr(float(b))}" for a, b in e.items())
+            lines.append(f"{_toml_str(k)} = {{ {fields} }}")
+    return "\n".join(lines) + "\n"
+
+
+# --- simulation ----------------------------------------------------------------------------------
+
+
+def _phi(z: float) -> float:
+    """(1 - exp(-z)) / z, accurate for small z (z >= 0)."""
+    return -math.expm1(-z) / z if z > 1e-8 else 1.0 - 0.5 * z
+
+
+def _motion(x: float, v: float, f: float, m: float, fv: float, fc: float, s: int, T: float) -> tuple[float, float, float]:
+    """Move in direction ``s`` (+1/-1) from speed ``v`` (s*v >= 0) for at most ``T`` s under the net
+    force ``f`` (drive + load) against Coulomb ``fc`` and viscous ``fv``; returns position, speed and
+    the time left when the axis stops on the way (0 if it does not)."""
+    a0 = (f - s * fc - fv * v) / m  # acceleration at the start
+    k = fv / m  # 1/s
+    z = k * T
+    # v(t) = v + a0 t phi(k t), x(t) = x + v t + a0 t^2 psi(k t); stop when v(t) = 0 in direction s
+    vend = v + a0 * T * _phi(z)
+    if s * vend > 0 or (s * a0 >= 0):
+        return x + v * T + a0 * T * T * _psi(z), vend, 0.0
+    # stops at tc: v + a0 tc phi(k tc) = 0
+    if k > 0:
+        ratio = 1.0 + k * v / a0  # = exp(-k tc) in (0, 1]
+        tc = -math.log(ratio) / k if ratio > 0 else T
+    else:
+        tc = -v / a0
+    tc = min(max(tc, 0.0), T)
+    return x + v * tc + a0 * tc * tc * _psi(k * tc), 0.0, T - tc
+
+
+def _psi(z: float) -> float:
+    """(z - 1 + exp(-z)) / z^2, accurate for small z (z >= 0)."""
+    return (z + math.expm1(-z)) / (z * z) if z > 1e-4 else 0.5 - z / 6.0 + z * z / 24.0
+
+
+def _step(x: float, v: float, f: float, m: float, fvp: float, fvn: float, fcp: float, fcn: float, h: float):
+    """Exact motion over one sample of constant net force ``f`` (N); returns (x, v)."""
+    T = h
+    if v > 0:
+        x, v, T = _motion(x, v, f, m, fvp, fcp, 1, T)
+    elif v < 0:
+        x, v, T = _motion(x, v, f, m, fvn, fcn, -1, T)
+    if T > 0 and v == 0.0:  # at rest for the time left: stick or break away
+        if f > fcp:
+            x, v, _ = _motion(x, 0.0, f, m, fvp, fcp, 1, T)
+        elif f < -fcn:
+            x, v, _ = _motion(x, 0.0, f, m, fvn, fcn, -1, T)
+    return x, v
+
+
+@dataclass(frozen=True)
+class _Trace:
+    position_m: NDArray[np.float64]
+    velocity_m_s: NDArray[np.float64]
+    command: NDArray[np.float64]  # as logged: computed (or applied), incl. test signal, command unit
+
+
+def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = None,
+                  force_limit_n: float = math.inf, closed_loop: bool | None = None,
+                  x0: tuple[float, float] | None = None) -> _Trace:
+    """Replay a log through the axis model.
+
+    Parameters
+    ----------
+    theta : sequence of float
+        ``M`` kg, ``Fv+``, ``Fv-`` N s/m, ``Fc+``, ``Fc-`` N (:data:`PARAMETERS`).
+    log : AxisLog
+        The log: reference, test signal and external load drive the replay.
+    gain : float, optional
+        Drive gain, N per command unit (default: the log's).
+    force_limit_n : float
+        Drive force limit, N (on top of the controller's saturation).
+    closed_loop : bool, optional
+        Closed loop from the reference with the log's controller (default when it has one), or
+        open loop from the logged command (drifts for an integrating axis).
+    x0 : (float, float), optional
+        Initial position m and speed m/s (default: the first logged position, at rest). The
+        controller's past positions are taken on that motion (``q(k-1) = x0 - v0 dt``).
+
+    Returns
+    -------
+    _Trace
+        Position m, speed m/s (at the sample instants) and the command as the log holds it.
+    """
+    m, fvp, fvn, fcp, fcn = (float(a) for a in theta)
+    if not (m > 0 and min(fvp, fvn, fcp, fcn) >= 0 and all(map(math.isfinite, (m, fvp, fvn, fcp, fcn)))):
+        raise ValueError(f"theta = {list(theta)!r}; expected M > 0 and friction >= 0, all finite")
+    g = log.gain_n_per_unit if gain is None else float(gain)
+    c = log.controller
+    closed = (c is not None and log.reference_m is not None) if closed_loop is None else closed_loop
+    if closed and (c is None or log.reference_m is None):
+        raise ValueError(f"log {log.name!r}: closed_loop=True needs a controller and a reference")
+    n, h = log.n, float(log.sample_time_s)
+    # plain Python floats in the loop: faster than numpy scalars, and overflow gives inf (caught below)
+    ext = [0.0] * n if log.load_n is None else log.load_n.tolist()
+    test = [0.0] * n if log.test_signal is None else log.test_signal.tolist()
+    q = np.empty(n)
+    vs = np.empty(n)
+    cmd = np.empty(n)
+    x, v = (float(log.position_m[0]), 0.0) if x0 is None else (float(x0[0]), float(x0[1]))
+    flim = force_limit_n
+    if not closed:
+        d = 0 if c is None else c.command_delay_samples
+        shift = d if log.command_logged == "as-computed" else 0
+        applied = (np.r_[np.zeros(shift), log.command[:n - shift]] if shift else log.command).tolist()
+        for k in range(n):
+            q[k], vs[k] = x, v
+            f = min(max(g * applied[k], -flim), flim) + ext[k]
+            x, v = _step(x, v, f, m, fvp, fvn, fcp, fcn, h)
+        return _finite(_Trace(q, vs, log.command.copy()), log)
+    kp, kv, ki, sat = c.kp, c.kv, c.ki, c.saturation
+    avg = c.velocity_estimate == "average2-difference"
+    d = c.command_delay_samples
+    r = log.reference_m.tolist()
+    buf = [0.0] * d
+    q_prev, qf_prev = x - v * h, x - 1.5 * v * h
+    integ = 0.0
+    for k in range(n):
+        q[k], vs[k] = x, v
+        if avg:
+            qf = 0.5 * (x + q_prev)
+            dq = (qf - qf_prev) / h
+            qf_prev = qf
+        else:
+            dq = (x - q_prev) / h
+        q_prev = x
+        ev = kp * (r[k] - x) - dq
+        u = kv * ev
+        if ki:
+            integ += ki * h * ev
+            u += kv * integ
+        u = min(max(u, -sat), sat)
+        if d:
+            buf.append(u)
+            ua = buf.pop(0)
+        else:
+            ua = u
+        cmd[k] = u + test[k]
+        f = min(max(g * (ua + test[k]), -flim), flim) + ext[k]
+        x, v = _step(x, v, f, m, fvp, fvn, fcp, fcn, h)
+    if d and log.command_logged == "as-applied":
+        tst = np.asarray(test)
+        cmd = np.r_[tst[:d], cmd[:n - d] - tst[:n - d] + tst[d:]]
+    return _finite(_Trace(q, vs, cmd), log)
+
+
+def _finite(tr: _Trace, log: AxisLog) -> _Trace:
+    """The trace, or a SimulationError naming the first sample where the replay left the finite numbers."""
+    bad = ~(np.isfinite(tr.position_m) & np.isfinite(tr.velocity_m_s) & np.isfinite(tr.command))
+    if bad.any():
+        from ..errors import SimulationError
+
+        k = int(np.argmax(bad))
+        raise SimulationError(f"replay of {log.name} diverged at t = {log.time_s[k]:.6g} s (sample {k}: position "
+                              f"{tr.position_m[k]!r} m, speed {tr.velocity_m_s[k]!r} m/s); check the controller gains "
+                              "and the plant's mass and friction (an unstable closed loop)")
+    return tr
+
+
+# --- measured signals and errors -------------------------------------------------------------------
+
+
+def measured_velocity(log: AxisLog) -> NDArray[np.float64]:
+    """The log's speed, m/s: its speed signal when it has one, else the position through a
+    4th-order zero-phase Butterworth low-pass at a tenth of the sample rate (100 Hz at 1 kHz),
+    then central differences (the EMPS benchmark's own definition)."""
+    if log.speed_m_s is not None:
+        return log.speed_m_s
+    return np.gradient(_filtered_position(log), log.sample_time_s)
+
+
+def _filtered_position(log: AxisLog) -> NDArray[np.float64]:
+    from scipy.signal import butter, filtfilt
+
+    b, a = butter(4, 0.2)  # cutoff fs/10 (normalised to Nyquist fs/2)
+    return filtfilt(b, a, log.position_m)
+
+
+def relative_error(y: NDArray[np.float64], y_sim: NDArray[np.float64], skip: int = METRIC_SKIP_SAMPLES) -> float:
+    """``100 * ||y - y_sim|| / ||y||`` over the samples from ``skip`` on, %.
+
+    Examples
+    --------
+    >>> round(relative_error([1.0, 2.0, 2.0], [1.0, 2.0, 1.0], skip=0), 4)
+    33.3333
+    """
+    y, y_sim = np.asarray(y)[skip:], np.asarray(y_sim)[skip:]
+    den = float(np.linalg.norm(y))
+    return math.inf if den == 0 else 100.0 * float(np.linalg.norm(y - y_sim)) / den
+
+
+def _fit_percent(y, y_sim, skip: int = METRIC_SKIP_SAMPLES) -> float:
+    y, y_sim = np.asarray(y)[skip:], np.asarray(y_sim)[skip:]
+    den = float(np.linalg.norm(y - y.mean()))
+    return -math.inf if den == 0 else 100.0 * (1.0 - float(np.linalg.norm(y - y_sim)) / den)
+
+
+@dataclass(frozen=True)
+class AxisReplay:
+    """One log replayed through a plant: traces and errors (``errors_percent``: position,
+    velocity, force as ``100 ||y - y_sim|| / ||y||``; ``fit_percent`` alike as NRMSE fit)."""
+
+    name: str
+    closed_loop: bool
+    time_s: NDArray[np.float64]
+    position_measured: NDArray[np.float64]
+    position_simulated: NDArray[np.float64]
+    velocity_measured: NDArray[np.float64]
+    velocity_simulated: NDArray[np.float64]
+    force_measured: NDArray[np.float64]
+    force_simulated: NDArray[np.float64]
+    errors_percent: Mapping[str, float]
+    fit_percent: Mapping[str, float]
+    reference_m: NDArray[np.float64] | None = None
+
+    def report(self) -> dict:
+        return {"log": self.name, "replay": "closed loop from the reference" if self.closed_loop else
+                "open loop from the logged command", "samples": int(self.time_s.size),
+                "errors_percent": dict(self.errors_percent), "fit_percent": dict(self.fit_percent),
+                "metric": f"100*||y - y_sim||/||y|| from sample {METRIC_SKIP_SAMPLES} on; position vs the logged "
+                          "position, velocity vs the logged speed (or the position low-passed at fs/10, zero phase, "
+                          "central differences), force = drive gain x command"}
+
+    def traces_csv(self) -> str:
+        rows = ["time_s,position_measured,position_simulated,force_measured,force_simulated"]
+        rows += [f"{a:.9g},{b:.12g},{c:.12g},{d:.9g},{e:.9g}" for a, b, c, d, e in
+                 zip(self.time_s, self.position_measured, self.position_simulated, self.force_measured,
+                     self.force_simulated)]
+        return "\n".join(rows) + "\n"
+
+
+def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
+    """Replay ``log`` through ``plant`` (closed loop from the reference when the log describes its
+    controller, the test signal added at the drive input; open loop from the logged command
+    otherwise) and measure the errors. The replay starts at the first logged position with the
+    measured speed (:func:`measured_velocity`: the log's speed signal, else the derived one)."""
+    theta = plant.theta
+    gain = log.gain_n_per_unit
+    vm = measured_velocity(log)
+    tr = simulate_axis(theta, log, gain=gain, force_limit_n=plant.values["drive.force_limit_n"],
+                       x0=(float(log.position_m[0]), float(vm[0])))
+    fm, fs = gain * log.command, gain * tr.command
+    pairs = {"position": (log.position_m, tr.position_m), "velocity": (vm, tr.velocity_m_s), "force": (fm, fs)}
+    closed = log.controller is not None and log.reference_m is not None
+    return AxisReplay(log.name, closed, log.time_s, log.position_m, tr.position_m, vm, tr.velocity_m_s, fm, fs,
+                      {k: relative_error(*p) for k, p in pairs.items()}, {k: _fit_percent(*p) for k, p in pairs.items()},
+                      log.reference_m)
+
+
+# --- calibration ------------------------------------------------------------------------------------
+
+
+class AxisFitError(RuntimeError):
+    """The fit did not converge or the data do not inform the parameters; says which and why."""
+
+
+def _idim_rows(log: AxisLog, min_speed_fraction: float):
+    """Regressor rows ``[a, v+, v-, 1(v>0), -1(v<0)]`` and the force of one log (inverse dynamics
+    on the zero-phase filtered position; samples slower than ``min_speed_fraction`` of the peak
+    speed and the 50 samples at each end are left out)."""
+    h = log.sample_time_s
+    qf = _filtered_position(log)
+    v = np.gradient(qf, h)
+    a = np.gradient(v, h)
+    f = log.gain_n_per_unit * log.command + (0.0 if log.load_n is None else log.load_n)
+    keep = np.abs(v) > min_speed_fraction * np.max(np.abs(v))
+    keep[:50] = keep[-50:] = False
+    pos, neg = (v > 0).astype(float), (v < 0).astype(float)
+    A = np.column_stack([a, v * pos, v * neg, pos, -neg])
+    return A[keep], f[keep]
+
+
+def idim_estimate(logs: Sequence[AxisLog], min_speed_fraction: float = 0.05) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Inverse-dynamic least-squares estimate of :data:`PARAMETERS` (the starting point of the
+    output-error fit) and which of them the data inform (a direction of motion the logs never
+    run in leaves its two friction parameters uninformed)."""
+    rows = [_idim_rows(lg, min_speed_fraction) for lg in logs]
+    A = np.vstack([r[0] for r in rows])
+    y = np.concatenate([r[1] for r in rows])
+    informed = np.array([True, *(np.count_nonzero(A[:, j]) >= 20 for j in (1, 2, 3, 4))])
+    if A.shape[0] < 50:
+        raise AxisFitError(f"only {A.shape[0]} samples above {100 * min_speed_fraction:g} % of the peak speed; "
+                           "expected a log that moves the axis")
+    th = np.zeros(len(PARAMETERS))
+    th[informed] = np.linalg.lstsq(A[:, informed], y, rcond=None)[0]
+    return th, informed
+
+
+#: Contiguous blocks of the batch-means covariance (:func:`_batch_covariance`).
+COVARIANCE_BLOCKS = 10
+
+
+def _batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int, blocks: int = COVARIANCE_BLOCKS):
+    """Parameter covariance of a least-squares fit whose residuals are correlated in time.
+
+    Sandwich ``A^-1 B A^-1`` with ``A = J'J`` and ``B`` the batch-means (cluster) long-run
+    variance of the scores ``J' r``: the record is cut into ``blocks`` contiguous pieces, each
+    piece's summed score is one draw, ``B = G/(G-1) sum_g S_g S_g'``. The residual rows are
+    channel-major (``n_time`` rows per channel). Intervals then use Student's t with ``G - 1``
+    degrees of freedom (:func:`_t95`), since ``B`` rests on ``G`` draws only.
+
+    Returns
+    -------
+    (ndarray, int)
+        Covariance and the number of blocks used.
+    """
+    p = J.shape[1]
+    s = (J * r[:, None]).reshape(-1, n_time, p).sum(axis=0)  # per-time scores, summed over channels
+    g = int(min(blocks, max(2, n_time // 50)))
+    edges = np.linspace(0, n_time, g + 1).astype(int)
+    S = np.array([s[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
+    B = g / (g - 1.0) * (S.T @ S)
+    Ainv = np.linalg.pinv(J.T @ J)
+    return Ainv @ B @ Ainv, g
+
+
+def _t95(dof: int) -> float:
+    """Two-sided 95 % quantile of Student's t with ``dof`` degrees of freedom."""
+    from scipy.stats import t
+
+    return float(t.ppf(0.975, dof))
+
+
+@dataclass(frozen=True)
+class AxisFit:
+    """Result of :func:`fit_linear_axis`."""
+
+    plant: LinearAxisPlant
+    parameters: Mapping[str, Mapping[str, Any]]
+    equivalent: Mapping[str, Mapping[str, Any]]
+    start: Mapping[str, float]
+    replays: Sequence[AxisReplay]
+    covariance: NDArray[np.float64]
+    blocks: int
+    status: str
+    iterations: int
+    warnings: Sequence[str]
+    cost: float = math.nan
+    message: str = ""
+    delay_costs: Mapping[int, float] = field(default_factory=dict)
+
+    def report(self) -> dict:
+        return {"mechanism": MECHANISM, "coordinates": "load (m, N)", "status": self.status,
+                "iterations": self.iterations, "cost": self.cost, "solver_message": self.message,
+                "delay_check": {"cost_by_command_delay_samples": {str(k): v for k, v in sorted(self.delay_costs.items())},
+                                "note": "each alternative delay refitted with the same weights for at most "
+                                        f"{DELAY_CHECK_EVALUATIONS} replays (its cost bounds its optimum from above); "
+                                        "lower is better"},
+                "method": "output error of the closed-loop replay from the reference (position and force, each "
+                          "weighted by its residual RMS at the inverse-dynamic start), started from inverse-dynamic "
+                          "least squares; 95 % intervals from the sandwich covariance with a batch-means long-run "
+                          f"variance of the scores ({self.blocks} contiguous blocks, Student's t with "
+                          f"{self.blocks - 1} degrees of freedom: the residuals are correlated in time)",
+                "parameters": {k: dict(v) for k, v in self.parameters.items()},
+                "equivalent": {k: dict(v) for k, v in self.equivalent.items()},
+                "inverse_dynamic_start": dict(self.start),
+                "replay": [r.report() for r in self.replays], "warnings": list(self.warnings)}
+
+
+def _equivalents(theta, cov, z: float) -> dict:
+    """Load-side equivalents with 95 % intervals (linear combinations of the parameters)."""
+    vs = SMALL_SPEED_M_S
+    combos = {
+        "mass_kg": ([1, 0, 0, 0, 0], "kg", "mass seen by the axis"),
+        "viscous_n_s_per_m": ([0, 0.5, 0.5, 0, 0], "N s/m", "mean of the two directions' viscous coefficients"),
+        "viscous_positive_n_s_per_m": ([0, 1, 0, 0, 0], "N s/m", "viscous coefficient moving in +x"),
+        "viscous_negative_n_s_per_m": ([0, 0, 1, 0, 0], "N s/m", "viscous coefficient moving in -x"),
+        "friction_positive_n": ([0, vs, 0, 1, 0], "N", f"friction force at +{vs:g} m/s (signed)"),
+        "friction_negative_n": ([0, 0, -vs, 0, -1], "N", f"friction force at -{vs:g} m/s (signed)"),
+        "coulomb_n": ([0, 0, 0, 0.5, 0.5], "N", "Coulomb level, mean of the two directions"),
+        "offset_n": ([0, 0, 0, 0.5, -0.5], "N", "constant force offset: (Fc+ - Fc-)/2, as in force = ... + offset"),
+    }
+    out = {}
+    for k, (g, unit, meaning) in combos.items():
+        g = np.asarray(g, dtype=float)
+        val = float(g @ theta)
+        sd = float(math.sqrt(max(g @ cov @ g, 0.0)))
+        out[k] = {"value": val, "ci95": [val - z * sd, val + z * sd], "std": sd, "unit": unit, "meaning": meaning}
+    return out
+
+
+#: An alternative command delay is reported when its fit's cost is lower by more than this fraction.
+DELAY_MARGIN = 0.05
+#: Replays spent on each alternative delay (its cost at the bound is an upper bound of its optimum,
+#: so a warning it triggers holds; a missing warning means "not better within this budget").
+DELAY_CHECK_EVALUATIONS = 4
+
+
+def _starts(logs: Sequence[AxisLog]) -> list[tuple[float, float]]:
+    """Each log's initial position (m) and measured speed (m/s), where its replay starts."""
+    return [(float(lg.position_m[0]), float(measured_velocity(lg)[0])) for lg in logs]
+
+
+def _channels(theta, logs: Sequence[AxisLog], flim: float, starts, skip: int = METRIC_SKIP_SAMPLES):
+    """Position (m) and force (N) errors of each log's replay from sample ``skip`` on."""
+    out = []
+    for lg, x0 in zip(logs, starts):
+        tr = simulate_axis(theta, lg, force_limit_n=flim, x0=x0)
+        out.append((tr.position_m[skip:] - lg.position_m[skip:], lg.gain_n_per_unit * (tr.command[skip:] - lg.command[skip:])))
+    return out
+
+
+def _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts, strict: bool = True):
+    """Least-squares output-error fit of the parameters ``free`` (the others stay at ``theta0``),
+    position and force errors weighted by ``sig`` (m, N). Raises AxisFitError when it does not
+    converge within ``max_evaluations`` residual evaluations (each Jacobian adds one replay per free
+    parameter) (``strict=False``: returns the best point found,
+    whose cost bounds the optimum from above)."""
+    from scipy.optimize import least_squares
+
+    def resid(x):
+        th = theta0.copy()
+        th[free] = x
+        ch = _channels(th, logs, flim, starts)
+        return np.concatenate([np.concatenate([c[0] for c in ch]) / sig[0], np.concatenate([c[1] for c in ch]) / sig[1]])
+
+    scale = np.maximum(np.abs(theta0[free]), 1e-3 * max(abs(theta0[0]), 1.0))
+    sol = least_squares(resid, x0, bounds=(lb, np.inf), x_scale=scale, diff_step=1e-6, method="trf",
+                        max_nfev=max_evaluations, xtol=1e-10, ftol=1e-10, gtol=1e-10)
+    if strict and sol.status <= 0:
+        raise AxisFitError(f"output-error fit did not converge within {max_evaluations} replays (cost {sol.cost:.6g}); "
+                           "expected a log whose controller description reproduces the command")
+    return sol
+
+
+def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evaluations: int = 60,
+                    name: str = "fitted", check_delay: bool = True) -> AxisFit:
+    """Calibrate a linear axis on closed-loop logs.
+
+    1. Inverse-dynamic least squares (:func:`idim_estimate`) gives the start.
+    2. Output error: the closed loop is replayed from the reference with the logged controller
+       (:func:`simulate_axis`) and ``M, Fv+, Fv-, Fc+, Fc-`` minimise the weighted sum of squared
+       position and force errors (``scipy.optimize.least_squares``, trust region, at most
+       ``max_evaluations`` residual evaluations, each Jacobian by forward differences: at most
+       ``max_evaluations * 6`` replays of each log). Logs without a described controller are
+       replayed open loop from the logged command.
+    3. 95 % intervals from the sandwich covariance with a batch-means long-run variance and
+       Student's t (:func:`_batch_covariance`): the residuals of a real axis are correlated over many samples,
+       and intervals that treat them as white would be far too narrow.
+
+    Parameters
+    ----------
+    logs : sequence of AxisLog
+        Logs to fit (closed-loop logs need their controller and reference).
+    base : LinearAxisPlant
+        Supplies every value the fit does not estimate (drive gain, force limit, sensor).
+    max_evaluations : int
+        Bound on the residual evaluations of the output-error fit.
+    name : str
+        Name of the fitted plant.
+    check_delay : bool
+        Also fit with the command delay one sample shorter and longer than described and warn
+        when one of them lowers the cost by more than :data:`DELAY_MARGIN`.
+
+    Returns
+    -------
+    AxisFit
+
+    Raises
+    ------
+    AxisFitError
+        The logs do not move the axis, or the fit does not converge within the bound.
+    """
+    if not logs:
+        raise ValueError("logs: expected at least one log")
+    theta0, informed = idim_estimate(logs)
+    base_theta = base.theta
+    theta0 = np.where(informed, theta0, base_theta)
+    warnings = []
+    if theta0[0] <= 0:
+        raise AxisFitError(f"inverse-dynamic mass estimate {theta0[0]:.6g} kg <= 0; expected a log with accelerations "
+                           "that the command explains (check the drive gain and the command's sign)")
+    for j in range(1, 5):
+        if informed[j] and theta0[j] < 0:
+            warnings.append(f"inverse-dynamic start of {PARAMETERS[j]} = {theta0[j]:.6g} < 0; started from 0")
+            theta0[j] = 0.0
+    for j in np.flatnonzero(~informed):
+        warnings.append(f"{PARAMETERS[j]}: the logs never move the axis in that direction; kept the base value "
+                        f"{base_theta[j]:.6g}")
+    skip = METRIC_SKIP_SAMPLES
+    flim = base.values["drive.force_limit_n"]
+
+    starts = _starts(logs)
+    ch0 = _channels(theta0, logs, flim, starts)
+    sig = (math.sqrt(np.mean(np.concatenate([c[0] for c in ch0]) ** 2)) or 1e-12,
+           math.sqrt(np.mean(np.concatenate([c[1] for c in ch0]) ** 2)) or 1e-12)
+    free = np.flatnonzero(informed)
+    lb = np.where(free == 0, 1e-6 * theta0[0], 0.0)
+    x0 = np.clip(theta0[free], lb, None)
+    sol = _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts)
+    delays = {}
+    d0 = logs[0].controller.command_delay_samples if logs[0].controller is not None else None
+    if check_delay and d0 is not None and all(lg.controller is not None for lg in logs):
+        delays[d0] = float(sol.cost)
+        for d in (d0 - 1, d0 + 1):
+            if 0 <= d <= 10:
+                alt = [dataclasses.replace(lg, controller=dataclasses.replace(lg.controller, command_delay_samples=d))
+                       for lg in logs]
+                alt_sol = _output_error(alt, theta0, free, sol.x, lb, sig, flim, DELAY_CHECK_EVALUATIONS, starts,
+                                        strict=False)
+                delays[d] = float(alt_sol.cost)
+        best = min(delays, key=delays.get)
+        if best != d0 and delays[best] < (1.0 - DELAY_MARGIN) * delays[d0]:
+            warnings.append(f"a command delay of {best} samples fits better than the described {d0} (cost "
+                            f"{delays[best]:.6g} against {delays[d0]:.6g}, more than {100 * DELAY_MARGIN:g} % lower); "
+                            "check [controller] command_delay_samples and [command] logged")
+    theta = theta0.copy()
+    theta[free] = sol.x
+    n_time = sum(lg.n - skip for lg in logs)
+    # residual rows: [positions of all logs; forces of all logs] -> channel-major with n_time rows each
+    cov_free, L = _batch_covariance(sol.jac, sol.fun, n_time)
+    z = _t95(L - 1)
+    cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
+    cov[np.ix_(free, free)] = cov_free
+    at_bound = [PARAMETERS[j] for j, x in zip(free, sol.x) if x <= lb[list(free).index(j)] * (1 + 1e-9) + 1e-12]
+    for k in at_bound:
+        warnings.append(f"{k} ended at its bound (0): the data do not support that friction term")
+    names = ", ".join(Path(lg.name).name for lg in logs)
+    params, values, sources, unc = {}, {}, {}, {}
+    for j, k in enumerate(PARAMETERS):
+        sd = float(math.sqrt(max(cov[j, j], 0.0)))
+        v = float(theta[j])
+        entry = {"value": v, "ci95": [v - z * sd, v + z * sd], "std": sd, "unit": _UNITS[k],
+                 "start": float(theta0[j])}
+        if not informed[j]:
+            entry["kept_base"] = True
+            sources[k] = base.sources[k]
+        else:
+            sources[k] = f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g}; closed-loop output error)"
+            lo = 0.0 if j else 1e-12
+            sig_k = z * sd / _Z95  # a normal whose +-1.96 sigma is the 95 % interval
+            trunc = min(_Z95, (v - lo) / sig_k * (1 - 1e-9)) if sd > 0 else 0.0
+            if sd > 0 and trunc >= 0.1:
+                unc[k] = {"dist": "normal", "sigma": sig_k, "truncate": round(trunc, 6) if trunc < _Z95 else _Z95,
+                          "source": f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})"}
+        params[k] = entry
+        values[k] = v
+    fitted = LinearAxisPlant(name=name, values={**base.values, **values}, sources={**base.sources, **sources},
+                             description=f"linear axis calibrated by prsa-fit from {names} (closed-loop output error)",
+                             command_unit=base.command_unit, uncertainty=unc)
+    replays = [replay_axis(fitted, lg) for lg in logs]
+    return AxisFit(fitted, params, _equivalents(theta, cov, z), dict(zip(PARAMETERS, map(float, theta0))), replays,
+                   cov, L, "converged", int(sol.nfev), warnings, float(sol.cost), str(sol.message), delays)

@@ -1,0 +1,45 @@
+"""Physics of the actuator: plant files and their uncertainty, the CasADi model, operating points, linearisation, python-control systems."""
+
+from .._lazy import lazy_exports
+
+_EXPORTS = {
+    "DEFAULT_PLANT": "plantfile",
+    "DISTRIBUTIONS": "uncertainty",
+    "FIDELITIES": "model",
+    "GeometryReport": "plantfile",
+    "INPUTS": "model",
+    "Kinematics": "plantfile",
+    "MAX_NEWTON_ITER": "equilibrium",
+    "OperatingPoint": "equilibrium",
+    "PLAUSIBLE": "schema",
+    "ParametricModel": "model",
+    "Plant": "plantfile",
+    "PlantModel": "model",
+    "RollerErrors": "model",
+    "SCHEMA": "schema",
+    "STICK_TIME_CONSTANT_S": "model",
+    "Uncertain": "uncertainty",
+    "UncertaintyModel": "uncertainty",
+    "builtin_plants": "plantfile",
+    "check_plant_uncertainty": "uncertainty",
+    "closed_loop": "linear",
+    "linear_core": "linear",
+    "linearize": "linear",
+    "load_plant": "plantfile",
+    "nonlinear_iosys": "iosys",
+    "operating_point": "equilibrium",
+    "parametric_family": "model",
+    "parse_entries": "uncertainty",
+    "pid_controller": "linear",
+    "plant_file_path": "plantfile",
+    "plant_model": "model",
+    "plant_uncertainty": "uncertainty",
+    "predict_load_step": "linear",
+    "register_member": "model",
+    "steady_torque": "equilibrium",
+    "stick_band_rad_s": "model",
+    "stribeck_coefficient": "model",
+    "uncertainty_model": "uncertainty",
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

@@ -1,0 +1,633 @@
+"""Plant definitions: loading, validation, geometry matching and rigid kinematics.
+
+A plant file (``plants/*.toml``) holds one table per component; every parameter is an inline
+table ``{ value = ..., source = "..." }`` so that its origin (paper table, paper text, or
+``"assumption: <why>"``) travels with it. Key names carry their units; inside the library
+everything is SI.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+import warnings
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Mapping
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import GeometryWarning, PlantFileError
+from .schema import (ALLOWED_KEYS, FRACTION, NON_NEGATIVE, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER,  # noqa: F401
+                     SCHEMA)
+from .uncertainty import check_plant_uncertainty
+
+__all__ = [
+    "Plant",
+    "Kinematics",
+    "GeometryReport",
+    "load_plant",
+    "builtin_plants",
+    "plant_file_path",
+    "DEFAULT_PLANT",
+    "SCHEMA",
+    "PLAUSIBLE",
+]
+
+DEFAULT_PLANT = "paper-iprsm"
+
+def _builtin_root(package: str, folder: str) -> Any:
+    """Where the built-in TOML files live: the installed package data, or, when running from a
+    source checkout that shadows the installed package, the repository folder itself."""
+    try:
+        return resources.files(package)
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parent.parent / folder
+
+
+def builtin_plants() -> list[str]:
+    """Names of the plant files shipped with the package (``plants/*.toml``)."""
+    root = _builtin_root("prsa_ctrl.plants", "plants")
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def _likely_mistake(key: str, v: float) -> str:
+    """The unit mistake a value outside ``PLAUSIBLE`` most likely is (empty if none stands out)."""
+    if key == "sensor.encoder_counts_per_rev" and v <= 32:
+        return f"; a resolution in bits typed as counts? {v:g} bits = {2 ** int(v)} counts"
+    return ""
+
+
+#: Largest torque limit as a multiple of the torque that drives the screw's rated load
+#: (``rated_load L / (2 pi eta)``): static load ratings are ~2-3x the dynamic one, and a
+#: rotor's acceleration torque is of the same order; 20x is beyond any real pairing of motor
+#: and screw (the built-in plants: 1.3x to 1.6x), while a torque in mN m typed as N m is 1000x.
+TORQUE_LIMIT_MAX_RATIO = 20.0
+#: Slowest speed-measurement filter, in controller samples (25 ms at 4 kHz): beyond it the
+#: measurement lags every speed loop a sampled drive can close (crossover ~0.01..0.1 / Ts);
+#: a time constant in ms typed as s is 1000x.
+SPEED_FILTER_MAX_SAMPLES = 100.0
+#: Largest torque-measurement noise as a fraction of the torque limit (current sensing is
+#: ~0.1-1 % of the peak current).
+TORQUE_NOISE_MAX_FRACTION = 0.1
+
+
+_CONSISTENCY_KEYS = ("drive.torque_limit_n_m", "screw.rated_load_n", "screw.lead_mm", "friction.efficiency",
+                     "friction.no_load_torque_n_m", "sensor.torque_noise_n_m", "sensor.sample_time_s",
+                     "sensor.speed_filter_time_constant_s", "friction.traction_preload_n")
+
+
+def _check_consistency(v: Mapping[str, float], o: str) -> None:
+    """Cross-checks between keys of a plant file that catch unit mistakes a single range
+    cannot (:data:`TORQUE_LIMIT_MAX_RATIO`, :data:`SPEED_FILTER_MAX_SAMPLES`,
+    :data:`TORQUE_NOISE_MAX_FRACTION`, drag below the torque limit, traction preload at most
+    the rated load)."""
+    t_lim = v["drive.torque_limit_n_m"]
+    t_rated = v["screw.rated_load_n"] * v["screw.lead_mm"] * 1e-3 / (2 * math.pi * v["friction.efficiency"])
+    if t_lim > TORQUE_LIMIT_MAX_RATIO * t_rated:
+        force = t_lim * 2 * math.pi * v["friction.efficiency"] / (v["screw.lead_mm"] * 1e-3)
+        raise PlantFileError(
+            f"{o}: drive.torque_limit_n_m = {t_lim:g} N m would push {force:.3g} N through the screw, "
+            f"{t_lim / t_rated:.0f} x its screw.rated_load_n = {v['screw.rated_load_n']:g} N (which needs {t_rated:.3g} N m "
+            f"at screw.lead_mm = {v['screw.lead_mm']:g}, friction.efficiency = {v['friction.efficiency']:g}); expected at "
+            f"most {TORQUE_LIMIT_MAX_RATIO:g} x that ({TORQUE_LIMIT_MAX_RATIO * t_rated:.3g} N m); a torque in mN m typed as N m?")
+    if v["friction.no_load_torque_n_m"] >= t_lim:
+        raise PlantFileError(
+            f"{o}: friction.no_load_torque_n_m = {v['friction.no_load_torque_n_m']:g} N m is not below "
+            f"drive.torque_limit_n_m = {t_lim:g} N m (the motor could not even turn the unloaded screw); check both units")
+    if v["sensor.torque_noise_n_m"] > TORQUE_NOISE_MAX_FRACTION * t_lim:
+        raise PlantFileError(
+            f"{o}: sensor.torque_noise_n_m = {v['sensor.torque_noise_n_m']:g} N m is more than "
+            f"{TORQUE_NOISE_MAX_FRACTION:.0%} of drive.torque_limit_n_m = {t_lim:g} N m (current sensing is ~0.1-1 % of "
+            "the peak); check its unit (N m RMS per sample)")
+    ts, tf = v["sensor.sample_time_s"], v["sensor.speed_filter_time_constant_s"]
+    if tf > SPEED_FILTER_MAX_SAMPLES * ts:
+        raise PlantFileError(
+            f"{o}: sensor.speed_filter_time_constant_s = {tf:g} s is {tf / ts:.0f} controller samples "
+            f"(sensor.sample_time_s = {ts:g} s); expected at most {SPEED_FILTER_MAX_SAMPLES:g} samples "
+            f"({SPEED_FILTER_MAX_SAMPLES * ts:g} s): a time constant in ms typed as s?")
+    if v["friction.traction_preload_n"] > v["screw.rated_load_n"]:
+        raise PlantFileError(
+            f"{o}: friction.traction_preload_n = {v['friction.traction_preload_n']:g} N exceeds screw.rated_load_n = "
+            f"{v['screw.rated_load_n']:g} N; expected a preload of at most the rated load")
+
+
+def _check_value(kind: str, key: str, value: Any, origin: str) -> float:
+    where = f"{origin}: {key}"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
+    v = float(value)
+    if not math.isfinite(v):
+        raise PlantFileError(f"{where} = {value!r}; expected a finite {kind} number")
+    if kind == POSITIVE_INTEGER and (v != int(v) or v < 1):
+        raise PlantFileError(f"{where} = {value!r}; expected a {kind}")
+    if kind in (POSITIVE, POSITIVE_INTEGER) and v <= 0:
+        raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
+    if kind == NON_NEGATIVE and v < 0:
+        raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
+    if kind == FRACTION and not 0 < v <= 1:
+        raise PlantFileError(f"{where} = {value!r}; expected a {kind}")
+    if key in PLAUSIBLE:
+        lo, hi, why = PLAUSIBLE[key]
+        if not lo <= v <= hi:
+            raise PlantFileError(
+                f"{where} = {value!r} is outside the plausible range [{lo:g}, {hi:g}] ({why}); "
+                "check the value and its unit" + _likely_mistake(key, v)
+            )
+    return v
+
+
+def _parse(doc: Mapping[str, Any], origin: str) -> tuple[str, str, dict[str, float], dict[str, str]]:
+    """Validate a parsed plant document; return name, description, values and sources."""
+    unknown = sorted(set(doc) - set(SCHEMA) - {"name", "description", "uncertainty"})
+    if unknown:
+        raise PlantFileError(
+            f"{origin}: unknown section {unknown[0]!r}; expected one of "
+            f"{', '.join(['name', 'description', *SCHEMA, 'uncertainty'])}"
+        )
+    name = doc.get("name")
+    if not isinstance(name, str) or not name.strip():
+        raise PlantFileError(f"{origin}: name = {name!r}; expected a non-empty string")
+    description = doc.get("description", "")
+    if not isinstance(description, str):
+        raise PlantFileError(f"{origin}: description = {description!r}; expected a string")
+    values: dict[str, float] = {}
+    sources: dict[str, str] = {}
+    for section, keys in SCHEMA.items():
+        table = doc.get(section)
+        if not isinstance(table, Mapping):
+            raise PlantFileError(f"{origin}: missing section [{section}]")
+        extra = sorted(set(table) - set(keys))
+        if extra:
+            raise PlantFileError(
+                f"{origin}: unknown key {section}.{extra[0]}; expected one of "
+                f"{', '.join(f'{section}.{k}' for k in keys)}"
+            )
+        for key, kind in keys.items():
+            full = f"{section}.{key}"
+            if key not in table:
+                raise PlantFileError(f"{origin}: missing key {full}")
+            entry = table[key]
+            if not isinstance(entry, Mapping) or set(entry) != {"value", "source"}:
+                raise PlantFileError(
+                    f"{origin}: {full} = {entry!r}; expected {{ value = <number>, "
+                    f'source = "<paper table/text or assumption: why>" }}'
+                )
+            src = entry["source"]
+            if not isinstance(src, str) or not src.strip():
+                raise PlantFileError(f"{origin}: {full}.source = {src!r}; expected a non-empty string")
+            values[full] = _check_value(kind, full, entry["value"], origin)
+            sources[full] = src.strip()
+    return name.strip(), description, values, sources
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """Rigid-body speeds of the inverted roller screw for a given nut speed.
+
+    Attributes
+    ----------
+    omega_nut : ndarray, rad/s
+        Nut (input) angular speed.
+    omega_cage : ndarray, rad/s
+        Cage (retainer) speed = roller orbit speed, ``w_N d_N / (d_N + d_S)``.
+    omega_roller_rel : ndarray, rad/s
+        Roller spin relative to the cage (what the roller-cage revolute joint measures),
+        ``w_P d_S / d_R``. This is what ``roller_speed`` means in every simulation output.
+    omega_roller_abs : ndarray, rad/s
+        Roller spin relative to ground, ``w_P (d_S + d_R) / d_R``.
+    v_screw : ndarray, m/s
+        Screw axial speed, ``lead w_N / (2 pi)``.
+    """
+
+    omega_nut: NDArray[np.float64]
+    omega_cage: NDArray[np.float64]
+    omega_roller_rel: NDArray[np.float64]
+    omega_roller_abs: NDArray[np.float64]
+    v_screw: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class GeometryReport:
+    """How well the thread geometry closes. Lengths in metres, angles in radians.
+
+    ``closure_residual_m`` is ``d_N - (d_S + 2 d_R)``; ``screw_match_residual_m`` is
+    ``d_S - n_S d_R`` and ``nut_match_residual_m`` is ``d_N - (n_S + 2) d_R`` (the matching rule of
+    the inverted design with rollers of opposite hand); ``helix_mismatch_rad`` is the screw helix
+    angle minus the roller helix angle, which the rule makes zero.
+    """
+
+    closure_residual_m: float
+    screw_match_residual_m: float
+    nut_match_residual_m: float
+    helix_screw_rad: float
+    helix_nut_rad: float
+    helix_roller_rad: float
+    helix_mismatch_rad: float
+    pitch_m: float
+    messages: tuple[str, ...]
+
+    def lines(self) -> list[str]:
+        """Human-readable report lines (mm and degrees)."""
+        deg = math.degrees
+        out = [
+            f"d_N - (d_S + 2 d_R) = {self.closure_residual_m * 1e3:+.3f} mm",
+            f"d_S - n_S d_R       = {self.screw_match_residual_m * 1e3:+.3f} mm",
+            f"d_N - (n_S+2) d_R   = {self.nut_match_residual_m * 1e3:+.3f} mm",
+            f"helix angles: screw {deg(self.helix_screw_rad):.3f} deg, nut "
+            f"{deg(self.helix_nut_rad):.3f} deg, roller {deg(self.helix_roller_rad):.3f} deg "
+            f"(screw - roller {deg(self.helix_mismatch_rad):+.3f} deg)",
+            f"thread pitch {self.pitch_m * 1e3:.4f} mm",
+        ]
+        return out + list(self.messages)
+
+
+@dataclass(frozen=True, eq=False)
+class Plant:
+    """An inverted planetary roller-screw actuator, validated.
+
+    Use :func:`load_plant` to build one. ``values`` keeps the file's numbers (file units, keys
+    ``section.key``); the ``*_m``, ``*_kg`` ... properties give SI values.
+    """
+
+    name: str
+    values: Mapping[str, float]
+    sources: Mapping[str, str]
+    origin: str = "<dict>"
+    description: str = ""
+    geometry: GeometryReport = field(init=False, repr=False)
+    #: The file's ``[uncertainty]`` section (validated by :mod:`prsa_ctrl.plant.uncertainty`).
+    uncertainty: Mapping[str, Any] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "values", MappingProxyType(dict(self.values)))
+        object.__setattr__(self, "sources", MappingProxyType(dict(self.sources)))
+        if all(isinstance(self.values.get(k), (int, float)) for k in _CONSISTENCY_KEYS):  # not symbolic (fit)
+            _check_consistency(self.values, self.origin)
+        object.__setattr__(self, "geometry", self._check_geometry())
+
+    # --- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any], origin: str = "<dict>") -> "Plant":
+        """Validate a plant document (the parsed TOML) and build the plant."""
+        name, description, values, sources = _parse(doc, origin)
+        plant = cls(name=name, values=values, sources=sources, origin=origin, description=description,
+                    uncertainty=doc.get("uncertainty", {}))
+        if "uncertainty" in doc:
+            check_plant_uncertainty(plant)
+        return plant
+
+    def with_params(self, overrides: Mapping[str, float], name: str | None = None) -> "Plant":
+        """Copy of the plant with some values replaced (file units, keys ``section.key``).
+
+        Raises
+        ------
+        PlantFileError
+            For an unknown key (the message lists the allowed ones) or an invalid value.
+        """
+        values = dict(self.values)
+        sources = dict(self.sources)
+        for key, v in overrides.items():
+            if key not in values:
+                raise PlantFileError(
+                    f"{self.name}: unknown parameter {key!r}; allowed: {', '.join(ALLOWED_KEYS)}"
+                )
+            section, sub = key.split(".")
+            values[key] = _check_value(SCHEMA[section][sub], key, v, f"{self.name} override")
+            sources[key] = "override"
+        return Plant(
+            name=name or f"{self.name}*",
+            values=values,
+            sources=sources,
+            origin=self.origin,
+            description=self.description,
+            uncertainty=self.uncertainty,
+        )
+
+    # --- SI views -----------------------------------------------------------------------------
+    def _v(self, key: str) -> float:
+        return self.values[key]
+
+    @property
+    def d_screw_m(self) -> float:
+        """Screw pitch diameter d_S, m."""
+        return self._v("screw.pitch_diameter_mm") * 1e-3
+
+    @property
+    def d_nut_m(self) -> float:
+        """Nut pitch diameter d_N, m."""
+        return self._v("nut.pitch_diameter_mm") * 1e-3
+
+    @property
+    def d_roller_m(self) -> float:
+        """Roller pitch diameter d_R, m."""
+        return self._v("roller.pitch_diameter_mm") * 1e-3
+
+    @property
+    def lead_m(self) -> float:
+        """Screw lead (screw advance per nut revolution), m."""
+        return self._v("screw.lead_mm") * 1e-3
+
+    @property
+    def lead_per_rad(self) -> float:
+        """Screw advance per radian of nut rotation, m/rad."""
+        return self.lead_m / (2.0 * math.pi)
+
+    @property
+    def n_rollers(self) -> int:
+        return int(self._v("roller.count"))
+
+    @property
+    def n_contacts(self) -> int:
+        """Engaged thread contacts per interface (rollers x engaged threads)."""
+        return self.n_rollers * int(self._v("thread.engaged_threads"))
+
+    @property
+    def cage_ratio(self) -> float:
+        """omega_cage / omega_nut = d_N / (d_N + d_S)."""
+        return self.d_nut_m / (self.d_nut_m + self.d_screw_m)
+
+    @property
+    def helix_nut_rad(self) -> float:
+        return math.atan(self._v("nut.lead_mm") / (math.pi * self._v("nut.pitch_diameter_mm")))
+
+    @property
+    def helix_screw_rad(self) -> float:
+        return math.atan(self._v("screw.lead_mm") / (math.pi * self._v("screw.pitch_diameter_mm")))
+
+    @property
+    def flank_angle_rad(self) -> float:
+        return math.radians(self._v("thread.flank_angle_deg"))
+
+    @property
+    def contact_stiffness_si(self) -> float:
+        """IMPACT stiffness K in N/m^e (file value is N/mm^e: K_SI = K_mm * 1000^e)."""
+        return self._v("contact.stiffness_n_per_mm_e") * 1000.0 ** self._v("contact.exponent")
+
+    @property
+    def contact_damping_si(self) -> float:
+        """IMPACT maximum damping C_max, N s/m."""
+        return self._v("contact.damping_n_s_per_mm") * 1e3
+
+    @property
+    def penetration_m(self) -> float:
+        """Penetration at which the IMPACT damping reaches C_max, m."""
+        return self._v("contact.penetration_mm") * 1e-3
+
+    @property
+    def rated_load_n(self) -> float:
+        return self._v("screw.rated_load_n")
+
+    @property
+    def torque_limit(self) -> float:
+        """Motor torque limit, N m."""
+        return self._v("drive.torque_limit_n_m")
+
+    @property
+    def current_loop_time_constant_s(self) -> float:
+        """First-order current (torque) loop time constant 1 / (2 pi f_c), s."""
+        return 1.0 / (2.0 * math.pi * self._v("drive.current_loop_bandwidth_hz"))
+
+    @property
+    def sample_time_s(self) -> float:
+        return self._v("sensor.sample_time_s")
+
+    @property
+    def speed_filter_s(self) -> float:
+        return self._v("sensor.speed_filter_time_constant_s")
+
+    @property
+    def encoder_counts(self) -> int:
+        return int(self._v("sensor.encoder_counts_per_rev"))
+
+    def normal_force_factor(self) -> tuple[float, float]:
+        """Total normal thread force per newton of axial force, (nut side, screw side).
+
+        Each engaged thread flank carries ``F_a / (N_R z cos(beta) cos(lambda))``; summed over
+        all ``N_R z`` contacts this is ``F_a / (cos(beta) cos(lambda))``.
+        """
+        cb = math.cos(self.flank_angle_rad)
+        return 1.0 / (cb * math.cos(self.helix_nut_rad)), 1.0 / (cb * math.cos(self.helix_screw_rad))
+
+    @property
+    def slip_arm_m(self) -> float:
+        """Effective sliding arm of the thread contacts, m per rad of nut rotation.
+
+        Chosen so that Coulomb friction with the dynamic coefficient on the thread normal forces
+        gives the plant's forward efficiency at constant speed:
+        ``eta = F L/(2 pi) / (F L/(2 pi) + k mu_d F (f_N + f_S))``.
+        """
+        eta = self._v("friction.efficiency")
+        mu = self._v("friction.dynamic")
+        try:
+            lossless = bool(eta >= 1.0 or mu == 0.0)
+        except RuntimeError:  # CasADi symbols (prsa_ctrl.plant.model.parametric_family): the formula, 0 at eta = 1
+            lossless = False
+        if lossless:
+            return 0.0
+        f_n, f_s = self.normal_force_factor()
+        return self.lead_per_rad * (1.0 / eta - 1.0) / (mu * (f_n + f_s))
+
+    @property
+    def cage_inertia_kg_m2(self) -> float:
+        """Rotational inertia about the screw axis seen by the cage, kg m^2.
+
+        The cage itself, the rollers' orbit (point masses on the orbit radius
+        ``(d_S + d_R)/2``) and the rollers' absolute spin ``w_P (d_S + d_R)/d_R`` (solid
+        cylinders of diameter ``d_R``).
+        """
+        d_s, d_r = self.d_screw_m, self.d_roller_m
+        m_r = self._v("roller.mass_kg")
+        j_spin = 0.5 * m_r * (0.5 * d_r) ** 2
+        r_orbit = 0.5 * (d_s + d_r)
+        return self._v("cage.inertia_kg_m2") + self.n_rollers * (
+            m_r * r_orbit**2 + j_spin * ((d_s + d_r) / d_r) ** 2
+        )
+
+    @property
+    def roller_assembly_mass_kg(self) -> float:
+        """Axially moving mass of the cage with its rollers, kg."""
+        return self._v("cage.mass_kg") + self.n_rollers * self._v("roller.mass_kg")
+
+    @property
+    def reflected_inertia_kg_m2(self) -> float:
+        """Total inertia seen at the nut through the rigid kinematics, kg m^2:
+        ``J_nut + J_cage (w_P/w_N)^2 + (m_screw + m_rollers) (L/2 pi)^2`` (the roller assembly
+        travels axially with the screw, see :mod:`prsa_ctrl.plant.model`).
+
+        Examples
+        --------
+        >>> round(load_plant().reflected_inertia_kg_m2 * 1e4, 3)  # kg cm^2
+        2.019
+        """
+        return (self._v("nut.inertia_kg_m2") + self.cage_inertia_kg_m2 * self.cage_ratio**2
+                + (self._v("screw.mass_kg") + self.roller_assembly_mass_kg) * self.lead_per_rad**2)
+
+    # --- kinematics ---------------------------------------------------------------------------
+    def kinematics(self, omega_nut: ArrayLike) -> Kinematics:
+        """Rigid-body kinematics for nut speed(s) ``omega_nut`` (rad/s).
+
+        Examples
+        --------
+        >>> k = load_plant().kinematics(31.4159)
+        >>> round(float(k.omega_cage), 2), round(float(k.v_screw) * 1e3, 2)
+        (19.06, 10.0)
+        """
+        w = np.asarray(omega_nut, dtype=float)
+        d_s, d_n, d_r = self.d_screw_m, self.d_nut_m, self.d_roller_m
+        w_p = w * d_n / (d_n + d_s)
+        return Kinematics(
+            omega_nut=w,
+            omega_cage=w_p,
+            omega_roller_rel=w_p * d_s / d_r,
+            omega_roller_abs=w_p * (d_s + d_r) / d_r,
+            v_screw=w * self.lead_m / (2.0 * math.pi),
+        )
+
+    # --- geometry -----------------------------------------------------------------------------
+    def _check_geometry(self) -> GeometryReport:
+        v, o = self.values, self.origin
+        d_s, d_n, d_r = self.d_screw_m, self.d_nut_m, self.d_roller_m
+        if d_n <= d_s:
+            raise PlantFileError(
+                f"{o}: nut.pitch_diameter_mm = {v['nut.pitch_diameter_mm']} must exceed "
+                f"screw.pitch_diameter_mm = {v['screw.pitch_diameter_mm']} (rollers sit between them)"
+            )
+        closure = d_n - (d_s + 2 * d_r)
+        if abs(closure) > 0.25 * d_r:
+            raise PlantFileError(
+                f"{o}: roller.pitch_diameter_mm = {v['roller.pitch_diameter_mm']} cannot fit: "
+                f"d_N - (d_S + 2 d_R) = {closure * 1e3:.3f} mm (expected within 25 % of d_R)"
+            )
+        if self.n_rollers * d_r >= math.pi * (d_s + d_r):
+            raise PlantFileError(
+                f"{o}: roller.count = {self.n_rollers} rollers of {d_r * 1e3:g} mm do not fit on "
+                f"the orbit circle of {math.pi * (d_s + d_r) * 1e3:.1f} mm circumference"
+            )
+        if not 0 < v["thread.flank_angle_deg"] < 90:
+            raise PlantFileError(f"{o}: thread.flank_angle_deg = {v['thread.flank_angle_deg']}; expected 0 < beta < 90")
+        if v["contact.exponent"] < 1.0:
+            raise PlantFileError(
+                f"{o}: contact.exponent = {v['contact.exponent']}; expected >= 1 "
+                "(below 1 the contact Jacobian is infinite at first touch)"
+            )
+        if v["friction.static"] < v["friction.dynamic"]:
+            raise PlantFileError(
+                f"{o}: friction.static = {v['friction.static']} is below friction.dynamic = "
+                f"{v['friction.dynamic']}; expected static >= dynamic"
+            )
+        pitches = {
+            part: v[f"{part}.lead_mm"] / v[f"{part}.starts"] for part in ("screw", "nut", "roller")
+        }
+        p_ref = pitches["roller"]
+        for part, p in pitches.items():
+            if abs(p - p_ref) > 1e-9 * p_ref:
+                raise PlantFileError(
+                    f"{o}: {part}.lead_mm / {part}.starts = {p:g} mm pitch does not mesh with the "
+                    f"roller pitch {p_ref:g} mm; expected equal thread pitches"
+                )
+        if abs(v["screw.lead_mm"] - v["nut.lead_mm"]) > 1e-9 * v["screw.lead_mm"]:
+            raise PlantFileError(
+                f"{o}: nut.lead_mm = {v['nut.lead_mm']} differs from screw.lead_mm = "
+                f"{v['screw.lead_mm']}; expected equal leads (same starts and pitch)"
+            )
+        n_s = v["screw.starts"]
+        helix_r = math.atan(v["roller.lead_mm"] / (math.pi * v["roller.pitch_diameter_mm"]))
+        report = GeometryReport(
+            closure_residual_m=closure,
+            screw_match_residual_m=d_s - n_s * d_r,
+            nut_match_residual_m=d_n - (n_s + 2) * d_r,
+            helix_screw_rad=self.helix_screw_rad,
+            helix_nut_rad=self.helix_nut_rad,
+            helix_roller_rad=helix_r,
+            helix_mismatch_rad=self.helix_screw_rad - helix_r,
+            pitch_m=p_ref * 1e-3,
+            messages=(),
+        )
+        msgs = []
+        tol = 1e-3 * d_r
+        if abs(report.closure_residual_m) > tol:
+            msgs.append(
+                f"geometry does not close: d_N = {d_n * 1e3:g} mm but d_S + 2 d_R = "
+                f"{(d_s + 2 * d_r) * 1e3:g} mm (residual {closure * 1e3:+.3f} mm)"
+            )
+        if abs(report.screw_match_residual_m) > tol:
+            msgs.append(
+                f"matching rule d_S = n_S d_R not met: d_S = {d_s * 1e3:g} mm, "
+                f"n_S d_R = {n_s * d_r * 1e3:g} mm (residual {report.screw_match_residual_m * 1e3:+.3f} mm)"
+            )
+        if msgs:
+            warnings.warn(f"{o}: " + "; ".join(msgs), GeometryWarning, stacklevel=4)
+        object.__setattr__(report, "messages", tuple(msgs))
+        return report
+
+
+def plant_file_path(name_or_path: str | Path | None = None) -> Path | Any:
+    """The plant file a name or path refers to, as :func:`load_plant` resolves it.
+
+    Parameters
+    ----------
+    name_or_path : str or Path, optional
+        A built-in plant name (``plants/*.toml``, default ``paper-iprsm``) or a path to a .toml file.
+
+    Returns
+    -------
+    Path or importlib.resources.abc.Traversable
+        Readable with ``.read_text()``: the installed package data, or the repository's
+        ``plants/`` folder when a source checkout shadows the installed package.
+
+    Examples
+    --------
+    >>> plant_file_path("paper-iprsm").name
+    'paper-iprsm.toml'
+    """
+    return _resolve(name_or_path)
+
+
+def _resolve(name_or_path: str | Path | None) -> Path | Any:
+    if name_or_path is None:
+        name_or_path = DEFAULT_PLANT
+    text = str(name_or_path)
+    looks_like_path = isinstance(name_or_path, Path) or text.endswith(".toml") or "/" in text or "\\" in text
+    if looks_like_path:
+        path = Path(text).expanduser()
+        if not path.is_file():
+            raise PlantFileError(f"plant file {text!r} not found; expected a readable .toml file")
+        return path
+    res = _builtin_root("prsa_ctrl.plants", "plants") / f"{text}.toml"
+    if not res.is_file():
+        raise PlantFileError(
+            f"unknown plant {text!r}; expected a built-in name ({', '.join(builtin_plants())}) "
+            "or a path to a .toml file"
+        )
+    return res
+
+
+def load_plant(name_or_path: str | Path | None = None) -> Plant:
+    """Load and validate a plant definition.
+
+    Parameters
+    ----------
+    name_or_path : str or Path, optional
+        A built-in plant name (see :func:`builtin_plants`; default ``"paper-iprsm"``) or a path
+        to a plant ``.toml`` file.
+
+    Raises
+    ------
+    PlantFileError
+        If the file is missing, unreadable or invalid; the message names the file and key.
+    """
+    src = _resolve(name_or_path)
+    builtin = name_or_path is None or not (isinstance(name_or_path, Path) or str(name_or_path).endswith(".toml")
+                                           or "/" in str(name_or_path) or "\\" in str(name_or_path))
+    origin = f"{src.name} (built-in)" if builtin else str(src)
+    try:
+        doc = tomllib.loads(src.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PlantFileError(f"{origin}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise PlantFileError(f"{origin}: invalid TOML ({exc})") from None
+    return Plant.from_dict(doc, origin=origin)

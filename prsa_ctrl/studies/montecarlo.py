@@ -1,0 +1,892 @@
+"""Seeded Monte-Carlo verification: N nonlinear closed-loop runs of one or more designs over
+samples of the plant's uncertainty, the yield against the scene's spec with a Wilson 95 %
+interval, metric percentiles and the worst sample with a command that replays it.
+
+Sample ``i`` of seed ``s`` draws everything it needs (parameter values, operating point,
+per-roller errors) from ``numpy.random.SeedSequence([s, i])`` alone, and runs in a fresh,
+deterministic simulation, so the results are identical - to the last bit - whether the samples
+run serially in-process, in a process pool of any size, or on a Dask cluster (``dask`` is
+imported only on that path). Samples are sent in chunks (one task per chunk, not per sample);
+the job (plant, scene, designs) is sent once per worker.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+import uuid
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from ..io.output import json_safe
+from ..errors import GeometryWarning, SimulationError
+
+__all__ = ["MonteCarloReport", "MonteCarloInterrupted", "run_monte_carlo", "format_report", "wilson_interval",
+           "draw_sample", "replay_sample", "benchmark", "plot_report", "scene_options", "METRICS", "BACKENDS"]
+
+#: Metrics recorded per design and sample (worst over the sample's load steps).
+METRICS = ("peak_drop_rad_s", "recovery_time_s", "ie", "iae", "itae", "ise", "overshoot_rad_s",
+           "peak_torque_n_m", "steady_state_error_rad_s", "saturated", "ms", "mt")
+#: Execution backends.
+BACKENDS = ("serial", "process", "dask")
+#: Percentiles reported for each metric (plus the maximum).
+PERCENTILES = (5, 50, 95)
+#: Upper bound on samples in one run (checked before any work).
+MAX_SAMPLES = 1_000_000
+
+
+def wilson_interval(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion ``k/n`` (95 % for the default ``z``).
+
+    Examples
+    --------
+    >>> lo, hi = wilson_interval(50, 100)
+    >>> round(lo, 4), round(hi, 4)
+    (0.4038, 0.5962)
+    >>> wilson_interval(0, 0)
+    (0.0, 1.0)
+    """
+    if n <= 0:
+        return 0.0, 1.0
+    p = k / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    # exact ends at k = 0 and k = n (the formula gives them up to rounding)
+    return (0.0 if k == 0 else max(0.0, centre - half)), (1.0 if k == n else min(1.0, centre + half))
+
+
+# --- the job each worker runs ------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _Job:
+    """Everything a worker needs, picklable (the Plant's read-only mappings are rebuilt)."""
+
+    token: str
+    plant_doc: dict
+    scene: Any
+    designs: tuple  # (name, PID, estimator)
+    unc: Any  # UncertaintyModel
+    ops: tuple  # ((setpoint rad/s, final load N), ...)
+    spec: dict
+    seed: int
+    settings: Any = None  # SimSettings of every verification run (None: autotune.verify_settings)
+
+
+_WORKER_CACHE: dict[str, tuple] = {}
+
+
+def _plant_doc(plant) -> dict:
+    return {"name": plant.name, "values": dict(plant.values), "sources": dict(plant.sources),
+            "origin": plant.origin, "description": plant.description}
+
+
+def _prepared(job: _Job) -> tuple:
+    """The job's plant and resolved scene, built once per worker process."""
+    got = _WORKER_CACHE.get(job.token)
+    if got is None:
+        from ..plant.plantfile import Plant
+        from .scene import choose_fidelity
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", GeometryWarning)
+            plant = Plant(**job.plant_doc)
+        got = (plant, choose_fidelity(job.scene)[0])
+        _WORKER_CACHE.clear()
+        _WORKER_CACHE[job.token] = got
+    return got
+
+
+def draw_sample(unc, ops: Sequence, seed: int, index: int) -> tuple[dict[str, float], int, int]:
+    """Sample ``index`` of ``seed``: (parameter values in file units, operating-point index,
+    per-roller error seed), from ``SeedSequence([seed, index])`` only."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
+    values = unc.sample(rng)
+    op = int(rng.integers(len(ops))) if len(ops) > 1 else 0
+    roller_seed = int(rng.integers(2**31 - 1))
+    return values, op, roller_seed
+
+
+def _evaluate(job: _Job, index: int) -> tuple[int, dict, int, np.ndarray, list]:
+    """All designs on sample ``index``: metrics array (designs x METRICS) and error messages."""
+    import inspect
+
+    from .autotune import Design, actuator_loops, verify
+    from ..plant.model import register_member
+    from ..plant.uncertainty import apply
+
+    plant, scene = _prepared(job)
+    values, op, roller_seed = draw_sample(job.unc, job.ops, job.seed, index)
+    sp, f1 = job.ops[op]
+    p_i = apply(plant, values, name=f"{plant.name} sample {index}") if values else plant
+    if values:  # one parametric model (and one compiled law) serves every sample
+        register_member(p_i, plant, job.unc.keys)
+    sc = scene.replace(setpoint_rad_s=sp, final_loads=(f1,))
+    kw = {"seed": roller_seed} if "seed" in inspect.signature(verify).parameters else {}
+    kw["settings"] = job.settings
+    out = np.full((len(job.designs), len(METRICS)), np.inf)
+    errors: list = [None] * len(job.designs)
+    loop = None
+    for j, (name, pid, est) in enumerate(job.designs):
+        d = Design(name, pid, None, estimator=est)
+        try:
+            verify(d, p_i, sc, **kw)
+        except SimulationError as exc:
+            errors[j] = str(exc).splitlines()[0]
+            continue
+        row = out[j]
+        for k, m in enumerate(METRICS[:10]):
+            vals = [abs(float(getattr(x, m))) for x in d.verified]
+            row[k] = max(vals)
+        if "ms" in job.spec or "mt" in job.spec:
+            if loop is None:
+                loop = actuator_loops(p_i, sc, estimator=est)[0]
+            g = pid.gains
+            if loop.is_stable(g):
+                mg = loop.margins(g)
+                row[10], row[11] = mg.ms, mg.mt
+        else:
+            row[10] = row[11] = math.nan
+    return index, values, op, out, errors
+
+
+#: Integrator choices of :func:`run_monte_carlo`.
+INTEGRATOR_CHOICES = ("auto", "fast", "reference")
+_SETTINGS_CACHE: dict = {}
+
+
+def verification_settings(plant, scene, unc, ops: Sequence, pid, integrator: str = "auto") -> tuple[Any, dict]:
+    """The integrator settings of every Monte-Carlo verification run, and why.
+
+    ``"reference"``: the scene's adaptive integrator (:func:`prsa_ctrl.studies.autotune.verify_settings`).
+    ``"fast"``: :data:`prsa_ctrl.studies.autotune.FAST_VERIFY` without a measurement (a replay of a run
+    that measured it). ``"auto"``: the compiled fixed-step :data:`prsa_ctrl.studies.autotune.FAST_VERIFY`
+    where its nut-speed error against a tight CVODES reference (rtol = atol = 1e-9) is inside
+    half the scene's accuracy at every check point: the nominal plant, the two extreme corners
+    of the uncertainty box (every parameter at its low end, every one at its high end) and each
+    parameter alone at its low and its high end, at the first and last operating point, with
+    ``pid``; else the reference. (On the paper plant the worst point is the stiffest contact
+    alone, not a corner.) Not a bound over the whole box: the largest measured error is
+    reported. Deterministic (every worker and a replay make the same choice); measured once
+    per process.
+
+    Returns
+    -------
+    (SimSettings, dict)
+        The settings and a record: ``integrator``, the largest measured ``relative`` error
+        (``None`` when not measured), the ``accuracy`` and the ``reason``.
+    """
+    from .autotune import fast_verify_settings, verify_settings
+    from .scene import choose_fidelity
+    from ..plant.uncertainty import apply
+
+    if integrator not in INTEGRATOR_CHOICES:
+        raise ValueError(f"integrator = {integrator!r}; expected one of {', '.join(INTEGRATOR_CHOICES)}")
+    sc, _ = choose_fidelity(scene)
+    reference = verify_settings(sc)
+    if integrator == "reference":
+        return reference, {"integrator": reference.integrator, "rtol": reference.rtol, "relative": None,
+                           "accuracy": sc.accuracy, "reason": "integrator = 'reference'"}
+    if integrator == "fast":
+        from .autotune import FAST_VERIFY
+
+        return FAST_VERIFY, {"integrator": "radau", "stages": FAST_VERIFY.stages, "substeps": FAST_VERIFY.substeps,
+                             "jit": FAST_VERIFY.jit, "relative": None, "accuracy": sc.accuracy,
+                             "reason": "integrator = 'fast'"}
+    key = (tuple(sorted(plant.values.items())), repr(sc), repr(unc.as_dict()), tuple(ops), repr(pid))
+    if key in _SETTINGS_CACHE:
+        return _SETTINGS_CACHE[key]
+    from ..plant.model import register_member
+
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        points = [apply(plant, {})]  # a copy: the nominal plant's own model stays as it is
+    register_member(points[0], plant, unc.keys)
+    if unc.keys:
+        corners = [{e.key: getattr(e, end) for e in unc.entries} for end in ("low", "high")]
+        corners += [{e.key: getattr(e, end)} for e in unc.entries for end in ("low", "high")]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", GeometryWarning)
+            for c in corners:
+                points.append(apply(plant, c))
+                register_member(points[-1], plant, unc.keys)  # shares the samples' compiled law
+    worst, fast = 0.0, None
+    try:
+        for p_k in points:
+            for sp, f1 in dict.fromkeys([ops[0], ops[-1]]):
+                fast, meas = fast_verify_settings(sc.replace(setpoint_rad_s=sp, final_loads=(f1,)), p_k, pid)
+                if fast is None:
+                    raise _NotFast(meas.get("reason") or f"fixed-step error {meas['relative']:.3g} of the deviation "
+                                   f"above half the accuracy {sc.accuracy:g}")
+                worst = max(worst, meas["relative"])
+        out = (fast, {"integrator": fast.integrator, "stages": fast.stages, "substeps": fast.substeps,
+                      "jit": fast.jit, "relative": worst, "accuracy": sc.accuracy, "check_points": len(points),
+                      "check_s": time.perf_counter() - t0,
+                      "reason": "fixed-step error inside half the accuracy at every check point"})
+    except _NotFast as exc:
+        out = (reference, {"integrator": reference.integrator, "rtol": reference.rtol, "relative": None,
+                           "accuracy": sc.accuracy, "reason": str(exc)})
+    except SimulationError as exc:
+        out = (reference, {"integrator": reference.integrator, "rtol": reference.rtol, "relative": None,
+                           "accuracy": sc.accuracy, "reason": f"fixed-step check failed: {str(exc).splitlines()[0]}"})
+    _SETTINGS_CACHE[key] = out
+    return out
+
+
+class _NotFast(Exception):
+    pass
+
+
+def _run_chunk(job: _Job, indices: Sequence[int]) -> list:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        return [_evaluate(job, i) for i in indices]
+
+
+_POOL_JOB: _Job | None = None
+
+
+def _pool_init(job: _Job, parent: int | None = None) -> None:
+    import signal
+
+    global _POOL_JOB
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
+    _end_with_parent(parent)
+    _POOL_JOB = job
+
+
+def _end_with_parent(parent: int | None) -> None:
+    """Linux: have the kernel send this worker SIGKILL when its parent process dies (killed by
+    a signal it does not handle, e.g. SIGTERM or SIGKILL), so no worker outlives the run as an
+    orphan; elsewhere (or without ``parent``) a no-op."""
+    if parent is None or not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # best effort: the parent's handlers stop the workers too
+        return
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+
+def _pool_chunk(indices: Sequence[int]) -> list:
+    assert _POOL_JOB is not None
+    return _run_chunk(_POOL_JOB, indices)
+
+
+# --- report --------------------------------------------------------------------------------------
+
+@dataclass
+class DesignYield:
+    """Monte-Carlo outcome of one design."""
+
+    name: str
+    gains: dict
+    passed: int
+    n: int
+    yield_: float
+    ci95: tuple[float, float]
+    percentiles: dict
+    worst_index: int | None
+    worst_values: dict
+    worst_metrics: dict
+    failures: int
+    replay: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "gains": self.gains, "passed": self.passed, "samples": self.n,
+                "yield": self.yield_, "yield_ci95": list(self.ci95), "percentiles": self.percentiles,
+                "worst_sample": {"index": self.worst_index, "parameters": self.worst_values,
+                                 "metrics": self.worst_metrics, "replay": self.replay},
+                "simulation_failures": self.failures}
+
+
+@dataclass
+class MonteCarloReport:
+    """Result of :func:`run_monte_carlo`. ``complete`` is false when the run was interrupted
+    (then ``n_done < n`` and the yields cover only the finished samples)."""
+
+    n: int
+    n_done: int
+    seed: int
+    backend: str
+    workers: int
+    complete: bool
+    spec: dict
+    uncertainty: dict
+    operating_points: list
+    designs: list[DesignYield]
+    wall_time_s: float
+    samples: dict = field(default_factory=dict, repr=False)  # index, values, op, metrics arrays
+    integration: dict = field(default_factory=dict)  # the verification runs' integrator and its measured error
+
+    def as_dict(self, include_samples: bool = False) -> dict[str, Any]:
+        d = {"samples": self.n, "samples_done": self.n_done, "seed": self.seed, "backend": self.backend,
+             "workers": self.workers, "complete": self.complete, "spec": self.spec,
+             "uncertainty": self.uncertainty, "operating_points": self.operating_points,
+             "designs": [x.as_dict() for x in self.designs], "wall_time_s": self.wall_time_s,
+             "sample_seed": "numpy.random.SeedSequence([seed, index])", "integration": self.integration}
+        if include_samples:
+            s = self.samples
+            d["per_sample"] = {"index": s["index"].tolist(), "operating_point": s["op"].tolist(),
+                               "parameters": {k: v.tolist() for k, v in s["values"].items()},
+                               "metrics": {name: {m: _json_list(s["metrics"][:, j, k]) for k, m in enumerate(METRICS)}
+                                           for j, name in enumerate(s["design_names"])}}
+        return json_safe(d)
+
+
+def _json_list(a) -> list:
+    return [None if not math.isfinite(float(x)) else float(x) for x in a]
+
+
+def _passes(metrics: np.ndarray, spec: Mapping[str, Any], torque_limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pass flags and severity (largest value/bound ratio, > 1 fails) of rows (samples x METRICS)."""
+    ok = np.all(np.isfinite(metrics[:, :10]), axis=1)
+    sev = np.where(ok, 0.0, np.inf)
+    for k, bound in spec.items():
+        if k == "no_saturation":
+            if bound:
+                sat = metrics[:, METRICS.index("saturated")] > 0
+                ok &= ~sat
+                sev = np.maximum(sev, np.where(sat, np.inf, metrics[:, METRICS.index("peak_torque_n_m")] / torque_limit))
+            continue
+        col = metrics[:, METRICS.index(k)]
+        ok &= col <= bound
+        sev = np.maximum(sev, col / bound)
+    return ok, sev
+
+
+def _identity(plant, scene) -> tuple[str, str]:
+    p = plant.name if plant.origin.endswith("(built-in)") else plant.origin
+    s = scene.name if scene.origin.endswith("(built-in)") else scene.origin
+    return p, s
+
+
+def _replay_cmd(plant, scene, seed: int, index: int, pid, settings=None) -> str:
+    p, s = _identity(plant, scene)
+    g = {k: float(v) for k, v in pid.as_dict().items()}
+    integ = "fast" if settings is not None and settings.integrator == "radau" else "reference"
+    cmd = (f"python -m prsa_ctrl.studies.montecarlo --plant {p} --scene {s} --seed {seed} --index {index} "
+           f"--integrator {integ} --kp {g['kp']!r} --ki {g['ki']!r} --kd {g['kd']!r} --tf {g['tf']!r}")
+    return cmd + (f" --kff {g['kff']!r}" if g.get("kff") else "")
+
+
+def _build_report(job: _Job, plant, scene, rows: list, n: int, backend: str, workers: int, complete: bool,
+                  wall: float, designs) -> MonteCarloReport:
+    rows = sorted(rows, key=lambda r: r[0])
+    idx = np.array([r[0] for r in rows], dtype=int)
+    ops = np.array([r[2] for r in rows], dtype=int)
+    metrics = np.stack([r[3] for r in rows]) if rows else np.zeros((0, len(job.designs), len(METRICS)))
+    keys = list(job.unc.keys)
+    values = {k: np.array([r[1][k] for r in rows]) for k in keys}
+    out = []
+    for j, (name, pid, _) in enumerate(job.designs):
+        m = metrics[:, j, :]
+        ok, sev = _passes(m, job.spec, plant.torque_limit) if len(rows) else (np.zeros(0, bool), np.zeros(0))
+        if not job.spec and len(rows):
+            sev = m[:, METRICS.index(scene.objective)]
+        k = int(ok.sum())
+        pct = {}
+        for c, met in enumerate(METRICS):
+            col = m[:, c]
+            if not len(col) or np.all(np.isnan(col)):
+                continue
+            col = col[~np.isnan(col)]
+            pct[met] = {f"p{q}": float(np.percentile(col, q, method="inverted_cdf")) for q in PERCENTILES}
+            pct[met]["max"] = float(np.max(col))
+        w = int(np.argmax(sev)) if len(rows) else None
+        # A failed run leaves every metric at inf; a run that never recovers only its recovery time.
+        failures = int(np.sum(~np.isfinite(m[:, METRICS.index("peak_drop_rad_s")]))) if len(rows) else 0
+        out.append(DesignYield(
+            name, pid.as_dict(), k, len(rows), k / len(rows) if len(rows) else math.nan,
+            wilson_interval(k, len(rows)), pct,
+            int(idx[w]) if w is not None else None,
+            {kk: float(values[kk][w]) for kk in keys} if w is not None else {},
+            {met: float(m[w, c]) for c, met in enumerate(METRICS)} if w is not None else {},
+            failures,
+            _replay_cmd(plant, scene, job.seed, int(idx[w]), pid, job.settings) if w is not None else ""))
+    return MonteCarloReport(
+        n, len(rows), job.seed, backend, workers, complete, dict(job.spec), job.unc.as_dict(),
+        [{"setpoint_rad_s": a, "final_load_n": b} for a, b in job.ops], out, wall,
+        {"index": idx, "op": ops, "values": values, "metrics": metrics, "design_names": [d[0] for d in job.designs]})
+
+
+def format_report(report: MonteCarloReport) -> str:
+    """Plain-text summary: yield with its Wilson 95 % interval, percentiles and the worst sample
+    of each design."""
+    head = (f"Monte Carlo: {report.n_done}/{report.n} samples, seed {report.seed}, backend {report.backend} "
+            f"({report.workers} worker{'s' if report.workers != 1 else ''}), {report.wall_time_s:.1f} s"
+            + ("" if report.complete else "  ** INTERRUPTED: partial results **"))
+    lines = [head]
+    spec = ", ".join(f"{k} <= {v:g}" if k != "no_saturation" else f"no_saturation = {str(v).lower()}"
+                     for k, v in report.spec.items())
+    lines.append(f"spec: {spec or '(none: yield counts finished simulations)'}")
+    for d in report.designs:
+        lo, hi = d.ci95
+        lines.append(f"  {d.name}: yield {100 * d.yield_:.1f} % ({d.passed}/{d.n}), 95 % CI [{100 * lo:.1f}, "
+                     f"{100 * hi:.1f}] %" + (f", {d.failures} simulation failures" if d.failures else ""))
+        for met in ("peak_drop_rad_s", "recovery_time_s", "iae", "peak_torque_n_m", "ms"):
+            if met in d.percentiles:
+                p = d.percentiles[met]
+                lines.append(f"    {met:<17} p5 {p['p5']:.4g}  p50 {p['p50']:.4g}  p95 {p['p95']:.4g}  max {p['max']:.4g}")
+        if d.worst_index is not None:
+            vals = ", ".join(f"{k} = {v:.4g}" for k, v in d.worst_values.items())
+            lines.append(f"    worst sample #{d.worst_index}: {vals}")
+            lines.append(f"    replay: {d.replay}")
+    return "\n".join(lines)
+
+
+# --- progress ------------------------------------------------------------------------------------
+
+class _Progress:
+    """A small stderr progress bar (only on a terminal, never when quiet)."""
+
+    def __init__(self, total: int, enabled: bool | None, label: str = "Monte Carlo") -> None:
+        self.total, self.done, self.label = total, 0, label
+        self.enabled = (sys.stderr.isatty() if enabled is None else bool(enabled)) and total > 0
+        self._last = -1.0
+
+    def update(self, k: int) -> None:
+        self.done += k
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if now - self._last < 0.1 and self.done < self.total:
+            return
+        self._last = now
+        frac = self.done / self.total
+        bar = "#" * int(30 * frac)
+        sys.stderr.write(f"\r{self.label} [{bar:<30}] {self.done}/{self.total}")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+class MonteCarloInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`run_monte_carlo`; ``report`` holds the finished samples with
+    ``complete = False`` (never to be written as a complete result)."""
+
+    def __init__(self, report: MonteCarloReport) -> None:
+        super().__init__("Monte Carlo interrupted")
+        self.report = report
+
+
+# --- driver --------------------------------------------------------------------------------------
+
+def _as_design_tuples(designs) -> tuple:
+    from ..drive.pid import PID
+
+    out = []
+    items = designs.items() if isinstance(designs, Mapping) else [(getattr(d, "name", f"design {i}"), d)
+                                                                   for i, d in enumerate(designs)]
+    for name, d in items:
+        if isinstance(d, PID):
+            out.append((str(name), d, "none"))
+        elif hasattr(d, "pid"):
+            out.append((str(getattr(d, "name", name)), d.pid, getattr(d, "estimator", "none")))
+        else:
+            raise ValueError(f"design {name!r} = {d!r}; expected a PID or an autotune.Design")
+    if not out:
+        raise ValueError("designs = []; expected at least one design")
+    return tuple(out)
+
+
+def run_monte_carlo(
+    plant,
+    scene,
+    designs,
+    n: int,
+    seed: int = 0,
+    backend: str | None = None,
+    scheduler: Any = None,
+    workers: int | None = None,
+    chunk: int | None = None,
+    progress: bool | Callable[[int, int], None] | None = None,
+    quiet: bool = False,
+    spec: Mapping[str, Any] | None = None,
+    unc=None,
+    integrator: str = "auto",
+) -> MonteCarloReport:
+    """Verify designs on ``n`` seeded samples of the plant's (and scene's) uncertainty.
+
+    Parameters
+    ----------
+    plant, scene
+        Plant (``[uncertainty]``) and scene (``[uncertainty]``, ``[spec]``, ``[robust]``
+        operating range); fidelity as the scene's verification (:func:`prsa_ctrl.studies.scene.choose_fidelity`).
+    designs : list of Design or PID, or dict name -> PID
+        Designs to verify on the same samples.
+    n : int
+        Number of samples (1..1e6).
+    seed : int
+        Sample ``i`` uses ``SeedSequence([seed, i])`` only.
+    backend : {"serial", "process", "dask"}, optional
+        Default "dask" when ``scheduler`` is given, else "process" with ``workers > 1``, else "serial".
+    scheduler : str or dask.distributed.Client, optional
+        ``"local"`` (start a LocalCluster of ``workers`` processes on 127.0.0.1 for this call),
+        a scheduler address ``tcp://HOST:8786``, or a connected ``Client`` (reused, left open:
+        several runs on one running cluster skip its ~1 s start-up).
+    workers : int, optional
+        Processes for "process"/"local" (default: CPU count).
+    chunk : int, optional
+        Samples per task (default ``n / (8 workers)`` clipped to 8..64); does not change results.
+    progress : bool or callable, optional
+        Stderr bar (default: when stderr is a terminal and not ``quiet``), or ``f(done, total)``.
+    spec : dict, optional
+        Bounds (default the scene's ``[spec]``).
+    integrator : {"auto", "reference"}
+        ``"auto"``: the compiled fixed-step integrator where its measured error is inside the
+        scene's accuracy (:func:`verification_settings`, quoted in ``report.integration``),
+        else the scene's adaptive one; ``"reference"``: always the adaptive one.
+
+    Returns
+    -------
+    MonteCarloReport
+        ``.as_dict()`` for JSON, :func:`format_report` for text.
+
+    Raises
+    ------
+    MonteCarloInterrupted
+        On Ctrl-C, with the partial report (``complete = False``).
+    """
+    from ..tuning.robust import operating_points
+    from ..plant.uncertainty import uncertainty_model
+
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= MAX_SAMPLES:
+        raise ValueError(f"n = {n!r}; expected a number of samples in 1..{MAX_SAMPLES}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed = {seed!r}; expected an integer >= 0")
+    if backend is None:
+        backend = "dask" if scheduler else ("process" if (workers or 1) > 1 else "serial")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend = {backend!r}; expected one of {', '.join(BACKENDS)}")
+    if backend == "dask" and not scheduler:
+        scheduler = "local"
+    if scheduler is not None and backend != "dask":
+        raise ValueError(f"scheduler = {scheduler!r} needs backend = 'dask' (got {backend!r})")
+    if scheduler is not None and not _is_client(scheduler) and (not isinstance(scheduler, str) or (
+            scheduler != "local" and not scheduler.startswith(("tcp://", "tls://", "inproc://")))):
+        raise ValueError(f"scheduler = {scheduler!r}; expected 'local', an address like tcp://HOST:8786 "
+                         "or a dask.distributed.Client")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 512):
+        raise ValueError(f"workers = {workers!r}; expected an integer 1..512")
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or not 1 <= chunk <= 10_000):
+        raise ValueError(f"chunk = {chunk!r}; expected an integer 1..10000")
+    if _is_client(scheduler):
+        workers = len(scheduler.scheduler_info().get("workers", {})) or 1
+    workers = workers or (1 if backend == "serial" else (os.cpu_count() or 1))
+    spec = dict((getattr(scene, "robust", None) or {}).get("spec", {}) if spec is None else spec)
+    unc = uncertainty_model(plant, scene) if unc is None else unc
+    design_tuples = _as_design_tuples(designs)
+    ops = tuple(operating_points(scene))
+    settings, integration = verification_settings(plant, scene, unc, ops, design_tuples[0][1], integrator)
+    job = _Job(uuid.uuid4().hex, _plant_doc(plant), scene, design_tuples, unc, ops, spec, int(seed), settings)
+    if chunk is None:
+        chunk = int(min(64, max(8, math.ceil(n / (8 * workers)))))
+    chunks = [list(range(a, min(a + chunk, n))) for a in range(0, n, chunk)]
+    bar = _Progress(n, False if quiet else (progress if isinstance(progress, bool) else None))
+    callback = progress if callable(progress) else None
+    rows: list = []
+
+    def took(res: list) -> None:
+        rows.extend(res)
+        bar.update(len(res))
+        if callback is not None:
+            callback(len(rows), n)
+
+    t0 = time.perf_counter()
+    complete = False
+    try:
+        if backend == "serial":
+            for c in chunks:
+                took(_run_chunk(job, c))
+        elif backend == "process":
+            _run_process(job, chunks, workers, took)
+        else:
+            _run_dask(job, chunks, workers, scheduler, took)
+        complete = len(rows) == n
+    except KeyboardInterrupt:
+        bar.close()
+        rep = _build_report(job, plant, scene, rows, n, backend, workers, False, time.perf_counter() - t0, designs)
+        rep.integration = integration
+        raise MonteCarloInterrupted(rep) from None
+    bar.close()
+    rep = _build_report(job, plant, scene, rows, n, backend, workers, complete, time.perf_counter() - t0, designs)
+    rep.integration = integration
+    return rep
+
+
+def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    if workers <= 1:
+        for c in chunks:
+            took(_run_chunk(job, c))
+        return
+    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context(method),
+                               initializer=_pool_init, initargs=(job, os.getpid()))
+    try:
+        pending = {pool.submit(_pool_chunk, c) for c in chunks}
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in done:
+                took(f.result())
+    except BaseException:
+        # Ctrl-C, SIGTERM or a failed chunk: stop the workers now (they ignore SIGINT, may have
+        # inherited an ignored SIGTERM, and a chunk already queued would keep them running after
+        # this process has exited). They only compute: SIGKILL loses nothing.
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.kill()
+        raise
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _local_cluster(workers: int):
+    """A LocalCluster of ``workers`` single-threaded processes on 127.0.0.1."""
+    import dask
+    from dask.distributed import LocalCluster
+
+    # The workers' statistical profiler (a stack sample every 10 ms) costs ~3 % of a worker's
+    # CPU; nothing reads it here.
+    with dask.config.set({"distributed.worker.profile.enabled": False}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                            dashboard_address=None,  # no dashboard; its HTTP server on a free port,
+                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})  # not 8787 (may be taken)
+
+
+def _is_client(x) -> bool:
+    """A connected dask.distributed Client (duck-typed: Dask is imported only on its path)."""
+    return not isinstance(x, str) and callable(getattr(x, "submit", None)) and callable(getattr(x, "scatter", None))
+
+
+def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took) -> None:
+    try:
+        from dask.distributed import Client, as_completed
+    except ImportError:
+        raise ValueError("scheduler needs Dask: pip install \"prsa-ctrl[dask]\" (dask[distributed])") from None
+
+    cluster = None
+    own = not _is_client(scheduler)
+    if not own:
+        client = scheduler
+    elif scheduler == "local":
+        cluster = _local_cluster(workers)
+        client = Client(cluster)
+    else:
+        client = Client(scheduler, timeout=30)
+    try:
+        job_f = client.scatter(job, broadcast=True)  # sent once per worker
+        futures = [client.submit(_run_chunk, job_f, c, pure=False) for c in chunks]
+        try:
+            for f in as_completed(futures):
+                took(f.result())
+        except BaseException:
+            client.cancel(futures)
+            raise
+    finally:
+        if own:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def scene_options(scene) -> dict[str, int]:
+    """The scene's Monte-Carlo options: ``{"samples": [robust] monte_carlo (0 = off),
+    "seed": [robust] seed}`` (defaults 0 and 0), for ``prsa-tune`` without ``--monte-carlo``.
+
+    Examples
+    --------
+    >>> from prsa_ctrl.studies.scene import load_scene
+    >>> scene_options(load_scene("robust-load-step"))
+    {'samples': 1000, 'seed': 1}
+    """
+    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
+    return {"samples": int(rob.get("monte_carlo", 0)), "seed": int(rob.get("seed", 0))}
+
+
+# --- replay, figures, benchmark ------------------------------------------------------------------
+
+def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "auto") -> dict[str, Any]:
+    """Re-run one sample of one design: its parameter values, operating point and metrics
+    (with the integrator choice :func:`run_monte_carlo` made for that design first in line)."""
+    from ..tuning.robust import operating_points
+    from ..plant.uncertainty import uncertainty_model
+
+    unc = uncertainty_model(plant, scene)
+    ops = tuple(operating_points(scene))
+    settings, _ = verification_settings(plant, scene, unc, ops, pid, integrator)
+    job = _Job("replay-" + uuid.uuid4().hex, _plant_doc(plant), scene, (("replay", pid, "none"),), unc,
+               ops, dict((scene.robust or {}).get("spec", {})), int(seed), settings)
+    i, values, op, m, err = _run_chunk(job, [index])[0]
+    ok, sev = _passes(m, job.spec, plant.torque_limit)
+    return {"index": i, "parameters": values, "operating_point": job.ops[op],
+            "metrics": dict(zip(METRICS, map(float, m[0]))), "passes_spec": bool(ok[0]), "error": err[0]}
+
+
+def plot_report(report: MonteCarloReport, path=None, metric: str = "peak_drop_rad_s"):
+    """Histograms of ``metric`` per design and a parameter-vs-metric scatter (one panel per
+    uncertain parameter), spec bound dashed. Returns the figure (saved when ``path`` is given)."""
+    import matplotlib.pyplot as plt
+
+    s = report.samples
+    keys = list(s["values"])
+    k = METRICS.index(metric)
+    fig, axes = plt.subplots(1, 1 + len(keys), figsize=(4.2 * (1 + len(keys)), 3.4), squeeze=False)
+    ax = axes[0, 0]
+    for j, name in enumerate(s["design_names"]):
+        col = s["metrics"][:, j, k]
+        col = col[np.isfinite(col)]
+        ax.hist(col, bins=30, alpha=0.6, label=name)
+        for kk, key in enumerate(keys):
+            axes[0, 1 + kk].scatter(s["values"][key], s["metrics"][:, j, k], s=6, alpha=0.6, label=name)
+    for a in axes[0]:
+        if metric in report.spec:
+            (a.axvline if a is ax else a.axhline)(report.spec[metric], color="k", ls="--", lw=1)
+    ax.set_xlabel(metric)
+    ax.set_ylabel("samples")
+    ax.legend(fontsize=8)
+    for kk, key in enumerate(keys):
+        axes[0, 1 + kk].set_xlabel(key)
+        axes[0, 1 + kk].set_ylabel(metric)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig
+
+
+def benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, scene=None,
+              backends: Sequence[str] = ("serial", "process", "dask", "dask-running"), quiet: bool = True,
+              spec: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Wall time (s, median of ``repeats``, backends run in turn) of ``n`` verifications of the
+    paper design on the scene's samples (default the robust scene): serial, ``workers``
+    processes, a Dask LocalCluster of ``workers`` started for each run (``"dask"``, start-up
+    and shut-down included, as ``--scheduler local``) and one already running
+    (``"dask-running"``, a ``Client`` passed in, as ``--scheduler tcp://...``; started once,
+    its start-up reported as ``cluster_start_s``). ``spec``
+    defaults to no bounds (pure verifications; the scene's ``ms`` bound would add a
+    linearisation per sample). Also checks that the backends agree bit for bit.
+
+    A warm-up run of 2 samples first makes the one-off integrator choice
+    (:func:`verification_settings`, its time reported as ``integration["check_s"]``) and
+    compiles the law into the per-user cache; the timed runs reuse both (the check is cached
+    in-process, the compiled law on disk). ``cpu_per_sample_s``: CPU time of the serial runs
+    per sample (less sensitive to a loaded machine than wall time)."""
+    from .paper import default_pid
+    from ..plant.plantfile import load_plant
+    from .scene import load_scene
+
+    plant = plant or load_plant()
+    scene = scene or load_scene("robust-load-step")
+    pid = default_pid(plant)
+    times: dict[str, list[float]] = {}
+    cpu: list[float] = []
+    ref = None
+    identical = True
+    t = time.perf_counter()
+    warm = run_monte_carlo(plant, scene, {"paper": pid}, 2, seed=0, quiet=True, spec={} if spec is None else spec)
+    warm_s = time.perf_counter() - t
+    running = cluster = None
+    if "dask-running" in backends:
+        from dask.distributed import Client
+
+        t = time.perf_counter()
+        cluster = _local_cluster(workers)
+        running = Client(cluster)
+        cluster_start_s = time.perf_counter() - t
+        run_monte_carlo(plant, scene, {"paper": pid}, 2 * workers, seed=0, scheduler=running, quiet=True, chunk=1,
+                        spec={} if spec is None else spec)  # the workers' imports, as a warm-up
+    # In turn (serial, process, dask, serial, ...), so that drift of a shared machine's speed
+    # hits every backend alike.
+    try:
+        for _ in range(repeats):
+            for b in backends:
+                t, c = time.perf_counter(), time.process_time()
+                if b == "dask-running":
+                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, scheduler=running, quiet=quiet,
+                                        spec={} if spec is None else spec)
+                else:
+                    r = run_monte_carlo(plant, scene, {"paper": pid}, n, seed=0, backend=b,
+                                        workers=1 if b == "serial" else workers, quiet=quiet,
+                                        spec={} if spec is None else spec)
+                times.setdefault(b, []).append(time.perf_counter() - t)
+                if b == "serial":
+                    cpu.append((time.process_time() - c) / n)
+                if ref is None:
+                    ref = r.samples["metrics"]
+                elif not np.array_equal(ref, r.samples["metrics"], equal_nan=True):
+                    identical = False
+    finally:
+        if running is not None:
+            running.close()
+            cluster.close()
+    med = {b: float(np.median(v)) for b, v in times.items()}
+    from .scene import choose_fidelity
+
+    out: dict[str, Any] = {"n": n, "workers": workers, "repeats": repeats, "median_s": med, "runs_s": times,
+                           "identical": identical, "fidelity": choose_fidelity(scene)[0].fidelity,
+                           "scene": scene.name, "plant": plant.name, "integration": warm.integration,
+                           "warm_up_s": warm_s}
+    if cpu:
+        out["cpu_per_sample_s"] = float(np.median(cpu))
+    if "serial" in med and "process" in med:
+        out["parallel_efficiency"] = med["serial"] / (workers * med["process"])
+    if "process" in med and "dask" in med:
+        out["dask_overhead"] = med["dask"] / med["process"] - 1
+    if "process" in med and "dask-running" in med:
+        out["dask_running_overhead"] = med["dask-running"] / med["process"] - 1
+        out["cluster_start_s"] = cluster_start_s
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m prsa_ctrl.studies.montecarlo``: replay one Monte-Carlo sample of one design."""
+    import argparse
+    import json
+
+    from ..drive.pid import PID
+    from ..errors import PlantFileError, SceneError
+    from ..plant.plantfile import load_plant
+    from .scene import load_scene
+
+    ap = argparse.ArgumentParser(prog="python -m prsa_ctrl.studies.montecarlo", description=main.__doc__)
+    ap.add_argument("--plant", default=None)
+    ap.add_argument("--scene", default="robust-load-step")
+    ap.add_argument("--seed", type=int, required=True)
+    ap.add_argument("--index", type=int, required=True)
+    ap.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto",
+                    help="the run's integrator choice (its replay command names it)")
+    for g in ("kp", "ki", "kd", "tf", "kff"):
+        ap.add_argument(f"--{g}", type=float, default=0.0 if g in ("kd", "kff") else None, required=g in ("kp", "ki"))
+    a = ap.parse_args(argv)
+    try:
+        plant, scene = load_plant(a.plant), load_scene(a.scene)
+        kw = {"tf": a.tf} if a.tf else {}
+        pid = PID(a.kp, a.ki, a.kd, kff=a.kff, **kw)
+        if a.seed < 0 or a.index < 0:
+            raise ValueError(f"--seed {a.seed} --index {a.index}; expected integers >= 0")
+        out = replay_sample(plant, scene, pid, a.seed, a.index, a.integrator)
+    except (PlantFileError, SceneError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(json_safe(out), indent=2))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
