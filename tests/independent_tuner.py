@@ -186,3 +186,21 @@ def margins_exact(num, den, kp, ki, delay, w=None):
     f = (ph[j] + np.pi) / (ph[j] - ph[j + 1])
     gm = -20 * np.log10(mag[j] + f * (mag[j + 1] - mag[j]))
     return float(pm), float(gm)
+
+
+def setpoint_iae(num, den, kp, ki, kd, tf, b, c, t_end=80.0, n=80001):
+    """IAE of r - y after a unit setpoint step under ``u = kp (b r - y) + ki/s (r - y) + kd s/(1 +
+    tf s) (c r - y)``, from the closed-loop transfer function (scipy.signal.lsim on a dense grid,
+    trapezoid rule)."""
+    from scipy import signal
+
+    pn, pd = np.asarray(num, float), np.asarray(den, float)
+    # Controller polynomials over the common denominator s (tf s + 1).
+    cd = np.polymul([1.0, 0.0], [tf, 1.0])
+    c_fb = np.polyadd(np.polyadd(np.polymul([kp, 0.0], [tf, 1.0]), [ki * tf, ki]), [kd, 0.0, 0.0])
+    c_r = np.polyadd(np.polyadd(np.polymul([kp * b, 0.0], [tf, 1.0]), [ki * tf, ki]), [kd * c, 0.0, 0.0])
+    den_cl = np.polyadd(np.polymul(pd, cd), np.polymul(pn, c_fb))
+    num_cl = np.polymul(pn, c_r)
+    t = np.linspace(0.0, t_end, n)
+    _, y, _ = signal.lsim((num_cl, den_cl), np.ones_like(t), t)
+    return float(np.trapezoid(np.abs(1.0 - y), t)), float(np.max(y) - 1.0)

@@ -1603,6 +1603,10 @@ class TuningResult:
         :func:`tune_pid` with a measurement filter or an ideal derivative: ``order`` (0, 1, 2),
         ``tf_s`` (the filter's time constant, s; None without a filter) and ``derivative``
         (``"ideal"`` or ``"filtered"``); the law is ``C(s) F(s)``.
+    setpoint : dict or None
+        :func:`tune_pid` with ``setpoint_weights=True``: the 2-DOF weights ``b``, ``c`` of
+        ``u = kp (b r - y) + ki int (r - y) + kd D(c r - y)``, their ``goal``, the setpoint
+        step's ``iae`` with them and ``iae_unweighted`` (b = c = 1), and the ``overshoot``.
     """
 
     pid: PID
@@ -1616,6 +1620,7 @@ class TuningResult:
     warnings: list[str] = field(default_factory=list)
     mks: float | None = None
     filter: dict | None = None
+    setpoint: dict | None = None
 
     @property
     def ms(self) -> float:
@@ -2979,6 +2984,7 @@ def tune_pid(
     ideal: bool = False,
     delay: float = 0.0,
     delay_order: int = 6,
+    setpoint_weights: bool = False,
 ) -> TuningResult:
     """Tune a PI (default) or PID for load-disturbance rejection on any SISO LTI plant.
 
@@ -3034,6 +3040,12 @@ def tune_pid(
         + 2 in ``stats["delay_pade_change"]`` (a warning above 1e-4).
     delay_order : int
         Pade order of the delay in the ipopt stand-in (1 .. 10, default 6).
+    setpoint_weights : bool
+        After the load-disturbance design, 2-DOF setpoint weights ``b`` (and ``c`` for a PID
+        with a filtered derivative; 0 otherwise) in [0, 1] for the least IAE of ``r - y`` after
+        a unit setpoint step, the gains fixed (the weights do not enter the loop transfer, so
+        Ms, Mt, Mks and the load response are unchanged); in ``result.setpoint``. With a delay
+        the setpoint response uses the Pade model of order ``delay_order``.
     disturbance : str or int, optional
         Name or index of the disturbance input (default: the second input, else the control
         input).
@@ -3078,6 +3090,8 @@ def tune_pid(
         filter_order, 1.0 if filter_tf is None else filter_tf, ideal, delay, delay_order)
     if filter_tf is not None and not filter_order:
         raise ValueError(f"filter_tf = {filter_tf!r} without a filter; expected filter_order = 1 or 2")
+    if not isinstance(setpoint_weights, (bool, np.bool_)):
+        raise ValueError(f"setpoint_weights = {setpoint_weights!r}; expected True or False")
     if ideal and controller != "pid":
         raise ValueError("ideal = True with controller = 'pi'; expected controller = 'pid' (the ideal derivative)")
     if ideal and not filter_order and mks_max is not None:
@@ -3155,6 +3169,11 @@ def tune_pid(
     if filter_order or ideal or delay:
         res = _with_structure(res, sys, tf, horizon, n_steps, disturbance, step, {**structure, "filter_tf": filter_tf},
                               objective)
+    if setpoint_weights:
+        t_f = res.filter["tf_s"] if res.filter else None
+        loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
+                               **{**structure, "filter_tf": t_f})
+        res = replace(res, setpoint=_setpoint_weights(loop, (res.pid.kp, res.pid.ki, res.pid.kd), ideal))
     if k0 != 1.0:
         res = _rescaled(res, k0, limits)
     if default_note is not None:
@@ -3260,6 +3279,104 @@ def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: 
                                    **{**structure, "filter_tf": t_filter})
             stats["objective_pade"] = loop.objective_continuous(g, objective)[0]
     return replace(res, filter=filt, mks=mks, stats=stats, warnings=warnings)
+
+
+#: Setpoint-weight search: samples of the basis responses per loop-model sample, and the grid of
+#: the scan over b (and c) before the local refinement.
+_SP_GRID = 41
+
+
+def _setpoint_basis(lp: LoopModel, gains):
+    """Closed loop ``X' = A X + (B0 + b Bb + c Bc) r`` of a unit setpoint step under the 2-DOF law
+    ``u = kp (b r - y_f) + ki int (r - y_f) + kd D(c r - y_f)`` (``y_f`` the measured output; the
+    derivative filter state driven by ``c r - y_f``), from the continuous loop of ``lp``:
+    ``(A, B0, Bb, Bc)``; the output is ``-Ce X`` (``Ce`` the load loop's error row)."""
+    c0, mats, _ = lp.continuous
+    g = lp.gvec(gains)
+    acl = c0 + sum(gi * m for gi, m in zip(g, mats))
+    N = acl.shape[0]
+    n, i_i, i_z = N - 2, N - 2, N - 1
+    bu = mats[1][:n, i_i]
+    b0, bb, bc = np.zeros(N), np.zeros(N), np.zeros(N)
+    b0[i_i] = 1.0  # the integral acts on r - y_f
+    bb[:n] = g[0] * bu
+    bc[:n] = g[2] * bu / lp.tf
+    bc[i_z] = 1.0 / lp.tf
+    return acl, b0, bb, bc
+
+
+def _setpoint_iae(acl, bsum, cy, h: float, rtol: float) -> tuple[float, float]:
+    """IAE of ``e = 1 - cy X`` after a unit setpoint step (``X' = acl X + bsum``, from rest),
+    sampled exactly every ``h`` and summed by the trapezoid rule to infinity, halving ``h``
+    until two values agree within ``rtol`` (Richardson estimate, at most ``_CONT_HALVINGS``)."""
+    prev, val, err = None, math.inf, math.inf
+    for _ in range(_CONT_HALVINGS + 1):
+        ad, bd = _zoh(acl, bsum[:, None], h)
+        x_inf = np.linalg.solve(np.eye(ad.shape[0]) - ad, bd[:, 0])
+        # e_k = 1 - cy X_k = -cy (X_k - x_inf) (zero steady error); e_0 = 1: the trapezoid halves it.
+        val, tail = _block_sum(ad, -cy, -x_inf, 0, 0.0, h, "iae", min(rtol, TAIL_RTOL))
+        val -= 0.5 * h
+        if prev is not None:
+            err = abs(val - prev) / 3.0 + tail
+            if err <= rtol * val:
+                break
+        prev = val
+        h /= 2.0
+    return val, err
+
+
+def _setpoint_weights(lp: LoopModel, gains, ideal: bool) -> dict:
+    """2-DOF setpoint weights for the load-optimal ``gains`` (fixed: b and c do not enter the loop
+    transfer, so Ms/Mt/Mks and the load response are unchanged). Goal: the least IAE of the
+    error ``r - y`` after a unit setpoint step. The error is affine in (b, c), so that IAE is
+    convex in them: a scan of ``_SP_GRID`` points per weight in [0, 1] on the sampled basis
+    responses, then a Nelder-Mead search from the best point on the same samples (weights
+    clipped to [0, 1]), and the result's IAE recomputed to ``CONT_RTOL`` (:func:`_setpoint_iae`). ``c`` is 0 for an
+    ideal derivative (a setpoint step would give an impulse) and for a PI."""
+    from scipy.optimize import minimize
+
+    acl, b0, bb, bc = _setpoint_basis(lp, gains)
+    cy = -lp.Ce  # the output row over X (Ce is the load error row, -y)
+    h = lp.h / 4.0
+    n_s = 4 * lp.n_steps
+    N = acl.shape[0]
+    basis = []
+    for bvec in (b0, bb, bc):
+        ad, bd = _zoh(acl, bvec[:, None], h)
+        x = np.zeros(N)
+        ys = np.empty(n_s)
+        for k in range(n_s):
+            ys[k] = cy @ x
+            x = ad @ x + bd[:, 0]
+        basis.append(ys)
+    use_c = lp.gvec(gains)[2] > 0 and not ideal
+    wts = np.full(n_s, h)
+    wts[0] = 0.5 * h
+
+    def iae(b, c):
+        return float(wts @ np.abs(1.0 - basis[0] - b * basis[1] - c * basis[2]))
+
+    # Scan (vectorised over the grid), then Nelder-Mead from the best grid point, clipped to [0, 1].
+    grid = np.linspace(0.0, 1.0, _SP_GRID)
+    bs, cs = np.meshgrid(grid, grid if use_c else np.array([0.0]), indexing="ij")
+    bs, cs = bs.ravel(), cs.ravel()
+    vals = np.concatenate([wts @ np.abs(1.0 - basis[0][:, None] - basis[1][:, None] * bs[None, j : j + 200]
+                                        - basis[2][:, None] * cs[None, j : j + 200]) for j in range(0, bs.size, 200)])
+    i = int(np.argmin(vals))
+    x0 = np.array([bs[i], cs[i]])[: 2 if use_c else 1]
+
+    def f(x):
+        x = np.clip(x, 0.0, 1.0)
+        return iae(x[0], x[1] if use_c else 0.0)
+
+    r = minimize(f, x0, method="Nelder-Mead", options={"xatol": 1e-7, "fatol": 1e-12, "maxfev": 400})
+    x = np.clip(r.x, 0.0, 1.0) if f(r.x) <= vals[i] else x0
+    b, c = float(x[0]), float(x[1]) if use_c else 0.0
+    val, err = _setpoint_iae(acl, b0 + b * bb + c * bc, cy, lp.h, CONT_RTOL)
+    one = _setpoint_iae(acl, b0 + bb + (bc if use_c else 0.0), cy, lp.h, CONT_RTOL)[0]
+    y = basis[0] + b * basis[1] + c * basis[2]
+    return {"b": b, "c": c, "goal": "least IAE of r - y after a unit setpoint step, load-optimal gains fixed",
+            "iae": val, "iae_error": err, "iae_unweighted": one, "overshoot": max(float(np.max(y)) - 1.0, 0.0)}
 
 
 #: Largest plant order :func:`tune_pid` accepts (states of its state-space realisation): the
