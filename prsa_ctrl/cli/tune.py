@@ -205,6 +205,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                           lo_open=True, hi_open=True),
                    help="peak complementary-sensitivity bound, in (1, 10); Mt >= 1 with integral action "
                         "(default: the scene's, none)")
+    p.add_argument("--mks-max", metavar="MKS", type=_number("--mks-max", 0.0, 1e12, "N m s/rad",
+                                                            "a noise-sensitivity bound", lo_open=True),
+                   help="bound on the true peak noise sensitivity max|C F S| from the measured speed to the torque "
+                        "command, N m s/rad (default: the scene's, none)")
     p.add_argument("--objective", choices=OBJECTIVES, help="tuning objective (default: the scene's, iae)")
     p.add_argument("--controller", choices=CONTROLLERS, help="controller structure (default: the scene's, pi)")
     p.add_argument("--estimator", choices=ESTIMATORS, help="speed measurement: drive difference or Kalman filter")
@@ -472,7 +476,8 @@ def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
 
 def _scene_header(sc, overrides: Sequence[str] = ()) -> str:
     loads = ", ".join(f"{f:g}" for f in sc.final_loads)
-    bounds = f"Ms <= {sc.ms_max:g}" + (f", Mt <= {sc.mt_max:g}" if sc.mt_max is not None else "")
+    bounds = f"Ms <= {sc.ms_max:g}" + (f", Mt <= {sc.mt_max:g}" if sc.mt_max is not None else "") + (
+        f", Mks <= {sc.mks_max:g} N m s/rad" if sc.mks_max is not None else "")
     name = f"scene {sc.name}" + (f" with {' '.join(overrides)}" if overrides else "")
     if sc.is_profile:
         goal = {"load": "load rejection", "setpoint": "setpoint tracking",
@@ -772,6 +777,7 @@ def _load_and_override(args, run: _Run, plot: bool = False):
         overrides.append(typed["setpoint_rad_s"])
     for arg, fieldname, flag in (("step_time", "step_time", "--step-time"), ("duration", "duration", "--duration"),
                                  ("ms_max", "ms_max", "--ms-max"), ("mt_max", "mt_max", "--mt-max"),
+                                 ("mks_max", "mks_max", "--mks-max"),
                                  ("objective", "objective", "--objective"),
                                  ("controller", "controller", "--controller"), ("estimator", "estimator", "--estimator")):
         v = getattr(args, arg, None)
