@@ -204,3 +204,30 @@ def setpoint_iae(num, den, kp, ki, kd, tf, b, c, t_end=80.0, n=80001):
     t = np.linspace(0.0, t_end, n)
     _, y, _ = signal.lsim((num_cl, den_cl), np.ones_like(t), t)
     return float(np.trapezoid(np.abs(1.0 - y), t)), float(np.max(y) - 1.0)
+
+
+def best_ideal_pid(num, den, ms, mt, starts, w=None):
+    """IE-optimal ideal PID ``kp + ki/s + kd s`` (no filter) under Ms (and Mt) by SLSQP on the
+    grid-discretised semi-infinite problem from each start; the best point with its peaks on
+    :data:`W`: ``((kp, ki, kd), (Ms, Mt))``."""
+    from scipy.optimize import minimize
+
+    w = np.logspace(-3, 3, 4000) if w is None else w
+    p = loop_parts(num, den, w=w)
+
+    def cons(x):
+        L = p * controller(x[0], x[1], x[2], w=w)
+        a = np.abs(1 + L) ** 2
+        out = [a * ms * ms - 1.0]
+        if mt is not None:
+            out.append(mt * mt * a - np.abs(L) ** 2)
+        return np.concatenate(out)
+
+    best = None
+    for x0 in starts:
+        r = minimize(lambda x: -x[1], x0, method="SLSQP", constraints=[{"type": "ineq", "fun": cons}],
+                     bounds=[(0, None), (1e-6, None), (0, None)], options={"maxiter": 300, "ftol": 1e-12})
+        if best is None or r.x[1] > best[1]:
+            best = r.x
+    pk = peaks(loop_parts(num, den), controller(*best))
+    return tuple(float(v) for v in best), pk[:2]

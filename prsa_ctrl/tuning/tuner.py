@@ -3258,7 +3258,8 @@ def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: 
                 "derivative": "ideal" if ideal else "filtered"}
     mks = res.mks
     if ideal:
-        warnings.append("ideal derivative: the law is (kp + ki/s + kd s) F(s); pid.tf is not part of it")
+        warnings.append("ideal derivative: the law is kp + ki/s + kd s" + (" times the filter F(s)" if order else "")
+                        + "; pid.tf is not part of it")
         if not order and res.pid.kd > 0:
             mks = math.inf
     if delay > 0:
