@@ -12,7 +12,7 @@ python3 -m venv --clear "$venv"
 rm -rf build ./*.egg-info
 "$venv/bin/python" -m pip install --quiet --upgrade pip
 "$venv/bin/python" -m pip install --quiet --upgrade --upgrade-strategy eager ".[test,notebooks,dask,app]" "playwright>=1.40"
-# The browser tests (tests/test_app_browser.py) drive Debian's Chromium (Playwright's own browser
+# The browser tests (tests/app/test_app_browser.py) drive Debian's Chromium (Playwright's own browser
 # download cannot work here): install it where missing and possible; without it they skip with
 # one line, and under CI=true they fail.
 if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then

@@ -193,6 +193,8 @@ def build_parser() -> argparse.ArgumentParser:
         "Exit codes: 0 ok, 2 bad input, 3 numerical failure, 130 interrupted.",
     )
     _common_flags(p)
+    p.add_argument("--show-plant", type=_path_text("--show-plant"), metavar="NAME|PATH",
+                   help="print every value of the plant with its unit and source (given or default), then exit")
     p.add_argument("--step-time", metavar="S", type=_number("--step-time", 0.0, 1e4, "s", "a time", lo_open=True),
                    help="time of the load step, s; at least 8 controller samples after t = 0 (default: the scene's)")
     p.add_argument("--duration", metavar="S", type=_number("--duration", 0.0, 1e4, "s", "a time", lo_open=True),
@@ -920,6 +922,11 @@ def _tune_body(run: _Run, argv: list[str]) -> int:
         build_parser().print_help()
         return EXIT_OK
     args = build_parser().parse_args(argv)
+    if args.show_plant is not None:  # issue 21: the plant's values with their sources
+        from ..plant.plantfile import show_plant
+
+        print(show_plant(args.show_plant))
+        return EXIT_OK
     from ..tuning.cascade import is_move_scene  # issue 12: a scene with a [move] section tunes the cascade
 
     if is_move_scene(args.scene):

@@ -21,6 +21,10 @@ _EXPORTS = {
     "Uncertain": "uncertainty",
     "UncertaintyModel": "uncertainty",
     "builtin_plants": "plantfile",
+    "describe_plant": "plantfile",
+    "show_plant": "plantfile",
+    "DEFAULTS": "schema",
+    "MECHANISMS": "schema",
     "check_plant_uncertainty": "uncertainty",
     "closed_loop": "linear",
     "linear_core": "linear",
@@ -38,6 +42,7 @@ _EXPORTS = {
     "register_member": "model",
     "steady_torque": "equilibrium",
     "stick_band_rad_s": "model",
+    "screw_axis_springs": "model",
     "stribeck_coefficient": "model",
     "uncertainty_model": "uncertainty",
 }

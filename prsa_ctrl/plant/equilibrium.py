@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import SimulationError
-from .model import PlantModel, plant_model, stick_band_rad_s
+from .model import PlantModel, plant_model, screw_axis_springs, stick_band_rad_s
 from .plantfile import Plant
 
 __all__ = ["OperatingPoint", "operating_point", "steady_torque", "MAX_NEWTON_ITER"]
@@ -138,6 +138,7 @@ def _scale(model: PlantModel, rest: bool, torque_scale: float) -> NDArray[np.flo
     defl = (per_contact / p.contact_stiffness_si) ** (1.0 / p.values["contact.exponent"])
     typical = {"omega_cage": 100.0, "x_roller": defl, "v_roller": p.lead_per_rad * 100.0,
                "delta_screw": defl, "v_screw": p.lead_per_rad * 100.0, "tau_motor": torque_scale}
+    typical.update(model.state_scales or {})  # a screw-driven axis: its spring deflections
     out = [typical.get(model.state_names[i], 1.0) for i in _free(model)]
     return np.array(out if rest else out + [torque_scale])
 
@@ -149,7 +150,12 @@ def _guess(model: PlantModel, omega: float, load: float) -> NDArray[np.float64]:
     x[model.index("omega_nut")] = omega
     names = model.state_names
     f_n, f_s = p.normal_force_factor()
-    if "omega_cage" in names:
+    if p.screw_driven and "delta_screw" in names:  # the springs carry the load (model._screw_driven)
+        k_h, _, k_b, _, _ = (float(z) for z in screw_axis_springs(p))
+        x[model.index("v_screw")] = float(k.v_screw)
+        x[model.index("delta_screw")] = load / k_h
+        x[model.index("x_roller")] = -load / k_b
+    elif "omega_cage" in names:
         c_b = math.cos(p.flank_angle_rad)
         k_si, e = p.contact_stiffness_si, p.values["contact.exponent"]
 

@@ -19,6 +19,32 @@ Fidelities of one physical model
 
 All include the drive: torque-command saturation and a first-order current loop.
 
+Mechanisms (``Plant.mechanism``) on the same model
+--------------------------------------------------
+The rotating degree of freedom is always the motor's (``theta_nut``, ``omega_nut``: the nut of
+the inverted roller screw, the screw of a screw-driven axis) and ``v_screw`` the translating
+member's speed (the screw of the inverted design, the nut with the carriage of a screw-driven
+axis); the inputs are always the torque command (N m) and the axial load (N).
+
+``inverted-roller-screw``
+    All three fidelities as described above.
+``roller-screw``, ``ball-screw`` (screw-driven: the motor turns the screw, the nut translates)
+    ``rigid``: the motor, screw and carriage as one inertia ``J_motor + J_screw + m (L/2 pi)^2``
+    (the rollers' or balls' own inertia neglected), thread friction as below (efficiency
+    ``friction.efficiency`` forward, ``2 - 1/eta`` back-driving, :attr:`Plant.backdrive_efficiency`).
+    ``compliant``: the axial spring of the screw-shaft/nut/bearing path, whose stiffness depends
+    on the nut's position along the stroke (:func:`_screw_driven`): three bodies, rotor with
+    screw, screw shaft axially on its bearings, carriage. The states keep the inverted model's
+    names (``x_roller``/``v_roller``: the shaft's axial displacement/speed, ``delta_screw``: the
+    helix spring's compression) and outputs (``contact_force_nut``: the nut force,
+    ``contact_force_screw``: the bearing force). ``multi-roller``: not available (it models the
+    inverted design's per-roller contacts). The roller-screw's carrier and roller speeds are
+    outputs of its rigid kinematics; a ball screw's are 0 (the ball train is not modelled).
+``linear-axis`` (load coordinates: 1 m of travel per radian, force in N as torque in N m)
+    ``rigid`` and ``compliant`` are both the rigid mass with direction-dependent Coulomb and
+    viscous friction (:func:`_linear_axis_friction`): a plain axis description carries no
+    compliance. ``multi-roller``: not available.
+
 Axial kinematics of the inverted design (derivation)
 ----------------------------------------------------
 Bodies: the nut rotates (angle ``th_N``) and is axially fixed in the housing by its bearings;
@@ -64,7 +90,7 @@ Before this derivation the model held the rollers axially with the nut (``delta_
 and put the helix in the screw-roller contact (``delta_S = x_R + (a/c) th_P - x_S``, ``c`` the
 cage ratio), so the whole load torque flowed nut -> traction -> cage -> screw thread.
 ``_build(..., roller_axial="nut")`` keeps that assumption for comparison only
-(``tests/test_physics.py`` measures the difference).
+(``tests/plant/test_physics.py`` measures the difference).
 
 Thread friction: Stribeck curve with Karnopp stiction
 -----------------------------------------------------
@@ -103,7 +129,7 @@ from .plantfile import Plant
 
 __all__ = ["FIDELITIES", "PlantModel", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
            "ParametricModel", "parametric_family", "register_member",
-           "stick_band_rad_s", "STICK_TIME_CONSTANT_S"]
+           "stick_band_rad_s", "STICK_TIME_CONSTANT_S", "screw_axis_springs"]
 
 from ..options import FIDELITIES  # noqa: E402  (re-exported)
 
@@ -161,7 +187,24 @@ _OUTPUTS = {
 }
 
 
+_SCREW_DRIVEN_STATES = ("theta_nut", "omega_nut", "x_roller", "v_roller", "delta_screw", "v_screw", "tau_motor")
+
+
+def _state_names(plant: Plant, fidelity: str) -> tuple[str, ...]:
+    """States of ``fidelity`` for the plant's mechanism (module docstring: what the names mean)."""
+    if fidelity == "multi-roller" and plant.mechanism != "inverted-roller-screw":
+        raise ValueError(f"fidelity = 'multi-roller' models the per-roller contacts of the inverted roller screw; "
+                         f"expected 'rigid' or 'compliant' for mechanism = {plant.mechanism!r}")
+    if fidelity == "compliant" and plant.screw_driven:
+        return _SCREW_DRIVEN_STATES
+    if fidelity == "compliant" and plant.mechanism == "linear-axis":
+        return _STATES["rigid"]
+    return _STATES[fidelity]
+
+
 def _output_names(plant: Plant, fidelity: str) -> tuple[str, ...]:
+    if fidelity == "compliant" and plant.mechanism == "linear-axis":
+        return _OUTPUTS["rigid"]
     if fidelity != "multi-roller":
         return _OUTPUTS[fidelity]
     n = plant.n_rollers
@@ -206,6 +249,9 @@ class PlantModel:
     power: ca.Function
     family: "ParametricModel | None" = None
     theta: tuple = ()
+    #: Typical magnitudes of states whose scale differs from the inverted screw's (read by the
+    #: simulator's tolerances): the axial deflections of a screw-driven axis.
+    state_scales: "dict | None" = None
 
     @property
     def nx(self) -> int:
@@ -313,8 +359,21 @@ def _drive(plant: Plant, tau_cmd: ca.SX, tau: ca.SX) -> ca.SX:
 
 
 def _kinematic_outputs(plant: Plant, omega_nut, omega_cage, v_screw, tau) -> list:
+    if plant.mechanism != "inverted-roller-screw":
+        rel, ab = plant.roller_spin_ratios
+        return [omega_nut, omega_cage, omega_cage * rel, omega_cage * ab, v_screw, tau]
     d_s, d_r = plant.d_screw_m, plant.d_roller_m
     return [omega_nut, omega_cage, omega_cage * d_s / d_r, omega_cage * (d_s + d_r) / d_r, v_screw, tau]
+
+
+def _linear_axis_friction(plant: Plant, omega: ca.SX):
+    """Viscous force and constant offset of a linear axis (load coordinates, N): ``Fv+ v`` for
+    ``v > 0``, ``Fv- v`` for ``v < 0``; the offset ``(Fc+ - Fc-)/2`` makes the Coulomb levels
+    ``Fc+`` and ``-Fc-`` around the symmetric part ``(Fc+ + Fc-)/2`` (``friction.no_load_torque_n_m``)."""
+    v = plant.values
+    visc = ca.if_else(omega >= 0, v["friction.viscous_positive_n_s_per_m"] * omega,
+                      v["friction.viscous_negative_n_s_per_m"] * omega)
+    return visc, 0.5 * (v["friction.coulomb_positive_n"] - v["friction.coulomb_negative_n"])
 
 
 def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
@@ -323,13 +382,19 @@ def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
     a = plant.lead_per_rad
     j_eq = plant.reflected_inertia_kg_m2
     f_n, f_s = plant.normal_force_factor()
-    t_visc = _viscous(plant, omega)
+    if plant.mechanism == "linear-axis":
+        t_visc, offset = _linear_axis_friction(plant, omega)
+        load = load + offset  # the Coulomb offset acts like a constant load (both in N, a = 1 m/rad)
+    else:
+        t_visc = _viscous(plant, omega)
     t_net = tau - load * a - t_visc
     t_fric = _nut_friction(plant, omega, ca.fabs(load) * (f_n + f_s), t_net, j_eq)
     xdot = ca.vertcat(omega, (t_net - t_fric) / j_eq, _drive(plant, u[0], tau))
     y = _kinematic_outputs(plant, omega, omega * plant.cage_ratio, omega * a, tau)
     stored = 0.5 * j_eq * omega**2
     dissipated = (t_fric + t_visc) * omega
+    if plant.mechanism == "linear-axis":  # the offset is friction: dissipated, not load power
+        return xdot, y, [stored, tau * omega, u[1] * a * omega, dissipated + (load - u[1]) * a * omega]
     return xdot, y, [stored, tau * omega, load * a * omega, dissipated]
 
 
@@ -410,6 +475,70 @@ def _compliant(plant: Plant, x: ca.SX, u: ca.SX, roller_axial: str = "screw"):
     r, y, terms = _compliant_bodies(plant, w_n, w_p, v_r, v_s, tau, u, contacts)
     xdot = ca.vertcat(w_n, r["omega_nut"], r["omega_cage"], -dd_nr, r["v_roller"], dd_sr, r["v_screw"], r["tau_motor"])
     return xdot, y, terms
+
+
+def screw_axis_springs(plant: Plant):
+    """Springs and masses of a screw-driven axis's compliant model (numbers or CasADi symbols):
+    ``(k_helix, c_helix, k_bearing, c_bearing, m_shaft)`` in N/m, N s/m, kg.
+
+    ``k_helix``: the screw shaft between the fixed bearing(s) and the nut (stroke-dependent,
+    :meth:`Plant.shaft_stiffness_n_per_m`) in series with the nut; ``k_bearing``: the axial
+    support bearing(s). Damping ``c = 2 zeta sqrt(k m)`` with ``zeta`` =
+    ``axis.axial_damping_ratio`` and ``m`` the mass the spring moves against (the carriage
+    with the rotor reflected through the lead for the helix spring, the shaft for the bearing).
+    """
+    v = plant.values
+    k_shaft = plant.shaft_stiffness_n_per_m()
+    k_nut = v["axis.nut_stiffness_n_per_um"] * 1e6
+    k_helix = k_shaft * k_nut / (k_shaft + k_nut)
+    k_brg = v["axis.bearing_stiffness_n_per_um"] * 1e6
+    zeta = v["axis.axial_damping_ratio"]
+    j_rot = v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"]
+    m_c = v["axis.moving_mass_kg"]
+    a = plant.lead_per_rad
+    m_red = 1.0 / (1.0 / m_c + a * a / j_rot)
+    m_sh = plant.screw_axial_mass_kg
+    return k_helix, 2.0 * zeta * ca.sqrt(k_helix * m_red), k_brg, 2.0 * zeta * ca.sqrt(k_brg * m_sh), m_sh
+
+
+def _screw_driven(plant: Plant, x: ca.SX, u: ca.SX):
+    """Compliant model of a screw-driven axis (``roller-screw``, ``ball-screw``): three bodies.
+
+    * the rotor with the screw turning (``theta_nut``, ``omega_nut``; inertia
+      ``J_motor + J_screw``),
+    * the screw shaft moving axially on its support bearing(s) (``x_roller`` = its axial
+      displacement ``u``, ``v_roller`` = its speed; mass: the shaft's),
+    * the nut with the carriage (``v_screw``; mass ``axis.moving_mass_kg``).
+
+    The bearing spring ``k_B`` holds the shaft (force ``-k_B u``); the helix spring ``k_H``
+    (shaft between bearing and nut, in series with the nut) carries ``F = k_H delta`` with the
+    compression ``delta = a th + u - x_C`` (state ``delta_screw``): ``+F`` on the carriage,
+    ``-F`` on the shaft, torque ``-a F`` on the rotor. The carriage position is
+    ``a th + x_roller - delta_screw`` (as for the inverted screw's translating member). Thread
+    friction: the same Stribeck/Karnopp law as the inverted screw on the normal force of ``|F|``.
+    At steady state ``F`` = the load, and the static stiffness from the motor to the carriage
+    is ``1 / (1/k_shaft + 1/k_nut + 1/k_bearing)`` (:meth:`Plant.axial_stiffness_n_per_m`).
+    """
+    _, w, u_sh, v_sh, delta, v_c, tau = ca.vertsplit(x)
+    load = u[1]
+    v = plant.values
+    a = plant.lead_per_rad
+    j_rot = v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"]
+    m_c = v["axis.moving_mass_kg"]
+    k_h, c_h, k_b, c_b, m_sh = screw_axis_springs(plant)
+    d_delta = a * w + v_sh - v_c
+    f_h = k_h * delta + c_h * d_delta
+    f_n, f_s = plant.normal_force_factor()
+    t_visc = _viscous(plant, w)
+    t_net = tau - a * f_h - t_visc
+    t_fric = _nut_friction(plant, w, ca.fabs(f_h) * (f_n + f_s), t_net, j_rot)
+    xdot = ca.vertcat(w, (t_net - t_fric) / j_rot, v_sh, (-f_h - k_b * u_sh - c_b * v_sh) / m_sh, d_delta,
+                      (f_h - load) / m_c, _drive(plant, u[0], tau))
+    y = _kinematic_outputs(plant, w, w * plant.cage_ratio, v_c, tau) + [f_h, k_b * u_sh + c_b * v_sh]
+    stored = (0.5 * j_rot * w**2 + 0.5 * m_sh * v_sh**2 + 0.5 * m_c * v_c**2 + 0.5 * k_h * delta**2
+              + 0.5 * k_b * u_sh**2)
+    dissipated = (t_fric + t_visc) * w + c_h * d_delta**2 + c_b * v_sh**2
+    return xdot, y, [stored, tau * w, load * v_c, dissipated]
 
 
 @dataclass(frozen=True)
@@ -502,16 +631,30 @@ def _build(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "scre
         f=ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"]),
         h=ca.Function("h", [x, u], [y], ["x", "u"], ["y"]),
         power=ca.Function("power", [x, u], [terms], ["x", "u"], ["terms"]),
+        state_scales=_state_scales(plant, names),
     )
+
+
+def _state_scales(plant: Plant, names: tuple[str, ...]) -> "dict | None":
+    """Typical deflections of a screw-driven axis's compliant model: the rated load over each
+    spring's stiffness (m); ``None`` for the other models (the simulator's defaults hold)."""
+    if not (plant.screw_driven and "delta_screw" in names):
+        return None
+    k_h, _, k_b, _, _ = (float(z) for z in screw_axis_springs(plant))
+    return {"x_roller": plant.rated_load_n / k_b, "delta_screw": plant.rated_load_n / k_h}
 
 
 def _equations(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "screw"):
     """State names, symbols ``x``, ``u`` and the expressions ``xdot``, ``y``, energy terms."""
-    names = _STATES[fidelity]
+    names = _state_names(plant, fidelity)
     x = ca.SX.sym("x", len(names))
     u = ca.SX.sym("u", 2)
     if fidelity == "multi-roller":
         xdot, y, terms = _multi_roller(plant, x, u, RollerErrors.draw(plant, seed), roller_axial)
+    elif fidelity == "compliant" and plant.screw_driven:
+        xdot, y, terms = _screw_driven(plant, x, u)
+    elif fidelity == "compliant" and plant.mechanism == "linear-axis":
+        xdot, y, terms = _rigid(plant, x, u)
     elif fidelity == "compliant":
         xdot, y, terms = _compliant(plant, x, u, roller_axial)
     else:
@@ -615,7 +758,7 @@ class ParametricModel:
             f=ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"]),
             h=ca.Function("h", [x, u], [y], ["x", "u"], ["y"]),
             power=ca.Function("power", [x, u], [terms], ["x", "u"], ["terms"]),
-            family=self, theta=theta,
+            family=self, theta=theta, state_scales=_state_scales(plant, self.state_names),
         )
 
 
@@ -630,16 +773,15 @@ _FAMILIES: dict[tuple, "ParametricModel | None"] = {}
 def _parameter_candidate(key: str) -> bool:
     """Keys that may be parameters: not read as numbers by the sampled loop (``sensor.*``,
     the torque limit) and not structural (integers: starts, counts, engaged threads)."""
-    from .plantfile import SCHEMA
+    from .schema import KIND
 
-    section, sub = key.split(".")
-    return section != "sensor" and key != "drive.torque_limit_n_m" and SCHEMA[section][sub] != "positive integer"
+    return not key.startswith("sensor.") and key != "drive.torque_limit_n_m" and KIND[key] != "positive integer"
 
 
 def _symbolic_build(base: Plant, fidelity: str, seed: int, keys: tuple[str, ...]) -> ParametricModel:
     theta = ca.SX.sym("theta", len(keys))
     view = object.__new__(Plant)  # the base plant with SX symbols for ``keys`` (no validation)
-    for name in ("name", "sources", "origin", "description", "uncertainty"):
+    for name in ("name", "sources", "origin", "description", "uncertainty", "mechanism", "defaulted", "mechanism_source"):
         object.__setattr__(view, name, getattr(base, name))
     values = dict(base.values)
     values.update({k: theta[i] for i, k in enumerate(keys)})

@@ -1,9 +1,13 @@
-"""Plant definitions: loading, validation, geometry matching and rigid kinematics.
+"""Plant definitions: loading, validation, defaults, geometry matching and rigid kinematics.
 
-A plant file (``plants/*.toml``) holds one table per component; every parameter is an inline
-table ``{ value = ..., source = "..." }`` so that its origin (paper table, paper text, or
-``"assumption: <why>"``) travels with it. Key names carry their units; inside the library
-everything is SI.
+A plant file (``plants/*.toml``) names its ``mechanism`` (default ``inverted-roller-screw``;
+:data:`prsa_ctrl.plant.schema.MECHANISMS`) and holds one table per component; every parameter
+is an inline table ``{ value = ..., source = "..." }`` so that its origin (paper table, paper
+text, catalogue, or ``"assumption: <why>"``) travels with it. Only a few keys are required
+per mechanism (:data:`~prsa_ctrl.plant.schema.REQUIRED`); every other key takes its documented
+default with that default's source (:data:`~prsa_ctrl.plant.schema.DEFAULTS`), and
+:func:`describe_plant` (``prsa-tune --show-plant``) lists every value, given or defaulted. Key
+names carry their units; inside the library everything is SI.
 """
 
 from __future__ import annotations
@@ -21,8 +25,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
-from .schema import (ALLOWED_KEYS, FRACTION, NON_NEGATIVE, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER,  # noqa: F401
-                     SCHEMA)
+from .schema import (ALLOWED_KEYS, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
+                     MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
+                     SCREW_DRIVEN, UNITS, keys_of)
 from .uncertainty import check_plant_uncertainty
 
 __all__ = [
@@ -33,11 +38,14 @@ __all__ = [
     "builtin_plants",
     "plant_file_path",
     "DEFAULT_PLANT",
+    "describe_plant",
+    "show_plant",
     "SCHEMA",
     "PLAUSIBLE",
 ]
 
 DEFAULT_PLANT = "paper-iprsm"
+_STEEL_KG_M3 = 7850.0  # density of steel, kg/m^3 (as the defaults of plant/schema.py)
 
 def _builtin_root(package: str, folder: str) -> Any:
     """Where the built-in TOML files live: the installed package data, or, when running from a
@@ -115,7 +123,7 @@ def _check_consistency(v: Mapping[str, float], o: str) -> None:
             f"{v['screw.rated_load_n']:g} N; expected a preload of at most the rated load")
 
 
-def _check_value(kind: str, key: str, value: Any, origin: str) -> float:
+def _check_value(kind: str, key: str, value: Any, origin: str, plausible: bool = True) -> float:
     where = f"{origin}: {key}"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
@@ -130,7 +138,7 @@ def _check_value(kind: str, key: str, value: Any, origin: str) -> float:
         raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
     if kind == FRACTION and not 0 < v <= 1:
         raise PlantFileError(f"{where} = {value!r}; expected a {kind}")
-    if key in PLAUSIBLE:
+    if plausible and key in PLAUSIBLE:
         lo, hi, why = PLAUSIBLE[key]
         if not lo <= v <= hi:
             raise PlantFileError(
@@ -140,36 +148,64 @@ def _check_value(kind: str, key: str, value: Any, origin: str) -> float:
     return v
 
 
-def _parse(doc: Mapping[str, Any], origin: str) -> tuple[str, str, dict[str, float], dict[str, str]]:
-    """Validate a parsed plant document; return name, description, values and sources."""
-    unknown = sorted(set(doc) - set(SCHEMA) - {"name", "description", "uncertainty"})
+def _text_key(doc: Mapping[str, Any], key: str, choices, default: str, origin: str) -> tuple[str, str, bool]:
+    """``(value, source, given)`` of a top-level text key (``mechanism``, ``mounting``): a plain
+    string or ``{ value = "...", source = "..." }``."""
+    if key not in doc:
+        return default, f"default: {default}", False
+    entry = doc[key]
+    src = "plant file"
+    if isinstance(entry, Mapping):
+        if set(entry) != {"value", "source"} or not isinstance(entry["source"], str) or not entry["source"].strip():
+            raise PlantFileError(f'{origin}: {key} = {entry!r}; expected "<name>" or {{ value = "<name>", source = "<why>" }}')
+        entry, src = entry["value"], entry["source"].strip()
+    if entry not in choices:
+        raise PlantFileError(f"{origin}: {key} = {entry!r}; expected one of {', '.join(repr(c) for c in choices)}")
+    return entry, src, True
+
+
+#: Top-level entries besides the sections; ``coordinates`` and ``drive.command_unit`` are the
+#: linear-axis file's (:mod:`prsa_ctrl.identification.axis`), accepted and not used here.
+_TOP_LEVEL = ("name", "description", "mechanism", "mounting", "uncertainty")
+
+
+def _sections(mechanism: str) -> dict[str, tuple[str, ...]]:
+    out: dict[str, list[str]] = {}
+    for full in keys_of(mechanism):
+        section, key = full.split(".")
+        out.setdefault(section, []).append(key)
+    return {s: tuple(k) for s, k in out.items()}
+
+
+def _given_values(doc: Mapping[str, Any], mechanism: str, origin: str) -> tuple[dict[str, float], dict[str, str]]:
+    """The keys the file gives, checked (kind and plausible range), with their sources."""
+    sections = _sections(mechanism)
+    top = _TOP_LEVEL + (("coordinates",) if mechanism == "linear-axis" else ())
+    unknown = sorted(set(doc) - set(sections) - set(top))
     if unknown:
-        raise PlantFileError(
-            f"{origin}: unknown section {unknown[0]!r}; expected one of "
-            f"{', '.join(['name', 'description', *SCHEMA, 'uncertainty'])}"
-        )
-    name = doc.get("name")
-    if not isinstance(name, str) or not name.strip():
-        raise PlantFileError(f"{origin}: name = {name!r}; expected a non-empty string")
-    description = doc.get("description", "")
-    if not isinstance(description, str):
-        raise PlantFileError(f"{origin}: description = {description!r}; expected a string")
+        other = [m for m in MECHANISMS if unknown[0] in _sections(m)]
+        hint = f" (a section of mechanism {', '.join(other)}; this file's mechanism is {mechanism!r})" if other else ""
+        raise PlantFileError(f"{origin}: unknown section {unknown[0]!r}; expected one of "
+                             f"{', '.join([*top[:2], *sections, *top[2:]])}{hint}")
+    if mechanism == "linear-axis" and doc.get("coordinates", "load") != "load":
+        raise PlantFileError(f"{origin}: coordinates = {doc['coordinates']!r}; expected \"load\" (m, N)")
     values: dict[str, float] = {}
     sources: dict[str, str] = {}
-    for section, keys in SCHEMA.items():
-        table = doc.get(section)
+    for section, keys in sections.items():
+        table = doc.get(section, {})
         if not isinstance(table, Mapping):
-            raise PlantFileError(f"{origin}: missing section [{section}]")
-        extra = sorted(set(table) - set(keys))
+            raise PlantFileError(f"{origin}: {section} = {table!r}; expected a table [{section}]")
+        extra = sorted(set(table) - set(keys) - ({"command_unit"} if (mechanism, section) == ("linear-axis", "drive") else set()))
         if extra:
+            full = f"{section}.{extra[0]}"
+            other = [m for m in MECHANISMS if full in keys_of(m)]
+            hint = f" ({full} belongs to mechanism {', '.join(other)}; this file's mechanism is {mechanism!r})" if other else ""
             raise PlantFileError(
-                f"{origin}: unknown key {section}.{extra[0]}; expected one of "
-                f"{', '.join(f'{section}.{k}' for k in keys)}"
-            )
-        for key, kind in keys.items():
+                f"{origin}: unknown key {full}; expected one of {', '.join(f'{section}.{k}' for k in keys)}{hint}")
+        for key in keys:
             full = f"{section}.{key}"
             if key not in table:
-                raise PlantFileError(f"{origin}: missing key {full}")
+                continue
             entry = table[key]
             if not isinstance(entry, Mapping) or set(entry) != {"value", "source"}:
                 raise PlantFileError(
@@ -179,9 +215,85 @@ def _parse(doc: Mapping[str, Any], origin: str) -> tuple[str, str, dict[str, flo
             src = entry["source"]
             if not isinstance(src, str) or not src.strip():
                 raise PlantFileError(f"{origin}: {full}.source = {src!r}; expected a non-empty string")
-            values[full] = _check_value(kind, full, entry["value"], origin)
+            values[full] = _check_value(KIND[full], full, entry["value"], origin)
             sources[full] = src.strip()
-    return name.strip(), description, values, sources
+    return values, sources
+
+
+def _default_source(key: str, mechanism: str) -> str:
+    src = DEFAULTS[key][1]
+    return src if isinstance(src, str) else src.get(mechanism, src.get("*", ""))
+
+
+def _fill_defaults(values: dict[str, float], sources: dict[str, str], mechanism: str, origin: str) -> set[str]:
+    """Add every key of ``mechanism`` the file left out (:data:`~prsa_ctrl.plant.schema.DEFAULTS`);
+    return the keys defaulted. Rules are evaluated once their inputs exist (bounded: one pass
+    per key at most)."""
+    todo = [k for k in keys_of(mechanism) if k not in values]
+    missing = [k for k in REQUIRED[mechanism] if k not in values]
+    if missing:
+        raise PlantFileError(
+            f"{origin}: missing key {missing[0]}; expected it for mechanism = {mechanism!r} "
+            f"(required: {', '.join(REQUIRED[mechanism])}; every other key has a default, see prsa-tune --show-plant)")
+    defaulted = set(todo)
+    for _ in range(len(todo) + 1):
+        if not todo:
+            break
+        left = []
+        for key in todo:
+            rule = DEFAULTS[key][0]
+            try:
+                v = rule(values, mechanism) if callable(rule) else rule
+            except KeyError:
+                left.append(key)
+                continue
+            values[key] = _check_value(KIND[key], key, v, f"{origin} (default)", plausible=False)
+            sources[key] = _default_source(key, mechanism)
+        todo = left
+    if todo:  # a rule whose inputs never appear: a defect of the DEFAULTS table, not of the file
+        raise RuntimeError(f"plant defaults: no value for {', '.join(todo)} (DEFAULTS rules depend on missing keys)")
+    return defaulted
+
+
+def _check_screw_axis(v: Mapping[str, float], o: str) -> None:
+    """Cross-checks of a screw-driven axis: the nut within the bearing span (strictly inside for
+    fixed-fixed), the root below the pitch diameter."""
+    x, span = v["axis.stroke_position_mm"], v["axis.bearing_span_mm"]
+    if x > span or (v["axis.fixed_ends"] == 2 and x >= span):
+        raise PlantFileError(
+            f"{o}: axis.stroke_position_mm = {x:g} mm is not inside axis.bearing_span_mm = {span:g} mm; expected "
+            f"0 < stroke position {'<' if v['axis.fixed_ends'] == 2 else '<='} span (distance of the nut from the fixed bearing)")
+    if v["screw.root_diameter_mm"] >= v["screw.pitch_diameter_mm"]:
+        raise PlantFileError(
+            f"{o}: screw.root_diameter_mm = {v['screw.root_diameter_mm']:g} is not below screw.pitch_diameter_mm = "
+            f"{v['screw.pitch_diameter_mm']:g}; expected the thread root inside the pitch circle")
+
+
+def _parse(doc: Mapping[str, Any], origin: str):
+    """Validate a parsed plant document; return name, description, mechanism, values, sources
+    and the keys defaulted."""
+    name = doc.get("name")
+    if not isinstance(name, str) or not name.strip():
+        raise PlantFileError(f"{origin}: name = {name!r}; expected a non-empty string")
+    description = doc.get("description", "")
+    if not isinstance(description, str):
+        raise PlantFileError(f"{origin}: description = {description!r}; expected a string")
+    mechanism, mech_src, _ = _text_key(doc, "mechanism", MECHANISMS, DEFAULT_MECHANISM, origin)
+    if "mounting" in doc and mechanism not in SCREW_DRIVEN:
+        raise PlantFileError(f"{origin}: mounting = {doc['mounting']!r} for mechanism = {mechanism!r}; expected no "
+                             f"mounting (it applies to {', '.join(SCREW_DRIVEN)})")
+    values, sources = _given_values(doc, mechanism, origin)
+    if mechanism in SCREW_DRIVEN and "mounting" in doc:
+        if "axis.fixed_ends" in values:
+            raise PlantFileError(f"{origin}: both mounting and axis.fixed_ends given; expected one of them")
+        mounting, m_src, _ = _text_key(doc, "mounting", tuple(MOUNTINGS), DEFAULT_MOUNTING, origin)
+        values["axis.fixed_ends"] = float(MOUNTINGS[mounting])
+        sources["axis.fixed_ends"] = f"{m_src} (mounting = {mounting!r})"
+    defaulted = _fill_defaults(values, sources, mechanism, origin)
+    if mechanism in SCREW_DRIVEN:
+        _check_screw_axis(values, origin)
+    ordered = {k: values[k] for k in keys_of(mechanism)}
+    return name.strip(), description, mechanism, mech_src, ordered, {k: sources[k] for k in ordered}, defaulted
 
 
 @dataclass(frozen=True)
@@ -247,10 +359,19 @@ class GeometryReport:
 
 @dataclass(frozen=True, eq=False)
 class Plant:
-    """An inverted planetary roller-screw actuator, validated.
+    """A screw actuator (or a linear axis), validated.
 
-    Use :func:`load_plant` to build one. ``values`` keeps the file's numbers (file units, keys
-    ``section.key``); the ``*_m``, ``*_kg`` ... properties give SI values.
+    Use :func:`load_plant` to build one. ``values`` keeps the numbers (file units, keys
+    ``section.key``); the ``*_m``, ``*_kg`` ... properties give SI values. ``sources`` says
+    where each value came from: the file's own source string, or ``"default: ..."`` /
+    ``"derived: ..."`` for a key the file left out (``defaulted`` lists those keys; see
+    :data:`prsa_ctrl.plant.schema.DEFAULTS` and :func:`describe_plant`).
+
+    ``mechanism`` (:data:`~prsa_ctrl.plant.schema.MECHANISMS`) sets the kinematics, the
+    reflected inertia and what the compliant fidelity is (:mod:`prsa_ctrl.plant.model`). A
+    plant built without one takes it from its keys: ``axis.mass_kg`` makes a linear axis,
+    ``axis.moving_mass_kg`` a screw-driven axis (``ball-screw``; a ``roller-screw`` has the
+    same equations), otherwise the inverted roller screw.
     """
 
     name: str
@@ -261,21 +382,48 @@ class Plant:
     geometry: GeometryReport = field(init=False, repr=False)
     #: The file's ``[uncertainty]`` section (validated by :mod:`prsa_ctrl.plant.uncertainty`).
     uncertainty: Mapping[str, Any] = field(default_factory=dict, repr=False)
+    mechanism: str | None = None
+    #: Keys the file left out (their values and sources come from ``DEFAULTS``).
+    defaulted: frozenset = field(default_factory=frozenset, repr=False)
+    #: Source of the mechanism: the file's (``"plant file"`` or its own source) or ``"default: ..."``.
+    mechanism_source: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "values", MappingProxyType(dict(self.values)))
         object.__setattr__(self, "sources", MappingProxyType(dict(self.sources)))
+        object.__setattr__(self, "defaulted", frozenset(self.defaulted))
+        if self.mechanism is None:
+            inferred = ("linear-axis" if "axis.mass_kg" in self.values
+                        else "ball-screw" if "axis.moving_mass_kg" in self.values else DEFAULT_MECHANISM)
+            object.__setattr__(self, "mechanism", inferred)
+        elif self.mechanism not in MECHANISMS:
+            raise PlantFileError(f"{self.origin}: mechanism = {self.mechanism!r}; expected one of "
+                                 f"{', '.join(repr(m) for m in MECHANISMS)}")
+        if not self.mechanism_source:
+            object.__setattr__(self, "mechanism_source", "inferred from the keys")
         if all(isinstance(self.values.get(k), (int, float)) for k in _CONSISTENCY_KEYS):  # not symbolic (fit)
             _check_consistency(self.values, self.origin)
         object.__setattr__(self, "geometry", self._check_geometry())
+
+    @property
+    def screw_driven(self) -> bool:
+        """True for a ``roller-screw`` or ``ball-screw``: the motor turns the screw, the nut translates."""
+        return self.mechanism in SCREW_DRIVEN
+
+    def given(self, key: str) -> bool:
+        """Whether the plant file gave ``key`` (False: defaulted or derived, see ``sources``)."""
+        if key not in self.values:
+            raise KeyError(f"{key!r} is not a key of this {self.mechanism} plant")
+        return key not in self.defaulted
 
     # --- construction -------------------------------------------------------------------------
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any], origin: str = "<dict>") -> "Plant":
         """Validate a plant document (the parsed TOML) and build the plant."""
-        name, description, values, sources = _parse(doc, origin)
+        name, description, mechanism, mech_src, values, sources, defaulted = _parse(doc, origin)
         plant = cls(name=name, values=values, sources=sources, origin=origin, description=description,
-                    uncertainty=doc.get("uncertainty", {}))
+                    uncertainty=doc.get("uncertainty", {}), mechanism=mechanism, defaulted=frozenset(defaulted),
+                    mechanism_source=mech_src)
         if "uncertainty" in doc:
             check_plant_uncertainty(plant)
         return plant
@@ -293,11 +441,22 @@ class Plant:
         for key, v in overrides.items():
             if key not in values:
                 raise PlantFileError(
-                    f"{self.name}: unknown parameter {key!r}; allowed: {', '.join(ALLOWED_KEYS)}"
+                    f"{self.name}: unknown parameter {key!r}; allowed: {', '.join(self.values)}"
                 )
-            section, sub = key.split(".")
-            values[key] = _check_value(SCHEMA[section][sub], key, v, f"{self.name} override")
+            if key in self.defaulted and sources[key].startswith("derived:"):
+                raise PlantFileError(f"{self.name}: {key} = {v!r} cannot be set: it is {sources[key]}; expected a "
+                                     "value for the key it is derived from")
+            values[key] = _check_value(KIND[key], key, v, f"{self.name} override")
             sources[key] = "override"
+        defaulted = self.defaulted - set(overrides)
+        if defaulted:  # defaults follow the values they derive from (e.g. the screw inertia its span)
+            kept = {k: v for k, v in values.items() if k not in defaulted}
+            srcs = {k: v for k, v in sources.items() if k not in defaulted}
+            _fill_defaults(kept, srcs, self.mechanism, f"{self.name} override")
+            values = {k: kept[k] for k in values}
+            sources = {k: srcs[k] for k in values}
+        if self.screw_driven:
+            _check_screw_axis(values, f"{self.name} override")
         return Plant(
             name=name or f"{self.name}*",
             values=values,
@@ -305,6 +464,9 @@ class Plant:
             origin=self.origin,
             description=self.description,
             uncertainty=self.uncertainty,
+            mechanism=self.mechanism,
+            defaulted=defaulted,
+            mechanism_source=self.mechanism_source,
         )
 
     # --- SI views -----------------------------------------------------------------------------
@@ -347,8 +509,32 @@ class Plant:
 
     @property
     def cage_ratio(self) -> float:
-        """omega_cage / omega_nut = d_N / (d_N + d_S)."""
-        return self.d_nut_m / (self.d_nut_m + self.d_screw_m)
+        """Cage (roller carrier) speed per unit motor speed: ``d_N / (d_N + d_S)`` for the inverted
+        roller screw (the nut turns), ``d_S / (d_S + d_N)`` for a screw-driven roller screw (the
+        screw turns, the nut does not), 0 for a ball screw (the ball train is not modelled) and a
+        linear axis."""
+        if self.mechanism == "inverted-roller-screw":
+            return self.d_nut_m / (self.d_nut_m + self.d_screw_m)
+        if self.mechanism == "roller-screw":
+            return self.d_screw_m / (self.d_screw_m + self.d_nut_m)
+        return 0.0
+
+    @property
+    def roller_spin_ratios(self) -> tuple[float, float]:
+        """Roller spin per unit cage speed: (relative to the cage, relative to ground).
+
+        Rolling without slip at both pitch circles, one sign convention for both designs
+        (relative spin = absolute spin - cage speed): inverted (nut turns, screw still)
+        ``(d_S / d_R, (d_S + d_R) / d_R)``; screw-driven roller screw (screw turns, nut still)
+        ``(-d_N / d_R, -(d_S + d_R) / d_R)`` (the rollers spin against the carrier's orbit);
+        0 where there are no rollers.
+        """
+        d_s, d_n, d_r = self.d_screw_m, self.d_nut_m, self.d_roller_m
+        if self.mechanism == "inverted-roller-screw":
+            return d_s / d_r, (d_s + d_r) / d_r
+        if self.mechanism == "roller-screw":
+            return -d_n / d_r, -(d_s + d_r) / d_r
+        return 0.0, 0.0
 
     @property
     def helix_nut_rad(self) -> float:
@@ -454,21 +640,95 @@ class Plant:
 
     @property
     def reflected_inertia_kg_m2(self) -> float:
-        """Total inertia seen at the nut through the rigid kinematics, kg m^2:
-        ``J_nut + J_cage (w_P/w_N)^2 + (m_screw + m_rollers) (L/2 pi)^2`` (the roller assembly
-        travels axially with the screw, see :mod:`prsa_ctrl.plant.model`).
+        """Total inertia seen at the motor through the rigid kinematics, kg m^2.
+
+        Inverted roller screw: ``J_nut + J_cage (w_P/w_N)^2 + (m_screw + m_rollers) (L/2 pi)^2``
+        (the roller assembly travels axially with the screw, see :mod:`prsa_ctrl.plant.model`).
+        Screw-driven: ``J_motor + J_screw + m_moving (L/2 pi)^2`` (the rollers' or balls' own
+        inertia is neglected: grams on a small radius). Linear axis: its mass (load
+        coordinates, 1 m per rad).
 
         Examples
         --------
         >>> round(load_plant().reflected_inertia_kg_m2 * 1e4, 3)  # kg cm^2
         2.019
         """
+        v = self.values
+        if self.screw_driven:
+            return (v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"]
+                    + v["axis.moving_mass_kg"] * self.lead_per_rad**2)
+        if self.mechanism == "linear-axis":
+            return v["axis.mass_kg"]
         return (self._v("nut.inertia_kg_m2") + self.cage_inertia_kg_m2 * self.cage_ratio**2
                 + (self._v("screw.mass_kg") + self.roller_assembly_mass_kg) * self.lead_per_rad**2)
 
+    # --- screw-driven axes: compliance along the stroke ------------------------------------------
+    def shaft_stiffness_n_per_m(self, stroke_position_mm=None):
+        """Axial stiffness of the screw shaft between the fixed bearing(s) and the nut, N/m.
+
+        ``k = E A / x`` for a fixed-free mounting (only the length ``x`` from the fixed bearing to
+        the nut carries the load), ``k = E A L / (x (L - x))`` for fixed-fixed (both lengths in
+        parallel: ``E A / x + E A / (L - x)``), with ``A = pi d_r^2 / 4`` the root section, ``L``
+        the bearing span and ``x`` the stroke position (default: the plant's
+        ``axis.stroke_position_mm``). Works on numbers and on CasADi symbols.
+        """
+        v = self.values
+        x = (v["axis.stroke_position_mm"] if stroke_position_mm is None else stroke_position_mm) * 1e-3
+        span = v["axis.bearing_span_mm"] * 1e-3
+        ea = v["screw.youngs_modulus_gpa"] * 1e9 * math.pi / 4.0 * (v["screw.root_diameter_mm"] * 1e-3) ** 2
+        if v["axis.fixed_ends"] == 2:
+            return ea * span / (x * (span - x))
+        return ea / x
+
+    @property
+    def screw_axial_mass_kg(self) -> float:
+        """Axially moving mass of the screw shaft, kg: a steel cylinder of the root diameter over
+        the bearing span (the whole shaft moves when its support bearing deflects; lumped into
+        one body, see :func:`prsa_ctrl.plant.model.plant_model`)."""
+        v = self.values
+        return _STEEL_KG_M3 * math.pi / 4.0 * (v["screw.root_diameter_mm"] * 1e-3) ** 2 * v["axis.bearing_span_mm"] * 1e-3
+
+    def axial_stiffness_n_per_m(self, stroke_position_mm=None):
+        """Axial stiffness between the motor-side helix and the carriage, N/m: the screw shaft
+        (:meth:`shaft_stiffness_n_per_m`), the nut and the support bearing(s) in series
+        (``1/k = 1/k_shaft + 1/k_nut + 1/k_bearing``; the catalogue formula of THK and HIWIN
+        without the mounting-bracket term). For fixed-fixed the bearing value is that of the
+        pair of supports together."""
+        v = self.values
+        k_nut = v["axis.nut_stiffness_n_per_um"] * 1e6
+        k_brg = v["axis.bearing_stiffness_n_per_um"] * 1e6
+        return 1.0 / (1.0 / self.shaft_stiffness_n_per_m(stroke_position_mm) + 1.0 / k_nut + 1.0 / k_brg)
+
+    def axial_mode_hz(self, stroke_position_mm=None) -> float:
+        """Undamped frequency of the axial mode of a screw-driven axis, Hz: the two-mass system
+        of the rotating inertia ``J = J_motor + J_screw`` and the moving mass ``m`` coupled by
+        the axial stiffness ``k`` through the lead ``a = L / 2 pi``:
+        ``w^2 = k (1/m + a^2/J)``."""
+        if not self.screw_driven:
+            raise ValueError(f"axial_mode_hz: mechanism = {self.mechanism!r}; expected one of {', '.join(SCREW_DRIVEN)}")
+        v = self.values
+        j = v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"]
+        k = self.axial_stiffness_n_per_m(stroke_position_mm)
+        return math.sqrt(k * (1.0 / v["axis.moving_mass_kg"] + self.lead_per_rad**2 / j)) / (2.0 * math.pi)
+
+    @property
+    def backdrive_efficiency(self) -> float:
+        """Efficiency when the load drives the motor (back-driving), ``2 - 1/eta``.
+
+        The model's thread loss torque does not depend on the direction of power flow (it is
+        ``(1/eta - 1) a |F|`` at speed), so the power reaching the motor is
+        ``F v - (1/eta - 1) F v``. For a ball screw this matches the catalogue pair
+        ``eta = (1 - mu tan b)/(1 + mu/tan b)``, ``eta' = (1 - mu/tan b)/(1 + mu tan b)`` to
+        first order in ``mu`` (checked in the tests); below ``eta = 0.5`` the screw self-locks
+        (``eta' <= 0``).
+        """
+        return 2.0 - 1.0 / self._v("friction.efficiency")
+
     # --- kinematics ---------------------------------------------------------------------------
     def kinematics(self, omega_nut: ArrayLike) -> Kinematics:
-        """Rigid-body kinematics for nut speed(s) ``omega_nut`` (rad/s).
+        """Rigid-body kinematics for motor speed(s) ``omega_nut`` (rad/s): the nut of the
+        inverted roller screw, the screw of a screw-driven axis (``v_screw`` is then the nut's
+        and carriage's speed), for a linear axis the load speed in m/s (1 m per rad).
 
         Examples
         --------
@@ -477,13 +737,13 @@ class Plant:
         (19.06, 10.0)
         """
         w = np.asarray(omega_nut, dtype=float)
-        d_s, d_n, d_r = self.d_screw_m, self.d_nut_m, self.d_roller_m
-        w_p = w * d_n / (d_n + d_s)
+        w_p = w * self.cage_ratio
+        rel, ab = self.roller_spin_ratios
         return Kinematics(
             omega_nut=w,
             omega_cage=w_p,
-            omega_roller_rel=w_p * d_s / d_r,
-            omega_roller_abs=w_p * (d_s + d_r) / d_r,
+            omega_roller_rel=w_p * rel,
+            omega_roller_abs=w_p * ab,
             v_screw=w * self.lead_m / (2.0 * math.pi),
         )
 
@@ -491,6 +751,8 @@ class Plant:
     def _check_geometry(self) -> GeometryReport:
         v, o = self.values, self.origin
         d_s, d_n, d_r = self.d_screw_m, self.d_nut_m, self.d_roller_m
+        if self.mechanism != "inverted-roller-screw":
+            return self._generic_geometry()
         if d_n <= d_s:
             raise PlantFileError(
                 f"{o}: nut.pitch_diameter_mm = {v['nut.pitch_diameter_mm']} must exceed "
@@ -563,6 +825,65 @@ class Plant:
             warnings.warn(f"{o}: " + "; ".join(msgs), GeometryWarning, stacklevel=4)
         object.__setattr__(report, "messages", tuple(msgs))
         return report
+
+
+    def _generic_geometry(self) -> GeometryReport:
+        """The checks every mechanism shares (friction and contact laws); the thread-matching
+        report of the inverted design does not apply (zero residuals, no messages)."""
+        v, o = self.values, self.origin
+        if v["contact.exponent"] < 1.0:
+            raise PlantFileError(f"{o}: contact.exponent = {v['contact.exponent']}; expected >= 1 "
+                                 "(below 1 the contact Jacobian is infinite at first touch)")
+        if v["friction.static"] < v["friction.dynamic"]:
+            raise PlantFileError(f"{o}: friction.static = {v['friction.static']} is below friction.dynamic = "
+                                 f"{v['friction.dynamic']}; expected static >= dynamic")
+        helix = self.helix_screw_rad
+        return GeometryReport(0.0, 0.0, 0.0, helix, helix, helix, 0.0,
+                              v["screw.lead_mm"] / v["screw.starts"] * 1e-3, ())
+
+
+def describe_plant(plant: Plant) -> str:
+    """Every value of ``plant`` with its unit and its source, one line each, grouped by section.
+
+    Each line says ``given`` (the plant file's value, with the file's source string) or
+    ``default`` / ``derived`` (the key was left out: the value of
+    :data:`~prsa_ctrl.plant.schema.DEFAULTS` and the reason). The header names the plant,
+    its file, the mechanism (with its source) and what the plant's compliant fidelity is.
+
+    Examples
+    --------
+    >>> print(describe_plant(load_plant()).splitlines()[1])
+    mechanism: inverted-roller-screw (default: inverted-roller-screw)
+    """
+    lines = [f"plant {plant.name} ({plant.origin}){': ' + plant.description if plant.description else ''}",
+             f"mechanism: {plant.mechanism} ({plant.mechanism_source})"]
+    if plant.screw_driven:
+        v = plant.values
+        lines.append(f"axial stiffness at the stroke position {v['axis.stroke_position_mm']:g} mm: "
+                     f"{plant.axial_stiffness_n_per_m() * 1e-6:.4g} N/um, axial mode {plant.axial_mode_hz():.4g} Hz "
+                     f"({'fixed-fixed' if v['axis.fixed_ends'] == 2 else 'fixed-free'})")
+    width = max(len(k) for k in plant.values)
+    section = None
+    for key, value in plant.values.items():
+        sec = key.split(".")[0]
+        if sec != section:
+            lines.append(f"[{sec}]")
+            section = sec
+        src = plant.sources.get(key, "")
+        tag = "given" if key not in plant.defaulted else ("derived" if src.startswith("derived") else "default")
+        unit = UNITS.get(key, "-")
+        shown = str(int(value)) if KIND.get(key) == POSITIVE_INTEGER else f"{value:.6g}"
+        lines.append(f"  {key:<{width}} = {shown:>12} {unit:<10} {tag:<7} {src}")
+    return "\n".join(lines)
+
+
+def show_plant(name_or_path: str | Path | None = None) -> str:
+    """:func:`describe_plant` of a plant file (``prsa-tune --show-plant``); the geometry notes
+    of the inverted design are lines of the text instead of warnings."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        plant = load_plant(name_or_path)
+    return describe_plant(plant) + "".join(f"\ngeometry note: {m}" for m in plant.geometry.messages)
 
 
 def plant_file_path(name_or_path: str | Path | None = None) -> Path | Any:

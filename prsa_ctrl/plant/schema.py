@@ -1,19 +1,41 @@
-"""The plant file's schema: every section and key, the kind of value, and its plausible range.
+"""The plant file's schema: every section and key, the kind of value, its plausible range, which
+keys each mechanism needs and the documented default of every other key.
 
 The lowest layer of :mod:`prsa_ctrl.plant`: both the plant-file reader and the uncertainty
 checks read it, so it imports nothing of the package.
+
+Mechanisms (:data:`MECHANISMS`, the plant file's top-level ``mechanism``):
+
+``inverted-roller-screw`` (default)
+    The motor turns the nut, the screw translates (the source paper's IPRSM). Keys: :data:`SCHEMA`.
+``roller-screw``, ``ball-screw``
+    Screw-driven: the motor turns the screw, the nut and the carriage translate. Keys:
+    :data:`SCHEMA` plus :data:`SCREW_AXIS_SCHEMA` (motor and screw inertia, moving mass, the
+    screw's axial stiffness along the stroke, nut and bearing stiffness, mounting).
+``linear-axis``
+    Only load-side equivalents (mass, friction, drive gain), in load coordinates (m, N): the
+    keys of :data:`LINEAR_AXIS_SCHEMA` (the file format of
+    :mod:`prsa_ctrl.identification.axis`).
+
+:data:`REQUIRED` lists the keys a file must give per mechanism; every other key takes its
+entry in :data:`DEFAULTS` (value, or a rule on other values, with the source string the plant
+then carries, "default: ...").
 """
 
 from __future__ import annotations
 
-from typing import Mapping
+import math
+from typing import Any, Callable, Mapping, Union
 
-__all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "FRACTION"]
+__all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "FRACTION",
+           "MECHANISMS", "DEFAULT_MECHANISM", "SCREW_DRIVEN", "MOUNTINGS", "DEFAULT_MOUNTING", "SCREW_AXIS_SCHEMA",
+           "LINEAR_AXIS_SCHEMA", "KIND", "REQUIRED", "DEFAULTS", "UNITS", "keys_of", "kind_of"]
 
 # Kinds of value: positive finite, non-negative finite, positive integer, fraction in (0, 1].
 POSITIVE, NON_NEGATIVE, POSITIVE_INTEGER, FRACTION = "positive", "non-negative", "positive integer", "fraction in (0, 1]"
 
-#: Section -> key -> kind. Every key is required; no other key is accepted.
+#: Section -> key -> kind: the keys of the inverted roller screw (and the rotary core every
+#: mechanism maps onto, see :mod:`prsa_ctrl.plant.model`).
 SCHEMA: Mapping[str, Mapping[str, str]] = {
     "screw": {
         "pitch_diameter_mm": POSITIVE,
@@ -116,4 +138,264 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
     "tolerance.roller_position_std_um": (0.0, 50.0, "lead deviation of precision to transport grades stays "
                                          "below ~50 um; beyond it rollers lose contact"),
     "tolerance.roller_runout_um": (0.0, 50.0, "ground rollers run out by a few micrometres"),
+    # screw-driven axes
+    "axis.motor_inertia_kg_m2": (1e-7, 10.0, "motor rotor plus coupling: 1e-6 (small servo) to ~1 kg m^2 (large torque motor)"),
+    "axis.screw_inertia_kg_m2": (1e-8, 10.0, "a steel screw of 6 to 160 mm diameter and up to ~10 m"),
+    "axis.moving_mass_kg": (1e-3, 1e5, "nut, carriage and payload: grams to a machine table of tonnes"),
+    "axis.bearing_span_mm": (10.0, 2e4, "screw lengths of catalogues: ~50 mm to ~12 m"),
+    "axis.stroke_position_mm": (0.1, 2e4, "distance of the nut from the axially fixed bearing, within the bearing span"),
+    "axis.bearing_stiffness_n_per_um": (1.0, 1e5, "support bearings: ~50 N/um (small) to ~5000 N/um (large pairs)"),
+    "axis.nut_stiffness_n_per_um": (1.0, 1e5, "catalogue nut rigidity: ~50 N/um to ~5000 N/um"),
+    "axis.fixed_ends": (1, 2, "1: fixed-free (or fixed-supported), 2: fixed-fixed"),
+    "axis.axial_damping_ratio": (1e-4, 1.0, "modal damping of a feed drive's axial mode, ~0.01 to 0.1"),
+    "screw.root_diameter_mm": (1.0, 500.0, "below the pitch diameter, catalogue screws 4 to 250 mm"),
+    "screw.youngs_modulus_gpa": (50.0, 400.0, "steels ~200 to 210 GPa"),
+    # linear axes
+    "axis.mass_kg": (1e-3, 1e5, "a moving slide of grams to a machine table of tonnes"),
+    "drive.gain_n_per_unit": (1e-6, 1e6, "force per command unit: N/V of a drive, 1 for a command in N"),
+    "drive.force_limit_n": (1e-3, 1e7, "peak force of the drive at the load"),
+    "sensor.encoder_resolution_m": (1e-10, 1e-2, "linear scales and encoders at the load: 1 nm to 10 mm"),
+    "friction.coulomb_positive_n": (0.0, 1e6, "a fraction of the force limit"),
+    "friction.coulomb_negative_n": (0.0, 1e6, "a fraction of the force limit"),
+    "friction.viscous_positive_n_s_per_m": (0.0, 1e7, "guides and seals, N per m/s"),
+    "friction.viscous_negative_n_s_per_m": (0.0, 1e7, "guides and seals, N per m/s"),
+}
+
+# --- mechanisms, required keys and defaults (issue 21) ------------------------------------------
+
+#: The mechanisms a plant file may name (top-level ``mechanism = "..."``).
+MECHANISMS = ("inverted-roller-screw", "roller-screw", "ball-screw", "linear-axis")
+#: What a plant file that names none is (every plant file written before mechanisms existed).
+DEFAULT_MECHANISM = "inverted-roller-screw"
+#: Mechanisms where the motor turns the screw and the nut (with the carriage) translates.
+SCREW_DRIVEN = ("roller-screw", "ball-screw")
+#: Axial mountings of a driven screw (top-level ``mounting = "..."``) -> number of axially fixed
+#: ends (the plant value ``axis.fixed_ends``): ``fixed-free`` (one end held axially, the other
+#: free or only radially supported: fixed-supported behaves the same axially) and
+#: ``fixed-fixed`` (both ends held axially).
+MOUNTINGS: Mapping[str, int] = {"fixed-free": 1, "fixed-fixed": 2}
+DEFAULT_MOUNTING = "fixed-free"
+
+#: Keys a screw-driven axis adds to :data:`SCHEMA` (same kinds).
+SCREW_AXIS_SCHEMA: Mapping[str, Mapping[str, str]] = {
+    "axis": {
+        "motor_inertia_kg_m2": POSITIVE,
+        "screw_inertia_kg_m2": POSITIVE,
+        "moving_mass_kg": POSITIVE,
+        "bearing_span_mm": POSITIVE,
+        "stroke_position_mm": POSITIVE,
+        "bearing_stiffness_n_per_um": POSITIVE,
+        "nut_stiffness_n_per_um": POSITIVE,
+        "axial_damping_ratio": FRACTION,
+        "fixed_ends": POSITIVE_INTEGER,
+    },
+    "screw": {"root_diameter_mm": POSITIVE, "youngs_modulus_gpa": POSITIVE},
+}
+
+#: Keys of a ``linear-axis`` plant (load coordinates; the file format of
+#: :mod:`prsa_ctrl.identification.axis`), besides the rotary core it maps onto.
+LINEAR_AXIS_SCHEMA: Mapping[str, Mapping[str, str]] = {
+    "axis": {"mass_kg": POSITIVE},
+    "friction": {
+        "coulomb_positive_n": NON_NEGATIVE,
+        "coulomb_negative_n": NON_NEGATIVE,
+        "viscous_positive_n_s_per_m": NON_NEGATIVE,
+        "viscous_negative_n_s_per_m": NON_NEGATIVE,
+    },
+    "drive": {"gain_n_per_unit": POSITIVE, "force_limit_n": POSITIVE},
+    "sensor": {"encoder_resolution_m": POSITIVE},
+}
+
+#: Every key of every mechanism -> its kind.
+KIND: Mapping[str, str] = {
+    f"{s}.{k}": kind
+    for table in (SCHEMA, SCREW_AXIS_SCHEMA, LINEAR_AXIS_SCHEMA) for s, keys in table.items() for k, kind in keys.items()
+}
+
+
+def kind_of(key: str) -> str | None:
+    """The kind (:data:`POSITIVE` ...) of a plant key ``section.key`` of any mechanism, or ``None``."""
+    return KIND.get(key)
+
+
+_CORE = tuple(f"{s}.{k}" for s, keys in SCHEMA.items() for k in keys)
+_SCREW_AXIS = tuple(f"{s}.{k}" for s, keys in SCREW_AXIS_SCHEMA.items() for k in keys)
+_LINEAR = tuple(f"{s}.{k}" for s, keys in LINEAR_AXIS_SCHEMA.items() for k in keys)
+
+
+def keys_of(mechanism: str) -> tuple[str, ...]:
+    """The keys a plant of ``mechanism`` holds, in file order (the rotary core first).
+
+    A ``linear-axis`` plant holds its own keys and the rotary core derived from them
+    (load coordinates: 1 m of travel per radian, force in N as torque in N m).
+    """
+    if mechanism in SCREW_DRIVEN:
+        return _CORE + _SCREW_AXIS
+    if mechanism == "linear-axis":
+        return _LINEAR_KEYS
+    return _CORE
+
+
+def _grouped(keys: tuple[str, ...]) -> tuple[str, ...]:
+    """``keys`` with each section's keys together, sections in order of first appearance."""
+    sections = dict.fromkeys(k.split(".")[0] for k in keys)
+    return tuple(k for s in sections for k in keys if k.split(".")[0] == s)
+
+
+_LINEAR_KEYS = _grouped(_LINEAR + _CORE)
+
+
+#: Keys a plant file must give, per mechanism (the minimal plant file). ``mechanism`` itself
+#: defaults to :data:`DEFAULT_MECHANISM` so that older files keep loading.
+REQUIRED: Mapping[str, tuple[str, ...]] = {
+    "inverted-roller-screw": ("screw.lead_mm", "nut.inertia_kg_m2", "drive.torque_limit_n_m", "sensor.sample_time_s",
+                              "sensor.encoder_counts_per_rev"),
+    "roller-screw": ("screw.lead_mm", "axis.motor_inertia_kg_m2", "axis.moving_mass_kg", "drive.torque_limit_n_m",
+                     "sensor.sample_time_s", "sensor.encoder_counts_per_rev"),
+    "ball-screw": ("screw.lead_mm", "axis.motor_inertia_kg_m2", "axis.moving_mass_kg", "drive.torque_limit_n_m",
+                   "sensor.sample_time_s", "sensor.encoder_counts_per_rev"),
+    "linear-axis": ("axis.mass_kg", "drive.gain_n_per_unit", "drive.force_limit_n", "sensor.sample_time_s",
+                    "sensor.encoder_resolution_m"),
+}
+
+Rule = Callable[[Mapping[str, float], str], float]
+
+_STEEL_KG_M3 = 7850.0  # density of steel, kg/m^3
+_LOAD_COORDINATES_LEAD_MM = 2000.0 * math.pi  # 1 m of travel per radian: a linear axis in load coordinates
+
+
+def _by(mechanism_values: Mapping[str, Any]) -> Rule:
+    return lambda v, m: mechanism_values[m] if m in mechanism_values else mechanism_values["*"]
+
+
+def _linear_or(rule: Rule, linear: Rule) -> Rule:
+    return lambda v, m: linear(v, m) if m == "linear-axis" else rule(v, m)
+
+
+#: ``key -> (value or rule, source)``: the default of every key a file may leave out. A rule
+#: ``f(values, mechanism)`` derives the value from other values (given or defaulted; the
+#: reader evaluates each rule once its inputs exist); a source given as a mapping is per
+#: mechanism (``"*"``: the others). The source becomes the plant's source of the key
+#: (``Plant.sources``), so a defaulted value says where it came from: ``"default: ..."`` (a
+#: typical value and why), ``"derived: ..."`` (follows from other keys; cannot be overridden)
+#: or ``"assumption: ..."`` (an engineering estimate).
+DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]] = {
+    # the linear axis's own keys
+    "friction.coulomb_positive_n": (0.0, "default: no Coulomb friction (frictionless guide)"),
+    "friction.coulomb_negative_n": (0.0, "default: no Coulomb friction (frictionless guide)"),
+    "friction.viscous_positive_n_s_per_m": (0.0, "default: no viscous friction"),
+    "friction.viscous_negative_n_s_per_m": (0.0, "default: no viscous friction"),
+    # rotary core: what the motor turns and how far the load moves per radian
+    "screw.lead_mm": (_LOAD_COORDINATES_LEAD_MM, "derived: load coordinates, 1 m of travel per radian (linear axis)"),
+    "nut.inertia_kg_m2": (
+        lambda v, m: v["axis.mass_kg"] if m == "linear-axis" else v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"],
+        {"linear-axis": "derived: axis.mass_kg in load coordinates (kg m^2 per rad^2 = kg)",
+         "*": "derived: axis.motor_inertia_kg_m2 + axis.screw_inertia_kg_m2 (the rotating member of a screw-driven axis)"}),
+    "drive.torque_limit_n_m": (lambda v, m: v["drive.force_limit_n"],
+                               "derived: drive.force_limit_n in load coordinates (N as N m per rad)"),
+    "sensor.encoder_counts_per_rev": (lambda v, m: max(64, round(2.0 * math.pi / v["sensor.encoder_resolution_m"])),
+                                      "derived: sensor.encoder_resolution_m in load coordinates (2 pi m per 'revolution')"),
+    "screw.pitch_diameter_mm": (
+        _linear_or(lambda v, m: v["screw.lead_mm"] * (7.0 if m == "inverted-roller-screw" else 3.2), lambda v, m: 10.0),
+        {"inverted-roller-screw": "default: the paper's proportions, pitch diameter 7 x lead (14 mm for 2 mm)",
+         "linear-axis": "default: not used by a linear axis (rotary core placeholder)",
+         "*": "default: catalogue proportions of screw-driven axes, pitch diameter ~3.2 x lead (16x5, 32x10, 40x12 mm)"}),
+    "screw.starts": (_by({"inverted-roller-screw": 4, "roller-screw": 5, "*": 1}),
+                     {"inverted-roller-screw": "default: the paper's 4-start screw",
+                      "roller-screw": "assumption: standard planetary roller screws have 5-start screws and nuts",
+                      "*": "default: single start (not used by the model of this mechanism)"}),
+    "screw.mass_kg": (lambda v, m: v["axis.mass_kg"] if m == "linear-axis" else
+                      (v["axis.moving_mass_kg"] if m in SCREW_DRIVEN else 1.0),
+                      {"inverted-roller-screw": "default: the paper plant's translating screw with rod end and fixture, 1 kg",
+                       "linear-axis": "derived: axis.mass_kg (the translating member)",
+                       "*": "derived: axis.moving_mass_kg (the translating member: nut, carriage and payload)"}),
+    "nut.lead_mm": (lambda v, m: v["screw.lead_mm"], "default: equal to screw.lead_mm (the threads mesh)"),
+    "nut.starts": (lambda v, m: v["screw.starts"], "default: equal to screw.starts (the threads mesh)"),
+    "roller.starts": (1, "default: single-start rollers (all catalogue roller screws)"),
+    "roller.pitch_diameter_mm": (lambda v, m: v["screw.pitch_diameter_mm"] / (v["screw.starts"] - 2.0)
+                                 if m == "roller-screw" and v["screw.starts"] > 2 else
+                                 v["screw.pitch_diameter_mm"] / v["screw.starts"],
+                                 {"roller-screw": "default: the standard design's matching rule d_S = (n_S - 2) d_R",
+                                  "*": "default: the inverted design's matching rule d_S = n_S d_R"}),
+    "roller.lead_mm": (lambda v, m: v["screw.lead_mm"] / v["screw.starts"],
+                       "default: one thread pitch (screw.lead_mm / screw.starts), single-start rollers"),
+    "nut.pitch_diameter_mm": (lambda v, m: v["screw.pitch_diameter_mm"] + 2.0 * v["roller.pitch_diameter_mm"],
+                              "default: closed geometry d_N = d_S + 2 d_R"),
+    "roller.count": (lambda v, m: min(10, math.floor(0.9 * math.pi * (v["screw.pitch_diameter_mm"]
+                                                                       / v["roller.pitch_diameter_mm"] + 1))),
+                     "default: 10 rollers (the paper), fewer where they would not fit on the orbit"),
+    "roller.mass_kg": (lambda v, m: _STEEL_KG_M3 * math.pi / 4 * (v["roller.pitch_diameter_mm"] * 1e-3) ** 3 * 30.0 / 3.6,
+                       "default: solid steel cylinder of the roller pitch diameter, 8.3 diameters long (the paper's 3.6 x 30 mm)"),
+    "cage.mass_kg": (0.02, "default: the paper plant's two steel retainer rings, 20 g"),
+    "cage.inertia_kg_m2": (2.0e-6, "default: the paper plant's retainer rings of ~18 mm mean diameter"),
+    "thread.flank_angle_deg": (45.0, "default: standard roller-screw flank half-angle 45 deg"),
+    "thread.engaged_threads": (15, "default: the paper plant's loaded threads per roller and side"),
+    "thread.backlash_mm": (0.01, "default: axial play of a standard-grade (non-preloaded) nut"),
+    "contact.stiffness_n_per_mm_e": (1.0e5, "default: the paper's IMPACT K for GCr15"),
+    "contact.exponent": (1.5, "default: the paper's IMPACT exponent (Hertzian point contact)"),
+    "contact.damping_n_s_per_mm": (50.0, "default: the paper's IMPACT C_max"),
+    "contact.penetration_mm": (0.2, "default: the paper's IMPACT full-damping depth"),
+    "friction.static": (0.3, "default: the paper's Coulomb static coefficient (sets the breakaway, 1.2 x sliding)"),
+    "friction.dynamic": (0.25, "default: the paper's Coulomb dynamic coefficient"),
+    "friction.stribeck_velocity_m_s": (1.0e-4, "default: ADAMS stiction transition velocity 0.1 mm/s"),
+    "friction.transition_velocity_m_s": (1.0e-6, "default: Karnopp stick band 1 um/s (the paper plant's)"),
+    "friction.efficiency": (_by({"inverted-roller-screw": 0.85, "roller-screw": 0.85, "ball-screw": 0.9, "linear-axis": 1.0}),
+                            {"linear-axis": "derived: a linear axis has no screw (its friction is in friction.coulomb_*/viscous_*)",
+                             "ball-screw": "default: typical forward efficiency of ball screws, catalogues 0.9 to 0.95",
+                             "*": "default: typical forward efficiency of planetary roller screws, catalogues 0.75 to 0.9"}),
+    "screw.rated_load_n": (lambda v, m: v["drive.torque_limit_n_m"] * 2 * math.pi * v["friction.efficiency"]
+                           / (v["screw.lead_mm"] * 1e-3),
+                           "default: the axial force the torque limit drives through the screw at its efficiency"),
+    "friction.no_load_torque_n_m": (lambda v, m: (v["friction.coulomb_positive_n"] + v["friction.coulomb_negative_n"]) / 2
+                                    if m == "linear-axis" else 0.01 * v["drive.torque_limit_n_m"],
+                                    {"linear-axis": "derived: mean of friction.coulomb_positive_n and _negative_n",
+                                     "*": "default: seal and bearing drag ~1 % of the torque limit (the paper plant's 0.7 %)"}),
+    "friction.viscous_n_m_s_per_rad": (lambda v, m: (v["friction.viscous_positive_n_s_per_m"]
+                                                     + v["friction.viscous_negative_n_s_per_m"]) / 2
+                                       if m == "linear-axis" else 1.0e-4,
+                                       {"linear-axis": "derived: mean of friction.viscous_positive/negative_n_s_per_m",
+                                        "*": "default: grease churning and motor iron losses (the paper plant's 1e-4 N m s/rad)"}),
+    "friction.creep_velocity_m_s": (1.0e-3, "default: lubricated rolling creep (the paper plant's 1 mm/s)"),
+    "friction.traction_preload_n": (lambda v, m: 0.04 * v["screw.rated_load_n"],
+                                    "default: 4 % of the rated load (the paper plant's 200 N at 5 kN)"),
+    "drive.current_loop_bandwidth_hz": (1000.0, "default: typical servo-drive current-loop bandwidth 1 kHz"),
+    "sensor.speed_filter_time_constant_s": (2.0e-4, "default: typical speed-measurement filter of a servo drive, 0.2 ms"),
+    "sensor.torque_noise_n_m": (lambda v, m: v["drive.torque_limit_n_m"] / 600.0,
+                                "default: ~0.17 % of the torque limit RMS per sample (12-bit current sensing; the paper plant's 5 mN m at 3 N m)"),
+    "tolerance.roller_position_std_um": (2.0, "default: precision-grade roller screw (lead deviation class ~G5)"),
+    "tolerance.roller_runout_um": (1.0, "default: runout of a ground roller"),
+    # screw-driven axes
+    "axis.bearing_span_mm": (lambda v, m: 30.0 * v["screw.pitch_diameter_mm"],
+                             "assumption: bearing span ~30 screw diameters (a 32 mm screw over ~1 m, the slenderness of "
+                             "catalogue critical-speed tables)"),
+    "axis.stroke_position_mm": (lambda v, m: 0.5 * v["axis.bearing_span_mm"],
+                                "default: nut at mid-span (where a fixed-fixed screw is softest)"),
+    "axis.screw_inertia_kg_m2": (lambda v, m: math.pi * _STEEL_KG_M3 * (v["screw.pitch_diameter_mm"] * 1e-3) ** 4
+                                 * v["axis.bearing_span_mm"] * 1e-3 / 32.0,
+                                 "default: solid steel cylinder of the pitch diameter over the bearing span, pi rho d^4 L / 32"),
+    "screw.root_diameter_mm": (lambda v, m: 0.83 * v["screw.pitch_diameter_mm"],
+                               "assumption: root ~0.83 x pitch diameter (ball screws: pitch diameter minus ball diameter, "
+                               "e.g. ~26.5 mm for 32 x 10 with 1/4 in balls)"),
+    "screw.youngs_modulus_gpa": (206.0, "default: steel, E = 2.06e5 N/mm^2 (the THK and HIWIN rigidity formulas)"),
+    "axis.nut_stiffness_n_per_um": (lambda v, m: (40.0 if m == "roller-screw" else 20.0) * v["screw.pitch_diameter_mm"],
+                                    {"roller-screw": "assumption: preloaded roller nut ~40 N/um per mm of screw diameter "
+                                                     "(roller screws are ~2x stiffer than ball screws of the same size)",
+                                     "*": "assumption: preloaded ball nut ~20 N/um per mm of screw diameter "
+                                          "(~650 N/um for 32 mm)"}),
+    "axis.bearing_stiffness_n_per_um": (lambda v, m: 25.0 * v["screw.pitch_diameter_mm"],
+                                        "assumption: preloaded angular-contact support-bearing pair ~25 N/um per mm of screw "
+                                        "diameter (~800 N/um for 32 mm)"),
+    "axis.fixed_ends": (1, "default: fixed-free mounting (one axially fixed end; fixed-supported is the same axially)"),
+    "axis.axial_damping_ratio": (0.03, "default: typical modal damping of the axial mode of a screw feed drive (1 to 5 %)"),
+}
+
+#: Unit of each key (for :func:`prsa_ctrl.plant.plantfile.describe_plant`), from its name.
+UNITS: Mapping[str, str] = {
+    k: next((u for suffix, u in (("_mm_e", "N/mm^e"), ("_n_s_per_mm", "N s/mm"), ("_kg_m2", "kg m^2"), ("_kg_m3", "kg/m^3"),
+                                  ("_n_m_s_per_rad", "N m s/rad"), ("_n_s_per_m", "N s/m"), ("_n_per_um", "N/um"),
+                                  ("_n_per_unit", "N per command unit"), ("_kg", "kg"), ("_mm", "mm"), ("_um", "um"),
+                                  ("_deg", "deg"), ("_m_s", "m/s"), ("_n_m", "N m"), ("_n", "N"), ("_hz", "Hz"),
+                                  ("_s", "s"), ("_gpa", "GPa"), ("_m", "m"), ("_per_rev", "counts/rev"))
+             if k.endswith(suffix)), "-")
+    for k in KIND
 }

@@ -38,7 +38,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..errors import GeometryWarning, PlantFileError, SceneError
-from .schema import SCHEMA
+from .schema import KIND
 
 __all__ = ["Uncertain", "UncertaintyModel", "DISTRIBUTIONS", "parse_entries", "uncertainty_model",
            "plant_uncertainty", "check_plant_uncertainty"]
@@ -117,11 +117,10 @@ def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileErro
     out: dict[str, dict[str, Any]] = {}
     for key, entry in _flatten(table).items():
         where = f"uncertainty.{key!r}"
-        section, _, sub = key.partition(".")
-        if section not in SCHEMA or sub not in SCHEMA[section]:
+        if key not in KIND:
             raise err(f"{origin}: unknown key {where}; expected a plant parameter 'section.key' "
                       f"(e.g. 'nut.inertia_kg_m2')")
-        if SCHEMA[section][sub] == "positive integer":
+        if KIND[key] == "positive integer":
             raise err(f"{origin}: {where}: {key} is an integer parameter; expected a continuous one "
                       "(integer keys cannot be uncertain)")
         if not isinstance(entry, Mapping):
@@ -182,8 +181,7 @@ def _resolve(key: str, entry: Mapping[str, Any], nominal: float, origin: str, er
     if not lo <= nominal <= hi:
         raise err(f"{origin}: {where}: support [{lo:g}, {hi:g}] does not contain the nominal value {nominal:g}; "
                   "expected a range around the plant file's value")
-    section, sub = key.split(".")
-    kind = SCHEMA[section][sub]
+    kind = KIND[key]
     ok = {"positive": lo > 0, "non-negative": lo >= 0, "fraction in (0, 1]": lo > 0 and hi <= 1}.get(kind, True)
     if not ok:
         raise err(f"{origin}: {where}: {dist} reaches [{lo:g}, {hi:g}], outside the physical range of {key} "

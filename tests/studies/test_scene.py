@@ -6,7 +6,7 @@ import pytest
 from prsa_ctrl import SceneError
 from prsa_ctrl.studies.scene import Scene, builtin_scenes, choose_fidelity, load_scene
 
-SCENE_DIR = Path(__file__).resolve().parent.parent / "tuning"
+SCENE_DIR = Path(__file__).resolve().parents[2] / "tuning"
 
 
 def test_builtin_scenes_are_the_repository_files():

@@ -3,7 +3,6 @@ duplicate records, unit and sample-time checks, hostile inputs of prsa-fit, over
 without shooting-join spikes, and the user's [uncertainty] kept."""
 
 import math
-import sys
 import warnings
 from pathlib import Path
 
@@ -12,7 +11,6 @@ import pytest
 
 from prsa_ctrl.identification.fit import fit_plant
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_fit import PERTURBED, toolkit_record  # noqa: E402
 
 TRUTH = PERTURBED["issue"]

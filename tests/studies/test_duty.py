@@ -18,7 +18,7 @@ from prsa_ctrl.plant.model import plant_model
 from prsa_ctrl.studies.scene import Scene, check_against_plant, load_scene, profile_rows
 from prsa_ctrl.tuning.tuner import Tuner, drive_loop
 
-SCENE_DIR = Path(__file__).resolve().parent.parent / "tuning"
+SCENE_DIR = Path(__file__).resolve().parents[2] / "tuning"
 
 
 def make_duty_trace() -> str:
@@ -34,7 +34,7 @@ def make_duty_trace() -> str:
         noise[k] = a * noise[k - 1] + (1 - a) * w[k] * 3.0
     f = np.round(base + np.where(t >= 0.02, noise, 0.0), 1)
     head = ["# Measured-style axial force trace of a press-fit cycle (synthetic, for the duty-trace scene).",
-            "# Generated once by tests/test_duty.py::make_duty_trace (numpy default_rng(14)); the test checks this file.",
+            "# Generated once by tests/studies/test_duty.py::make_duty_trace (numpy default_rng(14)); the test checks this file.",
             "# Formula: 800 N until 0.02 s; 800 + 1700 (1 - exp(-(t - 0.02)/0.03)) N; from 0.15 s it relaxes to",
             "# 1200 N with a 5 ms time constant; plus sensor noise from 0.02 s: N(0, 15 N) x 3 through a 2 ms",
             "# first-order low-pass sampled at 1 kHz; rounded to 0.1 N.",

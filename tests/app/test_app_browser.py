@@ -30,7 +30,7 @@ from prsa_ctrl import PID, load_plant, load_scene  # noqa: E402
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--no-first-run", "--disable-sync"]
 TIMEOUT_MS = 60_000
-SHOTS = Path(__file__).resolve().parents[1] / "docs" / "app"
+SHOTS = Path(__file__).resolve().parents[2] / "docs" / "app"
 
 
 def _chromium() -> str | None:

@@ -2,7 +2,6 @@
 
 import json
 import math
-import sys
 import tomllib
 from pathlib import Path
 
@@ -14,7 +13,6 @@ from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.identification.fit import DEFAULT_KEYS, FitError, fit_plant
 from prsa_ctrl.identification.data import design_excitation, record_from_arrays
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from independent_actuator import simulate_independent  # noqa: E402
 
 TS = 2.5e-4
@@ -246,7 +244,7 @@ def test_cli_keeps_unidentified_keys_at_base_and_prints_clean(base, tmp_path, ca
     assert main([str(csv), "--out", str(out), "--json", str(rep)]) == 0
     cap = capsys.readouterr()
     doc, report = tomllib.loads(out.read_text()), json.loads(rep.read_text())
-    base_doc = tomllib.loads((Path(__file__).resolve().parent.parent / "plants" / "paper-iprsm.toml").read_text())
+    base_doc = tomllib.loads((Path(__file__).resolve().parents[2] / "plants" / "paper-iprsm.toml").read_text())
     kept = [k for k, v in report["parameters"].items() if v["kept_base"]]
     assert "friction.efficiency" in kept
     for k in kept:

@@ -22,7 +22,7 @@ import pytest
 
 from prsa_ctrl.cli.tune import main
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 SCENES = REPO / "tuning"
 PLANTS = REPO / "plants"
 

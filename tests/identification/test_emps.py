@@ -26,7 +26,7 @@ from prsa_ctrl.identification.axis import (DEFAULTS, PARAMETERS, LinearAxisPlant
 from prsa_ctrl.cli.fit import main
 from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "emps"
 _CANDIDATES = [ROOT.parent / "shared" / "data" / "emps" / "DATA_EMPS.mat", EXAMPLE / "DATA_EMPS.mat"]
 DATA = next((p for p in _CANDIDATES if p.is_file()), None)

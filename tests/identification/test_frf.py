@@ -2,7 +2,6 @@
 
 import json
 import math
-import sys
 import tomllib
 from pathlib import Path
 
@@ -14,7 +13,6 @@ from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.identification.fit import FRF_KEYS, fit_frf, fit_plant, frf_response
 from prsa_ctrl.identification.data import DataError, FrfRecord, frf_from_arrays, load_frf
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_fit import PERTURBED, toolkit_record  # noqa: E402
 
 TS = 2.5e-4

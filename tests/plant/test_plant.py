@@ -10,8 +10,9 @@ from hypothesis import strategies as st
 
 from prsa_ctrl import GeometryWarning, PlantFileError, builtin_plants, load_plant
 from prsa_ctrl.plant.plantfile import SCHEMA, Plant
+from prsa_ctrl.plant.schema import keys_of
 
-PLANT_DIR = Path(__file__).resolve().parent.parent / "plants"
+PLANT_DIR = Path(__file__).resolve().parents[2] / "plants"
 ALL_PLANTS = builtin_plants()
 
 
@@ -37,12 +38,14 @@ def test_default_plant_is_paper_and_matches_table1():
 @pytest.mark.parametrize("name", ALL_PLANTS)
 def test_every_parameter_has_a_source(name):
     p = load_plant(name)
-    assert set(p.sources) == {f"{s}.{k}" for s, keys in SCHEMA.items() for k in keys}
+    assert set(p.sources) == set(keys_of(p.mechanism))  # issue 21: the keys of the plant's mechanism
     for key, src in p.sources.items():
         if name == "paper-iprsm":
             assert src.startswith(("paper", "assumption: ")), key
-        else:
+        elif p.mechanism == "inverted-roller-screw":
             assert src.startswith(("estimate: ", "assumption: ", "paper")), key
+        else:  # issue 21: catalogue values, and documented defaults for the keys the file leaves out
+            assert src.startswith(("catalogue", "assumption: ") if p.given(key) else ("default: ", "derived: ", "assumption: ")), key
 
 
 def test_paper_geometry_residual_is_reported():
@@ -95,7 +98,8 @@ def _set(section, key, value):
         (_set("friction", "static", "0.1"), r"friction\.static = 0\.1 is below friction\.dynamic"),
         (_set("contact", "exponent", "0.8"), r"contact\.exponent = 0\.8; expected >= 1"),
         (_set("roller", "pitch_diameter_mm", "6.0"), r"roller\.pitch_diameter_mm = 6\.0 cannot fit"),
-        (lambda d: re.sub(r"^mass_kg = .*\n", "", d, count=1, flags=re.M), r"missing key screw\.mass_kg"),
+        # issue 21: screw.mass_kg now has a documented default; a required key is still refused
+        (lambda d: re.sub(r"^inertia_kg_m2 = .*\n", "", d, count=1, flags=re.M), r"missing key nut\.inertia_kg_m2; expected it"),
         (lambda d: d.replace('source = "paper Table 1 (Quantity)"', 'source = ""'), r"roller\.count\.source = ''"),
         (lambda d: d.replace("[drive]", "[drive\n"), r"invalid TOML"),
     ],
@@ -109,7 +113,7 @@ def test_bad_plant_files_name_key_and_file(tmp_path, edit, match):
 
 
 def test_unknown_plant_names_the_value_and_choices():
-    with pytest.raises(PlantFileError, match=r"unknown plant 'nope'; expected a built-in name \(iprsm-60, iprsm-90, paper-heavy-slide, paper-iprsm\)"):
+    with pytest.raises(PlantFileError, match=r"unknown plant 'nope'; expected a built-in name \(ballscrew-32x10, iprsm-60, iprsm-90, paper-heavy-slide, paper-iprsm, rollerscrew-30x5\)"):
         load_plant("nope")
     with pytest.raises(PlantFileError, match=r"plant file 'missing\.toml' not found"):
         load_plant("missing.toml")

@@ -13,7 +13,7 @@ from prsa_ctrl.io import output
 from prsa_ctrl.cli.tune import main, plot_main
 from prsa_ctrl.io.output import OutputError, check_directory, check_writable, make_directory, write_file, write_text
 
-PLANT_DIR = Path(__file__).resolve().parent.parent / "plants"
+PLANT_DIR = Path(__file__).resolve().parents[2] / "plants"
 
 
 def _no_temporaries(d: Path) -> bool:

@@ -15,7 +15,7 @@ from prsa_ctrl.plant.plantfile import Plant, builtin_plants, load_plant
 from prsa_ctrl.studies.scene import _from_doc, load_scene
 from prsa_ctrl.plant.uncertainty import parse_scene_sections, uncertainty_model
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 _DOC = tomllib.loads((ROOT / "plants" / "paper-iprsm.toml").read_text())
 _SCENE = tomllib.loads((ROOT / "tuning" / "robust-load-step.toml").read_text())
 
