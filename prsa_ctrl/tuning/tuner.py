@@ -3462,7 +3462,7 @@ def _rescaled(res: TuningResult, k0: float, limits: dict) -> TuningResult:
         raise ValueError(f"plant gain {k0:.3g}: the tuned gains or the {res.kind.upper()} ({res.objective:.3g} x {f:.3g}) "
                          "leave double precision; expected a plant gain nearer 1 (rescale its units)")
     stats = dict(res.stats)
-    for key in ("objective_horizon", "objective_sampled", "tail_bound"):
+    for key in ("objective_horizon", "objective_sampled", "tail_bound", "objective_pade"):
         if key in stats:
             stats[key] = stats[key] * f
     names = ("kp", "ki", "kd")
