@@ -97,6 +97,8 @@ class AppPage:
                          css_classes=["prsa-mt"])
         self.noise = TextInput(title="Noise-gain bound kp + kd/tf (N m s/rad, empty: none)", value="",
                                css_classes=["prsa-noise"])
+        self.mks = TextInput(title="Mks bound, true peak of |C F S| (N m s/rad, empty: none)",
+                             value="" if s.mks_max is None else f"{s.mks_max:g}", css_classes=["prsa-mks"])
         self.loads = TextInput(title="Load step INITIAL:FINAL[,FINAL...] (N)", value=s.load_step,
                                css_classes=["prsa-loads"])
         self.fidelity = Select(title="Verification fidelity", options=list(FIDELITIES), value=s.fidelity)
@@ -130,6 +132,7 @@ class AppPage:
             w.on_change("value", lambda attr, old, new: self.request())
         self.loads.on_change("value", lambda attr, old, new: self.request())
         self.noise.on_change("value", lambda attr, old, new: self.request())
+        self.mks.on_change("value", lambda attr, old, new: self.request())
         self.controller.on_change("active", lambda attr, old, new: self.request())
         self.mt_on.on_change("active", lambda attr, old, new: self.request())
         self.ms.on_change("value_throttled", lambda attr, old, new: self.request())
@@ -150,7 +153,7 @@ class AppPage:
         self.land.on_event(Tap, self._tap)
 
         controls = column(self.plant_select, self.plant_upload, self.scene_select, self.scene_upload,
-                          self.objective, self.controller, self.ms, self.mt_on, self.mt, self.noise, self.loads,
+                          self.objective, self.controller, self.ms, self.mt_on, self.mt, self.noise, self.mks, self.loads,
                           self.fidelity, row(self.verify_button, self.cancel_button), self.progress,
                           self.samples, row(self.robust_button, self.robust_cancel),
                           self.clear_manual, self.export_which, self.dl_drive, self.dl_report,
@@ -230,10 +233,17 @@ class AppPage:
                                     "or nothing") from None
         else:
             noise = None
+        text = self.mks.value.strip()
+        mks = None
+        if text:
+            try:
+                mks = float(text)
+            except ValueError:
+                raise AppInputError(f"Mks bound {text!r}: expected a positive number in N m s/rad or nothing") from None
         return Settings(objective=self.objective.value, controller="pi" if self.controller.active == 0 else "pid",
                         ms_max=round(float(self.ms.value), 6),
                         mt_max=round(float(self.mt.value), 6) if 0 in self.mt_on.active else None,
-                        max_noise_gain=noise, load_step=self.loads.value, fidelity=self.fidelity.value)
+                        max_noise_gain=noise, load_step=self.loads.value, fidelity=self.fidelity.value, mks_max=mks)
 
     # ---- tuning round trip ---------------------------------------------------------------
 
@@ -385,7 +395,7 @@ class AppPage:
         ts = self.session.plant.sample_time_s
         obj = s.objective.upper()
         head = ("design", "status", "kp (N m s/rad)", "ki (N m/rad)", "kd (N m s^2/rad)", "Ti (ms)",
-                "kp (N m/rpm)", "Ms", "Mt", "GM (dB)", "PM (deg)", "wc (rad/s)", "kp+kd/tf", f"pred. {obj}",
+                "kp (N m/rpm)", "Ms", "Mt", "GM (dB)", "PM (deg)", "wc (rad/s)", "kp+kd/tf", "Mks", f"pred. {obj}",
                 "pred. drop (rad/s)", f"verified {obj}", "verified drop", "health")
         rows = [("opt", self.opt)] + ([("man", self.man)] if self.man else []) + \
                [(f"base{i}", b) for i, b in enumerate(self.base)]
@@ -394,6 +404,7 @@ class AppPage:
                f'Ms &le; <span data-k="bound-ms">{s.ms_max:g}</span>'
                + (f", Mt &le; {s.mt_max:g}" if s.mt_max is not None else "")
                + (f", kp + kd/tf &le; {s.max_noise_gain:g} N m s/rad" if s.max_noise_gain is not None else "")
+               + (f", Mks &le; {s.mks_max:g} N m s/rad" if s.mks_max is not None else "")
                + f"; load step {html.escape(s.load_step)} N</div>",
                "<table style='border-collapse:collapse;font-size:12px'><tr>"
                + "".join(f"<th style='padding:2px 6px;border-bottom:1px solid #999'>{html.escape(h)}</th>" for h in head)
@@ -408,6 +419,7 @@ class AppPage:
                      ("kprpm", _fmt(v.drive_terms(ts)["kp_n_m_per_rpm"], ".4g")),
                      ("ms", _fmt(m.ms, ".4f")), ("mt", _fmt(m.mt, ".4f")), ("gm", _fmt(m.gm_db, ".2f")),
                      ("pm", _fmt(m.pm_deg, ".2f")), ("wc", _fmt(m.wc_rad_s, ".4g")), ("noise", _fmt(v.noise_gain, ".4g")),
+                     ("mks", _fmt(v.mks, ".4g") if v.mks is not None else "-"),
                      ("pred", _fmt(d.objective_predicted, ".5g")), ("drop", _fmt(pred, ".4g")),
                      ("ver", _fmt(ver.design.objective_verified, ".5g") if ver else "-"),
                      ("vdrop", _fmt(ver.design.verified[0].peak_drop_rad_s, ".4g") if ver and ver.design.verified else "-"),

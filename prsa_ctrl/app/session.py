@@ -67,6 +67,9 @@ class Settings:
         Bound on the true peak complementary sensitivity, in (1, 10), or none.
     max_noise_gain : float or None, N m s/rad
         Bound on the controller's high-frequency gain ``kp + kd/tf``, or none.
+    mks_max : float or None, N m s/rad
+        Bound on the true peak noise sensitivity ``max |C F S|`` (measured speed to torque
+        command, every filter on the path), or none.
     load_step : str
         ``INITIAL:FINAL[,FINAL...]`` in N, as typed (the ``prsa-tune --load-step`` syntax).
     fidelity : str
@@ -80,6 +83,7 @@ class Settings:
     max_noise_gain: float | None = None
     load_step: str = "500:1500"
     fidelity: str = "auto"
+    mks_max: float | None = None
 
 
 @dataclass
@@ -102,6 +106,8 @@ class View:
         The tuner's status (``"manual"`` for a design set by hand).
     noise_gain : float, N m s/rad
         The controller's high-frequency gain ``kp + kd/tf``.
+    mks : float or None, N m s/rad
+        The true peak noise sensitivity ``max |C F S|`` of the first load level's loop.
     """
 
     design: Design
@@ -111,6 +117,7 @@ class View:
     speed: list
     status: str
     noise_gain: float
+    mks: float | None = None
 
     @property
     def pid(self) -> PID:
@@ -217,6 +224,9 @@ class AppSession:
                 raise AppInputError(f"{what} {v!r}: expected a number in (1, 10)")
         if s.max_noise_gain is not None and not (math.isfinite(s.max_noise_gain) and s.max_noise_gain > 0):
             raise AppInputError(f"noise-gain bound {s.max_noise_gain!r}: expected a positive number in N m s/rad")
+        if s.mks_max is not None and not (isinstance(s.mks_max, (int, float)) and math.isfinite(s.mks_max)
+                                          and s.mks_max > 0):
+            raise AppInputError(f"Mks bound {s.mks_max!r}: expected a positive number in N m s/rad")
         try:
             initial, finals = parse_load_step(s.load_step.strip())
         except argparse.ArgumentTypeError as exc:
@@ -259,7 +269,8 @@ class AppSession:
         """The optimal design under the settings' bounds (``Tuner.tune`` on the session's tuner)."""
         scene = self.scene_for(s)
         with self._lock:
-            res = self.tuner(scene).tune(ms_max=s.ms_max, mt_max=s.mt_max, max_noise_gain=s.max_noise_gain)
+            res = self.tuner(scene).tune(ms_max=s.ms_max, mt_max=s.mt_max, max_noise_gain=s.max_noise_gain,
+                                         mks_max=s.mks_max)
             d = Design(f"optimum (Ms <= {s.ms_max:.3g})", res.pid, res.margins[0], tuner_status=res.status)
             return self._view(d, scene, res.status)
 
@@ -306,7 +317,8 @@ class AppSession:
                 ts.append(scene.step_time + l.h * np.arange(-1, l.n_steps))
                 speeds.append(d.predicted_start_speed + np.concatenate([[0.0], -np.asarray(err)]))
         return View(design=d, omega=np.asarray(pk["omega"]), loop=np.asarray(pk["L"]), t=ts, speed=speeds,
-                    status=status if stable else "unstable", noise_gain=d.pid.kp + d.pid.kd / d.pid.tf)
+                    status=status if stable else "unstable", noise_gain=d.pid.kp + d.pid.kd / d.pid.tf,
+                    mks=lp.noise_peak(d.pid.gains)["mks"] if lp.noise is not None else None)
 
     # ---- landscape ----------------------------------------------------------------------
 
@@ -386,7 +398,8 @@ class AppSession:
         drive = dumps(export_controller(view.pid, self.plant, fmt="toml"), "toml")
         report = {
             "plant": self.plant.name, "plant_file": self.plant_label, "scene": scene.as_dict(),
-            "bounds": {"ms_max": s.ms_max, "mt_max": s.mt_max, "max_noise_gain_n_m_s_per_rad": s.max_noise_gain},
+            "bounds": {"ms_max": s.ms_max, "mt_max": s.mt_max, "max_noise_gain_n_m_s_per_rad": s.max_noise_gain,
+                       "mks_max_n_m_s_per_rad": s.mks_max},
             "design": view.design.as_dict(), "tuner_status": view.status,
             "drive_terms": view.drive_terms(self.plant.sample_time_s),
             "units": {"kp": "N m s/rad", "ki": "N m/rad", "kd": "N m s^2/rad", "tf": "s"},
@@ -401,6 +414,8 @@ class AppSession:
                 "--controller", s.controller, "--ms-max", f"{s.ms_max:g}"]
         if s.mt_max is not None:
             args += ["--mt-max", f"{s.mt_max:g}"]
+        if s.mks_max is not None:
+            args += ["--mks-max", f"{s.mks_max:g}"]
         cli = " ".join(shlex.quote(a) for a in args)
         if s.max_noise_gain is not None:
             cli += "  # prsa-tune has no noise-gain flag: the bound applies to the Python call only"
@@ -414,7 +429,8 @@ class AppSession:
             f"plant = load_plant({self.plant_label!r})",
             f"scene = load_scene({self.scene_label!r}).replace({scene_args})",
             "tuner = Tuner(actuator_loops(plant, scene), objective=scene.objective, controller=scene.controller)",
-            f"result = tuner.tune(ms_max={s.ms_max!r}, mt_max={s.mt_max!r}, max_noise_gain={s.max_noise_gain!r})",
+            f"result = tuner.tune(ms_max={s.ms_max!r}, mt_max={s.mt_max!r}, max_noise_gain={s.max_noise_gain!r}"
+            + (f", mks_max={s.mks_max!r})" if s.mks_max is not None else ")"),
             "print(result.status, result.pid, result.ms)",
         ])
         return cli, py

@@ -79,7 +79,7 @@ def scene_flags(p: argparse.ArgumentParser) -> None:
 
 
 #: Flags of ``prsa-tune`` and ``prsa-plot`` whose value may start with ``-`` (:func:`prsa_ctrl.cli.common.attach_values`).
-VALUE_FLAGS = {"--load-step", "--setpoint-rpm", "--step-time", "--duration", "--ms-max", "--mt-max", "--kp",
+VALUE_FLAGS = {"--load-step", "--setpoint-rpm", "--step-time", "--duration", "--ms-max", "--mt-max", "--mks-max", "--kp",
                 "--ki", "--kd", "--workers"}
 
 
@@ -133,6 +133,7 @@ def load_and_override(args, run: Run, plot: bool = False) -> tuple[Plant, Scene,
         overrides.append(typed["setpoint_rad_s"])
     for arg, fieldname, flag in (("step_time", "step_time", "--step-time"), ("duration", "duration", "--duration"),
                                  ("ms_max", "ms_max", "--ms-max"), ("mt_max", "mt_max", "--mt-max"),
+                                 ("mks_max", "mks_max", "--mks-max"),
                                  ("objective", "objective", "--objective"),
                                  ("controller", "controller", "--controller"), ("estimator", "estimator", "--estimator")):
         v = getattr(args, arg, None)

@@ -50,7 +50,8 @@ def table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
 def scene_header(sc, overrides: Sequence[str] = ()) -> str:
     """One line saying what a speed-loop scene asks (``overrides``: the flags that changed it)."""
     loads = ", ".join(f"{f:g}" for f in sc.final_loads)
-    bounds = f"Ms <= {sc.ms_max:g}" + (f", Mt <= {sc.mt_max:g}" if sc.mt_max is not None else "")
+    bounds = f"Ms <= {sc.ms_max:g}" + (f", Mt <= {sc.mt_max:g}" if sc.mt_max is not None else "") + (
+        f", Mks <= {sc.mks_max:g} N m s/rad" if sc.mks_max is not None else "")
     name = f"scene {sc.name}" + (f" with {' '.join(overrides)}" if overrides else "")
     if sc.is_profile:
         goal = {"load": "load rejection", "setpoint": "setpoint tracking",

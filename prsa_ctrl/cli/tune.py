@@ -94,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                           lo_open=True, hi_open=True),
                    help=f"peak complementary-sensitivity bound, in ({lo:g}, {hi:g}); Mt >= 1 with integral action "
                         "(default: the scene's, none)")
+    p.add_argument("--mks-max", metavar="MKS", type=number("--mks-max", 0.0, 1e12, "N m s/rad",
+                                                            "a noise-sensitivity bound", lo_open=True),
+                   help="bound on the true peak noise sensitivity max|C F S| from the measured speed to the torque "
+                        "command, N m s/rad (default: the scene's, none)")
     p.add_argument("--objective", choices=OBJECTIVES, help="tuning objective (default: the scene's, iae)")
     p.add_argument("--controller", choices=CONTROLLERS, help="controller structure (default: the scene's, pi)")
     p.add_argument("--estimator", choices=ESTIMATORS, help="speed measurement: drive difference or Kalman filter")

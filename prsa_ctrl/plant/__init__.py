@@ -54,6 +54,7 @@ _EXPORTS = {
     "register_member": "model",
     "screw_axis_springs": "model",
     "show_plant": "plantfile",
+    "state_derivative": "model",
     "steady_torque": "equilibrium",
     "stick_band_rad_s": "model",
     "stribeck_coefficient": "model",

@@ -686,7 +686,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     runs: list[dict] = []
 
     def tuned(ms: float) -> Design:
-        res = tuner.tune(ms_max=ms, mt_max=scene.mt_max)
+        res = tuner.tune(ms_max=ms, mt_max=scene.mt_max, mks_max=scene.mks_max)
         runs.append({"ms_max": ms, "result": res.status,
                      **{k: res.stats[k] for k in ("status", "iterations", "wall_time_s")}})
         label = f"tuned (Ms <= {ms:.3g})" + (" + KF" if scene.estimator == "kf" else "") + (" + load FF" if scene.feedforward else "")
@@ -698,7 +698,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     plain = loops if scene.estimator == "none" else actuator_loops(plant, scene, estimator="none")
     baselines = baseline_designs(plant, scene, plain)
     if scene.estimator != "none":
-        res = Tuner(plain, **common).tune(ms_max=scene.ms_max, mt_max=scene.mt_max)
+        res = Tuner(plain, **common).tune(ms_max=scene.ms_max, mt_max=scene.mt_max, mks_max=scene.mks_max)
         baselines.insert(0, Design(f"tuned PI alone (Ms <= {scene.ms_max:.3g})", res.pid, res.margins[0]))
     baselines = [predict(d, plain, plant, scene) for d in baselines]
     # Candidates: the design at the scene's Ms bound, designs at the Ms of every baseline that

@@ -93,6 +93,7 @@ _SECTIONS: Mapping[str, Mapping[str, type | tuple]] = {
         "controller": str,
         "ms_max": float,
         "mt_max": float,
+        "mks_max": float,
         "aggregate": str,
         "candidates": int,
         "goal": str,
@@ -124,6 +125,9 @@ class Scene:
     controller : {"pi", "pid"}
     ms_max, mt_max : float
         Robustness bounds (``mt_max`` optional).
+    mks_max : float, N m s/rad, optional
+        Bound on the true peak noise sensitivity ``max |C F S|`` from the measured speed to
+        the torque command (:meth:`prsa_ctrl.tuning.LoopModel.noise_peak`), or none.
     aggregate : {"sum", "worst"}
         How several load levels are combined.
     candidates : int
@@ -172,6 +176,7 @@ class Scene:
     controller: str = "pi"
     ms_max: float = MS_MAX_DEFAULT
     mt_max: float | None = None
+    mks_max: float | None = None
     aggregate: str = "sum"
     candidates: int = 3
     fidelity: str = "auto"
@@ -236,6 +241,8 @@ class Scene:
         if self.mt_max is not None and not lo < finite("mt_max", self.mt_max) < hi:
             # Mt = max|T| >= |T(0)| = 1 with integral action: a bound <= 1 cannot be met.
             raise bad("mt_max", self.mt_max, f"a number in ({lo:g}, {hi:g})")
+        if self.mks_max is not None and not finite("mks_max", self.mks_max) > 0.0:
+            raise bad("mks_max", self.mks_max, "a positive noise-sensitivity bound in N m s/rad")
         if self.aggregate not in AGGREGATES:
             raise bad("aggregate", self.aggregate, "sum or worst")
         if isinstance(self.candidates, bool) or not isinstance(self.candidates, int) or not 1 <= self.candidates <= 10:

@@ -151,6 +151,13 @@ def _int_steps(name: str, value) -> int:
     return int(value)
 
 
+def _check_mks(mks_max) -> float | None:
+    """``mks_max`` as a float, None for no bound, or a ValueError naming it."""
+    if mks_max is None:
+        return None
+    return _number("mks_max", mks_max, lo=0.0, expected="a positive finite number or None")
+
+
 def _check_bounds(ms_max, mt_max, max_noise_gain):
     ms = _number("ms_max", ms_max, lo=1.0, hi=10.0, expected="a number in (1, 10)")
     mt = None if mt_max is None else _number("mt_max", mt_max, lo=1.0, hi=10.0,
@@ -209,6 +216,10 @@ class LoopModel:
     #: A_i) x + Bdc`` from rest, error ``Ce x`` (same state as the sampled stand-in); with it
     #: :meth:`objective_continuous` integrates the continuous loop itself.
     continuous: tuple | None = None
+    #: A continuous loop with an exact plant delay (:class:`_DelayedLoop`): its objective is
+    #: that of the loop with the exact delay (the sampled stand-in and ``continuous`` carry a
+    #: Pade model of it).
+    delayed: object | None = None
 
     def __post_init__(self) -> None:
         if self.profile is not None:
@@ -331,12 +342,14 @@ class LoopModel:
         return out
 
     def noise_response(self, gains: Sequence[float], omega: NDArray[np.float64]) -> NDArray[np.complex128]:
-        """Noise-to-command transfer ``C F S`` at ``omega`` (rad/s): from a speed-measurement
-        noise (rad/s, added to the raw encoder-difference speed) to the torque command (N m);
-        ``F`` is every filter on the path (the drive's speed filter and the loop filters) and
-        ``S = 1/(1 + L)``. Needs ``noise`` (:func:`drive_loop` sets it)."""
+        """Noise-to-command transfer ``C F S`` at ``omega`` (rad/s): from a measurement noise
+        (output units; a drive loop: rad/s added to the raw encoder-difference speed) to the
+        control signal (plant-input units; a drive loop: the torque command, N m); ``F`` is
+        every filter on the path (a drive loop: its speed filter and loop filters; a continuous
+        loop: its measurement filter, if any) and ``S = 1/(1 + L)``. Needs ``noise``
+        (:func:`drive_loop` and :func:`continuous_loop` set it)."""
         if self.noise is None:
-            raise ValueError(f"loop {self.name!r} has no noise-gain response; expected a drive_loop model")
+            raise ValueError(f"loop {self.name!r} has no noise-gain response; expected a drive_loop or continuous_loop model")
         w = np.atleast_1d(np.asarray(omega, float))
         g = self.gvec(gains)
         return (g @ np.asarray(self.noise(w), complex)) / (1.0 + self.loop_response(g, w))
@@ -345,12 +358,28 @@ class LoopModel:
         """True peak noise gain ``Mks = max |C F S|`` (N m per rad/s; see
         :meth:`noise_response`) up to Nyquist, located like :meth:`peaks` (dense grid refined
         at the closed-loop poles, polished by a zoom search). Returns ``{"mks", "w_mks"}``
-        (rad/s)."""
+        (rad/s). A continuous loop (no Nyquist frequency) is also searched six decades above
+        its dense grid, where ``|C F S|`` approaches its high-frequency limit (e.g. ``kp + kd/tf``
+        of a PID with a derivative filter and no measurement filter)."""
         g = self.gvec(gains)
-        w, _ = self._peak_grid(g)
+        w = self._noise_grid(g)
         mks, w_mks = _polished_peak(lambda wv: np.abs(self.noise_response(g, wv)), w,
                                     np.abs(self.noise_response(g, w)))
         return {"mks": mks, "w_mks": w_mks}
+
+    def _noise_grid(self, g) -> NDArray[np.float64]:
+        """The peak grid (:meth:`_peak_grid`), extended six decades up on a continuous loop."""
+        w, _ = self._peak_grid(g)
+        if self.nyquist is None:
+            w = np.concatenate([w, w[-1] * np.logspace(0.0, 6.0, 121)[1:]])
+        return w
+
+    def _magnitude(self, g, key: str, w: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``|S|`` (``key`` "ms"), ``|T|`` ("mt") or ``|C F S|`` ("mks") at ``w`` (rad/s)."""
+        if key == "mks":
+            return np.abs(self.noise_response(g, w))
+        Lv = self.loop_response(g, w)
+        return 1 / np.abs(1 + Lv) if key == "ms" else np.abs(Lv / (1 + Lv))
 
     def margins(self, gains: Sequence[float], peaks: dict | None = None) -> Margins:
         """Ms, Mt (true peaks, see :meth:`peaks`; pass its result as ``peaks`` to reuse it),
@@ -548,6 +577,8 @@ class LoopModel:
         (:meth:`objective_continuous`) where the model has one, else the sampled loop's
         (:meth:`objective_to_infinity`, exact for a sampled drive loop). Returns ``(value,
         error)``: the error estimate (continuous) or the tail bound (sampled)."""
+        if self.delayed is not None and kind in ("iae", "itae"):
+            return self.delayed.objective(self.gvec(gains), kind)
         if self.continuous is not None:
             return self.objective_continuous(gains, kind)
         return self.objective_to_infinity(gains, kind)
@@ -555,6 +586,8 @@ class LoopModel:
     def _smooth_objective(self, gains: Sequence[float], kind: str) -> float:
         """The true objective at a fixed resolution (the model's sample ``h``, tail to 1e-10), a
         smooth function of the gains for finite differences (:func:`_first_order_check`)."""
+        if self.delayed is not None and kind in ("iae", "itae"):
+            return self.delayed.objective(self.gvec(gains), kind, levels=(self.delayed.m_smooth,))[0]
         if self.continuous is None or kind in ("ie", "ise"):
             return self.true_objective(gains, kind)[0] if self.continuous is not None else \
                 self.objective_to_infinity(gains, kind, rtol=1e-10)[0]
@@ -565,16 +598,20 @@ class LoopModel:
         return self._sampled_continuous(acl, bdc, kind, self.h / 2.0, 1e-10)[0]
 
     def local_peaks(self, gains: Sequence[float], key: str, floor: float) -> list[tuple[float, float]]:
-        """Every local maximum of ``|S|`` (``key`` "ms") or ``|T|`` ("mt") at or above ``floor``:
+        """Every local maximum of ``|S|`` (``key`` "ms"), ``|T|`` ("mt") or ``|C F S|`` ("mks") at or above ``floor``:
         ``[(value, omega rad/s)]``, each polished like :meth:`peaks` (several near-equal peaks
         make the peak a non-smooth function of the gains; each one is a constraint of its own)."""
         g = self.gvec(gains)
         f = (lambda Lv: 1 / np.abs(1 + Lv)) if key == "ms" else (lambda Lv: np.abs(Lv / (1 + Lv)))
-        if self.response is None:
+        if key == "mks":  # |C F S|: needs ``noise`` and ``response``
+            w = self._noise_grid(g)
+            mag = self._magnitude(g, key, w)
+        elif self.response is None:
             w, L = self.omega, self.loop_response(g)
+            mag = f(L)
         else:
             w, L = self._peak_grid(g)
-        mag = f(L)
+            mag = f(L)
         left = np.concatenate([[-np.inf], mag[:-1]])
         right = np.concatenate([mag[1:], [-np.inf]])
         cand = np.flatnonzero((mag >= left) & (mag >= right) & (mag >= 0.99 * floor))
@@ -582,7 +619,10 @@ class LoopModel:
             return [(float(mag[i]), float(w[i])) for i in cand if mag[i] >= floor]
         lo = np.log(w[np.maximum(cand - 1, 0)])
         hi = np.log(w[np.minimum(cand + 1, w.size - 1)])
-        x, v = _zoom_max(lambda xs: f(self.loop_response(g, np.exp(xs))), lo, hi)
+        if key == "mks":
+            x, v = _zoom_max(lambda xs: self._magnitude(g, key, np.exp(xs)), lo, hi)
+        else:
+            x, v = _zoom_max(lambda xs: f(self.loop_response(g, np.exp(xs))), lo, hi)
         out = []
         for i, c in enumerate(cand):
             val, wv = (float(v[i]), float(math.exp(x[i]))) if v[i] > mag[c] else (float(mag[c]), float(w[c]))
@@ -592,14 +632,13 @@ class LoopModel:
 
     def active_band(self, gains: Sequence[float], key: str, floor: float, n: int = 7,
                     rel: float = 1e-4) -> NDArray[np.float64]:
-        """Frequencies (rad/s) near the peaks of ``|S|`` (``key`` "ms") or ``|T|`` ("mt") at or
+        """Frequencies (rad/s) near the peaks of ``|S|`` (``key`` "ms"), ``|T|`` ("mt") or ``|C F S|`` ("mks") at or
         above ``floor``: around each such local peak, up to ``n`` points spread over the band
         (+-0.1 in log frequency searched on 401 points) where the magnitude stays within
         ``rel`` of the peak, the peak included. A flat or double peak (the optimum of a peak-constrained
         design often touches the bound at a degenerate point) is then represented by the
         constraint gradients of both its sides (the epsilon-active set of the semi-infinite
         constraint)."""
-        f = (lambda Lv: 1 / np.abs(1 + Lv)) if key == "ms" else (lambda Lv: np.abs(Lv / (1 + Lv)))
         g = self.gvec(gains)
         out = []
         for vp, wp in self.local_peaks(g, key, floor):
@@ -607,7 +646,7 @@ class LoopModel:
                 out.append(wp)
                 continue
             ws = wp * np.exp(np.linspace(-0.1, 0.1, 401))
-            inside = ws[f(self.loop_response(g, ws)) >= vp * (1 - rel)]
+            inside = ws[self._magnitude(g, key, ws) >= vp * (1 - rel)]
             if inside.size > n:
                 inside = inside[np.round(np.linspace(0, inside.size - 1, n)).astype(int)]
             out.extend(list(inside) + [wp])
@@ -834,6 +873,11 @@ def continuous_loop(
     disturbance: str | int | None = None,
     step: float = 1.0,
     omega: NDArray[np.float64] | None = None,
+    filter_order: int = 0,
+    filter_tf: float | None = None,
+    ideal: bool = False,
+    delay: float = 0.0,
+    delay_order: int = 6,
 ) -> LoopModel:
     """Loop model of a continuous SISO LTI plant under a continuous PID.
 
@@ -858,6 +902,27 @@ def continuous_loop(
     omega : array, rad/s, optional
         Frequency grid of the Ms/Mt constraints; by default 600 log-spaced points spanning the
         plant's poles and zeros, refined around each of them.
+    filter_order : {0, 1, 2}
+        Measurement filter on the whole controller, ``C(s) F(s)``: none (0), ``F = 1/(Tf s + 1)``
+        (1) or ``F = 1/(Tf^2 s^2/2 + Tf s + 1)`` (2, as Soltesz-Grimholt-Skogestad / Hast et al.
+        and JuliaSim's ``filter_order=2``). The controller acts on the filtered measurement;
+        the objective is that of the unfiltered output.
+    filter_tf : float, s
+        The filter's time constant ``Tf`` (needed with ``filter_order`` 1 or 2).
+    ideal : bool
+        Ideal derivative ``kd s`` (no derivative filter; ``tf`` then plays no part in the law):
+        the derivative of the filtered measurement, or with ``filter_order=0`` that of the
+        plant output, which needs a plant of relative degree 2 or more.
+    delay : float, s
+        Output (equivalently input) delay ``e^{-s delay}`` of the plant. The frequency response
+        (Ms, Mt, Mks, margins) uses the exact ``e^{-j omega delay}``; the reported IAE/ITAE
+        (:meth:`LoopModel.true_objective`) is that of the loop with the exact delay
+        (:class:`_DelayedLoop`); the sampled stand-in the optimiser works on, and IE/ISE, use a
+        Pade approximant of order ``delay_order`` in series with the plant (IE is exact for any
+        order: it is ``|u_ss|/ki``).
+    delay_order : int
+        Pade order of the delay in the stand-in (1 .. 10; above ~8 its realisation loses
+        accuracy in double precision).
 
     Returns
     -------
@@ -878,6 +943,8 @@ def continuous_loop(
     step = _number("step", step, expected="a finite non-zero step size")
     if step == 0.0:
         raise ValueError("step = 0.0; expected a finite non-zero step size")
+    filter_order, filter_tf, ideal, delay, delay_order = _check_structure(filter_order, filter_tf, ideal, delay,
+                                                                          delay_order)
     sys = control.ss(plant)
     if not sys.isctime():
         raise ValueError(f"plant {sys.name!r} is discrete-time; expected a continuous-time LTI system")
@@ -913,6 +980,15 @@ def continuous_loop(
         a, (tb, _) = matrix_balance(a, permute=False, separate=True)
         b = b / tb[:, None]
         c = c * tb[None, :]
+    c_plant = c
+    delayed = None
+    if delay > 0:
+        delayed = _delayed_loop(a, b, c, d_idx, step, tf, ideal, filter_order, filter_tf, delay, horizon)
+    # The delay's Pade model and the measurement filter in series with the plant output (extra
+    # plant states): c is then the row of the output the controller measures, c_err that of the
+    # (delayed, unfiltered) output the objective integrates; without them both are c.
+    a, b, c, c_err = _series_output(a, b, c, delay, delay_order, filter_order, filter_tf)
+    n = a.shape[0]
     h = horizon / n_steps
     ad, bd_all = _zoh(a, b, h)
     bu, bdist = bd_all[:, :1], bd_all[:, d_idx : d_idx + 1]
@@ -927,15 +1003,20 @@ def continuous_loop(
     A0[n + 1, n + 1] = gam
     ce = np.zeros(N)
     ce[:n] = -c[0]
-    # u = kp e + ki I + kd (e - z)/tf
+    # u = kp e + ki I + kd (e - z)/tf (ideal: kd de/dt, a row over the plant states)
+    d_row = _ideal_derivative_row(a, b, c, N) if ideal else (ce - np.eye(N)[n + 1]) / tf
     a_kp = np.zeros((N, N))
     a_kp[:n, :] = bu @ ce[None, :]
     a_ki = np.zeros((N, N))
     a_ki[:n, n] = bu[:, 0]
     a_kd = np.zeros((N, N))
-    a_kd[:n, :] = bu @ ((ce - np.eye(N)[n + 1]) / tf)[None, :]
+    a_kd[:n, :] = bu @ d_row[None, :]
     bdv = np.zeros(N)
     bdv[:n] = bdist[:, 0] * step
+    ce_obj = ce
+    if c_err is not c:
+        ce_obj = np.zeros(N)
+        ce_obj[:n] = -c_err[0]
     poles, zeros = _plant_roots(a, b[:, :1], c, d[:, :1])
     if omega is None:
         mags = np.abs(np.concatenate([poles, zeros]))
@@ -950,11 +1031,20 @@ def continuous_loop(
             raise ValueError("omega must be an increasing 1-D array of positive finite frequencies (rad/s)")
 
     b_u = b[:, :1].copy()
+    exact = delay > 0 or filter_order > 0 or ideal
+    a_p, b_p = a[: c_plant.shape[1], : c_plant.shape[1]].copy(), b_u[: c_plant.shape[1]].copy()
+
+    def deriv(jw):
+        return jw if ideal else jw / (1 + jw * tf)
 
     def response(w):
-        p_u = _ss_response(a, b_u, c, w)
         jw = 1j * np.asarray(w, float)
-        return None, np.vstack([p_u, p_u / jw, p_u * jw / (1 + jw * tf)]), None, None
+        if not exact:
+            p_u = _ss_response(a, b_u, c, w)
+            return None, np.vstack([p_u, p_u / jw, p_u * jw / (1 + jw * tf)]), None, None
+        # Exact: the plant's own response, e^{-j w delay} and the filter (no Pade in frequency).
+        p_u = _ss_response(a_p, b_p, c_plant, w) * np.exp(-jw * delay) * _filter_response(filter_order, filter_tf, jw)
+        return None, np.vstack([p_u, p_u / jw, p_u * deriv(jw)]), None, None
 
     # The continuous closed loop itself, same state: x' = a x + b u + b_d d, I' = e, z' = (e - z)/tf.
     c0 = np.zeros((N, N))
@@ -965,12 +1055,250 @@ def continuous_loop(
     c_kp, c_ki, c_kd = (np.zeros((N, N)) for _ in range(3))
     c_kp[:n] = b[:, :1] @ ce[None, :]
     c_ki[:n, n] = b[:, 0]
-    c_kd[:n] = b[:, :1] @ ((ce - np.eye(N)[n + 1]) / tf)[None, :]
+    c_kd[:n] = b[:, :1] @ d_row[None, :]
     c_bd = np.zeros(N)
     c_bd[:n] = b[:, d_idx] * step
     L = response(omega)[1]
-    return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce, h, n_steps, omega, L, tf, name=sys.name, response=response,
-                     continuous=(c0, (c_kp, c_ki, c_kd), c_bd))
+
+    def noise(w):  # the controller per unit gain, filter included: u = C F (-(y + noise))
+        jw = 1j * np.asarray(w, float)
+        f = _filter_response(filter_order, filter_tf, jw) if filter_order else 1.0
+        return np.vstack([np.ones_like(jw) * f, f / jw, f * deriv(jw)])
+
+    return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce_obj, h, n_steps, omega, L, tf, name=sys.name, response=response,
+                     continuous=(c0, (c_kp, c_ki, c_kd), c_bd), noise=noise, delayed=delayed)
+
+
+#: Delay-line samples per delay of the exact delayed simulation: the halving sequence (each level
+#: doubles them) and the fixed level of the first-order check's smooth objective.
+_DELAY_LEVELS = (8, 16, 32, 64, 128, 256, 512, 1024)
+_DELAY_SMOOTH = 64
+#: Largest number of samples one delayed simulation may take (budget).
+_DELAY_MAX_STEPS = 1 << 21
+
+
+class _DelayedLoop:
+    """The continuous closed loop with the plant's EXACT output delay ``L``:
+    ``X' = M(g) X + Q(g) x(t - L) + b_d`` over ``X = [x (plant), f (measurement filter), I, z]``,
+    error ``e(t) = -c x(t - L)``, from rest (``x(t) = 0`` for ``t <= 0``).
+
+    Simulated exactly up to the interpolation of the delayed state: the step is ``h = L/m``
+    (so the delay is exactly ``m`` samples) and the delayed input ``Q x(t - L)`` is linear
+    between its samples (first-order hold, integrated exactly with one matrix exponential):
+    O(h^2). :meth:`objective` doubles ``m`` along ``_DELAY_LEVELS`` until two successive IAE/ITAE
+    agree within ``rtol`` and returns the finer value with the Richardson estimate
+    ``|I_h/2 - I_h|/3`` (trapezoid rule on the samples; the kinks of ``e`` at multiples of ``L``
+    fall on samples). It runs in blocks (at least one delay and 1/16 of the stand-in's horizon)
+    until the blocks decay geometrically and the geometric tail of the last ratio is below 1e-7
+    of the sum (an estimate, not a bound), within ``_DELAY_MAX_STEPS`` samples."""
+
+    def __init__(self, m0, mg, q0, qg, bd, c, delay: float, horizon: float) -> None:
+        self.m0, self.mg, self.q0, self.qg, self.bd, self.c = m0, mg, q0, qg, bd, c
+        self.delay, self.horizon = delay, horizon
+        self.m_smooth = _DELAY_SMOOTH
+        self._memo: dict = {}
+
+    def _value(self, g, kind: str, m: int) -> tuple[float, float]:
+        """IAE/ITAE to infinity at ``m`` samples per delay, and the estimated tail."""
+        from scipy.linalg import expm
+
+        key = (g.tobytes(), kind, m)
+        if key in self._memo:
+            return self._memo[key]
+        mm = self.m0 + sum(gi * a for gi, a in zip(g, self.mg))
+        qq = self.q0 + sum(gi * a for gi, a in zip(g, self.qg))
+        N, n = mm.shape[0], qq.shape[1]
+        h = self.delay / m
+        big = np.zeros((3 * N, 3 * N))
+        big[:N, :N], big[:N, N : 2 * N], big[N : 2 * N, 2 * N :] = mm * h, np.eye(N) * h, np.eye(N) * h
+        e = expm(big)
+        phi, psi0, psi1 = e[:N, :N], e[:N, N : 2 * N], e[:N, 2 * N :] / h  # psi1 = int e^{Mr}(h - r) dr / h
+        p0, p1 = psi0 - psi1, psi1
+        hist = [np.zeros((1, n))]  # x_j, j = 0 .. k (plant part)
+        X = np.zeros(N)
+        total, prev_b, k = 0.0, None, 0
+        ratios: list = []
+        out = (math.inf, math.inf)
+        # Blocks of one delay (m steps): the delayed input of the block is known from the past.
+        per = max(1, int(math.ceil(self.horizon / 16.0 / self.delay)))  # delays per ratio block
+        acc, n_acc = 0.0, 0
+        while k < _DELAY_MAX_STEPS:
+            past = np.arange(k - m, k + 1)  # x(t - L) at the block's m + 1 sample times
+            xd = np.zeros((m + 1, n))
+            ok = past >= 0
+            if np.any(ok):
+                allx = np.vstack(hist)  # rows: x_j for j = k + 1 - len .. k
+                xd[ok] = allx[past[ok] - (k + 1 - allx.shape[0])]
+            v = xd @ qq.T + self.bd
+            gin = v[:-1] @ p0.T + v[1:] @ p1.T
+            xs = np.empty((m + 1, N))
+            xs[0] = X
+            for j in range(m):
+                X = phi @ X + gin[j]
+                xs[j + 1] = X
+            if not np.all(np.isfinite(X)) or np.abs(X).max() > 1e150:
+                break
+            # e(t) = -c x(t - L): the IAE is that of c x; for the ITAE its time is t + L.
+            y = np.abs(xs[:-1, :n] @ self.c)
+            tk = np.arange(k, k + m) * h + self.delay
+            acc += h * float(np.sum(y if kind == "iae" else tk * y))
+            hist.append(xs[1:, :n])
+            hist = hist[-2:]  # the last delay (and more) is all the next block needs
+            k += m
+            n_acc += 1
+            if n_acc < per:
+                continue
+            b, acc, n_acc = acc, 0.0, 0
+            total += b
+            if prev_b is not None and prev_b > 0:
+                ratios.append(b / prev_b)
+            prev_b = b
+            if len(ratios) >= 3 and max(ratios[-3:]) < 1.0 and k * h > self.horizon / 4:
+                r = max(ratios[-3:])
+                tail = b * r / (1.0 - r)
+                if tail <= 1e-7 * total:
+                    out = (total, tail)
+                    break
+        self._memo[key] = out
+        return out
+
+    def objective(self, g, kind: str, rtol: float = CONT_RTOL, levels=None) -> tuple[float, float]:
+        """IAE or ITAE of the exact delayed loop and its error estimate (Richardson over
+        successive levels of ``_DELAY_LEVELS``; with ``levels``, over those, or the one value)."""
+        g = np.asarray(g, float)
+        levels = _DELAY_LEVELS if levels is None else levels
+        prev, val, err = None, math.inf, 0.0
+        for m in levels:
+            val, tail = self._value(g, kind, m)
+            if not math.isfinite(val):
+                return math.inf, math.inf
+            if prev is not None:
+                err = abs(val - prev) / 3.0 + tail
+                if err <= rtol * val:
+                    return val, err
+            prev = val
+        return val, err
+
+
+def _delayed_loop(a, b, c, d_idx: int, step: float, tf: float, ideal: bool, filter_order: int, filter_tf,
+                  delay: float, horizon: float) -> _DelayedLoop:
+    """The loop of :func:`continuous_loop` with the exact delay on the plant output (see
+    :class:`_DelayedLoop`); ``a, b, c`` the balanced plant without the delay or the filter."""
+    n = a.shape[0]
+    if filter_order:
+        af, bf, cf = _filter_ss(filter_order, filter_tf)
+    else:
+        af, bf, cf = np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0))
+    nf = af.shape[0]
+    N = n + nf + 2
+    i_i, i_z = n + nf, n + nf + 1
+    E, Ed = np.zeros(N), np.zeros(n)  # the measured error em = E X + Ed x(t - L)
+    if filter_order:
+        E[n : n + nf] = -cf[0]
+    else:
+        Ed = -c[0].copy()
+    ez = np.eye(N)[i_z]
+    if ideal and filter_order:  # d em/dt = -cf (af f + bf c x(t - L))
+        DX, Dx = np.zeros(N), -float(cf[0] @ bf[:, 0]) * c[0]
+        DX[n : n + nf] = -(cf[0] @ af)
+    elif ideal:  # -c a x(t - L) (relative degree 2 or more, checked by the stand-in)
+        DX, Dx = np.zeros(N), -(c[0] @ a)
+    else:
+        DX, Dx = (E - ez) / tf, Ed / tf
+    m0 = np.zeros((N, N))
+    m0[:n, :n] = a
+    m0[n : n + nf, n : n + nf] = af
+    m0[i_i] = E
+    m0[i_z] = (E - ez) / tf
+    q0 = np.zeros((N, n))
+    q0[n : n + nf] = bf @ c
+    q0[i_i] = Ed
+    q0[i_z] = Ed / tf
+    mg, qg = [], []
+    for row_x, row_d in ((E, Ed), (np.eye(N)[i_i], np.zeros(n)), (DX, Dx)):
+        mk, qk = np.zeros((N, N)), np.zeros((N, n))
+        mk[:n] = np.outer(b[:, 0], row_x)
+        qk[:n] = np.outer(b[:, 0], row_d)
+        mg.append(mk)
+        qg.append(qk)
+    bd = np.zeros(N)
+    bd[:n] = b[:, d_idx] * step
+    return _DelayedLoop(m0, tuple(mg), q0, tuple(qg), bd, c[0].copy(), delay, horizon)
+
+
+def _check_structure(filter_order, filter_tf, ideal, delay, delay_order):
+    """The loop-structure arguments of :func:`continuous_loop` checked (ValueError naming one)."""
+    if isinstance(filter_order, bool) or filter_order not in (0, 1, 2):
+        raise ValueError(f"filter_order = {filter_order!r}; expected 0 (none), 1 or 2")
+    if filter_order:
+        filter_tf = _number("filter_tf", filter_tf, lo=0.0, expected="a positive finite time constant in s")
+    if not isinstance(ideal, (bool, np.bool_)):
+        raise ValueError(f"ideal = {ideal!r}; expected True or False")
+    delay = _number("delay", delay, lo=0.0, lo_open=False, expected="a finite delay >= 0 s")
+    if isinstance(delay_order, bool) or not isinstance(delay_order, numbers.Integral) or not 1 <= delay_order <= 10:
+        raise ValueError(f"delay_order = {delay_order!r}; expected an integer in [1, 10]")
+    return int(filter_order), filter_tf, bool(ideal), delay, int(delay_order)
+
+
+def _filter_ss(order: int, t: float) -> tuple[NDArray, NDArray, NDArray]:
+    """State space ``(A, B, C)`` of the measurement filter 1/(t s + 1) or 1/(t^2 s^2/2 + t s + 1)."""
+    if order == 1:
+        return np.array([[-1.0 / t]]), np.array([[1.0 / t]]), np.array([[1.0]])
+    return (np.array([[0.0, 1.0], [-2.0 / (t * t), -2.0 / t]]), np.array([[0.0], [2.0 / (t * t)]]),
+            np.array([[1.0, 0.0]]))
+
+
+def _filter_response(order: int, t: float | None, jw) -> NDArray[np.complex128]:
+    """``F(j omega)`` of the measurement filter (1 without one)."""
+    if not order:
+        return np.ones_like(jw)
+    return 1.0 / (t * jw + 1.0) if order == 1 else 1.0 / (t * t * jw * jw / 2.0 + t * jw + 1.0)
+
+
+def _series_output(a, b, c, delay: float, delay_order: int, filter_order: int, filter_tf):
+    """The plant ``(a, b, c)`` with the delay's Pade model and the measurement filter in series
+    with its output: ``(a, b, c_measured, c_objective)`` (the last is ``c`` itself, the same
+    object, when neither is present)."""
+    c_err = c
+    if delay > 0:
+        import control
+
+        num, den = control.pade(delay, delay_order)
+        pd = control.ss(control.tf(num, den))
+        ap, bp, cp, dp = (np.asarray(m, float) for m in (pd.A, pd.B, pd.C, pd.D))
+        from scipy.linalg import matrix_balance
+
+        ap, (tp, _) = matrix_balance(ap, permute=False, separate=True)
+        bp, cp = bp / tp[:, None], cp * tp[None, :]
+        a, b, c = _cascade(a, b, c, ap, bp, cp, float(dp[0, 0]))
+        c_err = c
+    if filter_order:
+        af, bf, cf = _filter_ss(filter_order, filter_tf)
+        a, b, c_meas = _cascade(a, b, c, af, bf, cf, 0.0)
+        return a, b, c_meas, np.hstack([c, np.zeros((1, af.shape[0]))])
+    return a, b, c, c_err
+
+
+def _cascade(a, b, c, a2, b2, c2, d2: float):
+    """``(a, b, c)`` followed by ``(a2, b2, c2, d2)`` on its output: the series system's matrices."""
+    n, m = a.shape[0], a2.shape[0]
+    big = np.zeros((n + m, n + m))
+    big[:n, :n] = a
+    big[n:, :n] = b2 @ c
+    big[n:, n:] = a2
+    return big, np.vstack([b, np.zeros((m, b.shape[1]))]), np.hstack([d2 * c, c2])
+
+
+def _ideal_derivative_row(a, b, c, n_total: int) -> NDArray[np.float64]:
+    """The error's time derivative ``-c (a x + b u)`` as a row over the closed-loop state, which
+    needs ``c b = 0`` (relative degree 2 or more from the control input to the measurement)."""
+    if abs(float(c[0] @ b[:, 0])) > 1e-12 * max(float(np.abs(c).max() * np.abs(b).max()), 1e-300):
+        raise ValueError("ideal = True on a measurement of relative degree 1 (the ideal derivative feeds the "
+                         "control input through); expected a measurement filter (filter_order=1 or 2) or a plant "
+                         "of relative degree 2 or more")
+    row = np.zeros(n_total)
+    row[: a.shape[0]] = -(c[0] @ a)
+    return row
 
 
 def _pid_rows(n_state: int, i_u: int, i_i: int, e_meas, d_new, ts: float, ref=None, weight: float = 1.0):
@@ -1268,6 +1596,17 @@ class TuningResult:
         Whether ``status`` starts with ``"optimal"``.
     warnings : list of str
         Every caveat of the result, one line each.
+    mks : float or None
+        True peak noise sensitivity ``max |C F S|`` over the loops (:meth:`LoopModel.noise_peak`;
+        control-signal units per measured-output unit), None where a loop has no noise path.
+    filter : dict or None
+        :func:`tune_pid` with a measurement filter or an ideal derivative: ``order`` (0, 1, 2),
+        ``tf_s`` (the filter's time constant, s; None without a filter) and ``derivative``
+        (``"ideal"`` or ``"filtered"``); the law is ``C(s) F(s)``.
+    setpoint : dict or None
+        :func:`tune_pid` with ``setpoint_weights=True``: the 2-DOF weights ``b``, ``c`` of
+        ``u = kp (b r - y) + ki int (r - y) + kd D(c r - y)``, their ``goal``, the setpoint
+        step's ``iae`` with them and ``iae_unweighted`` (b = c = 1), and the ``overshoot``.
     """
 
     pid: PID
@@ -1279,6 +1618,9 @@ class TuningResult:
     status: str = "optimal"
     converged: bool = True
     warnings: list[str] = field(default_factory=list)
+    mks: float | None = None
+    filter: dict | None = None
+    setpoint: dict | None = None
 
     @property
     def ms(self) -> float:
@@ -1420,6 +1762,12 @@ class _NLP:
     n_slots: int
     warm_nlp: tuple | None = None  # (nlp function, options) of the warm-start solver
     _warm: ca.Function | None = None
+    has_mks: bool = False  # rows |C F S| <= Mks after the Ms (and Mt) rows of each loop
+
+    @property
+    def n_kinds(self) -> int:
+        """Peak constraints per frequency row: Ms, and Mt and Mks where bounded."""
+        return 1 + int(self.has_mt) + int(self.has_mks)
 
     def warm(self) -> ca.Function:
         """The warm-start solver (same problem), built on first use."""
@@ -1561,15 +1909,20 @@ class Tuner:
                 "stable": np.full((nl, len(grid)), -1, np.int8), "obj": np.full((nl, len(grid)), np.nan)}
 
     def _scan_peak(self, grid: NDArray[np.float64], key: str) -> NDArray[np.float64]:
-        """Largest |S| (``key`` "ms") or |T| ("mt") over every loop's grid, per scan point."""
+        """Largest |S| (``key`` "ms"), |T| ("mt") or |C F S| ("mks") over every loop's grid, per
+        scan point."""
         out = np.zeros(len(grid))
         for lp in self.loops:
             pn0, pln, pd0, pld = lp.parts()
+            kn = np.asarray(lp.noise(lp.omega), complex) if key == "mks" else None
             for s in range(0, len(grid), 1000):
                 gg = grid[s : s + 1000]
                 with np.errstate(all="ignore"):
                     L = (pn0 + gg @ pln) / (pd0 + gg @ pld)
-                    m = 1 / np.abs(1 + L) if key == "ms" else np.abs(L / (1 + L))
+                    if key == "mks":
+                        m = np.abs((gg[:, : kn.shape[0]] @ kn) / (1 + L))
+                    else:
+                        m = 1 / np.abs(1 + L) if key == "ms" else np.abs(L / (1 + L))
                     out[s : s + 1000] = np.maximum(out[s : s + 1000], np.max(m, axis=1))
         out[~np.isfinite(out)] = np.inf
         return out
@@ -1581,7 +1934,14 @@ class Tuner:
             sc["mt"] = self._scan_peak(sc["grid"], "mt")
         return sc["mt"]
 
-    def _ranked(self, ms_eff, mt_eff, noise, hi) -> NDArray[np.int64]:
+    def _scan_mks(self) -> NDArray[np.float64]:
+        """The scan's Mks on the loops' grids (computed on the first call with an Mks bound)."""
+        sc = self._scan_data()
+        if sc.get("mks") is None:
+            sc["mks"] = self._scan_peak(sc["grid"], "mks")
+        return sc["mks"]
+
+    def _ranked(self, ms_eff, mt_eff, noise, hi, mks_eff=None) -> NDArray[np.int64]:
         """Scan indices within the bounds, stable in every loop, best objective first.
 
         With several loops and the worst-case objective (robust tuning: the ranking simulated
@@ -1600,6 +1960,8 @@ class Tuner:
             ok &= self._scan_mt() <= mt_eff
         if noise is not None:
             ok &= grid[:, 0] + (grid[:, 2] / self.loops[0].tf) <= noise
+        if mks_eff is not None:
+            ok &= self._scan_mks() <= mks_eff
         for i, lim in enumerate(hi):
             ok &= grid[:, i] <= lim
         cand = np.flatnonzero(ok)
@@ -1667,10 +2029,10 @@ class Tuner:
 
     # ---- NLP ----------------------------------------------------------------------------
 
-    def _nlp(self, has_mt: bool, has_noise: bool) -> _NLP:
-        key = (has_mt, has_noise)
+    def _nlp(self, has_mt: bool, has_noise: bool, has_mks: bool = False) -> _NLP:
+        key = (has_mt, has_noise) + ((True,) if has_mks else ())
         if key not in self._nlps:
-            self._nlps[key] = self._build_nlp(has_mt, has_noise)
+            self._nlps[key] = self._build_nlp(has_mt, has_noise, has_mks)
         return self._nlps[key]
 
     def _grid_rows(self, jl: int) -> NDArray[np.int64]:
@@ -1709,8 +2071,10 @@ class Tuner:
     def _n_slots(self) -> int:
         return _SLOTS if len(self.loops) == 1 else _MULTI_SLOTS
 
-    def _n_slot(self) -> int:
-        return 4 + 4 * self.loops[0].n_gains
+    def _n_slot(self, mks: bool = False) -> int:
+        """Numbers per extra frequency: N0, D0 (re, im), L and D per gain (re, im), and with an
+        Mks bound the noise path ``C F`` per gain (re, im)."""
+        return 4 + (6 if mks else 4) * self.loops[0].n_gains
 
     def _mapped_objectives(self, g, eps) -> list | None:
         """The time-domain objective of every loop from ONE per-loop function mapped over the
@@ -1759,18 +2123,20 @@ class Tuner:
             ca.vertcat(*[eps[k] for k in range(nl)]).T, ca.DM([float(lp.h) for lp in loops]).T)
         return [row[k] for k in range(nl)]
 
-    def _build_nlp(self, has_mt: bool, has_noise: bool) -> _NLP:
+    def _build_nlp(self, has_mt: bool, has_noise: bool, has_mks: bool = False) -> _NLP:
         """NLP in scaled gains ``v`` with parameters ``p = [scale (ng), eps (per loop), j_ref,
-        extra frequencies (per loop, n_slots x (4 + 4 ng))]``."""
+        1/Ms^2, 1/Mt^2, extra frequencies (per loop, n_slots x (4 + 4 ng), with an Mks bound
+        4 + 6 ng) and row scales (per loop), 1/Mks^2 (with an Mks bound)]``."""
         loops = self.loops
         ng, nl = loops[0].n_gains, len(loops)
         free = _free_gains(self.use_d, ng)
         nv = len(free)
-        ns = self._n_slot()
+        ns = self._n_slot(has_mks)
         v = ca.MX.sym("v", nv)
         n_sl = self._n_slots()
-        per_loop = [n_sl * ns + 2 * (self._grid_rows(jl).size + n_sl) for jl in range(nl)]
-        p = ca.MX.sym("p", ng + nl + 3 + sum(per_loop))
+        per_loop = [n_sl * ns + (3 if has_mks else 2) * (self._grid_rows(jl).size + n_sl) for jl in range(nl)]
+        p = ca.MX.sym("p", ng + nl + 3 + sum(per_loop) + (1 if has_mks else 0))
+        inv_mks2 = p[-1] if has_mks else None
         scale, eps, j_ref = p[:ng], p[ng : ng + nl], p[ng + nl]
         inv_ms2, inv_mt2 = p[ng + nl + 1], p[ng + nl + 2]
         offs = np.concatenate([[ng + nl + 3], ng + nl + 3 + np.cumsum(per_loop)]).astype(int)
@@ -1778,7 +2144,7 @@ class Tuner:
         for j, i in enumerate(free):
             g_list[i] = v[j] * scale[i]
         g = ca.vertcat(*g_list)
-        cons_s, cons_t, objs = [], [], []
+        cons_s, cons_t, cons_k, objs = [], [], [], []
         rows = [self._grid_rows(jl) for jl in range(nl)]
         mapped = self._mapped_objectives(g, eps)
         for jl, lp in enumerate(loops):
@@ -1844,11 +2210,22 @@ class Tuner:
             if has_mt:
                 nn = ca.vertcat(n_re * n_re + n_im * n_im, (sn_re * sn_re + sn_im * sn_im).T)
                 cons_t.append((ww - inv_mt2 * nn) * norm_t)
+            if has_mks:
+                # |C F S| <= Mks: |N + D|^2 - |D|^2 |g K|^2 / Mks^2 >= 0, K the noise path per gain.
+                kg = np.asarray(lp.noise(lp.omega[rows[jl]]), complex)
+                k_re, k_im = ca.mtimes(ca.DM(kg.real.T), g), ca.mtimes(ca.DM(kg.imag.T), g)
+                q_kr, q_ki = q[4 + 4 * ng : 4 + 5 * ng, :], q[4 + 5 * ng : 4 + 6 * ng, :]
+                sk_re, sk_im = ca.mtimes(gt, q_kr), ca.mtimes(gt, q_ki)
+                kk = ca.vertcat(k_re * k_re + k_im * k_im, (sk_re * sk_re + sk_im * sk_im).T)
+                norm_k = p[off + n_sl * ns + 2 * n_c : off + n_sl * ns + 3 * n_c]
+                cons_k.append((ww - inv_mks2 * dd * kk) * norm_k)
         cons = []
         for jl in range(nl):
             cons.append(cons_s[jl])
             if has_mt:
                 cons.append(cons_t[jl])
+            if has_mks:
+                cons.append(cons_k[jl])
         if has_noise:
             cons.append(g[0] + g[2] / loops[0].tf)
         if self.worst_case:
@@ -1875,10 +2252,11 @@ class Tuner:
             # multipliers (a few constraint rows changed); built on first use.
             warm = (fun, {**base, "ipopt": {**ip, "warm_start_init_point": "yes", "warm_start_bound_push": 1e-9,
                                             "warm_start_mult_bound_push": 1e-9, "warm_start_slack_bound_push": 1e-9}})
-        return _NLP(solver, free, [r.size for r in rows], has_mt, has_noise, n_sl, warm)
+        return _NLP(solver, free, [r.size for r in rows], has_mt, has_noise, n_sl, warm, has_mks=has_mks)
 
-    def _params(self, scale, eps, j_ref, inv_ms2, inv_mt2, slots, g0) -> NDArray:
-        ns = self._n_slot()
+    def _params(self, scale, eps, j_ref, inv_ms2, inv_mt2, slots, g0, inv_mks2=None) -> NDArray:
+        mks = inv_mks2 is not None
+        ns = self._n_slot(mks)
         out = [np.asarray(scale, float), np.asarray(eps, float), np.array([j_ref, inv_ms2, inv_mt2])]
         g0 = self.loops[0].gvec(g0)
         for jl, (lp, ws) in enumerate(zip(self.loops, slots)):
@@ -1887,20 +2265,29 @@ class Tuner:
             blk[:, 2] = 1.0
             if ws:
                 n0, ln, d0, ld = lp.parts_at(np.asarray(ws, float))
+                kn = np.asarray(lp.noise(np.asarray(ws, float)), complex) if mks else None
                 for k in range(len(ws)):
                     blk[k] = np.concatenate([[n0[k].real, n0[k].imag, d0[k].real, d0[k].imag],
-                                             ln[:, k].real, ln[:, k].imag, ld[:, k].real, ld[:, k].imag])
+                                             ln[:, k].real, ln[:, k].imag, ld[:, k].real, ld[:, k].imag]
+                                            + ([kn[:, k].real, kn[:, k].imag] if mks else []))
             out.append(blk.ravel())
             # Row scales: 1 / (|N + D|^2 + |D|^2) and 1 / (|N + D|^2 + |N|^2) at the start point.
             pn0, pln, pd0, pld = self._nlp_parts(jl)
             ng = len(g0)
             s_n = blk[:, 0] + 1j * blk[:, 1] + (blk[:, 4 : 4 + ng] + 1j * blk[:, 4 + ng : 4 + 2 * ng]) @ g0
-            s_d = blk[:, 2] + 1j * blk[:, 3] + (blk[:, 4 + 2 * ng : 4 + 3 * ng] + 1j * blk[:, 4 + 3 * ng :]) @ g0
+            s_d = blk[:, 2] + 1j * blk[:, 3] + (blk[:, 4 + 2 * ng : 4 + 3 * ng] + 1j * blk[:, 4 + 3 * ng : 4 + 4 * ng]) @ g0
             nv = np.concatenate([pn0 + g0 @ pln, s_n])
             dv = np.concatenate([pd0 + g0 @ pld, s_d])
             wv = np.abs(nv + dv) ** 2
             out.append(1.0 / np.maximum(wv + np.abs(dv) ** 2, 1e-300))
             out.append(1.0 / np.maximum(wv + np.abs(nv) ** 2, 1e-300))
+            if mks:  # 1 / (|N + D|^2 + |D|^2 |g K|^2 / Mks^2) at the start point
+                rows_w = lp.omega[self._grid_rows(jl)]
+                kv = np.concatenate([g0 @ np.asarray(lp.noise(rows_w), complex),
+                                     (blk[:, 4 + 4 * ng : 4 + 5 * ng] + 1j * blk[:, 4 + 5 * ng :]) @ g0])
+                out.append(1.0 / np.maximum(wv + np.abs(dv) ** 2 * np.abs(kv) ** 2 * inv_mks2, 1e-300))
+        if mks:
+            out.append(np.array([inv_mks2]))
         return np.concatenate(out)
 
     def _value(self, gains) -> float:
@@ -1909,7 +2296,8 @@ class Tuner:
                 for lp in self.loops]
         return _combined(vals, self.weights, self.worst_case)
 
-    def _solve_from(self, nlp: _NLP, g0, ms_max, mt_max, noise, hi, typical) -> tuple[_Candidate | None, dict]:
+    def _solve_from(self, nlp: _NLP, g0, ms_max, mt_max, noise, hi, typical,
+                    mks_max=None) -> tuple[_Candidate | None, dict]:
         """ipopt from one scan point, then verify (stability, true peaks) and re-solve with the
         frequencies where a true peak exceeded its bound, until the bounds hold."""
         loops = self.loops
@@ -1954,13 +2342,16 @@ class Tuner:
             else:
                 pk0 = lp.peaks(g0, mt=mt_max is not None)
                 ws0 = {pk0["w_ms"]} | ({pk0["w_mt"]} if mt_max is not None else set()) if pk0["exact"] else set()
+            if mks_max is not None:
+                ws0 |= {lp.noise_peak(g0)["w_mks"]}
             slots.append(sorted({w for w0 in ws0 for w in (self._cluster(lp, w0) if multi else [w0])}))
         ms_eff = ms_max * (1 - 1e-5)
         mt_eff = mt_max * (1 - 1e-5) if mt_max is not None else None
+        mks_eff = mks_max * (1 - 1e-5) if mks_max is not None else None
         info: dict = {"start": [float(x) for x in g0], "iterations": 0, "rounds": 0}
         sol: dict = {}
         for rnd in range(2 * nlp.n_slots + 1):
-            lbg = [0.0] * sum((n_w + nlp.n_slots) * (2 if nlp.has_mt else 1) for n_w in nlp.n_omega)
+            lbg = [0.0] * sum((n_w + nlp.n_slots) * nlp.n_kinds for n_w in nlp.n_omega)
             ubg = [ca.inf] * len(lbg)
             if nlp.has_noise:
                 lbg.append(-ca.inf)
@@ -1968,7 +2359,8 @@ class Tuner:
             if self.worst_case:
                 lbg += [0.0] * len(loops)
                 ubg += [ca.inf] * len(loops)
-            prm = self._params(scale, eps, j_ref, ms_eff**-2, (mt_eff or 1.0) ** -2, slots, g0)
+            prm = self._params(scale, eps, j_ref, ms_eff**-2, (mt_eff or 1.0) ** -2, slots, g0,
+                               None if mks_eff is None else mks_eff**-2)
             if rnd and multi:
                 warm = nlp.warm()
                 sol = warm(x0=x0, p=prm, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg, lam_x0=sol["lam_x"], lam_g0=sol["lam_g"])
@@ -1993,14 +2385,18 @@ class Tuner:
                 info["result"] = "noise bound not met"
                 return None, info
             pks = [lp.peaks(gains, mt=mt_max is not None) for lp in loops]
+            if mks_max is not None:
+                for lp, pk in zip(loops, pks):
+                    pk.update(lp.noise_peak(gains))
             viol, grid_only_bad, full = False, False, False
             for j, pk in enumerate(pks):
                 bad_s = pk["ms"] > ms_max
                 bad_t = mt_max is not None and pk["mt"] > mt_max
+                bad_k = mks_max is not None and pk["mks"] > mks_max
                 if not pk["exact"]:
-                    grid_only_bad |= bad_s or bad_t
+                    grid_only_bad |= bad_s or bad_t or bad_k
                     continue
-                for bad, key in ((bad_s, "ms"), (bad_t, "mt")):
+                for bad, key in ((bad_s, "ms"), (bad_t, "mt"), (bad_k, "mks")):
                     if not bad:
                         continue
                     viol = True
@@ -2009,8 +2405,10 @@ class Tuner:
                         # Already constrained there: the solve's tolerance, tighten the bound.
                         if key == "ms":
                             ms_eff *= (ms_max / pk["ms"]) * (1 - 1e-6)
-                        else:
+                        elif key == "mt":
                             mt_eff *= (mt_max / pk["mt"]) * (1 - 1e-6)
+                        else:
+                            mks_eff *= (mks_max / pk["mks"]) * (1 - 1e-6)
                     else:
                         # A new region gets the peak with its neighbours; a peak inside a region
                         # already held (it moved by less than the cluster's span) only itself.
@@ -2031,7 +2429,7 @@ class Tuner:
                 idx, active = 0, False
                 for n in n_s:
                     active |= bool(np.any(lam[idx : idx + n] < -1e-8))
-                    idx += n * (2 if nlp.has_mt else 1)
+                    idx += n * nlp.n_kinds
                 info["result"] = "verified"
                 return _Candidate(gains, dict(st), pks, math.nan, active, bool(st["success"])), info
             if full:
@@ -2044,14 +2442,14 @@ class Tuner:
 
     # ---- verification of optimality -------------------------------------------------------
 
-    def _first_order(self, gains, ms_max, mt_max, noise, hi, typical) -> dict:
+    def _first_order(self, gains, ms_max, mt_max, noise, hi, typical, mks_max=None) -> dict:
         """First-order optimality of ``gains`` checked on the TRUE problem, independently of
         ipopt: the reported objective (:meth:`LoopModel.true_objective`, at a fixed resolution
         so that it is smooth) and the true local peaks of |S| and |T| (each a constraint of
         its own), differentiated by central differences of ``_FD_STEP`` in log gain (a gain at
         0 by a forward difference of ``_FD_STEP`` times its typical size).
 
-        Active set: peaks within ``MS_RTOL`` of their bound, the noise and upper gain bounds
+        Active set: peaks (of |S|, |T| and, with ``mks_max``, |C F S|) within ``MS_RTOL`` of their bound, the noise and upper gain bounds
         within 1e-6, gains at 0; with ``worst_case``, every loop within 1e-3 of the worst.
         Stationarity: the residual ``min || sum_j lam_j grad log f_j + sum_i mu_i grad c_i ||``
         over ``lam, mu >= 0``, ``sum lam = 1`` (``c_i`` the constraints relative to their bound),
@@ -2116,18 +2514,20 @@ class Tuner:
             names.append("objective")
         cons, active = [], []
         for lp in loops:
-            for key, bound in (("ms", ms_max), ("mt", mt_max)):
+            for key, bound in (("ms", ms_max), ("mt", mt_max), ("mks", mks_max)):
                 if bound is None:
                     continue
                 for w in lp.active_band(g0, key, bound * (1 - MS_RTOL)):
                     if key == "ms":
                         cfun = lambda g, lp=lp, w=w: 1 / abs(1 + lp.loop_response(g, np.array([w]))[0])
+                    elif key == "mks":
+                        cfun = lambda g, lp=lp, w=w: abs(lp.noise_response(g, np.array([w]))[0])
                     else:
                         cfun = lambda g, lp=lp, w=w: abs(1 / (1 + 1 / lp.loop_response(g, np.array([w]))[0]))
                     if lp.response is None:
                         continue  # grid-only loops: no off-grid response to differentiate
                     cons.append(grad(cfun) / bound)
-                    active.append(f"{'Ms' if key == 'ms' else 'Mt'} of loop {lp.name!r} at {w:.6g} rad/s")
+                    active.append(f"{dict(ms='Ms', mt='Mt', mks='Mks')[key]} of loop {lp.name!r} at {w:.6g} rad/s")
         jac_lin = np.zeros((ng, len(steps)))  # d g_i / d variable
         for k, (i, logv, d) in enumerate(steps):
             jac_lin[i, k] = g0[i] if logv else (typical[i] if typical[i] > 0 else 1.0)
@@ -2166,7 +2566,7 @@ class Tuner:
         return {"ok": res <= KKT_TOL, "residual": res, "active": names + active,
                 "gradient": [float(x) for x in (G @ np.full(G.shape[1], 1.0 / G.shape[1]))]}
 
-    def _polish(self, gains, ms_max, mt_max, noise, hi) -> NDArray | None:
+    def _polish(self, gains, ms_max, mt_max, noise, hi, mks_max=None) -> NDArray | None:
         """A local solve of the TRUE problem from ``gains`` (SLSQP in log gains, central
         differences of ``_FD_STEP / 10``): the reported objective (:meth:`LoopModel.
         _smooth_objective`) under the top peak of |S| (and |T|) and every local one within 10 % of its bound,
@@ -2186,6 +2586,7 @@ class Tuner:
             return None
         ms_eff = ms_max * (1 - 1e-5)
         mt_eff = None if mt_max is None else mt_max * (1 - 1e-5)
+        mks_eff = None if mks_max is None else mks_max * (1 - 1e-5)
 
         def gains_of(y):
             g = g0.copy()
@@ -2197,7 +2598,9 @@ class Tuner:
             if lp.response is None:
                 return None
             pk0 = lp.peaks(g0, mt=mt_eff is not None)
-            for key, bound in (("ms", ms_eff), ("mt", mt_eff)):
+            if mks_eff is not None:
+                pk0.update(lp.noise_peak(g0))
+            for key, bound in (("ms", ms_eff), ("mt", mt_eff), ("mks", mks_eff)):
                 if bound is not None:  # the top peak and every local peak within 10 % of the bound
                     floor = min(0.9 * bound, pk0[key] * (1 - 1e-9))
                     tracked += [(lp, key, bound, math.log(w)) for _, w in lp.local_peaks(g0, key, floor)]
@@ -2206,7 +2609,10 @@ class Tuner:
             out = []
             for lp, key, bound, lw in tracked:
                 f = (lambda Lv: 1 / np.abs(1 + Lv)) if key == "ms" else (lambda Lv: np.abs(Lv / (1 + Lv)))
-                _, v = _zoom_max(lambda xs: f(lp.loop_response(g, np.exp(xs))), np.array([lw - 0.3]), np.array([lw + 0.3]))
+                if key == "mks":
+                    _, v = _zoom_max(lambda xs: lp._magnitude(g, key, np.exp(xs)), np.array([lw - 0.3]), np.array([lw + 0.3]))
+                else:
+                    _, v = _zoom_max(lambda xs: f(lp.loop_response(g, np.exp(xs))), np.array([lw - 0.3]), np.array([lw + 0.3]))
                 out.append(float(v[0]) / bound)
             return np.array(out)
 
@@ -2269,6 +2675,8 @@ class Tuner:
             pk = lp.peaks(g, mt=mt_max is not None)
             if pk["ms"] > ms_max or (mt_max is not None and pk["mt"] > mt_max):
                 return None
+            if mks_max is not None and lp.noise_peak(g)["mks"] > mks_max:
+                return None
         if noise is not None and g[0] + g[2] / loops[0].tf > noise * (1 + 1e-9):
             return None
         old = _combined([lp._smooth_objective(g0, kind) for lp in loops], w, self.worst_case)
@@ -2286,6 +2694,7 @@ class Tuner:
         kp_max: float | None = None,
         ki_max: float | None = None,
         kd_max: float | None = None,
+        mks_max: float | None = None,
     ) -> TuningResult:
         """Optimal gains under the bounds; see :class:`TuningResult` for what is guaranteed.
 
@@ -2297,10 +2706,18 @@ class Tuner:
             Bound on the true peak complementary sensitivity, in (1, 10).
         max_noise_gain : float, optional
             Bound on the controller's high-frequency gain ``kp + kd/tf`` (loop units, e.g.
-            N m s/rad), needed where robustness alone does not limit the gains.
+            N m s/rad), needed where robustness alone does not limit the gains. It bounds
+            the controller alone at infinite frequency, not the noise gain of the loop: for
+            that, use ``mks_max``.
         kp_max, ki_max, kd_max : float, optional
             Upper gain bounds (loop units; None or inf: none). The result does not depend on
             them once they exceed the optimum.
+        mks_max : float, optional
+            Bound on the true peak noise sensitivity ``Mks = max over frequency of |C F S|``
+            (:meth:`LoopModel.noise_peak`; loop units: control signal per measured-output unit,
+            e.g. N m s/rad), the loop as tuned including every filter on the noise path;
+            enforced like Ms (grid rows, then the true peak verified and its frequency added
+            until it holds). Needs loops with a noise path (``continuous_loop``, ``drive_loop``).
 
         Returns
         -------
@@ -2308,12 +2725,16 @@ class Tuner:
         """
         t_start = time.perf_counter()
         ms_max, mt_max, noise = _check_bounds(ms_max, mt_max, max_noise_gain)
+        mks_max = _check_mks(mks_max)
+        if mks_max is not None and any(lp.noise is None or lp.response is None for lp in self.loops):
+            raise ValueError("mks_max given for loops without a noise path; expected continuous_loop or drive_loop models")
         ng = self.loops[0].n_gains
         hi = [_gain_limit("kp_max", kp_max), _gain_limit("ki_max", ki_max),
               _gain_limit("kd_max", kd_max) if self.use_d else 0.0, 1.0][:ng]
         ms_eff = ms_max * (1 - 1e-6)
         mt_eff = mt_max * (1 - 1e-6) if mt_max is not None else None
-        order = self._ranked(ms_eff, mt_eff, noise, hi)
+        mks_eff = mks_max * (1 - 1e-6) if mks_max is not None else None
+        order = self._ranked(ms_eff, mt_eff, noise, hi, mks_eff)
         if not order.size:
             sc = self._scan_data()
             probe = np.flatnonzero(sc["ms"] <= ms_eff)[:20]
@@ -2326,13 +2747,14 @@ class Tuner:
                 f"no stabilising {self.controller.upper()} gains meet Ms <= {ms_max:g}"
                 + (f", Mt <= {mt_max:g}" if mt_max is not None else "")
                 + (f", kp + kd/tf <= {noise:g}" if noise is not None else "")
+                + (f", Mks <= {mks_max:g}" if mks_max is not None else "")
                 + " on the scan; relax the constraints"
             )
-        nlp = self._nlp(mt_max is not None, noise is not None)
+        nlp = self._nlp(mt_max is not None, noise is not None, mks_max is not None)
         runs, cands = [], []
         typical = np.max(self._scan_data()["grid"][order[:20]], axis=0)
         for g0 in self._starts(order):
-            cand, info = self._solve_from(nlp, g0, ms_max, mt_max, noise, hi, typical)
+            cand, info = self._solve_from(nlp, g0, ms_max, mt_max, noise, hi, typical, mks_max)
             runs.append(info)
             if cand is not None:
                 cand.value = self._value(cand.gains)
@@ -2355,7 +2777,8 @@ class Tuner:
             for i in order[:50]:
                 g = self._scan_data()["grid"][i]
                 pks = [lp.peaks(g) for lp in self.loops]
-                if all(pk["ms"] <= ms_max and (mt_max is None or pk["mt"] <= mt_max) for pk in pks):
+                if all(pk["ms"] <= ms_max and (mt_max is None or pk["mt"] <= mt_max) for pk in pks) and (
+                        mks_max is None or all(lp.noise_peak(g)["mks"] <= mks_max for lp in self.loops)):
                     best = _Candidate(np.array(g, float), {"return_status": "scan point kept", "iter_count": 0},
                                       pks, self._value(g), False, False)
                     break
@@ -2368,17 +2791,17 @@ class Tuner:
             status = f"not converged: scan point kept (ipopt: {ipopt_status}; {runs[0].get('result', '') if runs else ''})"
         gains, peaks = best.gains, best.peaks
         # "optimal" is decided here, on the true problem, not by ipopt's exit status.
-        first = self._first_order(gains, ms_max, mt_max, noise, hi, typical)
+        first = self._first_order(gains, ms_max, mt_max, noise, hi, typical, mks_max)
         polished = False
         for _ in range(_POLISH_ROUNDS):
             if first["ok"] or best.stats.get("return_status") == "scan point kept":
                 break
-            pol = self._polish(gains, ms_max, mt_max, noise, hi)
+            pol = self._polish(gains, ms_max, mt_max, noise, hi, mks_max)
             if pol is None:
                 break
             gains, polished = pol, True
             peaks = [lp.peaks(gains) for lp in self.loops]
-            first = self._first_order(gains, ms_max, mt_max, noise, hi, typical)
+            first = self._first_order(gains, ms_max, mt_max, noise, hi, typical, mks_max)
         if first["ok"]:
             status = "optimal"
         elif best.stats.get("return_status") != "scan point kept":
@@ -2422,7 +2845,11 @@ class Tuner:
                 warnings.append(f"{names[i]} = {gains[i]:.6g} is at its bound {names[i]}_max = {lim:g}")
         pid = PID(float(gains[0]), float(gains[1]), float(gains[2]), tf=float(self.loops[0].tf),
                   kff=float(gains[3]) if len(gains) > 3 else 0.0)
+        mks = None
+        if all(lp.noise is not None and lp.response is not None for lp in self.loops):
+            mks = max(lp.noise_peak(gains)["mks"] for lp in self.loops)
         return TuningResult(
+            mks=mks,
             pid=pid,
             objective=_combined(inf_vals, self.weights, self.worst_case),
             kind=self.objective,
@@ -2469,6 +2896,7 @@ def tune_loops(
     kd_max: float | None = None,
     weights: Sequence[float] | None = None,
     worst_case: bool = False,
+    mks_max: float | None = None,
 ) -> TuningResult:
     """Optimise PI/PID gains for one or several loop models: ``Tuner(loops, ...).tune(...)``.
 
@@ -2478,7 +2906,7 @@ def tune_loops(
         Loop models of the same structure (e.g. one per load level).
     objective, controller, weights, worst_case
         See :class:`Tuner`.
-    ms_max, mt_max, max_noise_gain, kp_max, ki_max, kd_max
+    ms_max, mt_max, max_noise_gain, kp_max, ki_max, kd_max, mks_max
         See :meth:`Tuner.tune`.
 
     Returns
@@ -2508,12 +2936,13 @@ def tune_loops(
         tuner = Tuner(loops, objective=objective, controller=controller, weights=weights, worst_case=worst_case)
         _RECENT[:] = [(loops, key, tuner)]
     return tuner.tune(ms_max=ms_max, mt_max=mt_max, max_noise_gain=max_noise_gain,
-                      kp_max=kp_max, ki_max=ki_max, kd_max=kd_max)
+                      kp_max=kp_max, ki_max=ki_max, kd_max=kd_max, mks_max=mks_max)
 
 
-def _phase_frequency(a, b, c, d) -> tuple[float | None, float]:
-    """Frequency (rad/s) where the plant's phase crosses -135 deg (first from above, else the
-    first crossing), on a grid spanning its poles and zeros; and the phase (rad) at the top."""
+def _phase_frequency(a, b, c, d, delay: float = 0.0) -> tuple[float | None, float]:
+    """Frequency (rad/s) where the plant's phase (with its exact delay, s) crosses -135 deg (first
+    from above, else the first crossing), on a grid spanning its poles and zeros; and the phase
+    (rad) at the top."""
     poles, zeros = _plant_roots(a, b, c, d)
     mags = np.abs(np.concatenate([poles, zeros]))
     mags = mags[(mags > 0) & np.isfinite(mags)]
@@ -2521,6 +2950,8 @@ def _phase_frequency(a, b, c, d) -> tuple[float | None, float]:
         mags = np.array([1.0])
     w = np.logspace(math.log10(mags.min() / 1e3), math.log10(mags.max() * 1e3), 4000)
     resp = _ss_response(a, b, c, w) + d[0, 0]
+    if delay > 0:
+        resp = resp * np.exp(-1j * w * delay)
     ph = np.unwrap(np.angle(resp))
     x = ph + 0.75 * np.pi
     cross = np.flatnonzero(np.sign(x[:-1]) != np.sign(x[1:]))
@@ -2547,6 +2978,13 @@ def tune_pid(
     kp_max: float | None = None,
     ki_max: float | None = None,
     kd_max: float | None = None,
+    mks_max: float | None = None,
+    filter_order: int = 0,
+    filter_tf: float | None = None,
+    ideal: bool = False,
+    delay: float = 0.0,
+    delay_order: int = 6,
+    setpoint_weights: bool = False,
 ) -> TuningResult:
     """Tune a PI (default) or PID for load-disturbance rejection on any SISO LTI plant.
 
@@ -2568,9 +3006,46 @@ def tune_pid(
         Bounds on the true peak sensitivity and (optionally) complementary sensitivity, in
         (1, 10).
     max_noise_gain : float, optional
-        Bound on the controller's high-frequency gain ``kp + kd/tf`` (actuator effort / noise
-        amplification, plant-input units per output unit), needed where robustness alone does
-        not limit the gains (the plant's phase stays above -135 deg at high frequency).
+        Bound on the controller's high-frequency gain ``kp + kd/tf`` (plant-input units per
+        output unit), needed where robustness alone does not limit the gains (the plant's phase
+        stays above -135 deg at high frequency). It bounds the controller alone at infinite
+        frequency, not the loop's noise gain ``max |C S|`` (which may be larger: use
+        ``mks_max`` for that).
+    mks_max : float, optional
+        Bound on the true peak noise sensitivity ``Mks = max over omega of |C(j omega) S(j
+        omega)|`` (plant-input units per output unit) of the loop as tuned; the peak is found
+        on a dense grid refined near it (six decades beyond the plant's dynamics, where ``|C
+        S|`` tends to its high-frequency limit). Given, it replaces the default noise-gain bound.
+        With a measurement filter, ``C`` is the controller with its filter, ``C F``.
+    filter_order : {0, 1, 2}
+        Measurement filter on the whole controller, ``C(s) F(s)`` with ``F = 1/(Tf s + 1)`` (1)
+        or ``1/(Tf^2 s^2/2 + Tf s + 1)`` (2); 0: none (the default, as before).
+    filter_tf : float, s, optional
+        The filter's time constant; by default (None) a decision variable: the objective's
+        optimum over ``Tf`` (a log scan over five decades below ``1/w135`` then a bounded
+        Brent search, each point a full tuning), reported in ``result.filter``.
+    ideal : bool
+        Ideal derivative ``kd s`` (PID without a derivative filter; ``tf`` unused). Without a
+        measurement filter it needs a plant of relative degree 2 or more and no ``mks_max``
+        (``|C S|`` then grows without bound with frequency, so the reported Mks is inf).
+    delay : float, s
+        Exact plant delay ``e^{-s delay}`` (on the plant output, so on the control and the
+        disturbance path alike). Ms, Mt, Mks and the margins use the exact ``e^{-j omega
+        delay}``. The reported IAE/ITAE is that of the loop with the exact delay (simulated
+        with the delay an exact number of samples and the delayed state interpolated linearly
+        between them, the step halved to ``CONT_RTOL``; :class:`_DelayedLoop`), and the
+        first-order check and polish use it; the ipopt stand-in uses a Pade model of order
+        ``delay_order`` (``stats["objective_pade"]`` its value at the result). IE is exact
+        either way (``|u_ss|/ki``); ISE is that of the Pade model, its change with the order
+        + 2 in ``stats["delay_pade_change"]`` (a warning above 1e-4).
+    delay_order : int
+        Pade order of the delay in the ipopt stand-in (1 .. 10, default 6).
+    setpoint_weights : bool
+        After the load-disturbance design, 2-DOF setpoint weights ``b`` (and ``c`` for a PID
+        with a filtered derivative; 0 otherwise) in [0, 1] for the least IAE of ``r - y`` after
+        a unit setpoint step, the gains fixed (the weights do not enter the loop transfer, so
+        Ms, Mt, Mks and the load response are unchanged); in ``result.setpoint``. With a delay
+        the setpoint response uses the Pade model of order ``delay_order``.
     disturbance : str or int, optional
         Name or index of the disturbance input (default: the second input, else the control
         input).
@@ -2610,6 +3085,18 @@ def tune_pid(
     if controller not in CONTROLLERS:
         raise ValueError(f"controller = {controller!r}; expected 'pi' or 'pid'")
     _check_bounds(ms_max, mt_max, max_noise_gain)
+    mks_max = _check_mks(mks_max)
+    filter_order, _, ideal, delay, delay_order = _check_structure(
+        filter_order, 1.0 if filter_tf is None else filter_tf, ideal, delay, delay_order)
+    if filter_tf is not None and not filter_order:
+        raise ValueError(f"filter_tf = {filter_tf!r} without a filter; expected filter_order = 1 or 2")
+    if not isinstance(setpoint_weights, (bool, np.bool_)):
+        raise ValueError(f"setpoint_weights = {setpoint_weights!r}; expected True or False")
+    if ideal and controller != "pid":
+        raise ValueError("ideal = True with controller = 'pi'; expected controller = 'pid' (the ideal derivative)")
+    if ideal and not filter_order and mks_max is not None:
+        raise ValueError("mks_max with an ideal PID and no measurement filter: |C S| grows without bound with "
+                         "frequency; expected filter_order = 1 or 2")
     step = _number("step", step, expected="a finite non-zero step size")
     if step == 0.0:
         raise ValueError("step = 0.0; expected a finite non-zero step size")
@@ -2629,12 +3116,15 @@ def tune_pid(
         limits = {k: v * k0 for k, v in limits.items()}
         if max_noise_gain is not None:
             max_noise_gain = float(max_noise_gain) * k0
+        if mks_max is not None:
+            mks_max = mks_max * k0
     a, b, c, d = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
     auto_horizon = horizon is None
     default_note = None
-    if horizon is None or tf is None or max_noise_gain is None:
-        w135, ph_top = _phase_frequency(a, b[:, :1], c, d[:, :1])
-        unbounded = ph_top > -0.75 * np.pi + 1e-3 and max_noise_gain is None and not math.isfinite(limits["kp_max"])
+    if horizon is None or tf is None or max_noise_gain is None or (filter_order and filter_tf is None):
+        w135, ph_top = _phase_frequency(a, b[:, :1], c, d[:, :1], delay)
+        unbounded = (ph_top > -0.75 * np.pi + 1e-3 and max_noise_gain is None and mks_max is None
+                     and not math.isfinite(limits["kp_max"]))
         if unbounded or (w135 is None and (horizon is None or tf is None)):
             # Robustness alone does not limit the gains (Ms -> 1 as they grow, e.g. 1/(s-1)): the
             # default design puts the crossover about a decade above the plant's fastest pole or
@@ -2644,7 +3134,7 @@ def tune_pid(
             mags = mags[(mags > 0) & np.isfinite(mags)]
             w0 = float(mags.max()) if mags.size else 1.0
             p0 = abs(complex(_ss_response(a, b[:, :1], c, np.array([w0]))[0] + d[0, 0]))
-            if max_noise_gain is None and not math.isfinite(limits["kp_max"]):
+            if max_noise_gain is None and mks_max is None and not math.isfinite(limits["kp_max"]):
                 max_noise_gain = 10.0 / p0
                 default_note = (f"robustness alone does not limit the gains of this plant (phase "
                                 f"{math.degrees(ph_top):.0f} deg at high frequency): tuned with the default noise-gain "
@@ -2657,19 +3147,237 @@ def tune_pid(
         if w135 is not None:
             horizon = horizon if horizon is not None else 40.0 / w135
             tf = tf if tf is not None else 0.1 / w135
-    res = None
-    for _ in range(3):
-        loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step)
-        res = Tuner([loop], objective=objective, controller=controller).tune(
-            ms_max=ms_max, mt_max=mt_max, max_noise_gain=max_noise_gain, **limits)
-        if not (auto_horizon and res.stats["horizon_short"]):
-            break
-        horizon *= 4.0
+    structure = {"filter_order": filter_order, "ideal": ideal, "delay": delay, "delay_order": delay_order}
+    bounds = {"ms_max": ms_max, "mt_max": mt_max, "max_noise_gain": max_noise_gain, "mks_max": mks_max, **limits}
+
+    def solve(t_filter, hor):
+        """One tuning at the filter time constant ``t_filter``; the horizon lengthened as before."""
+        res = None
+        for _ in range(3):
+            loop = continuous_loop(sys, tf=tf, horizon=hor, n_steps=n_steps, disturbance=disturbance, step=step,
+                                   **({**structure, "filter_tf": t_filter} if (filter_order or ideal or delay) else {}))
+            res = Tuner([loop], objective=objective, controller=controller).tune(**bounds)
+            if not (auto_horizon and res.stats["horizon_short"]):
+                break
+            hor *= 4.0
+        return res, hor
+
+    if filter_order and filter_tf is None:
+        res, horizon = _optimal_filter(solve, horizon, 1.0 / (w135 if w135 is not None else 100.0 / horizon))
+    else:
+        res, horizon = solve(filter_tf, horizon)
+    if filter_order or ideal or delay:
+        res = _with_structure(res, sys, tf, horizon, n_steps, disturbance, step, {**structure, "filter_tf": filter_tf},
+                              objective)
+    if setpoint_weights:
+        t_f = res.filter["tf_s"] if res.filter else None
+        loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
+                               **{**structure, "filter_tf": t_f})
+        res = replace(res, setpoint=_setpoint_weights(loop, (res.pid.kp, res.pid.ki, res.pid.kd), ideal))
     if k0 != 1.0:
         res = _rescaled(res, k0, limits)
     if default_note is not None:
         res.warnings.insert(0, default_note)
     return res
+
+
+#: The filter time constant's search range (tune_pid, ``filter_tf=None``): these decades below 1/w135.
+_FILTER_DECADES = 4
+#: Log-scan points over that range before the bounded Brent search.
+_FILTER_SCAN = 7
+
+
+def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[TuningResult, float]:
+    """The measurement filter's time constant as a decision variable: the tuned objective (each
+    value a full tuning by ``solve(Tf, horizon)``) scanned on ``_FILTER_SCAN`` log points over
+    ``[t_ref 10^-_FILTER_DECADES, t_ref]``, then minimised by a bounded Brent search (log Tf,
+    2e-3 absolute, at most 20 evaluations) between the best point's neighbours. Its own
+    first-order check: neither one-sided slope of the objective in log Tf (steps of +-0.02,
+    relative to the objective) may fall below ``-KKT_TOL`` (no descent direction; a kink where
+    the active peak changes is a minimum too), except outwards at an end of the range; else
+    the status says so. Results not proven optimal or infeasible count as infinite."""
+    from scipy.optimize import minimize_scalar
+
+    cache: dict = {}
+
+    def value(lt: float) -> float:
+        key = float(lt)
+        if key not in cache:
+            try:
+                r, hor = solve(math.exp(key), horizon)
+                cache[key] = (r.objective if r.converged else math.inf, r, hor)
+            except ValueError:
+                cache[key] = (math.inf, None, None)
+        return cache[key][0]
+
+    lo_all, hi_all = math.log(t_ref) - _FILTER_DECADES * math.log(10.0), math.log(t_ref)
+    grid = np.linspace(lo_all, hi_all, _FILTER_SCAN)
+    vals = np.array([value(x) for x in grid])
+    if not np.any(np.isfinite(vals)):
+        raise ValueError(f"no filter time constant in [{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s gives a "
+                         "tuning proven optimal under the bounds; relax the constraints or pass filter_tf=")
+    i = int(np.argmin(vals))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    minimize_scalar(value, bounds=(lo, hi), method="bounded", options={"xatol": 2e-3, "maxiter": 20})
+    best = min(cache, key=lambda k: cache[k][0])
+    v0, res, hor = cache[best]
+    at_lo, at_hi = best - lo_all < 0.02, hi_all - best < 0.02
+    up = (value(best + 0.02) - v0) / (0.02 * v0) if not at_hi else math.inf
+    down = (value(best - 0.02) - v0) / (0.02 * v0) if not at_lo else math.inf
+    slope = min(up, down)  # the steepest descent the objective allows (negative: it can still decrease)
+    at_bound = at_lo or at_hi
+    ok = slope >= -KKT_TOL
+    info = {"tf_s": math.exp(best), "range_s": [math.exp(lo_all), math.exp(hi_all)], "evaluations": len(cache),
+            "slope_up": up, "slope_down": down, "at_bound": at_bound, "first_order_ok": ok}
+    stats = {**res.stats, "filter_search": info}
+    res = replace(res, stats=stats)
+    if not ok:
+        res = replace(res, status=f"not proven optimal: objective slope {slope:.3g} per unit log Tf below -{KKT_TOL:g} "
+                                  f"at the filter time constant {math.exp(best):.6g} s", converged=False,
+                      warnings=res.warnings + ["the filter time constant is not proven optimal (see stats['filter_search'])"])
+    elif at_bound:
+        res = replace(res, warnings=res.warnings + [
+            f"the filter time constant {math.exp(best):.4g} s is at an end of its search range "
+            f"[{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s (the objective keeps improving that way)"])
+    return res, hor
+
+
+def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: int, disturbance, step: float,
+                    structure: dict, objective: str) -> TuningResult:
+    """``res`` with its loop structure stated: ``filter`` (order, Tf, derivative ideal or filtered),
+    the delay's Pade check (the objective recomputed with the Pade order + 2:
+    ``stats["delay_pade_change"]``, relative; a warning above 1e-4) and, for an ideal PID
+    without a measurement filter, Mks = inf (|C S| grows as kd omega)."""
+    warnings = list(res.warnings)
+    stats = dict(res.stats)
+    order, ideal, delay = structure["filter_order"], structure["ideal"], structure["delay"]
+    t_filter = stats.get("filter_search", {}).get("tf_s", structure.get("filter_tf"))
+    filt = None
+    if order or ideal:
+        filt = {"order": order, "tf_s": t_filter if order else None,
+                "derivative": "ideal" if ideal else "filtered"}
+    mks = res.mks
+    if ideal:
+        warnings.append("ideal derivative: the law is kp + ki/s + kd s" + (" times the filter F(s)" if order else "")
+                        + "; pid.tf is not part of it")
+        if not order and res.pid.kd > 0:
+            mks = math.inf
+    if delay > 0:
+        g = (res.pid.kp, res.pid.ki, res.pid.kd)
+        stats["delay_s"] = delay
+        if objective == "ise":
+            # ISE is computed on the Pade model: its change with the order + 2 says how exact it is.
+            loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
+                                   **{**structure, "delay_order": structure["delay_order"] + 2, "filter_tf": t_filter})
+            change = abs(loop.objective_continuous(g, objective)[0] - res.objective) / res.objective
+            stats["delay_pade_change"] = change
+            if change > 1e-4:
+                warnings.append(f"the ISE changes by {100 * change:.3g} % with the delay's Pade order "
+                                f"{structure['delay_order']} -> {structure['delay_order'] + 2}; raise delay_order")
+        elif objective in ("iae", "itae"):
+            # Reported: the exact delayed loop's; what the optimiser's Pade stand-in says of it:
+            loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
+                                   **{**structure, "filter_tf": t_filter})
+            stats["objective_pade"] = loop.objective_continuous(g, objective)[0]
+    return replace(res, filter=filt, mks=mks, stats=stats, warnings=warnings)
+
+
+#: Setpoint-weight search: samples of the basis responses per loop-model sample, and the grid of
+#: the scan over b (and c) before the local refinement.
+_SP_GRID = 41
+
+
+def _setpoint_basis(lp: LoopModel, gains):
+    """Closed loop ``X' = A X + (B0 + b Bb + c Bc) r`` of a unit setpoint step under the 2-DOF law
+    ``u = kp (b r - y_f) + ki int (r - y_f) + kd D(c r - y_f)`` (``y_f`` the measured output; the
+    derivative filter state driven by ``c r - y_f``), from the continuous loop of ``lp``:
+    ``(A, B0, Bb, Bc)``; the output is ``-Ce X`` (``Ce`` the load loop's error row)."""
+    c0, mats, _ = lp.continuous
+    g = lp.gvec(gains)
+    acl = c0 + sum(gi * m for gi, m in zip(g, mats))
+    N = acl.shape[0]
+    n, i_i, i_z = N - 2, N - 2, N - 1
+    bu = mats[1][:n, i_i]
+    b0, bb, bc = np.zeros(N), np.zeros(N), np.zeros(N)
+    b0[i_i] = 1.0  # the integral acts on r - y_f
+    bb[:n] = g[0] * bu
+    bc[:n] = g[2] * bu / lp.tf
+    bc[i_z] = 1.0 / lp.tf
+    return acl, b0, bb, bc
+
+
+def _setpoint_iae(acl, bsum, cy, h: float, rtol: float) -> tuple[float, float]:
+    """IAE of ``e = 1 - cy X`` after a unit setpoint step (``X' = acl X + bsum``, from rest),
+    sampled exactly every ``h`` and summed by the trapezoid rule to infinity, halving ``h``
+    until two values agree within ``rtol`` (Richardson estimate, at most ``_CONT_HALVINGS``)."""
+    prev, val, err = None, math.inf, math.inf
+    for _ in range(_CONT_HALVINGS + 1):
+        ad, bd = _zoh(acl, bsum[:, None], h)
+        x_inf = np.linalg.solve(np.eye(ad.shape[0]) - ad, bd[:, 0])
+        # e_k = 1 - cy X_k = -cy (X_k - x_inf) (zero steady error); e_0 = 1: the trapezoid halves it.
+        val, tail = _block_sum(ad, -cy, -x_inf, 0, 0.0, h, "iae", min(rtol, TAIL_RTOL))
+        val -= 0.5 * h
+        if prev is not None:
+            err = abs(val - prev) / 3.0 + tail
+            if err <= rtol * val:
+                break
+        prev = val
+        h /= 2.0
+    return val, err
+
+
+def _setpoint_weights(lp: LoopModel, gains, ideal: bool) -> dict:
+    """2-DOF setpoint weights for the load-optimal ``gains`` (fixed: b and c do not enter the loop
+    transfer, so Ms/Mt/Mks and the load response are unchanged). Goal: the least IAE of the
+    error ``r - y`` after a unit setpoint step. The error is affine in (b, c), so that IAE is
+    convex in them: a scan of ``_SP_GRID`` points per weight in [0, 1] on the sampled basis
+    responses, then a Nelder-Mead search from the best point on the same samples (weights
+    clipped to [0, 1]), and the result's IAE recomputed to ``CONT_RTOL`` (:func:`_setpoint_iae`). ``c`` is 0 for an
+    ideal derivative (a setpoint step would give an impulse) and for a PI."""
+    from scipy.optimize import minimize
+
+    acl, b0, bb, bc = _setpoint_basis(lp, gains)
+    cy = -lp.Ce  # the output row over X (Ce is the load error row, -y)
+    h = lp.h / 4.0
+    n_s = 4 * lp.n_steps
+    N = acl.shape[0]
+    basis = []
+    for bvec in (b0, bb, bc):
+        ad, bd = _zoh(acl, bvec[:, None], h)
+        x = np.zeros(N)
+        ys = np.empty(n_s)
+        for k in range(n_s):
+            ys[k] = cy @ x
+            x = ad @ x + bd[:, 0]
+        basis.append(ys)
+    use_c = lp.gvec(gains)[2] > 0 and not ideal
+    wts = np.full(n_s, h)
+    wts[0] = 0.5 * h
+
+    def iae(b, c):
+        return float(wts @ np.abs(1.0 - basis[0] - b * basis[1] - c * basis[2]))
+
+    # Scan (vectorised over the grid), then Nelder-Mead from the best grid point, clipped to [0, 1].
+    grid = np.linspace(0.0, 1.0, _SP_GRID)
+    bs, cs = np.meshgrid(grid, grid if use_c else np.array([0.0]), indexing="ij")
+    bs, cs = bs.ravel(), cs.ravel()
+    vals = np.concatenate([wts @ np.abs(1.0 - basis[0][:, None] - basis[1][:, None] * bs[None, j : j + 200]
+                                        - basis[2][:, None] * cs[None, j : j + 200]) for j in range(0, bs.size, 200)])
+    i = int(np.argmin(vals))
+    x0 = np.array([bs[i], cs[i]])[: 2 if use_c else 1]
+
+    def f(x):
+        x = np.clip(x, 0.0, 1.0)
+        return iae(x[0], x[1] if use_c else 0.0)
+
+    r = minimize(f, x0, method="Nelder-Mead", options={"xatol": 1e-7, "fatol": 1e-12, "maxfev": 400})
+    x = np.clip(r.x, 0.0, 1.0) if f(r.x) <= vals[i] else x0
+    b, c = float(x[0]), float(x[1]) if use_c else 0.0
+    val, err = _setpoint_iae(acl, b0 + b * bb + c * bc, cy, lp.h, CONT_RTOL)
+    one = _setpoint_iae(acl, b0 + bb + (bc if use_c else 0.0), cy, lp.h, CONT_RTOL)[0]
+    y = basis[0] + b * basis[1] + c * basis[2]
+    return {"b": b, "c": c, "goal": "least IAE of r - y after a unit setpoint step, load-optimal gains fixed",
+            "iae": val, "iae_error": err, "iae_unweighted": one, "overshoot": max(float(np.max(y)) - 1.0, 0.0)}
 
 
 #: Largest plant order :func:`tune_pid` accepts (states of its state-space realisation): the
@@ -2754,7 +3462,7 @@ def _rescaled(res: TuningResult, k0: float, limits: dict) -> TuningResult:
         raise ValueError(f"plant gain {k0:.3g}: the tuned gains or the {res.kind.upper()} ({res.objective:.3g} x {f:.3g}) "
                          "leave double precision; expected a plant gain nearer 1 (rescale its units)")
     stats = dict(res.stats)
-    for key in ("objective_horizon", "objective_sampled", "tail_bound"):
+    for key in ("objective_horizon", "objective_sampled", "tail_bound", "objective_pade"):
         if key in stats:
             stats[key] = stats[key] * f
     names = ("kp", "ki", "kd")
@@ -2764,4 +3472,5 @@ def _rescaled(res: TuningResult, k0: float, limits: dict) -> TuningResult:
         if math.isfinite(lim) and lim > 0 and gains[i] * k0 >= lim * (1 - 1e-6):
             warnings.append(f"{n} = {gains[i]:.6g} is at its bound {n}_max = {lim / k0:g}")
     return replace(res, pid=PID(gains[0], gains[1], gains[2], tf=pid.tf, kff=pid.kff), objective=obj,
+                   mks=None if res.mks is None else res.mks / k0,
                    per_loop=[v * f for v in res.per_loop], stats=stats, warnings=warnings)
