@@ -70,7 +70,7 @@ def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: 
     from prsa_ctrl.studies.autotune import Design, actuator_loops, verify
     from prsa_ctrl.drive.pid import PID
     from prsa_ctrl.studies.scene import load_scene
-    from prsa_ctrl.tuning.tuner import tune_loops
+    from prsa_ctrl.tuning.generic import tune_loops
 
     plant = plant or load_plant()
     scene = load_scene()

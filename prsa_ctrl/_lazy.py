@@ -25,7 +25,9 @@ def lazy_exports(package: str, table: dict[str, str], eager: dict[str, Any] | No
     package : str
         The package's ``__name__``.
     table : dict
-        Public name -> module path relative to the package (e.g. ``"tune_pid": "tuning.tuner"``).
+        Public name -> module path relative to the package (e.g. ``"tune_pid": "tuning.generic"``);
+        a path with a leading dot goes one level up (``".errors"`` in a subpackage is
+        :mod:`prsa_ctrl.errors`).
     eager : dict, optional
         Names the package has already imported (cheap ones), listed in ``__all__`` as well.
 

@@ -9,7 +9,7 @@ _EXPORTS = {
     "FILTER_PLACES": "export",
     "FORMATS": "export",
     "MotorData": "driveparams",
-    "OutputError": "output",
+    "OutputError": ".errors",
     "POSITION_LAW": "export",
     "PositionLaw": "codegen",
     "QUANTITIES": "driveparams",

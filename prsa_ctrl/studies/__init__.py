@@ -21,7 +21,7 @@ _EXPORTS = {
     "MAX_RECORD_SAMPLES": "scenefile",
     "METRICS": "montecarlo",
     "MIN_LOAD_STEP_N": "scenefile",
-    "MonteCarloInterrupted": "montecarlo",
+    "MonteCarloInterrupted": ".errors",
     "MonteCarloReport": "montecarlo",
     "MoveMetrics": "move",
     "MoveScene": "movescene",

@@ -4,7 +4,7 @@ against verified metrics.
 
 A duty-cycle scene (:attr:`Scene.is_profile`) is tuned on its actual profile: the sampled loop
 model takes the load as its mean over every controller sample and the setpoint as the
-controller reads it at every sample (:func:`prsa_ctrl.tuning.tuner.drive_loop`), and the
+controller reads it at every sample (:func:`prsa_ctrl.tuning.builders.drive_loop`), and the
 verification runs the nonlinear simulator on the same profile. A 2-DOF setpoint weight
 ``b != 1`` is verified as the equivalent 1-DOF loop behind the reference prefilter
 ``F(z) = (b kp (1 - z^-1) + Ts ki z^-1) / (kp (1 - z^-1) + Ts ki z^-1)`` (identical while the
@@ -33,7 +33,8 @@ from ..sim.integrators import SimSettings
 from ..sim.signals import PiecewiseLinear
 from ..sim.engine import fast_settings, initial_state, run
 from ..tuning.scene_loops import actuator_loops, duty_record, linear_fidelity
-from ..tuning.tuner import LoopModel, Tuner
+from ..tuning.loops import LoopModel
+from ..tuning.tuner import Tuner
 from .paper import default_pid
 from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
 

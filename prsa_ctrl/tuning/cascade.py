@@ -31,7 +31,7 @@ Tuning (:func:`tune_cascade`)
     ``|S| <= Ms`` at all four points on a frequency grid, with an optional bandwidth ratio
     ``kp/J >= ratio kv``. The true Ms of the result is verified on a dense grid with local
     refinement; a violated bound adds its frequency and solves again.
-    *sequential* (the baseline): the speed PI tuned alone by :func:`prsa_ctrl.tuning.tuner.tune_loops`
+    *sequential* (the baseline): the speed PI tuned alone by :func:`prsa_ctrl.tuning.generic.tune_loops`
     (IAE of the load step) at the same Ms, then the position P gain at 1/5 .. 1/10 of the
     speed loop's crossover (the largest that keeps every Ms within the bound), full velocity
     and acceleration feed-forward (``kvff = kaff = 1``). Both are verified on the nonlinear
@@ -54,7 +54,9 @@ from ..drive.pid import PID
 from ..options import DERIVATIVE_FILTER_SAMPLES
 from ..plant.linear import linear_core
 from ..plant.model import plant_model
-from .tuner import _resonance_points, drive_loop, tune_loops
+from .loops import resonance_points
+from .builders import drive_loop
+from .generic import tune_loops
 
 if TYPE_CHECKING:
     from ..plant.plantfile import Plant
@@ -132,7 +134,7 @@ class CascadeModel:
         nyq = math.pi / ts
         lam = np.log(np.linalg.eigvals(self.Ad).astype(complex)) / ts
         self.omega = np.unique(np.concatenate([np.geomspace(1.0, nyq * 0.999, n_grid),
-                                               _resonance_points(lam, 1.0, nyq * 0.999)]))
+                                               resonance_points(lam, 1.0, nyq * 0.999)]))
         self._resp_cache: dict = {}
         self._build_casadi()
 
@@ -325,7 +327,7 @@ def _design(cm: CascadeModel, method: str, g, objective: float, notes=None, solv
 def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None = None,
                       ratios=(5.0, 6.0, 7.0, 8.0, 9.0, 10.0)) -> CascadeDesign:
     """The rule-of-thumb baseline (module docstring): speed PI tuned alone at ``scene.ms_max``
-    (:func:`prsa_ctrl.tuning.tuner.tune_loops`, IAE of the load step on the drive loop), position P
+    (:func:`prsa_ctrl.tuning.generic.tune_loops`, IAE of the load step on the drive loop), position P
     at ``crossover / ratio`` for the smallest ``ratio`` in ``ratios`` that keeps every Ms within
     the bound, ``kvff = kaff = 1``.
 

@@ -3,7 +3,7 @@
 A drive places a notch at a structural resonance, or a low-pass on the measured speed, so that
 the speed PI can run higher gains. This module tunes the filter's parameters *together with*
 the gains in one CasADi/ipopt NLP, like JuliaSim's filter tuning, on the same sampled loop
-model the gains-only tuner uses (:func:`prsa_ctrl.tuning.tuner.drive_loop`, which runs the filters
+model the gains-only tuner uses (:func:`prsa_ctrl.tuning.builders.drive_loop`, which runs the filters
 exactly as the simulator's per-sample law does), and verifies the result the same way:
 
 - **objective**: IAE of the load step on the objective loops (linearised at the step's mid
@@ -45,9 +45,10 @@ from ..drive.pid import PID
 from ..options import MS_MAX_DEFAULT, check_peak_bound
 from ..results import is_converged, status_head
 from ..drive.filters import PLACES, DiscreteBiquad, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass
-from .tuner import LoopModel, drive_loop
+from .loops import LoopModel
+from .builders import drive_loop
 # Private helpers of the tuner's NLP, until tuning/tuner.py makes them public (h-tuner25).
-from .tuner import _smooth_abs, _two_rate_error
+from .objectives import smooth_abs, two_rate_error
 
 __all__ = ["TUNABLE", "FilteredDesign", "tune_filtered", "FilterBounds", "loop_builder", "dominant_resonance_hz"]
 
@@ -217,7 +218,7 @@ def _resonance_band(lp: LoopModel) -> NDArray[np.float64]:
 
 def loop_builder(a, b, c_speed, angle_index: int, *, ts: float, speed_filter: float, tf: float, horizon: float,
                  step: float, fixed: Sequence[LoopFilter] = (), name: str = "drive") -> Callable:
-    """``biquad or None -> LoopModel``: :func:`prsa_ctrl.tuning.tuner.drive_loop` of a linearised
+    """``biquad or None -> LoopModel``: :func:`prsa_ctrl.tuning.builders.drive_loop` of a linearised
     plant with the ``fixed`` filters and, when given, one more ``(place, DiscreteBiquad)``."""
     def build(extra=None) -> LoopModel:
         fl = list(fixed) + ([extra] if extra is not None else [])
@@ -428,8 +429,8 @@ def tune_filtered(
     for jl in range(n_obj):
         bs, lp = bases[jl], start_loops[jl]
         acl = a_cl(bs)
-        e, _, w = _two_rate_error(acl, ca.DM(lp.Bd), ca.DM(lp.Ce), lp.n_steps)
-        objs.append(ca.sum2(ca.DM(lp.h * w).T * _smooth_abs(e, eps[jl])))
+        e, _, w = two_rate_error(acl, ca.DM(lp.Bd), ca.DM(lp.Ce), lp.n_steps)
+        objs.append(ca.sum2(ca.DM(lp.h * w).T * smooth_abs(e, eps[jl])))
     f_obj = sum(objs) / j_ref
 
     def freq_cons(bs: _Basis, w: NDArray, inv_ms2: float, mks: float | None):

@@ -3,7 +3,7 @@
 A *scenario* is one point of the plant's uncertainty (the nominal point, the vertices of the
 uncertainty box, seeded samples of it) at one operating point of the scene's range (setpoint
 speed x final load). Each scenario becomes a loop model (:func:`prsa_ctrl.studies.autotune.actuator_loops`);
-:func:`prsa_ctrl.tuning.tuner.tune_loops` then optimises shared gains with the Ms (and Mt) bound on
+:func:`prsa_ctrl.tuning.generic.tune_loops` then optimises shared gains with the Ms (and Mt) bound on
 every scenario and the worst-case or mean objective. :func:`tune_robust` is the generic form for
 a list of python-control plants (like systune's plant arrays).
 """
@@ -23,7 +23,10 @@ from ..options import MS_MAX_DEFAULT
 from ..plant.uncertainty import UncertaintyModel, apply, uncertainty_model
 from ..results import is_converged, is_ok, json_safe
 from .scene_loops import actuator_loops
-from .tuner import LoopModel, TuningResult, continuous_loop, tune_loops
+from .loops import LoopModel
+from .tuner import TuningResult
+from .builders import continuous_loop
+from .generic import tune_loops
 
 control = module("control")
 

@@ -21,7 +21,8 @@ from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from ..plant.plantfile import Plant
 from ..sim.signals import PiecewiseLinear, normalise_profile
-from .tuner import LoopModel, continuous_loop, drive_loop
+from .loops import LoopModel
+from .builders import continuous_loop, drive_loop
 
 __all__ = ["actuator_loops", "duty_record", "linear_fidelity", "derivative_filter_s", "kf_drive_loop"]
 
@@ -186,7 +187,7 @@ def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, h
                   feedforward: bool, omega: NDArray | None = None, name: str = "drive+KF",
                   outputs: dict | None = None):
     """Loop model of the sampled drive with the Kalman filter in the loop (see
-    :func:`prsa_ctrl.tuning.tuner.drive_loop` for the plain one).
+    :func:`prsa_ctrl.tuning.builders.drive_loop` for the plain one).
 
     Parameters
     ----------

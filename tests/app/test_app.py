@@ -25,7 +25,7 @@ def session():
 
 def _fresh(**bounds):
     from prsa_ctrl.studies.autotune import actuator_loops
-    from prsa_ctrl.tuning.tuner import tune_loops
+    from prsa_ctrl.tuning.generic import tune_loops
 
     plant, scene = load_plant(), load_scene()
     return tune_loops(actuator_loops(plant, scene), objective=scene.objective, controller=scene.controller, **bounds)

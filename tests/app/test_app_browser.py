@@ -117,7 +117,7 @@ def _shot(pg, name: str) -> None:
 def _tuned(ms_max: float):
     """The toolkit's own answer, computed afresh (a new Tuner, not the app's)."""
     from prsa_ctrl.studies.autotune import actuator_loops
-    from prsa_ctrl.tuning.tuner import tune_loops
+    from prsa_ctrl.tuning.generic import tune_loops
 
     plant, scene = load_plant(), load_scene()
     return tune_loops(actuator_loops(plant, scene), objective=scene.objective, controller=scene.controller,

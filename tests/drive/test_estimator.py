@@ -13,7 +13,8 @@ from prsa_ctrl.plant.linear import linear_core
 from prsa_ctrl.plant.model import plant_model
 from prsa_ctrl.sim.integrators import SimSettings
 from prsa_ctrl.sim.engine import run
-from prsa_ctrl.tuning.tuner import drive_loop, tune_loops
+from prsa_ctrl.tuning.builders import drive_loop
+from prsa_ctrl.tuning.generic import tune_loops
 
 PLANT = load_plant()
 SETTINGS = SimSettings(rtol=1e-6, atol=1e-6)

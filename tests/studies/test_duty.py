@@ -16,7 +16,8 @@ from prsa_ctrl.cli.tune import main
 from prsa_ctrl.plant.linear import linear_core
 from prsa_ctrl.plant.model import plant_model
 from prsa_ctrl.studies.scene import Scene, check_against_plant, load_scene, profile_rows
-from prsa_ctrl.tuning.tuner import Tuner, drive_loop
+from prsa_ctrl.tuning.tuner import Tuner
+from prsa_ctrl.tuning.builders import drive_loop
 
 SCENE_DIR = Path(__file__).resolve().parents[2] / "tuning"
 

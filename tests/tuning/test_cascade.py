@@ -238,7 +238,7 @@ def test_linear_cascade_matches_the_drive_loop_model(plant, scene):
     (tuning.drive_loop) of the same plant and PI, to rounding."""
     from prsa_ctrl.plant.linear import linear_core
     from prsa_ctrl.plant.model import plant_model
-    from prsa_ctrl.tuning.tuner import drive_loop
+    from prsa_ctrl.tuning.builders import drive_loop
 
     sc = dataclasses.replace(scene, fidelity="rigid")
     cm = CascadeModel(plant, sc)

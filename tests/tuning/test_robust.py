@@ -84,11 +84,11 @@ def test_generic_plant_array_like_systune():
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     r = tune_robust(plants, objective="iae", ms_max=1.6, aggregate="worst", n_steps=400)
     assert len(r.margins) == 3 and all(m.ms <= 1.6 * (1 + 1e-9) for m in r.margins)
-    from prsa_ctrl.tuning.tuner import tune_pid
+    from prsa_ctrl.tuning.generic import tune_pid
 
     single = tune_pid(plants[0], objective="iae", ms_max=1.6, n_steps=400)
     # tuned for the low-gain plant alone, the PI breaks the bound on the high-gain one
-    from prsa_ctrl.tuning.tuner import continuous_loop
+    from prsa_ctrl.tuning.builders import continuous_loop
 
     lp = continuous_loop(control.ss(plants[2]), tf=single.pid.tf, horizon=10.0)
     assert lp.margins(single.pid.gains).ms > 1.6
@@ -114,7 +114,7 @@ def test_mapped_per_loop_objective_is_the_expanded_one(monkeypatch, objective, a
     once) reaches the same design as the per-scenario expansion it replaces."""
     import control
 
-    from prsa_ctrl.tuning import tuner as T
+    from prsa_ctrl.tuning import builders, generic, settings, tuner as T
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     kw = dict(objective=objective, ms_max=1.6, aggregate=aggregate, n_steps=480)  # with a two-rate tail
@@ -142,7 +142,7 @@ def test_coarse_constraint_grid_reaches_the_full_grid_design(monkeypatch, object
     every loop's true peak and is as good as with every grid row in the NLP."""
     import control
 
-    from prsa_ctrl.tuning import tuner as T
+    from prsa_ctrl.tuning import builders, generic, settings, tuner as T
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     kw = dict(objective=objective, ms_max=1.6, aggregate=aggregate, n_steps=480)
@@ -156,13 +156,13 @@ def test_coarse_constraint_grid_reaches_the_full_grid_design(monkeypatch, object
 
     monkeypatch.setattr(T.Tuner, "_grid_rows", spy)
     coarse = tune_robust(plants, **kw)
-    assert rows and all(n <= T._MULTI_ROWS + 40 < n_all for n, n_all in rows)
+    assert rows and all(n <= settings.MULTI_ROWS + 40 < n_all for n, n_all in rows)
     monkeypatch.setattr(T.Tuner, "_grid_rows", lambda self, jl: np.arange(self.loops[jl].omega.size))
     full = tune_robust(plants, **kw)
     assert coarse.converged and full.converged
     for r in (coarse, full):
         for p, m in zip(plants, r.margins):
-            lp = T.continuous_loop(control.ss(p), tf=r.pid.tf, horizon=10.0)
+            lp = builders.continuous_loop(control.ss(p), tf=r.pid.tf, horizon=10.0)
             assert lp.margins(r.pid.gains).ms <= 1.6 * (1 + 1e-9) and m.ms <= 1.6 * (1 + 1e-9)
     assert coarse.objective <= full.objective * (1 + 1e-4)
 
@@ -171,7 +171,7 @@ def test_lower_bound_ranking_keeps_the_exact_top(monkeypatch):
     """With several loops and the worst-case objective the scan ranks by lower bounds and
     simulates every loop only where the top of the order is decided: that top is the one of
     the full ranking (the mean objective ranks every point, as one loop does)."""
-    from prsa_ctrl.tuning import tuner as T
+    from prsa_ctrl.tuning import builders, generic, settings, tuner as T
     from prsa_ctrl.tuning.robust import scenario_loops
 
     p, s = load_plant(), load_scene("robust-load-step")
@@ -180,13 +180,13 @@ def test_lower_bound_ranking_keeps_the_exact_top(monkeypatch):
         fast = T.Tuner(loops, objective="iae", worst_case=worst)
         top = fast._ranked(1.4 * (1 - 1e-6), None, None, [math.inf, math.inf])
         evaluated = int(np.sum(~np.isnan(fast._scan_data()["obj"])))
-        monkeypatch.setattr(T, "_RANK_TOP", 10**9)
+        monkeypatch.setattr(T, "RANK_TOP", 10**9)
         ref = T.Tuner(loops, objective="iae", worst_case=worst)
         full = ref._ranked(1.4 * (1 - 1e-6), None, None, [math.inf, math.inf])
         monkeypatch.undo()
         if worst:
             assert evaluated < int(np.sum(~np.isnan(ref._scan_data()["obj"])))  # it did skip work
-            k = T._RANK_TOP
+            k = T.RANK_TOP
             assert full.size > top.size >= k and np.array_equal(top[:k], full[:k])
         else:
             assert np.array_equal(top, full)
@@ -199,7 +199,7 @@ def test_slot_budget_holds_ms_and_mt_with_resonances_near_nyquist():
     20 slots it fell back to a scan point 60 % worse)."""
     import control
 
-    from prsa_ctrl.tuning import tuner as T
+    from prsa_ctrl.tuning import builders, generic, settings, tuner as T
 
     s = control.tf("s")
     nn, dd = control.pade(0.3, 3)
@@ -215,14 +215,14 @@ def test_slot_budget_holds_ms_and_mt_with_resonances_near_nyquist():
     coarse = tune_robust(plants, **kw)
     assert coarse.converged, coarse.status
     assert all(m.ms <= 1.5 * (1 + 1e-9) and m.mt <= 1.3 * (1 + 1e-9) for m in coarse.margins)
-    T._RECENT.clear()
+    generic._RECENT.clear()
     orig = T.Tuner._grid_rows
     try:
         T.Tuner._grid_rows = lambda self, jl: np.arange(self.loops[jl].omega.size)
         full = tune_robust(plants, **kw)
     finally:
         T.Tuner._grid_rows = orig
-        T._RECENT.clear()
+        generic._RECENT.clear()
     assert coarse.objective <= full.objective * (1 + 1e-4)
 
 

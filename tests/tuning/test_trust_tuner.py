@@ -16,7 +16,7 @@ import pytest
 from scipy.linalg import expm, matrix_balance
 from scipy.optimize import minimize_scalar
 
-from prsa_ctrl.tuning.tuner import tune_pid
+from prsa_ctrl.tuning.generic import tune_pid
 
 _GRID = [(c, m) for c in ("pi", "pid") for m in (1.4, 2.0)]
 
@@ -359,13 +359,13 @@ def test_bad_plants_get_one_clear_line(plant, match):
 
 
 def test_high_order_plant_is_refused_before_any_work(monkeypatch):
-    import prsa_ctrl.tuning.tuner as tuning
+    import prsa_ctrl.tuning.generic as generic
 
     def boom(*args, **kwargs):
         raise AssertionError("work started")
 
-    monkeypatch.setattr(tuning, "continuous_loop", boom)
-    monkeypatch.setattr(tuning, "_phase_frequency", boom)
+    monkeypatch.setattr(generic, "continuous_loop", boom)
+    monkeypatch.setattr(generic, "_phase_frequency", boom)
     with pytest.raises(ValueError, match="MAX_ORDER"):
         tune_pid(control.ss(np.diag(-np.arange(1.0, 801.0)), np.ones((800, 1)), np.ones((1, 800)), 0))
 
@@ -419,8 +419,8 @@ def test_objective_beyond_double_precision_is_refused():
 
 
 def test_a_non_finite_objective_is_never_reported(monkeypatch):
-    import prsa_ctrl.tuning.tuner as tuning
+    from prsa_ctrl.tuning.loops import LoopModel
 
-    monkeypatch.setattr(tuning.LoopModel, "true_objective", lambda self, gains, kind: (math.nan, 0.0))
+    monkeypatch.setattr(LoopModel, "true_objective", lambda self, gains, kind: (math.nan, 0.0))
     with pytest.raises(ValueError, match="objective is not finite"):
         tune_pid(P3, objective="ie")

@@ -14,8 +14,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 
-import prsa_ctrl.tuning.tuner as tuning
-from prsa_ctrl.tuning.tuner import Tuner, continuous_loop, drive_loop, tune_loops, tune_pid
+import prsa_ctrl.tuning.nlp as nlp
+import prsa_ctrl.tuning.tuner as tuner
+from prsa_ctrl.tuning.tuner import Tuner
+from prsa_ctrl.tuning.builders import continuous_loop, drive_loop
+from prsa_ctrl.tuning.generic import tune_loops, tune_pid
 
 s = control.tf("s")
 RESONANT = 1 / ((s + 1) * (s**2 / 100 + 0.004 * s + 1))  # zeta = 0.02 at 10 rad/s
@@ -357,8 +360,8 @@ def test_issue14_inertia_plant_converges_at_the_bound_and_beats_a_grid():
 
 
 def test_unconverged_solve_says_so(monkeypatch):
-    monkeypatch.setattr(tuning, "_IPOPT_MAX_ITER", 1)
-    monkeypatch.setattr(tuning, "_POLISH_ROUNDS", 0)  # (issue 20: the polish would reach the optimum)
+    monkeypatch.setattr(nlp, "IPOPT_MAX_ITER", 1)
+    monkeypatch.setattr(tuner, "POLISH_ROUNDS", 0)  # (issue 20: the polish would reach the optimum)
     lp = continuous_loop(_P3, tf=0.1, horizon=40.0, n_steps=400)
     r = Tuner([lp], objective="iae").tune(ms_max=1.4)
     assert not r.converged

@@ -4,7 +4,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from prsa_ctrl.tuning.tuner import continuous_loop, tune_pid
+from prsa_ctrl.tuning.builders import continuous_loop
+
+from prsa_ctrl.tuning.generic import tune_pid
 
 P3 = control.tf([1.0], [1.0, 3.0, 3.0, 1.0])
 MATLAB_PI = (1.14, 0.454, 0.0)  # pidtune(1/(s+1)^3, 'pi') as published

@@ -1,0 +1,106 @@
+"""Tolerances, budgets and argument checks shared by the tuner's modules.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+__all__ = ["STABILITY", "TAIL_RTOL", "MS_RTOL", "CONT_RTOL", "KKT_TOL", "FD_STEP", "POLISH_ROUNDS", "CONT_HALVINGS", "UNIT_TOL", "MAX_STEPS", "TAIL_MAX_STEPS", "SLOTS", "MULTI_ROWS", "MULTI_SLOTS", "RANK_TOP", "STARTS", "IPOPT_MAX_ITER", "LOW_DECADES", "checked_number", "gain_limit", "int_steps", "check_mks", "check_bounds"]
+
+
+#: Classes returned by :meth:`LoopModel.stability`.
+STABILITY = ("stable", "marginal", "unstable")
+
+#: Relative bound on the objective's tail beyond the summed samples (IAE, ITAE).
+TAIL_RTOL = 1e-6
+
+#: Relative tolerance of the Ms/Mt bound: a result with the bound active has its true peak in
+#: ``[bound (1 - MS_RTOL), bound]``.
+MS_RTOL = 1e-3
+
+#: Relative accuracy of a continuous loop's reported IAE/ITAE (:meth:`LoopModel.objective_continuous`).
+CONT_RTOL = 1e-5
+
+#: First-order optimality tolerance (see ``Tuner._first_order``): the largest relative decrease of
+#: the objective per unit relative change of the gains that the active constraints may leave.
+KKT_TOL = 2e-3
+
+#: Finite-difference step of that check, in log gain.
+FD_STEP = 1e-3
+
+#: Local solves of the true problem after ipopt where the first-order check fails (``Tuner._polish``).
+POLISH_ROUNDS = 3
+
+#: Largest number of step halvings of that integration (each doubles the samples).
+CONT_HALVINGS = 6
+
+#: Eigenvalue modulus tolerance around the unit circle (discrete closed loop).
+UNIT_TOL = 1e-9
+
+#: Largest number of samples a loop model may simulate (memory/time budget).
+MAX_STEPS = 200_000
+
+#: Largest number of samples summed for an IAE/ITAE tail (budget).
+TAIL_MAX_STEPS = 1 << 22
+
+#: Frequencies per loop the NLP can add where the verified peak exceeded the bound.
+SLOTS = 12
+
+#: Several loop models (robust tuning): grid rows per loop in the NLP (a coarse subset plus the
+#: loop's resonance points; every true peak is still verified on the full grid and beyond), and
+#: frequency slots per loop (added in clusters, see ``Tuner._solve_from``).
+MULTI_ROWS = 64
+
+MULTI_SLOTS = 40
+
+#: Scan points ranked exactly before the start points are chosen (several loops).
+RANK_TOP = 50
+
+#: Restarts from distinct scan points when a solve does not converge.
+STARTS = 3
+
+IPOPT_MAX_ITER = 400
+
+#: Decades the peak search may extend below a loop model's grid (where |L| < 100 at its low end).
+LOW_DECADES = 8
+
+def checked_number(name: str, value, *, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = True,
+            hi_open: bool = True, allow_inf: bool = False, expected: str | None = None) -> float:
+    """``value`` as a float, or ValueError naming ``name`` and the expected range."""
+    exp = expected or (
+        f"a finite number in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    )
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} = {value!r}; expected {exp}")
+    v = float(value)
+    if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
+        raise ValueError(f"{name} = {value!r}; expected {exp}")
+    if (v < lo or (lo_open and v == lo)) or (v > hi or (hi_open and v == hi and not math.isinf(v))):
+        raise ValueError(f"{name} = {value!r}; expected {exp}")
+    return v
+
+def gain_limit(name: str, value) -> float:
+    """Upper gain bound: None or inf for none, else a positive number."""
+    if value is None:
+        return math.inf
+    return checked_number(name, value, lo=0.0, allow_inf=True, expected="a positive number, inf or None (no bound)")
+
+def int_steps(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 10 <= value <= MAX_STEPS:
+        raise ValueError(f"{name} = {value!r}; expected an integer in [10, {MAX_STEPS}] (samples)")
+    return int(value)
+
+def check_mks(mks_max) -> float | None:
+    """``mks_max`` as a float, None for no bound, or a ValueError naming it."""
+    if mks_max is None:
+        return None
+    return checked_number("mks_max", mks_max, lo=0.0, expected="a positive finite number or None")
+
+def check_bounds(ms_max, mt_max, max_noise_gain):
+    ms = checked_number("ms_max", ms_max, lo=1.0, hi=10.0, expected="a number in (1, 10)")
+    mt = None if mt_max is None else checked_number("mt_max", mt_max, lo=1.0, hi=10.0,
+                                              expected="a number in (1, 10) or None")
+    nz = None if max_noise_gain is None else checked_number(
+        "max_noise_gain", max_noise_gain, lo=0.0, expected="a positive finite number or None")
+    return ms, mt, nz
