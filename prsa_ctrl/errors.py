@@ -4,7 +4,7 @@ Every message names the value that was received and what was expected.
 """
 
 __all__ = ["PlantFileError", "SceneError", "SimulationError", "GeometryWarning", "DataError", "FitError",
-           "LogFormatError", "AxisPlantError", "AxisFitError", "OutputError", "MonteCarloInterrupted"]
+           "LogFormatError", "AxisPlantError", "AxisFitError", "OutputError", "MonteCarloInterrupted", "UsageError"]
 
 
 class PlantFileError(ValueError):
@@ -57,3 +57,7 @@ class MonteCarloInterrupted(KeyboardInterrupt):
     def __init__(self, report) -> None:
         super().__init__("Monte Carlo interrupted")
         self.report = report
+
+
+class UsageError(Exception):
+    """A command-line flag or argument is malformed: the command exits 2 with this one line."""

@@ -1,6 +1,7 @@
-"""Issue 22 in the simulator, identification and sampled-loop area: modules under 1,000 lines,
-no private name crossing a module boundary, the zero-order hold and the Radau IIA tableau
-written once, figures apart from the fits, the fit exceptions in prsa_ctrl.errors."""
+"""The package's structure (issue 22), held for every module: under 1,000 lines, no private
+name crossing a module boundary, imports only down the layers and never in a circle, the
+zero-order hold and the Radau IIA tableau written once, figures apart from the fits, every
+exception in prsa_ctrl.errors."""
 
 import ast
 import subprocess
@@ -12,8 +13,11 @@ import pytest
 import prsa_ctrl
 
 PKG = Path(prsa_ctrl.__file__).parent
-AREA = sorted([*(PKG / "sim").glob("*.py"), *(PKG / "identification").glob("*.py"), PKG / "drive" / "sampled.py",
-               PKG / "drive" / "estimator.py", PKG / "drive" / "filters.py", PKG / "plots" / "fit.py"])
+AREA = sorted(PKG.rglob("*.py"))
+#: Layers, lowest first: a module may import from its own layer or below (docs/development/layout.md).
+LAYERS = [("errors", "options", "results", "_lazy"), ("plant",), ("drive",), ("sim",), ("tuning",),
+          ("identification",), ("studies",), ("io",), ("plots",), ("cli",), ("app",)]
+RANK = {name: i for i, names in enumerate(LAYERS) for name in names}
 #: Where the whole drive/sim/identification area may discretise with expm / write the Radau tableau.
 ZOH_HOME = PKG / "drive" / "sampled.py"
 RADAU_HOME = PKG / "sim" / "integrators.py"
@@ -99,3 +103,71 @@ def test_public_names_of_the_split_resolve():
     for name in ("simulate", "run", "SimRun", "SimSettings", "PiecewiseLinear", "energy_balance", "fit_plant",
                  "fit_frf", "FitResult", "FitError"):
         assert getattr(prsa_ctrl, name) is not None
+
+
+def _part(module: str) -> str:
+    """prsa_ctrl.tuning.loops -> tuning; prsa_ctrl.errors -> errors."""
+    return module.split(".")[1] if module.count(".") else "__init__"
+
+
+def _runtime_imports(path: Path):
+    """(importing module, imported module, names) of every relative import outside TYPE_CHECKING."""
+    tree = _tree(path)
+    guarded = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.dump(node.test)
+               for n in ast.walk(node)}
+    mod = ".".join(path.relative_to(PKG.parent).with_suffix("").parts)
+    pkg = mod if path.name == "__init__.py" else mod.rsplit(".", 1)[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.level and id(node) not in guarded:
+            base = pkg.split(".")[: len(pkg.split(".")) - (node.level - 1)]
+            yield mod.removesuffix(".__init__"), ".".join(base + ([node.module] if node.module else [])), node
+
+
+def test_imports_run_down_the_layers_only():
+    up = []
+    for path in AREA:
+        if path.name == "__init__.py":
+            continue  # the lazy export tables name their own modules
+        for mod, target, node in _runtime_imports(path):
+            a, b = _part(mod), _part(target)
+            if a in RANK and b in RANK and RANK[b] > RANK[a]:
+                up.append(f"{mod} -> {target}")
+    assert not up, up
+
+
+def test_no_import_circle_between_modules():
+    graph: dict[str, set[str]] = {}
+    for path in AREA:
+        for mod, target, node in _runtime_imports(path):
+            names = [a.name for a in node.names]
+            targets = {f"{target}.{n}" for n in names} | {target}
+            graph.setdefault(mod, set()).update(t for t in targets if t != mod)
+    modules = set(graph)
+    state: dict[str, int] = {}
+
+    def visit(m, trail):
+        state[m] = 1
+        for t in graph.get(m, ()):
+            t = t if t in modules else None
+            if t is None or t.endswith("__init__"):
+                continue
+            if state.get(t) == 1:
+                raise AssertionError(" -> ".join(trail + [m, t]))
+            if state.get(t) is None:
+                visit(t, trail + [m])
+        state[m] = 2
+
+    for m in sorted(modules):
+        if state.get(m) is None and not m.endswith("__init__") and m != "prsa_ctrl":
+            visit(m, [])
+
+
+def test_every_exception_class_lives_in_errors():
+    for path in AREA:
+        if path.name == "errors.py":
+            continue
+        for node in ast.walk(_tree(path)):
+            if isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
+                bases = {getattr(b, "id", getattr(b, "attr", "")) for b in node.bases}
+                assert not bases & {"Exception", "ValueError", "RuntimeError", "KeyboardInterrupt", "UserWarning"} \
+                    or path.parent.name == "app", f"{path.relative_to(PKG)}: {node.name}"

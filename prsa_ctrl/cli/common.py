@@ -36,7 +36,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
-from ..errors import GeometryWarning, PlantFileError, SceneError, SimulationError
+from ..errors import GeometryWarning, PlantFileError, SceneError, SimulationError, UsageError
 from ..io.output import OutputError, Transaction, cleanup_temporaries, remove_created, write_text
 
 __all__ = ["EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
@@ -50,10 +50,6 @@ EXIT_TERMINATED = 128 + signal.SIGTERM
 
 #: Seconds between Ctrl-C and a forced exit when a solver does not hand control back.
 INTERRUPT_GRACE_S = 0.8
-
-
-class UsageError(Exception):
-    """Bad input: exit 2 with the message."""
 
 
 class Parser(argparse.ArgumentParser):

@@ -264,8 +264,8 @@ def format_move_report(plant: "Plant", scene: "MoveScene", designs: "list[Cascad
         lines.append(
             f"  {d.method:10s} kp {d.speed.kp:.4g} N m s/rad, ki {d.speed.ki:.4g} N m/rad, Kv {d.position.kv:.4g} 1/s"
             f"{ki}, kvff {d.position.kvff:.3g}, kaff {d.position.kaff:.3g}; Ms speed(closed/open) "
-            f"{d.ms['speed_closed']:.3f}/{d.ms['speed_open']:.3f}, position {d.ms['position']:.3f}, torque command "
-            f"{d.ms['torque']:.3f}")
+            f"{d.ms_points['speed_closed']:.3f}/{d.ms_points['speed_open']:.3f}, position {d.ms_points['position']:.3f}, torque command "
+            f"{d.ms_points['torque']:.3f}")
         if v is not None:
             lines.append(
                 f"  {'':10s} verified ({scene.fidelity}): following error peak {v.peak_following_error_m * 1e6:.3f} um, "

@@ -26,6 +26,7 @@ _EXPORTS = {
     "closed_loop": "linear_loop",
     "design_kf": "estimator",
     "filter_from_dict": "filters",
+    "first_order_hold": "sampled",
     "freq_grid": "sampled",
     "loop_filters": "filters",
     "measurement_for": "measurement",

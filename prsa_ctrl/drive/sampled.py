@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm
 
-__all__ = ["zoh", "pid_rows", "pid_frequency_parts", "ss_response", "freq_grid"]
+__all__ = ["zoh", "pid_rows", "pid_frequency_parts", "ss_response", "freq_grid", "first_order_hold"]
 
 
 def zoh(a: ArrayLike, b: ArrayLike, ts: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -188,3 +188,37 @@ def freq_grid(w_lo: float, w_hi: float, n: int) -> NDArray[np.float64]:
     [1.0, 10.0, 100.0]
     """
     return np.logspace(math.log10(w_lo), math.log10(w_hi), n)
+
+
+def first_order_hold(a: ArrayLike, h: float) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Exact discretisation of ``dx/dt = A x + u`` with ``u`` linear between the samples.
+
+    ``x_{k+1} = phi x_k + p0 u_k + p1 u_{k+1}`` (first-order hold, the input interpolated
+    linearly over the step), from one matrix exponential of ``[[A h, I h, 0], [0, 0, I h],
+    [0, 0, 0]]``.
+
+    Parameters
+    ----------
+    a : array (n, n)
+        State matrix, 1/s.
+    h : float, s
+        Step.
+
+    Returns
+    -------
+    (phi, p0, p1) : ndarray (n, n) each
+        State transition and the weights of the input at the step's start and end (s).
+
+    Examples
+    --------
+    >>> phi, p0, p1 = first_order_hold([[-1.0]], 0.1)
+    >>> round(float(phi[0, 0]), 6), round(float(p0[0, 0] + p1[0, 0]), 6)  # e^-h, 1 - e^-h
+    (0.904837, 0.095163)
+    """
+    a = np.atleast_2d(np.asarray(a, dtype=float))
+    n = a.shape[0]
+    big = np.zeros((3 * n, 3 * n))
+    big[:n, :n], big[:n, n : 2 * n], big[n : 2 * n, 2 * n :] = a * h, np.eye(n) * h, np.eye(n) * h
+    e = expm(big)
+    phi, psi0, psi1 = e[:n, :n], e[:n, n : 2 * n], e[:n, 2 * n :] / h  # psi1 = int e^{Ar}(h - r) dr / h
+    return phi, psi0 - psi1, psi1

@@ -179,7 +179,7 @@ def check_writable(path: str | os.PathLike, inputs: Iterable[str | os.PathLike] 
     >>> check_writable("", flag="--json")
     Traceback (most recent call last):
     ...
-    prsa_ctrl.io.output.OutputError: --json '': expected a file path
+    prsa_ctrl.errors.OutputError: --json '': expected a file path
     """
     what = _label(path, flag)
     text = os.fspath(path)
@@ -228,7 +228,7 @@ def check_distinct(paths: "dict[str, str | os.PathLike | None]") -> None:
     >>> check_distinct({"--out": "a.toml", "--json": "./a.toml"})
     Traceback (most recent call last):
     ...
-    prsa_ctrl.io.output.OutputError: --out 'a.toml' and --json './a.toml' name the same path; expected different files
+    prsa_ctrl.errors.OutputError: --out 'a.toml' and --json './a.toml' name the same path; expected different files
     """
     items = [(f, os.fspath(p)) for f, p in paths.items() if p is not None]
     for i, (fa, pa) in enumerate(items):

@@ -18,7 +18,7 @@ The scene itself (:class:`~prsa_ctrl.studies.movescene.MoveScene`) is parsed in
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -283,18 +283,18 @@ def move_metrics(r: "SimRun", plant: "Plant", scene: MoveScene) -> MoveMetrics:
 
 # --- linear model of the sampled cascade ------------------------------------------------------
 
-def verify_design(plant: "Plant", scene: MoveScene, design: "CascadeDesign", fidelity: str | None = None) -> MoveMetrics:
-    """Run ``design`` on the nonlinear model and store its metrics in ``design.verified``
-    (and the run in ``design.run``, for the figures).
+def verify_design(design: "CascadeDesign", plant: "Plant", scene: MoveScene, fidelity: str | None = None
+                  ) -> "CascadeDesign":
+    """Run ``design`` on the nonlinear model: a copy of it with its metrics in ``verified``
+    (and the run in ``run``, for the figures). The argument order is the speed loop's
+    :func:`prsa_ctrl.studies.autotune.verify` (design, plant, scene); ``design`` is not changed.
 
     Returns
     -------
-    MoveMetrics
+    CascadeDesign
     """
     r = simulate_move(plant, scene, design.speed, design.position, fidelity=fidelity)
-    design.verified = move_metrics(r, plant, scene)
-    design.run = r
-    return design.verified
+    return replace(design, verified=move_metrics(r, plant, scene), run=r)
 
 
 def tune_move(plant: "Plant", scene: MoveScene, progress: Callable[[str], None] | None = None
@@ -322,7 +322,8 @@ def tune_move(plant: "Plant", scene: MoveScene, progress: Callable[[str], None] 
     seq = cascade.sequential_design(plant, scene, cm)
     say("joint design (one NLP over all gains) ...")
     joint = cascade.tune_cascade(plant, scene, baseline=seq, cm=cm)
+    verified = []
     for d in (seq, joint):
         say(f"verifying the {d.method} design on the nonlinear {scene.fidelity} model ...")
-        verify_design(plant, scene, d)
-    return [seq, joint]
+        verified.append(verify_design(d, plant, scene))
+    return verified

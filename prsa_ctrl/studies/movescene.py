@@ -60,8 +60,8 @@ _REQUIRED = ("profile", "distance_mm", "max_speed_mm_s", "acceleration_m_s2")
 class MoveScene:
     """A positioning scene (the ``[move]`` and ``[cascade]`` sections of a scene file).
 
-    Attributes (SI)
-    ---------------
+    Attributes
+    ----------
     profile : {"trapezoidal", "s-curve"}
     distance_m, max_speed_m_s, acceleration_m_s2, jerk_m_s3 : float
         The move (jerk only for the S-curve).

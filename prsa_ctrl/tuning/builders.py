@@ -9,7 +9,7 @@ import numbers
 from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
-from ..drive.sampled import freq_grid, pid_frequency_parts, pid_rows, ss_response, zoh
+from ..drive.sampled import first_order_hold, freq_grid, pid_frequency_parts, pid_rows, ss_response, zoh
 from .settings import CONT_RTOL, MAX_STEPS, checked_number, int_steps
 from .loops import LoopModel, plant_roots, resonance_points
 
@@ -252,8 +252,6 @@ class _DelayedLoop:
 
     def _value(self, g, kind: str, m: int) -> tuple[float, float]:
         """IAE/ITAE to infinity at ``m`` samples per delay, and the estimated tail."""
-        from scipy.linalg import expm
-
         key = (g.tobytes(), kind, m)
         if key in self._memo:
             return self._memo[key]
@@ -261,11 +259,7 @@ class _DelayedLoop:
         qq = self.q0 + sum(gi * a for gi, a in zip(g, self.qg))
         N, n = mm.shape[0], qq.shape[1]
         h = self.delay / m
-        big = np.zeros((3 * N, 3 * N))
-        big[:N, :N], big[:N, N : 2 * N], big[N : 2 * N, 2 * N :] = mm * h, np.eye(N) * h, np.eye(N) * h
-        e = expm(big)
-        phi, psi0, psi1 = e[:N, :N], e[:N, N : 2 * N], e[:N, 2 * N :] / h  # psi1 = int e^{Mr}(h - r) dr / h
-        p0, p1 = psi0 - psi1, psi1
+        phi, p0, p1 = first_order_hold(mm, h)
         hist = [np.zeros((1, n))]  # x_j, j = 0 .. k (plant part)
         X = np.zeros(N)
         total, prev_b, k = 0.0, None, 0

@@ -258,7 +258,7 @@ class CascadeModel:
         return np.asarray(e).ravel()
 
 
-@dataclass
+@dataclass(frozen=True)
 class CascadeDesign:
     """A tuned cascade: gains, their true Ms (verified), linear and nonlinear metrics.
 
@@ -267,8 +267,11 @@ class CascadeDesign:
     method : {"joint", "sequential"}
     speed : PID
     position : PositionLoop
-    ms : dict
-        True Ms at each breaking point (:meth:`CascadeModel.ms`) with the frequencies.
+    ms_points : dict
+        True Ms at each breaking point (:meth:`CascadeModel.ms`) with the frequencies
+        (``"ms"`` in :meth:`as_dict`).
+    ms : float
+        The largest of them (a property, as ``ms`` is on every other result).
     crossover_rad_s : dict
         Speed-loop (position loop opened) and position-loop crossovers.
     linear : dict
@@ -276,22 +279,44 @@ class CascadeDesign:
     objective : float
         Value of the tuning objective (baseline = weight_following + weight_holding).
     verified : MoveMetrics or None
-        Metrics on the nonlinear model.
-    notes : list of str
+        Metrics on the nonlinear model (:func:`prsa_ctrl.studies.move.verify_design` returns
+        a verified copy).
+    notes : tuple of str
+        The design's caveats (also ``warnings``).
+    status : str
+        ``"unverified"``, ``"ok"`` (verified, settles in its window) or ``"flagged: ..."``
+        (:data:`prsa_ctrl.results.STATUSES`).
     """
 
     method: str
     speed: PID
     position: PositionLoop
-    ms: dict
+    ms_points: dict
     crossover_rad_s: dict
     linear: dict
     objective: float
     verified: MoveMetrics | None = None
-    notes: list = field(default_factory=list)
+    notes: tuple = ()
     solver: dict = field(default_factory=dict)
     #: The nonlinear run of :func:`verify_design` (for the figures; not in :meth:`as_dict`).
     run: Any = field(default=None, repr=False, compare=False)
+
+    @property
+    def ms(self) -> float:
+        """The largest true Ms over the breaking points."""
+        return float(max(self.ms_points[k] for k in BREAKING_POINTS if k in self.ms_points))
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        return tuple(self.notes)
+
+    @property
+    def status(self) -> str:
+        if self.verified is None:
+            return "unverified"
+        if not math.isfinite(self.verified.settling_time_s):
+            return "flagged: the nonlinear run never settles in the scene's window"
+        return "ok"
 
     @property
     def gains(self) -> list[float]:
@@ -302,7 +327,7 @@ class CascadeDesign:
                 "position": {"kv_per_s": self.position.kv, "ki_per_s2": self.position.ki, "kvff": self.position.kvff,
                              "kaff": self.position.kaff, "measured": self.position.measured,
                              "rate": self.position.rate},
-                "ms": self.ms, "crossover_rad_s": self.crossover_rad_s, "linear": self.linear,
+                "ms": self.ms_points, "crossover_rad_s": self.crossover_rad_s, "linear": self.linear,
                 "objective": self.objective, "verified": self.verified.as_dict() if self.verified else None,
                 "notes": list(self.notes), "solver": self.solver}
 
@@ -321,7 +346,7 @@ def _design(cm: CascadeModel, method: str, g, objective: float, notes=None, solv
                        rate=sc.position_rate)
     cross = {"speed_open": cm.crossover(g, "speed_open"), "position": cm.crossover(g, "position")}
     return CascadeDesign(method, speed, pos, cm.ms(g), cross, _linear_summary(cm, g), float(objective),
-                         notes=list(notes or []), solver=dict(solver or {}))
+                         notes=tuple(notes or ()), solver=dict(solver or {}))
 
 
 def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None = None,

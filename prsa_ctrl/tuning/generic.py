@@ -316,7 +316,7 @@ def tune_pid(
     if k0 != 1.0:
         res = _rescaled(res, k0, limits)
     if default_note is not None:
-        res.warnings.insert(0, default_note)
+        res = replace(res, warnings=(default_note, *res.warnings))
     return res
 
 #: The filter time constant's search range (tune_pid, ``filter_tf=None``): these decades below 1/w135.
@@ -371,12 +371,12 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
     res = replace(res, stats=stats)
     if not ok:
         res = replace(res, status=f"not proven optimal: objective slope {slope:.3g} per unit log Tf below -{KKT_TOL:g} "
-                                  f"at the filter time constant {math.exp(best):.6g} s", converged=False,
-                      warnings=res.warnings + ["the filter time constant is not proven optimal (see stats['filter_search'])"])
+                                  f"at the filter time constant {math.exp(best):.6g} s",
+                      warnings=(*res.warnings, "the filter time constant is not proven optimal (see stats['filter_search'])"))
     elif at_bound:
-        res = replace(res, warnings=res.warnings + [
+        res = replace(res, warnings=(*res.warnings,
             f"the filter time constant {math.exp(best):.4g} s is at an end of its search range "
-            f"[{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s (the objective keeps improving that way)"])
+            f"[{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s (the objective keeps improving that way)"))
     return res, hor
 
 def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: int, disturbance, step: float,
@@ -416,7 +416,7 @@ def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: 
             loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
                                    **{**structure, "filter_tf": t_filter})
             stats["objective_pade"] = loop.objective_continuous(g, objective)[0]
-    return replace(res, filter=filt, mks=mks, stats=stats, warnings=warnings)
+    return replace(res, filter=filt, mks=mks, stats=stats, warnings=tuple(warnings))
 
 #: Setpoint-weight search: samples of the basis responses per loop-model sample, and the grid of
 #: the scan over b (and c) before the local refinement.
@@ -603,4 +603,4 @@ def _rescaled(res: TuningResult, k0: float, limits: dict) -> TuningResult:
             warnings.append(f"{n} = {gains[i]:.6g} is at its bound {n}_max = {lim / k0:g}")
     return replace(res, pid=PID(gains[0], gains[1], gains[2], tf=pid.tf, kff=pid.kff), objective=obj,
                    mks=None if res.mks is None else res.mks / k0,
-                   per_loop=[v * f for v in res.per_loop], stats=stats, warnings=warnings)
+                   per_loop=[v * f for v in res.per_loop], stats=stats, warnings=tuple(warnings))

@@ -263,6 +263,7 @@ class LoopModel:
         Examples
         --------
         >>> import control
+        >>> from prsa_ctrl.tuning.builders import continuous_loop
         >>> lp = continuous_loop(control.tf([1.0], [1.0, 1.0]), tf=0.01, horizon=10.0, n_steps=200)
         >>> lp.stability((1.0, 1.0, 0.0)), lp.stability((1.0, 0.0, 0.0)), lp.stability((0.0, -5.0, 0.0))
         ('stable', 'marginal', 'unstable')

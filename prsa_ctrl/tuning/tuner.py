@@ -57,6 +57,7 @@ from numpy.typing import NDArray
 from ..drive.pid import PID
 from ..sim.metrics import Margins
 from ..options import CONTROLLERS, OBJECTIVES
+from ..results import is_converged, json_safe
 from .settings import CONT_RTOL, KKT_TOL, MULTI_ROWS, MULTI_SLOTS, POLISH_ROUNDS, RANK_TOP, SLOTS, STARTS, TAIL_RTOL, UNIT_TOL, check_bounds, check_mks, gain_limit
 from .loops import LoopModel
 from .objectives import combined, ie_batch, rank_batch
@@ -66,7 +67,7 @@ from .optimality import OptimalityChecks
 __all__ = ["TuningResult", "Tuner"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class TuningResult:
     """Outcome of a tuning run.
 
@@ -98,8 +99,9 @@ class TuningResult:
         ``"not proven optimal: <residual> (ipopt: <status>)"`` or ``"not converged: scan point
         kept ..."``.
     converged : bool
-        Whether ``status`` starts with ``"optimal"``.
-    warnings : list of str
+        Whether ``status`` starts with ``"optimal"`` (a property: derived from ``status``,
+        :func:`prsa_ctrl.results.is_converged`).
+    warnings : tuple of str
         Every caveat of the result, one line each.
     mks : float or None
         True peak noise sensitivity ``max |C F S|`` over the loops (:meth:`LoopModel.noise_peak`;
@@ -121,11 +123,23 @@ class TuningResult:
     margins: list[Margins]
     stats: dict = field(default_factory=dict)
     status: str = "optimal"
-    converged: bool = True
-    warnings: list[str] = field(default_factory=list)
+    warnings: tuple[str, ...] = ()
     mks: float | None = None
     filter: dict | None = None
     setpoint: dict | None = None
+
+    @property
+    def converged(self) -> bool:
+        """Whether ``status`` is a verified optimum."""
+        return is_converged(self.status)
+
+    def as_dict(self) -> dict:
+        """The result as plain data (gains, objective, peaks, status, warnings, stats)."""
+        return {"pid": {"kp": self.pid.kp, "ki": self.pid.ki, "kd": self.pid.kd, "tf": self.pid.tf, "kff": self.pid.kff},
+                "objective": self.objective, "kind": self.kind, "per_loop": list(self.per_loop),
+                "ms": self.ms, "mt": self.mt, "mks": self.mks, "status": self.status, "converged": self.converged,
+                "warnings": list(self.warnings), "filter": self.filter, "setpoint": self.setpoint,
+                "stats": json_safe(self.stats)}
 
     @property
     def ms(self) -> float:
@@ -162,6 +176,7 @@ class Tuner(NLPBuilder, OptimalityChecks):
     Examples
     --------
     >>> import control
+    >>> from prsa_ctrl.tuning.builders import continuous_loop
     >>> lp = continuous_loop(control.tf([1.0], [1.0, 3.0, 3.0, 1.0]), tf=0.1, horizon=40.0, n_steps=400)
     >>> tuner = Tuner([lp], objective="ie")
     >>> a, b = tuner.tune(ms_max=1.4), tuner.tune(ms_max=1.6)
@@ -770,6 +785,5 @@ class Tuner(NLPBuilder, OptimalityChecks):
                 "wall_time_s": time.perf_counter() - t_start,
             },
             status=status,
-            converged=converged,
-            warnings=warnings,
+            warnings=tuple(warnings),
         )

@@ -276,8 +276,7 @@ def designs(plant, scene):
     cm = CascadeModel(plant, sc)
     seq = sequential_design(plant, sc, cm)
     joint = tune_cascade(plant, sc, baseline=seq, cm=cm)
-    for d in (seq, joint):
-        verify_design(plant, sc, d)
+    seq, joint = (verify_design(d, plant, sc) for d in (seq, joint))
     return sc, cm, seq, joint
 
 
@@ -287,8 +286,9 @@ def test_joint_beats_sequential_at_equal_ms(designs):
         # The reported Ms are the true ones (recomputed here on another dense grid).
         again = cm.ms(d.gains, n_dense=30011)
         for k in BREAKING_POINTS:
-            assert d.ms[k] <= sc.ms_max * (1 + 1e-5)
-            assert again[k] == pytest.approx(d.ms[k], rel=1e-4)
+            assert d.ms_points[k] <= sc.ms_max * (1 + 1e-5)
+            assert again[k] == pytest.approx(d.ms_points[k], rel=1e-4)
+        assert d.ms == max(d.ms_points[k] for k in BREAKING_POINTS) and d.status == "ok"
         assert cm.spectral_radius(d.gains) < 1
     assert joint.method == "joint"
     assert joint.objective < seq.objective
@@ -398,7 +398,7 @@ def test_bandwidth_ratio_option(plant, designs):
     assert d.method == "joint"
     assert d.speed.kp / plant.reflected_inertia_kg_m2 >= 5.0 * d.position.kv * (1 - 1e-6)
     assert joint.speed.kp / plant.reflected_inertia_kg_m2 < 5.0 * joint.position.kv  # the option is active
-    assert max(d.ms[k] for k in BREAKING_POINTS) <= sc.ms_max * (1 + 1e-5)
+    assert max(d.ms_points[k] for k in BREAKING_POINTS) <= sc.ms_max * (1 + 1e-5)
     # A constraint can only cost: the ratio-limited design is no better than the free one.
     assert d.objective >= joint.objective * (1 - 1e-6)
 
@@ -452,7 +452,7 @@ def test_text_report_names_every_bound_and_the_position_integral(plant, designs)
     pi = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0))
     text = format_move_report(plant, dataclasses.replace(sc, position_controller="pi"), [seq, pi])
     assert "speed loop (position loop closed / opened), position loop, torque command" in text
-    assert f"torque command {pi.ms['torque']:.3f}" in text and "ki 800 1/s^2" in text
+    assert f"torque command {pi.ms_points['torque']:.3f}" in text and "ki 800 1/s^2" in text
     lin, ver = joint.linear["holding_deviation_m"], joint.verified.holding_deviation_m
     assert f"holding deviation {lin * 1e6:.3f} um ({lin / ver:.2g} x the verified)" in text
     assert "ki 800" not in format_move_report(plant, sc, [seq, joint])
