@@ -29,7 +29,7 @@ from ..studies.autotune import Design, actuator_loops, baseline_designs, checked
 from ..cli.tune import parse_load_step
 from ..drive.pid import PID
 from ..errors import PlantFileError, SceneError
-from ..options import OBJECTIVES, RAD_S_PER_RPM
+from ..options import MS_MAX_DEFAULT, OBJECTIVES, RAD_S_PER_RPM
 from ..plant.plantfile import Plant, builtin_plants, load_plant
 from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
 from ..tuning.tuner import Tuner
@@ -78,7 +78,7 @@ class Settings:
 
     objective: str = "iae"
     controller: str = "pi"
-    ms_max: float = 1.4
+    ms_max: float = MS_MAX_DEFAULT
     mt_max: float | None = None
     max_noise_gain: float | None = None
     load_step: str = "500:1500"

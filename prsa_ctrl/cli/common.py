@@ -39,7 +39,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 from ..errors import GeometryWarning, PlantFileError, SceneError, SimulationError, UsageError
 from ..io.output import OutputError, Transaction, cleanup_temporaries, remove_created, write_text
 
-__all__ = ["EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
+__all__ = ["report_failure", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
            "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
            "Run", "guard", "native_output", "invoke", "invoke_inner", "describe_failure", "one_line",
            "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic"]
@@ -364,6 +364,17 @@ def staged(run: Run, render: Callable[[Path], list[Path]], directory: str, input
 _INTERNAL = ("must not contain infs or nans", "failed to find a finite solution", "maximum allowed dimension",
              "array is too big", "unable to allocate", "singular matrix", "math domain error", "overflow",
              "division by zero", "invalid value encountered", "must be finite")
+
+
+def report_failure(run: "Run", exc: BaseException, what: str, verbose: bool) -> int:
+    """Say a failure of the step ``what`` in one line (the internal detail too with
+    ``--verbose``, never a traceback) and return its exit code (:func:`describe_failure`)."""
+    run.check()
+    code, line = describe_failure(exc, what)
+    if verbose:  # the internal detail, for a bug report
+        print(f"{run.prog}: detail: {type(exc).__name__}: {one_line(exc)[:500]}", file=sys.stderr)
+    run.say(f"{run.prog}: {line}")
+    return code
 
 
 def describe_failure(exc: BaseException, what: str) -> tuple[int, str]:

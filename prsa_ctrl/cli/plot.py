@@ -8,7 +8,6 @@ into ``--plots`` (alias ``--out``) all or none.
 from __future__ import annotations
 
 import argparse
-import sys
 import warnings
 from pathlib import Path
 from typing import Sequence
@@ -18,8 +17,8 @@ from ..errors import GeometryWarning
 from ..io.output import Transaction, check_directory
 from ..options import DERIVATIVE_FILTER_SAMPLES
 from ..studies.scene import choose_fidelity
-from .common import (EXIT_OK, Parser, Run, UsageError, commit, describe_failure, invoke, native_output, number,
-                     one_line, path_text, progress, show_notes, staged)
+from .common import (EXIT_OK, Parser, Run, UsageError, commit, invoke, native_output, number, path_text, progress,
+                     report_failure, show_notes, staged)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, scene_flags
 from .report import fmt_margin, scene_header
 
@@ -124,12 +123,7 @@ def _plot_body(run: Run, argv: list[str]) -> int:
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - translated at this boundary
-        run.check()
-        code, line = describe_failure(exc, what)
-        if args.verbose:  # the internal detail, for a bug report; never a traceback
-            print(f"{run.prog}: detail: {type(exc).__name__}: {one_line(exc)[:500]}", file=sys.stderr)
-        run.say(f"{run.prog}: {line}")
-        return code
+        return report_failure(run, exc, what, args.verbose)
     if files is None:
         files = _write_figures(run, figs, args.out, inputs)
     print(f"prsa-plot: plant {plant.name}, {scene_header(scene)}")

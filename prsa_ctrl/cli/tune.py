@@ -35,7 +35,6 @@ import argparse  # noqa: E402
 import os  # noqa: E402
 import re  # noqa: E402
 import socket  # noqa: E402
-import sys  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Sequence  # noqa: E402
@@ -49,8 +48,8 @@ from ..studies.movescene import MoveScene  # noqa: E402
 from ..studies.scene import load_scene  # noqa: E402
 from ..studies.scenefile import is_move_scene  # noqa: E402
 from .common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError,  # noqa: E402
-                     commit, describe_failure, integer, invoke, native_output, number, one_line, path_text,
-                     progress, show_notes, staged, status_says_interrupted, write_json_atomic)
+                     commit, describe_failure, integer, invoke, native_output, number, path_text, progress,
+                     report_failure, show_notes, staged, status_says_interrupted, write_json_atomic)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, parse_load_step, scene_flags  # noqa: E402
 from .plot import build_plot_parser, plot_main  # noqa: E402
 from .report import format_move_report, format_report, format_robust  # noqa: E402
@@ -177,12 +176,7 @@ def _tune_body(run: Run, argv: list[str]) -> int:
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - translated into one line at this boundary
-        run.check()
-        code, line = describe_failure(exc, what)
-        if args.verbose:  # the internal detail, for a bug report; never a traceback
-            print(f"{run.prog}: detail: {type(exc).__name__}: {one_line(exc)[:500]}", file=sys.stderr)
-        run.say(f"{run.prog}: {line}")
-        return code
+        return report_failure(run, exc, what, args.verbose)
     if not move:
         result["rep"].timing_s["process"] = time.perf_counter() - _T_START
         progress(run, args.verbose, "writing outputs")

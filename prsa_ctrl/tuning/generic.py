@@ -9,7 +9,7 @@ from dataclasses import replace
 from typing import Callable, Sequence
 import numpy as np
 from ..drive.pid import PID
-from ..options import CONTROLLERS, OBJECTIVES
+from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES
 from ..drive.sampled import ss_response, zoh
 from .settings import CONT_HALVINGS, CONT_RTOL, KKT_TOL, TAIL_RTOL, check_bounds, check_mks, checked_number, gain_limit, int_steps
 from .loops import LoopModel, block_sum, plant_roots
@@ -29,7 +29,7 @@ def tune_loops(
     *,
     objective: str = "iae",
     controller: str = "pi",
-    ms_max: float = 1.4,
+    ms_max: float = MS_MAX_DEFAULT,
     mt_max: float | None = None,
     max_noise_gain: float | None = None,
     kp_max: float | None = None,
@@ -106,7 +106,7 @@ def tune_pid(
     *,
     objective: str = "iae",
     controller: str = "pi",
-    ms_max: float = 1.4,
+    ms_max: float = MS_MAX_DEFAULT,
     mt_max: float | None = None,
     max_noise_gain: float | None = None,
     disturbance: str | int | None = None,

@@ -56,7 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 from ..drive.pid import PID
 from ..sim.metrics import Margins
-from ..options import CONTROLLERS, OBJECTIVES
+from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES
 from ..results import is_converged, json_safe
 from .settings import CONT_RTOL, KKT_TOL, MULTI_ROWS, MULTI_SLOTS, POLISH_ROUNDS, RANK_TOP, SLOTS, STARTS, TAIL_RTOL, UNIT_TOL, check_bounds, check_mks, gain_limit
 from .loops import LoopModel
@@ -601,7 +601,7 @@ class Tuner(NLPBuilder, OptimalityChecks):
     def tune(
         self,
         *,
-        ms_max: float = 1.4,
+        ms_max: float = MS_MAX_DEFAULT,
         mt_max: float | None = None,
         max_noise_gain: float | None = None,
         kp_max: float | None = None,
