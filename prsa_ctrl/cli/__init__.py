@@ -49,6 +49,7 @@ _EXPORTS = {
     "plant_toml": "fit",
     "plot_main": "plot",
     "progress": "common",
+    "report_failure": "common",
     "run": "axis",
     "scene_flags": "inputs",
     "scene_header": "report",

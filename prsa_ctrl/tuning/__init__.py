@@ -63,6 +63,7 @@ _EXPORTS = {
     "plant_roots": "loops",
     "rank_batch": "objectives",
     "resonance_points": "loops",
+    "richardson": "loops",
     "scenario_loops": "robust",
     "scenarios": "robust",
     "sequential_design": "cascade",

@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 from ..drive.sampled import first_order_hold, freq_grid, pid_frequency_parts, pid_rows, ss_response, zoh
 from .settings import CONT_RTOL, MAX_STEPS, checked_number, int_steps
-from .loops import LoopModel, plant_roots, resonance_points
+from .loops import LoopModel, plant_roots, resonance_points, richardson
 
 __all__ = ["continuous_loop", "check_structure", "drive_loop"]
 
@@ -313,17 +313,7 @@ class _DelayedLoop:
         successive levels of ``_DELAY_LEVELS``; with ``levels``, over those, or the one value)."""
         g = np.asarray(g, float)
         levels = _DELAY_LEVELS if levels is None else levels
-        prev, val, err = None, math.inf, 0.0
-        for m in levels:
-            val, tail = self._value(g, kind, m)
-            if not math.isfinite(val):
-                return math.inf, math.inf
-            if prev is not None:
-                err = abs(val - prev) / 3.0 + tail
-                if err <= rtol * val:
-                    return val, err
-            prev = val
-        return val, err
+        return richardson((self._value(g, kind, m) for m in levels), rtol)
 
 def _delayed_loop(a, b, c, d_idx: int, step: float, tf: float, ideal: bool, filter_order: int, filter_tf,
                   delay: float, horizon: float) -> _DelayedLoop:

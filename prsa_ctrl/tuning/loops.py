@@ -14,7 +14,7 @@ from ..options import OBJECTIVES
 from ..drive.sampled import zoh
 from .settings import CONT_HALVINGS, CONT_RTOL, LOW_DECADES, TAIL_MAX_STEPS, TAIL_RTOL, UNIT_TOL
 
-__all__ = ["LoopModel", "zoom_max", "block_sum", "resonance_points", "plant_roots"]
+__all__ = ["LoopModel", "richardson", "zoom_max", "block_sum", "resonance_points", "plant_roots"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -399,18 +399,8 @@ class LoopModel:
 
             p = solve_continuous_lyapunov(acl.T, -np.outer(self.Ce, self.Ce))
             return float(x_inf @ p @ x_inf), 0.0
-        h, prev = self.h, None
-        for _ in range(CONT_HALVINGS + 1):
-            val, tail = self._sampled_continuous(acl, bdc, kind, h, min(rtol, TAIL_RTOL))
-            if not math.isfinite(val):
-                return math.inf, math.inf
-            if prev is not None:
-                err = abs(val - prev) / 3.0 + tail
-                if err <= rtol * val:
-                    return val, err
-            prev = val
-            h /= 2.0
-        return val, err
+        return richardson((self._sampled_continuous(acl, bdc, kind, self.h / 2.0**i, min(rtol, TAIL_RTOL))
+                           for i in range(CONT_HALVINGS + 1)), rtol)
 
     def _sampled_continuous(self, acl, bdc, kind: str, h: float, rtol: float) -> tuple[float, float]:
         """``h sum |e_k|`` (IAE) or ``h sum t_k |e_k|`` (ITAE) of the continuous loop ``acl``
@@ -521,6 +511,26 @@ class LoopModel:
         out = {"error": xs @ self.Ce}
         out.update({name: xs @ row for name, row in self.outputs.items()})
         return out
+
+
+def richardson(evaluations, rtol: float) -> tuple[float, float]:
+    """Value and error estimate of a second-order integration refined by step halving.
+
+    ``evaluations`` yields ``(value, tail)`` at successively halved steps; the error of the
+    latest is ``|value - previous| / 3`` (Richardson, second order) plus its tail bound. Stops
+    at the first one within ``rtol`` (relative); ``(inf, inf)`` for a non-finite value.
+    """
+    prev, val, err = None, math.inf, 0.0
+    for val, tail in evaluations:
+        if not math.isfinite(val):
+            return math.inf, math.inf
+        if prev is not None:
+            err = abs(val - prev) / 3.0 + tail
+            if err <= rtol * val:
+                return val, err
+        prev = val
+    return val, err
+
 
 def _polished_peak(f, w: NDArray[np.float64], mag: NDArray[np.float64]) -> tuple[float, float]:
     """The peak of ``f(omega)`` (a magnitude, vectorised over rad/s) given its values ``mag`` on
