@@ -171,3 +171,13 @@ def test_every_exception_class_lives_in_errors():
                 bases = {getattr(b, "id", getattr(b, "attr", "")) for b in node.bases}
                 assert not bases & {"Exception", "ValueError", "RuntimeError", "KeyboardInterrupt", "UserWarning"} \
                     or path.parent.name == "app", f"{path.relative_to(PKG)}: {node.name}"
+
+
+def test_paths_computed_from_a_module_file_point_where_they_did_before_the_move():
+    """Modules moved one folder down (issue 22): the checkout's built-in folders and the
+    package root that no output may be written into are still found."""
+    from prsa_ctrl.io.output import package_roots
+    from prsa_ctrl.plant.plantfile import builtin_root
+
+    assert builtin_root("no_such_package_for_this_test", "plants") == PKG.resolve().parent / "plants"
+    assert str(PKG.resolve()) in package_roots()

@@ -83,7 +83,7 @@ def package_roots() -> list[str]:
     editable install). No output is written inside them."""
     from ..plant.plantfile import builtin_root
 
-    roots = [os.path.dirname(os.path.realpath(__file__))]
+    roots = [os.path.dirname(os.path.dirname(os.path.realpath(__file__)))]  # prsa_ctrl/io/output.py -> prsa_ctrl
     for pkg, folder in (("prsa_ctrl.plants", "plants"), ("prsa_ctrl.scenes", "tuning")):
         try:
             roots.append(os.path.realpath(os.fspath(builtin_root(pkg, folder))))

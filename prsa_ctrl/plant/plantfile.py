@@ -53,7 +53,7 @@ def builtin_root(package: str, folder: str) -> Any:
     try:
         return resources.files(package)
     except ModuleNotFoundError:
-        return Path(__file__).resolve().parent.parent / folder
+        return Path(__file__).resolve().parents[2] / folder  # prsa_ctrl/plant/plantfile.py -> the checkout
 
 
 def builtin_plants() -> list[str]:
