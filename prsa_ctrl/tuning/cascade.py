@@ -60,8 +60,8 @@ from .generic import tune_loops
 
 if TYPE_CHECKING:
     from ..plant.plantfile import Plant
-    from ..studies.move import MoveMetrics
-    from ..studies.movescene import MoveScene
+# A move scene (prsa_ctrl.studies.movescene.MoveScene) and its verified metrics
+# (prsa_ctrl.studies.move.MoveMetrics) live a layer up: named in annotations only, never imported.
 
 __all__ = ["CascadeModel", "CascadeDesign", "tune_cascade", "sequential_design", "CASCADE_GAINS",
            "MS_EXCESS_RTOL", "BREAKING_POINTS"]
