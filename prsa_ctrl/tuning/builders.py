@@ -13,7 +13,7 @@ from ..drive.sampled import first_order_hold, freq_grid, pid_frequency_parts, pi
 from .settings import CONT_RTOL, MAX_STEPS, checked_number, int_steps
 from .loops import LoopModel, plant_roots, resonance_points, richardson
 
-__all__ = ["continuous_loop", "check_structure", "drive_loop"]
+__all__ = ["continuous_loop", "drive_loop"]  # the rest is the tuner's own machinery, shared between its modules
 
 
 def continuous_loop(

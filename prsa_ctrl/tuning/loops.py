@@ -14,7 +14,7 @@ from ..options import OBJECTIVES
 from ..drive.sampled import zoh
 from .settings import CONT_HALVINGS, CONT_RTOL, LOW_DECADES, TAIL_MAX_STEPS, TAIL_RTOL, UNIT_TOL
 
-__all__ = ["LoopModel", "richardson", "zoom_max", "block_sum", "resonance_points", "plant_roots"]
+__all__ = ["LoopModel"]  # the rest is the tuner's own machinery, shared between its modules
 
 
 @dataclass(frozen=True, eq=False)

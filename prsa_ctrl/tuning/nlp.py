@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from .settings import IPOPT_MAX_ITER
 from .objectives import free_gains, smooth_abs, steady_command, two_rate_error
 
-__all__ = ["NLPBuilder", "NLPParts", "Candidate"]
+__all__ = []  # the rest is the tuner's own machinery, shared between its modules
 
 
 @dataclass(eq=False)

@@ -11,7 +11,7 @@ from .settings import FD_STEP, KKT_TOL, MS_RTOL
 from .loops import zoom_max
 from .objectives import combined, free_gains
 
-__all__ = ["OptimalityChecks"]
+__all__ = []  # the rest is the tuner's own machinery, shared between its modules
 
 
 class OptimalityChecks:

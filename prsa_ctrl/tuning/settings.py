@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 import numbers
 
-__all__ = ["STABILITY", "TAIL_RTOL", "MS_RTOL", "CONT_RTOL", "KKT_TOL", "FD_STEP", "POLISH_ROUNDS", "CONT_HALVINGS", "UNIT_TOL", "MAX_STEPS", "TAIL_MAX_STEPS", "SLOTS", "MULTI_ROWS", "MULTI_SLOTS", "RANK_TOP", "STARTS", "IPOPT_MAX_ITER", "LOW_DECADES", "checked_number", "gain_limit", "int_steps", "check_mks", "check_bounds"]
+__all__ = ["STABILITY", "TAIL_RTOL", "MS_RTOL", "CONT_RTOL", "KKT_TOL"]  # the rest is the tuner's own machinery, shared between its modules
 
 
 #: Classes returned by :meth:`LoopModel.stability`.
