@@ -64,7 +64,8 @@ __all__ = ["main", "plot_main", "parse_load_step", "write_json_atomic", "format_
 
 WORKERS_MAX = 64
 #: ``prsa-tune`` options a move scene honours; every other option given is refused (exit 2).
-MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real", "export_template", "motor")
+MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real", "export_template", "motor",
+              "rated_torque")
 #: Suffixes ``--export`` takes (drive file as JSON or TOML, code as C or Structured Text).
 EXPORT_SUFFIXES = (".json", ".toml", ".c", ".st")
 
@@ -119,7 +120,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "generic, cia402, siemens-sinamics, beckhoff-ax8000; or a copy you edited)")
     p.add_argument("--motor", metavar="PATH.toml|KEY=VALUE,...",
                    help="motor data for current-based gains: a TOML file with [motor] or e.g. "
-                        "torque_constant_n_m_per_a=0.9,rated_torque_n_m=3,rated_current_a=4 (or back_emf_v_per_krpm)")
+                        "torque_constant_n_m_per_a=0.9,rated_torque_n_m=3,rated_current_a=4,pole_pairs=5 (or "
+                        "back_emf_v_per_krpm[_rms|_peak] / back_emf_v_s_per_rad_rms|_peak, line-to-line)")
+    p.add_argument("--rated-torque", metavar="N_M", type=number("--rated-torque", 0.0, 1e6, "N m", "a torque",
+                                                                lo_open=True),
+                   help="rated motor torque, N m: adds the gains per unit of rated torque to --export (with or "
+                        "without --motor)")
     p.add_argument("--robust", action="store_true",
                    help="also tune one design over the scenario models of the plant's and scene's [uncertainty] "
                         "(default: when the scene has a [robust] section) and compare it with the nominal design")
@@ -274,7 +280,8 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
                              "--feedforward (or no --export)")
 
     def drive_options() -> None:
-        if args.motor is not None or args.export_template is not None:  # issue 24: drive units, parameter sets
+        # issue 24: drive units, parameter sets
+        if args.motor is not None or args.export_template is not None or args.rated_torque is not None:
             from ..io.driveparams import check_cli_options
 
             try:
@@ -392,7 +399,7 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
         exported = export_cascade(design, plant, fmt=fmt)
     else:
         exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=result["export"][1])
-    if args.motor is not None or args.export_template is not None:
+    if args.motor is not None or args.export_template is not None or args.rated_torque is not None:
         from ..io.driveparams import cli_export_data
 
         exported = cli_export_data(args, exported, design, plant)

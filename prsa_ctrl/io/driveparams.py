@@ -1,9 +1,11 @@
 """Drive units and vendor parameter sets: the tuned loops in the units a drive takes.
 
 **Motor data** (:class:`MotorData`): torque constant ``k_T`` (N m per A RMS; or from the
-back-EMF constant, line-to-line RMS volts per 1000 rpm: ``k_T = sqrt(3) k_E/(1000 2 pi/60)``
-for a sinusoidal permanent-magnet motor, from the power balance ``3 E_ph I = T w``), rated current
-(A RMS), rated torque (N m), rated speed (rpm) and pole pairs. From Python
+back-EMF constant ``k_E``, line-to-line, RMS or peak, in V/krpm or V s/rad: for a sinusoidal
+permanent-magnet motor the power balance ``3 E_ph,rms I_rms = T w`` with ``E_ph = E_LL/sqrt(3)``
+gives ``k_T = sqrt(3) k_E,LL,rms`` (k_E in V s/rad) ``= sqrt(3/2) k_E,LL,peak``; one V/krpm is
+``1/(1000 2 pi/60)`` V s/rad), rated current (A RMS), rated torque (N m), rated speed (rpm) and
+pole pairs. From Python
 (``MotorData(...)``), a small TOML file with a ``[motor]`` table (:func:`load_motor`), a
 ``key=value,...`` text (:func:`parse_motor`, the CLI's ``--motor``), or the plant's values
 ``motor.<key>`` when a plant schema carries them (:func:`motor_from_plant`; the current schema has
@@ -44,7 +46,7 @@ if TYPE_CHECKING:
     from .measurement import PositionLoop
     from ..plant.plantfile import Plant
 
-__all__ = ["MotorData", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
+__all__ = ["MotorData", "BACK_EMF_UNITS", "BACK_EMF_KEYS", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
            "builtin_templates", "load_template", "fill_template", "read_parameter_set",
            "controller_from_parameter_set", "dumps_parameter_set"]
 
@@ -63,8 +65,9 @@ class MotorData:
 
     Parameters
     ----------
-    torque_constant_n_m_per_a : float, N m/A
-        Torque per RMS phase current.
+    torque_constant_n_m_per_a : float or None, N m/A
+        Torque per RMS phase current (None: only the per-unit gains, from ``rated_torque_n_m``,
+        can be computed).
     rated_current_a : float, A, optional
     rated_torque_n_m : float, N m, optional
     rated_speed_rpm : float, rpm, optional
@@ -74,7 +77,7 @@ class MotorData:
         Where the numbers come from (data sheet, measurement).
     """
 
-    torque_constant_n_m_per_a: float
+    torque_constant_n_m_per_a: float | None
     rated_current_a: float | None = None
     rated_torque_n_m: float | None = None
     rated_speed_rpm: float | None = None
@@ -82,7 +85,11 @@ class MotorData:
     source: str = ""
 
     def __post_init__(self) -> None:
-        _positive("torque_constant_n_m_per_a", self.torque_constant_n_m_per_a, "N m/A")
+        if self.torque_constant_n_m_per_a is not None:
+            _positive("torque_constant_n_m_per_a", self.torque_constant_n_m_per_a, "N m/A")
+        elif self.rated_torque_n_m is None:
+            raise ValueError("torque_constant_n_m_per_a = None and rated_torque_n_m = None; expected the torque "
+                             "constant (or a back-EMF constant) or at least the rated torque")
         for name, unit in (("rated_current_a", "A"), ("rated_torque_n_m", "N m"), ("rated_speed_rpm", "rpm")):
             if getattr(self, name) is not None:
                 _positive(name, getattr(self, name), unit)
@@ -91,15 +98,50 @@ class MotorData:
             raise ValueError(f"pole_pairs = {self.pole_pairs!r}; expected an integer in [1, 1000]")
 
     @classmethod
-    def from_back_emf(cls, back_emf_v_per_krpm: float, **kwargs: Any) -> "MotorData":
-        """From the back-EMF constant ``k_E`` in V (line-to-line RMS) per 1000 rpm:
-        ``k_T = sqrt(3) k_E / (1000 rpm in rad/s)`` (N m per A RMS, sinusoidal PM motor, no losses)."""
-        ke = _positive("back_emf_v_per_krpm", back_emf_v_per_krpm, "V/(1000 rpm)")
-        kwargs.setdefault("source", f"from back-EMF {ke:g} V/krpm (line-to-line RMS): k_T = sqrt(3) k_E/(1000 rpm)")
-        return cls(math.sqrt(3.0) * ke / (1000.0 * _RPM), **kwargs)
+    def from_back_emf(cls, back_emf: float, unit: str = "V/krpm", convention: str = "rms", **kwargs: Any) -> "MotorData":
+        """From the line-to-line back-EMF constant ``k_E``.
+
+        Parameters
+        ----------
+        back_emf : float
+            ``k_E`` in ``unit``, line-to-line.
+        unit : {"V/krpm", "V s/rad"}
+            Volts per 1000 rpm, or volts per rad/s (= V s/rad).
+        convention : {"rms", "peak"}
+            Whether ``k_E`` gives the RMS or the peak line-to-line voltage.
+        **kwargs
+            The other :class:`MotorData` fields.
+
+        Returns
+        -------
+        MotorData
+            ``k_T = sqrt(3) k_E,rms = sqrt(3/2) k_E,peak`` (``k_E`` in V s/rad; N m per A RMS;
+            sinusoidal PM motor, no losses).
+        """
+        if unit not in BACK_EMF_UNITS:
+            raise ValueError(f"unit = {unit!r}; expected one of {', '.join(BACK_EMF_UNITS)}")
+        if convention not in ("rms", "peak"):
+            raise ValueError(f"convention = {convention!r}; expected 'rms' or 'peak' (line-to-line)")
+        ke = _positive("back_emf", back_emf, unit)
+        ke_v_s_per_rad = ke / BACK_EMF_UNITS[unit]
+        kt = math.sqrt(3.0) * ke_v_s_per_rad / (math.sqrt(2.0) if convention == "peak" else 1.0)
+        kwargs.setdefault("source", f"from back-EMF {ke:g} {unit} (line-to-line {convention.upper()}): k_T = "
+                          + ("sqrt(3) k_E,rms" if convention == "rms" else "sqrt(3/2) k_E,peak") + " (k_E in V s/rad)")
+        return cls(kt, **kwargs)
 
 
-_MOTOR_KEYS = {f.name for f in fields(MotorData)} | {"back_emf_v_per_krpm"}
+#: Back-EMF units: unit -> its value for 1 V s/rad (1 V s/rad = 1000 rpm x 2 pi/60 V/krpm).
+BACK_EMF_UNITS: Mapping[str, float] = {"V s/rad": 1.0, "V/krpm": 1000.0 * _RPM}
+#: Back-EMF keys of a motor table / ``--motor`` (line-to-line): key -> (unit, convention).
+#: ``back_emf_v_per_krpm`` (no suffix) is line-to-line RMS, as most servo data sheets give it.
+BACK_EMF_KEYS: Mapping[str, tuple[str, str]] = {
+    "back_emf_v_per_krpm": ("V/krpm", "rms"), "back_emf_v_per_krpm_rms": ("V/krpm", "rms"),
+    "back_emf_v_per_krpm_peak": ("V/krpm", "peak"), "back_emf_v_s_per_rad_rms": ("V s/rad", "rms"),
+    "back_emf_v_s_per_rad_peak": ("V s/rad", "peak"),
+}
+
+
+_MOTOR_KEYS = {f.name for f in fields(MotorData)} | set(BACK_EMF_KEYS)
 
 
 def _motor_from_mapping(d: Mapping[str, Any], where: str) -> MotorData:
@@ -107,14 +149,16 @@ def _motor_from_mapping(d: Mapping[str, Any], where: str) -> MotorData:
     if unknown:
         raise ValueError(f"{where}: unknown motor key {unknown[0]!r}; expected {', '.join(sorted(_MOTOR_KEYS))}")
     d = dict(d)
-    if "torque_constant_n_m_per_a" in d and "back_emf_v_per_krpm" in d:
-        raise ValueError(f"{where}: both torque_constant_n_m_per_a and back_emf_v_per_krpm; expected one of them")
-    if "back_emf_v_per_krpm" in d:
-        ke = d.pop("back_emf_v_per_krpm")
-        return MotorData.from_back_emf(ke, **d)
-    if "torque_constant_n_m_per_a" not in d:
-        raise ValueError(f"{where}: no torque_constant_n_m_per_a (or back_emf_v_per_krpm); expected the motor's torque "
-                         "constant")
+    given = [k for k in ("torque_constant_n_m_per_a", *BACK_EMF_KEYS) if k in d]
+    if len(given) > 1:
+        raise ValueError(f"{where}: both {given[0]} and {given[1]}; expected one of them")
+    if given and given[0] in BACK_EMF_KEYS:
+        unit, convention = BACK_EMF_KEYS[given[0]]
+        return MotorData.from_back_emf(d.pop(given[0]), unit, convention, **d)
+    if not given and "rated_torque_n_m" not in d:
+        raise ValueError(f"{where}: no torque_constant_n_m_per_a (or back_emf_*) and no rated_torque_n_m; expected the "
+                         "motor's torque constant (current-based gains) or rated torque (per-unit gains)")
+    d.setdefault("torque_constant_n_m_per_a", None)
     return MotorData(**d)
 
 
@@ -198,19 +242,26 @@ def drive_units(pid: PID, motor: MotorData | None = None, position: "PositionLoo
     out: dict[str, Any] = {"speed": speed}
     if motor is not None:
         kt = motor.torque_constant_n_m_per_a
-        speed.update(kp_a_per_rad_s=kp / kt, kp_a_per_rpm=kp * _RPM / kt, ki_a_per_rad=ki / kt,
-                     torque_constant_n_m_per_a=kt)
-        if motor.pole_pairs:
-            speed["kp_a_per_electrical_rad_s"] = kp / kt / motor.pole_pairs
+        if kt is not None:
+            speed.update(kp_a_per_rad_s=kp / kt, kp_a_per_rpm=kp * _RPM / kt, ki_a_per_rad=ki / kt,
+                         kp_a_peak_per_rad_s=math.sqrt(2.0) * kp / kt, kp_a_peak_per_rpm=math.sqrt(2.0) * kp * _RPM / kt,
+                         torque_constant_n_m_per_a=kt)
+            if motor.pole_pairs:
+                speed["kp_a_per_electrical_rad_s"] = kp / kt / motor.pole_pairs
+            if motor.rated_current_a:
+                ir = motor.rated_current_a
+                speed["kp_percent_rated_current_per_rpm"] = 100.0 * kp * _RPM / kt / ir
         if motor.rated_torque_n_m:
             tr = motor.rated_torque_n_m
             speed.update(kp_rated_torque_per_rad_s=kp / tr, kp_percent_rated_torque_per_rpm=100.0 * kp * _RPM / tr)
             if motor.rated_speed_rpm:
                 wr = motor.rated_speed_rpm * _RPM
                 speed.update(kp_pu=kp * wr / tr, ki_pu_per_s=ki * wr / tr)
-        speed["units_note"] = ("currents RMS; A/(rad/s) = (N m s/rad)/k_T; per unit of rated torque: torque command "
-                               "in units of T_rated per rad/s of speed error; *_pu: torque in T_rated per speed in "
-                               "rated speed (Kp_pu = kp w_r/T_r, dimensionless; Ki_pu = ki w_r/T_r, 1/s)")
+        speed["units_note"] = ("currents RMS unless *_a_peak_* (peak = sqrt(2) RMS, sinusoidal); A/(rad/s) = "
+                               "(N m s/rad)/k_T; A/rpm = A/(rad/s) x 2 pi/60; per unit of rated torque: torque command "
+                               "in units of T_rated per rad/s of speed error; % rated current per rpm: 100 A/rpm / "
+                               "I_rated; *_pu: torque in T_rated per speed in rated speed (Kp_pu = kp w_r/T_r, "
+                               "dimensionless; Ki_pu = ki w_r/T_r, 1/s); electrical rad/s = pole pairs x mechanical")
     if position is not None:
         kv = float(position.kv)
         pos: dict[str, Any] = {
@@ -223,7 +274,7 @@ def drive_units(pid: PID, motor: MotorData | None = None, position: "PositionLoo
         if inertia_kg_m2 is not None:
             j = _positive("inertia_kg_m2", inertia_kg_m2, "kg m^2")
             pos["torque_per_acceleration_n_m_s2_per_rad"] = float(position.kaff) * j
-            if motor is not None:
+            if motor is not None and motor.torque_constant_n_m_per_a is not None:
                 pos["current_per_acceleration_a_s2_per_rad"] = float(position.kaff) * j / motor.torque_constant_n_m_per_a
         out["position"] = pos
     return out
@@ -252,6 +303,8 @@ UNIT_FACTORS: Mapping[str, tuple[str, str, float]] = {
     "A/(rad/s)": ("N m s/rad", "kt", 1.0),
     "mA/(rad/s)": ("N m s/rad", "kt", 1e3),
     "A/rpm": ("N m s/rad", "kt", _RPM),
+    "A peak/(rad/s)": ("N m s/rad", "kt", math.sqrt(2.0)),
+    "A peak/rpm": ("N m s/rad", "kt", math.sqrt(2.0) * _RPM),
     "rated torque/(rad/s)": ("N m s/rad", "rated_torque", 1.0),
     "% rated torque/rpm": ("N m s/rad", "rated_torque", 100.0 * _RPM),
     "N m/rad": ("N m/rad", "", 1.0),
@@ -321,7 +374,7 @@ def load_template(name_or_path: "str | Path") -> dict:
 def _factor(unit: str, motor: MotorData | None, where: str) -> float:
     _, needs, f = UNIT_FACTORS[unit]
     if needs == "kt":
-        if motor is None:
+        if motor is None or motor.torque_constant_n_m_per_a is None:
             raise ValueError(f"{where}: unit {unit!r} needs the motor's torque constant; expected motor data "
                              "(--motor / motor=MotorData(...))")
         return f / motor.torque_constant_n_m_per_a
@@ -484,6 +537,18 @@ def check_cli_options(args: Any) -> tuple[MotorData | None, dict | None]:
             motor = parse_motor(motor_text)
         except ValueError as exc:
             raise ValueError(f"--motor {motor_text!r}: {exc}") from None
+    rated = getattr(args, "rated_torque", None)
+    if rated is not None:
+        _positive("--rated-torque", rated, "N m")
+        if motor is None:
+            motor = MotorData(None, rated_torque_n_m=float(rated), source="--rated-torque")
+        elif motor.rated_torque_n_m is not None and motor.rated_torque_n_m != float(rated):
+            raise ValueError(f"--rated-torque {rated:g} differs from the --motor rated_torque_n_m = "
+                             f"{motor.rated_torque_n_m:g}; expected one rated torque")
+        else:
+            from dataclasses import replace
+
+            motor = replace(motor, rated_torque_n_m=float(rated))
     template = None
     if tpl_name is not None:
         if export is None or Path(export).suffix.lower() not in (".toml", ".json"):

@@ -191,7 +191,7 @@ def test_parse_motor_inline_and_file(tmp_path):
     f.write_text('[motor]\nback_emf_v_per_krpm = 75.0\nrated_current_a = 3.0\nsource = "data sheet"\n')
     assert parse_motor(str(f)).torque_constant_n_m_per_a == pytest.approx(1.2405, abs=1e-4)
     for text, match in (("torque_constant=0.9", "unknown motor key 'torque_constant'"),
-                        ("rated_torque_n_m=3", "no torque_constant_n_m_per_a"),
+                        ("rated_current_a=3", "no torque_constant_n_m_per_a (or back_emf_*) and no rated_torque_n_m"),
                         ("torque_constant_n_m_per_a=-1", "torque_constant_n_m_per_a = -1.0; expected a finite number > 0"),
                         ("torque_constant_n_m_per_a=x", "motor 'torque_constant_n_m_per_a=x'; expected key=number"),
                         (str(tmp_path / "none.toml"), "motor file")):
