@@ -7,6 +7,7 @@ _EXPORTS = {
     "DiscreteBiquad": "filters",
     "EncoderDifference": "measurement",
     "Filter": "filters",
+    "FrictionFeedforward": "friction",
     "FirstOrderLowPass": "filters",
     "GeneralBiquad": "filters",
     "KFDesign": "estimator",

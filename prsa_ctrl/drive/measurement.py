@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 
+from .friction import FrictionFeedforward
+
 if TYPE_CHECKING:
     from .estimator import KFDesign
     from ..plant.plantfile import Plant
@@ -177,7 +179,7 @@ class PositionLoop:
         e      = (p_ref - p_meas) / a                      position error in nut radians
         I     <- I + Tp ki e                               (PI only)
         w_ref  = kv e + I + kvff v_ref / a                 nut speed reference, rad/s
-        tau_ff = kaff J a_ref / a                          torque feed-forward, N m
+        tau_ff = kaff J a_ref / a (+ tau_f(v_ref / a))     torque feed-forward, N m
 
     with ``a`` the lead per radian (m/rad; ``a = 1`` when the nut angle itself is the loop's
     unit), ``J`` :attr:`Plant.reflected_inertia_kg_m2` and ``p_ref, v_ref, a_ref`` the profile's
@@ -202,6 +204,10 @@ class PositionLoop:
         Position-loop sample time in controller samples (1 = every sample).
     scale_resolution_m : float, m
         Resolution of the linear scale (``measured="screw_position"`` only).
+    friction : FrictionFeedforward, optional
+        Friction feed-forward ``tau_f`` at the profile's nut speed ``v_ref / a``
+        (:class:`~prsa_ctrl.drive.friction.FrictionFeedforward`, e.g. ``from_plant(plant, load)``);
+        None: none.
 
     Examples
     --------
@@ -216,6 +222,7 @@ class PositionLoop:
     measured: str = "nut_angle"
     rate: int = 1
     scale_resolution_m: float = 1e-7
+    friction: "FrictionFeedforward | None" = None
     name = "position"
     memory_names = ("position_integral", "speed_reference", "torque_feedforward", "position_error")
     #: Per-sample inputs of the block: position (loop unit), speed (m/s), acceleration (m/s^2)
@@ -236,6 +243,8 @@ class PositionLoop:
             raise ValueError(f"PositionLoop rate = {self.rate!r}; expected an integer number of controller samples "
                              "in [1, 1000]")
         _gain("scale_resolution_m", self.scale_resolution_m, "m", lo_open=True, hi=1e-3)
+        if self.friction is not None and not isinstance(self.friction, FrictionFeedforward):
+            raise ValueError(f"PositionLoop friction = {self.friction!r}; expected a FrictionFeedforward or None")
 
     def unit_m(self, lead_per_rad: float) -> float:
         """Metres of screw travel per unit of the measured position (``a`` for the nut angle in
@@ -259,13 +268,16 @@ class PositionLoop:
         integral = mem[0] + active * (self.rate * ts) * ki * e_rad
         w_ref = kv * e_rad + integral + kvff * v_ref / a
         tau_ff = kaff * inertia * acc_ref / a
+        if self.friction is not None:
+            tau_ff = tau_ff + self.friction.symbolic(v_ref / a)
         w_ref = ca.if_else(active > 0.5, w_ref, mem[1])
         tau_ff = ca.if_else(active > 0.5, tau_ff, mem[2])
         e_keep = ca.if_else(active > 0.5, e_rad, mem[3])
         return w_ref, tau_ff, ca.vertcat(integral, w_ref, tau_ff, e_keep)
 
     def key(self) -> tuple:
-        return ("position", self.measured, self.rate, self.scale_resolution_m)
+        return ("position", self.measured, self.rate, self.scale_resolution_m,
+                None if self.friction is None else self.friction.key())
 
     @property
     def gains(self) -> list[float]:

@@ -56,6 +56,7 @@ _EXPORTS = {
     "fast_verify_settings": "autotune",
     "fidelity_ladder": "accuracy",
     "following_error_m": "move",
+    "friction_feedforward_effect": "move",
     "format_report": "montecarlo",
     "format_rows": "paper",
     "gain_study": "paper",

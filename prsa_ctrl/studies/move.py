@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from ..sim.engine import SimRun
     from ..tuning.cascade import CascadeDesign
 
-__all__ = ["check_move_against_plant", "simulate_move", "MoveMetrics", "following_error_m", "hunting",
+__all__ = ["check_move_against_plant", "simulate_move", "friction_feedforward_effect", "MoveMetrics", "following_error_m", "hunting",
            "move_metrics", "verify_design", "tune_move"]
 
 
@@ -327,3 +327,44 @@ def tune_move(plant: "Plant", scene: MoveScene, progress: Callable[[str], None] 
         say(f"verifying the {d.method} design on the nonlinear {scene.fidelity} model ...")
         verified.append(verify_design(d, plant, scene))
     return verified
+
+
+def friction_feedforward_effect(design: "CascadeDesign", plant: "Plant", scene: MoveScene, *,
+                                load_n: float | None = None, gain: float = 1.0) -> dict:
+    """The move run with and without the plant's friction feed-forward, on the nonlinear model.
+
+    The feed-forward (:class:`~prsa_ctrl.drive.friction.FrictionFeedforward`) is the plant file's
+    friction curve at the scene's load at the start of the move (``load_n`` to choose another),
+    applied from the profile's speed in the drive's sampled law; everything else is ``design``.
+
+    Parameters
+    ----------
+    design : CascadeDesign
+    plant : Plant
+    scene : MoveScene
+    load_n : float, N, optional
+        Axial load the friction curve is computed at (default: ``scene.initial_load_n``).
+    gain : float
+        Fraction of the friction model fed forward.
+
+    Returns
+    -------
+    dict
+        ``feedforward`` (the curve, plain data with a table up to the scene's speed),
+        ``without`` and ``with`` (:class:`MoveMetrics` as dicts, m and s), the verified
+        ``rms_ratio`` and ``peak_ratio`` (with / without) and ``design`` (the design with the
+        feed-forward in its position loop, verified).
+    """
+    from ..drive.friction import FrictionFeedforward
+
+    load = scene.initial_load_n if load_n is None else load_n
+    ff = FrictionFeedforward.from_plant(plant, load, gain)
+    base = design if design.verified is not None and design.position.friction is None else \
+        verify_design(replace(design, position=replace(design.position, friction=None)), plant, scene)
+    with_ff = verify_design(replace(design, position=replace(design.position, friction=ff)), plant, scene)
+    a, b = base.verified, with_ff.verified
+    return {"feedforward": ff.as_dict(scene.max_speed_m_s / plant.lead_per_rad),
+            "without": a.as_dict(), "with": b.as_dict(),
+            "rms_ratio": b.rms_following_error_m / a.rms_following_error_m if a.rms_following_error_m > 0 else None,
+            "peak_ratio": b.peak_following_error_m / a.peak_following_error_m if a.peak_following_error_m > 0 else None,
+            "design": with_ff}

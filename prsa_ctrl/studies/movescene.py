@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from ..drive.motion import PROFILE_KINDS, MotionProfile, plan
+from ..drive.motion import PROFILE_KINDS, MotionProfile, out_and_back, plan
 from ..errors import SceneError
 from ..options import MS_MAX_DEFAULT, PEAK_BOUND_RANGE, check_peak_bound
 from .scenefile import locate_scene, read_scene_doc
@@ -34,6 +34,7 @@ _MOVE_KEYS: Mapping[str, tuple[type, str]] = {
     "acceleration_m_s2": (float, "an acceleration > 0 in m/s^2"),
     "jerk_m_s3": (float, "a jerk > 0 in m/s^3"),
     "start_s": (float, "a start time >= 0 s"),
+    "return_dwell_s": (float, "a dwell >= 0 s at the target before the move back to the start (out and back)"),
     "measured": (str, "one of " + ", ".join(POSITION_SENSORS)),
     "position_rate": (int, "1 (the cascade tuner models the position loop at the speed-loop rate; "
                       "PositionLoop(rate=...) simulates slower rates)"),
@@ -67,6 +68,9 @@ class MoveScene:
         The move (jerk only for the S-curve).
     start_s : float, s
         When the move starts (the axis holds at rest before).
+    return_dwell_s : float or None, s
+        With a value: after a dwell of that length at the target the axis moves back to the
+        start (out and back, :func:`~prsa_ctrl.drive.motion.out_and_back`: a reversal).
     measured : {"nut_angle", "screw_position"}
     position_rate : int
         Position-loop sample time in controller samples (a scene file accepts 1 only: the
@@ -100,6 +104,7 @@ class MoveScene:
     acceleration_m_s2: float
     jerk_m_s3: float | None = None
     start_s: float = 0.01
+    return_dwell_s: float | None = None
     measured: str = "nut_angle"
     position_rate: int = 1
     initial_load_n: float = 0.0
@@ -121,6 +126,9 @@ class MoveScene:
 
     def motion(self) -> MotionProfile:
         """The move, m of screw travel (:mod:`prsa_ctrl.drive.motion`)."""
+        if self.return_dwell_s is not None:
+            return out_and_back(self.profile, self.distance_m, self.max_speed_m_s, self.acceleration_m_s2,
+                                self.jerk_m_s3, dwell_s=self.return_dwell_s).shifted(self.start_s)
         return plan(self.profile, self.distance_m, self.max_speed_m_s, self.acceleration_m_s2,
                     self.jerk_m_s3).shifted(self.start_s)
 
@@ -220,8 +228,9 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
     if kw["profile"] == "trapezoidal" and "jerk_m_s3" in kw:
         raise SceneError(f"{origin}: move.jerk_m_s3 = {kw['jerk_m_s3']!r} with profile = 'trapezoidal'; expected no "
                          "jerk (a trapezoidal move has infinite jerk) or profile = 's-curve'")
-    if kw.get("start_s", 0.0) < 0:
-        raise bad("move", "start_s")
+    for key in ("start_s", "return_dwell_s"):
+        if kw.get(key, 0.0) < 0:
+            raise bad("move", key)
     if kw.get("measured", "nut_angle") not in POSITION_SENSORS:
         raise bad("move", "measured")
     if kw.get("position_rate", 1) != 1:
