@@ -20,7 +20,7 @@ rad per count)::
       e_p    = (p_ref/unit - (m[k] - m0) r) err_to_rad             m: position counts (encoder or scale), r: m or rad per count
       I_p    = I_p + Tp kip e_p
       w_ref  = kv e_p + I_p + kvff v_ref / lead
-      tau_p  = (kaff J) acc_ref / lead
+      tau_p  = (kaff J) acc_ref / lead (+ tau_f(vel_ref / lead), the friction feed-forward if any)
     e     = w_ref - w
     u     = kp (b w_ref - w) + I - kd d + (tau_ff + tau_p)           b: 2-DOF setpoint weight (1: kp e)
     us    = min(max(u, -T_max), T_max)
@@ -104,6 +104,9 @@ class PositionLaw:
         Nut radians per unit of the measured position's error (1, or 1/lead).
     per_count : float
         Measured unit per count: rad per encoder count, or the scale's resolution in m.
+    friction : tuple of float or None
+        Friction feed-forward ``(C+, C-, S+, S-, w_s, V+, V-, gain)``
+        (:meth:`prsa_ctrl.drive.friction.FrictionFeedforward.key`), or None.
     """
 
     measured: str
@@ -117,6 +120,7 @@ class PositionLaw:
     unit_m: float
     err_to_rad: float
     per_count: float
+    friction: tuple[float, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -189,7 +193,20 @@ def position_law(position: "PositionLoop", plant: "Plant") -> PositionLaw:
     nut = position.measured == "nut_angle"
     return PositionLaw(position.measured, int(position.rate), float(position.kv), float(position.ki),
                        float(position.kvff), float(position.kaff), a, float(plant.reflected_inertia_kg_m2), unit,
-                       unit / a, 2.0 * math.pi / plant.encoder_counts if nut else float(position.scale_resolution_m))
+                       unit / a, 2.0 * math.pi / plant.encoder_counts if nut else float(position.scale_resolution_m),
+                       None if position.friction is None else position.friction.key())
+
+
+def _friction_torque(fr: tuple[float, ...], w: float) -> float:
+    """The friction feed-forward at nut speed ``w`` with the simulator's operations
+    (:meth:`prsa_ctrl.drive.friction.FrictionFeedforward.symbolic`)."""
+    cp, cn, sp, sn, ws, vp, vn, g = fr
+    shape = math.exp(-((w / ws) * (w / ws)))
+    if w > 0:
+        return g * (cp + sp * shape + vp * w)
+    if w < 0:
+        return g * -(cn + sn * shape - vn * w)
+    return 0.0
 
 
 def drive_law(controller: "PID | CascadeDesign", plant: "Plant", *, filters: Iterable = (),
@@ -314,6 +331,8 @@ class ReferenceLaw:
                 self.p_int = self.p_int + 1.0 * (pl.rate * ts) * pl.ki * e
                 self.w_ref = pl.kv * e + self.p_int + pl.kvff * vel_ref_m_s / pl.lead_m_per_rad
                 self.tau_p = pl.kaff * pl.inertia_kg_m2 * acc_ref_m_s2 / pl.lead_m_per_rad
+                if pl.friction is not None:
+                    self.tau_p = self.tau_p + _friction_torque(pl.friction, vel_ref_m_s / pl.lead_m_per_rad)
             ref, tau_ff = self.w_ref, tau_ff + self.tau_p
         err = ref - w
         u = lw.kp * (lw.setpoint_weight * ref - w) + self.integral - lw.kd * deriv + tau_ff
@@ -452,6 +471,13 @@ def _constants(law: DriveLaw) -> list[tuple[str, float, str]]:
               ("UNIT_M", p.unit_m, "m of travel per unit of the measured position"),
               ("ERR_TO_RAD", p.err_to_rad, "nut rad per unit of position error"),
               ("POS_PER_COUNT", p.per_count, "measured position per count (rad or m)")]
+        if p.friction is not None:
+            c += [(f"FR_{k}", v, f"friction feed-forward: {what}") for k, v, what in zip(
+                ("CP", "CN", "SP", "SN", "WS", "VP", "VN", "G"), p.friction,
+                ("Coulomb level, positive direction, N m", "Coulomb level, negative direction, N m",
+                 "Stribeck excess, positive direction, N m", "Stribeck excess, negative direction, N m",
+                 "Stribeck speed, rad/s", "viscous, positive direction, N m s/rad",
+                 "viscous, negative direction, N m s/rad", "gain (1 = the plant's full friction model)"))]
     return c
 
 
@@ -473,6 +499,11 @@ def _header_comment(law: DriveLaw, lang: str) -> list[str]:
                              "the command computed now (no computation delay)."),
              f"Biquads: y = b0 x + b1 x1 + b2 x2 - a1 y1 - a2 y2 (direct form I), {len(law.speed_biquads)} on the "
              f"speed, {len(law.torque_biquads)} on the torque command."]
+    if p and p.friction is not None:
+        lines.append("Friction feed-forward from the reference speed w = vel_ref/LEAD (the plant's sliding friction): "
+                     "w > 0: FR_G (FR_CP + FR_SP exp(-(w/FR_WS)^2) + FR_VP w); w < 0: -FR_G (FR_CN + FR_SN "
+                     "exp(-(w/FR_WS)^2) - FR_VN w); w = 0: 0; added to the acceleration feed-forward"
+                     + ("; needs <math.h> (exp; link with -lm)." if lang == "c" else " (EXP)."))
     if p:
         lines.append(f"Position loop: measured {p.measured}, every {p.rate} sample(s); "
                      + ("position counts are the encoder counts" if p.measured == "nut_angle"
@@ -525,13 +556,15 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
     p = law.position
     ns, nt = len(law.speed_biquads), len(law.torque_biquads)
     scale = p is not None and p.measured != "nut_angle"
+    fric = p is not None and p.friction is not None
     step_args = (f"int64_t count, {R} speed_ref" if p is None else
                  f"int64_t count, {R} pos_ref, {R} vel_ref, {R} acc_ref" + (", int64_t position_count" if scale else ""))
     init_args = f"int64_t count_prev, {R} speed0, {R} integral0, {R} torque0" + (
         ", int64_t position_zero_count" if p is not None else "")
     guard = f"{n.upper()}_H"
     h = ["/*", *[" * " + s for s in _header_comment(law, "c")], " */", f"#ifndef {guard}", f"#define {guard}", "",
-         "#include <stdint.h>", "", f"typedef {real} {R};", "", "typedef struct {",
+         "#include <stdint.h>", *(["#include <math.h>"] if fric else []), "", f"typedef {real} {R};", "",
+         "typedef struct {",
          "    int64_t count_prev;      /* encoder count at the previous sample */",
          f"    {R} w_filt;            /* drive speed filter output, rad/s */",
          f"    {R} w_prev;            /* speed the PI used at the previous sample, rad/s */",
@@ -563,6 +596,10 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
     for cname, v, comment in _constants(law):
         c.append(f"static const {R} {cname} = ({R}){_lit(v)}; /* {comment} */")
     c += ["", f"static {R} clamp({R} x) {{ return x > T_MAX ? T_MAX : (x < -T_MAX ? -T_MAX : x); }}", ""]
+    if fric:
+        c += [f"static {R} friction_ff({R} w)", "{", f"    {R} x = w / FR_WS;", f"    {R} shape = ({R})exp(-(x * x));",
+              "    if (w > 0) return FR_G * (FR_CP + FR_SP * shape + FR_VP * w);",
+              "    if (w < 0) return FR_G * -(FR_CN + FR_SN * shape - FR_VN * w);", f"    return ({R})0;", "}", ""]
     if ns or nt:
         c += [f"static {R} biquad({R} x, {R} *m, {R} b0, {R} b1, {R} b2, {R} a1, {R} a2)", "{",
               f"    {R} y = b0 * x + b1 * m[0] + b2 * m[1] - a1 * m[2] - a2 * m[3];",
@@ -597,7 +634,7 @@ def c_code(law: DriveLaw, *, name: str = "prsa_ctrl", real: str = "double", head
                                 f"({R}){pc} * POS_PER_COUNT) * ERR_TO_RAD;",
               "        s->p_integral = s->p_integral + TP_KIP * ep;",
               "        s->w_ref = KV * ep + s->p_integral + KVFF * vel_ref / LEAD;",
-              "        s->tau_p = KAFF_J * acc_ref / LEAD;", "    }",
+              "        s->tau_p = KAFF_J * acc_ref / LEAD" + (" + friction_ff(vel_ref / LEAD);" if fric else ";"), "    }",
               f"    s->phase = s->phase + 1 >= {p.rate} ? 0 : s->phase + 1;",
               "    ref = s->w_ref;", "    tau_ff = tau_ff + s->tau_p;"]
     c += ["    e = ref - w;", "    u = KP * (B_SP * ref - w) + s->integral - KD * d + tau_ff;", "    us = clamp(u);",
@@ -670,6 +707,8 @@ def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double", diff
     if p is not None:
         out += ["    PosZero : LINT := 0;", "    Phase : DINT := 0;", f"    PIntegral : {R} := 0.0;",
                 f"    WRef : {R} := 0.0;", f"    TauP : {R} := 0.0;", f"    Ep : {R} := 0.0;"]
+        if p.friction is not None:
+            out.append(f"    FrW, FrX, TauFr : {R} := 0.0;")
     out += [f"    W, D, E, U, Us, Uf, Y, Ref, TauFF : {R} := 0.0;", "END_VAR", "VAR CONSTANT"]
     for cname, v, comment in _constants(law):
         out.append(f"    {cname} : {R} := {_lit(v)}; (* {comment} *)")
@@ -704,7 +743,12 @@ def st_code(law: DriveLaw, *, name: str = "PrsaCtrl", real: str = "double", diff
                      "POS_PER_COUNT) * ERR_TO_RAD;",
                 "    PIntegral := PIntegral + TP_KIP * Ep;",
                 "    WRef := KV * Ep + PIntegral + KVFF * VelRef / LEAD;",
-                "    TauP := KAFF_J * AccRef / LEAD;", "END_IF;",
+                *(["    FrW := VelRef / LEAD;", "    FrX := FrW / FR_WS;", "    TauFr := 0.0;",
+                    "    IF FrW > 0.0 THEN", "        TauFr := FR_G * (FR_CP + FR_SP * EXP(-(FrX * FrX)) + FR_VP * FrW);",
+                    "    END_IF;", "    IF FrW < 0.0 THEN",
+                    "        TauFr := FR_G * -(FR_CN + FR_SN * EXP(-(FrX * FrX)) - FR_VN * FrW);", "    END_IF;",
+                    "    TauP := KAFF_J * AccRef / LEAD + TauFr;"] if p.friction is not None else
+                  ["    TauP := KAFF_J * AccRef / LEAD;"]), "END_IF;",
                 "Phase := Phase + 1;", f"IF Phase >= {p.rate} THEN", "    Phase := 0;", "END_IF;",
                 "Ref := WRef;", "TauFF := TAU_FF + TauP;"]
     out += ["E := Ref - W;", "U := KP * (B_SP * Ref - W) + Integral - KD * D + TauFF;", "Us := MIN(MAX(U, -T_MAX), T_MAX);",

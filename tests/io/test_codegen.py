@@ -202,7 +202,7 @@ _TYPES = {"LREAL": float, "LINT": int, "DINT": int, "BOOL": bool}
 
 def st_to_python(text: str):
     """Translate the ST subset the generator writes (declarations with initial values,
-    assignments, IF/THEN/END_IF, RETURN, + - * /, MIN, MAX, LINT_TO_LREAL, comparisons) into a
+    assignments, IF/THEN/END_IF, RETURN, + - * /, MIN, MAX, EXP, LINT_TO_LREAL, comparisons) into a
     Python class; anything else raises."""
     text = re.sub(r"\(\*.*?\*\)", " ", text, flags=re.S)
     m = re.fullmatch(r"\s*FUNCTION_BLOCK\s+(\w+)(.*)END_FUNCTION_BLOCK\s*", text, flags=re.S)
@@ -229,9 +229,10 @@ def st_to_python(text: str):
             raise AssertionError(f"expression outside the subset: {e!r}")
         e = re.sub(r"\bLINT_TO_LREAL\b", "float", e)
         e = re.sub(r"\bMIN\b", "min", re.sub(r"\bMAX\b", "max", e))
+        e = re.sub(r"\bEXP\b", "exp", e)
         e = re.sub(r"(?<![<>:=])=(?!=)", "==", e)
         for w in re.findall(r"\b[A-Za-z_]\w*\b", e):
-            assert w in decls or w in ("float", "min", "max"), f"unknown name {w!r}"
+            assert w in decls or w in ("float", "min", "max", "exp"), f"unknown name {w!r}"
         return e
 
     for stmt in (s.strip() for s in code.split(";")):
@@ -255,7 +256,7 @@ def st_to_python(text: str):
     assert indent == 1, "unbalanced IF/END_IF"
     names = [k for k, v in decls.items() if v[0] != "VAR CONSTANT"]
     src = "def call():\n    global " + ", ".join(names) + "\n" + "\n".join(lines) + "\n"
-    env = {k: v[2] for k, v in decls.items()}
+    env = {k: v[2] for k, v in decls.items()} | {"exp": math.exp}
     exec(compile(src, "<st>", "exec"), env)  # noqa: S102 - the test's own translation of generated ST
     return env, {k: v[0] for k, v in decls.items()}
 
