@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from ..tuning.cascade import CascadeDesign
 
 __all__ = ["format_report", "format_robust", "format_move_report", "fmt", "fmt_margin", "table", "scene_header",
-           "pct_text", "diff_text", "beaten_text"]
+           "pct_text", "diff_text", "beaten_text", "format_friction_ff"]
 
 
 def fmt(v) -> str:
@@ -255,7 +255,10 @@ def format_move_report(plant: "Plant", scene: "MoveScene", designs: "list[Cascad
     """
     w_lin = scene.max_speed_m_s / plant.lead_per_rad
     lines = [f"{prog}: plant {plant.name}, move scene {scene.name}: {scene.distance_m * 1e3:g} mm at "
-             f"{scene.max_speed_m_s * 1e3:g} mm/s ({scene.profile}), load {scene.load_n:g} N at {scene.load_at_s:.4g} s, "
+             f"{scene.max_speed_m_s * 1e3:g} mm/s ({scene.profile})"
+             + (", out and back" if scene.return_dwell_s is not None else "")
+             + (f", load {scene.load_n:g} N throughout, " if scene.load_n == scene.initial_load_n else
+                f", load {scene.load_n:g} N at {scene.load_at_s:.4g} s, ") +
              f"hold step {scene.hold_step_n:g} N; Ms <= {scene.ms_max:g} at each loop-breaking point: speed loop "
              "(position loop closed / opened), position loop, torque command (both loops broken at the plant input)"]
     for d in designs:
@@ -287,4 +290,33 @@ def format_move_report(plant: "Plant", scene: "MoveScene", designs: "list[Cascad
                          f"{v.screw_final_error_m * 1e6:.3f} um")
     for d in designs:
         lines += [f"  note ({d.method}): {n}" for n in d.notes]
+    return "\n".join(lines)
+
+
+def format_friction_ff(effect: dict, fidelity: str) -> str:
+    """The friction feed-forward lines of a move report (``prsa-tune --friction-ff``): the curve
+    and the verified following error of the joint design without and with it.
+
+    Parameters
+    ----------
+    effect : dict
+        :func:`prsa_ctrl.studies.move.friction_feedforward_effect`.
+    fidelity : str
+        Model of the verification runs.
+
+    Returns
+    -------
+    str
+    """
+    ff, a, b = effect["feedforward"], effect["without"], effect["with"]
+    lines = [f"  friction feed-forward ({ff['source']}): Coulomb +{ff['coulomb_positive_n_m']:.4g} / "
+             f"-{ff['coulomb_negative_n_m']:.4g} N m, Stribeck +{ff['stribeck_positive_n_m']:.4g} / "
+             f"-{ff['stribeck_negative_n_m']:.4g} N m over {ff['stribeck_speed_rad_s']:.4g} rad/s, viscous "
+             f"{ff['viscous_positive_n_m_s_per_rad']:.4g} / {ff['viscous_negative_n_m_s_per_rad']:.4g} N m s/rad, "
+             f"gain {ff['gain']:g}"]
+    for what, key, ratio in (("RMS", "rms_following_error_m", effect["rms_ratio"]),
+                             ("peak", "peak_following_error_m", effect["peak_ratio"])):
+        change = f" ({ratio:.3g} x)" if ratio is not None else ""
+        lines.append(f"  {'':10s} joint design verified ({fidelity}): following error {what} {a[key] * 1e6:.3f} um "
+                     f"without, {b[key] * 1e6:.3f} um with{change}")
     return "\n".join(lines)

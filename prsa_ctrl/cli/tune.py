@@ -52,7 +52,7 @@ from .common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NUMERICAL, EXIT_OK, 
                      report_failure, show_notes, staged, status_says_interrupted, write_json_atomic)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, parse_load_step, scene_flags  # noqa: E402
 from .plot import build_plot_parser, plot_main  # noqa: E402
-from .report import format_move_report, format_report, format_robust  # noqa: E402
+from .report import format_friction_ff, format_move_report, format_report, format_robust  # noqa: E402
 
 #: The figures modules (matplotlib) are imported when a figure is drawn.
 loop_plots = module("prsa_ctrl.plots.loop")
@@ -65,7 +65,7 @@ __all__ = ["main", "plot_main", "parse_load_step", "write_json_atomic", "format_
 WORKERS_MAX = 64
 #: ``prsa-tune`` options a move scene honours; every other option given is refused (exit 2).
 MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real", "export_template", "motor",
-              "rated_torque")
+              "rated_torque", "friction_ff")
 #: Suffixes ``--export`` takes (drive file as JSON or TOML, code as C or Structured Text).
 EXPORT_SUFFIXES = (".json", ".toml", ".c", ".st")
 
@@ -126,6 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                                 lo_open=True),
                    help="rated motor torque, N m: adds the gains per unit of rated torque to --export (with or "
                         "without --motor)")
+    p.add_argument("--friction-ff", action="store_true",
+                   help="move scenes: feed the plant file's friction curve forward from the profile's speed (at the "
+                        "scene's load at the start of the move), verify the joint design with and without it and "
+                        "export it with the design (formula and table in .json/.toml, code in .c/.st)")
     p.add_argument("--robust", action="store_true",
                    help="also tune one design over the scenario models of the plant's and scene's [uncertainty] "
                         "(default: when the scene has a [robust] section) and compare it with the nominal design")
@@ -293,10 +297,17 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
         if args.plots is not None:
             check_directory(args.plots, "--plots")
 
+    def friction_ff() -> None:
+        if args.friction_ff and not move:
+            raise UsageError(f"--friction-ff does not apply to the speed-loop scene {scene.name}; expected a move "
+                             "scene (the feed-forward acts from a motion profile's speed), e.g. --scene "
+                             "paper-slow-reversal")
+
     if move:
         steps = (suffix, distinct, json_path, export, drive_options, plots)
     else:
-        steps = (json_path, lambda: _check_scheduler(args, scene), suffix, export, drive_options, plots, distinct)
+        steps = (friction_ff, json_path, lambda: _check_scheduler(args, scene), suffix, export, drive_options, plots,
+                 distinct)
     for step in steps:
         step()
 
@@ -328,7 +339,13 @@ def _tune(run: Run, args, plant, scene) -> dict:
             warnings.simplefilter("ignore")  # as the cascade always ran: no notes
             from ..studies.move import tune_move
 
-            return {"designs": tune_move(plant, scene, lambda text: progress(run, args.verbose, text))}
+            designs = tune_move(plant, scene, lambda text: progress(run, args.verbose, text))
+            if not args.friction_ff:
+                return {"designs": designs}
+            from ..studies.move import friction_feedforward_effect  # issue 24: friction feed-forward
+
+            progress(run, args.verbose, "verifying the joint design with the friction feed-forward ...")
+            return {"designs": designs, "friction_ff": friction_feedforward_effect(designs[1], plant, scene)}
         warnings.simplefilter("ignore", GeometryWarning)
         from ..studies.autotune import tune_actuator
 
@@ -365,8 +382,10 @@ def _json_report(scene, plant, result: dict) -> dict:
     """The ``--json`` report of either kind of scene."""
     if isinstance(scene, MoveScene):
         seq, joint = result["designs"]
-        return json_safe({"plant": plant.name, "scene": scene.name, "sequential": seq.as_dict(),
-                          "joint": joint.as_dict()})
+        out = {"plant": plant.name, "scene": scene.name, "sequential": seq.as_dict(), "joint": joint.as_dict()}
+        if "friction_ff" in result:
+            out["friction_feedforward"] = {k: v for k, v in result["friction_ff"].items() if k != "design"}
+        return json_safe(out)
     rep, robust_rep, mc = result["rep"], result["robust"], result["mc"]
     data = rep.as_dict()
     data["timing_s"] = dict(rep.timing_s)
@@ -387,6 +406,8 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
     fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
     if isinstance(scene, MoveScene):
         design, b = result["designs"][1], None
+        if "friction_ff" in result:  # the joint design with the friction feed-forward in its position loop
+            design = result["friction_ff"]["design"]
     else:
         design, b, plant = result["export"][0], _setpoint_weight(result["rep"].scene), result["rep"].plant
     if fmt in ("c", "st"):  # issue 24: the discrete controller as code (prsa_ctrl.io.codegen)
@@ -396,7 +417,8 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
         stage_code_export(outputs, args.export, design, plant, real=args.export_real, **kw)
         return
     if b is None:
-        exported = export_cascade(design, plant, fmt=fmt)
+        exported = export_cascade(design, plant, fmt=fmt,
+                                  friction_table_speed_rad_s=scene.max_speed_m_s / plant.lead_per_rad)
     else:
         exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=result["export"][1])
     if args.motor is not None or args.export_template is not None or args.rated_torque is not None:
@@ -411,6 +433,8 @@ def _print_report(args, plant, scene, overrides: Sequence[str], result: dict, pl
     """The text report and the lines naming the files written."""
     if isinstance(scene, MoveScene):
         print(format_move_report(plant, scene, result["designs"], "prsa-tune"))
+        if "friction_ff" in result:
+            print(format_friction_ff(result["friction_ff"], scene.fidelity))
         if args.json is not None:
             print(f"JSON report: {args.json}")
         if args.export is not None:

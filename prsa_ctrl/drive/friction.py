@@ -163,4 +163,7 @@ class FrictionFeedforward:
             **{k: v for k, v in asdict(self).items()}}
         if max_speed_rad_s is not None:
             out["table_speed_rad_s_torque_n_m"] = self.table(np.linspace(-max_speed_rad_s, max_speed_rad_s, points))
+            out["table_note"] = ("the curve jumps at w = 0 (Coulomb friction changes sign): interpolate within each "
+                                 "sign's half only and apply 0 at w = 0; between the table's first non-zero speed and "
+                                 "0 use the formula (Stribeck part)")
         return out

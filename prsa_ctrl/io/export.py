@@ -473,7 +473,8 @@ POSITION_LAW = {
 }
 
 
-def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str) -> dict:
+def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
+                   friction_table_speed_rad_s: float | None = None) -> dict:
     """Drive export of a cascade: the speed PI as :func:`prsa_ctrl.io.export.export_controller`
     gives it, plus the position loop (``Kv`` [1/s], integral gain, feed-forward gains, the
     acceleration feed-forward as a torque per acceleration, the position-loop sample time and
@@ -482,8 +483,12 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str) -> dict
     Parameters
     ----------
     design : CascadeDesign
+        With a friction feed-forward in its position loop (``PositionLoop.friction``), the
+        export carries its formula and coefficients (``position_controller.friction_feedforward``).
     plant : Plant
     fmt : {"json", "toml"}
+    friction_table_speed_rad_s : float, rad/s, optional
+        Also tabulate the friction feed-forward from minus to plus this nut speed (21 points).
 
     Returns
     -------
@@ -527,6 +532,11 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str) -> dict
         "discretisation": "explicit sum for the integral (I updated with e[k] before use), zero-order hold of w_ref "
                           "and tau_ff over sample_time_s",
     }
+    if pos.friction is not None:  # issue 24: the plant's friction curve fed forward from the reference speed
+        out["position_controller"]["friction_feedforward"] = pos.friction.as_dict(friction_table_speed_rad_s)
+        out["position_controller"]["friction_feedforward"]["note"] = (
+            "add tau_f(w) to tau_ff at every position-loop sample, w = v_ref / lead_m_per_rad (rad/s of the nut): "
+            "the plant's sliding friction at the reference speed")
     if fmt == "toml":
         out["position_controller"] = {k: v for k, v in out["position_controller"].items() if v is not None}
     return out
