@@ -16,7 +16,8 @@ moves, starts from rest, low inertia torque). Per direction (``+`` for ``w > 0``
 ``V`` viscous coefficient, ``g`` a gain (1 = the full model). :meth:`FrictionFeedforward.from_plant`
 fills them from the plant's friction keys at a given axial load (the thread friction of a
 screw grows with the load: ``C = k mu_d |F| (f_N + f_S) + T0``, ``S = k (mu_s - mu_d) |F| (f_N + f_S)``,
-``w_s = v_s / a``, ``V = c_v``; a ``linear-axis`` plant has the fitted Coulomb and viscous
+``w_s = v_s / a``, ``V = c_v``, plus and minus a drag offset ``friction.torque_offset_n_m``
+where the plant has one; a ``linear-axis`` plant has the fitted Coulomb and viscous
 coefficients per direction). It equals the plant's sliding friction (prsa_ctrl.plant.model,
 Stribeck curve beyond Karnopp's stick band) at the reference speed; inside the stick band the
 plant sticks and no feed-forward can act on the error anyway.
@@ -118,7 +119,9 @@ class FrictionFeedforward:
             normal = abs(load_n + offset) * (f_n + f_s)
             vp, vn = v["friction.viscous_positive_n_s_per_m"], v["friction.viscous_negative_n_s_per_m"]
         else:
-            offset, normal = 0.0, abs(load_n) * (f_n + f_s)
+            # a drag offset T_o (friction.torque_offset_n_m, where the plant has the key) makes the
+            # Coulomb levels T_0 + T_o forward and T_0 - T_o backward (in N m: a = 1 below)
+            offset, normal = v.get("friction.torque_offset_n_m", 0.0) / a, abs(load_n) * (f_n + f_s)
             vp = vn = v["friction.viscous_n_m_s_per_rad"]
         slide = k * mu_d * normal + t0
         excess = k * (mu_s - mu_d) * normal
