@@ -88,9 +88,16 @@ def diff_text(p, v, res: float = 0.0) -> str:
     if not finite:
         return "-"
     d = relative_difference(p, v)
-    if d is not None and abs(p) >= res and abs(v) >= res:
+    # A value at numerical zero against the other (1e-9 of it) gives no percentage either,
+    # whatever the resolution given (never "-100 %" for 1.4e-14 against 1.4e-4).
+    floor = max(res, 1e-9 * max(abs(p), abs(v)))
+    if d is not None and abs(p) >= floor and abs(v) >= floor:
         return pct_text(100 * d)
     return f"{p - v:+.3g} abs."
+
+
+def _finite_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _resolutions(rep, drop: float, window: float) -> Callable[[str], float]:
@@ -145,8 +152,28 @@ def _profile_tables(rep) -> list[str]:
             out.append("Load steps in the profile (verified recovery within 5 % of the step's peak, until the next change)")
             out.append(table(["step at", "load", "predicted peak (rad/s)", "verified peak (rad/s)",
                                "recovery (s)", "IAE to next change (rad)"], rows))
+        if vm.setpoint_steps:
+            out.extend(_setpoint_table(pm, vm, res))
         out.append("")
     return out
+
+
+def _setpoint_table(pm, vm, res: Callable[[str], float]) -> list[str]:
+    """Setpoint steps of a duty-cycle record: overshoot (%), 10-90 % rise and 2 % settling time,
+    predicted (linear) against verified (nonlinear)."""
+    rows = []
+    pred = dict(zip(pm.setpoint_step_times_s, pm.setpoint_steps))
+    for t_s, v in zip(vm.setpoint_step_times_s, vm.setpoint_steps):
+        p = pred.get(t_s)
+        cells = [("overshoot (%)", "overshoot_percent"), ("rise 10-90 % (s)", "rise_time_s"),
+                 ("settling 2 % (s)", "settling_time_s")]
+        for lab, attr in cells:
+            pv = getattr(p, attr) if p is not None else None
+            vv = getattr(v, attr)
+            diff = "-" if pv is None or attr == "overshoot_percent" else diff_text(pv, vv, res("recovery_time_s"))
+            rows.append([f"{t_s:g} s", f"{v.step_rad_s * 30 / math.pi:+.4g} rpm", lab, pv, vv, diff])
+    return ["Setpoint steps in the profile (speed response to each step, until the next change)",
+            table(["step at", "step", "metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows)]
 
 
 def format_report(rep, overrides: Sequence[str] = ()) -> str:
@@ -163,7 +190,8 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         + (f", kd = {b.pid.kd:.5g} N m s^2/rad (tf {b.pid.tf:g} s)" if b.pid.kd else "")
         + (f", load feed-forward gain kff = {b.pid.kff:.3g}" if sc.feedforward else ""),
         f"Margins: Ms {b.margins.ms:.3f}, Mt {b.margins.mt:.3f}, GM {fmt(b.margins.gm_db)} dB, "
-        f"PM {fmt(b.margins.pm_deg)} deg, crossover {fmt(b.margins.wc_rad_s)} rad/s",
+        f"PM {fmt(b.margins.pm_deg)} deg, crossover {fmt(b.margins.wc_rad_s)} rad/s"
+        + (f" ({b.margins.wc_rad_s / (2 * math.pi):.4g} Hz)" if _finite_number(b.margins.wc_rad_s) else ""),
         "Drive terms: "
         + (f"sample time {rep.plant.sample_time_s * 1e3:.4g} ms, " if sc.discrete else "continuous controller, ")
         + (f"integral time Ti = kp/ki = {b.pid.kp / b.pid.ki * 1e3:.4g} ms, " if b.pid.ki > 0 else "no integral action, ")
@@ -202,9 +230,10 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
     for d in rep.baselines:
         c = comp[d.name]
         rows.append([d.name, d.pid.kp, d.pid.ki, d.margins.ms, d.objective_verified,
-                     c["tuned_objective_verified"], c["tuned_ms"], beaten_text(c, obj)])
-    out.append(f"Baselines ({obj}, verified; tuned at equal or better Ms)")
-    out.append(table(["baseline", "kp", "ki", "Ms", obj, f"tuned {obj}", "tuned Ms", "beaten"], rows))
+                     c.get("tuned", "-"), c["tuned_objective_verified"], c["tuned_ms"], beaten_text(c, obj)])
+    out.append(f"Baselines ({obj}, verified; each compared with a tuned design at equal or better Ms, named as the "
+               "tuner names it)")
+    out.append(table(["baseline", "kp", "ki", "Ms", obj, "compared with", f"its {obj}", "its Ms", "beaten"], rows))
     out.append("")
     t = rep.timing_s
     out.append(

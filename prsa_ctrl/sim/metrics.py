@@ -17,6 +17,8 @@ from typing import Sequence
 
 __all__ = [
     "LoadStepMetrics",
+    "SetpointStepMetrics",
+    "setpoint_step_metrics",
     "ProfileMetrics",
     "Margins",
     "load_step_metrics",
@@ -261,6 +263,119 @@ def load_step_metrics(
     )
 
 
+#: Settling band of a setpoint step: the speed stays within this fraction of the step size.
+SETTLING_BAND = 0.02
+
+
+@dataclass(frozen=True)
+class SetpointStepMetrics:
+    """Setpoint-step response metrics (the step response a drive engineer reads).
+
+    Attributes
+    ----------
+    step_rad_s : float
+        Size of the setpoint step (signed), rad/s.
+    overshoot_percent : float
+        Largest excursion beyond the new setpoint in the step's direction, % of the step
+        size (0 when the speed never passes it).
+    rise_time_s : float
+        10 % to 90 % rise time: from the first crossing of 10 % of the step to the first
+        crossing of 90 %, s (linear interpolation between samples; ``inf`` if 90 % is never reached).
+    settling_time_s : float
+        2 % settling time: from the step until the speed stays within 2 % of the step size
+        around the new setpoint up to the end of the window, s (interpolated; ``inf`` if it is
+        outside at the end).
+    """
+
+    step_rad_s: float
+    overshoot_percent: float
+    rise_time_s: float
+    settling_time_s: float
+
+    def as_dict(self) -> dict[str, float | None]:
+        return {k: (None if not math.isfinite(v) else v) for k, v in asdict(self).items()}
+
+
+def _crossing(t: NDArray[np.float64], x: NDArray[np.float64], level: float) -> float:
+    """First time ``x`` reaches ``level`` (from below), linearly interpolated; ``inf`` if never."""
+    idx = np.nonzero(x >= level)[0]
+    if idx.size == 0:
+        return math.inf
+    k = int(idx[0])
+    if k == 0:
+        return float(t[0])
+    return float(t[k - 1] + (level - x[k - 1]) * (t[k] - t[k - 1]) / (x[k] - x[k - 1]))
+
+
+def setpoint_step_metrics(time: ArrayLike, speed: ArrayLike, step_time_s: float, initial_rad_s: float,
+                          final_rad_s: float, band: float = SETTLING_BAND) -> SetpointStepMetrics:
+    """Overshoot (%), 10-90 % rise time and settling time of a setpoint step.
+
+    Parameters
+    ----------
+    time : array, s
+        The window: from (at or before) the step to the next change or the end of the record.
+    speed : array, rad/s
+    step_time_s : float, s
+    initial_rad_s, final_rad_s : float, rad/s
+        Setpoint before and after the step (not equal).
+    band : float
+        Settling band, fraction of the step size (2 %).
+
+    Returns
+    -------
+    SetpointStepMetrics
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.linspace(0.0, 1.0, 100001)
+    >>> m = setpoint_step_metrics(t, 1.0 - np.exp(-t / 0.05), 0.0, 0.0, 1.0)
+    >>> round(m.rise_time_s, 5), round(m.settling_time_s, 5), m.overshoot_percent   # 0.05 ln 9, 0.05 ln 50
+    (0.10986, 0.1956, 0.0)
+    """
+    t = np.asarray(time, dtype=float)
+    y = np.asarray(speed, dtype=float)
+    if t.ndim != 1 or t.shape != y.shape or t.size < 3 or not (np.all(np.isfinite(t)) and np.all(np.isfinite(y))):
+        raise ValueError(f"time and speed must be finite 1-D arrays of equal length >= 3; got {t.shape} and {y.shape}")
+    step = float(final_rad_s) - float(initial_rad_s)
+    if not math.isfinite(step) or step == 0:
+        raise ValueError(f"initial_rad_s = {initial_rad_s!r}, final_rad_s = {final_rad_s!r}; expected a setpoint step "
+                         "(two different finite values)")
+    sel = t >= step_time_s
+    t, y = t[sel], y[sel]
+    if t.size < 3:
+        raise ValueError(f"step_time_s = {step_time_s!r}; expected a time with at least 3 samples after it")
+    x = (y - initial_rad_s) / step  # normalised: 0 before, 1 at the new setpoint, rising
+    t90 = _crossing(t, x, 0.9)
+    rise = t90 - _crossing(t, x, 0.1) if math.isfinite(t90) else math.inf
+    overshoot = max(0.0, float(np.max(x)) - 1.0) * 100.0
+    outside = np.nonzero(np.abs(x - 1.0) > band)[0]
+    if outside.size == 0:
+        settle = 0.0
+    elif outside[-1] == t.size - 1:
+        settle = math.inf
+    else:
+        k = int(outside[-1])  # last sample outside; interpolate where |x - 1| comes back to the band
+        d0, d1 = abs(x[k] - 1.0), abs(x[k + 1] - 1.0)
+        settle = float(t[k] + (d0 - band) * (t[k + 1] - t[k]) / (d0 - d1) - step_time_s)
+    return SetpointStepMetrics(step, overshoot, rise, settle)
+
+
+def _setpoint_steps(t: NDArray[np.float64], r: NDArray[np.float64]) -> list[tuple[float, float, float]]:
+    """Setpoint steps of a sampled profile, ``(time s, before, after)``: a change between two
+    samples with the setpoint held on the sample before and after (a ramp changes on every
+    sample and is no step)."""
+    d = np.diff(r)
+    out = []
+    for k in np.nonzero(d != 0)[0]:
+        held_before = k == 0 or d[k - 1] == 0
+        held_after = k + 1 >= d.size or d[k + 1] == 0
+        if held_before and held_after:
+            out.append((float(t[k + 1]), float(r[k]), float(r[k + 1])))
+    return out
+
+
 @dataclass(frozen=True)
 class ProfileMetrics:
     """Tracking metrics of a duty-cycle record (load and/or setpoint profile).
@@ -293,6 +408,11 @@ class ProfileMetrics:
         the step to the next change of the profile (or the end of the record).
     step_times_s : tuple of float
         The times of those steps, s.
+    setpoint_steps : tuple of SetpointStepMetrics
+        Overshoot, rise and settling time of every setpoint step of the profile (a jump
+        between held values), each over the window to the next change (or the end).
+    setpoint_step_times_s : tuple of float
+        The times of those steps, s.
     """
 
     ie: float
@@ -308,6 +428,8 @@ class ProfileMetrics:
     saturated: bool
     steps: tuple = ()
     step_times_s: tuple = ()
+    setpoint_steps: tuple = ()
+    setpoint_step_times_s: tuple = ()
 
     @property
     def peak_drop_rad_s(self) -> float:
@@ -322,6 +444,8 @@ class ProfileMetrics:
             v = getattr(self, k)
             out[k] = None if isinstance(v, float) and not math.isfinite(v) else v
         out["steps"] = [dict(m.as_dict(), time_s=t) for m, t in zip(self.steps, self.step_times_s)]
+        out["setpoint_steps"] = [dict(m.as_dict(), time_s=t) for m, t in zip(self.setpoint_steps,
+                                                                             self.setpoint_step_times_s)]
         return out
 
 
@@ -390,12 +514,21 @@ def profile_metrics(
                                        None if torque is None else np.asarray(torque, float)[win], torque_limit,
                                        band=band, direction=1 if size > 0 else -1))
         times.append(float(t_s))
+    sp_steps, sp_times = [], []
+    if r.ndim == 1 and r.shape == t.shape:
+        for t_s, r0, r1 in _setpoint_steps(t, r):
+            nxt = next((b for b in cuts if b > t_s + 1e-12), math.inf)
+            win = (t >= t_s) & (t < nxt)
+            if np.sum(win) >= 3:
+                sp_steps.append(setpoint_step_metrics(t[win], y[win], t_s, r0, r1, SETTLING_BAND))
+                sp_times.append(t_s)
     return ProfileMetrics(
         ie=_trapz(e, t), iae=_trapz(np.abs(e), t), itae=_trapz(tt * np.abs(e), t), ise=_trapz(e * e, t),
         peak_deviation_rad_s=float(e[i_pk]), peak_time_s=float(tt[i_pk]),
         rms_error_rad_s=float(np.sqrt(np.mean(e * e))), final_error_rad_s=float(e[tail].mean()),
         peak_torque_n_m=peak_t, saturated_fraction=frac, saturated=frac > 0,
         steps=tuple(steps), step_times_s=tuple(times),
+        setpoint_steps=tuple(sp_steps), setpoint_step_times_s=tuple(sp_times),
     )
 
 

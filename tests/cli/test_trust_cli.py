@@ -369,7 +369,8 @@ def test_differences_are_percentages_only_above_the_resolution():
     from prsa_ctrl.cli.report import diff_text as _diff_text
 
     assert _diff_text(1.4e-14, 1.4e-4, res=0.0365) == "-0.00014 abs."
-    assert _diff_text(1.4e-14, 1.4e-4) == "-100.0 %"  # no resolution given: a plain relative difference
+    # issue 24: even with no resolution given, a value at numerical zero against a real one is no percentage
+    assert _diff_text(1.4e-14, 1.4e-4) == "-0.00014 abs."
     assert _diff_text(3.67, 3.651, res=0.0365) == "+0.5 %"
     assert _diff_text(-2.833, -2.8, res=0.01) == "-1.2 %"  # relative to |verified|
     assert _diff_text(float("inf"), 0.1) == "-"
