@@ -30,6 +30,7 @@ _EXPORTS = {
     "diff_text": "report",
     "fmt": "report",
     "fmt_margin": "report",
+    "format_friction_ff": "report",
     "format_move_report": "report",
     "format_report": "report",
     "format_robust": "report",

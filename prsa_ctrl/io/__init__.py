@@ -8,6 +8,8 @@ _EXPORTS = {
     "DriveLaw": "codegen",
     "FILTER_PLACES": "export",
     "FORMATS": "export",
+    "BACK_EMF_KEYS": "driveparams",
+    "BACK_EMF_UNITS": "driveparams",
     "MotorData": "driveparams",
     "OutputError": ".errors",
     "POSITION_LAW": "export",
