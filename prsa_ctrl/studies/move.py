@@ -151,7 +151,7 @@ class MoveMetrics:
         From the end of the profile until the error stays within ``window_m`` (up to the
         hold step); ``inf`` if it never does.
     overshoot_m : float
-        Largest travel beyond the target in the direction of the move after the profile ends.
+        Largest travel beyond the target in the direction of the (last) move after the profile ends.
     peak_torque_n_m : float
         Largest |motor torque|.
     holding_deviation_m : float
@@ -262,7 +262,8 @@ def move_metrics(r: "SimRun", plant: "Plant", scene: MoveScene) -> MoveMetrics:
             settle = 0.0
         elif outside[-1] < ea.size - 1:
             settle = float(ta[outside[-1] + 1] - t_end)
-    direction = math.copysign(1.0, scene.distance_m)
+    # the direction of the last move (back to the start for an out-and-back move)
+    direction = math.copysign(1.0, scene.distance_m) * (-1.0 if scene.return_dwell_s is not None else 1.0)
     overshoot = float(max(0.0, np.max(-direction * e[after]))) if np.any(after) else 0.0
     hold = t >= t_hold
     holding = float(np.max(np.abs(e[hold]))) if np.any(hold) else 0.0

@@ -163,3 +163,15 @@ def test_simulate_move_without_friction_is_unchanged(plant):
     r2 = simulate_move(plant, sc, DESIGN.speed, replace(DESIGN.position, friction=None), duration=0.02,
                        loads=[(0.0, 0.0)])
     np.testing.assert_array_equal(r.output("torque_command"), r2.output("torque_command"))
+
+
+def test_overshoot_of_an_out_and_back_move_is_measured_on_the_way_back(plant):
+    """The last move of paper-slow-reversal goes back (negative): overshoot is travel below the
+    start, i.e. a positive error reference - measured after the profile ends."""
+    from prsa_ctrl.studies.move import move_metrics
+
+    sc = load_move_scene("paper-slow-reversal")
+    r = simulate_move(plant, sc, DESIGN.speed, DESIGN.position)
+    e = following_error_m(r, plant)
+    after = r.time >= sc.motion().end_time
+    assert move_metrics(r, plant, sc).overshoot_m == pytest.approx(max(0.0, float(np.max(e[after]))), rel=1e-15)
