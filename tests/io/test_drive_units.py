@@ -147,3 +147,28 @@ def test_read_back_with_rated_torque_only_units():
     filled = fill_template(tpl, PID(KP, KI), _plant(), MotorData(None, rated_torque_n_m=3.0))
     assert filled["parameter"][0]["value"] == pytest.approx(0.296705972839, rel=1e-10)
     assert read_parameter_set(filled)["speed_kp"] == pytest.approx(KP, rel=1e-15)
+
+
+@pytest.mark.parametrize("unit", sorted(__import__("prsa_ctrl.io.driveparams", fromlist=["UNIT_FACTORS"]).UNIT_FACTORS))
+def test_every_unit_reads_back_to_si(unit):
+    """Each unit a template may use: written from SI and read back gives the SI value (1e-15),
+    and the value written is SI x the factor the unit's definition gives (typed here)."""
+    from prsa_ctrl.io.driveparams import QUANTITIES, UNIT_FACTORS
+
+    hand = {"N m s/rad": 1.0, "N m/rpm": RPM, "A/(rad/s)": 1 / 0.9, "mA/(rad/s)": 1000 / 0.9, "A/rpm": RPM / 0.9,
+            "A peak/(rad/s)": 1.4142135623730951 / 0.9, "A peak/rpm": 1.4142135623730951 * RPM / 0.9,
+            "rated torque/(rad/s)": 1 / 3.0, "% rated torque/rpm": 100 * RPM / 3.0, "N m/rad": 1.0, "A/rad": 1 / 0.9,
+            "s": 1.0, "ms": 1e3, "0.1 ms": 1e4, "us": 1e6, "1/s": 1.0, "(m/min)/mm": 0.06, "1000/min": 0.06,
+            "1/s^2": 1.0, "1": 1.0, "%": 100.0, "N m s^2/rad": 1.0, "A s^2/rad": 1 / 0.9}
+    si_unit = UNIT_FACTORS[unit][0]
+    quantity = next(q for q, (u, _) in QUANTITIES.items() if u == si_unit)
+    tpl = {"template": {"name": "t"}, "parameter": [{"index": "x", "name": "x", "quantity": quantity, "unit": unit,
+                                                      "datatype": "f", "confirmed": True, "source": "test"}]}
+    design = DESIGN if quantity not in ("speed_kp", "speed_ki", "speed_tn", "sample_time") else PID(KP, KI)
+    motor = MotorData(0.9, rated_torque_n_m=3.0)
+    filled = fill_template(tpl, design, _plant(), motor)
+    prm = filled["parameter"][0]
+    if not prm["applies"]:
+        pytest.skip(f"{quantity} does not apply to this design")
+    assert prm["value"] == pytest.approx(prm["value_si"] * hand[unit], rel=1e-14)
+    assert read_parameter_set(filled)[quantity] == pytest.approx(prm["value_si"], rel=1e-15)
