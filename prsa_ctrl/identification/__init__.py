@@ -9,6 +9,7 @@ _EXPORTS = {
     "AxisPlantError": ".errors",
     "AxisReplay": "axis",
     "COHERENCE_MIN": "data",
+    "COORDINATES": "axis",
     "CONTACT_KEYS": "common",
     "ControllerSpec": "logformat",
     "DEFAULTS": "axis",
