@@ -34,6 +34,7 @@ _EXPORTS = {
     "LogFormatError": ".errors",
     "MAX_INTERVALS": "timedomain",
     "MAX_SAMPLES": "data",
+    "MAX_SPEED_M_S": "logformat",
     "MECHANISM": "axis",
     "METRIC_SKIP_SAMPLES": "axis",
     "MIN_SAMPLES": "data",
