@@ -240,8 +240,8 @@ def _motion(x: float, v: float, f: float, m: float, fv: float, fc: float, s: int
         return x + v * T + a0 * T * T * _psi(z), vend, 0.0
     # stops at tc: v + a0 tc phi(k tc) = 0
     if k > 0:
-        ratio = 1.0 + k * v / a0  # = exp(-k tc) in (0, 1]
-        tc = -math.log(ratio) / k if ratio > 0 else T
+        y = k * v / a0  # exp(-k tc) = 1 + y in (0, 1]; log1p keeps tc exact for a tiny viscous term
+        tc = -math.log1p(y) / k if y > -1.0 else T
     else:
         tc = -v / a0
     tc = min(max(tc, 0.0), T)
