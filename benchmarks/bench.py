@@ -21,6 +21,9 @@ prsa-ctrl installed: ``pip install -e '.[test]'``) writes ``bench.json`` and ``w
 - **fit**: ``fit_plant`` on :func:`prsa_ctrl.identification.synthetic.fit_record`, a 4 s, 4 kHz closed-loop record (16001 samples) simulated by the
   toolkit on a perturbed plant (issue 11's run-time figure): wall and CPU time, solver
   iterations and attempts, fitted errors against the truth;
+- **axisfit**: ``fit_linear_axis`` (with its delay check) on the EMPS record (25 s at 1 kHz,
+  ``examples/emps``) and on a 4 s, 4 kHz closed-loop linear-axis log from a generator in this
+  file: median wall and CPU time with their spread and the load average;
 - **targets**: issue 10's speed targets against these medians (``bench.json["targets"]``).
 
 Every time is the median of ``repeats`` runs (default 3; ``--fast``: 1) after a warm-up run,
@@ -49,7 +52,7 @@ from prsa_ctrl.identification.synthetic import fit_record
 from prsa_ctrl.studies.accuracy import fidelity_ladder, timed, work_precision
 
 __all__ = ["tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark", "robust_tuning_benchmark",
-           "fit_benchmark", "targets", "main", "work_precision", "fidelity_ladder"]
+           "fit_benchmark", "axis_fit_benchmark", "targets", "main", "work_precision", "fidelity_ladder"]
 
 
 def tuning_benchmark(plant=None, n_grid: int = 25, fast: bool = False, repeats: int = 3) -> dict:
@@ -285,6 +288,92 @@ def fit_benchmark(duration_s: float = 4.0, repeats: int = 3) -> dict:
 
 
 
+#: The EMPS record (examples/emps, from a checkout).
+EMPS_DATA = Path(__file__).resolve().parents[1] / "examples" / "emps"
+
+
+def _axis_log_4khz(duration_s: float = 4.0, h: float = 2.5e-4, sub: int = 10):
+    """A closed-loop linear-axis log at 4 kHz from a generator written here (explicit sub-steps,
+    Karnopp stick, quantised position fed to the controller): mass 80 kg, viscous 150/190 N s/m,
+    Coulomb 15/18 N, drive 35 N/V, position P 150 1/s over velocity P 250 V/(m/s) with the
+    two-sample averaged velocity estimate; bang-bang moves over 0.1 m in both directions."""
+    from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec
+
+    m, fvp, fvn, fcp, fcn, gain, kp, kv, res = 80.0, 150.0, 190.0, 15.0, 18.0, 35.0, 150.0, 250.0, 5e-8
+    n = int(round(duration_s / h)) + 1
+    t = np.arange(n) * h
+    acc = np.zeros(n)
+    for t0, sgn in ((0.1, 1), (0.5, -1), (1.2, -1), (1.6, 1), (2.2, -1), (2.6, 1), (3.2, 1), (3.6, -1)):
+        acc[(t >= t0) & (t < t0 + 0.3)] += sgn * 1.0
+    r = 0.05 + np.cumsum(np.cumsum(acc) * h) * h
+    x, v = r[0], 0.0
+    qm, u = np.zeros(n), np.zeros(n)
+    qprev = qfprev = res * math.floor(x / res + 0.5)
+    hs = h / sub
+    for k in range(n):
+        qk = res * math.floor(x / res + 0.5)
+        qf = 0.5 * (qk + qprev)
+        dq = (qf - qfprev) / h
+        qprev, qfprev, qm[k] = qk, qf, qk
+        u[k] = min(10.0, max(-10.0, kv * (kp * (r[k] - qk) - dq)))
+        f = gain * u[k]
+        for _ in range(sub):
+            a = ((f - fcp - fvp * v) if v > 0 else (f + fcn - fvn * v) if v < 0 else
+                 (f - fcp if f > fcp else (f + fcn if f < -fcn else 0.0))) / m
+            vn = v + hs * a
+            if v != 0 and vn * v < 0:
+                x += 0.5 * v * (-v / a)
+                v = 0.0
+                continue
+            x += 0.5 * (v + vn) * hs
+            v = vn
+    ctl = ControllerSpec("position-p/velocity-p", kp, kv, 0.0, "average2-difference", 10.0, h)
+    log = AxisLog("axis-4khz", t, qm, u, "V", gain, h, reference_m=r, controller=ctl, resolution_m=res)
+    return log, (m, fvp, fvn, fcp, fcn)
+
+
+def axis_fit_benchmark(repeats: int = 3) -> dict:
+    """Wall and CPU time of :func:`prsa_ctrl.identification.axis.fit_linear_axis` (with its delay
+    check) on the EMPS record (25 s at 1 kHz, ``examples/emps``) and on a 4 s, 4 kHz closed-loop
+    log (:func:`_axis_log_4khz`): medians of ``repeats`` runs after a warm-up, with the spread
+    (min, max) and the load average before and after.
+
+    Parameters
+    ----------
+    repeats : int
+        Timed fits per log.
+    """
+    from prsa_ctrl.identification.axis import fit_linear_axis, load_axis_plant
+    from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
+
+    base = load_axis_plant(EMPS_DATA / "plant.toml")
+    logs = {"emps": (load_axis_log(EMPS_DATA / "DATA_EMPS.mat", load_log_format(EMPS_DATA / "log.toml")), None)}
+    syn, truth = _axis_log_4khz()
+    syn_base = base.with_values({"sensor.sample_time_s": syn.sample_time_s, "drive.gain_n_per_unit": syn.gain_n_per_unit},
+                                {"sensor.sample_time_s": "benchmark", "drive.gain_n_per_unit": "benchmark"})
+    logs["axis_4khz"] = (syn, truth)
+    out: dict = {"load_average_before": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+    for key, (log, tru) in logs.items():
+        b = syn_base if tru is not None else base
+        fit_linear_axis([log], b)  # warm-up (imports, caches)
+        wall, cpu, res = [], [], None
+        for _ in range(max(1, repeats)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            res = fit_linear_axis([log], b)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        row = {"samples": log.n, "sample_time_s": log.sample_time_s, "median_wall_s": float(np.median(wall)),
+               "median_cpu_s": float(np.median(cpu)), "wall_s": wall, "cpu_s": cpu, "evaluations": res.iterations,
+               "status": res.status, "mass_kg": res.equivalent["mass_kg"]["value"]}
+        if tru is not None:
+            row["truth_in_ci95"] = {k: bool(p["ci95"][0] <= t <= p["ci95"][1])
+                                    for (k, p), t in zip(res.parameters.items(), tru)}
+        out[key] = row
+    out["load_average_after"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    out["repeats"] = repeats
+    return out
+
+
 def targets(result: dict) -> dict:
     """Issue 10's speed targets against the measured medians in ``result`` (those present)."""
     out = {}
@@ -393,7 +482,8 @@ def _main(argv=None) -> int:
     ap = Parser(prog="benchmarks/bench.py", description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="bench-results", help="folder for bench.json and the figure (created if missing)")
     ap.add_argument("--fast", action="store_true", help="short horizons and a 5 x 5 grid")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust", "fit"])
+    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust", "fit",
+                                                                 "axisfit"])
     ap.add_argument("--samples", type=int, default=None, help="Monte-Carlo samples per run (default 1000; 100 with --fast)")
     ap.add_argument("--workers", type=int, default=2, help="processes / Dask workers of the Monte-Carlo benchmark")
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per measurement, median reported "
@@ -464,6 +554,14 @@ def _main(argv=None) -> int:
               f"CPU {ft['median_cpu_s']:.1f} s; {ft['iterations']} iterations, {ft['attempts']} attempt(s); "
               f"largest parameter error {100 * worst:.3g} %; truth in every 95 % CI "
               f"{all(v['truth_in_ci95'] for v in ft['parameters'].values())}")
+    if "axisfit" not in args.skip:
+        result["axis_fit"] = af = axis_fit_benchmark(repeats=repeats)
+        for k in ("emps", "axis_4khz"):
+            r = af[k]
+            print(f"axis fit {k} ({r['samples']} samples, {r['sample_time_s'] * 1e3:g} ms): wall median "
+                  f"{r['median_wall_s']:.2f} s ({min(r['wall_s']):.2f}..{max(r['wall_s']):.2f}), CPU median "
+                  f"{r['median_cpu_s']:.2f} s ({min(r['cpu_s']):.2f}..{max(r['cpu_s']):.2f}); {r['evaluations']} "
+                  f"evaluations, {r['status']}")
     if "cli" not in args.skip:
         result["cold_cli"] = cb = cold_cli_benchmark(repeats)
         print(f"cold CLI: {cb['prsa_tune_s']:.2f} s vs import control, casadi {cb['import_control_casadi_s']:.2f} s: "

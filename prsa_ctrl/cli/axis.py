@@ -134,45 +134,56 @@ def _json(obj) -> str:
 
 
 def _base_plant(args, logs):
-    """The base plant: ``--plant`` or defaults, with what the logs say about drive and sensor."""
+    """The base plant: ``--plant`` (a linear-axis plant file) or one built from what the logs say,
+    with the schema's defaults (:data:`prsa_ctrl.plant.schema.DEFAULTS`) for every other key; the
+    drive gain, sample time, force limit and encoder resolution of the logs replace the file's."""
     import numpy as np
 
-    from ..identification.axis import DEFAULTS, LinearAxisPlant, load_axis_plant
+    from ..identification.axis import LinearAxisPlant, load_axis_plant
 
-    if args.plant:
-        base = load_axis_plant(args.plant)
-    else:
-        vals = {k: v for k, (v, _) in DEFAULTS.items()}
-        srcs = {k: s for k, (_, s) in DEFAULTS.items()}
-        vals["axis.mass_kg"], srcs["axis.mass_kg"] = 1.0, "default: placeholder, replaced by the fit"
-        base = LinearAxisPlant("base", vals, srcs, command_unit=logs[0].command_unit)
     lg = logs[0]
     fmt_name = Path(args.log_format).name
+    log_name = Path(lg.name).name
+    for other in logs[1:]:
+        if not math.isclose(other.gain_n_per_unit, lg.gain_n_per_unit, rel_tol=1e-9):
+            raise UsageError(f"{other.name}: drive gain {other.gain_n_per_unit:g} differs from {lg.name}'s "
+                              f"{lg.gain_n_per_unit:g}; expected logs of one axis")
     vals, srcs = {}, {}
     vals["drive.gain_n_per_unit"] = lg.gain_n_per_unit
     srcs["drive.gain_n_per_unit"] = f"log: {lg.sources.get('gain', fmt_name)}"
     vals["sensor.sample_time_s"], srcs["sensor.sample_time_s"] = lg.sample_time_s, f"log: {fmt_name}"
-    if lg.controller is not None:
+    if lg.controller is not None and math.isfinite(lg.controller.saturation):
         vals["drive.force_limit_n"] = lg.controller.saturation * lg.gain_n_per_unit
         srcs["drive.force_limit_n"] = f"log: {fmt_name} [controller] saturation x drive gain"
     if lg.resolution_m is not None:
         vals["sensor.encoder_resolution_m"] = lg.resolution_m
         srcs["sensor.encoder_resolution_m"] = f"log: {fmt_name} [position] resolution"
-    elif not args.plant:
+    if args.plant:
+        return load_axis_plant(args.plant).with_values(vals, srcs)
+    if "drive.force_limit_n" not in vals:
+        peak = max(float(np.max(np.abs(g.gain_n_per_unit * g.command))) for g in logs)
+        vals["drive.force_limit_n"] = max(peak, 1e-3)
+        srcs["drive.force_limit_n"] = (f"estimate: largest force in {log_name} (no controller saturation described; "
+                                       "give the drive's limit with --plant)")
+    if "sensor.encoder_resolution_m" not in vals:
         steps = np.abs(np.diff(lg.position_m))
         steps = steps[steps > 0]
-        if steps.size:
-            vals["sensor.encoder_resolution_m"] = float(steps.min())
-            srcs["sensor.encoder_resolution_m"] = f"estimate: smallest position step in {Path(lg.name).name}"
-    for other in logs[1:]:
-        if not math.isclose(other.gain_n_per_unit, lg.gain_n_per_unit, rel_tol=1e-9):
-            raise UsageError(f"{other.name}: drive gain {other.gain_n_per_unit:g} differs from {lg.name}'s "
-                              f"{lg.gain_n_per_unit:g}; expected logs of one axis")
-    return base.with_values(vals, srcs)
+        res = float(steps.min()) if steps.size else 0.0
+        vals["sensor.encoder_resolution_m"] = min(max(res, 1e-10), 1e-2)
+        srcs["sensor.encoder_resolution_m"] = (f"estimate: smallest position step in {log_name}" if 1e-10 <= res <= 1e-2
+                                               else f"estimate: {log_name} holds no plausible position step; the "
+                                                    "finest resolution the schema accepts (not used by the fit)")
+    vals["axis.mass_kg"], srcs["axis.mass_kg"] = 1.0, "default: placeholder, replaced by the fit"
+    doc: dict = {"name": "base", "mechanism": "linear-axis", "coordinates": "load"}
+    for k, v in vals.items():
+        sec, key = k.split(".")
+        doc.setdefault(sec, {})[key] = {"value": float(v), "source": srcs[k]}
+    doc["drive"]["command_unit"] = lg.command_unit
+    return LinearAxisPlant.from_dict(doc, origin=f"base plant of {log_name}")
 
 
 def _fit(args) -> int:
-    from ..identification.axis import axis_plant_toml, fit_linear_axis, replay_axis
+    from ..identification.axis import COORDINATES, axis_plant_toml, fit_linear_axis, replay_axis
 
     if args.traces:
         raise UsageError(f"--traces {args.traces!r} without --validate; expected it with --validate PLANT.toml LOG")
@@ -214,6 +225,7 @@ def _fit(args) -> int:
         _print_replay(h, prefix="held out: ")
     for w in result.warnings:
         print(f"warning: {w}")
+    print(f"coordinates: {COORDINATES}")
     print(f"wrote {args.out}" + (f" and {args.json}" if args.json else "") + (f"; plots: {', '.join(plots)}" if plots else ""))
     return 0
 
@@ -226,7 +238,7 @@ def _print_replay(rep: dict, prefix: str = "") -> None:
 
 
 def _validate(args) -> int:
-    from ..identification.axis import load_axis_plant, replay_axis
+    from ..identification.axis import COORDINATES, load_axis_plant, replay_axis
 
     plant_path, *paths = args.validate
     paths = [*paths, *args.data]
@@ -245,7 +257,8 @@ def _validate(args) -> int:
     replays = [replay_axis(plant, lg) for lg in logs]
     files = {}
     if args.json:
-        files[args.json] = ("--json", _json({"plant": plant_path, "replay": [r.report() for r in replays]}))
+        files[args.json] = ("--json", _json({"plant": plant_path, "mechanism": "linear-axis", "coordinates": COORDINATES,
+                                                 "replay": [r.report() for r in replays]}))
     if args.traces:
         files[args.traces] = ("--traces", replays[0].traces_csv())
     plots = _plots(args.plots, replays, inputs) if args.plots else []
@@ -255,6 +268,7 @@ def _validate(args) -> int:
         if not r.closed_loop:
             print(f"note: {r.name} has no controller description: replayed open loop from the logged command (an "
                   "integrating axis drifts)")
+    print(f"coordinates: {COORDINATES}")
     if files or plots:
         print("wrote " + ", ".join([*files, *plots]))
     return 0

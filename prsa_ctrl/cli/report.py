@@ -176,6 +176,11 @@ def _setpoint_table(pm, vm, res: Callable[[str], float]) -> list[str]:
             table(["step at", "step", "metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows)]
 
 
+#: The report line of a linear axis (load coordinates, 1 m of travel per radian).
+_LOAD_COORDINATES = ("coordinates: load (position m, force N): read rad as m, rad/s as m/s, N m as N and "
+                    "N m s/rad as N s/m (a linear axis moves 1 m per radian)")
+
+
 def format_report(rep, overrides: Sequence[str] = ()) -> str:
     """Readable text report of an :class:`~prsa_ctrl.studies.autotune.ActuatorTuning`; ``overrides``
     are the command-line flags that changed the scene (named in the header)."""
@@ -185,6 +190,7 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
     out = [
         f"prsa-tune: plant {rep.plant.name}, {scene_header(sc, overrides)}",
         f"verification: {rep.fidelity_reason}; {'sampled controller (ZOH, quantised encoder)' if sc.discrete else 'continuous controller'}",
+        *([_LOAD_COORDINATES] if rep.plant.mechanism == "linear-axis" else []),
         "",
         f"Tuned {sc.controller.upper()} {label}: kp = {b.pid.kp:.5g} N m s/rad, ki = {b.pid.ki:.5g} N m/rad"
         + (f", kd = {b.pid.kd:.5g} N m s^2/rad (tf {b.pid.tf:g} s)" if b.pid.kd else "")
@@ -290,6 +296,8 @@ def format_move_report(plant: "Plant", scene: "MoveScene", designs: "list[Cascad
                 f", load {scene.load_n:g} N at {scene.load_at_s:.4g} s, ") +
              f"hold step {scene.hold_step_n:g} N; Ms <= {scene.ms_max:g} at each loop-breaking point: speed loop "
              "(position loop closed / opened), position loop, torque command (both loops broken at the plant input)"]
+    if plant.mechanism == "linear-axis":
+        lines.append(_LOAD_COORDINATES)
     for d in designs:
         v = d.verified
         ki = f", ki {d.position.ki:.4g} 1/s^2" if scene.position_controller == "pi" or d.position.ki > 0 else ""

@@ -42,8 +42,12 @@ Plant file (TOML, ``mechanism = "linear-axis"``), every value with its source::
     [uncertainty]                                                 # as in prsa_ctrl.plant.uncertainty
     "axis.mass_kg" = { dist = "normal", sigma = ..., truncate = 1.959964, source = "fit: ..." }
 
-Only ``axis.mass_kg`` is required; every other key has the default listed in :data:`DEFAULTS`
-(with its source). Keys carry their units in their names.
+It is a plant file of the package (``prsa-tune --show-plant FILE`` lists every value with its
+source; simulation, linearisation and the tuners load it with :func:`prsa_ctrl.plant.load_plant`):
+``axis.mass_kg``, ``drive.gain_n_per_unit``, ``drive.force_limit_n``, ``sensor.sample_time_s`` and
+``sensor.encoder_resolution_m`` are required (:data:`prsa_ctrl.plant.schema.REQUIRED`), every
+other key has the default of :data:`prsa_ctrl.plant.schema.DEFAULTS` with its source. Keys carry
+their units in their names.
 """
 
 from __future__ import annotations
@@ -62,12 +66,15 @@ from scipy.optimize import least_squares
 from scipy.signal import butter, filtfilt
 
 from .._lazy import module
-from ..errors import AxisFitError, AxisPlantError, SimulationError
+from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
+from ..plant.plantfile import Plant
+from ..plant import schema as plant_schema
 from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
 
 __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "DEFAULTS", "PARAMETERS", "simulate_axis",
+           "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
            "idim_estimate", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES"]
 
@@ -85,17 +92,13 @@ _UNITS = {"axis.mass_kg": "kg", "friction.viscous_positive_n_s_per_m": "N s/m",
           "friction.viscous_negative_n_s_per_m": "N s/m", "friction.coulomb_positive_n": "N",
           "friction.coulomb_negative_n": "N", "drive.gain_n_per_unit": "N per command unit",
           "drive.force_limit_n": "N", "sensor.sample_time_s": "s", "sensor.encoder_resolution_m": "m"}
-#: Key -> (default value, source). ``axis.mass_kg`` has no default.
-DEFAULTS: Mapping[str, tuple[float, str]] = {
-    "friction.coulomb_positive_n": (0.0, "default: no Coulomb friction (frictionless guide)"),
-    "friction.coulomb_negative_n": (0.0, "default: no Coulomb friction (frictionless guide)"),
-    "friction.viscous_positive_n_s_per_m": (0.0, "default: no viscous friction"),
-    "friction.viscous_negative_n_s_per_m": (0.0, "default: no viscous friction"),
-    "drive.gain_n_per_unit": (1.0, "default: command logged in N (gain 1)"),
-    "drive.force_limit_n": (math.inf, "default: no force limit"),
-    "sensor.sample_time_s": (1e-3, "default: typical 1 kHz position-loop rate"),
-    "sensor.encoder_resolution_m": (0.0, "default: position not quantised"),
-}
+#: Key -> (default value, source) of the linear-axis keys a plant file may leave out: the entries
+#: of :data:`prsa_ctrl.plant.schema.DEFAULTS` (one table for every plant file; the drive gain,
+#: force limit, sample time and encoder resolution are required keys there,
+#: :data:`prsa_ctrl.plant.schema.REQUIRED`).
+DEFAULTS: Mapping[str, tuple[float, str]] = {k: plant_schema.DEFAULTS[k] for k in PARAMETERS[1:]}
+#: Coordinates of a linear axis, as reports and files state them.
+COORDINATES = "load (position m, force N)"
 _SECTIONS = {"axis": ("mass_kg",), "friction": ("coulomb_positive_n", "coulomb_negative_n", "viscous_positive_n_s_per_m",
                                                  "viscous_negative_n_s_per_m"),
              "drive": ("gain_n_per_unit", "force_limit_n", "command_unit"),
@@ -126,62 +129,61 @@ class LinearAxisPlant:
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any], origin: str) -> "LinearAxisPlant":
-        """Build and check a plant from a parsed TOML document (``origin`` names it in errors)."""
+        """Build and check a plant from a parsed TOML document (``origin`` names it in errors).
+
+        The document is read by the package's plant-file reader
+        (:meth:`prsa_ctrl.plant.plantfile.Plant.from_dict`: the schema's kinds, plausible ranges,
+        required keys and defaults with their sources), so a file this accepts is a plant file
+        every part of the toolkit loads. A missing ``name`` is the file's stem.
+        """
         if doc.get("mechanism") != MECHANISM:
             raise AxisPlantError(f"{origin}: mechanism = {doc.get('mechanism')!r}; expected {MECHANISM!r}")
-        known = {"name", "description", "mechanism", "coordinates", "uncertainty", *_SECTIONS}
-        for k in doc:
-            if k not in known:
-                raise AxisPlantError(f"{origin}: key {k!r}: unknown; expected some of {', '.join(sorted(known))}")
-        if doc.get("coordinates", "load") != "load":
-            raise AxisPlantError(f"{origin}: coordinates = {doc['coordinates']!r}; expected \"load\" (m, N)")
-        values, sources = {}, {}
-        unit = "V"
-        for sec, keys in _SECTIONS.items():
-            tab = doc.get(sec, {})
-            if not isinstance(tab, dict):
-                raise AxisPlantError(f"{origin}: {sec}: expected a [{sec}] table")
-            for k in tab:
-                if k not in keys:
-                    raise AxisPlantError(f"{origin}: [{sec}] {k}: unknown key; expected some of {', '.join(keys)}")
-            for k in keys:
-                full = f"{sec}.{k}"
-                if k == "command_unit":
-                    unit = tab.get(k, "V")
-                    if unit not in ("V", "A", "N"):
-                        raise AxisPlantError(f"{origin}: [drive] command_unit = {unit!r}; expected V, A or N")
-                    continue
-                if k not in tab:
-                    if full not in DEFAULTS:
-                        raise AxisPlantError(f"{origin}: [{sec}] {k}: missing; expected {{ value = ..., source = \"...\" }}")
-                    values[full], sources[full] = DEFAULTS[full]
-                    continue
-                e = tab[k]
-                if not (isinstance(e, dict) and "value" in e and isinstance(e.get("source"), str)):
-                    raise AxisPlantError(f"{origin}: [{sec}] {k} = {e!r}; expected {{ value = ..., source = \"...\" }}")
-                v = e["value"]
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v):
-                    raise AxisPlantError(f"{origin}: [{sec}] {k} value = {v!r}; expected a number")
-                positive = full in ("axis.mass_kg", "drive.gain_n_per_unit", "drive.force_limit_n", "sensor.sample_time_s")
-                if (positive and not v > 0) or (not positive and not v >= 0) or (math.isinf(v) and full != "drive.force_limit_n"):
-                    raise AxisPlantError(f"{origin}: [{sec}] {k} value = {v!r}; expected a finite number "
-                                         f"{'> 0' if positive else '>= 0'}")
-                values[full], sources[full] = float(v), e["source"]
-        unc = doc.get("uncertainty", {})
-        for k, e in unc.items():
-            if k not in values or not isinstance(e, dict):
-                raise AxisPlantError(f"{origin}: [uncertainty] {k!r}: expected a plant key with an inline table")
-        return cls(name=str(doc.get("name", Path(origin).stem)), values=values, sources=sources,
-                   description=str(doc.get("description", "")), command_unit=unit, uncertainty=dict(unc))
+        unit = doc.get("drive", {}).get("command_unit", "V") if isinstance(doc.get("drive", {}), dict) else "V"
+        if unit not in ("V", "A", "N"):
+            raise AxisPlantError(f"{origin}: [drive] command_unit = {unit!r}; expected V, A or N")
+        named = dict(doc) if doc.get("name") else {**doc, "name": Path(origin).stem or "axis"}
+        try:
+            plant = Plant.from_dict(named, origin=origin)
+        except PlantFileError as exc:
+            raise AxisPlantError(str(exc)) from None
+        return cls.from_plant(plant, command_unit=unit)
+
+    @classmethod
+    def from_plant(cls, plant: Plant, command_unit: str = "V") -> "LinearAxisPlant":
+        """The linear axis of a ``linear-axis`` :class:`~prsa_ctrl.plant.plantfile.Plant` (its own
+        keys, :data:`prsa_ctrl.plant.schema.LINEAR_AXIS_SCHEMA`, and the sample time, with their
+        sources)."""
+        if plant.mechanism != MECHANISM:
+            raise AxisPlantError(f"{plant.origin}: mechanism = {plant.mechanism!r}; expected {MECHANISM!r}")
+        keys = [k for sec, ks in _SECTIONS.items() for k in (f"{sec}.{x}" for x in ks) if k in plant.values]
+        return cls(name=plant.name, values={k: float(plant.values[k]) for k in keys},
+                   sources={k: plant.sources[k] for k in keys}, description=plant.description,
+                   command_unit=command_unit, uncertainty=dict(plant.uncertainty))
+
+    def to_plant(self) -> Plant:
+        """This axis as the package's :class:`~prsa_ctrl.plant.plantfile.Plant` (what
+        :func:`prsa_ctrl.plant.load_plant` makes of :func:`axis_plant_toml`): simulation,
+        linearisation and the tuners take it. Needs every required key of a linear axis
+        (:data:`prsa_ctrl.plant.schema.REQUIRED`)."""
+        try:
+            return Plant.from_dict(tomllib.loads(axis_plant_toml(self)), origin=f"{self.name} (linear axis)")
+        except PlantFileError as exc:
+            raise AxisPlantError(str(exc)) from None
 
 
 def load_axis_plant(path: str | Path) -> LinearAxisPlant:
-    """Read a ``linear-axis`` plant file; :class:`AxisPlantError` names the file and key."""
+    """Read a ``linear-axis`` plant file; :class:`AxisPlantError` names the file and key.
+
+    The file is a plant file of the package (:func:`prsa_ctrl.plant.load_plant` reads it the
+    same way): required keys ``axis.mass_kg``, ``drive.gain_n_per_unit``, ``drive.force_limit_n``,
+    ``sensor.sample_time_s``, ``sensor.encoder_resolution_m``; every other key has the default of
+    :data:`prsa_ctrl.plant.schema.DEFAULTS` (``prsa-tune --show-plant FILE`` lists them).
+    """
     p = Path(path)
     if not p.is_file():
         raise AxisPlantError(f"plant file {str(path)!r} not found; expected a readable .toml file")
     try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+        doc = tomllib.loads(p.read_text(encoding="utf-8-sig"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise AxisPlantError(f"{path}: cannot be read as TOML ({exc})") from None
     return LinearAxisPlant.from_dict(doc, origin=str(path))
@@ -204,7 +206,7 @@ def axis_plant_toml(plant: LinearAxisPlant) -> str:
                 lines.append(f"command_unit = {_toml_str(plant.command_unit)}")
                 continue
             full = f"{sec}.{k}"
-            v = plant.values[full]
+            v = plant.values.get(full, math.inf)
             if math.isinf(v):
                 continue  # the default (no limit) is what a missing key means
             lines.append(f"{k} = {{ value = {v!r}, source = {_toml_str(plant.sources[full])} }}")
@@ -238,8 +240,8 @@ def _motion(x: float, v: float, f: float, m: float, fv: float, fc: float, s: int
         return x + v * T + a0 * T * T * _psi(z), vend, 0.0
     # stops at tc: v + a0 tc phi(k tc) = 0
     if k > 0:
-        ratio = 1.0 + k * v / a0  # = exp(-k tc) in (0, 1]
-        tc = -math.log(ratio) / k if ratio > 0 else T
+        y = k * v / a0  # exp(-k tc) = 1 + y in (0, 1]; log1p keeps tc exact for a tiny viscous term
+        tc = -math.log1p(y) / k if y > -1.0 else T
     else:
         tc = -v / a0
     tc = min(max(tc, 0.0), T)
@@ -451,7 +453,7 @@ def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
     theta = plant.theta
     gain = log.gain_n_per_unit
     vm = measured_velocity(log)
-    tr = simulate_axis(theta, log, gain=gain, force_limit_n=plant.values["drive.force_limit_n"],
+    tr = simulate_axis(theta, log, gain=gain, force_limit_n=plant.values.get("drive.force_limit_n", math.inf),
                        x0=(float(log.position_m[0]), float(vm[0])))
     fm, fs = gain * log.command, gain * tr.command
     pairs = {"position": (log.position_m, tr.position_m), "velocity": (vm, tr.velocity_m_s), "force": (fm, fs)}
@@ -548,7 +550,7 @@ class AxisFit:
     delay_costs: Mapping[int, float] = field(default_factory=dict)
 
     def report(self) -> dict:
-        return {"mechanism": MECHANISM, "coordinates": "load (m, N)", "status": self.status,
+        return {"mechanism": MECHANISM, "coordinates": COORDINATES, "status": self.status,
                 "iterations": self.iterations, "cost": self.cost, "solver_message": self.message,
                 "delay_check": {"cost_by_command_delay_samples": {str(k): v for k, v in sorted(self.delay_costs.items())},
                                 "note": "each alternative delay refitted with the same weights for at most "
@@ -685,7 +687,7 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
         warnings.append(f"{PARAMETERS[j]}: the logs never move the axis in that direction; kept the base value "
                         f"{base_theta[j]:.6g}")
     skip = METRIC_SKIP_SAMPLES
-    flim = base.values["drive.force_limit_n"]
+    flim = base.values.get("drive.force_limit_n", math.inf)
 
     starts = _starts(logs)
     ch0 = _channels(theta0, logs, flim, starts)

@@ -49,7 +49,11 @@ The controller, when described, is checked against the log before anything else:
 it computes from the logged position and reference (plus the test signal) must reproduce the
 logged command within ``check_tolerance`` (relative 2-norm error), and better than with the
 command shifted by 1 or 2 samples (:data:`ALIGNMENT_RATIO`). This is also how units that disagree with the data
-are caught (a position in mm declared as m scales the reconstructed command by 1000).
+are caught (a position in mm declared as m scales the reconstructed command by 1000): the
+message then names the units that would reproduce it. The other velocity estimate
+(:data:`VELOCITY_ESTIMATES`) must not fit clearly better either. Without a controller, a position
+that moves faster than :data:`MAX_SPEED_M_S` between two samples is refused (a unit or sample
+time that disagrees with the data).
 
 The controller law (``k`` = sample, ``dt`` = ``sample_time_s``)::
 
@@ -68,7 +72,7 @@ from __future__ import annotations
 import csv
 import math
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -80,7 +84,7 @@ from ..errors import LogFormatError
 from .data import MAX_SAMPLES, MIN_SAMPLES
 
 __all__ = ["LogFormatError", "LogFormat", "DEFAULT_CSV_FORMAT", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
-           "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES"]
+           "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES", "MAX_SPEED_M_S"]
 
 #: Controller structures understood.
 STRUCTURES = ("position-p/velocity-p", "position-p/velocity-pi")
@@ -88,6 +92,10 @@ STRUCTURES = ("position-p/velocity-p", "position-p/velocity-pi")
 VELOCITY_ESTIMATES = ("average2-difference", "difference")
 #: Largest relative deviation of a sample interval from the declared sample time.
 SAMPLING_TOL = 0.01
+#: Largest plausible speed of a linear axis, m/s (linear motors reach ~10 m/s): a log whose
+#: position moves faster between two samples has a position unit (or sample time) that
+#: disagrees with its data (mm declared as m).
+MAX_SPEED_M_S = 50.0
 #: A log is refused when the command reconstructed with a shift of 1 or 2 samples matches it
 #: with less than this fraction of the described alignment's error (the description is off).
 ALIGNMENT_RATIO = 0.5
@@ -509,6 +517,11 @@ def load_axis_log(path: str | Path, fmt: LogFormat) -> AxisLog:
 
     pos_unit = _POSITION_UNITS[doc["position"]["unit"]]
     q = sig("position") * pos_unit
+    v_peak = float(np.max(np.abs(np.diff(q)))) / h
+    if v_peak > MAX_SPEED_M_S:
+        raise LogFormatError(f"{name}: [position] {doc['position']['name']!r} (unit {doc['position']['unit']!r}): "
+                             f"moves {v_peak:.3g} m/s between two samples of {h:g} s; expected at most "
+                             f"{MAX_SPEED_M_S:g} m/s (check the position unit and the sample time)")
     ref = sig("reference")
     ref = None if ref is None else ref * _POSITION_UNITS[doc["reference"]["unit"]]
     cmd_sec = doc["command"]
@@ -599,7 +612,7 @@ def _check_reproduction(log: AxisLog, fmt: LogFormat) -> None:
     shift_hint = (f"a shift of {best[1]:+d} samples gives {100 * best[0]:.3g} % (check [command] logged and "
                   "[controller] command_delay_samples)")
     if rel > c.check_tolerance:
-        hint = (shift_hint if best[0] <= c.check_tolerance else
+        hint = (shift_hint if best[0] <= c.check_tolerance else _unit_hint(log, fmt, norm) or
                 "check the gains, the units of [position], [reference] and [command], and the structure")
         raise LogFormatError(f"{fmt.path}: [controller] does not reproduce {Path(log.name).name}'s command "
                              f"{fmt.doc['command']['name']!r}: relative error {100 * rel:.3g} %, expected at most "
@@ -608,3 +621,28 @@ def _check_reproduction(log: AxisLog, fmt: LogFormat) -> None:
         raise LogFormatError(f"{fmt.path}: [controller] reproduces {Path(log.name).name}'s command "
                              f"{fmt.doc['command']['name']!r} with a relative error of {100 * rel:.3g} %, but {shift_hint}: "
                              "expected the described alignment to fit best")
+    other = next(e for e in VELOCITY_ESTIMATES if e != c.velocity_estimate)
+    alt = replace(log, controller=replace(c, velocity_estimate=other))
+    rel_alt = float(np.linalg.norm(reconstruct_command(alt) - log.command)) / norm
+    if c.command_delay_samples == 0 and rel_alt < ALIGNMENT_RATIO * rel:
+        raise LogFormatError(f"{fmt.path}: [controller] velocity_estimate = {c.velocity_estimate!r} reproduces "
+                             f"{Path(log.name).name}'s command {fmt.doc['command']['name']!r} with a relative error of "
+                             f"{100 * rel:.3g} %, but {other!r} gives {100 * rel_alt:.3g} %: expected the described "
+                             "velocity estimate to fit best")
+
+
+def _unit_hint(log: AxisLog, fmt: LogFormat, norm: float) -> str | None:
+    """Which position units (of [position] and [reference] together) would make the described
+    controller reproduce the command, when the declared ones do not: the hint names them."""
+    declared = (fmt.doc["position"]["unit"], fmt.doc["reference"]["unit"])
+    for up in _POSITION_UNITS:
+        for ur in _POSITION_UNITS:
+            if (up, ur) == declared:
+                continue
+            fp, fr = _POSITION_UNITS[up] / _POSITION_UNITS[declared[0]], _POSITION_UNITS[ur] / _POSITION_UNITS[declared[1]]
+            trial = replace(log, position_m=log.position_m * fp, reference_m=log.reference_m * fr)
+            rel = float(np.linalg.norm(reconstruct_command(trial) - log.command)) / norm
+            if rel <= log.controller.check_tolerance:
+                return (f"with [position] unit = {up!r} and [reference] unit = {ur!r} (declared {declared[0]!r} and "
+                        f"{declared[1]!r}) it reproduces it within {100 * rel:.3g} %: check the units")
+    return None

@@ -848,7 +848,9 @@ def describe_plant(plant: Plant) -> str:
     Each line says ``given`` (the plant file's value, with the file's source string) or
     ``default`` / ``derived`` (the key was left out: the value of
     :data:`~prsa_ctrl.plant.schema.DEFAULTS` and the reason). The header names the plant,
-    its file, the mechanism (with its source) and what the plant's compliant fidelity is.
+    its file, the mechanism (with its source), the coordinates the plant works in (a linear axis:
+    load, m and N; every other mechanism: motor, rad and N m) and what the plant's compliant
+    fidelity is.
 
     Examples
     --------
@@ -856,7 +858,9 @@ def describe_plant(plant: Plant) -> str:
     mechanism: inverted-roller-screw (default: inverted-roller-screw)
     """
     lines = [f"plant {plant.name} ({plant.origin}){': ' + plant.description if plant.description else ''}",
-             f"mechanism: {plant.mechanism} ({plant.mechanism_source})"]
+             f"mechanism: {plant.mechanism} ({plant.mechanism_source})",
+             "coordinates: " + ("load (position m, force N)" if plant.mechanism == "linear-axis"
+                                else "motor (angle rad, torque N m)")]
     if plant.screw_driven:
         v = plant.values
         lines.append(f"axial stiffness at the stroke position {v['axis.stroke_position_mm']:g} mm: "

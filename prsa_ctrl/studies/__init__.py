@@ -4,6 +4,13 @@ from .._lazy import lazy_exports
 
 _EXPORTS = {
     "ActuatorTuning": "autotune",
+    "AxisDesign": "axistune",
+    "AxisGains": "axistune",
+    "AxisRetuning": "axistune",
+    "LINEARISATION_SPEED_M_S": "axistune",
+    "axis_loop": "axistune",
+    "axis_loops": "axistune",
+    "retune_axis": "axistune",
     "BACKENDS": "montecarlo",
     "CONTACT_RUN_S": "responses",
     "ContactRun": "responses",

@@ -159,12 +159,16 @@ def test_synthetic_closed_loop_log_recovered_within_its_intervals(tmp_path, seed
 def test_plant_file_round_trip_and_minimal_file(tmp_path):
     from prsa_ctrl.identification.axis import axis_plant_toml
 
+    # the minimal linear-axis file of the package's plant schema (prsa_ctrl.plant.schema.REQUIRED)
     p = tmp_path / "min.toml"
-    p.write_text('mechanism = "linear-axis"\n[axis]\nmass_kg = { value = 12.5, source = "test: given" }\n')
+    p.write_text('mechanism = "linear-axis"\n[axis]\nmass_kg = { value = 12.5, source = "test: given" }\n'
+                 '[drive]\ngain_n_per_unit = { value = 2.0, source = "t" }\nforce_limit_n = { value = 50.0, source = "t" }\n'
+                 '[sensor]\nsample_time_s = { value = 0.001, source = "t" }\n'
+                 'encoder_resolution_m = { value = 1e-6, source = "t" }\n')
     plant = load_axis_plant(p)
     assert plant.values["axis.mass_kg"] == 12.5
     assert plant.sources["friction.coulomb_positive_n"].startswith("default:")
-    assert math.isinf(plant.values["drive.force_limit_n"])
+    assert plant.values["drive.force_limit_n"] == 50.0
     q = tmp_path / "again.toml"
     q.write_text(axis_plant_toml(plant))
     again = load_axis_plant(q)

@@ -152,7 +152,10 @@ def test_missing_files_and_wrong_plant_mechanism(files, capsys, tmp_path):
 def test_validate_needs_a_log_format_and_refuses_fit_flags(files, capsys):
     d, mat, fmt, _ = files
     plant = d / "p.toml"
-    plant.write_text('mechanism = "linear-axis"\n[axis]\nmass_kg = { value = 10.0, source = "test" }\n')
+    plant.write_text('mechanism = "linear-axis"\n[axis]\nmass_kg = { value = 10.0, source = "test" }\n'
+                     '[drive]\ngain_n_per_unit = { value = 2.0, source = "t" }\nforce_limit_n = { value = 50.0, source = "t" }\n'
+                     '[sensor]\nsample_time_s = { value = 0.001, source = "t" }\n'
+                     'encoder_resolution_m = { value = 1e-6, source = "t" }\n')
     code, _, err = _run(capsys, ["--validate", str(plant), str(mat)])
     assert code == 2 and "--log-format" in err and str(mat) in err
     code, _, err = _run(capsys, ["--validate", str(plant), str(mat), "--log-format", str(fmt), "--out", str(d / "x.toml")])
@@ -190,7 +193,10 @@ def test_validate_a_standard_csv_without_a_description_runs_open_loop(tmp_path, 
     path.write_text("time_s,position_m,speed_m_s,force_n\n"
                     + "".join(f"{a:.17g},{b:.17g},{c:.17g},{f}\n" for a, b, c in zip(t, x, v)))
     plant = tmp_path / "p.toml"
-    plant.write_text(f'mechanism = "linear-axis"\n[axis]\nmass_kg = {{ value = {m}, source = "test" }}\n')
+    plant.write_text(f'mechanism = "linear-axis"\n[axis]\nmass_kg = {{ value = {m}, source = "test" }}\n'
+                     '[drive]\ngain_n_per_unit = { value = 1.0, source = "t" }\nforce_limit_n = { value = 1e6, source = "t" }\n'
+                     '[sensor]\nsample_time_s = { value = 0.001, source = "t" }\n'
+                     'encoder_resolution_m = { value = 1e-9, source = "t" }\n')
     rj = tmp_path / "r.json"
     code, out, err = _run(capsys, ["--validate", str(plant), str(path), "--json", str(rj)])
     assert code == 0, err
