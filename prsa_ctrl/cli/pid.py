@@ -50,6 +50,8 @@ _VALUE_FLAGS = ("--plant", "--delay", "--ms-max", "--mt-max", "--mks-max", "--ma
                 "--json")
 
 _EXAMPLE = "'1/(4s+1)', '2(s+1)/(s^2+3s+1)' or '1/(s+1)^3'"
+#: Longest plant expression read (characters).
+_TEXT_MAX = 10_000
 
 
 # --- the plant ------------------------------------------------------------------------------------
@@ -63,6 +65,8 @@ class _PlantText:
 
     def __init__(self, text: str, flag: str) -> None:
         self.text, self.flag = text, flag
+        if len(text) > _TEXT_MAX:
+            self.fail(f"{len(text)} characters; expected at most {_TEXT_MAX}")
         self.tokens: list[tuple[str, str, int]] = []
         pos = 0
         while pos < len(text):
@@ -78,7 +82,8 @@ class _PlantText:
         self.i = 0
 
     def fail(self, why: str):
-        raise UsageError(f"{self.flag} {self.text!r}: {why}; expected a transfer function in s such as {_EXAMPLE}")
+        shown = repr(self.text) if len(self.text) <= 80 else repr(self.text[:60]) + "..."
+        raise UsageError(f"{self.flag} {shown}: {why}; expected a transfer function in s such as {_EXAMPLE}")
 
     def peek(self) -> tuple[str, str, int] | None:
         return self.tokens[self.i] if self.i < len(self.tokens) else None
@@ -128,12 +133,14 @@ class _PlantText:
                 return val
 
     def unary(self, depth: int):
-        if self.take("-"):
-            a = self.unary(depth)
-            return (-a[0], a[1])
-        if self.take("+"):
-            return self.unary(depth)
-        return self.power(depth)
+        sign = 1.0
+        while True:  # a run of signs, read without recursion
+            if self.take("-"):
+                sign = -sign
+            elif not self.take("+"):
+                break
+        a = self.power(depth)
+        return (sign * a[0], a[1])
 
     def power(self, depth: int):
         base = self.atom(depth)
@@ -417,33 +424,38 @@ def _body(run: Run, argv: list[str]) -> int:
     return EXIT_OK
 
 
-def _low_frequency_sign(num: Sequence[float], den: Sequence[float]) -> float:
-    """Sign of ``P(s)`` as ``s -> 0+`` (the ratio of the lowest-order non-zero coefficients)."""
-    n, d = np.trim_zeros(np.asarray(num, float), "b"), np.trim_zeros(np.asarray(den, float), "b")
-    return float(np.sign(n[-1] / d[-1]))
-
-
 def _tune(args, num: list, den: list):
-    """:func:`prsa_ctrl.tuning.tune_pid` with the command's options (the heavy imports here). A
-    plant of negative low-frequency gain (reverse acting) is tuned as ``-P``: ``(result, sign)``,
-    the gains of ``P`` being ``sign`` times the result's (the loop ``P C = (-P)(-C)``, its peaks
-    and the load response's magnitude are the same)."""
+    """:func:`prsa_ctrl.tuning.tune_pid` with the command's options (the heavy imports here):
+    ``(result, sign)``. The tuner's gains are non-negative; where no such gains stabilise the
+    loop (a reverse-acting plant, e.g. ``-1/(s+1)``), ``-P`` is tuned instead and ``sign`` is -1:
+    the gains of ``P`` are then the result's negated (the loop ``P C = (-P)(-C)``, its peaks and
+    the load response's magnitude are the same). The sign is found by trying, not guessed from a
+    gain (an unstable ``1/(s-1)`` has a negative static gain yet needs positive gains)."""
     from dataclasses import replace
 
     import control
 
     from ..tuning.generic import tune_pid
 
-    sign = _low_frequency_sign(num, den)
-    res = tune_pid(control.tf([sign * x for x in num], den), objective=args.objective, controller=args.controller,
-                   ms_max=args.ms_max, mt_max=args.mt_max, mks_max=args.mks_max,
-                   max_noise_gain=args.max_noise_gain, tf=args.tf, filter_order=args.filter_order,
-                   filter_tf=args.filter_tf, ideal=args.ideal, delay=args.delay,
-                   setpoint_weights=args.setpoint_weights)
-    if sign < 0:
-        res = replace(res, warnings=(*res.warnings, "reverse-acting plant (negative low-frequency gain): tuned as -P, "
-                                                    "the gains negated (same loop, peaks and load-response magnitude)"))
-    return res, sign
+    def tune(sign: float):
+        return tune_pid(control.tf([sign * x for x in num], den), objective=args.objective,
+                        controller=args.controller, ms_max=args.ms_max, mt_max=args.mt_max, mks_max=args.mks_max,
+                        max_noise_gain=args.max_noise_gain, tf=args.tf, filter_order=args.filter_order,
+                        filter_tf=args.filter_tf, ideal=args.ideal, delay=args.delay,
+                        setpoint_weights=args.setpoint_weights)
+
+    try:
+        return tune(1.0), 1.0
+    except ValueError as exc:
+        if not str(exc).startswith("no stabilising"):
+            raise
+        try:
+            res = tune(-1.0)
+        except ValueError:
+            raise exc from None  # neither sign: the error of the plant as given
+    return replace(res, warnings=(*res.warnings, "no non-negative gains stabilise this plant: tuned as -P (reverse "
+                                                 "acting), the gains negated (same loop, peaks and load-response "
+                                                 "magnitude)")), -1.0
 
 
 def _objective_text(kind: str, delay: float) -> str:

@@ -72,9 +72,9 @@ def independent_peaks(d: dict) -> dict:
     g = np.log(lmag(w))
     j = np.flatnonzero((g[:-1] > 0) & (g[1:] <= 0))[0]
     wc = brentq(lambda x: math.log(lmag(np.array([x]))[0]), w[j], w[j + 1], xtol=1e-14, rtol=1e-14)
+    pm = 180 + math.degrees(float(np.angle(p(np.array([wc])) * cf(np.array([wc])))[0]))  # folded to (-180, 180]
+    pm = pm - 360 if pm > 180 else pm
     phase = np.unwrap(np.angle(p(w) * cf(w)))
-    ph_c = float(np.interp(wc, w, phase))
-    ph_c += float(np.angle(p(np.array([wc])) * cf(np.array([wc])))[0] - ph_c + np.pi) % (2 * np.pi) - np.pi
     x = (phase + np.pi) / (2 * np.pi)
     k = np.flatnonzero(np.floor(x[:-1]) != np.floor(x[1:]))  # crossings of -180 deg (mod 360)
     gms = []
@@ -88,7 +88,7 @@ def independent_peaks(d: dict) -> dict:
         val = p(np.array([w180]))[0] * cf(np.array([w180]))[0]
         if val.real < 0:
             gms.append(-20 * math.log10(abs(val)))
-    return {"ms": ms, "mt": mt, "mks": mks, "wc": wc, "pm": 180 + math.degrees(ph_c),
+    return {"ms": ms, "mt": mt, "mks": mks, "wc": wc, "pm": pm,
             "gm": min(gms) if gms else math.inf}
 
 
@@ -107,6 +107,8 @@ CASES = {
                 "--mks-max", "5", "--setpoint-weights"],
     "delay": ["--num", "1", "--den", "1", "1", "--delay", "1", "--controller", "pid", "--objective", "iae"],
     "reverse": ["--num", "-2", "--den", "1", "3", "3", "1", "--objective", "ie", "--mt-max", "1.3"],
+    # open-loop unstable: negative static gain, yet positive gains (no sign flip); GM < 0 dB
+    "unstable": ["--plant", "1/((s-1)(0.1s+1))"],
 }
 
 
@@ -151,12 +153,19 @@ def test_the_issue_mks_case_matches_the_brute_force(tmp_path, capsys):
 def test_reverse_acting_plant_gets_negative_gains(tmp_path, capsys):
     _, d, text = _run(tmp_path, CASES["reverse"], capsys)
     c = d["controller"]
-    assert c["kp"] < 0 and c["ki"] < 0 and any("reverse-acting" in w for w in d["warnings"])
+    assert c["kp"] < 0 and c["ki"] < 0 and any("tuned as -P" in w for w in d["warnings"])
     # -P with the negated gains is the same loop: the positive plant's design is its mirror image
     _, d2, _ = _run(tmp_path, ["--num", "2", "--den", "1", "3", "3", "1", "--objective", "ie", "--mt-max", "1.3"],
                     capsys)
     assert d2["controller"]["kp"] == pytest.approx(-c["kp"], rel=1e-9)
     assert d2["controller"]["ki"] == pytest.approx(-c["ki"], rel=1e-9)
+
+
+def test_unstable_plant_keeps_positive_gains(tmp_path, capsys):
+    _, d, _ = _run(tmp_path, CASES["unstable"], capsys)
+    c = d["controller"]
+    assert c["kp"] > 0 and c["ki"] > 0 and not any("tuned as -P" in w for w in d["warnings"])
+    assert d["margins"]["gm_db"] < 0  # a lower gain margin: the loop tolerates a gain decrease of that much
 
 
 def test_filtered_design_reports_filters_and_weights(tmp_path, capsys):
