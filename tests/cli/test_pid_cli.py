@@ -105,7 +105,11 @@ CASES = {
     "ideal": ["--plant", "1/(s+1)^3", "--controller", "pid", "--ideal", "--objective", "ie"],
     "filter2": ["--plant", "1/(s+1)^3", "--controller", "pid", "--filter-order", "2", "--filter-tf", "0.2",
                 "--mks-max", "5", "--setpoint-weights"],
-    "delay": ["--num", "1", "--den", "1", "1", "--delay", "1", "--controller", "pid", "--objective", "iae"],
+    "delay": ["--num", "1", "--den", "1", "1", "--delay", "1", "--controller", "pid", "--objective", "iae",
+              "--tf", "0.05"],
+    # ideal PID behind a first-order measurement filter (Mks finite and bounded), given Tf
+    "ideal-f1": ["--plant", "1/(s+1)^3", "--controller", "pid", "--ideal", "--filter-order", "1", "--filter-tf", "0.74",
+                 "--mks-max", "3", "--objective", "ie"],
     "reverse": ["--num", "-2", "--den", "1", "3", "3", "1", "--objective", "ie", "--mt-max", "1.3"],
     # open-loop unstable: negative static gain, yet positive gains (no sign flip); GM < 0 dB
     "unstable": ["--plant", "1/((s-1)(0.1s+1))"],
@@ -180,6 +184,7 @@ def test_filtered_design_reports_filters_and_weights(tmp_path, capsys):
 def test_delay_report_says_exact(tmp_path, capsys):
     _, d, text = _run(tmp_path, CASES["delay"], capsys)
     assert d["plant"]["delay_s"] == 1.0 and d["margins"]["delay"] == "exact"
+    assert d["controller"]["tf_s"] == 0.05 and d["options"]["tf_s"] == 0.05  # --tf is the derivative filter
     assert "exact delay" in d["objective"]["evaluation"] and "exp(-1 s)" in text
 
 
