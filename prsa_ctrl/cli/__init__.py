@@ -1,4 +1,4 @@
-"""The command-line front ends (prsa-tune, prsa-plot, prsa-fit, the Monte-Carlo replay); the benchmarks
+"""The command-line front ends (prsa-tune, prsa-pid, prsa-plot, prsa-fit, the Monte-Carlo replay); the benchmarks
 are outside the package (``python benchmarks/bench.py``)."""
 
 from .._lazy import lazy_exports
@@ -23,6 +23,7 @@ _EXPORTS = {
     "WORKERS_MAX": "tune",
     "attach_values": "common",
     "beaten_text": "report",
+    "build_pid_parser": "pid",
     "build_parser": "tune",
     "build_plot_parser": "plot",
     "commit": "common",
@@ -45,6 +46,9 @@ _EXPORTS = {
     "number": "common",
     "one_line": "common",
     "parse_load_step": "inputs",
+    "parse_plant": "pid",
+    "pid_main": "pid",
+    "PLANT_ORDER_MAX": "pid",
     "path_text": "common",
     "pct_text": "report",
     "plant_toml": "fit",
