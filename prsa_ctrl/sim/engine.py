@@ -623,8 +623,9 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
     At the sampling instant: quantise the encoder angle, let the measurement block update,
     filter the derivative, run the PID (with the block's load-torque estimate fed forward by
     ``kff``) and store the new command. Over the sample: apply the command stored at the
-    previous sample (one-sample computation delay, zero-order hold, plus optional ripple) and
-    integrate the plant, split at a load event inside the sample when ``split``; then let the
+    previous sample (one-sample computation delay, zero-order hold, plus optional ripple; with
+    the plant's ``drive.command_delay_samples`` = n, the command stored ``1 + n`` samples
+    earlier, through a line of n commands after the rest of the memory) and integrate the plant, split at a load event inside the sample when ``split``; then let the
     measurement block predict with the applied command.
 
     With an ``outer`` block (a :class:`~prsa_ctrl.drive.measurement.PositionLoop`), the speed
@@ -644,17 +645,18 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
 
     ``(zm = [scaled plant state; memory], p = per-sample parameters) -> zm at the next sample``
     """
-    key = (settings, meas.key(), split, outer.key() if outer is not None else None, tuple(places))
-    if key in built.sampled:
-        return built.sampled[key]
     model, scale = built.model, built.plant_scale
     p = model.plant
+    n_dl = p.command_delay_samples
+    key = (settings, meas.key(), split, outer.key() if outer is not None else None, tuple(places), n_dl)
+    if key in built.sampled:
+        return built.sampled[key]
     nz, nx = len(scale), model.nx
     n_meas = len(meas.memory_names)
     n_outer = len(outer.memory_names) if outer is not None else 0
     n_filt = len(_FILTER_MEMORY) * len(places)
     nm = len(_MEM_HEAD) + n_meas + n_outer + n_filt + len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer else 0) \
-        + (len(_FILTER_OUTPUTS) if places else 0)
+        + (len(_FILTER_OUTPUTS) if places else 0) + n_dl
     ts = p.sample_time_s
     q = 2.0 * math.pi / p.encoder_counts
     integ = sample_integrator(built, settings)
@@ -703,11 +705,16 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
     else:
         z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, ts))["xf"]
     m_meas = meas.predict(m_meas, u_pend)
-    mem_next = ca.vertcat(theta_q, integral + ts * dintegral, deriv, w_meas, u_sat, m_meas,
+    if n_dl:  # the drive's command delay: a line of n_dl commands (oldest first) after the memory
+        line = mem[nm - n_dl:]
+        u_next, line_next = line[0], ca.vertcat(line[1:], u_sat)
+    else:
+        u_next, line_next = u_sat, ca.DM.zeros(0)
+    mem_next = ca.vertcat(theta_q, integral + ts * dintegral, deriv, w_meas, u_next, m_meas,
                           *([m_outer] if outer is not None else []), *[v for f in filt_next for v in f],
                           u_pend, w_meas, w_fd, tl_hat,
                           *([p_meas, p_ref, ref, tau_pos] if outer is not None else []),
-                          *([w_raw, u_pid] if places else []))
+                          *([w_raw, u_pid] if places else []), line_next)
     law = ca.Function("sample_law", [zm, par], [ca.vertcat(z, mem_next)])
     built.sampled[key] = law
     return law
@@ -795,7 +802,8 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     mem0 = [math.floor((theta0 - w0 * ts) / q) * q, integral0, 0.0, w0, op.torque,
             *meas.initial(theta0, w0, op.torque), *(outer.initial() if outer is not None else []), *filt0,
             *np.zeros(len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer is not None else 0)
-                      + (len(_FILTER_OUTPUTS) if filters else 0))]
+                      + (len(_FILTER_OUTPUTS) if filters else 0)),
+            *[op.torque] * p.command_delay_samples]  # the command delay line, in steady state
     zm = np.concatenate([np.concatenate([op.x, e0]) / scale, mem0])
     filt_names = tuple(f"filter{i + 1}_{pl}_{m}" for i, pl in enumerate(places) for m in _FILTER_MEMORY)
     names = tuple(model.state_names) + ("energy",) * len(e0) + _MEM_HEAD + meas.memory_names \
@@ -824,7 +832,7 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     plant_x = np.hstack([np.concatenate([op.x, e0])[:, None], traj[:nz, :n] * scale[:, None]])
     mem = np.hstack([np.asarray(mem0, float)[:, None], traj[nz:, :n]])
     ctrl = np.vstack([mem[1:3], mem[5 : 5 + n_meas + n_outer + n_filt]])
-    extra = traj[nz + len(_MEM_HEAD) + n_meas + n_outer + n_filt :, :]
+    extra = traj[nz + len(_MEM_HEAD) + n_meas + n_outer + n_filt : traj.shape[0] - p.command_delay_samples, :]
     xs = np.vstack([plant_x[:nx], ctrl, plant_x[nx:]])
     state_labels = tuple(model.state_names) + _SAMPLED_STATES + tuple(meas.memory_names) \
         + (tuple(outer.memory_names) if outer is not None else ()) + filt_names
