@@ -45,6 +45,8 @@ FITTABLE: Mapping[str, tuple[str, str]] = {
     "friction.efficiency": ("-", "forward efficiency"),
     "friction.no_load_torque_n_m": ("N m", "no-load (Coulomb) drag torque"),
     "friction.viscous_n_m_s_per_rad": ("N m s/rad", "viscous coefficient"),
+    "friction.torque_offset_n_m": ("N m", "drag offset: Coulomb levels no-load + offset forward, no-load - offset "
+                                          "backward (needs data at speed in both directions)"),
     "drive.current_loop_bandwidth_hz": ("Hz", "current-loop bandwidth"),
     "drive.command_delay_s": ("s", "command delay (logged command to the moment it acts; not a plant-file key)"),
     "contact.stiffness_n_per_mm_e": ("N/mm^e", "IMPACT thread-contact stiffness (compliant fidelity: the axial mode)"),
@@ -222,6 +224,8 @@ def key_bounds(plant: Plant, key: str, ts: float) -> tuple[float, float, float]:
         return 0.0, 0.5 * t_max, max(v, 0.01 * t_max)
     if key == "friction.viscous_n_m_s_per_rad":
         return 0.0, 0.01 * t_max, max(v, 1e-5 * t_max)
+    if key == "friction.torque_offset_n_m":
+        return -0.5 * t_max, 0.5 * t_max, max(abs(v), 0.01 * t_max)
     if key == "drive.current_loop_bandwidth_hz":
         return 10.0, min(1e5, 10.0 / ts), v
     if key == "contact.stiffness_n_per_mm_e":  # the axial mode frequency goes with K^(1/(2e))

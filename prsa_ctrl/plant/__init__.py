@@ -22,6 +22,7 @@ _EXPORTS = {
     "MOUNTINGS": "schema",
     "NON_NEGATIVE": "schema",
     "NON_NEGATIVE_INTEGER": "schema",
+    "FINITE": "schema",
     "OperatingPoint": "equilibrium",
     "PLAUSIBLE": "schema",
     "POSITIVE": "schema",

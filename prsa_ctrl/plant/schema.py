@@ -28,13 +28,15 @@ import math
 from typing import Any, Callable, Mapping, Union
 
 __all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "NON_NEGATIVE_INTEGER",
-           "FRACTION", "COMMAND_DELAY_KEY",
+           "FINITE", "FRACTION", "COMMAND_DELAY_KEY",
            "MECHANISMS", "DEFAULT_MECHANISM", "SCREW_DRIVEN", "MOUNTINGS", "DEFAULT_MOUNTING", "SCREW_AXIS_SCHEMA",
            "LINEAR_AXIS_SCHEMA", "KIND", "REQUIRED", "DEFAULTS", "UNITS", "keys_of", "kind_of"]
 
 # Kinds of value: positive finite, non-negative finite, positive integer, non-negative integer, fraction in (0, 1].
 POSITIVE, NON_NEGATIVE, POSITIVE_INTEGER, FRACTION = "positive", "non-negative", "positive integer", "fraction in (0, 1]"
 NON_NEGATIVE_INTEGER = "non-negative integer"
+#: Kind of a signed value (any finite number).
+FINITE = "finite"
 
 #: The drive's command delay beyond the controller's own one-sample computation delay, in
 #: controller samples: transport (fieldbus, PWM update) and current-loop dead time between the
@@ -87,6 +89,7 @@ SCHEMA: Mapping[str, Mapping[str, str]] = {
         "viscous_n_m_s_per_rad": NON_NEGATIVE,
         "creep_velocity_m_s": POSITIVE,
         "traction_preload_n": NON_NEGATIVE,
+        "torque_offset_n_m": FINITE,
     },
     "drive": {"torque_limit_n_m": POSITIVE, "current_loop_bandwidth_hz": POSITIVE,
               "command_delay_samples": NON_NEGATIVE_INTEGER},
@@ -140,6 +143,8 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
     "friction.creep_velocity_m_s": (1e-6, 1.0, "rolling creep ~0.1 % of the rolling speed; below 1e-6 m/s the "
                                     "traction law becomes a discontinuity the integrator cannot resolve"),
     "friction.traction_preload_n": (0.0, 1e7, "at most the rated load"),
+    "friction.torque_offset_n_m": (-1e3, 1e3, "direction-dependent drag: half the difference of the Coulomb levels, "
+                                   "well below the motor torque"),
     "drive.torque_limit_n_m": (1e-3, 1e5, "servo and torque motors: 0.01 to ~10 kN m"),
     "drive.current_loop_bandwidth_hz": (10.0, 1e5, "servo drives 0.5 to 5 kHz"),
     "drive.command_delay_samples": (0, 20, "transport and current-loop dead time of servo drives: 0 to ~3 samples"),
@@ -369,6 +374,10 @@ DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]]
                                        if m == "linear-axis" else 1.0e-4,
                                        {"linear-axis": "derived: mean of friction.viscous_positive/negative_n_s_per_m",
                                         "*": "default: grease churning and motor iron losses (the paper plant's 1e-4 N m s/rad)"}),
+    "friction.torque_offset_n_m": (0.0, {"linear-axis": "derived: 0 (a linear axis carries its offset in "
+                                                        "friction.coulomb_positive_n and _negative_n)",
+                                         "*": "default: symmetric drag (Coulomb level friction.no_load_torque_n_m in "
+                                              "both directions)"}),
     "friction.creep_velocity_m_s": (1.0e-3, "default: lubricated rolling creep (the paper plant's 1 mm/s)"),
     "friction.traction_preload_n": (lambda v, m: 0.04 * v["screw.rated_load_n"],
                                     "default: 4 % of the rated load (the paper plant's 200 N at 5 kN)"),

@@ -624,8 +624,9 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
     filter the derivative, run the PID (with the block's load-torque estimate fed forward by
     ``kff``) and store the new command. Over the sample: apply the command stored at the
     previous sample (one-sample computation delay, zero-order hold, plus optional ripple; with
-    the plant's ``drive.command_delay_samples`` = n, the command stored ``1 + n`` samples
-    earlier, through a line of n commands after the rest of the memory) and integrate the plant, split at a load event inside the sample when ``split``; then let the
+    the plant's ``drive.command_delay_samples`` = n, the current loop receives it n samples
+    later, through a line of n commands after the rest of the memory; the reported
+    ``torque_command`` is the controller's output, before that delay) and integrate the plant, split at a load event inside the sample when ``split``; then let the
     measurement block predict with the applied command.
 
     With an ``outer`` block (a :class:`~prsa_ctrl.drive.measurement.PositionLoop`), the speed
@@ -698,19 +699,21 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
     u_pid = u_sat
     if "torque_command" in places:
         u_sat = ca.fmin(ca.fmax(run_filters(u_sat, "torque_command"), -p.torque_limit), p.torque_limit)
-    applied = u_pend + ripple
+    # The controller's output over this sample is the command stored at the previous one; the
+    # drive's command delay (n_dl samples, a line of the last n_dl outputs, oldest first, after
+    # the rest of the memory) passes it to the current loop n_dl samples later.
+    if n_dl:
+        line = mem[nm - n_dl:]
+        applied, line_next = line[0] + ripple, ca.vertcat(line[1:], u_pend)
+    else:
+        applied, line_next = u_pend + ripple, ca.DM.zeros(0)
     if split:
         z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, frac * ts))["xf"]
         z = integ(x0=z, p=ca.vertcat(applied, load_b, slope_b, (1 - frac) * ts))["xf"]
     else:
         z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, ts))["xf"]
     m_meas = meas.predict(m_meas, u_pend)
-    if n_dl:  # the drive's command delay: a line of n_dl commands (oldest first) after the memory
-        line = mem[nm - n_dl:]
-        u_next, line_next = line[0], ca.vertcat(line[1:], u_sat)
-    else:
-        u_next, line_next = u_sat, ca.DM.zeros(0)
-    mem_next = ca.vertcat(theta_q, integral + ts * dintegral, deriv, w_meas, u_next, m_meas,
+    mem_next = ca.vertcat(theta_q, integral + ts * dintegral, deriv, w_meas, u_sat, m_meas,
                           *([m_outer] if outer is not None else []), *[v for f in filt_next for v in f],
                           u_pend, w_meas, w_fd, tl_hat,
                           *([p_meas, p_ref, ref, tau_pos] if outer is not None else []),
