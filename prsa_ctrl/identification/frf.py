@@ -309,6 +309,7 @@ def fit_frf(
     max_nfev: int = 200,
     keep_unidentified: bool = True,
     uncertainty: str = "keep",
+    command_logged: str = "applied",
 ) -> FitResult:
     """Fit plant parameters to measured frequency responses (torque command -> nut speed).
 
@@ -339,6 +340,13 @@ def fit_frf(
         or the mode changes them by less than their noise.
     delay_samples : int
         Extra command delay, samples.
+    command_logged : {"applied", "computed"}
+        How the command the responses start from was logged
+        (:data:`prsa_ctrl.identification.delay.CONVENTIONS`). With ``drive.command_delay_s``
+        fitted, the fitted plant carries the delay: ``drive.command_delay_samples`` the whole
+        samples of ``T_d`` (less the computation delay of a computed command) and the rest of
+        ``T_d`` added to the current loop's lag (``drive.current_loop_bandwidth_hz`` written
+        as ``1 / (2 pi (1 / (2 pi f_c) + rest))``); ``FitResult.delay["plant_file"]`` says so.
     max_nfev : int
         Budget of model evaluations.
     keep_unidentified : bool
@@ -448,6 +456,8 @@ def fit_frf(
                          sample_time_s=frf_sample_time(fr, plant), delay_s=delay_of(sol.x, fr), fidelity=fidelity)
         fit_pct[fr.name] = round(frf_fit_percent(fr.response, g), 3)
         traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
+    if delay is not None:  # after the fit %: the traces use the fitted continuous delay itself
+        fitted, delay = _write_delay(fitted, delay, ts_fit, command_logged, warns)
     solver = {
         "name": "bounded least squares on the log frequency response (scipy trust-region reflective)",
         "status": "converged",
@@ -460,6 +470,39 @@ def fit_frf(
         "covariance": "classic (residual variance x inverse Gauss-Newton matrix)",
     }
     return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay, reasons)
+
+
+def _write_delay(fitted: Plant, delay: dict, ts: float, command_logged: str, warns: list) -> tuple[Plant, dict]:
+    """The fitted plant with the fitted continuous delay written (see :func:`fit_frf`)."""
+    offset = {"applied": 0, "computed": 1}.get(command_logged)
+    if offset is None:
+        raise ValueError(f"command_logged = {command_logged!r}; expected 'applied' or 'computed'")
+    t_d = float(delay["value"]) - offset * ts
+    if t_d < 0:
+        warns.append(f"the fitted command delay {delay['value']:.4g} s is shorter than the computation delay "
+                     f"{ts:g} s of a command logged as computed: written as no delay; expected command_logged "
+                     "'applied' for these responses")
+        t_d = 0.0
+    n = int(math.floor(t_d / ts + 1e-6))
+    rest = max(t_d - n * ts, 0.0)
+    f_c = fitted.values["drive.current_loop_bandwidth_hz"]
+    f_w = 1.0 / (1.0 / f_c + 2 * math.pi * rest)
+    out = fitted.with_params({"drive.command_delay_samples": n, "drive.current_loop_bandwidth_hz": f_w},
+                             name=fitted.name)
+    srcs = dict(out.sources)
+    srcs["drive.command_delay_samples"] = (f"fit: whole samples of the fitted command delay {delay['value']:.4g} s "
+                                           f"(command logged as {command_logged})")
+    srcs["drive.current_loop_bandwidth_hz"] = (f"fit: {f_c:.6g} Hz with the delay's remaining {rest:.4g} s "
+                                               "as current-loop lag")
+    out = Plant(name=out.name, values=out.values, sources=srcs, origin=out.origin, description=out.description,
+                uncertainty=out.uncertainty, mechanism=out.mechanism, defaulted=out.defaulted,
+                mechanism_source=out.mechanism_source)
+    delay = dict(delay)
+    delay["plant_file"] = (f"written: drive.command_delay_samples = {n} and drive.current_loop_bandwidth_hz = "
+                           f"{f_w:.6g} (the fitted {f_c:.6g} Hz with the remaining {rest:.4g} s of the delay as "
+                           "current-loop lag)")
+    delay["written"] = {"drive.command_delay_samples": n, "drive.current_loop_bandwidth_hz": f_w}
+    return out, delay
 
 
 def _mode_warnings(fitted: Plant, frf: Sequence[FrfRecord], noise_log: float) -> list[str]:
