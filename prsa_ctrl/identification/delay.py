@@ -154,7 +154,8 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
             fits[shift], errors[shift] = None, str(exc)
             continue
         if lag is None:
-            lag = shift * ts + 1.0 / (2 * math.pi * fits[shift].plant.values[_BW])
+            f_c = fits[shift].parameters[_BW]["value"] if _BW in keys else fits[shift].plant.values[_BW]
+            lag = shift * ts + 1.0 / (2 * math.pi * f_c)  # the fitted value, also where it is not written
         good = {s: r for s, r in fits.items() if r is not None}
         best = min(good, key=lambda s: good[s].solver["objective"])
         if _BW not in keys and shift >= best + 2:

@@ -263,6 +263,9 @@ def fit_plant(
         return with_command_delay(res, shift, command_logged, "found by the delay search")
     if delay_samples is not None:
         shift = delay_samples
+        if shift < plant_shift(plant, command_logged) - plant.command_delay_samples:
+            raise ValueError(f"delay_samples = {shift} with command_logged = {command_logged!r}; expected at least "
+                             "1 (a computed command acts one sample later) or command_logged = 'applied'")
     return with_command_delay(fit_at(shift, plant), shift, command_logged,
                               "given" if delay_samples is not None else "the base plant's")
 
