@@ -20,6 +20,7 @@ from ..drive.sampled import zoh
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from .common import (DELAY_KEY, FRF_KEYS, FRF_KEYS_COMPLIANT, PSEUDO_KEYS, UNCERTAINTY_MODES, FitResult, check_keys,
+                     default_keys,
                      checked_inputs, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord
 
@@ -367,8 +368,8 @@ def fit_frf(
         raise ValueError(f"uncertainty = {uncertainty!r}; expected one of {', '.join(map(repr, UNCERTAINTY_MODES))}")
     if fidelity not in ("rigid", "compliant"):
         raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' for a frequency-response fit")
-    keys = check_keys(FRF_KEYS_COMPLIANT if keys is None and fidelity == "compliant" else
-                       FRF_KEYS if keys is None else keys, fidelity)
+    keys = check_keys(default_keys(plant, FRF_KEYS_COMPLIANT) if keys is None and fidelity == "compliant" else
+                       default_keys(plant, FRF_KEYS) if keys is None else keys, fidelity, plant)
     if not (isinstance(delay_samples, int) and 0 <= delay_samples <= 10):
         raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..10")
     ts_fit = min(frf_sample_time(fr, plant) or plant.sample_time_s for fr in frf)

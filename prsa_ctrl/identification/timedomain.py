@@ -49,7 +49,7 @@ from scipy.sparse.linalg import splu
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
-from .common import (DEFAULT_KEYS, DELAY_KEY, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
+from .common import (DELAY_KEY, default_keys, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
 from .delay import DEFAULT_CONVENTION, MAX_SHIFT, plant_shift, search_delay, with_command_delay
@@ -180,7 +180,8 @@ def fit_plant(
         they validate the fitted plant (fit % and traces for the Bode overlay); alone they are
         fitted.
     keys : sequence of str, optional
-        Plant keys to fit (default :data:`DEFAULT_KEYS`; :data:`FRF_KEYS` for an FRF-only fit).
+        Plant keys to fit (default :data:`DEFAULT_KEYS`, with ``axis.motor_inertia_kg_m2`` for the
+        inertia of a screw-driven axis, :func:`default_keys`; :data:`FRF_KEYS` for an FRF-only fit).
     fidelity : {"rigid", "compliant"}
         Model fidelity.
     validate : sequence of Record
@@ -235,6 +236,7 @@ def fit_plant(
         The solver did not converge (status and remedy in the message).
     """
     plant = load_plant() if plant is None else plant
+    check_keys(default_keys(plant) if keys is None else keys, fidelity, plant)  # before the data checks
     records, frf, validate = list(records), list(frf), list(validate)
     records, validate, frf = checked_inputs(records, validate, frf, plant)
 
@@ -259,7 +261,7 @@ def fit_plant(
         if not records:
             raise ValueError("delay_samples = 'find' without records; expected time-domain records to search on")
         ts = records[0].sample_time_s
-        shift, res = search_delay(fit_at, plant, tuple(DEFAULT_KEYS if keys is None else keys), ts, max_delay_samples)
+        shift, res = search_delay(fit_at, plant, default_keys(plant) if keys is None else tuple(keys), ts, max_delay_samples)
         return with_command_delay(res, shift, command_logged, "found by the delay search")
     if delay_samples is not None:
         shift = delay_samples
@@ -275,10 +277,10 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
-    keys = tuple(DEFAULT_KEYS if keys is None else keys)
+    keys = default_keys(plant) if keys is None else tuple(keys)
     if not keys:
         raise ValueError("keys = (); expected at least one plant key to fit")
-    keys = check_keys(keys, fidelity)
+    keys = check_keys(keys, fidelity, plant)
     if DELAY_KEY in keys:
         raise ValueError(f"fit key {DELAY_KEY!r} with time-domain records; expected it in a frequency-response fit "
                          "(--frf without DATA.csv): in closed-loop records it is not separable from the current-loop "

@@ -704,7 +704,7 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
     # the rest of the memory) passes it to the current loop n_dl samples later.
     if n_dl:
         line = mem[nm - n_dl:]
-        applied, line_next = line[0] + ripple, ca.vertcat(line[1:], u_pend)
+        applied, line_next = line[0] + ripple, ca.vertcat(*[line[i] for i in range(1, n_dl)], u_pend)
     else:
         applied, line_next = u_pend + ripple, ca.DM.zeros(0)
     if split:

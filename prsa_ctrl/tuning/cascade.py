@@ -221,7 +221,7 @@ class CascadeModel:
         line = X[n + 5:]
         act = line[nd - 1] if nd else u_pend
         x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * act + ca.DM(self.bd) * r[3]
-        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, *([u_pend, line[:nd - 1]] if nd else []))
+        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, *([u_pend] if nd else []), *[line[i] for i in range(nd - 1)])
         self.step = ca.Function("cascade_step", [X, r, g], [Xn, e_p * a])
         self.jac = ca.Function("cascade_ab", [g], [ca.jacobian(Xn, X), ca.jacobian(Xn, r)])
         self.nX = n + 5 + nd

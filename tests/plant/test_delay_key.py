@@ -43,25 +43,38 @@ def test_bad_values_refused(plant, bad):
         plant.with_params({KEY: bad})
 
 
-def test_simulator_shift_exactly_n_samples(plant):
+@pytest.mark.parametrize("nd", [1, 2])
+def test_simulator_shift_exactly_n_samples(plant, nd):
     """Open loop (a position loop whose only action is the acceleration feed-forward, a speed PI
-    of negligible gain): with 2 samples of command delay every torque is the delay-free run's,
-    2 samples later (the plant starts at rest, so the runs are time shifts of each other)."""
+    of negligible gain): with nd samples of command delay every torque is the delay-free run's,
+    nd samples later (the plant starts at rest, so the runs are time shifts of each other)."""
     runs = {}
-    for n in (0, 2):
+    for n in (0, nd):
         p = plant.with_params({KEY: n})
         runs[n] = run(p, setpoint=0.0, load=0.0, duration=0.04, controller=PID(0.0, 1e-12), fidelity="rigid",
                       discrete=True, position=PositionLoop(kv=1e-6, kvff=0.0, kaff=1.0),
                       motion=trapezoidal(0.001, 0.04, 2.0))
     # the controller's output (the logged command, convention "applied") is the same in both runs
-    np.testing.assert_allclose(runs[2].output("torque_command"), runs[0].output("torque_command"), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(runs[nd].output("torque_command"), runs[0].output("torque_command"), rtol=0, atol=1e-9)
     for label in ("motor_torque", "nut_speed"):
-        y0, y2 = runs[0].output(label), runs[2].output(label)
+        y0, y2 = runs[0].output(label), runs[nd].output(label)
         scale = float(np.max(np.abs(y0)))
         assert scale > 0.01
-        assert np.max(np.abs(y2[2:] - y0[:-2])) < 1e-9 * scale, label
-        if label != "nut_speed":  # a torque step: a 1-sample shift would be seen
-            assert np.max(np.abs(y2[1:] - y0[:-1])) > 0.05 * scale, label
+        assert np.max(np.abs(y2[nd:] - y0[:-nd])) < 1e-9 * scale, label
+        if label != "nut_speed":  # a torque step: a shift by one sample less would be seen
+            assert np.max(np.abs(y2[nd - 1:] - y0[:len(y0) - nd + 1])) > 0.05 * scale, label
+
+
+def test_simulator_closed_loop_sampled_runs(plant):
+    """A closed-loop sampled run (the shared, chunked law) with 1 sample of delay runs and is
+    slower to reject a load step than without (the delay costs phase)."""
+    peak = {}
+    for n in (0, 1):
+        r = run(plant.with_params({KEY: n}), setpoint=30.0, load=[(0.0, 200.0), (0.01, 2500.0)], duration=0.06,
+                controller=PID(0.05, 2.0), fidelity="rigid", discrete=True)
+        w = r.output("nut_speed")
+        peak[n] = float(30.0 - np.min(w))
+    assert peak[1] > peak[0] > 0
 
 
 # --- the loop model, against an independent sampled loop ----------------------------------
