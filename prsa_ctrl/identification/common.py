@@ -29,7 +29,7 @@ from ..errors import PlantFileError
 from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
 from ..plant.plantfile import Plant
-from ..plant.schema import PLAUSIBLE, SCHEMA
+from ..plant.schema import KIND, PLAUSIBLE, SCHEMA
 from ..plant.uncertainty import plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
 

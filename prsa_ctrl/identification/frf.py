@@ -473,6 +473,9 @@ def fit_frf(
     return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay, reasons)
 
 
+BW_KEY = "drive.current_loop_bandwidth_hz"
+
+
 def _write_delay(fitted: Plant, delay: dict, ts: float, command_logged: str, warns: list) -> tuple[Plant, dict]:
     """The fitted plant with the fitted continuous delay written (see :func:`fit_frf`)."""
     offset = {"applied": 0, "computed": 1}.get(command_logged)
@@ -495,8 +498,16 @@ def _write_delay(fitted: Plant, delay: dict, ts: float, command_logged: str, war
                                            f"(command logged as {command_logged})")
     srcs["drive.current_loop_bandwidth_hz"] = (f"fit: {f_c:.6g} Hz with the delay's remaining {rest:.4g} s "
                                                "as current-loop lag")
+    unc = dict(out.uncertainty or {})
+    if BW_KEY in unc and isinstance(unc[BW_KEY], dict):  # its absolute numbers follow the written value
+        e = dict(unc[BW_KEY])
+        for field_ in ("low", "high", "sigma"):
+            if isinstance(e.get(field_), (int, float)) and not isinstance(e.get(field_), bool):
+                e[field_] = e[field_] * f_w / f_c
+        e["source"] = f"{e.get('source', '')}; scaled to the written bandwidth (delay remainder as lag)".lstrip("; ")
+        unc[BW_KEY] = e
     out = Plant(name=out.name, values=out.values, sources=srcs, origin=out.origin, description=out.description,
-                uncertainty=out.uncertainty, mechanism=out.mechanism, defaulted=out.defaulted,
+                uncertainty=unc, mechanism=out.mechanism, defaulted=out.defaulted,
                 mechanism_source=out.mechanism_source)
     delay = dict(delay)
     delay["plant_file"] = (f"written: drive.command_delay_samples = {n} and drive.current_loop_bandwidth_hz = "
