@@ -776,8 +776,7 @@ def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges
         lo_ci, hi_ci = v["ci95"]
         if not (np.isfinite(sd) and sd > 0):
             continue
-        section, sub = k.split(".")
-        kind = SCHEMA[section][sub]
+        kind = KIND[k]
         floor = 0.0 if kind in ("positive", "non-negative", "fraction in (0, 1]") else -math.inf
         ceil = 1.0 if kind == "fraction in (0, 1]" else math.inf
         floor, ceil = max(floor, r_lo), min(ceil, r_hi)
