@@ -180,3 +180,11 @@ def test_linearize_carries_the_delay(plant):
         ph[n] = np.angle(complex(sys(1j * w)[0, 0])) if sys.noutputs > 1 else np.angle(complex(sys(1j * w)))
     d = np.angle(np.exp(1j * (ph[3] - ph[0])))
     assert d == pytest.approx(-3 * plant.sample_time_s * w, rel=1e-3)
+
+
+def test_export_states_the_delay(plant):
+    from prsa_ctrl.io.export import export_controller
+
+    for n in (0, 2):
+        out = export_controller(PID(0.05, 2.0), plant.with_params({KEY: n}), fmt="json")
+        assert out["command_delay_samples"] == n and "drive.command_delay_samples" in out["command_delay_note"]
