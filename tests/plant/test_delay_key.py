@@ -188,3 +188,31 @@ def test_export_states_the_delay(plant):
     for n in (0, 2):
         out = export_controller(PID(0.05, 2.0), plant.with_params({KEY: n}), fmt="json")
         assert out["command_delay_samples"] == n and "drive.command_delay_samples" in out["command_delay_note"]
+
+
+def test_cascade_model_carries_the_delay(plant):
+    """The cascade tuner's model: its speed loop equals the drive loop with the same delay (which
+    the tests above check independently), and its time-domain closed loop has the delay line."""
+    import dataclasses
+
+    from prsa_ctrl.plant.model import plant_model
+    from prsa_ctrl.plant.linear import linear_core
+    from prsa_ctrl.studies.movescene import load_move_scene
+    from prsa_ctrl.tuning.cascade import CascadeModel
+
+    sc = dataclasses.replace(load_move_scene("paper-move"), fidelity="rigid")
+    g = [0.0809, 13.56, 40.0, 0.0, 1.0, 1.0]
+    w = np.geomspace(1.0, 1e4, 50)
+    models = {}
+    for n in (0, 2):
+        p = plant.with_params({KEY: n})
+        cm = CascadeModel(p, sc)
+        model = plant_model(p, "rigid")
+        a, b, c, _, _ = linear_core(p, cm.w_lin, sc.load_n, "rigid")
+        lp = drive_loop(a, b, c[model.output_names.index("nut_speed")], model.index("theta_nut"), ts=p.sample_time_s,
+                        speed_filter=p.speed_filter_s, tf=1e-3, horizon=0.05, step=100.0, command_delay_samples=n)
+        np.testing.assert_allclose(cm.loops(g, w)["speed_open"], lp.loop_response(g[:2] + [0.0], w), rtol=1e-9)
+        models[n] = cm
+    assert models[2].nX == models[0].nX + 2
+    e0, e2 = models[0].error(g, "move"), models[2].error(g, "move")
+    assert np.all(np.isfinite(e2)) and np.max(np.abs(e2 - e0)) > 1e-3 * np.max(np.abs(e0))
