@@ -30,9 +30,12 @@ def plant():
 
 
 def test_default_source_and_show(plant):
-    assert plant.values[KEY] == 0 and plant.command_delay_samples == 0
-    assert plant.sources[KEY].startswith("default:") and "computation delay" in plant.sources[KEY]
-    line = next(ln for ln in describe_plant(plant).splitlines() if KEY in ln)
+    assert plant.values[KEY] == 0 and plant.command_delay_samples == 0  # the paper plant gives it
+    assert plant.sources[KEY].startswith("assumption:")
+    ball = load_plant("ballscrew-32x10")  # a catalogue plant that leaves it out
+    assert ball.values[KEY] == 0 and not ball.given(KEY)
+    assert ball.sources[KEY].startswith("default:") and "computation delay" in ball.sources[KEY]
+    line = next(ln for ln in describe_plant(ball).splitlines() if KEY in ln)
     assert " 0 samples" in line and "default" in line
     assert plant.with_params({KEY: 2}).command_delay_samples == 2
 
