@@ -153,3 +153,32 @@ def test_coverage_over_20_seeds(base):
             lo, hi = res.parameters[k]["ci95"]
             inside[k] += lo <= v <= hi
     assert all(c >= 18 for c in inside.values()), inside
+
+
+def test_cli_writes_the_found_delay(base, tmp_path, capsys):
+    """prsa-fit on a foreign log: the found delay is in the plant file prsa-tune loads, the
+    convention flag moves it by one sample, a bad convention is one line and exit 2."""
+    import tomllib
+
+    from prsa_ctrl.cli.fit import main
+
+    ax = _axis(base, transport_samples=1, bandwidth_hz=900.0)
+    n = 2000
+    sp, ld = fg.multisine(n, ax.sample_time_s, seed=8)
+    log = fg.simulate(ax, sp, ld, seed=8, convention="computed")
+    csv = tmp_path / "log.csv"
+    np.savetxt(csv, np.column_stack([log.time_s, log.command_n_m, log.angle_rad, log.load_n]), delimiter=",",
+               header="time_s,torque_command_n_m,nut_angle_rad,axial_load_n", comments="", fmt="%.17g")
+    out = tmp_path / "fit.toml"
+    assert main([str(csv), "--out", str(out), "--command-logged", "computed"]) == 0
+    text = capsys.readouterr().out
+    assert "command delay: 2 sample(s)" in text and "drive.command_delay_samples = 1" in text
+    doc = tomllib.loads(out.read_text())
+    assert doc["drive"]["command_delay_samples"]["value"] == 1
+    fitted = load_plant(out)
+    assert fitted.command_delay_samples == 1
+    assert abs(fitted.values[BW] / 900.0 - 1) < 0.10
+    bad = tmp_path / "bad.toml"
+    assert main([str(csv), "--out", str(bad), "--command-logged", "sometimes"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--command-logged" in err and not bad.exists()
