@@ -236,7 +236,9 @@ def fit_plant(
         The solver did not converge (status and remedy in the message).
     """
     plant = load_plant() if plant is None else plant
-    check_keys(default_keys(plant) if keys is None else keys, fidelity, plant)  # before the data checks
+    keys = None if keys is None else tuple(keys)
+    if keys is None or keys:  # the mechanism's keys before the data checks (no keys: refused below)
+        check_keys(default_keys(plant) if keys is None else keys, fidelity, plant)
     records, frf, validate = list(records), list(frf), list(validate)
     records, validate, frf = checked_inputs(records, validate, frf, plant)
 
