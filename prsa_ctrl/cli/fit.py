@@ -3,7 +3,12 @@
 ``prsa-fit [DATA.csv ...] [--frf FRF.csv ...] --out MY.toml [--json REPORT.json] [--plots DIR]
 [--plant BASE] [--fit KEY,...] [--fidelity rigid|compliant] [--validate OTHER.csv ...]
 [--columns name=header,...] [--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N]
-[--coherence-min C] [--delay-samples N] [--verbose]``
+[--coherence-min C] [--delay-samples N] [--command-logged applied|computed] [--verbose]``
+
+The command delay: by default the fit of time-domain records searches the whole-sample delay
+between the logged command and its action (:func:`prsa_ctrl.identification.delay.search_delay`)
+and writes ``drive.command_delay_samples`` (the delay less the computation delay of a command
+logged ``computed``); ``--delay-samples N`` fixes it instead.
 
 ``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
 [--f-min HZ] [--f-max HZ] [--amplitude RAD_S] [--offset RAD_S]``
@@ -88,8 +93,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fidelity", default="rigid", choices=("rigid", "compliant"), help="model fidelity (default rigid)")
     p.add_argument("--segment", type=_positive("--segment"), default=0.1, metavar="S",
                    help="multiple-shooting segment length, s (default 0.1)")
-    p.add_argument("--delay-samples", type=int, default=0, metavar="N", help="samples between a logged command and "
-                   "the sample it acts from (default 0)")
+    p.add_argument("--delay-samples", type=int, default=None, metavar="N", help="samples between a logged command and "
+                   "the sample the current loop receives it from (default: found by the fit from time-domain records; "
+                   "FRF only: the base plant's drive.command_delay_samples, plus 1 with --command-logged computed)")
+    p.add_argument("--command-logged", choices=("applied", "computed"), default="applied",
+                   help="how the log holds the command: as the controller applied it over the sample (default; "
+                   "prsa-tune's simulator logs it so) or as computed at the sample, acting one sample later "
+                   "(many drives log it so); the fitted drive.command_delay_samples is the delay found less this "
+                   "one sample")
     p.add_argument("--design", choices=("multisine", "chirp", "steps"), help="write an excitation signal instead of fitting")
     p.add_argument("--duration", type=_positive("--duration"), default=4.0, metavar="S", help="excitation length, s")
     p.add_argument("--sample-time", type=_positive("--sample-time"), default=2.5e-4, metavar="S", help="sample time, s")
@@ -455,7 +466,7 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
                     raise UsageError(f"--fit {args.fit!r}: unknown key {k!r}; expected some of {', '.join(FITTABLE)}")
             if not keys:
                 raise UsageError(f"--fit {args.fit!r}: expected at least one key")
-        if not 0 <= args.delay_samples <= 10:
+        if args.delay_samples is not None and not 0 <= args.delay_samples <= 10:
             raise UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
         plant = load_plant(args.plant)
         base_text, base_path = _base_text(args.plant)
@@ -502,8 +513,9 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
 
     try:
         result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
-                           segment_s=args.segment, delay_samples=args.delay_samples,
-                           uncertainty="fit" if args.uncertainty_from_fit else "keep")
+                           segment_s=args.segment,
+                           delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
+                           command_logged=args.command_logged, uncertainty="fit" if args.uncertainty_from_fit else "keep")
     except FitError as exc:
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
@@ -518,12 +530,10 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
                    + (f"; base: {plant.description}" if plant.description else ""))
     base_unc = dict(plant.uncertainty or {})
     unc_keys = [k for k in result.plant_keys if result.plant.uncertainty.get(k) != base_unc.get(k)]
-    text = plant_toml(base_text, result.plant, name, result.plant_keys, description, unc_keys)
-    if result.delay is not None:  # not a plant-file key: said in a comment, reported in the JSON
-        d, eq = result.delay, result.delay["equivalent_current_loop_bandwidth_hz"]
-        text += (f"\n# prsa-fit: command delay {d['value']:.6g} s (95 % CI {d['ci95'][0]:.6g}..{d['ci95'][1]:.6g}, "
-                 f"{d['samples']:.3g} samples) is not a plant-file key; a first-order current loop of "
-                 f"{eq['value']:.6g} Hz has the same low-frequency phase lag\n")
+    # the command delay (found, given or written from a fitted FRF delay) is written when it is not the base's
+    delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz")
+                  if k not in result.plant_keys and result.plant.values[k] != plant.values[k]]
+    text = plant_toml(base_text, result.plant, name, [*result.plant_keys, *delay_keys], description, unc_keys)
     import tomllib
 
     from ..plant.plantfile import Plant
@@ -555,9 +565,14 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
             line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
         print(line)
     if result.delay is not None:
-        eq = result.delay["equivalent_current_loop_bandwidth_hz"]
-        print(f"  (not written to the plant file: no delay key; equivalent current-loop bandwidth {eq['value']:.6g} Hz, "
-              f"95 % CI {eq['ci95'][0]:.6g}..{eq['ci95'][1]:.6g})")
+        print(f"  ({result.delay['plant_file']})")
+    cd = result.solver.get("command_delay")
+    if cd is not None:
+        print(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as {cd['command_logged']}) "
+              f"to its action, drive.command_delay_samples = {cd['drive_command_delay_samples']} ({cd['how']}"
+              + ("" if "search" not in cd else
+                 "; objective per delay " + ", ".join(f"{k}: {v:.6g}" if v is not None else f"{k}: failed"
+                                                     for k, v in cd["search"]["objective"].items())) + ")")
     j = result.reflected_inertia_kg_m2
     print(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
     for f, pct in result.fit_percent.items():

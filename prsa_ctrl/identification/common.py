@@ -29,22 +29,26 @@ from ..errors import PlantFileError
 from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
 from ..plant.plantfile import Plant
-from ..plant.schema import PLAUSIBLE, SCHEMA
+from ..plant.schema import KIND, PLAUSIBLE, SCHEMA
 from ..plant.uncertainty import plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
 
 __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", "DEFAULT_KEYS", "FRF_KEYS",
            "FRF_KEYS_COMPLIANT", "RANK_RTOL", "NULL_LOADING", "UNCERTAINTY_MODES", "SAMPLE_TIME_RTOL",
            "UNIT_SLIP_FACTOR", "UNIT_PLANT_FACTOR", "FRF_SPEED_MAX_RAD_S", "FRF_LOAD_MAX_RATED", "TORQUE_OVER_LIMIT",
-           "symbolic_rhs", "key_bounds", "check_keys", "default_min_speed", "frf_operating_point_error",
+           "symbolic_rhs", "key_bounds", "check_keys", "inertia_key", "default_keys", "default_min_speed", "frf_operating_point_error",
            "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`key_bounds`).
 FITTABLE: Mapping[str, tuple[str, str]] = {
     "nut.inertia_kg_m2": ("kg m^2", "nut plus rotor inertia"),
+    "axis.motor_inertia_kg_m2": ("kg m^2", "rotor inertia of a screw-driven axis (ball or roller screw: motor and "
+                                           "coupling; the screw's own inertia is axis.screw_inertia_kg_m2)"),
     "friction.efficiency": ("-", "forward efficiency"),
     "friction.no_load_torque_n_m": ("N m", "no-load (Coulomb) drag torque"),
     "friction.viscous_n_m_s_per_rad": ("N m s/rad", "viscous coefficient"),
+    "friction.torque_offset_n_m": ("N m", "drag offset: Coulomb levels no-load + offset forward, no-load - offset "
+                                          "backward (needs data at speed in both directions)"),
     "drive.current_loop_bandwidth_hz": ("Hz", "current-loop bandwidth"),
     "drive.command_delay_s": ("s", "command delay (logged command to the moment it acts; not a plant-file key)"),
     "contact.stiffness_n_per_mm_e": ("N/mm^e", "IMPACT thread-contact stiffness (compliant fidelity: the axial mode)"),
@@ -214,7 +218,7 @@ def key_bounds(plant: Plant, key: str, ts: float) -> tuple[float, float, float]:
     """Lower bound, upper bound and scale (file units) of a fitted key."""
     v = plant.values[key]
     t_max = plant.torque_limit
-    if key == "nut.inertia_kg_m2":
+    if key in ("nut.inertia_kg_m2", "axis.motor_inertia_kg_m2"):
         return 0.05 * v, 20.0 * v, v
     if key == "friction.efficiency":
         return 0.3, 0.995, 1.0
@@ -222,6 +226,8 @@ def key_bounds(plant: Plant, key: str, ts: float) -> tuple[float, float, float]:
         return 0.0, 0.5 * t_max, max(v, 0.01 * t_max)
     if key == "friction.viscous_n_m_s_per_rad":
         return 0.0, 0.01 * t_max, max(v, 1e-5 * t_max)
+    if key == "friction.torque_offset_n_m":
+        return -0.5 * t_max, 0.5 * t_max, max(abs(v), 0.01 * t_max)
     if key == "drive.current_loop_bandwidth_hz":
         return 10.0, min(1e5, 10.0 / ts), v
     if key == "contact.stiffness_n_per_mm_e":  # the axial mode frequency goes with K^(1/(2e))
@@ -231,11 +237,33 @@ def key_bounds(plant: Plant, key: str, ts: float) -> tuple[float, float, float]:
     raise ValueError(f"--fit key {key!r}; expected one of {', '.join(FITTABLE)}")
 
 
-def check_keys(keys: Sequence[str], fidelity: str) -> tuple[str, ...]:
+def inertia_key(plant: Plant) -> str:
+    """The fitted key of the rotating inertia: ``axis.motor_inertia_kg_m2`` for a screw-driven
+    axis (its ``nut.inertia_kg_m2`` is derived, the motor plus the screw), else ``nut.inertia_kg_m2``."""
+    return "axis.motor_inertia_kg_m2" if plant.screw_driven else "nut.inertia_kg_m2"
+
+
+def default_keys(plant: Plant, keys: Sequence[str] = DEFAULT_KEYS) -> tuple[str, ...]:
+    """``keys`` (default :data:`DEFAULT_KEYS`) for ``plant``'s mechanism: the inertia key is
+    :func:`inertia_key`'s."""
+    j = inertia_key(plant)
+    return tuple(j if k == "nut.inertia_kg_m2" else k for k in keys)
+
+
+def check_keys(keys: Sequence[str], fidelity: str, plant: Plant | None = None) -> tuple[str, ...]:
     keys = tuple(keys)
     for k in keys:
         if k not in FITTABLE:
             raise ValueError(f"fit key {k!r}; expected one of {', '.join(FITTABLE)}")
+    if plant is not None:
+        j = inertia_key(plant)
+        wrong = [k for k in keys if k in ("nut.inertia_kg_m2", "axis.motor_inertia_kg_m2") and k != j]
+        if wrong:
+            raise ValueError(f"fit key {wrong[0]!r} for a {plant.mechanism} plant; expected {j!r} (the rotating "
+                             "inertia this mechanism's model uses)")
+        if plant.mechanism == "linear-axis":
+            raise ValueError("a linear-axis plant; expected the linear-axis fit (prsa-axis, "
+                             "prsa_ctrl.identification.axis.fit_linear_axis) for load-side equivalents")
     if not keys or len(set(keys)) != len(keys):
         raise ValueError(f"fit keys {', '.join(keys)}; expected one or more keys, each once")
     contact = [k for k in keys if k in CONTACT_KEYS]
@@ -559,11 +587,13 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
             if note:
                 warns.append(note)
         fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
-                       description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc)
-    extra = plant.reflected_inertia_kg_m2 - plant.values["nut.inertia_kg_m2"]
+                       description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc,
+                       mechanism=fitted.mechanism, defaulted=fitted.defaulted, mechanism_source=fitted.mechanism_source)
+    j_key = inertia_key(plant)
+    extra = plant.reflected_inertia_kg_m2 - plant.values[j_key]
     j_ref = fitted.reflected_inertia_kg_m2
-    if "nut.inertia_kg_m2" in plant_keys:
-        ci = [c + extra for c in params["nut.inertia_kg_m2"]["ci95"]]
+    if j_key in plant_keys:
+        ci = [c + extra for c in params[j_key]["ci95"]]
     else:
         ci = [j_ref, j_ref]
     reflected = {"value": float(j_ref), "ci95": ci, "unit": "kg m^2"}
@@ -746,8 +776,7 @@ def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges
         lo_ci, hi_ci = v["ci95"]
         if not (np.isfinite(sd) and sd > 0):
             continue
-        section, sub = k.split(".")
-        kind = SCHEMA[section][sub]
+        kind = KIND[k]
         floor = 0.0 if kind in ("positive", "non-negative", "fraction in (0, 1]") else -math.inf
         ceil = 1.0 if kind == "fraction in (0, 1]" else math.inf
         floor, ceil = max(floor, r_lo), min(ceil, r_hi)
@@ -784,6 +813,7 @@ _REMEDY_KEY = {
     "friction.viscous_n_m_s_per_rad": "record several speed levels",
     "drive.current_loop_bandwidth_hz": "excite higher frequencies (multisine up to a few hundred Hz) or fix it with --fit",
     "nut.inertia_kg_m2": "excite accelerations (multisine or speed steps)",
+    "axis.motor_inertia_kg_m2": "excite accelerations (multisine or speed steps)",
     "drive.command_delay_s": "measure up to the current-loop bandwidth, or fix the delay (leave it out of --fit)",
     "contact.stiffness_n_per_mm_e": "measure a frequency response that covers the axial mode (under load), "
                                     "or leave the stiffness out of --fit",

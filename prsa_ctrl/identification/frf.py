@@ -20,6 +20,7 @@ from ..drive.sampled import zoh
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from .common import (DELAY_KEY, FRF_KEYS, FRF_KEYS_COMPLIANT, PSEUDO_KEYS, UNCERTAINTY_MODES, FitResult, check_keys,
+                     default_keys,
                      checked_inputs, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord
 
@@ -89,7 +90,7 @@ class _Linear:
             d = (abs(load) / (pl.n_contacts * k_si * c ** (e + 1))) ** (1.0 / e) / c
             out.append(d if load >= 0 else -(d + vals["thread.backlash_mm"] * 1e-3))
         tau = load * pl.lead_per_rad / vals["friction.efficiency"] + vals["friction.no_load_torque_n_m"] \
-            + vals["friction.viscous_n_m_s_per_rad"] * speed
+            + vals["friction.viscous_n_m_s_per_rad"] * speed + vals.get("friction.torque_offset_n_m", 0.0)
         return np.array([speed * pl.cage_ratio, -out[0], out[1], tau])
 
     def __call__(self, speed: float, load: float, pv):
@@ -309,6 +310,7 @@ def fit_frf(
     max_nfev: int = 200,
     keep_unidentified: bool = True,
     uncertainty: str = "keep",
+    command_logged: str = "applied",
 ) -> FitResult:
     """Fit plant parameters to measured frequency responses (torque command -> nut speed).
 
@@ -339,6 +341,13 @@ def fit_frf(
         or the mode changes them by less than their noise.
     delay_samples : int
         Extra command delay, samples.
+    command_logged : {"applied", "computed"}
+        How the command the responses start from was logged
+        (:data:`prsa_ctrl.identification.delay.CONVENTIONS`). With ``drive.command_delay_s``
+        fitted, the fitted plant carries the delay: ``drive.command_delay_samples`` the whole
+        samples of ``T_d`` (less the computation delay of a computed command) and the rest of
+        ``T_d`` added to the current loop's lag (``drive.current_loop_bandwidth_hz`` written
+        as ``1 / (2 pi (1 / (2 pi f_c) + rest))``); ``FitResult.delay["plant_file"]`` says so.
     max_nfev : int
         Budget of model evaluations.
     keep_unidentified : bool
@@ -359,8 +368,8 @@ def fit_frf(
         raise ValueError(f"uncertainty = {uncertainty!r}; expected one of {', '.join(map(repr, UNCERTAINTY_MODES))}")
     if fidelity not in ("rigid", "compliant"):
         raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant' for a frequency-response fit")
-    keys = check_keys(FRF_KEYS_COMPLIANT if keys is None and fidelity == "compliant" else
-                       FRF_KEYS if keys is None else keys, fidelity)
+    keys = check_keys(default_keys(plant, FRF_KEYS_COMPLIANT) if keys is None and fidelity == "compliant" else
+                       default_keys(plant, FRF_KEYS) if keys is None else keys, fidelity, plant)
     if not (isinstance(delay_samples, int) and 0 <= delay_samples <= 10):
         raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..10")
     ts_fit = min(frf_sample_time(fr, plant) or plant.sample_time_s for fr in frf)
@@ -448,6 +457,8 @@ def fit_frf(
                          sample_time_s=frf_sample_time(fr, plant), delay_s=delay_of(sol.x, fr), fidelity=fidelity)
         fit_pct[fr.name] = round(frf_fit_percent(fr.response, g), 3)
         traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
+    if delay is not None:  # after the fit %: the traces use the fitted continuous delay itself
+        fitted, delay = _write_delay(fitted, delay, ts_fit, command_logged, warns)
     solver = {
         "name": "bounded least squares on the log frequency response (scipy trust-region reflective)",
         "status": "converged",
@@ -460,6 +471,50 @@ def fit_frf(
         "covariance": "classic (residual variance x inverse Gauss-Newton matrix)",
     }
     return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay, reasons)
+
+
+BW_KEY = "drive.current_loop_bandwidth_hz"
+
+
+def _write_delay(fitted: Plant, delay: dict, ts: float, command_logged: str, warns: list) -> tuple[Plant, dict]:
+    """The fitted plant with the fitted continuous delay written (see :func:`fit_frf`)."""
+    offset = {"applied": 0, "computed": 1}.get(command_logged)
+    if offset is None:
+        raise ValueError(f"command_logged = {command_logged!r}; expected 'applied' or 'computed'")
+    t_d = float(delay["value"]) - offset * ts
+    if t_d < 0:
+        warns.append(f"the fitted command delay {delay['value']:.4g} s is shorter than the computation delay "
+                     f"{ts:g} s of a command logged as computed: written as no delay; expected command_logged "
+                     "'applied' for these responses")
+        t_d = 0.0
+    n = int(math.floor(t_d / ts + 1e-6))
+    rest = max(t_d - n * ts, 0.0)
+    f_c = fitted.values["drive.current_loop_bandwidth_hz"]
+    f_w = 1.0 / (1.0 / f_c + 2 * math.pi * rest)
+    out = fitted.with_params({"drive.command_delay_samples": n, "drive.current_loop_bandwidth_hz": f_w},
+                             name=fitted.name)
+    srcs = dict(out.sources)
+    srcs["drive.command_delay_samples"] = (f"fit: whole samples of the fitted command delay {delay['value']:.4g} s "
+                                           f"(command logged as {command_logged})")
+    srcs["drive.current_loop_bandwidth_hz"] = (f"fit: {f_c:.6g} Hz with the delay's remaining {rest:.4g} s "
+                                               "as current-loop lag")
+    unc = dict(out.uncertainty or {})
+    if BW_KEY in unc and isinstance(unc[BW_KEY], dict):  # its absolute numbers follow the written value
+        e = dict(unc[BW_KEY])
+        for field_ in ("low", "high", "sigma"):
+            if isinstance(e.get(field_), (int, float)) and not isinstance(e.get(field_), bool):
+                e[field_] = e[field_] * f_w / f_c
+        e["source"] = f"{e.get('source', '')}; scaled to the written bandwidth (delay remainder as lag)".lstrip("; ")
+        unc[BW_KEY] = e
+    out = Plant(name=out.name, values=out.values, sources=srcs, origin=out.origin, description=out.description,
+                uncertainty=unc, mechanism=out.mechanism, defaulted=out.defaulted,
+                mechanism_source=out.mechanism_source)
+    delay = dict(delay)
+    delay["plant_file"] = (f"written: drive.command_delay_samples = {n} and drive.current_loop_bandwidth_hz = "
+                           f"{f_w:.6g} (the fitted {f_c:.6g} Hz with the remaining {rest:.4g} s of the delay as "
+                           "current-loop lag)")
+    delay["written"] = {"drive.command_delay_samples": n, "drive.current_loop_bandwidth_hz": f_w}
+    return out, delay
 
 
 def _mode_warnings(fitted: Plant, frf: Sequence[FrfRecord], noise_log: float) -> list[str]:

@@ -49,9 +49,10 @@ from scipy.sparse.linalg import splu
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
-from .common import (DEFAULT_KEYS, DELAY_KEY, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
+from .common import (DELAY_KEY, default_keys, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
+from .delay import DEFAULT_CONVENTION, MAX_SHIFT, plant_shift, search_delay, with_command_delay
 from .frf import fit_frf, frf_fit_percent, frf_response
 
 __all__ = ["fit_plant", "fit_percent", "MAX_INTERVALS", "STALL_ITERATIONS", "STEP_SE_FRACTION", "MIN_SEGMENT"]
@@ -142,7 +143,9 @@ def fit_plant(
     fidelity: str = "rigid",
     validate: Sequence[Record] = (),
     segment_s: float = 0.1,
-    delay_samples: int = 0,
+    delay_samples: int | str | None = None,
+    command_logged: str = DEFAULT_CONVENTION,
+    max_delay_samples: int = 4,
     substeps: int = 1,
     max_iter: int = 50,
     tol: float = 1e-8,
@@ -177,7 +180,8 @@ def fit_plant(
         they validate the fitted plant (fit % and traces for the Bode overlay); alone they are
         fitted.
     keys : sequence of str, optional
-        Plant keys to fit (default :data:`DEFAULT_KEYS`; :data:`FRF_KEYS` for an FRF-only fit).
+        Plant keys to fit (default :data:`DEFAULT_KEYS`, with ``axis.motor_inertia_kg_m2`` for the
+        inertia of a screw-driven axis, :func:`default_keys`; :data:`FRF_KEYS` for an FRF-only fit).
     fidelity : {"rigid", "compliant"}
         Model fidelity.
     validate : sequence of Record
@@ -187,9 +191,21 @@ def fit_plant(
     substeps : int
         Radau IIA steps per sample interval (more resolve fast friction transitions at speed
         reversals better; cost grows in proportion).
-    delay_samples : int
-        Samples between a logged command and the sample it acts from (0: the logged command
-        is held over the interval that follows it, as in the toolkit's simulator).
+    delay_samples : int, "find" or None
+        Samples between a logged command and the sample the current loop receives it from (0:
+        the logged command is held over the interval that follows it). ``None``: the base
+        plant's, ``drive.command_delay_samples`` plus one for ``command_logged = "computed"``
+        (:func:`prsa_ctrl.identification.delay.plant_shift`). ``"find"``: the delay search of
+        :func:`prsa_ctrl.identification.delay.search_delay` over ``0..max_delay_samples`` (the
+        remaining lag goes into the current-loop bandwidth). The fitted plant's
+        ``drive.command_delay_samples`` is the shift less the convention's one sample, and
+        ``solver["command_delay"]`` states it (with the search's objectives).
+    command_logged : {"applied", "computed"}
+        How the records log the command (:data:`prsa_ctrl.identification.delay.CONVENTIONS`):
+        as the controller outputs it over the sample (default; the toolkit's simulator) or as
+        computed at the sample (it acts one sample later).
+    max_delay_samples : int
+        Largest shift the search tries.
     max_iter : int
         Gauss-Newton iteration budget (plus three state-only warm-up steps).
     tol : float
@@ -220,18 +236,42 @@ def fit_plant(
         The solver did not converge (status and remedy in the message).
     """
     plant = load_plant() if plant is None else plant
+    keys = None if keys is None else tuple(keys)
+    if keys is None or keys:  # the mechanism's keys before the data checks (no keys: refused below)
+        check_keys(default_keys(plant) if keys is None else keys, fidelity, plant)
     records, frf, validate = list(records), list(frf), list(validate)
     records, validate, frf = checked_inputs(records, validate, frf, plant)
 
     if uncertainty not in UNCERTAINTY_MODES:
         raise ValueError(f"uncertainty = {uncertainty!r}; expected one of {', '.join(map(repr, UNCERTAINTY_MODES))}")
+    shift = plant_shift(plant, command_logged)  # checks command_logged
+    if delay_samples is not None and delay_samples != "find" and (
+            isinstance(delay_samples, bool) or not isinstance(delay_samples, int) or not 0 <= delay_samples <= MAX_SHIFT):
+        raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..{MAX_SHIFT}, 'find' or None")
     if not records and frf:
-        return fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=delay_samples,
-                       keep_unidentified=keep_unidentified, uncertainty=uncertainty)
-    return _fit_records(records, plant, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
-                        segment_s=segment_s, delay_samples=delay_samples, substeps=substeps, max_iter=max_iter,
-                        tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                        uncertainty=uncertainty)
+        return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
+                       delay_samples=shift if delay_samples in (None, "find") else delay_samples,
+                       keep_unidentified=keep_unidentified, uncertainty=uncertainty, command_logged=command_logged)
+
+    def fit_at(d: int, start: Plant) -> FitResult:
+        return _fit_records(records, start, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
+                            segment_s=segment_s, delay_samples=d, substeps=substeps, max_iter=max_iter,
+                            tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
+                            uncertainty=uncertainty)
+
+    if delay_samples == "find":
+        if not records:
+            raise ValueError("delay_samples = 'find' without records; expected time-domain records to search on")
+        ts = records[0].sample_time_s
+        shift, res = search_delay(fit_at, plant, default_keys(plant) if keys is None else tuple(keys), ts, max_delay_samples)
+        return with_command_delay(res, shift, command_logged, "found by the delay search")
+    if delay_samples is not None:
+        shift = delay_samples
+        if shift < plant_shift(plant, command_logged) - plant.command_delay_samples:
+            raise ValueError(f"delay_samples = {shift} with command_logged = {command_logged!r}; expected at least "
+                             "1 (a computed command acts one sample later) or command_logged = 'applied'")
+    return with_command_delay(fit_at(shift, plant), shift, command_logged,
+                              "given" if delay_samples is not None else "the base plant's")
 
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
@@ -239,16 +279,14 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
-    keys = tuple(DEFAULT_KEYS if keys is None else keys)
+    keys = default_keys(plant) if keys is None else tuple(keys)
     if not keys:
         raise ValueError("keys = (); expected at least one plant key to fit")
-    keys = check_keys(keys, fidelity)
+    keys = check_keys(keys, fidelity, plant)
     if DELAY_KEY in keys:
         raise ValueError(f"fit key {DELAY_KEY!r} with time-domain records; expected it in a frequency-response fit "
                          "(--frf without DATA.csv): in closed-loop records it is not separable from the current-loop "
                          "bandwidth, give the integer delay_samples (--delay-samples) instead")
-    if not (isinstance(delay_samples, int) and 0 <= delay_samples <= 10):
-        raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..10")
     if not (isinstance(substeps, int) and 1 <= substeps <= 8):
         raise ValueError(f"substeps = {substeps!r}; expected an integer 1..8")
     if not (math.isfinite(segment_s) and segment_s > 0):

@@ -421,6 +421,10 @@ def export_controller(
         **({"design": dict(design)} if design is not None else {}),
         "sample_time_s": ts,
         "torque_limit_n_m": float(plant.torque_limit),
+        "command_delay_samples": plant.command_delay_samples,
+        "command_delay_note": "the plant's drive.command_delay_samples: samples the drive adds between us[k] leaving "
+                              "the controller and the current loop acting on it (beyond the one-sample computation "
+                              "delay of the law); the design was tuned and verified with it",
         "units": {
             "speed": "rad/s (nut/motor shaft)",
             "torque": "N m (torque command)",

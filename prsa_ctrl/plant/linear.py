@@ -112,7 +112,8 @@ def linearize(
     fidelity : {"rigid", "compliant"}
     sampled : bool
         Include the sampled controller's computation delay and zero-order hold (1.5 Ts on the
-        command) as a Pade approximation of order ``pade_order``.
+        command, plus the plant's ``drive.command_delay_samples`` n: (1.5 + n) Ts) as a Pade
+        approximation of order ``pade_order``.
 
     Returns
     -------
@@ -154,7 +155,7 @@ def linearize(
         [[-1 / t_f]], [[1 / t_f]], [[1.0]], [[0.0]],
         inputs=["nut_speed"], outputs=["nut_speed_measured"], states=["speed_filter"], name="filter",
     )
-    parts = [_pade(1.5 * ts, pade_order, INPUTS[0], "torque_command_delayed", "command_delay"), core, filt]
+    parts = [_pade((1.5 + plant.command_delay_samples) * ts, pade_order, INPUTS[0], "torque_command_delayed", "command_delay"), core, filt]
     sys = control.interconnect(
         parts,
         inplist=list(INPUTS),

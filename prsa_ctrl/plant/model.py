@@ -312,8 +312,15 @@ def _nut_friction(plant: Plant, omega: ca.SX, normal: ca.SX, t_net: ca.SX, inert
 
 
 def _viscous(plant: Plant, omega: ca.SX) -> ca.SX:
-    """Viscous drag torque (grease churning, iron losses), N m."""
-    return plant.values["friction.viscous_n_m_s_per_rad"] * omega
+    """Viscous drag torque (grease churning, iron losses) plus the drag offset, N m.
+
+    The offset ``friction.torque_offset_n_m`` (``T_o``) makes the Coulomb levels direction
+    dependent, ``T_0 + T_o`` forward and ``T_0 - T_o`` backward (``T_0`` =
+    ``friction.no_load_torque_n_m``), as the linear axis's ``(Fc+ - Fc-)/2``; like that one it
+    acts as a constant torque, also at rest (a gravity or sensor offset is the same term).
+    """
+    v = plant.values
+    return v["friction.viscous_n_m_s_per_rad"] * omega + v.get("friction.torque_offset_n_m", 0.0)
 
 
 def _smooth_step(p: ca.SX, depth: float) -> ca.SX:

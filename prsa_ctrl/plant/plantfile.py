@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
 from .schema import (ALLOWED_KEYS, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
-                     MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
+                     MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, NON_NEGATIVE_INTEGER, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
                      SCREW_DRIVEN, UNITS, keys_of)
 from .uncertainty import check_plant_uncertainty
 
@@ -131,6 +131,8 @@ def _check_value(kind: str, key: str, value: Any, origin: str, plausible: bool =
     if not math.isfinite(v):
         raise PlantFileError(f"{where} = {value!r}; expected a finite {kind} number")
     if kind == POSITIVE_INTEGER and (v != int(v) or v < 1):
+        raise PlantFileError(f"{where} = {value!r}; expected a {kind}")
+    if kind == NON_NEGATIVE_INTEGER and (v != int(v) or v < 0):
         raise PlantFileError(f"{where} = {value!r}; expected a {kind}")
     if kind in (POSITIVE, POSITIVE_INTEGER) and v <= 0:
         raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
@@ -578,6 +580,13 @@ class Plant:
         return 1.0 / (2.0 * math.pi * self._v("drive.current_loop_bandwidth_hz"))
 
     @property
+    def command_delay_samples(self) -> int:
+        """The drive's command delay beyond the controller's one-sample computation delay,
+        samples (``drive.command_delay_samples``; see
+        :data:`prsa_ctrl.plant.schema.COMMAND_DELAY_KEY`)."""
+        return int(self.values.get("drive.command_delay_samples", 0))
+
+    @property
     def sample_time_s(self) -> float:
         return self._v("sensor.sample_time_s")
 
@@ -876,7 +885,7 @@ def describe_plant(plant: Plant) -> str:
         src = plant.sources.get(key, "")
         tag = "given" if key not in plant.defaulted else ("derived" if src.startswith("derived") else "default")
         unit = UNITS.get(key, "-")
-        shown = str(int(value)) if KIND.get(key) == POSITIVE_INTEGER else f"{value:.6g}"
+        shown = str(int(value)) if KIND.get(key) in (POSITIVE_INTEGER, NON_NEGATIVE_INTEGER) else f"{value:.6g}"
         lines.append(f"  {key:<{width}} = {shown:>12} {unit:<10} {tag:<7} {src}")
     return "\n".join(lines)
 

@@ -27,12 +27,26 @@ from __future__ import annotations
 import math
 from typing import Any, Callable, Mapping, Union
 
-__all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "FRACTION",
+__all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "NON_NEGATIVE_INTEGER",
+           "FINITE", "FRACTION", "COMMAND_DELAY_KEY",
            "MECHANISMS", "DEFAULT_MECHANISM", "SCREW_DRIVEN", "MOUNTINGS", "DEFAULT_MOUNTING", "SCREW_AXIS_SCHEMA",
            "LINEAR_AXIS_SCHEMA", "KIND", "REQUIRED", "DEFAULTS", "UNITS", "keys_of", "kind_of"]
 
-# Kinds of value: positive finite, non-negative finite, positive integer, fraction in (0, 1].
+# Kinds of value: positive finite, non-negative finite, positive integer, non-negative integer, fraction in (0, 1].
 POSITIVE, NON_NEGATIVE, POSITIVE_INTEGER, FRACTION = "positive", "non-negative", "positive integer", "fraction in (0, 1]"
+NON_NEGATIVE_INTEGER = "non-negative integer"
+#: Kind of a signed value (any finite number).
+FINITE = "finite"
+
+#: The drive's command delay beyond the controller's own one-sample computation delay, in
+#: controller samples: transport (fieldbus, PWM update) and current-loop dead time between the
+#: command leaving the controller and the current loop acting on it. Already modelled without
+#: it: the controller's one-sample computation delay (the command computed at sample ``k`` is
+#: held from ``k + 1``, zero-order hold) and the current loop as a first-order lag of
+#: ``drive.current_loop_bandwidth_hz``. With it, the command computed at ``k`` is held from
+#: ``k + 1 + n``: exact for whole samples; a fraction of a sample is lumped into the
+#: current-loop lag (the fit writes it so, see :mod:`prsa_ctrl.identification.common`).
+COMMAND_DELAY_KEY = "drive.command_delay_samples"
 
 #: Section -> key -> kind: the keys of the inverted roller screw (and the rotary core every
 #: mechanism maps onto, see :mod:`prsa_ctrl.plant.model`).
@@ -75,8 +89,10 @@ SCHEMA: Mapping[str, Mapping[str, str]] = {
         "viscous_n_m_s_per_rad": NON_NEGATIVE,
         "creep_velocity_m_s": POSITIVE,
         "traction_preload_n": NON_NEGATIVE,
+        "torque_offset_n_m": FINITE,
     },
-    "drive": {"torque_limit_n_m": POSITIVE, "current_loop_bandwidth_hz": POSITIVE},
+    "drive": {"torque_limit_n_m": POSITIVE, "current_loop_bandwidth_hz": POSITIVE,
+              "command_delay_samples": NON_NEGATIVE_INTEGER},
     "sensor": {
         "sample_time_s": POSITIVE,
         "encoder_counts_per_rev": POSITIVE_INTEGER,
@@ -127,8 +143,11 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
     "friction.creep_velocity_m_s": (1e-6, 1.0, "rolling creep ~0.1 % of the rolling speed; below 1e-6 m/s the "
                                     "traction law becomes a discontinuity the integrator cannot resolve"),
     "friction.traction_preload_n": (0.0, 1e7, "at most the rated load"),
+    "friction.torque_offset_n_m": (-1e3, 1e3, "direction-dependent drag: half the difference of the Coulomb levels, "
+                                   "well below the motor torque"),
     "drive.torque_limit_n_m": (1e-3, 1e5, "servo and torque motors: 0.01 to ~10 kN m"),
     "drive.current_loop_bandwidth_hz": (10.0, 1e5, "servo drives 0.5 to 5 kHz"),
+    "drive.command_delay_samples": (0, 20, "transport and current-loop dead time of servo drives: 0 to ~3 samples"),
     "sensor.sample_time_s": (1e-6, 0.02, "speed loops run at 50 Hz to 100 kHz (servo drives 1 to 16 kHz); the "
                              "tuner's prediction and the verification record hold one point per sample"),
     "sensor.encoder_counts_per_rev": (64, 2**32, "counts per revolution: the coarsest incremental encoders "
@@ -355,10 +374,17 @@ DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]]
                                        if m == "linear-axis" else 1.0e-4,
                                        {"linear-axis": "derived: mean of friction.viscous_positive/negative_n_s_per_m",
                                         "*": "default: grease churning and motor iron losses (the paper plant's 1e-4 N m s/rad)"}),
+    "friction.torque_offset_n_m": (0.0, {"linear-axis": "derived: 0 (a linear axis carries its offset in "
+                                                        "friction.coulomb_positive_n and _negative_n)",
+                                         "*": "default: symmetric drag (Coulomb level friction.no_load_torque_n_m in "
+                                              "both directions)"}),
     "friction.creep_velocity_m_s": (1.0e-3, "default: lubricated rolling creep (the paper plant's 1 mm/s)"),
     "friction.traction_preload_n": (lambda v, m: 0.04 * v["screw.rated_load_n"],
                                     "default: 4 % of the rated load (the paper plant's 200 N at 5 kN)"),
     "drive.current_loop_bandwidth_hz": (1000.0, "default: typical servo-drive current-loop bandwidth 1 kHz"),
+    "drive.command_delay_samples": (0, "default: no delay beyond the controller's one-sample computation delay "
+                                       "(the drive acts on the command at the next sample; a fieldbus drive "
+                                       "typically adds 1 to 2 samples)"),
     "sensor.speed_filter_time_constant_s": (2.0e-4, "default: typical speed-measurement filter of a servo drive, 0.2 ms"),
     "sensor.torque_noise_n_m": (lambda v, m: v["drive.torque_limit_n_m"] / 600.0,
                                 "default: ~0.17 % of the torque limit RMS per sample (12-bit current sensing; the paper plant's 5 mN m at 3 N m)"),
@@ -395,7 +421,7 @@ UNITS: Mapping[str, str] = {
                                   ("_n_m_s_per_rad", "N m s/rad"), ("_n_s_per_m", "N s/m"), ("_n_per_um", "N/um"),
                                   ("_n_per_unit", "N per command unit"), ("_kg", "kg"), ("_mm", "mm"), ("_um", "um"),
                                   ("_deg", "deg"), ("_m_s", "m/s"), ("_n_m", "N m"), ("_n", "N"), ("_hz", "Hz"),
-                                  ("_s", "s"), ("_gpa", "GPa"), ("_m", "m"), ("_per_rev", "counts/rev"))
+                                  ("_s", "s"), ("_gpa", "GPa"), ("_m", "m"), ("_per_rev", "counts/rev"), ("_samples", "samples"))
              if k.endswith(suffix)), "-")
     for k in KIND
 }

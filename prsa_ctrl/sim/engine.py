@@ -623,8 +623,10 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
     At the sampling instant: quantise the encoder angle, let the measurement block update,
     filter the derivative, run the PID (with the block's load-torque estimate fed forward by
     ``kff``) and store the new command. Over the sample: apply the command stored at the
-    previous sample (one-sample computation delay, zero-order hold, plus optional ripple) and
-    integrate the plant, split at a load event inside the sample when ``split``; then let the
+    previous sample (one-sample computation delay, zero-order hold, plus optional ripple; with
+    the plant's ``drive.command_delay_samples`` = n, the current loop receives it n samples
+    later, through a line of n commands after the rest of the memory; the reported
+    ``torque_command`` is the controller's output, before that delay) and integrate the plant, split at a load event inside the sample when ``split``; then let the
     measurement block predict with the applied command.
 
     With an ``outer`` block (a :class:`~prsa_ctrl.drive.measurement.PositionLoop`), the speed
@@ -644,17 +646,18 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
 
     ``(zm = [scaled plant state; memory], p = per-sample parameters) -> zm at the next sample``
     """
-    key = (settings, meas.key(), split, outer.key() if outer is not None else None, tuple(places))
-    if key in built.sampled:
-        return built.sampled[key]
     model, scale = built.model, built.plant_scale
     p = model.plant
+    n_dl = p.command_delay_samples
+    key = (settings, meas.key(), split, outer.key() if outer is not None else None, tuple(places), n_dl)
+    if key in built.sampled:
+        return built.sampled[key]
     nz, nx = len(scale), model.nx
     n_meas = len(meas.memory_names)
     n_outer = len(outer.memory_names) if outer is not None else 0
     n_filt = len(_FILTER_MEMORY) * len(places)
     nm = len(_MEM_HEAD) + n_meas + n_outer + n_filt + len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer else 0) \
-        + (len(_FILTER_OUTPUTS) if places else 0)
+        + (len(_FILTER_OUTPUTS) if places else 0) + n_dl
     ts = p.sample_time_s
     q = 2.0 * math.pi / p.encoder_counts
     integ = sample_integrator(built, settings)
@@ -696,7 +699,14 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
     u_pid = u_sat
     if "torque_command" in places:
         u_sat = ca.fmin(ca.fmax(run_filters(u_sat, "torque_command"), -p.torque_limit), p.torque_limit)
-    applied = u_pend + ripple
+    # The controller's output over this sample is the command stored at the previous one; the
+    # drive's command delay (n_dl samples, a line of the last n_dl outputs, oldest first, after
+    # the rest of the memory) passes it to the current loop n_dl samples later.
+    if n_dl:
+        line = mem[nm - n_dl:]
+        applied, line_next = line[0] + ripple, ca.vertcat(*[line[i] for i in range(1, n_dl)], u_pend)
+    else:
+        applied, line_next = u_pend + ripple, ca.DM.zeros(0)
     if split:
         z = integ(x0=z, p=ca.vertcat(applied, load_a, slope_a, frac * ts))["xf"]
         z = integ(x0=z, p=ca.vertcat(applied, load_b, slope_b, (1 - frac) * ts))["xf"]
@@ -707,7 +717,7 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
                           *([m_outer] if outer is not None else []), *[v for f in filt_next for v in f],
                           u_pend, w_meas, w_fd, tl_hat,
                           *([p_meas, p_ref, ref, tau_pos] if outer is not None else []),
-                          *([w_raw, u_pid] if places else []))
+                          *([w_raw, u_pid] if places else []), line_next)
     law = ca.Function("sample_law", [zm, par], [ca.vertcat(z, mem_next)])
     built.sampled[key] = law
     return law
@@ -795,7 +805,8 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     mem0 = [math.floor((theta0 - w0 * ts) / q) * q, integral0, 0.0, w0, op.torque,
             *meas.initial(theta0, w0, op.torque), *(outer.initial() if outer is not None else []), *filt0,
             *np.zeros(len(_SAMPLED_OUTPUTS) + (len(_POSITION_OUTPUTS) if outer is not None else 0)
-                      + (len(_FILTER_OUTPUTS) if filters else 0))]
+                      + (len(_FILTER_OUTPUTS) if filters else 0)),
+            *[op.torque] * p.command_delay_samples]  # the command delay line, in steady state
     zm = np.concatenate([np.concatenate([op.x, e0]) / scale, mem0])
     filt_names = tuple(f"filter{i + 1}_{pl}_{m}" for i, pl in enumerate(places) for m in _FILTER_MEMORY)
     names = tuple(model.state_names) + ("energy",) * len(e0) + _MEM_HEAD + meas.memory_names \
@@ -824,7 +835,7 @@ def _run_sampled(built, settings, budget, meas, sp, ld, n, gains, kff, ff, op, i
     plant_x = np.hstack([np.concatenate([op.x, e0])[:, None], traj[:nz, :n] * scale[:, None]])
     mem = np.hstack([np.asarray(mem0, float)[:, None], traj[nz:, :n]])
     ctrl = np.vstack([mem[1:3], mem[5 : 5 + n_meas + n_outer + n_filt]])
-    extra = traj[nz + len(_MEM_HEAD) + n_meas + n_outer + n_filt :, :]
+    extra = traj[nz + len(_MEM_HEAD) + n_meas + n_outer + n_filt : traj.shape[0] - p.command_delay_samples, :]
     xs = np.vstack([plant_x[:nx], ctrl, plant_x[nx:]])
     state_labels = tuple(model.state_names) + _SAMPLED_STATES + tuple(meas.memory_names) \
         + (tuple(outer.memory_names) if outer is not None else ()) + filt_names

@@ -447,6 +447,7 @@ def drive_loop(
     setpoint_sequence: NDArray[np.float64] | None = None,
     setpoint_weight: float = 1.0,
     filters: Sequence = (),
+    command_delay_samples: int = 0,
 ) -> LoopModel:
     """Loop model of the sampled drive (see module docstring) around a continuous linear plant.
 
@@ -491,6 +492,11 @@ def drive_loop(
         the filtered speed before the PID, ``torque_command`` biquads on the PID's command
         before the computation delay (each with 4 states, direct form I). A ``LoopFilter`` is
         discretised at ``ts``.
+    command_delay_samples : int
+        The drive's command delay beyond the one-sample computation delay, samples (the plant's
+        ``drive.command_delay_samples``): the command computed at sample ``k`` acts from
+        ``k + 1 + n``, a line of ``n`` states after the others; the loop's frequency response
+        carries the extra ``z^-n = e^{-j w n Ts}``.
 
     Returns
     -------
@@ -535,6 +541,10 @@ def drive_loop(
         if seq_r.shape != (n_steps + 1,) or not np.all(np.isfinite(seq_r)) or seq_r[0] != 0.0:
             raise ValueError(f"setpoint_sequence of shape {seq_r.shape}; expected {n_steps + 1} finite setpoint "
                              "deviations in rad/s starting at 0 (one per sample, both ends included)")
+    if isinstance(command_delay_samples, bool) or not isinstance(command_delay_samples, numbers.Integral) \
+            or not 0 <= command_delay_samples <= 20:
+        raise ValueError(f"command_delay_samples = {command_delay_samples!r}; expected an integer 0..20")
+    n_dl = int(command_delay_samples)
     fl = _loop_biquads(filters, ts)
     ad_full, bd_full = zoh(np.asarray(a, float), np.asarray(b, float), ts)
     rest = [i for i in range(ad_full.shape[0]) if i != angle_index]
@@ -549,7 +559,9 @@ def drive_loop(
     i_th, i_wf, i_d, i_i, i_u = n, n + 1, n + 2, n + 3, n + 4
     i_r = n + 5  # reference (setpoint deviation) state of a setpoint duty cycle
     i_f = n + 5 + (seq_r is not None)  # 4 states per loop filter: x1, x2, y1, y2
-    N = i_f + 4 * len(fl)
+    i_dl = i_f + 4 * len(fl)  # the command delay line: n_dl states, the last one drives the plant
+    N = i_dl + n_dl
+    i_act = i_dl + n_dl - 1 if n_dl else i_u  # the command acting on the plant over this sample
     E = np.eye(N)
     w_m = E[i_th] / ts  # backward-difference speed
     w_f_new = alpha * E[i_wf] + (1 - alpha) * w_m
@@ -565,9 +577,11 @@ def drive_loop(
     e_meas = -w_pid
     A0 = np.zeros((N, N))
     A0[:n, :n] = ad
-    A0[:n, i_u] = bu
+    A0[:n, i_act] = bu
     A0[i_th, :n] = inc_x
-    A0[i_th, i_u] = inc_u
+    A0[i_th, i_act] = inc_u
+    for j in range(n_dl):
+        A0[i_dl + j, i_u if j == 0 else i_dl + j - 1] = 1.0
     A0[i_wf] = w_f_new
     A0[i_d] = d_new
     A0[i_i, i_i] = 1.0
@@ -621,7 +635,7 @@ def drive_loop(
         p_inc = zi * (ss_response(ad, bu[:, None], inc_x[None, :], w, lambda x: np.exp(1j * x * ts)) + inc_u)
         meas = (1 - alpha) / (1 - alpha * zi) / ts
         f_loop = _filters_response(fl, w)
-        base = zi * meas * p_inc * f_loop  # computation delay, filters, backward difference, plant
+        base = zi ** (1 + n_dl) * meas * p_inc * f_loop  # computation and command delay, filters, speed, plant
         return None, np.vstack([base * c for c in pid_frequency_parts(zi, ts, beta)]), None, None
 
     def noise(w):

@@ -150,8 +150,9 @@ class CascadeModel:
         n = self.n
         lhs = z[:, None, None] * np.eye(n)[None] - self.Ad[None]
         res = np.linalg.solve(lhs, np.broadcast_to(self.bu, (w.size, n))[..., None])[..., 0]
-        G = zi * (res @ self.c_th)
-        Gp = zi * (res @ self.c_pos)
+        zd = zi ** (1 + self.plant.command_delay_samples)  # computation delay and the drive's command delay
+        G = zd * (res @ self.c_th)
+        Gp = zd * (res @ self.c_pos)
         W = (1 - self.alpha) / (1 - self.alpha * zi) * (1 - zi) / self.ts
         return {"G": G, "Gp": Gp, "W": W, "cs_i": self.ts * zi / (1 - zi), "cp_i": self.ts / (1 - zi)}
 
@@ -203,8 +204,9 @@ class CascadeModel:
     # closed loop in the time domain
     def _build_casadi(self) -> None:
         n, ts, a = self.n, self.ts, self.a_lead
+        nd = self.plant.command_delay_samples  # the drive's command delay: a line of nd commands after the states
         g = ca.SX.sym("g", 6)
-        X = ca.SX.sym("X", n + 5)
+        X = ca.SX.sym("X", n + 5 + nd)
         r = ca.SX.sym("r", 4)  # position ref (rad), speed ref (rad/s), accel ref (rad/s^2), load (N)
         kp, ki, kv, kip, kvff, kaff = (g[i] for i in range(6))
         x, th_prev, w_f, i_s, u_pend, i_p = X[:n], X[n], X[n + 1], X[n + 2], X[n + 3], X[n + 4]
@@ -216,11 +218,13 @@ class CascadeModel:
         w_ref = kv * e_p + i_p1 + kvff * r[1]
         u = kp * (w_ref - w_f1) + i_s + kaff * self.inertia * r[2]
         i_s1 = i_s + ts * ki * (w_ref - w_f1)
-        x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * u_pend + ca.DM(self.bd) * r[3]
-        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1)
+        line = X[n + 5:]
+        act = line[nd - 1] if nd else u_pend
+        x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * act + ca.DM(self.bd) * r[3]
+        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, *([u_pend] if nd else []), *[line[i] for i in range(nd - 1)])
         self.step = ca.Function("cascade_step", [X, r, g], [Xn, e_p * a])
         self.jac = ca.Function("cascade_ab", [g], [ca.jacobian(Xn, X), ca.jacobian(Xn, r)])
-        self.nX = n + 5
+        self.nX = n + 5 + nd
 
     def closed_loop_matrices(self, g) -> tuple[NDArray, NDArray]:
         A, B = self.jac(list(map(float, g)))
@@ -365,7 +369,8 @@ def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None 
     a_, b_, c_, _, _ = linear_core(plant, cm.w_lin, scene.load_n, scene.fidelity)
     step = scene.hold_step_n or max(abs(scene.load_n), 100.0)
     lp = drive_loop(a_, b_, c_[model.output_names.index("nut_speed")], model.index("theta_nut"), ts=plant.sample_time_s,
-                    speed_filter=plant.speed_filter_s, tf=DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s, horizon=0.1, step=step)
+                    speed_filter=plant.speed_filter_s, tf=DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s, horizon=0.1, step=step,
+                    command_delay_samples=plant.command_delay_samples)
     ms_max = scene.ms_max
 
     def worst(g) -> float:

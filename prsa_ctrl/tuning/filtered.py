@@ -217,13 +217,14 @@ def _resonance_band(lp: LoopModel) -> NDArray[np.float64]:
 
 
 def loop_builder(a, b, c_speed, angle_index: int, *, ts: float, speed_filter: float, tf: float, horizon: float,
-                 step: float, fixed: Sequence[LoopFilter] = (), name: str = "drive") -> Callable:
+                 step: float, fixed: Sequence[LoopFilter] = (), name: str = "drive",
+                 command_delay_samples: int = 0) -> Callable:
     """``biquad or None -> LoopModel``: :func:`prsa_ctrl.tuning.builders.drive_loop` of a linearised
     plant with the ``fixed`` filters and, when given, one more ``(place, DiscreteBiquad)``."""
     def build(extra=None) -> LoopModel:
         fl = list(fixed) + ([extra] if extra is not None else [])
         return drive_loop(a, b, c_speed, angle_index, ts=ts, speed_filter=speed_filter, tf=tf, horizon=horizon,
-                          step=step, name=name, filters=fl)
+                          step=step, name=name, filters=fl, command_delay_samples=command_delay_samples)
     return build
 
 

@@ -63,6 +63,9 @@ def actuator_loops(plant: Plant, scene, estimator: str | None = None) -> list[Lo
     estimator = scene.estimator if estimator is None else estimator
     kf = None
     if estimator == "kf":
+        if plant.command_delay_samples:  # kf_drive_loop models the one-sample computation delay only
+            raise ValueError(f"estimator 'kf' with drive.command_delay_samples = {plant.command_delay_samples}; "
+                             "expected no command delay (the Kalman-filter loop model does not model it)")
         kf = design_kf(plant, scene.load_change_time_s)
     fidelity = linear_fidelity(scene)
     model = plant_model(plant, fidelity)
@@ -78,7 +81,7 @@ def actuator_loops(plant: Plant, scene, estimator: str | None = None) -> list[Lo
                 tf=derivative_filter_s(plant), horizon=scene.duration, name=case,
                 outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
                 load_sequence=rec["load_sequence"], setpoint_sequence=rec["setpoint_sequence"],
-                setpoint_weight=scene.setpoint_weight))
+                setpoint_weight=scene.setpoint_weight, command_delay_samples=plant.command_delay_samples))
         return loops
     horizon = scene.duration - scene.step_time
     loops = []
@@ -100,6 +103,7 @@ def actuator_loops(plant: Plant, scene, estimator: str | None = None) -> list[Lo
                     ts=plant.sample_time_s, speed_filter=plant.speed_filter_s, tf=derivative_filter_s(plant),
                     horizon=horizon, step=step, name=f"step to {f1:g} N",
                     outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
+                    command_delay_samples=plant.command_delay_samples,
                 )
             )
         else:

@@ -215,9 +215,16 @@ def test_cli_delay_and_compliant(base, heavy, tmp_path, capsys):
     assert set(report) >= {"parameters", "reflected_inertia_kg_m2", "fit_percent", "warnings", "solver", "delay"}
     text = out.read_text()
     doc = tomllib.loads(text)
-    assert "command_delay_s" not in doc["drive"] and "# prsa-fit: command delay" in text
+    # issue 21: the plant file has a delay key now; the fitted delay is written as whole samples
+    # plus the remainder as current-loop lag (was: a comment, "not a plant-file key")
+    assert "command_delay_s" not in doc["drive"]
+    n = int(report["delay"]["value"] / TS + 1e-6)  # 0 here (0.4 samples): the base's value, not rewritten
+    assert doc["drive"].get("command_delay_samples", {"value": 0})["value"] == n
+    assert report["delay"]["written"]["drive.command_delay_samples"] == n
+    tau = 1 / (2 * math.pi * report["parameters"]["drive.current_loop_bandwidth_hz"]["value"]) + report["delay"]["value"] - n * TS
+    assert doc["drive"]["current_loop_bandwidth_hz"]["value"] == pytest.approx(1 / (2 * math.pi * tau), rel=1e-9)
     load_plant(out)
-    assert "equivalent current-loop bandwidth" in capsys.readouterr().out
+    assert "written: drive.command_delay_samples" in capsys.readouterr().out
     # Bad input: the delay with time-domain data, a compliant FRF fit without load -> exit 2, one line.
     csv = tmp_path / "rec.csv"
     csv.write_text("time_s,torque_command_n_m,nut_angle_rad,axial_load_n\n"
