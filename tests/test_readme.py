@@ -73,8 +73,10 @@ def test_readme_export_example_is_what_the_export_writes():
 ROOT = README.parent
 _TEXT = README.read_text(encoding="utf-8")
 _PYTHON = [body for _, body in _blocks(_TEXT, "python")]
-_SHELL = [line.strip() for _, body in _blocks(_TEXT, "bash") for line in body.splitlines()
-          if line.strip() and not line.strip().startswith("#")]
+#: The shell blocks, each a list of its command lines (a block's lines run in order in one folder,
+#: so that a line may read what an earlier line of its block wrote).
+_SHELL = [[line.strip() for line in body.splitlines() if line.strip() and not line.strip().startswith("#")]
+          for _, body in _blocks(_TEXT, "bash")]
 #: The documentation build of tests/test_docs.py (kept equal to its BUILD_ARGS, checked below).
 _DOCS_BUILD = ["-W", "--keep-going", "-b", "html", "docs"]
 
@@ -112,12 +114,13 @@ def _check_install(words):
     assert not unknown, f"README installs extras that pyproject.toml does not define: {unknown}"
 
 
-@pytest.mark.parametrize("line", _SHELL)
-def test_readme_shell_line_runs_or_is_checked(line, tmp_path):
+@pytest.mark.parametrize("block", _SHELL, ids=[b[0][:40] for b in _SHELL])
+def test_readme_shell_block_runs_or_is_checked(block, tmp_path):
     """Install commands name real extras; the test command is the one CI runs; the docs build is
-    test_docs.py's; every prsa-* command runs (exit 0) and writes what it says, in a temp dir."""
-    for part in (p.strip() for p in line.split("&&")):
-        words = shlex.split(part)
+    test_docs.py's; every prsa-* command runs (exit 0) and writes what it says, in a temp dir, the
+    lines of one block in order; paths into the repository's examples/ are read from the checkout."""
+    for part in (p.strip() for line in block for p in line.split("&&")):
+        words = [str(ROOT / w) if w.startswith("examples/") else w for w in shlex.split(part)]
         if words[:2] == ["pip", "install"]:
             _check_install(words)
         elif words == ["bash", "scripts/fresh-test.sh"]:
@@ -134,7 +137,7 @@ def test_readme_shell_line_runs_or_is_checked(line, tmp_path):
             proc = subprocess.run([_script(words[0]), *words[1:]], cwd=tmp_path, env=env, capture_output=True,
                                   text=True, timeout=300)
             assert proc.returncode == 0, f"{part}: exit {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
-            for flag in ("--json", "--export", "--plots"):
+            for flag in ("--json", "--export", "--plots", "--out"):
                 if flag in words:
                     target = tmp_path / words[words.index(flag) + 1]
                     assert target.exists(), f"{part}: {flag} wrote nothing"
