@@ -515,7 +515,7 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
     has_robust = bool((getattr(scene, "robust", None) or {}).get("robust"))
     robust_rep = None
     if args.robust or has_robust:
-        from ..tuning.robust import tune_robust_actuator
+        from ..studies.scenerobust import tune_robust_actuator
 
         progress(run, args.verbose, "robust tuning over the scenario models ...")
         robust_rep = tune_robust_actuator(plant, scene)
