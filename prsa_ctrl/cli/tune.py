@@ -378,20 +378,23 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
     from ..io.export import dumps, export_cascade, export_controller
 
     fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
+    filters: tuple = ()  # issue 24: the scene's loop filters (and a tuned one) go with the gains
     if isinstance(scene, MoveScene):
         design, b = result["designs"][1], None
     else:
         design, b, plant = result["export"][0], _setpoint_weight(result["rep"].scene), result["rep"].plant
+        filters = result["rep"].scene.filters
     if fmt in ("c", "st"):  # issue 24: the discrete controller as code (prsa_ctrl.io.codegen)
         from ..io.codegen import stage_code_export
 
-        kw = {} if b is None else {"setpoint_weight": b}
+        kw = ({} if b is None else {"setpoint_weight": b}) | ({"filters": filters} if filters else {})
         stage_code_export(outputs, args.export, design, plant, real=args.export_real, **kw)
         return
     if b is None:
         exported = export_cascade(design, plant, fmt=fmt)
     else:
-        exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=result["export"][1])
+        exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=result["export"][1],
+                                     **({"filters": filters} if filters else {}))
     if args.motor is not None or args.export_template is not None:
         from ..io.driveparams import cli_export_data
 

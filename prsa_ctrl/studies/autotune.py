@@ -35,6 +35,7 @@ from ..tuning.loops import LoopModel
 from ..tuning.tuner import Tuner
 from .paper import default_pid
 from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
+from .scenefilters import filter_rows
 from .sceneloops import LoopSpec, actuator_loops, duty_record, linear_fidelity, loop_spec
 
 
@@ -197,6 +198,7 @@ class ActuatorTuning:
             "verification": {"fidelity": self.fidelity_reason, "discrete": self.scene.discrete,
                              "tolerance": verify_settings(self.scene).rtol},
             "warnings": list(self.warnings),
+            **({"filters": filter_rows(self.scene.filters, self.plant.sample_time_s)} if self.scene.filters else {}),
         }
 
 
@@ -452,7 +454,7 @@ def fast_verify_settings(scene: Scene, plant: Plant, pid: PID | None = None) -> 
     pre = min(scene.step_time, _PRE_SAMPLES * plant.sample_time_s)
     kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, scene.final_loads[0])],
               duration=pre + scene.duration - scene.step_time, controller=pid or default_pid(plant),
-              fidelity=scene.fidelity, discrete=True)
+              fidelity=scene.fidelity, discrete=True, filters=tuple(getattr(scene, "filters", ())) or None)
     return fast_settings(plant, scene.accuracy, FAST_VERIFY, reference=SimSettings(rtol=1e-9, atol=1e-9), **kw)
 
 
@@ -518,7 +520,8 @@ def _simulate(designs: list[Design], plant: Plant, spec: LoopSpec, seed: int = 0
                     n_pts = int(np.searchsorted(rec["t"], spec.duration - 1e-9 * ts))  # points before the end
                     setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
                 r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=spec.duration,
-                        controller=design.pid, fidelity=spec.fidelity, settings=settings, seed=seed)
+                        controller=design.pid, fidelity=spec.fidelity, settings=settings, seed=seed,
+                        filters=spec.filters or None)
                 t = np.asarray(r.time)
                 y = dict(zip(r.output_labels, np.asarray(r.outputs)))
                 y["setpoint"] = rec["setpoint_at"][: t.size]
@@ -530,7 +533,7 @@ def _simulate(designs: list[Design], plant: Plant, spec: LoopSpec, seed: int = 0
         for f1 in spec.final_loads:
             kw = dict(setpoint=spec.setpoint_rad_s, load=[(0.0, spec.initial_load), (pre, f1)],
                       duration=pre + spec.duration - spec.step_time, controller=design.pid,
-                      fidelity=spec.fidelity, settings=settings, seed=seed)
+                      fidelity=spec.fidelity, settings=settings, seed=seed, filters=spec.filters or None)
             measurement = "encoder"
             kf = None
             if design.estimator == "kf":

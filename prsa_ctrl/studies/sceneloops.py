@@ -57,6 +57,7 @@ class LoopSpec:
     candidates: int  #: designs verified per run
     accuracy: float  #: relative accuracy the verification is held to
     steady_torque_n_m: float  #: motor torque holding the setpoint at the initial load, N m (linear fidelity)
+    filters: tuple = ()  #: the drive's loop filters (:class:`~prsa_ctrl.drive.filters.LoopFilter`), in every loop and run
 
 
 def linear_fidelity(scene) -> str:
@@ -107,7 +108,8 @@ def loop_spec(plant: Plant, scene) -> LoopSpec:
         objective=scene.objective, aggregate=scene.aggregate, goal=scene.goal, setpoint_share=scene.setpoint_share,
         controller=scene.controller, ms_max=scene.ms_max, mt_max=scene.mt_max, mks_max=scene.mks_max,
         candidates=scene.candidates, accuracy=scene.accuracy,
-        steady_torque_n_m=operating_point(plant, scene.setpoint_rad_s, scene.initial_load, lin).torque)
+        steady_torque_n_m=operating_point(plant, scene.setpoint_rad_s, scene.initial_load, lin).torque,
+        filters=tuple(getattr(scene, "filters", ())))
 
 
 def actuator_loops(plant: Plant, scene, estimator: str | None = None) -> list[LoopModel]:
@@ -135,12 +137,12 @@ def actuator_loops(plant: Plant, scene, estimator: str | None = None) -> list[Lo
         return profile_loops(plant, [(case, rec["w_lin"], rec["f_lin"], rec["load_sequence"], rec["setpoint_sequence"])
                                      for case, rec in zip(spec.cases, spec.records)],
                              fidelity=spec.linear_fidelity, horizon_s=spec.duration,
-                             setpoint_weight=spec.setpoint_weight)
+                             setpoint_weight=spec.setpoint_weight, filters=spec.filters)
     return step_loops(plant, setpoint_rad_s=spec.setpoint_rad_s, initial_load_n=spec.initial_load,
                       final_loads_n=spec.final_loads, fidelity=spec.linear_fidelity,
                       horizon_s=spec.duration - spec.step_time, discrete=spec.discrete,
                       kf_load_change_time_s=spec.load_change_time_s if estimator == "kf" else None,
-                      feedforward=spec.feedforward)
+                      feedforward=spec.feedforward, filters=spec.filters)
 
 
 def _n_samples(plant: Plant, scene) -> int:

@@ -102,7 +102,8 @@ def scenario_loops(plant, scene, scens: Sequence[Scenario]) -> list[LoopModel]:
             cache[key] = apply(plant, s.values) if s.values else plant
         loops += step_loops(cache[key], setpoint_rad_s=s.setpoint_rad_s, initial_load_n=spec.initial_load,
                             final_loads_n=(s.final_load,), fidelity=spec.linear_fidelity, horizon_s=horizon,
-                            discrete=spec.discrete, kf_load_change_time_s=kf_time, feedforward=spec.feedforward)
+                            discrete=spec.discrete, kf_load_change_time_s=kf_time, feedforward=spec.feedforward,
+                            filters=spec.filters)
     return loops
 
 

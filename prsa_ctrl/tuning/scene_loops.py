@@ -37,7 +37,7 @@ def derivative_filter_s(plant: Plant) -> float:
 
 def step_loops(plant: Plant, *, setpoint_rad_s: float, initial_load_n: float, final_loads_n: Sequence[float],
                fidelity: str, horizon_s: float, discrete: bool = True, kf_load_change_time_s: float | None = None,
-               feedforward: bool = False) -> list[LoopModel]:
+               feedforward: bool = False, filters: Sequence = ()) -> list[LoopModel]:
     """One loop model per final load, linearised at the mid load of the step (the response
     to a step is the same from any linearisation point; the mid load keeps the Jacobians
     closest to both ends).
@@ -62,12 +62,18 @@ def step_loops(plant: Plant, *, setpoint_rad_s: float, initial_load_n: float, fi
         time scale (:func:`prsa_ctrl.drive.estimator.design_kf`; sampled loops only).
     feedforward : bool
         With the Kalman filter: tune the load feed-forward gain as a fourth gain.
+    filters : sequence of LoopFilter
+        The drive's speed-measurement and torque-command filters (sampled loops without the
+        Kalman filter only; :func:`prsa_ctrl.tuning.builders.drive_loop`).
 
     Returns
     -------
     list of LoopModel
     """
     kf = None
+    if filters and (kf_load_change_time_s is not None or not discrete):
+        raise ValueError("filters: expected a sampled loop without the Kalman filter (the Kalman-filter and the "
+                         "continuous loops have no loop filters)")
     if kf_load_change_time_s is not None:
         kf = design_kf(plant, kf_load_change_time_s)
     model = plant_model(plant, fidelity)
@@ -93,7 +99,7 @@ def step_loops(plant: Plant, *, setpoint_rad_s: float, initial_load_n: float, fi
                     a, b, c[i_speed], model.index("theta_nut"),
                     ts=plant.sample_time_s, speed_filter=plant.speed_filter_s, tf=derivative_filter_s(plant),
                     horizon=horizon, step=step, name=f"step to {f1:g} N",
-                    outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
+                    outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]}, filters=filters,
                 )
             )
         else:
@@ -117,7 +123,7 @@ def step_loops(plant: Plant, *, setpoint_rad_s: float, initial_load_n: float, fi
 
 
 def profile_loops(plant: Plant, records: Sequence[tuple], *, fidelity: str, horizon_s: float,
-                  setpoint_weight: float = 1.0) -> list[LoopModel]:
+                  setpoint_weight: float = 1.0, filters: Sequence = ()) -> list[LoopModel]:
     """One sampled loop model per duty-cycle record, linearised at the middle of its range.
 
     Parameters
@@ -133,6 +139,8 @@ def profile_loops(plant: Plant, records: Sequence[tuple], *, fidelity: str, hori
         Length of each record.
     setpoint_weight : float
         2-DOF setpoint weight b.
+    filters : sequence of LoopFilter
+        The drive's speed-measurement and torque-command filters.
 
     Returns
     -------
@@ -149,7 +157,7 @@ def profile_loops(plant: Plant, records: Sequence[tuple], *, fidelity: str, hori
             tf=derivative_filter_s(plant), horizon=horizon_s, name=name,
             outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
             load_sequence=load_sequence, setpoint_sequence=setpoint_sequence,
-            setpoint_weight=setpoint_weight))
+            setpoint_weight=setpoint_weight, filters=filters))
     return loops
 
 
