@@ -131,6 +131,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", metavar="local|tcp://HOST:PORT", type=path_text("--scheduler"), default=None,
                    help="run the Monte Carlo on Dask: 'local' starts a LocalCluster, an address connects to a "
                         "running scheduler (needs pip install 'prsa-ctrl[dask]', or '.[dask]' in a checkout)")
+    p.add_argument("--tune-filter", choices=("notch", "lowpass", "lowpass2"), default=None,
+                   help="also tune a filter with the gains (one NLP, prsa_ctrl.tuning.filtered): a notch on the "
+                        "torque command, or a first-/second-order low-pass on the measured speed; kept (added to "
+                        "the scene's filters, then the scene is tuned and verified with it) only if it lowers the "
+                        "IAE by >= 1 %% against the gains alone under the same bounds and a notch is >= 3 dB deep "
+                        "near the mode; otherwise reported as not kept")
     p.add_argument("--accept-unconverged", action="store_true",
                    help="exit 0 even when the best design is flagged (tuner not converged or a verified run "
                         "that reverses, never recovers, saturates or departs from the linear model); default: exit 3")
@@ -160,6 +166,10 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         notes.extend(caught)
     run.check()
     move = isinstance(scene, MoveScene)
+    if not move and args.tune_filter is not None:
+        from ..studies.scenetunefilter import check_tune_filter
+
+        check_tune_filter(scene, args.tune_filter)
     native: list[str] = []
     what = (f"tuning the cascade of {scene.name}" if move else
             f"tuning {plant.name} on the {scene.name} duty cycle" if scene.is_profile else
@@ -325,12 +335,20 @@ def _tune(run: Run, args, plant, scene) -> dict:
         warnings.simplefilter("ignore", GeometryWarning)
         from ..studies.autotune import tune_actuator
 
+        ft = None
+        if args.tune_filter is not None:  # issue 24: a filter tuned with the gains joins the scene's
+            from ..studies.scenetunefilter import tune_scene_filter
+
+            progress(run, args.verbose, f"tuning a {args.tune_filter} with the gains ...")
+            ft = tune_scene_filter(plant, scene, args.tune_filter)
+            scene = ft.scene
+            run.check()
         rep = tune_actuator(plant, scene, workers=args.workers)
         run.check()
         if status_says_interrupted(rep.as_dict()):
             raise KeyboardInterrupt
         robust_rep, mc = _robust_and_monte_carlo(run, args, plant, rep)
-    return {"rep": rep, "robust": robust_rep, "mc": mc}
+    return {"rep": rep, "robust": robust_rep, "mc": mc, "filter_tuning": ft}
 
 
 def _write_outputs(run: Run, args, plant, scene, result: dict, inputs: Sequence[str], outputs) -> list[Path]:
@@ -369,6 +387,8 @@ def _json_report(scene, plant, result: dict) -> dict:
         data["recommended"] = data["robust"]["recommended"]
     if mc is not None:
         data["monte_carlo"] = mc.as_dict()
+    if result.get("filter_tuning") is not None:
+        data["filter_tuning"] = json_safe(result["filter_tuning"].as_dict())
     return data
 
 
@@ -415,6 +435,8 @@ def _print_report(args, plant, scene, overrides: Sequence[str], result: dict, pl
             print(f"plots: {', '.join(str(p) for p in plot_files)}")
         return
     print(format_report(result["rep"], overrides))
+    if result.get("filter_tuning") is not None:
+        print("\n".join(result["filter_tuning"].lines()))
     if result["robust"] is not None:
         print(format_robust(result["robust"]))
     if result["mc"] is not None:

@@ -222,7 +222,6 @@ def test_heavy_slide_verified_result_is_the_python_paths():
     assert abs(bare.iae - ref.iae) > 1e-3 * ref.iae  # the notch changed the run
 
 
-@pytest.mark.slow
 def test_heavy_slide_scene_end_to_end_is_the_python_path(tmp_path):
     """prsa-tune --plant paper-heavy-slide --scene paper-heavy-slide: the tuned gains are the
     Tuner's on the Python path's loop (loop_builder + notch) and the verified metrics its
