@@ -219,8 +219,9 @@ class Scene:
             return float(value)
 
         self._check_duty(bad, finite)
-        for name, value in zip(("filters", "filter_labels"), scene_filters(self)):
-            object.__setattr__(self, name, value)
+        if self.filters or self.filter_labels or not isinstance(self.filters, tuple):
+            for name, value in zip(("filters", "filter_labels"), scene_filters(self)):
+                object.__setattr__(self, name, value)
 
         if finite("setpoint_rad_s", self.setpoint_rad_s) <= 0:
             raise bad("setpoint_rpm", float(f"{self.setpoint_rpm:.12g}"), "a positive nut speed in rpm")
