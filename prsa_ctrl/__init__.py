@@ -46,7 +46,7 @@ _LAZY = {
     "tune_filtered": "tuning.filtered",
     "FilteredDesign": "tuning.filtered",
     "tune_robust": "tuning.robust",
-    "tune_robust_actuator": "tuning.robust",
+    "tune_robust_actuator": "studies.scenerobust",
     "RobustTuning": "tuning.robust",
     "tune_cascade": "tuning.cascade",
     "CascadeDesign": "tuning.cascade",

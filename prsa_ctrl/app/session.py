@@ -538,7 +538,7 @@ def robust_study(session: AppSession, s: Settings, designs: dict, n: int,
                  cancelled: Callable[[], bool] | None = None, seed: int = 0) -> dict:
     """Robust tuning over the plant's documented uncertainty, then Monte-Carlo yield.
 
-    Runs :func:`prsa_ctrl.tuning.robust.tune_robust_actuator` on the page's scene (its Ms/Mt bounds;
+    Runs :func:`prsa_ctrl.studies.scenerobust.tune_robust_actuator` on the page's scene (its Ms/Mt bounds;
     the noise-gain bound is not part of the robust problem) and
     :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo` (serial, seeded) of ``designs`` plus the
     robust design on ``n`` samples. ``progress(stage, done, total)`` reports; ``cancelled()``
@@ -558,7 +558,7 @@ def robust_study(session: AppSession, s: Settings, designs: dict, n: int,
         When cancelled before any sample finished.
     """
     from ..studies.montecarlo import MonteCarloInterrupted, run_monte_carlo
-    from ..tuning.robust import tune_robust_actuator
+    from ..studies.scenerobust import tune_robust_actuator
 
     if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 10_000:
         raise AppInputError(f"samples {n!r}: expected an integer in 1..10000")

@@ -12,6 +12,7 @@ from typing import Any
 from ..errors import SceneError
 from ..plant.plantfile import Plant, load_plant
 from ..studies.scene import Scene, check_against_plant, load_scene, require_speed_scene
+from ..studies.scenefilters import parse_filter_flag
 from ..studies.scenefile import MAX_LOAD_LEVELS, SETPOINT_MAX_RPM
 from .common import Run, UsageError, number, path_text
 
@@ -61,6 +62,13 @@ def _load_step_flag(text: str) -> tuple[float, tuple[float, ...]]:
         raise argparse.ArgumentTypeError(f"--load-step {exc}") from None
 
 
+def _filter_flag(text: str):
+    try:
+        return parse_filter_flag(text)
+    except SceneError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def scene_flags(p: argparse.ArgumentParser) -> None:
     """The plant and scene flags of ``prsa-tune`` and ``prsa-plot``."""
     p.add_argument("--plant", default=None, type=path_text("--plant"), metavar="NAME|PATH",
@@ -74,6 +82,12 @@ def scene_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--setpoint-rpm", metavar="RPM",
                    type=number("--setpoint-rpm", 0.0, SETPOINT_MAX_RPM, "rpm", "a nut speed", lo_open=True),
                    help=f"nut-speed setpoint, rpm, in (0, {SETPOINT_MAX_RPM:g}] (default: the scene's, 300)")
+    p.add_argument("--filter", action="append", type=_filter_flag, default=None,
+                   metavar="notch:path=torque|speed,centre_hz=F,width_hz=W[,depth_db=D] | "
+                           "lowpass:path=torque|speed,corner_hz=F[,order=1|2][,damping=Z]",
+                   help="a notch or low-pass filter on the torque command (path=torque) or the measured speed "
+                        "(path=speed), Hz and dB, as in a scene's [filters] table; repeat for several (they "
+                        "replace the scene's); in the loop models, the tuner, the verification and the export")
     p.add_argument("--verbose", action="store_true",
                    help="progress lines on stderr, solver diagnostics and notes about the plant (geometry)")
 
@@ -145,6 +159,10 @@ def load_and_override(args, run: Run, plot: bool = False) -> tuple[Plant, Scene,
     if getattr(args, "feedforward", False):
         changes["feedforward"] = True
         overrides.append("--feedforward")
+    if getattr(args, "filter", None):
+        changes["filters"] = tuple(lf for lf, _, _ in args.filter)
+        changes["filter_labels"] = tuple(label for _, _, label in args.filter)
+        overrides.extend(flag for _, flag, _ in args.filter)
     if changes:
         try:
             scene = scene.replace(origin="command line", **changes)

@@ -8,6 +8,7 @@ import math
 from typing import TYPE_CHECKING, Callable, Sequence
 
 from ..sim.metrics import metric_resolution, relative_difference
+from ..studies.scenefilters import describe_filters
 
 if TYPE_CHECKING:
     from ..plant.plantfile import Plant
@@ -202,6 +203,7 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         + (f"sample time {rep.plant.sample_time_s * 1e3:.4g} ms, " if sc.discrete else "continuous controller, ")
         + (f"integral time Ti = kp/ki = {b.pid.kp / b.pid.ki * 1e3:.4g} ms, " if b.pid.ki > 0 else "no integral action, ")
         + f"kp = {b.pid.kp * 2 * math.pi / 60:.4g} N m/rpm",
+        *(f"Filter: {line}" for line in describe_filters(sc.filters, rep.plant.sample_time_s)),
         f"Status: {rep.status}",
         "",
     ]

@@ -141,6 +141,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", metavar="local|tcp://HOST:PORT", type=path_text("--scheduler"), default=None,
                    help="run the Monte Carlo on Dask: 'local' starts a LocalCluster, an address connects to a "
                         "running scheduler (needs pip install 'prsa-ctrl[dask]', or '.[dask]' in a checkout)")
+    p.add_argument("--tune-filter", choices=("notch", "lowpass", "lowpass2"), default=None,
+                   help="also tune a filter with the gains (one NLP, prsa_ctrl.tuning.filtered): a notch on the "
+                        "torque command, or a first-/second-order low-pass on the measured speed; kept (added to "
+                        "the scene's filters, then the scene is tuned and verified with it) only if it lowers the "
+                        "IAE by >= 1 %% against the gains alone under the same bounds and a notch is >= 3 dB deep "
+                        "near the mode; otherwise reported as not kept")
     p.add_argument("--accept-unconverged", action="store_true",
                    help="exit 0 even when the best design is flagged (tuner not converged or a verified run "
                         "that reverses, never recovers, saturates or departs from the linear model); default: exit 3")
@@ -170,6 +176,10 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         notes.extend(caught)
     run.check()
     move = isinstance(scene, MoveScene)
+    if not move and args.tune_filter is not None:
+        from ..studies.scenetunefilter import check_tune_filter
+
+        check_tune_filter(scene, args.tune_filter)
     native: list[str] = []
     what = (f"tuning the cascade of {scene.name}" if move else
             f"tuning {plant.name} on the {scene.name} duty cycle" if scene.is_profile else
@@ -349,12 +359,20 @@ def _tune(run: Run, args, plant, scene) -> dict:
         warnings.simplefilter("ignore", GeometryWarning)
         from ..studies.autotune import tune_actuator
 
+        ft = None
+        if args.tune_filter is not None:  # issue 24: a filter tuned with the gains joins the scene's
+            from ..studies.scenetunefilter import tune_scene_filter
+
+            progress(run, args.verbose, f"tuning a {args.tune_filter} with the gains ...")
+            ft = tune_scene_filter(plant, scene, args.tune_filter)
+            scene = ft.scene
+            run.check()
         rep = tune_actuator(plant, scene, workers=args.workers)
         run.check()
         if status_says_interrupted(rep.as_dict()):
             raise KeyboardInterrupt
         robust_rep, mc = _robust_and_monte_carlo(run, args, plant, rep)
-    return {"rep": rep, "robust": robust_rep, "mc": mc}
+    return {"rep": rep, "robust": robust_rep, "mc": mc, "filter_tuning": ft}
 
 
 def _write_outputs(run: Run, args, plant, scene, result: dict, inputs: Sequence[str], outputs) -> list[Path]:
@@ -395,6 +413,8 @@ def _json_report(scene, plant, result: dict) -> dict:
         data["recommended"] = data["robust"]["recommended"]
     if mc is not None:
         data["monte_carlo"] = mc.as_dict()
+    if result.get("filter_tuning") is not None:
+        data["filter_tuning"] = json_safe(result["filter_tuning"].as_dict())
     return data
 
 
@@ -404,23 +424,26 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
     from ..io.export import dumps, export_cascade, export_controller
 
     fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
+    filters: tuple = ()  # issue 24: the scene's loop filters (and a tuned one) go with the gains
     if isinstance(scene, MoveScene):
         design, b = result["designs"][1], None
         if "friction_ff" in result:  # the joint design with the friction feed-forward in its position loop
             design = result["friction_ff"]["design"]
     else:
         design, b, plant = result["export"][0], _setpoint_weight(result["rep"].scene), result["rep"].plant
+        filters = result["rep"].scene.filters
     if fmt in ("c", "st"):  # issue 24: the discrete controller as code (prsa_ctrl.io.codegen)
         from ..io.codegen import stage_code_export
 
-        kw = {} if b is None else {"setpoint_weight": b}
+        kw = ({} if b is None else {"setpoint_weight": b}) | ({"filters": filters} if filters else {})
         stage_code_export(outputs, args.export, design, plant, real=args.export_real, **kw)
         return
     if b is None:
         exported = export_cascade(design, plant, fmt=fmt,
                                   friction_table_speed_rad_s=scene.max_speed_m_s / plant.lead_per_rad)
     else:
-        exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=result["export"][1])
+        exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=result["export"][1],
+                                     **({"filters": filters} if filters else {}))
     if args.motor is not None or args.export_template is not None or args.rated_torque is not None:
         from ..io.driveparams import cli_export_data
 
@@ -443,6 +466,8 @@ def _print_report(args, plant, scene, overrides: Sequence[str], result: dict, pl
             print(f"plots: {', '.join(str(p) for p in plot_files)}")
         return
     print(format_report(result["rep"], overrides))
+    if result.get("filter_tuning") is not None:
+        print("\n".join(result["filter_tuning"].lines()))
     if result["robust"] is not None:
         print(format_robust(result["robust"]))
     if result["mc"] is not None:
@@ -546,7 +571,7 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
     has_robust = bool((getattr(scene, "robust", None) or {}).get("robust"))
     robust_rep = None
     if args.robust or has_robust:
-        from ..tuning.robust import tune_robust_actuator
+        from ..studies.scenerobust import tune_robust_actuator
 
         progress(run, args.verbose, "robust tuning over the scenario models ...")
         robust_rep = tune_robust_actuator(plant, scene)

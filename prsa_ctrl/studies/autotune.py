@@ -25,23 +25,23 @@ import numpy as np
 from ..drive.estimator import design_kf
 from ..drive.pid import PID
 from ..options import PEAK_BOUND_RANGE, RAD_S_PER_RPM
-from ..plant.equilibrium import operating_point
 from ..plant.plantfile import Plant
 from ..results import is_ok
 from ..sim.metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics, relative_difference
 from ..sim.integrators import SimSettings
 from ..sim.signals import PiecewiseLinear
 from ..sim.engine import fast_settings, initial_state, run
-from ..tuning.scene_loops import actuator_loops, duty_record, linear_fidelity
 from ..tuning.loops import LoopModel
 from ..tuning.tuner import Tuner
 from .paper import default_pid
 from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
+from .scenefilters import filter_rows
+from .sceneloops import LoopSpec, actuator_loops, duty_record, linear_fidelity, loop_spec
 
 
 __all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs", "duty_record",
-           "setpoint_prefilter", "predict", "verify", "verify_all", "checked", "health_flags", "prediction_warnings",
-           "integral_warning", "verify_settings", "fast_verify_settings", "default_workers", "linear_fidelity",
+           "setpoint_prefilter", "predict", "predict_all", "verify", "verify_all", "checked", "health_flags", "prediction_warnings",
+           "integral_warning", "checked_all", "verify_settings", "fast_verify_settings", "default_workers", "linear_fidelity",
            "FAST_VERIFY", "PREDICTION_TOLERANCE"]
 
 #: Samples of steady state simulated before the step (the run starts in equilibrium).
@@ -198,10 +198,11 @@ class ActuatorTuning:
             "verification": {"fidelity": self.fidelity_reason, "discrete": self.scene.discrete,
                              "tolerance": verify_settings(self.scene).rtol},
             "warnings": list(self.warnings),
+            **({"filters": filter_rows(self.scene.filters, self.plant.sample_time_s)} if self.scene.filters else {}),
         }
 
 
-def _aggregate(values: list[float], scene: Scene) -> float:
+def _aggregate(values: list[float], scene: Scene | LoopSpec) -> float:
     if scene.aggregate == "worst":
         return float(max(values))
     if scene.is_profile and scene.goal == "mix":
@@ -246,7 +247,7 @@ def setpoint_prefilter(r: np.ndarray, pid: PID, ts: float, b: float) -> np.ndarr
     return rf
 
 
-def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) -> Design:
+def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene | LoopSpec) -> Design:
     """The design with its linear load-step (or duty-cycle) metrics, on the same footing as
     the verification (a new :class:`Design`; the argument is left as it is).
 
@@ -256,7 +257,8 @@ def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) 
     loops : list of LoopModel
         The scene's loop models (:func:`actuator_loops`), one per load level or record.
     plant : Plant
-    scene : Scene
+    scene : Scene or LoopSpec
+        The scene, or its spec (:func:`~prsa_ctrl.studies.sceneloops.loop_spec`).
 
     Returns
     -------
@@ -265,45 +267,57 @@ def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) 
         rad/s), ``predicted_h`` (s), ``predicted_start_speed`` (rad/s) and
         ``objective_predicted``.
     """
-    w0 = scene.setpoint_rad_s
-    predicted, errors = [], []
-    if scene.is_profile:
-        tau0 = _steady_torque(plant, scene, scene.initial_load)
-        w_pre = w0
-        for case, lp in zip(scene.cases, loops):
-            rec = duty_record(plant, scene, case)
-            tr = lp.trajectory(design.pid.gains)
-            errors.append(tr["error"])
-            t = rec["t"][: lp.n_steps]
-            r = rec["setpoint_at"][: lp.n_steps]
-            predicted.append(profile_metrics(t, r - tr["error"], r, tau0 + tr["motor_torque"],
-                                             plant.torque_limit, rec["load_steps"], rec["breaks"]))
-    else:
-        w_pre, tau0 = w0, _steady_torque(plant, scene, scene.initial_load)
-        if design.pid.ki == 0:  # P-only: the loop settles below the setpoint before the step too
-            op, _ = initial_state(plant, linear_fidelity(scene), w0, scene.initial_load, design.pid, 0.0, 0,
-                                   observer_ff=design.estimator == "kf")
-            w_pre, tau0 = op.omega_nut, op.torque
-        for f1, lp in zip(scene.final_loads, loops):
-            tr = lp.trajectory(design.pid.gains)
-            errors.append(tr["error"])
-            t = scene.step_time + lp.h * np.arange(-1, lp.n_steps)
-            speed = w_pre + np.concatenate([[0.0], -tr["error"]])
-            torque = tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))])
-            predicted.append(
-                load_step_metrics(t, speed, w0, scene.step_time, torque, plant.torque_limit,
-                                  direction=1 if f1 >= scene.initial_load else -1)
-            )
-    return replace(design, predicted=tuple(predicted), predicted_error=tuple(errors), predicted_h=loops[0].h,
-                   predicted_start_speed=w_pre,
-                   objective_predicted=_aggregate([getattr(m, scene.objective) for m in predicted], scene))
+    return predict_all([design], loops, plant, scene)[0]
 
 
-def _steady_torque(plant: Plant, scene: Scene, load: float) -> float:
-    return operating_point(plant, scene.setpoint_rad_s, load, linear_fidelity(scene)).torque
+def predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, scene: Scene | LoopSpec) -> list[Design]:
+    """:func:`predict` of several designs on the same loop models: the linear runs and metrics
+    of every design, then their objectives (new designs, in the same order).
+
+    Parameters
+    ----------
+    designs : list of Design
+    loops : list of LoopModel
+        The scene's loop models (:func:`actuator_loops`), one per load level or record.
+    plant : Plant
+    scene : Scene or LoopSpec
+
+    Returns
+    -------
+    list of Design
+    """
+    spec = loop_spec(plant, scene)
+    # The linear runs of every design (the loop models), then their metrics, then the objectives.
+    w0, tau_ss = spec.setpoint_rad_s, spec.steady_torque_n_m
+    traj = [[lp.trajectory(d.pid.gains) for lp in loops] for d in designs]
+    starts = []  # (speed rad/s, torque N m) before the step
+    for d in designs:
+        if spec.is_profile or d.pid.ki != 0:
+            starts.append((w0, tau_ss))
+        else:  # P-only: the loop settles below the setpoint before the step too
+            op, _ = initial_state(plant, spec.linear_fidelity, w0, spec.initial_load, d.pid, 0.0, 0,
+                                  observer_ff=d.estimator == "kf")
+            starts.append((op.omega_nut, op.torque))
+    metrics = []
+    for trs, (w_pre, tau0) in zip(traj, starts):
+        if spec.is_profile:
+            metrics.append([profile_metrics(rec["t"][: lp.n_steps], rec["setpoint_at"][: lp.n_steps] - tr["error"],
+                                            rec["setpoint_at"][: lp.n_steps], tau0 + tr["motor_torque"],
+                                            plant.torque_limit, rec["load_steps"], rec["breaks"])
+                            for rec, lp, tr in zip(spec.records, loops, trs)])
+            continue
+        metrics.append([load_step_metrics(spec.step_time + lp.h * np.arange(-1, lp.n_steps),
+                                          w_pre + np.concatenate([[0.0], -tr["error"]]), w0, spec.step_time,
+                                          tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))]),
+                                          plant.torque_limit, direction=1 if f1 >= spec.initial_load else -1)
+                        for f1, lp, tr in zip(spec.final_loads, loops, trs)])
+    return [replace(d, predicted=tuple(m), predicted_error=tuple(tr["error"] for tr in trs), predicted_h=loops[0].h,
+                    predicted_start_speed=w_pre,
+                    objective_predicted=_aggregate([getattr(x, spec.objective) for x in m], spec))
+            for d, m, trs, (w_pre, _) in zip(designs, metrics, traj, starts)]
 
 
-def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
+def health_flags(design: Design, plant: Plant, scene: Scene | LoopSpec) -> list[str]:
     """Health checks of a verified design: what its nonlinear runs did that the report must
     not hide. A flagged design is never the best and never beats a baseline.
 
@@ -330,6 +344,12 @@ def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
     list of str
         One sentence per failed check (empty when healthy).
     """
+    # The report's one definition of the gap: (predicted - verified) / |verified|.
+    return _flags(design, plant, scene, relative_difference(design.objective_predicted, design.objective_verified))
+
+
+def _flags(design: Design, plant: Plant, scene: Scene | LoopSpec, diff: float | None) -> list[str]:
+    """:func:`health_flags` with the relative prediction gap ``diff`` given."""
     flags = []
     if not design.tuner_status.startswith("optimal"):
         flags.append(f"the tuner did not converge ({design.tuner_status})")
@@ -352,14 +372,13 @@ def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
             flags.append(f"{case}: the torque is at its limit for {100 * sat:.0f} % of the run")
     p, v = design.objective_predicted, design.objective_verified
     limit = max(scene.accuracy, PREDICTION_TOLERANCE)
-    diff = relative_difference(p, v)  # the report's one definition: (predicted - verified) / |verified|
     if diff is not None and p != 0 and abs(diff) > limit:
         flags.append(f"verified {scene.objective.upper()} {v:.4g} departs from the linear prediction {p:.4g}: "
                      f"difference {100 * diff:+.1f} % (more than {100 * limit:g} %)")
     return flags
 
 
-def integral_warning(design: Design, scene: Scene) -> str | None:
+def integral_warning(design: Design, scene: Scene | LoopSpec) -> str | None:
     """A warning (not a flag) when a duty-cycle record cannot inform the integral gain: the
     integral time ``Ti = kp / ki`` is longer than the record (or ``ki = 0``), so the
     objective barely depends on ``ki`` and the tuner's value is arbitrary. Typical for
@@ -435,11 +454,12 @@ def fast_verify_settings(scene: Scene, plant: Plant, pid: PID | None = None) -> 
     pre = min(scene.step_time, _PRE_SAMPLES * plant.sample_time_s)
     kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, scene.final_loads[0])],
               duration=pre + scene.duration - scene.step_time, controller=pid or default_pid(plant),
-              fidelity=scene.fidelity, discrete=True)
+              fidelity=scene.fidelity, discrete=True, filters=tuple(getattr(scene, "filters", ())) or None)
     return fast_settings(plant, scene.accuracy, FAST_VERIFY, reference=SimSettings(rtol=1e-9, atol=1e-9), **kw)
 
 
-def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0, settings: SimSettings | None = None) -> Design:
+def verify(design: Design, plant: Plant, scene: Scene | LoopSpec, seed: int = 0,
+           settings: SimSettings | None = None) -> Design:
     """Nonlinear load-step runs of a design (one per final load; a duty cycle: one per record).
 
     The package's one argument order for verification: the design first, then what it is
@@ -449,7 +469,9 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0, settings: 
     ----------
     design : Design
     plant : Plant
-    scene : Scene
+    scene : Scene or LoopSpec
+        The scene, or the spec (:func:`~prsa_ctrl.studies.sceneloops.loop_spec`) of a scene
+        whose fidelity is resolved (:func:`~prsa_ctrl.studies.scene.choose_fidelity`).
     seed : int
         Seed of the per-roller errors (multi-roller fidelity).
     settings : SimSettings, optional
@@ -462,79 +484,109 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0, settings: 
         output arrays), ``estimation`` (Kalman-filter designs: speed RMS errors, rad/s) and
         ``objective_verified``; its ``flags`` are those of ``design`` (see :func:`checked`).
     """
-    scene, _ = choose_fidelity(scene)
-    settings = verify_settings(scene) if settings is None else settings
-    runs = _profile_runs if scene.is_profile else _load_step_runs
-    verified, verified_runs, estimation = runs(design, plant, scene, seed, settings)
-    return replace(design, verified=tuple(verified), verified_runs=tuple(verified_runs),
-                   estimation=tuple(estimation),
-                   objective_verified=_aggregate([getattr(m, scene.objective) for m in verified], scene))
+    spec = _verification_spec(plant, scene)
+    return _with_runs([design], _simulate([design], plant, spec, seed, settings), plant, spec)[0]
 
 
-def _load_step_runs(design: Design, plant: Plant, scene: Scene, seed: int, settings: SimSettings) -> tuple:
-    """:func:`verify` on a load-step scene: ``(metrics, runs, estimation)`` per final load."""
+def _verification_spec(plant: Plant, scene: Scene | LoopSpec) -> LoopSpec:
+    """The spec the verification reads: a scene's with its fidelity resolved."""
+    if not isinstance(scene, LoopSpec):
+        scene, _ = choose_fidelity(scene)
+    elif scene.fidelity == "auto":
+        raise ValueError("scene: a LoopSpec with fidelity 'auto'; expected the spec of a scene whose fidelity is "
+                         "resolved (prsa_ctrl.studies.choose_fidelity)")
+    return loop_spec(plant, scene)
+
+
+def _simulate(designs: list[Design], plant: Plant, spec: LoopSpec, seed: int = 0,
+              settings: SimSettings | None = None) -> list[tuple]:
+    """The nonlinear runs of :func:`verify`, for every design: ``(runs, estimation)`` with one
+    ``(time s, {output: array})`` per level and the Kalman filter's speed RMS errors (rad/s).
+
+    A load-step scene: one run per final load, starting ``_PRE_SAMPLES`` samples before the step
+    in equilibrium. A duty cycle: one sampled run per record, over the whole record, with the
+    scene's profiles (a setpoint weight ``b != 1`` through :func:`setpoint_prefilter`).
+    """
+    settings = verify_settings(spec) if settings is None else settings
     ts = plant.sample_time_s
-    pre = min(scene.step_time, _PRE_SAMPLES * ts) if scene.discrete else min(scene.step_time, 1e-3)
-    offset = scene.step_time - pre
-    verified, verified_runs, estimation = [], [], []
-    for f1 in scene.final_loads:
-        kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, f1)],
-                  duration=pre + scene.duration - scene.step_time, controller=design.pid,
-                  fidelity=scene.fidelity, settings=settings, seed=seed)
-        measurement = "encoder"
-        kf = None
-        if design.estimator == "kf":
-            measurement, kf = "kf", design_kf(plant, scene.load_change_time_s)
-        r = run(plant, discrete=scene.discrete, measurement=measurement, kf=kf, **kw)
-        if design.estimator == "kf":
-            w = r.output("nut_speed")
-            estimation.append({
-                "kf_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_measured") - w) ** 2))),
-                "fd_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_fd") - w) ** 2))),
-            })
-        t = np.asarray(r.time) + offset
-        y = dict(zip(r.output_labels, np.asarray(r.outputs)))
-        verified.append(
-            load_step_metrics(t, y["nut_speed"], scene.setpoint_rad_s, scene.step_time, y["motor_torque"],
-                              plant.torque_limit, direction=1 if f1 >= scene.initial_load else -1)
-        )
-        verified_runs.append((t, y))
-    return verified, verified_runs, estimation
+    out = []
+    for design in designs:
+        runs, estimation = [], []
+        if spec.is_profile:
+            for case, rec in zip(spec.cases, spec.records):
+                setpoint = rec["setpoint"]
+                if case == "setpoint profile" and spec.setpoint_weight != 1.0:
+                    rf = setpoint_prefilter(rec["setpoint_at"], design.pid, ts, spec.setpoint_weight)
+                    n_pts = int(np.searchsorted(rec["t"], spec.duration - 1e-9 * ts))  # points before the end
+                    setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
+                r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=spec.duration,
+                        controller=design.pid, fidelity=spec.fidelity, settings=settings, seed=seed,
+                        filters=spec.filters or None)
+                t = np.asarray(r.time)
+                y = dict(zip(r.output_labels, np.asarray(r.outputs)))
+                y["setpoint"] = rec["setpoint_at"][: t.size]
+                runs.append((t, y))
+            out.append((runs, estimation))
+            continue
+        pre = min(spec.step_time, _PRE_SAMPLES * ts) if spec.discrete else min(spec.step_time, 1e-3)
+        offset = spec.step_time - pre
+        for f1 in spec.final_loads:
+            kw = dict(setpoint=spec.setpoint_rad_s, load=[(0.0, spec.initial_load), (pre, f1)],
+                      duration=pre + spec.duration - spec.step_time, controller=design.pid,
+                      fidelity=spec.fidelity, settings=settings, seed=seed, filters=spec.filters or None)
+            measurement = "encoder"
+            kf = None
+            if design.estimator == "kf":
+                measurement, kf = "kf", design_kf(plant, spec.load_change_time_s)
+            r = run(plant, discrete=spec.discrete, measurement=measurement, kf=kf, **kw)
+            if design.estimator == "kf":
+                w = r.output("nut_speed")
+                estimation.append({
+                    "kf_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_measured") - w) ** 2))),
+                    "fd_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_fd") - w) ** 2))),
+                })
+            t = np.asarray(r.time) + offset
+            runs.append((t, dict(zip(r.output_labels, np.asarray(r.outputs)))))
+        out.append((runs, estimation))
+    return out
 
 
-def _profile_runs(design: Design, plant: Plant, scene: Scene, seed: int, settings: SimSettings) -> tuple:
-    """:func:`verify` on a duty cycle: one sampled nonlinear run per record, over the whole
-    record, with the scene's profiles (a setpoint weight ``b != 1`` through
-    :func:`setpoint_prefilter`); ``(metrics, runs, [])``."""
-    ts = plant.sample_time_s
-    verified, verified_runs = [], []
-    for case in scene.cases:
-        rec = duty_record(plant, scene, case)
-        setpoint = rec["setpoint"]
-        if case == "setpoint profile" and scene.setpoint_weight != 1.0:
-            rf = setpoint_prefilter(rec["setpoint_at"], design.pid, ts, scene.setpoint_weight)
-            n_pts = int(np.searchsorted(rec["t"], scene.duration - 1e-9 * ts))  # points before the end
-            setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
-        r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=scene.duration,
-                controller=design.pid, fidelity=scene.fidelity, settings=settings, seed=seed)
-        t = np.asarray(r.time)
-        y = dict(zip(r.output_labels, np.asarray(r.outputs)))
-        ref = rec["setpoint_at"][: t.size]
-        y["setpoint"] = ref
-        verified.append(profile_metrics(t, y["nut_speed"], ref, y["motor_torque"], plant.torque_limit,
-                                        rec["load_steps"], rec["breaks"]))
-        verified_runs.append((t, y))
-    return verified, verified_runs, []
+def _with_runs(designs: list[Design], simulated: list[tuple], plant: Plant, spec: LoopSpec) -> list[Design]:
+    """The designs with their verified runs (:func:`_simulate`), the metrics of every run, then
+    the objectives (new designs)."""
+    metrics = []
+    for runs, _ in simulated:
+        if spec.is_profile:
+            metrics.append([profile_metrics(t, y["nut_speed"], y["setpoint"], y["motor_torque"], plant.torque_limit,
+                                            rec["load_steps"], rec["breaks"])
+                            for (t, y), rec in zip(runs, spec.records)])
+        else:
+            metrics.append([load_step_metrics(t, y["nut_speed"], spec.setpoint_rad_s, spec.step_time, y["motor_torque"],
+                                              plant.torque_limit, direction=1 if f1 >= spec.initial_load else -1)
+                            for (t, y), f1 in zip(runs, spec.final_loads)])
+    return [replace(d, verified=tuple(m), verified_runs=tuple(runs), estimation=tuple(estimation),
+                    objective_verified=_aggregate([getattr(x, spec.objective) for x in m], spec))
+            for d, m, (runs, estimation) in zip(designs, metrics, simulated)]
 
 
-def checked(design: Design, plant: Plant, scene: Scene) -> Design:
+def checked(design: Design, plant: Plant, scene: Scene | LoopSpec) -> Design:
     """The verified design with its health ``flags`` (:func:`health_flags`) and its
     ``warnings`` (:func:`prediction_warnings`), as a new design."""
-    flags = tuple(health_flags(design, plant, scene))
-    return replace(design, flags=flags, warnings=tuple(prediction_warnings(replace(design, flags=flags), scene)))
+    return checked_all([design], plant, scene)[0]
 
 
-def prediction_warnings(design: Design, scene: Scene) -> list[str]:
+def checked_all(designs: list[Design], plant: Plant, scene: Scene | LoopSpec) -> list[Design]:
+    """:func:`checked` of several verified designs (new designs, in the same order): the gap
+    between predicted and verified objective of each, then its flags and warnings."""
+    diffs = [relative_difference(d.objective_predicted, d.objective_verified) for d in designs]
+    out = []
+    for d, diff in zip(designs, diffs):
+        d = replace(d, flags=tuple(_flags(d, plant, scene, diff)))
+        out.append(replace(d, warnings=tuple(_warnings(d, scene, diff))))
+    return out
+
+
+def prediction_warnings(design: Design, scene: Scene | LoopSpec) -> list[str]:
     """A warning when the verified objective differs from the predicted one by more than
     ``PREDICTION_TOLERANCE`` (relative) but the gap is not already a health flag.
 
@@ -543,8 +595,12 @@ def prediction_warnings(design: Design, scene: Scene) -> list[str]:
     list of str
         Empty, or one sentence (without the design's name).
     """
+    return _warnings(design, scene, relative_difference(design.objective_predicted, design.objective_verified))
+
+
+def _warnings(design: Design, scene: Scene | LoopSpec, diff: float | None) -> list[str]:
+    """:func:`prediction_warnings` with the relative prediction gap ``diff`` given."""
     departed = any("departs from the linear prediction" in f for f in design.flags)  # said once, as a flag
-    diff = relative_difference(design.objective_predicted, design.objective_verified)
     if departed or not design.objective_verified > 0 or diff is None or not abs(diff) > PREDICTION_TOLERANCE:
         return []
     return [f"predicted {scene.objective.upper()} {design.objective_predicted:.4g} differs from verified "
@@ -554,9 +610,9 @@ def prediction_warnings(design: Design, scene: Scene) -> list[str]:
 _POOL_JOB: tuple | None = None
 
 
-def _verify_job(i: int) -> Design:
-    designs, plant, scene = _POOL_JOB  # type: ignore[misc]
-    return verify(designs[i], plant, scene)
+def _verify_job(i: int) -> tuple:
+    designs, plant, spec = _POOL_JOB  # type: ignore[misc]
+    return _simulate([designs[i]], plant, spec)[0]
 
 
 def default_workers() -> int:
@@ -565,32 +621,37 @@ def default_workers() -> int:
     return int(os.environ.get("PRSA_WORKERS", "0")) or min(os.cpu_count() or 1, 4)
 
 
-def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int | None = None) -> list[Design]:
+def verify_all(designs: list[Design], plant: Plant, scene: Scene | LoopSpec, workers: int | None = None) -> list[Design]:
     """:func:`verify` of several designs, in parallel worker processes where the machine has
     cores; the verified designs in the same order (the arguments are not changed).
 
     The workers are forked after the simulator's integrators are built, so each inherits them
     instead of rebuilding; ``PRSA_WORKERS=1`` forces serial runs.
     """
-    global _POOL_JOB
     if not designs:
         return []
-    first = verify(designs[0], plant, scene)  # builds (and caches) the integrators before any fork
-    rest = list(designs[1:])
-    if workers is None:
-        workers = default_workers()
-    if workers <= 1 or len(rest) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        return [first, *(verify(d, plant, scene) for d in rest)]
-    _POOL_JOB = (rest, plant, scene)
+    spec = _verification_spec(plant, scene)
+    simulated = _simulate_all(designs, plant, spec, default_workers() if workers is None else workers)
+    return _with_runs(designs, simulated, plant, spec)
+
+
+def _simulate_all(designs: list[Design], plant: Plant, spec: LoopSpec, workers: int) -> list[tuple]:
+    """:func:`_simulate` of every design: in this process, or the first here (it builds and
+    caches the integrators) and the others in forked workers where there are cores."""
+    global _POOL_JOB
+    if workers <= 1 or len(designs) < 3 or "fork" not in multiprocessing.get_all_start_methods():
+        return _simulate(designs, plant, spec)
+    first, rest = _simulate(designs[:1], plant, spec), list(designs[1:])
+    _POOL_JOB = (rest, plant, spec)
     try:
         ctx = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(max_workers=min(workers, len(rest)), mp_context=ctx) as pool:
-            return [first, *pool.map(_verify_job, range(len(rest)))]
+            return [*first, *pool.map(_verify_job, range(len(rest)))]
     finally:
         _POOL_JOB = None
 
 
-def baseline_designs(plant: Plant, scene: Scene, loops: list[LoopModel]) -> list[Design]:
+def baseline_designs(plant: Plant, scene: Scene | LoopSpec, loops: list[LoopModel]) -> list[Design]:
     """Reference designs every report carries.
 
     Parameters
@@ -675,44 +736,50 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         raise TypeError(f"scene = {scene!r}; expected a prsa_ctrl Scene (e.g. prsa_ctrl.load_scene(...))")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
+    # Read the scene once: everything below reads the spec, the tuning layer gets its numbers.
     scene, fidelity_reason = choose_fidelity(scene)
-    loops = actuator_loops(plant, scene)
+    spec = loop_spec(plant, scene)
+    loops = actuator_loops(plant, spec)
+    # Baselines use the drive's standard speed measurement; with an estimator in the scene the
+    # PI tuned without it is a baseline too (the reference for what the estimator buys).
+    plain = loops if spec.estimator == "none" else actuator_loops(plant, spec, estimator="none")
     timing["linearize"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    common = dict(objective=scene.objective, controller=scene.controller, worst_case=scene.aggregate == "worst")
-    if scene.is_profile and scene.goal == "mix":
-        common["weights"] = [1.0 - scene.setpoint_share, scene.setpoint_share]
+    common = dict(objective=spec.objective, controller=spec.controller, worst_case=spec.aggregate == "worst")
+    if spec.is_profile and spec.goal == "mix":
+        common["weights"] = [1.0 - spec.setpoint_share, spec.setpoint_share]
     tuner = Tuner(loops, **common)  # one scan grid and NLP for every Ms level
     runs: list[dict] = []
+    suffix = (" + KF" if spec.estimator == "kf" else "") + (" + load FF" if spec.feedforward else "")
 
-    def tuned(ms: float) -> Design:
-        res = tuner.tune(ms_max=ms, mt_max=scene.mt_max, mks_max=scene.mks_max)
-        runs.append({"ms_max": ms, "result": res.status,
-                     **{k: res.stats[k] for k in ("status", "iterations", "wall_time_s")}})
-        label = f"tuned (Ms <= {ms:.3g})" + (" + KF" if scene.estimator == "kf" else "") + (" + load FF" if scene.feedforward else "")
-        return predict(Design(label, res.pid, res.margins[0], estimator=scene.estimator, tuner_status=res.status),
-                       loops, plant, scene)
+    def tuned(ms_levels: list[float]) -> list[Design]:
+        """Tuned designs at these Ms bounds, predicted."""
+        out = []
+        for ms in ms_levels:
+            res = tuner.tune(ms_max=ms, mt_max=spec.mt_max, mks_max=spec.mks_max)
+            runs.append({"ms_max": ms, "result": res.status,
+                         **{k: res.stats[k] for k in ("status", "iterations", "wall_time_s")}})
+            out.append(Design(f"tuned (Ms <= {ms:.3g})" + suffix, res.pid, res.margins[0], estimator=spec.estimator,
+                              tuner_status=res.status))
+        return out
 
-    # Baselines use the drive's standard speed measurement; with an estimator in the scene the
-    # PI tuned without it is a baseline too (the reference for what the estimator buys).
-    plain = loops if scene.estimator == "none" else actuator_loops(plant, scene, estimator="none")
-    baselines = baseline_designs(plant, scene, plain)
-    if scene.estimator != "none":
-        res = Tuner(plain, **common).tune(ms_max=scene.ms_max, mt_max=scene.mt_max, mks_max=scene.mks_max)
-        baselines.insert(0, Design(f"tuned PI alone (Ms <= {scene.ms_max:.3g})", res.pid, res.margins[0]))
-    baselines = [predict(d, plain, plant, scene) for d in baselines]
+    baselines = baseline_designs(plant, spec, plain)
+    if spec.estimator != "none":
+        res = Tuner(plain, **common).tune(ms_max=spec.ms_max, mt_max=spec.mt_max, mks_max=spec.mks_max)
+        baselines.insert(0, Design(f"tuned PI alone (Ms <= {spec.ms_max:.3g})", res.pid, res.margins[0]))
     # Candidates: the design at the scene's Ms bound, designs at the Ms of every baseline that
     # is more robust (they double as its equal-Ms comparison), then more robust alternatives
-    # until there are ``scene.candidates``.
-    ms_levels = [scene.ms_max] + sorted({b.margins.ms for b in baselines if b.margins.ms < scene.ms_max}, reverse=True)
-    hedges = [1 + (scene.ms_max - 1) * f for f in (0.85, 0.7, 0.55, 0.4)]
-    ms_levels += hedges[: max(0, scene.candidates - len(ms_levels))]
-    candidates = [tuned(ms) for ms in ms_levels]
+    # until there are ``spec.candidates``.
+    ms_levels = [spec.ms_max] + sorted({b.margins.ms for b in baselines if b.margins.ms < spec.ms_max}, reverse=True)
+    hedges = [1 + (spec.ms_max - 1) * f for f in (0.85, 0.7, 0.55, 0.4)]
+    ms_levels += hedges[: max(0, spec.candidates - len(ms_levels))]
+    candidates = tuned(ms_levels)
+    candidates, baselines = predict_all(candidates, loops, plant, spec), predict_all(baselines, plain, plant, spec)
     timing["tune"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    done = [checked(d, plant, scene) for d in verify_all(candidates + baselines, plant, scene, workers)]
+    done = checked_all(verify_all(candidates + baselines, plant, spec, workers), plant, spec)
     candidates, baselines = done[: len(candidates)], done[len(candidates):]
     timing["verify"] = time.perf_counter() - t2
     best = _best(candidates)
@@ -725,11 +792,13 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     ours_for = {id(b): next((d for d in [best, *candidates] if settles(d, b)), None) for b in baselines}
     # (a baseline beyond the tuner's Ms range, e.g. a rule of thumb on a heavy linear axis, is
     # compared with the design at the range's top: still "equal or better Ms")
-    extra = {id(b): tuned(min(b.margins.ms, PEAK_BOUND_RANGE[1] * (1 - 1e-9))) for b in baselines
-             if ours_for[id(b)] is None}
+    unsettled = [b for b in baselines if ours_for[id(b)] is None]
+    extra = dict(zip((id(b) for b in unsettled),
+                     predict_all(tuned([min(b.margins.ms, PEAK_BOUND_RANGE[1] * (1 - 1e-9)) for b in unsettled]),
+                                 loops, plant, spec)))
     t4 = time.perf_counter()
     timing["tune"] += t4 - t3
-    extra = dict(zip(extra, (checked(d, plant, scene) for d in verify_all(list(extra.values()), plant, scene, workers))))
+    extra = dict(zip(extra, checked_all(verify_all(list(extra.values()), plant, spec, workers), plant, spec)))
     timing["verify"] += time.perf_counter() - t4
     comparisons = []
     for b in baselines:
@@ -750,29 +819,29 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
             }
         )
     # Equal-Ms designs within the scene's bound are candidates too.
-    best = _best([best, *[d for d in extra.values() if d.margins.ms <= scene.ms_max]])
+    best = _best([best, *[d for d in extra.values() if d.margins.ms <= spec.ms_max]])
     timing["total"] = time.perf_counter() - t0
 
     warnings_out = [f"{d.name}: {w}" for d in candidates + baselines + list(extra.values()) for w in d.warnings]
     for d in candidates + baselines + list(extra.values()):
         for f in d.flags:
             warnings_out.append(f"{d.name}: {f}")
-    w_int = integral_warning(best, scene)
+    w_int = integral_warning(best, spec)
     if w_int:
         warnings_out.append(f"{best.name}: {w_int}")
     for c in comparisons:
         if not c["beaten"]:
             mt_note = ""
             b_mt = next((b.margins.mt for b in baselines if b.name == c["baseline"]), math.nan)
-            if scene.mt_max is not None and b_mt > scene.mt_max:
-                mt_note = (f" (the comparison design also keeps Mt <= {scene.mt_max:g}; the baseline reaches "
+            if spec.mt_max is not None and b_mt > spec.mt_max:
+                mt_note = (f" (the comparison design also keeps Mt <= {spec.mt_max:g}; the baseline reaches "
                            f"Mt {b_mt:.3g})")
             warnings_out.append(f"baseline {c['baseline']!r} is not beaten at equal or better Ms{mt_note}")
     return ActuatorTuning(
         plant=plant,
         scene=scene,
         best=best,
-        candidates=tuple(candidates + [d for d in extra.values() if d.margins.ms <= scene.ms_max]),
+        candidates=tuple(candidates + [d for d in extra.values() if d.margins.ms <= spec.ms_max]),
         baselines=tuple(baselines),
         comparisons=tuple(comparisons),
         timing_s=timing,
@@ -780,5 +849,5 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
         warnings=tuple(warnings_out),
         loops=tuple(loops),
         fidelity_reason=fidelity_reason,
-        comparison_designs=tuple(d for d in extra.values() if d.margins.ms > scene.ms_max),
+        comparison_designs=tuple(d for d in extra.values() if d.margins.ms > spec.ms_max),
     )

@@ -35,9 +35,9 @@ from ..plant.model import register_member
 from ..plant.plantfile import Plant
 from ..plant.uncertainty import apply, uncertainty_model
 from ..results import is_ok, json_safe
-from ..tuning.robust import operating_points
 from .autotune import FAST_VERIFY, Design, actuator_loops, fast_verify_settings, verify, verify_settings
 from .scene import choose_fidelity
+from .scenerobust import operating_points
 
 dask = module("dask")
 distributed = module("dask.distributed")

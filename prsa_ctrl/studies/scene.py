@@ -46,7 +46,9 @@ from typing import Any, Mapping
 from ..errors import SceneError
 from ..options import (AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE,
                        RIGID_RELATIVE_ERROR)
+from ..drive.filters import LoopFilter
 from .movescene import MoveScene, parse_move_scene
+from .scenefilters import check_filters_against_plant, parse_filters, scene_filters
 from .scenefile import (DEFAULT_SCENE, LOAD_CHANGE_TIME_RANGE_S, MAX_LOAD_LEVELS, MAX_RECORD_SAMPLES, MIN_LOAD_STEP_N,
                         POST_EVENT_SAMPLES, PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes,
                         is_move_scene, locate_scene, read_scene_doc)
@@ -199,6 +201,11 @@ class Scene:
     #: Where each point of a CSV trace came from: ``{"load_profile": (file, column, ((line,
     #: typed value), ...))}`` (messages name the line; empty for profiles written in the scene).
     trace_lines: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False, repr=False)
+    #: Speed-measurement and torque-command filters of the drive (``[filters]``,
+    #: :mod:`prsa_ctrl.studies.scenefilters`), in the loop models, the verification and the export.
+    filters: tuple[LoopFilter, ...] = ()
+    #: How messages name each filter's frequency (``"scene.toml: filters.notch[1].centre_hz = 163.0"``).
+    filter_labels: tuple[str, ...] = field(default=(), compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:
         o = self.origin
@@ -212,6 +219,9 @@ class Scene:
             return float(value)
 
         self._check_duty(bad, finite)
+        if self.filters or self.filter_labels or not isinstance(self.filters, tuple):
+            for name, value in zip(("filters", "filter_labels"), scene_filters(self)):
+                object.__setattr__(self, name, value)
 
         if finite("setpoint_rad_s", self.setpoint_rad_s) <= 0:
             raise bad("setpoint_rpm", float(f"{self.setpoint_rpm:.12g}"), "a positive nut speed in rpm")
@@ -371,6 +381,8 @@ class Scene:
         d["setpoint_rpm"] = self.setpoint_rpm
         for key in ("load_profile", "setpoint_profile"):
             d[key] = None if getattr(self, key) is None else [list(p) for p in getattr(self, key)]
+        del d["filter_labels"], d["filters"]  # the filters only where there are some (reports stay as they were)
+        d.update({"filters": [lf.as_dict() for lf in self.filters]} if self.filters else {})
         return d
 
 
@@ -560,10 +572,13 @@ def _trace_point(scene: "Scene", key: str, index: int) -> str | None:
 
 
 def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
-    unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description", "spec", "robust", "uncertainty"})
+    unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description", "spec", "robust", "uncertainty", "filters"})
     if unknown:
-        raise SceneError(f"{origin}: unknown section {unknown[0]!r}; expected one of {', '.join([*_SECTIONS, 'spec', 'robust', 'uncertainty'])}")
+        raise SceneError(f"{origin}: unknown section {unknown[0]!r}; expected one of "
+                         f"{', '.join([*_SECTIONS, 'spec', 'robust', 'uncertainty', 'filters'])}")
     kw: dict[str, Any] = {"origin": origin}
+    if "filters" in doc:
+        kw["filters"], kw["filter_labels"] = parse_filters(doc["filters"], origin)
     if "name" in doc:
         if not isinstance(doc["name"], str):
             raise SceneError(f"{origin}: name = {doc['name']!r}; expected a string")
@@ -760,6 +775,7 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
         return f"{scene.origin}: {keys[name]} = {value}"
 
     ts = plant.sample_time_s
+    check_filters_against_plant(scene.filters, scene.filter_labels, ts, plant.name)
     rpm = scene.setpoint_rpm
     rpm_min = STICTION_MARGIN * plant.values["friction.stribeck_velocity_m_s"] / plant.lead_per_rad * 30.0 / math.pi
     if not rpm_min <= rpm <= SETPOINT_MAX_RPM:

@@ -2,10 +2,11 @@
 
 A *scenario* is one point of the plant's uncertainty (the nominal point, the vertices of the
 uncertainty box, seeded samples of it) at one operating point of the scene's range (setpoint
-speed x final load). Each scenario becomes a loop model (:func:`prsa_ctrl.studies.autotune.actuator_loops`);
-:func:`prsa_ctrl.tuning.generic.tune_loops` then optimises shared gains with the Ms (and Mt) bound on
+speed x final load). Each scenario becomes a loop model; :func:`tune_scenario_loops` (through
+:func:`prsa_ctrl.tuning.generic.tune_loops`) then optimises shared gains with the Ms (and Mt) bound on
 every scenario and the worst-case or mean objective. :func:`tune_robust` is the generic form for
-a list of python-control plants (like systune's plant arrays).
+a list of python-control plants (like systune's plant arrays). A scene's scenarios and their
+loop models are read in :mod:`prsa_ctrl.studies.scenerobust`.
 """
 
 from __future__ import annotations
@@ -18,11 +19,9 @@ from typing import Any, Sequence
 import numpy as np
 
 from .._lazy import module
-from ..errors import SceneError
 from ..options import MS_MAX_DEFAULT
-from ..plant.uncertainty import UncertaintyModel, apply, uncertainty_model
+from ..plant.uncertainty import UncertaintyModel
 from ..results import is_converged, is_ok, json_safe
-from .scene_loops import actuator_loops
 from .loops import LoopModel
 from .tuner import TuningResult
 from .builders import continuous_loop
@@ -30,12 +29,7 @@ from .generic import tune_loops
 
 control = module("control")
 
-__all__ = ["Scenario", "RobustTuning", "scenarios", "scenario_loops", "tune_robust_actuator",
-           "compare_designs", "tune_robust", "operating_points"]
-
-#: Upper bound on scenario models in one NLP (each adds a loop model and its constraints).
-MAX_SCENARIOS = 64
-
+__all__ = ["Scenario", "RobustTuning", "tune_scenario_loops", "compare_designs", "tune_robust"]
 
 @dataclass(frozen=True)
 class Scenario:
@@ -51,83 +45,6 @@ class Scenario:
     def as_dict(self) -> dict[str, Any]:
         return {"name": self.name, "kind": self.kind, "values": dict(self.values),
                 "setpoint_rad_s": self.setpoint_rad_s, "final_load_n": self.final_load}
-
-
-def operating_points(scene) -> list[tuple[float, float]]:
-    """The scene's operating range: (setpoint rad/s, final load N) for every setpoint in
-    ``[robust] setpoints_rpm`` (default the scene's) and every final load in
-    ``[robust] final_loads_n`` (default the scene's)."""
-    if getattr(scene, "is_profile", False):
-        raise SceneError(f"{scene.origin}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
-                         "load-step scene (the robust and Monte-Carlo studies run load steps)")
-    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
-    sps = [v * math.pi / 30.0 for v in rob.get("setpoints_rpm", [])] or [scene.setpoint_rad_s]
-    loads = rob.get("final_loads_n") or list(scene.final_loads)
-    for f in loads:
-        if f == scene.initial_load:
-            raise SceneError(f"{scene.origin}: robust.final_loads_n contains {f:g}; expected loads different "
-                             f"from the initial {scene.initial_load:g} N")
-    return [(sp, f) for sp in sps for f in loads]
-
-
-def scenarios(plant, scene, *, unc: UncertaintyModel | None = None, vertices: bool | None = None,
-              samples: int | None = None, seed: int | None = None,
-              max_scenarios: int | None = None) -> list[Scenario]:
-    """Scenario models of a scene: {nominal, box vertices, seeded samples} x operating points.
-
-    Parameters
-    ----------
-    plant, scene
-        The plant (its ``[uncertainty]``) and the scene (its ``[uncertainty]`` and ``[robust]``).
-    unc : UncertaintyModel, optional
-        Default :func:`prsa_ctrl.plant.uncertainty.uncertainty_model` of plant and scene.
-    vertices : bool, optional
-        Include the ``2**k`` corners of the box (default ``[robust] vertices`` or true).
-    samples : int, optional
-        Random interior points (default ``[robust] samples`` or 0), drawn from
-        ``SeedSequence([seed, i, 1])`` (a stream distinct from the Monte-Carlo samples').
-    max_scenarios : int, optional
-        Bound checked before any model is built (default ``[robust] max_scenarios`` or 64).
-    """
-    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
-    unc = uncertainty_model(plant, scene) if unc is None else unc
-    vertices = rob.get("vertices", True) if vertices is None else vertices
-    samples = rob.get("samples", 0) if samples is None else samples
-    seed = rob.get("seed", 0) if seed is None else seed
-    max_scenarios = rob.get("max_scenarios", MAX_SCENARIOS) if max_scenarios is None else max_scenarios
-    points: list[tuple[str, str, dict]] = [("nominal", "nominal", {})]
-    if vertices and len(unc):
-        if 2 ** len(unc) > max_scenarios:
-            raise SceneError(f"{scene.origin}: {len(unc)} uncertain parameters have {2 ** len(unc)} vertices, above "
-                             f"max_scenarios = {max_scenarios}; expected robust.vertices = false and robust.samples")
-        points += [(f"vertex {j}", "vertex", v) for j, v in enumerate(unc.vertices())]
-    for i in range(int(samples)):
-        rng = np.random.default_rng(np.random.SeedSequence([int(seed), i, 1]))
-        points.append((f"sample {i}", "sample", unc.sample(rng)))
-    ops = operating_points(scene)
-    total = len(points) * len(ops)
-    if total > max_scenarios:
-        raise SceneError(f"{scene.origin}: {len(points)} parameter points x {len(ops)} operating points = {total} "
-                         f"scenario models, above max_scenarios = {max_scenarios}; expected fewer")
-    out = []
-    for name, kind, vals in points:
-        for sp, f1 in ops:
-            label = f"{name} @ {sp * 30 / math.pi:g} rpm, {f1:g} N" if len(ops) > 1 else name
-            out.append(Scenario(label, kind, dict(vals), float(sp), float(f1)))
-    return out
-
-
-def scenario_loops(plant, scene, scens: Sequence[Scenario]) -> list[LoopModel]:
-    """One loop model per scenario (linearised at the scenario's mid load and setpoint)."""
-    cache: dict = {}
-    loops = []
-    for s in scens:
-        key = tuple(sorted(s.values.items()))
-        if key not in cache:
-            cache[key] = apply(plant, s.values) if s.values else plant
-        sc = scene.replace(setpoint_rad_s=s.setpoint_rad_s, final_loads=(s.final_load,))
-        loops.append(actuator_loops(cache[key], sc)[0])
-    return loops
 
 
 def _summary(pid, loops: Sequence[LoopModel], objective: str) -> dict[str, Any]:
@@ -292,36 +209,36 @@ class RobustTuning:
         return "\n".join(lines)
 
 
-def tune_robust_actuator(plant, scene, *, scens: Sequence[Scenario] | None = None,
-                         aggregate: str | None = None) -> RobustTuning:
-    """Tune the nominal design (nominal plant at the scene's operating points) and the robust
-    design (every scenario model, one NLP), and compare them on all scenario models.
+def tune_scenario_loops(loops: Sequence[LoopModel], scens: Sequence[Scenario], *, unc: UncertaintyModel,
+                        objective: str, controller: str, ms_max: float, mt_max: float | None = None,
+                        aggregate: str = "worst", timing_s: dict | None = None) -> RobustTuning:
+    """Tune the nominal design (the nominal scenarios' loops) and the robust design (every
+    scenario's loop, one NLP), and compare them on all scenario loops.
 
     Parameters
     ----------
-    plant, scene
-        Plant and scene (``[uncertainty]``, ``[robust]`` sections; Ms/Mt bounds from
-        ``[tuning]``).
-    scens : list of Scenario, optional
-        Default :func:`scenarios`.
-    aggregate : {"worst", "mean"}, optional
-        Objective over scenarios (default ``[robust] aggregate`` or "worst").
+    loops : list of LoopModel
+        One loop model per scenario, in the order of ``scens``.
+    scens : list of Scenario
+    unc : UncertaintyModel
+        The uncertainty the scenarios sample (kept in the result).
+    objective, controller : str
+        Tuning objective (``"iae"``, ...) and structure (``"pi"``, ``"pid"``).
+    ms_max, mt_max : float
+        Sensitivity bounds on every scenario loop.
+    aggregate : {"worst", "mean"}
+        Objective over the scenarios.
+    timing_s : dict, optional
+        Timings measured before (s); the tunings' are added.
 
     Returns
     -------
     RobustTuning
-        Both designs, the comparison (per-scenario Ms and objective) and timings (s).
     """
-    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
-    aggregate = aggregate or rob.get("aggregate", "worst")
     if aggregate not in ("worst", "mean"):
         raise ValueError(f"aggregate = {aggregate!r}; expected 'worst' or 'mean'")
-    unc = uncertainty_model(plant, scene)
-    scens = list(scens) if scens is not None else scenarios(plant, scene, unc=unc)
-    t0 = time.perf_counter()
-    loops = scenario_loops(plant, scene, scens)
-    timing = {"linearize": time.perf_counter() - t0}
-    common = dict(objective=scene.objective, controller=scene.controller, ms_max=scene.ms_max, mt_max=scene.mt_max)
+    timing = dict(timing_s or {})
+    common = dict(objective=objective, controller=controller, ms_max=ms_max, mt_max=mt_max)
     nominal_idx = [i for i, s in enumerate(scens) if s.kind == "nominal"]
     t1 = time.perf_counter()
     nom = tune_loops([loops[i] for i in nominal_idx], worst_case=aggregate == "worst", **common)
@@ -329,7 +246,7 @@ def tune_robust_actuator(plant, scene, *, scens: Sequence[Scenario] | None = Non
     t2 = time.perf_counter()
     rob_res = tune_loops(loops, worst_case=aggregate == "worst", **common)
     timing["tune_robust"] = time.perf_counter() - t2
-    comp = compare_designs({"nominal": nom.pid, "robust": rob_res.pid}, loops, scens, scene.objective, scene.ms_max)
+    comp = compare_designs({"nominal": nom.pid, "robust": rob_res.pid}, loops, scens, objective, ms_max)
     comp["aggregate"] = aggregate
     return RobustTuning(nom.pid, rob_res.pid, tuple(scens), comp, timing, unc, {"nominal": nom, "robust": rob_res},
                         tuple(loops))

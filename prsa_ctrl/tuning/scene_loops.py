@@ -1,14 +1,15 @@
-"""Loop models of an actuator scene: the sampled (or continuous) speed loop linearised at each
-load step's mid load, or over each record of a duty cycle.
+"""Loop models of the actuator's speed loop from numbers: the sampled (or continuous) loop
+linearised at each load step's mid load (:func:`step_loops`), or over each record of a duty
+cycle (:func:`profile_loops`), and the sampled loop with the Kalman filter (:func:`kf_drive_loop`).
 
-The builders the tuners, the robust study and the verification share (:func:`actuator_loops`,
-:func:`duty_record`); a scene is read through its attributes (``final_loads``, ``estimator``,
-``is_profile``, ...), so this module needs nothing from :mod:`prsa_ctrl.studies`.
+The builders take numbers and arrays only; a scene is read in :mod:`prsa_ctrl.studies.sceneloops`
+(:func:`~prsa_ctrl.studies.sceneloops.loop_spec`, :func:`~prsa_ctrl.studies.sceneloops.actuator_loops`).
 """
 
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,11 +21,10 @@ from ..options import DERIVATIVE_FILTER_SAMPLES
 from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from ..plant.plantfile import Plant
-from ..sim.signals import PiecewiseLinear, normalise_profile
 from .loops import LoopModel
 from .builders import continuous_loop, drive_loop
 
-__all__ = ["actuator_loops", "duty_record", "linear_fidelity", "derivative_filter_s", "kf_drive_loop"]
+__all__ = ["step_loops", "profile_loops", "derivative_filter_s", "kf_drive_loop"]
 
 control = module("control")
 
@@ -35,74 +35,74 @@ def derivative_filter_s(plant: Plant) -> float:
     return DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s
 
 
-def linear_fidelity(scene) -> str:
-    """The fidelity the loop models are linearised at: the scene's, except that the
-    multi-roller model (periodic in the cage angle) is replaced by the compliant model, its
-    mean behaviour."""
-    return "compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity
-
-
-def actuator_loops(plant: Plant, scene, estimator: str | None = None) -> list[LoopModel]:
+def step_loops(plant: Plant, *, setpoint_rad_s: float, initial_load_n: float, final_loads_n: Sequence[float],
+               fidelity: str, horizon_s: float, discrete: bool = True, kf_load_change_time_s: float | None = None,
+               feedforward: bool = False, filters: Sequence = ()) -> list[LoopModel]:
     """One loop model per final load, linearised at the mid load of the step (the response
     to a step is the same from any linearisation point; the mid load keeps the Jacobians
-    closest to both ends). ``estimator`` (default: the scene's) selects the speed measurement:
-    ``"none"`` for the drive's filtered difference, ``"kf"`` for the Kalman filter (with the
-    load feed-forward gain as a fourth tuned gain when the scene asks for feed-forward).
+    closest to both ends).
 
     Parameters
     ----------
     plant : Plant
-    scene : Scene
-    estimator : {"none", "kf"}, optional
+    setpoint_rad_s : float, rad/s
+        Nut-speed setpoint (the linearisation speed).
+    initial_load_n : float, N
+        Axial load before the step.
+    final_loads_n : sequence of float, N
+        Axial load after each step; one loop per value.
+    fidelity : str
+        Fidelity of the linearised plant model.
+    horizon_s : float, s
+        Horizon of the objective after the step.
+    discrete : bool
+        The sampled drive loop (default) or the continuous controller.
+    kf_load_change_time_s : float, s, optional
+        With a value: the speed is measured by the Kalman filter designed for this load-change
+        time scale (:func:`prsa_ctrl.drive.estimator.design_kf`; sampled loops only).
+    feedforward : bool
+        With the Kalman filter: tune the load feed-forward gain as a fourth gain.
+    filters : sequence of LoopFilter
+        The drive's speed-measurement and torque-command filters (sampled loops without the
+        Kalman filter only; :func:`prsa_ctrl.tuning.builders.drive_loop`).
 
     Returns
     -------
     list of LoopModel
-        Sampled drive loops (``scene.discrete``) or continuous loops, one per final load.
     """
-    estimator = scene.estimator if estimator is None else estimator
     kf = None
-    if estimator == "kf":
+    if filters and (kf_load_change_time_s is not None or not discrete):
+        raise ValueError("filters: expected a sampled loop without the Kalman filter (the Kalman-filter and the "
+                         "continuous loops have no loop filters)")
+    if kf_load_change_time_s is not None:
         if plant.command_delay_samples:  # kf_drive_loop models the one-sample computation delay only
             raise ValueError(f"estimator 'kf' with drive.command_delay_samples = {plant.command_delay_samples}; "
                              "expected no command delay (the Kalman-filter loop model does not model it)")
-        kf = design_kf(plant, scene.load_change_time_s)
-    fidelity = linear_fidelity(scene)
+        kf = design_kf(plant, kf_load_change_time_s)
     model = plant_model(plant, fidelity)
     i_speed = model.output_names.index("nut_speed")
     i_torque = model.output_names.index("motor_torque")
-    if scene.is_profile:
-        loops = []
-        for case in scene.cases:
-            rec = duty_record(plant, scene, case)
-            a, b, c, _, _ = linear_core(plant, rec["w_lin"], rec["f_lin"], fidelity)
-            loops.append(drive_loop(
-                a, b, c[i_speed], model.index("theta_nut"), ts=plant.sample_time_s, speed_filter=plant.speed_filter_s,
-                tf=derivative_filter_s(plant), horizon=scene.duration, name=case,
-                outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
-                load_sequence=rec["load_sequence"], setpoint_sequence=rec["setpoint_sequence"],
-                setpoint_weight=scene.setpoint_weight, command_delay_samples=plant.command_delay_samples))
-        return loops
-    horizon = scene.duration - scene.step_time
+    horizon = horizon_s
+    # The plant linearised at every step's mid load, then the loop models.
+    cores = [linear_core(plant, setpoint_rad_s, 0.5 * (initial_load_n + f1), fidelity)[:3] for f1 in final_loads_n]
     loops = []
-    for f1 in scene.final_loads:
-        a, b, c, _, _ = linear_core(plant, scene.setpoint_rad_s, 0.5 * (scene.initial_load + f1), fidelity)
-        step = f1 - scene.initial_load
+    for f1, (a, b, c) in zip(final_loads_n, cores):
+        step = f1 - initial_load_n
         if kf is not None:
             loops.append(
                 kf_drive_loop(
                     a, b, c[i_speed], model.index("theta_nut"), kf, tf=derivative_filter_s(plant), horizon=horizon,
-                    step=step, feedforward=scene.feedforward, name=f"step to {f1:g} N (KF)",
+                    step=step, feedforward=feedforward, name=f"step to {f1:g} N (KF)",
                     outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
                 )
             )
-        elif scene.discrete:
+        elif discrete:
             loops.append(
                 drive_loop(
                     a, b, c[i_speed], model.index("theta_nut"),
                     ts=plant.sample_time_s, speed_filter=plant.speed_filter_s, tf=derivative_filter_s(plant),
                     horizon=horizon, step=step, name=f"step to {f1:g} N",
-                    outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
+                    outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]}, filters=filters,
                     command_delay_samples=plant.command_delay_samples,
                 )
             )
@@ -126,65 +126,43 @@ def actuator_loops(plant: Plant, scene, estimator: str | None = None) -> list[Lo
     return loops
 
 
-def _n_samples(plant: Plant, scene) -> int:
-    return max(10, int(round(scene.duration / plant.sample_time_s)))
-
-
-def duty_record(plant: Plant, scene, case: str) -> dict:
-    """One record of a duty-cycle scene, as the loop model and the verification see it.
+def profile_loops(plant: Plant, records: Sequence[tuple], *, fidelity: str, horizon_s: float,
+                  setpoint_weight: float = 1.0, filters: Sequence = ()) -> list[LoopModel]:
+    """One sampled loop model per duty-cycle record, linearised at the middle of its range.
 
     Parameters
     ----------
     plant : Plant
-    scene : Scene
-        A duty-cycle scene (``scene.is_profile``).
-    case : {"load profile", "setpoint profile"}
-        One of ``scene.cases``.
+    records : sequence of (name, w_lin, f_lin, load_sequence, setpoint_sequence)
+        Per record: its name, the linearisation point (rad/s, N), the mean load deviation over
+        each controller sample (N, or None) and the setpoint deviation the controller reads at
+        each sample (rad/s, or None).
+    fidelity : str
+        Fidelity of the linearised plant model.
+    horizon_s : float, s
+        Length of each record.
+    setpoint_weight : float
+        2-DOF setpoint weight b.
+    filters : sequence of LoopFilter
+        The drive's speed-measurement and torque-command filters.
 
     Returns
     -------
-    dict
-        ``load`` and ``setpoint`` (simulator profiles, N and rad/s), ``load_sequence`` (mean
-        load deviation over each controller sample, N, or None), ``setpoint_sequence``
-        (setpoint deviation the controller reads at each sample, rad/s, or None), ``t``
-        (sample times, s), ``setpoint_at`` (setpoint at them, rad/s), ``load_steps`` ((time s,
-        signed size N) of each load step), ``breaks`` (every change, s) and the linearisation
-        point ``w_lin`` (rad/s), ``f_lin`` (N): the middle of the profile's range.
+    list of LoopModel
     """
-    ts = plant.sample_time_s
-    n = _n_samples(plant, scene)
-    t = ts * np.arange(n + 1)
-    w0, f0 = scene.setpoint_rad_s, scene.initial_load
-    out: dict = {"t": t, "load_sequence": None, "setpoint_sequence": None, "load_steps": [], "breaks": [],
-                 "load": f0, "setpoint": w0, "w_lin": w0, "f_lin": f0}
-    if case == "load profile":
-        pts = scene.load_profile
-        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
-        # Exact mean over each sample interval: integral of the piecewise-linear load.
-        edges = ts * np.arange(n + 1)
-        seg_len = np.append(np.diff(prof.t), np.inf)
-        lens = np.clip(edges[:, None] - prof.t[None, :], 0.0, seg_len[None, :])
-        integral = lens @ prof.v + (lens * lens) @ prof.s / 2.0
-        out["load_sequence"] = np.diff(integral) / ts - f0
-        out["load"] = PiecewiseLinear(pts)
-        out["load_steps"] = [(float(tk), float(prof.v[i] - prof.at(tk - 1e-9)))
-                             for i, tk in enumerate(prof.t) if prof.jump[i]]
-        out["breaks"] = [float(x) for x in prof.t[1:]]
-        vals = [v for _, v in pts]
-        out["f_lin"] = 0.5 * (min(vals) + max(vals))
-        out["setpoint_at"] = np.full(n + 1, w0)
-    else:
-        pts = scene.setpoint_profile
-        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
-        r = prof.at(t)
-        out["setpoint_sequence"] = r - w0
-        out["setpoint_sequence"][0] = 0.0
-        out["setpoint"] = PiecewiseLinear(pts)
-        out["breaks"] = [float(x) for x in prof.t[1:]]
-        vals = [v for _, v in pts]
-        out["w_lin"] = 0.5 * (min(vals) + max(vals))
-        out["setpoint_at"] = r
-    return out
+    model = plant_model(plant, fidelity)
+    i_speed = model.output_names.index("nut_speed")
+    i_torque = model.output_names.index("motor_torque")
+    cores = [linear_core(plant, w_lin, f_lin, fidelity)[:3] for _, w_lin, f_lin, _, _ in records]
+    loops = []
+    for (name, _, _, load_sequence, setpoint_sequence), (a, b, c) in zip(records, cores):
+        loops.append(drive_loop(
+            a, b, c[i_speed], model.index("theta_nut"), ts=plant.sample_time_s, speed_filter=plant.speed_filter_s,
+            tf=derivative_filter_s(plant), horizon=horizon_s, name=name,
+            outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
+            load_sequence=load_sequence, setpoint_sequence=setpoint_sequence,
+            setpoint_weight=setpoint_weight, filters=filters, command_delay_samples=plant.command_delay_samples))
+    return loops
 
 
 def kf_drive_loop(a, b, c_speed, angle_index: int, kf: KFDesign, *, tf: float, horizon: float, step: float,

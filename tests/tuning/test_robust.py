@@ -7,7 +7,8 @@ import pytest
 
 from prsa_ctrl import SceneError
 from prsa_ctrl.plant.plantfile import load_plant
-from prsa_ctrl.tuning.robust import operating_points, scenarios, tune_robust, tune_robust_actuator
+from prsa_ctrl.studies.scenerobust import operating_points, scenarios, tune_robust_actuator
+from prsa_ctrl.tuning.robust import tune_robust
 from prsa_ctrl.studies.scene import load_scene
 from prsa_ctrl.plant.uncertainty import uncertainty_model
 
@@ -172,7 +173,7 @@ def test_lower_bound_ranking_keeps_the_exact_top(monkeypatch):
     simulates every loop only where the top of the order is decided: that top is the one of
     the full ranking (the mean objective ranks every point, as one loop does)."""
     from prsa_ctrl.tuning import builders, generic, settings, tuner as T
-    from prsa_ctrl.tuning.robust import scenario_loops
+    from prsa_ctrl.studies.scenerobust import scenario_loops
 
     p, s = load_plant(), load_scene("robust-load-step")
     loops = scenario_loops(p, s, scenarios(p, s))

@@ -259,7 +259,7 @@ def test_export_with_load_feedforward_is_refused_up_front(tmp_path, capsys):
 
 def test_monte_carlo_replay_on_a_duty_scene_is_one_line(capsys):
     from prsa_ctrl.cli.montecarlo import main as mc_main
-    from prsa_ctrl.tuning.robust import operating_points
+    from prsa_ctrl.studies.scenerobust import operating_points
 
     code = mc_main(["--scene", "duty-trace", "--seed", "0", "--index", "0", "--kp", "0.05", "--ki", "5"])
     err = [l for l in capsys.readouterr().err.splitlines() if l.startswith("error")]

@@ -1,0 +1,140 @@
+"""A scene's robust-tuning study: its operating range, its scenario models (nominal point,
+vertices and seeded samples of the uncertainty box x operating points) and their loop models,
+read from the scene's ``[uncertainty]`` and ``[robust]`` sections; the tuning itself is
+:func:`prsa_ctrl.tuning.robust.tune_scenario_loops` (numbers and loop models only).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import SceneError
+from ..plant.uncertainty import UncertaintyModel, apply, uncertainty_model
+from ..tuning.loops import LoopModel
+from ..tuning.robust import RobustTuning, Scenario, tune_scenario_loops
+from ..tuning.scene_loops import step_loops
+from .sceneloops import loop_spec
+
+__all__ = ["operating_points", "scenarios", "scenario_loops", "tune_robust_actuator"]
+
+#: Upper bound on scenario models in one NLP (each adds a loop model and its constraints).
+MAX_SCENARIOS = 64
+
+
+def operating_points(scene) -> list[tuple[float, float]]:
+    """The scene's operating range: (setpoint rad/s, final load N) for every setpoint in
+    ``[robust] setpoints_rpm`` (default the scene's) and every final load in
+    ``[robust] final_loads_n`` (default the scene's)."""
+    if getattr(scene, "is_profile", False):
+        raise SceneError(f"{scene.origin}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
+                         "load-step scene (the robust and Monte-Carlo studies run load steps)")
+    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
+    sps = [v * math.pi / 30.0 for v in rob.get("setpoints_rpm", [])] or [scene.setpoint_rad_s]
+    loads = rob.get("final_loads_n") or list(scene.final_loads)
+    for f in loads:
+        if f == scene.initial_load:
+            raise SceneError(f"{scene.origin}: robust.final_loads_n contains {f:g}; expected loads different "
+                             f"from the initial {scene.initial_load:g} N")
+    return [(sp, f) for sp in sps for f in loads]
+
+
+def scenarios(plant, scene, *, unc: UncertaintyModel | None = None, vertices: bool | None = None,
+              samples: int | None = None, seed: int | None = None,
+              max_scenarios: int | None = None) -> list[Scenario]:
+    """Scenario models of a scene: {nominal, box vertices, seeded samples} x operating points.
+
+    Parameters
+    ----------
+    plant, scene
+        The plant (its ``[uncertainty]``) and the scene (its ``[uncertainty]`` and ``[robust]``).
+    unc : UncertaintyModel, optional
+        Default :func:`prsa_ctrl.plant.uncertainty.uncertainty_model` of plant and scene.
+    vertices : bool, optional
+        Include the ``2**k`` corners of the box (default ``[robust] vertices`` or true).
+    samples : int, optional
+        Random interior points (default ``[robust] samples`` or 0), drawn from
+        ``SeedSequence([seed, i, 1])`` (a stream distinct from the Monte-Carlo samples').
+    max_scenarios : int, optional
+        Bound checked before any model is built (default ``[robust] max_scenarios`` or 64).
+    """
+    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
+    unc = uncertainty_model(plant, scene) if unc is None else unc
+    vertices = rob.get("vertices", True) if vertices is None else vertices
+    samples = rob.get("samples", 0) if samples is None else samples
+    seed = rob.get("seed", 0) if seed is None else seed
+    max_scenarios = rob.get("max_scenarios", MAX_SCENARIOS) if max_scenarios is None else max_scenarios
+    points: list[tuple[str, str, dict]] = [("nominal", "nominal", {})]
+    if vertices and len(unc):
+        if 2 ** len(unc) > max_scenarios:
+            raise SceneError(f"{scene.origin}: {len(unc)} uncertain parameters have {2 ** len(unc)} vertices, above "
+                             f"max_scenarios = {max_scenarios}; expected robust.vertices = false and robust.samples")
+        points += [(f"vertex {j}", "vertex", v) for j, v in enumerate(unc.vertices())]
+    for i in range(int(samples)):
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), i, 1]))
+        points.append((f"sample {i}", "sample", unc.sample(rng)))
+    ops = operating_points(scene)
+    total = len(points) * len(ops)
+    if total > max_scenarios:
+        raise SceneError(f"{scene.origin}: {len(points)} parameter points x {len(ops)} operating points = {total} "
+                         f"scenario models, above max_scenarios = {max_scenarios}; expected fewer")
+    out = []
+    for name, kind, vals in points:
+        for sp, f1 in ops:
+            label = f"{name} @ {sp * 30 / math.pi:g} rpm, {f1:g} N" if len(ops) > 1 else name
+            out.append(Scenario(label, kind, dict(vals), float(sp), float(f1)))
+    return out
+
+
+def scenario_loops(plant, scene, scens: Sequence[Scenario]) -> list[LoopModel]:
+    """One loop model per scenario (linearised at the scenario's mid load and setpoint)."""
+    spec = loop_spec(plant, scene)
+    horizon = spec.duration - spec.step_time
+    kf_time = spec.load_change_time_s if spec.estimator == "kf" else None
+    cache: dict = {}
+    loops: list[LoopModel] = []
+    for s in scens:
+        key = tuple(sorted(s.values.items()))
+        if key not in cache:
+            cache[key] = apply(plant, s.values) if s.values else plant
+        loops += step_loops(cache[key], setpoint_rad_s=s.setpoint_rad_s, initial_load_n=spec.initial_load,
+                            final_loads_n=(s.final_load,), fidelity=spec.linear_fidelity, horizon_s=horizon,
+                            discrete=spec.discrete, kf_load_change_time_s=kf_time, feedforward=spec.feedforward,
+                            filters=spec.filters)
+    return loops
+
+
+def tune_robust_actuator(plant, scene, *, scens: Sequence[Scenario] | None = None,
+                         aggregate: str | None = None) -> RobustTuning:
+    """Tune the nominal design (nominal plant at the scene's operating points) and the robust
+    design (every scenario model, one NLP), and compare them on all scenario models.
+
+    Parameters
+    ----------
+    plant, scene
+        Plant and scene (``[uncertainty]``, ``[robust]`` sections; Ms/Mt bounds from
+        ``[tuning]``).
+    scens : list of Scenario, optional
+        Default :func:`scenarios`.
+    aggregate : {"worst", "mean"}, optional
+        Objective over scenarios (default ``[robust] aggregate`` or "worst").
+
+    Returns
+    -------
+    RobustTuning
+        Both designs, the comparison (per-scenario Ms and objective) and timings (s).
+    """
+    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
+    aggregate = aggregate or rob.get("aggregate", "worst")
+    if aggregate not in ("worst", "mean"):
+        raise ValueError(f"aggregate = {aggregate!r}; expected 'worst' or 'mean'")
+    unc = uncertainty_model(plant, scene)
+    scens = list(scens) if scens is not None else scenarios(plant, scene, unc=unc)
+    t0 = time.perf_counter()
+    loops = scenario_loops(plant, scene, scens)
+    return tune_scenario_loops(loops, scens, unc=unc, objective=scene.objective, controller=scene.controller,
+                               ms_max=scene.ms_max, mt_max=scene.mt_max, aggregate=aggregate,
+                               timing_s={"linearize": time.perf_counter() - t0})

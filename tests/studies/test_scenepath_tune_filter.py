@@ -1,0 +1,100 @@
+"""Issue 24: ``prsa-tune --tune-filter``: a filter tuned with the gains (tuning.filtered) joins the
+scene's filters only when it earns its place; a rejected one is reported, never kept."""
+
+import json
+import math
+import warnings
+
+import pytest
+
+from prsa_ctrl import PID, load_plant
+from prsa_ctrl.cli.tune import main
+from prsa_ctrl.drive.filters import LoopFilter, Notch
+from prsa_ctrl.errors import SceneError
+from prsa_ctrl.studies import scenetunefilter as stf
+from prsa_ctrl.studies.scene import load_scene
+from prsa_ctrl.tuning.filtered import FilteredDesign
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    PAPER = load_plant()
+
+
+def _fake_tuner(kept: bool, calls: list):
+    """tune_filtered stand-in: the gains alone, then a notch that helps (or does not)."""
+    def fake(objective, constraint, *, kind=None, place="torque_command", start_gains, reference=None, **kw):
+        calls.append({"kind": kind, "place": place, "n_obj": len(objective), "n_con": len(constraint),
+                      "start": tuple(start_gains), "ref": reference, **kw})
+        if kind is None:
+            return FilteredDesign(PID(0.02, 2.0), None, 1.0, 1.4, 0.01, "optimal")
+        if kept:
+            return FilteredDesign(PID(0.04, 4.0), LoopFilter(Notch(300.0, 60.0, -30.0), place), 0.5, 1.4, 0.02,
+                                  "optimal", {"reference_objective": 1.0})
+        return FilteredDesign(PID(0.02, 2.0), None, 1.0, 1.4, 0.01, "no notch helps: depth -1.2 dB, shallower than 3 dB",
+                              {"rejected_filter": {"kind": "notch", "depth_db": -1.2}},
+                              ("no notch helps: depth -1.2 dB, shallower than 3 dB",))
+    return fake
+
+
+@pytest.mark.parametrize("kept", [True, False])
+def test_a_tuned_filter_joins_the_scene_only_when_kept(monkeypatch, kept):
+    calls = []
+    monkeypatch.setattr(stf, "tune_filtered", _fake_tuner(kept, calls))
+    scene = load_scene().replace(fidelity="rigid", final_loads=(1000.0, 1500.0), mks_max=0.05,
+                                 filters=(LoopFilter(Notch(500.0, 100.0, -10.0), "speed_measurement"),))
+    ft = stf.tune_scene_filter(PAPER, scene, "notch")
+    # the gains alone first, then the notch on the torque command from the gains-alone optimum,
+    # judged against it; the loops: one objective per step, the initial and final loads as constraints
+    assert [c["kind"] for c in calls] == [None, "notch"] and calls[1]["place"] == "torque_command"
+    assert calls[1]["start"] == (0.02, 2.0) and calls[1]["ref"] is not None
+    assert calls[0]["n_obj"] == 2 and calls[0]["n_con"] == 4
+    assert calls[0]["ms_max"] == 1.4 and calls[0]["max_noise_gain"] == 0.05
+    assert ft.kept is kept
+    d = ft.as_dict()
+    json.dumps(d)
+    if kept:
+        assert ft.scene.filters == (*scene.filters, LoopFilter(Notch(300.0, 60.0, -30.0), "torque_command"))
+        assert d["filter"]["centre_hz"] == 300.0 and d["relative_improvement"] == pytest.approx(0.5)
+        assert "kept" in ft.lines()[0]
+    else:
+        assert ft.scene is scene and d["filter"] is None and d["rejected_filter"]["depth_db"] == -1.2
+        assert ft.status.startswith("no notch helps") and "not kept" in ft.lines()[0]
+
+
+def test_a_lowpass_goes_on_the_measured_speed(monkeypatch):
+    calls = []
+    monkeypatch.setattr(stf, "tune_filtered", _fake_tuner(False, calls))
+    stf.tune_scene_filter(PAPER, load_scene().replace(fidelity="rigid"), "lowpass")
+    assert calls[1]["kind"] == "lowpass1" and calls[1]["place"] == "speed_measurement"
+
+
+def test_tune_filter_is_refused_where_it_does_not_apply(capsys, stand_in):
+    with pytest.raises(SceneError, match="duty cycle"):
+        stf.check_tune_filter(load_scene("duty-ramp"), "notch")
+    with pytest.raises(SceneError, match="expected one of"):
+        stf.check_tune_filter(load_scene(), "bandstop")
+    for argv in (["--tune-filter", "notch", "--estimator", "kf"], ["--tune-filter", "notch", "--scene", "duty-ramp"],
+                 ["--tune-filter", "bandstop"]):
+        rc = main([*argv, "--quiet"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1 and "--tune-filter" in err[0], err
+    assert not stand_in
+
+
+@pytest.mark.slow
+def test_tune_filter_notch_on_the_heavy_slide_is_kept_and_verified(tmp_path):
+    """The heavy slide without a filter: the notch tuned with the gains is kept (it helps by far
+    more than 1 %), lands near the contact mode, and the verified design runs with it."""
+    scene = tmp_path / "s.toml"
+    scene.write_text('[operating]\nsetpoint_rpm = 300.0\ninitial_load_n = 500.0\nfinal_loads_n = [1500.0]\n'
+                     'step_time_s = 0.05\nduration_s = 0.35\n[tuning]\nmks_max = 0.05\ncandidates = 1\n'
+                     '[verify]\nfidelity = "compliant"\n', encoding="utf-8")
+    out = tmp_path / "r.json"
+    assert main(["--plant", "paper-heavy-slide", "--scene", str(scene), "--tune-filter", "notch", "--json", str(out),
+                 "--quiet", "--workers", "1"]) == 0
+    rep = json.loads(out.read_text())
+    ft = rep["filter_tuning"]
+    assert ft["kept"] and ft["status"] == "optimal" and ft["relative_improvement"] >= 0.01
+    assert 200.0 < ft["filter"]["centre_hz"] < 300.0 and ft["filter"]["depth_db"] <= -3.0
+    assert [r["centre_hz"] for r in rep["filters"]] == [ft["filter"]["centre_hz"]]
+    assert rep["status"] == "ok" and math.isfinite(rep["verified"]["iae"])
