@@ -20,7 +20,7 @@ from dataclasses import replace
 from functools import partial
 
 import numpy as np
-from bokeh.events import Tap
+from bokeh.events import Pan, PanEnd, PanStart, Tap
 from bokeh.layouts import column, row
 from bokeh.models import (Button, CheckboxGroup, ColumnDataSource, CustomJS, Div, FileInput, HoverTool,
                           LinearColorMapper, RadioButtonGroup, Select, Slider, Span, TextInput)
@@ -66,6 +66,10 @@ class AppPage:
         self.verified: dict[str, View] = {}
         self._seq = 0
         self._vseq = 0
+        self._mseq = 0  # manual-only updates (a drag on the landscape)
+        self._pending = self.settings
+        self._drag_end = -1  # the manual-only update of the last drag's end
+        self._land_seq = -1
         self._cancel = threading.Event()
         self._tune_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-tune")
         self._verify_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-verify")
@@ -151,6 +155,11 @@ class AppPage:
         self.robust_cancel.on_click(lambda: self._rcancel.set())
         self.export_which.on_change("active", lambda attr, old, new: self._refresh_outputs())
         self.land.on_event(Tap, self._tap)
+        self.land.on_event(Pan, self._drag)
+        self.land.on_event(PanEnd, self._drag)
+        drag_js = CustomJS(args={"src": self.drag_src}, code=_DRAG_JS)
+        for ev in (PanStart, Pan, PanEnd):
+            self.land.js_on_event(ev, drag_js)
 
         controls = column(self.plant_select, self.plant_upload, self.scene_select, self.scene_upload,
                           self.objective, self.controller, self.ms, self.mt_on, self.mt, self.noise, self.mks, self.loads,
@@ -185,9 +194,12 @@ class AppPage:
         self.resp.legend.click_policy = "hide"
         self.resp.legend.background_fill_alpha = 0.6
 
-        self.land = figure(title="Kp-Ki landscape: objective (colour), Ms bound (line); click sets manual gains",
-                           x_axis_label="kp (N m s/rad)", y_axis_label="ki (N m/rad)", tools="tap,pan,wheel_zoom,reset",
+        # a drag (no pan tool: a drag on the plane moves the manual design) or a click sets the
+        # manual gains; the wheel zooms
+        self.land = figure(title="Kp-Ki landscape: objective (colour), Ms bound (line); click or drag sets manual gains",
+                           x_axis_label="kp (N m s/rad)", y_axis_label="ki (N m/rad)", tools="tap,wheel_zoom,reset",
                            css_classes=["prsa-landscape"], **_PLOT)
+        self.land.toolbar.active_drag = None
         self.land_img = ColumnDataSource(data={"image": [], "x": [], "y": [], "dw": [], "dh": []})
         self.cmap = LinearColorMapper(palette="Viridis256", nan_color="#dddddd")
         self.land.image(image="image", x="x", y="y", dw="dw", dh="dh", source=self.land_img, color_mapper=self.cmap)
@@ -195,6 +207,10 @@ class AppPage:
         self.land_pts = ColumnDataSource(data={"kp": [], "ki": [], "name": [], "color": [], "marker": []})
         self.land.scatter("kp", "ki", source=self.land_pts, color="color", marker="marker", size=12, line_color="white")
         self.land.add_tools(HoverTool(tooltips=[("design", "@name"), ("kp", "@kp"), ("ki", "@ki")]))
+        # the cursor of a drag, moved in the browser at once (the server's manual design follows)
+        self.drag_src = ColumnDataSource(data={"kp": [], "ki": []})
+        self.land.scatter("kp", "ki", source=self.drag_src, marker="circle", size=16, fill_alpha=0.0,
+                          line_color=_COLORS["man"], line_width=2)
 
         self.mag = figure(title="Bode magnitude |L|", x_axis_type="log", x_axis_label="rad/s", y_axis_label="dB",
                           **_PLOT)
@@ -255,6 +271,7 @@ class AppPage:
             self._show_error(str(exc))
             return
         self._seq += 1
+        self._pending = settings  # what a drag computes with until this request is applied
         self._vseq += 1  # a running verification belongs to the old design
         self._cancel.set()
         self.status.text = "tuning..."
@@ -313,6 +330,7 @@ class AppPage:
         if seq != self._seq:
             return
         self._land = land
+        self._land_seq = seq
         obj = land["objective"]
         kp, ki = land["kp"], land["ki"]
         dkp = kp[1] - kp[0]
@@ -457,6 +475,45 @@ class AppPage:
         """Set the manual design's gains (as a click on the landscape does) and redraw."""
         self.manual_gains = (kp, ki, 0.0)
         self.request()
+
+    def _drag(self, event) -> None:
+        """A drag on the landscape: the manual design follows the pointer (manual-only
+        updates, coalesced in the worker: the optimum is not re-tuned)."""
+        if event.x is None or event.y is None or self.opt is None:
+            return
+        kp, ki = float(event.x), max(float(event.y), 0.0)
+        if not (math.isfinite(kp) and math.isfinite(ki)) or kp <= 0:
+            return  # outside the plane: the last valid point stays
+        self.manual_gains = (kp, ki, 0.0)
+        self._mseq += 1
+        if isinstance(event, PanEnd):
+            self._drag_end = self._mseq
+        kd = self.opt.pid.kd if self._pending.controller == "pid" else 0.0  # the optimum's, as a click takes it
+        self._tune_pool.submit(self._manual_work, self._seq, self._mseq, self._pending, (kp, ki, kd))
+
+    def _manual_work(self, seq: int, mseq: int, settings: Settings, manual) -> None:
+        if seq != self._seq or mseq != self._mseq:
+            return  # superseded before it started
+        try:
+            man = self.session.manual(settings, *manual)
+        except AppInputError as exc:
+            self.doc.add_next_tick_callback(partial(self._show_error, str(exc), seq))
+            return
+        except Exception as exc:  # noqa: BLE001 - one line in the page, never a traceback
+            self.doc.add_next_tick_callback(partial(self._show_error, f"numerical failure: {one_line(exc)}", seq))
+            return
+        self.doc.add_next_tick_callback(partial(self._apply_manual, seq, mseq, man))
+
+    def _apply_manual(self, seq: int, mseq: int, man: View) -> None:
+        if seq != self._seq or mseq != self._mseq:
+            return
+        self.man = man
+        self.verified.pop("man", None)
+        self.error.text = ""
+        self._redraw()
+        end = ' data-drag="end"' if mseq == self._drag_end else ""
+        self.status.text = (f'<span data-k="status" data-seq="{seq}" data-mseq="{mseq}"{end}'
+                            + (f' data-landscape="{seq}"' if self._land_seq == seq else "") + ">ready</span>")
 
     def _clear_manual(self) -> None:
         self.manual_gains = None
@@ -642,6 +699,12 @@ a.download = fname;
 document.body.appendChild(a);
 a.click();
 setTimeout(() => { URL.revokeObjectURL(a.href); a.remove(); }, 1000);
+"""
+
+_DRAG_JS = """
+if (cb_obj.x == null || cb_obj.y == null) { return; }
+if (cb_obj.event_name == 'panend') { src.data = {kp: [], ki: []}; return; }
+src.data = {kp: [cb_obj.x], ki: [Math.max(cb_obj.y, 0)]};
 """
 
 _COPY_JS = """
