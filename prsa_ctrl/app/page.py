@@ -11,7 +11,6 @@ the widgets carry CSS classes named ``prsa-*``.
 
 from __future__ import annotations
 
-import base64
 import html
 import math
 import threading
@@ -28,6 +27,7 @@ from bokeh.plotting import figure
 from bokeh.plotting.contour import contour_data
 
 from ..options import OBJECTIVES
+from .fitpanel import FitPanel, uploaded_file
 from .session import (FIDELITIES, AppInputError, AppSession, Cancelled, Settings, View, builtin_names, one_line,
                       robust_study)
 
@@ -130,6 +130,7 @@ class AppPage:
         for btn, key in ((self.copy_cli, "cli"), (self.copy_py, "py")):
             btn.js_on_click(CustomJS(args={"src": self.code_src, "key": key}, code=_COPY_JS))
         self.readout = Div(text="", css_classes=["prsa-readout"], sizing_mode="stretch_width")
+        self.fit = FitPanel(self)
         self._figures()
 
         for w in (self.objective, self.fidelity):
@@ -162,12 +163,13 @@ class AppPage:
             self.land.js_on_event(ev, drag_js)
 
         controls = column(self.plant_select, self.plant_upload, self.scene_select, self.scene_upload,
+                          self.fit.upload, row(self.fit.use, self.fit.discard), self.fit.download,
                           self.objective, self.controller, self.ms, self.mt_on, self.mt, self.noise, self.mks, self.loads,
                           self.fidelity, row(self.verify_button, self.cancel_button), self.progress,
                           self.samples, row(self.robust_button, self.robust_cancel),
                           self.clear_manual, self.export_which, self.dl_drive, self.dl_report,
                           self.copy_cli, self.copy_py, width=330)
-        views = column(self.error, self.status, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
+        views = column(self.error, self.status, self.fit.out, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
                        row(self.mag, self.st, sizing_mode="stretch_width"),
                        row(self.phase, self.code, sizing_mode="stretch_width"), self.robust_out,
                        sizing_mode="stretch_width")
@@ -529,23 +531,27 @@ class AppPage:
         self._after_switch(kind, notes)
 
     def _upload(self, kind: str, widget: FileInput) -> None:
-        value = widget.value
-        if not value:
+        got = uploaded_file(widget, f"uploaded-{kind}.toml")
+        if got is None:
             return
+        name, content = got
         try:
-            name = widget.filename
-        except Exception:  # noqa: BLE001 - bokeh's UnsetValueError: no name came with the file
-            name = None
-        value = value[0] if isinstance(value, list) else value
-        name = (name[0] if isinstance(name, list) else name) or f"uploaded-{kind}.toml"
-        try:
-            notes = self.session.upload(kind, name, base64.b64decode(value))
+            notes = self.session.upload(kind, name, content)
         except AppInputError as exc:
             self._show_error(str(exc))
             return
         except Exception as exc:  # noqa: BLE001 - one line in the page, never a traceback
             self._show_error(f"{name}: cannot be read ({one_line(exc)})")
             return
+        self._after_switch(kind, notes)
+
+    def show_error(self, line: str) -> None:
+        """Show one line as the page's error (``error: LINE``)."""
+        self._show_error(line)
+
+    def after_switch(self, kind: str, notes: list[str]) -> None:
+        """After the plant (``kind`` ``"plant"``) or scene changed in the session: show its
+        notes, reset what depends on it and re-tune."""
         self._after_switch(kind, notes)
 
     def _after_switch(self, kind: str, notes: list[str]) -> None:
@@ -686,6 +692,7 @@ class AppPage:
         self._robust_pool.shutdown(wait=False, cancel_futures=True)
         self._tune_pool.shutdown(wait=False, cancel_futures=True)
         self._verify_pool.shutdown(wait=False, cancel_futures=True)
+        self.fit.close()
         self.session.close()
 
 
