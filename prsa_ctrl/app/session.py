@@ -271,8 +271,10 @@ class AppSession:
         out.write_text(out.read_text(encoding="utf-8").replace(str(log), name), encoding="utf-8")
         lines = tuple(named(line) for line in so.getvalue().splitlines()
                       if line.strip() and not line.startswith("wrote "))
+        report = json.loads(rep.read_text(encoding="utf-8"))
+        report["fit_percent"] = {named(k): v for k, v in report.get("fit_percent", {}).items()}
         return Calibration(log_name=name, base_label=base_label, plant_path=str(out), file_name=out.name,
-                           report=json.loads(rep.read_text()), lines=lines, notes=notes)
+                           report=report, lines=lines, notes=notes)
 
     def use_calibration(self, cal: "Calibration") -> list[str]:
         """Make the fitted plant the session's plant (checked against the scene; its file name

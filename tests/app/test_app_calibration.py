@@ -119,6 +119,7 @@ def test_session_calibrate_is_prsa_fit_and_use_retunes(log, tmp_path, monkeypatc
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-9)
             assert cal.report["parameters"][key]["ci95"] == pytest.approx(v["ci95"], rel=1e-9)
         assert cal.report["warnings"] == list(res.warnings)
+        assert list(cal.report["fit_percent"]) == ["axis-log.csv"]  # named as uploaded, not by the temp path
         # the file is the command's, but for its name line and the log named in the description
         cli_text = (tmp_path / "cli-fitted.toml").read_text()
         ours = cal.plant_text.replace('name = "axis-log-fitted"', 'name = "cli-fitted"')
