@@ -22,12 +22,13 @@ import numpy as np
 from bokeh.events import Pan, PanEnd, PanStart, Tap
 from bokeh.layouts import column, row
 from bokeh.models import (Button, CheckboxGroup, ColumnDataSource, CustomJS, Div, FileInput, HoverTool,
-                          LinearColorMapper, RadioButtonGroup, Select, Slider, Span, TextInput)
+                          LinearColorMapper, RadioButtonGroup, Select, Slider, Span, TabPanel, Tabs, TextInput)
 from bokeh.plotting import figure
 from bokeh.plotting.contour import contour_data
 
 from ..options import OBJECTIVES
 from .fitpanel import FitPanel, uploaded_file
+from .genericpanel import GenericPanel
 from .session import (FIDELITIES, AppInputError, AppSession, Cancelled, Settings, View, builtin_names, one_line,
                       robust_study)
 
@@ -173,8 +174,15 @@ class AppPage:
                        row(self.mag, self.st, sizing_mode="stretch_width"),
                        row(self.phase, self.code, sizing_mode="stretch_width"), self.robust_out,
                        sizing_mode="stretch_width")
-        self.doc.add_root(column(self.title, row(controls, views, sizing_mode="stretch_width"),
-                                 sizing_mode="stretch_width"))
+        self.generic = GenericPanel(self.doc)
+        self.tabs = Tabs(tabs=[TabPanel(child=row(controls, views, sizing_mode="stretch_width"),
+                                        title="Actuator (plant and scene files)"),
+                               TabPanel(child=self.generic.layout, title="Generic plant (transfer function)")],
+                         sizing_mode="stretch_width", css_classes=["prsa-tabs"])
+        # the generic tuner starts (its child process too) when its tab is first opened
+        self.tabs.on_change("active", lambda attr, old, new: self.generic.request()
+                            if new == 1 and self.generic.view is None else None)
+        self.doc.add_root(column(self.title, self.tabs, sizing_mode="stretch_width"))
         self.doc.title = "prsa-app: speed-loop tuning"
 
     def _figures(self) -> None:
@@ -693,6 +701,7 @@ class AppPage:
         self._tune_pool.shutdown(wait=False, cancel_futures=True)
         self._verify_pool.shutdown(wait=False, cancel_futures=True)
         self.fit.close()
+        self.generic.close()
         self.session.close()
 
 
