@@ -17,7 +17,7 @@ from functools import partial
 
 from bokeh.models import Button, ColumnDataSource, CustomJS, Div, FileInput
 
-from .session import AppInputError, Calibration, one_line
+from .session import AppInputError, Calibration, Cancelled, one_line
 
 __all__ = ["FitPanel", "uploaded_file"]
 
@@ -72,7 +72,7 @@ class FitPanel:
                                 css_classes=["prsa-log-upload"])
         self.use = Button(label="Use the fitted plant and re-tune", disabled=True, button_type="success",
                           css_classes=["prsa-fit-use"])
-        self.discard = Button(label="Discard the fit", disabled=True, css_classes=["prsa-fit-discard"])
+        self.discard = Button(label="Cancel or discard the fit", disabled=True, css_classes=["prsa-fit-discard"])
         self.download = Button(label="Download the fitted plant (TOML)", disabled=True,
                                css_classes=["prsa-fit-download"])
         self.files = ColumnDataSource(data={"name": [], "text": []})
@@ -90,16 +90,20 @@ class FitPanel:
         name, content = got
         self._seq += 1
         self.calibration = None
-        self.use.disabled = self.discard.disabled = self.download.disabled = True
+        self.use.disabled = self.download.disabled = True
+        self.discard.disabled = False  # cancels the running fit
         base = self.page.session.plant_label
         self.out.text = (f"<div data-k='fit-state' data-state='running'><b>Calibration</b>: fitting "
                          f"<b>{html.escape(base)}</b> to {html.escape(name)} ({len(content)} bytes) in the background "
-                         f"(prsa-fit: Gauss-Newton on the whole log; a few seconds per second of log)</div>{_BAR}")
+                         f"(prsa-fit in a child process: Gauss-Newton on the whole log, no intermediate progress; "
+                         f"seconds)</div>{_BAR}")
         self._pool.submit(self._work, self._seq, name, content)
 
     def _work(self, seq: int, name: str, content: bytes) -> None:
         try:
-            cal = self.page.session.calibrate(name, content)
+            cal = self.page.session.calibrate(name, content, cancelled=lambda: seq != self._seq)
+        except Cancelled:
+            return
         except AppInputError as exc:
             self.page.doc.add_next_tick_callback(partial(self._failed, seq, name, str(exc)))
             return
@@ -112,6 +116,7 @@ class FitPanel:
     def _failed(self, seq: int, name: str, line: str) -> None:
         if seq != self._seq:
             return
+        self.discard.disabled = True
         self.page.show_error(line)
         self.out.text = (f"<div data-k='fit-state' data-state='failed'><b>Calibration</b> from "
                          f"{html.escape(name)} failed; the plant is unchanged</div>")
@@ -145,7 +150,7 @@ class FitPanel:
         self.out.text = ""
 
     def close(self) -> None:
-        """Stop taking work (a running fit finishes in its thread; its result is dropped)."""
+        """Stop taking work (a running fit's command is ended)."""
         self._seq += 1
         self._pool.shutdown(wait=False, cancel_futures=True)
 

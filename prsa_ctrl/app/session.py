@@ -220,16 +220,17 @@ class AppSession:
 
     # ---- calibration from a drive log ---------------------------------------------------
 
-    def calibrate(self, filename: str, content: bytes) -> "Calibration":
-        """Fit the session's plant to an uploaded drive log: ``prsa-fit LOG --plant BASE --out
-        FITTED.toml --json REPORT.json`` run in-process (:func:`prsa_ctrl.cli.fit.main`, so the
-        checks, the fit, its warnings and the written plant file are the command's), BASE being
-        the session's plant (built-in name or file). The session's plant is not changed
+    def calibrate(self, filename: str, content: bytes, cancelled: Callable[[], bool] | None = None,
+                  poll_s: float = 0.1) -> "Calibration":
+        """Fit the session's plant to an uploaded drive log: the command ``prsa-fit LOG --plant
+        BASE --out LOG-fitted.toml --json LOG-fit.json`` run in a child process in a private
+        folder holding the log under its uploaded name (so the checks, the fit, its warnings,
+        its messages and the written plant file are the command's), BASE being the session's
+        plant (built-in name or file). The session's plant is not changed
         (:meth:`use_calibration` does that).
 
-        Slow (a Gauss-Newton fit, seconds): call it off the page's event loop. prsa-fit's
-        standard output and error are captured while it runs (``contextlib.redirect_*``:
-        process-wide, nothing else in the app prints).
+        Slow (a Gauss-Newton fit, seconds): call it off the page's event loop.
+        ``cancelled()`` is polled every ``poll_s`` s; when it turns true the command is ended.
 
         Raises
         ------
@@ -237,43 +238,52 @@ class AppSession:
             prsa-fit's one-line error (exit 2: bad log, bad base plant; exit 3: the fit did not
             converge), files named as uploaded, without the ``prsa-fit: `` and ``error: ``
             prefixes.
+        Cancelled
+            ``cancelled()`` turned true.
         """
-        import contextlib
-        import io
-
-        from ..cli.fit import main as fit_main
+        import subprocess
+        import sys
 
         name = Path(str(filename)).name or "uploaded-log.csv"
         folder = self._folder("log")
-        log = folder / name
-        log.write_bytes(content)
+        (folder / name).write_bytes(content)
         stem = Path(name).stem or "log"
-        out, rep = folder / f"{stem}-fitted.toml", folder / f"{stem}-fit.json"
+        out, rep = f"{stem}-fitted.toml", f"{stem}-fit.json"
+        arg, out_arg, rep_arg = (f"./{n}" if n.startswith("-") else n for n in (name, out, rep))  # not flags
         base, base_label = self.plant_source, self.plant_label
-        argv = [str(log), *(["--plant", base] if base is not None else []), "--out", str(out), "--json", str(rep)]
-        so, se = io.StringIO(), io.StringIO()
-        with contextlib.redirect_stdout(so), contextlib.redirect_stderr(se):
-            code = fit_main(argv)
+        argv = [arg, *(["--plant", base] if base is not None else []), "--out", out_arg, "--json", rep_arg]
+        with open(folder / ".stdout", "w+", encoding="utf-8") as so, open(folder / ".stderr", "w+",
+                                                                             encoding="utf-8") as se:
+            proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.cli.fit", *argv], cwd=folder, stdout=so,
+                                    stderr=se, stdin=subprocess.DEVNULL)
+            while True:
+                try:
+                    code = proc.wait(timeout=poll_s)
+                    break
+                except subprocess.TimeoutExpired:
+                    if cancelled is not None and cancelled():
+                        proc.kill()
+                        proc.wait()
+                        raise Cancelled("calibration cancelled") from None
+            so.seek(0)
+            se.seek(0)
+            stdout, stderr = so.read(), se.read()
 
         def named(text: str) -> str:
-            for path, shown in ((str(log), name), (str(out), out.name), (str(rep), rep.name),
+            for path, shown in ((arg, name), (out_arg, out), (rep_arg, rep),
                                 *([(base, base_label)] if base is not None else [])):
                 text = text.replace(path, shown)
             return " ".join(text.split())
 
-        err = [named(line) for line in se.getvalue().splitlines() if line.strip()]
+        err = [named(line) for line in stderr.splitlines() if line.strip()]
         notes = tuple(line.removeprefix("prsa-fit: note: ") for line in err if line.startswith("prsa-fit: note:"))
         if code != 0:
             first = next((line for line in err if not line.startswith("prsa-fit: note:")),
                          f"prsa-fit: error: {name}: the fit stopped with exit code {code}")
             raise AppInputError(first.removeprefix("prsa-fit: ").removeprefix("error: "))
-        # the file names the log as uploaded (as `prsa-fit NAME` in the log's folder writes it)
-        out.write_text(out.read_text(encoding="utf-8").replace(str(log), name), encoding="utf-8")
-        lines = tuple(named(line) for line in so.getvalue().splitlines()
-                      if line.strip() and not line.startswith("wrote "))
-        report = json.loads(rep.read_text(encoding="utf-8"))
-        report["fit_percent"] = {named(k): v for k, v in report.get("fit_percent", {}).items()}
-        return Calibration(log_name=name, base_label=base_label, plant_path=str(out), file_name=out.name,
+        lines = tuple(named(line) for line in stdout.splitlines() if line.strip() and not line.startswith("wrote "))
+        report = json.loads((folder / rep).read_text(encoding="utf-8"))
+        return Calibration(log_name=name, base_label=base_label, plant_path=str(folder / out), file_name=out,
                            report=report, lines=lines, notes=notes)
 
     def use_calibration(self, cal: "Calibration") -> list[str]:

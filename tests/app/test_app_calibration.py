@@ -101,15 +101,12 @@ def test_bad_log_shows_prsa_fits_one_line(app_page, tmp_path, monkeypatch, capsy
 # ---- the session, without a browser ---------------------------------------------------------
 
 
-def test_session_calibrate_is_prsa_fit_and_use_retunes(log, tmp_path, monkeypatch, capsys):
+def test_session_calibrate_is_prsa_fit_and_use_retunes(log):
+    import tomllib
+
     from prsa_ctrl.app.session import AppSession
-    from prsa_ctrl.cli.fit import main as fit_main
 
     path, truth, res = log
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "axis-log.csv").write_bytes(path.read_bytes())
-    assert fit_main(["axis-log.csv", "--out", "cli-fitted.toml"]) == 0
-    capsys.readouterr()
     s = AppSession()
     try:
         cal = s.calibrate("axis-log.csv", path.read_bytes())
@@ -119,11 +116,15 @@ def test_session_calibrate_is_prsa_fit_and_use_retunes(log, tmp_path, monkeypatc
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-9)
             assert cal.report["parameters"][key]["ci95"] == pytest.approx(v["ci95"], rel=1e-9)
         assert cal.report["warnings"] == list(res.warnings)
-        assert list(cal.report["fit_percent"]) == ["axis-log.csv"]  # named as uploaded, not by the temp path
-        # the file is the command's, but for its name line and the log named in the description
-        cli_text = (tmp_path / "cli-fitted.toml").read_text()
-        ours = cal.plant_text.replace('name = "axis-log-fitted"', 'name = "cli-fitted"')
-        assert ours == cli_text
+        assert list(cal.report["fit_percent"]) == ["axis-log.csv"]  # named as uploaded
+        assert any(line.startswith("fit ") and line.endswith(" % on axis-log.csv") for line in cal.lines)
+        # the written file: prsa-fit's (its name from --out, the log named as uploaded), the fitted values
+        doc = tomllib.loads(cal.plant_text)
+        assert doc["name"] == "axis-log-fitted" and "prsa-app-" not in cal.plant_text
+        assert "calibrated by prsa-fit from axis-log.csv" in doc["description"]
+        for key in res.plant_keys:
+            section, sub = key.split(".")
+            assert doc[section][sub]["value"] == pytest.approx(res.plant.values[key], rel=1e-9)
         notes = s.use_calibration(cal)
         assert all("prsa-app-" not in n for n in notes)  # notes name the file, not the temp folder
         assert s.plant_label == "axis-log-fitted.toml"
@@ -148,6 +149,22 @@ def test_session_bad_log_is_the_clis_line(tmp_path, monkeypatch, capsys):
         assert "error: " + str(info.value) == cli.removeprefix("prsa-fit: ")
         with pytest.raises(AppInputError, match=r"^'my-log.mat': a MATLAB .mat log"):
             s.calibrate("my-log.mat", b"\x00\x01")
+        with pytest.raises(AppInputError, match=r"^-bad.csv: missing column"):  # a name like a flag
+            s.calibrate("-bad.csv", BAD_LOG.encode())
         assert s.plant.name == "paper-iprsm"
+    finally:
+        s.close()
+
+
+def test_session_calibration_cancel_ends_the_command(log):
+    from prsa_ctrl.app.session import AppSession, Cancelled
+
+    path = log[0]
+    s = AppSession()
+    try:
+        polls = []
+        with pytest.raises(Cancelled):
+            s.calibrate("axis-log.csv", path.read_bytes(), cancelled=lambda: polls.append(1) or len(polls) >= 2)
+        assert len(polls) == 2 and s.plant.name == "paper-iprsm"
     finally:
         s.close()
