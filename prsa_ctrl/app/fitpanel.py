@@ -70,9 +70,9 @@ class FitPanel:
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-fit")
         self.upload = FileInput(accept=".csv", title="Calibrate from a drive log (prsa-fit LOG --plant <this plant>)",
                                 css_classes=["prsa-log-upload"])
-        self.use = Button(label="Use the fitted plant and re-tune", disabled=True, button_type="success",
+        self.use = Button(label="Use the fitted plant", disabled=True, button_type="success",
                           css_classes=["prsa-fit-use"])
-        self.discard = Button(label="Cancel or discard the fit", disabled=True, css_classes=["prsa-fit-discard"])
+        self.discard = Button(label="Cancel / discard", disabled=True, css_classes=["prsa-fit-discard"])
         self.download = Button(label="Download the fitted plant (TOML)", disabled=True,
                                css_classes=["prsa-fit-download"])
         self.files = ColumnDataSource(data={"name": [], "text": []})
@@ -173,7 +173,7 @@ def _report_html(cal: Calibration, state: str) -> str:
     warns = "".join(f"<li data-k='fit-warning'>warning: {html.escape(w)}</li>" for w in rep["warnings"])
     notes = "".join(f"<li>note: {html.escape(n)}</li>" for n in cal.notes)
     head = ("in use: the app now tunes this plant" if state == "used" else
-            "press <i>Use the fitted plant and re-tune</i> to tune it, or discard it")
+            "press <i>Use the fitted plant</i> to tune it, or discard it")
     return (f"<div data-k='fit-state' data-state='{state}' data-file='{html.escape(cal.file_name)}'><b>Calibration</b> "
             f"of <b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, solver "
             f"{html.escape(str(rep['solver'].get('status', '')))}): fit {fits}; {head}. Fitted plant file: "

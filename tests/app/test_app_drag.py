@@ -96,3 +96,43 @@ def test_session_manual_design_has_the_loops_true_margins():
             assert v.status == "manual" and v.t and v.design.objective_predicted > 0
     finally:
         s.close()
+
+
+def test_page_drag_events_coalesce_to_the_last_position():
+    """The page's handlers without a browser: a burst of Pan events, then PanEnd, computes the
+    manual design of the newest position only (older ones are skipped in the worker) and marks
+    the drag's end; the optimum is not re-tuned by a drag."""
+    import threading
+
+    from bokeh.document import Document
+    from bokeh.events import Pan, PanEnd
+
+    from prsa_ctrl.app.page import make_document
+
+    class Doc(Document):  # next-tick callbacks run at once (no server)
+        def add_next_tick_callback(self, callback):
+            callback()
+
+    doc = Doc()
+    page = make_document(doc)
+    try:
+        page._tune_pool.submit(lambda: None).result()  # the first tuning applied
+        opt = page.opt
+        gate = threading.Event()
+        page._tune_pool.submit(gate.wait)  # hold the worker while the burst arrives
+        calls = []
+        manual = page.session.manual
+        page.session.manual = lambda *a: calls.append(a[1:3]) or manual(*a)
+        tuned = page.session.tuned
+        page.session.tuned = lambda *a: calls.append("tuned") or tuned(*a)
+        for i in range(1, 9):
+            page._drag(Pan(page.land, x=0.01 * i, y=2.0 * i))
+        page._drag(PanEnd(page.land, x=0.1, y=20.0))
+        gate.set()
+        page._tune_pool.submit(lambda: None).result()
+        assert calls == [(0.1, 20.0)]
+        assert page.man.pid.kp == 0.1 and page.man.pid.ki == 20.0 and page.opt is opt
+        assert 'data-drag="end"' in page.status.text
+        assert "data-k='man-kp' style='padding:2px 6px'>0.1<" in page.readout.text
+    finally:
+        page._destroyed(None)
