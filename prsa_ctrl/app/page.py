@@ -358,7 +358,7 @@ class AppPage:
         self.contour.set_data(data)
         self.status.text = f'<span data-k="status" data-seq="{seq}" data-landscape="{seq}">ready</span>'
         self.land.title.text = (f"Kp-Ki landscape: log10 {settings.objective.upper()} (colour, grey: unstable), "
-                                f"Ms = {settings.ms_max:g} (red line); click sets manual gains"
+                                f"Ms = {settings.ms_max:g} (red line); click or drag sets manual gains"
                                 + (f"; kd = {land['kd']:.3g} fixed" if land["kd"] else ""))
 
     # ---- drawing --------------------------------------------------------------------------
