@@ -174,14 +174,15 @@ class AppPage:
                        row(self.mag, self.st, sizing_mode="stretch_width"),
                        row(self.phase, self.code, sizing_mode="stretch_width"), self.robust_out,
                        sizing_mode="stretch_width")
-        self.generic = GenericPanel(self.doc)
+        # the generic tuner is built (and its child process started) when its tab is first
+        # opened: the first page stays as light as before
+        self.generic: GenericPanel | None = None
         self.tabs = Tabs(tabs=[TabPanel(child=row(controls, views, sizing_mode="stretch_width"),
                                         title="Actuator (plant and scene files)"),
-                               TabPanel(child=self.generic.layout, title="Generic plant (transfer function)")],
+                               TabPanel(child=Div(text="loading the generic tuner ..."),
+                                        title="Generic plant (transfer function)")],
                          sizing_mode="stretch_width", css_classes=["prsa-tabs"])
-        # the generic tuner starts (its child process too) when its tab is first opened
-        self.tabs.on_change("active", lambda attr, old, new: self.generic.request()
-                            if new == 1 and self.generic.view is None else None)
+        self.tabs.on_change("active", lambda attr, old, new: self._open_generic() if new == 1 else None)
         self.doc.add_root(column(self.title, self.tabs, sizing_mode="stretch_width"))
         self.doc.title = "prsa-app: speed-loop tuning"
 
@@ -553,6 +554,15 @@ class AppPage:
             return
         self._after_switch(kind, notes)
 
+    def _open_generic(self) -> None:
+        if self.generic is None:
+            self.generic = GenericPanel(self.doc)
+            # a new panel (BokehJS re-renders Tabs on a change of ``tabs``, not of a panel's child)
+            self.tabs.tabs = [self.tabs.tabs[0], TabPanel(child=self.generic.layout,
+                                                          title="Generic plant (transfer function)")]
+            self.tabs.active = 1
+            self.generic.request()
+
     def show_error(self, line: str) -> None:
         """Show one line as the page's error (``error: LINE``)."""
         self._show_error(line)
@@ -701,7 +711,8 @@ class AppPage:
         self._tune_pool.shutdown(wait=False, cancel_futures=True)
         self._verify_pool.shutdown(wait=False, cancel_futures=True)
         self.fit.close()
-        self.generic.close()
+        if self.generic is not None:
+            self.generic.close()
         self.session.close()
 
 
