@@ -11,7 +11,6 @@ the widgets carry CSS classes named ``prsa-*``.
 
 from __future__ import annotations
 
-import base64
 import html
 import math
 import threading
@@ -20,14 +19,16 @@ from dataclasses import replace
 from functools import partial
 
 import numpy as np
-from bokeh.events import Tap
+from bokeh.events import Pan, PanEnd, PanStart, Tap
 from bokeh.layouts import column, row
 from bokeh.models import (Button, CheckboxGroup, ColumnDataSource, CustomJS, Div, FileInput, HoverTool,
-                          LinearColorMapper, RadioButtonGroup, Select, Slider, Span, TextInput)
+                          LinearColorMapper, RadioButtonGroup, Select, Slider, Span, TabPanel, Tabs, TextInput)
 from bokeh.plotting import figure
 from bokeh.plotting.contour import contour_data
 
 from ..options import OBJECTIVES
+from .fitpanel import FitPanel, uploaded_file
+from .genericpanel import GenericPanel
 from .session import (FIDELITIES, AppInputError, AppSession, Cancelled, Settings, View, builtin_names, one_line,
                       robust_study)
 
@@ -66,6 +67,10 @@ class AppPage:
         self.verified: dict[str, View] = {}
         self._seq = 0
         self._vseq = 0
+        self._mseq = 0  # manual-only updates (a drag on the landscape)
+        self._pending = self.settings
+        self._drag_end = -1  # the manual-only update of the last drag's end
+        self._land_seq = -1
         self._cancel = threading.Event()
         self._tune_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-tune")
         self._verify_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-verify")
@@ -126,6 +131,7 @@ class AppPage:
         for btn, key in ((self.copy_cli, "cli"), (self.copy_py, "py")):
             btn.js_on_click(CustomJS(args={"src": self.code_src, "key": key}, code=_COPY_JS))
         self.readout = Div(text="", css_classes=["prsa-readout"], sizing_mode="stretch_width")
+        self.fit = FitPanel(self)
         self._figures()
 
         for w in (self.objective, self.fidelity):
@@ -151,19 +157,33 @@ class AppPage:
         self.robust_cancel.on_click(lambda: self._rcancel.set())
         self.export_which.on_change("active", lambda attr, old, new: self._refresh_outputs())
         self.land.on_event(Tap, self._tap)
+        self.land.on_event(Pan, self._drag)
+        self.land.on_event(PanEnd, self._drag)
+        drag_js = CustomJS(args={"src": self.drag_src}, code=_DRAG_JS)
+        for ev in (PanStart, Pan, PanEnd):
+            self.land.js_on_event(ev, drag_js)
 
         controls = column(self.plant_select, self.plant_upload, self.scene_select, self.scene_upload,
+                          self.fit.upload, row(self.fit.use, self.fit.discard), self.fit.download,
                           self.objective, self.controller, self.ms, self.mt_on, self.mt, self.noise, self.mks, self.loads,
                           self.fidelity, row(self.verify_button, self.cancel_button), self.progress,
                           self.samples, row(self.robust_button, self.robust_cancel),
                           self.clear_manual, self.export_which, self.dl_drive, self.dl_report,
                           self.copy_cli, self.copy_py, width=330)
-        views = column(self.error, self.status, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
+        views = column(self.error, self.status, self.fit.out, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
                        row(self.mag, self.st, sizing_mode="stretch_width"),
                        row(self.phase, self.code, sizing_mode="stretch_width"), self.robust_out,
                        sizing_mode="stretch_width")
-        self.doc.add_root(column(self.title, row(controls, views, sizing_mode="stretch_width"),
-                                 sizing_mode="stretch_width"))
+        # the generic tuner is built (and its child process started) when its tab is first
+        # opened: the first page stays as light as before
+        self.generic: GenericPanel | None = None
+        self.tabs = Tabs(tabs=[TabPanel(child=row(controls, views, sizing_mode="stretch_width"),
+                                        title="Actuator (plant and scene files)"),
+                               TabPanel(child=Div(text="loading the generic tuner ..."),
+                                        title="Generic plant (transfer function)")],
+                         sizing_mode="stretch_width", css_classes=["prsa-tabs"])
+        self.tabs.on_change("active", lambda attr, old, new: self._open_generic() if new == 1 else None)
+        self.doc.add_root(column(self.title, self.tabs, sizing_mode="stretch_width"))
         self.doc.title = "prsa-app: speed-loop tuning"
 
     def _figures(self) -> None:
@@ -185,9 +205,12 @@ class AppPage:
         self.resp.legend.click_policy = "hide"
         self.resp.legend.background_fill_alpha = 0.6
 
-        self.land = figure(title="Kp-Ki landscape: objective (colour), Ms bound (line); click sets manual gains",
-                           x_axis_label="kp (N m s/rad)", y_axis_label="ki (N m/rad)", tools="tap,pan,wheel_zoom,reset",
+        # a drag (no pan tool: a drag on the plane moves the manual design) or a click sets the
+        # manual gains; the wheel zooms
+        self.land = figure(title="Kp-Ki landscape: objective (colour), Ms bound (line); click or drag sets manual gains",
+                           x_axis_label="kp (N m s/rad)", y_axis_label="ki (N m/rad)", tools="tap,wheel_zoom,reset",
                            css_classes=["prsa-landscape"], **_PLOT)
+        self.land.toolbar.active_drag = None
         self.land_img = ColumnDataSource(data={"image": [], "x": [], "y": [], "dw": [], "dh": []})
         self.cmap = LinearColorMapper(palette="Viridis256", nan_color="#dddddd")
         self.land.image(image="image", x="x", y="y", dw="dw", dh="dh", source=self.land_img, color_mapper=self.cmap)
@@ -195,6 +218,10 @@ class AppPage:
         self.land_pts = ColumnDataSource(data={"kp": [], "ki": [], "name": [], "color": [], "marker": []})
         self.land.scatter("kp", "ki", source=self.land_pts, color="color", marker="marker", size=12, line_color="white")
         self.land.add_tools(HoverTool(tooltips=[("design", "@name"), ("kp", "@kp"), ("ki", "@ki")]))
+        # the cursor of a drag, moved in the browser at once (the server's manual design follows)
+        self.drag_src = ColumnDataSource(data={"kp": [], "ki": []})
+        self.land.scatter("kp", "ki", source=self.drag_src, marker="circle", size=16, fill_alpha=0.0,
+                          line_color=_COLORS["man"], line_width=2)
 
         self.mag = figure(title="Bode magnitude |L|", x_axis_type="log", x_axis_label="rad/s", y_axis_label="dB",
                           **_PLOT)
@@ -255,6 +282,7 @@ class AppPage:
             self._show_error(str(exc))
             return
         self._seq += 1
+        self._pending = settings  # what a drag computes with until this request is applied
         self._vseq += 1  # a running verification belongs to the old design
         self._cancel.set()
         self.status.text = "tuning..."
@@ -313,6 +341,7 @@ class AppPage:
         if seq != self._seq:
             return
         self._land = land
+        self._land_seq = seq
         obj = land["objective"]
         kp, ki = land["kp"], land["ki"]
         dkp = kp[1] - kp[0]
@@ -330,7 +359,7 @@ class AppPage:
         self.contour.set_data(data)
         self.status.text = f'<span data-k="status" data-seq="{seq}" data-landscape="{seq}">ready</span>'
         self.land.title.text = (f"Kp-Ki landscape: log10 {settings.objective.upper()} (colour, grey: unstable), "
-                                f"Ms = {settings.ms_max:g} (red line); click sets manual gains"
+                                f"Ms = {settings.ms_max:g} (red line); click or drag sets manual gains"
                                 + (f"; kd = {land['kd']:.3g} fixed" if land["kd"] else ""))
 
     # ---- drawing --------------------------------------------------------------------------
@@ -458,6 +487,45 @@ class AppPage:
         self.manual_gains = (kp, ki, 0.0)
         self.request()
 
+    def _drag(self, event) -> None:
+        """A drag on the landscape: the manual design follows the pointer (manual-only
+        updates, coalesced in the worker: the optimum is not re-tuned)."""
+        if event.x is None or event.y is None or self.opt is None:
+            return
+        kp, ki = float(event.x), max(float(event.y), 0.0)
+        if not (math.isfinite(kp) and math.isfinite(ki)) or kp <= 0:
+            return  # outside the plane: the last valid point stays
+        self.manual_gains = (kp, ki, 0.0)
+        self._mseq += 1
+        if isinstance(event, PanEnd):
+            self._drag_end = self._mseq
+        kd = self.opt.pid.kd if self._pending.controller == "pid" else 0.0  # the optimum's, as a click takes it
+        self._tune_pool.submit(self._manual_work, self._seq, self._mseq, self._pending, (kp, ki, kd))
+
+    def _manual_work(self, seq: int, mseq: int, settings: Settings, manual) -> None:
+        if seq != self._seq or mseq != self._mseq:
+            return  # superseded before it started
+        try:
+            man = self.session.manual(settings, *manual)
+        except AppInputError as exc:
+            self.doc.add_next_tick_callback(partial(self._show_error, str(exc), seq))
+            return
+        except Exception as exc:  # noqa: BLE001 - one line in the page, never a traceback
+            self.doc.add_next_tick_callback(partial(self._show_error, f"numerical failure: {one_line(exc)}", seq))
+            return
+        self.doc.add_next_tick_callback(partial(self._apply_manual, seq, mseq, man))
+
+    def _apply_manual(self, seq: int, mseq: int, man: View) -> None:
+        if seq != self._seq or mseq != self._mseq:
+            return
+        self.man = man
+        self.verified.pop("man", None)
+        self.error.text = ""
+        self._redraw()
+        end = ' data-drag="end"' if mseq == self._drag_end else ""
+        self.status.text = (f'<span data-k="status" data-seq="{seq}" data-mseq="{mseq}"{end}'
+                            + (f' data-landscape="{seq}"' if self._land_seq == seq else "") + ">ready</span>")
+
     def _clear_manual(self) -> None:
         self.manual_gains = None
         self.export_which.active = 0
@@ -472,23 +540,36 @@ class AppPage:
         self._after_switch(kind, notes)
 
     def _upload(self, kind: str, widget: FileInput) -> None:
-        value = widget.value
-        if not value:
+        got = uploaded_file(widget, f"uploaded-{kind}.toml")
+        if got is None:
             return
+        name, content = got
         try:
-            name = widget.filename
-        except Exception:  # noqa: BLE001 - bokeh's UnsetValueError: no name came with the file
-            name = None
-        value = value[0] if isinstance(value, list) else value
-        name = (name[0] if isinstance(name, list) else name) or f"uploaded-{kind}.toml"
-        try:
-            notes = self.session.upload(kind, name, base64.b64decode(value))
+            notes = self.session.upload(kind, name, content)
         except AppInputError as exc:
             self._show_error(str(exc))
             return
         except Exception as exc:  # noqa: BLE001 - one line in the page, never a traceback
             self._show_error(f"{name}: cannot be read ({one_line(exc)})")
             return
+        self._after_switch(kind, notes)
+
+    def _open_generic(self) -> None:
+        if self.generic is None:
+            self.generic = GenericPanel(self.doc)
+            # a new panel (BokehJS re-renders Tabs on a change of ``tabs``, not of a panel's child)
+            self.tabs.tabs = [self.tabs.tabs[0], TabPanel(child=self.generic.layout,
+                                                          title="Generic plant (transfer function)")]
+            self.tabs.active = 1
+            self.generic.request()
+
+    def show_error(self, line: str) -> None:
+        """Show one line as the page's error (``error: LINE``)."""
+        self._show_error(line)
+
+    def after_switch(self, kind: str, notes: list[str]) -> None:
+        """After the plant (``kind`` ``"plant"``) or scene changed in the session: show its
+        notes, reset what depends on it and re-tune."""
         self._after_switch(kind, notes)
 
     def _after_switch(self, kind: str, notes: list[str]) -> None:
@@ -629,6 +710,9 @@ class AppPage:
         self._robust_pool.shutdown(wait=False, cancel_futures=True)
         self._tune_pool.shutdown(wait=False, cancel_futures=True)
         self._verify_pool.shutdown(wait=False, cancel_futures=True)
+        self.fit.close()
+        if self.generic is not None:
+            self.generic.close()
         self.session.close()
 
 
@@ -642,6 +726,12 @@ a.download = fname;
 document.body.appendChild(a);
 a.click();
 setTimeout(() => { URL.revokeObjectURL(a.href); a.remove(); }, 1000);
+"""
+
+_DRAG_JS = """
+if (cb_obj.x == null || cb_obj.y == null) { return; }
+if (cb_obj.event_name == 'panend') { src.data = {kp: [], ki: []}; return; }
+src.data = {kp: [cb_obj.x], ki: [Math.max(cb_obj.y, 0)]};
 """
 
 _COPY_JS = """

@@ -34,7 +34,7 @@ from ..plant.plantfile import Plant, builtin_plants, load_plant
 from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
 from ..tuning.tuner import Tuner
 
-__all__ = ["AppInputError", "Settings", "View", "AppSession", "FIDELITIES", "LANDSCAPE_POINTS"]
+__all__ = ["AppInputError", "Settings", "View", "AppSession", "Calibration", "FIDELITIES", "LANDSCAPE_POINTS"]
 
 #: Verification fidelities offered (``Scene.fidelity``).
 FIDELITIES = ("auto", "rigid", "compliant", "multi-roller")
@@ -153,6 +153,7 @@ class AppSession:
         self._tmp: tempfile.TemporaryDirectory | None = None
         self.notes: list[str] = []
         self.plant, self.plant_label, notes_p = _load_plant(plant)
+        self.plant_source = None if plant is None else str(plant)  # as prsa-fit --plant takes it
         self.base_scene, self.scene_label, notes_s = _load_scene(scene)
         self.notes = notes_p + notes_s
         _check_scene_plant(self.base_scene, self.plant)
@@ -176,6 +177,7 @@ class AppSession:
         _check_scene_plant(self.base_scene, plant)
         with self._lock:
             self.plant, self.plant_label = plant, plabel
+            self.plant_source = str(name_or_path)
             self._clear()
         return notes
 
@@ -198,11 +200,7 @@ class AppSession:
         if kind not in ("plant", "scene"):
             raise ValueError(f"kind = {kind!r}; expected 'plant' or 'scene'")
         name = Path(str(filename)).name or f"uploaded-{kind}.toml"
-        if self._tmp is None:
-            self._tmp = tempfile.TemporaryDirectory(prefix="prsa-app-")
-        folder = Path(self._tmp.name) / f"{kind}-{len(list(Path(self._tmp.name).iterdir()))}"
-        folder.mkdir()
-        path = folder / name
+        path = self._folder(kind) / name
         path.write_bytes(content)
         try:
             if kind == "plant":
@@ -210,6 +208,88 @@ class AppSession:
             return self.set_scene(str(path), label=name)
         except AppInputError as exc:
             raise AppInputError(str(exc).replace(str(path), name)) from None
+
+    def _folder(self, kind: str) -> Path:
+        """A new folder in the session's private temporary folder."""
+        with self._lock:
+            if self._tmp is None:
+                self._tmp = tempfile.TemporaryDirectory(prefix="prsa-app-")
+            folder = Path(self._tmp.name) / f"{kind}-{len(list(Path(self._tmp.name).iterdir()))}"
+            folder.mkdir()
+            return folder
+
+    # ---- calibration from a drive log ---------------------------------------------------
+
+    def calibrate(self, filename: str, content: bytes, cancelled: Callable[[], bool] | None = None,
+                  poll_s: float = 0.1) -> "Calibration":
+        """Fit the session's plant to an uploaded drive log: the command ``prsa-fit LOG --plant
+        BASE --out LOG-fitted.toml --json LOG-fit.json`` run in a child process in a private
+        folder holding the log under its uploaded name (so the checks, the fit, its warnings,
+        its messages and the written plant file are the command's), BASE being the session's
+        plant (built-in name or file). The session's plant is not changed
+        (:meth:`use_calibration` does that).
+
+        Slow (a Gauss-Newton fit, seconds): call it off the page's event loop.
+        ``cancelled()`` is polled every ``poll_s`` s; when it turns true the command is ended.
+
+        Raises
+        ------
+        AppInputError
+            prsa-fit's one-line error (exit 2: bad log, bad base plant; exit 3: the fit did not
+            converge), files named as uploaded, without the ``prsa-fit: `` and ``error: ``
+            prefixes.
+        Cancelled
+            ``cancelled()`` turned true.
+        """
+        import subprocess
+        import sys
+
+        name = Path(str(filename)).name or "uploaded-log.csv"
+        folder = self._folder("log")
+        (folder / name).write_bytes(content)
+        stem = Path(name).stem or "log"
+        out, rep = f"{stem}-fitted.toml", f"{stem}-fit.json"
+        arg, out_arg, rep_arg = (f"./{n}" if n.startswith("-") else n for n in (name, out, rep))  # not flags
+        base, base_label = self.plant_source, self.plant_label
+        argv = [arg, *(["--plant", base] if base is not None else []), "--out", out_arg, "--json", rep_arg]
+        with open(folder / ".stdout", "w+", encoding="utf-8") as so, open(folder / ".stderr", "w+",
+                                                                             encoding="utf-8") as se:
+            proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.cli.fit", *argv], cwd=folder, stdout=so,
+                                    stderr=se, stdin=subprocess.DEVNULL)
+            while True:
+                try:
+                    code = proc.wait(timeout=poll_s)
+                    break
+                except subprocess.TimeoutExpired:
+                    if cancelled is not None and cancelled():
+                        proc.kill()
+                        proc.wait()
+                        raise Cancelled("calibration cancelled") from None
+            so.seek(0)
+            se.seek(0)
+            stdout, stderr = so.read(), se.read()
+
+        def named(text: str) -> str:
+            for path, shown in ((arg, name), (out_arg, out), (rep_arg, rep),
+                                *([(base, base_label)] if base is not None else [])):
+                text = text.replace(path, shown)
+            return " ".join(text.split())
+
+        err = [named(line) for line in stderr.splitlines() if line.strip()]
+        notes = tuple(line.removeprefix("prsa-fit: note: ") for line in err if line.startswith("prsa-fit: note:"))
+        if code != 0:
+            first = next((line for line in err if not line.startswith("prsa-fit: note:")),
+                         f"prsa-fit: error: {name}: the fit stopped with exit code {code}")
+            raise AppInputError(first.removeprefix("prsa-fit: ").removeprefix("error: "))
+        lines = tuple(named(line) for line in stdout.splitlines() if line.strip() and not line.startswith("wrote "))
+        report = json.loads((folder / rep).read_text(encoding="utf-8"))
+        return Calibration(log_name=name, base_label=base_label, plant_path=str(folder / out), file_name=out,
+                           report=report, lines=lines, notes=notes)
+
+    def use_calibration(self, cal: "Calibration") -> list[str]:
+        """Make the fitted plant the session's plant (checked against the scene; its file name
+        is the plant's label from now on); returns its notes."""
+        return self.set_plant(cal.plant_path, label=cal.file_name)
 
     def scene_for(self, s: Settings) -> Scene:
         """The scene with the page's settings, checked against the plant (one-line errors)."""
@@ -488,7 +568,10 @@ def _load_plant(name_or_path, label: str | None = None) -> tuple[Plant, str, lis
         except PlantFileError as exc:
             raise AppInputError(one_line(exc)) from None
     text = str(name_or_path) if name_or_path is not None else plant.name
-    return plant, label or text, _notes(caught)
+    notes = _notes(caught)
+    if label:  # notes name the file as the user knows it
+        notes = [n.replace(text, label) for n in notes]
+    return plant, label or text, notes
 
 
 def _load_scene(name_or_path, label: str | None = None) -> tuple[Scene, str, list[str]]:
@@ -527,6 +610,43 @@ def builtin_names() -> tuple[list[str], list[str]]:
             continue
         scenes.append(name)
     return builtin_plants(), scenes
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What ``prsa-fit`` made of an uploaded log (:meth:`AppSession.calibrate`).
+
+    Attributes
+    ----------
+    log_name : str
+        The log's file name as uploaded.
+    base_label : str
+        The base plant (the session's plant when the fit ran).
+    plant_path : str
+        The fitted plant file prsa-fit wrote (in the session's temporary folder).
+    file_name : str
+        Its name (``<log stem>-fitted.toml``).
+    report : dict
+        prsa-fit's JSON report: ``parameters`` (``value``, ``ci95``, ``unit``, ``kept_base``,
+        ``written``), ``reflected_inertia_kg_m2``, ``fit_percent``, ``warnings``, ``solver``.
+    lines : tuple of str
+        prsa-fit's output lines (values with 95 % intervals, fit %, ``warning:`` lines).
+    notes : tuple of str
+        prsa-fit's ``note:`` lines.
+    """
+
+    log_name: str
+    base_label: str
+    plant_path: str
+    file_name: str
+    report: dict
+    lines: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+
+    @property
+    def plant_text(self) -> str:
+        """The fitted plant file's text (what ``prsa-fit --out`` writes)."""
+        return Path(self.plant_path).read_text(encoding="utf-8")
 
 
 class Cancelled(Exception):
