@@ -140,7 +140,8 @@ def test_the_cli_and_the_app_prefix_their_labels():
 
     with pytest.raises(UsageError) as info:
         parse_plant("1/(s+1)^31")
-    assert str(info.value) == f"--plant '1/(s+1)^31': exponent '31' at position 9: expected a whole number 0..30; {EXPECTED}"
+    want = f"exponent '31' at position 9: expected a whole number 0..30; {EXPECTED}"
+    assert str(info.value) == f"--plant '1/(s+1)^31': {want}"
     with pytest.raises(UsageError, match=r"^--plant '1/\(s\+1\)\*exp\(-s\)': unexpected 'e' at position 9; "
                                          r"give a delay with --delay; "):
         parse_plant("1/(s+1)*exp(-s)")
@@ -150,7 +151,7 @@ def test_the_cli_and_the_app_prefix_their_labels():
 
     with pytest.raises(AppInputError) as info:
         parse_transfer_function("1/(s+1)^31")
-    assert str(info.value) == f"plant '1/(s+1)^31': exponent '31' at position 9: expected a whole number 0..30; {EXPECTED}"
+    assert str(info.value) == f"plant '1/(s+1)^31': {want}"
 
 
 def test_the_reader_imports_numpy_only():
