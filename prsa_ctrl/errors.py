@@ -4,7 +4,8 @@ Every message names the value that was received and what was expected.
 """
 
 __all__ = ["PlantFileError", "SceneError", "SimulationError", "GeometryWarning", "DataError", "FitError",
-           "LogFormatError", "AxisPlantError", "AxisFitError", "OutputError", "MonteCarloInterrupted", "UsageError"]
+           "LogFormatError", "AxisPlantError", "AxisFitError", "OutputError", "MonteCarloInterrupted", "UsageError",
+           "PlantTextError"]
 
 
 class PlantFileError(ValueError):
@@ -41,6 +42,12 @@ class AxisPlantError(ValueError):
 
 class AxisFitError(RuntimeError):
     """The fit did not converge or the data do not inform the parameters; says which and why."""
+
+
+class PlantTextError(ValueError):
+    """A plant typed as a rational function of ``s`` (``prsa-pid --plant``, the app's generic
+    tuner) cannot be read; the message says where and what is expected, without the text itself
+    (each caller names it as typed)."""
 
 
 class OutputError(ValueError):

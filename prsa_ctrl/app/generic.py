@@ -17,13 +17,14 @@ unit and second (``ki``), times seconds (``kd``); times in s; frequencies in rad
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
+from ..errors import PlantTextError
 from ..options import OBJECTIVES
+from ..tuning.plant_text import MAX_DEPTH, MAX_POWER, parse_plant_text, quote_plant_text
 from .session import AppInputError, Cancelled, one_line
 
 __all__ = ["parse_transfer_function", "GenericSettings", "GenericView", "tune_generic", "generic_code",
@@ -31,138 +32,6 @@ __all__ = ["parse_transfer_function", "GenericSettings", "GenericView", "tune_ge
 
 #: Longest plant text accepted (characters).
 MAX_TEXT = 400
-#: Deepest nesting of parentheses accepted.
-MAX_DEPTH = 20
-#: Largest integer exponent accepted.
-MAX_POWER = 30
-
-_TOKEN = re.compile(r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<s>s)|(?P<op>\*\*|[-+*/^()]))")
-
-_EXAMPLE = "expected a rational function of s, e.g. 1/(4s+1) or 2(s+1)/((s+2)^2 (0.1s+1))"
-
-
-class _Parser:
-    """Recursive descent over the tokens; values are (numerator, denominator) coefficient
-    arrays, highest power first."""
-
-    def __init__(self, text: str) -> None:
-        self.text = text
-        self.toks: list[tuple[str, str, int]] = []
-        pos = 0
-        while pos < len(text):
-            if text[pos:].strip() == "":
-                break
-            m = _TOKEN.match(text, pos)
-            if m is None or m.end() == pos:
-                j = pos + len(text[pos:]) - len(text[pos:].lstrip())
-                word = re.match(r"[A-Za-z_]+", text[j:])
-                hint = "; the delay has its own field" if word and word.group(0) in ("e", "exp") else ""
-                raise self.error(f"unexpected {text[j]!r} at position {j + 1}{hint}")
-            kind = "num" if m.group("num") else "s" if m.group("s") else m.group("op")
-            self.toks.append((kind, m.group(kind if kind in ("num", "s") else "op"), m.start(m.lastindex)))
-            pos = m.end()
-        self.i = 0
-        self.depth = 0
-
-    def error(self, what: str) -> AppInputError:
-        return AppInputError(f"plant {self.text!r}: {what}; {_EXAMPLE}")
-
-    def peek(self) -> str | None:
-        return self.toks[self.i][0] if self.i < len(self.toks) else None
-
-    def take(self) -> tuple[str, str, int]:
-        tok = self.toks[self.i]
-        self.i += 1
-        return tok
-
-    def where(self) -> str:
-        return f"at position {self.toks[self.i][2] + 1}" if self.i < len(self.toks) else "at the end"
-
-    def parse(self):
-        if not self.toks:
-            raise self.error("empty")
-        v = self.expr()
-        if self.i != len(self.toks):
-            raise self.error(f"unexpected {self.toks[self.i][1]!r} {self.where()}")
-        return v
-
-    def expr(self):
-        v = self.term()
-        while self.peek() in ("+", "-"):
-            op = self.take()[0]
-            w = self.term()
-            v = _add(v, w, -1.0 if op == "-" else 1.0)
-        return v
-
-    def term(self):
-        v = self.unary()
-        while self.peek() in ("*", "/", "num", "s", "("):
-            op = self.take()[0] if self.peek() in ("*", "/") else "*"
-            w = self.unary()
-            if op == "/":
-                if not np.any(w[0]):
-                    raise self.error("division by zero")
-                v = (np.polymul(v[0], w[1]), np.polymul(v[1], w[0]))
-            else:
-                v = (np.polymul(v[0], w[0]), np.polymul(v[1], w[1]))
-        return v
-
-    def unary(self):
-        if self.peek() in ("+", "-"):
-            sign = -1.0 if self.take()[0] == "-" else 1.0
-            v = self.unary()
-            return (sign * v[0], v[1])
-        return self.power()
-
-    def power(self):
-        v = self.atom()
-        if self.peek() in ("^", "**"):
-            self.take()
-            if self.peek() != "num" or not re.fullmatch(r"\d+", self.toks[self.i][1]):
-                raise self.error(f"exponent {self.where()}: expected a whole number 0..{MAX_POWER}")
-            n = int(self.take()[1])
-            if n > MAX_POWER:
-                raise self.error(f"exponent {n}: expected a whole number 0..{MAX_POWER}")
-            num, den = np.array([1.0]), np.array([1.0])
-            for _ in range(n):
-                num, den = np.polymul(num, v[0]), np.polymul(den, v[1])
-            v = (num, den)
-        return v
-
-    def atom(self):
-        kind = self.peek()
-        if kind is None:
-            raise self.error("unexpected end")
-        if kind == "num":
-            x = float(self.take()[1])
-            if not math.isfinite(x):
-                raise self.error(f"number {self.toks[self.i - 1][1]!r} is not finite")
-            return (np.array([x]), np.array([1.0]))
-        if kind == "s":
-            self.take()
-            return (np.array([1.0, 0.0]), np.array([1.0]))
-        if kind == "(":
-            self.take()
-            self.depth += 1
-            if self.depth > MAX_DEPTH:
-                raise self.error(f"parentheses nested deeper than {MAX_DEPTH}")
-            v = self.expr()
-            if self.peek() != ")":
-                raise self.error(f"missing ')' {self.where()}")
-            self.take()
-            self.depth -= 1
-            return v
-        raise self.error(f"unexpected {self.toks[self.i][1]!r} {self.where()}")
-
-
-def _add(v, w, sign: float):
-    n = np.polyadd(np.polymul(v[0], w[1]), sign * np.polymul(w[0], v[1]))
-    return (n, np.polymul(v[1], w[1]))
-
-
-def _trim(p: np.ndarray) -> np.ndarray:
-    nz = np.flatnonzero(p)
-    return p[nz[0]:] if nz.size else np.array([0.0])
 
 
 def parse_transfer_function(text: str) -> tuple[np.ndarray, np.ndarray]:
@@ -194,18 +63,11 @@ def parse_transfer_function(text: str) -> tuple[np.ndarray, np.ndarray]:
     >>> num.tolist(), den.tolist()
     ([0.25], [1.0, 0.25])
     """
-    if not isinstance(text, str):
-        raise AppInputError(f"plant {text!r}: not text; {_EXAMPLE}")
-    if len(text) > MAX_TEXT:
-        raise AppInputError(f"plant text of {len(text)} characters: expected at most {MAX_TEXT}")
-    p = _Parser(text)
-    num, den = p.parse()
-    num, den = _trim(np.asarray(num, float)), _trim(np.asarray(den, float))
-    if not np.any(num):
-        raise p.error("the plant is zero")
-    if not (np.all(np.isfinite(num)) and np.all(np.isfinite(den))) or not np.any(den):
-        raise p.error("coefficients overflow")
-    return num / den[0], den / den[0]
+    try:
+        return parse_plant_text(text, max_length=MAX_TEXT, delay_hint="the delay has its own field")
+    except PlantTextError as exc:
+        shown = quote_plant_text(text) if isinstance(text, str) else repr(text)
+        raise AppInputError(f"plant {shown}: {exc}") from None
 
 
 @dataclass(frozen=True)

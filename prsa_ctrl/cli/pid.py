@@ -32,8 +32,10 @@ from typing import Sequence
 
 import numpy as np
 
+from ..errors import PlantTextError
 from ..io.output import Transaction, check_writable, json_safe
 from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE
+from ..tuning.plant_text import parse_plant_text, quote_plant_text
 from .common import (EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError, commit, invoke, native_output, number,
                      path_text, progress, report_failure, show_notes, write_json_atomic)
 
@@ -52,133 +54,6 @@ _VALUE_FLAGS = ("--plant", "--delay", "--ms-max", "--mt-max", "--mks-max", "--ma
 _EXAMPLE = "'1/(4s+1)', '2(s+1)/(s^2+3s+1)' or '1/(s+1)^3'"
 #: Longest plant expression read (characters).
 _TEXT_MAX = 10_000
-
-
-# --- the plant ------------------------------------------------------------------------------------
-
-_TOKEN = re.compile(r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<op>\*\*|[-+*/^()])|(?P<s>s)|(?P<bad>\S))")
-
-
-class _PlantText:
-    """Recursive-descent reader of a rational function of ``s``; values are ``(num, den)``
-    coefficient arrays, highest power first."""
-
-    def __init__(self, text: str, flag: str) -> None:
-        self.text, self.flag = text, flag
-        if len(text) > _TEXT_MAX:
-            self.fail(f"{len(text)} characters; expected at most {_TEXT_MAX}")
-        self.tokens: list[tuple[str, str, int]] = []
-        pos = 0
-        while pos < len(text):
-            m = _TOKEN.match(text, pos)
-            if m is None:  # only trailing blanks left
-                break
-            kind = m.lastgroup
-            if kind == "bad":
-                self.fail(f"unexpected {m.group('bad')!r} at position {m.start('bad') + 1}"
-                          + ("; give a delay with --delay" if m.group("bad") in "eE" else ""))
-            self.tokens.append((kind, m.group(kind), m.start(kind)))
-            pos = m.end()
-        self.i = 0
-
-    def fail(self, why: str):
-        shown = repr(self.text) if len(self.text) <= 80 else repr(self.text[:60]) + "..."
-        raise UsageError(f"{self.flag} {shown}: {why}; expected a transfer function in s such as {_EXAMPLE}")
-
-    def peek(self) -> tuple[str, str, int] | None:
-        return self.tokens[self.i] if self.i < len(self.tokens) else None
-
-    def take(self, value: str | None = None) -> bool:
-        t = self.peek()
-        if t is not None and t[0] == "op" and (value is None or t[1] == value):
-            self.i += 1
-            return True
-        return False
-
-    def parse(self) -> tuple[np.ndarray, np.ndarray]:
-        if not self.tokens:
-            self.fail("empty")
-        val = self.expr(0)
-        if self.peek() is not None:
-            self.fail(f"unexpected {self.peek()[1]!r} at position {self.peek()[2] + 1}")
-        return val
-
-    def expr(self, depth: int):
-        if depth > 50:
-            self.fail("nested too deeply")
-        val = self.term(depth)
-        while True:
-            if self.take("+"):
-                val = _add(val, self.term(depth))
-            elif self.take("-"):
-                b = self.term(depth)
-                val = _add(val, (-b[0], b[1]))
-            else:
-                return val
-
-    def term(self, depth: int):
-        val = self.unary(depth)
-        while True:
-            t = self.peek()
-            if self.take("*"):
-                val = _mul(val, self.unary(depth))
-            elif self.take("/"):
-                b = self.unary(depth)
-                if not np.any(b[0]):
-                    self.fail("division by zero")
-                val = _mul(val, (b[1], b[0]))
-            elif t is not None and (t[0] in ("num", "s") or t[1] == "("):  # implicit product: 4s, 2(s+1)
-                val = _mul(val, self.power(depth))
-            else:
-                return val
-
-    def unary(self, depth: int):
-        sign = 1.0
-        while True:  # a run of signs, read without recursion
-            if self.take("-"):
-                sign = -sign
-            elif not self.take("+"):
-                break
-        a = self.power(depth)
-        return (sign * a[0], a[1])
-
-    def power(self, depth: int):
-        base = self.atom(depth)
-        if self.take("^") or self.take("**"):
-            t = self.peek()
-            if t is None or t[0] != "num" or not re.fullmatch(r"\d+", t[1]) or int(t[1]) > PLANT_ORDER_MAX:
-                self.fail(f"exponent {t[1] if t else '(none)'!r} at position {t[2] + 1 if t else len(self.text)}: "
-                          f"expected a whole number 0..{PLANT_ORDER_MAX}")
-            self.i += 1
-            out = (np.array([1.0]), np.array([1.0]))
-            for _ in range(int(t[1])):
-                out = _mul(out, base)
-            return out
-        return base
-
-    def atom(self, depth: int):
-        t = self.peek()
-        if t is None:
-            self.fail("ends too early")
-        self.i += 1
-        if t[0] == "num":
-            return np.array([float(t[1])]), np.array([1.0])
-        if t[0] == "s":
-            return np.array([1.0, 0.0]), np.array([1.0])
-        if t[1] == "(":
-            val = self.expr(depth + 1)
-            if not self.take(")"):
-                self.fail("unbalanced parenthesis")
-            return val
-        self.fail(f"unexpected {t[1]!r} at position {t[2] + 1}")
-
-
-def _mul(a, b):
-    return np.polymul(a[0], b[0]), np.polymul(a[1], b[1])
-
-
-def _add(a, b):
-    return np.polyadd(np.polymul(a[0], b[1]), np.polymul(b[0], a[1])), np.polymul(a[1], b[1])
 
 
 def _coefficients(flag: str, text: str) -> np.ndarray:
@@ -232,11 +107,11 @@ def parse_plant(text: str | None = None, num: str | None = None, den: str | None
     ([1.0], [4.0, 1.0])
     """
     if text is not None:
-        label, shown = f"--plant {text!r}", text
-        n, d = _PlantText(text, "--plant").parse()
-        d0 = np.trim_zeros(np.asarray(d, float), "f")
-        if d0.size and math.isfinite(d0[0]):
-            n, d = np.asarray(n, float) / d0[0], d0 / d0[0]  # an expression's scale is arbitrary: monic
+        label, shown = f"--plant {quote_plant_text(text)}", text
+        try:  # an expression's scale is arbitrary: its denominator comes back monic
+            n, d = parse_plant_text(text, max_length=_TEXT_MAX, delay_hint="give a delay with --delay")
+        except PlantTextError as exc:
+            raise UsageError(f"{label}: {exc}") from None
     else:
         label = f"--num {' '.join(num.split())} --den {' '.join(den.split())}"
         n, d = _coefficients("--num", num), _coefficients("--den", den)

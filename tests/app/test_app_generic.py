@@ -13,7 +13,6 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
 
 pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip install '.[app]')")
 
@@ -143,12 +142,12 @@ def test_parser_known_cases(text, num, den):
     ("1/(s-s)", r"division by zero"),
     ("exp(-s)/(s+1)", r"unexpected 'e' at position 1; the delay has its own field"),
     ("__import__('os')", r"unexpected '_' at position 1"),
-    ("1/(s+1)^31", r"exponent 31: expected a whole number 0..30"),
-    ("1/(s+1)^-1", r"exponent at position 9: expected a whole number"),
-    ("1/(s+1)^1.5", r"exponent at position 9: expected a whole number"),
+    ("1/(s+1)^31", r"exponent '31' at position 9: expected a whole number 0..30"),
+    ("1/(s+1)^-1", r"exponent '-' at position 9: expected a whole number"),
+    ("1/(s+1)^1.5", r"exponent '1.5' at position 9: expected a whole number"),
     ("0*s/(s+1)", r"the plant is zero"),
     ("(" * 21 + "s" + ")" * 21, r"parentheses nested deeper than 20"),
-    ("s" * 401, r"^plant text of 401 characters: expected at most 400"),
+    ("s" * 401, r"^plant 's{60}'\.\.\.: 401 characters; expected at most 400$"),
     ("1/(s+1))", r"unexpected '\)' at position 8"),
     ("1e999/(s+1)", r"number '1e999' is not finite"),
 ])
@@ -156,37 +155,6 @@ def test_parser_refuses_with_one_line(text, message):
     with pytest.raises(AppInputError, match=message) as info:
         parse_transfer_function(text)
     assert "\n" not in str(info.value)
-
-
-_coef = st.floats(min_value=-9, max_value=9, allow_nan=False).filter(lambda x: abs(x) > 1e-3).map(lambda x: round(x, 3))
-
-
-@settings(max_examples=60, deadline=None, derandomize=True)
-@given(st.lists(st.lists(_coef, min_size=1, max_size=3), min_size=1, max_size=3),
-       st.lists(st.lists(_coef, min_size=2, max_size=3), min_size=1, max_size=3),
-       st.integers(0, 3))
-def test_parser_agrees_with_a_direct_evaluation(nums, dens, power):
-    """Products of typed polynomials over products of typed polynomials (one raised to a
-    power), written with explicit and implicit products: the parsed rational function equals
-    the direct complex evaluation at test points."""
-    def poly_text(c):
-        n = len(c) - 1
-        return "(" + " + ".join(f"{a!r}" + ("" if k == n else (" s" if k == n - 1 else f" s^{n - k}"))
-                                for k, a in enumerate(c)) + ")"
-
-    def poly_val(c, s):
-        return sum(a * s ** (len(c) - 1 - k) for k, a in enumerate(c))
-
-    den_text = " * ".join(poly_text(c) for c in dens[:-1]) + (" * " if len(dens) > 1 else "") + \
-        poly_text(dens[-1]) + f"^{power}"
-    text = "".join(poly_text(c) for c in nums) + "/(" + den_text + ")"
-    n, d = parse_transfer_function(text)
-    for s in (0.37 + 1.1j, -0.8 + 0.3j, 2.5j):
-        want = np.prod([poly_val(c, s) for c in nums]) / (
-            np.prod([poly_val(c, s) for c in dens[:-1]]) * poly_val(dens[-1], s) ** power)
-        if not np.isfinite(want) or abs(want) > 1e12:
-            continue
-        assert complex(np.polyval(n, s) / np.polyval(d, s)) == pytest.approx(complex(want), rel=1e-8, abs=1e-10)
 
 
 def test_tune_generic_is_tune_pid_with_the_options_and_true_peaks():
