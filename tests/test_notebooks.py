@@ -101,6 +101,9 @@ def test_notebook_executes_cleanly(path, monkeypatch, tmp_path):
     nbclient = pytest.importorskip("nbclient")
     monkeypatch.setenv("PRSA_FAST", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    # The notebooks run in an empty folder against the installed package: the repository's
+    # examples (the EMPS record of notebook 11) are named the way a user outside the checkout would.
+    monkeypatch.setenv("PRSA_EMPS_DIR", str(Path(__file__).resolve().parent.parent / "examples" / "emps"))
     monkeypatch.delenv("PYTHONWARNINGS", raising=False)
     nb = nbformat.read(path, as_version=4)
     client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3", allow_errors=True,

@@ -291,7 +291,7 @@ class AppPage:
     def _work(self, seq: int, settings: Settings, manual) -> None:
         if seq != self._seq:
             return  # superseded before it started
-        try:
+        def compute():
             opt = self.session.tuned(settings)
             base = self.session.baselines(settings)
             man = None
@@ -299,13 +299,12 @@ class AppPage:
                 kd = opt.pid.kd if settings.controller == "pid" else 0.0
                 man = self.session.manual(settings, manual[0], manual[1], kd)
             cli, py = self.session.code(settings)
-            files = self.session.export_files(settings, opt)
-        except AppInputError as exc:
-            self.doc.add_next_tick_callback(partial(self._show_error, str(exc), seq))
+            return opt, base, man, cli, py, self.session.export_files(settings, opt)
+
+        out = self._guarded(compute, seq)
+        if out is None:
             return
-        except Exception as exc:  # noqa: BLE001 - one line in the page, never a traceback
-            self.doc.add_next_tick_callback(partial(self._show_error, f"numerical failure: {one_line(exc)}", seq))
-            return
+        opt, base, man, cli, py, files = out
         self.doc.add_next_tick_callback(partial(self._apply, seq, settings, opt, base, man, cli, py, files))
         if seq != self._seq:
             return
@@ -505,15 +504,20 @@ class AppPage:
     def _manual_work(self, seq: int, mseq: int, settings: Settings, manual) -> None:
         if seq != self._seq or mseq != self._mseq:
             return  # superseded before it started
+        man = self._guarded(lambda: self.session.manual(settings, *manual), seq)
+        if man is not None:
+            self.doc.add_next_tick_callback(partial(self._apply_manual, seq, mseq, man))
+
+    def _guarded(self, compute, seq: int):
+        """``compute()`` on the worker; a failure becomes one line in the page (never a traceback)
+        and ``None``."""
         try:
-            man = self.session.manual(settings, *manual)
+            return compute()
         except AppInputError as exc:
             self.doc.add_next_tick_callback(partial(self._show_error, str(exc), seq))
-            return
         except Exception as exc:  # noqa: BLE001 - one line in the page, never a traceback
             self.doc.add_next_tick_callback(partial(self._show_error, f"numerical failure: {one_line(exc)}", seq))
-            return
-        self.doc.add_next_tick_callback(partial(self._apply_manual, seq, mseq, man))
+        return None
 
     def _apply_manual(self, seq: int, mseq: int, man: View) -> None:
         if seq != self._seq or mseq != self._mseq:
