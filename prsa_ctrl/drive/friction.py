@@ -137,20 +137,20 @@ class FrictionFeedforward:
 
     def torque(self, w: Any) -> Any:
         """Feed-forward torque (N m) at nut speed ``w`` (rad/s; number or array), numpy."""
-        w = np.asarray(w, dtype=float)
-        shape = np.exp(-((w / self.stribeck_speed_rad_s) ** 2))
-        pos = self.coulomb_positive_n_m + self.stribeck_positive_n_m * shape + self.viscous_positive_n_m_s_per_rad * w
-        neg = self.coulomb_negative_n_m + self.stribeck_negative_n_m * shape - self.viscous_negative_n_m_s_per_rad * w
-        return self.gain * np.where(w > 0, pos, np.where(w < 0, -neg, 0.0))
+        return self._law(np.asarray(w, dtype=float), np.exp, np.where)
 
     def symbolic(self, w: Any) -> Any:
         """The same as :meth:`torque` on a CasADi expression (the sampled drive law)."""
         import casadi as ca
 
-        shape = ca.exp(-((w / self.stribeck_speed_rad_s) ** 2))
+        return self._law(w, ca.exp, ca.if_else)
+
+    def _law(self, w: Any, exp: Any, select: Any) -> Any:
+        """The curve with the array library's ``exp`` and ``select(condition, a, b)``."""
+        shape = exp(-((w / self.stribeck_speed_rad_s) ** 2))
         pos = self.coulomb_positive_n_m + self.stribeck_positive_n_m * shape + self.viscous_positive_n_m_s_per_rad * w
         neg = self.coulomb_negative_n_m + self.stribeck_negative_n_m * shape - self.viscous_negative_n_m_s_per_rad * w
-        return self.gain * ca.if_else(w > 0, pos, ca.if_else(w < 0, -neg, 0.0))
+        return self.gain * select(w > 0, pos, select(w < 0, -neg, 0.0))
 
     def table(self, speeds_rad_s: Any) -> list[list[float]]:
         """``[[speed rad/s, torque N m], ...]`` for a drive that interpolates a table."""
