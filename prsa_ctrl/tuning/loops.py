@@ -231,15 +231,12 @@ class LoopModel:
         """Ms, Mt (true peaks, see :meth:`peaks`; pass its result as ``peaks`` to reuse it),
         gain and phase margins and crossover."""
         pk = self.peaks(gains) if peaks is None or "mt" not in peaks else peaks
-        m = margins_from_response(pk["omega"], pk["L"])
-        m = replace(m, ms=max(m.ms, pk["ms"]), mt=max(m.mt, pk["mt"]))
-        if self.response is None:
-            return m
-        # The crossings polished on the exact response (the grid's linear interpolation is off by
-        # up to ~1e-4 relative in the crossover frequency).
-        g = self.gvec(gains)
-        gm, pm, wc = _polished_margins(lambda wv: self.loop_response(g, wv), pk["omega"], pk["L"])
-        return replace(m, gm_db=gm, pm_deg=pm, wc_rad_s=wc)
+        exact = None
+        if self.response is not None:  # the crossings located on the exact response
+            g = self.gvec(gains)
+            exact = lambda wv: self.loop_response(g, wv)  # noqa: E731
+        m = margins_from_response(pk["omega"], pk["L"], response=exact)
+        return replace(m, ms=max(m.ms, pk["ms"]), mt=max(m.mt, pk["mt"]))
 
     # ---- time domain ---------------------------------------------------------------------
 
@@ -556,44 +553,6 @@ def _polished_peak(f, w: NDArray[np.float64], mag: NDArray[np.float64]) -> tuple
     if v.size and v[i] > top:
         return float(v[i]), float(math.exp(x[i]))
     return top, float(w[np.argmax(mag)])
-
-def _bisect(f, lo: NDArray, hi: NDArray, f_lo: NDArray, n: int = 60) -> NDArray:
-    """Roots of ``f`` (array in, array out) bracketed by ``[lo, hi]`` (``f_lo``: its values at
-    ``lo``), vectorised over the brackets: ``n`` bisections."""
-    lo, hi = lo.copy(), hi.copy()
-    for _ in range(n):
-        mid = 0.5 * (lo + hi)
-        same = np.sign(f(mid)) == np.sign(f_lo)
-        lo, hi = np.where(same, mid, lo), np.where(same, hi, mid)
-    return 0.5 * (lo + hi)
-
-def _polished_margins(f, w: NDArray[np.float64], L: NDArray[np.complex128]) -> tuple[float, float, float]:
-    """Gain margin (dB), phase margin (deg) and gain crossover (rad/s) of the loop ``f(omega)``
-    (exact ``L(j omega)``, vectorised), chosen as :func:`prsa_ctrl.sim.metrics.margins_from_response`
-    chooses them on the grid ``(w, L)`` (the smallest over all crossings), each crossing located
-    by bisection in log frequency between its grid neighbours (to ~1e-15 relative)."""
-    lm, phase = np.log(np.abs(L)), np.unwrap(np.angle(L))
-    x = np.log(w)
-    pm, wc = math.inf, math.nan
-    i = np.flatnonzero(np.sign(lm[:-1]) * np.sign(lm[1:]) < 0)
-    if i.size:
-        r = _bisect(lambda xs: np.log(np.abs(f(np.exp(xs)))), x[i], x[i + 1], lm[i])
-        ph = phase[i] + np.angle(f(np.exp(r)) / L[i])
-        mar = np.degrees(np.mod(ph + math.pi, 2 * math.pi))
-        mar = np.where(mar <= 180, mar, mar - 360)
-        j = int(np.argmin(np.abs(mar)))
-        pm, wc = float(mar[j]), float(math.exp(r[j]))
-    gm = math.inf
-    k = np.floor((phase + math.pi) / (2 * math.pi))
-    i = np.flatnonzero(np.diff(k) != 0)
-    if i.size:
-        target = np.maximum(k[i], k[i + 1]) * 2 * math.pi - math.pi
-        r = _bisect(lambda xs: phase[i] + np.angle(f(np.exp(xs)) / L[i]) - target, x[i], x[i + 1], phase[i] - target)
-        m = np.abs(f(np.exp(r)))
-        m = m[m > 0]
-        if m.size:
-            gm = float(np.min(-20 * np.log10(m)))
-    return gm, pm, wc
 
 def zoom_max(f, lo: NDArray, hi: NDArray, n: int = 41, passes: int = 7) -> tuple[NDArray, NDArray]:
     """Maxima of ``f`` (array in, array out) on the intervals ``[lo, hi]``, vectorised over the
