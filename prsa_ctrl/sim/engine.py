@@ -626,8 +626,9 @@ def _sample_law(built: Built, settings: SimSettings, meas: SpeedMeasurement, spl
     previous sample (one-sample computation delay, zero-order hold, plus optional ripple; with
     the plant's ``drive.command_delay_samples`` = n, the current loop receives it n samples
     later, through a line of n commands after the rest of the memory; the reported
-    ``torque_command`` is the controller's output, before that delay) and integrate the plant, split at a load event inside the sample when ``split``; then let the
-    measurement block predict with the applied command.
+    ``torque_command`` is the controller's output, before that delay) and integrate the plant,
+    split at a load event inside the sample when ``split``; then let the measurement block
+    predict with the applied command.
 
     With an ``outer`` block (a :class:`~prsa_ctrl.drive.measurement.PositionLoop`), the speed
     reference is not the setpoint column but what the block computes at the same instant from
