@@ -136,6 +136,16 @@ class FitResult:
         for a log whose command is the applied one (the toolkit's simulator logs it so); a drive
         that logs the computed command shows its one-sample computation delay, which the tuner
         already models, in ``T_d`` too (subtract ``sample_time_s``).
+    covariance : ndarray or None
+        Covariance of the fitted values (order of ``keys``), in the file units of the keys:
+        entry ``(i, j)`` in ``unit_i * unit_j`` (``parameters[k]["unit"]``; e.g. kg m^2 times
+        Hz). It is the one the 95 % intervals come from (``value +/- 1.96 sqrt(C_ii)``), the
+        time-domain fit's HAC sandwich or the FRF fit's classic one; along directions the data
+        do not inform (:func:`info_split`) it has no part, and the intervals there are the
+        physical ranges instead. For a joint statement about several keys use
+        :meth:`joint_distance2` (the joint 95 % region is an ellipsoid, not the box of the
+        marginal intervals: six marginal 95 % intervals hold a true point jointly only about
+        74 % of the time). None for a result made without it.
     """
 
     plant: Plant
@@ -149,6 +159,51 @@ class FitResult:
     traces: dict = field(default_factory=dict, repr=False)
     delay: dict | None = None
     not_identified: dict = field(default_factory=dict)
+    covariance: NDArray[np.float64] | None = None
+
+    def joint_distance2(self, point: Mapping[str, float]) -> float:
+        """Squared Mahalanobis distance of ``point`` from the fitted values, with :attr:`covariance`.
+
+        Parameters
+        ----------
+        point : mapping
+            ``{key: value}`` in the keys' file units, for some or all of :attr:`keys` (the
+            marginal distribution of those keys is used).
+
+        Returns
+        -------
+        float
+            ``d^T C^-1 d`` with ``d`` the difference and ``C`` the covariance block of the
+            keys: ``point`` lies in the joint 95 % confidence region of those keys when this is at
+            most ``scipy.stats.chi2(len(point)).ppf(0.95)`` (12.59 for six keys).
+
+        Raises
+        ------
+        ValueError
+            ``point`` empty or naming a key not fitted, no covariance, or a covariance block the
+            data do not make positive definite (a key on an uninformed direction).
+        """
+        if self.covariance is None:
+            raise ValueError("joint_distance2: this FitResult has no covariance; expected a result of fit_plant or fit_frf")
+        names = list(point)
+        bad = [k for k in names if k not in self.keys]
+        if not names or bad:
+            raise ValueError(f"point keys {', '.join(bad) or '(none)'}; expected some of {', '.join(self.keys)}")
+        idx = [self.keys.index(k) for k in names]
+        c = np.asarray(self.covariance, float)[np.ix_(idx, idx)]
+        d = np.array([float(point[k]) - self.parameters[k]["value"] for k in names])
+        sd = np.sqrt(np.clip(np.diag(c), 0.0, None))
+        if not np.all(sd > 0):
+            raise ValueError(f"point keys {', '.join(names)}: the covariance has no spread for "
+                             f"{', '.join(k for k, s in zip(names, sd) if not s > 0)}; expected identified keys")
+        corr = c / np.outer(sd, sd)
+        try:
+            chol = np.linalg.cholesky(corr)
+        except np.linalg.LinAlgError:
+            raise ValueError(f"point keys {', '.join(names)}: their covariance is not positive definite (the data "
+                             "inform only a combination of them); expected identified keys") from None
+        y = np.linalg.solve(chol, d / sd)
+        return float(y @ y)
 
     @property
     def plant_keys(self) -> tuple[str, ...]:
@@ -163,8 +218,8 @@ class FitResult:
 
     def report(self) -> dict:
         """JSON-ready report (stable keys: ``parameters``, ``reflected_inertia_kg_m2``,
-        ``fit_percent``, ``warnings``, ``solver``, plus ``correlation`` and, when the delay was
-        fitted, ``delay``)."""
+        ``fit_percent``, ``warnings``, ``solver``, plus ``correlation``, ``covariance`` (keys,
+        units, matrix) when there is one and, when the delay was fitted, ``delay``)."""
         out = {
             "parameters": self.parameters,
             "reflected_inertia_kg_m2": self.reflected_inertia_kg_m2,
@@ -173,6 +228,10 @@ class FitResult:
             "solver": self.solver,
             "correlation": {"keys": list(self.keys), "matrix": np.round(self.correlation, 6).tolist()},
         }
+        if self.covariance is not None:
+            out["covariance"] = {"keys": list(self.keys), "units": [FITTABLE[k][0] for k in self.keys],
+                                 "note": "entry (i, j) in units[i] * units[j]",
+                                 "matrix": np.asarray(self.covariance, float).tolist()}
         if self.delay is not None:
             out["delay"] = self.delay
         return out

@@ -107,7 +107,7 @@ def with_command_delay(result: FitResult, shift: int, command_logged: str, how: 
                                **({"search": solver.pop("delay_search")} if "delay_search" in solver else {})}
     return FitResult(plant, result.parameters, result.reflected_inertia_kg_m2, result.correlation, result.keys,
                      result.fit_percent, warns, solver, result.traces, result.delay,
-                     result.not_identified)
+                     result.not_identified, result.covariance)
 
 
 def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, ts: float,
@@ -187,5 +187,6 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
                                             for s, r in sorted(fits.items())},
                               "decided": not close, "ratio_tolerance": DELAY_OBJECTIVE_RATIO}
     out = FitResult(res.plant, res.parameters, res.reflected_inertia_kg_m2, res.correlation, res.keys,
-                    res.fit_percent, warns, solver, res.traces, res.delay, res.not_identified)
+                    res.fit_percent, warns, solver, res.traces, res.delay, res.not_identified,
+                    res.covariance)
     return best, out

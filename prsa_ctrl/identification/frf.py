@@ -470,7 +470,7 @@ def fit_frf(
         "fidelity": fidelity,
         "covariance": "classic (residual variance x inverse Gauss-Newton matrix)",
     }
-    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay, reasons)
+    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay, reasons, cov)
 
 
 BW_KEY = "drive.current_loop_bandwidth_hz"

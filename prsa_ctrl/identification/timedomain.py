@@ -391,7 +391,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     }
     if written_pct is not None:
         solver["fit_percent_written"] = written_pct
-    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, None, reasons)
+    return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, None, reasons, cov)
 
 
 def _add_simulations(traces: dict, sims: dict) -> None:

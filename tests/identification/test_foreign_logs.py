@@ -142,17 +142,43 @@ def test_computed_with_too_short_a_delay_refused(base):
 @pytest.mark.slow
 def test_coverage_over_20_seeds(base):
     """The acceptance numbers: every key's truth inside its 95 % interval for >= 18 of 20 seeds,
-    the bandwidth within 10 % and the delay found in every seed."""
+    the bandwidth within 10 % and the delay found in every seed.
+
+    Jointly: the truth of all six keys inside the joint 95 % confidence region (the ellipsoid
+    ``FitResult.joint_distance2 <= chi2(6).ppf(0.95)``) for >= 18 of 20 seeds. The box of the six
+    marginal intervals is reported but not held to 95 %: with independent estimates it holds
+    the truth 0.95^6 = 74 % of the time. No bias: over the 20 seeds each key's mean z-score
+    (error over its standard error) lies within 3 / sqrt(20) of 0, and the mean squared
+    distance within 3 standard deviations of chi2(6)'s mean 6 (sd sqrt(12 / 20)).
+    Measured (2026-11-24): per key 20/18/18/18/18/19, box 13, ellipsoid 19, mean z -0.27..0.19,
+    mean distance 6.44."""
+    from scipy.stats import chi2
+
     ax = _axis(base, transport_samples=1)
-    inside = {k: 0 for k in _truth(base, ax)}
+    keys = list(_truth(base, ax))
+    inside = {k: 0 for k in keys}
+    box = ellipsoid = 0
+    zs, d2s = [], []
+    limit = chi2(len(keys)).ppf(0.95)
     for seed in range(20):
         res, truth = _fit(base, ax, seed)
         assert res.solver["command_delay"]["shift_samples"] == 1, seed
         assert abs(res.parameters[BW]["value"] / ax.bandwidth_hz - 1) < 0.10, seed
-        for k, v in truth.items():
-            lo, hi = res.parameters[k]["ci95"]
-            inside[k] += lo <= v <= hi
+        ins = {k: res.parameters[k]["ci95"][0] <= v <= res.parameters[k]["ci95"][1] for k, v in truth.items()}
+        for k in keys:
+            inside[k] += ins[k]
+        box += all(ins.values())
+        d2 = res.joint_distance2(truth)
+        ellipsoid += d2 <= limit
+        zs.append([_z(res, truth)[k] for k in keys])
+        d2s.append(d2)
+    mean_z = {k: round(float(m), 3) for k, m in zip(keys, np.mean(zs, axis=0))}
+    print(f"per key {inside}; joint box {box}/20; joint ellipsoid {ellipsoid}/20; mean z {mean_z}; "
+          f"mean distance^2 {np.mean(d2s):.3f}")
     assert all(c >= 18 for c in inside.values()), inside
+    assert ellipsoid >= 18, (ellipsoid, d2s)
+    assert all(abs(m) < 3 / math.sqrt(20) for m in mean_z.values()), mean_z
+    assert abs(np.mean(d2s) - len(keys)) < 3 * math.sqrt(2 * len(keys) / 20), d2s
 
 
 def test_cli_writes_the_found_delay(base, tmp_path, capsys):
