@@ -15,7 +15,10 @@
     columns (:data:`prsa_ctrl.identification.logformat.DEFAULT_CSV_FORMAT`), replayed open loop.
 
 Reached from :func:`prsa_ctrl.cli.fit.main` when ``--log-format`` is given or ``--validate`` names
-a ``.toml`` plant. Exit codes: 0 success, 2 bad input (one line naming the value, nothing
+a ``.toml`` plant, except for a fit in motor coordinates (:func:`motor_log_mode`: the log
+description says ``axis = "rotary"`` or ``--plant`` names a screw-driven plant): that one is the
+plant fit of :func:`prsa_ctrl.cli.fit.main` on the described logs (:func:`motor_records`), a log in
+load coordinates converted with the plant's lead. Exit codes: 0 success, 2 bad input (one line naming the value, nothing
 written), 3 the fit did not converge.
 """
 
@@ -31,7 +34,10 @@ from typing import Sequence
 
 from .common import Parser, UsageError
 
-__all__ = ["wants_axis_mode", "run"]
+__all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]
+
+#: Coordinates of every plant but a linear axis, as reports state them.
+MOTOR_COORDINATES = "motor (angle rad, torque N m)"
 
 
 def wants_axis_mode(argv: Sequence[str]) -> bool:
@@ -44,6 +50,71 @@ def wants_axis_mode(argv: Sequence[str]) -> bool:
         if a.startswith("--validate=") and a.lower().endswith(".toml"):
             return True
     return False
+
+
+def _flag_value(argv: Sequence[str], flag: str) -> str | None:
+    """The value of ``flag`` (``--flag V`` or ``--flag=V``; the last one, as argparse takes it)."""
+    found = None
+    for i, a in enumerate(argv):
+        if a == flag and i + 1 < len(argv):
+            found = argv[i + 1]
+        elif a.startswith(flag + "="):
+            found = a[len(flag) + 1:]
+    return found
+
+
+def motor_log_mode(argv: Sequence[str]) -> bool:
+    """True when described logs (``--log-format``) are to be fitted in motor coordinates: the
+    description says ``axis = "rotary"``, or ``--plant`` names a plant that is not a linear axis
+    (a ball, roller or inverted roller screw: the plant works in rad and N m). A description or
+    plant that cannot be read gives False (the linear-axis path then reports it, one line)."""
+    import tomllib
+    import warnings
+
+    from ..plant.plantfile import load_plant
+
+    fmt = _flag_value(argv, "--log-format")
+    if fmt is None or "--validate" in argv or any(a.startswith("--validate=") for a in argv):
+        return False
+    try:
+        if tomllib.loads(Path(fmt).read_text(encoding="utf-8")).get("axis", "linear") == "rotary":
+            return True
+        plant = _flag_value(argv, "--plant")
+        if plant is None:
+            return False
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return load_plant(plant).mechanism != "linear-axis"
+    except Exception:  # noqa: BLE001 -- any unreadable input: the linear-axis path names it
+        return False
+
+
+def motor_records(args, plant) -> tuple[list, list, str, dict]:
+    """The described logs of a motor-coordinate fit (``prsa-fit LOG... --log-format F --plant P``).
+
+    Returns ``(records, validate, command_logged, coordinates)``: the records in the plant's
+    motor coordinates (:func:`prsa_ctrl.identification.logformat.load_motor_record`), the command
+    convention (the description's ``[command] logged``; a ``--command-logged`` that disagrees is
+    refused) and, per log, the coordinates it was written in and how it was converted.
+    """
+    from ..identification.logformat import MOTOR_CONVENTION, load_log_format, load_motor_record
+
+    for flag, given in (("--columns", args.columns), ("--torque-constant", args.torque_constant),
+                        ("--load", args.load), ("--frf", args.frf)):
+        if given:
+            raise UsageError(f"{flag} with --log-format {args.log_format}; expected the log description to say "
+                             "which column holds what, in which unit")
+    fmt = load_log_format(args.log_format)
+    logged = MOTOR_CONVENTION[fmt.doc["command"].get("logged", "as-computed")]
+    if args.command_logged is not None and args.command_logged != logged:
+        raise UsageError(f"--command-logged {args.command_logged} with --log-format {args.log_format}, whose [command] "
+                         f"logged is {fmt.doc['command'].get('logged', 'as-computed (default)')!r}; expected one of them")
+    linear = fmt.doc.get("axis", "linear") == "linear"
+    how = (f"load (position m, force N), converted with the lead {plant.lead_per_rad:.9g} m/rad: angle = position / "
+           "lead, torque = force x lead" if linear else MOTOR_COORDINATES)
+    records = [load_motor_record(p, fmt, plant)[0] for p in args.data]
+    validate = [load_motor_record(p, fmt, plant)[0] for p in args.validate]
+    return records, validate, logged, {r.name: how for r in (*records, *validate)}
 
 
 def _fraction(text: str) -> float:

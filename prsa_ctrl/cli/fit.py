@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
+from .axis import MOTOR_COORDINATES
 from .common import EXIT_INTERRUPTED, Parser, UsageError, number
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
@@ -96,7 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--delay-samples", type=int, default=None, metavar="N", help="samples between a logged command and "
                    "the sample the current loop receives it from (default: found by the fit from time-domain records; "
                    "FRF only: the base plant's drive.command_delay_samples, plus 1 with --command-logged computed)")
-    p.add_argument("--command-logged", choices=("applied", "computed"), default="applied",
+    p.add_argument("--log-format", metavar="FORMAT.toml", help="log description (prsa_ctrl.identification.logformat): "
+                   "a log in motor (axis = \"rotary\") or load coordinates, the latter converted with the plant's lead")
+    p.add_argument("--command-logged", choices=("applied", "computed"), default=None,
                    help="how the log holds the command: as the controller applied it over the sample (default; "
                    "prsa-tune's simulator logs it so) or as computed at the sample, acting one sample later "
                    "(many drives log it so); the fitted drive.command_delay_samples is the delay found less this "
@@ -190,7 +193,7 @@ def _expected(base_doc: dict, plant, name: str, keys, description, unc: dict, un
         doc["description"] = description
     for k in keys:
         section, sub = k.split(".")
-        doc[section][sub] = {"value": plant.values[k], "source": plant.sources[k]}
+        doc.setdefault(section, {})[sub] = {"value": plant.values[k], "source": plant.sources[k]}  # a section the base left out (its defaults)
     old = doc.get("uncertainty", {})
     new = {k: v for k, v in old.items() if k not in unc_keys}
     new.update({k: unc[k] for k in unc_keys if k in unc})
@@ -214,9 +217,13 @@ def _fresh(base_doc: dict, plant, name: str, keys, description, unc: dict, unc_k
            "comments are not repeated here.", f"name = {_toml_string(doc['name'])}"]
     if "description" in doc:
         out.append(f"description = {_toml_string(doc['description'])}")
-    for section, table in doc.items():
-        if section in ("name", "description", "uncertainty"):
-            continue
+    sections = {k: v for k, v in doc.items() if k not in ("name", "description", "uncertainty")
+                and isinstance(v, dict) and all(isinstance(e, dict) for e in v.values())}
+    for key, v in doc.items():  # top-level entries (mechanism = "...", mounting = { value = ..., ... })
+        if key not in ("name", "description", "uncertainty") and key not in sections:
+            out.append(f"{key} = " + ("{ " + ", ".join(f"{f} = {_toml_value(x)}" for f, x in v.items()) + " }"
+                                      if isinstance(v, dict) else _toml_value(v)))
+    for section, table in sections.items():
         out += ["", f"[{section}]"]
         for key, entry in table.items():
             fields = ", ".join(f"{f} = {_toml_value(v)}" for f, v in entry.items())
@@ -350,12 +357,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     built-in plant only with ``--verbose``.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    from .axis import run as _axis_run, wants_axis_mode  # described logs, linear axes (issue 21)
+    from .axis import motor_log_mode, run as _axis_run, wants_axis_mode  # described logs (issue 21)
 
-    if wants_axis_mode(argv):
+    motor = motor_log_mode(argv)  # described logs fitted in motor coordinates (a screw-driven plant)
+    if wants_axis_mode(argv) and not motor:
         return _axis_run(argv)
     mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
-    if mat is not None:  # a MATLAB log has no fixed columns: only a log description says what it holds
+    if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
         print(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
               "--log-format FILE.toml (an example: examples/emps/log.toml)", file=sys.stderr)
         return 2
@@ -476,7 +484,8 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
         frf_load = args.frf_load if args.frf_load is not None else (args.load or 0.0)
         if args.frf:
             _check_frf_point(plant, args.frf_speed, frf_load, argv)
-        inputs = [*args.data, *args.validate, *args.frf] + ([base_path] if base_path else [])
+        inputs = [*args.data, *args.validate, *args.frf] + ([base_path] if base_path else []) + \
+            ([args.log_format] if args.log_format else [])
         outs = {"--out": args.out}
         if args.json:
             outs["--json"] = args.json
@@ -495,8 +504,15 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
             _probe_plots(args.plots, [f"{stem}.png" for stem in stems], inputs)
         columns = parse_columns(args.columns) if args.columns else None
         opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
-        records = [load_record(f, **opts) for f in args.data]
-        validate = [load_record(f, **opts) for f in args.validate]
+        coordinates = {}
+        if args.log_format:
+            from .axis import motor_records
+
+            records, validate, args.command_logged, coordinates = motor_records(args, plant)
+        else:
+            records = [load_record(f, **opts) for f in args.data]
+            validate = [load_record(f, **opts) for f in args.validate]
+            coordinates = {f: MOTOR_COORDINATES for f in (*args.data, *args.validate)}
         if args.validate and not args.data:
             raise UsageError("--validate without DATA.csv; expected time-domain records to fit first")
         frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
@@ -515,7 +531,7 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
         result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
                            segment_s=args.segment,
                            delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
-                           command_logged=args.command_logged, uncertainty="fit" if args.uncertainty_from_fit else "keep")
+                           command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep")
     except FitError as exc:
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
@@ -545,7 +561,8 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
     if args.json:
         from ..io.output import json_safe
 
-        files[args.json] = ("--json", json.dumps(json_safe(result.report()), indent=2) + "\n")
+        report = {**result.report(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": coordinates}}
+        files[args.json] = ("--json", json.dumps(json_safe(report), indent=2) + "\n")
     try:
         if args.plots is not None:
             plot_paths = _write_plots(result, args.plots, inputs, created)
@@ -580,6 +597,9 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
               f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
     for w in result.warnings:
         print(f"warning: {w}")
+    print(f"coordinates: {MOTOR_COORDINATES}")
+    for f, how in coordinates.items():
+        print(f"  {f}: logged in {how}")
     print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
     if args.plots is not None:
         print("plots: " + ", ".join(plot_paths))

@@ -3,6 +3,7 @@
 from .._lazy import lazy_exports
 
 _EXPORTS = {
+    "AXES": "logformat",
     "AxisFit": "axis",
     "AxisFitError": ".errors",
     "AxisLog": "logformat",
@@ -35,6 +36,7 @@ _EXPORTS = {
     "MAX_INTERVALS": "timedomain",
     "MAX_SAMPLES": "data",
     "MAX_SPEED_M_S": "logformat",
+    "MOTOR_CONVENTION": "logformat",
     "MECHANISM": "axis",
     "METRIC_SKIP_SAMPLES": "axis",
     "MIN_SAMPLES": "data",
@@ -89,8 +91,10 @@ _EXPORTS = {
     "load_axis_plant": "axis",
     "load_frf": "data",
     "load_log_format": "logformat",
+    "load_motor_record": "logformat",
     "load_record": "data",
     "measured_velocity": "axis",
+    "motor_record": "logformat",
     "parse_columns": "data",
     "reconstruct_command": "logformat",
     "record_from_arrays": "data",

@@ -45,6 +45,19 @@ gain, and which controller was running while the log was written. Example (the E
 Optional sections ``[speed]`` (measured speed: ``unit`` m/s | mm/s) and ``[load]`` (external
 force on the load: ``unit`` N | kN) follow the same pattern.
 
+Coordinates. ``axis = "linear"`` (the default) is a log in load coordinates: position in m (or
+mm, um), the command as a force on the load in N (or a unit with a gain in N per unit).
+``axis = "rotary"`` is a log in motor coordinates: ``[position]`` the motor (screw) angle in
+rad | deg | rev, ``[speed]`` in rad/s | rpm, ``[command]`` the torque command in ``N m`` (or
+A | V with ``gain`` in N m per unit), ``[load]`` the axial load on the nut in N | kN; such a log
+has no ``[controller]``, ``[reference]`` or ``[test_signal]`` (the motor-coordinate fit,
+:func:`prsa_ctrl.identification.timedomain.fit_plant`, runs open loop from the logged torque
+over short multiple-shooting segments). A screw-driven plant works in motor coordinates: a log
+in load coordinates is converted for it by :func:`motor_record` with the plant's lead ``a``
+(m of travel per rad of the screw): angle = position / a, speed = speed / a, torque command =
+force command x a (the force an ideal, lossless screw makes of the torque: the screw's losses
+are the plant's friction, not part of the coordinates), axial load unchanged.
+
 The controller, when described, is checked against the log before anything else: the command
 it computes from the logged position and reference (plus the test signal) must reproduce the
 logged command within ``check_tolerance`` (relative 2-norm error), and better than with the
@@ -81,10 +94,11 @@ import scipy.io
 from numpy.typing import NDArray
 
 from ..errors import LogFormatError
-from .data import MAX_SAMPLES, MIN_SAMPLES
+from .data import MAX_SAMPLES, MIN_SAMPLES, Record, record_from_arrays
 
 __all__ = ["LogFormatError", "LogFormat", "DEFAULT_CSV_FORMAT", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
-           "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES", "MAX_SPEED_M_S"]
+           "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES", "MAX_SPEED_M_S", "AXES", "motor_record",
+           "load_motor_record", "MOTOR_CONVENTION"]
 
 #: Controller structures understood.
 STRUCTURES = ("position-p/velocity-p", "position-p/velocity-pi")
@@ -105,6 +119,17 @@ _SPEED_UNITS = {"m/s": 1.0, "mm/s": 1e-3}
 _TIME_UNITS = {"s": 1.0, "ms": 1e-3}
 _FORCE_UNITS = {"N": 1.0, "kN": 1e3}
 _COMMAND_UNITS = ("V", "A", "N")
+#: Coordinates a log may be in: ``linear`` (load: m, N) and ``rotary`` (motor: rad, N m).
+AXES = ("linear", "rotary")
+#: ``[command] logged`` -> the motor-coordinate fit's ``command_logged``.
+MOTOR_CONVENTION = {"as-computed": "computed", "as-applied": "applied"}
+_ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0, "rev": 2.0 * math.pi}
+_ANGULAR_SPEED_UNITS = {"rad/s": 1.0, "rpm": math.pi / 30.0}
+_TORQUE_COMMAND_UNITS = ("N m", "A", "V")
+#: Sections a log in motor coordinates may have (section -> (required, allowed units)).
+_ROTARY_SIGNALS = {"time": (True, _TIME_UNITS), "position": (True, _ANGLE_UNITS),
+                   "command": (True, _TORQUE_COMMAND_UNITS), "speed": (False, _ANGULAR_SPEED_UNITS),
+                   "load": (False, _FORCE_UNITS)}
 _SIGNALS = {  # section -> (required, allowed units)
     "time": (True, _TIME_UNITS),
     "position": (True, _POSITION_UNITS),
@@ -294,10 +319,17 @@ def load_log_format(path: str | Path) -> LogFormat:
     if fmt is not None and fmt not in ("mat", "csv"):
         raise _err(name, f"format = {fmt!r}", "expected \"mat\" or \"csv\"")
     axis = doc.get("axis", "linear")
-    if axis != "linear":
-        raise _err(name, f"axis = {axis!r}", "expected \"linear\" (load coordinates m, N; rotary logs are not "
-                   "supported by --log-format yet)")
-    for sec, (required, units) in _SIGNALS.items():
+    if axis not in AXES:
+        raise _err(name, f"axis = {axis!r}", "expected \"linear\" (load coordinates m, N) or \"rotary\" (motor "
+                   "coordinates rad, N m)")
+    signals = _SIGNALS if axis == "linear" else _ROTARY_SIGNALS
+    if axis == "rotary":
+        extra = [k for k in ("controller", "reference", "test_signal") if k in doc]
+        if extra:
+            raise _err(name, f"[{extra[0]}] with axis = \"rotary\"", "expected none: a log in motor coordinates is "
+                       "fitted open loop from its logged torque command (describe the controller of a linear axis "
+                       "log, axis = \"linear\")")
+    for sec, (required, units) in signals.items():
         s = doc.get(sec)
         if s is None:
             if required:
@@ -313,10 +345,12 @@ def load_log_format(path: str | Path) -> LogFormat:
         unit = s.get("unit")
         allowed = units if units is not None else _COMMAND_UNITS
         if unit not in allowed:
-            raise _err(name, f"[{sec}] unit = {unit!r}", f"expected one of {', '.join(allowed)}")
+            raise _err(name, f"[{sec}] unit = {unit!r}", f"expected one of {', '.join(allowed)}"
+                       + (" (axis = \"rotary\": motor coordinates)" if axis == "rotary" else ""))
     cmd = doc["command"]
-    if cmd["unit"] != "N" and "gain" not in cmd:
-        raise _err(name, f"[command] unit = {cmd['unit']!r}", "needs gain (N per command unit: a number or a "
+    own = "N" if axis == "linear" else "N m"
+    if cmd["unit"] != own and "gain" not in cmd:
+        raise _err(name, f"[command] unit = {cmd['unit']!r}", f"needs gain ({own} per command unit: a number or a "
                    "variable name)")
     if cmd.get("logged", "as-computed") not in ("as-computed", "as-applied"):
         raise _err(name, f"[command] logged = {cmd['logged']!r}", "expected \"as-computed\" or \"as-applied\"")
@@ -485,6 +519,59 @@ def load_axis_log(path: str | Path, fmt: LogFormat) -> AxisLog:
         different lengths, non-finite values, a time base that disagrees with the controller's
         sample time, a controller that does not reproduce the logged command.
     """
+    if fmt.doc.get("axis", "linear") != "linear":
+        raise LogFormatError(f"{fmt.path}: axis = {fmt.doc['axis']!r}: a log in motor coordinates; expected "
+                             "axis = \"linear\" for a linear-axis plant (a motor-coordinate log fits a screw-driven "
+                             "plant: --plant NAME|PLANT.toml)")
+    name, doc, src, t, h, sig = _read(path, fmt)
+    pos_unit = _POSITION_UNITS[doc["position"]["unit"]]
+    q = sig("position") * pos_unit
+    v_peak = float(np.max(np.abs(np.diff(q)))) / h
+    if v_peak > MAX_SPEED_M_S:
+        raise LogFormatError(f"{name}: [position] {doc['position']['name']!r} (unit {doc['position']['unit']!r}): "
+                             f"moves {v_peak:.3g} m/s between two samples of {h:g} s; expected at most "
+                             f"{MAX_SPEED_M_S:g} m/s (check the position unit and the sample time)")
+    ref = sig("reference")
+    ref = None if ref is None else ref * _POSITION_UNITS[doc["reference"]["unit"]]
+    cmd_sec = doc["command"]
+    cmd = sig("command")
+    test = sig("test_signal")
+    speed = sig("speed")
+    speed = None if speed is None else speed * _SPEED_UNITS[doc["speed"]["unit"]]
+    load = sig("load")
+    load = None if load is None else load * _FORCE_UNITS[doc["load"]["unit"]]
+    sources: dict[str, str] = {}
+    if cmd_sec["unit"] == "N":
+        gain, sources["gain"] = 1.0, "command logged in N"
+    else:
+        gain, sources["gain"] = src.scalar("[command] gain", cmd_sec["gain"], fmt.path)
+    res = doc["position"].get("resolution")
+    controller = None
+    ctl_doc = doc.get("controller")
+    if ctl_doc:
+        vals = {}
+        for k in ("kp", "kv", "ki"):
+            if k in ctl_doc:
+                vals[k], sources[f"controller.{k}"] = src.scalar(f"[controller] {k}", ctl_doc[k], fmt.path)
+        controller = ControllerSpec(
+            structure=ctl_doc["structure"], kp=vals["kp"], kv=vals["kv"], ki=vals.get("ki", 0.0),
+            velocity_estimate=ctl_doc.get("velocity_estimate", "average2-difference"),
+            saturation=float(ctl_doc["saturation"]), sample_time_s=h,
+            command_delay_samples=int(ctl_doc.get("command_delay_samples", 0)),
+            check_tolerance=float(ctl_doc.get("check_tolerance", 0.03)), sources=dict(sources))
+    log = AxisLog(name=name, time_s=t - t[0], position_m=q, command=cmd, command_unit=cmd_sec["unit"],
+                  gain_n_per_unit=gain, sample_time_s=h, reference_m=ref, test_signal=test, speed_m_s=speed,
+                  load_n=load, controller=controller, resolution_m=None if res is None else float(res) * pos_unit,
+                  command_logged=cmd_sec.get("logged", "as-computed"), sources=sources)
+    if controller is not None:
+        _check_reproduction(log, fmt)
+    return log
+
+
+def _read(path: str | Path, fmt: LogFormat):
+    """The data file of a log: ``(name, doc, source, time_s, sample_time_s, sig)`` with the time
+    checked (sample count, increasing, evenly spaced at the controller's or the median interval)
+    and ``sig(section)`` reading a section's signal (None when absent or optional and missing)."""
     name = str(path)
     doc = fmt.doc
     kind = doc.get("format") or ("mat" if name.lower().endswith(".mat") else "csv")
@@ -515,47 +602,91 @@ def load_axis_log(path: str | Path, fmt: LogFormat) -> AxisLog:
             return None
         return src.signal(f"[{sec}] name", s["name"], n)
 
-    pos_unit = _POSITION_UNITS[doc["position"]["unit"]]
-    q = sig("position") * pos_unit
-    v_peak = float(np.max(np.abs(np.diff(q)))) / h
-    if v_peak > MAX_SPEED_M_S:
-        raise LogFormatError(f"{name}: [position] {doc['position']['name']!r} (unit {doc['position']['unit']!r}): "
-                             f"moves {v_peak:.3g} m/s between two samples of {h:g} s; expected at most "
-                             f"{MAX_SPEED_M_S:g} m/s (check the position unit and the sample time)")
-    ref = sig("reference")
-    ref = None if ref is None else ref * _POSITION_UNITS[doc["reference"]["unit"]]
+    return name, doc, src, t, h, sig
+
+
+def motor_record(log: AxisLog, plant) -> Record:
+    """A log in load coordinates as a record in the motor coordinates of a screw-driven ``plant``.
+
+    With the plant's lead ``a = plant.lead_per_rad`` (m of travel per rad of the screw): angle =
+    position / a (rad), speed = speed / a (rad/s), torque command = force command x a (N m: the
+    torque an ideal, lossless screw turns the logged force into; the screw's losses are the
+    plant's friction), axial load unchanged (N; 0 when the log has none). The time and the
+    convention stay the log's (:data:`MOTOR_CONVENTION`).
+
+    Parameters
+    ----------
+    log : AxisLog
+        A log in load coordinates (:func:`load_axis_log`).
+    plant : Plant
+        A plant in motor coordinates (any mechanism but ``linear-axis``).
+
+    Returns
+    -------
+    Record
+        Named as the log.
+
+    Raises
+    ------
+    ValueError
+        ``plant`` is a linear axis (it works in load coordinates: fit the log directly).
+    """
+    _check_motor_plant(plant)
+    a = float(plant.lead_per_rad)
+    return record_from_arrays(log.name, log.time_s, log.force_n * a, nut_angle_rad=log.position_m / a,
+                              nut_speed_rad_s=None if log.speed_m_s is None else log.speed_m_s / a,
+                              axial_load_n=0.0 if log.load_n is None else log.load_n)
+
+
+def _check_motor_plant(plant) -> None:
+    if plant.mechanism == "linear-axis":
+        raise ValueError(f"plant {plant.name!r} is a linear axis (load coordinates); expected a screw-driven plant "
+                         "for a motor-coordinate record (a linear axis fits the load-coordinate log directly)")
+
+
+def load_motor_record(path: str | Path, fmt: LogFormat, plant) -> tuple[Record, str]:
+    """Read a log in either coordinates as a record in ``plant``'s motor coordinates.
+
+    Parameters
+    ----------
+    path : str or Path
+        The data file.
+    fmt : LogFormat
+        Its description: ``axis = "rotary"`` (motor coordinates, read as they are) or
+        ``"linear"`` (load coordinates, :func:`load_axis_log` then :func:`motor_record`).
+    plant : Plant
+        A screw-driven plant (its lead converts a load-coordinate log).
+
+    Returns
+    -------
+    (Record, str)
+        The record (SI motor coordinates: rad, N m, N) and the log's command convention for
+        the fit (``"computed"`` or ``"applied"``, :data:`MOTOR_CONVENTION`).
+
+    Raises
+    ------
+    LogFormatError
+        The log disagrees with its description (one line naming the file and the key or column).
+    ValueError
+        ``plant`` is a linear axis.
+    """
+    logged = MOTOR_CONVENTION[fmt.doc["command"].get("logged", "as-computed")]
+    if fmt.doc.get("axis", "linear") == "linear":
+        return motor_record(load_axis_log(path, fmt), plant), logged
+    _check_motor_plant(plant)  # before any data is read
+    name, doc, src, t, h, sig = _read(path, fmt)
+    angle = sig("position") * _ANGLE_UNITS[doc["position"]["unit"]]
     cmd_sec = doc["command"]
-    cmd = sig("command")
-    test = sig("test_signal")
+    gain = 1.0 if cmd_sec["unit"] == "N m" else src.scalar("[command] gain", cmd_sec["gain"], fmt.path)[0]
     speed = sig("speed")
-    speed = None if speed is None else speed * _SPEED_UNITS[doc["speed"]["unit"]]
     load = sig("load")
-    load = None if load is None else load * _FORCE_UNITS[doc["load"]["unit"]]
-    sources: dict[str, str] = {}
-    if cmd_sec["unit"] == "N":
-        gain, sources["gain"] = 1.0, "command logged in N"
-    else:
-        gain, sources["gain"] = src.scalar("[command] gain", cmd_sec["gain"], fmt.path)
-    res = doc["position"].get("resolution")
-    controller = None
-    if ctl_doc:
-        vals = {}
-        for k in ("kp", "kv", "ki"):
-            if k in ctl_doc:
-                vals[k], sources[f"controller.{k}"] = src.scalar(f"[controller] {k}", ctl_doc[k], fmt.path)
-        controller = ControllerSpec(
-            structure=ctl_doc["structure"], kp=vals["kp"], kv=vals["kv"], ki=vals.get("ki", 0.0),
-            velocity_estimate=ctl_doc.get("velocity_estimate", "average2-difference"),
-            saturation=float(ctl_doc["saturation"]), sample_time_s=h,
-            command_delay_samples=int(ctl_doc.get("command_delay_samples", 0)),
-            check_tolerance=float(ctl_doc.get("check_tolerance", 0.03)), sources=dict(sources))
-    log = AxisLog(name=name, time_s=t - t[0], position_m=q, command=cmd, command_unit=cmd_sec["unit"],
-                  gain_n_per_unit=gain, sample_time_s=h, reference_m=ref, test_signal=test, speed_m_s=speed,
-                  load_n=load, controller=controller, resolution_m=None if res is None else float(res) * pos_unit,
-                  command_logged=cmd_sec.get("logged", "as-computed"), sources=sources)
-    if controller is not None:
-        _check_reproduction(log, fmt)
-    return log
+    try:
+        rec = record_from_arrays(name, t - t[0], sig("command") * gain, nut_angle_rad=angle,
+                                 nut_speed_rad_s=None if speed is None else speed * _ANGULAR_SPEED_UNITS[doc["speed"]["unit"]],
+                                 axial_load_n=0.0 if load is None else load * _FORCE_UNITS[doc["load"]["unit"]])
+    except ValueError as exc:
+        raise LogFormatError(f"{name}: {exc}") from None
+    return rec, logged
 
 
 def reconstruct_command(log: AxisLog, position_m: NDArray[np.float64] | None = None,
