@@ -396,6 +396,16 @@ def _write_outputs(run: Run, args, plant, scene, result: dict, inputs: Sequence[
     return plot_files
 
 
+def _coordinates(plant) -> str:
+    """The coordinates a plant's numbers are in, as the JSON report states them."""
+    from ..identification.axis import COORDINATES
+    from .axis import MOTOR_COORDINATES
+
+    if plant.mechanism == "linear-axis":
+        return f"{COORDINATES}: read rad as m, rad/s as m/s, N m as N, N m s/rad as N s/m (1 m of travel per radian)"
+    return MOTOR_COORDINATES
+
+
 def _json_report(scene, plant, result: dict) -> dict:
     """The ``--json`` report of either kind of scene."""
     if isinstance(scene, MoveScene):
@@ -406,6 +416,7 @@ def _json_report(scene, plant, result: dict) -> dict:
         return json_safe(out)
     rep, robust_rep, mc = result["rep"], result["robust"], result["mc"]
     data = rep.as_dict()
+    data["coordinates"] = _coordinates(plant)
     data["timing_s"] = dict(rep.timing_s)
     _add_setpoint_weight(data, rep.scene)
     if robust_rep is not None:
