@@ -14,8 +14,10 @@ The fast test fits two seeds; the slow one 20 seeds: each key's truth inside its
 What the benchmark showed (bench.py ``_axis_log_4khz``): its generator's explicit sub-steps
 biased the mass (fixed there), and on its log of eight moves with one repeated speed profile the
 friction intervals of one direction miss at 2.5-4 standard errors, whichever the encoder grid's
-phase (measured with this generator on that move list: 12 of 12 phases); see the report of
-issue 21. With varied moves, as here, the intervals hold at the nominal rate.
+phase (measured with this generator on that move list: 12 of 12 phases): a bias from the
+encoder quantisation, which is not white while the axis holds one speed or rests, on a
+Coulomb/viscous pair that one speed profile separates only weakly. With varied moves, as here,
+the intervals hold at the nominal rate.
 """
 
 from __future__ import annotations
