@@ -1,6 +1,6 @@
 """Issue 25, the ideal PID ``kp + ki/s + kd s`` (``tune_pid(..., controller="pid", ideal=True)``),
-IE objective (max ki) under Ms (and Mt): the MIGO problem of Panagopoulos, Astrom and Hagglund
-(IEE Proc. CTA 149(1), 2002) without its extra constraints.
+IE objective (max ki) under Ms (and Mt), the design of Panagopoulos, Astrom and Hagglund's MIGO
+family (IEE Proc. CTA 149(1), 2002).
 
 No published ideal-PID case with its plant, bounds and printed gains could be found to
 reproduce (the search, and what came closest, is in docs/guides/generic-tuner.md). This file
