@@ -200,7 +200,7 @@ def symbolic_rhs(plant: Plant, keys: Sequence[str], fidelity: str):
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")
         sym = _SymbolicPlant(name=plant.name, values=values, sources=plant.sources, origin=plant.origin,
-                             mechanism=plant.mechanism)
+                             mechanism=plant.mechanism, defaulted=plant.defaulted)
     names = model_equations.plant_model(plant, fidelity).state_names
     x = ca.SX.sym("x", len(names))
     u = ca.SX.sym("u", 2)

@@ -60,6 +60,8 @@ _EXPORTS = {
     "state_derivative": "model",
     "steady_torque": "equilibrium",
     "stick_band_rad_s": "model",
+    "BREAKAWAY_KEY": "schema",
+    "drag_breakaway_excess": "model",
     "stribeck_coefficient": "model",
     "uncertainty_model": "uncertainty",
 }

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
-from .schema import (ALLOWED_KEYS, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
+from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
                      MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, NON_NEGATIVE_INTEGER, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
                      SCREW_DRIVEN, UNITS, keys_of)
 from .uncertainty import check_plant_uncertainty
@@ -106,6 +106,16 @@ def _check_consistency(v: Mapping[str, float], o: str) -> None:
         raise PlantFileError(
             f"{o}: friction.no_load_torque_n_m = {v['friction.no_load_torque_n_m']:g} N m is not below "
             f"drive.torque_limit_n_m = {t_lim:g} N m (the motor could not even turn the unloaded screw); check both units")
+    t_s0 = v.get(BREAKAWAY_KEY, v["friction.no_load_torque_n_m"])
+    if isinstance(t_s0, (int, float)) and t_s0 < v["friction.no_load_torque_n_m"]:
+        raise PlantFileError(
+            f"{o}: {BREAKAWAY_KEY} = {t_s0:g} N m is below friction.no_load_torque_n_m = "
+            f"{v['friction.no_load_torque_n_m']:g} N m; expected breakaway >= sliding drag (as friction.static >= "
+            "friction.dynamic; leave the key out for no breakaway excess)")
+    if isinstance(t_s0, (int, float)) and t_s0 >= t_lim:
+        raise PlantFileError(
+            f"{o}: {BREAKAWAY_KEY} = {t_s0:g} N m is not below drive.torque_limit_n_m = {t_lim:g} N m (the motor "
+            "could not break the unloaded screw loose); check both units")
     if v["sensor.torque_noise_n_m"] > TORQUE_NOISE_MAX_FRACTION * t_lim:
         raise PlantFileError(
             f"{o}: sensor.torque_noise_n_m = {v['sensor.torque_noise_n_m']:g} N m is more than "

@@ -48,6 +48,14 @@ FINITE = "finite"
 #: current-loop lag (the fit writes it so, see :mod:`prsa_ctrl.identification.common`).
 COMMAND_DELAY_KEY = "drive.command_delay_samples"
 
+#: The breakaway level ``T_s0`` (N m) of the load-independent drag ``T_0``
+#: (``friction.no_load_torque_n_m``): at rest the drag holds up to ``T_s0``; sliding, it is
+#: ``T_0 + (T_s0 - T_0) exp(-(v/v_s)^2)``, the Stribeck shape of the thread friction
+#: (:mod:`prsa_ctrl.plant.model`). Default: equal to ``T_0`` (no breakaway excess), so every
+#: plant without the key behaves as before, to the bit. At least ``T_0`` (checked, as
+#: ``friction.static >= friction.dynamic``).
+BREAKAWAY_KEY = "friction.no_load_breakaway_torque_n_m"
+
 #: Section -> key -> kind: the keys of the inverted roller screw (and the rotary core every
 #: mechanism maps onto, see :mod:`prsa_ctrl.plant.model`).
 SCHEMA: Mapping[str, Mapping[str, str]] = {
@@ -90,6 +98,7 @@ SCHEMA: Mapping[str, Mapping[str, str]] = {
         "creep_velocity_m_s": POSITIVE,
         "traction_preload_n": NON_NEGATIVE,
         "torque_offset_n_m": FINITE,
+        "no_load_breakaway_torque_n_m": NON_NEGATIVE,
     },
     "drive": {"torque_limit_n_m": POSITIVE, "current_loop_bandwidth_hz": POSITIVE,
               "command_delay_samples": NON_NEGATIVE_INTEGER},
@@ -145,6 +154,8 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
     "friction.traction_preload_n": (0.0, 1e7, "at most the rated load"),
     "friction.torque_offset_n_m": (-1e3, 1e3, "direction-dependent drag: half the difference of the Coulomb levels, "
                                    "well below the motor torque"),
+    "friction.no_load_breakaway_torque_n_m": (0.0, 1e3, "breakaway level of the seal and bearing drag, at least "
+                                              "friction.no_load_torque_n_m (checked), well below the motor torque"),
     "drive.torque_limit_n_m": (1e-3, 1e5, "servo and torque motors: 0.01 to ~10 kN m"),
     "drive.current_loop_bandwidth_hz": (10.0, 1e5, "servo drives 0.5 to 5 kHz"),
     "drive.command_delay_samples": (0, 20, "transport and current-loop dead time of servo drives: 0 to ~3 samples"),
@@ -378,6 +389,9 @@ DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]]
                                                         "friction.coulomb_positive_n and _negative_n)",
                                          "*": "default: symmetric drag (Coulomb level friction.no_load_torque_n_m in "
                                               "both directions)"}),
+    "friction.no_load_breakaway_torque_n_m": (lambda v, m: v["friction.no_load_torque_n_m"],
+                                              "default: no breakaway excess on the drag (equal to "
+                                              "friction.no_load_torque_n_m)"),
     "friction.creep_velocity_m_s": (1.0e-3, "default: lubricated rolling creep (the paper plant's 1 mm/s)"),
     "friction.traction_preload_n": (lambda v, m: 0.04 * v["screw.rated_load_n"],
                                     "default: 4 % of the rated load (the paper plant's 200 N at 5 kN)"),
