@@ -83,7 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fit", default=None, metavar="KEY,...", help="plant keys to fit (default: inertia, efficiency, "
                    "no-load torque, viscous, current-loop bandwidth; FRF only: inertia, current-loop bandwidth, with "
                    "--fidelity compliant also contact.stiffness_n_per_mm_e); drive.command_delay_s fits a continuous "
-                   "command delay from --frf data")
+                   "command delay from --frf data; friction.static, friction.stribeck_velocity_m_s and "
+                   "friction.no_load_breakaway_torque_n_m come from the records' steady low-speed plateaus "
+                   "(a low-speed staircase), given the time-domain fit of the other keys")
     p.add_argument("--validate", nargs="+", default=[], metavar="CSV", help="records not fitted; their fit %% is reported")
     p.add_argument("--columns", default=None, metavar="name=header,...", help="map other CSV headers to the standard names")
     p.add_argument("--torque-constant", type=_positive("--torque-constant"), metavar="N_M_PER_A",
@@ -566,6 +568,11 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
         print(line)
     if result.delay is not None:
         print(f"  ({result.delay['plant_file']})")
+    fmap = result.solver.get("friction_map")
+    if fmap is not None:
+        print(f"friction map: {len(fmap['plateaus'])} steady-speed plateau(s), {fmap.get('in_stribeck_region', 0)} below "
+              f"{fmap['criteria']['stribeck_region_speeds']:g} Stribeck speeds; Stribeck intervals "
+              f"{fmap.get('intervals', 'not computed (too few plateaus)')}")
     cd = result.solver.get("command_delay")
     if cd is not None:
         print(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as {cd['command_logged']}) "
