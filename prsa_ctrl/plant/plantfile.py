@@ -401,7 +401,15 @@ class Plant:
     mechanism_source: str = ""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "values", MappingProxyType(dict(self.values)))
+        values = dict(self.values)
+        if BREAKAWAY_KEY in values and BREAKAWAY_KEY not in self.defaulted and str(
+                self.sources.get(BREAKAWAY_KEY, "")) == _default_source(BREAKAWAY_KEY, ""):
+            # a plant rebuilt from another's values and sources (without ``defaulted``): the
+            # default breakaway level still follows the no-load torque
+            object.__setattr__(self, "defaulted", frozenset(self.defaulted) | {BREAKAWAY_KEY})
+            if isinstance(values["friction.no_load_torque_n_m"], (int, float)):
+                values[BREAKAWAY_KEY] = values["friction.no_load_torque_n_m"]
+        object.__setattr__(self, "values", MappingProxyType(values))
         object.__setattr__(self, "sources", MappingProxyType(dict(self.sources)))
         object.__setattr__(self, "defaulted", frozenset(self.defaulted))
         if self.mechanism is None:
