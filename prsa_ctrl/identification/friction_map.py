@@ -379,7 +379,9 @@ def fit_friction_map(plateaus: Sequence[Plateau], plant: Plant, keys: Sequence[s
     warns = []
     if math.isfinite(chi2) and chi2 > 4.0:
         warns.append(f"the friction law fits the plateaus with a reduced chi-square of {chi2:.3g} (expected ~1): the "
-                     "intervals are widened by its square root; look for drifting plateaus or a load the log misses")
+                     "intervals are widened by its square root; the friction keys held at the plant's values may be off "
+                     "(fit them too: friction.no_load_torque_n_m, friction.torque_offset_n_m, friction.efficiency, "
+                     "friction.viscous_n_m_s_per_rad), or plateaus drift, or the log misses a load")
     return FrictionMap(keys, values, cov, sens, held, lo, hi, null, ratios, plateaus, chi2, n_region, warns,
                        str(sol.message))
 
