@@ -119,6 +119,8 @@ _EXPORTS = {
     "fit_friction_map": "friction_map",
     "stribeck_stage": "friction_map",
     "stribeck_rounds": "friction_map",
+    "AXIS_CURVE": "friction_map",
+    "axis_friction_map": "friction_map",
     "motor_torque": "common",
 }
 

@@ -72,7 +72,7 @@ from .data import Record
 __all__ = ["Plateau", "FrictionMap", "STRIBECK_KEYS", "LAW_KEYS", "PLATEAU_RTOL", "PLATEAU_ATOL_COUNTS", "SMOOTH_S",
            "SETTLE_FRACTION", "MIN_PLATEAU_S", "BATCHES", "MIN_BATCH_SAMPLES", "MAX_PLATEAUS", "MAX_NFEV",
            "STRIBECK_REGION", "SE_FLOOR_FRACTION", "find_plateaus", "plateau_torque", "fit_friction_map",
-           "stribeck_stage", "stribeck_rounds"]
+           "stribeck_stage", "stribeck_rounds", "AXIS_CURVE", "axis_friction_map"]
 
 #: The Stribeck keys: fitted on plateaus (this module), never by the time-domain fit.
 STRIBECK_KEYS = ("friction.static", "friction.stribeck_velocity_m_s", BREAKAWAY_KEY)
@@ -303,6 +303,27 @@ def _jacobian(fun, x: NDArray[np.float64], steps: NDArray[np.float64]) -> NDArra
     return np.column_stack(cols) if cols else np.zeros((len(fun(x)), 0))
 
 
+def _wls(resid, x0, lo, hi, scale):
+    """Bounded weighted least squares in scaled units (``resid(s)``: weighted residuals, ``s`` =
+    value / ``scale``): the solution, the reduced chi-square, the Jacobian, its column norms, the
+    rank-revealing split (:func:`info_split`) and the covariance (file units, widened by the
+    reduced chi-square when above 1)."""
+    sol = least_squares(resid, x0, bounds=(lo / scale, hi / scale), x_scale=1.0, method="trf", max_nfev=MAX_NFEV,
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    s_hat = sol.x
+    r = resid(s_hat)
+    dof = len(r) - len(s_hat)
+    chi2 = float(r @ r / dof) if dof > 0 else math.nan
+    j_s = _jacobian(resid, s_hat, np.full(len(s_hat), 1e-6))
+    norms = np.linalg.norm(j_s, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    a_inv, null_n, ratios = info_split(j_s / norms)
+    cov_s = a_inv / np.outer(norms, norms)
+    if math.isfinite(chi2) and chi2 > 1.0:
+        cov_s = cov_s * chi2
+    return sol, s_hat, chi2, j_s, norms, a_inv, null_n, ratios, cov_s * np.outer(scale, scale)
+
+
 def fit_friction_map(plateaus: Sequence[Plateau], plant: Plant, keys: Sequence[str] = STRIBECK_KEYS, *,
                      held_covariance: NDArray[np.float64] | None = None) -> FrictionMap:
     """Weighted least squares of the friction law on ``plateaus`` (module docstring).
@@ -346,20 +367,7 @@ def fit_friction_map(plateaus: Sequence[Plateau], plant: Plant, keys: Sequence[s
         return (plateau_torque(vals, plant, w, f_abs) - y) / se
 
     h0 = np.array([plant.values[k] for k in held])
-    sol = least_squares(lambda s: resid_all(s, h0), x0, bounds=(lo / scale, hi / scale), x_scale=1.0,
-                        method="trf", max_nfev=MAX_NFEV, xtol=1e-12, ftol=1e-12, gtol=1e-12)
-    s_hat = sol.x
-    r = resid_all(s_hat, h0)
-    dof = len(y) - len(keys)
-    chi2 = float(r @ r / dof) if dof > 0 else math.nan
-    j_s = _jacobian(lambda s: resid_all(s, h0), s_hat, np.full(len(keys), 1e-6))
-    norms = np.linalg.norm(j_s, axis=0)
-    jn = j_s / np.where(norms > 0, norms, 1.0)
-    a_inv, null_n, ratios = info_split(jn)
-    cov_s = a_inv / np.outer(np.where(norms > 0, norms, 1.0), np.where(norms > 0, norms, 1.0))
-    if math.isfinite(chi2) and chi2 > 1.0:
-        cov_s = cov_s * chi2
-    cov = cov_s * np.outer(scale, scale)
+    sol, s_hat, chi2, j_s, norms, a_inv, null_n, ratios, cov = _wls(lambda s: resid_all(s, h0), x0, lo, hi, scale)
     sens = np.zeros((len(keys), len(held)))
     if held:
         h_steps = np.array([max(abs(h), 1e-9) * 1e-6 for h in h0])
@@ -371,7 +379,7 @@ def fit_friction_map(plateaus: Sequence[Plateau], plant: Plant, keys: Sequence[s
                 raise ValueError(f"held_covariance of shape {hc.shape}; expected {(len(held), len(held))} "
                                  f"(the held keys {', '.join(held)})")
             cov = cov + sens @ hc @ sens.T
-    null = null_n / np.where(norms > 0, norms, 1.0)[:, None] * scale[:, None]
+    null = null_n / norms[:, None] * scale[:, None]
     values = s_hat * scale
     vs_hat = dict(zip(keys, values)).get("friction.stribeck_velocity_m_s", plant.values["friction.stribeck_velocity_m_s"])
     region = STRIBECK_REGION * vs_hat / plant.lead_per_rad
@@ -562,4 +570,110 @@ def stribeck_rounds(fit_rest, records: Sequence[Record], base: Plant, keys: Sequ
         out = stribeck_stage(res2, records, base, keys, keep_unidentified=keep_unidentified, uncertainty=uncertainty)
         rounds = 2
     out.solver["friction_map"]["rounds"] = rounds
+    return out
+
+
+# --- a linear axis in load coordinates (the EMPS case) ---------------------------------------------
+
+#: Parameters of the load-side friction curve (:func:`axis_friction_map`), unit.
+AXIS_CURVE = {"coulomb_positive_n": "N", "coulomb_negative_n": "N", "viscous_positive_n_s_per_m": "N s/m",
+              "viscous_negative_n_s_per_m": "N s/m", "stribeck_excess_n": "N", "stribeck_velocity_m_s": "m/s"}
+
+
+def _axis_curve(p: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Friction force (N) at speed ``v`` (m/s): ``Fc+ + Fs g + Fv+ v`` moving in +x, ``-(Fc- + Fs g)
+    + Fv- v`` in -x, ``g = exp(-(v/v_s)^2)``; ``p`` in :data:`AXIS_CURVE` order."""
+    fcp, fcn, fvp, fvn, fs, vs = p
+    g = np.exp(-((v / vs) ** 2))
+    return np.where(v > 0, fcp + fs * g + fvp * v, -(fcn + fs * g) + fvn * v)
+
+
+def axis_friction_map(name: str, time_s, position_m, force_n, plant: Plant) -> dict:
+    """The friction curve of a linear axis (load coordinates: m, N) from the steady-speed plateaus
+    of one record, for a report (the replay model of the axis stays Coulomb + viscous).
+
+    Plateaus as :func:`find_plateaus` (``plant``: the axis as a :class:`Plant`, its mass, encoder
+    resolution and current loop; the force through that loop); the curve of :data:`AXIS_CURVE`
+    by weighted least squares, 95 % intervals (the covariance widened by the reduced chi-square
+    when above 1), identifiability as :func:`fit_friction_map` plus the Stribeck data rule. When
+    the Stribeck terms are not identified, the Coulomb and viscous terms are refitted without
+    them and reported with their intervals.
+
+    Returns
+    -------
+    dict
+        ``parameters`` (``{name: {"value", "ci95", "unit", "identified", ...}}``), ``plateaus``,
+        ``chi2_reduced``, ``stribeck`` (identified or why not), ``note``, ``criteria``.
+    """
+    rec = Record(name, np.asarray(time_s, float), np.asarray(force_n, float), np.asarray(position_m, float), None,
+                 np.zeros(len(time_s)))
+    plateaus = find_plateaus(rec, plant)
+    out = {"note": "friction force per direction from the log's steady-speed plateaus (mean force less the "
+                   "inertia's share over each plateau); a report only: the replay model stays Coulomb + viscous",
+           "plateaus": [p.as_dict() for p in plateaus],
+           "criteria": {"speed_rtol": PLATEAU_RTOL, "smoothing_s": SMOOTH_S, "settle_fraction_dropped": SETTLE_FRACTION,
+                        "min_plateau_s": MIN_PLATEAU_S, "batches": BATCHES, "stribeck_region_speeds": STRIBECK_REGION}}
+    v = np.array([p.speed_rad_s for p in plateaus])
+    y = np.array([p.friction_n_m for p in plateaus])
+    se = np.array([p.se_n_m for p in plateaus])
+    if np.sum(v > 0) < 2 or np.sum(v < 0) < 2:
+        out["stribeck"] = "not identified"
+        out["error"] = (f"{int(np.sum(v > 0))} plateau(s) moving in +x and {int(np.sum(v < 0))} in -x; expected at "
+                        "least two at different speeds in each direction")
+        return out
+    f_lim = plant.torque_limit
+    vmax = float(np.max(np.abs(v)))
+    lo = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1e-7])
+    hi = np.array([f_lim, f_lim, 10 * f_lim / vmax, 10 * f_lim / vmax, f_lim, 1.0])
+    scale = np.array([max(float(np.mean(np.abs(y))), 1e-9)] * 2 + [max(float(np.mean(np.abs(y))) / vmax, 1e-9)] * 2
+                     + [max(float(np.mean(np.abs(y))), 1e-9), float(np.min(np.abs(v)))])
+    x0 = np.array([0.5, 0.5, 0.5, 0.5, 0.1, 1.0])
+
+    def fit(free):
+        def resid(s):
+            p = np.where(free, 0.0, 0.0)
+            p[free] = s * scale[free]
+            if not free[4]:
+                p[5] = 1.0
+            return (_axis_curve(p, v) - y) / se
+        return _wls(resid, x0[free], lo[free], hi[free], scale[free])
+
+    names = list(AXIS_CURVE)
+    free = np.ones(6, bool)
+    sol, s_hat, chi2, _, _, _, null_n, ratios, cov = fit(free)
+    vals = s_hat * scale
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    region = int(np.sum(np.abs(v) < STRIBECK_REGION * vals[5]))
+    why = None
+    if null_n.shape[1]:
+        why = f"the plateaus inform only a combination of the Stribeck terms (singular value ratio {float(np.min(ratios)):.1e})"
+    elif region == 0 or region == len(v):
+        why = (f"{region} of {len(v)} plateaus below {STRIBECK_REGION:g} Stribeck speeds ({STRIBECK_REGION:g} x "
+               f"{vals[5]:.3g} m/s): the curve needs plateaus inside and outside that region")
+    elif any(_Z95 * sd[i] > 0.5 * abs(vals[i]) or vals[i] <= lo[i] * (1 + 1e-6) + 1e-15 for i in (4, 5)):
+        why = "the Stribeck excess or velocity has a 95 % interval wider than +/- 50 % of its value or ends at a bound"
+    if why is not None:
+        free = np.array([True, True, True, True, False, False])
+        sol, s_hat, chi2, _, _, _, null_n, ratios, cov_f = fit(free)
+        vals = np.zeros(6)
+        vals[free] = s_hat * scale[free]
+        sd = np.zeros(6)
+        sd[free] = np.sqrt(np.clip(np.diag(cov_f), 0, None))
+        out["stribeck"] = (f"not identified: {why}; record plateaus from ~0.3 to ~5 Stribeck speeds in both "
+                           "directions (a low-speed staircase below the slowest plateau here, "
+                           f"{float(np.min(np.abs(v))):.3g} m/s)")
+    else:
+        out["stribeck"] = "identified"
+    params = {}
+    for i, k in enumerate(names):
+        ident = bool(free[i]) and not (null_n.shape[1] and np.any(np.abs(null_n[list(np.flatnonzero(free)).index(i)])
+                                                                   > 1e-3))
+        entry = {"value": float(vals[i]), "ci95": [float(vals[i] - _Z95 * sd[i]), float(vals[i] + _Z95 * sd[i])],
+                 "unit": AXIS_CURVE[k], "identified": ident}
+        if not free[i]:
+            entry.update(ci95=[float(lo[i]), float(hi[i])], value=None)
+        params[k] = entry
+    out.update(parameters=params, chi2_reduced=chi2, solver=str(sol.message),
+               interval_method="weighted least squares on the plateau means (batch-means standard errors), "
+                               "covariance widened by the reduced chi-square when above 1")
     return out
