@@ -29,7 +29,7 @@ from ..errors import PlantFileError
 from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
 from ..plant.plantfile import Plant
-from ..plant.schema import KIND, PLAUSIBLE, SCHEMA
+from ..plant.schema import BREAKAWAY_KEY, KIND, PLAUSIBLE, SCHEMA
 from ..plant.uncertainty import plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
 
@@ -582,6 +582,13 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
                                  "the data cannot separate them, and their intervals hold only if the model is "
                                  "exact (record load changes, speed levels in both directions)")
     plant_keys = [k for k in keys if k not in PSEUDO_KEYS and not params[k]["kept_base"]]
+    t0_new = overrides.get("friction.no_load_torque_n_m")
+    if (t0_new is not None and BREAKAWAY_KEY in plant.values and BREAKAWAY_KEY not in overrides
+            and BREAKAWAY_KEY not in plant.defaulted and plant.values[BREAKAWAY_KEY] < t0_new):
+        overrides[BREAKAWAY_KEY] = t0_new  # a breakaway level below the sliding drag is no plant
+        warns.append(f"{BREAKAWAY_KEY} = {plant.values[BREAKAWAY_KEY]:.6g} N m of the base plant is below the fitted "
+                     f"friction.no_load_torque_n_m = {t0_new:.6g} N m: raised to it (no breakaway excess on the drag); "
+                     "fit it too (--fit ...,friction.no_load_breakaway_torque_n_m with a low-speed staircase)")
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")  # the base plant's own geometry notes were given when it loaded
         fitted = plant.with_params(overrides, name=f"{plant.name}-fit")

@@ -435,6 +435,9 @@ def _restored(plant: Plant, base: Plant, keys: Sequence[str]) -> Plant:
             defaulted.add(k)
             if k == BREAKAWAY_KEY:
                 values[k] = values["friction.no_load_torque_n_m"]
+        elif k == BREAKAWAY_KEY and values[k] < values["friction.no_load_torque_n_m"]:
+            values[k] = values["friction.no_load_torque_n_m"]  # the start at least the fitted drag
+            sources[k] = f"{base.sources[k]} (raised to the fitted friction.no_load_torque_n_m)"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the base plant's geometry notes were given when it loaded
         return Plant(name=plant.name, values=values, sources=sources, origin=plant.origin,

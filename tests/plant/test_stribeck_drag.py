@@ -87,3 +87,18 @@ def test_feedforward_carries_the_drag_excess(base):
     assert ff.stribeck_positive_n_m == pytest.approx(0.4 * (0.025 + c_f * 500.0), rel=1e-9)
     for w in (0.1, 0.4, -0.2):  # the curve is the plant's sliding friction less the load torque
         assert float(ff.torque(w)) == pytest.approx(steady_torque(p, w, 500.0) - a * 500.0, rel=1e-9)
+
+
+def test_a_fit_of_the_drag_above_a_given_breakaway_raises_it(base):
+    """A plant that gives the breakaway level, fitted to a higher no-load torque: the breakaway is
+    raised to it with a warning (no PlantFileError in the middle of a fit), and prsa-fit writes it."""
+    import numpy as np
+
+    from prsa_ctrl.identification.common import finish_fit
+
+    given = base.with_params({KEY: 0.021})
+    keys = ("friction.no_load_torque_n_m",)
+    warns = []
+    params, _, fitted, *_ = finish_fit(given, keys, np.array([0.03]), np.array([[1e-8]]), np.array([0.0]),
+                                       np.array([1.0]), "log", warns)
+    assert fitted.values[KEY] == 0.03 and any("raised to it" in w for w in warns)
