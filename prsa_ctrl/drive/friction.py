@@ -123,7 +123,8 @@ class FrictionFeedforward:
             # a drag offset T_o (friction.torque_offset_n_m, where the plant has the key) makes the
             # Coulomb levels T_0 + T_o forward and T_0 - T_o backward (in N m: a = 1 below)
             offset, normal = v.get("friction.torque_offset_n_m", 0.0) / a, abs(load_n) * (f_n + f_s)
-            vp = vn = v["friction.viscous_n_m_s_per_rad"]
+            b_o = v.get("friction.viscous_offset_n_m_s_per_rad", 0.0)  # direction-dependent viscous part
+            vp, vn = v["friction.viscous_n_m_s_per_rad"] + b_o, v["friction.viscous_n_m_s_per_rad"] - b_o
         slide = k * mu_d * normal + t0
         excess = k * (mu_s - mu_d) * normal
         from ..plant.model import drag_breakaway_excess  # CasADi: only on this path

@@ -54,6 +54,9 @@ FITTABLE: Mapping[str, tuple[str, str]] = {
     "friction.stribeck_velocity_m_s": ("m/s", "Stribeck velocity: screw speed over which the breakaway excess decays "
                                               "(from low-speed plateaus)"),
     "friction.no_load_breakaway_torque_n_m": ("N m", "breakaway level of the no-load drag (from low-speed plateaus)"),
+    "friction.viscous_offset_n_m_s_per_rad": ("N m s/rad", "direction-dependent viscous part: viscous + offset "
+                                                           "forward, viscous - offset backward (needs several speed "
+                                                           "levels in both directions)"),
     "drive.current_loop_bandwidth_hz": ("Hz", "current-loop bandwidth"),
     "drive.command_delay_s": ("s", "command delay (logged command to the moment it acts; not a plant-file key)"),
     "contact.stiffness_n_per_mm_e": ("N/mm^e", "IMPACT thread-contact stiffness (compliant fidelity: the axial mode)"),
@@ -231,6 +234,8 @@ def key_bounds(plant: Plant, key: str, ts: float) -> tuple[float, float, float]:
         return 0.0, 0.5 * t_max, max(v, 0.01 * t_max)
     if key == "friction.viscous_n_m_s_per_rad":
         return 0.0, 0.01 * t_max, max(v, 1e-5 * t_max)
+    if key == "friction.viscous_offset_n_m_s_per_rad":
+        return -0.01 * t_max, 0.01 * t_max, max(abs(v), 1e-5 * t_max)
     if key == "friction.torque_offset_n_m":
         return -0.5 * t_max, 0.5 * t_max, max(abs(v), 0.01 * t_max)
     if key == "friction.static":  # static >= dynamic
@@ -835,6 +840,7 @@ _REMEDY_KEY = {
     "friction.efficiency": "record with load changes (load steps) so that load-dependent friction shows",
     "friction.no_load_torque_n_m": "record speed reversals (a staircase through both directions)",
     "friction.viscous_n_m_s_per_rad": "record several speed levels",
+    "friction.viscous_offset_n_m_s_per_rad": "record several speed levels in both directions",
     "friction.static": "record a low-speed staircase (plateaus below ~3 Stribeck speeds, both directions, two loads)",
     "friction.stribeck_velocity_m_s": "record a low-speed staircase (plateaus from ~0.3 to ~5 Stribeck speeds)",
     "friction.no_load_breakaway_torque_n_m": "record a low-speed staircase at two loads or more (one load informs "

@@ -26,11 +26,11 @@ Plateaus (:func:`find_plateaus`)
 The law (:func:`plateau_torque`)
     The plant's sliding friction at steady speed (:mod:`prsa_ctrl.plant.model`), per plateau::
 
-        T_f(w, F) = sign(w) [c_F |F| (1 + (mu_s/mu_d - 1) g) + T_0 + (T_s0 - T_0) g] + b w + T_o
+        T_f(w, F) = sign(w) [c_F |F| (1 + (mu_s/mu_d - 1) g) + T_0 + (T_s0 - T_0) g] + b w + b_o |w| + T_o
         g = exp(-(a w / v_s)^2),   c_F = a (1/eta - 1)
 
     in the plant keys ``friction.efficiency`` (``eta``), ``no_load_torque_n_m`` (``T_0``),
-    ``viscous_n_m_s_per_rad`` (``b``), ``torque_offset_n_m`` (``T_o``), ``static`` (``mu_s``),
+    ``viscous_n_m_s_per_rad`` (``b``), ``viscous_offset_n_m_s_per_rad`` (``b_o``), ``torque_offset_n_m`` (``T_o``), ``static`` (``mu_s``),
     ``stribeck_velocity_m_s`` (``v_s``) and ``no_load_breakaway_torque_n_m`` (``T_s0``); the
     Gaussian exponent 2 is the model's. ``mu_s`` and ``T_s0`` are separated only by plateaus at
     two or more loads (one load informs their sum).
@@ -78,7 +78,7 @@ __all__ = ["Plateau", "FrictionMap", "STRIBECK_KEYS", "LAW_KEYS", "PLATEAU_RTOL"
 STRIBECK_KEYS = ("friction.static", "friction.stribeck_velocity_m_s", BREAKAWAY_KEY)
 #: Every key of the steady friction law (:func:`plateau_torque`).
 LAW_KEYS = ("friction.efficiency", "friction.no_load_torque_n_m", "friction.viscous_n_m_s_per_rad",
-            "friction.torque_offset_n_m") + STRIBECK_KEYS
+            "friction.torque_offset_n_m", "friction.viscous_offset_n_m_s_per_rad") + STRIBECK_KEYS
 #: A plateau's smoothed speed stays within this fraction of its speed...
 PLATEAU_RTOL = 0.05
 #: ... or within this many encoder counts over the smoothing window, whichever is larger.
@@ -280,7 +280,8 @@ def plateau_torque(values: Mapping[str, float], plant: Plant, speed_rad_s, abs_l
     ts0 = val(BREAKAWAY_KEY)
     g = np.exp(-((a * w / val("friction.stribeck_velocity_m_s")) ** 2))
     level = c_f * f_abs * (1.0 + (ratio - 1.0) * g) + t0 + (ts0 - t0) * g
-    return np.sign(w) * level + val("friction.viscous_n_m_s_per_rad") * w + val("friction.torque_offset_n_m")
+    return (np.sign(w) * level + val("friction.viscous_n_m_s_per_rad") * w + val("friction.torque_offset_n_m")
+            + val("friction.viscous_offset_n_m_s_per_rad") * np.abs(w))
 
 
 def _held_keys(plant: Plant, keys: Sequence[str]) -> tuple[str, ...]:

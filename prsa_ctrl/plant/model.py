@@ -126,7 +126,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 
 from .plantfile import Plant
-from .schema import BREAKAWAY_KEY
+from .schema import BREAKAWAY_KEY, VISCOUS_OFFSET_KEY
 
 __all__ = ["FIDELITIES", "PlantModel", "state_derivative", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
            "ParametricModel", "parametric_family", "register_member",
@@ -342,10 +342,16 @@ def _viscous(plant: Plant, omega: ca.SX) -> ca.SX:
     The offset ``friction.torque_offset_n_m`` (``T_o``) makes the Coulomb levels direction
     dependent, ``T_0 + T_o`` forward and ``T_0 - T_o`` backward (``T_0`` =
     ``friction.no_load_torque_n_m``), as the linear axis's ``(Fc+ - Fc-)/2``; like that one it
-    acts as a constant torque, also at rest (a gravity or sensor offset is the same term).
+    acts as a constant torque, also at rest (a gravity or sensor offset is the same term). The
+    viscous offset ``friction.viscous_offset_n_m_s_per_rad`` (``b_o``) makes the viscous
+    coefficient direction dependent: ``b + b_o`` forward, ``b - b_o`` backward (``b_o |w|`` added).
     """
     v = plant.values
-    return v["friction.viscous_n_m_s_per_rad"] * omega + v.get("friction.torque_offset_n_m", 0.0)
+    visc = v["friction.viscous_n_m_s_per_rad"] * omega + v.get("friction.torque_offset_n_m", 0.0)
+    b_o = v.get(VISCOUS_OFFSET_KEY, 0.0)
+    if isinstance(b_o, (int, float)) and b_o == 0.0:
+        return visc  # the default: the same expression as without the key, to the bit
+    return visc + b_o * ca.fabs(omega)
 
 
 def _smooth_step(p: ca.SX, depth: float) -> ca.SX:

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
-from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
+from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, VISCOUS_OFFSET_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
                      MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, NON_NEGATIVE_INTEGER, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
                      SCREW_DRIVEN, UNITS, keys_of)
 from .uncertainty import check_plant_uncertainty
@@ -112,6 +112,12 @@ def _check_consistency(v: Mapping[str, float], o: str) -> None:
             f"{o}: {BREAKAWAY_KEY} = {t_s0:g} N m is below friction.no_load_torque_n_m = "
             f"{v['friction.no_load_torque_n_m']:g} N m; expected breakaway >= sliding drag (as friction.static >= "
             "friction.dynamic; leave the key out for no breakaway excess)")
+    b, b_o = v.get("friction.viscous_n_m_s_per_rad", 0.0), v.get(VISCOUS_OFFSET_KEY, 0.0)
+    if isinstance(b_o, (int, float)) and isinstance(b, (int, float)) and abs(b_o) > b:
+        raise PlantFileError(
+            f"{o}: {VISCOUS_OFFSET_KEY} = {b_o:g} N m s/rad exceeds friction.viscous_n_m_s_per_rad = {b:g} N m s/rad "
+            "in magnitude; expected |offset| <= viscous (the coefficients b + offset forward and b - offset backward "
+            "are not negative)")
     if isinstance(t_s0, (int, float)) and t_s0 >= t_lim:
         raise PlantFileError(
             f"{o}: {BREAKAWAY_KEY} = {t_s0:g} N m is not below drive.torque_limit_n_m = {t_lim:g} N m (the motor "

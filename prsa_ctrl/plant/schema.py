@@ -28,7 +28,7 @@ import math
 from typing import Any, Callable, Mapping, Union
 
 __all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "NON_NEGATIVE_INTEGER",
-           "FINITE", "FRACTION", "COMMAND_DELAY_KEY",
+           "FINITE", "FRACTION", "COMMAND_DELAY_KEY", "BREAKAWAY_KEY", "VISCOUS_OFFSET_KEY",
            "MECHANISMS", "DEFAULT_MECHANISM", "SCREW_DRIVEN", "MOUNTINGS", "DEFAULT_MOUNTING", "SCREW_AXIS_SCHEMA",
            "LINEAR_AXIS_SCHEMA", "KIND", "REQUIRED", "DEFAULTS", "UNITS", "keys_of", "kind_of"]
 
@@ -55,6 +55,9 @@ COMMAND_DELAY_KEY = "drive.command_delay_samples"
 #: plant without the key behaves as before, to the bit. At least ``T_0`` (checked, as
 #: ``friction.static >= friction.dynamic``).
 BREAKAWAY_KEY = "friction.no_load_breakaway_torque_n_m"
+#: Direction-dependent viscous friction ``b_o`` (N m s/rad): the viscous coefficient is
+#: ``friction.viscous_n_m_s_per_rad + b_o`` forward and ``- b_o`` backward. Default 0.
+VISCOUS_OFFSET_KEY = "friction.viscous_offset_n_m_s_per_rad"
 
 #: Section -> key -> kind: the keys of the inverted roller screw (and the rotary core every
 #: mechanism maps onto, see :mod:`prsa_ctrl.plant.model`).
@@ -99,6 +102,7 @@ SCHEMA: Mapping[str, Mapping[str, str]] = {
         "traction_preload_n": NON_NEGATIVE,
         "torque_offset_n_m": FINITE,
         "no_load_breakaway_torque_n_m": NON_NEGATIVE,
+        "viscous_offset_n_m_s_per_rad": FINITE,
     },
     "drive": {"torque_limit_n_m": POSITIVE, "current_loop_bandwidth_hz": POSITIVE,
               "command_delay_samples": NON_NEGATIVE_INTEGER},
@@ -156,6 +160,9 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
                                    "well below the motor torque"),
     "friction.no_load_breakaway_torque_n_m": (0.0, 1e3, "breakaway level of the seal and bearing drag, at least "
                                               "friction.no_load_torque_n_m (checked), well below the motor torque"),
+    "friction.viscous_offset_n_m_s_per_rad": (-100.0, 100.0, "direction-dependent viscous friction: half the "
+                                              "difference of the viscous coefficients forward and backward, at most "
+                                              "friction.viscous_n_m_s_per_rad in magnitude (checked)"),
     "drive.torque_limit_n_m": (1e-3, 1e5, "servo and torque motors: 0.01 to ~10 kN m"),
     "drive.current_loop_bandwidth_hz": (10.0, 1e5, "servo drives 0.5 to 5 kHz"),
     "drive.command_delay_samples": (0, 20, "transport and current-loop dead time of servo drives: 0 to ~3 samples"),
@@ -392,6 +399,11 @@ DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]]
     "friction.no_load_breakaway_torque_n_m": (lambda v, m: v["friction.no_load_torque_n_m"],
                                               "default: no breakaway excess on the drag (equal to "
                                               "friction.no_load_torque_n_m)"),
+    "friction.viscous_offset_n_m_s_per_rad": (0.0, {"linear-axis": "derived: 0 (a linear axis carries its viscous "
+                                                                   "friction per direction in "
+                                                                   "friction.viscous_positive/negative_n_s_per_m)",
+                                                    "*": "default: symmetric viscous friction (the same coefficient "
+                                                         "in both directions)"}),
     "friction.creep_velocity_m_s": (1.0e-3, "default: lubricated rolling creep (the paper plant's 1 mm/s)"),
     "friction.traction_preload_n": (lambda v, m: 0.04 * v["screw.rated_load_n"],
                                     "default: 4 % of the rated load (the paper plant's 200 N at 5 kN)"),

@@ -259,3 +259,16 @@ def test_pipeline_coverage_20_seeds(base):
     for k in STRIBECK_KEYS:
         assert inside[k] >= 17, (k, inside[k])
     assert joint >= 16
+
+
+def test_viscous_offset_from_the_plateaus(base, low):
+    """The generator's viscous friction is symmetric: fitted with the Stribeck keys on the
+    plateaus, the viscous offset's 95 % interval holds 0 and the Stribeck truth stays inside."""
+    ax, plant, rec = low
+    keys = (*STRIBECK_KEYS, "friction.viscous_offset_n_m_s_per_rad")
+    fm = fit_friction_map(find_plateaus(rec, plant), plant, keys)
+    sd = np.sqrt(np.diag(fm.covariance))
+    truth = {**_stribeck_truth(base, ax), "friction.viscous_offset_n_m_s_per_rad": 0.0}
+    for k, v, s in zip(fm.keys, fm.values, sd):
+        assert abs(v - truth[k]) <= Z95 * s, (k, v, truth[k], s)
+    assert Z95 * sd[-1] < 0.1 * ax.viscous_n_m_s_per_rad  # informative: +-10 % of the viscous coefficient

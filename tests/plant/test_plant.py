@@ -41,8 +41,10 @@ def test_every_parameter_has_a_source(name):
     assert set(p.sources) == set(keys_of(p.mechanism))  # issue 21: the keys of the plant's mechanism
     for key, src in p.sources.items():
         if p.mechanism == "inverted-roller-screw" and key == "friction.no_load_breakaway_torque_n_m":
-            # the one key newer than these complete files: its default follows the no-load torque
+            # the keys newer than these complete files: documented defaults
             assert not p.given(key) and src.startswith("default: no breakaway excess"), key
+        elif p.mechanism == "inverted-roller-screw" and key == "friction.viscous_offset_n_m_s_per_rad":
+            assert not p.given(key) and src.startswith("default: symmetric viscous friction"), key
         elif name == "paper-iprsm":
             assert src.startswith(("paper", "assumption: ")), key
         elif p.mechanism == "inverted-roller-screw":

@@ -102,3 +102,20 @@ def test_a_fit_of_the_drag_above_a_given_breakaway_raises_it(base):
     params, _, fitted, *_ = finish_fit(given, keys, np.array([0.03]), np.array([[1e-8]]), np.array([0.0]),
                                        np.array([1.0]), "log", warns)
     assert fitted.values[KEY] == 0.03 and any("raised to it" in w for w in warns)
+
+
+def test_direction_dependent_viscous(base):
+    """friction.viscous_offset_n_m_s_per_rad: b + b_o forward, b - b_o backward, in the model's steady
+    torque and the feed-forward; 0 (default) is the old law; |b_o| <= b is checked."""
+    key = "friction.viscous_offset_n_m_s_per_rad"
+    assert base.values[key] == 0.0 and not base.given(key)
+    b, b_o = 4e-4, 1.5e-4
+    p = base.with_params({"friction.viscous_n_m_s_per_rad": b, key: b_o})
+    q = base.with_params({"friction.viscous_n_m_s_per_rad": b})
+    for w in (3.0, -3.0, 40.0, -40.0):
+        extra = (b + b_o if w > 0 else b - b_o) * w - b * w
+        assert steady_torque(p, w, 300.0) - steady_torque(q, w, 300.0) == pytest.approx(extra, rel=1e-9)
+    ff = FrictionFeedforward.from_plant(p, 0.0)
+    assert (ff.viscous_positive_n_m_s_per_rad, ff.viscous_negative_n_m_s_per_rad) == pytest.approx((b + b_o, b - b_o))
+    with pytest.raises(PlantFileError, match="exceeds friction.viscous_n_m_s_per_rad"):
+        base.with_params({"friction.viscous_n_m_s_per_rad": b, key: -5e-4})
