@@ -534,8 +534,9 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
     unc_keys = [k for k in result.plant_keys if result.plant.uncertainty.get(k) != base_unc.get(k)]
     # the command delay (found, given or written from a fitted FRF delay) is written when it is not the base's
     delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz",
-                              "friction.no_load_breakaway_torque_n_m")  # (raised to a fitted drag: finish_fit)
-                  if k not in result.plant_keys and result.plant.values[k] != plant.values[k]]
+                              "friction.no_load_breakaway_torque_n_m")  # (a given one raised to a fitted drag)
+                  if k not in result.plant_keys and result.plant.values[k] != plant.values[k]
+                  and not (k == "friction.no_load_breakaway_torque_n_m" and k in result.plant.defaulted)]
     text = plant_toml(base_text, result.plant, name, [*result.plant_keys, *delay_keys], description, unc_keys)
     import tomllib
 
