@@ -39,7 +39,13 @@ The fit (:func:`fit_friction_map`)
     Weighted nonlinear least squares (``scipy.optimize.least_squares``, trust-region reflective
     within each key's bounds, at most :data:`MAX_NFEV` evaluations) of the chosen keys, the
     others held at the plant's values. Covariance ``s^2 (J^T W J)^-1`` with ``s^2`` the reduced
-    chi-square when above 1 (a misfit widens the intervals, never narrows them). When the held
+    chi-square when above 1 (a misfit widens the intervals, never narrows them). Below 1 the
+    standard errors stand: batch means over-estimate the error of a plateau mean whose noise is
+    differenced (quantised speed through a PI loop) by up to sqrt(batches), so the intervals are
+    then conservative; scaling them down by the residuals was tried and is not safe: on the
+    foreign generator's staircase (reduced chi-square ~0.1) a common bias of 1e-4 relative in
+    the plateau torques (the drive's, not noise) then put the breakaway level 2.2 standard
+    errors off. When the held
     keys come with a covariance (the time-domain fit's), it is propagated: ``G C G^T`` added,
     ``G`` the sensitivity of the fitted keys to the held ones (the implicit-function theorem
     of the weighted normal equations), so the intervals are not conditional on them. The
