@@ -377,7 +377,8 @@ def fit_friction_map(plateaus: Sequence[Plateau], plant: Plant, keys: Sequence[s
     sol, s_hat, chi2, j_s, norms, a_inv, null_n, ratios, cov = _wls(lambda s: resid_all(s, h0), x0, lo, hi, scale)
     sens = np.zeros((len(keys), len(held)))
     if held:
-        h_steps = np.array([max(abs(h), 1e-9) * 1e-6 for h in h0])
+        # steps on each held key's fit scale (a key at 0, e.g. an offset, still gets a usable step)
+        h_steps = np.array([1e-6 * key_bounds(plant, k, plant.sample_time_s)[2] for k in held])
         j_h = _jacobian(lambda hv: resid_all(s_hat, hv), h0, h_steps)
         sens = -(a_inv / np.outer(norms, norms).clip(1e-300)) @ (j_s.T @ j_h) * scale[:, None]
         if held_covariance is not None:

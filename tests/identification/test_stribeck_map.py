@@ -272,3 +272,18 @@ def test_viscous_offset_from_the_plateaus(base, low):
     for k, v, s in zip(fm.keys, fm.values, sd):
         assert abs(v - truth[k]) <= Z95 * s, (k, v, truth[k], s)
     assert Z95 * sd[-1] < 0.1 * ax.viscous_n_m_s_per_rad  # informative: +-10 % of the viscous coefficient
+
+
+def test_held_sensitivity_against_a_refit(base, low):
+    """The propagated sensitivity d(Stribeck keys)/d(held keys) against refits with each held key
+    moved (first order: central differences of whole fits), including a held key at 0 (the viscous
+    offset), whose step must come from its scale."""
+    ax, plant, rec = low
+    plateaus = find_plateaus(rec, plant)
+    fm = fit_friction_map(plateaus, plant)
+    for k, dh in (("friction.no_load_torque_n_m", 2e-4), ("friction.viscous_offset_n_m_s_per_rad", 2e-6)):
+        j = fm.held.index(k)
+        up = fit_friction_map(plateaus, plant.with_params({k: plant.values[k] + dh}))
+        down = fit_friction_map(plateaus, plant.with_params({k: plant.values[k] - dh}))
+        fd = (up.values - down.values) / (2 * dh)
+        assert fd == pytest.approx(fm.held_sensitivity[:, j], rel=0.02, abs=1e-6 * np.abs(fd).max())
