@@ -22,6 +22,9 @@ _HC = [HealthCheck.function_scoped_fixture]
 
 def _set(doc: str, section: str, key: str, value: str) -> str:
     pat = re.compile(r"(\[" + section + r"\][^\[]*?^" + key + r" = (?:\{ value = )?)[^,\n]+", re.S | re.M)
+    if not pat.search(doc):  # a key newer than the file (issue 21: it defaults): added to its section
+        doc = re.sub(r"^\[" + section + r"\]\n", lambda m: m.group(0) + f'{key} = {{ value = 0, source = "test" }}\n',
+                     doc, count=1, flags=re.M)
     assert pat.search(doc), (section, key)
     return pat.sub(lambda m: m.group(1) + value, doc, count=1)
 

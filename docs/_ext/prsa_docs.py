@@ -206,6 +206,18 @@ def _unit(key: str) -> str:
     return next((u for suffix, u in _UNITS if key.endswith(suffix)), "-")
 
 
+def _defaulted_entry(key: str) -> dict:
+    """The paper plant's value and source of a key its file leaves out (the documented default)."""
+    import warnings
+
+    from prsa_ctrl.plant import load_plant
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plant = load_plant("paper-iprsm")
+    return {"value": plant.values[key], "source": plant.sources[key]}
+
+
 class PlantKeysDirective(ApiDirective):
     required_arguments = 0
 
@@ -221,7 +233,7 @@ class PlantKeysDirective(ApiDirective):
             for key, kind in keys.items():
                 full = f"{section}.{key}"
                 lo, hi, why = PLAUSIBLE[full]
-                entry = paper[section][key]
+                entry = paper[section].get(key) or _defaulted_entry(full)  # a key the file leaves out
                 lines += [f"   * - ``{full}``", f"     - {_unit(key)}", f"     - {kind}",
                           f"     - [{lo:g}, {hi:g}]: {_rst_text(why)}",
                           f"     - ``{entry['value']}``: {_rst_text(entry['source'])}"]

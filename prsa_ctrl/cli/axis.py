@@ -278,6 +278,12 @@ def _fit(args) -> int:
     result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)
     text = axis_plant_toml(result.plant)
     report = result.report()
+    from ..identification.friction_map import axis_friction_map  # issue 21: friction curve with Stribeck (report)
+
+    axis_plant = result.plant.to_plant()
+    report["friction_map"] = {Path(lg.name).name: axis_friction_map(lg.name, lg.time_s, lg.position_m,
+                                                                    lg.gain_n_per_unit * lg.command, axis_plant)
+                              for lg in fit_logs}
     if held:
         report["holdout"] = {"fraction": args.holdout, "note": "fitted on the first part of each log, replayed on the "
                              "rest (closed loop from the reference, starting from the logged position at rest)",
@@ -294,6 +300,12 @@ def _fit(args) -> int:
         _print_replay(r.report())
     for h in report.get("holdout", {}).get("replay", []):
         _print_replay(h, prefix="held out: ")
+    for log_name, fmap in report["friction_map"].items():
+        pars = fmap.get("parameters", {})
+        print(f"friction map of {log_name} (report; the replay model stays Coulomb + viscous): "
+              + ", ".join(f"{k} = {v['value']:.4g} {v['unit']} (95 % CI {v['ci95'][0]:.4g}..{v['ci95'][1]:.4g})"
+                          for k, v in pars.items() if v["value"] is not None)
+              + f"; Stribeck {fmap.get('stribeck')}" + (f"; {fmap['error']}" if "error" in fmap else ""))
     for w in result.warnings:
         print(f"warning: {w}")
     print(f"coordinates: {COORDINATES}")

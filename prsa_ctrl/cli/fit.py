@@ -84,7 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fit", default=None, metavar="KEY,...", help="plant keys to fit (default: inertia, efficiency, "
                    "no-load torque, viscous, current-loop bandwidth; FRF only: inertia, current-loop bandwidth, with "
                    "--fidelity compliant also contact.stiffness_n_per_mm_e); drive.command_delay_s fits a continuous "
-                   "command delay from --frf data")
+                   "command delay from --frf data; friction.static, friction.stribeck_velocity_m_s and "
+                   "friction.no_load_breakaway_torque_n_m come from the records' steady low-speed plateaus "
+                   "(a low-speed staircase), given the time-domain fit of the other keys")
     p.add_argument("--validate", nargs="+", default=[], metavar="CSV", help="records not fitted; their fit %% is reported")
     p.add_argument("--columns", default=None, metavar="name=header,...", help="map other CSV headers to the standard names")
     p.add_argument("--torque-constant", type=_positive("--torque-constant"), metavar="N_M_PER_A",
@@ -547,8 +549,10 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
     base_unc = dict(plant.uncertainty or {})
     unc_keys = [k for k in result.plant_keys if result.plant.uncertainty.get(k) != base_unc.get(k)]
     # the command delay (found, given or written from a fitted FRF delay) is written when it is not the base's
-    delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz")
-                  if k not in result.plant_keys and result.plant.values[k] != plant.values[k]]
+    delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz",
+                              "friction.no_load_breakaway_torque_n_m")  # (a given one raised to a fitted drag)
+                  if k not in result.plant_keys and result.plant.values[k] != plant.values[k]
+                  and not (k == "friction.no_load_breakaway_torque_n_m" and k in result.plant.defaulted)]
     text = plant_toml(base_text, result.plant, name, [*result.plant_keys, *delay_keys], description, unc_keys)
     import tomllib
 
@@ -583,6 +587,11 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
         print(line)
     if result.delay is not None:
         print(f"  ({result.delay['plant_file']})")
+    fmap = result.solver.get("friction_map")
+    if fmap is not None:
+        print(f"friction map: {len(fmap['plateaus'])} steady-speed plateau(s), {fmap.get('in_stribeck_region', 0)} below "
+              f"{fmap['criteria']['stribeck_region_speeds']:g} Stribeck speeds; Stribeck intervals "
+              f"{fmap.get('intervals', 'not computed (too few plateaus)')}")
     cd = result.solver.get("command_delay")
     if cd is not None:
         print(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as {cd['command_logged']}) "

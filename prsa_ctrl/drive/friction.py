@@ -15,7 +15,8 @@ moves, starts from rest, low inertia torque). Per direction (``+`` for ``w > 0``
 ``C`` Coulomb (sliding) level, ``S`` Stribeck excess at zero speed, ``w_s`` Stribeck speed,
 ``V`` viscous coefficient, ``g`` a gain (1 = the full model). :meth:`FrictionFeedforward.from_plant`
 fills them from the plant's friction keys at a given axial load (the thread friction of a
-screw grows with the load: ``C = k mu_d |F| (f_N + f_S) + T0``, ``S = k (mu_s - mu_d) |F| (f_N + f_S)``,
+screw grows with the load: ``C = k mu_d |F| (f_N + f_S) + T0``, ``S = k (mu_s - mu_d) |F| (f_N + f_S)
++ (T_s0 - T0)`` with the drag's breakaway level ``T_s0`` (``friction.no_load_breakaway_torque_n_m``),
 ``w_s = v_s / a``, ``V = c_v``, plus and minus a drag offset ``friction.torque_offset_n_m``
 where the plant has one; a ``linear-axis`` plant has the fitted Coulomb and viscous
 coefficients per direction). It equals the plant's sliding friction (prsa_ctrl.plant.model,
@@ -122,9 +123,15 @@ class FrictionFeedforward:
             # a drag offset T_o (friction.torque_offset_n_m, where the plant has the key) makes the
             # Coulomb levels T_0 + T_o forward and T_0 - T_o backward (in N m: a = 1 below)
             offset, normal = v.get("friction.torque_offset_n_m", 0.0) / a, abs(load_n) * (f_n + f_s)
-            vp = vn = v["friction.viscous_n_m_s_per_rad"]
+            b_o = v.get("friction.viscous_offset_n_m_s_per_rad", 0.0)  # direction-dependent viscous part
+            vp, vn = v["friction.viscous_n_m_s_per_rad"] + b_o, v["friction.viscous_n_m_s_per_rad"] - b_o
         slide = k * mu_d * normal + t0
         excess = k * (mu_s - mu_d) * normal
+        from ..plant.model import drag_breakaway_excess  # CasADi: only on this path
+
+        drag_excess = drag_breakaway_excess(plant)  # the no-load drag's breakaway excess T_s0 - T_0
+        if drag_excess is not None:
+            excess = excess + drag_excess
         return cls(coulomb_positive_n_m=slide + offset * a, coulomb_negative_n_m=slide - offset * a,
                    stribeck_positive_n_m=max(excess, 0.0), stribeck_negative_n_m=max(excess, 0.0),
                    stribeck_speed_rad_s=v["friction.stribeck_velocity_m_s"] / a,

@@ -1,4 +1,4 @@
-"""Calibration: measured data and log formats, time- and frequency-domain fits (what they share: common), the linear-axis fit. Their figures: :mod:`prsa_ctrl.plots.fit`."""
+"""Calibration: measured data and log formats, time- and frequency-domain fits (what they share: common), the friction curve from steady-speed plateaus (friction_map), the linear-axis fit. Their figures: :mod:`prsa_ctrl.plots.fit`."""
 
 from .._lazy import lazy_exports
 
@@ -103,6 +103,29 @@ _EXPORTS = {
     "simulate_axis": "axis",
     "symbolic_rhs": "common",
     "unit_text": "common",
+    "Plateau": "friction_map",
+    "FrictionMap": "friction_map",
+    "STRIBECK_KEYS": "friction_map",
+    "LAW_KEYS": "friction_map",
+    "PLATEAU_RTOL": "friction_map",
+    "PLATEAU_ATOL_COUNTS": "friction_map",
+    "SMOOTH_S": "friction_map",
+    "SETTLE_FRACTION": "friction_map",
+    "MIN_PLATEAU_S": "friction_map",
+    "BATCHES": "friction_map",
+    "MIN_BATCH_SAMPLES": "friction_map",
+    "MAX_PLATEAUS": "friction_map",
+    "MAX_NFEV": "friction_map",
+    "STRIBECK_REGION": "friction_map",
+    "SE_FLOOR_FRACTION": "friction_map",
+    "find_plateaus": "friction_map",
+    "plateau_torque": "friction_map",
+    "fit_friction_map": "friction_map",
+    "stribeck_stage": "friction_map",
+    "stribeck_rounds": "friction_map",
+    "AXIS_CURVE": "friction_map",
+    "axis_friction_map": "friction_map",
+    "motor_torque": "common",
 }
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

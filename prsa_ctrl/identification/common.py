@@ -29,14 +29,14 @@ from ..errors import PlantFileError
 from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
 from ..plant.plantfile import Plant
-from ..plant.schema import KIND, PLAUSIBLE, SCHEMA
+from ..plant.schema import BREAKAWAY_KEY, KIND, PLAUSIBLE, SCHEMA
 from ..plant.uncertainty import plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
 
 __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", "DEFAULT_KEYS", "FRF_KEYS",
            "FRF_KEYS_COMPLIANT", "RANK_RTOL", "NULL_LOADING", "UNCERTAINTY_MODES", "SAMPLE_TIME_RTOL",
            "UNIT_SLIP_FACTOR", "UNIT_PLANT_FACTOR", "FRF_SPEED_MAX_RAD_S", "FRF_LOAD_MAX_RATED", "TORQUE_OVER_LIMIT",
-           "symbolic_rhs", "key_bounds", "check_keys", "inertia_key", "default_keys", "default_min_speed", "frf_operating_point_error",
+           "symbolic_rhs", "key_bounds", "motor_torque", "check_keys", "inertia_key", "default_keys", "default_min_speed", "frf_operating_point_error",
            "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`key_bounds`).
@@ -49,6 +49,14 @@ FITTABLE: Mapping[str, tuple[str, str]] = {
     "friction.viscous_n_m_s_per_rad": ("N m s/rad", "viscous coefficient"),
     "friction.torque_offset_n_m": ("N m", "drag offset: Coulomb levels no-load + offset forward, no-load - offset "
                                           "backward (needs data at speed in both directions)"),
+    "friction.static": ("-", "static (breakaway) thread friction coefficient of the Stribeck curve (from "
+                             "steady-speed plateaus below a few Stribeck speeds: prsa_ctrl.identification.friction_map)"),
+    "friction.stribeck_velocity_m_s": ("m/s", "Stribeck velocity: screw speed over which the breakaway excess decays "
+                                              "(from low-speed plateaus)"),
+    "friction.no_load_breakaway_torque_n_m": ("N m", "breakaway level of the no-load drag (from low-speed plateaus)"),
+    "friction.viscous_offset_n_m_s_per_rad": ("N m s/rad", "direction-dependent viscous part: viscous + offset "
+                                                           "forward, viscous - offset backward (needs several speed "
+                                                           "levels in both directions)"),
     "drive.current_loop_bandwidth_hz": ("Hz", "current-loop bandwidth"),
     "drive.command_delay_s": ("s", "command delay (logged command to the moment it acts; not a plant-file key)"),
     "contact.stiffness_n_per_mm_e": ("N/mm^e", "IMPACT thread-contact stiffness (compliant fidelity: the axial mode)"),
@@ -259,7 +267,7 @@ def symbolic_rhs(plant: Plant, keys: Sequence[str], fidelity: str):
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")
         sym = _SymbolicPlant(name=plant.name, values=values, sources=plant.sources, origin=plant.origin,
-                             mechanism=plant.mechanism)
+                             mechanism=plant.mechanism, defaulted=plant.defaulted)
     names = model_equations.plant_model(plant, fidelity).state_names
     x = ca.SX.sym("x", len(names))
     u = ca.SX.sym("u", 2)
@@ -285,8 +293,16 @@ def key_bounds(plant: Plant, key: str, ts: float) -> tuple[float, float, float]:
         return 0.0, 0.5 * t_max, max(v, 0.01 * t_max)
     if key == "friction.viscous_n_m_s_per_rad":
         return 0.0, 0.01 * t_max, max(v, 1e-5 * t_max)
+    if key == "friction.viscous_offset_n_m_s_per_rad":
+        return -0.01 * t_max, 0.01 * t_max, max(abs(v), 1e-5 * t_max)
     if key == "friction.torque_offset_n_m":
         return -0.5 * t_max, 0.5 * t_max, max(abs(v), 0.01 * t_max)
+    if key == "friction.static":  # static >= dynamic
+        return plant.values["friction.dynamic"], 1.0, max(v, 0.05)
+    if key == "friction.stribeck_velocity_m_s":
+        return PLAUSIBLE[key][0], PLAUSIBLE[key][1], v
+    if key == "friction.no_load_breakaway_torque_n_m":  # at least the sliding drag
+        return plant.values["friction.no_load_torque_n_m"], 0.5 * t_max, max(v, 0.01 * t_max)
     if key == "drive.current_loop_bandwidth_hz":
         return 10.0, min(1e5, 10.0 / ts), v
     if key == "contact.stiffness_n_per_mm_e":  # the axial mode frequency goes with K^(1/(2e))
@@ -397,6 +413,12 @@ def _dedupe(items: list, earlier: Sequence = ()):
         where[key] = len(out)
         out.append(it)
     return (out, notes) if earlier else out
+
+
+def motor_torque(rec: Record, plant: Plant) -> NDArray[np.float64]:
+    """The motor torque of a record (N m, per sample): its command through the plant's first-order
+    current loop, clipped at the torque limit (the torque balance of the fit and of the plateaus)."""
+    return _motor_torque(rec, plant)
 
 
 def _motor_torque(rec: Record, plant: Plant, clip: bool = True) -> NDArray[np.float64]:
@@ -624,6 +646,13 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
                                  "the data cannot separate them, and their intervals hold only if the model is "
                                  "exact (record load changes, speed levels in both directions)")
     plant_keys = [k for k in keys if k not in PSEUDO_KEYS and not params[k]["kept_base"]]
+    t0_new = overrides.get("friction.no_load_torque_n_m")
+    if (t0_new is not None and BREAKAWAY_KEY in plant.values and BREAKAWAY_KEY not in overrides
+            and BREAKAWAY_KEY not in plant.defaulted and plant.values[BREAKAWAY_KEY] < t0_new):
+        overrides[BREAKAWAY_KEY] = t0_new  # a breakaway level below the sliding drag is no plant
+        warns.append(f"{BREAKAWAY_KEY} = {plant.values[BREAKAWAY_KEY]:.6g} N m of the base plant is below the fitted "
+                     f"friction.no_load_torque_n_m = {t0_new:.6g} N m: raised to it (no breakaway excess on the drag); "
+                     "fit it too (--fit ...,friction.no_load_breakaway_torque_n_m with a low-speed staircase)")
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")  # the base plant's own geometry notes were given when it loaded
         fitted = plant.with_params(overrides, name=f"{plant.name}-fit")
@@ -870,6 +899,11 @@ _REMEDY_KEY = {
     "friction.efficiency": "record with load changes (load steps) so that load-dependent friction shows",
     "friction.no_load_torque_n_m": "record speed reversals (a staircase through both directions)",
     "friction.viscous_n_m_s_per_rad": "record several speed levels",
+    "friction.viscous_offset_n_m_s_per_rad": "record several speed levels in both directions",
+    "friction.static": "record a low-speed staircase (plateaus below ~3 Stribeck speeds, both directions, two loads)",
+    "friction.stribeck_velocity_m_s": "record a low-speed staircase (plateaus from ~0.3 to ~5 Stribeck speeds)",
+    "friction.no_load_breakaway_torque_n_m": "record a low-speed staircase at two loads or more (one load informs "
+                                             "only the sum of the drag's and the thread's breakaway excess)",
     "drive.current_loop_bandwidth_hz": "excite higher frequencies (multisine up to a few hundred Hz) or fix it with --fit",
     "nut.inertia_kg_m2": "excite accelerations (multisine or speed steps)",
     "axis.motor_inertia_kg_m2": "excite accelerations (multisine or speed steps)",

@@ -90,7 +90,8 @@ class _Linear:
             d = (abs(load) / (pl.n_contacts * k_si * c ** (e + 1))) ** (1.0 / e) / c
             out.append(d if load >= 0 else -(d + vals["thread.backlash_mm"] * 1e-3))
         tau = load * pl.lead_per_rad / vals["friction.efficiency"] + vals["friction.no_load_torque_n_m"] \
-            + vals["friction.viscous_n_m_s_per_rad"] * speed + vals.get("friction.torque_offset_n_m", 0.0)
+            + vals["friction.viscous_n_m_s_per_rad"] * speed + vals.get("friction.torque_offset_n_m", 0.0) \
+            + vals.get("friction.viscous_offset_n_m_s_per_rad", 0.0) * abs(speed)
         return np.array([speed * pl.cage_ratio, -out[0], out[1], tau])
 
     def __call__(self, speed: float, load: float, pv):

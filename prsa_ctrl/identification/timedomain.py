@@ -54,6 +54,7 @@ from .common import (DELAY_KEY, default_keys, RANK_RTOL, UNCERTAINTY_MODES, FitR
 from .data import FrfRecord, Record
 from .delay import DEFAULT_CONVENTION, MAX_SHIFT, plant_shift, search_delay, with_command_delay
 from .frf import fit_frf, frf_fit_percent, frf_response
+from .friction_map import STRIBECK_KEYS, stribeck_rounds
 
 __all__ = ["fit_plant", "fit_percent", "MAX_INTERVALS", "STALL_ITERATIONS", "STEP_SE_FRACTION", "MIN_SEGMENT"]
 
@@ -182,6 +183,10 @@ def fit_plant(
     keys : sequence of str, optional
         Plant keys to fit (default :data:`DEFAULT_KEYS`, with ``axis.motor_inertia_kg_m2`` for the
         inertia of a screw-driven axis, :func:`default_keys`; :data:`FRF_KEYS` for an FRF-only fit).
+        The Stribeck keys (:data:`~prsa_ctrl.identification.friction_map.STRIBECK_KEYS`) come from
+        the steady-speed plateaus of the records, given the time-domain fit of the others, with
+        its covariance propagated
+        (:func:`~prsa_ctrl.identification.friction_map.stribeck_stage`; ``solver["friction_map"]``).
     fidelity : {"rigid", "compliant"}
         Model fidelity.
     validate : sequence of Record
@@ -248,6 +253,22 @@ def fit_plant(
     if delay_samples is not None and delay_samples != "find" and (
             isinstance(delay_samples, bool) or not isinstance(delay_samples, int) or not 0 <= delay_samples <= MAX_SHIFT):
         raise ValueError(f"delay_samples = {delay_samples!r}; expected an integer 0..{MAX_SHIFT}, 'find' or None")
+    stribeck = tuple(k for k in (keys or ()) if k in STRIBECK_KEYS)
+    if stribeck:  # from the steady-speed plateaus, given the time-domain fit of the other keys
+        if not records:
+            raise ValueError(f"fit keys {', '.join(stribeck)} without time-domain records; expected records with "
+                             "steady low-speed plateaus (prsa_ctrl.identification.friction_map)")
+        rest = tuple(k for k in keys if k not in STRIBECK_KEYS)
+
+        def fit_rest(start: Plant, delay) -> FitResult:
+            return fit_plant(records, start, frf=frf, keys=rest, fidelity=fidelity, validate=validate,
+                             segment_s=segment_s, delay_samples=delay, command_logged=command_logged,
+                             max_delay_samples=max_delay_samples, substeps=substeps, max_iter=max_iter, tol=tol,
+                             min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
+                             uncertainty=uncertainty)
+
+        return stribeck_rounds(fit_rest if rest else None, records, plant, stribeck, delay_samples,
+                               keep_unidentified=keep_unidentified, uncertainty=uncertainty)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
                        delay_samples=shift if delay_samples in (None, "find") else delay_samples,

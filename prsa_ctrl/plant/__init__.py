@@ -60,6 +60,9 @@ _EXPORTS = {
     "state_derivative": "model",
     "steady_torque": "equilibrium",
     "stick_band_rad_s": "model",
+    "BREAKAWAY_KEY": "schema",
+    "VISCOUS_OFFSET_KEY": "schema",
+    "drag_breakaway_excess": "model",
     "stribeck_coefficient": "model",
     "uncertainty_model": "uncertainty",
 }

@@ -126,10 +126,11 @@ from dataclasses import dataclass, field
 import casadi as ca
 
 from .plantfile import Plant
+from .schema import BREAKAWAY_KEY, VISCOUS_OFFSET_KEY
 
 __all__ = ["FIDELITIES", "PlantModel", "state_derivative", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
            "ParametricModel", "parametric_family", "register_member",
-           "stick_band_rad_s", "STICK_TIME_CONSTANT_S", "screw_axis_springs"]
+           "stick_band_rad_s", "STICK_TIME_CONSTANT_S", "screw_axis_springs", "drag_breakaway_excess"]
 
 from ..options import FIDELITIES  # noqa: E402  (re-exported)
 
@@ -282,7 +283,27 @@ def stribeck_coefficient(plant: Plant, v_screw):
     """
     p = plant.values
     mu_s, mu_d = p["friction.static"], p["friction.dynamic"]
-    return mu_d + (mu_s - mu_d) * ca.exp(-((v_screw / p["friction.stribeck_velocity_m_s"]) ** 2))
+    return mu_d + (mu_s - mu_d) * _stribeck_shape(plant, v_screw)
+
+
+def _stribeck_shape(plant: Plant, v_screw):
+    """``exp(-(v/v_s)^2)``: 1 at rest, 0 well beyond the Stribeck velocity ``v_s`` (m/s)."""
+    return ca.exp(-((v_screw / plant.values["friction.stribeck_velocity_m_s"]) ** 2))
+
+
+def drag_breakaway_excess(plant: Plant):
+    """``T_s0 - T_0`` (N m), the no-load drag's breakaway excess, or None when the plant has none
+    (the key absent, defaulted, or equal to ``friction.no_load_torque_n_m``; then the friction
+    law is the same expression as without the key, to the bit). A defaulted key follows the
+    no-load torque, also where that one is a CasADi symbol (a fit, a parametric family)."""
+    v = plant.values
+    t0 = v["friction.no_load_torque_n_m"]
+    ts0 = v.get(BREAKAWAY_KEY, t0)
+    if ts0 is t0 or BREAKAWAY_KEY in (getattr(plant, "defaulted", None) or ()):
+        return None
+    if isinstance(ts0, (int, float)) and isinstance(t0, (int, float)) and ts0 == t0:
+        return None
+    return ts0 - t0
 
 
 def stick_band_rad_s(plant: Plant) -> float:
@@ -305,6 +326,10 @@ def _nut_friction(plant: Plant, omega: ca.SX, normal: ca.SX, t_net: ca.SX, inert
     t0 = v["friction.no_load_torque_n_m"]
     slide = k_slip * stribeck_coefficient(plant, plant.lead_per_rad * omega) * normal + t0
     breakaway = k_slip * v["friction.static"] * normal + t0
+    excess = drag_breakaway_excess(plant)
+    if excess is not None:  # the no-load drag's own Stribeck drop (none by default: the same expression as before)
+        slide = slide + excess * _stribeck_shape(plant, plant.lead_per_rad * omega)
+        breakaway = breakaway + excess
     stick = ca.fmin(ca.fmax(t_net + inertia / STICK_TIME_CONSTANT_S * omega, -breakaway), breakaway)
     # 1 inside the band |w| <= w_b, 0 beyond 2 w_b, C1 cubic in between.
     blend = 1.0 - _smooth_step(ca.fabs(omega) / stick_band_rad_s(plant) - 1.0, 1.0)
@@ -317,10 +342,16 @@ def _viscous(plant: Plant, omega: ca.SX) -> ca.SX:
     The offset ``friction.torque_offset_n_m`` (``T_o``) makes the Coulomb levels direction
     dependent, ``T_0 + T_o`` forward and ``T_0 - T_o`` backward (``T_0`` =
     ``friction.no_load_torque_n_m``), as the linear axis's ``(Fc+ - Fc-)/2``; like that one it
-    acts as a constant torque, also at rest (a gravity or sensor offset is the same term).
+    acts as a constant torque, also at rest (a gravity or sensor offset is the same term). The
+    viscous offset ``friction.viscous_offset_n_m_s_per_rad`` (``b_o``) makes the viscous
+    coefficient direction dependent: ``b + b_o`` forward, ``b - b_o`` backward (``b_o |w|`` added).
     """
     v = plant.values
-    return v["friction.viscous_n_m_s_per_rad"] * omega + v.get("friction.torque_offset_n_m", 0.0)
+    visc = v["friction.viscous_n_m_s_per_rad"] * omega + v.get("friction.torque_offset_n_m", 0.0)
+    b_o = v.get(VISCOUS_OFFSET_KEY, 0.0)
+    if isinstance(b_o, (int, float)) and b_o == 0.0:
+        return visc  # the default: the same expression as without the key, to the bit
+    return visc + b_o * ca.fabs(omega)
 
 
 def _smooth_step(p: ca.SX, depth: float) -> ca.SX:
@@ -894,6 +925,8 @@ def _member_model(plant: Plant, fidelity: str, seed: int) -> PlantModel | None:
         return None
     base, keys = entry
     differ = {k for k in plant.values if plant.values[k] != base.values[k]}
+    if BREAKAWAY_KEY in plant.defaulted and BREAKAWAY_KEY in base.defaulted:
+        differ.discard(BREAKAWAY_KEY)  # follows the no-load torque; the equations do not read it
     fam = parametric_family(base, fidelity, keys, seed)
     if fam is None or not differ <= set(fam.keys):
         return None

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
-from .schema import (ALLOWED_KEYS, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
+from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, VISCOUS_OFFSET_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
                      MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, NON_NEGATIVE_INTEGER, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
                      SCREW_DRIVEN, UNITS, keys_of)
 from .uncertainty import check_plant_uncertainty
@@ -106,6 +106,22 @@ def _check_consistency(v: Mapping[str, float], o: str) -> None:
         raise PlantFileError(
             f"{o}: friction.no_load_torque_n_m = {v['friction.no_load_torque_n_m']:g} N m is not below "
             f"drive.torque_limit_n_m = {t_lim:g} N m (the motor could not even turn the unloaded screw); check both units")
+    t_s0 = v.get(BREAKAWAY_KEY, v["friction.no_load_torque_n_m"])
+    if isinstance(t_s0, (int, float)) and t_s0 < v["friction.no_load_torque_n_m"]:
+        raise PlantFileError(
+            f"{o}: {BREAKAWAY_KEY} = {t_s0:g} N m is below friction.no_load_torque_n_m = "
+            f"{v['friction.no_load_torque_n_m']:g} N m; expected breakaway >= sliding drag (as friction.static >= "
+            "friction.dynamic; leave the key out for no breakaway excess)")
+    b, b_o = v.get("friction.viscous_n_m_s_per_rad", 0.0), v.get(VISCOUS_OFFSET_KEY, 0.0)
+    if isinstance(b_o, (int, float)) and isinstance(b, (int, float)) and abs(b_o) > b:
+        raise PlantFileError(
+            f"{o}: {VISCOUS_OFFSET_KEY} = {b_o:g} N m s/rad exceeds friction.viscous_n_m_s_per_rad = {b:g} N m s/rad "
+            "in magnitude; expected |offset| <= viscous (the coefficients b + offset forward and b - offset backward "
+            "are not negative)")
+    if isinstance(t_s0, (int, float)) and t_s0 >= t_lim:
+        raise PlantFileError(
+            f"{o}: {BREAKAWAY_KEY} = {t_s0:g} N m is not below drive.torque_limit_n_m = {t_lim:g} N m (the motor "
+            "could not break the unloaded screw loose); check both units")
     if v["sensor.torque_noise_n_m"] > TORQUE_NOISE_MAX_FRACTION * t_lim:
         raise PlantFileError(
             f"{o}: sensor.torque_noise_n_m = {v['sensor.torque_noise_n_m']:g} N m is more than "
@@ -391,7 +407,15 @@ class Plant:
     mechanism_source: str = ""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "values", MappingProxyType(dict(self.values)))
+        values = dict(self.values)
+        if BREAKAWAY_KEY in values and BREAKAWAY_KEY not in self.defaulted and str(
+                self.sources.get(BREAKAWAY_KEY, "")) == _default_source(BREAKAWAY_KEY, ""):
+            # a plant rebuilt from another's values and sources (without ``defaulted``): the
+            # default breakaway level still follows the no-load torque
+            object.__setattr__(self, "defaulted", frozenset(self.defaulted) | {BREAKAWAY_KEY})
+            if isinstance(values["friction.no_load_torque_n_m"], (int, float)):
+                values[BREAKAWAY_KEY] = values["friction.no_load_torque_n_m"]
+        object.__setattr__(self, "values", MappingProxyType(values))
         object.__setattr__(self, "sources", MappingProxyType(dict(self.sources)))
         object.__setattr__(self, "defaulted", frozenset(self.defaulted))
         if self.mechanism is None:

@@ -28,7 +28,7 @@ import math
 from typing import Any, Callable, Mapping, Union
 
 __all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "NON_NEGATIVE_INTEGER",
-           "FINITE", "FRACTION", "COMMAND_DELAY_KEY",
+           "FINITE", "FRACTION", "COMMAND_DELAY_KEY", "BREAKAWAY_KEY", "VISCOUS_OFFSET_KEY",
            "MECHANISMS", "DEFAULT_MECHANISM", "SCREW_DRIVEN", "MOUNTINGS", "DEFAULT_MOUNTING", "SCREW_AXIS_SCHEMA",
            "LINEAR_AXIS_SCHEMA", "KIND", "REQUIRED", "DEFAULTS", "UNITS", "keys_of", "kind_of"]
 
@@ -47,6 +47,17 @@ FINITE = "finite"
 #: ``k + 1 + n``: exact for whole samples; a fraction of a sample is lumped into the
 #: current-loop lag (the fit writes it so, see :mod:`prsa_ctrl.identification.common`).
 COMMAND_DELAY_KEY = "drive.command_delay_samples"
+
+#: The breakaway level ``T_s0`` (N m) of the load-independent drag ``T_0``
+#: (``friction.no_load_torque_n_m``): at rest the drag holds up to ``T_s0``; sliding, it is
+#: ``T_0 + (T_s0 - T_0) exp(-(v/v_s)^2)``, the Stribeck shape of the thread friction
+#: (:mod:`prsa_ctrl.plant.model`). Default: equal to ``T_0`` (no breakaway excess), so every
+#: plant without the key behaves as before, to the bit. At least ``T_0`` (checked, as
+#: ``friction.static >= friction.dynamic``).
+BREAKAWAY_KEY = "friction.no_load_breakaway_torque_n_m"
+#: Direction-dependent viscous friction ``b_o`` (N m s/rad): the viscous coefficient is
+#: ``friction.viscous_n_m_s_per_rad + b_o`` forward and ``- b_o`` backward. Default 0.
+VISCOUS_OFFSET_KEY = "friction.viscous_offset_n_m_s_per_rad"
 
 #: Section -> key -> kind: the keys of the inverted roller screw (and the rotary core every
 #: mechanism maps onto, see :mod:`prsa_ctrl.plant.model`).
@@ -90,6 +101,8 @@ SCHEMA: Mapping[str, Mapping[str, str]] = {
         "creep_velocity_m_s": POSITIVE,
         "traction_preload_n": NON_NEGATIVE,
         "torque_offset_n_m": FINITE,
+        "no_load_breakaway_torque_n_m": NON_NEGATIVE,
+        "viscous_offset_n_m_s_per_rad": FINITE,
     },
     "drive": {"torque_limit_n_m": POSITIVE, "current_loop_bandwidth_hz": POSITIVE,
               "command_delay_samples": NON_NEGATIVE_INTEGER},
@@ -145,6 +158,11 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
     "friction.traction_preload_n": (0.0, 1e7, "at most the rated load"),
     "friction.torque_offset_n_m": (-1e3, 1e3, "direction-dependent drag: half the difference of the Coulomb levels, "
                                    "well below the motor torque"),
+    "friction.no_load_breakaway_torque_n_m": (0.0, 1e3, "breakaway level of the seal and bearing drag, at least "
+                                              "friction.no_load_torque_n_m (checked), well below the motor torque"),
+    "friction.viscous_offset_n_m_s_per_rad": (-100.0, 100.0, "direction-dependent viscous friction: half the "
+                                              "difference of the viscous coefficients forward and backward, at most "
+                                              "friction.viscous_n_m_s_per_rad in magnitude (checked)"),
     "drive.torque_limit_n_m": (1e-3, 1e5, "servo and torque motors: 0.01 to ~10 kN m"),
     "drive.current_loop_bandwidth_hz": (10.0, 1e5, "servo drives 0.5 to 5 kHz"),
     "drive.command_delay_samples": (0, 20, "transport and current-loop dead time of servo drives: 0 to ~3 samples"),
@@ -378,6 +396,14 @@ DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]]
                                                         "friction.coulomb_positive_n and _negative_n)",
                                          "*": "default: symmetric drag (Coulomb level friction.no_load_torque_n_m in "
                                               "both directions)"}),
+    "friction.no_load_breakaway_torque_n_m": (lambda v, m: v["friction.no_load_torque_n_m"],
+                                              "default: no breakaway excess on the drag (equal to "
+                                              "friction.no_load_torque_n_m)"),
+    "friction.viscous_offset_n_m_s_per_rad": (0.0, {"linear-axis": "derived: 0 (a linear axis carries its viscous "
+                                                                   "friction per direction in "
+                                                                   "friction.viscous_positive/negative_n_s_per_m)",
+                                                    "*": "default: symmetric viscous friction (the same coefficient "
+                                                         "in both directions)"}),
     "friction.creep_velocity_m_s": (1.0e-3, "default: lubricated rolling creep (the paper plant's 1 mm/s)"),
     "friction.traction_preload_n": (lambda v, m: 0.04 * v["screw.rated_load_n"],
                                     "default: 4 % of the rated load (the paper plant's 200 N at 5 kN)"),

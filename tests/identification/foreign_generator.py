@@ -190,6 +190,37 @@ def multisine(n: int, ts: float, seed: int = 0, mean: float = 30.0, amp: float =
     return sp, load
 
 
+#: Speed levels (rad/s) of the low-speed staircase: 0.4 to 8 Stribeck speeds of the default axis.
+LOW_LEVELS = (0.1, 0.2, 0.35, 0.6, 1.0, 2.0)
+#: Speed-loop gains (kp N m s/rad, ki 1/s) of the low-speed test: stiffer than the default drive's.
+#: At kp = 0.05 the Stribeck curve's negative slope below ~0.3 rad/s under load outweighs the
+#: loop's damping and the axis sticks and slips; at these it holds every level at 0 N and from
+#: 0.2 rad/s at 1000 N (the first level after a start or reversal under load still sticks and
+#: slips: no plateau there, which the friction map has to recognise).
+LOW_GAINS = (0.15, 6.0)
+
+
+def low_speed_staircase(ts: float, levels=LOW_LEVELS, loads=(0.0, 1000.0), plateau_s: float = 0.4):
+    """Setpoint and load of the low-speed staircase: at each load the levels upwards in the positive
+    direction, then the same in the negative direction, ``plateau_s`` each (a friction-map test)."""
+    m = int(round(plateau_s / ts))
+    sp, ld = [], []
+    for f in loads:
+        for sign in (1.0, -1.0):
+            for lv in levels:
+                sp.append(np.full(m, sign * lv))
+                ld.append(np.full(m, float(f)))
+    return np.concatenate(sp), np.concatenate(ld)
+
+
+def low_speed_log(ax: Axis, seed: int, convention: str = "applied", **kw) -> Log:
+    """The low-speed staircase of one seed (:func:`low_speed_staircase`), starting at rest, with
+    the speed-loop gains :data:`LOW_GAINS`."""
+    ax = replace(ax, kp=LOW_GAINS[0], ki=LOW_GAINS[1])
+    sp, ld = low_speed_staircase(ax.sample_time_s, **kw)
+    return simulate(ax, sp, ld, seed=seed * 7 + 5, name=f"low-speed-{seed}", convention=convention, speed0=0.0)
+
+
 def logs(ax: Axis, seed: int, duration_s: float = 1.5, convention: str = "applied") -> list[Log]:
     """The three logs of one seed: load steps, staircase, multisine."""
     n = int(round(duration_s / ax.sample_time_s))

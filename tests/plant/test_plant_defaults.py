@@ -89,8 +89,13 @@ def test_existing_files_are_unchanged_and_fully_given():
         doc = tomllib.loads((PLANT_DIR / f"{name}.toml").read_text())
         file_values = {f"{s}.{k}": float(e["value"]) for s, t in doc.items() if isinstance(t, dict) and s != "uncertainty"
                        for k, e in t.items()}
+        # the keys newer than these files (issue 21): the breakaway level follows the no-load torque,
+        # the viscous offset is 0
+        file_values["friction.no_load_breakaway_torque_n_m"] = file_values["friction.no_load_torque_n_m"]
+        file_values["friction.viscous_offset_n_m_s_per_rad"] = 0.0
         assert dict(p.values) == file_values
-        assert not p.defaulted and p.mechanism == "inverted-roller-screw"
+        assert p.defaulted == {"friction.no_load_breakaway_torque_n_m", "friction.viscous_offset_n_m_s_per_rad"}
+        assert p.mechanism == "inverted-roller-screw"
 
 
 def test_minimal_ball_screw_file_loads_with_defaults(tmp_path):
