@@ -55,6 +55,7 @@ Monte-Carlo sample draws its own per-roller errors from its own seed (multi-roll
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -138,7 +139,9 @@ def _flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileError) -> dict[str, dict[str, Any]]:
     """Structural check of an ``[uncertainty]`` table (no plant needed): known distribution,
-    the parameters it needs, positive widths, a source. Returns ``key -> entry`` (flattened).
+    the parameters it needs, positive widths, a source. Returns ``key -> entry`` (flattened),
+    plus ``"correlation"`` -> its blocks (``[{"keys", "matrix", "source"}]``, checked: see the
+    module docstring) when the table has one; the result parses again to itself.
 
     Raises
     ------
@@ -313,9 +316,9 @@ class Correlation:
     matrix: tuple[tuple[float, ...], ...]
     source: str
 
-    @property
+    @functools.cached_property
     def factor(self) -> tuple[tuple[float, ...], ...]:
-        """The unit-row semi-definite Cholesky factor (:func:`_factor`)."""
+        """The unit-row semi-definite Cholesky factor (:func:`_factor`), computed once."""
         return _factor(self.matrix)
 
     def as_dict(self) -> dict[str, Any]:
