@@ -649,7 +649,7 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
         own = [k for k in plant_keys if k in unc and unc[k] is fit_unc.get(k) and k not in in_null]
         idx = [keys.index(k) for k in own]
         unc = carry_correlation(unc, base_unc, correlation_entry(
-            own, np.asarray(cov, float)[np.ix_(idx, idx)], f"fit: {names} (correlation of the fitted keys from the fit's covariance)"))
+            own, np.asarray(cov, float)[np.ix_(idx, idx)], f"fit: {names} (correlation of the fitted keys from the fit's covariance)"), warns)
         fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
                        description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc,
                        mechanism=fitted.mechanism, defaulted=fitted.defaulted, mechanism_source=fitted.mechanism_source)

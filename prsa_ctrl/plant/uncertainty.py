@@ -536,7 +536,7 @@ def correlation_entry(keys: Sequence[str], covariance: Any, source: str) -> dict
 
 
 def carry_correlation(entries: Mapping[str, Any], base: Mapping[str, Any],
-                      block: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                      block: Mapping[str, Any] | None = None, notes: list[str] | None = None) -> dict[str, Any]:
     """An ``[uncertainty]`` table written from ``base``'s (e.g. a fitted plant from its base
     plant): ``entries`` with ``base``'s correlation blocks restricted to the keys whose entry is
     still ``base``'s own (:func:`restrict_correlation`), plus ``block`` (e.g. the fit's).
@@ -549,6 +549,8 @@ def carry_correlation(entries: Mapping[str, Any], base: Mapping[str, Any],
         The table it was made from (raw TOML form; its ``correlation`` a table or an array).
     block : mapping, optional
         A new block (``{"keys", "matrix", "source"}``) over keys whose entries are new.
+    notes : list of str, optional
+        Gets one line per base block that loses keys (naming them).
 
     Returns
     -------
@@ -560,9 +562,15 @@ def carry_correlation(entries: Mapping[str, Any], base: Mapping[str, Any],
     old = base.get(CORRELATION_KEY) or []
     blocks = []
     for b in old if isinstance(old, list) else [old]:
-        kept = restrict_correlation(b, [k for k in b["keys"] if k in out and out[k] == base.get(k)])
+        same = [k for k in b["keys"] if k in out and out[k] == base.get(k)]
+        kept = restrict_correlation(b, same)
         if kept is not None:
             blocks.append(kept)
+        gone = [k for k in b["keys"] if k not in same]
+        if notes is not None and gone:
+            notes.append(f"[uncertainty] correlation ({b['source']}): dropped for {', '.join(gone)} "
+                         f"({'their entries are' if len(gone) > 1 else 'its entry is'} no longer the base's)"
+                         + ("" if kept else "; nothing is left of the block"))
     if block is not None:
         blocks.append(dict(block))
     if blocks:

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 from scipy.special import ndtr, ndtri
 
@@ -281,3 +283,34 @@ def test_models_with_and_without_correlation_differ_only_there():
     corr = uncertainty_model(_plant(_correlated()))
     plain = dataclasses.replace(corr, correlations=())
     assert plain == uncertainty_model(_plant(copy.deepcopy(ENTRIES)))
+
+
+def test_carry_correlation_names_what_it_drops():
+    base = _correlated([[1.0, 0.3, -0.6], [0.3, 1.0, 0.2], [-0.6, 0.2, 1.0]], [J, ETA, K])
+    new = {k: v for k, v in base.items() if k != CORRELATION_KEY}
+    new[J] = {"dist": "normal", "sigma": 1e-6, "truncate": 1.96, "source": "fit: x"}
+    notes: list[str] = []
+    carry_correlation(new, base, None, notes)
+    assert notes == ["[uncertainty] correlation (estimate: t): dropped for nut.inertia_kg_m2 (its entry is no longer "
+                     "the base's)"]
+
+
+@given(seed=st.integers(0, 2**32 - 1), rank=st.integers(1, 4))
+@settings(max_examples=25, deadline=None)
+def test_any_valid_correlation_is_accepted_and_sampled_inside_the_supports(seed, rank):
+    """Random correlations of any rank (Gram matrices of unit vectors, rounded to 12 digits as a
+    user might type them): accepted, sampled inside every support, finite, reproducible."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(4, rank))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    g = np.round(v @ v.T, 12)
+    np.fill_diagonal(g, 1.0)
+    g = np.clip(0.5 * (g + g.T), -1, 1)
+    model = uncertainty_model(_plant(_correlated(g.tolist())))
+    ents = {e.key: e for e in model.entries}
+    r1, r2 = np.random.default_rng(seed), np.random.default_rng(seed)
+    for _ in range(20):
+        a, b = model.sample(r1), model.sample(r2)
+        assert a == b
+        for k, x in a.items():
+            assert math.isfinite(x) and ents[k].low <= x <= ents[k].high

@@ -62,8 +62,10 @@ def test_default_mode_keeps_the_bases_correlation(csv_files, tmp_path):  # noqa:
     base_file.write_text(PAPER.read_text().replace(
         '"nut.inertia_kg_m2" = { dist = "uniform", relative = 0.3,', '"nut.inertia_kg_m2" = { dist = "uniform", low = 1.9e-4, high = 2.1e-4,')
         + cut)
-    out2 = tmp_path / "fitted2.toml"
-    assert fit_main([*paths, "--plant", str(base_file), "--out", str(out2)]) == 0
+    out2, rep2 = tmp_path / "fitted2.toml", tmp_path / "fit2.json"
+    assert fit_main([*paths, "--plant", str(base_file), "--out", str(out2), "--json", str(rep2)]) == 0
+    assert any("correlation (estimate: test): dropped for nut.inertia_kg_m2 (its entry is no longer" in w
+               for w in json.loads(rep2.read_text())["warnings"])
     unc2 = tomllib.loads(out2.read_text())["uncertainty"]
     assert unc2["nut.inertia_kg_m2"]["source"].startswith("fit: ")  # excludes the fitted value: replaced
     assert "correlation" not in unc2
