@@ -122,6 +122,7 @@ def test_prsa_tune_monte_carlo_8_on_the_correlated_fit(fitted, capsys):  # noqa:
     text = capsys.readouterr().out
     assert code == 0, text
     assert "Monte Carlo: 8/8 samples, seed 2" in text
+    assert f"drawn jointly (Gaussian copula of the [uncertainty] correlation): {', '.join(sorted(PARAMETERS))}" in text
     mc = json.loads(js.read_text())["monte_carlo"]
     assert mc["samples_done"] == 8 and mc["complete"]
     corr = plant.uncertainty["correlation"]
