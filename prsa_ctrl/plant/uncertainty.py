@@ -222,7 +222,11 @@ def _parse_correlation(raw: Any, entries: Mapping[str, Any], origin: str, err) -
         extra = sorted(set(block) - {"keys", "matrix", "source"})
         if extra:
             raise err(f"{origin}: {where}: unknown field {extra[0]!r}; expected keys, matrix, source")
-        keys, matrix, src = block.get("keys"), block.get("matrix"), block.get("source")
+        missing = [f for f in ("keys", "matrix", "source") if f not in block]
+        if missing:
+            raise err(f"{origin}: {where}: missing {missing[0]!r}; expected {{ keys = [...], matrix = [[...]], "
+                      "source = \"...\" }")
+        keys, matrix, src = block["keys"], block["matrix"], block["source"]
         if not isinstance(src, str) or not src.strip():
             raise err(f"{origin}: {where}.source = {src!r}; expected a non-empty string (\"fit: file\", \"estimate: why\")")
         if not isinstance(keys, list) or len(keys) < 2 or not all(isinstance(k, str) for k in keys):

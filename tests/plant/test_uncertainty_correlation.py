@@ -181,7 +181,8 @@ BAD = [
     (f'correlation = {{ keys = {_PAIR}, matrix = [[1.0, "0.5"], ["0.5", 1.0]], source = "e: t" }}', "'0.5'"),
     ('correlation = { keys = ["nut.inertia_kg_m2", "friction.efficiency", "drive.current_loop_bandwidth_hz"], '
      'matrix = [[1.0, 0.9, -0.9], [0.9, 1.0, 0.9], [-0.9, 0.9, 1.0]], source = "e: t" }', "eigenvalue"),
-    (f'correlation = {{ keys = {_PAIR}, matrix = [[1.0, 0.5], [0.5, 1.0]] }}', "source = None"),
+    (f'correlation = {{ keys = {_PAIR}, matrix = [[1.0, 0.5], [0.5, 1.0]] }}', "missing 'source'"),
+    (f'correlation = {{ keys = {_PAIR}, source = "e: t" }}', "missing 'matrix'"),
     (f'correlation = {{ keys = {_PAIR}, matrix = [[1.0, 0.5], [0.5, 1.0]], source = "e", rho = 0.5 }}',
      "unknown field 'rho'"),
     ('correlation = { keys = ["nut.inertia_kg_m2"], matrix = [[1.0]], source = "e" }', "at least two"),
