@@ -135,6 +135,10 @@ _toml_string = _toml_value
 
 
 def _uncertainty_line(key: str, entry) -> str:
+    from ..plant.uncertainty import CORRELATION_KEY, correlation_toml
+
+    if key == CORRELATION_KEY:  # one table or an array of tables (prsa_ctrl.plant.uncertainty)
+        return f"{key} = {correlation_toml(entry if isinstance(entry, list) else [entry])}"
     fields = ", ".join(f"{k} = {_toml_value(v)}" for k, v in entry.items())
     return f"{_toml_string(key)} = {{ {fields} }}"
 
@@ -547,7 +551,9 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
                    + (f"; kept at the base values: {', '.join(result.kept_base)})" if result.kept_base else ")")
                    + (f"; base: {plant.description}" if plant.description else ""))
     base_unc = dict(plant.uncertainty or {})
-    unc_keys = [k for k in result.plant_keys if result.plant.uncertainty.get(k) != base_unc.get(k)]
+    from ..plant.uncertainty import CORRELATION_KEY
+
+    unc_keys = [k for k in [*result.plant_keys, CORRELATION_KEY] if result.plant.uncertainty.get(k) != base_unc.get(k)]
     # the command delay (found, given or written from a fitted FRF delay) is written when it is not the base's
     delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz",
                               "friction.no_load_breakaway_torque_n_m")  # (a given one raised to a fitted drag)

@@ -41,6 +41,7 @@ Plant file (TOML, ``mechanism = "linear-axis"``), every value with its source::
     encoder_resolution_m = { value = 5e-8, source = "..." }
     [uncertainty]                                                 # as in prsa_ctrl.plant.uncertainty
     "axis.mass_kg" = { dist = "normal", sigma = ..., truncate = 1.959964, source = "fit: ..." }
+    correlation = { keys = ["axis.mass_kg", ...], matrix = [[1.0, ...], ...], source = "fit: ..." }
 
 It is a plant file of the package (``prsa-tune --show-plant FILE`` lists every value with its
 source; simulation, linearisation and the tuners load it with :func:`prsa_ctrl.plant.load_plant`):
@@ -69,6 +70,7 @@ from .._lazy import module
 from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
+from ..plant.uncertainty import CORRELATION_KEY, correlation_entry, correlation_toml
 from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
@@ -214,6 +216,9 @@ def axis_plant_toml(plant: LinearAxisPlant) -> str:
         lines += ["", "# What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.plant.uncertainty)",
                   "[uncertainty]"]
         for k, e in plant.uncertainty.items():
+            if k == CORRELATION_KEY:
+                lines.append(f"{k} = {correlation_toml(e if isinstance(e, list) else [e])}")
+                continue
             fields = ", ".join(f"{a} = {_toml_str(b) if isinstance(b, str) else repr(float(b))}" for a, b in e.items())
             lines.append(f"{_toml_str(k)} = {{ {fields} }}")
     return "\n".join(lines) + "\n"
@@ -744,6 +749,11 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
                           "source": f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})"}
         params[k] = entry
         values[k] = v
+    idx = [j for j, k in enumerate(PARAMETERS) if k in unc]
+    corr = correlation_entry([PARAMETERS[j] for j in idx], cov[np.ix_(idx, idx)],
+                             f"fit: {names} (correlation of the fitted keys from the fit's covariance)")
+    if corr is not None:
+        unc[CORRELATION_KEY] = corr
     fitted = LinearAxisPlant(name=name, values={**base.values, **values}, sources={**base.sources, **sources},
                              description=f"linear axis calibrated by prsa-fit from {names} (closed-loop output error)",
                              command_unit=base.command_unit, uncertainty=unc)

@@ -30,7 +30,7 @@ from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
 from ..plant.plantfile import Plant
 from ..plant.schema import BREAKAWAY_KEY, KIND, PLAUSIBLE, SCHEMA
-from ..plant.uncertainty import plant_uncertainty
+from ..plant.uncertainty import carry_correlation, correlation_entry, plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
 
 __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", "DEFAULT_KEYS", "FRF_KEYS",
@@ -674,6 +674,11 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
                 unc[k] = choice
             if note:
                 warns.append(note)
+        # the fit's correlation among the keys written with the fit's own entry (not along an uninformed direction)
+        own = [k for k in plant_keys if k in unc and unc[k] is fit_unc.get(k) and k not in in_null]
+        idx = [keys.index(k) for k in own]
+        unc = carry_correlation(unc, base_unc, correlation_entry(
+            own, np.asarray(cov, float)[np.ix_(idx, idx)], f"fit: {names} (correlation of the fitted keys from the fit's covariance)"), warns)
         fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
                        description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc,
                        mechanism=fitted.mechanism, defaulted=fitted.defaulted, mechanism_source=fitted.mechanism_source)

@@ -23,6 +23,31 @@ plant (the key's kind - positive, fraction ... - and the plant's cross-checks, e
 dynamic friction, thread meshing), checked at the two ends of each key's support. Integer keys
 (thread starts, roller count ...) cannot be uncertain.
 
+Correlation (a Gaussian copula). The fit of a plant leaves its keys correlated (e.g. the Coulomb
+and viscous friction of one direction, about -0.87 on the EMPS record); the same table may say so::
+
+    correlation = { keys = ["friction.coulomb_positive_n", "friction.viscous_positive_n_s_per_m"],
+                    matrix = [[1.0, -0.87], [-0.87, 1.0]], source = "fit: DATA_EMPS.mat (covariance)" }
+
+(or an array of such tables, blocks with no key in common). ``correlation`` is a reserved name,
+never a plant key (plant keys are ``section.key``). Each key of a block has its own entry in the
+same table and appears once; the matrix is square, symmetric (to ``1e-12``), finite, with a unit
+diagonal (to ``1e-12``), ``|r| <= 1`` and positive semi-definite: smallest eigenvalue
+``>= -PSD_TOLERANCE`` (``1e-9``); a singular matrix (``r = 1``) is fine. ``matrix`` is the
+correlation of the keys' *normal scores* ``Phi^-1(F_i(x_i))``: a draw takes the block's uniforms
+``u`` (the same ``len(model)`` uniforms an uncorrelated draw takes), ``z = L Phi^-1(u)`` with
+``L L' = R`` (a semi-definite Cholesky factor, rows scaled to unit length), and each key's value
+``F_i^-1(Phi(z_i))``: every marginal is its entry's distribution, whatever it is. For a fit's
+normal entries this is the fit's joint normal (truncated like its marginals). A model without a
+correlation draws exactly what it drew before (the same uniforms, the same values). The vertices
+of the robust tuner stay the corners of the support box (a correlation does not move them).
+
+Scenes: a scene's ``[uncertainty]`` entry for a key replaces the plant's; a plant correlation
+block then keeps only the keys whose entry is still the plant's (the rest of its matrix: a
+principal sub-matrix, still valid), and the dropped keys are named in the model's ``notes``
+(and in the JSON of a Monte Carlo, per key). A scene (or ``extra``) may give its own block for
+its own keys; ``[robust] plant_uncertainty = false`` drops the plant's blocks with its entries.
+
 The ``[tolerance]`` roller errors join the same mechanism: their standard deviations are plant
 keys like any other (``"tolerance.roller_position_std_um"`` may carry a distribution), and each
 Monte-Carlo sample draws its own per-roller errors from its own seed (multi-roller fidelity).
@@ -30,6 +55,7 @@ Monte-Carlo sample draws its own per-roller errors from its own seed (multi-roll
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -40,8 +66,16 @@ import numpy as np
 from ..errors import GeometryWarning, PlantFileError, SceneError
 from .schema import KIND
 
-__all__ = ["Uncertain", "UncertaintyModel", "DISTRIBUTIONS", "parse_entries", "uncertainty_model",
-           "plant_uncertainty", "check_plant_uncertainty"]
+__all__ = ["Uncertain", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "uncertainty_model",
+           "plant_uncertainty", "check_plant_uncertainty", "CORRELATION_KEY", "PSD_TOLERANCE",
+           "correlation_entry", "restrict_correlation", "correlation_toml", "carry_correlation"]
+
+#: Reserved name of the correlation blocks in an ``[uncertainty]`` table (never a plant key).
+CORRELATION_KEY = "correlation"
+#: Smallest eigenvalue accepted in a correlation matrix (positive semi-definite within round-off).
+PSD_TOLERANCE = 1e-9
+#: Largest asymmetry ``|r_ij - r_ji|`` and diagonal error ``|r_ii - 1|`` accepted.
+SYMMETRY_TOLERANCE = 1e-12
 
 #: Distribution name -> (required keys, optional keys) besides ``dist`` and ``source``.
 DISTRIBUTIONS: Mapping[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
@@ -105,7 +139,9 @@ def _flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileError) -> dict[str, dict[str, Any]]:
     """Structural check of an ``[uncertainty]`` table (no plant needed): known distribution,
-    the parameters it needs, positive widths, a source. Returns ``key -> entry`` (flattened).
+    the parameters it needs, positive widths, a source. Returns ``key -> entry`` (flattened),
+    plus ``"correlation"`` -> its blocks (``[{"keys", "matrix", "source"}]``, checked: see the
+    module docstring) when the table has one; the result parses again to itself.
 
     Raises
     ------
@@ -114,8 +150,10 @@ def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileErro
     """
     if not isinstance(table, Mapping):
         raise err(f"{origin}: [uncertainty] = {table!r}; expected a table of 'section.key' = {{ dist = ... }}")
-    out: dict[str, dict[str, Any]] = {}
-    for key, entry in _flatten(table).items():
+    out: dict[str, Any] = {}
+    flat = _flatten(table)
+    corr = flat.pop(CORRELATION_KEY, None)
+    for key, entry in flat.items():
         where = f"uncertainty.{key!r}"
         if key not in KIND:
             raise err(f"{origin}: unknown key {where}; expected a plant parameter 'section.key' "
@@ -162,6 +200,65 @@ def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileErro
         if "low" in nums and "high" in nums and not nums["low"] < nums["high"]:
             raise err(f"{origin}: {where}: low = {entry['low']!r} >= high = {entry['high']!r}; expected low < high")
         out[key] = {"dist": dist, "source": src.strip(), **nums}
+    if corr is not None:
+        out[CORRELATION_KEY] = _parse_correlation(corr, out, origin, err)
+    return out
+
+
+def _parse_correlation(raw: Any, entries: Mapping[str, Any], origin: str, err) -> list[dict[str, Any]]:
+    """Check ``correlation`` (one table or an array of tables, see the module docstring); returns
+    the blocks as ``[{"keys": [...], "matrix": [[...]], "source": "..."}]`` (floats), a form this
+    function accepts again."""
+    blocks = raw if isinstance(raw, list) else [raw]
+    if not blocks:
+        raise err(f"{origin}: uncertainty.correlation = {raw!r}; expected a table {{ keys = [...], matrix = [[...]], "
+                  "source = \"...\" }} or an array of such tables")
+    seen: dict[str, int] = {}
+    out = []
+    for b, block in enumerate(blocks):
+        where = "uncertainty.correlation" + (f"[{b}]" if isinstance(raw, list) else "")
+        if not isinstance(block, Mapping):
+            raise err(f"{origin}: {where} = {block!r}; expected a table {{ keys = [...], matrix = [[...]], source = \"...\" }}")
+        extra = sorted(set(block) - {"keys", "matrix", "source"})
+        if extra:
+            raise err(f"{origin}: {where}: unknown field {extra[0]!r}; expected keys, matrix, source")
+        missing = [f for f in ("keys", "matrix", "source") if f not in block]
+        if missing:
+            raise err(f"{origin}: {where}: missing {missing[0]!r}; expected {{ keys = [...], matrix = [[...]], "
+                      "source = \"...\" }")
+        keys, matrix, src = block["keys"], block["matrix"], block["source"]
+        if not isinstance(src, str) or not src.strip():
+            raise err(f"{origin}: {where}.source = {src!r}; expected a non-empty string (\"fit: file\", \"estimate: why\")")
+        if not isinstance(keys, list) or len(keys) < 2 or not all(isinstance(k, str) for k in keys):
+            raise err(f"{origin}: {where}.keys = {keys!r}; expected a list of at least two 'section.key' names")
+        for k in keys:
+            if k not in entries:
+                raise err(f"{origin}: {where}.keys: {k!r} has no entry of its own in [uncertainty]; expected every "
+                          "correlated key to have its distribution in the same table")
+            if k in seen:
+                raise err(f"{origin}: {where}.keys: {k!r} appears twice" + ("" if seen[k] == b else " (in two blocks)")
+                          + "; expected each key once")
+            seen[k] = b
+        n = len(keys)
+        if (not isinstance(matrix, list) or len(matrix) != n
+                or not all(isinstance(row, list) and len(row) == n for row in matrix)):
+            raise err(f"{origin}: {where}.matrix = {matrix!r}; expected a square {n} x {n} array (one row per key)")
+        m = np.array([[_number(origin, f"{where}.matrix[{i}][{j}]", x, err) for j, x in enumerate(row)]
+                      for i, row in enumerate(matrix)])
+        for i in range(n):
+            if abs(m[i, i] - 1.0) > SYMMETRY_TOLERANCE:
+                raise err(f"{origin}: {where}.matrix[{i}][{i}] = {matrix[i][i]!r}; expected 1 (a correlation's diagonal)")
+            for j in range(n):
+                if abs(m[i, j]) > 1.0:
+                    raise err(f"{origin}: {where}.matrix[{i}][{j}] = {matrix[i][j]!r}; expected a correlation in [-1, 1]")
+                if abs(m[i, j] - m[j, i]) > SYMMETRY_TOLERANCE:
+                    raise err(f"{origin}: {where}.matrix[{i}][{j}] = {matrix[i][j]!r} but [{j}][{i}] = {matrix[j][i]!r}; "
+                              "expected a symmetric matrix")
+        low = float(np.linalg.eigvalsh(0.5 * (m + m.T)).min())
+        if low < -PSD_TOLERANCE:
+            raise err(f"{origin}: {where}.matrix = {matrix!r} has the eigenvalue {low:.3g}; expected a positive "
+                      f"semi-definite correlation (eigenvalues >= -{PSD_TOLERANCE:g})")
+        out.append({"keys": list(keys), "matrix": [[float(x) for x in row] for row in m], "source": src.strip()})
     return out
 
 
@@ -189,12 +286,58 @@ def _resolve(key: str, entry: Mapping[str, Any], nominal: float, origin: str, er
     return Uncertain(key, dist, float(lo), float(hi), float(nominal), float(sigma), entry["source"])
 
 
+#: A pivot of the semi-definite Cholesky factor at or below this is a zero (a singular direction).
+_PIVOT_ZERO = 1e-12
+
+
+def _factor(matrix: Sequence[Sequence[float]]) -> tuple[tuple[float, ...], ...]:
+    """Lower-triangular ``L`` with ``L L' = R`` for a positive semi-definite correlation ``R``
+    (Cholesky; a pivot ``<= 1e-12`` gives a zero column, so a singular ``R`` factors too), each
+    row scaled to unit length so that every ``z_i = (L n)_i`` is exactly standard normal.
+    Plain floats and ``math.fsum``: the same factor on any machine and any BLAS."""
+    n = len(matrix)
+    L = [[0.0] * n for _ in range(n)]
+    for j in range(n):
+        d = matrix[j][j] - math.fsum(L[j][k] ** 2 for k in range(j))
+        if d <= _PIVOT_ZERO:
+            continue
+        L[j][j] = math.sqrt(d)
+        for i in range(j + 1, n):
+            L[i][j] = (matrix[i][j] - math.fsum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    rows = []
+    for row in L:
+        norm = math.sqrt(math.fsum(x * x for x in row))
+        rows.append(tuple(x / norm for x in row))
+    return tuple(rows)
+
+
+@dataclass(frozen=True)
+class Correlation:
+    """One correlation block of an uncertainty model: the correlation ``matrix`` of the normal
+    scores of ``keys`` (a Gaussian copula, see the module docstring) and its source."""
+
+    keys: tuple[str, ...]
+    matrix: tuple[tuple[float, ...], ...]
+    source: str
+
+    @functools.cached_property
+    def factor(self) -> tuple[tuple[float, ...], ...]:
+        """The unit-row semi-definite Cholesky factor (:func:`_factor`), computed once."""
+        return _factor(self.matrix)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"keys": list(self.keys), "matrix": [list(r) for r in self.matrix], "source": self.source}
+
+
 @dataclass(frozen=True)
 class UncertaintyModel:
     """The uncertain parameters of one plant (sorted by key, so samples do not depend on the
-    order the file lists them in)."""
+    order the file lists them in), the correlation blocks among them and notes (e.g. a plant
+    correlation that a scene's entries cut)."""
 
     entries: tuple[Uncertain, ...]
+    correlations: tuple[Correlation, ...] = ()
+    notes: tuple[str, ...] = ()
 
     @property
     def keys(self) -> tuple[str, ...]:
@@ -204,12 +347,32 @@ class UncertaintyModel:
         return len(self.entries)
 
     def sample(self, rng: np.random.Generator) -> dict[str, float]:
-        """One draw (file units), consuming ``len(self)`` uniforms from ``rng``."""
+        """One draw (file units), consuming ``len(self)`` uniforms from ``rng``.
+
+        Without correlation each key's uniform ``u`` gives its value ``F^-1(u)``. A correlation
+        block turns its keys' uniforms into ``Phi(L Phi^-1(u))`` first (Gaussian copula, the same
+        uniforms consumed); the other keys are drawn as without it.
+        """
         u = rng.random(len(self.entries))
+        if self.correlations:
+            u = self._correlated(u)
         return {e.key: float(e.ppf(ui)) for e, ui in zip(self.entries, u)}
 
+    def _correlated(self, u: np.ndarray) -> np.ndarray:
+        from scipy.special import ndtr, ndtri
+
+        u = u.copy()
+        pos = {k: i for i, k in enumerate(self.keys)}
+        for c in self.correlations:
+            idx = [pos[k] for k in c.keys]
+            n = ndtri(np.clip(u[idx], 2.0 ** -60, None)).tolist()  # rng.random() may return 0.0
+            z = [math.fsum(a * b for a, b in zip(row, n)) for row in c.factor]
+            u[idx] = ndtr(np.array(z))
+        return u
+
     def vertices(self) -> list[dict[str, float]]:
-        """Corners of the support box (``2**len(self)`` points, first key varying slowest)."""
+        """Corners of the support box (``2**len(self)`` points, first key varying slowest); a
+        correlation does not change them (every corner stays a possible worst case)."""
         out = []
         for bits in range(2 ** len(self.entries)):
             out.append({e.key: (e.high if (bits >> (len(self.entries) - 1 - j)) & 1 else e.low)
@@ -217,16 +380,30 @@ class UncertaintyModel:
         return out
 
     def as_dict(self) -> dict[str, Any]:
-        return {e.key: e.as_dict() for e in self.entries}
+        """Key -> distribution; a correlated key also has ``correlation`` (``with``: the other
+        keys of its block and their correlations, ``source``), a key whose plant correlation a
+        scene cut a ``correlation_note``."""
+        out = {e.key: e.as_dict() for e in self.entries}
+        for c in self.correlations:
+            for i, k in enumerate(c.keys):
+                out[k]["correlation"] = {"with": {o: c.matrix[i][j] for j, o in enumerate(c.keys) if j != i},
+                                         "source": c.source}
+        for note in self.notes:
+            for k in out:
+                if f"{k!r}" in note.split(":", 1)[0]:
+                    out[k]["correlation_note"] = note
+        return out
 
 
-def _build(entries: Mapping[str, Mapping[str, Any]], plant, origin: str, err) -> UncertaintyModel:
+def _build(entries: Mapping[str, Any], plant, origin: str, err, notes: Sequence[str] = ()) -> UncertaintyModel:
     unc = []
-    for key in sorted(entries):
+    for key in sorted(k for k in entries if k != CORRELATION_KEY):
         if key not in plant.values:
             raise err(f"{origin}: unknown key uncertainty.{key!r}; the plant {plant.name!r} has no such parameter")
         unc.append(_resolve(key, entries[key], float(plant.values[key]), origin, err))
-    model = UncertaintyModel(tuple(unc))
+    corr = tuple(Correlation(tuple(b["keys"]), tuple(tuple(r) for r in b["matrix"]), b["source"])
+                 for b in entries.get(CORRELATION_KEY, ()))
+    model = UncertaintyModel(tuple(unc), corr, tuple(notes))
     # Every end of every key's support must be a valid plant (cross-checks such as static >=
     # dynamic friction and thread meshing live in the plant).
     with warnings.catch_warnings():
@@ -296,19 +473,126 @@ def uncertainty_model(plant, scene=None, extra: Mapping[str, Any] | None = None)
     model = _build(entries, plant, plant.origin, PlantFileError)
     if scene is not None and not (getattr(scene, "robust", None) or {}).get("robust", {}).get("plant_uncertainty", True):
         entries, model = {}, UncertaintyModel(())
-    merged = dict(entries)
-    origin = "<extra>"
+    merged: dict[str, Any] = dict(entries)
+    notes: list[str] = []
     if scene is not None:
         raw = (getattr(scene, "robust", None) or {}).get("uncertainty", {})
-        origin = scene.origin
-        s_entries = parse_entries(raw, origin, SceneError)
-        merged.update(s_entries)
+        s_entries = parse_entries(raw, scene.origin, SceneError)
         if s_entries:
-            model = _build(merged, plant, origin, SceneError)
+            merged = _override(merged, s_entries, scene.origin, notes)
+            model = _build(merged, plant, scene.origin, SceneError, notes)
     if extra:
-        merged.update(parse_entries(extra, "<extra>", ValueError))
-        model = _build(merged, plant, "<extra>", ValueError)
+        merged = _override(merged, parse_entries(extra, "<extra>", ValueError), "<extra>", notes)
+        model = _build(merged, plant, "<extra>", ValueError, notes)
     return model
+
+
+def restrict_correlation(block: Mapping[str, Any], keys: Sequence[str]) -> dict[str, Any] | None:
+    """The block (``{"keys", "matrix", "source"}``) restricted to those of its keys in ``keys``
+    (its principal sub-matrix, valid whenever the block is), or None when fewer than two remain."""
+    idx = [i for i, k in enumerate(block["keys"]) if k in keys]
+    if len(idx) < 2:
+        return None
+    return {"keys": [block["keys"][i] for i in idx], "matrix": [[block["matrix"][i][j] for j in idx] for i in idx],
+            "source": block["source"]}
+
+
+def _override(base: Mapping[str, Any], over: Mapping[str, Any], origin: str, notes: list[str]) -> dict[str, Any]:
+    """``base`` entries overridden key by key by ``over``'s; each correlation block of ``base``
+    keeps the keys ``over`` leaves alone (the dropped ones named in ``notes``), ``over``'s own
+    blocks are added."""
+    out = {k: v for k, v in base.items() if k != CORRELATION_KEY}
+    out.update({k: v for k, v in over.items() if k != CORRELATION_KEY})
+    blocks = []
+    for b in base.get(CORRELATION_KEY, ()):
+        cut = [k for k in b["keys"] if k in over]
+        if cut:
+            notes.append(f"{', '.join(repr(k) for k in cut)}: {origin} overrides the entr"
+                         f"{'ies' if len(cut) > 1 else 'y'}, so the plant's correlation ({b['source']}) no longer "
+                         "applies to " + ("them" if len(cut) > 1 else "it") + "; drawn independently of "
+                         + ", ".join(k for k in b["keys"] if k not in over))
+        kept = restrict_correlation(b, [k for k in b["keys"] if k not in over])
+        if kept is not None:
+            blocks.append(kept)
+    blocks += list(over.get(CORRELATION_KEY, ()))
+    if blocks:
+        out[CORRELATION_KEY] = blocks
+    return out
+
+
+def correlation_entry(keys: Sequence[str], covariance: Any, source: str) -> dict[str, Any] | None:
+    """A correlation block (``{"keys", "matrix", "source"}``) from a covariance of ``keys``
+    (any units: ``R_ij = C_ij / sqrt(C_ii C_jj)``, made exactly symmetric with a unit diagonal),
+    or None with fewer than two keys, a variance that is not positive and finite, or a matrix
+    that is not positive semi-definite within :data:`PSD_TOLERANCE`."""
+    c = np.asarray(covariance, float)
+    if len(keys) < 2 or c.shape != (len(keys), len(keys)) or not np.all(np.isfinite(c)):
+        return None
+    sd = np.sqrt(np.diag(c))
+    if not np.all(sd > 0):
+        return None
+    r = c / np.outer(sd, sd)
+    r = np.clip(0.5 * (r + r.T), -1.0, 1.0)
+    np.fill_diagonal(r, 1.0)
+    if float(np.linalg.eigvalsh(r).min()) < -PSD_TOLERANCE:
+        return None
+    return {"keys": list(keys), "matrix": [[float(x) for x in row] for row in r], "source": source}
+
+
+def carry_correlation(entries: Mapping[str, Any], base: Mapping[str, Any],
+                      block: Mapping[str, Any] | None = None, notes: list[str] | None = None) -> dict[str, Any]:
+    """An ``[uncertainty]`` table written from ``base``'s (e.g. a fitted plant from its base
+    plant): ``entries`` with ``base``'s correlation blocks restricted to the keys whose entry is
+    still ``base``'s own (:func:`restrict_correlation`), plus ``block`` (e.g. the fit's).
+
+    Parameters
+    ----------
+    entries : mapping
+        The new table's per-key entries (a ``correlation`` in it is replaced).
+    base : mapping
+        The table it was made from (raw TOML form; its ``correlation`` a table or an array).
+    block : mapping, optional
+        A new block (``{"keys", "matrix", "source"}``) over keys whose entries are new.
+    notes : list of str, optional
+        Gets one line per base block that loses keys (naming them).
+
+    Returns
+    -------
+    dict
+        The table; its ``correlation`` one table (one block) or an array (several), absent when
+        there is none.
+    """
+    out = {k: v for k, v in entries.items() if k != CORRELATION_KEY}
+    old = base.get(CORRELATION_KEY) or []
+    blocks = []
+    for b in old if isinstance(old, list) else [old]:
+        same = [k for k in b["keys"] if k in out and out[k] == base.get(k)]
+        kept = restrict_correlation(b, same)
+        if kept is not None:
+            blocks.append(kept)
+        gone = [k for k in b["keys"] if k not in same]
+        if notes is not None and gone:
+            notes.append(f"[uncertainty] correlation ({b['source']}): dropped for {', '.join(gone)} "
+                         f"({'their entries are' if len(gone) > 1 else 'its entry is'} no longer the base's)"
+                         + ("" if kept else "; nothing is left of the block"))
+    if block is not None:
+        blocks.append(dict(block))
+    if blocks:
+        out[CORRELATION_KEY] = blocks[0] if len(blocks) == 1 else blocks
+    return out
+
+
+def correlation_toml(blocks: Sequence[Mapping[str, Any]]) -> str:
+    """The TOML value of ``correlation`` (after ``correlation = ``): one inline table, or an array
+    of them; every number with all its digits (``repr``), so that the file reads back exactly."""
+    import json
+
+    def one(b: Mapping[str, Any]) -> str:
+        rows = ", ".join("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in b["matrix"])
+        keys = ", ".join(json.dumps(k) for k in b["keys"])
+        return f"{{ keys = [{keys}], matrix = [{rows}], source = {json.dumps(b['source'], ensure_ascii=False)} }}"
+
+    return one(blocks[0]) if len(blocks) == 1 else "[" + ", ".join(one(b) for b in blocks) + "]"
 
 
 def apply(plant, values: Mapping[str, float], name: str | None = None):
@@ -319,9 +603,11 @@ def apply(plant, values: Mapping[str, float], name: str | None = None):
 
 
 def describe(model: UncertaintyModel) -> list[str]:
-    """One line per uncertain parameter (for reports)."""
-    return [f"{e.key}: {e.dist} [{e.low:.4g}, {e.high:.4g}] (nominal {e.nominal:.4g}; {e.source})"
-            for e in model.entries]
+    """One line per uncertain parameter, per correlation block and per note (for reports)."""
+    return ([f"{e.key}: {e.dist} [{e.low:.4g}, {e.high:.4g}] (nominal {e.nominal:.4g}; {e.source})"
+             for e in model.entries]
+            + [f"correlation of {', '.join(c.keys)} (normal scores, Gaussian copula; {c.source})" for c in model.correlations]
+            + [f"note: {n}" for n in model.notes])
 
 
 def keys_of(models: Sequence[UncertaintyModel]) -> list[str]:

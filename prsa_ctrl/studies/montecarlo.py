@@ -445,6 +445,11 @@ def format_report(report: MonteCarloReport) -> str:
     spec = ", ".join(f"{k} <= {v:g}" if k != "no_saturation" else f"no_saturation = {str(v).lower()}"
                      for k, v in report.spec.items())
     lines.append(f"spec: {spec or '(none: yield counts finished simulations)'}")
+    joint = [k for k, e in report.uncertainty.items() if "correlation" in e]  # prsa_ctrl.plant.uncertainty
+    if joint:
+        lines.append(f"drawn jointly (Gaussian copula of the [uncertainty] correlation): {', '.join(joint)}")
+    lines += [f"note: {n}" for n in dict.fromkeys(e["correlation_note"] for e in report.uncertainty.values()
+                                                 if "correlation_note" in e)]
     for d in report.designs:
         lo, hi = d.ci95
         lines.append(f"  {d.name}: yield {100 * d.yield_:.1f} % ({d.passed}/{d.n}), 95 % CI [{100 * lo:.1f}, "

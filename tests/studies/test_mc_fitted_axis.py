@@ -94,7 +94,7 @@ def test_fitted_uncertainty_is_the_fits_intervals(fitted):
 def test_monte_carlo_draws_the_fitted_uncertainty(fitted):
     """4000 draws of the Monte Carlo's own sampler (the seeds its runs use): each key inside the
     fit's 95 % interval and spread over it, mean and standard deviation those of scipy's normal
-    truncated at the interval (to 5 standard errors), keys drawn independently."""
+    truncated at the interval (to 5 standard errors), keys drawn with the fit's correlation."""
     d, plant, fit = fitted
     scene = load_scene(d / "scene.toml")
     unc = uncertainty_model(plant, scene)
@@ -115,8 +115,18 @@ def test_monte_carlo_draws_the_fitted_uncertainty(fitted):
         # and the truncated normal's std is below the untruncated sigma by the known factor
         phi, big = norm.pdf(Z95), 2 * norm.cdf(Z95) - 1
         assert ref.std() == pytest.approx(sig * math.sqrt(1 - 2 * Z95 * phi / big), rel=1e-9)
-    c = np.corrcoef(np.array(list(cols.values())))
-    assert np.max(np.abs(c - np.eye(len(PARAMETERS)))) < 5 / math.sqrt(n)
+    # the keys are drawn with the fit's correlation (Gaussian copula): the normal scores of the
+    # draws have the correlation the fitted file writes (standard error (1 - r^2) / sqrt(n))
+    corr = plant.uncertainty["correlation"]
+    assert corr["keys"] == list(PARAMETERS)
+    scores = []
+    for k, x in cols.items():
+        v = fit["parameters"][k]["value"]
+        lo, hi = fit["parameters"][k]["ci95"]
+        scores.append(norm.ppf(truncnorm(-Z95, Z95, loc=v, scale=(hi - lo) / (2 * Z95)).cdf(x)))
+    c = np.corrcoef(np.array(scores))
+    r = np.array(corr["matrix"])
+    assert np.all(np.abs(c - r) < 5 * (1 - r ** 2) / math.sqrt(n) + 1e-12)
 
 
 @needs_data
