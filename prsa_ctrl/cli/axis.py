@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from .common import Parser, UsageError
+from .common import Parser, UsageError, flag_value
 
 __all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]
 
@@ -52,17 +52,6 @@ def wants_axis_mode(argv: Sequence[str]) -> bool:
     return False
 
 
-def _flag_value(argv: Sequence[str], flag: str) -> str | None:
-    """The value of ``flag`` (``--flag V`` or ``--flag=V``; the last one, as argparse takes it)."""
-    found = None
-    for i, a in enumerate(argv):
-        if a == flag and i + 1 < len(argv):
-            found = argv[i + 1]
-        elif a.startswith(flag + "="):
-            found = a[len(flag) + 1:]
-    return found
-
-
 def motor_log_mode(argv: Sequence[str]) -> bool:
     """True when described logs (``--log-format``) are to be fitted in motor coordinates: the
     description says ``axis = "rotary"``, or ``--plant`` names a plant that is not a linear axis
@@ -73,13 +62,13 @@ def motor_log_mode(argv: Sequence[str]) -> bool:
 
     from ..plant.plantfile import load_plant
 
-    fmt = _flag_value(argv, "--log-format")
+    fmt = flag_value(argv, "--log-format")
     if fmt is None or "--validate" in argv or any(a.startswith("--validate=") for a in argv):
         return False
     try:
         if tomllib.loads(Path(fmt).read_text(encoding="utf-8")).get("axis", "linear") == "rotary":
             return True
-        plant = _flag_value(argv, "--plant")
+        plant = flag_value(argv, "--plant")
         if plant is None:
             return False
         with warnings.catch_warnings():

@@ -42,7 +42,7 @@ from ..io.output import OutputError, Transaction, cleanup_temporaries, remove_cr
 __all__ = ["report_failure", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
            "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
            "Run", "guard", "native_output", "invoke", "invoke_inner", "describe_failure", "one_line",
-           "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic"]
+           "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic", "flag_value"]
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
 #: Exit code after SIGTERM (128 + 15): handled like Ctrl-C (workers stopped, one line, nothing written).
@@ -394,6 +394,18 @@ def describe_failure(exc: BaseException, what: str) -> tuple[int, str]:
     if isinstance(exc, ValueError):  # our own messages (e.g. no gains meet the robustness bound)
         return EXIT_NUMERICAL, f"numerical failure: {one_line(exc)}"
     return EXIT_NUMERICAL, f"numerical failure: {what} failed ({type(exc).__name__}); rerun with --verbose for details"
+
+
+def flag_value(argv, flag: str) -> str | None:
+    """The value of ``flag`` as the user typed it (``--flag V`` or ``--flag=V``; the last one, as
+    argparse takes it), or None when ``argv`` does not give it."""
+    found = None
+    for i, a in enumerate(argv):
+        if a == flag and i + 1 < len(argv):
+            found = argv[i + 1]
+        elif a.startswith(flag + "="):
+            found = a[len(flag) + 1:]
+    return found
 
 
 def one_line(exc: BaseException) -> str:

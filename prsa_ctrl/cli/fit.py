@@ -44,7 +44,7 @@ from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
 from .axis import MOTOR_COORDINATES
-from .common import EXIT_INTERRUPTED, Parser, UsageError, number
+from .common import EXIT_INTERRUPTED, Parser, UsageError, flag_value, number
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
@@ -319,14 +319,8 @@ def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
 
 
 def _typed(argv: Sequence[str], flag: str, value: float) -> str:
-    """A flag's value as the user typed it (``--flag V`` or ``--flag=V``; the last one, as
-    argparse takes it), else the default."""
-    found = None
-    for i, a in enumerate(argv):
-        if a == flag and i + 1 < len(argv):
-            found = argv[i + 1]
-        elif a.startswith(flag + "="):
-            found = a[len(flag) + 1:]
+    """A flag's value as the user typed it, else the default."""
+    found = flag_value(argv, flag)
     return found if found is not None else f"{value:g} (default)"
 
 
