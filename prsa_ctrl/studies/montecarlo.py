@@ -641,12 +641,14 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
     method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context(method),
                                initializer=_pool_init, initargs=(job, os.getpid()))
+    finished = False
     try:
         pending = {pool.submit(_pool_chunk, c) for c in chunks}
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:
                 took(f.result())
+        finished = True
     except BaseException:
         # Ctrl-C, SIGTERM or a failed chunk: stop the workers now (they ignore SIGINT, may have
         # inherited an ignored SIGTERM, and a chunk already queued would keep them running after
@@ -655,7 +657,10 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
             proc.kill()
         raise
     finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+        # Every chunk done: wait for the idle workers to exit, so that no pool thread is left for
+        # the interpreter's exit (shutdown(wait=False) there raced with it: "Exception ignored in
+        # threading._shutdown ... Bad file descriptor" after a finished run, CPython gh-83279).
+        pool.shutdown(wait=finished, cancel_futures=not finished)
 
 
 def local_cluster(workers: int):
