@@ -182,6 +182,10 @@ class Run:
         self.written: list[str] = []
         self.cause = "Ctrl-C"  # or "SIGTERM"
         self.exit_code = EXIT_INTERRUPTED  # EXIT_TERMINATED after SIGTERM
+        #: True while a solver runs that would swallow a raised KeyboardInterrupt (CasADi turns it
+        #: into a failed evaluation and prints its inputs): Ctrl-C is recorded and the watchdog
+        #: armed, and the caller's :meth:`check` at the solver's iteration boundaries raises it.
+        self.record = False
 
     def say(self, line: str) -> bool:
         """Print the final one-line message once (main thread or watchdog, whichever first)."""
@@ -239,6 +243,8 @@ class Run:
             self.timer = threading.Timer(INTERRUPT_GRACE_S, self.force_exit)
             self.timer.daemon = True
             self.timer.start()
+        if self.record:  # raised by the next check(), outside the solver
+            return
         raise KeyboardInterrupt
 
     def check(self) -> None:

@@ -44,7 +44,7 @@ from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
 from .axis import MOTOR_COORDINATES
-from .common import EXIT_INTERRUPTED, Parser, UsageError, flag_value, number
+from .common import Run, Parser, UsageError, flag_value, invoke, number, progress
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
@@ -356,7 +356,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``prsa-fit: note:`` line each (never Python's two-line format); the geometry note of a
     built-in plant only with ``--verbose``.
     """
-    argv = list(sys.argv[1:] if argv is None else argv)
+    return invoke("prsa-fit", argv, _body)
+
+
+def _body(run: Run, argv: list[str]) -> int:
+    """:func:`main` inside :func:`prsa_ctrl.cli.common.invoke` (Ctrl-C: the files this run wrote
+    taken back, one line, exit 130)."""
     from .axis import motor_log_mode, run as _axis_run, wants_axis_mode  # described logs (issue 21)
 
     motor = motor_log_mode(argv)  # described logs fitted in motor coordinates (a screw-driven plant)
@@ -372,11 +377,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            code = _main(argv, created)
+            code = _main(argv, created, run)
     except KeyboardInterrupt:
         _take_back(created)
-        print("prsa-fit: interrupted (Ctrl-C); nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        raise  # invoke: one line, exit 130
     seen = set()
     for w in caught:
         text = " ".join(str(w.message).split())
@@ -446,7 +450,7 @@ def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> N
         raise UsageError(f"{flag} {_typed(argv, flag, value)}: {bad[1]}")
 
 
-def _main(argv: Sequence[str], created: list | None = None) -> int:
+def _main(argv: Sequence[str], created: list | None = None, run: Run | None = None) -> int:
     from ..identification.data import DataError, load_frf, load_record, parse_columns
     from ..io.output import OutputError
 
@@ -527,17 +531,26 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
     from ..errors import FitError
     from ..identification.timedomain import fit_plant
 
+    run = Run("prsa-fit") if run is None else run
+    progress(run, args.verbose, f"fitting {len(records)} record(s)")
     try:
+        run.record = True  # Ctrl-C recorded while CasADi runs, raised at the fit's iterations (run.check)
         result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
                            segment_s=args.segment,
                            delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
-                           command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep")
+                           command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep",
+                           check_interrupt=run.check)
     except FitError as exc:
+        run.check()  # a fit that failed after Ctrl-C was interrupted
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
     except ValueError as exc:
+        run.check()
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        run.record = False
+    run.check()  # a Ctrl-C in a step of the fit without an iteration check: nothing written
     name = Path(args.out).stem
     fitted_from = ", ".join(Path(f).name for f in [*args.data, *([] if args.data else args.frf)])
     description = (f"{plant.name} calibrated by prsa-fit from {fitted_from}"
