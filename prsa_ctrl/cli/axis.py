@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from .common import Parser, UsageError, flag_value
+from .common import Parser, Run, UsageError, flag_value, progress
 
 __all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]
 
@@ -134,8 +134,11 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def run(argv: Sequence[str]) -> int:
-    """Entry point for the described-log modes; returns the exit code."""
+def run(argv: Sequence[str], verbose: bool = False) -> int:
+    """Entry point for the described-log modes; returns the exit code (Ctrl-C raises
+    ``KeyboardInterrupt``: :func:`prsa_ctrl.cli.fit.main` runs in
+    :func:`prsa_ctrl.cli.common.invoke`, which turns it into one line and exit 130).
+    ``verbose``: a progress line on stderr when the work starts."""
     from ..identification.axis import AxisFitError, AxisPlantError
     from ..errors import SimulationError
     from ..identification.logformat import LogFormatError
@@ -143,6 +146,7 @@ def run(argv: Sequence[str]) -> int:
 
     try:
         args = _parser().parse_args(list(argv))
+        progress(Run("prsa-fit"), verbose, "validating" if args.validate else "fitting")
         if args.validate:
             return _validate(args)
         return _fit(args)

@@ -119,7 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
                    "keys' [uncertainty] entries (default: keep the base plant's entries, replaced only where one is "
                    "narrower than the fit's 95 %% interval)")
-    p.add_argument("--verbose", action="store_true", help="also show the geometry note of a built-in base plant")
+    p.add_argument("--verbose", action="store_true", help="also show the geometry note of a built-in base plant, "
+                   "and a progress line when the fit starts")
     return p
 
 
@@ -366,7 +367,7 @@ def _body(run: Run, argv: list[str]) -> int:
 
     motor = motor_log_mode(argv)  # described logs fitted in motor coordinates (a screw-driven plant)
     if wants_axis_mode(argv) and not motor:
-        return _axis_run(argv)
+        return _axis_run([a for a in argv if a != "--verbose"], verbose="--verbose" in argv)
     mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
     if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
         print(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
