@@ -134,11 +134,13 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def run(argv: Sequence[str], verbose: bool = False) -> int:
+def run(argv: Sequence[str], verbose: bool = False, check=None) -> int:
     """Entry point for the described-log modes; returns the exit code (Ctrl-C raises
     ``KeyboardInterrupt``: :func:`prsa_ctrl.cli.fit.main` runs in
     :func:`prsa_ctrl.cli.common.invoke`, which turns it into one line and exit 130).
-    ``verbose``: a progress line on stderr when the work starts."""
+    ``verbose``: a progress line on stderr when the work starts; ``check``: called before an
+    error is reported (:meth:`prsa_ctrl.cli.common.Run.check`: an error that follows a Ctrl-C,
+    e.g. a library that swallowed the ``KeyboardInterrupt``, is the interrupt)."""
     from ..identification.axis import AxisFitError, AxisPlantError
     from ..errors import SimulationError
     from ..identification.logformat import LogFormatError
@@ -151,11 +153,17 @@ def run(argv: Sequence[str], verbose: bool = False) -> int:
             return _validate(args)
         return _fit(args)
     except (UsageError, argparse.ArgumentTypeError, LogFormatError, AxisPlantError, OutputError, ValueError) as exc:
+        (check or _no_check)()
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     except (AxisFitError, SimulationError) as exc:
+        (check or _no_check)()
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
+
+
+def _no_check() -> None:
+    """No interrupt check (:func:`run` called without one)."""
 
 
 def _load_logs(args, paths: Sequence[str]):

@@ -367,7 +367,12 @@ def _body(run: Run, argv: list[str]) -> int:
 
     motor = motor_log_mode(argv)  # described logs fitted in motor coordinates (a screw-driven plant)
     if wants_axis_mode(argv) and not motor:
-        return _axis_run([a for a in argv if a != "--verbose"], verbose="--verbose" in argv)
+        made = _new_outputs(argv)
+        try:
+            return _axis_run([a for a in argv if a != "--verbose"], verbose="--verbose" in argv, check=run.check)
+        except KeyboardInterrupt:
+            _take_back(made())  # the linear-axis path writes its files one by one
+            raise
     mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
     if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
         print(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
@@ -390,6 +395,28 @@ def _body(run: Run, argv: list[str]) -> int:
         seen.add(text)
         print(f"prsa-fit: note: {text}", file=sys.stderr)
     return code
+
+
+def _new_outputs(argv: Sequence[str]):
+    """What this run is about to write (``--out``, ``--json``, ``--traces``, the ``--plots``
+    folder and its figures): a function returning, after the run, the files and folders that
+    did not exist before it (for :func:`_take_back`)."""
+    import os
+
+    files = [v for v in (flag_value(argv, f) for f in ("--out", "--json", "--traces")) if v]
+    plots = flag_value(argv, "--plots")
+    existed = {p for p in files if os.path.lexists(p)}
+    plots_had = set(os.listdir(plots)) if plots and os.path.isdir(plots) else None
+
+    def made() -> list:
+        out = [Path(p) for p in files if p not in existed]
+        if plots and os.path.isdir(plots) and not os.path.islink(plots):
+            out += [Path(plots) / n for n in sorted(os.listdir(plots)) if plots_had is None or n not in plots_had]
+            if plots_had is None:
+                out.append(Path(plots))
+        return out
+
+    return made
 
 
 def _take_back(created: list) -> None:
