@@ -160,3 +160,18 @@ def test_a_recorded_interrupt_leaves_casadi_alone(capfd):
     assert "rhs failed" not in capfd.readouterr().err  # and printed nothing
     with pytest.raises(KeyboardInterrupt):
         run.check()  # raised at the fit's next iteration instead
+
+
+def test_ctrl_c_in_the_interpreters_shutdown_after_a_complete_run_is_no_death_by_sigint():
+    """A SIGINT after invoke's last check (the process's own shutdown, taken by a thread that
+    does not block it -- a BLAS worker -- once Python reset the handler) ended a finished
+    prsa-fit by the signal (returncode -2, no line) with its outputs written."""
+    script = ("import os, signal, sys\n"
+              "from prsa_ctrl.cli.common import invoke\n"
+              "code = invoke('prsa-x', None, lambda run, argv: (print('done', flush=True), 0)[1])\n"
+              "signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # as for a thread that does not block it\n"
+              "os.kill(os.getpid(), signal.SIGINT)\n"
+              "sys.exit(code)\n")
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert (p.returncode, p.stdout, p.stderr) == (0, "done\n", ""), p
