@@ -11,7 +11,8 @@ Exit codes, the same for every tool (``prsa-tune``, ``prsa-plot``, ``prsa-fit``,
   is written;
 * ``EXIT_INTERRUPTED`` 130 -- interrupted (Ctrl-C), at any moment up to the exit: the run stops
   within a second with one line; the outputs are all old or all new, and the line says which
-  ("no output written", or "after the outputs were written complete: ...");
+  ("no output written", or "after the outputs were written complete: ..."); only in the
+  interpreter's own shutdown, after the last check, is a Ctrl-C ignored (the run is complete);
 * ``EXIT_TERMINATED`` 143 -- the same after SIGTERM.
 
 A command is a ``body(run, argv) -> exit code`` handed to :func:`invoke`, which installs the

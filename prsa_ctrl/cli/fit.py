@@ -384,9 +384,11 @@ def _body(run: Run, argv: list[str]) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             code = _main(argv, created, run)
-    except KeyboardInterrupt:
-        _take_back(created)
-        raise  # invoke: one line, exit 130
+    except BaseException:
+        _take_back(created)  # all or nothing
+        if run.interrupted:  # also when a library turned the KeyboardInterrupt into an error
+            raise KeyboardInterrupt from None  # invoke: one line, exit 130
+        raise
     seen = set()
     for w in caught:
         text = " ".join(str(w.message).split())
