@@ -447,8 +447,10 @@ def _probe_output(path: str, inputs: Sequence[str], flag: str) -> None:
     try:
         target = check_writable(path, inputs=inputs, flag=flag)
         fd, tmp = tempfile.mkstemp(prefix=f".{target.name}{TEMP_MARK}", dir=target.parent)
-        os.close(fd)
-        os.unlink(tmp)
+        try:
+            os.close(fd)
+        finally:  # removed after a Ctrl-C too
+            os.unlink(tmp)
     except OSError as exc:
         if isinstance(exc, OutputError):
             raise
