@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from .common import Parser, UsageError, flag_value
+from .common import Parser, Run, UsageError, flag_value, progress
 
 __all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]
 
@@ -134,8 +134,13 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def run(argv: Sequence[str]) -> int:
-    """Entry point for the described-log modes; returns the exit code."""
+def run(argv: Sequence[str], verbose: bool = False, check=None) -> int:
+    """Entry point for the described-log modes; returns the exit code (Ctrl-C raises
+    ``KeyboardInterrupt``: :func:`prsa_ctrl.cli.fit.main` runs in
+    :func:`prsa_ctrl.cli.common.invoke`, which turns it into one line and exit 130).
+    ``verbose``: a progress line on stderr when the work starts; ``check``: called before an
+    error is reported (:meth:`prsa_ctrl.cli.common.Run.check`: an error that follows a Ctrl-C,
+    e.g. a library that swallowed the ``KeyboardInterrupt``, is the interrupt)."""
     from ..identification.axis import AxisFitError, AxisPlantError
     from ..errors import SimulationError
     from ..identification.logformat import LogFormatError
@@ -143,15 +148,22 @@ def run(argv: Sequence[str]) -> int:
 
     try:
         args = _parser().parse_args(list(argv))
+        progress(Run("prsa-fit"), verbose, "validating" if args.validate else "fitting")
         if args.validate:
             return _validate(args)
         return _fit(args)
     except (UsageError, argparse.ArgumentTypeError, LogFormatError, AxisPlantError, OutputError, ValueError) as exc:
+        (check or _no_check)()
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     except (AxisFitError, SimulationError) as exc:
+        (check or _no_check)()
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
+
+
+def _no_check() -> None:
+    """No interrupt check (:func:`run` called without one)."""
 
 
 def _load_logs(args, paths: Sequence[str]):

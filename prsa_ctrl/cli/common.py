@@ -11,7 +11,8 @@ Exit codes, the same for every tool (``prsa-tune``, ``prsa-plot``, ``prsa-fit``,
   is written;
 * ``EXIT_INTERRUPTED`` 130 -- interrupted (Ctrl-C), at any moment up to the exit: the run stops
   within a second with one line; the outputs are all old or all new, and the line says which
-  ("no output written", or "after the outputs were written complete: ...");
+  ("no output written", or "after the outputs were written complete: ..."); only in the
+  interpreter's own shutdown, after the last check, is a Ctrl-C ignored (the run is complete);
 * ``EXIT_TERMINATED`` 143 -- the same after SIGTERM.
 
 A command is a ``body(run, argv) -> exit code`` handed to :func:`invoke`, which installs the
@@ -182,6 +183,11 @@ class Run:
         self.written: list[str] = []
         self.cause = "Ctrl-C"  # or "SIGTERM"
         self.exit_code = EXIT_INTERRUPTED  # EXIT_TERMINATED after SIGTERM
+        #: True while a solver runs that would swallow a raised KeyboardInterrupt (CasADi turns it
+        #: into a failed evaluation and prints its inputs): Ctrl-C is recorded and the watchdog
+        #: armed, and the caller's :meth:`check` at the solver's iteration boundaries raises it.
+        self.record = False
+        self.late = False  # Ctrl-C after the command finished (:meth:`on_late`)
 
     def say(self, line: str) -> bool:
         """Print the final one-line message once (main thread or watchdog, whichever first)."""
@@ -239,7 +245,13 @@ class Run:
             self.timer = threading.Timer(INTERRUPT_GRACE_S, self.force_exit)
             self.timer.daemon = True
             self.timer.start()
+        if self.record:  # raised by the next check(), outside the solver
+            return
         raise KeyboardInterrupt
+
+    def on_late(self, signum, frame) -> None:
+        """Ctrl-C after the command finished (:func:`guard` for the process): recorded only."""
+        self.late = True
 
     def check(self) -> None:
         """Raise KeyboardInterrupt if Ctrl-C came while a solver swallowed it."""
@@ -267,7 +279,10 @@ def guard(run: Run, process: bool = False) -> Iterator[None]:
         if old is not None:
             # After an interrupt a second delivery may still be pending (a solver that caught
             # the first re-raises it): ignore it, the command is ending with exit 130 anyway.
-            signal.signal(signal.SIGINT, signal.SIG_IGN if run.interrupted else old)
+            # For the process, a late one is recorded (run.late): another thread (a BLAS worker)
+            # may take a process signal that the main thread blocks, and the old handler would
+            # then end the finished process by SIGINT.
+            signal.signal(signal.SIGINT, signal.SIG_IGN if run.interrupted else run.on_late if process else old)
             signal.signal(signal.SIGTERM, old_term)  # never left ignored: children would inherit SIG_IGN
 
 
@@ -475,7 +490,8 @@ def invoke(prog: str, argv: Sequence[str] | None, body: Callable[[Run, list[str]
     """
     run = Run(prog)
     code = invoke_inner(run, argv, body, value_flags)
-    if argv is None and code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and signal.SIGINT in _pending_signals():
+    if argv is None and code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and (
+            run.late or signal.SIGINT in _pending_signals()):
         # Ctrl-C after the command finished (blocked by guard): exit 130 with its line.
         run.reported = False
         for stream in (sys.stdout, sys.stderr):
@@ -483,6 +499,12 @@ def invoke(prog: str, argv: Sequence[str] | None, body: Callable[[Run, list[str]
                 stream.flush()
         run.say(run.interrupt_line())
         code = EXIT_INTERRUPTED
+    if argv is None and code not in (EXIT_INTERRUPTED, EXIT_TERMINATED):
+        # A Ctrl-C from here to the exit is ignored (the outputs are complete): Python's
+        # finalisation resets the handler to the default, and a thread that does not block
+        # SIGINT (a BLAS worker) would take it -- a finished run dying by SIGINT, no line.
+        with contextlib.suppress(ValueError):  # not the main thread
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
     if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) and argv is None:
         # The process itself (console script, python -m): end now with 130. A second SIGINT
         # delivery left pending by a solver, or an atexit hook of a solver library, would

@@ -44,7 +44,7 @@ from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
 from .axis import MOTOR_COORDINATES
-from .common import EXIT_INTERRUPTED, Parser, UsageError, flag_value, number
+from .common import Run, Parser, UsageError, flag_value, invoke, number, progress
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
@@ -119,7 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
                    "keys' [uncertainty] entries (default: keep the base plant's entries, replaced only where one is "
                    "narrower than the fit's 95 %% interval)")
-    p.add_argument("--verbose", action="store_true", help="also show the geometry note of a built-in base plant")
+    p.add_argument("--verbose", action="store_true", help="also show the geometry note of a built-in base plant, "
+                   "and a progress line when the fit starts")
     return p
 
 
@@ -356,12 +357,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``prsa-fit: note:`` line each (never Python's two-line format); the geometry note of a
     built-in plant only with ``--verbose``.
     """
-    argv = list(sys.argv[1:] if argv is None else argv)
+    return invoke("prsa-fit", argv, _body)
+
+
+def _body(run: Run, argv: list[str]) -> int:
+    """:func:`main` inside :func:`prsa_ctrl.cli.common.invoke` (Ctrl-C: the files this run wrote
+    taken back, one line, exit 130)."""
     from .axis import motor_log_mode, run as _axis_run, wants_axis_mode  # described logs (issue 21)
 
     motor = motor_log_mode(argv)  # described logs fitted in motor coordinates (a screw-driven plant)
     if wants_axis_mode(argv) and not motor:
-        return _axis_run(argv)
+        made = _new_outputs(argv)
+        try:
+            return _axis_run([a for a in argv if a != "--verbose"], verbose="--verbose" in argv, check=run.check)
+        except KeyboardInterrupt:
+            _take_back(made())  # the linear-axis path writes its files one by one
+            raise
     mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
     if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
         print(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
@@ -372,11 +383,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            code = _main(argv, created)
-    except KeyboardInterrupt:
-        _take_back(created)
-        print("prsa-fit: interrupted (Ctrl-C); nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+            code = _main(argv, created, run)
+    except BaseException:
+        _take_back(created)  # all or nothing
+        if run.interrupted:  # also when a library turned the KeyboardInterrupt into an error
+            raise KeyboardInterrupt from None  # invoke: one line, exit 130
+        raise
     seen = set()
     for w in caught:
         text = " ".join(str(w.message).split())
@@ -385,6 +397,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         seen.add(text)
         print(f"prsa-fit: note: {text}", file=sys.stderr)
     return code
+
+
+def _new_outputs(argv: Sequence[str]):
+    """What this run is about to write (``--out``, ``--json``, ``--traces``, the ``--plots``
+    folder and its figures): a function returning, after the run, the files and folders that
+    did not exist before it (for :func:`_take_back`)."""
+    import os
+
+    files = [v for v in (flag_value(argv, f) for f in ("--out", "--json", "--traces")) if v]
+    plots = flag_value(argv, "--plots")
+    existed = {p for p in files if os.path.lexists(p)}
+    plots_had = set(os.listdir(plots)) if plots and os.path.isdir(plots) else None
+
+    def made() -> list:
+        out = [Path(p) for p in files if p not in existed]
+        if plots and os.path.isdir(plots) and not os.path.islink(plots):
+            out += [Path(plots) / n for n in sorted(os.listdir(plots)) if plots_had is None or n not in plots_had]
+            if plots_had is None:
+                out.append(Path(plots))
+        return out
+
+    return made
 
 
 def _take_back(created: list) -> None:
@@ -413,8 +447,10 @@ def _probe_output(path: str, inputs: Sequence[str], flag: str) -> None:
     try:
         target = check_writable(path, inputs=inputs, flag=flag)
         fd, tmp = tempfile.mkstemp(prefix=f".{target.name}{TEMP_MARK}", dir=target.parent)
-        os.close(fd)
-        os.unlink(tmp)
+        try:
+            os.close(fd)
+        finally:  # removed after a Ctrl-C too
+            os.unlink(tmp)
     except OSError as exc:
         if isinstance(exc, OutputError):
             raise
@@ -446,7 +482,7 @@ def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> N
         raise UsageError(f"{flag} {_typed(argv, flag, value)}: {bad[1]}")
 
 
-def _main(argv: Sequence[str], created: list | None = None) -> int:
+def _main(argv: Sequence[str], created: list | None = None, run: Run | None = None) -> int:
     from ..identification.data import DataError, load_frf, load_record, parse_columns
     from ..io.output import OutputError
 
@@ -527,17 +563,26 @@ def _main(argv: Sequence[str], created: list | None = None) -> int:
     from ..errors import FitError
     from ..identification.timedomain import fit_plant
 
+    run = Run("prsa-fit") if run is None else run
+    progress(run, args.verbose, f"fitting {len(records)} record(s)")
     try:
+        run.record = True  # Ctrl-C recorded while CasADi runs, raised at the fit's iterations (run.check)
         result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
                            segment_s=args.segment,
                            delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
-                           command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep")
+                           command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep",
+                           check_interrupt=run.check)
     except FitError as exc:
+        run.check()  # a fit that failed after Ctrl-C was interrupted
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
     except ValueError as exc:
+        run.check()
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        run.record = False
+    run.check()  # a Ctrl-C in a step of the fit without an iteration check: nothing written
     name = Path(args.out).stem
     fitted_from = ", ".join(Path(f).name for f in [*args.data, *([] if args.data else args.frf)])
     description = (f"{plant.name} calibrated by prsa-fit from {fitted_from}"

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import casadi as ca
 import numpy as np
@@ -153,6 +153,7 @@ def fit_plant(
     min_speed_rad_s: float | None = None,
     keep_unidentified: bool = True,
     uncertainty: str = "keep",
+    check_interrupt: Callable[[], None] | None = None,
 ) -> FitResult:
     """Fit plant parameters to measured time-domain records (output error through the model).
 
@@ -228,6 +229,11 @@ def fit_plant(
         does not hold the fitted value (then the fit's, with a warning), and none where the base
         has none; ``"fit"`` the fit's own for every fitted key (a normal with the fit's sigma,
         truncated at its 95 % interval).
+    check_interrupt : callable, optional
+        Called without arguments at every Gauss-Newton iteration and after every continuous
+        simulation of the time-domain fit; it stops the fit by raising (``prsa-fit`` raises
+        ``KeyboardInterrupt`` after a Ctrl-C it recorded while CasADi ran: CasADi would turn a
+        ``KeyboardInterrupt`` raised inside it into a failed evaluation and carry on).
 
     Returns
     -------
@@ -265,7 +271,7 @@ def fit_plant(
                              segment_s=segment_s, delay_samples=delay, command_logged=command_logged,
                              max_delay_samples=max_delay_samples, substeps=substeps, max_iter=max_iter, tol=tol,
                              min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                             uncertainty=uncertainty)
+                             uncertainty=uncertainty, check_interrupt=check_interrupt)
 
         return stribeck_rounds(fit_rest if rest else None, records, plant, stribeck, delay_samples,
                                keep_unidentified=keep_unidentified, uncertainty=uncertainty)
@@ -278,7 +284,7 @@ def fit_plant(
         return _fit_records(records, start, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
                             segment_s=segment_s, delay_samples=d, substeps=substeps, max_iter=max_iter,
                             tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                            uncertainty=uncertainty)
+                            uncertainty=uncertainty, check_interrupt=check_interrupt)
 
     if delay_samples == "find":
         if not records:
@@ -296,7 +302,7 @@ def fit_plant(
 
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
-                 min_speed_rad_s, keep_unidentified, uncertainty="keep") -> FitResult:
+                 min_speed_rad_s, keep_unidentified, uncertainty="keep", check_interrupt=None) -> FitResult:
     """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
@@ -332,7 +338,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     scales = np.array([b[2] for b in bounds])
 
     fit_run = _Problem(plant, keys, scales, fidelity, records, ts, segment_s, delay_samples, substeps,
-                       min_speed_rad_s)
+                       min_speed_rad_s, check_interrupt)
     # Bounded attempts, each given up early when it stalls: a cautious trust region for the
     # parameter steps after a state-only warm-up, the same without it, a bolder one. The
     # warm-up first: without it, parameter steps taken while the trajectories are still far
@@ -383,7 +389,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
                          "one; record the excitation the warnings above name to identify them")
     for rec in validate:  # the plant as written
         vrun = _Problem(fitted, keys, scales, fidelity, [rec], ts, segment_s, delay_samples, substeps,
-                        min_speed_rad_s)
+                        min_speed_rad_s, check_interrupt)
         vsol = vrun.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
         fit_pct.update(vsol["fit_percent"])
         traces.update(vsol["traces"])
@@ -448,8 +454,10 @@ class _Problem:
     """
 
     def __init__(self, plant, keys, scales, fidelity, records, ts, segment_s, delay, substeps=1,
-                 min_speed_rad_s=0.0):
+                 min_speed_rad_s=0.0, check_interrupt=None):
         self.plant, self.records, self.ts = plant, records, ts
+        #: called at every iteration and after every simulation (:func:`fit_plant`'s ``check_interrupt``)
+        self.check = check_interrupt or (lambda: None)
         self.fidelity, self.delay = fidelity, int(delay)
         self.scales = np.asarray(scales, float)
         f, names = symbolic_rhs(plant, keys, fidelity)
@@ -663,6 +671,7 @@ class _Problem:
         g_norm = f_val = float("nan")
         g_hist: list[float] = []
         for it in range(1, int(max_iter) + warm + 1):
+            self.check()
             res, lin = self.linearise(V, X0, s)
             g_norm = float(np.max(np.abs(res)))
             g_hist.append(g_norm)
@@ -723,6 +732,7 @@ class _Problem:
             if not np.isfinite(g_norm):
                 status = "diverged"
         self.last_iterations = it
+        self.check()  # an evaluation that failed by an interrupt is no failure of the fit
         if status != "converged":
             raise FitError(
                 f"fit did not converge: Gauss-Newton status {status!r} after {it} iterations (constraint residual "
@@ -771,6 +781,8 @@ class _Problem:
                     x0=x0[:, g] / sc, p=pu)["xf"], float) * sc[:, None]
             except RuntimeError:
                 continue
+            finally:
+                self.check()
             th = np.concatenate([[x0[self.i_th, g]], xs[self.i_th]])
             v = np.diff(th) / np.diff(rec.time_s[k0:])
             if np.all(np.isfinite(v)):

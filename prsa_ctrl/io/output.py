@@ -73,8 +73,10 @@ def _probe(directory: str, what: str) -> None:
         fd, tmp = tempfile.mkstemp(prefix=f".probe{TEMP_MARK}", dir=directory)
     except OSError as exc:
         raise OutputError(f"{what}: cannot create a file in directory {directory!r} ({exc.strerror or exc})") from None
-    os.close(fd)
-    os.unlink(tmp)
+    try:
+        os.close(fd)
+    finally:  # removed after a Ctrl-C too
+        os.unlink(tmp)
 
 
 def package_roots() -> list[str]:

@@ -1,0 +1,203 @@
+"""Ctrl-C in prsa-fit (review finding): one line, exit 130, nothing written, on the screw path
+(CasADi fit, which swallowed a raised KeyboardInterrupt: it printed its inputs and the run went
+on to write its files with exit 0) and on the linear-axis path (a traceback and a death by
+SIGINT). Real subprocesses and real signals; each waits for the ``--verbose`` progress line
+that says the fit started, then sends SIGINT."""
+
+import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from prsa_ctrl import load_plant
+from prsa_ctrl.cli.common import EXIT_INTERRUPTED, Run
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.identification.data import record_from_arrays
+from prsa_ctrl.identification.timedomain import fit_plant
+
+EMPS = Path(__file__).resolve().parents[2] / "examples" / "emps"
+INTERRUPTED = "prsa-fit: interrupted (Ctrl-C); no output written"
+
+
+def _record(duration_s: float, seed: int = 0):
+    """A closed-loop load-step experiment of the paper plant simulated by the toolkit (20-bit
+    encoder angle with noise), as a Record."""
+    from prsa_ctrl.sim.engine import run
+
+    plant = load_plant()
+    load = [(0.0, 200.0), (0.25 * duration_s, 1500.0), (0.5 * duration_s, 300.0), (0.75 * duration_s, 2500.0)]
+    r = run(plant, setpoint=30.0, load=load, duration=duration_s, controller=PID(0.05, 2.0), fidelity="rigid",
+            discrete=True)
+    theta = r.states[r.state_labels.index("theta_nut")]
+    q = 2 * math.pi / plant.encoder_counts
+    rng = np.random.default_rng(seed)
+    angle = np.floor((theta + 1e-5 * rng.standard_normal(theta.shape)) / q) * q
+    return record_from_arrays("steps", r.time, r.output("torque_command"), nut_angle_rad=angle,
+                              axial_load_n=r.inputs[1])
+
+
+@pytest.fixture(scope="module")
+def screw_csv(tmp_path_factory):
+    p = tmp_path_factory.mktemp("sigint") / "steps.csv"
+    _record(1.0).to_csv(p)
+    return p
+
+
+def _interrupt_after_start(args, cwd):
+    """Run prsa-fit with ``args`` and ``--verbose``, send SIGINT once it says the fit started;
+    returns (exit code, stderr lines)."""
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    p = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.cli.fit", *args, "--verbose"], cwd=cwd, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    seen = []
+    for line in p.stderr:
+        seen.append(line.rstrip("\n"))
+        if line.startswith("prsa-fit: fitting"):
+            break
+    assert seen and seen[-1].startswith("prsa-fit: fitting"), seen
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    return p.returncode, seen + err.splitlines()
+
+
+def test_screw_path_ctrl_c_exit_130_one_line_nothing_written(screw_csv, tmp_path):
+    code, lines = _interrupt_after_start([str(screw_csv), "--out", "f.toml", "--json", "f.json", "--plots", "plots"],
+                                         tmp_path)
+    assert code == EXIT_INTERRUPTED, lines
+    assert lines == ["prsa-fit: fitting 1 record(s)", INTERRUPTED], lines  # no CasADi dump, no traceback
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_linear_axis_path_ctrl_c_exit_130_one_line_nothing_written(tmp_path):
+    code, lines = _interrupt_after_start([str(EMPS / "DATA_EMPS.mat"), "--log-format", str(EMPS / "log.toml"),
+                                          "--out", "f.toml", "--json", "f.json", "--plots", "plots"], tmp_path)
+    assert code == EXIT_INTERRUPTED, lines  # not a death by SIGINT (-2)
+    assert lines == ["prsa-fit: fitting", INTERRUPTED], lines
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_fit_plant_checks_for_an_interrupt_at_every_iteration():
+    rec = _record(0.2)
+    calls = []
+    res = fit_plant([rec], load_plant(), delay_samples=0, check_interrupt=lambda: calls.append(1))
+    # at least once per Gauss-Newton iteration of every attempt
+    assert len(calls) >= res.solver["iterations_all_attempts"] > 0
+
+    def stop_at_third():
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+
+    calls.clear()
+    with pytest.raises(KeyboardInterrupt):
+        fit_plant([rec], load_plant(), delay_samples=0, check_interrupt=stop_at_third)
+    assert len(calls) == 3  # stopped at once, not carried on
+
+
+def test_recorded_interrupt_is_raised_by_check_not_by_the_handler():
+    run = Run("prsa-fit")
+    run.record = True
+    try:
+        run.on_sigint(signal.SIGINT, None)  # inside CasADi: must not raise there
+        assert run.interrupted and run.timer is not None  # the watchdog is armed all the same
+        with pytest.raises(KeyboardInterrupt):
+            run.check()
+    finally:
+        if run.timer is not None:
+            run.timer.cancel()
+    plain = Run("prsa-fit")
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            plain.on_sigint(signal.SIGINT, None)
+    finally:
+        if plain.timer is not None:
+            plain.timer.cancel()
+
+
+def _cvodes_with_sigint(run):
+    """A long CVODES integration with a real SIGINT sent from another thread once the main
+    thread is about to enter it (the reviewer's ``rhs failed: KeyboardInterrupt`` case);
+    ``run``'s handler installed meanwhile. Returns the final state or the RuntimeError."""
+    import threading
+
+    import casadi as ca
+
+    x, p = ca.SX.sym("x"), ca.SX.sym("p")
+    step = ca.integrator("sig_step", "cvodes", {"x": x, "p": p, "ode": -p * x}, 0.0, 1.0, {"max_num_steps": 100000})
+    acc = step.mapaccum("sig_acc", 100000, ["x0"], ["xf"])
+    go = threading.Event()
+    sender = threading.Thread(target=lambda: (go.wait(), os.kill(os.getpid(), signal.SIGINT)))
+    old = signal.signal(signal.SIGINT, run.on_sigint)
+    try:
+        sender.start()
+        go.set()
+        try:
+            return acc(x0=1.0, p=1e-3)["xf"]
+        except RuntimeError as exc:
+            return exc
+    finally:
+        sender.join()
+        signal.signal(signal.SIGINT, old)
+        if run.timer is not None:
+            run.timer.cancel()
+
+
+def test_a_recorded_interrupt_leaves_casadi_alone(capfd):
+    import threading
+
+    run = Run("prsa-fit")
+    run.record = True
+    run.timer = threading.Timer(0.0, lambda: None)  # never started: no forced exit of pytest by the watchdog
+    out = _cvodes_with_sigint(run)
+    assert run.interrupted  # the signal came
+    assert not isinstance(out, RuntimeError), out  # CVODES was not made to fail
+    assert "rhs failed" not in capfd.readouterr().err  # and printed nothing
+    with pytest.raises(KeyboardInterrupt):
+        run.check()  # raised at the fit's next iteration instead
+
+
+def test_ctrl_c_in_the_interpreters_shutdown_after_a_complete_run_is_no_death_by_sigint():
+    """A SIGINT after invoke's last check (the process's own shutdown, taken by a thread that
+    does not block it -- a BLAS worker -- once Python reset the handler) ended a finished
+    prsa-fit by the signal (returncode -2, no line) with its outputs written."""
+    script = ("import os, signal, sys\n"
+              "from prsa_ctrl.cli.common import invoke\n"
+              "code = invoke('prsa-x', None, lambda run, argv: (print('done', flush=True), 0)[1])\n"
+              "signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # as for a thread that does not block it\n"
+              "os.kill(os.getpid(), signal.SIGINT)\n"
+              "sys.exit(code)\n")
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert (p.returncode, p.stdout, p.stderr) == (0, "done\n", ""), p
+
+
+def test_linear_axis_take_back_removes_only_what_the_run_made(tmp_path):
+    """The linear-axis path writes its files one by one: an interrupt between them takes back
+    the new files and the new --plots figures (and the folder if the run made it), nothing else."""
+    from prsa_ctrl.cli.fit import _new_outputs, _take_back
+
+    old_out, plots = tmp_path / "f.toml", tmp_path / "plots"
+    old_out.write_text("old\n")
+    plots.mkdir()
+    (plots / "mine.png").write_text("user's\n")
+    made = _new_outputs(["LOG.mat", "--out", str(old_out), "--json", str(tmp_path / "f.json"),
+                         "--plots", str(plots)])
+    (tmp_path / "f.json").write_text("{}\n")
+    (plots / "replay-1-x.png").write_text("png\n")
+    _take_back(made())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.toml", "plots"]
+    assert old_out.read_text() == "old\n" and sorted(os.listdir(plots)) == ["mine.png"]
+
+    new_plots = tmp_path / "new"
+    made = _new_outputs(["LOG.mat", "--out", str(tmp_path / "g.toml"), "--plots", str(new_plots)])
+    new_plots.mkdir()
+    (new_plots / "replay-1-x.png").write_text("png\n")
+    (tmp_path / "g.toml").write_text("new\n")
+    _take_back(made())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.toml", "plots"]
