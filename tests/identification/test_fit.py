@@ -272,7 +272,9 @@ def test_cli_keeps_unidentified_keys_at_base_and_prints_clean(base, tmp_path, ca
     assert "GeometryWarning" not in cap.err and "plant = cls(" not in cap.err and "geometry" not in cap.err
     assert main([str(csv), "--out", str(tmp_path / "v.toml"), "--verbose", "--fit", "nut.inertia_kg_m2"]) == 0
     err = capsys.readouterr().err.splitlines()
-    assert err and all(line.startswith("prsa-fit: note: ") for line in err)
+    # --verbose: the notes and the progress line that says the fit has started (Ctrl-C tests wait for it)
+    assert err and all(line.startswith(("prsa-fit: note: ", "prsa-fit: fitting ")) for line in err)
+    assert sum(line.startswith("prsa-fit: fitting ") for line in err) == 1
     assert any("geometry does not close" in line for line in err)
 
 
