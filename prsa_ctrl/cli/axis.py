@@ -304,6 +304,7 @@ def _fit(args) -> int:
     report["friction_map"] = {Path(lg.name).name: axis_friction_map(lg.name, lg.time_s, lg.position_m,
                                                                     lg.gain_n_per_unit * lg.command, axis_plant)
                               for lg in fit_logs}
+    report["warnings"] += [w for fmap in report["friction_map"].values() for w in fmap.get("warnings", [])]
     if held:
         report["holdout"] = {"fraction": args.holdout, "note": "fitted on the first part of each log, replayed on the "
                              "rest (closed loop from the reference, starting from the logged position at rest)",
