@@ -208,7 +208,8 @@ def _json(obj) -> str:
 def _base_plant(args, logs):
     """The base plant: ``--plant`` (a linear-axis plant file) or one built from what the logs say,
     with the schema's defaults (:data:`prsa_ctrl.plant.schema.DEFAULTS`) for every other key; the
-    drive gain, sample time, force limit and encoder resolution of the logs replace the file's."""
+    drive gain, sample time, force limit and encoder resolution of the logs fill the built plant and
+    are checked against a ``--plant`` file (:func:`_merge_base`). Returns ``(plant, warnings)``."""
     import numpy as np
 
     from ..identification.axis import LinearAxisPlant, load_axis_plant
@@ -231,7 +232,7 @@ def _base_plant(args, logs):
         vals["sensor.encoder_resolution_m"] = lg.resolution_m
         srcs["sensor.encoder_resolution_m"] = f"log: {fmt_name} [position] resolution"
     if args.plant:
-        return load_axis_plant(args.plant).with_values(vals, srcs)
+        return _merge_base(load_axis_plant(args.plant), args.plant, vals, srcs)
     if "drive.force_limit_n" not in vals:
         peak = max(float(np.max(np.abs(g.gain_n_per_unit * g.command))) for g in logs)
         vals["drive.force_limit_n"] = max(peak, 1e-3)
@@ -251,7 +252,36 @@ def _base_plant(args, logs):
         sec, key = k.split(".")
         doc.setdefault(sec, {})[key] = {"value": float(v), "source": srcs[k]}
     doc["drive"]["command_unit"] = lg.command_unit
-    return LinearAxisPlant.from_dict(doc, origin=f"base plant of {log_name}")
+    return LinearAxisPlant.from_dict(doc, origin=f"base plant of {log_name}"), []
+
+
+#: Keys the log states and a --plant base also gives: a disagreement is refused (the log's value is
+#: a fact of the record: the drive gain converts every logged command to force, the sample time is
+#: the controller's) or warned about and the base's value kept (the drive's force limit can exceed
+#: the controller's saturation, which the replay applies anyway; the encoder resolution is not fitted).
+_LOG_FACTS = ("drive.gain_n_per_unit", "sensor.sample_time_s")
+_BASE_KEPT = ("drive.force_limit_n", "sensor.encoder_resolution_m")
+_UNITS = {"drive.gain_n_per_unit": "N per command unit", "sensor.sample_time_s": "s", "drive.force_limit_n": "N",
+          "sensor.encoder_resolution_m": "m"}
+
+
+def _merge_base(base, plant_path: str, vals: dict, srcs: dict):
+    """The ``--plant`` base with what the logs say: every base value, description and
+    ``[uncertainty]`` entry is kept; a log value that disagrees with the base (relative tolerance
+    1e-6) is refused for :data:`_LOG_FACTS` and kept from the base, with a warning, for
+    :data:`_BASE_KEPT`. Returns ``(plant, warnings)``."""
+    notes = []
+    for k, v in vals.items():
+        b = base.values.get(k)
+        if b is None or math.isclose(b, v, rel_tol=1e-6):
+            continue
+        unit = _UNITS[k]
+        if k in _LOG_FACTS:
+            raise UsageError(f"--plant {plant_path}: {k} = {b:.6g} {unit} disagrees with {v:.6g} {unit} from the log "
+                             f"({srcs[k]}); expected the same value (correct the base or the log description)")
+        notes.append(f"{k}: kept {b:.6g} {unit} of --plant {plant_path}, not {v:.6g} {unit} from the log ({srcs[k]}): "
+                     "the base states the axis; the replayed controller still applies its own saturation")
+    return base, notes
 
 
 def _fit(args) -> int:
@@ -268,7 +298,7 @@ def _fit(args) -> int:
     inputs = [*args.data, args.log_format or "", *([args.plant] if args.plant else [])]
     _check({"--out": args.out, "--json": args.json}, inputs, args.plots)
     fmt, logs = _load_logs(args, args.data)
-    base = _base_plant(args, logs)
+    base, base_notes = _base_plant(args, logs)
     fit_logs, held = logs, []
     if args.holdout:
         fit_logs, held = [], []
@@ -279,12 +309,14 @@ def _fit(args) -> int:
     result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)
     text = axis_plant_toml(result.plant)
     report = result.report()
+    report["warnings"] = [*base_notes, *report["warnings"]]
     from ..identification.friction_map import axis_friction_map  # issue 21: friction curve with Stribeck (report)
 
     axis_plant = result.plant.to_plant()
     report["friction_map"] = {Path(lg.name).name: axis_friction_map(lg.name, lg.time_s, lg.position_m,
                                                                     lg.gain_n_per_unit * lg.command, axis_plant)
                               for lg in fit_logs}
+    report["warnings"] += [w for fmap in report["friction_map"].values() for w in fmap.get("warnings", [])]
     if held:
         report["holdout"] = {"fraction": args.holdout, "note": "fitted on the first part of each log, replayed on the "
                              "rest (closed loop from the reference, starting from the logged position at rest)",
@@ -307,7 +339,7 @@ def _fit(args) -> int:
               + ", ".join(f"{k} = {v['value']:.4g} {v['unit']} (95 % CI {v['ci95'][0]:.4g}..{v['ci95'][1]:.4g})"
                           for k, v in pars.items() if v["value"] is not None)
               + f"; Stribeck {fmap.get('stribeck')}" + (f"; {fmap['error']}" if "error" in fmap else ""))
-    for w in result.warnings:
+    for w in report["warnings"]:
         print(f"warning: {w}")
     print(f"coordinates: {COORDINATES}")
     print(f"wrote {args.out}" + (f" and {args.json}" if args.json else "") + (f"; plots: {', '.join(plots)}" if plots else ""))

@@ -504,12 +504,16 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
 
         keys = None
         if args.fit is not None:
-            keys = [k.strip() for k in args.fit.split(",") if k.strip()]
-            for k in keys:
+            keys = [k.strip() for k in args.fit.split(",")]
+            if keys == [""]:
+                raise UsageError(f"--fit {args.fit!r}: expected at least one key")
+            for i, k in enumerate(keys):
+                if not k:
+                    raise UsageError(f"--fit {args.fit!r}: empty item {i + 1}; expected keys separated by single commas")
                 if k not in FITTABLE:
                     raise UsageError(f"--fit {args.fit!r}: unknown key {k!r}; expected some of {', '.join(FITTABLE)}")
-            if not keys:
-                raise UsageError(f"--fit {args.fit!r}: expected at least one key")
+                if k in keys[:i]:
+                    raise UsageError(f"--fit {args.fit!r}: key {k!r} given twice; expected each key once")
         if args.delay_samples is not None and not 0 <= args.delay_samples <= 10:
             raise UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
         plant = load_plant(args.plant)

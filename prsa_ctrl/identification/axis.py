@@ -70,7 +70,7 @@ from .._lazy import module
 from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
-from ..plant.uncertainty import CORRELATION_KEY, correlation_entry, correlation_toml
+from ..plant.uncertainty import CORRELATION_KEY, carry_correlation, correlation_entry, correlation_toml
 from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
@@ -569,7 +569,23 @@ class AxisFit:
                 "parameters": {k: dict(v) for k, v in self.parameters.items()},
                 "equivalent": {k: dict(v) for k, v in self.equivalent.items()},
                 "inverse_dynamic_start": dict(self.start),
+                **self._covariance_report(),
                 "replay": [r.report() for r in self.replays], "warnings": list(self.warnings)}
+
+
+    def _covariance_report(self) -> dict:
+        """``covariance`` (the matrix the 95 % intervals come from, SI units of :data:`PARAMETERS`)
+        and ``correlation`` (over the parameters with a positive variance: the fitted ones)."""
+        cov = np.asarray(self.covariance, float)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        idx = [j for j in range(len(PARAMETERS)) if sd[j] > 0]
+        corr = cov[np.ix_(idx, idx)] / np.outer(sd[idx], sd[idx])
+        np.fill_diagonal(corr, 1.0)
+        return {"covariance": {"keys": list(PARAMETERS), "units": [_UNITS[k] for k in PARAMETERS],
+                               "matrix": cov.tolist(),
+                               "note": "entry (i, j) in units[i] x units[j]; 95 % interval = value +- t x sqrt(diagonal) "
+                                       f"(Student's t with {self.blocks - 1} degrees of freedom)"},
+                "correlation": {"keys": [PARAMETERS[j] for j in idx], "matrix": corr.tolist()}}
 
 
 def _equivalents(theta, cov, z: float) -> dict:
@@ -752,10 +768,12 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     idx = [j for j, k in enumerate(PARAMETERS) if k in unc]
     corr = correlation_entry([PARAMETERS[j] for j in idx], cov[np.ix_(idx, idx)],
                              f"fit: {names} (correlation of the fitted keys from the fit's covariance)")
-    if corr is not None:
-        unc[CORRELATION_KEY] = corr
+    # the base's entries on keys the fit leaves alone are kept, its correlation blocks restricted to them
+    kept = {k: e for k, e in base.uncertainty.items() if k not in unc and k not in {PARAMETERS[j] for j in free}}
+    unc = carry_correlation({**kept, **unc}, base.uncertainty, corr, warnings)
+    what = f"linear axis calibrated by prsa-fit from {names} (closed-loop output error)"
     fitted = LinearAxisPlant(name=name, values={**base.values, **values}, sources={**base.sources, **sources},
-                             description=f"linear axis calibrated by prsa-fit from {names} (closed-loop output error)",
+                             description=f"{base.description}; {what}" if base.description else what,
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
     return AxisFit(fitted, params, _equivalents(theta, cov, z), dict(zip(PARAMETERS, map(float, theta0))), replays,

@@ -63,6 +63,7 @@ import dataclasses
 import math
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -393,7 +394,7 @@ def fit_friction_map(plateaus: Sequence[Plateau], plant: Plant, keys: Sequence[s
     region = STRIBECK_REGION * vs_hat / plant.lead_per_rad
     n_region = int(np.sum(np.abs(w) < region))
     warns = []
-    if math.isfinite(chi2) and chi2 > 4.0:
+    if math.isfinite(chi2) and chi2 > _CHI2_WARN:
         warns.append(f"the friction law fits the plateaus with a reduced chi-square of {chi2:.3g} (expected ~1): the "
                      "intervals are widened by its square root; the friction keys held at the plant's values may be off "
                      "(fit them too: friction.no_load_torque_n_m, friction.torque_offset_n_m, friction.efficiency, "
@@ -591,6 +592,14 @@ AXIS_CURVE = {"coulomb_positive_n": "N", "coulomb_negative_n": "N", "viscous_pos
               "viscous_negative_n_s_per_m": "N s/m", "stribeck_excess_n": "N", "stribeck_velocity_m_s": "m/s"}
 
 
+#: Reduced chi-square of a plateau fit above which a warning says the friction law misses the data.
+_CHI2_WARN = 4.0
+#: Plateau fields of a linear axis (load coordinates) under their unit names: the plateau search
+#: works in the plant's coordinates, which for a linear axis are m/s and N.
+_AXIS_PLATEAU_FIELDS = {"speed_rad_s": "speed_m_s", "motor_torque_n_m": "force_n", "friction_n_m": "friction_n",
+                        "se_n_m": "se_n"}
+
+
 def _axis_curve(p: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
     """Friction force (N) at speed ``v`` (m/s): ``Fc+ + Fs g + Fv+ v`` moving in +x, ``-(Fc- + Fs g)
     + Fv- v`` in -x, ``g = exp(-(v/v_s)^2)``; ``p`` in :data:`AXIS_CURVE` order."""
@@ -613,15 +622,18 @@ def axis_friction_map(name: str, time_s, position_m, force_n, plant: Plant) -> d
     Returns
     -------
     dict
-        ``parameters`` (``{name: {"value", "ci95", "unit", "identified", ...}}``), ``plateaus``,
-        ``chi2_reduced``, ``stribeck`` (identified or why not), ``note``, ``criteria``.
+        ``parameters`` (``{name: {"value", "ci95", "unit", "identified", ...}}``), ``plateaus``
+        (in load coordinates: ``speed_m_s``, ``force_n``, ``friction_n``, ``se_n`` besides the
+        times and loads), ``chi2_reduced``, ``warnings`` (a reduced chi-square above 4),
+        ``stribeck`` (identified or why not), ``note``, ``criteria``.
     """
     rec = Record(name, np.asarray(time_s, float), np.asarray(force_n, float), np.asarray(position_m, float), None,
                  np.zeros(len(time_s)))
     plateaus = find_plateaus(rec, plant)
     out = {"note": "friction force per direction from the log's steady-speed plateaus (mean force less the "
                    "inertia's share over each plateau); a report only: the replay model stays Coulomb + viscous",
-           "plateaus": [p.as_dict() for p in plateaus],
+           "plateaus": [{_AXIS_PLATEAU_FIELDS.get(k, k): x for k, x in p.as_dict().items()} for p in plateaus],
+           "warnings": [],
            "criteria": {"speed_rtol": PLATEAU_RTOL, "smoothing_s": SMOOTH_S, "settle_fraction_dropped": SETTLE_FRACTION,
                         "min_plateau_s": MIN_PLATEAU_S, "batches": BATCHES, "stribeck_region_speeds": STRIBECK_REGION}}
     v = np.array([p.speed_rad_s for p in plateaus])
@@ -684,6 +696,11 @@ def axis_friction_map(name: str, time_s, position_m, force_n, plant: Plant) -> d
         if not free[i]:
             entry.update(ci95=[float(lo[i]), float(hi[i])], value=None)
         params[k] = entry
+    if math.isfinite(chi2) and chi2 > _CHI2_WARN:
+        out["warnings"].append(f"{Path(name).name}: the friction curve fits the plateaus with a reduced chi-square of "
+                               f"{chi2:.3g} (expected ~1, warned above {_CHI2_WARN:g}): its intervals are widened by "
+                               "its square root; the curve misses the plateaus (plateaus drift, or the friction "
+                               "depends on position or load)")
     out.update(parameters=params, chi2_reduced=chi2, solver=str(sol.message),
                interval_method="weighted least squares on the plateau means (batch-means standard errors), "
                                "covariance widened by the reduced chi-square when above 1")

@@ -672,7 +672,7 @@ def load_motor_record(path: str | Path, fmt: LogFormat, plant) -> tuple[Record, 
     """
     logged = MOTOR_CONVENTION[fmt.doc["command"].get("logged", "as-computed")]
     if fmt.doc.get("axis", "linear") == "linear":
-        return motor_record(load_axis_log(path, fmt), plant), logged
+        return _described_checks(motor_record(load_axis_log(path, fmt), plant), fmt, plant), logged
     _check_motor_plant(plant)  # before any data is read
     name, doc, src, t, h, sig = _read(path, fmt)
     angle = sig("position") * _ANGLE_UNITS[doc["position"]["unit"]]
@@ -686,7 +686,48 @@ def load_motor_record(path: str | Path, fmt: LogFormat, plant) -> tuple[Record, 
                                  axial_load_n=0.0 if load is None else load * _FORCE_UNITS[doc["load"]["unit"]])
     except ValueError as exc:
         raise LogFormatError(f"{name}: {exc}") from None
-    return rec, logged
+    return _described_checks(rec, fmt, plant), logged
+
+
+def _described_checks(rec: Record, fmt: LogFormat, plant) -> Record:
+    """The checks of a record against ``plant`` before a fit, named in the log description's terms.
+
+    * The axial load (the ``[load]`` column) at most
+      :data:`prsa_ctrl.identification.common.FRF_LOAD_MAX_RATED` times the plant's
+      ``screw.rated_load_n`` (a load in kN declared as N reads 1000 times too large).
+    * No unit slip in the torque balance (:func:`prsa_ctrl.identification.common.checked_inputs`):
+      its message names the ``[command]`` and ``[position]`` columns and their declared units
+      instead of the record's internal columns.
+
+    Raises
+    ------
+    LogFormatError
+        One line naming the log, the column and its declared unit.
+    """
+    from .common import FRF_LOAD_MAX_RATED, checked_inputs  # casadi: only on the fit's path
+
+    doc, src = fmt.doc, Path(fmt.path).name
+    rated = float(plant.rated_load_n)
+    peak = float(np.max(np.abs(rec.axial_load_n)))
+    if "load" in doc and peak > FRF_LOAD_MAX_RATED * rated:
+        raise LogFormatError(f"{rec.name}: the [load] column {doc['load']['name']!r}, declared in "
+                             f"{doc['load']['unit']} in {src}, reaches {peak / _FORCE_UNITS[doc['load']['unit']]:.6g} "
+                             f"{doc['load']['unit']} ({peak:.6g} N), {peak / rated:.3g} x the plant's "
+                             f"screw.rated_load_n {rated:.6g} N; expected at most {FRF_LOAD_MAX_RATED:g} x (the load's "
+                             "unit in the description?)")
+    try:
+        checked_inputs([rec], [], [], plant)
+    except ValueError as exc:
+        msg = str(exc)
+        if "torque balance" not in msg:
+            raise LogFormatError(msg) from None
+        cmd, pos = doc["command"], doc["position"]
+        head = msg.split(": column ")[0].split("; expected")[0].replace(
+            "torque_command_n_m", f"the [command] column {cmd['name']!r} ({cmd['unit']})").replace(
+            "nut_angle_rad", f"the [position] column {pos['name']!r} ({pos['unit']})")
+        raise LogFormatError(f"{head}: one of them is not in the unit {src} declares; expected the units the "
+                             "log holds (or, if they are right, the actuator's own plant, --plant)") from None
+    return rec
 
 
 def reconstruct_command(log: AxisLog, position_m: NDArray[np.float64] | None = None,

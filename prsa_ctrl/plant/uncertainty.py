@@ -212,7 +212,7 @@ def _parse_correlation(raw: Any, entries: Mapping[str, Any], origin: str, err) -
     blocks = raw if isinstance(raw, list) else [raw]
     if not blocks:
         raise err(f"{origin}: uncertainty.correlation = {raw!r}; expected a table {{ keys = [...], matrix = [[...]], "
-                  "source = \"...\" }} or an array of such tables")
+                  "source = \"...\" } or an array of such tables")
     seen: dict[str, int] = {}
     out = []
     for b, block in enumerate(blocks):

@@ -102,11 +102,11 @@ def test_emps_fit_json_friction_map(tmp_path, capsys):
     d = loadmat(EMPS / "DATA_EMPS.mat")
     t, force = d["t"].ravel(), d["gtau"].ravel()[0] * d["vir"].ravel()
     qm = d["qm"].ravel()
-    speeds = sorted({round(abs(pl["speed_rad_s"]), 2) for pl in fmap["plateaus"]})
+    speeds = sorted({round(abs(pl["speed_m_s"]), 2) for pl in fmap["plateaus"]})
     assert speeds == [0.04, 0.08, 0.12]  # the reference's 0.0421, 0.0825, 0.1247 m/s
     for pl in fmap["plateaus"]:
         i = int(np.argmin(np.abs(t - pl["start_s"])))
         j = int(np.argmin(np.abs(t - pl["stop_s"])))
-        assert (qm[j] - qm[i]) / (t[j] - t[i]) == pytest.approx(pl["speed_rad_s"], rel=1e-3)
+        assert (qm[j] - qm[i]) / (t[j] - t[i]) == pytest.approx(pl["speed_m_s"], rel=1e-3)
         raw = float(np.mean(force[i:j]))
-        assert pl["friction_n_m"] == pytest.approx(raw, abs=max(4 * pl["se_n_m"], 0.3))
+        assert pl["friction_n"] == pytest.approx(raw, abs=max(4 * pl["se_n"], 0.3))
