@@ -19,6 +19,7 @@ from prsa_ctrl.identification.timedomain import fit_plant
 from prsa_ctrl.plant import load_plant, steady_torque
 
 import foreign_generator as fg  # noqa: E402  (tests/identification is on sys.path)
+from test_foreign_logs import _axis, _truth as _td_truth  # noqa: E402  (the generator's axis in plant keys)
 
 STATIC, VS, TS0 = STRIBECK_KEYS
 Z95 = 1.959963984540054
@@ -29,18 +30,6 @@ def base():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return load_plant()
-
-
-def _axis(base, **kw):
-    return fg.Axis(lead_m_per_rad=base.lead_per_rad, counts_per_rev=base.encoder_counts, **kw)
-
-
-def _td_truth(base, ax):
-    rest = base.reflected_inertia_kg_m2 - base.values["nut.inertia_kg_m2"]
-    return {"nut.inertia_kg_m2": ax.inertia_kg_m2 - rest, "friction.efficiency": ax.efficiency,
-            "friction.no_load_torque_n_m": ax.no_load_torque_n_m,
-            "friction.viscous_n_m_s_per_rad": ax.viscous_n_m_s_per_rad,
-            "drive.current_loop_bandwidth_hz": ax.bandwidth_hz, "friction.torque_offset_n_m": ax.offset_torque_n_m}
 
 
 def _stribeck_truth(base, ax):
