@@ -30,6 +30,7 @@ import pytest
 
 from foreign import _axis
 from foreign import gen_ballscrew as bs
+from foreign import gen_feedaxis_load as fa
 from foreign import gen_rollerscrew as rs
 
 # ---------------------------------------------------------------------------------------------
@@ -44,6 +45,11 @@ def rs_set(tmp_path_factory):
 @pytest.fixture(scope="module")
 def bs_set(tmp_path_factory):
     return bs.generate(tmp_path_factory.mktemp("ballscrew"), seed=0)
+
+
+@pytest.fixture(scope="module")
+def fa_set(tmp_path_factory):
+    return fa.generate(tmp_path_factory.mktemp("feedaxis"), seed=0)
 
 
 def _read(path):
@@ -65,9 +71,30 @@ def _rs_si(path):
 
 
 def _bs_si(path):
+    """The ball-screw log (SI, the toolkit's default columns)."""
     d = _read(path)
     return {"time_s": d["time_s"], "angle_rad": d["nut_angle_rad"], "torque_n_m": d["torque_command_n_m"],
-            "load_n": d["axial_load_n"]}
+            "load_n": d["axial_load_n"], **({"dither_n_m": d["torque_dither_n_m"]} if "torque_dither_n_m" in d else {})}
+
+
+def _fa_si(path):
+    """The feed-axis log converted from load coordinates (mm, N) to motor coordinates."""
+    d = _read(path)
+    a = fa.truth()["screw.lead_mm"] / 1e3 / (2 * math.pi)
+    return {"time_s": d["time_s"], "angle_rad": d["position_mm"] / 1e3 / a, "torque_n_m": d["force_command_n"] * a,
+            "load_n": d["load_n"], **({"dither_n_m": d["dither_n"] * a} if "dither_n" in d else {})}
+
+
+def _set(which, rs_set, bs_set, fa_set):
+    """(generator, truth, {experiment: SI log}, delay of the logged command in samples)."""
+    if which == "rollerscrew":
+        return rs, rs_set["truth"], {k: _rs_si(v) for k, v in rs_set["logs"].items()}, 2
+    if which == "ballscrew":
+        return bs, bs_set["truth"]["computed"], {k: _bs_si(v) for k, v in bs_set["logs"]["computed"].items()}, 3
+    return fa, fa_set["truth"], {k: _fa_si(v) for k, v in fa_set["logs"].items()}, 1
+
+
+WHICH = ["rollerscrew", "ballscrew", "feedaxis"]
 
 
 def _steady_torque(truth, w, force):
@@ -91,22 +118,23 @@ def _plateau_means(log, edges, ts):
     return out
 
 
-@pytest.mark.parametrize("which", ["rollerscrew", "ballscrew"])
-def test_load_step_plateaus_hold_the_analytic_torque_balance(which, rs_set, bs_set):
-    # At 30 rad/s each load plateau's mean command is Coulomb + viscous + a F / eta (the nut loss
-    # on the whole force: here the load alone, the speed being constant).
-    if which == "rollerscrew":
-        truth, log = rs_set["truth"], _rs_si(rs_set["logs"]["loadsteps"])
-        edges, forces = [(0.0, 0.3), (0.3, 0.6), (0.6, 0.9), (0.9, 1.2)], [0.0, 3000.0, 800.0, 3000.0]
-    else:
-        truth, log = bs_set["truth"]["applied"], _bs_si(bs_set["logs"]["applied"]["loadsteps"])
-        edges, forces = [(0.0, 0.25), (0.25, 0.5), (0.5, 0.75), (0.75, 1.0)], [0.0, 1500.0, 300.0, 1500.0]
+@pytest.mark.parametrize("which", WHICH)
+def test_load_step_plateaus_hold_the_analytic_torque_balance(which, rs_set, bs_set, fa_set):
+    # At constant speed each load plateau's mean command is Coulomb + viscous + a F / eta (the
+    # nut loss on the whole force: here the load alone, the speed being constant).
+    gen, truth, logs, _ = _set(which, rs_set, bs_set, fa_set)
+    log = logs["loadsteps"]
+    n_step = gen.N_SAMPLES // 4
     ts = truth["sensor.sample_time_s"]
+    edges = [(i * n_step * ts, (i + 1) * n_step * ts) for i in range(4)]
+    forces = {"rollerscrew": [0.0, 3000.0, 800.0, 3000.0], "ballscrew": [0.0, 1500.0, 300.0, 1500.0],
+              "feedaxis": [0.0, 4000.0, 1000.0, 4000.0]}[which]
+    w = {"feedaxis": 25.0}.get(which, 30.0)
     for (tq, load, se), f in zip(_plateau_means(log, edges, ts), forces):
-        assert abs(load - f) < 3.0  # the load cell's mean (noise 5..8 N over >= 800 samples)
-        expected = _steady_torque(truth, 30.0, f) if f > 0 else (
+        assert abs(load - f) < 3.0  # the load cell's mean (noise 5..10 N over >= 800 samples)
+        expected = _steady_torque(truth, w, f) if f > 0 else (
             truth["friction.no_load_torque_n_m"] + truth["friction.torque_offset_n_m"]
-            + truth["friction.viscous_n_m_s_per_rad"] * 30.0)
+            + truth["friction.viscous_n_m_s_per_rad"] * w)
         # 4 standard errors plus the quantised speed's bias bound (one count per sample through kp)
         tol = 4.0 * se + 2e-3
         assert abs(tq - expected) < tol, (which, f, tq, expected, tol)
@@ -115,9 +143,9 @@ def test_load_step_plateaus_hold_the_analytic_torque_balance(which, rs_set, bs_s
     assert a * forces[1] * (1 / truth["friction.efficiency"] - 1) > 50 * 2e-3
 
 
-@pytest.mark.parametrize("which", ["rollerscrew", "ballscrew"])
+@pytest.mark.parametrize("which", WHICH)
 def test_frf_low_frequency_asymptote_is_one_over_j_s(which):
-    gen = rs if which == "rollerscrew" else bs
+    gen = {"rollerscrew": rs, "ballscrew": bs, "feedaxis": fa}[which]
     truth = gen.truth()
     ax = gen.AXIS
     f = np.array([2.0, 5.0])
@@ -133,16 +161,17 @@ def test_frf_low_frequency_asymptote_is_one_over_j_s(which):
     lag = w * (3.0 * truth["sensor.sample_time_s"] + 1.0 / (2 * math.pi * truth["drive.current_loop_bandwidth_hz"]))
     assert np.angle(h) == pytest.approx(-math.pi / 2 - lag, abs=2e-3)
     # the data's axis under load: the loss on the whole nut force makes it J_m + m a^2 / eta
-    fx, hx, _ = gen.bode() if which == "rollerscrew" else gen.bode("applied")
+    fx, hx, _ = gen.bode("applied") if which == "ballscrew" else gen.bode()
     j_lf = truth["nut.inertia_kg_m2"] + (truth["reflected_inertia_kg_m2"] - truth["nut.inertia_kg_m2"]) / truth["friction.efficiency"]
     b = truth["friction.viscous_n_m_s_per_rad"]
     assert abs(hx[0]) * math.hypot(j_lf * 2 * math.pi * fx[0], b) == pytest.approx(1.0, abs=3e-3)
     assert j_lf == pytest.approx(truth["frf_low_frequency_inertia_kg_m2"], rel=1e-12)
 
 
-def test_two_mass_mode_and_anti_resonance_equal_the_analytic_formulas():
-    truth = rs.truth()
-    ax = rs.AXIS
+@pytest.mark.parametrize("gen", [rs, fa], ids=["rollerscrew", "feedaxis"])
+def test_two_mass_mode_and_anti_resonance_equal_the_analytic_formulas(gen):
+    truth = gen.truth()
+    ax = gen.AXIS
     a = truth["screw.lead_mm"] / 1e3 / (2 * math.pi)
     k, m, jm, eta = truth["axial_stiffness_n_per_m"], truth["axis.moving_mass_kg"], truth["nut.inertia_kg_m2"], truth["friction.efficiency"]
     f_mode = math.sqrt(k * (a * a / (eta * jm) + 1.0 / m)) / (2 * math.pi)
@@ -154,7 +183,7 @@ def test_two_mass_mode_and_anti_resonance_equal_the_analytic_formulas():
     # sampling shift a peak of damping 1e-4 by far less than 0.2 %)
     light = _axis.Axis(**{**ax.__dict__, "damping_n_s_per_m": ax.damping_n_s_per_m * 2.5e-3})
     f = np.linspace(80.0, 220.0, 28001)
-    mag = np.abs(_axis.frf(light, rs.DRIVE, rs.SENSORS, f, truth["frf_load_n"], 2))
+    mag = np.abs(_axis.frf(light, gen.DRIVE, gen.SENSORS, f, truth["frf_load_n"], 2))
     peak = f[np.argmax(mag)]
     notch = f[np.argmin(mag)]
     assert peak == pytest.approx(f_mode, rel=2e-3)
@@ -177,22 +206,18 @@ def _closed_loop_frf(log, ts, period_s, n_periods, speed_from_angle=True):
     return freqs[lines], (Y[lines] * np.conj(D[lines])) / (U[lines] * np.conj(D[lines]))
 
 
-@pytest.mark.parametrize("which", ["rollerscrew", "ballscrew"])
-def test_closed_loop_frf_experiment_agrees_with_the_analytic_frf(which, rs_set, bs_set):
+@pytest.mark.parametrize("which", WHICH)
+def test_closed_loop_frf_experiment_agrees_with_the_analytic_frf(which, rs_set, bs_set, fa_set):
     # The time-domain simulator (RK4, quantised encoder, nonlinear friction, the loop) measured as
     # a user would measure it agrees with the exact linear part written to the FRF file.
-    if which == "rollerscrew":
-        log, gen, delay = _rs_si(rs_set["logs"]["frf_experiment"]), rs, 2
-    else:
-        d = _read(bs_set["logs"]["computed"]["frf_experiment"])
-        log = {**_bs_si(bs_set["logs"]["computed"]["frf_experiment"]), "dither_n_m": d["torque_dither_n_m"]}
-        gen, delay = bs, 3
+    gen, _, logs, delay = _set(which, rs_set, bs_set, fa_set)
+    log = logs["frf_experiment"]
     ts = gen.TS
     # the dither's period is 0.2 s; the first period (the transient from its start) is left out
     f, g = _closed_loop_frf(log, ts, 0.2, int(round(gen.N_SAMPLES * ts / 0.2)) - 1)
     # lines between the speed loop's bandwidth region and where the encoder's quantisation
     # swamps the response (|H| 0.1 rad/s per N m at 0.3..0.4 N m spread over 60 lines)
-    keep = (f >= 10.0) & (f <= (800.0 if which == "rollerscrew" else 1200.0))
+    keep = (f >= 10.0) & (f <= (1200.0 if which == "ballscrew" else 800.0))
     f, g = f[keep], g[keep]
     h = _axis.frf(gen.AXIS, gen.DRIVE, gen.SENSORS, f, gen.FRF_LOAD_N, delay)
     rel = np.abs(g / h - 1.0)
@@ -206,7 +231,7 @@ def test_closed_loop_frf_experiment_agrees_with_the_analytic_frf(which, rs_set, 
         assert np.median(np.abs(g[hi] / hw[hi] - 1.0)) > 5 * np.median(rel[hi])
 
 
-def test_generators_are_deterministic_in_the_seed(tmp_path, rs_set, bs_set):
+def test_generators_are_deterministic_in_the_seed(tmp_path, rs_set, bs_set, fa_set):
     again_rs = rs.generate(tmp_path / "rs", seed=0)
     for name, path in rs_set["logs"].items():
         assert Path(path).read_bytes() == again_rs["logs"][name].read_bytes(), name
@@ -214,6 +239,10 @@ def test_generators_are_deterministic_in_the_seed(tmp_path, rs_set, bs_set):
     other = rs.generate(tmp_path / "rs1", seed=1)
     assert other["logs"]["multisine"].read_bytes() != again_rs["logs"]["multisine"].read_bytes()
     assert other["frf"].read_bytes() != again_rs["frf"].read_bytes()
+    again_fa = fa.generate(tmp_path / "fa", seed=0)
+    for name, path in fa_set["logs"].items():
+        assert Path(path).read_bytes() == again_fa["logs"][name].read_bytes(), name
+    assert Path(fa_set["frf"]).read_bytes() == again_fa["frf"].read_bytes()
     again_bs = bs.generate(tmp_path / "bs", seed=0)
     for how in ("applied", "computed"):
         for name, path in bs_set["logs"][how].items():
@@ -250,12 +279,12 @@ def test_roller_screw_log_units_and_description(rs_set):
     assert np.max(np.abs(counts - np.round(counts))) < 1e-3
 
 
-@pytest.mark.parametrize("which", ["rollerscrew", "ballscrew"])
-def test_base_plant_loads_and_is_nominal_not_the_truth(which, rs_set, bs_set):
+@pytest.mark.parametrize("which", WHICH)
+def test_base_plant_loads_and_is_nominal_not_the_truth(which, rs_set, bs_set, fa_set):
     from prsa_ctrl.plant import load_plant
 
-    s = rs_set if which == "rollerscrew" else bs_set
-    truth = rs.truth() if which == "rollerscrew" else bs.truth()
+    s = {"rollerscrew": rs_set, "ballscrew": bs_set, "feedaxis": fa_set}[which]
+    truth = {"rollerscrew": rs, "ballscrew": bs, "feedaxis": fa}[which].truth()
     plant = load_plant(str(s["base"]))
     assert plant is not None
     text = Path(s["base"]).read_text()
@@ -265,11 +294,12 @@ def test_base_plant_loads_and_is_nominal_not_the_truth(which, rs_set, bs_set):
     assert "command_delay_samples" not in text
 
 
-def test_staircase_starts_at_rest_and_breaks_away_through_the_standstill_friction(rs_set):
+@pytest.mark.parametrize("which", WHICH)
+def test_staircase_starts_at_rest_and_breaks_away_through_the_standstill_friction(which, rs_set, bs_set, fa_set):
     # from rest the torque must exceed the breakaway level before the axis turns
-    truth = rs_set["truth"]
-    log = _rs_si(rs_set["logs"]["staircase"])
-    moved = np.argmax(np.abs(log["angle_rad"]) > 20 * 2 * math.pi / rs.SENSORS.counts_per_rev)
+    gen, truth, logs, _ = _set(which, rs_set, bs_set, fa_set)
+    log = logs["staircase"]
+    moved = np.argmax(np.abs(log["angle_rad"]) > 20 * 2 * math.pi / gen.SENSORS.counts_per_rev)
     assert moved > 0
     assert abs(log["angle_rad"][0]) < 1e-5
     assert np.max(log["torque_n_m"][: moved + 3]) > truth["friction.no_load_breakaway_torque_n_m"]
@@ -409,15 +439,19 @@ CASES = {
     "ballscrew-logs-computed": ("bs-computed", "logs", False),
     "ballscrew-frf-applied": ("bs-applied", "frf", False),
     "ballscrew-frf-computed": ("bs-computed", "frf", False),
+    "feedaxis-logs": ("fa", "logs", False),
+    "feedaxis-frf-rigid": ("fa", "frf", False),
+    "feedaxis-frf-compliant": ("fa", "frf-compliant", True),
 }
 
 
 def _command(case, tmp_path):
     which, kind, _ = CASES[case]
     out, js = tmp_path / "fitted.toml", tmp_path / "report.json"
-    if which == "rs":
-        s = rs.generate(tmp_path / "data", seed=0)
-        truth, how = s["truth"], "computed"
+    if which in ("rs", "fa"):
+        gen = rs if which == "rs" else fa
+        s = gen.generate(tmp_path / "data", seed=0)
+        truth, how = s["truth"], s["truth"]["command_logged"]
         logs = [s["logs"][n] for n in ("multisine", "loadsteps", "staircase")]
         frf = s["frf"]
         described = ["--log-format", s["log_format"]]
