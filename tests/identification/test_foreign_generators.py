@@ -370,18 +370,36 @@ def _mode_hz(report, show_text):
     return None
 
 
-def _acceptance(proc, out, json_path, truth, *, mode_expected: bool):
+DIAGNOSIS_WORDS = ("delay", "second mass", "two-mass", "mode", "resonance", "compliant", "friction", "unit",
+                   "coordinate", "stiffness", "structure")
+
+
+def _is_physics_diagnosis(line):
+    """A refusal the issue accepts names the most likely missing physics (delay, second mass,
+    friction model, wrong units or coordinates); a crash reported as exit 3 ('numerical failure:
+    ... failed (KeyError)') is not one."""
+    low = line.lower()
+    if "numerical failure" in low or "error)" in low:
+        return False
+    return any(w in low for w in DIAGNOSIS_WORDS)
+
+
+def _acceptance(proc, out, json_path, truth, *, mode_expected: bool, must_fit: bool = False):
     """The issue's acceptance on one prsa-fit run: the list of failures (empty: accepted) and a
-    summary row for the report."""
+    summary row for the report. ``must_fit``: exit 3 is not accepted (the compliant FRF fit of a
+    two-mass axis: the data have the structure the run asks for)."""
     fails = []
     row = {"exit": proc.returncode}
     if "Traceback" in proc.stderr:
         fails.append("traceback on stderr")
     if proc.returncode == 3:
         lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-        row["diagnosis"] = lines[-1] if lines else ""
-        if not lines:
-            fails.append("exit 3 without a diagnosis")
+        diag = lines[-1] if lines else ""
+        row["diagnosis"] = diag
+        if not must_fit and not _is_physics_diagnosis(diag):
+            fails.append(f"exit 3 without a diagnosis naming the missing physics: {diag[-200:]!r}")
+        if must_fit:
+            fails.append(f"exit 3 on data of the model class the run asked for: {diag[-200:]!r}")
         if Path(out).exists():
             fails.append("exit 3 but a plant file was written")
         return fails, row
@@ -397,7 +415,8 @@ def _acceptance(proc, out, json_path, truth, *, mode_expected: bool):
     report = json.loads(Path(json_path).read_text())
     j, ci = _value_ci(report, "reflected_inertia_kg_m2")
     jt = truth["reflected_inertia_kg_m2"]
-    row.update(inertia=j, ci=ci, inertia_truth=jt)
+    row.update(inertia=j, ci=ci, inertia_truth=jt, parameters=report.get("parameters"),
+               fit_percent=report.get("fit_percent"), delay_report=report.get("solver", {}).get("command_delay"))
     if j is None:
         fails.append("no reflected inertia reported")
     else:
@@ -480,6 +499,42 @@ def _command(case, tmp_path):
 def test_prsa_fit_acceptance_on_foreign_sets(case, tmp_path):
     args, out, js, truth = _command(case, tmp_path)
     proc = _run(args, tmp_path)
-    fails, row = _acceptance(proc, out, js, truth, mode_expected=CASES[case][2])
+    fails, row = _acceptance(proc, out, js, truth, mode_expected=CASES[case][2], must_fit=CASES[case][1] == "frf-compliant")
     _record(case, args, row, fails)
     assert not fails, f"{case}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
+
+
+def test_the_acceptance_oracle_refuses_what_the_issue_refuses(tmp_path, rs_set):
+    # The checker of (b) bites: a crash reported as exit 3, a file left behind, an exit 0 whose
+    # interval misses the truth, a wrong delay or current loop are each a failure; a refusal that
+    # names the missing physics, with no file, is accepted.
+    from types import SimpleNamespace
+
+    truth = rs_set["truth"]
+    out, js = tmp_path / "fitted.toml", tmp_path / "r.json"
+    crash = SimpleNamespace(returncode=3, stderr="prsa-fit: numerical failure: prsa-fit --frf b.csv failed (KeyError); rerun with --verbose\n")
+    assert _acceptance(crash, out, js, truth, mode_expected=False)[0]
+    refusal = SimpleNamespace(returncode=3, stderr="prsa-fit: bode.csv has a resonance at 150 Hz the rigid model cannot produce: a second mass (--fidelity compliant)\n")
+    assert _acceptance(refusal, out, js, truth, mode_expected=False)[0] == []
+    assert _acceptance(refusal, out, js, truth, mode_expected=True, must_fit=True)[0]
+    out.write_text("x")
+    assert _acceptance(refusal, out, js, truth, mode_expected=False)[0]  # a file left behind
+    # exit 0: the base plant with the truth's delay and current loop written, the inertia reported
+    jt = truth["reflected_inertia_kg_m2"]
+    text = Path(rs_set["base"]).read_text().replace(
+        'current_loop_bandwidth_hz = { value = 1000.0', f'command_delay_samples = {{ value = {truth["drive.command_delay_samples"]}, source = "fit" }}\ncurrent_loop_bandwidth_hz = {{ value = {truth["drive.current_loop_bandwidth_hz"]}')
+    out.write_text(text)
+    ok = SimpleNamespace(returncode=0, stderr="")
+    js.write_text(json.dumps({"reflected_inertia_kg_m2": {"value": jt * 1.01, "ci95": [jt * 0.99, jt * 1.03]}}))
+    fails, row = _acceptance(ok, out, js, truth, mode_expected=False)
+    assert fails == [], fails
+    assert row["delay"] == truth["drive.command_delay_samples"]
+    js.write_text(json.dumps({"reflected_inertia_kg_m2": {"value": jt * 1.01, "ci95": [jt * 1.005, jt * 1.015]}}))
+    assert any("outside the 95 % interval" in f for f in _acceptance(ok, out, js, truth, mode_expected=False)[0])
+    js.write_text(json.dumps({"reflected_inertia_kg_m2": {"value": jt * 1.05, "ci95": [jt * 0.9, jt * 1.1]}}))
+    assert any("3 % allowed" in f for f in _acceptance(ok, out, js, truth, mode_expected=False)[0])
+    out.write_text(Path(rs_set["base"]).read_text())  # base delay 0, current loop 1000 Hz (+54 %)
+    js.write_text(json.dumps({"reflected_inertia_kg_m2": {"value": jt, "ci95": [jt * 0.99, jt * 1.01]}}))
+    fails = _acceptance(ok, out, js, truth, mode_expected=True)[0]
+    assert any("current loop" in f for f in fails) and any("command_delay_samples" in f for f in fails)
+    assert any("axial mode" in f for f in fails)  # the base's mode (catalogue stiffness) is not the truth's
