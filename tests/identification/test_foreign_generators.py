@@ -192,7 +192,7 @@ def test_two_mass_mode_and_anti_resonance_equal_the_analytic_formulas(gen):
     assert 5.0 < f_anti < f_mode < 1800.0
 
 
-def _closed_loop_frf(log, ts, period_s, n_periods, speed_from_angle=True):
+def _closed_loop_frf(log, ts, period_s, n_periods):
     """FRF torque command -> backward-difference speed from a periodic dither, last n periods:
     the DFT of both at the dither's lines (the dither the independent signal: Y D* / U D*)."""
     n_per = int(round(period_s / ts))
