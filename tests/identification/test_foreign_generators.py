@@ -465,18 +465,21 @@ CASES = {
 
 
 def _command(case, tmp_path):
+    """The prsa-fit arguments of a case, on data of seed $PRSA_FOREIGN_SEED (default 0: the noise
+    differs per seed, the truth not)."""
     which, kind, _ = CASES[case]
+    seed = int(os.environ.get("PRSA_FOREIGN_SEED", "0"))
     out, js = tmp_path / "fitted.toml", tmp_path / "report.json"
     if which in ("rs", "fa"):
         gen = rs if which == "rs" else fa
-        s = gen.generate(tmp_path / "data", seed=0)
+        s = gen.generate(tmp_path / "data", seed=seed)
         truth, how = s["truth"], s["truth"]["command_logged"]
         logs = [s["logs"][n] for n in ("multisine", "loadsteps", "staircase")]
         frf = s["frf"]
         described = ["--log-format", s["log_format"]]
     else:
         how = which.split("-")[1]
-        s = bs.generate(tmp_path / "data", seed=0)
+        s = bs.generate(tmp_path / "data", seed=seed)
         truth = s["truth"][how]
         logs = [s["logs"][how][n] for n in ("multisine", "loadsteps", "staircase")]
         frf = s["frf"][how]
