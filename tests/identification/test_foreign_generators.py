@@ -1,0 +1,543 @@
+"""The foreign log generators of ``tests/identification/foreign/`` and prsa-fit's acceptance on them.
+
+Issue 32, part 6. The generators share no code with the toolkit and were written without reading
+its fitting code; see ``foreign/__init__.py``.
+
+(a) Fast tests of the generators themselves, against formulas written out here (not the
+    simulator's own helpers): the steady torque balance of the load steps, the FRF's
+    low-frequency asymptote, the axial mode and anti-resonance of the two-mass axis, the
+    closed-loop FRF experiment against the analytic FRF, determinism in the seed.
+(b) Acceptance (``@pytest.mark.slow``): ``prsa-fit`` (the console script, a subprocess) on the
+    generated logs and FRFs, checked against the truth as issue 32 states it: the total
+    reflected inertia within 3 % with the truth inside the reported 95 % interval, the current
+    loop within 25 %, the command delay exact, the first axial mode within 5 % where the data
+    contain it; exit 0 with a plant file that loads, or exit 3 with a one-line diagnosis and no
+    file; never exit 0 with an inertia the interval does not cover.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from foreign import _axis
+from foreign import gen_ballscrew as bs
+from foreign import gen_feedaxis_load as fa
+from foreign import gen_rollerscrew as rs
+
+# ---------------------------------------------------------------------------------------------
+# (a) the generators
+
+
+@pytest.fixture(scope="module")
+def rs_set(tmp_path_factory):
+    return rs.generate(tmp_path_factory.mktemp("rollerscrew"), seed=0)
+
+
+@pytest.fixture(scope="module")
+def bs_set(tmp_path_factory):
+    return bs.generate(tmp_path_factory.mktemp("ballscrew"), seed=0)
+
+
+@pytest.fixture(scope="module")
+def fa_set(tmp_path_factory):
+    return fa.generate(tmp_path_factory.mktemp("feedaxis"), seed=0)
+
+
+def _read(path):
+    """A generated CSV as {header: array}."""
+    with open(path) as fh:
+        names = fh.readline().strip().split(",")
+    data = np.loadtxt(path, delimiter=",", skiprows=1)
+    return {n: data[:, i] for i, n in enumerate(names)}
+
+
+def _rs_si(path):
+    """The roller-screw log in SI, converted from its units (ms, deg, rpm, % of rated, kN)."""
+    d = _read(path)
+    t = rs.truth()
+    return {"time_s": d["t_ms"] / 1e3, "angle_rad": np.radians(d["pos_deg"]),
+            "speed_rad_s": d["speed_rpm"] * math.pi / 30.0,
+            "torque_n_m": d["torque_pct"] / 100.0 * t["rated_torque_n_m"], "load_n": d["load_kN"] * 1e3,
+            **({"dither_n_m": d["dither_pct"] / 100.0 * t["rated_torque_n_m"]} if "dither_pct" in d else {})}
+
+
+def _bs_si(path):
+    """The ball-screw log (SI, the toolkit's default columns)."""
+    d = _read(path)
+    return {"time_s": d["time_s"], "angle_rad": d["nut_angle_rad"], "torque_n_m": d["torque_command_n_m"],
+            "load_n": d["axial_load_n"], **({"dither_n_m": d["torque_dither_n_m"]} if "torque_dither_n_m" in d else {})}
+
+
+def _fa_si(path):
+    """The feed-axis log converted from load coordinates (mm, N) to motor coordinates."""
+    d = _read(path)
+    a = fa.truth()["screw.lead_mm"] / 1e3 / (2 * math.pi)
+    return {"time_s": d["time_s"], "angle_rad": d["position_mm"] / 1e3 / a, "torque_n_m": d["force_command_n"] * a,
+            "load_n": d["load_n"], **({"dither_n_m": d["dither_n"] * a} if "dither_n" in d else {})}
+
+
+def _set(which, rs_set, bs_set, fa_set):
+    """(generator, truth, {experiment: SI log}, delay of the logged command in samples)."""
+    if which == "rollerscrew":
+        return rs, rs_set["truth"], {k: _rs_si(v) for k, v in rs_set["logs"].items()}, 2
+    if which == "ballscrew":
+        return bs, bs_set["truth"]["computed"], {k: _bs_si(v) for k, v in bs_set["logs"]["computed"].items()}, 3
+    return fa, fa_set["truth"], {k: _fa_si(v) for k, v in fa_set["logs"].items()}, 1
+
+
+WHICH = ["rollerscrew", "ballscrew", "feedaxis"]
+
+
+def _steady_torque(truth, w, force):
+    """Torque that holds speed w > 0 (rad/s, far above the Stribeck speed) against force > 0 (N),
+    written from the truth: Coulomb forward + viscous + the nut force over the efficiency."""
+    a = truth["screw.lead_mm"] / 1e3 / (2 * math.pi)
+    coulomb_fwd = truth["friction.no_load_torque_n_m"] + truth["friction.torque_offset_n_m"]
+    return coulomb_fwd + truth["friction.viscous_n_m_s_per_rad"] * w + a * force / truth["friction.efficiency"]
+
+
+def _plateau_means(log, edges, ts):
+    """Mean logged torque and load over the last 40 % of each [t0, t1) plateau, and the torque's
+    standard error from 10 batch means (the loop's noise is coloured)."""
+    out = []
+    for t0, t1 in edges:
+        i0, i1 = int(round((t0 + 0.6 * (t1 - t0)) / ts)), int(round(t1 / ts))
+        tq = log["torque_n_m"][i0:i1]
+        batches = np.array_split(tq, 10)
+        se = np.std([b.mean() for b in batches], ddof=1) / math.sqrt(10)
+        out.append((tq.mean(), log["load_n"][i0:i1].mean(), se))
+    return out
+
+
+@pytest.mark.parametrize("which", WHICH)
+def test_load_step_plateaus_hold_the_analytic_torque_balance(which, rs_set, bs_set, fa_set):
+    # At constant speed each load plateau's mean command is Coulomb + viscous + a F / eta (the
+    # nut loss on the whole force: here the load alone, the speed being constant).
+    gen, truth, logs, _ = _set(which, rs_set, bs_set, fa_set)
+    log = logs["loadsteps"]
+    n_step = gen.N_SAMPLES // 4
+    ts = truth["sensor.sample_time_s"]
+    edges = [(i * n_step * ts, (i + 1) * n_step * ts) for i in range(4)]
+    forces = {"rollerscrew": [0.0, 3000.0, 800.0, 3000.0], "ballscrew": [0.0, 1500.0, 300.0, 1500.0],
+              "feedaxis": [0.0, 4000.0, 1000.0, 4000.0]}[which]
+    w = {"feedaxis": 25.0}.get(which, 30.0)
+    for (tq, load, se), f in zip(_plateau_means(log, edges, ts), forces):
+        assert abs(load - f) < 3.0  # the load cell's mean (noise 5..10 N over >= 800 samples)
+        expected = _steady_torque(truth, w, f) if f > 0 else (
+            truth["friction.no_load_torque_n_m"] + truth["friction.torque_offset_n_m"]
+            + truth["friction.viscous_n_m_s_per_rad"] * w)
+        # 4 standard errors plus the quantised speed's bias bound (one count per sample through kp)
+        tol = 4.0 * se + 2e-3
+        assert abs(tq - expected) < tol, (which, f, tq, expected, tol)
+    # a broken balance (no loss on the nut force) is far outside that tolerance
+    a = truth["screw.lead_mm"] / 1e3 / (2 * math.pi)
+    assert a * forces[1] * (1 / truth["friction.efficiency"] - 1) > 50 * 2e-3
+
+
+@pytest.mark.parametrize("which", WHICH)
+def test_frf_low_frequency_asymptote_is_one_over_j_s(which):
+    gen = {"rollerscrew": rs, "ballscrew": bs, "feedaxis": fa}[which]
+    truth = gen.truth()
+    ax = gen.AXIS
+    f = np.array([2.0, 5.0])
+    w = 2 * math.pi * f
+    # lossless, frictionless axis: |H| -> 1 / (J_total w), J_total = J_m + m a^2 from the truth
+    ideal = _axis.Axis(**{**ax.__dict__, "efficiency": 1.0, "viscous_n_m_s_per_rad": 0.0})
+    j_total = truth["nut.inertia_kg_m2"] + truth["axis.moving_mass_kg"] * (truth["screw.lead_mm"] / 1e3 / (2 * math.pi)) ** 2
+    assert j_total == pytest.approx(truth["reflected_inertia_kg_m2"], rel=1e-12)
+    h = _axis.frf(ideal, gen.DRIVE, gen.SENSORS, f, truth["frf_load_n"], 2)
+    assert np.abs(h) * w * j_total == pytest.approx([1.0, 1.0], abs=2e-3)
+    # phase: -90 deg of the integrator less the lags, to first order in w: the delay (2 samples),
+    # half a sample of hold, half a sample of the backward difference, the current loop
+    lag = w * (3.0 * truth["sensor.sample_time_s"] + 1.0 / (2 * math.pi * truth["drive.current_loop_bandwidth_hz"]))
+    assert np.angle(h) == pytest.approx(-math.pi / 2 - lag, abs=2e-3)
+    # the data's axis under load: the loss on the whole nut force makes it J_m + m a^2 / eta
+    fx, hx, _ = gen.bode("applied") if which == "ballscrew" else gen.bode()
+    j_lf = truth["nut.inertia_kg_m2"] + (truth["reflected_inertia_kg_m2"] - truth["nut.inertia_kg_m2"]) / truth["friction.efficiency"]
+    b = truth["friction.viscous_n_m_s_per_rad"]
+    assert abs(hx[0]) * math.hypot(j_lf * 2 * math.pi * fx[0], b) == pytest.approx(1.0, abs=3e-3)
+    assert j_lf == pytest.approx(truth["frf_low_frequency_inertia_kg_m2"], rel=1e-12)
+
+
+@pytest.mark.parametrize("gen", [rs, fa], ids=["rollerscrew", "feedaxis"])
+def test_two_mass_mode_and_anti_resonance_equal_the_analytic_formulas(gen):
+    truth = gen.truth()
+    ax = gen.AXIS
+    a = truth["screw.lead_mm"] / 1e3 / (2 * math.pi)
+    k, m, jm, eta = truth["axial_stiffness_n_per_m"], truth["axis.moving_mass_kg"], truth["nut.inertia_kg_m2"], truth["friction.efficiency"]
+    f_mode = math.sqrt(k * (a * a / (eta * jm) + 1.0 / m)) / (2 * math.pi)
+    f_anti = math.sqrt(k / m) / (2 * math.pi)
+    assert truth["first_mode_hz"] == pytest.approx(f_mode, rel=1e-12)
+    assert truth["anti_resonance_hz"] == pytest.approx(f_anti, rel=1e-12)
+    assert truth["first_mode_lossless_hz"] == pytest.approx(math.sqrt(k * (a * a / jm + 1.0 / m)) / (2 * math.pi), rel=1e-12)
+    # the response's peak and notch, nearly undamped, sit on them (the current loop and the
+    # sampling shift a peak of damping 1e-4 by far less than 0.2 %)
+    light = _axis.Axis(**{**ax.__dict__, "damping_n_s_per_m": ax.damping_n_s_per_m * 2.5e-3})
+    f = np.linspace(80.0, 220.0, 28001)
+    mag = np.abs(_axis.frf(light, gen.DRIVE, gen.SENSORS, f, truth["frf_load_n"], 2))
+    peak = f[np.argmax(mag)]
+    notch = f[np.argmin(mag)]
+    assert peak == pytest.approx(f_mode, rel=2e-3)
+    assert notch == pytest.approx(f_anti, rel=2e-3)
+    # and the mode lies inside the data's band (the FRF file, the time-domain multisine's reach)
+    assert 5.0 < f_anti < f_mode < 1800.0
+
+
+def _closed_loop_frf(log, ts, period_s, n_periods):
+    """FRF torque command -> backward-difference speed from a periodic dither, last n periods:
+    the DFT of both at the dither's lines (the dither the independent signal: Y D* / U D*)."""
+    n_per = int(round(period_s / ts))
+    ang = log["angle_rad"]
+    y = np.diff(ang, prepend=ang[0]) / ts
+    sl = slice(ang.size - n_periods * n_per, ang.size)
+    u, y, d = log["torque_n_m"][sl], y[sl], log["dither_n_m"][sl]
+    U, Y, D = (np.fft.rfft(v) for v in (u, y, d))
+    freqs = np.fft.rfftfreq(u.size, ts)
+    lines = np.abs(D) > 0.05 * np.abs(D).max()
+    return freqs[lines], (Y[lines] * np.conj(D[lines])) / (U[lines] * np.conj(D[lines]))
+
+
+@pytest.mark.parametrize("which", WHICH)
+def test_closed_loop_frf_experiment_agrees_with_the_analytic_frf(which, rs_set, bs_set, fa_set):
+    # The time-domain simulator (RK4, quantised encoder, nonlinear friction, the loop) measured as
+    # a user would measure it agrees with the exact linear part written to the FRF file.
+    gen, _, logs, delay = _set(which, rs_set, bs_set, fa_set)
+    log = logs["frf_experiment"]
+    ts = gen.TS
+    # the dither's period is 0.2 s; the first period (the transient from its start) is left out
+    f, g = _closed_loop_frf(log, ts, 0.2, int(round(gen.N_SAMPLES * ts / 0.2)) - 1)
+    # lines between the speed loop's bandwidth region and where the encoder's quantisation
+    # swamps the response (|H| 0.1 rad/s per N m at 0.3..0.4 N m spread over 60 lines)
+    keep = (f >= 10.0) & (f <= (1200.0 if which == "ballscrew" else 800.0))
+    f, g = f[keep], g[keep]
+    h = _axis.frf(gen.AXIS, gen.DRIVE, gen.SENSORS, f, gen.FRF_LOAD_N, delay)
+    rel = np.abs(g / h - 1.0)
+    assert f.size >= 30
+    assert np.median(rel) < 0.03, np.median(rel)
+    assert np.percentile(rel, 90) < 0.10, np.percentile(rel, 90)
+    # one sample more or less of delay is clearly worse above 300 Hz (the FRF pins the delay)
+    hi = f > 300.0
+    for wrong in (delay - 1, delay + 1):
+        hw = _axis.frf(gen.AXIS, gen.DRIVE, gen.SENSORS, f, gen.FRF_LOAD_N, wrong)
+        assert np.median(np.abs(g[hi] / hw[hi] - 1.0)) > 5 * np.median(rel[hi])
+
+
+def test_generators_are_deterministic_in_the_seed(tmp_path, rs_set, bs_set, fa_set):
+    again_rs = rs.generate(tmp_path / "rs", seed=0)
+    for name, path in rs_set["logs"].items():
+        assert Path(path).read_bytes() == again_rs["logs"][name].read_bytes(), name
+    assert Path(rs_set["frf"]).read_bytes() == again_rs["frf"].read_bytes()
+    other = rs.generate(tmp_path / "rs1", seed=1)
+    assert other["logs"]["multisine"].read_bytes() != again_rs["logs"]["multisine"].read_bytes()
+    assert other["frf"].read_bytes() != again_rs["frf"].read_bytes()
+    again_fa = fa.generate(tmp_path / "fa", seed=0)
+    for name, path in fa_set["logs"].items():
+        assert Path(path).read_bytes() == again_fa["logs"][name].read_bytes(), name
+    assert Path(fa_set["frf"]).read_bytes() == again_fa["frf"].read_bytes()
+    again_bs = bs.generate(tmp_path / "bs", seed=0)
+    for how in ("applied", "computed"):
+        for name, path in bs_set["logs"][how].items():
+            assert Path(path).read_bytes() == again_bs["logs"][how][name].read_bytes(), (how, name)
+        assert Path(bs_set["frf"][how]).read_bytes() == again_bs["frf"][how].read_bytes()
+
+
+def test_applied_and_computed_logs_are_one_sample_apart(bs_set):
+    for name in ("multisine", "loadsteps", "staircase"):
+        ap = _bs_si(bs_set["logs"]["applied"][name])["torque_n_m"]
+        co = _bs_si(bs_set["logs"]["computed"][name])["torque_n_m"]
+        assert np.array_equal(ap[1:], co[:-1]), name
+        assert not np.array_equal(ap, co)
+    t = bs_set["truth"]
+    assert t["applied"]["delay_logged_to_action_samples"] == 2
+    assert t["computed"]["delay_logged_to_action_samples"] == 3
+    assert t["applied"]["drive.command_delay_samples"] == t["computed"]["drive.command_delay_samples"] == 2
+
+
+def test_roller_screw_log_units_and_description(rs_set):
+    # the log is in ms, deg, rpm, % of rated torque and kN, and its description says so
+    d = _read(rs_set["logs"]["loadsteps"])
+    assert np.diff(d["t_ms"]) == pytest.approx(0.25)
+    si = _rs_si(rs_set["logs"]["loadsteps"])
+    w = np.diff(si["angle_rad"]) / np.diff(si["time_s"])
+    assert np.median(w) == pytest.approx(30.0, rel=0.01)
+    assert np.median(si["speed_rad_s"]) == pytest.approx(30.0, rel=0.01)
+    assert np.max(np.abs(d["torque_pct"])) > 100.0  # above the rated torque in the 3000 N steps
+    text = rs_set["log_format"].read_text()
+    for token in ('unit = "ms"', 'unit = "deg"', 'unit = "rpm"', 'unit = "%"', 'unit = "kN"', 'logged = "as-computed"'):
+        assert token in text
+    # the quantised angle: every value is a whole number of encoder counts
+    counts = si["angle_rad"] / (2 * math.pi / rs.SENSORS.counts_per_rev)
+    assert np.max(np.abs(counts - np.round(counts))) < 1e-3
+
+
+@pytest.mark.parametrize("which", WHICH)
+def test_base_plant_loads_and_is_nominal_not_the_truth(which, rs_set, bs_set, fa_set):
+    from prsa_ctrl.plant import load_plant
+
+    s = {"rollerscrew": rs_set, "ballscrew": bs_set, "feedaxis": fa_set}[which]
+    truth = {"rollerscrew": rs, "ballscrew": bs, "feedaxis": fa}[which].truth()
+    plant = load_plant(str(s["base"]))
+    assert plant is not None
+    text = Path(s["base"]).read_text()
+    # the datasheet values differ from the truth where a user cannot know it
+    assert f"moving_mass_kg = {{ value = {truth['axis.moving_mass_kg']}" not in text
+    assert f"efficiency = {{ value = {truth['friction.efficiency']}" not in text
+    assert "command_delay_samples" not in text
+
+
+@pytest.mark.parametrize("which", WHICH)
+def test_staircase_starts_at_rest_and_breaks_away_through_the_standstill_friction(which, rs_set, bs_set, fa_set):
+    # from rest the torque must exceed the breakaway level before the axis turns
+    gen, truth, logs, _ = _set(which, rs_set, bs_set, fa_set)
+    log = logs["staircase"]
+    moved = np.argmax(np.abs(log["angle_rad"]) > 20 * 2 * math.pi / gen.SENSORS.counts_per_rev)
+    assert moved > 0
+    assert abs(log["angle_rad"][0]) < 1e-5
+    assert np.max(log["torque_n_m"][: moved + 3]) > truth["friction.no_load_breakaway_torque_n_m"]
+
+
+# ---------------------------------------------------------------------------------------------
+# (b) acceptance of prsa-fit on the foreign sets (issue 32)
+
+PRSA_FIT = shutil.which("prsa-fit", path=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
+
+
+def _run(args, cwd, timeout=3600):
+    env = dict(os.environ)
+    return subprocess.run([PRSA_FIT, *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
+
+
+def _value_ci(report, key):
+    entry = report.get(key) if key == "reflected_inertia_kg_m2" else report.get("parameters", {}).get(key)
+    if entry is None:
+        return None, None
+    if isinstance(entry, dict):
+        return entry.get("value"), entry.get("ci95")
+    return float(entry), None
+
+
+def _show_plant(path):
+    """``prsa-tune --show-plant`` of a written file: (exit code, text)."""
+    exe = shutil.which("prsa-tune", path=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
+    p = subprocess.run([exe, "--show-plant", str(path)], capture_output=True, text=True, timeout=300)
+    return p.returncode, p.stdout + p.stderr
+
+
+def _plant_value(text, key):
+    for line in text.splitlines():
+        parts = line.split()
+        if parts and parts[0] == key and "=" in parts:
+            return float(parts[parts.index("=") + 1])
+    return None
+
+
+def _mode_hz(report, show_text):
+    """The first axial mode the run reports (JSON: any key naming a mode in Hz), else the written
+    plant's (``prsa-tune --show-plant``: 'axial mode X Hz')."""
+    found = []
+
+    def walk(node, path):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                kl = str(k).lower()
+                if "mode" in kl and "hz" in kl and "anti" not in kl:
+                    val = v.get("value") if isinstance(v, dict) else v
+                    if isinstance(val, (int, float)):
+                        found.append(float(val))
+                walk(v, path + (k,))
+        elif isinstance(node, list):
+            for v in node:
+                walk(v, path)
+
+    walk(report, ())
+    if found:
+        return found[0]
+    if show_text:
+        import re
+
+        m = re.search(r"axial mode ([0-9.eE+-]+) Hz", show_text)
+        if m:
+            return float(m.group(1))
+    return None
+
+
+DIAGNOSIS_WORDS = ("delay", "second mass", "two-mass", "mode", "resonance", "compliant", "friction", "unit",
+                   "coordinate", "stiffness", "structure")
+
+
+def _is_physics_diagnosis(line):
+    """A refusal the issue accepts names the most likely missing physics (delay, second mass,
+    friction model, wrong units or coordinates); a crash reported as exit 3 ('numerical failure:
+    ... failed (KeyError)') is not one."""
+    low = line.lower()
+    if "numerical failure" in low or "error)" in low:
+        return False
+    return any(w in low for w in DIAGNOSIS_WORDS)
+
+
+def _acceptance(proc, out, json_path, truth, *, mode_expected: bool, must_fit: bool = False):
+    """The issue's acceptance on one prsa-fit run: the list of failures (empty: accepted) and a
+    summary row for the report. ``must_fit``: exit 3 is not accepted (the compliant FRF fit of a
+    two-mass axis: the data have the structure the run asks for)."""
+    fails = []
+    row = {"exit": proc.returncode}
+    if "Traceback" in proc.stderr:
+        fails.append("traceback on stderr")
+    if proc.returncode == 3:
+        lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+        diag = lines[-1] if lines else ""
+        row["diagnosis"] = diag
+        if not must_fit and not _is_physics_diagnosis(diag):
+            fails.append(f"exit 3 without a diagnosis naming the missing physics: {diag[-200:]!r}")
+        if must_fit:
+            fails.append(f"exit 3 on data of the model class the run asked for: {diag[-200:]!r}")
+        if Path(out).exists():
+            fails.append("exit 3 but a plant file was written")
+        return fails, row
+    if proc.returncode != 0:
+        fails.append(f"exit {proc.returncode} (expected 0 or 3): {proc.stderr.strip()[-300:]}")
+        return fails, row
+    if not Path(out).exists():
+        fails.append("exit 0 without a plant file")
+        return fails, row
+    rc, show = _show_plant(out)
+    if rc != 0:
+        fails.append(f"the written plant does not load: {show.strip()[-300:]}")
+    report = json.loads(Path(json_path).read_text())
+    j, ci = _value_ci(report, "reflected_inertia_kg_m2")
+    jt = truth["reflected_inertia_kg_m2"]
+    row.update(inertia=j, ci=ci, inertia_truth=jt, parameters=report.get("parameters"),
+               fit_percent=report.get("fit_percent"), delay_report=report.get("solver", {}).get("command_delay"))
+    if j is None:
+        fails.append("no reflected inertia reported")
+    else:
+        if abs(j / jt - 1.0) > 0.03:
+            fails.append(f"reflected inertia {j:.5g} is {100 * (j / jt - 1):+.2f} % off the truth {jt:.5g} (3 % allowed)")
+        if not ci or not (ci[0] <= jt <= ci[1]):
+            fails.append(f"truth {jt:.5g} outside the 95 % interval {ci}")
+    fc = _plant_value(show, "drive.current_loop_bandwidth_hz")
+    fct = truth["drive.current_loop_bandwidth_hz"]
+    row.update(current_loop=fc, current_loop_truth=fct)
+    if fc is None or abs(fc / fct - 1.0) > 0.25:
+        fails.append(f"current loop {fc} Hz against {fct} Hz (25 % allowed)")
+    nd = _plant_value(show, "drive.command_delay_samples")
+    row.update(delay=nd, delay_truth=truth["drive.command_delay_samples"])
+    if nd is None or int(round(nd)) != truth["drive.command_delay_samples"]:
+        fails.append(f"drive.command_delay_samples {nd} against {truth['drive.command_delay_samples']}")
+    if mode_expected:
+        fm = _mode_hz(report, show)
+        row.update(mode=fm, mode_truth=truth["first_mode_hz"])
+        if fm is None or abs(fm / truth["first_mode_hz"] - 1.0) > 0.05:
+            fails.append(f"first axial mode {fm} Hz against {truth['first_mode_hz']:.4g} Hz (5 % allowed)")
+    return fails, row
+
+
+def _record(name, args, row, fails):
+    """Append the run's row to $PRSA_FOREIGN_TABLE (a JSON-lines file) when set: the report's table."""
+    target = os.environ.get("PRSA_FOREIGN_TABLE")
+    if target:
+        with open(target, "a") as fh:
+            fh.write(json.dumps({"case": name, "args": [str(a) for a in args], **row, "fails": fails}, default=str) + "\n")
+
+
+CASES = {
+    # name: (set, how the command is built, mode expected in the data)
+    "rollerscrew-logs": ("rs", "logs", False),
+    "rollerscrew-frf-rigid": ("rs", "frf", False),
+    "rollerscrew-frf-compliant": ("rs", "frf-compliant", True),
+    "ballscrew-logs-applied": ("bs-applied", "logs", False),
+    "ballscrew-logs-computed": ("bs-computed", "logs", False),
+    "ballscrew-frf-applied": ("bs-applied", "frf", False),
+    "ballscrew-frf-computed": ("bs-computed", "frf", False),
+    "feedaxis-logs": ("fa", "logs", False),
+    "feedaxis-frf-rigid": ("fa", "frf", False),
+    "feedaxis-frf-compliant": ("fa", "frf-compliant", True),
+}
+
+
+def _command(case, tmp_path):
+    """The prsa-fit arguments of a case, on data of seed $PRSA_FOREIGN_SEED (default 0: the noise
+    differs per seed, the truth not)."""
+    which, kind, _ = CASES[case]
+    seed = int(os.environ.get("PRSA_FOREIGN_SEED", "0"))
+    out, js = tmp_path / "fitted.toml", tmp_path / "report.json"
+    if which in ("rs", "fa"):
+        gen = rs if which == "rs" else fa
+        s = gen.generate(tmp_path / "data", seed=seed)
+        truth, how = s["truth"], s["truth"]["command_logged"]
+        logs = [s["logs"][n] for n in ("multisine", "loadsteps", "staircase")]
+        frf = s["frf"]
+        described = ["--log-format", s["log_format"]]
+    else:
+        how = which.split("-")[1]
+        s = bs.generate(tmp_path / "data", seed=seed)
+        truth = s["truth"][how]
+        logs = [s["logs"][how][n] for n in ("multisine", "loadsteps", "staircase")]
+        frf = s["frf"][how]
+        described = []
+    if kind == "logs":
+        # a described log says how the command is logged; plain SI logs take the flag
+        flag = [] if described else ["--command-logged", how]
+        args = [*logs, *described, *flag, "--plant", s["base"], "--out", out, "--json", js]
+    else:
+        args = ["--frf", frf, "--frf-speed", truth["frf_speed_rad_s"], "--frf-load", truth["frf_load_n"],
+                "--command-logged", how, "--plant", s["base"], "--out", out, "--json", js]
+        if kind == "frf-compliant":
+            args += ["--fidelity", "compliant"]
+    return args, out, js, truth
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(PRSA_FIT is None, reason="the prsa-fit console script is not installed")
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_prsa_fit_acceptance_on_foreign_sets(case, tmp_path):
+    args, out, js, truth = _command(case, tmp_path)
+    proc = _run(args, tmp_path)
+    fails, row = _acceptance(proc, out, js, truth, mode_expected=CASES[case][2], must_fit=CASES[case][1] == "frf-compliant")
+    _record(case, args, row, fails)
+    assert not fails, f"{case}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
+
+
+def test_the_acceptance_oracle_refuses_what_the_issue_refuses(tmp_path, rs_set):
+    # The checker of (b) bites: a crash reported as exit 3, a file left behind, an exit 0 whose
+    # interval misses the truth, a wrong delay or current loop are each a failure; a refusal that
+    # names the missing physics, with no file, is accepted.
+    from types import SimpleNamespace
+
+    truth = rs_set["truth"]
+    out, js = tmp_path / "fitted.toml", tmp_path / "r.json"
+    crash = SimpleNamespace(returncode=3, stderr="prsa-fit: numerical failure: prsa-fit --frf b.csv failed (KeyError); rerun with --verbose\n")
+    assert _acceptance(crash, out, js, truth, mode_expected=False)[0]
+    refusal = SimpleNamespace(returncode=3, stderr="prsa-fit: bode.csv has a resonance at 150 Hz the rigid model cannot produce: a second mass (--fidelity compliant)\n")
+    assert _acceptance(refusal, out, js, truth, mode_expected=False)[0] == []
+    assert _acceptance(refusal, out, js, truth, mode_expected=True, must_fit=True)[0]
+    out.write_text("x")
+    assert _acceptance(refusal, out, js, truth, mode_expected=False)[0]  # a file left behind
+    # exit 0: the base plant with the truth's delay and current loop written, the inertia reported
+    jt = truth["reflected_inertia_kg_m2"]
+    text = Path(rs_set["base"]).read_text().replace(
+        'current_loop_bandwidth_hz = { value = 1000.0', f'command_delay_samples = {{ value = {truth["drive.command_delay_samples"]}, source = "fit" }}\ncurrent_loop_bandwidth_hz = {{ value = {truth["drive.current_loop_bandwidth_hz"]}')
+    out.write_text(text)
+    ok = SimpleNamespace(returncode=0, stderr="")
+    js.write_text(json.dumps({"reflected_inertia_kg_m2": {"value": jt * 1.01, "ci95": [jt * 0.99, jt * 1.03]}}))
+    fails, row = _acceptance(ok, out, js, truth, mode_expected=False)
+    assert fails == [], fails
+    assert row["delay"] == truth["drive.command_delay_samples"]
+    js.write_text(json.dumps({"reflected_inertia_kg_m2": {"value": jt * 1.01, "ci95": [jt * 1.005, jt * 1.015]}}))
+    assert any("outside the 95 % interval" in f for f in _acceptance(ok, out, js, truth, mode_expected=False)[0])
+    js.write_text(json.dumps({"reflected_inertia_kg_m2": {"value": jt * 1.05, "ci95": [jt * 0.9, jt * 1.1]}}))
+    assert any("3 % allowed" in f for f in _acceptance(ok, out, js, truth, mode_expected=False)[0])
+    out.write_text(Path(rs_set["base"]).read_text())  # base delay 0, current loop 1000 Hz (+54 %)
+    js.write_text(json.dumps({"reflected_inertia_kg_m2": {"value": jt, "ci95": [jt * 0.99, jt * 1.01]}}))
+    fails = _acceptance(ok, out, js, truth, mode_expected=True)[0]
+    assert any("current loop" in f for f in fails) and any("command_delay_samples" in f for f in fails)
+    assert any("axial mode" in f for f in fails)  # the base's mode (catalogue stiffness) is not the truth's
