@@ -53,7 +53,7 @@ from .sampled import zoh
 control = module("control")  # only Filter.continuous_tf needs python-control
 
 __all__ = ["Filter", "DiscreteBiquad", "FirstOrderLowPass", "SecondOrderLowPass", "Notch", "GeneralBiquad",
-           "METHODS", "filter_from_dict", "PLACES", "LoopFilter", "loop_filters"]
+           "METHODS", "filter_from_dict", "PLACES", "LoopFilter", "loop_filters", "NYQUIST_MARGIN"]
 
 #: Discretisation methods of :meth:`Filter.biquad`.
 METHODS = ("tustin", "zoh", "matched")
@@ -83,6 +83,20 @@ MIN_HZ = 1e-6
 #: :meth:`Filter.biquad` discretises: below it the biquad's coefficients cancel to round-off
 #: (its DC gain is off by ~1e-16/(w0 ts)^2, 1e-6 at this limit) or leave the float range.
 MIN_W_TS = 1e-5
+#: Fraction of the Nyquist frequency ``1/(2 ts)`` a filter frequency must stay below it:
+#: :meth:`Filter.biquad` refuses frequencies above ``(1 - NYQUIST_MARGIN)/(2 ts)`` (1980 Hz at
+#: 4 kHz). Closer, the Tustin biquad prewarped there has a pole next to ``z = -1`` (a first-order
+#: low-pass at ``f``: ``z = -(1 - c)/(1 + c)``, ``c = tan(pi (1/2 - f ts))``; -0.969 at the
+#: margin, -0.999998 at 1999.999 Hz of 4 kHz): the filter does almost nothing at the drive's rate,
+#: and the tuner's error sums to infinity need millions of samples (issue 31: prsa-tune ran for
+#: minutes on a notch at 1999.99 Hz).
+NYQUIST_MARGIN = 0.01
+
+
+def _shown(v: float) -> str:
+    """A frequency as given: every digit (``repr``), ``2500`` for ``2500.0``."""
+    s = repr(float(v))
+    return s[:-2] if s.endswith(".0") else s
 
 
 def _hz(name: str, v: object) -> float:
@@ -245,9 +259,10 @@ class Filter:
     def _check_nyquist(self, ts: float) -> None:
         hi = self._highest_hz()
         nyq = 0.5 / ts
-        if not hi < nyq:
-            raise ValueError(f"{self.kind} frequency {hi:g} Hz at ts = {ts:g} s; expected below the Nyquist "
-                             f"frequency {nyq:g} Hz")
+        if not hi <= nyq * (1.0 - NYQUIST_MARGIN):
+            raise ValueError(f"{self.kind} frequency {_shown(hi)} Hz at ts = {ts:g} s; expected below the Nyquist "
+                             f"frequency {nyq:g} Hz by at least {NYQUIST_MARGIN:.0%} of it (at most "
+                             f"{nyq * (1.0 - NYQUIST_MARGIN):g} Hz)")
         lo = self._lowest_hz()
         if 2.0 * math.pi * lo * ts < MIN_W_TS:
             raise ValueError(f"ts = {ts!r} s for a {self.kind} at {lo:g} Hz; expected ts >= "
@@ -269,7 +284,8 @@ class Filter:
         Parameters
         ----------
         ts : float, s
-            Sample time; the filter's frequencies must lie below ``1/(2 ts)``.
+            Sample time; the filter's frequencies must lie below ``1/(2 ts)`` by at least
+            :data:`NYQUIST_MARGIN` of it.
         method : {"tustin", "zoh", "matched"}
         prewarp : bool
             Tustin only.

@@ -194,6 +194,11 @@ def test_hypothesis_tustin_matches_c2d_and_is_stable_with_unit_dc(case):
     (lambda: FirstOrderLowPass(2500.0).biquad(TS), r"lowpass1 frequency 2500 Hz at ts = 0.00025 s; expected "
                                                   r"below the Nyquist frequency 2000 Hz"),
     (lambda: GeneralBiquad(2100.0, 0.1, 100.0, 0.5).biquad(TS), r"below the Nyquist frequency 2000 Hz"),
+    # issue 31: within 1 % of Nyquist (the tuner's error sums need millions of samples there)
+    (lambda: Notch(1999.99, 40.0).biquad(TS), r"notch frequency 1999.99 Hz at ts = 0.00025 s; expected below the "
+                                              r"Nyquist frequency 2000 Hz by at least 1% of it \(at most 1980 Hz\)"),
+    (lambda: FirstOrderLowPass(1999.999).biquad(TS, "matched"), r"lowpass1 frequency 1999.999 Hz .*at most 1980 Hz"),
+    (lambda: GeneralBiquad(100.0, 0.1, 1990.0, 0.5).biquad(TS), r"biquad frequency 1990 Hz .*at most 1980 Hz"),
     (lambda: Notch(100.0, 10.0).biquad(-1.0), r"ts = -1.0; expected a finite number > 0"),
     (lambda: Notch(100.0, 10.0).biquad(TS, "euler"), r"method = 'euler'; expected one of tustin, zoh, matched"),
     (lambda: filter_from_dict({"kind": "comb"}), r"filter kind = 'comb'; expected one of"),
