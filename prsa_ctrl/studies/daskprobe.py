@@ -7,7 +7,8 @@ a 3 EiB frame length ("needs more memory than this machine has"); a port that cl
 ended the run after the tuning with "CommClosedError" (issue 31). :func:`probe_scheduler` asks
 first, within one deadline:
 
-1. a TCP connection (``socket.create_connection``);
+1. a TCP connection (the host name resolved on a thread of its own: ``getaddrinfo`` has no
+   timeout);
 2. the peer's handshake, read on the raw socket: a Dask listener sends it as soon as it accepts
    (``distributed.comm.core.Listener.on_connection`` writes before it reads): an 8-byte frame
    length, at most :data:`MAX_HANDSHAKE_BYTES`, then frames that decode to Dask's handshake
@@ -23,8 +24,10 @@ most until the deadline.
 from __future__ import annotations
 
 import math
+import queue
 import socket
 import struct
+import threading
 import time
 
 from ..errors import SchedulerProbeError
@@ -60,15 +63,54 @@ def _recv_exactly(sock: socket.socket, n: int, deadline: float, what: str) -> by
     return bytes(buf)
 
 
-def _handshake(host: str, port: int, deadline: float) -> None:
-    """Steps 1 and 2 of the module's check."""
-    left = deadline - time.monotonic()
+def _resolve(host: str, port: int, deadline: float) -> list:
+    """``socket.getaddrinfo`` bounded by the deadline (it has no timeout of its own: it runs on a
+    daemon thread that is left behind if the resolver does not answer in time)."""
+    out: queue.Queue = queue.Queue(1)
+
+    def work() -> None:
+        try:
+            out.put((True, socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)))
+        except (OSError, UnicodeError) as exc:
+            out.put((False, exc))
+
+    threading.Thread(target=work, daemon=True, name="prsa-scheduler-resolve").start()
     try:
-        sock = socket.create_connection((host, port), timeout=max(left, 1e-3))
-    except socket.timeout:
-        raise SchedulerProbeError("no answer (the TCP connection was not accepted in time)") from None
-    except OSError as exc:
-        raise SchedulerProbeError(f"cannot connect ({exc.strerror or type(exc).__name__})") from None
+        ok, val = out.get(timeout=max(deadline - time.monotonic(), 1e-3))
+    except queue.Empty:
+        raise SchedulerProbeError("no answer (the host name did not resolve in time)") from None
+    if not ok:
+        raise SchedulerProbeError(f"cannot connect (the host name does not resolve: "
+                                  f"{getattr(val, 'strerror', None) or type(val).__name__})")
+    return val
+
+
+def _connect(host: str, port: int, deadline: float) -> socket.socket:
+    """Step 1: a TCP connection to the first address of ``host`` that accepts one."""
+    why = "no address"
+    for family, kind, proto, _, addr in _resolve(host, port, deadline):
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise SchedulerProbeError("no answer (the TCP connection was not accepted in time)")
+        sock = socket.socket(family, kind, proto)
+        sock.settimeout(left)
+        try:
+            sock.connect(addr)
+            return sock
+        except socket.timeout:
+            sock.close()
+            raise SchedulerProbeError("no answer (the TCP connection was not accepted in time)") from None
+        except OSError as exc:
+            sock.close()
+            why = exc.strerror or type(exc).__name__
+    raise SchedulerProbeError(f"cannot connect ({why})")
+
+
+def _handshake(host: str, port: int, deadline: float) -> str:
+    """Steps 1 and 2 of the module's check; returns the peer's IP address (step 3 connects to
+    it, so that the host name is resolved once, within the deadline)."""
+    sock = _connect(host, port, deadline)
+    peer = sock.getpeername()[0]
     with sock:
         head = _recv_exactly(sock, 8, deadline, "a Dask handshake")
         (size,) = struct.unpack("<Q", head)
@@ -87,6 +129,7 @@ def _handshake(host: str, port: int, deadline: float) -> None:
                                   f"handshake: {type(exc).__name__})") from None
     if not isinstance(msg, dict) or "python" not in msg or "pickle-protocol" not in msg:
         raise SchedulerProbeError("not a Dask scheduler (its first message is not a Dask handshake)")
+    return peer
 
 
 async def _identity(address: str, left: float) -> object:
@@ -156,5 +199,5 @@ def probe_scheduler(host: str, port: int, timeout_s: float = SCHEDULER_TIMEOUT_S
     if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
         raise ValueError(f"port = {port!r}; expected a TCP port 1..65535")
     deadline = time.monotonic() + float(timeout_s)
-    _handshake(host, port, deadline)
-    _scheduler_identity(f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}", deadline)
+    ip = _handshake(host, port, deadline)
+    _scheduler_identity(f"tcp://[{ip}]:{port}" if ":" in ip else f"tcp://{ip}:{port}", deadline)

@@ -191,3 +191,21 @@ def test_run_monte_carlo_refuses_before_any_work(server, short_timeouts, monkeyp
     with pytest.raises(ValueError, match=rf"scheduler = {address!r}: not a Dask scheduler / no answer within 0.5 s: "
                                          + EXPECT[server.kind]):
         mc.run_monte_carlo(paper_plant, load_scene("robust-load-step"), {"a": PID(0.085, 14.7)}, 4, scheduler=address)
+
+
+def test_probe_of_a_name_that_does_not_resolve():
+    with pytest.raises(SchedulerProbeError, match=r"cannot connect \(the host name does not resolve"):
+        probe_scheduler("no-such-host.invalid", 8786, SHORT)
+
+
+def test_probe_bounds_a_resolver_that_does_not_answer(monkeypatch):
+    """getaddrinfo has no timeout: a resolver that hangs is left behind at the deadline."""
+    release = threading.Event()
+    monkeypatch.setattr(socket, "getaddrinfo", lambda *a, **k: release.wait(60) and [])
+    try:
+        with pytest.raises(SchedulerProbeError, match=r"no answer \(the host name did not resolve in time\)"):
+            probe_scheduler("scheduler.example", 8786, SHORT)
+        # the probe's own deadline ended it: the resolver is still blocked, left behind
+        assert any(t.name == "prsa-scheduler-resolve" and t.is_alive() for t in threading.enumerate())
+    finally:
+        release.set()
