@@ -69,7 +69,7 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
     repeats : int
         Timed runs per setting; the median is reported.
     tiny : bool
-        Every method once at one tolerance (1e-6) on the compliant model over a 7 ms horizon:
+        Every method once at one tolerance (1e-8) on the compliant model over a 7 ms horizon:
         the code paths of a run, not its figures (``benchmarks/bench.py --fast``).
     """
     plant = plant or load_plant()
@@ -98,7 +98,7 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
         rows.append({"method": method, "setting": setting, "fidelity": fidelity, "time_s": elapsed,
                      "max_error_rad_s": err, "finished": finished})
 
-    tols = (1e-6,) if tiny else (1e-4, 1e-6, 1e-8) if fast else (1e-4, 1e-6, 1e-8, 1e-10)
+    tols = (1e-8,) if tiny else (1e-4, 1e-6, 1e-8) if fast else (1e-4, 1e-6, 1e-8, 1e-10)
     for fidelity in ("compliant",) if tiny else ("rigid", "compliant"):
         for integ in ("cvodes", "idas"):
             for jit in (False, True):  # the same integrator on compiled model code (SimSettings.jit)
