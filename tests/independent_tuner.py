@@ -166,7 +166,6 @@ def best_filtered_pid(num, den, order, ms, mt, mks, starts, w=None, log_tf=None)
     ``|C F|^2 <= Mks^2 |1 + L|^2``), from each of ``starts`` (kp, ki, kd, Tf); the best verified
     point (:func:`verified_slsqp`: success, peaks re-evaluated on :data:`W`, stability). Returns
     ``(kp, ki, kd, Tf)``; raises :class:`OracleFailure` when no start gives a verified point."""
-    from scipy.optimize import minimize
 
     w = np.logspace(-3, 3, 3000) if w is None else w
     p = loop_parts(num, den, w=w)
