@@ -14,7 +14,7 @@ from scipy.optimize import OptimizeResult
 import independent_tuner as ref
 
 P3 = ([1.0], [1.0, 3.0, 3.0, 1.0])
-STARTS = [(0.5, 0.3, 0.5), (1.5, 0.8, 1.5), (1.0, 0.5, 1.0)]
+STARTS = [(0.5, 0.3, 0.5), (1.5, 0.8, 1.5), (1.0, 0.5, 1.0), (2.0, 1.0, 2.0)]  # as test_tuner_ideal
 #: The Ms <= 1.4 ideal-PID optimum of 1/(s+1)^3 (issue 31: the library's ki 6.619 at Ms 1.4000,
 #: checked there on an independent 2,000,001-point grid).
 KI_OPT = 6.619
@@ -63,7 +63,7 @@ BAD_POINTS = {
 
 
 @pytest.mark.parametrize("name", list(BAD_POINTS))
-@pytest.mark.parametrize("which", [(0,), (1,), (2,)])
+@pytest.mark.parametrize("which", [(0,), (1,), (3,)])
 def test_ideal_pid_oracle_rejects_a_broken_start(monkeypatch, name, which):
     x, ok, msg = BAD_POINTS[name]
     calls = _break_minimize(monkeypatch, lambda x0: _result(x, ok, msg), which)
@@ -86,7 +86,8 @@ def test_ideal_pid_oracle_rejects_an_unstable_point_inside_the_bounds(monkeypatc
     (kp, ki, kd), _ = ref.best_ideal_pid(*P3, 1.4, None, STARTS)
     assert ki == pytest.approx(KI_OPT, rel=1e-3)
     monkeypatch.undo()
-    _break_minimize(monkeypatch, lambda x0: _result(x, True, "Optimization terminated successfully"), range(3))
+    _break_minimize(monkeypatch, lambda x0: _result(x, True, "Optimization terminated successfully"),
+                    range(len(STARTS)))
     with pytest.raises(ref.OracleFailure, match="closed loop unstable"):
         ref.best_ideal_pid(*P3, 1.4, None, STARTS)
 

@@ -16,7 +16,9 @@ import pytest
 import independent_tuner as ref
 from prsa_ctrl.tuning import tune_pid
 
-STARTS = [(0.5, 0.3, 0.5), (1.5, 0.8, 1.5), (1.0, 0.5, 1.0)]
+# Four starts: the reference keeps the best verified one, so one start that fails on some
+# processor (issue 31: "Inequality constraints incompatible" on an AMD EPYC) leaves three.
+STARTS = [(0.5, 0.3, 0.5), (1.5, 0.8, 1.5), (1.0, 0.5, 1.0), (2.0, 1.0, 2.0)]
 
 
 @pytest.mark.parametrize("den, ms, mt", [([1, 3, 3, 1], 1.4, None), ([1, 4, 6, 4, 1], 1.4, 1.4)])
