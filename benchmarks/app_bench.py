@@ -7,9 +7,11 @@
 - generic: the generic tab opened -> the default plant tuned (a child process started first),
   and an Ms bound typed there -> the re-tuned design.
 
-The load average (1 min) is printed before and after: the machine is shared.
+The load average (1 min) is printed before and after: the machine is shared. The medians, every
+run and the load averages go to ``OUT/app_bench.json`` (``--out``, default ``bench-results``).
 
-    python benchmarks/app_bench.py [--repeats 5]
+    python benchmarks/app_bench.py [--repeats 5] [--out DIR]
+    python benchmarks/app_bench.py --fast    # one of each (a check that the file runs; CI)
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--disable-component-update", "--no-first-run", "--disable-sync"]
@@ -40,10 +43,25 @@ def _start_server():
 def main() -> None:
     from playwright.sync_api import sync_playwright
 
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--repeats", type=int, default=5)
-    n = ap.parse_args().repeats
+    ap = argparse.ArgumentParser(prog="benchmarks/app_bench.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=None, help="starts and steps of each kind (default 5; 1 with --fast)")
+    ap.add_argument("--fast", action="store_true", help="one of each: a check that the file runs (the figures mean "
+                    "little)")
+    ap.add_argument("--out", default="bench-results", help="folder for app_bench.json (created if missing)")
+    args = ap.parse_args()
+    n = args.repeats if args.repeats is not None else (1 if args.fast else 5)
+    if not 1 <= n <= 50:
+        ap.error(f"--repeats {n}: expected 1..50")
+    from prsa_ctrl.io.output import OutputError, check_directory, make_directory
+
+    try:
+        check_directory(args.out, "--out")
+        make_directory(args.out, "--out")
+    except OutputError as exc:
+        ap.error(str(exc))
     exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        ap.error("no chromium on PATH; expected Debian's chromium (apt-get install chromium)")
     starts, slides, drags, g_open, g_bound = [], [], [], [], []
     load0 = os.getloadavg()[0]
     with sync_playwright() as p:
@@ -91,7 +109,16 @@ def main() -> None:
                      ("generic tab opened -> 1/(4s+1) tuned (child process started)", g_open),
                      ("generic Ms bound typed -> re-tuned design", g_bound)):
         print(f"{what}: median {statistics.median(xs):.3f} s over {len(xs)} (min {min(xs):.3f}, max {max(xs):.3f})")
-    print(f"load average (1 min): {load0:.2f} before, {os.getloadavg()[0]:.2f} after")
+    load1 = os.getloadavg()[0]
+    print(f"load average (1 min): {load0:.2f} before, {load1:.2f} after")
+    from prsa_ctrl.cli.common import write_json_atomic
+
+    runs = {"start_s": starts, "slider_s": slides, "drag_s": drags, "generic_open_s": g_open, "generic_bound_s": g_bound}
+    out = Path(args.out) / "app_bench.json"
+    write_json_atomic(out, {"fast": bool(args.fast), "repeats": n, "statistic": "median",
+                            "median_s": {k: statistics.median(v) for k, v in runs.items()}, "runs_s": runs,
+                            "load_average_1min": [load0, load1]})
+    print(f"results: {out}")
 
 
 def _drag_steps(page, n: int) -> list[float]:

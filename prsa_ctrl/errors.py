@@ -5,7 +5,7 @@ Every message names the value that was received and what was expected.
 
 __all__ = ["PlantFileError", "SceneError", "SimulationError", "GeometryWarning", "DataError", "FitError",
            "LogFormatError", "AxisPlantError", "AxisFitError", "OutputError", "MonteCarloInterrupted", "UsageError",
-           "PlantTextError"]
+           "PlantTextError", "SchedulerProbeError"]
 
 
 class PlantFileError(ValueError):
@@ -68,3 +68,9 @@ class MonteCarloInterrupted(KeyboardInterrupt):
 
 class UsageError(Exception):
     """A command-line flag or argument is malformed: the command exits 2 with this one line."""
+
+
+class SchedulerProbeError(ValueError):
+    """No Dask scheduler answered at an address (:func:`prsa_ctrl.studies.daskprobe.probe_scheduler`):
+    "cannot connect (...)", "no answer (...)" or "not a Dask scheduler (...)", in one line, without
+    the address (the caller names it as the user typed it)."""

@@ -82,6 +82,8 @@ def simulate_independent(
         cmd[k] = u
         sol = solve_ivp(rhs, (0.0, sample_time_s), x, method="LSODA", rtol=1e-9, atol=[1e-11, 1e-8, 1e-9],
                         args=(u, float(load_n[k])))
+        if not sol.success:  # the reference checks itself: a failed step is never a record
+            raise AssertionError(f"independent_actuator: solve_ivp failed in sample {k}: {sol.message}")
         x = sol.y[:, -1]
         u_pending = u_new
     return {

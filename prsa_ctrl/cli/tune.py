@@ -34,7 +34,6 @@ _T_START = time.perf_counter()
 import argparse  # noqa: E402
 import os  # noqa: E402
 import re  # noqa: E402
-import socket  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Sequence  # noqa: E402
@@ -495,7 +494,8 @@ def _print_report(args, plant, scene, overrides: Sequence[str], result: dict, pl
               f"{export_design['chosen_by']}")
 
 
-#: Seconds the up-front connection to a ``--scheduler`` address may take.
+#: Seconds the up-front check of a ``--scheduler`` address may take in all (connection, Dask
+#: handshake and identity: :func:`prsa_ctrl.studies.daskprobe.probe_scheduler`).
 SCHEDULER_CONNECT_TIMEOUT_S = 5.0
 _SCHEDULER_RE = re.compile(r"tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+)(?::(\d+))?")
 
@@ -528,17 +528,19 @@ def _scheduler_address(text: str) -> tuple[str, int] | None:
 
 
 def _probe_scheduler(text: str, host: str, port: int) -> None:
-    """Open (and close) a TCP connection to the scheduler, bounded by
-    ``SCHEDULER_CONNECT_TIMEOUT_S``, so that an unreachable address stops the run before the
-    tuning, not after it."""
+    """Check that a Dask scheduler answers at the address (connection, Dask handshake, identity:
+    :func:`prsa_ctrl.studies.daskprobe.probe_scheduler`), all within
+    ``SCHEDULER_CONNECT_TIMEOUT_S``, so that an unreachable address, or one where something else
+    listens, stops the run before the tuning, not after it (or never)."""
+    from ..studies.daskprobe import SchedulerProbeError, probe_scheduler
+
+    timeout = SCHEDULER_CONNECT_TIMEOUT_S
     try:
-        with socket.create_connection((host, port), timeout=SCHEDULER_CONNECT_TIMEOUT_S):
-            pass
-    except OSError as exc:
-        why = "no answer" if isinstance(exc, socket.timeout) else (exc.strerror or type(exc).__name__)
-        raise UsageError(f"--scheduler {text!r}: cannot connect to {host}:{port} within "
-                          f"{SCHEDULER_CONNECT_TIMEOUT_S:g} s ({why}); expected the address of a running Dask "
-                          "scheduler (dask scheduler --host HOST --port PORT), or 'local'") from None
+        probe_scheduler(host, port, timeout)
+    except SchedulerProbeError as exc:
+        raise UsageError(f"--scheduler {text!r}: not a Dask scheduler / no answer at {host}:{port} within "
+                          f"{timeout:g} s: {exc}; expected the address of a running Dask scheduler (dask "
+                          "scheduler --host HOST --port PORT), or 'local'") from None
 
 
 def _setpoint_weight(scene) -> float:

@@ -15,6 +15,7 @@ _EXPORTS = {
     "LoopFilter": "filters",
     "MAX_SEGMENTS": "motion",
     "METHODS": "filters",
+    "NYQUIST_MARGIN": "filters",
     "MotionProfile": "motion",
     "Notch": "filters",
     "PID": "pid",

@@ -53,7 +53,7 @@ from .sampled import zoh
 control = module("control")  # only Filter.continuous_tf needs python-control
 
 __all__ = ["Filter", "DiscreteBiquad", "FirstOrderLowPass", "SecondOrderLowPass", "Notch", "GeneralBiquad",
-           "METHODS", "filter_from_dict", "PLACES", "LoopFilter", "loop_filters"]
+           "METHODS", "filter_from_dict", "PLACES", "LoopFilter", "loop_filters", "NYQUIST_MARGIN"]
 
 #: Discretisation methods of :meth:`Filter.biquad`.
 METHODS = ("tustin", "zoh", "matched")
@@ -83,6 +83,22 @@ MIN_HZ = 1e-6
 #: :meth:`Filter.biquad` discretises: below it the biquad's coefficients cancel to round-off
 #: (its DC gain is off by ~1e-16/(w0 ts)^2, 1e-6 at this limit) or leave the float range.
 MIN_W_TS = 1e-5
+#: Fraction of the Nyquist frequency ``1/(2 ts)`` a filter frequency must stay below it in a
+#: prewarped Tustin biquad (the loop filters' and the scene's): :meth:`Filter.biquad` refuses
+#: frequencies above ``(1 - NYQUIST_MARGIN)/(2 ts)`` there (1980 Hz at 4 kHz). Closer, the
+#: prewarping constant ``K = w0 / tan(w0 ts/2)`` goes to 0 and the poles go to ``z = -1`` (a
+#: first-order low-pass at ``f``: ``z = -(1 - c)/(1 + c)``, ``c = tan(pi (1/2 - f ts))``; -0.969
+#: at the margin, -0.999998 at 1999.999 Hz of 4 kHz; a notch a double pole): the filter does
+#: almost nothing at the drive's rate, and the tuner's error sums to infinity need millions of
+#: samples (issue 31: prsa-tune ran for minutes on a notch at 1999.99 Hz). Matched, ZOH and
+#: unwarped Tustin biquads keep their poles away from -1 and only need ``f < 1/(2 ts)``.
+NYQUIST_MARGIN = 0.01
+
+
+def _shown(v: float) -> str:
+    """A frequency as given: every digit (``repr``), ``2500`` for ``2500.0``."""
+    s = repr(float(v))
+    return s[:-2] if s.endswith(".0") else s
 
 
 def _hz(name: str, v: object) -> float:
@@ -242,12 +258,19 @@ class Filter:
         s = 1j * np.asarray(omega, float)
         return (n0 + s * (n1 + s * n2)) / (d0 + s * (d1 + s * d2))
 
-    def _check_nyquist(self, ts: float) -> None:
+    def _check_nyquist(self, ts: float, margin: bool = True) -> None:
+        """Refuse a frequency at or above Nyquist, or (``margin``: a prewarped Tustin biquad)
+        within :data:`NYQUIST_MARGIN` of it; and a sample time too short to discretise."""
         hi = self._highest_hz()
         nyq = 0.5 / ts
         if not hi < nyq:
-            raise ValueError(f"{self.kind} frequency {hi:g} Hz at ts = {ts:g} s; expected below the Nyquist "
+            raise ValueError(f"{self.kind} frequency {_shown(hi)} Hz at ts = {ts:g} s; expected below the Nyquist "
                              f"frequency {nyq:g} Hz")
+        if margin and not hi <= nyq * (1.0 - NYQUIST_MARGIN):
+            raise ValueError(f"{self.kind} frequency {_shown(hi)} Hz at ts = {ts:g} s; expected below the Nyquist "
+                             f"frequency {nyq:g} Hz by at least {NYQUIST_MARGIN:.0%} of it (at most "
+                             f"{nyq * (1.0 - NYQUIST_MARGIN):g} Hz) for a prewarped Tustin biquad (closer, its "
+                             "poles sit next to z = -1)")
         lo = self._lowest_hz()
         if 2.0 * math.pi * lo * ts < MIN_W_TS:
             raise ValueError(f"ts = {ts!r} s for a {self.kind} at {lo:g} Hz; expected ts >= "
@@ -269,7 +292,8 @@ class Filter:
         Parameters
         ----------
         ts : float, s
-            Sample time; the filter's frequencies must lie below ``1/(2 ts)``.
+            Sample time; the filter's frequencies must lie below ``1/(2 ts)`` (prewarped
+            Tustin: by at least :data:`NYQUIST_MARGIN` of it, see there).
         method : {"tustin", "zoh", "matched"}
         prewarp : bool
             Tustin only.
@@ -283,7 +307,7 @@ class Filter:
             raise ValueError(f"method = {method!r}; expected one of {', '.join(METHODS)}")
         if not isinstance(prewarp, bool):
             raise ValueError(f"prewarp = {prewarp!r}; expected True or False")
-        self._check_nyquist(ts)
+        self._check_nyquist(ts, margin=method == "tustin" and prewarp)
         (n2, n1, n0), (d2, d1, d0) = self.coefficients()
         if method == "tustin":
             w0 = 2.0 * math.pi * self.characteristic_hz

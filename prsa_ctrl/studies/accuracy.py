@@ -44,8 +44,8 @@ def timed(fn, repeats: int):
     return float(np.median(times)), out, times
 
 
-def _scene_inputs(fast: bool):
-    pre, post = 0.002, (0.02 if fast else 0.1)
+def _scene_inputs(fast: bool, tiny: bool = False):
+    pre, post = 0.002, (0.005 if tiny else 0.02 if fast else 0.1)
     return OMEGA_300_RPM, [(0.0, 500.0), (pre, 1500.0)], pre + post
 
 
@@ -55,7 +55,7 @@ def _reference_pid(plant):
 
 
 
-def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repeats: int = 3) -> dict:
+def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repeats: int = 3, tiny: bool = False) -> dict:
     """Time (s) and max nut-speed error (rad/s) per method and setting; see module docstring.
 
     Parameters
@@ -68,10 +68,13 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
         Wall-time budget of one scipy/python-control run (a run over it counts as unfinished).
     repeats : int
         Timed runs per setting; the median is reported.
+    tiny : bool
+        Every method once at one tolerance (1e-8) on the compliant model over a 7 ms horizon:
+        the code paths of a run, not its figures (``benchmarks/bench.py --fast``).
     """
     plant = plant or load_plant()
     pid = _reference_pid(plant)
-    ref_w, load, duration = _scene_inputs(fast)
+    ref_w, load, duration = _scene_inputs(fast, tiny)
     dt = 1e-4
     grid = np.arange(0.0, duration + 0.5 * dt, dt)
 
@@ -95,8 +98,8 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
         rows.append({"method": method, "setting": setting, "fidelity": fidelity, "time_s": elapsed,
                      "max_error_rad_s": err, "finished": finished})
 
-    tols = (1e-4, 1e-6, 1e-8) if fast else (1e-4, 1e-6, 1e-8, 1e-10)
-    for fidelity in ("rigid", "compliant"):
+    tols = (1e-8,) if tiny else (1e-4, 1e-6, 1e-8) if fast else (1e-4, 1e-6, 1e-8, 1e-10)
+    for fidelity in ("compliant",) if tiny else ("rigid", "compliant"):
         for integ in ("cvodes", "idas"):
             for jit in (False, True):  # the same integrator on compiled model code (SimSettings.jit)
                 for tol in tols:
@@ -222,7 +225,7 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
 
 
 
-def fidelity_ladder(plant=None, fast: bool = False, repeats: int = 3) -> dict:
+def fidelity_ladder(plant=None, fast: bool = False, repeats: int = 3, tiny: bool = False) -> dict:
     """Each fidelity's nut-speed error against the most detailed one (multi-roller with the
     plant's roller tolerances, 1e-10 tolerance) and its cost, on the paper load step with the
     sampled controller (as the tuner verifies).
@@ -233,17 +236,19 @@ def fidelity_ladder(plant=None, fast: bool = False, repeats: int = 3) -> dict:
     fast : bool
     repeats : int
         Timed runs per setting; the median is reported.
+    tiny : bool
+        One tolerance (1e-6) per fidelity over a 7 ms horizon (``benchmarks/bench.py --fast``).
     """
     plant = plant or load_plant()
     pid = _reference_pid(plant)
-    ref_w, load, duration = _scene_inputs(fast)
+    ref_w, load, duration = _scene_inputs(fast, tiny)
     kw = dict(setpoint=ref_w, load=load, duration=duration, controller=pid, discrete=True)
     ref = run(plant, fidelity="multi-roller", settings=SimSettings(rtol=1e-10, atol=1e-10), **kw)
     w_ref = ref.output("nut_speed")
     drop = float(ref_w - w_ref.min())
     rows = []
     for fidelity in ("rigid", "compliant", "multi-roller"):
-        for tol in (1e-4, 1e-6, 1e-8):
+        for tol in (1e-6,) if tiny else (1e-4, 1e-6, 1e-8):
             s = SimSettings(rtol=tol, atol=tol)
             run(plant, fidelity=fidelity, settings=s, **kw)  # build once, then time
             el, r, _ = timed(lambda: (True, run(plant, fidelity=fidelity, settings=s, **kw)), repeats)

@@ -545,8 +545,9 @@ def run_monte_carlo(
         Default "dask" when ``scheduler`` is given, else "process" with ``workers > 1``, else "serial".
     scheduler : str or dask.distributed.Client, optional
         ``"local"`` (start a LocalCluster of ``workers`` processes on 127.0.0.1 for this call),
-        a scheduler address ``tcp://HOST:8786``, or a connected ``Client`` (reused, left open:
-        several runs on one running cluster skip its ~1 s start-up).
+        a scheduler address ``tcp://HOST:8786`` (checked first, within 5 s: a Dask scheduler must
+        answer there, :func:`prsa_ctrl.studies.daskprobe.probe_scheduler`), or a connected
+        ``Client`` (reused, left open: several runs on one running cluster skip its ~1 s start-up).
     workers : int, optional
         Processes for "process"/"local" (default: CPU count).
     chunk : int, optional
@@ -590,6 +591,8 @@ def run_monte_carlo(
         raise ValueError(f"workers = {workers!r}; expected an integer 1..512")
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or not 1 <= chunk <= 10_000):
         raise ValueError(f"chunk = {chunk!r}; expected an integer 1..10000")
+    if isinstance(scheduler, str) and scheduler.startswith("tcp://"):
+        _check_scheduler_address(scheduler)
     if _is_client(scheduler):
         workers = len(scheduler.scheduler_info().get("workers", {})) or 1
     workers = workers or (1 if backend == "serial" else (os.cpu_count() or 1))
@@ -677,6 +680,28 @@ def local_cluster(workers: int):
 def _is_client(x) -> bool:
     """A connected dask.distributed Client (duck-typed: Dask is imported only on its path)."""
     return not isinstance(x, str) and callable(getattr(x, "submit", None)) and callable(getattr(x, "scatter", None))
+
+
+def _check_scheduler_address(address: str) -> None:
+    """A ``tcp://HOST:PORT`` scheduler answers as one within ``SCHEDULER_TIMEOUT_S``
+    (:func:`prsa_ctrl.studies.daskprobe.probe_scheduler`), before any work: Dask's own client
+    waits without a limit for a listener that never speaks."""
+    from urllib.parse import urlsplit
+
+    from .daskprobe import SCHEDULER_TIMEOUT_S, SchedulerProbeError, probe_scheduler
+
+    try:
+        parts = urlsplit(address)
+        host, port = parts.hostname, parts.port
+    except ValueError:
+        host = port = None
+    if not host or port is None or parts.path not in ("", "/"):
+        raise ValueError(f"scheduler = {address!r}; expected an address like tcp://HOST:8786")
+    try:
+        probe_scheduler(host, port, SCHEDULER_TIMEOUT_S)
+    except SchedulerProbeError as exc:
+        raise ValueError(f"scheduler = {address!r}: not a Dask scheduler / no answer within "
+                         f"{SCHEDULER_TIMEOUT_S:g} s: {exc}") from None
 
 
 def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took) -> None:

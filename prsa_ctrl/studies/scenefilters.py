@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 from typing import Any, Mapping
 
-from ..drive.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
+from ..drive.filters import NYQUIST_MARGIN, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
 from ..errors import SceneError
 
 __all__ = ["FILTER_PATHS", "FILTER_KEYS", "MAX_SCENE_FILTERS", "parse_filters", "filter_entry", "parse_filter_flag",
@@ -230,18 +230,21 @@ def parse_filter_flag(text: str) -> tuple[LoopFilter, str, str]:
 
 def check_filters_against_plant(filters, labels, sample_time_s: float, plant_name: str) -> None:
     """Refuse a filter the drive cannot run at its sample time: a centre/corner at or above the
-    Nyquist frequency ``1/(2 ts)`` (or too low to discretise).
+    Nyquist frequency ``1/(2 ts)`` or within :data:`~prsa_ctrl.drive.filters.NYQUIST_MARGIN` (1 %)
+    of it (or too low to discretise). Called before any tuning.
 
     Raises
     ------
     SceneError
-        One line naming the entry, the frequency and the plant's Nyquist frequency.
+        One line naming the entry, the frequency as typed, the plant's Nyquist frequency and the
+        margin.
     """
     nyquist = 0.5 / sample_time_s
     for lf, where in zip(filters, labels):
-        if lf.filter.characteristic_hz >= nyquist:
-            raise SceneError(f"{where}; expected a frequency below the Nyquist frequency "
-                             f"{nyquist:g} Hz of {plant_name} (sensor.sample_time_s = {sample_time_s:g} s)")
+        if not lf.filter.characteristic_hz <= nyquist * (1.0 - NYQUIST_MARGIN):
+            raise SceneError(f"{where}; expected a frequency below the Nyquist frequency {nyquist:g} Hz of "
+                             f"{plant_name} (sensor.sample_time_s = {sample_time_s:g} s) by at least "
+                             f"{NYQUIST_MARGIN:.0%} of it (at most {nyquist * (1.0 - NYQUIST_MARGIN):g} Hz)")
         try:
             lf.biquad(sample_time_s)
         except ValueError as exc:

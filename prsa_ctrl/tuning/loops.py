@@ -360,7 +360,10 @@ class LoopModel:
         if kind == "ie":
             return abs(float(-h * self.Ce @ np.linalg.solve(eye - a, x_inf))), 0.0
         if kind == "ise":
-            return float(total + h * _gramian_form(a, self.Ce, z)), 0.0
+            try:
+                return float(total + h * _gramian_form(a, self.Ce, z)), 0.0
+            except _TailBudgetError:  # a pole too near the unit circle: marginal
+                return math.inf, math.inf
         return block_sum(a, self.Ce, z, k, total, h, kind, rtol)
 
     def objective_continuous(self, gains: Sequence[float], kind: str, rtol: float = CONT_RTOL) -> tuple[float, float]:
@@ -581,7 +584,9 @@ def block_sum(a: NDArray, ce: NDArray, z: NDArray, k: int, total: float, h: floa
     """IAE or ITAE of ``e_j = ce a^(j-k) z`` from sample ``k`` on, added to ``total``: summed in
     blocks of 256 samples until the Cauchy-Schwarz tail bound (see
     :meth:`LoopModel.objective_to_infinity`) is below ``rtol`` of the sum (or ``2^22``
-    samples). Returns ``(value, tail_bound)``."""
+    samples: at most ``TAIL_MAX_STEPS/256`` blocks). Returns ``(value, tail_bound)``; ``(inf,
+    inf)`` for a loop whose tail cannot be bounded within that budget (a pole too near the unit
+    circle, :class:`_TailBudgetError`), as for a marginal loop."""
     n = a.shape[0]
     rho = float(np.max(np.abs(np.linalg.eigvals(a))))
     r = 0.5 * (1.0 + rho)
@@ -593,7 +598,10 @@ def block_sum(a: NDArray, ce: NDArray, z: NDArray, k: int, total: float, h: floa
         rows[j] = row
         row = row @ a
     a_blk = np.linalg.matrix_power(a, blk)
-    gram = _gramian(a / r, ce)
+    try:
+        gram = _gramian(a / r, ce)
+    except _TailBudgetError:  # a pole too near the unit circle to bound the tail: marginal
+        return math.inf, math.inf
     while True:
         e = rows @ z
         if kind == "iae":
@@ -615,11 +623,66 @@ def block_sum(a: NDArray, ce: NDArray, z: NDArray, k: int, total: float, h: floa
 def _gramian_form(a: NDArray, c: NDArray, z: NDArray) -> float:
     """``sum_k (c a^k z)^2`` for a stable ``a``: ``z' P z`` with ``a' P a - P + c' c = 0``, solved
     on the diagonally balanced ``a`` (states of very different scales) and checked by its
-    residual; a poorly solved equation falls back to summing the series (bounded)."""
+    residual; a poorly solved equation falls back to summing the series by doubling (bounded:
+    :func:`_series_gramian`)."""
     return _gramian(a, c)(z)
 
+
+class _TailBudgetError(ValueError):  # internal: block_sum and objective_to_infinity turn it into inf
+    """The series ``sum_k (a^k)' c' c a^k`` does not converge within the sample budget
+    (``TAIL_MAX_STEPS``): the loop has a pole too close to the unit circle to integrate its error
+    to infinity. Its message says so in one line."""
+
+
+#: Doublings of :func:`_series_gramian` at most: ``2^GRAMIAN_DOUBLINGS`` samples, the tail budget
+#: ``TAIL_MAX_STEPS`` (each doubling is three n x n matrix products).
+GRAMIAN_DOUBLINGS = int(TAIL_MAX_STEPS).bit_length() - 1
+
+
+def _series_gramian(ab: NDArray, cb: NDArray, max_doublings: int = GRAMIAN_DOUBLINGS) -> tuple[NDArray, int]:
+    """``P = sum_k (ab^k)' cb' cb ab^k`` by doubling, the fallback of :func:`_gramian`.
+
+    ``P_1 = cb' cb``, ``P_2N = P_N + (ab^N)' P_N ab^N`` with ``ab^2N = (ab^N)^2``: after ``d``
+    doublings ``P`` holds the first ``2^d`` terms. What is left, ``(ab^M)' P_inf ab^M`` (``M =
+    2^d``), is at most ``||ab^M||^2 / (1 - ||ab^M||^2)`` of ``||P_M||`` (2-norms); the sum stops
+    when ``||ab^M||^2 <= 1e-16``, so the work is bounded by ``max_doublings`` doublings
+    (``2^max_doublings`` samples, ``3 max_doublings`` matrix products) whatever the poles; it was
+    a sample-by-sample sum of up to 2^22 steps per call (issue 31: a filter just below Nyquist,
+    a closed-loop pole near z = -1, hung prsa-tune for minutes).
+
+    Returns
+    -------
+    p : ndarray
+        The Gramian (relative truncation error below 1e-16).
+    doublings : int
+        Doublings done (the work).
+
+    Raises
+    ------
+    _TailBudgetError
+        Not converged after ``max_doublings``: ``|z|^(2^(max_doublings + 1)) > 1e-16`` for a
+        pole ``z``, i.e. within about ``37/2^(max_doublings + 1)`` of the unit circle (4.4e-6
+        for the default 22).
+    """
+    p = np.outer(cb, cb)
+    m = np.array(ab, dtype=float)  # ab^N, N = 2^d
+    for d in range(1, max_doublings + 1):
+        p = p + m.T @ p @ m
+        m = m @ m
+        if not np.all(np.isfinite(p)) or not np.all(np.isfinite(m)):
+            break
+        if np.linalg.norm(m, 2) ** 2 <= 1e-16:
+            return p, d
+    rho = float(np.max(np.abs(np.linalg.eigvals(ab)))) if np.all(np.isfinite(ab)) else math.nan
+    raise _TailBudgetError(f"the closed loop has a pole at |z| = {rho:.9g}, within {1.0 - rho:.2g} of the unit "
+                          f"circle: its error sum to infinity does not converge within 2^{max_doublings} samples "
+                          "(the tail budget TAIL_MAX_STEPS); move a filter away from the Nyquist frequency or "
+                          "damp the loop")
+
+
 def _gramian(a: NDArray, c: NDArray) -> Callable:
-    """``z -> sum_k (c a^k z)^2`` (see :func:`_gramian_form`), the Lyapunov equation solved once."""
+    """``z -> sum_k (c a^k z)^2`` (see :func:`_gramian_form`), the Lyapunov equation solved once
+    (or, where its residual check fails, the series summed once by :func:`_series_gramian`)."""
     import warnings
 
     from scipy.linalg import LinAlgWarning, matrix_balance, solve_discrete_lyapunov
@@ -635,22 +698,9 @@ def _gramian(a: NDArray, c: NDArray) -> Callable:
         warnings.simplefilter("ignore", LinAlgWarning)
         p = solve_discrete_lyapunov(ab.T, np.outer(cb, cb))
     res = ab.T @ p @ ab - p + np.outer(cb, cb)
-    if np.all(np.isfinite(p)) and np.max(np.abs(res)) <= 1e-9 * max(np.max(np.abs(p)), 1e-300):
-        return lambda z: float((z / tb) @ p @ (z / tb))
-
-    def series(z):
-        zb = z / tb
-        total, x = 0.0, zb.copy()  # fallback: sum the series in blocks (bounded budget)
-        for _ in range(TAIL_MAX_STEPS // 64):
-            for _ in range(64):
-                v = float(cb @ x)
-                total += v * v
-                x = ab @ x
-            if float(x @ x) <= 1e-30 * max(float(zb @ zb), 1e-300):
-                break
-        return total
-
-    return series
+    if not (np.all(np.isfinite(p)) and np.max(np.abs(res)) <= 1e-9 * max(np.max(np.abs(p)), 1e-300)):
+        p, _ = _series_gramian(ab, cb)
+    return lambda z: float((z / tb) @ p @ (z / tb))
 
 def _objective_numeric(e: NDArray[np.float64], h: float, kind: str) -> float:
     t = h * np.arange(e.size)

@@ -54,6 +54,7 @@ def _peak(f, w):
     lo, hi = math.log(w[max(i - 1, 0)]), math.log(w[min(i + 1, w.size - 1)])
     r = minimize_scalar(lambda x: -f(np.array([math.exp(x)]))[0], bounds=(lo, hi), method="bounded",
                         options={"xatol": 1e-12})
+    assert r.success, r.message  # (the grid's value is kept when the refinement finds less)
     return max(float(v[i]), -float(r.fun))
 
 

@@ -194,6 +194,12 @@ def test_hypothesis_tustin_matches_c2d_and_is_stable_with_unit_dc(case):
     (lambda: FirstOrderLowPass(2500.0).biquad(TS), r"lowpass1 frequency 2500 Hz at ts = 0.00025 s; expected "
                                                   r"below the Nyquist frequency 2000 Hz"),
     (lambda: GeneralBiquad(2100.0, 0.1, 100.0, 0.5).biquad(TS), r"below the Nyquist frequency 2000 Hz"),
+    # issue 31: within 1 % of Nyquist (the tuner's error sums need millions of samples there)
+    (lambda: Notch(1999.99, 40.0).biquad(TS), r"notch frequency 1999.99 Hz at ts = 0.00025 s; expected below the "
+                                              r"Nyquist frequency 2000 Hz by at least 1% of it \(at most 1980 Hz\)"),
+    (lambda: FirstOrderLowPass(1999.999).biquad(TS), r"lowpass1 frequency 1999.999 Hz .*at most 1980 Hz\) for a "
+                                                     r"prewarped Tustin biquad"),
+    (lambda: GeneralBiquad(100.0, 0.1, 1990.0, 0.5).biquad(TS), r"biquad frequency 1990 Hz .*at most 1980 Hz"),
     (lambda: Notch(100.0, 10.0).biquad(-1.0), r"ts = -1.0; expected a finite number > 0"),
     (lambda: Notch(100.0, 10.0).biquad(TS, "euler"), r"method = 'euler'; expected one of tustin, zoh, matched"),
     (lambda: filter_from_dict({"kind": "comb"}), r"filter kind = 'comb'; expected one of"),
@@ -203,3 +209,23 @@ def test_bad_arguments(make, match):
     with pytest.raises(ValueError, match=match) as info:
         make()
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("f", [FirstOrderLowPass(1999.99), SecondOrderLowPass(1999.99), Notch(1999.99, 40.0)],
+                         ids=lambda f: f.kind)
+def test_the_nyquist_margin_is_where_prewarping_puts_poles_next_to_minus_one(f):
+    """Issue 31: within 1 % of Nyquist a prewarped Tustin biquad's poles go to z = -1 (1999.99 Hz
+    at 4 kHz: 1.6e-5 from it) and only that discretisation is refused there; matched, ZOH and
+    unwarped Tustin ones keep their poles away from -1 and run up to Nyquist. At the margin
+    (1980 Hz) the prewarped poles are at least 0.03 from -1."""
+    from dataclasses import replace
+
+    with pytest.raises(ValueError, match="at most 1980 Hz"):
+        f.biquad(TS)
+    for method, prewarp in (("matched", True), ("zoh", True), ("tustin", False)):
+        assert np.min(np.abs(f.biquad(TS, method, prewarp).poles() + 1.0)) > 0.02, (method, prewarp)
+    at = replace(f, **{("centre_hz" if isinstance(f, Notch) else "corner_hz"): 1980.0})
+    assert np.min(np.abs(at.biquad(TS).poles() + 1.0)) > 0.03
+    below = replace(f, **{("centre_hz" if isinstance(f, Notch) else "corner_hz"): 1999.0})
+    with pytest.raises(ValueError, match="at most 1980 Hz"):
+        below.biquad(TS)

@@ -136,6 +136,42 @@ def test_bad_filter_flags_get_one_line_and_exit_2(capsys, stand_in, flag, key):
     assert key in err[0] and not stand_in, err[0]
 
 
+@pytest.mark.parametrize("flag, typed", [
+    ("notch:path=torque,centre_hz=1999.99,width_hz=40", "centre_hz = 1999.99"),
+    ("lowpass:path=speed,corner_hz=1999.999", "corner_hz = 1999.999"),
+    ("lowpass:path=speed,corner_hz=1980.01,order=2", "corner_hz = 1980.01"),
+])
+def test_a_filter_within_the_margin_of_nyquist_is_refused_before_tuning(capsys, stand_in, flag, typed):
+    """Issue 31: a notch at 1999.99 Hz (a low-pass at 1999.999 Hz) on the 4 kHz paper plant ran
+    prsa-tune for > 400 s. Now one line naming the value as typed, the Nyquist frequency and the
+    margin (1 %: at most 1980 Hz), exit 2, before any tuning."""
+    rc = main(["--filter", flag, "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "Traceback" not in err[0], err
+    assert f"--filter {flag!r}: {typed}; expected a frequency below the Nyquist frequency 2000 Hz" in err[0], err[0]
+    assert "by at least 1% of it (at most 1980 Hz)" in err[0], err[0]
+    assert not stand_in
+
+
+def test_the_api_refuses_a_filter_within_the_margin_before_tuning(monkeypatch):
+    """tune_actuator refuses it while building the loop models: the tuner is never built."""
+    import prsa_ctrl.studies.autotune as autotune
+
+    built = []
+    monkeypatch.setattr(autotune, "Tuner", lambda *a, **k: built.append(a) or (_ for _ in ()).throw(AssertionError))
+    sc = load_scene().replace(filters=(LoopFilter(Notch(1999.99, 40.0), "torque_command"),))
+    with pytest.raises(ValueError, match=r"notch frequency 1999.99 Hz at ts = 0.00025 s; expected below the Nyquist "
+                                         r"frequency 2000 Hz by at least 1% of it \(at most 1980 Hz\)"):
+        autotune.tune_actuator(PAPER, sc)
+    assert not built
+
+
+def test_a_filter_at_the_margin_is_accepted(tmp_path):
+    sc = load_scene(str(_scene_file(tmp_path, '[[filters.notch]]\npath = "torque"\ncentre_hz = 1980.0\n'
+                                             'width_hz = 40.0\n')))
+    check_against_plant(sc, PAPER)
+
+
 def test_filters_are_refused_where_the_loop_has_none(tmp_path, capsys, stand_in):
     path = _scene_file(tmp_path, '[[filters.lowpass]]\npath = "speed"\ncorner_hz = 300.0\n')
     for extra in (["--estimator", "kf"],):

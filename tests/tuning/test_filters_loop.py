@@ -190,6 +190,8 @@ def test_exported_filters_and_pi_reproduce_the_simulated_commands():
     ({"filters": "notch"}, r"filters = 'notch'; expected a list of LoopFilter or \(place, Filter\) pairs"),
     ({"filters": [("speed", Notch(300.0, 100.0))]}, r"filter place = 'speed'; expected one of speed_measurement, "),
     ({"filters": [Notch(2100.0, 100.0)]}, r"notch frequency 2100 Hz at ts = 0.00025 s; expected below the Nyquist"),
+    ({"filters": [Notch(1999.99, 40.0)]}, r"notch frequency 1999.99 Hz at ts = 0.00025 s; expected below the Nyquist "
+                                          r"frequency 2000 Hz by at least 1% of it \(at most 1980 Hz\)"),
     ({"filters": [Notch(300.0, 100.0)], "discrete": False}, r"with discrete = False; expected discrete=True"),
     ({"filters": [3.0]}, r"filter entry = 3.0; expected a LoopFilter, a Filter or a \(place, Filter\) pair"),
 ])

@@ -50,6 +50,7 @@ def _true_peaks(num, den, kp, ki, kd):
         lo, hi = math.log(w[max(i - 2, 0)]), math.log(w[min(i + 2, w.size - 1)])
         r = minimize_scalar(lambda x: -abs(f(_loop(num, den, kp, ki, kd, [math.exp(x)])[0])),
                             bounds=(lo, hi), method="bounded", options={"xatol": 1e-12})
+        assert r.success, r.message  # (the grid's value is kept when the refinement finds less)
         out.append(max(float(mag[i]), float(-r.fun)))
     return tuple(out)
 
@@ -110,7 +111,11 @@ def _brute_force(num, den, ms, mt, kp_hi, kd_hi, n=24):
     bracket = (kds[max(i - 1, 0)], kds[min(i + 1, n)])
     r = minimize_scalar(lambda kd: -_max_ki(num, den, p, kd, ms, mt, kp_hi), bounds=bracket, method="bounded",
                         options={"xatol": 1e-7 * kd_hi})
-    return vals[i], (float(-r.fun), float(r.x)), bracket
+    assert r.success, r.message
+    # Every value is a verified-feasible ki (_max_ki bisects on the feasibility test); the
+    # refinement is kept only where it is no worse than the grid's best.
+    refined = (float(-r.fun), float(r.x)) if -r.fun >= vals[i] else (float(vals[i]), float(kds[i]))
+    return vals[i], refined, bracket
 
 
 # (num, den, Ms bound, Mt bound, the brute force's box: kp in (0, kp_hi], kd in [0, kd_hi]), the

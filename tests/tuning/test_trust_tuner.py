@@ -55,6 +55,7 @@ def true_ms(plant, kp, ki, kd, tf, w_lo, w_hi, p_dense=None, w_dense=None):
     lo, hi = math.log(w_dense[max(i - 1, 0)]), math.log(w_dense[min(i + 1, w_dense.size - 1)])
     r = minimize_scalar(lambda x: -mag([math.exp(x)], _plant_response(plant, [math.exp(x)]))[0],
                         method="bounded", bounds=(lo, hi), options={"xatol": 1e-10})
+    assert r.success, r.message  # (the grid's value is kept when the refinement finds less)
     return max(float(m[i]), float(-r.fun))
 
 
@@ -181,8 +182,9 @@ def test_servo_ie_is_optimal_against_a_brute_force(controller_kind, ms_max):
 
 
 def brute_iae(plant, ms_max, tf, use_d, g_ref, w_lo, w_hi, rng):
-    """Smallest continuous IAE with Ms <= ms_max: 60 random points in +-30 % (log) around
-    ``g_ref`` plus ``g_ref`` itself, then a shrinking compass search in log gains from the best."""
+    """Smallest continuous IAE with Ms <= ms_max and a stable loop: 60 random points (seeded
+    ``rng``) in +-30 % (log) around ``g_ref`` plus ``g_ref`` itself, then a shrinking compass
+    search in log gains from the best; every value it keeps is a feasible, stable point's."""
     w = np.logspace(math.log10(w_lo), math.log10(w_hi), 20_000)
     p = _plant_response(plant, w)
     nv = 3 if use_d else 2
@@ -190,7 +192,8 @@ def brute_iae(plant, ms_max, tf, use_d, g_ref, w_lo, w_hi, rng):
     def f(y):
         kp, ki = g_ref[0] * math.exp(y[0]), g_ref[1] * math.exp(y[1])
         kd = g_ref[2] * math.exp(y[2]) if use_d else 0.0
-        if true_ms(plant, kp, ki, kd, tf, w_lo, w_hi, p, w) > ms_max:
+        # feasible AND stable (a loop can meet Ms on the grid and still be unstable)
+        if true_ms(plant, kp, ki, kd, tf, w_lo, w_hi, p, w) > ms_max or not stable(plant, kp, ki, kd, tf):
             return math.inf
         return true_iae(plant, kp, ki, kd, tf)
 
@@ -209,6 +212,7 @@ def brute_iae(plant, ms_max, tf, use_d, g_ref, w_lo, w_hi, rng):
                     y, v, moved = y2, v2, True
         if not moved:
             step /= 2
+    assert math.isfinite(v), "brute_iae: no feasible stable point"
     return v
 
 

@@ -2,7 +2,9 @@
 1/(Tf^2 s^2/2 + Tf s + 1) (Hast, Astrom, Bernhardsson, Boyd, "PID design by convex-concave
 optimization", ECC 2013; Soltesz, Grimholt, Skogestad; JuliaSim AutoTuningProblem2), with the
 ideal PID kp + ki/s + kd s, IE objective (max ki) under Ms, Mt, Mks bounds, against an independent
-SLSQP solve of the discretised semi-infinite problem (tests/independent_tuner.py)."""
+solve of the discretised semi-infinite problem by sequential quadratic programming
+(tests/independent_tuner.py ``best_filtered_pid``: only a start that reports success, is
+feasible on an independent dense grid and gives a stable loop is kept; it raises otherwise)."""
 
 import control
 import pytest

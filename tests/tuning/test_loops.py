@@ -1,0 +1,100 @@
+"""prsa_ctrl.tuning.loops: the error sums to infinity are bounded in work (issue 31: a filter
+just below Nyquist put a closed-loop pole next to z = -1; the Lyapunov solve failed its residual
+check and the fallback summed up to 2^22 samples one by one on every call, inside block_sum's
+loop: prsa-tune ran for minutes). Work is counted (doublings, calls), never timed."""
+
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from prsa_ctrl.tuning import loops
+from prsa_ctrl.tuning.settings import TAIL_MAX_STEPS
+
+
+def _pair(eps):
+    """A 2-state loop with a pole at -(1 - eps) and one at 0.5, and its output row."""
+    return np.array([[-(1.0 - eps), 1.0], [0.0, 0.5]]), np.array([1.0, 0.3])
+
+
+def _closed_form(a, c):
+    """sum_k (a^k)' c' c a^k from the eigen-decomposition a = V diag(l) V^-1 (independent of
+    both the Lyapunov solver and the doubling): with r = c V, W = V^-1,
+    P = W' [r_i r_j / (1 - l_i l_j)] W."""
+    lam, v = np.linalg.eig(a)
+    w = np.linalg.inv(v)
+    r = c @ v
+    m = np.outer(r, r) / (1.0 - np.outer(lam, lam))
+    return np.real(w.T @ m @ w)
+
+
+def test_budget_is_the_tail_budget():
+    assert 2 ** loops.GRAMIAN_DOUBLINGS == TAIL_MAX_STEPS
+
+
+@pytest.mark.parametrize("eps", [1e-2, 1e-4, 1e-5])
+def test_series_gramian_is_exact_and_bounded_near_minus_one(eps):
+    a, c = _pair(eps)
+    p, d = loops._series_gramian(a, c)
+    ref = _closed_form(a, c)
+    assert np.max(np.abs(p - ref)) <= 1e-10 * np.max(np.abs(ref))
+    # the work: doublings until ||a^N||^2 <= 1e-16, N = 2^d, i.e. about log2(37/eps) - 1
+    assert d <= loops.GRAMIAN_DOUBLINGS
+    assert d == math.ceil(math.log2(math.log(1e-16) / (2 * math.log(1 - eps)))) or \
+        d == math.ceil(math.log2(math.log(1e-16) / (2 * math.log(1 - eps)))) + 1
+
+
+def test_series_gramian_refuses_a_pole_too_near_the_unit_circle_after_the_cap(monkeypatch):
+    a, c = _pair(1e-7)
+    calls = []
+    real_norm = np.linalg.norm
+    # count the doublings through the convergence test (one 2-norm of a^N per doubling)
+    monkeypatch.setattr(np.linalg, "norm", lambda *args, **kw: calls.append(1) or real_norm(*args, **kw))
+    with pytest.raises(loops._TailBudgetError, match=r"pole at \|z\| = 0\.9999999, within 1e-07 of the unit "
+                                                    r"circle.*2\^22 samples"):
+        loops._series_gramian(a, c)
+    assert len(calls) == loops.GRAMIAN_DOUBLINGS
+
+
+def test_gramian_fallback_runs_once_and_bounded(monkeypatch):
+    """The Lyapunov solve made to fail its residual check (as it did for the near-Nyquist
+    notch): the fallback is summed ONCE per block_sum, by doubling, and agrees with the closed
+    form; the block sum itself stops within its block budget."""
+    a, c = _pair(1e-4)
+    monkeypatch.setattr(scipy.linalg, "solve_discrete_lyapunov", lambda a, q: np.full(a.shape, np.nan))
+    seen = []
+    real = loops._series_gramian
+    monkeypatch.setattr(loops, "_series_gramian", lambda ab, cb: seen.append(real(ab, cb)[1]) or real(ab, cb))
+    g = loops._gramian(a, c)
+    z = np.array([0.7, -0.2])
+    ref = _closed_form(a, c)
+    assert g(z) == pytest.approx(float(z @ ref @ z), rel=1e-10)
+    assert len(seen) == 1 and seen[0] <= loops.GRAMIAN_DOUBLINGS
+    # block_sum: one Gramian for the whole sum (it was one series of up to 2^22 steps per block)
+    seen.clear()
+    val, tail = loops.block_sum(a, c, z, 0, 0.0, 1e-3, "iae", 1e-6)
+    assert len(seen) == 1 and math.isfinite(val) and tail <= 1e-6 * val
+    # and the IAE equals a direct sum of |c a^k z| (the tail past 2e6 samples is < 1e-30)
+    x, direct = z.copy(), 0.0
+    for _ in range(200_000):
+        direct += abs(c @ x)
+        x = a @ x
+    assert val == pytest.approx(1e-3 * direct, rel=1e-6)
+
+
+def test_block_sum_of_a_loop_beyond_the_budget_is_marginal(monkeypatch):
+    """A pole within 1e-7 of z = -1: the tail cannot be bounded within 2^22 samples; block_sum
+    says (inf, inf) (as for a marginal loop) after the capped doublings, not minutes later."""
+    a, c = _pair(1e-7)
+    monkeypatch.setattr(scipy.linalg, "solve_discrete_lyapunov", lambda a, q: np.full(a.shape, np.nan))
+    seen = []
+    real = loops._series_gramian
+
+    def spy(ab, cb):
+        seen.append(1)
+        return real(ab, cb)
+
+    monkeypatch.setattr(loops, "_series_gramian", spy)
+    assert loops.block_sum(a, c, np.array([1.0, 0.0]), 0, 0.0, 1e-3, "iae", 1e-6) == (math.inf, math.inf)
+    assert seen == [1]
