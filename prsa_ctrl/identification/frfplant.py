@@ -46,7 +46,7 @@ from ..plant.plantfile import Plant
 from .common import FitResult
 from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure, fit_frf_model
 
-__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "FRF_FIT_MIN"]
+__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND"]
 
 #: A response that neither model fits to at least this fit % (complex log response,
 #: :func:`prsa_ctrl.identification.frf.frf_fit_percent`) is not written into a plant: a
@@ -54,6 +54,9 @@ __all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "
 #: with 2 % noise ~98 %; below 50 % the response is not torque command -> motor speed of
 #: an axis in these units (or its noise swamps it).
 FRF_FIT_MIN = 50.0
+#: A response ending below the base plant's current-loop bandwidth divided by this holds the
+#: current loop at the base value (below ~f_c/3 its lag is a pure phase slope, the delay's).
+CURRENT_LOOP_BAND = 3.0
 
 #: Units of the keys this module writes.
 KEY_UNITS = {
@@ -285,7 +288,10 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         raise ValueError(f"load_n = {load0!r} for a compliant frequency response; expected the measurement's axial load "
                          "(> 0 N, --frf-load): without load the thread contacts sit in the backlash and no axial mode "
                          "exists")
-    choice = choose_structure(frf, sample_time_s=ts)
+    f_top = max(float(np.max(fr.frequency_hz)) for fr in frf)
+    fc_base = plant.values["drive.current_loop_bandwidth_hz"]
+    fix_fc = fc_base if f_top < fc_base / CURRENT_LOOP_BAND else None
+    choice = choose_structure(frf, sample_time_s=ts, current_loop_bandwidth_hz=fix_fc)
     speed, load = frf[0].speed_rad_s, frf[0].load_n
     warns = [w for fr in frf for w in fr.warnings]
     if fidelity == "rigid" and choice.structure == "two-mass":
@@ -307,6 +313,15 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     warns += list(fit.warnings)
     values, ci, cov, keys, map_warns = plant_keys_of(plant, fit, speed_rad_s=speed, load_n=load)
     warns += map_warns
+    if fix_fc is not None:
+        warns.append(f"drive.current_loop_bandwidth_hz kept at the base value {fc_base:.6g} Hz: the responses end at "
+                     f"{f_top:.4g} Hz, below 1/{CURRENT_LOOP_BAND:g} of it, where the current loop's lag cannot be "
+                     "told from the delay (held there in the fit; measure up to the current loop to fit it)")
+        i = keys.index("drive.current_loop_bandwidth_hz")
+        keep = [j for j in range(len(keys)) if j != i]
+        cov = cov[np.ix_(keep, keep)]
+        keys = [k for k in keys if k != "drive.current_loop_bandwidth_hz"]
+        values = {k: values[k] for k in keys}
     from ..plant.schema import PLAUSIBLE as _PL
 
     bad = [k for k in keys if not values[k] > 0]
@@ -335,7 +350,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
                                f"is no longer than the {offset} sample(s) a command logged as {command_logged} "
                                "implies: drive.command_delay_samples = 0, the current loop as fitted")
         delay["written"] = {"drive.command_delay_samples": 0,
-                            "drive.current_loop_bandwidth_hz": values["drive.current_loop_bandwidth_hz"]}
+                            "drive.current_loop_bandwidth_hz": values.get("drive.current_loop_bandwidth_hz", fc_base)}
         if plant.values["drive.command_delay_samples"] != 0:
             overrides["drive.command_delay_samples"] = 0
     with _warnings.catch_warnings():
@@ -417,7 +432,8 @@ def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: Stru
     from .common import DELAY_KEY
     from .frf import fit_frf
 
-    fkeys = [k for k in keys if k != "drive.current_loop_bandwidth_hz"] + ["drive.current_loop_bandwidth_hz", DELAY_KEY]
+    fkeys = [k for k in keys if k != "drive.current_loop_bandwidth_hz"] + (
+        ["drive.current_loop_bandwidth_hz"] if "drive.current_loop_bandwidth_hz" in keys else []) + [DELAY_KEY]
     try:
         start = _match_modes(start, fit, frf[0].speed_rad_s, frf[0].load_n)
     except (FitError, ValueError, np.linalg.LinAlgError):

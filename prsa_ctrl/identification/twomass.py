@@ -330,8 +330,14 @@ def _lag_delay_start(f, g_rel, w, f_cl_grid) -> tuple[float, float, float]:
     return best
 
 
-def _solve(structure, theta0, f, g, w, ts, b_scale, max_nfev):
+def _solve(structure, theta0, f, g, w, ts, b_scale, max_nfev, fixed=()):
+    """Levenberg-Marquardt on the entries of ``theta0`` not in ``fixed`` (indices held at their
+    start). Returns ``(sol, resid, free)``: ``sol.x`` the full vector, ``resid`` of the full
+    vector, ``free`` the fitted indices."""
     from scipy.optimize import least_squares
+
+    theta0 = np.asarray(theta0, float)
+    free = np.array([i for i in range(len(theta0)) if i not in set(fixed)], int)
 
     def resid(th):
         v = physical_values(structure, th, b_scale)
@@ -341,8 +347,17 @@ def _solve(structure, theta0, f, g, w, ts, b_scale, max_nfev):
             return np.full(2 * len(f), 1e3)
         return _log_resid(gm, g, w)
 
-    sol = least_squares(resid, theta0, method="lm", x_scale="jac", max_nfev=max_nfev, xtol=1e-12, ftol=1e-12)
-    return sol, resid
+    def resid_free(x):
+        th = theta0.copy()
+        th[free] = x
+        return resid(th)
+
+    sol = least_squares(resid_free, theta0[free], method="lm", x_scale="jac", max_nfev=max_nfev, xtol=1e-12,
+                        ftol=1e-12)
+    full = theta0.copy()
+    full[free] = sol.x
+    sol.x = full
+    return sol, resid, free
 
 
 def _jacobian(resid, theta: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -368,21 +383,29 @@ def _fit_percent(g, gm) -> float:
     return float(100.0 * (1.0 - err / ref)) if ref > 1e-6 * math.sqrt(len(lm)) else float("nan")
 
 
-def _finish(structure, sol, resid, f, g, w, ts, b_scale) -> FrfModelFit:
+def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None) -> FrfModelFit:
     from scipy.stats import t as student_t
 
     theta = np.asarray(sol.x, float)
+    free = np.arange(len(theta)) if free is None else np.asarray(free, int)
     r = resid(theta)
     if not np.all(np.isfinite(r)):
         raise FitError(f"{structure} FRF fit ended on a non-finite residual; remedy: check the response's units "
                        "((rad/s)/(N m)) and that it is torque command -> motor speed")
-    jac = _jacobian(resid, theta)
+
+    def resid_free(x):
+        th = theta.copy()
+        th[free] = x
+        return resid(th)
+
+    jac = _jacobian(resid_free, theta[free])
     n, npar = len(r), len(theta)
-    dof = max(n - npar, 1)
+    dof = max(n - len(free), 1)
     rss = float(r @ r)
     s2 = rss / dof
+    cov = np.zeros((npar, npar))
     try:
-        cov = s2 * np.linalg.pinv(jac.T @ jac, rcond=1e-13)
+        cov[np.ix_(free, free)] = s2 * np.linalg.pinv(jac.T @ jac, rcond=1e-13)
     except np.linalg.LinAlgError as exc:
         raise FitError(f"{structure} FRF fit: the Jacobian at the optimum has no inverse ({exc})") from exc
     q = float(student_t.ppf(0.975, dof))
@@ -410,7 +433,9 @@ def _finish(structure, sol, resid, f, g, w, ts, b_scale) -> FrfModelFit:
         gm = model_response(structure, vals, f, ts)
     fmax = float(np.max(f))
     fc = out["current_loop_bandwidth_hz"]
-    if fc["value"] > 5.0 * fmax or fc["ci95"][1] > 20.0 * fc["value"]:
+    if len(free) < npar:
+        fc["fixed"] = True
+    elif fc["value"] > 5.0 * fmax or fc["ci95"][1] > 20.0 * fc["value"]:
         warns.append(f"current_loop_bandwidth_hz = {fc['value']:.4g} Hz is not identified by a response that ends at "
                      f"{fmax:.4g} Hz (95 % CI {fc['ci95'][0]:.4g}..{fc['ci95'][1]:.4g} Hz): measure up to the "
                      "current-loop bandwidth")
@@ -422,7 +447,8 @@ def _finish(structure, sol, resid, f, g, w, ts, b_scale) -> FrfModelFit:
 
 
 def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.0,
-                  max_nfev: int = MAX_NFEV, _rigid: FrfModelFit | None = None) -> FrfModelFit:
+                  current_loop_bandwidth_hz: float | None = None, max_nfev: int = MAX_NFEV,
+                  _rigid: FrfModelFit | None = None) -> FrfModelFit:
     """Fit the rigid or the two-mass model to a frequency response (module docstring).
 
     Parameters
@@ -433,6 +459,9 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
     sample_time_s : float, s
         0 (default): the continuous model; > 0: the drive's sampled response
         (:func:`two_mass_response`).
+    current_loop_bandwidth_hz : float, Hz, optional
+        Hold the current loop at this value instead of fitting it (a response that ends far
+        below the current loop cannot tell it from the delay).
     max_nfev : int
         Budget of model evaluations of the least-squares solve.
 
@@ -453,6 +482,9 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
         raise ValueError(f"max_nfev = {max_nfev!r}; expected an integer 10..1e6")
     if not (math.isfinite(sample_time_s) and sample_time_s >= 0):
         raise ValueError(f"sample_time_s = {sample_time_s!r}; expected a finite number >= 0 s")
+    fixed_fc = current_loop_bandwidth_hz
+    if fixed_fc is not None and not (math.isfinite(fixed_fc) and fixed_fc > 0):
+        raise ValueError(f"current_loop_bandwidth_hz = {fixed_fc!r}; expected a finite number > 0 Hz or None")
     f, g, w = _arrays(frf)
     order = np.argsort(f)
     f, g, w = f[order], g[order], w[order]
@@ -468,14 +500,16 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
     fc_grid = np.geomspace(0.05 * fmax, 20.0 * fmax, 31)
     if structure == "rigid":
         g_rel = g * (1j * om * j0)
-        fc, td, _ = _lag_delay_start(f, g_rel, w, fc_grid)
+        fc, td, _ = _lag_delay_start(f, g_rel, w, fc_grid if fixed_fc is None else [fixed_fc])
         theta0 = np.array([math.log(j0), math.log(fc), td, 0.0])
-        sol, resid = _solve("rigid", theta0, f, g, w, sample_time_s, b_scale, max_nfev)
+        sol, resid, free = _solve("rigid", theta0, f, g, w, sample_time_s, b_scale, max_nfev,
+                                  () if fixed_fc is None else (1,))
         if not sol.success:
             raise FitError(f"rigid FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
                            f"{sol.nfev} evaluations; remedy: check the response's units ((rad/s)/(N m))")
-        return _finish("rigid", sol, resid, f, g, w, sample_time_s, b_scale)
-    rig = _rigid if _rigid is not None else fit_frf_model(frf, "rigid", sample_time_s=sample_time_s, max_nfev=max_nfev)
+        return _finish("rigid", sol, resid, f, g, w, sample_time_s, b_scale, free)
+    rig = _rigid if _rigid is not None else fit_frf_model(frf, "rigid", sample_time_s=sample_time_s, max_nfev=max_nfev,
+                                                          current_loop_bandwidth_hz=fixed_fc)
     # the mode shows as a notch (anti-resonance) then a peak (resonance) of the response over the rigid fit
     q = np.log(np.abs(g / rig.response(f)))
     qs = _median_filter(q, 5) if len(q) >= 5 else q
@@ -504,23 +538,25 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
         away = (f < 0.7 * fa0) | (f > 1.4 * fa0 * math.sqrt(1.0 + r0))  # off the mode: its start is rough there
         if np.count_nonzero(away) < 4:
             away = np.ones(len(f), bool)
-        fc0, td0, _ = _lag_delay_start(f[away], (g / g_mech)[away], w[away], fc_grid)
+        fc0, td0, _ = _lag_delay_start(f[away], (g / g_mech)[away], w[away],
+                                       fc_grid if fixed_fc is None else [fixed_fc])
         th = np.array([math.log(jt0), math.log(fa0), math.log(r0), math.log(zeta), math.log(fc0), td0, b0])
         if resid_start is None:
-            _, resid_start = _solve("two-mass", th, f, g, w, sample_time_s, b_scale, 1)
+            _, resid_start, _ = _solve("two-mass", th, f, g, w, sample_time_s, b_scale, 1)
         r = resid_start(th)
         starts.append((float(r @ r), th))
     starts.sort(key=lambda t: t[0])
     best = None
     for _, th in starts[:2]:  # the two best grid points, each solved: the better optimum is kept
-        sol, resid = _solve("two-mass", th, f, g, w, sample_time_s, b_scale, max_nfev)
+        sol, resid, free = _solve("two-mass", th, f, g, w, sample_time_s, b_scale, max_nfev,
+                                  () if fixed_fc is None else (4,))
         if np.all(np.isfinite(sol.fun)) and (best is None or sol.cost < best[0].cost):
-            best = (sol, resid)
-    sol, resid = best
+            best = (sol, resid, free)
+    sol, resid, free = best
     if not sol.success:
         raise FitError(f"two-mass FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
                        f"{sol.nfev} evaluations; remedy: check the response's units ((rad/s)/(N m))")
-    return _finish("two-mass", sol, resid, f, g, w, sample_time_s, b_scale)
+    return _finish("two-mass", sol, resid, f, g, w, sample_time_s, b_scale, free)
 
 
 @dataclass(frozen=True, eq=False)
@@ -563,7 +599,8 @@ class StructureChoice:
                 "rigid": self.rigid.report(), "two_mass": None if self.two_mass is None else self.two_mass.report()}
 
 
-def choose_structure(frf, *, sample_time_s: float = 0.0, max_nfev: int = MAX_NFEV) -> StructureChoice:
+def choose_structure(frf, *, sample_time_s: float = 0.0, current_loop_bandwidth_hz: float | None = None,
+                     max_nfev: int = MAX_NFEV) -> StructureChoice:
     """Fit the rigid and the two-mass model and let the data choose (module docstring).
 
     Parameters
@@ -571,6 +608,8 @@ def choose_structure(frf, *, sample_time_s: float = 0.0, max_nfev: int = MAX_NFE
     frf : FrfRecord, sequence of FrfRecord, or ``(frequency_hz, response[, coherence])``
     sample_time_s : float, s
         See :func:`fit_frf_model`.
+    current_loop_bandwidth_hz : float, Hz, optional
+        Held, not fitted (:func:`fit_frf_model`).
     max_nfev : int
 
     Returns
@@ -579,16 +618,18 @@ def choose_structure(frf, *, sample_time_s: float = 0.0, max_nfev: int = MAX_NFE
     """
     from scipy.stats import f as f_dist
 
-    rig = fit_frf_model(frf, "rigid", sample_time_s=sample_time_s, max_nfev=max_nfev)
+    rig = fit_frf_model(frf, "rigid", sample_time_s=sample_time_s, max_nfev=max_nfev,
+                        current_loop_bandwidth_hz=current_loop_bandwidth_hz)
     f, g, _ = _arrays(frf)
     try:
-        two = fit_frf_model(frf, "two-mass", sample_time_s=sample_time_s, max_nfev=max_nfev, _rigid=rig)
+        two = fit_frf_model(frf, "two-mass", sample_time_s=sample_time_s, max_nfev=max_nfev, _rigid=rig,
+                            current_loop_bandwidth_hz=current_loop_bandwidth_hz)
     except FitError as exc:
         return StructureChoice("rigid", rig, None, float("nan"), float("nan"), 0.0, False,
                                f"the two-mass fit failed ({exc})")
     n = rig.n_residuals
-    extra = len(two.theta) - len(rig.theta)
-    dof = max(n - len(two.theta), 1)
+    extra = 3  # anti-resonance, inertia ratio, damping
+    dof = max(n - len(two.theta) + (current_loop_bandwidth_hz is not None), 1)
     f_stat = max((rig.rss - two.rss) / extra, 0.0) / max(two.rss / dof, 1e-300)
     p = float(f_dist.sf(f_stat, extra, dof))
     fa, fr = two.value("antiresonance_hz"), two.value("resonance_hz")
