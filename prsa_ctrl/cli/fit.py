@@ -72,6 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frf", nargs="+", default=[], metavar="FRF.csv", help="frequency responses torque command -> "
                    "nut speed (frequency_hz, magnitude_db, phase_deg[, coherence] or real, imag): fitted alone "
                    "without DATA.csv, otherwise used to validate the fit")
+    p.add_argument("--frf-from-logs", default=None, metavar="KP,KI[,TAU_S]",
+                   help="estimate the plant's frequency response from the DATA.csv closed-loop logs (joint "
+                   "input-output method: the speed reference, given back by the drive's PI speed loop described "
+                   "here, kp in N m s/rad, ki in N m/rad, the speed filter's time constant in s, default 0) and fit it "
+                   "as --frf does, instead of the time-domain fit; --command-logged says how the log holds the command")
     p.add_argument("--frf-speed", type=_finite("--frf-speed"), default=30.0, metavar="RAD_S",
                    help="nut speed during the FRF measurement, rad/s (default 30)")
     p.add_argument("--frf-load", type=_finite("--frf-load"), default=None, metavar="N",
@@ -561,6 +566,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
             raise UsageError("--validate without DATA.csv; expected time-domain records to fit first")
         frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
                 for f in args.frf]
+        if args.frf_from_logs is not None:
+            records, frfs = [], frfs + _frfs_from_logs(args, argv, records)
     except (UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
@@ -674,6 +681,44 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
     if args.plots is not None:
         print("plots: " + ", ".join(plot_paths))
     return 0
+
+
+def _frfs_from_logs(args, argv: Sequence[str], records) -> list:
+    """``--frf-from-logs KP,KI[,TAU_S]``: the frequency response of each DATA.csv log
+    (:func:`prsa_ctrl.identification.closedloop.frf_from_logs`)."""
+    import numpy as np
+
+    from ..identification.closedloop import SpeedLoop, frf_from_logs
+    from ..identification.data import DataError
+
+    text = args.frf_from_logs
+    typed = repr(flag_value(argv, "--frf-from-logs") or text)
+    parts = [x.strip() for x in text.split(",")]
+    try:
+        nums = [float(x) for x in parts]
+    except ValueError:
+        nums = []
+    if len(nums) not in (2, 3) or not all(math.isfinite(x) for x in nums):
+        raise UsageError(f"--frf-from-logs {typed}: expected KP,KI[,TAU_S] (the speed PI's gains in N m s/rad and "
+                         "N m/rad, the speed filter's time constant in s), e.g. 1.0,100,2e-4")
+    if not records:
+        raise UsageError(f"--frf-from-logs {typed} without DATA.csv; expected closed-loop logs to estimate it from")
+    out, why = [], []
+    for rec in records:
+        ts = float(np.median(np.diff(rec.time_s)))
+        try:
+            loop = SpeedLoop(nums[0], nums[1], ts, nums[2] if len(nums) == 3 else 0.0,
+                             args.command_logged or "applied")
+        except ValueError as exc:
+            raise UsageError(f"--frf-from-logs {typed}: {exc}") from None
+        load = float(np.mean(rec.axial_load_n)) if rec.axial_load_n is not None else (args.load or 0.0)
+        try:
+            out.append(frf_from_logs(rec, loop, load_n=load, coherence_min=args.coherence_min))
+        except DataError as exc:
+            why.append(str(exc))
+    if not out:
+        raise DataError(f"--frf-from-logs {typed}: no log gives a frequency response ({'; '.join(why)})")
+    return out
 
 
 def _fidelity_given(argv: Sequence[str]) -> bool:

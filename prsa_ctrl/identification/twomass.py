@@ -31,8 +31,10 @@ variance (delta method for derived values, Student t quantile).
 
 :func:`choose_structure` fits both and lets the data decide (:class:`StructureChoice`): the
 two-mass model is needed when it explains the response significantly better (F-test of the
-nested models at ``STRUCTURE_ALPHA``), its anti-resonance and mode lie inside the measured band
-and the mode changes the response by more than ``STRUCTURE_EFFECT`` times the fit's noise.
+nested models at ``STRUCTURE_ALPHA``) and substantially better (at most ``STRUCTURE_RSS_RATIO``
+of the rigid residual left), its anti-resonance and mode lie inside the measured band, the mode
+is a resonance (damping at most ``STRUCTURE_ZETA_MAX``) and it changes the response by more
+than ``STRUCTURE_EFFECT`` times the fit's noise.
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ from numpy.typing import NDArray
 from ..errors import FitError
 
 __all__ = ["physical_values", "FrfModelFit", "StructureChoice", "fit_frf_model", "choose_structure", "model_response",
-           "two_mass_response", "STRUCTURES", "STRUCTURE_ALPHA", "STRUCTURE_EFFECT", "MAX_NFEV"]
+           "two_mass_response", "STRUCTURES", "STRUCTURE_ALPHA", "STRUCTURE_EFFECT", "STRUCTURE_RSS_RATIO",
+           "STRUCTURE_ZETA_MAX", "MAX_NFEV"]
 
 #: The parametric structures.
 STRUCTURES = ("rigid", "two-mass")
@@ -57,6 +60,13 @@ STRUCTURE_ALPHA = 1e-4
 #: The mode must change the response (largest |log(G_two-mass / G_rigid)| over the measured
 #: band) by more than this many times the residual standard deviation of the two-mass fit.
 STRUCTURE_EFFECT = 3.0
+#: The two-mass model must leave at most this fraction of the rigid model's residual sum of
+#: squares (a mode is a large effect: a model mismatch at the band's edge improves the fit by
+#: a few per cent, a real mode by one or two orders of magnitude).
+STRUCTURE_RSS_RATIO = 0.5
+#: Largest damping ratio of a mode the structure test accepts (an overdamped pole pair makes no
+#: resonance peak: it is a lag, not an axial mode).
+STRUCTURE_ZETA_MAX = 0.3
 #: Budget of model evaluations per least-squares solve (the model is a closed form: each costs
 #: microseconds per point).
 MAX_NFEV = 4000
@@ -642,7 +652,10 @@ def choose_structure(frf, *, sample_time_s: float = 0.0, current_loop_bandwidth_
     nums = (f"rigid fit {rig.fit_percent:.2f} %, residual {rig.residual_std:.3g}; two-mass fit {two.fit_percent:.2f} %, "
             f"residual {two.residual_std:.3g}; F = {f_stat:.4g}, p = {p:.3g}; the mode changes the response by up to "
             f"{20 / math.log(10) * eff:.3g} dB, {effect:.3g} x the noise")
-    if p < STRUCTURE_ALPHA and in_band and effect > STRUCTURE_EFFECT:
+    ratio = two.rss / max(rig.rss, 1e-300)
+    zeta = two.value("damping_ratio")
+    if p < STRUCTURE_ALPHA and in_band and effect > STRUCTURE_EFFECT and ratio <= STRUCTURE_RSS_RATIO \
+            and zeta <= STRUCTURE_ZETA_MAX:
         return StructureChoice("two-mass", rig, two, f_stat, p, effect, in_band,
                                f"the response shows an anti-resonance at {fa:.4g} Hz and an axial mode at {fr:.4g} Hz "
                                f"that the rigid model cannot produce ({nums})")
@@ -654,5 +667,10 @@ def choose_structure(frf, *, sample_time_s: float = 0.0, current_loop_bandwidth_
                    f"{np.min(f):.4g}..{np.max(f):.4g} Hz")
     if not effect > STRUCTURE_EFFECT:
         why.append(f"the mode changes the response by only {effect:.3g} x the noise (<= {STRUCTURE_EFFECT:g})")
+    if not ratio <= STRUCTURE_RSS_RATIO:
+        why.append(f"it leaves {100 * ratio:.3g} % of the rigid model's residual (more than "
+                   f"{100 * STRUCTURE_RSS_RATIO:g} %: no mode explains the misfit)")
+    if not zeta <= STRUCTURE_ZETA_MAX:
+        why.append(f"its pole pair is damped {zeta:.3g} (> {STRUCTURE_ZETA_MAX:g}: a lag, not a resonance)")
     return StructureChoice("rigid", rig, two, f_stat, p, effect, in_band,
                            "; ".join(why) + f" ({nums})")

@@ -127,3 +127,27 @@ def test_bad_input():
         frf_closed_loop(t, np.ones(1000), np.zeros(1000), reference_rad_s=np.ones(1000))
     with pytest.raises(ValueError, match="kp_n_m_s_per_rad = 0"):
         SpeedLoop(0, 1.0, TS)
+
+
+def test_cli_frf_from_logs(log, tmp_path, capsys):
+    """prsa-fit LOG.csv --frf-from-logs KP,KI,TAU: the response of the log, fitted as --frf does."""
+    import json
+
+    from prsa_ctrl.cli.fit import main
+
+    t, u, th, r = log
+    csv = tmp_path / "log.csv"
+    np.savetxt(csv, np.c_[t, th, u, np.zeros(len(t))], delimiter=",", comments="",
+               header="time_s,nut_angle_rad,torque_command_n_m,axial_load_n")
+    out, rep = tmp_path / "o.toml", tmp_path / "r.json"
+    assert main([str(csv), "--frf-from-logs", f"{KP},{KI},{TAU_F}", "--command-logged", "computed",
+                 "--out", str(out), "--json", str(rep)]) == 0
+    text = capsys.readouterr().out
+    assert "structure: rigid" in text
+    j = json.loads(rep.read_text())["reflected_inertia_kg_m2"]
+    assert abs(j["value"] / J - 1) < 0.03 and j["ci95"][0] <= J <= j["ci95"][1]
+    for bad in ("1.0", "a,b", f"{KP},{KI},nan"):
+        assert main([str(csv), "--frf-from-logs", bad, "--out", str(tmp_path / "x.toml")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and repr(bad) in err
+    assert not (tmp_path / "x.toml").exists()
