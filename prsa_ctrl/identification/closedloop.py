@@ -41,8 +41,12 @@ from numpy.typing import NDArray
 from ..errors import DataError
 
 __all__ = ["SpeedLoop", "measured_speed", "reference_from_loop", "frf_closed_loop", "frf_from_logs", "frf_start_values",
-           "REFERENCE_POWER_MIN"]
+           "REFERENCE_POWER_MIN", "REFERENCE_RMS_MIN"]
 
+#: A reference whose RMS (linear trend removed) is below this fraction of ``max(|mean|, 1 rad/s)``
+#: does not excite the loop (a constant setpoint given back by the controller is constant to
+#: ~1e-7 of itself; a dither of 0.01 % of the speed is still accepted).
+REFERENCE_RMS_MIN = 1e-4
 #: Frequency bins where the reference's power is below this fraction of its largest are left
 #: out (the excitation does not reach them: the ratio there is noise over noise).
 REFERENCE_POWER_MIN = 1e-4
@@ -195,6 +199,13 @@ def frf_closed_loop(time_s, command_n_m, angle_rad, *, loop: SpeedLoop | None = 
     k0 = int(min(max(math.ceil(skip / ts), 1), len(t) // 2))
     r, u, y = r[k0:], u[k0:], w_raw[k0:]
     n = len(r)
+    k = np.arange(n)
+    r_dev = r - np.polyval(np.polyfit(k, r, 1), k)
+    rms, scale = float(np.sqrt(np.mean(r_dev**2))), max(abs(float(np.mean(r))), 1.0)
+    if not rms > REFERENCE_RMS_MIN * scale:
+        raise DataError(f"{name}: the speed reference does not vary (RMS {rms:.3g} rad/s about its trend, mean "
+                        f"{np.mean(r):.4g} rad/s); expected an excitation on the setpoint (multisine, chirp, steps) "
+                        "or a dither")
     nseg = int(min(n, max(256, round(segment_s / ts) if segment_s else n // 2)))
     kw = dict(fs=1.0 / ts, window="hann", nperseg=nseg, noverlap=nseg // 2, detrend="linear")
     f, p_rr = welch(r, **kw)

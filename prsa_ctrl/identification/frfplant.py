@@ -343,9 +343,9 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     offset = {"applied": 0, "computed": 1}.get(command_logged)
     if offset is None:
         raise ValueError(f"command_logged = {command_logged!r}; expected 'applied' or 'computed'")
-    write_delay = not (d["ci95"][0] <= offset * ts_w <= d["ci95"][1] or d["value"] < offset * ts_w)
+    delay_to_write = not (d["ci95"][0] <= offset * ts_w <= d["ci95"][1] or d["value"] < offset * ts_w)
     overrides = dict(values)
-    if not write_delay:  # no delay beyond the computation delay the log's convention implies
+    if not delay_to_write:  # no delay beyond the computation delay the log's convention implies
         delay["plant_file"] = (f"the fitted delay {d['value']:.4g} s (95 % CI {d['ci95'][0]:.4g}..{d['ci95'][1]:.4g}) "
                                f"is no longer than the {offset} sample(s) a command logged as {command_logged} "
                                "implies: drive.command_delay_samples = 0, the current loop as fitted")
@@ -382,7 +382,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
                    description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc,
                    mechanism=fitted.mechanism, defaulted=fitted.defaulted, mechanism_source=fitted.mechanism_source)
     start = fitted
-    if write_delay:
+    if delay_to_write:
         fitted, delay = write_delay(fitted, delay, ts_w, command_logged, warns)
     jt = fit.values["total_inertia_kg_m2"]
     reflected = {"value": float(fitted.reflected_inertia_kg_m2), "ci95": list(jt["ci95"]), "unit": "kg m^2",

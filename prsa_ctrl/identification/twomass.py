@@ -133,7 +133,7 @@ def two_mass_response(frequency_hz, *, motor_inertia_kg_m2: float, load_inertia_
     Examples
     --------
     >>> g = two_mass_response([1.0], motor_inertia_kg_m2=1e-3)
-    >>> round(abs(g[0]) * 2 * math.pi * 1e-3, 6)  # 1 / (J w)
+    >>> round(float(abs(g[0])) * 2 * math.pi * 1e-3, 6)  # 1 / (J w)
     1.0
     """
     f = np.asarray(frequency_hz, float)

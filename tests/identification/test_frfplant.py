@@ -241,3 +241,19 @@ def test_cli_verbose_shows_the_cause_of_a_numerical_failure(tmp_path, capsys, mo
     err = capsys.readouterr().err
     assert "RuntimeError: mapping failed" in err and "KeyError: 'omega_cage'" in err and "test_frfplant.py" in err
     assert not (tmp_path / "o.toml").exists()
+
+
+@pytest.mark.parametrize("logged,written", [("applied", 2), ("computed", 1)])
+def test_delay_of_the_response_is_written_as_whole_samples(logged, written):
+    """A response 2 samples late: drive.command_delay_samples = 2 for a command logged as
+    applied, 1 for one logged as computed (its computation sample is the drive's own)."""
+    base, truth = BASES["roller-screw"]
+    ts = truth.sample_time_s
+    f = np.geomspace(3.0, 0.4 / ts, 200)
+    g = frf_response(truth, f, fidelity="compliant", load_n=LOAD, delay_samples=2, sample_time_s=ts)
+    fr = frf_from_arrays("late", f, _noisy(g, 0.01, 4), load_n=LOAD)
+    res, _ = fit_frf_structure([fr], base, command_logged=logged)
+    assert res.plant.values["drive.command_delay_samples"] == written
+    assert res.delay["value"] == pytest.approx(2 * ts, abs=0.05 * ts)
+    assert res.plant.values["drive.current_loop_bandwidth_hz"] == pytest.approx(
+        truth.values["drive.current_loop_bandwidth_hz"], rel=0.05)
