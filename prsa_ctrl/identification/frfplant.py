@@ -46,7 +46,8 @@ from ..plant.plantfile import Plant
 from .common import FitResult
 from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure, fit_frf_model
 
-__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND"]
+__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND",
+           "INERTIA_RATIO_MAX", "DELAY_SAMPLES_MAX", "LOW_PHASE_TOL_DEG"]
 
 #: A response that neither model fits to at least this fit % (complex log response,
 #: :func:`prsa_ctrl.identification.frf.frf_fit_percent`) is not written into a plant: a
@@ -54,6 +55,17 @@ __all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "
 #: with 2 % noise ~98 %; below 50 % the response is not torque command -> motor speed of
 #: an axis in these units (or its noise swamps it).
 FRF_FIT_MIN = 50.0
+#: The fitted total inertia must lie within this factor of the base plant's reflected inertia
+#: (as the time-domain fit's unit check: a response in deg/s is 57x off, one in rpm 9.5x... the
+#: factor catches the former; a wrong base plant too).
+INERTIA_RATIO_MAX = 20.0
+#: Largest command delay (samples) a written plant may carry (the plant file's plausible range
+#: of ``drive.command_delay_samples``).
+DELAY_SAMPLES_MAX = 20
+#: The response's phase at its lowest frequencies must lie within this many degrees of -90
+#: (torque -> speed of an inertia): a sign flip (+90) or an angle/acceleration response is
+#: refused before any fit.
+LOW_PHASE_TOL_DEG = 60.0
 #: A response ending below the base plant's current-loop bandwidth divided by this holds the
 #: current loop at the base value (below ~f_c/3 its lag is a pure phase slope, the delay's).
 CURRENT_LOOP_BAND = 3.0
@@ -65,6 +77,18 @@ KEY_UNITS = {
     "contact.stiffness_n_per_mm_e": "N/mm^e", "axis.mass_kg": "kg", "drive.current_loop_bandwidth_hz": "Hz",
     "drive.command_delay_s": "s",
 }
+
+
+def _check_low_phase(frf) -> None:
+    """Refuse a response whose low-frequency phase is not that of an inertia (about -90 deg)."""
+    for fr in frf:
+        n = max(3, min(10, fr.n // 10))
+        ph = float(np.degrees(np.angle(np.mean(np.exp(1j * np.angle(fr.response[:n]))))))
+        if abs(ph + 90.0) > LOW_PHASE_TOL_DEG:
+            raise FitError(f"no plant written: {fr.name}: the phase at its lowest frequencies "
+                           f"({fr.frequency_hz[0]:.4g}..{fr.frequency_hz[n - 1]:.4g} Hz) is {ph:.0f} deg; expected about "
+                           "-90 deg (torque command -> motor speed of an inertia): a sign flip gives +90, a position "
+                           "response -180, an acceleration response 0")
 
 
 def _stiffness_key(plant: Plant) -> str | None:
@@ -288,6 +312,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         raise ValueError(f"load_n = {load0!r} for a compliant frequency response; expected the measurement's axial load "
                          "(> 0 N, --frf-load): without load the thread contacts sit in the backlash and no axial mode "
                          "exists")
+    _check_low_phase(frf)
     f_top = max(float(np.max(fr.frequency_hz)) for fr in frf)
     fc_base = plant.values["drive.current_loop_bandwidth_hz"]
     fix_fc = fc_base if f_top < fc_base / CURRENT_LOOP_BAND else None
@@ -302,6 +327,18 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         warns.append(f"--fidelity compliant on a response that does not need it ({choice.reason}); the two-mass "
                      "values below rest on no visible mode")
     fit = choice.two_mass if fidelity == "compliant" else choice.chosen
+    j_fit, j_base = fit.value("total_inertia_kg_m2"), plant.reflected_inertia_kg_m2
+    if not 1.0 / INERTIA_RATIO_MAX <= j_fit / j_base <= INERTIA_RATIO_MAX:
+        raise FitError(f"no plant written: the response's inertia {j_fit:.4g} kg m^2 is {j_fit / j_base:.3g} x the base "
+                       f"plant's {j_base:.4g} kg m^2 (outside 1/{INERTIA_RATIO_MAX:g}..{INERTIA_RATIO_MAX:g}); expected "
+                       "the response in (rad/s)/(N m) at the motor (not deg/s, rpm or load coordinates) and a base "
+                       "plant of this axis (--plant)")
+    d_samples = fit.value("delay_s") / (ts if ts > 0 else plant.sample_time_s)
+    if d_samples > DELAY_SAMPLES_MAX:
+        raise FitError(f"no plant written: the response lags its command by {d_samples:.3g} samples beyond the current "
+                       f"loop (more than {DELAY_SAMPLES_MAX}, the plant file's plausible drive delay); expected a "
+                       "response of torque command -> motor speed of this drive (check the sample time and that the "
+                       "phase is not shifted)")
     best = max((x.fit_percent for x in (choice.rigid, choice.two_mass) if x is not None and math.isfinite(x.fit_percent)),
                default=float("nan"))
     if not best >= FRF_FIT_MIN or not all(math.isfinite(v["value"]) for v in fit.values.values()):

@@ -123,8 +123,11 @@ def test_bad_input():
         frf_closed_loop(t, np.zeros(1000), np.zeros(1000))
     with pytest.raises(DataError, match="not uniform"):
         frf_closed_loop(np.r_[t[:500], t[500:] * 1.1], np.zeros(1000), np.zeros(1000), loop=LOOP)
-    with pytest.raises(DataError, match="carry the reference"):
+    with pytest.raises(DataError, match="the speed reference does not vary"):
         frf_closed_loop(t, np.ones(1000), np.zeros(1000), reference_rad_s=np.ones(1000))
+    with pytest.raises(DataError, match="carry the reference in"):  # a reference above the band only
+        frf_closed_loop(t, np.ones(1000), np.zeros(1000), reference_rad_s=np.sin(2 * np.pi * 1900.0 * t),
+                        f_max_hz=1000.0)
     with pytest.raises(ValueError, match="kp_n_m_s_per_rad = 0"):
         SpeedLoop(0, 1.0, TS)
 

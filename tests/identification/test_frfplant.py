@@ -257,3 +257,20 @@ def test_delay_of_the_response_is_written_as_whole_samples(logged, written):
     assert res.delay["value"] == pytest.approx(2 * ts, abs=0.05 * ts)
     assert res.plant.values["drive.current_loop_bandwidth_hz"] == pytest.approx(
         truth.values["drive.current_loop_bandwidth_hz"], rel=0.05)
+
+
+def test_responses_that_are_not_torque_to_speed_of_this_axis_write_no_plant():
+    """A sign flip, a response in deg/s, a delay beyond any drive's: exit 3 material, each named."""
+    from prsa_ctrl.identification.twomass import two_mass_response
+
+    base, _ = BASES["ball-screw"]
+    ts = base.sample_time_s
+    f = np.geomspace(5.0, 1500.0, 150)
+    g = two_mass_response(f, motor_inertia_kg_m2=base.reflected_inertia_kg_m2, current_loop_bandwidth_hz=1000.0,
+                          sample_time_s=ts)
+    cases = [(-g, r"phase at its lowest frequencies .* is (8|9)\d deg; expected about -90 deg"),
+             (g * 180 / math.pi, r"inertia .* is 0.0175 x the base plant's"),
+             (g * np.exp(-2j * np.pi * f * 40 * ts), r"lags its command by 40 samples")]
+    for resp, match in cases:
+        with pytest.raises(FitError, match=match):
+            fit_frf_structure([frf_from_arrays("x", f, resp)], base)
