@@ -44,7 +44,7 @@ import numpy as np
 from ..errors import FitError
 from ..plant.plantfile import Plant
 from .common import FitResult
-from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure, fit_frf_model
+from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure
 
 __all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND",
            "INERTIA_RATIO_MAX", "DELAY_SAMPLES_MAX", "LOW_PHASE_TOL_DEG"]
