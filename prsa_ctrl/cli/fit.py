@@ -72,6 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frf", nargs="+", default=[], metavar="FRF.csv", help="frequency responses torque command -> "
                    "nut speed (frequency_hz, magnitude_db, phase_deg[, coherence] or real, imag): fitted alone "
                    "without DATA.csv, otherwise used to validate the fit")
+    p.add_argument("--frf-from-logs", default=None, metavar="KP,KI[,TAU_S]",
+                   help="estimate the plant's frequency response from the DATA.csv closed-loop logs (joint "
+                   "input-output method: the speed reference, given back by the drive's PI speed loop described "
+                   "here, kp in N m s/rad, ki in N m/rad, the speed filter's time constant in s, default 0) and fit it "
+                   "as --frf does, instead of the time-domain fit; --command-logged says how the log holds the command")
     p.add_argument("--frf-speed", type=_finite("--frf-speed"), default=30.0, metavar="RAD_S",
                    help="nut speed during the FRF measurement, rad/s (default 30)")
     p.add_argument("--frf-load", type=_finite("--frf-load"), default=None, metavar="N",
@@ -93,7 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="torque constant for a current_a column, N m/A")
     p.add_argument("--load", type=_finite("--load"), metavar="N", help="constant axial load, N, "
                    "for files without a load column")
-    p.add_argument("--fidelity", default="rigid", choices=("rigid", "compliant"), help="model fidelity (default rigid)")
+    p.add_argument("--fidelity", default="rigid", choices=("rigid", "compliant"), help="model fidelity (default rigid; "
+                   "--frf without DATA.csv: not given, the structure the response needs, rigid or two-mass (compliant); "
+                   "rigid is refused, with the reason, for a response that shows an axial mode)")
     p.add_argument("--segment", type=_positive("--segment"), default=0.1, metavar="S",
                    help="multiple-shooting segment length, s (default 0.1)")
     p.add_argument("--delay-samples", type=int, default=None, metavar="N", help="samples between a logged command and "
@@ -384,10 +391,12 @@ def _body(run: Run, argv: list[str]) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             code = _main(argv, created, run)
-    except BaseException:
+    except BaseException as exc:
         _take_back(created)  # all or nothing
         if run.interrupted:  # also when a library turned the KeyboardInterrupt into an error
             raise KeyboardInterrupt from None  # invoke: one line, exit 130
+        if verbose and isinstance(exc, Exception):  # the numerical failure's cause, before invoke's one line
+            _print_chain(exc)
         raise
     seen = set()
     for w in caught:
@@ -557,6 +566,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
             raise UsageError("--validate without DATA.csv; expected time-domain records to fit first")
         frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
                 for f in args.frf]
+        if args.frf_from_logs is not None:
+            records, frfs = [], frfs + _frfs_from_logs(args, argv, records)
     except (UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
         print(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
@@ -569,15 +580,21 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
 
     run = Run("prsa-fit") if run is None else run
     progress(run, args.verbose, f"fitting {len(records)} record(s)")
+    choice = result = None
     try:
         run.record = True  # Ctrl-C recorded while CasADi runs, raised at the fit's iterations (run.check)
-        result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
-                           segment_s=args.segment,
-                           delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
-                           command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep",
-                           check_interrupt=run.check)
+        if not records and frfs:  # FRF only: the structure the data choose (issue 32)
+            result, choice = _fit_frf_only(args, argv, plant, frfs, keys)
+        if choice is None or result is None:
+            result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
+                               segment_s=args.segment,
+                               delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
+                               command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep",
+                               check_interrupt=run.check)
     except FitError as exc:
         run.check()  # a fit that failed after Ctrl-C was interrupted
+        if args.verbose:  # where it was raised, and what caused it
+            _print_chain(exc, skip_message=True)
         print(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
     except ValueError as exc:
@@ -650,6 +667,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                                                      for k, v in cd["search"]["objective"].items())) + ")")
     j = result.reflected_inertia_kg_m2
     print(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
+    if choice is not None:
+        _print_structure(choice)
     for f, pct in result.fit_percent.items():
         print(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
               f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
@@ -662,6 +681,110 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
     if args.plots is not None:
         print("plots: " + ", ".join(plot_paths))
     return 0
+
+
+def _frfs_from_logs(args, argv: Sequence[str], records) -> list:
+    """``--frf-from-logs KP,KI[,TAU_S]``: the frequency response of each DATA.csv log
+    (:func:`prsa_ctrl.identification.closedloop.frf_from_logs`)."""
+    import numpy as np
+
+    from ..identification.closedloop import SpeedLoop, frf_from_logs
+    from ..identification.data import DataError
+
+    text = args.frf_from_logs
+    typed = repr(flag_value(argv, "--frf-from-logs") or text)
+    parts = [x.strip() for x in text.split(",")]
+    try:
+        nums = [float(x) for x in parts]
+    except ValueError:
+        nums = []
+    if len(nums) not in (2, 3) or not all(math.isfinite(x) for x in nums):
+        raise UsageError(f"--frf-from-logs {typed}: expected KP,KI[,TAU_S] (the speed PI's gains in N m s/rad and "
+                         "N m/rad, the speed filter's time constant in s), e.g. 1.0,100,2e-4")
+    if not records:
+        raise UsageError(f"--frf-from-logs {typed} without DATA.csv; expected closed-loop logs to estimate it from")
+    out, why = [], []
+    for rec in records:
+        ts = float(np.median(np.diff(rec.time_s)))
+        try:
+            loop = SpeedLoop(nums[0], nums[1], ts, nums[2] if len(nums) == 3 else 0.0,
+                             args.command_logged or "applied")
+        except ValueError as exc:
+            raise UsageError(f"--frf-from-logs {typed}: {exc}") from None
+        load = float(np.mean(rec.axial_load_n)) if rec.axial_load_n is not None else (args.load or 0.0)
+        try:
+            out.append(frf_from_logs(rec, loop, load_n=load, coherence_min=args.coherence_min))
+        except DataError as exc:
+            why.append(str(exc))
+    if not out:
+        raise DataError(f"--frf-from-logs {typed}: no log gives a frequency response ({'; '.join(why)})")
+    return out
+
+
+def _fidelity_given(argv: Sequence[str]) -> bool:
+    """Whether ``--fidelity`` was typed (argparse takes unambiguous prefixes: ``--fid`` on)."""
+    return any(len(a.split("=")[0]) >= 5 and "--fidelity".startswith(a.split("=")[0]) for a in argv)
+
+
+def _fit_frf_only(args, argv: Sequence[str], plant, frfs, keys):
+    """The FRF-only fit (issue 32): the rigid and the two-mass model fitted to the responses,
+    the structure the data choose (``--fidelity`` not given), refused with the reason when
+    ``--fidelity rigid`` meets a response with an axial mode, mapped onto the mechanism's keys
+    (:func:`prsa_ctrl.identification.frfplant.fit_frf_structure`). With ``--fit KEY,...`` the
+    keys' own fit (:func:`prsa_ctrl.identification.frf.fit_frf`) runs after the same structure
+    check. Returns ``(result or None, choice)``."""
+    from ..errors import FitError
+    from ..identification.frfplant import fit_frf_structure
+    from ..identification.twomass import choose_structure
+    from ..identification.common import frf_sample_time
+
+    fidelity = args.fidelity if _fidelity_given(argv) else None
+    if keys is None:
+        return fit_frf_structure(frfs, plant, fidelity=fidelity, command_logged=args.command_logged or "applied",
+                                 uncertainty="fit" if args.uncertainty_from_fit else "keep")
+    choice = choose_structure(frfs, sample_time_s=frf_sample_time(frfs[0], plant))
+    if choice.structure == "two-mass" and args.fidelity == "rigid":
+        raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")
+    return None, choice
+
+
+def _ci_text(v: dict, fmt: str = ".4g") -> str:
+    return f"{v['value']:{fmt}} (95 % CI {v['ci95'][0]:{fmt}}..{v['ci95'][1]:{fmt}})"
+
+
+def _print_structure(choice) -> None:
+    """The structure the FRF chose, why, and the two-mass model's mode with intervals."""
+    print(f"structure: {choice.structure} ({choice.reason})")
+    two = choice.two_mass
+    if two is not None and choice.structure == "two-mass":
+        v = two.values
+        print(f"  axial mode {_ci_text(v['resonance_hz'])} Hz, anti-resonance {_ci_text(v['antiresonance_hz'])} Hz, "
+              f"damping ratio {_ci_text(v['damping_ratio'], '.3g')}")
+        print(f"  total inertia {_ci_text(v['total_inertia_kg_m2'])} kg m^2 = motor side "
+              f"{_ci_text(v['motor_inertia_kg_m2'])} + load side {_ci_text(v['load_inertia_kg_m2'])}; stiffness "
+              f"{_ci_text(v['stiffness_n_m_per_rad'])} N m/rad; current loop {_ci_text(v['current_loop_bandwidth_hz'])} Hz; "
+              f"delay {_ci_text(v['delay_s'], '.3g')} s")
+
+
+def _print_chain(exc: BaseException, skip_message: bool = False) -> None:
+    """``--verbose`` on a failure: the exception chain, one line each (type, message, where);
+    ``skip_message``: the first one's message is printed after it anyway (only where it was raised)."""
+    seen = set()
+    e, depth = exc, 0
+    while e is not None and id(e) not in seen and depth < 10:
+        seen.add(id(e))
+        tb = e.__traceback__
+        where = ""
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        if tb is not None:
+            co = tb.tb_frame.f_code
+            where = f" (at {Path(co.co_filename).name}:{tb.tb_lineno} in {co.co_name})"
+        msg = "(message below)" if skip_message and depth == 0 else " ".join(str(e).split())
+        print(f"prsa-fit: cause{' ' * (depth > 0)}{'' if depth == 0 else f'[{depth}]'}: "
+              f"{type(e).__name__}: {msg}{where}", file=sys.stderr)
+        e = e.__cause__ if e.__cause__ is not None else (None if e.__suppress_context__ else e.__context__)
+        depth += 1
 
 
 def _write_plots(result, directory: str, inputs: Sequence[str], created: list) -> list[str]:

@@ -37,7 +37,8 @@ __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", 
            "FRF_KEYS_COMPLIANT", "RANK_RTOL", "NULL_LOADING", "UNCERTAINTY_MODES", "SAMPLE_TIME_RTOL",
            "UNIT_SLIP_FACTOR", "UNIT_PLANT_FACTOR", "FRF_SPEED_MAX_RAD_S", "FRF_LOAD_MAX_RATED", "TORQUE_OVER_LIMIT",
            "symbolic_rhs", "key_bounds", "motor_torque", "check_keys", "inertia_key", "default_keys", "default_min_speed", "frf_operating_point_error",
-           "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text"]
+           "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text", "uncertainty_entries",
+           "uncertainty_choice"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`key_bounds`).
 FITTABLE: Mapping[str, tuple[str, str]] = {
@@ -61,6 +62,14 @@ FITTABLE: Mapping[str, tuple[str, str]] = {
     "drive.command_delay_s": ("s", "command delay (logged command to the moment it acts; not a plant-file key)"),
     "contact.stiffness_n_per_mm_e": ("N/mm^e", "IMPACT thread-contact stiffness (compliant fidelity: the axial mode)"),
     "contact.damping_n_s_per_mm": ("N s/mm", "IMPACT thread-contact damping (compliant fidelity: the axial mode)"),
+    "axis.moving_mass_kg": ("kg", "moving mass of a screw-driven axis (carriage, table, workpiece): the load side of "
+                                  "its axial mode (compliant fidelity, from a frequency response)"),
+    "axis.nut_stiffness_n_per_um": ("N/um", "nut stiffness of a screw-driven axis, in series with the shaft and the "
+                                            "bearings: sets its axial mode (compliant fidelity, from a frequency response)"),
+    "axis.axial_damping_ratio": ("-", "modal damping ratio of a screw-driven axis's axial mode (compliant fidelity, "
+                                      "from a frequency response)"),
+    "screw.mass_kg": ("kg", "translating screw of the inverted roller screw: the load side of its axial mode "
+                            "(compliant fidelity, from a frequency response)"),
 }
 #: The fitted command delay: a dead time between the logged torque command and the moment it
 #: acts, beyond the zero-order hold. The plant file has no such key (the toolkit models the
@@ -307,6 +316,12 @@ def key_bounds(plant: Plant, key: str, ts: float) -> tuple[float, float, float]:
         return 10.0, min(1e5, 10.0 / ts), v
     if key == "contact.stiffness_n_per_mm_e":  # the axial mode frequency goes with K^(1/(2e))
         return max(v / 30.0, 1e1), min(v * 30.0, 1e9), v
+    if key in ("axis.moving_mass_kg", "screw.mass_kg"):
+        return 0.05 * v, 20.0 * v, v
+    if key == "axis.nut_stiffness_n_per_um":  # the mode's share of it is weak (series): a wide range
+        return max(v / 100.0, PLAUSIBLE[key][0]), min(v * 100.0, PLAUSIBLE[key][1]), v
+    if key == "axis.axial_damping_ratio":
+        return 1e-4, 1.0, max(v, 0.01)
     if key == "contact.damping_n_s_per_mm":
         return 0.0, min(max(100.0 * v, 1e3), 1e5), max(v, 1.0)
     raise ValueError(f"--fit key {key!r}; expected one of {', '.join(FITTABLE)}")
@@ -916,4 +931,20 @@ _REMEDY_KEY = {
     "contact.stiffness_n_per_mm_e": "measure a frequency response that covers the axial mode (under load), "
                                     "or leave the stiffness out of --fit",
     "contact.damping_n_s_per_mm": "measure the axial mode's peak with a fine frequency resolution",
+    "axis.moving_mass_kg": "measure a frequency response through the axial mode (anti-resonance and resonance)",
+    "screw.mass_kg": "measure a frequency response through the axial mode (anti-resonance and resonance)",
+    "axis.nut_stiffness_n_per_um": "measure a frequency response through the axial mode",
+    "axis.axial_damping_ratio": "measure the axial mode's peak with a fine frequency resolution",
 }
+
+
+def uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=None) -> dict:
+    """The fit's own ``[uncertainty]`` entries of the fitted keys (what :func:`finish_fit` writes
+    with ``uncertainty="fit"``)."""
+    return _uncertainty_entries(fitted, params, names, std, ranges)
+
+
+def uncertainty_choice(fitted: Plant, key: str, base_entry, fit_entry, ci95, rng, mode: str):
+    """The ``[uncertainty]`` entry a fitted key gets (the base's or the fit's) and the note
+    saying why, as :func:`finish_fit` chooses it."""
+    return _uncertainty_choice(fitted, key, base_entry, fit_entry, ci95, rng, mode)

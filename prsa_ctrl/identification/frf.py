@@ -24,7 +24,7 @@ from .common import (DELAY_KEY, FRF_KEYS, FRF_KEYS_COMPLIANT, PSEUDO_KEYS, UNCER
                      checked_inputs, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord
 
-__all__ = ["fit_frf", "frf_response", "axial_mode", "frf_fit_percent", "FRF_SPREAD_MIN"]
+__all__ = ["fit_frf", "frf_response", "axial_mode", "frf_fit_percent", "FRF_SPREAD_MIN", "linearised", "write_delay"]
 
 def _plant_value(plant: Plant, key: str, delay_s: float = 0.0) -> float:
     """Initial value of a fitted key (the delay is no plant key: ``delay_s``)."""
@@ -50,7 +50,10 @@ class _Linear:
         x = ca.SX.sym("x", len(names))
         u = ca.SX.sym("u", 2)
         xdot = f(x, u, p)
-        if fidelity == "rigid":
+        # a linear axis's compliant model is its rigid one (it carries no compliance)
+        self.rigid = fidelity == "rigid" or "x_roller" not in names
+        self.screw_driven = "x_roller" in names and "omega_cage" not in names
+        if self.rigid:
             x_free = ca.vertcat(*[0 if i != i_w else w0 for i in range(len(names))])
             acc0 = ca.substitute(xdot[i_w], ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
             d_acc = ca.substitute(ca.jacobian(xdot[i_w], x[i_tau]), ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
@@ -62,25 +65,43 @@ class _Linear:
         # Compliant: the steady state at speed w0 and load f0 has theta free, the roller assembly
         # and the screw at the screw speed a w0; unknowns z = (cage speed, x_roller, delta_screw,
         # motor torque = command) make the nut, cage, roller and screw accelerations zero.
+        # Screw-driven (roller or ball screw): the shaft does not move axially at steady state
+        # (v_roller = 0), the carriage moves at a w0; unknowns z = (shaft displacement, helix
+        # compression, motor torque) make the rotor, shaft and carriage accelerations zero.
         a = plant.lead_per_rad
-        z = ca.SX.sym("z", 4)
         idx = {n: i for i, n in enumerate(names)}
+
         xs = [0] * len(names)
-        xs[idx["omega_nut"]], xs[idx["v_roller"]], xs[idx["v_screw"]] = w0, a * w0, a * w0
-        xs[idx["omega_cage"]], xs[idx["x_roller"]], xs[idx["delta_screw"]], xs[idx["tau_motor"]] = z[0], z[1], z[2], z[3]
+        if self.screw_driven:
+            z = ca.SX.sym("z", 3)
+            xs[idx["omega_nut"]], xs[idx["v_screw"]] = w0, a * w0
+            xs[idx["x_roller"]], xs[idx["delta_screw"]], xs[idx["tau_motor"]] = z[0], z[1], z[2]
+            rows = [idx[n] for n in ("omega_nut", "v_roller", "v_screw")]
+        else:
+            z = ca.SX.sym("z", 4)
+            xs[idx["omega_nut"]], xs[idx["v_roller"]], xs[idx["v_screw"]] = w0, a * w0, a * w0
+            xs[idx["omega_cage"]], xs[idx["x_roller"]], xs[idx["delta_screw"]], xs[idx["tau_motor"]] = z[0], z[1], z[2], z[3]
+            rows = [idx[n] for n in ("omega_nut", "omega_cage", "v_roller", "v_screw")]
         x_op = ca.vertcat(*xs)
-        rows = [idx[n] for n in ("omega_nut", "omega_cage", "v_roller", "v_screw")]
-        r = f(x_op, ca.vertcat(z[3], f0), p)[rows]
+        r = f(x_op, ca.vertcat(z[-1], f0), p)[rows]
         self._steady = ca.Function("steady", [z, w0, f0, p], [r, ca.jacobian(r, z)])
         self._state = ca.Function("state", [z, w0], [x_op])
         self._jac = ca.Function("lin_ab", [x, u, p], [ca.jacobian(xdot, x), ca.jacobian(xdot, u[0])])
 
     def _guess(self, speed: float, load: float, pv) -> np.ndarray:
         """Initial steady state of the compliant model: rigid cage ratio, Hertz deflections for
-        the load on both interfaces, the rigid holding torque."""
+        the load on both interfaces, the rigid holding torque (screw-driven: the springs'
+        deflections under the load, the rigid holding torque)."""
         pl = self.plant
         vals = dict(pl.values)
         vals.update({k: float(v) for k, v in zip(self.keys, pv)})
+        tau = load * pl.lead_per_rad / vals["friction.efficiency"] + vals["friction.no_load_torque_n_m"] \
+            + vals["friction.viscous_n_m_s_per_rad"] * speed + vals.get("friction.torque_offset_n_m", 0.0) \
+            + vals.get("friction.viscous_offset_n_m_s_per_rad", 0.0) * abs(speed)
+        if self.screw_driven:
+            k_h = pl.axial_stiffness_n_per_m()  # a start only: the series stiffness bounds the helix one from below
+            k_b = vals["axis.bearing_stiffness_n_per_um"] * 1e6
+            return np.array([-load / k_b, load / k_h, tau])
         k_si = vals["contact.stiffness_n_per_mm_e"] * 1000.0 ** vals["contact.exponent"]
         e = vals["contact.exponent"]
         cb = math.cos(pl.flank_angle_rad)
@@ -89,22 +110,20 @@ class _Linear:
             c = cb * math.cos(helix)
             d = (abs(load) / (pl.n_contacts * k_si * c ** (e + 1))) ** (1.0 / e) / c
             out.append(d if load >= 0 else -(d + vals["thread.backlash_mm"] * 1e-3))
-        tau = load * pl.lead_per_rad / vals["friction.efficiency"] + vals["friction.no_load_torque_n_m"] \
-            + vals["friction.viscous_n_m_s_per_rad"] * speed + vals.get("friction.torque_offset_n_m", 0.0) \
-            + vals.get("friction.viscous_offset_n_m_s_per_rad", 0.0) * abs(speed)
         return np.array([speed * pl.cage_ratio, -out[0], out[1], tau])
 
     def __call__(self, speed: float, load: float, pv):
         pv = np.asarray(pv, float)
-        if self.fidelity == "rigid":
+        if self.rigid:
             a, b = self._rigid(speed, load, pv)
             return np.asarray(a, float), np.asarray(b, float)
-        if abs(load) < 1e-9 * self.plant.rated_load_n:
+        if not self.screw_driven and abs(load) < 1e-9 * self.plant.rated_load_n:
             raise ValueError(f"load_n = {load!r} for a compliant frequency response; expected the measurement's "
                              "axial load (> 0 N): without load the thread contacts sit in the backlash and no "
                              "axial mode exists")
         z = self._guess(speed, load, pv)
-        zs = np.abs(z) + np.array([1.0, 1e-9, 1e-9, 1e-3 * self.plant.torque_limit])
+        zs = np.abs(z) + (np.array([1e-9, 1e-9, 1e-3 * self.plant.torque_limit]) if self.screw_driven else
+                          np.array([1.0, 1e-9, 1e-9, 1e-3 * self.plant.torque_limit]))
         r, jz = (np.asarray(m, float).ravel() if i == 0 else np.asarray(m, float) for i, m in
                  enumerate(self._steady(z, speed, load, pv)))
         for _ in range(60):  # damped Newton, bounded
@@ -125,7 +144,7 @@ class _Linear:
                            f"(residual {np.linalg.norm(r):.3g}); remedy: check the operating point (--frf-speed, "
                            "--frf-load) or start from a closer base plant (--plant)")
         x_op = np.asarray(self._state(z, speed), float).ravel()
-        a, b = self._jac(x_op, [z[3], load], pv)
+        a, b = self._jac(x_op, [z[-1], load], pv)
         return np.asarray(a, float), np.asarray(b, float)
 
 
@@ -139,6 +158,14 @@ def _linear(plant: Plant, keys: Sequence[str], fidelity: str = "rigid") -> _Line
         _LIN_CACHE.clear()
     _LIN_CACHE[ck] = (plant, lin)
     return lin
+
+
+def linearised(plant: Plant, keys: Sequence[str] = (), fidelity: str = "compliant") -> _Linear:
+    """``(speed_rad_s, load_n, values) -> (A, B)``: the fidelity's model linearised at steady speed
+    and load with the plant keys ``keys`` set to ``values`` (file units); ``.rigid`` says whether
+    it is the rigid model (a linear axis's compliant one is), ``.i_w`` indexes the motor speed.
+    Built once per plant, key set and fidelity."""
+    return _linear(plant, keys, fidelity)
 
 
 def _frf_eval(lin: _Linear, p, frequency_hz, speed, load, ts, delay_s):
@@ -252,6 +279,10 @@ def axial_mode(plant: Plant, *, speed_rad_s: float = 30.0, load_n: float = 800.0
     (2400.0, True)
     """
     lin = _linear(plant, (), "compliant")
+    if lin.rigid:
+        raise ValueError(f"{plant.name}: mechanism = {plant.mechanism!r} carries no axial compliance (its compliant "
+                         "model is the rigid one); expected a screw mechanism (inverted-roller-screw, roller-screw, "
+                         "ball-screw), or fit a two-mass model to the response (prsa_ctrl.identification.twomass)")
     a, b = lin(speed_rad_s, load_n, np.zeros(0))
     nx = a.shape[0]
     ev = np.linalg.eigvals(a)
@@ -278,12 +309,21 @@ def axial_mode(plant: Plant, *, speed_rad_s: float = 30.0, load_n: float = 800.0
         "resonance_hz": float(abs(res) / (2 * np.pi)),
         "damping_ratio": float(-res.real / abs(res)),
         "antiresonance_hz": float(abs(zeros[0]) / (2 * np.pi)) if zeros else float("nan"),
-        "reflected_axial_inertia_ratio": float(plant.values["screw.mass_kg"] * plant.lead_per_rad**2
-                                               / plant.values["nut.inertia_kg_m2"]),
+        "reflected_axial_inertia_ratio": _axial_ratio(plant),
         "max_effect_db": float(20 / math.log(10) * np.max(np.abs(d.real))),
         "max_effect_deg": float(np.degrees(np.max(np.abs(d.imag)))),
         "at_hz": float(f[i]),
     }
+
+
+def _axial_ratio(plant: Plant) -> float:
+    """The translating mass through the lead over the rotating inertia at the motor: the screw
+    over the nut (inverted roller screw), the carriage over the rotor with the screw
+    (screw-driven)."""
+    v, a2 = plant.values, plant.lead_per_rad**2
+    if plant.screw_driven:
+        return float(v["axis.moving_mass_kg"] * a2 / (v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"]))
+    return float(v["screw.mass_kg"] * a2 / v["nut.inertia_kg_m2"])
 
 
 #: A response whose log varies by less than this (RMS, nepers and radians) has no spread to
@@ -311,6 +351,7 @@ def fit_frf(
     max_nfev: int = 200,
     keep_unidentified: bool = True,
     uncertainty: str = "keep",
+    scan_stiffness: bool = True,
     command_logged: str = "applied",
 ) -> FitResult:
     """Fit plant parameters to measured frequency responses (torque command -> nut speed).
@@ -355,6 +396,10 @@ def fit_frf(
         Keys the responses cannot inform keep the base value (see :func:`fit_plant`).
     uncertainty : {"keep", "fit"}
         The fitted keys' ``[uncertainty]`` entries (see :func:`fit_plant`).
+    scan_stiffness : bool
+        Start a fitted contact stiffness from the best point of a scan of its range (default);
+        False: from the plant's value (a start that already sits at the mode, e.g. the two-mass
+        mapping of :func:`prsa_ctrl.identification.frfplant.fit_frf_structure`).
 
     Returns
     -------
@@ -411,7 +456,7 @@ def fit_frf(
             out += [w * d.real, w * np.angle(np.exp(1j * d.imag))]
         return np.concatenate(out)
 
-    if "contact.stiffness_n_per_mm_e" in keys:  # bounded scan of the stiffness: the start of the fit
+    if scan_stiffness and "contact.stiffness_n_per_mm_e" in keys:  # bounded scan of the stiffness: the start of the fit
         i_k = keys.index("contact.stiffness_n_per_mm_e")
         best = None
         n_mag = sum(fr.n for fr in frf)
@@ -475,6 +520,14 @@ def fit_frf(
 
 
 BW_KEY = "drive.current_loop_bandwidth_hz"
+
+
+def write_delay(fitted: Plant, delay: dict, ts: float, command_logged: str, warns: list) -> tuple[Plant, dict]:
+    """The fitted plant with a fitted continuous command delay ``delay["value"]`` (s) written:
+    whole samples as ``drive.command_delay_samples`` (less one for a command logged as
+    computed), the rest lumped into the current-loop lag; ``delay`` gains ``plant_file`` and
+    ``written``. Warnings are appended to ``warns``."""
+    return _write_delay(fitted, delay, ts, command_logged, warns)
 
 
 def _write_delay(fitted: Plant, delay: dict, ts: float, command_logged: str, warns: list) -> tuple[Plant, dict]:

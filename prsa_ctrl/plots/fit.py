@@ -1,5 +1,6 @@
 """Figures of a fit (:class:`prsa_ctrl.identification.common.FitResult`): per time-domain record
-the measured and simulated nut speed with the residual, per frequency response a Bode overlay.
+the measured and simulated nut speed with the residual, per frequency response a Bode overlay
+(data beside the fitted models, Hz axis, residual below).
 Figures only: everything they show was computed by the fit (``FitResult.traces``).
 """
 
@@ -63,25 +64,46 @@ def fit_figures(result: FitResult) -> dict:
             fig.tight_layout()
             figs[f"{stem}-fit"] = fig
         else:
-            f = np.asarray(tr["frequency_hz"], float)
-            gm, gf = np.asarray(tr["measured"]), np.asarray(tr["model"])
-            fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5.5))
-            ax1.semilogx(f, 20 * np.log10(np.abs(gm)), ".", ms=4, color="0.4", label="measured")
-            ax1.semilogx(f, 20 * np.log10(np.abs(gf)), "-", color="C0", label="fitted model")
-            ax1.set_ylabel("|G| (dB re 1 rad/s per N m)")
-            ax1.set_title(f"{name}: fit {result.fit_percent.get(name, float('nan')):.1f} %")
-            ax1.legend(loc="best", fontsize=8)
-            pm = np.degrees(np.unwrap(np.angle(gm)))
-            pf = np.degrees(np.unwrap(np.angle(gf)))
-            ax2.semilogx(f, pm, ".", ms=4, color="0.4")
-            ax2.semilogx(f, pf, "-", color="C0")
-            ax2.set_ylabel("phase (deg)")
-            ax2.set_xlabel("frequency (Hz)")
-            for ax in (ax1, ax2):
-                ax.grid(True, which="both", alpha=0.3)
-            fig.tight_layout()
-            figs[f"{stem}-bode"] = fig
+            figs[f"{stem}-bode"] = _bode_figure(name, tr, result.fit_percent.get(name, float("nan")))
     return figs
+
+
+def _bode_figure(name: str, tr: dict, fit_pct: float):
+    """Bode overlay of a frequency response: the data (points) beside the fitted models (lines:
+    the written plant's and, from an FRF-only fit, the rigid and the two-mass models), Hz axis,
+    and the residual of the written model (log magnitude in dB, phase in degrees) below."""
+    f = np.asarray(tr["frequency_hz"], float)
+    gm, gf = np.asarray(tr["measured"]), np.asarray(tr["model"])
+    models = dict(tr.get("models") or {})
+    fig, (ax1, ax2, ax3) = plt.subplots(3, 1, sharex=True, figsize=(8, 7.5), height_ratios=(2, 2, 1.3))
+    ax1.semilogx(f, 20 * np.log10(np.abs(gm)), ".", ms=4, color="0.4", label="measured")
+    pm = np.degrees(np.unwrap(np.angle(gm)))
+    ax2.semilogx(f, pm, ".", ms=4, color="0.4")
+    lines = [(label, g, dict(lw=0.9, ls="--")) for label, g in models.items() if not label.startswith("plant model")]
+    lines.append(("fitted plant as written" if models else "fitted model", gf, dict(lw=1.4, ls="-")))
+    for i, (label, g, style) in enumerate(lines):
+        g = np.asarray(g)
+        ax1.semilogx(f, 20 * np.log10(np.abs(g)), color=f"C{i}", label=label, **style)
+        # the model's phase on the branch of the measured one (no 360 deg jumps between them)
+        ph = np.degrees(np.angle(g * np.exp(-1j * np.radians(pm)))) + pm
+        ax2.semilogx(f, ph, color=f"C{i}", **style)
+    ax1.set_ylabel("|G| (dB re 1 rad/s per N m)")
+    chosen = tr.get("chosen")
+    ax1.set_title(f"{name}: fit {fit_pct:.1f} %" + (f" (structure: {chosen})" if chosen else ""))
+    ax1.legend(loc="best", fontsize=8)
+    ax2.set_ylabel("phase (deg)")
+    d = np.log(gm / gf)
+    ax3.semilogx(f, 20 / np.log(10) * d.real, ".-", ms=3, lw=0.6, color="C3", label="magnitude (dB)")
+    ax3b = ax3.twinx()
+    ax3b.semilogx(f, np.degrees(np.angle(np.exp(1j * d.imag))), ".-", ms=3, lw=0.6, color="C4", label="phase (deg)")
+    ax3.axhline(0.0, color="0.3", lw=0.5)
+    ax3.set_ylabel("residual (dB)", color="C3")
+    ax3b.set_ylabel("residual (deg)", color="C4")
+    ax3.set_xlabel("frequency (Hz)")
+    for ax in (ax1, ax2, ax3):
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    return fig
 
 
 def _overlay_data(tr: dict):

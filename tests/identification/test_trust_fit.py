@@ -460,10 +460,12 @@ def test_constant_frf_gives_no_absurd_fit_percent(tmp_path, capsys):
     f = np.geomspace(5, 600, 30)
     csv = tmp_path / "const.csv"
     frf_from_arrays("c", f, np.full(30, 0.5 + 0j)).to_csv(csv)
-    assert _run(["--frf", str(csv), "--out", str(tmp_path / "o.toml")]) == 0
-    out = capsys.readouterr().out
-    (line,) = [ln for ln in out.splitlines() if ln.startswith("fit ")]
-    assert "n/a" in line and "e+" not in line and "e17" not in line
+    # issue 32: a response that is not torque -> speed of an inertia (phase 0 here) writes no
+    # plant (was: exit 0 with "fit n/a"); one line, never an absurd number
+    assert _run(["--frf", str(csv), "--out", str(tmp_path / "o.toml")]) == 3
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no plant written" in err and "e+" not in err and "e17" not in err
+    assert not (tmp_path / "o.toml").exists()
 
 
 @pytest.mark.parametrize("speed,load,match", [(0.0, 800.0, "speed = 0.0"), (1e6, 800.0, "speed = 1000000.0"),

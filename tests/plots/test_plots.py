@@ -191,3 +191,31 @@ def test_prsa_plot_command(tmp_path, capsys):
     assert plot_main(["--kp", "50", "--ki", "1", "--out", str(tmp_path / "x")]) == 0
     assert "UNSTABLE" in capsys.readouterr().out
     assert {p.stem for p in (tmp_path / "x").glob("*.png")} == {"plant_bode", "loop_bode", "sensitivity"}
+
+
+def test_bode_figure_shows_data_models_and_residual():
+    import matplotlib.pyplot as plt
+
+    from prsa_ctrl.identification.common import FitResult
+    from prsa_ctrl.plots.fit import fit_figures
+
+    f = np.geomspace(5, 1500, 80)
+    g = 1 / (1j * 2 * np.pi * f * 4e-3)
+    g_data = g * np.exp(0.01 * np.sin(np.arange(80)))
+    tr = {"frequency_hz": f, "measured": g_data, "model": g, "chosen": "two-mass",
+          "models": {"rigid (75.0 %)": g * 1.3, "two-mass (98.0 %)": g * 1.01, "plant model as written (98 %)": g}}
+    res = FitResult(plant=None, parameters={}, reflected_inertia_kg_m2={}, correlation=np.zeros((0, 0)), keys=(),
+                    fit_percent={"b.csv": 98.0}, warnings=[], solver={}, traces={"b.csv": tr})
+    figs = fit_figures(res)
+    assert list(figs) == ["b-bode"]
+    fig = figs["b-bode"]
+    try:
+        ax_mag, ax_ph, ax_res = fig.axes[:3]
+        labels = [ln.get_label() for ln in ax_mag.get_lines()]
+        assert labels == ["measured", "rigid (75.0 %)", "two-mass (98.0 %)", "fitted plant as written"]
+        assert ax_res.get_xlabel() == "frequency (Hz)" and ax_mag.get_xscale() == "log"
+        res_db = ax_res.get_lines()[0].get_ydata()
+        assert np.allclose(res_db, 20 / np.log(10) * 0.01 * np.sin(np.arange(80)), atol=1e-9)
+        assert "structure: two-mass" in ax_mag.get_title()
+    finally:
+        plt.close(fig)

@@ -1,0 +1,276 @@
+"""The FRF path for every mechanism (prsa_ctrl.identification.frfplant): a response from the
+plant's own compliant linearisation and one from a two-mass formula written here, fitted and
+mapped onto the mechanism's keys; the structure the data choose; prsa-fit --frf on it."""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from prsa_ctrl import load_plant
+from prsa_ctrl.errors import FitError
+from prsa_ctrl.identification.data import frf_from_arrays
+from prsa_ctrl.identification.frf import axial_mode, frf_response
+from prsa_ctrl.identification.frfplant import first_mode_hz, fit_frf_structure
+
+TWO_PI = 2 * math.pi
+ROOT = Path(__file__).resolve().parents[2]
+LOAD = 800.0
+LOADS = {"linear-axis": 0.0}  # the linear axis: no contacts to close (and its rated load is small)
+SPEEDS = {"linear-axis": 0.1}  # load coordinates: m/s
+
+
+def _plant(name):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_plant(name)
+
+
+def _bases():
+    """(base plant, truth plant) per mechanism: the truth differs from the base in the keys the
+    FRF path writes."""
+    ball = _plant("ballscrew-32x10")
+    roller = _plant("rollerscrew-30x5")
+    inv = _plant("paper-iprsm").with_params({"screw.mass_kg": 40.0, "contact.stiffness_n_per_mm_e": 3e4})
+    lin = _plant(str(ROOT / "examples" / "emps" / "plant.toml"))
+    return {
+        "ball-screw": (ball, ball.with_params({"axis.motor_inertia_kg_m2": 1.3 * ball.values["axis.motor_inertia_kg_m2"],
+                                               "axis.moving_mass_kg": 0.8 * ball.values["axis.moving_mass_kg"],
+                                               "axis.nut_stiffness_n_per_um": 0.6 * ball.values["axis.nut_stiffness_n_per_um"],
+                                               "drive.current_loop_bandwidth_hz": 800.0})),
+        "roller-screw": (roller, roller.with_params({"axis.motor_inertia_kg_m2": 0.8 * roller.values["axis.motor_inertia_kg_m2"],
+                                                     "axis.moving_mass_kg": 3.0 * roller.values["axis.moving_mass_kg"],
+                                                     "axis.nut_stiffness_n_per_um": 0.3 * roller.values["axis.nut_stiffness_n_per_um"],
+                                                     "drive.current_loop_bandwidth_hz": 700.0})),
+        "inverted-roller-screw": (inv.with_params({"screw.mass_kg": 30.0}),
+                                  inv.with_params({"drive.current_loop_bandwidth_hz": 1300.0})),
+        "linear-axis": (lin, lin.with_params({"axis.mass_kg": 1.2 * lin.values["axis.mass_kg"],
+                                              "drive.current_loop_bandwidth_hz": 900.0})),
+    }
+
+
+BASES = _bases()
+
+
+def _noisy(g, rel, seed):
+    rng = np.random.default_rng(seed)
+    return g * np.exp(rel * (rng.standard_normal(len(g)) + 1j * rng.standard_normal(len(g))))
+
+
+@pytest.mark.parametrize("mech", list(BASES))
+def test_response_of_the_plants_own_linearisation(mech):
+    """The plant's own compliant model (sampled as the drive measures it) with 1 % noise: the
+    written plant has the truth's total inertia and first axial mode and current loop."""
+    base, truth = BASES[mech]
+    ts = truth.sample_time_s
+    load, speed = LOADS.get(mech, LOAD), SPEEDS.get(mech, 30.0)
+    f = np.geomspace(3.0, 0.4 / ts, 220)
+    g = frf_response(truth, f, fidelity="compliant", load_n=load, speed_rad_s=speed, sample_time_s=ts)
+    fr = frf_from_arrays("own", f, _noisy(g, 0.01, 5), load_n=load, speed_rad_s=speed)
+    res, ch = fit_frf_structure([fr], base)
+    j = truth.reflected_inertia_kg_m2
+    assert res.reflected_inertia_kg_m2["value"] == pytest.approx(j, rel=0.01)
+    assert res.plant.values["drive.current_loop_bandwidth_hz"] == pytest.approx(
+        truth.values["drive.current_loop_bandwidth_hz"], rel=0.1)
+    if mech == "linear-axis":  # no compliance in its model: the rigid structure, the mass written
+        assert ch.structure == "rigid", ch.reason
+        assert res.plant.values["axis.mass_kg"] == pytest.approx(truth.values["axis.mass_kg"], rel=0.01)
+        lo, hi = res.parameters["axis.mass_kg"]["ci95"]
+        assert lo <= truth.values["axis.mass_kg"] <= hi
+        return
+    assert ch.structure == "two-mass", ch.reason
+    f_true = first_mode_hz(truth, speed_rad_s=30.0, load_n=LOAD)
+    assert ch.two_mass.value("resonance_hz") == pytest.approx(f_true, rel=0.01)
+    # the written plant's own model has its mode where the data have it
+    assert first_mode_hz(res.plant, speed_rad_s=30.0, load_n=LOAD) == pytest.approx(f_true, rel=0.01)
+    if truth.screw_driven:
+        for k in ("axis.motor_inertia_kg_m2", "axis.moving_mass_kg"):
+            assert res.plant.values[k] == pytest.approx(truth.values[k], rel=0.05), k
+
+
+def _two_mass(f, jm, jl, k, zeta, fc, ts=0.0):
+    """Motor speed / torque command of two inertias on a spring (modal damping ``zeta``) and a
+    first-order current loop, from the 2 x 2 equations of motion at each frequency."""
+    c = 2 * zeta * math.sqrt(k * jm * jl / (jm + jl))
+    out = []
+    for fi in f:
+        s = 1j * TWO_PI * fi
+        z = c + k / s
+        w = np.linalg.solve(np.array([[jm * s + z, -z], [-z, jl * s + z]]), np.array([1.0, 0.0]))
+        out.append(w[0] / (1 + s / (TWO_PI * fc)))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("mech", list(BASES))
+def test_response_of_an_independent_two_mass_axis(mech):
+    """A two-mass axis written here (continuous response): the mechanism's keys take the motor
+    side, the load side and a stiffness that puts the plant's own mode at the response's."""
+    base, _ = BASES[mech]
+    a = base.lead_per_rad
+    j0 = base.reflected_inertia_kg_m2
+    jm, jl = 0.7 * j0, 0.4 * j0
+    if base.screw_driven:  # a stiffness the plant's shaft and bearings allow: half their series with the nut
+        fa = math.sqrt(0.5 * base.axial_stiffness_n_per_m() * a * a / jl) / TWO_PI
+    else:
+        fa = 150.0
+    k = jl * (TWO_PI * fa) ** 2
+    f_r = fa * math.sqrt((jm + jl) / jm)
+    f = np.geomspace(3.0, 1500.0, 220)
+    g = _noisy(_two_mass(f, jm, jl, k, 0.04, 1100.0), 0.01, 9)
+    # no friction in this formula: at no load the screw-driven model's thread loss (on the nut
+    # force) is not linearised into the response either; the inverted screw needs a load to
+    # close its contacts (the thread loss then makes the load side look heavier, 1/eta)
+    load = LOAD if mech == "inverted-roller-screw" else 0.0
+    fr = frf_from_arrays("two-mass", f, g, load_n=load, speed_rad_s=SPEEDS.get(mech, 30.0), sample_time_s=0.0)
+    res, ch = fit_frf_structure([fr], base)
+    assert ch.structure == "two-mass", ch.reason
+    v = ch.two_mass.values
+    for name, x in (("resonance_hz", f_r), ("antiresonance_hz", fa), ("total_inertia_kg_m2", jm + jl),
+                    ("motor_inertia_kg_m2", jm)):
+        lo, hi = v[name]["ci95"]
+        assert lo <= x <= hi and v[name]["value"] == pytest.approx(x, rel=0.01), name
+    assert res.reflected_inertia_kg_m2["value"] == pytest.approx(jm + jl, rel=0.01)
+    pv = res.plant.values
+    if mech == "linear-axis":
+        assert pv["axis.mass_kg"] == pytest.approx(jm + jl, rel=0.01)
+        assert any("cannot carry" in w for w in res.warnings)
+        return
+    if base.screw_driven:
+        assert pv["axis.motor_inertia_kg_m2"] == pytest.approx(jm - base.values["axis.screw_inertia_kg_m2"], rel=0.02)
+        assert pv["axis.moving_mass_kg"] == pytest.approx(jl / a**2, rel=0.02)
+        # the damping key is the plant's (its helix and bearing dampers): its model's mode has the response's damping
+        assert axial_mode(res.plant, load_n=load)["damping_ratio"] == pytest.approx(0.04, rel=0.1)
+        # the two-mass formula of the plant (series stiffness) is near the response's mode; the
+        # plant's own model (with the shaft's axial mass) has it exactly
+        assert res.plant.axial_mode_hz() == pytest.approx(f_r, rel=0.05)
+    else:
+        assert pv["nut.inertia_kg_m2"] == pytest.approx(jm - base.cage_inertia_kg_m2 * base.cage_ratio**2, rel=0.02)
+    assert first_mode_hz(res.plant, speed_rad_s=30.0, load_n=load) == pytest.approx(f_r, rel=0.01)
+
+
+def test_rigid_refused_on_a_response_with_a_mode():
+    base, truth = BASES["ball-screw"]
+    f = np.geomspace(3.0, 3000.0, 200)
+    g = frf_response(truth, f, fidelity="compliant", load_n=LOAD)
+    fr = frf_from_arrays("m", f, _noisy(g, 0.01, 1), load_n=LOAD)
+    with pytest.raises(FitError, match=r"rigid model refused: the response shows an anti-resonance at .* Hz and an "
+                                       r"axial mode at .* Hz .*--fidelity compliant"):
+        fit_frf_structure([fr], base, fidelity="rigid")
+
+
+@pytest.mark.parametrize("name", ["ballscrew-32x10", "rollerscrew-30x5", "paper-iprsm"])
+def test_axial_mode_for_every_screw_mechanism(name):
+    """axial_mode reads each mechanism's states (was KeyError 'omega_cage' on a screw-driven plant)."""
+    p = _plant(name)
+    m = axial_mode(p, load_n=LOAD)
+    assert m["resonance_hz"] == pytest.approx(first_mode_hz(p, load_n=LOAD), rel=1e-9)
+    if p.screw_driven:  # the plant's two-mass formula is close to its three-body model
+        assert m["resonance_hz"] == pytest.approx(p.axial_mode_hz(), rel=0.05)
+
+
+def test_axial_mode_of_a_linear_axis_says_it_has_none():
+    p = _plant(str(ROOT / "examples" / "emps" / "plant.toml"))
+    with pytest.raises(ValueError, match="carries no axial compliance"):
+        axial_mode(p)
+
+
+FOREIGN = next((d for d in (ROOT.parent / "shared" / "data" / "foreign-axis",
+                 ROOT.parent.parent / "shared" / "data" / "foreign-axis") if (d / "bode.csv").exists()),
+               ROOT.parent / "shared" / "data" / "foreign-axis")
+needs_foreign = pytest.mark.skipif(not (FOREIGN / "bode.csv").exists(), reason="foreign-axis data absent")
+
+
+@needs_foreign
+def test_cli_foreign_axis_bode(tmp_path, capsys):
+    """The foreign ball-screw axis's measured FRF (README truth: total 4.1563e-3 kg m^2, current
+    loop 1200 Hz, mode 106.7 Hz from its two-mass values): rigid refused with the reason,
+    compliant fitted, the mode reported with its interval."""
+    from prsa_ctrl.cli.fit import main
+
+    bode, plant = str(FOREIGN / "bode.csv"), str(FOREIGN / "feed-axis.toml")
+    out = tmp_path / "fa.toml"
+    assert main(["--frf", bode, "--plant", plant, "--fidelity", "rigid", "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "rigid model refused" in err and "--fidelity compliant" in err and not out.exists()
+    rep = tmp_path / "r.json"
+    assert main(["--frf", bode, "--plant", plant, "--fidelity", "compliant", "--out", str(out), "--json", str(rep),
+                 "--plots", str(tmp_path / "figs")]) == 0
+    text = capsys.readouterr().out
+    assert "structure: two-mass" in text and "axial mode " in text
+    r = json.loads(rep.read_text())
+    a = 0.01 / TWO_PI
+    j_true = 2.3e-3 + 9.6973e-4 + 350 * a * a
+    j = r["reflected_inertia_kg_m2"]
+    assert abs(j["value"] / j_true - 1) < 0.03 and j["ci95"][0] <= j_true <= j["ci95"][1]
+    m = r["solver"]["frf_model"]
+    fa = math.sqrt(123.7e6 / 350) / TWO_PI
+    f_r = fa * math.sqrt(j_true / (2.3e-3 + 9.6973e-4))
+    assert abs(m["resonance_hz"]["value"] / f_r - 1) < 0.05
+    assert abs(m["current_loop_bandwidth_hz"]["value"] / 1200 - 1) < 0.25
+    doc = tomllib.loads(out.read_text())
+    assert doc["axis"]["moving_mass_kg"]["source"].startswith(f"fit: {bode} (95 % CI ")
+    load_plant(out)
+
+
+def test_cli_verbose_shows_the_cause_of_a_numerical_failure(tmp_path, capsys, monkeypatch):
+    """--verbose on a failure inside the fit prints the exception chain (type, message, where)."""
+    from prsa_ctrl.cli.fit import main
+    import prsa_ctrl.identification.frfplant as FP
+
+    def broken(*a, **k):
+        try:
+            {}["omega_cage"]
+        except KeyError as exc:
+            raise RuntimeError("mapping failed") from exc
+
+    monkeypatch.setattr(FP, "fit_frf_structure", broken)
+    base, truth = BASES["ball-screw"]
+    f = np.geomspace(3.0, 1500.0, 60)
+    path = tmp_path / "b.csv"
+    frf_from_arrays("b", f, frf_response(truth, f)).to_csv(path)
+    assert main(["--frf", str(path), "--plant", "ballscrew-32x10", "--out", str(tmp_path / "o.toml")]) == 3
+    plain = capsys.readouterr().err
+    assert "KeyError" not in plain
+    assert main(["--frf", str(path), "--plant", "ballscrew-32x10", "--out", str(tmp_path / "o.toml"), "--verbose"]) == 3
+    err = capsys.readouterr().err
+    assert "RuntimeError: mapping failed" in err and "KeyError: 'omega_cage'" in err and "test_frfplant.py" in err
+    assert not (tmp_path / "o.toml").exists()
+
+
+@pytest.mark.parametrize("logged,written", [("applied", 2), ("computed", 1)])
+def test_delay_of_the_response_is_written_as_whole_samples(logged, written):
+    """A response 2 samples late: drive.command_delay_samples = 2 for a command logged as
+    applied, 1 for one logged as computed (its computation sample is the drive's own)."""
+    base, truth = BASES["roller-screw"]
+    ts = truth.sample_time_s
+    f = np.geomspace(3.0, 0.4 / ts, 200)
+    g = frf_response(truth, f, fidelity="compliant", load_n=LOAD, delay_samples=2, sample_time_s=ts)
+    fr = frf_from_arrays("late", f, _noisy(g, 0.01, 4), load_n=LOAD)
+    res, _ = fit_frf_structure([fr], base, command_logged=logged)
+    assert res.plant.values["drive.command_delay_samples"] == written
+    assert res.delay["value"] == pytest.approx(2 * ts, abs=0.05 * ts)
+    assert res.plant.values["drive.current_loop_bandwidth_hz"] == pytest.approx(
+        truth.values["drive.current_loop_bandwidth_hz"], rel=0.05)
+
+
+def test_responses_that_are_not_torque_to_speed_of_this_axis_write_no_plant():
+    """A sign flip, a response in deg/s, a delay beyond any drive's: exit 3 material, each named."""
+    from prsa_ctrl.identification.twomass import two_mass_response
+
+    base, _ = BASES["ball-screw"]
+    ts = base.sample_time_s
+    f = np.geomspace(5.0, 1500.0, 150)
+    g = two_mass_response(f, motor_inertia_kg_m2=base.reflected_inertia_kg_m2, current_loop_bandwidth_hz=1000.0,
+                          sample_time_s=ts)
+    cases = [(-g, r"phase at its lowest frequencies .* is (8|9)\d deg; expected about -90 deg"),
+             (g * 180 / math.pi, r"inertia .* is 0.0175 x the base plant's"),
+             (g * np.exp(-2j * np.pi * f * 40 * ts), r"lags its command by 40 samples")]
+    for resp, match in cases:
+        with pytest.raises(FitError, match=match):
+            fit_frf_structure([frf_from_arrays("x", f, resp)], base)
