@@ -70,7 +70,8 @@ from .._lazy import module
 from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
-from ..plant.uncertainty import CORRELATION_KEY, carry_correlation, correlation_entry, correlation_toml
+from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry, correlation_toml,
+                                 inner_truncation)
 from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
@@ -669,6 +670,20 @@ def _check_force_limit(flim: float, logs: Sequence[AxisLog], what: str) -> None:
                          f"(drive gain x command) in {where}; expected a force limit >= the logged forces")
 
 
+def _normal_entry(value: float, sigma: float, positive: bool, source: str) -> dict | None:
+    """The ``[uncertainty]`` entry of a fitted key: a normal of standard deviation ``sigma`` (a
+    normal whose +-1.96 sigma is the fit's 95 % interval) truncated at 1.96 sigma, or closer where
+    the key's physical range ends (mass > 0, friction >= 0) without ever crossing it
+    (:func:`prsa_ctrl.plant.uncertainty.inner_truncation`); None when ``sigma`` is 0 or the
+    truncation is below 0.1 sigma."""
+    if not (sigma > 0 and math.isfinite(sigma)):
+        return None
+    trunc = inner_truncation(value, sigma, 0.0, limit=_Z95, open_floor=positive)
+    if trunc < 0.1:
+        return None
+    return {"dist": "normal", "sigma": sigma, "truncate": trunc, "source": source}
+
+
 def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evaluations: int = 60,
                     name: str = "fitted", check_delay: bool = True) -> AxisFit:
     """Calibrate a linear axis on closed-loop logs.
@@ -782,12 +797,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
             sources[k] = base.sources[k]
         else:
             sources[k] = f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g}; closed-loop output error)"
-            lo = 0.0 if j else 1e-12
-            sig_k = z * sd / _Z95  # a normal whose +-1.96 sigma is the 95 % interval
-            trunc = min(_Z95, (v - lo) / sig_k * (1 - 1e-9)) if sd > 0 else 0.0
-            if sd > 0 and trunc >= 0.1:
-                unc[k] = {"dist": "normal", "sigma": sig_k, "truncate": round(trunc, 6) if trunc < _Z95 else _Z95,
-                          "source": f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})"}
+            entry_k = _normal_entry(v, z * sd / _Z95, j == 0, f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})")
+            if entry_k is not None:
+                unc[k] = entry_k
         params[k] = entry
         values[k] = v
     idx = [j for j, k in enumerate(PARAMETERS) if k in unc]

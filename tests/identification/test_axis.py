@@ -79,3 +79,64 @@ def test_a_force_limit_above_the_logged_forces_fits_as_without_a_limit(emps_log,
         lo, hi = v["ci95"]
         assert abs(b.parameters[k]["value"] - v["value"]) < 0.01 * (hi - lo), k
     assert 95.0 < a.parameters["axis.mass_kg"]["value"] < 95.7  # the published 95.11 kg within the fit's interval
+
+
+def test_a_coulomb_interval_reaching_zero_is_written_inside_the_range(tmp_path):
+    """The fitted entry of a friction key whose interval reaches 0: its truncation is rounded
+    inward (was round(trunc, 6), here 1.234568 sigma: a support from -1e-07 N, file refused)."""
+    import tomllib
+
+    from prsa_ctrl.identification.axis import _normal_entry, axis_plant_toml
+
+    value, sigma = 1.2345679, 1.0
+    assert value - round(value / sigma * (1 - 1e-9), 6) * sigma < 0  # what the old rule wrote
+    entry = _normal_entry(value, sigma, False, "fit: test")
+    assert entry["truncate"] == 1.234567 and value - entry["truncate"] * sigma >= 0
+    assert _normal_entry(value, 0.0, False, "fit: test") is None
+    assert _normal_entry(0.05, 1.0, False, "fit: test") is None  # < 0.1 sigma above the bound
+    base = load_axis_plant(EXAMPLE / "plant.toml")
+    plant = dataclasses.replace(base, values={**base.values, "friction.coulomb_negative_n": value},
+                                uncertainty={"friction.coulomb_negative_n": entry})
+    p = tmp_path / "fitted.toml"
+    p.write_text(axis_plant_toml(plant))
+    back = load_axis_plant(p)  # the file reader checks the support against the key's range
+    assert tomllib.loads(p.read_text())["uncertainty"]["friction.coulomb_negative_n"]["truncate"] == 1.234567
+    assert back.uncertainty["friction.coulomb_negative_n"]["truncate"] == 1.234567
+
+
+def test_the_screw_fit_entries_never_cross_the_range():
+    """The motor-coordinate fit's entries (identification.common) round inward too."""
+    from prsa_ctrl.identification.common import _uncertainty_entries
+    from prsa_ctrl.plant.plantfile import load_plant
+
+    plant = load_plant("paper-iprsm")
+    key = "friction.viscous_n_m_s_per_rad"  # non-negative
+    value, sd = 1.2345679e-4, 1e-4
+    assert value - round(value / sd * (1 - 1e-9), 6) * sd < 0  # what the old rule wrote
+    fitted = plant.with_params({key: value})
+    out = _uncertainty_entries(fitted, {key: {"value": value, "ci95": [value - 1.96 * sd, value + 1.96 * sd]}},
+                               "t.csv", [sd])
+    e = out[key]
+    assert e["dist"] == "normal" and value - e["truncate"] * e["sigma"] >= 0 and e["truncate"] == 1.234567
+    fitted.with_params({key: value - e["truncate"] * e["sigma"]})  # the support's end is a valid plant
+
+
+@needs_data
+def test_refitting_with_the_own_fitted_plant_as_base_is_written(tmp_path, capsys):
+    """Was: exit 2 after the whole fit, "'axis.mass_kg' appears twice (in two blocks)"."""
+    import tomllib
+
+    fmt = str(EXAMPLE / "log.toml")
+    first, second = tmp_path / "first.toml", tmp_path / "second.toml"
+    assert main([str(DATA), "--log-format", fmt, "--plant", str(EXAMPLE / "plant.toml"), "--out", str(first)]) == 0
+    capsys.readouterr()
+    code = main([str(DATA), "--log-format", fmt, "--plant", str(first), "--out", str(second)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    a, b = (tomllib.loads(p.read_text()) for p in (first, second))
+    corr = b["uncertainty"]["correlation"]
+    assert isinstance(corr, dict) and sorted(corr["keys"]) == sorted(a["uncertainty"]["correlation"]["keys"])
+    assert corr["matrix"] == a["uncertainty"]["correlation"]["matrix"]  # the same data, the same fit
+    assert b["axis"]["mass_kg"]["value"] == a["axis"]["mass_kg"]["value"]
+    assert "the new correlation block holds them" in captured.out
+    load_axis_plant(second)
