@@ -66,7 +66,7 @@ def motor_log_mode(argv: Sequence[str]) -> bool:
     if fmt is None or "--validate" in argv or any(a.startswith("--validate=") for a in argv):
         return False
     try:
-        if tomllib.loads(Path(fmt).read_text(encoding="utf-8")).get("axis", "linear") == "rotary":
+        if tomllib.loads(Path(fmt).read_text(encoding="utf-8-sig")).get("axis", "linear") == "rotary":
             return True
         plant = flag_value(argv, "--plant")
         if plant is None:
@@ -309,9 +309,15 @@ def _fit(args) -> int:
     base, base_notes = _base_plant(args, logs)
     fit_logs, held = logs, []
     if args.holdout:
+        from ..identification.data import MIN_SAMPLES
+
         fit_logs, held = [], []
         for lg in logs:
             cut = int(round(lg.n * (1 - args.holdout)))
+            if min(cut, lg.n - cut) < MIN_SAMPLES:
+                raise UsageError(f"--holdout {args.holdout:g}: {lg.name} has "
+                                 f"{lg.n} samples, which leaves {lg.n - cut} held out and {cut} to fit; expected a "
+                                 f"fraction that leaves at least {MIN_SAMPLES} samples in each part")
             fit_logs.append(lg.window(0, cut))
             held.append(lg.window(cut, lg.n))
     result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)

@@ -84,7 +84,9 @@ from __future__ import annotations
 
 import csv
 import math
+import struct
 import tomllib
+import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
@@ -94,7 +96,7 @@ import scipy.io
 from numpy.typing import NDArray
 
 from ..errors import LogFormatError
-from .data import MAX_SAMPLES, MIN_SAMPLES, Record, record_from_arrays
+from .data import MAX_FILE_BYTES, MAX_SAMPLES, MIN_SAMPLES, Record, record_from_arrays
 
 __all__ = ["LogFormatError", "LogFormat", "DEFAULT_CSV_FORMAT", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
            "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES", "MAX_SPEED_M_S", "AXES", "motor_record",
@@ -243,6 +245,29 @@ class AxisLog:
     command_logged: str = "as-computed"
     sources: Mapping[str, str] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        """The arrays checked: one-dimensional, one length (at least 2 samples), finite; the gain
+        and sample time finite and > 0. A :class:`ValueError` names the log and the field."""
+        n = None
+        for k in ("time_s", "position_m", "command", "reference_m", "test_signal", "speed_m_s", "load_n"):
+            a = getattr(self, k)
+            if a is None and k not in ("time_s", "position_m", "command"):
+                continue
+            shape = np.shape(a)
+            if len(shape) != 1 or (n is not None and shape[0] != n):
+                raise ValueError(f"AxisLog {self.name!r}: {k} has shape {shape}; expected "
+                                 + ("a one-dimensional array of at least 2 samples" if n is None else f"({n},) like time_s"))
+            n = shape[0] if n is None else n
+            if n < 2:
+                raise ValueError(f"AxisLog {self.name!r}: {k} has {n} sample(s); expected at least 2")
+            bad = np.flatnonzero(~np.isfinite(np.asarray(a, dtype=float)))
+            if bad.size:
+                raise ValueError(f"AxisLog {self.name!r}: {k}[{bad[0]}] = {float(np.asarray(a)[bad[0]])!r}; expected finite values")
+        for k in ("gain_n_per_unit", "sample_time_s"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not (math.isfinite(v) and v > 0):
+                raise ValueError(f"AxisLog {self.name!r}: {k} = {v!r}; expected a finite number > 0")
+
     @property
     def n(self) -> int:
         """Number of samples."""
@@ -307,7 +332,7 @@ def load_log_format(path: str | Path) -> LogFormat:
     if not p.is_file():
         raise LogFormatError(f"--log-format {name!r}: file not found; expected a readable TOML log description")
     try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+        doc = tomllib.loads(p.read_text(encoding="utf-8-sig"))  # a byte-order mark, as plant and data files
     except (OSError, UnicodeDecodeError) as exc:
         raise LogFormatError(f"{name}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as exc:
@@ -342,6 +367,12 @@ def load_log_format(path: str | Path) -> LogFormat:
                 raise _err(name, f"[{sec}] {k}", f"unknown key; expected some of {', '.join(sorted(_SIGNAL_KEYS))}")
         if not isinstance(s.get("name"), str) or not s["name"].strip():
             raise _err(name, f"[{sec}] name", "missing; expected the column or variable name as a string")
+        if "optional" in s:
+            opt = s["optional"]
+            if not isinstance(opt, bool):
+                raise _err(name, f"[{sec}] optional = {opt!r}", "expected true or false (a TOML boolean, no quotes)")
+            if opt and required:
+                raise _err(name, f"[{sec}] optional = true", f"[{sec}] is required; expected no optional key (or false)")
         unit = s.get("unit")
         allowed = units if units is not None else _COMMAND_UNITS
         if unit not in allowed:
@@ -406,57 +437,310 @@ def _check_controller(name: str, ctl: Any, has_reference: bool) -> None:
 # --- the data ----------------------------------------------------------------------------------
 
 
-class _Source:
-    """The columns (CSV) or variables (.mat) of one data file."""
+#: MATLAB array classes (mxArray class numbers of the v5 format).
+_MAT_CLASSES = {1: "cell", 2: "struct", 3: "object", 4: "char", 5: "sparse", 6: "double", 7: "single", 8: "int8",
+                9: "uint8", 10: "int16", 11: "uint16", 12: "int32", 13: "uint32", 14: "int64", 15: "uint64",
+                16: "function", 17: "opaque"}
+_MAT_NUMERIC = {"double", "single", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "logical"}
+#: Largest variable header (flags, dimensions, name) of a .mat file read, bytes.
+_MAT_HEADER_BYTES = 4096
+_MI_MATRIX, _MI_COMPRESSED = 14, 15
 
-    def __init__(self, path: str, fmt: str):
+
+@dataclass(frozen=True)
+class _MatVar:
+    """One variable of a v5 .mat file, from its header: class, complex flag, shape and where its
+    element is (``start``: its tag, ``end``: past its data; ``compressed``: a zlib element)."""
+
+    name: str
+    kind: str
+    complex: bool
+    shape: tuple[int, ...]
+    start: int
+    end: int
+    compressed: bool
+    header_bytes: int
+
+    @property
+    def size(self) -> int:
+        return math.prod(self.shape)
+
+
+def _wanted(doc: Mapping[str, Any]) -> dict[str, str]:
+    """The columns or variables a log description names, each with the key that names it (the
+    only ones read)."""
+    out: dict[str, str] = {}
+    for sec in (*_SIGNALS, *_ROTARY_SIGNALS):
+        s = doc.get(sec)
+        if isinstance(s, dict) and isinstance(s.get("name"), str):
+            out.setdefault(s["name"], f"[{sec}] name")
+    cmd = doc.get("command") or {}
+    if isinstance(cmd.get("gain"), str):
+        out.setdefault(cmd["gain"], "[command] gain")
+    for k in ("kp", "kv", "ki"):
+        v = (doc.get("controller") or {}).get(k)
+        if isinstance(v, str):
+            out.setdefault(v, f"[controller] {k}")
+    return out
+
+
+class _Source:
+    """The columns (CSV) or variables (.mat) of one data file that its description names.
+
+    Memory is bounded before anything is read: the file at most
+    :data:`prsa_ctrl.identification.data.MAX_FILE_BYTES`; a CSV file is streamed, only the named
+    columns kept, refused at its row ``MAX_SAMPLES + 1``; a .mat file's variable headers are read
+    first (class, complex flag, shape: a compressed one decompressed only as far as its header)
+    and only the named variables are decompressed and loaded, each refused before that when it
+    is not real numbers or holds more than :data:`prsa_ctrl.identification.data.MAX_SAMPLES`
+    values. ``names`` lists every column or variable of the file (for messages).
+    """
+
+    def __init__(self, path: str, fmt: str, wanted: Mapping[str, str] | None = None):
         self.path, self.fmt = path, fmt
+        self.wanted = dict(wanted or {})
         p = Path(path)
         if not p.is_file():
             raise LogFormatError(f"{path}: log file not found; expected a readable {fmt} file")
-        self.data: dict[str, np.ndarray] = self._read_mat(p) if fmt == "mat" else self._read_csv(p)
-
-    def _read_mat(self, p: Path) -> dict[str, np.ndarray]:
         try:
-            raw = scipy.io.loadmat(str(p))
-        except NotImplementedError:
+            size = p.stat().st_size
+        except OSError as exc:
+            raise LogFormatError(f"{path}: cannot be read ({exc.strerror or exc}); expected a readable {fmt} file") from None
+        if size > MAX_FILE_BYTES:
+            raise LogFormatError(f"{path}: {size} bytes; expected at most {MAX_FILE_BYTES} bytes (cut the log)")
+        self.all_names: list[str] = []
+        self.kinds: dict[str, str] = {}  # variables that are not real numbers: what they are
+        self.data: dict[str, np.ndarray] = self._read_mat(p, size) if fmt == "mat" else self._read_csv(p)
+
+    # --- .mat ------------------------------------------------------------------------------------
+
+    def _bad_mat(self, text: str) -> LogFormatError:
+        return LogFormatError(f"{self.path}: cannot be read as a MATLAB .mat file ({text}); expected a MATLAB v4 or "
+                              "v5/v7 .mat file")
+
+    def _read_mat(self, p: Path, size: int) -> dict[str, np.ndarray]:
+        from scipy.io.matlab import MatReadError, matfile_version
+
+        if size == 0:
+            raise self._bad_mat("an empty file")
+        try:
+            with p.open("rb") as fh:
+                major, _ = matfile_version(fh)
+        except (MatReadError, OSError, ValueError, TypeError, IndexError, struct.error) as exc:
+            raise self._bad_mat(str(exc) or type(exc).__name__) from None
+        if major == 2:
             raise LogFormatError(f"{self.path}: MATLAB v7.3 (HDF5) file; expected a v5/v7 .mat file (save with "
-                                 "-v7)") from None
-        except (OSError, ValueError, TypeError) as exc:
-            raise LogFormatError(f"{self.path}: cannot be read as a MATLAB .mat file ({exc})") from None
+                                 "-v7)")
+        try:
+            raw = self._read_mat4(p) if major == 0 else self._read_mat5(p, size)
+        except LogFormatError:
+            raise
+        except (MatReadError, OSError, ValueError, TypeError, KeyError, IndexError, struct.error, zlib.error,
+                NotImplementedError, AttributeError) as exc:
+            raise self._bad_mat(str(exc) or type(exc).__name__) from None
         out = {}
         for k, v in raw.items():
-            if k.startswith("__") or not isinstance(v, np.ndarray) or v.dtype.kind not in "fiub":
+            if k.startswith("__") or k not in self.wanted:
                 continue
+            if not isinstance(v, np.ndarray) or v.dtype.kind not in "fiub":
+                what = "complex numbers" if isinstance(v, np.ndarray) and v.dtype.kind == "c" else \
+                    f"a MATLAB {type(v).__name__ if not isinstance(v, np.ndarray) else v.dtype.name} array"
+                raise self._not_numbers(k, what)
             out[k] = np.asarray(v, dtype=float)
         return out
 
+    def _not_numbers(self, var: str, what: str) -> LogFormatError:
+        return LogFormatError(f"{self.path}: variable {var!r} ({self.wanted.get(var, 'named')}) holds {what}; expected "
+                              "a real numeric vector or scalar (double, single, integer or logical)")
+
+    def _check_var(self, name: str, kind: str, complex_: bool, shape: tuple[int, ...]) -> None:
+        """A named variable checked from its header, before its data are read."""
+        if kind not in _MAT_NUMERIC:
+            what = {"char": "text (a MATLAB char array)", "cell": "a MATLAB cell array", "sparse": "a MATLAB sparse matrix",
+                    "struct": "a MATLAB struct"}.get(kind, f"a MATLAB {kind}")
+            raise self._not_numbers(name, what)
+        if complex_:
+            raise self._not_numbers(name, f"complex numbers (class {kind})")
+        n = math.prod(shape)
+        if n > MAX_SAMPLES:
+            raise LogFormatError(f"{self.path}: variable {name!r} ({self.wanted[name]}) has shape "
+                                 f"{'x'.join(map(str, shape))} ({n} values); expected at most {MAX_SAMPLES} values (one "
+                                 "per sample; cut the log)")
+
+    def _read_mat4(self, p: Path) -> dict:
+        """A v4 file (never compressed): the headers listed, then only the named variables loaded."""
+        listed = scipy.io.whosmat(str(p))
+        self.all_names = [n for n, _, _ in listed]
+        take = []
+        for name, shape, kind in listed:
+            if name in self.wanted:
+                self._check_var(name, kind, False, tuple(shape))
+                take.append(name)
+        return scipy.io.loadmat(str(p), variable_names=take) if take else {}
+
+    def _read_mat5(self, p: Path, size: int) -> dict:
+        """A v5/v7 file: every variable's header read (a compressed one decompressed only to
+        :data:`_MAT_HEADER_BYTES`), the named ones checked, then only those decompressed (each
+        bounded by its shape) and loaded from memory."""
+        import io
+
+        with p.open("rb") as fh:
+            head = fh.read(128)
+            endian = {b"IM": "<", b"MI": ">"}.get(head[126:128])
+            if endian is None:
+                raise self._bad_mat("no endian indicator in its header")
+            variables = []
+            pos = 128
+            while pos + 8 <= size:
+                fh.seek(pos)
+                mdtype, nbytes = struct.unpack(endian + "II", fh.read(8))
+                end = pos + 8 + nbytes
+                if mdtype not in (_MI_MATRIX, _MI_COMPRESSED):
+                    raise self._bad_mat(f"data element of type {mdtype} at byte {pos}, expected a matrix")
+                if end > size:
+                    raise self._bad_mat(f"the element at byte {pos} runs past the end of the file")
+                variables.append(self._mat5_header(fh, endian, pos, end, mdtype == _MI_COMPRESSED))
+                pos = end
+            self.all_names = [v.name for v in variables]
+            chunks, seen = [head], set()
+            for v in variables:
+                if v.name not in self.wanted:
+                    continue
+                if v.name in seen:
+                    raise LogFormatError(f"{self.path}: variable {v.name!r} ({self.wanted[v.name]}) appears twice in the "
+                                         "file; expected each name once")
+                seen.add(v.name)
+                self._check_var(v.name, v.kind, v.complex, v.shape)
+                chunks.append(self._mat5_element(fh, endian, v))
+        if len(chunks) == 1:
+            return {}
+        return scipy.io.loadmat(io.BytesIO(b"".join(chunks)))
+
+    @staticmethod
+    def _inflate(fh, start: int, end: int, limit: int) -> bytes:
+        """The decompressed bytes of the zlib stream in ``[start, end)`` of the file, at most
+        ``limit + 1`` of them (so that more than ``limit`` is seen)."""
+        d = zlib.decompressobj()
+        out = []
+        got = 0
+        fh.seek(start)
+        left = end - start
+        pending = b""
+        while got <= limit:
+            if not pending:
+                if left <= 0:
+                    break
+                pending = fh.read(min(65536, left))
+                left -= len(pending)
+                if not pending:
+                    break
+            chunk = d.decompress(pending, limit + 1 - got)
+            pending = d.unconsumed_tail
+            out.append(chunk)
+            got += len(chunk)
+            if d.eof:
+                break
+        return b"".join(out)
+
+    def _mat5_header(self, fh, endian: str, pos: int, end: int, compressed: bool) -> _MatVar:
+        if compressed:
+            raw = self._inflate(fh, pos + 8, end, _MAT_HEADER_BYTES)
+            mdtype, _ = struct.unpack(endian + "II", raw[:8])
+            if mdtype != _MI_MATRIX:
+                raise self._bad_mat(f"compressed element at byte {pos} holds type {mdtype}, expected a matrix")
+            body = raw[8:]
+        else:
+            fh.seek(pos + 8)
+            body = fh.read(min(end - pos - 8, _MAT_HEADER_BYTES))
+        if not body:  # an empty matrix element (MATLAB writes these for empty arrays)
+            return _MatVar("", "double", False, (0, 0), pos, end, compressed, 0)
+        off = 0
+        fields = []
+        for _ in range(3):  # array flags, dimensions, name
+            if off + 8 > len(body):
+                raise self._bad_mat(f"the variable header at byte {pos} is longer than {_MAT_HEADER_BYTES} bytes or cut")
+            first = struct.unpack(endian + "I", body[off:off + 4])[0]
+            if first >> 16:  # a small data element: type and length in one word, data in the next
+                n = first >> 16
+                fields.append(body[off + 4:off + 4 + n])
+                off += 8
+            else:
+                n = struct.unpack(endian + "I", body[off + 4:off + 8])[0]
+                if off + 8 + n > len(body):
+                    raise self._bad_mat(f"the variable header at byte {pos} is longer than {_MAT_HEADER_BYTES} bytes "
+                                        "or cut")
+                fields.append(body[off + 8:off + 8 + n])
+                off += 8 + (n + 7) // 8 * 8
+        flags = struct.unpack(endian + "I", fields[0][:4])[0]
+        kind = "logical" if flags >> 9 & 1 else _MAT_CLASSES.get(flags & 0xFF, f"class {flags & 0xFF}")
+        dims = tuple(struct.unpack(endian + f"{len(fields[1]) // 4}i", fields[1][:len(fields[1]) // 4 * 4]))
+        if any(d < 0 for d in dims):
+            raise self._bad_mat(f"negative dimensions {dims} at byte {pos}")
+        return _MatVar(fields[2].decode("latin1"), kind, bool(flags >> 11 & 1), dims, pos, end, compressed, off)
+
+    def _mat5_element(self, fh, endian: str, v: _MatVar) -> bytes:
+        """A named variable's element, uncompressed, its size bounded by its shape (8 bytes a value
+        at most, plus its header and padding)."""
+        bound = v.header_bytes + 16 + 8 * v.size + 8
+        if v.compressed:
+            raw = self._inflate(fh, v.start + 8, v.end, bound + 8)
+            if len(raw) > bound + 8:
+                raise self._bad_mat(f"variable {v.name!r} decompresses to more than its shape "
+                                    f"{'x'.join(map(str, v.shape))} holds")
+            return raw
+        if v.end - v.start > bound + 8:
+            raise self._bad_mat(f"variable {v.name!r} takes {v.end - v.start} bytes, more than its shape "
+                                f"{'x'.join(map(str, v.shape))} holds")
+        fh.seek(v.start)
+        return fh.read(v.end - v.start)
+
+    # --- CSV -------------------------------------------------------------------------------------
+
     def _read_csv(self, p: Path) -> dict[str, np.ndarray]:
+        """Streamed: the header, then the named columns only, one row at a time into arrays; a
+        file with more than ``MAX_SAMPLES`` data rows is refused at its row ``MAX_SAMPLES + 1``."""
+        from array import array
+
+        header: list[str] | None = None
+        cols: dict[str, tuple[int, array]] = {}
+        n = 0
         try:
             with p.open(newline="", encoding="utf-8-sig") as fh:
-                rows = [(i, r) for i, r in enumerate(csv.reader(fh), start=1)
-                        if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+                for line, row in enumerate(csv.reader(fh), start=1):
+                    if not row or not any(c.strip() for c in row) or row[0].lstrip().startswith("#"):
+                        continue
+                    if header is None:
+                        header = [h.strip() for h in row]
+                        self.all_names = header
+                        for c, h in enumerate(header):
+                            if h in self.wanted:
+                                if h in cols:
+                                    raise LogFormatError(
+                                        f"{self.path}: column {h!r} ({self.wanted[h]}) appears twice in the header "
+                                        f"(columns {cols[h][0] + 1} and {c + 1}, line {line}); expected each name once")
+                                cols[h] = (c, array("d"))
+                        continue
+                    n += 1
+                    if n > MAX_SAMPLES:
+                        raise LogFormatError(f"{self.path}: more than {MAX_SAMPLES} data rows (line {line}); expected "
+                                             f"at most {MAX_SAMPLES} (cut the log)")
+                    if len(row) != len(header):
+                        raise LogFormatError(f"{self.path}: line {line} has {len(row)} fields; expected {len(header)} "
+                                             "like the header")
+                    for h, (c, values) in cols.items():
+                        try:
+                            values.append(float(row[c]))
+                        except ValueError:
+                            raise LogFormatError(f"{self.path}: column {h!r} line {line}: {row[c].strip()!r} is not a "
+                                                 "number; expected a finite number") from None
         except (OSError, UnicodeDecodeError, csv.Error) as exc:
             raise LogFormatError(f"{self.path}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
-        if not rows:
+        if header is None:
             raise LogFormatError(f"{self.path}: no header row; expected a CSV header naming the columns")
-        if len(rows) - 1 > MAX_SAMPLES:
-            raise LogFormatError(f"{self.path}: {len(rows) - 1} rows; expected at most {MAX_SAMPLES} (cut the log)")
-        header = [h.strip() for h in rows[0][1]]
-        data = np.empty((len(rows) - 1, len(header)))
-        for r, (line, row) in enumerate(rows[1:]):
-            if len(row) != len(header):
-                raise LogFormatError(f"{self.path}: line {line} has {len(row)} fields; expected {len(header)} like the header")
-            for c, cell in enumerate(row):
-                try:
-                    data[r, c] = float(cell)
-                except ValueError:
-                    raise LogFormatError(f"{self.path}: column {header[c]!r} line {line}: {cell.strip()!r} is not a "
-                                         "number; expected a finite number") from None
-        return {h: data[:, c] for c, h in enumerate(header)}
+        return {h: np.frombuffer(values, dtype=float).copy() for h, (c, values) in cols.items()}
 
     def names(self) -> str:
-        return ", ".join(self.data) or "nothing"
+        return ", ".join(self.all_names) or "nothing"
 
     def signal(self, key: str, var: str, n: int | None) -> np.ndarray:
         what = "column" if self.fmt == "csv" else "variable"
@@ -575,7 +859,7 @@ def _read(path: str | Path, fmt: LogFormat):
     name = str(path)
     doc = fmt.doc
     kind = doc.get("format") or ("mat" if name.lower().endswith(".mat") else "csv")
-    src = _Source(name, kind)
+    src = _Source(name, kind, _wanted(doc))
     t_sec = doc["time"]
     t = src.signal("[time] name", t_sec["name"], None) * _TIME_UNITS[t_sec["unit"]]
     n = t.size

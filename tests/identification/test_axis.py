@@ -140,3 +140,12 @@ def test_refitting_with_the_own_fitted_plant_as_base_is_written(tmp_path, capsys
     assert b["axis"]["mass_kg"]["value"] == a["axis"]["mass_kg"]["value"]
     assert "the new correlation block holds them" in captured.out
     load_axis_plant(second)
+
+
+@needs_data
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True])
+def test_max_evaluations_is_checked_before_the_fit(emps_log, bad):
+    """Was: scipy's own message ("max_nfev ...") for 0."""
+    base = load_axis_plant(EXAMPLE / "plant.toml")
+    with pytest.raises(ValueError, match=rf"max_evaluations = {bad!r}; expected an integer >= 1"):
+        fit_linear_axis([emps_log], base, max_evaluations=bad)
