@@ -442,3 +442,12 @@ def test_a_holdout_that_leaves_too_few_samples_names_the_flag_and_the_log(files,
     assert (f"--holdout 0.1: {mat} has 400 samples, which leaves 40 held out and 360 to fit; expected a fraction that "
             "leaves at least 50 samples in each part") in err
     assert not (d / "f.toml").exists()
+
+
+def test_a_rotary_description_with_a_byte_order_mark_is_fitted_in_motor_coordinates(tmp_path):
+    """The mode choice reads the description as load_log_format does (a BOM made it the linear path)."""
+    from prsa_ctrl.cli.axis import motor_log_mode
+
+    fmt = tmp_path / "rotary.toml"
+    fmt.write_bytes(b"\xef\xbb\xbf" + b'axis = "rotary"\n[time]\nname = "t"\nunit = "s"\n')
+    assert motor_log_mode(["log.csv", "--log-format", str(fmt), "--out", "o.toml"])
