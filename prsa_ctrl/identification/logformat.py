@@ -445,6 +445,8 @@ _MAT_NUMERIC = {"double", "single", "int8", "uint8", "int16", "uint16", "int32",
 #: Largest variable header (flags, dimensions, name) of a .mat file read, bytes.
 _MAT_HEADER_BYTES = 4096
 _MI_MATRIX, _MI_COMPRESSED = 14, 15
+#: Most variables a .mat log may hold (each header is read); names listed in a message.
+_MAT_MAX_VARIABLES, _NAMES_SHOWN = 100_000, 50
 
 
 @dataclass(frozen=True)
@@ -508,7 +510,8 @@ class _Source:
             raise LogFormatError(f"{path}: cannot be read ({exc.strerror or exc}); expected a readable {fmt} file") from None
         if size > MAX_FILE_BYTES:
             raise LogFormatError(f"{path}: {size} bytes; expected at most {MAX_FILE_BYTES} bytes (cut the log)")
-        self.all_names: list[str] = []
+        self.all_names: list[str] = []  # (the first _NAMES_SHOWN of a .mat file's)
+        self.names_total = 0
         self.kinds: dict[str, str] = {}  # variables that are not real numbers: what they are
         self.data: dict[str, np.ndarray] = self._read_mat(p, size) if fmt == "mat" else self._read_csv(p)
 
@@ -532,7 +535,7 @@ class _Source:
             raise LogFormatError(f"{self.path}: MATLAB v7.3 (HDF5) file; expected a v5/v7 .mat file (save with "
                                  "-v7)")
         try:
-            raw = self._read_mat4(p) if major == 0 else self._read_mat5(p, size)
+            raw = self._read_mat4(p, size) if major == 0 else self._read_mat5(p, size)
         except LogFormatError:
             raise
         except (MatReadError, OSError, ValueError, TypeError, KeyError, IndexError, struct.error, zlib.error,
@@ -567,16 +570,46 @@ class _Source:
                                  f"{'x'.join(map(str, shape))} ({n} values); expected at most {MAX_SAMPLES} values (one "
                                  "per sample; cut the log)")
 
-    def _read_mat4(self, p: Path) -> dict:
-        """A v4 file (never compressed): the headers listed, then only the named variables loaded."""
-        listed = scipy.io.whosmat(str(p))
-        self.all_names = [n for n, _, _ in listed]
-        take = []
-        for name, shape, kind in listed:
-            if name in self.wanted:
-                self._check_var(name, kind, False, tuple(shape))
-                take.append(name)
-        return scipy.io.loadmat(str(p), variable_names=take) if take else {}
+    def _read_mat4(self, p: Path, size: int) -> dict:
+        """A v4 file (never compressed): every variable's 20-byte header read, the named ones
+        checked, then only those loaded (from memory)."""
+        import io
+
+        chunks, seen, count, pos = [], set(), 0, 0
+        with p.open("rb") as fh:
+            while pos + 20 <= size:
+                count += 1
+                if count > _MAT_MAX_VARIABLES:
+                    raise self._bad_mat(f"more than {_MAT_MAX_VARIABLES} variables")
+                fh.seek(pos)
+                raw = fh.read(20)
+                for endian in "<>":
+                    mopt, rows, cols, imagf, namlen = struct.unpack(endian + "5i", raw)
+                    if 0 <= mopt < 5000 and mopt // 100 % 10 == 0:
+                        break
+                else:
+                    raise self._bad_mat(f"no MATLAB v4 variable header at byte {pos}")
+                itemsize = {0: 8, 1: 4, 2: 4, 3: 2, 4: 2, 5: 1}.get(mopt // 10 % 10)
+                if itemsize is None or min(rows, cols, namlen) < 0 or namlen > 4096:
+                    raise self._bad_mat(f"a bad MATLAB v4 variable header at byte {pos}")
+                name = fh.read(namlen).rstrip(b"\0").decode("latin1")
+                end = pos + 20 + namlen + rows * cols * itemsize * (2 if imagf else 1)
+                if end > size:
+                    raise self._bad_mat(f"the variable at byte {pos} runs past the end of the file")
+                if len(self.all_names) < _NAMES_SHOWN:
+                    self.all_names.append(name)
+                if name in self.wanted:
+                    if name in seen:
+                        raise LogFormatError(f"{self.path}: variable {name!r} ({self.wanted[name]}) appears twice in "
+                                             "the file; expected each name once")
+                    seen.add(name)
+                    kind = {0: "double", 1: "char", 2: "sparse"}.get(mopt % 10, f"type {mopt % 10}")
+                    self._check_var(name, kind, bool(imagf), (rows, cols))
+                    fh.seek(pos)
+                    chunks.append(fh.read(end - pos))
+                pos = end
+        self.names_total = count
+        return scipy.io.loadmat(io.BytesIO(b"".join(chunks))) if chunks else {}
 
     def _read_mat5(self, p: Path, size: int) -> dict:
         """A v5/v7 file: every variable's header read (a compressed one decompressed only to
@@ -589,9 +622,12 @@ class _Source:
             endian = {b"IM": "<", b"MI": ">"}.get(head[126:128])
             if endian is None:
                 raise self._bad_mat("no endian indicator in its header")
-            variables = []
+            variables, count = [], 0
             pos = 128
             while pos + 8 <= size:
+                count += 1
+                if count > _MAT_MAX_VARIABLES:
+                    raise self._bad_mat(f"more than {_MAT_MAX_VARIABLES} variables")
                 fh.seek(pos)
                 mdtype, nbytes = struct.unpack(endian + "II", fh.read(8))
                 end = pos + 8 + nbytes
@@ -599,9 +635,13 @@ class _Source:
                     raise self._bad_mat(f"data element of type {mdtype} at byte {pos}, expected a matrix")
                 if end > size:
                     raise self._bad_mat(f"the element at byte {pos} runs past the end of the file")
-                variables.append(self._mat5_header(fh, endian, pos, end, mdtype == _MI_COMPRESSED))
+                v = self._mat5_header(fh, endian, pos, end, mdtype == _MI_COMPRESSED)
+                if len(self.all_names) < _NAMES_SHOWN:
+                    self.all_names.append(v.name)
+                if v.name in self.wanted:  # only these are kept
+                    variables.append(v)
                 pos = end
-            self.all_names = [v.name for v in variables]
+            self.names_total = count
             chunks, seen = [head], set()
             for v in variables:
                 if v.name not in self.wanted:
@@ -740,7 +780,10 @@ class _Source:
         return {h: np.frombuffer(values, dtype=float).copy() for h, (c, values) in cols.items()}
 
     def names(self) -> str:
-        return ", ".join(self.all_names) or "nothing"
+        """The file's columns or variables for a message (the first :data:`_NAMES_SHOWN`)."""
+        total = max(self.names_total, len(self.all_names))
+        shown = ", ".join(self.all_names[:_NAMES_SHOWN]) or "nothing"
+        return shown + (f", ... ({total} in all)" if total > _NAMES_SHOWN else "")
 
     def signal(self, key: str, var: str, n: int | None) -> np.ndarray:
         what = "column" if self.fmt == "csv" else "variable"

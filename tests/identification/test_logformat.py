@@ -451,3 +451,16 @@ def test_a_rotary_description_with_a_byte_order_mark_is_fitted_in_motor_coordina
     fmt = tmp_path / "rotary.toml"
     fmt.write_bytes(b"\xef\xbb\xbf" + b'axis = "rotary"\n[time]\nname = "t"\nunit = "s"\n')
     assert motor_log_mode(["log.csv", "--log-format", str(fmt), "--out", "o.toml"])
+
+
+@pytest.mark.parametrize("fmt_kw", [{}, {"format": "4"}])
+def test_a_missing_variable_lists_the_first_50_names_of_a_large_file(files, fmt_kw):
+    d, mat, fmt, _ = files
+    many = {f"v{i}": np.zeros(1) for i in range(80)}
+    named = _mat_vars(files)
+    del named["qm"]
+    scipy.io.savemat(mat, {**many, **named}, **fmt_kw)
+    with pytest.raises(LogFormatError) as info:
+        load_axis_log(mat, load_log_format(fmt))
+    msg = str(info.value)
+    assert "names variable 'qm', not in the file; it has v0, v1," in msg and msg.endswith("v49, ... (86 in all)")
