@@ -368,9 +368,10 @@ def test_a_duplicate_named_csv_column_is_refused(files, capsys):
 def test_the_described_csv_reader_is_streamed_and_refused_at_the_row_limit(tmp_path, monkeypatch):
     """Rows past the limit are never held (was: the whole file read into lists, then refused: 695 MB
     for 3 M rows): here 200 000 rows of 6 columns against a limit of 1000."""
+    import prsa_ctrl.identification.logfile as lfile
     import prsa_ctrl.identification.logformat as lf
 
-    monkeypatch.setattr(lf, "MAX_SAMPLES", 1000)
+    monkeypatch.setattr(lfile, "MAX_SAMPLES", 1000)
     n = 200_000
     t = np.arange(n) * 1e-3
     p = tmp_path / "long.csv"
@@ -386,10 +387,10 @@ def test_the_described_csv_reader_is_streamed_and_refused_at_the_row_limit(tmp_p
 
 
 def test_a_log_file_above_the_record_paths_byte_limit_is_refused_before_reading(files, monkeypatch):
-    import prsa_ctrl.identification.logformat as lf
+    import prsa_ctrl.identification.logfile as lfile
 
     d, mat, fmt, _ = files
-    monkeypatch.setattr(lf, "MAX_FILE_BYTES", 1000)
+    monkeypatch.setattr(lfile, "MAX_FILE_BYTES", 1000)
     with pytest.raises(LogFormatError, match=rf"{mat.stat().st_size} bytes; expected at most 1000 bytes"):
         load_axis_log(mat, load_log_format(fmt))
 
