@@ -66,7 +66,7 @@ def motor_log_mode(argv: Sequence[str]) -> bool:
     if fmt is None or "--validate" in argv or any(a.startswith("--validate=") for a in argv):
         return False
     try:
-        if tomllib.loads(Path(fmt).read_text(encoding="utf-8")).get("axis", "linear") == "rotary":
+        if tomllib.loads(Path(fmt).read_text(encoding="utf-8-sig")).get("axis", "linear") == "rotary":
             return True
         plant = flag_value(argv, "--plant")
         if plant is None:
@@ -212,7 +212,7 @@ def _base_plant(args, logs):
     are checked against a ``--plant`` file (:func:`_merge_base`). Returns ``(plant, warnings)``."""
     import numpy as np
 
-    from ..identification.axis import LinearAxisPlant, load_axis_plant
+    from ..identification.axis import LinearAxisPlant, load_axis_plant, logged_force_peak
 
     lg = logs[0]
     fmt_name = Path(args.log_format).name
@@ -232,7 +232,14 @@ def _base_plant(args, logs):
         vals["sensor.encoder_resolution_m"] = lg.resolution_m
         srcs["sensor.encoder_resolution_m"] = f"log: {fmt_name} [position] resolution"
     if args.plant:
-        return _merge_base(load_axis_plant(args.plant), args.plant, vals, srcs)
+        base, notes = _merge_base(load_axis_plant(args.plant), args.plant, vals, srcs)
+        flim = base.values.get("drive.force_limit_n", math.inf)
+        peak, where = logged_force_peak(logs)
+        if flim < peak * (1.0 - 1e-9):  # the replay would clip the force the log says the drive applied
+            raise UsageError(f"--plant {args.plant}: drive.force_limit_n = {flim:.6g} N is below the largest logged "
+                              f"force {peak:.6g} N (drive gain x command) in {where}; expected a force limit >= the "
+                              "logged forces (the drive applied them)")
+        return base, notes
     if "drive.force_limit_n" not in vals:
         peak = max(float(np.max(np.abs(g.gain_n_per_unit * g.command))) for g in logs)
         vals["drive.force_limit_n"] = max(peak, 1e-3)
@@ -280,7 +287,8 @@ def _merge_base(base, plant_path: str, vals: dict, srcs: dict):
             raise UsageError(f"--plant {plant_path}: {k} = {b:.6g} {unit} disagrees with {v:.6g} {unit} from the log "
                              f"({srcs[k]}); expected the same value (correct the base or the log description)")
         notes.append(f"{k}: kept {b:.6g} {unit} of --plant {plant_path}, not {v:.6g} {unit} from the log ({srcs[k]}): "
-                     "the base states the axis; the replayed controller still applies its own saturation")
+                     "the base states the axis (the fit and the replays clip the drive force at it; the replayed "
+                     "controller still clips its output at its own saturation)")
     return base, notes
 
 
@@ -301,9 +309,15 @@ def _fit(args) -> int:
     base, base_notes = _base_plant(args, logs)
     fit_logs, held = logs, []
     if args.holdout:
+        from ..identification.data import MIN_SAMPLES
+
         fit_logs, held = [], []
         for lg in logs:
             cut = int(round(lg.n * (1 - args.holdout)))
+            if min(cut, lg.n - cut) < MIN_SAMPLES:
+                raise UsageError(f"--holdout {args.holdout:g}: {lg.name} has "
+                                 f"{lg.n} samples, which leaves {lg.n - cut} held out and {cut} to fit; expected a "
+                                 f"fraction that leaves at least {MIN_SAMPLES} samples in each part")
             fit_logs.append(lg.window(0, cut))
             held.append(lg.window(cut, lg.n))
     result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)

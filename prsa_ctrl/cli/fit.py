@@ -526,6 +526,10 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         if args.delay_samples is not None and not 0 <= args.delay_samples <= 10:
             raise UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
         plant = load_plant(args.plant)
+        if plant.mechanism == "linear-axis":  # load coordinates: fitted from a described log, not these records
+            raise UsageError(f"--plant {args.plant}: mechanism = \"linear-axis\" (load coordinates: m, N); expected a "
+                              "screw-driven plant for records in motor coordinates (a linear axis is fitted from its "
+                              "log with --log-format FORMAT.toml)")
         base_text, base_path = _base_text(args.plant)
         # the fitted plant file can be written for any spelling of the base (checked before the fit)
         plant_toml(base_text, plant, Path(args.out).stem,

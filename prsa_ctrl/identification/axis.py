@@ -70,7 +70,8 @@ from .._lazy import module
 from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
-from ..plant.uncertainty import CORRELATION_KEY, carry_correlation, correlation_entry, correlation_toml
+from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry, correlation_toml,
+                                 inner_truncation)
 from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
@@ -78,7 +79,7 @@ stats = module("scipy.stats")  # only the fit's intervals need it (a slow import
 __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
-           "idim_estimate", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES"]
+           "idim_estimate", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES"]
 
 MECHANISM = "linear-axis"
 _Z95 = 1.959963984540054
@@ -653,6 +654,36 @@ def _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts
     return sol
 
 
+def logged_force_peak(logs: Sequence[AxisLog]) -> tuple[float, str]:
+    """The largest logged drive force ``|gain x command|`` over ``logs``, N, and the log it is in."""
+    peaks = [(float(np.max(np.abs(lg.force_n))) if lg.n else 0.0, lg.name) for lg in logs]
+    return max(peaks, key=lambda p: p[0]) if peaks else (0.0, "")
+
+
+def _check_force_limit(flim: float, logs: Sequence[AxisLog], what: str) -> None:
+    """Refuse a drive force limit (N) below the force a log holds: the replay clips the drive force
+    at the limit in every sample, while the log says the drive applied more (force = gain x
+    command), so the fit would explain the log with a force the drive never saturated at."""
+    peak, where = logged_force_peak(logs)
+    if flim < peak * (1.0 - 1e-9):
+        raise ValueError(f"{what}: drive.force_limit_n = {flim:.6g} N is below the largest logged force {peak:.6g} N "
+                         f"(drive gain x command) in {where}; expected a force limit >= the logged forces")
+
+
+def _normal_entry(value: float, sigma: float, positive: bool, source: str) -> dict | None:
+    """The ``[uncertainty]`` entry of a fitted key: a normal of standard deviation ``sigma`` (a
+    normal whose +-1.96 sigma is the fit's 95 % interval) truncated at 1.96 sigma, or closer where
+    the key's physical range ends (mass > 0, friction >= 0) without ever crossing it
+    (:func:`prsa_ctrl.plant.uncertainty.inner_truncation`); None when ``sigma`` is 0 or the
+    truncation is below 0.1 sigma."""
+    if not (sigma > 0 and math.isfinite(sigma)):
+        return None
+    trunc = inner_truncation(value, sigma, 0.0, limit=_Z95, open_floor=positive)
+    if trunc < 0.1:
+        return None
+    return {"dist": "normal", "sigma": sigma, "truncate": trunc, "source": source}
+
+
 def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evaluations: int = 60,
                     name: str = "fitted", check_delay: bool = True) -> AxisFit:
     """Calibrate a linear axis on closed-loop logs.
@@ -673,9 +704,11 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     logs : sequence of AxisLog
         Logs to fit (closed-loop logs need their controller and reference).
     base : LinearAxisPlant
-        Supplies every value the fit does not estimate (drive gain, force limit, sensor).
+        Supplies every value the fit does not estimate (drive gain, force limit, sensor). Its
+        ``drive.force_limit_n`` clips the drive force in every replay, so it must be at least the
+        largest logged force (gain x command, N).
     max_evaluations : int
-        Bound on the residual evaluations of the output-error fit.
+        Bound on the residual evaluations of the output-error fit (an integer >= 1).
     name : str
         Name of the fitted plant.
     check_delay : bool
@@ -690,9 +723,16 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     ------
     AxisFitError
         The logs do not move the axis, or the fit does not converge within the bound.
+    ValueError
+        The base's ``drive.force_limit_n`` is below the largest logged force (the replay would clip
+        the drive force the log says was applied), or ``max_evaluations`` is not an integer >= 1.
     """
     if not logs:
         raise ValueError("logs: expected at least one log")
+    if isinstance(max_evaluations, bool) or not isinstance(max_evaluations, (int, np.integer)) or max_evaluations < 1:
+        raise ValueError(f"max_evaluations = {max_evaluations!r}; expected an integer >= 1 (residual evaluations of "
+                         "the output-error fit)")
+    _check_force_limit(base.values.get("drive.force_limit_n", math.inf), logs, f"base plant {base.name!r}")
     theta0, informed = idim_estimate(logs)
     base_theta = base.theta
     theta0 = np.where(informed, theta0, base_theta)
@@ -757,12 +797,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
             sources[k] = base.sources[k]
         else:
             sources[k] = f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g}; closed-loop output error)"
-            lo = 0.0 if j else 1e-12
-            sig_k = z * sd / _Z95  # a normal whose +-1.96 sigma is the 95 % interval
-            trunc = min(_Z95, (v - lo) / sig_k * (1 - 1e-9)) if sd > 0 else 0.0
-            if sd > 0 and trunc >= 0.1:
-                unc[k] = {"dist": "normal", "sigma": sig_k, "truncate": round(trunc, 6) if trunc < _Z95 else _Z95,
-                          "source": f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})"}
+            entry_k = _normal_entry(v, z * sd / _Z95, j == 0, f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})")
+            if entry_k is not None:
+                unc[k] = entry_k
         params[k] = entry
         values[k] = v
     idx = [j for j, k in enumerate(PARAMETERS) if k in unc]

@@ -30,7 +30,7 @@ from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
 from ..plant.plantfile import Plant
 from ..plant.schema import BREAKAWAY_KEY, KIND, PLAUSIBLE, SCHEMA
-from ..plant.uncertainty import carry_correlation, correlation_entry, plant_uncertainty
+from ..plant.uncertainty import carry_correlation, correlation_entry, inner_truncation, plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
 
 __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", "DEFAULT_KEYS", "FRF_KEYS",
@@ -891,10 +891,10 @@ def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges
         if not floor <= value <= ceil:
             continue
         src = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g}; sigma from the fit's covariance)"
-        trunc = min(_Z95, (value - floor) / sd * (1 - 1e-9), (ceil - value) / sd * (1 - 1e-9))
+        # never past the range (rounded to 6 decimals inward, checked as the plant-file reader computes it)
+        trunc = inner_truncation(value, float(sd), floor, ceil, limit=_Z95, open_floor=kind in ("positive", "fraction in (0, 1]"))
         if trunc >= 0.1:
-            entry = {"dist": "normal", "sigma": float(sd), "truncate": float(round(trunc, 6) if trunc < _Z95 else _Z95),
-                     "source": src}
+            entry = {"dist": "normal", "sigma": float(sd), "truncate": float(trunc), "source": src}
             ends = (value - entry["truncate"] * sd, value + entry["truncate"] * sd)
         elif kind == "non-negative" and value - floor < 0.1 * sd:
             entry = {"dist": "uniform", "low": float(floor), "high": float(min(max(hi_ci, value + sd), ceil)),

@@ -320,6 +320,10 @@ def _validate(name, arrays, headers, line_of, k_t, load_n, min_samples, sampling
             )
     elif _CURRENT in arrays:
         raise DataError(f"{name}: both 'torque_command_n_m' and 'current_a' given; expected one of them")
+    if k_t is not None and _CURRENT not in arrays:
+        raise DataError(f"{name}: a torque constant of {k_t:g} N m/A (--torque-constant) was given, but the file has no "
+                        "current column 'current_a'; expected it only for a log of the current (or a mapping "
+                        "--columns current_a=HEADER)")
     if "nut_angle_rad" not in arrays and "nut_speed_rad_s" not in arrays:
         raise DataError(f"{name}: missing column 'nut_angle_rad' or 'nut_speed_rad_s'; expected at least one of them")
     if "axial_load_n" not in arrays and load_n is None:

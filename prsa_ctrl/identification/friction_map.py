@@ -627,6 +627,16 @@ def axis_friction_map(name: str, time_s, position_m, force_n, plant: Plant) -> d
         times and loads), ``chi2_reduced``, ``warnings`` (a reduced chi-square above 4),
         ``stribeck`` (identified or why not), ``note``, ``criteria``.
     """
+    arrays = {"time_s": time_s, "position_m": position_m, "force_n": force_n}
+    shapes = {k: np.shape(a) for k, a in arrays.items()}
+    if len(set(shapes.values())) != 1 or len(shapes["time_s"]) != 1 or shapes["time_s"][0] < 2:
+        raise ValueError(f"{name}: time_s, position_m and force_n have shapes "
+                         f"{', '.join(str(s) for s in shapes.values())}; expected one-dimensional arrays of one length, "
+                         "at least 2 samples")
+    for k, a in arrays.items():
+        bad = np.flatnonzero(~np.isfinite(np.asarray(a, float)))
+        if bad.size:
+            raise ValueError(f"{name}: {k}[{bad[0]}] = {float(np.asarray(a, float)[bad[0]])!r}; expected finite values")
     rec = Record(name, np.asarray(time_s, float), np.asarray(force_n, float), np.asarray(position_m, float), None,
                  np.zeros(len(time_s)))
     plateaus = find_plateaus(rec, plant)

@@ -82,7 +82,6 @@ the key, column or variable.
 
 from __future__ import annotations
 
-import csv
 import math
 import tomllib
 from dataclasses import dataclass, field, replace
@@ -90,11 +89,11 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import scipy.io
 from numpy.typing import NDArray
 
 from ..errors import LogFormatError
 from .data import MAX_SAMPLES, MIN_SAMPLES, Record, record_from_arrays
+from .logfile import LogFile
 
 __all__ = ["LogFormatError", "LogFormat", "DEFAULT_CSV_FORMAT", "ControllerSpec", "AxisLog", "load_log_format", "load_axis_log",
            "reconstruct_command", "STRUCTURES", "VELOCITY_ESTIMATES", "MAX_SPEED_M_S", "AXES", "motor_record",
@@ -243,6 +242,29 @@ class AxisLog:
     command_logged: str = "as-computed"
     sources: Mapping[str, str] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        """The arrays checked: one-dimensional, one length (at least 2 samples), finite; the gain
+        and sample time finite and > 0. A :class:`ValueError` names the log and the field."""
+        n = None
+        for k in ("time_s", "position_m", "command", "reference_m", "test_signal", "speed_m_s", "load_n"):
+            a = getattr(self, k)
+            if a is None and k not in ("time_s", "position_m", "command"):
+                continue
+            shape = np.shape(a)
+            if len(shape) != 1 or (n is not None and shape[0] != n):
+                raise ValueError(f"AxisLog {self.name!r}: {k} has shape {shape}; expected "
+                                 + ("a one-dimensional array of at least 2 samples" if n is None else f"({n},) like time_s"))
+            n = shape[0] if n is None else n
+            if n < 2:
+                raise ValueError(f"AxisLog {self.name!r}: {k} has {n} sample(s); expected at least 2")
+            bad = np.flatnonzero(~np.isfinite(np.asarray(a, dtype=float)))
+            if bad.size:
+                raise ValueError(f"AxisLog {self.name!r}: {k}[{bad[0]}] = {float(np.asarray(a)[bad[0]])!r}; expected finite values")
+        for k in ("gain_n_per_unit", "sample_time_s"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not (math.isfinite(v) and v > 0):
+                raise ValueError(f"AxisLog {self.name!r}: {k} = {v!r}; expected a finite number > 0")
+
     @property
     def n(self) -> int:
         """Number of samples."""
@@ -307,7 +329,7 @@ def load_log_format(path: str | Path) -> LogFormat:
     if not p.is_file():
         raise LogFormatError(f"--log-format {name!r}: file not found; expected a readable TOML log description")
     try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+        doc = tomllib.loads(p.read_text(encoding="utf-8-sig"))  # a byte-order mark, as plant and data files
     except (OSError, UnicodeDecodeError) as exc:
         raise LogFormatError(f"{name}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as exc:
@@ -342,6 +364,12 @@ def load_log_format(path: str | Path) -> LogFormat:
                 raise _err(name, f"[{sec}] {k}", f"unknown key; expected some of {', '.join(sorted(_SIGNAL_KEYS))}")
         if not isinstance(s.get("name"), str) or not s["name"].strip():
             raise _err(name, f"[{sec}] name", "missing; expected the column or variable name as a string")
+        if "optional" in s:
+            opt = s["optional"]
+            if not isinstance(opt, bool):
+                raise _err(name, f"[{sec}] optional = {opt!r}", "expected true or false (a TOML boolean, no quotes)")
+            if opt and required:
+                raise _err(name, f"[{sec}] optional = true", f"[{sec}] is required; expected no optional key (or false)")
         unit = s.get("unit")
         allowed = units if units is not None else _COMMAND_UNITS
         if unit not in allowed:
@@ -406,96 +434,22 @@ def _check_controller(name: str, ctl: Any, has_reference: bool) -> None:
 # --- the data ----------------------------------------------------------------------------------
 
 
-class _Source:
-    """The columns (CSV) or variables (.mat) of one data file."""
-
-    def __init__(self, path: str, fmt: str):
-        self.path, self.fmt = path, fmt
-        p = Path(path)
-        if not p.is_file():
-            raise LogFormatError(f"{path}: log file not found; expected a readable {fmt} file")
-        self.data: dict[str, np.ndarray] = self._read_mat(p) if fmt == "mat" else self._read_csv(p)
-
-    def _read_mat(self, p: Path) -> dict[str, np.ndarray]:
-        try:
-            raw = scipy.io.loadmat(str(p))
-        except NotImplementedError:
-            raise LogFormatError(f"{self.path}: MATLAB v7.3 (HDF5) file; expected a v5/v7 .mat file (save with "
-                                 "-v7)") from None
-        except (OSError, ValueError, TypeError) as exc:
-            raise LogFormatError(f"{self.path}: cannot be read as a MATLAB .mat file ({exc})") from None
-        out = {}
-        for k, v in raw.items():
-            if k.startswith("__") or not isinstance(v, np.ndarray) or v.dtype.kind not in "fiub":
-                continue
-            out[k] = np.asarray(v, dtype=float)
-        return out
-
-    def _read_csv(self, p: Path) -> dict[str, np.ndarray]:
-        try:
-            with p.open(newline="", encoding="utf-8-sig") as fh:
-                rows = [(i, r) for i, r in enumerate(csv.reader(fh), start=1)
-                        if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
-        except (OSError, UnicodeDecodeError, csv.Error) as exc:
-            raise LogFormatError(f"{self.path}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
-        if not rows:
-            raise LogFormatError(f"{self.path}: no header row; expected a CSV header naming the columns")
-        if len(rows) - 1 > MAX_SAMPLES:
-            raise LogFormatError(f"{self.path}: {len(rows) - 1} rows; expected at most {MAX_SAMPLES} (cut the log)")
-        header = [h.strip() for h in rows[0][1]]
-        data = np.empty((len(rows) - 1, len(header)))
-        for r, (line, row) in enumerate(rows[1:]):
-            if len(row) != len(header):
-                raise LogFormatError(f"{self.path}: line {line} has {len(row)} fields; expected {len(header)} like the header")
-            for c, cell in enumerate(row):
-                try:
-                    data[r, c] = float(cell)
-                except ValueError:
-                    raise LogFormatError(f"{self.path}: column {header[c]!r} line {line}: {cell.strip()!r} is not a "
-                                         "number; expected a finite number") from None
-        return {h: data[:, c] for c, h in enumerate(header)}
-
-    def names(self) -> str:
-        return ", ".join(self.data) or "nothing"
-
-    def signal(self, key: str, var: str, n: int | None) -> np.ndarray:
-        what = "column" if self.fmt == "csv" else "variable"
-        if var not in self.data:
-            raise LogFormatError(f"{self.path}: {key} names {what} {var!r}, not in the file; it has {self.names()}")
-        v = self.data[var]
-        if v.ndim == 2 and 1 in v.shape:
-            v = v.ravel()
-        if v.ndim != 1 or v.size < 2:
-            raise LogFormatError(f"{self.path}: {what} {var!r} ({key}) has shape {self.data[var].shape}; expected a "
-                                 "vector (one value per sample)")
-        if n is not None and v.size != n:
-            raise LogFormatError(f"{self.path}: {what} {var!r} ({key}) has {v.size} samples; expected {n} like the time")
-        bad = np.flatnonzero(~np.isfinite(v))
-        if bad.size:
-            raise LogFormatError(f"{self.path}: {what} {var!r} ({key}) sample {bad[0]}: {v[bad[0]]}; expected finite values")
-        return v.astype(float)
-
-    def scalar(self, key: str, value: Any, fmt_path: str) -> tuple[float, str]:
-        """A number given in the description, or the name of a scalar variable of the file."""
-        if isinstance(value, str):
-            if self.fmt != "mat":
-                raise LogFormatError(f"{fmt_path}: {key} = {value!r}: variable names work for .mat files only; "
-                                     "expected a number")
-            if value not in self.data:
-                raise LogFormatError(f"{self.path}: {key} names variable {value!r}, not in the file; it has {self.names()}")
-            v = self.data[value]
-            if v.size != 1:
-                raise LogFormatError(f"{self.path}: variable {value!r} ({key}) has shape {v.shape}; expected a scalar")
-            x, src = float(v.ravel()[0]), f"{Path(self.path).name}: {value}"
-        elif isinstance(value, (int, float)) and not isinstance(value, bool):
-            x, src = float(value), Path(fmt_path).name
-        else:
-            raise LogFormatError(f"{fmt_path}: {key} = {value!r}; expected a number or a variable name")
-        if not math.isfinite(x) or x <= 0:
-            raise LogFormatError(f"{self.path if isinstance(value, str) else fmt_path}: {key} = {x!r}"
-                                 f"{' (variable ' + repr(value) + ')' if isinstance(value, str) else ''}; expected a "
-                                 "finite number > 0")
-        return x, src
+def _wanted(doc: Mapping[str, Any]) -> dict[str, str]:
+    """The columns or variables a log description names, each with the key that names it (the
+    only ones read)."""
+    out: dict[str, str] = {}
+    for sec in (*_SIGNALS, *_ROTARY_SIGNALS):
+        s = doc.get(sec)
+        if isinstance(s, dict) and isinstance(s.get("name"), str):
+            out.setdefault(s["name"], f"[{sec}] name")
+    cmd = doc.get("command") or {}
+    if isinstance(cmd.get("gain"), str):
+        out.setdefault(cmd["gain"], "[command] gain")
+    for k in ("kp", "kv", "ki"):
+        v = (doc.get("controller") or {}).get(k)
+        if isinstance(v, str):
+            out.setdefault(v, f"[controller] {k}")
+    return out
 
 
 def load_axis_log(path: str | Path, fmt: LogFormat) -> AxisLog:
@@ -575,7 +529,7 @@ def _read(path: str | Path, fmt: LogFormat):
     name = str(path)
     doc = fmt.doc
     kind = doc.get("format") or ("mat" if name.lower().endswith(".mat") else "csv")
-    src = _Source(name, kind)
+    src = LogFile(name, kind, _wanted(doc))
     t_sec = doc["time"]
     t = src.signal("[time] name", t_sec["name"], None) * _TIME_UNITS[t_sec["unit"]]
     n = t.size

@@ -68,7 +68,7 @@ from .schema import KIND
 
 __all__ = ["Uncertain", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "uncertainty_model",
            "plant_uncertainty", "check_plant_uncertainty", "CORRELATION_KEY", "PSD_TOLERANCE",
-           "correlation_entry", "restrict_correlation", "correlation_toml", "carry_correlation"]
+           "correlation_entry", "restrict_correlation", "correlation_toml", "carry_correlation", "inner_truncation"]
 
 #: Reserved name of the correlation blocks in an ``[uncertainty]`` table (never a plant key).
 CORRELATION_KEY = "correlation"
@@ -552,7 +552,9 @@ def carry_correlation(entries: Mapping[str, Any], base: Mapping[str, Any],
     base : mapping
         The table it was made from (raw TOML form; its ``correlation`` a table or an array).
     block : mapping, optional
-        A new block (``{"keys", "matrix", "source"}``) over keys whose entries are new.
+        A new block (``{"keys", "matrix", "source"}``) over keys whose entries are new; it replaces
+        the base's blocks over its keys (a refit whose entries equal the base's still takes them
+        out of the base's blocks, so that no key is in two blocks).
     notes : list of str, optional
         Gets one line per base block that loses keys (naming them).
 
@@ -564,22 +566,77 @@ def carry_correlation(entries: Mapping[str, Any], base: Mapping[str, Any],
     """
     out = {k: v for k, v in entries.items() if k != CORRELATION_KEY}
     old = base.get(CORRELATION_KEY) or []
+    new_keys = set(block["keys"]) if block is not None else set()  # the new block replaces the base's over them
     blocks = []
     for b in old if isinstance(old, list) else [old]:
-        same = [k for k in b["keys"] if k in out and out[k] == base.get(k)]
+        same = [k for k in b["keys"] if k in out and out[k] == base.get(k) and k not in new_keys]
         kept = restrict_correlation(b, same)
         if kept is not None:
             blocks.append(kept)
         gone = [k for k in b["keys"] if k not in same]
         if notes is not None and gone:
-            notes.append(f"[uncertainty] correlation ({b['source']}): dropped for {', '.join(gone)} "
-                         f"({'their entries are' if len(gone) > 1 else 'its entry is'} no longer the base's)"
+            why = ("the new correlation block holds them" if all(k in new_keys for k in gone) else
+                   f"{'their entries are' if len(gone) > 1 else 'its entry is'} no longer the base's")
+            notes.append(f"[uncertainty] correlation ({b['source']}): dropped for {', '.join(gone)} ({why})"
                          + ("" if kept else "; nothing is left of the block"))
     if block is not None:
         blocks.append(dict(block))
     if blocks:
         out[CORRELATION_KEY] = blocks[0] if len(blocks) == 1 else blocks
     return out
+
+
+def inner_truncation(value: float, sigma: float, floor: float = -math.inf, ceil: float = math.inf, *,
+                     limit: float = 1.959963984540054, open_floor: bool = False, decimals: int = 6) -> float:
+    """The truncation (in standard deviations) of a normal ``[uncertainty]`` entry that keeps its
+    support inside ``[floor, ceil]``: ``limit`` when that fits, else the largest multiple of
+    ``10**-decimals`` below it that does, checked in the arithmetic the plant-file reader uses
+    (``value -/+ truncate * sigma``). Rounding a truncation to the nearest multiple instead can
+    cross the bound (a Coulomb interval reaching 0 written as a support from -3.3e-09 N: the file
+    is refused).
+
+    Parameters
+    ----------
+    value, sigma : float
+        Nominal value and standard deviation (file units; ``sigma > 0``).
+    floor, ceil : float
+        The physical range of the key (file units).
+    limit : float
+        The largest truncation wanted (default 1.96: the 95 % interval).
+    open_floor : bool
+        The support must stay strictly above ``floor`` (a ``positive`` key).
+    decimals : int
+        Decimals of a truncation below ``limit``.
+
+    Returns
+    -------
+    float
+        The truncation, >= 0 (0 when not even ``10**-decimals`` fits).
+
+    Examples
+    --------
+    >>> round(1.2345679 * (1 - 1e-9), 6)  # nearest: past the bound 1.2345679
+    1.234568
+    >>> inner_truncation(1.2345679, 1.0, floor=0.0)
+    1.234567
+    """
+    def inside(t: float) -> bool:
+        lo, hi = value - t * sigma, value + t * sigma
+        return (lo > floor if open_floor else lo >= floor) and hi <= ceil
+
+    if not (sigma > 0 and math.isfinite(value) and math.isfinite(sigma)):
+        raise ValueError(f"value = {value!r}, sigma = {sigma!r}; expected finite numbers, sigma > 0")
+    if inside(limit):
+        return float(limit)
+    q = 10 ** decimals
+    k = math.floor(min(limit, (value - floor) / sigma, (ceil - value) / sigma) * q) + 1  # the quotient is rounded
+    for _ in range(8):  # within a few ulps of the bound: a step or two at most
+        if k <= 0:
+            return 0.0
+        if k / q < limit and inside(k / q):
+            return k / q
+        k -= 1
+    return 0.0
 
 
 def correlation_toml(blocks: Sequence[Mapping[str, Any]]) -> str:

@@ -63,3 +63,13 @@ def test_emps_fit_json_carries_the_friction_map_warning(tmp_path, capsys):
     assert fmap["chi2_reduced"] == pytest.approx(_chi2(fmap), rel=1e-6) and fmap["chi2_reduced"] > 4  # 6.96
     assert fmap["warnings"] and fmap["warnings"][0] in rep["warnings"]
     assert f"warning: {fmap['warnings'][0]}" in capsys.readouterr().out
+
+
+def test_empty_or_mismatched_arrays_are_one_value_error(axis_plant):  # noqa: F811
+    """Was: a raw numpy error from deep inside the plateau search."""
+    t, pos, force = _record(0)
+    for args, expect in ((([], [], []), r"shapes \(0,\), \(0,\), \(0,\)"),
+                         ((t, pos[:-1], force), "expected one-dimensional arrays of one length"),
+                         ((t, pos, np.where(np.arange(t.size) == 7, np.nan, force)), r"force_n\[7\] = nan")):
+        with pytest.raises(ValueError, match=expect):
+            axis_friction_map("bad", *args, axis_plant)

@@ -157,3 +157,15 @@ def test_byte_order_mark_and_streamed_row_limit(tmp_path, monkeypatch):
     monkeypatch.setattr(fd, "MAX_SAMPLES", 100)
     with pytest.raises(fd.DataError, match=r"bom\.csv: more than 100 data rows \(line 102\); expected at most 100"):
         fd.load_record(p)
+
+
+def test_a_torque_constant_without_a_current_column_is_refused(tmp_path):
+    """Was: accepted silently (the constant ignored)."""
+    p = _write(tmp_path / "d.csv", _arrays())
+    with pytest.raises(DataError, match=r"d\.csv: a torque constant of 0\.05 N m/A \(--torque-constant\) was given, "
+                                        r"but the file has no current column 'current_a'"):
+        load_record(p, torque_constant_n_m_per_a=0.05)
+    cols = _arrays()
+    cols["current_a"] = cols.pop("torque_command_n_m") / 0.05
+    rec = load_record(_write(tmp_path / "i.csv", cols), torque_constant_n_m_per_a=0.05)
+    np.testing.assert_allclose(rec.torque_command_n_m, cols["current_a"] * 0.05)

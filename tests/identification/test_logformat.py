@@ -252,3 +252,216 @@ def test_a_mat_log_without_a_log_description_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--log-format" in err[0] and "record.mat" in err[0]
     assert not out.exists()
+
+
+# --- memory bounds, what a variable is, description keys (issue 31) ------------------------------
+
+def _mat_vars(files, **extra):
+    d, mat, fmt, (t, qm, qg, vir) = files
+    return {"t": t[:, None], "qm": qm[:, None], "qg": qg[:, None], "vir": vir[:, None], "gtau": GAIN, "kp": KP,
+            "kv": KV, **extra}
+
+
+def _peak_bytes(fn):
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        fn()
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+@pytest.mark.parametrize("first", [True, False])
+def test_a_mat_log_reads_only_the_named_variables(files, first):
+    """An unused compressed 4000 x 4000 uint8 variable (16 MB, 128 MB as float) is never loaded,
+    before or after the named ones (was: every variable loaded and up-cast: 145 MB peak here, 3.6 GB
+    for a 20000 x 20000 one in a 0.98 MB file)."""
+    d, mat, fmt, _ = files
+    junk = {"junk": np.zeros((4000, 4000), np.uint8)}
+    named = _mat_vars(files)
+    scipy.io.savemat(mat, {**junk, **named} if first else {**named, **junk}, do_compression=True)
+    del junk
+    assert mat.stat().st_size < 1_000_000
+    got = {}
+    peak = _peak_bytes(lambda: got.setdefault("log", load_axis_log(mat, load_log_format(fmt))))
+    assert got["log"].n == 400
+    assert peak < 4_000_000, peak  # not even the 16 MB of the unused variable's own bytes
+
+
+@pytest.mark.parametrize("compressed", [True, False])
+def test_a_named_variable_above_the_sample_bound_is_refused_before_it_is_read(files, compressed):
+    d, mat, fmt, _ = files
+    scipy.io.savemat(mat, _mat_vars(files, vir=np.zeros((2001, 1000))), do_compression=compressed)  # 16 MB
+    with pytest.raises(LogFormatError) as info:
+        load_axis_log(mat, load_log_format(fmt))
+    assert "variable 'vir' ([command] name) has shape 2001x1000 (2001000 values); expected at most 2000000" in str(info.value)
+    peak = _peak_bytes(lambda: pytest.raises(LogFormatError, load_axis_log, mat, load_log_format(fmt)))
+    assert peak < 2_000_000, peak  # its 16 MB never read
+
+
+@pytest.mark.parametrize("value,what", [
+    ({"a": 1.0}, "holds a MATLAB struct"),
+    (np.array([np.zeros(3), np.ones(2)], dtype=object), "holds a MATLAB cell array"),
+    ("fast", "holds text (a MATLAB char array)"),
+    ("complex", "holds complex numbers (class double)"),
+])
+def test_a_named_variable_that_is_not_real_numbers_says_what_it_is(files, capsys, value, what):
+    """Was: "names variable 'qm', not in the file; it has gtau, kp, ..." for a struct, cell or complex."""
+    d, mat, fmt, (t, qm, qg, vir) = files
+    scipy.io.savemat(mat, _mat_vars(files, qm=qm[:, None] * (1 + 1j) if isinstance(value, str) and value == "complex"
+                                    else value))
+    code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "fitted.toml")])
+    assert code == 2 and err.count("\n") == 1
+    assert f"{mat}: variable 'qm' ([position] name) {what}; expected a real numeric vector" in err
+    assert not (d / "fitted.toml").exists()
+
+
+def test_an_empty_or_cut_mat_file_is_bad_input(files, capsys):
+    """Was: an empty .mat "failed (MatReadError)", exit 3 with no file or key named."""
+    d, mat, fmt, _ = files
+    whole = mat.read_bytes()
+    for data, expect in ((b"", "(an empty file)"), (whole[:100], "cannot be read as a MATLAB .mat file"),
+                         (whole[:len(whole) // 2], "runs past the end of the file")):
+        mat.write_bytes(data)
+        code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "fitted.toml")])
+        assert code == 2 and err.count("\n") == 1, err
+        assert err.startswith(f"prsa-fit: error: {mat}: cannot be read as a MATLAB .mat file") and expect in err
+
+
+def test_a_v4_and_an_uncompressed_mat_file_still_load(files):
+    d, mat, fmt, (t, qm, qg, vir) = files
+    for kw in ({"format": "4"}, {"do_compression": False}):
+        scipy.io.savemat(mat, _mat_vars(files, junk=np.zeros((300, 300))), **kw)
+        log = load_axis_log(mat, load_log_format(fmt))
+        np.testing.assert_array_equal(log.position_m, qm)
+        assert log.gain_n_per_unit == GAIN and log.controller.kv == KV
+
+
+def _csv_files(files, extra_header="", extra_cells=""):
+    d, mat, fmt, (t, qm, qg, vir) = files
+    csv = d / "log.csv"
+    rows = [f"t,qm,qg,vir{extra_header}"] + [f"{a:.17g},{b:.17g},{c:.17g},{e:.17g}{extra_cells}" for a, b, c, e in zip(t, qm, qg, vir)]
+    csv.write_text("\n".join(rows) + "\n")
+    (d / "csv.toml").write_text(GOOD.replace('format = "mat"', 'format = "csv"').replace('"gtau"', "35.0")
+                                .replace('"kp"', "160.0").replace('"kv"', "240.0"))
+    return csv, d / "csv.toml"
+
+
+def test_the_described_csv_reader_keeps_only_the_named_columns(files):
+    """Unused columns are not parsed (text allowed there); a duplicate unused name is no error."""
+    csv, fmt = _csv_files(files, ",note,note", ",ok,also text")
+    log = load_axis_log(csv, load_log_format(fmt))
+    np.testing.assert_array_equal(log.position_m, files[3][1])
+
+
+def test_a_duplicate_named_csv_column_is_refused(files, capsys):
+    """Was: the last of two 'qm' columns used, silently."""
+    csv, fmt = _csv_files(files, ",qm", ",0")
+    code, _, err = _run(capsys, [str(csv), "--log-format", str(fmt), "--out", str(csv.parent / "fitted.toml")])
+    assert code == 2 and err.count("\n") == 1
+    assert f"{csv}: column 'qm' ([position] name) appears twice in the header (columns 2 and 5, line 1)" in err
+
+
+def test_the_described_csv_reader_is_streamed_and_refused_at_the_row_limit(tmp_path, monkeypatch):
+    """Rows past the limit are never held (was: the whole file read into lists, then refused: 695 MB
+    for 3 M rows): here 200 000 rows of 6 columns against a limit of 1000."""
+    import prsa_ctrl.identification.logfile as lfile
+    import prsa_ctrl.identification.logformat as lf
+
+    monkeypatch.setattr(lfile, "MAX_SAMPLES", 1000)
+    n = 200_000
+    t = np.arange(n) * 1e-3
+    p = tmp_path / "long.csv"
+    with p.open("w") as fh:
+        fh.write("time_s,position_m,force_n,a,b,c\n")
+        for k in range(0, n, 10_000):
+            block = t[k:k + 10_000]
+            fh.write("".join(f"{x:.17g},{x * 0.5:.17g},{1.0 + x:.17g},1,2,3\n" for x in block))
+    with pytest.raises(LogFormatError, match=r"long\.csv: more than 1000 data rows \(line 1002\); expected at most 1000"):
+        lf.load_axis_log(p, lf.DEFAULT_CSV_FORMAT)
+    peak = _peak_bytes(lambda: pytest.raises(LogFormatError, lf.load_axis_log, p, lf.DEFAULT_CSV_FORMAT))
+    assert peak < 1_000_000, peak  # the file's 200 000 rows would take tens of MB as lists
+
+
+def test_a_log_file_above_the_record_paths_byte_limit_is_refused_before_reading(files, monkeypatch):
+    import prsa_ctrl.identification.logfile as lfile
+
+    d, mat, fmt, _ = files
+    monkeypatch.setattr(lfile, "MAX_FILE_BYTES", 1000)
+    with pytest.raises(LogFormatError, match=rf"{mat.stat().st_size} bytes; expected at most 1000 bytes"):
+        load_axis_log(mat, load_log_format(fmt))
+
+
+@pytest.mark.parametrize("old,new,expect", [
+    ('[time]\nname = "t"', '[time]\noptional = true\nname = "t"', "[time] optional = true: [time] is required"),
+    ('optional = true', 'optional = "no"', "[test_signal] optional = 'no': expected true or false"),
+    ('optional = true', 'optional = 1', "[test_signal] optional = 1: expected true or false"),
+])
+def test_optional_is_a_boolean_of_an_optional_section(files, capsys, old, new, expect):
+    """Was: optional = true on [time] "failed (TypeError)" (exit 3); optional = "no" read as true."""
+    d, mat, fmt, _ = files
+    fmt.write_text(GOOD.replace(old, new))
+    code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "fitted.toml")])
+    assert code == 2 and err.count("\n") == 1
+    assert f"{fmt}: {expect}" in err
+
+
+def test_optional_false_and_a_byte_order_mark_are_accepted(files):
+    """A description saved with a UTF-8 BOM loads, as plant, scene and data files do (was refused)."""
+    d, mat, fmt, _ = files
+    fmt.write_bytes(b"\xef\xbb\xbf" + GOOD.replace('name = "t"', 'name = "t"\noptional = false').encode())
+    log = load_axis_log(mat, load_log_format(fmt))
+    assert log.n == 400
+
+
+def test_axis_log_checks_its_arrays():
+    """Was: a raw IndexError (or a silent misfit) for arrays of different lengths."""
+    from prsa_ctrl.identification.logformat import AxisLog
+
+    t = np.arange(100) * 1e-3
+    AxisLog("ok", t, np.zeros(100), np.zeros(100), "V", 1.0, 1e-3)
+    for kwargs, expect in (({"position_m": np.zeros(99)}, r"position_m has shape \(99,\); expected \(100,\) like time_s"),
+                           ({"reference_m": np.zeros(3)}, r"reference_m has shape \(3,\); expected \(100,\)"),
+                           ({"command": np.full(100, np.nan)}, r"command\[0\] = nan; expected finite values"),
+                           ({"time_s": np.zeros(0), "position_m": np.zeros(0), "command": np.zeros(0)}, "at least 2"),
+                           ({"gain_n_per_unit": 0.0}, r"gain_n_per_unit = 0.0; expected a finite number > 0"),
+                           ({"sample_time_s": float("inf")}, r"sample_time_s = inf")):
+        args = {"name": "bad", "time_s": t, "position_m": np.zeros(100), "command": np.zeros(100), "command_unit": "V",
+                "gain_n_per_unit": 1.0, "sample_time_s": 1e-3, **kwargs}
+        with pytest.raises(ValueError, match=expect):
+            AxisLog(**args)
+
+
+def test_a_holdout_that_leaves_too_few_samples_names_the_flag_and_the_log(files, capsys):
+    """Was: "window 360:400 of 400 samples; expected at least 50 samples inside" (no flag, no log)."""
+    d, mat, fmt, _ = files
+    code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--holdout", "0.1", "--out", str(d / "f.toml")])
+    assert code == 2 and err.count("\n") == 1
+    assert (f"--holdout 0.1: {mat} has 400 samples, which leaves 40 held out and 360 to fit; expected a fraction that "
+            "leaves at least 50 samples in each part") in err
+    assert not (d / "f.toml").exists()
+
+
+def test_a_rotary_description_with_a_byte_order_mark_is_fitted_in_motor_coordinates(tmp_path):
+    """The mode choice reads the description as load_log_format does (a BOM made it the linear path)."""
+    from prsa_ctrl.cli.axis import motor_log_mode
+
+    fmt = tmp_path / "rotary.toml"
+    fmt.write_bytes(b"\xef\xbb\xbf" + b'axis = "rotary"\n[time]\nname = "t"\nunit = "s"\n')
+    assert motor_log_mode(["log.csv", "--log-format", str(fmt), "--out", "o.toml"])
+
+
+@pytest.mark.parametrize("fmt_kw", [{}, {"format": "4"}])
+def test_a_missing_variable_lists_the_first_50_names_of_a_large_file(files, fmt_kw):
+    d, mat, fmt, _ = files
+    many = {f"v{i}": np.zeros(1) for i in range(80)}
+    named = _mat_vars(files)
+    del named["qm"]
+    scipy.io.savemat(mat, {**many, **named}, **fmt_kw)
+    with pytest.raises(LogFormatError) as info:
+        load_axis_log(mat, load_log_format(fmt))
+    msg = str(info.value)
+    assert "names variable 'qm', not in the file; it has v0, v1," in msg and msg.endswith("v49, ... (86 in all)")

@@ -315,3 +315,47 @@ def test_any_valid_correlation_is_accepted_and_sampled_inside_the_supports(seed,
         assert a == b
         for k, x in a.items():
             assert math.isfinite(x) and ents[k].low <= x <= ents[k].high
+
+
+def test_carry_correlation_a_refit_block_replaces_the_base_block_over_its_keys():
+    """A refit whose entries equal the base's (the same data refitted from its own fitted plant):
+    the fit's block replaces the base's over those keys (was: both kept, the key in two blocks
+    and the written file refused)."""
+    base = _correlated([[1.0, 0.3, -0.6], [0.3, 1.0, 0.2], [-0.6, 0.2, 1.0]], [J, ETA, K])
+    new = {k: v for k, v in base.items() if k != CORRELATION_KEY}  # every entry the base's own
+    fit_block = {"keys": [J, ETA], "matrix": [[1.0, 0.25], [0.25, 1.0]], "source": "fit: x"}
+    notes: list[str] = []
+    out = carry_correlation(new, base, fit_block, notes)
+    assert out[CORRELATION_KEY] == fit_block  # K alone is no block: nothing else is left
+    assert notes == ["[uncertainty] correlation (estimate: t): dropped for nut.inertia_kg_m2, friction.efficiency "
+                     "(the new correlation block holds them); nothing is left of the block"]
+    parse_entries(out, "refit.toml")  # each key in one block: the file reader accepts it
+
+
+@given(value=st.floats(1e-9, 1e6), ratio=st.floats(1e-3, 3.0), decimals=st.integers(0, 8))
+@settings(max_examples=300, deadline=None)
+def test_inner_truncation_never_crosses_the_bound(value, ratio, decimals):
+    from prsa_ctrl.plant.uncertainty import inner_truncation
+
+    sigma = value / ratio  # the bound 0 is `ratio` standard deviations below the value
+    t = inner_truncation(value, sigma, 0.0, decimals=decimals)
+    assert 0.0 <= t <= 1.959963984540054
+    assert value - t * sigma >= 0.0
+    if t < 1.959963984540054:
+        assert t * 10**decimals == pytest.approx(round(t * 10**decimals), abs=1e-6)  # a multiple of 10^-decimals
+        assert value - (t + 2 * 10.0**-decimals) * sigma < 0.0  # and the largest one (within a step)
+    t_open = inner_truncation(value, sigma, 0.0, open_floor=True, decimals=decimals)
+    assert t_open == 0.0 or value - t_open * sigma > 0.0
+
+
+def test_inner_truncation_rounds_inward_where_rounding_to_nearest_crossed():
+    from prsa_ctrl.plant.uncertainty import inner_truncation
+
+    value, sigma = 1.2345679, 1.0
+    assert value - round(value / sigma * (1 - 1e-9), 6) * sigma < 0  # the old rule: past the bound
+    t = inner_truncation(value, sigma, 0.0)
+    assert t == 1.234567 and value - t * sigma >= 0
+    assert inner_truncation(0.9, 0.1, 0.0, 1.0) == 1.0  # the upper bound of a fraction too
+    assert inner_truncation(5.0, 1.0, 0.0) == 1.959963984540054  # the 95 % limit when it fits
+    with pytest.raises(ValueError, match="sigma > 0"):
+        inner_truncation(1.0, 0.0, 0.0)
