@@ -13,7 +13,6 @@ names carry their units; inside the library everything is SI.
 from __future__ import annotations
 
 import math
-import tomllib
 import warnings
 from dataclasses import dataclass, field
 from importlib import resources
@@ -25,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
+from ..tomlfile import read_toml
 from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, VISCOUS_OFFSET_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
                      MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, NON_NEGATIVE_INTEGER, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
                      SCREW_DRIVEN, UNITS, keys_of)
@@ -983,9 +983,8 @@ def load_plant(name_or_path: str | Path | None = None) -> Plant:
                                            or "/" in str(name_or_path) or "\\" in str(name_or_path))
     origin = f"{src.name} (built-in)" if builtin else str(src)
     try:
-        doc = tomllib.loads(src.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
+        text = src.read_text(encoding="utf-8-sig")  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise PlantFileError(f"{origin}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise PlantFileError(f"{origin}: invalid TOML ({exc})") from None
+    doc = read_toml(text, origin, PlantFileError)
     return Plant.from_dict(doc, origin=origin)

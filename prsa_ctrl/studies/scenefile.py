@@ -9,11 +9,11 @@ section is a move scene (:func:`is_move_scene`).
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from ..errors import SceneError
+from ..tomlfile import read_toml
 from ..plant.plantfile import builtin_root
 
 __all__ = ["DEFAULT_SCENE", "SETPOINT_MAX_RPM", "STICTION_MARGIN", "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES",
@@ -100,11 +100,10 @@ def read_scene_doc(reader: Any, origin: str) -> dict:
         Unreadable file or invalid TOML, naming ``origin``.
     """
     try:
-        return tomllib.loads(reader.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
+        text = reader.read_text(encoding="utf-8-sig")  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"{origin}: invalid TOML ({exc})") from None
+    return read_toml(text, origin, SceneError)
 
 
 def is_move_scene(name_or_path: str | Path | None) -> bool:
