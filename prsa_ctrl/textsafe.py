@@ -23,7 +23,7 @@ __all__ = ["printable", "quote", "MESSAGE_CHARS_MAX", "QUOTE_CHARS_MAX"]
 #: Characters at most in one line a command prints (errors, notes); longer lines lose their middle.
 MESSAGE_CHARS_MAX = 2000
 #: Characters at most of one quoted value (:func:`quote`).
-QUOTE_CHARS_MAX = 120
+QUOTE_CHARS_MAX = 200
 
 # C0 controls but TAB and LF, DEL and the C1 controls (Unicode category Cc), the bidirectional
 # marks and overrides, the line/paragraph separators and lone surrogates (undecodable file names).

@@ -44,7 +44,7 @@ from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
 from .axis import MOTOR_COORDINATES
-from .common import Run, Parser, UsageError, flag_value, invoke, number, progress
+from .common import Run, Parser, UsageError, echo, flag_value, invoke, number, progress
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
@@ -346,7 +346,7 @@ def _design(args, argv: Sequence[str]) -> int:
              "time_s,setpoint_rad_s"]
     lines += [f"{a:.9g},{b:.9g}" for a, b in zip(t, np.asarray(v))]
     _write_outputs({args.out: ("--out", "\n".join(lines) + "\n")}, [])
-    print(f"wrote {args.out}: {args.design}, {len(t)} samples, {args.duration:g} s")
+    echo(f"wrote {args.out}: {args.design}, {len(t)} samples, {args.duration:g} s")
     return 0
 
 
@@ -375,8 +375,8 @@ def _body(run: Run, argv: list[str]) -> int:
             raise
     mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
     if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
-        print(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
-              "--log-format FILE.toml (an example: examples/emps/log.toml)", file=sys.stderr)
+        echo(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
+             "--log-format FILE.toml (an example: examples/emps/log.toml)", file=sys.stderr)
         return 2
     verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
     created: list = []  # files and directories this run made, taken back when it is interrupted
@@ -395,7 +395,7 @@ def _body(run: Run, argv: list[str]) -> int:
         if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose):
             continue
         seen.add(text)
-        print(f"prsa-fit: note: {text}", file=sys.stderr)
+        echo(f"prsa-fit: note: {text}", file=sys.stderr)
     return code
 
 
@@ -558,11 +558,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
                 for f in args.frf]
     except (UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
-        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        echo(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # e.g. an input path that is a symlink loop
-        print(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
-              "expected readable files", file=sys.stderr)
+        echo(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
+             "expected readable files", file=sys.stderr)
         return 2
     from ..errors import FitError
     from ..identification.timedomain import fit_plant
@@ -578,11 +578,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                            check_interrupt=run.check)
     except FitError as exc:
         run.check()  # a fit that failed after Ctrl-C was interrupted
-        print(f"prsa-fit: {exc}", file=sys.stderr)
+        echo(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
     except ValueError as exc:
         run.check()
-        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        echo(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     finally:
         run.record = False
@@ -622,8 +622,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         _write_outputs(files, inputs, created)
     except (OutputError, OSError) as exc:  # all or nothing: the figures of this run are taken back
         _take_back(created)
-        print(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
-              file=sys.stderr)
+        echo(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
+             file=sys.stderr)
         return 2
     from ..identification.common import unit_text
 
@@ -633,34 +633,34 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         line = f"{k} = {v['value']:.6g}{u} (95 % CI {lo:.6g}..{hi:.6g})"
         if v.get("kept_base"):
             line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
-        print(line)
+        echo(line)
     if result.delay is not None:
-        print(f"  ({result.delay['plant_file']})")
+        echo(f"  ({result.delay['plant_file']})")
     fmap = result.solver.get("friction_map")
     if fmap is not None:
-        print(f"friction map: {len(fmap['plateaus'])} steady-speed plateau(s), {fmap.get('in_stribeck_region', 0)} below "
-              f"{fmap['criteria']['stribeck_region_speeds']:g} Stribeck speeds; Stribeck intervals "
-              f"{fmap.get('intervals', 'not computed (too few plateaus)')}")
+        echo(f"friction map: {len(fmap['plateaus'])} steady-speed plateau(s), {fmap.get('in_stribeck_region', 0)} below "
+             f"{fmap['criteria']['stribeck_region_speeds']:g} Stribeck speeds; Stribeck intervals "
+             f"{fmap.get('intervals', 'not computed (too few plateaus)')}")
     cd = result.solver.get("command_delay")
     if cd is not None:
-        print(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as {cd['command_logged']}) "
-              f"to its action, drive.command_delay_samples = {cd['drive_command_delay_samples']} ({cd['how']}"
-              + ("" if "search" not in cd else
+        echo(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as {cd['command_logged']}) "
+             f"to its action, drive.command_delay_samples = {cd['drive_command_delay_samples']} ({cd['how']}"
+             + ("" if "search" not in cd else
                  "; objective per delay " + ", ".join(f"{k}: {v:.6g}" if v is not None else f"{k}: failed"
                                                      for k, v in cd["search"]["objective"].items())) + ")")
     j = result.reflected_inertia_kg_m2
-    print(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
+    echo(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
     for f, pct in result.fit_percent.items():
-        print(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
-              f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
+        echo(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
+             f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
     for w in result.warnings:
-        print(f"warning: {w}")
-    print(f"coordinates: {MOTOR_COORDINATES}")
+        echo(f"warning: {w}")
+    echo(f"coordinates: {MOTOR_COORDINATES}")
     for f, how in coordinates.items():
-        print(f"  {f}: logged in {how}")
-    print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
+        echo(f"  {f}: logged in {how}")
+    echo(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
     if args.plots is not None:
-        print("plots: " + ", ".join(plot_paths))
+        echo("plots: " + ", ".join(plot_paths))
     return 0
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from ..textsafe import quote
 from ..errors import SceneError
 from ..tomlfile import read_toml
 from ..plant.plantfile import builtin_root
@@ -82,12 +83,12 @@ def locate_scene(name_or_path: str | Path | None = None) -> tuple[Any, str, Any]
     if _is_path(name_or_path if name_or_path is not None else text):
         path = Path(text).expanduser()
         if not path.is_file():
-            raise SceneError(f"scene file {text!r} not found; expected a readable .toml file")
+            raise SceneError(f"scene file {quote(text)} not found; expected a readable .toml file")
         return path, str(path), path.parent
     root = scene_root()
     reader = root / f"{text}.toml"
     if not reader.is_file():
-        raise SceneError(f"unknown scene {text!r}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
+        raise SceneError(f"unknown scene {quote(text)}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
     return reader, f"{text}.toml (built-in)", root
 
 
