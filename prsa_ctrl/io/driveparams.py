@@ -48,7 +48,7 @@ if TYPE_CHECKING:
     from .measurement import PositionLoop
     from ..plant.plantfile import Plant
 
-__all__ = ["MotorData", "BACK_EMF_UNITS", "BACK_EMF_KEYS", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
+__all__ = ["MotorData", "MOTOR_PLAUSIBLE", "MOTOR_TORQUE_CONSISTENCY", "BACK_EMF_UNITS", "BACK_EMF_KEYS", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
            "builtin_templates", "load_template", "fill_template", "read_parameter_set",
            "controller_from_parameter_set", "dumps_parameter_set"]
 

@@ -17,13 +17,13 @@ import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any, Mapping
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
+from ..results import FrozenDict, freeze
 from ..textsafe import printable, quote
 from ..tomlfile import read_toml
 from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, VISCOUS_OFFSET_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
@@ -416,8 +416,9 @@ class Plant:
             object.__setattr__(self, "defaulted", frozenset(self.defaulted) | {BREAKAWAY_KEY})
             if isinstance(values["friction.no_load_torque_n_m"], (int, float)):
                 values[BREAKAWAY_KEY] = values["friction.no_load_torque_n_m"]
-        object.__setattr__(self, "values", MappingProxyType(values))
-        object.__setattr__(self, "sources", MappingProxyType(dict(self.sources)))
+        object.__setattr__(self, "values", FrozenDict(values))  # read-only, and pickles (process pools)
+        object.__setattr__(self, "sources", FrozenDict(self.sources))
+        object.__setattr__(self, "uncertainty", freeze(self.uncertainty))
         object.__setattr__(self, "defaulted", frozenset(self.defaulted))
         if self.mechanism is None:
             inferred = ("linear-axis" if "axis.mass_kg" in self.values
