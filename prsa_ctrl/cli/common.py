@@ -468,7 +468,7 @@ def show_notes(run: Run, notes: list[warnings.WarningMessage], native: list[str]
                 echo(f"{run.prog}: solver: {line}", file=sys.stderr)
         else:
             echo(f"{run.prog}: note: the numerical solvers printed {len(native)} diagnostic lines "
-                  "(shown with --verbose)", file=sys.stderr)
+                 "(shown with --verbose)", file=sys.stderr)
 
 
 def progress(run: Run, verbose: bool, text: str) -> None:
