@@ -94,7 +94,8 @@ def parse_plant_text(text: str, *, max_length: int, delay_hint: str = "a delay i
         raise PlantTextError(f"the plant is zero; {EXPECTED}")
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):  # checked just below, no warning
         num, den = num / den[0], den / den[0]
-    if not (np.all(np.isfinite(num)) and np.all(np.isfinite(den))):  # 1e300/(1e-300s+1): 1e600 after scaling
+    # 1e300/(1e-300s+1) is 1e600 after the scaling, 1e-300/(1e300s+1) 1e-600 (zero)
+    if not (np.all(np.isfinite(num)) and np.all(np.isfinite(den)) and np.any(num)):
         raise PlantTextError(f"coefficients beyond double precision once the denominator is made monic; {EXPECTED}")
     return num, den
 
