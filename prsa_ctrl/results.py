@@ -13,11 +13,13 @@ never stored beside it.
 
 from __future__ import annotations
 
+import copy
 import math
 import re
-from typing import Any
+from typing import Any, Mapping
 
-__all__ = ["STATUSES", "status_head", "is_converged", "is_ok", "check_status", "json_safe"]
+__all__ = ["STATUSES", "status_head", "is_converged", "is_ok", "check_status", "json_safe", "FrozenDict", "FrozenList",
+           "freeze"]
 
 #: Status heads and what each means. A result's ``status`` starts with exactly one of them.
 STATUSES: dict[str, str] = {
@@ -94,3 +96,86 @@ def json_safe(obj: Any) -> Any:
         return json_safe(obj.item())
     return obj
 
+
+
+# --- read-only containers of frozen results ---------------------------------------------------------
+
+def _read_only(self, *args: Any, **kwargs: Any) -> Any:
+    raise TypeError(f"{type(self).__name__} is read-only (part of a frozen result); copy it first "
+                    "(dict(x) / list(x)) to change it")
+
+
+class FrozenDict(dict):
+    """A ``dict`` that cannot be changed: the mappings of frozen results (``Plant.uncertainty``,
+    ``TuningResult.stats``, ``SimRun.info``). It is a ``dict`` for everything that reads one
+    (``json``, ``==``, ``isinstance``, ``dataclasses.asdict``); it pickles (plain
+    :mod:`pickle` too, unlike :class:`types.MappingProxyType`) and copies as itself.
+
+    Examples
+    --------
+    >>> d = freeze({"a": [1, 2], "b": {"c": 3}})
+    >>> d == {"a": [1, 2], "b": {"c": 3}}, type(d["a"]).__name__, type(d["b"]).__name__
+    (True, 'FrozenList', 'FrozenDict')
+    >>> d["a"].append(3)
+    Traceback (most recent call last):
+    ...
+    TypeError: FrozenList is read-only (part of a frozen result); copy it first (dict(x) / list(x)) to change it
+    """
+
+    __slots__ = ()
+    __setitem__ = __delitem__ = clear = pop = popitem = setdefault = update = __ior__ = _read_only
+
+    def __reduce__(self):
+        return freeze, (dict(self),)
+
+    def __copy__(self) -> "FrozenDict":
+        return self
+
+    def __deepcopy__(self, memo: dict) -> "FrozenDict":
+        return freeze(copy.deepcopy(dict(self), memo))
+
+
+class FrozenList(list):
+    """A ``list`` that cannot be changed (``==`` a list of the same items; pickles and copies as
+    itself); the lists of frozen results (``TuningResult.per_loop``, ``margins``)."""
+
+    __slots__ = ()
+    __setitem__ = __delitem__ = __iadd__ = __imul__ = append = extend = insert = pop = remove = clear = \
+        sort = reverse = _read_only
+
+    def __reduce__(self):
+        return freeze, (list(self),)
+
+    def __copy__(self) -> "FrozenList":
+        return self
+
+    def __deepcopy__(self, memo: dict) -> "FrozenList":
+        return freeze(copy.deepcopy(list(self), memo))
+
+
+def freeze(obj: Any) -> Any:
+    """``obj`` made read-only, deeply: mappings become :class:`FrozenDict`, lists
+    :class:`FrozenList`, tuples keep their type with frozen items, numpy arrays read-only
+    views (``flags.writeable = False``; the caller's array is left writeable); anything else
+    as it is (frozen dataclasses, numbers, strings).
+
+    >>> import numpy as np
+    >>> a = freeze(np.zeros(2))
+    >>> a.flags.writeable
+    False
+    """
+    if isinstance(obj, (FrozenDict, FrozenList)):
+        return obj
+    if isinstance(obj, Mapping):
+        return FrozenDict({k: freeze(v) for k, v in obj.items()})
+    if isinstance(obj, list):
+        return FrozenList(freeze(v) for v in obj)
+    if type(obj) is tuple:
+        return tuple(freeze(v) for v in obj)
+    if type(obj).__module__ == "numpy" and hasattr(obj, "flags") and getattr(obj, "ndim", 0) > 0:
+        if not obj.flags.writeable:
+            return obj
+        view = obj.view()
+        view.flags.writeable = False
+        return view
+    return obj

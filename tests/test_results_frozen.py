@@ -193,3 +193,95 @@ def test_report_figures_only_draw(small, monkeypatch):
     assert set(figs) == {"plant_bode", "loop_bode", "sensitivity", "landscape", "load_step", "baselines"}
     for f in figs.values():
         plt.close(f)
+
+
+# --- issue 31: frozen all the way down (read-only mappings, lists and arrays that still pickle) -----
+
+def _mutations(obj):
+    """Every way of changing a container in place, each expected to raise TypeError/ValueError."""
+    if isinstance(obj, np.ndarray):
+        def write():
+            obj[...] = 0
+        return [write]
+    if isinstance(obj, dict):
+        k = next(iter(obj), "k")
+        return [lambda: obj.__setitem__("new", 1), lambda: obj.pop(k), lambda: obj.update(x=1), obj.clear,
+                lambda: obj.setdefault("new", 1), lambda: obj.__delitem__(k), obj.popitem]
+    if isinstance(obj, list):
+        return [lambda: obj.append(1), lambda: obj.__setitem__(0, 1), lambda: obj.extend([1]), obj.clear,
+                lambda: obj.insert(0, 1), obj.pop, obj.sort, obj.reverse]
+    raise AssertionError(f"not a container: {type(obj)}")
+
+
+def _assert_read_only(obj, what):
+    before = repr(obj)
+    for change in _mutations(obj):
+        with pytest.raises((TypeError, ValueError)):
+            change()
+    assert repr(obj) == before, what
+
+
+def _tuning_result(small):
+    from prsa_ctrl.tuning.generic import tune_loops
+
+    plant, scene, loops, _ = small
+    return tune_loops(loops[:1], ms_max=1.4, controller="pi")
+
+
+def test_plant_uncertainty_values_and_sources_are_read_only_and_pickle(paper_plant):
+    import pickle
+
+    p = paper_plant
+    assert isinstance(p.uncertainty, dict) and p.uncertainty  # still a dict to everything that reads it
+    for what, m in (("uncertainty", p.uncertainty), ("values", p.values), ("sources", p.sources),
+                    ("an uncertainty entry", next(iter(p.uncertainty.values())))):
+        _assert_read_only(m, what)
+    q = pickle.loads(pickle.dumps(p))  # plain pickle: a process pool with spawn (was: cannot pickle mappingproxy)
+    assert q.uncertainty == p.uncertainty and q.values == p.values and q.sources == p.sources
+    _assert_read_only(q.uncertainty, "unpickled uncertainty")
+    assert p.with_params({"nut.inertia_kg_m2": 3e-4}).uncertainty == p.uncertainty
+    mutable = dict(p.uncertainty)  # a copy is the user's to change
+    mutable["x"] = 1
+    assert "x" not in p.uncertainty
+
+
+def test_simrun_arrays_and_info_are_read_only_also_after_pickling(paper_plant):
+    import pickle
+
+    from prsa_ctrl.sim.engine import run
+
+    r = run(paper_plant, duration=0.01, controller=PID(0.085, 14.7), fidelity="rigid", energy=True)
+    for what in ("time", "outputs", "states", "inputs"):
+        a = getattr(r, what)
+        assert isinstance(a, np.ndarray) and not a.flags.writeable, what
+        _assert_read_only(a, what)
+    assert not r.output("nut_speed").flags.writeable  # a row of a read-only array is read-only
+    _assert_read_only(r.info, "info")
+    _assert_read_only(r.energy, "energy")
+    assert all(not v.flags.writeable for v in r.energy.values() if isinstance(v, np.ndarray))
+    s = pickle.loads(pickle.dumps(r))
+    assert all(not getattr(s, n).flags.writeable for n in ("time", "outputs", "states", "inputs"))
+    assert np.array_equal(s.outputs, r.outputs) and s.info == r.info
+    _assert_read_only(s.info, "unpickled info")
+    assert s.to_response() is not None
+
+
+def test_tuning_result_containers_are_read_only_and_pickle(small):
+    import copy
+    import json
+    import pickle
+
+    res = _tuning_result(small)
+    assert res.per_loop == list(res.per_loop) and len(res.margins) == 1  # equal to plain lists
+    for what in ("per_loop", "margins", "stats"):
+        _assert_read_only(getattr(res, what), what)
+    nested = [v for v in res.stats.values() if isinstance(v, (dict, list))]
+    assert nested  # e.g. first_order
+    for v in nested:
+        _assert_read_only(v, "a nested stats entry")
+    json.dumps(res.as_dict(), allow_nan=False)
+    for twin in (pickle.loads(pickle.dumps(res)), copy.deepcopy(res)):
+        assert twin.pid == res.pid and twin.per_loop == res.per_loop and twin.stats == res.stats
+        _assert_read_only(twin.stats, "copied stats")
+        _assert_read_only(twin.per_loop, "copied per_loop")
+    assert dataclasses.asdict(res)["per_loop"] == list(res.per_loop)

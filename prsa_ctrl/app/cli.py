@@ -10,6 +10,8 @@ import argparse
 import sys
 from typing import Sequence
 
+from ..textsafe import MESSAGE_CHARS_MAX, printable
+
 __all__ = ["main", "build_parser", "serve"]
 
 PROG = "prsa-app"
@@ -98,7 +100,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
     except _Usage as exc:
-        print(f"{PROG}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        print(printable(f"{PROG}: error: {' '.join(str(exc).split())}"), file=sys.stderr)
         return 2
     try:
         import bokeh  # noqa: F401
@@ -111,7 +113,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         server = serve(args.plant, args.scene, args.port)
     except AppInputError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        print(printable(f"{PROG}: error: {exc}", limit=MESSAGE_CHARS_MAX), file=sys.stderr)  # a file's text, escaped
         return 2
     except OSError as exc:
         print(f"{PROG}: error: --port {args.port}: cannot listen on 127.0.0.1 ({exc.strerror or exc}); expected a free "

@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from .common import Parser, Run, UsageError, flag_value, progress
+from .common import Parser, Run, UsageError, echo, flag_value, progress
 
 __all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]
 
@@ -154,11 +154,11 @@ def run(argv: Sequence[str], verbose: bool = False, check=None) -> int:
         return _fit(args)
     except (UsageError, argparse.ArgumentTypeError, LogFormatError, AxisPlantError, OutputError, ValueError) as exc:
         (check or _no_check)()
-        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        echo(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     except (AxisFitError, SimulationError) as exc:
         (check or _no_check)()
-        print(f"prsa-fit: {exc}", file=sys.stderr)
+        echo(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
 
 
@@ -342,29 +342,29 @@ def _fit(args) -> int:
     _write(files, inputs)
     for k, v in result.equivalent.items():
         lo, hi = v["ci95"]
-        print(f"{k} = {v['value']:.6g} {v['unit']} (95 % CI {lo:.6g}..{hi:.6g})")
+        echo(f"{k} = {v['value']:.6g} {v['unit']} (95 % CI {lo:.6g}..{hi:.6g})")
     for r in result.replays:
         _print_replay(r.report())
     for h in report.get("holdout", {}).get("replay", []):
         _print_replay(h, prefix="held out: ")
     for log_name, fmap in report["friction_map"].items():
         pars = fmap.get("parameters", {})
-        print(f"friction map of {log_name} (report; the replay model stays Coulomb + viscous): "
-              + ", ".join(f"{k} = {v['value']:.4g} {v['unit']} (95 % CI {v['ci95'][0]:.4g}..{v['ci95'][1]:.4g})"
+        echo(f"friction map of {log_name} (report; the replay model stays Coulomb + viscous): "
+             + ", ".join(f"{k} = {v['value']:.4g} {v['unit']} (95 % CI {v['ci95'][0]:.4g}..{v['ci95'][1]:.4g})"
                           for k, v in pars.items() if v["value"] is not None)
-              + f"; Stribeck {fmap.get('stribeck')}" + (f"; {fmap['error']}" if "error" in fmap else ""))
+             + f"; Stribeck {fmap.get('stribeck')}" + (f"; {fmap['error']}" if "error" in fmap else ""))
     for w in report["warnings"]:
-        print(f"warning: {w}")
-    print(f"coordinates: {COORDINATES}")
-    print(f"wrote {args.out}" + (f" and {args.json}" if args.json else "") + (f"; plots: {', '.join(plots)}" if plots else ""))
+        echo(f"warning: {w}")
+    echo(f"coordinates: {COORDINATES}")
+    echo(f"wrote {args.out}" + (f" and {args.json}" if args.json else "") + (f"; plots: {', '.join(plots)}" if plots else ""))
     return 0
 
 
 def _print_replay(rep: dict, prefix: str = "") -> None:
     e, f = rep["errors_percent"], rep["fit_percent"]
-    print(f"{prefix}{rep['log']}: replay errors position {e['position']:.4g} %, velocity {e['velocity']:.4g} %, "
-          f"force {e['force']:.4g} % (fit {f['position']:.3f} / {f['velocity']:.3f} / {f['force']:.3f} %; "
-          f"{rep['replay']})")
+    echo(f"{prefix}{rep['log']}: replay errors position {e['position']:.4g} %, velocity {e['velocity']:.4g} %, "
+         f"force {e['force']:.4g} % (fit {f['position']:.3f} / {f['velocity']:.3f} / {f['force']:.3f} %; "
+         f"{rep['replay']})")
 
 
 def _validate(args) -> int:
@@ -396,11 +396,11 @@ def _validate(args) -> int:
     for r in replays:
         _print_replay(r.report())
         if not r.closed_loop:
-            print(f"note: {r.name} has no controller description: replayed open loop from the logged command (an "
-                  "integrating axis drifts)")
-    print(f"coordinates: {COORDINATES}")
+            echo(f"note: {r.name} has no controller description: replayed open loop from the logged command (an "
+                 "integrating axis drifts)")
+    echo(f"coordinates: {COORDINATES}")
     if files or plots:
-        print("wrote " + ", ".join([*files, *plots]))
+        echo("wrote " + ", ".join([*files, *plots]))
     return 0
 
 

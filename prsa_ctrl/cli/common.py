@@ -39,11 +39,13 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 
 from ..errors import GeometryWarning, PlantFileError, SceneError, SimulationError, UsageError
 from ..io.output import OutputError, Transaction, cleanup_temporaries, remove_created, write_text
+from ..textsafe import MESSAGE_CHARS_MAX, printable
 
 __all__ = ["report_failure", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
            "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
            "Run", "guard", "native_output", "invoke", "invoke_inner", "describe_failure", "one_line",
-           "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic", "flag_value"]
+           "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic", "flag_value",
+           "echo"]
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
 #: Exit code after SIGTERM (128 + 15): handled like Ctrl-C (workers stopped, one line, nothing written).
@@ -190,11 +192,13 @@ class Run:
         self.late = False  # Ctrl-C after the command finished (:meth:`on_late`)
 
     def say(self, line: str) -> bool:
-        """Print the final one-line message once (main thread or watchdog, whichever first)."""
+        """Print the final one-line message once (main thread or watchdog, whichever first);
+        control characters escaped and the length bounded (:func:`prsa_ctrl.textsafe.printable`)."""
         with self.lock:
             if self.reported:
                 return False
             self.reported = True
+        line = printable(line, limit=MESSAGE_CHARS_MAX)
         data = (line + "\n").encode("utf-8", "replace")
         try:
             sys.stderr.flush()
@@ -387,7 +391,7 @@ def report_failure(run: "Run", exc: BaseException, what: str, verbose: bool) -> 
     run.check()
     code, line = describe_failure(exc, what)
     if verbose:  # the internal detail, for a bug report
-        print(f"{run.prog}: detail: {type(exc).__name__}: {one_line(exc)[:500]}", file=sys.stderr)
+        echo(f"{run.prog}: detail: {type(exc).__name__}: {one_line(exc)[:500]}", file=sys.stderr)
     run.say(f"{run.prog}: {line}")
     return code
 
@@ -457,20 +461,31 @@ def show_notes(run: Run, notes: list[warnings.WarningMessage], native: list[str]
         seen.add(text)
         if issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose:
             continue
-        print(f"{run.prog}: note: {text}", file=sys.stderr)
+        echo(f"{run.prog}: note: {text}", file=sys.stderr)
     if native:
         if verbose:
             for line in native:
-                print(f"{run.prog}: solver: {line}", file=sys.stderr)
+                echo(f"{run.prog}: solver: {line}", file=sys.stderr)
         else:
-            print(f"{run.prog}: note: the numerical solvers printed {len(native)} diagnostic lines "
-                  "(shown with --verbose)", file=sys.stderr)
+            echo(f"{run.prog}: note: the numerical solvers printed {len(native)} diagnostic lines "
+                 "(shown with --verbose)", file=sys.stderr)
 
 
 def progress(run: Run, verbose: bool, text: str) -> None:
     """A progress line on stderr (``--verbose`` only)."""
     if verbose:
-        print(f"{run.prog}: {text}", file=sys.stderr, flush=True)
+        echo(f"{run.prog}: {text}", file=sys.stderr, flush=True)
+
+
+def echo(text: Any, file: Any = None, flush: bool = False) -> None:
+    """Print what a command shows (its report, notes, error lines) with the user's text made
+    harmless for a terminal (:func:`prsa_ctrl.textsafe.printable`): every control character
+    (ESC, BEL, CR, ...) is written as an escape. On stdout (the report) line feeds and tabs stay;
+    on stderr (notes and errors, one line each) they are escaped too and the line is bounded to
+    :data:`prsa_ctrl.textsafe.MESSAGE_CHARS_MAX` characters."""
+    stream = sys.stdout if file is None else file
+    one = stream is sys.stderr
+    print(printable(text, multiline=not one, limit=MESSAGE_CHARS_MAX if one else None), file=stream, flush=flush)
 
 
 def invoke(prog: str, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
@@ -530,7 +545,23 @@ def _pending_signals() -> set:
 
 def invoke_inner(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
                  value_flags: Iterable[str] = ()) -> int:
-    """:func:`invoke` without the end of the process: the guarded body and its error lines."""
+    """:func:`invoke` without the end of the process: the guarded body and its error lines.
+
+    A Python warning the body does not collect itself (numpy's ``RuntimeWarning`` of a bad
+    input, say) never reaches the terminal in Python's format (file, line, source text): after a
+    successful command it is one ``PROG: note:`` line; when the command fails its one line is
+    all it prints. The warning filters are left as they are (``-W``/``PYTHONWARNINGS`` still
+    decide what is shown)."""
+    with warnings.catch_warnings(record=True) as stray:
+        code = _guarded(run, argv, body, value_flags)
+    if code == EXIT_OK:
+        for text in dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in stray):
+            echo(f"{run.prog}: note: {text}", file=sys.stderr)
+    return code
+
+
+def _guarded(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
+             value_flags: Iterable[str] = ()) -> int:
     prog = run.prog
     with guard(run, process=argv is None):
         try:

@@ -44,7 +44,7 @@ from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
 from .axis import MOTOR_COORDINATES
-from .common import Run, Parser, UsageError, flag_value, invoke, number, progress
+from .common import Run, Parser, UsageError, echo, flag_value, invoke, number, progress
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
@@ -353,7 +353,7 @@ def _design(args, argv: Sequence[str]) -> int:
              "time_s,setpoint_rad_s"]
     lines += [f"{a:.9g},{b:.9g}" for a, b in zip(t, np.asarray(v))]
     _write_outputs({args.out: ("--out", "\n".join(lines) + "\n")}, [])
-    print(f"wrote {args.out}: {args.design}, {len(t)} samples, {args.duration:g} s")
+    echo(f"wrote {args.out}: {args.design}, {len(t)} samples, {args.duration:g} s")
     return 0
 
 
@@ -382,8 +382,8 @@ def _body(run: Run, argv: list[str]) -> int:
             raise
     mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
     if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
-        print(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
-              "--log-format FILE.toml (an example: examples/emps/log.toml)", file=sys.stderr)
+        echo(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
+             "--log-format FILE.toml (an example: examples/emps/log.toml)", file=sys.stderr)
         return 2
     verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
     created: list = []  # files and directories this run made, taken back when it is interrupted
@@ -404,7 +404,7 @@ def _body(run: Run, argv: list[str]) -> int:
         if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose):
             continue
         seen.add(text)
-        print(f"prsa-fit: note: {text}", file=sys.stderr)
+        echo(f"prsa-fit: note: {text}", file=sys.stderr)
     return code
 
 
@@ -573,11 +573,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         if args.frf_from_logs is not None:
             records, frfs = [], frfs + _frfs_from_logs(args, argv, records)
     except (UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
-        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        echo(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # e.g. an input path that is a symlink loop
-        print(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
-              "expected readable files", file=sys.stderr)
+        echo(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
+             "expected readable files", file=sys.stderr)
         return 2
     from ..errors import FitError
     from ..identification.timedomain import fit_plant
@@ -599,11 +599,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         run.check()  # a fit that failed after Ctrl-C was interrupted
         if args.verbose:  # where it was raised, and what caused it
             _print_chain(exc, skip_message=True)
-        print(f"prsa-fit: {exc}", file=sys.stderr)
+        echo(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
     except ValueError as exc:
         run.check()
-        print(f"prsa-fit: error: {exc}", file=sys.stderr)
+        echo(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     finally:
         run.record = False
@@ -643,8 +643,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         _write_outputs(files, inputs, created)
     except (OutputError, OSError) as exc:  # all or nothing: the figures of this run are taken back
         _take_back(created)
-        print(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
-              file=sys.stderr)
+        echo(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
+             file=sys.stderr)
         return 2
     from ..identification.common import unit_text
 
@@ -654,36 +654,36 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         line = f"{k} = {v['value']:.6g}{u} (95 % CI {lo:.6g}..{hi:.6g})"
         if v.get("kept_base"):
             line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
-        print(line)
+        echo(line)
     if result.delay is not None:
-        print(f"  ({result.delay['plant_file']})")
+        echo(f"  ({result.delay['plant_file']})")
     fmap = result.solver.get("friction_map")
     if fmap is not None:
-        print(f"friction map: {len(fmap['plateaus'])} steady-speed plateau(s), {fmap.get('in_stribeck_region', 0)} below "
-              f"{fmap['criteria']['stribeck_region_speeds']:g} Stribeck speeds; Stribeck intervals "
-              f"{fmap.get('intervals', 'not computed (too few plateaus)')}")
+        echo(f"friction map: {len(fmap['plateaus'])} steady-speed plateau(s), {fmap.get('in_stribeck_region', 0)} below "
+             f"{fmap['criteria']['stribeck_region_speeds']:g} Stribeck speeds; Stribeck intervals "
+             f"{fmap.get('intervals', 'not computed (too few plateaus)')}")
     cd = result.solver.get("command_delay")
     if cd is not None:
-        print(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as {cd['command_logged']}) "
-              f"to its action, drive.command_delay_samples = {cd['drive_command_delay_samples']} ({cd['how']}"
-              + ("" if "search" not in cd else
+        echo(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as {cd['command_logged']}) "
+             f"to its action, drive.command_delay_samples = {cd['drive_command_delay_samples']} ({cd['how']}"
+             + ("" if "search" not in cd else
                  "; objective per delay " + ", ".join(f"{k}: {v:.6g}" if v is not None else f"{k}: failed"
                                                      for k, v in cd["search"]["objective"].items())) + ")")
     j = result.reflected_inertia_kg_m2
-    print(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
+    echo(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
     if choice is not None:
         _print_structure(choice)
     for f, pct in result.fit_percent.items():
-        print(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
-              f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
+        echo(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
+             f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
     for w in result.warnings:
-        print(f"warning: {w}")
-    print(f"coordinates: {MOTOR_COORDINATES}")
+        echo(f"warning: {w}")
+    echo(f"coordinates: {MOTOR_COORDINATES}")
     for f, how in coordinates.items():
-        print(f"  {f}: logged in {how}")
-    print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
+        echo(f"  {f}: logged in {how}")
+    echo(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
     if args.plots is not None:
-        print("plots: " + ", ".join(plot_paths))
+        echo("plots: " + ", ".join(plot_paths))
     return 0
 
 
@@ -758,13 +758,13 @@ def _ci_text(v: dict, fmt: str = ".4g") -> str:
 
 def _print_structure(choice) -> None:
     """The structure the FRF chose, why, and the two-mass model's mode with intervals."""
-    print(f"structure: {choice.structure} ({choice.reason})")
+    echo(f"structure: {choice.structure} ({choice.reason})")
     two = choice.two_mass
     if two is not None and choice.structure == "two-mass":
         v = two.values
-        print(f"  axial mode {_ci_text(v['resonance_hz'])} Hz, anti-resonance {_ci_text(v['antiresonance_hz'])} Hz, "
+        echo(f"  axial mode {_ci_text(v['resonance_hz'])} Hz, anti-resonance {_ci_text(v['antiresonance_hz'])} Hz, "
               f"damping ratio {_ci_text(v['damping_ratio'], '.3g')}")
-        print(f"  total inertia {_ci_text(v['total_inertia_kg_m2'])} kg m^2 = motor side "
+        echo(f"  total inertia {_ci_text(v['total_inertia_kg_m2'])} kg m^2 = motor side "
               f"{_ci_text(v['motor_inertia_kg_m2'])} + load side {_ci_text(v['load_inertia_kg_m2'])}; stiffness "
               f"{_ci_text(v['stiffness_n_m_per_rad'])} N m/rad; current loop {_ci_text(v['current_loop_bandwidth_hz'])} Hz; "
               f"delay {_ci_text(v['delay_s'], '.3g')} s")
@@ -785,7 +785,7 @@ def _print_chain(exc: BaseException, skip_message: bool = False) -> None:
             co = tb.tb_frame.f_code
             where = f" (at {Path(co.co_filename).name}:{tb.tb_lineno} in {co.co_name})"
         msg = "(message below)" if skip_message and depth == 0 else " ".join(str(e).split())
-        print(f"prsa-fit: cause{' ' * (depth > 0)}{'' if depth == 0 else f'[{depth}]'}: "
+        echo(f"prsa-fit: cause{' ' * (depth > 0)}{'' if depth == 0 else f'[{depth}]'}: "
               f"{type(e).__name__}: {msg}{where}", file=sys.stderr)
         e = e.__cause__ if e.__cause__ is not None else (None if e.__suppress_context__ else e.__context__)
         depth += 1

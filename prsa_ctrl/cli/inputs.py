@@ -9,6 +9,7 @@ import math
 import os
 from typing import Any
 
+from ..textsafe import quote
 from ..errors import SceneError
 from ..plant.plantfile import Plant, load_plant
 from ..studies.scene import Scene, check_against_plant, load_scene, require_speed_scene
@@ -37,7 +38,7 @@ def parse_load_step(text: str) -> tuple[float, tuple[float, ...]]:
     expected = "expected INITIAL:FINAL[,FINAL...] in newtons >= 0, e.g. 500:1500"
     parts = text.split(":")
     if len(parts) != 2 or not parts[0].strip() or not parts[1].strip():
-        raise argparse.ArgumentTypeError(f"{text!r}: {expected}")
+        raise argparse.ArgumentTypeError(f"{quote(text)}: {expected}")
     tokens = parts[1].split(",")
     if len(tokens) > MAX_LOAD_LEVELS:
         raise argparse.ArgumentTypeError(f"{text[:40]!r}...: {len(tokens)} load levels; expected at most {MAX_LOAD_LEVELS}")
@@ -45,13 +46,13 @@ def parse_load_step(text: str) -> tuple[float, tuple[float, ...]]:
         initial = float(parts[0])
         finals = tuple(float(p) for p in tokens)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: {expected}") from None
+        raise argparse.ArgumentTypeError(f"{quote(text)}: {expected}") from None
     for tok, v in zip((parts[0], *tokens), (initial, *finals)):
         if not math.isfinite(v) or v < 0:
-            raise argparse.ArgumentTypeError(f"{text!r}: load {tok.strip()} N is not allowed; {expected}")
+            raise argparse.ArgumentTypeError(f"{quote(text)}: load {tok.strip()} N is not allowed; {expected}")
     for f in finals:
         if f == initial:
-            raise argparse.ArgumentTypeError(f"{text!r}: final load equals the initial load; expected a step")
+            raise argparse.ArgumentTypeError(f"{quote(text)}: final load equals the initial load; expected a step")
     return initial, finals
 
 
@@ -131,7 +132,7 @@ def load_and_override(args, run: Run, plot: bool = False) -> tuple[Plant, Scene,
         for flag, v in (("--load-step", args.load_step), ("--step-time", getattr(args, "step_time", None)),
                         ("--setpoint-rpm", args.setpoint_rpm if scene.setpoint_profile is not None else None)):
             if v is not None:
-                raise UsageError(f"{flag} {raw.get(flag, v)!r}: scene {scene.name} is a duty cycle ({scene.profile_source}); "
+                raise UsageError(f"{flag} {quote(raw.get(flag, v))}: scene {scene.name} is a duty cycle ({scene.profile_source}); "
                                   f"expected its profile to set the {'load' if flag != '--setpoint-rpm' else 'setpoint'} "
                                   "and events (edit the scene file to change them)")
     if args.load_step is not None:
@@ -139,7 +140,7 @@ def load_and_override(args, run: Run, plot: bool = False) -> tuple[Plant, Scene,
         if plot:
             finals = finals[:1]
         changes["initial_load"], changes["final_loads"] = initial, finals
-        typed["initial_load"] = typed["final_loads"] = f"--load-step {raw.get('--load-step', '')!r}"
+        typed["initial_load"] = typed["final_loads"] = f"--load-step {quote(raw.get('--load-step', ''))}"
         overrides.append(f"--load-step {raw.get('--load-step', '')}")
     if args.setpoint_rpm is not None:
         changes["setpoint_rad_s"] = args.setpoint_rpm * math.pi / 30.0

@@ -15,7 +15,7 @@ from ..io.output import json_safe
 from ..plant.plantfile import load_plant
 from ..studies.montecarlo import INTEGRATOR_CHOICES, replay_sample
 from ..studies.scene import load_scene, require_speed_scene
-from .common import EXIT_BAD_INPUT, EXIT_OK
+from .common import EXIT_BAD_INPUT, EXIT_OK, echo
 
 __all__ = ["main"]
 
@@ -40,9 +40,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError(f"--seed {a.seed} --index {a.index}; expected integers >= 0")
         out = replay_sample(plant, scene, pid, a.seed, a.index, a.integrator)
     except (PlantFileError, SceneError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        echo(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    print(json.dumps(json_safe(out), indent=2))
+    echo(json.dumps(json_safe(out), indent=2))
     return EXIT_OK
 
 

@@ -36,7 +36,7 @@ from ..errors import PlantTextError
 from ..io.output import Transaction, check_writable, json_safe
 from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE
 from ..tuning.plant_text import parse_plant_text, quote_plant_text
-from .common import (EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError, commit, invoke, native_output, number,
+from .common import (EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError, commit, echo, invoke, native_output, number,
                      path_text, progress, report_failure, show_notes, write_json_atomic)
 
 __all__ = ["pid_main", "build_pid_parser", "parse_plant", "PLANT_ORDER_MAX"]
@@ -288,9 +288,9 @@ def _body(run: Run, argv: list[str]) -> int:
         finally:
             outputs.abort()
     if not args.quiet:
-        print(format_pid_report(data))
+        echo(format_pid_report(data))
         if args.json is not None:
-            print(f"JSON: {args.json}")
+            echo(f"JSON: {args.json}")
     show_notes(run, notes, native, args.verbose, args.quiet)
     if not data["converged"] and not args.accept_unconverged:
         run.say(f"{run.prog}: the result is not proven optimal ({data['status']}); its numbers are reported but are "

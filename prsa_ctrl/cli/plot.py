@@ -17,7 +17,7 @@ from ..errors import GeometryWarning
 from ..io.output import Transaction, check_directory
 from ..options import DERIVATIVE_FILTER_SAMPLES
 from ..studies.scene import choose_fidelity
-from .common import (EXIT_OK, Parser, Run, UsageError, commit, invoke, native_output, number, path_text, progress,
+from .common import (EXIT_OK, Parser, Run, UsageError, commit, echo, invoke, native_output, number, path_text, progress,
                      report_failure, show_notes, staged)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, scene_flags
 from .report import fmt_margin, scene_header
@@ -126,21 +126,21 @@ def _plot_body(run: Run, argv: list[str]) -> int:
         return report_failure(run, exc, what, args.verbose)
     if files is None:
         files = _write_figures(run, figs, args.out, inputs)
-    print(f"prsa-plot: plant {plant.name}, {scene_header(scene)}")
-    print(f"gains: kp = {args.kp:g} N m s/rad, ki = {args.ki:g} N m/rad, kd = {args.kd:g} N m s^2/rad")
-    print(f"Margins: Ms {m.ms:.3f}, Mt {m.mt:.3f}, GM {fmt_margin(m.gm_db)} dB, PM {fmt_margin(m.pm_deg)} deg, "
-          f"crossover {fmt_margin(m.wc_rad_s)} rad/s"
-          + (" (frequency-response values; not margins of a stable loop)" if state == "unstable" else ""))
+    echo(f"prsa-plot: plant {plant.name}, {scene_header(scene)}")
+    echo(f"gains: kp = {args.kp:g} N m s/rad, ki = {args.ki:g} N m/rad, kd = {args.kd:g} N m s^2/rad")
+    echo(f"Margins: Ms {m.ms:.3f}, Mt {m.mt:.3f}, GM {fmt_margin(m.gm_db)} dB, PM {fmt_margin(m.pm_deg)} deg, "
+         f"crossover {fmt_margin(m.wc_rad_s)} rad/s"
+         + (" (frequency-response values; not margins of a stable loop)" if state == "unstable" else ""))
     if state == "unstable":
-        print(f"warning: the closed loop is UNSTABLE with these gains on {plant.name}; only the frequency plots "
-              "were drawn (time responses diverge)")
+        echo(f"warning: the closed loop is UNSTABLE with these gains on {plant.name}; only the frequency plots "
+             "were drawn (time responses diverge)")
     elif state == "marginal":
         why = ("P-only (ki = 0) leaves a steady error after a load step" if args.ki == 0
                else "a closed-loop pole sits on the stability boundary")
-        print(f"warning: marginally stable: {why}")
+        echo(f"warning: marginally stable: {why}")
     elif m.ms > scene.ms_max * (1 + 1e-3):
-        print(f"warning: Ms {m.ms:.3f} exceeds the scene's bound {scene.ms_max:g}")
-    print("\n".join(str(f) for f in files))
+        echo(f"warning: Ms {m.ms:.3f} exceeds the scene's bound {scene.ms_max:g}")
+    echo("\n".join(str(f) for f in files))
     show_notes(run, notes, native, args.verbose, False)
     return EXIT_OK
 

@@ -8,6 +8,7 @@ import math
 from typing import TYPE_CHECKING, Callable, Sequence
 
 from ..sim.metrics import metric_resolution, relative_difference
+from ..textsafe import printable
 from ..studies.scenefilters import describe_filters
 
 if TYPE_CHECKING:
@@ -53,7 +54,7 @@ def scene_header(sc, overrides: Sequence[str] = ()) -> str:
     loads = ", ".join(f"{f:g}" for f in sc.final_loads)
     bounds = f"Ms <= {sc.ms_max:g}" + (f", Mt <= {sc.mt_max:g}" if sc.mt_max is not None else "") + (
         f", Mks <= {sc.mks_max:g} N m s/rad" if sc.mks_max is not None else "")
-    name = f"scene {sc.name}" + (f" with {' '.join(overrides)}" if overrides else "")
+    name = f"scene {printable(sc.name)}" + (f" with {printable(' '.join(overrides))}" if overrides else "")
     if sc.is_profile:
         goal = {"load": "load rejection", "setpoint": "setpoint tracking",
                 "mix": f"mix, setpoint share {sc.setpoint_share:g}"}[sc.goal]
@@ -189,7 +190,7 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
     obj = sc.objective.upper()
     label = b.name[len("tuned "):] if b.name.startswith("tuned ") else f"({b.name})"
     out = [
-        f"prsa-tune: plant {rep.plant.name}, {scene_header(sc, overrides)}",
+        f"prsa-tune: plant {printable(rep.plant.name)}, {scene_header(sc, overrides)}",
         f"verification: {rep.fidelity_reason}; {'sampled controller (ZOH, quantised encoder)' if sc.discrete else 'continuous controller'}",
         *([_LOAD_COORDINATES] if rep.plant.mechanism == "linear-axis" else []),
         "",
@@ -291,7 +292,7 @@ def format_move_report(plant: "Plant", scene: "MoveScene", designs: "list[Cascad
     str
     """
     w_lin = scene.max_speed_m_s / plant.lead_per_rad
-    lines = [f"{prog}: plant {plant.name}, move scene {scene.name}: {scene.distance_m * 1e3:g} mm at "
+    lines = [f"{prog}: plant {printable(plant.name)}, move scene {printable(scene.name)}: {scene.distance_m * 1e3:g} mm at "
              f"{scene.max_speed_m_s * 1e3:g} mm/s ({scene.profile})"
              + (", out and back" if scene.return_dwell_s is not None else "")
              + (f", load {scene.load_n:g} N throughout, " if scene.load_n == scene.initial_load_n else

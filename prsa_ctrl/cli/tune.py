@@ -47,7 +47,7 @@ from ..studies.movescene import MoveScene  # noqa: E402
 from ..studies.scene import load_scene  # noqa: E402
 from ..studies.scenefile import is_move_scene  # noqa: E402
 from .common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError,  # noqa: E402
-                     commit, describe_failure, integer, invoke, native_output, number, path_text, progress,
+                     commit, describe_failure, echo, integer, invoke, native_output, number, path_text, progress,
                      report_failure, show_notes, staged, status_says_interrupted, write_json_atomic)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, parse_load_step, scene_flags  # noqa: E402
 from .plot import build_plot_parser, plot_main  # noqa: E402
@@ -164,7 +164,7 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         return EXIT_OK
     args = build_parser().parse_args(argv)
     if args.show_plant is not None:  # issue 21: the plant's values with their sources
-        print(show_plant(args.show_plant))
+        echo(show_plant(args.show_plant))
         return EXIT_OK
     notes: list[warnings.WarningMessage] = []
     with warnings.catch_warnings(record=True) as caught:
@@ -465,33 +465,33 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
 def _print_report(args, plant, scene, overrides: Sequence[str], result: dict, plot_files: list[Path]) -> None:
     """The text report and the lines naming the files written."""
     if isinstance(scene, MoveScene):
-        print(format_move_report(plant, scene, result["designs"], "prsa-tune"))
+        echo(format_move_report(plant, scene, result["designs"], "prsa-tune"))
         if "friction_ff" in result:
-            print(format_friction_ff(result["friction_ff"], scene.fidelity))
+            echo(format_friction_ff(result["friction_ff"], scene.fidelity))
         if args.json is not None:
-            print(f"JSON report: {args.json}")
+            echo(f"JSON report: {args.json}")
         if args.export is not None:
-            print(f"drive export: {args.export}")
+            echo(f"drive export: {args.export}")
         if plot_files:
-            print(f"plots: {', '.join(str(p) for p in plot_files)}")
+            echo(f"plots: {', '.join(str(p) for p in plot_files)}")
         return
-    print(format_report(result["rep"], overrides))
+    echo(format_report(result["rep"], overrides))
     if result.get("filter_tuning") is not None:
-        print("\n".join(result["filter_tuning"].lines()))
+        echo("\n".join(result["filter_tuning"].lines()))
     if result["robust"] is not None:
-        print(format_robust(result["robust"]))
+        echo(format_robust(result["robust"]))
     if result["mc"] is not None:
         from ..studies.montecarlo import format_report as format_mc
 
-        print(format_mc(result["mc"]))
+        echo(format_mc(result["mc"]))
     if args.json is not None:
-        print(f"JSON report: {args.json}")
+        echo(f"JSON report: {args.json}")
     if args.plots is not None:
-        print(f"plots: {', '.join(str(p) for p in plot_files)}")
+        echo(f"plots: {', '.join(str(p) for p in plot_files)}")
     if args.export is not None:
         export_design = result["export"][1]
-        print(f"drive export: {args.export} holds the design {export_design['name']!r}, "
-              f"{export_design['chosen_by']}")
+        echo(f"drive export: {args.export} holds the design {export_design['name']!r}, "
+             f"{export_design['chosen_by']}")
 
 
 #: Seconds the up-front check of a ``--scheduler`` address may take in all (connection, Dask

@@ -70,6 +70,7 @@ from .._lazy import module
 from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
+from ..tomlfile import read_toml
 from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry, correlation_toml,
                                  inner_truncation)
 from .logformat import AxisLog
@@ -186,9 +187,10 @@ def load_axis_plant(path: str | Path) -> LinearAxisPlant:
     if not p.is_file():
         raise AxisPlantError(f"plant file {str(path)!r} not found; expected a readable .toml file")
     try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8-sig"))
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        text = p.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
         raise AxisPlantError(f"{path}: cannot be read as TOML ({exc})") from None
+    doc = read_toml(text, str(path), AxisPlantError)
     return LinearAxisPlant.from_dict(doc, origin=str(path))
 
 

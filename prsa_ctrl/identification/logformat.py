@@ -83,7 +83,6 @@ the key, column or variable.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
@@ -91,6 +90,7 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
+from ..tomlfile import read_toml
 from ..errors import LogFormatError
 from .data import MAX_SAMPLES, MIN_SAMPLES, Record, record_from_arrays
 from .logfile import LogFile
@@ -329,11 +329,10 @@ def load_log_format(path: str | Path) -> LogFormat:
     if not p.is_file():
         raise LogFormatError(f"--log-format {name!r}: file not found; expected a readable TOML log description")
     try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8-sig"))  # a byte-order mark, as plant and data files
+        text = p.read_text(encoding="utf-8-sig")  # a byte-order mark, as plant and data files
     except (OSError, UnicodeDecodeError) as exc:
         raise LogFormatError(f"{name}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise LogFormatError(f"{name}: invalid TOML ({exc})") from None
+    doc = read_toml(text, name, LogFormatError)
     for k in doc:
         if k not in _TOP_KEYS:
             raise _err(name, f"key {k!r}", f"unknown; expected some of {', '.join(sorted(_TOP_KEYS))}")

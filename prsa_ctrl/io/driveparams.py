@@ -41,12 +41,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
 from ..drive.pid import PID
+from ..textsafe import quote
+from ..tomlfile import read_toml
 
 if TYPE_CHECKING:
     from .measurement import PositionLoop
     from ..plant.plantfile import Plant
 
-__all__ = ["MotorData", "BACK_EMF_UNITS", "BACK_EMF_KEYS", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
+__all__ = ["MotorData", "MOTOR_PLAUSIBLE", "MOTOR_TORQUE_CONSISTENCY", "BACK_EMF_UNITS", "BACK_EMF_KEYS", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
            "builtin_templates", "load_template", "fill_template", "read_parameter_set",
            "controller_from_parameter_set", "dumps_parameter_set"]
 
@@ -55,8 +57,53 @@ _RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
 
 def _positive(name: str, v: Any, unit: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)) or float(v) <= 0:
-        raise ValueError(f"{name} = {v!r}; expected a finite number > 0 {unit}".rstrip())
+        raise ValueError(f"{name} = {quote(v)}; expected a finite number > 0 {unit}".rstrip())
     return float(v)
+
+
+#: Plausible motor data (inclusive bounds, in the key's unit): from miniature servo motors
+#: (k_T ~ 1 mN m/A, 0.1 A, 1 mN m) to large direct-drive torque motors (k_T of several hundred
+#: N m/A, 10 kN m, kA drives); outside, the number is a typing or unit error (1e-300 V/krpm gave
+#: kp = 5e300 A/(rad/s)). Back-EMF constants are bounded through the torque constant they give.
+MOTOR_PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
+    "torque_constant_n_m_per_a": (1e-4, 1e3, "N m/A"),
+    "rated_current_a": (1e-3, 1e4, "A"),
+    "rated_torque_n_m": (1e-4, 1e5, "N m"),
+    "rated_speed_rpm": (1.0, 1e5, "rpm"),
+}
+#: Largest factor between k_T x I_rated and the rated torque (either way): data sheets agree
+#: within about 20 % (k_T of the cold motor, iron losses and saturation at rated speed); a
+#: factor 1.5 also lets an RMS/peak mix-up of the current (sqrt 2) through, not a unit error.
+MOTOR_TORQUE_CONSISTENCY = 1.5
+
+
+def _plausible(name: str, value: float, shown: str, unit: str | None = None) -> None:
+    """Refuse a motor value outside :data:`MOTOR_PLAUSIBLE` (``shown``: the value as typed)."""
+    if name in BACK_EMF_KEYS:
+        bu, convention = BACK_EMF_KEYS[name]
+        per_kt = BACK_EMF_UNITS[bu] / math.sqrt(3.0) * (math.sqrt(2.0) if convention == "peak" else 1.0)
+        lo, hi, _ = MOTOR_PLAUSIBLE["torque_constant_n_m_per_a"]
+        kt = value / per_kt
+        if not lo <= kt <= hi:
+            raise ValueError(f"{name} = {shown} {bu} gives a torque constant of {kt:.3g} N m/A; expected "
+                             f"{lo * per_kt:.3g}..{hi * per_kt:.3g} {bu} (a torque constant of {lo:g}..{hi:g} N m/A)")
+        return
+    if name in MOTOR_PLAUSIBLE:
+        lo, hi, u = MOTOR_PLAUSIBLE[name]
+        if not lo <= value <= hi:
+            raise ValueError(f"{name} = {shown} {u}; expected a plausible motor value in {lo:g}..{hi:g} {u}")
+
+
+def _consistent(kt: float | None, current: float | None, torque: float | None, where: str = "") -> None:
+    """k_T x I_rated within a factor :data:`MOTOR_TORQUE_CONSISTENCY` of the rated torque."""
+    if kt is None or current is None or torque is None:
+        return
+    ratio = kt * current / torque
+    f = MOTOR_TORQUE_CONSISTENCY
+    if not 1.0 / f <= ratio <= f:
+        raise ValueError(f"{where}torque constant x rated current = {kt:.6g} N m/A x {current:.6g} A = "
+                         f"{kt * current:.6g} N m against rated_torque_n_m = {torque:.6g} N m (a factor {ratio:.3g}); "
+                         f"expected them within a factor {f:g} of each other")
 
 
 @dataclass(frozen=True)
@@ -93,6 +140,11 @@ class MotorData:
         for name, unit in (("rated_current_a", "A"), ("rated_torque_n_m", "N m"), ("rated_speed_rpm", "rpm")):
             if getattr(self, name) is not None:
                 _positive(name, getattr(self, name), unit)
+        for name in MOTOR_PLAUSIBLE:
+            v = getattr(self, name)
+            if v is not None:
+                _plausible(name, float(v), f"{v!r}")
+        _consistent(self.torque_constant_n_m_per_a, self.rated_current_a, self.rated_torque_n_m)
         if self.pole_pairs is not None and (isinstance(self.pole_pairs, bool) or not isinstance(self.pole_pairs, int)
                                             or not 1 <= self.pole_pairs <= 1000):
             raise ValueError(f"pole_pairs = {self.pole_pairs!r}; expected an integer in [1, 1000]")
@@ -144,22 +196,37 @@ BACK_EMF_KEYS: Mapping[str, tuple[str, str]] = {
 _MOTOR_KEYS = {f.name for f in fields(MotorData)} | set(BACK_EMF_KEYS)
 
 
-def _motor_from_mapping(d: Mapping[str, Any], where: str) -> MotorData:
+def _motor_from_mapping(d: Mapping[str, Any], where: str, typed: Mapping[str, str] | None = None) -> MotorData:
+    """``typed``: each key's value as the user typed it (``--motor``), for the messages."""
     unknown = sorted(set(d) - _MOTOR_KEYS)
     if unknown:
-        raise ValueError(f"{where}: unknown motor key {unknown[0]!r}; expected {', '.join(sorted(_MOTOR_KEYS))}")
+        raise ValueError(f"{where}: unknown motor key {quote(unknown[0])}; expected {', '.join(sorted(_MOTOR_KEYS))}")
     d = dict(d)
+    for k, v in d.items():  # each value in its range, named as typed, before any conversion
+        if k in MOTOR_PLAUSIBLE or k in BACK_EMF_KEYS:
+            shown = (typed or {}).get(k, quote(v))
+            try:
+                try:
+                    _positive(k, v, BACK_EMF_KEYS[k][0] if k in BACK_EMF_KEYS else MOTOR_PLAUSIBLE[k][2])
+                except ValueError as exc:
+                    raise ValueError(str(exc).replace(f"{k} = {quote(v)};", f"{k} = {shown};", 1)) from None
+                _plausible(k, float(v), shown)
+            except ValueError as exc:
+                raise ValueError(f"{where}: {exc}") from None
     given = [k for k in ("torque_constant_n_m_per_a", *BACK_EMF_KEYS) if k in d]
     if len(given) > 1:
         raise ValueError(f"{where}: both {given[0]} and {given[1]}; expected one of them")
-    if given and given[0] in BACK_EMF_KEYS:
-        unit, convention = BACK_EMF_KEYS[given[0]]
-        return MotorData.from_back_emf(d.pop(given[0]), unit, convention, **d)
     if not given and "rated_torque_n_m" not in d:
         raise ValueError(f"{where}: no torque_constant_n_m_per_a (or back_emf_*) and no rated_torque_n_m; expected the "
                          "motor's torque constant (current-based gains) or rated torque (per-unit gains)")
-    d.setdefault("torque_constant_n_m_per_a", None)
-    return MotorData(**d)
+    try:
+        if given and given[0] in BACK_EMF_KEYS:
+            unit, convention = BACK_EMF_KEYS[given[0]]
+            return MotorData.from_back_emf(d.pop(given[0]), unit, convention, **d)
+        d.setdefault("torque_constant_n_m_per_a", None)
+        return MotorData(**d)
+    except (ValueError, TypeError) as exc:  # the motor's own checks (consistency of k_T, I_rated, T_rated)
+        raise ValueError(f"{where}: {exc}") from None
 
 
 def load_motor(path: "str | Path") -> MotorData:
@@ -167,10 +234,11 @@ def load_motor(path: "str | Path") -> MotorData:
     ``back_emf_v_per_krpm`` instead of the torque constant)."""
     p = Path(path)
     try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        text = p.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(f"motor file {str(path)!r}: {' '.join(str(exc).split())}; expected a TOML file with a "
                          "[motor] table") from None
+    doc = read_toml(text, f"motor file {str(path)!r}", ValueError)
     if not isinstance(doc.get("motor"), dict):
         raise ValueError(f"motor file {str(path)!r} has no [motor] table; expected one")
     return _motor_from_mapping(doc["motor"], f"motor file {str(path)!r}")
@@ -183,6 +251,7 @@ def parse_motor(text: str) -> MotorData:
     if "=" not in text:
         return load_motor(text)
     d: dict[str, Any] = {}
+    typed: dict[str, str] = {}
     for item in text.split(","):
         key, sep, val = item.partition("=")
         key = key.strip()
@@ -191,9 +260,13 @@ def parse_motor(text: str) -> MotorData:
         except ValueError:
             num = None
         if not sep or num is None:
-            raise ValueError(f"motor {item.strip()!r}; expected key=number")
+            raise ValueError(f"motor {quote(item.strip())}; expected key=number")
+        if key in d:  # the last one won silently
+            raise ValueError(f"motor key {quote(key)} given twice ({key}={typed[key]} and {key}={val.strip()}); "
+                             "expected each key once")
         d[key] = int(num) if key == "pole_pairs" and num.is_integer() else num
-    return _motor_from_mapping(d, f"motor {text!r}")
+        typed[key] = val.strip()
+    return _motor_from_mapping(d, f"motor {quote(text)}", typed)
 
 
 def motor_from_plant(plant: "Plant") -> MotorData | None:
@@ -536,7 +609,8 @@ def check_cli_options(args: Any) -> tuple[MotorData | None, dict | None]:
         try:
             motor = parse_motor(motor_text)
         except ValueError as exc:
-            raise ValueError(f"--motor {motor_text!r}: {exc}") from None
+            msg = str(exc).removeprefix(f"motor {quote(motor_text)}: ")  # named once, as the flag
+            raise ValueError(f"--motor {quote(motor_text)}: {msg}") from None
     rated = getattr(args, "rated_torque", None)
     if rated is not None:
         _positive("--rated-torque", rated, "N m")
@@ -548,7 +622,10 @@ def check_cli_options(args: Any) -> tuple[MotorData | None, dict | None]:
         else:
             from dataclasses import replace
 
-            motor = replace(motor, rated_torque_n_m=float(rated))
+            try:
+                motor = replace(motor, rated_torque_n_m=float(rated))
+            except ValueError as exc:  # with the motor's torque constant and rated current
+                raise ValueError(f"--rated-torque {rated:g} with --motor {quote(motor_text)}: {exc}") from None
     template = None
     if tpl_name is not None:
         if export is None or Path(export).suffix.lower() not in (".toml", ".json"):

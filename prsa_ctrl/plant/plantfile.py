@@ -13,18 +13,19 @@ names carry their units; inside the library everything is SI.
 from __future__ import annotations
 
 import math
-import tomllib
 import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any, Mapping
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
+from ..results import FrozenDict, freeze
+from ..textsafe import printable, quote
+from ..tomlfile import read_toml
 from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, VISCOUS_OFFSET_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
                      MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, NON_NEGATIVE_INTEGER, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
                      SCREW_DRIVEN, UNITS, keys_of)
@@ -142,25 +143,25 @@ def _check_consistency(v: Mapping[str, float], o: str) -> None:
 def _check_value(kind: str, key: str, value: Any, origin: str, plausible: bool = True) -> float:
     where = f"{origin}: {key}"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
+        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind} number")
     v = float(value)
     if not math.isfinite(v):
-        raise PlantFileError(f"{where} = {value!r}; expected a finite {kind} number")
+        raise PlantFileError(f"{where} = {quote(value)}; expected a finite {kind} number")
     if kind == POSITIVE_INTEGER and (v != int(v) or v < 1):
-        raise PlantFileError(f"{where} = {value!r}; expected a {kind}")
+        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind}")
     if kind == NON_NEGATIVE_INTEGER and (v != int(v) or v < 0):
-        raise PlantFileError(f"{where} = {value!r}; expected a {kind}")
+        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind}")
     if kind in (POSITIVE, POSITIVE_INTEGER) and v <= 0:
-        raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
+        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind} number")
     if kind == NON_NEGATIVE and v < 0:
-        raise PlantFileError(f"{where} = {value!r}; expected a {kind} number")
+        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind} number")
     if kind == FRACTION and not 0 < v <= 1:
-        raise PlantFileError(f"{where} = {value!r}; expected a {kind}")
+        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind}")
     if plausible and key in PLAUSIBLE:
         lo, hi, why = PLAUSIBLE[key]
         if not lo <= v <= hi:
             raise PlantFileError(
-                f"{where} = {value!r} is outside the plausible range [{lo:g}, {hi:g}] ({why}); "
+                f"{where} = {quote(value)} is outside the plausible range [{lo:g}, {hi:g}] ({why}); "
                 "check the value and its unit" + _likely_mistake(key, v)
             )
     return v
@@ -175,10 +176,10 @@ def _text_key(doc: Mapping[str, Any], key: str, choices, default: str, origin: s
     src = "plant file"
     if isinstance(entry, Mapping):
         if set(entry) != {"value", "source"} or not isinstance(entry["source"], str) or not entry["source"].strip():
-            raise PlantFileError(f'{origin}: {key} = {entry!r}; expected "<name>" or {{ value = "<name>", source = "<why>" }}')
+            raise PlantFileError(f'{origin}: {key} = {quote(entry)}; expected "<name>" or {{ value = "<name>", source = "<why>" }}')
         entry, src = entry["value"], entry["source"].strip()
     if entry not in choices:
-        raise PlantFileError(f"{origin}: {key} = {entry!r}; expected one of {', '.join(repr(c) for c in choices)}")
+        raise PlantFileError(f"{origin}: {key} = {quote(entry)}; expected one of {', '.join(repr(c) for c in choices)}")
     return entry, src, True
 
 
@@ -202,22 +203,22 @@ def _given_values(doc: Mapping[str, Any], mechanism: str, origin: str) -> tuple[
     unknown = sorted(set(doc) - set(sections) - set(top))
     if unknown:
         other = [m for m in MECHANISMS if unknown[0] in _sections(m)]
-        hint = f" (a section of mechanism {', '.join(other)}; this file's mechanism is {mechanism!r})" if other else ""
-        raise PlantFileError(f"{origin}: unknown section {unknown[0]!r}; expected one of "
+        hint = f" (a section of mechanism {', '.join(other)}; this file's mechanism is {quote(mechanism)})" if other else ""
+        raise PlantFileError(f"{origin}: unknown section {quote(unknown[0])}; expected one of "
                              f"{', '.join([*top[:2], *sections, *top[2:]])}{hint}")
     if mechanism == "linear-axis" and doc.get("coordinates", "load") != "load":
-        raise PlantFileError(f"{origin}: coordinates = {doc['coordinates']!r}; expected \"load\" (m, N)")
+        raise PlantFileError(f"{origin}: coordinates = {quote(doc['coordinates'])}; expected \"load\" (m, N)")
     values: dict[str, float] = {}
     sources: dict[str, str] = {}
     for section, keys in sections.items():
         table = doc.get(section, {})
         if not isinstance(table, Mapping):
-            raise PlantFileError(f"{origin}: {section} = {table!r}; expected a table [{section}]")
+            raise PlantFileError(f"{origin}: {section} = {quote(table)}; expected a table [{section}]")
         extra = sorted(set(table) - set(keys) - ({"command_unit"} if (mechanism, section) == ("linear-axis", "drive") else set()))
         if extra:
             full = f"{section}.{extra[0]}"
             other = [m for m in MECHANISMS if full in keys_of(m)]
-            hint = f" ({full} belongs to mechanism {', '.join(other)}; this file's mechanism is {mechanism!r})" if other else ""
+            hint = f" ({full} belongs to mechanism {', '.join(other)}; this file's mechanism is {quote(mechanism)})" if other else ""
             raise PlantFileError(
                 f"{origin}: unknown key {full}; expected one of {', '.join(f'{section}.{k}' for k in keys)}{hint}")
         for key in keys:
@@ -227,12 +228,12 @@ def _given_values(doc: Mapping[str, Any], mechanism: str, origin: str) -> tuple[
             entry = table[key]
             if not isinstance(entry, Mapping) or set(entry) != {"value", "source"}:
                 raise PlantFileError(
-                    f"{origin}: {full} = {entry!r}; expected {{ value = <number>, "
+                    f"{origin}: {full} = {quote(entry)}; expected {{ value = <number>, "
                     f'source = "<paper table/text or assumption: why>" }}'
                 )
             src = entry["source"]
             if not isinstance(src, str) or not src.strip():
-                raise PlantFileError(f"{origin}: {full}.source = {src!r}; expected a non-empty string")
+                raise PlantFileError(f"{origin}: {full}.source = {quote(src)}; expected a non-empty string")
             values[full] = _check_value(KIND[full], full, entry["value"], origin)
             sources[full] = src.strip()
     return values, sources
@@ -251,7 +252,7 @@ def _fill_defaults(values: dict[str, float], sources: dict[str, str], mechanism:
     missing = [k for k in REQUIRED[mechanism] if k not in values]
     if missing:
         raise PlantFileError(
-            f"{origin}: missing key {missing[0]}; expected it for mechanism = {mechanism!r} "
+            f"{origin}: missing key {missing[0]}; expected it for mechanism = {quote(mechanism)} "
             f"(required: {', '.join(REQUIRED[mechanism])}; every other key has a default, see prsa-tune --show-plant)")
     defaulted = set(todo)
     for _ in range(len(todo) + 1):
@@ -292,13 +293,13 @@ def _parse(doc: Mapping[str, Any], origin: str):
     and the keys defaulted."""
     name = doc.get("name")
     if not isinstance(name, str) or not name.strip():
-        raise PlantFileError(f"{origin}: name = {name!r}; expected a non-empty string")
+        raise PlantFileError(f"{origin}: name = {quote(name)}; expected a non-empty string")
     description = doc.get("description", "")
     if not isinstance(description, str):
-        raise PlantFileError(f"{origin}: description = {description!r}; expected a string")
+        raise PlantFileError(f"{origin}: description = {quote(description)}; expected a string")
     mechanism, mech_src, _ = _text_key(doc, "mechanism", MECHANISMS, DEFAULT_MECHANISM, origin)
     if "mounting" in doc and mechanism not in SCREW_DRIVEN:
-        raise PlantFileError(f"{origin}: mounting = {doc['mounting']!r} for mechanism = {mechanism!r}; expected no "
+        raise PlantFileError(f"{origin}: mounting = {quote(doc['mounting'])} for mechanism = {quote(mechanism)}; expected no "
                              f"mounting (it applies to {', '.join(SCREW_DRIVEN)})")
     values, sources = _given_values(doc, mechanism, origin)
     if mechanism in SCREW_DRIVEN and "mounting" in doc:
@@ -306,7 +307,7 @@ def _parse(doc: Mapping[str, Any], origin: str):
             raise PlantFileError(f"{origin}: both mounting and axis.fixed_ends given; expected one of them")
         mounting, m_src, _ = _text_key(doc, "mounting", tuple(MOUNTINGS), DEFAULT_MOUNTING, origin)
         values["axis.fixed_ends"] = float(MOUNTINGS[mounting])
-        sources["axis.fixed_ends"] = f"{m_src} (mounting = {mounting!r})"
+        sources["axis.fixed_ends"] = f"{m_src} (mounting = {quote(mounting)})"
     defaulted = _fill_defaults(values, sources, mechanism, origin)
     if mechanism in SCREW_DRIVEN:
         _check_screw_axis(values, origin)
@@ -415,15 +416,16 @@ class Plant:
             object.__setattr__(self, "defaulted", frozenset(self.defaulted) | {BREAKAWAY_KEY})
             if isinstance(values["friction.no_load_torque_n_m"], (int, float)):
                 values[BREAKAWAY_KEY] = values["friction.no_load_torque_n_m"]
-        object.__setattr__(self, "values", MappingProxyType(values))
-        object.__setattr__(self, "sources", MappingProxyType(dict(self.sources)))
+        object.__setattr__(self, "values", FrozenDict(values))  # read-only, and pickles (process pools)
+        object.__setattr__(self, "sources", FrozenDict(self.sources))
+        object.__setattr__(self, "uncertainty", freeze(self.uncertainty))
         object.__setattr__(self, "defaulted", frozenset(self.defaulted))
         if self.mechanism is None:
             inferred = ("linear-axis" if "axis.mass_kg" in self.values
                         else "ball-screw" if "axis.moving_mass_kg" in self.values else DEFAULT_MECHANISM)
             object.__setattr__(self, "mechanism", inferred)
         elif self.mechanism not in MECHANISMS:
-            raise PlantFileError(f"{self.origin}: mechanism = {self.mechanism!r}; expected one of "
+            raise PlantFileError(f"{self.origin}: mechanism = {quote(self.mechanism)}; expected one of "
                                  f"{', '.join(repr(m) for m in MECHANISMS)}")
         if not self.mechanism_source:
             object.__setattr__(self, "mechanism_source", "inferred from the keys")
@@ -439,7 +441,7 @@ class Plant:
     def given(self, key: str) -> bool:
         """Whether the plant file gave ``key`` (False: defaulted or derived, see ``sources``)."""
         if key not in self.values:
-            raise KeyError(f"{key!r} is not a key of this {self.mechanism} plant")
+            raise KeyError(f"{quote(key)} is not a key of this {self.mechanism} plant")
         return key not in self.defaulted
 
     # --- construction -------------------------------------------------------------------------
@@ -467,10 +469,10 @@ class Plant:
         for key, v in overrides.items():
             if key not in values:
                 raise PlantFileError(
-                    f"{self.name}: unknown parameter {key!r}; allowed: {', '.join(self.values)}"
+                    f"{self.name}: unknown parameter {quote(key)}; allowed: {', '.join(self.values)}"
                 )
             if key in self.defaulted and sources[key].startswith("derived:"):
-                raise PlantFileError(f"{self.name}: {key} = {v!r} cannot be set: it is {sources[key]}; expected a "
+                raise PlantFileError(f"{self.name}: {key} = {quote(v)} cannot be set: it is {sources[key]}; expected a "
                                      "value for the key it is derived from")
             values[key] = _check_value(KIND[key], key, v, f"{self.name} override")
             sources[key] = "override"
@@ -738,7 +740,7 @@ class Plant:
         the axial stiffness ``k`` through the lead ``a = L / 2 pi``:
         ``w^2 = k (1/m + a^2/J)``."""
         if not self.screw_driven:
-            raise ValueError(f"axial_mode_hz: mechanism = {self.mechanism!r}; expected one of {', '.join(SCREW_DRIVEN)}")
+            raise ValueError(f"axial_mode_hz: mechanism = {quote(self.mechanism)}; expected one of {', '.join(SCREW_DRIVEN)}")
         v = self.values
         j = v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"]
         k = self.axial_stiffness_n_per_m(stroke_position_mm)
@@ -890,7 +892,8 @@ def describe_plant(plant: Plant) -> str:
     >>> print(describe_plant(load_plant()).splitlines()[1])
     mechanism: inverted-roller-screw (default: inverted-roller-screw)
     """
-    lines = [f"plant {plant.name} ({plant.origin}){': ' + plant.description if plant.description else ''}",
+    lines = [f"plant {printable(plant.name)} ({printable(plant.origin)})"
+             f"{': ' + printable(plant.description) if plant.description else ''}",
              f"mechanism: {plant.mechanism} ({plant.mechanism_source})",
              "coordinates: " + ("load (position m, force N)" if plant.mechanism == "linear-axis"
                                 else "motor (angle rad, torque N m)")]
@@ -953,12 +956,12 @@ def _resolve(name_or_path: str | Path | None) -> Path | Any:
     if looks_like_path:
         path = Path(text).expanduser()
         if not path.is_file():
-            raise PlantFileError(f"plant file {text!r} not found; expected a readable .toml file")
+            raise PlantFileError(f"plant file {quote(text)} not found; expected a readable .toml file")
         return path
     res = builtin_root("prsa_ctrl.plants", "plants") / f"{text}.toml"
     if not res.is_file():
         raise PlantFileError(
-            f"unknown plant {text!r}; expected a built-in name ({', '.join(builtin_plants())}) "
+            f"unknown plant {quote(text)}; expected a built-in name ({', '.join(builtin_plants())}) "
             "or a path to a .toml file"
         )
     return res
@@ -983,9 +986,8 @@ def load_plant(name_or_path: str | Path | None = None) -> Plant:
                                            or "/" in str(name_or_path) or "\\" in str(name_or_path))
     origin = f"{src.name} (built-in)" if builtin else str(src)
     try:
-        doc = tomllib.loads(src.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
+        text = src.read_text(encoding="utf-8-sig")  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise PlantFileError(f"{origin}: cannot be read ({exc}); expected a UTF-8 TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise PlantFileError(f"{origin}: invalid TOML ({exc})") from None
+    doc = read_toml(text, origin, PlantFileError)
     return Plant.from_dict(doc, origin=origin)

@@ -63,6 +63,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ..textsafe import quote
 from ..errors import GeometryWarning, PlantFileError, SceneError
 from .schema import KIND
 
@@ -121,7 +122,7 @@ class Uncertain:
 
 def _number(origin: str, where: str, value: Any, err: type[ValueError]) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise err(f"{origin}: {where} = {value!r}; expected a finite number")
+        raise err(f"{origin}: {where} = {quote(value)}; expected a finite number")
     return float(value)
 
 
@@ -149,12 +150,12 @@ def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileErro
         Naming the file (``origin``), the key and what was expected.
     """
     if not isinstance(table, Mapping):
-        raise err(f"{origin}: [uncertainty] = {table!r}; expected a table of 'section.key' = {{ dist = ... }}")
+        raise err(f"{origin}: [uncertainty] = {quote(table)}; expected a table of 'section.key' = {{ dist = ... }}")
     out: dict[str, Any] = {}
     flat = _flatten(table)
     corr = flat.pop(CORRELATION_KEY, None)
     for key, entry in flat.items():
-        where = f"uncertainty.{key!r}"
+        where = f"uncertainty.{quote(key)}"
         if key not in KIND:
             raise err(f"{origin}: unknown key {where}; expected a plant parameter 'section.key' "
                       f"(e.g. 'nut.inertia_kg_m2')")
@@ -162,29 +163,29 @@ def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileErro
             raise err(f"{origin}: {where}: {key} is an integer parameter; expected a continuous one "
                       "(integer keys cannot be uncertain)")
         if not isinstance(entry, Mapping):
-            raise err(f"{origin}: {where} = {entry!r}; expected {{ dist = \"uniform\"|\"normal\"|\"loguniform\", "
+            raise err(f"{origin}: {where} = {quote(entry)}; expected {{ dist = \"uniform\"|\"normal\"|\"loguniform\", "
                       "..., source = \"...\" }")
         dist = entry.get("dist")
         if dist not in DISTRIBUTIONS:
-            raise err(f"{origin}: {where}.dist = {dist!r}; expected one of {', '.join(DISTRIBUTIONS)}")
+            raise err(f"{origin}: {where}.dist = {quote(dist)}; expected one of {', '.join(DISTRIBUTIONS)}")
         required, optional = DISTRIBUTIONS[dist]
         extra = sorted(set(entry) - {"dist", "source", *required, *optional})
         if extra:
-            raise err(f"{origin}: {where}: unknown field {extra[0]!r} for dist = {dist!r}; expected "
+            raise err(f"{origin}: {where}: unknown field {quote(extra[0])} for dist = {quote(dist)}; expected "
                       f"{', '.join(['source', *required, *optional])}")
         src = entry.get("source")
         if not isinstance(src, str) or not src.strip():
-            raise err(f"{origin}: {where}.source = {src!r}; expected a non-empty string "
+            raise err(f"{origin}: {where}.source = {quote(src)}; expected a non-empty string "
                       "(paper, \"assumption: why\", \"estimate: why\", \"fit: file\")")
         for r in required:
             if r not in entry:
-                raise err(f"{origin}: {where}: missing {r!r}; dist = {dist!r} needs {', '.join(required)}")
+                raise err(f"{origin}: {where}: missing {quote(r)}; dist = {quote(dist)} needs {', '.join(required)}")
         nums = {k: _number(origin, f"{where}.{k}", v, err) for k, v in entry.items() if k not in ("dist", "source")}
         if dist == "uniform":
             if ("relative" in nums) == ("low" in nums or "high" in nums):
                 raise err(f"{origin}: {where}: expected either relative = r or low and high for dist = 'uniform'")
             if "relative" in nums and not 0 <= nums["relative"] < 1:
-                raise err(f"{origin}: {where}.relative = {entry['relative']!r}; expected a relative half-width in [0, 1)")
+                raise err(f"{origin}: {where}.relative = {quote(entry['relative'])}; expected a relative half-width in [0, 1)")
             if "relative" not in nums and not ("low" in nums and "high" in nums):
                 raise err(f"{origin}: {where}: expected both low and high for dist = 'uniform'")
         if dist == "normal":
@@ -192,13 +193,13 @@ def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileErro
                 raise err(f"{origin}: {where}: expected exactly one of sigma, relative_sigma for dist = 'normal'")
             s_key = "sigma" if "sigma" in nums else "relative_sigma"
             if nums[s_key] <= 0:
-                raise err(f"{origin}: {where}.{s_key} = {entry[s_key]!r}; expected a positive standard deviation")
+                raise err(f"{origin}: {where}.{s_key} = {quote(entry[s_key])}; expected a positive standard deviation")
             if not 0 < nums["truncate"] <= 6:
-                raise err(f"{origin}: {where}.truncate = {entry['truncate']!r}; expected a bound in sigmas in (0, 6]")
+                raise err(f"{origin}: {where}.truncate = {quote(entry['truncate'])}; expected a bound in sigmas in (0, 6]")
         if dist == "loguniform" and not nums["low"] > 0:
-            raise err(f"{origin}: {where}.low = {entry['low']!r}; expected a positive value (loguniform)")
+            raise err(f"{origin}: {where}.low = {quote(entry['low'])}; expected a positive value (loguniform)")
         if "low" in nums and "high" in nums and not nums["low"] < nums["high"]:
-            raise err(f"{origin}: {where}: low = {entry['low']!r} >= high = {entry['high']!r}; expected low < high")
+            raise err(f"{origin}: {where}: low = {quote(entry['low'])} >= high = {quote(entry['high'])}; expected low < high")
         out[key] = {"dist": dist, "source": src.strip(), **nums}
     if corr is not None:
         out[CORRELATION_KEY] = _parse_correlation(corr, out, origin, err)
@@ -211,59 +212,59 @@ def _parse_correlation(raw: Any, entries: Mapping[str, Any], origin: str, err) -
     function accepts again."""
     blocks = raw if isinstance(raw, list) else [raw]
     if not blocks:
-        raise err(f"{origin}: uncertainty.correlation = {raw!r}; expected a table {{ keys = [...], matrix = [[...]], "
+        raise err(f"{origin}: uncertainty.correlation = {quote(raw)}; expected a table {{ keys = [...], matrix = [[...]], "
                   "source = \"...\" } or an array of such tables")
     seen: dict[str, int] = {}
     out = []
     for b, block in enumerate(blocks):
         where = "uncertainty.correlation" + (f"[{b}]" if isinstance(raw, list) else "")
         if not isinstance(block, Mapping):
-            raise err(f"{origin}: {where} = {block!r}; expected a table {{ keys = [...], matrix = [[...]], source = \"...\" }}")
+            raise err(f"{origin}: {where} = {quote(block)}; expected a table {{ keys = [...], matrix = [[...]], source = \"...\" }}")
         extra = sorted(set(block) - {"keys", "matrix", "source"})
         if extra:
-            raise err(f"{origin}: {where}: unknown field {extra[0]!r}; expected keys, matrix, source")
+            raise err(f"{origin}: {where}: unknown field {quote(extra[0])}; expected keys, matrix, source")
         missing = [f for f in ("keys", "matrix", "source") if f not in block]
         if missing:
-            raise err(f"{origin}: {where}: missing {missing[0]!r}; expected {{ keys = [...], matrix = [[...]], "
+            raise err(f"{origin}: {where}: missing {quote(missing[0])}; expected {{ keys = [...], matrix = [[...]], "
                       "source = \"...\" }")
         keys, matrix, src = block["keys"], block["matrix"], block["source"]
         if not isinstance(src, str) or not src.strip():
-            raise err(f"{origin}: {where}.source = {src!r}; expected a non-empty string (\"fit: file\", \"estimate: why\")")
+            raise err(f"{origin}: {where}.source = {quote(src)}; expected a non-empty string (\"fit: file\", \"estimate: why\")")
         if not isinstance(keys, list) or len(keys) < 2 or not all(isinstance(k, str) for k in keys):
-            raise err(f"{origin}: {where}.keys = {keys!r}; expected a list of at least two 'section.key' names")
+            raise err(f"{origin}: {where}.keys = {quote(keys)}; expected a list of at least two 'section.key' names")
         for k in keys:
             if k not in entries:
-                raise err(f"{origin}: {where}.keys: {k!r} has no entry of its own in [uncertainty]; expected every "
+                raise err(f"{origin}: {where}.keys: {quote(k)} has no entry of its own in [uncertainty]; expected every "
                           "correlated key to have its distribution in the same table")
             if k in seen:
-                raise err(f"{origin}: {where}.keys: {k!r} appears twice" + ("" if seen[k] == b else " (in two blocks)")
+                raise err(f"{origin}: {where}.keys: {quote(k)} appears twice" + ("" if seen[k] == b else " (in two blocks)")
                           + "; expected each key once")
             seen[k] = b
         n = len(keys)
         if (not isinstance(matrix, list) or len(matrix) != n
                 or not all(isinstance(row, list) and len(row) == n for row in matrix)):
-            raise err(f"{origin}: {where}.matrix = {matrix!r}; expected a square {n} x {n} array (one row per key)")
+            raise err(f"{origin}: {where}.matrix = {quote(matrix)}; expected a square {n} x {n} array (one row per key)")
         m = np.array([[_number(origin, f"{where}.matrix[{i}][{j}]", x, err) for j, x in enumerate(row)]
                       for i, row in enumerate(matrix)])
         for i in range(n):
             if abs(m[i, i] - 1.0) > SYMMETRY_TOLERANCE:
-                raise err(f"{origin}: {where}.matrix[{i}][{i}] = {matrix[i][i]!r}; expected 1 (a correlation's diagonal)")
+                raise err(f"{origin}: {where}.matrix[{i}][{i}] = {quote(matrix[i][i])}; expected 1 (a correlation's diagonal)")
             for j in range(n):
                 if abs(m[i, j]) > 1.0:
-                    raise err(f"{origin}: {where}.matrix[{i}][{j}] = {matrix[i][j]!r}; expected a correlation in [-1, 1]")
+                    raise err(f"{origin}: {where}.matrix[{i}][{j}] = {quote(matrix[i][j])}; expected a correlation in [-1, 1]")
                 if abs(m[i, j] - m[j, i]) > SYMMETRY_TOLERANCE:
-                    raise err(f"{origin}: {where}.matrix[{i}][{j}] = {matrix[i][j]!r} but [{j}][{i}] = {matrix[j][i]!r}; "
+                    raise err(f"{origin}: {where}.matrix[{i}][{j}] = {quote(matrix[i][j])} but [{j}][{i}] = {quote(matrix[j][i])}; "
                               "expected a symmetric matrix")
         low = float(np.linalg.eigvalsh(0.5 * (m + m.T)).min())
         if low < -PSD_TOLERANCE:
-            raise err(f"{origin}: {where}.matrix = {matrix!r} has the eigenvalue {low:.3g}; expected a positive "
+            raise err(f"{origin}: {where}.matrix = {quote(matrix)} has the eigenvalue {low:.3g}; expected a positive "
                       f"semi-definite correlation (eigenvalues >= -{PSD_TOLERANCE:g})")
         out.append({"keys": list(keys), "matrix": [[float(x) for x in row] for row in m], "source": src.strip()})
     return out
 
 
 def _resolve(key: str, entry: Mapping[str, Any], nominal: float, origin: str, err) -> Uncertain:
-    where = f"uncertainty.{key!r}"
+    where = f"uncertainty.{quote(key)}"
     dist = entry["dist"]
     sigma = 0.0
     if dist == "uniform" and "relative" in entry:
@@ -390,7 +391,7 @@ class UncertaintyModel:
                                          "source": c.source}
         for note in self.notes:
             for k in out:
-                if f"{k!r}" in note.split(":", 1)[0]:
+                if f"{quote(k)}" in note.split(":", 1)[0]:
                     out[k]["correlation_note"] = note
         return out
 
@@ -399,7 +400,7 @@ def _build(entries: Mapping[str, Any], plant, origin: str, err, notes: Sequence[
     unc = []
     for key in sorted(k for k in entries if k != CORRELATION_KEY):
         if key not in plant.values:
-            raise err(f"{origin}: unknown key uncertainty.{key!r}; the plant {plant.name!r} has no such parameter")
+            raise err(f"{origin}: unknown key uncertainty.{quote(key)}; the plant {quote(plant.name)} has no such parameter")
         unc.append(_resolve(key, entries[key], float(plant.values[key]), origin, err))
     corr = tuple(Correlation(tuple(b["keys"]), tuple(tuple(r) for r in b["matrix"]), b["source"])
                  for b in entries.get(CORRELATION_KEY, ()))
@@ -413,7 +414,7 @@ def _build(entries: Mapping[str, Any], plant, origin: str, err, notes: Sequence[
                 try:
                     plant.with_params({e.key: v})
                 except PlantFileError as exc:
-                    raise err(f"{origin}: uncertainty.{e.key!r} = {v:g} (end of its {e.dist} support) makes an "
+                    raise err(f"{origin}: uncertainty.{quote(e.key)} = {v:g} (end of its {e.dist} support) makes an "
                               f"invalid plant: {str(exc).split(': ', 1)[-1]}; expected a narrower distribution") from None
         _check_joint(unc, plant, origin, err)
     return model
@@ -441,7 +442,7 @@ def _check_joint(unc: Sequence[Uncertain], plant, origin: str, err) -> None:
                 try:
                     plant.with_params(vals)
                 except PlantFileError as exc:
-                    which = " with ".join(f"uncertainty.{unc[i].key!r} = {unc[i].low:g}..{unc[i].high:g}" for i in idx)
+                    which = " with ".join(f"uncertainty.{quote(unc[i].key)} = {unc[i].low:g}..{unc[i].high:g}" for i in idx)
                     at = ", ".join(f"{k} = {v:g}" for k, v in vals.items())
                     raise err(f"{origin}: {which}: together they reach an invalid plant at {at}: "
                               f"{str(exc).split(': ', 1)[-1]}; expected supports that are valid together "
@@ -737,27 +738,27 @@ def parse_scene_sections(doc: Mapping[str, Any], origin: str) -> dict[str, dict[
     if "spec" in doc:
         table = doc["spec"]
         if not isinstance(table, Mapping):
-            raise SceneError(f"{origin}: [spec] = {table!r}; expected a table of bounds")
+            raise SceneError(f"{origin}: [spec] = {quote(table)}; expected a table of bounds")
         spec: dict[str, Any] = {}
         for k, v in table.items():
             if k == "no_saturation":
                 if not isinstance(v, bool):
-                    raise SceneError(f"{origin}: spec.no_saturation = {v!r}; expected true or false")
+                    raise SceneError(f"{origin}: spec.no_saturation = {quote(v)}; expected true or false")
                 spec[k] = v
                 continue
             if k not in SPEC_BOUNDS:
                 raise SceneError(f"{origin}: unknown key spec.{k}; expected one of "
                                  f"{', '.join(f'spec.{b}' for b in (*SPEC_BOUNDS, 'no_saturation'))}")
             if not _pos(v):
-                raise SceneError(f"{origin}: spec.{k} = {v!r}; expected a positive upper bound ({SPEC_BOUNDS[k]})")
+                raise SceneError(f"{origin}: spec.{k} = {quote(v)}; expected a positive upper bound ({SPEC_BOUNDS[k]})")
             if k in ("ms", "mt") and not v > 1.0 - (k == "mt") * 0.5:
-                raise SceneError(f"{origin}: spec.{k} = {v!r}; expected a bound > {1.0 if k == 'ms' else 0.5:g}")
+                raise SceneError(f"{origin}: spec.{k} = {quote(v)}; expected a bound > {1.0 if k == 'ms' else 0.5:g}")
             spec[k] = float(v)
         out["spec"] = spec
     if "robust" in doc:
         table = doc["robust"]
         if not isinstance(table, Mapping):
-            raise SceneError(f"{origin}: [robust] = {table!r}; expected a table")
+            raise SceneError(f"{origin}: [robust] = {quote(table)}; expected a table")
         rob: dict[str, Any] = {}
         for k, v in table.items():
             if k not in _ROBUST_KEYS:
@@ -765,7 +766,7 @@ def parse_scene_sections(doc: Mapping[str, Any], origin: str) -> dict[str, dict[
                                  f"{', '.join(f'robust.{r}' for r in _ROBUST_KEYS)}")
             typ, check, expected = _ROBUST_KEYS[k]
             if not isinstance(v, typ) or (typ is int and isinstance(v, bool)) or not check(v):
-                raise SceneError(f"{origin}: robust.{k} = {v!r}; expected {expected}")
+                raise SceneError(f"{origin}: robust.{k} = {quote(v)}; expected {expected}")
             rob[k] = [float(x) for x in v] if typ is list else v
         out["robust"] = rob
     if "uncertainty" in doc:

@@ -46,6 +46,7 @@ from ..drive.motion import MotionProfile
 from ..drive.pid import PID, pid_law
 from ..errors import SimulationError
 from ..options import SETPOINT_RAD_S
+from ..results import freeze
 from ..plant.equilibrium import operating_point
 from ..plant.model import PlantModel, plant_model
 from ..plant.plantfile import Plant
@@ -210,6 +211,16 @@ class SimRun:
     energy: dict | None = None
     input_labels: tuple[str, ...] = INPUT_LABELS
     sysname: str = ""
+
+    def __post_init__(self) -> None:
+        # a frozen result: arrays read-only, info and energy read-only mappings
+        for name in ("time", "outputs", "states", "inputs", "info", "energy"):
+            object.__setattr__(self, name, freeze(getattr(self, name)))
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickled (process pools) read-only as built: pickle does not keep an array's flags."""
+        for name, value in state.items():
+            object.__setattr__(self, name, freeze(value))
 
     def output(self, name: str) -> NDArray[np.float64]:
         """The output row ``name``."""

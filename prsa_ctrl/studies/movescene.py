@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+from ..textsafe import quote
 from ..drive.motion import PROFILE_KINDS, MotionProfile, out_and_back, plan
 from ..errors import SceneError
 from ..options import MS_MAX_DEFAULT, PEAK_BOUND_RANGE, check_peak_bound
@@ -165,9 +166,9 @@ def _check(origin: str, section: str, key: str, val: Any, spec: tuple[type, str]
     if typ is float and isinstance(val, int) and not isinstance(val, bool):
         val = float(val)
     if not isinstance(val, typ) or isinstance(val, bool):
-        raise SceneError(f"{origin}: {section}.{key} = {val!r}; expected {expected}")
+        raise SceneError(f"{origin}: {section}.{key} = {quote(val)}; expected {expected}")
     if typ is float and not math.isfinite(val):
-        raise SceneError(f"{origin}: {section}.{key} = {val!r}; expected {expected}")
+        raise SceneError(f"{origin}: {section}.{key} = {quote(val)}; expected {expected}")
     return val
 
 
@@ -190,13 +191,13 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
     allowed = {"name", "description", "move", "cascade"}
     unknown = sorted(set(doc) - allowed)
     if unknown:
-        raise SceneError(f"{origin}: unknown section {unknown[0]!r} in a move scene; expected move, cascade")
+        raise SceneError(f"{origin}: unknown section {quote(unknown[0])} in a move scene; expected move, cascade")
     kw: dict[str, Any] = {"origin": origin, "name": doc.get("name", Path(origin.split(" ")[0]).stem)}
     if not isinstance(kw["name"], str):
-        raise SceneError(f"{origin}: name = {kw['name']!r}; expected a string")
+        raise SceneError(f"{origin}: name = {quote(kw['name'])}; expected a string")
     if "description" in doc:
         if not isinstance(doc["description"], str):
-            raise SceneError(f"{origin}: description = {doc['description']!r}; expected a string")
+            raise SceneError(f"{origin}: description = {quote(doc['description'])}; expected a string")
         kw["description"] = doc["description"]
     for section, keys in (("move", _MOVE_KEYS), ("cascade", _CASCADE_KEYS)):
         table = doc.get(section, {})
@@ -214,7 +215,7 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
 
     def bad(section: str, key: str) -> SceneError:
         spec = (_MOVE_KEYS if section == "move" else _CASCADE_KEYS)[key]
-        return SceneError(f"{origin}: {section}.{key} = {kw[key]!r}; expected {spec[1]}")
+        return SceneError(f"{origin}: {section}.{key} = {quote(kw[key])}; expected {spec[1]}")
 
     if kw["profile"] not in PROFILE_KINDS:
         raise bad("move", "profile")
@@ -226,7 +227,7 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
     if kw["profile"] == "s-curve" and "jerk_m_s3" not in kw:
         raise SceneError(f"{origin}: move.jerk_m_s3 missing; expected a jerk > 0 in m/s^3 for profile = 's-curve'")
     if kw["profile"] == "trapezoidal" and "jerk_m_s3" in kw:
-        raise SceneError(f"{origin}: move.jerk_m_s3 = {kw['jerk_m_s3']!r} with profile = 'trapezoidal'; expected no "
+        raise SceneError(f"{origin}: move.jerk_m_s3 = {quote(kw['jerk_m_s3'])} with profile = 'trapezoidal'; expected no "
                          "jerk (a trapezoidal move has infinite jerk) or profile = 's-curve'")
     for key in ("start_s", "return_dwell_s"):
         if kw.get(key, 0.0) < 0:
@@ -260,7 +261,7 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
     sc = MoveScene(**kw)
     m = sc.motion()
     if sc.load_time_s is not None and not (m.t0[0] <= sc.load_time_s <= m.end_time):
-        raise SceneError(f"{origin}: move.load_time_s = {sc.load_time_s!r}; expected a time in s inside the move "
+        raise SceneError(f"{origin}: move.load_time_s = {quote(sc.load_time_s)}; expected a time in s inside the move "
                          f"[{m.t0[0]:.6g}, {m.end_time:.6g}]")
     return sc
 
@@ -291,7 +292,7 @@ def load_move_scene(name_or_path: "str | Path") -> MoveScene:
     try:
         reader, origin, _ = locate_scene(name_or_path)
     except SceneError:
-        raise SceneError(f"scene {str(name_or_path)!r} not found; expected a built-in name or a readable "
+        raise SceneError(f"scene {quote(str(name_or_path))} not found; expected a built-in name or a readable "
                          ".toml file") from None
     doc = read_scene_doc(reader, origin)
     if "move" not in doc:

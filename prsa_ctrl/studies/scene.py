@@ -43,6 +43,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
+from ..textsafe import quote
 from ..errors import SceneError
 from ..options import (AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE,
                        RIGID_RELATIVE_ERROR)
@@ -211,7 +212,7 @@ class Scene:
         o = self.origin
 
         def bad(key: str, value: Any, expected: str) -> SceneError:
-            return SceneError(f"{o}: {key} = {value!r}; expected {expected}")
+            return SceneError(f"{o}: {key} = {quote(value)}; expected {expected}")
 
         def finite(key: str, value: Any) -> float:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -371,7 +372,7 @@ class Scene:
         allowed = {f.name for f in fields(self)}
         unknown = sorted(set(changes) - allowed)
         if unknown:
-            raise SceneError(f"unknown scene field {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
+            raise SceneError(f"unknown scene field {quote(unknown[0])}; allowed: {', '.join(sorted(allowed))}")
         return replace(self, **changes)
 
     def as_dict(self) -> dict[str, Any]:
@@ -392,17 +393,17 @@ def _check_points(points: Any, where: str, unit: str) -> tuple[tuple[float, floa
     try:
         pts = tuple((float(t), float(v)) for t, v in points)
     except (TypeError, ValueError):
-        raise SceneError(f"{where} = {points!r}; expected (time_s, value) pairs") from None
+        raise SceneError(f"{where} = {quote(points)}; expected (time_s, value) pairs") from None
     if len(pts) < 2 or len(pts) > 2 * MAX_PROFILE_ROWS:
         raise SceneError(f"{where}: {len(pts)} points; expected 2 to {MAX_PROFILE_ROWS} rows")
     for i, (t, v) in enumerate(pts):
         if not (math.isfinite(t) and math.isfinite(v)):
-            raise SceneError(f"{where}: point {i + 1} = ({t!r}, {v!r}); expected a finite time (s) and value ({unit})")
+            raise SceneError(f"{where}: point {i + 1} = ({quote(t)}, {quote(v)}); expected a finite time (s) and value ({unit})")
     if pts[0][0] != 0.0:
-        raise SceneError(f"{where}: first time {pts[0][0]!r} s; expected 0 (the record starts in steady state)")
+        raise SceneError(f"{where}: first time {quote(pts[0][0])} s; expected 0 (the record starts in steady state)")
     for i in range(1, len(pts)):
         if pts[i][0] < pts[i - 1][0] or (i >= 2 and pts[i][0] == pts[i - 1][0] == pts[i - 2][0]):
-            raise SceneError(f"{where}: point {i + 1} at {pts[i][0]!r} s after {pts[i - 1][0]!r} s; "
+            raise SceneError(f"{where}: point {i + 1} at {quote(pts[i][0])} s after {quote(pts[i - 1][0])} s; "
                              "expected increasing times (one repeated time = a step)")
     return pts
 
@@ -440,7 +441,7 @@ def profile_rows(rows: Any, where: str, scale: float = 1.0) -> tuple[tuple[float
     ((0.0, 500.0), (0.1, 500.0), (0.2, 1500.0), (0.3, 1500.0), (0.3, 800.0))
     """
     if not isinstance(rows, list) or len(rows) < 2:
-        raise SceneError(f"{where} = {rows!r}; expected a list of at least 2 rows [t_s, value] or [t_s, value, \"step\"]")
+        raise SceneError(f"{where} = {quote(rows)}; expected a list of at least 2 rows [t_s, value] or [t_s, value, \"step\"]")
     if len(rows) > MAX_PROFILE_ROWS:
         raise SceneError(f"{where}: {len(rows)} rows; expected at most {MAX_PROFILE_ROWS}")
     pts: list[tuple[float, float]] = []
@@ -450,16 +451,16 @@ def profile_rows(rows: Any, where: str, scale: float = 1.0) -> tuple[tuple[float
             isinstance(x, (int, float)) and not isinstance(x, bool) for x in row[:2]) and (
             len(row) == 2 or row[2] == "step")
         if not ok:
-            raise SceneError(f"{where}: row {i} = {row!r}; expected [t_s, value] (ramp to value at t_s) or "
+            raise SceneError(f"{where}: row {i} = {quote(row)}; expected [t_s, value] (ramp to value at t_s) or "
                              "[t_s, value, \"step\"] (step to value at t_s)")
         t, v = float(row[0]), float(row[1]) * scale
         if not (math.isfinite(t) and math.isfinite(v)):
-            raise SceneError(f"{where}: row {i} = {row!r}; expected finite numbers")
+            raise SceneError(f"{where}: row {i} = {quote(row)}; expected finite numbers")
         if i == 1:
             if t != 0.0 or len(row) == 3:
-                raise SceneError(f"{where}: row 1 = {row!r}; expected [0, value] (the steady state the record starts in)")
+                raise SceneError(f"{where}: row 1 = {quote(row)}; expected [0, value] (the steady state the record starts in)")
         elif t <= prev_t:
-            raise SceneError(f"{where}: row {i} = {row!r}: time {t:g} s after {prev_t:g} s; expected strictly increasing times")
+            raise SceneError(f"{where}: row {i} = {quote(row)}: time {t:g} s after {prev_t:g} s; expected strictly increasing times")
         if len(row) == 3:
             pts.append((t, pts[-1][1]))
         pts.append((t, v))
@@ -498,15 +499,15 @@ def read_trace_csv(path: Path, column: str, where: str, scale: float = 1.0,
     try:
         size = path.stat().st_size
         if not path.is_file():
-            raise SceneError(f"{where}: {str(path)!r} is not a regular file; expected a CSV file")
+            raise SceneError(f"{where}: {quote(str(path))} is not a regular file; expected a CSV file")
         if size > MAX_TRACE_BYTES:
             raise SceneError(f"{where}: {name} has {size} bytes; expected at most {MAX_TRACE_BYTES} bytes "
                              f"({MAX_PROFILE_ROWS} rows): resample the trace")
         fh = path.open(encoding="utf-8-sig", newline="")  # utf-8-sig: a byte-order mark (Excel) is dropped
     except FileNotFoundError:
-        raise SceneError(f"{where}: file {str(path)!r} not found; expected a CSV file next to the scene") from None
+        raise SceneError(f"{where}: file {quote(str(path))} not found; expected a CSV file next to the scene") from None
     except OSError as exc:
-        raise SceneError(f"{where}: {str(path)!r} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
+        raise SceneError(f"{where}: {quote(str(path))} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
     lo_ok = (lambda v: v >= 0.0, "loads >= 0 N (compressive)") if column == "axial_load_n" else (
         lambda v: 0.0 < v <= SETPOINT_MAX_RPM, f"nut speeds in (0, {SETPOINT_MAX_RPM:g}] rpm")
     pts: list[tuple[float, float]] = []
@@ -524,8 +525,8 @@ def read_trace_csv(path: Path, column: str, where: str, scale: float = 1.0,
                         continue
                     header = [h.strip() for h in row]
                     if "time_s" not in header or column not in header:
-                        raise SceneError(f"{where}: {name} line {j}: header {','.join(header)!r}; expected columns "
-                                         f"'time_s' and {column!r}")
+                        raise SceneError(f"{where}: {name} line {j}: header {quote(','.join(header))}; expected columns "
+                                         f"'time_s' and {quote(column)}")
                     it, iv = header.index("time_s"), header.index(column)
                     continue
                 if not row or all(not c.strip() for c in row):
@@ -533,8 +534,8 @@ def read_trace_csv(path: Path, column: str, where: str, scale: float = 1.0,
                 try:
                     t, v = float(row[it]), float(row[iv])
                 except (IndexError, ValueError):
-                    raise SceneError(f"{where}: {name} line {j}: {','.join(row)!r}; expected numbers in 'time_s' and "
-                                     f"{column!r}") from None
+                    raise SceneError(f"{where}: {name} line {j}: {quote(','.join(row))}; expected numbers in 'time_s' and "
+                                     f"{quote(column)}") from None
                 if not (math.isfinite(t) and math.isfinite(v)):
                     raise SceneError(f"{where}: {name} line {j}: time_s = {row[it].strip()}, {column} = "
                                      f"{row[iv].strip()}; expected finite numbers")
@@ -549,7 +550,7 @@ def read_trace_csv(path: Path, column: str, where: str, scale: float = 1.0,
                 pts.append((t, v * scale))
                 typed.append((j, row[iv].strip()))
     except UnicodeDecodeError as exc:
-        raise SceneError(f"{where}: {str(path)!r} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
+        raise SceneError(f"{where}: {quote(str(path))} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
     except csv.Error as exc:
         raise SceneError(f"{where}: {name} cannot be parsed as CSV ({exc}); expected comma-separated rows") from None
     if header is None:
@@ -574,14 +575,14 @@ def _trace_point(scene: "Scene", key: str, index: int) -> str | None:
 def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
     unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description", "spec", "robust", "uncertainty", "filters"})
     if unknown:
-        raise SceneError(f"{origin}: unknown section {unknown[0]!r}; expected one of "
+        raise SceneError(f"{origin}: unknown section {quote(unknown[0])}; expected one of "
                          f"{', '.join([*_SECTIONS, 'spec', 'robust', 'uncertainty', 'filters'])}")
     kw: dict[str, Any] = {"origin": origin}
     if "filters" in doc:
         kw["filters"], kw["filter_labels"] = parse_filters(doc["filters"], origin)
     if "name" in doc:
         if not isinstance(doc["name"], str):
-            raise SceneError(f"{origin}: name = {doc['name']!r}; expected a string")
+            raise SceneError(f"{origin}: name = {quote(doc['name'])}; expected a string")
         kw["name"] = doc["name"]
     for section, keys in _SECTIONS.items():
         table = doc.get(section, {})
@@ -601,7 +602,7 @@ def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
             if typ is float and isinstance(val, int) and not isinstance(val, bool):
                 val, ok = float(val), True
             if not ok:
-                raise SceneError(f"{origin}: {section}.{key} = {val!r}; expected a {typ.__name__}")
+                raise SceneError(f"{origin}: {section}.{key} = {quote(val)}; expected a {typ.__name__}")
             kw[key] = val
     mapping = {
         "setpoint_rpm": ("setpoint_rad_s", lambda v: v * math.pi / 30.0),
@@ -615,7 +616,7 @@ def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
     _duty_from_doc(kw, origin, base)
     rpm = kw.get("setpoint_rpm")
     if rpm is not None and not (math.isfinite(rpm) and 0 < rpm <= SETPOINT_MAX_RPM):
-        raise SceneError(f"{origin}: operating.setpoint_rpm = {rpm!r}; expected a nut speed in (0, {SETPOINT_MAX_RPM:g}] rpm")
+        raise SceneError(f"{origin}: operating.setpoint_rpm = {quote(rpm)}; expected a nut speed in (0, {SETPOINT_MAX_RPM:g}] rpm")
     for old, (new, conv) in mapping.items():
         if old in kw:
             kw[new] = conv(kw.pop(old))
@@ -640,7 +641,7 @@ def _duty_from_doc(kw: dict, origin: str, base: Any) -> None:
             kw[field_name] = profile_rows(rows, f"{origin}: operating.{rows_key}", scale)
             sources.append(f"{what}: {len(rows)} rows in the scene")
         elif csv_name is not None:
-            where = f"{origin}: operating.{csv_key} = {csv_name!r}"
+            where = f"{origin}: operating.{csv_key} = {quote(csv_name)}"
             if base is None or not csv_name.strip():
                 raise SceneError(f"{where}: expected a CSV path relative to a scene file")
             path = Path(csv_name)
@@ -772,7 +773,7 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
     def label(name: str, value: Any) -> str:
         if name in typed:
             return typed[name]
-        return f"{scene.origin}: {keys[name]} = {value}"
+        return f"{scene.origin}: {keys[name]} = {value if isinstance(value, str) else quote(value)}"
 
     ts = plant.sample_time_s
     check_filters_against_plant(scene.filters, scene.filter_labels, ts, plant.name)

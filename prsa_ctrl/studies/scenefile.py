@@ -9,11 +9,12 @@ section is a move scene (:func:`is_move_scene`).
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any
 
+from ..textsafe import quote
 from ..errors import SceneError
+from ..tomlfile import read_toml
 from ..plant.plantfile import builtin_root
 
 __all__ = ["DEFAULT_SCENE", "SETPOINT_MAX_RPM", "STICTION_MARGIN", "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES",
@@ -82,12 +83,12 @@ def locate_scene(name_or_path: str | Path | None = None) -> tuple[Any, str, Any]
     if _is_path(name_or_path if name_or_path is not None else text):
         path = Path(text).expanduser()
         if not path.is_file():
-            raise SceneError(f"scene file {text!r} not found; expected a readable .toml file")
+            raise SceneError(f"scene file {quote(text)} not found; expected a readable .toml file")
         return path, str(path), path.parent
     root = scene_root()
     reader = root / f"{text}.toml"
     if not reader.is_file():
-        raise SceneError(f"unknown scene {text!r}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
+        raise SceneError(f"unknown scene {quote(text)}; expected a built-in name ({', '.join(builtin_scenes())}) or a .toml path")
     return reader, f"{text}.toml (built-in)", root
 
 
@@ -100,11 +101,10 @@ def read_scene_doc(reader: Any, origin: str) -> dict:
         Unreadable file or invalid TOML, naming ``origin``.
     """
     try:
-        return tomllib.loads(reader.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is dropped
+        text = reader.read_text(encoding="utf-8-sig")  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"{origin}: invalid TOML ({exc})") from None
+    return read_toml(text, origin, SceneError)
 
 
 def is_move_scene(name_or_path: str | Path | None) -> bool:

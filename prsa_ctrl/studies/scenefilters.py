@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from typing import Any, Mapping
 
+from ..textsafe import quote
 from ..drive.filters import NYQUIST_MARGIN, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
 from ..errors import SceneError
 
@@ -71,9 +72,9 @@ def filter_entry(kind: str, values: Mapping[str, Any], where: str, sep: str = ".
         One line naming the entry, the key and the value as given, and what was expected.
     """
     if kind not in FILTER_KEYS:
-        raise SceneError(f"{where}: filter kind {kind!r}; expected notch or lowpass")
+        raise SceneError(f"{where}: filter kind {quote(kind)}; expected notch or lowpass")
     if not isinstance(values, Mapping):
-        raise SceneError(f"{where} = {values!r}; expected a table of {', '.join(FILTER_KEYS[kind])}")
+        raise SceneError(f"{where} = {quote(values)}; expected a table of {', '.join(FILTER_KEYS[kind])}")
     typed = dict(typed or {})
 
     def shown(key: str) -> str:
@@ -135,10 +136,10 @@ def scene_filters(scene: Any) -> tuple[tuple[LoopFilter, ...], tuple[str, ...]]:
         raise SceneError(f"{scene.origin}: filters: {exc}") from None
     labels = tuple(scene.filter_labels)
     if len(labels) != len(filters):
-        labels = tuple(f"{scene.origin}: filters[{i}] at {lf.filter.characteristic_hz!r} Hz"
+        labels = tuple(f"{scene.origin}: filters[{i}] at {quote(lf.filter.characteristic_hz)} Hz"
                        for i, lf in enumerate(filters, start=1))
     if filters and scene.estimator != "none":
-        raise SceneError(f"{scene.origin}: estimator = {scene.estimator!r} with filters; expected estimator none "
+        raise SceneError(f"{scene.origin}: estimator = {quote(scene.estimator)} with filters; expected estimator none "
                          "(the Kalman-filter loop has no loop filters)")
     if filters and not scene.discrete:
         raise SceneError(f"{scene.origin}: discrete = false with filters; expected discrete = true (the filters "
@@ -163,14 +164,14 @@ def parse_filters(table: Any, origin: str) -> tuple[tuple[LoopFilter, ...], tupl
         frequency as written (``"<origin>: filters.notch[1].centre_hz = 163.0"``).
     """
     if not isinstance(table, Mapping):
-        raise SceneError(f"{origin}: filters = {table!r}; expected a table with [[filters.notch]] and/or "
+        raise SceneError(f"{origin}: filters = {quote(table)}; expected a table with [[filters.notch]] and/or "
                          "[[filters.lowpass]] entries")
     for kind, entries in table.items():
         if kind not in FILTER_KEYS:
-            raise SceneError(f"{origin}: filters.{kind} = {entries!r}: unknown filter kind; expected "
+            raise SceneError(f"{origin}: filters.{kind} = {quote(entries)}: unknown filter kind; expected "
                              "[[filters.notch]] or [[filters.lowpass]]")
         if not isinstance(entries, list):
-            raise SceneError(f"{origin}: filters.{kind} = {entries!r}; expected an array of tables "
+            raise SceneError(f"{origin}: filters.{kind} = {quote(entries)}; expected an array of tables "
                              f"([[filters.{kind}]] entries)")
     filters, labels = [], []
     for kind in FILTER_KEYS:
@@ -178,7 +179,7 @@ def parse_filters(table: Any, origin: str) -> tuple[tuple[LoopFilter, ...], tupl
             where = f"{origin}: filters.{kind}[{i}]"
             filters.append(filter_entry(kind, entry, where))
             freq = "centre_hz" if kind == "notch" else "corner_hz"
-            labels.append(f"{where}.{freq} = {entry[freq]!r}")
+            labels.append(f"{where}.{freq} = {quote(entry[freq])}")
     if len(filters) > MAX_SCENE_FILTERS:
         raise SceneError(f"{origin}: [filters] has {len(filters)} entries; expected at most {MAX_SCENE_FILTERS}")
     return tuple(filters), tuple(labels)
@@ -199,7 +200,7 @@ def parse_filter_flag(text: str) -> tuple[LoopFilter, str, str]:
     SceneError
         One line quoting the flag.
     """
-    where = f"--filter {text!r}"
+    where = f"--filter {quote(text)}"
     kind, sep, rest = text.partition(":")
     kind = kind.strip()
     if not sep or kind not in FILTER_KEYS:
@@ -211,7 +212,7 @@ def parse_filter_flag(text: str) -> tuple[LoopFilter, str, str]:
         key, eq, val = item.partition("=")
         key, val = key.strip(), val.strip()
         if not eq or not key or not val:
-            raise SceneError(f"{where}: {item.strip()!r} is not key=value; expected e.g. centre_hz=163")
+            raise SceneError(f"{where}: {quote(item.strip())} is not key=value; expected e.g. centre_hz=163")
         if key in values:
             raise SceneError(f"{where}: {key} given twice; expected each key once")
         typed[key] = val

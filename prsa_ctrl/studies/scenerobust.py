@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..textsafe import quote
 from ..errors import SceneError
 from ..plant.uncertainty import UncertaintyModel, apply, uncertainty_model
 from ..tuning.loops import LoopModel
@@ -130,7 +131,7 @@ def tune_robust_actuator(plant, scene, *, scens: Sequence[Scenario] | None = Non
     rob = (getattr(scene, "robust", None) or {}).get("robust", {})
     aggregate = aggregate or rob.get("aggregate", "worst")
     if aggregate not in ("worst", "mean"):
-        raise ValueError(f"aggregate = {aggregate!r}; expected 'worst' or 'mean'")
+        raise ValueError(f"aggregate = {quote(aggregate)}; expected 'worst' or 'mean'")
     unc = uncertainty_model(plant, scene)
     scens = list(scens) if scens is not None else scenarios(plant, scene, unc=unc)
     t0 = time.perf_counter()

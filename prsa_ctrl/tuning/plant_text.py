@@ -56,7 +56,8 @@ def parse_plant_text(text: str, *, max_length: int, delay_hint: str = "a delay i
     text : str
         Numbers, ``s``, ``+ - * /``, ``^`` or ``**`` with a whole exponent 0..:data:`MAX_POWER`,
         parentheses nested up to :data:`MAX_DEPTH`; adjacent factors multiply (``4s``,
-        ``2(s+1)``, ``(s+1)(s+2)``).
+        ``2(s+1)``, ``(s+1)(s+2)``), except a number right after a number or ``s`` (``2 3``,
+        ``1..2``, ``1.2.3``, ``s2``): refused with its position, never multiplied.
     max_length : int
         Longest text accepted (characters), the caller's limit.
     delay_hint : str, optional
@@ -91,7 +92,12 @@ def parse_plant_text(text: str, *, max_length: int, delay_hint: str = "a delay i
         raise PlantTextError(f"coefficients beyond double precision; {EXPECTED}")
     if num.size == 0:
         raise PlantTextError(f"the plant is zero; {EXPECTED}")
-    return num / den[0], den / den[0]
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):  # checked just below, no warning
+        num, den = num / den[0], den / den[0]
+    # 1e300/(1e-300s+1) is 1e600 after the scaling, 1e-300/(1e300s+1) 1e-600 (zero)
+    if not (np.all(np.isfinite(num)) and np.all(np.isfinite(den)) and np.any(num)):
+        raise PlantTextError(f"coefficients beyond double precision once the denominator is made monic; {EXPECTED}")
+    return num, den
 
 
 class _Reader:
@@ -112,6 +118,8 @@ class _Reader:
                 word = re.match(r"[A-Za-z_]+", text[j:])
                 hint = f"; {delay_hint}" if word and word.group(0).lower() in ("e", "exp") else ""
                 self.fail(f"unexpected {text[j]!r} at position {j + 1}{hint}")
+            if kind == "num" and self.toks and self.toks[-1][0] in ("num", "s"):
+                self._side_by_side(self.toks[-1], m.group(kind), m.start(kind))
             self.toks.append((kind, m.group(kind), m.start(kind)))
             pos = m.end()
         self.i = 0
@@ -119,6 +127,19 @@ class _Reader:
 
     def fail(self, what: str):
         raise PlantTextError(f"{what}; {EXPECTED}")
+
+    def _side_by_side(self, before: tuple[str, str, int], number: str, start: int) -> None:
+        """A number right after a number or ``s`` (blanks between or not) is refused, never
+        multiplied: ``1..2`` and ``1.2.3`` are mistyped numbers (they read as 1 x 0.2 and
+        1.2 x 0.3), ``2 3`` a missing operator, ``s2`` a missing ``^``."""
+        if before[0] == "s":
+            self.fail(f"number {number!r} at position {start + 1} right after 's' at position {before[2] + 1}: "
+                      f"expected an operator between them (write {number}s, s^{number} or s*{number})")
+        if self.text[before[2] + len(before[1]):start] == "":  # written together: one mistyped number
+            self.fail(f"number {before[1] + number!r} at position {before[2] + 1}: expected one number with at "
+                      "most one decimal point (e.g. 1.2)")
+        self.fail(f"number {number!r} at position {start + 1} right after the number {before[1]!r} at position "
+                  f"{before[2] + 1}: expected an operator between two numbers (e.g. 2*3)")
 
     def peek(self) -> tuple[str, str, int] | None:
         return self.toks[self.i] if self.i < len(self.toks) else None

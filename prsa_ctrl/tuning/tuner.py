@@ -57,7 +57,7 @@ from numpy.typing import NDArray
 from ..drive.pid import PID
 from ..sim.metrics import Margins
 from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES
-from ..results import is_converged, json_safe
+from ..results import freeze, is_converged, json_safe
 from .settings import CONT_RTOL, KKT_TOL, MULTI_ROWS, MULTI_SLOTS, POLISH_ROUNDS, RANK_TOP, SLOTS, STARTS, TAIL_RTOL, UNIT_TOL, check_bounds, check_mks, gain_limit
 from .loops import LoopModel
 from .objectives import combined, ie_batch, rank_batch
@@ -127,6 +127,11 @@ class TuningResult:
     mks: float | None = None
     filter: dict | None = None
     setpoint: dict | None = None
+
+    def __post_init__(self) -> None:
+        # read-only all the way down (FrozenList / FrozenDict / read-only arrays; they pickle)
+        for name in ("per_loop", "margins", "stats", "filter", "setpoint"):
+            object.__setattr__(self, name, freeze(getattr(self, name)))
 
     @property
     def converged(self) -> bool:

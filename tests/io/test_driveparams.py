@@ -192,7 +192,7 @@ def test_parse_motor_inline_and_file(tmp_path):
     assert parse_motor(str(f)).torque_constant_n_m_per_a == pytest.approx(1.2405, abs=1e-4)
     for text, match in (("torque_constant=0.9", "unknown motor key 'torque_constant'"),
                         ("rated_current_a=3", "no torque_constant_n_m_per_a (or back_emf_*) and no rated_torque_n_m"),
-                        ("torque_constant_n_m_per_a=-1", "torque_constant_n_m_per_a = -1.0; expected a finite number > 0"),
+                        ("torque_constant_n_m_per_a=-1", "torque_constant_n_m_per_a = -1; expected a finite number > 0"),
                         ("torque_constant_n_m_per_a=x", "motor 'torque_constant_n_m_per_a=x'; expected key=number"),
                         (str(tmp_path / "none.toml"), "motor file")):
         with pytest.raises(ValueError, match=re.escape(match)):
@@ -253,7 +253,7 @@ def test_cli_export_template_and_motor(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, match", [
     (["--export-template", "nope", "--export", "x.toml"], "--export-template 'nope': template 'nope'; expected"),
-    (["--motor", "kt=1"], "--motor 'kt=1': motor 'kt=1': unknown motor key 'kt'"),
+    (["--motor", "kt=1"], "--motor 'kt=1': unknown motor key 'kt'"),
     (["--export-template", "generic"], "--export-template 'generic' needs --export PATH.toml or PATH.json"),
     (["--export-template", "generic", "--export", "x.c"], "needs --export PATH.toml or PATH.json"),
 ])
@@ -265,3 +265,79 @@ def test_cli_bad_template_or_motor_one_line(argv, match, tmp_path, capsys, monke
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and match in err[0]
     assert not list(tmp_path.iterdir())
+
+
+# --- issue 31: --motor repeated keys, plausibility, consistency --------------------------------------
+
+def test_motor_repeated_key_is_refused_not_the_last_taken():
+    with pytest.raises(ValueError, match=re.escape("motor key 'torque_constant_n_m_per_a' given twice "
+                                                   "(torque_constant_n_m_per_a=0.9 and torque_constant_n_m_per_a=1.2)")):
+        parse_motor("torque_constant_n_m_per_a=0.9,rated_torque_n_m=3,torque_constant_n_m_per_a=1.2")
+
+
+@pytest.mark.parametrize("text, typed, expected", [
+    ("back_emf_v_per_krpm=1e-300", "back_emf_v_per_krpm = 1e-300 V/krpm",
+     "expected 0.00605..6.05e+04 V/krpm (a torque constant of 0.0001..1000 N m/A)"),
+    ("back_emf_v_s_per_rad_peak=5e3", "back_emf_v_s_per_rad_peak = 5e3 V s/rad", "expected 8.16e-05..816 V s/rad"),
+    ("torque_constant_n_m_per_a=2e3", "torque_constant_n_m_per_a = 2e3 N m/A",
+     "expected a plausible motor value in 0.0001..1000 N m/A"),
+    ("rated_torque_n_m=0.00001", "rated_torque_n_m = 0.00001 N m", "in 0.0001..100000 N m"),
+    ("rated_torque_n_m=3,rated_current_a=2E4", "rated_current_a = 2E4 A", "in 0.001..10000 A"),
+    ("rated_torque_n_m=3,rated_speed_rpm=0.5", "rated_speed_rpm = 0.5 rpm", "in 1..100000 rpm"),
+])
+def test_motor_values_outside_plausible_ranges_are_named_as_typed(text, typed, expected):
+    with pytest.raises(ValueError) as info:
+        parse_motor(text)
+    msg = str(info.value)
+    assert msg.startswith(f"motor {text!r}: ") and typed in msg and expected in msg, msg
+
+
+def test_motor_bounds_are_the_torque_constant_through_each_back_emf_convention():
+    """The back-EMF bounds are the torque-constant bounds converted independently here:
+    k_T = sqrt(3) k_E,rms (V s/rad) = sqrt(3/2) k_E,peak; 1 V/krpm = 60/(2 pi 1000) V s/rad."""
+    krpm = 1000 * 2 * math.pi / 60
+    for key, per_kt in (("back_emf_v_per_krpm", krpm / math.sqrt(3)), ("back_emf_v_per_krpm_peak", krpm * math.sqrt(2 / 3)),
+                        ("back_emf_v_s_per_rad_rms", 1 / math.sqrt(3))):
+        for kt in (1e-4 * 1.001, 1e3 * 0.999):  # just inside: accepted, k_T recovered
+            assert parse_motor(f"{key}={kt * per_kt!r}").torque_constant_n_m_per_a == pytest.approx(kt, rel=1e-12)
+        for kt in (1e-4 * 0.999, 1e3 * 1.001):  # just outside: refused
+            with pytest.raises(ValueError, match="gives a torque constant of"):
+                parse_motor(f"{key}={kt * per_kt!r}")
+
+
+def test_torque_constant_times_rated_current_must_match_the_rated_torque(tmp_path):
+    with pytest.raises(ValueError, match=re.escape("torque constant x rated current = 900 N m/A x 4 A = 3600 N m against "
+                                                   "rated_torque_n_m = 3 N m (a factor 1.2e+03); expected them within a "
+                                                   "factor 1.5 of each other")):
+        parse_motor("torque_constant_n_m_per_a=900,rated_current_a=4,rated_torque_n_m=3")
+    f = tmp_path / "m.toml"
+    f.write_text("[motor]\nback_emf_v_per_krpm = 75.0\nrated_current_a = 1.0\nrated_torque_n_m = 3.0\n")
+    with pytest.raises(ValueError, match=r"^motor file .*m\.toml': torque constant x rated current = 1\.24049 N m/A"):
+        parse_motor(str(f))  # 1.24 N m against 3 N m: a factor 0.41
+    # the tolerance both ways: x1.49 and /1.49 pass, x1.51 and /1.51 fail
+    for factor, ok in ((1.49, True), (1 / 1.49, True), (1.51, False), (1 / 1.51, False)):
+        text = f"torque_constant_n_m_per_a=0.75,rated_current_a={4 * factor!r},rated_torque_n_m=3"
+        if ok:
+            assert parse_motor(text).rated_current_a == pytest.approx(4 * factor)
+        else:
+            with pytest.raises(ValueError, match="within a factor 1.5"):
+                parse_motor(text)
+    with pytest.raises(ValueError, match="a factor 1.2e\\+03"):  # from Python too
+        MotorData(900.0, rated_current_a=4.0, rated_torque_n_m=3.0)
+
+
+def test_prsa_tune_refuses_implausible_motor_before_tuning(tmp_path, capsys):
+    from prsa_ctrl.cli.tune import main
+
+    out = tmp_path / "drive.toml"
+    for text, what in (("back_emf_v_per_krpm=1e-300", "back_emf_v_per_krpm = 1e-300 V/krpm gives"),
+                       ("torque_constant_n_m_per_a=0.9,torque_constant_n_m_per_a=1.2", "given twice")):
+        capsys.readouterr()
+        assert main(["--motor", text, "--export", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"prsa-tune: error: --motor {text!r}: ") and what in err and err.count("\n") == 1, err
+        assert err.count(text) == 1  # named once
+    assert main(["--motor", "torque_constant_n_m_per_a=0.9,rated_current_a=4", "--rated-torque", "30",
+                 "--export", str(out)]) == 2
+    assert "--rated-torque 30 with --motor" in capsys.readouterr().err
+    assert not out.exists()

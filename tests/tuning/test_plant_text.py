@@ -93,7 +93,18 @@ def test_parser_agrees_with_a_direct_evaluation(nums, dens, power):
     ("1/(s+1)*", r"^unexpected end; "),
     ("1e999/(s+1)", r"^number '1e999' is not finite at position 1; "),
     ("1e200^2/(s+1)", r"^coefficients beyond double precision; "),
+    ("1e300/(1e-300s+1)", r"^coefficients beyond double precision once the denominator is made monic; "),
+    ("1e-300/(1e300s+1)", r"^coefficients beyond double precision once the denominator is made monic; "),
     ("((s+1)^30)^30 ((s+1)^30)^30", rf"^a product of degree above {MAX_DEGREE}; "),
+    # issue 31: numbers side by side were multiplied (1..2 read as 0.2, 1.2.3 as 0.36, 2 3 as 6)
+    ("1/(1..2s+1)", r"^number '1\.\.2' at position 4: expected one number with at most one decimal point"),
+    ("1/(1.2.3s+1)", r"^number '1\.2\.3' at position 4: expected one number with at most one decimal point"),
+    ("1/(2.5e-3.5s+1)", r"^number '2\.5e-3\.5' at position 4: expected one number"),
+    ("2 3/(s+1)", r"^number '3' at position 3 right after the number '2' at position 1: expected an operator"),
+    ("1/(1.2 .3s+1)", r"^number '\.3' at position 8 right after the number '1\.2' at position 4: expected an op"),
+    ("1/(s+1)^2 3", r"^number '3' at position 11 right after the number '2' at position 9: expected an operator"),
+    ("1/(s2+1)", r"^number '2' at position 5 right after 's' at position 4: expected an operator between them"),
+    ("1/(s 2+1)", r"^number '2' at position 6 right after 's' at position 4: "),
 ])
 def test_refusals_are_one_line_with_where_and_what(text, message):
     with pytest.raises(PlantTextError, match=message) as info:
@@ -102,6 +113,23 @@ def test_refusals_are_one_line_with_where_and_what(text, message):
     assert "\n" not in msg and repr(text) not in msg  # the caller names the text
     assert msg.endswith(EXPECTED)
     assert isinstance(info.value, ValueError)
+
+
+def test_implicit_products_that_stay_are_the_documented_ones():
+    """Adjacent factors still multiply where one of them is not a bare number: 4s, 2(s+1),
+    (s+1)(s+2), (s+2)^2 (0.1s+1), a number after a parenthesis."""
+    for text, num, den in (("1/(4 s+1)", [0.25], [1, 0.25]), ("2 (s+1)/(s+2)", [2, 2], [1, 2]),
+                           ("1/((s+1) (s+2))", [1], [1, 3, 2]), ("(s+1)2/(s+2)", [2, 2], [1, 2])):
+        n, d = _parse(text)
+        assert n == pytest.approx(num) and d == pytest.approx(den)
+
+
+def test_prsa_pid_names_the_text_and_the_position(capsys):
+    from prsa_ctrl.cli.pid import pid_main
+
+    assert pid_main(["--plant", "1/(1..2s+1)"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("prsa-pid: error: --plant '1/(1..2s+1)': number '1..2' at position 4") and err.count("\n") == 1
 
 
 def test_limits_are_the_documented_ones():
