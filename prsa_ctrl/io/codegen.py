@@ -74,7 +74,7 @@ import numpy as np
 
 from ..drive.pid import PID
 from .drivelaw import Biquad as _Biquad, DriveLaw, FilterSpec, PositionLaw  # noqa: F401
-from .codetext import IEC_RESERVED, REAL_TYPES, c_code, iec_real, inert_text, st_code, st_parts  # noqa: F401
+from .codetext import IEC_RESERVED, REAL_TYPES, c_code, iec_real, inert_text, is_code_name, check_header_name, st_code, st_parts  # noqa: F401
 
 if TYPE_CHECKING:
     from ..tuning.cascade import CascadeDesign
@@ -401,7 +401,7 @@ def export_code(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | No
     real : {"double", "float"}
     name : str, optional
         Identifier prefix (C) or function-block name (ST); default the file's stem when it is an
-        identifier, else ``prsa_ctrl``.
+        identifier that is no IEC keyword or standard block name, else ``prsa_ctrl``.
     delay_samples : {0, 1}
     differences : {"counts", "angle"}
         See :func:`c_code`.
@@ -435,8 +435,8 @@ def code_texts(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | Non
                          "'angle' variant, which needed unwrapped 64-bit counts, was removed)")
     law = controller if isinstance(controller, DriveLaw) else drive_law(
         controller, plant, filters=filters, delay_samples=delay_samples, setpoint_weight=setpoint_weight)
-    if name is None:
-        name = path.stem if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,40}", path.stem) else "prsa_ctrl"
+    if name is None:  # the file's stem when it is a safe identifier (no keyword, no standard block name)
+        name = path.stem if is_code_name(path.stem) else "prsa_ctrl"
     if suffix == ".st":
         return {path: st_code(law, name=name, real=real, differences=differences)}
     hpath = path.with_suffix(".h")
@@ -455,6 +455,13 @@ def check_code_export(path: "str | os.PathLike", inputs: Iterable = (), flag: st
     ``.st``) can be written and is no input (one-line :class:`prsa_ctrl.io.output.OutputError`)."""
     from .output import check_writable
 
+    if Path(path).suffix.lower() == ".c":
+        from ..errors import OutputError
+
+        try:
+            check_header_name(Path(path).with_suffix(".h").name)
+        except ValueError as exc:
+            raise OutputError(f"{flag} {os.fspath(path)!r}: {exc}") from None
     for f in code_files(path):
         check_writable(f if f == Path(path) else str(f), list(inputs), flag if f == Path(path) else f"{flag} (header)")
 

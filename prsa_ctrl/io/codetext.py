@@ -13,7 +13,8 @@ from typing import Any, Iterable
 
 from .drivelaw import DriveLaw
 
-__all__ = ["inert_text", "iec_real", "IEC_RESERVED", "REAL_TYPES", "FLUSH", "c_code", "st_code", "st_parts",
+__all__ = ["inert_text", "iec_real", "is_code_name", "check_header_name", "IEC_RESERVED", "REAL_TYPES", "FLUSH",
+           "c_code", "st_code", "st_parts",
            "law_constants", "assumption_lines"]
 
 #: Floating-point types of the generated code: C type -> ST type.
@@ -72,6 +73,23 @@ def iec_real(v: float) -> str:
         e = int(exp)
         return f"{mant}E{'+' if e >= 0 else '-'}{abs(e)}"
     return r if "." in r else r + ".0"
+
+
+def is_code_name(name: Any) -> bool:
+    """Whether ``name`` can name the generated code: a C and IEC 61131-3 identifier (a letter, then
+    letters, digits and single underscores, at most 40 characters) that is no IEC keyword or
+    standard function (block) name (:data:`IEC_RESERVED`, compared case-insensitively)."""
+    return (isinstance(name, str) and len(name) <= 40 and re.fullmatch(r"[A-Za-z][A-Za-z0-9]*(_[A-Za-z0-9]+)*", name)
+            is not None and name.upper() not in IEC_RESERVED)
+
+
+def check_header_name(header: Any) -> str:
+    """The file name ``#include "..."`` takes: no quote, backslash or control character (so it
+    cannot end the include), at most 200 characters; ValueError otherwise."""
+    if not isinstance(header, str) or not re.fullmatch(r'[^"\\\x00-\x1f\x7f]{1,200}', header):
+        raise ValueError(f"header = {header!r}; expected a file name without quotes, backslashes or control "
+                         "characters (it goes into #include \"...\")")
+    return header
 
 
 def _check_name(name: str) -> str:
@@ -274,8 +292,7 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
     n, real = _check_name(name), _check_real(real)
     _check_differences(differences)
     header = header or f"{n}.h"
-    if not re.fullmatch(r"[A-Za-z0-9_.-]{1,80}", header):
-        raise ValueError(f"header = {header!r}; expected a plain file name (letters, digits, _ . -)")
+    check_header_name(header)
     fl = real == "float"
     R = f"{n}_real"
     U = n.upper()

@@ -63,7 +63,7 @@ if TYPE_CHECKING:
     from ..tuning.cascade import CascadeDesign
 
 __all__ = ["export_controller", "export_cascade", "dumps", "FORMATS", "FILTER_PLACES", "pid_biquad",
-           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW", "toml_value"]
+           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW", "toml_value", "toml_string"]
 
 #: Output formats of :func:`dumps`.
 FORMATS = ("json", "toml")
@@ -551,12 +551,47 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
 def _toml_key(k: str) -> str:
     if not isinstance(k, str):
         raise ValueError(f"key {k!r}; expected a string")
-    return k if k and all(c.isalnum() and c.isascii() or c in "_-" for c in k) else json.dumps(k)
+    return k if k and all(c.isalnum() and c.isascii() or c in "_-" for c in k) else toml_string(k)
+
+
+_TOML_SHORT = {"\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r", '"': '\\"', "\\": "\\\\"}
+
+
+def toml_string(s: str, ascii_only: bool = True, where: str = "value") -> str:
+    r"""``s`` as a TOML basic string that ``tomllib`` reads back as exactly ``s``: quotes,
+    backslashes and control characters (U+0000..U+001F, U+007F) escaped, and with ``ascii_only``
+    every non-ASCII character too (``\uXXXX``, or ``\UXXXXXXXX`` outside the Basic Multilingual
+    Plane: no surrogate pairs, which TOML refuses).
+
+    Raises
+    ------
+    ValueError
+        A lone surrogate (no Unicode scalar value, not representable in TOML), naming ``where``.
+
+    >>> print(toml_string('a"b\\c'), toml_string("\U0001F600"), toml_string("\x7f"))
+    "a\"b\\c" "\U0001F600" "\u007F"
+    """
+    out = ['"']
+    for ch in str(s):
+        o = ord(ch)
+        if ch in _TOML_SHORT:
+            out.append(_TOML_SHORT[ch])
+        elif o < 0x20 or o == 0x7F:
+            out.append("\\u%04X" % o)
+        elif 0xD800 <= o <= 0xDFFF:
+            raise ValueError(f"{where} = {s!r}; expected text of Unicode characters (a lone surrogate U+{o:04X} "
+                             "cannot be written to TOML)")
+        elif o > 0x7E and ascii_only:
+            out.append("\\u%04X" % o if o <= 0xFFFF else "\\U%08X" % o)
+        else:
+            out.append(ch)
+    return "".join(out) + '"'
 
 
 def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
-    """A TOML value: bool, integer, finite float (all digits, ``repr``), string (a JSON string,
-    ASCII with ``\\uXXXX`` escapes unless ``ascii_only`` is false), or a list of those.
+    """A TOML value: bool, integer, finite float (all digits, ``repr``), string
+    (:func:`toml_string`: ASCII with ``\\uXXXX``/``\\UXXXXXXXX`` escapes unless ``ascii_only`` is
+    false), or a list of those.
 
     Raises
     ------
@@ -577,10 +612,11 @@ def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
         r = repr(f)
         return r if any(c in r for c in ".en") else r + ".0"
     if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=ascii_only)  # a JSON string is a TOML basic string
+        return toml_string(v, ascii_only, where)
     if isinstance(v, (list, tuple)) and not any(isinstance(x, dict) for x in v):
         return "[" + ", ".join(toml_value(x, where, ascii_only=ascii_only) for x in v) + "]"
     raise ValueError(f"{where} = {v!r}; expected a number, string, bool or list of those (TOML has no null)")
+
 
 
 def _toml_table(d: dict, path: list[str], lines: list[str]) -> None:
@@ -633,6 +669,8 @@ def dumps(data: dict, fmt: str) -> str:
             return json.dumps(data, indent=2, allow_nan=False) + "\n"
         except ValueError as exc:
             raise ValueError(f"export data: {exc}; expected finite numbers") from None
-    lines = [f"# {data.get('format', 'prsa-ctrl export')} (TOML)"]
+    from .codetext import inert_text
+
+    lines = [f"# {inert_text(data.get('format', 'prsa-ctrl export'), 80)} (TOML)"]
     _toml_table(data, [], lines)
     return "\n".join(lines) + "\n"

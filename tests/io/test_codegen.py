@@ -856,3 +856,78 @@ def test_replay_refuses_runs_the_code_does_not_describe(plant):
             measurement="kf")
     with pytest.raises(ValueError, match="run measured the speed with 'kf'"):
         replay_inputs(r, plant)
+
+
+# --- inert text: hostile plant names in every code format -----------------------------------------
+
+#: Names a plant file may carry: comment and string delimiters of C, ST and XML, line breaks,
+#: quotes, backslashes, a character outside the Basic Multilingual Plane, control characters.
+HOSTILE_NAMES = ('Axis 3 */ __asm__("id"); /* rev B', "Axis (* x *) END_FUNCTION_BLOCK", "Axis *) RETURN; (*",
+                 "line\nbreak #include <stdio.h>", "q\"uote'd \\ back\\slash", "cdata ]]> <x/> &amp; --",
+                 "emoji \U0001F600 axis", "ctrl \x00\x07\x1b\x7f\u2028 end", "trigraph ??/\n*/", "//\r\n*/ x")
+
+
+def _strip_c_comments(text: str) -> str:
+    return re.sub(r"/\*.*?\*/", "/**/", text, flags=re.S)
+
+
+def _strip_st_comments(text: str) -> str:
+    return re.sub(r"\(\*.*?\*\)", "(**)", text, flags=re.S)
+
+
+@pytest.mark.parametrize("hostile", HOSTILE_NAMES)
+def test_hostile_plant_names_stay_in_comments(plant, hostile, tmp_path):
+    """A hostile plant name changes nothing but comment text: with the comments taken out, the C
+    and the ST equal those of a plain name, every comment closes where the writer closes it,
+    the C compiles strictly (gcc) and holds no trace of the injected code outside comments."""
+    bad = drive_law(SPEED_PID, plant.with_params({}, name=hostile), filters=FILTERS,
+                    position=PositionLoop(kv=102.7, kvff=1.0, kaff=1.0))
+    good = drive_law(SPEED_PID, plant.with_params({}, name="plain"), filters=FILTERS,
+                     position=PositionLoop(kv=102.7, kvff=1.0, kaff=1.0))
+    for real in ("double", "float"):
+        hb, cb = c_code(bad, name="ax", real=real)
+        hg, cg = c_code(good, name="ax", real=real)
+        assert _strip_c_comments(hb) == _strip_c_comments(hg) and _strip_c_comments(cb) == _strip_c_comments(cg)
+        for text in (hb, cb):
+            assert all(ord(ch) < 128 and (ch >= " " or ch == "\n") for ch in text)
+            assert text.count("/*") == text.count("*/")  # no comment opened or closed inside one
+            assert "asm" not in _strip_c_comments(text) and "??/" not in text
+        sb, sg = st_code(bad, name="Ax", real=real), st_code(good, name="Ax", real=real)
+        assert _strip_st_comments(sb) == _strip_st_comments(sg)
+        assert sb.count("(*") == sb.count("*)") and all(ord(ch) < 128 for ch in sb)
+    if CC is not None:
+        src = _write_c(bad, tmp_path, "ax", "double")
+        res = subprocess.run([CC, "-std=c99", *STRICT, "-c", str(src), "-o", str(tmp_path / "ax.o")],
+                             capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stderr
+        syms = subprocess.run(["nm", str(tmp_path / "ax.o")], capture_output=True, text=True).stdout
+        assert "asm" not in syms and "id" not in re.findall(r"\b\w+\b", syms)
+
+
+def test_hostile_plant_name_st_compiles(plant, matiec, tmp_path):
+    """The ST with the worst names compiles with iec2c (comments are closed where they should be)."""
+    for i, hostile in enumerate(HOSTILE_NAMES):
+        law = drive_law(SPEED_PID, plant.with_params({}, name=hostile), filters=FILTERS)
+        iec2c(matiec, st_code(law, name="Ax"), tmp_path / f"n{i}")
+
+
+def test_inert_text_and_code_names():
+    from prsa_ctrl.io.codetext import inert_text, is_code_name
+
+    assert inert_text("Axis 3 */ x /* y") == "Axis 3 \\u{2a}\\u{2f} x \\u{2f}\\u{2a} y"
+    assert inert_text("a--b") == "a-\\u{2d}b" and inert_text("\U0001F600") == "\\u{1f600}"
+    assert inert_text("x" * 300).endswith("...") and len(inert_text("x" * 300)) == 203
+    assert [is_code_name(n) for n in ("Axis", "PID", "integral", "a__b", "_x", "x_", "Ax_1")] == [
+        True, False, False, False, False, False, True]
+
+
+def test_export_code_file_names(plant, tmp_path):
+    """A file stem that is a keyword or a standard block name falls back to prsa_ctrl; a header
+    name that could end the #include is refused before anything is written."""
+    assert export_code(SPEED_PID, plant, tmp_path / "PID.st")[0].read_text().startswith("FUNCTION_BLOCK prsa_ctrl")
+    from prsa_ctrl.io.codegen import check_code_export
+    from prsa_ctrl.errors import OutputError
+
+    with pytest.raises(OutputError, match="expected a file name without quotes"):
+        check_code_export(tmp_path / 'a".c')
+    assert len(list(tmp_path.iterdir())) == 1

@@ -265,3 +265,43 @@ def test_cli_bad_template_or_motor_one_line(argv, match, tmp_path, capsys, monke
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and match in err[0]
     assert not list(tmp_path.iterdir())
+
+
+def test_hostile_text_in_a_template_and_plant_round_trips(plant, tmp_path):
+    """User text from a template file and the plant name (non-BMP emoji, quotes, backslashes,
+    control characters, comment delimiters) parses back from the filled TOML as it was."""
+    from prsa_ctrl.io.export import toml_string
+
+    nasty = 'Axis 3 */ __asm__("id"); /* \U0001F600 \\ ]]> (* \x07 \u2028'
+    tpl = tmp_path / "mine.toml"
+    tpl.write_text("[template]\nname = " + toml_string(nasty, ascii_only=False) + "\nvendor = \"x\"\n\n[[parameter]]\n"
+                   "index = " + toml_string(nasty) + "\nname = \"kp\"\nquantity = \"speed_kp\"\nunit = \"N m s/rad\"\n"
+                   "datatype = \"float\"\nconfirmed = true\nsource = " + toml_string(nasty, ascii_only=False) + "\n",
+                   encoding="utf-8")
+    filled = fill_template(tpl, PID(0.085, 14.7), plant.with_params({}, name=nasty))
+    back = tomllib.loads(dumps_parameter_set(filled))
+    assert back["template"]["name"] == nasty and back["export"]["plant"] == nasty
+    assert back["parameter"][0]["source"] == nasty and back["parameter"][0]["index"] == nasty
+
+
+def test_cli_hostile_plant_name_gives_a_parseable_toml(tmp_path):
+    from prsa_ctrl.cli.tune import main
+    from prsa_ctrl.plant.plantfile import plant_file_path
+    from prsa_ctrl.io.export import toml_string
+
+    text = plant_file_path("paper-iprsm").read_text()
+    nasty = "Axis \U0001F600 */ rev B"
+    text = tomllib_replace_name(text, toml_string(nasty, ascii_only=False))
+    pf = tmp_path / "p.toml"
+    pf.write_text(text, encoding="utf-8")
+    out = tmp_path / "d.toml"
+    assert main(["--quiet", "--plant", str(pf), "--export", str(out)]) == 0
+    assert tomllib.loads(out.read_text())["plant"] == nasty
+
+
+def tomllib_replace_name(text: str, quoted: str) -> str:
+    import re
+
+    new, n = re.subn(r'(?m)^name\s*=\s*".*"$', lambda m: "name = " + quoted, text, count=1)
+    assert n == 1
+    return new

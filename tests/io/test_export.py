@@ -255,3 +255,42 @@ def test_bad_arguments(kwargs, match):
         export_controller(0.085, PLANT, fmt="json")
     with pytest.raises(ValueError, match=r"fmt = 'xml'"):
         dumps({}, "xml")
+
+
+# --- inert text: hostile names in TOML and JSON (issue 36) ----------------------------------------
+
+HOSTILE = ('Axis 3 */ __asm__("id"); /* rev B', "emoji \U0001F600 axis", "line\nbreak\r\n[table]\nx = 1",
+           'q"uote\'d \\ back\\slash', "cdata ]]> (* *) --", "ctrl \x00\x07\x1b\x7f\u2028 end", "\U0010FFFF")
+
+
+@pytest.mark.parametrize("name", HOSTILE)
+def test_hostile_plant_name_round_trips_in_toml_and_json(name):
+    """A plant name with any of these characters (a non-BMP emoji made the TOML unparseable
+    before) parses back to the same name from TOML and JSON, for the speed export and the
+    cascade, and adds no key or table to the file."""
+    from prsa_ctrl.drive.measurement import PositionLoop
+    from prsa_ctrl.io.export import export_cascade
+    from prsa_ctrl.tuning.cascade import CascadeDesign
+
+    plant = PLANT.with_params({}, name=name)
+    for fmt in ("toml", "json"):
+        for d in (export_controller(PID(0.085, 14.7), plant, fmt=fmt, filters=[Notch(1200.0, 300.0, -20.0)],
+                                    design={"name": name, "why": name}),
+                  export_cascade(CascadeDesign("joint", PID(0.0771, 7.07), PositionLoop(kv=102.7), {}, {}, {}, 0.0),
+                                 plant, fmt=fmt)):
+            text = dumps(d, fmt)
+            back = tomllib.loads(text) if fmt == "toml" else json.loads(text)
+            assert back == d and back["plant"] == name
+            if fmt == "toml":  # ASCII only, and one line per scalar: nothing of the name begins a line
+                assert all(ord(c) < 128 for c in text) and "\nx = 1" not in text and "\n[table]" not in text
+
+
+def test_toml_strings_refuse_lone_surrogates_and_keep_non_ascii_when_asked():
+    from prsa_ctrl.io.export import toml_string, toml_value
+
+    assert tomllib.loads("x = " + toml_value("µ \U0001F600 \x7f", ascii_only=False))["x"] == "µ \U0001F600 \x7f"
+    assert toml_string("\U0001F600") == '"\\U0001F600"'
+    with pytest.raises(ValueError, match="lone surrogate U\\+D800"):
+        toml_string("a\ud800")
+    with pytest.raises(ValueError):
+        dumps({"plant": "a\udfff"}, "toml")
