@@ -43,7 +43,8 @@ word with a defined, finite output on a non-finite input or result (the sample i
 last command is held, no state changes), flushing of tiny states (no subnormal numbers), unique
 internal names, ``extern "C"`` and float-only arithmetic in the float build. The Structured
 Text compiles with matiec's ``iec2c`` and its C equals the toolkit's C bit for bit
-(``tests/io/test_codegen.py``).
+(``tests/io/test_codegen.py``); :func:`prsa_ctrl.io.plcopen.plcopen_xml` writes the function
+block as PLCopen XML (``export_code`` with a ``.xml`` path).
 User text (the plant name) reaches every file only through :func:`inert_text`.
 
 :class:`ReferenceLaw` runs the same law in Python exactly as the simulator writes it (angles in
@@ -87,8 +88,8 @@ __all__ = ["DriveLaw", "PositionLaw", "drive_law", "ReferenceLaw", "replay_input
            "export_code", "code_texts", "code_files", "check_code_export", "write_code_export", "CODE_SUFFIXES",
            "REAL_TYPES", "FilterSpec", "inert_text", "iec_real", "plant_assumptions", "IEC_RESERVED"]
 
-#: File suffixes :func:`export_code` writes (``--export PATH.c`` / ``PATH.st``).
-CODE_SUFFIXES = (".c", ".st")
+#: File suffixes :func:`export_code` writes (``--export PATH.c`` / ``PATH.st`` / ``PATH.xml``).
+CODE_SUFFIXES = (".c", ".st", ".xml")
 
 def _finite(name: str, v: Any, lo: float = -math.inf, lo_open: bool = False) -> float:
     ok = not isinstance(v, bool) and isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(float(v)) \
@@ -388,7 +389,8 @@ def export_code(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | No
                 filters: Iterable = (), real: str = "double", name: str | None = None,
                 delay_samples: int = 1, differences: str = "counts", setpoint_weight: float = 1.0) -> list[Path]:
     """Write the controller as code, chosen by the suffix of ``path``: ``.c`` writes the C source
-    and its header (``.h``) beside it, ``.st`` the Structured Text function block.
+    and its header (``.h``) beside it, ``.st`` the Structured Text function block, ``.xml`` the
+    same block as PLCopen TC6 XML (:func:`prsa_ctrl.io.plcopen.plcopen_xml`).
 
     Parameters
     ----------
@@ -439,6 +441,10 @@ def code_texts(controller: "PID | CascadeDesign | DriveLaw", plant: "Plant | Non
         name = path.stem if is_code_name(path.stem) else "prsa_ctrl"
     if suffix == ".st":
         return {path: st_code(law, name=name, real=real, differences=differences)}
+    if suffix == ".xml":
+        from .plcopen import plcopen_xml
+
+        return {path: plcopen_xml(law, name=name, real=real)}
     hpath = path.with_suffix(".h")
     h, c = c_code(law, name=name, real=real, header=hpath.name, differences=differences)
     return {path: c, hpath: h}

@@ -738,7 +738,7 @@ def test_bad_arguments_name_themselves(plant, kwargs, match):
 
 
 def test_bad_export_arguments(plant, tmp_path):
-    with pytest.raises(ValueError, match="expected a file name ending in .c or .st"):
+    with pytest.raises(ValueError, match="expected a file name ending in .c or .st or .xml"):
         export_code(SPEED_PID, plant, tmp_path / "drive.cpp")
     with pytest.raises(ValueError, match="PID kff"):
         drive_law(PID(0.085, 14.7, kff=1.0), plant)
@@ -821,7 +821,7 @@ def test_cli_export_bad_suffix_and_header_onto_an_input(tmp_path, capsys):
 
     assert main(["--export", str(tmp_path / "x.cpp")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "expected a path ending in .json, .toml, .c or .st" in err[0]
+    assert len(err) == 1 and "expected a path ending in .json, .toml, .c, .st or .xml" in err[0]
     plant = tmp_path / "mine.h"  # a plant file whose name the header of --export mine.c would take
     from prsa_ctrl.plant.plantfile import plant_file_path
 
