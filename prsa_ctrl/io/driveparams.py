@@ -434,6 +434,9 @@ def fill_template(template: "str | Path | dict", controller: "PID | Any", plant:
            "parameter": []}
     if motor is not None:
         out["motor"] = {k: v for k, v in motor.__dict__.items() if v is not None and v != ""}
+    from .export import export_assumptions
+
+    out["assumptions"] = export_assumptions(plant, (), pos)
     for i, prm in enumerate(doc["parameter"]):
         entry = {k: prm[k] for k in prm if k not in ("value", "value_si", "applies")}
         v = si[prm["quantity"]]

@@ -63,7 +63,7 @@ if TYPE_CHECKING:
     from ..tuning.cascade import CascadeDesign
 
 __all__ = ["export_controller", "export_cascade", "dumps", "FORMATS", "FILTER_PLACES", "pid_biquad",
-           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW", "toml_value", "toml_string"]
+           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW", "toml_value", "toml_string", "export_assumptions"]
 
 #: Output formats of :func:`dumps`.
 FORMATS = ("json", "toml")
@@ -196,6 +196,22 @@ def _check_positive(name: str, v: Any, unit: str) -> float | None:
     return float(v)
 
 
+def placed_loop_filters(filters: Iterable) -> list:
+    """The export's filters as :class:`prsa_ctrl.drive.filters.LoopFilter` (a bare Filter sits on
+    the torque command, Tustin prewarped, as :func:`export_controller` states it)."""
+    from ..drive.filters import LoopFilter
+
+    out = []
+    for item in filters:
+        if isinstance(item, LoopFilter):
+            out.append(item)
+        elif isinstance(item, Filter):
+            out.append(LoopFilter(item))
+        elif isinstance(item, tuple) and len(item) == 2:
+            out.append(LoopFilter(item[1], item[0]))
+    return out
+
+
 def _placed_filters(filters: Iterable) -> list[tuple[str, Filter, str]]:
     """``(place, filter, method the simulator runs)``; a ``LoopFilter`` keeps its own place and
     discretisation, a bare Filter sits on the torque command (Tustin, prewarped)."""
@@ -214,6 +230,62 @@ def _placed_filters(filters: Iterable) -> list[tuple[str, Filter, str]]:
             raise ValueError(f"filters entry {item!r}; expected a Filter or a (place, Filter) pair with place one "
                              f"of {', '.join(FILTER_PLACES)}")
         out.append((place, f, "biquad_tustin_prewarped"))
+    return out
+
+
+def export_assumptions(plant: "Plant", filters: Iterable = (), position: Any = None) -> dict:
+    """What the exported gains assume about the plant and the drive (the ``assumptions`` table
+    of every drive export and parameter set; the C/ST/XML headers say the same).
+
+    Parameters
+    ----------
+    plant : Plant
+    filters : iterable
+        The loop filters as :func:`prsa_ctrl.drive.filters.loop_filters` takes them.
+    position : PositionLoop, optional
+
+    Returns
+    -------
+    dict
+        SI numbers (names end in their unit), the discretisation of every filter, the source of
+        each plant value (text from the plant file) and one sentence on what changes if the
+        drive's rates differ.
+    """
+    from ..drive.filters import loop_filters
+    from .codegen import plant_assumptions, position_law
+
+    ts = float(plant.sample_time_s)
+    lfs = loop_filters(filters, ts)
+    bw = float(plant.values["drive.current_loop_bandwidth_hz"])
+    drive_delay = int(plant.command_delay_samples)
+    text = plant_assumptions(plant, None if position is None else position_law(position, plant), lfs, 1)
+    sources = {k: str(plant.sources.get(k, "default")) for k in (
+        "sensor.sample_time_s", "drive.current_loop_bandwidth_hz", "drive.command_delay_samples",
+        "sensor.encoder_counts_per_rev", "sensor.speed_filter_time_constant_s", "drive.torque_limit_n_m")}
+    out: dict[str, Any] = {
+        "loop_period_s": ts,
+        "loop_rate_hz": 1.0 / ts,
+        "reflected_inertia_kg_m2": float(plant.reflected_inertia_kg_m2),
+        "current_loop_bandwidth_hz": bw,
+        "current_loop_time_constant_s": 1.0 / (2.0 * math.pi * bw),
+        "computation_delay_samples": 1,
+        "drive_delay_samples": drive_delay,
+        "command_delay_samples": 1 + drive_delay,
+        "command_delay_s": (1 + drive_delay) * ts,
+        "encoder_counts_per_rev": int(plant.encoder_counts),
+        "encoder_rad_per_count": 2.0 * math.pi / plant.encoder_counts,
+        "speed_filter_time_constant_s": float(plant.speed_filter_s),
+        "speed_filter_discretisation": "pole-matched: w[k] = a w[k-1] + (1 - a)(theta[k] - theta[k-1])/Ts, "
+                                       "a = exp(-Ts/tau)",
+        "speed_controller_discretisation": "explicit Euler integral ki Ts/(z - 1); derivative filter pole-matched, "
+                                           "beta = exp(-Ts/tf)",
+        "torque_limit_n_m": float(plant.torque_limit),
+        "filters": [t[1] for t in text if t[0].startswith("filter ")],
+        "if_rates_differ": dict((k, v) for k, v, _ in text)["if the drive's rates differ"],
+        "sources": sources,
+    }
+    if position is not None:
+        out["position_loop_period_s"] = ts * int(position.rate)
     return out
 
 
@@ -291,6 +363,7 @@ def export_controller(
     if design is not None and (not isinstance(design, dict) or not isinstance(design.get("name"), str) or not all(
             isinstance(v, (str, float, int)) and not isinstance(v, bool) for v in design.values())):
         raise ValueError(f"design = {design!r}; expected a dict with a 'name' and str or number values")
+    filters = list(filters)
     placed = _placed_filters(filters)
     null = fmt == "json"
 
@@ -436,6 +509,7 @@ def export_controller(
         },
         "speed_measurement": measurement,
         "speed_controller": speed_controller,
+        "assumptions": export_assumptions(plant, placed_loop_filters(filters)),
     }
     if placed:
         out["filters"] = [
@@ -512,6 +586,7 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
                                   "1 rpm = 2 pi/60 rad/s; Kv = kv_per_s is the gain of the position loop over this "
                                   "speed loop (see position_controller)")
     law = dict(POSITION_LAW)
+    out["assumptions"] = export_assumptions(plant, (), pos)
     out["position_controller"] = {
         "measured": pos.measured,
         "sample_time_s": tp,
