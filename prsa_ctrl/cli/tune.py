@@ -459,7 +459,7 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
     if args.motor is not None or args.export_template is not None or args.rated_torque is not None:
         from ..io.driveparams import cli_export_data
 
-        exported = cli_export_data(args, exported, design, plant)
+        exported = cli_export_data(args, exported, design, plant, filters=filters)
     text = dumps(exported, fmt)
     outputs.stage(args.export, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--export")
 
