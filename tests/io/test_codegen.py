@@ -117,7 +117,8 @@ STRICT = ["-Wall", "-Wextra", "-Wpedantic", "-Wconversion", "-Wshadow", "-Werror
 
 #: One driver for the toolkit's C and for the C matiec makes of the Structured Text: the same
 #: per-sample inputs (raw 32-bit counts, references, enable, hold), a run-time parameter change
-#: at sample k_change (which: 0 kp, 1 the anti-windup gain, 2 both torque limits, times factor),
+#: at sample k_change (which: 0 kp, 1 the anti-windup gain, 2 both torque limits, times factor;
+#: 3: init again with the initial values, ST: one call with Reset),
 #: the output, the fault word and the speed integral of every sample.
 DRIVER_ARGS = """int n, const uint32_t *count, const double *r1, const double *r2, const double *r3, const uint32_t *pc,
              const int *enable, const int *hold, uint32_t modulus, int k_change, int which, double factor,
@@ -141,6 +142,7 @@ void run_all({args})
             p.torque_max = ({name}_real)((double)p.torque_max * factor);
             p.torque_min = ({name}_real)((double)p.torque_min * factor);
         }}
+        if (k == k_change && which == 3) {name}_init(&p, &s, cp, ({name}_real)w0, ({name}_real)i0, ({name}_real)t0{pc0});
         out[k] = (double){name}_step(&p, &s, {step}, enable[k], hold[k]);
         fault[k] = s.fault;
         integ[k] = (double)s.integral;
@@ -177,6 +179,7 @@ void run_all({args})
             fb.P_TORQUE_MAX.value = ({R})((double)fb.P_TORQUE_MAX.value * factor);
             fb.P_TORQUE_MIN.value = ({R})((double)fb.P_TORQUE_MIN.value * factor);
         }}
+        if (k == k_change && which == 3) {{ fb.RESET.value = 1; {FB}_body__(&fb); fb.RESET.value = 0; }}
         fb.ENCCOUNT.value = (DINT)count[k];
         {inputs}
         fb.ENABLE.value = (BOOL)(enable[k] != 0); fb.HOLD.value = (BOOL)(hold[k] != 0);
@@ -420,6 +423,12 @@ def test_every_st_export_compiles_with_iec2c_and_equals_the_c(variant, real, pla
     assert f_c[999] == 0 and f_c[1000] == 1 and f_c[-1] == 1
     np.testing.assert_array_equal(f_st, f_c)
     np.testing.assert_array_equal(u_st, u_c)
+    # init again at sample 2500 (after the NaN): the same in both, the fault word cleared
+    u_c3, f_c3 = _drive(c, dict(seq, k_change=2500, which=3))
+    u_st3, f_st3 = _drive(st, dict(seq, k_change=2500, which=3))
+    np.testing.assert_array_equal(u_st3, u_c3)
+    np.testing.assert_array_equal(f_st3, f_c3)
+    assert f_c3[2499] == 1 and not f_c3[2500:].any()
     # single-turn counts (20 bits): the same run, counts modulo 2^20, in both
     single = dict(seq, count=seq["count"] % 2**20, pc=seq["pc"] % 2**20, modulus=2**20, cp=seq["cp"] % 2**20,
                   pc0=seq["pc0"] % 2**20)
@@ -626,13 +635,16 @@ def test_c_enable_hold_reinit_and_bad_limits(load_step, tmp_path):
     assert np.all(np.isfinite(u)) and np.max(np.abs(u[400:])) <= law.torque_limit_n_m
     u_bad, f_bad = _drive(lib, dict(seq, k_change=500, which=2, factor=-1.0))
     assert np.all(f_bad[500:] == 4) and np.all(u_bad[500:] == u_bad[499])
-    # re-init: the same inputs after a NaN give a fresh run (the driver calls init once per call)
+    # re-init in the middle of a run (after a NaN set the fault): from there the outputs are those
+    # of a fresh run started at that sample with the same initial values, and the fault is cleared
     seq_nan = dict(seq, r1=np.array(seq["r1"], float))
     seq_nan["r1"][10] = np.nan
-    _, f1 = _drive(lib, seq_nan)
-    u_again, f_again = _drive(lib, seq)
-    assert f1[-1] == 1 and not f_again.any()
-    np.testing.assert_array_equal(u_again, _drive(lib, seq)[0])
+    k = 700
+    u1, f1 = _drive(lib, dict(seq_nan, k_change=k, which=3))
+    fresh = {key: (val[k:] if isinstance(val, np.ndarray) else val) for key, val in seq.items()}
+    u_fresh, f_fresh = _drive(lib, fresh)
+    assert f1[k - 1] == 1 and not f1[k:].any() and not f_fresh.any()
+    np.testing.assert_array_equal(u1[k:], u_fresh)
 
 
 PARAMS_PROBE = """
