@@ -213,7 +213,8 @@ def _header_comment(law: "DriveLaw", lang: str) -> list[str]:
              "the limits when it was computed), and bit 1 (input) / 2 (result) / 4 (torque_min > torque_max) of the "
              "sticky fault word is set; init clears it.",
              "Enable false: output 0 N m, integral, torque-filter and position-loop states reset to 0 (the speed "
-             "measurement keeps tracking); hold true: the speed and position integrals are frozen.",
+             "measurement keeps tracking; also on a faulted sample); hold true: the speed and position integrals are "
+             "frozen.",
              f"States below {iec_real(FLUSH)} in magnitude (speed filter, derivative, biquad outputs) are flushed to 0: "
              "no subnormal numbers at rest; kd = 0 skips the derivative path."]
     if p and p.friction is not None:
@@ -516,6 +517,14 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
               f"    if (w > {z}) return p->fr_g * (p->fr_cp + p->fr_sp * shape + p->fr_vp * w);",
               f"    if (w < {z}) return p->fr_g * -(p->fr_cn + p->fr_sn * shape - p->fr_vn * w);", f"    return {z};",
               "}", ""]
+    c += ["/* Drive disabled: output 0, integrals, torque filters and the position loop reset. */",
+          f"static void {n}_off_({n}_state *s)", "{", f"    s->integral = {z};", f"    s->u_pending = {z};",
+          f"    s->u_out = {z};", f"    s->command_unfiltered = {z};"]
+    for i in range(nt):
+        c.append(f"    s->tf[{i}][0] = s->tf[{i}][1] = s->tf[{i}][2] = s->tf[{i}][3] = {z};")
+    if p is not None:
+        c += ["    s->phase = 0;", f"    s->p_integral = {z};", f"    s->w_ref = {z};", f"    s->tau_p = {z};"]
+    c += ["}", ""]
     c += [f"void {n}_init(const {n}_params *p, {n}_state *s, {init_args})", "{",
           "    (void)p;", "    s->count_prev = count_prev;", "    s->w_filt = speed0;", "    s->w_prev = speed0;",
           f"    s->deriv = {z};", "    s->integral = integral0;", "    s->u_pending = torque0;", "    s->u_out = torque0;",
@@ -540,8 +549,9 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
         if scale:
             c.append("    s->position_prev = position_count;")
     fin = [f"{n}_finite_({x})" for x in (["speed_ref"] if p is None else ["pos_ref", "vel_ref", "acc_ref"])]
-    c += [f"    if (!({' && '.join(fin)})) {{", f"        s->fault |= {U}_FAULT_INPUT;", "        return s->u_out;", "    }",
-          "    if (!(p->torque_min <= p->torque_max)) {", f"        s->fault |= {U}_FAULT_LIMITS;", "        return s->u_out;",
+    off = f"        if (!enable) {n}_off_(s);"
+    c += [f"    if (!({' && '.join(fin)})) {{", f"        s->fault |= {U}_FAULT_INPUT;", off, "        return s->u_out;", "    }",
+          "    if (!(p->torque_min <= p->torque_max)) {", f"        s->fault |= {U}_FAULT_LIMITS;", off, "        return s->u_out;",
           "    }",
           "    /* speed: encoder difference in counts (wrap-safe), drive speed filter */",
           f"    wf = {n}_flush_(p->a_w * s->w_filt + p->one_minus_a_w * (({R})dn * p->rad_per_count) / p->ts);",
@@ -571,19 +581,13 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
     if nt:
         c.append("    uf = uf > p->torque_max ? p->torque_max : (uf < p->torque_min ? p->torque_min : uf);")
     c += [f"    if (!({n}_finite_(u) && {n}_finite_(uf) && {n}_finite_(integral))) {{",
-          f"        s->fault |= {U}_FAULT_RESULT;", "        return s->u_out;", "    }",
+          f"        s->fault |= {U}_FAULT_RESULT;", off, "        return s->u_out;", "    }",
           "    /* commit */", "    s->w_filt = wf;"]
     for i in range(ns):
         c.append(f"    s->sf[{i}][1] = s->sf[{i}][0]; s->sf[{i}][0] = {'wf' if i == 0 else f'sy[{i - 1}]'}; "
                  f"s->sf[{i}][3] = s->sf[{i}][2]; s->sf[{i}][2] = sy[{i}];")
     c += ["    s->deriv = d;", "    s->w_prev = w;", "    s->speed = w;"]
-    c += ["    if (!enable) {", f"        s->integral = {z};", f"        s->u_pending = {z};", f"        s->u_out = {z};",
-          f"        s->command_unfiltered = {z};"]
-    for i in range(nt):
-        c.append(f"        s->tf[{i}][0] = s->tf[{i}][1] = s->tf[{i}][2] = s->tf[{i}][3] = {z};")
-    if p is not None:
-        c += ["        s->phase = 0;", f"        s->p_integral = {z};", f"        s->w_ref = {z};", f"        s->tau_p = {z};"]
-    c += ["        return s->u_out;", "    }", "    s->integral = integral;"]
+    c += ["    if (!enable) {", f"        {n}_off_(s);", "        return s->u_out;", "    }", "    s->integral = integral;"]
     for i in range(nt):
         c.append(f"    s->tf[{i}][1] = s->tf[{i}][0]; s->tf[{i}][0] = {'us' if i == 0 else f'ty[{i - 1}]'}; "
                  f"s->tf[{i}][3] = s->tf[{i}][2]; s->tf[{i}][2] = ty[{i}];")
@@ -693,7 +697,13 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
         else:
             b.append("s_Travel := s_Travel + DINT_TO_UDINT(t_Dn);")
     fin = " AND ".join(_st_fin(x) for x in (["SpeedRef"] if p is None else ["PosRef", "VelRef", "AccRef"]))
-    ret = ["    TorqueCmd := s_UOut;", "    Fault := s_Fault;", "    RETURN;"]
+    off = ["s_Integral := 0.0;", "s_UPending := 0.0;", "s_UOut := 0.0;", "CommandUnfiltered := 0.0;"]
+    for i in range(nt):
+        off.append(f"s_TF{i}_X1 := 0.0; s_TF{i}_X2 := 0.0; s_TF{i}_Y1 := 0.0; s_TF{i}_Y2 := 0.0;")
+    if p is not None:
+        off += ["s_Phase := 0;", "s_PIntegral := 0.0;", "s_WRef := 0.0;", "s_TauP := 0.0;"]
+    ret = ["    IF NOT Enable THEN", *["        " + x for x in off], "    END_IF;",
+           "    TorqueCmd := s_UOut;", "    Fault := s_Fault;", "    RETURN;"]
     b += [f"IF NOT ({fin}) THEN", "    s_Fault := s_Fault OR 16#1;", *ret, "END_IF;",
           "IF NOT (P_TORQUE_MIN <= P_TORQUE_MAX) THEN", "    s_Fault := s_Fault OR 16#4;", *ret, "END_IF;",
           "t_Wf := P_A_W * s_WFilt + P_ONE_MINUS_A_W * (DINT_TO_%s(t_Dn) * P_RAD_PER_COUNT) / P_TS;" % R,
@@ -741,13 +751,8 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
     for i in range(ns):
         b.append(f"s_SF{i}_X2 := s_SF{i}_X1; s_SF{i}_X1 := {'t_Wf' if i == 0 else f't_SF{i - 1}'}; "
                  f"s_SF{i}_Y2 := s_SF{i}_Y1; s_SF{i}_Y1 := t_SF{i};")
-    b += ["s_Deriv := t_Dv;", "s_WPrev := t_W;", "Speed := t_W;", "IF NOT Enable THEN", "    s_Integral := 0.0;",
-          "    s_UPending := 0.0;", "    s_UOut := 0.0;", "    CommandUnfiltered := 0.0;"]
-    for i in range(nt):
-        b.append(f"    s_TF{i}_X1 := 0.0; s_TF{i}_X2 := 0.0; s_TF{i}_Y1 := 0.0; s_TF{i}_Y2 := 0.0;")
-    if p is not None:
-        b += ["    s_Phase := 0;", "    s_PIntegral := 0.0;", "    s_WRef := 0.0;", "    s_TauP := 0.0;"]
-    b += [*ret, "END_IF;", "s_Integral := t_Int;"]
+    b += ["s_Deriv := t_Dv;", "s_WPrev := t_W;", "Speed := t_W;", "IF NOT Enable THEN", *ret, "END_IF;",
+          "s_Integral := t_Int;"]
     for i in range(nt):
         b.append(f"s_TF{i}_X2 := s_TF{i}_X1; s_TF{i}_X1 := {'t_Us' if i == 0 else f't_TF{i - 1}'}; "
                  f"s_TF{i}_Y2 := s_TF{i}_Y1; s_TF{i}_Y1 := t_TF{i};")
