@@ -950,3 +950,61 @@ def test_export_code_file_names(plant, tmp_path):
     with pytest.raises(OutputError, match="expected a file name without quotes"):
         check_code_export(tmp_path / 'a".c')
     assert len(list(tmp_path.iterdir())) == 1
+
+
+SUBNORMAL_PROBE = """
+#include <math.h>
+#include <stdio.h>
+#include "{name}.h"
+static int sub(double x) {{ return fpclassify(x) == FP_SUBNORMAL; }}
+static int subf(float x) {{ return fpclassify(x) == FP_SUBNORMAL; }}
+int main(void)
+{{
+    {name}_params p;
+    {name}_state s;
+    int k, i, bad = 0, zero = 0;
+    uint32_t count = 1000u;
+    {name}_params_default(&p);
+    {name}_init(&p, &s, count, ({name}_real)0, ({name}_real)0, ({name}_real)0);
+    for (k = 0; k < 40000; k++) {{
+        if (k < 200) count += 40u;  /* a short move, then rest: every filter state decays */
+        (void){name}_step(&p, &s, count, ({name}_real)0, 1, 0);
+        bad += {sub}(s.w_filt) || {sub}(s.deriv) || {sub}(s.w_prev) || {sub}(s.integral) || {sub}(s.u_pending);
+        for (i = 0; i < {ns}; i++) bad += {sub}(s.sf[i][0]) || {sub}(s.sf[i][1]) || {sub}(s.sf[i][2]) || {sub}(s.sf[i][3]);
+        for (i = 0; i < {nt}; i++) bad += {sub}(s.tf[i][0]) || {sub}(s.tf[i][1]) || {sub}(s.tf[i][2]) || {sub}(s.tf[i][3]);
+    }}
+    zero = s.w_filt == 0 && s.deriv == 0;
+    printf("%d %d\\n", bad, zero);
+    return 0;
+}}
+"""
+
+
+@needs_cc
+@pytest.mark.parametrize("real", ("double", "float"))
+@pytest.mark.parametrize("kd", (2e-5, 0.0))
+def test_c_states_never_subnormal_at_rest(plant, real, kd, tmp_path):
+    """After a move the axis rests for 10 s: no state of the C code is ever subnormal (tiny states
+    are flushed to 0; kd = 0 skips the derivative path), and the speed filter and derivative end
+    at exactly 0. The same decay without the flush does pass through subnormal numbers (checked
+    on the speed filter's recursion, a = exp(-Ts/tau), in the same type)."""
+    from prsa_ctrl.drive.filters import SecondOrderLowPass
+
+    filters = (LoopFilter(Notch(1200.0, 300.0, -20.0), "torque_command"),
+               LoopFilter(SecondOrderLowPass(600.0, 0.7), "speed_measurement"))
+    law = drive_law(PID(0.085, 14.7, kd=kd, tf=5e-4), plant, filters=filters)
+    _write_c(law, tmp_path, "sn", real)
+    sub = "sub" if real == "double" else "subf"
+    (tmp_path / "probe.c").write_text(SUBNORMAL_PROBE.format(name="sn", sub=sub, ns=1, nt=1))
+    exe = tmp_path / "probe"
+    res = subprocess.run([CC, "-std=c99", "-O1", "-o", str(exe), str(tmp_path / "probe.c"), str(tmp_path / "sn.c"),
+                          "-lm"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    bad, zero = map(int, subprocess.run([str(exe)], capture_output=True, text=True, timeout=60).stdout.split())
+    assert bad == 0 and zero == 1
+    dt = np.float64 if real == "double" else np.float32
+    a, w, seen = dt(law.speed_filter_a), dt(1.0), 0
+    for _ in range(4000):  # the unflushed recursion: w = a w (count constant)
+        w = dt(a * w)
+        seen += 0 < abs(w) < np.finfo(dt).tiny
+    assert seen > 0
