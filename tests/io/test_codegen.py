@@ -439,12 +439,15 @@ def test_every_st_export_compiles_with_iec2c_and_equals_the_c(variant, real, pla
     np.testing.assert_array_equal(u_st1, u_st)
 
 
+@pytest.mark.parametrize("real", ("double", "float"))
 @pytest.mark.parametrize("case", CASES)
-def test_structured_text_reproduces_the_simulator(case, request, matiec, tmp_path):
-    """matiec's C of the ST export on the recorded runs: the simulator's command (double)."""
+def test_structured_text_reproduces_the_simulator(case, real, request, matiec, tmp_path):
+    """matiec's C of the ST export on the recorded runs: the toolkit C's command bit for bit, and
+    so the simulator's (double: 1e-12 of the largest command; float: 1e-3, float round-off)."""
     law, inp, _ = request.getfixturevalue(case)
-    u = _run_st(_build_st(matiec, law, tmp_path, "double"), law, inp)
-    assert max_relative_difference(u, inp["torque_command"]) <= REL
+    u = _run_st(_build_st(matiec, law, tmp_path / "st", real), law, inp)
+    np.testing.assert_array_equal(u, _run_c(_build(law, tmp_path, real), law, inp))
+    assert max_relative_difference(u, inp["torque_command"]) <= (REL if real == "double" else 1e-3)
 
 
 def test_structured_text_catches_a_changed_constant(load_step, matiec, tmp_path):
