@@ -24,6 +24,25 @@ if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/
     echo "no chromium and no root apt-get: the browser tests will skip (fail under CI=true)"
   fi
 fi
+# The Structured Text tests compile every ST export with matiec's iec2c (the IEC 61131-3 compiler behind
+# Beremiz and OpenPLC): built once from the shared source snapshot (shared/tools/matiec above the checkout)
+# into a cache folder outside it (as root the build script apt-installs flex, bison, autoconf when missing).
+# Without it those tests skip with one line, and under CI=true they fail.
+export PRSA_MATIEC_DIR="${PRSA_MATIEC_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/prsa-ctrl/matiec}"
+matiec_build=""
+for d in .. ../.. ../../..; do
+  if [ -f "$d/shared/tools/matiec/build.sh" ]; then matiec_build="$d/shared/tools/matiec/build.sh"; break; fi
+done
+if [ -x "$PRSA_MATIEC_DIR/iec2c" ]; then
+  echo "matiec iec2c: $PRSA_MATIEC_DIR (cached)"
+elif [ -n "$matiec_build" ]; then
+  echo "building matiec iec2c once into $PRSA_MATIEC_DIR (about a minute)"
+  matiec_log="${TMPDIR:-/tmp}/prsa-ctrl-matiec-build.log"
+  bash "$matiec_build" >/dev/null 2>"$matiec_log" \
+    || echo "matiec build failed (log: $matiec_log): the iec2c tests will skip (fail under CI=true)"
+else
+  echo "no shared/tools/matiec/build.sh above the checkout and no $PRSA_MATIEC_DIR/iec2c: the iec2c tests will skip (fail under CI=true)"
+fi
 echo "fresh environment $venv:"
 "$venv/bin/python" -m pip list --format=freeze 2>/dev/null \
   | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|dask|distributed|pytest|hypothesis|bokeh|playwright|sphinx)==' \

@@ -66,7 +66,7 @@ WORKERS_MAX = 64
 MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real", "export_template", "motor",
               "rated_torque", "friction_ff")
 #: Suffixes ``--export`` takes (drive file as JSON or TOML, code as C or Structured Text).
-EXPORT_SUFFIXES = (".json", ".toml", ".c", ".st")
+EXPORT_SUFFIXES = (".json", ".toml", ".c", ".st", ".xml")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -108,12 +108,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=integer("--workers", 1, WORKERS_MAX, "an integer"), default=None,
                    help="processes for verification and Monte Carlo, or the workers of --scheduler local "
                         "(default: cores, at most 4)")
-    p.add_argument("--export", type=path_text("--export"), metavar="PATH.json|PATH.toml|PATH.c|PATH.st",
+    p.add_argument("--export", type=path_text("--export"), metavar="PATH.json|PATH.toml|PATH.c|PATH.st|PATH.xml",
                    help="write the tuned gains in a drive's terms (continuous and discrete forms, Kp/Tn, "
                         "biquads) as JSON or TOML, or the complete discrete controller as C (PATH.c and PATH.h) "
-                        "or IEC 61131-3 Structured Text (PATH.st), chosen by the suffix")
+                        "or IEC 61131-3 Structured Text (PATH.st; PATH.xml: the same function block as PLCopen XML "
+                        "for TwinCAT/CODESYS import), chosen by the suffix")
     p.add_argument("--export-real", choices=("double", "float"), default="double",
-                   help="floating-point type of a .c/.st export (default double)")
+                   help="floating-point type of a .c/.st/.xml export (default double)")
     p.add_argument("--export-template", metavar="NAME|PATH.toml",
                    help="with --export PATH.toml|.json: write the drive parameter set of this template (built-in: "
                         "generic, cia402, siemens-sinamics, beckhoff-ax8000; or a copy you edited)")
@@ -270,7 +271,7 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
 
     def suffix() -> None:
         if args.export is not None and os.path.splitext(args.export)[1].lower() not in EXPORT_SUFFIXES:
-            raise UsageError(f"--export {args.export!r}: expected a path ending in .json, .toml, .c or .st")
+            raise UsageError(f"--export {args.export!r}: expected a path ending in .json, .toml, .c, .st or .xml")
 
     def distinct() -> None:
         check_distinct({"--json": args.json, "--export": args.export, "--plots": args.plots})
@@ -442,7 +443,7 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
     else:
         design, b, plant = result["export"][0], _setpoint_weight(result["rep"].scene), result["rep"].plant
         filters = result["rep"].scene.filters
-    if fmt in ("c", "st"):  # issue 24: the discrete controller as code (prsa_ctrl.io.codegen)
+    if fmt in ("c", "st", "xml"):  # issue 24 (xml: issue 36): the discrete controller as code (prsa_ctrl.io.codegen)
         from ..io.codegen import stage_code_export
 
         kw = ({} if b is None else {"setpoint_weight": b}) | ({"filters": filters} if filters else {})
@@ -457,7 +458,7 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
     if args.motor is not None or args.export_template is not None or args.rated_torque is not None:
         from ..io.driveparams import cli_export_data
 
-        exported = cli_export_data(args, exported, design, plant)
+        exported = cli_export_data(args, exported, design, plant, filters=filters)
     text = dumps(exported, fmt)
     outputs.stage(args.export, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--export")
 

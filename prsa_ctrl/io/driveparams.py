@@ -49,6 +49,7 @@ if TYPE_CHECKING:
     from ..plant.plantfile import Plant
 
 __all__ = ["MotorData", "MOTOR_PLAUSIBLE", "MOTOR_TORQUE_CONSISTENCY", "BACK_EMF_UNITS", "BACK_EMF_KEYS", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
+           "INTEGER_TYPES", "FILTER_QUANTITIES", "filter_fields",
            "builtin_templates", "load_template", "fill_template", "read_parameter_set",
            "controller_from_parameter_set", "dumps_parameter_set"]
 
@@ -366,6 +367,32 @@ QUANTITIES: Mapping[str, tuple[str, str]] = {
     "acceleration_feedforward": ("1", "acceleration feed-forward gain (1 = the reflected inertia)"),
     "torque_per_acceleration": ("N m s^2/rad", "acceleration feed-forward kaff J"),
     "sample_time": ("s", "speed-loop sample time"),
+    "torque_limit": ("N m", "torque limit, positive direction (the plant's drive.torque_limit_n_m)"),
+    "torque_limit_lower": ("N m", "torque limit, negative direction (minus the plant's torque limit)"),
+    "speed_filter_time": ("s", "time constant of the speed-measurement low-pass (sensor.speed_filter_time_constant_s)"),
+    "feedforward_torque": ("N m", "constant torque feed-forward of the export (0 unless given); the cyclic "
+                                  "feed-forward torque of a cascade is written to the same object every cycle"),
+    "torque_filter_type": ("1", "kind of the torque-command filter number `filter` (the template's `enum` maps "
+                                "none, lowpass1, lowpass2, notch, biquad to the drive's code)"),
+    "torque_filter_lp_hz": ("Hz", "natural frequency of the denominator (low-pass part) of torque filter `filter`"),
+    "torque_filter_lp_damping": ("1", "damping of the denominator of torque filter `filter`"),
+    "torque_filter_hp_hz": ("Hz", "natural frequency of the numerator of torque filter `filter`"),
+    "torque_filter_hp_damping": ("1", "damping of the numerator of torque filter `filter`"),
+}
+
+#: Quantities of the torque-command filter number ``filter`` (1-based) of a template entry.
+FILTER_QUANTITIES = tuple(q for q in QUANTITIES if q.startswith("torque_filter_"))
+
+#: Integer data types a template may declare: name -> (lowest, highest) value. A value for such a
+#: parameter is rounded to the nearest integer, checked against this range (and the template's
+#: min/max), and the rounding error is reported.
+INTEGER_TYPES: Mapping[str, tuple[int, int]] = {
+    **{n: (-2**7, 2**7 - 1) for n in ("INT8", "SINT", "INTEGER8")},
+    **{n: (0, 2**8 - 1) for n in ("UINT8", "USINT", "UNSIGNED8", "BYTE")},
+    **{n: (-2**15, 2**15 - 1) for n in ("INT16", "INT", "INTEGER16", "ENUM (INT16)")},
+    **{n: (0, 2**16 - 1) for n in ("UINT16", "UINT", "UNSIGNED16", "WORD")},
+    **{n: (-2**31, 2**31 - 1) for n in ("INT32", "DINT", "INTEGER32")},
+    **{n: (0, 2**32 - 1) for n in ("UINT32", "UDINT", "UNSIGNED32", "DWORD")},
 }
 
 #: Units a parameter may be given in: unit -> (SI unit, what it needs, factor): drive value =
@@ -394,6 +421,11 @@ UNIT_FACTORS: Mapping[str, tuple[str, str, float]] = {
     "%": ("1", "", 100.0),
     "N m s^2/rad": ("N m s^2/rad", "", 1.0),
     "A s^2/rad": ("N m s^2/rad", "kt", 1.0),
+    "0.1 mA/(rad/s)": ("N m s/rad", "kt", 1e4),
+    "0.01 ms": ("s", "", 1e5),
+    "N m": ("N m", "", 1.0),
+    "per mille rated torque": ("N m", "rated_torque", 1000.0),
+    "Hz": ("Hz", "", 1.0),
 }
 
 _TEMPLATE_KEYS = ("index", "name", "quantity", "unit", "datatype", "confirmed", "source")  # + optional min, max
@@ -472,8 +504,73 @@ def _si_values(pid: PID, position: "PositionLoop | None", plant: "Plant") -> dic
             "sample_time": float(plant.sample_time_s)}
 
 
+def filter_fields(lf: Any) -> dict[str, float | str]:
+    """A loop filter's numerator and denominator as natural frequency (Hz) and damping:
+    ``{"kind", "lp_hz", "lp_damping", "hp_hz", "hp_damping"}`` (``lp``: the denominator,
+    ``hp``: the numerator; a first-order part has no damping, a constant numerator no ``hp``)."""
+    f = lf.filter
+    (n2, n1, n0), (d2, d1, d0) = f.coefficients()
+    out: dict[str, float | str] = {"kind": f.kind}
+    for tag, (a2, a1, a0) in (("lp", (d2, d1, d0)), ("hp", (n2, n1, n0))):
+        if a2 != 0.0:
+            out[f"{tag}_hz"] = math.sqrt(a0 / a2) / (2.0 * math.pi)
+            out[f"{tag}_damping"] = a1 / (2.0 * math.sqrt(a0 * a2))
+        elif a1 != 0.0:
+            out[f"{tag}_hz"] = (a0 / a1) / (2.0 * math.pi)
+    return out
+
+
+def _filter_value(prm: Mapping[str, Any], torque_filters: list) -> float | None:
+    """The value of a ``torque_filter_*`` parameter for filter number ``prm["filter"]``."""
+    i = prm.get("filter")
+    if isinstance(i, bool) or not isinstance(i, int) or i < 1:
+        raise ValueError(f"parameter {prm.get('index')}: filter = {i!r}; expected the filter's number (1, 2, ...) for "
+                         f"quantity {prm['quantity']}")
+    field = prm["quantity"][len("torque_filter_"):]
+    if field == "type":
+        enum = prm.get("enum")
+        if not isinstance(enum, dict) or not all(isinstance(v, int) for v in enum.values()):
+            raise ValueError(f"parameter {prm.get('index')}: expected an enum table (filter kind -> integer code)")
+        kind = "none" if i > len(torque_filters) else torque_filters[i - 1].filter.kind
+        if kind not in enum:
+            raise ValueError(f"parameter {prm.get('index')}: the drive has no code for a {kind} filter (enum: "
+                             f"{', '.join(enum)}); expected a filter the drive offers")
+        return float(enum[kind])
+    if i > len(torque_filters):
+        return None
+    return filter_fields(torque_filters[i - 1]).get(field)  # type: ignore[return-value]
+
+
+def _rounding_margins(params: list, pid: PID, plant: "Plant", lfs: Any, motor: MotorData | None) -> dict | None:
+    """The speed loop's margins with the exact and with the rounded gains, when rounding to an
+    integer type changed a speed-loop gain (None otherwise). Linear sampled loop of the plant
+    (rigid), with the export's filters (:func:`prsa_ctrl.tuning.scene_loops.step_loops`)."""
+    rounded = [p for p in params if "rounding" in p and p["quantity"] in ("speed_kp", "speed_ki", "speed_tn")]
+    if not rounded:
+        return None
+    vals = read_parameter_set({"parameter": params}, motor)
+    kp = vals.get("speed_kp", float(pid.kp))
+    ki = vals["speed_ki"] if "speed_ki" in vals else (kp / vals["speed_tn"] if "speed_tn" in vals else float(pid.ki))
+    from ..tuning.scene_loops import step_loops
+
+    lp = step_loops(plant, setpoint_rad_s=10.0, initial_load_n=0.0, final_loads_n=[1.0], fidelity="rigid",
+                    horizon_s=0.02, filters=list(lfs))[0]
+    g0 = (float(pid.kp), float(pid.ki), float(pid.kd))
+    g1 = (kp, ki, float(pid.kd))
+    m0, m1 = lp.margins(g0), lp.margins(g1)
+    out = {"exact_gains": {"kp_n_m_s_per_rad": g0[0], "ki_n_m_per_rad": g0[1]},
+           "rounded_gains": {"kp_n_m_s_per_rad": g1[0], "ki_n_m_per_rad": g1[1]},
+           "exact": {k: v for k, v in m0.as_dict().items() if v is not None},
+           "rounded": {k: v for k, v in m1.as_dict().items() if v is not None},
+           "note": "speed loop (rigid plant, sampled, with the export's filters) with the exact gains and with the "
+                   "gains the rounded integers give back; ms/mt peak sensitivities, gm_db gain margin, pm_deg phase "
+                   "margin, wc_rad_s crossover"}
+    out["change"] = {k: out["rounded"][k] - out["exact"][k] for k in out["exact"] if k in out["rounded"]}
+    return out
+
+
 def fill_template(template: "str | Path | dict", controller: "PID | Any", plant: "Plant",
-                  motor: MotorData | None = None) -> dict:
+                  motor: MotorData | None = None, *, filters: Any = (), feedforward_torque_n_m: float = 0.0) -> dict:
     """The template with each parameter's ``value`` in its unit (and ``value_si``).
 
     Parameters
@@ -484,12 +581,21 @@ def fill_template(template: "str | Path | dict", controller: "PID | Any", plant:
     plant : Plant
     motor : MotorData, optional
         Needed for current-based or per-unit units. Default: :func:`motor_from_plant`.
+    filters : iterable
+        The loop filters (:func:`prsa_ctrl.drive.filters.loop_filters`); the torque-command ones
+        fill the ``torque_filter_*`` parameters (``filter`` = their number, 1-based).
+    feedforward_torque_n_m : float, N m
+        Constant torque feed-forward (the ``feedforward_torque`` quantity).
 
     Returns
     -------
     dict
         Plain data (write it with :func:`dumps_parameter_set`). A position-loop parameter of a
-        speed-only design gets ``applies = false`` and no value.
+        speed-only design gets ``applies = false`` and no value. A parameter of an integer
+        data type (:data:`INTEGER_TYPES`) holds the rounded integer and a ``rounding`` table:
+        the exact value, the error in the parameter's unit and in SI, and, when a speed-loop
+        gain was rounded, the speed loop's margins with the exact and the rounded gains
+        (``rounding_margins`` of the set).
     """
     doc = template if isinstance(template, dict) else load_template(template)
     pid, pos = (controller, None) if isinstance(controller, PID) else (getattr(controller, "speed", None),
@@ -497,7 +603,13 @@ def fill_template(template: "str | Path | dict", controller: "PID | Any", plant:
     if not isinstance(pid, PID):
         raise ValueError(f"controller = {controller!r}; expected a PID or a CascadeDesign")
     motor = motor if motor is not None else motor_from_plant(plant)
+    from ..drive.filters import loop_filters
+
+    lfs = loop_filters(filters, float(plant.sample_time_s))
+    torque_filters = [lf for lf in lfs if lf.place == "torque_command"]
     si = _si_values(pid, pos, plant)
+    si.update(torque_limit=float(plant.torque_limit), torque_limit_lower=-float(plant.torque_limit),
+              speed_filter_time=float(plant.speed_filter_s), feedforward_torque=float(feedforward_torque_n_m))
     from .. import __version__
 
     out = {"template": dict(doc["template"]),
@@ -507,22 +619,52 @@ def fill_template(template: "str | Path | dict", controller: "PID | Any", plant:
            "parameter": []}
     if motor is not None:
         out["motor"] = {k: v for k, v in motor.__dict__.items() if v is not None and v != ""}
+    from .export import export_assumptions
+
+    out["assumptions"] = export_assumptions(plant, (), pos)
     for i, prm in enumerate(doc["parameter"]):
-        entry = {k: prm[k] for k in prm if k not in ("value", "value_si", "applies")}
-        v = si[prm["quantity"]]
+        entry = {k: prm[k] for k in prm if k not in ("value", "value_si", "applies", "rounding")}
+        q = prm["quantity"]
+        v = _filter_value(prm, torque_filters) if q in FILTER_QUANTITIES else si[q]
+        if v is not None and prm.get("optional") is True:  # left out when its motor data is missing
+            try:
+                _factor(prm["unit"], motor, "")
+            except ValueError as exc:
+                entry["applies"] = False
+                entry["missing"] = str(exc).split(": ", 1)[-1]
+                out["parameter"].append(entry)
+                continue
         if v is None:
             entry["applies"] = False
         else:
-            value = v * _factor(prm["unit"], motor, f"parameter {prm['index']}")
+            exact = v * _factor(prm["unit"], motor, f"parameter {prm['index']}")
+            value: float | int = exact
             lo, hi = prm.get("min", -math.inf), prm.get("max", math.inf)
-            if not lo <= value <= hi:
-                raise ValueError(f"parameter {prm['index']} ({prm['name']}) = {value:.6g} {prm['unit']}; expected a value "
+            dtype = str(prm["datatype"]).upper()
+            if dtype in INTEGER_TYPES:
+                tlo, thi = INTEGER_TYPES[dtype]
+                lo, hi = max(lo, tlo), min(hi, thi)
+                if not math.isfinite(exact) or not lo - 0.5 <= exact < hi + 0.5:
+                    raise ValueError(f"parameter {prm['index']} ({prm['name']}) = {exact:.6g} {prm['unit']}; expected "
+                                     f"a value that rounds into [{lo:g}, {hi:g}] ({prm['datatype']} and the template's "
+                                     "range)")
+                value = int(math.floor(exact + 0.5))
+                err = value - exact
+                entry["rounding"] = {"exact_value": exact, "error": err, "error_si": err / (exact / v) if exact else 0.0,
+                                     "relative_error": err / exact if exact else 0.0,
+                                     "note": f"{prm['datatype']}: rounded to the nearest integer; error = value - "
+                                             "exact_value in the parameter's unit, error_si in the quantity's SI unit"}
+            elif not lo <= exact <= hi:
+                raise ValueError(f"parameter {prm['index']} ({prm['name']}) = {exact:.6g} {prm['unit']}; expected a value "
                                  f"in [{lo:g}, {hi:g}] as the template says the drive accepts")
             entry["value"] = value
             entry["value_si"] = v
-            entry["si_unit"] = QUANTITIES[prm["quantity"]][0]
+            entry["si_unit"] = QUANTITIES[q][0]
             entry["applies"] = True
         out["parameter"].append(entry)
+    margins = _rounding_margins(out["parameter"], pid, plant, lfs, motor)
+    if margins is not None:
+        out["rounding_margins"] = margins
     parts = [", ".join(p["index"] for p in out["parameter"] if not p["confirmed"])]
     if not doc["template"].get("speed_pi_form_confirmed", True):
         parts.append("the PI form (speed_pi_form)")
@@ -544,6 +686,7 @@ def read_parameter_set(data: "dict | str | Path", motor: MotorData | None = None
     if motor is None and isinstance(data.get("motor"), dict):
         motor = _motor_from_mapping({k: v for k, v in data["motor"].items()}, "parameter set [motor]")
     out: dict[str, float] = {}
+    rounded: set[str] = set()
     for prm in data.get("parameter", []):
         if not prm.get("applies", True) or "value" not in prm:
             continue
@@ -552,6 +695,16 @@ def read_parameter_set(data: "dict | str | Path", motor: MotorData | None = None
                              "expected those of a template")
         v = float(prm["value"]) / _factor(prm["unit"], motor, f"parameter {prm.get('index')}")
         q = prm["quantity"]
+        if q in FILTER_QUANTITIES:  # one per filter: keyed by its number
+            q = f"{q}[{prm.get('filter')}]"
+        if "rounding" in prm:  # an integer's rounded value: a value given exactly elsewhere in the set wins
+            rounded.add(q)
+            out.setdefault(q, v)
+            continue
+        if q in rounded:
+            out[q] = v
+            rounded.discard(q)
+            continue
         if q in out and abs(v - out[q]) > 1e-9 * max(abs(v), abs(out[q])):
             raise ValueError(f"parameter {prm.get('index')}: {q} = {v:.12g} {QUANTITIES[q][0]} differs from the "
                              f"{out[q]:.12g} another parameter of the set gives; expected one value")
@@ -638,14 +791,15 @@ def check_cli_options(args: Any) -> tuple[MotorData | None, dict | None]:
     return motor, template
 
 
-def cli_export_data(args: Any, exported: dict, controller: "PID | Any", plant: "Plant") -> dict:
+def cli_export_data(args: Any, exported: dict, controller: "PID | Any", plant: "Plant", *, filters: Any = ()) -> dict:
     """What ``--export PATH.toml|.json`` writes given ``--motor``/``--export-template``: the filled
     parameter set (with ``--export-template``), else the drive export with a ``drive_units``
     block (with ``--motor``), else ``exported`` unchanged."""
     motor, template = check_cli_options(args)
     motor = motor if motor is not None else motor_from_plant(plant)
     if template is not None:
-        return {"format": "prsa-ctrl drive parameter set", **fill_template(template, controller, plant, motor)}
+        return {"format": "prsa-ctrl drive parameter set", **fill_template(template, controller, plant, motor,
+                                                                            filters=filters)}
     if motor is None:
         return exported
     pid, pos = (controller, None) if isinstance(controller, PID) else (controller.speed, controller.position)

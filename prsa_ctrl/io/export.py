@@ -63,7 +63,7 @@ if TYPE_CHECKING:
     from ..tuning.cascade import CascadeDesign
 
 __all__ = ["export_controller", "export_cascade", "dumps", "FORMATS", "FILTER_PLACES", "pid_biquad",
-           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW", "toml_value"]
+           "simulated_biquad", "DISCRETISATIONS", "POSITION_LAW", "toml_value", "toml_string", "export_assumptions"]
 
 #: Output formats of :func:`dumps`.
 FORMATS = ("json", "toml")
@@ -196,6 +196,22 @@ def _check_positive(name: str, v: Any, unit: str) -> float | None:
     return float(v)
 
 
+def placed_loop_filters(filters: Iterable) -> list:
+    """The export's filters as :class:`prsa_ctrl.drive.filters.LoopFilter` (a bare Filter sits on
+    the torque command, Tustin prewarped, as :func:`export_controller` states it)."""
+    from ..drive.filters import LoopFilter
+
+    out = []
+    for item in filters:
+        if isinstance(item, LoopFilter):
+            out.append(item)
+        elif isinstance(item, Filter):
+            out.append(LoopFilter(item))
+        elif isinstance(item, tuple) and len(item) == 2:
+            out.append(LoopFilter(item[1], item[0]))
+    return out
+
+
 def _placed_filters(filters: Iterable) -> list[tuple[str, Filter, str]]:
     """``(place, filter, method the simulator runs)``; a ``LoopFilter`` keeps its own place and
     discretisation, a bare Filter sits on the torque command (Tustin, prewarped)."""
@@ -214,6 +230,62 @@ def _placed_filters(filters: Iterable) -> list[tuple[str, Filter, str]]:
             raise ValueError(f"filters entry {item!r}; expected a Filter or a (place, Filter) pair with place one "
                              f"of {', '.join(FILTER_PLACES)}")
         out.append((place, f, "biquad_tustin_prewarped"))
+    return out
+
+
+def export_assumptions(plant: "Plant", filters: Iterable = (), position: Any = None) -> dict:
+    """What the exported gains assume about the plant and the drive (the ``assumptions`` table
+    of every drive export and parameter set; the C/ST/XML headers say the same).
+
+    Parameters
+    ----------
+    plant : Plant
+    filters : iterable
+        The loop filters as :func:`prsa_ctrl.drive.filters.loop_filters` takes them.
+    position : PositionLoop, optional
+
+    Returns
+    -------
+    dict
+        SI numbers (names end in their unit), the discretisation of every filter, the source of
+        each plant value (text from the plant file) and one sentence on what changes if the
+        drive's rates differ.
+    """
+    from ..drive.filters import loop_filters
+    from .codegen import plant_assumptions, position_law
+
+    ts = float(plant.sample_time_s)
+    lfs = loop_filters(filters, ts)
+    bw = float(plant.values["drive.current_loop_bandwidth_hz"])
+    drive_delay = int(plant.command_delay_samples)
+    text = plant_assumptions(plant, None if position is None else position_law(position, plant), lfs, 1)
+    sources = {k: str(plant.sources.get(k, "default")) for k in (
+        "sensor.sample_time_s", "drive.current_loop_bandwidth_hz", "drive.command_delay_samples",
+        "sensor.encoder_counts_per_rev", "sensor.speed_filter_time_constant_s", "drive.torque_limit_n_m")}
+    out: dict[str, Any] = {
+        "loop_period_s": ts,
+        "loop_rate_hz": 1.0 / ts,
+        "reflected_inertia_kg_m2": float(plant.reflected_inertia_kg_m2),
+        "current_loop_bandwidth_hz": bw,
+        "current_loop_time_constant_s": 1.0 / (2.0 * math.pi * bw),
+        "computation_delay_samples": 1,
+        "drive_delay_samples": drive_delay,
+        "command_delay_samples": 1 + drive_delay,
+        "command_delay_s": (1 + drive_delay) * ts,
+        "encoder_counts_per_rev": int(plant.encoder_counts),
+        "encoder_rad_per_count": 2.0 * math.pi / plant.encoder_counts,
+        "speed_filter_time_constant_s": float(plant.speed_filter_s),
+        "speed_filter_discretisation": "pole-matched: w[k] = a w[k-1] + (1 - a)(theta[k] - theta[k-1])/Ts, "
+                                       "a = exp(-Ts/tau)",
+        "speed_controller_discretisation": "explicit Euler integral ki Ts/(z - 1); derivative filter pole-matched, "
+                                           "beta = exp(-Ts/tf)",
+        "torque_limit_n_m": float(plant.torque_limit),
+        "filters": [t[1] for t in text if t[0].startswith("filter ")],
+        "if_rates_differ": dict((k, v) for k, v, _ in text)["if the drive's rates differ"],
+        "sources": sources,
+    }
+    if position is not None:
+        out["position_loop_period_s"] = ts * int(position.rate)
     return out
 
 
@@ -291,6 +363,7 @@ def export_controller(
     if design is not None and (not isinstance(design, dict) or not isinstance(design.get("name"), str) or not all(
             isinstance(v, (str, float, int)) and not isinstance(v, bool) for v in design.values())):
         raise ValueError(f"design = {design!r}; expected a dict with a 'name' and str or number values")
+    filters = list(filters)
     placed = _placed_filters(filters)
     null = fmt == "json"
 
@@ -436,6 +509,7 @@ def export_controller(
         },
         "speed_measurement": measurement,
         "speed_controller": speed_controller,
+        "assumptions": export_assumptions(plant, placed_loop_filters(filters)),
     }
     if placed:
         out["filters"] = [
@@ -512,6 +586,7 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
                                   "1 rpm = 2 pi/60 rad/s; Kv = kv_per_s is the gain of the position loop over this "
                                   "speed loop (see position_controller)")
     law = dict(POSITION_LAW)
+    out["assumptions"] = export_assumptions(plant, (), pos)
     out["position_controller"] = {
         "measured": pos.measured,
         "sample_time_s": tp,
@@ -551,12 +626,47 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
 def _toml_key(k: str) -> str:
     if not isinstance(k, str):
         raise ValueError(f"key {k!r}; expected a string")
-    return k if k and all(c.isalnum() and c.isascii() or c in "_-" for c in k) else json.dumps(k)
+    return k if k and all(c.isalnum() and c.isascii() or c in "_-" for c in k) else toml_string(k)
+
+
+_TOML_SHORT = {"\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r", '"': '\\"', "\\": "\\\\"}
+
+
+def toml_string(s: str, ascii_only: bool = True, where: str = "value") -> str:
+    r"""``s`` as a TOML basic string that ``tomllib`` reads back as exactly ``s``: quotes,
+    backslashes and control characters (U+0000..U+001F, U+007F) escaped, and with ``ascii_only``
+    every non-ASCII character too (``\uXXXX``, or ``\UXXXXXXXX`` outside the Basic Multilingual
+    Plane: no surrogate pairs, which TOML refuses).
+
+    Raises
+    ------
+    ValueError
+        A lone surrogate (no Unicode scalar value, not representable in TOML), naming ``where``.
+
+    >>> print(toml_string('a"b\\c'), toml_string("\U0001F600"), toml_string("\x7f"))
+    "a\"b\\c" "\U0001F600" "\u007F"
+    """
+    out = ['"']
+    for ch in str(s):
+        o = ord(ch)
+        if ch in _TOML_SHORT:
+            out.append(_TOML_SHORT[ch])
+        elif o < 0x20 or o == 0x7F:
+            out.append("\\u%04X" % o)
+        elif 0xD800 <= o <= 0xDFFF:
+            raise ValueError(f"{where} = {s!r}; expected text of Unicode characters (a lone surrogate U+{o:04X} "
+                             "cannot be written to TOML)")
+        elif o > 0x7E and ascii_only:
+            out.append("\\u%04X" % o if o <= 0xFFFF else "\\U%08X" % o)
+        else:
+            out.append(ch)
+    return "".join(out) + '"'
 
 
 def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
-    """A TOML value: bool, integer, finite float (all digits, ``repr``), string (a JSON string,
-    ASCII with ``\\uXXXX`` escapes unless ``ascii_only`` is false), or a list of those.
+    """A TOML value: bool, integer, finite float (all digits, ``repr``), string
+    (:func:`toml_string`: ASCII with ``\\uXXXX``/``\\UXXXXXXXX`` escapes unless ``ascii_only`` is
+    false), or a list of those.
 
     Raises
     ------
@@ -577,10 +687,11 @@ def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
         r = repr(f)
         return r if any(c in r for c in ".en") else r + ".0"
     if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=ascii_only)  # a JSON string is a TOML basic string
+        return toml_string(v, ascii_only, where)
     if isinstance(v, (list, tuple)) and not any(isinstance(x, dict) for x in v):
         return "[" + ", ".join(toml_value(x, where, ascii_only=ascii_only) for x in v) + "]"
     raise ValueError(f"{where} = {v!r}; expected a number, string, bool or list of those (TOML has no null)")
+
 
 
 def _toml_table(d: dict, path: list[str], lines: list[str]) -> None:
@@ -633,6 +744,8 @@ def dumps(data: dict, fmt: str) -> str:
             return json.dumps(data, indent=2, allow_nan=False) + "\n"
         except ValueError as exc:
             raise ValueError(f"export data: {exc}; expected finite numbers") from None
-    lines = [f"# {data.get('format', 'prsa-ctrl export')} (TOML)"]
+    from .codetext import inert_text
+
+    lines = [f"# {inert_text(data.get('format', 'prsa-ctrl export'), 80)} (TOML)"]
     _toml_table(data, [], lines)
     return "\n".join(lines) + "\n"

@@ -68,4 +68,4 @@ def test_cli_friction_ff_on_paper_slow_reversal(tmp_path, capsys):
     assert "friction feed-forward (plant paper-iprsm friction keys at an axial load of 1500 N)" in text
     assert json.loads(out.read_text())["position_controller"]["friction_feedforward"]["gain"] == 1.0
     assert main(["--quiet", "--scene", "paper-slow-reversal", "--friction-ff", "--export", str(code)]) == 0
-    assert "friction_ff(vel_ref / LEAD)" in code.read_text()
+    assert "d_friction_(p, vel_ref / p->lead)" in code.read_text()  # issue 36: run-time parameters, prefixed names

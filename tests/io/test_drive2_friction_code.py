@@ -1,5 +1,5 @@
 """The friction feed-forward in the generated code (issue 24, item 4): C (compiled with the system
-compiler) and Structured Text (translated back by tests/io/test_codegen.st_to_python) reproduce the
+compiler) and Structured Text (compiled by matiec's iec2c, tests/io/test_codegen.iec2c) reproduce the
 simulator's torque command on a recorded run of paper-slow-reversal with the feed-forward on."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from prsa_ctrl.drive.measurement import PositionLoop
 from prsa_ctrl.io.codegen import ReferenceLaw, c_code, drive_law, max_relative_difference, replay_inputs, st_code
 from prsa_ctrl.studies.move import simulate_move
 from prsa_ctrl.studies.movescene import load_move_scene
-from test_codegen import REL, _build, _run_c, _run_st, needs_cc
+from test_codegen import REL, _build, _build_st, _run_c, _run_st, matiec, needs_cc  # noqa: F401
 
 SPEED = PID(0.0771, 7.07)
 
@@ -39,24 +39,23 @@ def test_reference_law_with_friction(reversal, paper_plant):
 
 
 @needs_cc
-@pytest.mark.parametrize("differences", ("counts", "angle"))
-def test_c_with_friction_reproduces_the_simulator(reversal, differences, tmp_path):
+def test_c_with_friction_reproduces_the_simulator(reversal, tmp_path):
     law, inp, _ = reversal
     h, c = c_code(law, name="fr")
-    assert "#include <math.h>" in h and "friction_ff(vel_ref / LEAD)" in c
-    u = _run_c(_build(law, tmp_path, "double", differences), law, inp)
+    assert "#include <math.h>" in c and "fr_friction_(p, vel_ref / p->lead)" in c
+    u = _run_c(_build(law, tmp_path, "double"), law, inp)
     assert max_relative_difference(u, inp["torque_command"]) <= REL
 
 
-@pytest.mark.parametrize("differences", ("counts", "angle"))
-def test_structured_text_with_friction_reproduces_the_simulator(reversal, differences):
+def test_structured_text_with_friction_reproduces_the_simulator(reversal, matiec, tmp_path):
     law, inp, _ = reversal
-    text = st_code(law, name="FrCtrl", differences=differences)
-    assert "EXP(-(FrX * FrX))" in text
-    assert max_relative_difference(_run_st(text, law, inp), inp["torque_command"]) <= REL
+    text = st_code(law, name="FrCtrl")
+    assert "EXP(-(t_FrX * t_FrX))" in text
+    u = _run_st(_build_st(matiec, law, tmp_path, "double", name="FrCtrl"), law, inp)
+    assert max_relative_difference(u, inp["torque_command"]) <= REL
 
 
 def test_code_without_friction_has_no_exp(paper_plant):
     law = drive_law(SPEED, paper_plant, position=PositionLoop(kv=102.7))
     h, c = c_code(law)
-    assert "math.h" not in h and "friction" not in c and "EXP" not in st_code(law)
+    assert "friction" not in c and "EXP" not in st_code(law)

@@ -86,7 +86,8 @@ def _plant():
 
 @pytest.mark.parametrize("name, expected", [
     # each template's unit, by hand: Beckhoff 0x3140:01 N m s/rad, 0x3140:02 s, 0x30C0:01 1/s
-    ("beckhoff-ax8000", {"0x3140:01": 0.085, "0x3140:02": 0.085 / 14.7, "0x30C0:01": 102.7}),
+    ("beckhoff-ax8000", {"0x3140:01": 0.085, "0x3140:02": 0.085 / 14.7, "0x30C0:01": 102.7,
+                         "0x3163:05": 0, "0x3183:05": 0}),
     # SINAMICS p1460 N m s (per rad/s), p1462 ms
     ("siemens-sinamics", {"p1460": 0.085, "p1462": 1000 * 0.085 / 14.7}),
     # CiA 402 placeholders (N m s/rad, ms, 1/s) until the drive's manual says otherwise
@@ -159,16 +160,20 @@ def test_every_unit_reads_back_to_si(unit):
             "A peak/(rad/s)": 1.4142135623730951 / 0.9, "A peak/rpm": 1.4142135623730951 * RPM / 0.9,
             "rated torque/(rad/s)": 1 / 3.0, "% rated torque/rpm": 100 * RPM / 3.0, "N m/rad": 1.0, "A/rad": 1 / 0.9,
             "s": 1.0, "ms": 1e3, "0.1 ms": 1e4, "us": 1e6, "1/s": 1.0, "(m/min)/mm": 0.06, "1000/min": 0.06,
-            "1/s^2": 1.0, "1": 1.0, "%": 100.0, "N m s^2/rad": 1.0, "A s^2/rad": 1 / 0.9}
+            "1/s^2": 1.0, "1": 1.0, "%": 100.0, "N m s^2/rad": 1.0, "A s^2/rad": 1 / 0.9,
+            "0.1 mA/(rad/s)": 1e4 / 0.9, "0.01 ms": 1e5, "N m": 1.0, "per mille rated torque": 1000 / 3.0, "Hz": 1.0}
     si_unit = UNIT_FACTORS[unit][0]
-    quantity = next(q for q, (u, _) in QUANTITIES.items() if u == si_unit)
+    quantity = next(q for q, (u, _) in QUANTITIES.items() if u == si_unit and not q.startswith("torque_filter_type"))
     tpl = {"template": {"name": "t"}, "parameter": [{"index": "x", "name": "x", "quantity": quantity, "unit": unit,
-                                                      "datatype": "f", "confirmed": True, "source": "test"}]}
+                                                      "datatype": "f", "confirmed": True, "source": "test", "filter": 1}]}
     design = DESIGN if quantity not in ("speed_kp", "speed_ki", "speed_tn", "sample_time") else PID(KP, KI)
     motor = MotorData(0.9, rated_torque_n_m=3.0)
-    filled = fill_template(tpl, design, _plant(), motor)
+    from prsa_ctrl.drive.filters import LoopFilter, Notch
+
+    filled = fill_template(tpl, design, _plant(), motor, filters=[LoopFilter(Notch(1200.0, 300.0, -20.0))])
     prm = filled["parameter"][0]
     if not prm["applies"]:
         pytest.skip(f"{quantity} does not apply to this design")
     assert prm["value"] == pytest.approx(prm["value_si"] * hand[unit], rel=1e-14)
-    assert read_parameter_set(filled)[quantity] == pytest.approx(prm["value_si"], rel=1e-15)
+    key = f"{quantity}[1]" if quantity.startswith("torque_filter_") else quantity  # one per filter number
+    assert read_parameter_set(filled)[key] == pytest.approx(prm["value_si"], rel=1e-15)

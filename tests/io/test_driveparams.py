@@ -108,6 +108,8 @@ def _speed_of(design, plant):
 def test_round_trip_is_sensitive(plant, design_speed_run, move_run):
     filled = fill_template("beckhoff-ax8000", DESIGN, plant)
     for i in range(len(filled["parameter"])):
+        if filled["parameter"][i]["quantity"] not in ("speed_kp", "speed_tn", "position_kv"):
+            continue  # the controller's gains (torque limit, filters: other checks)
         bad = {**filled, "parameter": [dict(p) for p in filled["parameter"]]}
         bad["parameter"][i]["value"] *= 1 + 1e-6
         err = _round_trip(dumps_parameter_set(bad), plant, design_speed_run, move_run, DESIGN.position)
@@ -139,19 +141,29 @@ def test_templates_state_their_sources():
             if name != "generic":
                 assert ("https://" in p["source"]) if p["confirmed"] else ("NOT confirmed" in p["source"]), (name, p)
     idx = {name: {p["index"]: p for p in load_template(name)["parameter"]} for name in builtin_templates()}
-    assert {k: v["unit"] for k, v in idx["beckhoff-ax8000"].items()} == {"0x3140:01": "N m s/rad", "0x3140:02": "s",
-                                                                          "0x30C0:01": "1/s"}
-    assert all(p["confirmed"] for p in idx["beckhoff-ax8000"].values())
-    assert set(idx["siemens-sinamics"]) == {"p1460", "p1462"} and not any(p["confirmed"] for p in idx["siemens-sinamics"].values())
-    assert set(idx["cia402"]) == {"0x60F9:01", "0x60F9:02", "0x60FB:01"}
-    assert not any(p["confirmed"] for p in idx["cia402"].values())
+    ax = idx["beckhoff-ax8000"]
+    assert {k: ax[k]["unit"] for k in ("0x3140:01", "0x3140:02", "0x30C0:01", "0x6072", "0x60B2", "0x3163:01")} == {
+        "0x3140:01": "N m s/rad", "0x3140:02": "s", "0x30C0:01": "1/s", "0x6072": "per mille rated torque",
+        "0x60B2": "per mille rated torque", "0x3163:01": "Hz"}
+    assert {f"{b}:0{s}" for b in ("0x3163", "0x3183", "0x31A3", "0x31C3") for s in range(1, 6)} <= set(ax)
+    assert [k for k, p in ax.items() if not p["confirmed"]] == ["0x60B2"] + [f"{b}:03" for b in (
+        "0x3163", "0x3183", "0x31A3", "0x31C3")]  # issue 36: the rest cited on the vendor's object pages
+    assert ax["0x60B2"]["datatype"] == "INT16" and ax["0x6072"]["datatype"] == "UINT16"
+    assert set(idx["siemens-sinamics"]) == {"p1460", "p1462", "p1441", "p1520", "p1521"}
+    assert not any(p["confirmed"] for p in idx["siemens-sinamics"].values())
+    cia = idx["cia402"]
+    assert set(cia) == {"0x6072", "0x60B2", "0x60F9:01", "0x60F9:02", "0x60FB:01"}
+    assert cia["0x6072"]["confirmed"] and cia["0x60B2"]["confirmed"]
+    assert all(cia[k]["manufacturer_specific"] and not cia[k]["confirmed"] for k in ("0x60F9:01", "0x60F9:02",
+                                                                                      "0x60FB:01"))
+    assert "0x30A2" in cia["0x60F9:01"]["alternative"]
 
 
 def test_unconfirmed_sets_say_so_in_the_export(plant):
     for name, flagged in (("siemens-sinamics", True), ("cia402", True), ("beckhoff-ax8000", True), ("generic", False)):
         out = fill_template(name, DESIGN, plant)
         assert ("not_confirmed" in out["export"]) is flagged, name
-    assert "p1460, p1462" in fill_template("siemens-sinamics", SPEED, plant)["export"]["not_confirmed"]
+    assert "p1460, p1462, p1441, p1520, p1521" in fill_template("siemens-sinamics", SPEED, plant)["export"]["not_confirmed"]
 
 
 def test_range_from_the_template_is_enforced(plant):
@@ -224,7 +236,7 @@ def test_float32_storage_effect_is_small_but_not_zero(plant, speed_run):
     doubles)."""
     filled = fill_template("beckhoff-ax8000", SPEED, plant)
     for p in filled["parameter"]:
-        if p.get("applies"):
+        if p.get("applies") and p["datatype"] == "REAL32":
             p["value"] = float(np.float32(p["value"]))
     err = _round_trip(dumps_parameter_set(filled), plant, speed_run, None, None)["speed"]
     assert 1e-12 < err < 1e-6
@@ -341,3 +353,120 @@ def test_prsa_tune_refuses_implausible_motor_before_tuning(tmp_path, capsys):
                  "--export", str(out)]) == 2
     assert "--rated-torque 30 with --motor" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_hostile_text_in_a_template_and_plant_round_trips(plant, tmp_path):
+    """User text from a template file and the plant name (non-BMP emoji, quotes, backslashes,
+    control characters, comment delimiters) parses back from the filled TOML as it was."""
+    from prsa_ctrl.io.export import toml_string
+
+    nasty = 'Axis 3 */ __asm__("id"); /* \U0001F600 \\ ]]> (* \x07 \u2028'
+    tpl = tmp_path / "mine.toml"
+    tpl.write_text("[template]\nname = " + toml_string(nasty, ascii_only=False) + "\nvendor = \"x\"\n\n[[parameter]]\n"
+                   "index = " + toml_string(nasty) + "\nname = \"kp\"\nquantity = \"speed_kp\"\nunit = \"N m s/rad\"\n"
+                   "datatype = \"float\"\nconfirmed = true\nsource = " + toml_string(nasty, ascii_only=False) + "\n",
+                   encoding="utf-8")
+    filled = fill_template(tpl, PID(0.085, 14.7), plant.with_params({}, name=nasty))
+    back = tomllib.loads(dumps_parameter_set(filled))
+    assert back["template"]["name"] == nasty and back["export"]["plant"] == nasty
+    assert back["parameter"][0]["source"] == nasty and back["parameter"][0]["index"] == nasty
+
+
+def test_cli_hostile_plant_name_gives_a_parseable_toml(tmp_path):
+    from prsa_ctrl.cli.tune import main
+    from prsa_ctrl.plant.plantfile import plant_file_path
+    from prsa_ctrl.io.export import toml_string
+
+    text = plant_file_path("paper-iprsm").read_text()
+    nasty = "Axis \U0001F600 */ rev B"
+    text = tomllib_replace_name(text, toml_string(nasty, ascii_only=False))
+    pf = tmp_path / "p.toml"
+    pf.write_text(text, encoding="utf-8")
+    out = tmp_path / "d.toml"
+    assert main(["--quiet", "--plant", str(pf), "--export", str(out)]) == 0
+    assert tomllib.loads(out.read_text())["plant"] == nasty
+
+
+def tomllib_replace_name(text: str, quoted: str) -> str:
+    import re
+
+    new, n = re.subn(r'(?m)^name\s*=\s*".*"$', lambda m: "name = " + quoted, text, count=1)
+    assert n == 1
+    return new
+
+
+# --- issue 36: vendor objects with their real scaling, integer types ---------------------------------
+
+def test_ax8000_filters_limits_and_feedforward(plant):
+    """The AX8000 set carries the export's torque-command filters in the four biquads (type code
+    and natural frequency/damping from H(s), checked by hand), the torque limit in 0x6072 and
+    the feed-forward in 0x60B2 in per mille of M0 (rounded to the integer types, range-checked,
+    the rounding reported); without the rated torque those two are left out with a note."""
+    from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass
+    from prsa_ctrl.io.driveparams import MotorData
+
+    filters = [LoopFilter(Notch(1200.0, 300.0, -20.0)), LoopFilter(FirstOrderLowPass(800.0), "speed_measurement"),
+               LoopFilter(SecondOrderLowPass(1500.0, 0.7))]
+    m0 = 1.3  # N m: 3 N m limit = 2307.69 per mille
+    out = fill_template("beckhoff-ax8000", SPEED, plant, MotorData(None, rated_torque_n_m=m0), filters=filters,
+                        feedforward_torque_n_m=0.0123)
+    v = {p["index"]: p for p in out["parameter"]}
+    assert [v[f"{b}:05"]["value"] for b in ("0x3163", "0x3183", "0x31A3", "0x31C3")] == [5, 3, 0, 0]
+    assert v["0x3163:01"]["value"] == pytest.approx(1200.0, rel=1e-12)
+    assert v["0x3163:02"]["value"] == pytest.approx(300.0 / (2 * 1200.0), rel=1e-12)  # denominator: width/(2 f0)
+    assert v["0x3163:04"]["value"] == pytest.approx(0.1 * 300.0 / (2 * 1200.0), rel=1e-12)  # numerator: -20 dB
+    assert v["0x3183:01"]["value"] == pytest.approx(1500.0, rel=1e-12) and v["0x3183:02"]["value"] == pytest.approx(0.7)
+    assert not v["0x3183:03"]["applies"] and not v["0x31A3:01"]["applies"]
+    lim = v["0x6072"]
+    assert lim["value"] == 2308 and lim["rounding"]["exact_value"] == pytest.approx(3000.0 / 1.3, rel=1e-14)
+    assert lim["rounding"]["error"] == pytest.approx(2308 - 3000.0 / 1.3, rel=1e-12)
+    assert lim["rounding"]["error_si"] == pytest.approx((2308 - 3000.0 / 1.3) * 1.3 / 1000.0, rel=1e-12)
+    assert v["0x60B2"]["value"] == 9 and isinstance(v["0x60B2"]["value"], int)  # 0.0123 N m = 9.46 per mille
+    back = tomllib.loads(dumps_parameter_set(out))
+    assert {p["index"]: p.get("value") for p in back["parameter"]}["0x6072"] == 2308
+    bare = {p["index"]: p for p in fill_template("beckhoff-ax8000", SPEED, plant)["parameter"]}
+    assert not bare["0x6072"]["applies"] and "rated torque" in bare["0x6072"]["missing"]
+    with pytest.raises(ValueError, match=r"0x6072 .* expected a value that rounds into \[0, 65535\]"):
+        fill_template("beckhoff-ax8000", SPEED, plant, MotorData(None, rated_torque_n_m=1e-5))
+    from prsa_ctrl.drive.filters import GeneralBiquad
+
+    with pytest.raises(ValueError, match="no code for a biquad filter"):
+        fill_template("beckhoff-ax8000", SPEED, plant, filters=[LoopFilter(GeneralBiquad(800.0, 0.3, 1000.0, 0.5))])
+
+
+def test_integer_typed_gains_report_rounding_and_the_margin_change(plant):
+    """Integer-scaled units (EP7047-like: Kp in 0.1 mA/(rad/s), Tn in 0.01 ms, UINT16) are
+    rounded and range-checked; the rounding is reported in the value's unit, in SI, and as the
+    change of the speed loop's margins (exact vs rounded gains on the same loop model, computed
+    here independently); a declared UINT is never written unrounded."""
+    from prsa_ctrl.io.driveparams import MotorData
+    from prsa_ctrl.tuning.scene_loops import step_loops
+
+    tpl = {"template": {"name": "ep"}, "parameter": [
+        {"index": "0x8014:03", "name": "Kp", "quantity": "speed_kp", "unit": "0.1 mA/(rad/s)", "datatype": "UINT16",
+         "confirmed": False, "source": "test"},
+        {"index": "0x8014:04", "name": "Tn", "quantity": "speed_tn", "unit": "0.01 ms", "datatype": "UINT16",
+         "confirmed": False, "source": "test"},
+        {"index": "x", "name": "kp float", "quantity": "speed_kp", "unit": "N m s/rad", "datatype": "UINT",
+         "confirmed": False, "source": "test"}]}
+    kt = 0.37
+    pid = PID(0.085, 14.7)
+    with pytest.raises(ValueError, match=r"parameter x .* expected a value that rounds into"):
+        fill_template({**tpl, "parameter": tpl["parameter"][2:]}, PID(1e6, 14.7), plant, MotorData(kt))
+    out = fill_template({**tpl, "parameter": tpl["parameter"][:2]}, pid, plant, MotorData(kt))
+    kp_p, tn_p = out["parameter"]
+    assert kp_p["value"] == round(0.085 / kt * 1e4) == 2297 and tn_p["value"] == round(0.085 / 14.7 * 1e5) == 578
+    assert kp_p["rounding"]["error"] == pytest.approx(2297 - 0.085 / kt * 1e4, rel=1e-12)
+    kp_r, tn_r = 2297 / 1e4 * kt, 578 / 1e5
+    lp = step_loops(plant, setpoint_rad_s=10.0, initial_load_n=0.0, final_loads_n=[1.0], fidelity="rigid",
+                    horizon_s=0.02)[0]
+    m0, m1 = lp.margins((0.085, 14.7, 0.0)), lp.margins((kp_r, kp_r / tn_r, 0.0))
+    rm = out["rounding_margins"]
+    assert rm["rounded_gains"]["kp_n_m_s_per_rad"] == pytest.approx(kp_r, rel=1e-14)
+    assert rm["change"]["pm_deg"] == pytest.approx(m1.pm_deg - m0.pm_deg, abs=1e-9)
+    assert rm["change"]["ms"] == pytest.approx(m1.ms - m0.ms, abs=1e-12) and rm["change"]["ms"] != 0.0
+    back = tomllib.loads(dumps_parameter_set(out))
+    assert read_parameter_set(back, MotorData(kt))["speed_kp"] == pytest.approx(kp_r, rel=1e-14)
+    one = fill_template({**tpl, "parameter": tpl["parameter"][2:]}, PID(57.608, 14.7), plant)
+    assert one["parameter"][0]["value"] == 58 and one["parameter"][0]["rounding"]["error"] == pytest.approx(0.392)
+    assert "rounding_margins" in one

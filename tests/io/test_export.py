@@ -255,3 +255,85 @@ def test_bad_arguments(kwargs, match):
         export_controller(0.085, PLANT, fmt="json")
     with pytest.raises(ValueError, match=r"fmt = 'xml'"):
         dumps({}, "xml")
+
+
+# --- inert text: hostile names in TOML and JSON (issue 36) ----------------------------------------
+
+HOSTILE = ('Axis 3 */ __asm__("id"); /* rev B', "emoji \U0001F600 axis", "line\nbreak\r\n[table]\nx = 1",
+           'q"uote\'d \\ back\\slash', "cdata ]]> (* *) --", "ctrl \x00\x07\x1b\x7f\u2028 end", "\U0010FFFF")
+
+
+@pytest.mark.parametrize("name", HOSTILE)
+def test_hostile_plant_name_round_trips_in_toml_and_json(name):
+    """A plant name with any of these characters (a non-BMP emoji made the TOML unparseable
+    before) parses back to the same name from TOML and JSON, for the speed export and the
+    cascade, and adds no key or table to the file."""
+    from prsa_ctrl.drive.measurement import PositionLoop
+    from prsa_ctrl.io.export import export_cascade
+    from prsa_ctrl.tuning.cascade import CascadeDesign
+
+    plant = PLANT.with_params({}, name=name)
+    for fmt in ("toml", "json"):
+        for d in (export_controller(PID(0.085, 14.7), plant, fmt=fmt, filters=[Notch(1200.0, 300.0, -20.0)],
+                                    design={"name": name, "why": name}),
+                  export_cascade(CascadeDesign("joint", PID(0.0771, 7.07), PositionLoop(kv=102.7), {}, {}, {}, 0.0),
+                                 plant, fmt=fmt)):
+            text = dumps(d, fmt)
+            back = tomllib.loads(text) if fmt == "toml" else json.loads(text)
+            assert back == d and back["plant"] == name
+            if fmt == "toml":  # ASCII only, and one line per scalar: nothing of the name begins a line
+                assert all(ord(c) < 128 for c in text) and "\nx = 1" not in text and "\n[table]" not in text
+
+
+def test_toml_strings_refuse_lone_surrogates_and_keep_non_ascii_when_asked():
+    from prsa_ctrl.io.export import toml_string, toml_value
+
+    assert tomllib.loads("x = " + toml_value("µ \U0001F600 \x7f", ascii_only=False))["x"] == "µ \U0001F600 \x7f"
+    assert toml_string("\U0001F600") == '"\\U0001F600"'
+    with pytest.raises(ValueError, match="lone surrogate U\\+D800"):
+        toml_string("a\ud800")
+    with pytest.raises(ValueError):
+        dumps({"plant": "a\udfff"}, "toml")
+
+
+# --- what the gains assume, in every export (issue 36) -------------------------------------------
+
+def test_every_export_states_its_assumptions(tmp_path):
+    """The TOML/JSON exports, a filled parameter set and the C, ST and XML headers state the loop
+    period, inertia, current-loop bandwidth, delay (samples and seconds), encoder resolution,
+    each filter's discretisation and what changes if the drive's rates differ, with the plant's
+    numbers (a plant with 2345 Hz and two drive delay samples shows them)."""
+    from prsa_ctrl.drive.filters import LoopFilter
+    from prsa_ctrl.drive.measurement import PositionLoop
+    from prsa_ctrl.io.codegen import c_code, drive_law, st_code
+    from prsa_ctrl.io.driveparams import dumps_parameter_set, fill_template
+    from prsa_ctrl.io.export import export_cascade
+    from prsa_ctrl.io.plcopen import plcopen_xml
+    from prsa_ctrl.tuning.cascade import CascadeDesign
+
+    plant = PLANT.with_params({"drive.current_loop_bandwidth_hz": 2345.0, "drive.command_delay_samples": 2})
+    filters = [LoopFilter(Notch(1200.0, 300.0, -20.0), "torque_command"),
+               LoopFilter(FirstOrderLowPass(800.0), "speed_measurement", method="zoh")]
+    pos = PositionLoop(kv=102.7, kvff=1.0, kaff=1.0, rate=2)
+    tables = [tomllib.loads(dumps(export_controller(PID(0.085, 14.7), plant, fmt="toml", filters=filters), "toml")),
+              json.loads(dumps(export_cascade(CascadeDesign("j", PID(0.0771, 7.07), pos, {}, {}, {}, 0.0), plant,
+                                              fmt="json"), "json")),
+              tomllib.loads(dumps_parameter_set(fill_template("generic", PID(0.085, 14.7), plant)))]
+    for d in tables:
+        a = d["assumptions"]
+        assert a["loop_period_s"] == TS and a["current_loop_bandwidth_hz"] == 2345.0
+        assert a["reflected_inertia_kg_m2"] == plant.reflected_inertia_kg_m2
+        assert a["command_delay_samples"] == 3 and a["command_delay_s"] == pytest.approx(3 * TS, rel=1e-15)
+        assert a["encoder_counts_per_rev"] == plant.encoder_counts and "re-export" in a["if_rates_differ"]
+        assert a["sources"]["drive.current_loop_bandwidth_hz"] == plant.sources["drive.current_loop_bandwidth_hz"]
+    assert [f.split(":")[-1].strip() for f in tables[0]["assumptions"]["filters"]] == [
+        "Tustin prewarped at 1200 Hz", "zero-order hold (step invariant)"]
+    assert tables[1]["assumptions"]["position_loop_period_s"] == 2 * TS
+    law = drive_law(PID(0.085, 14.7), plant, filters=filters, position=pos)
+    for text in (c_code(law)[0], c_code(law)[1], st_code(law), plcopen_xml(law)):
+        for needle in ("loop period: Ts = 0.00025 s (4000 Hz)", "current-loop bandwidth: 2345 Hz",
+                       f"reflected inertia: J = {plant.reflected_inertia_kg_m2:.6g} kg m^2",
+                       "command delay: 3 sample(s) = 0.00075 s", "encoder resolution: 1048576 counts/rev",
+                       "Tustin prewarped at 1200 Hz", "zero-order hold", "if the drive's rates differ",
+                       "position loop: every 2 sample(s)"):
+            assert needle in text, needle

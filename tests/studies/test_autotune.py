@@ -226,7 +226,7 @@ def test_cli_exports_drive_gains(tmp_path, capsys):
     assert str(gains["kp"])[:6] in text and str(gains["ki"])[:6] in text
     assert main(["--export", str(tmp_path / "drive.txt")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "expected a path ending in .json, .toml, .c or .st" in err[0]
+    assert len(err) == 1 and "expected a path ending in .json, .toml, .c, .st or .xml" in err[0]
     assert not (tmp_path / "drive.txt").exists()
 
 
