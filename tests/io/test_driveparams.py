@@ -426,8 +426,9 @@ def test_ax8000_filters_limits_and_feedforward(plant):
     assert {p["index"]: p.get("value") for p in back["parameter"]}["0x6072"] == 2308
     bare = {p["index"]: p for p in fill_template("beckhoff-ax8000", SPEED, plant)["parameter"]}
     assert not bare["0x6072"]["applies"] and "rated torque" in bare["0x6072"]["missing"]
+    # 3 N m over a rated 0.01 N m (plausible, above the motor check's 1e-4 N m floor) is 300000 per mille > 65535
     with pytest.raises(ValueError, match=r"0x6072 .* expected a value that rounds into \[0, 65535\]"):
-        fill_template("beckhoff-ax8000", SPEED, plant, MotorData(None, rated_torque_n_m=1e-5))
+        fill_template("beckhoff-ax8000", SPEED, plant, MotorData(None, rated_torque_n_m=1e-2))
     from prsa_ctrl.drive.filters import GeneralBiquad
 
     with pytest.raises(ValueError, match="no code for a biquad filter"):
