@@ -96,7 +96,13 @@ def _phase_frequency(a, b, c, d, delay: float = 0.0) -> tuple[float | None, floa
     x = ph + 0.75 * np.pi
     cross = np.flatnonzero(np.sign(x[:-1]) != np.sign(x[1:]))
     if not cross.size:
-        return (None if x[0] > 0 else float(w[0])), float(ph[-1])
+        if x[0] > 0:
+            return None, float(ph[-1])
+        # Below -135 deg everywhere (e.g. an unstable pole with a delay, e^(-0.2 s)/(s - 1)): the
+        # loop's time scale is where the phase comes nearest -135 deg (its highest point), not the
+        # grid's lowest frequency (a horizon of 40000 s for a loop crossing over at 2 rad/s).
+        top = int(np.argmax(ph))
+        return float(w[top] if ph[top] > ph[0] + 1e-3 else w[0]), float(ph[-1])
     desc = cross[x[cross] > 0]
     i = desc[0] if desc.size else cross[0]
     return float(w[i + 1]), float(ph[-1])
