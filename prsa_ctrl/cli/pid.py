@@ -333,17 +333,23 @@ def _tune(args, num: list, den: list):
                                                  "magnitude)")), -1.0
 
 
-def _objective_text(kind: str, delay: float) -> str:
-    """What the reported objective is, in words."""
+def _objective_text(kind: str, delay: float, stats: dict | None = None) -> str:
+    """What the reported objective is, in words (``stats``: the result's, for the delay model
+    actually used: ``stats["delay_model"]``)."""
     from ..tuning.settings import CONT_RTOL
 
+    model = (stats or {}).get("delay_model") or {}
+    order = model.get("pade_order", 6)
     base = f"{kind.upper()} of the continuous closed loop after a unit load step at the plant input, to infinity"
     if kind == "ie":
         how = "closed form: 1/|ki|"
     elif kind == "ise":
-        how = "closed form" + ("; the delay as its Pade model of order 6" if delay else "")
+        how = "closed form" + (f"; the delay as its Pade model of order {order}" if delay else "")
     else:
         how = f"integrated to a relative accuracy of {CONT_RTOL:g}"
+    if delay and kind in ("iae", "itae") and model.get("objective") == "pade":
+        return f"{base} ({how}; the delay as its Pade model of order {order}: too far below the loop's time scale " \
+               "to simulate exactly)"
     return f"{base} ({how}" + ("; exact delay)" if delay and kind != "ise" else ")")
 
 
@@ -381,7 +387,7 @@ def result_data(args, num: list, den: list, shown: str, res, sign: float = 1.0) 
                               "(s when ideal), F the measurement filter"},
         "standard": std,
         "objective": {"kind": res.kind, "value": res.objective,
-                      "evaluation": _objective_text(res.kind, args.delay)},
+                      "evaluation": _objective_text(res.kind, args.delay, res.stats)},
         "ms": res.ms, "mt": res.mt, "mks": res.mks,
         "margins": {"gm_db": m.gm_db, "pm_deg": m.pm_deg, "wc_rad_s": m.wc_rad_s,
                     "wc_hz": m.wc_rad_s / (2 * math.pi) if math.isfinite(m.wc_rad_s) else None,
@@ -389,7 +395,7 @@ def result_data(args, num: list, den: list, shown: str, res, sign: float = 1.0) 
         "setpoint": sp,
         "status": res.status, "converged": res.converged, "warnings": list(res.warnings),
         "stats": {k: v for k, v in res.stats.items() if k in (
-            "objective_sampled", "objective_pade", "delay_pade_change", "filter_search", "first_order", "polished",
+            "objective_sampled", "objective_pade", "delay_pade_change", "delay_model", "filter_search", "first_order", "polished",
             "wall_s", "horizon")},
     }
 

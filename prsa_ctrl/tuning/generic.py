@@ -13,7 +13,7 @@ from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES
 from ..drive.sampled import ss_response, zoh
 from .settings import CONT_HALVINGS, CONT_RTOL, KKT_TOL, TAIL_RTOL, check_bounds, check_mks, checked_number, gain_limit, int_steps
 from .loops import LoopModel, block_sum, plant_roots
-from .builders import check_structure, continuous_loop
+from .builders import PADE_PHASE_TOL, check_structure, continuous_loop
 from .tuner import Tuner, TuningResult
 
 __all__ = ["tune_loops", "tune_pid", "MAX_ORDER"]
@@ -182,9 +182,16 @@ def tune_pid(
         first-order check and polish use it; the ipopt stand-in uses a Pade model of order
         ``delay_order`` (``stats["objective_pade"]`` its value at the result). IE is exact
         either way (``|u_ss|/ki``); ISE is that of the Pade model, its change with the order
-        + 2 in ``stats["delay_pade_change"]`` (a warning above 1e-4).
+        + 2 in ``stats["delay_pade_change"]`` (a warning above 1e-4). A delay far below the
+        loop's time scale is a numerical edge, not a failure: the Pade model takes the lowest
+        order whose phase error stays below ``PADE_PHASE_TOL`` up to the loop grid's top
+        (:func:`~prsa_ctrl.tuning.builders.pade_order`), and where the exact simulation would
+        exceed its budget (:func:`~prsa_ctrl.tuning.builders.exact_delay_affordable`; e.g. 1e-5 s
+        on a loop settling in seconds) the IAE/ITAE is that of the Pade model, with a warning
+        giving the delay's phase at the crossover; ``stats["delay_model"]`` says which.
     delay_order : int
-        Pade order of the delay in the ipopt stand-in (1 .. 10, default 6).
+        Pade order of the delay in the ipopt stand-in (1 .. 10, default 6; lower for a delay far
+        below the loop's time scale, see ``delay``).
     setpoint_weights : bool
         After the load-disturbance design, 2-DOF setpoint weights ``b`` (and ``c`` for a PID
         with a filtered derivative; 0 otherwise) in [0, 1] for the least IAE of ``r - y`` after
@@ -408,6 +415,19 @@ def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: 
     if delay > 0:
         g = (res.pid.kp, res.pid.ki, res.pid.kd)
         stats["delay_s"] = delay
+        model = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
+                                **{**structure, "filter_tf": t_filter}).delay_model
+        stats["delay_model"] = dict(model)
+        if model["pade_order"] < structure["delay_order"]:
+            warnings.append(f"the delay {delay:.3g} s is far below the loop's time scale: its Pade model has order "
+                            f"{model['pade_order']} (not {structure['delay_order']}; phase error below "
+                            f"{PADE_PHASE_TOL:g} rad up to {model['w_top']:.3g} rad/s)")
+        if model["objective"] == "pade" and objective in ("iae", "itae"):
+            wc = res.margins[0].wc_rad_s
+            phase = f"{wc * delay:.3g} rad at the crossover {wc:.4g} rad/s" if math.isfinite(wc) else "unknown"
+            warnings.append(f"the delay {delay:.3g} s is too far below the loop's time scale to simulate exactly (its "
+                            f"phase: {phase}): the {objective.upper()} is that of its Pade model of order "
+                            f"{model['pade_order']}; Ms, Mt, Mks and the margins use the exact delay")
         if objective == "ise":
             # ISE is computed on the Pade model: its change with the order + 2 says how exact it is.
             loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
