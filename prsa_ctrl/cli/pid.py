@@ -356,10 +356,12 @@ def _objective_text(kind: str, delay: float, stats: dict | None = None) -> str:
 def result_data(args, num: list, den: list, shown: str, res, sign: float = 1.0) -> dict:
     """The result of ``prsa-pid`` as plain data (the ``--json`` file; the text report's source).
 
-    ``controller`` holds the law ``u = C(s) F(s) (r - y)`` with ``C = kp + ki/s + kd s/(tf s + 1)``
-    (``tf_s`` None: the ideal ``kd s``; a PI has ``kd = 0`` and no ``tf_s``) and ``F`` the
-    measurement filter (``filter_order`` 0: none; 1: ``1/(Tf s + 1)``; 2:
-    ``1/(Tf^2 s^2/2 + Tf s + 1)``); ``standard`` the same gains as ``K (1 + 1/(Ti s) + Td s ...)``.
+    ``controller`` holds the law ``u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s) (c r - y_f)``,
+    ``y_f = F(s) y`` (the filter on the measurement only; from the measurement the controller is
+    ``C(s) F(s)``, ``C = kp + ki/s + kd D(s)``) with ``D = s/(tf s + 1)`` (``tf_s`` None: the ideal
+    ``s``; a PI has ``kd = 0`` and no ``tf_s``), ``F`` the measurement filter (``filter_order`` 0:
+    none; 1: ``1/(Tf s + 1)``; 2: ``1/(Tf^2 s^2/2 + Tf s + 1)``) and ``b``, ``c`` the setpoint
+    weights (None: 1); ``standard`` the same gains as ``K (1 + 1/(Ti s) + Td s ...)``.
     """
     pid = res.pid
     kp, ki, kd = sign * pid.kp + 0.0, sign * pid.ki + 0.0, sign * pid.kd + 0.0  # sign -1: a reverse-acting plant tuned as -P
@@ -383,8 +385,9 @@ def result_data(args, num: list, den: list, shown: str, res, sign: float = 1.0) 
                        "derivative": "ideal" if args.ideal else ("filtered" if derivative else "none"),
                        "filter_order": order, "filter_tf_s": filt.get("tf_s") if order else None,
                        "b": sp["b"] if sp else None, "c": sp["c"] if sp else None,
-                       "law": "u = F(s) [kp (b r - y) + ki (r - y)/s + kd D(s) (c r - y)], D(s) = s/(tf s + 1) "
-                              "(s when ideal), F the measurement filter"},
+                       "law": "u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s) (c r - y_f), y_f = F(s) y: "
+                              "D(s) = s/(tf s + 1) (s when ideal), F the measurement filter (1 without one) on the "
+                              "measurement only, the setpoint r unfiltered; b = c = 1 without setpoint weights"},
         "standard": std,
         "objective": {"kind": res.kind, "value": res.objective,
                       "evaluation": _objective_text(res.kind, args.delay, res.stats)},

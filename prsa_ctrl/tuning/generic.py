@@ -194,8 +194,10 @@ def tune_pid(
         below the loop's time scale, see ``delay``).
     setpoint_weights : bool
         After the load-disturbance design, 2-DOF setpoint weights ``b`` (and ``c`` for a PID
-        with a filtered derivative; 0 otherwise) in [0, 1] for the least IAE of ``r - y`` after
-        a unit setpoint step, the gains fixed (the weights do not enter the loop transfer, so
+        with a filtered derivative; 0 otherwise) in [0, 1] of the law ``u = kp (b r - y_f) + ki
+        (r - y_f)/s + kd D(s) (c r - y_f)``, ``y_f = F(s) y`` (the measurement filter acts on the
+        measurement only, the setpoint ``r`` is not filtered; ``D = s/(tf s + 1)``, or ``s`` when
+        ``ideal``), for the least IAE of ``r - y`` after a unit setpoint step, the gains fixed (the weights do not enter the loop transfer, so
         Ms, Mt, Mks and the load response are unchanged); in ``result.setpoint``. With a delay
         the setpoint response uses the Pade model of order ``delay_order``.
     disturbance : str or int, optional

@@ -112,7 +112,8 @@ class TuningResult:
         (``"ideal"`` or ``"filtered"``); the law is ``C(s) F(s)``.
     setpoint : dict or None
         :func:`tune_pid` with ``setpoint_weights=True``: the 2-DOF weights ``b``, ``c`` of
-        ``u = kp (b r - y) + ki int (r - y) + kd D(c r - y)``, their ``goal``, the setpoint
+        ``u = kp (b r - y_f) + ki int (r - y_f) + kd D (c r - y_f)`` with ``y_f = F y`` the
+        measured output (the measurement filter ``F`` on it, not on ``r``), their ``goal``, the setpoint
         step's ``iae`` with them and ``iae_unweighted`` (b = c = 1), and the ``overshoot``.
     """
 

@@ -153,3 +153,42 @@ def test_tiny_delay_tunes_like_no_delay_within_its_phase():
         assert any("Pade model of order" in w and "exact delay" in w for w in res.warnings)
         drops[delay] = d_ki
     assert 2.7 <= drops[3e-5] / drops[1e-5] <= 3.3, drops
+
+
+# ---- the 2-DOF law as stated (issue 34 part 2) ---------------------------------------------------
+
+def _setpoint_step_iae(kp, ki, kd, tf, b, c, t_filter, filter_on_setpoint=False, t_end=80.0, n=40001):
+    """IAE of r - y after a unit setpoint step on 1/(s + 1)^3 under ``u = kp (b r - y_f) + ki
+    (r - y_f)/s + kd s/(tf s + 1) (c r - y_f)``, ``y_f = F y``, F = 1/(Tf^2 s^2/2 + Tf s + 1)
+    (``filter_on_setpoint``: the other reading, ``u = F [kp (b r - y) + ...]``), from the
+    closed-loop transfer function (scipy.signal.lsim, exact for a step input; trapezoid rule)."""
+    from scipy import signal
+
+    pn, pd = np.array([1.0]), np.polymul(np.polymul([1.0, 1.0], [1.0, 1.0]), [1.0, 1.0])
+    fn, fd = np.array([1.0]), np.array([t_filter ** 2 / 2, t_filter, 1.0])
+    cd = np.polymul([1.0, 0.0], [tf, 1.0])
+    cy = np.polyadd(np.polyadd(np.polymul([kp, 0.0], [tf, 1.0]), [ki * tf, ki]), [kd, 0.0, 0.0])
+    cr = np.polyadd(np.polyadd(np.polymul([kp * b, 0.0], [tf, 1.0]), [ki * tf, ki]), [kd * c, 0.0, 0.0])
+    den = np.polyadd(np.polymul(np.polymul(pd, cd), fd), np.polymul(np.polymul(pn, cy), fn))
+    num = np.polymul(np.polymul(pn, cr), fn if filter_on_setpoint else fd)
+    assert np.all(np.roots(den).real < 0)
+    t = np.linspace(0.0, t_end, n)
+    _, y, _ = signal.lsim((num, den), np.ones_like(t), t)
+    e = np.abs(1.0 - y)
+    assert e[-1] < 1e-9  # settled: the horizon holds the whole integral
+    return float(np.trapezoid(e, t))
+
+
+def test_setpoint_law_is_the_stated_one():
+    """The guide, the docstring and the JSON state ``u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s)
+    (c r - y_f)``, ``y_f = F y``: the reported setpoint IAE is that law's (an independent
+    simulation of it), and not that of the filter on the setpoint too."""
+    res = tune_pid(control.tf([1.0], [1.0, 3.0, 3.0, 1.0]), controller="pid", filter_order=2, filter_tf=0.3,
+                   setpoint_weights=True)
+    assert res.converged, res.status
+    sp, pid = res.setpoint, res.pid
+    for b, c, value in ((sp["b"], sp["c"], sp["iae"]), (1.0, 1.0, sp["iae_unweighted"])):
+        ref = _setpoint_step_iae(pid.kp, pid.ki, pid.kd, pid.tf, b, c, 0.3)
+        other = _setpoint_step_iae(pid.kp, pid.ki, pid.kd, pid.tf, b, c, 0.3, filter_on_setpoint=True)
+        assert abs(value / ref - 1.0) < 1e-4, (b, c, value, ref)
+        assert abs(other / ref - 1.0) > 1e-2  # the test tells the two readings apart
