@@ -429,7 +429,10 @@ def format_pid_report(data: dict) -> str:
     if c["tf_s"] is not None:
         lines.append(f"  derivative filter  tf = {_g(c['tf_s'], 's')}  (kd s/(tf s + 1))")
     if c["filter_order"]:
-        how = "given" if opt["filter_tf_s"] is not None else "optimised"
+        search = (data.get("stats") or {}).get("filter_search") or {}
+        rng = search.get("range_s")
+        how = "given" if opt["filter_tf_s"] is not None else (
+            f"optimised over Tf in [{rng[0]:.4g}, {rng[1]:.4g}] s" if rng else "optimised")
         lines.append(f"  measurement filter F = " + ("1/(Tf s + 1)" if c["filter_order"] == 1 else
                                                       "1/(Tf^2 s^2/2 + Tf s + 1)")
                      + f", Tf = {_g(c['filter_tf_s'], 's')} ({how})")

@@ -167,8 +167,12 @@ def tune_pid(
         or ``1/(Tf^2 s^2/2 + Tf s + 1)`` (2); 0: none (the default, as before).
     filter_tf : float, s, optional
         The filter's time constant; by default (None) a decision variable: the objective's
-        optimum over ``Tf`` (a log scan over five decades below ``1/w135`` then a bounded
-        Brent search, each point a full tuning), reported in ``result.filter``.
+        optimum over ``Tf`` in ``[10^-4 t_ref, t_ref]`` with ``t_ref = 1 / w135`` (``horizon /
+        100`` where the phase never comes near -135 deg; ``_FILTER_DECADES`` = four decades; a log scan then a bounded Brent search, each point a full tuning), reported in
+        ``result.filter``. The result is optimal for that range only, and its status says so
+        (``"optimal (over Tf in [a, b] s, the filter's search range)"``, and where the best Tf
+        is at an end of the range, that the objective keeps improving beyond it): with IE the
+        problem over all Tf need not have an optimum at all.
     ideal : bool
         Ideal derivative ``kd s`` (PID without a derivative filter; ``tf`` unused). Without a
         measurement filter it needs a plant of relative degree 2 or more and no ``mks_max``
@@ -380,18 +384,30 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
     slope = min(up, down)  # the steepest descent the objective allows (negative: it can still decrease)
     at_bound = at_lo or at_hi
     ok = slope >= -KKT_TOL
-    info = {"tf_s": math.exp(best), "range_s": [math.exp(lo_all), math.exp(hi_all)], "evaluations": len(cache),
-            "slope_up": up, "slope_down": down, "at_bound": at_bound, "first_order_ok": ok}
+    t_lo, t_hi = math.exp(lo_all), math.exp(hi_all)
+    span = f"Tf in [{t_lo:.4g}, {t_hi:.4g}] s"
+    info = {"tf_s": math.exp(best), "range_s": [t_lo, t_hi], "evaluations": len(cache),
+            "slope_up": up, "slope_down": down, "at_bound": at_bound, "first_order_ok": ok,
+            "problem": f"the gains and the filter time constant over {span} (the search range)"}
     stats = {**res.stats, "filter_search": info}
     res = replace(res, stats=stats)
     if not ok:
         res = replace(res, status=f"not proven optimal: objective slope {slope:.3g} per unit log Tf below -{KKT_TOL:g} "
-                                  f"at the filter time constant {math.exp(best):.6g} s",
+                                  f"at the filter time constant {math.exp(best):.6g} s (searched {span})",
                       warnings=(*res.warnings, "the filter time constant is not proven optimal (see stats['filter_search'])"))
-    elif at_bound:
+    elif res.converged:
+        # Optimal for the problem searched, which the status names: the optimum over all Tf may
+        # lie outside the range, or not exist (IE: e.g. e^(-s)/(s+1), an ideal PID with a 2nd-order
+        # filter under Ms, Mt, Mks, whose ki keeps growing with Tf).
+        end = (" (at its " + ("upper" if at_hi else "lower") + " end: the objective keeps improving beyond it)"
+               if at_bound else "")
+        res = replace(res, status=f"optimal (over {span}, the filter's search range{end})")
+    if ok and at_bound:
         res = replace(res, warnings=(*res.warnings,
             f"the filter time constant {math.exp(best):.4g} s is at an end of its search range "
-            f"[{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s (the objective keeps improving that way)"))
+            f"[{t_lo:.4g}, {t_hi:.4g}] s (the objective keeps improving that way)"
+            + ("; with IE the problem over all Tf need not have an optimum (the gains may scale with Tf at the "
+               "same Ms, Mt, Mks): IAE gives a bounded problem" if res.kind == "ie" and at_hi else "")))
     return res, hor
 
 def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: int, disturbance, step: float,

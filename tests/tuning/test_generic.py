@@ -192,3 +192,82 @@ def test_setpoint_law_is_the_stated_one():
         other = _setpoint_step_iae(pid.kp, pid.ki, pid.kd, pid.tf, b, c, 0.3, filter_on_setpoint=True)
         assert abs(value / ref - 1.0) < 1e-4, (b, c, value, ref)
         assert abs(other / ref - 1.0) > 1e-2  # the test tells the two readings apart
+
+
+# ---- a free filter time constant: optimal over the range searched, and the status says so ------------
+
+_W_F = np.logspace(-4, 6, 15000)
+
+
+def _pi_filter_feasible(num, den, kp, ki, t_f, ms, mt, mks):
+    """PI ``kp + ki/s`` behind ``1/(Tf s + 1)``: true peaks on a dense grid and stability from the
+    characteristic polynomial (no delay)."""
+    s = 1j * _W_F
+    p = np.polyval(num, s) / np.polyval(den, s)
+    cf = (kp + ki / s) / (t_f * s + 1.0)
+    S = 1.0 / (1.0 + p * cf)
+    if np.max(np.abs(S)) > ms or np.max(np.abs(p * cf * S)) > mt or np.max(np.abs(cf * S)) > mks:
+        return False
+    char = np.polyadd(np.polymul(den, np.polymul([1.0, 0.0], [t_f, 1.0])), np.polymul(num, [kp, ki]))
+    return bool(np.all(np.roots(char).real < 0))
+
+
+def _pi_filter_ki_at(num, den, kp, t_f, ms, mt, mks):
+    lo, hi = 1e-6, 4.0
+    if not _pi_filter_feasible(num, den, kp, lo, t_f, ms, mt, mks):
+        return 0.0
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _pi_filter_feasible(num, den, kp, mid, t_f, ms, mt, mks) else (lo, mid)
+    return lo
+
+
+def _pi_filter_max_ki(num, den, t_f, ms, mt, mks, kps):
+    """The largest feasible ki over kp at this Tf (bisection in ki per kp of the grid, from a
+    feasible small ki, then a bounded search in kp around the best); the best (kp, ki) seen."""
+    vals = [_pi_filter_ki_at(num, den, kp, t_f, ms, mt, mks) for kp in kps]
+    i = int(np.argmax(vals))
+    best = (float(kps[i]), float(vals[i]))
+    r = minimize_scalar(lambda k: -_pi_filter_ki_at(num, den, k, t_f, ms, mt, mks),
+                        bounds=(kps[max(i - 1, 0)], kps[min(i + 1, len(kps) - 1)]), method="bounded",
+                        options={"xatol": 1e-5, "maxiter": 30})
+    if -r.fun > best[1]:
+        best = (float(r.x), float(-r.fun))
+    return best
+
+
+def test_free_filter_status_names_its_range_and_is_optimal_over_it():
+    """IE with a free measurement filter (issue 34: "optimal" alone for a problem without an
+    optimum): the status names the Tf range searched, the result is feasible, and an
+    independent brute force over that range finds no larger ki."""
+    num, den = [-1.0, 1.0], [1.0, 3.0, 3.0, 1.0]
+    ms, mt, mks = 1.4, 1.3, 3.0
+    r = tune_pid(control.tf(num, den), objective="ie", ms_max=ms, mt_max=mt, mks_max=mks, filter_order=1)
+    fs = r.stats["filter_search"]
+    t_lo, t_hi = fs["range_s"]
+    assert r.converged
+    assert r.status.startswith(f"optimal (over Tf in [{t_lo:.4g}, {t_hi:.4g}] s, the filter's search range")
+    assert t_hi / t_lo == pytest.approx(1e4, rel=1e-9)  # four decades, as documented
+    t_f = r.filter["tf_s"]
+    assert _pi_filter_feasible(num, den, r.pid.kp, r.pid.ki, t_f, ms * (1 + 1e-6), mt * (1 + 1e-6), mks * (1 + 1e-6))
+    kps = np.linspace(0.02, 1.5, 38)
+    for t in np.geomspace(t_lo, t_hi, 9):
+        kp_ref, ki_ref = _pi_filter_max_ki(num, den, t, ms, mt, mks, kps)
+        assert _pi_filter_feasible(num, den, kp_ref, ki_ref, t, ms, mt, mks) or ki_ref == 0.0  # checked itself
+        assert ki_ref <= r.pid.ki * (1 + 1e-3), (t, kp_ref, ki_ref, r.pid.ki)
+    # and at the reported Tf the brute force agrees with the tuner's ki
+    assert _pi_filter_max_ki(num, den, t_f, ms, mt, mks, kps)[1] == pytest.approx(r.pid.ki, rel=1e-3)
+
+
+def test_filter_search_span_is_stated_once():
+    """The docstring, the guide and the code give the same span of the Tf search (the docstring
+    said five decades while the code searched four)."""
+    from pathlib import Path
+
+    from prsa_ctrl.tuning.generic import _FILTER_DECADES
+
+    words = {3: "three", 4: "four", 5: "five", 6: "six"}[_FILTER_DECADES]
+    doc = " ".join(tune_pid.__doc__.split())
+    guide = " ".join((Path(__file__).parents[2] / "docs" / "guides" / "generic-tuner.md").read_text().split())
+    assert f"{words} decades" in doc and f"{words} decades" in guide
+    assert not any(f"{w} decades" in doc + guide for w in ("three", "four", "five", "six") if w != words)
