@@ -168,7 +168,8 @@ def tune_pid(
     filter_tf : float, s, optional
         The filter's time constant; by default (None) a decision variable: the objective's
         optimum over ``Tf`` in ``[10^-4 t_ref, t_ref]`` with ``t_ref = 1 / w135`` (``horizon /
-        100`` where the phase never comes near -135 deg; ``_FILTER_DECADES`` = four decades; a log scan then a bounded Brent search, each point a full tuning), reported in
+        100`` where the phase stays above -135 deg; ``_FILTER_DECADES`` = four decades; a
+        log scan then a bounded Brent search, each point a full tuning), reported in
         ``result.filter``. The result is optimal for that range only, and its status says so
         (``"optimal (over Tf in [a, b] s, the filter's search range)"``, and where the best Tf
         is at an end of the range, that the objective keeps improving beyond it): with IE the
