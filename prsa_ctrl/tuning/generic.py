@@ -82,7 +82,10 @@ def tune_loops(
 def _phase_frequency(a, b, c, d, delay: float = 0.0) -> tuple[float | None, float]:
     """Frequency (rad/s) where the plant's phase (with its exact delay, s) crosses -135 deg (first
     from above, else the first crossing), on a grid spanning its poles and zeros; and the phase
-    (rad) at the top."""
+    (rad) at the top. Where it never crosses: None if the phase stays above -135 deg, else the
+    frequency of its highest point (nearest -135 deg; e.g. ``e^(-0.2 s)/(s - 1)``, whose phase
+    rises from -180 deg to -140 deg near 2 rad/s, the loop's time scale), or the grid's lowest
+    frequency if it never rises."""
     poles, zeros = plant_roots(a, b, c, d)
     mags = np.abs(np.concatenate([poles, zeros]))
     mags = mags[(mags > 0) & np.isfinite(mags)]
@@ -212,7 +215,8 @@ def tune_pid(
         Disturbance step size (disturbance-input units), finite and non-zero.
     horizon : float, s, optional
         Simulated response length (the tail beyond it is added exactly or bounded); by default
-        40 / w135, with w135 where the plant's phase crosses -135 deg, lengthened up to 16x
+        40 / w135, with w135 where the plant's phase crosses -135 deg (where it stays below,
+        where it comes nearest; :func:`_phase_frequency`), lengthened up to 16x
         while the horizon holds less than 99.9 % of the objective.
     tf : float, s, optional
         Derivative filter time constant; by default 0.1 / w135.
@@ -357,6 +361,7 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
     from scipy.optimize import minimize_scalar
 
     cache: dict = {}
+    errors: list = []
 
     def value(lt: float) -> float:
         key = float(lt)
@@ -364,7 +369,8 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
             try:
                 r, hor = solve(math.exp(key), horizon)
                 cache[key] = (r.objective if r.converged else math.inf, r, hor)
-            except ValueError:
+            except ValueError as exc:
+                errors.append(str(exc))
                 cache[key] = (math.inf, None, None)
         return cache[key][0]
 
@@ -372,8 +378,12 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
     grid = np.linspace(lo_all, hi_all, _FILTER_SCAN)
     vals = np.array([value(x) for x in grid])
     if not np.any(np.isfinite(vals)):
-        raise ValueError(f"no filter time constant in [{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s gives a "
-                         "tuning proven optimal under the bounds; relax the constraints or pass filter_tf=")
+        span = f"[{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s"
+        if len(errors) == len(grid) and all("does not help" in e for e in errors):
+            # Nothing stabilises the loop at any Tf of the range: the bounds are not the limit.
+            raise ValueError(f"{errors[0]} (at every filter time constant in {span})")
+        raise ValueError(f"no filter time constant in {span} gives a tuning proven optimal under the bounds; "
+                         "relax the constraints or pass filter_tf=")
     i = int(np.argmin(vals))
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
     minimize_scalar(value, bounds=(lo, hi), method="bounded", options={"xatol": 2e-3, "maxiter": 20})

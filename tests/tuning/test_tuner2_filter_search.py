@@ -128,3 +128,14 @@ def test_a_very_fast_filter_tunes_without_numerical_noise():
         r = tune_pid(control.tf([1], [1, 3, 3, 1]), controller="pid", filter_order=2, filter_tf=1e-4, mks_max=5.0)
     assert r.status == "optimal" and r.filter["tf_s"] == 1e-4
     assert r.ms <= 1.4 and r.mks <= 5.0
+
+
+def test_nothing_stabilising_at_any_tf_does_not_ask_to_relax():
+    msg = "no stabilising PI gains found on the scan, whatever the bounds (Ms <= 1.4): relaxing them does not help"
+
+    def solve(t, hor):
+        raise ValueError(msg)
+
+    with pytest.raises(ValueError) as err:
+        _optimal_filter(solve, 1.0, T_REF)
+    assert str(err.value).startswith(msg) and "relax the constraints" not in str(err.value)
