@@ -266,11 +266,12 @@ def pade_order(delay: float, order: int, w_top: float) -> int:
 
 def exact_delay_affordable(delay: float, horizon: float) -> bool:
     """Whether the exact delayed simulation (:class:`_DelayedLoop`) of a loop with this ``delay``
-    (s) over about ``horizon`` (s) fits its budget at its finest level: ``horizon`` / ``delay`` x
-    ``_DELAY_LEVELS[-1]`` samples within ``_DELAY_MAX_STEPS``. A delay far below the loop's time
-    scale (e.g. 1e-5 s on a loop settling in seconds) does not: its objective is then that of
-    the Pade model (the delay's phase at the loop's frequencies is what bounds the difference)."""
-    return horizon / delay * _DELAY_LEVELS[-1] <= _DELAY_MAX_STEPS
+    (s) over about ``horizon`` (s) fits its budget at the level the first-order check uses:
+    ``horizon / delay x _DELAY_SMOOTH`` samples within ``_DELAY_MAX_STEPS`` (a horizon of up to
+    32768 delays). A delay far below the loop's time scale (e.g. 1e-5 s on a loop settling in
+    seconds: 400000 delays) does not, and the simulation used to run out of budget and fail:
+    its objective is then that of the Pade model, which the tuner states."""
+    return horizon / delay * _DELAY_SMOOTH <= _DELAY_MAX_STEPS
 
 class _DelayedLoop:
     """The continuous closed loop with the plant's EXACT output delay ``L``:
