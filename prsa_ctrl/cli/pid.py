@@ -333,27 +333,35 @@ def _tune(args, num: list, den: list):
                                                  "magnitude)")), -1.0
 
 
-def _objective_text(kind: str, delay: float) -> str:
-    """What the reported objective is, in words."""
+def _objective_text(kind: str, delay: float, stats: dict | None = None) -> str:
+    """What the reported objective is, in words (``stats``: the result's, for the delay model
+    actually used: ``stats["delay_model"]``)."""
     from ..tuning.settings import CONT_RTOL
 
+    model = (stats or {}).get("delay_model") or {}
+    order = model.get("pade_order", 6)
     base = f"{kind.upper()} of the continuous closed loop after a unit load step at the plant input, to infinity"
     if kind == "ie":
         how = "closed form: 1/|ki|"
     elif kind == "ise":
-        how = "closed form" + ("; the delay as its Pade model of order 6" if delay else "")
+        how = "closed form" + (f"; the delay as its Pade model of order {order}" if delay else "")
     else:
         how = f"integrated to a relative accuracy of {CONT_RTOL:g}"
+    if delay and kind in ("iae", "itae") and model.get("objective") == "pade":
+        return f"{base} ({how}; the delay as its Pade model of order {order}: too far below the loop's time scale " \
+               "to simulate exactly)"
     return f"{base} ({how}" + ("; exact delay)" if delay and kind != "ise" else ")")
 
 
 def result_data(args, num: list, den: list, shown: str, res, sign: float = 1.0) -> dict:
     """The result of ``prsa-pid`` as plain data (the ``--json`` file; the text report's source).
 
-    ``controller`` holds the law ``u = C(s) F(s) (r - y)`` with ``C = kp + ki/s + kd s/(tf s + 1)``
-    (``tf_s`` None: the ideal ``kd s``; a PI has ``kd = 0`` and no ``tf_s``) and ``F`` the
-    measurement filter (``filter_order`` 0: none; 1: ``1/(Tf s + 1)``; 2:
-    ``1/(Tf^2 s^2/2 + Tf s + 1)``); ``standard`` the same gains as ``K (1 + 1/(Ti s) + Td s ...)``.
+    ``controller`` holds the law ``u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s) (c r - y_f)``,
+    ``y_f = F(s) y`` (the filter on the measurement only; from the measurement the controller is
+    ``C(s) F(s)``, ``C = kp + ki/s + kd D(s)``) with ``D = s/(tf s + 1)`` (``tf_s`` None: the ideal
+    ``s``; a PI has ``kd = 0`` and no ``tf_s``), ``F`` the measurement filter (``filter_order`` 0:
+    none; 1: ``1/(Tf s + 1)``; 2: ``1/(Tf^2 s^2/2 + Tf s + 1)``) and ``b``, ``c`` the setpoint
+    weights (None: 1); ``standard`` the same gains as ``K (1 + 1/(Ti s) + Td s ...)``.
     """
     pid = res.pid
     kp, ki, kd = sign * pid.kp + 0.0, sign * pid.ki + 0.0, sign * pid.kd + 0.0  # sign -1: a reverse-acting plant tuned as -P
@@ -377,11 +385,12 @@ def result_data(args, num: list, den: list, shown: str, res, sign: float = 1.0) 
                        "derivative": "ideal" if args.ideal else ("filtered" if derivative else "none"),
                        "filter_order": order, "filter_tf_s": filt.get("tf_s") if order else None,
                        "b": sp["b"] if sp else None, "c": sp["c"] if sp else None,
-                       "law": "u = F(s) [kp (b r - y) + ki (r - y)/s + kd D(s) (c r - y)], D(s) = s/(tf s + 1) "
-                              "(s when ideal), F the measurement filter"},
+                       "law": "u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s) (c r - y_f), y_f = F(s) y: "
+                              "D(s) = s/(tf s + 1) (s when ideal), F the measurement filter (1 without one) on the "
+                              "measurement only, the setpoint r unfiltered; b = c = 1 without setpoint weights"},
         "standard": std,
         "objective": {"kind": res.kind, "value": res.objective,
-                      "evaluation": _objective_text(res.kind, args.delay)},
+                      "evaluation": _objective_text(res.kind, args.delay, res.stats)},
         "ms": res.ms, "mt": res.mt, "mks": res.mks,
         "margins": {"gm_db": m.gm_db, "pm_deg": m.pm_deg, "wc_rad_s": m.wc_rad_s,
                     "wc_hz": m.wc_rad_s / (2 * math.pi) if math.isfinite(m.wc_rad_s) else None,
@@ -389,7 +398,7 @@ def result_data(args, num: list, den: list, shown: str, res, sign: float = 1.0) 
         "setpoint": sp,
         "status": res.status, "converged": res.converged, "warnings": list(res.warnings),
         "stats": {k: v for k, v in res.stats.items() if k in (
-            "objective_sampled", "objective_pade", "delay_pade_change", "filter_search", "first_order", "polished",
+            "objective_sampled", "objective_pade", "delay_pade_change", "delay_model", "filter_search", "first_order", "polished",
             "wall_s", "horizon")},
     }
 
@@ -420,7 +429,10 @@ def format_pid_report(data: dict) -> str:
     if c["tf_s"] is not None:
         lines.append(f"  derivative filter  tf = {_g(c['tf_s'], 's')}  (kd s/(tf s + 1))")
     if c["filter_order"]:
-        how = "given" if opt["filter_tf_s"] is not None else "optimised"
+        search = (data.get("stats") or {}).get("filter_search") or {}
+        rng = search.get("range_s")
+        how = "given" if opt["filter_tf_s"] is not None else (
+            f"optimised over Tf in [{rng[0]:.4g}, {rng[1]:.4g}] s" if rng else "optimised")
         lines.append(f"  measurement filter F = " + ("1/(Tf s + 1)" if c["filter_order"] == 1 else
                                                       "1/(Tf^2 s^2/2 + Tf s + 1)")
                      + f", Tf = {_g(c['filter_tf_s'], 's')} ({how})")

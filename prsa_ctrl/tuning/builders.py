@@ -133,9 +133,23 @@ def continuous_loop(
         b = b / tb[:, None]
         c = c * tb[None, :]
     c_plant = c
-    delayed = None
     if delay > 0:
-        delayed = _delayed_loop(a, b, c, d_idx, step, tf, ideal, filter_order, filter_tf, delay, horizon)
+        # A delay far below the loop's time scale: the lowest Pade order whose phase error is
+        # negligible up to the top of the loop's grid (order 6 of a 1e-10 s delay has poles near
+        # 1e11 rad/s and a realisation too ill-conditioned to simulate).
+        mags = np.abs(np.concatenate(plant_roots(a, b[:, :1], c, d[:, :1])))
+        mags = mags[(mags > 0) & np.isfinite(mags)]
+        w_top = max(float(mags.max()) if mags.size else 0.0, 1.0 / tf) * 100.0
+        if omega is not None:
+            w_top = max(w_top, float(np.max(omega)))
+        delay_order = pade_order(delay, delay_order, w_top)
+    delayed, delay_model = None, None
+    if delay > 0:
+        exact_ok = exact_delay_affordable(delay, horizon)
+        if exact_ok:
+            delayed = _delayed_loop(a, b, c, d_idx, step, tf, ideal, filter_order, filter_tf, delay, horizon)
+        delay_model = {"delay_s": delay, "pade_order": delay_order, "objective": "exact" if exact_ok else "pade",
+                       "w_top": w_top}
     # The delay's Pade model and the measurement filter in series with the plant output (extra
     # plant states): c is then the row of the output the controller measures, c_err that of the
     # (delayed, unfiltered) output the objective integrates; without them both are c.
@@ -218,7 +232,8 @@ def continuous_loop(
         return np.vstack([np.ones_like(jw) * f, f / jw, f * deriv(jw)])
 
     return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce_obj, h, n_steps, omega, L, tf, name=sys.name, response=response,
-                     continuous=(c0, (c_kp, c_ki, c_kd), c_bd), noise=noise, delayed=delayed)
+                     continuous=(c0, (c_kp, c_ki, c_kd), c_bd), noise=noise, delayed=delayed,
+                     delay_model=delay_model)
 
 #: Delay-line samples per delay of the exact delayed simulation: the halving sequence (each level
 #: doubles them) and the fixed level of the first-order check's smooth objective.
@@ -228,6 +243,35 @@ _DELAY_SMOOTH = 64
 
 #: Largest number of samples one delayed simulation may take (budget).
 _DELAY_MAX_STEPS = 1 << 21
+
+#: Largest phase error (rad) of the delay's Pade model up to the loop grid's top at which a lower
+#: order than the one asked for is used (:func:`pade_order`).
+PADE_PHASE_TOL = 1e-12
+
+def pade_order(delay: float, order: int, w_top: float) -> int:
+    """The Pade order used for a ``delay`` (s): the lowest ``n`` <= ``order`` whose phase error
+    at ``w_top`` (rad/s), ``(n!)^2 / ((2n)! (2n+1)!) (w_top delay)^(2n+1)`` (the leading term;
+    the error grows with frequency), is at most ``PADE_PHASE_TOL``; else ``order`` itself.
+
+    Examples
+    --------
+    >>> pade_order(1e-10, 6, 1e4), pade_order(1e-5, 6, 1e3), pade_order(1.0, 6, 100.0)
+    (1, 2, 6)
+    """
+    x = w_top * delay
+    for n in range(1, order):
+        if math.factorial(n) ** 2 / (math.factorial(2 * n) * math.factorial(2 * n + 1)) * x ** (2 * n + 1) <= PADE_PHASE_TOL:
+            return n
+    return order
+
+def exact_delay_affordable(delay: float, horizon: float) -> bool:
+    """Whether the exact delayed simulation (:class:`_DelayedLoop`) of a loop with this ``delay``
+    (s) over about ``horizon`` (s) fits its budget at the level the first-order check uses:
+    ``horizon / delay x _DELAY_SMOOTH`` samples within ``_DELAY_MAX_STEPS`` (a horizon of up to
+    32768 delays). A delay far below the loop's time scale (e.g. 1e-5 s on a loop settling in
+    seconds: 400000 delays) does not, and the simulation used to run out of budget and fail:
+    its objective is then that of the Pade model, which the tuner states."""
+    return horizon / delay * _DELAY_SMOOTH <= _DELAY_MAX_STEPS
 
 class _DelayedLoop:
     """The continuous closed loop with the plant's EXACT output delay ``L``:

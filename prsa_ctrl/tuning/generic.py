@@ -13,7 +13,7 @@ from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES
 from ..drive.sampled import ss_response, zoh
 from .settings import CONT_HALVINGS, CONT_RTOL, KKT_TOL, TAIL_RTOL, check_bounds, check_mks, checked_number, gain_limit, int_steps
 from .loops import LoopModel, block_sum, plant_roots
-from .builders import check_structure, continuous_loop
+from .builders import PADE_PHASE_TOL, check_structure, continuous_loop
 from .tuner import Tuner, TuningResult
 
 __all__ = ["tune_loops", "tune_pid", "MAX_ORDER"]
@@ -82,7 +82,10 @@ def tune_loops(
 def _phase_frequency(a, b, c, d, delay: float = 0.0) -> tuple[float | None, float]:
     """Frequency (rad/s) where the plant's phase (with its exact delay, s) crosses -135 deg (first
     from above, else the first crossing), on a grid spanning its poles and zeros; and the phase
-    (rad) at the top."""
+    (rad) at the top. Where it never crosses: None if the phase stays above -135 deg, else the
+    frequency of its highest point (nearest -135 deg; e.g. ``e^(-0.2 s)/(s - 1)``, whose phase
+    rises from -180 deg to -140 deg near 2 rad/s, the loop's time scale), or the grid's lowest
+    frequency if it never rises."""
     poles, zeros = plant_roots(a, b, c, d)
     mags = np.abs(np.concatenate([poles, zeros]))
     mags = mags[(mags > 0) & np.isfinite(mags)]
@@ -96,7 +99,13 @@ def _phase_frequency(a, b, c, d, delay: float = 0.0) -> tuple[float | None, floa
     x = ph + 0.75 * np.pi
     cross = np.flatnonzero(np.sign(x[:-1]) != np.sign(x[1:]))
     if not cross.size:
-        return (None if x[0] > 0 else float(w[0])), float(ph[-1])
+        if x[0] > 0:
+            return None, float(ph[-1])
+        # Below -135 deg everywhere (e.g. an unstable pole with a delay, e^(-0.2 s)/(s - 1)): the
+        # loop's time scale is where the phase comes nearest -135 deg (its highest point), not the
+        # grid's lowest frequency (a horizon of 40000 s for a loop crossing over at 2 rad/s).
+        top = int(np.argmax(ph))
+        return float(w[top] if ph[top] > ph[0] + 1e-3 else w[0]), float(ph[-1])
     desc = cross[x[cross] > 0]
     i = desc[0] if desc.size else cross[0]
     return float(w[i + 1]), float(ph[-1])
@@ -161,8 +170,13 @@ def tune_pid(
         or ``1/(Tf^2 s^2/2 + Tf s + 1)`` (2); 0: none (the default, as before).
     filter_tf : float, s, optional
         The filter's time constant; by default (None) a decision variable: the objective's
-        optimum over ``Tf`` (a log scan over five decades below ``1/w135`` then a bounded
-        Brent search, each point a full tuning), reported in ``result.filter``.
+        optimum over ``Tf`` in ``[10^-4 t_ref, t_ref]`` with ``t_ref = 1 / w135`` (``horizon /
+        100`` where the phase stays above -135 deg; ``_FILTER_DECADES`` = four decades; a
+        log scan then a bounded Brent search, each point a full tuning), reported in
+        ``result.filter``. The result is optimal for that range only, and its status says so
+        (``"optimal (over Tf in [a, b] s, the filter's search range)"``, and where the best Tf
+        is at an end of the range, that the objective keeps improving beyond it): with IE the
+        problem over all Tf need not have an optimum at all.
     ideal : bool
         Ideal derivative ``kd s`` (PID without a derivative filter; ``tf`` unused). Without a
         measurement filter it needs a plant of relative degree 2 or more and no ``mks_max``
@@ -176,13 +190,22 @@ def tune_pid(
         first-order check and polish use it; the ipopt stand-in uses a Pade model of order
         ``delay_order`` (``stats["objective_pade"]`` its value at the result). IE is exact
         either way (``|u_ss|/ki``); ISE is that of the Pade model, its change with the order
-        + 2 in ``stats["delay_pade_change"]`` (a warning above 1e-4).
+        + 2 in ``stats["delay_pade_change"]`` (a warning above 1e-4). A delay far below the
+        loop's time scale is a numerical edge, not a failure: the Pade model takes the lowest
+        order whose phase error stays below ``PADE_PHASE_TOL`` up to the loop grid's top
+        (:func:`~prsa_ctrl.tuning.builders.pade_order`), and where the exact simulation would
+        exceed its budget (:func:`~prsa_ctrl.tuning.builders.exact_delay_affordable`; e.g. 1e-5 s
+        on a loop settling in seconds) the IAE/ITAE is that of the Pade model, with a warning
+        giving the delay's phase at the crossover; ``stats["delay_model"]`` says which.
     delay_order : int
-        Pade order of the delay in the ipopt stand-in (1 .. 10, default 6).
+        Pade order of the delay in the ipopt stand-in (1 .. 10, default 6; lower for a delay far
+        below the loop's time scale, see ``delay``).
     setpoint_weights : bool
         After the load-disturbance design, 2-DOF setpoint weights ``b`` (and ``c`` for a PID
-        with a filtered derivative; 0 otherwise) in [0, 1] for the least IAE of ``r - y`` after
-        a unit setpoint step, the gains fixed (the weights do not enter the loop transfer, so
+        with a filtered derivative; 0 otherwise) in [0, 1] of the law ``u = kp (b r - y_f) + ki
+        (r - y_f)/s + kd D(s) (c r - y_f)``, ``y_f = F(s) y`` (the measurement filter acts on the
+        measurement only, the setpoint ``r`` is not filtered; ``D = s/(tf s + 1)``, or ``s`` when
+        ``ideal``), for the least IAE of ``r - y`` after a unit setpoint step, the gains fixed (the weights do not enter the loop transfer, so
         Ms, Mt, Mks and the load response are unchanged); in ``result.setpoint``. With a delay
         the setpoint response uses the Pade model of order ``delay_order``.
     disturbance : str or int, optional
@@ -192,7 +215,8 @@ def tune_pid(
         Disturbance step size (disturbance-input units), finite and non-zero.
     horizon : float, s, optional
         Simulated response length (the tail beyond it is added exactly or bounded); by default
-        40 / w135, with w135 where the plant's phase crosses -135 deg, lengthened up to 16x
+        40 / w135, with w135 where the plant's phase crosses -135 deg (where it stays below,
+        where it comes nearest; :func:`_phase_frequency`), lengthened up to 16x
         while the horizon holds less than 99.9 % of the objective.
     tf : float, s, optional
         Derivative filter time constant; by default 0.1 / w135.
@@ -337,6 +361,7 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
     from scipy.optimize import minimize_scalar
 
     cache: dict = {}
+    errors: list = []
 
     def value(lt: float) -> float:
         key = float(lt)
@@ -344,7 +369,8 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
             try:
                 r, hor = solve(math.exp(key), horizon)
                 cache[key] = (r.objective if r.converged else math.inf, r, hor)
-            except ValueError:
+            except ValueError as exc:
+                errors.append(str(exc))
                 cache[key] = (math.inf, None, None)
         return cache[key][0]
 
@@ -352,8 +378,12 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
     grid = np.linspace(lo_all, hi_all, _FILTER_SCAN)
     vals = np.array([value(x) for x in grid])
     if not np.any(np.isfinite(vals)):
-        raise ValueError(f"no filter time constant in [{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s gives a "
-                         "tuning proven optimal under the bounds; relax the constraints or pass filter_tf=")
+        span = f"[{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s"
+        if len(errors) == len(grid) and all("does not help" in e for e in errors):
+            # Nothing stabilises the loop at any Tf of the range: the bounds are not the limit.
+            raise ValueError(f"{errors[0]} (at every filter time constant in {span})")
+        raise ValueError(f"no filter time constant in {span} gives a tuning proven optimal under the bounds; "
+                         "relax the constraints or pass filter_tf=")
     i = int(np.argmin(vals))
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
     minimize_scalar(value, bounds=(lo, hi), method="bounded", options={"xatol": 2e-3, "maxiter": 20})
@@ -365,18 +395,30 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
     slope = min(up, down)  # the steepest descent the objective allows (negative: it can still decrease)
     at_bound = at_lo or at_hi
     ok = slope >= -KKT_TOL
-    info = {"tf_s": math.exp(best), "range_s": [math.exp(lo_all), math.exp(hi_all)], "evaluations": len(cache),
-            "slope_up": up, "slope_down": down, "at_bound": at_bound, "first_order_ok": ok}
+    t_lo, t_hi = math.exp(lo_all), math.exp(hi_all)
+    span = f"Tf in [{t_lo:.4g}, {t_hi:.4g}] s"
+    info = {"tf_s": math.exp(best), "range_s": [t_lo, t_hi], "evaluations": len(cache),
+            "slope_up": up, "slope_down": down, "at_bound": at_bound, "first_order_ok": ok,
+            "problem": f"the gains and the filter time constant over {span} (the search range)"}
     stats = {**res.stats, "filter_search": info}
     res = replace(res, stats=stats)
     if not ok:
         res = replace(res, status=f"not proven optimal: objective slope {slope:.3g} per unit log Tf below -{KKT_TOL:g} "
-                                  f"at the filter time constant {math.exp(best):.6g} s",
+                                  f"at the filter time constant {math.exp(best):.6g} s (searched {span})",
                       warnings=(*res.warnings, "the filter time constant is not proven optimal (see stats['filter_search'])"))
-    elif at_bound:
+    elif res.converged:
+        # Optimal for the problem searched, which the status names: the optimum over all Tf may
+        # lie outside the range, or not exist (IE: e.g. e^(-s)/(s+1), an ideal PID with a 2nd-order
+        # filter under Ms, Mt, Mks, whose ki keeps growing with Tf).
+        end = (" (at its " + ("upper" if at_hi else "lower") + " end: the objective keeps improving beyond it)"
+               if at_bound else "")
+        res = replace(res, status=f"optimal (over {span}, the filter's search range{end})")
+    if ok and at_bound:
         res = replace(res, warnings=(*res.warnings,
             f"the filter time constant {math.exp(best):.4g} s is at an end of its search range "
-            f"[{math.exp(lo_all):.4g}, {math.exp(hi_all):.4g}] s (the objective keeps improving that way)"))
+            f"[{t_lo:.4g}, {t_hi:.4g}] s (the objective keeps improving that way)"
+            + ("; with IE the problem over all Tf need not have an optimum (the gains may scale with Tf at the "
+               "same Ms, Mt, Mks): IAE gives a bounded problem" if res.kind == "ie" and at_hi else "")))
     return res, hor
 
 def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: int, disturbance, step: float,
@@ -402,6 +444,19 @@ def _with_structure(res: TuningResult, sys, tf: float, horizon: float, n_steps: 
     if delay > 0:
         g = (res.pid.kp, res.pid.ki, res.pid.kd)
         stats["delay_s"] = delay
+        model = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,
+                                **{**structure, "filter_tf": t_filter}).delay_model
+        stats["delay_model"] = dict(model)
+        if model["pade_order"] < structure["delay_order"]:
+            warnings.append(f"the delay {delay:.3g} s is far below the loop's time scale: its Pade model has order "
+                            f"{model['pade_order']} (not {structure['delay_order']}; phase error below "
+                            f"{PADE_PHASE_TOL:g} rad up to {model['w_top']:.3g} rad/s)")
+        if model["objective"] == "pade" and objective in ("iae", "itae"):
+            wc = res.margins[0].wc_rad_s
+            phase = f"{wc * delay:.3g} rad at the crossover {wc:.4g} rad/s" if math.isfinite(wc) else "unknown"
+            warnings.append(f"the delay {delay:.3g} s is too far below the loop's time scale to simulate exactly (its "
+                            f"phase: {phase}): the {objective.upper()} is that of its Pade model of order "
+                            f"{model['pade_order']}; Ms, Mt, Mks and the margins use the exact delay")
         if objective == "ise":
             # ISE is computed on the Pade model: its change with the order + 2 says how exact it is.
             loop = continuous_loop(sys, tf=tf, horizon=horizon, n_steps=n_steps, disturbance=disturbance, step=step,

@@ -66,6 +66,12 @@ class LoopModel:
     #: that of the loop with the exact delay (the sampled stand-in and ``continuous`` carry a
     #: Pade model of it).
     delayed: object | None = None
+    #: A continuous loop with a plant delay: ``delay_s``, ``pade_order`` (of the stand-in's Pade
+    #: model, :func:`~prsa_ctrl.tuning.builders.pade_order`), ``objective`` (``"exact"`` where
+    #: IAE/ITAE are those of the exact delayed loop, ``"pade"`` where the delay is too far below
+    #: the loop's time scale to simulate exactly and they are the Pade model's) and ``w_top``
+    #: (rad/s, up to where the Pade phase error is bounded).
+    delay_model: dict | None = None
 
     def __post_init__(self) -> None:
         if self.profile is not None:

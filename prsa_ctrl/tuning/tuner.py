@@ -112,7 +112,8 @@ class TuningResult:
         (``"ideal"`` or ``"filtered"``); the law is ``C(s) F(s)``.
     setpoint : dict or None
         :func:`tune_pid` with ``setpoint_weights=True``: the 2-DOF weights ``b``, ``c`` of
-        ``u = kp (b r - y) + ki int (r - y) + kd D(c r - y)``, their ``goal``, the setpoint
+        ``u = kp (b r - y_f) + ki int (r - y_f) + kd D (c r - y_f)`` with ``y_f = F y`` the
+        measured output (the measurement filter ``F`` on it, not on ``r``), their ``goal``, the setpoint
         step's ``iae`` with them and ``iae_unweighted`` (b = c = 1), and the ``overshoot``.
     """
 
@@ -219,6 +220,7 @@ class Tuner(NLPBuilder, OptimalityChecks):
         self.worst_case = bool(worst_case)
         self._scan: dict | None = None
         self._nlps: dict = {}
+        self._boundary: NDArray[np.float64] | None = None  # D-decomposition points, once added
 
     # ---- scan ---------------------------------------------------------------------------
 
@@ -278,6 +280,95 @@ class Tuner(NLPBuilder, OptimalityChecks):
         nl = len(self.loops)
         return {"grid": grid, "ms": self._scan_peak(grid, "ms"), "mt": None,
                 "stable": np.full((nl, len(grid)), -1, np.int8), "obj": np.full((nl, len(grid)), np.nan)}
+
+    #: D-decomposition points: frequencies of the boundary curve, ki levels, kp samples per interval.
+    _BOUNDARY_W = 20000
+    _BOUNDARY_LEVELS = 15
+    _BOUNDARY_SAMPLES = 7
+    _BOUNDARY_CROSSINGS = 8
+    _BOUNDARY_MAX = 3000
+
+    def boundary_points(self) -> NDArray[np.float64]:
+        """Gains inside every region of the (kp, ki) plane (kd = 0) that the stabilising-set
+        boundary delimits, from the reference loop's exact frequency response (filters and
+        exact delay included): a point where the closed loop changes stability has a root
+        ``s = j w`` of ``1 + L = 0``; with ``L = kp L_p + ki L_i`` (kd = 0) that is two real
+        equations ``kp Re L_p + ki Re L_i = -1``, ``kp Im L_p + ki Im L_i = 0``, so the
+        complex-root boundary is the curve ``(kp(w), ki(w))`` and the real-root boundary
+        (``s = 0``) the line ``ki = 0``. At each of ``_BOUNDARY_LEVELS`` ki levels (spread over
+        its first lobe, and a few more over all its positive ki) the curve's crossings split
+        the kp axis into intervals of constant stability; ``_BOUNDARY_SAMPLES`` kp values
+        inside each of the intervals between the ``_BOUNDARY_CROSSINGS`` smallest crossings
+        (and below the first, above the last of them) are returned as rows ``(kp, ki, 0[, 0])``. Their stability
+        and peaks are decided by the tuner like any scan point. Empty where the loop has no
+        frequency-response function or a gain-dependent denominator (estimator loops)."""
+        lp = self.loops[0]
+        ng = lp.n_gains
+        if lp.response is None or lp.N0 is not None or lp.D is not None or lp.D0 is not None:
+            return np.zeros((0, ng))
+        lo = lp.omega[0] / 10.0
+        hi = lp.nyquist * (1 - 1e-9) if lp.nyquist else lp.omega[-1] * 10.0
+        w = np.logspace(math.log10(lo), math.log10(hi), self._BOUNDARY_W)
+        _, lw, _, _ = lp.parts_at(w)
+        a, b = lw[0], lw[1]
+        with np.errstate(all="ignore"):
+            det = a.real * b.imag - b.real * a.imag
+            kp_w = -b.imag / det
+            ki_w = a.imag / det
+        good = np.isfinite(kp_w) & np.isfinite(ki_w)
+        pos = ki_w[good & (ki_w > 0) & (kp_w > 0)]
+        if not pos.size:
+            return np.zeros((0, ng))
+        # ki levels: across the first lobe of the curve (from its low-frequency end to where ki
+        # first returns to 0, the region a delay or a right-half-plane pole leaves stabilisable),
+        # and across every positive ki it reaches.
+        run = good & (ki_w > 0) & (kp_w > 0)
+        first = np.flatnonzero(run)
+        stop = np.flatnonzero(~run[first[0]:])
+        lobe = ki_w[first[0]: first[0] + (stop[0] if stop.size else run.size)]
+        k1 = float(np.max(lobe))
+        levels = np.unique(np.concatenate([
+            k1 * np.logspace(-3.0, math.log10(0.98), self._BOUNDARY_LEVELS),
+            np.exp(np.quantile(np.log(pos), np.linspace(0.0, 1.0, 6)))]))
+        rows = []
+        for lev in levels:
+            x = np.where(good, ki_w - lev, np.nan)
+            j = np.flatnonzero(np.isfinite(x[:-1]) & np.isfinite(x[1:]) & (np.sign(x[:-1]) != np.sign(x[1:])))
+            t = x[j] / (x[j] - x[j + 1])
+            kc = kp_w[j] + t * (kp_w[j + 1] - kp_w[j])
+            kc = np.unique(kc[np.isfinite(kc) & (kc > 0)])[: self._BOUNDARY_CROSSINGS]
+            if not kc.size:
+                continue
+            edges = np.concatenate([[kc[0] / 100.0], kc, [kc[-1] * 100.0]])
+            for k0, k1 in zip(edges[:-1], edges[1:]):
+                # strictly inside: the interval's ends are boundary points (marginal loops)
+                for kp in np.exp(np.linspace(math.log(k0), math.log(k1), self._BOUNDARY_SAMPLES + 2)[1:-1]):
+                    rows.append((kp, lev))
+            if len(rows) > self._BOUNDARY_MAX:
+                break
+        pts = np.zeros((min(len(rows), self._BOUNDARY_MAX), ng))
+        if len(pts):
+            pts[:, :2] = np.asarray(rows[: len(pts)])
+        return pts
+
+    def _add_boundary_points(self) -> bool:
+        """Append :meth:`boundary_points` to the scan (once); whether any were added."""
+        if self._boundary is not None:
+            return False
+        self._boundary = self.boundary_points()
+        if not self._boundary.size:
+            return False
+        sc = self._scan_data()
+        nl = len(self.loops)
+        extra = self._boundary
+        sc["grid"] = np.vstack([sc["grid"], extra])
+        sc["ms"] = np.concatenate([sc["ms"], self._scan_peak(extra, "ms")])
+        for key in ("mt", "mks"):
+            if sc.get(key) is not None:
+                sc[key] = np.concatenate([sc[key], self._scan_peak(extra, key)])
+        sc["stable"] = np.hstack([sc["stable"], np.full((nl, len(extra)), -1, np.int8)])
+        sc["obj"] = np.hstack([sc["obj"], np.full((nl, len(extra)), np.nan)])
+        return True
 
     def _scan_peak(self, grid: NDArray[np.float64], key: str) -> NDArray[np.float64]:
         """Largest |S| (``key`` "ms"), |T| ("mt") or |C F S| ("mks") over every loop's grid, per
@@ -653,6 +744,8 @@ class Tuner(NLPBuilder, OptimalityChecks):
         mt_eff = mt_max * (1 - 1e-6) if mt_max is not None else None
         mks_eff = mks_max * (1 - 1e-6) if mks_max is not None else None
         order = self._ranked(ms_eff, mt_eff, noise, hi, mks_eff)
+        if not order.size and self._add_boundary_points():
+            order = self._ranked(ms_eff, mt_eff, noise, hi, mks_eff)
         if not order.size:
             sc = self._scan_data()
             probe = np.flatnonzero(sc["ms"] <= ms_eff)[:20]
@@ -661,13 +754,27 @@ class Tuner(NLPBuilder, OptimalityChecks):
                     "every scanned gain leaves a closed-loop pole on the stability boundary: the plant has a "
                     "pole the loop cannot move (e.g. an angle state under speed feedback); expected a plant without it"
                 )
+            bounds = (f"Ms <= {ms_max:g}" + (f", Mt <= {mt_max:g}" if mt_max is not None else "")
+                      + (f", kp + kd/tf <= {noise:g}" if noise is not None else "")
+                      + (f", Mks <= {mks_max:g}" if mks_max is not None else "")
+                      + "".join(f", {n}_max = {lim:g}" for n, lim in zip(("kp", "ki", "kd")[: 3 if self.use_d else 2], hi)
+                              if math.isfinite(lim)))
+            every = np.arange(len(sc["grid"]))
+            self._evaluate(range(len(self.loops)), every)
+            stable = every[np.all(sc["stable"][:, every] == 1, axis=0)]
+            where = ("on the scan and inside the stabilising-set boundary (D-decomposition of 1 + L(j w) = 0 at "
+                     "kd = 0)" if self._boundary is not None and self._boundary.size else "on the scan")
+            if not stable.size:
+                # Relaxing the bounds cannot help here: no gain found stabilises the loop at all.
+                raise ValueError(
+                    f"no stabilising {self.controller.upper()} gains found {where}, whatever the bounds ({bounds}): "
+                    "relaxing them does not help; the plant needs another controller structure (or is "
+                    "reverse-acting: negate it)")
+            least = float(np.min(sc["ms"][stable]))
             raise ValueError(
-                f"no stabilising {self.controller.upper()} gains meet Ms <= {ms_max:g}"
-                + (f", Mt <= {mt_max:g}" if mt_max is not None else "")
-                + (f", kp + kd/tf <= {noise:g}" if noise is not None else "")
-                + (f", Mks <= {mks_max:g}" if mks_max is not None else "")
-                + " on the scan; relax the constraints"
-            )
+                f"no stabilising {self.controller.upper()} gains meet {bounds} {where}; {stable.size} stabilising "
+                f"gains were found, the least Ms among them {least:.4g}: relax the constraints"
+                + (f" (Ms above {least:.4g})" if least > ms_max else ""))
         nlp = self._nlp(mt_max is not None, noise is not None, mks_max is not None)
         runs, cands = [], []
         typical = np.max(self._scan_data()["grid"][order[:20]], axis=0)

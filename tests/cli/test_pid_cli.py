@@ -114,6 +114,10 @@ CASES = {
     "reverse": ["--num", "-2", "--den", "1", "3", "3", "1", "--objective", "ie", "--mt-max", "1.3"],
     # open-loop unstable: negative static gain, yet positive gains (no sign flip); GM < 0 dB
     "unstable": ["--plant", "1/((s-1)(0.1s+1))"],
+    # issue 34: open-loop unstable with a delay (was refused, exit 3), and a delay far below the
+    # loop's time scale (was a failure after ~35 s)
+    "unstable-delay": ["--plant", "1/(s-1)", "--delay", "0.2", "--objective", "ie", "--ms-max", "2"],
+    "tiny-delay": ["--plant", "1/(s+1)", "--delay", "1e-5"],
 }
 
 
@@ -276,3 +280,14 @@ def test_unwritable_output_is_refused_before_any_heavy_import(tmp_path):
         assert p.stdout.strip() == "exit 2 False False", (argv, p.stdout, p.stderr[-500:])
         assert len(p.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "no").exists()
+
+
+def test_tiny_delay_and_the_law_are_stated(tmp_path, capsys):
+    """A 1e-5 s delay on 1/(s+1): the objective's evaluation says it is the Pade model's (the
+    exact simulation is out of reach), and ``controller.law`` is the law the code implements
+    (the measurement filter on y only; tests/tuning/test_generic.py simulates it)."""
+    code, d, text = _run(tmp_path, CASES["tiny-delay"], capsys)
+    assert code == 0 and d["converged"]
+    assert "Pade model of order" in d["objective"]["evaluation"] and d["stats"]["delay_model"]["objective"] == "pade"
+    assert d["controller"]["law"].startswith("u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s) (c r - y_f), y_f = F(s) y")
+    assert "Pade model of order" in text

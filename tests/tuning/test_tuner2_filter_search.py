@@ -34,7 +34,9 @@ def test_interior_minimum_is_found_and_proven():
     calls = []
     res, hor = _optimal_filter(_solver(lambda t: 1.0 + (math.log(t / t_opt)) ** 2, calls), 7.0, T_REF)
     fs = res.stats["filter_search"]
-    assert hor == 7.0 and res.status == "optimal" and fs["first_order_ok"] and not fs["at_bound"]
+    assert hor == 7.0 and res.converged and fs["first_order_ok"] and not fs["at_bound"]
+    # Optimal for the problem searched, which the status names (issue 34: never "optimal" alone).
+    assert res.status == f"optimal (over Tf in [{LO:.4g}, {T_REF:.4g}] s, the filter's search range)"
     assert math.log(fs["tf_s"] / t_opt) == pytest.approx(0.0, abs=3e-3)  # Brent's 2e-3 in log Tf
     assert res.stats["tf_seen"] == fs["tf_s"]  # the result returned is the tuning at that Tf
     assert fs["evaluations"] == len(calls) <= 7 + 20 + 2  # bounded before it starts
@@ -46,7 +48,7 @@ def test_kink_minimum_counts_as_a_minimum():
     t_k = 0.002
     res, _ = _optimal_filter(_solver(lambda t: 1.0 + 0.1 * abs(math.log(t / t_k)), []), 1.0, T_REF)
     fs = res.stats["filter_search"]
-    assert fs["first_order_ok"] and res.status == "optimal"
+    assert fs["first_order_ok"] and res.status.startswith("optimal (over Tf in [")
     assert math.log(fs["tf_s"] / t_k) == pytest.approx(0.0, abs=3e-3)
 
 
@@ -54,8 +56,23 @@ def test_a_filter_that_only_costs_ends_at_the_small_end_with_a_warning():
     res, _ = _optimal_filter(_solver(lambda t: 1.0 + t, []), 1.0, T_REF)
     fs = res.stats["filter_search"]
     assert fs["at_bound"] and fs["tf_s"] == pytest.approx(LO, rel=1e-9)
-    assert res.status == "optimal"  # the end of the range is where the objective is least
+    # The end of the range is where the objective is least: optimal over the range, and the
+    # status says that it keeps improving beyond its lower end.
+    assert res.status == (f"optimal (over Tf in [{LO:.4g}, {T_REF:.4g}] s, the filter's search range (at its lower "
+                          "end: the objective keeps improving beyond it))")
     assert any("end of its search range" in w for w in res.warnings)
+
+
+def test_ie_improving_with_tf_names_the_range_and_points_to_iae():
+    """IE with a free filter can improve without end as Tf grows (issue 34: ki 0.630 reported
+    "optimal" on e^(-s)/(s+1) while ki 1.051 is feasible at Tf = 71 s): the result is the best
+    over the range, its status names the range and its upper end, and a warning points to IAE."""
+    res, _ = _optimal_filter(_solver(lambda t: 1.0 / (1.0 + t), []), 1.0, T_REF)
+    fs = res.stats["filter_search"]
+    assert fs["at_bound"] and fs["tf_s"] == pytest.approx(T_REF, rel=1e-9)
+    assert "over Tf in [" in res.status and "upper end" in res.status and res.converged
+    assert any("IAE gives a bounded problem" in w for w in res.warnings)
+    assert "search range" in fs["problem"]
 
 
 def test_infeasible_and_unconverged_points_count_as_infinite():
@@ -111,3 +128,14 @@ def test_a_very_fast_filter_tunes_without_numerical_noise():
         r = tune_pid(control.tf([1], [1, 3, 3, 1]), controller="pid", filter_order=2, filter_tf=1e-4, mks_max=5.0)
     assert r.status == "optimal" and r.filter["tf_s"] == 1e-4
     assert r.ms <= 1.4 and r.mks <= 5.0
+
+
+def test_nothing_stabilising_at_any_tf_does_not_ask_to_relax():
+    msg = "no stabilising PI gains found on the scan, whatever the bounds (Ms <= 1.4): relaxing them does not help"
+
+    def solve(t, hor):
+        raise ValueError(msg)
+
+    with pytest.raises(ValueError) as err:
+        _optimal_filter(solve, 1.0, T_REF)
+    assert str(err.value).startswith(msg) and "relax the constraints" not in str(err.value)
