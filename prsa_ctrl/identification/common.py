@@ -37,7 +37,7 @@ __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", 
            "FRF_KEYS_COMPLIANT", "RANK_RTOL", "NULL_LOADING", "UNCERTAINTY_MODES", "SAMPLE_TIME_RTOL",
            "UNIT_SLIP_FACTOR", "UNIT_PLANT_FACTOR", "FRF_SPEED_MAX_RAD_S", "FRF_LOAD_MAX_RATED", "TORQUE_OVER_LIMIT",
            "symbolic_rhs", "key_bounds", "motor_torque", "check_keys", "inertia_key", "default_keys", "default_min_speed", "frf_operating_point_error",
-           "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text"]
+           "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text", "fit_percent"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`key_bounds`).
 FITTABLE: Mapping[str, tuple[str, str]] = {
@@ -917,3 +917,17 @@ _REMEDY_KEY = {
                                     "or leave the stiffness out of --fit",
     "contact.damping_n_s_per_mm": "measure the axial mode's peak with a fine frequency resolution",
 }
+
+
+def fit_percent(measured: NDArray[np.float64], model: NDArray[np.float64]) -> float:
+    """Normalised-RMS fit, % : ``100 (1 - |y - y_model| / |y - mean(y)|)``.
+
+    Examples
+    --------
+    >>> fit_percent(np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 3.0]))
+    100.0
+    """
+    den = float(np.linalg.norm(measured - np.mean(measured)))
+    if den == 0:
+        return float("nan")
+    return float(100.0 * (1.0 - np.linalg.norm(measured - model) / den))
