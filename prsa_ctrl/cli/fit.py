@@ -556,10 +556,12 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         columns = parse_columns(args.columns) if args.columns else None
         opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
         coordinates = {}
+        closed_loops = {}
         if args.log_format:
             from .axis import motor_records
 
             records, validate, args.command_logged, coordinates = motor_records(args, plant)
+            closed_loops = _closed_loops(args)
         else:
             records = [load_record(f, **opts) for f in args.data]
             validate = [load_record(f, **opts) for f in args.validate]
@@ -586,7 +588,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                            segment_s=args.segment,
                            delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
                            command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep",
-                           check_interrupt=run.check, cross_validate=not args.no_cross_validation)
+                           check_interrupt=run.check, cross_validate=not args.no_cross_validation,
+                           closed_loops=closed_loops)
     except FitError as exc:
         run.check()  # a fit that failed after Ctrl-C was interrupted
         print(f"prsa-fit: {exc}", file=sys.stderr)
@@ -686,6 +689,24 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                                               " (no plant file written; --force writes it)"), file=sys.stderr)
         return 3
     return 0
+
+
+def _closed_loops(args) -> dict:
+    """``{record name: ClosedLoop}`` of the described logs (load coordinates) whose description
+    gives the controller and the reference: their validation replays the closed loop."""
+    from ..identification.logformat import load_axis_log, load_log_format
+    from ..identification.validation import closed_loop_of
+
+    fmt = load_log_format(args.log_format)
+    if fmt.doc.get("axis", "linear") != "linear" or "controller" not in fmt.doc:
+        return {}
+    out = {}
+    for path in (*args.data, *args.validate):
+        log = load_axis_log(path, fmt)
+        cl = closed_loop_of(log)
+        if cl is not None:
+            out[log.name] = cl
+    return out
 
 
 def _comment(text) -> str:

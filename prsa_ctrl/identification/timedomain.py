@@ -156,6 +156,7 @@ def fit_plant(
     check_interrupt: Callable[[], None] | None = None,
     validation: bool = True,
     cross_validate: bool = True,
+    closed_loops=None,
 ) -> FitResult:
     """Fit plant parameters to measured time-domain records (output error through the model).
 
@@ -249,6 +250,11 @@ def fit_plant(
     cross_validate : bool
         With more than one record, also fit on all records but one and replay the one left out
         (part of the verdict).
+    closed_loops : mapping, optional
+        ``{record name: ClosedLoop}`` (:func:`prsa_ctrl.identification.validation.closed_loop_of`
+        of a log whose description gives the controller and the reference): the validation
+        replays those records in closed loop from the reference instead of in prediction-error
+        form.
 
     Returns
     -------
@@ -296,7 +302,8 @@ def fit_plant(
         from .validation import validate_fit
 
         # (no cross-validation: the Stribeck stage's plateaus need the records it was given)
-        return validate_fit(res, records, validate, int(cd["shift_samples"]), fidelity, None, check_interrupt)
+        return validate_fit(res, records, validate, int(cd["shift_samples"]), fidelity, None, check_interrupt,
+                            closed_loops=closed_loops)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
                        delay_samples=shift if delay_samples in (None, "find") else delay_samples,
@@ -313,8 +320,13 @@ def fit_plant(
             raise ValueError("delay_samples = 'find' without records; expected time-domain records to search on")
         ts = records[0].sample_time_s
         offset = CONVENTIONS[command_logged]  # a computed command acts at least one sample late
-        shift, res = search_delay(fit_at, plant, default_keys(plant) if keys is None else tuple(keys), ts,
-                                  max(max_delay_samples, offset), min_shift=offset)
+        fit_keys = default_keys(plant) if keys is None else tuple(keys)
+        failure = None
+        try:
+            shift, res = search_delay(fit_at, plant, fit_keys, ts, max(max_delay_samples, offset), min_shift=offset)
+        except FitError as exc:
+            failure, res = exc, None
+        _check_convention(fit_at, plant, res, failure, offset, command_logged)
         res = with_command_delay(res, shift, command_logged, "found by the delay search")
     else:
         if delay_samples is not None:
@@ -336,7 +348,31 @@ def fit_plant(
     from .validation import validate_fit
 
     return validate_fit(res, records, validate, shift, fidelity, refit if cross_validate else None, check_interrupt,
-                        base=plant)
+                        base=plant, closed_loops=closed_loops)
+
+
+def _check_convention(fit_at, plant: Plant, res: FitResult | None, failure: FitError | None, offset: int,
+                      command_logged: str) -> None:
+    """A computed-command log whose command acts at once makes the search from ``offset`` fail or
+    end at the current loop's bound; only then is ``offset - 1`` fitted, and a converged fit
+    better by ``DELAY_OBJECTIVE_RATIO`` (the evidence, not the failure) refutes the declaration."""
+    from .delay import DELAY_OBJECTIVE_RATIO
+
+    bw = "drive.current_loop_bandwidth_hz"
+    at_bound = res is not None and "bound" in str(res.not_identified.get(bw, ""))
+    if offset > 0 and (failure is not None or at_bound):
+        try:
+            r0 = fit_at(offset - 1, plant)
+        except FitError:
+            r0 = None
+        if r0 is not None and (res is None or DELAY_OBJECTIVE_RATIO * r0.solver["objective"] <= res.solver["objective"]):
+            raise FitError(f"the logged command acts {offset - 1} samples after it is logged (objective "
+                           f"{r0.solver['objective']:.4g}; from {offset} samples on: "
+                           + ("the fit failed" if res is None else f"{res.solver['objective']:.4g}, the current loop at "
+                              "its bound") + f"), but command_logged = {command_logged!r} means at least {offset}; "
+                           "expected --command-logged applied for this log")
+    if failure is not None:
+        raise failure
 
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,

@@ -16,8 +16,9 @@ the bandwidth of a servo axis's speed loop (tens of Hz) and above, the replayed 
 command is the model's own; below ``OBSERVER_HZ`` the measured angle holds the replay (a
 constant torque error leaves a constant angle offset, no speed error): no drift. It is a
 stricter test than a closed-loop replay, whose speed loop hides model errors below its own
-bandwidth. (The linear-axis mode, whose log format describes the controller and the reference,
-replays the closed loop: :func:`prsa_ctrl.identification.axis.replay_axis`.)
+bandwidth. A log whose description (load coordinates) gives the controller and the reference is
+replayed in closed loop from the reference instead (:func:`closed_loop_replay`), as the
+linear-axis mode replays its plant (:func:`prsa_ctrl.identification.axis.replay_axis`).
 
 Metrics per log, on the nut speed over each sample interval (one-sample angle difference), from
 sample :data:`SKIP_S` on: the replay fit % (:func:`~prsa_ctrl.identification.timedomain.fit_percent`),
@@ -45,7 +46,8 @@ output injection colours the process noise), so it is evidence, not a test to fa
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from dataclasses import dataclass
+from typing import Any, Sequence
 
 import casadi as ca
 import numpy as np
@@ -57,7 +59,7 @@ from .data import Record
 
 __all__ = ["OBSERVER_HZ", "FIT_MIN_PERCENT", "NOISE_FACTOR", "WRITTEN_TOLERANCE_POINTS", "ACF_LAGS", "SKIP_S",
            "REPLAY_MODE", "replay_records", "noise_floor", "whiteness", "explained", "verdict", "diagnosis",
-           "validate_fit"]
+           "validate_fit", "ClosedLoop", "closed_loop_of", "closed_loop_replay", "CLOSED_LOOP_MODE"]
 
 #: Bandwidth of the prediction-error replay's output injection, Hz (module docstring).
 OBSERVER_HZ = 2.0
@@ -74,6 +76,8 @@ ACF_LAGS = (1, 2, 5, 10, 20, 50)
 #: measure settle.
 SKIP_S = 0.02
 #: What the report says about the replay.
+CLOSED_LOOP_MODE = ("closed-loop replay from the reference with the log's described controller (the plant as "
+                    "the tuner sees it, the speed and position loops closed as they ran)")
 REPLAY_MODE = (f"prediction-error replay: the plant driven by the logged command and load with the measured angle "
                f"fed back at {OBSERVER_HZ:g} Hz (no reference or controller is described in these logs, so no "
                "closed-loop replay; no open-loop drift)")
@@ -131,8 +135,114 @@ def _integrator(plant: Plant, fidelity: str, observer_hz: float):
     return step, names, i_th, i_w
 
 
+@dataclass(frozen=True)
+class ClosedLoop:
+    """A log's described controller and reference (load coordinates, SI), for the closed-loop
+    replay of a screw-driven plant (:func:`closed_loop_replay`); from :func:`closed_loop_of`."""
+
+    controller: Any  # prsa_ctrl.identification.logformat.ControllerSpec
+    reference_m: NDArray[np.float64]
+    test_signal: NDArray[np.float64] | None
+    gain_n_per_unit: float
+    command_logged: str  # "as-computed" | "as-applied"
+
+
+def closed_loop_of(log) -> "ClosedLoop | None":
+    """The closed-loop description of an :class:`~prsa_ctrl.identification.logformat.AxisLog`
+    (None without a controller or a reference)."""
+    if getattr(log, "controller", None) is None or getattr(log, "reference_m", None) is None:
+        return None
+    return ClosedLoop(log.controller, np.asarray(log.reference_m, float),
+                      None if log.test_signal is None else np.asarray(log.test_signal, float),
+                      float(log.gain_n_per_unit), log.command_logged)
+
+
+def _plant_step(plant: Plant, fidelity: str):
+    """One sample of the plant (``x, [torque command, load, h] -> x``), 3-stage Radau IIA."""
+    f, names = symbolic_rhs(plant, (), fidelity)
+    x = ca.SX.sym("x", len(names))
+    p = ca.SX.sym("p", 3)
+    fe = 1 if plant.current_loop_time_constant_s >= 0.25 * plant.sample_time_s else 2
+    step = ca.integrator("cl_step", "collocation", {"x": x, "p": p, "ode": p[2] * f(x, p[:2], ca.DM.zeros(0))}, 0.0, 1.0,
+                         {"collocation_scheme": "radau", "interpolation_order": 3, "number_of_finite_elements": fe,
+                          "rootfinder": "newton", "rootfinder_options": {"abstol": 1e-12, "max_iter": 50}})
+    return step, names
+
+
+def closed_loop_replay(plant: Plant, rec: Record, cl: ClosedLoop, shift: int, fidelity: str = "rigid") -> dict:
+    """Replay ``rec`` through ``plant`` in closed loop from the reference with the log's
+    controller (the law of :mod:`prsa_ctrl.identification.logformat`, in load coordinates:
+    position ``q = a theta``), the test signal added at the drive input; the force command
+    ``gain (u + test)`` turns into the torque command ``a`` times it (the record's own
+    conversion) and acts ``shift`` samples after it is computed (a log of the applied command:
+    plus the controller's ``command_delay_samples``). Starts at the first logged angle and speed.
+
+    Returns the same entry as :func:`replay_records` (``"replay"``: closed loop)."""
+    step, names = _plant_step(plant, fidelity)
+    i_th, i_w, i_tau = names.index("theta_nut"), names.index("omega_nut"), names.index("tau_motor")
+    a = float(plant.lead_per_rad)
+    c = cl.controller
+    n, h = rec.n, float(rec.sample_time_s)
+    # the command computed at k acts from k + shift (the fit's: logged -> action); a log of the
+    # applied command logged it the controller's command_delay_samples after computing it
+    delay = int(shift) + (int(c.command_delay_samples) if cl.command_logged == "as-applied" else 0)
+    test = np.zeros(n) if cl.test_signal is None else cl.test_signal
+    ref, load, logged = cl.reference_m, rec.axial_load_n, rec.torque_command_n_m
+    x = np.zeros(len(names))
+    th_m = rec.nut_angle_rad if rec.nut_angle_rad is not None else \
+        np.concatenate([[0.0], np.cumsum(rec.nut_speed_rad_s[1:] * np.diff(rec.time_s))])
+    x[i_th], x[i_w] = float(th_m[0]), float(rec.speed_rad_s[0])
+    x[i_tau] = float(np.clip(logged[0], -plant.torque_limit, plant.torque_limit))
+    theta = np.empty(n)
+    torque = np.empty(n)
+    q_prev = qf_prev = a * x[i_th]  # the law's start (reconstruct_command): q(-1) = q(0), the sum from 0
+    integ = 0.0
+    avg = c.velocity_estimate == "average2-difference"
+    ok = True
+    for k in range(n):
+        theta[k] = x[i_th]
+        q = a * x[i_th]
+        if avg:
+            qf = 0.5 * (q + q_prev)
+            dq = (qf - qf_prev) / h
+            qf_prev = qf
+        else:
+            dq = (q - q_prev) / h
+        q_prev = q
+        ev = c.kp * (ref[k] - q) - dq
+        u = c.kv * ev
+        if c.ki:
+            integ += c.ki * h * ev
+            u += c.kv * integ
+        u = min(max(u, -c.saturation), c.saturation)
+        torque[k] = cl.gain_n_per_unit * (u + test[k]) * a
+        if k == n - 1:
+            break
+        j = k - delay
+        applied = torque[j] if j >= 0 else float(logged[0])
+        try:
+            x = np.asarray(step(x0=x, p=[applied, float(load[k]), float(rec.time_s[k + 1] - rec.time_s[k])])["xf"],
+                           float).ravel()
+        except RuntimeError:
+            ok = False
+            break
+        if not np.all(np.isfinite(x)):
+            ok = False
+            break
+    skip = max(20, int(round(SKIP_S / h)))
+    mode = CLOSED_LOOP_MODE
+    entry = {"replay": mode, "skip_samples": skip, "noise_floor_rad_s": noise_floor(rec)}
+    if not ok:
+        return {**entry, "finite": False, "fit_percent": -math.inf, "error_rms_rad_s": math.inf}
+    meas = rec.speed_rad_s
+    model = np.diff(theta) / np.diff(rec.time_s)
+    a_, b_ = meas[skip:], model[skip:]
+    return {**entry, "finite": True, "time_s": rec.time_s[1:], "measured": meas, "model": model,
+            "fit_percent": fit_percent(a_, b_), "error_rms_rad_s": float(np.sqrt(np.mean((a_ - b_) ** 2)))}
+
+
 def replay_records(plant: Plant, records: Sequence[Record], shift: int, fidelity: str = "rigid",
-                   observer_hz: float = OBSERVER_HZ, check=None) -> dict:
+                   observer_hz: float = OBSERVER_HZ, check=None, closed_loops=None) -> dict:
     """Replay each record through ``plant`` in prediction-error form (module docstring).
 
     Parameters
@@ -146,6 +256,9 @@ def replay_records(plant: Plant, records: Sequence[Record], shift: int, fidelity
         Bandwidth of the measured angle's injection.
     check : callable, optional
         Called after every record (interrupts).
+    closed_loops : mapping, optional
+        ``{record name: ClosedLoop}``: those records are replayed in closed loop from the
+        reference (:func:`closed_loop_replay`) instead.
 
     Returns
     -------
@@ -159,6 +272,12 @@ def replay_records(plant: Plant, records: Sequence[Record], shift: int, fidelity
     nx = len(names)
     out = {}
     for rec in records:
+        cl = (closed_loops or {}).get(rec.name)
+        if cl is not None:
+            out[rec.name] = closed_loop_replay(plant, rec, cl, shift, fidelity)
+            if check is not None:
+                check()
+            continue
         n = rec.n
         if rec.nut_angle_rad is not None:  # the measured angle (or the integrated measured speed)
             th = rec.nut_angle_rad.astype(float)
@@ -304,7 +423,7 @@ def _entry_report(e: dict) -> dict:
 
 
 def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], shift: int, fidelity: str,
-                 refit=None, check=None, base: Plant | None = None):
+                 refit=None, check=None, base: Plant | None = None, closed_loops=None):
     """The validated :class:`~prsa_ctrl.identification.common.FitResult` of a time-domain fit.
 
     1. Every record (fitted and ``validate``) is replayed through the plant as written
@@ -335,7 +454,8 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
     plant = result.plant
     params = copy.deepcopy(result.parameters)
     warns = list(result.warnings)
-    written = replay_records(plant, recs_all, shift, fidelity, check=check)
+    cls = dict(closed_loops or {})
+    written = replay_records(plant, recs_all, shift, fidelity, check=check, closed_loops=cls)
     kept = [k for k in result.keys if params[k].get("kept_base")]
     free = {}
     free_plant = None
@@ -345,7 +465,7 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
         except (PlantFileError, ValueError):
             free_plant = None
         if free_plant is not None:
-            free = replay_records(free_plant, records, shift, fidelity, check=check)
+            free = replay_records(free_plant, records, shift, fidelity, check=check, closed_loops=cls)
             worse = {n: (written[n]["fit_percent"], f["fit_percent"]) for n, f in free.items()
                      if f.get("finite") and written[n]["fit_percent"] < f["fit_percent"] - WRITTEN_TOLERANCE_POINTS}
             if worse:
@@ -362,7 +482,8 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
                 warns.append(f"{', '.join(kept)}: not identifiable, but the base value{'s' if len(kept) > 1 else ''} "
                              f"replay{'' if len(kept) > 1 else 's'} the logs worse than the free fit ({why}): the free "
                              "values are written (their intervals are wide: record the excitation named above)")
-                written = {**{n: free[n] for n in free}, **replay_records(plant, list(validate), shift, fidelity, check=check)}
+                written = {**{n: free[n] for n in free},
+                           **replay_records(plant, list(validate), shift, fidelity, check=check, closed_loops=cls)}
     loo = None
     if refit is not None and len(records) > 1:
         loo = {}
@@ -376,7 +497,7 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
                 except (FitError, ValueError) as exc:
                     errors.append(str(exc)[:300])
                     continue
-                e = replay_records(r_i.plant, [rec], shift, fidelity, check=check)[rec.name]
+                e = replay_records(r_i.plant, [rec], shift, fidelity, check=check, closed_loops=cls)[rec.name]
                 e["plant"] = {k: r_i.plant.values[k] for k in r_i.keys if k in r_i.plant.values}
                 e["starts"] = len(errors) + 1
                 loo[rec.name] = e
@@ -395,8 +516,10 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
             traces[n]["simulated"] = {"time_s": e["time_s"], "measured": e["measured"], "model": e["model"]}
     solver = dict(result.solver)
     solver["fit_percent_segments"] = {n: result.fit_percent[n] for n in written if n in result.fit_percent}
+    modes = sorted({e["replay"] for e in written.values()})
     solver["validation"] = {
-        "replay": REPLAY_MODE,
+        "replay": "; ".join(modes),
+        "replay_per_log": {n: e["replay"] for n, e in written.items()},
         "passes": passes,
         "reasons": reasons,
         "diagnosis": diag,
