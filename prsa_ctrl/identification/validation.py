@@ -441,7 +441,8 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
        there is retried from the ``base`` plant; one that fails from both fails the
        cross-validation: a plant the other logs cannot reproduce is not validated on the one
        left out).
-    4. :func:`verdict` and, when it is no, :func:`diagnosis`; all in ``solver["validation"]``
+    4. :func:`verdict` (and a delay search that did not decide the delay: no pass either) and,
+       when it is no, :func:`diagnosis`; all in ``solver["validation"]``
        (``passes``, ``reasons``, ``diagnosis``, per log the metrics and residual whiteness, the
        rule with its thresholds).
     """
@@ -505,6 +506,14 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
             else:
                 loo[rec.name] = {"failed": f"from {len(errors)} starts (the fitted plant, the base plant): {errors[-1]}"}
     passes, reasons = verdict(written, free, loo)
+    search = (result.solver.get("command_delay") or {}).get("search")
+    if search is not None and not search.get("decided", True):
+        # a plant whose delay the data do not decide is not validated either: the current-loop
+        # bandwidth trades against it (a one-sample error moves it by a factor of 2 or 3)
+        passes = False
+        reasons.append("the command delay is not decided by the data (objective per delay: " + ", ".join(
+            f"{s_}: {'failed' if v is None else f'{v:.4g}'}" for s_, v in search.get("objective", {}).items())
+            + f"; tolerance: a factor {search.get('ratio_tolerance')}); give --delay-samples N if you know it")
     diag = None if passes else diagnosis(written, recs_all, (result.solver.get("command_delay") or {}).get("search"),
                                          result)
     fit_pct = dict(result.fit_percent)
@@ -528,7 +537,7 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
         "cross_validation": None if loo is None else {
             n: ({"failed": e["failed"]} if "failed" in e else {**_entry_report(e), "plant": e["plant"]})
             for n, e in loo.items()},
-        "rule": (f"every log explained by the written plant (replay fit >= {FIT_MIN_PERCENT:g} % or replay error <= "
+        "rule": (f"the delay decided by the search (when searched); every log explained by the written plant (replay fit >= {FIT_MIN_PERCENT:g} % or replay error <= "
                  f"{NOISE_FACTOR:g} x the log's noise floor), the written plant within {WRITTEN_TOLERANCE_POINTS:g} "
                  "fit-% points of the free fit on each log, and with more than one log each left-out log explained by "
                  "the plant fitted on the others; residual whiteness (lags "

@@ -174,3 +174,20 @@ def test_cli_exit_3_without_a_plant_file_unless_forced(truth, tmp_path, capsys):
     cap = capsys.readouterr()
     assert code == 0 and out.exists(), cap.err
     assert "NOT VALIDATED" not in out.read_text() and "verdict: the plant explains the data" in cap.out
+
+
+def test_an_undecided_delay_is_not_validated(truth, record):
+    """The plant replays its log, but the delay search did not decide the delay: no pass, and the
+    diagnosis names the delay (a decided one passes)."""
+    from prsa_ctrl.identification.common import FitResult
+    from prsa_ctrl.identification.validation import validate_fit
+
+    def result(decided):
+        search = {"decided": decided, "objective": {"0": 1.0, "1": 1.01, "2": None}, "ratio_tolerance": 1.5}
+        return FitResult(truth, {}, {"value": 1.0, "ci95": [1.0, 1.0], "unit": "kg m^2"}, np.eye(0), (), {}, [],
+                         {"command_delay": {"search": search}}, {}, None, {}, None)
+
+    v = validate_fit(result(False), [record], [], 0, "rigid").solver["validation"]
+    assert not v["passes"] and v["diagnosis"].startswith("delay") and "2: failed" in v["diagnosis"]
+    assert v["written_plant"]["independent"]["explained"]
+    assert validate_fit(result(True), [record], [], 0, "rigid").solver["validation"]["passes"]
