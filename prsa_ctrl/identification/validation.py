@@ -522,7 +522,10 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
         fit_pct[n] = round(float(e["fit_percent"]), 3) if math.isfinite(e["fit_percent"]) else e["fit_percent"]
         if e.get("finite"):
             traces.setdefault(n, {"time_s": e["time_s"], "measured": e["measured"], "model": e["model"]})
-            traces[n]["simulated"] = {"time_s": e["time_s"], "measured": e["measured"], "model": e["model"]}
+            traces[n]["simulated"] = {"time_s": e["time_s"], "measured": e["measured"], "model": e["model"],
+                                      "label": ("plant as written, closed-loop replay from the reference"
+                                                if e["replay"] == CLOSED_LOOP_MODE else
+                                                f"plant as written, prediction-error replay ({OBSERVER_HZ:g} Hz)")}
     solver = dict(result.solver)
     solver["fit_percent_segments"] = {n: result.fit_percent[n] for n in written if n in result.fit_percent}
     modes = sorted({e["replay"] for e in written.values()})
