@@ -13,8 +13,15 @@ logged ``computed``); ``--delay-samples N`` fixes it instead.
 ``prsa-fit --design multisine|chirp|steps --out excitation.csv [--duration S] [--sample-time S]
 [--f-min HZ] [--f-max HZ] [--amplitude RAD_S] [--offset RAD_S]``
 
-Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge,
-130 interrupted (Ctrl-C: one line, the files and folders this run made are taken back).
+Validation (:mod:`prsa_ctrl.identification.validation`): every record is replayed through the
+plant as written (prediction-error form: these logs describe no reference or controller), the
+residuals' whiteness is reported and, with several records, each is replayed by the plant fitted
+on the others. A plant that does not explain the data ends with exit 3, a one-line diagnosis
+naming the most likely missing physics and no plant file (``--force`` writes it, its header
+saying so; ``--json`` is written either way).
+
+Exit codes: 0 success, 2 bad input (one line naming the value), 3 the fit did not converge or
+the fitted plant does not explain the data, 130 interrupted (Ctrl-C: one line, the files and folders this run made are taken back).
 Output and figure paths are checked before the fit, the way they will be written (two outputs
 on one path, a symlink loop, a name too long are refused); every file is written atomically.
 The base plant (``--plant``) is parsed and its fitted file's text checked before the fit too. Python warnings (e.g. the base plant's geometry note) are shown after the
@@ -126,6 +133,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
                    "keys' [uncertainty] entries (default: keep the base plant's entries, replaced only where one is "
                    "narrower than the fit's 95 %% interval)")
+    p.add_argument("--force", action="store_true", help="write the plant file even when the validation says the "
+                   "fitted plant does not explain the data (exit 3 all the same; the file's header says so)")
+    p.add_argument("--no-cross-validation", action="store_true", help="skip the leave-one-out cross-validation of "
+                   "several records (faster; the verdict then rests on the replay of the fitted records)")
     p.add_argument("--verbose", action="store_true", help="also show the geometry note of a built-in base plant, "
                    "and a progress line when the fit starts")
     return p
@@ -558,10 +569,12 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         columns = parse_columns(args.columns) if args.columns else None
         opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
         coordinates = {}
+        closed_loops = {}
         if args.log_format:
             from .axis import motor_records
 
             records, validate, args.command_logged, coordinates = motor_records(args, plant)
+            closed_loops = _closed_loops(args)
         else:
             records = [load_record(f, **opts) for f in args.data]
             validate = [load_record(f, **opts) for f in args.validate]
@@ -594,7 +607,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                                segment_s=args.segment,
                                delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
                                command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep",
-                               check_interrupt=run.check)
+                               check_interrupt=run.check, cross_validate=not args.no_cross_validation,
+                               closed_loops=closed_loops)
     except FitError as exc:
         run.check()  # a fit that failed after Ctrl-C was interrupted
         if args.verbose:  # where it was raised, and what caused it
@@ -624,6 +638,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                   if k not in result.plant_keys and result.plant.values[k] != plant.values[k]
                   and not (k == "friction.no_load_breakaway_torque_n_m" and k in result.plant.defaulted)]
     text = plant_toml(base_text, result.plant, name, [*result.plant_keys, *delay_keys], description, unc_keys)
+    validation = result.solver.get("validation")
+    failed = validation is not None and not validation["passes"]
+    if failed and args.force:
+        text = (f"# prsa-fit --force: NOT VALIDATED, this plant does not explain the data it was fitted to: "
+                f"{_comment(validation['diagnosis'])}\n# {_comment(validation['reasons'][0])}\n") + text
     import tomllib
 
     from ..plant.plantfile import Plant
@@ -631,7 +650,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
     with warnings.catch_warnings():  # its geometry notes are the base plant's, given when it loaded
         warnings.simplefilter("ignore", GeometryWarning)
         Plant.from_dict(tomllib.loads(text), origin=args.out)  # what is written must load (with its [uncertainty])
-    files = {args.out: ("--out", text)}
+    files = {args.out: ("--out", text)} if not failed or args.force else {}
     if args.json:
         from ..io.output import json_safe
 
@@ -681,10 +700,58 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
     echo(f"coordinates: {MOTOR_COORDINATES}")
     for f, how in coordinates.items():
         echo(f"  {f}: logged in {how}")
-    echo(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
+    if validation is not None:
+        _print_validation(validation)
+    written = [p for p, _ in ((args.out, 0),) if p in files] + ([args.json] if args.json else [])
+    echo(("wrote " + " and ".join(written)) if written else "wrote no file")
     if args.plots is not None:
         echo("plots: " + ", ".join(plot_paths))
+    if failed:
+        echo(f"prsa-fit: the fitted plant does not explain the data; most likely missing physics: "
+              f"{validation['diagnosis']}" + (" (--force: the plant file was written all the same)" if args.force else
+                                              " (no plant file written; --force writes it)"), file=sys.stderr)
+        return 3
     return 0
+
+
+def _closed_loops(args) -> dict:
+    """``{record name: ClosedLoop}`` of the described logs (load coordinates) whose description
+    gives the controller and the reference: their validation replays the closed loop."""
+    from ..identification.logformat import load_axis_log, load_log_format
+    from ..identification.validation import closed_loop_of
+
+    fmt = load_log_format(args.log_format)
+    if fmt.doc.get("axis", "linear") != "linear" or "controller" not in fmt.doc:
+        return {}
+    out = {}
+    for path in (*args.data, *args.validate):
+        log = load_axis_log(path, fmt)
+        cl = closed_loop_of(log)
+        if cl is not None:
+            out[log.name] = cl
+    return out
+
+
+def _comment(text) -> str:
+    """Text made safe for one TOML comment line (no line breaks or control characters)."""
+    return "".join(c if c.isprintable() else " " for c in str(text))
+
+
+def _print_validation(v: dict) -> None:
+    """The validation's per-log lines (prsa_ctrl.identification.validation)."""
+    echo(f"validation ({v['replay']}):")
+    for part, what in (("written_plant", "plant as written"), ("cross_validation", "left out, fitted on the others")):
+        for name, e in (v.get(part) or {}).items():
+            if "failed" in e:
+                echo(f"  {name} ({what}): the fit failed: {e['failed']}")
+                continue
+            w = e.get("whiteness")
+            echo(f"  {name} ({what}): replay fit {e['fit_percent']:.2f} %, error {e['error_rms_rad_s']:.4g} rad/s = "
+                  f"{e['error_rms_rad_s'] / max(e['noise_floor_rad_s'], 1e-300):.3g} x the noise floor "
+                  f"{e['noise_floor_rad_s']:.3g} rad/s, {'explained' if e['explained'] else 'NOT explained'}"
+                  + (f"; residual autocorrelation lag 1 {w['acf'][1]:+.2f} (white band +/- {w['band']:.2g})" if w else ""))
+    echo(f"  rule: {v['rule']}")
+    echo("  verdict: " + ("the plant explains the data" if v["passes"] else "NOT validated: " + "; ".join(v["reasons"])))
 
 
 def _frfs_from_logs(args, argv: Sequence[str], records) -> list:

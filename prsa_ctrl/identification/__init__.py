@@ -1,4 +1,4 @@
-"""Calibration: measured data and log formats, time- and frequency-domain fits (what they share: common), the friction curve from steady-speed plateaus (friction_map), the linear-axis fit. Their figures: :mod:`prsa_ctrl.plots.fit`."""
+"""Calibration: measured data and log formats, time- and frequency-domain fits (what they share: common), their validation (validation), the friction curve from steady-speed plateaus (friction_map), the linear-axis fit. Their figures: :mod:`prsa_ctrl.plots.fit`."""
 
 from .._lazy import lazy_exports
 
@@ -138,6 +138,11 @@ _EXPORTS = {
     "AXIS_CURVE": "friction_map",
     "axis_friction_map": "friction_map",
     "motor_torque": "common",
+    "replay_records": "validation",
+    "validate_fit": "validation",
+    "noise_floor": "validation",
+    "whiteness": "validation",
+    "REPLAY_MODE": "validation",
 }
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

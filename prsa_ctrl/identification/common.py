@@ -38,7 +38,7 @@ __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", 
            "UNIT_SLIP_FACTOR", "UNIT_PLANT_FACTOR", "FRF_SPEED_MAX_RAD_S", "FRF_LOAD_MAX_RATED", "TORQUE_OVER_LIMIT",
            "symbolic_rhs", "key_bounds", "motor_torque", "check_keys", "inertia_key", "default_keys", "default_min_speed", "frf_operating_point_error",
            "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text", "uncertainty_entries",
-           "uncertainty_choice"]
+           "uncertainty_choice", "fit_percent"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`key_bounds`).
 FITTABLE: Mapping[str, tuple[str, str]] = {
@@ -948,3 +948,17 @@ def uncertainty_choice(fitted: Plant, key: str, base_entry, fit_entry, ci95, rng
     """The ``[uncertainty]`` entry a fitted key gets (the base's or the fit's) and the note
     saying why, as :func:`finish_fit` chooses it."""
     return _uncertainty_choice(fitted, key, base_entry, fit_entry, ci95, rng, mode)
+
+
+def fit_percent(measured: NDArray[np.float64], model: NDArray[np.float64]) -> float:
+    """Normalised-RMS fit, % : ``100 (1 - |y - y_model| / |y - mean(y)|)``.
+
+    Examples
+    --------
+    >>> fit_percent(np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 3.0]))
+    100.0
+    """
+    den = float(np.linalg.norm(measured - np.mean(measured)))
+    if den == 0:
+        return float("nan")
+    return float(100.0 * (1.0 - np.linalg.norm(measured - model) / den))

@@ -12,11 +12,15 @@ A delay and the current-loop lag both slow the command's action; at low frequenc
 sum ``n Ts + 1 / (2 pi f_c)`` shows, so a fit at the wrong shift puts the difference into the
 current-loop bandwidth (a true 650 Hz loop behind one sample of 4 kHz fits as ~320 Hz at shift
 0) and fails when no positive lag remains (the fit stalls). The search (:func:`search_delay`)
-fits each whole-sample shift the bandwidth leaves room for, starting each from the bandwidth
-with the same total lag, and takes the shift with the smallest objective. It is *decided* when
-every other fitted shift's objective is at least :data:`DELAY_OBJECTIVE_RATIO` times larger;
-otherwise a warning names the shifts that fit alike and the keys whose values move beyond their
-95 % intervals between them.
+fits each whole-sample shift from the logging convention's own (a command logged as computed
+acts at least one sample late: shift 0 is not tried) that the bandwidth leaves room for,
+starting each from the bandwidth with the same total lag, and takes the shift with the smallest
+objective. A fit that fails at a shift is retried from other starts; a shift that fails from
+every start is a failure of the fit, never evidence against that delay. The delay is *decided*
+when every other shift of the range was fitted with an objective at least
+:data:`DELAY_OBJECTIVE_RATIO` times larger (or left out for lack of current-loop lag);
+otherwise a warning names the shifts that fit alike (and the keys whose values move beyond
+their 95 % intervals between them) or that failed.
 """
 
 from __future__ import annotations
@@ -110,10 +114,33 @@ def with_command_delay(result: FitResult, shift: int, command_logged: str, how: 
                      result.not_identified, result.covariance)
 
 
+def _retry_starts(plant: Plant, first: Plant, keys) -> list[Plant]:
+    """Other starts of a fit that failed from ``first``: the base plant, and with the bandwidth
+    among the fitted keys the base plant with half and with twice its current-loop bandwidth
+    (within the key's range), each once."""
+    out = [] if first is plant else [plant]
+    if _BW in keys:
+        f0 = plant.values[_BW]
+        for f in (0.5 * f0, 2.0 * f0):
+            try:
+                out.append(plant.with_params({_BW: f}))
+            except Exception:  # a bandwidth the plant refuses (plausible range): no such start
+                continue
+    return out
+
+
 def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, ts: float,
-                 max_shift: int = 4) -> tuple[int, FitResult]:
-    """Fit every whole-sample shift ``0..max_shift`` the current-loop lag leaves room for and
-    return the best ``(shift, result)`` (module docstring).
+                 max_shift: int = 4, min_shift: int = 0) -> tuple[int, FitResult]:
+    """Fit every whole-sample shift ``min_shift..max_shift`` the current-loop lag leaves room
+    for and return the best ``(shift, result)`` (module docstring).
+
+    A fit that fails at a shift is retried from other starts (:func:`_retry_starts`); a shift
+    whose fit fails from every start is a failure of the fit, never evidence against that
+    shift: the search then cannot decide the delay (``decided`` false, a warning names the
+    shift), whatever the objectives of the others. The decision rule: the best shift is
+    decided when every other shift in the range was either fitted with an objective at least
+    :data:`DELAY_OBJECTIVE_RATIO` times larger or left out because no current-loop lag remains
+    for it.
 
     Parameters
     ----------
@@ -128,30 +155,48 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
         Sample time of the records.
     max_shift : int
         Largest shift tried.
+    min_shift : int
+        Smallest shift tried: the logging convention's offset (1 for a command logged as
+        computed, :data:`CONVENTIONS`), below which no delay is possible.
 
     Returns
     -------
     (int, FitResult)
         The shift and its fit; the fit's ``solver["delay_search"]`` lists the objective of every
-        shift tried (``None``: the fit failed) and whether the data decided it, and its warnings
-        say when they did not.
+        shift tried (``None``: the fit failed from every start), the starts each took, the
+        shifts left out and why, and whether the data decided it; its warnings say when they
+        did not.
     """
     if isinstance(max_shift, bool) or not isinstance(max_shift, int) or not 0 <= max_shift <= MAX_SHIFT:
         raise ValueError(f"max_shift = {max_shift!r}; expected an integer 0..{MAX_SHIFT}")
+    if isinstance(min_shift, bool) or not isinstance(min_shift, int) or not 0 <= min_shift <= max_shift:
+        raise ValueError(f"min_shift = {min_shift!r}; expected an integer 0..{max_shift}")
     fits: dict[int, FitResult | None] = {}
     errors: dict[int, str] = {}
+    starts: dict[int, int] = {}
+    skipped: dict[int, str] = {}
     lag = None  # total lag (s) of the first converged fit: current loop + shift
-    for shift in range(max_shift + 1):
+    for shift in range(min_shift, max_shift + 1):
         start = plant
         if lag is not None and _BW in keys:
             rest = lag - shift * ts
             if rest < _MIN_LAG_SAMPLES * ts:
+                for s_out in range(shift, max_shift + 1):
+                    skipped[s_out] = (f"no current-loop lag left: the fit at {min(fits)} sample(s) has a total lag of "
+                                      f"{lag / ts:.3g} samples")
                 break  # no current-loop lag left for this shift or any longer one
             start = plant.with_params({_BW: min(1.0 / (2 * math.pi * rest), 0.9 * 10.0 / ts)})
-        try:
-            fits[shift] = fit_at(shift, start)
-        except FitError as exc:
-            fits[shift], errors[shift] = None, str(exc)
+        tried = 0
+        for st in [start, *_retry_starts(plant, start, keys)]:
+            tried += 1
+            try:
+                fits[shift] = fit_at(shift, st)
+                errors.pop(shift, None)
+                break
+            except FitError as exc:
+                fits[shift], errors[shift] = None, str(exc)
+        starts[shift] = tried
+        if fits[shift] is None:
             continue
         if lag is None:
             f_c = fits[shift].parameters[_BW]["value"] if _BW in keys else fits[shift].plant.values[_BW]
@@ -159,16 +204,25 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
         good = {s: r for s, r in fits.items() if r is not None}
         best = min(good, key=lambda s: good[s].solver["objective"])
         if _BW not in keys and shift >= best + 2:
-            break  # two shifts past the best without the bandwidth to trade: the objective only grows
+            for s_out in range(shift + 1, max_shift + 1):
+                skipped[s_out] = "two shifts past the best without the current-loop bandwidth to trade: the objective only grows"
+            break
     good = {s: r for s, r in fits.items() if r is not None}
     if not good:
-        raise FitError(f"fit did not converge at any command delay 0..{max(fits)} samples: "
+        raise FitError(f"fit did not converge at any command delay {min_shift}..{max(fits)} samples (each from up to "
+                       f"{max(starts.values())} starts): "
                        + "; ".join(f"{s}: {e}" for s, e in errors.items()))
     best = min(good, key=lambda s: good[s].solver["objective"])
     res = good[best]
     f_best = res.solver["objective"]
     close = [s for s in good if s != best and good[s].solver["objective"] < DELAY_OBJECTIVE_RATIO * f_best]
+    failed = sorted(s for s, r in fits.items() if r is None)
     warns = list(res.warnings)
+    if failed:
+        warns.append(f"the command delay is not decided: the fit failed at shift{'s' if len(failed) > 1 else ''} "
+                     f"{', '.join(map(str, failed))} from every start ({'; '.join(f'{s}: {starts[s]} starts' for s in failed)}); "
+                     f"a failed fit is no evidence against a delay, so {best} sample(s) is only the best of those that "
+                     "converged; give the delay (--delay-samples) if you know it")
     if close:
         moved = []
         for s in close:
@@ -182,10 +236,21 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
                      f"{DELAY_OBJECTIVE_RATIO:g} of the objective of the best, {best} sample(s)"
                      + (f"; a one-sample shift moves {'; '.join(moved)}" if moved else "")
                      + "; give the delay (--delay-samples) if you know it, or record faster excitation")
+    retried = {s: n for s, n in starts.items() if n > 1 and fits[s] is not None}
+    if retried:
+        warns.append("the fit at shift " + ", ".join(f"{s} converged from start {n}" for s, n in retried.items())
+                     + " (the first start failed: the fit was retried, the failure not counted against the delay)")
     solver = dict(res.solver)
     solver["delay_search"] = {"objective": {str(s): (None if r is None else float(r.solver["objective"]))
                                             for s, r in sorted(fits.items())},
-                              "decided": not close, "ratio_tolerance": DELAY_OBJECTIVE_RATIO}
+                              "starts": {str(s): n for s, n in sorted(starts.items())},
+                              "failed": {str(s): errors[s] for s in failed},
+                              "skipped": {str(s): why for s, why in sorted(skipped.items())},
+                              "range": [min_shift, max_shift],
+                              "decided": not close and not failed, "ratio_tolerance": DELAY_OBJECTIVE_RATIO,
+                              "rule": f"decided when every other shift of {min_shift}..{max_shift} was fitted with an "
+                                      f"objective at least {DELAY_OBJECTIVE_RATIO:g} x the best's or left out for lack "
+                                      "of current-loop lag; a shift whose fit failed from every start leaves it undecided"}
     out = FitResult(res.plant, res.parameters, res.reflected_inertia_kg_m2, res.correlation, res.keys,
                     res.fit_percent, warns, solver, res.traces, res.delay, res.not_identified,
                     res.covariance)

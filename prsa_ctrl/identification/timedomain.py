@@ -49,10 +49,10 @@ from scipy.sparse.linalg import splu
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
-from .common import (DELAY_KEY, default_keys, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
+from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
-from .delay import DEFAULT_CONVENTION, MAX_SHIFT, plant_shift, search_delay, with_command_delay
+from .delay import CONVENTIONS, DEFAULT_CONVENTION, MAX_SHIFT, plant_shift, search_delay, with_command_delay
 from .frf import fit_frf, frf_fit_percent, frf_response
 from .friction_map import STRIBECK_KEYS, stribeck_rounds
 
@@ -154,6 +154,9 @@ def fit_plant(
     keep_unidentified: bool = True,
     uncertainty: str = "keep",
     check_interrupt: Callable[[], None] | None = None,
+    validation: bool = True,
+    cross_validate: bool = True,
+    closed_loops=None,
 ) -> FitResult:
     """Fit plant parameters to measured time-domain records (output error through the model).
 
@@ -166,7 +169,11 @@ def fit_plant(
     narrower intervals conditional on values the data do not support, and fails outright
     when the data contradict them). The fit % of the plant as written (base values for the
     kept keys) is reported beside the free fit's (``solver["fit_percent_written"]``) and a
-    warning names the records it fits worse.
+    warning names the records it fits worse. The validation (``validation``) then replays both:
+    where the base values replay a record more than
+    :data:`~prsa_ctrl.identification.validation.WRITTEN_TOLERANCE_POINTS` worse than the free
+    values, the free values are written (``"kept_base": false``,
+    ``"written_although_not_identified"``: the reason).
 
     Parameters
     ----------
@@ -234,6 +241,20 @@ def fit_plant(
         simulation of the time-domain fit; it stops the fit by raising (``prsa-fit`` raises
         ``KeyboardInterrupt`` after a Ctrl-C it recorded while CasADi ran: CasADi would turn a
         ``KeyboardInterrupt`` raised inside it into a failed evaluation and carry on).
+    validation : bool
+        Validate the fit (:func:`prsa_ctrl.identification.validation.validate_fit`): replay every
+        record through the plant as written (prediction-error form), write the free values of
+        kept keys where the base values replay worse than the free fit, residual whiteness and
+        the verdict with its diagnosis in ``solver["validation"]``; ``fit_percent`` becomes the
+        replay's (the shooting segments' fit % is ``solver["fit_percent_segments"]``).
+    cross_validate : bool
+        With more than one record, also fit on all records but one and replay the one left out
+        (part of the verdict).
+    closed_loops : mapping, optional
+        ``{record name: ClosedLoop}`` (:func:`prsa_ctrl.identification.validation.closed_loop_of`
+        of a log whose description gives the controller and the reference): the validation
+        replays those records in closed loop from the reference instead of in prediction-error
+        form.
 
     Returns
     -------
@@ -271,10 +292,18 @@ def fit_plant(
                              segment_s=segment_s, delay_samples=delay, command_logged=command_logged,
                              max_delay_samples=max_delay_samples, substeps=substeps, max_iter=max_iter, tol=tol,
                              min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                             uncertainty=uncertainty, check_interrupt=check_interrupt)
+                             uncertainty=uncertainty, check_interrupt=check_interrupt, validation=False)
 
-        return stribeck_rounds(fit_rest if rest else None, records, plant, stribeck, delay_samples,
-                               keep_unidentified=keep_unidentified, uncertainty=uncertainty)
+        res = stribeck_rounds(fit_rest if rest else None, records, plant, stribeck, delay_samples,
+                              keep_unidentified=keep_unidentified, uncertainty=uncertainty)
+        cd = res.solver.get("command_delay") or {}
+        if not validation or "shift_samples" not in cd:
+            return res
+        from .validation import validate_fit
+
+        # (no cross-validation: the Stribeck stage's plateaus need the records it was given)
+        return validate_fit(res, records, validate, int(cd["shift_samples"]), fidelity, None, check_interrupt,
+                            closed_loops=closed_loops)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
                        delay_samples=shift if delay_samples in (None, "find") else delay_samples,
@@ -290,19 +319,65 @@ def fit_plant(
         if not records:
             raise ValueError("delay_samples = 'find' without records; expected time-domain records to search on")
         ts = records[0].sample_time_s
-        shift, res = search_delay(fit_at, plant, default_keys(plant) if keys is None else tuple(keys), ts, max_delay_samples)
-        return with_command_delay(res, shift, command_logged, "found by the delay search")
-    if delay_samples is not None:
-        shift = delay_samples
-        if shift < plant_shift(plant, command_logged) - plant.command_delay_samples:
-            raise ValueError(f"delay_samples = {shift} with command_logged = {command_logged!r}; expected at least "
-                             "1 (a computed command acts one sample later) or command_logged = 'applied'")
-    return with_command_delay(fit_at(shift, plant), shift, command_logged,
-                              "given" if delay_samples is not None else "the base plant's")
+        offset = CONVENTIONS[command_logged]  # a computed command acts at least one sample late
+        fit_keys = default_keys(plant) if keys is None else tuple(keys)
+        failure = None
+        try:
+            shift, res = search_delay(fit_at, plant, fit_keys, ts, max(max_delay_samples, offset), min_shift=offset)
+        except FitError as exc:
+            failure, res = exc, None
+        _check_convention(fit_at, plant, res, failure, offset, command_logged)
+        res = with_command_delay(res, shift, command_logged, "found by the delay search")
+    else:
+        if delay_samples is not None:
+            shift = delay_samples
+            if shift < plant_shift(plant, command_logged) - plant.command_delay_samples:
+                raise ValueError(f"delay_samples = {shift} with command_logged = {command_logged!r}; expected at least "
+                                 "1 (a computed command acts one sample later) or command_logged = 'applied'")
+        res = with_command_delay(fit_at(shift, plant), shift, command_logged,
+                                 "given" if delay_samples is not None else "the base plant's")
+    if not validation:
+        return res
+
+    def refit(recs: Sequence[Record], start: Plant) -> FitResult:
+        return _fit_records(recs, start, frf=(), keys=res.keys, fidelity=fidelity, validate=(), segment_s=segment_s,
+                            delay_samples=shift, substeps=substeps, max_iter=max_iter, tol=tol,
+                            min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
+                            uncertainty=uncertainty, check_interrupt=check_interrupt, max_attempts=1)
+
+    from .validation import validate_fit
+
+    return validate_fit(res, records, validate, shift, fidelity, refit if cross_validate else None, check_interrupt,
+                        base=plant, closed_loops=closed_loops)
+
+
+def _check_convention(fit_at, plant: Plant, res: FitResult | None, failure: FitError | None, offset: int,
+                      command_logged: str) -> None:
+    """A computed-command log whose command acts at once makes the search from ``offset`` fail or
+    end at the current loop's bound; only then is ``offset - 1`` fitted, and a converged fit
+    better by ``DELAY_OBJECTIVE_RATIO`` (the evidence, not the failure) refutes the declaration."""
+    from .delay import DELAY_OBJECTIVE_RATIO
+
+    bw = "drive.current_loop_bandwidth_hz"
+    at_bound = res is not None and "bound" in str(res.not_identified.get(bw, ""))
+    if offset > 0 and (failure is not None or at_bound):
+        try:
+            r0 = fit_at(offset - 1, plant)
+        except FitError:
+            r0 = None
+        if r0 is not None and (res is None or DELAY_OBJECTIVE_RATIO * r0.solver["objective"] <= res.solver["objective"]):
+            raise FitError(f"the logged command acts {offset - 1} samples after it is logged (objective "
+                           f"{r0.solver['objective']:.4g}; from {offset} samples on: "
+                           + ("the fit failed" if res is None else f"{res.solver['objective']:.4g}, the current loop at "
+                              "its bound") + f"), but command_logged = {command_logged!r} means at least {offset}; "
+                           "expected --command-logged applied for this log")
+    if failure is not None:
+        raise failure
 
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
-                 min_speed_rad_s, keep_unidentified, uncertainty="keep", check_interrupt=None) -> FitResult:
+                 min_speed_rad_s, keep_unidentified, uncertainty="keep", check_interrupt=None,
+                 max_attempts=3) -> FitResult:
     """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
@@ -344,7 +419,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     # warm-up first: without it, parameter steps taken while the trajectories are still far
     # from the data can lead the iteration into a stall (a 4 s record took 33 wasted
     # iterations before the warm-up attempt converged in 9).
-    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))
+    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))[:max_attempts]
     spent = 0
     for i, (box, warm) in enumerate(attempts):
         try:
@@ -390,7 +465,13 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     for rec in validate:  # the plant as written
         vrun = _Problem(fitted, keys, scales, fidelity, [rec], ts, segment_s, delay_samples, substeps,
                         min_speed_rad_s, check_interrupt)
-        vsol = vrun.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
+        try:
+            vsol = vrun.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
+        except FitError as exc:  # the plant does not follow this record: the validation's replay says how far
+            fit_pct[rec.name] = -math.inf
+            warns.append(f"{rec.name}: the written plant's segments do not converge on this record ({exc}); see "
+                         "its replay in the validation")
+            continue
         fit_pct.update(vsol["fit_percent"])
         traces.update(vsol["traces"])
         _add_simulations(traces, vrun.simulate(vsol, fitted))
@@ -426,20 +507,6 @@ def _add_simulations(traces: dict, sims: dict) -> None:
     for name, sim in sims.items():
         if name in traces:
             traces[name]["simulated"] = sim
-
-
-def fit_percent(measured: NDArray[np.float64], model: NDArray[np.float64]) -> float:
-    """Normalised-RMS fit, % : ``100 (1 - |y - y_model| / |y - mean(y)|)``.
-
-    Examples
-    --------
-    >>> fit_percent(np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 3.0]))
-    100.0
-    """
-    den = float(np.linalg.norm(measured - np.mean(measured)))
-    if den == 0:
-        return float("nan")
-    return float(100.0 * (1.0 - np.linalg.norm(measured - model) / den))
 
 
 class _Problem:

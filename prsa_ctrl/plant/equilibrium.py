@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import SimulationError
-from .model import PlantModel, plant_model, screw_axis_springs, stick_band_rad_s
+from .model import NUT_LOSS_KEY, PlantModel, nut_loss_on_whole_force, plant_model, screw_axis_springs, stick_band_rad_s
 from .plantfile import Plant
 
 __all__ = ["OperatingPoint", "operating_point", "steady_torque", "MAX_NEWTON_ITER"]
@@ -215,6 +215,11 @@ def steady_torque(plant: Plant, omega_nut: float, load: float) -> float:
             f"{2 * plant.values['friction.transition_velocity_m_s']:g} m/s), where the nut sticks; "
             "expected 0 (at rest) or a speed outside the band"
         )
+    if nut_loss_on_whole_force(plant):
+        # at constant speed the force through the nut is the load: the law with the loss on
+        # the external load gives the same holding torque, and its friction does not depend on
+        # the acceleration (the one evaluation below needs that)
+        plant = plant.with_params({NUT_LOSS_KEY: 0}, name=plant.name)
     rigid = plant_model(plant, "rigid")
     # Outside the stick band the rigid nut equation is J dw/dt = tau - T(w, load): one
     # evaluation at tau = 0 gives the holding torque exactly (no difference quotient).

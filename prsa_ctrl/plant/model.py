@@ -126,11 +126,12 @@ from dataclasses import dataclass, field
 import casadi as ca
 
 from .plantfile import Plant
-from .schema import BREAKAWAY_KEY, VISCOUS_OFFSET_KEY
+from .schema import BREAKAWAY_KEY, SCREW_DRIVEN, VISCOUS_OFFSET_KEY
 
 __all__ = ["FIDELITIES", "PlantModel", "state_derivative", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
            "ParametricModel", "parametric_family", "register_member",
-           "stick_band_rad_s", "STICK_TIME_CONSTANT_S", "screw_axis_springs", "drag_breakaway_excess"]
+           "stick_band_rad_s", "STICK_TIME_CONSTANT_S", "screw_axis_springs", "drag_breakaway_excess",
+           "NUT_LOSS_KEY", "nut_loss_on_whole_force"]
 
 from ..options import FIDELITIES  # noqa: E402  (re-exported)
 
@@ -314,17 +315,31 @@ def stick_band_rad_s(plant: Plant) -> float:
     return plant.values["friction.transition_velocity_m_s"] / plant.lead_per_rad
 
 
-def _nut_friction(plant: Plant, omega: ca.SX, normal: ca.SX, t_net: ca.SX, inertia: float) -> ca.SX:
+def _slide_parts(plant: Plant, omega: ca.SX):
+    """The sliding loss torque's parts (:func:`_nut_friction`): ``(k mu(v), T_0 + excess shape(v))``,
+    the torque per newton of thread normal force (m) and the load-independent part (N m)."""
+    t0 = plant.values["friction.no_load_torque_n_m"]
+    excess = drag_breakaway_excess(plant)
+    if excess is not None:  # the no-load drag's own Stribeck drop
+        t0 = t0 + excess * _stribeck_shape(plant, plant.lead_per_rad * omega)
+    return plant.slip_arm_m * stribeck_coefficient(plant, plant.lead_per_rad * omega), t0
+
+
+def _nut_friction(plant: Plant, omega: ca.SX, normal: ca.SX, t_net: ca.SX, inertia: float,
+                  normal_slide: ca.SX | None = None) -> ca.SX:
     """Coulomb-type loss torque on the nut (N m): Stribeck sliding torque with Karnopp stiction.
 
     ``normal``: thread normal force carried (N, >= 0); ``t_net``: every other torque on the
     nut's degree of freedom (N m; motor, load/contact, traction, viscous); ``inertia``: the
     inertia of that degree of freedom (kg m^2), which sets the stick-phase restoring damping.
+    ``normal_slide``: the sliding branch's normal force where it differs from the stuck one
+    (the whole force through the nut, :func:`_nut_force_rigid`); default ``normal``.
     """
     v = plant.values
     k_slip = plant.slip_arm_m
     t0 = v["friction.no_load_torque_n_m"]
-    slide = k_slip * stribeck_coefficient(plant, plant.lead_per_rad * omega) * normal + t0
+    slide = k_slip * stribeck_coefficient(plant, plant.lead_per_rad * omega) * (
+        normal if normal_slide is None else normal_slide) + t0
     breakaway = k_slip * v["friction.static"] * normal + t0
     excess = drag_breakaway_excess(plant)
     if excess is not None:  # the no-load drag's own Stribeck drop (none by default: the same expression as before)
@@ -414,6 +429,47 @@ def _linear_axis_friction(plant: Plant, omega: ca.SX):
     return visc, 0.5 * (v["friction.coulomb_positive_n"] - v["friction.coulomb_negative_n"])
 
 
+NUT_LOSS_KEY = "axis.nut_loss_on_whole_force"
+
+
+def nut_loss_on_whole_force(plant: Plant) -> bool:
+    """Whether the rigid model puts the nut's load-dependent loss on the whole force through the
+    nut, ``F_s = F_load + m a w'`` (external load plus the carriage's inertial force; ``m`` =
+    ``axis.moving_mass_kg``): ``axis.nut_loss_on_whole_force = 1``, the default of ball and
+    roller screws. A nut's thread friction grows with the force its flanks carry (Varanasi &
+    Nayfeh, J. Dyn. Sys. Meas. Control 126(2) 388-396, 2004, model the thread friction on the
+    nut's contact force so); the compliant screw-driven model (:func:`_screw_driven`) has this law
+    by construction and the rigid one with it is its stiff limit. ``0``: the loss on the external
+    load only, the catalogue sizing rule that adds the acceleration torque without efficiency
+    (e.g. THK, "Ball Screw: Calculating the Driving Torque"); the inverted roller screw (the
+    source paper's rigid model) always has it.
+    """
+    if plant.mechanism not in SCREW_DRIVEN:
+        return False
+    flag = plant.values.get(NUT_LOSS_KEY, 1)
+    return not (isinstance(flag, (int, float)) and flag == 0)
+
+
+def _nut_force_rigid(plant: Plant, omega, load, t_net, j_eq):
+    """The force through the nut ``F_s = F_load + m a w'`` (N) of the rigid screw-driven axis
+    whose sliding loss acts on it (:func:`nut_loss_on_whole_force`), in closed form.
+
+    Sliding, ``J w' = T_net - s (T_0' + c |F_s|)`` with ``s = sign(w)``, ``c`` the sliding loss
+    per newton of the nut force and ``T_0'`` the load-independent drag; with ``A = m a`` and
+    ``F_s = F_load + A w'`` this is ``(J/A) F_s + s c |F_s| = R``, ``R = T_net - s T_0' +
+    (J/A) F_load``, whose left side increases with ``F_s`` while ``J/A > c`` (``J >= m a^2``, so
+    for every efficiency above ~0.55): ``F_s = R / (J/A + s c sign(R))``; below that (a nut that
+    nearly self-locks, no unique solution) the denominator is held at 5 % of ``J/A``.
+    """
+    f_n, f_s = plant.normal_force_factor()
+    per_newton, t0 = _slide_parts(plant, omega)
+    c = per_newton * (f_n + f_s)
+    s = ca.sign(omega)
+    j_over_a = j_eq / (plant.values["axis.moving_mass_kg"] * plant.lead_per_rad)
+    r = t_net - s * t0 + j_over_a * load
+    return r / ca.fmax(j_over_a + s * c * ca.sign(r), 0.05 * j_over_a)
+
+
 def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
     _, omega, tau = ca.vertsplit(x)
     load = u[1]
@@ -426,7 +482,9 @@ def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
     else:
         t_visc = _viscous(plant, omega)
     t_net = tau - load * a - t_visc
-    t_fric = _nut_friction(plant, omega, ca.fabs(load) * (f_n + f_s), t_net, j_eq)
+    slide = (ca.fabs(_nut_force_rigid(plant, omega, load, t_net, j_eq)) * (f_n + f_s)
+             if nut_loss_on_whole_force(plant) else None)  # (the default: the same expression as before)
+    t_fric = _nut_friction(plant, omega, ca.fabs(load) * (f_n + f_s), t_net, j_eq, normal_slide=slide)
     xdot = ca.vertcat(omega, (t_net - t_fric) / j_eq, _drive(plant, u[0], tau))
     y = _kinematic_outputs(plant, omega, omega * plant.cage_ratio, omega * a, tau)
     stored = 0.5 * j_eq * omega**2

@@ -184,6 +184,8 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
     "axis.bearing_stiffness_n_per_um": (1.0, 1e5, "support bearings: ~50 N/um (small) to ~5000 N/um (large pairs)"),
     "axis.nut_stiffness_n_per_um": (1.0, 1e5, "catalogue nut rigidity: ~50 N/um to ~5000 N/um"),
     "axis.fixed_ends": (1, 2, "1: fixed-free (or fixed-supported), 2: fixed-fixed"),
+    "axis.nut_loss_on_whole_force": (0, 1, "1: the nut's load-dependent loss on the whole force through the nut "
+                                     "(external load and the carriage's inertial force), 0: on the external load only"),
     "axis.axial_damping_ratio": (1e-4, 1.0, "modal damping of a feed drive's axial mode, ~0.01 to 0.1"),
     "screw.root_diameter_mm": (1.0, 500.0, "below the pitch diameter, catalogue screws 4 to 250 mm"),
     "screw.youngs_modulus_gpa": (50.0, 400.0, "steels ~200 to 210 GPa"),
@@ -225,6 +227,7 @@ SCREW_AXIS_SCHEMA: Mapping[str, Mapping[str, str]] = {
         "nut_stiffness_n_per_um": POSITIVE,
         "axial_damping_ratio": FRACTION,
         "fixed_ends": POSITIVE_INTEGER,
+        "nut_loss_on_whole_force": NON_NEGATIVE_INTEGER,
     },
     "screw": {"root_diameter_mm": POSITIVE, "youngs_modulus_gpa": POSITIVE},
 }
@@ -438,6 +441,10 @@ DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]]
                                         "assumption: preloaded angular-contact support-bearing pair ~25 N/um per mm of screw "
                                         "diameter (~800 N/um for 32 mm)"),
     "axis.fixed_ends": (1, "default: fixed-free mounting (one axially fixed end; fixed-supported is the same axially)"),
+    "axis.nut_loss_on_whole_force": (1, "default: a real nut's thread loss grows with the whole force it transmits, "
+                                        "the carriage's inertial force included (Varanasi & Nayfeh, J. Dyn. Sys. Meas. "
+                                        "Control 126(2) 2004; the stiff limit of the compliant screw-driven model); 0 "
+                                        "puts it on the external load only (prsa_ctrl.plant.model.nut_loss_on_whole_force)"),
     "axis.axial_damping_ratio": (0.03, "default: typical modal damping of the axial mode of a screw feed drive (1 to 5 %)"),
 }
 

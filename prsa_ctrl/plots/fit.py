@@ -108,14 +108,16 @@ def _bode_figure(name: str, tr: dict, fit_pct: float):
 
 def _overlay_data(tr: dict):
     """What a record's overlay figure plots: ``(time_s, measured, model, model label, join
-    times)``. The model is the continuous simulation of the fitted plant when there is one
-    (:meth:`_Problem.simulate`: no segment joins, so no resets that look like model error);
+    times)``. The model is the continuous replay of the plant as written when there is one
+    (the validation's, :mod:`prsa_ctrl.identification.validation`, labelled with its mode: no
+    segment joins, so no resets that look like model error);
     otherwise the shooting segments, each drawn apart (NaN between them) with its start marked.
     Gaps in the data (left-out stretches) are broken with NaN too."""
     sim = tr.get("simulated")
     if sim is not None:
         t, meas, mod = (np.asarray(sim[k], float) for k in ("time_s", "measured", "model"))
-        breaks, joins, label = np.zeros(0, int), [], "fitted plant, one continuous simulation"
+        breaks, joins = np.zeros(0, int), []
+        label = sim.get("label", "fitted plant, one continuous simulation")
     else:
         t, meas, mod = (np.asarray(tr[k], float) for k in ("time_s", "measured", "model"))
         breaks = np.asarray(tr.get("joins", np.zeros(0, int)), int)

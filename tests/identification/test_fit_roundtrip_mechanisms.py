@@ -62,9 +62,20 @@ def _log(truth: Plant, seed: int = 0, duration_s: float = 1.5):
                               axial_load_n=r.inputs[1])
 
 
+#: The ball screw's round trip runs with the nut loss on the external load
+#: (axis.nut_loss_on_whole_force = 0): with the default whole-force law the force through the
+#: nut crosses zero many times a second in this multisine, the loss's |F_s| puts a kink in the
+#: acceleration there, and the fit's one Radau step per sample misses it by ~1e-5 of the drag --
+#: 3 to 4 of this noise-free log's standard errors (which are ~5e-6 relative). The whole-force
+#: law's own round trip is the next test, with that stated resolution.
+OLD_LAW = {"ballscrew-32x10": {"axis.nut_loss_on_whole_force": 0}}
+
+
 @pytest.mark.parametrize("name", ["paper-iprsm", "rollerscrew-30x5", "ballscrew-32x10"])
 def test_fit_round_trip(name):
     base = _load(name)
+    if name in OLD_LAW:
+        base = base.with_params(OLD_LAW[name], name=base.name)
     values = _truth(base)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -79,6 +90,24 @@ def test_fit_round_trip(name):
         assert lo <= values[k] <= hi, (name, k, values[k], res.parameters[k])
         assert not res.parameters[k]["kept_base"], (name, k)
         assert res.plant.values[k] == pytest.approx(res.parameters[k]["value"])
+
+
+def test_ball_screw_round_trip_with_the_whole_force_nut_loss():
+    """The default law of a ball screw (loss on the whole force through the nut): every value
+    within 1e-3 of the truth (relative; the one-step-per-sample collocation at the force's zero
+    crossings, see OLD_LAW: measured 3e-6 inertia, 3e-7 efficiency, 1.4e-5 drag, 3.7e-4 viscous,
+    2e-4 current loop) and the delay found."""
+    base = _load("ballscrew-32x10")
+    assert base.values["axis.nut_loss_on_whole_force"] == 1
+    values = _truth(base)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        truth = base.with_params(values)
+    res = fit_plant([_log(truth)], base, delay_samples="find", cross_validate=False)
+    assert res.solver["command_delay"]["shift_samples"] == 1 and res.solver["command_delay"]["search"]["decided"]
+    for k in res.keys:
+        assert res.parameters[k]["value"] == pytest.approx(values[k], rel=1e-3), k
+    assert res.solver["validation"]["passes"]
 
 
 def test_linear_axis_refused():

@@ -44,12 +44,13 @@ def _inertia_from_geometry(p):
     return v["axis.motor_inertia_kg_m2"] + j_screw + v["axis.moving_mass_kg"] * _lead(p) ** 2
 
 
-def _model_inertia(p):
+def _model_inertia(p, torques=(0.0, 1.0), load=0.0):
     """The rigid model's inertia from its own equations: two torques at the same sliding speed
-    differ in acceleration by dT / J (friction does not depend on the torque while sliding)."""
+    differ in acceleration by dT / J (with the nut loss on the external load only, friction
+    does not depend on the torque while sliding)."""
     f = plant_model(p, "rigid").f
-    acc = [float(f([0.0, 50.0, t], [0.0, 0.0])[1]) for t in (0.0, 1.0)]
-    return 1.0 / (acc[1] - acc[0])
+    acc = [float(f([0.0, 50.0, t], [0.0, load])[1]) for t in torques]
+    return (torques[1] - torques[0]) / (acc[1] - acc[0])
 
 
 @pytest.mark.parametrize("name", SCREW_PLANTS)
@@ -59,11 +60,47 @@ def test_reflected_inertia_and_lead_of_screw_driven_axes(plants, name):
         "rollerscrew", "roller-screw")
     j = _inertia_from_geometry(p)
     assert p.reflected_inertia_kg_m2 == pytest.approx(j, rel=1e-12)
-    assert _model_inertia(p) == pytest.approx(j, rel=1e-9)
+    # with the nut loss on the external load only (axis.nut_loss_on_whole_force = 0) the model's
+    # inertia is the geometry's; the default (1) is checked in the test below
+    assert _model_inertia(p.with_params({"axis.nut_loss_on_whole_force": 0})) == pytest.approx(j, rel=1e-9)
     # lead: the translating member (nut and carriage) moves L per screw turn
     y = plant_model(p, "rigid").h([0.0, 2 * math.pi, 0.0], [0.0, 0.0])
     names = plant_model(p, "rigid").output_names
     assert float(y[names.index("screw_velocity")]) == pytest.approx(p.values["screw.lead_mm"] * 1e-3, rel=1e-12)
+
+
+@pytest.mark.parametrize("name", SCREW_PLANTS)
+def test_nut_loss_on_the_whole_force_through_the_nut(plants, name):
+    """Default of ball and roller screws: the nut's loss (1/eta - 1) a |F_s| acts on the whole
+    force through the nut, F_s = F_load + m a w' (the carriage's inertial force included). Then a
+    torque step while driving forward (F_s > 0, power into the load) meets the inertia
+    J + (1/eta - 1) m a^2, and while braking (F_s < 0) J - (1/eta - 1) m a^2: derived here from
+    the force balance of the carriage, not from the model's code."""
+    p = plants[name]
+    assert p.values["axis.nut_loss_on_whole_force"] == 1
+    assert p.sources["axis.nut_loss_on_whole_force"].startswith("default:")
+    j = _inertia_from_geometry(p)
+    extra = (1.0 / p.values["friction.efficiency"] - 1.0) * p.values["axis.moving_mass_kg"] * _lead(p) ** 2
+    t_max = p.values["drive.torque_limit_n_m"]
+    assert _model_inertia(p, (0.5 * t_max, 0.6 * t_max)) == pytest.approx(j + extra, rel=1e-9)
+    assert _model_inertia(p, (-0.6 * t_max, -0.5 * t_max)) == pytest.approx(j - extra, rel=1e-9)
+    assert abs(_model_inertia(p, (0.5 * t_max, 0.6 * t_max)) - j) > 0.5 * extra  # the law is in (extra >> 1e-5 j)
+    assert extra > 1e-3 * j
+    # at steady speed (no acceleration) the force through the nut is the load: the torque that
+    # holds the speed is the same under both laws (zero acceleration in the model)
+    load = 0.5 * p.values["screw.rated_load_n"]
+    t_ss = steady_torque(p, 50.0, load)
+    assert t_ss == steady_torque(p.with_params({"axis.nut_loss_on_whole_force": 0}), 50.0, load)
+    acc = float(plant_model(p, "rigid").f([0.0, 50.0, t_ss], [t_ss, load])[1])
+    assert abs(acc) * j < 1e-9 * t_max
+
+
+def test_inverted_roller_screw_keeps_the_nut_loss_on_the_external_load(plants):
+    """The paper plant (IPRSM) has no such key: its rigid model is unchanged (loss on the
+    external load, the source paper's model), so its inertia is the geometry's."""
+    p = plants["paper-iprsm"]
+    assert "axis.nut_loss_on_whole_force" not in p.values
+    assert _model_inertia(p, (0.5, 0.6), load=1000.0) == pytest.approx(p.reflected_inertia_kg_m2, rel=1e-9)
 
 
 def test_linear_axis_is_its_mass_in_load_coordinates(plants):

@@ -1,0 +1,193 @@
+"""Validation that can say no (prsa_ctrl.identification.validation): the prediction-error replay
+of a log through a plant, its noise floor, whiteness, the verdict and the diagnosis. The logs
+come from the independent generator (tests/independent_actuator.py), not from the toolkit."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from prsa_ctrl import GeometryWarning, load_plant
+from prsa_ctrl.identification.data import design_excitation, record_from_arrays
+from prsa_ctrl.identification.validation import (FIT_MIN_PERCENT, NOISE_FACTOR, WRITTEN_TOLERANCE_POINTS, diagnosis,
+                                                 explained, noise_floor, replay_records, verdict, whiteness)
+
+from independent_actuator import simulate_independent  # noqa: E402
+
+TS = 2.5e-4
+TRUTH = {"nut.inertia_kg_m2": 1.5e-4, "friction.efficiency": 0.88, "friction.no_load_torque_n_m": 0.03,
+         "friction.viscous_n_m_s_per_rad": 1.5e-4, "drive.current_loop_bandwidth_hz": 1200.0}
+
+
+@pytest.fixture(scope="module")
+def truth():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        return load_plant().with_params(TRUTH)
+
+
+@pytest.fixture(scope="module")
+def record(truth):
+    n = int(round(0.4 / TS))
+    t = np.arange(n) * TS
+    _, sp = design_excitation("multisine", duration_s=n * TS, sample_time_s=TS, f_min_hz=5, f_max_hz=150,
+                              amplitude=20, offset=30)
+    load = np.select([t < 0.1, t < 0.2, t < 0.3], [200.0, 1500.0, 300.0], 2500.0)
+    d = simulate_independent(
+        inertia_kg_m2=truth.reflected_inertia_kg_m2, lead_m=truth.lead_m, efficiency=0.88, no_load_torque_n_m=0.03,
+        viscous_n_m_s_per_rad=1.5e-4, current_loop_bandwidth_hz=1200.0, torque_limit_n_m=truth.torque_limit,
+        setpoint_rad_s=sp, load_n=load, sample_time_s=TS, seed=1)
+    return record_from_arrays("independent", d["time_s"], d["torque_command_n_m"], nut_angle_rad=d["nut_angle_rad"],
+                              axial_load_n=d["axial_load_n"])
+
+
+def test_the_true_plant_replays_its_log_and_is_explained(truth, record):
+    e = replay_records(truth, [record], shift=0)["independent"]
+    assert e["finite"] and explained(e)
+    assert e["fit_percent"] > 95.0
+    assert "prediction-error" in e["replay"]
+
+
+def test_a_wrong_inertia_is_not_explained(truth, record):
+    wrong = truth.with_params({"nut.inertia_kg_m2": 4 * TRUTH["nut.inertia_kg_m2"]})
+    good = replay_records(truth, [record], shift=0)["independent"]
+    bad = replay_records(wrong, [record], shift=0)["independent"]
+    assert bad["fit_percent"] < FIT_MIN_PERCENT and bad["error_rms_rad_s"] > NOISE_FACTOR * bad["noise_floor_rad_s"]
+    assert not explained(bad)
+    ok, reasons = verdict({"independent": bad}, {}, None)
+    assert not ok and "independent" in reasons[0]
+    assert verdict({"independent": good}, {}, None)[0]
+
+
+def test_the_replay_does_not_drift_on_an_integrating_axis(truth, record):
+    """A drag torque 3x too high: open loop (injection at 1e-4 Hz, i.e. none) the integrating axis
+    drifts away from the log; the prediction-error replay stays with it."""
+    biased = truth.with_params({"friction.no_load_torque_n_m": 0.09})
+    held = replay_records(biased, [record], shift=0)["independent"]
+    drift = replay_records(biased, [record], shift=0, observer_hz=1e-4)["independent"]
+    speed_rms = float(np.sqrt(np.mean(record.speed_rad_s ** 2)))
+    assert drift["error_rms_rad_s"] > 0.2 * speed_rms
+    assert held["error_rms_rad_s"] < 0.2 * drift["error_rms_rad_s"]
+
+
+def test_the_written_plant_may_not_be_worse_than_the_free_fit(truth, record):
+    good = replay_records(truth, [record], shift=0)["independent"]
+    worse = dict(good, fit_percent=good["fit_percent"] - 2 * WRITTEN_TOLERANCE_POINTS)
+    ok, reasons = verdict({"independent": worse}, {"independent": good}, None)
+    assert not ok and "free fit" in reasons[0]
+    ok, _ = verdict({"independent": good}, {"independent": good}, {"independent": {"failed": "did not converge"}})
+    assert not ok  # a cross-validation fit that failed is no pass either
+
+
+def test_noise_floor_of_a_quantised_noisy_angle():
+    rng = np.random.default_rng(3)
+    n, ts = 20000, 1.25e-4
+    t = np.arange(n) * ts
+    q = 2 * math.pi / 2**20
+    sigma = 2e-6
+    theta = 30.0 * t + 0.01 * np.sin(2 * math.pi * 5 * t)
+    angle = np.floor((theta + sigma * rng.standard_normal(n)) / q) * q
+    rec = record_from_arrays("q", t, np.sin(t), nut_angle_rad=angle, axial_load_n=np.zeros(n))
+    expected = math.sqrt(2.0 * (sigma**2 + q**2 / 12.0)) / ts  # white angle noise of both kinds, differenced
+    assert noise_floor(rec) == pytest.approx(expected, rel=0.2)
+
+
+def test_whiteness_at_the_stated_lags():
+    rng = np.random.default_rng(0)
+    w = rng.standard_normal(20000)
+    assert whiteness(w)["white"]
+    ar = np.empty_like(w)
+    ar[0] = w[0]
+    for k in range(1, len(w)):
+        ar[k] = 0.9 * ar[k - 1] + w[k]
+    out = whiteness(ar)
+    assert not out["white"] and out["acf"][1] == pytest.approx(0.9, abs=0.02)
+    assert out["band"] == pytest.approx(1.96 / math.sqrt(len(w)))
+
+
+def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
+    class _R:  # the parts of a FitResult the diagnosis reads
+        keys = ("nut.inertia_kg_m2",)
+        not_identified = {}
+
+    t = record.time_s[1:]
+    meas = record.speed_rad_s
+    ringing = {"finite": True, "measured": meas, "model": meas - 0.5 * np.sin(2 * math.pi * 180.0 * t),
+               "skip_samples": 80, "fit_percent": 10.0, "error_rms_rad_s": 0.35, "noise_floor_rad_s": 0.01}
+    d = diagnosis({"independent": ringing}, [record], {"decided": True}, _R())
+    f_hz = float(d.split(" of ")[-1].split(" Hz")[0])
+    assert d.startswith("second mass") and abs(f_hz - 180.0) < 0.03 * 180.0  # Welch bins of 4000/2048 Hz
+    d = diagnosis({"independent": ringing}, [record], {"decided": False, "objective": {"0": 1.0, "1": None}}, _R())
+    assert d.startswith("delay") and "1: failed" in d
+    drift = dict(ringing, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)))
+    assert diagnosis({"independent": drift}, [record], {"decided": True}, _R()).startswith("friction model")
+    negative = dict(ringing, fit_percent=-40.0)
+    assert diagnosis({"independent": negative}, [record], None, _R()).startswith("wrong units or coordinates")
+
+
+def _independent_record(truth, inertia_factor=1.0, name="independent", seed=1):
+    n = int(round(0.4 / TS))
+    t = np.arange(n) * TS
+    _, sp = design_excitation("multisine", duration_s=n * TS, sample_time_s=TS, f_min_hz=5, f_max_hz=150,
+                              amplitude=20, offset=30)
+    load = np.select([t < 0.1, t < 0.2, t < 0.3], [200.0, 1500.0, 300.0], 2500.0)
+    d = simulate_independent(
+        inertia_kg_m2=inertia_factor * truth.reflected_inertia_kg_m2, lead_m=truth.lead_m, efficiency=0.88,
+        no_load_torque_n_m=0.03, viscous_n_m_s_per_rad=1.5e-4, current_loop_bandwidth_hz=1200.0,
+        torque_limit_n_m=truth.torque_limit, setpoint_rad_s=sp, load_n=load, sample_time_s=TS, seed=seed)
+    return record_from_arrays(name, d["time_s"], d["torque_command_n_m"], nut_angle_rad=d["nut_angle_rad"],
+                              axial_load_n=d["axial_load_n"])
+
+
+def test_cli_exit_3_without_a_plant_file_unless_forced(truth, tmp_path, capsys):
+    """A log the fitted plant cannot explain (--validate: the same axis with 4x the inertia):
+    exit 3, the per-log lines, one diagnosis line, no plant file; --force writes it with a header
+    saying so. The fitted log alone passes (exit 0, the file written)."""
+    from prsa_ctrl.cli.fit import main
+
+    fitted = tmp_path / "fitted.csv"
+    other = tmp_path / "heavy.csv"
+    _independent_record(truth).to_csv(fitted)
+    _independent_record(truth, 4.0, "heavy", seed=2).to_csv(other)
+    out, js = tmp_path / "plant.toml", tmp_path / "report.json"
+    code = main([str(fitted), "--validate", str(other), "--out", str(out), "--json", str(js), "--delay-samples", "0"])
+    cap = capsys.readouterr()
+    assert code == 3, cap.err
+    assert not out.exists() and js.exists(), cap.err
+    last = cap.err.strip().splitlines()[-1]
+    assert last.startswith("prsa-fit: the fitted plant does not explain the data; most likely missing physics: ")
+    assert "no plant file written" in last
+    assert "heavy.csv (plant as written)" in cap.out and "NOT explained" in cap.out
+    import json
+
+    v = json.loads(js.read_text())["solver"]["validation"]
+    assert v["passes"] is False and v["diagnosis"] and not v["written_plant"][str(other)]["explained"]
+    assert v["written_plant"][str(fitted)]["explained"]
+    code = main([str(fitted), "--validate", str(other), "--out", str(out), "--delay-samples", "0", "--force"])
+    cap = capsys.readouterr()
+    assert code == 3 and out.exists()
+    assert out.read_text().startswith("# prsa-fit --force: NOT VALIDATED")
+    assert load_plant(str(out)).name == "plant"
+    out.unlink()
+    code = main([str(fitted), "--out", str(out), "--delay-samples", "0"])
+    cap = capsys.readouterr()
+    assert code == 0 and out.exists(), cap.err
+    assert "NOT VALIDATED" not in out.read_text() and "verdict: the plant explains the data" in cap.out
+
+
+def test_an_undecided_delay_is_not_validated(truth, record):
+    """The plant replays its log, but the delay search did not decide the delay: no pass, and the
+    diagnosis names the delay (a decided one passes)."""
+    from prsa_ctrl.identification.common import FitResult
+    from prsa_ctrl.identification.validation import validate_fit
+
+    def result(decided):
+        search = {"decided": decided, "objective": {"0": 1.0, "1": 1.01, "2": None}, "ratio_tolerance": 1.5}
+        return FitResult(truth, {}, {"value": 1.0, "ci95": [1.0, 1.0], "unit": "kg m^2"}, np.eye(0), (), {}, [],
+                         {"command_delay": {"search": search}}, {}, None, {}, None)
+
+    v = validate_fit(result(False), [record], [], 0, "rigid").solver["validation"]
+    assert not v["passes"] and v["diagnosis"].startswith("delay") and "2: failed" in v["diagnosis"]
+    assert v["written_plant"]["independent"]["explained"]
+    assert validate_fit(result(True), [record], [], 0, "rigid").solver["validation"]["passes"]
