@@ -235,7 +235,10 @@ def test_overlay_shows_one_continuous_simulation(base, truth):
     resid = np.asarray(ax2.lines[0].get_ydata(), float)
     assert np.max(np.abs(resid)) < 1.0
     np.testing.assert_allclose(resid, meas - model)
-    assert "continuous simulation" in ax1.get_legend().get_texts()[1].get_text()
+    # the label names the run drawn: one replay of the plant as written (prediction-error form here:
+    # no controller is described), not the shooting segments
+    label = ax1.get_legend().get_texts()[1].get_text()
+    assert "plant as written" in label and "replay" in label, label
 
 
 # --- item 7: the user's [uncertainty] kept ----------------------------------------------------------------
