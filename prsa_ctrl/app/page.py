@@ -30,7 +30,7 @@ from ..options import OBJECTIVES
 from .fitpanel import FitPanel, uploaded_file
 from .genericpanel import GenericPanel
 from .session import (FIDELITIES, AppInputError, AppSession, Cancelled, Settings, View, builtin_names, one_line,
-                      robust_study)
+                      robust_study, typed)
 
 __all__ = ["AppPage", "make_document"]
 
@@ -72,6 +72,7 @@ class AppPage:
         self._drag_end = -1  # the manual-only update of the last drag's end
         self._land_seq = -1
         self._cancel = threading.Event()
+        self._reverting = {"plant": False, "scene": False}  # a select set back after a refused value
         self._tune_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-tune")
         self._verify_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-verify")
         self._build()
@@ -143,8 +144,8 @@ class AppPage:
         self.mt_on.on_change("active", lambda attr, old, new: self.request())
         self.ms.on_change("value_throttled", lambda attr, old, new: self.request())
         self.mt.on_change("value_throttled", lambda attr, old, new: self.request())
-        self.plant_select.on_change("value", lambda attr, old, new: self._switch("plant", new))
-        self.scene_select.on_change("value", lambda attr, old, new: self._switch("scene", new))
+        self.plant_select.on_change("value", lambda attr, old, new: self._switch("plant", old, new))
+        self.scene_select.on_change("value", lambda attr, old, new: self._switch("scene", old, new))
         # value and filename arrive in one patch, value first: read both once the patch is applied
         self.plant_upload.on_change("value", lambda attr, old, new: self.doc.add_next_tick_callback(
             partial(self._upload, "plant", self.plant_upload)))
@@ -535,7 +536,21 @@ class AppPage:
         self.export_which.active = 0
         self.request()
 
-    def _switch(self, kind: str, name: str) -> None:
+    def _switch(self, kind: str, old: str, name: str) -> None:
+        """A built-in plant or scene chosen in its select. Bokeh does not check that a select's
+        value is one of its options (a client can set any text): anything else is refused with
+        one line and the select goes back to its previous value; the session refuses it too
+        (:meth:`AppSession.set_plant`)."""
+        select = self.plant_select if kind == "plant" else self.scene_select
+        if self._reverting.get(kind):
+            self._reverting[kind] = False
+            return
+        if not isinstance(name, str) or name not in select.options:
+            self._show_error(f"{kind} select value {typed(name)}: expected one of the built-in {kind}s "
+                             f"({', '.join(select.options)})")
+            self._reverting[kind] = True
+            select.value = old if old in select.options else select.options[0]
+            return
         try:
             notes = (self.session.set_plant if kind == "plant" else self.session.set_scene)(name)
         except AppInputError as exc:

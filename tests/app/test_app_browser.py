@@ -265,3 +265,63 @@ def test_robust_and_monte_carlo_with_progress_and_cancel(app_page):
     assert int(samples) == done and 0 <= int(passed) <= done
     assert float(_text(page, "mc-robust-maxms")) <= 1.4 * (1 + 1e-3)
     _shot(page, "app-robust.png")
+
+
+# ---- issue 31: the page's own BokehJS model cannot make the server read a file -------------
+
+_SET_SELECT_JS = """([title, value]) => {
+    const doc = Bokeh.documents[0];
+    const models = doc._all_models ? [...doc._all_models.values()] : [...doc.all_models];
+    const sel = models.find(m => m.type == "Select" && m.title == title);
+    sel.value = value;
+    return sel.options.length;
+}"""
+
+
+def _select_value(pg, title: str) -> str:
+    return pg.evaluate("""(title) => {
+        const doc = Bokeh.documents[0];
+        const models = doc._all_models ? [...doc._all_models.values()] : [...doc.all_models];
+        return models.find(m => m.type == "Select" && m.title == title).value;
+    }""", title)
+
+
+@pytest.mark.parametrize("title, kind", [("Plant (built-in)", "plant"), ("Scene (built-in)", "scene")])
+def test_select_set_to_a_server_path_is_refused_and_reverts(app_page, tmp_path, title, kind):
+    """A client that sets a select's value to a path (here a valid plant or scene file, so a
+    server that read it would switch to it) gets one line and the select back; the page keeps
+    its plant and design."""
+    from prsa_ctrl.app.session import builtin_names, typed
+    from prsa_ctrl.plant.plantfile import plant_file_path
+    from prsa_ctrl.studies.scenefile import locate_scene
+
+    page = app_page
+    kp = _text(page, "opt-kp")
+    src = plant_file_path("iprsm-60") if kind == "plant" else locate_scene("paper-table3")[0]
+    path = tmp_path / f"elsewhere-{kind}.toml"
+    path.write_text(src.read_text())
+    for value in (str(path), "/etc/passwd"):
+        page.evaluate(_SET_SELECT_JS, [title, value])
+        page.locator('[data-k="error"]', has_text=typed(value)).wait_for()
+        names = builtin_names()[kind == "scene"]
+        assert _text(page, "error") == (f"error: {kind} select value {typed(value)}: expected one of the built-in {kind}s "
+                                        f"({', '.join(names)})")
+        page.wait_for_function("([t, v]) => { const d = Bokeh.documents[0]; const ms = d._all_models ? "
+                               "[...d._all_models.values()] : [...d.all_models]; return ms.find(m => m.type == "
+                               "'Select' && m.title == t).value == v; }",
+                               arg=[title, "paper-iprsm" if kind == "plant" else "paper-load-step"])
+    assert "root:" not in page.content()
+    assert _text(page, "opt-kp") == kp
+    assert f"Plant <b>paper-iprsm</b>, scene <b>paper-load-step</b>" in page.locator('[data-k="bounds"]').inner_html()
+
+
+@pytest.mark.parametrize("trace", ["/etc/passwd", "../../../../../../etc/passwd"])
+def test_uploaded_scene_with_a_server_trace_is_refused_on_the_page(app_page, trace):
+    page = app_page
+    text = f'[operating]\nload_trace_csv = "{trace}"\n'
+    page.locator(".prsa-scene-upload input[type=file]").set_input_files(
+        files=[{"name": "hostile.toml", "mimeType": "application/toml", "buffer": text.encode()}])
+    page.locator('[data-k="error"]').wait_for()
+    assert _text(page, "error") == (f"error: hostile.toml: operating.load_trace_csv = {trace!r}: an uploaded scene "
+                                    "cannot read files on the server; expected a load-step scene without a CSV trace")
+    assert "root:" not in page.content()
