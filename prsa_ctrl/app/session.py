@@ -565,10 +565,13 @@ class AppSession:
         self._landscapes.clear()
 
     def close(self) -> None:
-        """Remove the uploaded files."""
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None
+        """Remove the uploaded files and drop the tuners, loop models and cached designs (the
+        session's memory; it is rebuilt on the next use)."""
+        with self._lock:
+            self._clear()
+            if self._tmp is not None:
+                self._tmp.cleanup()
+                self._tmp = None
 
 
 def _initial(s: Settings) -> float:
@@ -652,10 +655,9 @@ def upload_name(filename, default: str) -> str:
 
 
 def _load_uploaded_scene(path, label: str | None = None) -> tuple[Scene, str, list[str]]:
-    """An uploaded scene file, read without touching any other file: a CSV trace key is refused
-    before anything else is read (one line naming the key and the value as typed), and the
-    scene is parsed with no folder to resolve paths against."""
-    from ..studies.scene import _from_doc
+    """An uploaded scene file, read without touching any other file: a CSV trace key (the only
+    keys of a scene that name a file) is refused before anything else is read, with one line
+    naming the key and the value as typed."""
     from ..studies.scenefile import read_scene_doc
 
     text = label or Path(str(path)).name
@@ -667,21 +669,9 @@ def _load_uploaded_scene(path, label: str | None = None) -> tuple[Scene, str, li
     if isinstance(op, dict):
         for key in TRACE_KEYS:
             if key in op:
-                raise AppInputError(f"{text}: operating.{key} = {typed(op[key])}: an uploaded scene cannot read files on the "
-                                    "server; expected a load-step scene without a CSV trace")
-    if "move" in doc:
-        raise AppInputError(f"scene {text!r} is a move (cascade) scene; expected a load-step scene (tune it with "
-                            f"prsa-tune --scene {text})")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            scene = _from_doc(doc, str(path), None)  # no base folder: no relative path can resolve
-        except SceneError as exc:
-            raise AppInputError(one_line(exc)) from None
-    if scene.is_profile:
-        raise AppInputError(f"scene {text!r} is a duty cycle ({scene.profile_source}); expected a load-step scene "
-                            f"(tune it with prsa-tune --scene {text})")
-    return scene, text, _notes(caught)
+                raise AppInputError(f"{text}: operating.{key} = {typed(op[key])}: an uploaded scene cannot read files on "
+                                    "the server; expected a load-step scene without a CSV trace")
+    return _load_scene(path, label)
 
 
 def _check_scene_plant(scene: Scene, plant: Plant) -> None:

@@ -254,3 +254,24 @@ def test_upload_name_is_never_a_path(sent, stored):
     from prsa_ctrl.app.session import upload_name
 
     assert upload_name(sent, "default.toml") == stored
+
+
+@pytest.mark.parametrize("value, line", [
+    ("not base64 ~~", "x.toml: the upload is not base64 text; expected the file's bytes as base64 (as a browser "
+                      "sends a file)"),
+    (["QUJD", "x"], None),  # the first of a list is taken
+    (12, "x.toml: the upload holds a int; expected the file's bytes as base64 text (as a browser sends a file)"),
+    ("A" * (4 * 3_333_334 + 4), "x.toml: 10.0 MB; expected a file of at most 10 MB (the app's upload limit)"),
+])
+def test_uploaded_file_checks_what_the_client_sent(value, line):
+    from types import SimpleNamespace
+
+    from prsa_ctrl.app.fitpanel import uploaded_file
+
+    w = SimpleNamespace(value=value, filename="../x.toml")
+    if line is None:
+        assert uploaded_file(w, "d.toml") == ("x.toml", b"ABC")
+    else:
+        with pytest.raises(AppInputError) as info:
+            uploaded_file(w, "d.toml")
+        assert str(info.value) == line
