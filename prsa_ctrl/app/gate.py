@@ -39,6 +39,9 @@ UNUSED_SESSION_S = 10
 #: How often the server looks for such sessions, s.
 CHECK_UNUSED_S = 5
 
+#: Delay from a session's end to the garbage collection that frees its page, s.
+RELEASE_DELAY_S = 2.0
+
 _TITLE = "prsa-app: speed-loop tuning"
 
 
@@ -157,7 +160,16 @@ class PageGate:
             slot.future.cancel()  # not started yet: _built frees its place
         if prev == "ready" and page is not None:
             page.close()
-        self._builder.submit(_release_memory)
+        # Bokeh drops its references to the document after this callback: collect a little later
+        timer = threading.Timer(RELEASE_DELAY_S, self._release)
+        timer.daemon = True
+        timer.start()
+
+    def _release(self) -> None:
+        try:
+            self._builder.submit(_release_memory)
+        except RuntimeError:  # shut down
+            pass
 
     # ---- on the builder thread -----------------------------------------------------------
 
