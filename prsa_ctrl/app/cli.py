@@ -1,8 +1,9 @@
 """``prsa-app``: serve the tuning app on the loopback interface.
 
 Exit codes: 0 after Ctrl-C, SIGTERM or a normal stop (every page closed, the uploaded files
-removed, one line ``prsa-app: stopped (Ctrl-C|SIGTERM)``), 2 for bad input (flags, plant or scene files, a
-port in use, the ``app`` extra missing), one line ``prsa-app: error: ...`` and no traceback.
+removed, one line ``prsa-app: stopped (Ctrl-C|SIGTERM)``), 2 for bad input (flags, plant or
+scene files, a port in use, the ``app`` extra missing), one line ``prsa-app: error: ...`` and
+no traceback.
 """
 
 from __future__ import annotations
