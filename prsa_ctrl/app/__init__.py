@@ -16,8 +16,6 @@ toolkit's public functions; calibration from a drive log runs the ``prsa-fit`` c
 
 from __future__ import annotations
 
-from functools import partial
-
 __all__ = ["application", "show"]
 
 
@@ -37,16 +35,22 @@ def application(plant: str | None = None, scene: str | None = None, warm: bool =
     Returns
     -------
     bokeh.application.Application
+        Its pages are built off the server's event loop and capped
+        (:class:`prsa_ctrl.app.gate.PageGate`: at most
+        :data:`~prsa_ctrl.app.gate.MAX_PENDING_PAGES` pages in preparation and
+        :data:`~prsa_ctrl.app.gate.MAX_LIVE_PAGES` open; the gate is ``app.prsa_gate``).
     """
     from bokeh.application import Application
     from bokeh.application.handlers.function import FunctionHandler
 
-    from .page import WarmSessions, make_document
+    from .gate import PageGate
     from .session import AppSession
 
     AppSession(plant, scene).close()  # bad files fail here, not in the browser
-    pool = WarmSessions(plant, scene) if warm else None
-    return Application(FunctionHandler(partial(make_document, plant=plant, scene=scene, warm=pool)))
+    gate = PageGate(plant, scene, warm=warm)
+    app = Application(FunctionHandler(gate))
+    app.prsa_gate = gate
+    return app
 
 
 def show(plant: str | None = None, scene: str | None = None, notebook_url: str = "localhost:8888"):

@@ -1,7 +1,9 @@
 """``prsa-app``: serve the tuning app on the loopback interface.
 
-Exit codes: 0 after Ctrl-C or a normal stop, 2 for bad input (flags, plant or scene files, a
-port in use, the ``app`` extra missing), one line ``prsa-app: error: ...`` and no traceback.
+Exit codes: 0 after Ctrl-C, SIGTERM or a normal stop (every page closed, the uploaded files
+removed, one line ``prsa-app: stopped (Ctrl-C|SIGTERM)``), 2 for bad input (flags, plant or
+scene files, a port in use, the ``app`` extra missing), one line ``prsa-app: error: ...`` and
+no traceback.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from ..textsafe import MESSAGE_CHARS_MAX, printable
 __all__ = ["main", "build_parser", "serve"]
 
 PROG = "prsa-app"
+#: The interpreter's thread switch interval while serving, s (Python's default: 0.005).
+SWITCH_INTERVAL_S = 0.0005
 
 
 class _Usage(Exception):
@@ -58,6 +62,7 @@ def serve(plant: str | None = None, scene: str | None = None, port: int = 0):
     from bokeh.server.server import Server
 
     from . import application
+    from .gate import CHECK_UNUSED_S, UNUSED_SESSION_S
 
     app = application(plant, scene, warm=True)
     attempts = 20 if port == 0 else 1  # a free port can be taken between the probe and the bind
@@ -65,8 +70,12 @@ def serve(plant: str | None = None, scene: str | None = None, port: int = 0):
         p = port or _free_port()
         try:
             _probe(p)  # tornado leaks its socket when the bind fails
-            return Server({"/": app}, address="127.0.0.1", port=p, num_procs=1,
-                          allow_websocket_origin=[f"127.0.0.1:{p}", f"localhost:{p}"])
+            server = Server({"/": app}, address="127.0.0.1", port=p, num_procs=1,
+                            allow_websocket_origin=[f"127.0.0.1:{p}", f"localhost:{p}"],
+                            unused_session_lifetime_milliseconds=UNUSED_SESSION_S * 1000,
+                            check_unused_sessions_milliseconds=CHECK_UNUSED_S * 1000)
+            server.prsa_gate = app.prsa_gate  # the pages, closed when the app stops (main)
+            return server
         except OSError:
             if i == attempts - 1:
                 raise
@@ -120,7 +129,20 @@ def main(argv: Sequence[str] | None = None) -> int:
               "port (0 picks one)", file=sys.stderr)
         return 2
     url = f"http://127.0.0.1:{server.port}/"
+    # the event loop shares the GIL with the threads that build pages and tune: it gets the
+    # GIL back within SWITCH_INTERVAL_S of asking (Python's default 5 ms made every socket
+    # operation wait behind a build, and a flood of page loads 40 times slower)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     print(f"{PROG}: serving {url} (Ctrl-C to stop)", flush=True)
+    import signal
+
+    stopped_by = []
+
+    def on_term(signum, frame):  # SIGTERM stops the app as Ctrl-C does
+        stopped_by.append("SIGTERM")
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
     try:
         server.start()
         if not args.no_browser:
@@ -129,9 +151,25 @@ def main(argv: Sequence[str] | None = None) -> int:
             server.io_loop.add_callback(webbrowser.open, url)
         server.io_loop.start()
     except KeyboardInterrupt:
-        print(f"{PROG}: stopped (Ctrl-C)", file=sys.stderr)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the clean-up is not interrupted
+        _stop(server)
+        print(f"{PROG}: stopped ({stopped_by[0] if stopped_by else 'Ctrl-C'})", file=sys.stderr)
         return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _stop(server) -> None:
+    """Stop serving and close every page: workers stopped, a running ``prsa-fit`` ended, the
+    uploaded files removed (the server's temporary folders)."""
+    try:
+        server.stop()
+    except Exception:  # noqa: BLE001 - a half-started server: the pages are closed all the same
+        pass
+    gate = getattr(server, "prsa_gate", None)
+    if gate is not None:
+        gate.shutdown()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -11,20 +11,56 @@ Elements the browser tests read carry ``data-k`` attributes (``fit-state``, ``fi
 from __future__ import annotations
 
 import base64
+import binascii
 import html
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 from bokeh.models import Button, ColumnDataSource, CustomJS, Div, FileInput
 
-from .session import AppInputError, Calibration, Cancelled, one_line
+from .session import AppInputError, Calibration, Cancelled, one_line, upload_name
 
-__all__ = ["FitPanel", "uploaded_file"]
+__all__ = ["FitPanel", "uploaded_file", "upload_input", "too_large_line", "MAX_UPLOAD_BYTES", "SIZE_CHECK_JS"]
+
+
+#: Largest file the page takes (bytes). Bokeh's websocket takes messages up to 20 MB, and a
+#: file travels as base64 (4/3 of its size); the browser checks the size before sending
+#: (:data:`SIZE_CHECK_JS`), the server again.
+MAX_UPLOAD_BYTES = 10_000_000
+
+
+def upload_input(accept: str, title: str, css: str) -> tuple[FileInput, ColumnDataSource]:
+    """A ``FileInput`` whose browser side refuses a file above :data:`MAX_UPLOAD_BYTES` before
+    reading it, and the source it then reports ``name`` and ``bytes`` to (watch its ``data``)."""
+    too_large = ColumnDataSource(data={"name": [], "bytes": []})
+    widget = FileInput(accept=accept, title=title, css_classes=[css], tags=[MAX_UPLOAD_BYTES, too_large])
+    return widget, too_large
+
+
+def too_large_line(src: ColumnDataSource, default: str) -> str | None:
+    """The one line for a file the browser refused as too large (None if ``src`` holds none)."""
+    names, sizes = src.data.get("name", []), src.data.get("bytes", [])
+    if not names or not sizes:
+        return None
+    try:
+        size = float(sizes[0])
+    except (TypeError, ValueError):
+        size = float("nan")
+    return (f"{upload_name(names[0], default)}: {size / 1e6:.1f} MB; expected a file of at most "
+            f"{MAX_UPLOAD_BYTES / 1e6:g} MB (the app's upload limit)")
 
 
 def uploaded_file(widget: FileInput, default: str) -> tuple[str, bytes] | None:
-    """The file a Bokeh ``FileInput`` holds: ``(name, content)`` (``default`` when the browser
-    sent no name), or None when it holds none."""
+    """The file a Bokeh ``FileInput`` holds: ``(name, content)``, or None when it holds none.
+    The name is :func:`~prsa_ctrl.app.session.upload_name`'s (``default`` when the browser sent
+    none or one that is no plain file name).
+
+    Raises
+    ------
+    AppInputError
+        One line: the value is not base64 text (a client can send anything), or it is larger
+        than :data:`MAX_UPLOAD_BYTES`.
+    """
     value = widget.value
     if not value:
         return None
@@ -33,8 +69,45 @@ def uploaded_file(widget: FileInput, default: str) -> tuple[str, bytes] | None:
     except Exception:  # noqa: BLE001 - bokeh's UnsetValueError: no name came with the file
         name = None
     value = value[0] if isinstance(value, list) else value
-    name = (name[0] if isinstance(name, list) else name) or default
-    return name, base64.b64decode(value)
+    name = upload_name(name[0] if isinstance(name, list) and name else name, default)
+    if not isinstance(value, str):
+        raise AppInputError(f"{name}: the upload holds a {type(value).__name__}; expected the file's bytes as base64 "
+                            "text (as a browser sends a file)")
+    if len(value) > 4 * ((MAX_UPLOAD_BYTES + 2) // 3):
+        raise AppInputError(f"{name}: {len(value) * 3 / 4 / 1e6:.1f} MB; expected a file of at most "
+                            f"{MAX_UPLOAD_BYTES / 1e6:g} MB (the app's upload limit)")
+    try:
+        return name, base64.b64decode(value, validate=True)
+    except (binascii.Error, ValueError):
+        raise AppInputError(f"{name}: the upload is not base64 text; expected the file's bytes as base64 "
+                            "(as a browser sends a file)") from None
+
+
+#: Installed once per browser page (a Bokeh ``document_ready`` callback): a ``FileInput``
+#: tagged ``[max_bytes, source]`` (:func:`upload_input`) refuses a larger file before reading
+#: it, clears itself and reports the file's name and size to ``source``; nothing is sent.
+SIZE_CHECK_JS = """
+const FileInput = Bokeh.Models.get("FileInput");
+const View = FileInput == null ? null : FileInput.prototype.default_view;
+if (View != null && !View.prototype.__prsa_size_check) {
+  const load = View.prototype.load_files;
+  View.prototype.load_files = async function(files) {
+    const tags = this.model.tags;
+    const limit = tags.length == 2 && typeof tags[0] == "number" ? tags[0] : null;
+    if (limit != null) {
+      for (const file of files) {
+        if (file.size > limit) {
+          this.input_el.value = "";
+          tags[1].data = {name: [file.name], bytes: [file.size]};
+          return;
+        }
+      }
+    }
+    return load.call(this, files);
+  };
+  View.prototype.__prsa_size_check = true;
+}
+"""
 
 
 _BAR = ("<style>@keyframes prsa-ind {from {margin-left: -30%} to {margin-left: 100%}}</style>"
@@ -68,8 +141,9 @@ class FitPanel:
         self.calibration: Calibration | None = None
         self._seq = 0
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-fit")
-        self.upload = FileInput(accept=".csv", title="Calibrate from a drive log (prsa-fit LOG --plant <this plant>)",
-                                css_classes=["prsa-log-upload"])
+        self.upload, self.too_large = upload_input(".csv", "Calibrate from a drive log (prsa-fit LOG --plant <this "
+                                                   "plant>)", "prsa-log-upload")
+        self.too_large.on_change("data", lambda attr, old, new: self._too_large())
         self.use = Button(label="Use the fitted plant", disabled=True, button_type="success",
                           css_classes=["prsa-fit-use"])
         self.discard = Button(label="Cancel / discard", disabled=True, css_classes=["prsa-fit-discard"])
@@ -83,8 +157,17 @@ class FitPanel:
         self.use.on_click(self._use)
         self.discard.on_click(self._discard)
 
+    def _too_large(self) -> None:
+        line = too_large_line(self.too_large, "uploaded-log.csv")
+        if line is not None:
+            self.page.show_error(line)
+
     def _start(self) -> None:
-        got = uploaded_file(self.upload, "uploaded-log.csv")
+        try:
+            got = uploaded_file(self.upload, "uploaded-log.csv")
+        except AppInputError as exc:
+            self.page.show_error(str(exc))
+            return
         if got is None:
             return
         name, content = got

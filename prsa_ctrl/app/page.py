@@ -27,10 +27,10 @@ from bokeh.plotting import figure
 from bokeh.plotting.contour import contour_data
 
 from ..options import OBJECTIVES
-from .fitpanel import FitPanel, uploaded_file
+from .fitpanel import SIZE_CHECK_JS, FitPanel, too_large_line, upload_input, uploaded_file
 from .genericpanel import GenericPanel
 from .session import (FIDELITIES, AppInputError, AppSession, Cancelled, Settings, View, builtin_names, one_line,
-                      robust_study)
+                      robust_study, typed)
 
 __all__ = ["AppPage", "make_document"]
 
@@ -56,7 +56,7 @@ class AppPage:
     """
 
     def __init__(self, doc, plant: str | None = None, scene: str | None = None,
-                 session: AppSession | None = None) -> None:
+                 session: AppSession | None = None, attach: bool = True) -> None:
         self.doc = doc
         self.session = session if session is not None else AppSession(plant, scene)
         self.settings = self.session.default_settings()
@@ -72,10 +72,21 @@ class AppPage:
         self._drag_end = -1  # the manual-only update of the last drag's end
         self._land_seq = -1
         self._cancel = threading.Event()
+        self._reverting = {"plant": False, "scene": False}  # a select set back after a refused value
         self._tune_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-tune")
         self._verify_pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-verify")
         self._build()
-        doc.on_session_destroyed(self._destroyed)
+        if attach:
+            self.attach()
+
+    def attach(self) -> None:
+        """Put the page into its document and start the first tuning (on the server's event
+        loop). Building the page (``attach=False``) touches no document, so it can run on
+        another thread (:class:`prsa_ctrl.app.gate.PageGate` does)."""
+        self.doc.add_root(self.root)
+        self.doc.title = "prsa-app: speed-loop tuning"
+        self.doc.js_on_event("document_ready", CustomJS(code=SIZE_CHECK_JS))  # a page built at once
+        self.doc.on_session_destroyed(self._destroyed)
         self.request()
 
     # ---- layout -------------------------------------------------------------------------
@@ -88,10 +99,12 @@ class AppPage:
         self.status = Div(text="starting", css_classes=["prsa-status"])
         self.plant_select = Select(title="Plant (built-in)", options=plants,
                                    value=self.session.plant_label if self.session.plant_label in plants else plants[0])
-        self.plant_upload = FileInput(accept=".toml", title="or upload a plant file", css_classes=["prsa-plant-upload"])
+        self.plant_upload, plant_big = upload_input(".toml", "or upload a plant file", "prsa-plant-upload")
         self.scene_select = Select(title="Scene (built-in)", options=scenes,
                                    value=self.session.scene_label if self.session.scene_label in scenes else scenes[0])
-        self.scene_upload = FileInput(accept=".toml", title="or upload a scene file", css_classes=["prsa-scene-upload"])
+        self.scene_upload, scene_big = upload_input(".toml", "or upload a scene file", "prsa-scene-upload")
+        for kind, src in (("plant", plant_big), ("scene", scene_big)):
+            src.on_change("data", partial(self._too_large, kind))
         self.objective = Select(title="Objective", options=list(OBJECTIVES), value=s.objective)
         self.controller = RadioButtonGroup(labels=["PI", "PID"], active=0 if s.controller == "pi" else 1,
                                            css_classes=["prsa-controller"])
@@ -143,8 +156,8 @@ class AppPage:
         self.mt_on.on_change("active", lambda attr, old, new: self.request())
         self.ms.on_change("value_throttled", lambda attr, old, new: self.request())
         self.mt.on_change("value_throttled", lambda attr, old, new: self.request())
-        self.plant_select.on_change("value", lambda attr, old, new: self._switch("plant", new))
-        self.scene_select.on_change("value", lambda attr, old, new: self._switch("scene", new))
+        self.plant_select.on_change("value", lambda attr, old, new: self._switch("plant", old, new))
+        self.scene_select.on_change("value", lambda attr, old, new: self._switch("scene", old, new))
         # value and filename arrive in one patch, value first: read both once the patch is applied
         self.plant_upload.on_change("value", lambda attr, old, new: self.doc.add_next_tick_callback(
             partial(self._upload, "plant", self.plant_upload)))
@@ -183,8 +196,7 @@ class AppPage:
                                         title="Generic plant (transfer function)")],
                          sizing_mode="stretch_width", css_classes=["prsa-tabs"])
         self.tabs.on_change("active", lambda attr, old, new: self._open_generic() if new == 1 else None)
-        self.doc.add_root(column(self.title, self.tabs, sizing_mode="stretch_width"))
-        self.doc.title = "prsa-app: speed-loop tuning"
+        self.root = column(self.title, self.tabs, sizing_mode="stretch_width")
 
     def _figures(self) -> None:
         self.resp = figure(title="Predicted load-step response (first load level)", x_axis_label="time (s)",
@@ -535,7 +547,21 @@ class AppPage:
         self.export_which.active = 0
         self.request()
 
-    def _switch(self, kind: str, name: str) -> None:
+    def _switch(self, kind: str, old: str, name: str) -> None:
+        """A built-in plant or scene chosen in its select. Bokeh does not check that a select's
+        value is one of its options (a client can set any text): anything else is refused with
+        one line and the select goes back to its previous value; the session refuses it too
+        (:meth:`AppSession.set_plant`)."""
+        select = self.plant_select if kind == "plant" else self.scene_select
+        if self._reverting.get(kind):
+            self._reverting[kind] = False
+            return
+        if not isinstance(name, str) or name not in select.options:
+            self._show_error(f"{kind} select value {typed(name)}: expected one of the built-in {kind}s "
+                             f"({', '.join(select.options)})")
+            self._reverting[kind] = True
+            select.value = old if old in select.options else select.options[0]
+            return
         try:
             notes = (self.session.set_plant if kind == "plant" else self.session.set_scene)(name)
         except AppInputError as exc:
@@ -543,8 +569,18 @@ class AppPage:
             return
         self._after_switch(kind, notes)
 
+    def _too_large(self, kind: str, attr, old, new) -> None:
+        src = (self.plant_upload if kind == "plant" else self.scene_upload).tags[1]
+        line = too_large_line(src, f"uploaded-{kind}.toml")
+        if line is not None:
+            self._show_error(line)
+
     def _upload(self, kind: str, widget: FileInput) -> None:
-        got = uploaded_file(widget, f"uploaded-{kind}.toml")
+        try:
+            got = uploaded_file(widget, f"uploaded-{kind}.toml")
+        except AppInputError as exc:
+            self._show_error(str(exc))
+            return
         if got is None:
             return
         name, content = got
@@ -707,6 +743,13 @@ class AppPage:
             "<table style='font-size:12px'><tr>" + "".join(f"<th style='padding:2px 6px'>{h}</th>" for h in head)
             + "</tr>" + "".join(rows) + "</table>")
 
+    def close(self, wait: bool = False) -> None:
+        """Stop the page's workers and release its session (uploaded files, tuners and caches);
+        ``wait``: return once the session is released (it waits for a running tuning)."""
+        self._destroyed(None)
+        if wait:
+            self.session.close()
+
     def _destroyed(self, session_context) -> None:
         self._seq += 1
         self._cancel.set()
@@ -717,7 +760,8 @@ class AppPage:
         self.fit.close()
         if self.generic is not None:
             self.generic.close()
-        self.session.close()
+        # the session's lock may be held by a running tuning (seconds): release it off the loop
+        threading.Thread(target=self.session.close, name="prsa-app-close", daemon=True).start()
 
 
 _DOWNLOAD_JS = """
@@ -765,7 +809,7 @@ class WarmSessions:
 
     def take(self) -> AppSession:
         """A prepared session (waits for the one in preparation), or a plain new one if that
-        preparation failed."""
+        preparation failed. Slow (seconds): call it off the server's event loop."""
         with self._lock:
             fut, self._next = self._next, self._pool.submit(self._build)
         try:
@@ -776,5 +820,6 @@ class WarmSessions:
 
 def make_document(doc, plant: str | None = None, scene: str | None = None,
                   warm: WarmSessions | None = None) -> AppPage:
-    """Build the app into a Bokeh document (the server's and the notebook's entry point)."""
+    """Build the app into a Bokeh document at once, on the calling thread (seconds). The
+    server builds its pages off the event loop instead (:class:`prsa_ctrl.app.gate.PageGate`)."""
     return AppPage(doc, plant, scene, session=warm.take() if warm is not None else None)

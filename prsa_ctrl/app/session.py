@@ -13,8 +13,10 @@ Units are SI: gains ``kp`` N m s/rad, ``ki`` N m/rad, ``kd`` N m s^2/rad; speeds
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
+import os
 import shlex
 import tempfile
 import threading
@@ -34,7 +36,8 @@ from ..plant.plantfile import Plant, builtin_plants, load_plant
 from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
 from ..tuning.tuner import Tuner
 
-__all__ = ["AppInputError", "Settings", "View", "AppSession", "Calibration", "FIDELITIES", "LANDSCAPE_POINTS"]
+__all__ = ["AppInputError", "Settings", "View", "AppSession", "Calibration", "FIDELITIES", "LANDSCAPE_POINTS",
+           "upload_name", "TRACE_KEYS"]
 
 #: Verification fidelities offered (``Scene.fidelity``).
 FIDELITIES = ("auto", "rigid", "compliant", "multi-roller")
@@ -46,6 +49,13 @@ _MAX_TUNERS = 8
 
 class AppInputError(ValueError):
     """Bad input from the page or the command line; ``str(exc)`` is the one line to show."""
+
+
+def typed(value, limit: int = 200) -> str:
+    """``repr(value)`` as a message quotes a value as typed, cut to ``limit`` characters (a
+    client can send megabytes)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def one_line(exc: BaseException) -> str:
@@ -172,7 +182,13 @@ class AppSession:
                         fidelity=sc.fidelity)
 
     def set_plant(self, name_or_path: str | Path, label: str | None = None) -> list[str]:
-        """Switch to another plant (checked against the scene first); returns its notes."""
+        """Switch to another plant (checked against the scene first); returns its notes.
+
+        ``name_or_path`` is a built-in plant name or a file in the session's own private folder
+        (an upload, a calibration's fitted plant): any other path is refused before the disk is
+        touched (the page's select sends client text here; see :meth:`_own`).
+        """
+        self._own("plant", name_or_path, builtin_names()[0])
         plant, plabel, notes = _load_plant(name_or_path, label)
         _check_scene_plant(self.base_scene, plant)
         with self._lock:
@@ -182,8 +198,14 @@ class AppSession:
         return notes
 
     def set_scene(self, name_or_path: str | Path, label: str | None = None) -> list[str]:
-        """Switch to another load-step scene (checked against the plant first); returns its notes."""
-        scene, slabel, notes = _load_scene(name_or_path, label)
+        """Switch to another load-step scene (checked against the plant first); returns its notes.
+
+        ``name_or_path`` is a built-in load-step scene name or a file in the session's own
+        private folder (an upload, read without its CSV traces: :meth:`upload`); any other path
+        is refused before the disk is touched.
+        """
+        own = self._own("scene", name_or_path, builtin_names()[1])
+        scene, slabel, notes = _load_uploaded_scene(name_or_path, label) if own else _load_scene(name_or_path, label)
         _check_scene_plant(scene, self.plant)
         with self._lock:
             self.base_scene, self.scene_label = scene, slabel
@@ -193,13 +215,16 @@ class AppSession:
     def upload(self, kind: str, filename: str, content: bytes) -> list[str]:
         """Load an uploaded plant or scene file (``kind`` ``"plant"`` or ``"scene"``).
 
-        The file is stored under its own name in a private temporary folder, and every message
-        names it as uploaded (``filename``), exactly as the CLI names a file given as
-        ``--plant FILENAME`` in its folder.
+        The file is stored under its own name (:func:`upload_name`: the last part of
+        ``filename``, or ``uploaded-KIND.toml``) in a private temporary folder, and every message
+        names it as uploaded, exactly as the CLI names a file given as ``--plant FILENAME`` in
+        its folder. An uploaded scene never reads another file: one naming a CSV trace
+        (``operating.load_trace_csv``, ``operating.setpoint_trace_csv``) is refused before any
+        read (the app tunes load-step scenes, which have no trace).
         """
         if kind not in ("plant", "scene"):
             raise ValueError(f"kind = {kind!r}; expected 'plant' or 'scene'")
-        name = Path(str(filename)).name or f"uploaded-{kind}.toml"
+        name = upload_name(filename, f"uploaded-{kind}.toml")
         path = self._folder(kind) / name
         path.write_bytes(content)
         try:
@@ -208,6 +233,22 @@ class AppSession:
             return self.set_scene(str(path), label=name)
         except AppInputError as exc:
             raise AppInputError(str(exc).replace(str(path), name)) from None
+
+    def _own(self, kind: str, name_or_path, builtins) -> bool:
+        """Whether ``name_or_path`` is a file in the session's private folder (True) or one of
+        ``builtins`` (False); anything else raises :class:`AppInputError` without touching the
+        disk (the same line whether or not such a file exists)."""
+        text = str(name_or_path)
+        if not isinstance(name_or_path, Path) and text in builtins:
+            return False
+        with self._lock:
+            root = None if self._tmp is None else Path(self._tmp.name)
+        if root is not None and isinstance(name_or_path, (str, Path)) and Path(text).is_absolute():
+            p = Path(os.path.normpath(text))
+            if p.parent.parent == root:  # ROOT/<kind>-<n>/<name>: written by upload() or calibrate()
+                return True
+        raise AppInputError(f"{kind} {typed(text)}: expected a built-in {kind} ({', '.join(builtins)}) "
+                            f"or an uploaded {kind} file")
 
     def _folder(self, kind: str) -> Path:
         """A new folder in the session's private temporary folder."""
@@ -244,7 +285,7 @@ class AppSession:
         import subprocess
         import sys
 
-        name = Path(str(filename)).name or "uploaded-log.csv"
+        name = upload_name(filename, "uploaded-log.csv")
         folder = self._folder("log")
         (folder / name).write_bytes(content)
         stem = Path(name).stem or "log"
@@ -524,10 +565,13 @@ class AppSession:
         self._landscapes.clear()
 
     def close(self) -> None:
-        """Remove the uploaded files."""
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None
+        """Remove the uploaded files and drop the tuners, loop models and cached designs (the
+        session's memory; it is rebuilt on the next use)."""
+        with self._lock:
+            self._clear()
+            if self._tmp is not None:
+                self._tmp.cleanup()
+                self._tmp = None
 
 
 def _initial(s: Settings) -> float:
@@ -593,6 +637,43 @@ def _load_scene(name_or_path, label: str | None = None) -> tuple[Scene, str, lis
     return scene, text, _notes(caught)
 
 
+#: Scene keys naming a file to read (a CSV trace); an uploaded scene may not hold them.
+TRACE_KEYS = ("load_trace_csv", "setpoint_trace_csv")
+
+
+def upload_name(filename, default: str) -> str:
+    """The name an uploaded file is stored (and named in messages) under: the last part of the
+    name the browser sent (``/`` and ``\\`` both separate parts), or ``default`` when that is
+    empty, ``.``/``..``, starts with a dot, holds a control character or is longer than 200
+    bytes. Never a path: the file is written into the session's private folder under it."""
+    text = filename if isinstance(filename, str) else ""
+    name = text.replace("\\", "/").rsplit("/", 1)[-1].strip()
+    if (not name or name.startswith(".") or any(ord(c) < 32 or 0x7F <= ord(c) < 0xA0 for c in name)
+            or len(name.encode("utf-8", "replace")) > 200):
+        return default
+    return name
+
+
+def _load_uploaded_scene(path, label: str | None = None) -> tuple[Scene, str, list[str]]:
+    """An uploaded scene file, read without touching any other file: a CSV trace key (the only
+    keys of a scene that name a file) is refused before anything else is read, with one line
+    naming the key and the value as typed."""
+    from ..studies.scenefile import read_scene_doc
+
+    text = label or Path(str(path)).name
+    try:
+        doc = read_scene_doc(Path(str(path)), text)
+    except SceneError as exc:
+        raise AppInputError(one_line(exc)) from None
+    op = doc.get("operating")
+    if isinstance(op, dict):
+        for key in TRACE_KEYS:
+            if key in op:
+                raise AppInputError(f"{text}: operating.{key} = {typed(op[key])}: an uploaded scene cannot read files on "
+                                    "the server; expected a load-step scene without a CSV trace")
+    return _load_scene(path, label)
+
+
 def _check_scene_plant(scene: Scene, plant: Plant) -> None:
     try:
         check_against_plant(scene, plant)
@@ -601,7 +682,14 @@ def _check_scene_plant(scene: Scene, plant: Plant) -> None:
 
 
 def builtin_names() -> tuple[list[str], list[str]]:
-    """Built-in plant names and load-step scene names (the choices of the page)."""
+    """Built-in plant names and load-step scene names (the choices of the page; the only names
+    :meth:`AppSession.set_plant`/:meth:`AppSession.set_scene` take besides uploads)."""
+    plants, scenes = _builtin_names()
+    return list(plants), list(scenes)
+
+
+@functools.lru_cache(maxsize=1)
+def _builtin_names() -> tuple[tuple[str, ...], tuple[str, ...]]:
     scenes = []
     for name in builtin_scenes():
         try:
@@ -609,7 +697,7 @@ def builtin_names() -> tuple[list[str], list[str]]:
         except AppInputError:
             continue
         scenes.append(name)
-    return builtin_plants(), scenes
+    return tuple(builtin_plants()), tuple(scenes)
 
 
 @dataclass(frozen=True)

@@ -174,3 +174,104 @@ def test_show_in_a_notebook_serves_the_app_from_the_kernel():
     html_out = [o["data"]["text/html"] for o in outs if "text/html" in o.get("data", {})]
     assert len(html_out) == 1 and "/autoload.js?bokeh-autoload-element=" in html_out[0]
     assert outs[-1]["data"]["text/plain"] == "'Application'"
+
+
+# ---- issue 31: no client text reaches the disk as a path -----------------------------------
+
+
+def test_session_takes_only_builtin_names_or_its_own_uploads(tmp_path):
+    """A valid plant or scene file elsewhere on the disk is refused before it is read (the
+    page's selects send client text to set_plant/set_scene), with the same line as a path that
+    does not exist; the session's plant and scene stay."""
+    from prsa_ctrl.app.session import builtin_names, typed
+    from prsa_ctrl.plant.plantfile import plant_file_path
+    from prsa_ctrl.studies.scenefile import locate_scene
+
+    (tmp_path / "other.toml").write_text(plant_file_path("iprsm-60").read_text())
+    (tmp_path / "scene.toml").write_text(locate_scene("paper-table3")[0].read_text())
+    s = AppSession()
+    try:
+        for what, call, arg in (("plant", s.set_plant, tmp_path / "other.toml"),
+                                ("plant", s.set_plant, str(tmp_path / "other.toml")),
+                                ("plant", s.set_plant, "/etc/passwd"),
+                                ("plant", s.set_plant, str(tmp_path / "missing.toml")),
+                                ("scene", s.set_scene, str(tmp_path / "scene.toml")),
+                                ("scene", s.set_scene, "../tuning/paper-table3.toml"),
+                                ("scene", s.set_scene, "/etc/passwd")):
+            with pytest.raises(AppInputError) as info:
+                call(arg)
+            names = builtin_names()[what == "scene"]
+            assert str(info.value) == (f"{what} {typed(str(arg))}: expected a built-in {what} ({', '.join(names)}) "
+                                       f"or an uploaded {what} file")
+        assert (s.plant_label, s.scene_label) == ("paper-iprsm", "paper-load-step")
+        # built-in names still switch
+        s.set_plant("iprsm-60")
+        assert s.plant.name == load_plant("iprsm-60").name
+    finally:
+        s.close()
+
+
+@pytest.mark.parametrize("trace", ["/etc/passwd", "../../../../etc/passwd", "trace.csv"])
+@pytest.mark.parametrize("key", ["load_trace_csv", "setpoint_trace_csv"])
+def test_uploaded_scene_naming_a_trace_is_refused_before_any_read(tmp_path, monkeypatch, trace, key):
+    import prsa_ctrl.studies.scene as scene_mod
+
+    # a valid trace where a relative name would resolve: still refused, and never opened
+    (tmp_path / "trace.csv").write_text("time_s,axial_load_n\n0,500\n1,500\n")
+    monkeypatch.chdir(tmp_path)
+    reads = []
+    monkeypatch.setattr(scene_mod, "read_trace_csv", lambda *a, **k: reads.append(a) or (_ for _ in ()).throw(
+        AssertionError("read")))
+    s = AppSession()
+    try:
+        with pytest.raises(AppInputError) as info:
+            s.upload("scene", "hostile.toml", f'[operating]\n{key} = "{trace}"\n'.encode())
+        assert str(info.value) == (f"hostile.toml: operating.{key} = {trace!r}: an uploaded scene cannot read files "
+                                   "on the server; expected a load-step scene without a CSV trace")
+        assert reads == [] and s.scene_label == "paper-load-step"
+    finally:
+        s.close()
+
+
+def test_uploaded_scene_without_a_trace_still_loads():
+    from prsa_ctrl.studies.scenefile import locate_scene
+
+    s = AppSession()
+    try:
+        s.upload("scene", "../../etc/table3.toml", locate_scene("paper-table3")[0].read_bytes())
+        assert s.scene_label == "table3.toml"  # stored and named under its last part only
+        assert s.base_scene.final_loads == load_scene("paper-table3").final_loads
+    finally:
+        s.close()
+
+
+@pytest.mark.parametrize("sent, stored", [
+    ("../../etc/x.toml", "x.toml"), ("..", "default.toml"), (".", "default.toml"), ("a\\b\\c.toml", "c.toml"),
+    ("", "default.toml"), (None, "default.toml"), (".stdout", "default.toml"), ("\x1b]0;pwned\x07.toml", "default.toml"),
+    ("x" * 201, "default.toml"), ("Messung-ü.csv", "Messung-ü.csv"), ("/abs/path/p.toml", "p.toml"),
+])
+def test_upload_name_is_never_a_path(sent, stored):
+    from prsa_ctrl.app.session import upload_name
+
+    assert upload_name(sent, "default.toml") == stored
+
+
+@pytest.mark.parametrize("value, line", [
+    ("not base64 ~~", "x.toml: the upload is not base64 text; expected the file's bytes as base64 (as a browser "
+                      "sends a file)"),
+    (["QUJD", "x"], None),  # the first of a list is taken
+    (12, "x.toml: the upload holds a int; expected the file's bytes as base64 text (as a browser sends a file)"),
+    ("A" * (4 * 3_333_334 + 4), "x.toml: 10.0 MB; expected a file of at most 10 MB (the app's upload limit)"),
+])
+def test_uploaded_file_checks_what_the_client_sent(value, line):
+    from types import SimpleNamespace
+
+    from prsa_ctrl.app.fitpanel import uploaded_file
+
+    w = SimpleNamespace(value=value, filename="../x.toml")
+    if line is None:
+        assert uploaded_file(w, "d.toml") == ("x.toml", b"ABC")
+    else:
+        with pytest.raises(AppInputError) as info:
+            uploaded_file(w, "d.toml")
+        assert str(info.value) == line

@@ -265,3 +265,136 @@ def test_robust_and_monte_carlo_with_progress_and_cancel(app_page):
     assert int(samples) == done and 0 <= int(passed) <= done
     assert float(_text(page, "mc-robust-maxms")) <= 1.4 * (1 + 1e-3)
     _shot(page, "app-robust.png")
+
+
+# ---- issue 31: the page's own BokehJS model cannot make the server read a file -------------
+
+_SET_SELECT_JS = """([title, value]) => {
+    const doc = Bokeh.documents[0];
+    const models = doc._all_models ? [...doc._all_models.values()] : [...doc.all_models];
+    const sel = models.find(m => m.type == "Select" && m.title == title);
+    sel.value = value;
+    return sel.options.length;
+}"""
+
+
+def typed(value) -> str:
+    """A value as the page's messages quote it: its repr, cut to 200 characters."""
+    text = repr(value)
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+@pytest.mark.parametrize("title, kind", [("Plant (built-in)", "plant"), ("Scene (built-in)", "scene")])
+def test_select_set_to_a_server_path_is_refused_and_reverts(app_page, tmp_path, title, kind):
+    """A client that sets a select's value to a path (here a valid plant or scene file, so a
+    server that read it would switch to it) gets one line and the select back; the page keeps
+    its plant and design."""
+    from prsa_ctrl.app.session import builtin_names
+    from prsa_ctrl.plant.plantfile import plant_file_path
+    from prsa_ctrl.studies.scenefile import locate_scene
+
+    page = app_page
+    kp = _text(page, "opt-kp")
+    src = plant_file_path("iprsm-60") if kind == "plant" else locate_scene("paper-table3")[0]
+    path = tmp_path / f"elsewhere-{kind}.toml"
+    path.write_text(src.read_text())
+    for value in (str(path), "/etc/passwd"):
+        page.evaluate(_SET_SELECT_JS, [title, value])
+        page.locator('[data-k="error"]', has_text=typed(value)).wait_for()
+        names = builtin_names()[kind == "scene"]
+        assert _text(page, "error") == (f"error: {kind} select value {typed(value)}: expected one of the built-in {kind}s "
+                                        f"({', '.join(names)})")
+        page.wait_for_function("([t, v]) => { const d = Bokeh.documents[0]; const ms = d._all_models ? "
+                               "[...d._all_models.values()] : [...d.all_models]; return ms.find(m => m.type == "
+                               "'Select' && m.title == t).value == v; }",
+                               arg=[title, "paper-iprsm" if kind == "plant" else "paper-load-step"])
+    assert "root:" not in page.content()
+    assert _text(page, "opt-kp") == kp
+    assert f"Plant <b>paper-iprsm</b>, scene <b>paper-load-step</b>" in page.locator('[data-k="bounds"]').inner_html()
+
+
+@pytest.mark.parametrize("trace", ["/etc/passwd", "../../../../../../etc/passwd"])
+def test_uploaded_scene_with_a_server_trace_is_refused_on_the_page(app_page, trace):
+    page = app_page
+    text = f'[operating]\nload_trace_csv = "{trace}"\n'
+    page.locator(".prsa-scene-upload input[type=file]").set_input_files(
+        files=[{"name": "hostile.toml", "mimeType": "application/toml", "buffer": text.encode()}])
+    page.locator('[data-k="error"]').wait_for()
+    assert _text(page, "error") == (f"error: hostile.toml: operating.load_trace_csv = {trace!r}: an uploaded scene "
+                                    "cannot read files on the server; expected a load-step scene without a CSV trace")
+    assert "root:" not in page.content()
+
+
+# ---- issue 31: uploads the page cannot take get one line; SIGTERM stops like Ctrl-C --------
+
+_SET_UPLOAD_JS = """([cls, value, name]) => {
+    const doc = Bokeh.documents[0];
+    const models = doc._all_models ? [...doc._all_models.values()] : [...doc.all_models];
+    const fi = models.find(m => m.type == "FileInput" && m.css_classes.includes(cls));
+    fi.setv({value: value, filename: name, mime_type: "text/plain"});
+}"""
+
+
+@pytest.mark.parametrize("cls, name", [("prsa-plant-upload", "p.toml"), ("prsa-scene-upload", "s.toml"),
+                                       ("prsa-log-upload", "log.csv")])
+def test_upload_that_is_not_base64_is_one_line_on_the_page(app_page, cls, name):
+    page = app_page
+    page.evaluate(_SET_UPLOAD_JS, [cls, "this is not base64 ~~~", name])
+    page.locator('[data-k="error"]').wait_for()
+    assert _text(page, "error") == (f"error: {name}: the upload is not base64 text; expected the file's bytes as "
+                                    "base64 (as a browser sends a file)")
+    assert page.locator('[data-k="opt-ms"]').count() == 1
+
+
+@pytest.mark.parametrize("megabytes", [12, 25])  # above the app's limit; above Bokeh's 20 MB message limit
+def test_upload_above_the_limit_is_one_line_and_sends_nothing(app_page, megabytes):
+    page = app_page
+    kp = _text(page, "opt-kp")
+    page.locator(".prsa-plant-upload input[type=file]").set_input_files(
+        files=[{"name": "big.toml", "mimeType": "application/toml", "buffer": b"#" * (megabytes * 1_000_000)}])
+    page.locator('[data-k="error"]').wait_for()
+    assert _text(page, "error") == (f"error: big.toml: {megabytes:.1f} MB; expected a file of at most 10 MB (the "
+                                    "app's upload limit)")
+    assert page.evaluate("() => Bokeh.documents.length") == 1  # the connection held: no second document
+    # the page still answers: a later small upload is read
+    page.locator(".prsa-plant-upload input[type=file]").set_input_files(
+        files=[{"name": "small.toml", "mimeType": "application/toml", "buffer": b"[nut\n"}])
+    page.locator('[data-k="error"]', has_text="small.toml: invalid TOML").wait_for()
+    assert _text(page, "opt-kp") == kp
+
+
+def test_sigterm_stops_like_ctrl_c_and_removes_the_uploads(app_browser, tmp_path):
+    """SIGTERM: exit 0, one line, the uploaded files' temporary folder gone (today's main dies
+    by the signal and leaves it)."""
+    import signal
+
+    from prsa_ctrl.plant.plantfile import plant_file_path
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.app.cli", "--no-browser"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=str(tmp_path), env={**os.environ, "TMPDIR": str(tmp)})
+    try:
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=lambda: lines.put(proc.stdout.readline()), daemon=True).start()
+        url = lines.get(timeout=120).split()[2]
+        ctx = app_browser.new_context(viewport={"width": 1500, "height": 1300})
+        pg = ctx.new_page()
+        pg.set_default_timeout(TIMEOUT_MS)
+        pg.goto(url)
+        pg.locator('[data-k="opt-ms"]').wait_for()
+        pg.locator(".prsa-plant-upload input[type=file]").set_input_files(
+            files=[{"name": "copy.toml", "mimeType": "application/toml",
+                    "buffer": plant_file_path("iprsm-60").read_bytes()}])
+        pg.locator('[data-k="bounds"]', has_text="copy.toml").wait_for()
+        assert [p.name for p in tmp.iterdir() if p.name.startswith("prsa-app-")], "no upload folder to remove"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+        ctx.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert err.strip().splitlines()[-1] == "prsa-app: stopped (SIGTERM)", err
+    assert [p.name for p in tmp.iterdir() if p.name.startswith("prsa-app-")] == []
