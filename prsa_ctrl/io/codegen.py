@@ -505,7 +505,8 @@ def _header_comment(law: DriveLaw, lang: str) -> list[str]:
                      "exp(-(w/FR_WS)^2) - FR_VN w); w = 0: 0; added to the acceleration feed-forward"
                      + ("; needs <math.h> (exp; link with -lm)." if lang == "c" else " (EXP)."))
     if p:
-        lines.append(f"Position loop: measured {p.measured}, every {p.rate} sample(s); "
+        lines.append(f"Position loop: measured {p.measured}, every {p.rate} sample(s) (position-loop sample time "
+                     f"{p.rate * law.ts!r} s over the speed loop's {law.ts!r} s); "
                      + ("position counts are the encoder counts" if p.measured == "nut_angle"
                         else f"position counts of the linear scale ({p.per_count!r} m each)")
                      + "; references in m, m/s, m/s^2 of screw travel from the position at init.")

@@ -563,3 +563,105 @@ def test_multirate_time_model_is_the_simulated_law(plant, scene):
     r = simulate_move(plant, sc, PID(PI.kp, PI.ki), PositionLoop(kv=50.0, kvff=0.0, kaff=0.0, rate=2))
     e_nl = _err_m(r, plant)[:e.size]
     assert np.max(np.abs(e_nl - e)) < 0.05 * np.max(np.abs(e))
+
+
+def _short_move(tmp_path, name, edits, cascade_lines=()):
+    from prsa_ctrl.studies.scenefile import locate_scene as _scene_path
+
+    text = _scene_path("paper-move")[0].read_text()
+    for key, value in (("distance_mm", "2.0"), ("fidelity", '"rigid"'), ("hold_duration_s", "0.06"),
+                       ("hold_delay_s", "0.03")) + tuple(edits):
+        text = "\n".join(f"{key} = {value}" if ln.startswith(key + " ") else ln for ln in text.splitlines())
+    text = text.replace("[cascade]", "[cascade]\n" + "\n".join(cascade_lines), 1)
+    f = tmp_path / name
+    f.write_text(text)
+    return f
+
+
+def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plant):
+    """Acceptance (issue 34, section 3): position_rate = 2 and kv_max = "4 (m/min)/mm" tuned by
+    prsa-tune, verified on the nonlinear model, with the position loop's own sample time in every
+    export format (TOML, JSON, C, ST)."""
+    import json
+
+    from prsa_ctrl.cli.tune import main
+
+    f = _short_move(tmp_path, "rate2.toml", [("position_rate", "2")], ['kv_max = "4 (m/min)/mm"'])
+    rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "d.toml")])
+    assert rc == 0 and capsys.readouterr().err == ""
+    data = json.loads((tmp_path / "c.json").read_text())
+    ts = plant.sample_time_s
+    sc = load_move_scene(f)
+    cm = CascadeModel(plant, sc)
+    for name in ("sequential", "joint"):
+        d = data[name]
+        assert d["position"]["rate"] == 2 and d["position"]["kv_per_s"] <= 4 * 1000 / 60 * (1 + 1e-9)
+        assert max(d["ms"][k] for k in BREAKING_POINTS) <= 1.4 * (1 + 1e-5)
+        assert d["verified"] is not None and d["verified"]["settling_time_s"] is not None
+        g = [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], d["position"]["ki_per_s2"],
+             d["position"]["kvff"], d["position"]["kaff"]]
+        assert cm.spectral_radius(g) < 1
+        # the reported peaks are the multi-rate model's, recomputed on another grid
+        again = cm.ms(g, n_dense=12007)
+        for k in BREAKING_POINTS:
+            assert again[k] == pytest.approx(d["ms"][k], rel=1e-4)
+    # the ceiling binds the joint design (it reaches 98 1/s without it)
+    assert data["joint"]["position"]["kv_per_s"] == pytest.approx(4 * 1000 / 60, rel=1e-6)
+    assert data["joint"]["verified"]["rms_following_error_m"] < data["sequential"]["verified"]["rms_following_error_m"]
+    pc = tomllib.loads((tmp_path / "d.toml").read_text())["position_controller"]
+    assert pc["sample_time_s"] == 2 * ts and pc["kv_m_min_per_mm"] == pytest.approx(4.0, rel=1e-6)
+    # the other formats of the same design (what --export d.json / drive.c / drive.st write)
+    from prsa_ctrl.io.codegen import code_texts
+    from prsa_ctrl.io.export import dumps as _dumps
+
+    d = data["joint"]
+    from prsa_ctrl.tuning.cascade import _design
+
+    design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
+                                   d["position"]["kvff"], d["position"]["kaff"]], 0.0)
+    assert design.position.rate == 2
+    assert json.loads(_dumps(export_cascade(design, plant, fmt="json"), "json"))["position_controller"][
+        "sample_time_s"] == 2 * ts
+    for ext in ("c", "st"):
+        code = "".join(code_texts(design, plant, tmp_path / f"drive.{ext}").values())
+        assert f"every 2 sample(s) (position-loop sample time {2 * ts!r} s" in code
+        assert ("s->phase + 1 >= 2" if ext == "c" else "IF Phase >= 2 THEN") in code
+
+
+@pytest.mark.parametrize("line, match", [
+    ('kv_max = "3"', r"cascade\.kv_max = '3'; expected a position gain > 0 with its unit"),
+    ('kv_max = "3 m/s"', r"cascade\.kv_max = '3 m/s'; expected"),
+    ('kv_max = "-2 1/s"', r"cascade\.kv_max = '-2 1/s'; expected"),
+    ('kv_max = "nan (m/min)/mm"', r"cascade\.kv_max = 'nan \(m/min\)/mm'; expected"),
+    ("kv_max = 3.0", r"cascade\.kv_max = 3\.0; expected a position gain ceiling > 0 with its unit"),
+])
+def test_kv_max_refused_in_one_line(tmp_path, capsys, line, match):
+    from prsa_ctrl.cli.tune import main
+
+    f = _short_move(tmp_path, "bad.toml", [], [line])
+    with pytest.raises(SceneError, match=match) as exc:
+        load_move_scene(f)
+    assert "\n" not in str(exc.value)
+    assert main(["--scene", str(f), "--export", str(tmp_path / "d.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "kv_max" in err and "Traceback" not in err
+    assert not (tmp_path / "d.toml").exists()
+
+
+def test_kv_max_units_and_the_python_api(plant, scene):
+    from prsa_ctrl.options import parse_kv
+    from prsa_ctrl.tuning.cascade import kv_ceiling
+
+    assert parse_kv("3 (m/min)/mm") == pytest.approx(50.0, rel=1e-15)
+    assert parse_kv("2.5 1/s") == 2.5 and parse_kv(" 1  (m/min) / mm ") == pytest.approx(1000 / 60)
+    assert kv_ceiling(scene) == math.inf and kv_ceiling(scene, 30.0) == 30.0
+    assert kv_ceiling(dataclasses.replace(scene, kv_max_per_s=20.0)) == 20.0
+    assert kv_ceiling(scene, "2 (m/min)/mm") == pytest.approx(100 / 3)
+    for bad in (0.0, -1.0, math.inf, math.nan, True, "2 mm"):
+        with pytest.raises(ValueError, match="kv_max = "):
+            kv_ceiling(scene, bad)
+    # the ceiling bounds the sequential rule too (it picks crossover/10 = 39 1/s without it)
+    sc = dataclasses.replace(scene, fidelity="rigid", position_rate=2)
+    seq = sequential_design(plant, sc, kv_max="1.2 (m/min)/mm")
+    assert seq.position.kv == pytest.approx(20.0) and any("ceiling" in n for n in seq.notes)
+    assert seq.position.rate == 2 and seq.ms <= sc.ms_max * (1 + 1e-5)
