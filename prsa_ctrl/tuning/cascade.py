@@ -10,7 +10,8 @@ Linear model of the sampled cascade (:class:`CascadeModel`)
     (:func:`prsa_ctrl.plant.linear.linear_core`), discretised with a zero-order hold, under exactly
     the per-sample law the simulator runs (encoder difference and speed filter, speed PI with
     Euler integral, one-sample computation delay; position P/PI with velocity and acceleration
-    feed-forward, at the speed-loop rate). Its loop transfer functions at the four
+    feed-forward, every ``position_rate`` speed-loop samples, the speed reference held in
+    between; the multi-rate loop below). Its loop transfer functions at the four
     loop-breaking points, with ``G`` the torque-command-to-angle response (delay included),
     ``G_p`` the same to the measured position (rad), ``W`` the speed measurement,
     ``C_s = kp + ki Ts z^-1/(1 - z^-1)``, ``C_p = kv + kip Ts/(1 - z^-1)``::
@@ -20,7 +21,13 @@ Linear model of the sampled cascade (:class:`CascadeModel`)
         position loop, speed loop closed:  L_p  = G_p C_s C_p / (1 + W G C_s)
         torque command (both loops broken at the plant input):  L_t = G_p C_s C_p + W G C_s
 
-    Ms = max |1/(1 + L)| at each (:data:`BREAKING_POINTS`). The linearisation ignores stiction (at rest the nut
+    Ms = max |1/(1 + L)| at each (:data:`BREAKING_POINTS`). With the position loop every N > 1
+    speed samples (Tp = N Ts) the loop is N-periodic and is lifted to the position period
+    (:meth:`CascadeModel.lift`: exact for the sampled loop): the position loop is scalar at its
+    own rate (:meth:`CascadeModel.position_loop`), the speed loop alone unchanged, and at the
+    torque command and the speed loop with the position loop closed the peak is that of
+    ``sigma_max((I + L_lifted)^-1)`` (:meth:`CascadeModel.return_differences`), the L2 gain of
+    the periodic sensitivity. The linearisation ignores stiction (at rest the nut
     sticks, which the nonlinear verification includes).
 
 Tuning (:func:`tune_cascade`)
@@ -103,7 +110,7 @@ class CascadeModel:
     Notes
     -----
     Gains ``g = [kp, ki, kv, kip, kvff, kaff]`` (:data:`CASCADE_GAINS`). The position loop
-    runs at the speed-loop rate in this model (``position_rate = 1``).
+    runs every ``scene.position_rate`` speed-loop samples (``tp`` = its sample time, s).
     """
 
     def __init__(self, plant: "Plant", scene: MoveScene, fidelity: str | None = None, n_grid: int = 300) -> None:
