@@ -20,6 +20,7 @@ from ..drive.motion import PROFILE_KINDS, MotionProfile, out_and_back, plan
 from ..errors import SceneError
 from ..options import KV_UNITS, MS_MAX_DEFAULT, PEAK_BOUND_RANGE, POSITION_RATE_MAX, check_peak_bound, parse_kv
 from .scenefile import locate_scene, read_scene_doc
+from .scenefilters import parse_filters
 
 __all__ = ["MoveScene", "parse_move_scene", "load_move_scene", "POSITION_SENSORS", "POSITION_RATE_MAX", "KV_UNITS",
            "parse_kv"]
@@ -127,6 +128,12 @@ class MoveScene:
     weight_holding: float = 1.0
     bandwidth_ratio: float | None = None
     kv_max_per_s: float | None = None
+    #: The drive's speed-measurement and torque-command filters (``[filters]``,
+    #: :mod:`prsa_ctrl.studies.scenefilters`): in the cascade model, the tuning, the verification
+    #: and the export.
+    filters: tuple = ()
+    #: How messages name each filter's frequency.
+    filter_labels: tuple = ()
     description: str = ""
     #: The ``[move]`` values as the file typed them (for error messages).
     typed: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
@@ -194,10 +201,10 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
         Unknown section or key, a value of the wrong type or range (one line naming the file
         and the key).
     """
-    allowed = {"name", "description", "move", "cascade"}
+    allowed = {"name", "description", "move", "cascade", "filters"}
     unknown = sorted(set(doc) - allowed)
     if unknown:
-        raise SceneError(f"{origin}: unknown section {unknown[0]!r} in a move scene; expected move, cascade")
+        raise SceneError(f"{origin}: unknown section {unknown[0]!r} in a move scene; expected move, cascade, filters")
     kw: dict[str, Any] = {"origin": origin, "name": doc.get("name", Path(origin.split(" ")[0]).stem)}
     if not isinstance(kw["name"], str):
         raise SceneError(f"{origin}: name = {kw['name']!r}; expected a string")
@@ -264,6 +271,8 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
             kw["kv_max_per_s"] = parse_kv(kw.pop("kv_max"), "cascade.kv_max")
         except ValueError as exc:
             raise SceneError(f"{origin}: {exc}") from None
+    if "filters" in doc:  # the drive's fixed loop filters, tuned around (as a speed-loop scene's)
+        kw["filters"], kw["filter_labels"] = parse_filters(doc["filters"], origin)
     kw["typed"] = dict(doc.get("move", {}))
     kw["distance_m"] = kw.pop("distance_mm") * 1e-3
     kw["max_speed_m_s"] = kw.pop("max_speed_mm_s") * 1e-3

@@ -55,6 +55,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
+from ..drive.filters import loop_filters
 from ..drive.sampled import zoh
 from ..drive.measurement import PositionLoop
 from ..drive.pid import PID
@@ -120,6 +121,11 @@ class CascadeModel:
                              f"samples in [1, {POSITION_RATE_MAX}]")
         self.rate = rate
         self.plant, self.scene = plant, scene
+        #: The drive's fixed loop filters (the scene's ``[filters]``), as the simulator runs them:
+        #: speed-measurement biquads on the filtered speed the PI reads, torque-command biquads on
+        #: the PI's command (feed-forward included) before the delay.
+        self.filters = tuple(loop_filters(tuple(getattr(scene, "filters", ()) or ()), plant.sample_time_s))
+        self.biquads = tuple((lf.place, lf.biquad(plant.sample_time_s)) for lf in self.filters)
         fid = fidelity or scene.fidelity
         model = plant_model(plant, fid)
         self.a_lead = a = plant.lead_per_rad
@@ -167,6 +173,12 @@ class CascadeModel:
         G = zd * (res @ self.c_th)
         Gp = zd * (res @ self.c_pos)
         W = (1 - self.alpha) / (1 - self.alpha * zi) * (1 - zi) / self.ts
+        for place, bq in self.biquads:  # the loop filters (none: the responses unchanged)
+            f = bq.frequency_response(w)
+            if place == "speed_measurement":
+                W = W * f
+            else:
+                G, Gp = G * f, Gp * f
         return {"G": G, "Gp": Gp, "W": W, "cs_i": self.ts * zi / (1 - zi), "cp_i": self.ts / (1 - zi)}
 
     def loops(self, g, omega: NDArray[np.float64] | None = None) -> dict[str, NDArray[np.complex128]]:
@@ -334,26 +346,44 @@ class CascadeModel:
             return self._build_casadi_multirate()
         n, ts, a = self.n, self.ts, self.a_lead
         nd = self.plant.command_delay_samples  # the drive's command delay: a line of nd commands after the states
+        nf = 4 * len(self.biquads)  # the filters' memory, last
         g = ca.SX.sym("g", 6)
-        X = ca.SX.sym("X", n + 5 + nd)
+        X = ca.SX.sym("X", n + 5 + nd + nf)
         r = ca.SX.sym("r", 4)  # position ref (rad), speed ref (rad/s), accel ref (rad/s^2), load (N)
         kp, ki, kv, kip, kvff, kaff = (g[i] for i in range(6))
         x, th_prev, w_f, i_s, u_pend, i_p = X[:n], X[n], X[n + 1], X[n + 2], X[n + 3], X[n + 4]
         theta = ca.dot(ca.DM(self.c_th), x)
         pm = ca.dot(ca.DM(self.c_pos), x)
         w_f1 = self.alpha * w_f + (1 - self.alpha) * (theta - th_prev) / ts
+        fmem = X[X.numel() - nf:]
+        w_m, fnext = self._filter("speed_measurement", w_f1, fmem)
         e_p = r[0] - pm
         i_p1 = i_p + ts * kip * e_p
         w_ref = kv * e_p + i_p1 + kvff * r[1]
-        u = kp * (w_ref - w_f1) + i_s + kaff * self.inertia * r[2]
-        i_s1 = i_s + ts * ki * (w_ref - w_f1)
-        line = X[n + 5:]
+        u = kp * (w_ref - w_m) + i_s + kaff * self.inertia * r[2]
+        i_s1 = i_s + ts * ki * (w_ref - w_m)
+        u, fnext = self._filter("torque_command", u, fmem, fnext)
+        line = X[n + 5:n + 5 + nd]
         act = line[nd - 1] if nd else u_pend
         x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * act + ca.DM(self.bd) * r[3]
-        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, *([u_pend] if nd else []), *[line[i] for i in range(nd - 1)])
+        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, *([u_pend] if nd else []), *[line[i] for i in range(nd - 1)],
+                        *fnext)
         self.step = ca.Function("cascade_step", [X, r, g], [Xn, e_p * a])
         self.jac = ca.Function("cascade_ab", [g], [ca.jacobian(Xn, X), ca.jacobian(Xn, r)])
-        self.nX = n + 5 + nd
+        self.nX = n + 5 + nd + nf
+
+    def _filter(self, place: str, x, fmem, fnext=None):
+        """The biquads at ``place`` run on ``x`` in order (direct form I, the simulator's
+        recursion); returns the output and the filters' next memory (all filters)."""
+        fnext = list(fnext) if fnext is not None else [fmem[i] for i in range(fmem.numel())]
+        for i, (pl, bq) in enumerate(self.biquads):
+            if pl != place:
+                continue
+            m = fmem[4 * i:4 * i + 4]
+            y = bq.b0 * x + bq.b1 * m[0] + bq.b2 * m[1] - bq.a1 * m[2] - bq.a2 * m[3]
+            fnext[4 * i:4 * i + 4] = [x, m[0], y, m[2]]
+            x = y
+        return x, fnext
 
     def _build_casadi_multirate(self) -> None:
         """The per-speed-sample law of a position loop every N samples (the simulator's
@@ -363,8 +393,9 @@ class CascadeModel:
         both are held (zero-order hold over Tp)."""
         n, ts, a = self.n, self.ts, self.a_lead
         nd = self.plant.command_delay_samples
+        nf = 4 * len(self.biquads)
         g = ca.SX.sym("g", 6)
-        X = ca.SX.sym("X", n + 7 + nd)
+        X = ca.SX.sym("X", n + 7 + nd + nf)
         act = ca.SX.sym("active")
         # position ref (rad), speed ref (rad/s), accel ref (rad/s^2), load (N), active (0/1)
         r4 = ca.SX.sym("r", 4)
@@ -375,20 +406,23 @@ class CascadeModel:
         theta = ca.dot(ca.DM(self.c_th), x)
         pm = ca.dot(ca.DM(self.c_pos), x)
         w_f1 = self.alpha * w_f + (1 - self.alpha) * (theta - th_prev) / ts
+        fmem = X[X.numel() - nf:]
+        w_m, fnext = self._filter("speed_measurement", w_f1, fmem)
         e_p = r[0] - pm
         i_p1 = i_p + act * self.tp * kip * e_p
         w_ref = act * (kv * e_p + i_p1 + kvff * r[1]) + (1 - act) * w_hold
         tau = act * kaff * self.inertia * r[2] + (1 - act) * tau_hold
-        u = kp * (w_ref - w_f1) + i_s + tau
-        i_s1 = i_s + ts * ki * (w_ref - w_f1)
-        line = X[n + 7:]
+        u = kp * (w_ref - w_m) + i_s + tau
+        i_s1 = i_s + ts * ki * (w_ref - w_m)
+        u, fnext = self._filter("torque_command", u, fmem, fnext)
+        line = X[n + 7:n + 7 + nd]
         cmd = line[nd - 1] if nd else u_pend
         x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * cmd + ca.DM(self.bd) * r[3]
         Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, w_ref, tau, *([u_pend] if nd else []),
-                        *[line[i] for i in range(nd - 1)])
+                        *[line[i] for i in range(nd - 1)], *fnext)
         self.step = ca.Function("cascade_step", [X, r, g], [Xn, e_p * a])
         self.jac = ca.Function("cascade_ab", [g, act], [ca.jacobian(Xn, X), ca.jacobian(Xn, r4)])
-        self.nX = n + 7 + nd
+        self.nX = n + 7 + nd + nf
 
     def closed_loop_matrices(self, g, active: float = 1.0) -> tuple[NDArray, NDArray]:
         """One speed-loop sample's closed-loop matrices ``(A, B)`` (``X+ = A X + B r``); of a
@@ -403,8 +437,9 @@ class CascadeModel:
         position-loop sample, then N - 1 held)."""
         if self.rate == 1:
             A = self.closed_loop_matrices(g)[0]
-            if float(g[3]) == 0.0:
-                A = A[:-1, :-1]
+            if float(g[3]) == 0.0:  # the position integral is state n + 4
+                keep = np.r_[0:self.n + 4, self.n + 5:self.nX]
+                A = A[np.ix_(keep, keep)]
             return float(np.max(np.abs(np.linalg.eigvals(A))))
         A1, A0 = self.closed_loop_matrices(g, 1.0)[0], self.closed_loop_matrices(g, 0.0)[0]
         phi = np.linalg.matrix_power(A0, self.rate - 1) @ A1
@@ -482,6 +517,9 @@ class CascadeDesign:
     verified: MoveMetrics | None = None
     notes: tuple = ()
     solver: dict = field(default_factory=dict)
+    #: The drive's fixed loop filters the design was tuned with (LoopFilter; the scene's
+    #: ``[filters]``): verified and exported with it.
+    filters: tuple = ()
     #: The nonlinear run of :func:`verify_design` (for the figures; not in :meth:`as_dict`).
     run: Any = field(default=None, repr=False, compare=False)
 
@@ -513,7 +551,8 @@ class CascadeDesign:
                              "rate": self.position.rate},
                 "ms": self.ms_points, "crossover_rad_s": self.crossover_rad_s, "linear": self.linear,
                 "objective": self.objective, "verified": self.verified.as_dict() if self.verified else None,
-                "notes": list(self.notes), "solver": self.solver}
+                "notes": list(self.notes), "solver": self.solver,
+                **({"filters": [lf.as_dict() for lf in self.filters]} if self.filters else {})}
 
 
 def _linear_summary(cm: CascadeModel, g) -> dict:
@@ -530,7 +569,7 @@ def _design(cm: CascadeModel, method: str, g, objective: float, notes=None, solv
                        rate=sc.position_rate)
     cross = {"speed_open": cm.crossover(g, "speed_open"), "position": cm.crossover(g, "position")}
     return CascadeDesign(method, speed, pos, cm.ms(g), cross, _linear_summary(cm, g), float(objective),
-                         notes=tuple(notes or ()), solver=dict(solver or {}))
+                         notes=tuple(notes or ()), solver=dict(solver or {}), filters=cm.filters)
 
 
 def kv_ceiling(scene: MoveScene, kv_max: "float | str | None" = None) -> float:
@@ -573,7 +612,7 @@ def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None 
     step = scene.hold_step_n or max(abs(scene.load_n), 100.0)
     lp = drive_loop(a_, b_, c_[model.output_names.index("nut_speed")], model.index("theta_nut"), ts=plant.sample_time_s,
                     speed_filter=plant.speed_filter_s, tf=DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s, horizon=0.1, step=step,
-                    command_delay_samples=plant.command_delay_samples)
+                    command_delay_samples=plant.command_delay_samples, **({"filters": cm.filters} if cm.filters else {}))
     ms_max = scene.ms_max
 
     def worst(g) -> float:

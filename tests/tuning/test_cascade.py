@@ -460,13 +460,22 @@ def test_text_report_names_every_bound_and_the_position_integral(plant, designs)
 
 # --- the position loop at its own sample time (issue 34, section 3) ---------------------------
 
-def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples):
+def _biquad_run(coef, mem, x):
+    b0, b1, b2, a1, a2 = coef
+    y = b0 * x + b1 * mem[0] + b2 * mem[1] - a1 * mem[2] - a2 * mem[3]
+    mem[:] = [x, mem[0], y, mem[2]]
+    return y
+
+
+def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, biquads=()):
     """An independent simulation of the linear multi-rate cascade (this test's own code: the
     plant discretised here with scipy's expm, the drive's per-sample law written out), with a
     complex sinusoid ``exp(j omega k Ts)`` added at one loop-breaking point: ``torque`` (the
     controller's command, before its delay), ``speed_closed`` (the filtered speed the PI reads)
     or ``position`` (the position the position loop reads, at its own samples). Returns the
-    signal at the breaking point (command + disturbance, and so on), one per speed sample."""
+    signal at the breaking point (command + disturbance, and so on), one per speed sample.
+    ``biquads``: ``(place, (b0, b1, b2, a1, a2))`` loop filters, direct form I, on the filtered
+    speed (``speed_measurement``) or on the command (``torque_command``)."""
     from scipy.linalg import expm
 
     from prsa_ctrl.plant.linear import linear_core
@@ -485,6 +494,7 @@ def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples):
     x = np.zeros(n, complex)
     th_prev = w_f = i_s = i_p = w_ref = 0j
     out = np.zeros(samples, complex)
+    mems = [[0j] * 4 for _ in biquads]
     for k in range(samples):
         d = np.exp(1j * omega * k * ts)
         theta = c @ x
@@ -497,7 +507,11 @@ def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples):
             w_ref = kv * e + i_p
             if where == "position":
                 out[k] = p_read
-        w_used = w_f + (d if where == "speed_closed" else 0)
+        w_m = w_f
+        for (place, coef), mem in zip(biquads, mems):
+            if place == "speed_measurement":
+                w_m = _biquad_run(coef, mem, w_m)
+        w_used = w_m + (d if where == "speed_closed" else 0)
         u = kp * (w_ref - w_used) + i_s
         i_s = i_s + ts * ki * (w_ref - w_used)
         u_total = u + (d if where == "torque" else 0)
@@ -505,20 +519,38 @@ def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples):
             out[k] = u_total
         elif where == "speed_closed":
             out[k] = w_used
-        line.insert(0, u_total)
+        u_cmd = u_total
+        for (place, coef), mem in zip(biquads, mems):
+            if place == "torque_command":
+                u_cmd = _biquad_run(coef, mem, u_cmd)
+        line.insert(0, u_cmd)
         x = Ad @ x + bu * line.pop()
     return out
 
 
-@pytest.mark.parametrize("n_rate", [2, 3])
-def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate):
+def _two_filters():
+    from prsa_ctrl.studies.scenefilters import parse_filters
+
+    return parse_filters({"notch": [{"path": "torque", "centre_hz": 1200.0, "width_hz": 300.0, "depth_db": -20.0}],
+                          "lowpass": [{"path": "speed", "corner_hz": 900.0, "order": 2}]}, "test")
+
+
+@pytest.mark.parametrize("n_rate, filtered", [(2, False), (3, False), (2, True), (1, True)])
+def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate, filtered):
     """The lifted loop model of a position loop every N speed samples (CascadeModel at
     position_rate = N) against a direct simulation of the linear multi-rate loop: a sinusoid
     injected at each breaking point, in steady state, gives over a position period exactly
     the lifted sensitivity ``M^-1`` times the input's lifted vector (the scalar ``1/(1 + L_p)``
-    at the position loop), at frequencies below and above the position loop's Nyquist."""
+    at the position loop), at frequencies below and above the position loop's Nyquist; with a
+    torque notch and a speed low-pass (the scene's fixed filters) in the loop too."""
     sc = dataclasses.replace(scene, fidelity="rigid", position_rate=n_rate)
+    if filtered:
+        f, labels = _two_filters()
+        sc = dataclasses.replace(sc, filters=f, filter_labels=labels)
     cm = CascadeModel(plant, sc)
+    ts = plant.sample_time_s
+    bqs = [(lf.place, tuple(getattr(lf.biquad(ts), k) for k in ("b0", "b1", "b2", "a1", "a2"))) for lf in sc.filters]
+    assert len(bqs) == (2 if filtered else 0)
     g = [PI.kp, PI.ki, 70.0, 2000.0, 1.0, 1.0]  # a position PI, so that its slow integral is checked too
     assert cm.spectral_radius(g) < 0.995
     samples = 4200 - 4200 % n_rate
@@ -527,21 +559,22 @@ def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate)
         zp = np.exp(1j * omega * tp)
         M = cm.return_differences(g, np.array([omega]))
         for where in ("torque", "speed_closed"):
-            y = _simulate_multirate(plant, cm, g, n_rate, omega, where, samples)
+            y = _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, bqs)
             v = np.exp(1j * omega * np.arange(n_rate) * plant.sample_time_s)
             predicted = np.linalg.solve(M[where][0], v)
             last = samples // n_rate - 1
             got = y[last * n_rate:(last + 1) * n_rate] / zp ** last
             assert np.allclose(got, predicted, rtol=1e-7, atol=1e-9 * np.max(np.abs(predicted))), (where, omega)
-        y = _simulate_multirate(plant, cm, g, n_rate, omega, "position", samples)
+        y = _simulate_multirate(plant, cm, g, n_rate, omega, "position", samples, bqs)
         last = samples // n_rate - 1
         got = y[last * n_rate] / zp ** last
         assert got == pytest.approx(1 / (1 + cm.position_loop(g, np.array([omega]))[0]), rel=1e-7)
-    # The model's peaks are those sensitivities' maxima: the slow loop sees more than the fast one.
-    fast = CascadeModel(plant, dataclasses.replace(sc, position_rate=1)).ms(g)
-    slow = cm.ms(g)
-    assert slow["speed_open"] == pytest.approx(fast["speed_open"], rel=1e-12)
-    assert slow["position"] > fast["position"]
+    if n_rate > 1:
+        # The model's peaks are those sensitivities' maxima: the slow loop sees more than the fast one.
+        fast = CascadeModel(plant, dataclasses.replace(sc, position_rate=1)).ms(g)
+        slow = cm.ms(g)
+        assert slow["speed_open"] == pytest.approx(fast["speed_open"], rel=1e-12)
+        assert slow["position"] > fast["position"]
 
 
 def test_multirate_time_model_is_the_simulated_law(plant, scene):
@@ -586,15 +619,20 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
 
     from prsa_ctrl.cli.tune import main
 
-    f = _short_move(tmp_path, "rate2.toml", [("position_rate", "2")], ['kv_max = "4 (m/min)/mm"'])
+    f = _short_move(tmp_path, "rate2.toml", [("position_rate", "2"), ("hold_delay_s", "0.08")], ['kv_max = "4 (m/min)/mm"'])
+    # the drive's fixed filters, tuned around (item 3): a torque notch and a speed low-pass
+    f.write_text(f.read_text() + '\n[[filters.notch]]\npath = "torque"\ncentre_hz = 1200.0\nwidth_hz = 300.0\n'
+                 '[[filters.lowpass]]\npath = "speed"\ncorner_hz = 900.0\norder = 2\n')
     rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "d.toml")])
     assert rc == 0 and capsys.readouterr().err == ""
     data = json.loads((tmp_path / "c.json").read_text())
     ts = plant.sample_time_s
     sc = load_move_scene(f)
+    assert [lf.place for lf in sc.filters] == ["torque_command", "speed_measurement"]
     cm = CascadeModel(plant, sc)
     for name in ("sequential", "joint"):
         d = data[name]
+        assert [x["place"] for x in d["filters"]] == ["torque_command", "speed_measurement"]
         assert d["position"]["rate"] == 2 and d["position"]["kv_per_s"] <= 4 * 1000 / 60 * (1 + 1e-9)
         assert max(d["ms"][k] for k in BREAKING_POINTS) <= 1.4 * (1 + 1e-5)
         assert d["verified"] is not None and d["verified"]["settling_time_s"] is not None
@@ -608,8 +646,10 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
     # the ceiling binds the joint design (it reaches 98 1/s without it)
     assert data["joint"]["position"]["kv_per_s"] == pytest.approx(4 * 1000 / 60, rel=1e-6)
     assert data["joint"]["verified"]["rms_following_error_m"] < data["sequential"]["verified"]["rms_following_error_m"]
-    pc = tomllib.loads((tmp_path / "d.toml").read_text())["position_controller"]
+    exported = tomllib.loads((tmp_path / "d.toml").read_text())
+    pc = exported["position_controller"]
     assert pc["sample_time_s"] == 2 * ts and pc["kv_m_min_per_mm"] == pytest.approx(4.0, rel=1e-6)
+    assert len(exported["filters"]) == 2
     # the other formats of the same design (what --export d.json / drive.c / drive.st write)
     from prsa_ctrl.io.codegen import code_texts
     from prsa_ctrl.io.export import dumps as _dumps
@@ -619,13 +659,16 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
 
     design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
                                    d["position"]["kvff"], d["position"]["kaff"]], 0.0)
-    assert design.position.rate == 2
+    assert design.position.rate == 2 and len(design.filters) == 2
     assert json.loads(_dumps(export_cascade(design, plant, fmt="json"), "json"))["position_controller"][
         "sample_time_s"] == 2 * ts
+    assert main(["--scene", str(f), "--quiet", "--export", str(tmp_path / "drive.st")]) == 0  # the CLI's code path
     for ext in ("c", "st"):
-        code = "".join(code_texts(design, plant, tmp_path / f"drive.{ext}").values())
+        code = ("".join(code_texts(design, plant, tmp_path / "drive.c", filters=design.filters).values())
+                if ext == "c" else (tmp_path / "drive.st").read_text())
         assert f"every 2 sample(s) (position-loop sample time {2 * ts!r} s" in code
         assert ("s->phase + 1 >= 2" if ext == "c" else "IF Phase >= 2 THEN") in code
+        assert "SF0_B0" in code and "TF0_B0" in code  # both filters in the generated law
 
 
 @pytest.mark.parametrize("line, match", [
