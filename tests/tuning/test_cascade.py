@@ -708,3 +708,29 @@ def test_kv_max_units_and_the_python_api(plant, scene):
     seq = sequential_design(plant, sc, kv_max="1.2 (m/min)/mm")
     assert seq.position.kv == pytest.approx(20.0) and any("ceiling" in n for n in seq.notes)
     assert seq.position.rate == 2 and seq.ms <= sc.ms_max * (1 + 1e-5)
+
+
+def test_report_names_the_rate_the_ceiling_and_the_filters(plant, designs):
+    from prsa_ctrl.cli.report import format_move_report
+
+    sc, cm, seq, joint = designs
+    f, labels = _two_filters()
+    text = format_move_report(plant, dataclasses.replace(sc, position_rate=2, kv_max_per_s=50.0, filters=f,
+                                                         filter_labels=labels), [seq, joint])
+    ts_us = plant.sample_time_s * 1e6
+    assert f"position loop every 2 speed-loop samples (Tp = {2 * ts_us:g} us over Ts = {ts_us:g} us)" in text
+    assert "kv_max = 50 1/s (3 (m/min)/mm)" in text and f"joint {joint.position.kv * 0.06:.4g} (m/min)/mm" in text
+    assert "at 1200 Hz on the torque command" in text and "at 900 Hz on the speed measurement" in text
+    plain = format_move_report(plant, sc, [seq, joint])
+    assert "speed-loop samples" not in plain and "kv_max" not in plain and "filters" not in plain
+
+
+def test_move_scene_filter_beyond_nyquist_refused(tmp_path, capsys):
+    from prsa_ctrl.cli.tune import main
+
+    f = _short_move(tmp_path, "nyq.toml", [("position_rate", "2")])
+    f.write_text(f.read_text() + '\n[[filters.lowpass]]\npath = "speed"\ncorner_hz = 2500.0\n')
+    assert main(["--scene", str(f), "--export", str(tmp_path / "d.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "corner_hz = 2500.0" in err and "Traceback" not in err
+    assert not (tmp_path / "d.toml").exists()
