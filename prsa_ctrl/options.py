@@ -59,8 +59,9 @@ RIGID_RELATIVE_ERROR = 0.028
 #: range 1.2-2.0; 1.4 keeps a gain margin of at least 3.5 and a phase margin of at least 41 deg).
 MS_MAX_DEFAULT = 1.4
 #: Largest position-loop sample time of a cascade, in speed-loop samples (``[move]
-#: position_rate``; the multi-rate cascade model lifts the loop to N x N matrices).
-POSITION_RATE_MAX = 8
+#: position_rate``; the multi-rate cascade model lifts the loop to N x N matrices, and the joint
+#: NLP's constraints grow as N^4: N = 4 tunes in about 30 s, N = 8 did not finish in minutes).
+POSITION_RATE_MAX = 4
 #: Units of a position gain ``kv_max`` and their factor to 1/s: ``(m/min)/mm`` is the speed in
 #: m/min per mm of following error (1 (m/min)/mm = 1000/60 1/s = 16.67 1/s).
 KV_UNITS: Mapping[str, float] = {"1/s": 1.0, "(m/min)/mm": 1000.0 / 60.0}

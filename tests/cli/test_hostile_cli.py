@@ -217,8 +217,8 @@ def _move_file(tmp_path, **edits):
 
 
 @pytest.mark.parametrize("key, value, match", [
-    ("position_rate", "9", r"move\.position_rate = 9; expected an integer number of speed-loop samples per "
-                           r"position-loop sample in \[1, 8\]"),
+    ("position_rate", "5", r"move\.position_rate = 5; expected an integer number of speed-loop samples per "
+                           r"position-loop sample in \[1, 4\]"),
     ("position_rate", "2.0", r"move\.position_rate = 2\.0; expected an integer number"),
     ("load_n", "9000.0", r"move\.load_n = 9000\.0: moving at 30 mm/s .* beyond the motor limit of 3 N m"),
     ("hold_step_n", "8000.0", r"move\.hold_step_n = 8000\.0: holding 9500 N at rest .* beyond the motor limit"),

@@ -59,8 +59,8 @@ def test_paper_move_scene(scene):
     ('profile = "sine"', r"move\.profile = 'sine'; expected one of trapezoidal, s-curve"),
     ('measured = "tacho"', r"move\.measured = 'tacho'"),
     ("position_rate = 0", r"move\.position_rate = 0"),
-    ("position_rate = 9", r"move\.position_rate = 9; expected an integer number of speed-loop samples per "
-                          r"position-loop sample in \[1, 8\]"),
+    ("position_rate = 5", r"move\.position_rate = 5; expected an integer number of speed-loop samples per "
+                          r"position-loop sample in \[1, 4\]"),
     ("load_time_s = 5.0", r"move\.load_time_s = 5\.0; expected a time in s inside the move"),
 ])
 def test_move_scene_errors_name_file_and_key(tmp_path, edit, match):
