@@ -234,7 +234,7 @@ class CascadeModel:
         WG, csi, Gp = (P["W"] * P["G"]).reshape(sh), P["cs_i"].reshape(sh), P["Gp"].reshape(sh)
         zp = np.exp(1j * w * self.tp)
         N = self.rate
-        h = (1 - z ** (-N)) / (N * (1 - 1 / z))
+        h = sum(z ** (-float(l)) for l in range(N)) / N  # (1 - z^-N)/(N (1 - z^-1)), finite at z = 1
         return {"A": self.lift(WG, z), "Lc": self.lift(csi, z), "c": self.lift(Gp, z)[:, 0, :],
                 "cp_i": self.tp / (1 - 1 / zp), "r": WG, "cs_i": csi, "Gp": Gp, "h": h, "G": P["G"].reshape(sh)}
 
@@ -877,6 +877,7 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
                 lbx[k], ubx[k] = 0.0, 1.5
             if i == 2 and math.isfinite(kv_cap):
                 ubx[k] = min(ubx[k], kv_cap / scale[2])
+                lbx[k] = min(lbx[k], 0.5 * ubx[k])  # a baseline far above the ceiling: the bounds stay ordered
         x = np.clip(x, lbx, ubx)
         nlp = {"x": y, "f": J, "g": ca.vertcat(*cons)}
         solver = ca.nlpsol("cascade", "ipopt", nlp, {"ipopt.print_level": 0, "print_time": False,
