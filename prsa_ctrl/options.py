@@ -6,6 +6,7 @@ Every default that more than one module needs lives here once, with its unit and
 from __future__ import annotations
 
 import math
+from typing import Any, Mapping
 
 __all__ = [
     "SETPOINT_RPM",
@@ -57,6 +58,56 @@ RIGID_RELATIVE_ERROR = 0.028
 #: Default bound on the peak sensitivity Ms = max|1/(1 + L)| (Astrom-Hagglund's robust
 #: range 1.2-2.0; 1.4 keeps a gain margin of at least 3.5 and a phase margin of at least 41 deg).
 MS_MAX_DEFAULT = 1.4
+#: Largest position-loop sample time of a cascade, in speed-loop samples (``[move]
+#: position_rate``; the multi-rate cascade model lifts the loop to N x N matrices, and the joint
+#: NLP's constraints grow as N^4: N = 4 tunes in about 30 s, N = 8 did not finish in minutes).
+POSITION_RATE_MAX = 4
+#: Units of a position gain ``kv_max`` and their factor to 1/s: ``(m/min)/mm`` is the speed in
+#: m/min per mm of following error (1 (m/min)/mm = 1000/60 1/s = 16.67 1/s).
+KV_UNITS: Mapping[str, float] = {"1/s": 1.0, "(m/min)/mm": 1000.0 / 60.0}
+
+
+def parse_kv(value: Any, where: str = "kv_max") -> float:
+    """A position gain typed with its unit, in 1/s.
+
+    Parameters
+    ----------
+    value : str
+        ``"<number> <unit>"`` with the unit one of :data:`KV_UNITS` (``"3 (m/min)/mm"``,
+        ``"50 1/s"``); a finite number > 0.
+    where : str
+        The value's name in the error message.
+
+    Returns
+    -------
+    float, 1/s
+
+    Raises
+    ------
+    ValueError
+        One line naming the value as typed and what was expected.
+
+    Examples
+    --------
+    >>> round(parse_kv("3 (m/min)/mm"), 6), parse_kv("50 1/s")
+    (50.0, 50.0)
+    """
+    expected = ("expected a position gain > 0 with its unit, e.g. \"3 (m/min)/mm\" or \"50 1/s\" (units: "
+                + ", ".join(KV_UNITS) + ")")
+    if not isinstance(value, str):
+        raise ValueError(f"{where} = {value!r}; {expected}")
+    parts = value.strip().split(None, 1)
+    unit = parts[1].replace(" ", "") if len(parts) == 2 else ""
+    try:
+        number = float(parts[0]) if parts else math.nan
+    except ValueError:
+        number = math.nan
+    if unit not in KV_UNITS or not math.isfinite(number) or not number > 0 \
+            or not math.isfinite(number * KV_UNITS[unit]):
+        raise ValueError(f"{where} = {value!r}; {expected}")
+    return number * KV_UNITS[unit]
+
+
 
 #: Open interval in which a peak bound (Ms, Mt) is accepted: at 1 no controller is feasible,
 #: above 10 the bound no longer means robustness.

@@ -301,6 +301,20 @@ def format_move_report(plant: "Plant", scene: "MoveScene", designs: "list[Cascad
              "(position loop closed / opened), position loop, torque command (both loops broken at the plant input)"]
     if plant.mechanism == "linear-axis":
         lines.append(_LOAD_COORDINATES)
+    ts = plant.sample_time_s
+    if scene.position_rate > 1:  # issue 34: the position loop at the drive's rate
+        lines.append(f"  position loop every {scene.position_rate} speed-loop samples (Tp = {scene.position_rate * ts * 1e6:g} us "
+                     f"over Ts = {ts * 1e6:g} us), modelled as the sampled multi-rate loop: the position loop's Ms at "
+                     "its own rate, the speed loop (position loop closed) and torque command's as the peak gain of "
+                     "the periodic loop's sensitivity")
+    if scene.kv_max_per_s is not None:
+        lines.append(f"  position gain ceiling kv_max = {scene.kv_max_per_s:.6g} 1/s "
+                     f"({scene.kv_max_per_s * 0.06:.4g} (m/min)/mm); Kv of each design: "
+                     + ", ".join(f"{d.method} {d.position.kv * 0.06:.4g} (m/min)/mm" for d in designs))
+    if scene.filters:
+        lines.append("  fixed loop filters (tuned around, verified and exported): "
+                     + "; ".join(f"{lf.filter.__class__.__name__} at {lf.filter.characteristic_hz:g} Hz on the "
+                                 f"{lf.place.replace('_', ' ')}" for lf in scene.filters))
     for d in designs:
         v = d.verified
         ki = f", ki {d.position.ki:.4g} 1/s^2" if scene.position_controller == "pi" or d.position.ki > 0 else ""

@@ -440,6 +440,7 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
         design, b = result["designs"][1], None
         if "friction_ff" in result:  # the joint design with the friction feed-forward in its position loop
             design = result["friction_ff"]["design"]
+        filters = tuple(design.filters)  # issue 34: the move scene's fixed filters, tuned around
     else:
         design, b, plant = result["export"][0], _setpoint_weight(result["rep"].scene), result["rep"].plant
         filters = result["rep"].scene.filters

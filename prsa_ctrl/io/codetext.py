@@ -222,7 +222,8 @@ def _header_comment(law: "DriveLaw", lang: str) -> list[str]:
                      "w > 0: g (cp + sp exp(-(w/ws)^2) + vp w); w < 0: -g (cn + sn exp(-(w/ws)^2) - vn w); w = 0: 0; "
                      "added to the acceleration feed-forward.")
     if p:
-        lines.append(f"Position loop: measured {p.measured}, every position_rate sample(s) (exported {p.rate}); "
+        lines.append(f"Position loop: measured {p.measured}, every {p.rate} sample(s) (position-loop sample time "
+                     f"{p.rate * law.ts:g} s over the speed loop's {law.ts:g} s; position_rate in the parameters); "
                      + ("position counts are the encoder counts" if p.measured == "nut_angle"
                         else f"position counts of the linear scale ({iec_real(p.per_count)} m each)")
                      + "; references in m, m/s, m/s^2 of screw travel from the position at init. Resolution: the "

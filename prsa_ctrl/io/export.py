@@ -572,7 +572,8 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
     -------
     dict
     """
-    out = export_controller(design.speed, plant, fmt=fmt)
+    filters = tuple(getattr(design, "filters", ()))
+    out = export_controller(design.speed, plant, fmt=fmt, **({"filters": filters} if filters else {}))
     pos = design.position
     ts = plant.sample_time_s
     tp = ts * pos.rate

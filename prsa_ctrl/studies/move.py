@@ -94,6 +94,10 @@ def check_move_against_plant(scene: MoveScene, plant: "Plant") -> None:
             raise SceneError(
                 f"{label('hold_step_n', scene.hold_step_n)}: holding {f:g} N at rest needs {need:.3g} N m, beyond the "
                 f"motor limit of {limit:g} N m (drive.torque_limit_n_m); expected a smaller step")
+    if scene.filters:
+        from .scenefilters import check_filters_against_plant
+
+        check_filters_against_plant(scene.filters, scene.filter_labels, ts, plant.name)
     n = scene.duration_s / ts
     if n > MAX_RECORD_SAMPLES:
         m = scene.motion()
@@ -113,7 +117,7 @@ def check_move_against_plant(scene: MoveScene, plant: "Plant") -> None:
 
 def simulate_move(plant: "Plant", scene: MoveScene, speed: PID, position: PositionLoop, *,
                   fidelity: str | None = None, settings=None, motion: MotionProfile | None = None,
-                  loads: list | None = None, duration: float | None = None) -> "SimRun":
+                  loads: list | None = None, duration: float | None = None, filters=None) -> "SimRun":
     """Run the scene's move (or ``motion``/``loads``/``duration`` instead) on the nonlinear
     model in the sampled loop, from rest.
 
@@ -126,15 +130,19 @@ def simulate_move(plant: "Plant", scene: MoveScene, speed: PID, position: Positi
     position : PositionLoop
     fidelity : {"rigid", "compliant"}, optional
         Default: the scene's.
+    filters : sequence of LoopFilter, optional
+        The drive's loop filters (default: the scene's ``filters``).
 
     Returns
     -------
     SimRun
     """
+    filters = scene.filters if filters is None else tuple(filters)
     return run(plant, load=loads if loads is not None else scene.loads(),
                duration=duration if duration is not None else scene.duration_s, controller=speed,
                fidelity=fidelity or scene.fidelity, discrete=True, position=position,
-               motion=motion if motion is not None else scene.motion(), settings=settings)
+               motion=motion if motion is not None else scene.motion(), settings=settings,
+               **({"filters": filters} if filters else {}))
 
 
 @dataclass(frozen=True)
@@ -294,7 +302,7 @@ def verify_design(design: "CascadeDesign", plant: "Plant", scene: MoveScene, fid
     -------
     CascadeDesign
     """
-    r = simulate_move(plant, scene, design.speed, design.position, fidelity=fidelity)
+    r = simulate_move(plant, scene, design.speed, design.position, fidelity=fidelity, filters=design.filters)
     return replace(design, verified=move_metrics(r, plant, scene), run=r)
 
 

@@ -19,10 +19,12 @@ from typing import Any, Mapping
 from ..textsafe import quote
 from ..drive.motion import PROFILE_KINDS, MotionProfile, out_and_back, plan
 from ..errors import SceneError
-from ..options import MS_MAX_DEFAULT, PEAK_BOUND_RANGE, check_peak_bound
+from ..options import KV_UNITS, MS_MAX_DEFAULT, PEAK_BOUND_RANGE, POSITION_RATE_MAX, check_peak_bound, parse_kv
 from .scenefile import locate_scene, read_scene_doc
+from .scenefilters import parse_filters
 
-__all__ = ["MoveScene", "parse_move_scene", "load_move_scene", "POSITION_SENSORS"]
+__all__ = ["MoveScene", "parse_move_scene", "load_move_scene", "POSITION_SENSORS", "POSITION_RATE_MAX", "KV_UNITS",
+           "parse_kv"]
 
 #: What the position loop may measure (the same as :data:`prsa_ctrl.drive.measurement.POSITION_SENSORS`,
 #: which imports CasADi).
@@ -37,8 +39,8 @@ _MOVE_KEYS: Mapping[str, tuple[type, str]] = {
     "start_s": (float, "a start time >= 0 s"),
     "return_dwell_s": (float, "a dwell >= 0 s at the target before the move back to the start (out and back)"),
     "measured": (str, "one of " + ", ".join(POSITION_SENSORS)),
-    "position_rate": (int, "1 (the cascade tuner models the position loop at the speed-loop rate; "
-                      "PositionLoop(rate=...) simulates slower rates)"),
+    "position_rate": (int, f"an integer number of speed-loop samples per position-loop sample in "
+                      f"[1, {POSITION_RATE_MAX}]"),
     "initial_load_n": (float, "a finite load in N"),
     "load_n": (float, "a finite load in N (the load that appears during the move)"),
     "load_time_s": (float, "a time in s inside the move"),
@@ -54,6 +56,7 @@ _CASCADE_KEYS: Mapping[str, tuple[type, str]] = {
     "weight_following": (float, "a weight >= 0"),
     "weight_holding": (float, "a weight >= 0"),
     "bandwidth_ratio": (float, "a ratio >= 1 of speed-loop to position-loop bandwidth"),
+    "kv_max": (str, "a position gain ceiling > 0 with its unit, e.g. \"3 (m/min)/mm\" or \"50 1/s\""),
 }
 _REQUIRED = ("profile", "distance_mm", "max_speed_mm_s", "acceleration_m_s2")
 
@@ -74,8 +77,10 @@ class MoveScene:
         start (out and back, :func:`~prsa_ctrl.drive.motion.out_and_back`: a reversal).
     measured : {"nut_angle", "screw_position"}
     position_rate : int
-        Position-loop sample time in controller samples (a scene file accepts 1 only: the
-        cascade tuner models the position loop at the speed-loop rate).
+        Position-loop sample time in speed-loop (controller) samples, 1..:data:`POSITION_RATE_MAX`
+        (the position loop samples every ``position_rate``-th speed-loop sample and holds its
+        speed reference in between; the cascade model is multi-rate,
+        :class:`~prsa_ctrl.tuning.cascade.CascadeModel`).
     initial_load_n, load_n : float, N
         Load at the start and the load that appears at ``load_time_s`` (default: the middle
         of the move), then held.
@@ -93,6 +98,8 @@ class MoveScene:
         Weights of the two parts of the tuning objective.
     bandwidth_ratio : float or None
         Smallest ratio of the speed loop's to the position loop's bandwidth (``kp/J >= ratio kv``).
+    kv_max_per_s : float or None, 1/s
+        Ceiling on the position gain ``Kv`` (``[cascade] kv_max`` with its unit, :func:`parse_kv`).
     typed : dict
         The ``[move]`` values as the file typed them (named in error messages).
     """
@@ -121,6 +128,13 @@ class MoveScene:
     weight_following: float = 1.0
     weight_holding: float = 1.0
     bandwidth_ratio: float | None = None
+    kv_max_per_s: float | None = None
+    #: The drive's speed-measurement and torque-command filters (``[filters]``,
+    #: :mod:`prsa_ctrl.studies.scenefilters`): in the cascade model, the tuning, the verification
+    #: and the export.
+    filters: tuple = ()
+    #: How messages name each filter's frequency.
+    filter_labels: tuple = ()
     description: str = ""
     #: The ``[move]`` values as the file typed them (for error messages).
     typed: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
@@ -188,10 +202,10 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
         Unknown section or key, a value of the wrong type or range (one line naming the file
         and the key).
     """
-    allowed = {"name", "description", "move", "cascade"}
+    allowed = {"name", "description", "move", "cascade", "filters"}
     unknown = sorted(set(doc) - allowed)
     if unknown:
-        raise SceneError(f"{origin}: unknown section {quote(unknown[0])} in a move scene; expected move, cascade")
+        raise SceneError(f"{origin}: unknown section {quote(unknown[0])} in a move scene; expected move, cascade, filters")
     kw: dict[str, Any] = {"origin": origin, "name": doc.get("name", Path(origin.split(" ")[0]).stem)}
     if not isinstance(kw["name"], str):
         raise SceneError(f"{origin}: name = {quote(kw['name'])}; expected a string")
@@ -234,7 +248,7 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
             raise bad("move", key)
     if kw.get("measured", "nut_angle") not in POSITION_SENSORS:
         raise bad("move", "measured")
-    if kw.get("position_rate", 1) != 1:
+    if not 1 <= kw.get("position_rate", 1) <= POSITION_RATE_MAX:
         raise bad("move", "position_rate")
     if kw.get("fidelity", "compliant") not in ("rigid", "compliant"):
         raise bad("move", "fidelity")
@@ -253,6 +267,13 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
         raise SceneError(f"{origin}: cascade.weight_following = cascade.weight_holding = 0; expected a positive weight")
     if kw.get("bandwidth_ratio", 1.0) < 1:
         raise bad("cascade", "bandwidth_ratio")
+    if "kv_max" in kw:
+        try:
+            kw["kv_max_per_s"] = parse_kv(kw.pop("kv_max"), "cascade.kv_max")
+        except ValueError as exc:
+            raise SceneError(f"{origin}: {exc}") from None
+    if "filters" in doc:  # the drive's fixed loop filters, tuned around (as a speed-loop scene's)
+        kw["filters"], kw["filter_labels"] = parse_filters(doc["filters"], origin)
     kw["typed"] = dict(doc.get("move", {}))
     kw["distance_m"] = kw.pop("distance_mm") * 1e-3
     kw["max_speed_m_s"] = kw.pop("max_speed_mm_s") * 1e-3

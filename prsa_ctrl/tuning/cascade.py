@@ -10,7 +10,8 @@ Linear model of the sampled cascade (:class:`CascadeModel`)
     (:func:`prsa_ctrl.plant.linear.linear_core`), discretised with a zero-order hold, under exactly
     the per-sample law the simulator runs (encoder difference and speed filter, speed PI with
     Euler integral, one-sample computation delay; position P/PI with velocity and acceleration
-    feed-forward, at the speed-loop rate). Its loop transfer functions at the four
+    feed-forward, every ``position_rate`` speed-loop samples, the speed reference held in
+    between; the multi-rate loop below). Its loop transfer functions at the four
     loop-breaking points, with ``G`` the torque-command-to-angle response (delay included),
     ``G_p`` the same to the measured position (rad), ``W`` the speed measurement,
     ``C_s = kp + ki Ts z^-1/(1 - z^-1)``, ``C_p = kv + kip Ts/(1 - z^-1)``::
@@ -20,7 +21,13 @@ Linear model of the sampled cascade (:class:`CascadeModel`)
         position loop, speed loop closed:  L_p  = G_p C_s C_p / (1 + W G C_s)
         torque command (both loops broken at the plant input):  L_t = G_p C_s C_p + W G C_s
 
-    Ms = max |1/(1 + L)| at each (:data:`BREAKING_POINTS`). The linearisation ignores stiction (at rest the nut
+    Ms = max |1/(1 + L)| at each (:data:`BREAKING_POINTS`). With the position loop every N > 1
+    speed samples (Tp = N Ts) the loop is N-periodic and is lifted to the position period
+    (:meth:`CascadeModel.lift`: exact for the sampled loop): the position loop is scalar at its
+    own rate (:meth:`CascadeModel.position_loop`), the speed loop alone unchanged, and at the
+    torque command and the speed loop with the position loop closed the peak is that of
+    ``sigma_max((I + L_lifted)^-1)`` (:meth:`CascadeModel.return_differences`), the L2 gain of
+    the periodic sensitivity. The linearisation ignores stiction (at rest the nut
     sticks, which the nonlinear verification includes).
 
 Tuning (:func:`tune_cascade`)
@@ -48,10 +55,11 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
+from ..drive.filters import loop_filters
 from ..drive.sampled import zoh
 from ..drive.measurement import PositionLoop
 from ..drive.pid import PID
-from ..options import DERIVATIVE_FILTER_SAMPLES
+from ..options import DERIVATIVE_FILTER_SAMPLES, POSITION_RATE_MAX, parse_kv
 from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from .loops import resonance_points
@@ -63,7 +71,7 @@ if TYPE_CHECKING:
 # A move scene (prsa_ctrl.studies.movescene.MoveScene) and its verified metrics
 # (prsa_ctrl.studies.move.MoveMetrics) live a layer up: named in annotations only, never imported.
 
-__all__ = ["CascadeModel", "CascadeDesign", "tune_cascade", "sequential_design", "CASCADE_GAINS",
+__all__ = ["CascadeModel", "CascadeDesign", "tune_cascade", "sequential_design", "kv_ceiling", "CASCADE_GAINS",
            "MS_EXCESS_RTOL", "BREAKING_POINTS"]
 
 #: The loop-breaking points whose Ms the tuning bounds (:meth:`CascadeModel.loops`): the speed
@@ -103,19 +111,28 @@ class CascadeModel:
     Notes
     -----
     Gains ``g = [kp, ki, kv, kip, kvff, kaff]`` (:data:`CASCADE_GAINS`). The position loop
-    runs at the speed-loop rate in this model (``position_rate = 1``).
+    runs every ``scene.position_rate`` speed-loop samples (``tp`` = its sample time, s).
     """
 
     def __init__(self, plant: "Plant", scene: MoveScene, fidelity: str | None = None, n_grid: int = 300) -> None:
-        if scene.position_rate != 1:
-            raise ValueError(f"{scene.origin}: move.position_rate = {scene.position_rate}; the cascade tuner models the "
-                             "position loop at the speed-loop rate: expected 1")
+        rate = scene.position_rate
+        if isinstance(rate, bool) or not isinstance(rate, int) or not 1 <= rate <= POSITION_RATE_MAX:
+            raise ValueError(f"{scene.origin}: move.position_rate = {rate!r}; expected an integer number of speed-loop "
+                             f"samples in [1, {POSITION_RATE_MAX}]")
+        self.rate = rate
         self.plant, self.scene = plant, scene
+        #: The drive's fixed loop filters (the scene's ``[filters]``), as the simulator runs them:
+        #: speed-measurement biquads on the filtered speed the PI reads, torque-command biquads on
+        #: the PI's command (feed-forward included) before the delay.
+        self.filters = tuple(loop_filters(tuple(getattr(scene, "filters", ()) or ()), plant.sample_time_s))
+        self.biquads = tuple((lf.place, lf.biquad(plant.sample_time_s)) for lf in self.filters)
         fid = fidelity or scene.fidelity
         model = plant_model(plant, fid)
         self.a_lead = a = plant.lead_per_rad
         self.inertia = plant.reflected_inertia_kg_m2
         self.ts = ts = plant.sample_time_s
+        #: Position-loop sample time, s.
+        self.tp = rate * ts
         w_cruise = scene.max_speed_m_s / a * math.copysign(1.0, scene.distance_m)
         self.w_lin, self.load_lin = w_cruise, scene.load_n
         A, B, _, _, _ = linear_core(plant, w_cruise, scene.load_n, fid)
@@ -131,8 +148,10 @@ class CascadeModel:
             if "delta_screw" in model.state_names:
                 self.c_pos = self.c_pos + (np.eye(n)[model.index("x_roller")] - np.eye(n)[model.index("delta_screw")]) / a
         self.alpha = math.exp(-ts / plant.speed_filter_s)
-        nyq = math.pi / ts
+        nyq = math.pi / self.tp  # the position loop's Nyquist frequency (the speed loop's at rate 1)
         lam = np.log(np.linalg.eigvals(self.Ad).astype(complex)) / ts
+        if rate > 1:  # resonances above the position loop's Nyquist frequency appear at their aliases
+            lam = np.concatenate([lam + 2j * math.pi * k / self.tp for k in range(-rate, rate + 1)])
         self.omega = np.unique(np.concatenate([np.geomspace(1.0, nyq * 0.999, n_grid),
                                                resonance_points(lam, 1.0, nyq * 0.999)]))
         self._resp_cache: dict = {}
@@ -154,12 +173,28 @@ class CascadeModel:
         G = zd * (res @ self.c_th)
         Gp = zd * (res @ self.c_pos)
         W = (1 - self.alpha) / (1 - self.alpha * zi) * (1 - zi) / self.ts
+        for place, bq in self.biquads:  # the loop filters (none: the responses unchanged)
+            f = bq.frequency_response(w)
+            if place == "speed_measurement":
+                W = W * f
+            else:
+                G, Gp = G * f, Gp * f
         return {"G": G, "Gp": Gp, "W": W, "cs_i": self.ts * zi / (1 - zi), "cp_i": self.ts / (1 - zi)}
 
     def loops(self, g, omega: NDArray[np.float64] | None = None) -> dict[str, NDArray[np.complex128]]:
         """Loop transfer functions at the three breaking points (module docstring) and at the
-        torque command (``torque``: both loops broken at once), at ``omega`` (rad/s)."""
+        torque command (``torque``: both loops broken at once), at ``omega`` (rad/s).
+
+        With ``position_rate = N > 1`` only the two loops a scalar transfer function describes
+        are returned: ``speed_open`` (the speed loop alone, at the speed-loop rate) and
+        ``position`` (the position loop at its own sample time over the closed speed loop,
+        :meth:`position_loop`); the other two points are N-periodic
+        (:meth:`return_differences`)."""
         w = self.omega if omega is None else np.asarray(omega, float)
+        if self.rate > 1:
+            P = self.parts(w)
+            r = P["W"] * P["G"] * (float(g[0]) + float(g[1]) * P["cs_i"])
+            return {"speed_open": r, "position": self.position_loop(g, w)}
         P = self.parts(w)
         kp, ki, kv, kip = (float(x) for x in g[:4])
         cs = kp + ki * P["cs_i"]
@@ -167,18 +202,121 @@ class CascadeModel:
         q, r = P["Gp"] * cs * cp, P["W"] * P["G"] * cs
         return {"speed_closed": r / (1 + q), "speed_open": r, "position": q / (1 + r), "torque": q + r}
 
-    def ms(self, g, n_dense: int = 20000) -> dict[str, float]:
-        """True peak sensitivities ``max |1/(1 + L)|`` at each breaking point: dense log grid
-        (``n_dense`` points to the Nyquist frequency, plus the constraint grid) and a golden
-        section search around each grid maximum; with their frequencies (rad/s)."""
-        nyq = math.pi / self.ts
-        w = np.unique(np.concatenate([np.geomspace(1e-2, nyq * 0.99999, n_dense), self.omega]))
+    # --- the multi-rate loop (position_rate = N > 1) -------------------------------------
+    def aliases(self, omega: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.complex128]]:
+        """The N speed-loop frequencies ``w_k = w - 2 pi k/Tp`` (rad/s, k = 0..N-1; shape
+        (N, len(omega))) that a position-loop frequency ``w`` (rad/s) lifts, and ``z_k =
+        exp(j w_k Ts)``."""
+        w = np.asarray(omega, float)
+        wk = w[None, :] - 2.0 * math.pi * np.arange(self.rate)[:, None] / self.tp
+        return wk, np.exp(1j * wk * self.ts)
+
+    def lift(self, h: NDArray[np.complex128], z: NDArray[np.complex128]) -> NDArray[np.complex128]:
+        """The lifted (N x N, at the position-loop rate) response of a speed-loop-rate LTI
+        response ``h`` given at the aliases ``z`` (:meth:`aliases`, shape (N, n)): entry
+        ``[m, l] = (1/N) sum_k z_k^(m-l) h(z_k)``, the response of the m-th speed sample of a
+        position period to the l-th; shape (n, N, N)."""
+        N = self.rate
+        ml = (np.arange(N)[:, None] - np.arange(N)[None, :]).astype(float)
+        return np.sum(h.T[:, :, None, None] * z.T[:, :, None, None] ** ml[None, None], axis=1) / N
+
+    def lifted_parts(self, omega: NDArray[np.float64]) -> dict:
+        """Gain-free lifted responses at the position-loop frequencies ``omega`` (rad/s, up to
+        pi/Tp): ``A`` = lift(W G), ``Lc`` = lift of the speed integral per unit ``ki``, ``c``
+        the first row of lift(G_p) (the position read at the position-loop sample), ``cp_i``
+        ``Tp/(1 - z_p^-1)`` (the position integral per unit gain at its own rate) and, per
+        alias (shape (N, n)), ``r`` = W G, ``cs_i``, ``Gp``, ``h`` = ``(1 - z_k^-N)/(N (1 - z_k^-1))``
+        (the hold of the speed reference and the sampling of the position)."""
+        w = np.asarray(omega, float)
+        wk, z = self.aliases(w)
+        P = self.parts(wk.ravel())
+        sh = wk.shape
+        WG, csi, Gp = (P["W"] * P["G"]).reshape(sh), P["cs_i"].reshape(sh), P["Gp"].reshape(sh)
+        zp = np.exp(1j * w * self.tp)
+        N = self.rate
+        h = sum(z ** (-float(l)) for l in range(N)) / N  # (1 - z^-N)/(N (1 - z^-1)), finite at z = 1
+        return {"A": self.lift(WG, z), "Lc": self.lift(csi, z), "c": self.lift(Gp, z)[:, 0, :],
+                "cp_i": self.tp / (1 - 1 / zp), "r": WG, "cs_i": csi, "Gp": Gp, "h": h, "G": P["G"].reshape(sh)}
+
+    def position_loop(self, g, omega: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """The position loop broken at its sampled measurement, the speed loop closed, at its
+        own sample time Tp (exact: the speed-loop-closed plant from the held speed reference
+        to the position sampled every N speed samples), at ``omega`` (rad/s, up to pi/Tp)::
+
+            L_p(z_p) = C_p(z_p) (1/N) sum_k T(z_k) (1 - z_k^-N)/(1 - z_k^-1),
+            T = G_p C_s/(1 + W G C_s),  C_p = kv + kip Tp/(1 - z_p^-1)
+
+        (the alias sum of the held and sampled response; at N = 1 ``q/(1 + r)``)."""
+        w = np.asarray(omega, float)
+        if self.rate == 1:
+            return self.loops(g, w)["position"]
+        L = self.lifted_parts(w)
+        cs = float(g[0]) + float(g[1]) * L["cs_i"]
+        T = L["Gp"] * cs / (1 + L["r"] * cs)
+        return (float(g[2]) + float(g[3]) * L["cp_i"]) * np.sum(L["h"] * T, axis=0)
+
+    def return_differences(self, g, omega: NDArray[np.float64]) -> dict[str, NDArray[np.complex128]]:
+        """Lifted return differences ``M = I + L`` (shape (n, N, N), at the position-loop
+        frequencies ``omega``, rad/s) at the two N-periodic breaking points, with ``B`` =
+        lift(C_s), ``A`` = lift(W G), ``a = B 1`` (the speed reference held over the period),
+        ``b^T = C_p c^T`` (the position sampled at its first speed sample)::
+
+            torque:        M_t  = I + B A + a b^T
+            speed_closed:  M_sc = I + A (I + a b^T)^-1 B
+
+        Their sensitivity ``S = M^-1`` has the peak ``max_w sigma_max(S) = 1/min_w sigma_min(M)``,
+        the L2-induced gain of the periodic loop's sensitivity (at N = 1 ``|1/(1 + L)|``)."""
+        w = np.asarray(omega, float)
+        L = self.lifted_parts(w)
+        N = self.rate
+        eye = np.eye(N)[None]
+        B = float(g[0]) * eye + float(g[1]) * L["Lc"]
+        A = L["A"]
+        a = B @ np.ones(N)
+        b = (float(g[2]) + float(g[3]) * L["cp_i"])[:, None] * L["c"]
+        ab = a[:, :, None] * b[:, None, :]
+        Mt = eye + B @ A + ab
+        Msc = eye + A @ np.linalg.solve(eye + ab, B)
+        return {"torque": Mt, "speed_closed": Msc}
+
+    def sensitivity(self, g, omega: NDArray[np.float64], points=BREAKING_POINTS) -> dict[str, NDArray[np.float64]]:
+        """Sensitivity magnitudes at every breaking point (:data:`BREAKING_POINTS`) at ``omega``
+        (rad/s): ``|1/(1 + L)|``, and for the lifted points of a multi-rate loop
+        ``sigma_max(M^-1)`` (:meth:`return_differences`). ``speed_open`` is read at the
+        speed-loop rate (up to pi/Ts), the others at the position loop's (up to pi/Tp)."""
+        if self.rate == 1:
+            return {k: np.abs(1 / (1 + v)) for k, v in self.loops(g, omega).items()}
+        w = np.asarray(omega, float)
         out = {}
-        for name, L in self.loops(g, w).items():
-            s = np.abs(1 / (1 + L))
+        if "speed_open" in points:
+            P = self.parts(w)
+            out["speed_open"] = np.abs(1 / (1 + P["W"] * P["G"] * (float(g[0]) + float(g[1]) * P["cs_i"])))
+        if "position" in points:
+            out["position"] = np.abs(1 / (1 + self.position_loop(g, w)))
+        if "torque" in points or "speed_closed" in points:
+            for k, M in self.return_differences(g, w).items():
+                out[k] = 1 / np.linalg.svd(M, compute_uv=False)[:, -1]
+        return out
+
+    def ms(self, g, n_dense: int = 20000) -> dict[str, float]:
+        """True peak sensitivities (:meth:`sensitivity`) at each breaking point: dense log grid
+        (``n_dense`` points to the Nyquist frequency of the point's rate, plus the constraint
+        grid) and a golden section search around each grid maximum; with their frequencies
+        (rad/s)."""
+        out = {}
+        grids: dict = {}
+        for name in BREAKING_POINTS:
+            nyq = math.pi / (self.ts if (name == "speed_open" or self.rate == 1) else self.tp)
+            if nyq not in grids:
+                w = np.unique(np.concatenate([np.geomspace(1e-2, nyq * 0.99999, n_dense),
+                                              self.omega[self.omega < nyq]]))
+                grids[nyq] = (w, self.sensitivity(g, w, [k for k in BREAKING_POINTS if self.rate == 1 or
+                                                          (k == "speed_open") == (nyq == math.pi / self.ts)]))
+            w, sens = grids[nyq]
+            s = sens[name]
             i = int(np.argmax(s))
             lo, hi = w[max(i - 1, 0)], w[min(i + 1, w.size - 1)]
-            f = lambda x: float(np.abs(1 / (1 + self.loops(g, np.array([x]))[name][0])))  # noqa: E731
+            f = lambda x: float(self.sensitivity(g, np.array([x]), (name,))[name][0])  # noqa: E731
             gr = (math.sqrt(5) - 1) / 2
             a_, b_ = lo, hi
             for _ in range(60):
@@ -194,8 +332,9 @@ class CascadeModel:
         return out
 
     def crossover(self, g, loop: str = "speed_open") -> float:
-        """First frequency (rad/s) where |L| falls through 1 at a breaking point."""
-        nyq = math.pi / self.ts
+        """First frequency (rad/s) where |L| falls through 1 at a breaking point (at a
+        multi-rate loop: ``speed_open`` or ``position``)."""
+        nyq = math.pi / (self.ts if loop == "speed_open" else self.tp)
         w = np.geomspace(1e-1, nyq * 0.999, 20000)
         mag = np.abs(self.loops(g, w)[loop])
         idx = np.flatnonzero((mag[:-1] >= 1) & (mag[1:] < 1))
@@ -203,45 +342,117 @@ class CascadeModel:
 
     # closed loop in the time domain
     def _build_casadi(self) -> None:
+        if self.rate > 1:
+            return self._build_casadi_multirate()
         n, ts, a = self.n, self.ts, self.a_lead
         nd = self.plant.command_delay_samples  # the drive's command delay: a line of nd commands after the states
+        nf = 4 * len(self.biquads)  # the filters' memory, last
         g = ca.SX.sym("g", 6)
-        X = ca.SX.sym("X", n + 5 + nd)
+        X = ca.SX.sym("X", n + 5 + nd + nf)
         r = ca.SX.sym("r", 4)  # position ref (rad), speed ref (rad/s), accel ref (rad/s^2), load (N)
         kp, ki, kv, kip, kvff, kaff = (g[i] for i in range(6))
         x, th_prev, w_f, i_s, u_pend, i_p = X[:n], X[n], X[n + 1], X[n + 2], X[n + 3], X[n + 4]
         theta = ca.dot(ca.DM(self.c_th), x)
         pm = ca.dot(ca.DM(self.c_pos), x)
         w_f1 = self.alpha * w_f + (1 - self.alpha) * (theta - th_prev) / ts
+        fmem = X[X.numel() - nf:]
+        w_m, fnext = self._filter("speed_measurement", w_f1, fmem)
         e_p = r[0] - pm
         i_p1 = i_p + ts * kip * e_p
         w_ref = kv * e_p + i_p1 + kvff * r[1]
-        u = kp * (w_ref - w_f1) + i_s + kaff * self.inertia * r[2]
-        i_s1 = i_s + ts * ki * (w_ref - w_f1)
-        line = X[n + 5:]
+        u = kp * (w_ref - w_m) + i_s + kaff * self.inertia * r[2]
+        i_s1 = i_s + ts * ki * (w_ref - w_m)
+        u, fnext = self._filter("torque_command", u, fmem, fnext)
+        line = X[n + 5:n + 5 + nd]
         act = line[nd - 1] if nd else u_pend
         x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * act + ca.DM(self.bd) * r[3]
-        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, *([u_pend] if nd else []), *[line[i] for i in range(nd - 1)])
+        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, *([u_pend] if nd else []), *[line[i] for i in range(nd - 1)],
+                        *fnext)
         self.step = ca.Function("cascade_step", [X, r, g], [Xn, e_p * a])
         self.jac = ca.Function("cascade_ab", [g], [ca.jacobian(Xn, X), ca.jacobian(Xn, r)])
-        self.nX = n + 5 + nd
+        self.nX = n + 5 + nd + nf
 
-    def closed_loop_matrices(self, g) -> tuple[NDArray, NDArray]:
-        A, B = self.jac(list(map(float, g)))
+    def _filter(self, place: str, x, fmem, fnext=None):
+        """The biquads at ``place`` run on ``x`` in order (direct form I, the simulator's
+        recursion); returns the output and the filters' next memory (all filters)."""
+        fnext = list(fnext) if fnext is not None else [fmem[i] for i in range(fmem.numel())]
+        for i, (pl, bq) in enumerate(self.biquads):
+            if pl != place:
+                continue
+            m = fmem[4 * i:4 * i + 4]
+            y = bq.b0 * x + bq.b1 * m[0] + bq.b2 * m[1] - bq.a1 * m[2] - bq.a2 * m[3]
+            fnext[4 * i:4 * i + 4] = [x, m[0], y, m[2]]
+            x = y
+        return x, fnext
+
+    def _build_casadi_multirate(self) -> None:
+        """The per-speed-sample law of a position loop every N samples (the simulator's
+        :meth:`~prsa_ctrl.drive.measurement.PositionLoop.update`): at a position-loop sample
+        (input ``active`` = 1) the position is read, the integral advanced by ``Tp kip e`` and
+        the speed reference and torque feed-forward computed and used at once; in between
+        both are held (zero-order hold over Tp)."""
+        n, ts, a = self.n, self.ts, self.a_lead
+        nd = self.plant.command_delay_samples
+        nf = 4 * len(self.biquads)
+        g = ca.SX.sym("g", 6)
+        X = ca.SX.sym("X", n + 7 + nd + nf)
+        act = ca.SX.sym("active")
+        # position ref (rad), speed ref (rad/s), accel ref (rad/s^2), load (N), active (0/1)
+        r4 = ca.SX.sym("r", 4)
+        r = ca.vertcat(r4, act)
+        kp, ki, kv, kip, kvff, kaff = (g[i] for i in range(6))
+        x, th_prev, w_f, i_s, u_pend, i_p = X[:n], X[n], X[n + 1], X[n + 2], X[n + 3], X[n + 4]
+        w_hold, tau_hold = X[n + 5], X[n + 6]
+        theta = ca.dot(ca.DM(self.c_th), x)
+        pm = ca.dot(ca.DM(self.c_pos), x)
+        w_f1 = self.alpha * w_f + (1 - self.alpha) * (theta - th_prev) / ts
+        fmem = X[X.numel() - nf:]
+        w_m, fnext = self._filter("speed_measurement", w_f1, fmem)
+        e_p = r[0] - pm
+        i_p1 = i_p + act * self.tp * kip * e_p
+        w_ref = act * (kv * e_p + i_p1 + kvff * r[1]) + (1 - act) * w_hold
+        tau = act * kaff * self.inertia * r[2] + (1 - act) * tau_hold
+        u = kp * (w_ref - w_m) + i_s + tau
+        i_s1 = i_s + ts * ki * (w_ref - w_m)
+        u, fnext = self._filter("torque_command", u, fmem, fnext)
+        line = X[n + 7:n + 7 + nd]
+        cmd = line[nd - 1] if nd else u_pend
+        x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * cmd + ca.DM(self.bd) * r[3]
+        Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, w_ref, tau, *([u_pend] if nd else []),
+                        *[line[i] for i in range(nd - 1)], *fnext)
+        self.step = ca.Function("cascade_step", [X, r, g], [Xn, e_p * a])
+        self.jac = ca.Function("cascade_ab", [g, act], [ca.jacobian(Xn, X), ca.jacobian(Xn, r4)])
+        self.nX = n + 7 + nd + nf
+
+    def closed_loop_matrices(self, g, active: float = 1.0) -> tuple[NDArray, NDArray]:
+        """One speed-loop sample's closed-loop matrices ``(A, B)`` (``X+ = A X + B r``); of a
+        multi-rate loop at a position-loop sample (``active = 1``) or in between (0)."""
+        A, B = self.jac(list(map(float, g))) if self.rate == 1 else self.jac(list(map(float, g)), float(active))
         return np.asarray(A), np.asarray(B)
 
     def spectral_radius(self, g) -> float:
         """Largest |closed-loop eigenvalue|; a P position loop (``kip = 0``) leaves its unused
-        integral state constant (an undriven eigenvalue 1), which is left out."""
-        A = self.closed_loop_matrices(g)[0]
+        integral state constant (an undriven eigenvalue 1), which is left out. Of a multi-rate
+        loop: the N-th root of the spectral radius of the period's transition matrix (one
+        position-loop sample, then N - 1 held)."""
+        if self.rate == 1:
+            A = self.closed_loop_matrices(g)[0]
+            if float(g[3]) == 0.0:  # the position integral is state n + 4
+                keep = np.r_[0:self.n + 4, self.n + 5:self.nX]
+                A = A[np.ix_(keep, keep)]
+            return float(np.max(np.abs(np.linalg.eigvals(A))))
+        A1, A0 = self.closed_loop_matrices(g, 1.0)[0], self.closed_loop_matrices(g, 0.0)[0]
+        phi = np.linalg.matrix_power(A0, self.rate - 1) @ A1
         if float(g[3]) == 0.0:
-            A = A[:-1, :-1]
-        return float(np.max(np.abs(np.linalg.eigvals(A))))
+            keep = np.r_[0:self.n + 4, self.n + 5:self.nX]
+            phi = phi[np.ix_(keep, keep)]
+        return float(np.max(np.abs(np.linalg.eigvals(phi))) ** (1.0 / self.rate))
 
     def inputs(self, kind: str) -> NDArray[np.float64]:
         """Input sequences (4 x N) of the two tuning experiments: ``"move"`` (the profile with
         the move's load step, from the scene's start to 0.05 s after its end) and ``"hold"``
-        (the hold step at rest, 0.1 s). Loads are deviations from the linearisation load."""
+        (the hold step at rest, 0.1 s). Loads are deviations from the linearisation load. A
+        multi-rate loop has a fifth row: 1 at the position-loop samples (0, N, 2N, ...)."""
         sc, a, ts = self.scene, self.a_lead, self.ts
         if kind == "move":
             m = sc.motion()
@@ -249,10 +460,14 @@ class CascadeModel:
             p, v, acc = m.at(t)
             load = np.where(t >= sc.load_at_s, sc.load_n - sc.initial_load_n, 0.0) if sc.load_n != sc.initial_load_n \
                 else np.zeros_like(t)
-            return np.vstack([p / a, v / a, acc / a, load])
-        t = np.arange(0.0, 0.1, ts)
-        step = sc.hold_step_n if sc.hold_step_n else max(abs(sc.load_n), 100.0)
-        return np.vstack([np.zeros((3, t.size)), np.where(t >= 2 * ts, step, 0.0)])
+            out = np.vstack([p / a, v / a, acc / a, load])
+        else:
+            t = np.arange(0.0, 0.1, ts)
+            step = sc.hold_step_n if sc.hold_step_n else max(abs(sc.load_n), 100.0)
+            out = np.vstack([np.zeros((3, t.size)), np.where(t >= 2 * ts, step, 0.0)])
+        if self.rate > 1:  # the position-loop samples, as the simulator runs them (k = 0, N, 2N, ...)
+            out = np.vstack([out, (np.arange(t.size) % self.rate == 0).astype(float)])
+        return out
 
     def error(self, g, kind: str) -> NDArray[np.float64]:
         """Linear following error / holding deviation (m) of the experiment ``kind``."""
@@ -302,6 +517,9 @@ class CascadeDesign:
     verified: MoveMetrics | None = None
     notes: tuple = ()
     solver: dict = field(default_factory=dict)
+    #: The drive's fixed loop filters the design was tuned with (LoopFilter; the scene's
+    #: ``[filters]``): verified and exported with it.
+    filters: tuple = ()
     #: The nonlinear run of :func:`verify_design` (for the figures; not in :meth:`as_dict`).
     run: Any = field(default=None, repr=False, compare=False)
 
@@ -333,7 +551,8 @@ class CascadeDesign:
                              "rate": self.position.rate},
                 "ms": self.ms_points, "crossover_rad_s": self.crossover_rad_s, "linear": self.linear,
                 "objective": self.objective, "verified": self.verified.as_dict() if self.verified else None,
-                "notes": list(self.notes), "solver": self.solver}
+                "notes": list(self.notes), "solver": self.solver,
+                **({"filters": [lf.as_dict() for lf in self.filters]} if self.filters else {})}
 
 
 def _linear_summary(cm: CascadeModel, g) -> dict:
@@ -350,27 +569,50 @@ def _design(cm: CascadeModel, method: str, g, objective: float, notes=None, solv
                        rate=sc.position_rate)
     cross = {"speed_open": cm.crossover(g, "speed_open"), "position": cm.crossover(g, "position")}
     return CascadeDesign(method, speed, pos, cm.ms(g), cross, _linear_summary(cm, g), float(objective),
-                         notes=tuple(notes or ()), solver=dict(solver or {}))
+                         notes=tuple(notes or ()), solver=dict(solver or {}), filters=cm.filters)
+
+
+def kv_ceiling(scene: MoveScene, kv_max: "float | str | None" = None) -> float:
+    """The position-gain ceiling of a tuning, 1/s: ``kv_max`` (a float in 1/s or a string with
+    its unit, ``"3 (m/min)/mm"``, :func:`prsa_ctrl.options.parse_kv`) or else the scene's
+    ``kv_max_per_s``; ``inf`` without either.
+
+    Raises
+    ------
+    ValueError
+        One line naming the value as given and what was expected.
+    """
+    v = kv_max if kv_max is not None else scene.kv_max_per_s
+    if v is None:
+        return math.inf
+    if isinstance(v, str):
+        return parse_kv(v)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not v > 0:
+        raise ValueError(f"kv_max = {v!r}; expected a position gain > 0 in 1/s, or a string with its unit, "
+                         "e.g. \"3 (m/min)/mm\"")
+    return float(v)
 
 
 def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None = None,
-                      ratios=(5.0, 6.0, 7.0, 8.0, 9.0, 10.0)) -> CascadeDesign:
+                      ratios=(5.0, 6.0, 7.0, 8.0, 9.0, 10.0), *, kv_max: "float | str | None" = None) -> CascadeDesign:
     """The rule-of-thumb baseline (module docstring): speed PI tuned alone at ``scene.ms_max``
     (:func:`prsa_ctrl.tuning.generic.tune_loops`, IAE of the load step on the drive loop), position P
     at ``crossover / ratio`` for the smallest ``ratio`` in ``ratios`` that keeps every Ms within
-    the bound, ``kvff = kaff = 1``.
+    the bound, ``kvff = kaff = 1``; the position gain at most ``kv_max`` (:func:`kv_ceiling`:
+    1/s or a string with its unit; default the scene's ``kv_max_per_s``).
 
     Returns
     -------
     CascadeDesign
     """
+    kv_cap = kv_ceiling(scene, kv_max)
     cm = cm or CascadeModel(plant, scene)
     model = plant_model(plant, scene.fidelity)
     a_, b_, c_, _, _ = linear_core(plant, cm.w_lin, scene.load_n, scene.fidelity)
     step = scene.hold_step_n or max(abs(scene.load_n), 100.0)
     lp = drive_loop(a_, b_, c_[model.output_names.index("nut_speed")], model.index("theta_nut"), ts=plant.sample_time_s,
                     speed_filter=plant.speed_filter_s, tf=DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s, horizon=0.1, step=step,
-                    command_delay_samples=plant.command_delay_samples)
+                    command_delay_samples=plant.command_delay_samples, **({"filters": cm.filters} if cm.filters else {}))
     ms_max = scene.ms_max
 
     def worst(g) -> float:
@@ -383,12 +625,12 @@ def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None 
         res = tune_loops([lp], objective="iae", controller="pi", ms_max=ms_speed)
         kp, ki = res.pid.kp, res.pid.ki
         wc = cm.crossover([kp, ki, 0.0, 0.0, 0.0, 0.0], "speed_open")
-        slowest = [kp, ki, wc / max(ratios), 0.0, 1.0, 1.0]
+        slowest = [kp, ki, min(wc / max(ratios), kv_cap), 0.0, 1.0, 1.0]
         w_slow = worst(slowest)
         if w_slow > ms_max:
             return res, wc, None, slowest, w_slow
         for ratio in sorted(ratios)[:-1]:
-            g = [kp, ki, wc / ratio, 0.0, 1.0, 1.0]
+            g = [kp, ki, min(wc / ratio, kv_cap), 0.0, 1.0, 1.0]
             if worst(g) <= ms_max:
                 return res, wc, ratio, g, w_slow
         return res, wc, max(ratios), slowest, w_slow
@@ -418,6 +660,9 @@ def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None 
         ms_speed, (res, wc, ratio, g, _) = found
     notes = [f"speed PI tuned alone (tune_loops, IAE of the {step:g} N step, Ms <= {ms_speed:.4g}: {res.status}); "
              f"speed-loop crossover {wc:.4g} rad/s; position P gain kv = crossover/{ratio:g}; kvff = kaff = 1"]
+    if g[2] >= kv_cap:
+        notes.append(f"position gain at its ceiling kv_max = {kv_cap:.6g} 1/s ({kv_cap * 0.06:.4g} (m/min)/mm), "
+                     f"below crossover/{ratio:g}")
     if ms_speed < ms_max:
         notes.append(f"the speed loop tuned alone at Ms {ms_max:g} gives Ms > {ms_max:g} once the position loop is "
                      f"closed (any ratio in {min(ratios):g}..{max(ratios):g}): re-tuned at Ms {ms_speed:.4g} for equal Ms")
@@ -442,8 +687,119 @@ def _gains_from_solution(x, lbx, ubx, free, scale) -> tuple[NDArray[np.float64],
     return x, gv
 
 
+def _cm_const(v) -> tuple:
+    return (ca.DM(np.real(v)), ca.DM(np.imag(v)))
+
+
+def _cadd(*xs) -> tuple:
+    return (sum(x[0] for x in xs), sum(x[1] for x in xs))
+
+
+def _cscale(a, k) -> tuple:
+    return (a[0] * k, a[1] * k)
+
+
+def _cmatmul(X, Y) -> list:
+    n, m, p = len(X), len(Y), len(Y[0])
+    return [[_cadd(*[_cplx_mul(X[i][k], Y[k][j]) for k in range(m)]) for j in range(p)] for i in range(n)]
+
+
+def _psd_conditions(M, mu_c2, norm) -> list:
+    """Conditions ``e_k(H) >= 0`` (k = 1..N) for ``H = (M^H M - mu_c2 I)/norm`` to be positive
+    semi-definite, i.e. ``sigma_min(M)^2 >= mu_c2``: the coefficients of ``det(lambda I + H)``
+    (elementary symmetric functions of its real eigenvalues), from the power sums ``tr H^j``
+    by Newton's identities. ``M`` a list of lists of (re, im) columns over the frequencies."""
+    N = len(M)
+    MH = [[(M[j][i][0], -M[j][i][1]) for j in range(N)] for i in range(N)]
+    H = _cmatmul(MH, M)
+    H = [[_cscale(_cadd(H[i][j], ((-mu_c2 if i == j else 0.0), 0.0)), 1.0 / norm) for j in range(N)]
+         for i in range(N)]
+    powers, Hk = [], H
+    for k in range(N):
+        if k:
+            Hk = _cmatmul(Hk, H)
+        powers.append(sum(Hk[i][i][0] for i in range(N)))
+    e = [1.0]
+    for k in range(1, N + 1):
+        e.append(sum((-1) ** (i - 1) * e[k - i] * powers[i - 1] for i in range(1, k + 1)) / k)
+    return e[1:]
+
+
+def _multirate_constraints(cm: CascadeModel, g, g0, omega: NDArray[np.float64], m2: float) -> list:
+    """The Ms constraints of a multi-rate cascade (``position_rate = N > 1``) at the
+    position-loop frequencies ``omega`` (rad/s), each >= 0 where the bound ``m2 = Ms^2`` holds:
+
+    * speed loop opened, ``m2 |1 + W G C_s|^2 - 1`` at each of the N aliases (the whole
+      speed-loop frequency range);
+    * position loop, ``m2 |D + C_p sum_k h_k n_k prod_{j != k} d_j|^2 - |D|^2`` (the alias sum of
+      :meth:`CascadeModel.position_loop` over the common denominator ``D = prod d_k``);
+    * torque and speed loop closed: the lifted return difference ``M`` has ``sigma_min(M)^2 >=
+      1/m2`` (:func:`_psd_conditions`; the speed_closed one scaled by ``|1 + b^T a|^2``),
+      normalised per frequency by the baseline ``g0``'s ``|M|_F^2`` (a positive constant).
+    """
+    N = cm.rate
+    Lp = cm.lifted_parts(omega)
+    kp, ki, kv, kip = g[0], g[1], g[2], g[3]
+    mu = 1.0 / m2
+    cons = []
+    # speed loop opened, at every alias
+    cs_k, r_k, d_k, n_k = [], [], [], []
+    for k in range(N):
+        csi = _cm_const(Lp["cs_i"][k])
+        cs = (kp + ki * csi[0], ki * csi[1])
+        r = _cplx_mul(_cm_const(Lp["r"][k]), cs)
+        cons.append(m2 * _abs2((1 + r[0], r[1])) - 1)
+        cs_k.append(cs)
+        d_k.append((1 + r[0], r[1]))
+        n_k.append(_cplx_mul(_cm_const(Lp["Gp"][k] * Lp["h"][k]), cs))
+    # position loop at its own sample time (alias sum over a common denominator)
+    cpi = _cm_const(Lp["cp_i"])
+    cp = (kv + kip * cpi[0], kip * cpi[1])
+    D = d_k[0]
+    for k in range(1, N):
+        D = _cplx_mul(D, d_k[k])
+    num = (0.0, 0.0)
+    for k in range(N):
+        t = n_k[k]
+        for j in range(N):
+            if j != k:
+                t = _cplx_mul(t, d_k[j])
+        num = _cadd(num, t)
+    one_l = _cadd(D, _cplx_mul(cp, num))
+    cons.append(m2 * _abs2(one_l) - _abs2(D))
+    # lifted matrices
+    A = [[_cm_const(Lp["A"][:, i, j]) for j in range(N)] for i in range(N)]
+    B = [[_cadd(((kp if i == j else 0.0), 0.0), _cscale(_cm_const(Lp["Lc"][:, i, j]), ki)) for j in range(N)]
+         for i in range(N)]
+    a = [_cadd(*B[i]) for i in range(N)]
+    b = [_cplx_mul(cp, _cm_const(Lp["c"][:, j])) for j in range(N)]
+    eye = [[((1.0 if i == j else 0.0), 0.0) for j in range(N)] for i in range(N)]
+    BA, AB = _cmatmul(B, A), _cmatmul(A, B)
+    Mt = [[_cadd(eye[i][j], BA[i][j], _cplx_mul(a[i], b[j])) for j in range(N)] for i in range(N)]
+    c1 = _cadd((1.0, 0.0), *[_cplx_mul(b[j], a[j]) for j in range(N)])
+    Aa = [_cadd(*[_cplx_mul(A[i][j], a[j]) for j in range(N)]) for i in range(N)]
+    bB = [_cadd(*[_cplx_mul(b[i], B[i][j]) for i in range(N)]) for j in range(N)]
+    P = [[_cadd(_cplx_mul(c1, _cadd(eye[i][j], AB[i][j])), _cscale(_cplx_mul(Aa[i], bB[j]), -1.0)) for j in range(N)]
+         for i in range(N)]
+    # per-frequency normalisation from the baseline (positive constants; feasibility unchanged)
+    Md = cm.return_differences(g0, omega)
+    ft = np.maximum(np.sum(np.abs(Md["torque"]) ** 2, axis=(1, 2)) / N, 1e-12)
+    cons += _psd_conditions(Mt, mu, ca.DM(ft))
+    c1_abs2 = _abs2(c1)
+    Pn = [[P[i][j] for j in range(N)] for i in range(N)]
+    H_sc = _psd_conditions(Pn, mu * c1_abs2, 1.0)
+    # normalise the speed_closed conditions by the baseline's value of |c1|^2 |M|_F^2 (k-th power)
+    B0 = float(g0[0]) * np.eye(N)[None] + float(g0[1]) * Lp["Lc"]
+    b0 = (float(g0[2]) + float(g0[3]) * Lp["cp_i"])[:, None] * Lp["c"]
+    c0 = np.maximum(np.abs(1 + np.einsum("wi,wi->w", b0, B0 @ np.ones(N))) ** 2, 1e-12)
+    fs = np.maximum(np.sum(np.abs(Md["speed_closed"]) ** 2, axis=(1, 2)) / N, 1e-12) * c0
+    cons += [h / ca.DM(fs ** (k + 1)) for k, h in enumerate(H_sc)]
+    return cons
+
+
 def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | None = None,
-                 cm: CascadeModel | None = None, max_rounds: int = 8, max_iter: int = 300) -> CascadeDesign:
+                 cm: CascadeModel | None = None, max_rounds: int = 8, max_iter: int = 300,
+                 kv_max: "float | str | None" = None) -> CascadeDesign:
     """Joint tuning of the whole cascade in one NLP (module docstring), started from the
     sequential baseline.
 
@@ -457,14 +813,18 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
         Most re-solves with frequencies added where the verified Ms exceeds the bound.
     max_iter : int
         Ipopt iteration budget per solve.
+    kv_max : float (1/s) or str, optional
+        Ceiling on the position gain ``Kv``, a bound of the NLP (:func:`kv_ceiling`; a string
+        with its unit, ``"3 (m/min)/mm"``; default the scene's ``kv_max_per_s``, else none).
 
     Returns
     -------
     CascadeDesign
         With the verified (dense-grid, refined) Ms at all breaking points.
     """
+    kv_cap = kv_ceiling(scene, kv_max)
     cm = cm or CascadeModel(plant, scene)
-    baseline = baseline or sequential_design(plant, scene, cm)
+    baseline = baseline or sequential_design(plant, scene, cm, kv_max=kv_max)
     g0 = np.asarray(baseline.gains, float)
     sc = scene
     rm, rh = cm.inputs("move"), cm.inputs("hold")
@@ -489,21 +849,24 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
     solver_info: dict = {}
     best = None
     for rnd in range(max_rounds):
-        P = cm.parts(np.array(omegas))
-        def c(v):
-            return (ca.DM(v.real), ca.DM(v.imag))
-        G, Gp, W, csi, cpi = (c(P[k]) for k in ("G", "Gp", "W", "cs_i", "cp_i"))
-        cs = (g[0] + g[1] * csi[0], g[1] * csi[1])
-        cp = (g[2] + g[3] * cpi[0], g[3] * cpi[1])
-        q = _cplx_mul(_cplx_mul(Gp, cs), cp)
-        r = _cplx_mul(_cplx_mul(W, G), cs)
-        one_q = (1 + q[0], q[1])
-        one_r = (1 + r[0], r[1])
-        d = (1 + q[0] + r[0], q[1] + r[1])
         m2 = sc.ms_max ** 2 * (1 - 1e-4)
-        cons = [m2 * _abs2(d) - _abs2(one_q), m2 * _abs2(one_r) - 1, m2 * _abs2(d) - _abs2(one_r),
-                m2 * _abs2(d) - 1]
-        lbg = [0.0] * (4 * len(omegas))
+        if cm.rate > 1:
+            cons = _multirate_constraints(cm, g, g0, np.array(omegas), m2)
+        else:
+            P = cm.parts(np.array(omegas))
+            def c(v):
+                return (ca.DM(v.real), ca.DM(v.imag))
+            G, Gp, W, csi, cpi = (c(P[k]) for k in ("G", "Gp", "W", "cs_i", "cp_i"))
+            cs = (g[0] + g[1] * csi[0], g[1] * csi[1])
+            cp = (g[2] + g[3] * cpi[0], g[3] * cpi[1])
+            q = _cplx_mul(_cplx_mul(Gp, cs), cp)
+            r = _cplx_mul(_cplx_mul(W, G), cs)
+            one_q = (1 + q[0], q[1])
+            one_r = (1 + r[0], r[1])
+            d = (1 + q[0] + r[0], q[1] + r[1])
+            cons = [m2 * _abs2(d) - _abs2(one_q), m2 * _abs2(one_r) - 1, m2 * _abs2(d) - _abs2(one_r),
+                    m2 * _abs2(d) - 1]
+        lbg = [0.0] * sum(int(ci.numel()) for ci in cons)
         if sc.bandwidth_ratio is not None:
             cons.append(g[0] / cm.inertia - sc.bandwidth_ratio * g[2])
             lbg.append(0.0)
@@ -512,6 +875,10 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
         for k, i in enumerate(free):
             if i in (4, 5):
                 lbx[k], ubx[k] = 0.0, 1.5
+            if i == 2 and math.isfinite(kv_cap):
+                ubx[k] = min(ubx[k], kv_cap / scale[2])
+                lbx[k] = min(lbx[k], 0.5 * ubx[k])  # a baseline far above the ceiling: the bounds stay ordered
+        x = np.clip(x, lbx, ubx)
         nlp = {"x": y, "f": J, "g": ca.vertcat(*cons)}
         solver = ca.nlpsol("cascade", "ipopt", nlp, {"ipopt.print_level": 0, "print_time": False,
                                                     "ipopt.sb": "yes", "ipopt.max_iter": int(max_iter),
@@ -528,12 +895,18 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
         if stable and pk[worst] <= sc.ms_max * (1 + MS_EXCESS_RTOL):
             best = gv
             break
-        omegas = sorted(set(omegas) | {pk[f"w_{k}"] for k in BREAKING_POINTS})
+        # (a multi-rate loop's constraints are at the position-loop frequencies: the speed loop's
+        # peak frequency is folded into 0..pi/Tp, where its alias is constrained)
+        wp = 2 * math.pi / cm.tp
+        omegas = sorted(set(omegas) | {abs((pk[f"w_{k}"] + wp / 2) % wp - wp / 2) if cm.rate > 1 else pk[f"w_{k}"]
+                                       for k in BREAKING_POINTS})
         notes.append(f"round {rnd + 1}: verified Ms {pk[worst]:.5g} at {worst} (w = {pk['w_' + worst]:.5g} rad/s)"
                      f"{'' if stable else ', unstable'}; frequencies added")
     if best is None:
         notes.append("joint solve did not verify within the Ms bound; the baseline is returned")
         return _design(cm, "joint (failed: baseline)", g0, sc.weight_following + sc.weight_holding, notes, solver_info)
+    if best[2] >= kv_cap * (1 - 1e-6):
+        notes.append(f"position gain at its ceiling kv_max = {kv_cap:.6g} 1/s ({kv_cap * 0.06:.4g} (m/min)/mm)")
     lin = _linear_summary(cm, best)
     obj = sc.weight_following * lin["ms_following"] / e_f0 + sc.weight_holding * lin["ms_holding"] / e_h0
     return _design(cm, "joint", best, obj, notes, solver_info)

@@ -217,7 +217,9 @@ def _move_file(tmp_path, **edits):
 
 
 @pytest.mark.parametrize("key, value, match", [
-    ("position_rate", "2", r"move\.position_rate = 2; expected 1"),
+    ("position_rate", "5", r"move\.position_rate = 5; expected an integer number of speed-loop samples per "
+                           r"position-loop sample in \[1, 4\]"),
+    ("position_rate", "2.0", r"move\.position_rate = 2\.0; expected an integer number"),
     ("load_n", "9000.0", r"move\.load_n = 9000\.0: moving at 30 mm/s .* beyond the motor limit of 3 N m"),
     ("hold_step_n", "8000.0", r"move\.hold_step_n = 8000\.0: holding 9500 N at rest .* beyond the motor limit"),
     ("max_speed_mm_s", "1e6", r"move\.max_speed_mm_s = 1000000\.0: expected a speed in \[0\.5, 200\] mm/s"),

@@ -59,8 +59,8 @@ def test_paper_move_scene(scene):
     ('profile = "sine"', r"move\.profile = 'sine'; expected one of trapezoidal, s-curve"),
     ('measured = "tacho"', r"move\.measured = 'tacho'"),
     ("position_rate = 0", r"move\.position_rate = 0"),
-    ("position_rate = 2", r"move\.position_rate = 2; expected 1 \(the cascade tuner models the position loop at the "
-                          r"speed-loop rate"),
+    ("position_rate = 5", r"move\.position_rate = 5; expected an integer number of speed-loop samples per "
+                          r"position-loop sample in \[1, 4\]"),
     ("load_time_s = 5.0", r"move\.load_time_s = 5\.0; expected a time in s inside the move"),
 ])
 def test_move_scene_errors_name_file_and_key(tmp_path, edit, match):
@@ -456,3 +456,281 @@ def test_text_report_names_every_bound_and_the_position_integral(plant, designs)
     lin, ver = joint.linear["holding_deviation_m"], joint.verified.holding_deviation_m
     assert f"holding deviation {lin * 1e6:.3f} um ({lin / ver:.2g} x the verified)" in text
     assert "ki 800" not in format_move_report(plant, sc, [seq, joint])
+
+
+# --- the position loop at its own sample time (issue 34, section 3) ---------------------------
+
+def _biquad_run(coef, mem, x):
+    b0, b1, b2, a1, a2 = coef
+    y = b0 * x + b1 * mem[0] + b2 * mem[1] - a1 * mem[2] - a2 * mem[3]
+    mem[:] = [x, mem[0], y, mem[2]]
+    return y
+
+
+def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, biquads=()):
+    """An independent simulation of the linear multi-rate cascade (this test's own code: the
+    plant discretised here with scipy's expm, the drive's per-sample law written out), with a
+    complex sinusoid ``exp(j omega k Ts)`` added at one loop-breaking point: ``torque`` (the
+    controller's command, before its delay), ``speed_closed`` (the filtered speed the PI reads)
+    or ``position`` (the position the position loop reads, at its own samples). Returns the
+    signal at the breaking point (command + disturbance, and so on), one per speed sample.
+    ``biquads``: ``(place, (b0, b1, b2, a1, a2))`` loop filters, direct form I, on the filtered
+    speed (``speed_measurement``) or on the command (``torque_command``)."""
+    from scipy.linalg import expm
+
+    from prsa_ctrl.plant.linear import linear_core
+    from prsa_ctrl.plant.model import plant_model
+
+    ts, a = plant.sample_time_s, plant.lead_per_rad
+    A, B, _, _, _ = linear_core(plant, cm.w_lin, cm.load_lin, "rigid")
+    n = A.shape[0]
+    E = expm(np.block([[A, B[:, :1]], [np.zeros((1, n + 1))]]) * ts)
+    Ad, bu = E[:n, :n], E[:n, n]
+    c = np.eye(n)[plant_model(plant, "rigid").index("theta_nut")]
+    alpha = math.exp(-ts / plant.speed_filter_s)
+    kp, ki, kv, kip = g[:4]
+    tp = n_rate * ts
+    line = [0j] * (1 + plant.command_delay_samples)  # computation delay + the drive's command delay
+    x = np.zeros(n, complex)
+    th_prev = w_f = i_s = i_p = w_ref = 0j
+    out = np.zeros(samples, complex)
+    mems = [[0j] * 4 for _ in biquads]
+    for k in range(samples):
+        d = np.exp(1j * omega * k * ts)
+        theta = c @ x
+        w_f = alpha * w_f + (1 - alpha) * (theta - th_prev) / ts
+        th_prev = theta
+        if k % n_rate == 0:
+            p_read = theta + (d if where == "position" else 0)
+            e = 0 - p_read
+            i_p = i_p + tp * kip * e
+            w_ref = kv * e + i_p
+            if where == "position":
+                out[k] = p_read
+        w_m = w_f
+        for (place, coef), mem in zip(biquads, mems):
+            if place == "speed_measurement":
+                w_m = _biquad_run(coef, mem, w_m)
+        w_used = w_m + (d if where == "speed_closed" else 0)
+        u = kp * (w_ref - w_used) + i_s
+        i_s = i_s + ts * ki * (w_ref - w_used)
+        u_total = u + (d if where == "torque" else 0)
+        if where == "torque":
+            out[k] = u_total
+        elif where == "speed_closed":
+            out[k] = w_used
+        u_cmd = u_total
+        for (place, coef), mem in zip(biquads, mems):
+            if place == "torque_command":
+                u_cmd = _biquad_run(coef, mem, u_cmd)
+        line.insert(0, u_cmd)
+        x = Ad @ x + bu * line.pop()
+    return out
+
+
+def _two_filters():
+    from prsa_ctrl.studies.scenefilters import parse_filters
+
+    return parse_filters({"notch": [{"path": "torque", "centre_hz": 1200.0, "width_hz": 300.0, "depth_db": -20.0}],
+                          "lowpass": [{"path": "speed", "corner_hz": 900.0, "order": 2}]}, "test")
+
+
+@pytest.mark.parametrize("n_rate, filtered", [(2, False), (3, False), (2, True), (1, True)])
+def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate, filtered):
+    """The lifted loop model of a position loop every N speed samples (CascadeModel at
+    position_rate = N) against a direct simulation of the linear multi-rate loop: a sinusoid
+    injected at each breaking point, in steady state, gives over a position period exactly
+    the lifted sensitivity ``M^-1`` times the input's lifted vector (the scalar ``1/(1 + L_p)``
+    at the position loop), at frequencies below and above the position loop's Nyquist; with a
+    torque notch and a speed low-pass (the scene's fixed filters) in the loop too."""
+    sc = dataclasses.replace(scene, fidelity="rigid", position_rate=n_rate)
+    if filtered:
+        f, labels = _two_filters()
+        sc = dataclasses.replace(sc, filters=f, filter_labels=labels)
+    cm = CascadeModel(plant, sc)
+    ts = plant.sample_time_s
+    bqs = [(lf.place, tuple(getattr(lf.biquad(ts), k) for k in ("b0", "b1", "b2", "a1", "a2"))) for lf in sc.filters]
+    assert len(bqs) == (2 if filtered else 0)
+    g = [PI.kp, PI.ki, 70.0, 2000.0, 1.0, 1.0]  # a position PI, so that its slow integral is checked too
+    assert cm.spectral_radius(g) < 0.995
+    samples = 4200 - 4200 % n_rate
+    tp = n_rate * plant.sample_time_s
+    for omega in (150.0, 700.0, 0.8 * math.pi / tp):
+        zp = np.exp(1j * omega * tp)
+        M = cm.return_differences(g, np.array([omega]))
+        for where in ("torque", "speed_closed"):
+            y = _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, bqs)
+            v = np.exp(1j * omega * np.arange(n_rate) * plant.sample_time_s)
+            predicted = np.linalg.solve(M[where][0], v)
+            last = samples // n_rate - 1
+            got = y[last * n_rate:(last + 1) * n_rate] / zp ** last
+            assert np.allclose(got, predicted, rtol=1e-7, atol=1e-9 * np.max(np.abs(predicted))), (where, omega)
+        y = _simulate_multirate(plant, cm, g, n_rate, omega, "position", samples, bqs)
+        last = samples // n_rate - 1
+        got = y[last * n_rate] / zp ** last
+        assert got == pytest.approx(1 / (1 + cm.position_loop(g, np.array([omega]))[0]), rel=1e-7)
+    if n_rate > 1:
+        # The model's peaks are those sensitivities' maxima: the slow loop sees more than the fast one.
+        fast = CascadeModel(plant, dataclasses.replace(sc, position_rate=1)).ms(g)
+        slow = cm.ms(g)
+        assert slow["speed_open"] == pytest.approx(fast["speed_open"], rel=1e-12)
+        assert slow["position"] > fast["position"]
+
+
+def test_multirate_time_model_is_the_simulated_law(plant, scene):
+    """The tuner's time-domain model at position_rate = 2 (its objective) is the simulator's law
+    linearised: the steady following error at constant speed without feed-forward is v/kv, and a
+    slower position loop shifts the error it gives over the move (it is not the rate-1 model)."""
+    sc = dataclasses.replace(scene, fidelity="rigid", load_n=0.0, hold_step_n=100.0, position_rate=2)
+    cm = CascadeModel(plant, sc)
+    g = [PI.kp, PI.ki, 50.0, 0.0, 0.0, 0.0]
+    e = cm.error(g, "move")
+    m = sc.motion()
+    t = np.arange(e.size) * cm.ts
+    cruise = (t > m.t0[0] + 0.15) & (t < m.t0[0] + 0.25)
+    assert np.mean(e[cruise]) == pytest.approx(sc.max_speed_m_s / 50.0, rel=0.01)
+    e1 = CascadeModel(plant, dataclasses.replace(sc, position_rate=1)).error(g, "move")
+    assert np.max(np.abs(e - e1)) > 1e-3 * np.max(np.abs(e1))
+    # Against the nonlinear simulator's rigid run of the same gains: the error through the move
+    # agrees to the friction's linearisation (a few per cent of the peak).
+    r = simulate_move(plant, sc, PID(PI.kp, PI.ki), PositionLoop(kv=50.0, kvff=0.0, kaff=0.0, rate=2))
+    e_nl = _err_m(r, plant)[:e.size]
+    assert np.max(np.abs(e_nl - e)) < 0.05 * np.max(np.abs(e))
+
+
+def _short_move(tmp_path, name, edits, cascade_lines=()):
+    from prsa_ctrl.studies.scenefile import locate_scene as _scene_path
+
+    text = _scene_path("paper-move")[0].read_text()
+    for key, value in (("distance_mm", "2.0"), ("fidelity", '"rigid"'), ("hold_duration_s", "0.06"),
+                       ("hold_delay_s", "0.03")) + tuple(edits):
+        text = "\n".join(f"{key} = {value}" if ln.startswith(key + " ") else ln for ln in text.splitlines())
+    text = text.replace("[cascade]", "[cascade]\n" + "\n".join(cascade_lines), 1)
+    f = tmp_path / name
+    f.write_text(text)
+    return f
+
+
+def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plant):
+    """Acceptance (issue 34, section 3): position_rate = 2 and kv_max = "4 (m/min)/mm" tuned by
+    prsa-tune, verified on the nonlinear model, with the position loop's own sample time in every
+    export format (TOML, JSON, C, ST)."""
+    import json
+
+    from prsa_ctrl.cli.tune import main
+
+    f = _short_move(tmp_path, "rate2.toml", [("position_rate", "2"), ("hold_delay_s", "0.08")], ['kv_max = "4 (m/min)/mm"'])
+    # the drive's fixed filters, tuned around (item 3): a torque notch and a speed low-pass
+    f.write_text(f.read_text() + '\n[[filters.notch]]\npath = "torque"\ncentre_hz = 1200.0\nwidth_hz = 300.0\n'
+                 '[[filters.lowpass]]\npath = "speed"\ncorner_hz = 900.0\norder = 2\n')
+    rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "d.toml")])
+    assert rc == 0 and capsys.readouterr().err == ""
+    data = json.loads((tmp_path / "c.json").read_text())
+    ts = plant.sample_time_s
+    sc = load_move_scene(f)
+    assert [lf.place for lf in sc.filters] == ["torque_command", "speed_measurement"]
+    cm = CascadeModel(plant, sc)
+    for name in ("sequential", "joint"):
+        d = data[name]
+        assert [x["place"] for x in d["filters"]] == ["torque_command", "speed_measurement"]
+        assert d["position"]["rate"] == 2 and d["position"]["kv_per_s"] <= 4 * 1000 / 60 * (1 + 1e-9)
+        assert max(d["ms"][k] for k in BREAKING_POINTS) <= 1.4 * (1 + 1e-5)
+        assert d["verified"] is not None and d["verified"]["settling_time_s"] is not None
+        g = [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], d["position"]["ki_per_s2"],
+             d["position"]["kvff"], d["position"]["kaff"]]
+        assert cm.spectral_radius(g) < 1
+        # the reported peaks are the multi-rate model's, recomputed on another grid
+        again = cm.ms(g, n_dense=12007)
+        for k in BREAKING_POINTS:
+            assert again[k] == pytest.approx(d["ms"][k], rel=1e-4)
+    # the ceiling binds the joint design (it reaches 98 1/s without it)
+    assert data["joint"]["position"]["kv_per_s"] == pytest.approx(4 * 1000 / 60, rel=1e-6)
+    assert data["joint"]["verified"]["rms_following_error_m"] < data["sequential"]["verified"]["rms_following_error_m"]
+    exported = tomllib.loads((tmp_path / "d.toml").read_text())
+    pc = exported["position_controller"]
+    assert pc["sample_time_s"] == 2 * ts and pc["kv_m_min_per_mm"] == pytest.approx(4.0, rel=1e-6)
+    assert len(exported["filters"]) == 2
+    # the other formats of the same design (what --export d.json / drive.c / drive.st write)
+    from prsa_ctrl.io.codegen import code_texts
+    from prsa_ctrl.io.export import dumps as _dumps
+
+    d = data["joint"]
+    from prsa_ctrl.tuning.cascade import _design
+
+    design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
+                                   d["position"]["kvff"], d["position"]["kaff"]], 0.0)
+    assert design.position.rate == 2 and len(design.filters) == 2
+    assert json.loads(_dumps(export_cascade(design, plant, fmt="json"), "json"))["position_controller"][
+        "sample_time_s"] == 2 * ts
+    assert main(["--scene", str(f), "--quiet", "--export", str(tmp_path / "drive.st")]) == 0  # the CLI's code path
+    for ext in ("c", "st"):
+        code = ("".join(code_texts(design, plant, tmp_path / "drive.c", filters=design.filters).values())
+                if ext == "c" else (tmp_path / "drive.st").read_text())
+        assert f"every 2 sample(s) (position-loop sample time {2 * ts:g} s" in code
+        assert ("s->phase + 1 >= 2" if ext == "c" else "IF Phase >= 2 THEN") in code
+        assert "SF0_B0" in code and "TF0_B0" in code  # both filters in the generated law
+
+
+@pytest.mark.parametrize("line, match", [
+    ('kv_max = "3"', r"cascade\.kv_max = '3'; expected a position gain > 0 with its unit"),
+    ('kv_max = "3 m/s"', r"cascade\.kv_max = '3 m/s'; expected"),
+    ('kv_max = "-2 1/s"', r"cascade\.kv_max = '-2 1/s'; expected"),
+    ('kv_max = "nan (m/min)/mm"', r"cascade\.kv_max = 'nan \(m/min\)/mm'; expected"),
+    ("kv_max = 3.0", r"cascade\.kv_max = 3\.0; expected a position gain ceiling > 0 with its unit"),
+])
+def test_kv_max_refused_in_one_line(tmp_path, capsys, line, match):
+    from prsa_ctrl.cli.tune import main
+
+    f = _short_move(tmp_path, "bad.toml", [], [line])
+    with pytest.raises(SceneError, match=match) as exc:
+        load_move_scene(f)
+    assert "\n" not in str(exc.value)
+    assert main(["--scene", str(f), "--export", str(tmp_path / "d.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "kv_max" in err and "Traceback" not in err
+    assert not (tmp_path / "d.toml").exists()
+
+
+def test_kv_max_units_and_the_python_api(plant, scene):
+    from prsa_ctrl.options import parse_kv
+    from prsa_ctrl.tuning.cascade import kv_ceiling
+
+    assert parse_kv("3 (m/min)/mm") == pytest.approx(50.0, rel=1e-15)
+    assert parse_kv("2.5 1/s") == 2.5 and parse_kv(" 1  (m/min) / mm ") == pytest.approx(1000 / 60)
+    assert kv_ceiling(scene) == math.inf and kv_ceiling(scene, 30.0) == 30.0
+    assert kv_ceiling(dataclasses.replace(scene, kv_max_per_s=20.0)) == 20.0
+    assert kv_ceiling(scene, "2 (m/min)/mm") == pytest.approx(100 / 3)
+    for bad in (0.0, -1.0, math.inf, math.nan, True, "2 mm"):
+        with pytest.raises(ValueError, match="kv_max = "):
+            kv_ceiling(scene, bad)
+    # the ceiling bounds the sequential rule too (it picks crossover/10 = 39 1/s without it)
+    sc = dataclasses.replace(scene, fidelity="rigid", position_rate=2)
+    seq = sequential_design(plant, sc, kv_max="1.2 (m/min)/mm")
+    assert seq.position.kv == pytest.approx(20.0) and any("ceiling" in n for n in seq.notes)
+    assert seq.position.rate == 2 and seq.ms <= sc.ms_max * (1 + 1e-5)
+
+
+def test_report_names_the_rate_the_ceiling_and_the_filters(plant, designs):
+    from prsa_ctrl.cli.report import format_move_report
+
+    sc, cm, seq, joint = designs
+    f, labels = _two_filters()
+    text = format_move_report(plant, dataclasses.replace(sc, position_rate=2, kv_max_per_s=50.0, filters=f,
+                                                         filter_labels=labels), [seq, joint])
+    ts_us = plant.sample_time_s * 1e6
+    assert f"position loop every 2 speed-loop samples (Tp = {2 * ts_us:g} us over Ts = {ts_us:g} us)" in text
+    assert "kv_max = 50 1/s (3 (m/min)/mm)" in text and f"joint {joint.position.kv * 0.06:.4g} (m/min)/mm" in text
+    assert "at 1200 Hz on the torque command" in text and "at 900 Hz on the speed measurement" in text
+    plain = format_move_report(plant, sc, [seq, joint])
+    assert "speed-loop samples" not in plain and "kv_max" not in plain and "filters" not in plain
+
+
+def test_move_scene_filter_beyond_nyquist_refused(tmp_path, capsys):
+    from prsa_ctrl.cli.tune import main
+
+    f = _short_move(tmp_path, "nyq.toml", [("position_rate", "2")])
+    f.write_text(f.read_text() + '\n[[filters.lowpass]]\npath = "speed"\ncorner_hz = 2500.0\n')
+    assert main(["--scene", str(f), "--export", str(tmp_path / "d.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "corner_hz = 2500.0" in err and "Traceback" not in err
+    assert not (tmp_path / "d.toml").exists()
