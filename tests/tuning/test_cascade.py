@@ -667,8 +667,11 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
         code = ("".join(code_texts(design, plant, tmp_path / "drive.c", filters=design.filters).values())
                 if ext == "c" else (tmp_path / "drive.st").read_text())
         assert f"every 2 sample(s) (position-loop sample time {2 * ts:g} s" in code
-        assert ("s->phase + 1 >= 2" if ext == "c" else "IF Phase >= 2 THEN") in code
-        assert "SF0_B0" in code and "TF0_B0" in code  # both filters in the generated law
+        # the position-loop rate is a run-time parameter of the generated law, written as 2
+        assert ("p->position_rate = 2;" if ext == "c" else "P_POSITION_RATE : DINT := 2;") in code
+        assert ("phase + 1 >= p->position_rate" if ext == "c" else "t_Phase + 1 >= P_POSITION_RATE") in code
+        assert (("p->sf0_b0" in code and "p->tf0_b0" in code) if ext == "c" else
+                ("P_SF0_B0" in code and "P_TF0_B0" in code))  # both filters in the generated law
 
 
 @pytest.mark.parametrize("line, match", [
