@@ -42,7 +42,7 @@ from .._lazy import module  # noqa: E402
 from ..errors import GeometryWarning  # noqa: E402
 from ..io.output import OutputError, Transaction, check_directory, check_distinct, check_writable, json_safe  # noqa: E402
 from ..options import CONTROLLERS, ESTIMATORS, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE  # noqa: E402
-from ..plant.plantfile import load_plant, show_plant  # noqa: E402
+from ..plant.plantfile import load_plant  # noqa: E402
 from ..studies.movescene import MoveScene  # noqa: E402
 from ..studies.scene import load_scene  # noqa: E402
 from ..studies.scenefile import is_move_scene  # noqa: E402
@@ -165,6 +165,8 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         return EXIT_OK
     args = build_parser().parse_args(argv)
     if args.show_plant is not None:  # issue 21: the plant's values with their sources
+        from ..plant.describe import show_plant  # traces the model: CasADi only here
+
         echo(show_plant(args.show_plant))
         return EXIT_OK
     notes: list[warnings.WarningMessage] = []
