@@ -164,6 +164,7 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         build_parser().print_help()
         return EXIT_OK
     args = build_parser().parse_args(argv)
+    run.quiet = args.quiet  # no stray-warning notes either (invoke_inner)
     if args.show_plant is not None:  # issue 21: the plant's values with their sources
         from ..plant.describe import show_plant  # traces the model: CasADi only here
 
