@@ -57,7 +57,8 @@ def build_plot_parser() -> argparse.ArgumentParser:
                    help="folder for the PNG and SVG files (default: ./prsa-plots, created if missing; "
                         "not created when the run fails)")
     p.add_argument("--frequency-unit", choices=tuple(FREQUENCY_UNITS), default=DEFAULT_FREQUENCY_UNIT,
-                   help="unit of the frequency axes of the Bode and sensitivity plots (default Hz; the data and the printed margins stay in rad/s)")
+                   help="unit of the frequency axes of the Bode and sensitivity plots (default Hz; the data and "
+                        "the printed margins stay in rad/s)")
     return p
 
 

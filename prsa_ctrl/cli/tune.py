@@ -107,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots", type=path_text("--plots"), metavar="DIR",
                    help="write the standard plots (PNG and SVG) into DIR (created if missing)")
     p.add_argument("--frequency-unit", choices=tuple(FREQUENCY_UNITS), default=DEFAULT_FREQUENCY_UNIT,
-                   help="unit of the frequency axes of the Bode and sensitivity plots (default Hz; the data and the printed margins stay in rad/s)")
+                   help="unit of the frequency axes of the Bode and sensitivity plots (default Hz; the data and "
+                        "the printed margins stay in rad/s)")
     p.add_argument("--workers", type=integer("--workers", 1, WORKERS_MAX, "an integer"), default=None,
                    help="processes for verification and Monte Carlo, or the workers of --scheduler local "
                         "(default: cores, at most 4)")

@@ -66,7 +66,8 @@ def _probe_value(key: str, value: float) -> float:
 def _differs(a: PlantModel, b: PlantModel) -> bool:
     """Whether ``a`` and ``b`` differ beyond rounding (1e-9 relative) in f, h or power at seeded
     states whose motor speed sweeps 0 and +-1e-7 ... 1e2 rad/s in quarter decades (the stick
-    band and its blend, the Stribeck range and running speed), both load directions; a non-finite value counts as a difference."""
+    band and its blend, the Stribeck range and running speed), both load directions; a
+    non-finite value counts as a difference."""
     import numpy as np
 
     mag = {"x_roller": 3e-5, "delta_screw": 3e-5, "v_roller": 2e-3, "v_screw": 2e-3, "omega_cage": 20.0, "tau_motor": 1.0}
@@ -89,13 +90,14 @@ def keys_read(plant: Plant) -> frozenset:
     equations of every fidelity of its mechanism (``rigid``, ``compliant`` and, for the inverted
     roller screw, ``multi-roller``), not from a list.
 
-    A run-time trace records the keys the equations' construction reads (:func:`~prsa_ctrl.plant.model.plant_model`
-    of a recording view of the values); a key the rigid and compliant equations read is kept where changing it
-    (:func:`_probe_value`) changes their ``f``, ``h`` or ``power`` beyond rounding (1e-9
-    relative) at seeded states over the whole speed range (:func:`_differs`), so a value that is read and cancels out (the thread's
-    flank angle in the loss torque of a screw-driven axis, which the efficiency sets) is not
-    counted; a key only the multi-roller equations read is kept. The sampled loop's keys (drive
-    and sensor, :data:`prsa_ctrl.plant.schema.LOOP_KEYS`) are read by the controller and the
+    A run-time trace records the keys the equations' construction reads
+    (:func:`~prsa_ctrl.plant.model.plant_model` of a recording view of the values); a key the
+    rigid and compliant equations read is kept where changing it (:func:`_probe_value`) changes
+    their ``f``, ``h`` or ``power`` beyond rounding (1e-9
+    relative) at seeded states over the whole speed range (:func:`_differs`), so a value that is
+    read and cancels out (the thread's flank angle in the loss torque of a screw-driven axis,
+    which the efficiency sets) is not counted; a key only the multi-roller equations read is
+    kept. The sampled loop's keys (drive and sensor, :data:`prsa_ctrl.plant.schema.LOOP_KEYS`) are read by the controller and the
     simulator, not by these equations.
 
     Examples
@@ -120,7 +122,7 @@ def keys_read(plant: Plant) -> frozenset:
         object.__setattr__(probe, "defaulted", frozenset(plant.defaulted) - {key})
         try:
             changed = any(_differs(plant_model(probe, f), refs[f]) for f in core if key in read[f])
-        except (RuntimeError, ValueError, ZeroDivisionError, OverflowError):
+        except (RuntimeError, ValueError, TypeError, ArithmeticError):
             changed = True  # the equations cannot take the changed value: they depend on it
         if changed or key in read.get("multi-roller", set()):
             used.add(key)
@@ -141,8 +143,7 @@ class _Inputs(dict):
 
 def used_keys(plant: Plant) -> tuple[str, ...]:
     """The keys ``plant`` uses, in the order of ``plant.values``: the keys its model's equations
-    read (every fidelity of its mechanism, a run-time trace:
-    :func:`prsa_ctrl.plant.model.keys_read`), the sampled loop's keys
+    use (every fidelity of its mechanism, traced: :func:`keys_read`), the sampled loop's keys
     (:data:`~prsa_ctrl.plant.schema.LOOP_KEYS`) and, for each of those the file left out, the keys
     its default rule reads (:data:`~prsa_ctrl.plant.schema.DEFAULTS`), transitively. Every other
     key changes nothing for this plant (a ball screw's roller, cage and contact keys).
@@ -197,6 +198,8 @@ def describe_plant(plant: Plant) -> str:
                      f"{plant.axial_stiffness_n_per_m() * 1e-6:.4g} N/um, axial mode {plant.axial_mode_hz():.4g} Hz "
                      f"({'fixed-fixed' if v['axis.fixed_ends'] == 2 else 'fixed-free'})")
     used = used_keys(plant)
+    order = list(dict.fromkeys(k.split(".")[0] for k in used))  # each section once (a screw axis adds screw keys)
+    used = tuple(sorted(used, key=lambda k: order.index(k.split(".")[0])))  # stable: file order inside a section
     width = max(len(k) for k in used)
     section = None
     for key in used:
