@@ -24,6 +24,8 @@ __all__ = [
     "check_peak_bound",
     "rpm_to_rad_s",
     "rad_s_to_rpm",
+    "FREQUENCY_UNITS",
+    "DEFAULT_FREQUENCY_UNIT",
 ]
 
 #: The paper's operating speed, rpm (paper text: "300 rpm").
@@ -33,6 +35,13 @@ SETPOINT_RAD_S = SETPOINT_RPM * 2.0 * math.pi / 60.0
 
 #: One rpm in rad/s (gains "per rpm" multiply the SI gain by this).
 RAD_S_PER_RPM = 2.0 * math.pi / 60.0
+
+#: Units of the frequency axes of the Bode and sensitivity figures -> factor from rad/s
+#: (:mod:`prsa_ctrl.plots.loop`; ``prsa-plot`` and ``prsa-tune --plots``: ``--frequency-unit``).
+#: The data stay in rad/s (SI); only the axes and their labels change.
+FREQUENCY_UNITS = {"Hz": 1.0 / (2.0 * math.pi), "rad/s": 1.0}
+#: Default unit of those axes (a drive's parameters and a spectrum analyser's axis are in Hz).
+DEFAULT_FREQUENCY_UNIT = "Hz"
 
 #: Integral error criteria the tuner minimises (see :func:`prsa_ctrl.tune_pid`).
 OBJECTIVES = ("ie", "iae", "itae", "ise")

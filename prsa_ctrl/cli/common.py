@@ -13,7 +13,13 @@ Exit codes, the same for every tool (``prsa-tune``, ``prsa-plot``, ``prsa-fit``,
   within a second with one line; the outputs are all old or all new, and the line says which
   ("no output written", or "after the outputs were written complete: ..."); only in the
   interpreter's own shutdown, after the last check, is a Ctrl-C ignored (the run is complete);
-* ``EXIT_TERMINATED`` 143 -- the same after SIGTERM.
+* ``EXIT_TERMINATED`` 143 -- the same after SIGTERM;
+* ``EXIT_BROKEN_PIPE`` 141 -- the reader of the standard output went away (``prsa-tune
+  --show-plant X | head -1``): the command stops quietly, no line, no traceback, with the
+  status a shell shows for a tool that SIGPIPE ended (128 + 13), so ``set -o pipefail`` treats
+  it as such tools; temporaries are removed as after Ctrl-C, outputs already committed stay.
+  (argparse's help printer ignores write errors: ``--help`` into a closed pipe may exit 0,
+  equally quietly.)
 
 A command is a ``body(run, argv) -> exit code`` handed to :func:`invoke`, which installs the
 signal handlers (:func:`guard`), turns :class:`UsageError` and the input errors into exit 2 and
@@ -42,7 +48,7 @@ from ..io.output import OutputError, Transaction, cleanup_temporaries, remove_cr
 from ..textsafe import MESSAGE_CHARS_MAX, printable
 
 __all__ = ["report_failure", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
-           "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
+           "EXIT_BROKEN_PIPE", "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
            "Run", "guard", "native_output", "invoke", "invoke_inner", "describe_failure", "one_line",
            "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic", "flag_value",
            "echo"]
@@ -50,6 +56,8 @@ __all__ = ["report_failure", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXI
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
 #: Exit code after SIGTERM (128 + 15): handled like Ctrl-C (workers stopped, one line, nothing written).
 EXIT_TERMINATED = 128 + signal.SIGTERM
+#: Exit code when the standard output's reader has gone (128 + SIGPIPE, as a tool SIGPIPE ends): quiet.
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 
 #: Seconds between Ctrl-C and a forced exit when a solver does not hand control back.
 INTERRUPT_GRACE_S = 0.8
@@ -190,6 +198,8 @@ class Run:
         #: armed, and the caller's :meth:`check` at the solver's iteration boundaries raises it.
         self.record = False
         self.late = False  # Ctrl-C after the command finished (:meth:`on_late`)
+        #: ``--quiet``: the body sets it; no ``note:`` lines then (:func:`invoke_inner`).
+        self.quiet = False
 
     def say(self, line: str) -> bool:
         """Print the final one-line message once (main thread or watchdog, whichever first);
@@ -504,7 +514,14 @@ def invoke(prog: str, argv: Sequence[str] | None, body: Callable[[Run, list[str]
         Flags whose value may start with ``-`` (:func:`attach_values`).
     """
     run = Run(prog)
-    code = invoke_inner(run, argv, body, value_flags)
+    try:
+        code = invoke_inner(run, argv, body, value_flags)
+    except SystemExit:  # argparse's --help inside a body: its output may meet a closed pipe too
+        if argv is None and _flush_stdout(run, EXIT_OK) == EXIT_BROKEN_PIPE:
+            raise SystemExit(EXIT_BROKEN_PIPE) from None
+        raise
+    if argv is None and code != EXIT_BROKEN_PIPE:
+        code = _flush_stdout(run, code)
     if argv is None and code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and (
             run.late or signal.SIGINT in _pending_signals()):
         # Ctrl-C after the command finished (blocked by guard): exit 130 with its line.
@@ -550,14 +567,52 @@ def invoke_inner(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list
     A Python warning the body does not collect itself (numpy's ``RuntimeWarning`` of a bad
     input, say) never reaches the terminal in Python's format (file, line, source text): after a
     successful command it is one ``PROG: note:`` line; when the command fails its one line is
-    all it prints. The warning filters are left as they are (``-W``/``PYTHONWARNINGS`` still
+    all it prints; with ``--quiet`` (``run.quiet``) nothing. The warning filters are left as they are (``-W``/``PYTHONWARNINGS`` still
     decide what is shown)."""
     with warnings.catch_warnings(record=True) as stray:
         code = _guarded(run, argv, body, value_flags)
-    if code == EXIT_OK:
+    if code == EXIT_OK and not run.quiet:
         for text in dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in stray):
             echo(f"{run.prog}: note: {text}", file=sys.stderr)
     return code
+
+
+def _stdout_gone() -> bool:
+    """Whether the standard output is a pipe (or socket) whose reader has gone (poll: error or
+    hang-up on the write end)."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # not a real file (a test's capture), no poll
+        return False
+
+
+def _flush_stdout(run: Run, code: int) -> int:
+    """Flush what is still buffered for the standard output, where a closed pipe can be told
+    apart: ``code``, or :data:`EXIT_BROKEN_PIPE` when the reader has gone."""
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        if not _stdout_gone():
+            raise
+        return _quiet_broken_pipe(run)
+    return code
+
+
+def _quiet_broken_pipe(run: Run) -> int:
+    """End quietly after the standard output's reader went away: no line (the run counts as
+    reported), the rest of the output to the null device (so the interpreter's last flush does
+    not print an ignored exception), exit :data:`EXIT_BROKEN_PIPE`."""
+    run.reported = True
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+    return EXIT_BROKEN_PIPE
 
 
 def _guarded(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
@@ -580,6 +635,10 @@ def _guarded(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list[str
             run.say(f"{prog}: error: {one_line(exc)}")
             return EXIT_BAD_INPUT
         except Exception as exc:  # noqa: BLE001 - a bug must not print a traceback either
+            if isinstance(exc, BrokenPipeError) and _stdout_gone():  # not another pipe (a worker's, a socket)
+                cleanup_temporaries()
+                remove_created(run.created)
+                return _quiet_broken_pipe(run)
             remove_created(run.created)
             if run.interrupted:
                 run.say(run.interrupt_line())

@@ -261,6 +261,7 @@ def _body(run: Run, argv: list[str]) -> int:
         build_pid_parser().print_help()
         return EXIT_OK
     args = build_pid_parser().parse_args(_glue_lists(argv))
+    run.quiet = args.quiet  # no stray-warning notes either (invoke_inner)
     num, den, shown = _checked(args)
     if args.json is not None:
         check_writable(args.json, (), "--json")

@@ -15,7 +15,7 @@ from typing import Sequence
 from .._lazy import module
 from ..errors import GeometryWarning
 from ..io.output import Transaction, check_directory
-from ..options import DERIVATIVE_FILTER_SAMPLES
+from ..options import DEFAULT_FREQUENCY_UNIT, DERIVATIVE_FILTER_SAMPLES, FREQUENCY_UNITS
 from ..studies.scene import choose_fidelity
 from .common import (EXIT_OK, Parser, Run, UsageError, commit, echo, invoke, native_output, number, path_text, progress,
                      report_failure, show_notes, staged)
@@ -56,6 +56,9 @@ def build_plot_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots", "--out", dest="out", default="prsa-plots", type=path_text("--plots"), metavar="DIR",
                    help="folder for the PNG and SVG files (default: ./prsa-plots, created if missing; "
                         "not created when the run fails)")
+    p.add_argument("--frequency-unit", choices=tuple(FREQUENCY_UNITS), default=DEFAULT_FREQUENCY_UNIT,
+                   help="unit of the frequency axes of the Bode and sensitivity plots (default Hz; the data and "
+                        "the printed margins stay in rad/s)")
     return p
 
 
@@ -77,8 +80,8 @@ def plot_main(argv: Sequence[str] | None = None) -> int:
     return invoke("prsa-plot", argv, _plot_body, VALUE_FLAGS)
 
 
-def _plot_figures(plant, scene, pid, state, loops):
-    return loop_plots.design_figures(plant, scene, pid, state, loops)
+def _plot_figures(plant, scene, pid, state, loops, frequency_unit: str = DEFAULT_FREQUENCY_UNIT):
+    return loop_plots.design_figures(plant, scene, pid, state, loops, frequency_unit)
 
 
 def _plot_body(run: Run, argv: list[str]) -> int:
@@ -113,10 +116,11 @@ def _plot_body(run: Run, argv: list[str]) -> int:
                 loops = actuator_loops(plant, choose_fidelity(scene)[0])
                 state = _stability(loops[0], pid.gains)
                 m = loops[0].margins(pid.gains)
-                figs = None if state == "stable" else _plot_figures(plant, scene, pid, state, loops)
+                figs = None if state == "stable" else _plot_figures(plant, scene, pid, state, loops, args.frequency_unit)
                 files = None
                 if state == "stable":
-                    files = staged(run, lambda staging: loop_plots.write_design_plots(plant, scene, pid, staging),
+                    files = staged(run, lambda staging: loop_plots.write_design_plots(plant, scene, pid, staging,
+                                                                                  args.frequency_unit),
                                    args.out, inputs)
             notes.extend(caught)
         run.check()

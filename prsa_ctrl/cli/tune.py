@@ -41,8 +41,9 @@ from typing import Any, Sequence  # noqa: E402
 from .._lazy import module  # noqa: E402
 from ..errors import GeometryWarning  # noqa: E402
 from ..io.output import OutputError, Transaction, check_directory, check_distinct, check_writable, json_safe  # noqa: E402
-from ..options import CONTROLLERS, ESTIMATORS, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE  # noqa: E402
-from ..plant.plantfile import load_plant, show_plant  # noqa: E402
+from ..options import (CONTROLLERS, DEFAULT_FREQUENCY_UNIT, ESTIMATORS, FREQUENCY_UNITS, MS_MAX_DEFAULT, OBJECTIVES,  # noqa: E402
+                       PEAK_BOUND_RANGE)
+from ..plant.plantfile import load_plant  # noqa: E402
 from ..studies.movescene import MoveScene  # noqa: E402
 from ..studies.scene import load_scene  # noqa: E402
 from ..studies.scenefile import is_move_scene  # noqa: E402
@@ -105,6 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the report as JSON (atomically; never onto an input file; symlinks are written through)")
     p.add_argument("--plots", type=path_text("--plots"), metavar="DIR",
                    help="write the standard plots (PNG and SVG) into DIR (created if missing)")
+    p.add_argument("--frequency-unit", choices=tuple(FREQUENCY_UNITS), default=DEFAULT_FREQUENCY_UNIT,
+                   help="unit of the frequency axes of the Bode and sensitivity plots (default Hz; the data and "
+                        "the printed margins stay in rad/s)")
     p.add_argument("--workers", type=integer("--workers", 1, WORKERS_MAX, "an integer"), default=None,
                    help="processes for verification and Monte Carlo, or the workers of --scheduler local "
                         "(default: cores, at most 4)")
@@ -164,7 +168,10 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         build_parser().print_help()
         return EXIT_OK
     args = build_parser().parse_args(argv)
+    run.quiet = args.quiet  # no stray-warning notes either (invoke_inner)
     if args.show_plant is not None:  # issue 21: the plant's values with their sources
+        from ..plant.describe import show_plant  # traces the model: CasADi only here
+
         echo(show_plant(args.show_plant))
         return EXIT_OK
     notes: list[warnings.WarningMessage] = []
@@ -386,7 +393,7 @@ def _write_outputs(run: Run, args, plant, scene, result: dict, inputs: Sequence[
             plot_files = staged(run, lambda staging: move_plots.write_move_plots(plant, scene, designs, staging),
                                 args.plots, inputs, outputs)
         else:
-            plot_files = _publish_report_plots(run, result["rep"], args.plots, inputs, outputs)
+            plot_files = _publish_report_plots(run, result["rep"], args.plots, inputs, outputs, args.frequency_unit)
     if args.json is not None:
         run.check()
         write_json_atomic(args.json, _json_report(scene, plant, result), inputs, transaction=outputs)
@@ -638,10 +645,12 @@ def _export_choice(rep, robust_rep) -> tuple[Any, dict]:
     return rep.best.pid, {"name": rep.best.name, "chosen_by": "the tuned design (no robust study)"}
 
 
-def _publish_report_plots(run: Run, rep, directory: str, inputs: Sequence[str], outputs=None) -> list[Path]:
+def _publish_report_plots(run: Run, rep, directory: str, inputs: Sequence[str], outputs=None,
+                          frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> list[Path]:
     """Render the standard plots into a private staging folder, then stage each in the run's
     output transaction for ``directory`` (created only now, and taken back if this fails)."""
-    return staged(run, lambda staging: loop_plots.write_standard_plots(rep, staging), directory, inputs, outputs)
+    return staged(run, lambda staging: loop_plots.write_standard_plots(rep, staging, frequency_unit), directory, inputs,
+                  outputs)
 
 
 if __name__ == "__main__":  # pragma: no cover

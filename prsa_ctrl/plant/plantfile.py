@@ -6,7 +6,8 @@ is an inline table ``{ value = ..., source = "..." }`` so that its origin (paper
 text, catalogue, or ``"assumption: <why>"``) travels with it. Only a few keys are required
 per mechanism (:data:`~prsa_ctrl.plant.schema.REQUIRED`); every other key takes its documented
 default with that default's source (:data:`~prsa_ctrl.plant.schema.DEFAULTS`), and
-:func:`describe_plant` (``prsa-tune --show-plant``) lists every value, given or defaulted. Key
+:func:`prsa_ctrl.plant.describe.describe_plant` (``prsa-tune --show-plant``) lists every value
+the plant uses (:func:`~prsa_ctrl.plant.describe.used_keys`), given or defaulted. Key
 names carry their units; inside the library everything is SI.
 """
 
@@ -24,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
 from ..results import FrozenDict, freeze
-from ..textsafe import printable, quote
+from ..textsafe import quote
 from ..tomlfile import read_toml
 from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, VISCOUS_OFFSET_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
                      MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, NON_NEGATIVE_INTEGER, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
@@ -39,8 +40,6 @@ __all__ = [
     "builtin_plants",
     "plant_file_path",
     "DEFAULT_PLANT",
-    "describe_plant",
-    "show_plant",
     "SCHEMA",
     "PLAUSIBLE",
 ]
@@ -384,7 +383,7 @@ class Plant:
     ``section.key``); the ``*_m``, ``*_kg`` ... properties give SI values. ``sources`` says
     where each value came from: the file's own source string, or ``"default: ..."`` /
     ``"derived: ..."`` for a key the file left out (``defaulted`` lists those keys; see
-    :data:`prsa_ctrl.plant.schema.DEFAULTS` and :func:`describe_plant`).
+    :data:`prsa_ctrl.plant.schema.DEFAULTS` and :func:`prsa_ctrl.plant.describe.describe_plant`).
 
     ``mechanism`` (:data:`~prsa_ctrl.plant.schema.MECHANISMS`) sets the kinematics, the
     reflected inertia and what the compliant fidelity is (:mod:`prsa_ctrl.plant.model`). A
@@ -875,55 +874,6 @@ class Plant:
         helix = self.helix_screw_rad
         return GeometryReport(0.0, 0.0, 0.0, helix, helix, helix, 0.0,
                               v["screw.lead_mm"] / v["screw.starts"] * 1e-3, ())
-
-
-def describe_plant(plant: Plant) -> str:
-    """Every value of ``plant`` with its unit and its source, one line each, grouped by section.
-
-    Each line says ``given`` (the plant file's value, with the file's source string) or
-    ``default`` / ``derived`` (the key was left out: the value of
-    :data:`~prsa_ctrl.plant.schema.DEFAULTS` and the reason). The header names the plant,
-    its file, the mechanism (with its source), the coordinates the plant works in (a linear axis:
-    load, m and N; every other mechanism: motor, rad and N m) and what the plant's compliant
-    fidelity is.
-
-    Examples
-    --------
-    >>> print(describe_plant(load_plant()).splitlines()[1])
-    mechanism: inverted-roller-screw (default: inverted-roller-screw)
-    """
-    lines = [f"plant {printable(plant.name)} ({printable(plant.origin)})"
-             f"{': ' + printable(plant.description) if plant.description else ''}",
-             f"mechanism: {plant.mechanism} ({plant.mechanism_source})",
-             "coordinates: " + ("load (position m, force N)" if plant.mechanism == "linear-axis"
-                                else "motor (angle rad, torque N m)")]
-    if plant.screw_driven:
-        v = plant.values
-        lines.append(f"axial stiffness at the stroke position {v['axis.stroke_position_mm']:g} mm: "
-                     f"{plant.axial_stiffness_n_per_m() * 1e-6:.4g} N/um, axial mode {plant.axial_mode_hz():.4g} Hz "
-                     f"({'fixed-fixed' if v['axis.fixed_ends'] == 2 else 'fixed-free'})")
-    width = max(len(k) for k in plant.values)
-    section = None
-    for key, value in plant.values.items():
-        sec = key.split(".")[0]
-        if sec != section:
-            lines.append(f"[{sec}]")
-            section = sec
-        src = plant.sources.get(key, "")
-        tag = "given" if key not in plant.defaulted else ("derived" if src.startswith("derived") else "default")
-        unit = UNITS.get(key, "-")
-        shown = str(int(value)) if KIND.get(key) in (POSITIVE_INTEGER, NON_NEGATIVE_INTEGER) else f"{value:.6g}"
-        lines.append(f"  {key:<{width}} = {shown:>12} {unit:<10} {tag:<7} {src}")
-    return "\n".join(lines)
-
-
-def show_plant(name_or_path: str | Path | None = None) -> str:
-    """:func:`describe_plant` of a plant file (``prsa-tune --show-plant``); the geometry notes
-    of the inverted design are lines of the text instead of warnings."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", GeometryWarning)
-        plant = load_plant(name_or_path)
-    return describe_plant(plant) + "".join(f"\ngeometry note: {m}" for m in plant.geometry.messages)
 
 
 def plant_file_path(name_or_path: str | Path | None = None) -> Path | Any:

@@ -30,7 +30,7 @@ from typing import Any, Callable, Mapping, Union
 __all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "NON_NEGATIVE_INTEGER",
            "FINITE", "FRACTION", "COMMAND_DELAY_KEY", "BREAKAWAY_KEY", "VISCOUS_OFFSET_KEY",
            "MECHANISMS", "DEFAULT_MECHANISM", "SCREW_DRIVEN", "MOUNTINGS", "DEFAULT_MOUNTING", "SCREW_AXIS_SCHEMA",
-           "LINEAR_AXIS_SCHEMA", "KIND", "REQUIRED", "DEFAULTS", "UNITS", "keys_of", "kind_of"]
+           "LINEAR_AXIS_SCHEMA", "LOOP_KEYS", "KIND", "REQUIRED", "DEFAULTS", "UNITS", "keys_of", "kind_of"]
 
 # Kinds of value: positive finite, non-negative finite, positive integer, non-negative integer, fraction in (0, 1].
 POSITIVE, NON_NEGATIVE, POSITIVE_INTEGER, FRACTION = "positive", "non-negative", "positive integer", "fraction in (0, 1]"
@@ -246,6 +246,22 @@ LINEAR_AXIS_SCHEMA: Mapping[str, Mapping[str, str]] = {
     "sensor": {"encoder_resolution_m": POSITIVE},
 }
 
+#: Keys read outside the model's equations, by the sampled loop and the tools around it, for
+#: every mechanism that has them -> who reads them. With the keys the equations read (a run-time
+#: trace, :func:`prsa_ctrl.plant.describe.keys_read`) and the keys those derive from, they are the
+#: keys a plant uses (:func:`prsa_ctrl.plant.describe.used_keys`, what ``prsa-tune --show-plant``
+#: lists).
+LOOP_KEYS: Mapping[str, str] = {
+    "drive.torque_limit_n_m": "the controller's command saturation and the tuner's torque limit",
+    "drive.command_delay_samples": "the sampled loop's command delay (tuner and simulator)",
+    "sensor.sample_time_s": "the controller's sample time (tuner and simulator)",
+    "sensor.encoder_counts_per_rev": "the encoder quantisation of the simulated measurement",
+    "sensor.speed_filter_time_constant_s": "the controller's speed-measurement filter (tuner and simulator)",
+    "sensor.torque_noise_n_m": "the simulator's torque ripple and the Kalman estimator's measurement noise",
+    "screw.rated_load_n": "the simulator's tolerances, the Kalman estimator's rated torque and the FRF load bound",
+    "drive.gain_n_per_unit": "the linear-axis fit's command gain (force per command unit of the logs)",
+}
+
 #: Every key of every mechanism -> its kind.
 KIND: Mapping[str, str] = {
     f"{s}.{k}": kind
@@ -448,7 +464,7 @@ DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]]
     "axis.axial_damping_ratio": (0.03, "default: typical modal damping of the axial mode of a screw feed drive (1 to 5 %)"),
 }
 
-#: Unit of each key (for :func:`prsa_ctrl.plant.plantfile.describe_plant`), from its name.
+#: Unit of each key (for :func:`prsa_ctrl.plant.describe.describe_plant`), from its name.
 UNITS: Mapping[str, str] = {
     k: next((u for suffix, u in (("_mm_e", "N/mm^e"), ("_n_s_per_mm", "N s/mm"), ("_kg_m2", "kg m^2"), ("_kg_m3", "kg/m^3"),
                                   ("_n_m_s_per_rad", "N m s/rad"), ("_n_s_per_m", "N s/m"), ("_n_per_um", "N/um"),

@@ -24,6 +24,7 @@ import matplotlib.ticker
 import numpy as np
 
 from .._lazy import module
+from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS
 from ..sim.metrics import margins_from_response
 from ..studies.responses import (FigureData, Landscape, binding_level, design_responses, duty_input, landscape,
                                  objective_value, report_responses, stable_design_responses)
@@ -51,7 +52,18 @@ __all__ = [
     "write_standard_plots",
     "write_design_plots",
     "save_figure",
+    "FREQUENCY_UNITS",
+    "DEFAULT_FREQUENCY_UNIT",
 ]
+
+
+
+def _unit_factor(unit: str) -> float:
+    """Factor from rad/s to ``unit`` (:data:`prsa_ctrl.options.FREQUENCY_UNITS`; the axes, the
+    crossover and peak labels and the Nyquist mark are drawn in it); ValueError naming it otherwise."""
+    if unit not in FREQUENCY_UNITS:
+        raise ValueError(f"frequency unit {unit!r}; expected one of {', '.join(FREQUENCY_UNITS)}")
+    return FREQUENCY_UNITS[unit]
 
 _COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 
@@ -84,23 +96,26 @@ def _op_text(op) -> str:
     return f"{op.omega_nut * 30.0 / math.pi:.0f} rpm, {op.load:g} N"
 
 
-def _nyquist(axes, sample_time_s: float | None) -> None:
-    """Mark the Nyquist frequency ``pi/Ts`` of a sampled loop on every axis."""
+def _nyquist(axes, sample_time_s: float | None, unit: str = DEFAULT_FREQUENCY_UNIT) -> None:
+    """Mark the Nyquist frequency (``pi/Ts`` rad/s, ``1/(2 Ts)`` Hz) of a sampled loop on every axis."""
     if not sample_time_s:
         return
-    wn = math.pi / sample_time_s
+    wn = math.pi / sample_time_s * _unit_factor(unit)
+    text = "pi/Ts" if unit == "rad/s" else "1/(2 Ts)"
     for i, a in enumerate(axes):
-        a.axvline(wn, color="0.35", ls="-.", lw=1.0, label=f"Nyquist pi/Ts = {wn:.0f} rad/s" if i == 0 else None)
+        a.axvline(wn, color="0.35", ls="-.", lw=1.0, label=f"Nyquist {text} = {wn:.0f} {unit}" if i == 0 else None)
 
 
-def _bode_axes(axes, omega, resp, label, color=None):
+def _bode_axes(axes, omega, resp, label, color=None, unit: str = DEFAULT_FREQUENCY_UNIT):
     mag = 20 * np.log10(np.abs(resp))
     phase = np.degrees(np.unwrap(np.angle(resp)))
-    axes[0].semilogx(omega, mag, label=label, color=color)
-    axes[1].semilogx(omega, phase, label=label, color=color)
+    f = np.asarray(omega, float) * _unit_factor(unit)
+    axes[0].semilogx(f, mag, label=label, color=color)
+    axes[1].semilogx(f, phase, label=label, color=color)
 
 
-def bode_plant(sys, omega: np.ndarray | None = None, axes=None, sample_time_s: float | None = None):
+def bode_plant(sys, omega: np.ndarray | None = None, axes=None, sample_time_s: float | None = None,
+               frequency_unit: str = DEFAULT_FREQUENCY_UNIT):
     """Bode plot of nut speed from torque command (rad/s per N m) and from axial load
     (rad/s per N) of a linearised plant (:func:`prsa_ctrl.linearize`).
 
@@ -113,18 +128,22 @@ def bode_plant(sys, omega: np.ndarray | None = None, axes=None, sample_time_s: f
     axes : two matplotlib axes, optional
     sample_time_s : float, s, optional
         Controller sample time of a sampled loop: the Nyquist frequency ``pi/Ts`` is marked.
+    frequency_unit : {"Hz", "rad/s"}
+        Unit of the frequency axis (:data:`~prsa_ctrl.options.FREQUENCY_UNITS`; the grid ``omega`` is in rad/s
+        either way).
     """
+    _unit_factor(frequency_unit)
     omega = np.logspace(-1, 5, 600) if omega is None else omega
     fig, axs = _axes(axes, 2, figsize=(7.0, 5.5))
     i_out = sys.output_labels.index("nut_speed")
     for j, (inp, unit) in enumerate((("torque_command", "rad/s per N m"), ("axial_load", "rad/s per N"))):
         k = sys.input_labels.index(inp)
         resp = np.asarray(control.frequency_response(sys[i_out, k], omega).complex).ravel()
-        _bode_axes(axs, omega, resp, f"nut speed / {inp.replace('_', ' ')} ({unit})", _COLORS[j])
-    _nyquist(axs, sample_time_s)
+        _bode_axes(axs, omega, resp, f"nut speed / {inp.replace('_', ' ')} ({unit})", _COLORS[j], frequency_unit)
+    _nyquist(axs, sample_time_s, frequency_unit)
     axs[0].set_ylabel("magnitude (dB)")
     axs[1].set_ylabel("phase (deg)")
-    axs[1].set_xlabel("frequency (rad/s)")
+    axs[1].set_xlabel(f"frequency ({frequency_unit})")
     op = _op_text(getattr(sys, "operating_point", None))
     axs[0].set_title("Linearised plant" + (f" at {op}" if op else ""))
     axs[0].legend(loc="lower left", fontsize=8)
@@ -134,7 +153,7 @@ def bode_plant(sys, omega: np.ndarray | None = None, axes=None, sample_time_s: f
 
 
 def bode_loop(omega, loop, margins=None, axes=None, label: str = "L", operating_point=None,
-              sample_time_s: float | None = None):
+              sample_time_s: float | None = None, frequency_unit: str = DEFAULT_FREQUENCY_UNIT):
     """Bode plot of the open loop ``L(j omega)`` with gain and phase margins marked.
 
     Parameters
@@ -148,31 +167,36 @@ def bode_loop(omega, loop, margins=None, axes=None, label: str = "L", operating_
         Named in the title (``"300 rpm, 1000 N"``).
     sample_time_s : float, s, optional
         Marks the Nyquist frequency ``pi/Ts`` of a sampled loop.
+    frequency_unit : {"Hz", "rad/s"}
+        Unit of the frequency axis and of the crossover in the labels (:data:`~prsa_ctrl.options.FREQUENCY_UNITS`;
+        ``omega`` is in rad/s either way).
     """
+    k = _unit_factor(frequency_unit)
     m = margins or margins_from_response(omega, loop)
     fig, axs = _axes(axes, 2, figsize=(7.0, 5.5))
-    _bode_axes(axs, omega, loop, label)
+    _bode_axes(axs, omega, loop, label, unit=frequency_unit)
+    wc = m.wc_rad_s * k
     axs[0].axhline(0.0, color="k", lw=0.8)
     axs[1].axhline(-180.0, color="k", lw=0.8)
     # Labels sit on the far side of the reference line from the curve, so they never cross it.
     if math.isfinite(m.pm_deg) and math.isfinite(m.wc_rad_s):
-        axs[1].plot([m.wc_rad_s, m.wc_rad_s], [-180.0, -180.0 + m.pm_deg], color="C3", lw=2)
-        axs[1].annotate(f"PM {m.pm_deg:.1f} deg at {m.wc_rad_s:.0f} rad/s", (m.wc_rad_s, -180.0), xytext=(0, -6),
+        axs[1].plot([wc, wc], [-180.0, -180.0 + m.pm_deg], color="C3", lw=2)
+        axs[1].annotate(f"PM {m.pm_deg:.1f} deg at {wc:.0f} {frequency_unit}", (wc, -180.0), xytext=(0, -6),
                         textcoords="offset points", color="C3", fontsize=8, ha="center", va="top")
     if math.isfinite(m.gm_db):
         phase = np.degrees(np.unwrap(np.angle(loop)))
         i = int(np.argmin(np.abs(phase + 180.0)))
-        axs[0].plot([omega[i], omega[i]], [0.0, -m.gm_db], color="C2", lw=2)
-        axs[0].annotate(f"GM {m.gm_db:.1f} dB", (omega[i], 0.0), xytext=(0, 5),
+        axs[0].plot([omega[i] * k, omega[i] * k], [0.0, -m.gm_db], color="C2", lw=2)
+        axs[0].annotate(f"GM {m.gm_db:.1f} dB", (omega[i] * k, 0.0), xytext=(0, 5),
                         textcoords="offset points", color="C2", fontsize=8, ha="center", va="bottom")
-    _nyquist(axs, sample_time_s)
+    _nyquist(axs, sample_time_s, frequency_unit)
     if sample_time_s:
         axs[0].legend(loc="lower left", fontsize=8)
     axs[0].set_ylabel("|L| (dB)")
     axs[1].set_ylabel("phase of L (deg)")
-    axs[1].set_xlabel("frequency (rad/s)")
+    axs[1].set_xlabel(f"frequency ({frequency_unit})")
     op = _op_text(operating_point)
-    axs[0].set_title(f"Open loop{' at ' + op if op else ''}\nMs {m.ms:.2f}, crossover {m.wc_rad_s:.0f} rad/s",
+    axs[0].set_title(f"Open loop{' at ' + op if op else ''}\nMs {m.ms:.2f}, crossover {wc:.0f} {frequency_unit}",
                      fontsize=10)
     for a in axs:
         a.grid(True, which="both", alpha=0.3)
@@ -180,27 +204,29 @@ def bode_loop(omega, loop, margins=None, axes=None, label: str = "L", operating_
 
 
 def sensitivity_plot(omega, loop, ms_max: float | None = None, ax=None, mt_max: float | None = None,
-                     sample_time_s: float | None = None):
+                     sample_time_s: float | None = None, frequency_unit: str = DEFAULT_FREQUENCY_UNIT):
     """|S| and |T| (absolute, log scale) with their peaks Ms, Mt and the bounds on the same scale.
 
     The peak values are named in the legend (never on the curves); the y-range runs from 0.01
-    to above the highest peak or bound so the peaks are always visible.
+    to above the highest peak or bound so the peaks are always visible. ``omega`` in rad/s; the
+    frequency axis and the labels in ``frequency_unit`` (:data:`~prsa_ctrl.options.FREQUENCY_UNITS`).
     """
+    f = np.asarray(omega, float) * _unit_factor(frequency_unit)
     fig, (a,) = _axes(ax)
     s = np.abs(1 / (1 + loop))
     t = np.abs(loop / (1 + loop))
     top = 1.0
     for mag, name, sym, c, bound in ((s, "Ms", "S", "C0", ms_max), (t, "Mt", "T", "C1", mt_max)):
         i = int(np.argmax(mag))
-        a.loglog(omega, mag, color=c, label=f"|{sym}|: {name} = {mag[i]:.3f} at {omega[i]:.0f} rad/s")
-        a.plot(omega[i], mag[i], "o", color=c)
+        a.loglog(f, mag, color=c, label=f"|{sym}|: {name} = {mag[i]:.3f} at {f[i]:.0f} {frequency_unit}")
+        a.plot(f[i], mag[i], "o", color=c)
         top = max(top, mag[i])
         if bound:
             a.axhline(bound, color=c, ls="--", lw=1, label=f"{name} bound {bound:g}")
             top = max(top, bound)
-    _nyquist([a], sample_time_s)
+    _nyquist([a], sample_time_s, frequency_unit)
     a.set_ylim(1e-2, top * 1.6)
-    a.set_xlabel("frequency (rad/s)")
+    a.set_xlabel(f"frequency ({frequency_unit})")
     a.set_ylabel("magnitude (absolute)")
     a.set_title("Sensitivity S and complementary sensitivity T")
     a.grid(True, which="both", alpha=0.3)
@@ -691,14 +717,15 @@ def _save_all(figs: dict, directory: Path) -> list[Path]:
     return files
 
 
-def _frequency_figures(data: FigureData) -> dict:
-    """Plant Bode, loop Bode and sensitivity figures of a :class:`FigureData`."""
+def _frequency_figures(data: FigureData, unit: str = DEFAULT_FREQUENCY_UNIT) -> dict:
+    """Plant Bode, loop Bode and sensitivity figures of a :class:`FigureData`, frequency axes in ``unit``."""
     sc, ts = data.scene, data.sample_time_s
     figs = {
-        "plant_bode": bode_plant(data.plant_linear, sample_time_s=ts)[0],
+        "plant_bode": bode_plant(data.plant_linear, sample_time_s=ts, frequency_unit=unit)[0],
         "loop_bode": bode_loop(data.omega, data.loop, data.margins, operating_point=_mid_load_text(sc, data.level),
-                               sample_time_s=ts)[0],
-        "sensitivity": sensitivity_plot(data.omega, data.loop, sc.ms_max, mt_max=sc.mt_max, sample_time_s=ts)[0],
+                               sample_time_s=ts, frequency_unit=unit)[0],
+        "sensitivity": sensitivity_plot(data.omega, data.loop, sc.ms_max, mt_max=sc.mt_max, sample_time_s=ts,
+                                        frequency_unit=unit)[0],
     }
     figs["sensitivity"].axes[0].set_title(f"S and T at {_mid_load_text(sc, data.level)}", fontsize=10)
     return figs
@@ -713,11 +740,12 @@ def _time_figures(data: FigureData, k: int | None) -> dict:
     return {"load_step": load_step_plot(d, sc, k=k, torque_limit=data.plant.torque_limit)[0]}
 
 
-def draw_report_figures(data: FigureData) -> dict:
+def draw_report_figures(data: FigureData, frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> dict:
     """The standard figure set of a tuning report (see :func:`write_standard_plots`), drawn from
-    :func:`~prsa_ctrl.studies.responses.report_responses`; figure name -> Figure."""
+    :func:`~prsa_ctrl.studies.responses.report_responses`, frequency axes in ``frequency_unit``
+    (:data:`~prsa_ctrl.options.FREQUENCY_UNITS`); figure name -> Figure."""
     sc, best = data.scene, data.design
-    figs = _frequency_figures(data)
+    figs = _frequency_figures(data, frequency_unit)
     figs["landscape"] = tuning_landscape(data.landscape, sc.objective, sc.ms_max, best.pid,
                                          [(b.name, b.pid) for b in data.baselines], mt_max=sc.mt_max)[0]
     figs.update(_time_figures(data, None if len(sc.final_loads) > 1 else 0))
@@ -737,7 +765,7 @@ def draw_report_figures(data: FigureData) -> dict:
     return figs
 
 
-def write_standard_plots(report, directory: Path) -> list[Path]:
+def write_standard_plots(report, directory: Path, frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> list[Path]:
     """The standard figure set of a tuning report, as PNG and SVG files in ``directory``.
 
     Parameters
@@ -747,6 +775,8 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
         :func:`~prsa_ctrl.studies.responses.report_responses` first.
     directory : Path
         Created if missing.
+    frequency_unit : {"Hz", "rad/s"}
+        Unit of the Bode and sensitivity frequency axes (:data:`~prsa_ctrl.options.FREQUENCY_UNITS`).
 
     Files: ``plant_bode``, ``loop_bode``, ``sensitivity`` (at the binding load level),
     ``load_step`` (every load level, binding one highlighted, torque below), ``baselines`` (each
@@ -756,19 +786,21 @@ def write_standard_plots(report, directory: Path) -> list[Path]:
     mix) instead of ``load_step``, and ``baselines`` as the verified errors over its record, each
     baseline beside the tuned design at equal or lower Ms (:func:`duty_cycle_pairs_plot`).
     """
+    _unit_factor(frequency_unit)  # before any work
     data = report if isinstance(report, FigureData) else report_responses(report)
-    return _save_all(draw_report_figures(data), directory)
+    return _save_all(draw_report_figures(data, frequency_unit), directory)
 
 
-def draw_design_figures(data: FigureData) -> dict:
+def draw_design_figures(data: FigureData, frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> dict:
     """Bode, sensitivity, load-step and setpoint-step figures of given gains, drawn from
-    :func:`~prsa_ctrl.studies.responses.design_responses`; figure name -> Figure.
+    :func:`~prsa_ctrl.studies.responses.design_responses`, frequency axes in ``frequency_unit``
+    (:data:`~prsa_ctrl.options.FREQUENCY_UNITS`); figure name -> Figure.
 
     Marginal and unstable loops are drawn with a red warning title; an unstable one gets the
     frequency plots only (its time responses diverge).
     """
     sc, pid = data.scene, data.design.pid
-    figs = _frequency_figures(data)
+    figs = _frequency_figures(data, frequency_unit)
     label = {"marginal": "marginally stable closed loop", "unstable": "UNSTABLE closed loop"}.get(data.stability)
     if label:
         for fig in figs.values():
@@ -785,7 +817,8 @@ def draw_design_figures(data: FigureData) -> dict:
     return figs
 
 
-def design_figures(plant, scene=None, pid=None, stability: str | None = None, loops=None) -> dict:
+def design_figures(plant, scene=None, pid=None, stability: str | None = None, loops=None,
+                   frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> dict:
     """Bode, sensitivity, load-step and setpoint-step figures for given gains (no tuning).
 
     Parameters
@@ -800,17 +833,20 @@ def design_figures(plant, scene=None, pid=None, stability: str | None = None, lo
         The loop's class (default: from the loop model).
     loops : list of LoopModel, optional
         The scene's loop models (default :func:`prsa_ctrl.studies.autotune.actuator_loops`).
+    frequency_unit : {"Hz", "rad/s"}
+        Unit of the Bode and sensitivity frequency axes (:data:`~prsa_ctrl.options.FREQUENCY_UNITS`).
 
     Returns
     -------
     dict
         Figure name -> matplotlib Figure.
     """
+    _unit_factor(frequency_unit)  # before any work
     data = plant if isinstance(plant, FigureData) else design_responses(plant, scene, pid, stability, loops)
-    return draw_design_figures(data)
+    return draw_design_figures(data, frequency_unit)
 
 
-def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
+def write_design_plots(plant, scene, pid, directory: Path, frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> list[Path]:
     """:func:`design_figures` of stabilising gains
     (:func:`~prsa_ctrl.studies.responses.stable_design_responses`), saved as PNG and SVG into
     ``directory``.
@@ -821,10 +857,13 @@ def write_design_plots(plant, scene, pid, directory: Path) -> list[Path]:
         As :func:`design_figures`.
     directory : Path
         Created if missing.
+    frequency_unit : {"Hz", "rad/s"}
+        Unit of the Bode and sensitivity frequency axes (:data:`~prsa_ctrl.options.FREQUENCY_UNITS`).
 
     Raises
     ------
     ValueError
         If the gains do not stabilise the loop.
     """
-    return _save_all(draw_design_figures(stable_design_responses(plant, scene, pid)), directory)
+    _unit_factor(frequency_unit)  # before any work
+    return _save_all(draw_design_figures(stable_design_responses(plant, scene, pid), frequency_unit), directory)

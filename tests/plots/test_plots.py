@@ -53,10 +53,10 @@ def test_bode_plant_has_two_paths_operating_point_and_nyquist(setup):
     plant, scene, *_ = setup
     fig, axs = bode_plant(linearize(plant, scene.setpoint_rad_s, 500.0), sample_time_s=plant.sample_time_s)
     assert len(axs) == 2 and len([l for l in _labels(axs[0]) if l.startswith("nut speed")]) == 2
-    assert "dB" in axs[0].get_ylabel() and "rad/s" in axs[1].get_xlabel()
+    assert "dB" in axs[0].get_ylabel() and "Hz" in axs[1].get_xlabel()  # issue 33: Hz by default (tests/plots/test_loop.py)
     assert "300 rpm, 500 N" in axs[0].get_title()  # operating point in the title
     nyq = [l for l in axs[0].get_lines() if l.get_label().startswith("Nyquist")]
-    assert len(nyq) == 1 and nyq[0].get_xdata()[0] == pytest.approx(np.pi / plant.sample_time_s)
+    assert len(nyq) == 1 and nyq[0].get_xdata()[0] == pytest.approx(0.5 / plant.sample_time_s)  # 1/(2 Ts) Hz
 
 
 def test_loop_plots_mark_margins_without_overlap(setup):

@@ -1,0 +1,106 @@
+"""prsa_ctrl.cli.common: the shared command frame (issue 33/31 items: a closed standard output
+ends a command quietly; ``--quiet`` silences the notes of stray warnings)."""
+
+import os
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+from prsa_ctrl.cli import common
+from prsa_ctrl.cli.common import EXIT_BROKEN_PIPE, EXIT_NUMERICAL, EXIT_OK, Run, invoke_inner
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _closed_stdout(args, unbuffered=False):
+    """Run ``python -m`` a command with its standard output a real pipe whose read end is closed
+    before the command writes: (exit code, stderr)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    env["PYTHONPATH"] = str(ROOT)
+    if unbuffered:
+        env["PYTHONUNBUFFERED"] = "1"
+    proc = subprocess.Popen([sys.executable, "-m", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+                            cwd=ROOT)
+    proc.stdout.close()  # the reader goes away (as ``| head -0`` would)
+    try:
+        err = proc.stderr.read().decode()
+        return proc.wait(timeout=300), err
+    finally:
+        proc.kill()
+        proc.stderr.close()
+
+
+def test_broken_pipe_code_is_the_sigpipe_convention():
+    import signal
+
+    assert EXIT_BROKEN_PIPE == 128 + signal.SIGPIPE == 141
+
+
+@pytest.mark.parametrize("unbuffered", [False, True])
+def test_show_plant_into_a_closed_pipe_ends_quietly(unbuffered):
+    code, err = _closed_stdout(["prsa_ctrl.cli.tune", "--show-plant", "paper-iprsm"], unbuffered)
+    assert code == EXIT_BROKEN_PIPE
+    assert err == ""  # no traceback, no "failed (BrokenPipeError)", no "Exception ignored"
+
+
+@pytest.mark.parametrize("module", ["prsa_ctrl.cli.tune", "prsa_ctrl.cli.plot", "prsa_ctrl.cli.fit", "prsa_ctrl.cli.pid"])
+def test_every_command_into_a_closed_pipe_ends_quietly(module):
+    code, err = _closed_stdout([module, "--help"])
+    assert code in (EXIT_OK, EXIT_BROKEN_PIPE)  # argparse's help printer drops write errors itself: 0
+    assert err == ""
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_still_a_failure(capsys):
+    def body(run, argv):
+        raise BrokenPipeError(32, "Broken pipe")  # a worker's or a socket's pipe, stdout fine
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        code = invoke_inner(Run("prsa-x"), [], body)
+    assert code == EXIT_NUMERICAL
+    assert "failed (BrokenPipeError)" in capsys.readouterr().err
+
+
+def _warning_body(run, argv):
+    run.quiet = "--quiet" in argv  # as the commands set it from their parsed flags
+    warnings.warn("a stray warning", UserWarning)
+    return EXIT_OK
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_quiet_suppresses_the_notes_of_stray_warnings(quiet, capsys):
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")  # not the suite's "error": a stray warning as a user meets it
+        code = invoke_inner(Run("prsa-x"), ["--quiet"] if quiet else [], _warning_body)
+    assert code == EXIT_OK
+    err = capsys.readouterr().err
+    assert err == ("" if quiet else "prsa-x: note: UserWarning: a stray warning\n")
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_prsa_tune_quiet_sets_the_frame_quiet(quiet, capsys, monkeypatch):
+    import prsa_ctrl.plant.describe as describe
+    from prsa_ctrl.cli.tune import main
+
+    def show(name):
+        warnings.warn("stray from the plant", UserWarning)
+        return "plant text"
+
+    monkeypatch.setattr(describe, "show_plant", show)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        assert main(["--show-plant", "paper-iprsm", *(["--quiet"] if quiet else [])]) == EXIT_OK
+    err = capsys.readouterr().err
+    assert ("note: UserWarning: stray from the plant" in err) is (not quiet)
+
+
+def test_pid_quiet_is_read_by_the_frame():
+    import inspect
+
+    from prsa_ctrl.cli import pid
+
+    assert "run.quiet = args.quiet" in inspect.getsource(pid)  # the same line as prsa-tune's (tested above)
+    assert common.Run("x").quiet is False
