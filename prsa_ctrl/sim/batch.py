@@ -1,0 +1,399 @@
+"""Batched nonlinear verification: many parameter samples of one plant in one integration.
+
+One state array of shape ``(n_samples, n_states)`` advances through the drive's sampled loop
+together: at every controller sample the encoder, speed filter and PID act on the whole batch
+in numpy (the law of :func:`prsa_ctrl.sim.engine._sample_law` for the encoder measurement,
+written here on arrays), then one compiled CasADi function - the plant's own ODE of its
+parametric family (:class:`prsa_ctrl.plant.model.ParametricModel`, the uncertain values as
+parameters ``theta``), ``substeps`` fixed linearly implicit Radau IIA steps over the sample
+(:func:`prsa_ctrl.sim.integrators.radau_step`) with the command held - is mapped over the batch
+(``Function.map``). The integration restarts at every controller sample, as the per-sample
+path does. The initial steady states are solved batched too (damped Newton on the family's
+residual, mapped over the batch).
+
+The fixed step is not error-controlled: :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo`
+measures it against the adaptive reference on a subset of every run and refines or falls back
+(see there). Every CasADi function is built (and compiled) once per family, settings and batch
+size and kept.
+
+Scope: the sampled loop (``discrete=True``) with the encoder measurement, no loop filters,
+no position loop, no torque noise, ``rigid`` or ``compliant`` fidelity, a PI(D) with an
+integral gain, a load step on a controller sample instant. :func:`batch_supported` says
+whether a case is in scope (and why not); everything else runs per sample.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import casadi as ca
+import numpy as np
+from numpy.typing import NDArray
+
+from ..drive.measurement import measurement_for
+from ..drive.pid import PID
+from ..errors import SimulationError
+from ..plant.model import ParametricModel
+from .integrators import SimSettings, _plant_rates, _state_scale, compiled, radau_step
+from .metrics import DEFAULT_BAND
+
+__all__ = ["BatchRun", "simulate_batch", "steady_states", "load_step_metrics_batch", "MAX_BATCH_VALUES"]
+
+#: Largest ``samples x time points`` one batched run may hold per recorded signal (checked
+#: before anything is allocated): 2e8 doubles are 1.6 GB.
+MAX_BATCH_VALUES = 200_000_000
+#: Iteration budget of the batched steady-state Newton solve (as the per-sample solve's).
+MAX_NEWTON_ITER = 50
+
+_STEP_CACHE: dict = {}
+_SOLVER_CACHE: dict = {}
+
+
+@dataclass(frozen=True)
+class BatchRun:
+    """Arrays of one batched sampled-loop run.
+
+    Attributes
+    ----------
+    time : ndarray (n_points,), s
+        Controller sample instants from the run's start.
+    nut_speed : ndarray (n_samples, n_points), rad/s
+    motor_torque : ndarray (n_samples, n_points), N m
+    ok : ndarray of bool (n_samples,)
+        False where the sample's steady state was not found within the torque limit or its
+        run became non-finite (those samples belong to the per-sample path, which reports
+        why); their rows are NaN.
+    """
+
+    time: NDArray[np.float64]
+    nut_speed: NDArray[np.float64]
+    motor_torque: NDArray[np.float64]
+    ok: NDArray[np.bool_]
+
+
+def _state_of_output(fam: ParametricModel, output: str, state: str) -> bool:
+    """Whether the family's output ``output`` is the state ``state`` itself."""
+    x = ca.SX.sym("x", fam.nx)
+    y = fam.h(x, ca.SX.sym("u", 2), ca.SX.sym("th", fam.n_theta))
+    return bool(ca.is_equal(y[fam.output_names.index(output)], x[fam.index(state)]))
+
+
+def batch_supported(fam: ParametricModel | None, pid: PID, estimator: str = "none") -> str | None:
+    """``None`` when the batched path can run this family and design, else the reason."""
+    if fam is None:
+        return "the uncertain values are not parameters of one model family"
+    if fam.fidelity not in ("rigid", "compliant"):
+        return f"fidelity {fam.fidelity!r} (batched: rigid or compliant)"
+    if estimator not in ("none", None):
+        return f"estimator {estimator!r} (batched: the encoder measurement)"
+    if not isinstance(pid, PID) or pid.ki <= 0 or pid.kff != 0:
+        return "the batched path needs a PI(D) with an integral gain and no load feed-forward"
+    for out, st in (("nut_speed", "omega_nut"), ("motor_torque", "tau_motor")):
+        if out not in fam.output_names or st not in fam.state_names or not _state_of_output(fam, out, st):
+            return f"output {out!r} is not the state {st!r}"
+    return None
+
+
+def _step_function(fam: ParametricModel, settings: SimSettings) -> ca.Function:
+    """``(x0 scaled, p = [torque N m, load N, load slope N/s, interval s], theta) -> x`` after
+    one controller sample: ``settings.substeps`` Radau IIA steps (``settings.stages`` stages,
+    ``settings.newton`` simplified Newton iterations) of the family's plant ODE, compiled when
+    ``settings.jit`` (once per family and settings, kept)."""
+    key = (id(fam), fam.keys, settings)
+    got = _STEP_CACHE.get(key)
+    if got is not None and got[0] is fam:
+        return got[1]
+    nx, nt = fam.nx, fam.n_theta
+    scale = _state_scale(fam)
+    z = ca.SX.sym("z", nx)
+    pp = ca.SX.sym("p", 4 + nt)
+    tau = ca.SX.sym("tau")
+    x = z * scale
+    rates = _plant_rates(fam, x, pp[0], pp[1] + pp[2] * pp[3] * tau, False, pp[4:] if nt else ca.DM.zeros(0, 1))
+    ode = pp[3] * rates / scale
+    step = radau_step(ca.Function("plant_scaled_theta", [z, pp, tau], [ode]), nx, 4 + nt, settings, 1.0)
+    x0 = ca.SX.sym("x0", nx)
+    p4 = ca.SX.sym("p4", 4)
+    th = ca.SX.sym("theta", nt)
+    fun = ca.Function("batch_sample", [x0, p4, th], [step(x0, ca.vertcat(p4, th), 0.0)])
+    if settings.jit:
+        fun = compiled(fun, jacobian=False, flags=("-O2",)) or fun
+    while len(_STEP_CACHE) >= 16:
+        del _STEP_CACHE[next(iter(_STEP_CACHE))]
+    _STEP_CACHE[key] = (fam, fun, scale, {})
+    return fun
+
+
+def _mapped(fam: ParametricModel, settings: SimSettings, n: int) -> tuple[ca.Function, NDArray[np.float64]]:
+    _step_function(fam, settings)
+    _, fun, scale, maps = _STEP_CACHE[(id(fam), fam.keys, settings)]
+    if n not in maps:
+        maps[n] = fun.map(n, "serial")
+    return maps[n], scale
+
+
+def _solver(fam: ParametricModel) -> tuple[ca.Function, list[int]]:
+    """The family's steady-state residual and Jacobian ``(z, p, theta) -> (g, dg/dz)``
+    (:func:`prsa_ctrl.plant.equilibrium._solver`, moving case) and its free states."""
+    from ..plant.equilibrium import _free, _solver as eq_solver
+
+    key = id(fam)
+    got = _SOLVER_CACHE.get(key)
+    if got is None or got[0] is not fam:
+        if ("solver", False) not in fam.cache:
+            fam.cache[("solver", False)] = eq_solver(fam, False)
+        got = (fam, fam.cache[("solver", False)], _free(fam), {})
+        _SOLVER_CACHE.clear()
+        _SOLVER_CACHE[key] = got
+    return got[1], got[2]
+
+
+def steady_states(fam: ParametricModel, thetas: NDArray[np.float64], omega: float, load: float):
+    """Batched operating points of the family's members ``thetas`` (n_samples x n_theta) at
+    nut speed ``omega`` (rad/s, outside the stick band, not 0) and axial ``load`` (N): the
+    damped Newton solve of :func:`prsa_ctrl.plant.equilibrium.operating_point` (Deuflhard's
+    natural monotonicity test, at most 50 iterations and 12 halvings each) on every sample
+    at once, from the base plant's quasi-static guess.
+
+    Returns
+    -------
+    x : ndarray (n_samples, n_states)
+        Plant states (``theta_nut`` = 0).
+    torque : ndarray (n_samples,), N m
+    ok : ndarray of bool (n_samples,)
+        Converged, finite and inside the motor's torque limit (elsewhere the per-sample solve
+        is the authority: it raises with the reason).
+    """
+    from ..plant.equilibrium import _guess, _scale, steady_torque
+
+    base = fam.plant
+    fun, free = _solver(fam)
+    b = thetas.shape[0]
+    tau0 = steady_torque(base, omega, load)
+    nominal = fam.bind(base)  # the base plant's model: its guess and unknowns' scales
+    x0 = _guess(nominal, omega, load)
+    x0[fam.index("tau_motor")] = tau0
+    m = len(free) + 1
+    z = np.tile(np.append(x0[free], tau0), (b, 1))
+    scale = _scale(nominal, False, base.torque_limit)
+    fmap = fun.map(b, "serial")
+    par = [omega, load, tau0]
+    th = thetas.T
+
+    def evaluate(zz):
+        g, jac = fmap(zz.T, par, th)
+        g = np.asarray(g).T
+        jac = np.asarray(jac).reshape(m, b, m).transpose(1, 0, 2)
+        return g, jac
+
+    active = np.ones(b, bool)
+    done = np.zeros(b, bool)
+    with np.errstate(all="ignore"):
+        for _ in range(MAX_NEWTON_ITER):
+            if not active.any():
+                break
+            g, jac = evaluate(z)
+            good = active & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(jac), axis=(1, 2))
+            # a (near) singular Jacobian: the per-sample solve's own branch decides
+            good[good] &= np.linalg.cond(jac[good]) <= 1e15
+            active &= good
+            jac_safe = np.where(active[:, None, None], jac, np.eye(m))
+            dz = np.linalg.solve(jac_safe, -np.where(active[:, None], g, 0.0)[..., None])[..., 0]
+            size = np.linalg.norm(dz / scale, axis=1)
+            conv = active & (size < 1e-10)
+            z[conv] += dz[conv]
+            done |= conv
+            active &= ~conv
+            alpha = np.ones(b)
+            accepted = ~active
+            for _ in range(12):
+                if accepted.all():
+                    break
+                z_try = z + alpha[:, None] * dz
+                g_new, _ = evaluate(z_try)
+                step_new = np.linalg.solve(jac_safe, -np.where(np.isfinite(g_new), g_new, np.inf)[..., None])[..., 0]
+                ok = ~accepted & np.all(np.isfinite(g_new), axis=1) & (
+                    np.linalg.norm(step_new / scale, axis=1) <= (1.0 - 0.5 * alpha) * size)
+                z[ok] = z_try[ok]
+                accepted |= ok
+                alpha = np.where(accepted, alpha, 0.5 * alpha)
+            active &= accepted
+    x = np.tile(x0, (b, 1))
+    x[:, free] = z[:, :len(free)]
+    torque = z[:, -1].copy()
+    ok = done & np.all(np.isfinite(x), axis=1) & np.isfinite(torque) & (np.abs(torque) < base.torque_limit)
+    return x, torque, ok
+
+
+def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, setpoint: float,
+                   initial_load: float, final_load: float, step_at: float, duration: float,
+                   settings: SimSettings) -> BatchRun:
+    """The sampled-loop load step of every member ``thetas`` (n_samples x n_theta, the values
+    of ``fam.keys`` in file units) from steady state: the run :func:`prsa_ctrl.sim.engine.run`
+    makes with ``discrete=True``, ``setpoint``, ``load=[(0, initial_load), (step_at,
+    final_load)]``, ``duration``, ``controller=pid`` and the fixed-step ``settings``, for all
+    samples at once.
+
+    Parameters
+    ----------
+    fam : ParametricModel
+    thetas : ndarray (n_samples, n_theta)
+    pid : PID
+        With ``ki > 0`` (see :func:`batch_supported`).
+    setpoint : float, rad/s
+    initial_load, final_load : float, N
+    step_at : float, s
+        Time of the load step; a multiple of the plant's sample time.
+    duration : float, s
+    settings : SimSettings
+        ``integrator="radau"``: its ``substeps``, ``stages``, ``newton`` and ``jit``.
+
+    Returns
+    -------
+    BatchRun
+    """
+    p = fam.plant
+    ts = p.sample_time_s
+    thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
+    b = thetas.shape[0]
+    if thetas.shape[1] != fam.n_theta or not np.all(np.isfinite(thetas)):
+        raise ValueError(f"thetas of shape {thetas.shape}; expected finite values, (n_samples, {fam.n_theta})")
+    if settings.integrator != "radau":
+        raise ValueError(f"settings.integrator = {settings.integrator!r}; expected 'radau' (fixed step)")
+    n = math.floor(duration / ts + 1e-9)
+    if n < 2:
+        raise ValueError(f"duration = {duration!r} s; expected at least two samples of {ts:g} s")
+    if b * (n + 1) > MAX_BATCH_VALUES:
+        raise ValueError(f"{b} samples x {n + 1} points exceed {MAX_BATCH_VALUES:.0e} values per signal; "
+                         "expected a smaller batch")
+    k_step = round(step_at / ts)
+    if not (0 < k_step < n and abs(k_step * ts - step_at) <= 1e-9 * ts):
+        raise ValueError(f"step_at = {step_at!r} s; expected a sample instant inside the run")
+    meas = measurement_for(p, "encoder")
+    alpha = math.exp(-ts / meas.filter_s)
+    beta = math.exp(-ts / pid.tf)
+    q = 2.0 * math.pi / p.encoder_counts
+    limit = p.torque_limit
+    kp, ki, kd = pid.kp, pid.ki, pid.kd
+    k_aw = ki / max(kp, 1e-9)
+    n_dl = p.command_delay_samples
+    i_th, i_w, i_tau = fam.index("theta_nut"), fam.index("omega_nut"), fam.index("tau_motor")
+
+    x0, tau0, ok = steady_states(fam, thetas, setpoint, initial_load)
+    fmap, scale = _mapped(fam, settings, b)
+    z = (x0 / scale).T.copy()  # (nx, b): CasADi's column order
+    th = np.ascontiguousarray(thetas.T)
+    w_out = np.empty((b, n + 1))
+    t_out = np.empty((b, n + 1))
+    w_out[:, 0], t_out[:, 0] = x0[:, i_w], x0[:, i_tau]
+    theta0, w0 = x0[:, i_th], np.full(b, float(setpoint))
+    th_prev = np.floor((theta0 - w0 * ts) / q) * q
+    integral = tau0.copy()  # PI with ki > 0: the integral holds the steady torque (no feed-forward)
+    deriv = np.zeros(b)
+    w_prev = w0.copy()
+    w_filt = w0.copy()
+    u_pend = tau0.copy()
+    line = [tau0.copy() for _ in range(n_dl)]
+    pk = np.zeros((4, b))
+    pk[3] = ts  # [applied torque N m, load N, load slope N/s (steps: 0), interval s]
+    with np.errstate(all="ignore"):
+        for k in range(n):
+            theta = z[i_th] * scale[i_th]
+            theta_q = np.floor(theta / q) * q
+            w_filt = alpha * w_filt + (1 - alpha) * ((theta_q - th_prev) / ts)
+            d_new = beta * deriv + (1 - beta) * (w_filt - w_prev) / ts
+            err = setpoint - w_filt
+            u = kp * err + integral - kd * d_new
+            u_sat = np.minimum(np.maximum(u, -limit), limit)
+            dint = ki * err + k_aw * (u_sat - u)
+            if n_dl:
+                applied = line[0]
+                line = line[1:] + [u_pend]
+            else:
+                applied = u_pend
+            pk[0] = applied
+            pk[1] = initial_load if k < k_step else final_load
+            z = np.asarray(fmap(z, pk, th))
+            th_prev, integral, deriv, w_prev, u_pend = theta_q, integral + ts * dint, d_new, w_filt, u_sat
+            w_out[:, k + 1] = z[i_w] * scale[i_w]
+            t_out[:, k + 1] = z[i_tau] * scale[i_tau]
+    ok &= np.all(np.isfinite(w_out), axis=1) & np.all(np.isfinite(t_out), axis=1)
+    w_out[~ok] = np.nan
+    t_out[~ok] = np.nan
+    return BatchRun(ts * np.arange(n + 1), w_out, t_out, ok)
+
+
+def load_step_metrics_batch(time: NDArray[np.float64], speed: NDArray[np.float64], setpoint: float,
+                            step_time: float, torque: NDArray[np.float64], torque_limit: float,
+                            direction: int, band: float = DEFAULT_BAND) -> dict[str, NDArray[np.float64]]:
+    """:func:`prsa_ctrl.sim.metrics.load_step_metrics` of every row of ``speed`` (and
+    ``torque``) at once, with the same formulas (the per-sample function is the reference).
+
+    Parameters
+    ----------
+    time : ndarray (n_points,), s
+    speed : ndarray (n_samples, n_points), rad/s
+    setpoint : float, rad/s
+    step_time : float, s
+    torque : ndarray (n_samples, n_points), N m
+    torque_limit : float, N m
+    direction : {1, -1}
+        +1 for a load increase, -1 for a decrease.
+    band : float
+
+    Returns
+    -------
+    dict
+        ``peak_drop_rad_s``, ``peak_time_s``, ``recovery_time_s``, ``ie``, ``iae``, ``itae``,
+        ``ise``, ``steady_state_error_rad_s``, ``overshoot_rad_s``, ``peak_torque_n_m``,
+        ``saturated`` (as float 0/1), ``peak_deviation_rad_s``: one value per row.
+    """
+    t = np.asarray(time, dtype=float)
+    y = np.atleast_2d(np.asarray(speed, dtype=float))
+    if direction not in (1, -1):
+        raise ValueError(f"direction = {direction!r}; expected 1 or -1")
+    if t.ndim != 1 or y.shape[1] != t.size or t.size < 3 or np.any(np.diff(t) <= 0):
+        raise ValueError(f"time {t.shape} and speed {y.shape}: expected increasing times, one column per time")
+    after = t >= step_time
+    if after.sum() < 2:
+        raise ValueError(f"step_time = {step_time!r} s; expected a time inside the record [{t[0]}, {t[-1]}] s")
+    before = ~after
+    y_pre = y[:, np.flatnonzero(before)[-1]] if before.any() else np.full(y.shape[0], float(setpoint))
+    ta, ya = t[after], y[:, after]
+    ts = ta - ta[0]
+    e = setpoint - ya
+    dev = direction * (y_pre[:, None] - ya)
+    i_ext = np.argmax(dev, axis=1)
+    rows = np.arange(y.shape[0])
+    drop = np.maximum(dev[rows, i_ext], 0.0)
+    tol = band * drop
+    outside = (np.abs(e) > tol[:, None]) & (drop[:, None] > 0)
+    last = np.where(outside.any(axis=1), outside.shape[1] - 1 - np.argmax(outside[:, ::-1], axis=1), -1)
+    recovery = np.where(last < 0, 0.0, np.where(last == e.shape[1] - 1, np.inf,
+                                                 ts[np.minimum(last + 1, ts.size - 1)]))
+    tail = ts >= 0.9 * ts[-1]
+    past = np.arange(ta.size)[None, :] >= i_ext[:, None]
+    overshoot = np.maximum(np.max(np.where(past, -direction * e, -np.inf), axis=1), 0.0)
+    tq = np.abs(np.atleast_2d(np.asarray(torque, dtype=float))[:, after])
+    peak_t = tq.max(axis=1)
+    dt = np.diff(ta)
+
+    def trapz(v):
+        return np.sum(0.5 * (v[:, 1:] + v[:, :-1]) * dt, axis=1)
+
+    return {
+        "peak_drop_rad_s": drop,
+        "peak_time_s": ts[i_ext],
+        "recovery_time_s": recovery,
+        "ie": trapz(e),
+        "iae": trapz(np.abs(e)),
+        "itae": trapz(ts * np.abs(e)),
+        "ise": trapz(e * e),
+        "steady_state_error_rad_s": e[:, tail].mean(axis=1),
+        "overshoot_rad_s": overshoot,
+        "peak_torque_n_m": peak_t,
+        "saturated": (peak_t >= 0.999 * torque_limit).astype(float),
+        "peak_deviation_rad_s": -direction * drop,
+    }
