@@ -116,3 +116,21 @@ def test_a_sample_without_steady_state_is_flagged_not_nan_silently(family):
     # a load the motor cannot hold: every sample is flagged (the per-sample path says why)
     x, tau, ok = steady_states(fam, thetas, W0, 1e6)
     assert not ok.any()
+
+
+def test_compiled_lanes_equal_the_mapped_casadi_step(family):
+    """The lane-parallel C step (jit, the Monte Carlo's default) against the interpreted CasADi
+    step mapped over the batch: 9 samples, so a block of 8 lanes and a padded one."""
+    from prsa_ctrl.sim import batch
+
+    _, _, fam, _, thetas = family
+    th = np.vstack([thetas, thetas[:3] * [1.01, 1.0, 0.99, 1.02, 1.0]])[:9]
+    jit = SimSettings(integrator="radau", stages=2, substeps=4, jit=True)
+    if batch._lane_function(fam, jit) is None:
+        pytest.skip("no C compiler")
+    a = simulate_batch(fam, th, PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.02, jit)
+    b = simulate_batch(fam, th, PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.02, FIXED)
+    assert a.ok.all() and b.ok.all()
+    drop = np.max(np.abs(b.nut_speed - b.nut_speed[:, :1]))
+    assert np.max(np.abs(a.nut_speed - b.nut_speed)) <= 1e-9 * drop
+    assert np.max(np.abs(a.motor_torque - b.motor_torque)) <= 1e-9
