@@ -445,8 +445,10 @@ def load_step_metrics_batch(time: NDArray[np.float64], speed: NDArray[np.float64
     peak_t = tq.max(axis=1)
     dt = np.diff(ta)
 
+    # Sums row by row: numpy's summation order over a 2-D axis is not the 1-D one, and a
+    # sample's metrics must not depend on the batch it ran in (a replay is exact).
     def trapz(v):
-        return np.sum(0.5 * (v[:, 1:] + v[:, :-1]) * dt, axis=1)
+        return np.array([np.sum(row) for row in 0.5 * (v[:, 1:] + v[:, :-1]) * dt])
 
     return {
         "peak_drop_rad_s": drop,
@@ -456,7 +458,7 @@ def load_step_metrics_batch(time: NDArray[np.float64], speed: NDArray[np.float64
         "iae": trapz(np.abs(e)),
         "itae": trapz(ts * np.abs(e)),
         "ise": trapz(e * e),
-        "steady_state_error_rad_s": e[:, tail].mean(axis=1),
+        "steady_state_error_rad_s": np.array([row.mean() for row in e[:, tail]]),
         "overshoot_rad_s": overshoot,
         "peak_torque_n_m": peak_t,
         "saturated": (peak_t >= 0.999 * torque_limit).astype(float),
