@@ -2,7 +2,7 @@
 
 One state array of shape ``(n_samples, n_states)`` advances through the drive's sampled loop
 together: at every controller sample the encoder, speed filter and PID act on the whole batch
-in numpy (the law of :func:`prsa_ctrl.sim.engine._sample_law` for the encoder measurement,
+in numpy (the law of ``prsa_ctrl.sim.engine._sample_law`` for the encoder measurement,
 written here on arrays), then one compiled CasADi function - the plant's own ODE of its
 parametric family (:class:`prsa_ctrl.plant.model.ParametricModel`, the uncertain values as
 parameters ``theta``), ``substeps`` fixed linearly implicit Radau IIA steps over the sample
@@ -177,7 +177,7 @@ def _mapped(fam: ParametricModel, settings: SimSettings, n: int, scheme: str) ->
 
 def _solver(fam: ParametricModel) -> tuple[ca.Function, list[int]]:
     """The family's steady-state residual and Jacobian ``(z, p, theta) -> (g, dg/dz)``
-    (:func:`prsa_ctrl.plant.equilibrium._solver`, moving case) and its free states."""
+    (``prsa_ctrl.plant.equilibrium._solver``, moving case) and its free states."""
     from ..plant.equilibrium import _free, _solver as eq_solver
 
     key = id(fam)

@@ -246,189 +246,17 @@ class _NotFast(Exception):
 
 
 #: Paths of :func:`run_monte_carlo`: one batched integration per chunk of samples
-#: (:mod:`prsa_ctrl.sim.batch`) or one integration per sample.
+#: (:mod:`prsa_ctrl.sim.batch`, driven by :mod:`prsa_ctrl.studies.mcbatch`) or one per sample.
 PATHS = ("batched", "per-sample")
-#: Samples of every batched run compared with the adaptive reference (the most extreme ones).
-BATCH_CHECK_SAMPLES = 3
-#: Refinements a batched run may make when its check fails (each doubles the substeps).
-BATCH_REFINEMENTS = 2
-#: Most samples in one batch (one task of the pool or of Dask).
-BATCH_SIZE = 512
-#: Substeps per controller sample of the batched Radau IIA step (2 stages) at the paper scene's
-#: accuracy 1 %; other accuracies scale them by ``(0.01 / accuracy) ** 0.5`` (the measured
-#: order of the error on the paper plant is ~2), 2..32. A starting point only: the check of
-#: every run decides (and refines).
-_BATCH_SUBSTEPS_AT_1_PERCENT = 8
-
-
-def _batch_layout(plant, scene) -> tuple[float, float, float]:
-    """``(pre, duration, offset)`` of the verification run of a load-step scene (as
-    :func:`prsa_ctrl.studies.autotune._simulate`): the step ``pre`` s after the start."""
-    from .autotune import _PRE_SAMPLES
-
-    pre = min(scene.step_time, _PRE_SAMPLES * plant.sample_time_s)
-    return pre, pre + scene.duration - scene.step_time, scene.step_time - pre
-
-
-def batch_plan(plant, scene, unc, designs, spec) -> str | None:
-    """``None`` when the batched path can run these designs on this scene, else why not."""
-    from ..plant.model import parametric_family
-    from ..sim.batch import batch_supported
-
-    sc, _ = choose_fidelity(scene)
-    if not sc.discrete or sc.is_profile:
-        return "batched path: sampled load-step scenes only"
-    if getattr(sc, "filters", ()):
-        return "batched path: scenes without loop filters"
-    if not unc.keys:
-        return "batched path: nothing uncertain"
-    ts = plant.sample_time_s
-    pre, _, _ = _batch_layout(plant, sc)
-    if abs(round(pre / ts) * ts - pre) > 1e-9 * ts:
-        return "batched path: the load step is not on a controller sample"
-    fam = parametric_family(plant, sc.fidelity, unc.keys) if sc.fidelity in ("rigid", "compliant") else None
-    if fam is not None and not set(unc.keys) <= set(fam.keys):
-        fam = None
-    for _, pid, est in designs:
-        why = batch_supported(fam, pid, est)
-        if why is not None:
-            return f"batched path: {why}"
-    return None
-
-
-def _batch_settings(accuracy: float, refinements: int = 0):
-    from ..sim.integrators import SimSettings
-
-    sub = math.ceil(_BATCH_SUBSTEPS_AT_1_PERCENT * math.sqrt(0.01 / accuracy)) * 2 ** refinements
-    return SimSettings(integrator="radau", stages=2, substeps=int(min(max(sub, 2), 32)), jit=True)
-
-
-def _family(job: _Job, plant, scene):
-    from ..plant.model import parametric_family
-
-    return parametric_family(plant, scene.fidelity, job.unc.keys)
-
-
-def _evaluate_batch(job: _Job, indices: Sequence[int]) -> list:
-    """:func:`_evaluate` of every sample in ``indices`` with one batched run per operating
-    point and design (:func:`prsa_ctrl.sim.batch.simulate_batch`) and batched metrics; a sample
-    whose steady state or run fails in the batch is run per sample (which reports why)."""
-    from ..sim.batch import load_step_metrics_batch, simulate_batch
-
-    plant, scene = _prepared(job)
-    fam = _family(job, plant, scene)
-    draws = [draw_sample(job.unc, job.ops, job.seed, i) for i in indices]
-    nd = len(job.designs)
-    out = np.full((len(indices), nd, len(METRICS)), np.inf)
-    redo: set[int] = set()
-    pre, duration, offset = _batch_layout(plant, scene)
-    for op_k in sorted({d[1] for d in draws}):
-        sel = [r for r, d in enumerate(draws) if d[1] == op_k]
-        sp, f1 = job.ops[op_k]
-        thetas = np.array([[draws[r][0].get(k, plant.values[k]) for k in fam.keys] for r in sel], dtype=float)
-        direction = 1 if f1 >= scene.initial_load else -1
-        for j, (_, pid, _) in enumerate(job.designs):
-            br = simulate_batch(fam, thetas, pid, sp, scene.initial_load, f1, pre, duration, job.settings)
-            met = load_step_metrics_batch(br.time + offset, np.nan_to_num(br.nut_speed), sp, scene.step_time,
-                                          np.nan_to_num(br.motor_torque), plant.torque_limit, direction)
-            cols = np.abs(np.stack([met[m] for m in METRICS[:10]], axis=1))
-            for r_i, r in enumerate(sel):
-                if br.ok[r_i]:
-                    out[r, j, :10] = cols[r_i]
-                else:
-                    redo.add(r)
-    rows = []
-    margins = "ms" in job.spec or "mt" in job.spec
-    for r, i in enumerate(indices):
-        if r in redo:
-            rows.append(_evaluate(job, i))
-            continue
-        values, op, _ = draws[r]
-        if margins:
-            _margins(job, plant, scene, values, op, i, out[r])
-        else:
-            out[r, :, 10:12] = math.nan
-        rows.append((i, values, op, out[r], [None] * nd))
-    return rows
-
-
-def _margins(job: _Job, plant, scene, values, op: int, index: int, out: np.ndarray) -> None:
-    """Ms and Mt of every design on sample ``index`` (as :func:`_evaluate`), into ``out``."""
-    sp, f1 = job.ops[op]
-    p_i = apply(plant, values, name=f"{plant.name} sample {index}") if values else plant
-    if values:
-        register_member(p_i, plant, job.unc.keys)
-    sc = scene.replace(setpoint_rad_s=sp, final_loads=(f1,))
-    loop = None
-    for j, (_, pid, est) in enumerate(job.designs):
-        if not np.all(np.isfinite(out[j, :10])):
-            continue
-        if loop is None:
-            loop = actuator_loops(p_i, sc, estimator=est)[0]
-        g = pid.gains
-        if loop.is_stable(g):
-            mg = loop.margins(g)
-            out[j, 10], out[j, 11] = mg.ms, mg.mt
-
-
-def check_indices(unc, ops, seed: int, n: int, k: int = BATCH_CHECK_SAMPLES) -> list[int]:
-    """The ``k`` samples of a run that a batched run compares with the adaptive reference: the
-    most extreme ones (largest sum over the uncertain parameters of the distance of the
-    sample's rank from the middle rank; ties to the lower index). Not a bound over the box:
-    the measured error is reported as measured."""
-    if n <= k:
-        return list(range(n))
-    vals = [draw_sample(unc, ops, seed, i)[0] for i in range(n)]
-    score = np.zeros(n)
-    for key in unc.keys:
-        col = np.array([v[key] for v in vals], dtype=float)
-        ranks = np.argsort(np.argsort(col, kind="stable"), kind="stable") / (n - 1)
-        score += np.abs(ranks - 0.5)
-    order = np.lexsort((np.arange(n), -score))
-    return sorted(int(i) for i in order[:k])
-
-
-def _check_batch(job: _Job, indices: Sequence[int]) -> list[dict]:
-    """The batched run of each sample in ``indices`` against the scene's adaptive reference
-    run of the same sample (first design): the largest nut-speed difference relative to the
-    reference's largest deviation from its start (the measure of
-    :func:`prsa_ctrl.sim.engine.fixed_step_error`)."""
-    from ..sim.batch import simulate_batch
-    from ..sim.engine import run
-    from .autotune import verify_settings
-
-    plant, scene = _prepared(job)
-    fam = _family(job, plant, scene)
-    pre, duration, _ = _batch_layout(plant, scene)
-    _, pid, _ = job.designs[0]
-    reference = verify_settings(scene)
-    out = []
-    for i in indices:
-        values, op, roller_seed = draw_sample(job.unc, job.ops, job.seed, i)
-        sp, f1 = job.ops[op]
-        p_i = apply(plant, values, name=f"{plant.name} sample {i}")
-        register_member(p_i, plant, job.unc.keys)
-        try:
-            w_ref = run(p_i, setpoint=sp, load=[(0.0, scene.initial_load), (pre, f1)], duration=duration,
-                        controller=pid, fidelity=scene.fidelity, discrete=True, settings=reference,
-                        seed=roller_seed).output("nut_speed")
-        except SimulationError as exc:
-            out.append({"index": int(i), "relative": None, "error": str(exc).splitlines()[0]})
-            continue
-        theta = np.array([[values.get(k, plant.values[k]) for k in fam.keys]], dtype=float)
-        br = simulate_batch(fam, theta, pid, sp, scene.initial_load, f1, pre, duration, job.settings)
-        dev = float(np.max(np.abs(w_ref - w_ref[0])))
-        err = float(np.max(np.abs(br.nut_speed[0] - w_ref))) if br.ok[0] else math.inf
-        out.append({"index": int(i), "relative": err / dev if dev > 0 else math.inf, "max_error_rad_s": err,
-                    "max_deviation_rad_s": dev})
-    return out
 
 
 def _run_chunk(job: _Job, indices: Sequence[int]) -> list:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", GeometryWarning)
         if job.batched:
-            return _evaluate_batch(job, indices)
+            from .mcbatch import evaluate_batch
+
+            return evaluate_batch(job, indices)
         return [_evaluate(job, i) for i in indices]
 
 
@@ -744,13 +572,13 @@ def run_monte_carlo(
         scene's accuracy (:func:`verification_settings`, quoted in ``report.integration``),
         else the scene's adaptive one; ``"reference"``: always the adaptive one, per sample.
     path : {"batched", "per-sample"}, optional
-        ``"batched"`` (the default where :func:`batch_plan` allows it; with ``integrator`` other
+        ``"batched"`` (the default where :func:`prsa_ctrl.studies.mcbatch.batch_plan` allows it; with ``integrator`` other
         than ``"reference"``): each chunk of samples is one batched integration
         (:mod:`prsa_ctrl.sim.batch`; the pool and Dask distribute batches), with the Radau
         substeps chosen from the scene's accuracy; every run compares
-        :data:`BATCH_CHECK_SAMPLES` of its samples (:func:`check_indices`) with the scene's
+        :data:`~prsa_ctrl.studies.mcbatch.BATCH_CHECK_SAMPLES` of its samples (:func:`~prsa_ctrl.studies.mcbatch.check_indices`) with the scene's
         adaptive reference and reports the largest error (``report.integration``); above half
-        the accuracy it doubles the substeps (at most :data:`BATCH_REFINEMENTS` times, up to
+        the accuracy it doubles the substeps (at most :data:`~prsa_ctrl.studies.mcbatch.BATCH_REFINEMENTS` times, up to
         32) and runs again, and then falls back to the per-sample adaptive path, saying so.
         ``"per-sample"``: one integration per sample (the path before batching). Same seeds,
         same samples on both paths; results agree within the stated accuracy.
@@ -823,22 +651,22 @@ def run_monte_carlo(
     t0 = time.perf_counter()
     why = None
     if path != "per-sample" and integrator != "reference":
+        from .mcbatch import batch_plan, batched
+
         why = batch_plan(plant, scene, unc, design_tuples, spec)
     integration: dict = {}
     job = None
     complete = False
     try:
         if path != "per-sample" and integrator != "reference" and why is None:
-            job, integration = _batched(plant, scene, unc, design_tuples, ops, spec, int(seed), n, chunk, workers,
+            job, integration = batched(plant, scene, unc, design_tuples, ops, spec, int(seed), n, chunk, workers,
                                         token, execute, rows, bar)
         if job is None:  # the per-sample path (asked for, not possible, or the batched check failed)
-            fallback = integration.get("reason") if integration else None
+            failed = dict(integration)  # the batched check's record, when it failed
             settings, integration = verification_settings(plant, scene, unc, ops, design_tuples[0][1],
-                                                          "reference" if fallback else integrator)
-            integration = dict(integration, path="per-sample")
-            if fallback:
-                integration["reason"] = fallback
-            elif why is not None:
+                                                          "reference" if failed else integrator)
+            integration = dict(integration, path="per-sample", **failed)
+            if why is not None:
                 integration["batch_reason"] = why
             job = _Job(token, _plant_doc(plant), scene, design_tuples, unc, ops, spec, int(seed), settings)
             size = chunk or int(min(64, max(8, math.ceil(n / (8 * workers)))))
@@ -855,56 +683,6 @@ def run_monte_carlo(
     bar.close()
     return _build_report(job, plant, scene, rows, n, backend, workers, complete, time.perf_counter() - t0,
                          integration)
-
-
-def _batched(plant, scene, unc, designs, ops, spec, seed: int, n: int, chunk, workers: int, token: str, execute,
-             rows: list, bar) -> tuple:
-    """The batched runs with their check (see :func:`run_monte_carlo`'s ``path``): ``(job,
-    integration)``, or ``(None, integration)`` with the reason when the check failed after
-    every refinement (the caller then runs the per-sample path)."""
-    from ..sim.batch import _lane_function
-    from .autotune import verify_settings
-
-    sc, _ = choose_fidelity(scene)
-    checks = check_indices(unc, ops, seed, n)
-    n_chunks = max(workers, math.ceil(n / BATCH_SIZE))
-    size = chunk or max(1, math.ceil(n / n_chunks))
-    chunks = [list(range(a, min(a + size, n))) for a in range(0, n, size)]
-    reference = verify_settings(sc)
-    worst = math.inf
-    for refinement in range(BATCH_REFINEMENTS + 1):
-        settings = _batch_settings(sc.accuracy, refinement)
-        job = _Job(token, _plant_doc(plant), scene, designs, unc, ops, spec, seed, settings, batched=True)
-        plant_w, scene_w = _prepared(job)
-        _lane_function(_family(job, plant_w, scene_w), settings)  # built (compiled) once, before any fork
-        result: dict = {}
-
-        def side() -> None:
-            t = time.perf_counter()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", GeometryWarning)
-                result["checks"] = _check_batch(job, checks)
-            result["check_s"] = time.perf_counter() - t
-
-        rows.clear()
-        bar.done = 0
-        execute(job, chunks, side)
-        errs = [c["relative"] for c in result["checks"] if c["relative"] is not None]
-        worst = max(errs) if errs else math.inf
-        record = {"path": "batched", "integrator": "radau", "stages": settings.stages, "substeps": settings.substeps,
-                  "jit": settings.jit, "relative": worst if math.isfinite(worst) else None, "accuracy": sc.accuracy,
-                  "check_samples": checks, "checks": result["checks"], "check_s": result["check_s"],
-                  "reference": {"integrator": reference.integrator, "rtol": reference.rtol, "atol": reference.atol},
-                  "refinements": refinement, "batch_size": size}
-        if worst <= 0.5 * sc.accuracy:
-            record["reason"] = (f"batched fixed-step error {worst:.2g} of the deviation on {len(checks)} check samples, "
-                                f"inside half the accuracy {sc.accuracy:g}")
-            return job, record
-        if settings.substeps >= 32:
-            break
-    reason = (f"batched check failed: measured error {worst:.3g} of the deviation above half the accuracy "
-              f"{sc.accuracy:g} after {refinement} refinement(s); per-sample adaptive path")
-    return None, {"reason": reason, "batched_relative": worst if math.isfinite(worst) else None}
 
 
 def _run_process(job: _Job, chunks: list, workers: int, took, side=None) -> None:
@@ -1042,9 +820,11 @@ def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "a
     designs = (("replay", pid, "none"),)
     if path is not None and path not in PATHS:
         raise ValueError(f"path = {path!r}; expected one of {', '.join(PATHS)}")
+    from .mcbatch import batch_plan, batch_settings
+
     if path != "per-sample" and integrator != "reference" and batch_plan(plant, scene, unc, designs, spec) is None:
         job = _Job("replay-" + uuid.uuid4().hex, _plant_doc(plant), scene, designs, unc, ops, spec, int(seed),
-                   _batch_settings(choose_fidelity(scene)[0].accuracy), batched=True)
+                   batch_settings(choose_fidelity(scene)[0].accuracy), batched=True)
     else:
         settings, _ = verification_settings(plant, scene, unc, ops, pid, integrator)
         job = _Job("replay-" + uuid.uuid4().hex, _plant_doc(plant), scene, designs, unc, ops, spec, int(seed),

@@ -253,3 +253,61 @@ def test_replay_command_line(serial, capsys):
                                                            d.worst_metrics["peak_drop_rad_s"], rel_tol=0, abs_tol=0)
     assert mc_main(["--seed", "1", "--index", "0", "--kp", "-1", "--ki", "1"]) == 2
     assert "kp = -1" in capsys.readouterr().err
+
+
+# --- the batched path (prsa_ctrl.studies.mcbatch) against the per-sample path -------------------
+
+@pytest.fixture(scope="module")
+def paper_both():
+    from prsa_ctrl.studies.paper import default_pid
+
+    p, s = load_plant(), load_scene("paper-load-step")
+    pid = default_pid(p)
+    kw = dict(seed=3, backend="serial", quiet=True, spec={})
+    return (mc.run_monte_carlo(p, s, {"paper": pid}, 20, **kw),
+            mc.run_monte_carlo(p, s, {"paper": pid}, 20, integrator="fast", path="per-sample", **kw),
+            s)
+
+
+def test_batched_monte_carlo_equals_the_per_sample_path(paper_both):
+    batched, per_sample, scene = paper_both
+    assert batched.integration["path"] == "batched" and per_sample.integration["path"] == "per-sample"
+    # same seeds, same samples
+    assert np.array_equal(batched.samples["index"], per_sample.samples["index"])
+    for k in batched.samples["values"]:
+        assert np.array_equal(batched.samples["values"][k], per_sample.samples["values"][k])
+    mb, mp = batched.samples["metrics"][:, 0, :10], per_sample.samples["metrics"][:, 0, :10]
+    assert np.all(np.isfinite(mb)) and np.ptp(mb[:, 0]) > 0.1  # 20 different, finished samples
+    drop = mp[:, mc.METRICS.index("peak_drop_rad_s")]
+    # the same fixed-step scheme on both paths (8 substeps at accuracy 1 %): agreement far inside the accuracy
+    for k, m in enumerate(mc.METRICS[:10]):
+        scale = {"peak_drop_rad_s": drop, "overshoot_rad_s": drop, "steady_state_error_rad_s": drop,
+                 "peak_torque_n_m": 1.0}.get(m, np.abs(mp[:, k]) + 1e-300)
+        if m == "recovery_time_s":  # a sample time at most, where the band is crossed between samples
+            assert np.all(np.abs(mb[:, k] - mp[:, k]) <= 0.25e-3 + 1e-12), m
+        else:
+            assert np.all(np.abs(mb[:, k] - mp[:, k]) <= 1e-6 * scale), m
+    assert batched.designs[0].yield_ == per_sample.designs[0].yield_
+
+
+def test_batched_monte_carlo_quotes_its_measured_error(paper_both):
+    batched, _, scene = paper_both
+    ig = batched.integration
+    assert ig["path"] == "batched" and ig["integrator"] == "radau" and ig["substeps"] == 8
+    assert len(ig["checks"]) == 3 and sorted(c["index"] for c in ig["checks"]) == ig["check_samples"]
+    assert ig["relative"] == max(c["relative"] for c in ig["checks"]) <= 0.5 * scene.accuracy
+    assert ig["relative"] > 0  # measured, not assumed
+    assert ig["reference"]["integrator"] == "cvodes"
+
+
+def test_batched_check_that_fails_falls_back_to_the_per_sample_reference(setup, monkeypatch):
+    from prsa_ctrl.studies import mcbatch
+
+    p, s = setup
+    monkeypatch.setattr(mcbatch, "_BATCH_SUBSTEPS_AT_1_PERCENT", 1)  # 1 then 2 substeps: too coarse
+    monkeypatch.setattr(mcbatch, "BATCH_REFINEMENTS", 1)
+    rep = mc.run_monte_carlo(p, s, {"fast": FAST}, 3, seed=1, backend="serial", quiet=True, spec={})
+    ig = rep.integration
+    assert ig["path"] == "per-sample" and ig["integrator"] == "cvodes"
+    assert "batched check failed" in ig["reason"] and ig["batched_relative"] > 0.5 * s.accuracy
+    assert rep.complete and np.all(np.isfinite(rep.samples["metrics"][:, 0, :10]))
