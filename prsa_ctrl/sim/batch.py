@@ -299,7 +299,7 @@ def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, 
     ts = p.sample_time_s
     thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
     b = thetas.shape[0]
-    if thetas.shape[1] != fam.n_theta or not np.all(np.isfinite(thetas)):
+    if thetas.ndim != 2 or b < 1 or thetas.shape[1] != fam.n_theta or not np.all(np.isfinite(thetas)):
         raise ValueError(f"thetas of shape {thetas.shape}; expected finite values, (n_samples, {fam.n_theta})")
     if scheme not in SCHEMES:
         raise ValueError(f"scheme = {scheme!r}; expected one of {', '.join(SCHEMES)}")

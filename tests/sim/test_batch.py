@@ -134,3 +134,9 @@ def test_compiled_lanes_equal_the_mapped_casadi_step(family):
     drop = np.max(np.abs(b.nut_speed - b.nut_speed[:, :1]))
     assert np.max(np.abs(a.nut_speed - b.nut_speed)) <= 1e-9 * drop
     assert np.max(np.abs(a.motor_torque - b.motor_torque)) <= 1e-9
+
+
+def test_an_empty_batch_is_refused(family):
+    _, _, fam, _, thetas = family
+    with pytest.raises(ValueError, match="thetas"):
+        simulate_batch(fam, thetas[:0], PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.01, FIXED)

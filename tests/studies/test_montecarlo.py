@@ -311,3 +311,21 @@ def test_batched_check_that_fails_falls_back_to_the_per_sample_reference(setup, 
     assert ig["path"] == "per-sample" and ig["integrator"] == "cvodes"
     assert "batched check failed" in ig["reason"] and ig["batched_relative"] > 0.5 * s.accuracy
     assert rep.complete and np.all(np.isfinite(rep.samples["metrics"][:, 0, :10]))
+
+
+def test_check_samples_are_the_most_extreme_and_seeded(setup):
+    from prsa_ctrl.studies import mcbatch
+
+    p, s = setup
+    unc = uncertainty_model(p, s)
+    ops = [(1.0, 1500.0)]
+    a = mcbatch.check_indices(unc, ops, 4, 200)
+    assert a == mcbatch.check_indices(unc, ops, 4, 200) and len(a) == 3 and len(set(a)) == 3
+    assert mcbatch.check_indices(unc, ops, 4, 2) == [0, 1]
+    # each chosen sample lies further from the middle (in ranks) than the median sample
+    vals = [mc.draw_sample(unc, ops, 4, i)[0] for i in range(200)]
+    score = np.zeros(200)
+    for k in unc.keys:
+        col = np.array([v[k] for v in vals])
+        score += np.abs(np.argsort(np.argsort(col)) / 199 - 0.5)
+    assert min(score[a]) >= np.sort(score)[-3] - 1e-12
