@@ -252,7 +252,9 @@ def batched(plant, scene, unc, designs, ops, spec, seed: int, n: int, chunk, wor
                   "jit": settings.jit, "relative": worst if math.isfinite(worst) else None, "accuracy": sc.accuracy,
                   "check_samples": checks, "checks": result["checks"], "check_s": result["check_s"],
                   "reference": {"integrator": reference.integrator, "rtol": reference.rtol, "atol": reference.atol},
-                  "refinements": refinement, "batch_size": size}
+                  "refinements": refinement, "batch_size": size,
+                  "note": "error measured on the check samples against the adaptive reference, not a bound over "
+                          "every sample"}
         if worst <= 0.5 * sc.accuracy:
             record["reason"] = (f"batched fixed-step error {worst:.2g} of the deviation on {len(checks)} check samples, "
                                 f"inside half the accuracy {sc.accuracy:g}")

@@ -455,6 +455,17 @@ def format_report(report: MonteCarloReport) -> str:
     spec = ", ".join(f"{k} <= {v:g}" if k != "no_saturation" else f"no_saturation = {str(v).lower()}"
                      for k, v in report.spec.items())
     lines.append(f"spec: {spec or '(none: yield counts finished simulations)'}")
+    ig = report.integration or {}
+    if ig.get("integrator"):
+        what = f"{ig.get('path', 'per-sample')} {ig['integrator']}" + (
+            f", {ig['substeps']} steps per controller sample" if ig.get("substeps") else "")
+        if ig.get("relative") is not None:
+            where = (f"on {len(ig['check_samples'])} check samples against the adaptive reference"
+                     if ig.get("check_samples") is not None else "at the one-off check points")
+            what += f"; measured error {ig['relative']:.2g} of the deviation {where}, accuracy {ig['accuracy']:g}"
+        elif ig.get("reason"):
+            what += f" ({ig['reason']})"
+        lines.append(f"integration: {what}")
     joint = [k for k, e in report.uncertainty.items() if "correlation" in e]  # prsa_ctrl.plant.uncertainty
     if joint:
         lines.append(f"drawn jointly (Gaussian copula of the [uncertainty] correlation): {', '.join(joint)}")

@@ -298,6 +298,8 @@ def test_batched_monte_carlo_quotes_its_measured_error(paper_both):
     assert ig["relative"] == max(c["relative"] for c in ig["checks"]) <= 0.5 * scene.accuracy
     assert ig["relative"] > 0  # measured, not assumed
     assert ig["reference"]["integrator"] == "cvodes"
+    line = [x for x in mc.format_report(batched).splitlines() if x.startswith("integration: ")]
+    assert line and f"measured error {ig['relative']:.2g} of the deviation on 3 check samples" in line[0]
 
 
 def test_batched_check_that_fails_falls_back_to_the_per_sample_reference(setup, monkeypatch):
