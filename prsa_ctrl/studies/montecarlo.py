@@ -670,7 +670,11 @@ def run_monte_carlo(
     complete = False
     try:
         if path != "per-sample" and integrator != "reference" and why is None:
-            job, integration = batched(plant, scene, unc, design_tuples, ops, spec, int(seed), n, chunk, workers,
+            # With a progress bar or callback (the app, a terminal): at least 8 batches, so that
+            # progress shows and a cancel keeps the finished ones; else as few as the workers allow.
+            interactive = bar.enabled or callback is not None
+            size_b = chunk or (max(1, math.ceil(n / max(8, workers))) if interactive else None)
+            job, integration = batched(plant, scene, unc, design_tuples, ops, spec, int(seed), n, size_b, workers,
                                         token, execute, rows, bar)
         if job is None:  # the per-sample path (asked for, not possible, or the batched check failed)
             failed = dict(integration)  # the batched check's record, when it failed
