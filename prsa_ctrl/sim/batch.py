@@ -102,46 +102,12 @@ def batch_supported(fam: ParametricModel | None, pid: PID, estimator: str = "non
     return None
 
 
-#: Fixed-step schemes of the batched plant step.
-SCHEMES = ("radau", "rosenbrock")
-#: ROS2's gamma (Verwer, Spee, Blom, Hundsdorfer, SIAM J. Sci. Comput. 20(4) 1999): L-stable
-#: with the exact Jacobian, second order for any Jacobian (a W-method).
-_ROS2_GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
-
-
-def _ros2_step(f: ca.Function, nz: int, npar: int, substeps: int) -> ca.Function:
-    """``(x0, p, tau0) -> x`` after one unit of normalised time: ``substeps`` steps of the
-    two-stage Rosenbrock W-method ROS2 of ``f(z, p, tau) -> dz/dtau``, with the Jacobian
-    evaluated and factorised once at the start (second order whatever the Jacobian, so a
-    frozen one keeps the order; stable on the stiff contact and current-loop modes)."""
-    from .integrators import _lu_kernels
-
-    z = ca.SX.sym("z", nz)
-    p = ca.SX.sym("p", npar)
-    tau = ca.SX.sym("tau")
-    jac = ca.Function("ros2_dfdz", [z, p, tau], [ca.jacobian(f(z, p, tau), z)])
-    h = 1.0 / substeps
-    j_sym = ca.SX.sym("j", jac.sparsity_out(0))
-    iter_mat = ca.Function("ros2_matrix", [j_sym], [ca.SX.eye(nz) - _ROS2_GAMMA * h * j_sym])
-    factor, solve = _lu_kernels(iter_mat.sparsity_out(0))
-    x0 = ca.SX.sym("x0", nz)
-    tau0 = ca.SX.sym("tau0")
-    lu = factor(iter_mat(jac(x0, p, tau0)))
-    x = x0
-    for k in range(substeps):
-        t_k = tau0 + k * h
-        k1 = solve(lu, f(x, p, t_k))
-        k2 = solve(lu, f(x + h * k1, p, t_k + h) - 2.0 * k1)
-        x = x + 1.5 * h * k1 + 0.5 * h * k2
-    return ca.Function("ros2_step", [x0, p, tau0], [x], ["x0", "p", "tau0"], ["xf"])
-
-
-def _step_function(fam: ParametricModel, settings: SimSettings, scheme: str = "radau") -> ca.Function:
+def _step_function(fam: ParametricModel, settings: SimSettings) -> ca.Function:
     """``(x0 scaled, p = [torque N m, load N, load slope N/s, interval s], theta) -> x`` after
     one controller sample: ``settings.substeps`` Radau IIA steps (``settings.stages`` stages,
     ``settings.newton`` simplified Newton iterations) of the family's plant ODE, compiled when
     ``settings.jit`` (once per family and settings, kept)."""
-    key = (id(fam), fam.keys, settings, scheme)
+    key = (id(fam), fam.keys, settings)
     got = _STEP_CACHE.get(key)
     if got is not None and got[0] is fam:
         return got[1]
@@ -154,7 +120,7 @@ def _step_function(fam: ParametricModel, settings: SimSettings, scheme: str = "r
     rates = _plant_rates(fam, x, pp[0], pp[1] + pp[2] * pp[3] * tau, False, pp[4:] if nt else ca.DM.zeros(0, 1))
     ode = pp[3] * rates / scale
     f = ca.Function("plant_scaled_theta", [z, pp, tau], [ode])
-    step = radau_step(f, nx, 4 + nt, settings, 1.0) if scheme == "radau" else _ros2_step(f, nx, 4 + nt, settings.substeps)
+    step = radau_step(f, nx, 4 + nt, settings, 1.0)
     x0 = ca.SX.sym("x0", nx)
     p4 = ca.SX.sym("p4", 4)
     th = ca.SX.sym("theta", nt)
@@ -167,9 +133,9 @@ def _step_function(fam: ParametricModel, settings: SimSettings, scheme: str = "r
     return fun
 
 
-def _mapped(fam: ParametricModel, settings: SimSettings, n: int, scheme: str) -> tuple[ca.Function, NDArray[np.float64]]:
-    _step_function(fam, settings, scheme)
-    _, fun, scale, maps = _STEP_CACHE[(id(fam), fam.keys, settings, scheme)]
+def _mapped(fam: ParametricModel, settings: SimSettings, n: int) -> tuple[ca.Function, NDArray[np.float64]]:
+    _step_function(fam, settings)
+    _, fun, scale, maps = _STEP_CACHE[(id(fam), fam.keys, settings)]
     if n not in maps:
         maps[n] = fun.map(n, "serial")
     return maps[n], scale
@@ -270,7 +236,7 @@ def steady_states(fam: ParametricModel, thetas: NDArray[np.float64], omega: floa
 
 def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, setpoint: float,
                    initial_load: float, final_load: float, step_at: float, duration: float,
-                   settings: SimSettings, scheme: str = "radau") -> BatchRun:
+                   settings: SimSettings) -> BatchRun:
     """The sampled-loop load step of every member ``thetas`` (n_samples x n_theta, the values
     of ``fam.keys`` in file units) from steady state: the run :func:`prsa_ctrl.sim.engine.run`
     makes with ``discrete=True``, ``setpoint``, ``load=[(0, initial_load), (step_at,
@@ -301,8 +267,6 @@ def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, 
     b = thetas.shape[0]
     if thetas.ndim != 2 or b < 1 or thetas.shape[1] != fam.n_theta or not np.all(np.isfinite(thetas)):
         raise ValueError(f"thetas of shape {thetas.shape}; expected finite values, (n_samples, {fam.n_theta})")
-    if scheme not in SCHEMES:
-        raise ValueError(f"scheme = {scheme!r}; expected one of {', '.join(SCHEMES)}")
     if settings.integrator != "radau":
         raise ValueError(f"settings.integrator = {settings.integrator!r}; expected 'radau' (fixed step)")
     n = math.floor(duration / ts + 1e-9)
@@ -326,7 +290,7 @@ def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, 
 
     x0, tau0, ok = steady_states(fam, thetas, setpoint, initial_load)
     scale = _state_scale(fam)
-    lanes = _lane_function(fam, settings) if (settings.jit and scheme == "radau") else None
+    lanes = _lane_function(fam, settings) if settings.jit else None
     b_pad = -(-b // LANES) * LANES if lanes is not None else b
     pad = np.r_[np.arange(b), np.full(b_pad - b, b - 1)].astype(int)  # extra lanes repeat the last sample
     z = np.ascontiguousarray(x0[pad] / scale)  # (b_pad, nx)
@@ -344,7 +308,7 @@ def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, 
                z_next.ctypes.data_as(c_ptr), b_pad)
             return z_next.copy()
     else:
-        fmap, _ = _mapped(fam, settings, b_pad, scheme)
+        fmap, _ = _mapped(fam, settings, b_pad)
         th_t = np.ascontiguousarray(th.T)
 
         def advance(zz, pk):
