@@ -32,8 +32,10 @@ from .scene import choose_fidelity
 __all__ = ["batch_plan", "batch_settings", "batched", "check_indices", "evaluate_batch", "BATCH_CHECK_SAMPLES",
            "BATCH_REFINEMENTS", "BATCH_SIZE"]
 
-#: Samples of every batched run compared with the adaptive reference (the most extreme ones).
-BATCH_CHECK_SAMPLES = 3
+#: Most samples of a batched run compared with the adaptive reference (:func:`check_indices`:
+#: the most extreme sample and each uncertain parameter's smallest and largest; 11 for the
+#: paper plant's 5 parameters, ~0.06 s of CPU each).
+BATCH_CHECK_SAMPLES = 16
 #: Refinements a batched run may make when its check fails (each doubles the substeps).
 BATCH_REFINEMENTS = 2
 #: Most samples in one batch (one task of the pool or of Dask).
@@ -160,22 +162,29 @@ def _margins(job: _Job, plant, scene, values, op: int, index: int, out: np.ndarr
 CHECK_CANDIDATES = 4096
 
 
-def check_indices(unc, ops, seed: int, n: int, k: int = BATCH_CHECK_SAMPLES) -> list[int]:
-    """The ``k`` samples of a run that a batched run compares with the adaptive reference: the
-    most extreme of the first :data:`CHECK_CANDIDATES` (largest sum over the uncertain
-    parameters of the distance of the sample's rank from the middle rank; ties to the lower
-    index). Not a bound over the box: the measured error is reported as measured."""
+def check_indices(unc, ops, seed: int, n: int, k: int | None = None) -> list[int]:
+    """The samples of a run that a batched run compares with the adaptive reference, chosen
+    among its first :data:`CHECK_CANDIDATES`: the most extreme sample (largest sum over the
+    uncertain parameters of the distance of its rank from the middle rank) and, for every
+    uncertain parameter, the samples with its smallest and its largest value (the fixed step's
+    error grows towards one end of some parameter: on the paper plant the stiffest contact,
+    rank correlation 0.95 over 24 samples), at most ``k`` (default
+    :data:`BATCH_CHECK_SAMPLES`) in that order; ties to the lower index. Not a bound over
+    every sample: the measured error is reported as measured."""
+    k = BATCH_CHECK_SAMPLES if k is None else k
     m = min(n, CHECK_CANDIDATES)
-    if m <= k:
+    if m <= 1:
         return list(range(m))
     vals = [draw_sample(unc, ops, seed, i)[0] for i in range(m)]
     score = np.zeros(m)
+    picks: list[int] = []
     for key in unc.keys:
         col = np.array([v[key] for v in vals], dtype=float)
         ranks = np.argsort(np.argsort(col, kind="stable"), kind="stable") / (m - 1)
         score += np.abs(ranks - 0.5)
-    order = np.lexsort((np.arange(m), -score))
-    return sorted(int(i) for i in order[:k])
+        picks += [int(np.argmin(col)), int(np.argmax(col))]
+    order = [int(np.lexsort((np.arange(m), -score))[0])] + picks
+    return sorted(list(dict.fromkeys(order))[:k])
 
 
 def _check_batch(job: _Job, indices: Sequence[int]) -> list[dict]:

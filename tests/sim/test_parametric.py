@@ -82,6 +82,7 @@ def test_monte_carlo_quotes_its_integrator_and_agrees_with_the_reference():
     assert "--integrator fast" in fast.designs[0].replay
     # the batched default checks its own samples against the adaptive reference
     ig = batched.integration
-    assert ig["path"] == "batched" and ig["check_samples"] == [0, 1, 2] and ig["relative"] <= 0.5 * scene.accuracy
+    assert ig["path"] == "batched" and ig["check_samples"] and set(ig["check_samples"]) <= {0, 1, 2}
+    assert 0 < ig["relative"] <= 0.5 * scene.accuracy
     drop_b = batched.samples["metrics"][:, 0, k]
     assert np.all(np.abs(drop_b - drop_r) <= scene.accuracy * drop_r)

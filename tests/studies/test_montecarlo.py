@@ -294,12 +294,12 @@ def test_batched_monte_carlo_quotes_its_measured_error(paper_both):
     batched, _, scene = paper_both
     ig = batched.integration
     assert ig["path"] == "batched" and ig["integrator"] == "radau" and ig["substeps"] == 8
-    assert len(ig["checks"]) == 3 and sorted(c["index"] for c in ig["checks"]) == ig["check_samples"]
+    assert 3 <= len(ig["checks"]) <= 11 and sorted(c["index"] for c in ig["checks"]) == ig["check_samples"]
     assert ig["relative"] == max(c["relative"] for c in ig["checks"]) <= 0.5 * scene.accuracy
     assert ig["relative"] > 0  # measured, not assumed
     assert ig["reference"]["integrator"] == "cvodes"
     line = [x for x in mc.format_report(batched).splitlines() if x.startswith("integration: ")]
-    assert line and f"measured error {ig['relative']:.2g} of the deviation on 3 check samples" in line[0]
+    assert line and f"measured error {ig['relative']:.2g} of the deviation on {len(ig['checks'])} check samples" in line[0]
 
 
 def test_batched_check_that_fails_falls_back_to_the_per_sample_reference(setup, monkeypatch):
@@ -315,19 +315,20 @@ def test_batched_check_that_fails_falls_back_to_the_per_sample_reference(setup, 
     assert rep.complete and np.all(np.isfinite(rep.samples["metrics"][:, 0, :10]))
 
 
-def test_check_samples_are_the_most_extreme_and_seeded(setup):
+def test_check_samples_are_the_extremes_and_seeded(setup):
     from prsa_ctrl.studies import mcbatch
 
     p, s = setup
     unc = uncertainty_model(p, s)
     ops = [(1.0, 1500.0)]
     a = mcbatch.check_indices(unc, ops, 4, 200)
-    assert a == mcbatch.check_indices(unc, ops, 4, 200) and len(a) == 3 and len(set(a)) == 3
-    assert mcbatch.check_indices(unc, ops, 4, 2) == [0, 1]
-    # each chosen sample lies further from the middle (in ranks) than the median sample
+    assert a == mcbatch.check_indices(unc, ops, 4, 200) and len(set(a)) == len(a) <= 1 + 2 * len(unc.keys)
+    assert mcbatch.check_indices(unc, ops, 4, 1) == [0]
     vals = [mc.draw_sample(unc, ops, 4, i)[0] for i in range(200)]
     score = np.zeros(200)
     for k in unc.keys:
         col = np.array([v[k] for v in vals])
+        assert int(np.argmin(col)) in a and int(np.argmax(col)) in a  # every parameter's two ends
         score += np.abs(np.argsort(np.argsort(col)) / 199 - 0.5)
-    assert min(score[a]) >= np.sort(score)[-3] - 1e-12
+    assert int(np.argmax(score)) in a  # and the most extreme sample overall
+    assert len(mcbatch.check_indices(unc, ops, 4, 200, k=2)) == 2
