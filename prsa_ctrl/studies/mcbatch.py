@@ -29,7 +29,7 @@ from .autotune import actuator_loops
 from .montecarlo import METRICS, _evaluate, _Job, _plant_doc, _prepared, draw_sample
 from .scene import choose_fidelity
 
-__all__ = ["batch_plan", "batch_settings", "batched", "check_indices", "evaluate_batch", "BATCH_CHECK_SAMPLES",
+__all__ = ["batch_plan", "batch_settings", "batched", "check_indices", "acting_keys", "evaluate_batch", "BATCH_CHECK_SAMPLES",
            "BATCH_REFINEMENTS", "BATCH_SIZE"]
 
 #: Most samples of a batched run compared with the adaptive reference (:func:`check_indices`:
@@ -162,15 +162,26 @@ def _margins(job: _Job, plant, scene, values, op: int, index: int, out: np.ndarr
 CHECK_CANDIDATES = 4096
 
 
-def check_indices(unc, ops, seed: int, n: int, k: int | None = None) -> list[int]:
+def acting_keys(fam) -> tuple[str, ...]:
+    """The family's parameters its equations depend on (e.g. the roller tolerances act on the
+    multi-roller model only): the others cannot change a sample's error."""
+    import casadi as ca
+
+    x, u, th = ca.SX.sym("x", fam.nx), ca.SX.sym("u", 2), ca.SX.sym("th", fam.n_theta)
+    rhs = fam.f(x, u, th)
+    return tuple(k for i, k in enumerate(fam.keys) if ca.depends_on(rhs, th[i]))
+
+
+def check_indices(unc, ops, seed: int, n: int, k: int | None = None, keys=None) -> list[int]:
     """The samples of a run that a batched run compares with the adaptive reference, chosen
     among its first :data:`CHECK_CANDIDATES`: the most extreme sample (largest sum over the
     uncertain parameters of the distance of its rank from the middle rank) and, for every
     uncertain parameter, the samples with its smallest and its largest value (the fixed step's
     error grows towards one end of some parameter: on the paper plant the stiffest contact,
     rank correlation 0.95 over 24 samples), at most ``k`` (default
-    :data:`BATCH_CHECK_SAMPLES`) in that order; ties to the lower index. Not a bound over
-    every sample: the measured error is reported as measured."""
+    :data:`BATCH_CHECK_SAMPLES`) in that order; ties to the lower index. ``keys``: the
+    parameters to look at (default all; a batched run passes :func:`acting_keys`). Not a bound
+    over every sample: the measured error is reported as measured."""
     k = BATCH_CHECK_SAMPLES if k is None else k
     m = min(n, CHECK_CANDIDATES)
     if m <= 1:
@@ -178,7 +189,7 @@ def check_indices(unc, ops, seed: int, n: int, k: int | None = None) -> list[int
     vals = [draw_sample(unc, ops, seed, i)[0] for i in range(m)]
     score = np.zeros(m)
     picks: list[int] = []
-    for key in unc.keys:
+    for key in (unc.keys if keys is None else [q for q in unc.keys if q in keys]):
         col = np.array([v[key] for v in vals], dtype=float)
         ranks = np.argsort(np.argsort(col, kind="stable"), kind="stable") / (m - 1)
         score += np.abs(ranks - 0.5)
@@ -232,7 +243,10 @@ def batched(plant, scene, unc, designs, ops, spec, seed: int, n: int, chunk, wor
     from .autotune import verify_settings
 
     sc, _ = choose_fidelity(scene)
-    checks = check_indices(unc, ops, seed, n)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        fam = _family(_Job("", _plant_doc(plant), sc, designs, unc, ops, spec, seed), plant, sc)
+    checks = check_indices(unc, ops, seed, n, keys=acting_keys(fam))
     n_chunks = max(workers, math.ceil(n / BATCH_SIZE))
     size = chunk or max(1, math.ceil(n / n_chunks))
     chunks = [list(range(a, min(a + size, n))) for a in range(0, n, size)]

@@ -332,3 +332,17 @@ def test_check_samples_are_the_extremes_and_seeded(setup):
         score += np.abs(np.argsort(np.argsort(col)) / 199 - 0.5)
     assert int(np.argmax(score)) in a  # and the most extreme sample overall
     assert len(mcbatch.check_indices(unc, ops, 4, 200, k=2)) == 2
+
+
+def test_check_ignores_parameters_the_model_does_not_read(setup):
+    from prsa_ctrl.plant.model import parametric_family
+    from prsa_ctrl.studies import mcbatch
+
+    p, s = setup[0], load_scene("paper-load-step")  # the plant's own five uncertain values
+    unc = uncertainty_model(p, s)
+    fam = parametric_family(p, "compliant", unc.keys)
+    acting = mcbatch.acting_keys(fam)
+    assert "contact.stiffness_n_per_mm_e" in acting and "nut.inertia_kg_m2" in acting
+    assert "tolerance.roller_position_std_um" not in acting  # multi-roller only
+    a = mcbatch.check_indices(unc, [(1.0, 1500.0)], 4, 200, keys=acting)
+    assert len(a) <= 1 + 2 * len(acting) < 1 + 2 * len(unc.keys)
