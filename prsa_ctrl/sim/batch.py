@@ -42,10 +42,11 @@ from ..drive.measurement import measurement_for
 from ..drive.pid import PID
 from ..errors import SimulationError
 from ..plant.model import ParametricModel
-from .integrators import SimSettings, _plant_rates, _state_scale, compiled, radau_step
+from .integrators import SimSettings, compiled, plant_rates, radau_step, state_scale
 from .metrics import DEFAULT_BAND
 
-__all__ = ["BatchRun", "simulate_batch", "steady_states", "load_step_metrics_batch", "MAX_BATCH_VALUES"]
+__all__ = ["BatchRun", "simulate_batch", "steady_states", "load_step_metrics_batch", "batch_supported", "lane_function",
+           "MAX_BATCH_VALUES", "LANES"]
 
 #: Largest ``samples x time points`` one batched run may hold per recorded signal (checked
 #: before anything is allocated): 2e8 doubles are 1.6 GB.
@@ -112,12 +113,12 @@ def _step_function(fam: ParametricModel, settings: SimSettings) -> ca.Function:
     if got is not None and got[0] is fam:
         return got[1]
     nx, nt = fam.nx, fam.n_theta
-    scale = _state_scale(fam)
+    scale = state_scale(fam)
     z = ca.SX.sym("z", nx)
     pp = ca.SX.sym("p", 4 + nt)
     tau = ca.SX.sym("tau")
     x = z * scale
-    rates = _plant_rates(fam, x, pp[0], pp[1] + pp[2] * pp[3] * tau, False, pp[4:] if nt else ca.DM.zeros(0, 1))
+    rates = plant_rates(fam, x, pp[0], pp[1] + pp[2] * pp[3] * tau, False, pp[4:] if nt else ca.DM.zeros(0, 1))
     ode = pp[3] * rates / scale
     f = ca.Function("plant_scaled_theta", [z, pp, tau], [ode])
     step = radau_step(f, nx, 4 + nt, settings, 1.0)
@@ -141,17 +142,30 @@ def _mapped(fam: ParametricModel, settings: SimSettings, n: int) -> tuple[ca.Fun
     return maps[n], scale
 
 
-def _solver(fam: ParametricModel) -> tuple[ca.Function, list[int]]:
-    """The family's steady-state residual and Jacobian ``(z, p, theta) -> (g, dg/dz)``
-    (``prsa_ctrl.plant.equilibrium._solver``, moving case) and its free states."""
-    from ..plant.equilibrium import _free, _solver as eq_solver
+def _free(fam: ParametricModel) -> list[int]:
+    """States solved for in a steady state: every state but the angles and the nut speed."""
+    return [i for i, n in enumerate(fam.state_names) if not n.startswith("theta_") and n != "omega_nut"]
 
+
+def _solver(fam: ParametricModel) -> tuple[ca.Function, list[int]]:
+    """The family's steady-state residual and Jacobian ``(z = [free states, torque command],
+    p = [omega_nut rad/s, load N], theta) -> (g, dg/dz)``: every rate but the angles' at
+    constant nut speed (the equations :func:`prsa_ctrl.plant.equilibrium.operating_point`
+    solves), and its free states."""
     key = id(fam)
     got = _SOLVER_CACHE.get(key)
     if got is None or got[0] is not fam:
-        if ("solver", False) not in fam.cache:
-            fam.cache[("solver", False)] = eq_solver(fam, False)
-        got = (fam, fam.cache[("solver", False)], _free(fam), {})
+        free = _free(fam)
+        z = ca.SX.sym("z", len(free) + 1)
+        par = ca.SX.sym("p", 2)
+        th = ca.SX.sym("theta", fam.n_theta)
+        x = [0] * fam.nx
+        x[fam.index("omega_nut")] = par[0]
+        for k, i in enumerate(free):
+            x[i] = z[k]
+        rhs = fam.f(ca.vertcat(*x), ca.vertcat(z[-1], par[1]), th)
+        eqs = ca.vertcat(*[rhs[i] for i, n in enumerate(fam.state_names) if not n.startswith("theta_")])
+        got = (fam, ca.Function("steady_residual", [z, par, th], [eqs, ca.jacobian(eqs, z)]), free)
         _SOLVER_CACHE.clear()
         _SOLVER_CACHE[key] = got
     return got[1], got[2]
@@ -159,10 +173,10 @@ def _solver(fam: ParametricModel) -> tuple[ca.Function, list[int]]:
 
 def steady_states(fam: ParametricModel, thetas: NDArray[np.float64], omega: float, load: float):
     """Batched operating points of the family's members ``thetas`` (n_samples x n_theta) at
-    nut speed ``omega`` (rad/s, outside the stick band, not 0) and axial ``load`` (N): the
-    damped Newton solve of :func:`prsa_ctrl.plant.equilibrium.operating_point` (Deuflhard's
-    natural monotonicity test, at most 50 iterations and 12 halvings each) on every sample
-    at once, from the base plant's quasi-static guess.
+    nut speed ``omega`` (rad/s, outside the stick band, not 0) and axial ``load`` (N): a damped
+    Newton solve (Deuflhard's natural monotonicity test, at most 50 iterations and 12 halvings
+    each, as :func:`prsa_ctrl.plant.equilibrium.operating_point`) on every sample at once, from
+    the base plant's operating point.
 
     Returns
     -------
@@ -173,20 +187,21 @@ def steady_states(fam: ParametricModel, thetas: NDArray[np.float64], omega: floa
         Converged, finite and inside the motor's torque limit (elsewhere the per-sample solve
         is the authority: it raises with the reason).
     """
-    from ..plant.equilibrium import _guess, _scale, steady_torque
+    from ..plant.equilibrium import operating_point
 
     base = fam.plant
     fun, free = _solver(fam)
     b = thetas.shape[0]
-    tau0 = steady_torque(base, omega, load)
-    nominal = fam.bind(base)  # the base plant's model: its guess and unknowns' scales
-    x0 = _guess(nominal, omega, load)
-    x0[fam.index("tau_motor")] = tau0
+    try:
+        op = operating_point(base, omega, load, fam.fidelity, fam.seed)
+    except (SimulationError, ValueError):
+        return np.full((b, fam.nx), np.nan), np.full(b, np.nan), np.zeros(b, bool)
+    x0 = np.array(op.x, dtype=float)
     m = len(free) + 1
-    z = np.tile(np.append(x0[free], tau0), (b, 1))
-    scale = _scale(nominal, False, base.torque_limit)
+    z = np.tile(np.append(x0[free], op.torque), (b, 1))
+    scale = np.append(state_scale(fam)[free], base.torque_limit)
     fmap = fun.map(b, "serial")
-    par = [omega, load, tau0]
+    par = [omega, load]
     th = thetas.T
 
     def evaluate(zz):
@@ -289,8 +304,8 @@ def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, 
     i_th, i_w, i_tau = fam.index("theta_nut"), fam.index("omega_nut"), fam.index("tau_motor")
 
     x0, tau0, ok = steady_states(fam, thetas, setpoint, initial_load)
-    scale = _state_scale(fam)
-    lanes = _lane_function(fam, settings) if settings.jit else None
+    scale = state_scale(fam)
+    lanes = lane_function(fam, settings) if settings.jit else None
     b_pad = -(-b // LANES) * LANES if lanes is not None else b
     pad = np.r_[np.arange(b), np.full(b_pad - b, b - 1)].astype(int)  # extra lanes repeat the last sample
     z = np.ascontiguousarray(x0[pad] / scale)  # (b_pad, nx)
@@ -515,7 +530,7 @@ def _cpu_identity() -> str:
         return platform.processor() or platform.machine()
 
 
-def _lane_function(fam: ParametricModel, settings: SimSettings):
+def lane_function(fam: ParametricModel, settings: SimSettings):
     """The compiled lane-parallel step (a ctypes function) or ``None`` (no compiler: the caller
     maps the CasADi function instead). Built and compiled once per family and settings (on
     disk in :func:`prsa_ctrl.sim.integrators.jit_cache_dir`, keyed by the code's hash)."""
@@ -534,11 +549,11 @@ def _lane_function(fam: ParametricModel, settings: SimSettings):
     if got is not None and got[0] is fam:
         return got[1]
     nx, nt = fam.nx, fam.n_theta
-    scale = _state_scale(fam)
+    scale = state_scale(fam)
     z = ca.SX.sym("z", nx)
     pp = ca.SX.sym("p", 4 + nt)
     tau = ca.SX.sym("tau")
-    rates = _plant_rates(fam, z * scale, pp[0], pp[1] + pp[2] * pp[3] * tau, False, pp[4:] if nt else ca.DM.zeros(0, 1))
+    rates = plant_rates(fam, z * scale, pp[0], pp[1] + pp[2] * pp[3] * tau, False, pp[4:] if nt else ca.DM.zeros(0, 1))
     f = ca.Function("plant_scaled_theta", [z, pp, tau], [pp[3] * rates / scale])
     one = dataclass_replace(settings, substeps=1)
     sub = radau_step(f, nx, 4 + nt, one, 1.0 / settings.substeps)

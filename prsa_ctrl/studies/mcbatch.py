@@ -26,7 +26,7 @@ from ..errors import GeometryWarning, SimulationError
 from ..plant.model import register_member
 from ..plant.uncertainty import apply
 from .autotune import actuator_loops
-from .montecarlo import METRICS, _evaluate, _Job, _plant_doc, _prepared, draw_sample
+from .mcjob import METRICS, Job, draw_sample, evaluate, plant_doc, prepared
 from .scene import choose_fidelity
 
 __all__ = ["batch_plan", "batch_settings", "batched", "check_indices", "acting_keys", "evaluate_batch", "BATCH_CHECK_SAMPLES",
@@ -50,9 +50,9 @@ _BATCH_SUBSTEPS_AT_1_PERCENT = 8
 def _batch_layout(plant, scene) -> tuple[float, float, float]:
     """``(pre, duration, offset)`` of the verification run of a load-step scene (as
     ``prsa_ctrl.studies.autotune._simulate``): the step ``pre`` s after the start."""
-    from .autotune import _PRE_SAMPLES
+    from .scenefile import PRE_EVENT_SAMPLES
 
-    pre = min(scene.step_time, _PRE_SAMPLES * plant.sample_time_s)
+    pre = min(scene.step_time, PRE_EVENT_SAMPLES * plant.sample_time_s)
     return pre, pre + scene.duration - scene.step_time, scene.step_time - pre
 
 
@@ -89,19 +89,19 @@ def batch_settings(accuracy: float, refinements: int = 0):
     return SimSettings(integrator="radau", stages=2, substeps=int(min(max(sub, 2), 32)), jit=True)
 
 
-def _family(job: _Job, plant, scene):
+def _family(job: Job, plant, scene):
     from ..plant.model import parametric_family
 
     return parametric_family(plant, scene.fidelity, job.unc.keys)
 
 
-def evaluate_batch(job: _Job, indices: Sequence[int]) -> list:
-    """``prsa_ctrl.studies.montecarlo._evaluate`` of every sample in ``indices`` with one batched run per operating
+def evaluate_batch(job: Job, indices: Sequence[int]) -> list:
+    """``prsa_ctrl.studies.mcjob.evaluate`` of every sample in ``indices`` with one batched run per operating
     point and design (:func:`prsa_ctrl.sim.batch.simulate_batch`) and batched metrics; a sample
     whose steady state or run fails in the batch is run per sample (which reports why)."""
     from ..sim.batch import load_step_metrics_batch, simulate_batch
 
-    plant, scene = _prepared(job)
+    plant, scene = prepared(job)
     fam = _family(job, plant, scene)
     draws = [draw_sample(job.unc, job.ops, job.seed, i) for i in indices]
     nd = len(job.designs)
@@ -127,7 +127,7 @@ def evaluate_batch(job: _Job, indices: Sequence[int]) -> list:
     margins = "ms" in job.spec or "mt" in job.spec
     for r, i in enumerate(indices):
         if r in redo:
-            rows.append(_evaluate(job, i))
+            rows.append(evaluate(job, i))
             continue
         values, op, _ = draws[r]
         if margins:
@@ -138,8 +138,8 @@ def evaluate_batch(job: _Job, indices: Sequence[int]) -> list:
     return rows
 
 
-def _margins(job: _Job, plant, scene, values, op: int, index: int, out: np.ndarray) -> None:
-    """Ms and Mt of every design on sample ``index`` (as ``prsa_ctrl.studies.montecarlo._evaluate``), into ``out``."""
+def _margins(job: Job, plant, scene, values, op: int, index: int, out: np.ndarray) -> None:
+    """Ms and Mt of every design on sample ``index`` (as ``prsa_ctrl.studies.mcjob.evaluate``), into ``out``."""
     sp, f1 = job.ops[op]
     p_i = apply(plant, values, name=f"{plant.name} sample {index}") if values else plant
     if values:
@@ -198,7 +198,7 @@ def check_indices(unc, ops, seed: int, n: int, k: int | None = None, keys=None) 
     return sorted(list(dict.fromkeys(order))[:k])
 
 
-def _check_batch(job: _Job, indices: Sequence[int]) -> list[dict]:
+def _check_batch(job: Job, indices: Sequence[int]) -> list[dict]:
     """The batched run of each sample in ``indices`` against the scene's adaptive reference
     run of the same sample (first design): the largest nut-speed difference relative to the
     reference's largest deviation from its start (the measure of
@@ -207,7 +207,7 @@ def _check_batch(job: _Job, indices: Sequence[int]) -> list[dict]:
     from ..sim.engine import run
     from .autotune import verify_settings
 
-    plant, scene = _prepared(job)
+    plant, scene = prepared(job)
     fam = _family(job, plant, scene)
     pre, duration, _ = _batch_layout(plant, scene)
     _, pid, _ = job.designs[0]
@@ -239,13 +239,13 @@ def batched(plant, scene, unc, designs, ops, spec, seed: int, n: int, chunk, wor
     """The batched runs with their check (see :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo`'s ``path``): ``(job,
     integration)``, or ``(None, integration)`` with the reason when the check failed after
     every refinement (the caller then runs the per-sample path)."""
-    from ..sim.batch import _lane_function
+    from ..sim.batch import lane_function
     from .autotune import verify_settings
 
     sc, _ = choose_fidelity(scene)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", GeometryWarning)
-        fam = _family(_Job("", _plant_doc(plant), sc, designs, unc, ops, spec, seed), plant, sc)
+        fam = _family(Job("", plant_doc(plant), sc, designs, unc, ops, spec, seed), plant, sc)
     checks = check_indices(unc, ops, seed, n, keys=acting_keys(fam))
     n_chunks = max(workers, math.ceil(n / BATCH_SIZE))
     size = chunk or max(1, math.ceil(n / n_chunks))
@@ -254,9 +254,9 @@ def batched(plant, scene, unc, designs, ops, spec, seed: int, n: int, chunk, wor
     worst = math.inf
     for refinement in range(BATCH_REFINEMENTS + 1):
         settings = batch_settings(sc.accuracy, refinement)
-        job = _Job(token, _plant_doc(plant), scene, designs, unc, ops, spec, seed, settings, batched=True)
-        plant_w, scene_w = _prepared(job)
-        _lane_function(_family(job, plant_w, scene_w), settings)  # built (compiled) once, before any fork
+        job = Job(token, plant_doc(plant), scene, designs, unc, ops, spec, seed, settings, batched=True)
+        plant_w, scene_w = prepared(job)
+        lane_function(_family(job, plant_w, scene_w), settings)  # built (compiled) once, before any fork
         result: dict = {}
 
         def side() -> None:

@@ -126,7 +126,7 @@ def test_compiled_lanes_equal_the_mapped_casadi_step(family):
     _, _, fam, _, thetas = family
     th = np.vstack([thetas, thetas[:3] * [1.01, 1.0, 0.99, 1.02, 1.0]])[:9]
     jit = SimSettings(integrator="radau", stages=2, substeps=4, jit=True)
-    if batch._lane_function(fam, jit) is None:
+    if batch.lane_function(fam, jit) is None:
         pytest.skip("no C compiler")
     a = simulate_batch(fam, th, PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.02, jit)
     b = simulate_batch(fam, th, PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.02, FIXED)
