@@ -79,6 +79,10 @@ class BatchRun:
     motor_torque: NDArray[np.float64]
     ok: NDArray[np.bool_]
 
+    def __post_init__(self) -> None:
+        for name in ("time", "nut_speed", "motor_torque", "ok"):  # a result: read-only arrays
+            getattr(self, name).flags.writeable = False
+
 
 def _state_of_output(fam: ParametricModel, output: str, state: str) -> bool:
     """Whether the family's output ``output`` is the state ``state`` itself."""

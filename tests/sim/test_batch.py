@@ -140,3 +140,10 @@ def test_an_empty_batch_is_refused(family):
     _, _, fam, _, thetas = family
     with pytest.raises(ValueError, match="thetas"):
         simulate_batch(fam, thetas[:0], PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.01, FIXED)
+
+
+def test_a_batched_run_is_read_only(family):
+    _, _, fam, _, thetas = family
+    br = simulate_batch(fam, thetas[:2], PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.005, FIXED)
+    with pytest.raises(ValueError):
+        br.nut_speed[0, 0] = 0.0
