@@ -17,6 +17,12 @@ prsa-ctrl installed: ``pip install -e '.[test]'``) writes ``bench.json`` and ``w
 - **Monte Carlo**: 1000 compliant sampled-loop verifications of the paper scene, serial, 2
   processes and a Dask LocalCluster, in turn (results must agree bit for bit), with the
   integrator the run chose and its measured error, and the serial CPU time per sample;
+- **batched Monte Carlo** (:func:`batched_monte_carlo_benchmark`): the same 1000 verifications of
+  the paper scene on the batched path (:mod:`prsa_ctrl.sim.batch`, the default) and on the
+  per-sample path, side by side in turn (serial and ``workers`` processes), with the spread,
+  the CPU time per sample (parent and workers), the error the batched run measured on its
+  check samples against the adaptive reference, and the largest difference of the two paths'
+  metrics;
 - **robust tuning**: 16 scenario models against nominal tuning;
 - **fit**: ``fit_plant`` on :func:`prsa_ctrl.identification.synthetic.fit_record`, a 4 s, 4 kHz closed-loop record (16001 samples) simulated by the
   toolkit on a perturbed plant (issue 11's run-time figure): wall and CPU time, solver
@@ -33,7 +39,8 @@ asserted here.
 ``--fast`` runs every section at tiny sizes (one tolerance on a 7 ms horizon, a 2 x 2 grid, 4
 Monte-Carlo samples on the adaptive integrator, serial, 2 processes and a running Dask cluster
 (not the cluster started per run: its start-up alone is 3-10 s), 5 robust scenarios, 1 s
-records and the first 5 s of EMPS, one cold CLI run, no warm-up): about 30 s on an idle 2-core
+records and the first 5 s of EMPS, 16 batched and per-sample Monte-Carlo samples (the latter on
+the adaptive integrator), one cold CLI run, no warm-up): about 30 s on an idle 2-core
 machine, so that CI runs the whole file (tests/test_benchmarks.py) and it cannot rot; its
 figures mean nothing (``bench.json["fast"]`` is true).
 """
@@ -58,7 +65,8 @@ from prsa_ctrl.cli.common import EXIT_BAD_INPUT, Parser, UsageError, one_line, w
 from prsa_ctrl.identification.synthetic import fit_record
 from prsa_ctrl.studies.accuracy import fidelity_ladder, timed, work_precision
 
-__all__ = ["tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark", "robust_tuning_benchmark",
+__all__ = ["tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark", "batched_monte_carlo_benchmark",
+           "robust_tuning_benchmark",
            "fit_benchmark", "axis_fit_benchmark", "targets", "main", "work_precision", "fidelity_ladder"]
 
 
@@ -234,6 +242,59 @@ def _backends(n: int = 1000, workers: int = 2, repeats: int = 3, plant=None, sce
         out["dask_running_overhead"] = med["dask-running"] / med["process"] - 1
         out["cluster_start_s"] = cluster_start_s
     return out
+
+
+def batched_monte_carlo_benchmark(n: int = 1000, workers: int = 2, repeats: int = 3, scene: str = "paper-load-step",
+                                  per_sample_integrator: str = "auto") -> dict:
+    """``n`` verifications of the paper design on the scene's samples, batched
+    (``path="batched"``) and per sample (``path="per-sample"``, ``per_sample_integrator``), serial
+    and on ``workers`` processes, run in turn (batched serial, batched process, per-sample
+    process, ...) ``repeats`` times after a warm-up of each (the batched step's compilation and
+    the per-sample path's one-off integrator check are not timed). Reports the median, minimum
+    and maximum wall time of each, the CPU time per sample (this process and its workers), the
+    batched run's measured error and the largest difference between the two paths' metrics
+    (peak drop and IAE, relative)."""
+    from prsa_ctrl.studies.montecarlo import METRICS
+
+    plant = load_plant()
+    sc = load_scene(scene)
+    pid = default_pid(plant)
+    kinds = {"batched serial": dict(path="batched", backend="serial", workers=1),
+             f"batched {workers} processes": dict(path="batched", backend="process", workers=workers),
+             f"per-sample {workers} processes": dict(path="per-sample", backend="process", workers=workers,
+                                                     integrator=per_sample_integrator)}
+    for kw in kinds.values():  # warm-up: compile, one-off checks
+        run_monte_carlo(plant, sc, {"paper": pid}, 2, seed=0, quiet=True, spec={}, **kw)
+    wall: dict[str, list[float]] = {k: [] for k in kinds}
+    cpu: dict[str, list[float]] = {k: [] for k in kinds}
+    reports: dict = {}
+    for _ in range(repeats):
+        for name, kw in kinds.items():
+            t, c0 = time.perf_counter(), os.times()
+            reports[name] = run_monte_carlo(plant, sc, {"paper": pid}, n, seed=0, quiet=True, spec={}, **kw)
+            c1 = os.times()
+            wall[name].append(time.perf_counter() - t)
+            cpu[name].append(sum(getattr(c1, a) - getattr(c0, a)
+                                 for a in ("user", "system", "children_user", "children_system")) / n)
+    b = reports["batched serial"].samples["metrics"][:, 0]
+    p = reports[f"per-sample {workers} processes"].samples["metrics"][:, 0]
+    diff = {}
+    for m in ("peak_drop_rad_s", "iae"):
+        k = METRICS.index(m)
+        diff[m] = float(np.max(np.abs(b[:, k] - p[:, k]) / np.abs(p[:, k])))
+    med = {k: float(np.median(v)) for k, v in wall.items()}
+    return {"n": n, "workers": workers, "repeats": repeats, "scene": sc.name, "plant": plant.name,
+            "median_s": med, "min_s": {k: float(min(v)) for k, v in wall.items()},
+            "max_s": {k: float(max(v)) for k, v in wall.items()}, "runs_s": wall,
+            "cpu_per_sample_s": {k: float(np.median(v)) for k, v in cpu.items()},
+            "speedup_process": med[f"per-sample {workers} processes"] / med[f"batched {workers} processes"],
+            "integration": {k: v for k, v in reports["batched serial"].integration.items() if k != "checks"},
+            "batched_identical_across_backends": bool(np.array_equal(
+                reports["batched serial"].samples["metrics"],
+                reports[f"batched {workers} processes"].samples["metrics"], equal_nan=True)),
+            "max_relative_difference_to_per_sample": diff,
+            "per_sample_integration": reports[f"per-sample {workers} processes"].integration.get("integrator"),
+            "load_average_1_5_15": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
 
 
 def robust_tuning_benchmark(n_scenarios: int = 16, repeats: int = 3) -> dict:
@@ -446,6 +507,16 @@ def targets(result: dict) -> dict:
             out["dask_overhead_le_0.15_cluster_start_included"] = {"measured": mc["dask_overhead"],
                                                                    "met": mc["dask_overhead"] <= 0.15}
         out["backends_identical"] = {"met": bool(mc["identical"])}
+    bm = result.get("batched_monte_carlo")
+    if bm:
+        key = f"batched {bm['workers']} processes"
+        target = 1.5 * bm["n"] / 1000
+        out["batched_monte_carlo_1000_le_1.5s"] = {"target": target, "measured_s": bm["median_s"][key],
+                                                   "met": bm["median_s"][key] <= target}
+        ig = bm["integration"]
+        out["batched_error_within_accuracy"] = {
+            "measured": ig["relative"] if ig.get("relative") is not None else math.inf,
+            "met": ig.get("relative") is not None and ig["relative"] <= ig["accuracy"]}
     rb = result.get("robust_tuning")
     if rb:
         out["robust_16_le_5x_nominal"] = {"measured": rb["median_ratio"], "met": rb["median_ratio"] <= 5.0}
@@ -539,7 +610,7 @@ def _main(argv=None) -> int:
     ap.add_argument("--out", default="bench-results", help="folder for bench.json and the figure (created if missing)")
     ap.add_argument("--fast", action="store_true", help="every section at tiny sizes (~30 s; the figures mean nothing: "
                     "a check that the file runs)")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "robust", "fit",
+    ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "batch", "robust", "fit",
                                                                  "axisfit"])
     ap.add_argument("--samples", type=int, default=None, help="Monte-Carlo samples per run (default 1000; 4 with --fast)")
     ap.add_argument("--workers", type=int, default=2, help="processes / Dask workers of the Monte-Carlo benchmark")
@@ -611,6 +682,21 @@ def _main(argv=None) -> int:
         print(f"monte carlo integrator: {ig['integrator']}" + (f" (measured error {ig['relative']:.2g} of the "
               f"deviation, accuracy {ig['accuracy']:g}; one-off check {ig['check_s']:.1f} s)" if ig.get("relative")
               is not None else f" ({ig['reason']})") + f"; warm-up (check + compile) {mc['warm_up_s']:.1f} s")
+    if "batch" not in args.skip:
+        result["batched_monte_carlo"] = bm = batched_monte_carlo_benchmark(
+            n=16 if args.fast else n_mc, workers=args.workers, repeats=repeats,
+            per_sample_integrator="reference" if args.fast else "auto")
+        ig = bm["integration"]
+        print(f"batched monte carlo ({bm['n']} verifications, {bm['scene']}): "
+              + "; ".join(f"{k} {bm['median_s'][k]:.2f} s ({bm['min_s'][k]:.2f}..{bm['max_s'][k]:.2f}), CPU "
+                          f"{1e3 * bm['cpu_per_sample_s'][k]:.2f} ms/sample" for k in bm["median_s"])
+              + f"; batched {bm['speedup_process']:.1f}x per-sample on {bm['workers']} processes")
+        print(f"batched integrator: {ig.get('integrator')} {ig.get('substeps')} substeps" + (
+              f" (measured error {ig['relative']:.2g} of the deviation on {len(ig['check_samples'])} check samples, "
+              f"accuracy {ig['accuracy']:g})" if ig.get("relative") is not None else f" ({ig.get('reason')})")
+              + f"; largest difference to the per-sample path: peak drop "
+              f"{bm['max_relative_difference_to_per_sample']['peak_drop_rad_s']:.2g}, IAE "
+              f"{bm['max_relative_difference_to_per_sample']['iae']:.2g} (relative)")
     if "robust" not in args.skip:
         result["robust_tuning"] = rb = robust_tuning_benchmark(n_scenarios=5 if args.fast else 16, repeats=repeats)
         print(f"robust tuning ({rb['scenarios']} scenarios): {rb['median_tune_robust_s']:.2f} s vs nominal "

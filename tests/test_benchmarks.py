@@ -38,12 +38,16 @@ def test_bench_fast_runs_every_section_and_writes_its_json(tmp_path):
     assert "Traceback" not in p.stderr, p.stderr[-3000:]
     data = json.loads((tmp_path / "out" / "bench.json").read_text(encoding="utf-8"))
     assert data["fast"] is True
-    sections = {"work_precision", "fidelity_ladder", "tuning", "monte_carlo", "robust_tuning", "fit", "axis_fit",
-                "cold_cli", "targets"}
+    sections = {"work_precision", "fidelity_ladder", "tuning", "monte_carlo", "batched_monte_carlo", "robust_tuning",
+                "fit", "axis_fit", "cold_cli", "targets"}
     assert sections <= set(data), sorted(sections - set(data))
     assert (tmp_path / "out" / "work_precision.png").stat().st_size > 0
     # the robust section ran its scenario models (the import that crashed)
     assert data["robust_tuning"]["scenarios"] >= 5
+    # the batched Monte Carlo ran both paths on the same samples and quoted its measured error
+    bm = data["batched_monte_carlo"]
+    assert bm["n"] == 16 and len(bm["median_s"]) == 3 and bm["batched_identical_across_backends"] is True
+    assert bm["integration"]["path"] == "batched" and bm["integration"]["relative"] is not None
 
 
 def test_bench_refuses_a_bad_out_before_any_work(tmp_path):

@@ -33,7 +33,8 @@ from ..drive.pid import pid_law
 from ..plant.model import PlantModel
 
 __all__ = ["SimSettings", "INTEGRATORS", "RADAU_STAGES", "Built", "build", "continuous_integrator",
-           "sample_integrator", "accumulated", "radau_tableau", "radau_step", "compiled", "jit_cache_dir"]
+           "sample_integrator", "accumulated", "radau_tableau", "radau_step", "compiled", "jit_cache_dir",
+           "state_scale", "plant_rates"]
 
 INTEGRATORS = ("cvodes", "idas", "radau")
 #: Stages of the fixed-step ``"radau"`` integrator (Radau IIA: 1 = implicit Euler, order 1;
@@ -134,8 +135,9 @@ class SimSettings:
             raise ValueError(f"clock = {self.clock!r}; expected a callable returning seconds")
 
 
-def _state_scale(model: PlantModel) -> NDArray[np.float64]:
-    """Typical magnitude of each state, so that tolerances mean the same for all of them."""
+def state_scale(model: PlantModel) -> NDArray[np.float64]:
+    """Typical magnitude of each state (``model.state_names``, their SI units), so that
+    tolerances mean the same for all of them."""
     p = model.plant
     w = 100.0
     f_rated = p.rated_load_n
@@ -155,6 +157,9 @@ def _state_scale(model: PlantModel) -> NDArray[np.float64]:
     # A model may declare the typical magnitudes of states it adds (e.g. friction states).
     scale.update(getattr(model, "state_scales", None) or {})
     return np.array([scale[n] for n in model.state_names])
+
+
+_state_scale = state_scale
 
 
 @dataclass(eq=False)
@@ -197,13 +202,16 @@ class Built:
 _BUILT: "weakref.WeakKeyDictionary[PlantModel, dict[bool, Built]]" = weakref.WeakKeyDictionary()
 
 
-def _plant_rates(model: PlantModel, x, u, load, energy: bool, theta=None):
+def plant_rates(model: PlantModel, x, u, load, energy: bool, theta=None):
     """Plant state rates, followed by the motor, load and dissipated powers when ``energy``
     (``theta``: the parameters of a :class:`~prsa_ctrl.plant.model.ParametricModel`)."""
     args = (x, ca.vertcat(u, load)) + (() if theta is None else (theta,))
     if not energy:
         return model.f(*args)
     return ca.vertcat(model.f(*args), model.power(*args)[1:])
+
+
+_plant_rates = plant_rates
 
 
 class _Bounded(dict):

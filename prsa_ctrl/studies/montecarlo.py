@@ -13,7 +13,6 @@ the job (plant, scene, designs) is sent once per worker.
 from __future__ import annotations
 
 import ctypes
-import inspect
 import math
 import multiprocessing
 import os
@@ -32,10 +31,10 @@ from .._lazy import module
 from ..drive.pid import PID
 from ..errors import GeometryWarning, MonteCarloInterrupted, SimulationError
 from ..plant.model import register_member
-from ..plant.plantfile import Plant
 from ..plant.uncertainty import apply, uncertainty_model
 from ..results import is_ok, json_safe
-from .autotune import FAST_VERIFY, Design, actuator_loops, fast_verify_settings, verify, verify_settings
+from .autotune import FAST_VERIFY, fast_verify_settings, verify_settings
+from .mcjob import METRICS, Job, draw_sample, evaluate, plant_doc, prepared
 from .scene import choose_fidelity
 from .scenerobust import operating_points
 
@@ -46,9 +45,6 @@ __all__ = ["MonteCarloReport", "DesignYield", "MonteCarloInterrupted", "run_mont
            "wilson_interval", "draw_sample", "replay_sample", "scene_options", "verification_settings", "local_cluster",
            "METRICS", "BACKENDS"]
 
-#: Metrics recorded per design and sample (worst over the sample's load steps).
-METRICS = ("peak_drop_rad_s", "recovery_time_s", "ie", "iae", "itae", "ise", "overshoot_rad_s",
-           "peak_torque_n_m", "steady_state_error_rad_s", "saturated", "ms", "mt")
 #: Execution backends.
 BACKENDS = ("serial", "process", "dask")
 #: Percentiles reported for each metric (plus the maximum).
@@ -78,90 +74,9 @@ def wilson_interval(k: int, n: int, z: float = 1.959963984540054) -> tuple[float
     return (0.0 if k == 0 else max(0.0, centre - half)), (1.0 if k == n else min(1.0, centre + half))
 
 
-# --- the job each worker runs ------------------------------------------------------------------
+# --- the job each worker runs: prsa_ctrl.studies.mcjob (shared with the batched path) ------------
 
-@dataclass(frozen=True)
-class _Job:
-    """Everything a worker needs, picklable (the Plant's read-only mappings are rebuilt)."""
-
-    token: str
-    plant_doc: dict
-    scene: Any
-    designs: tuple  # (name, PID, estimator)
-    unc: Any  # UncertaintyModel
-    ops: tuple  # ((setpoint rad/s, final load N), ...)
-    spec: dict
-    seed: int
-    settings: Any = None  # SimSettings of every verification run (None: autotune.verify_settings)
-
-
-_WORKER_CACHE: dict[str, tuple] = {}
-
-
-def _plant_doc(plant) -> dict:
-    """The plant as plain data for a worker process (its mappings are read-only proxies)."""
-    return {"name": plant.name, "values": dict(plant.values), "sources": dict(plant.sources),
-            "origin": plant.origin, "description": plant.description, "mechanism": plant.mechanism,
-            "defaulted": frozenset(plant.defaulted), "mechanism_source": plant.mechanism_source}
-
-
-def _prepared(job: _Job) -> tuple:
-    """The job's plant and resolved scene, built once per worker process."""
-    got = _WORKER_CACHE.get(job.token)
-    if got is None:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", GeometryWarning)
-            plant = Plant(**job.plant_doc)
-        got = (plant, choose_fidelity(job.scene)[0])
-        _WORKER_CACHE.clear()
-        _WORKER_CACHE[job.token] = got
-    return got
-
-
-def draw_sample(unc, ops: Sequence, seed: int, index: int) -> tuple[dict[str, float], int, int]:
-    """Sample ``index`` of ``seed``: (parameter values in file units, operating-point index,
-    per-roller error seed), from ``SeedSequence([seed, index])`` only."""
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
-    values = unc.sample(rng)
-    op = int(rng.integers(len(ops))) if len(ops) > 1 else 0
-    roller_seed = int(rng.integers(2**31 - 1))
-    return values, op, roller_seed
-
-
-def _evaluate(job: _Job, index: int) -> tuple[int, dict, int, np.ndarray, list]:
-    """All designs on sample ``index``: metrics array (designs x METRICS) and error messages."""
-    plant, scene = _prepared(job)
-    values, op, roller_seed = draw_sample(job.unc, job.ops, job.seed, index)
-    sp, f1 = job.ops[op]
-    p_i = apply(plant, values, name=f"{plant.name} sample {index}") if values else plant
-    if values:  # one parametric model (and one compiled law) serves every sample
-        register_member(p_i, plant, job.unc.keys)
-    sc = scene.replace(setpoint_rad_s=sp, final_loads=(f1,))
-    kw = {"seed": roller_seed} if "seed" in inspect.signature(verify).parameters else {}
-    kw["settings"] = job.settings
-    out = np.full((len(job.designs), len(METRICS)), np.inf)
-    errors: list = [None] * len(job.designs)
-    loop = None
-    for j, (name, pid, est) in enumerate(job.designs):
-        try:
-            d = verify(Design(name, pid, None, estimator=est), p_i, sc, **kw)
-        except SimulationError as exc:
-            errors[j] = str(exc).splitlines()[0]
-            continue
-        row = out[j]
-        for k, m in enumerate(METRICS[:10]):
-            vals = [abs(float(getattr(x, m))) for x in d.verified]
-            row[k] = max(vals)
-        if "ms" in job.spec or "mt" in job.spec:
-            if loop is None:
-                loop = actuator_loops(p_i, sc, estimator=est)[0]
-            g = pid.gains
-            if loop.is_stable(g):
-                mg = loop.margins(g)
-                row[10], row[11] = mg.ms, mg.mt
-        else:
-            row[10] = row[11] = math.nan
-    return index, values, op, out, errors
+_Job, _plant_doc, _prepared, _evaluate = Job, plant_doc, prepared, evaluate
 
 
 #: Integrator choices of :func:`run_monte_carlo`.
@@ -244,9 +159,18 @@ class _NotFast(Exception):
     pass
 
 
+#: Paths of :func:`run_monte_carlo`: one batched integration per chunk of samples
+#: (:mod:`prsa_ctrl.sim.batch`, driven by :mod:`prsa_ctrl.studies.mcbatch`) or one per sample.
+PATHS = ("batched", "per-sample")
+
+
 def _run_chunk(job: _Job, indices: Sequence[int]) -> list:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", GeometryWarning)
+        if job.batched:
+            from .mcbatch import evaluate_batch
+
+            return evaluate_batch(job, indices)
         return [_evaluate(job, i) for i in indices]
 
 
@@ -445,6 +369,17 @@ def format_report(report: MonteCarloReport) -> str:
     spec = ", ".join(f"{k} <= {v:g}" if k != "no_saturation" else f"no_saturation = {str(v).lower()}"
                      for k, v in report.spec.items())
     lines.append(f"spec: {spec or '(none: yield counts finished simulations)'}")
+    ig = report.integration or {}
+    if ig.get("integrator"):
+        what = f"{ig.get('path', 'per-sample')} {ig['integrator']}" + (
+            f", {ig['substeps']} steps per controller sample" if ig.get("substeps") else "")
+        if ig.get("relative") is not None:
+            where = (f"on {len(ig['check_samples'])} check samples against the adaptive reference"
+                     if ig.get("check_samples") is not None else "at the one-off check points")
+            what += f"; measured error {ig['relative']:.2g} of the deviation {where}, accuracy {ig['accuracy']:g}"
+        elif ig.get("reason"):
+            what += f" ({ig['reason']})"
+        lines.append(f"integration: {what}")
     joint = [k for k, e in report.uncertainty.items() if "correlation" in e]  # prsa_ctrl.plant.uncertainty
     if joint:
         lines.append(f"drawn jointly (Gaussian copula of the [uncertainty] correlation): {', '.join(joint)}")
@@ -527,6 +462,7 @@ def run_monte_carlo(
     spec: Mapping[str, Any] | None = None,
     unc=None,
     integrator: str = "auto",
+    path: str | None = None,
 ) -> MonteCarloReport:
     """Verify designs on ``n`` seeded samples of the plant's (and scene's) uncertainty.
 
@@ -559,7 +495,18 @@ def run_monte_carlo(
     integrator : {"auto", "reference"}
         ``"auto"``: the compiled fixed-step integrator where its measured error is inside the
         scene's accuracy (:func:`verification_settings`, quoted in ``report.integration``),
-        else the scene's adaptive one; ``"reference"``: always the adaptive one.
+        else the scene's adaptive one; ``"reference"``: always the adaptive one, per sample.
+    path : {"batched", "per-sample"}, optional
+        ``"batched"`` (the default where :func:`prsa_ctrl.studies.mcbatch.batch_plan` allows it; with ``integrator`` other
+        than ``"reference"``): each chunk of samples is one batched integration
+        (:mod:`prsa_ctrl.sim.batch`; the pool and Dask distribute batches), with the Radau
+        substeps chosen from the scene's accuracy; every run compares
+        :data:`~prsa_ctrl.studies.mcbatch.BATCH_CHECK_SAMPLES` of its samples (:func:`~prsa_ctrl.studies.mcbatch.check_indices`) with the scene's
+        adaptive reference and reports the largest error (``report.integration``); above half
+        the accuracy it doubles the substeps (at most :data:`~prsa_ctrl.studies.mcbatch.BATCH_REFINEMENTS` times, up to
+        32) and runs again, and then falls back to the per-sample adaptive path, saying so.
+        ``"per-sample"``: one integration per sample (the path before batching). Same seeds,
+        same samples on both paths; results agree within the stated accuracy.
 
     Returns
     -------
@@ -600,11 +547,10 @@ def run_monte_carlo(
     unc = uncertainty_model(plant, scene) if unc is None else unc
     design_tuples = _as_design_tuples(designs)
     ops = tuple(operating_points(scene))
-    settings, integration = verification_settings(plant, scene, unc, ops, design_tuples[0][1], integrator)
-    job = _Job(uuid.uuid4().hex, _plant_doc(plant), scene, design_tuples, unc, ops, spec, int(seed), settings)
-    if chunk is None:
-        chunk = int(min(64, max(8, math.ceil(n / (8 * workers)))))
-    chunks = [list(range(a, min(a + chunk, n))) for a in range(0, n, chunk)]
+    if path is not None and path not in PATHS:
+        raise ValueError(f"path = {path!r}; expected one of {', '.join(PATHS)}")
+    if integrator not in INTEGRATOR_CHOICES:
+        raise ValueError(f"integrator = {integrator!r}; expected one of {', '.join(INTEGRATOR_CHOICES)}")
     bar = _Progress(n, False if quiet else (progress if isinstance(progress, bool) else None))
     callback = progress if callable(progress) else None
     rows: list = []
@@ -615,19 +561,51 @@ def run_monte_carlo(
         if callback is not None:
             callback(len(rows), n)
 
-    t0 = time.perf_counter()
-    complete = False
-    try:
+    def execute(job: _Job, chunks: list, side=None) -> None:
         if backend == "serial":
             for c in chunks:
                 took(_run_chunk(job, c))
+            if side is not None:
+                side()
         elif backend == "process":
-            _run_process(job, chunks, workers, took)
+            _run_process(job, chunks, workers, took, side)
         else:
-            _run_dask(job, chunks, workers, scheduler, took)
+            _run_dask(job, chunks, workers, scheduler, took, side)
+
+    token = uuid.uuid4().hex
+    t0 = time.perf_counter()
+    why = None
+    if path != "per-sample" and integrator != "reference":
+        from .mcbatch import batch_plan, batched
+
+        why = batch_plan(plant, scene, unc, design_tuples, spec)
+    integration: dict = {}
+    job = None
+    complete = False
+    try:
+        if path != "per-sample" and integrator != "reference" and why is None:
+            # With a progress bar or callback (the app, a terminal): at least 8 batches, so that
+            # progress shows and a cancel keeps the finished ones; else as few as the workers allow.
+            interactive = bar.enabled or callback is not None
+            size_b = chunk or (max(1, math.ceil(n / max(8, workers))) if interactive else None)
+            job, integration = batched(plant, scene, unc, design_tuples, ops, spec, int(seed), n, size_b, workers,
+                                        token, execute, rows, bar)
+        if job is None:  # the per-sample path (asked for, not possible, or the batched check failed)
+            failed = dict(integration)  # the batched check's record, when it failed
+            settings, integration = verification_settings(plant, scene, unc, ops, design_tuples[0][1],
+                                                          "reference" if failed else integrator)
+            integration = dict(integration, path="per-sample", **failed)
+            if why is not None:
+                integration["batch_reason"] = why
+            job = _Job(token, _plant_doc(plant), scene, design_tuples, unc, ops, spec, int(seed), settings)
+            size = chunk or int(min(64, max(8, math.ceil(n / (8 * workers)))))
+            rows.clear()
+            bar.done = 0
+            execute(job, [list(range(a, min(a + size, n))) for a in range(0, n, size)])
         complete = len(rows) == n
     except KeyboardInterrupt:
         bar.close()
+        job = job or _Job(token, _plant_doc(plant), scene, design_tuples, unc, ops, spec, int(seed), None)
         rep = _build_report(job, plant, scene, rows, n, backend, workers, False, time.perf_counter() - t0,
                             integration)
         raise MonteCarloInterrupted(rep) from None
@@ -636,10 +614,13 @@ def run_monte_carlo(
                          integration)
 
 
-def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
+def _run_process(job: _Job, chunks: list, workers: int, took, side=None) -> None:
+    """Chunks on a process pool; ``side()`` (optional) runs in this process while they do."""
     if workers <= 1:
         for c in chunks:
             took(_run_chunk(job, c))
+        if side is not None:
+            side()
         return
     method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context(method),
@@ -647,6 +628,8 @@ def _run_process(job: _Job, chunks: list, workers: int, took) -> None:
     finished = False
     try:
         pending = {pool.submit(_pool_chunk, c) for c in chunks}
+        if side is not None:
+            side()
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:
@@ -704,7 +687,7 @@ def _check_scheduler_address(address: str) -> None:
                          f"{SCHEDULER_TIMEOUT_S:g} s: {exc}") from None
 
 
-def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took) -> None:
+def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took, side=None) -> None:
     try:
         Client, as_completed = distributed.Client, distributed.as_completed
     except ImportError:
@@ -722,6 +705,8 @@ def _run_dask(job: _Job, chunks: list, workers: int, scheduler, took) -> None:
     try:
         job_f = client.scatter(job, broadcast=True)  # sent once per worker
         futures = [client.submit(_run_chunk, job_f, c, pure=False) for c in chunks]
+        if side is not None:
+            side()
         try:
             for f in as_completed(futures):
                 took(f.result())
@@ -751,14 +736,28 @@ def scene_options(scene) -> dict[str, int]:
 
 # --- replay, figures ----------------------------------------------------------------------------
 
-def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "auto") -> dict[str, Any]:
+def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "auto",
+                  path: str | None = None) -> dict[str, Any]:
     """Re-run one sample of one design: its parameter values, operating point and metrics
-    (with the integrator choice :func:`run_monte_carlo` made for that design first in line)."""
+    (with the integrator choice :func:`run_monte_carlo` made for that design first in line:
+    the batched path where it applies, as the run's default, whose samples are independent
+    of the batch they run in, so the replay is exact; a run that had to refine its substeps
+    or fall back replays with ``path="per-sample"`` within the stated accuracy)."""
     unc = uncertainty_model(plant, scene)
     ops = tuple(operating_points(scene))
-    settings, _ = verification_settings(plant, scene, unc, ops, pid, integrator)
-    job = _Job("replay-" + uuid.uuid4().hex, _plant_doc(plant), scene, (("replay", pid, "none"),), unc,
-               ops, dict((scene.robust or {}).get("spec", {})), int(seed), settings)
+    spec = dict((scene.robust or {}).get("spec", {}))
+    designs = (("replay", pid, "none"),)
+    if path is not None and path not in PATHS:
+        raise ValueError(f"path = {path!r}; expected one of {', '.join(PATHS)}")
+    from .mcbatch import batch_plan, batch_settings
+
+    if path != "per-sample" and integrator != "reference" and batch_plan(plant, scene, unc, designs, spec) is None:
+        job = _Job("replay-" + uuid.uuid4().hex, _plant_doc(plant), scene, designs, unc, ops, spec, int(seed),
+                   batch_settings(choose_fidelity(scene)[0].accuracy), batched=True)
+    else:
+        settings, _ = verification_settings(plant, scene, unc, ops, pid, integrator)
+        job = _Job("replay-" + uuid.uuid4().hex, _plant_doc(plant), scene, designs, unc, ops, spec, int(seed),
+                   settings)
     i, values, op, m, err = _run_chunk(job, [index])[0]
     ok, sev = _passes(m, job.spec, plant.torque_limit)
     return {"index": i, "parameters": values, "operating_point": job.ops[op],

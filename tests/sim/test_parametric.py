@@ -70,7 +70,8 @@ def test_monte_carlo_quotes_its_integrator_and_agrees_with_the_reference():
 
     scene = load_scene("robust-load-step")
     pid = PID(0.0849, 14.67, tf=1e-3)
-    fast = mc.run_monte_carlo(PLANT, scene, {"fast": pid}, 3, seed=5, quiet=True, spec={})
+    fast = mc.run_monte_carlo(PLANT, scene, {"fast": pid}, 3, seed=5, quiet=True, spec={}, path="per-sample")
+    batched = mc.run_monte_carlo(PLANT, scene, {"fast": pid}, 3, seed=5, quiet=True, spec={})
     ref = mc.run_monte_carlo(PLANT, scene, {"fast": pid}, 3, seed=5, quiet=True, spec={}, integrator="reference")
     assert fast.integration["integrator"] == "radau" and ref.integration["integrator"] == "cvodes"
     assert fast.integration["relative"] <= 0.5 * scene.accuracy
@@ -79,3 +80,9 @@ def test_monte_carlo_quotes_its_integrator_and_agrees_with_the_reference():
     drop_f, drop_r = fast.samples["metrics"][:, 0, k], ref.samples["metrics"][:, 0, k]
     assert np.all(np.abs(drop_f - drop_r) <= scene.accuracy * drop_r)
     assert "--integrator fast" in fast.designs[0].replay
+    # the batched default checks its own samples against the adaptive reference
+    ig = batched.integration
+    assert ig["path"] == "batched" and ig["check_samples"] and set(ig["check_samples"]) <= {0, 1, 2}
+    assert 0 < ig["relative"] <= 0.5 * scene.accuracy
+    drop_b = batched.samples["metrics"][:, 0, k]
+    assert np.all(np.abs(drop_b - drop_r) <= scene.accuracy * drop_r)

@@ -1,0 +1,108 @@
+"""The batched Monte-Carlo path (prsa_ctrl.studies.mcbatch) against the per-sample path."""
+
+import numpy as np
+import pytest
+
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.plant.plantfile import load_plant
+from prsa_ctrl.plant.uncertainty import uncertainty_model
+from prsa_ctrl.studies import montecarlo as mc
+from prsa_ctrl.studies.scene import load_scene
+
+FAST = PID(0.0849, 14.67, tf=1e-3)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    return load_plant(), load_scene("robust-load-step")
+
+
+@pytest.fixture(scope="module")
+def paper_both():
+    from prsa_ctrl.studies.paper import default_pid
+
+    p, s = load_plant(), load_scene("paper-load-step")
+    pid = default_pid(p)
+    kw = dict(seed=3, backend="serial", quiet=True, spec={})
+    return (mc.run_monte_carlo(p, s, {"paper": pid}, 20, **kw),
+            mc.run_monte_carlo(p, s, {"paper": pid}, 20, integrator="fast", path="per-sample", **kw),
+            s)
+
+
+def test_batched_monte_carlo_equals_the_per_sample_path(paper_both):
+    batched, per_sample, scene = paper_both
+    assert batched.integration["path"] == "batched" and per_sample.integration["path"] == "per-sample"
+    # same seeds, same samples
+    assert np.array_equal(batched.samples["index"], per_sample.samples["index"])
+    for k in batched.samples["values"]:
+        assert np.array_equal(batched.samples["values"][k], per_sample.samples["values"][k])
+    mb, mp = batched.samples["metrics"][:, 0, :10], per_sample.samples["metrics"][:, 0, :10]
+    assert np.all(np.isfinite(mb)) and np.ptp(mb[:, 0]) > 0.1  # 20 different, finished samples
+    drop = mp[:, mc.METRICS.index("peak_drop_rad_s")]
+    # the same fixed-step scheme on both paths (8 substeps at accuracy 1 %): agreement far inside the accuracy
+    for k, m in enumerate(mc.METRICS[:10]):
+        scale = {"peak_drop_rad_s": drop, "overshoot_rad_s": drop, "steady_state_error_rad_s": drop,
+                 "peak_torque_n_m": 1.0}.get(m, np.abs(mp[:, k]) + 1e-300)
+        if m == "recovery_time_s":  # a sample time at most, where the band is crossed between samples
+            assert np.all(np.abs(mb[:, k] - mp[:, k]) <= 0.25e-3 + 1e-12), m
+        else:
+            assert np.all(np.abs(mb[:, k] - mp[:, k]) <= 1e-6 * scale), m
+    assert batched.designs[0].yield_ == per_sample.designs[0].yield_
+
+
+def test_batched_monte_carlo_quotes_its_measured_error(paper_both):
+    batched, _, scene = paper_both
+    ig = batched.integration
+    assert ig["path"] == "batched" and ig["integrator"] == "radau" and ig["substeps"] == 8
+    assert 3 <= len(ig["checks"]) <= 11 and sorted(c["index"] for c in ig["checks"]) == ig["check_samples"]
+    assert ig["relative"] == max(c["relative"] for c in ig["checks"]) <= 0.5 * scene.accuracy
+    assert ig["relative"] > 0  # measured, not assumed
+    assert ig["reference"]["integrator"] == "cvodes"
+    line = [x for x in mc.format_report(batched).splitlines() if x.startswith("integration: ")]
+    assert line and f"measured error {ig['relative']:.2g} of the deviation on {len(ig['checks'])} check samples" in line[0]
+
+
+def test_batched_check_that_fails_falls_back_to_the_per_sample_reference(setup, monkeypatch):
+    from prsa_ctrl.studies import mcbatch
+
+    p, s = setup
+    monkeypatch.setattr(mcbatch, "_BATCH_SUBSTEPS_AT_1_PERCENT", 1)  # 1 then 2 substeps: too coarse
+    monkeypatch.setattr(mcbatch, "BATCH_REFINEMENTS", 1)
+    rep = mc.run_monte_carlo(p, s, {"fast": FAST}, 3, seed=1, backend="serial", quiet=True, spec={})
+    ig = rep.integration
+    assert ig["path"] == "per-sample" and ig["integrator"] == "cvodes"
+    assert "batched check failed" in ig["reason"] and ig["batched_relative"] > 0.5 * s.accuracy
+    assert rep.complete and np.all(np.isfinite(rep.samples["metrics"][:, 0, :10]))
+
+
+def test_check_samples_are_the_extremes_and_seeded(setup):
+    from prsa_ctrl.studies import mcbatch
+
+    p, s = setup
+    unc = uncertainty_model(p, s)
+    ops = [(1.0, 1500.0)]
+    a = mcbatch.check_indices(unc, ops, 4, 200)
+    assert a == mcbatch.check_indices(unc, ops, 4, 200) and len(set(a)) == len(a) <= 1 + 2 * len(unc.keys)
+    assert mcbatch.check_indices(unc, ops, 4, 1) == [0]
+    vals = [mc.draw_sample(unc, ops, 4, i)[0] for i in range(200)]
+    score = np.zeros(200)
+    for k in unc.keys:
+        col = np.array([v[k] for v in vals])
+        assert int(np.argmin(col)) in a and int(np.argmax(col)) in a  # every parameter's two ends
+        score += np.abs(np.argsort(np.argsort(col)) / 199 - 0.5)
+    assert int(np.argmax(score)) in a  # and the most extreme sample overall
+    assert len(mcbatch.check_indices(unc, ops, 4, 200, k=2)) == 2
+
+
+def test_check_ignores_parameters_the_model_does_not_read(setup):
+    from prsa_ctrl.plant.model import parametric_family
+    from prsa_ctrl.studies import mcbatch
+
+    p, s = setup[0], load_scene("paper-load-step")  # the plant's own five uncertain values
+    unc = uncertainty_model(p, s)
+    fam = parametric_family(p, "compliant", unc.keys)
+    acting = mcbatch.acting_keys(fam)
+    assert "contact.stiffness_n_per_mm_e" in acting and "nut.inertia_kg_m2" in acting
+    assert "tolerance.roller_position_std_um" not in acting  # multi-roller only
+    a = mcbatch.check_indices(unc, [(1.0, 1500.0)], 4, 200, keys=acting)
+    assert len(a) <= 1 + 2 * len(acting) < 1 + 2 * len(unc.keys)
