@@ -677,7 +677,7 @@ def baseline_designs(plant: Plant, scene: Scene | LoopSpec, loops: list[LoopMode
     best = None
     for kp in ref.kp * np.logspace(-1, 0.6, 17):
         g = (kp, ki_small, 0.0)
-        if not all(l.is_stable(g) for l in loops) or lp.margins(g).ms > 2.0:
+        if not all(l.is_stable(g) for l in loops) or lp.peak_sensitivity(g) > 2.0:
             continue
         val = _aggregate([l.objective(g, scene.objective) for l in loops], scene)
         if best is None or val < best[1]:

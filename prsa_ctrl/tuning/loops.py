@@ -244,6 +244,13 @@ class LoopModel:
         m = margins_from_response(pk["omega"], pk["L"], response=exact)
         return replace(m, ms=max(m.ms, pk["ms"]), mt=max(m.mt, pk["mt"]))
 
+    def peak_sensitivity(self, gains: Sequence[float]) -> float:
+        """``margins(gains).ms`` (the true Ms, dimensionless), the same number, without the
+        gain and phase margins and Mt that :meth:`margins` also computes (their crossings'
+        bisections are most of its cost): for screening many gains by Ms."""
+        pk = self.peaks(gains, mt=False)
+        return max(float(np.abs(1.0 / (1.0 + np.asarray(pk["L"], dtype=complex))).max()), pk["ms"])
+
     # ---- time domain ---------------------------------------------------------------------
 
     def a_cl(self, gains: Sequence[float]) -> NDArray[np.float64]:

@@ -213,8 +213,14 @@ class NLPBuilder:
         base = {"print_time": False, "error_on_fail": False, "show_eval_warnings": False}
         # Expanding to SX costs ~0.5 s once per Tuner but makes each solve ~10x faster; mapped
         # per-loop objectives are SX already (expanding would unroll the map).
+        # One loop (no warm re-solves): only ipopt's x, lam_g and stats are read, so CasADi's
+        # post-solve recomputation of f, g, lam_x and lam_p (the function "nlp_grad", a reverse
+        # sweep over the whole objective: about half of the build's time) is not built. The
+        # warm re-solves of several loops start from lam_x: they keep it.
+        post = {"no_nlp_grad": True, "calc_f": False, "calc_g": False, "calc_lam_x": False,
+                "calc_lam_p": False} if nl == 1 else {}
         solver = ca.nlpsol("tuner", "ipopt", {"x": var, "p": p, "f": f, "g": ca.vertcat(*cons)},
-                           {**base, "expand": mapped is None, "ipopt": ip})
+                           {**base, **post, "expand": mapped is None, "ipopt": ip})
         warm = None
         if nl > 1:
             fun = ca.Function("tuner_nlp", [var, p], [f, ca.vertcat(*cons)], ["x", "p"], ["f", "g"])

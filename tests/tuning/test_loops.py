@@ -98,3 +98,25 @@ def test_block_sum_of_a_loop_beyond_the_budget_is_marginal(monkeypatch):
     monkeypatch.setattr(loops, "_series_gramian", spy)
     assert loops.block_sum(a, c, np.array([1.0, 0.0]), 0, 0.0, 1e-3, "iae", 1e-6) == (math.inf, math.inf)
     assert seen == [1]
+
+
+def test_peak_sensitivity_is_the_margins_ms_exactly(paper_plant):
+    """The baselines' Kp sweep screens by ``peak_sensitivity``: the same number as
+    ``margins(g).ms`` (not an approximation of it), on gains from sluggish to nearly unstable."""
+    import warnings
+
+    from prsa_ctrl.studies.autotune import actuator_loops
+    from prsa_ctrl.studies.scene import load_scene
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lp = actuator_loops(paper_plant, load_scene())[0]
+    checked = 0
+    for kp in 0.085 * np.logspace(-1, 0.6, 9):
+        for ki in (1.47, 14.7):
+            g = (kp, ki, 0.0)
+            if not lp.is_stable(g):
+                continue
+            assert lp.peak_sensitivity(g) == lp.margins(g).ms
+            checked += 1
+    assert checked >= 12
