@@ -279,7 +279,14 @@ def format_robust(rr) -> str:
         if k:
             out.append(f"{name}: closed loop unstable on {k} of {len(rr.scenarios)} scenario models")
     r = rr.recommended or rr.recommend()
-    out.append(f"recommended: {r['design'] + ' design' if r.get('design') else 'none'} ({r['why']})")
+    if r.get("table"):
+        from ..tuning.robust import format_yield_table
+
+        out.append(f"Designs against the scene's [spec] on the same {r['table'][0]['samples']} Monte-Carlo samples "
+                   f"(* recommended: {r['rule']}):")
+        out.append(format_yield_table(r, comp["objective"]))
+    name = r.get("name") or (r["design"] + " design" if r.get("design") else None)
+    out.append(f"recommended: {name or 'none'} ({r['why']})")
     return "\n".join(out) + "\n"
 
 

@@ -597,6 +597,10 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
     if robust_rep is not None:
         designs = {"nominal design": robust_rep.nominal, "robust design": robust_rep.robust}
         _add_design(designs, rep.best.name, rep.best.pid)
+        # every design the run tuned: the recommendation ranks them all on the same samples
+        for c in getattr(rep, "candidates", ()) or ():
+            if c.pid.kff == 0:
+                _add_design(designs, c.name, c.pid)
     for b in rep.baselines:
         _add_design(designs, b.name, b.pid)
     seed = args.seed if args.seed is not None else opts["seed"]
@@ -605,7 +609,8 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
     mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
                          workers=args.workers or default_workers(), quiet=args.quiet)
     if robust_rep is not None:
-        robust_rep = robust_rep.with_recommendation(mc)
+        others = {k: v for k, v in designs.items() if k not in ("nominal design", "robust design")}
+        robust_rep = robust_rep.with_recommendation(mc, others=others)
     return robust_rep, mc
 
 
@@ -626,7 +631,8 @@ def _export_choice(rep, robust_rep) -> tuple[Any, dict]:
         r = robust_rep.recommended or robust_rep.recommend()
         if r.get("design") is None:
             return None, {"why": f"no design recommended ({r['why']})"}
-        d = {"name": f"{r['design']} design", "chosen_by": "recommended by the robust study", "why": r["why"],
+        d = {"name": r.get("name") or f"{r['design']} design", "chosen_by": "recommended by the robust study",
+             "why": r["why"],
              "basis": r["basis"]}
         if r.get("yield") is not None:
             d["yield"] = r["yield"]
