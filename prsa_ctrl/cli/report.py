@@ -265,7 +265,9 @@ def format_robust(rr) -> str:
     comp = rr.comparison
     obj = comp["objective"].upper()
     out = [f"Robust tuning over {len(rr.scenarios)} scenario models ({comp.get('aggregate', 'worst')} {obj}; "
-           f"Ms bound {comp['ms_max']:g} on every model)"]
+           f"Ms bound {comp['ms_max']:g} on every model"
+           + (", the scene's [spec] ms: the bound the designs are judged by" if comp.get("ms_source") == "[spec] ms"
+              else "") + ")"]
     rows = []
     for name, pid in (("nominal", rr.nominal), ("robust", rr.robust)):
         d = comp["designs"][name]

@@ -610,7 +610,8 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
                          workers=args.workers or default_workers(), quiet=args.quiet)
     if robust_rep is not None:
         others = {k: v for k, v in designs.items() if k not in ("nominal design", "robust design")}
-        robust_rep = robust_rep.with_recommendation(mc, others=others)
+        target = ((getattr(scene, "robust", None) or {}).get("spec_yield") or {}).get("yield")
+        robust_rep = robust_rep.with_recommendation(mc, others=others, target=target)
     return robust_rep, mc
 
 

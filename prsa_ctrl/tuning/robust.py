@@ -135,13 +135,14 @@ class RobustTuning:
         return {"nominal": self.nominal, "robust": self.robust, **self.others}[name]
 
     def with_recommendation(self, monte_carlo=None, names: dict | None = None,
-                            others: dict | None = None) -> "RobustTuning":
+                            others: dict | None = None, target: float | None = None) -> "RobustTuning":
         """A copy of the study with :attr:`recommended` = :meth:`recommend` ``(monte_carlo,
         names)`` and the other designs (Monte-Carlo name -> PID) the recommendation may name."""
         new = replace(self, others=dict(others or {}))
-        return replace(new, recommended=new.recommend(monte_carlo, names))
+        return replace(new, recommended=new.recommend(monte_carlo, names, target))
 
-    def recommend(self, monte_carlo=None, names: dict | None = None) -> dict[str, Any]:
+    def recommend(self, monte_carlo=None, names: dict | None = None,
+                  target: float | None = None) -> dict[str, Any]:
         """The design to use, ranked by the yield against the scene's ``[spec]`` -- the spec
         the designs are judged by (the study is not changed: :meth:`with_recommendation`
         returns one that keeps it in :attr:`recommended`).
@@ -162,6 +163,9 @@ class RobustTuning:
         names : dict, optional
             This study's design name -> its name in the Monte-Carlo report (default
             ``"nominal design"``, ``"robust design"``).
+        target : float, optional
+            The spec's target yield (``[spec] yield``): where no design reaches it, ``limit``
+            names the limiting spec item (:func:`rank_by_yield`).
 
         Returns
         -------
@@ -178,10 +182,11 @@ class RobustTuning:
         ranked = None
         if monte_carlo is not None:
             ranked = rank_by_yield(monte_carlo, self.comparison["objective"],
-                                   lin={names[k]: lin[k] for k in lin if k in names})
+                                   lin={names[k]: lin[k] for k in lin if k in names}, target=target)
         if ranked is not None and sum(1 for r in ranked["rows"] if r["name"] in names.values()) == 2:
             back = {v: k for k, v in names.items()}
             rec: dict[str, Any] = {"basis": ranked["basis"], "table": ranked["rows"], "rule": ranked["rule"]}
+            rec.update({k: ranked[k] for k in ("target", "reached", "limit") if k in ranked})
             best = ranked["recommended"]
             if best is None:
                 rec.update(design=None, name=None, why=ranked["why"])
@@ -242,7 +247,8 @@ def _spec_failures(metrics: np.ndarray, spec: dict) -> dict[str, np.ndarray]:
     return out
 
 
-def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None) -> dict[str, Any] | None:
+def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None,
+                  target: float | None = None) -> dict[str, Any] | None:
     """Rank every design of a Monte-Carlo report by its yield against the spec, and choose one.
 
     The recommendation is a design of (near-)maximal yield: one whose yield is below no other
@@ -263,6 +269,10 @@ def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None) -> dict[
     lin : dict, optional
         Monte-Carlo name -> (models over the Ms bound, worst-case objective) for the designs
         of a robust study (last tie-break).
+    target : float, optional
+        The spec's target yield (``[spec] yield``, a fraction). When no design reaches it,
+        ``limit`` names the spec item the recommended design fails most often, its value at
+        the target's percentile against the bound, and the yield without that item.
 
     Returns
     -------
@@ -270,7 +280,8 @@ def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None) -> dict[
         ``rows`` (one per design: ``name``, ``gains``, ``passed``, ``samples``, ``yield``,
         ``yield_ci95``, ``objective_p50``, ``fails`` = spec item -> samples breaking it, or
         None when unknown, ``near_max``), ``recommended`` (a name or None), ``why``, ``basis``
-        and ``rule``; None when the report has no finished sample.
+        and ``rule`` (and ``target``, ``reached`` and ``limit`` with a target); None when the
+        report has no finished sample.
     """
     designs = [d for d in monte_carlo.designs if d.n > 0]
     if not designs:
@@ -337,7 +348,50 @@ def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None) -> dict[
         f = fails[best.name]
         if f:
             why += " (" + ", ".join(f"{_SPEC_LABEL.get(k, k)} {v}" for k, v in f.items() if v) + ")"
-    return {"rows": rows, "recommended": best.name, "basis": basis, "rule": rule, "why": why}
+    out = {"rows": rows, "recommended": best.name, "basis": basis, "rule": rule, "why": why}
+    if target is not None:
+        out["target"] = float(target)
+        out["reached"] = any(d.yield_ >= target for d in designs)
+        if not out["reached"]:
+            out["limit"] = _limit(samples, best.name, spec, target, flags.get(best.name))
+            lim = out["limit"]
+            out["why"] += (f"; no design reaches the target yield {100 * target:.1f} % (best "
+                           f"{100 * leader.yield_:.1f} %)" + (f": the limit is {lim['text']}" if lim else ""))
+    return out
+
+
+def _limit(samples: dict, name: str, spec: dict, target: float, ok) -> dict[str, Any] | None:
+    """The spec item that limits design ``name``'s yield: the one most samples break; its
+    value at the target's percentile against its bound, and the yield were that item dropped."""
+    if ok is None:
+        return None
+    from ..studies.montecarlo import METRICS
+
+    names = list(samples["design_names"])
+    m = samples["metrics"][:, names.index(name), :]
+    per = _spec_failures(m, spec)
+    item = max(per, key=lambda k: int(per[k].sum()))
+    k = int(per[item].sum())
+    if k == 0:
+        return None
+    others = np.zeros(len(m), bool)
+    for kk, v in per.items():
+        if kk != item:
+            others |= v
+    lim: dict[str, Any] = {"design": name, "item": item, "fails": k, "samples": len(m),
+                           "yield_without_it": float(np.mean(~others))}
+    q = 100 * target
+    label = _SPEC_LABEL.get(item, item)
+    if item in ("finite", "no_saturation"):
+        what = "runs that did not finish" if item == "finite" else "saturated runs"
+        lim["text"] = f"{label} ({what}: {k} of {len(m)} samples on {name})"
+    else:
+        col = m[:, METRICS.index(item)]
+        v = float(np.percentile(np.where(np.isnan(col), np.inf, col), q, method="inverted_cdf"))
+        lim.update(percentile=q, value=v, bound=float(spec[item]))
+        lim["text"] = (f"{label} p{q:g} {v:.4g} {'>' if v > spec[item] else '<='} {spec[item]:g} on {name} ({k} of {len(m)} samples; "
+                       f"{100 * lim['yield_without_it']:.1f} % without this item)")
+    return lim
 
 
 def best_obj(d, obj_p50) -> str:
