@@ -54,3 +54,43 @@ def test_design_to_spec_bad_arguments_are_named_before_any_work(roller, kw, matc
 
     with pytest.raises(ValueError, match=match):
         design_to_spec(*roller, **kw)
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--scene", "paper-load-step", "--design-to-spec"], "has no [spec] section"),
+    (["--scene", "robust-load-step", "--design-to-spec", "--monte-carlo", "0"], "--monte-carlo 0"),
+    (["--scene", "paper-move", "--design-to-spec"], "--design-to-spec does not apply to a move scene"),
+])
+def test_cli_design_to_spec_refusals_are_one_line_exit_2(argv, match, capsys):
+    from prsa_ctrl.cli.tune import main as tune_main
+
+    code = tune_main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and match in err[0], err
+
+
+@pytest.mark.slow
+def test_cli_design_to_spec_exports_the_chosen_design(roller, tmp_path, capsys):
+    """``prsa-tune --design-to-spec`` on the roller-screw scene, 8 final samples: the JSON's
+    recommendation is the search's choice with the fresh samples' yield, the export holds it."""
+    import json
+    import tomllib
+
+    from prsa_ctrl.cli.tune import main as tune_main
+
+    path = tmp_path / "rollerscrew-spec.toml"
+    path.write_text(ROLLER_SPEC_SCENE, encoding="utf-8")
+    out, exp = tmp_path / "r.json", tmp_path / "drive.toml"
+    code = tune_main(["--plant", "rollerscrew-30x5", "--scene", str(path), "--design-to-spec", "--monte-carlo", "8",
+                      "--workers", "2", "--json", str(out), "--export", str(exp)])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    d = json.loads(out.read_text())
+    dts, rec = d["design_to_spec"], d["recommended"]
+    assert rec["name"] == dts["chosen"] and rec["passed"] == dts["passed"] and rec["samples"] == 8
+    assert dts["final_seed"] != dts["search_seed"]
+    assert [x["name"] for x in d["monte_carlo"]["designs"]] == [dts["chosen"]]
+    _check_rule({**dts["search"], "table": dts["search"]["rows"], "name": dts["chosen"], "design": dts["chosen"]})
+    t = tomllib.loads(exp.read_text())
+    assert t["design"]["name"] == dts["chosen"]
+    assert t["speed_controller"]["continuous"]["kp_n_m_s_per_rad"] == dts["gains"]["kp"]
