@@ -230,19 +230,20 @@ _SPEC_LABEL = {"peak_drop_rad_s": "peak drop", "recovery_time_s": "recovery", "m
                "no_saturation": "saturation", "finite": "unfinished run"}
 
 
-def _spec_failures(metrics: np.ndarray, spec: dict) -> dict[str, np.ndarray]:
-    """Per spec item, which samples (rows of ``metrics``, samples x METRICS) break it; ``finite``:
-    a run with a non-finite metric (failed to simulate or never re-entered the band), which
-    fails the spec whatever it states (as :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo` counts)."""
-    from ..studies.montecarlo import METRICS
-
-    out = {"finite": ~np.all(np.isfinite(metrics[:, :10]), axis=1)}
+def _spec_failures(metrics: np.ndarray, spec: dict, names: Sequence[str]) -> dict[str, np.ndarray]:
+    """Per spec item, which samples (rows of ``metrics``, samples x ``names``) break it;
+    ``finite``: a run with a non-finite metric other than Ms/Mt (failed to simulate or never
+    re-entered the band), which fails the spec whatever it states (as
+    :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo` counts)."""
+    names = list(names)
+    run_cols = [i for i, n in enumerate(names) if n not in ("ms", "mt")]
+    out = {"finite": ~np.all(np.isfinite(metrics[:, run_cols]), axis=1)}
     for k, bound in spec.items():
         if k == "no_saturation":
             if bound:
-                out[k] = metrics[:, METRICS.index("saturated")] > 0
+                out[k] = metrics[:, names.index("saturated")] > 0
             continue
-        col = metrics[:, METRICS.index(k)]
+        col = metrics[:, names.index(k)]
         out[k] = ~(col <= bound)
     return out
 
@@ -291,19 +292,18 @@ def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None,
     spec = dict(getattr(monte_carlo, "spec", None) or {})
     flags: dict[str, np.ndarray] = {}
     fails: dict[str, dict | None] = {d.name: None for d in designs}
-    if "metrics" in samples and "design_names" in samples:
-        from ..studies.montecarlo import _passes
-
+    if "metrics" in samples and "design_names" in samples and "metric_names" in samples:
         names = list(samples["design_names"])
         for d in designs:
             if d.name in names:
                 m = samples["metrics"][:, names.index(d.name), :]
-                ok = _passes(m, spec, 1.0)[0]
+                per = _spec_failures(m, spec, samples["metric_names"])
+                ok = ~np.any(np.stack(list(per.values())), axis=0)
                 if int(ok.sum()) != d.passed:  # the report's own count: never two answers
                     raise ValueError(f"{d.name}: {int(ok.sum())} samples pass from the per-sample metrics, "
                                      f"{d.passed} in the report")
                 flags[d.name] = ok
-                fails[d.name] = {k: int(v.sum()) for k, v in _spec_failures(m, spec).items()}
+                fails[d.name] = {k: int(v.sum()) for k, v in per.items()}
     half = {d.name: (d.ci95[1] - d.ci95[0]) / 2 for d in designs}
 
     def obj_p50(d) -> float:
@@ -365,11 +365,10 @@ def _limit(samples: dict, name: str, spec: dict, target: float, ok) -> dict[str,
     value at the target's percentile against its bound, and the yield were that item dropped."""
     if ok is None:
         return None
-    from ..studies.montecarlo import METRICS
-
     names = list(samples["design_names"])
+    metric_names = list(samples["metric_names"])
     m = samples["metrics"][:, names.index(name), :]
-    per = _spec_failures(m, spec)
+    per = _spec_failures(m, spec, metric_names)
     item = max(per, key=lambda k: int(per[k].sum()))
     k = int(per[item].sum())
     if k == 0:
@@ -386,7 +385,7 @@ def _limit(samples: dict, name: str, spec: dict, target: float, ok) -> dict[str,
         what = "runs that did not finish" if item == "finite" else "saturated runs"
         lim["text"] = f"{label} ({what}: {k} of {len(m)} samples on {name})"
     else:
-        col = m[:, METRICS.index(item)]
+        col = m[:, metric_names.index(item)]
         v = float(np.percentile(np.where(np.isnan(col), np.inf, col), q, method="inverted_cdf"))
         lim.update(percentile=q, value=v, bound=float(spec[item]))
         lim["text"] = (f"{label} p{q:g} {v:.4g} {'>' if v > spec[item] else '<='} {spec[item]:g} on {name} ({k} of {len(m)} samples; "

@@ -275,7 +275,7 @@ def _fake_mc(passes: dict, n: int = 200, iae: dict | None = None, seed: int = 0)
                                    wilson_interval(k, n), pct, None, {}, {}, 0, ""))
     return MonteCarloReport(n, n, 0, "serial", 1, True, spec, {}, [], designs, 0.0,
                             {"index": np.arange(n), "op": np.zeros(n, int), "values": {}, "metrics": metrics,
-                             "design_names": list(passes)})
+                             "design_names": list(passes), "metric_names": list(METRICS)})
 
 
 def _study():
