@@ -341,8 +341,8 @@ def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None,
             f" against {', '.join(txt[d.name] for d in designs if d is not best)}" if len(designs) > 1 else "")
     else:
         why = (f"{txt[best.name]} is within the 95 % intervals of the highest yield ({txt[leader.name]}) "
-               f"and has the lower median {objective.upper()} ({best_obj(best, obj_p50)} against "
-               f"{best_obj(leader, obj_p50)})")
+               f"and has the lower median {objective.upper()} ({_obj_text(best, obj_p50)} against "
+               f"{_obj_text(leader, obj_p50)})")
     if best.passed < best.n:
         why += f"; {best.n - best.passed} of {best.n} samples still fail the spec"
         f = fails[best.name]
@@ -393,7 +393,7 @@ def _limit(samples: dict, name: str, spec: dict, target: float, ok) -> dict[str,
     return lim
 
 
-def best_obj(d, obj_p50) -> str:
+def _obj_text(d, obj_p50) -> str:
     v = obj_p50(d)
     return f"{v:.4g}" if math.isfinite(v) else "not finite"
 
