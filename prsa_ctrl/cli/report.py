@@ -265,7 +265,9 @@ def format_robust(rr) -> str:
     comp = rr.comparison
     obj = comp["objective"].upper()
     out = [f"Robust tuning over {len(rr.scenarios)} scenario models ({comp.get('aggregate', 'worst')} {obj}; "
-           f"Ms bound {comp['ms_max']:g} on every model)"]
+           f"Ms bound {comp['ms_max']:g} on every model"
+           + (", the scene's [spec] ms: the bound the designs are judged by" if comp.get("ms_source") == "[spec] ms"
+              else "") + ")"]
     rows = []
     for name, pid in (("nominal", rr.nominal), ("robust", rr.robust)):
         d = comp["designs"][name]
@@ -279,7 +281,14 @@ def format_robust(rr) -> str:
         if k:
             out.append(f"{name}: closed loop unstable on {k} of {len(rr.scenarios)} scenario models")
     r = rr.recommended or rr.recommend()
-    out.append(f"recommended: {r['design'] + ' design' if r.get('design') else 'none'} ({r['why']})")
+    if r.get("table"):
+        from ..tuning.robust import format_yield_table
+
+        out.append(f"Designs against the scene's [spec] on the same {r['table'][0]['samples']} Monte-Carlo samples "
+                   f"(* recommended: {r['rule']}):")
+        out.append(format_yield_table(r, comp["objective"]))
+    name = r.get("name") or (r["design"] + " design" if r.get("design") else None)
+    out.append(f"recommended: {name or 'none'} ({r['why']})")
     return "\n".join(out) + "\n"
 
 

@@ -137,6 +137,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robust", action="store_true",
                    help="also tune one design over the scenario models of the plant's and scene's [uncertainty] "
                         "(default: when the scene has a [robust] section) and compare it with the nominal design")
+    p.add_argument("--design-to-spec", action="store_true",
+                   help="search for the design that meets the scene's [spec] most often: nominal and robust tunings "
+                        "at a sequence of Ms bounds plus the baselines, chosen on common Monte-Carlo samples; the "
+                        "reported yield is the chosen design's on --monte-carlo N fresh samples (default the "
+                        "scene's [robust] monte_carlo, else 200)")
     p.add_argument("--monte-carlo", metavar="N", type=integer("--monte-carlo", 0, 1_000_000, "a sample count"),
                    default=None, help="verify the designs on N seeded samples of the uncertainty and report the "
                                       "yield against the scene's [spec] (default: the scene's [robust] monte_carlo; 0: off)")
@@ -320,11 +325,23 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
                              "scene (the feed-forward acts from a motion profile's speed), e.g. --scene "
                              "paper-slow-reversal")
 
+    def design_to_spec() -> None:
+        if not getattr(args, "design_to_spec", False):
+            return
+        if move or getattr(scene, "is_profile", False):
+            raise UsageError(f"--design-to-spec does not apply to the scene {scene.name}; expected a load-step scene "
+                             "with a [spec] section")
+        if not (getattr(scene, "robust", None) or {}).get("spec"):
+            raise UsageError(f"--design-to-spec: the scene {scene.name} has no [spec] section; expected the bounds "
+                             "to design to (e.g. [spec] peak_drop_rad_s = 12.0)")
+        if args.monte_carlo == 0:
+            raise UsageError("--design-to-spec with --monte-carlo 0; expected a sample count of the final check >= 1")
+
     if move:
-        steps = (suffix, distinct, json_path, export, drive_options, plots)
+        steps = (design_to_spec, suffix, distinct, json_path, export, drive_options, plots)
     else:
-        steps = (friction_ff, json_path, lambda: _check_scheduler(args, scene), suffix, export, drive_options, plots,
-                 distinct)
+        steps = (friction_ff, design_to_spec, json_path, lambda: _check_scheduler(args, scene), suffix, export,
+                 drive_options, plots, distinct)
     for step in steps:
         step()
 
@@ -378,6 +395,9 @@ def _tune(run: Run, args, plant, scene) -> dict:
         run.check()
         if status_says_interrupted(rep.as_dict()):
             raise KeyboardInterrupt
+        if getattr(args, "design_to_spec", False):
+            robust_rep, mc, dts = _design_to_spec(run, args, plant, rep)
+            return {"rep": rep, "robust": robust_rep, "mc": mc, "filter_tuning": ft, "design_to_spec": dts}
         robust_rep, mc = _robust_and_monte_carlo(run, args, plant, rep)
     return {"rep": rep, "robust": robust_rep, "mc": mc, "filter_tuning": ft}
 
@@ -431,6 +451,8 @@ def _json_report(scene, plant, result: dict) -> dict:
         data["recommended"] = data["robust"]["recommended"]
     if mc is not None:
         data["monte_carlo"] = mc.as_dict()
+    if result.get("design_to_spec") is not None:
+        data["design_to_spec"] = result["design_to_spec"].as_dict()
     if result.get("filter_tuning") is not None:
         data["filter_tuning"] = json_safe(result["filter_tuning"].as_dict())
     return data
@@ -605,6 +627,10 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
     if robust_rep is not None:
         designs = {"nominal design": robust_rep.nominal, "robust design": robust_rep.robust}
         _add_design(designs, rep.best.name, rep.best.pid)
+        # every design the run tuned: the recommendation ranks them all on the same samples
+        for c in getattr(rep, "candidates", ()) or ():
+            if c.pid.kff == 0:
+                _add_design(designs, c.name, c.pid)
     for b in rep.baselines:
         _add_design(designs, b.name, b.pid)
     seed = args.seed if args.seed is not None else opts["seed"]
@@ -613,8 +639,57 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
     mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
                          workers=args.workers or default_workers(), quiet=args.quiet)
     if robust_rep is not None:
-        robust_rep = robust_rep.with_recommendation(mc)
+        others = {k: v for k, v in designs.items() if k not in ("nominal design", "robust design")}
+        target = ((getattr(scene, "robust", None) or {}).get("spec_yield") or {}).get("yield")
+        robust_rep = robust_rep.with_recommendation(mc, others=others, target=target)
     return robust_rep, mc
+
+
+def _design_to_spec(run: Run, args, plant, rep):
+    """``--design-to-spec``: the robust study, then :func:`prsa_ctrl.studies.designspec.design_to_spec`
+    over its family plus the run's designs; the chosen design is the study's recommendation and
+    the Monte-Carlo report is the chosen design's on fresh samples."""
+    from dataclasses import replace
+
+    from ..errors import SceneError
+    from ..studies.autotune import default_workers
+    from ..studies.designspec import design_to_spec
+    from ..studies.montecarlo import scene_options
+    from ..studies.scenerobust import tune_robust_actuator
+
+    scene = rep.scene
+    if not (getattr(scene, "robust", None) or {}).get("spec"):
+        raise SceneError(f"{scene.origin}: --design-to-spec needs a [spec] section; expected the bounds to design to")
+    opts = scene_options(scene)
+    n = args.monte_carlo or opts["samples"] or 200
+    seed = args.seed if args.seed is not None else opts["seed"]
+    progress(run, args.verbose, "robust tuning over the scenario models ...")
+    rr = tune_robust_actuator(plant, scene)
+    run.check()
+    extra = {"nominal design": rr.nominal, "robust design": rr.robust}
+    for d in (rep.best, *(getattr(rep, "candidates", ()) or ()), *rep.baselines):
+        _add_design(extra, d.name, d.pid)
+    n_search = min(64, n)
+    progress(run, args.verbose, f"design to the spec: proposals on {n_search} common samples, the chosen one on "
+                                f"{n} fresh samples ...")
+    dts = design_to_spec(plant, scene, n_search=n_search, n_final=n, seed=seed, extra=extra,
+                         workers=args.workers or default_workers(), quiet=args.quiet)
+    s = dts.search
+    basis = (f"design to the spec: chosen among {len(dts.designs)} designs on {n_search} common Monte-Carlo samples "
+             f"(seed {dts.search_seed}); yield on {n} fresh samples (seed {dts.final_seed})")
+    rec = {"basis": basis, "table": s.get("rows", []), "rule": s.get("rule", ""),
+           **{k: s[k] for k in ("target", "reached", "limit") if k in s}}
+    fy = dts.final_yield
+    if fy is None:
+        rec.update(design=None, name=None, why=s.get("why", "no design chosen"))
+    else:
+        lo, hi = fy.ci95
+        rec.update(design=dts.chosen, name=dts.chosen, gains=dts.pid.as_dict(), **{"yield": fy.yield_},
+                   passed=fy.passed, samples=fy.n, yield_ci95=list(fy.ci95),
+                   why=(f"on the search samples: {s['why']}; on {fy.n} fresh samples: yield {100 * fy.yield_:.1f} % "
+                        f"({fy.passed}/{fy.n}), 95 % CI [{100 * lo:.1f}, {100 * hi:.1f}] %"))
+    rr = replace(rr, others=dict(dts.designs), recommended=rec)
+    return rr, dts.final, dts
 
 
 def _add_design(designs: dict, name: str, pid) -> None:
@@ -634,7 +709,8 @@ def _export_choice(rep, robust_rep) -> tuple[Any, dict]:
         r = robust_rep.recommended or robust_rep.recommend()
         if r.get("design") is None:
             return None, {"why": f"no design recommended ({r['why']})"}
-        d = {"name": f"{r['design']} design", "chosen_by": "recommended by the robust study", "why": r["why"],
+        d = {"name": r.get("name") or f"{r['design']} design", "chosen_by": "recommended by the robust study",
+             "why": r["why"],
              "basis": r["basis"]}
         if r.get("yield") is not None:
             d["yield"] = r["yield"]

@@ -715,7 +715,8 @@ def parse_scene_sections(doc: Mapping[str, Any], origin: str) -> dict[str, dict[
     """Validate a scene's ``[spec]``, ``[robust]`` and ``[uncertainty]`` sections.
 
     ``[spec]``: upper bounds (``SPEC_BOUNDS``), e.g. ``peak_drop_rad_s = 5.0``, and
-    ``no_saturation = true``. ``[robust]``: ``aggregate`` ("worst"/"mean" over scenario models),
+    ``no_saturation = true``; ``yield = 0.95`` (optional) is the target probability of meeting
+    them, returned apart as ``{"spec_yield": {"yield": 0.95}}``. ``[robust]``: ``aggregate`` ("worst"/"mean" over scenario models),
     the operating range ``setpoints_rpm`` and ``final_loads_n``, ``vertices``, ``samples``,
     ``seed``, ``monte_carlo`` (samples), ``max_scenarios``. ``[uncertainty]``: as in plant files.
 
@@ -741,6 +742,12 @@ def parse_scene_sections(doc: Mapping[str, Any], origin: str) -> dict[str, dict[
             raise SceneError(f"{origin}: [spec] = {quote(table)}; expected a table of bounds")
         spec: dict[str, Any] = {}
         for k, v in table.items():
+            if k == "yield":  # the target probability of meeting the bounds (not a bound itself)
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1:
+                    raise SceneError(f"{origin}: spec.yield = {quote(v)}; expected a target probability in (0, 1), "
+                                     "e.g. 0.95")
+                out["spec_yield"] = {"yield": float(v)}
+                continue
             if k == "no_saturation":
                 if not isinstance(v, bool):
                     raise SceneError(f"{origin}: spec.no_saturation = {quote(v)}; expected true or false")
@@ -748,7 +755,7 @@ def parse_scene_sections(doc: Mapping[str, Any], origin: str) -> dict[str, dict[
                 continue
             if k not in SPEC_BOUNDS:
                 raise SceneError(f"{origin}: unknown key spec.{k}; expected one of "
-                                 f"{', '.join(f'spec.{b}' for b in (*SPEC_BOUNDS, 'no_saturation'))}")
+                                 f"{', '.join(f'spec.{b}' for b in (*SPEC_BOUNDS, 'no_saturation', 'yield'))}")
             if not _pos(v):
                 raise SceneError(f"{origin}: spec.{k} = {quote(v)}; expected a positive upper bound ({SPEC_BOUNDS[k]})")
             if k in ("ms", "mt") and not v > 1.0 - (k == "mt") * 0.5:

@@ -355,7 +355,8 @@ def _build_report(job: _Job, plant, scene, rows: list, n: int, backend: str, wor
     return MonteCarloReport(
         n, len(rows), job.seed, backend, workers, complete, dict(job.spec), job.unc.as_dict(),
         [{"setpoint_rad_s": a, "final_load_n": b} for a, b in job.ops], tuple(out), wall,
-        {"index": idx, "op": ops, "values": values, "metrics": metrics, "design_names": [d[0] for d in job.designs]},
+        {"index": idx, "op": ops, "values": values, "metrics": metrics, "design_names": [d[0] for d in job.designs],
+         "metric_names": list(METRICS)},
         integration)
 
 

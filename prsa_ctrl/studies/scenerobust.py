@@ -117,11 +117,15 @@ def tune_robust_actuator(plant, scene, *, scens: Sequence[Scenario] | None = Non
     ----------
     plant, scene
         Plant and scene (``[uncertainty]``, ``[robust]`` sections; Ms/Mt bounds from
-        ``[tuning]``).
+        ``[spec]`` where it states them, else ``[tuning]``).
     scens : list of Scenario, optional
         Default :func:`scenarios`.
     aggregate : {"worst", "mean"}, optional
         Objective over scenarios (default ``[robust] aggregate`` or "worst").
+
+    The Ms (Mt) bound of both designs is the scene's ``[spec]`` one where the spec states it
+    (the bound the designs are judged by), else ``[tuning]`` ``ms_max`` (``mt_max``);
+    ``comparison["ms_source"]`` (``"mt_source"``) says which.
 
     Returns
     -------
@@ -136,6 +140,13 @@ def tune_robust_actuator(plant, scene, *, scens: Sequence[Scenario] | None = Non
     scens = list(scens) if scens is not None else scenarios(plant, scene, unc=unc)
     t0 = time.perf_counter()
     loops = scenario_loops(plant, scene, scens)
-    return tune_scenario_loops(loops, scens, unc=unc, objective=scene.objective, controller=scene.controller,
-                               ms_max=scene.ms_max, mt_max=scene.mt_max, aggregate=aggregate,
-                               timing_s={"linearize": time.perf_counter() - t0})
+    spec = (getattr(scene, "robust", None) or {}).get("spec", {})
+    ms_max, ms_source = ((spec["ms"], "[spec] ms") if "ms" in spec else (scene.ms_max, "[tuning] ms_max"))
+    mt_max, mt_source = ((spec["mt"], "[spec] mt") if "mt" in spec else (scene.mt_max, "[tuning] mt_max"))
+    rt = tune_scenario_loops(loops, scens, unc=unc, objective=scene.objective, controller=scene.controller,
+                             ms_max=ms_max, mt_max=mt_max, aggregate=aggregate,
+                             timing_s={"linearize": time.perf_counter() - t0})
+    rt.comparison["ms_source"] = ms_source
+    if mt_max is not None:
+        rt.comparison["mt_source"] = mt_source
+    return rt

@@ -29,7 +29,8 @@ from .generic import tune_loops
 
 control = module("control")
 
-__all__ = ["Scenario", "RobustTuning", "tune_scenario_loops", "compare_designs", "tune_robust"]
+__all__ = ["Scenario", "RobustTuning", "tune_scenario_loops", "compare_designs", "tune_robust", "rank_by_yield",
+           "format_yield_table"]
 
 @dataclass(frozen=True)
 class Scenario:
@@ -98,6 +99,7 @@ class RobustTuning:
     results: dict = field(default_factory=dict, repr=False)  # name -> TuningResult
     loops: tuple = field(default=(), repr=False)
     recommended: dict = field(default_factory=dict)  # see :meth:`recommend`
+    others: dict = field(default_factory=dict, repr=False)  # Monte-Carlo name -> PID of the other designs
 
     @property
     def status(self) -> str:
@@ -128,22 +130,31 @@ class RobustTuning:
                                      for k, r in self.results.items()}})
 
     def design(self, name: str):
-        """The PID of design ``name`` (``"nominal"`` or ``"robust"``)."""
-        return {"nominal": self.nominal, "robust": self.robust}[name]
+        """The PID of design ``name`` (``"nominal"``, ``"robust"`` or the Monte-Carlo name of
+        another design passed to :meth:`with_recommendation`)."""
+        return {"nominal": self.nominal, "robust": self.robust, **self.others}[name]
 
-    def with_recommendation(self, monte_carlo=None, names: dict | None = None) -> "RobustTuning":
-        """A copy of the study with :attr:`recommended` = :meth:`recommend` ``(monte_carlo, names)``."""
-        return replace(self, recommended=self.recommend(monte_carlo, names))
+    def with_recommendation(self, monte_carlo=None, names: dict | None = None,
+                            others: dict | None = None, target: float | None = None) -> "RobustTuning":
+        """A copy of the study with :attr:`recommended` = :meth:`recommend` ``(monte_carlo,
+        names)`` and the other designs (Monte-Carlo name -> PID) the recommendation may name."""
+        new = replace(self, others=dict(others or {}))
+        return replace(new, recommended=new.recommend(monte_carlo, names, target))
 
-    def recommend(self, monte_carlo=None, names: dict | None = None) -> dict[str, Any]:
+    def recommend(self, monte_carlo=None, names: dict | None = None,
+                  target: float | None = None) -> dict[str, Any]:
         """The design to use, ranked by the yield against the scene's ``[spec]`` -- the spec
         the designs are judged by (the study is not changed: :meth:`with_recommendation`
         returns one that keeps it in :attr:`recommended`).
 
-        With a Monte-Carlo report: the design (nominal or robust) with the most samples
-        inside the spec; a tie goes to fewer scenario models over the Ms bound, then the
-        lower worst-case objective. A design that meets the spec on no sample is never
-        recommended (``design`` None). Without one: the spec is not checked; the ranking is
+        With a Monte-Carlo report: every design it evaluated on the same samples (nominal,
+        robust and the others, e.g. baselines and candidates, given to
+        :meth:`with_recommendation`) is ranked by :func:`rank_by_yield`: the recommendation is
+        never below another design's yield by more than the two yields' Wilson 95 %
+        half-widths added; among the designs of (near-)maximal yield, the lowest median
+        objective. A design that meets the spec on no sample is never recommended
+        (``design`` None); ``table`` holds every design's yield, interval, median objective
+        and spec-item failures. Without one: the spec is not checked; the ranking is
         the scenario models' Ms bound, then the worst-case objective, and ``yield`` is None.
 
         Parameters
@@ -152,40 +163,42 @@ class RobustTuning:
         names : dict, optional
             This study's design name -> its name in the Monte-Carlo report (default
             ``"nominal design"``, ``"robust design"``).
+        target : float, optional
+            The spec's target yield (``[spec] yield``): where no design reaches it, ``limit``
+            names the limiting spec item (:func:`rank_by_yield`).
 
         Returns
         -------
         dict
-            ``design`` (``"nominal"``, ``"robust"`` or None), ``gains``, ``yield`` (fraction)
-            with ``passed``/``samples``/``yield_ci95``, ``basis`` and ``why`` (one sentence).
+            ``design`` (``"nominal"``, ``"robust"``, another design's Monte-Carlo name, or
+            None), ``name`` (its name in the report), ``gains``, ``yield`` (fraction) with
+            ``passed``/``samples``/``yield_ci95``, ``basis``, ``why`` (one sentence) and, with
+            a Monte-Carlo report, ``table`` and ``rule``.
         """
         names = names or {"nominal": "nominal design", "robust": "robust design"}
         comp = self.comparison["designs"]
         lin = {k: (comp[k]["ms_violations"], comp[k]["worst_objective"]) for k in ("nominal", "robust")}
         obj = self.comparison["objective"].upper()
-        ylds = {}
+        ranked = None
         if monte_carlo is not None:
-            by_name = {d.name: d for d in monte_carlo.designs}
-            ylds = {k: by_name[v] for k, v in names.items() if v in by_name and by_name[v].n > 0}
-        if len(ylds) == 2:
-            order = sorted(ylds, key=lambda k: (-ylds[k].passed, *lin[k]))
-            best, other = order
-            yb, yo = ylds[best], ylds[other]
-            rec: dict[str, Any] = {"basis": f"Monte-Carlo yield against the scene's [spec] ({yb.n} samples)"}
-            txt = {k: f"{k} {100 * ylds[k].yield_:.1f} % ({ylds[k].passed}/{ylds[k].n})" for k in ylds}
-            if yb.passed == 0:
-                rec.update(design=None, why=f"neither design meets the spec on any sample ({txt[best]}, {txt[other]}); "
-                           "widen the spec or narrow the uncertainty")
+            ranked = rank_by_yield(monte_carlo, self.comparison["objective"],
+                                   lin={names[k]: lin[k] for k in lin if k in names}, target=target)
+        if ranked is not None and sum(1 for r in ranked["rows"] if r["name"] in names.values()) == 2:
+            back = {v: k for k, v in names.items()}
+            rec: dict[str, Any] = {"basis": ranked["basis"], "table": ranked["rows"], "rule": ranked["rule"]}
+            rec.update({k: ranked[k] for k in ("target", "reached", "limit") if k in ranked})
+            best = ranked["recommended"]
+            if best is None:
+                rec.update(design=None, name=None, why=ranked["why"])
                 return rec
-            if yb.passed > yo.passed:
-                why = f"higher yield: {txt[best]} against {txt[other]}"
-            else:
-                why = (f"equal yield ({txt[best]}, {txt[other]}); {best} has "
-                       + ("fewer models over the Ms bound" if lin[best][0] < lin[other][0] else f"the lower worst {obj}"))
-            if yb.passed < yb.n:
-                why += f"; {yb.n - yb.passed} of {yb.n} samples still fail the spec"
-            rec.update(design=best, gains=self.design(best).as_dict(), **{"yield": yb.yield_}, passed=yb.passed,
-                       samples=yb.n, yield_ci95=list(yb.ci95), why=why)
+            row = next(r for r in ranked["rows"] if r["name"] == best)
+            key = back.get(best, best)
+            try:
+                gains = self.design(key).as_dict()
+            except KeyError:
+                gains = dict(row["gains"])
+            rec.update(design=key, name=best, gains=gains, **{"yield": row["yield"]}, passed=row["passed"],
+                       samples=row["samples"], yield_ci95=list(row["yield_ci95"]), why=ranked["why"])
         else:
             best = min(("robust", "nominal"), key=lambda k: lin[k])
             other = "nominal" if best == "robust" else "robust"
@@ -194,7 +207,7 @@ class RobustTuning:
             why = (f"{best}: {lin[best][0]} of {len(self.scenarios)} scenario models over the Ms bound, {worst(best)} "
                    f"({other}: {lin[other][0]}, {worst(other)}); the [spec] was not checked (no Monte Carlo run)")
             rec = {"basis": "scenario models (Ms bound, then the worst-case objective); spec not checked",
-                   "design": best, "gains": self.design(best).as_dict(), "yield": None, "why": why}
+                   "design": best, "name": f"{best} design", "gains": self.design(best).as_dict(), "yield": None, "why": why}
         return rec
 
     def format(self) -> str:
@@ -207,6 +220,201 @@ class RobustTuning:
         r = self.recommended or self.recommend()
         lines.append(f"recommended: {r['design'] + ' design' if r.get('design') else 'none'} ({r['why']})")
         return "\n".join(lines)
+
+
+#: z of a two-sided 95 % interval (the Wilson intervals' and the paired comparison's).
+_Z95 = 1.959963984540054
+
+#: Spec item -> short label in the yield table.
+_SPEC_LABEL = {"peak_drop_rad_s": "peak drop", "recovery_time_s": "recovery", "ms": "Ms", "mt": "Mt",
+               "no_saturation": "saturation", "finite": "unfinished run"}
+
+
+def _spec_failures(metrics: np.ndarray, spec: dict, names: Sequence[str]) -> dict[str, np.ndarray]:
+    """Per spec item, which samples (rows of ``metrics``, samples x ``names``) break it;
+    ``finite``: a run with a non-finite metric other than Ms/Mt (failed to simulate or never
+    re-entered the band), which fails the spec whatever it states (as
+    :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo` counts)."""
+    names = list(names)
+    run_cols = [i for i, n in enumerate(names) if n not in ("ms", "mt")]
+    out = {"finite": ~np.all(np.isfinite(metrics[:, run_cols]), axis=1)}
+    for k, bound in spec.items():
+        if k == "no_saturation":
+            if bound:
+                out[k] = metrics[:, names.index("saturated")] > 0
+            continue
+        col = metrics[:, names.index(k)]
+        out[k] = ~(col <= bound)
+    return out
+
+
+def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None,
+                  target: float | None = None) -> dict[str, Any] | None:
+    """Rank every design of a Monte-Carlo report by its yield against the spec, and choose one.
+
+    The recommendation is a design of (near-)maximal yield: one whose yield is below no other
+    design's by more than the two yields' Wilson 95 % half-widths added, and -- where the
+    per-sample outcomes are known (the designs ran on the same samples: common random
+    numbers) -- not significantly below any other in the paired comparison (discordant samples
+    ``b`` other-only, ``c`` this-only: ``b - c <= 1.96 sqrt(b + c)``). Among those, the lowest
+    median objective on the nonlinear runs, then the most samples inside the spec, then
+    (``lin``) fewer scenario models over the Ms bound and the lower worst-case objective.
+    A design that meets the spec on no sample is never recommended.
+
+    Parameters
+    ----------
+    monte_carlo : MonteCarloReport
+        Its ``designs`` (yields) and, when present, ``samples`` (per-sample metrics) and ``spec``.
+    objective : str
+        Metric of the median objective (``"iae"``, ...).
+    lin : dict, optional
+        Monte-Carlo name -> (models over the Ms bound, worst-case objective) for the designs
+        of a robust study (last tie-break).
+    target : float, optional
+        The spec's target yield (``[spec] yield``, a fraction). When no design reaches it,
+        ``limit`` names the spec item the recommended design fails most often, its value at
+        the target's percentile against the bound, and the yield without that item.
+
+    Returns
+    -------
+    dict or None
+        ``rows`` (one per design: ``name``, ``gains``, ``passed``, ``samples``, ``yield``,
+        ``yield_ci95``, ``objective_p50``, ``fails`` = spec item -> samples breaking it, or
+        None when unknown, ``near_max``), ``recommended`` (a name or None), ``why``, ``basis``
+        and ``rule`` (and ``target``, ``reached`` and ``limit`` with a target); None when the
+        report has no finished sample.
+    """
+    designs = [d for d in monte_carlo.designs if d.n > 0]
+    if not designs:
+        return None
+    lin = lin or {}
+    samples = getattr(monte_carlo, "samples", None) or {}
+    spec = dict(getattr(monte_carlo, "spec", None) or {})
+    flags: dict[str, np.ndarray] = {}
+    fails: dict[str, dict | None] = {d.name: None for d in designs}
+    if "metrics" in samples and "design_names" in samples and "metric_names" in samples:
+        names = list(samples["design_names"])
+        for d in designs:
+            if d.name in names:
+                m = samples["metrics"][:, names.index(d.name), :]
+                per = _spec_failures(m, spec, samples["metric_names"])
+                ok = ~np.any(np.stack(list(per.values())), axis=0)
+                if int(ok.sum()) != d.passed:  # the report's own count: never two answers
+                    raise ValueError(f"{d.name}: {int(ok.sum())} samples pass from the per-sample metrics, "
+                                     f"{d.passed} in the report")
+                flags[d.name] = ok
+                fails[d.name] = {k: int(v.sum()) for k, v in per.items()}
+    half = {d.name: (d.ci95[1] - d.ci95[0]) / 2 for d in designs}
+
+    def obj_p50(d) -> float:
+        v = (d.percentiles.get(objective) or {}).get("p50")
+        return float(v) if v is not None and math.isfinite(v) else math.inf
+
+    def paired_ok(d, o) -> bool:
+        if d.name not in flags or o.name not in flags:
+            return True
+        b = int(np.sum(flags[o.name] & ~flags[d.name]))
+        c = int(np.sum(flags[d.name] & ~flags[o.name]))
+        return b - c <= _Z95 * math.sqrt(b + c)
+
+    near = {d.name: all(o.yield_ - d.yield_ <= half[o.name] + half[d.name] + 1e-12 and paired_ok(d, o)
+                        for o in designs if o is not d) for d in designs}
+    rows = [{"name": d.name, "gains": dict(d.gains), "passed": d.passed, "samples": d.n, "yield": d.yield_,
+             "yield_ci95": list(d.ci95), "objective_p50": obj_p50(d), "fails": fails[d.name],
+             "near_max": near[d.name]} for d in designs]
+    n = designs[0].n
+    rule = ("a design of (near-)maximal yield: below no other design by more than the two Wilson 95 % "
+            "half-widths added" + (", nor significantly below any in the paired comparison on the same samples"
+                                   if flags else "") + f"; then the lowest median {objective.upper()}")
+    basis = f"Monte-Carlo yield against the scene's [spec] ({n} samples, {len(designs)} designs, same samples)"
+    top = max(d.passed for d in designs)
+    txt = {d.name: f"{d.name} {100 * d.yield_:.1f} % ({d.passed}/{d.n})" for d in designs}
+    if top == 0:
+        return {"rows": rows, "recommended": None, "basis": basis, "rule": rule,
+                "why": f"no design meets the spec on any sample ({', '.join(txt.values())}); "
+                       "widen the spec or narrow the uncertainty"}
+    pool = [d for d in designs if near[d.name] and d.passed > 0]
+    best = min(pool, key=lambda d: (obj_p50(d), -d.passed, *lin.get(d.name, (0, 0.0))))
+    leader = max(designs, key=lambda d: d.passed)
+    if best.passed == top:
+        why = f"highest yield: {txt[best.name]}" + (
+            f" against {', '.join(txt[d.name] for d in designs if d is not best)}" if len(designs) > 1 else "")
+    else:
+        why = (f"{txt[best.name]} is within the 95 % intervals of the highest yield ({txt[leader.name]}) "
+               f"and has the lower median {objective.upper()} ({_obj_text(best, obj_p50)} against "
+               f"{_obj_text(leader, obj_p50)})")
+    if best.passed < best.n:
+        why += f"; {best.n - best.passed} of {best.n} samples still fail the spec"
+        f = fails[best.name]
+        if f:
+            why += " (" + ", ".join(f"{_SPEC_LABEL.get(k, k)} {v}" for k, v in f.items() if v) + ")"
+    out = {"rows": rows, "recommended": best.name, "basis": basis, "rule": rule, "why": why}
+    if target is not None:
+        out["target"] = float(target)
+        out["reached"] = any(d.yield_ >= target for d in designs)
+        if not out["reached"]:
+            out["limit"] = _limit(samples, best.name, spec, target, flags.get(best.name))
+            lim = out["limit"]
+            out["why"] += (f"; no design reaches the target yield {100 * target:.1f} % (best "
+                           f"{100 * leader.yield_:.1f} %)" + (f": the limit is {lim['text']}" if lim else ""))
+    return out
+
+
+def _limit(samples: dict, name: str, spec: dict, target: float, ok) -> dict[str, Any] | None:
+    """The spec item that limits design ``name``'s yield: the one most samples break; its
+    value at the target's percentile against its bound, and the yield were that item dropped."""
+    if ok is None:
+        return None
+    names = list(samples["design_names"])
+    metric_names = list(samples["metric_names"])
+    m = samples["metrics"][:, names.index(name), :]
+    per = _spec_failures(m, spec, metric_names)
+    item = max(per, key=lambda k: int(per[k].sum()))
+    k = int(per[item].sum())
+    if k == 0:
+        return None
+    others = np.zeros(len(m), bool)
+    for kk, v in per.items():
+        if kk != item:
+            others |= v
+    lim: dict[str, Any] = {"design": name, "item": item, "fails": k, "samples": len(m),
+                           "yield_without_it": float(np.mean(~others))}
+    q = 100 * target
+    label = _SPEC_LABEL.get(item, item)
+    if item in ("finite", "no_saturation"):
+        what = "runs that did not finish" if item == "finite" else "saturated runs"
+        lim["text"] = f"{label} ({what}: {k} of {len(m)} samples on {name})"
+    else:
+        col = m[:, metric_names.index(item)]
+        v = float(np.percentile(np.where(np.isnan(col), np.inf, col), q, method="inverted_cdf"))
+        lim.update(percentile=q, value=v, bound=float(spec[item]))
+        lim["text"] = (f"{label} p{q:g} {v:.4g} {'>' if v > spec[item] else '<='} {spec[item]:g} on {name} ({k} of {len(m)} samples; "
+                       f"{100 * lim['yield_without_it']:.1f} % without this item)")
+    return lim
+
+
+def _obj_text(d, obj_p50) -> str:
+    v = obj_p50(d)
+    return f"{v:.4g}" if math.isfinite(v) else "not finite"
+
+
+def format_yield_table(rec: dict[str, Any], objective: str) -> str:
+    """The recommendation's table: design, yield with its Wilson 95 % interval, median objective
+    and how often each spec item fails (one line per design, ``*`` the recommended one)."""
+    rows = rec.get("table") or []
+    if not rows:
+        return ""
+    w = max(len(r["name"]) for r in rows)
+    lines = [f"  {'design':<{w}}  {'yield (95 % interval)':<28} {'median ' + objective.upper():>11}  fails (samples)"]
+    for r in rows:
+        lo, hi = r["yield_ci95"]
+        y = f"{100 * r['yield']:.1f} % ({r['passed']}/{r['samples']}) [{100 * lo:.1f}, {100 * hi:.1f}]"
+        o = f"{r['objective_p50']:.4g}" if math.isfinite(r["objective_p50"]) else "-"
+        f = r["fails"]
+        ftxt = "-" if f is None else (", ".join(f"{_SPEC_LABEL.get(k, k)} {v}" for k, v in f.items() if v) or "none")
+        mark = "*" if r["name"] == rec.get("name") else " "
+        lines.append(f"{mark} {r['name']:<{w}}  {y:<28} {o:>11}  {ftxt}")
+    return "\n".join(lines)
 
 
 def tune_scenario_loops(loops: Sequence[LoopModel], scens: Sequence[Scenario], *, unc: UncertaintyModel,

@@ -25,8 +25,12 @@ from prsa_ctrl.studies.scene import load_scene
 
 def _builtin_scene_text(name: str) -> str:
     from importlib.resources import files
+    from pathlib import Path
 
-    return (files("prsa_ctrl.scenes") / f"{name}.toml").read_text(encoding="utf-8")
+    try:
+        return (files("prsa_ctrl.scenes") / f"{name}.toml").read_text(encoding="utf-8")
+    except ModuleNotFoundError:  # a source checkout on PYTHONPATH: the scenes' source folder
+        return (Path(__file__).resolve().parents[2] / "tuning" / f"{name}.toml").read_text(encoding="utf-8")
 
 
 # --- item 2: filter arguments out of range are named, never "b0 = nan" -------------------------
@@ -191,15 +195,18 @@ def test_recommend_ranks_by_the_yield_against_the_spec():
     assert rt.recommended == {} and rt.with_recommendation(MC(132, 10)).recommended == r
     assert rt.recommend(MC(10, 132))["design"] == "robust"
     none = rt.recommend(MC(0, 0))
-    assert none["design"] is None and "neither design meets the spec" in none["why"]
+    assert none["design"] is None and "no design meets the spec on any sample" in none["why"]
     lin = rt.recommend(None)
     assert lin["design"] == "robust" and lin["yield"] is None and "not checked" in lin["why"]
 
 
 def test_report_json_and_export_name_the_recommended_design(tmp_path, capsys):
-    """Inertia +-50 %, two setpoints, a peak-drop spec the low-gain robust design breaks: the
-    report and the JSON recommend the design with the higher Monte-Carlo yield (the nominal),
-    with its yield and why, and --export writes that design and says so."""
+    """Inertia +-50 %, two setpoints, a peak-drop spec: the report and the JSON recommend a
+    design of (near-)maximal Monte-Carlo yield among every design the run evaluated (issue 34:
+    no other design's yield above it by more than the two Wilson half-widths), with its yield
+    and why; --export writes that design and says so."""
+    from prsa_ctrl.studies.montecarlo import wilson_interval
+
     scene = _robust_scene(tmp_path, "two-sp", setpoints="[300.0, 600.0]", spec="peak_drop_rad_s = 5.2",
                           bandwidth=False)
     out = tmp_path / "r.json"
@@ -210,19 +217,20 @@ def test_report_json_and_export_name_the_recommended_design(tmp_path, capsys):
     assert code == 0
     d = json.loads(out.read_text())
     ylds = {x["name"]: x for x in d["monte_carlo"]["designs"]}
-    nom, rob = ylds["nominal design"], ylds["robust design"]
-    assert nom["passed"] > rob["passed"]  # the case: the robust design fails the spec it is judged by
+    assert {"nominal design", "robust design"} <= set(ylds) and len(ylds) > 2  # baselines ranked too
     rec = d["recommended"]
     assert rec == d["robust"]["recommended"]
-    assert rec["design"] == "nominal" and rec["yield"] == nom["yield"] and rec["passed"] == nom["passed"]
-    assert rec["gains"]["kp"] == d["robust"]["nominal_gains"]["kp"] and "higher yield" in rec["why"]
-    assert "recommended: nominal design" in text
+    me = ylds[rec["name"]]
+    assert rec["yield"] == me["yield"] and rec["passed"] == me["passed"] and rec["gains"]["kp"] == me["gains"]["kp"]
+    h = lambda k: (lambda lo, hi: (hi - lo) / 2)(*wilson_interval(k, 24))  # noqa: E731
+    assert all((y["passed"] - me["passed"]) / 24 <= h(y["passed"]) + h(me["passed"]) + 1e-12 for y in ylds.values())
+    assert f"recommended: {rec['name']} (" in text and f"* {rec['name']}" in text
     import tomllib
 
     t = tomllib.loads(exp.read_text())
-    assert t["design"]["name"] == "nominal design" and t["design"]["yield"] == nom["yield"]
-    assert t["speed_controller"]["continuous"]["kp_n_m_s_per_rad"] == d["robust"]["nominal_gains"]["kp"]
-    assert f"drive export: {exp} holds the design 'nominal design', recommended by the robust study" in text
+    assert t["design"]["name"] == rec["name"] and t["design"]["yield"] == me["yield"]
+    assert t["speed_controller"]["continuous"]["kp_n_m_s_per_rad"] == me["gains"]["kp"]
+    assert f"drive export: {exp} holds the design '{rec['name']}', recommended by the robust study" in text
 
 
 def test_unstable_scenario_is_reported_and_the_json_is_written(tmp_path, capsys):
