@@ -56,10 +56,13 @@ def _view(plant: Plant, values: Mapping) -> Plant:
 
 
 def _probe_value(key: str, value: float) -> float:
-    """A changed value of ``key`` (file units): +1 for an integer, 25 % more for a number, a
-    thousandth of its plausible maximum for a zero."""
-    if KIND.get(key) in (POSITIVE_INTEGER, NON_NEGATIVE_INTEGER):
-        return value + 1
+    """A changed value of ``key`` (file units): one less for an integer that stays in its kind's
+    range (0/1 switches such as ``axis.nut_loss_on_whole_force`` read any non-zero value as 1,
+    so one more would change nothing), else one more; 25 % more for a number, a thousandth of
+    its plausible maximum for a zero."""
+    kind = KIND.get(key)
+    if kind in (POSITIVE_INTEGER, NON_NEGATIVE_INTEGER):
+        return value - 1 if value - 1 >= (1 if kind == POSITIVE_INTEGER else 0) else value + 1
     return 1.25 * value if value != 0 else 1e-3 * PLAUSIBLE.get(key, (0.0, 1.0, ""))[1]
 
 
