@@ -21,8 +21,9 @@ quantity it holds (:data:`QUANTITIES`), the unit the drive expects (:data:`UNIT_
 the conversion), whether the index and unit were confirmed in the vendor's public documentation,
 and the source. A parameter marked ``confirmed = true`` must cite where (:func:`citation_problems`:
 an https page, or a ``document`` naming the manual and its edition or version); one that does not
-is listed as not confirmed in the filled set. :func:`fill_template` writes the values; :func:`read_parameter_set` converts a
-filled file back to SI and :func:`controller_from_parameter_set` rebuilds the controller from it.
+is listed as not confirmed in the filled set. :func:`fill_template` writes the values;
+:func:`read_parameter_set` converts a filled file back to SI and
+:func:`controller_from_parameter_set` rebuilds the controller from it.
 
 Examples
 --------
@@ -704,7 +705,8 @@ def fill_template(template: "str | Path | dict", controller: "PID | Any", plant:
     margins = _rounding_margins(out["parameter"], pid, plant, lfs, motor)
     if margins is not None:
         out["rounding_margins"] = margins
-    uncited = [i for i, prm in enumerate(doc["parameter"]) if any(prm is u for u in _uncited(doc))]
+    unc = _uncited(doc)
+    uncited = {i for i, prm in enumerate(doc["parameter"]) if any(prm is u for u in unc)}
     parts = [", ".join(p["index"] for i, p in enumerate(out["parameter"]) if not p["confirmed"] or i in uncited)]
     if not doc["template"].get("speed_pi_form_confirmed", True):
         parts.append("the PI form (speed_pi_form)")
