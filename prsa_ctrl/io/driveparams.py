@@ -19,8 +19,11 @@ conventions stated in the output.
 edits): each ``[[parameter]]`` names a drive object (index or parameter number), the toolkit
 quantity it holds (:data:`QUANTITIES`), the unit the drive expects (:data:`UNIT_FACTORS` gives
 the conversion), whether the index and unit were confirmed in the vendor's public documentation,
-and the source. :func:`fill_template` writes the values; :func:`read_parameter_set` converts a
-filled file back to SI and :func:`controller_from_parameter_set` rebuilds the controller from it.
+and the source. A parameter marked ``confirmed = true`` must cite where (:func:`citation_problems`:
+an https page, or a ``document`` naming the manual and its edition or version); one that does not
+is listed as not confirmed in the filled set. :func:`fill_template` writes the values;
+:func:`read_parameter_set` converts a filled file back to SI and
+:func:`controller_from_parameter_set` rebuilds the controller from it.
 
 Examples
 --------
@@ -50,7 +53,7 @@ if TYPE_CHECKING:
 
 __all__ = ["MotorData", "MOTOR_PLAUSIBLE", "MOTOR_TORQUE_CONSISTENCY", "BACK_EMF_UNITS", "BACK_EMF_KEYS", "load_motor", "parse_motor", "motor_from_plant", "drive_units", "QUANTITIES", "UNIT_FACTORS",
            "INTEGER_TYPES", "FILTER_QUANTITIES", "filter_fields",
-           "builtin_templates", "load_template", "fill_template", "read_parameter_set",
+           "builtin_templates", "load_template", "citation_problems", "fill_template", "read_parameter_set",
            "controller_from_parameter_set", "dumps_parameter_set"]
 
 _RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
@@ -476,6 +479,43 @@ def load_template(name_or_path: "str | Path") -> dict:
     return doc
 
 
+_EDITION_WORDS = ("edition", "version", "firmware", "release", "revision")
+
+
+def citation_problems(template: Mapping[str, Any]) -> list[str]:
+    """The parameters of a loaded template that claim ``confirmed = true`` without a citation.
+
+    A confirmed parameter cites its source: an ``https://`` page in ``source`` or ``document``,
+    or a ``document`` that names the manual and its edition or version (one of the words
+    edition, version, firmware, release, revision). A template whose ``[template]`` table sets
+    ``self_defined = true`` (units the toolkit defines itself, e.g. ``generic``) has nothing
+    vendor-specific to confirm and is exempt.
+
+    Returns
+    -------
+    list of str
+        One line per offending parameter: its index and what is missing (empty: all cited).
+    """
+    return [f"{quote(prm.get('index', '?'))}: confirmed = true without a citation (expected an https page in "
+            "source, or a document naming the manual and its edition or version)" for prm in _uncited(template)]
+
+
+def _uncited(template: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    if template.get("template", {}).get("self_defined") is True:
+        return []
+    out = []
+    for prm in template.get("parameter", []):
+        if prm.get("confirmed") is not True:
+            continue
+        src, doc = str(prm.get("source", "")), str(prm.get("document", ""))
+        if "https://" in src or "https://" in doc:
+            continue
+        if doc.strip() and any(w in doc.lower() for w in _EDITION_WORDS):
+            continue
+        out.append(prm)
+    return out
+
+
 def _factor(unit: str, motor: MotorData | None, where: str) -> float:
     _, needs, f = UNIT_FACTORS[unit]
     if needs == "kt":
@@ -665,7 +705,9 @@ def fill_template(template: "str | Path | dict", controller: "PID | Any", plant:
     margins = _rounding_margins(out["parameter"], pid, plant, lfs, motor)
     if margins is not None:
         out["rounding_margins"] = margins
-    parts = [", ".join(p["index"] for p in out["parameter"] if not p["confirmed"])]
+    unc = _uncited(doc)
+    uncited = {i for i, prm in enumerate(doc["parameter"]) if any(prm is u for u in unc)}
+    parts = [", ".join(p["index"] for i, p in enumerate(out["parameter"]) if not p["confirmed"] or i in uncited)]
     if not doc["template"].get("speed_pi_form_confirmed", True):
         parts.append("the PI form (speed_pi_form)")
     parts = [x for x in parts if x]

@@ -133,13 +133,28 @@ def test_current_based_units_need_and_use_the_motor(plant, speed_run, tmp_path):
 
 
 def test_templates_state_their_sources():
-    """Every parameter names its source; a confirmed one cites a vendor page (https), an
-    unconfirmed one says NOT confirmed; CiA 402 and SINAMICS units are unconfirmed, AX8000 confirmed."""
+    """Every vendor parameter names its source and says for which product it was confirmed; a
+    confirmed one cites a vendor page (https) or a document with its edition/version, an
+    unconfirmed one says NOT confirmed, and a fact read for another product than the one used
+    says so ("assumed identical") instead of claiming confirmed (issue 36)."""
+    from prsa_ctrl.io.driveparams import citation_problems
+
     assert set(builtin_templates()) >= {"generic", "cia402", "siemens-sinamics", "beckhoff-ax8000"}
     for name in builtin_templates():
-        for p in load_template(name)["parameter"]:
-            if name != "generic":
-                assert ("https://" in p["source"]) if p["confirmed"] else ("NOT confirmed" in p["source"]), (name, p)
+        doc = load_template(name)
+        assert citation_problems(doc) == [], name
+        for p in doc["parameter"]:
+            if name == "generic":
+                continue
+            assert p["confirmed_for"].strip(), (name, p["index"])
+            if p["confirmed"]:
+                cited = "https://" in p["source"] or any(w in p.get("document", "").lower() for w in (
+                    "edition", "version"))
+                assert cited, (name, p["index"])
+                assert "assumed" not in p["confirmed_for"], (name, p["index"])
+            else:
+                assert "NOT confirmed" in p["source"], (name, p["index"])
+                assert "assumed" in p["confirmed_for"] or "not confirmed" in p["confirmed_for"], (name, p["index"])
     idx = {name: {p["index"]: p for p in load_template(name)["parameter"]} for name in builtin_templates()}
     ax = idx["beckhoff-ax8000"]
     assert {k: ax[k]["unit"] for k in ("0x3140:01", "0x3140:02", "0x30C0:01", "0x6072", "0x60B2", "0x3163:01")} == {
@@ -148,27 +163,65 @@ def test_templates_state_their_sources():
     assert {f"{b}:0{s}" for b in ("0x3163", "0x3183", "0x31A3", "0x31C3") for s in range(1, 6)} <= set(ax)
     assert [k for k, p in ax.items() if not p["confirmed"]] == ["0x60B2"] + [f"{b}:03" for b in (
         "0x3163", "0x3183", "0x31A3", "0x31C3")]  # issue 36: the rest cited on the vendor's object pages
+    assert "AMP8000" in ax["0x60B2"]["confirmed_for"] and "AX8000 assumed identical" in ax["0x60B2"]["confirmed_for"]
     assert ax["0x60B2"]["datatype"] == "INT16" and ax["0x6072"]["datatype"] == "UINT16"
-    assert set(idx["siemens-sinamics"]) == {"p1460", "p1462", "p1441", "p1520", "p1521"}
-    assert not any(p["confirmed"] for p in idx["siemens-sinamics"].values())
+    # SINAMICS S210: the five entries read in the S210 parameter list (firmware V5.1; p1441/p1460/p1462
+    # also in the RT V6.1 list): unit, data type and range as the list gives them; S120 not confirmed
+    si = idx["siemens-sinamics"]
+    assert set(si) == {"p1460", "p1462", "p1441", "p1520", "p1521"}
+    assert all(p["confirmed"] and "S210" in p["confirmed_for"] and "S120" in p["confirmed_for"] for p in si.values())
+    assert all("sdrpa400enUS" in p["document"] and "V5.1" in p["document"] for p in si.values())
+    assert {k: (p["unit"], p["datatype"], p["min"], p["max"]) for k, p in si.items()} == {
+        "p1460": ("N m s/rad", "FloatingPoint32", 0.0, 5e8), "p1462": ("ms", "FloatingPoint32", 0.0, 1e5),
+        "p1441": ("ms", "FloatingPoint32", 0.0, 50.0), "p1520": ("N m", "FloatingPoint32", -1e6, 2e7),
+        "p1521": ("N m", "FloatingPoint32", -2e7, 1e6)}
+    tpl = load_template("siemens-sinamics")["template"]
+    assert "NOT confirmed" in tpl["s120_note"] and "CO: Torque limit upper/motoring" in tpl["s120_note"]
+    assert tpl["speed_pi_form_confirmed"] is False  # the list gives no formula
     cia = idx["cia402"]
     assert set(cia) == {"0x6072", "0x60B2", "0x60F9:01", "0x60F9:02", "0x60FB:01"}
-    assert cia["0x6072"]["confirmed"] and cia["0x60B2"]["confirmed"]
+    # per mille of 0x6076: read in Beckhoff's implementation only, so not claimed for the profile
+    assert not cia["0x6072"]["confirmed"] and "AX8000" in cia["0x6072"]["confirmed_for"]
+    assert not cia["0x60B2"]["confirmed"] and "AMP8000" in cia["0x60B2"]["confirmed_for"]
     assert all(cia[k]["manufacturer_specific"] and not cia[k]["confirmed"] for k in ("0x60F9:01", "0x60F9:02",
                                                                                       "0x60FB:01"))
     assert "0x30A2" in cia["0x60F9:01"]["alternative"]
 
 
-def test_unconfirmed_sets_say_so_in_the_export(plant):
-    for name, flagged in (("siemens-sinamics", True), ("cia402", True), ("beckhoff-ax8000", True), ("generic", False)):
-        out = fill_template(name, DESIGN, plant)
-        assert ("not_confirmed" in out["export"]) is flagged, name
-    assert "p1460, p1462, p1441, p1520, p1521" in fill_template("siemens-sinamics", SPEED, plant)["export"]["not_confirmed"]
+def test_a_confirmed_claim_without_a_citation_is_caught(plant):
+    """citation_problems names a confirmed parameter that cites nothing (or a document without an
+    edition/version); fill_template then lists it as not confirmed; an https page or an edition
+    satisfies it; a self_defined template is exempt."""
+    from prsa_ctrl.io.driveparams import citation_problems
+
+    def tpl(**extra):
+        return {"template": {"name": "t"}, "parameter": [
+            {"index": "p1", "name": "kp", "quantity": "speed_kp", "unit": "N m s/rad", "datatype": "float",
+             "confirmed": True, "source": "the manual", **extra},
+            {"index": "p2", "name": "tn", "quantity": "speed_tn", "unit": "ms", "datatype": "float",
+             "confirmed": False, "source": "NOT confirmed"}]}
+
+    bare = tpl()
+    assert len(citation_problems(bare)) == 1 and citation_problems(bare)[0].startswith("'p1': confirmed = true")
+    assert "p1, p2" in fill_template(bare, SPEED, plant)["export"]["not_confirmed"]
+    assert citation_problems(tpl(document="the list manual")) != []  # no edition or version
+    for ok in (tpl(document="List Manual, edition 06/2020"), tpl(source="see https://example.invalid/p1"),
+               tpl(document="help, parameter version 5207320")):
+        assert citation_problems(ok) == []
+        assert "p1" not in fill_template(ok, SPEED, plant)["export"]["not_confirmed"].split(":")[1]
+    assert citation_problems({**bare, "template": {"name": "t", "self_defined": True}}) == []
 
 
 def test_range_from_the_template_is_enforced(plant):
     with pytest.raises(ValueError, match=r"0x3140:02 .* = 8500 s|0x3140:02 .*expected a value in \[0, 5\]"):
         fill_template("beckhoff-ax8000", PID(0.085, 0.01), plant)
+    # S210 p1441: the list's range 0..50 ms; a 60 ms speed filter (1 ms samples) is refused, 50 ms written
+    slow = plant.with_params({"sensor.sample_time_s": 0.001, "sensor.speed_filter_time_constant_s": 0.06})
+    with pytest.raises(ValueError, match=r"p1441 \(Actual speed smoothing time\) = 60 ms; expected a value in \[0, 50\]"):
+        fill_template("siemens-sinamics", SPEED, slow)
+    at = fill_template("siemens-sinamics", SPEED, plant.with_params({"sensor.sample_time_s": 0.001,
+                                                                     "sensor.speed_filter_time_constant_s": 0.05}))
+    assert next(p for p in at["parameter"] if p["index"] == "p1441")["value"] == pytest.approx(50.0, rel=1e-12)
 
 
 def test_inconsistent_duplicate_is_refused(plant):
@@ -436,7 +489,9 @@ def test_ax8000_filters_limits_and_feedforward(plant):
 
 
 def test_integer_typed_gains_report_rounding_and_the_margin_change(plant):
-    """Integer-scaled units (EP7047-like: Kp in 0.1 mA/(rad/s), Tn in 0.01 ms, UINT16) are
+    """Integer-scaled units (Beckhoff EP7047-1032 'Ext. Velocity mode': 0x8014:03 Kp factor (velo.) in
+    0.1 mA/(rad/s), UDINT; 0x8014:04 Tn (velo.) in 0.01 ms, UINT; per
+    https://infosys.beckhoff.com/content/1033/ep7047-1032/9243797771.html) are
     rounded and range-checked; the rounding is reported in the value's unit, in SI, and as the
     change of the speed loop's margins (exact vs rounded gains on the same loop model, computed
     here independently); a declared UINT is never written unrounded."""
@@ -444,9 +499,9 @@ def test_integer_typed_gains_report_rounding_and_the_margin_change(plant):
     from prsa_ctrl.tuning.scene_loops import step_loops
 
     tpl = {"template": {"name": "ep"}, "parameter": [
-        {"index": "0x8014:03", "name": "Kp", "quantity": "speed_kp", "unit": "0.1 mA/(rad/s)", "datatype": "UINT16",
+        {"index": "0x8014:03", "name": "Kp", "quantity": "speed_kp", "unit": "0.1 mA/(rad/s)", "datatype": "UDINT",
          "confirmed": False, "source": "test"},
-        {"index": "0x8014:04", "name": "Tn", "quantity": "speed_tn", "unit": "0.01 ms", "datatype": "UINT16",
+        {"index": "0x8014:04", "name": "Tn", "quantity": "speed_tn", "unit": "0.01 ms", "datatype": "UINT",
          "confirmed": False, "source": "test"},
         {"index": "x", "name": "kp float", "quantity": "speed_kp", "unit": "N m s/rad", "datatype": "UINT",
          "confirmed": False, "source": "test"}]}
