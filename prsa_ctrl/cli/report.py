@@ -287,6 +287,10 @@ def format_robust(rr) -> str:
         out.append(f"Designs against the scene's [spec] on the same {r['table'][0]['samples']} Monte-Carlo samples "
                    f"(* recommended: {r['rule']}):")
         out.append(format_yield_table(r, comp["objective"]))
+        if r.get("decide_table"):
+            out.append(f"The designs of (near-)maximal yield again, on {r['decide_table'][0]['samples']} samples of the "
+                       "same seed (the decision; * recommended):")
+            out.append(format_yield_table({**r, "table": r["decide_table"]}, comp["objective"]))
     name = r.get("name") or (r["design"] + " design" if r.get("design") else None)
     out.append(f"recommended: {name or 'none'} ({r['why']})")
     return "\n".join(out) + "\n"
