@@ -353,6 +353,32 @@ def test_position_export_reproduces_the_simulated_law(plant, designs):
         assert np.max(np.abs(us[:-1] - tc[1:])) < 1e-9 * max(1.0, np.max(np.abs(tc)))
 
 
+def test_position_export_with_a_delay_reproduces_the_simulated_law(plant, designs):
+    """The exported position law at its own sample time (every 2nd sample), its outputs applied
+    ``delay_samples`` position samples later as the export states, from the exported fields only:
+    the simulated speed references and feed-forward of a run with that delay, to 1e-9."""
+    sc, cm, seq, joint = designs
+    pos = dataclasses.replace(joint.position, ki=800.0, kaff=0.6, rate=2, delay=2)
+    design = dataclasses.replace(joint, position=pos)
+    pc = tomllib.loads(dumps(export_cascade(design, plant, fmt="toml"), "toml"))["position_controller"]
+    n_rate = round(pc["sample_time_s"] / plant.sample_time_s)
+    assert (n_rate, pc["delay_samples"]) == (2, 2) and pc["delay_s"] == pytest.approx(4 * plant.sample_time_s)
+    r = simulate_move(plant, sc, joint.speed, pos, duration=0.3, loads=sc.loads()[:2])
+    _, v_ref, acc_ref = sc.motion().at(r.time)
+    k = np.arange(0, r.time.size, n_rate)  # the position-loop samples
+    w_p, t_p = _exported_position_law(pc, r.output("position_reference")[k], r.output("position_measured")[k],
+                                      v_ref[k], acc_ref[k])
+    d = pc["delay_samples"]
+    w_applied = np.repeat(np.concatenate([np.zeros(d), w_p[:-d]]), n_rate)[:r.time.size]
+    t_applied = np.repeat(np.concatenate([np.zeros(d), t_p[:-d]]), n_rate)[:r.time.size]
+    w_sim = r.output("speed_reference")
+    assert np.allclose(w_applied, w_sim, rtol=1e-9, atol=1e-9 * np.max(np.abs(w_sim)))
+    assert np.allclose(t_applied, r.output("torque_feedforward"), rtol=1e-9, atol=1e-12)
+    # the delay shows: the undelayed law is far from the run
+    w_now = np.repeat(w_p, n_rate)[:r.time.size]
+    assert np.max(np.abs(w_now - w_sim)) > 1e-3 * np.max(np.abs(w_sim))
+
+
 def test_cli_move_scene_bad_flags_exit_2(tmp_path, capsys):
     from prsa_ctrl.cli.tune import main
 
