@@ -178,7 +178,8 @@ def test_design_to_spec_chooses_by_the_rule_and_reports_fresh_samples(roller):
 
 @pytest.mark.parametrize("kw, match", [({"n_search": 0}, "n_search = 0"), ({"n_final": True}, "n_final = True"),
                                        ({"seed": -1}, "seed = -1"), ({"ms_levels": (1.0,)}, "ms_levels"),
-                                       ({"ms_levels": (float("nan"),)}, "ms_levels")])
+                                       ({"ms_levels": (float("nan"),)}, "ms_levels"),
+                                       ({"n_decide": 0}, "n_decide = 0"), ({"n_decide": 2.5}, "n_decide = 2.5")])
 def test_design_to_spec_bad_arguments_are_named_before_any_work(roller, kw, match):
     from prsa_ctrl.studies.designspec import design_to_spec
 
