@@ -71,6 +71,10 @@ MS_MAX_DEFAULT = 1.4
 #: position_rate``; the multi-rate cascade model lifts the loop to N x N matrices, and the joint
 #: NLP's constraints grow as N^4: N = 4 tunes in about 30 s, N = 8 did not finish in minutes).
 POSITION_RATE_MAX = 4
+#: Largest computation delay of the position loop, in position-loop samples (``[move]
+#: position_delay_samples``: the speed reference computed at one position-loop sample is applied
+#: that many position-loop samples later).
+POSITION_DELAY_MAX = 4
 #: Units of a position gain ``kv_max`` and their factor to 1/s: ``(m/min)/mm`` is the speed in
 #: m/min per mm of following error (1 (m/min)/mm = 1000/60 1/s = 16.67 1/s).
 KV_UNITS: Mapping[str, float] = {"1/s": 1.0, "(m/min)/mm": 1000.0 / 60.0}

@@ -287,6 +287,10 @@ def format_robust(rr) -> str:
         out.append(f"Designs against the scene's [spec] on the same {r['table'][0]['samples']} Monte-Carlo samples "
                    f"(* recommended: {r['rule']}):")
         out.append(format_yield_table(r, comp["objective"]))
+        if r.get("decide_table"):
+            out.append(f"The designs of (near-)maximal yield again, on {r['decide_table'][0]['samples']} samples of the "
+                       "same seed (the decision; * recommended):")
+            out.append(format_yield_table({**r, "table": r["decide_table"]}, comp["objective"]))
     name = r.get("name") or (r["design"] + " design" if r.get("design") else None)
     out.append(f"recommended: {name or 'none'} ({r['why']})")
     return "\n".join(out) + "\n"
@@ -316,6 +320,11 @@ def format_move_report(plant: "Plant", scene: "MoveScene", designs: "list[Cascad
                      f"over Ts = {ts * 1e6:g} us), modelled as the sampled multi-rate loop: the position loop's Ms at "
                      "its own rate, the speed loop (position loop closed) and torque command's as the peak gain of "
                      "the periodic loop's sensitivity")
+    if getattr(scene, "position_delay_samples", 0):
+        d = scene.position_delay_samples
+        lines.append(f"  position loop's own computation delay: {d} position-loop sample(s) "
+                     f"({d * scene.position_rate * ts * 1e6:g} us), in the loop model, the tuning, the nonlinear "
+                     "runs and the exports")
     if scene.kv_max_per_s is not None:
         lines.append(f"  position gain ceiling kv_max = {scene.kv_max_per_s:.6g} 1/s "
                      f"({scene.kv_max_per_s * 0.06:.4g} (m/min)/mm); Kv of each design: "

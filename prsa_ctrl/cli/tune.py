@@ -675,10 +675,16 @@ def _design_to_spec(run: Run, args, plant, rep):
     dts = design_to_spec(plant, scene, n_search=n_search, n_final=n, seed=seed, extra=extra,
                          workers=args.workers or default_workers(), quiet=args.quiet)
     s = dts.search
-    basis = (f"design to the spec: chosen among {len(dts.designs)} designs on {n_search} common Monte-Carlo samples "
-             f"(seed {dts.search_seed}); yield on {n} fresh samples (seed {dts.final_seed})")
+    d = dts.decide or s  # the decision among the (near-)maximal designs on more samples, where it ran
+    nd = d["rows"][0]["samples"] if dts.decide and d.get("rows") else n_search
+    basis = (f"design to the spec: {len(dts.designs)} designs screened on {n_search} common Monte-Carlo samples "
+             f"(seed {dts.search_seed})" + (f", the {len(d['rows'])} of (near-)maximal yield decided on {nd} samples "
+                                            "of the same seed" if dts.decide else "")
+             + f"; yield on {n} fresh samples (seed {dts.final_seed})")
     rec = {"basis": basis, "table": s.get("rows", []), "rule": s.get("rule", ""),
-           **{k: s[k] for k in ("target", "reached", "limit") if k in s}}
+           **{k: d[k] for k in ("target", "reached", "limit") if k in d}}
+    if dts.decide:
+        rec["decide_table"] = d.get("rows", [])
     fy = dts.final_yield
     if fy is None:
         rec.update(design=None, name=None, why=s.get("why", "no design chosen"))
@@ -686,7 +692,8 @@ def _design_to_spec(run: Run, args, plant, rep):
         lo, hi = fy.ci95
         rec.update(design=dts.chosen, name=dts.chosen, gains=dts.pid.as_dict(), **{"yield": fy.yield_},
                    passed=fy.passed, samples=fy.n, yield_ci95=list(fy.ci95),
-                   why=(f"on the search samples: {s['why']}; on {fy.n} fresh samples: yield {100 * fy.yield_:.1f} % "
+                   why=(f"on the {'decision' if dts.decide else 'search'} samples: {d['why']}; on {fy.n} fresh samples: "
+                        f"yield {100 * fy.yield_:.1f} % "
                         f"({fy.passed}/{fy.n}), 95 % CI [{100 * lo:.1f}, {100 * hi:.1f}] %"))
     rr = replace(rr, others=dict(dts.designs), recommended=rec)
     return rr, dts.final, dts

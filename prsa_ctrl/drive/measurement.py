@@ -202,6 +202,11 @@ class PositionLoop:
         which sees the thread-contact deflection the encoder does not.
     rate : int
         Position-loop sample time in controller samples (1 = every sample).
+    delay : int
+        The position loop's own computation delay in position-loop samples (0..8): the speed
+        reference and torque feed-forward computed at one position-loop sample are applied from
+        the ``delay``-th next one on (a line of ``delay`` pending pairs, shifted at each
+        position-loop sample); 0 applies them at once.
     scale_resolution_m : float, m
         Resolution of the linear scale (``measured="screw_position"`` only).
     friction : FrictionFeedforward, optional
@@ -223,8 +228,8 @@ class PositionLoop:
     rate: int = 1
     scale_resolution_m: float = 1e-7
     friction: "FrictionFeedforward | None" = None
+    delay: int = 0
     name = "position"
-    memory_names = ("position_integral", "speed_reference", "torque_feedforward", "position_error")
     #: Per-sample inputs of the block: position (loop unit), speed (m/s), acceleration (m/s^2)
     #: of the profile, 1 at a position-loop sample (else 0), then kv, ki, kvff, kaff (parameters,
     #: so that one compiled law serves every gain set).
@@ -242,6 +247,9 @@ class PositionLoop:
         if isinstance(self.rate, bool) or not isinstance(self.rate, int) or not 1 <= self.rate <= 1000:
             raise ValueError(f"PositionLoop rate = {self.rate!r}; expected an integer number of controller samples "
                              "in [1, 1000]")
+        if isinstance(self.delay, bool) or not isinstance(self.delay, int) or not 0 <= self.delay <= 8:
+            raise ValueError(f"PositionLoop delay = {self.delay!r}; expected an integer number of position-loop samples "
+                             "in [0, 8]")
         _gain("scale_resolution_m", self.scale_resolution_m, "m", lo_open=True, hi=1e-3)
         if self.friction is not None and not isinstance(self.friction, FrictionFeedforward):
             raise ValueError(f"PositionLoop friction = {self.friction!r}; expected a FrictionFeedforward or None")
@@ -251,9 +259,16 @@ class PositionLoop:
         rad, 1 for the screw position in m)."""
         return lead_per_rad if self.measured == "nut_angle" else 1.0
 
+    @property
+    def memory_names(self) -> tuple[str, ...]:
+        """The block's memory: integral, held speed reference and torque feed-forward, held
+        error, then (with a delay) the pending speed references and feed-forwards, newest first."""
+        pend = tuple(f"pending_{k}_{i + 1}" for i in range(self.delay) for k in ("speed_reference", "torque_feedforward"))
+        return ("position_integral", "speed_reference", "torque_feedforward", "position_error") + pend
+
     def initial(self) -> list[float]:
         """Memory at rest on the profile's start (no error, no integral, no reference)."""
-        return [0.0, 0.0, 0.0, 0.0]
+        return [0.0] * len(self.memory_names)
 
     def update(self, mem, p_meas, inputs, ts: float, lead_per_rad: float, inertia: float):
         """One controller sample: ``(speed reference rad/s, torque feed-forward N m, memory)``.
@@ -270,14 +285,21 @@ class PositionLoop:
         tau_ff = kaff * inertia * acc_ref / a
         if self.friction is not None:
             tau_ff = tau_ff + self.friction.symbolic(v_ref / a)
+        pend = []
+        if self.delay:  # the line of pending outputs: the oldest is applied, the new one enters
+            line = [(mem[4 + 2 * i], mem[5 + 2 * i]) for i in range(self.delay)]
+            new = [(w_ref, tau_ff)] + line[:-1]
+            w_ref, tau_ff = line[-1]
+            pend = [ca.if_else(active > 0.5, nw, old) for (nw_, nt_), (ow_, ot_) in zip(new, line)
+                    for nw, old in ((nw_, ow_), (nt_, ot_))]
         w_ref = ca.if_else(active > 0.5, w_ref, mem[1])
         tau_ff = ca.if_else(active > 0.5, tau_ff, mem[2])
         e_keep = ca.if_else(active > 0.5, e_rad, mem[3])
-        return w_ref, tau_ff, ca.vertcat(integral, w_ref, tau_ff, e_keep)
+        return w_ref, tau_ff, ca.vertcat(integral, w_ref, tau_ff, e_keep, *pend)
 
     def key(self) -> tuple:
         return ("position", self.measured, self.rate, self.scale_resolution_m,
-                None if self.friction is None else self.friction.key())
+                None if self.friction is None else self.friction.key(), self.delay)
 
     @property
     def gains(self) -> list[float]:

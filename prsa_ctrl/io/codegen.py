@@ -108,7 +108,7 @@ def position_law(position: "PositionLoop", plant: "Plant") -> PositionLaw:
     return PositionLaw(position.measured, int(position.rate), float(position.kv), float(position.ki),
                        float(position.kvff), float(position.kaff), a, float(plant.reflected_inertia_kg_m2), unit,
                        unit / a, 2.0 * math.pi / plant.encoder_counts if nut else float(position.scale_resolution_m),
-                       None if position.friction is None else position.friction.key())
+                       None if position.friction is None else position.friction.key(), int(position.delay))
 
 
 def _friction_torque(fr: tuple[float, ...], w: float) -> float:
@@ -273,6 +273,7 @@ class ReferenceLaw:
         self.mem_t = [[self.u_pend] * 4 for _ in lw.torque_biquads]
         self.p0 = position_zero_count * lw.position.per_count if lw.position is not None else 0.0
         self.p_int = self.w_ref = self.tau_p = 0.0
+        self.pending = [(0.0, 0.0)] * (lw.position.delay if lw.position is not None else 0)
         self.k = 0
 
     @staticmethod
@@ -306,6 +307,9 @@ class ReferenceLaw:
                 self.tau_p = pl.kaff * pl.inertia_kg_m2 * acc_ref_m_s2 / pl.lead_m_per_rad
                 if pl.friction is not None:
                     self.tau_p = self.tau_p + _friction_torque(pl.friction, vel_ref_m_s / pl.lead_m_per_rad)
+                if pl.delay:  # the position loop's computation delay: the oldest pending pair is applied
+                    self.pending = [(self.w_ref, self.tau_p)] + self.pending
+                    self.w_ref, self.tau_p = self.pending.pop()
             ref, tau_ff = self.w_ref, tau_ff + self.tau_p
         err = ref - w
         u = lw.kp * (lw.setpoint_weight * ref - w) + self.integral - lw.kd * deriv + tau_ff

@@ -223,7 +223,9 @@ def _header_comment(law: "DriveLaw", lang: str) -> list[str]:
                      "added to the acceleration feed-forward.")
     if p:
         lines.append(f"Position loop: measured {p.measured}, every {p.rate} sample(s) (position-loop sample time "
-                     f"{p.rate * law.ts:g} s over the speed loop's {law.ts:g} s; position_rate in the parameters); "
+                     f"{p.rate * law.ts:g} s over the speed loop's {law.ts:g} s; position_rate in the parameters"
+                     + (f"; its outputs applied {p.delay} position-loop sample(s) after they are computed: its "
+                        "computation delay, built into the code" if p.delay else "") + "); "
                      + ("position counts are the encoder counts" if p.measured == "nut_angle"
                         else f"position counts of the linear scale ({iec_real(p.per_count)} m each)")
                      + "; references in m, m/s, m/s^2 of screw travel from the position at init. Resolution: the "
@@ -370,6 +372,9 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
               f"    {R} p_integral;        /* position-loop integral, rad/s */",
               f"    {R} w_ref;             /* speed reference, held between position samples, rad/s */",
               f"    {R} tau_p;             /* feed-forward torque, held, N m */"]
+        for i in range(1, p.delay + 1):
+            h.append(f"    {R} pend_w{i}, pend_t{i}; /* position-loop output {i} position samples old (delay {p.delay}): "
+                     "speed reference rad/s, feed-forward N m */")
     h += [f"    {R} speed;             /* diagnostics: filtered speed of this sample, rad/s */",
           f"    {R} command_unfiltered; /* diagnostics: limited PI command before the torque filters, N m */",
           "    uint32_t fault;         /* sticky fault bits (see *_FAULT_*); cleared by init */",
@@ -526,6 +531,7 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
         c.append(f"    s->tf[{i}][0] = s->tf[{i}][1] = s->tf[{i}][2] = s->tf[{i}][3] = {z};")
     if p is not None:
         c += ["    s->phase = 0;", f"    s->p_integral = {z};", f"    s->w_ref = {z};", f"    s->tau_p = {z};"]
+        c += [f"    s->pend_w{i} = {z}; s->pend_t{i} = {z};" for i in range(1, p.delay + 1)]
     c += ["}", ""]
     c += [f"void {n}_init(const {n}_params *p, {n}_state *s, {init_args})", "{",
           "    (void)p;", "    s->count_prev = count_prev;", "    s->w_filt = speed0;", "    s->w_prev = speed0;",
@@ -538,11 +544,14 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
     if p is not None:
         c += ["    s->travel = 0u;", *(["    s->position_prev = position_count;"] if scale else []), "    s->phase = 0;",
               f"    s->p_integral = {z};", f"    s->w_ref = {z};", f"    s->tau_p = {z};"]
+        c += [f"    s->pend_w{i} = {z}; s->pend_t{i} = {z};" for i in range(1, p.delay + 1)]
     c += ["}", "", f"{R} {n}_step(const {n}_params *p, {n}_state *s, {step_args})", "{",
           f"    {R} w, wf, d, e, u, us, uf, ref, tau_ff, integral;", *([f"    {R} y;"] if ns or nt else []),
           *([f"    {R} sy[{ns}];"] if ns else []), *([f"    {R} ty[{nt}];"] if nt else []),
           *([f"    {R} p_integral = s->p_integral, w_ref = s->w_ref, tau_p = s->tau_p;",
              "    int32_t phase = s->phase;"] if p is not None else []),
+          *([f"    {R} " + ", ".join(f"pw{i} = s->pend_w{i}, pt{i} = s->pend_t{i}" for i in range(1, p.delay + 1)) + ";"]
+            if p is not None and p.delay else []),
           f"    int32_t dn = {n}_delta_(count, s->count_prev, p->count_modulus);",
           *([f"    int32_t dp = {n}_delta_(position_count, s->position_prev, p->position_modulus);"] if scale else []),
           "    s->count_prev = count;  /* integers: always valid */"]
@@ -572,6 +581,11 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
               "        if (!hold) p_integral = p_integral + p->tp_kip * ep;",
               "        w_ref = p->kv * ep + p_integral + p->kvff * vel_ref / p->lead;",
               "        tau_p = p->kaff_j * acc_ref / p->lead" + (f" + {n}_friction_(p, vel_ref / p->lead);" if fric else ";"),
+              *([f"        /* computation delay of {p.delay} position sample(s): the oldest pending output is "
+                 "applied */"] + [f"        {{ {R} wn = w_ref, tn = tau_p;", f"        w_ref = pw{p.delay}; "
+                                  f"tau_p = pt{p.delay};"]
+                + [f"        pw{i} = pw{i - 1}; pt{i} = pt{i - 1};" for i in range(p.delay, 1, -1)]
+                + ["        pw1 = wn; pt1 = tn; }"] if p.delay else []),
               "    }", "    phase = phase + 1 >= p->position_rate ? 0 : phase + 1;",
               "    ref = w_ref;", "    tau_ff = p->tau_ff + tau_p;"]
     c += ["    e = ref - w;", "    u = p->kp * (p->b_sp * ref - w) + s->integral - p->kd * d + tau_ff;",
@@ -595,6 +609,7 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
                  f"s->tf[{i}][3] = s->tf[{i}][2]; s->tf[{i}][2] = ty[{i}];")
     if p is not None:
         c += ["    s->phase = phase;", "    s->p_integral = p_integral;", "    s->w_ref = w_ref;", "    s->tau_p = tau_p;"]
+        c += [f"    s->pend_w{i} = pw{i}; s->pend_t{i} = pt{i};" for i in range(1, p.delay + 1)]
     c += ["    s->command_unfiltered = us;",
           "    s->u_out = s->u_pending;" if law.delay_samples else "    s->u_out = uf;",
           "    s->u_pending = uf;", "    return s->u_out;", "}", ""]
@@ -671,6 +686,11 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
         loc += [("s_Travel", "UDINT", "0", ""), ("s_Phase", "DINT", "0", ""), ("s_PIntegral", R, r0, ""),
                 ("s_WRef", R, r0, ""), ("s_TauP", R, r0, ""), ("t_Ep", R, r0, ""), ("t_PIntegral", R, r0, ""),
                 ("t_WRef", R, r0, ""), ("t_TauP", R, r0, ""), ("t_Phase", "DINT", "0", ""), ("t_Trav", "DINT", "0", "")]
+        for i in range(1, p.delay + 1):
+            loc += [(f"s_PendW{i}", R, r0, ""), (f"s_PendT{i}", R, r0, ""), (f"t_PendW{i}", R, r0, ""),
+                    (f"t_PendT{i}", R, r0, "")]
+        if p.delay:
+            loc += [("t_NewW", R, r0, ""), ("t_NewT", R, r0, "")]
         if scale:
             loc += [("s_PosPrev", "UDINT", "0", ""), ("t_Dp", "DINT", "0", "")]
         if fric:
@@ -688,6 +708,7 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
     if p is not None:
         b += ["    s_Travel := 0;", *(["    s_PosPrev := DINT_TO_UDINT(InitPosCount);"] if scale else []),
               "    s_Phase := 0;", "    s_PIntegral := 0.0;", "    s_WRef := 0.0;", "    s_TauP := 0.0;"]
+        b += [f"    s_PendW{i} := 0.0; s_PendT{i} := 0.0;" for i in range(1, p.delay + 1)]
     b += ["    TorqueCmd := InitTorque;", "    Speed := InitSpeed;", "    CommandUnfiltered := InitTorque;",
           "    Fault := s_Fault;", "    RETURN;", "END_IF;", "",
           "(* wrap-safe encoder difference in counts *)", *_st_delta("EncCount", "s_CountPrev", "CountModulus", "t_Dn"),
@@ -704,6 +725,7 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
         off.append(f"s_TF{i}_X1 := 0.0; s_TF{i}_X2 := 0.0; s_TF{i}_Y1 := 0.0; s_TF{i}_Y2 := 0.0;")
     if p is not None:
         off += ["s_Phase := 0;", "s_PIntegral := 0.0;", "s_WRef := 0.0;", "s_TauP := 0.0;"]
+        off += [f"s_PendW{i} := 0.0; s_PendT{i} := 0.0;" for i in range(1, p.delay + 1)]
     ret = ["    IF NOT Enable THEN", *["        " + x for x in off], "    END_IF;",
            "    TorqueCmd := s_UOut;", "    Fault := s_Fault;", "    RETURN;"]
     b += [f"IF NOT ({fin}) THEN", "    s_Fault := s_Fault OR 16#1;", *ret, "END_IF;",
@@ -718,6 +740,7 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
     if p is None:
         b += ["t_Ref := SpeedRef;", "t_TauFF := P_TAU_FF;"]
     else:
+        b += [f"t_PendW{i} := s_PendW{i}; t_PendT{i} := s_PendT{i};" for i in range(1, p.delay + 1)]
         b += ["t_PIntegral := s_PIntegral;", "t_WRef := s_WRef;", "t_TauP := s_TauP;", "t_Phase := s_Phase;",
               "IF t_Phase = 0 THEN (* position-loop sample *)",
               "    IF s_Travel < 16#80000000 THEN t_Trav := UDINT_TO_DINT(s_Travel); "
@@ -735,6 +758,11 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
                   "    t_TauP := P_KAFF_J * AccRef / P_LEAD + t_TauFr;"]
         else:
             b.append("    t_TauP := P_KAFF_J * AccRef / P_LEAD;")
+        if p.delay:
+            b += [f"    (* computation delay of {p.delay} position sample(s): the oldest pending output is applied *)",
+                  "    t_NewW := t_WRef; t_NewT := t_TauP;", f"    t_WRef := t_PendW{p.delay}; t_TauP := t_PendT{p.delay};"]
+            b += [f"    t_PendW{i} := t_PendW{i - 1}; t_PendT{i} := t_PendT{i - 1};" for i in range(p.delay, 1, -1)]
+            b += ["    t_PendW1 := t_NewW; t_PendT1 := t_NewT;"]
         b += ["END_IF;", "IF t_Phase + 1 >= P_POSITION_RATE THEN t_Phase := 0; ELSE t_Phase := t_Phase + 1; END_IF;",
               "t_Ref := t_WRef;", "t_TauFF := P_TAU_FF + t_TauP;"]
     b += ["t_E := t_Ref - t_W;", "t_U := P_KP * (P_B_SP * t_Ref - t_W) + s_Integral - P_KD * t_Dv + t_TauFF;",
@@ -760,6 +788,7 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
                  f"s_TF{i}_Y2 := s_TF{i}_Y1; s_TF{i}_Y1 := t_TF{i};")
     if p is not None:
         b += ["s_Phase := t_Phase;", "s_PIntegral := t_PIntegral;", "s_WRef := t_WRef;", "s_TauP := t_TauP;"]
+        b += [f"s_PendW{i} := t_PendW{i}; s_PendT{i} := t_PendT{i};" for i in range(1, p.delay + 1)]
     b += ["CommandUnfiltered := t_Us;",
           "s_UOut := s_UPending;" if law.delay_samples else "s_UOut := t_Uf;",
           "s_UPending := t_Uf;", "TorqueCmd := s_UOut;", "Fault := s_Fault;"]

@@ -59,6 +59,9 @@ class PositionLaw:
     friction : tuple of float or None
         Friction feed-forward ``(C+, C-, S+, S-, w_s, V+, V-, gain)``
         (:meth:`prsa_ctrl.drive.friction.FrictionFeedforward.key`), or None.
+    delay : int
+        The position loop's computation delay in position-loop samples (its outputs wait in a
+        line of that many pending pairs; 0: applied at once).
     """
 
     measured: str
@@ -73,6 +76,7 @@ class PositionLaw:
     err_to_rad: float
     per_count: float
     friction: tuple[float, ...] | None = None
+    delay: int = 0
 
 
 @dataclass(frozen=True)

@@ -591,6 +591,8 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
     out["position_controller"] = {
         "measured": pos.measured,
         "sample_time_s": tp,
+        "delay_samples": int(pos.delay),  # its own computation delay, in position-loop samples
+        "delay_s": tp * int(pos.delay),
         "kv_per_s": float(pos.kv),
         "kv_m_min_per_mm": float(pos.kv) * 60.0 / 1000.0,  # (m/min of speed) per mm of error
         "ki_per_s2": float(pos.ki),
@@ -610,7 +612,10 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
                      "acceleration_feedforward (= acceleration_feedforward reflected_inertia_kg_m2): do not "
                      "multiply by it again",
         "discretisation": "explicit sum for the integral (I updated with e[k] before use), zero-order hold of w_ref "
-                          "and tau_ff over sample_time_s",
+                          "and tau_ff over sample_time_s" + (
+                              f"; w_ref and tau_ff computed at position-loop sample k are applied from sample k + "
+                              f"{int(pos.delay)} on (delay_samples: the position loop's computation delay)"
+                              if pos.delay else "; applied at the sample they are computed at (delay_samples 0)"),
     }
     if pos.friction is not None:  # issue 24: the plant's friction curve fed forward from the reference speed
         out["position_controller"]["friction_feedforward"] = pos.friction.as_dict(friction_table_speed_rad_s)

@@ -19,7 +19,8 @@ from typing import Any, Mapping
 from ..textsafe import quote
 from ..drive.motion import PROFILE_KINDS, MotionProfile, out_and_back, plan
 from ..errors import SceneError
-from ..options import KV_UNITS, MS_MAX_DEFAULT, PEAK_BOUND_RANGE, POSITION_RATE_MAX, check_peak_bound, parse_kv
+from ..options import (KV_UNITS, MS_MAX_DEFAULT, PEAK_BOUND_RANGE, POSITION_DELAY_MAX, POSITION_RATE_MAX,
+                       check_peak_bound, parse_kv)
 from .scenefile import locate_scene, read_scene_doc
 from .scenefilters import parse_filters
 
@@ -41,6 +42,8 @@ _MOVE_KEYS: Mapping[str, tuple[type, str]] = {
     "measured": (str, "one of " + ", ".join(POSITION_SENSORS)),
     "position_rate": (int, f"an integer number of speed-loop samples per position-loop sample in "
                       f"[1, {POSITION_RATE_MAX}]"),
+    "position_delay_samples": (int, f"an integer number of position-loop samples in [0, {POSITION_DELAY_MAX}] (the "
+                               "position loop's computation delay)"),
     "initial_load_n": (float, "a finite load in N"),
     "load_n": (float, "a finite load in N (the load that appears during the move)"),
     "load_time_s": (float, "a time in s inside the move"),
@@ -81,6 +84,11 @@ class MoveScene:
         (the position loop samples every ``position_rate``-th speed-loop sample and holds its
         speed reference in between; the cascade model is multi-rate,
         :class:`~prsa_ctrl.tuning.cascade.CascadeModel`).
+    position_delay_samples : int
+        The position loop's own computation delay in position-loop samples,
+        0..:data:`POSITION_DELAY_MAX`: the speed reference and torque feed-forward computed at one
+        position-loop sample are applied from the ``position_delay_samples``-th next one on
+        (0: at once, as before; the speed loop's own one-sample delay is the plant's).
     initial_load_n, load_n : float, N
         Load at the start and the load that appears at ``load_time_s`` (default: the middle
         of the move), then held.
@@ -115,6 +123,7 @@ class MoveScene:
     return_dwell_s: float | None = None
     measured: str = "nut_angle"
     position_rate: int = 1
+    position_delay_samples: int = 0
     initial_load_n: float = 0.0
     load_n: float = 0.0
     load_time_s: float | None = None
@@ -250,6 +259,8 @@ def parse_move_scene(doc: Mapping[str, Any], origin: str) -> MoveScene:
         raise bad("move", "measured")
     if not 1 <= kw.get("position_rate", 1) <= POSITION_RATE_MAX:
         raise bad("move", "position_rate")
+    if not 0 <= kw.get("position_delay_samples", 0) <= POSITION_DELAY_MAX:
+        raise bad("move", "position_delay_samples")
     if kw.get("fidelity", "compliant") not in ("rigid", "compliant"):
         raise bad("move", "fidelity")
     if "hold_step_n" in kw and kw["hold_step_n"] == 0:

@@ -14,7 +14,9 @@ Linear model of the sampled cascade (:class:`CascadeModel`)
     between; the multi-rate loop below). Its loop transfer functions at the four
     loop-breaking points, with ``G`` the torque-command-to-angle response (delay included),
     ``G_p`` the same to the measured position (rad), ``W`` the speed measurement,
-    ``C_s = kp + ki Ts z^-1/(1 - z^-1)``, ``C_p = kv + kip Ts/(1 - z^-1)``::
+    ``C_s = kp + ki Ts z^-1/(1 - z^-1)``, ``C_p = (kv + kip Ts/(1 - z^-1)) z^-d`` (``d`` the
+    position loop's own computation delay, ``[move] position_delay_samples``: its output is
+    applied d position-loop samples after it is computed)::
 
         speed loop, position loop closed:  L_sc = W G C_s / (1 + G_p C_s C_p)
         speed loop, position loop opened:  L_so = W G C_s
@@ -59,7 +61,7 @@ from ..drive.filters import loop_filters
 from ..drive.sampled import zoh
 from ..drive.measurement import PositionLoop
 from ..drive.pid import PID
-from ..options import DERIVATIVE_FILTER_SAMPLES, POSITION_RATE_MAX, parse_kv
+from ..options import DERIVATIVE_FILTER_SAMPLES, POSITION_DELAY_MAX, POSITION_RATE_MAX, parse_kv
 from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from .loops import resonance_points
@@ -120,6 +122,12 @@ class CascadeModel:
             raise ValueError(f"{scene.origin}: move.position_rate = {rate!r}; expected an integer number of speed-loop "
                              f"samples in [1, {POSITION_RATE_MAX}]")
         self.rate = rate
+        delay = getattr(scene, "position_delay_samples", 0)
+        if isinstance(delay, bool) or not isinstance(delay, int) or not 0 <= delay <= POSITION_DELAY_MAX:
+            raise ValueError(f"{scene.origin}: move.position_delay_samples = {delay!r}; expected an integer number of "
+                             f"position-loop samples in [0, {POSITION_DELAY_MAX}]")
+        #: The position loop's computation delay, in position-loop samples.
+        self.delay = delay
         self.plant, self.scene = plant, scene
         #: The drive's fixed loop filters (the scene's ``[filters]``), as the simulator runs them:
         #: speed-measurement biquads on the filtered speed the PI reads, torque-command biquads on
@@ -162,7 +170,9 @@ class CascadeModel:
         """Gain-free responses at ``omega`` (rad/s): ``G`` torque command -> nut angle (rad per
         N m, computation delay and ZOH included), ``Gp`` -> measured position (rad), ``W`` nut
         angle -> speed measurement (1/s), ``cs_i`` and ``cp_i`` the integral parts of the
-        speed and position laws per unit gain."""
+        speed and position laws per unit gain, ``dp`` = ``z^-(N d)`` the position loop's own
+        computation delay (``d = position_delay_samples`` position samples of ``N`` speed samples;
+        it multiplies ``C_p`` wherever ``C_p`` appears)."""
         w = np.asarray(omega, float)
         zi = np.exp(-1j * w * self.ts)
         z = 1 / zi
@@ -179,7 +189,8 @@ class CascadeModel:
                 W = W * f
             else:
                 G, Gp = G * f, Gp * f
-        return {"G": G, "Gp": Gp, "W": W, "cs_i": self.ts * zi / (1 - zi), "cp_i": self.ts / (1 - zi)}
+        return {"G": G, "Gp": Gp, "W": W, "cs_i": self.ts * zi / (1 - zi), "cp_i": self.ts / (1 - zi),
+                "dp": zi ** (self.rate * self.delay)}
 
     def loops(self, g, omega: NDArray[np.float64] | None = None) -> dict[str, NDArray[np.complex128]]:
         """Loop transfer functions at the three breaking points (module docstring) and at the
@@ -198,7 +209,7 @@ class CascadeModel:
         P = self.parts(w)
         kp, ki, kv, kip = (float(x) for x in g[:4])
         cs = kp + ki * P["cs_i"]
-        cp = kv + kip * P["cp_i"]
+        cp = (kv + kip * P["cp_i"]) * P["dp"]
         q, r = P["Gp"] * cs * cp, P["W"] * P["G"] * cs
         return {"speed_closed": r / (1 + q), "speed_open": r, "position": q / (1 + r), "torque": q + r}
 
@@ -224,7 +235,8 @@ class CascadeModel:
         """Gain-free lifted responses at the position-loop frequencies ``omega`` (rad/s, up to
         pi/Tp): ``A`` = lift(W G), ``Lc`` = lift of the speed integral per unit ``ki``, ``c``
         the first row of lift(G_p) (the position read at the position-loop sample), ``cp_i``
-        ``Tp/(1 - z_p^-1)`` (the position integral per unit gain at its own rate) and, per
+        ``Tp/(1 - z_p^-1)`` (the position integral per unit gain at its own rate), ``dp`` =
+        ``z_p^-d`` (the position loop's own computation delay of d position samples) and, per
         alias (shape (N, n)), ``r`` = W G, ``cs_i``, ``Gp``, ``h`` = ``(1 - z_k^-N)/(N (1 - z_k^-1))``
         (the hold of the speed reference and the sampling of the position)."""
         w = np.asarray(omega, float)
@@ -236,7 +248,8 @@ class CascadeModel:
         N = self.rate
         h = sum(z ** (-float(l)) for l in range(N)) / N  # (1 - z^-N)/(N (1 - z^-1)), finite at z = 1
         return {"A": self.lift(WG, z), "Lc": self.lift(csi, z), "c": self.lift(Gp, z)[:, 0, :],
-                "cp_i": self.tp / (1 - 1 / zp), "r": WG, "cs_i": csi, "Gp": Gp, "h": h, "G": P["G"].reshape(sh)}
+                "cp_i": self.tp / (1 - 1 / zp), "dp": zp ** (-float(self.delay)),  # the position loop's delay
+                "r": WG, "cs_i": csi, "Gp": Gp, "h": h, "G": P["G"].reshape(sh)}
 
     def position_loop(self, g, omega: NDArray[np.float64]) -> NDArray[np.complex128]:
         """The position loop broken at its sampled measurement, the speed loop closed, at its
@@ -253,7 +266,7 @@ class CascadeModel:
         L = self.lifted_parts(w)
         cs = float(g[0]) + float(g[1]) * L["cs_i"]
         T = L["Gp"] * cs / (1 + L["r"] * cs)
-        return (float(g[2]) + float(g[3]) * L["cp_i"]) * np.sum(L["h"] * T, axis=0)
+        return (float(g[2]) + float(g[3]) * L["cp_i"]) * L["dp"] * np.sum(L["h"] * T, axis=0)
 
     def return_differences(self, g, omega: NDArray[np.float64]) -> dict[str, NDArray[np.complex128]]:
         """Lifted return differences ``M = I + L`` (shape (n, N, N), at the position-loop
@@ -273,7 +286,7 @@ class CascadeModel:
         B = float(g[0]) * eye + float(g[1]) * L["Lc"]
         A = L["A"]
         a = B @ np.ones(N)
-        b = (float(g[2]) + float(g[3]) * L["cp_i"])[:, None] * L["c"]
+        b = ((float(g[2]) + float(g[3]) * L["cp_i"]) * L["dp"])[:, None] * L["c"]
         ab = a[:, :, None] * b[:, None, :]
         Mt = eye + B @ A + ab
         Msc = eye + A @ np.linalg.solve(eye + ab, B)
@@ -347,8 +360,9 @@ class CascadeModel:
         n, ts, a = self.n, self.ts, self.a_lead
         nd = self.plant.command_delay_samples  # the drive's command delay: a line of nd commands after the states
         nf = 4 * len(self.biquads)  # the filters' memory, last
+        npd = 2 * self.delay  # the position loop's pending (speed reference, feed-forward) pairs, before the filters
         g = ca.SX.sym("g", 6)
-        X = ca.SX.sym("X", n + 5 + nd + nf)
+        X = ca.SX.sym("X", n + 5 + nd + npd + nf)
         r = ca.SX.sym("r", 4)  # position ref (rad), speed ref (rad/s), accel ref (rad/s^2), load (N)
         kp, ki, kv, kip, kvff, kaff = (g[i] for i in range(6))
         x, th_prev, w_f, i_s, u_pend, i_p = X[:n], X[n], X[n + 1], X[n + 2], X[n + 3], X[n + 4]
@@ -360,17 +374,22 @@ class CascadeModel:
         e_p = r[0] - pm
         i_p1 = i_p + ts * kip * e_p
         w_ref = kv * e_p + i_p1 + kvff * r[1]
-        u = kp * (w_ref - w_m) + i_s + kaff * self.inertia * r[2]
+        tau = kaff * self.inertia * r[2]
+        pl = X[n + 5 + nd:n + 5 + nd + npd]
+        pnext = [w_ref, tau] + [pl[i] for i in range(npd - 2)] if npd else []
+        if npd:  # the position loop's computation delay: its oldest pending output is applied
+            w_ref, tau = pl[npd - 2], pl[npd - 1]
+        u = kp * (w_ref - w_m) + i_s + tau
         i_s1 = i_s + ts * ki * (w_ref - w_m)
         u, fnext = self._filter("torque_command", u, fmem, fnext)
         line = X[n + 5:n + 5 + nd]
         act = line[nd - 1] if nd else u_pend
         x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * act + ca.DM(self.bd) * r[3]
         Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, *([u_pend] if nd else []), *[line[i] for i in range(nd - 1)],
-                        *fnext)
+                        *pnext, *fnext)
         self.step = ca.Function("cascade_step", [X, r, g], [Xn, e_p * a])
         self.jac = ca.Function("cascade_ab", [g], [ca.jacobian(Xn, X), ca.jacobian(Xn, r)])
-        self.nX = n + 5 + nd + nf
+        self.nX = n + 5 + nd + npd + nf
 
     def _filter(self, place: str, x, fmem, fnext=None):
         """The biquads at ``place`` run on ``x`` in order (direct form I, the simulator's
@@ -394,8 +413,9 @@ class CascadeModel:
         n, ts, a = self.n, self.ts, self.a_lead
         nd = self.plant.command_delay_samples
         nf = 4 * len(self.biquads)
+        npd = 2 * self.delay  # the pending (speed reference, feed-forward) pairs, shifted at position-loop samples
         g = ca.SX.sym("g", 6)
-        X = ca.SX.sym("X", n + 7 + nd + nf)
+        X = ca.SX.sym("X", n + 7 + nd + npd + nf)
         act = ca.SX.sym("active")
         # position ref (rad), speed ref (rad/s), accel ref (rad/s^2), load (N), active (0/1)
         r4 = ca.SX.sym("r", 4)
@@ -410,8 +430,15 @@ class CascadeModel:
         w_m, fnext = self._filter("speed_measurement", w_f1, fmem)
         e_p = r[0] - pm
         i_p1 = i_p + act * self.tp * kip * e_p
-        w_ref = act * (kv * e_p + i_p1 + kvff * r[1]) + (1 - act) * w_hold
-        tau = act * kaff * self.inertia * r[2] + (1 - act) * tau_hold
+        w_new, tau_new = kv * e_p + i_p1 + kvff * r[1], kaff * self.inertia * r[2]
+        pl = X[n + 7 + nd:n + 7 + nd + npd]
+        pnext = []
+        if npd:  # the position loop's computation delay: at its sample the oldest pending output is applied
+            shifted = [w_new, tau_new] + [pl[i] for i in range(npd - 2)]
+            pnext = [act * shifted[i] + (1 - act) * pl[i] for i in range(npd)]
+            w_new, tau_new = pl[npd - 2], pl[npd - 1]
+        w_ref = act * w_new + (1 - act) * w_hold
+        tau = act * tau_new + (1 - act) * tau_hold
         u = kp * (w_ref - w_m) + i_s + tau
         i_s1 = i_s + ts * ki * (w_ref - w_m)
         u, fnext = self._filter("torque_command", u, fmem, fnext)
@@ -419,10 +446,10 @@ class CascadeModel:
         cmd = line[nd - 1] if nd else u_pend
         x1 = ca.mtimes(ca.DM(self.Ad), x) + ca.DM(self.bu) * cmd + ca.DM(self.bd) * r[3]
         Xn = ca.vertcat(x1, theta, w_f1, i_s1, u, i_p1, w_ref, tau, *([u_pend] if nd else []),
-                        *[line[i] for i in range(nd - 1)], *fnext)
+                        *[line[i] for i in range(nd - 1)], *pnext, *fnext)
         self.step = ca.Function("cascade_step", [X, r, g], [Xn, e_p * a])
         self.jac = ca.Function("cascade_ab", [g, act], [ca.jacobian(Xn, X), ca.jacobian(Xn, r4)])
-        self.nX = n + 7 + nd + nf
+        self.nX = n + 7 + nd + npd + nf
 
     def closed_loop_matrices(self, g, active: float = 1.0) -> tuple[NDArray, NDArray]:
         """One speed-loop sample's closed-loop matrices ``(A, B)`` (``X+ = A X + B r``); of a
@@ -548,7 +575,7 @@ class CascadeDesign:
         return {"method": self.method, "speed": self.speed.as_dict(),
                 "position": {"kv_per_s": self.position.kv, "ki_per_s2": self.position.ki, "kvff": self.position.kvff,
                              "kaff": self.position.kaff, "measured": self.position.measured,
-                             "rate": self.position.rate},
+                             "rate": self.position.rate, "delay_samples": self.position.delay},
                 "ms": self.ms_points, "crossover_rad_s": self.crossover_rad_s, "linear": self.linear,
                 "objective": self.objective, "verified": self.verified.as_dict() if self.verified else None,
                 "notes": list(self.notes), "solver": self.solver,
@@ -566,7 +593,7 @@ def _design(cm: CascadeModel, method: str, g, objective: float, notes=None, solv
     sc = cm.scene
     speed = PID(float(g[0]), float(g[1]))
     pos = PositionLoop(kv=float(g[2]), ki=float(g[3]), kvff=float(g[4]), kaff=float(g[5]), measured=sc.measured,
-                       rate=sc.position_rate)
+                       rate=sc.position_rate, delay=getattr(sc, "position_delay_samples", 0))
     cross = {"speed_open": cm.crossover(g, "speed_open"), "position": cm.crossover(g, "position")}
     return CascadeDesign(method, speed, pos, cm.ms(g), cross, _linear_summary(cm, g), float(objective),
                          notes=tuple(notes or ()), solver=dict(solver or {}), filters=cm.filters)
@@ -754,7 +781,7 @@ def _multirate_constraints(cm: CascadeModel, g, g0, omega: NDArray[np.float64], 
         n_k.append(_cplx_mul(_cm_const(Lp["Gp"][k] * Lp["h"][k]), cs))
     # position loop at its own sample time (alias sum over a common denominator)
     cpi = _cm_const(Lp["cp_i"])
-    cp = (kv + kip * cpi[0], kip * cpi[1])
+    cp = _cplx_mul((kv + kip * cpi[0], kip * cpi[1]), _cm_const(Lp["dp"]))
     D = d_k[0]
     for k in range(1, N):
         D = _cplx_mul(D, d_k[k])
@@ -790,7 +817,7 @@ def _multirate_constraints(cm: CascadeModel, g, g0, omega: NDArray[np.float64], 
     H_sc = _psd_conditions(Pn, mu * c1_abs2, 1.0)
     # normalise the speed_closed conditions by the baseline's value of |c1|^2 |M|_F^2 (k-th power)
     B0 = float(g0[0]) * np.eye(N)[None] + float(g0[1]) * Lp["Lc"]
-    b0 = (float(g0[2]) + float(g0[3]) * Lp["cp_i"])[:, None] * Lp["c"]
+    b0 = ((float(g0[2]) + float(g0[3]) * Lp["cp_i"]) * Lp["dp"])[:, None] * Lp["c"]
     c0 = np.maximum(np.abs(1 + np.einsum("wi,wi->w", b0, B0 @ np.ones(N))) ** 2, 1e-12)
     fs = np.maximum(np.sum(np.abs(Md["speed_closed"]) ** 2, axis=(1, 2)) / N, 1e-12) * c0
     cons += [h / ca.DM(fs ** (k + 1)) for k, h in enumerate(H_sc)]
@@ -856,9 +883,9 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
             P = cm.parts(np.array(omegas))
             def c(v):
                 return (ca.DM(v.real), ca.DM(v.imag))
-            G, Gp, W, csi, cpi = (c(P[k]) for k in ("G", "Gp", "W", "cs_i", "cp_i"))
+            G, Gp, W, csi, cpi, dp = (c(P[k]) for k in ("G", "Gp", "W", "cs_i", "cp_i", "dp"))
             cs = (g[0] + g[1] * csi[0], g[1] * csi[1])
-            cp = (g[2] + g[3] * cpi[0], g[3] * cpi[1])
+            cp = _cplx_mul((g[2] + g[3] * cpi[0], g[3] * cpi[1]), dp)
             q = _cplx_mul(_cplx_mul(Gp, cs), cp)
             r = _cplx_mul(_cplx_mul(W, G), cs)
             one_q = (1 + q[0], q[1])

@@ -10,6 +10,7 @@ command sequence; the ST's C equals the toolkit's C bit for bit on hostile seque
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import math
 import os
 import re
@@ -75,7 +76,28 @@ def move_scale(plant):
     return law, replay_inputs(r, plant, sc.motion(), pos), r
 
 
-CASES = ("load_step", "move", "move_scale")
+@pytest.fixture(scope="module")
+def move_delay(plant):
+    """A move with the position loop every 2nd sample and its own computation delay of 2
+    position-loop samples (issue 34), a position PI and filters."""
+    sc = load_move_scene("paper-move")
+    pos = PositionLoop(kv=60.0, ki=50.0, kvff=1.0, kaff=0.8, rate=2, delay=2)
+    r = run(plant, load=sc.loads()[:2], duration=0.25, controller=MOVE_PID, fidelity="compliant", discrete=True,
+            position=pos, motion=sc.motion(), filters=FILTERS)
+    law = drive_law(MOVE_PID, plant, position=pos, filters=FILTERS)
+    return law, replay_inputs(r, plant, sc.motion(), pos), r
+
+
+CASES = ("load_step", "move", "move_scale", "move_delay")
+
+
+def test_position_delay_is_in_the_law_and_the_run(move_delay, plant):
+    """The delayed run differs from the undelayed law's replay (the delay matters on this run),
+    and the law carries it."""
+    law, inp, _ = move_delay
+    assert law.position.delay == 2 and law.position.rate == 2
+    nodelay = dataclasses.replace(law, position=dataclasses.replace(law.position, delay=0))
+    assert max_relative_difference(ReferenceLaw(nodelay).run(inp), inp["torque_command"]) > 1e3 * REL
 
 
 def test_recorded_runs_exercise_the_law(load_step, move):
@@ -401,6 +423,8 @@ def _variants():
             kv=60.0, ki=50.0, kvff=1.0, kaff=0.8, measured="screw_position", rate=3)),
         "cascade_friction": lambda pl: drive_law(MOVE_PID, pl, position=PositionLoop(
             kv=102.7, kvff=1.0, kaff=1.0, friction=FrictionFeedforward.from_plant(pl, 1500.0))),
+        "cascade_delay": lambda pl: drive_law(MOVE_PID, pl, filters=FILTERS, position=PositionLoop(
+            kv=60.0, ki=50.0, kvff=1.0, kaff=0.8, rate=2, delay=3)),
     }
 
 

@@ -7,7 +7,7 @@ import pytest
 from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.plant.plantfile import load_plant
 from prsa_ctrl.studies.scene import load_scene
-from spec_scenes import ROLLER_SPEC_SCENE, check_rule as _check_rule
+from spec_scenes import BALL_CUT_SCENE, ROLLER_SPEC_SCENE, check_rule as _check_rule, roller_16k_plant
 
 
 @pytest.fixture(scope="module")
@@ -15,6 +15,136 @@ def roller(tmp_path_factory):
     path = tmp_path_factory.mktemp("designspec") / "rollerscrew-spec.toml"
     path.write_text(ROLLER_SPEC_SCENE, encoding="utf-8")
     return load_plant("rollerscrew-30x5"), load_scene(str(path))
+
+
+@pytest.fixture(scope="module")
+def roller16k(tmp_path_factory):
+    """The issue's scene on the roller screw with a 16 kHz speed loop (where the rule of thumb
+    reaches ~90 %)."""
+    d = tmp_path_factory.mktemp("designspec16k")
+    (d / "rs16k.toml").write_text(roller_16k_plant(), encoding="utf-8")
+    (d / "scene.toml").write_text(ROLLER_SPEC_SCENE, encoding="utf-8")
+    return load_plant(str(d / "rs16k.toml")), load_scene(str(d / "scene.toml"))
+
+
+def test_linear_yield_grid_agrees_with_an_independent_linear_check(roller16k):
+    """The grid's linear yield of each proposed design, recomputed sample by sample from the
+    loop's own trajectory (sim.metrics.load_step_metrics) and its true Ms (peak_sensitivity):
+    equal, up to samples within 1 % of a bound (the grid's Ms is on the model's frequency grid)."""
+    from prsa_ctrl.plant.uncertainty import apply, uncertainty_model
+    from prsa_ctrl.sim.metrics import load_step_metrics
+    from prsa_ctrl.studies.designspec import linear_yield_grid
+    from prsa_ctrl.studies.mcjob import draw_sample
+    from prsa_ctrl.studies.paper import default_pid
+    from prsa_ctrl.studies.sceneloops import actuator_loops
+    from prsa_ctrl.studies.scenerobust import operating_points
+
+    plant, scene = roller16k
+    spec = dict(scene.robust["spec"])
+    n, seed = 6, 5
+    g = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, seed=seed, n=n, size=5, picks=3)
+    assert g["points"] == 25 and g["samples"] == n and 1 <= len(g["designs"]) <= 3
+    assert max(g["linear_yield"].values()) == g["best_linear_yield"]
+    unc, ops = uncertainty_model(plant, scene), operating_points(scene)
+    for name, pid in g["designs"].items():
+        assert pid.kd == 0 and 0.15 <= pid.kp <= 1.3  # inside the grid's span: half the smallest .. twice the largest
+        passed = unsure = 0
+        for i in range(n):
+            values, op, _ = draw_sample(unc, ops, seed, i)
+            sc = scene.replace(setpoint_rad_s=ops[op][0], final_loads=(ops[op][1],))
+            lp = actuator_loops(apply(plant, values), sc)[0]
+            assert lp.is_stable(pid.gains)
+            e = lp.error(pid.gains)
+            t = np.arange(e.size) * lp.h
+            m = load_step_metrics(t, sc.setpoint_rad_s - e, sc.setpoint_rad_s, 0.0)
+            ratios = [m.peak_drop_rad_s / spec["peak_drop_rad_s"], m.recovery_time_s / spec["recovery_time_s"],
+                      lp.peak_sensitivity(pid.gains) / spec["ms"]]
+            passed += max(ratios) <= 1.0
+            unsure += any(abs(r - 1.0) < 0.01 for r in ratios)
+        assert abs(passed / n - g["linear_yield"][name]) <= unsure / n + 1e-12, (name, passed, unsure)
+
+
+def test_design_to_spec_decides_among_the_near_max_designs_on_more_samples(roller16k):
+    """A smaller case (one Ms level, 6 screen, 12 decision and 6 fresh samples): the grid's
+    proposals are evaluated; the decision runs only designs of (near-)maximal screen yield, on
+    the screen's samples and more; the chosen one is the decision's recommendation; the rule
+    holds on both tables."""
+    from prsa_ctrl.studies.designspec import MAX_FINALISTS, design_to_spec
+    from prsa_ctrl.studies.paper import default_pid
+
+    plant, scene = roller16k
+    r = design_to_spec(plant, scene, n_search=6, n_decide=12, n_final=6, seed=2, ms_levels=(1.5,),
+                       extra={"rule of thumb": default_pid(plant)})
+    assert r.grid is not None and r.grid["proposed"] and set(r.grid["proposed"]) <= set(r.designs)
+    assert {row["name"] for row in r.search["rows"]} == set(r.designs)
+    assert r.chosen is not None
+    near = {row["name"] for row in r.search["rows"] if row["near_max"] and row["passed"] > 0}
+    if r.decide is None:
+        assert len(near) == 1 and r.chosen in near
+    else:
+        rows = r.decide["rows"]
+        assert {x["name"] for x in rows} <= near and 2 <= len(rows) <= MAX_FINALISTS
+        assert all(x["samples"] == 12 for x in rows) and r.chosen == r.decide["recommended"]
+        _check_rule({**r.decide, "table": rows, "name": r.chosen, "design": r.chosen})
+    assert r.final_yield.n == 6 and r.final_seed == 3
+    text = r.format("iae")
+    assert "linear-yield grid" in text and f"chosen: {r.chosen}" in text
+    off = design_to_spec(plant, scene, n_search=4, n_decide=4, n_final=4, seed=2, ms_levels=(1.5,), grid=False)
+    assert off.grid is None and off.decide is None
+    assert not any(k.startswith("linear-yield grid") for k in off.designs)
+
+
+def _acceptance(plant, scene, *, expect_95: bool):
+    """The issue's acceptance on one scene: the recommended design's yield on 200 fresh samples
+    is at least the best yield of any design the run evaluated minus the two Wilson 95 %
+    half-widths; with ``expect_95`` (the rule of thumb reaches ~90 % or more there) at least 95 %.
+    The fresh yield is checked by an independent Monte Carlo of the chosen gains."""
+    from prsa_ctrl.studies.designspec import design_to_spec
+    from prsa_ctrl.studies.montecarlo import run_monte_carlo, wilson_interval
+    from prsa_ctrl.studies.paper import default_pid
+
+    rule = default_pid(plant)
+    r = design_to_spec(plant, scene, n_search=40, n_final=200, seed=0, extra={"rule of thumb": rule}, workers=2)
+    assert r.chosen is not None
+    fy = r.final_yield
+    half = lambda k, n: (lambda lo, hi: (hi - lo) / 2)(*wilson_interval(k, n))  # noqa: E731
+    tables = [r.search["rows"]] + ([r.decide["rows"]] if r.decide else [])
+    for rows in tables:
+        for row in rows:
+            assert fy.yield_ >= row["yield"] - half(row["passed"], row["samples"]) - half(fy.passed, fy.n) - 1e-12, row
+    ref = run_monte_carlo(plant, scene, {"x": r.pid}, 200, seed=1, workers=2, quiet=True,
+                          spec=dict(scene.robust["spec"])).designs[0]
+    assert (ref.passed, ref.n) == (fy.passed, fy.n)
+    text = r.format("iae")
+    assert f"* {r.chosen}" in text and f"({fy.passed}/200)" in text
+    if expect_95:
+        assert fy.yield_ >= 0.95, text
+    return r
+
+
+@pytest.mark.slow
+def test_acceptance_roller_screw_16k_reaches_95_percent_where_the_rule_of_thumb_nearly_does(roller16k):
+    """Issue 34's case on a 16 kHz speed loop: the rule of thumb passes ~90 %; the recommended
+    design reaches >= 95 % on 200 fresh samples and the rule of thumb does not beat it."""
+    r = _acceptance(*roller16k, expect_95=True)
+    rule = next(row for row in r.search["rows"] if row["name"] == "rule of thumb")
+    assert rule["yield"] >= 0.85  # the case the acceptance is about: the rule of thumb nearly meets the spec
+
+
+@pytest.mark.slow
+def test_acceptance_roller_screw_built_in(roller):
+    """Issue 34's case on the built-in 4 kHz roller screw (the rule of thumb fails Ms there)."""
+    _acceptance(*roller, expect_95=False)
+
+
+@pytest.mark.slow
+def test_acceptance_ball_screw_cut(tmp_path):
+    """A feed axis entering a cut (BALL_CUT_SCENE): the rule of thumb breaks Ms on every sample;
+    the recommended design is within the intervals of the best."""
+    path = tmp_path / "ballscrew-cut-spec.toml"
+    path.write_text(BALL_CUT_SCENE, encoding="utf-8")
+    r = _acceptance(load_plant("ballscrew-32x10"), load_scene(str(path)), expect_95=False)
+    assert next(row for row in r.search["rows"] if row["name"] == "rule of thumb")["passed"] == 0
 
 
 def test_design_to_spec_chooses_by_the_rule_and_reports_fresh_samples(roller):
@@ -48,7 +178,8 @@ def test_design_to_spec_chooses_by_the_rule_and_reports_fresh_samples(roller):
 
 @pytest.mark.parametrize("kw, match", [({"n_search": 0}, "n_search = 0"), ({"n_final": True}, "n_final = True"),
                                        ({"seed": -1}, "seed = -1"), ({"ms_levels": (1.0,)}, "ms_levels"),
-                                       ({"ms_levels": (float("nan"),)}, "ms_levels")])
+                                       ({"ms_levels": (float("nan"),)}, "ms_levels"),
+                                       ({"n_decide": 0}, "n_decide = 0"), ({"n_decide": 2.5}, "n_decide = 2.5")])
 def test_design_to_spec_bad_arguments_are_named_before_any_work(roller, kw, match):
     from prsa_ctrl.studies.designspec import design_to_spec
 

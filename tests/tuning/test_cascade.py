@@ -353,6 +353,32 @@ def test_position_export_reproduces_the_simulated_law(plant, designs):
         assert np.max(np.abs(us[:-1] - tc[1:])) < 1e-9 * max(1.0, np.max(np.abs(tc)))
 
 
+def test_position_export_with_a_delay_reproduces_the_simulated_law(plant, designs):
+    """The exported position law at its own sample time (every 2nd sample), its outputs applied
+    ``delay_samples`` position samples later as the export states, from the exported fields only:
+    the simulated speed references and feed-forward of a run with that delay, to 1e-9."""
+    sc, cm, seq, joint = designs
+    pos = dataclasses.replace(joint.position, ki=800.0, kaff=0.6, rate=2, delay=2)
+    design = dataclasses.replace(joint, position=pos)
+    pc = tomllib.loads(dumps(export_cascade(design, plant, fmt="toml"), "toml"))["position_controller"]
+    n_rate = round(pc["sample_time_s"] / plant.sample_time_s)
+    assert (n_rate, pc["delay_samples"]) == (2, 2) and pc["delay_s"] == pytest.approx(4 * plant.sample_time_s)
+    r = simulate_move(plant, sc, joint.speed, pos, duration=0.3, loads=sc.loads()[:2])
+    _, v_ref, acc_ref = sc.motion().at(r.time)
+    k = np.arange(0, r.time.size, n_rate)  # the position-loop samples
+    w_p, t_p = _exported_position_law(pc, r.output("position_reference")[k], r.output("position_measured")[k],
+                                      v_ref[k], acc_ref[k])
+    d = pc["delay_samples"]
+    w_applied = np.repeat(np.concatenate([np.zeros(d), w_p[:-d]]), n_rate)[:r.time.size]
+    t_applied = np.repeat(np.concatenate([np.zeros(d), t_p[:-d]]), n_rate)[:r.time.size]
+    w_sim = r.output("speed_reference")
+    assert np.allclose(w_applied, w_sim, rtol=1e-9, atol=1e-9 * np.max(np.abs(w_sim)))
+    assert np.allclose(t_applied, r.output("torque_feedforward"), rtol=1e-9, atol=1e-12)
+    # the delay shows: the undelayed law is far from the run
+    w_now = np.repeat(w_p, n_rate)[:r.time.size]
+    assert np.max(np.abs(w_now - w_sim)) > 1e-3 * np.max(np.abs(w_sim))
+
+
 def test_cli_move_scene_bad_flags_exit_2(tmp_path, capsys):
     from prsa_ctrl.cli.tune import main
 
@@ -467,7 +493,7 @@ def _biquad_run(coef, mem, x):
     return y
 
 
-def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, biquads=()):
+def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, biquads=(), p_delay=0):
     """An independent simulation of the linear multi-rate cascade (this test's own code: the
     plant discretised here with scipy's expm, the drive's per-sample law written out), with a
     complex sinusoid ``exp(j omega k Ts)`` added at one loop-breaking point: ``torque`` (the
@@ -475,7 +501,9 @@ def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, biquads=())
     or ``position`` (the position the position loop reads, at its own samples). Returns the
     signal at the breaking point (command + disturbance, and so on), one per speed sample.
     ``biquads``: ``(place, (b0, b1, b2, a1, a2))`` loop filters, direct form I, on the filtered
-    speed (``speed_measurement``) or on the command (``torque_command``)."""
+    speed (``speed_measurement``) or on the command (``torque_command``). ``p_delay``: the
+    position loop's computation delay, in position-loop samples (its output enters a queue at
+    each position-loop sample and leaves it ``p_delay`` position-loop samples later)."""
     from scipy.linalg import expm
 
     from prsa_ctrl.plant.linear import linear_core
@@ -493,6 +521,7 @@ def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, biquads=())
     line = [0j] * (1 + plant.command_delay_samples)  # computation delay + the drive's command delay
     x = np.zeros(n, complex)
     th_prev = w_f = i_s = i_p = w_ref = 0j
+    queue = [0j] * p_delay
     out = np.zeros(samples, complex)
     mems = [[0j] * 4 for _ in biquads]
     for k in range(samples):
@@ -504,7 +533,8 @@ def _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, biquads=())
             p_read = theta + (d if where == "position" else 0)
             e = 0 - p_read
             i_p = i_p + tp * kip * e
-            w_ref = kv * e + i_p
+            queue.append(kv * e + i_p)
+            w_ref = queue.pop(0)
             if where == "position":
                 out[k] = p_read
         w_m = w_f
@@ -535,15 +565,17 @@ def _two_filters():
                           "lowpass": [{"path": "speed", "corner_hz": 900.0, "order": 2}]}, "test")
 
 
-@pytest.mark.parametrize("n_rate, filtered", [(2, False), (3, False), (2, True), (1, True)])
-def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate, filtered):
+@pytest.mark.parametrize("n_rate, filtered, p_delay", [(2, False, 0), (3, False, 0), (2, True, 0), (1, True, 0),
+                                                       (2, False, 1), (1, False, 2), (3, True, 1)])
+def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate, filtered, p_delay):
     """The lifted loop model of a position loop every N speed samples (CascadeModel at
     position_rate = N) against a direct simulation of the linear multi-rate loop: a sinusoid
     injected at each breaking point, in steady state, gives over a position period exactly
     the lifted sensitivity ``M^-1`` times the input's lifted vector (the scalar ``1/(1 + L_p)``
     at the position loop), at frequencies below and above the position loop's Nyquist; with a
-    torque notch and a speed low-pass (the scene's fixed filters) in the loop too."""
-    sc = dataclasses.replace(scene, fidelity="rigid", position_rate=n_rate)
+    torque notch and a speed low-pass (the scene's fixed filters) in the loop too; and with the
+    position loop's own computation delay (``position_delay_samples``)."""
+    sc = dataclasses.replace(scene, fidelity="rigid", position_rate=n_rate, position_delay_samples=p_delay)
     if filtered:
         f, labels = _two_filters()
         sc = dataclasses.replace(sc, filters=f, filter_labels=labels)
@@ -552,24 +584,30 @@ def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate,
     bqs = [(lf.place, tuple(getattr(lf.biquad(ts), k) for k in ("b0", "b1", "b2", "a1", "a2"))) for lf in sc.filters]
     assert len(bqs) == (2 if filtered else 0)
     g = [PI.kp, PI.ki, 70.0, 2000.0, 1.0, 1.0]  # a position PI, so that its slow integral is checked too
-    assert cm.spectral_radius(g) < 0.995
+    assert cm.delay == p_delay and cm.spectral_radius(g) < 0.995
     samples = 4200 - 4200 % n_rate
     tp = n_rate * plant.sample_time_s
     for omega in (150.0, 700.0, 0.8 * math.pi / tp):
         zp = np.exp(1j * omega * tp)
         M = cm.return_differences(g, np.array([omega]))
         for where in ("torque", "speed_closed"):
-            y = _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, bqs)
+            y = _simulate_multirate(plant, cm, g, n_rate, omega, where, samples, bqs, p_delay)
             v = np.exp(1j * omega * np.arange(n_rate) * plant.sample_time_s)
             predicted = np.linalg.solve(M[where][0], v)
             last = samples // n_rate - 1
             got = y[last * n_rate:(last + 1) * n_rate] / zp ** last
             assert np.allclose(got, predicted, rtol=1e-7, atol=1e-9 * np.max(np.abs(predicted))), (where, omega)
-        y = _simulate_multirate(plant, cm, g, n_rate, omega, "position", samples, bqs)
+        y = _simulate_multirate(plant, cm, g, n_rate, omega, "position", samples, bqs, p_delay)
         last = samples // n_rate - 1
         got = y[last * n_rate] / zp ** last
         assert got == pytest.approx(1 / (1 + cm.position_loop(g, np.array([omega]))[0]), rel=1e-7)
-    if n_rate > 1:
+    if p_delay:  # the delay is in the model: without it the position loop's sensitivity differs
+        y = _simulate_multirate(plant, cm, g, n_rate, 700.0, "position", samples, bqs, p_delay)
+        zp = np.exp(1j * 700.0 * tp)
+        got = y[(samples // n_rate - 1) * n_rate] / zp ** (samples // n_rate - 1)
+        nodelay = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0))
+        assert abs(got - 1 / (1 + nodelay.position_loop(g, np.array([700.0]))[0])) > 1e-3 * abs(got)
+    if n_rate > 1 and not p_delay:
         # The model's peaks are those sensitivities' maxima: the slow loop sees more than the fast one.
         fast = CascadeModel(plant, dataclasses.replace(sc, position_rate=1)).ms(g)
         slow = cm.ms(g)
@@ -596,6 +634,37 @@ def test_multirate_time_model_is_the_simulated_law(plant, scene):
     r = simulate_move(plant, sc, PID(PI.kp, PI.ki), PositionLoop(kv=50.0, kvff=0.0, kaff=0.0, rate=2))
     e_nl = _err_m(r, plant)[:e.size]
     assert np.max(np.abs(e_nl - e)) < 0.05 * np.max(np.abs(e))
+
+
+@pytest.mark.parametrize("n_rate, p_delay", [(1, 1), (2, 1), (2, 2)])
+def test_position_delay_time_model_is_the_simulated_law(plant, scene, n_rate, p_delay):
+    """The tuner's time-domain model with the position loop's own delay is the simulator's law
+    (PositionLoop(delay=...)) linearised: over the move, the linear and the nonlinear rigid runs
+    of the same gains agree to the friction's linearisation, and the delay is in both (the
+    undelayed model differs from the delayed run by more than that)."""
+    sc = dataclasses.replace(scene, fidelity="rigid", load_n=0.0, hold_step_n=100.0, position_rate=n_rate,
+                             position_delay_samples=p_delay)
+    cm = CascadeModel(plant, sc)
+    g = [PI.kp, PI.ki, 50.0, 0.0, 0.0, 0.0]
+    e = cm.error(g, "move")
+    r = simulate_move(plant, sc, PID(PI.kp, PI.ki), PositionLoop(kv=50.0, kvff=0.0, kaff=0.0, rate=n_rate,
+                                                                 delay=p_delay))
+    e_nl = _err_m(r, plant)[:e.size]
+    e0 = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0)).error(g, "move")
+    assert np.max(np.abs(e_nl - e)) < 0.05 * np.max(np.abs(e))
+    assert np.max(np.abs(e_nl - e0)) > 4 * np.max(np.abs(e_nl - e))
+
+
+def test_position_delay_memory_and_arguments():
+    """The delay's memory (pending pairs, newest first) and its bounds, named as typed."""
+    p = PositionLoop(kv=10.0, delay=2)
+    assert p.memory_names[4:] == ("pending_speed_reference_1", "pending_torque_feedforward_1",
+                                  "pending_speed_reference_2", "pending_torque_feedforward_2")
+    assert p.initial() == [0.0] * 8 and PositionLoop(kv=10.0).memory_names[4:] == ()
+    assert p.key() != PositionLoop(kv=10.0).key()
+    for bad in (-1, 9, 1.0, True):
+        with pytest.raises(ValueError, match=f"delay = {bad!r}"):
+            PositionLoop(kv=10.0, delay=bad)
 
 
 def _short_move(tmp_path, name, edits, cascade_lines=()):
@@ -672,6 +741,68 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
         assert ("phase + 1 >= p->position_rate" if ext == "c" else "t_Phase + 1 >= P_POSITION_RATE") in code
         assert (("p->sf0_b0" in code and "p->tf0_b0" in code) if ext == "c" else
                 ("P_SF0_B0" in code and "P_TF0_B0" in code))  # both filters in the generated law
+
+
+def test_cli_cascade_with_the_position_loops_own_delay(tmp_path, capsys, plant):
+    """position_rate = 2 with position_delay_samples = 1 (issue 34): tuned by prsa-tune with the
+    delay in the model (the reported peaks are the delayed model's; the undelayed model's differ),
+    verified on the nonlinear model, and the delay in every export (TOML, JSON, C, ST)."""
+    import json
+
+    from prsa_ctrl.io.codegen import code_texts
+
+    from prsa_ctrl.cli.tune import main
+
+    f = _short_move(tmp_path, "delay.toml", [("position_rate", "2 \nposition_delay_samples = 1"),
+                                              ("hold_delay_s", "0.08")])
+    sc = load_move_scene(f)
+    assert sc.position_rate == 2 and sc.position_delay_samples == 1
+    rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "d.toml")])
+    assert rc == 0 and capsys.readouterr().err == ""
+    data = json.loads((tmp_path / "c.json").read_text())
+    cm = CascadeModel(plant, sc)
+    cm0 = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0))
+    for name in ("sequential", "joint"):
+        d = data[name]
+        assert d["position"]["rate"] == 2 and d["position"]["delay_samples"] == 1
+        assert max(d["ms"][k] for k in BREAKING_POINTS) <= 1.4 * (1 + 1e-5)
+        assert d["verified"] is not None and d["verified"]["settling_time_s"] is not None
+        g = [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], d["position"]["ki_per_s2"],
+             d["position"]["kvff"], d["position"]["kaff"]]
+        again, undelayed = cm.ms(g, n_dense=12007), cm0.ms(g, n_dense=12007)
+        for k in BREAKING_POINTS:
+            assert again[k] == pytest.approx(d["ms"][k], rel=1e-4)
+        assert undelayed["position"] < again["position"] * (1 - 1e-3)  # the delay costs margin: it is modelled
+    ts = plant.sample_time_s
+    pc = tomllib.loads((tmp_path / "d.toml").read_text())["position_controller"]
+    assert pc["delay_samples"] == 1 and pc["delay_s"] == pytest.approx(2 * ts) and pc["sample_time_s"] == 2 * ts
+    assert "applied from sample k + 1 on" in pc["discretisation"]
+    from prsa_ctrl.tuning.cascade import _design
+
+    d = data["joint"]
+    design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
+                                   d["position"]["kvff"], d["position"]["kaff"]], 0.0)
+    assert design.position.delay == 1
+    assert json.loads(dumps(export_cascade(design, plant, fmt="json"), "json"))["position_controller"][
+        "delay_samples"] == 1
+    assert main(["--scene", str(f), "--quiet", "--export", str(tmp_path / "drive.st")]) == 0
+    c = "".join(code_texts(design, plant, tmp_path / "drive.c").values())
+    st = (tmp_path / "drive.st").read_text()
+    for code in (c, st):
+        assert "its outputs applied 1 position-loop sample(s) after they are computed" in code
+    assert "w_ref = pw1; tau_p = pt1;" in c and "s->pend_w1 = pw1;" in c
+    assert "t_WRef := t_PendW1; t_TauP := t_PendT1;" in st and "s_PendW1 := t_PendW1;" in st
+
+
+@pytest.mark.parametrize("value", ["5", "-1", "1.5", "true"])
+def test_position_delay_refused_in_one_line(tmp_path, capsys, value):
+    from prsa_ctrl.cli.tune import main
+
+    f = _short_move(tmp_path, "bad.toml", [("position_rate", f"1\nposition_delay_samples = {value}")])
+    assert main(["--scene", str(f), "--export", str(tmp_path / "d.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "position_delay_samples" in err and value in err.lower() and "Traceback" not in err
+    assert not (tmp_path / "d.toml").exists()
 
 
 @pytest.mark.parametrize("line, match", [
