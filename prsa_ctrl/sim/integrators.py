@@ -89,7 +89,7 @@ class SimSettings:
         the start of every this many steps and reused by the steps between (1, the default:
         at every step; a divisor of ``substeps``). Reusing it makes the scheme a W-method-like
         linearly implicit one: fewer operations per step, an error the caller measures (the
-        batched Monte Carlo refreshes it twice per controller sample, see
+        batched Monte Carlo refreshes it four times per controller sample, see
         :func:`prsa_ctrl.studies.mcbatch.batch_settings`).
     jit : bool
         ``"cvodes"``/``"idas"``: evaluate the model's right-hand side and its Jacobian as C code
