@@ -85,7 +85,7 @@ def test_batched_run_equals_the_per_sample_runs(family):
 
 
 def test_a_shared_jacobian_is_the_per_sample_scheme_and_changes_the_run(family):
-    """``jacobian_every`` (the batched Monte Carlo refreshes the Jacobian twice per controller
+    """``jacobian_every`` (the batched Monte Carlo refreshes the Jacobian four times per controller
     sample): the batched run equals the per-sample simulator with the same settings, and
     differs from the refresh at every substep (the setting is not ignored) by less than the
     paper scene's accuracy (1 % of the deviation)."""
