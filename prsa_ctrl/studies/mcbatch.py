@@ -163,8 +163,7 @@ def _margins(job: Job, plant, scene, values, op: int, index: int, out: np.ndarra
             loop = actuator_loops(p_i, sc, estimator=est)[0]
         g = pid.gains
         if loop.is_stable(g):
-            mg = loop.margins(g)
-            out[j, 10], out[j, 11] = mg.ms, mg.mt
+            out[j, 10], out[j, 11] = loop.sensitivity_peaks(g)
 
 
 #: The check samples are chosen among the first this many samples of a run (drawing them is
