@@ -2,19 +2,22 @@
 
 One state array of shape ``(n_samples, n_states)`` advances through the drive's sampled loop
 together: at every controller sample the encoder, speed filter and PID act on the whole batch
-in numpy (the law of ``prsa_ctrl.sim.engine._sample_law`` for the encoder measurement,
-written here on arrays), then one compiled CasADi function - the plant's own ODE of its
-parametric family (:class:`prsa_ctrl.plant.model.ParametricModel`, the uncertain values as
-parameters ``theta``), ``substeps`` fixed linearly implicit Radau IIA steps over the sample
-(:func:`prsa_ctrl.sim.integrators.radau_step`) with the command held - advances the whole batch.
-With ``SimSettings(jit=True)`` that step is C code generated from the step's CasADi
-instructions with the batch innermost (every work variable a vector of :data:`LANES` samples,
-so the compiler's vector instructions run 4-8 samples at once; no FMA contraction or
-fast-math: each lane computes what the scalar step computes), compiled once per family and
-settings; without a compiler (or ``jit=False``) the CasADi step is mapped over the batch
-(``Function.map``). The integration restarts at every controller sample, as the per-sample
-path does. The initial steady states are solved batched too (damped Newton on the family's
-residual, mapped over the batch).
+(the law of ``prsa_ctrl.sim.engine._sample_law`` for the encoder measurement, written here on
+arrays), then the plant's own ODE of its parametric family
+(:class:`prsa_ctrl.plant.model.ParametricModel`, the uncertain values as parameters
+``theta``; one symbolic set-up, :func:`_scaled_ode`) advances the whole batch by
+``substeps`` fixed linearly implicit Radau IIA steps over the sample
+(:func:`prsa_ctrl.sim.integrators.radau_step`, the Jacobian refreshed every
+``jacobian_every`` steps) with the command held. With ``SimSettings(jit=True)`` the whole run
+is one call of C code generated from the step's CasADi instructions and the law
+(:func:`lane_function`): the batch innermost (every work variable a vector of :data:`LANES`
+samples, so the compiler's vector instructions run 4-8 samples at once; no FMA contraction
+or fast-math: each lane computes what the scalar code computes, a constant power 1.5 or 0.5
+as a square root), compiled once per family and settings; without a compiler (or
+``jit=False``) the law runs in numpy and the CasADi step is mapped over the batch
+(``Function.map``), one call per controller sample. The integration restarts at every
+controller sample, as the per-sample path does. The initial steady states are solved batched
+too (damped Newton on the family's residual, mapped over the batch).
 
 The fixed step is not error-controlled: :func:`prsa_ctrl.studies.montecarlo.run_monte_carlo`
 measures it against the adaptive reference on a subset of every run and refines or falls back
@@ -107,30 +110,39 @@ def batch_supported(fam: ParametricModel | None, pid: PID, estimator: str = "non
     return None
 
 
+def _scaled_ode(fam: ParametricModel) -> tuple[ca.Function, NDArray[np.float64]]:
+    """The one symbolic set-up of the batched step: the family's plant ODE in scaled states and
+    time normalised to the controller sample, ``f(z, p = [torque N m, load N, load slope N/s,
+    interval s, theta], tau) -> dz/dtau``, and the state scale (``x = z * scale``)."""
+    n_x, n_th = fam.nx, fam.n_theta
+    scale = state_scale(fam)
+    zs = ca.SX.sym("z", n_x)
+    par = ca.SX.sym("p", 4 + n_th)
+    tn = ca.SX.sym("tau")
+    rates = plant_rates(fam, zs * scale, par[0], par[1] + par[2] * par[3] * tn, False,
+                        par[4:] if n_th else ca.DM.zeros(0, 1))
+    return ca.Function("plant_scaled_theta", [zs, par, tn], [par[3] * rates / scale]), scale
+
+
 def _step_function(fam: ParametricModel, settings: SimSettings) -> ca.Function:
     """``(x0 scaled, p = [torque N m, load N, load slope N/s, interval s], theta) -> x`` after
     one controller sample: ``settings.substeps`` Radau IIA steps (``settings.stages`` stages,
-    ``settings.newton`` simplified Newton iterations) of the family's plant ODE, compiled when
-    ``settings.jit`` (once per family and settings, kept)."""
+    ``settings.newton`` simplified Newton iterations, the Jacobian refreshed every
+    ``settings.jacobian_every`` steps) of the family's plant ODE (:func:`_scaled_ode`), built
+    once per family and settings and kept (the mapped path; the compiled lane code is
+    :func:`lane_function`), compiled by CasADi when ``settings.jit``."""
     key = (id(fam), fam.keys, settings)
     got = _STEP_CACHE.get(key)
     if got is not None and got[0] is fam:
         return got[1]
     nx, nt = fam.nx, fam.n_theta
-    scale = state_scale(fam)
-    z = ca.SX.sym("z", nx)
-    pp = ca.SX.sym("p", 4 + nt)
-    tau = ca.SX.sym("tau")
-    x = z * scale
-    rates = plant_rates(fam, x, pp[0], pp[1] + pp[2] * pp[3] * tau, False, pp[4:] if nt else ca.DM.zeros(0, 1))
-    ode = pp[3] * rates / scale
-    f = ca.Function("plant_scaled_theta", [z, pp, tau], [ode])
+    f, scale = _scaled_ode(fam)
     step = radau_step(f, nx, 4 + nt, settings, 1.0)
     x0 = ca.SX.sym("x0", nx)
     p4 = ca.SX.sym("p4", 4)
     th = ca.SX.sym("theta", nt)
     fun = ca.Function("batch_sample", [x0, p4, th], [step(x0, ca.vertcat(p4, th), 0.0)])
-    if settings.jit:
+    if settings.jit:  # the lane code could not be built (an operation it does not write): CasADi's C
         fun = compiled(fun, jacobian=False, flags=("-O2",)) or fun
     while len(_STEP_CACHE) >= 16:
         del _STEP_CACHE[next(iter(_STEP_CACHE))]
@@ -274,7 +286,8 @@ def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, 
         Time of the load step; a multiple of the plant's sample time.
     duration : float, s
     settings : SimSettings
-        ``integrator="radau"``: its ``substeps``, ``stages``, ``newton`` and ``jit``.
+        ``integrator="radau"``: its ``substeps``, ``stages``, ``newton``, ``jacobian_every``
+        and ``jit``.
 
     Returns
     -------
@@ -309,32 +322,11 @@ def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, 
 
     x0, tau0, ok = steady_states(fam, thetas, setpoint, initial_load)
     scale = state_scale(fam)
-    lanes = lane_function(fam, settings) if settings.jit else None
+    lanes = lane_function(fam, settings) if settings.jit and n_dl <= MAX_DELAY else None
     b_pad = -(-b // LANES) * LANES if lanes is not None else b
     pad = np.r_[np.arange(b), np.full(b_pad - b, b - 1)].astype(int)  # extra lanes repeat the last sample
     z = np.ascontiguousarray(x0[pad] / scale)  # (b_pad, nx)
     th = np.ascontiguousarray(thetas[pad])
-    if lanes is not None:
-        import ctypes
-
-        c_ptr = ctypes.POINTER(ctypes.c_double)
-        fn = lanes[1]
-        z_next = np.empty_like(z)
-        th_c = th if th.size else np.zeros((b_pad, 1))
-
-        def advance(zz, pk):
-            fn(zz.ctypes.data_as(c_ptr), pk.ctypes.data_as(c_ptr), th_c.ctypes.data_as(c_ptr),
-               z_next.ctypes.data_as(c_ptr), b_pad)
-            return z_next.copy()
-    else:
-        fmap, _ = _mapped(fam, settings, b_pad)
-        th_t = np.ascontiguousarray(th.T)
-
-        def advance(zz, pk):
-            return np.asarray(fmap(zz.T, pk.T, th_t)).T.copy()
-    w_out = np.empty((b, n + 1))
-    t_out = np.empty((b, n + 1))
-    w_out[:, 0], t_out[:, 0] = x0[:, i_w], x0[:, i_tau]
     tau0 = tau0[pad]
     theta0, w0 = z[:, i_th] * scale[i_th], np.full(b_pad, float(setpoint))
     th_prev = np.floor((theta0 - w0 * ts) / q) * q
@@ -343,30 +335,53 @@ def simulate_batch(fam: ParametricModel, thetas: NDArray[np.float64], pid: PID, 
     w_prev = w0.copy()
     w_filt = w0.copy()
     u_pend = tau0.copy()
-    line = [tau0.copy() for _ in range(n_dl)]
-    pk = np.zeros((b_pad, 4))
-    pk[:, 3] = ts  # [applied torque N m, load N, load slope N/s (steps: 0), interval s]
-    with np.errstate(all="ignore"):
-        for k in range(n):
-            theta = z[:, i_th] * scale[i_th]
-            theta_q = np.floor(theta / q) * q
-            w_filt = alpha * w_filt + (1 - alpha) * ((theta_q - th_prev) / ts)
-            d_new = beta * deriv + (1 - beta) * (w_filt - w_prev) / ts
-            err = setpoint - w_filt
-            u = kp * err + integral - kd * d_new
-            u_sat = np.minimum(np.maximum(u, -limit), limit)
-            dint = ki * err + k_aw * (u_sat - u)
-            if n_dl:
-                applied = line[0]
-                line = line[1:] + [u_pend]
-            else:
-                applied = u_pend
-            pk[:, 0] = applied
-            pk[:, 1] = initial_load if k < k_step else final_load
-            z = advance(z, pk)
-            th_prev, integral, deriv, w_prev, u_pend = theta_q, integral + ts * dint, d_new, w_filt, u_sat
-            w_out[:, k + 1] = z[:b, i_w] * scale[i_w]
-            t_out[:, k + 1] = z[:b, i_tau] * scale[i_tau]
+    if lanes is not None:
+        # The whole run in the compiled code, one call: the law below, written in C with the
+        # same operations in the same order (no contraction), and the step, lane by lane.
+        import ctypes
+
+        c_ptr = ctypes.POINTER(ctypes.c_double)
+        law0 = np.ascontiguousarray(np.stack([th_prev, integral, deriv, w_prev, w_filt, u_pend], axis=1))
+        consts = np.array([alpha, 1 - alpha, beta, 1 - beta, ts, q, float(setpoint), kp, ki, kd, k_aw, limit,
+                           float(initial_load), float(final_load), scale[i_th], scale[i_w], scale[i_tau]], dtype=float)
+        w_full = np.empty((b_pad, n + 1))
+        t_full = np.empty((b_pad, n + 1))
+        th_c = th if th.size else np.zeros((b_pad, 1))
+        lanes[1](z.ctypes.data_as(c_ptr), th_c.ctypes.data_as(c_ptr), law0.ctypes.data_as(c_ptr),
+                 consts.ctypes.data_as(c_ptr), b_pad, n, k_step, n_dl, w_full.ctypes.data_as(c_ptr),
+                 t_full.ctypes.data_as(c_ptr))
+        w_out, t_out = w_full[:b].copy(), t_full[:b].copy()
+        w_out[:, 0], t_out[:, 0] = x0[:, i_w], x0[:, i_tau]
+    else:
+        fmap, _ = _mapped(fam, settings, b_pad)
+        th_t = np.ascontiguousarray(th.T)
+        w_out = np.empty((b, n + 1))
+        t_out = np.empty((b, n + 1))
+        w_out[:, 0], t_out[:, 0] = x0[:, i_w], x0[:, i_tau]
+        line = [tau0.copy() for _ in range(n_dl)]
+        pk = np.zeros((b_pad, 4))
+        pk[:, 3] = ts  # [applied torque N m, load N, load slope N/s (steps: 0), interval s]
+        with np.errstate(all="ignore"):
+            for k in range(n):
+                theta = z[:, i_th] * scale[i_th]
+                theta_q = np.floor(theta / q) * q
+                w_filt = alpha * w_filt + (1 - alpha) * ((theta_q - th_prev) / ts)
+                d_new = beta * deriv + (1 - beta) * (w_filt - w_prev) / ts
+                err = setpoint - w_filt
+                u = kp * err + integral - kd * d_new
+                u_sat = np.minimum(np.maximum(u, -limit), limit)
+                dint = ki * err + k_aw * (u_sat - u)
+                if n_dl:
+                    applied = line[0]
+                    line = line[1:] + [u_pend]
+                else:
+                    applied = u_pend
+                pk[:, 0] = applied
+                pk[:, 1] = initial_load if k < k_step else final_load
+                z = np.asarray(fmap(z.T, pk.T, th_t)).T.copy()
+                th_prev, integral, deriv, w_prev, u_pend = theta_q, integral + ts * dint, d_new, w_filt, u_sat
+                w_out[:, k + 1] = z[:b, i_w] * scale[i_w]
+                t_out[:, k + 1] = z[:b, i_tau] * scale[i_tau]
     ok &= np.all(np.isfinite(w_out), axis=1) & np.all(np.isfinite(t_out), axis=1)
     w_out[~ok] = np.nan
     t_out[~ok] = np.nan
@@ -453,6 +468,9 @@ def load_step_metrics_batch(time: NDArray[np.float64], speed: NDArray[np.float64
 
 #: Samples processed together by the generated code (one vector of lanes per work variable).
 LANES = 8
+#: Longest command delay (controller samples) the generated code holds; longer ones run the
+#: numpy law with the mapped CasADi step.
+MAX_DELAY = 64
 _C_UNARY = {"OP_NEG": "-({a})", "OP_SQ": "({a})*({a})", "OP_TWICE": "2.0*({a})", "OP_INV": "1.0/({a})",
             "OP_SQRT": "sqrt({a})", "OP_EXP": "exp({a})", "OP_LOG": "log({a})", "OP_TANH": "tanh({a})",
             "OP_FABS": "fabs({a})", "OP_FLOOR": "floor({a})", "OP_CEIL": "ceil({a})", "OP_SIN": "sin({a})",
@@ -466,20 +484,45 @@ _C_BINARY = {"OP_ADD": "({a})+({b})", "OP_SUB": "({a})-({b})", "OP_MUL": "({a})*
              "OP_NE": "(double)(({a})!=({b}))", "OP_AND": "(double)(({a}) && ({b}))", "OP_OR": "(double)(({a}) || ({b}))",
              "OP_IF_ELSE_ZERO": "(({a}) ? ({b}) : 0.0)", "OP_CONSTPOW": "pow({a},{b})", "OP_POW": "pow({a},{b})",
              "OP_ATAN2": "atan2({a},{b})", "OP_COPYSIGN": "copysign({a},{b})", "OP_FMOD": "fmod({a},{b})"}
+#: Constant powers written without ``pow`` (IEEE square roots are vector instructions).
+_C_POWERS = {0.5: "sqrt({a})", 1.5: "({a})*sqrt({a})", 2.0: "({a})*({a})", 1.0: "({a})"}
 _LANE_CACHE: dict = {}
 
 
-def _lane_code(sub: ca.Function, substeps: int, nx: int, npar: int, nt: int) -> str:
-    """C source of ``batch_lanes(z, p4, th, out, n)``: ``substeps`` calls of the one-step SX
-    function ``sub(x0, p, tau0)`` at ``tau0 = k / substeps``, every work variable a vector of
+def _lane_code(sub: ca.Function, blocks: int, nx: int, npar: int, nt: int, i_th: int, i_w: int, i_tau: int) -> str:
+    """C source of ``batch_run(z, th, law0, c, n_b, n, k_step, n_dl, w_out, t_out)``: the whole
+    sampled-loop run of :func:`simulate_batch` for ``n_b`` samples (a multiple of :data:`LANES`),
+    :data:`LANES` at a time, in one call. Per controller sample: the encoder, speed filter, PID
+    and command delay of :func:`simulate_batch`'s numpy law (the same operations in the same
+    order), then ``blocks`` calls of the SX function ``sub(x0, p, tau0)`` (one block of steps
+    sharing one Jacobian) at ``tau0 = m / blocks``. Every work variable is a vector of
     :data:`LANES` samples (IEEE arithmetic in the instructions' order: no reassociation, no
-    contraction, so each lane computes what the scalar function computes)."""
+    contraction, so each lane computes what the scalar code computes).
+
+    ``z`` (n_b x nx): scaled initial states; ``th`` (n_b x max(nt, 1)): parameters; ``law0``
+    (n_b x 6): ``[previous quantised angle rad, integral N m, derivative rad/s^2, previous
+    filtered speed rad/s, filtered speed rad/s, pending command N m]``; ``c``: the constants
+    ``[alpha, 1 - alpha, beta, 1 - beta, ts s, q rad, setpoint rad/s, kp, ki, kd, k_aw, torque
+    limit N m, initial load N, final load N, scales of theta_nut, omega_nut, tau_motor]``;
+    ``w_out``, ``t_out`` (n_b x (n + 1)): nut speed rad/s and motor torque N m after every
+    sample (column 0 is left to the caller); ``n_dl`` <= :data:`MAX_DELAY`."""
     names = {v: k for k, v in ca.__dict__.items() if k.startswith("OP_")}
     nw = sub.sz_w()
     body = []
+    held: dict[int, float] = {}  # work variables holding a constant (CasADi reuses them)
     for k in range(sub.n_instructions()):
         op = names.get(sub.instruction_id(k))
         ins, outs = sub.instruction_input(k), sub.instruction_output(k)
+        if op == "OP_CONSTPOW" and held.get(ins[1]) in _C_POWERS:
+            # a Hertzian contact's x^1.5 (and its Jacobian's x^0.5) as square roots: vector
+            # instructions instead of a libm call per lane (within 2 ulp of pow; see the test)
+            body.append(f"L w[{outs[0]}][l] = " + _C_POWERS[held[ins[1]]].format(a=f"w[{ins[0]}][l]") + ";")
+            held.pop(outs[0], None)
+            continue
+        if op == "OP_CONST":
+            held[outs[0]] = float(sub.instruction_constant(k))
+        elif op != "OP_OUTPUT":
+            held.pop(outs[0], None)
         if op == "OP_INPUT":
             seg, nz = ins
             src = ("x[%d][l]" % nz) if seg == 0 else ("pp[%d][l]" % nz) if seg == 1 else "tau0"
@@ -496,27 +539,74 @@ def _lane_code(sub: ca.Function, substeps: int, nx: int, npar: int, nt: int) -> 
             body.append(f"L w[{outs[0]}][l] = " + _C_BINARY[op].format(a=f"w[{ins[0]}][l]", b=f"w[{ins[1]}][l]") + ";")
         else:
             raise NotImplementedError(f"operation {op} in the step function")
-    h = (1.0 / substeps).hex()
+    h = (1.0 / blocks).hex()
     return f"""#include <math.h>
 #define VL {LANES}
+#define MAXDL {MAX_DELAY}
 #define L for (l = 0; l < VL; l++)
+/* numpy's maximum / minimum: a NaN argument gives NaN */
+#define NPMAX(a, b) (((a) != (a) || (a) > (b)) ? (a) : (b))
+#define NPMIN(a, b) (((a) != (a) || (a) < (b)) ? (a) : (b))
 static void one_step(double x[{nx}][VL], double pp[{npar}][VL], double tau0, double xo[{nx}][VL]) {{
   double w[{max(nw, 1)}][VL];
   int l;
   {chr(10).join(body)}
 }}
-void batch_lanes(const double *z, const double *p4, const double *th, double *out, long n) {{
+void batch_run(const double *z, const double *th, const double *law0, const double *c, long n_b, long n,
+               long k_step, long n_dl, double *w_out, double *t_out) {{
+  const double alpha = c[0], c_alpha = c[1], beta = c[2], c_beta = c[3], ts = c[4], q = c[5], sp = c[6];
+  const double kp = c[7], ki = c[8], kd = c[9], k_aw = c[10], limit = c[11], load0 = c[12], load1 = c[13];
+  const double s_th = c[14], s_w = c[15], s_tau = c[16];
   double x[{nx}][VL], pp[{npar}][VL], xo[{nx}][VL];
-  long j0; int i, l, k;
-  for (j0 = 0; j0 < n; j0 += VL) {{
+  double th_prev[VL], integral[VL], deriv[VL], w_prev[VL], w_filt[VL], u_pend[VL], line[MAXDL][VL];
+  long j0, k; int i, l, m, head;
+  if (n_dl < 0 || n_dl > MAXDL) return;
+  for (j0 = 0; j0 < n_b; j0 += VL) {{
     for (i = 0; i < {nx}; i++) L x[i][l] = z[(j0 + l) * {nx} + i];
-    for (i = 0; i < 4; i++) L pp[i][l] = p4[(j0 + l) * 4 + i];
     for (i = 0; i < {nt}; i++) L pp[4 + i][l] = th[(j0 + l) * {max(nt, 1)} + i];
-    for (k = 0; k < {substeps}; k++) {{
-      one_step(x, pp, k * {h}, xo);
-      for (i = 0; i < {nx}; i++) L x[i][l] = xo[i][l];
+    L {{
+      th_prev[l] = law0[(j0 + l) * 6 + 0]; integral[l] = law0[(j0 + l) * 6 + 1];
+      deriv[l] = law0[(j0 + l) * 6 + 2]; w_prev[l] = law0[(j0 + l) * 6 + 3];
+      w_filt[l] = law0[(j0 + l) * 6 + 4]; u_pend[l] = law0[(j0 + l) * 6 + 5];
+      pp[2][l] = 0.0; pp[3][l] = ts;
     }}
-    for (i = 0; i < {nx}; i++) L out[(j0 + l) * {nx} + i] = x[i][l];
+    for (i = 0; i < n_dl; i++) L line[i][l] = u_pend[l];
+    head = 0;
+    for (k = 0; k < n; k++) {{
+      L {{
+        double theta = x[{i_th}][l] * s_th;
+        double theta_q = floor(theta / q) * q;
+        double d_new, err, u, u_sat, dint, applied;
+        w_filt[l] = alpha * w_filt[l] + c_alpha * ((theta_q - th_prev[l]) / ts);
+        d_new = beta * deriv[l] + (c_beta * (w_filt[l] - w_prev[l])) / ts;
+        err = sp - w_filt[l];
+        u = (kp * err + integral[l]) - kd * d_new;
+        u_sat = NPMIN(NPMAX(u, -limit), limit);
+        dint = ki * err + k_aw * (u_sat - u);
+        if (n_dl) {{
+          applied = line[head][l];
+          line[head][l] = u_pend[l];
+        }} else {{
+          applied = u_pend[l];
+        }}
+        pp[0][l] = applied;
+        pp[1][l] = k < k_step ? load0 : load1;
+        th_prev[l] = theta_q;
+        integral[l] = integral[l] + ts * dint;
+        deriv[l] = d_new;
+        w_prev[l] = w_filt[l];
+        u_pend[l] = u_sat;
+      }}
+      if (n_dl) head = (head + 1) % (int)n_dl;
+      for (m = 0; m < {blocks}; m++) {{
+        one_step(x, pp, m * {h}, xo);
+        for (i = 0; i < {nx}; i++) L x[i][l] = xo[i][l];
+      }}
+      L {{
+        w_out[(j0 + l) * (n + 1) + k + 1] = x[{i_w}][l] * s_w;
+        t_out[(j0 + l) * (n + 1) + k + 1] = x[{i_tau}][l] * s_tau;
+      }}
+    }}
   }}
 }}
 """
@@ -535,9 +625,12 @@ def _cpu_identity() -> str:
 
 
 def lane_function(fam: ParametricModel, settings: SimSettings):
-    """The compiled lane-parallel step (a ctypes function) or ``None`` (no compiler: the caller
-    maps the CasADi function instead). Built and compiled once per family and settings (on
-    disk in :func:`prsa_ctrl.sim.integrators.jit_cache_dir`, keyed by the code's hash)."""
+    """``(library, batch_run)``: the compiled lane-parallel run of :func:`_lane_code` (a ctypes
+    function: the controller law and the step of every controller sample in one call), or
+    ``None`` (no compiler, or an operation the generator does not write: the caller runs the
+    numpy law and maps the CasADi step instead). Built and compiled once per family and
+    settings (on disk in :func:`prsa_ctrl.sim.integrators.jit_cache_dir`, keyed by the code's
+    hash)."""
     import ctypes
     import hashlib
     import os
@@ -553,17 +646,16 @@ def lane_function(fam: ParametricModel, settings: SimSettings):
     if got is not None and got[0] is fam:
         return got[1]
     nx, nt = fam.nx, fam.n_theta
-    scale = state_scale(fam)
-    z = ca.SX.sym("z", nx)
-    pp = ca.SX.sym("p", 4 + nt)
-    tau = ca.SX.sym("tau")
-    rates = plant_rates(fam, z * scale, pp[0], pp[1] + pp[2] * pp[3] * tau, False, pp[4:] if nt else ca.DM.zeros(0, 1))
-    f = ca.Function("plant_scaled_theta", [z, pp, tau], [pp[3] * rates / scale])
-    one = dataclass_replace(settings, substeps=1)
-    sub = radau_step(f, nx, 4 + nt, one, 1.0 / settings.substeps)
+    f, _ = _scaled_ode(fam)
+    every = settings.jacobian_every
+    blocks = settings.substeps // every
+    # one block: `every` steps of 1 / substeps sharing the Jacobian of the block's start
+    block = dataclass_replace(settings, substeps=every, jacobian_every=every)
+    sub = radau_step(f, nx, 4 + nt, block, every / settings.substeps)
     fn = None
     try:
-        code = _lane_code(sub, settings.substeps, nx, 4 + nt, nt)
+        code = _lane_code(sub, blocks, nx, 4 + nt, nt, fam.index("theta_nut"), fam.index("omega_nut"),
+                          fam.index("tau_motor"))
     except NotImplementedError:
         code = None
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
@@ -572,10 +664,10 @@ def lane_function(fam: ParametricModel, settings: SimSettings):
         # contraction and no fast-math, so every lane computes what the scalar step computes.
         # The processor's identity is part of the key: a cache shared by other machines never
         # loads code built for another instruction set.
-        flags = ("-O3", "-march=native", "-ffp-contract=off", "-fno-fast-math")
+        flags = ("-O3", "-march=native", "-ffp-contract=off", "-fno-fast-math", "-fno-math-errno")
         digest = hashlib.sha256("\n".join([code, str(cc), _cpu_identity(), *flags]).encode()).hexdigest()[:24]
         folder = jit_cache_dir()
-        lib = folder / f"batch_lanes_{digest}.so"
+        lib = folder / f"batch_run_{digest}.so"
         try:
             if not lib.exists():
                 folder.mkdir(parents=True, exist_ok=True)
@@ -588,9 +680,9 @@ def lane_function(fam: ParametricModel, settings: SimSettings):
                         raise OSError(res.stderr.strip()[-300:])
                     os.replace(out, lib)
             dll = ctypes.CDLL(str(lib))
-            fn = dll.batch_lanes
+            fn = dll.batch_run
             ptr = ctypes.POINTER(ctypes.c_double)
-            fn.argtypes = [ptr, ptr, ptr, ptr, ctypes.c_long]
+            fn.argtypes = [ptr, ptr, ptr, ptr, ctypes.c_long, ctypes.c_long, ctypes.c_long, ctypes.c_long, ptr, ptr]
             fn.restype = None
             fn = (dll, fn)
         except (OSError, subprocess.SubprocessError):

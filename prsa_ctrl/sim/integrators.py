@@ -84,6 +84,13 @@ class SimSettings:
         ``"radau"`` only: simplified Newton iterations per step (1..4), a fixed number (no
         convergence test: the error is measured instead, and a diverging step ends in a
         non-finite state, which the run reports as a :class:`~prsa_ctrl.errors.SimulationError`).
+    jacobian_every : int
+        ``"radau"`` only: the Jacobian (and the factorised iteration matrix) is evaluated at
+        the start of every this many steps and reused by the steps between (1, the default:
+        at every step; a divisor of ``substeps``). Reusing it makes the scheme a W-method-like
+        linearly implicit one: fewer operations per step, an error the caller measures (the
+        batched Monte Carlo refreshes it four times per controller sample, see
+        :func:`prsa_ctrl.studies.mcbatch.batch_settings`).
     jit : bool
         ``"cvodes"``/``"idas"``: evaluate the model's right-hand side and its Jacobian as C code
         compiled once per model into a per-user cache (``$PRSA_CTRL_CACHE``, else
@@ -106,6 +113,7 @@ class SimSettings:
     stages: int = 2
     newton: int = 1
     jit: bool = False
+    jacobian_every: int = 1
 
     def __post_init__(self) -> None:
         if self.integrator not in INTEGRATORS:
@@ -114,6 +122,10 @@ class SimSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise ValueError(f"{name} = {v!r}; expected an integer in [{lo}, {hi}]")
+        v = self.jacobian_every
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= self.substeps \
+                or self.substeps % v:
+            raise ValueError(f"jacobian_every = {v!r}; expected a divisor of substeps = {self.substeps}")
         if isinstance(self.stages, bool) or self.stages not in RADAU_STAGES:
             raise ValueError(f"stages = {self.stages!r}; expected one of {', '.join(map(str, RADAU_STAGES))}")
         if not isinstance(self.jit, bool):
@@ -403,8 +415,10 @@ def radau_step(f: ca.Function, nz: int, npar: int, settings: SimSettings, span: 
     from ``Z_i = x`` on the iteration matrix ``I - h (A kron J(x))`` (exact Jacobian at the
     step start, factorised once per step). One Newton iteration makes it a linearly implicit
     (Rosenbrock-type) Radau method: still L-stable, the 25.8 kHz contact mode and the stiff
-    traction creep are damped, not resolved. A plain SX expression: no restarts, no
-    convergence loop, a fixed cost per step.
+    traction creep are damped, not resolved. With ``settings.jacobian_every = m > 1`` the
+    Jacobian and the factorised matrix are those of the start of every ``m``-th step, reused
+    by the ``m - 1`` steps after it. A plain SX expression: no restarts, no convergence loop,
+    a fixed cost per step.
 
     Parameters
     ----------
@@ -436,9 +450,11 @@ def radau_step(f: ca.Function, nz: int, npar: int, settings: SimSettings, span: 
     x0 = ca.SX.sym("x0", nz)
     tau0 = ca.SX.sym("tau0")
     x = x0
+    every = getattr(settings, "jacobian_every", 1)
     for k in range(settings.substeps):
         t_k = tau0 + k * h
-        lu = factor(iter_mat(jac(x, p, t_k)))
+        if k % every == 0:
+            lu = factor(iter_mat(jac(x, p, t_k)))
         stages = [x] * s
         for _ in range(settings.newton):
             rates = [f(stages[i], p, t_k + c[i] * h) for i in range(s)]

@@ -104,8 +104,7 @@ def evaluate(job: Job, index: int) -> tuple[int, dict, int, np.ndarray, list]:
                 loop = actuator_loops(p_i, sc, estimator=est)[0]
             g = pid.gains
             if loop.is_stable(g):
-                mg = loop.margins(g)
-                row[10], row[11] = mg.ms, mg.mt
+                row[10], row[11] = loop.sensitivity_peaks(g)
         else:
             row[10] = row[11] = math.nan
     return index, values, op, out, errors

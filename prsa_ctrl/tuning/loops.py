@@ -251,6 +251,16 @@ class LoopModel:
         pk = self.peaks(gains, mt=False)
         return max(float(np.abs(1.0 / (1.0 + np.asarray(pk["L"], dtype=complex))).max()), pk["ms"])
 
+    def sensitivity_peaks(self, gains: Sequence[float]) -> tuple[float, float]:
+        """``(margins(gains).ms, margins(gains).mt)`` (the true Ms and Mt, dimensionless), the
+        same numbers computed the same way, without the gain and phase margins' bisections on
+        the exact response (most of :meth:`margins`' cost): for the Monte Carlo's and the
+        robust summary's Ms/Mt of many samples."""
+        pk = self.peaks(gains)
+        L = np.asarray(pk["L"], dtype=complex)
+        return (max(float(np.abs(1.0 / (1.0 + L)).max()), pk["ms"]),
+                max(float(np.abs(L / (1.0 + L)).max()), pk["mt"]))
+
     # ---- time domain ---------------------------------------------------------------------
 
     def a_cl(self, gains: Sequence[float]) -> NDArray[np.float64]:

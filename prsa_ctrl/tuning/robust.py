@@ -53,9 +53,9 @@ def _summary(pid, loops: Sequence[LoopModel], objective: str) -> dict[str, Any]:
     per = []
     for lp in loops:
         stable = lp.is_stable(g)
-        m = lp.margins(g)
-        per.append({"scenario": lp.name, "stable": bool(stable), "ms": float(m.ms) if stable else math.inf,
-                    "mt": float(m.mt) if stable else math.inf,
+        ms, mt = lp.sensitivity_peaks(g)
+        per.append({"scenario": lp.name, "stable": bool(stable), "ms": float(ms) if stable else math.inf,
+                    "mt": float(mt) if stable else math.inf,
                     objective: float(lp.objective(g, objective)) if stable else math.inf})
     objs = np.array([p[objective] for p in per])
     return {"per_scenario": per, "max_ms": float(max(p["ms"] for p in per)),

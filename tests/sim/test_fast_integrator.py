@@ -109,6 +109,10 @@ def test_fast_settings_chooses_by_measured_error():
     ({"newton": 0}, "newton = 0"),
     ({"integrator": "rk4"}, "integrator = 'rk4'"),
     ({"jit": 1}, "jit = 1"),
+    ({"substeps": 4, "jacobian_every": 3}, "jacobian_every = 3; expected a divisor of substeps = 4"),
+    ({"substeps": 4, "jacobian_every": 8}, "jacobian_every = 8"),
+    ({"jacobian_every": 0}, "jacobian_every = 0"),
+    ({"jacobian_every": True}, "jacobian_every = True"),
 ])
 def test_bad_fixed_step_settings(kwargs, match):
     with pytest.raises(ValueError, match=match):

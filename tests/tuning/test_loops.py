@@ -120,3 +120,27 @@ def test_peak_sensitivity_is_the_margins_ms_exactly(paper_plant):
             assert lp.peak_sensitivity(g) == lp.margins(g).ms
             checked += 1
     assert checked >= 12
+
+
+def test_sensitivity_peaks_are_the_margins_ms_and_mt_exactly(paper_plant):
+    """The Monte Carlo's and the robust summary's Ms/Mt come from ``sensitivity_peaks``: the
+    same numbers as ``margins(g).ms`` and ``.mt`` (not approximations), on gains from sluggish
+    to nearly unstable, and they move with the gains."""
+    import warnings
+
+    from prsa_ctrl.studies.autotune import actuator_loops
+    from prsa_ctrl.studies.scene import load_scene
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lp = actuator_loops(paper_plant, load_scene())[0]
+    seen = set()
+    for kp in 0.085 * np.logspace(-1, 0.6, 7):
+        for ki in (1.47, 14.7):
+            g = (kp, ki, 0.0)
+            if not lp.is_stable(g):
+                continue
+            m = lp.margins(g)
+            assert lp.sensitivity_peaks(g) == (m.ms, m.mt)
+            seen.add(m.ms)
+    assert len(seen) >= 8
