@@ -227,7 +227,7 @@ LOG_RESPONSE_TEXT = ("H1 estimate torque command -> nut speed from the log (Welc
                      "back into the command; the coherence says where")
 
 
-def log_response(record, nperseg: int | None = None, power_floor: float = 1e-6):
+def log_response(record, nperseg: int | None = None, power_floor: float = 1e-3):
     """Frequency response torque command -> nut speed of a time-domain log, with its coherence.
 
     The H1 estimate ``S_uy / S_uu`` of the logged command ``u`` and the one-sample angle
@@ -244,7 +244,8 @@ def log_response(record, nperseg: int | None = None, power_floor: float = 1e-6):
         Samples per Welch segment (default: the power of two at or below half the log, 256..4096: three
         segments or more).
     power_floor : float
-        Relative command power below which a bin is not shown.
+        Relative command power below which a bin counts as not excited and is not shown (as
+        :func:`prsa_ctrl.identification.data.frf_from_record`).
 
     Returns
     -------
@@ -292,17 +293,20 @@ def _bode_data(g, pm_deg=None) -> dict:
 
 
 def _frf_view(f_hz, gm, lines, coherence, source: str, chosen=None, fit_percent=None) -> dict:
-    """One frequency-response view: the data's magnitude and phase, each model's on the data's
-    phase branch, the written model's residual, the coherence."""
+    """One frequency-response view: the data's magnitude and phase, each model's, the written
+    model's residual, the coherence. Phases are drawn on the branch of the written model's
+    unwrapped phase (a smooth curve: unwrapping noisy data bins would pile up turns), the data
+    within half a turn of it."""
     gm = np.asarray(gm, complex)
-    pm = np.degrees(np.unwrap(np.angle(gm)))
-    written = next(g for _, g, w in lines if w)
-    d = np.log(gm / np.asarray(written, complex))
+    written = np.asarray(next(g for _, g, w in lines if w), complex)
+    ref = np.degrees(np.unwrap(np.angle(written)))
+    pm = _phase_on(gm, ref)
+    d = np.log(gm / written)
     return {
         "source": source,
         "frequency_hz": _floats(f_hz),
         "measured": {"magnitude_db": _floats(20 * np.log10(np.abs(gm))), "phase_deg": _floats(pm)},
-        "models": {label: {**_bode_data(g, pm), "written": bool(w)} for label, g, w in lines},
+        "models": {label: {**_bode_data(g, ref), "written": bool(w)} for label, g, w in lines},
         "residual": {"magnitude_db": _floats(20 / np.log(10) * d.real),
                      "phase_deg": _floats(np.degrees(np.angle(np.exp(1j * d.imag))))},
         "coherence": None if coherence is None else _floats(coherence),

@@ -367,6 +367,11 @@ def test_fit_views_are_the_results_arrays():
     np.testing.assert_allclose(f["residual"]["magnitude_db"], 20 / np.log(10) * 0.01 * np.sin(np.arange(80)), atol=1e-9)
     np.testing.assert_array_equal(f["coherence"], fr["coherence"])
     assert f["chosen"] == "two-mass" and f["fit_percent"] == 97.0
+    # phases on the written model's branch: the data's own angle, within half a turn of the model
+    ph, ref = np.radians(f["measured"]["phase_deg"]), np.radians(f["models"]["fitted plant as written"]["phase_deg"])
+    np.testing.assert_allclose(np.exp(1j * ph), fr["measured"] / np.abs(fr["measured"]), atol=1e-12)
+    np.testing.assert_allclose(np.exp(1j * ref), fr["model"] / np.abs(fr["model"]), atol=1e-12)
+    assert np.all(np.abs(ph - ref) <= np.pi + 1e-12) and np.all(np.abs(np.diff(ref)) < np.pi)
     short = fit_views(_fit_result({"a.csv": _record_trace(n=300)}))
     assert short["replay"]["a.csv"]["every"] == 1 and len(short["replay"]["a.csv"]["time_s"]) == 300
     assert short["verdict"]["validated"] is None  # no validation ran: not "validated"
