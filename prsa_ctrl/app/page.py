@@ -177,13 +177,12 @@ class AppPage:
             self.land.js_on_event(ev, drag_js)
 
         controls = column(self.plant_select, self.plant_upload, self.scene_select, self.scene_upload,
-                          self.fit.upload, row(self.fit.use, self.fit.discard), self.fit.download,
                           self.objective, self.controller, self.ms, self.mt_on, self.mt, self.noise, self.mks, self.loads,
                           self.fidelity, row(self.verify_button, self.cancel_button), self.progress,
                           self.samples, row(self.robust_button, self.robust_cancel),
                           self.clear_manual, self.export_which, self.dl_drive, self.dl_report,
                           self.copy_cli, self.copy_py, width=330)
-        views = column(self.error, self.status, self.fit.out, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
+        views = column(self.error, self.status, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
                        row(self.mag, self.st, sizing_mode="stretch_width"),
                        row(self.phase, self.code, sizing_mode="stretch_width"), self.robust_out,
                        sizing_mode="stretch_width")
@@ -193,7 +192,8 @@ class AppPage:
         self.tabs = Tabs(tabs=[TabPanel(child=row(controls, views, sizing_mode="stretch_width"),
                                         title="Actuator (plant and scene files)"),
                                TabPanel(child=Div(text="loading the generic tuner ..."),
-                                        title="Generic plant (transfer function)")],
+                                        title="Generic plant (transfer function)"),
+                               TabPanel(child=self.fit.layout, title="Calibration (fit a drive log)")],
                          sizing_mode="stretch_width", css_classes=["prsa-tabs"])
         self.tabs.on_change("active", lambda attr, old, new: self._open_generic() if new == 1 else None)
         self.root = column(self.title, self.tabs, sizing_mode="stretch_width")
@@ -599,7 +599,8 @@ class AppPage:
             self.generic = GenericPanel(self.doc)
             # a new panel (BokehJS re-renders Tabs on a change of ``tabs``, not of a panel's child)
             self.tabs.tabs = [self.tabs.tabs[0], TabPanel(child=self.generic.layout,
-                                                          title="Generic plant (transfer function)")]
+                                                          title="Generic plant (transfer function)"),
+                              *self.tabs.tabs[2:]]
             self.tabs.active = 1
             self.generic.request()
 
