@@ -569,7 +569,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
 
             check_distinct({"--plots": args.plots, **outs})
             stems = (figure_names([], [*args.frf, *args.data]) if args.frf_from_logs is not None else
-                     figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf))
+                     figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf,
+                                  log_responses=True))
             plot_paths = [str(Path(args.plots) / f"{stem}.png") for stem in stems]
             _probe_plots(args.plots, [f"{stem}.png" for stem in stems], inputs)
         columns = parse_columns(args.columns) if args.columns else None
@@ -667,7 +668,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         files[args.json] = ("--json", json.dumps(json_safe(report), indent=2) + "\n")
     try:
         if args.plots is not None:
-            plot_paths = _write_plots(result, args.plots, inputs, created, args.frequency_unit)
+            plot_paths = _write_plots(result, args.plots, inputs, created, args.frequency_unit, [*records, *validate])
         _write_outputs(files, inputs, created)
     except (OutputError, OSError) as exc:  # all or nothing: the figures of this run are taken back
         _take_back(created)
@@ -868,10 +869,10 @@ def _print_chain(exc: BaseException, skip_message: bool = False) -> None:
 
 
 def _write_plots(result, directory: str, inputs: Sequence[str], created: list,
-                 frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> list[str]:
+                 frequency_unit: str = DEFAULT_FREQUENCY_UNIT, records: Sequence = ()) -> list[str]:
     """Write :func:`prsa_ctrl.plots.fit.fit_figures` as PNG files into ``directory`` (created if
-    missing; Bode axes in ``frequency_unit``); the directories made and the files written are
-    added to ``created``."""
+    missing; Bode axes in ``frequency_unit``; each of ``records`` with its own response
+    figure); the directories made and the files written are added to ``created``."""
     import matplotlib.pyplot as plt
 
     from ..plots.fit import fit_figures
@@ -879,7 +880,7 @@ def _write_plots(result, directory: str, inputs: Sequence[str], created: list,
 
     created += make_directory(directory, "--plots")
     out = []
-    figs = fit_figures(result, frequency_unit)
+    figs = fit_figures(result, frequency_unit, records)
     try:
         for stem, fig in figs.items():
             path = Path(directory) / f"{stem}.png"

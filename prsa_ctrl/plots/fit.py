@@ -28,7 +28,7 @@ from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS
 
 plt = module("matplotlib.pyplot")
 
-__all__ = ["fit_figures", "figure_names", "fit_views", "log_response", "VIEW_MAX_POINTS"]
+__all__ = ["fit_figures", "figure_names", "fit_views", "log_response", "log_traces", "VIEW_MAX_POINTS"]
 
 #: Largest number of samples per replay trace in :func:`fit_views` (longer ones are taken at an
 #: even stride: every ``k``-th sample, ``k`` stated as ``"every"``).
@@ -70,28 +70,31 @@ def _verdict_text(e: dict | None) -> str:
             f"{ratio:.3g} x noise floor)")
 
 
-def fit_figures(result: FitResult, frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> dict:
+def fit_figures(result: FitResult, frequency_unit: str = DEFAULT_FREQUENCY_UNIT, records: Sequence = ()) -> dict:
     """Figures of a fit: per time-domain record the replay of the plant as written against the
     measurement with the residual below; per frequency response a Bode overlay (measured vs
-    fitted models, residual, coherence).
+    fitted models, residual, coherence); per record given in ``records`` its own frequency
+    response beside the written plant's (:func:`log_traces`).
 
     Parameters
     ----------
     result : FitResult
     frequency_unit : {"Hz", "rad/s"}
         Unit of the Bode figures' frequency axes (default Hz).
+    records : sequence of Record
+        The fit's time-domain records (fitted and validation) for their response figures.
 
     Returns
     -------
     dict
-        ``{file stem: matplotlib Figure}`` (``<record>-fit`` and ``<response>-bode``); the
-        caller saves and closes them.
+        ``{file stem: matplotlib Figure}`` (``<record>-fit``, ``<response>-bode`` and
+        ``<record>-frf``); the caller saves and closes them.
     """
     _unit_factor(frequency_unit)  # before any work
-    figs, used = {}, set()
+    figs, used, stems = {}, set(), {}
     validation = result.solver.get("validation")
     for name, tr in result.traces.items():
-        stem = _figure_stem(name, used)
+        stem = stems[name] = _figure_stem(name, used)
         if "time_s" in tr:
             t, meas, mod, label, joins = _overlay_data(tr)
             fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5.5), height_ratios=(2, 1))
@@ -122,6 +125,10 @@ def fit_figures(result: FitResult, frequency_unit: str = DEFAULT_FREQUENCY_UNIT)
             figs[f"{stem}-fit"] = fig
         else:
             figs[f"{stem}-bode"] = _bode_figure(name, tr, result.fit_percent.get(name, float("nan")), frequency_unit)
+    for name, tr in log_traces(result, records).items():
+        figs[f"{stems[name]}-frf"] = _bode_figure(name, {**tr, "title": f"{name}: the log's response (H1 from the "
+                                                                        "logged command) beside the written plant's"},
+                                                  float("nan"), frequency_unit)
     return figs
 
 
@@ -138,7 +145,8 @@ def _bode_lines(tr: dict) -> list:
     models (rigid, two-mass) first, the plant as written last."""
     models = dict(tr.get("models") or {})
     lines = [(label, np.asarray(g), False) for label, g in models.items() if not label.startswith("plant model")]
-    lines.append(("fitted plant as written" if models else "fitted model", np.asarray(tr["model"]), True))
+    lines.append((tr.get("model_label") or ("fitted plant as written" if models else "fitted model"),
+                  np.asarray(tr["model"]), True))
     return lines
 
 
@@ -168,7 +176,8 @@ def _bode_figure(name: str, tr: dict, fit_pct: float, unit: str = DEFAULT_FREQUE
         ax2.semilogx(x, _phase_on(g, pm), color=f"C{i}", **style)
     ax1.set_ylabel("|G| (dB re 1 rad/s per N m)")
     chosen = tr.get("chosen")
-    ax1.set_title(f"{name}: fit {fit_pct:.1f} %" + (f" (structure: {chosen})" if chosen else ""))
+    ax1.set_title(tr.get("title") or f"{name}: fit {fit_pct:.1f} %" + (f" (structure: {chosen})" if chosen else ""),
+                  fontsize=10)
     ax1.legend(loc="best", fontsize=8)
     ax2.set_ylabel("phase (deg)")
     d = np.log(gm / gf)
@@ -211,11 +220,15 @@ def _overlay_data(tr: dict):
     return (*(np.insert(a, cut, np.nan) for a in (t, meas, mod)), label, joins)
 
 
-def figure_names(names: Sequence[str], frf_names: Sequence[str] = ()) -> list[str]:
+def figure_names(names: Sequence[str], frf_names: Sequence[str] = (), log_responses: bool = False) -> list[str]:
     """File stems :func:`fit_figures` will use for these record and response names (in order:
-    fitted and validation records, then responses), so output paths can be checked first."""
+    fitted and validation records, then responses; with ``log_responses`` each record's
+    ``-frf`` too, as ``fit_figures(..., records=...)`` draws them), so output paths can be
+    checked first."""
     used: set = set()
-    return [f"{_figure_stem(n, used)}-fit" for n in names] + [f"{_figure_stem(n, used)}-bode" for n in frf_names]
+    stems = [_figure_stem(n, used) for n in names]
+    return ([f"{s}-fit" for s in stems] + [f"{_figure_stem(n, used)}-bode" for n in frf_names]
+            + ([f"{s}-frf" for s in stems] if log_responses else []))
 
 
 # ---- the views as data (prsa-fit --json "views", the app's calibration panel) -------------------
@@ -315,6 +328,41 @@ def _frf_view(f_hz, gm, lines, coherence, source: str, chosen=None, fit_percent=
     }
 
 
+def log_traces(result: FitResult, records: Sequence = ()) -> dict:
+    """Each time-domain record's own frequency response (:func:`log_response`) beside the
+    written plant's: ``{record name: {"frequency_hz", "measured", "model" (complex,
+    (rad/s)/(N m)), "coherence", "model_label"}}``. The model is ``result.plant`` linearised at
+    the record's mean speed and load, sampled at its sample time, with the fit's command shift
+    (logged command -> action, ``solver["command_delay"]``); a record too short for a spectral
+    estimate, or whose model response cannot be evaluated, has none."""
+    from ..identification.frf import frf_response
+
+    out: dict = {}
+    if result.plant is None:
+        return out
+    cd = result.solver.get("command_delay") or {}
+    shift = int(cd.get("shift_samples", result.plant.command_delay_samples))
+    fidelity = result.solver.get("fidelity", "rigid")
+    for rec in records:
+        if rec.name in out or rec.name not in result.traces:
+            continue
+        est = log_response(rec)
+        if est is None:
+            continue
+        f, g, coh = est
+        speed = float(np.mean(rec.speed_rad_s))
+        load = float(np.mean(rec.axial_load_n)) if rec.axial_load_n is not None else 0.0
+        try:
+            model = frf_response(result.plant, f, speed_rad_s=speed, load_n=load, sample_time_s=rec.sample_time_s,
+                                 delay_samples=shift, fidelity=fidelity if load else "rigid")
+        except (ValueError, RuntimeError, np.linalg.LinAlgError):
+            continue
+        if np.all(np.isfinite(model)) and np.all(model != 0):
+            out[rec.name] = {"frequency_hz": f, "measured": g, "model": model, "coherence": coh,
+                             "model_label": f"plant as written (linearised at {speed:.3g} rad/s, {load:.4g} N)"}
+    return out
+
+
 def fit_views(result: FitResult, records: Sequence = (), max_points: int = VIEW_MAX_POINTS) -> dict:
     """The fit's three views as JSON-ready data: the replay of each record, the frequency
     responses (data beside the fitted models, Hz) and the residuals, with the verdict.
@@ -382,29 +430,10 @@ def fit_views(result: FitResult, records: Sequence = (), max_points: int = VIEW_
             frf[name] = _frf_view(tr["frequency_hz"], tr["measured"], _bode_lines(tr), coh,
                                   "frequency response given to the fit", tr.get("chosen"),
                                   result.fit_percent.get(name))
-    cd = result.solver.get("command_delay") or {}
-    shift = int(cd.get("shift_samples", result.plant.command_delay_samples if result.plant is not None else 0))
-    fidelity = result.solver.get("fidelity", "rigid")
-    for rec in records:
-        if rec.name in frf:
-            continue
-        est = log_response(rec)
-        if est is None:
-            continue
-        f, g, coh = est
-        from ..identification.frf import frf_response
-
-        speed = float(np.mean(rec.speed_rad_s[1:]))
-        load = float(np.mean(rec.axial_load_n)) if rec.axial_load_n is not None else 0.0
-        try:
-            model = frf_response(result.plant, f, speed_rad_s=speed, load_n=load, sample_time_s=rec.sample_time_s,
-                                 delay_samples=shift, fidelity=fidelity if load else "rigid")
-        except (ValueError, RuntimeError, np.linalg.LinAlgError):
-            continue
-        if not np.all(np.isfinite(model)):
-            continue
-        # no fit % here: the verdict is the replay's; this estimate is biased where the
-        # coherence is low, and a fit % over a band depends on the band's own spread
-        frf[rec.name] = _frf_view(f, g, [(f"plant as written (linearised at {speed:.3g} rad/s, {load:.4g} N)",
-                                          model, True)], coh, LOG_RESPONSE_TEXT)
+    for name, tr in log_traces(result, records).items():
+        if name not in frf:
+            # no fit % here: the verdict is the replay's; this estimate is biased where the
+            # coherence is low, and a fit % over a band depends on the band's own spread
+            frf[name] = _frf_view(tr["frequency_hz"], tr["measured"], [(tr["model_label"], tr["model"], True)],
+                                  tr["coherence"], LOG_RESPONSE_TEXT)
     return {"verdict": verdict, "replay": replay, "frf": frf}

@@ -41,9 +41,9 @@ def test_frf_fit_figures_in_the_unit_asked_and_views_with_coherence(tmp_path, mo
     units = []
     draw = P.fit_figures
 
-    def spy(result, frequency_unit="Hz"):
+    def spy(result, frequency_unit="Hz", records=()):
         units.append(frequency_unit)
-        return draw(result, frequency_unit)
+        return draw(result, frequency_unit, records)
 
     monkeypatch.setattr(P, "fit_figures", spy)
     rep, figs = tmp_path / "r.json", tmp_path / "figs"
@@ -95,9 +95,12 @@ def test_time_domain_views_are_the_replay_of_the_written_plant(tmp_path, capsys)
             rec, _ = fit_record(1.0, seed=seed)
         paths.append(tmp_path / f"log{seed}.csv")
         rec.to_csv(paths[-1])
-    out, rep = tmp_path / "fitted.toml", tmp_path / "r.json"
-    assert main([str(paths[0]), "--validate", str(paths[1]), "--out", str(out), "--json", str(rep)]) == 0
-    capsys.readouterr()
+    out, rep, figs = tmp_path / "fitted.toml", tmp_path / "r.json", tmp_path / "figs"
+    assert main([str(paths[0]), "--validate", str(paths[1]), "--out", str(out), "--json", str(rep),
+                 "--plots", str(figs)]) == 0
+    assert "plots: " + ", ".join(str(figs / n) for n in ("log1-fit.png", "log2-fit.png", "log1-frf.png",
+                                                          "log2-frf.png")) in capsys.readouterr().out
+    assert sorted(q.name for q in figs.iterdir()) == ["log1-fit.png", "log1-frf.png", "log2-fit.png", "log2-frf.png"]
     report = json.loads(rep.read_text())
     views = report["views"]
     assert views["verdict"]["validated"] is True and views["verdict"]["diagnosis"] is None

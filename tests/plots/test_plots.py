@@ -406,3 +406,37 @@ def test_log_response_is_the_true_plants_response():
     short = type(rec)(**{**rec.__dict__, "time_s": rec.time_s[:200], "torque_command_n_m": rec.torque_command_n_m[:200],
                          "nut_angle_rad": rec.nut_angle_rad[:200], "axial_load_n": rec.axial_load_n[:200]})
     assert log_response(short) is None  # under 256 samples: no spectral estimate
+
+
+def test_record_response_figure_is_the_logs_h1_beside_the_written_plant():
+    """fit_figures(..., records=...): each record's -frf figure draws log_response's estimate and
+    the written plant's response (computed here independently), coherence below, axis in Hz."""
+    import warnings
+
+    from prsa_ctrl.identification.frf import frf_response
+    from prsa_ctrl.identification.synthetic import fit_record
+    from prsa_ctrl.plots.fit import fit_figures, log_response
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec, truth = fit_record(0.5, seed=2)
+    res = FitResult(plant=truth, parameters={}, reflected_inertia_kg_m2={}, correlation=np.zeros((0, 0)), keys=(),
+                    fit_percent={rec.name: 99.0}, warnings=[], solver={"command_delay": {"shift_samples": 1}},
+                    traces={rec.name: _record_trace(n=rec.n - 1)})
+    figs = fit_figures(res, records=[rec])
+    assert sorted(figs) == ["sim-0-fit", "sim-0-frf"]  # stems of "sim-0.5s", as figure_names says
+    from prsa_ctrl.plots.fit import figure_names
+
+    assert figure_names([rec.name], log_responses=True) == ["sim-0-fit", "sim-0-frf"]
+    f, g, coh = log_response(rec)
+    model = frf_response(truth, f, speed_rad_s=float(np.mean(rec.speed_rad_s)),
+                         load_n=float(np.mean(rec.axial_load_n)), sample_time_s=rec.sample_time_s, delay_samples=1)
+    ax_mag, ax_ph, ax_res, ax_coh = figs["sim-0-frf"].axes[:4]
+    data, line = ax_mag.get_lines()[:2]
+    np.testing.assert_array_equal(data.get_xdata(), f)
+    np.testing.assert_allclose(data.get_ydata(), 20 * np.log10(np.abs(g)), rtol=1e-12)
+    np.testing.assert_allclose(line.get_ydata(), 20 * np.log10(np.abs(model)), rtol=1e-9)
+    assert line.get_label().startswith("plant as written (linearised at")
+    np.testing.assert_array_equal(ax_coh.get_lines()[0].get_ydata(), coh)
+    assert ax_coh.get_xlabel() == "frequency (Hz)" and "the log's response" in ax_mag.get_title()
+    assert fit_figures(res).keys() == {"sim-0-fit"}  # no records given: no response figure
