@@ -44,6 +44,11 @@ def _figure_stem(name: str, used: set) -> str:
     return out
 
 
+def _plain(text) -> str:
+    """Text shown as it is in a figure (a ``$`` of a file name starts no mathtext)."""
+    return str(text).replace("$", r"\$")
+
+
 def _unit_factor(unit: str) -> float:
     """Factor from Hz to ``unit`` (:data:`prsa_ctrl.options.FREQUENCY_UNITS`); ValueError naming it otherwise."""
     if unit not in FREQUENCY_UNITS:
@@ -99,7 +104,7 @@ def fit_figures(result: FitResult, frequency_unit: str = DEFAULT_FREQUENCY_UNIT,
             t, meas, mod, label, joins = _overlay_data(tr)
             fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5.5), height_ratios=(2, 1))
             ax1.plot(t, meas, lw=0.8, color="0.5", label="measured (angle difference)")
-            ax1.plot(t, mod, lw=1.0, color="C0", label=label)
+            ax1.plot(t, mod, lw=1.0, color="C0", label=_plain(label))
             for tj in joins:  # only when the shooting segments themselves are shown
                 ax1.axvline(tj, color="C1", lw=0.4, alpha=0.5)
             ax1.set_ylabel("nut speed (rad/s)")
@@ -107,7 +112,7 @@ def fit_figures(result: FitResult, frequency_unit: str = DEFAULT_FREQUENCY_UNIT,
             title = f"{name}: {'replay ' if 'simulated' in tr else ''}fit {result.fit_percent.get(name, float('nan')):.1f} %"
             if validation is not None:
                 title += f", {_verdict_text(e)}" + (f" ({what})" if what == "left out" else "")
-            ax1.set_title(title, fontsize=10)
+            ax1.set_title(_plain(title), fontsize=10)
             ax1.legend(loc="best", fontsize=8)
             ax2.plot(t, meas - mod, lw=0.6, color="C3")
             ax2.axhline(0.0, color="0.3", lw=0.5)
@@ -136,7 +141,7 @@ def _verdict_caption(fig, validation: dict) -> None:
     """The fit's verdict under the figure (the validation's, wrapped)."""
     text = ("validation: the plant explains the data" if validation["passes"] else
             f"validation: NOT validated; most likely missing physics: {validation['diagnosis']}")
-    fig.text(0.01, 0.005, "\n".join(textwrap.wrap(text, 130)[:3]), fontsize=7, va="bottom",
+    fig.text(0.01, 0.005, _plain("\n".join(textwrap.wrap(text, 130)[:3])), fontsize=7, va="bottom",
              color="0.2" if validation["passes"] else "C3")
 
 
@@ -172,12 +177,12 @@ def _bode_figure(name: str, tr: dict, fit_pct: float, unit: str = DEFAULT_FREQUE
     ax2.semilogx(x, pm, ".", ms=4, color="0.4")
     for i, (label, g, written) in enumerate(_bode_lines(tr)):
         style = dict(lw=1.4, ls="-") if written else dict(lw=0.9, ls="--")
-        ax1.semilogx(x, 20 * np.log10(np.abs(g)), color=f"C{i}", label=label, **style)
+        ax1.semilogx(x, 20 * np.log10(np.abs(g)), color=f"C{i}", label=_plain(label), **style)
         ax2.semilogx(x, _phase_on(g, pm), color=f"C{i}", **style)
     ax1.set_ylabel("|G| (dB re 1 rad/s per N m)")
     chosen = tr.get("chosen")
-    ax1.set_title(tr.get("title") or f"{name}: fit {fit_pct:.1f} %" + (f" (structure: {chosen})" if chosen else ""),
-                  fontsize=10)
+    ax1.set_title(_plain(tr.get("title") or f"{name}: fit {fit_pct:.1f} %" + (f" (structure: {chosen})" if chosen
+                                                                               else "")), fontsize=10)
     ax1.legend(loc="best", fontsize=8)
     ax2.set_ylabel("phase (deg)")
     d = np.log(gm / gf)

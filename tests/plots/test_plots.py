@@ -440,3 +440,24 @@ def test_record_response_figure_is_the_logs_h1_beside_the_written_plant():
     np.testing.assert_array_equal(ax_coh.get_lines()[0].get_ydata(), coh)
     assert ax_coh.get_xlabel() == "frequency (Hz)" and "the log's response" in ax_mag.get_title()
     assert fit_figures(res).keys() == {"sim-0-fit"}  # no records given: no response figure
+
+
+def test_fit_figures_show_a_file_name_as_typed(tmp_path):
+    """Text from the user's file names is data: a '$...$' in a log's name and in the diagnosis is
+    drawn as it is, not parsed as mathtext (an invalid expression would fail the save)."""
+    from prsa_ctrl.plots.fit import fit_figures
+
+    name = r"a$\frac$b.csv"
+    v = {**_validation(False), "diagnosis": f"second mass: 80 % of the replay residual of {name}"}
+    v["written_plant"] = {name: v["written_plant"]["a.csv"]}
+    fr = _frf_trace()
+    fr["models"] = {r"rigid $\frac$ (75.0 %)": fr["models"]["rigid (75.0 %)"]}
+    res = _fit_result({name: _record_trace(n=400), r"b$\x$.csv": fr}, {"validation": v}, {name: 31.5})
+    figs = fit_figures(res)
+    try:
+        for fig in figs.values():
+            fig.savefig(tmp_path / "x.png")
+        assert name in figs["a_frac_b-fit"].axes[0].get_title().replace("\\$", "$")
+    finally:
+        for fig in figs.values():
+            plt.close(fig)
