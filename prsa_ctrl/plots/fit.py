@@ -28,7 +28,8 @@ from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS
 
 plt = module("matplotlib.pyplot")
 
-__all__ = ["fit_figures", "figure_names", "fit_views", "log_response", "log_traces", "VIEW_MAX_POINTS"]
+__all__ = ["fit_figures", "figure_names", "fit_views", "log_response", "log_traces", "axis_replay_figure",
+           "VIEW_MAX_POINTS"]
 
 #: Largest number of samples per replay trace in :func:`fit_views` (longer ones are taken at an
 #: even stride: every ``k``-th sample, ``k`` stated as ``"every"``).
@@ -223,6 +224,40 @@ def _overlay_data(tr: dict):
     gap = np.flatnonzero(np.diff(t) > 1.5 * float(np.median(np.diff(t))))
     cut = np.union1d(gap + 1, breaks)
     return (*(np.insert(a, cut, np.nan) for a in (t, meas, mod)), label, joins)
+
+
+def axis_replay_figure(replay):
+    """The overlay figure of a linear-axis log's replay
+    (:class:`~prsa_ctrl.identification.axis.AxisReplay`): position error (or position), velocity
+    and force, measured against the replay of the plant (closed loop from the reference when the
+    log describes its controller, else open loop from the logged command: the legend and the
+    title say which), and the velocity residual (measured - replayed) below."""
+    fig, ax = plt.subplots(4, 1, sharex=True, figsize=(9, 8.5), height_ratios=(1, 1, 1, 0.8))
+    t = np.asarray(replay.time_s, float)
+    how = "closed-loop replay from the reference" if replay.closed_loop else "open-loop replay from the logged command"
+    base, what = ((replay.reference_m, "position error (reference - position), um") if replay.reference_m is not None
+                  else (np.mean(replay.position_measured), "position - mean, um"))
+    pairs = ((1e6 * (base - replay.position_measured), 1e6 * (base - replay.position_simulated), what),
+             (replay.velocity_measured, replay.velocity_simulated, "velocity, m/s"),
+             (replay.force_measured, replay.force_simulated, "force, N"))
+    for a, (meas, sim, label) in zip(ax, pairs):
+        a.plot(t, meas, label="measured")
+        a.plot(t, sim, "--", label=how)
+        a.set_ylabel(label)
+    vr = np.asarray(replay.velocity_measured, float) - np.asarray(replay.velocity_simulated, float)
+    ax[3].plot(t, vr, lw=0.6, color="C3")
+    ax[3].axhline(0.0, color="0.3", lw=0.5)
+    ax[3].set_ylabel("velocity residual, m/s")
+    ax[3].set_xlabel("time, s")
+    e = replay.errors_percent
+    fig.suptitle(_plain(f"{PurePath(replay.name).name} ({how}): errors position {e['position']:.3g} %, velocity "
+                        f"{e['velocity']:.3g} %, force {e['force']:.3g} %"), fontsize=10)
+    for a in ax:
+        a.grid(True, alpha=0.3)
+    for a in ax[:3]:
+        a.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    return fig
 
 
 def figure_names(names: Sequence[str], frf_names: Sequence[str] = (), log_responses: bool = False) -> list[str]:

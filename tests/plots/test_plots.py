@@ -461,3 +461,35 @@ def test_fit_figures_show_a_file_name_as_typed(tmp_path):
     finally:
         for fig in figs.values():
             plt.close(fig)
+
+
+@pytest.mark.parametrize("closed", [True, False])
+def test_axis_replay_figure_names_its_replay_and_draws_the_residual(closed):
+    """The linear-axis overlay (prsa-fit --log-format ... --plots): measured against replayed
+    position error, velocity and force, the replay named (closed loop from the reference or
+    open loop from the command), and the velocity residual below."""
+    from prsa_ctrl.identification.axis import AxisReplay
+    from prsa_ctrl.plots.fit import axis_replay_figure
+
+    t = np.linspace(0, 1, 501)
+    ref = 0.01 * np.sin(2 * np.pi * t)
+    pm, ps = ref - 1e-5 * np.cos(9 * t), ref - 1.2e-5 * np.cos(9 * t)
+    vm, vs = np.gradient(pm, t), np.gradient(ps, t) + 1e-4
+    fm, fs = 20 * np.sin(3 * t), 21 * np.sin(3 * t)
+    r = AxisReplay("logs/a$b.mat", closed, t, pm, ps, vm, vs, fm, fs, {"position": 1.0, "velocity": 2.0, "force": 3.0},
+                   {"position": 99.0, "velocity": 98.0, "force": 97.0}, ref if closed else None)
+    fig = axis_replay_figure(r)
+    try:
+        ax = fig.axes
+        how = "closed-loop replay from the reference" if closed else "open-loop replay from the logged command"
+        assert [ln.get_label() for ln in ax[1].get_lines()] == ["measured", how]
+        base = ref if closed else np.mean(pm)
+        np.testing.assert_allclose(ax[0].get_lines()[1].get_ydata(), 1e6 * (base - ps))
+        np.testing.assert_array_equal(ax[1].get_lines()[1].get_ydata(), vs)
+        np.testing.assert_array_equal(ax[2].get_lines()[0].get_ydata(), fm)
+        np.testing.assert_allclose(ax[3].get_lines()[0].get_ydata(), vm - vs)
+        assert ax[3].get_ylabel() == "velocity residual, m/s"
+        title = fig._suptitle.get_text()
+        assert how in title and "a\\$b.mat" in title and "velocity 2 %" in title
+    finally:
+        plt.close(fig)
