@@ -161,10 +161,12 @@ class FitPanel:
         self.files = ColumnDataSource(data={"name": [], "text": []})
         self.download.js_on_click(CustomJS(args={"files": self.files}, code=_DOWNLOAD_FIRST_JS))
         self.out = Div(text="", css_classes=["prsa-fit-out"], sizing_mode="stretch_width")
-        self.views = FitViews()
+        #: the figures, built at the first calibration (the first page stays as light as before)
+        self.views: FitViews | None = None
+        self._views_box = column(sizing_mode="stretch_width")
         #: the calibration tab's content (:class:`prsa_ctrl.app.page.AppPage` puts it in its tab)
         self.layout = row(column(self.upload, row(self.use, self.discard), self.download, width=330),
-                          column(self.out, self.views.root, sizing_mode="stretch_width"), sizing_mode="stretch_width")
+                          column(self.out, self._views_box, sizing_mode="stretch_width"), sizing_mode="stretch_width")
         # value and filename arrive in one patch, value first: read both once the patch is applied
         self.upload.on_change("value", lambda attr, old, new: page.doc.add_next_tick_callback(self._start))
         self.use.on_click(self._use)
@@ -188,7 +190,7 @@ class FitPanel:
         self.calibration = None
         self.use.disabled = self.download.disabled = True
         self.discard.disabled = False  # cancels the running fit
-        self.views.show(None)
+        self._show_views(None)
         base = self.page.session.plant_label
         self.out.text = (f"<div data-k='fit-state' data-state='running'><b>Calibration</b>: fitting "
                          f"<b>{html.escape(base)}</b> to {html.escape(name)} ({len(content)} bytes) in the background "
@@ -232,7 +234,16 @@ class FitPanel:
             self.use.disabled = self.download.disabled = False
             self.files.data = {"name": [cal.file_name], "text": [cal.plant_text]}
             self.out.text = _report_html(cal, "done")
-        self.views.show(cal.report.get("views"))
+        self._show_views(cal.report.get("views"))
+
+    def _show_views(self, views: dict | None) -> None:
+        """Draw a fit's views (built on first use), or hide them (None)."""
+        if self.views is None:
+            if not views:
+                return
+            self.views = FitViews()
+            self._views_box.children = [self.views.root]
+        self.views.show(views)
 
     def _use(self) -> None:
         cal = self.calibration
@@ -253,7 +264,7 @@ class FitPanel:
         self.use.disabled = self.discard.disabled = self.download.disabled = True
         self.files.data = {"name": [], "text": []}
         self.out.text = ""
-        self.views.show(None)
+        self._show_views(None)
 
     def close(self) -> None:
         """Stop taking work (a running fit's command is ended)."""

@@ -325,6 +325,25 @@ def test_session_refused_calibration_has_the_verdict_the_views_and_no_plant(reso
         assert views.mag.xaxis[0].axis_label == "frequency (Hz)" and views.mag.x_scale.__class__.__name__ == "LogScale"
         views.show(None)
         assert not views.root.visible and views.replay_src.data["t"] == []
+        # the page: the calibration tab builds its figures at the first fit, not with the page
+        from bokeh.document import Document
+
+        from prsa_ctrl.app.page import AppPage
+
+        page = AppPage(Document(), session=s, attach=False)
+        try:
+            assert [t.title for t in page.tabs.tabs][-1] == "Calibration (fit a drive log)"
+            assert page.fit.views is None and page.fit._views_box.children == []
+            page.fit._done(page.fit._seq, cal)
+            assert page.fit.views is not None and page.fit._views_box.children == [page.fit.views.root]
+            assert page.fit.use.disabled and page.fit.download.disabled and not page.fit.discard.disabled
+            assert "data-state='refused'" in page.fit.out.text and page.fit.files.data["name"] == []
+            page.fit._use()  # nothing to use: the plant stays
+            assert s.plant.name == "paper-iprsm" and "data-state='refused'" in page.fit.out.text
+            page.fit._discard()
+            assert not page.fit.views.root.visible and page.fit.out.text == ""
+        finally:
+            page.close(wait=True)
     finally:
         s.close()
 
