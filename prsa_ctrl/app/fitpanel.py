@@ -1,11 +1,18 @@
-"""The page's calibration panel: upload a drive log, fit the plant in the background
-(``prsa-fit``'s path, :meth:`prsa_ctrl.app.session.AppSession.calibrate`), show the fitted values
-with their 95 % intervals and the fit's warnings, and on the user's confirmation make the fitted
-plant the app's plant and re-tune.
+"""The page's calibration tab: upload a drive log, fit the plant in the background
+(``prsa-fit``'s path, :meth:`prsa_ctrl.app.session.AppSession.calibrate`), show the verdict, the
+fitted values with their 95 % intervals and the fit's warnings, the three views of the fit
+(``prsa-fit --json``'s ``views``, :func:`prsa_ctrl.plots.fit.fit_views`: the replay of the plant
+as written against the log, the log's frequency response beside the written plant's on a Hz axis
+with the coherence, and the residuals), and on the user's confirmation make the fitted plant the
+app's plant and re-tune. A fit whose plant does not explain the log is shown as refused, with
+prsa-fit's diagnosis: no plant to use or download.
 
-Elements the browser tests read carry ``data-k`` attributes (``fit-state``, ``fit-<key>-value``,
-``fit-<key>-ci``, ``fit-warning``), the widgets CSS classes ``prsa-log-upload``, ``prsa-fit-use``,
-``prsa-fit-discard``, ``prsa-fit-download``.
+Elements the browser tests read carry ``data-k`` attributes (``fit-state``, ``fit-verdict``,
+``fit-views``, ``fit-<key>-value``, ``fit-<key>-ci``, ``fit-warning``), the widgets CSS classes
+``prsa-log-upload``, ``prsa-fit-use``, ``prsa-fit-discard``, ``prsa-fit-download``, the figures
+``prsa-fit-replay``, ``prsa-fit-residual``, ``prsa-fit-frf-mag``, ``prsa-fit-frf-phase``,
+``prsa-fit-coherence``, and their data sources the names ``prsa-fit-replay``,
+``prsa-fit-frf``, ``prsa-fit-frf-models``.
 """
 
 from __future__ import annotations
@@ -16,7 +23,9 @@ import html
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
+from bokeh.layouts import column, row
 from bokeh.models import Button, ColumnDataSource, CustomJS, Div, FileInput
+from bokeh.plotting import figure
 
 from .session import AppInputError, Calibration, Cancelled, one_line, upload_name
 
@@ -152,6 +161,12 @@ class FitPanel:
         self.files = ColumnDataSource(data={"name": [], "text": []})
         self.download.js_on_click(CustomJS(args={"files": self.files}, code=_DOWNLOAD_FIRST_JS))
         self.out = Div(text="", css_classes=["prsa-fit-out"], sizing_mode="stretch_width")
+        #: the figures, built at the first calibration (the first page stays as light as before)
+        self.views: FitViews | None = None
+        self._views_box = column(sizing_mode="stretch_width")
+        #: the calibration tab's content (:class:`prsa_ctrl.app.page.AppPage` puts it in its tab)
+        self.layout = row(column(self.upload, row(self.use, self.discard), self.download, width=330),
+                          column(self.out, self._views_box, sizing_mode="stretch_width"), sizing_mode="stretch_width")
         # value and filename arrive in one patch, value first: read both once the patch is applied
         self.upload.on_change("value", lambda attr, old, new: page.doc.add_next_tick_callback(self._start))
         self.use.on_click(self._use)
@@ -175,6 +190,7 @@ class FitPanel:
         self.calibration = None
         self.use.disabled = self.download.disabled = True
         self.discard.disabled = False  # cancels the running fit
+        self._show_views(None)
         base = self.page.session.plant_label
         self.out.text = (f"<div data-k='fit-state' data-state='running'><b>Calibration</b>: fitting "
                          f"<b>{html.escape(base)}</b> to {html.escape(name)} ({len(content)} bytes) in the background "
@@ -202,19 +218,36 @@ class FitPanel:
         self.discard.disabled = True
         self.page.show_error(line)
         self.out.text = (f"<div data-k='fit-state' data-state='failed'><b>Calibration</b> from "
-                         f"{html.escape(name)} failed; the plant is unchanged</div>")
+                         f"{html.escape(name)} failed; the plant is unchanged</div>"
+                         f"<div data-k='fit-error' style='color:#b00'>error: {html.escape(line)}</div>")
 
     def _done(self, seq: int, cal: Calibration) -> None:
         if seq != self._seq:
             return
         self.calibration = cal
-        self.use.disabled = self.discard.disabled = self.download.disabled = False
-        self.files.data = {"name": [cal.file_name], "text": [cal.plant_text]}
-        self.out.text = _report_html(cal, "done")
+        self.discard.disabled = False
+        if cal.refused is not None:  # no plant file: nothing to use or download
+            self.use.disabled = self.download.disabled = True
+            self.files.data = {"name": [], "text": []}
+            self.out.text = _report_html(cal, "refused")
+        else:
+            self.use.disabled = self.download.disabled = False
+            self.files.data = {"name": [cal.file_name], "text": [cal.plant_text]}
+            self.out.text = _report_html(cal, "done")
+        self._show_views(cal.report.get("views"))
+
+    def _show_views(self, views: dict | None) -> None:
+        """Draw a fit's views (built on first use), or hide them (None)."""
+        if self.views is None:
+            if not views:
+                return
+            self.views = FitViews()
+            self._views_box.children = [self.views.root]
+        self.views.show(views)
 
     def _use(self) -> None:
         cal = self.calibration
-        if cal is None:
+        if cal is None or cal.refused is not None:
             return
         try:
             notes = self.page.session.use_calibration(cal)
@@ -231,6 +264,7 @@ class FitPanel:
         self.use.disabled = self.discard.disabled = self.download.disabled = True
         self.files.data = {"name": [], "text": []}
         self.out.text = ""
+        self._show_views(None)
 
     def close(self) -> None:
         """Stop taking work (a running fit's command is ended)."""
@@ -238,8 +272,141 @@ class FitPanel:
         self._pool.shutdown(wait=False, cancel_futures=True)
 
 
+_PLOT = dict(height=260, sizing_mode="stretch_width", toolbar_location="above")
+_MODEL_COLORS = ("#2ca02c", "#ff7f0e", "#1f77b4")  # other fitted models (rigid, two-mass), then the written plant
+
+
+class FitViews:
+    """The three views of a fit, drawn from ``prsa-fit --json``'s ``views``
+    (:func:`prsa_ctrl.plots.fit.fit_views`): the replay of the plant as written against the
+    measured speed, the residual below it, and the frequency response of the data (points)
+    beside the fitted models (lines) on a Hz axis, with the coherence when the data carry one.
+    The first record and the first response are shown (the app fits one log)."""
+
+    def __init__(self) -> None:
+        self.replay_src = ColumnDataSource(data={"t": [], "measured": [], "model": [], "residual": []},
+                                           name="prsa-fit-replay")
+        self.frf_src = ColumnDataSource(data={"f": [], "mag": [], "phase": [], "coherence": [], "res_db": [],
+                                              "res_deg": []}, name="prsa-fit-frf")
+        self.models_src = ColumnDataSource(data={"xs": [], "mag": [], "phase": [], "label": [], "color": [],
+                                                 "width": []}, name="prsa-fit-frf-models")
+        self.replay = figure(title="Replay of the plant as written", x_axis_label="time (s)",
+                             y_axis_label="nut speed (rad/s)", css_classes=["prsa-fit-replay"], **_PLOT)
+        self.replay.line("t", "measured", source=self.replay_src, color="#7f7f7f", line_width=1,
+                         legend_label="measured (angle difference)")
+        self.replay_line = self.replay.line("t", "model", source=self.replay_src, color="#1f77b4", line_width=1.5,
+                                            legend_label="plant as written")
+        self.replay.legend.location = "bottom_right"
+        self.residual = figure(title="Residual (measured - replay)", x_axis_label="time (s)",
+                               y_axis_label="residual (rad/s)", x_range=self.replay.x_range,
+                               css_classes=["prsa-fit-residual"], **{**_PLOT, "height": 180})
+        self.residual.line("t", "residual", source=self.replay_src, color="#d62728", line_width=0.8)
+        self.mag = figure(title="Frequency response torque command -> nut speed", x_axis_type="log",
+                          x_axis_label="frequency (Hz)", y_axis_label="|G| (dB re 1 rad/s per N m)",
+                          css_classes=["prsa-fit-frf-mag"], **_PLOT)
+        self.mag.scatter("f", "mag", source=self.frf_src, size=4, color="#555555", legend_label="data")
+        self.mag.multi_line("xs", "mag", source=self.models_src, color="color", line_width="width",
+                            legend_field="label")
+        self.mag.legend.location = "bottom_left"
+        self.phase = figure(x_axis_type="log", x_axis_label="frequency (Hz)", y_axis_label="phase (deg)",
+                            x_range=self.mag.x_range, css_classes=["prsa-fit-frf-phase"], **{**_PLOT, "height": 200})
+        self.phase.scatter("f", "phase", source=self.frf_src, size=4, color="#555555")
+        self.phase.multi_line("xs", "phase", source=self.models_src, color="color", line_width="width")
+        self.frf_res = figure(title="Residual of the written plant's response", x_axis_type="log",
+                              x_axis_label="frequency (Hz)", y_axis_label="residual (dB)", x_range=self.mag.x_range,
+                              css_classes=["prsa-fit-frf-residual"], **{**_PLOT, "height": 170})
+        self.frf_res.line("f", "res_db", source=self.frf_src, color="#d62728", legend_label="magnitude (dB)")
+        self.frf_res.line("f", "res_deg", source=self.frf_src, color="#9467bd", legend_label="phase (deg)")
+        self.coherence = figure(x_axis_type="log", x_axis_label="frequency (Hz)", y_axis_label="coherence",
+                                x_range=self.mag.x_range, y_range=(0.0, 1.05), css_classes=["prsa-fit-coherence"],
+                                **{**_PLOT, "height": 150})
+        self.coherence.line("f", "coherence", source=self.frf_src, color="#2ca02c")
+        self.summary = Div(text="", sizing_mode="stretch_width")
+        self.root = column(self.summary, self.replay, self.residual, self.mag, self.phase, self.frf_res,
+                           self.coherence, sizing_mode="stretch_width", visible=False)
+
+    def show(self, views: dict | None) -> None:
+        """Draw ``views`` (None or without data: hide the views)."""
+        views = views if isinstance(views, dict) else {}
+        replay = next(iter((views.get("replay") or {}).items()), None)
+        frf = next(iter((views.get("frf") or {}).items()), None)
+        self.root.visible = replay is not None or frf is not None
+        parts = []
+        self.replay.visible = self.residual.visible = replay is not None
+        if replay is not None:
+            name, r = replay
+            self.replay_src.data = {"t": _nums(r["time_s"]), "measured": _nums(r["measured_rad_s"]),
+                                    "model": _nums(r["model_rad_s"]), "residual": _nums(r["residual_rad_s"])}
+            self.replay.title.text = f"{name}: {r['label']}"
+            w = r.get("whiteness")
+            self.residual.title.text = ("Residual (measured - replay)" + (
+                f": autocorrelation lag 1 {w['acf'].get('1', w['acf'].get(1, float('nan'))):+.2f} (white band "
+                f"+/- {w['band']:.2g})" if w else ""))
+            parts.append(f"<span data-k='fit-views-replay' data-mode='{html.escape(r['mode'])}' "
+                         f"data-n='{len(r['time_s'])}' data-every='{int(r['every'])}'>replay of {html.escape(name)}: "
+                         f"{html.escape(r['label'])}" + (f" (one sample in {int(r['every'])} shown)" if r["every"] > 1 else "")
+                         + "</span>")
+        else:
+            self.replay_src.data = {"t": [], "measured": [], "model": [], "residual": []}
+        self.mag.visible = self.phase.visible = self.frf_res.visible = frf is not None
+        coh = None
+        if frf is not None:
+            name, fr = frf
+            coh = fr.get("coherence")
+            n = len(fr["frequency_hz"])
+            self.frf_src.data = {"f": _nums(fr["frequency_hz"]), "mag": _nums(fr["measured"]["magnitude_db"]),
+                                 "phase": _nums(fr["measured"]["phase_deg"]),
+                                 "coherence": _nums(coh) if coh is not None else [float("nan")] * n,
+                                 "res_db": _nums(fr["residual"]["magnitude_db"]),
+                                 "res_deg": _nums(fr["residual"]["phase_deg"])}
+            labels = list(fr["models"])
+            others = [k for k in labels if not fr["models"][k]["written"]]
+            colors = {k: _MODEL_COLORS[i % 2] for i, k in enumerate(others)}
+            self.models_src.data = {
+                "xs": [_nums(fr["frequency_hz"]) for _ in labels],
+                "mag": [_nums(fr["models"][k]["magnitude_db"]) for k in labels],
+                "phase": [_nums(fr["models"][k]["phase_deg"]) for k in labels],
+                "label": labels, "color": [colors.get(k, _MODEL_COLORS[2]) for k in labels],
+                "width": [2.0 if fr["models"][k]["written"] else 1.2 for k in labels]}
+            self.mag.title.text = f"{name}: frequency response, data beside the fitted model" + (
+                "s" if len(labels) > 1 else "")
+            parts.append(f"<span data-k='fit-views-frf' data-n='{n}' data-unit='Hz' "
+                         f"data-models='{len(labels)}'>frequency response of {html.escape(name)} ({n} points, Hz): "
+                         f"{html.escape(fr['source'])}</span>")
+        else:
+            self.frf_src.data = {"f": [], "mag": [], "phase": [], "coherence": [], "res_db": [], "res_deg": []}
+            self.models_src.data = {"xs": [], "mag": [], "phase": [], "label": [], "color": [], "width": []}
+        self.coherence.visible = coh is not None
+        self.summary.text = (f"<div data-k='fit-views' style='font-size:12px'>{'<br>'.join(parts)}</div>"
+                             if parts else "")
+
+
+def _nums(values) -> list:
+    """A JSON list of numbers or None as floats for a Bokeh source (None: NaN, a gap in a line)."""
+    return [float("nan") if v is None else float(v) for v in values]
+
+
+def _verdict_html(cal: Calibration) -> str:
+    """The verdict: refused (prsa-fit's line with the diagnosis), validated or not validated."""
+    v = (cal.report.get("solver") or {}).get("validation")
+    if cal.refused is not None:
+        return (f"<div data-k='fit-verdict' data-verdict='refused' style='color:#b00;font-weight:bold'>Refused: "
+                f"{html.escape(cal.refused)}. No plant file was written; the app's plant is unchanged.</div>")
+    if v is None:
+        return ("<div data-k='fit-verdict' data-verdict='not-validated'>Not validated: prsa-fit replayed no log "
+                "through the written plant.</div>")
+    pct = "; ".join(f"{html.escape(n)} replayed at {e['fit_percent']:.1f} % ({e['error_rms_rad_s']:.3g} rad/s, "
+                    f"{e['error_rms_rad_s'] / max(e['noise_floor_rad_s'], 1e-300):.3g} x its noise floor)"
+                    for n, e in (v.get("written_plant") or {}).items() if e.get("finite"))
+    if not v.get("passes"):  # exit 0 with a failed validation does not happen; never shown as good
+        return (f"<div data-k='fit-verdict' data-verdict='refused' style='color:#b00;font-weight:bold'>Not validated: "
+                f"{html.escape('; '.join(v.get('reasons') or []))}</div>")
+    return (f"<div data-k='fit-verdict' data-verdict='validated' style='color:#060'>Validated: the plant as written "
+            f"explains the log ({pct}).</div>")
+
+
 def _report_html(cal: Calibration, state: str) -> str:
-    """The fitted values with their 95 % intervals, fit %, warnings and notes."""
+    """The verdict, the fitted values with their 95 % intervals, fit %, warnings and notes."""
     rep = cal.report
     rows = []
     for key, v in rep["parameters"].items():
@@ -255,12 +422,20 @@ def _report_html(cal: Calibration, state: str) -> str:
                      for f, pct in rep["fit_percent"].items())
     warns = "".join(f"<li data-k='fit-warning'>warning: {html.escape(w)}</li>" for w in rep["warnings"])
     notes = "".join(f"<li>note: {html.escape(n)}</li>" for n in cal.notes)
-    head = ("in use: the app now tunes this plant" if state == "used" else
+    if state == "refused":
+        return (f"<div data-k='fit-state' data-state='refused' data-file=''><b>Calibration</b> of "
+                f"<b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, solver "
+                f"{html.escape(str(rep['solver'].get('status', '')))}): refused, fit {fits}</div>" + _verdict_html(cal)
+                + "<div style='font-size:12px'>The values the refused fit found (not written, not for tuning):</div>"
+                "<table style='font-size:12px;color:#777'><tr><th style='text-align:left'>key</th><th>value</th>"
+                "<th>95 % CI</th><th>unit</th></tr>" + "".join(rows) + "</table>"
+                + (f"<ul style='font-size:12px;margin:2px 0'>{warns}{notes}</ul>" if warns or notes else ""))
+    head = ("in use: the app now tunes this plant (Actuator tab)" if state == "used" else
             "press <i>Use the fitted plant</i> to tune it, or discard it")
     return (f"<div data-k='fit-state' data-state='{state}' data-file='{html.escape(cal.file_name)}'><b>Calibration</b> "
             f"of <b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, solver "
             f"{html.escape(str(rep['solver'].get('status', '')))}): fit {fits}; {head}. Fitted plant file: "
-            f"{html.escape(cal.file_name)}</div>"
-            "<table style='font-size:12px'><tr><th style='text-align:left'>key</th><th>value</th><th>95 % CI</th>"
+            f"{html.escape(cal.file_name)}</div>" + _verdict_html(cal)
+            + "<table style='font-size:12px'><tr><th style='text-align:left'>key</th><th>value</th><th>95 % CI</th>"
             "<th>unit</th></tr>" + "".join(rows) + "</table>"
             + (f"<ul style='font-size:12px;margin:2px 0'>{warns}{notes}</ul>" if warns or notes else ""))

@@ -21,11 +21,45 @@ from bokeh.layouts import column, row
 from bokeh.models import Button, CheckboxGroup, ColumnDataSource, Div, RadioButtonGroup, Select, Span, TextInput
 from bokeh.plotting import figure
 
-from ..options import OBJECTIVES
+from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, OBJECTIVES
 from .generic import GenericSettings, GenericView, TuneProcess, generic_code
 from .session import AppInputError, Cancelled, one_line
 
-__all__ = ["GenericPanel", "signature"]
+__all__ = ["GenericPanel", "signature", "frequency_unit_widget", "FrequencyAxes"]
+
+
+def frequency_unit_widget(css: str) -> RadioButtonGroup:
+    """The choice of the frequency axes' unit (:data:`prsa_ctrl.options.FREQUENCY_UNITS`,
+    default :data:`~prsa_ctrl.options.DEFAULT_FREQUENCY_UNIT`: Hz)."""
+    units = list(FREQUENCY_UNITS)
+    return RadioButtonGroup(labels=units, active=units.index(DEFAULT_FREQUENCY_UNIT), css_classes=[css])
+
+
+class FrequencyAxes:
+    """Frequency axes in the unit a :func:`frequency_unit_widget` holds: each source keeps the
+    response's ``"w"`` (rad/s, SI) and gets ``"f"`` (in the unit) that the lines draw; the
+    figures' x labels name the unit."""
+
+    def __init__(self, widget: RadioButtonGroup, sources, figures) -> None:
+        self.widget, self.sources, self.figures = widget, list(sources), list(figures)
+        widget.on_change("active", lambda attr, old, new: self.refresh())
+        self.refresh()
+
+    @property
+    def unit(self) -> str:
+        units = list(FREQUENCY_UNITS)
+        a = self.widget.active
+        return units[a] if isinstance(a, int) and 0 <= a < len(units) else DEFAULT_FREQUENCY_UNIT
+
+    def data(self, data: dict) -> dict:
+        """``data`` with its ``"f"`` column: ``"w"`` (rad/s) in the unit."""
+        return {**data, "f": np.asarray(data.get("w", []), float) * FREQUENCY_UNITS[self.unit]}
+
+    def refresh(self) -> None:
+        for src in self.sources:
+            src.data = self.data(dict(src.data))
+        for fig in self.figures:
+            fig.xaxis.axis_label = f"frequency ({self.unit})"
 
 _PLOT = dict(height=280, sizing_mode="stretch_width", toolbar_location="above")
 
@@ -78,24 +112,27 @@ class GenericPanel:
         self.options = CheckboxGroup(labels=["ideal PID (no derivative filter)", "2-DOF setpoint weights b, c"],
                                      active=[], css_classes=["prsa-g-options"])
         self.tune_button = Button(label="Tune", button_type="primary", css_classes=["prsa-g-tune"])
+        self.freq_unit = frequency_unit_widget("prsa-g-freq-unit")
         self.state = Div(text="", css_classes=["prsa-g-state"], sizing_mode="stretch_width")
         self.readout = Div(text="", css_classes=["prsa-g-readout"], sizing_mode="stretch_width")
         self.code = Div(text="", css_classes=["prsa-g-code"], sizing_mode="stretch_width")
         self._figures()
+        self.axes = FrequencyAxes(self.freq_unit, [self.src], [self.mag, self.phase, self.st, self.noise_fig])
         for w in (self.plant, self.delay, self.objective, self.ms, self.mt, self.mks):
             w.on_change("value", lambda attr, old, new: self.request())
         for w in (self.controller, self.filter, self.options):
             w.on_change("active", lambda attr, old, new: self.request())
         self.tune_button.on_click(self.request)
         controls = column(self.plant, self.delay, self.objective, self.controller, self.ms, self.mt, self.mks,
-                          self.filter, self.options, self.tune_button, width=330)
+                          self.filter, self.options, self.tune_button,
+                          Div(text="Frequency axes"), self.freq_unit, width=330)
         views = column(self.state, self.readout, row(self.mag, self.st, sizing_mode="stretch_width"),
                        row(self.phase, self.noise_fig, sizing_mode="stretch_width"), self.code,
                        sizing_mode="stretch_width")
         self.layout = row(controls, views, sizing_mode="stretch_width")
 
     def _figures(self) -> None:
-        self.src = ColumnDataSource(data={"w": [], "db": [], "deg": [], "s": [], "t": [], "cs": []})
+        self.src = ColumnDataSource(data={"w": [], "f": [], "db": [], "deg": [], "s": [], "t": [], "cs": []})
         self.mag = figure(title="Bode |L|", x_axis_type="log", x_axis_label="rad/s", y_axis_label="dB",
                           css_classes=["prsa-g-bode"], **_PLOT)
         self.phase = figure(title="Bode phase of L", x_axis_type="log", x_axis_label="rad/s", y_axis_label="deg",
@@ -105,11 +142,11 @@ class GenericPanel:
         self.noise_fig = figure(title="|C F S| (noise sensitivity) with the Mks bound", x_axis_type="log",
                                 y_axis_type="log", x_axis_label="rad/s", y_axis_label="magnitude",
                                 x_range=self.mag.x_range, **_PLOT)
-        self.mag.line("w", "db", source=self.src, line_width=2)
-        self.phase.line("w", "deg", source=self.src, line_width=2)
-        self.st.line("w", "s", source=self.src, line_width=2, legend_label="|S|")
-        self.st.line("w", "t", source=self.src, line_width=2, line_dash="dotted", legend_label="|T|")
-        self.noise_fig.line("w", "cs", source=self.src, line_width=2)
+        self.mag.line("f", "db", source=self.src, line_width=2)
+        self.phase.line("f", "deg", source=self.src, line_width=2)
+        self.st.line("f", "s", source=self.src, line_width=2, legend_label="|S|")
+        self.st.line("f", "t", source=self.src, line_width=2, line_dash="dotted", legend_label="|T|")
+        self.noise_fig.line("f", "cs", source=self.src, line_width=2)
         self.mag.add_layout(Span(location=0, dimension="width", line_color="black", line_width=1))
         self.phase.add_layout(Span(location=-180, dimension="width", line_color="black", line_width=1))
         self.ms_span = Span(location=1.4, dimension="width", line_color="#b00020", line_dash="dashed")
@@ -195,9 +232,10 @@ class GenericPanel:
         self.view = view
         r, gs = view.result, view.settings
         L = view.loop
-        self.src.data = {"w": view.omega, "db": 20 * np.log10(np.abs(L)), "deg": np.degrees(np.unwrap(np.angle(L))),
-                         "s": 1 / np.abs(1 + L), "t": np.abs(L / (1 + L)),
-                         "cs": np.abs(view.noise) if view.noise.size else np.full(L.shape, np.nan)}
+        self.src.data = self.axes.data({"w": view.omega, "db": 20 * np.log10(np.abs(L)),
+                                        "deg": np.degrees(np.unwrap(np.angle(L))), "s": 1 / np.abs(1 + L),
+                                        "t": np.abs(L / (1 + L)),
+                                        "cs": np.abs(view.noise) if view.noise.size else np.full(L.shape, np.nan)})
         self.ms_span.location = gs.ms_max
         self.mt_span.visible, self.mt_span.location = gs.mt_max is not None, gs.mt_max or 1.0
         self.mks_span.visible, self.mks_span.location = gs.mks_max is not None, gs.mks_max or 1.0

@@ -28,7 +28,7 @@ from bokeh.plotting.contour import contour_data
 
 from ..options import OBJECTIVES
 from .fitpanel import SIZE_CHECK_JS, FitPanel, too_large_line, upload_input, uploaded_file
-from .genericpanel import GenericPanel
+from .genericpanel import FrequencyAxes, GenericPanel, frequency_unit_widget
 from .session import (FIDELITIES, AppInputError, AppSession, Cancelled, Settings, View, builtin_names, one_line,
                       robust_study, typed)
 
@@ -177,13 +177,13 @@ class AppPage:
             self.land.js_on_event(ev, drag_js)
 
         controls = column(self.plant_select, self.plant_upload, self.scene_select, self.scene_upload,
-                          self.fit.upload, row(self.fit.use, self.fit.discard), self.fit.download,
                           self.objective, self.controller, self.ms, self.mt_on, self.mt, self.noise, self.mks, self.loads,
+                          Div(text="Frequency axes"), self.freq_unit,
                           self.fidelity, row(self.verify_button, self.cancel_button), self.progress,
                           self.samples, row(self.robust_button, self.robust_cancel),
                           self.clear_manual, self.export_which, self.dl_drive, self.dl_report,
                           self.copy_cli, self.copy_py, width=330)
-        views = column(self.error, self.status, self.fit.out, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
+        views = column(self.error, self.status, self.readout, row(self.resp, self.land, sizing_mode="stretch_width"),
                        row(self.mag, self.st, sizing_mode="stretch_width"),
                        row(self.phase, self.code, sizing_mode="stretch_width"), self.robust_out,
                        sizing_mode="stretch_width")
@@ -193,7 +193,8 @@ class AppPage:
         self.tabs = Tabs(tabs=[TabPanel(child=row(controls, views, sizing_mode="stretch_width"),
                                         title="Actuator (plant and scene files)"),
                                TabPanel(child=Div(text="loading the generic tuner ..."),
-                                        title="Generic plant (transfer function)")],
+                                        title="Generic plant (transfer function)"),
+                               TabPanel(child=self.fit.layout, title="Calibration (fit a drive log)")],
                          sizing_mode="stretch_width", css_classes=["prsa-tabs"])
         self.tabs.on_change("active", lambda attr, old, new: self._open_generic() if new == 1 else None)
         self.root = column(self.title, self.tabs, sizing_mode="stretch_width")
@@ -241,14 +242,15 @@ class AppPage:
                             x_range=self.mag.x_range, **_PLOT)
         self.st = figure(title="|S| and |T| with the bounds", x_axis_type="log", x_axis_label="rad/s",
                          y_axis_label="magnitude", x_range=self.mag.x_range, **_PLOT)
-        self.freq = {k: ColumnDataSource(data={"w": [], "db": [], "deg": [], "s": [], "t": []}) for k in ("opt", "man")}
+        self.freq = {k: ColumnDataSource(data={"w": [], "f": [], "db": [], "deg": [], "s": [], "t": []},
+                                         name=f"prsa-freq-{k}") for k in ("opt", "man")}
         for k, dash in (("opt", "solid"), ("man", "dashed")):
             c = _COLORS[k]
             name = "optimum" if k == "opt" else "manual"
-            self.mag.line("w", "db", source=self.freq[k], color=c, line_dash=dash, line_width=2, legend_label=name)
-            self.phase.line("w", "deg", source=self.freq[k], color=c, line_dash=dash, line_width=2, legend_label=name)
-            self.st.line("w", "s", source=self.freq[k], color=c, line_dash=dash, line_width=2, legend_label=f"|S| {name}")
-            self.st.line("w", "t", source=self.freq[k], color=c, line_dash="dotted", line_width=2,
+            self.mag.line("f", "db", source=self.freq[k], color=c, line_dash=dash, line_width=2, legend_label=name)
+            self.phase.line("f", "deg", source=self.freq[k], color=c, line_dash=dash, line_width=2, legend_label=name)
+            self.st.line("f", "s", source=self.freq[k], color=c, line_dash=dash, line_width=2, legend_label=f"|S| {name}")
+            self.st.line("f", "t", source=self.freq[k], color=c, line_dash="dotted", line_width=2,
                          legend_label=f"|T| {name}")
         self.mag.add_layout(Span(location=0, dimension="width", line_color="black", line_width=1))
         self.phase.add_layout(Span(location=-180, dimension="width", line_color="black", line_width=1))
@@ -259,6 +261,8 @@ class AppPage:
         for f in (self.mag, self.phase, self.st):
             f.legend.label_text_font_size = "8pt"
             f.legend.location = "bottom_left"
+        self.freq_unit = frequency_unit_widget("prsa-freq-unit")
+        self.axes = FrequencyAxes(self.freq_unit, self.freq.values(), [self.mag, self.phase, self.st])
 
     # ---- reading the controls ------------------------------------------------------------
 
@@ -393,12 +397,12 @@ class AppPage:
         self.base_src.data = {"t": bt, "w": bw, "name": bn, "color": bc}
         for k, v in (("opt", opt), ("man", man)):
             if v is None:
-                self.freq[k].data = {"w": [], "db": [], "deg": [], "s": [], "t": []}
+                self.freq[k].data = {"w": [], "f": [], "db": [], "deg": [], "s": [], "t": []}
                 continue
             L = v.loop
-            self.freq[k].data = {"w": v.omega, "db": 20 * np.log10(np.abs(L)),
-                                 "deg": np.degrees(np.unwrap(np.angle(L))),
-                                 "s": 1 / np.abs(1 + L), "t": np.abs(L / (1 + L))}
+            self.freq[k].data = self.axes.data({"w": v.omega, "db": 20 * np.log10(np.abs(L)),
+                                                "deg": np.degrees(np.unwrap(np.angle(L))),
+                                                "s": 1 / np.abs(1 + L), "t": np.abs(L / (1 + L))})
         self.ms_span.location = s.ms_max
         self.mt_span.visible = s.mt_max is not None
         self.mt_span.location = s.mt_max or 1.0
@@ -599,7 +603,8 @@ class AppPage:
             self.generic = GenericPanel(self.doc)
             # a new panel (BokehJS re-renders Tabs on a change of ``tabs``, not of a panel's child)
             self.tabs.tabs = [self.tabs.tabs[0], TabPanel(child=self.generic.layout,
-                                                          title="Generic plant (transfer function)")]
+                                                          title="Generic plant (transfer function)"),
+                              *self.tabs.tabs[2:]]
             self.tabs.active = 1
             self.generic.request()
 

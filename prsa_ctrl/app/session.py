@@ -273,6 +273,9 @@ class AppSession:
         Slow (a Gauss-Newton fit, seconds): call it off the page's event loop.
         ``cancelled()`` is polled every ``poll_s`` s; when it turns true the command is ended.
 
+        A fit whose plant does not explain the log (prsa-fit's exit 3 with its report) returns
+        a :class:`Calibration` with ``refused`` set (the diagnosis) and no plant file.
+
         Raises
         ------
         AppInputError
@@ -318,18 +321,25 @@ class AppSession:
 
         err = [named(line) for line in stderr.splitlines() if line.strip()]
         notes = tuple(line.removeprefix("prsa-fit: note: ") for line in err if line.startswith("prsa-fit: note:"))
+        lines = tuple(named(line) for line in stdout.splitlines() if line.strip() and not line.startswith("wrote "))
+        refused = _refusal(code, err, folder / rep)
+        if refused is not None:  # the fit ran and its plant does not explain the log: a verdict, no plant file
+            return Calibration(log_name=name, base_label=base_label, plant_path="", file_name="", report=refused[1],
+                               lines=lines, notes=notes, refused=refused[0])
         if code != 0:
             first = next((line for line in err if not line.startswith("prsa-fit: note:")),
                          f"prsa-fit: error: {name}: the fit stopped with exit code {code}")
             raise AppInputError(first.removeprefix("prsa-fit: ").removeprefix("error: "))
-        lines = tuple(named(line) for line in stdout.splitlines() if line.strip() and not line.startswith("wrote "))
         report = json.loads((folder / rep).read_text(encoding="utf-8"))
         return Calibration(log_name=name, base_label=base_label, plant_path=str(folder / out), file_name=out,
                            report=report, lines=lines, notes=notes)
 
     def use_calibration(self, cal: "Calibration") -> list[str]:
         """Make the fitted plant the session's plant (checked against the scene; its file name
-        is the plant's label from now on); returns its notes."""
+        is the plant's label from now on); returns its notes. A refused calibration has no
+        plant: AppInputError with its line."""
+        if cal.refused is not None:
+            raise AppInputError(f"{cal.log_name}: the fit is refused, no plant to use ({cal.refused})")
         return self.set_plant(cal.plant_path, label=cal.file_name)
 
     def scene_for(self, s: Settings) -> Scene:
@@ -721,6 +731,10 @@ class Calibration:
         prsa-fit's output lines (values with 95 % intervals, fit %, ``warning:`` lines).
     notes : tuple of str
         prsa-fit's ``note:`` lines.
+    refused : str or None
+        When prsa-fit refused the fitted plant (exit 3: it does not explain the log), its one
+        line with the diagnosis; ``plant_path`` and ``file_name`` are then empty (no plant
+        file is written) and ``report`` says why (``solver.validation``, ``views``).
     """
 
     log_name: str
@@ -730,11 +744,35 @@ class Calibration:
     report: dict
     lines: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
+    refused: str | None = None
 
     @property
     def plant_text(self) -> str:
-        """The fitted plant file's text (what ``prsa-fit --out`` writes)."""
+        """The fitted plant file's text (what ``prsa-fit --out`` writes); ValueError for a
+        refused fit (none was written)."""
+        if self.refused is not None:
+            raise ValueError(f"{self.log_name}: no fitted plant file ({self.refused})")
         return Path(self.plant_path).read_text(encoding="utf-8")
+
+
+def _refusal(code: int, err: list[str], report_path: Path) -> tuple[str, dict] | None:
+    """``(line, report)`` when prsa-fit refused its fitted plant (exit 3 after a fit whose
+    validation failed: the report is written, the plant file is not); None otherwise (a fit
+    that did not converge exits 3 without a report and stays an error)."""
+    if code != 3 or not report_path.is_file():
+        return None
+    try:
+        report = json.loads(report_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    validation = (report.get("solver") or {}).get("validation") if isinstance(report, dict) else None
+    if not isinstance(validation, dict) or validation.get("passes", True):
+        return None
+    line = next((ln for ln in err if ln.startswith("prsa-fit: the fitted plant does not explain")),
+                f"prsa-fit: the fitted plant does not explain the data; most likely missing physics: "
+                f"{validation.get('diagnosis')}")
+    line = line.removeprefix("prsa-fit: ").removesuffix(" (no plant file written; --force writes it)")
+    return line, report
 
 
 class Cancelled(Exception):

@@ -405,37 +405,20 @@ def _validate(args) -> int:
 
 
 def _plots(directory: str, replays, inputs) -> list[str]:
-    """Overlay figures (tracking error, velocity, force: measured vs simulated), one PNG per replay."""
+    """Overlay figures (:func:`prsa_ctrl.plots.fit.axis_replay_figure`: tracking error, velocity,
+    force, measured vs replayed, and the velocity residual), one PNG per replay."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
     from ..io.output import make_directory, write_file
+    from ..plots.fit import axis_replay_figure
 
     make_directory(directory, "--plots")
     out = []
     for i, r in enumerate(replays):
-        fig, ax = plt.subplots(3, 1, sharex=True, figsize=(9, 7))
-        t = r.time_s
-        base, what = ((r.reference_m, "position error (reference - position), um") if r.reference_m is not None
-                      else (r.position_measured.mean(), "position - mean, um"))
-        ax[0].plot(t, 1e6 * (base - r.position_measured), label="measured")
-        ax[0].plot(t, 1e6 * (base - r.position_simulated), "--", label="simulated")
-        ax[0].set_ylabel(what)
-        ax[1].plot(t, r.velocity_measured, label="measured")
-        ax[1].plot(t, r.velocity_simulated, "--", label="simulated")
-        ax[1].set_ylabel("velocity, m/s")
-        ax[2].plot(t, r.force_measured, label="measured")
-        ax[2].plot(t, r.force_simulated, "--", label="simulated")
-        ax[2].set_ylabel("force, N")
-        ax[2].set_xlabel("time, s")
-        e = r.errors_percent
-        fig.suptitle(f"{Path(r.name).name}: errors position {e['position']:.3g} %, velocity {e['velocity']:.3g} %, "
-                     f"force {e['force']:.3g} %")
-        for a in ax:
-            a.grid(True, alpha=0.3)
-            a.legend(loc="upper right")
+        fig = axis_replay_figure(r)
         stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(r.name).name)
         path = Path(directory) / f"replay-{i + 1}-{stem}.png"
         try:

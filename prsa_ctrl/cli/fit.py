@@ -1,6 +1,7 @@
 """``prsa-fit``: calibrate a plant file from measured drive data, or design the experiment.
 
 ``prsa-fit [DATA.csv ...] [--frf FRF.csv ...] --out MY.toml [--json REPORT.json] [--plots DIR]
+[--frequency-unit Hz|rad/s]
 [--plant BASE] [--fit KEY,...] [--fidelity rigid|compliant] [--validate OTHER.csv ...]
 [--columns name=header,...] [--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N]
 [--coherence-min C] [--delay-samples N] [--command-logged applied|computed] [--verbose]``
@@ -50,6 +51,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
+from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS
 from .axis import MOTOR_COORDINATES
 from .common import Run, Parser, UsageError, echo, flag_value, invoke, number, progress
 
@@ -92,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="FRF points with a lower coherence are dropped (default 0.8)")
     p.add_argument("--plots", metavar="DIR", help="write residual, overlay and Bode figures (PNG) into DIR "
                    "(created if missing)")
+    p.add_argument("--frequency-unit", choices=tuple(FREQUENCY_UNITS), default=DEFAULT_FREQUENCY_UNIT,
+                   help="unit of the frequency axes of the --plots Bode figures (default Hz; the JSON report's "
+                   "frequencies are in Hz either way)")
     p.add_argument("--plant", default=None, metavar="NAME|PATH", help="base plant (default paper-iprsm)")
     p.add_argument("--fit", default=None, metavar="KEY,...", help="plant keys to fit (default: inertia, efficiency, "
                    "no-load torque, viscous, current-loop bandwidth; FRF only: inertia, current-loop bandwidth, with "
@@ -563,7 +568,9 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
             from ..plots.fit import figure_names
 
             check_distinct({"--plots": args.plots, **outs})
-            stems = figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf)
+            stems = (figure_names([], [*args.frf, *args.data]) if args.frf_from_logs is not None else
+                     figure_names([*(args.data or []), *(args.validate if args.data else [])], args.frf,
+                                  log_responses=True))
             plot_paths = [str(Path(args.plots) / f"{stem}.png") for stem in stems]
             _probe_plots(args.plots, [f"{stem}.png" for stem in stems], inputs)
         columns = parse_columns(args.columns) if args.columns else None
@@ -654,11 +661,14 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
     if args.json:
         from ..io.output import json_safe
 
-        report = {**result.report(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": coordinates}}
+        from ..plots.fit import fit_views
+
+        report = {**result.report(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": coordinates},
+                  "views": fit_views(result, [*records, *validate])}
         files[args.json] = ("--json", json.dumps(json_safe(report), indent=2) + "\n")
     try:
         if args.plots is not None:
-            plot_paths = _write_plots(result, args.plots, inputs, created)
+            plot_paths = _write_plots(result, args.plots, inputs, created, args.frequency_unit, [*records, *validate])
         _write_outputs(files, inputs, created)
     except (OutputError, OSError) as exc:  # all or nothing: the figures of this run are taken back
         _take_back(created)
@@ -858,9 +868,11 @@ def _print_chain(exc: BaseException, skip_message: bool = False) -> None:
         depth += 1
 
 
-def _write_plots(result, directory: str, inputs: Sequence[str], created: list) -> list[str]:
+def _write_plots(result, directory: str, inputs: Sequence[str], created: list,
+                 frequency_unit: str = DEFAULT_FREQUENCY_UNIT, records: Sequence = ()) -> list[str]:
     """Write :func:`prsa_ctrl.plots.fit.fit_figures` as PNG files into ``directory`` (created if
-    missing); the directories made and the files written are added to ``created``."""
+    missing; Bode axes in ``frequency_unit``; each of ``records`` with its own response
+    figure); the directories made and the files written are added to ``created``."""
     import matplotlib.pyplot as plt
 
     from ..plots.fit import fit_figures
@@ -868,7 +880,7 @@ def _write_plots(result, directory: str, inputs: Sequence[str], created: list) -
 
     created += make_directory(directory, "--plots")
     out = []
-    figs = fit_figures(result)
+    figs = fit_figures(result, frequency_unit, records)
     try:
         for stem, fig in figs.items():
             path = Path(directory) / f"{stem}.png"

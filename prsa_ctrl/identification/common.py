@@ -139,8 +139,9 @@ class FitResult:
         autocorrelation and how much wider the intervals are than white-residual ones.
     traces : dict
         Per record ``{"time_s", "measured", "model"}`` (nut speed, rad/s) and per frequency
-        response ``{"frequency_hz", "measured", "model"}`` (complex, (rad/s)/(N m)), for
-        :func:`fit_figures`.
+        response ``{"frequency_hz", "measured", "model"}`` (complex, (rad/s)/(N m)) with the
+        data's ``"coherence"`` (0..1, None when the data have none), for
+        :func:`prsa_ctrl.plots.fit.fit_figures`.
     not_identified : dict
         ``{key: reason}`` for the fitted keys that the data of this fit cannot inform (95 % CI
         wider than the key's physical range, more than +/- 50 % of the value, or at a bound of

@@ -502,7 +502,7 @@ def fit_frf(
         g = frf_response(fitted, fr.frequency_hz, speed_rad_s=fr.speed_rad_s, load_n=fr.load_n,
                          sample_time_s=frf_sample_time(fr, plant), delay_s=delay_of(sol.x, fr), fidelity=fidelity)
         fit_pct[fr.name] = round(frf_fit_percent(fr.response, g), 3)
-        traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
+        traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g, "coherence": fr.coherence}
     if delay is not None:  # after the fit %: the traces use the fitted continuous delay itself
         fitted, delay = _write_delay(fitted, delay, ts_fit, command_logged, warns)
     solver = {

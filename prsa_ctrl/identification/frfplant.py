@@ -432,7 +432,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         if choice.two_mass is not None:
             models[f"two-mass ({choice.two_mass.fit_percent:.1f} %)"] = choice.two_mass.response(fr.frequency_hz)
         traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g, "models": models,
-                           "chosen": fit.structure}
+                           "chosen": fit.structure, "coherence": fr.coherence}
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(all="ignore"):
         corr = np.nan_to_num(cov / np.outer(sd, sd))

@@ -480,7 +480,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
                          sample_time_s=frf_sample_time(fr, fitted), delay_samples=delay_samples,
                          fidelity=fidelity if fr.load_n else "rigid")
         fit_pct[fr.name] = round(frf_fit_percent(fr.response, g), 3)
-        traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g}
+        traces[fr.name] = {"frequency_hz": fr.frequency_hz, "measured": fr.response, "model": g, "coherence": fr.coherence}
     solver = {
         "name": "constrained Gauss-Newton (multiple shooting, Radau IIA collocation per sample, exact CasADi derivatives)",
         "status": sol["status"],

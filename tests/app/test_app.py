@@ -275,3 +275,36 @@ def test_uploaded_file_checks_what_the_client_sent(value, line):
         with pytest.raises(AppInputError) as info:
             uploaded_file(w, "d.toml")
         assert str(info.value) == line
+
+
+def test_bode_axes_in_hz_by_default_rad_s_on_request():
+    """Issue 33: the page's Bode and |S|, |T| axes in Hz (the sources keep rad/s as "w", the
+    lines draw "f"), rad/s one click away; the generic tab alike."""
+    import numpy as np
+    from bokeh.document import Document
+
+    from prsa_ctrl.app.genericpanel import GenericPanel
+    from prsa_ctrl.app.page import AppPage
+
+    page = AppPage(Document(), attach=False)
+    try:
+        figs = (page.mag, page.phase, page.st)
+        assert page.axes.unit == "Hz" and [f.xaxis[0].axis_label for f in figs] == ["frequency (Hz)"] * 3
+        assert {r.glyph.x for f in figs for r in f.renderers if hasattr(r.glyph, "x")} == {"f"}
+        w = np.geomspace(1, 1e4, 7)
+        page.freq["opt"].data = page.axes.data({"w": w, "db": w, "deg": w, "s": w, "t": w})
+        np.testing.assert_allclose(page.freq["opt"].data["f"], w / (2 * np.pi), rtol=1e-15)
+        page.freq_unit.active = 1  # rad/s
+        assert page.axes.unit == "rad/s" and page.mag.xaxis[0].axis_label == "frequency (rad/s)"
+        np.testing.assert_array_equal(page.freq["opt"].data["f"], w)
+        np.testing.assert_array_equal(page.freq["opt"].data["w"], w)  # SI kept
+    finally:
+        page.close(wait=True)
+    g = GenericPanel(Document())
+    try:
+        assert g.axes.unit == "Hz" and g.noise_fig.xaxis[0].axis_label == "frequency (Hz)"
+        assert {r.glyph.x for r in g.mag.renderers} == {"f"}
+        g.freq_unit.active = 1
+        assert g.noise_fig.xaxis[0].axis_label == "frequency (rad/s)"
+    finally:
+        g.close()

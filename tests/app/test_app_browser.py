@@ -398,3 +398,26 @@ def test_sigterm_stops_like_ctrl_c_and_removes_the_uploads(app_browser, tmp_path
     assert proc.returncode == 0, err
     assert err.strip().splitlines()[-1] == "prsa-app: stopped (SIGTERM)", err
     assert [p.name for p in tmp.iterdir() if p.name.startswith("prsa-app-")] == []
+
+
+def _browser_source(pg, name):
+    """A Bokeh data source's columns as the browser holds them (typed arrays to lists)."""
+    return pg.evaluate("(name) => { const d = Bokeh.documents[0].get_model_by_name(name).data; const o = {};"
+                       " for (const [k, v] of (d instanceof Map ? d.entries() : Object.entries(d)))"
+                       " o[k] = Array.from(v, (x) => (Array.isArray(x) || ArrayBuffer.isView(x)) ? Array.from(x) : x);"
+                       " return o; }", name)
+
+
+def test_bode_axes_in_hz_with_rad_s_on_request(app_page):
+    """Issue 33: the optimum's Bode data in the browser are drawn against Hz (w / 2 pi of the
+    rad/s the page computed), and against rad/s after one click."""
+    page = app_page
+    d = _browser_source(page, "prsa-freq-opt")
+    w, f = np.asarray(d["w"], float), np.asarray(d["f"], float)
+    assert w.size > 10
+    np.testing.assert_allclose(f, w / (2 * math.pi), rtol=1e-12)
+    page.locator(".prsa-freq-unit button", has_text="rad/s").click()
+    page.wait_for_function("() => { const d = Bokeh.documents[0].get_model_by_name('prsa-freq-opt').data;"
+                           " const g = (k) => d instanceof Map ? d.get(k) : d[k]; return g('f')[1] == g('w')[1]; }")
+    d = _browser_source(page, "prsa-freq-opt")
+    np.testing.assert_array_equal(np.asarray(d["f"], float), np.asarray(d["w"], float))

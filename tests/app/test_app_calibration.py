@@ -5,7 +5,10 @@ The log is simulated here with a known truth (:func:`prsa_ctrl.identification.sy
 seeded, 1 s at 4 kHz); the page's fitted values are checked against a fit run in the test
 (:func:`prsa_ctrl.identification.timedomain.fit_plant` on the same file) and against the truth,
 the re-tuned gains against a fresh tuning of the fitted plant, and a bad log's message against
-the ``prsa-fit`` command's own line.
+the ``prsa-fit`` command's own line. The calibration tab's views (replay, frequency response in
+Hz, residuals) are checked against :func:`prsa_ctrl.plots.fit.fit_views` of the test's own fit;
+a log with a 105 Hz oscillation the rigid model lacks (a second mass seen by the encoder) is
+refused with prsa-fit's diagnosis, and shown as refused.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ from prsa_ctrl import load_plant, load_scene  # noqa: E402
 from test_app_browser import _shot, _text, _tuned, app_browser, app_page, app_url  # noqa: E402,F401
 
 BAD_LOG = "time_s,torque_command_n_m\n0,0.1\n0.00025,0.1\n0.0005,0.1\n"
+CAL_TAB = "Calibration (fit a drive log)"
+ACT_TAB = "Actuator (plant and scene files)"
 
 
 @pytest.fixture(scope="module")
@@ -36,6 +41,45 @@ def log(tmp_path_factory):
         warnings.simplefilter("ignore")
         res = fit_plant([load_record(path)], load_plant())
     return path, truth, res
+
+
+@pytest.fixture(scope="module")
+def resonant_log(tmp_path_factory):
+    """The same simulated log with a 105 Hz, 15 rad/s oscillation in the measured angle: the rigid
+    fit converges and its plant does not explain the log (prsa-fit exits 3, no plant file)."""
+    import math
+    import warnings
+
+    import numpy as np
+
+    from prsa_ctrl.identification.data import record_from_arrays
+    from prsa_ctrl.identification.synthetic import fit_record
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec, _ = fit_record(1.0, seed=1)
+    w = 2 * math.pi * 105.0
+    bad = record_from_arrays("resonant", rec.time_s, rec.torque_command_n_m,
+                             nut_angle_rad=rec.nut_angle_rad + 15.0 / w * np.sin(w * rec.time_s),
+                             axial_load_n=rec.axial_load_n)
+    path = tmp_path_factory.mktemp("log") / "resonant-log.csv"
+    bad.to_csv(path)
+    return path
+
+
+def _views_of(res, path):
+    """What the tab must show: :func:`prsa_ctrl.plots.fit.fit_views` of the test's own fit."""
+    from prsa_ctrl.identification.data import load_record
+    from prsa_ctrl.plots.fit import fit_views
+
+    rec = load_record(path)
+    return fit_views(res, [rec])
+
+
+def _none_nan(a):
+    import numpy as np
+
+    return np.array([np.nan if v is None else v for v in a], float)
 
 
 def _tuned_on(plant, ms_max=1.4):
@@ -63,9 +107,11 @@ def test_uploaded_log_fits_and_the_fitted_plant_is_tuned_on_confirmation(app_pag
     path, truth, res = log
     r0 = _tuned(1.4)
     assert _text(page, "opt-kp") == f"{r0.pid.kp:.6g}"
+    page.get_by_text(CAL_TAB).click()
     page.locator(".prsa-log-upload input[type=file]").set_input_files(str(path))
     page.locator("[data-k='fit-state'][data-state='running']").wait_for()
     page.locator("[data-k='fit-state'][data-state='done']").wait_for()
+    assert page.locator("[data-k='fit-verdict']").get_attribute("data-verdict") == "validated"
     for key, v in res.parameters.items():
         assert _text(page, f"fit-{key}-value") == f"{v['value']:.6g}"
         lo, hi = v["ci95"]
@@ -73,10 +119,13 @@ def test_uploaded_log_fits_and_the_fitted_plant_is_tuned_on_confirmation(app_pag
         assert abs(v["value"] / truth.values[key] - 1) < 1e-3  # the truth is found
     assert [w.replace("warning: ", "", 1) for w in page.locator("[data-k='fit-warning']").all_inner_texts()] \
         == list(res.warnings)
-    assert _text(page, "opt-kp") == f"{r0.pid.kp:.6g}"  # not used before the confirmation
     _shot(page, "app-calibration.png")
+    page.get_by_text(ACT_TAB).click()
+    assert _text(page, "opt-kp") == f"{r0.pid.kp:.6g}"  # not used before the confirmation
+    page.get_by_text(CAL_TAB).click()
     page.locator(".prsa-fit-use button").click()
     page.locator("[data-k='fit-state'][data-state='used']").wait_for()
+    page.get_by_text(ACT_TAB).click()
     page.locator('[data-k="status"][data-landscape]').wait_for()
     r1 = _tuned_on(res.plant)
     assert (_text(page, "opt-kp"), _text(page, "opt-ki")) == (f"{r1.pid.kp:.6g}", f"{r1.pid.ki:.6g}")
@@ -88,14 +137,89 @@ def test_uploaded_log_fits_and_the_fitted_plant_is_tuned_on_confirmation(app_pag
 def test_bad_log_shows_prsa_fits_one_line(app_page, tmp_path, monkeypatch, capsys):
     page = app_page
     cli = _cli_line(tmp_path, monkeypatch, capsys, "bad-log.csv", BAD_LOG)
+    page.get_by_text(CAL_TAB).click()
     page.locator(".prsa-log-upload input[type=file]").set_input_files(
         files=[{"name": "bad-log.csv", "mimeType": "text/csv", "buffer": BAD_LOG.encode()}])
     page.locator("[data-k='fit-state'][data-state='failed']").wait_for()
+    assert _text(page, "fit-error") == cli.removeprefix("prsa-fit: ")
+    assert not page.locator(".prsa-fit-replay").is_visible()  # no views of a fit that did not run
+    _shot(page, "app-calibration-bad-log.png")
+    page.get_by_text(ACT_TAB).click()
     assert _text(page, "error") == cli.removeprefix("prsa-fit: ")
     assert "Traceback" not in page.content()
     r0 = _tuned(1.4)
     assert _text(page, "opt-kp") == f"{r0.pid.kp:.6g}"  # the plant is unchanged
-    _shot(page, "app-calibration-bad-log.png")
+
+
+def _source(page, name):
+    """A Bokeh data source's columns as the browser holds them (typed arrays to lists)."""
+    data = page.evaluate("(name) => { const d = Bokeh.documents[0].get_model_by_name(name).data; const o = {};"
+                         " for (const [k, v] of (d instanceof Map ? d.entries() : Object.entries(d)))"
+                         " o[k] = Array.from(v, (x) => (Array.isArray(x) || ArrayBuffer.isView(x)) ? Array.from(x) : x);"
+                         " return o; }", name)
+    return data
+
+
+def test_calibration_tab_shows_the_replay_the_frf_in_hz_and_the_residuals(app_page, log):
+    """After a fit the tab draws the replay of the written plant against the log, its residual,
+    and the log's frequency response beside the written plant's (Hz), the data the browser holds
+    being the fit's (fit_views of the test's own fit of the same file)."""
+    import numpy as np
+
+    page = app_page
+    path, truth, res = log
+    want = _views_of(res, path)
+    (name, rep), = want["replay"].items()
+    (_, frf), = want["frf"].items()
+    page.get_by_text(CAL_TAB).click()
+    page.locator(".prsa-log-upload input[type=file]").set_input_files(str(path))
+    page.locator("[data-k='fit-state'][data-state='done']").wait_for()
+    for css in (".prsa-fit-replay", ".prsa-fit-residual", ".prsa-fit-frf-mag", ".prsa-fit-frf-phase",
+                ".prsa-fit-coherence"):
+        page.locator(css).wait_for()  # visible
+    rv = page.locator("[data-k='fit-views-replay']")
+    assert rv.get_attribute("data-mode") == "prediction-error" and int(rv.get_attribute("data-n")) == len(rep["time_s"])
+    assert page.locator("[data-k='fit-views-frf']").get_attribute("data-unit") == "Hz"
+    got = _source(page, "prsa-fit-replay")
+    np.testing.assert_allclose(got["t"], rep["time_s"], rtol=1e-12)
+    np.testing.assert_allclose(got["measured"], rep["measured_rad_s"], rtol=1e-12)
+    np.testing.assert_allclose(got["model"], rep["model_rad_s"], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(got["residual"], rep["residual_rad_s"], rtol=1e-6, atol=1e-6)
+    got = _source(page, "prsa-fit-frf")
+    np.testing.assert_allclose(got["f"], frf["frequency_hz"], rtol=1e-12)
+    np.testing.assert_allclose(got["mag"], frf["measured"]["magnitude_db"], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(got["coherence"], frf["coherence"], rtol=1e-9, atol=1e-12)
+    models = _source(page, "prsa-fit-frf-models")
+    assert models["label"] == list(frf["models"])
+    np.testing.assert_allclose(models["mag"][-1], list(frf["models"].values())[-1]["magnitude_db"], rtol=1e-6, atol=1e-6)
+    _shot(page, "app-calibration-views.png")
+
+
+def test_refused_fit_is_shown_as_refused_with_its_views(app_page, resonant_log, tmp_path, monkeypatch, capsys):
+    """A log the rigid plant cannot explain: prsa-fit exits 3 with its diagnosis and no plant
+    file; the tab says refused (never a good fit), offers no plant, and shows why."""
+    from prsa_ctrl.cli.fit import main as fit_main
+
+    page = app_page
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / resonant_log.name).write_bytes(resonant_log.read_bytes())
+    assert fit_main([resonant_log.name, "--out", "r.toml"]) == 3  # named as the app names it (as uploaded)
+    err = capsys.readouterr().err
+    assert not (tmp_path / "r.toml").exists()
+    page.get_by_text(CAL_TAB).click()
+    page.locator(".prsa-log-upload input[type=file]").set_input_files(str(resonant_log))
+    page.locator("[data-k='fit-state'][data-state='refused']").wait_for()
+    verdict = page.locator("[data-k='fit-verdict']")
+    assert verdict.get_attribute("data-verdict") == "refused"
+    text = verdict.inner_text()
+    assert text.startswith("Refused: the fitted plant does not explain the data") and "second mass" in text
+    diag = err.split("most likely missing physics: ", 1)[1].split(" (no plant file written", 1)[0]
+    assert diag in text  # prsa-fit's own diagnosis
+    assert "Validated" not in page.locator(".prsa-fit-out").inner_text()
+    assert page.locator(".prsa-fit-use button").is_disabled() and page.locator(".prsa-fit-download button").is_disabled()
+    page.locator(".prsa-fit-replay").wait_for()
+    page.locator(".prsa-fit-frf-mag").wait_for()
+    _shot(page, "app-calibration-refused.png")
 
 
 # ---- the session, without a browser ---------------------------------------------------------
@@ -117,6 +241,13 @@ def test_session_calibrate_is_prsa_fit_and_use_retunes(log):
             assert cal.report["parameters"][key]["ci95"] == pytest.approx(v["ci95"], rel=1e-9)
         assert cal.report["warnings"] == list(res.warnings)
         assert list(cal.report["fit_percent"]) == ["axis-log.csv"]  # named as uploaded
+        assert cal.refused is None and cal.report["views"]["verdict"]["validated"] is True
+        (want,) = _views_of(res, path)["replay"].values()
+        got = cal.report["views"]["replay"]["axis-log.csv"]
+        assert got["label"] == want["label"] and got["every"] == want["every"] and got["explained"] is True
+        import numpy as np
+
+        np.testing.assert_allclose(got["model_rad_s"], want["model_rad_s"], rtol=1e-6, atol=1e-6)
         assert any(line.startswith("fit ") and line.endswith(" % on axis-log.csv") for line in cal.lines)
         # the written file: prsa-fit's (its name from --out, the log named as uploaded), the fitted values
         doc = tomllib.loads(cal.plant_text)
@@ -152,6 +283,67 @@ def test_session_bad_log_is_the_clis_line(tmp_path, monkeypatch, capsys):
         with pytest.raises(AppInputError, match=r"^-bad.csv: missing column"):  # a name like a flag
             s.calibrate("-bad.csv", BAD_LOG.encode())
         assert s.plant.name == "paper-iprsm"
+    finally:
+        s.close()
+
+
+def test_session_refused_calibration_has_the_verdict_the_views_and_no_plant(resonant_log):
+    """prsa-fit's exit 3 after a fit whose plant does not explain the log: a Calibration marked
+    refused (prsa-fit's line, its report with the views), no plant file to use; the tab's
+    views draw the report's arrays and the verdict is a refusal."""
+    import numpy as np
+
+    from prsa_ctrl.app.fitpanel import FitViews, _report_html
+    from prsa_ctrl.app.session import AppInputError, AppSession
+
+    s = AppSession()
+    try:
+        cal = s.calibrate("resonant-log.csv", resonant_log.read_bytes())
+        assert cal.refused.startswith("the fitted plant does not explain the data; most likely missing physics: "
+                                      "second mass") and "--force" not in cal.refused
+        assert cal.file_name == "" and cal.plant_path == ""
+        with pytest.raises(ValueError, match="no fitted plant file"):
+            cal.plant_text
+        with pytest.raises(AppInputError, match="the fit is refused, no plant to use"):
+            s.use_calibration(cal)
+        assert s.plant.name == "paper-iprsm"
+        v = cal.report["solver"]["validation"]
+        assert v["passes"] is False and cal.report["views"]["verdict"]["validated"] is False
+        r = cal.report["views"]["replay"]["resonant-log.csv"]
+        assert r["explained"] is False and r["mode"] == "prediction-error"
+        page_html = _report_html(cal, "refused")
+        assert "data-verdict='refused'" in page_html and "Validated" not in page_html
+        assert "data-state='refused'" in page_html and v["diagnosis"].split(":")[0] in page_html
+        views = FitViews()
+        views.show(cal.report["views"])
+        assert views.root.visible and views.replay.visible and views.mag.visible and views.coherence.visible
+        np.testing.assert_array_equal(views.replay_src.data["model"], _none_nan(r["model_rad_s"]))
+        np.testing.assert_array_equal(views.replay_src.data["residual"], _none_nan(r["residual_rad_s"]))
+        fr = cal.report["views"]["frf"]["resonant-log.csv"]
+        np.testing.assert_array_equal(views.frf_src.data["f"], fr["frequency_hz"])
+        np.testing.assert_array_equal(views.frf_src.data["coherence"], _none_nan(fr["coherence"]))
+        assert views.mag.xaxis[0].axis_label == "frequency (Hz)" and views.mag.x_scale.__class__.__name__ == "LogScale"
+        views.show(None)
+        assert not views.root.visible and views.replay_src.data["t"] == []
+        # the page: the calibration tab builds its figures at the first fit, not with the page
+        from bokeh.document import Document
+
+        from prsa_ctrl.app.page import AppPage
+
+        page = AppPage(Document(), session=s, attach=False)
+        try:
+            assert [t.title for t in page.tabs.tabs][-1] == "Calibration (fit a drive log)"
+            assert page.fit.views is None and page.fit._views_box.children == []
+            page.fit._done(page.fit._seq, cal)
+            assert page.fit.views is not None and page.fit._views_box.children == [page.fit.views.root]
+            assert page.fit.use.disabled and page.fit.download.disabled and not page.fit.discard.disabled
+            assert "data-state='refused'" in page.fit.out.text and page.fit.files.data["name"] == []
+            page.fit._use()  # nothing to use: the plant stays
+            assert s.plant.name == "paper-iprsm" and "data-state='refused'" in page.fit.out.text
+            page.fit._discard()
+            assert not page.fit.views.root.visible and page.fit.out.text == ""
+        finally:
+            page.close(wait=True)
     finally:
         s.close()
 

@@ -394,7 +394,9 @@ def test_cli_fit_writes_plant_and_report_and_tune_uses_it(csv_files, tmp_path):
     assert math.isclose(unc["nut.inertia_kg_m2"].low, report["parameters"]["nut.inertia_kg_m2"]["ci95"][0], rel_tol=1e-6)
     assert unc["contact.stiffness_n_per_mm_e"].source.startswith("assumption:")
     # Residual and overlay figures, one per record.
-    assert sorted(q.name for q in figs.iterdir()) == ["load-steps-fit.png", "multisine-fit.png", "staircase-fit.png"]
+    # (and each record's own frequency response beside the written plant's)
+    assert sorted(q.name for q in figs.iterdir()) == ["load-steps-fit.png", "load-steps-frf.png", "multisine-fit.png",
+                                                      "multisine-frf.png", "staircase-fit.png", "staircase-frf.png"]
     assert all(q.stat().st_size > 10_000 for q in figs.iterdir())
     # The tuner takes the fitted plant directly.
     assert tune_main(["--plant", str(out), "--quiet", "--duration", "0.25", "--json", str(tmp_path / "t.json")]) == 0
