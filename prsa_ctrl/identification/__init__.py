@@ -5,6 +5,10 @@ from .._lazy import lazy_exports
 _EXPORTS = {
     "AXES": "logformat",
     "AxisFit": "axis",
+    "Calibrated": "calibrate",
+    "calibrate_logs": "calibrate",
+    "fitted_plant_text": "calibrate",
+    "MOTOR_COORDINATES": "calibrate",
     "AxisFitError": ".errors",
     "AxisLog": "logformat",
     "AxisPlantError": ".errors",

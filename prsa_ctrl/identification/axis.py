@@ -54,7 +54,6 @@ their units in their names.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -71,7 +70,7 @@ from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationErr
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
 from ..tomlfile import read_toml
-from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry, correlation_toml,
+from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry,
                                  inner_truncation)
 from .logformat import AxisLog
 
@@ -194,37 +193,32 @@ def load_axis_plant(path: str | Path) -> LinearAxisPlant:
     return LinearAxisPlant.from_dict(doc, origin=str(path))
 
 
-def _toml_str(text: str) -> str:
-    return json.dumps(text, ensure_ascii=False)
-
-
 def axis_plant_toml(plant: LinearAxisPlant) -> str:
-    """The plant as a TOML file (every value with its source; ``[uncertainty]`` when there is one)."""
-    lines = [f"name = {_toml_str(plant.name)}"]
+    """The plant as a TOML file (every value with its source; ``[uncertainty]`` when there is
+    one), written by the package's one plant-file writer (:func:`prsa_ctrl.plant.writer.document_toml`)."""
+    from ..plant.writer import document_toml
+
+    doc: dict[str, Any] = {"name": plant.name}
     if plant.description:
-        lines.append(f"description = {_toml_str(plant.description)}")
-    lines += [f"mechanism = {_toml_str(MECHANISM)}", 'coordinates = "load"  # position m, force N']
+        doc["description"] = plant.description
+    doc.update(mechanism=MECHANISM, coordinates="load")
     for sec, keys in _SECTIONS.items():
-        lines += ["", f"[{sec}]"]
+        table: dict[str, Any] = {}
         for k in keys:
             if k == "command_unit":
-                lines.append(f"command_unit = {_toml_str(plant.command_unit)}")
+                table[k] = plant.command_unit
                 continue
             full = f"{sec}.{k}"
             v = plant.values.get(full, math.inf)
             if math.isinf(v):
                 continue  # the default (no limit) is what a missing key means
-            lines.append(f"{k} = {{ value = {v!r}, source = {_toml_str(plant.sources[full])} }}")
+            table[k] = {"value": v, "source": plant.sources[full]}
+        doc[sec] = table
     if plant.uncertainty:
-        lines += ["", "# What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.plant.uncertainty)",
-                  "[uncertainty]"]
-        for k, e in plant.uncertainty.items():
-            if k == CORRELATION_KEY:
-                lines.append(f"{k} = {correlation_toml(e if isinstance(e, list) else [e])}")
-                continue
-            fields = ", ".join(f"{a} = {_toml_str(b) if isinstance(b, str) else repr(float(b))}" for a, b in e.items())
-            lines.append(f"{_toml_str(k)} = {{ {fields} }}")
-    return "\n".join(lines) + "\n"
+        doc["uncertainty"] = {k: (e if k == CORRELATION_KEY else  # numbers of an entry as floats
+                                  {a: b if isinstance(b, str) else float(b) for a, b in e.items()})
+                              for k, e in plant.uncertainty.items()}
+    return document_toml(doc, comments={"coordinates": "position m, force N"})
 
 
 # --- simulation ----------------------------------------------------------------------------------
