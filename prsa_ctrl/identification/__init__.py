@@ -75,6 +75,7 @@ _EXPORTS = {
     "reference_from_loop": "closedloop",
     "first_mode_hz": "frfplant",
     "axis_plant_toml": "axis",
+    "axis_fit_status": "axis",
     "check_keys": "common",
     "checked_inputs": "common",
     "default_min_speed": "common",

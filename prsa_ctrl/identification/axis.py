@@ -76,7 +76,7 @@ from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
 
-__all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "DEFAULTS", "PARAMETERS", "simulate_axis",
+__all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "axis_fit_status", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
            "idim_estimate", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES"]
@@ -550,9 +550,16 @@ class AxisFit:
     cost: float = math.nan
     message: str = ""
     delay_costs: Mapping[int, float] = field(default_factory=dict)
+    #: The least-squares solver's own verdict (``"converged"``: a fit that did not raises).
+    solver_status: str = "converged"
 
-    def report(self) -> dict:
+    def as_dict(self) -> dict:
+        """JSON-ready report: ``status`` (:data:`prsa_ctrl.results.STATUSES`: ``"ok"``, or
+        ``"flagged: ..."`` naming the failed checks, :func:`axis_fit_status`), the solver's
+        status, iterations and cost, the parameters with 95 % intervals, their load-side
+        equivalents, covariance and correlation, and every replay. :meth:`report` is the same."""
         return {"mechanism": MECHANISM, "coordinates": COORDINATES, "status": self.status,
+                "solver_status": self.solver_status,
                 "iterations": self.iterations, "cost": self.cost, "solver_message": self.message,
                 "delay_check": {"cost_by_command_delay_samples": {str(k): v for k, v in sorted(self.delay_costs.items())},
                                 "note": "each alternative delay refitted with the same weights for at most "
@@ -568,6 +575,8 @@ class AxisFit:
                 "inverse_dynamic_start": dict(self.start),
                 **self._covariance_report(),
                 "replay": [r.report() for r in self.replays], "warnings": list(self.warnings)}
+
+    report = as_dict  # its former name
 
 
     def _covariance_report(self) -> dict:
@@ -810,4 +819,16 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
     return AxisFit(fitted, params, _equivalents(theta, cov, z), dict(zip(PARAMETERS, map(float, theta0))), replays,
-                   cov, L, "converged", int(sol.nfev), warnings, float(sol.cost), str(sol.message), delays)
+                   cov, L, axis_fit_status(replays, at_bound), int(sol.nfev), warnings, float(sol.cost), str(sol.message),
+                   delays)
+
+
+def axis_fit_status(replays: Sequence[AxisReplay], at_bound: Sequence[str]) -> str:
+    """The fit's status (:data:`prsa_ctrl.results.STATUSES`): ``"ok"`` when every replay of the
+    fitted plant on the nonlinear simulator is finite (every error and fit % a number) and no
+    fitted friction term ended at its bound; ``"flagged: ..."`` naming what failed otherwise."""
+    bad = [r.name for r in replays
+           if not all(math.isfinite(float(x)) for x in (*r.errors_percent.values(), *r.fit_percent.values()))]
+    why = ([f"the replay of {', '.join(bad)} is not finite"] if bad else []) + \
+        ([f"{', '.join(at_bound)} ended at its bound (0)"] if at_bound else [])
+    return "flagged: " + "; ".join(why) if why else "ok"

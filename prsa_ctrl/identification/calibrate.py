@@ -101,7 +101,7 @@ def fitted_plant_text(result, base, base_text: str, name: str, fitted_from: str,
 
 def fit_report(result, coordinates: Mapping[str, str]) -> dict:
     """The JSON report: :meth:`FitResult.as_dict` and ``coordinates`` (the plant's and each log's)."""
-    return {**result.report(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": dict(coordinates)}}
+    return {**result.as_dict(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": dict(coordinates)}}
 
 
 def _ci_text(v: Mapping[str, Any], fmt: str = ".4g") -> str:

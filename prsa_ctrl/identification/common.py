@@ -233,11 +233,29 @@ class FitResult:
         """Keys the data could not inform: the plant file keeps their base value and source."""
         return tuple(k for k, v in self.parameters.items() if v.get("kept_base"))
 
-    def report(self) -> dict:
-        """JSON-ready report (stable keys: ``parameters``, ``reflected_inertia_kg_m2``,
+    @property
+    def status(self) -> str:
+        """The result's status in the package's vocabulary (:data:`prsa_ctrl.results.STATUSES`):
+        ``"ok"`` when the fitted plant, replayed on the nonlinear simulator, explains the data
+        (its validation passed, :mod:`prsa_ctrl.identification.validation`), ``"flagged: <the
+        most likely missing physics>"`` when it does not, ``"unverified: ..."`` when no
+        validation ran (a frequency-response fit, or ``validation=False``). A fit that did not
+        converge raises :class:`~prsa_ctrl.errors.FitError` and has no result; the solver's own
+        status is ``solver["status"]``."""
+        v = self.solver.get("validation") if isinstance(self.solver, Mapping) else None
+        if v is None:
+            return "unverified: no validation replay of the fitted plant on the nonlinear simulator"
+        if v.get("passes"):
+            return "ok"
+        return f"flagged: the fitted plant does not explain the data ({v.get('diagnosis', 'no diagnosis')})"
+
+    def as_dict(self) -> dict:
+        """JSON-ready report (stable keys: ``status``, ``parameters``, ``reflected_inertia_kg_m2``,
         ``fit_percent``, ``warnings``, ``solver``, plus ``correlation``, ``covariance`` (keys,
-        units, matrix) when there is one and, when the delay was fitted, ``delay``)."""
+        units, matrix) when there is one and, when the delay was fitted, ``delay``).
+        :meth:`report` is the same."""
         out = {
+            "status": self.status,
             "parameters": self.parameters,
             "reflected_inertia_kg_m2": self.reflected_inertia_kg_m2,
             "fit_percent": self.fit_percent,
@@ -252,6 +270,8 @@ class FitResult:
         if self.delay is not None:
             out["delay"] = self.delay
         return out
+
+    report = as_dict  # its former name
 
 
 class _SymbolicPlant(Plant):
