@@ -31,7 +31,7 @@ from ..studies.autotune import Design, actuator_loops, baseline_designs, checked
 from ..studies.scenefile import parse_load_step
 from ..drive.pid import PID
 from ..errors import GeometryWarning, PlantFileError, SceneError
-from ..options import MS_MAX_DEFAULT, OBJECTIVES, RAD_S_PER_RPM
+from ..options import FIDELITIES as _FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE, RAD_S_PER_RPM
 from ..plant.plantfile import Plant, builtin_plants, load_plant
 from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
 from ..tuning.tuner import Tuner
@@ -40,7 +40,7 @@ __all__ = ["AppInputError", "Settings", "View", "AppSession", "Calibration", "FI
            "upload_name", "TRACE_KEYS"]
 
 #: Verification fidelities offered (``Scene.fidelity``).
-FIDELITIES = ("auto", "rigid", "compliant", "multi-roller")
+FIDELITIES = ("auto", *_FIDELITIES)
 #: Grid points per axis of the Kp-Ki landscape.
 LANDSCAPE_POINTS = 41
 #: Tuners kept per session (one per objective, controller and load levels), oldest dropped.
@@ -367,8 +367,8 @@ class AppSession:
         if s.fidelity not in FIDELITIES:
             raise AppInputError(f"fidelity {s.fidelity!r}: expected one of {', '.join(FIDELITIES)}")
         for what, v in (("Ms bound", s.ms_max), ("Mt bound", s.mt_max)):
-            if v is not None and not (isinstance(v, (int, float)) and 1.0 < v < 10.0):
-                raise AppInputError(f"{what} {v!r}: expected a number in (1, 10)")
+            if v is not None and not (isinstance(v, (int, float)) and PEAK_BOUND_RANGE[0] < v < PEAK_BOUND_RANGE[1]):
+                raise AppInputError(f"{what} {v!r}: expected a number in ({PEAK_BOUND_RANGE[0]:g}, {PEAK_BOUND_RANGE[1]:g})")
         if s.max_noise_gain is not None and not (math.isfinite(s.max_noise_gain) and s.max_noise_gain > 0):
             raise AppInputError(f"noise-gain bound {s.max_noise_gain!r}: expected a positive number in N m s/rad")
         if s.mks_max is not None and not (isinstance(s.mks_max, (int, float)) and math.isfinite(s.mks_max)

@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
+from ..options import SPEED_MAX_RPM, rad_s_to_rpm, rpm_to_rad_s
 from ..identification.calibrate import MOTOR_COORDINATES
 from .common import Run, Parser, UsageError, echo, flag_value, invoke, number, progress
 
@@ -56,7 +57,7 @@ __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
 #: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
 #: speed range the tuner accepts (:data:`prsa_ctrl.studies.scene.SETPOINT_MAX_RPM`, 6000 rpm).
-DESIGN_MAX_SPEED_RAD_S = 6000.0 * math.pi / 30.0
+DESIGN_MAX_SPEED_RAD_S = rpm_to_rad_s(SPEED_MAX_RPM)
 
 
 def _positive(flag: str):
@@ -126,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--f-max", type=_positive("--f-max"), default=200.0, metavar="HZ", help="highest frequency, Hz")
     p.add_argument("--amplitude", type=_positive("--amplitude"), default=20.0, metavar="RAD_S",
                    help="peak excursion of the speed setpoint, rad/s (|offset| + amplitude at most "
-                   f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = 6000 rpm)")
+                   f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = {SPEED_MAX_RPM:g} rpm)")
     p.add_argument("--offset", type=_finite("--offset"), default=30.0, metavar="RAD_S",
                    help="mean of the speed setpoint, rad/s")
     p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
@@ -194,8 +195,8 @@ def _design(args, argv: Sequence[str]) -> int:
     if peak > DESIGN_MAX_SPEED_RAD_S:
         raise UsageError(f"--amplitude {_typed(argv, '--amplitude', args.amplitude)} with --offset "
                           f"{_typed(argv, '--offset', args.offset)}: the setpoint reaches "
-                          f"{peak:.6g} rad/s ({peak * 30 / math.pi:.6g} rpm); expected |offset| + amplitude <= "
-                          f"{DESIGN_MAX_SPEED_RAD_S:.6g} rad/s (6000 rpm, the tuner's speed limit)")
+                          f"{peak:.6g} rad/s ({rad_s_to_rpm(peak):.6g} rpm); expected |offset| + amplitude <= "
+                          f"{DESIGN_MAX_SPEED_RAD_S:.6g} rad/s ({SPEED_MAX_RPM:g} rpm, the tuner's speed limit)")
     t, v = design_excitation(args.design, duration_s=args.duration, sample_time_s=args.sample_time,
                              f_min_hz=args.f_min, f_max_hz=args.f_max, amplitude=args.amplitude, offset=args.offset)
     _check_outputs({"--out": args.out}, [])

@@ -5,11 +5,11 @@ against each other (:func:`load_and_override`)."""
 from __future__ import annotations
 
 import argparse
-import math
 import os
 from typing import Any
 
 from ..textsafe import quote
+from ..options import rpm_to_rad_s
 from ..errors import SceneError
 from ..plant.plantfile import Plant, load_plant
 from ..studies.scene import Scene, check_against_plant, load_scene, require_speed_scene
@@ -107,7 +107,7 @@ def load_and_override(args, run: Run, plot: bool = False) -> tuple[Plant, Scene,
         typed["initial_load"] = typed["final_loads"] = f"--load-step {quote(raw.get('--load-step', ''))}"
         overrides.append(f"--load-step {raw.get('--load-step', '')}")
     if args.setpoint_rpm is not None:
-        changes["setpoint_rad_s"] = args.setpoint_rpm * math.pi / 30.0
+        changes["setpoint_rad_s"] = rpm_to_rad_s(args.setpoint_rpm)
         typed["setpoint_rad_s"] = f"--setpoint-rpm {raw.get('--setpoint-rpm', args.setpoint_rpm)}"
         overrides.append(typed["setpoint_rad_s"])
     for arg, fieldname, flag in (("step_time", "step_time", "--step-time"), ("duration", "duration", "--duration"),

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linprog
 from scipy.signal import lfilter
 
+from ..options import SPEED_MAX_RPM, rpm_to_rad_s
 from ..errors import PlantFileError
 from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
@@ -407,7 +408,7 @@ _UNIT_SLIPS = (
 UNIT_SLIP_FACTOR = 2.0
 #: Operating point of a measured frequency response: nut speed at most 6000 rpm (the tuner's
 #: limit), axial load at most this many rated loads of the plant.
-FRF_SPEED_MAX_RAD_S = 6000.0 * math.pi / 30.0
+FRF_SPEED_MAX_RAD_S = rpm_to_rad_s(SPEED_MAX_RPM)
 FRF_LOAD_MAX_RATED = 2.0
 #: A logged torque command beyond this multiple of the plant's torque limit is not this drive's.
 TORQUE_OVER_LIMIT = 10.0
@@ -541,7 +542,7 @@ def frf_operating_point_error(plant: Plant, speed_rad_s: float, load_n: float) -
     v_min, v_max, f_max = default_min_speed(plant), FRF_SPEED_MAX_RAD_S, FRF_LOAD_MAX_RATED * plant.rated_load_n
     if not v_min <= abs(speed_rad_s) <= v_max:
         return "speed", (f"expected a nut speed with {v_min:.3g} <= |speed| <= {v_max:.6g} rad/s (the linearisation "
-                         "needs motion above the friction's stick band; 6000 rpm is the tuner's limit)")
+                         f"needs motion above the friction's stick band; {SPEED_MAX_RPM:g} rpm is the tuner's limit)")
     if abs(load_n) > f_max:
         return "load", (f"expected |load| <= {f_max:.6g} N ({FRF_LOAD_MAX_RATED:g} x the plant's rated load "
                         f"{plant.rated_load_n:.6g} N)")

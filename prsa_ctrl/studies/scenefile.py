@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..textsafe import quote
+from ..options import SPEED_MAX_RPM
 from ..errors import SceneError
 from ..tomlfile import read_toml
 from ..plant.plantfile import builtin_root
@@ -25,9 +26,8 @@ __all__ = ["parse_load_step", "DEFAULT_SCENE", "SETPOINT_MAX_RPM", "STICTION_MAR
 
 DEFAULT_SCENE = "paper-load-step"
 
-#: Highest nut-speed setpoint accepted, rpm: roller-screw catalogues rate nut speeds up to
-#: ~5000 rpm (d n limits of the rolling contacts); the contact models are not validated beyond.
-SETPOINT_MAX_RPM = 6000.0
+#: Highest nut-speed setpoint accepted, rpm (:data:`prsa_ctrl.options.SPEED_MAX_RPM`).
+SETPOINT_MAX_RPM = SPEED_MAX_RPM
 #: Lowest setpoint as a multiple of the speed at which the screw moves at the Stribeck velocity:
 #: at 1x (3 rpm on paper-iprsm) the verified run of the paper plant goes non-finite, at 3x
 #: (10 rpm) it is fine; 5x keeps a margin.
