@@ -32,11 +32,14 @@ from typing import Any, Mapping, Sequence
 from ..errors import PlantFileError
 from ..textsafe import printable
 
-__all__ = ["plant_toml", "document_toml", "fitted_document", "toml_string", "inline_value", "FRESH_NOTE", "UNCERTAINTY_COMMENT"]
+__all__ = ["plant_toml", "document_toml", "fitted_document", "toml_string", "inline_value", "FRESH_NOTE", "NO_TOMLKIT_NOTE", "UNCERTAINTY_COMMENT"]
 
 #: The header line of a file written afresh although a base file was given.
 FRESH_NOTE = ("Written by prsa-fit: the base plant file's TOML spelling could not be kept line by line, so its "
               "comments are not repeated here.")
+#: The header line of a file written afresh because :mod:`tomlkit` is not installed.
+NO_TOMLKIT_NOTE = ("Written by prsa-fit: tomlkit (a dependency of prsa-ctrl: pip install tomlkit) is not installed, so "
+                   "the base plant file's layout and comments are not repeated here.")
 #: The comment above an ``[uncertainty]`` section the writer adds.
 UNCERTAINTY_COMMENT = "What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.plant.uncertainty)"
 
@@ -180,12 +183,17 @@ def document_toml(doc: Mapping[str, Any], base_text: str | None = None, header: 
     head = "".join(f"# {printable(line)}\n" for line in header)
     if base_text is not None:
         try:
-            text = _edited(base_text.removeprefix("\ufeff"), want)
-            if _equal(tomllib.loads(text), want):
-                return head + text
-        except Exception:  # noqa: BLE001 - tomlkit refusing an edit (out-of-order tables raise IndexError): afresh below
-            pass
-        head += f"# {FRESH_NOTE}\n"
+            import tomlkit  # noqa: F401 - a declared dependency; without it the file is written afresh, saying why
+        except ImportError:
+            head += f"# {NO_TOMLKIT_NOTE}\n"
+        else:
+            try:
+                text = _edited(base_text.removeprefix("\ufeff"), want)
+                if _equal(tomllib.loads(text), want):
+                    return head + text
+            except Exception:  # noqa: BLE001 - tomlkit refusing an edit (out-of-order tables raise IndexError)
+                pass
+            head += f"# {FRESH_NOTE}\n"
     text = head + _fresh(want, comments or {})
     if not _equal(tomllib.loads(text), want):  # a writer bug, never a user's input
         raise PlantFileError("plant file writer: the text written does not read back as the plant")

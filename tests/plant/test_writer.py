@@ -170,3 +170,14 @@ def test_plant_toml_is_the_method():
     p = _plant("paper-iprsm")
     base = plant_file_path().read_text(encoding="utf-8")
     assert plant_toml(p, base, name="x") == p.to_toml(base, name="x")
+
+
+def test_without_tomlkit_the_file_is_written_afresh_saying_why(monkeypatch):
+    import sys
+
+    from prsa_ctrl.plant.writer import NO_TOMLKIT_NOTE
+
+    monkeypatch.setitem(sys.modules, "tomlkit", None)  # import tomlkit raises ImportError
+    want = {"name": "b", "nut": {"inertia_kg_m2": {"value": 2.0e-4, "source": "c"}}}
+    text = document_toml(want, 'name = "b"  # the base\n')
+    assert text.startswith(f"# {NO_TOMLKIT_NOTE}\n") and tomllib.loads(text) == want
