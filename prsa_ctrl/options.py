@@ -12,6 +12,7 @@ __all__ = [
     "SETPOINT_RPM",
     "SETPOINT_RAD_S",
     "RAD_S_PER_RPM",
+    "SPEED_MAX_RPM",
     "OBJECTIVES",
     "FIDELITIES",
     "CONTROLLERS",
@@ -35,6 +36,10 @@ SETPOINT_RAD_S = SETPOINT_RPM * 2.0 * math.pi / 60.0
 
 #: One rpm in rad/s (gains "per rpm" multiply the SI gain by this).
 RAD_S_PER_RPM = 2.0 * math.pi / 60.0
+#: Highest nut speed the toolkit accepts, rpm (the tuner's limit: a scene's setpoint, an FRF's
+#: operating point, an excitation design): roller-screw catalogues rate nut speeds up to ~5000
+#: rpm (d n limits of the rolling contacts); the contact models are not validated beyond.
+SPEED_MAX_RPM = 6000.0
 
 #: Units of the frequency axes of the Bode and sensitivity figures -> factor from rad/s
 #: (:mod:`prsa_ctrl.plots.loop`; ``prsa-plot`` and ``prsa-tune --plots``: ``--frequency-unit``).

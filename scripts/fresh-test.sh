@@ -55,7 +55,7 @@ else
 fi
 echo "fresh environment $venv:"
 "$venv/bin/python" -m pip list --format=freeze 2>/dev/null \
-  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|dask|distributed|pytest|hypothesis|bokeh|playwright|sphinx)==' \
+  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|tomlkit|dask|distributed|pytest|hypothesis|bokeh|playwright|sphinx)==' \
   | tr '\n' ' '
 echo
 export MPLBACKEND=Agg

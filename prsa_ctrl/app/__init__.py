@@ -9,8 +9,8 @@ imports this package, so the core install stays as light as it is.
 - :func:`show` displays the app inside a Jupyter notebook.
 
 The numbers come from :class:`prsa_ctrl.app.session.AppSession` (no GUI code), which calls the
-toolkit's public functions; calibration from a drive log runs the ``prsa-fit`` command
-(:meth:`~prsa_ctrl.app.session.AppSession.calibrate`), and the generic tuner's model is
+toolkit's public functions; calibration from a drive log calls ``prsa-fit``'s library entry
+(:meth:`~prsa_ctrl.app.session.AppSession.calibrate`, :func:`prsa_ctrl.identification.calibrate.calibrate_logs`), and the generic tuner's model is
 :mod:`prsa_ctrl.app.generic` (``tune_pid`` on a typed transfer function).
 """
 

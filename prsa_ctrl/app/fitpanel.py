@@ -194,7 +194,7 @@ class FitPanel:
         base = self.page.session.plant_label
         self.out.text = (f"<div data-k='fit-state' data-state='running'><b>Calibration</b>: fitting "
                          f"<b>{html.escape(base)}</b> to {html.escape(name)} ({len(content)} bytes) in the background "
-                         f"(prsa-fit in a child process: Gauss-Newton on the whole log, no intermediate progress; "
+                         f"(prsa-fit's fit in a worker thread: Gauss-Newton on the whole log, no intermediate progress; "
                          f"seconds)</div>{_BAR}")
         self._pool.submit(self._work, self._seq, name, content)
 
@@ -267,7 +267,7 @@ class FitPanel:
         self._show_views(None)
 
     def close(self) -> None:
-        """Stop taking work (a running fit's command is ended)."""
+        """Stop taking work (a running fit stops at its next iteration)."""
         self._seq += 1
         self._pool.shutdown(wait=False, cancel_futures=True)
 

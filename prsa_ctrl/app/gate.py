@@ -215,7 +215,7 @@ class PageGate:
 
     def shutdown(self) -> None:
         """Stop building (pages waiting for their build are dropped) and close every page (their
-        workers stopped, a running calibration's ``prsa-fit`` ended, uploaded files removed)."""
+        workers stopped, a running calibration's fit stopped, uploaded files removed)."""
         self._builder.shutdown(wait=False, cancel_futures=True)
         with self._lock:
             slots, self._slots = list(self._slots), set()

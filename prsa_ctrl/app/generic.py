@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import PlantTextError
-from ..options import OBJECTIVES
+from ..options import OBJECTIVES, PEAK_BOUND_RANGE
 from ..tuning.plant_text import MAX_DEPTH, MAX_POWER, parse_plant_text, quote_plant_text
 from .session import AppInputError, Cancelled, one_line
 
@@ -112,8 +112,8 @@ class GenericSettings:
         if self.controller not in ("pi", "pid"):
             raise AppInputError(f"controller {self.controller!r}: expected pi or pid")
         for what, v in (("Ms bound", self.ms_max), ("Mt bound", self.mt_max)):
-            if v is not None and not (isinstance(v, (int, float)) and 1.0 < v < 10.0):
-                raise AppInputError(f"{what} {v!r}: expected a number in (1, 10)")
+            if v is not None and not (isinstance(v, (int, float)) and PEAK_BOUND_RANGE[0] < v < PEAK_BOUND_RANGE[1]):
+                raise AppInputError(f"{what} {v!r}: expected a number in ({PEAK_BOUND_RANGE[0]:g}, {PEAK_BOUND_RANGE[1]:g})")
         if self.mks_max is not None and not (isinstance(self.mks_max, (int, float)) and math.isfinite(self.mks_max)
                                              and self.mks_max > 0):
             raise AppInputError(f"Mks bound {self.mks_max!r}: expected a positive number")

@@ -21,7 +21,7 @@ from bokeh.layouts import column, row
 from bokeh.models import Button, CheckboxGroup, ColumnDataSource, Div, RadioButtonGroup, Select, Span, TextInput
 from bokeh.plotting import figure
 
-from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, OBJECTIVES
+from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, OBJECTIVES, PEAK_BOUND_RANGE
 from .generic import GenericSettings, GenericView, TuneProcess, generic_code
 from .session import AppInputError, Cancelled, one_line
 
@@ -173,12 +173,13 @@ class GenericPanel:
                 raise AppInputError(f"{what} {widget.value!r}: expected {expected}")
             return v
 
+        lo, hi = PEAK_BOUND_RANGE
         gs = GenericSettings(
             plant=self.plant.value,
             delay_s=number(self.delay, "delay", "a finite number >= 0 in s", lambda v: v >= 0, False),
             objective=self.objective.value, controller="pi" if self.controller.active == 0 else "pid",
-            ms_max=number(self.ms, "Ms bound", "a number in (1, 10)", lambda v: 1 < v < 10, False),
-            mt_max=number(self.mt, "Mt bound", "a number in (1, 10) or nothing", lambda v: 1 < v < 10, True),
+            ms_max=number(self.ms, "Ms bound", f"a number in ({lo:g}, {hi:g})", lambda v: lo < v < hi, False),
+            mt_max=number(self.mt, "Mt bound", f"a number in ({lo:g}, {hi:g}) or nothing", lambda v: lo < v < hi, True),
             mks_max=number(self.mks, "Mks bound", "a positive number or nothing", lambda v: v > 0, True),
             filter_order=int(self.filter.active), ideal=0 in self.options.active,
             setpoint_weights=1 in self.options.active)

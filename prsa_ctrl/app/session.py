@@ -28,10 +28,10 @@ from typing import Callable
 import numpy as np
 
 from ..studies.autotune import Design, actuator_loops, baseline_designs, checked, predict, verify
-from ..cli.tune import parse_load_step
+from ..studies.scenefile import parse_load_step
 from ..drive.pid import PID
-from ..errors import PlantFileError, SceneError
-from ..options import MS_MAX_DEFAULT, OBJECTIVES, RAD_S_PER_RPM
+from ..errors import GeometryWarning, PlantFileError, SceneError
+from ..options import FIDELITIES as _FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE, RAD_S_PER_RPM
 from ..plant.plantfile import Plant, builtin_plants, load_plant
 from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
 from ..tuning.tuner import Tuner
@@ -40,7 +40,7 @@ __all__ = ["AppInputError", "Settings", "View", "AppSession", "Calibration", "FI
            "upload_name", "TRACE_KEYS"]
 
 #: Verification fidelities offered (``Scene.fidelity``).
-FIDELITIES = ("auto", "rigid", "compliant", "multi-roller")
+FIDELITIES = ("auto", *_FIDELITIES)
 #: Grid points per axis of the Kp-Ki landscape.
 LANDSCAPE_POINTS = 41
 #: Tuners kept per session (one per objective, controller and load levels), oldest dropped.
@@ -263,15 +263,17 @@ class AppSession:
 
     def calibrate(self, filename: str, content: bytes, cancelled: Callable[[], bool] | None = None,
                   poll_s: float = 0.1) -> "Calibration":
-        """Fit the session's plant to an uploaded drive log: the command ``prsa-fit LOG --plant
-        BASE --out LOG-fitted.toml --json LOG-fit.json`` run in a child process in a private
-        folder holding the log under its uploaded name (so the checks, the fit, its warnings,
-        its messages and the written plant file are the command's), BASE being the session's
-        plant (built-in name or file). The session's plant is not changed
+        """Fit the session's plant to an uploaded drive log: what ``prsa-fit LOG --plant BASE --out
+        LOG-fitted.toml --json LOG-fit.json`` does, as a library call in this thread
+        (:func:`prsa_ctrl.identification.calibrate.calibrate_logs`: the same checks, fit, warnings,
+        messages and plant file), the log kept under its uploaded name in a private folder, BASE
+        being the session's plant (built-in name or file). The fitted plant file is written there
+        (atomically, :func:`prsa_ctrl.io.output.write_text`). The session's plant is not changed
         (:meth:`use_calibration` does that).
 
         Slow (a Gauss-Newton fit, seconds): call it off the page's event loop.
-        ``cancelled()`` is polled every ``poll_s`` s; when it turns true the command is ended.
+        ``cancelled()`` is polled at the fit's iterations and simulations, at most every ``poll_s``
+        s; when it turns true the fit stops there (:class:`Cancelled`).
 
         A fit whose plant does not explain the log (prsa-fit's exit 3 with its report) returns
         a :class:`Calibration` with ``refused`` set (the diagnosis) and no plant file.
@@ -279,60 +281,85 @@ class AppSession:
         Raises
         ------
         AppInputError
-            prsa-fit's one-line error (exit 2: bad log, bad base plant; exit 3: the fit did not
-            converge), files named as uploaded, without the ``prsa-fit: `` and ``error: ``
-            prefixes.
+            prsa-fit's one-line error (bad log, bad base plant; the fit did not converge; the
+            fitted plant does not explain the data), files named as uploaded.
         Cancelled
             ``cancelled()`` turned true.
         """
-        import subprocess
-        import sys
+        import time
+
+        from ..errors import DataError, FitError
+        from ..identification.calibrate import calibrate_logs
+        from ..io.output import json_safe, write_text
+        from ..textsafe import MESSAGE_CHARS_MAX, printable
 
         name = upload_name(filename, "uploaded-log.csv")
         folder = self._folder("log")
-        (folder / name).write_bytes(content)
+        path = folder / name
+        path.write_bytes(content)
         stem = Path(name).stem or "log"
-        out, rep = f"{stem}-fitted.toml", f"{stem}-fit.json"
-        arg, out_arg, rep_arg = (f"./{n}" if n.startswith("-") else n for n in (name, out, rep))  # not flags
+        out = f"{stem}-fitted.toml"
         base, base_label = self.plant_source, self.plant_label
-        argv = [arg, *(["--plant", base] if base is not None else []), "--out", out_arg, "--json", rep_arg]
-        with open(folder / ".stdout", "w+", encoding="utf-8") as so, open(folder / ".stderr", "w+",
-                                                                             encoding="utf-8") as se:
-            proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.cli.fit", *argv], cwd=folder, stdout=so,
-                                    stderr=se, stdin=subprocess.DEVNULL)
-            while True:
-                try:
-                    code = proc.wait(timeout=poll_s)
-                    break
-                except subprocess.TimeoutExpired:
-                    if cancelled is not None and cancelled():
-                        proc.kill()
-                        proc.wait()
-                        raise Cancelled("calibration cancelled") from None
-            so.seek(0)
-            se.seek(0)
-            stdout, stderr = so.read(), se.read()
+        state = {"cancelled": False, "last": -math.inf}
 
-        def named(text: str) -> str:
-            for path, shown in ((arg, name), (out_arg, out), (rep_arg, rep),
-                                *([(base, base_label)] if base is not None else [])):
-                text = text.replace(path, shown)
+        def check() -> None:
+            if cancelled is None:
+                return
+            now = time.monotonic()
+            if now - state["last"] < poll_s:
+                return
+            state["last"] = now
+            if cancelled():
+                state["cancelled"] = True
+                raise Cancelled("calibration cancelled")
+
+        def named(text: str, one_line: bool = True) -> str:
+            """A line as prsa-fit prints it (user text escaped, :func:`prsa_ctrl.textsafe.printable`),
+            the files named as uploaded."""
+            text = printable(text, limit=MESSAGE_CHARS_MAX) if one_line else text
+            for p, shown in ((str(path), name), (str(folder / out), out),
+                             *([(base, base_label)] if base is not None else [])):
+                text = text.replace(p, shown)
             return " ".join(text.split())
 
-        err = [named(line) for line in stderr.splitlines() if line.strip()]
-        notes = tuple(line.removeprefix("prsa-fit: note: ") for line in err if line.startswith("prsa-fit: note:"))
-        lines = tuple(named(line) for line in stdout.splitlines() if line.strip() and not line.startswith("wrote "))
-        refused = _refusal(code, err, folder / rep)
-        if refused is not None:  # the fit ran and its plant does not explain the log: a verdict, no plant file
-            return Calibration(log_name=name, base_label=base_label, plant_path="", file_name="", report=refused[1],
-                               lines=lines, notes=notes, refused=refused[0])
-        if code != 0:
-            first = next((line for line in err if not line.startswith("prsa-fit: note:")),
-                         f"prsa-fit: error: {name}: the fit stopped with exit code {code}")
-            raise AppInputError(first.removeprefix("prsa-fit: ").removeprefix("error: "))
-        report = json.loads((folder / rep).read_text(encoding="utf-8"))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                check()
+                got = calibrate_logs([str(path)], base, name=Path(out).stem, labels=[name], check_interrupt=check)
+            except Cancelled:
+                raise
+            except (DataError, PlantFileError, FitError, ValueError) as exc:
+                if state["cancelled"]:  # a fit that failed because it was stopped
+                    raise Cancelled("calibration cancelled") from None
+                raise AppInputError(named(str(exc))) from None
+            except OSError as exc:
+                raise AppInputError(named(f"{getattr(exc, 'filename', None) or ''}: cannot be read "
+                                          f"({exc.strerror or exc}); expected readable files")) from None
+            except Exception:
+                if state["cancelled"]:
+                    raise Cancelled("calibration cancelled") from None
+                raise
+        notes, seen = [], set()
+        for w in caught:  # prsa-fit's note lines (a built-in plant's geometry note only with --verbose)
+            text = named(str(w.message))
+            if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text):
+                continue
+            seen.add(text)
+            notes.append(text)
+        from ..plots.fit import fit_views
+
+        # as prsa-fit --json writes it, with the fit's three views (replay, FRF in Hz, residuals)
+        report = json.loads(json.dumps(json_safe({**got.report, "views": fit_views(got.result, got.records)})))
+        lines = tuple(named(x, False) for line in got.lines
+                      for x in printable(line, multiline=True).splitlines() if x.strip())
+        if got.failure is not None:  # the fit ran and its plant does not explain the log: a verdict, no plant file
+            refused = named(got.failure).removesuffix(" (no plant file written; --force writes it)")
+            return Calibration(log_name=name, base_label=base_label, plant_path="", file_name="", report=report,
+                               lines=lines, notes=tuple(notes), refused=refused)
+        write_text(folder / out, got.plant_text, inputs=[path], flag="--out")
         return Calibration(log_name=name, base_label=base_label, plant_path=str(folder / out), file_name=out,
-                           report=report, lines=lines, notes=notes)
+                           report=report, notes=tuple(notes), lines=lines)
 
     def use_calibration(self, cal: "Calibration") -> list[str]:
         """Make the fitted plant the session's plant (checked against the scene; its file name
@@ -351,8 +378,8 @@ class AppSession:
         if s.fidelity not in FIDELITIES:
             raise AppInputError(f"fidelity {s.fidelity!r}: expected one of {', '.join(FIDELITIES)}")
         for what, v in (("Ms bound", s.ms_max), ("Mt bound", s.mt_max)):
-            if v is not None and not (isinstance(v, (int, float)) and 1.0 < v < 10.0):
-                raise AppInputError(f"{what} {v!r}: expected a number in (1, 10)")
+            if v is not None and not (isinstance(v, (int, float)) and PEAK_BOUND_RANGE[0] < v < PEAK_BOUND_RANGE[1]):
+                raise AppInputError(f"{what} {v!r}: expected a number in ({PEAK_BOUND_RANGE[0]:g}, {PEAK_BOUND_RANGE[1]:g})")
         if s.max_noise_gain is not None and not (math.isfinite(s.max_noise_gain) and s.max_noise_gain > 0):
             raise AppInputError(f"noise-gain bound {s.max_noise_gain!r}: expected a positive number in N m s/rad")
         if s.mks_max is not None and not (isinstance(s.mks_max, (int, float)) and math.isfinite(s.mks_max)
@@ -753,26 +780,6 @@ class Calibration:
         if self.refused is not None:
             raise ValueError(f"{self.log_name}: no fitted plant file ({self.refused})")
         return Path(self.plant_path).read_text(encoding="utf-8")
-
-
-def _refusal(code: int, err: list[str], report_path: Path) -> tuple[str, dict] | None:
-    """``(line, report)`` when prsa-fit refused its fitted plant (exit 3 after a fit whose
-    validation failed: the report is written, the plant file is not); None otherwise (a fit
-    that did not converge exits 3 without a report and stays an error)."""
-    if code != 3 or not report_path.is_file():
-        return None
-    try:
-        report = json.loads(report_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    validation = (report.get("solver") or {}).get("validation") if isinstance(report, dict) else None
-    if not isinstance(validation, dict) or validation.get("passes", True):
-        return None
-    line = next((ln for ln in err if ln.startswith("prsa-fit: the fitted plant does not explain")),
-                f"prsa-fit: the fitted plant does not explain the data; most likely missing physics: "
-                f"{validation.get('diagnosis')}")
-    line = line.removeprefix("prsa-fit: ").removesuffix(" (no plant file written; --force writes it)")
-    return line, report
 
 
 class Cancelled(Exception):

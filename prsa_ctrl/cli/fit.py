@@ -44,22 +44,21 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 import warnings
 from pathlib import Path
 from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
-from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS
-from .axis import MOTOR_COORDINATES
+from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, SPEED_MAX_RPM, rad_s_to_rpm, rpm_to_rad_s
+from ..identification.calibrate import MOTOR_COORDINATES
 from .common import Run, Parser, UsageError, echo, flag_value, invoke, number, progress
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
 #: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
 #: speed range the tuner accepts (:data:`prsa_ctrl.studies.scene.SETPOINT_MAX_RPM`, 6000 rpm).
-DESIGN_MAX_SPEED_RAD_S = 6000.0 * math.pi / 30.0
+DESIGN_MAX_SPEED_RAD_S = rpm_to_rad_s(SPEED_MAX_RPM)
 
 
 def _positive(flag: str):
@@ -132,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--f-max", type=_positive("--f-max"), default=200.0, metavar="HZ", help="highest frequency, Hz")
     p.add_argument("--amplitude", type=_positive("--amplitude"), default=20.0, metavar="RAD_S",
                    help="peak excursion of the speed setpoint, rad/s (|offset| + amplitude at most "
-                   f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = 6000 rpm)")
+                   f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = {SPEED_MAX_RPM:g} rpm)")
     p.add_argument("--offset", type=_finite("--offset"), default=30.0, metavar="RAD_S",
                    help="mean of the speed setpoint, rad/s")
     p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
@@ -147,172 +146,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _toml_value(v) -> str:
-    """A TOML value as the plant files write it (:func:`prsa_ctrl.io.export.toml_value`, non-ASCII
-    text kept)."""
-    from ..io.export import toml_value  # CasADi (drive.pid): not before the flags are checked
-
-    return toml_value(v, ascii_only=False)
-
-
-_toml_string = _toml_value
-
-
-def _uncertainty_line(key: str, entry) -> str:
-    from ..plant.uncertainty import CORRELATION_KEY, correlation_toml
-
-    if key == CORRELATION_KEY:  # one table or an array of tables (prsa_ctrl.plant.uncertainty)
-        return f"{key} = {correlation_toml(entry if isinstance(entry, list) else [entry])}"
-    fields = ", ".join(f"{k} = {_toml_value(v)}" for k, v in entry.items())
-    return f"{_toml_string(key)} = {{ {fields} }}"
-
-
-_ONE_LINE_DESCRIPTION = r"""^description\s*=\s*("(?:[^"\\]|\\.)*"|'[^']*')\s*(#.*)?$"""
-
-
 def plant_toml(base_text: str, plant, name: str, keys: Sequence[str], description: str | None = None,
                uncertainty_keys: Sequence[str] | None = None) -> str:
-    """The base plant file's text with the fitted keys' values, sources and uncertainty replaced.
-
-    The base file's layout and comments are kept where its lines have the built-in plants'
-    spelling (``[section]`` headers, one ``key = { value = ..., source = "..." }`` line per
-    key, ``"section.key" = { ... }`` uncertainty lines; spaces and trailing comments allowed).
-    The result is parsed back and compared with what it must hold; for any other valid TOML
-    spelling (dotted keys, sub-tables, multi-line tables ...) the whole file is written afresh
-    from the plant instead (same values and sources, the base's comments lost, a header line
-    says so).
-
-    Parameters
-    ----------
-    base_text : str
-        The base plant file (TOML).
-    plant : Plant
-        The fitted plant (values, sources and ``uncertainty``).
-    name : str
-        The new plant name.
-    keys : sequence of str
-        Plant keys to rewrite (``section.key``).
-    description : str, optional
-        The new top-level description (replaces the base's, or follows the name line).
-    uncertainty_keys : sequence of str, optional
-        Keys whose ``[uncertainty]`` entry is rewritten from ``plant.uncertainty`` (removed when
-        it has none; a section is added at the end when the base file has none). Default: the
-        ``keys`` that have an entry in ``plant.uncertainty``.
-    """
-    import tomllib
-
-    base_text = base_text.removeprefix("\ufeff")  # a byte-order mark is no TOML
-    unc = dict(getattr(plant, "uncertainty", None) or {})
-    unc_keys = [k for k in keys if k in unc] if uncertainty_keys is None else list(uncertainty_keys)
-    base_doc = tomllib.loads(base_text)
-    try:
-        text = _rewrite(base_text, plant, name, keys, description, unc, unc_keys)
-        ok = _holds(tomllib.loads(text), base_doc, plant, name, keys, description, unc, unc_keys)
-    except (PlantFileError, tomllib.TOMLDecodeError):
-        ok = False
-    return text if ok else _fresh(base_doc, plant, name, keys, description, unc, unc_keys)
-
-
-def _expected(base_doc: dict, plant, name: str, keys, description, unc: dict, unc_keys) -> dict:
-    """The document a rewritten plant file must parse to."""
-    import copy
-
-    doc = copy.deepcopy(base_doc)
-    doc["name"] = name
-    if description is not None:
-        doc["description"] = description
-    for k in keys:
-        section, sub = k.split(".")
-        doc.setdefault(section, {})[sub] = {"value": plant.values[k], "source": plant.sources[k]}  # a section the base left out (its defaults)
-    old = doc.get("uncertainty", {})
-    new = {k: v for k, v in old.items() if k not in unc_keys}
-    new.update({k: unc[k] for k in unc_keys if k in unc})
-    if new or "uncertainty" in doc:
-        doc["uncertainty"] = new
-    return doc
-
-
-def _holds(doc: dict, base_doc: dict, plant, name, keys, description, unc, unc_keys) -> bool:
-    """Whether a rewritten file's document is exactly the expected one (values compared as numbers)."""
-    want = _expected(base_doc, plant, name, keys, description, unc, unc_keys)
-    if description is None:  # a multi-line description is kept as it is
-        want["description"] = doc.get("description", want.get("description"))
-    return doc == want
-
-
-def _fresh(base_doc: dict, plant, name: str, keys, description, unc: dict, unc_keys) -> str:
-    """The whole plant file written from scratch (any spelling of the base file)."""
-    doc = _expected(base_doc, plant, name, keys, description, unc, unc_keys)
-    out = ["# Written by prsa-fit: the base plant file's TOML spelling could not be kept line by line, so its "
-           "comments are not repeated here.", f"name = {_toml_string(doc['name'])}"]
-    if "description" in doc:
-        out.append(f"description = {_toml_string(doc['description'])}")
-    sections = {k: v for k, v in doc.items() if k not in ("name", "description", "uncertainty")
-                and isinstance(v, dict) and all(isinstance(e, dict) for e in v.values())}
-    for key, v in doc.items():  # top-level entries (mechanism = "...", mounting = { value = ..., ... })
-        if key not in ("name", "description", "uncertainty") and key not in sections:
-            out.append(f"{key} = " + ("{ " + ", ".join(f"{f} = {_toml_value(x)}" for f, x in v.items()) + " }"
-                                      if isinstance(v, dict) else _toml_value(v)))
-    for section, table in sections.items():
-        out += ["", f"[{section}]"]
-        for key, entry in table.items():
-            fields = ", ".join(f"{f} = {_toml_value(v)}" for f, v in entry.items())
-            out.append(f"{key} = {{ {fields} }}")
-    if doc.get("uncertainty"):
-        out += ["", "[uncertainty]"] + [_uncertainty_line(k, e) for k, e in doc["uncertainty"].items()]
-    return "\n".join(out) + "\n"
-
-
-_SECTION = re.compile(r"^\s*\[\s*([A-Za-z_]+)\s*\]\s*(#.*)?$")
-_KEY_LINE = re.compile(r"^(\s*)([A-Za-z0-9_]+)\s*=\s*\{[^#]*\}\s*(#.*)?$")
-
-
-def _rewrite(base_text: str, plant, name: str, keys, description, unc: dict, unc_keys) -> str:
-    """Line-by-line rewrite of the base file (its layout and comments kept); :func:`plant_toml`
-    checks the result."""
-    out, section, done = [], None, set()
-    has_desc = False
-    for line in base_text.splitlines():
-        if re.match(r"^\s*\[", line):
-            break
-        has_desc = has_desc or bool(re.match(r"^description\s*=", line))
-    unc_header = None
-    for line in base_text.splitlines():
-        m_sec = _SECTION.match(line)
-        if m_sec:
-            section = m_sec.group(1)
-            if section == "uncertainty":
-                unc_header = len(out)
-        m_name = re.match(r"^name\s*=", line)
-        if m_name and section is None:
-            line = f"name = {_toml_string(name)}"
-            if description is not None and not has_desc:
-                out.append(line)
-                line = f"description = {_toml_string(description)}"
-        if description is not None and section is None and re.match(_ONE_LINE_DESCRIPTION, line):
-            line = f"description = {_toml_string(description)}"  # a multi-line one is kept as it is
-        if section == "uncertainty":
-            m_unc = re.match(r'^\s*"?([A-Za-z0-9_.]+)"?\s*=', line)
-            if m_unc and m_unc.group(1) in unc_keys:
-                continue  # replaced by the new entry below (or removed)
-        m_key = _KEY_LINE.match(line)
-        if m_key and section not in (None, "uncertainty") and f"{section}.{m_key.group(2)}" in keys:
-            full = f"{section}.{m_key.group(2)}"
-            line = (f"{m_key.group(1)}{m_key.group(2)} = {{ value = {plant.values[full]!r}, "
-                    f"source = {_toml_string(plant.sources[full])} }}" + (f"  {m_key.group(3)}" if m_key.group(3) else ""))
-            done.add(full)
-        out.append(line)
-    missing = [k for k in keys if k not in done]
-    if missing:
-        raise PlantFileError(f"base plant file has no one-line entry for {', '.join(missing)}")
-    lines = [_uncertainty_line(k, unc[k]) for k in unc_keys if k in unc]
-    if lines:
-        if unc_header is None:
-            out += ["", "# What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.plant.uncertainty)",
-                    "[uncertainty]"]
-            unc_header = len(out) - 1
-        out[unc_header + 1:unc_header + 1] = lines
-    return "\n".join(out) + "\n"
+    """The base plant file's text with the fitted keys' values, sources and uncertainty replaced
+    (:meth:`prsa_ctrl.plant.plantfile.Plant.to_toml`, the one plant-file writer: the base's
+    layout and comments kept). Kept here for its callers; ``prsa-fit`` composes no file itself."""
+    return plant.to_toml(base_text, name=name, keys=keys, description=description, uncertainty_keys=uncertainty_keys)
 
 
 def _write_outputs(files: dict[str, tuple[str, str]], inputs: Sequence[str], created: list | None = None) -> None:
@@ -360,8 +199,8 @@ def _design(args, argv: Sequence[str]) -> int:
     if peak > DESIGN_MAX_SPEED_RAD_S:
         raise UsageError(f"--amplitude {_typed(argv, '--amplitude', args.amplitude)} with --offset "
                           f"{_typed(argv, '--offset', args.offset)}: the setpoint reaches "
-                          f"{peak:.6g} rad/s ({peak * 30 / math.pi:.6g} rpm); expected |offset| + amplitude <= "
-                          f"{DESIGN_MAX_SPEED_RAD_S:.6g} rad/s (6000 rpm, the tuner's speed limit)")
+                          f"{peak:.6g} rad/s ({rad_s_to_rpm(peak):.6g} rpm); expected |offset| + amplitude <= "
+                          f"{DESIGN_MAX_SPEED_RAD_S:.6g} rad/s ({SPEED_MAX_RPM:g} rpm, the tuner's speed limit)")
     t, v = design_excitation(args.design, duration_s=args.duration, sample_time_s=args.sample_time,
                              f_min_hz=args.f_min, f_max_hz=args.f_max, amplitude=args.amplitude, offset=args.offset)
     _check_outputs({"--out": args.out}, [])
@@ -398,8 +237,9 @@ def _body(run: Run, argv: list[str]) -> int:
             raise
     mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
     if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
-        echo(f"prsa-fit: error: {mat!r}: a MATLAB .mat log is read through a log description; expected "
-             "--log-format FILE.toml (an example: examples/emps/log.toml)", file=sys.stderr)
+        from ..identification.calibrate import mat_log_refusal
+
+        echo(f"prsa-fit: error: {mat_log_refusal(mat)}", file=sys.stderr)
         return 2
     verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
     created: list = []  # files and directories this run made, taken back when it is interrupted
@@ -524,6 +364,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                               "(or --design)")
         if not 0 <= args.coherence_min < 1:
             raise UsageError(f"--coherence-min {args.coherence_min!r}: expected 0 <= C < 1")
+        from ..identification.calibrate import linear_axis_refusal
         from ..identification.common import FITTABLE
         from ..plant.plantfile import load_plant
 
@@ -543,13 +384,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
             raise UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
         plant = load_plant(args.plant)
         if plant.mechanism == "linear-axis":  # load coordinates: fitted from a described log, not these records
-            raise UsageError(f"--plant {args.plant}: mechanism = \"linear-axis\" (load coordinates: m, N); expected a "
-                              "screw-driven plant for records in motor coordinates (a linear axis is fitted from its "
-                              "log with --log-format FORMAT.toml)")
+            raise UsageError(linear_axis_refusal(args.plant))
         base_text, base_path = _base_text(args.plant)
         # the fitted plant file can be written for any spelling of the base (checked before the fit)
-        plant_toml(base_text, plant, Path(args.out).stem,
-                   [k for k in (keys or FITTABLE) if k in plant.values], "check")
+        plant.to_toml(base_text, name=Path(args.out).stem, keys=[k for k in (keys or FITTABLE) if k in plant.values],
+                      description="check")
         frf_load = args.frf_load if args.frf_load is not None else (args.load or 0.0)
         if args.frf:
             _check_frf_point(plant, args.frf_speed, frf_load, argv)
@@ -629,42 +468,19 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
     finally:
         run.record = False
     run.check()  # a Ctrl-C in a step of the fit without an iteration check: nothing written
-    name = Path(args.out).stem
-    fitted_from = ", ".join(Path(f).name for f in [*args.data, *([] if args.data else args.frf)])
-    description = (f"{plant.name} calibrated by prsa-fit from {fitted_from}"
-                   + (f" (fitted: {', '.join(result.plant_keys)}" if result.plant_keys else " (no key identifiable")
-                   + (f"; kept at the base values: {', '.join(result.kept_base)})" if result.kept_base else ")")
-                   + (f"; base: {plant.description}" if plant.description else ""))
-    base_unc = dict(plant.uncertainty or {})
-    from ..plant.uncertainty import CORRELATION_KEY
+    from ..identification.calibrate import fit_report, fitted_plant_text, not_explained_line, result_lines
 
-    unc_keys = [k for k in [*result.plant_keys, CORRELATION_KEY] if result.plant.uncertainty.get(k) != base_unc.get(k)]
-    # the command delay (found, given or written from a fitted FRF delay) is written when it is not the base's
-    delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz",
-                              "friction.no_load_breakaway_torque_n_m")  # (a given one raised to a fitted drag)
-                  if k not in result.plant_keys and result.plant.values[k] != plant.values[k]
-                  and not (k == "friction.no_load_breakaway_torque_n_m" and k in result.plant.defaulted)]
-    text = plant_toml(base_text, result.plant, name, [*result.plant_keys, *delay_keys], description, unc_keys)
+    fitted_from = ", ".join(Path(f).name for f in [*args.data, *([] if args.data else args.frf)])
     validation = result.solver.get("validation")
     failed = validation is not None and not validation["passes"]
-    if failed and args.force:
-        text = (f"# prsa-fit --force: NOT VALIDATED, this plant does not explain the data it was fitted to: "
-                f"{_comment(validation['diagnosis'])}\n# {_comment(validation['reasons'][0])}\n") + text
-    import tomllib
-
-    from ..plant.plantfile import Plant
-
-    with warnings.catch_warnings():  # its geometry notes are the base plant's, given when it loaded
-        warnings.simplefilter("ignore", GeometryWarning)
-        Plant.from_dict(tomllib.loads(text), origin=args.out)  # what is written must load (with its [uncertainty])
+    text = fitted_plant_text(result, plant, base_text, Path(args.out).stem, fitted_from, force=args.force,
+                             origin=args.out)
     files = {args.out: ("--out", text)} if not failed or args.force else {}
     if args.json:
         from ..io.output import json_safe
-
         from ..plots.fit import fit_views
 
-        report = {**result.report(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": coordinates},
-                  "views": fit_views(result, [*records, *validate])}
+        report = {**fit_report(result, coordinates), "views": fit_views(result, [*records, *validate])}
         files[args.json] = ("--json", json.dumps(json_safe(report), indent=2) + "\n")
     try:
         if args.plots is not None:
@@ -675,51 +491,14 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         echo(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
              file=sys.stderr)
         return 2
-    from ..identification.common import unit_text
-
-    for k, v in result.parameters.items():
-        lo, hi = v["ci95"]
-        u = unit_text(v["unit"])
-        line = f"{k} = {v['value']:.6g}{u} (95 % CI {lo:.6g}..{hi:.6g})"
-        if v.get("kept_base"):
-            line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
+    for line in result_lines(result, coordinates, choice):
         echo(line)
-    if result.delay is not None:
-        echo(f"  ({result.delay['plant_file']})")
-    fmap = result.solver.get("friction_map")
-    if fmap is not None:
-        echo(f"friction map: {len(fmap['plateaus'])} steady-speed plateau(s), {fmap.get('in_stribeck_region', 0)} below "
-             f"{fmap['criteria']['stribeck_region_speeds']:g} Stribeck speeds; Stribeck intervals "
-             f"{fmap.get('intervals', 'not computed (too few plateaus)')}")
-    cd = result.solver.get("command_delay")
-    if cd is not None:
-        echo(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as {cd['command_logged']}) "
-             f"to its action, drive.command_delay_samples = {cd['drive_command_delay_samples']} ({cd['how']}"
-             + ("" if "search" not in cd else
-                 "; objective per delay " + ", ".join(f"{k}: {v:.6g}" if v is not None else f"{k}: failed"
-                                                     for k, v in cd["search"]["objective"].items())) + ")")
-    j = result.reflected_inertia_kg_m2
-    echo(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
-    if choice is not None:
-        _print_structure(choice)
-    for f, pct in result.fit_percent.items():
-        echo(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
-             f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
-    for w in result.warnings:
-        echo(f"warning: {w}")
-    echo(f"coordinates: {MOTOR_COORDINATES}")
-    for f, how in coordinates.items():
-        echo(f"  {f}: logged in {how}")
-    if validation is not None:
-        _print_validation(validation)
     written = [p for p, _ in ((args.out, 0),) if p in files] + ([args.json] if args.json else [])
     echo(("wrote " + " and ".join(written)) if written else "wrote no file")
     if args.plots is not None:
         echo("plots: " + ", ".join(plot_paths))
     if failed:
-        echo(f"prsa-fit: the fitted plant does not explain the data; most likely missing physics: "
-              f"{validation['diagnosis']}" + (" (--force: the plant file was written all the same)" if args.force else
-                                              " (no plant file written; --force writes it)"), file=sys.stderr)
+        echo(f"prsa-fit: {not_explained_line(result, args.force)}", file=sys.stderr)
         return 3
     return 0
 
@@ -740,28 +519,6 @@ def _closed_loops(args) -> dict:
         if cl is not None:
             out[log.name] = cl
     return out
-
-
-def _comment(text) -> str:
-    """Text made safe for one TOML comment line (no line breaks or control characters)."""
-    return "".join(c if c.isprintable() else " " for c in str(text))
-
-
-def _print_validation(v: dict) -> None:
-    """The validation's per-log lines (prsa_ctrl.identification.validation)."""
-    echo(f"validation ({v['replay']}):")
-    for part, what in (("written_plant", "plant as written"), ("cross_validation", "left out, fitted on the others")):
-        for name, e in (v.get(part) or {}).items():
-            if "failed" in e:
-                echo(f"  {name} ({what}): the fit failed: {e['failed']}")
-                continue
-            w = e.get("whiteness")
-            echo(f"  {name} ({what}): replay fit {e['fit_percent']:.2f} %, error {e['error_rms_rad_s']:.4g} rad/s = "
-                  f"{e['error_rms_rad_s'] / max(e['noise_floor_rad_s'], 1e-300):.3g} x the noise floor "
-                  f"{e['noise_floor_rad_s']:.3g} rad/s, {'explained' if e['explained'] else 'NOT explained'}"
-                  + (f"; residual autocorrelation lag 1 {w['acf'][1]:+.2f} (white band +/- {w['band']:.2g})" if w else ""))
-    echo(f"  rule: {v['rule']}")
-    echo("  verdict: " + ("the plant explains the data" if v["passes"] else "NOT validated: " + "; ".join(v["reasons"])))
 
 
 def _frfs_from_logs(args, argv: Sequence[str], records) -> list:
@@ -827,24 +584,6 @@ def _fit_frf_only(args, argv: Sequence[str], plant, frfs, keys):
     if choice.structure == "two-mass" and args.fidelity == "rigid":
         raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")
     return None, choice
-
-
-def _ci_text(v: dict, fmt: str = ".4g") -> str:
-    return f"{v['value']:{fmt}} (95 % CI {v['ci95'][0]:{fmt}}..{v['ci95'][1]:{fmt}})"
-
-
-def _print_structure(choice) -> None:
-    """The structure the FRF chose, why, and the two-mass model's mode with intervals."""
-    echo(f"structure: {choice.structure} ({choice.reason})")
-    two = choice.two_mass
-    if two is not None and choice.structure == "two-mass":
-        v = two.values
-        echo(f"  axial mode {_ci_text(v['resonance_hz'])} Hz, anti-resonance {_ci_text(v['antiresonance_hz'])} Hz, "
-              f"damping ratio {_ci_text(v['damping_ratio'], '.3g')}")
-        echo(f"  total inertia {_ci_text(v['total_inertia_kg_m2'])} kg m^2 = motor side "
-              f"{_ci_text(v['motor_inertia_kg_m2'])} + load side {_ci_text(v['load_inertia_kg_m2'])}; stiffness "
-              f"{_ci_text(v['stiffness_n_m_per_rad'])} N m/rad; current loop {_ci_text(v['current_loop_bandwidth_hz'])} Hz; "
-              f"delay {_ci_text(v['delay_s'], '.3g')} s")
 
 
 def _print_chain(exc: BaseException, skip_message: bool = False) -> None:

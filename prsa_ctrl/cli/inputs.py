@@ -5,55 +5,19 @@ against each other (:func:`load_and_override`)."""
 from __future__ import annotations
 
 import argparse
-import math
 import os
 from typing import Any
 
 from ..textsafe import quote
+from ..options import rpm_to_rad_s
 from ..errors import SceneError
 from ..plant.plantfile import Plant, load_plant
 from ..studies.scene import Scene, check_against_plant, load_scene, require_speed_scene
 from ..studies.scenefilters import parse_filter_flag
-from ..studies.scenefile import MAX_LOAD_LEVELS, SETPOINT_MAX_RPM
+from ..studies.scenefile import SETPOINT_MAX_RPM, parse_load_step  # noqa: F401 (parse_load_step re-exported)
 from .common import Run, UsageError, number, path_text
 
 __all__ = ["parse_load_step", "scene_flags", "VALUE_FLAGS", "input_files", "load_and_override"]
-
-
-def parse_load_step(text: str) -> tuple[float, tuple[float, ...]]:
-    """Parse ``INITIAL:FINAL[,FINAL...]`` (N), e.g. ``500:1500`` or ``500:1000,1500,2000``.
-
-    Raises
-    ------
-    argparse.ArgumentTypeError
-        One line quoting ``text``: malformed, non-finite or negative loads, a final load equal
-        to the initial one, more than ``MAX_LOAD_LEVELS`` levels. Whether the plant can hold
-        the loads is checked against the plant (:func:`prsa_ctrl.studies.scene.check_against_plant`).
-
-    Examples
-    --------
-    >>> parse_load_step("500:1000,1500")
-    (500.0, (1000.0, 1500.0))
-    """
-    expected = "expected INITIAL:FINAL[,FINAL...] in newtons >= 0, e.g. 500:1500"
-    parts = text.split(":")
-    if len(parts) != 2 or not parts[0].strip() or not parts[1].strip():
-        raise argparse.ArgumentTypeError(f"{quote(text)}: {expected}")
-    tokens = parts[1].split(",")
-    if len(tokens) > MAX_LOAD_LEVELS:
-        raise argparse.ArgumentTypeError(f"{text[:40]!r}...: {len(tokens)} load levels; expected at most {MAX_LOAD_LEVELS}")
-    try:
-        initial = float(parts[0])
-        finals = tuple(float(p) for p in tokens)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{quote(text)}: {expected}") from None
-    for tok, v in zip((parts[0], *tokens), (initial, *finals)):
-        if not math.isfinite(v) or v < 0:
-            raise argparse.ArgumentTypeError(f"{quote(text)}: load {tok.strip()} N is not allowed; {expected}")
-    for f in finals:
-        if f == initial:
-            raise argparse.ArgumentTypeError(f"{quote(text)}: final load equals the initial load; expected a step")
-    return initial, finals
 
 
 def _load_step_flag(text: str) -> tuple[float, tuple[float, ...]]:
@@ -143,7 +107,7 @@ def load_and_override(args, run: Run, plot: bool = False) -> tuple[Plant, Scene,
         typed["initial_load"] = typed["final_loads"] = f"--load-step {quote(raw.get('--load-step', ''))}"
         overrides.append(f"--load-step {raw.get('--load-step', '')}")
     if args.setpoint_rpm is not None:
-        changes["setpoint_rad_s"] = args.setpoint_rpm * math.pi / 30.0
+        changes["setpoint_rad_s"] = rpm_to_rad_s(args.setpoint_rpm)
         typed["setpoint_rad_s"] = f"--setpoint-rpm {raw.get('--setpoint-rpm', args.setpoint_rpm)}"
         overrides.append(typed["setpoint_rad_s"])
     for arg, fieldname, flag in (("step_time", "step_time", "--step-time"), ("duration", "duration", "--duration"),

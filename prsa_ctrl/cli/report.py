@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Callable, Sequence
 
+from ..options import rad_s_to_rpm
 from ..sim.metrics import metric_resolution, relative_difference
 from ..textsafe import printable
 from ..studies.scenefilters import describe_filters
@@ -173,7 +174,7 @@ def _setpoint_table(pm, vm, res: Callable[[str], float]) -> list[str]:
             pv = getattr(p, attr) if p is not None else None
             vv = getattr(v, attr)
             diff = "-" if pv is None or attr == "overshoot_percent" else diff_text(pv, vv, res("recovery_time_s"))
-            rows.append([f"{t_s:g} s", f"{v.step_rad_s * 30 / math.pi:+.4g} rpm", lab, pv, vv, diff])
+            rows.append([f"{t_s:g} s", f"{rad_s_to_rpm(v.step_rad_s):+.4g} rpm", lab, pv, vv, diff])
     return ["Setpoint steps in the profile (speed response to each step, until the next change)",
             table(["step at", "step", "metric", "predicted (linear)", "verified (nonlinear)", "difference"], rows)]
 

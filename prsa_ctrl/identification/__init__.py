@@ -5,6 +5,10 @@ from .._lazy import lazy_exports
 _EXPORTS = {
     "AXES": "logformat",
     "AxisFit": "axis",
+    "Calibrated": "calibrate",
+    "calibrate_logs": "calibrate",
+    "fitted_plant_text": "calibrate",
+    "MOTOR_COORDINATES": "calibrate",
     "AxisFitError": ".errors",
     "AxisLog": "logformat",
     "AxisPlantError": ".errors",
@@ -71,6 +75,7 @@ _EXPORTS = {
     "reference_from_loop": "closedloop",
     "first_mode_hz": "frfplant",
     "axis_plant_toml": "axis",
+    "axis_fit_status": "axis",
     "check_keys": "common",
     "checked_inputs": "common",
     "default_min_speed": "common",

@@ -54,7 +54,6 @@ their units in their names.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -71,13 +70,13 @@ from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationErr
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
 from ..tomlfile import read_toml
-from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry, correlation_toml,
+from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry,
                                  inner_truncation)
 from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
 
-__all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "DEFAULTS", "PARAMETERS", "simulate_axis",
+__all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "axis_fit_status", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
            "idim_estimate", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES"]
@@ -194,37 +193,32 @@ def load_axis_plant(path: str | Path) -> LinearAxisPlant:
     return LinearAxisPlant.from_dict(doc, origin=str(path))
 
 
-def _toml_str(text: str) -> str:
-    return json.dumps(text, ensure_ascii=False)
-
-
 def axis_plant_toml(plant: LinearAxisPlant) -> str:
-    """The plant as a TOML file (every value with its source; ``[uncertainty]`` when there is one)."""
-    lines = [f"name = {_toml_str(plant.name)}"]
+    """The plant as a TOML file (every value with its source; ``[uncertainty]`` when there is
+    one), written by the package's one plant-file writer (:func:`prsa_ctrl.plant.writer.document_toml`)."""
+    from ..plant.writer import document_toml
+
+    doc: dict[str, Any] = {"name": plant.name}
     if plant.description:
-        lines.append(f"description = {_toml_str(plant.description)}")
-    lines += [f"mechanism = {_toml_str(MECHANISM)}", 'coordinates = "load"  # position m, force N']
+        doc["description"] = plant.description
+    doc.update(mechanism=MECHANISM, coordinates="load")
     for sec, keys in _SECTIONS.items():
-        lines += ["", f"[{sec}]"]
+        table: dict[str, Any] = {}
         for k in keys:
             if k == "command_unit":
-                lines.append(f"command_unit = {_toml_str(plant.command_unit)}")
+                table[k] = plant.command_unit
                 continue
             full = f"{sec}.{k}"
             v = plant.values.get(full, math.inf)
             if math.isinf(v):
                 continue  # the default (no limit) is what a missing key means
-            lines.append(f"{k} = {{ value = {v!r}, source = {_toml_str(plant.sources[full])} }}")
+            table[k] = {"value": v, "source": plant.sources[full]}
+        doc[sec] = table
     if plant.uncertainty:
-        lines += ["", "# What the fit leaves uncertain (95 % intervals as truncated normals; prsa_ctrl.plant.uncertainty)",
-                  "[uncertainty]"]
-        for k, e in plant.uncertainty.items():
-            if k == CORRELATION_KEY:
-                lines.append(f"{k} = {correlation_toml(e if isinstance(e, list) else [e])}")
-                continue
-            fields = ", ".join(f"{a} = {_toml_str(b) if isinstance(b, str) else repr(float(b))}" for a, b in e.items())
-            lines.append(f"{_toml_str(k)} = {{ {fields} }}")
-    return "\n".join(lines) + "\n"
+        doc["uncertainty"] = {k: (e if k == CORRELATION_KEY else  # numbers of an entry as floats
+                                  {a: b if isinstance(b, str) else float(b) for a, b in e.items()})
+                              for k, e in plant.uncertainty.items()}
+    return document_toml(doc, comments={"coordinates": "position m, force N"})
 
 
 # --- simulation ----------------------------------------------------------------------------------
@@ -556,9 +550,16 @@ class AxisFit:
     cost: float = math.nan
     message: str = ""
     delay_costs: Mapping[int, float] = field(default_factory=dict)
+    #: The least-squares solver's own verdict (``"converged"``: a fit that did not raises).
+    solver_status: str = "converged"
 
-    def report(self) -> dict:
+    def as_dict(self) -> dict:
+        """JSON-ready report: ``status`` (:data:`prsa_ctrl.results.STATUSES`: ``"ok"``, or
+        ``"flagged: ..."`` naming the failed checks, :func:`axis_fit_status`), the solver's
+        status, iterations and cost, the parameters with 95 % intervals, their load-side
+        equivalents, covariance and correlation, and every replay. :meth:`report` is the same."""
         return {"mechanism": MECHANISM, "coordinates": COORDINATES, "status": self.status,
+                "solver_status": self.solver_status,
                 "iterations": self.iterations, "cost": self.cost, "solver_message": self.message,
                 "delay_check": {"cost_by_command_delay_samples": {str(k): v for k, v in sorted(self.delay_costs.items())},
                                 "note": "each alternative delay refitted with the same weights for at most "
@@ -574,6 +575,8 @@ class AxisFit:
                 "inverse_dynamic_start": dict(self.start),
                 **self._covariance_report(),
                 "replay": [r.report() for r in self.replays], "warnings": list(self.warnings)}
+
+    report = as_dict  # its former name
 
 
     def _covariance_report(self) -> dict:
@@ -816,4 +819,16 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
     return AxisFit(fitted, params, _equivalents(theta, cov, z), dict(zip(PARAMETERS, map(float, theta0))), replays,
-                   cov, L, "converged", int(sol.nfev), warnings, float(sol.cost), str(sol.message), delays)
+                   cov, L, axis_fit_status(replays, at_bound), int(sol.nfev), warnings, float(sol.cost), str(sol.message),
+                   delays)
+
+
+def axis_fit_status(replays: Sequence[AxisReplay], at_bound: Sequence[str]) -> str:
+    """The fit's status (:data:`prsa_ctrl.results.STATUSES`): ``"ok"`` when every replay of the
+    fitted plant on the nonlinear simulator is finite (every error and fit % a number) and no
+    fitted friction term ended at its bound; ``"flagged: ..."`` naming what failed otherwise."""
+    bad = [r.name for r in replays
+           if not all(math.isfinite(float(x)) for x in (*r.errors_percent.values(), *r.fit_percent.values()))]
+    why = ([f"the replay of {', '.join(bad)} is not finite"] if bad else []) + \
+        ([f"{', '.join(at_bound)} ended at its bound (0)"] if at_bound else [])
+    return "flagged: " + "; ".join(why) if why else "ok"

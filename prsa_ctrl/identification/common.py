@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linprog
 from scipy.signal import lfilter
 
+from ..options import SPEED_MAX_RPM, rpm_to_rad_s
 from ..errors import PlantFileError
 from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
@@ -234,11 +235,29 @@ class FitResult:
         """Keys the data could not inform: the plant file keeps their base value and source."""
         return tuple(k for k, v in self.parameters.items() if v.get("kept_base"))
 
-    def report(self) -> dict:
-        """JSON-ready report (stable keys: ``parameters``, ``reflected_inertia_kg_m2``,
+    @property
+    def status(self) -> str:
+        """The result's status in the package's vocabulary (:data:`prsa_ctrl.results.STATUSES`):
+        ``"ok"`` when the fitted plant, replayed on the nonlinear simulator, explains the data
+        (its validation passed, :mod:`prsa_ctrl.identification.validation`), ``"flagged: <the
+        most likely missing physics>"`` when it does not, ``"unverified: ..."`` when no
+        validation ran (a frequency-response fit, or ``validation=False``). A fit that did not
+        converge raises :class:`~prsa_ctrl.errors.FitError` and has no result; the solver's own
+        status is ``solver["status"]``."""
+        v = self.solver.get("validation") if isinstance(self.solver, Mapping) else None
+        if v is None:
+            return "unverified: no validation replay of the fitted plant on the nonlinear simulator"
+        if v.get("passes"):
+            return "ok"
+        return f"flagged: the fitted plant does not explain the data ({v.get('diagnosis', 'no diagnosis')})"
+
+    def as_dict(self) -> dict:
+        """JSON-ready report (stable keys: ``status``, ``parameters``, ``reflected_inertia_kg_m2``,
         ``fit_percent``, ``warnings``, ``solver``, plus ``correlation``, ``covariance`` (keys,
-        units, matrix) when there is one and, when the delay was fitted, ``delay``)."""
+        units, matrix) when there is one and, when the delay was fitted, ``delay``).
+        :meth:`report` is the same."""
         out = {
+            "status": self.status,
             "parameters": self.parameters,
             "reflected_inertia_kg_m2": self.reflected_inertia_kg_m2,
             "fit_percent": self.fit_percent,
@@ -253,6 +272,8 @@ class FitResult:
         if self.delay is not None:
             out["delay"] = self.delay
         return out
+
+    report = as_dict  # its former name
 
 
 class _SymbolicPlant(Plant):
@@ -388,7 +409,7 @@ _UNIT_SLIPS = (
 UNIT_SLIP_FACTOR = 2.0
 #: Operating point of a measured frequency response: nut speed at most 6000 rpm (the tuner's
 #: limit), axial load at most this many rated loads of the plant.
-FRF_SPEED_MAX_RAD_S = 6000.0 * math.pi / 30.0
+FRF_SPEED_MAX_RAD_S = rpm_to_rad_s(SPEED_MAX_RPM)
 FRF_LOAD_MAX_RATED = 2.0
 #: A logged torque command beyond this multiple of the plant's torque limit is not this drive's.
 TORQUE_OVER_LIMIT = 10.0
@@ -522,7 +543,7 @@ def frf_operating_point_error(plant: Plant, speed_rad_s: float, load_n: float) -
     v_min, v_max, f_max = default_min_speed(plant), FRF_SPEED_MAX_RAD_S, FRF_LOAD_MAX_RATED * plant.rated_load_n
     if not v_min <= abs(speed_rad_s) <= v_max:
         return "speed", (f"expected a nut speed with {v_min:.3g} <= |speed| <= {v_max:.6g} rad/s (the linearisation "
-                         "needs motion above the friction's stick band; 6000 rpm is the tuner's limit)")
+                         f"needs motion above the friction's stick band; {SPEED_MAX_RPM:g} rpm is the tuner's limit)")
     if abs(load_n) > f_max:
         return "load", (f"expected |load| <= {f_max:.6g} N ({FRF_LOAD_MAX_RATED:g} x the plant's rated load "
                         f"{plant.rated_load_n:.6g} N)")

@@ -90,6 +90,7 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
+from ..options import RAD_S_PER_RPM
 from ..tomlfile import read_toml
 from ..errors import LogFormatError
 from .data import MAX_SAMPLES, MIN_SAMPLES, Record, record_from_arrays
@@ -123,7 +124,7 @@ AXES = ("linear", "rotary")
 #: ``[command] logged`` -> the motor-coordinate fit's ``command_logged``.
 MOTOR_CONVENTION = {"as-computed": "computed", "as-applied": "applied"}
 _ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0, "rev": 2.0 * math.pi}
-_ANGULAR_SPEED_UNITS = {"rad/s": 1.0, "rpm": math.pi / 30.0}
+_ANGULAR_SPEED_UNITS = {"rad/s": 1.0, "rpm": RAD_S_PER_RPM}
 _TORQUE_COMMAND_UNITS = ("N m", "A", "V")
 #: Sections a log in motor coordinates may have (section -> (required, allowed units)).
 _ROTARY_SIGNALS = {"time": (True, _TIME_UNITS), "position": (True, _ANGLE_UNITS),

@@ -635,14 +635,11 @@ def _toml_key(k: str) -> str:
     return k if k and all(c.isalnum() and c.isascii() or c in "_-" for c in k) else toml_string(k)
 
 
-_TOML_SHORT = {"\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r", '"': '\\"', "\\": "\\\\"}
-
-
 def toml_string(s: str, ascii_only: bool = True, where: str = "value") -> str:
-    r"""``s`` as a TOML basic string that ``tomllib`` reads back as exactly ``s``: quotes,
-    backslashes and control characters (U+0000..U+001F, U+007F) escaped, and with ``ascii_only``
-    every non-ASCII character too (``\uXXXX``, or ``\UXXXXXXXX`` outside the Basic Multilingual
-    Plane: no surrogate pairs, which TOML refuses).
+    r"""``s`` as a TOML basic string that ``tomllib`` reads back as exactly ``s``
+    (:func:`prsa_ctrl.plant.writer.toml_string`, the package's one TOML string writer: quotes,
+    backslashes, control characters, bidirectional marks escaped, and with ``ascii_only``
+    every non-ASCII character too).
 
     Raises
     ------
@@ -652,21 +649,9 @@ def toml_string(s: str, ascii_only: bool = True, where: str = "value") -> str:
     >>> print(toml_string('a"b\\c'), toml_string("\U0001F600"), toml_string("\x7f"))
     "a\"b\\c" "\U0001F600" "\u007F"
     """
-    out = ['"']
-    for ch in str(s):
-        o = ord(ch)
-        if ch in _TOML_SHORT:
-            out.append(_TOML_SHORT[ch])
-        elif o < 0x20 or o == 0x7F:
-            out.append("\\u%04X" % o)
-        elif 0xD800 <= o <= 0xDFFF:
-            raise ValueError(f"{where} = {s!r}; expected text of Unicode characters (a lone surrogate U+{o:04X} "
-                             "cannot be written to TOML)")
-        elif o > 0x7E and ascii_only:
-            out.append("\\u%04X" % o if o <= 0xFFFF else "\\U%08X" % o)
-        else:
-            out.append(ch)
-    return "".join(out) + '"'
+    from ..plant.writer import toml_string as one
+
+    return one(s, where, ascii_only=ascii_only)
 
 
 def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:

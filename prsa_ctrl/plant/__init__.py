@@ -59,6 +59,8 @@ _EXPORTS = {
     "parse_entries": "uncertainty",
     "plant_file_path": "plantfile",
     "plant_model": "model",
+    "plant_toml": "writer",
+    "document_toml": "writer",
     "plant_uncertainty": "uncertainty",
     "register_member": "model",
     "restrict_correlation": "uncertainty",

@@ -455,6 +455,18 @@ class Plant:
             check_plant_uncertainty(plant)
         return plant
 
+    def to_toml(self, base_text: str | None = None, *, name: str | None = None, keys=None,
+                description: str | None = None, uncertainty_keys=None, header=()) -> str:
+        """This plant as a plant file's text (:func:`prsa_ctrl.plant.writer.plant_toml`, the one
+        plant-file writer): with ``base_text`` the base file's layout and comments kept and the
+        ``keys`` (``section.key``) rewritten with this plant's values and sources; without it every
+        given key written afresh. ``header``: comment lines put first. The text reads back as
+        the plant written (checked)."""
+        from .writer import plant_toml
+
+        return plant_toml(self, base_text, name=name, keys=keys, description=description,
+                          uncertainty_keys=uncertainty_keys, header=header)
+
     def with_params(self, overrides: Mapping[str, float], name: str | None = None) -> "Plant":
         """Copy of the plant with some values replaced (file units, keys ``section.key``).
 

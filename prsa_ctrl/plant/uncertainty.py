@@ -642,15 +642,13 @@ def inner_truncation(value: float, sigma: float, floor: float = -math.inf, ceil:
 
 def correlation_toml(blocks: Sequence[Mapping[str, Any]]) -> str:
     """The TOML value of ``correlation`` (after ``correlation = ``): one inline table, or an array
-    of them; every number with all its digits (``repr``), so that the file reads back exactly."""
-    import json
+    of them; every number with all its digits (``repr``), so that the file reads back exactly
+    (written by the one plant-file writer, :mod:`prsa_ctrl.plant.writer`)."""
+    from .writer import inline_value
 
-    def one(b: Mapping[str, Any]) -> str:
-        rows = ", ".join("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in b["matrix"])
-        keys = ", ".join(json.dumps(k) for k in b["keys"])
-        return f"{{ keys = [{keys}], matrix = [{rows}], source = {json.dumps(b['source'], ensure_ascii=False)} }}"
-
-    return one(blocks[0]) if len(blocks) == 1 else "[" + ", ".join(one(b) for b in blocks) + "]"
+    one = [{"keys": list(b["keys"]), "matrix": [[float(x) for x in row] for row in b["matrix"]], "source": b["source"]}
+           for b in blocks]
+    return inline_value(one[0] if len(one) == 1 else one, CORRELATION_KEY)
 
 
 def apply(plant, values: Mapping[str, float], name: str | None = None):

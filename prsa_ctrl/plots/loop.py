@@ -24,7 +24,7 @@ import matplotlib.ticker
 import numpy as np
 
 from .._lazy import module
-from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS
+from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, rad_s_to_rpm
 from ..sim.metrics import margins_from_response
 from ..studies.responses import (FigureData, Landscape, binding_level, design_responses, duty_input, landscape,
                                  objective_value, report_responses, stable_design_responses)
@@ -93,7 +93,7 @@ def _op_text(op) -> str:
         return ""
     if isinstance(op, str):
         return op
-    return f"{op.omega_nut * 30.0 / math.pi:.0f} rpm, {op.load:g} N"
+    return f"{rad_s_to_rpm(op.omega_nut):.0f} rpm, {op.load:g} N"
 
 
 def _nyquist(axes, sample_time_s: float | None, unit: str = DEFAULT_FREQUENCY_UNIT) -> None:
@@ -701,9 +701,9 @@ def step_response_plot(time, nonlinear, linear_time=None, linear=None, setpoint=
 
 def _mid_load_text(scene, k: int) -> str:
     if getattr(scene, "is_profile", False):
-        return f"{scene.setpoint_rad_s * 30.0 / math.pi:.0f} rpm, {scene.initial_load:g} N (start of the {scene.name} duty cycle)"
+        return f"{rad_s_to_rpm(scene.setpoint_rad_s):.0f} rpm, {scene.initial_load:g} N (start of the {scene.name} duty cycle)"
     f0, f1 = scene.initial_load, scene.final_loads[k]
-    return f"{scene.setpoint_rad_s * 30.0 / math.pi:.0f} rpm, {0.5 * (f0 + f1):g} N (mid load of {f0:g} -> {f1:g} N)"
+    return f"{rad_s_to_rpm(scene.setpoint_rad_s):.0f} rpm, {0.5 * (f0 + f1):g} N (mid load of {f0:g} -> {f1:g} N)"
 
 
 def _save_all(figs: dict, directory: Path) -> list[Path]:
@@ -760,7 +760,7 @@ def draw_report_figures(data: FigureData, frequency_unit: str = DEFAULT_FREQUENC
         c = data.contact
         fig, axs = contact_force_plot(c.time_s, c.outputs, static=c.static_n)
         axs[0].set_title(f"Thread contact forces, load {sc.initial_load:g} -> {c.final_load_n:g} N at "
-                         f"{sc.setpoint_rad_s * 30.0 / math.pi:.0f} rpm")
+                         f"{rad_s_to_rpm(sc.setpoint_rad_s):.0f} rpm")
         figs["contact_forces"] = fig
     return figs
 

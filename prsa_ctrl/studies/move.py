@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from ..drive.measurement import PositionLoop
 from ..drive.motion import MotionProfile
 from ..drive.pid import PID
+from ..options import rpm_to_rad_s
 from ..errors import SceneError
 from ..plant.equilibrium import steady_torque
 from ..plant.model import stick_band_rad_s
@@ -67,7 +68,7 @@ def check_move_against_plant(scene: MoveScene, plant: "Plant") -> None:
     def label(key: str, value: float) -> str:
         return f"{o}: move.{key} = {scene.typed.get(key, value)!r}"
 
-    mm_s_per_rpm = a * math.pi / 30.0 * 1e3
+    mm_s_per_rpm = rpm_to_rad_s(a) * 1e3
     v_min = STICTION_MARGIN * plant.values["friction.stribeck_velocity_m_s"] * 1e3
     v_max = SETPOINT_MAX_RPM * mm_s_per_rpm
     v = scene.max_speed_m_s * 1e3

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from .._lazy import module
+from ..options import rad_s_to_rpm
 from ..drive.pid import PID
 from ..drive.linear_loop import closed_loop
 from ..plant.linear import linearize
@@ -232,7 +233,7 @@ def duty_input(scene: Scene, case: str, t: np.ndarray) -> tuple[np.ndarray, str]
         prof = normalise_profile(PiecewiseLinear(scene.load_profile), float(t[-1]) + 1.0, "load", "N")
         return prof.at(t), "axial load (N)"
     prof = normalise_profile(PiecewiseLinear(scene.setpoint_profile), float(t[-1]) + 1.0, "setpoint", "rad/s")
-    return prof.at(t) * 30.0 / math.pi, "setpoint (rpm)"
+    return rad_s_to_rpm(prof.at(t)), "setpoint (rpm)"
 
 
 def _plant_linear(plant: Plant, scene: Scene):

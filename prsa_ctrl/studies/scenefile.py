@@ -9,23 +9,25 @@ section is a move scene (:func:`is_move_scene`).
 
 from __future__ import annotations
 
+import argparse
+import math
 from pathlib import Path
 from typing import Any
 
 from ..textsafe import quote
+from ..options import SPEED_MAX_RPM
 from ..errors import SceneError
 from ..tomlfile import read_toml
 from ..plant.plantfile import builtin_root
 
-__all__ = ["DEFAULT_SCENE", "SETPOINT_MAX_RPM", "STICTION_MARGIN", "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES",
+__all__ = ["parse_load_step", "DEFAULT_SCENE", "SETPOINT_MAX_RPM", "STICTION_MARGIN", "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES",
            "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS", "MIN_LOAD_STEP_N", "LOAD_CHANGE_TIME_RANGE_S",
            "builtin_scenes", "scene_root", "locate_scene", "read_scene_doc", "is_move_scene"]
 
 DEFAULT_SCENE = "paper-load-step"
 
-#: Highest nut-speed setpoint accepted, rpm: roller-screw catalogues rate nut speeds up to
-#: ~5000 rpm (d n limits of the rolling contacts); the contact models are not validated beyond.
-SETPOINT_MAX_RPM = 6000.0
+#: Highest nut-speed setpoint accepted, rpm (:data:`prsa_ctrl.options.SPEED_MAX_RPM`).
+SETPOINT_MAX_RPM = SPEED_MAX_RPM
 #: Lowest setpoint as a multiple of the speed at which the screw moves at the Stribeck velocity:
 #: at 1x (3 rpm on paper-iprsm) the verified run of the paper plant goes non-finite, at 3x
 #: (10 rpm) it is fine; 5x keeps a margin.
@@ -117,3 +119,40 @@ def is_move_scene(name_or_path: str | Path | None) -> bool:
     except SceneError:
         return False
     return isinstance(doc, dict) and "move" in doc
+
+
+def parse_load_step(text: str) -> tuple[float, tuple[float, ...]]:
+    """Parse ``INITIAL:FINAL[,FINAL...]`` (N), e.g. ``500:1500`` or ``500:1000,1500,2000`` (``prsa-tune
+    --load-step``, the app's load-step field).
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        One line quoting ``text``: malformed, non-finite or negative loads, a final load equal
+        to the initial one, more than ``MAX_LOAD_LEVELS`` levels. Whether the plant can hold
+        the loads is checked against the plant (:func:`prsa_ctrl.studies.scene.check_against_plant`).
+
+    Examples
+    --------
+    >>> parse_load_step("500:1000,1500")
+    (500.0, (1000.0, 1500.0))
+    """
+    expected = "expected INITIAL:FINAL[,FINAL...] in newtons >= 0, e.g. 500:1500"
+    parts = text.split(":")
+    if len(parts) != 2 or not parts[0].strip() or not parts[1].strip():
+        raise argparse.ArgumentTypeError(f"{quote(text)}: {expected}")
+    tokens = parts[1].split(",")
+    if len(tokens) > MAX_LOAD_LEVELS:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r}...: {len(tokens)} load levels; expected at most {MAX_LOAD_LEVELS}")
+    try:
+        initial = float(parts[0])
+        finals = tuple(float(p) for p in tokens)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{quote(text)}: {expected}") from None
+    for tok, v in zip((parts[0], *tokens), (initial, *finals)):
+        if not math.isfinite(v) or v < 0:
+            raise argparse.ArgumentTypeError(f"{quote(text)}: load {tok.strip()} N is not allowed; {expected}")
+    for f in finals:
+        if f == initial:
+            raise argparse.ArgumentTypeError(f"{quote(text)}: final load equals the initial load; expected a step")
+    return initial, finals

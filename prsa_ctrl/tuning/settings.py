@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 import numbers
 
+from ..options import PEAK_BOUND_RANGE
+
 __all__ = ["STABILITY", "TAIL_RTOL", "MS_RTOL", "CONT_RTOL", "KKT_TOL"]  # the rest is the tuner's own machinery, shared between its modules
 
 
@@ -101,9 +103,10 @@ def check_mks(mks_max) -> float | None:
     return checked_number("mks_max", mks_max, lo=0.0, expected="a positive finite number or None")
 
 def check_bounds(ms_max, mt_max, max_noise_gain):
-    ms = checked_number("ms_max", ms_max, lo=1.0, hi=10.0, expected="a number in (1, 10)")
-    mt = None if mt_max is None else checked_number("mt_max", mt_max, lo=1.0, hi=10.0,
-                                              expected="a number in (1, 10) or None")
+    lo, hi = PEAK_BOUND_RANGE
+    ms = checked_number("ms_max", ms_max, lo=lo, hi=hi, expected=f"a number in ({lo:g}, {hi:g})")
+    mt = None if mt_max is None else checked_number("mt_max", mt_max, lo=lo, hi=hi,
+                                              expected=f"a number in ({lo:g}, {hi:g}) or None")
     nz = None if max_noise_gain is None else checked_number(
         "max_noise_gain", max_noise_gain, lo=0.0, expected="a positive finite number or None")
     return ms, mt, nz

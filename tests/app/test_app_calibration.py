@@ -360,3 +360,60 @@ def test_session_calibration_cancel_ends_the_command(log):
         assert len(polls) == 2 and s.plant.name == "paper-iprsm"
     finally:
         s.close()
+
+
+def test_session_calibrate_is_the_commands_output(log, tmp_path, monkeypatch, capsys):
+    """The library call the app makes gives prsa-fit's lines, JSON report and plant file, byte for byte."""
+    import json
+    import shutil
+
+    from prsa_ctrl.app.session import AppSession
+    from prsa_ctrl.cli.fit import main as fit_main
+
+    path = log[0]
+    shutil.copy(path, tmp_path / "axis-log.csv")
+    monkeypatch.chdir(tmp_path)
+    assert fit_main(["axis-log.csv", "--out", "axis-log-fitted.toml", "--json", "axis-log-fit.json"]) == 0
+    out = capsys.readouterr().out
+    s = AppSession()
+    try:
+        cal = s.calibrate("axis-log.csv", path.read_bytes())
+        text = cal.plant_text  # (in the session's folder, removed by close)
+    finally:
+        s.close()
+    shown = [" ".join(line.split()) for line in out.splitlines() if line.strip() and not line.startswith("wrote ")]
+    assert list(cal.lines) == shown
+    assert cal.report == json.loads((tmp_path / "axis-log-fit.json").read_text())
+    assert text == (tmp_path / "axis-log-fitted.toml").read_text()
+
+
+def test_session_calibrate_starts_no_process_and_imports_no_cli(log):
+    """A run-time trace in a fresh interpreter: the calibration imports no prsa_ctrl.cli module and
+    starts no process (subprocess, multiprocessing, os.fork are made to fail)."""
+    import os
+    import subprocess
+    import sys
+
+    code = f"""
+import os, subprocess, sys, multiprocessing
+def refuse(*a, **k):
+    raise AssertionError("a process was started")
+subprocess.Popen.__init__ = refuse
+os.fork = os.posix_spawn = os.system = refuse
+multiprocessing.Process.start = refuse
+from pathlib import Path
+from prsa_ctrl.app.session import AppSession
+s = AppSession()
+try:
+    cal = s.calibrate("axis-log.csv", Path({str(log[0])!r}).read_bytes())
+    assert cal.file_name == "axis-log-fitted.toml" and cal.plant_text
+finally:
+    s.close()
+cli = sorted(m for m in sys.modules if m == "prsa_ctrl.cli" or m.startswith("prsa_ctrl.cli."))
+print("cli modules:", cli)
+assert not cli, cli
+"""
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "cli modules: []" in proc.stdout

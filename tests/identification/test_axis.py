@@ -149,3 +149,27 @@ def test_max_evaluations_is_checked_before_the_fit(emps_log, bad):
     base = load_axis_plant(EXAMPLE / "plant.toml")
     with pytest.raises(ValueError, match=rf"max_evaluations = {bad!r}; expected an integer >= 1"):
         fit_linear_axis([emps_log], base, max_evaluations=bad)
+
+
+def test_axis_fit_status_is_in_the_vocabulary_and_names_what_failed():
+    from prsa_ctrl.identification.axis import AxisReplay, axis_fit_status
+    from prsa_ctrl.results import status_head
+
+    z = np.zeros(3)
+    good = AxisReplay("a.csv", True, z, z, z, z, z, z, z, {"position": 1.0}, {"position": 99.0})
+    bad = AxisReplay("b.csv", True, z, z, z, z, z, z, z, {"position": float("nan")}, {"position": 99.0})
+    assert axis_fit_status([good], []) == "ok"
+    flagged = axis_fit_status([good, bad], ["friction.coulomb_positive_n"])
+    assert status_head(flagged) == "flagged"
+    assert "b.csv" in flagged and "friction.coulomb_positive_n" in flagged and "a.csv" not in flagged
+
+
+@needs_data
+def test_axis_fit_as_dict_carries_the_status(emps_log):
+    from prsa_ctrl.results import check_status
+
+    fit = fit_linear_axis([emps_log], load_axis_plant(EXAMPLE / "plant.toml"), check_delay=False)
+    d = fit.as_dict()
+    assert d["status"] == fit.status == check_status(fit.status)
+    assert d["solver_status"] == "converged"
+    assert fit.report() == d  # the former name

@@ -1,0 +1,312 @@
+"""Calibration as a library call: drive logs -> fit -> the fitted plant file's text and report.
+
+What ``prsa-fit DATA.csv --out PLANT.toml --json REPORT.json`` does between reading its flags
+and writing its files, for the command and for the browser app alike:
+
+* :func:`fitted_plant_text`: the fitted plant file (the base file's layout and comments kept,
+  :meth:`prsa_ctrl.plant.plantfile.Plant.to_toml`): the fitted keys, a command delay that is not
+  the base's, the ``[uncertainty]`` entries that changed, the description naming the logs, and
+  with ``force`` the header saying the plant was not validated;
+* :func:`fit_report`: the JSON report (:meth:`FitResult.as_dict` and the coordinates);
+* :func:`result_lines`: the report's text lines (values with 95 % intervals, fit %, warnings,
+  coordinates, validation);
+* :func:`calibrate_logs`: all of it from log files and a base plant, with ``prsa-fit``'s
+  defaults (the app's calibration: :meth:`prsa_ctrl.app.session.AppSession.calibrate`).
+
+Nothing here writes a file or prints: the caller writes the text atomically
+(:func:`prsa_ctrl.io.output.write_text`) and shows the lines.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+from ..errors import DataError, GeometryWarning, PlantFileError
+
+__all__ = ["MOTOR_COORDINATES", "Calibrated", "calibrate_logs", "fitted_plant_text", "fit_report", "result_lines",
+           "validation_lines", "not_explained_line",
+           "mat_log_refusal", "linear_axis_refusal", "written_keys", "fitted_description", "structure_lines"]
+
+#: Coordinates of a screw-driven plant file and of the logs it is fitted to, as reports state them.
+MOTOR_COORDINATES = "motor (angle rad, torque N m)"
+
+
+def fitted_description(base, result, fitted_from: str) -> str:
+    """The fitted plant's description: the base, the logs, the keys fitted and kept."""
+    return (f"{base.name} calibrated by prsa-fit from {fitted_from}"
+            + (f" (fitted: {', '.join(result.plant_keys)}" if result.plant_keys else " (no key identifiable")
+            + (f"; kept at the base values: {', '.join(result.kept_base)})" if result.kept_base else ")")
+            + (f"; base: {base.description}" if base.description else ""))
+
+
+def written_keys(base, result) -> tuple[list[str], list[str]]:
+    """``(keys, uncertainty_keys)`` the fitted plant file rewrites: the fitted keys and the
+    command delay, current-loop bandwidth or breakaway level that the fit changed from the
+    base's; the ``[uncertainty]`` entries (and correlation) that differ from the base's."""
+    from ..plant.uncertainty import CORRELATION_KEY
+
+    base_unc = dict(base.uncertainty or {})
+    unc_keys = [k for k in [*result.plant_keys, CORRELATION_KEY] if result.plant.uncertainty.get(k) != base_unc.get(k)]
+    # the command delay (found, given or written from a fitted FRF delay) is written when it is not the base's
+    delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz",
+                              "friction.no_load_breakaway_torque_n_m")  # (a given one raised to a fitted drag)
+                  if k not in result.plant_keys and result.plant.values[k] != base.values[k]
+                  and not (k == "friction.no_load_breakaway_torque_n_m" and k in result.plant.defaulted)]
+    return [*result.plant_keys, *delay_keys], unc_keys
+
+
+def fitted_plant_text(result, base, base_text: str, name: str, fitted_from: str, force: bool = False,
+                      origin: str = "the fitted plant") -> str:
+    """The fitted plant file's text (checked: it loads as a plant, with its ``[uncertainty]``).
+
+    Parameters
+    ----------
+    result : FitResult
+        The fit.
+    base : Plant
+        The base plant (``base_text`` parsed).
+    base_text : str
+        The base plant file: its layout and comments are kept.
+    name : str
+        The fitted plant's name (``prsa-fit``: the stem of ``--out``).
+    fitted_from : str
+        The logs, as the description names them.
+    force : bool
+        The fit's validation failed and the file is written all the same (``--force``): the
+        header says so, with the diagnosis.
+    origin : str
+        How a failed check names the file.
+    """
+    import tomllib
+
+    from ..plant.plantfile import Plant
+
+    keys, unc_keys = written_keys(base, result)
+    validation = result.solver.get("validation")
+    header: tuple[str, ...] = ()
+    if force and validation is not None and not validation["passes"]:
+        header = ("prsa-fit --force: NOT VALIDATED, this plant does not explain the data it was fitted to: "
+                  f"{validation['diagnosis']}", str(validation["reasons"][0]))
+    text = result.plant.to_toml(base_text, name=name, keys=keys, description=fitted_description(base, result, fitted_from),
+                                uncertainty_keys=unc_keys, header=header)
+    with warnings.catch_warnings():  # its geometry notes are the base plant's, given when it loaded
+        warnings.simplefilter("ignore", GeometryWarning)
+        Plant.from_dict(tomllib.loads(text), origin=origin)  # what is written must load (with its [uncertainty])
+    return text
+
+
+def fit_report(result, coordinates: Mapping[str, str]) -> dict:
+    """The JSON report: :meth:`FitResult.as_dict` and ``coordinates`` (the plant's and each log's)."""
+    return {**result.as_dict(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": dict(coordinates)}}
+
+
+def _ci_text(v: Mapping[str, Any], fmt: str = ".4g") -> str:
+    return f"{v['value']:{fmt}} (95 % CI {v['ci95'][0]:{fmt}}..{v['ci95'][1]:{fmt}})"
+
+
+def structure_lines(choice) -> list[str]:
+    """The structure an FRF chose, why, and the two-mass model's mode with intervals."""
+    out = [f"structure: {choice.structure} ({choice.reason})"]
+    two = choice.two_mass
+    if two is not None and choice.structure == "two-mass":
+        v = two.values
+        out.append(f"  axial mode {_ci_text(v['resonance_hz'])} Hz, anti-resonance {_ci_text(v['antiresonance_hz'])} Hz, "
+                   f"damping ratio {_ci_text(v['damping_ratio'], '.3g')}")
+        out.append(f"  total inertia {_ci_text(v['total_inertia_kg_m2'])} kg m^2 = motor side "
+                   f"{_ci_text(v['motor_inertia_kg_m2'])} + load side {_ci_text(v['load_inertia_kg_m2'])}; stiffness "
+                   f"{_ci_text(v['stiffness_n_m_per_rad'])} N m/rad; current loop "
+                   f"{_ci_text(v['current_loop_bandwidth_hz'])} Hz; delay {_ci_text(v['delay_s'], '.3g')} s")
+    return out
+
+
+def validation_lines(v: Mapping[str, Any]) -> list[str]:
+    """The validation's per-log lines (:mod:`prsa_ctrl.identification.validation`)."""
+    out = [f"validation ({v['replay']}):"]
+    for part, what in (("written_plant", "plant as written"), ("cross_validation", "left out, fitted on the others")):
+        for name, e in (v.get(part) or {}).items():
+            if "failed" in e:
+                out.append(f"  {name} ({what}): the fit failed: {e['failed']}")
+                continue
+            w = e.get("whiteness")
+            out.append(f"  {name} ({what}): replay fit {e['fit_percent']:.2f} %, error {e['error_rms_rad_s']:.4g} rad/s = "
+                       f"{e['error_rms_rad_s'] / max(e['noise_floor_rad_s'], 1e-300):.3g} x the noise floor "
+                       f"{e['noise_floor_rad_s']:.3g} rad/s, {'explained' if e['explained'] else 'NOT explained'}"
+                       + (f"; residual autocorrelation lag 1 {w['acf'][1]:+.2f} (white band +/- {w['band']:.2g})"
+                          if w else ""))
+    out.append(f"  rule: {v['rule']}")
+    out.append("  verdict: " + ("the plant explains the data" if v["passes"] else "NOT validated: " + "; ".join(v["reasons"])))
+    return out
+
+
+def result_lines(result, coordinates: Mapping[str, str], choice=None) -> list[str]:
+    """The fit's report as text lines (what ``prsa-fit`` prints before ``wrote ...``): values with
+    95 % intervals, the command delay and friction map when found, the reflected inertia, the
+    FRF structure (``choice``), fit % per record, warnings, coordinates, validation."""
+    from .common import unit_text
+
+    out = []
+    for k, v in result.parameters.items():
+        lo, hi = v["ci95"]
+        u = unit_text(v["unit"])
+        line = f"{k} = {v['value']:.6g}{u} (95 % CI {lo:.6g}..{hi:.6g})"
+        if v.get("kept_base"):
+            line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
+        out.append(line)
+    if result.delay is not None:
+        out.append(f"  ({result.delay['plant_file']})")
+    fmap = result.solver.get("friction_map")
+    if fmap is not None:
+        out.append(f"friction map: {len(fmap['plateaus'])} steady-speed plateau(s), {fmap.get('in_stribeck_region', 0)} "
+                   f"below {fmap['criteria']['stribeck_region_speeds']:g} Stribeck speeds; Stribeck intervals "
+                   f"{fmap.get('intervals', 'not computed (too few plateaus)')}")
+    cd = result.solver.get("command_delay")
+    if cd is not None:
+        out.append(f"command delay: {cd['shift_samples']} sample(s) from the logged command (logged as "
+                   f"{cd['command_logged']}) to its action, drive.command_delay_samples = "
+                   f"{cd['drive_command_delay_samples']} ({cd['how']}"
+                   + ("" if "search" not in cd else
+                      "; objective per delay " + ", ".join(f"{k}: {v:.6g}" if v is not None else f"{k}: failed"
+                                                          for k, v in cd["search"]["objective"].items())) + ")")
+    j = result.reflected_inertia_kg_m2
+    out.append(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
+    if choice is not None:
+        out += structure_lines(choice)
+    for f, pct in result.fit_percent.items():
+        out.append(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
+                   f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
+    out += [f"warning: {w}" for w in result.warnings]
+    out.append(f"coordinates: {MOTOR_COORDINATES}")
+    out += [f"  {f}: logged in {how}" for f, how in coordinates.items()]
+    validation = result.solver.get("validation")
+    if validation is not None:
+        out += validation_lines(validation)
+    return out
+
+
+def not_explained_line(result, force: bool = False) -> str | None:
+    """The one line of a fit whose validation failed (None when it passed or did not run)."""
+    v = result.solver.get("validation")
+    if v is None or v["passes"]:
+        return None
+    return (f"the fitted plant does not explain the data; most likely missing physics: {v['diagnosis']}"
+            + (" (--force: the plant file was written all the same)" if force else
+               " (no plant file written; --force writes it)"))
+
+
+@dataclass(frozen=True)
+class Calibrated:
+    """What :func:`calibrate_logs` made of the logs.
+
+    Attributes
+    ----------
+    result : FitResult
+        The fit (``status``: ``"ok"``, or ``"flagged: ..."`` when the validation failed).
+    plant_text : str or None
+        The fitted plant file's text; None when the validation failed (``prsa-fit`` writes no
+        plant file then).
+    report : dict
+        The JSON report (:func:`fit_report`).
+    lines : tuple of str
+        The report's text lines (:func:`result_lines`).
+    failure : str or None
+        :func:`not_explained_line` when the validation failed.
+    records : tuple of Record
+        The logs as read (named by their labels): the fit's views
+        (:func:`prsa_ctrl.plots.fit.fit_views`) replay them.
+    """
+
+    result: Any
+    plant_text: str | None
+    report: dict
+    lines: tuple[str, ...]
+    failure: str | None = None
+    records: tuple = ()
+
+
+def mat_log_refusal(path: str) -> str:
+    """The one line refusing a MATLAB ``.mat`` log given without a log description."""
+    return (f"{path!r}: a MATLAB .mat log is read through a log description; expected --log-format FILE.toml "
+            "(an example: examples/emps/log.toml)")
+
+
+def linear_axis_refusal(base: str | None) -> str:
+    """The one line refusing a ``linear-axis`` base plant for records in motor coordinates."""
+    return (f"--plant {base}: mechanism = \"linear-axis\" (load coordinates: m, N); expected a screw-driven plant "
+            "for records in motor coordinates (a linear axis is fitted from its log with --log-format FORMAT.toml)")
+
+
+def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name: str,
+                   labels: Sequence[str] | None = None,
+                   check_interrupt: Callable[[], None] | None = None) -> Calibrated:
+    """Fit a base plant to drive logs with ``prsa-fit``'s defaults and compose its outputs.
+
+    The same steps, checks and messages as ``prsa-fit LOG... [--plant BASE] --out NAME.toml
+    --json REPORT.json``: a MATLAB ``.mat`` log is refused (it needs a log description), a
+    ``linear-axis`` base is refused, the fitted file's text is checked before the fit, the logs
+    are read (:func:`prsa_ctrl.identification.data.load_record`), the command delay is searched,
+    the fitted plant is validated (with several logs, cross-validated).
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        The logs (CSV, motor coordinates).
+    base : str, optional
+        Built-in plant name or plant file path (default: the default plant).
+    name : str
+        The fitted plant's name.
+    labels : sequence of str, optional
+        How the results name each log (default: the path as given): the records' names, the
+        description, the report's ``fit_percent`` and ``coordinates``.
+    check_interrupt : callable, optional
+        Called at every iteration and after every simulation of the fit; an exception it raises
+        ends the fit (the caller's cancellation).
+
+    Returns
+    -------
+    Calibrated
+
+    Raises
+    ------
+    DataError, PlantFileError, ValueError
+        Bad input (one line naming the file and the value: ``prsa-fit``'s exit 2).
+    FitError
+        The fit did not converge (``prsa-fit``'s exit 3).
+    """
+    from dataclasses import replace
+
+    from ..plant.plantfile import load_plant, plant_file_path
+    from .common import FITTABLE
+    from .data import load_record
+    from .timedomain import fit_plant
+
+    paths = [str(p) for p in paths]
+    labels = list(paths) if labels is None else [str(x) for x in labels]
+    if len(labels) != len(paths):
+        raise ValueError(f"labels: {len(labels)} for {len(paths)} logs; expected one per log")
+    mat = next((p for p in paths if p.lower().endswith(".mat")), None)
+    if mat is not None:
+        raise DataError(mat_log_refusal(mat))
+    plant = load_plant(base)
+    if plant.mechanism == "linear-axis":
+        raise PlantFileError(linear_axis_refusal(base))
+    base_text = plant_file_path(base).read_text(encoding="utf-8")
+    plant.to_toml(base_text, name=name, keys=[k for k in FITTABLE if k in plant.values], description="check")
+    records = []
+    for path, label in zip(paths, labels):
+        rec = load_record(path)
+        records.append(replace(rec, name=label, warnings=tuple(w.replace(path, label) for w in rec.warnings)))
+    result = fit_plant(records, plant, fidelity="rigid", validate=[], segment_s=0.1, delay_samples="find",
+                       command_logged="applied", uncertainty="keep", check_interrupt=check_interrupt,
+                       cross_validate=True, closed_loops={})
+    if check_interrupt is not None:
+        check_interrupt()
+    coordinates = {label: MOTOR_COORDINATES for label in labels}
+    failure = not_explained_line(result)
+    text = None if failure else fitted_plant_text(result, plant, base_text, name, ", ".join(Path(x).name for x in labels),
+                                                  origin=name)
+    return Calibrated(result, text, fit_report(result, coordinates), tuple(result_lines(result, coordinates)), failure,
+                      tuple(records))
