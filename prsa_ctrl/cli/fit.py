@@ -655,6 +655,12 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         from ..io.output import json_safe
 
         report = {**result.report(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": coordinates}}
+        if choice is not None and choice.structure == "two-mass" and choice.two_mass is not None:
+            # the mode the response shows, at its operating point, with its interval (the written
+            # plant's --show-plant mode is the series formula's, without the load or the nut loss)
+            v = choice.two_mass.values
+            report["frf_axial_mode_hz"] = dict(v["resonance_hz"])
+            report["frf_antiresonance_hz"] = dict(v["antiresonance_hz"])
         files[args.json] = ("--json", json.dumps(json_safe(report), indent=2) + "\n")
     try:
         if args.plots is not None:
