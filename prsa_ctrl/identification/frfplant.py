@@ -192,14 +192,20 @@ def _held_sd(plant: Plant, key: str) -> tuple[float, str]:
     """Standard deviation (file units) of a held key: from the base plant's ``[uncertainty]``
     entry (the distribution's own, by quadrature of its inverse CDF) when it has one, else
     :data:`HELD_DEFAULT`'s uniform; and its source."""
-    from ..plant.uncertainty import plant_uncertainty
+    from ..errors import PlantFileError
+    from ..plant.uncertainty import _resolve, parse_entries
 
-    if key in (getattr(plant, "uncertainty", None) or {}):
-        for e in plant_uncertainty(plant).entries:
-            if e.key == key:
-                u = (np.arange(2000) + 0.5) / 2000
-                x = np.asarray(e.ppf(u), float)
-                return float(np.std(x)), f"the base plant's [uncertainty] entry ({e.source})"
+    table = getattr(plant, "uncertainty", None) or {}
+    if table:
+        try:  # this key's entry alone (the others may no longer hold the fitted values)
+            flat = parse_entries(table, plant.origin)
+            e = _resolve(key, flat[key], plant.values[key], plant.origin, PlantFileError) if key in flat else None
+        except PlantFileError:
+            e = None  # its support no longer holds the value: the default below
+        if e is not None:
+            u = (np.arange(2000) + 0.5) / 2000
+            x = np.asarray(e.ppf(u), float)
+            return float(np.std(x)), f"the base plant's [uncertainty] entry ({e.source})"
     kind, hw, src = HELD_DEFAULT[key]
     v = plant.values[key]
     if kind == "relative":
@@ -238,15 +244,18 @@ def held_key_spread(plant: Plant, fitted_keys: Sequence[str], structure: str, *,
         if not sd > 0:
             continue
         h = 0.05 * sd
-        js = []
+        js, adjs = [], []
         for x in (vals[key] - h, vals[key] + h):
             a = _match_apparent(plant, adj, vals[adj], {key: x}, target, speed_rad_s, load_n)
             with _warnings.catch_warnings():
                 _warnings.simplefilter("ignore")
                 js.append(plant.with_params({key: x, adj: a}).reflected_inertia_kg_m2)
+            adjs.append(a)
         sens = (js[1] - js[0]) / (2 * h)
+        sens_a = (adjs[1] - adjs[0]) / (2 * h)
         out.append({"key": key, "value": float(vals[key]), "sd": float(sd), "sensitivity_kg_m2_per_unit": float(sens),
-                    "sd_kg_m2": float(abs(sens) * sd), "source": src})
+                    "sd_kg_m2": float(abs(sens) * sd), "adjusted_key": adj, "adjusted_sensitivity": float(sens_a),
+                    "adjusted_sd": float(abs(sens_a) * sd), "source": src})
     return out
 
 
@@ -556,6 +565,19 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")
         fitted = plant.with_params(overrides, name=f"{plant.name}-fit")
+    spread = held_key_spread(fitted, keys, fit.structure, speed_rad_s=speed, load_n=load)
+    adj = spread[0]["adjusted_key"] if spread else None
+    if adj in keys:  # the key the response's inertia sets carries the held keys' spread too
+        i = keys.index(adj)
+        extra = sum(e["adjusted_sd"] ** 2 for e in spread)
+        sd_fit = (ci[adj][1] - ci[adj][0]) / 2
+        q_t = sd_fit / math.sqrt(cov[i, i]) if cov[i, i] > 0 else _Z95
+        cov = cov.copy()
+        cov[i, i] += extra
+        ci[adj] = [values[adj] - q_t * math.sqrt(cov[i, i]), values[adj] + q_t * math.sqrt(cov[i, i])]
+        warns.append(f"{adj}: its interval includes the spread of the keys held at base values ("
+                     + ", ".join(f"{e['key']} sd {e['sd']:.3g}" for e in spread) + "), which one response cannot "
+                     "tell from it")
     srcs = dict(fitted.sources)
     if "drive.command_delay_samples" in overrides:
         srcs["drive.command_delay_samples"] = f"fit: {names} (no command delay beyond the computation delay)"
@@ -593,7 +615,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
                  "apparent_inertia_note": ("the response's low-frequency inertia is the one the motor feels at the "
                                            "operating point (the nut loss on the whole force included), not the "
                                            "reflected inertia")}
-    reflected = _with_held(reflected, held_key_spread(fitted, keys, fit.structure, speed_rad_s=speed, load_n=load))
+    reflected = _with_held(reflected, spread)
     fit_pct, traces = {}, {}
     for fr in frf:
         g = fit.response(fr.frequency_hz)
@@ -673,8 +695,56 @@ def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: Stru
         traces[name] = {**tr, "models": models, "chosen": "two-mass"}
     warns = [w for w in direct.warnings if "its interval counts only the mode" not in w]
     spread = held_key_spread(res.plant, res.keys, "two-mass", speed_rad_s=frf[0].speed_rad_s, load_n=frf[0].load_n)
+    reflected = _with_held(_reflected(res), spread)
+    res = _widen_adjusted(res, spread, start, names, uncertainty)
     return dataclasses.replace(res, warnings=[*warns, *[w for w in res.warnings if w not in warns]], solver=solver,
-                               traces=traces, reflected_inertia_kg_m2=_with_held(_reflected(res), spread))
+                               traces=traces, reflected_inertia_kg_m2=reflected)
+
+
+def _widen_adjusted(res: FitResult, spread: Sequence[dict], start: Plant, names: str, uncertainty: str) -> FitResult:
+    """``res`` with the interval (report, covariance and ``[uncertainty]`` entry) of the key the
+    response's inertia sets widened by the held keys' spread (variances added)."""
+    import dataclasses
+
+    from ..plant.schema import PLAUSIBLE
+    from .common import uncertainty_choice, uncertainty_entries
+
+    if not spread or spread[0]["adjusted_key"] not in res.parameters or spread[0]["adjusted_key"] not in res.keys:
+        return res
+    adj = spread[0]["adjusted_key"]
+    p = dict(res.parameters[adj])
+    v, (lo, hi) = float(p["value"]), p["ci95"]
+    sd = math.sqrt(((hi - lo) / (2 * _Z95)) ** 2 + sum(e["adjusted_sd"] ** 2 for e in spread))
+    p["ci95"] = [v - _Z95 * sd, v + _Z95 * sd]
+    p["ci95_fit_only"] = [float(lo), float(hi)]
+    p["held_keys"] = [e["key"] for e in spread]
+    params = {**res.parameters, adj: p}
+    cov = res.covariance
+    if cov is not None:
+        cov = np.array(cov, float)
+        i = res.keys.index(adj)
+        cov[i, i] = sd * sd
+    rng = PLAUSIBLE.get(adj, (0.0, math.inf))[:2]
+    plant = res.plant
+    fit_unc = uncertainty_entries(plant, {adj: p}, names, [sd], [rng])
+    choice_u, note = uncertainty_choice(plant, adj, (start.uncertainty or {}).get(adj), fit_unc.get(adj), p["ci95"], rng,
+                                        uncertainty)
+    warns = [*res.warnings, f"{adj}: its interval includes the spread of the keys held at base values ("
+             + ", ".join(f"{e['key']} sd {e['sd']:.3g}" for e in spread) + "), which one response cannot tell from it"]
+    if choice_u is not None:
+        unc = dict(plant.uncertainty or {})
+        unc[adj] = choice_u
+        plant = Plant(name=plant.name, values=plant.values, sources=plant.sources, origin=plant.origin,
+                      description=plant.description, uncertainty=unc, mechanism=plant.mechanism,
+                      defaulted=plant.defaulted, mechanism_source=plant.mechanism_source)
+    if note:
+        warns.append(note)
+    corr = res.correlation
+    if cov is not None:
+        sds = np.sqrt(np.clip(np.diag(cov), 0, None))
+        with np.errstate(all="ignore"):
+            corr = np.nan_to_num(cov / np.outer(sds, sds))
+    return dataclasses.replace(res, plant=plant, parameters=params, covariance=cov, correlation=corr, warnings=warns)
 
 
 def _plant_features(plant: Plant, keys, values, speed: float, load: float, f0_hz: float):

@@ -312,6 +312,9 @@ def test_rigid_response_with_the_nut_loss_on_the_inertial_force_is_mapped_and_it
     # d J / d eta at a fixed response: m a^2 / eta^2; the default spread: uniform +-0.05
     assert held["friction.efficiency"]["sensitivity_kg_m2_per_unit"] == pytest.approx(m * a2 / eta_base**2, rel=1e-3)
     assert held["friction.efficiency"]["sd"] == pytest.approx(0.1 / math.sqrt(12), rel=1e-9)
+    # the motor inertia the response's inertia sets carries the same spread: the truth inside
+    lo, hi = res.parameters["axis.motor_inertia_kg_m2"]["ci95"]
+    assert lo <= 1.1 * v["axis.motor_inertia_kg_m2"] <= hi
     assert res.plant.values["drive.command_delay_samples"] == 1
     assert res.plant.values["drive.current_loop_bandwidth_hz"] == pytest.approx(900.0, rel=0.05)
 
