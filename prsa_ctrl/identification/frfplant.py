@@ -9,7 +9,10 @@ current loop and delay):
 
 ``ball-screw``, ``roller-screw`` (the motor turns the screw)
     rigid: ``axis.motor_inertia_kg_m2 = J - J_screw - m a^2`` (the base's screw inertia and
-    moving mass kept). Two-mass: ``axis.motor_inertia_kg_m2 = J_m - J_screw`` (the screw turns
+    moving mass kept) without load; under load (nut loss on the whole force) ``J - J_screw -
+    m a^2 / eta``: the motor-side key is set so that the plant's own rigid model, linearised at
+    the measurement's speed and load, has the response's inertia (:func:`apparent_inertia`; the
+    two-mass mapping likewise sets ``axis.moving_mass_kg``). Two-mass: ``axis.motor_inertia_kg_m2 = J_m - J_screw`` (the screw turns
     with the rotor), ``axis.moving_mass_kg = J_l / a^2``, ``axis.axial_damping_ratio = zeta``
     (the modal damping of the axial mode, the model's definition) and
     ``axis.nut_stiffness_n_per_um`` such that the plant's own compliant model, linearised at the
@@ -31,6 +34,9 @@ Every mechanism: ``drive.current_loop_bandwidth_hz = f_c`` and the delay ``T`` a
 (:func:`prsa_ctrl.identification.frf.write_delay`). Intervals: delta method on the fit's
 covariance; for a stiffness matched to the mode, ``d ln K / d ln f_r`` of the plant's model
 times the interval of ``f_r`` (the inertias' share of its uncertainty is left out: say so).
+The reflected inertia's interval, and that of the inertia key the response sets, add the spread
+of the keys held at base values that one response cannot tell from it (the efficiency; rigid,
+the moving mass): :func:`held_key_spread`, :data:`HELD_DEFAULT`.
 """
 
 from __future__ import annotations
@@ -46,7 +52,8 @@ from ..plant.plantfile import Plant
 from .common import FitResult
 from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure
 
-__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND",
+__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "apparent_inertia", "held_key_spread", "HELD_DEFAULT",
+           "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND",
            "INERTIA_RATIO_MAX", "DELAY_SAMPLES_MAX", "LOW_PHASE_TOL_DEG"]
 
 #: A response that neither model fits to at least this fit % (complex log response,
