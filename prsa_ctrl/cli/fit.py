@@ -480,7 +480,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         from ..io.output import json_safe
         from ..plots.fit import fit_views
 
-        report = {**fit_report(result, coordinates), "views": fit_views(result, [*records, *validate])}
+        report = {**fit_report(result, coordinates, choice), "views": fit_views(result, [*records, *validate])}
         files[args.json] = ("--json", json.dumps(json_safe(report), indent=2) + "\n")
     try:
         if args.plots is not None:

@@ -99,9 +99,18 @@ def fitted_plant_text(result, base, base_text: str, name: str, fitted_from: str,
     return text
 
 
-def fit_report(result, coordinates: Mapping[str, str]) -> dict:
-    """The JSON report: :meth:`FitResult.as_dict` and ``coordinates`` (the plant's and each log's)."""
-    return {**result.as_dict(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": dict(coordinates)}}
+def fit_report(result, coordinates: Mapping[str, str], choice=None) -> dict:
+    """The JSON report: :meth:`FitResult.as_dict` and ``coordinates`` (the plant's and each log's);
+    with a frequency-response structure ``choice`` that chose the two-mass model, also
+    ``frf_axial_mode_hz`` and ``frf_antiresonance_hz`` (value and 95 % interval, Hz): the mode the
+    response shows at its operating point (the written plant's ``--show-plant`` mode is the series
+    formula's, without the load or the nut loss)."""
+    report = {**result.as_dict(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": dict(coordinates)}}
+    if choice is not None and choice.structure == "two-mass" and choice.two_mass is not None:
+        v = choice.two_mass.values
+        report["frf_axial_mode_hz"] = dict(v["resonance_hz"])
+        report["frf_antiresonance_hz"] = dict(v["antiresonance_hz"])
+    return report
 
 
 def _ci_text(v: Mapping[str, Any], fmt: str = ".4g") -> str:

@@ -9,7 +9,10 @@ current loop and delay):
 
 ``ball-screw``, ``roller-screw`` (the motor turns the screw)
     rigid: ``axis.motor_inertia_kg_m2 = J - J_screw - m a^2`` (the base's screw inertia and
-    moving mass kept). Two-mass: ``axis.motor_inertia_kg_m2 = J_m - J_screw`` (the screw turns
+    moving mass kept) without load; under load (nut loss on the whole force) ``J - J_screw -
+    m a^2 / eta``: the motor-side key is set so that the plant's own rigid model, linearised at
+    the measurement's speed and load, has the response's inertia (:func:`apparent_inertia`; the
+    two-mass mapping likewise sets ``axis.moving_mass_kg``). Two-mass: ``axis.motor_inertia_kg_m2 = J_m - J_screw`` (the screw turns
     with the rotor), ``axis.moving_mass_kg = J_l / a^2``, ``axis.axial_damping_ratio = zeta``
     (the modal damping of the axial mode, the model's definition) and
     ``axis.nut_stiffness_n_per_um`` such that the plant's own compliant model, linearised at the
@@ -31,6 +34,9 @@ Every mechanism: ``drive.current_loop_bandwidth_hz = f_c`` and the delay ``T`` a
 (:func:`prsa_ctrl.identification.frf.write_delay`). Intervals: delta method on the fit's
 covariance; for a stiffness matched to the mode, ``d ln K / d ln f_r`` of the plant's model
 times the interval of ``f_r`` (the inertias' share of its uncertainty is left out: say so).
+The reflected inertia's interval, and that of the inertia key the response sets, add the spread
+of the keys held at base values that one response cannot tell from it (the efficiency; rigid,
+the moving mass): :func:`held_key_spread`, :data:`HELD_DEFAULT`.
 """
 
 from __future__ import annotations
@@ -46,7 +52,8 @@ from ..plant.plantfile import Plant
 from .common import FitResult
 from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure
 
-__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND",
+__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "apparent_inertia", "held_key_spread", "HELD_DEFAULT",
+           "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND",
            "INERTIA_RATIO_MAX", "DELAY_SAMPLES_MAX", "LOW_PHASE_TOL_DEG"]
 
 #: A response that neither model fits to at least this fit % (complex log response,
@@ -69,6 +76,20 @@ LOW_PHASE_TOL_DEG = 60.0
 #: A response ending below the base plant's current-loop bandwidth divided by this holds the
 #: current loop at the base value (below ~f_c/3 its lag is a pure phase slope, the delay's).
 CURRENT_LOOP_BAND = 3.0
+
+#: The spread of a key the fit holds at its base value although the reported inertia depends
+#: on it (:func:`held_key_spread`), when the base plant's ``[uncertainty]`` table has none for
+#: it: ``key -> (kind, half-width of a uniform distribution, source)``. A response at one
+#: operating point shows the inertia the motor feels, ``J_m + m a^2 / eta`` with the nut loss on
+#: the whole force (and, two-mass, ``J_m`` and ``m a^2 / eta`` apart): the efficiency (and, for the
+#: rigid model, the moving mass) cannot be told from the motor-side inertia, so the total
+#: reflected inertia ``J_m + m a^2`` carries their uncertainty.
+HELD_DEFAULT = {
+    "friction.efficiency": ("absolute", 0.05, "assumption: a screw's catalogue efficiency spans about 0.05 "
+                            "(ball screws 0.90 to 0.95, a roller screw's 0.80 to 0.85 or 0.85 to 0.90)"),
+    "axis.moving_mass_kg": ("relative", 0.10, "assumption: a moving mass from drawings, +-10 %"),
+    "screw.mass_kg": ("relative", 0.10, "assumption: a moving mass from drawings, +-10 %"),
+}
 
 #: Units of the keys this module writes.
 KEY_UNITS = {
@@ -122,8 +143,165 @@ def first_mode_hz(plant: Plant, keys: Sequence[str] = (), values: Sequence[float
     return float(abs(osc[0]) / (2 * math.pi))
 
 
-def _direct(plant: Plant, structure: str, v: Mapping[str, float]) -> dict:
-    """The plant keys that follow from the fitted values in closed form (file units)."""
+def apparent_inertia(plant: Plant, keys: Sequence[str] = (), values: Sequence[float] = (), *,
+                     speed_rad_s: float = 30.0, load_n: float = 800.0) -> float:
+    """The inertia the motor feels (kg m^2; load coordinates: kg) in the plant's rigid model
+    linearised at ``speed_rad_s`` and ``load_n``, with ``keys`` set to ``values``: ``1 / (d omega_dot
+    / d tau)``. With the nut loss on the whole force it is ``J_m + m a^2 / eta``, not the reflected
+    inertia ``J_m + m a^2`` (what a response at that operating point shows at low frequency)."""
+    from .frf import linearised
+
+    lin = linearised(plant, tuple(keys), "rigid")
+    a, _ = lin(speed_rad_s, load_n, np.asarray(values, float))
+    return float(1.0 / a[lin.i_w, lin.names.index("tau_motor")])
+
+
+def _loaded(plant: Plant, load_n: float) -> bool:
+    """Whether the operating point carries an external load through a screw's nut (then the loss
+    on the whole force is linear, ``1/eta`` on the inertial force too). Without load the nut force
+    is the inertial force alone and its loss ``|a F_s|`` is rectified: no share of it in the
+    fundamental, the response shows ``J_m + m a^2`` (the closed form), and the plant's
+    linearisation sits on the kink of ``|F_s|``."""
+    return plant.mechanism != "linear-axis" and abs(load_n) > 1e-6 * plant.rated_load_n
+
+
+def _adjust_key(plant: Plant, structure: str) -> str:
+    """The inertia key the response's low-frequency inertia sets: the motor side for the rigid
+    model, the load side for the two-mass one (whose motor side the mode fixes)."""
+    if plant.mechanism == "linear-axis":
+        return "axis.mass_kg"
+    if structure == "rigid":
+        return "axis.motor_inertia_kg_m2" if plant.screw_driven else "nut.inertia_kg_m2"
+    return "axis.moving_mass_kg" if plant.screw_driven else "screw.mass_kg"
+
+
+def _match_apparent(plant: Plant, key: str, value: float, held: Mapping[str, float], target: float,
+                    speed: float, load: float) -> float:
+    """``key``'s value (from ``value``) that makes the plant's :func:`apparent_inertia` at the
+    operating point ``target``, with ``held`` keys set: exact in two secant steps (the apparent
+    inertia is affine in an inertia or a mass)."""
+    hk = tuple(held)
+    keys = (*hk, key)
+    hv = [float(held[k]) for k in hk]
+    x = float(value)
+    for _ in range(2):
+        j0 = apparent_inertia(plant, keys, [*hv, x], speed_rad_s=speed, load_n=load)
+        eps = 1e-4 * abs(x) if x else 1e-9
+        slope = (apparent_inertia(plant, keys, [*hv, x + eps], speed_rad_s=speed, load_n=load) - j0) / eps
+        if not (math.isfinite(slope) and slope > 0):
+            raise FitError(f"the plant's apparent inertia does not grow with {key} at {load:g} N (slope {slope:.3g}); "
+                           "expected an inertia or mass key")
+        x = x + (target - j0) / slope
+    return x
+
+
+def _held_sd(plant: Plant, key: str) -> tuple[float, str]:
+    """Standard deviation (file units) of a held key: from the base plant's ``[uncertainty]``
+    entry (the distribution's own, by quadrature of its inverse CDF) when it has one, else
+    :data:`HELD_DEFAULT`'s uniform; and its source."""
+    from ..errors import PlantFileError
+    from ..plant.uncertainty import _resolve, parse_entries
+
+    table = getattr(plant, "uncertainty", None) or {}
+    if table:
+        try:  # this key's entry alone (the others may no longer hold the fitted values)
+            flat = parse_entries(table, plant.origin)
+            e = _resolve(key, flat[key], plant.values[key], plant.origin, PlantFileError) if key in flat else None
+        except PlantFileError:
+            e = None  # its support no longer holds the value: the default below
+        if e is not None:
+            u = (np.arange(2000) + 0.5) / 2000
+            x = np.asarray(e.ppf(u), float)
+            return float(np.std(x)), f"the base plant's [uncertainty] entry ({e.source})"
+    kind, hw, src = HELD_DEFAULT[key]
+    v = plant.values[key]
+    if kind == "relative":
+        return abs(v) * hw / math.sqrt(3.0), src
+    lo, hi = max(v - hw, 0.2), min(v + hw, 1.0)  # an efficiency stays in (0.2, 1]
+    return (hi - lo) / math.sqrt(12.0), src
+
+
+def held_key_spread(plant: Plant, fitted_keys: Sequence[str], structure: str, *, speed_rad_s: float,
+                    load_n: float) -> list[dict]:
+    """What the keys a response cannot inform, held at their base values, add to the written
+    plant's reflected inertia (:data:`HELD_DEFAULT`): per held key its standard deviation ``sd``
+    and the sensitivity ``d J / d key`` of the reflected inertia with the response held fixed
+    (the apparent inertia at the operating point re-matched through :func:`_adjust_key`'s key),
+    by central differences on the plant's own model.
+
+    Returns
+    -------
+    list of dict
+        ``{"key", "value", "sd", "sensitivity_kg_m2_per_unit", "sd_kg_m2", "source"}`` (file units).
+    """
+    if not _loaded(plant, load_n):
+        return []
+    adj = _adjust_key(plant, structure)
+    vals = plant.values
+    target = apparent_inertia(plant, speed_rad_s=speed_rad_s, load_n=load_n)
+    out = []
+    for key in HELD_DEFAULT:
+        if key in fitted_keys or key == adj or key not in vals:
+            continue
+        if structure != "rigid" and key != "friction.efficiency":
+            continue  # the two-mass fit sets the load side itself
+        if key == ("screw.mass_kg" if plant.screw_driven else "axis.moving_mass_kg"):
+            continue  # derived in this mechanism (the translating member is the other key)
+        sd, src = _held_sd(plant, key)
+        if not sd > 0:
+            continue
+        h = 0.05 * sd
+        js, adjs = [], []
+        for x in (vals[key] - h, vals[key] + h):
+            a = _match_apparent(plant, adj, vals[adj], {key: x}, target, speed_rad_s, load_n)
+            with _warnings.catch_warnings():
+                _warnings.simplefilter("ignore")
+                js.append(plant.with_params({key: x, adj: a}).reflected_inertia_kg_m2)
+            adjs.append(a)
+        sens = (js[1] - js[0]) / (2 * h)
+        sens_a = (adjs[1] - adjs[0]) / (2 * h)
+        out.append({"key": key, "value": float(vals[key]), "sd": float(sd), "sensitivity_kg_m2_per_unit": float(sens),
+                    "sd_kg_m2": float(abs(sens) * sd), "adjusted_key": adj, "adjusted_sensitivity": float(sens_a),
+                    "adjusted_sd": float(abs(sens_a) * sd), "source": src})
+    return out
+
+
+def _with_held(reflected: dict, spread: Sequence[dict]) -> dict:
+    """The reflected inertia's 95 % interval widened by the held keys' spread: variances added
+    (the fit's from its interval, ``(hi - lo) / (2 x 1.96)``), normal quantile."""
+    j = float(reflected["value"])
+    lo, hi = reflected["ci95"]
+    sd_fit = (hi - lo) / (2 * _Z95)
+    sd = math.sqrt(sd_fit**2 + sum(e["sd_kg_m2"] ** 2 for e in spread))
+    out = dict(reflected)
+    out["ci95"] = [j - _Z95 * sd, j + _Z95 * sd]
+    out["ci95_fit_only"] = [float(lo), float(hi)]
+    out["held_keys"] = [dict(e) for e in spread]
+    out["interval"] = ("the fit's interval with the spread of the keys held at base values added in quadrature "
+                       "(normal quantile): " + ", ".join(f"{e['key']} sd {e['sd']:.3g} ({e['source']})" for e in spread)
+                       if spread else "the fit's interval (no held key moves the reflected inertia)")
+    return out
+
+
+_Z95 = 1.959963984540054
+
+
+def _direct(plant: Plant, structure: str, v: Mapping[str, float], op: tuple[float, float] | None = None) -> dict:
+    """The plant keys that follow from the fitted values in closed form (file units); with the
+    operating point ``op = (speed, load)`` the inertia key :func:`_adjust_key` names then matched so
+    that the plant's apparent inertia there is the fitted total (the nut loss on the inertial
+    force: ``J_m + m a^2 / eta``, not ``J_m + m a^2``)."""
+    out = _direct_closed(plant, structure, v)
+    if op is not None and _loaded(plant, op[1]):
+        adj = _adjust_key(plant, structure)
+        held = {k: out[k] for k in out if k != adj and k in plant.values and k != "drive.current_loop_bandwidth_hz"
+                and k != "axis.axial_damping_ratio"}
+        out[adj] = _match_apparent(plant, adj, out[adj], held, v["total_inertia_kg_m2"], op[0], op[1])
+    return out
+
+
+def _direct_closed(plant: Plant, structure: str, v: Mapping[str, float]) -> dict:
+    """The closed-form part of :func:`_direct`."""
     vals, a2 = plant.values, plant.lead_per_rad**2
     out = {}
     if plant.mechanism == "linear-axis":
@@ -196,7 +374,8 @@ def plant_keys_of(plant: Plant, fit: FrfModelFit, *, speed_rad_s: float, load_n:
     theta, cov_t = fit.theta, fit.covariance
     structure = fit.structure
     v0 = physical_values(structure, theta, fit.b_scale)
-    direct = _direct(plant, structure, v0)
+    op = (speed_rad_s, load_n)
+    direct = _direct(plant, structure, v0, op)
     warns = []
     keys = list(direct)
     # gradients of the direct keys w.r.t. theta (numerical, central)
@@ -206,8 +385,8 @@ def plant_keys_of(plant: Plant, fit: FrfModelFit, *, speed_rad_s: float, load_n:
         tp, tm = theta.copy(), theta.copy()
         tp[i] += h
         tm[i] -= h
-        dp = _direct(plant, structure, physical_values(structure, tp, fit.b_scale))
-        dm = _direct(plant, structure, physical_values(structure, tm, fit.b_scale))
+        dp = _direct(plant, structure, physical_values(structure, tp, fit.b_scale), op)
+        dm = _direct(plant, structure, physical_values(structure, tm, fit.b_scale), op)
         grads[:, i] = [(dp[k] - dm[k]) / (2 * h) for k in keys]
     values = dict(direct)
     skey = _stiffness_key(plant)
@@ -393,6 +572,19 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")
         fitted = plant.with_params(overrides, name=f"{plant.name}-fit")
+    spread = held_key_spread(fitted, keys, fit.structure, speed_rad_s=speed, load_n=load)
+    adj = spread[0]["adjusted_key"] if spread else None
+    if adj in keys:  # the key the response's inertia sets carries the held keys' spread too
+        i = keys.index(adj)
+        extra = sum(e["adjusted_sd"] ** 2 for e in spread)
+        sd_fit = (ci[adj][1] - ci[adj][0]) / 2
+        q_t = sd_fit / math.sqrt(cov[i, i]) if cov[i, i] > 0 else _Z95
+        cov = cov.copy()
+        cov[i, i] += extra
+        ci[adj] = [values[adj] - q_t * math.sqrt(cov[i, i]), values[adj] + q_t * math.sqrt(cov[i, i])]
+        warns.append(f"{adj}: its interval includes the spread of the keys held at base values ("
+                     + ", ".join(f"{e['key']} sd {e['sd']:.3g}" for e in spread) + "), which one response cannot "
+                     "tell from it")
     srcs = dict(fitted.sources)
     if "drive.command_delay_samples" in overrides:
         srcs["drive.command_delay_samples"] = f"fit: {names} (no command delay beyond the computation delay)"
@@ -422,8 +614,15 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     if delay_to_write:
         fitted, delay = write_delay(fitted, delay, ts_w, command_logged, warns)
     jt = fit.values["total_inertia_kg_m2"]
-    reflected = {"value": float(fitted.reflected_inertia_kg_m2), "ci95": list(jt["ci95"]), "unit": "kg m^2",
-                 "fitted_total": jt["value"]}
+    j_w = float(fitted.reflected_inertia_kg_m2)
+    # the written reflected inertia differs from the response's total by what the held keys make
+    # of it (the nut loss on the inertial force): the fit's interval moves with it
+    reflected = {"value": j_w, "ci95": [j_w - (jt["value"] - jt["ci95"][0]), j_w + (jt["ci95"][1] - jt["value"])],
+                 "unit": "kg m^2", "fitted_total": jt["value"],
+                 "apparent_inertia_note": ("the response's low-frequency inertia is the one the motor feels at the "
+                                           "operating point (the nut loss on the whole force included), not the "
+                                           "reflected inertia")}
+    reflected = _with_held(reflected, spread)
     fit_pct, traces = {}, {}
     for fr in frf:
         g = fit.response(fr.frequency_hz)
@@ -502,8 +701,57 @@ def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: Stru
         models[f"plant model as written ({res.fit_percent[name]:.1f} %)"] = tr["model"]
         traces[name] = {**tr, "models": models, "chosen": "two-mass"}
     warns = [w for w in direct.warnings if "its interval counts only the mode" not in w]
+    spread = held_key_spread(res.plant, res.keys, "two-mass", speed_rad_s=frf[0].speed_rad_s, load_n=frf[0].load_n)
+    reflected = _with_held(_reflected(res), spread)
+    res = _widen_adjusted(res, spread, start, names, uncertainty)
     return dataclasses.replace(res, warnings=[*warns, *[w for w in res.warnings if w not in warns]], solver=solver,
-                               traces=traces, reflected_inertia_kg_m2=_reflected(res))
+                               traces=traces, reflected_inertia_kg_m2=reflected)
+
+
+def _widen_adjusted(res: FitResult, spread: Sequence[dict], start: Plant, names: str, uncertainty: str) -> FitResult:
+    """``res`` with the interval (report, covariance and ``[uncertainty]`` entry) of the key the
+    response's inertia sets widened by the held keys' spread (variances added)."""
+    import dataclasses
+
+    from ..plant.schema import PLAUSIBLE
+    from .common import uncertainty_choice, uncertainty_entries
+
+    if not spread or spread[0]["adjusted_key"] not in res.parameters or spread[0]["adjusted_key"] not in res.keys:
+        return res
+    adj = spread[0]["adjusted_key"]
+    p = dict(res.parameters[adj])
+    v, (lo, hi) = float(p["value"]), p["ci95"]
+    sd = math.sqrt(((hi - lo) / (2 * _Z95)) ** 2 + sum(e["adjusted_sd"] ** 2 for e in spread))
+    p["ci95"] = [v - _Z95 * sd, v + _Z95 * sd]
+    p["ci95_fit_only"] = [float(lo), float(hi)]
+    p["held_keys"] = [e["key"] for e in spread]
+    params = {**res.parameters, adj: p}
+    cov = res.covariance
+    if cov is not None:
+        cov = np.array(cov, float)
+        i = res.keys.index(adj)
+        cov[i, i] = sd * sd
+    rng = PLAUSIBLE.get(adj, (0.0, math.inf))[:2]
+    plant = res.plant
+    fit_unc = uncertainty_entries(plant, {adj: p}, names, [sd], [rng])
+    choice_u, note = uncertainty_choice(plant, adj, (start.uncertainty or {}).get(adj), fit_unc.get(adj), p["ci95"], rng,
+                                        uncertainty)
+    warns = [*res.warnings, f"{adj}: its interval includes the spread of the keys held at base values ("
+             + ", ".join(f"{e['key']} sd {e['sd']:.3g}" for e in spread) + "), which one response cannot tell from it"]
+    if choice_u is not None:
+        unc = dict(plant.uncertainty or {})
+        unc[adj] = choice_u
+        plant = Plant(name=plant.name, values=plant.values, sources=plant.sources, origin=plant.origin,
+                      description=plant.description, uncertainty=unc, mechanism=plant.mechanism,
+                      defaulted=plant.defaulted, mechanism_source=plant.mechanism_source)
+    if note:
+        warns.append(note)
+    corr = res.correlation
+    if cov is not None:
+        sds = np.sqrt(np.clip(np.diag(cov), 0, None))
+        with np.errstate(all="ignore"):
+            corr = np.nan_to_num(cov / np.outer(sds, sds))
+    return dataclasses.replace(res, plant=plant, parameters=params, covariance=cov, correlation=corr, warnings=warns)
 
 
 def _plant_features(plant: Plant, keys, values, speed: float, load: float, f0_hz: float):

@@ -236,3 +236,30 @@ def test_cli_frf_bad_input_exit_2_nothing_written(tmp_path, capsys):
     assert main(["--frf", str(bad), "--out", str(out), "--plots", str(bad)]) == 2  # a file, not a directory
     assert "--plots" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bode.csv"]
+
+
+@pytest.mark.parametrize("logged,samples,n_written", [
+    ("applied", 1.9996, 2), ("applied", 2.0004, 2), ("computed", 2.9995, 2), ("applied", 2.4, 2), ("applied", 2.6, 3),
+    ("computed", 0.98, 0)])
+def test_write_delay_takes_the_nearest_whole_sample_and_lumps_the_remainder_into_the_lag(logged, samples, n_written):
+    """A fitted delay a hair under two samples is two samples (the floor wrote one and put a whole
+    sample into the current loop, 322 Hz against a true 650 Hz on a foreign roller screw); the
+    remainder, of either sign, moves the written bandwidth by exactly the lag it stands for."""
+    import warnings as _w
+
+    from prsa_ctrl.identification.frf import write_delay
+
+    with _w.catch_warnings():
+        _w.simplefilter("ignore")
+        base = load_plant("ballscrew-32x10").with_params({"drive.current_loop_bandwidth_hz": 1000.0})
+    ts = base.sample_time_s
+    warns = []
+    out, d = write_delay(base, {"value": samples * ts, "ci95": [samples * ts, samples * ts]}, ts, logged, warns)
+    assert out.values["drive.command_delay_samples"] == n_written
+    rest = samples * ts - ({"applied": 0, "computed": 1}[logged] + n_written) * ts
+    assert abs(rest) <= 0.5 * ts + 1e-15
+    # the written lag is the fitted current loop's plus the remainder, independently recomputed
+    assert 1.0 / (2 * math.pi * out.values["drive.current_loop_bandwidth_hz"]) == pytest.approx(
+        1.0 / (2 * math.pi * 1000.0) + rest, rel=1e-9)
+    assert d["written"]["drive.command_delay_samples"] == n_written
+    assert not warns

@@ -212,6 +212,9 @@ def test_cli_foreign_axis_bode(tmp_path, capsys):
     fa = math.sqrt(123.7e6 / 350) / TWO_PI
     f_r = fa * math.sqrt(j_true / (2.3e-3 + 9.6973e-4))
     assert abs(m["resonance_hz"]["value"] / f_r - 1) < 0.05
+    # the mode the response shows is a top-level entry of the report, with its interval
+    assert r["frf_axial_mode_hz"] == m["resonance_hz"] and r["frf_axial_mode_hz"]["ci95"][0] < f_r * 1.05
+    assert r["frf_antiresonance_hz"]["value"] == pytest.approx(fa, rel=0.05)
     assert abs(m["current_loop_bandwidth_hz"]["value"] / 1200 - 1) < 0.25
     doc = tomllib.loads(out.read_text())
     assert doc["axis"]["moving_mass_kg"]["source"].startswith(f"fit: {bode} (95 % CI ")
@@ -274,3 +277,67 @@ def test_responses_that_are_not_torque_to_speed_of_this_axis_write_no_plant():
     for resp, match in cases:
         with pytest.raises(FitError, match=match):
             fit_frf_structure([frf_from_arrays("x", f, resp)], base)
+
+
+def test_rigid_response_with_the_nut_loss_on_the_inertial_force_is_mapped_and_its_interval_holds_the_efficiency():
+    """A rigid ball-screw response whose low-frequency inertia is ``J_m + m a^2 / eta`` (the loss on
+    the whole force through the nut, inertial force included) at a true efficiency 0.94 the base
+    plant does not know (it says 0.9). The written reflected inertia is the response's inertia less
+    ``m a^2 (1/eta_base - 1)`` (formula written here), and its 95 % interval carries the
+    efficiency's spread: the truth ``J_m + m a^2`` is inside, though outside the fit-only interval
+    (the foreign ball screw: +2.8 % with the truth outside, the response's inertia reported as the
+    reflected one)."""
+    from prsa_ctrl.identification.twomass import two_mass_response
+
+    base = _plant("ballscrew-32x10")
+    v = base.values
+    a2 = base.lead_per_rad**2
+    jm_true = 1.1 * v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"]
+    m = v["axis.moving_mass_kg"]
+    eta_true, eta_base = 0.94, v["friction.efficiency"]
+    j_app = jm_true + m * a2 / eta_true
+    j_true = jm_true + m * a2
+    ts = base.sample_time_s
+    f = np.geomspace(3.0, 0.4 / ts, 160)
+    g = two_mass_response(f, motor_inertia_kg_m2=j_app, viscous_n_m_s_per_rad=1e-4, current_loop_bandwidth_hz=900.0,
+                          delay_s=ts, sample_time_s=ts)
+    fr = frf_from_arrays("rigid", f, _noisy(g, 0.005, 11), load_n=1500.0, speed_rad_s=30.0)
+    res, ch = fit_frf_structure([fr], base, fidelity="rigid")
+    assert ch.structure == "rigid"
+    j = res.reflected_inertia_kg_m2
+    assert j["value"] == pytest.approx(j_app - m * a2 * (1 / eta_base - 1), rel=2e-3)
+    assert j["ci95"][0] <= j_true <= j["ci95"][1]
+    assert not j["ci95_fit_only"][0] <= j_true <= j["ci95_fit_only"][1]
+    held = {e["key"]: e for e in j["held_keys"]}
+    # d J / d eta at a fixed response: m a^2 / eta^2; the default spread: uniform +-0.05
+    assert held["friction.efficiency"]["sensitivity_kg_m2_per_unit"] == pytest.approx(m * a2 / eta_base**2, rel=1e-3)
+    assert held["friction.efficiency"]["sd"] == pytest.approx(0.1 / math.sqrt(12), rel=1e-9)
+    # the motor inertia the response's inertia sets carries the same spread: the truth inside
+    lo, hi = res.parameters["axis.motor_inertia_kg_m2"]["ci95"]
+    assert lo <= 1.1 * v["axis.motor_inertia_kg_m2"] <= hi
+    assert res.plant.values["drive.command_delay_samples"] == 1
+    assert res.plant.values["drive.current_loop_bandwidth_hz"] == pytest.approx(900.0, rel=0.05)
+
+
+def test_held_key_spread_takes_the_base_plants_uncertainty_entry():
+    """A base plant that states its efficiency's spread: that spread, not the default, enters the
+    interval (uniform 0.88..0.92: sd 0.04 / sqrt(12))."""
+    import dataclasses
+
+    from prsa_ctrl.identification.frfplant import held_key_spread
+
+    base = _plant("ballscrew-32x10")
+    stated = dataclasses.replace(base, uncertainty={"friction.efficiency": {"dist": "uniform", "low": 0.88, "high": 0.92,
+                                                                             "source": "test: datasheet"}})
+    s0 = {e["key"]: e for e in held_key_spread(base, ["axis.motor_inertia_kg_m2"], "rigid", speed_rad_s=30.0, load_n=800.0)}
+    s1 = {e["key"]: e for e in held_key_spread(stated, ["axis.motor_inertia_kg_m2"], "rigid", speed_rad_s=30.0,
+                                               load_n=800.0)}
+    assert s1["friction.efficiency"]["sd"] == pytest.approx(0.04 / math.sqrt(12), rel=1e-3)
+    assert "test: datasheet" in s1["friction.efficiency"]["source"]
+    assert s0["friction.efficiency"]["sd"] == pytest.approx(0.1 / math.sqrt(12), rel=1e-9)
+    # the rigid model also holds the moving mass: its +-10 % default, and a sensitivity a^2 (1/eta - 1)
+    eta, a2 = base.values["friction.efficiency"], base.lead_per_rad**2
+    assert s0["axis.moving_mass_kg"]["sensitivity_kg_m2_per_unit"] == pytest.approx(-a2 * (1 / eta - 1), rel=1e-3)
+    # a fitted key is not held
+    assert "friction.efficiency" not in {e["key"] for e in held_key_spread(
+        base, ["axis.motor_inertia_kg_m2", "friction.efficiency"], "rigid", speed_rad_s=30.0, load_n=800.0)}
