@@ -3,12 +3,16 @@ one line naming the file and the key, column or variable, exit 2, and nothing is
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.io
 
 from prsa_ctrl.cli.fit import main
-from prsa_ctrl.identification.logformat import LogFormatError, load_axis_log, load_log_format
+from prsa_ctrl.identification.logformat import LogFormatError, load_axis_log, load_log_format, load_motor_record
+
+from test_loadcoords_screw import LOAD_TOML, _write_logs  # noqa: E402  (tests/identification on sys.path)
 
 KP, KV, GAIN, H = 160.0, 240.0, 35.0, 1e-3
 
@@ -465,3 +469,158 @@ def test_a_missing_variable_lists_the_first_50_names_of_a_large_file(files, fmt_
         load_axis_log(mat, load_log_format(fmt))
     msg = str(info.value)
     assert "names variable 'qm', not in the file; it has v0, v1," in msg and msg.endswith("v49, ... (86 in all)")
+
+
+# ------------------------------------------------------------------------------------------------
+# A load-coordinate log fitted with a screw plant (prsa-fit LOG --log-format F --plant SCREW):
+# a [load] declared in kN for a log in N is refused before the fit, naming the column, its declared
+# unit and the plant's rated load; a [position] declared in mm for a log in m is refused naming the
+# description's columns and units, not the record's internal columns.
+# ------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("units")
+    base, rec, a = _write_logs(d, "ballscrew-32x10", duration_s=0.5)
+    return d, base
+
+
+def _fit(d, fmt_text, csv, capsys):
+    (d / "f.toml").write_text(fmt_text)
+    out = d / f"out-{csv.stem}-{len(list(d.glob('out-*')))}.toml"
+    capsys.readouterr()
+    code = main([str(csv), "--log-format", str(d / "f.toml"), "--plant", "ballscrew-32x10", "--out", str(out)])
+    return code, capsys.readouterr().err.strip(), out
+
+
+def test_load_in_kN_declared_is_refused_before_the_fit(logs, capsys):
+    d, base = logs
+    raw = np.loadtxt(d / "load.csv", delimiter=",", skiprows=1)
+    peak_kn = float(np.max(np.abs(raw[:, 3])))  # the file's load column, read as kN
+    rated = base.values["screw.rated_load_n"]
+    assert 1e3 * peak_kn > 2 * rated > peak_kn  # the log itself is plausible, its kN reading is not
+    code, err, out = _fit(d, LOAD_TOML.replace('unit = "N"\n', 'unit = "kN"\n', 2).replace(
+        '[command]\nname = "f_n"\nunit = "kN"', '[command]\nname = "f_n"\nunit = "N"'), d / "load.csv", capsys)
+    assert code == 2 and "\n" not in err and not out.exists()
+    assert "[load] column 'fz'" in err and "kN" in err and f"{peak_kn:.6g} kN" in err and f"{rated:.6g} N" in err
+    with pytest.raises(LogFormatError, match="rated_load_n"):
+        load_motor_record(d / "load.csv", load_log_format(d / "f.toml"), base)
+    # the same log with its load in N passes the check
+    code, err, _ = _fit(d, LOAD_TOML, d / "load.csv", capsys)
+    assert code == 0, err
+
+
+def test_position_in_m_declared_as_mm_names_the_description(logs, capsys):
+    d, base = logs
+    raw = np.loadtxt(d / "load.csv", delimiter=",", skiprows=1)
+    raw[:, 1] *= 1e-3  # the log now holds metres; its description still says mm
+    np.savetxt(d / "load-m.csv", raw, delimiter=",", header="t,x_mm,f_n,fz", comments="", fmt="%.17g")
+    code, err, out = _fit(d, LOAD_TOML, d / "load-m.csv", capsys)
+    assert code == 2 and "\n" not in err and not out.exists()
+    assert "[position] column 'x_mm' (mm)" in err and "[command] column 'f_n' (N)" in err and "f.toml" in err
+    assert "torque_command_n_m" not in err and "nut_angle_rad" not in err
+
+
+# ------------------------------------------------------------------------------------------------
+# Acceptance "Bad logs" (issue 21) on the EMPS record and a synthetic CSV: wrong variable names,
+# units that disagree with the data, a controller description that cannot reproduce the logged
+# command: one line naming the file and the column or key, exit 2, nothing written.
+# ------------------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "emps"
+DATA = EXAMPLE / "DATA_EMPS.mat"
+EMPS_LOG_TOML = (EXAMPLE / "log.toml").read_text()
+needs_data = pytest.mark.skipif(not DATA.is_file(), reason="examples/emps/DATA_EMPS.mat not in this checkout")
+
+
+def _run_fit(capsys, argv):
+    capsys.readouterr()
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _sub(old: str, new: str, count: int = 1) -> str:
+    text = EMPS_LOG_TOML.replace(old, new, count)
+    assert text != EMPS_LOG_TOML, old
+    return text
+
+
+POSITION = '[position]                 # load position from the motor encoder (50 000 counts/rev)\nname = "qm"\nunit = "m"'
+REFERENCE = '[reference]                # position reference given to the controller\nname = "qg"\nunit = "m"'
+
+CASES = {
+    # wrong variable names: the message names the key and the variable, and lists what the file has
+    "time name": (_sub('name = "t"', 'name = "time"'), "[time] name names variable 'time', not in the file"),
+    "position name": (_sub('name = "qm"', 'name = "q"'), "[position] name names variable 'q', not in the file"),
+    "reference name": (_sub('name = "qg"', 'name = "qref"'), "[reference] name names variable 'qref', not in the file"),
+    "command name": (_sub('name = "vir"', 'name = "u"'), "[command] name names variable 'u', not in the file"),
+    "gain name": (_sub('gain = "gtau"', 'gain = "g_tau"'), "[command] gain names variable 'g_tau', not in the file"),
+    "kp name": (_sub('kp = "kp"', 'kp = "Kp"'), "[controller] kp names variable 'Kp', not in the file"),
+    "required test signal": (_sub("optional = true", "optional = false"), "[test_signal] name names variable 'pulses_N'"),
+    # units that disagree with the data: the controller no longer reproduces the command, and the
+    # message names the units that would
+    "position in m declared mm": (_sub(POSITION, POSITION.replace('unit = "m"', 'unit = "mm"')),
+                                  "with [position] unit = 'm' and [reference] unit = 'm' (declared 'mm' and 'm')"),
+    "reference in m declared um": (_sub(REFERENCE, REFERENCE.replace('unit = "m"', 'unit = "um"')),
+                                   "with [position] unit = 'm' and [reference] unit = 'm' (declared 'm' and 'um')"),
+    "both in m declared mm": (_sub('unit = "m"', 'unit = "mm"', -1),
+                              "with [position] unit = 'm' and [reference] unit = 'm' (declared 'mm' and 'mm')"),
+    "time in s declared ms": (_sub('name = "t"\nunit = "s"', 'name = "t"\nunit = "ms"'),
+                              "[time] 't' (unit 'ms'): sample interval 9.99984e-07 s deviates"),
+    "sample time": (_sub("sample_time_s = 0.001", "sample_time_s = 0.002"), "from [controller] sample_time_s = 0.002"),
+    # controller descriptions that cannot reproduce the logged command
+    "kv": (_sub('kv = "kv"', "kv = 120.0"), "[controller] does not reproduce DATA_EMPS.mat's command 'vir'"),
+    "saturation": (_sub("saturation = 10.0", "saturation = 2.0"), "[controller] does not reproduce"),
+    "velocity estimate": (_sub('velocity_estimate = "average2-difference"', 'velocity_estimate = "difference"'),
+                          "[controller] velocity_estimate = 'difference' reproduces DATA_EMPS.mat's command 'vir' with "
+                          "a relative error of 3.31 %, but 'average2-difference' gives 0.684 %"),
+    "structure": (_sub('structure = "position-p/velocity-p"', 'structure = "position-pi"'),
+                  "[controller] structure = 'position-pi'"),
+}
+
+
+@needs_data
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_emps_description_is_one_line_exit_2_nothing_written(tmp_path, capsys, case):
+    text, expect = CASES[case]
+    fmt = tmp_path / "log.toml"
+    fmt.write_text(text)
+    out, js = tmp_path / "F.toml", tmp_path / "FIT.json"
+    code, stdout, err = _run_fit(capsys, [DATA, "--log-format", fmt, "--out", out, "--json", js])
+    assert code == 2, (case, err, stdout)
+    assert err.count("\n") == 1 and err.startswith("prsa-fit: error: ") and "Traceback" not in err
+    assert expect in err, err
+    assert str(fmt) in err or str(DATA) in err
+    assert not out.exists() and not js.exists()
+    # the same with --validate: the replay's outputs are not written either
+    plant = EXAMPLE / "reference-model.toml"
+    traces, rj = tmp_path / "T.csv", tmp_path / "R.json"
+    code, _, err = _run_fit(capsys, ["--validate", plant, DATA, "--log-format", fmt, "--traces", traces, "--json", rj])
+    assert code == 2 and err.count("\n") == 1 and expect in err
+    assert not traces.exists() and not rj.exists()
+
+
+def test_position_unit_without_a_controller_is_checked_by_its_speed(tmp_path, capsys):
+    """A CSV log without a controller whose position is in mm but declared in m: 0.3 m/s becomes
+    300 m/s between samples, beyond any linear axis."""
+    n, h = 400, 1e-3
+    t = np.arange(n) * h
+    x_mm = 1e3 * 0.3 * t  # 0.3 m/s in mm
+    path = tmp_path / "log.csv"
+    path.write_text("t,x,f\n" + "".join(f"{a:.9g},{b:.9g},1.0\n" for a, b in zip(t, x_mm)))
+    fmt = tmp_path / "fmt.toml"
+    body = ('format = "csv"\naxis = "linear"\n[time]\nname = "t"\nunit = "s"\n[position]\nname = "x"\nunit = "{u}"\n'
+            '[command]\nname = "f"\nunit = "N"\n')
+    fmt.write_text(body.format(u="m"))
+    out = tmp_path / "F.toml"
+    code, _, err = _run_fit(capsys, [path, "--log-format", fmt, "--out", out])
+    assert code == 2 and err.count("\n") == 1
+    assert "[position] 'x' (unit 'm'): moves 300 m/s between two samples of 0.001 s; expected at most 50 m/s" in err
+    assert str(path) in err and not out.exists()
+    from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
+
+    fmt.write_text(body.format(u="mm"))
+    log = load_axis_log(path, load_log_format(fmt))  # declared right: accepted
+    assert np.allclose(np.diff(log.position_m) / h, 0.3)

@@ -1,4 +1,4 @@
-"""Joint confidence statements of a fit (issue 21: six marginal 95 % intervals hold a true point
+"""prsa_ctrl.identification.common (FitResult): joint confidence statements of a fit (issue 21: six marginal 95 % intervals hold a true point
 jointly only ~74 % of the time; the joint 95 % region is the covariance ellipsoid).
 
 ``FitResult.covariance`` (file units of the keys) is the matrix the intervals come from, and

@@ -1,4 +1,4 @@
-"""Issue 25: ``prsa-pid``, the generic tuner on the command line.
+"""prsa_ctrl.cli.pid (issue 25: ``prsa-pid``, the generic tuner on the command line).
 
 The JSON must round-trip: each design is rebuilt here from its JSON alone (plant coefficients,
 delay, gains, derivative and measurement filters) and its Ms, Mt, Mks and margins recomputed
