@@ -52,3 +52,35 @@ def stand_in(monkeypatch):
     monkeypatch.setattr(autotune, "tune_actuator", fake)
     monkeypatch.setattr(autotune, "actuator_loops", fake)
     return calls
+
+
+@pytest.fixture(scope="session")
+def paper_report():
+    """``tune_actuator`` on the paper plant and the default scene (one full tune and verification),
+    made once per session and shared by the tests that assert on it (results are frozen)."""
+    from prsa_ctrl import load_plant, load_scene
+    from prsa_ctrl.studies.autotune import tune_actuator
+
+    return tune_actuator(load_plant(), load_scene())
+
+
+@pytest.fixture(scope="session")
+def default_cli_run(tmp_path_factory):
+    """One default ``prsa-tune`` run (in-process, the paper plant and scene) with every output: a
+    JSON report, plots and an export whose file name is 245 characters long (NAME_MAX is 255).
+    Made once per session and shared by the tests that assert on its text and files: ``code``,
+    ``out`` and ``err`` (the printed text), ``folder``, ``json``, ``plots``, ``export`` (paths)."""
+    import contextlib
+    import io
+    from types import SimpleNamespace
+
+    from prsa_ctrl.cli.tune import main
+
+    folder = tmp_path_factory.mktemp("default-run")
+    run = SimpleNamespace(folder=folder, json=folder / "j.json", plots=folder / "pl",
+                          export=folder / ("x" * 245 + ".toml"))
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        run.code = main(["--json", str(run.json), "--plots", str(run.plots), "--export", str(run.export)])
+    run.out, run.err = out.getvalue(), err.getvalue()
+    return run

@@ -495,13 +495,13 @@ def test_the_built_in_plant_file_itself_is_refused_before_any_work(tmp_path, sta
 
 # --- hostile 4, 13: every output path checked up front, all or nothing --------------------------
 
-def test_a_245_character_export_name_is_written_with_the_other_outputs(tmp_path):
-    name = "x" * 245 + ".toml"
-    p = _run(["--export", name, "--json", "j.json", "--plots", "pl"], tmp_path)
-    assert p.returncode == 0, p.stderr[-2000:]
-    assert (tmp_path / name).is_file() and json.loads((tmp_path / "j.json").read_text())["status"] == "ok"
-    assert len(list((tmp_path / "pl").iterdir())) >= 2
-    assert not [f for f in tmp_path.rglob("*") if ".prsa-tmp-" in f.name]
+def test_a_245_character_export_name_is_written_with_the_other_outputs(default_cli_run):
+    run = default_cli_run
+    assert run.code == 0, run.err[-2000:]
+    assert run.export.name == "x" * 245 + ".toml" and run.export.is_file()
+    assert json.loads(run.json.read_text())["status"] == "ok"
+    assert len(list(run.plots.iterdir())) >= 2
+    assert not [f for f in run.folder.rglob("*") if ".prsa-tmp-" in f.name]
 
 
 def test_a_name_over_name_max_is_refused_before_anything_is_written(tmp_path):
@@ -669,17 +669,8 @@ def _bench_module():
     return bench
 
 
-@pytest.mark.parametrize("out", ["/etc/passwd", "/proc/x", "loop"])
-def test_bench_out_is_checked_in_one_line(tmp_path, out):
-    (tmp_path / "loop").symlink_to(tmp_path / "loop")
-    p = subprocess.run([sys.executable, str(BENCH), "--out", out, "--fast"], cwd=tmp_path, env=_env(),
-                       capture_output=True, text=True, timeout=300)
-    _one_error(p, "bench: error: --out")
-
-
-@pytest.mark.parametrize("args, needle", [(["--repeats", "0"], "--repeats 0"), (["--repeats", "21"], "--repeats 21"),
-                                          (["--repeats", "x"], "--repeats"), (["--samples", "0"], "--samples 0")])
-def test_bench_bad_counts_are_refused_before_any_benchmark(tmp_path, monkeypatch, capsys, args, needle):
+def _bench_without_benchmarks(monkeypatch):
+    """The bench module with every benchmark replaced by a stand-in that fails if it runs."""
     bench = _bench_module()
 
     def never(*a, **k):
@@ -688,6 +679,24 @@ def test_bench_bad_counts_are_refused_before_any_benchmark(tmp_path, monkeypatch
     for name in ("work_precision", "fidelity_ladder", "tuning_benchmark", "monte_carlo_benchmark",
                  "robust_tuning_benchmark", "fit_benchmark", "cold_cli_benchmark"):
         monkeypatch.setattr(bench, name, never)
+    return bench
+
+
+@pytest.mark.parametrize("out", ["/etc/passwd", "/proc/x", "loop"])
+def test_bench_out_is_checked_in_one_line(tmp_path, monkeypatch, capsys, out):
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    monkeypatch.chdir(tmp_path)
+    bench = _bench_without_benchmarks(monkeypatch)
+    assert bench.main(["--out", out, "--fast"]) == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err and "bench: error: --out" in lines[0], err
+
+
+@pytest.mark.parametrize("args, needle", [(["--repeats", "0"], "--repeats 0"), (["--repeats", "21"], "--repeats 21"),
+                                          (["--repeats", "x"], "--repeats"), (["--samples", "0"], "--samples 0")])
+def test_bench_bad_counts_are_refused_before_any_benchmark(tmp_path, monkeypatch, capsys, args, needle):
+    bench = _bench_without_benchmarks(monkeypatch)
     assert bench.main([*args, "--out", str(tmp_path / "b")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
@@ -773,14 +782,13 @@ def test_differences_are_percentages_only_above_the_resolution():
     assert _diff_text(float("inf"), 0.1) == "-"
 
 
-def test_table_and_flag_use_one_definition_of_the_difference():
+def test_table_and_flag_use_one_definition_of_the_difference(paper_report):
     import dataclasses
 
-    from prsa_ctrl import load_plant, load_scene
-    from prsa_ctrl.studies.autotune import health_flags, tune_actuator
     from prsa_ctrl.cli.report import diff_text as _diff_text
+    from prsa_ctrl.studies.autotune import health_flags
 
-    rep = tune_actuator(load_plant(), load_scene(), workers=1)
+    rep = paper_report
     v = rep.best.objective_verified
     d = dataclasses.replace(rep.best, objective_predicted=v * 1e-3)  # a prediction 1000x too small (Design is frozen)
     flag = next(f for f in health_flags(d, rep.plant, rep.scene) if "departs from the linear prediction" in f)
@@ -808,12 +816,11 @@ def test_one_name_per_design_in_the_monte_carlo():
     assert list(designs) == ["nominal design", "robust design", "SIMC"]
 
 
-def test_the_plain_report_has_no_percentage_of_a_value_at_numerical_zero(tmp_path):
-    p = _run([], tmp_path)
-    assert p.returncode == 0, p.stderr[-2000:]
-    row = next(l for l in p.stdout.splitlines() if l.startswith("steady-state error"))
+def test_the_plain_report_has_no_percentage_of_a_value_at_numerical_zero(default_cli_run):
+    assert default_cli_run.code == 0, default_cli_run.err[-2000:]
+    row = next(l for l in default_cli_run.out.splitlines() if l.startswith("steady-state error"))
     assert row.rstrip().endswith("abs.") and "%" not in row, row
-    assert "difference = (predicted - verified) / |verified|" in p.stdout
+    assert "difference = (predicted - verified) / |verified|" in default_cli_run.out
 
 
 # ------------------------------------------------------------------------------------------------

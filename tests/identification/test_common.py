@@ -23,8 +23,7 @@ from prsa_ctrl.identification.frf import fit_frf, frf_response
 from prsa_ctrl.io.output import json_safe
 from prsa_ctrl.plant import load_plant
 
-import foreign_generator as fg  # noqa: E402  (tests/identification is on sys.path)
-from test_foreign_logs import _axis, _fit  # noqa: E402
+from test_foreign_logs import one_seed_fit  # noqa: E402
 
 Z95 = 1.959963984540054
 
@@ -38,8 +37,9 @@ def base():
 
 @pytest.fixture(scope="module")
 def fitted(base):
-    ax = _axis(base, transport_samples=1)
-    return _fit(base, ax, seed=11, duration_s=0.5)
+    """The one-seed fit of test_foreign_logs.py (one fit per session): (result, truth)."""
+    _, res, truth = one_seed_fit(base)
+    return res, truth
 
 
 def _mahalanobis2(values, truth, cov):
