@@ -66,8 +66,9 @@ def paper_report():
 
 @pytest.fixture(scope="session")
 def default_cli_run(tmp_path_factory):
-    """One default ``prsa-tune`` run (in-process, the paper plant and scene) with every output: a
-    JSON report, plots and an export whose file name is 245 characters long (NAME_MAX is 255).
+    """One ``prsa-tune --load-step 500:1500`` run (in-process, the paper plant and default scene: the
+    README's command) with every output: a JSON report, plots and an export whose file name is 245
+    characters long (NAME_MAX is 255).
     Made once per session and shared by the tests that assert on its text and files: ``code``,
     ``out`` and ``err`` (the printed text), ``folder``, ``json``, ``plots``, ``export`` (paths)."""
     import contextlib
@@ -81,6 +82,7 @@ def default_cli_run(tmp_path_factory):
                           export=folder / ("x" * 245 + ".toml"))
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        run.code = main(["--json", str(run.json), "--plots", str(run.plots), "--export", str(run.export)])
+        run.code = main(["--load-step", "500:1500", "--json", str(run.json), "--plots", str(run.plots),
+                         "--export", str(run.export)])
     run.out, run.err = out.getvalue(), err.getvalue()
     return run
