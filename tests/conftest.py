@@ -86,3 +86,29 @@ def default_cli_run(tmp_path_factory):
                          "--export", str(run.export)])
     run.out, run.err = out.getvalue(), err.getvalue()
     return run
+
+
+@pytest.fixture(scope="session")
+def emps_fit(tmp_path_factory):
+    """``prsa-fit examples/emps/DATA_EMPS.mat --log-format examples/emps/log.toml --out F.toml --json
+    F.json`` (the README's command; in-process), made once per session and shared by the tests
+    that assert on its outputs: ``code``, ``out``, ``err`` (printed text), ``toml`` and ``json``
+    (paths). Tests that write files next to the plant copy it into their own folder."""
+    import contextlib
+    import io
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from prsa_ctrl.cli.fit import main
+
+    example = Path(__file__).resolve().parent.parent / "examples" / "emps"
+    if not (example / "DATA_EMPS.mat").is_file():
+        pytest.skip("examples/emps/DATA_EMPS.mat not in this checkout")
+    folder = tmp_path_factory.mktemp("emps-fit")
+    run = SimpleNamespace(folder=folder, toml=folder / "F.toml", json=folder / "F.json")
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        run.code = main([str(example / "DATA_EMPS.mat"), "--log-format", str(example / "log.toml"),
+                         "--out", str(run.toml), "--json", str(run.json)])
+    run.out, run.err = out.getvalue(), err.getvalue()
+    return run

@@ -446,11 +446,10 @@ needs_emps_mat = pytest.mark.skipif(not EMPS_MAT.is_file(), reason="examples/emp
 
 
 @pytest.fixture(scope="module")
-def fitted(tmp_path_factory):
-    d = tmp_path_factory.mktemp("emps")
-    out, js = d / "F.toml", d / "FIT.json"
-    assert fit_main([str(EMPS_MAT), "--log-format", str(EXAMPLE / "log.toml"), "--out", str(out), "--json", str(js)]) == 0
-    return out, json.loads(js.read_text())
+def fitted(emps_fit):
+    """prsa-fit on the EMPS record (tests/conftest.py: one fit per session): (plant file, FIT.json)."""
+    assert emps_fit.code == 0, emps_fit.err
+    return emps_fit.toml, json.loads(emps_fit.json.read_text())
 
 
 def test_the_axis_defaults_are_the_schemas():

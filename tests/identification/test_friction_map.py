@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 
 from prsa_ctrl.cli.fit import main, plant_toml
 from prsa_ctrl.identification.axis import load_axis_plant
@@ -69,9 +70,9 @@ def _hand_made(base, seed=3, phi=0.8, sigma=2e-3):
         load += [f] * n
         torque += [0.05 * w + 3e-4 * f] * n
     speed, load, torque = np.array(speed), np.array(load), np.array(torque)
-    e = np.zeros(len(speed))
-    for k in range(1, len(e)):
-        e[k] = phi * e[k - 1] + sigma * rng.standard_normal()
+    # e[0] = 0, e[k] = phi e[k-1] + sigma z[k]: the recursion as a filter (the same numbers, bit for
+    # bit, as the loop over k with one draw per sample: the generator's stream is the same)
+    e = lfilter([1.0], [1.0, -phi], np.concatenate([[0.0], sigma * rng.standard_normal(len(speed) - 1)]))
     angle = np.concatenate([[0.0], np.cumsum(speed[:-1]) * ts])  # interval k moves at speed[k]
     t = ts * np.arange(len(speed))
     return record_from_arrays("hand", t, torque + e, nut_angle_rad=angle, axial_load_n=load), windows, speed
@@ -322,19 +323,16 @@ def test_a_bad_curve_fit_warns_above_four(axis_plant):  # noqa: F811
     assert len(m["warnings"]) == 1 and f"{chi2:.3g}" in m["warnings"][0] and "bumpy" in m["warnings"][0]
 
 
-def test_emps_fit_json_carries_the_friction_map_warning(tmp_path, capsys):
-    from prsa_ctrl.cli.fit import main
-
-    js = tmp_path / "F.json"
-    assert main([str(EMPS / "DATA_EMPS.mat"), "--log-format", str(EMPS / "log.toml"), "--out", str(tmp_path / "F.toml"),
-                 "--json", str(js)]) == 0
-    import json
+def test_emps_fit_json_carries_the_friction_map_warning(emps_fit):
+    """prsa-fit on the EMPS record (tests/conftest.py: one fit per session)."""
+    assert emps_fit.code == 0, emps_fit.err
+    js = emps_fit.json
 
     rep = json.loads(js.read_text())
     fmap = rep["friction_map"]["DATA_EMPS.mat"]
     assert fmap["chi2_reduced"] == pytest.approx(_chi2(fmap), rel=1e-6) and fmap["chi2_reduced"] > 4  # 6.96
     assert fmap["warnings"] and fmap["warnings"][0] in rep["warnings"]
-    assert f"warning: {fmap['warnings'][0]}" in capsys.readouterr().out
+    assert f"warning: {fmap['warnings'][0]}" in emps_fit.out
 
 
 def test_empty_or_mismatched_arrays_are_one_value_error(axis_plant):  # noqa: F811
@@ -418,13 +416,10 @@ def test_one_direction_gives_one_line(axis_plant):
     assert m["stribeck"] == "not identified" and "in -x" in m["error"] and "\n" not in m["error"]
 
 
-def test_emps_fit_json_friction_map(tmp_path, capsys):
-    from prsa_ctrl.cli.fit import main
-
-    out, js = tmp_path / "F.toml", tmp_path / "F.json"
-    assert main([str(EMPS / "DATA_EMPS.mat"), "--log-format", str(EMPS / "log.toml"), "--out", str(out),
-                 "--json", str(js)]) == 0
-    text = capsys.readouterr().out
+def test_emps_fit_json_friction_map(emps_fit):
+    """prsa-fit on the EMPS record (tests/conftest.py: one fit per session)."""
+    assert emps_fit.code == 0, emps_fit.err
+    out, js, text = emps_fit.toml, emps_fit.json, emps_fit.out
     assert "friction map of DATA_EMPS.mat (report; the replay model stays Coulomb + viscous)" in text
     fmap = json.loads(js.read_text())["friction_map"]["DATA_EMPS.mat"]
     assert fmap["stribeck"].startswith("not identified")

@@ -7,10 +7,10 @@ import pytest
 
 from prsa_ctrl import SceneError
 from prsa_ctrl.plant.plantfile import load_plant
+from prsa_ctrl.plant.uncertainty import uncertainty_model
+from prsa_ctrl.studies.scene import load_scene
 from prsa_ctrl.studies.scenerobust import operating_points, scenarios, tune_robust_actuator
 from prsa_ctrl.tuning.robust import tune_robust
-from prsa_ctrl.studies.scene import load_scene
-from prsa_ctrl.plant.uncertainty import uncertainty_model
 
 
 @pytest.fixture(scope="module")
@@ -422,3 +422,50 @@ def test_spec_yield_is_a_probability(bad):
         parse_scene_sections({"spec": {"yield": bad, "ms": 1.5}}, "s.toml")
     ok = parse_scene_sections({"spec": {"yield": 0.95, "ms": 1.5}}, "s.toml")
     assert ok["spec"] == {"ms": 1.5} and ok["spec_yield"] == {"yield": 0.95}
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 20: the recommended design is ranked by its yield against the spec.
+# ------------------------------------------------------------------------------------------------
+
+# --- item 2: filter arguments out of range are named, never "b0 = nan" -------------------------
+
+
+# --- item 1: a notch is kept only where it acts on the mode -------------------------------------
+
+
+# --- items 3, 4, 5: robust study -> recommended design, strict JSON, named export ----------------
+
+
+def test_recommend_ranks_by_the_yield_against_the_spec():
+    """Unit check of the ranking: robust 10/200 against nominal 132/200 recommends the nominal
+    design; both at 0 recommends none; without Monte Carlo the spec is said to be unchecked."""
+    from prsa_ctrl.drive.pid import PID
+    from prsa_ctrl.studies.montecarlo import DesignYield, wilson_interval
+    from prsa_ctrl.tuning.robust import RobustTuning
+
+    comp = {"objective": "iae", "ms_max": 1.4, "designs": {
+        "nominal": {"ms_violations": 2, "worst_objective": 0.03}, "robust": {"ms_violations": 0, "worst_objective": 0.08}}}
+    rt = RobustTuning(PID(0.085, 14.7), PID(0.045, 6.8), [object()] * 12, comp, {}, None)
+
+    class MC:
+        def __init__(self, k_nom, k_rob, n=200):
+            self.designs = [DesignYield(name, {}, k, n, k / n, wilson_interval(k, n), {}, None, {}, {}, 0, "")
+                            for name, k in (("nominal design", k_nom), ("robust design", k_rob))]
+
+    r = rt.recommend(MC(132, 10))
+    assert r["design"] == "nominal" and r["yield"] == 0.66 and r["passed"] == 132 and r["samples"] == 200
+    assert "66.0 % (132/200)" in r["why"] and "5.0 % (10/200)" in r["why"]
+    # Frozen study: recommend() leaves it as it is; with_recommendation() returns a copy that keeps it.
+    assert rt.recommended == {} and rt.with_recommendation(MC(132, 10)).recommended == r
+    assert rt.recommend(MC(10, 132))["design"] == "robust"
+    none = rt.recommend(MC(0, 0))
+    assert none["design"] is None and "no design meets the spec on any sample" in none["why"]
+    lin = rt.recommend(None)
+    assert lin["design"] == "robust" and lin["yield"] is None and "not checked" in lin["why"]
+
+
+# --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------
+
+
+# --- item 6: SIGTERM during a Monte-Carlo process pool -------------------------------------------
