@@ -417,7 +417,7 @@ def _axis_log_4khz(duration_s: float = 4.0, h: float = 2.5e-4):
     position residual's autocorrelation stays near 0.2 out to 256 samples), and this log's
     eight moves repeat one speed profile, so the Coulomb and viscous levels of a direction are
     separated only by the ramps and absorb it. With varied moves the coverage is nominal
-    (tests/identification/test_coverage_axis4k.py)."""
+    (tests/identification/test_axis.py)."""
     from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec
 
     m, fvp, fvn, fcp, fcn, gain, kp, kv, res = 80.0, 150.0, 190.0, 15.0, 18.0, 35.0, 150.0, 250.0, 5e-8

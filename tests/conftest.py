@@ -52,3 +52,63 @@ def stand_in(monkeypatch):
     monkeypatch.setattr(autotune, "tune_actuator", fake)
     monkeypatch.setattr(autotune, "actuator_loops", fake)
     return calls
+
+
+@pytest.fixture(scope="session")
+def paper_report():
+    """``tune_actuator`` on the paper plant and the default scene (one full tune and verification),
+    made once per session and shared by the tests that assert on it (results are frozen)."""
+    from prsa_ctrl import load_plant, load_scene
+    from prsa_ctrl.studies.autotune import tune_actuator
+
+    return tune_actuator(load_plant(), load_scene())
+
+
+@pytest.fixture(scope="session")
+def default_cli_run(tmp_path_factory):
+    """One ``prsa-tune --load-step 500:1500`` run (in-process, the paper plant and default scene: the
+    README's command) with every output: a JSON report, plots and an export whose file name is 245
+    characters long (NAME_MAX is 255).
+    Made once per session and shared by the tests that assert on its text and files: ``code``,
+    ``out`` and ``err`` (the printed text), ``folder``, ``json``, ``plots``, ``export`` (paths)."""
+    import contextlib
+    import io
+    from types import SimpleNamespace
+
+    from prsa_ctrl.cli.tune import main
+
+    folder = tmp_path_factory.mktemp("default-run")
+    run = SimpleNamespace(folder=folder, json=folder / "j.json", plots=folder / "pl",
+                          export=folder / ("x" * 245 + ".toml"))
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        run.code = main(["--load-step", "500:1500", "--json", str(run.json), "--plots", str(run.plots),
+                         "--export", str(run.export)])
+    run.out, run.err = out.getvalue(), err.getvalue()
+    return run
+
+
+@pytest.fixture(scope="session")
+def emps_fit(tmp_path_factory):
+    """``prsa-fit examples/emps/DATA_EMPS.mat --log-format examples/emps/log.toml --out F.toml --json
+    F.json`` (the README's command; in-process), made once per session and shared by the tests
+    that assert on its outputs: ``code``, ``out``, ``err`` (printed text), ``toml`` and ``json``
+    (paths). Tests that write files next to the plant copy it into their own folder."""
+    import contextlib
+    import io
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from prsa_ctrl.cli.fit import main
+
+    example = Path(__file__).resolve().parent.parent / "examples" / "emps"
+    if not (example / "DATA_EMPS.mat").is_file():
+        pytest.skip("examples/emps/DATA_EMPS.mat not in this checkout")
+    folder = tmp_path_factory.mktemp("emps-fit")
+    run = SimpleNamespace(folder=folder, toml=folder / "F.toml", json=folder / "F.json")
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        run.code = main([str(example / "DATA_EMPS.mat"), "--log-format", str(example / "log.toml"),
+                         "--out", str(run.toml), "--json", str(run.json)])
+    run.out, run.err = out.getvalue(), err.getvalue()
+    return run

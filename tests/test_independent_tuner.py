@@ -14,7 +14,7 @@ from scipy.optimize import OptimizeResult
 import independent_tuner as ref
 
 P3 = ([1.0], [1.0, 3.0, 3.0, 1.0])
-STARTS = [(0.5, 0.3, 0.5), (1.5, 0.8, 1.5), (1.0, 0.5, 1.0), (2.0, 1.0, 2.0)]  # as test_tuner_ideal
+STARTS = [(0.5, 0.3, 0.5), (1.5, 0.8, 1.5), (1.0, 0.5, 1.0), (2.0, 1.0, 2.0)]  # as test_generic (the ideal PID)
 #: The Ms <= 1.4 ideal-PID optimum of 1/(s+1)^3 (issue 31: the library's ki 6.619 at Ms 1.4000,
 #: checked there on an independent 2,000,001-point grid).
 KI_OPT = 6.619

@@ -87,7 +87,22 @@ def test_readme_is_short():
 
 
 @pytest.mark.parametrize("index", range(len(_PYTHON)))
-def test_readme_python_snippet_runs(index, tmp_path, monkeypatch):
+def test_readme_python_snippet_runs(index, tmp_path, monkeypatch, paper_report):
+    """Each snippet runs and prints no nan. Its ``tune_actuator(plant, paper-load-step)`` on the
+    built-in paper plant is answered by the same call made once per session (tests/conftest.py's
+    ``paper_report``; the tuning is deterministic); any other call runs as written."""
+    import prsa_ctrl
+    from prsa_ctrl import load_plant, load_scene
+    from prsa_ctrl.studies.autotune import tune_actuator
+
+    plant0, scene0 = load_plant(), load_scene()  # paper_report's arguments
+
+    def tune_once(plant, scene, workers=None):
+        same = (plant.name == plant0.name and dict(plant.values) == dict(plant0.values)
+                and dict(plant.sources) == dict(plant0.sources) and scene == scene0)
+        return paper_report if same else tune_actuator(plant, scene, workers)
+
+    monkeypatch.setattr(prsa_ctrl, "tune_actuator", tune_once)
     monkeypatch.chdir(tmp_path)
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
@@ -114,11 +129,54 @@ def _check_install(words):
     assert not unknown, f"README installs extras that pyproject.toml does not define: {unknown}"
 
 
-@pytest.mark.parametrize("block", _SHELL, ids=[b[0][:40] for b in _SHELL])
+def _runs_a_command(block):
+    return any(p.strip().startswith("prsa-") for line in block for p in line.split("&&"))
+
+
+#: The console scripts of the README's commands and their argument parsers.
+_PARSERS = {"prsa-tune": "prsa_ctrl.cli.tune:build_parser", "prsa-plot": "prsa_ctrl.cli.plot:build_plot_parser",
+            "prsa-pid": "prsa_ctrl.cli.pid:build_pid_parser", "prsa-fit": "prsa_ctrl.cli.fit:build_parser"}
+
+
+def test_readme_commands_are_accepted_by_their_parsers():
+    """Every prsa-* line of the README names an installed command whose parser accepts it as
+    written, and every examples/ path it names exists. (The blocks that run the commands are the
+    slow test below; what each command does is asserted in the default suite by the command's
+    own tests: the default run with --load-step 500:1500 and every output in tests/conftest.py's
+    default_cli_run, prsa-plot in tests/plots/test_plots.py, duty-ramp in
+    tests/studies/test_duty.py, this prsa-pid case in tests/cli/test_pid.py (pi-mks), the EMPS
+    fit and --show-plant in tests/identification/test_axis.py.)"""
+    import importlib
+
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    seen = 0
+    for block in _SHELL:
+        for part in (p.strip() for line in block for p in line.split("&&")):
+            words = shlex.split(part)
+            if not words[0].startswith("prsa-"):
+                continue
+            assert words[0] in _PARSERS, f"README runs {words[0]}: add its parser to _PARSERS"
+            module, builder = _PARSERS[words[0]].split(":")
+            assert scripts[words[0]].split(":")[0] == module, (words[0], scripts[words[0]])
+            parser = getattr(importlib.import_module(module), builder)()
+            try:
+                parser.parse_args(words[1:])
+            except SystemExit as exc:
+                pytest.fail(f"{part}: refused by its parser (exit {exc.code})")
+            for w in words[1:]:
+                if w.startswith("examples/"):
+                    assert (ROOT / w).exists(), f"{part}: {w} not in the repository"
+            seen += 1
+    assert seen >= 5
+
+
+@pytest.mark.parametrize("block", [pytest.param(b, marks=pytest.mark.slow) if _runs_a_command(b) else b
+                                   for b in _SHELL], ids=[b[0][:40] for b in _SHELL])
 def test_readme_shell_block_runs_or_is_checked(block, tmp_path):
     """Install commands name real extras; the test command is the one CI runs; the docs build is
     test_docs.py's; every prsa-* command runs (exit 0) and writes what it says, in a temp dir, the
-    lines of one block in order; paths into the repository's examples/ are read from the checkout."""
+    lines of one block in order; paths into the repository's examples/ are read from the checkout.
+    The blocks that run commands (each a full run of the installed script) are ``-m slow``."""
     for part in (p.strip() for line in block for p in line.split("&&")):
         words = [str(ROOT / w) if w.startswith("examples/") else w for w in shlex.split(part)]
         if words[:2] == ["pip", "install"]:

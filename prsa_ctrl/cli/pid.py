@@ -42,7 +42,7 @@ from .common import (EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError, commit, e
 __all__ = ["pid_main", "build_pid_parser", "parse_plant", "PLANT_ORDER_MAX"]
 
 #: Largest plant order the command accepts (the tuner's own limit, ``tune_pid``'s ``MAX_ORDER``;
-#: ``tests/cli/test_pid_cli.py`` checks that the two agree without importing the tuner here).
+#: ``tests/cli/test_pid.py`` checks that the two agree without importing the tuner here).
 PLANT_ORDER_MAX = 30
 
 #: Flags whose value may start with ``-`` (a negative coefficient or exponent).

@@ -49,7 +49,7 @@ TAIL_MAX_STEPS = 1 << 22
 #: Frequencies per loop the NLP can add where the verified peak exceeded the bound. A sharp peak
 #: that moves with the gains takes one per round: the ideal PID's IE optimum on 1/(s+1)^3 under
 #: Ms <= 1.6 (closed-loop damping ~0.1) needs 13 rounds, and with 12 every ipopt run ran out
-#: (tests/tuning/test_published_ideal_pid.py). Unused slots cost nothing measurable.
+#: (tests/tuning/test_generic.py). Unused slots cost nothing measurable.
 SLOTS = 24
 
 #: Several loop models (robust tuning): grid rows per loop in the NLP (a coarse subset plus the

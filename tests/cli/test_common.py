@@ -2,6 +2,7 @@
 ends a command quietly; ``--quiet`` silences the notes of stray warnings)."""
 
 import os
+import signal
 import subprocess
 import sys
 import warnings
@@ -104,3 +105,41 @@ def test_pid_quiet_is_read_by_the_frame():
 
     assert "run.quiet = args.quiet" in inspect.getsource(pid)  # the same line as prsa-tune's (tested above)
     assert common.Run("x").quiet is False
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 20: an interrupted in-process command gives SIGTERM its old handler back.
+# ------------------------------------------------------------------------------------------------
+
+# --- item 2: filter arguments out of range are named, never "b0 = nan" -------------------------
+
+
+# --- item 1: a notch is kept only where it acts on the mode -------------------------------------
+
+
+# --- items 3, 4, 5: robust study -> recommended design, strict JSON, named export ----------------
+
+
+# --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------
+
+
+# --- item 6: SIGTERM during a Monte-Carlo process pool -------------------------------------------
+
+
+def test_an_interrupted_command_does_not_leave_sigterm_ignored():
+    """After an interrupted in-process command SIGTERM has its old handler again: an ignored
+    SIGTERM would be inherited by every later child process (whose workers then survive
+    ``terminate()``)."""
+    from prsa_ctrl.cli import common as cli
+
+    def body(run, argv):
+        run.interrupted = True
+        raise KeyboardInterrupt
+
+    old_int, old_term = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        assert cli.invoke_inner(cli.Run("prsa-tune"), [], body) == cli.EXIT_INTERRUPTED
+        assert signal.getsignal(signal.SIGTERM) is old_term
+    finally:
+        signal.signal(signal.SIGINT, old_int)
+        signal.signal(signal.SIGTERM, old_term)

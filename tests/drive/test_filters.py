@@ -5,12 +5,10 @@ import math
 import control
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 from scipy.signal import lfilter
 
-from prsa_ctrl.drive.filters import (FirstOrderLowPass, GeneralBiquad, Notch, SecondOrderLowPass,
-                               filter_from_dict)
+from prsa_ctrl.drive.filters import (FirstOrderLowPass, GeneralBiquad, METHODS, Notch, SecondOrderLowPass, filter_from_dict)
 from prsa_ctrl.drive.measurement import EncoderDifference
 
 TS = 2.5e-4  # s, the paper plant's sample time
@@ -229,3 +227,61 @@ def test_the_nyquist_margin_is_where_prewarping_puts_poles_next_to_minus_one(f):
     below = replace(f, **{("centre_hz" if isinstance(f, Notch) else "corner_hz"): 1999.0})
     with pytest.raises(ValueError, match="at most 1980 Hz"):
         below.biquad(TS)
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 20: bad filter arguments are named; every biquad is finite with unit DC gain.
+# ------------------------------------------------------------------------------------------------
+
+# --- item 2: filter arguments out of range are named, never "b0 = nan" -------------------------
+
+def test_notch_biquad_at_an_absurd_sample_time_names_ts():
+    with pytest.raises(ValueError, match=r"^ts = 1e-300 s for a notch at 500 Hz; expected ts >= "):
+        Notch(500.0, 200.0).biquad(1e-300)
+    with pytest.raises(ValueError, match=r"^centre_hz = 1e-300; expected a finite number >= 1e-06"):
+        Notch(1e-300, 1e-301)
+    with pytest.raises(ValueError, match=r"^corner_hz = 1e-300"):
+        FirstOrderLowPass(1e-300)
+
+
+@st.composite
+def _any_filter(draw):
+    hz = st.floats(1e-6, 1e9)
+    kind = draw(st.sampled_from(["lp1", "lp2", "notch", "biquad"]))
+    if kind == "lp1":
+        return FirstOrderLowPass(draw(hz))
+    if kind == "lp2":
+        return SecondOrderLowPass(draw(hz), draw(st.floats(1e-3, 100.0)))
+    if kind == "notch":
+        c = draw(hz)
+        return Notch(c, c * draw(st.floats(1e-3, 4.0)), draw(st.floats(-120.0, 0.0)))
+    return GeneralBiquad(draw(hz), draw(st.floats(0.0, 100.0)), draw(hz), draw(st.floats(1e-3, 100.0)))
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(f=_any_filter(), log_ts=st.floats(-310.0, 3.0), method=st.sampled_from(METHODS))
+def test_every_filter_biquad_is_finite_with_unit_dc_gain_or_names_its_argument(f, log_ts, method):
+    """Any filter the constructors accept, at any sample time (1e-310 .. 1e3 s), with any
+    method: a biquad of finite coefficients whose DC gain is 1 within 1e-5, or a ValueError
+    naming ``ts`` or the Nyquist frequency (never an internal "b0 = nan")."""
+    ts = 10.0 ** log_ts
+    try:
+        bq = f.biquad(ts, method)
+    except ValueError as exc:
+        assert str(exc).startswith("ts = ") or "expected below the Nyquist frequency" in str(exc), str(exc)
+        return
+    c = [bq.b0, bq.b1, bq.b2, bq.a1, bq.a2]
+    assert all(math.isfinite(x) for x in c)
+    assert abs(bq.dc_gain - 1.0) < 1e-5
+
+
+# --- item 1: a notch is kept only where it acts on the mode -------------------------------------
+
+
+# --- items 3, 4, 5: robust study -> recommended design, strict JSON, named export ----------------
+
+
+# --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------
+
+
+# --- item 6: SIGTERM during a Monte-Carlo process pool -------------------------------------------

@@ -1,17 +1,28 @@
-"""The linear-axis fit (prsa_ctrl.identification.axis): its inputs checked before any replay."""
+"""The linear-axis fit (prsa_ctrl.identification.axis): its inputs checked before any replay, a base
+plant's values and uncertainty kept, the plant file it writes, coverage on 4 kHz logs."""
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import json
 import math
+import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.integrate import solve_ivp
 
-from prsa_ctrl.cli.fit import main
-from prsa_ctrl.identification.axis import fit_linear_axis, load_axis_plant, logged_force_peak
-from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
+from prsa_ctrl.cli.fit import main, main as fit_main
+from prsa_ctrl.cli.tune import main as tune_main
+from prsa_ctrl.identification.axis import (DEFAULTS, LinearAxisPlant, PARAMETERS, fit_linear_axis, load_axis_plant, logged_force_peak)
+from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec, load_axis_log, load_log_format
+from prsa_ctrl.plant import describe_plant, linear_core, load_plant
+from prsa_ctrl.plant.model import plant_model
+from prsa_ctrl.plant.schema import DEFAULTS as SCHEMA_DEFAULTS
+
+from test_emps import _CSV_FORMAT, _generate  # noqa: E402  (tests/identification is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "emps"
@@ -173,3 +184,394 @@ def test_axis_fit_as_dict_carries_the_status(emps_log):
     assert d["status"] == fit.status == check_status(fit.status)
     assert d["solver_status"] == "converged"
     assert fit.report() == d  # the former name
+
+
+# ------------------------------------------------------------------------------------------------
+# Linear-axis fit (prsa-fit --log-format) with a --plant base: the base's values, description
+# and [uncertainty] entries on unfitted keys are kept, a disagreeing drive gain is refused, a
+# disagreeing force limit is kept with a warning; FIT.json carries the covariance and correlation
+# matrices the plant file's intervals and correlation block come from.
+# ------------------------------------------------------------------------------------------------
+
+BASE = """name = "mine"
+description = "MY BASE"
+mechanism = "linear-axis"
+coordinates = "load"
+[axis]
+mass_kg = {{ value = 70.0, source = "guess" }}
+[drive]
+gain_n_per_unit = {{ value = {gain}, source = "my base" }}
+force_limit_n = {{ value = 500.0, source = "my base limit" }}
+command_unit = "V"
+[sensor]
+sample_time_s = {{ value = 0.001, source = "my base" }}
+encoder_resolution_m = {{ value = 5e-8, source = "my base" }}
+[uncertainty]
+"axis.mass_kg" = {{ dist = "uniform", low = 60.0, high = 80.0, source = "payload" }}
+"drive.gain_n_per_unit" = {{ dist = "uniform", relative = 0.05, source = "amplifier tolerance" }}
+"""
+
+
+@pytest.fixture(scope="module")
+def logdir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("axisbase")
+    t, qm, r, u = _generate(0, n=3000)
+    with (d / "log.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["time_ms", "pos_mm", "ref_mm", "u_V"])
+        w.writerows(zip(*(map(repr, map(float, a)) for a in (1e3 * t, 1e3 * qm, 1e3 * r, u))))
+    (d / "fmt.toml").write_text(_CSV_FORMAT)
+    return d
+
+
+def _run(d, gain, tag, capsys):
+    (d / f"base-{tag}.toml").write_text(BASE.format(gain=gain))
+    out, js = d / f"fit-{tag}.toml", d / f"fit-{tag}.json"
+    capsys.readouterr()
+    rc = main([str(d / "log.csv"), "--log-format", str(d / "fmt.toml"), "--plant", str(d / f"base-{tag}.toml"),
+               "--out", str(out), "--json", str(js)])
+    return rc, out, js, capsys.readouterr()
+
+
+def test_base_values_and_uncertainty_kept_and_covariance_reported(logdir, capsys):
+    rc, out, js, cap = _run(logdir, 30.0, "ok", capsys)
+    assert rc == 0, cap.err
+    doc = tomllib.loads(out.read_text())
+    assert doc["description"].startswith("MY BASE")
+    assert doc["drive"]["gain_n_per_unit"] == {"value": 30.0, "source": "my base"}
+    assert doc["drive"]["force_limit_n"] == {"value": 500.0, "source": "my base limit"}  # base kept ...
+    rep = json.loads(js.read_text())
+    warn = [w for w in rep["warnings"] if w.startswith("drive.force_limit_n")]
+    assert len(warn) == 1 and "500" in warn[0] and "300" in warn[0]  # ... with a warning naming both (10 V x 30 N/V)
+    assert "warning: drive.force_limit_n" in cap.out
+    unc = doc["uncertainty"]
+    assert unc["drive.gain_n_per_unit"] == {"dist": "uniform", "relative": 0.05, "source": "amplifier tolerance"}
+    assert unc["axis.mass_kg"]["dist"] == "normal"  # a fitted key: the fit's interval replaces the base's entry
+    # covariance: the matrix the intervals come from
+    cov = rep["covariance"]
+    c = np.array(cov["matrix"])
+    assert cov["keys"] == list(rep["parameters"]) and len(cov["units"]) == len(cov["keys"])
+    assert np.allclose(c, c.T)
+    for i, k in enumerate(cov["keys"]):
+        p = rep["parameters"][k]
+        assert np.isclose(np.sqrt(c[i, i]), p["std"], rtol=1e-12)
+    # correlation: independent from the covariance, and the same as the plant file's block
+    keys = rep["correlation"]["keys"]
+    idx = [cov["keys"].index(k) for k in keys]
+    sub = c[np.ix_(idx, idx)]
+    ref = sub / np.sqrt(np.outer(np.diag(sub), np.diag(sub)))
+    r = np.array(rep["correlation"]["matrix"])
+    assert np.allclose(r, ref, atol=1e-12) and np.allclose(np.diag(r), 1.0)
+    assert np.max(np.abs(ref - np.eye(len(keys)))) > 0.05  # the check is not vacuous
+    block = unc["correlation"]
+    pos = [keys.index(k) for k in block["keys"]]
+    assert np.allclose(np.array(block["matrix"]), r[np.ix_(pos, pos)], atol=1e-9)
+
+
+def test_base_gain_disagreeing_with_the_log_is_refused(logdir, capsys):
+    rc, out, js, cap = _run(logdir, 31.0, "bad", capsys)
+    assert rc == 2
+    line = cap.err.strip()
+    assert "\n" not in line and "drive.gain_n_per_unit" in line and "31" in line and "30" in line
+    assert not out.exists() and not js.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# Coverage of the linear-axis fit on 4 kHz closed-loop logs (issue 21: the benchmark's 4 kHz log
+# had its fitted 95 % intervals miss the truth).
+#
+# An independent generator written here (numpy only, nothing of prsa_ctrl): a mass with Coulomb and
+# viscous friction per direction and Karnopp stick, integrated exactly per sample (closed-form
+# exponential per direction, the stop located in closed form, then stick or breakaway); a 20-bit-like
+# encoder (5e-8 m quantum, a random grid phase, Gaussian interpolation noise of 0.3 quantum) whose
+# quantised position the controller uses (position P over velocity P, two-sample averaged velocity,
+# saturation); moves with random accelerations, lengths and pauses in both directions.
+#
+# The fast test fits two seeds; the slow one 20 seeds: each key's truth inside its 95 % interval for
+# >= 18 of 20 seeds, no bias (mean z within 3 / sqrt(20)).
+#
+# What the benchmark showed (bench.py ``_axis_log_4khz``): its generator's explicit sub-steps
+# biased the mass (fixed there), and on its log of eight moves with one repeated speed profile the
+# friction intervals of one direction miss at 2.5-4 standard errors, whichever the encoder grid's
+# phase (measured with this generator on that move list: 12 of 12 phases): a bias from the
+# encoder quantisation, which is not white while the axis holds one speed or rests, on a
+# Coulomb/viscous pair that one speed profile separates only weakly. With varied moves, as here,
+# the intervals hold at the nominal rate.
+# ------------------------------------------------------------------------------------------------
+
+TRUTH = (80.0, 150.0, 190.0, 15.0, 18.0)  # M kg, Fv+ Fv- N s/m, Fc+ Fc- N
+GAIN, KP, KV, SAT, H, RES = 35.0, 150.0, 250.0, 10.0, 2.5e-4, 5e-8
+
+
+def _sample(x, v, f, theta, h):
+    """Exact motion over one sample of constant force ``f``: (x, v) after ``h``."""
+    m, fvp, fvn, fcp, fcn = theta
+    left = h
+    for _ in range(3):  # slide, stop, break away
+        if v == 0.0:
+            if -fcn <= f <= fcp:
+                return x, 0.0
+            s = 1.0 if f > fcp else -1.0
+        else:
+            s = math.copysign(1.0, v)
+        fv, fc = (fvp, fcp) if s > 0 else (fvn, fcn)
+        vinf, tau = (f - s * fc) / fv, m / fv
+        t_stop = tau * math.log((v - vinf) / -vinf) if s * vinf < 0 else math.inf
+        t = min(t_stop, left)
+        e = math.exp(-t / tau)
+        x += vinf * t + (v - vinf) * tau * (1.0 - e)
+        v = 0.0 if t == t_stop else vinf + (v - vinf) * e
+        left -= t
+        if left <= 0.0:
+            break
+    return x, v
+
+
+def _reference(n, seed):
+    """Moves in both directions: accelerate a (0.6..1.4 m/s^2, random sign) for d (0.15..0.3 s),
+    coast 50 ms, brake for d, pause 50..150 ms."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * H
+    acc = np.zeros(n)
+    t0 = 0.1
+    while t0 < t[-1] - 0.4:
+        a = rng.uniform(0.6, 1.4) * rng.choice([-1.0, 1.0])
+        d = rng.uniform(0.15, 0.3)
+        acc[(t >= t0) & (t < t0 + d)] += a
+        acc[(t >= t0 + d + 0.05) & (t < t0 + 2 * d + 0.05)] -= a
+        t0 += 2 * d + 0.05 + rng.uniform(0.05, 0.15)
+    return 0.05 + np.cumsum(np.cumsum(acc) * H) * H
+
+
+def generate(seed, duration_s=4.0, theta=TRUTH, noise=0.3):
+    """One closed-loop log: time, encoder position, command (V, as computed), reference."""
+    n = int(round(duration_s / H)) + 1
+    r = _reference(n, seed)
+    rng = np.random.default_rng(seed + 10_000)
+    off = rng.uniform(0, RES)
+
+    def enc(x):
+        return RES * math.floor((x + off + noise * RES * rng.standard_normal()) / RES) - off
+
+    x, v = r[0], 0.0
+    qprev = qfprev = enc(x)
+    qm, u = np.empty(n), np.empty(n)
+    for k in range(n):
+        qk = enc(x)
+        qf = 0.5 * (qk + qprev)
+        dq = (qf - qfprev) / H
+        qprev, qfprev, qm[k] = qk, qf, qk
+        u[k] = min(SAT, max(-SAT, KV * (KP * (r[k] - qk) - dq)))
+        x, v = _sample(x, v, GAIN * u[k], theta, H)
+    return np.arange(n) * H, qm, u, r
+
+
+def _base():
+    vals = {"axis.mass_kg": 50.0, "friction.viscous_positive_n_s_per_m": 100.0,
+            "friction.viscous_negative_n_s_per_m": 100.0, "friction.coulomb_positive_n": 10.0,
+            "friction.coulomb_negative_n": 10.0, "drive.gain_n_per_unit": GAIN, "drive.force_limit_n": 350.0,
+            "sensor.sample_time_s": H, "sensor.encoder_resolution_m": RES}
+    return LinearAxisPlant("start", vals, {k: "test: a start far from the truth" for k in vals})
+
+
+def _fit(seed):
+    t, qm, u, r = generate(seed)
+    ctl = ControllerSpec("position-p/velocity-p", KP, KV, 0.0, "average2-difference", SAT, H)
+    log = AxisLog(f"axis4k-{seed}", t, qm, u, "V", GAIN, H, reference_m=r, controller=ctl, resolution_m=RES)
+    res = fit_linear_axis([log], _base())
+    z = [(p["value"] - tv) / p["std"] for p, tv in zip(res.parameters.values(), TRUTH)]
+    inside = [p["ci95"][0] <= tv <= p["ci95"][1] for p, tv in zip(res.parameters.values(), TRUTH)]
+    return res, z, inside
+
+
+@pytest.mark.parametrize("case", [(20.0, 0.3), (-7.0, -0.05), (30.0, 0.0), (-30.0, 0.0), (0.0, 0.02)])
+def test_generator_integrates_exactly(case):
+    """The closed-form sample against scipy's adaptive integration of the same law (with the
+    stop as an event), over sliding, stopping and breakaway."""
+    f, v0 = case
+    theta = TRUTH
+    h = 0.02
+    x1, v1 = _sample(0.0, v0, f, theta, h)
+
+    m, fvp, fvn, fcp, fcn = theta
+
+    def rhs(_, y, s):
+        fv, fc = (fvp, fcp) if s > 0 else (fvn, fcn)
+        return [y[1], (f - s * fc - fv * y[1]) / m]
+
+    def stop(_, y, s):
+        return y[1]
+    stop.terminal = True
+
+    t, y = 0.0, np.array([0.0, v0])
+    for _ in range(3):
+        if y[1] == 0.0:
+            if -fcn <= f <= fcp:
+                break
+            s = 1.0 if f > fcp else -1.0
+        else:
+            s = math.copysign(1.0, y[1])
+        sol = solve_ivp(rhs, (t, h), y, args=(s,), events=stop if y[1] != 0.0 else None, rtol=1e-12, atol=1e-15)
+        t, y = sol.t[-1], sol.y[:, -1].copy()
+        if sol.status == 1:
+            y[1] = 0.0
+        if t >= h:
+            break
+    assert x1 == pytest.approx(y[0], rel=1e-8, abs=1e-14)
+    assert v1 == pytest.approx(y[1], rel=1e-8, abs=1e-12)
+
+
+def test_generator_log_is_quantised_and_reproduced_by_the_controller():
+    """The logged position sits on the encoder grid, the axis moves both ways, and the logged
+    command is the controller law on the logged positions (the log a drive would write)."""
+    t, qm, u, r = generate(3, duration_s=1.5)
+    steps = np.diff(qm)
+    assert np.allclose(np.round(steps / RES) * RES, steps, rtol=0, atol=1e-12)
+    assert np.max(np.diff(qm)) > 0 > np.min(np.diff(qm)) and np.ptp(qm) > 1e-2
+    qf = 0.5 * (qm + np.r_[qm[0], qm[:-1]])
+    dq = np.diff(np.r_[qf[0], qf]) / H
+    np.testing.assert_allclose(u, np.clip(KV * (KP * (r - qm) - dq), -SAT, SAT), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_truth_inside_the_intervals_two_seeds(seed):
+    """Every key's truth within 3 standard errors (a wrong model or covariance gives 5..1000;
+    the 20-seed rate is the slow test)."""
+    res, z, _ = _fit(seed)
+    assert (res.status, res.solver_status) == ("ok", "converged")  # (status in the vocabulary since issue 33)
+    assert max(abs(x) for x in z) < 3.0, z
+
+
+@pytest.mark.slow
+def test_coverage_over_20_seeds():
+    """>= 18 of 20 seeds inside each key's 95 % interval, mean z-score within 3 / sqrt(20) of 0.
+    Measured (2026-11-24): inside per key 20/19/18/19/18, mean z -0.37/0.32/-0.09/-0.33/0.08."""
+    zs, ins = [], []
+    for seed in range(20):
+        _, z, inside = _fit(seed)
+        zs.append(z)
+        ins.append(inside)
+    counts = np.sum(ins, axis=0)
+    mean_z = np.mean(zs, axis=0)
+    print(f"inside per key {counts.tolist()}; mean z {np.round(mean_z, 3).tolist()}; "
+          f"sd z {np.round(np.std(zs, axis=0, ddof=1), 3).tolist()}")
+    assert np.all(counts >= 18), counts
+    assert np.all(np.abs(mean_z) < 3 / math.sqrt(20)), mean_z
+
+
+# ------------------------------------------------------------------------------------------------
+# One plant description (issue 21, EMPS): the plant file prsa-fit writes for a linear axis is a
+# plant file of the toolkit (schema defaults and sources, load_plant, --show-plant, linearisation,
+# simulation), and reports say the coordinates.
+# ------------------------------------------------------------------------------------------------
+
+EMPS_MAT = EXAMPLE / "DATA_EMPS.mat"
+needs_emps_mat = pytest.mark.skipif(not EMPS_MAT.is_file(), reason="examples/emps/DATA_EMPS.mat not in this checkout")
+
+
+@pytest.fixture(scope="module")
+def fitted(emps_fit):
+    """prsa-fit on the EMPS record (tests/conftest.py: one fit per session): (plant file, FIT.json)."""
+    assert emps_fit.code == 0, emps_fit.err
+    return emps_fit.toml, json.loads(emps_fit.json.read_text())
+
+
+def test_the_axis_defaults_are_the_schemas():
+    assert set(DEFAULTS) == set(PARAMETERS[1:])
+    for k, v in DEFAULTS.items():
+        assert v == SCHEMA_DEFAULTS[k]
+
+
+@needs_emps_mat
+def test_fitted_file_is_a_toolkit_plant_file(fitted, capsys):
+    out, rep = fitted
+    assert rep["coordinates"] == "load (position m, force N)" and rep["mechanism"] == "linear-axis"
+    axis = load_axis_plant(out)
+    plant = load_plant(out)
+    assert plant.mechanism == "linear-axis"
+    for k, v in axis.values.items():  # the same values and sources through both readers
+        assert plant.values[k] == v and plant.sources[k] == axis.sources[k]
+    assert plant.values["axis.mass_kg"] == pytest.approx(rep["equivalent"]["mass_kg"]["value"], rel=1e-12)
+    assert plant.sources["friction.efficiency"].startswith("derived:")
+    assert dict(axis.to_plant().values) == dict(plant.values)
+    lines = describe_plant(plant).splitlines()
+    assert lines[2] == "coordinates: load (position m, force N)"
+    assert describe_plant(load_plant()).splitlines()[2] == "coordinates: motor (angle rad, torque N m)"
+    capsys.readouterr()
+    assert tune_main(["--show-plant", str(out)]) == 0
+    shown = capsys.readouterr().out
+    assert "coordinates: load (position m, force N)" in shown and "fit: DATA_EMPS.mat" in shown
+
+
+@needs_emps_mat
+def test_fitted_plant_linearises_and_simulates(fitted):
+    out, _ = fitted
+    plant = load_plant(out)
+    v = plant.values
+    names = plant_model(plant, "rigid").state_names
+    i_v = names.index("omega_nut")
+    for speed, fv in ((1e-3, v["friction.viscous_positive_n_s_per_m"]), (-1e-3, v["friction.viscous_negative_n_s_per_m"])):
+        a, b, *_ = linear_core(plant, speed, 0.0, "rigid")
+        assert a[i_v, i_v] == pytest.approx(-fv / v["axis.mass_kg"], rel=1e-9)  # m/s per m/s: load coordinates
+        assert b[i_v, 1] == pytest.approx(-1.0 / v["axis.mass_kg"], rel=1e-9)  # an axial load of 1 N, against +x
+    from prsa_ctrl.drive.pid import PID
+    from prsa_ctrl.sim.engine import run
+
+    r = run(plant, setpoint=0.05, load=0.0, duration=0.3, controller=PID(4000.0, 40000.0), fidelity="rigid",
+            discrete=True)
+    speed = r.states[r.state_labels.index("omega_nut")]
+    assert np.all(np.isfinite(speed)) and abs(speed[-1] - 0.05) < 0.005  # m/s
+
+
+@needs_emps_mat
+def test_validate_json_names_the_coordinates(fitted, tmp_path, capsys):
+    out, _ = fitted
+    rj = tmp_path / "R.json"
+    capsys.readouterr()
+    assert fit_main(["--validate", str(out), str(EMPS_MAT), "--log-format", str(EXAMPLE / "log.toml"), "--json", str(rj)]) == 0
+    assert "coordinates: load (position m, force N)" in capsys.readouterr().out
+    rep = json.loads(rj.read_text())
+    assert rep["coordinates"] == "load (position m, force N)" and rep["mechanism"] == "linear-axis"
+
+
+def test_a_fit_without_a_controller_writes_a_loadable_plant(tmp_path, capsys):
+    """No --plant and no controller: the force limit is estimated from the log (and says so), so the
+    written file has every required key."""
+    n, h, m, f0 = 3000, 1e-3, 4.0, 2.0
+    t = np.arange(n) * h
+    f = f0 * np.sign(np.sin(2 * math.pi * 2.0 * t))
+    v = np.zeros(n)
+    x = np.zeros(n)
+    for k in range(n - 1):  # a free mass, exact over each held sample
+        v[k + 1] = v[k] + f[k] / m * h
+        x[k + 1] = x[k] + v[k] * h + 0.5 * f[k] / m * h * h
+    path = tmp_path / "log.csv"
+    path.write_text("time_s,position_m,speed_m_s,force_n\n"
+                    + "".join(f"{a:.17g},{b:.17g},{c:.17g},{d:.17g}\n" for a, b, c, d in zip(t, x, v, f)))
+    fmt = tmp_path / "fmt.toml"
+    fmt.write_text('format = "csv"\n[time]\nname = "time_s"\nunit = "s"\n[position]\nname = "position_m"\nunit = "m"\n'
+                   '[speed]\nname = "speed_m_s"\nunit = "m/s"\n[command]\nname = "force_n"\nunit = "N"\n')
+    out = tmp_path / "F.toml"
+    code = fit_main([str(path), "--log-format", str(fmt), "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    plant = load_plant(out)
+    assert plant.values["drive.force_limit_n"] == pytest.approx(f0, rel=1e-12)
+    assert plant.sources["drive.force_limit_n"].startswith("estimate: largest force in log.csv")
+    assert plant.values["axis.mass_kg"] == pytest.approx(m, rel=1e-3)
+
+
+def test_a_tiny_viscous_term_replays_as_none():
+    """The stop time of a decelerating axis with a viscous term ``k = Fv/M`` is ``-log1p(k v/a)/k``:
+    with ``log(1 + k v/a)`` a tiny ``Fv`` (as a fit at its bound 0 probes it) lost every digit and
+    the replay jumped by percent."""
+    from prsa_ctrl.identification.axis import simulate_axis
+    from prsa_ctrl.identification.logformat import AxisLog
+
+    n, h = 1500, 1e-3
+    t = np.arange(n) * h
+    f = 2.0 * np.sign(np.sin(2 * math.pi * 2.0 * t))  # accelerate, brake to rest, again
+    log = AxisLog("brake", t, np.zeros(n), f, "N", 1.0, h)
+    ref = simulate_axis((4.0, 0.0, 0.0, 1e-3, 0.0), log, x0=(0.0, 0.0)).position_m
+    for fv in (1e-13, 1e-9):
+        x = simulate_axis((4.0, fv, 0.0, 1e-3, 0.0), log, x0=(0.0, 0.0)).position_m
+        assert np.max(np.abs(x - ref)) < 1e-9 * np.max(np.abs(ref)) + 1e-3 * fv

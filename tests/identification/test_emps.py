@@ -176,10 +176,12 @@ def test_plant_file_round_trip_and_minimal_file(tmp_path):
 
 
 @needs_data
-def test_emps_fit_and_validate_end_to_end(tmp_path, capsys):
+def test_emps_fit_and_validate_end_to_end(tmp_path, capsys, emps_fit):
+    """The two commands of examples/emps/README.md: the fit (tests/conftest.py: one per session),
+    then its validation on the record."""
     fmt = str(EXAMPLE / "log.toml")
-    out, js = tmp_path / "FITTED.toml", tmp_path / "FIT.json"
-    assert main([str(DATA), "--log-format", fmt, "--out", str(out), "--json", str(js)]) == 0
+    assert emps_fit.code == 0, emps_fit.err
+    out, js = emps_fit.toml, emps_fit.json
     rep = json.loads(js.read_text())
     eq = rep["equivalent"]
     for k in ("mass_kg", "viscous_n_s_per_m", "friction_positive_n", "friction_negative_n"):

@@ -60,6 +60,19 @@ def _fit(base, ax, seed, duration_s=1.5, convention="applied", command_logged="a
     return res, truth
 
 
+_ONE_SEED: dict = {}
+
+
+def one_seed_fit(base):
+    """``(axis, result, truth)`` of the default run's one-seed fit (seed 3, 0.5 s of each of the
+    three logs, one sample of transport delay), made once per session and shared by
+    test_one_seed_all_three_logs and the covariance tests of tests/identification/test_common.py."""
+    if not _ONE_SEED:
+        ax = _axis(base, transport_samples=1)
+        _ONE_SEED["fit"] = (ax, *_fit(base, ax, seed=3, duration_s=0.5))
+    return _ONE_SEED["fit"]
+
+
 def _z(res, truth) -> dict:
     """(fitted - true) in standard errors of the fit (half the 95 % interval / 1.96)."""
     out = {}
@@ -89,8 +102,7 @@ def test_one_seed_all_three_logs(base):
     """Load steps, staircase and multisine together (the issue: the fit stalled on the first
     two and put 650 Hz at 334 Hz on the third): converged, delay 1 sample found, bandwidth
     within 10 %, every key within 4 standard errors of the truth."""
-    ax = _axis(base, transport_samples=1)
-    res, truth = _fit(base, ax, seed=3, duration_s=0.5)
+    ax, res, truth = one_seed_fit(base)
     cd = res.solver["command_delay"]
     assert res.solver["status"] == "converged"
     assert cd["shift_samples"] == 1 and cd["search"]["decided"] and res.plant.values[DELAY] == 1

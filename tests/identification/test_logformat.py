@@ -3,12 +3,22 @@ one line naming the file and the key, column or variable, exit 2, and nothing is
 
 from __future__ import annotations
 
+import json
+import math
+import tomllib
+import warnings
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.io
 
 from prsa_ctrl.cli.fit import main
-from prsa_ctrl.identification.logformat import LogFormatError, load_axis_log, load_log_format
+from prsa_ctrl.identification.logformat import (LogFormatError, load_axis_log, load_log_format, load_motor_record, motor_record)
+from prsa_ctrl.plant import load_plant
+
+from test_fit_roundtrip_mechanisms import _load, _log, _truth  # noqa: E402  (tests/identification on sys.path)
+
 
 KP, KV, GAIN, H = 160.0, 240.0, 35.0, 1e-3
 
@@ -465,3 +475,348 @@ def test_a_missing_variable_lists_the_first_50_names_of_a_large_file(files, fmt_
         load_axis_log(mat, load_log_format(fmt))
     msg = str(info.value)
     assert "names variable 'qm', not in the file; it has v0, v1," in msg and msg.endswith("v49, ... (86 in all)")
+
+
+# ------------------------------------------------------------------------------------------------
+# A load-coordinate log fitted with a screw plant (prsa-fit LOG --log-format F --plant SCREW):
+# a [load] declared in kN for a log in N is refused before the fit, naming the column, its declared
+# unit and the plant's rated load; a [position] declared in mm for a log in m is refused naming the
+# description's columns and units, not the record's internal columns.
+# ------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("units")
+    base, rec, a = _write_logs(d, "ballscrew-32x10", duration_s=0.5)
+    return d, base
+
+
+def _fit(d, fmt_text, csv, capsys):
+    (d / "f.toml").write_text(fmt_text)
+    out = d / f"out-{csv.stem}-{len(list(d.glob('out-*')))}.toml"
+    capsys.readouterr()
+    code = main([str(csv), "--log-format", str(d / "f.toml"), "--plant", "ballscrew-32x10", "--out", str(out)])
+    return code, capsys.readouterr().err.strip(), out
+
+
+def test_load_in_kN_declared_is_refused_before_the_fit(logs, capsys):
+    d, base = logs
+    raw = np.loadtxt(d / "load.csv", delimiter=",", skiprows=1)
+    peak_kn = float(np.max(np.abs(raw[:, 3])))  # the file's load column, read as kN
+    rated = base.values["screw.rated_load_n"]
+    assert 1e3 * peak_kn > 2 * rated > peak_kn  # the log itself is plausible, its kN reading is not
+    code, err, out = _fit(d, LOAD_TOML.replace('unit = "N"\n', 'unit = "kN"\n', 2).replace(
+        '[command]\nname = "f_n"\nunit = "kN"', '[command]\nname = "f_n"\nunit = "N"'), d / "load.csv", capsys)
+    assert code == 2 and "\n" not in err and not out.exists()
+    assert "[load] column 'fz'" in err and "kN" in err and f"{peak_kn:.6g} kN" in err and f"{rated:.6g} N" in err
+    with pytest.raises(LogFormatError, match="rated_load_n"):
+        load_motor_record(d / "load.csv", load_log_format(d / "f.toml"), base)
+    # the same log with its load in N passes the check (prsa-fit on it, exit 0, is
+    # test_fits_in_both_coordinates_agree below)
+    (d / "f-n.toml").write_text(LOAD_TOML)
+    rec, _ = load_motor_record(d / "load.csv", load_log_format(d / "f-n.toml"), base)
+    assert np.max(np.abs(rec.axial_load_n)) == pytest.approx(peak_kn, rel=1e-12)  # read in N as written
+
+
+def test_position_in_m_declared_as_mm_names_the_description(logs, capsys):
+    d, base = logs
+    raw = np.loadtxt(d / "load.csv", delimiter=",", skiprows=1)
+    raw[:, 1] *= 1e-3  # the log now holds metres; its description still says mm
+    np.savetxt(d / "load-m.csv", raw, delimiter=",", header="t,x_mm,f_n,fz", comments="", fmt="%.17g")
+    code, err, out = _fit(d, LOAD_TOML, d / "load-m.csv", capsys)
+    assert code == 2 and "\n" not in err and not out.exists()
+    assert "[position] column 'x_mm' (mm)" in err and "[command] column 'f_n' (N)" in err and "f.toml" in err
+    assert "torque_command_n_m" not in err and "nut_angle_rad" not in err
+
+
+# ------------------------------------------------------------------------------------------------
+# Acceptance "Bad logs" (issue 21) on the EMPS record and a synthetic CSV: wrong variable names,
+# units that disagree with the data, a controller description that cannot reproduce the logged
+# command: one line naming the file and the column or key, exit 2, nothing written.
+# ------------------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "emps"
+DATA = EXAMPLE / "DATA_EMPS.mat"
+EMPS_LOG_TOML = (EXAMPLE / "log.toml").read_text()
+needs_data = pytest.mark.skipif(not DATA.is_file(), reason="examples/emps/DATA_EMPS.mat not in this checkout")
+
+
+def _run_fit(capsys, argv):
+    capsys.readouterr()
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _sub(old: str, new: str, count: int = 1) -> str:
+    text = EMPS_LOG_TOML.replace(old, new, count)
+    assert text != EMPS_LOG_TOML, old
+    return text
+
+
+POSITION = '[position]                 # load position from the motor encoder (50 000 counts/rev)\nname = "qm"\nunit = "m"'
+REFERENCE = '[reference]                # position reference given to the controller\nname = "qg"\nunit = "m"'
+
+CASES = {
+    # wrong variable names: the message names the key and the variable, and lists what the file has
+    "time name": (_sub('name = "t"', 'name = "time"'), "[time] name names variable 'time', not in the file"),
+    "position name": (_sub('name = "qm"', 'name = "q"'), "[position] name names variable 'q', not in the file"),
+    "reference name": (_sub('name = "qg"', 'name = "qref"'), "[reference] name names variable 'qref', not in the file"),
+    "command name": (_sub('name = "vir"', 'name = "u"'), "[command] name names variable 'u', not in the file"),
+    "gain name": (_sub('gain = "gtau"', 'gain = "g_tau"'), "[command] gain names variable 'g_tau', not in the file"),
+    "kp name": (_sub('kp = "kp"', 'kp = "Kp"'), "[controller] kp names variable 'Kp', not in the file"),
+    "required test signal": (_sub("optional = true", "optional = false"), "[test_signal] name names variable 'pulses_N'"),
+    # units that disagree with the data: the controller no longer reproduces the command, and the
+    # message names the units that would
+    "position in m declared mm": (_sub(POSITION, POSITION.replace('unit = "m"', 'unit = "mm"')),
+                                  "with [position] unit = 'm' and [reference] unit = 'm' (declared 'mm' and 'm')"),
+    "reference in m declared um": (_sub(REFERENCE, REFERENCE.replace('unit = "m"', 'unit = "um"')),
+                                   "with [position] unit = 'm' and [reference] unit = 'm' (declared 'm' and 'um')"),
+    "both in m declared mm": (_sub('unit = "m"', 'unit = "mm"', -1),
+                              "with [position] unit = 'm' and [reference] unit = 'm' (declared 'mm' and 'mm')"),
+    "time in s declared ms": (_sub('name = "t"\nunit = "s"', 'name = "t"\nunit = "ms"'),
+                              "[time] 't' (unit 'ms'): sample interval 9.99984e-07 s deviates"),
+    "sample time": (_sub("sample_time_s = 0.001", "sample_time_s = 0.002"), "from [controller] sample_time_s = 0.002"),
+    # controller descriptions that cannot reproduce the logged command
+    "kv": (_sub('kv = "kv"', "kv = 120.0"), "[controller] does not reproduce DATA_EMPS.mat's command 'vir'"),
+    "saturation": (_sub("saturation = 10.0", "saturation = 2.0"), "[controller] does not reproduce"),
+    "velocity estimate": (_sub('velocity_estimate = "average2-difference"', 'velocity_estimate = "difference"'),
+                          "[controller] velocity_estimate = 'difference' reproduces DATA_EMPS.mat's command 'vir' with "
+                          "a relative error of 3.31 %, but 'average2-difference' gives 0.684 %"),
+    "structure": (_sub('structure = "position-p/velocity-p"', 'structure = "position-pi"'),
+                  "[controller] structure = 'position-pi'"),
+}
+
+
+@needs_data
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_emps_description_is_one_line_exit_2_nothing_written(tmp_path, capsys, case):
+    text, expect = CASES[case]
+    fmt = tmp_path / "log.toml"
+    fmt.write_text(text)
+    out, js = tmp_path / "F.toml", tmp_path / "FIT.json"
+    code, stdout, err = _run_fit(capsys, [DATA, "--log-format", fmt, "--out", out, "--json", js])
+    assert code == 2, (case, err, stdout)
+    assert err.count("\n") == 1 and err.startswith("prsa-fit: error: ") and "Traceback" not in err
+    assert expect in err, err
+    assert str(fmt) in err or str(DATA) in err
+    assert not out.exists() and not js.exists()
+    # the same with --validate: the replay's outputs are not written either
+    plant = EXAMPLE / "reference-model.toml"
+    traces, rj = tmp_path / "T.csv", tmp_path / "R.json"
+    code, _, err = _run_fit(capsys, ["--validate", plant, DATA, "--log-format", fmt, "--traces", traces, "--json", rj])
+    assert code == 2 and err.count("\n") == 1 and expect in err
+    assert not traces.exists() and not rj.exists()
+
+
+def test_position_unit_without_a_controller_is_checked_by_its_speed(tmp_path, capsys):
+    """A CSV log without a controller whose position is in mm but declared in m: 0.3 m/s becomes
+    300 m/s between samples, beyond any linear axis."""
+    n, h = 400, 1e-3
+    t = np.arange(n) * h
+    x_mm = 1e3 * 0.3 * t  # 0.3 m/s in mm
+    path = tmp_path / "log.csv"
+    path.write_text("t,x,f\n" + "".join(f"{a:.9g},{b:.9g},1.0\n" for a, b in zip(t, x_mm)))
+    fmt = tmp_path / "fmt.toml"
+    body = ('format = "csv"\naxis = "linear"\n[time]\nname = "t"\nunit = "s"\n[position]\nname = "x"\nunit = "{u}"\n'
+            '[command]\nname = "f"\nunit = "N"\n')
+    fmt.write_text(body.format(u="m"))
+    out = tmp_path / "F.toml"
+    code, _, err = _run_fit(capsys, [path, "--log-format", fmt, "--out", out])
+    assert code == 2 and err.count("\n") == 1
+    assert "[position] 'x' (unit 'm'): moves 300 m/s between two samples of 0.001 s; expected at most 50 m/s" in err
+    assert str(path) in err and not out.exists()
+    from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
+
+    fmt.write_text(body.format(u="mm"))
+    log = load_axis_log(path, load_log_format(fmt))  # declared right: accepted
+    assert np.allclose(np.diff(log.position_m) / h, 0.3)
+
+
+# ------------------------------------------------------------------------------------------------
+# A log in load coordinates for a screw-driven plant (issue 21: "a plant works in motor
+# coordinates (rad, N m) or, for a linear axis, in load coordinates (m, N); a log in either is
+# accepted; reports and exports say which").
+#
+# A closed-loop log of a perturbed built-in ball screw and roller screw (the toolkit's simulator,
+# motor coordinates) is written twice: in motor coordinates (time in ms, angle in deg, torque in
+# N m) and in load coordinates (time in s, position in mm = lead x angle, force in N = torque /
+# lead). ``prsa-fit LOG --log-format F --plant P`` fits both; the two fits agree to the round-off
+# of the unit conversions, and the output and the JSON say the plant's coordinates and how each
+# log was converted. The conversion itself is checked against numpy arithmetic written here.
+# ------------------------------------------------------------------------------------------------
+
+MOTOR_TOML = """axis = "rotary"
+[time]
+name = "t_ms"
+unit = "ms"
+[position]
+name = "angle_deg"
+unit = "deg"
+[command]
+name = "torque"
+unit = "N m"
+logged = "as-applied"
+[load]
+name = "fz"
+unit = "N"
+"""
+LOAD_TOML = """axis = "linear"
+[time]
+name = "t"
+unit = "s"
+[position]
+name = "x_mm"
+unit = "mm"
+[command]
+name = "f_n"
+unit = "N"
+logged = "as-applied"
+[load]
+name = "fz"
+unit = "N"
+"""
+
+
+def _write_logs(tmp_path, name: str, duration_s: float = 1.0):
+    """The same run in motor and in load coordinates (CSV, 17 digits) with their descriptions."""
+    base = _load(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        truth = base.with_params(_truth(base))
+    rec = _log(truth, duration_s=duration_s)
+    a = 1e-3 * base.values["screw.lead_mm"] / (2 * math.pi)  # m of travel per rad, from the file's lead
+    motor, load = tmp_path / "motor.csv", tmp_path / "load.csv"
+    np.savetxt(motor, np.column_stack([rec.time_s * 1e3, np.degrees(rec.nut_angle_rad), rec.torque_command_n_m,
+                                       rec.axial_load_n]), delimiter=",", header="t_ms,angle_deg,torque,fz",
+               comments="", fmt="%.17g")
+    np.savetxt(load, np.column_stack([rec.time_s, 1e3 * a * rec.nut_angle_rad, rec.torque_command_n_m / a,
+                                      rec.axial_load_n]), delimiter=",", header="t,x_mm,f_n,fz", comments="",
+               fmt="%.17g")
+    (tmp_path / "motor.toml").write_text(MOTOR_TOML)
+    (tmp_path / "load.toml").write_text(LOAD_TOML)
+    return base, rec, a
+
+
+def test_motor_record_is_the_lead_conversion(tmp_path):
+    """angle = x / a, torque = F a, load as logged: against numpy on the written files."""
+    base, rec, a = _write_logs(tmp_path, "ballscrew-32x10", duration_s=0.2)
+    assert base.lead_per_rad == pytest.approx(a, rel=1e-15)
+    fmt = load_log_format(tmp_path / "load.toml")
+    got, logged = load_motor_record(tmp_path / "load.csv", fmt, base)
+    assert logged == "applied"
+    raw = np.loadtxt(tmp_path / "load.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(got.nut_angle_rad, raw[:, 1] * 1e-3 / a, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(got.torque_command_n_m, raw[:, 2] * a, rtol=1e-15, atol=0)
+    np.testing.assert_array_equal(got.axial_load_n, raw[:, 3])
+    # and back to what the simulator wrote, to the round-off of two conversions
+    np.testing.assert_allclose(got.nut_angle_rad, rec.nut_angle_rad, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(got.torque_command_n_m, rec.torque_command_n_m, rtol=1e-14, atol=1e-16)
+    mot, _ = load_motor_record(tmp_path / "motor.csv", load_log_format(tmp_path / "motor.toml"), base)
+    raw_m = np.loadtxt(tmp_path / "motor.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(mot.time_s, raw_m[:, 0] * 1e-3 - raw_m[0, 0] * 1e-3, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(mot.nut_angle_rad, raw_m[:, 1] * math.pi / 180, rtol=1e-15, atol=0)
+    # the AxisLog route gives the same record
+    via = motor_record(load_axis_log(tmp_path / "load.csv", fmt), base)
+    np.testing.assert_array_equal(via.nut_angle_rad, got.nut_angle_rad)
+
+
+@pytest.mark.parametrize("name", ["ballscrew-32x10", "rollerscrew-30x5"])
+def test_fits_in_both_coordinates_agree(tmp_path, capsys, name):
+    """prsa-fit on the motor- and the load-coordinate log of one run: the same fitted values and
+    intervals to 1e-10 (the logs differ by the round-off of deg/mm and the lead, ~1e-16 relative;
+    measured: 4e-14 for the ball screw), the same delay, the coordinates said in the output and
+    the JSON, and the written plant loads as the same mechanism. The agreement does not depend on
+    the log's length: 0.6 s of the run, as the plain-CSV test below (was 1 s)."""
+    base, _, a = _write_logs(tmp_path, name, duration_s=0.6)
+    out = {}
+    for which in ("motor", "load"):
+        code = main([str(tmp_path / f"{which}.csv"), "--log-format", str(tmp_path / f"{which}.toml"), "--plant", name,
+                     "--out", str(tmp_path / f"{which}-fit.toml"), "--json", str(tmp_path / f"{which}.json")])
+        text = capsys.readouterr().out
+        assert code == 0, text
+        assert "coordinates: motor (angle rad, torque N m)" in text
+        out[which] = (json.loads((tmp_path / f"{which}.json").read_text()), text)
+    (jm, tm), (jl, tl) = out["motor"], out["load"]
+    assert f"load (position m, force N), converted with the lead {a:.9g} m/rad" in tl
+    assert "logged in motor (angle rad, torque N m)" in tm
+    assert jm["coordinates"]["plant"] == jl["coordinates"]["plant"] == "motor (angle rad, torque N m)"
+    assert list(jl["coordinates"]["logs"].values())[0].startswith("load (position m, force N)")
+    assert jm["parameters"].keys() == jl["parameters"].keys()
+    for k, pm in jm["parameters"].items():
+        pl = jl["parameters"][k]
+        assert pl["value"] == pytest.approx(pm["value"], rel=1e-10), k
+        assert pl["ci95"] == pytest.approx(pm["ci95"], rel=1e-10), k
+    assert jm["solver"]["command_delay"]["shift_samples"] == jl["solver"]["command_delay"]["shift_samples"] == 1
+    for which in ("motor", "load"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fitted = load_plant(tmp_path / f"{which}-fit.toml")
+        assert fitted.mechanism == base.mechanism
+        assert fitted.command_delay_samples == 1
+        assert "mechanism" in tomllib.loads((tmp_path / f"{which}-fit.toml").read_text())
+
+
+def test_plain_csv_and_rotary_description_give_the_same_fit(tmp_path, capsys):
+    """The rotary description only renames and converts units: the standard-column CSV of the
+    same data fits to the same numbers (and its output states the coordinates too)."""
+    base, rec, _ = _write_logs(tmp_path, "ballscrew-32x10", duration_s=0.6)
+    std = tmp_path / "std.csv"
+    raw = np.loadtxt(tmp_path / "motor.csv", delimiter=",", skiprows=1)
+    np.savetxt(std, np.column_stack([raw[:, 0] * 1e-3, np.radians(raw[:, 1]), raw[:, 2], raw[:, 3]]), delimiter=",",
+               header="time_s,nut_angle_rad,torque_command_n_m,axial_load_n", comments="", fmt="%.17g")
+    assert main([str(std), "--plant", "ballscrew-32x10", "--out", str(tmp_path / "a.toml"), "--json",
+                 str(tmp_path / "a.json")]) == 0
+    ta = capsys.readouterr().out
+    assert main([str(tmp_path / "motor.csv"), "--log-format", str(tmp_path / "motor.toml"), "--plant",
+                 "ballscrew-32x10", "--out", str(tmp_path / "b.toml"), "--json", str(tmp_path / "b.json")]) == 0
+    assert "coordinates: motor (angle rad, torque N m)" in ta
+    ja, jb = (json.loads((tmp_path / f"{x}.json").read_text()) for x in "ab")
+    for k in ja["parameters"]:
+        assert jb["parameters"][k]["value"] == pytest.approx(ja["parameters"][k]["value"], rel=1e-10), k
+
+
+BAD = [
+    ("rotary-controller", MOTOR_TOML + "[controller]\nstructure = \"position-p/velocity-p\"\n", [],
+     "[controller] with axis = \"rotary\""),
+    ("rotary-unit", MOTOR_TOML.replace('unit = "deg"', 'unit = "m"'), [], "[position] unit = 'm'"),
+    ("rotary-gain", MOTOR_TOML.replace('unit = "N m"', 'unit = "A"'), [], "needs gain (N m per command unit"),
+    ("axis", MOTOR_TOML.replace('axis = "rotary"', 'axis = "polar"'), [], "axis = 'polar'"),
+    ("convention", MOTOR_TOML, ["--command-logged", "computed"], "--command-logged computed"),
+    ("columns", MOTOR_TOML, ["--columns", "time_s=t"], "--columns with --log-format"),
+    ("column", MOTOR_TOML.replace('name = "torque"', 'name = "tq"'), [], "'tq', not in the file"),
+]
+
+
+@pytest.mark.parametrize("case,toml,extra,match", BAD, ids=[b[0] for b in BAD])
+def test_bad_descriptions_one_line_exit_2_nothing_written(tmp_path, capsys, case, toml, extra, match):
+    _write_logs(tmp_path, "ballscrew-32x10", duration_s=0.1)
+    (tmp_path / "bad.toml").write_text(toml)
+    out = tmp_path / "fit.toml"
+    code = main([str(tmp_path / "motor.csv"), "--log-format", str(tmp_path / "bad.toml"), "--plant", "ballscrew-32x10",
+                 "--out", str(out), *extra])
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert len(err.splitlines()) == 1 and match in err, err
+    assert not out.exists()
+
+
+def test_a_linear_axis_plant_refuses_a_motor_log(tmp_path):
+    """A linear axis works in load coordinates: a motor-coordinate log is refused for it (and by
+    the linear-axis reader), one line naming why."""
+    from prsa_ctrl.plant import Plant
+
+    _write_logs(tmp_path, "ballscrew-32x10", duration_s=0.1)
+
+    doc = {"name": "lin", "mechanism": "linear-axis", "axis": {"mass_kg": {"value": 10.0, "source": "test"}},
+           "drive": {"gain_n_per_unit": {"value": 1.0, "source": "test"}, "force_limit_n": {"value": 100.0, "source": "test"}},
+           "sensor": {"sample_time_s": {"value": 1.25e-4, "source": "test"},
+                      "encoder_resolution_m": {"value": 1e-7, "source": "test"}}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plant = Plant.from_dict(doc, origin="test")
+    with pytest.raises(ValueError, match="is a linear axis"):
+        load_motor_record(tmp_path / "motor.csv", load_log_format(tmp_path / "motor.toml"), plant)
+    with pytest.raises(LogFormatError, match="axis = 'rotary'"):
+        load_axis_log(tmp_path / "motor.csv", load_log_format(tmp_path / "motor.toml"))

@@ -13,8 +13,9 @@ from prsa_ctrl.studies.scene import load_scene
 
 
 @pytest.fixture(scope="module")
-def report():
-    return tune_actuator(load_plant(), load_scene())
+def report(paper_report):
+    """The default tuning of the paper plant (tests/conftest.py: one run per session)."""
+    return paper_report
 
 
 def test_verified_best_respects_ms_and_beats_every_baseline(report):
@@ -97,12 +98,11 @@ def test_paper_kp_sweep_trend(report):
     assert paper.objective_verified > 3 * report.best.objective_verified
 
 
-def test_cli_writes_json_report_and_plots(tmp_path, capsys):
-    out = tmp_path / "out.json"
-    plots = tmp_path / "figs"
-    rc = main(["--load-step", "500:1500", "--json", str(out), "--plots", str(plots)])
-    assert rc == 0
-    text = capsys.readouterr().out
+def test_cli_writes_json_report_and_plots(default_cli_run):
+    """The default prsa-tune run of tests/conftest.py (JSON, plots and an export, one run per session)."""
+    out, plots, tmp_path = default_cli_run.json, default_cli_run.plots, default_cli_run.folder
+    assert default_cli_run.code == 0
+    text = default_cli_run.out
     assert "Tuned PI" in text and "Baselines" in text and "Run time" in text
     d = json.loads(out.read_text())
     for key in ("plant", "scene", "gains", "predicted", "verified", "margins", "baselines", "timing_s"):

@@ -1,10 +1,15 @@
+"""prsa_ctrl.studies.scene: the built-in scenes, scene files and their checks against a plant."""
+
 import math
+import re
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
 
-from prsa_ctrl import SceneError
-from prsa_ctrl.studies.scene import Scene, builtin_scenes, choose_fidelity, load_scene
+from prsa_ctrl import SceneError, load_plant
+from prsa_ctrl.cli.tune import main
+from prsa_ctrl.studies.scene import (MAX_RECORD_SAMPLES, POST_EVENT_SAMPLES, PRE_EVENT_SAMPLES, Scene, builtin_scenes, check_against_plant, choose_fidelity, holding_capacity_n, load_scene)
 
 SCENE_DIR = Path(__file__).resolve().parents[2] / "tuning"
 
@@ -81,3 +86,130 @@ def test_unknown_scene_and_field():
 def test_estimator_fields_are_validated(changes, match):
     with pytest.raises(SceneError, match=match):
         Scene().replace(**changes)
+
+
+# ------------------------------------------------------------------------------------------------
+# Silent wrong results (issue 13): events the physics cannot resolve and records above the size
+# limit are refused through the API as through the CLI.
+# ------------------------------------------------------------------------------------------------
+
+PLANT = load_plant()
+TS = PLANT.sample_time_s
+
+
+def test_pre_event_samples_match_the_verification():
+    from prsa_ctrl.studies import autotune
+
+    assert PRE_EVENT_SAMPLES == autotune._PRE_SAMPLES
+
+
+@settings(max_examples=200)
+@given(step=st.floats(1e-12, 20.0), after=st.floats(1e-6, 20.0))
+def test_event_timing_and_record_size_are_checked_before_any_run(step, after):
+    scene = Scene(step_time=step, duration=step + after + 1.001e-3)
+    ok = (step >= PRE_EVENT_SAMPLES * TS and scene.duration - step >= POST_EVENT_SAMPLES * TS
+          and scene.duration / TS <= MAX_RECORD_SAMPLES)
+    try:
+        check_against_plant(scene, PLANT)
+    except SceneError as exc:
+        assert not ok and "\n" not in str(exc) and "controller samples" in str(exc)
+    else:
+        assert ok
+
+
+@settings(max_examples=200)
+@given(loads=st.lists(st.floats(0.0, 1e6), min_size=2, max_size=4), rpm=st.floats(0.5, 6000.0))
+def test_loads_beyond_the_holding_capacity_are_refused(loads, rpm):
+    f0, finals = loads[0], tuple(loads[1:])
+    try:
+        scene = Scene(setpoint_rad_s=rpm * math.pi / 30, initial_load=f0, final_loads=finals)
+    except SceneError:
+        return  # a final load equal to the initial one
+    cap = holding_capacity_n(PLANT, scene.setpoint_rad_s)
+    try:
+        check_against_plant(scene, PLANT)
+    except SceneError as exc:
+        msg = str(exc)
+        bad_load = max(loads) > cap
+        assert bad_load or rpm < 15.0 or len(set(finals)) < len(finals) or min(abs(f - f0) for f in finals) < 1.0, msg
+        if bad_load and rpm >= 15.0:
+            assert f"holds at most {cap:.0f} N" in msg
+    else:
+        assert max(loads) <= cap and rpm >= 14.99
+
+
+def test_scene_step_at_zero_is_refused_by_the_api():
+    with pytest.raises(SceneError, match=r"step_time = 0; expected a time > 0 s"):
+        Scene(step_time=0)
+
+
+# --- Ctrl-C ---------------------------------------------------------------------------------------
+
+
+# --- one real run: effective scene in the header, JSON like any user file -------------------------
+
+
+def test_default_scene_passes_the_plant_checks():
+    check_against_plant(load_scene(), PLANT)
+
+
+# ------------------------------------------------------------------------------------------------
+# Scene files (issue 13/14): absurd but well-typed values are refused with one line naming key,
+# value, plausible range and file.
+# ------------------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[2]
+SCENE = (ROOT / "tuning" / "paper-load-step.toml").read_text()
+_HC = [HealthCheck.function_scoped_fixture]
+
+
+def _scene_set(doc: str, key: str, value: str) -> str:
+    pat = re.compile(rf"^{key} = [^#\n]*", re.M)
+    assert pat.search(doc), key
+    return pat.sub(lambda m: f"{key} = {value} ", doc, count=1)
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: _scene_set(d, "step_time_s", "0.0"), r"step_time = 0\.0; expected a time > 0 s"),
+    (lambda d: _scene_set(d, "step_time_s", "0.001"),
+     r"operating\.step_time_s = 0\.001: the load step needs at least 8 controller samples"),
+    (lambda d: _scene_set(d, "setpoint_rpm", "-300.0"), r"operating\.setpoint_rpm = -300\.0; expected a nut speed in \(0, 6000\] rpm"),
+    (lambda d: _scene_set(d, "setpoint_rpm", "1e308"), r"operating\.setpoint_rpm = 1e\+308; expected"),
+    (lambda d: _scene_set(d, "final_loads_n", "[1e300]"), r"operating\.final_loads_n = 1e\+300: load 1e\+300 N out of range"),
+    (lambda d: _scene_set(d, "duration_s", "1e6"), r"operating\.duration_s = 1e\+06: the record would hold"),
+])
+def test_bad_scene_values_exit_2_at_load_time(tmp_path, capsys, stand_in, edit, match):
+    path = tmp_path / "scene.toml"
+    path.write_text(edit(SCENE))
+    assert main(["--scene", str(path)]) == 2
+    line = _one_line(capsys)
+    assert re.search(match, line) and str(path) in line, line
+    assert not stand_in
+
+
+@settings(max_examples=60, suppress_health_check=_HC)
+@given(key=st.sampled_from(["setpoint_rpm", "initial_load_n", "step_time_s", "duration_s"]),
+       value=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**20, 10**20)))
+def test_any_scene_number_is_refused_in_one_line_or_runs(tmp_path_factory, capsys, stand_in, key, value):
+    if isinstance(value, float) and not math.isfinite(value):
+        text = {"nan": "nan", "inf": "inf", "-inf": "-inf"}[repr(value)]
+    else:
+        text = repr(value)
+    path = tmp_path_factory.mktemp("s") / "s.toml"
+    path.write_text(_scene_set(SCENE, key, text))
+    rc = main(["--scene", str(path)])
+    line = _one_line(capsys)
+    assert rc in (2, 3)
+    if rc == 2:
+        assert line.startswith("prsa-tune: error: ") and str(path) in line and not stand_in
+    else:
+        assert len(stand_in) == 1
+        load_scene(path)  # accepted by the scene loader too
+    stand_in.clear()

@@ -7,10 +7,10 @@ import pytest
 
 from prsa_ctrl import SceneError
 from prsa_ctrl.plant.plantfile import load_plant
+from prsa_ctrl.plant.uncertainty import uncertainty_model
+from prsa_ctrl.studies.scene import load_scene
 from prsa_ctrl.studies.scenerobust import operating_points, scenarios, tune_robust_actuator
 from prsa_ctrl.tuning.robust import tune_robust
-from prsa_ctrl.studies.scene import load_scene
-from prsa_ctrl.plant.uncertainty import uncertainty_model
 
 
 @pytest.fixture(scope="module")
@@ -111,57 +111,79 @@ def test_generic_bad_arguments(bad, match):
             tune_robust([control.tf([1], [1, 1, 1])], aggregate=bad)
 
 
+#: Three gains of 1/(s+1)^3 under one Ms bound, with a two-rate tail (n_steps 480).
+_THREE = dict(ms_max=1.6, n_steps=480)
+
+
+@pytest.fixture(scope="module")
+def default_robust():
+    """``default_robust(objective, aggregate)``: the default ``tune_robust`` of the three plants (the
+    mapped per-loop objective, the coarse constraint grid), made once per module per case with two
+    passive spies recording which objective path ran and how many grid rows each loop held:
+    ``(result, used, rows)``. The tests below compare it with the expanded and the full-grid run."""
+    import control
+
+    from prsa_ctrl.tuning import tuner as T
+
+    done = {}
+
+    def run(objective, aggregate):
+        if (objective, aggregate) not in done:
+            plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
+            used, rows = [], []
+            mapped, coarse_rows = T.Tuner._mapped_objectives, T.Tuner._grid_rows
+
+            def spy_mapped(self, g, eps):
+                out = mapped(self, g, eps)
+                used.append(out is not None)
+                return out
+
+            def spy_rows(self, jl):
+                r = coarse_rows(self, jl)
+                rows.append((r.size, self.loops[jl].omega.size))
+                return r
+
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(T.Tuner, "_mapped_objectives", spy_mapped)
+                mp.setattr(T.Tuner, "_grid_rows", spy_rows)
+                res = tune_robust(plants, objective=objective, aggregate=aggregate, **_THREE)
+            done[objective, aggregate] = (res, used, rows)
+        return done[objective, aggregate]
+
+    return run
+
+
 @pytest.mark.parametrize("objective, aggregate", [("iae", "worst"), ("itae", "mean")])
-def test_mapped_per_loop_objective_is_the_expanded_one(monkeypatch, objective, aggregate):
+def test_mapped_per_loop_objective_is_the_expanded_one(monkeypatch, default_robust, objective, aggregate):
     """The robust NLP's objective from one per-loop function mapped over the scenarios (built
     once) reaches the same design as the per-scenario expansion it replaces."""
     import control
 
-    from prsa_ctrl.tuning import builders, generic, settings, tuner as T
+    from prsa_ctrl.tuning import tuner as T
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
-    kw = dict(objective=objective, ms_max=1.6, aggregate=aggregate, n_steps=480)  # with a two-rate tail
-    used = []
-    mapped = T.Tuner._mapped_objectives
-
-    def spy(self, g, eps):
-        out = mapped(self, g, eps)
-        used.append(out is not None)
-        return out
-
-    monkeypatch.setattr(T.Tuner, "_mapped_objectives", spy)
-    fast = tune_robust(plants, **kw)
+    fast, used, _ = default_robust(objective, aggregate)
     assert used and all(used)
     monkeypatch.setattr(T.Tuner, "_mapped_objectives", lambda self, g, eps: None)
-    slow = tune_robust(plants, **kw)
+    slow = tune_robust(plants, objective=objective, aggregate=aggregate, **_THREE)
     np.testing.assert_allclose(fast.pid.gains, slow.pid.gains, rtol=1e-6)
     np.testing.assert_allclose(fast.per_loop, slow.per_loop, rtol=1e-6)
 
 
 @pytest.mark.parametrize("objective, aggregate", [("iae", "worst"), ("itae", "mean")])
-def test_coarse_constraint_grid_reaches_the_full_grid_design(monkeypatch, objective, aggregate):
+def test_coarse_constraint_grid_reaches_the_full_grid_design(monkeypatch, default_robust, objective, aggregate):
     """With several loops the NLP holds Ms on ~64 grid rows per loop (plus resonance points)
     and adds the verified true peaks with their neighbours; the design honours the bound on
     every loop's true peak and is as good as with every grid row in the NLP."""
     import control
 
-    from prsa_ctrl.tuning import builders, generic, settings, tuner as T
+    from prsa_ctrl.tuning import builders, settings, tuner as T
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
-    kw = dict(objective=objective, ms_max=1.6, aggregate=aggregate, n_steps=480)
-    rows = []
-    coarse_rows = T.Tuner._grid_rows
-
-    def spy(self, jl):
-        r = coarse_rows(self, jl)
-        rows.append((r.size, self.loops[jl].omega.size))
-        return r
-
-    monkeypatch.setattr(T.Tuner, "_grid_rows", spy)
-    coarse = tune_robust(plants, **kw)
+    coarse, _, rows = default_robust(objective, aggregate)
     assert rows and all(n <= settings.MULTI_ROWS + 40 < n_all for n, n_all in rows)
     monkeypatch.setattr(T.Tuner, "_grid_rows", lambda self, jl: np.arange(self.loops[jl].omega.size))
-    full = tune_robust(plants, **kw)
+    full = tune_robust(plants, objective=objective, aggregate=aggregate, **_THREE)
     assert coarse.converged and full.converged
     for r in (coarse, full):
         for p, m in zip(plants, r.margins):
@@ -422,3 +444,50 @@ def test_spec_yield_is_a_probability(bad):
         parse_scene_sections({"spec": {"yield": bad, "ms": 1.5}}, "s.toml")
     ok = parse_scene_sections({"spec": {"yield": 0.95, "ms": 1.5}}, "s.toml")
     assert ok["spec"] == {"ms": 1.5} and ok["spec_yield"] == {"yield": 0.95}
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 20: the recommended design is ranked by its yield against the spec.
+# ------------------------------------------------------------------------------------------------
+
+# --- item 2: filter arguments out of range are named, never "b0 = nan" -------------------------
+
+
+# --- item 1: a notch is kept only where it acts on the mode -------------------------------------
+
+
+# --- items 3, 4, 5: robust study -> recommended design, strict JSON, named export ----------------
+
+
+def test_recommend_ranks_by_the_yield_against_the_spec():
+    """Unit check of the ranking: robust 10/200 against nominal 132/200 recommends the nominal
+    design; both at 0 recommends none; without Monte Carlo the spec is said to be unchecked."""
+    from prsa_ctrl.drive.pid import PID
+    from prsa_ctrl.studies.montecarlo import DesignYield, wilson_interval
+    from prsa_ctrl.tuning.robust import RobustTuning
+
+    comp = {"objective": "iae", "ms_max": 1.4, "designs": {
+        "nominal": {"ms_violations": 2, "worst_objective": 0.03}, "robust": {"ms_violations": 0, "worst_objective": 0.08}}}
+    rt = RobustTuning(PID(0.085, 14.7), PID(0.045, 6.8), [object()] * 12, comp, {}, None)
+
+    class MC:
+        def __init__(self, k_nom, k_rob, n=200):
+            self.designs = [DesignYield(name, {}, k, n, k / n, wilson_interval(k, n), {}, None, {}, {}, 0, "")
+                            for name, k in (("nominal design", k_nom), ("robust design", k_rob))]
+
+    r = rt.recommend(MC(132, 10))
+    assert r["design"] == "nominal" and r["yield"] == 0.66 and r["passed"] == 132 and r["samples"] == 200
+    assert "66.0 % (132/200)" in r["why"] and "5.0 % (10/200)" in r["why"]
+    # Frozen study: recommend() leaves it as it is; with_recommendation() returns a copy that keeps it.
+    assert rt.recommended == {} and rt.with_recommendation(MC(132, 10)).recommended == r
+    assert rt.recommend(MC(10, 132))["design"] == "robust"
+    none = rt.recommend(MC(0, 0))
+    assert none["design"] is None and "no design meets the spec on any sample" in none["why"]
+    lin = rt.recommend(None)
+    assert lin["design"] == "robust" and lin["yield"] is None and "not checked" in lin["why"]
+
+
+# --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------
+
+
+# --- item 6: SIGTERM during a Monte-Carlo process pool -------------------------------------------

@@ -1,4 +1,5 @@
-"""Filters in the one sampled-loop simulator, in the linear loop model and in the tuner (issue 12)."""
+"""prsa_ctrl.tuning.filtered: filters in the one sampled-loop simulator, in the linear loop model and in
+the tuner (issue 12)."""
 
 import math
 import tomllib
@@ -8,11 +9,11 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import PID, load_plant, run
-from prsa_ctrl.io.export import dumps, export_controller
 from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
-from prsa_ctrl.tuning.filtered import loop_builder, tune_filtered
+from prsa_ctrl.io.export import dumps, export_controller
 from prsa_ctrl.plant.linear import linear_core
 from prsa_ctrl.plant.model import plant_model
+from prsa_ctrl.tuning.filtered import loop_builder, tune_filtered
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -224,3 +225,99 @@ def test_readme_case_three_loops():
     n = tune_filtered(blds[:1], blds[1:], ts=TS, kind="notch", start_gains=(g.pid.kp, g.pid.ki), max_noise_gain=0.05)
     assert g.converged and n.converged and n.objective < 0.35 * g.objective
     assert n.ms <= 1.4 and n.mks <= 0.05 and g.ms <= 1.4 and g.mks <= 0.05
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 20: a notch that does nothing is never labelled optimal.
+# ------------------------------------------------------------------------------------------------
+
+# --- item 2: filter arguments out of range are named, never "b0 = nan" -------------------------
+
+
+# --- item 1: a notch is kept only where it acts on the mode -------------------------------------
+
+@pytest.fixture(scope="module")
+def mode163():
+    """The heavy-slide plant made heavier and less damped through its own keys: the thread
+    contact's axial mode at 163 Hz with damping ratio 0.0005 (linearised at 300 rpm, 1000 N;
+    a ~44 dB peak of |L| over its running median), one loop, 50 ms horizon."""
+    from prsa_ctrl.tuning.filtered import loop_builder, tune_filtered
+    from prsa_ctrl.plant.linear import linear_core
+    from prsa_ctrl.plant.model import plant_model
+    from prsa_ctrl.plant.uncertainty import apply
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        p = apply(load_plant("paper-heavy-slide"), {"screw.mass_kg": 284.0, "contact.damping_n_s_per_mm": 19.6},
+                  name="mode-163")
+    a, b, c, _, _ = linear_core(p, 31.4159, 1000.0, "compliant")
+    lam = np.linalg.eigvals(a)
+    osc = lam[(lam.imag > 2 * math.pi * 50) & (lam.imag < 2 * math.pi * 2000)]
+    assert osc.size == 1
+    f_mode, zeta = abs(osc[0]) / (2 * math.pi), -osc[0].real / abs(osc[0])
+    assert abs(f_mode - 163.0) < 1.0 and abs(zeta - 0.0005) < 0.0001
+    m = plant_model(p, "compliant")
+    bld = loop_builder(a, b, c[m.output_names.index("nut_speed")], m.index("theta_nut"), ts=p.sample_time_s,
+                       speed_filter=p.speed_filter_s, tf=1e-3, horizon=0.05, step=1000.0)
+    ref = tune_filtered([bld], ts=p.sample_time_s, kind=None, start_gains=(0.01, 1.0))
+    assert ref.converged
+    return p.sample_time_s, f_mode, bld, ref
+
+
+def _gains_alone_grid_best(lp, ms_max=1.4):
+    """Independent check: the best IAE (to infinity) of the gains alone on a 25 x 25 grid."""
+    best = math.inf
+    for kp in np.logspace(-2.5, -0.5, 25):
+        for ki in np.logspace(-1.5, 1.5, 25):
+            g = np.r_[kp, ki, 0.0]
+            if lp.stability(g) == "stable" and lp.peaks(g)["ms"] <= ms_max:
+                best = min(best, lp.objective_to_infinity(g, "iae")[0])
+    return best
+
+
+def test_notch_started_at_the_mode_acts_on_it_and_pays(mode163):
+    from prsa_ctrl.tuning.filtered import tune_filtered
+
+    ts, f_mode, bld, ref = mode163
+    n = tune_filtered([bld], ts=ts, kind="notch", start_gains=(ref.pid.kp, ref.pid.ki), reference=ref)
+    assert n.status == "optimal" and n.converged and n.filter is not None
+    f = n.filter.filter
+    # acts on the mode: centre within 1.5x of it, a real depth, >= 3 dB less loop gain at the mode
+    assert abs(math.log(f.centre_hz / f_mode)) < math.log(1.5)
+    assert f.depth_db <= -3.0
+    att_db = 20 * math.log10(abs(n.filter.biquad(ts).frequency_response([2 * math.pi * f_mode])[0]))
+    assert att_db <= -3.0
+    # true loop quantities of the returned design, recomputed
+    lp = bld(n.filter)
+    g = n.pid.gains
+    assert lp.stability(g) == "stable" and lp.peaks(g)["ms"] <= 1.4
+    assert abs(lp.objective_to_infinity(g, "iae")[0] - n.objective) <= 1e-9 * n.objective
+    # and it pays: well below anything the gains alone reach within the same Ms bound
+    assert n.objective < 0.5 * _gains_alone_grid_best(bld(None))
+
+
+def test_notch_that_cannot_reach_the_mode_is_not_labelled_optimal(mode163):
+    """Search box 221-884 Hz (a start at 442 Hz), the mode at 163 Hz outside it: the old tuner
+    returned the 442 Hz notch as "optimal"; now the status says no notch helps and why, and
+    the design returned is the gains alone."""
+    from prsa_ctrl.tuning.filtered import tune_filtered
+
+    ts, f_mode, bld, ref = mode163
+    n = tune_filtered([bld], ts=ts, kind="notch", start_gains=(ref.pid.kp, ref.pid.ki),
+                      start_filter=(442.0, 0.3 * 442.0, -20.0), reference=ref)
+    assert n.status != "optimal"
+    if n.filter is not None:  # a kept notch must act on the mode
+        f = n.filter.filter
+        assert f.depth_db <= -3.0 and abs(math.log(f.centre_hz / f_mode)) < math.log(1.5)
+    assert n.status.startswith("no notch helps: ") and "away from the mode" in n.status
+    assert n.filter is None and n.pid == ref.pid and n.objective == ref.objective and n.converged
+    assert n.stats["rejected_filter"]["kind"] == "notch"
+
+
+# --- items 3, 4, 5: robust study -> recommended design, strict JSON, named export ----------------
+
+
+# --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------
+
+
+# --- item 6: SIGTERM during a Monte-Carlo process pool -------------------------------------------

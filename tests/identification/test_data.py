@@ -1,4 +1,4 @@
-"""Loading and validating measured data for prsa-fit; experiment design."""
+"""prsa_ctrl.identification.data: loading and validating measured data for prsa-fit; experiment design."""
 
 import math
 

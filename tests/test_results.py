@@ -1,4 +1,4 @@
-"""Issue 22: result objects with one shape (frozen, ``status`` from one vocabulary, ``warnings``,
+"""prsa_ctrl.results (issue 22): result objects with one shape (frozen, ``status`` from one vocabulary, ``warnings``,
 ``as_dict``), verification that returns new objects, and figures that only draw."""
 
 import dataclasses

@@ -1,4 +1,4 @@
-"""Reports an engineer acts on (issue 24, item 5): setpoint-step metrics (overshoot %, 10-90 %
+"""prsa_ctrl.cli.report: reports an engineer acts on (issue 24, item 5): setpoint-step metrics (overshoot %, 10-90 %
 rise time, 2 % settling time) against an independent computation on a known second-order
 response; setpoint steps found in a duty-cycle profile (ramps are not steps); no percentage
 between a value at numerical zero and a real one; crossover in Hz; one name per design."""

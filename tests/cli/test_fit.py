@@ -1,8 +1,9 @@
-"""Ctrl-C in prsa-fit (review finding): one line, exit 130, nothing written, on the screw path
-(CasADi fit, which swallowed a raised KeyboardInterrupt: it printed its inputs and the run went
-on to write its files with exit 0) and on the linear-axis path (a traceback and a death by
-SIGINT). Real subprocesses and real signals; each waits for the ``--verbose`` progress line
-that says the fit started, then sends SIGINT."""
+"""prsa_ctrl.cli.fit (prsa-fit): its input checks, and Ctrl-C at any moment of a fit.
+
+prsa-fit --fit: an empty item or a repeated key is refused in one line naming the flag and the
+item; an empty [uncertainty] correlation array is refused with a message whose braces are single."""
+
+from __future__ import annotations
 
 import math
 import os
@@ -16,9 +17,91 @@ import pytest
 
 from prsa_ctrl import load_plant
 from prsa_ctrl.cli.common import EXIT_INTERRUPTED, Run
+from prsa_ctrl.cli.fit import main
 from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.errors import PlantFileError
 from prsa_ctrl.identification.data import record_from_arrays
 from prsa_ctrl.identification.timedomain import fit_plant
+from prsa_ctrl.plant.plantfile import Plant
+
+
+@pytest.mark.parametrize("value, words", [
+    ("axis.motor_inertia_kg_m2,,friction.efficiency", ["--fit", "empty item 2"]),
+    ("axis.motor_inertia_kg_m2,friction.efficiency,friction.efficiency", ["--fit", "'friction.efficiency' given twice"]),
+    (",", ["--fit", "empty item 1"]),
+    ("", ["--fit", "at least one key"]),
+])
+def test_fit_list_refused(tmp_path, capsys, value, words):
+    log = tmp_path / "x.csv"
+    log.write_text("time_s,torque_command_n_m,nut_angle_rad\n0,0,0\n")
+    out = tmp_path / "o.toml"
+    code = main([str(log), "--fit", value, "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err and not out.exists(), err
+    for w in words:
+        assert w in err, err
+
+
+def test_empty_correlation_message_braces():
+    doc = {"name": "p", "mechanism": "linear-axis", "axis": {"mass_kg": {"value": 1.0, "source": "t"}},
+           "drive": {"gain_n_per_unit": {"value": 1.0, "source": "t"}, "force_limit_n": {"value": 10.0, "source": "t"}},
+           "sensor": {"sample_time_s": {"value": 1e-3, "source": "t"}, "encoder_resolution_m": {"value": 1e-6, "source": "t"}},
+           "uncertainty": {"correlation": []}}
+    with pytest.raises(PlantFileError) as exc:
+        Plant.from_dict(doc, origin="p.toml")
+    msg = str(exc.value)
+    assert "correlation" in msg and "}}" not in msg and "} or an array" in msg
+
+
+# ------------------------------------------------------------------------------------------------
+# prsa-fit (prsa_ctrl.cli.fit): inputs that used to be accepted silently or reported as an
+# internal error are one line naming the flag or file, exit 2, nothing written.
+# ------------------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture()
+def record(tmp_path):
+    t = np.arange(400) * 2.5e-4
+    rec = record_from_arrays("r", t, 0.1 + 0.05 * np.sin(2 * np.pi * 20 * t),
+                             nut_angle_rad=30 * t + 0.1 * np.sin(2 * np.pi * 10 * t), axial_load_n=500.0)
+    p = tmp_path / "rec.csv"
+    rec.to_csv(p)
+    return p
+
+
+def _run(capsys, argv):
+    code = main(argv)
+    return code, capsys.readouterr().err
+
+
+def test_a_linear_axis_plant_as_the_base_of_a_screw_fit_is_bad_input(record, tmp_path, capsys):
+    """Was: "value = {'value': 35.15..., 'source': ...}; expected a number, string, bool or list"
+    (the TOML writer's own message)."""
+    base = ROOT / "examples" / "emps" / "plant.toml"
+    out = tmp_path / "fitted.toml"
+    code, err = _run(capsys, [str(record), "--plant", str(base), "--out", str(out)])
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"--plant {base}: mechanism = \"linear-axis\"" in err and "--log-format" in err
+    assert not out.exists()
+
+
+def test_a_torque_constant_without_a_current_column_is_bad_input(record, tmp_path, capsys):
+    out = tmp_path / "fitted.toml"
+    code, err = _run(capsys, [str(record), "--torque-constant", "0.5", "--out", str(out)])
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{record}: a torque constant of 0.5 N m/A (--torque-constant) was given" in err
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# Ctrl-C in prsa-fit (review finding): one line, exit 130, nothing written, on the screw path
+# (CasADi fit, which swallowed a raised KeyboardInterrupt: it printed its inputs and the run went
+# on to write its files with exit 0) and on the linear-axis path (a traceback and a death by
+# SIGINT). Real subprocesses and real signals; each waits for the ``--verbose`` progress line
+# that says the fit started, then sends SIGINT.
+# ------------------------------------------------------------------------------------------------
 
 EMPS = Path(__file__).resolve().parents[2] / "examples" / "emps"
 INTERRUPTED = "prsa-fit: interrupted (Ctrl-C); no output written"

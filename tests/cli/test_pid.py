@@ -1,4 +1,4 @@
-"""Issue 25: ``prsa-pid``, the generic tuner on the command line.
+"""prsa_ctrl.cli.pid (issue 25: ``prsa-pid``, the generic tuner on the command line).
 
 The JSON must round-trip: each design is rebuilt here from its JSON alone (plant coefficients,
 delay, gains, derivative and measurement filters) and its Ms, Mt, Mks and margins recomputed
@@ -121,9 +121,23 @@ CASES = {
 }
 
 
+@pytest.fixture(scope="module")
+def case_run():
+    """``case_run(name, tmp_path, capsys)``: the prsa-pid run of ``CASES[name]``, made once per module
+    (each is a full tuning) and shared by every test that asserts on it: (exit code, JSON, stdout)."""
+    done = {}
+
+    def run(name, tmp_path, capsys):
+        if name not in done:
+            done[name] = _run(tmp_path, CASES[name], capsys)
+        return done[name]
+
+    return run
+
+
 @pytest.mark.parametrize("name", list(CASES))
-def test_json_round_trips_to_the_true_peaks(name, tmp_path, capsys):
-    code, d, text = _run(tmp_path, CASES[name], capsys)
+def test_json_round_trips_to_the_true_peaks(name, tmp_path, capsys, case_run):
+    code, d, text = case_run(name, tmp_path, capsys)
     assert code == 0 and d["status"] == "optimal" and d["converged"]
     ref = independent_peaks(d)
     for key in ("ms", "mt"):
@@ -153,14 +167,14 @@ def test_json_round_trips_to_the_true_peaks(name, tmp_path, capsys):
     assert f"kp = {c['kp']:.6g}" in text and f"Ms = {d['ms']:.6g}" in text and "status      optimal" in text
 
 
-def test_the_issue_mks_case_matches_the_brute_force(tmp_path, capsys):
-    _, d, _ = _run(tmp_path, CASES["pi-mks"], capsys)
+def test_the_issue_mks_case_matches_the_brute_force(tmp_path, capsys, case_run):
+    _, d, _ = case_run("pi-mks", tmp_path, capsys)
     assert d["controller"]["ki"] == pytest.approx(13.739, rel=1e-3)  # issue 25: brute force ki 13.739
     assert d["objective"]["value"] == pytest.approx(1 / d["controller"]["ki"], rel=1e-9)  # IE = 1/ki exactly
 
 
-def test_reverse_acting_plant_gets_negative_gains(tmp_path, capsys):
-    _, d, text = _run(tmp_path, CASES["reverse"], capsys)
+def test_reverse_acting_plant_gets_negative_gains(tmp_path, capsys, case_run):
+    _, d, text = case_run("reverse", tmp_path, capsys)
     c = d["controller"]
     assert c["kp"] < 0 and c["ki"] < 0 and any("tuned as -P" in w for w in d["warnings"])
     # -P with the negated gains is the same loop: the positive plant's design is its mirror image
@@ -170,15 +184,15 @@ def test_reverse_acting_plant_gets_negative_gains(tmp_path, capsys):
     assert d2["controller"]["ki"] == pytest.approx(-c["ki"], rel=1e-9)
 
 
-def test_unstable_plant_keeps_positive_gains(tmp_path, capsys):
-    _, d, _ = _run(tmp_path, CASES["unstable"], capsys)
+def test_unstable_plant_keeps_positive_gains(tmp_path, capsys, case_run):
+    _, d, _ = case_run("unstable", tmp_path, capsys)
     c = d["controller"]
     assert c["kp"] > 0 and c["ki"] > 0 and not any("tuned as -P" in w for w in d["warnings"])
     assert d["margins"]["gm_db"] < 0  # a lower gain margin: the loop tolerates a gain decrease of that much
 
 
-def test_filtered_design_reports_filters_and_weights(tmp_path, capsys):
-    _, d, text = _run(tmp_path, CASES["filter2"], capsys)
+def test_filtered_design_reports_filters_and_weights(tmp_path, capsys, case_run):
+    _, d, text = case_run("filter2", tmp_path, capsys)
     c = d["controller"]
     assert c["filter_order"] == 2 and c["filter_tf_s"] == 0.2 and c["derivative"] == "filtered" and c["tf_s"] > 0
     assert 0 <= c["b"] <= 1 and 0 <= c["c"] <= 1 and d["setpoint"]["iae"] <= d["setpoint"]["iae_unweighted"]
@@ -186,8 +200,8 @@ def test_filtered_design_reports_filters_and_weights(tmp_path, capsys):
     assert d["standard"]["N"] == pytest.approx(d["standard"]["Td_s"] / c["tf_s"], rel=1e-12)
 
 
-def test_delay_report_says_exact(tmp_path, capsys):
-    _, d, text = _run(tmp_path, CASES["delay"], capsys)
+def test_delay_report_says_exact(tmp_path, capsys, case_run):
+    _, d, text = case_run("delay", tmp_path, capsys)
     assert d["plant"]["delay_s"] == 1.0 and d["margins"]["delay"] == "exact"
     assert d["controller"]["tf_s"] == 0.05 and d["options"]["tf_s"] == 0.05  # --tf is the derivative filter
     assert "exact delay" in d["objective"]["evaluation"] and "exp(-1 s)" in text
@@ -282,11 +296,11 @@ def test_unwritable_output_is_refused_before_any_heavy_import(tmp_path):
     assert not (tmp_path / "no").exists()
 
 
-def test_tiny_delay_and_the_law_are_stated(tmp_path, capsys):
+def test_tiny_delay_and_the_law_are_stated(tmp_path, capsys, case_run):
     """A 1e-5 s delay on 1/(s+1): the objective's evaluation says it is the Pade model's (the
     exact simulation is out of reach), and ``controller.law`` is the law the code implements
     (the measurement filter on y only; tests/tuning/test_generic.py simulates it)."""
-    code, d, text = _run(tmp_path, CASES["tiny-delay"], capsys)
+    code, d, text = case_run("tiny-delay", tmp_path, capsys)
     assert code == 0 and d["converged"]
     assert "Pade model of order" in d["objective"]["evaluation"] and d["stats"]["delay_model"]["objective"] == "pade"
     assert d["controller"]["law"].startswith("u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s) (c r - y_f), y_f = F(s) y")
