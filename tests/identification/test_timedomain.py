@@ -74,3 +74,41 @@ def test_objective_per_record_adds_up_to_the_objective(sim):
     assert all(math.isfinite(v) and v > 0 for v in per.values())
     alone = td.fit_plant([a], truth, keys=["nut.inertia_kg_m2"], delay_samples=0, validation=False)
     assert alone.solver["objective_per_record"] == {"a": pytest.approx(alone.solver["objective"], rel=1e-9)}
+
+
+def test_a_stuck_line_search_is_a_solution_only_at_a_tiny_defect_and_step():
+    se = np.array([1e-3, 2e-2])
+    ok = td._converged_at_kink(4e-7, np.array([1e-5, -1e-4]), se, 1e-8)
+    assert ok is True
+    # the defect above the tolerance, or a step the linearisation still asks for: not a solution
+    assert td._converged_at_kink(2 * td.KINK_CONSTRAINT_TOL, np.array([1e-5, -1e-4]), se, 1e-8) is False
+    assert td._converged_at_kink(4e-7, np.array([2e-4, 0.0]), se, 1e-8) is False  # 0.2 standard errors
+    assert td._converged_at_kink(float("nan"), np.zeros(2), se, 1e-8) is False
+    assert td._converged_at_kink(4e-7, np.zeros(0), None, 1e-8) is True  # states only
+
+
+def test_a_fit_whose_line_search_cannot_improve_a_converged_point_reports_it(sim, monkeypatch):
+    # Every trial point with a defect below 1e-7 is refused (as at a kink of the friction law,
+    # where Newton steps flip sides): the iterate holds the equations and the step is small, so
+    # the fit converges and says so; with the tolerance at zero the same run fails as before.
+    rec, truth = sim
+    keys = ("nut.inertia_kg_m2",)
+    res = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+    assert res.solver["converged_at_kink"] is False
+    orig = td._Problem._merit_terms
+    state = {"n": 0}
+
+    def refuse(self, V, X0, s):
+        state["n"] += 1
+        g, f = orig(self, V, X0, s)
+        return (g, f) if g > 1e-7 else (10.0 * g + 1.0, 10.0 * f + 1.0)  # finite, never better
+
+    monkeypatch.setattr(td._Problem, "_merit_terms", refuse)
+    out = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+    assert out.solver["converged_at_kink"] is True
+    assert out.parameters["nut.inertia_kg_m2"]["value"] == pytest.approx(
+        res.parameters["nut.inertia_kg_m2"]["value"], rel=1e-6)
+    monkeypatch.setattr(td, "KINK_CONSTRAINT_TOL", 0.0)
+    state["n"] = 0
+    with pytest.raises(td.FitError, match="line search failed"):
+        td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
