@@ -1,0 +1,114 @@
+"""prsa_ctrl.identification.timedomain: the delay search's short segments and the objective per
+record (issue 32: the ball-screw logs' delay was undecided on 0.1 s segments)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from prsa_ctrl.identification import timedomain as td
+from prsa_ctrl.identification.common import FitResult
+from prsa_ctrl.identification.synthetic import fit_record
+
+BW = "drive.current_loop_bandwidth_hz"
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return fit_record(0.5)
+
+
+def test_search_segment_is_short_but_not_below_forty_samples():
+    assert td.search_segment_s(0.1, 1.25e-4) == td.SEARCH_SEGMENT_S == 0.02
+    assert td.search_segment_s(0.01, 1.25e-4) == 0.01  # never longer than the fit's own
+    assert td.search_segment_s(0.1, 1e-3) == pytest.approx(0.04)  # 40 samples at 1 kHz
+
+
+def test_the_search_fits_short_segments_and_the_result_the_asked_ones(sim, monkeypatch):
+    rec, truth = sim
+    calls = []
+
+    def fake(records, plant, *, segment_s, delay_samples, keys, **kw):
+        calls.append((delay_samples, segment_s))
+        keys = td.default_keys(plant) if keys is None else keys
+        f = {1: 10.0, 2: 1.0, 3: 30.0}.get(delay_samples, 50.0)  # shift 2 the best by far
+        params = {k: {"value": plant.values[k], "ci95": [0.5 * plant.values[k], 1.5 * plant.values[k]], "unit": ""}
+                  for k in keys}
+        params[BW]["value"] = 100.0
+        return FitResult(plant, params, {"value": 1.0, "ci95": [0.9, 1.1]}, np.eye(len(keys)), tuple(keys), {}, [],
+                         {"objective": f, "objective_per_record": {rec.name: f}, "segment_s": segment_s}, {}, None, {},
+                         None)
+
+    monkeypatch.setattr(td, "_fit_records", fake)
+    res = td.fit_plant([rec], truth, delay_samples="find", max_delay_samples=3, segment_s=0.1, validation=False)
+    search = [c for c in calls[:-1]]
+    ts = rec.sample_time_s
+    assert search and all(seg == td.search_segment_s(0.1, ts) < 0.1 for _, seg in search)
+    assert calls[-1] == (2, 0.1)  # the fit at the found shift on the asked segments
+    cd = res.solver["command_delay"]
+    assert cd["shift_samples"] == 2 and cd["search"]["decided"] is True
+    assert cd["search"]["segment_s"] == td.search_segment_s(0.1, ts)
+    assert res.solver["segment_s"] == 0.1
+    # segments no longer than the search's: no second fit
+    calls.clear()
+    td.fit_plant([rec], truth, delay_samples="find", max_delay_samples=3, segment_s=0.01, validation=False)
+    assert all(seg == 0.01 for _, seg in calls) and len(calls) == len({d for d, _ in calls})
+
+
+def test_objective_per_record_adds_up_to_the_objective(sim):
+    from dataclasses import replace
+
+    rec, truth = sim
+    n = rec.n // 2
+
+    def part(name, sl):
+        return replace(rec, name=name, time_s=rec.time_s[sl], torque_command_n_m=rec.torque_command_n_m[sl],
+                       nut_angle_rad=rec.nut_angle_rad[sl], axial_load_n=rec.axial_load_n[sl],
+                       nut_speed_rad_s=None if rec.nut_speed_rad_s is None else rec.nut_speed_rad_s[sl])
+
+    a, b = part("a", slice(0, n)), part("b", slice(n, rec.n))
+    res = td.fit_plant([a, b], truth, keys=["nut.inertia_kg_m2"], delay_samples=0, validation=False)
+    per = res.solver["objective_per_record"]
+    assert set(per) == {"a", "b"}
+    assert sum(per.values()) == pytest.approx(res.solver["objective"], rel=1e-9)
+    assert all(math.isfinite(v) and v > 0 for v in per.values())
+    alone = td.fit_plant([a], truth, keys=["nut.inertia_kg_m2"], delay_samples=0, validation=False)
+    assert alone.solver["objective_per_record"] == {"a": pytest.approx(alone.solver["objective"], rel=1e-9)}
+
+
+def test_a_stuck_line_search_is_a_solution_only_at_a_tiny_defect_and_step():
+    se = np.array([1e-3, 2e-2])
+    ok = td._converged_at_kink(4e-7, np.array([1e-5, -1e-4]), se, 1e-8)
+    assert ok is True
+    # the defect above the tolerance, or a step the linearisation still asks for: not a solution
+    assert td._converged_at_kink(2 * td.KINK_CONSTRAINT_TOL, np.array([1e-5, -1e-4]), se, 1e-8) is False
+    assert td._converged_at_kink(4e-7, np.array([2e-4, 0.0]), se, 1e-8) is False  # 0.2 standard errors
+    assert td._converged_at_kink(float("nan"), np.zeros(2), se, 1e-8) is False
+    assert td._converged_at_kink(4e-7, np.zeros(0), None, 1e-8) is True  # states only
+
+
+def test_a_fit_whose_line_search_cannot_improve_a_converged_point_reports_it(sim, monkeypatch):
+    # Every trial point with a defect below 1e-7 is refused (as at a kink of the friction law,
+    # where Newton steps flip sides): the iterate holds the equations and the step is small, so
+    # the fit converges and says so; with the tolerance at zero the same run fails as before.
+    rec, truth = sim
+    keys = ("nut.inertia_kg_m2",)
+    res = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+    assert res.solver["converged_at_kink"] is False
+    orig = td._Problem._merit_terms
+    state = {"n": 0}
+
+    def refuse(self, V, X0, s):
+        state["n"] += 1
+        g, f = orig(self, V, X0, s)
+        return (g, f) if g > 1e-7 else (10.0 * g + 1.0, 10.0 * f + 1.0)  # finite, never better
+
+    monkeypatch.setattr(td._Problem, "_merit_terms", refuse)
+    out = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+    assert out.solver["converged_at_kink"] is True
+    assert out.parameters["nut.inertia_kg_m2"]["value"] == pytest.approx(
+        res.parameters["nut.inertia_kg_m2"]["value"], rel=1e-6)
+    monkeypatch.setattr(td, "KINK_CONSTRAINT_TOL", 0.0)
+    state["n"] = 0
+    with pytest.raises(td.FitError, match="line search failed"):
+        td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
