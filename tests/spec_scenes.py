@@ -73,11 +73,9 @@ monte_carlo = 200
 def roller_16k_plant() -> str:
     """The built-in ``rollerscrew-30x5`` on a 16 kHz speed loop: the plant file's text with only
     its sample time (and name) changed, everything else as built in."""
-    from pathlib import Path
+    from prsa_ctrl.plant.plantfile import plant_file_path
 
-    import prsa_ctrl
-
-    text = (Path(prsa_ctrl.__file__).resolve().parent.parent / "plants" / "rollerscrew-30x5.toml").read_text("utf-8")
+    text = plant_file_path("rollerscrew-30x5").read_text("utf-8")
     old = 'sample_time_s = { value = 2.5e-4, source = "assumption: 4 kHz speed loop of a servo drive" }'
     assert old in text and 'name = "rollerscrew-30x5"' in text
     return text.replace(old, 'sample_time_s = { value = 6.25e-5, source = "assumption: 16 kHz speed loop of a '

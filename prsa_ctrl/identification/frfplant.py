@@ -200,13 +200,13 @@ def _held_sd(plant: Plant, key: str) -> tuple[float, str]:
     entry (the distribution's own, by quadrature of its inverse CDF) when it has one, else
     :data:`HELD_DEFAULT`'s uniform; and its source."""
     from ..errors import PlantFileError
-    from ..plant.uncertainty import _resolve, parse_entries
+    from ..plant.uncertainty import parse_entries, resolve_entry
 
     table = getattr(plant, "uncertainty", None) or {}
     if table:
         try:  # this key's entry alone (the others may no longer hold the fitted values)
             flat = parse_entries(table, plant.origin)
-            e = _resolve(key, flat[key], plant.values[key], plant.origin, PlantFileError) if key in flat else None
+            e = resolve_entry(key, flat[key], plant.values[key], plant.origin, PlantFileError) if key in flat else None
         except PlantFileError:
             e = None  # its support no longer holds the value: the default below
         if e is not None:

@@ -263,7 +263,26 @@ def _parse_correlation(raw: Any, entries: Mapping[str, Any], origin: str, err) -
     return out
 
 
-def _resolve(key: str, entry: Mapping[str, Any], nominal: float, origin: str, err) -> Uncertain:
+def resolve_entry(key: str, entry: Mapping[str, Any], nominal: float, origin: str, err) -> Uncertain:
+    """One parsed ``[uncertainty]`` entry of a plant key as a distribution about its nominal value.
+
+    Parameters
+    ----------
+    key : str
+        The plant key (SI units as the plant file states them).
+    entry : mapping
+        The entry as :func:`parse_entries` returns it (``dist`` and its spread).
+    nominal : float
+        The key's nominal value, in the key's units.
+    origin : str
+        Where the entry was read (for messages).
+    err : type
+        The exception raised on an entry that does not fit the key (one line naming it).
+
+    Returns
+    -------
+    Uncertain
+    """
     where = f"uncertainty.{quote(key)}"
     dist = entry["dist"]
     sigma = 0.0
@@ -401,7 +420,7 @@ def _build(entries: Mapping[str, Any], plant, origin: str, err, notes: Sequence[
     for key in sorted(k for k in entries if k != CORRELATION_KEY):
         if key not in plant.values:
             raise err(f"{origin}: unknown key uncertainty.{quote(key)}; the plant {quote(plant.name)} has no such parameter")
-        unc.append(_resolve(key, entries[key], float(plant.values[key]), origin, err))
+        unc.append(resolve_entry(key, entries[key], float(plant.values[key]), origin, err))
     corr = tuple(Correlation(tuple(b["keys"]), tuple(tuple(r) for r in b["matrix"]), b["source"])
                  for b in entries.get(CORRELATION_KEY, ()))
     model = UncertaintyModel(tuple(unc), corr, tuple(notes))
