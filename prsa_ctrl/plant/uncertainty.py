@@ -67,7 +67,7 @@ from ..textsafe import quote
 from ..errors import GeometryWarning, PlantFileError, SceneError
 from .schema import KIND
 
-__all__ = ["Uncertain", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "uncertainty_model",
+__all__ = ["Uncertain", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "resolve_entry", "uncertainty_model",
            "plant_uncertainty", "check_plant_uncertainty", "CORRELATION_KEY", "PSD_TOLERANCE",
            "correlation_entry", "restrict_correlation", "correlation_toml", "carry_correlation", "inner_truncation"]
 
