@@ -644,7 +644,15 @@ def _warn_routed(message, category=None, stacklevel=1, source=None, **kwargs):
     otherwise to the warn it replaced."""
     caught = getattr(_THREAD_WARNINGS, "caught", None)
     if caught is None:
-        return _warn_routed.previous(message, category, stacklevel + 1, source, **kwargs)
+        if getattr(_THREAD_WARNINGS, "forwarding", False):  # a wrapper of ours that we wrapped: no loop
+            import _warnings
+
+            return _warnings.warn(message, category, stacklevel + 1, source, **kwargs)
+        _THREAD_WARNINGS.forwarding = True
+        try:
+            return _warn_routed.previous(message, category, stacklevel + 1, source, **kwargs)
+        finally:
+            _THREAD_WARNINGS.forwarding = False
     if isinstance(message, Warning):
         category = message.__class__
     else:
@@ -685,8 +693,14 @@ def _show_routed(message, category, filename, lineno, file=None, line=None):
     """:func:`warnings.showwarning` with the same per-thread recorder (warnings issued by C code,
     which do not go through :func:`warnings.warn`'s Python name, once the filters let them through)."""
     caught = getattr(_THREAD_WARNINGS, "caught", None)
-    if caught is None or getattr(_THREAD_WARNINGS, "showing", False):
-        return _show_routed.previous(message, category, filename, lineno, file, line)
+    if caught is None:
+        if getattr(_THREAD_WARNINGS, "showing", False):  # a wrapper of ours that we wrapped: no loop
+            return warnings._showwarning_orig(message, category, filename, lineno, file, line)
+        _THREAD_WARNINGS.showing = True
+        try:
+            return _show_routed.previous(message, category, filename, lineno, file, line)
+        finally:
+            _THREAD_WARNINGS.showing = False
     caught.append(warnings.WarningMessage(message, category, filename, lineno, file, line))
 
 

@@ -522,3 +522,29 @@ def test_thread_warnings_records_this_threads_warnings_as_its_code_filters_them(
     assert [str(w.message) for w in theirs] == ["other thread"]
     with pytest.raises(UserWarning, match="outside"):  # outside a block: the process's filters (the test run's "error")
         warnings.warn("outside", UserWarning)
+
+
+def test_thread_warnings_wrapped_by_another_wrapper_does_not_loop(monkeypatch):
+    """Someone wraps the routed ``warnings.warn`` after it was installed, and a recording
+    block installs it again over theirs: a warning outside any block goes to the process's
+    filters once (no RecursionError between the two wrappers)."""
+    import warnings
+
+    from prsa_ctrl.app.session import thread_warnings
+
+    from prsa_ctrl.app import session
+
+    with thread_warnings():
+        pass
+    ours = warnings.warn
+    monkeypatch.setattr(session._warn_routed, "previous", session._warn_routed.previous)  # put back at the end
+
+    def theirs(message, category=None, stacklevel=1, source=None):
+        return ours(message, category, stacklevel + 1, source)
+
+    monkeypatch.setattr(warnings, "warn", theirs)
+    with thread_warnings() as caught:
+        warnings.warn("in the block", UserWarning)
+    assert [str(w.message) for w in caught] == ["in the block"]
+    with pytest.raises(UserWarning, match="outside"):
+        warnings.warn("outside", UserWarning)
