@@ -18,7 +18,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-__all__ = ["printable", "quote", "MESSAGE_CHARS_MAX", "QUOTE_CHARS_MAX"]
+__all__ = ["printable", "quote", "unicode_text", "MESSAGE_CHARS_MAX", "QUOTE_CHARS_MAX"]
 
 #: Characters at most in one line a command prints (errors, notes); longer lines lose their middle.
 MESSAGE_CHARS_MAX = 2000
@@ -122,3 +122,22 @@ def _int_digits(value: int) -> str | None:
         return str(value)
     except ValueError:  # beyond sys.get_int_max_str_digits()
         return None
+
+
+_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def unicode_text(text: str) -> str:
+    r"""``text`` with every lone surrogate written as an escape: ``\xNN`` for the byte an
+    undecodable file name carried (Python's ``surrogateescape``, U+DC80..U+DCFF), ``\uXXXX``
+    for any other; text that can be encoded (UTF-8, TOML, JSON) and names the file by the
+    byte it had.
+
+    >>> unicode_text("log\udcff.csv")
+    'log\\xff.csv'
+    """
+    def esc(m: re.Match) -> str:
+        n = ord(m.group(0))
+        return f"\\x{n - 0xDC00:02x}" if 0xDC80 <= n <= 0xDCFF else f"\\u{n:04x}"
+
+    return _SURROGATE.sub(esc, text)

@@ -13,11 +13,13 @@ Units are SI: gains ``kp`` N m s/rad, ``ki`` N m/rad, ``kd`` N m s^2/rad; speeds
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import math
 import os
 import shlex
+import sys
 import tempfile
 import threading
 import warnings
@@ -322,8 +324,7 @@ class AppSession:
                 text = text.replace(p, shown)
             return " ".join(text.split())
 
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
+        with thread_warnings() as caught:  # this call's warnings only (another session may be calibrating)
             try:
                 check()
                 got = calibrate_logs([str(path)], base, name=Path(out).stem, labels=[name], check_interrupt=check)
@@ -632,6 +633,101 @@ def _finite(x):
     return x
 
 
+_THREAD_WARNINGS = threading.local()
+_THREAD_WARNINGS_LOCK = threading.Lock()
+
+
+def _warn_routed(message, category=None, stacklevel=1, source=None, **kwargs):
+    """:func:`warnings.warn` with a per-thread recorder: while this thread is inside
+    :func:`thread_warnings`, the warning goes to its list (every one, as ``"always"`` would,
+    but for the filters the code run since has added: ``ignore`` drops it, ``error`` raises it);
+    otherwise to the warn it replaced."""
+    caught = getattr(_THREAD_WARNINGS, "caught", None)
+    if caught is None:
+        if getattr(_THREAD_WARNINGS, "forwarding", False):  # a wrapper of ours that we wrapped: no loop
+            import _warnings
+
+            return _warnings.warn(message, category, stacklevel + 1, source, **kwargs)
+        _THREAD_WARNINGS.forwarding = True
+        try:
+            return _warn_routed.previous(message, category, stacklevel + 1, source, **kwargs)
+        finally:
+            _THREAD_WARNINGS.forwarding = False
+    if isinstance(message, Warning):
+        category = message.__class__
+    else:
+        category = category or UserWarning
+        message = category(message)
+    try:
+        module = sys._getframe(stacklevel).f_globals.get("__name__", "")
+    except ValueError:
+        module = ""
+    action = _added_filter_action(message, category, module)
+    if action == "ignore":
+        return None
+    if action == "error":
+        raise message
+    caught.append(warnings.WarningMessage(message, category, "", 0, source=source))
+
+
+def _added_filter_action(message: Warning, category: type, module: str) -> str | None:
+    """The action of the first filter added since this thread's recording began (the code it
+    runs silencing a warning: ``catch_warnings(); simplefilter("ignore", ...)``) that matches,
+    else None (recorded). ``simplefilter``/``filterwarnings`` put a filter first and drop an
+    equal one further down, so the added filters are the front of the list before the part that
+    is, in order, the filters at the start."""
+    current, base = list(warnings.filters), _THREAD_WARNINGS.filters
+    i, j = len(current) - 1, len(base) - 1
+    while i >= 0 and j >= 0:
+        if current[i] == base[j]:
+            i -= 1
+        j -= 1
+    for action, msg, cat, mod, lineno in current[:i + 1]:
+        if ((msg is None or msg.match(str(message))) and issubclass(category, cat)
+                and (mod is None or mod.match(module)) and lineno == 0):
+            return action
+    return None
+
+
+def _show_routed(message, category, filename, lineno, file=None, line=None):
+    """:func:`warnings.showwarning` with the same per-thread recorder (warnings issued by C code,
+    which do not go through :func:`warnings.warn`'s Python name, once the filters let them through)."""
+    caught = getattr(_THREAD_WARNINGS, "caught", None)
+    if caught is None:
+        if getattr(_THREAD_WARNINGS, "showing", False):  # a wrapper of ours that we wrapped: no loop
+            return warnings._showwarning_orig(message, category, filename, lineno, file, line)
+        _THREAD_WARNINGS.showing = True
+        try:
+            return _show_routed.previous(message, category, filename, lineno, file, line)
+        finally:
+            _THREAD_WARNINGS.showing = False
+    caught.append(warnings.WarningMessage(message, category, filename, lineno, file, line))
+
+
+@contextlib.contextmanager
+def thread_warnings():
+    """Record the warnings this thread issues, and only those (a list of
+    :class:`warnings.WarningMessage`), without the process-wide state of
+    :func:`warnings.catch_warnings` (its filters and ``showwarning`` are the process's, so two
+    sessions calibrating at once in two threads saw each other's warnings, and the one that
+    finished first reset the other's recording). Other threads' warnings go where they went.
+    Nests (the inner block gets its own list)."""
+    with _THREAD_WARNINGS_LOCK:  # installed once; again when someone (a test harness) put theirs back
+        if warnings.warn is not _warn_routed:
+            _warn_routed.previous = warnings.warn
+            warnings.warn = _warn_routed
+        if warnings.showwarning is not _show_routed:
+            _show_routed.previous = warnings.showwarning
+            warnings.showwarning = _show_routed
+    outer = getattr(_THREAD_WARNINGS, "caught", None), getattr(_THREAD_WARNINGS, "filters", None)
+    caught = []
+    _THREAD_WARNINGS.caught, _THREAD_WARNINGS.filters = caught, list(warnings.filters)
+    try:
+        yield caught
+    finally:
+        _THREAD_WARNINGS.caught, _THREAD_WARNINGS.filters = outer
+
+
 def _notes(caught: list) -> list[str]:
     out = []
     for w in caught:
@@ -642,8 +738,7 @@ def _notes(caught: list) -> list[str]:
 
 
 def _load_plant(name_or_path, label: str | None = None) -> tuple[Plant, str, list[str]]:
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with thread_warnings() as caught:
         try:
             plant = load_plant(name_or_path)
         except PlantFileError as exc:
@@ -662,8 +757,7 @@ def _load_scene(name_or_path, label: str | None = None) -> tuple[Scene, str, lis
     if is_move_scene(name_or_path):
         raise AppInputError(f"scene {text!r} is a move (cascade) scene; expected a load-step scene (tune it with "
                             f"prsa-tune --scene {text})")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with thread_warnings() as caught:
         try:
             scene = load_scene(name_or_path)
         except SceneError as exc:

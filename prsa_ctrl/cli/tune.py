@@ -336,6 +336,17 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
                              "to design to (e.g. [spec] peak_drop_rad_s = 12.0)")
         if args.monte_carlo == 0:
             raise UsageError("--design-to-spec with --monte-carlo 0; expected a sample count of the final check >= 1")
+        from ..studies.designspec import SAMPLES_MAX
+        from ..studies.montecarlo import scene_options
+
+        # the final check's sample count, refused here rather than by the study after the robust tuning (was exit 3)
+        if args.monte_carlo is not None and args.monte_carlo > SAMPLES_MAX:
+            raise UsageError(f"--design-to-spec with --monte-carlo {args.monte_carlo}; expected a sample count of the "
+                             f"final check in 1..{SAMPLES_MAX}")
+        n_scene = scene_options(scene)["samples"]
+        if args.monte_carlo is None and n_scene > SAMPLES_MAX:
+            raise UsageError(f"--design-to-spec: the scene {scene.name} has [robust] monte_carlo = {n_scene}; expected "
+                             f"a sample count of the final check in 1..{SAMPLES_MAX} (or --monte-carlo N)")
 
     if move:
         steps = (design_to_spec, suffix, distinct, json_path, export, drive_options, plots)

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from ..errors import DataError, GeometryWarning, PlantFileError
+from ..textsafe import printable
 
 __all__ = ["MOTOR_COORDINATES", "Calibrated", "calibrate_logs", "fitted_plant_text", "fit_report", "result_lines",
            "validation_lines", "not_explained_line",
@@ -133,7 +134,8 @@ def structure_lines(choice) -> list[str]:
 
 
 def validation_lines(v: Mapping[str, Any]) -> list[str]:
-    """The validation's per-log lines (:mod:`prsa_ctrl.identification.validation`)."""
+    """The validation's per-log lines (:mod:`prsa_ctrl.identification.validation`), one line each
+    (the logs' names made printable: :func:`prsa_ctrl.textsafe.printable`)."""
     out = [f"validation ({v['replay']}):"]
     for part, what in (("written_plant", "plant as written"), ("cross_validation", "left out, fitted on the others")):
         for name, e in (v.get(part) or {}).items():
@@ -148,13 +150,15 @@ def validation_lines(v: Mapping[str, Any]) -> list[str]:
                           if w else ""))
     out.append(f"  rule: {v['rule']}")
     out.append("  verdict: " + ("the plant explains the data" if v["passes"] else "NOT validated: " + "; ".join(v["reasons"])))
-    return out
+    return [printable(x) for x in out]  # one line each: a log named with a line feed cannot forge a line
 
 
 def result_lines(result, coordinates: Mapping[str, str], choice=None) -> list[str]:
     """The fit's report as text lines (what ``prsa-fit`` prints before ``wrote ...``): values with
     95 % intervals, the command delay and friction map when found, the reflected inertia, the
-    FRF structure (``choice``), fit % per record, warnings, coordinates, validation."""
+    FRF structure (``choice``), fit % per record, warnings, coordinates, validation. One line
+    each: the logs' names and the warnings made printable (:func:`prsa_ctrl.textsafe.printable`:
+    a line feed in a file name is ``\\n``, not a line of its own)."""
     from .common import unit_text
 
     out = []
@@ -193,7 +197,7 @@ def result_lines(result, coordinates: Mapping[str, str], choice=None) -> list[st
     validation = result.solver.get("validation")
     if validation is not None:
         out += validation_lines(validation)
-    return out
+    return [printable(x) for x in out]  # one line each: a log (or warning) naming a line feed cannot forge a line
 
 
 def not_explained_line(result, force: bool = False) -> str | None:

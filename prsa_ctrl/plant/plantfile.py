@@ -40,11 +40,15 @@ __all__ = [
     "builtin_plants",
     "plant_file_path",
     "DEFAULT_PLANT",
+    "PLANT_FILE_BYTES_MAX",
     "SCHEMA",
     "PLAUSIBLE",
 ]
 
 DEFAULT_PLANT = "paper-iprsm"
+#: Bytes at most of a plant file (the shipped ones hold under 10 kB): a larger one is refused before
+#: it is read (a fit parses its base twice with tomlkit, about 4 s per megabyte).
+PLANT_FILE_BYTES_MAX = 1_000_000
 _STEEL_KG_M3 = 7850.0  # density of steel, kg/m^3 (as the defaults of plant/schema.py)
 
 def builtin_root(package: str, folder: str) -> Any:
@@ -941,13 +945,17 @@ def load_plant(name_or_path: str | Path | None = None) -> Plant:
     Raises
     ------
     PlantFileError
-        If the file is missing, unreadable or invalid; the message names the file and key.
+        If the file is missing, unreadable, larger than :data:`PLANT_FILE_BYTES_MAX` or invalid;
+        the message names the file and key.
     """
     src = _resolve(name_or_path)
     builtin = name_or_path is None or not (isinstance(name_or_path, Path) or str(name_or_path).endswith(".toml")
                                            or "/" in str(name_or_path) or "\\" in str(name_or_path))
     origin = f"{src.name} (built-in)" if builtin else str(src)
     try:
+        size = src.stat().st_size if isinstance(src, Path) else 0
+        if size > PLANT_FILE_BYTES_MAX:
+            raise PlantFileError(f"{origin}: {size} bytes; expected a plant file of at most {PLANT_FILE_BYTES_MAX} bytes")
         text = src.read_text(encoding="utf-8-sig")  # -sig: a byte-order mark is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise PlantFileError(f"{origin}: cannot be read ({exc}); expected a UTF-8 TOML file") from None

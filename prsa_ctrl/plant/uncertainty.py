@@ -778,6 +778,9 @@ def parse_scene_sections(doc: Mapping[str, Any], origin: str) -> dict[str, dict[
             if k in ("ms", "mt") and not v > 1.0 - (k == "mt") * 0.5:
                 raise SceneError(f"{origin}: spec.{k} = {quote(v)}; expected a bound > {1.0 if k == 'ms' else 0.5:g}")
             spec[k] = float(v)
+        if "spec_yield" in out and not spec:  # (was taken for a scene without [spec] by --design-to-spec)
+            raise SceneError(f"{origin}: spec.yield = {quote(table['yield'])} and no bound in [spec]; expected the "
+                             "bounds the yield counts (e.g. spec.peak_drop_rad_s = 12.0)")
         out["spec"] = spec
     if "robust" in doc:
         table = doc["robust"]

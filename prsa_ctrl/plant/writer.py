@@ -12,7 +12,9 @@ line saying so. :func:`document_toml` does the same for any plant document (a ``
 Text from a user's file is data: every string is written as a TOML basic string with quotes,
 backslashes, control characters, the bidirectional marks and overrides and the line separators
 escaped (``\\uXXXX``); a lone surrogate (an undecodable file name) cannot be written to TOML and
-is refused (``ValueError`` naming the key). Header comment lines go through
+is refused (``ValueError`` naming the key), except in the sources and description of a fitted
+plant (:func:`fitted_document`), where it names a log file and is written as its byte
+(``\\xNN``, :func:`prsa_ctrl.textsafe.unicode_text`). Header comment lines go through
 :func:`prsa_ctrl.textsafe.printable` (one line each). Numbers keep all their digits
 (``repr``), so that the file reads back exactly.
 
@@ -30,7 +32,7 @@ import tomllib
 from typing import Any, Mapping, Sequence
 
 from ..errors import PlantFileError
-from ..textsafe import printable
+from ..textsafe import printable, unicode_text
 
 __all__ = ["plant_toml", "document_toml", "fitted_document", "toml_string", "inline_value", "FRESH_NOTE", "NO_TOMLKIT_NOTE", "UNCERTAINTY_COMMENT"]
 
@@ -286,6 +288,9 @@ def fitted_document(base_doc: Mapping[str, Any], plant, name: str | None = None,
         The new name and top-level description (default: the base's).
     keys : sequence of str
         Plant keys (``section.key``) written from ``plant`` (a section the base left out is added).
+        Their sources, ``[uncertainty]`` sources and the description name the logs a fit read: a
+        log file name that is not UTF-8 (a lone surrogate) is written with the byte as ``\\xNN``
+        (:func:`prsa_ctrl.textsafe.unicode_text`); a ``name`` holding one is refused.
     uncertainty_keys : sequence of str, optional
         Keys whose ``[uncertainty]`` entry is ``plant.uncertainty``'s (removed when it has
         none). Default: the ``keys`` with an entry in ``plant.uncertainty``.
@@ -296,18 +301,25 @@ def fitted_document(base_doc: Mapping[str, Any], plant, name: str | None = None,
     if name is not None:
         doc["name"] = name
     if description is not None:
-        doc["description"] = description
+        doc["description"] = unicode_text(description)  # (an undecodable log file name: its byte as \xNN)
     for k in keys:
         section, sub = k.split(".")
         if not isinstance(doc.get(section, {}), dict):
             raise PlantFileError(f"base plant file: {section} = {doc[section]!r} is not a table; expected [{section}]")
-        doc.setdefault(section, {})[sub] = {"value": _plain(plant.values[k]), "source": plant.sources[k]}
+        doc.setdefault(section, {})[sub] = {"value": _plain(plant.values[k]), "source": unicode_text(plant.sources[k])}
     old = doc.get("uncertainty", {})
     new = {k: v for k, v in old.items() if k not in unc_keys}
-    new.update({k: _plain(unc[k]) for k in unc_keys if k in unc})
+    new.update({k: _sourced(_plain(unc[k])) for k in unc_keys if k in unc})
     if new or "uncertainty" in doc:
         doc["uncertainty"] = new
     return doc
+
+
+def _sourced(entry: Any) -> Any:
+    """An ``[uncertainty]`` entry with its ``source`` text encodable (:func:`unicode_text`)."""
+    if isinstance(entry, dict) and isinstance(entry.get("source"), str):
+        return {**entry, "source": unicode_text(entry["source"])}
+    return entry
 
 
 def plant_toml(plant, base_text: str | None = None, *, name: str | None = None, keys: Sequence[str] | None = None,

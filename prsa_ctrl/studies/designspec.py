@@ -48,6 +48,8 @@ MAX_FINALISTS = 4
 #: Points per axis of the linear-yield grid (kp x ki/kp), and the designs it proposes.
 GRID_SIZE = 12
 GRID_PICKS = 3
+#: Samples at most of each of the design-to-spec's Monte-Carlo runs (search, decision, final check).
+SAMPLES_MAX = 100_000
 
 
 @dataclass(frozen=True)
@@ -158,8 +160,8 @@ def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed
 
     n_decide = 3 * n_search if n_decide is None and isinstance(n_search, int) else n_decide
     for name, v in (("n_search", n_search), ("n_final", n_final), ("n_decide", n_decide)):
-        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 100_000:
-            raise ValueError(f"{name} = {v!r}; expected a number of samples in 1..100000")
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= SAMPLES_MAX:
+            raise ValueError(f"{name} = {v!r}; expected a number of samples in 1..{SAMPLES_MAX}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed = {seed!r}; expected an integer >= 0")
     levels = tuple(MS_LEVELS if ms_levels is None else ms_levels)

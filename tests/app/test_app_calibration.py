@@ -417,3 +417,133 @@ assert not cli, cli
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "cli modules: []" in proc.stdout
+
+
+def test_two_sessions_calibrating_at_once_keep_their_own_notes(log):
+    """Two sessions calibrate in two threads at once (the app's worker threads): each gets its
+    own notes, none of the other's. Was: ``warnings.catch_warnings`` (process-wide state) around
+    each call: a warning of another thread during a calibration became one of its notes, and
+    the calibration that finished first reset the other's recording (its plant's geometry note
+    was lost). Interleaved deterministically through the ``cancelled`` polls: A starts, B starts
+    and waits in its first poll until A has finished, then loads its plant."""
+    import threading
+    import warnings
+
+    from prsa_ctrl.app.session import AppSession
+    from prsa_ctrl.errors import GeometryWarning
+    from prsa_ctrl.plant.plantfile import plant_file_path
+
+    base = plant_file_path("paper-iprsm").read_bytes()  # geometry does not close: a note naming the file
+    data = log[0].read_bytes()
+    sa, sb = AppSession(), AppSession()
+    got, errors = {}, []
+    b_started, a_done = threading.Event(), threading.Event()
+
+    def other_thread_warns():  # (a category the test run ignores: nothing to show where it goes)
+        warnings.warn(GeometryWarning("a warning of another thread"))
+
+    def poll_a():
+        if "a-polled" not in got:
+            got["a-polled"] = True
+            tb.start()
+            assert b_started.wait(60)
+            t = threading.Thread(target=other_thread_warns)
+            t.start()
+            t.join()
+        return False
+
+    def poll_b():
+        if not b_started.is_set():
+            b_started.set()
+            assert a_done.wait(120)
+        return False
+
+    def run(key, session, poll, done=None):
+        try:
+            got[key] = session.calibrate("axis-log.csv", data, cancelled=poll, poll_s=0.0)
+        except BaseException as exc:  # noqa: BLE001 - reported by the test thread
+            errors.append(exc)
+        finally:
+            if done is not None:
+                done.set()
+
+    try:
+        assert sa.upload("plant", "plant-a.toml", base) and sb.upload("plant", "plant-b.toml", base)
+        tb = threading.Thread(target=run, args=("b", sb, poll_b))
+        ta = threading.Thread(target=run, args=("a", sa, poll_a, a_done))
+        ta.start()
+        ta.join(180)
+        tb.join(180)
+        assert not errors, errors
+        notes_a, notes_b = " | ".join(got["a"].notes), " | ".join(got["b"].notes)
+        assert "another thread" not in notes_a + notes_b, notes_a  # was one of A's notes
+        assert "plant-a.toml: geometry does not close" in notes_a, notes_a
+        assert "plant-b.toml: geometry does not close" in notes_b, notes_b  # was lost (A's exit reset B's recording)
+        assert "plant-b" not in notes_a and "plant-a" not in notes_b
+    finally:
+        sa.close()
+        sb.close()
+
+
+def test_thread_warnings_records_this_threads_warnings_as_its_code_filters_them():
+    """The per-thread recorder of the calibration: every warning of this thread (as ``always``,
+    whatever the process's filters), none of another thread's, and the code it runs can still
+    silence one (``catch_warnings(); simplefilter("ignore", ...)``: the fit's own geometry notes
+    of its trial plants) or make it an error; nested blocks get their own list."""
+    import threading
+    import warnings
+
+    from prsa_ctrl.app.session import thread_warnings
+    from prsa_ctrl.errors import GeometryWarning
+
+    with thread_warnings() as caught:
+        warnings.warn("mine", UserWarning)
+        warnings.warn(GeometryWarning("geometry, ignored by the test run's filters"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", GeometryWarning)
+            warnings.warn(GeometryWarning("silenced by the code"))
+            warnings.warn("not a geometry warning", RuntimeWarning)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", DeprecationWarning)
+            with pytest.raises(DeprecationWarning, match="an error"):
+                warnings.warn("an error", DeprecationWarning)
+        with thread_warnings() as inner:
+            warnings.warn("inner", UserWarning)
+        with warnings.catch_warnings(record=True) as theirs:  # another thread's warning goes where it went
+            warnings.simplefilter("always")
+            t = threading.Thread(target=lambda: warnings.warn("other thread", UserWarning))
+            t.start()
+            t.join()
+        warnings.warn("mine again", UserWarning)
+    assert [str(w.message) for w in caught] == ["mine", "geometry, ignored by the test run's filters",
+                                                "not a geometry warning", "mine again"]
+    assert [str(w.message) for w in inner] == ["inner"]
+    assert [str(w.message) for w in theirs] == ["other thread"]
+    with pytest.raises(UserWarning, match="outside"):  # outside a block: the process's filters (the test run's "error")
+        warnings.warn("outside", UserWarning)
+
+
+def test_thread_warnings_wrapped_by_another_wrapper_does_not_loop(monkeypatch):
+    """Someone wraps the routed ``warnings.warn`` after it was installed, and a recording
+    block installs it again over theirs: a warning outside any block goes to the process's
+    filters once (no RecursionError between the two wrappers)."""
+    import warnings
+
+    from prsa_ctrl.app.session import thread_warnings
+
+    from prsa_ctrl.app import session
+
+    with thread_warnings():
+        pass
+    ours = warnings.warn
+    monkeypatch.setattr(session._warn_routed, "previous", session._warn_routed.previous)  # put back at the end
+
+    def theirs(message, category=None, stacklevel=1, source=None):
+        return ours(message, category, stacklevel + 1, source)
+
+    monkeypatch.setattr(warnings, "warn", theirs)
+    with thread_warnings() as caught:
+        warnings.warn("in the block", UserWarning)
+    assert [str(w.message) for w in caught] == ["in the block"]
+    with pytest.raises(UserWarning, match="outside"):
+        warnings.warn("outside", UserWarning)

@@ -87,3 +87,25 @@ def test_every_builtin_plant_is_plausible():
                 assert lo <= p.values[key] <= hi and why
 
 
+
+
+def test_a_plant_file_beyond_the_size_bound_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    """A valid plant file padded with comments past 1 MB: one line naming the file and its size,
+    the text never read. Was: read and parsed (an 8 MB base took prsa-fit 60 s instead of 3 s,
+    two tomlkit passes)."""
+    from prsa_ctrl.plant import plantfile
+
+    text = plantfile.plant_file_path().read_text(encoding="utf-8")
+    big = tmp_path / "big.toml"
+    big.write_text("# padding\n" * (plantfile.PLANT_FILE_BYTES_MAX // 10) + text, encoding="utf-8")
+    size = big.stat().st_size
+    monkeypatch.setattr(Path, "read_text", lambda *a, **k: pytest.fail("the file was read"))
+    with pytest.raises(PlantFileError) as exc:
+        load_plant(str(big))
+    assert str(exc.value) == f"{big}: {size} bytes; expected a plant file of at most 1000000 bytes"
+    monkeypatch.undo()
+    small = tmp_path / "small.toml"
+    small.write_text("# padding\n" * (plantfile.PLANT_FILE_BYTES_MAX // 10 - len(text) // 10 - 1) + text,
+                     encoding="utf-8")
+    assert small.stat().st_size <= plantfile.PLANT_FILE_BYTES_MAX
+    assert load_plant(str(small)).values == load_plant().values  # at the bound: loads

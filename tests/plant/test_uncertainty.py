@@ -157,6 +157,19 @@ def test_bad_spec_or_robust_entry_names_key_and_file(section, key, value):
     assert msg.startswith("bad-scene.toml: ") and f"{section}.{key}" in msg
 
 
+def test_a_spec_yield_without_a_bound_is_refused_naming_it():
+    """``[spec] yield = 0.9`` alone: a target probability of meeting no bound. Was: accepted,
+    then ``prsa-tune --design-to-spec`` said the scene "has no [spec] section"."""
+    doc = copy.deepcopy(_SCENE)
+    doc["spec"] = {"yield": 0.9}
+    with pytest.raises(SceneError) as exc:
+        _from_doc(doc, "bad-scene.toml")
+    assert str(exc.value) == ("bad-scene.toml: spec.yield = 0.9 and no bound in [spec]; expected the bounds the "
+                              "yield counts (e.g. spec.peak_drop_rad_s = 12.0)")
+    doc["spec"] = {"yield": 0.9, "no_saturation": True}  # a bound, the yield counts it
+    assert _from_doc(doc, "ok.toml") is not None
+
+
 def test_scene_sections_round_trip():
     out = parse_scene_sections(_SCENE, "x.toml")
     assert set(out) == {"spec", "robust", "uncertainty"}

@@ -106,6 +106,26 @@ def test_lone_surrogate_refused_naming_the_key():
         toml_string("\ud800")
 
 
+def test_a_log_file_name_that_is_not_utf8_is_written_as_its_byte_in_sources_and_description():
+    """A fit of a log named ``r<0xff>.csv`` (valid on Linux; Python's surrogateescape gives
+    U+DCFF): its sources, [uncertainty] source and description name it. Was: ValueError (lone
+    surrogate) when the file was composed, after the whole fit (prsa-fit: exit 3 "numerical
+    failure: description = ...", no file)."""
+    p = _plant("paper-iprsm")
+    base = plant_file_path().read_text(encoding="utf-8")
+    key = "nut.inertia_kg_m2"
+    entry = {"dist": "normal", "sigma": 1.25e-6, "truncate": 1.959963984540054, "source": "fit: r\udcff.csv (95 % CI)"}
+    fitted = Plant(p.name, p.values, {**p.sources, key: "fit: r\udcff.csv (95 % CI)"}, description=p.description,
+                   uncertainty={**p.uncertainty, key: entry}, mechanism=p.mechanism, defaulted=p.defaulted)
+    text = fitted.to_toml(base, name="fitted", keys=[key], uncertainty_keys=[key],
+                          description="calibrated from r\udcff.csv and a\ud800")
+    back = _load(text)
+    assert back.sources[key] == "fit: r\\xff.csv (95 % CI)"
+    assert back.uncertainty[key]["source"] == "fit: r\\xff.csv (95 % CI)"
+    assert back.description == "calibrated from r\\xff.csv and a\\ud800"
+    assert back.values[key] == p.values[key] and back.name == "fitted"
+
+
 def test_uncertainty_entries_replaced_removed_and_section_added():
     p = _plant("paper-iprsm")
     base = plant_file_path().read_text(encoding="utf-8")

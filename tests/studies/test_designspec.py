@@ -191,6 +191,9 @@ def test_design_to_spec_bad_arguments_are_named_before_any_work(roller, kw, matc
     (["--scene", "paper-load-step", "--design-to-spec"], "has no [spec] section"),
     (["--scene", "robust-load-step", "--design-to-spec", "--monte-carlo", "0"], "--monte-carlo 0"),
     (["--scene", "paper-move", "--design-to-spec"], "--design-to-spec does not apply to a move scene"),
+    # was exit 3 ("numerical failure: n_final = 100001") after the robust tuning had run
+    (["--scene", "robust-load-step", "--design-to-spec", "--monte-carlo", "100001"],
+     "--design-to-spec with --monte-carlo 100001; expected a sample count of the final check in 1..100000"),
 ])
 def test_cli_design_to_spec_refusals_are_one_line_exit_2(argv, match, capsys):
     from prsa_ctrl.cli.tune import main as tune_main
@@ -198,6 +201,27 @@ def test_cli_design_to_spec_refusals_are_one_line_exit_2(argv, match, capsys):
     code = tune_main(argv)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and match in err[0], err
+
+
+def test_cli_design_to_spec_refuses_a_scene_sample_count_beyond_the_study_before_any_work(tmp_path, capsys, monkeypatch):
+    """A scene's ``[robust] monte_carlo`` up to 1000000 is a valid scene (a plain Monte Carlo),
+    beyond the design-to-spec's 100000 per run: refused up front naming the scene's value (was
+    exit 3 after the robust tuning)."""
+    from prsa_ctrl.cli.tune import main as tune_main
+    from pathlib import Path
+
+    from prsa_ctrl.studies import scenerobust
+
+    text = (Path(__file__).resolve().parents[2] / "tuning" / "robust-load-step.toml").read_text(encoding="utf-8")
+    assert "monte_carlo = 1000" in text
+    path = tmp_path / "big.toml"
+    path.write_text(text.replace("monte_carlo = 1000", "monte_carlo = 500000"), encoding="utf-8")
+    monkeypatch.setattr(scenerobust, "tune_robust_actuator", lambda *a, **k: pytest.fail("the study started"))
+    code = tune_main(["--scene", str(path), "--design-to-spec"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == ["prsa-tune: error: --design-to-spec: the scene robust-load-step has [robust] "
+                                 "monte_carlo = 500000; expected a sample count of the final check in 1..100000 "
+                                 "(or --monte-carlo N)"], err
 
 
 @pytest.mark.slow
