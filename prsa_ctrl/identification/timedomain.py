@@ -337,9 +337,24 @@ def fit_plant(
             shift, res = search_delay(fit_search, plant, fit_keys, ts, max(max_delay_samples, offset), min_shift=offset)
         except FitError as exc:
             failure, res = exc, None
+        short_failed = None
+        if failure is not None and seg_search != segment_s:
+            # The short segments failed at every shift (a resonance the rigid model lacks stalls them, for
+            # one): the search again on the segments asked for, so that the fit can reach its validation
+            # and its diagnosis; the report keeps why.
+            short_failed, fit_search, seg_search = failure, fit_at, segment_s
+            try:
+                shift, res = search_delay(fit_at, plant, fit_keys, ts, max(max_delay_samples, offset), min_shift=offset)
+                failure = None
+            except FitError as exc:
+                failure, res = exc, None
         _check_convention(fit_search, plant, res, failure, offset, command_logged)
         if seg_search != segment_s:  # the fit itself on the segments asked for, from the search's values
             res = _refit_found(fit_at, res, shift, plant)
+        elif short_failed is not None:
+            res = dataclasses.replace(res, warnings=list(res.warnings) + [
+                f"the delay search on {search_segment_s(segment_s, ts):g} s segments failed at every shift "
+                f"({str(short_failed)[:300]}); the shift was searched on the asked {segment_s:g} s segments"])
         res = with_command_delay(res, shift, command_logged, "found by the delay search")
     else:
         if delay_samples is not None:
