@@ -24,6 +24,18 @@ NS = {"p": TC6_NAMESPACE, "x": "http://www.w3.org/1999/xhtml"}
 WHEN = datetime.datetime(2026, 1, 2, 3, 4, 5, tzinfo=datetime.timezone.utc)
 
 
+@pytest.fixture(scope="module")
+def move_xml_export(tmp_path_factory):
+    """``prsa-tune --scene paper-move --quiet --export Axis.xml`` (in-process), run once for the
+    module: the iec2c compile and the TC6 schema validation read the same file (each ran the
+    same command, tuning the move scene from scratch)."""
+    from prsa_ctrl.cli.tune import main
+
+    out = tmp_path_factory.mktemp("plcopen-cli") / "Axis.xml"
+    assert main(["--scene", "paper-move", "--quiet", "--export", str(out)]) == 0
+    return out
+
+
 def test_structure_as_tc6(paper_plant):
     law = drive_law(SPEED_PID, paper_plant, filters=FILTERS, position=PositionLoop(kv=102.7, kvff=1.0, kaff=1.0))
     text = plcopen_xml(law, name="Axis", created=WHEN)
@@ -84,15 +96,11 @@ def test_bad_xml_is_refused():
         st_from_plcopen(f'<project xmlns="{TC6_NAMESPACE}"/>')
 
 
-def test_export_code_and_cli_write_xml(paper_plant, tmp_path, matiec):
+def test_export_code_and_cli_write_xml(paper_plant, tmp_path, matiec, move_xml_export):
     f = export_code(SPEED_PID, paper_plant, tmp_path / "Speed.xml", real="float")
     assert [p.name for p in f] == ["Speed.xml"]
     assert "<REAL/>" in f[0].read_text() and "<LREAL/>" not in f[0].read_text()
-    from prsa_ctrl.cli.tune import main
-
-    out = tmp_path / "Axis.xml"
-    assert main(["--scene", "paper-move", "--quiet", "--export", str(out)]) == 0
-    iec2c(matiec, st_from_plcopen(out.read_text()), tmp_path / "iec")
+    iec2c(matiec, st_from_plcopen(move_xml_export.read_text()), tmp_path / "iec")
 
 
 # --- the TC6 schema ----------------------------------------------------------------------------
@@ -248,17 +256,13 @@ def tc6_schema():
     return etree.XMLSchema(doc)
 
 
-def test_every_export_validates_against_the_tc6_schema(tc6_schema, paper_plant, tmp_path):
+def test_every_export_validates_against_the_tc6_schema(tc6_schema, paper_plant, tmp_path, move_xml_export):
     """The schema itself (lxml): every variant, the hostile names and the CLI's file are valid;
     every defective copy is invalid (so the validation is not vacuous)."""
     from lxml import etree
 
-    from prsa_ctrl.cli.tune import main
-
     exports = _exports(paper_plant)
-    out = tmp_path / "Axis.xml"
-    assert main(["--scene", "paper-move", "--quiet", "--export", str(out)]) == 0
-    exports["cli"] = out.read_text()
+    exports["cli"] = move_xml_export.read_text()
     for name, text in exports.items():
         assert tc6_schema.validate(etree.fromstring(text.encode())), (name, str(tc6_schema.error_log)[:300])
     for what, bad in _mutants(exports["cascade_friction double"]).items():

@@ -692,7 +692,10 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
     # the drive's fixed filters, tuned around (item 3): a torque notch and a speed low-pass
     f.write_text(f.read_text() + '\n[[filters.notch]]\npath = "torque"\ncentre_hz = 1200.0\nwidth_hz = 300.0\n'
                  '[[filters.lowpass]]\npath = "speed"\ncorner_hz = 900.0\norder = 2\n')
-    rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "d.toml")])
+    # one prsa-tune run (the CLI's code path for the ST); the TOML, JSON and C below are the
+    # library's exports of the design the JSON reports (a second run for the TOML tuned the same
+    # scene again; the CLI's TOML of a move scene: test_cli_move_scene_plots_quiet_json_export)
+    rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "drive.st")])
     assert rc == 0 and capsys.readouterr().err == ""
     data = json.loads((tmp_path / "c.json").read_text())
     ts = plant.sample_time_s
@@ -715,11 +718,7 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
     # the ceiling binds the joint design (it reaches 98 1/s without it)
     assert data["joint"]["position"]["kv_per_s"] == pytest.approx(4 * 1000 / 60, rel=1e-6)
     assert data["joint"]["verified"]["rms_following_error_m"] < data["sequential"]["verified"]["rms_following_error_m"]
-    exported = tomllib.loads((tmp_path / "d.toml").read_text())
-    pc = exported["position_controller"]
-    assert pc["sample_time_s"] == 2 * ts and pc["kv_m_min_per_mm"] == pytest.approx(4.0, rel=1e-6)
-    assert len(exported["filters"]) == 2
-    # the other formats of the same design (what --export d.json / drive.c / drive.st write)
+    # the other formats of the same design (what --export d.toml / d.json / drive.c write)
     from prsa_ctrl.io.codegen import code_texts
     from prsa_ctrl.io.export import dumps as _dumps
 
@@ -729,9 +728,12 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
     design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
                                    d["position"]["kvff"], d["position"]["kaff"]], 0.0)
     assert design.position.rate == 2 and len(design.filters) == 2
+    exported = tomllib.loads(_dumps(export_cascade(design, plant, fmt="toml"), "toml"))
+    pc = exported["position_controller"]
+    assert pc["sample_time_s"] == 2 * ts and pc["kv_m_min_per_mm"] == pytest.approx(4.0, rel=1e-6)
+    assert len(exported["filters"]) == 2
     assert json.loads(_dumps(export_cascade(design, plant, fmt="json"), "json"))["position_controller"][
         "sample_time_s"] == 2 * ts
-    assert main(["--scene", str(f), "--quiet", "--export", str(tmp_path / "drive.st")]) == 0  # the CLI's code path
     for ext in ("c", "st"):
         code = ("".join(code_texts(design, plant, tmp_path / "drive.c", filters=design.filters).values())
                 if ext == "c" else (tmp_path / "drive.st").read_text())
@@ -757,7 +759,9 @@ def test_cli_cascade_with_the_position_loops_own_delay(tmp_path, capsys, plant):
                                               ("hold_delay_s", "0.08")])
     sc = load_move_scene(f)
     assert sc.position_rate == 2 and sc.position_delay_samples == 1
-    rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "d.toml")])
+    # one prsa-tune run (the CLI's code path for the ST); the TOML, JSON and C below are the
+    # library's exports of the design the JSON reports (a second run tuned the same scene again)
+    rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "drive.st")])
     assert rc == 0 and capsys.readouterr().err == ""
     data = json.loads((tmp_path / "c.json").read_text())
     cm = CascadeModel(plant, sc)
@@ -774,18 +778,17 @@ def test_cli_cascade_with_the_position_loops_own_delay(tmp_path, capsys, plant):
             assert again[k] == pytest.approx(d["ms"][k], rel=1e-4)
         assert undelayed["position"] < again["position"] * (1 - 1e-3)  # the delay costs margin: it is modelled
     ts = plant.sample_time_s
-    pc = tomllib.loads((tmp_path / "d.toml").read_text())["position_controller"]
-    assert pc["delay_samples"] == 1 and pc["delay_s"] == pytest.approx(2 * ts) and pc["sample_time_s"] == 2 * ts
-    assert "applied from sample k + 1 on" in pc["discretisation"]
     from prsa_ctrl.tuning.cascade import _design
 
     d = data["joint"]
     design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
                                    d["position"]["kvff"], d["position"]["kaff"]], 0.0)
     assert design.position.delay == 1
+    pc = tomllib.loads(dumps(export_cascade(design, plant, fmt="toml"), "toml"))["position_controller"]
+    assert pc["delay_samples"] == 1 and pc["delay_s"] == pytest.approx(2 * ts) and pc["sample_time_s"] == 2 * ts
+    assert "applied from sample k + 1 on" in pc["discretisation"]
     assert json.loads(dumps(export_cascade(design, plant, fmt="json"), "json"))["position_controller"][
         "delay_samples"] == 1
-    assert main(["--scene", str(f), "--quiet", "--export", str(tmp_path / "drive.st")]) == 0
     c = "".join(code_texts(design, plant, tmp_path / "drive.c").values())
     st = (tmp_path / "drive.st").read_text()
     for code in (c, st):

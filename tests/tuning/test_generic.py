@@ -3,6 +3,7 @@ reference written here with numpy/scipy only (the exact delay ``e^{-j w L}``, no
 
 from __future__ import annotations
 
+import functools
 import math
 
 import control
@@ -209,11 +210,18 @@ def test_setpoint_law_is_the_stated_one():
 _W_F = np.logspace(-4, 6, 15000)
 
 
+@functools.lru_cache(maxsize=4)
+def _pi_filter_plant(num, den):
+    """``(s, P(s))`` on ``_W_F``: computed once per plant instead of in each of the brute force's
+    thousands of feasibility checks (the same arrays, so the same results)."""
+    s = 1j * _W_F
+    return s, np.polyval(num, s) / np.polyval(den, s)
+
+
 def _pi_filter_feasible(num, den, kp, ki, t_f, ms, mt, mks):
     """PI ``kp + ki/s`` behind ``1/(Tf s + 1)``: true peaks on a dense grid and stability from the
     characteristic polynomial (no delay)."""
-    s = 1j * _W_F
-    p = np.polyval(num, s) / np.polyval(den, s)
+    s, p = _pi_filter_plant(tuple(num), tuple(den))
     cf = (kp + ki / s) / (t_f * s + 1.0)
     S = 1.0 / (1.0 + p * cf)
     if np.max(np.abs(S)) > ms or np.max(np.abs(p * cf * S)) > mt or np.max(np.abs(cf * S)) > mks:
