@@ -27,6 +27,7 @@ their 95 % intervals between them) or that failed.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable
 
@@ -35,7 +36,8 @@ from ..plant.plantfile import Plant
 from .common import FitResult
 
 __all__ = ["CONVENTIONS", "DEFAULT_CONVENTION", "DELAY_OBJECTIVE_RATIO", "MAX_SHIFT", "plant_shift",
-           "search_delay", "with_command_delay"]
+           "search_delay", "with_command_delay", "SEARCH_SEGMENT_S", "SEARCH_SEGMENT_SAMPLES", "search_segment_s",
+           "find_delay", "refit_found", "check_convention"]
 
 #: Logging conventions of the command -> samples between the logged sample and the sample from
 #: which the drive holds it (before the drive's own command delay): ``"applied"`` the command
@@ -318,3 +320,115 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
                     res.fit_percent, warns, solver, res.traces, res.delay, res.not_identified,
                     res.covariance)
     return best, out
+
+
+#: The delay search fits on multiple-shooting segments no longer than this (s; at least
+#: :data:`SEARCH_SEGMENT_SAMPLES` samples): the command delay shows at high frequency, while an
+#: open-loop segment drifts with the process torque noise (its angle error grows as the length
+#: to the power 1.5) and with any slow misfit; on long segments that drift makes the objective
+#: of every shift alike. Measured on the ball-screw logs of tests/identification/foreign (true
+#: shift 2, seed 0): the multisine's objective at shift 1 over shift 2 is 1.12 on 0.1 s
+#: segments, 2.1 on 0.02 s, 15 on 0.01 s (alone; the three logs together on 0.01 s ended in
+#: "line search failed" at shifts 1 and 2, so 0.02 s).
+SEARCH_SEGMENT_S = 0.02
+SEARCH_SEGMENT_SAMPLES = 40
+
+
+def search_segment_s(segment_s: float, ts: float) -> float:
+    """Segment length (s) of the delay search for a fit on ``segment_s`` segments at sample time ``ts``."""
+    return min(segment_s, max(SEARCH_SEGMENT_S, SEARCH_SEGMENT_SAMPLES * ts))
+
+
+def find_delay(fit_on: Callable[[float], Callable[[int, Plant], FitResult]], plant: Plant, keys, ts: float,
+               segment_s: float, max_delay_samples: int, command_logged: str) -> tuple[int, FitResult]:
+    """The command shift (samples) and the fit at it, as :func:`~prsa_ctrl.identification.timedomain.fit_plant`
+    finds them with ``delay_samples = "find"``.
+
+    :func:`search_delay` fits every shift on short segments (:func:`search_segment_s`); the found
+    shift is then fitted on the asked ``segment_s`` from the search's values. When the short
+    segments fail at every shift (a resonance the rigid model lacks stalls them, for one), the
+    search runs again on ``segment_s`` so that the fit reaches its validation and diagnosis, and
+    a warning says why. ``fit_on(seg_s)`` gives the fit ``(shift, start plant) -> FitResult`` on
+    segments of ``seg_s`` seconds; ``ts`` is the sample time (s).
+    """
+    offset = CONVENTIONS[command_logged]  # a computed command acts at least one sample late
+    top = max(max_delay_samples, offset)
+    fit_at = fit_on(segment_s)
+    seg_search = search_segment_s(segment_s, ts)
+    fit_search = fit_on(seg_search) if seg_search != segment_s else fit_at
+    failure = short_failed = None
+    shift, res = 0, None
+    try:
+        shift, res = search_delay(fit_search, plant, keys, ts, top, min_shift=offset)
+    except FitError as exc:
+        failure = exc
+    if failure is not None and seg_search != segment_s:
+        short_failed, fit_search, seg_search = failure, fit_at, segment_s
+        try:
+            shift, res = search_delay(fit_at, plant, keys, ts, top, min_shift=offset)
+            failure = None
+        except FitError as exc:
+            failure = exc
+    check_convention(fit_search, plant, res, failure, offset, command_logged)
+    if seg_search != segment_s:  # the fit itself on the segments asked for, from the search's values
+        res = refit_found(fit_at, res, shift, plant)
+    elif short_failed is not None:
+        res = dataclasses.replace(res, warnings=list(res.warnings) + [
+            f"the delay search on {search_segment_s(segment_s, ts):g} s segments failed at every shift "
+            f"({str(short_failed)[:300]}); the shift was searched on the asked {segment_s:g} s segments"])
+    return shift, res
+
+
+def refit_found(fit_at: Callable[[int, Plant], FitResult], res: FitResult, shift: int, plant: Plant) -> FitResult:
+    """The fit at the ``shift`` the search found, on the fit's own segments, started from the
+    search's values (then from the base plant); the search's record travels with it. A fit
+    that fails from both keeps the search's own (its warning says so).
+
+    The start is the base ``plant`` with the values the search identified: the base stays the
+    base (its sources, its ``[uncertainty]`` and correlation blocks, the values of the keys the
+    data cannot inform). A refit from it that leaves one of those keys unidentified is done
+    again from the base plant itself, so that no search value is written as a base value.
+    """
+    seeded_keys = [k for k in res.plant_keys if k in plant.values]
+    starts = [plant.with_params({k: res.plant.values[k] for k in seeded_keys}, name=plant.name), plant] \
+        if seeded_keys else [plant]
+    errors = []
+    for i, start in enumerate(starts):
+        try:
+            out = fit_at(shift, start)
+        except FitError as exc:
+            errors.append(str(exc))
+            continue
+        if i == 0 and len(starts) > 1 and set(out.kept_base) & set(seeded_keys):
+            errors.append(f"keys {sorted(set(out.kept_base) & set(seeded_keys))} not identified from the search's values")
+            continue
+        solver = dict(out.solver)
+        solver["delay_search"] = {**res.solver["delay_search"], "segment_s": res.solver.get("segment_s")}
+        warns = list(out.warnings) + [w for w in res.warnings if w not in out.warnings and "command delay" in w]
+        return dataclasses.replace(out, solver=solver, warnings=warns)
+    return dataclasses.replace(res, warnings=list(res.warnings) + [
+        f"the fit at the found shift {shift} on the asked segments failed from the search's values and the base "
+        f"plant ({errors[-1]}); the values are the search's, on its shorter segments"])
+
+
+def check_convention(fit_at: Callable[[int, Plant], FitResult], plant: Plant, res: FitResult | None,
+                     failure: FitError | None, offset: int, command_logged: str) -> None:
+    """A computed-command log whose command acts at once makes the search from ``offset`` fail or
+    end at the current loop's bound; only then is ``offset - 1`` fitted, and a converged fit
+    better by ``DELAY_OBJECTIVE_RATIO`` (the evidence, not the failure) refutes the declaration;
+    otherwise a ``failure`` of the search is raised."""
+    bw = "drive.current_loop_bandwidth_hz"
+    at_bound = res is not None and "bound" in str(res.not_identified.get(bw, ""))
+    if offset > 0 and (failure is not None or at_bound):
+        try:
+            r0 = fit_at(offset - 1, plant)
+        except FitError:
+            r0 = None
+        if r0 is not None and (res is None or DELAY_OBJECTIVE_RATIO * r0.solver["objective"] <= res.solver["objective"]):
+            raise FitError(f"the logged command acts {offset - 1} samples after it is logged (objective "
+                           f"{r0.solver['objective']:.4g}; from {offset} samples on: "
+                           + ("the fit failed" if res is None else f"{res.solver['objective']:.4g}, the current loop at "
+                              "its bound") + f"), but command_logged = {command_logged!r} means at least {offset}; "
+                           "expected --command-logged applied for this log")
+    if failure is not None:
+        raise failure

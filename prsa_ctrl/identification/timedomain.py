@@ -35,7 +35,6 @@ frequency. The overlay figures show one continuous simulation of the fitted plan
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -53,7 +52,9 @@ from ..sim.integrators import radau_tableau
 from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
-from .delay import CONVENTIONS, DEFAULT_CONVENTION, MAX_SHIFT, plant_shift, search_delay, with_command_delay
+from .gaussnewton import Buffered, condense
+from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay, plant_shift,
+                    search_segment_s, with_command_delay)
 from .frf import fit_frf, frf_fit_percent, frf_response
 from .friction_map import STRIBECK_KEYS, stribeck_rounds
 
@@ -322,39 +323,17 @@ def fit_plant(
         if not records:
             raise ValueError("delay_samples = 'find' without records; expected time-domain records to search on")
         ts = records[0].sample_time_s
-        offset = CONVENTIONS[command_logged]  # a computed command acts at least one sample late
         fit_keys = default_keys(plant) if keys is None else tuple(keys)
-        failure = None
-        seg_search = search_segment_s(segment_s, ts)
 
-        def fit_search(d: int, start: Plant) -> FitResult:
-            return _fit_records(records, start, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
-                                segment_s=seg_search, delay_samples=d, substeps=substeps, max_iter=max_iter,
-                                tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                                uncertainty=uncertainty, check_interrupt=check_interrupt)
+        def fit_on(seg_s: float) -> Callable[[int, Plant], FitResult]:
+            def fit(d: int, start: Plant) -> FitResult:
+                return _fit_records(records, start, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
+                                    segment_s=seg_s, delay_samples=d, substeps=substeps, max_iter=max_iter,
+                                    tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
+                                    uncertainty=uncertainty, check_interrupt=check_interrupt)
+            return fit
 
-        try:
-            shift, res = search_delay(fit_search, plant, fit_keys, ts, max(max_delay_samples, offset), min_shift=offset)
-        except FitError as exc:
-            failure, res = exc, None
-        short_failed = None
-        if failure is not None and seg_search != segment_s:
-            # The short segments failed at every shift (a resonance the rigid model lacks stalls them, for
-            # one): the search again on the segments asked for, so that the fit can reach its validation
-            # and its diagnosis; the report keeps why.
-            short_failed, fit_search, seg_search = failure, fit_at, segment_s
-            try:
-                shift, res = search_delay(fit_at, plant, fit_keys, ts, max(max_delay_samples, offset), min_shift=offset)
-                failure = None
-            except FitError as exc:
-                failure, res = exc, None
-        _check_convention(fit_search, plant, res, failure, offset, command_logged)
-        if seg_search != segment_s:  # the fit itself on the segments asked for, from the search's values
-            res = _refit_found(fit_at, res, shift, plant)
-        elif short_failed is not None:
-            res = dataclasses.replace(res, warnings=list(res.warnings) + [
-                f"the delay search on {search_segment_s(segment_s, ts):g} s segments failed at every shift "
-                f"({str(short_failed)[:300]}); the shift was searched on the asked {segment_s:g} s segments"])
+        shift, res = find_delay(fit_on, plant, fit_keys, ts, segment_s, max_delay_samples, command_logged)
         res = with_command_delay(res, shift, command_logged, "found by the delay search")
     else:
         if delay_samples is not None:
@@ -377,68 +356,6 @@ def fit_plant(
 
     return validate_fit(res, records, validate, shift, fidelity, refit if cross_validate else None, check_interrupt,
                         base=plant, closed_loops=closed_loops)
-
-
-#: The delay search fits on multiple-shooting segments no longer than this (s; at least
-#: :data:`SEARCH_SEGMENT_SAMPLES` samples): the command delay shows at high frequency, while an
-#: open-loop segment drifts with the process torque noise (its angle error grows as the length
-#: to the power 1.5) and with any slow misfit; on long segments that drift makes the objective
-#: of every shift alike. Measured on the ball-screw logs of tests/identification/foreign (true
-#: shift 2, seed 0): the multisine's objective at shift 1 over shift 2 is 1.12 on 0.1 s
-#: segments, 2.1 on 0.02 s, 15 on 0.01 s (alone; the three logs together on 0.01 s ended in
-#: "line search failed" at shifts 1 and 2, so 0.02 s).
-SEARCH_SEGMENT_S = 0.02
-SEARCH_SEGMENT_SAMPLES = 40
-
-
-def search_segment_s(segment_s: float, ts: float) -> float:
-    """Segment length (s) of the delay search for a fit on ``segment_s`` segments at sample time ``ts``."""
-    return min(segment_s, max(SEARCH_SEGMENT_S, SEARCH_SEGMENT_SAMPLES * ts))
-
-
-def _refit_found(fit_at, res: FitResult, shift: int, plant: Plant) -> FitResult:
-    """The fit at the ``shift`` the search found, on the fit's own segments, started from the
-    search's values (then from the base plant); the search's record travels with it. A fit
-    that fails from both keeps the search's own (its warning says so)."""
-    errors = []
-    for start in (res.plant, plant):
-        try:
-            out = fit_at(shift, start)
-        except FitError as exc:
-            errors.append(str(exc))
-            continue
-        solver = dict(out.solver)
-        solver["delay_search"] = {**res.solver["delay_search"],
-                                  "segment_s": res.solver.get("segment_s")}
-        warns = list(out.warnings) + [w for w in res.warnings if w not in out.warnings and "command delay" in w]
-        return dataclasses.replace(out, solver=solver, warnings=warns)
-    return dataclasses.replace(res, warnings=list(res.warnings) + [
-        f"the fit at the found shift {shift} on the asked segments failed from the search's values and the base "
-        f"plant ({errors[-1]}); the values are the search's, on its shorter segments"])
-
-
-def _check_convention(fit_at, plant: Plant, res: FitResult | None, failure: FitError | None, offset: int,
-                      command_logged: str) -> None:
-    """A computed-command log whose command acts at once makes the search from ``offset`` fail or
-    end at the current loop's bound; only then is ``offset - 1`` fitted, and a converged fit
-    better by ``DELAY_OBJECTIVE_RATIO`` (the evidence, not the failure) refutes the declaration."""
-    from .delay import DELAY_OBJECTIVE_RATIO
-
-    bw = "drive.current_loop_bandwidth_hz"
-    at_bound = res is not None and "bound" in str(res.not_identified.get(bw, ""))
-    if offset > 0 and (failure is not None or at_bound):
-        try:
-            r0 = fit_at(offset - 1, plant)
-        except FitError:
-            r0 = None
-        if r0 is not None and (res is None or DELAY_OBJECTIVE_RATIO * r0.solver["objective"] <= res.solver["objective"]):
-            raise FitError(f"the logged command acts {offset - 1} samples after it is logged (objective "
-                           f"{r0.solver['objective']:.4g}; from {offset} samples on: "
-                           + ("the fit failed" if res is None else f"{res.solver['objective']:.4g}, the current loop at "
-                              "its bound") + f"), but command_logged = {command_logged!r} means at least {offset}; "
-                           "expected --command-logged applied for this log")
-    if failure is not None:
-        raise failure
 
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
@@ -657,9 +574,9 @@ class _Problem:
         fun = ca.Function("coll", [xs, K, u, h, p],
                           [res, ca.densify(ca.jacobian(res, kv)), ca.densify(ca.jacobian(res, xs)),
                            ca.densify(ca.jacobian(res, p))])
-        self.blocks = _Buffered(fun.map("coll_map", "serial", M, [4], []))
+        self.blocks = Buffered(fun.map("coll_map", "serial", M, [4], []))
         # The collocation residual alone (line-search merits need no Jacobians).
-        self.residual_blocks = _Buffered(ca.Function("coll_res", [xs, K, u, h, p], [res])
+        self.residual_blocks = Buffered(ca.Function("coll_res", [xs, K, u, h, p], [res])
                                          .map("coll_res_map", "serial", M, [4], []))
         # Segment bookkeeping: first interval and sample offsets.
         self.first = np.cumsum([0] + [sg.n for sg in segs[:-1]])
@@ -817,7 +734,7 @@ class _Problem:
                 status = "stalled"  # the constraint residual no longer falls: give this attempt up early
                 break
             f_val = 0.5 * sum(float(r @ r) for r in self.residuals(V, X0))
-            js, rv, backs = _condense(lin)
+            js, rv, backs = condense(lin)
             se = None
             if fixed or npar == 0 or it <= warm:
                 d_s = np.zeros(npar)
@@ -973,7 +890,7 @@ class _Problem:
         V, X0, s = sol["V"], sol["X0"], sol["s"]
         nx, nseg, npar = self.nx, len(self.segs), self.npar
         _, lin = self.linearise(V, X0, s)
-        js, r, _ = _condense(lin)
+        js, r, _ = condense(lin)
         lens = [len(item[0]) for item in lin]
         n_rows = len(r)
         n_cols = npar + nx * nseg
@@ -1051,56 +968,3 @@ def _converged_at_kink(g_norm: float, d_s, se, tol: float) -> bool:
     if se is None or len(d_s) == 0:
         return True
     return bool(np.all(np.abs(np.asarray(d_s)) < np.maximum(tol, KINK_STEP_SE_FRACTION * np.asarray(se))))
-
-
-class _Buffered:
-    """A CasADi function evaluated straight from and into NumPy arrays (``Function.buffer``).
-
-    Inputs are taken in column-major order and checked for size; outputs are new flat
-    column-major arrays of the outputs' nonzeros (dense outputs: every entry).
-    """
-
-    def __init__(self, fun):
-        self.fun = fun
-        self.n_in = [int(fun.nnz_in(i)) for i in range(fun.n_in())]
-        self.n_out = [int(fun.nnz_out(i)) for i in range(fun.n_out())]
-
-    def __call__(self, *args):
-        if len(args) != len(self.n_in):
-            raise ValueError(f"{self.fun.name()}: {len(args)} inputs; expected {len(self.n_in)}")
-        flat = [np.ascontiguousarray(np.asarray(a, dtype=float).ravel(order="F")) for a in args]
-        for i, (a, n) in enumerate(zip(flat, self.n_in)):
-            if a.size != n:  # the buffer interface reads exactly n values: never hand it fewer
-                raise ValueError(f"{self.fun.name()}: input {i} has {a.size} values; expected {n}")
-        outs = [np.empty(n) for n in self.n_out]
-        buf, evaluate = self.fun.buffer()  # a fresh buffer per call: thread-safe, references held here
-        for i, a in enumerate(flat):
-            buf.set_arg(i, a)
-        for i, o in enumerate(outs):
-            buf.set_res(i, o)
-        evaluate()
-        return outs
-
-
-def _condense(lin):
-    """Eliminate each segment's initial state from the linearised least-squares problem.
-
-    Returns the parameter Jacobian and residual with the initial-state directions projected
-    out (their normal equations are the Schur complement for the parameters) and, per segment,
-    a function giving the initial-state step for a parameter step.
-    """
-    js_parts, r_parts, backs = [], [], []
-    for r_lin, j_s, j_x, _ in lin:
-        q, rr = np.linalg.qr(j_x)
-        keep = np.abs(np.diag(rr)) > 1e-12 * max(1.0, float(np.max(np.abs(rr))))
-        q, rr = q[:, keep], rr[np.ix_(keep, keep)]
-        js_parts.append(j_s - q @ (q.T @ j_s))
-        r_parts.append(r_lin - q @ (q.T @ r_lin))
-
-        def back(d_s, q=q, rr=rr, keep=keep, r_lin=r_lin, j_s=j_s):
-            out = np.zeros(len(keep))
-            out[keep] = -np.linalg.solve(rr, q.T @ (r_lin + j_s @ d_s))
-            return out
-
-        backs.append(back)
-    return np.vstack(js_parts), np.concatenate(r_parts), backs

@@ -486,7 +486,7 @@ def test_long_record_converges_in_the_first_attempt():
 def test_buffered_evaluation_matches_casadi_and_checks_sizes():
     import casadi as ca
 
-    from prsa_ctrl.identification.timedomain import _Buffered
+    from prsa_ctrl.identification.gaussnewton import Buffered as _Buffered
 
     x, p = ca.SX.sym("x", 2), ca.SX.sym("p")
     e = ca.vertcat(p * x[0] ** 2, ca.sin(x[1]))

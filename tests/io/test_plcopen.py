@@ -223,8 +223,8 @@ def test_every_export_has_the_tc6_structure(paper_plant):
     """Every variant (each law x LREAL/REAL) and the hostile plant names: the structure the TC6
     schema defines holds (stdlib check); each defective copy is caught."""
     exports = _exports(paper_plant)
-    assert len(variants()) >= 7
-    assert len(exports) == 2 * len(variants()) + len(HOSTILE_NAMES)
+    assert len(_variants()) >= 7
+    assert len(exports) == 2 * len(_variants()) + len(HOSTILE_NAMES)
     for name, text in exports.items():
         assert tc6_structure_problems(text) == [], name
     for what, bad in _mutants(exports["cascade_friction double"]).items():
