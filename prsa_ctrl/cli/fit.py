@@ -178,7 +178,7 @@ def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
     from ..plant.plantfile import plant_file_path
 
     src = plant_file_path(plant_arg)
-    return src.read_text(encoding="utf-8"), (str(src) if isinstance(src, Path) else None)
+    return src.read_bytes().decode("utf-8"), (str(src) if isinstance(src, Path) else None)
 
 
 def _typed(argv: Sequence[str], flag: str, value: float) -> str:

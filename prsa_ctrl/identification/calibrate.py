@@ -306,7 +306,7 @@ def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name
     plant = load_plant(base)
     if plant.mechanism == "linear-axis":
         raise PlantFileError(linear_axis_refusal(base))
-    base_text = plant_file_path(base).read_text(encoding="utf-8")
+    base_text = plant_file_path(base).read_bytes().decode("utf-8")  # CR LF kept for the writer
     plant.to_toml(base_text, name=name, keys=[k for k in FITTABLE if k in plant.values], description="check")
     records = []
     for path, label in zip(paths, labels):

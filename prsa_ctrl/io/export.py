@@ -286,6 +286,9 @@ def export_assumptions(plant: "Plant", filters: Iterable = (), position: Any = N
     }
     if position is not None:
         out["position_loop_period_s"] = ts * int(position.rate)
+        # the position loop's own computation delay, which the drive must have for the gains to hold
+        out["position_delay_samples"] = int(getattr(position, "delay", 0))
+        out["position_delay_s"] = out["position_delay_samples"] * ts * int(position.rate)
     return out
 
 

@@ -3,6 +3,8 @@
 
 Rules, in order of checking:
 
+* ``-`` (the Unix spelling of standard output) is refused rather than written as a file named
+  ``-``; ``./-`` names such a file.
 * An empty path, a path whose directory does not exist, or a directory that cannot be written
   is refused (:class:`OutputError`, a ``ValueError``) -- :func:`check_writable` does this
   *before* the expensive work, so that a run never ends with a result it cannot save. So are a
@@ -189,6 +191,9 @@ def check_writable(path: str | os.PathLike, inputs: Iterable[str | os.PathLike] 
         raise OutputError(f"{what}: expected a file path")
     if str(text).endswith(os.sep):
         raise OutputError(f"{what}: names a directory; expected a file path")
+    if str(text) == "-":  # the Unix spelling of standard output: a file named '-' is a surprise
+        raise OutputError(f"{what}: standard output is not an output of these tools; expected a file path "
+                          "(write ./- for a file named '-')")
     _check_lengths(text, os.path.dirname(os.path.abspath(text)), what)
     st = _stat_or_none(text, what)
     target = os.path.realpath(text)  # follows symlinks (a dangling one: its would-be target)

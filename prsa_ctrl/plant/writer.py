@@ -165,7 +165,9 @@ def document_toml(doc: Mapping[str, Any], base_text: str | None = None, header: 
         A plant file whose layout and comments are kept: its document is edited into ``doc``
         (the entries equal in both are left as they are spelled). Without it, or when the edit
         does not read back as ``doc``, the file is written afresh (with a base given, the
-        header line :data:`FRESH_NOTE` says so).
+        header line :data:`FRESH_NOTE` says so). A base whose every line ends in CR LF gives a
+        text with CR LF line endings too (read the base with its newlines kept, e.g. from
+        ``bytes.decode``).
     header : sequence of str
         Comment lines put first (each made one printable line).
     comments : mapping, optional
@@ -181,6 +183,9 @@ def document_toml(doc: Mapping[str, Any], base_text: str | None = None, header: 
     ValueError
         A value TOML cannot hold (None, a lone surrogate in a text), naming its key.
     """
+    if base_text is not None and _crlf(base_text):  # a Windows-edited base keeps its line endings
+        base_text = base_text.replace("\r\n", "\n")
+        return document_toml(doc, base_text, header, comments).replace("\n", "\r\n")
     want = _plain(doc)
     head = "".join(f"# {printable(line)}\n" for line in header)
     if base_text is not None:
@@ -200,6 +205,12 @@ def document_toml(doc: Mapping[str, Any], base_text: str | None = None, header: 
     if not _equal(tomllib.loads(text), want):  # a writer bug, never a user's input
         raise PlantFileError("plant file writer: the text written does not read back as the plant")
     return text
+
+
+def _crlf(text: str) -> bool:
+    """True for a text whose every line ends in CR LF (a file saved on Windows)."""
+    n = text.count("\n")
+    return n > 0 and text.count("\r\n") == n
 
 
 def _edited(base_text: str, want: Mapping[str, Any]) -> str:

@@ -337,3 +337,20 @@ def test_every_export_states_its_assumptions(tmp_path):
                        "Tustin prewarped at 1200 Hz", "zero-order hold", "if the drive's rates differ",
                        "position loop: every 2 sample(s)"):
             assert needle in text, needle
+
+
+@pytest.mark.parametrize("delay", [0, 2])
+def test_cascade_exports_and_parameter_sets_carry_the_position_delay(delay):
+    """The position loop's own computation delay is part of what the gains assume: the cascade
+    export and a vendor parameter set of the same design say it in samples and seconds."""
+    from prsa_ctrl.drive.measurement import PositionLoop
+    from prsa_ctrl.io.driveparams import dumps_parameter_set, fill_template
+    from prsa_ctrl.io.export import export_cascade
+    from prsa_ctrl.tuning.cascade import CascadeDesign
+
+    design = CascadeDesign("j", PID(0.0771, 7.07), PositionLoop(kv=102.7, kvff=1.0, kaff=1.0, rate=2, delay=delay),
+                           {}, {}, {}, 0.0)
+    for a in (json.loads(dumps(export_cascade(design, PLANT, fmt="json"), "json"))["assumptions"],
+              tomllib.loads(dumps_parameter_set(fill_template("generic", design, PLANT)))["assumptions"]):
+        assert a["position_delay_samples"] == delay
+        assert a["position_delay_s"] == pytest.approx(delay * 2 * TS, rel=1e-15)

@@ -73,6 +73,7 @@ def test_temporary_has_a_recognisable_name_in_the_target_directory(tmp_path):
         (lambda d: "/dev/null", r"not a regular file"),
         (lambda d: str(d / "missing" / "x.json"), r"directory .*missing.* does not exist"),
         (lambda d: "/proc/nope.json", r"cannot create a file in directory '/proc'"),
+        (lambda d: "-", r"standard output is not an output of these tools.*\./-"),
     ],
 )
 def test_bad_output_files_are_refused(tmp_path, make, match):
@@ -186,3 +187,12 @@ def test_prsa_plot_leaves_no_directory_behind_on_failure(tmp_path, capsys, monke
     assert not (tmp_path / "new").exists()
     assert plot_main(["--kp", "0.085", "--plots", "/proc/nope"]) == 2
     _one_error_line(capsys, "prsa-plot")
+
+
+def test_dash_is_refused_before_any_file_is_made_and_dot_slash_dash_is_a_file(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(OutputError, match=r"^--out '-': standard output"):
+        write_text("-", "plant", flag="--out")
+    assert list(tmp_path.iterdir()) == []
+    write_text("./-", "plant", flag="--out")
+    assert (tmp_path / "-").read_text() == "plant"

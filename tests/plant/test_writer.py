@@ -61,6 +61,29 @@ def test_base_layout_and_comments_kept_only_the_key_changes(name):
     assert len(changed) == 3, changed
 
 
+@pytest.mark.parametrize("header", [(), ("prsa-fit --force: a forced file",)])
+def test_a_crlf_base_gives_a_crlf_file_with_the_same_values_and_comments(header):
+    name = builtin_plants()[0]
+    p = _plant(name)
+    base_lf = plant_file_path(name).read_text(encoding="utf-8")
+    base = base_lf.replace("\n", "\r\n")
+    key = _given_float_key(p)
+    fitted = p.with_params({key: p.values[key] * 1.0123456789})
+    text = fitted.to_toml(base, name="fitted", keys=[key], header=header)
+    lf = fitted.to_toml(base_lf, name="fitted", keys=[key], header=header)
+    assert text.count("\n") == text.count("\r\n") > 0  # every line CR LF, none bare
+    assert text == lf.replace("\n", "\r\n")  # the same file as from the LF base, line endings aside
+    assert _load(text).values[key] == fitted.values[key]
+
+
+def test_a_base_with_mixed_line_endings_is_written_with_lf():
+    name = builtin_plants()[0]
+    base = plant_file_path(name).read_text(encoding="utf-8").replace("\n", "\r\n", 1)
+    text = _plant(name).to_toml(base, name="x")
+    assert text.count("\r\n") < text.count("\n")  # not made CR LF throughout: only a CR LF base is
+    assert _load(text).values == _plant(name).values
+
+
 def test_other_toml_spellings_of_a_key_are_edited_in_place():
     base = ('# header\nname = "b"\n\n[nut]\n# the nut\ninertia_kg_m2.value = 2.0e-4\n'
             'inertia_kg_m2.source = "catalogue"  # kept\n\n[nut.sub_table_like]\n')
