@@ -33,6 +33,7 @@ import scipy.signal
 from numpy.typing import NDArray
 
 from ..errors import DataError
+from ..options import check_number
 
 __all__ = [
     "Record",
@@ -144,14 +145,6 @@ def parse_columns(text: str) -> dict[str, str]:
             raise DataError(f"--columns {text!r}: {name!r} mapped twice; expected each name once")
         out[name] = header
     return out
-
-
-def _finite_positive(value: float | None, what: str) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise DataError(f"{what} = {value!r}; expected a finite number > 0")
-    return float(value)
 
 
 def _read_rows(p: Path, name: str) -> list[tuple[int, list[str]]]:
@@ -306,7 +299,7 @@ def record_from_arrays(
 
 
 def _validate(name, arrays, headers, line_of, k_t, load_n, min_samples, sampling_tol, row_word="line") -> Record:
-    k_t = _finite_positive(k_t, "torque constant (N m/A)")
+    k_t = check_number("torque constant (N m/A)", k_t, 0.0, lo_open=True, optional=True, error=DataError)
     if load_n is not None and (isinstance(load_n, bool) or not math.isfinite(load_n)):
         raise DataError(f"load = {load_n!r}; expected a finite axial load in N")
     if "time_s" not in arrays:
@@ -438,11 +431,11 @@ def design_excitation(
     """
     if kind not in DESIGNS:
         raise ValueError(f"design = {kind!r}; expected one of {', '.join(DESIGNS)}")
-    duration_s = _finite_positive(duration_s, "duration (s)")
-    sample_time_s = _finite_positive(sample_time_s, "sample time (s)")
-    f_min_hz = _finite_positive(f_min_hz, "minimum frequency (Hz)")
-    f_max_hz = _finite_positive(f_max_hz, "maximum frequency (Hz)")
-    amplitude = _finite_positive(amplitude, "amplitude")
+    duration_s = check_number("duration (s)", duration_s, 0.0, lo_open=True, optional=True, error=DataError)
+    sample_time_s = check_number("sample time (s)", sample_time_s, 0.0, lo_open=True, optional=True, error=DataError)
+    f_min_hz = check_number("minimum frequency (Hz)", f_min_hz, 0.0, lo_open=True, optional=True, error=DataError)
+    f_max_hz = check_number("maximum frequency (Hz)", f_max_hz, 0.0, lo_open=True, optional=True, error=DataError)
+    amplitude = check_number("amplitude", amplitude, 0.0, lo_open=True, optional=True, error=DataError)
     if not math.isfinite(offset):
         raise ValueError(f"offset = {offset!r}; expected a finite number")
     n = int(round(duration_s / sample_time_s))

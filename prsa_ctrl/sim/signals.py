@@ -19,6 +19,8 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from ..options import is_number
+
 __all__ = ["PiecewiseLinear", "Profile", "NormalisedProfile", "normalise_profile", "is_number"]
 
 
@@ -107,11 +109,6 @@ class PiecewiseLinear:
 
 
 Profile = float | Sequence[tuple[float, float]] | PiecewiseLinear
-
-
-def is_number(v: Any) -> bool:
-    """True for a real number (int or float, NumPy ones too), False for bools and anything else."""
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
 @dataclass(frozen=True)
