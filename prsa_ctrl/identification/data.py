@@ -22,7 +22,6 @@ the row (the file's line number, header = line 1).
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ from numpy.typing import NDArray
 
 from ..errors import DataError
 from ..options import check_number
+from ..tablefile import read_table
 
 __all__ = [
     "Record",
@@ -147,33 +147,6 @@ def parse_columns(text: str) -> dict[str, str]:
     return out
 
 
-def _read_rows(p: Path, name: str) -> list[tuple[int, list[str]]]:
-    """The non-empty, non-comment rows of a CSV file with their line numbers. UTF-8 with or
-    without a byte-order mark (Excel's "CSV UTF-8" export); streamed, so that a file with more
-    than ``MAX_SAMPLES`` data rows is refused when its row ``MAX_SAMPLES + 2`` is reached,
-    without holding the rest in memory; a file larger than ``MAX_FILE_BYTES`` is refused before
-    it is opened."""
-    rows = []
-    try:
-        size = p.stat().st_size
-    except OSError as exc:
-        raise DataError(f"{name}: cannot be read ({exc.strerror or exc}); expected a UTF-8 CSV file") from None
-    if size > MAX_FILE_BYTES:
-        raise DataError(f"{name}: {size} bytes; expected at most {MAX_FILE_BYTES} bytes ({MAX_SAMPLES} rows of up to "
-                        f"{MAX_FILE_BYTES // MAX_SAMPLES} bytes; cut the record)")
-    try:
-        with p.open(newline="", encoding="utf-8-sig") as fh:
-            for i, row in enumerate(csv.reader(fh), start=1):
-                if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#"):
-                    rows.append((i, row))
-                    if len(rows) > MAX_SAMPLES + 1:
-                        raise DataError(f"{name}: more than {MAX_SAMPLES} data rows (line {i}); expected at most "
-                                        f"{MAX_SAMPLES} (cut the record)")
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DataError(f"{name}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
-    return rows
-
-
 def load_record(
     path: str | Path,
     *,
@@ -188,8 +161,9 @@ def load_record(
     Parameters
     ----------
     path : str or Path
-        CSV file with a header row (comma separated; ``#`` comment lines before the header are
-        skipped).
+        CSV file with a header row (comma separated; read by :func:`prsa_ctrl.tablefile.read_table`:
+        a byte-order mark, blank rows and ``#`` comment rows are skipped, at most ``MAX_SAMPLES``
+        rows and ``MAX_FILE_BYTES`` bytes, every cell a finite number).
     columns : mapping, optional
         ``{standard name: header in the file}`` for files with other header names.
     torque_constant_n_m_per_a : float, optional
@@ -218,43 +192,30 @@ def load_record(
     for std in mapping:
         if std not in _ALL_COLUMNS:
             raise DataError(f"{name}: column mapping for unknown name {std!r}; expected one of {', '.join(_ALL_COLUMNS)}")
-    lines = _read_rows(p, name)
-    if not lines:
-        raise DataError(f"{name}: no header row; expected a CSV header with {', '.join(STANDARD_COLUMNS)}")
-    if len(lines) - 1 > MAX_SAMPLES:
-        raise DataError(f"{name}: {len(lines) - 1} rows; expected at most {MAX_SAMPLES} (cut the record)")
-    header_line, header = lines[0]
-    header = [h.strip() for h in header]
     reverse = {h: std for std, h in mapping.items()}
-    for std, h in mapping.items():
-        if h not in header:
-            raise DataError(f"{name}: column {h!r} (mapped to {std}) not in the header; the header has {', '.join(header)}")
-    std_names = []
-    for h in header:
-        std = reverse.get(h, h)
-        if std not in _ALL_COLUMNS:
-            raise DataError(
-                f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(_ALL_COLUMNS)} "
-                "or a mapping --columns name=header"
-            )
-        if std in std_names:
-            raise DataError(f"{name}: column {h!r} (line {header_line}) gives {std} twice; expected each column once")
-        std_names.append(std)
-    rows = lines[1:]
-    data = np.empty((len(rows), len(header)))
-    for r, (line_no, row) in enumerate(rows):
-        if len(row) != len(header):
-            raise DataError(f"{name}: line {line_no} has {len(row)} fields; expected {len(header)} like the header")
-        for c, cell in enumerate(row):
-            try:
-                data[r, c] = float(cell)
-            except ValueError:
+    std_names: list[str] = []
+
+    def check_header(header: tuple[str, ...], header_line: int) -> None:
+        for std, h in mapping.items():
+            if h not in header:
+                raise DataError(f"{name}: column {h!r} (mapped to {std}) not in the header; the header has {', '.join(header)}")
+        for h in header:
+            std = reverse.get(h, h)
+            if std not in _ALL_COLUMNS:
                 raise DataError(
-                    f"{name}: column {header[c]!r} line {line_no}: {cell.strip()!r} is not a number; expected a finite number"
-                ) from None
-    arrays = {std: data[:, c] for c, std in enumerate(std_names)}
-    line_of = [ln for ln, _ in rows]
-    headers = {std: h for std, h in zip(std_names, header)}
+                    f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(_ALL_COLUMNS)} "
+                    "or a mapping --columns name=header"
+                )
+            if std in std_names:
+                raise DataError(f"{name}: column {h!r} (line {header_line}) gives {std} twice; expected each column once")
+            std_names.append(std)
+
+    # the one CSV reader: BOM, comments, size and rows bounded before/while reading, finite numbers
+    table = read_table(p, max_rows=MAX_SAMPLES, max_bytes=MAX_FILE_BYTES, name=name, error=DataError,
+                       on_header=check_header)
+    arrays = {std: table.columns[h] for std, h in zip(std_names, table.header)}
+    line_of = [int(x) for x in table.lines]
+    headers = {std: h for std, h in zip(std_names, table.header)}
     return _validate(name, arrays, headers, line_of, torque_constant_n_m_per_a, load_n, min_samples, sampling_tol)
 
 
