@@ -586,8 +586,8 @@ def load_frf(
     """Read a frequency-response CSV (torque command -> nut speed, (rad/s)/(N m)).
 
     Columns: ``frequency_hz`` and ``magnitude_db, phase_deg`` (dB of (rad/s)/(N m), degrees) or
-    ``real, imag``, optionally ``coherence`` (0..1). ``#`` comment lines before the header are
-    skipped.
+    ``real, imag``, optionally ``coherence`` (0..1). Read by :func:`prsa_ctrl.tablefile.read_table`
+    (a byte-order mark, blank rows and ``#`` comment rows skipped, every cell a finite number).
 
     Parameters
     ----------
@@ -614,43 +614,28 @@ def load_frf(
     p = Path(path)
     if not p.is_file():
         raise DataError(f"{name}: frequency-response file not found; expected a readable CSV file")
-    lines = _read_rows(p, name)
-    if not lines:
-        raise DataError(f"{name}: no header row; expected frequency_hz,magnitude_db,phase_deg[,coherence]")
-    header_line, header = lines[0]
-    header = [h.strip() for h in header]
-    for h in header:
-        if h not in FRF_COLUMNS:
-            raise DataError(f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(FRF_COLUMNS)}")
-    if len(set(header)) != len(header):
-        raise DataError(f"{name}: a column appears twice in the header (line {header_line}); expected each once")
-    polar = {"magnitude_db", "phase_deg"} <= set(header)
-    cart = {"real", "imag"} <= set(header)
-    if "frequency_hz" not in header or polar == cart:
-        raise DataError(f"{name}: header {', '.join(header)}; expected frequency_hz with magnitude_db,phase_deg "
-                        "or with real,imag (one pair)")
-    rows = lines[1:]
-    if len(rows) > MAX_SAMPLES:
-        raise DataError(f"{name}: {len(rows)} rows; expected at most {MAX_SAMPLES}")
-    data = np.empty((len(rows), len(header)))
-    for r, (line_no, row) in enumerate(rows):
-        if len(row) != len(header):
-            raise DataError(f"{name}: line {line_no} has {len(row)} fields; expected {len(header)} like the header")
-        for c, cell in enumerate(row):
-            try:
-                v = float(cell)
-            except ValueError:
-                v = float("nan")
-            if not math.isfinite(v):
-                raise DataError(f"{name}: column {header[c]!r} line {line_no}: {cell.strip()!r}; expected a finite number")
-            data[r, c] = v
-    col = {h: data[:, i] for i, h in enumerate(header)}
+
+    def check_header(header: tuple[str, ...], header_line: int) -> None:
+        for h in header:
+            if h not in FRF_COLUMNS:
+                raise DataError(f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(FRF_COLUMNS)}")
+        if len(set(header)) != len(header):
+            raise DataError(f"{name}: a column appears twice in the header (line {header_line}); expected each once")
+        if "frequency_hz" not in header or ({"magnitude_db", "phase_deg"} <= set(header)) == ({"real", "imag"} <= set(header)):
+            raise DataError(f"{name}: header {', '.join(header)}; expected frequency_hz with magnitude_db,phase_deg "
+                            "or with real,imag (one pair)")
+
+    # the one CSV reader: BOM, comments, size and rows bounded before/while reading, finite numbers
+    table = read_table(p, max_rows=MAX_SAMPLES, max_bytes=MAX_FILE_BYTES, name=name, error=DataError,
+                       on_header=check_header)
+    col = dict(table.columns)
+    polar = {"magnitude_db", "phase_deg"} <= set(col)
     if polar:
         g = 10 ** (col["magnitude_db"] / 20) * np.exp(1j * np.radians(col["phase_deg"]))
     else:
         g = col["real"] + 1j * col["imag"]
     return frf_from_arrays(name, col["frequency_hz"], g, coherence=col.get("coherence"), speed_rad_s=speed_rad_s,
-                           load_n=load_n, coherence_min=coherence_min, row_of=[ln for ln, _ in rows], row_word="line",
+                           load_n=load_n, coherence_min=coherence_min, row_of=[int(x) for x in table.lines], row_word="line",
                            sample_time_s=sample_time_s)
 
 
