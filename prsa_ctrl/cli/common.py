@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 from ..errors import GeometryWarning, PlantFileError, SceneError, SimulationError, UsageError
+from ..options import check_number
 from ..io.output import OutputError, Transaction, cleanup_temporaries, remove_created, write_text
 from ..textsafe import MESSAGE_CHARS_MAX, printable
 
@@ -115,12 +116,12 @@ def number(flag: str, lo: float = -math.inf, hi: float = math.inf, unit: str = "
             v = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected {not_a_number or what}{rng}") from None
-        ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
-        if not ok:
+        try:  # the range decided by the one number validator; the message in the flags' form
+            return check_number(flag, v, lo, hi, lo_open=lo_open, hi_open=hi_open)
+        except ValueError:
             shown = repr(text) if quoted else text
             raise argparse.ArgumentTypeError(f"{flag} {shown}" + (f" {unit}" if unit and math.isfinite(v) else "")
-                                             + f": expected {what}{rng}")
-        return v
+                                             + f": expected {what}{rng}") from None
 
     return conv
 
@@ -132,9 +133,10 @@ def integer(flag: str, lo: int, hi: int, what: str) -> Callable[[str], int]:
             v = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{flag} {text!r}: expected {what} {lo}..{hi}") from None
-        if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"{flag} {text}: expected {what} {lo}..{hi}")
-        return v
+        try:
+            return check_number(flag, v, lo, hi, integer=True)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} {text}: expected {what} {lo}..{hi}") from None
 
     return conv
 
