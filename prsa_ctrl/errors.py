@@ -5,7 +5,7 @@ Every message names the value that was received and what was expected.
 
 __all__ = ["PlantFileError", "SceneError", "SimulationError", "GeometryWarning", "DataError", "FitError",
            "LogFormatError", "AxisPlantError", "AxisFitError", "OutputError", "MonteCarloInterrupted", "UsageError",
-           "PlantTextError", "SchedulerProbeError"]
+           "PlantTextError", "SchedulerProbeError", "NoStabilisingGains"]
 
 
 class PlantFileError(ValueError):
@@ -74,3 +74,9 @@ class SchedulerProbeError(ValueError):
     """No Dask scheduler answered at an address (:func:`prsa_ctrl.studies.daskprobe.probe_scheduler`):
     "cannot connect (...)", "no answer (...)" or "not a Dask scheduler (...)", in one line, without
     the address (the caller names it as the user typed it)."""
+
+
+class NoStabilisingGains(ValueError):
+    """The tuner found no gains of the asked structure that stabilise the loop (or none that
+    also meet the bounds); the message says which and what to relax. ``prsa-pid`` tries the
+    reverse-acting plant on this type (was: on the message's first words)."""

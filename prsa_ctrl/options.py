@@ -6,7 +6,10 @@ Every default that more than one module needs lives here once, with its unit and
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+import numbers
+from typing import Any, Callable, Mapping
+
+from .textsafe import quote
 
 __all__ = [
     "SETPOINT_RPM",
@@ -23,6 +26,8 @@ __all__ = [
     "MS_MAX_DEFAULT",
     "PEAK_BOUND_RANGE",
     "check_peak_bound",
+    "check_number",
+    "is_number",
     "rpm_to_rad_s",
     "rad_s_to_rpm",
     "FREQUENCY_UNITS",
@@ -127,6 +132,100 @@ def parse_kv(value: Any, where: str = "kv_max") -> float:
 
 
 
+def is_number(v: Any) -> bool:
+    """True for a real number (int or float, NumPy ones too), False for bools and anything else."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and type(v).__name__ != "bool_"
+
+
+def _bound_text(lo: float, hi: float, lo_open: bool, hi_open: bool, unit: str) -> str:
+    parts = []
+    if math.isfinite(lo):
+        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+    if math.isfinite(hi):
+        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+    text = " and ".join(parts)
+    if not text:
+        return f"({unit})" if unit else ""
+    return " ".join(x for x in (text, unit) if x)
+
+
+def check_number(name: str, value: Any, lo: float = -math.inf, hi: float = math.inf, *, unit: str = "",
+                 lo_open: bool = False, hi_open: bool = False, integer: bool = False, optional: bool = False,
+                 error: Callable[[str], Exception] = ValueError, typed: str | None = None,
+                 expected: str | None = None) -> Any:
+    """The one number validator: ``value`` as a checked float (or int), or one line naming it.
+
+    Every module that takes a number from a user (a file, a flag, an argument) checks it here,
+    so that every refusal reads the same: ``NAME = VALUE; expected a finite number > LO and
+    <= HI UNIT``, with the value as typed.
+
+    Parameters
+    ----------
+    name : str
+        The value's name as the user knows it (a key, a flag, an argument; may carry its file).
+    value : int or float (NumPy ones too) or None
+        The value. Bools, strings and anything else are refused.
+    lo, hi : float
+        Bounds, in ``unit``; an infinite bound is not checked nor named.
+    unit : str
+        Unit of the bounds, shown after them.
+    lo_open, hi_open : bool
+        Exclude the bound (``>`` / ``<``) instead of including it (``>=`` / ``<=``).
+    integer : bool
+        Accept integers only (``3.0`` is not one) and return an ``int``.
+    optional : bool
+        Accept ``None`` and return it.
+    error : exception class
+        Raised with the one-line message (:class:`ValueError` or one of its subclasses in
+        :mod:`prsa_ctrl.errors`).
+    typed : str, optional
+        The value as the user typed it, if it was text (a flag's argument); shown instead of
+        ``repr(value)``.
+    expected : str, optional
+        What was expected, in words, instead of the description made from the bounds
+        (``"a sample time > 0 s or None (continuous)"``).
+
+    Returns
+    -------
+    float or int or None
+
+    Raises
+    ------
+    ValueError (or ``error``)
+        ``"NAME = VALUE; expected ..."``.
+
+    Examples
+    --------
+    >>> check_number("ts", 0.00025, 0.0, 1e3, unit="s", lo_open=True)
+    0.00025
+    >>> check_number("ts", 0, 0.0, 1e3, unit="s", lo_open=True)
+    Traceback (most recent call last):
+    ...
+    ValueError: ts = 0; expected a finite number > 0 and <= 1000 s
+    >>> check_number("count", 2.5, 1, integer=True)
+    Traceback (most recent call last):
+    ...
+    ValueError: count = 2.5; expected an integer >= 1
+    """
+    if value is None and optional:
+        return None
+    bounds = _bound_text(lo, hi, lo_open, hi_open, unit)
+    expected = expected or (("None or " if optional else "") + ("an integer" if integer else "a finite number")
+                            + (f" {bounds}" if bounds else ""))
+    ok = is_number(value) and (isinstance(value, numbers.Integral) if integer else True)
+    if ok:
+        try:
+            v = float(value)
+        except OverflowError:  # an int beyond the float range
+            v = math.inf if value > 0 else -math.inf
+        ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+    if not ok:
+        if typed is None:
+            typed = quote(value)
+        raise error(f"{name} = {typed}; expected {expected}")
+    return int(value) if integer else v
+
+
 #: Open interval in which a peak bound (Ms, Mt) is accepted: at 1 no controller is feasible,
 #: above 10 the bound no longer means robustness.
 PEAK_BOUND_RANGE = (1.0, 10.0)
@@ -157,9 +256,10 @@ def check_peak_bound(name: str, value, *, optional: bool = False) -> float | Non
     if value is None and optional:
         return None
     expected = f"a number in ({lo:g}, {hi:g})" + (" or None" if optional else "")
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (lo < float(value) < hi):
-        raise ValueError(f"{name} = {value!r}; expected {expected}")
-    return float(value)
+    try:
+        return check_number(name, value, lo, hi, lo_open=True, hi_open=True)
+    except ValueError:
+        raise ValueError(f"{name} = {value!r}; expected {expected}") from None
 
 
 def rpm_to_rad_s(rpm: float) -> float:

@@ -52,7 +52,8 @@ def _code_lines(pattern: str, skip=()) -> list[str]:
 
 
 def test_6000_rpm_written_once():
-    assert _code_lines(r"\b6000(\.0)?\b") == ["options.py:42: SPEED_MAX_RPM = 6000.0"]
+    found = _code_lines(r"\b6000(\.0)?\b")
+    assert [re.sub(r":\d+:", ":", x) for x in found] == ["options.py: SPEED_MAX_RPM = 6000.0"]
 
 
 def test_the_rpm_factor_is_not_written_inline_outside_the_scene_modules():
@@ -67,3 +68,98 @@ def test_peak_bound_range_written_once_outside_the_scene_modules():
     # registry's, not changed in this round)
     found = _code_lines(r"1(\.0)? < [a-z_.]+ < 10(\.0)?\b|lo=1\.0, hi=10\.0", skip=("studies/scene.py",))
     assert found == []
+
+
+# --- the one number validator ----------------------------------------------------------------
+
+import pytest  # noqa: E402
+
+from prsa_ctrl.errors import DataError  # noqa: E402
+
+
+@pytest.mark.parametrize("value, kw, message", [
+    (0, dict(lo=0.0, hi=1e3, unit="s", lo_open=True), "ts = 0; expected a finite number > 0 and <= 1000 s"),
+    (1e3, dict(lo=0.0, hi=1e3, hi_open=True), "ts = 1000.0; expected a finite number >= 0 and < 1000"),
+    (float("nan"), {}, "ts = nan; expected a finite number"),
+    (float("inf"), dict(lo=0.0), "ts = inf; expected a finite number >= 0"),
+    (True, {}, "ts = True; expected a finite number"),
+    (np.bool_(True), {}, "ts = np.True_; expected a finite number"),
+    ("3", {}, "ts = '3'; expected a finite number"),
+    ([1.0], {}, "ts = [1.0]; expected a finite number"),
+    (2.5, dict(lo=1, integer=True), "ts = 2.5; expected an integer >= 1"),
+    (3.0, dict(integer=True), "ts = 3.0; expected an integer"),
+    (-1.0, dict(lo=0.0, unit="N m", optional=True), "ts = -1.0; expected None or a finite number >= 0 N m"),
+    (1.0, dict(unit="rad/s", lo=2.0), "ts = 1.0; expected a finite number >= 2 rad/s"),
+    ("x", dict(unit="rad/s"), "ts = 'x'; expected a finite number (rad/s)"),
+])
+def test_check_number_refuses_with_one_line_naming_the_value(value, kw, message):
+    with pytest.raises(ValueError) as err:
+        options.check_number("ts", value, **kw)
+    assert str(err.value) == message
+
+
+def test_check_number_bounds_are_exact_at_the_edge():
+    assert options.check_number("x", 0.0, 0.0) == 0.0
+    with pytest.raises(ValueError):
+        options.check_number("x", 0.0, 0.0, lo_open=True)
+    assert options.check_number("x", 5e-324, 0.0, lo_open=True) == 5e-324
+    assert options.check_number("x", 1.0, hi=1.0) == 1.0
+    with pytest.raises(ValueError):
+        options.check_number("x", 1.0, hi=1.0, hi_open=True)
+
+
+def test_check_number_returns_float_or_int_and_passes_none_when_optional():
+    v = options.check_number("x", np.float32(0.5))
+    assert type(v) is float and v == 0.5
+    n = options.check_number("n", np.int64(7), 1, 10, integer=True)
+    assert type(n) is int and n == 7
+    assert options.check_number("x", None, optional=True) is None
+    with pytest.raises(ValueError, match="x = None; expected a finite number"):
+        options.check_number("x", None)
+
+
+def test_check_number_names_huge_integers_briefly_and_raises_the_asked_type():
+    with pytest.raises(DataError) as err:
+        options.check_number("count", 10 ** 400, 0, 1e6, error=DataError)
+    assert "(an integer of 401 digits); expected a finite number >= 0 and <= 1e+06" in str(err.value)
+    assert len(str(err.value)) < 120
+
+
+def test_check_number_shows_the_text_as_typed():
+    with pytest.raises(ValueError, match=r"^--gain = 1e999; expected a finite number$"):
+        options.check_number("--gain", float("1e999"), typed="1e999")
+
+
+def _number_validators() -> set[str]:
+    """Functions that take a value's name first and raise "expected a finite number" (or an
+    integer) themselves: a number validator of their own beside :func:`options.check_number`."""
+    import ast
+
+    found = set()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE).as_posix()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.FunctionDef) or (rel, node.name) == ("options.py", "check_number"):
+                continue
+            args = [a.arg for a in node.args.args if a.arg not in ("self", "cls")]
+            if not args or args[0] not in ("name", "flag", "what", "where", "key", "origin", "kind"):
+                continue
+            text = " ".join(c.value for r in ast.walk(node) if isinstance(r, ast.Raise)
+                            for c in ast.walk(r) if isinstance(c, ast.Constant) and isinstance(c.value, str))
+            if re.search(r"expected (None or )?(a finite|an integer|a number)", text):
+                found.add(f"{rel}:{node.name}")
+    return found
+
+
+#: Validators still written apart: the scene modules (being rewritten as types by another
+#: branch), and checks of several values at once whose messages name more than one value.
+NOT_YET = {"studies/scenefilters.py:_number", "identification/data.py:_validate", "identification/data.py:design_excitation",
+           "identification/data.py:frf_from_arrays", "identification/logfile.py:scalar",
+           "identification/logformat.py:_check_controller", "cli/pid.py:_coefficients"}
+
+
+def test_no_private_number_validator_left_beside_check_number():
+    """The modules that had their own ``_finite``/``_positive``/``_check_number``/``_gain``/...
+    (15 on main at 1dddb38) call :func:`prsa_ctrl.options.check_number`; the list of those
+    left is exact (an entry fixed must leave it)."""
+    assert _number_validators() == NOT_YET

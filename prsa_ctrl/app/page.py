@@ -94,6 +94,7 @@ class AppPage:
     def _build(self) -> None:
         s = self.settings
         plants, scenes = builtin_names()
+        self._builtins = {"plant": list(plants), "scene": list(scenes)}
         self.title = Div(text="", css_classes=["prsa-title"], sizing_mode="stretch_width")
         self.error = Div(text="", css_classes=["prsa-error"], styles={"color": "#b00020"}, sizing_mode="stretch_width")
         self.status = Div(text="starting", css_classes=["prsa-status"])
@@ -573,6 +574,21 @@ class AppPage:
             return
         self._after_switch(kind, notes)
 
+    def _show_source(self, kind: str) -> None:
+        """The plant or scene select shows what the session uses: a built-in name, or
+        ``file: NAME`` (an upload or a calibrated plant, listed while it is in use; was:
+        the select kept showing the last built-in name after an upload)."""
+        select = self.plant_select if kind == "plant" else self.scene_select
+        label = self.session.plant_label if kind == "plant" else self.session.scene_label
+        builtins = self._builtins[kind]
+        value = label if label in builtins else f"file: {label}"
+        options = builtins if label in builtins else [*builtins, value]
+        if list(select.options) != options:
+            select.options = options
+        if select.value != value:
+            self._reverting[kind] = True  # a display change, not a choice: _switch skips it
+            select.value = value
+
     def _too_large(self, kind: str, attr, old, new) -> None:
         src = (self.plant_upload if kind == "plant" else self.scene_upload).tags[1]
         line = too_large_line(src, f"uploaded-{kind}.toml")
@@ -619,11 +635,17 @@ class AppPage:
 
     def _after_switch(self, kind: str, notes: list[str]) -> None:
         self.session.notes = notes
-        if kind == "scene":
+        self._show_source(kind)
+        if kind == "scene":  # every widget the scene sets shows the scene's value (its fidelity and Mt too)
             d = self.session.default_settings()
             self.objective.value, self.loads.value = d.objective, d.load_step
             self.controller.active = 0 if d.controller == "pi" else 1
             self.ms.value = d.ms_max
+            self.mt_on.active = [0] if d.mt_max is not None else []
+            if d.mt_max is not None:
+                self.mt.value = d.mt_max
+            if d.fidelity in self.fidelity.options:
+                self.fidelity.value = d.fidelity
         self.manual_gains = None
         self.error.text = ""
         self.request()

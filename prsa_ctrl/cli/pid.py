@@ -311,6 +311,7 @@ def _tune(args, num: list, den: list):
 
     import control
 
+    from ..errors import NoStabilisingGains
     from ..tuning.generic import tune_pid
 
     def tune(sign: float):
@@ -322,9 +323,7 @@ def _tune(args, num: list, den: list):
 
     try:
         return tune(1.0), 1.0
-    except ValueError as exc:
-        if not str(exc).startswith("no stabilising"):
-            raise
+    except NoStabilisingGains as exc:
         try:
             res = tune(-1.0)
         except ValueError:

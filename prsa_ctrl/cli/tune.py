@@ -49,7 +49,7 @@ from ..studies.scene import load_scene  # noqa: E402
 from ..studies.scenefile import is_move_scene  # noqa: E402
 from .common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError,  # noqa: E402
                      commit, describe_failure, echo, integer, invoke, native_output, number, path_text, progress,
-                     report_failure, show_notes, staged, status_says_interrupted, write_json_atomic)
+                     report_failure, show_notes, staged, write_json_atomic)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, parse_load_step, scene_flags  # noqa: E402
 from .plot import build_plot_parser, plot_main  # noqa: E402
 from .report import format_friction_ff, format_move_report, format_report, format_robust  # noqa: E402
@@ -403,9 +403,7 @@ def _tune(run: Run, args, plant, scene) -> dict:
             scene = ft.scene
             run.check()
         rep = tune_actuator(plant, scene, workers=args.workers)
-        run.check()
-        if status_says_interrupted(rep.as_dict()):
-            raise KeyboardInterrupt
+        run.check()  # a Ctrl-C a solver swallowed (IPOPT's User_Requested_Stop) raises here
         if getattr(args, "design_to_spec", False):
             robust_rep, mc, dts = _design_to_spec(run, args, plant, rep)
             return {"rep": rep, "robust": robust_rep, "mc": mc, "filter_tuning": ft, "design_to_spec": dts}

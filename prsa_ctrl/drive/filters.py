@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._lazy import module
+from ..options import check_number
 from .sampled import zoh
 
 control = module("control")  # only Filter.continuous_tf needs python-control
@@ -57,24 +58,6 @@ __all__ = ["Filter", "DiscreteBiquad", "FirstOrderLowPass", "SecondOrderLowPass"
 
 #: Discretisation methods of :meth:`Filter.biquad`.
 METHODS = ("tustin", "zoh", "matched")
-
-
-def _finite(name: str, v: object, lo: float, hi: float, unit: str = "", lo_open: bool = True,
-            hi_open: bool = False) -> float:
-    """``v`` as a float in the range, or a one-line ValueError naming ``name``."""
-    ok = not isinstance(v, bool) and isinstance(v, (int, float, np.floating, np.integer))
-    if ok:
-        f = float(v)
-        ok = math.isfinite(f) and (f > lo if lo_open else f >= lo) and (f < hi if hi_open else f <= hi)
-    if not ok:
-        lo_s = f"{'>' if lo_open else '>='} {lo:g}"
-        hi_s = f"{'<' if hi_open else '<='} {hi:g}"
-        raise ValueError(f"{name} = {v!r}; expected a finite number {lo_s} and {hi_s} {unit}".rstrip())
-    return f
-
-
-def _check_ts(ts: object) -> float:
-    return _finite("ts", ts, 0.0, 1e3, "s")
 
 
 #: Lowest filter frequency (Hz) a constructor accepts (below it ``1/w0^2`` leaves the float range).
@@ -103,10 +86,8 @@ def _shown(v: float) -> str:
 
 def _hz(name: str, v: object) -> float:
     """A filter frequency (Hz) in ``[MIN_HZ, 1e9]``, or a one-line ValueError naming ``name``."""
-    f = _finite(name, v, 0.0, 1e9, "Hz")
-    if f < MIN_HZ:
-        raise ValueError(f"{name} = {v!r}; expected a finite number >= {MIN_HZ:g} and <= 1e+09 Hz")
-    return f
+    check_number(name, v, 0.0, 1e9, unit="Hz", lo_open=True)
+    return check_number(name, v, MIN_HZ, 1e9, unit="Hz")
 
 
 @dataclass(frozen=True)
@@ -131,8 +112,8 @@ class DiscreteBiquad:
 
     def __post_init__(self) -> None:
         for name in ("b0", "b1", "b2", "a1", "a2"):
-            object.__setattr__(self, name, _finite(name, getattr(self, name), -1e300, 1e300))
-        object.__setattr__(self, "ts", _check_ts(self.ts))
+            object.__setattr__(self, name, check_number(name, getattr(self, name), -1e300, 1e300, lo_open=True))
+        object.__setattr__(self, "ts", check_number("ts", self.ts, 0.0, 1e3, unit="s", lo_open=True))
 
     @property
     def num(self) -> NDArray[np.float64]:
@@ -302,7 +283,7 @@ class Filter:
         -------
         DiscreteBiquad
         """
-        ts = _check_ts(ts)
+        ts = check_number("ts", ts, 0.0, 1e3, unit="s", lo_open=True)
         if method not in METHODS:
             raise ValueError(f"method = {method!r}; expected one of {', '.join(METHODS)}")
         if not isinstance(prewarp, bool):
@@ -410,7 +391,7 @@ class FirstOrderLowPass(Filter):
     @classmethod
     def from_time_constant(cls, tau_s: float) -> "FirstOrderLowPass":
         """Low-pass with time constant ``tau_s`` (s): ``corner_hz = 1/(2 pi tau_s)``."""
-        return cls(1.0 / (2.0 * math.pi * _finite("tau_s", tau_s, 0.0, 1e5, "s")))
+        return cls(1.0 / (2.0 * math.pi * check_number("tau_s", tau_s, 0.0, 1e5, unit="s", lo_open=True)))
 
     @property
     def characteristic_hz(self) -> float:
@@ -442,7 +423,7 @@ class SecondOrderLowPass(Filter):
 
     def __post_init__(self) -> None:
         _hz("corner_hz", self.corner_hz)
-        _finite("damping", self.damping, 0.0, 100.0)
+        check_number("damping", self.damping, 0.0, 100.0, lo_open=True)
 
     @property
     def characteristic_hz(self) -> float:
@@ -479,14 +460,14 @@ class Notch(Filter):
 
     def __post_init__(self) -> None:
         _hz("centre_hz", self.centre_hz)
-        _finite("width_hz", self.width_hz, 0.0, 4.0 * self.centre_hz, "Hz (up to 4 x centre_hz)")
-        _finite("depth_db", self.depth_db, -120.0, 0.0, "dB", lo_open=False)
+        check_number("width_hz", self.width_hz, 0.0, 4.0 * self.centre_hz, unit="Hz (up to 4 x centre_hz)", lo_open=True)
+        check_number("depth_db", self.depth_db, -120.0, 0.0, unit="dB", lo_open=False)
 
     @classmethod
     def from_quality(cls, centre_hz: float, quality: float, depth_db: float = -20.0) -> "Notch":
         """Notch with quality ``Q = centre_hz / width_hz``."""
-        q = _finite("quality", quality, 0.25, 1e6)
-        return cls(centre_hz, _finite("centre_hz", centre_hz, 0.0, 1e9, "Hz") / q, depth_db)
+        q = check_number("quality", quality, 0.25, 1e6, lo_open=True)
+        return cls(centre_hz, check_number("centre_hz", centre_hz, 0.0, 1e9, unit="Hz", lo_open=True) / q, depth_db)
 
     @property
     def quality(self) -> float:
@@ -529,9 +510,9 @@ class GeneralBiquad(Filter):
 
     def __post_init__(self) -> None:
         _hz("zero_hz", self.zero_hz)
-        _finite("zero_damping", self.zero_damping, 0.0, 100.0, lo_open=False)
+        check_number("zero_damping", self.zero_damping, 0.0, 100.0, lo_open=False)
         _hz("pole_hz", self.pole_hz)
-        _finite("pole_damping", self.pole_damping, 0.0, 100.0)
+        check_number("pole_damping", self.pole_damping, 0.0, 100.0, lo_open=True)
 
     @property
     def characteristic_hz(self) -> float:

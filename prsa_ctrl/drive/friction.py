@@ -32,17 +32,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..options import check_number
+
 if TYPE_CHECKING:
     from ..plant.plantfile import Plant
 
 __all__ = ["FrictionFeedforward"]
-
-
-def _check(name: str, v: Any, positive: bool = False) -> float:
-    ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and (v > 0 if positive else v >= 0)
-    if not ok:
-        raise ValueError(f"FrictionFeedforward {name} = {v!r}; expected a finite number {'>' if positive else '>='} 0")
-    return float(v)
 
 
 @dataclass(frozen=True)
@@ -85,7 +80,8 @@ class FrictionFeedforward:
         for f in fields(self):
             if f.name == "source":
                 continue
-            _check(f.name, getattr(self, f.name), positive=f.name == "stribeck_speed_rad_s")
+            check_number(f"FrictionFeedforward {f.name}", getattr(self, f.name), 0.0,
+                         lo_open=f.name == "stribeck_speed_rad_s")
         if self.gain > 2.0:
             raise ValueError(f"FrictionFeedforward gain = {self.gain!r}; expected a finite number in [0, 2]")
 

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 
+from ..options import check_number
 from .friction import FrictionFeedforward
 
 if TYPE_CHECKING:
@@ -158,16 +159,6 @@ def measurement_for(plant: "Plant", kind: "str | SpeedMeasurement", kf: "KFDesig
 
 
 
-def _gain(name: str, v: object, unit: str, lo: float = 0.0, lo_open: bool = False, hi: float = math.inf) -> float:
-    ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) \
-        and (v > lo if lo_open else v >= lo) and v <= hi
-    if not ok:
-        rel = ">" if lo_open else ">="
-        raise ValueError(f"PositionLoop {name} = {v!r}; expected a finite number {rel} {lo:g}"
-                         + (f" and <= {hi:g}" if math.isfinite(hi) else "") + f" {unit}".rstrip())
-    return float(v)
-
-
 @dataclass(frozen=True)
 class PositionLoop:
     """The position loop of the drive, an outer block of the one sampled-loop law.
@@ -236,10 +227,10 @@ class PositionLoop:
     n_inputs = 8
 
     def __post_init__(self) -> None:
-        _gain("kv", self.kv, "1/s")
-        _gain("ki", self.ki, "1/s^2")
-        _gain("kvff", self.kvff, "", hi=2.0)
-        _gain("kaff", self.kaff, "", hi=2.0)
+        check_number("PositionLoop kv", self.kv, 0.0, unit="1/s")
+        check_number("PositionLoop ki", self.ki, 0.0, unit="1/s^2")
+        check_number("PositionLoop kvff", self.kvff, 0.0, 2.0)
+        check_number("PositionLoop kaff", self.kaff, 0.0, 2.0)
         if self.kv == 0 and self.ki == 0:
             raise ValueError("PositionLoop kv = ki = 0; expected a position gain kv > 0 (or ki > 0)")
         if self.measured not in POSITION_SENSORS:
@@ -250,7 +241,7 @@ class PositionLoop:
         if isinstance(self.delay, bool) or not isinstance(self.delay, int) or not 0 <= self.delay <= 8:
             raise ValueError(f"PositionLoop delay = {self.delay!r}; expected an integer number of position-loop samples "
                              "in [0, 8]")
-        _gain("scale_resolution_m", self.scale_resolution_m, "m", lo_open=True, hi=1e-3)
+        check_number("PositionLoop scale_resolution_m", self.scale_resolution_m, 0.0, 1e-3, unit="m", lo_open=True)
         if self.friction is not None and not isinstance(self.friction, FrictionFeedforward):
             raise ValueError(f"PositionLoop friction = {self.friction!r}; expected a FrictionFeedforward or None")
 

@@ -41,19 +41,14 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..options import check_number
+
 __all__ = ["MotionProfile", "trapezoidal", "s_curve", "out_and_back", "PROFILE_KINDS", "MAX_SEGMENTS"]
 
 #: Kinds of move :func:`plan` knows.
 PROFILE_KINDS = ("trapezoidal", "s-curve")
 #: Most segments of one profile (a move has at most 7; chains of moves stay far below).
 MAX_SEGMENTS = 1000
-
-
-def _positive(name: str, v: object, unit: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(float(v)) or float(v) <= 0:
-        raise ValueError(f"{name} = {v!r}; expected a finite number > 0 {unit}")
-    return float(v)
 
 
 @dataclass(frozen=True)
@@ -208,8 +203,8 @@ def trapezoidal(distance_m: float, max_speed_m_s: float, acceleration_m_s2: floa
     d = float(distance_m)
     if isinstance(distance_m, bool) or not math.isfinite(d) or d == 0:
         raise ValueError(f"distance_m = {distance_m!r}; expected a finite non-zero travel in m")
-    v = _positive("max_speed_m_s", max_speed_m_s, "m/s")
-    acc = _positive("acceleration_m_s2", acceleration_m_s2, "m/s^2")
+    v = check_number("max_speed_m_s", max_speed_m_s, 0.0, unit="m/s", lo_open=True)
+    acc = check_number("acceleration_m_s2", acceleration_m_s2, 0.0, unit="m/s^2", lo_open=True)
     s, dist = math.copysign(1.0, d), abs(d)
     if v * v / acc > dist:
         v = math.sqrt(acc * dist)
@@ -236,9 +231,9 @@ def s_curve(distance_m: float, max_speed_m_s: float, acceleration_m_s2: float, j
     d = float(distance_m)
     if isinstance(distance_m, bool) or not math.isfinite(d) or d == 0:
         raise ValueError(f"distance_m = {distance_m!r}; expected a finite non-zero travel in m")
-    v = _positive("max_speed_m_s", max_speed_m_s, "m/s")
-    acc = _positive("acceleration_m_s2", acceleration_m_s2, "m/s^2")
-    jerk = _positive("jerk_m_s3", jerk_m_s3, "m/s^3")
+    v = check_number("max_speed_m_s", max_speed_m_s, 0.0, unit="m/s", lo_open=True)
+    acc = check_number("acceleration_m_s2", acceleration_m_s2, 0.0, unit="m/s^2", lo_open=True)
+    jerk = check_number("jerk_m_s3", jerk_m_s3, 0.0, unit="m/s^3", lo_open=True)
     s, dist = math.copysign(1.0, d), abs(d)
 
     def t_acc(vv: float) -> float:

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 
 import casadi as ca
 
+from ..options import check_number
+
 if TYPE_CHECKING:
     import control
 
@@ -47,11 +49,8 @@ class PID:
 
     def __post_init__(self) -> None:
         for name in ("kp", "ki", "kd", "kff"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"PID {name} = {v!r}; expected a finite number >= 0")
-        if not isinstance(self.tf, (int, float)) or not math.isfinite(self.tf) or self.tf <= 0:
-            raise ValueError(f"PID tf = {self.tf!r}; expected a finite time constant > 0 s")
+            check_number(f"PID {name}", getattr(self, name), 0.0)
+        check_number("PID tf", self.tf, 0.0, lo_open=True, expected="a finite time constant > 0 s")
 
     @property
     def params(self) -> list[float]:
@@ -66,11 +65,8 @@ class PID:
         return {"kp": self.kp, "ki": self.ki, "kd": self.kd, "tf": self.tf, "kff": self.kff}
 
     def _check_dt(self, dt: float | None) -> float | None:
-        if dt is None:
-            return None
-        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
-            raise ValueError(f"PID sample time dt = {dt!r}; expected None (continuous) or a sample time > 0 s")
-        return float(dt)
+        return check_number("PID sample time dt", dt, 0.0, lo_open=True, optional=True,
+                            expected="None (continuous) or a sample time > 0 s")
 
     def to_ss(self, dt: float | None = None) -> "control.StateSpace":
         """The PID as a python-control state-space system from speed error to torque command.

@@ -22,7 +22,6 @@ the row (the file's line number, header = line 1).
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +32,8 @@ import scipy.signal
 from numpy.typing import NDArray
 
 from ..errors import DataError
+from ..options import check_number
+from ..tablefile import read_table
 
 __all__ = [
     "Record",
@@ -146,41 +147,6 @@ def parse_columns(text: str) -> dict[str, str]:
     return out
 
 
-def _finite_positive(value: float | None, what: str) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise DataError(f"{what} = {value!r}; expected a finite number > 0")
-    return float(value)
-
-
-def _read_rows(p: Path, name: str) -> list[tuple[int, list[str]]]:
-    """The non-empty, non-comment rows of a CSV file with their line numbers. UTF-8 with or
-    without a byte-order mark (Excel's "CSV UTF-8" export); streamed, so that a file with more
-    than ``MAX_SAMPLES`` data rows is refused when its row ``MAX_SAMPLES + 2`` is reached,
-    without holding the rest in memory; a file larger than ``MAX_FILE_BYTES`` is refused before
-    it is opened."""
-    rows = []
-    try:
-        size = p.stat().st_size
-    except OSError as exc:
-        raise DataError(f"{name}: cannot be read ({exc.strerror or exc}); expected a UTF-8 CSV file") from None
-    if size > MAX_FILE_BYTES:
-        raise DataError(f"{name}: {size} bytes; expected at most {MAX_FILE_BYTES} bytes ({MAX_SAMPLES} rows of up to "
-                        f"{MAX_FILE_BYTES // MAX_SAMPLES} bytes; cut the record)")
-    try:
-        with p.open(newline="", encoding="utf-8-sig") as fh:
-            for i, row in enumerate(csv.reader(fh), start=1):
-                if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#"):
-                    rows.append((i, row))
-                    if len(rows) > MAX_SAMPLES + 1:
-                        raise DataError(f"{name}: more than {MAX_SAMPLES} data rows (line {i}); expected at most "
-                                        f"{MAX_SAMPLES} (cut the record)")
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DataError(f"{name}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
-    return rows
-
-
 def load_record(
     path: str | Path,
     *,
@@ -195,8 +161,9 @@ def load_record(
     Parameters
     ----------
     path : str or Path
-        CSV file with a header row (comma separated; ``#`` comment lines before the header are
-        skipped).
+        CSV file with a header row (comma separated; read by :func:`prsa_ctrl.tablefile.read_table`:
+        a byte-order mark, blank rows and ``#`` comment rows are skipped, at most ``MAX_SAMPLES``
+        rows and ``MAX_FILE_BYTES`` bytes, every cell a finite number).
     columns : mapping, optional
         ``{standard name: header in the file}`` for files with other header names.
     torque_constant_n_m_per_a : float, optional
@@ -225,43 +192,30 @@ def load_record(
     for std in mapping:
         if std not in _ALL_COLUMNS:
             raise DataError(f"{name}: column mapping for unknown name {std!r}; expected one of {', '.join(_ALL_COLUMNS)}")
-    lines = _read_rows(p, name)
-    if not lines:
-        raise DataError(f"{name}: no header row; expected a CSV header with {', '.join(STANDARD_COLUMNS)}")
-    if len(lines) - 1 > MAX_SAMPLES:
-        raise DataError(f"{name}: {len(lines) - 1} rows; expected at most {MAX_SAMPLES} (cut the record)")
-    header_line, header = lines[0]
-    header = [h.strip() for h in header]
     reverse = {h: std for std, h in mapping.items()}
-    for std, h in mapping.items():
-        if h not in header:
-            raise DataError(f"{name}: column {h!r} (mapped to {std}) not in the header; the header has {', '.join(header)}")
-    std_names = []
-    for h in header:
-        std = reverse.get(h, h)
-        if std not in _ALL_COLUMNS:
-            raise DataError(
-                f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(_ALL_COLUMNS)} "
-                "or a mapping --columns name=header"
-            )
-        if std in std_names:
-            raise DataError(f"{name}: column {h!r} (line {header_line}) gives {std} twice; expected each column once")
-        std_names.append(std)
-    rows = lines[1:]
-    data = np.empty((len(rows), len(header)))
-    for r, (line_no, row) in enumerate(rows):
-        if len(row) != len(header):
-            raise DataError(f"{name}: line {line_no} has {len(row)} fields; expected {len(header)} like the header")
-        for c, cell in enumerate(row):
-            try:
-                data[r, c] = float(cell)
-            except ValueError:
+    std_names: list[str] = []
+
+    def check_header(header: tuple[str, ...], header_line: int) -> None:
+        for std, h in mapping.items():
+            if h not in header:
+                raise DataError(f"{name}: column {h!r} (mapped to {std}) not in the header; the header has {', '.join(header)}")
+        for h in header:
+            std = reverse.get(h, h)
+            if std not in _ALL_COLUMNS:
                 raise DataError(
-                    f"{name}: column {header[c]!r} line {line_no}: {cell.strip()!r} is not a number; expected a finite number"
-                ) from None
-    arrays = {std: data[:, c] for c, std in enumerate(std_names)}
-    line_of = [ln for ln, _ in rows]
-    headers = {std: h for std, h in zip(std_names, header)}
+                    f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(_ALL_COLUMNS)} "
+                    "or a mapping --columns name=header"
+                )
+            if std in std_names:
+                raise DataError(f"{name}: column {h!r} (line {header_line}) gives {std} twice; expected each column once")
+            std_names.append(std)
+
+    # the one CSV reader: BOM, comments, size and rows bounded before/while reading, finite numbers
+    table = read_table(p, max_rows=MAX_SAMPLES, max_bytes=MAX_FILE_BYTES, name=name, error=DataError,
+                       on_header=check_header)
+    arrays = {std: table.columns[h] for std, h in zip(std_names, table.header)}
+    line_of = [int(x) for x in table.lines]
+    headers = {std: h for std, h in zip(std_names, table.header)}
     return _validate(name, arrays, headers, line_of, torque_constant_n_m_per_a, load_n, min_samples, sampling_tol)
 
 
@@ -306,7 +260,7 @@ def record_from_arrays(
 
 
 def _validate(name, arrays, headers, line_of, k_t, load_n, min_samples, sampling_tol, row_word="line") -> Record:
-    k_t = _finite_positive(k_t, "torque constant (N m/A)")
+    k_t = check_number("torque constant (N m/A)", k_t, 0.0, lo_open=True, optional=True, error=DataError)
     if load_n is not None and (isinstance(load_n, bool) or not math.isfinite(load_n)):
         raise DataError(f"load = {load_n!r}; expected a finite axial load in N")
     if "time_s" not in arrays:
@@ -438,11 +392,11 @@ def design_excitation(
     """
     if kind not in DESIGNS:
         raise ValueError(f"design = {kind!r}; expected one of {', '.join(DESIGNS)}")
-    duration_s = _finite_positive(duration_s, "duration (s)")
-    sample_time_s = _finite_positive(sample_time_s, "sample time (s)")
-    f_min_hz = _finite_positive(f_min_hz, "minimum frequency (Hz)")
-    f_max_hz = _finite_positive(f_max_hz, "maximum frequency (Hz)")
-    amplitude = _finite_positive(amplitude, "amplitude")
+    duration_s = check_number("duration (s)", duration_s, 0.0, lo_open=True, optional=True, error=DataError)
+    sample_time_s = check_number("sample time (s)", sample_time_s, 0.0, lo_open=True, optional=True, error=DataError)
+    f_min_hz = check_number("minimum frequency (Hz)", f_min_hz, 0.0, lo_open=True, optional=True, error=DataError)
+    f_max_hz = check_number("maximum frequency (Hz)", f_max_hz, 0.0, lo_open=True, optional=True, error=DataError)
+    amplitude = check_number("amplitude", amplitude, 0.0, lo_open=True, optional=True, error=DataError)
     if not math.isfinite(offset):
         raise ValueError(f"offset = {offset!r}; expected a finite number")
     n = int(round(duration_s / sample_time_s))
@@ -632,8 +586,8 @@ def load_frf(
     """Read a frequency-response CSV (torque command -> nut speed, (rad/s)/(N m)).
 
     Columns: ``frequency_hz`` and ``magnitude_db, phase_deg`` (dB of (rad/s)/(N m), degrees) or
-    ``real, imag``, optionally ``coherence`` (0..1). ``#`` comment lines before the header are
-    skipped.
+    ``real, imag``, optionally ``coherence`` (0..1). Read by :func:`prsa_ctrl.tablefile.read_table`
+    (a byte-order mark, blank rows and ``#`` comment rows skipped, every cell a finite number).
 
     Parameters
     ----------
@@ -660,43 +614,28 @@ def load_frf(
     p = Path(path)
     if not p.is_file():
         raise DataError(f"{name}: frequency-response file not found; expected a readable CSV file")
-    lines = _read_rows(p, name)
-    if not lines:
-        raise DataError(f"{name}: no header row; expected frequency_hz,magnitude_db,phase_deg[,coherence]")
-    header_line, header = lines[0]
-    header = [h.strip() for h in header]
-    for h in header:
-        if h not in FRF_COLUMNS:
-            raise DataError(f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(FRF_COLUMNS)}")
-    if len(set(header)) != len(header):
-        raise DataError(f"{name}: a column appears twice in the header (line {header_line}); expected each once")
-    polar = {"magnitude_db", "phase_deg"} <= set(header)
-    cart = {"real", "imag"} <= set(header)
-    if "frequency_hz" not in header or polar == cart:
-        raise DataError(f"{name}: header {', '.join(header)}; expected frequency_hz with magnitude_db,phase_deg "
-                        "or with real,imag (one pair)")
-    rows = lines[1:]
-    if len(rows) > MAX_SAMPLES:
-        raise DataError(f"{name}: {len(rows)} rows; expected at most {MAX_SAMPLES}")
-    data = np.empty((len(rows), len(header)))
-    for r, (line_no, row) in enumerate(rows):
-        if len(row) != len(header):
-            raise DataError(f"{name}: line {line_no} has {len(row)} fields; expected {len(header)} like the header")
-        for c, cell in enumerate(row):
-            try:
-                v = float(cell)
-            except ValueError:
-                v = float("nan")
-            if not math.isfinite(v):
-                raise DataError(f"{name}: column {header[c]!r} line {line_no}: {cell.strip()!r}; expected a finite number")
-            data[r, c] = v
-    col = {h: data[:, i] for i, h in enumerate(header)}
+
+    def check_header(header: tuple[str, ...], header_line: int) -> None:
+        for h in header:
+            if h not in FRF_COLUMNS:
+                raise DataError(f"{name}: unknown column {h!r} (line {header_line}); expected {', '.join(FRF_COLUMNS)}")
+        if len(set(header)) != len(header):
+            raise DataError(f"{name}: a column appears twice in the header (line {header_line}); expected each once")
+        if "frequency_hz" not in header or ({"magnitude_db", "phase_deg"} <= set(header)) == ({"real", "imag"} <= set(header)):
+            raise DataError(f"{name}: header {', '.join(header)}; expected frequency_hz with magnitude_db,phase_deg "
+                            "or with real,imag (one pair)")
+
+    # the one CSV reader: BOM, comments, size and rows bounded before/while reading, finite numbers
+    table = read_table(p, max_rows=MAX_SAMPLES, max_bytes=MAX_FILE_BYTES, name=name, error=DataError,
+                       on_header=check_header)
+    col = dict(table.columns)
+    polar = {"magnitude_db", "phase_deg"} <= set(col)
     if polar:
         g = 10 ** (col["magnitude_db"] / 20) * np.exp(1j * np.radians(col["phase_deg"]))
     else:
         g = col["real"] + 1j * col["imag"]
     return frf_from_arrays(name, col["frequency_hz"], g, coherence=col.get("coherence"), speed_rad_s=speed_rad_s,
-                           load_n=load_n, coherence_min=coherence_min, row_of=[ln for ln, _ in rows], row_word="line",
+                           load_n=load_n, coherence_min=coherence_min, row_of=[int(x) for x in table.lines], row_word="line",
                            sample_time_s=sample_time_s)
 
 

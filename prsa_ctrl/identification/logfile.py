@@ -21,7 +21,6 @@ column or variable.
 
 from __future__ import annotations
 
-import csv
 import math
 import struct
 import zlib
@@ -33,6 +32,7 @@ import numpy as np
 import scipy.io
 
 from ..errors import LogFormatError
+from ..tablefile import read_table
 from .data import MAX_FILE_BYTES, MAX_SAMPLES
 
 __all__ = ["LogFile", "MAT_HEADER_BYTES", "MAT_MAX_VARIABLES"]
@@ -320,47 +320,21 @@ class LogFile:
     # --- CSV -------------------------------------------------------------------------------------
 
     def _read_csv(self, p: Path) -> dict[str, np.ndarray]:
-        """Streamed: the header, then the named columns only, one row at a time into arrays; a
-        file with more than ``MAX_SAMPLES`` data rows is refused at its row ``MAX_SAMPLES + 1``."""
-        from array import array
+        """The named columns, read by the one CSV reader (:func:`prsa_ctrl.tablefile.read_table`:
+        streamed, a file with more than ``MAX_SAMPLES`` data rows is refused at its row
+        ``MAX_SAMPLES + 1``; a column the description names twice in the header is refused)."""
+        def check_header(header: tuple[str, ...], line: int) -> None:
+            seen: dict[str, int] = {}
+            for c, h in enumerate(header):
+                if h in self.wanted and h in seen:
+                    raise LogFormatError(f"{self.path}: column {h!r} ({self.wanted[h]}) appears twice in the header "
+                                         f"(columns {seen[h] + 1} and {c + 1}, line {line}); expected each name once")
+                seen.setdefault(h, c)
 
-        header: list[str] | None = None
-        cols: dict[str, tuple[int, array]] = {}
-        n = 0
-        try:
-            with p.open(newline="", encoding="utf-8-sig") as fh:
-                for line, row in enumerate(csv.reader(fh), start=1):
-                    if not row or not any(c.strip() for c in row) or row[0].lstrip().startswith("#"):
-                        continue
-                    if header is None:
-                        header = [h.strip() for h in row]
-                        self.all_names = header
-                        for c, h in enumerate(header):
-                            if h in self.wanted:
-                                if h in cols:
-                                    raise LogFormatError(
-                                        f"{self.path}: column {h!r} ({self.wanted[h]}) appears twice in the header "
-                                        f"(columns {cols[h][0] + 1} and {c + 1}, line {line}); expected each name once")
-                                cols[h] = (c, array("d"))
-                        continue
-                    n += 1
-                    if n > MAX_SAMPLES:
-                        raise LogFormatError(f"{self.path}: more than {MAX_SAMPLES} data rows (line {line}); expected "
-                                             f"at most {MAX_SAMPLES} (cut the log)")
-                    if len(row) != len(header):
-                        raise LogFormatError(f"{self.path}: line {line} has {len(row)} fields; expected {len(header)} "
-                                             "like the header")
-                    for h, (c, values) in cols.items():
-                        try:
-                            values.append(float(row[c]))
-                        except ValueError:
-                            raise LogFormatError(f"{self.path}: column {h!r} line {line}: {row[c].strip()!r} is not a "
-                                                 "number; expected a finite number") from None
-        except (OSError, UnicodeDecodeError, csv.Error) as exc:
-            raise LogFormatError(f"{self.path}: cannot be read ({exc}); expected a UTF-8 CSV file") from None
-        if header is None:
-            raise LogFormatError(f"{self.path}: no header row; expected a CSV header naming the columns")
-        return {h: np.frombuffer(values, dtype=float).copy() for h, (c, values) in cols.items()}
+        table = read_table(p, max_rows=MAX_SAMPLES, max_bytes=MAX_FILE_BYTES, name=self.path, error=LogFormatError,
+                           columns=self.wanted, on_header=check_header)
+        self.all_names = list(table.header)
+        return dict(table.columns)
 
     def names(self) -> str:
         """The file's columns or variables for a message (the first :data:`_NAMES_SHOWN`)."""

@@ -75,6 +75,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Sequence
 import numpy as np
 
 from ..drive.pid import PID
+from ..options import check_number
 from .drivelaw import Biquad as _Biquad, DriveLaw, FilterSpec, PositionLaw  # noqa: F401
 from .codetext import IEC_RESERVED, REAL_TYPES, c_code, iec_real, inert_text, is_code_name, check_header_name, st_code, st_parts  # noqa: F401
 
@@ -91,14 +92,6 @@ __all__ = ["DriveLaw", "PositionLaw", "drive_law", "ReferenceLaw", "replay_input
 
 #: File suffixes :func:`export_code` writes (``--export PATH.c`` / ``PATH.st`` / ``PATH.xml``).
 CODE_SUFFIXES = (".c", ".st", ".xml")
-
-def _finite(name: str, v: Any, lo: float = -math.inf, lo_open: bool = False) -> float:
-    ok = not isinstance(v, bool) and isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(float(v)) \
-        and (float(v) > lo if lo_open else float(v) >= lo)
-    if not ok:
-        raise ValueError(f"{name} = {v!r}; expected a finite number {'>' if lo_open else '>='} {lo:g}")
-    return float(v)
-
 
 def position_law(position: "PositionLoop", plant: "Plant") -> PositionLaw:
     """The numbers of a :class:`~prsa_ctrl.drive.measurement.PositionLoop` on ``plant``."""
@@ -165,7 +158,7 @@ def drive_law(controller: "PID | CascadeDesign", plant: "Plant", *, filters: Ite
                          "speed measurement; the Kalman load-torque feed-forward is not generated)")
     if delay_samples not in (0, 1) or isinstance(delay_samples, bool):
         raise ValueError(f"delay_samples = {delay_samples!r}; expected 0 or 1")
-    b = _finite("setpoint_weight", setpoint_weight, 0.0)
+    b = check_number("setpoint_weight", setpoint_weight, 0.0)
     if b > 1.0:
         raise ValueError(f"setpoint_weight = {setpoint_weight!r}; expected a setpoint weight b in [0, 1]")
     ts = float(plant.sample_time_s)
@@ -182,7 +175,7 @@ def drive_law(controller: "PID | CascadeDesign", plant: "Plant", *, filters: Ite
         pos = position_law(position, plant)
     return DriveLaw(ts, float(plant.torque_limit), 2.0 * math.pi / plant.encoder_counts,
                     math.exp(-ts / float(plant.speed_filter_s)), float(controller.kp), float(controller.ki),
-                    float(controller.kd), float(controller.tf), _finite("feedforward_torque_n_m", feedforward_torque_n_m),
+                    float(controller.kd), float(controller.tf), check_number("feedforward_torque_n_m", feedforward_torque_n_m),
                     bq["speed_measurement"], bq["torque_command"], pos, int(delay_samples), b, plant.name,
                     specs["speed_measurement"], specs["torque_command"],
                     plant_assumptions(plant, pos, [lf for lf in lfs], int(delay_samples)))

@@ -253,6 +253,84 @@ def _st_comment(s: str) -> str:
     return "(* " + s.replace("(*", "(\\u{2a}").replace("*)", "\\u{2a})") + " *)"
 
 
+#: Marks the enable check in :func:`state_moves` (a disabled drive keeps the speed states and
+#: stops before the controller's states move).
+ENABLE_GATE = ("enable",)
+
+
+def state_moves(ns: int, nt: int, position_delay: int | None, delay_samples: int) -> list:
+    """The commit of one sample, written once for both emitters (C and Structured Text): a list
+    of lines, each a tuple of ``(state, value)`` moves in order, and :data:`ENABLE_GATE` where a
+    disabled drive returns. Names are neutral (``S.`` a state, ``O.`` an output, ``T.`` a value
+    of this sample; ``sf0.x1`` the first speed filter's last input): :func:`_c_name` and
+    :func:`_st_name` spell them in each language.
+
+    Parameters
+    ----------
+    ns, nt : int
+        Speed-measurement and torque-command filter sections.
+    position_delay : int or None
+        The position loop's computation delay in its samples (None: no position loop).
+    delay_samples : int
+        The torque command's delay, 0 or 1 controller samples.
+    """
+    def shift(bank: str, i: int, new: str, out: str) -> tuple:
+        f = f"S.{bank}{i}"
+        return ((f"{f}.x2", f"{f}.x1"), (f"{f}.x1", new), (f"{f}.y2", f"{f}.y1"), (f"{f}.y1", out))
+
+    lines: list = [(("S.w_filt", "T.wf"),)]
+    lines += [shift("sf", i, "T.wf" if i == 0 else f"T.sy{i - 1}", f"T.sy{i}") for i in range(ns)]
+    lines += [(("S.deriv", "T.d"),), (("S.w_prev", "T.w"),), (("O.speed", "T.w"),), ENABLE_GATE,
+              (("S.integral", "T.integral"),)]
+    lines += [shift("tf", i, "T.us" if i == 0 else f"T.ty{i - 1}", f"T.ty{i}") for i in range(nt)]
+    if position_delay is not None:
+        lines += [((f"S.{k}", f"T.{k}"),) for k in ("phase", "p_integral", "w_ref", "tau_p")]
+        lines += [((f"S.pend_w{i}", f"T.pw{i}"), (f"S.pend_t{i}", f"T.pt{i}")) for i in range(1, position_delay + 1)]
+    lines += [(("O.command_unfiltered", "T.us"),), (("S.u_out", "S.u_pending" if delay_samples else "T.uf"),),
+              (("S.u_pending", "T.uf"),)]
+    return lines
+
+
+#: Filter-state slots: C's ``s->sf[i][k]`` index and ST's ``s_SFi_K`` suffix.
+_SLOT = {"x1": (0, "X1"), "x2": (1, "X2"), "y1": (2, "Y1"), "y2": (3, "Y2")}
+#: ST spelling of the neutral names of :func:`state_moves` (states, outputs, this sample's values).
+_ST_NAMES = {"S.w_filt": "s_WFilt", "S.deriv": "s_Deriv", "S.w_prev": "s_WPrev", "O.speed": "Speed",
+             "S.integral": "s_Integral", "S.phase": "s_Phase", "S.p_integral": "s_PIntegral", "S.w_ref": "s_WRef",
+             "S.tau_p": "s_TauP", "O.command_unfiltered": "CommandUnfiltered", "S.u_out": "s_UOut",
+             "S.u_pending": "s_UPending", "T.wf": "t_Wf", "T.d": "t_Dv", "T.w": "t_W", "T.integral": "t_Int",
+             "T.us": "t_Us", "T.uf": "t_Uf", "T.phase": "t_Phase", "T.p_integral": "t_PIntegral", "T.w_ref": "t_WRef",
+             "T.tau_p": "t_TauP"}
+
+
+def _c_name(x: str) -> str:
+    """C spelling of a :func:`state_moves` name (``S.sf0.x1`` -> ``s->sf[0][0]``, ``T.sy1`` -> ``sy[1]``)."""
+    kind, _, rest = x.partition(".")
+    m = re.fullmatch(r"(sf|tf)(\d+)\.(x1|x2|y1|y2)", rest)
+    if m:
+        return f"s->{m[1]}[{m[2]}][{_SLOT[m[3]][0]}]"
+    if kind in ("S", "O"):
+        return f"s->{rest}"
+    m = re.fullmatch(r"(sy|ty)(\d+)", rest)
+    return f"{m[1]}[{m[2]}]" if m else rest
+
+
+def _st_name(x: str) -> str:
+    """ST spelling of a :func:`state_moves` name (``S.sf0.x1`` -> ``s_SF0_X1``, ``T.pw2`` -> ``t_PendW2``)."""
+    if x in _ST_NAMES:
+        return _ST_NAMES[x]
+    kind, _, rest = x.partition(".")
+    m = re.fullmatch(r"(sf|tf)(\d+)\.(x1|x2|y1|y2)", rest)
+    if m:
+        return f"s_{m[1].upper()}{m[2]}_{_SLOT[m[3]][1]}"
+    m = re.fullmatch(r"(sy|ty)(\d+)", rest)
+    if m:
+        return f"t_{'SF' if m[1] == 'sy' else 'TF'}{m[2]}"
+    m = re.fullmatch(r"(pend_w|pend_t|pw|pt)(\d+)", rest)
+    if m:
+        return f"{'s' if kind == 'S' else 't'}_Pend{'W' if m[1][-1] == 'w' else 'T'}{m[2]}"
+    raise KeyError(x)
+
+
 def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", header: str | None = None,
            differences: str = "counts") -> tuple[str, str]:
     """The law as C99 for firmware: ``(header text, source text)``.
@@ -598,21 +676,13 @@ def c_code(law: "DriveLaw", *, name: str = "prsa_ctrl", real: str = "double", he
         c.append("    uf = uf > p->torque_max ? p->torque_max : (uf < p->torque_min ? p->torque_min : uf);")
     c += [f"    if (!({n}_finite_(u) && {n}_finite_(uf) && {n}_finite_(integral))) {{",
           f"        s->fault |= {U}_FAULT_RESULT;", off, "        return s->u_out;", "    }",
-          "    /* commit */", "    s->w_filt = wf;"]
-    for i in range(ns):
-        c.append(f"    s->sf[{i}][1] = s->sf[{i}][0]; s->sf[{i}][0] = {'wf' if i == 0 else f'sy[{i - 1}]'}; "
-                 f"s->sf[{i}][3] = s->sf[{i}][2]; s->sf[{i}][2] = sy[{i}];")
-    c += ["    s->deriv = d;", "    s->w_prev = w;", "    s->speed = w;"]
-    c += ["    if (!enable) {", f"        {n}_off_(s);", "        return s->u_out;", "    }", "    s->integral = integral;"]
-    for i in range(nt):
-        c.append(f"    s->tf[{i}][1] = s->tf[{i}][0]; s->tf[{i}][0] = {'us' if i == 0 else f'ty[{i - 1}]'}; "
-                 f"s->tf[{i}][3] = s->tf[{i}][2]; s->tf[{i}][2] = ty[{i}];")
-    if p is not None:
-        c += ["    s->phase = phase;", "    s->p_integral = p_integral;", "    s->w_ref = w_ref;", "    s->tau_p = tau_p;"]
-        c += [f"    s->pend_w{i} = pw{i}; s->pend_t{i} = pt{i};" for i in range(1, p.delay + 1)]
-    c += ["    s->command_unfiltered = us;",
-          "    s->u_out = s->u_pending;" if law.delay_samples else "    s->u_out = uf;",
-          "    s->u_pending = uf;", "    return s->u_out;", "}", ""]
+          "    /* commit */"]
+    for line in state_moves(ns, nt, None if p is None else p.delay, law.delay_samples):
+        if line is ENABLE_GATE:
+            c += ["    if (!enable) {", f"        {n}_off_(s);", "        return s->u_out;", "    }"]
+        else:
+            c.append("    " + " ".join(f"{_c_name(dst)} = {_c_name(src)};" for dst, src in line))
+    c += ["    return s->u_out;", "}", ""]
     return "\n".join(h), "\n".join(c)
 
 
@@ -777,21 +847,13 @@ def st_parts(law: "DriveLaw", *, name: str = "PrsaCtrl", real: str = "double") -
         b.append("IF t_Uf > P_TORQUE_MAX THEN t_Uf := P_TORQUE_MAX; ELSIF t_Uf < P_TORQUE_MIN THEN "
                  "t_Uf := P_TORQUE_MIN; END_IF;")
     b += [f"IF NOT ({_st_fin('t_U')} AND {_st_fin('t_Uf')} AND {_st_fin('t_Int')}) THEN",
-          "    s_Fault := s_Fault OR 16#2;", *ret, "END_IF;", "s_WFilt := t_Wf;"]
-    for i in range(ns):
-        b.append(f"s_SF{i}_X2 := s_SF{i}_X1; s_SF{i}_X1 := {'t_Wf' if i == 0 else f't_SF{i - 1}'}; "
-                 f"s_SF{i}_Y2 := s_SF{i}_Y1; s_SF{i}_Y1 := t_SF{i};")
-    b += ["s_Deriv := t_Dv;", "s_WPrev := t_W;", "Speed := t_W;", "IF NOT Enable THEN", *ret, "END_IF;",
-          "s_Integral := t_Int;"]
-    for i in range(nt):
-        b.append(f"s_TF{i}_X2 := s_TF{i}_X1; s_TF{i}_X1 := {'t_Us' if i == 0 else f't_TF{i - 1}'}; "
-                 f"s_TF{i}_Y2 := s_TF{i}_Y1; s_TF{i}_Y1 := t_TF{i};")
-    if p is not None:
-        b += ["s_Phase := t_Phase;", "s_PIntegral := t_PIntegral;", "s_WRef := t_WRef;", "s_TauP := t_TauP;"]
-        b += [f"s_PendW{i} := t_PendW{i}; s_PendT{i} := t_PendT{i};" for i in range(1, p.delay + 1)]
-    b += ["CommandUnfiltered := t_Us;",
-          "s_UOut := s_UPending;" if law.delay_samples else "s_UOut := t_Uf;",
-          "s_UPending := t_Uf;", "TorqueCmd := s_UOut;", "Fault := s_Fault;"]
+          "    s_Fault := s_Fault OR 16#2;", *ret, "END_IF;"]
+    for line in state_moves(ns, nt, None if p is None else p.delay, law.delay_samples):
+        if line is ENABLE_GATE:
+            b += ["IF NOT Enable THEN", *ret, "END_IF;"]
+        else:
+            b.append(" ".join(f"{_st_name(dst)} := {_st_name(src)};" for dst, src in line))
+    b += ["TorqueCmd := s_UOut;", "Fault := s_Fault;"]
     return {"name": n, "comment": _header_comment(law, "st"), "inputs": ins, "outputs": outs, "locals": loc, "body": b}
 
 

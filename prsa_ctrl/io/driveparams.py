@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
 from ..drive.pid import PID
+from ..options import check_number
 from ..textsafe import quote
 from ..tomlfile import read_toml
 
@@ -57,12 +58,6 @@ __all__ = ["MotorData", "MOTOR_PLAUSIBLE", "MOTOR_TORQUE_CONSISTENCY", "BACK_EMF
            "controller_from_parameter_set", "dumps_parameter_set"]
 
 _RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
-
-
-def _positive(name: str, v: Any, unit: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)) or float(v) <= 0:
-        raise ValueError(f"{name} = {quote(v)}; expected a finite number > 0 {unit}".rstrip())
-    return float(v)
 
 
 #: Plausible motor data (inclusive bounds, in the key's unit): from miniature servo motors
@@ -137,13 +132,13 @@ class MotorData:
 
     def __post_init__(self) -> None:
         if self.torque_constant_n_m_per_a is not None:
-            _positive("torque_constant_n_m_per_a", self.torque_constant_n_m_per_a, "N m/A")
+            check_number("torque_constant_n_m_per_a", self.torque_constant_n_m_per_a, 0.0, unit="N m/A", lo_open=True)
         elif self.rated_torque_n_m is None:
             raise ValueError("torque_constant_n_m_per_a = None and rated_torque_n_m = None; expected the torque "
                              "constant (or a back-EMF constant) or at least the rated torque")
         for name, unit in (("rated_current_a", "A"), ("rated_torque_n_m", "N m"), ("rated_speed_rpm", "rpm")):
             if getattr(self, name) is not None:
-                _positive(name, getattr(self, name), unit)
+                check_number(name, getattr(self, name), 0.0, unit=unit, lo_open=True)
         for name in MOTOR_PLAUSIBLE:
             v = getattr(self, name)
             if v is not None:
@@ -178,7 +173,7 @@ class MotorData:
             raise ValueError(f"unit = {unit!r}; expected one of {', '.join(BACK_EMF_UNITS)}")
         if convention not in ("rms", "peak"):
             raise ValueError(f"convention = {convention!r}; expected 'rms' or 'peak' (line-to-line)")
-        ke = _positive("back_emf", back_emf, unit)
+        ke = check_number("back_emf", back_emf, 0.0, unit=unit, lo_open=True)
         ke_v_s_per_rad = ke / BACK_EMF_UNITS[unit]
         kt = math.sqrt(3.0) * ke_v_s_per_rad / (math.sqrt(2.0) if convention == "peak" else 1.0)
         kwargs.setdefault("source", f"from back-EMF {ke:g} {unit} (line-to-line {convention.upper()}): k_T = "
@@ -211,7 +206,7 @@ def _motor_from_mapping(d: Mapping[str, Any], where: str, typed: Mapping[str, st
             shown = (typed or {}).get(k, quote(v))
             try:
                 try:
-                    _positive(k, v, BACK_EMF_KEYS[k][0] if k in BACK_EMF_KEYS else MOTOR_PLAUSIBLE[k][2])
+                    check_number(k, v, 0.0, unit=BACK_EMF_KEYS[k][0] if k in BACK_EMF_KEYS else MOTOR_PLAUSIBLE[k][2], lo_open=True)
                 except ValueError as exc:
                     raise ValueError(str(exc).replace(f"{k} = {quote(v)};", f"{k} = {shown};", 1)) from None
                 _plausible(k, float(v), shown)
@@ -349,7 +344,7 @@ def drive_units(pid: PID, motor: MotorData | None = None, position: "PositionLoo
             "velocity_feedforward": float(position.kvff), "acceleration_feedforward": float(position.kaff),
         }
         if inertia_kg_m2 is not None:
-            j = _positive("inertia_kg_m2", inertia_kg_m2, "kg m^2")
+            j = check_number("inertia_kg_m2", inertia_kg_m2, 0.0, unit="kg m^2", lo_open=True)
             pos["torque_per_acceleration_n_m_s2_per_rad"] = float(position.kaff) * j
             if motor is not None and motor.torque_constant_n_m_per_a is not None:
                 pos["current_per_acceleration_a_s2_per_rad"] = float(position.kaff) * j / motor.torque_constant_n_m_per_a
@@ -808,7 +803,7 @@ def check_cli_options(args: Any) -> tuple[MotorData | None, dict | None]:
             raise ValueError(f"--motor {quote(motor_text)}: {msg}") from None
     rated = getattr(args, "rated_torque", None)
     if rated is not None:
-        _positive("--rated-torque", rated, "N m")
+        check_number("--rated-torque", rated, 0.0, unit="N m", lo_open=True)
         if motor is None:
             motor = MotorData(None, rated_torque_n_m=float(rated), source="--rated-torque")
         elif motor.rated_torque_n_m is not None and motor.rated_torque_n_m != float(rated):

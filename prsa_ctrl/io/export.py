@@ -56,6 +56,7 @@ from typing import TYPE_CHECKING, Any, Iterable
 import numpy as np
 
 from ..drive.pid import PID
+from ..options import check_number
 from ..drive.filters import Filter, FirstOrderLowPass
 
 if TYPE_CHECKING:
@@ -186,14 +187,6 @@ def _pow(p: np.ndarray, k: int) -> np.ndarray:
     for _ in range(k):
         out = np.convolve(out, p)  # keeps leading zeros (np.polymul would trim them)
     return out
-
-
-def _check_positive(name: str, v: Any, unit: str) -> float | None:
-    if v is None:
-        return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} = {v!r}; expected None or a finite number > 0 {unit}")
-    return float(v)
 
 
 def placed_loop_filters(filters: Iterable) -> list:
@@ -351,8 +344,8 @@ def export_controller(
         raise ValueError(f"plant = {plant!r}; expected a Plant (see prsa_ctrl.load_plant)")
     if fmt not in FORMATS:
         raise ValueError(f"fmt = {fmt!r}; expected one of {', '.join(FORMATS)}")
-    t_r = _check_positive("rated_torque_n_m", rated_torque_n_m, "N m")
-    n_r = _check_positive("rated_speed_rpm", rated_speed_rpm, "rpm")
+    t_r = check_number("rated_torque_n_m", rated_torque_n_m, 0.0, unit="N m", lo_open=True, optional=True)
+    n_r = check_number("rated_speed_rpm", rated_speed_rpm, 0.0, unit="rpm", lo_open=True, optional=True)
     if (t_r is None) != (n_r is None):
         raise ValueError(f"rated_torque_n_m = {rated_torque_n_m!r}, rated_speed_rpm = {rated_speed_rpm!r}; "
                          "expected both (for the per-unit gains) or neither")

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import SimulationError
+from ..options import check_number
 from .model import NUT_LOSS_KEY, PlantModel, nut_loss_on_whole_force, plant_model, screw_axis_springs, stick_band_rad_s
 from .plantfile import Plant
 
@@ -173,16 +174,6 @@ def _guess(model: PlantModel, omega: float, load: float) -> NDArray[np.float64]:
     return x
 
 
-def _finite(name: str, value: float, unit: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} = {value!r}; expected a finite number ({unit})") from None
-    if not math.isfinite(v):
-        raise ValueError(f"{name} = {value!r}; expected a finite number ({unit})")
-    return v
-
-
 def steady_torque(plant: Plant, omega_nut: float, load: float) -> float:
     """Motor torque (N m) that holds the nut at constant ``omega_nut`` (rad/s) against the axial
     ``load`` (N), from the rigid model in closed form (no iteration, no torque limit check).
@@ -203,8 +194,8 @@ def steady_torque(plant: Plant, omega_nut: float, load: float) -> float:
     >>> round(steady_torque(load_plant(), 31.4159, 5000.0), 4)   # 0.85 efficient, plus drag
     1.8956
     """
-    omega = _finite("omega_nut", omega_nut, "rad/s")
-    f = _finite("load", load, "N")
+    omega = check_number("omega_nut", omega_nut, unit="rad/s")
+    f = check_number("load", load, unit="N")
     if omega == 0.0:
         return f * plant.lead_per_rad
     band = stick_band_rad_s(plant)
@@ -319,8 +310,8 @@ def operating_point(
     >>> round(op.torque, 4), op.newton_iterations <= MAX_NEWTON_ITER
     (0.5849, True)
     """
-    omega = _finite("omega_nut", omega_nut, "rad/s")
-    f = _finite("load", load, "N")
+    omega = check_number("omega_nut", omega_nut, unit="rad/s")
+    f = check_number("load", load, unit="N")
     needed = steady_torque(plant, omega, f)
     _check_torque_limit(plant, omega, f, needed)
     return _solve(plant_model(plant, fidelity, seed), omega, f, needed)

@@ -25,9 +25,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import GeometryWarning, PlantFileError
 from ..results import FrozenDict, freeze
+from ..options import check_number
 from ..textsafe import quote
 from ..tomlfile import read_toml
-from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, VISCOUS_OFFSET_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
+from .schema import (ALLOWED_KEYS, BREAKAWAY_KEY, FINITE, VISCOUS_OFFSET_KEY, DEFAULT_MECHANISM, DEFAULTS, FRACTION, KIND, MECHANISMS,  # noqa: F401
                      MOUNTINGS, DEFAULT_MOUNTING, NON_NEGATIVE, NON_NEGATIVE_INTEGER, PLAUSIBLE, POSITIVE, POSITIVE_INTEGER, REQUIRED, SCHEMA,
                      SCREW_DRIVEN, UNITS, keys_of)
 from .uncertainty import check_plant_uncertainty
@@ -143,23 +144,20 @@ def _check_consistency(v: Mapping[str, float], o: str) -> None:
             f"{v['screw.rated_load_n']:g} N; expected a preload of at most the rated load")
 
 
+#: The range of each kind of plant-file number: (low bound, high bound, low bound excluded, whole).
+_KIND_RANGE = {POSITIVE: (0.0, math.inf, True, False), NON_NEGATIVE: (0.0, math.inf, False, False),
+               POSITIVE_INTEGER: (1.0, math.inf, False, True), NON_NEGATIVE_INTEGER: (0.0, math.inf, False, True),
+               FRACTION: (0.0, 1.0, True, False), FINITE: (-math.inf, math.inf, False, False)}
+
+
 def _check_value(kind: str, key: str, value: Any, origin: str, plausible: bool = True) -> float:
     where = f"{origin}: {key}"
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind} number")
-    v = float(value)
-    if not math.isfinite(v):
-        raise PlantFileError(f"{where} = {quote(value)}; expected a finite {kind} number")
-    if kind == POSITIVE_INTEGER and (v != int(v) or v < 1):
-        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind}")
-    if kind == NON_NEGATIVE_INTEGER and (v != int(v) or v < 0):
-        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind}")
-    if kind in (POSITIVE, POSITIVE_INTEGER) and v <= 0:
-        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind} number")
-    if kind == NON_NEGATIVE and v < 0:
-        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind} number")
-    if kind == FRACTION and not 0 < v <= 1:
-        raise PlantFileError(f"{where} = {quote(value)}; expected a {kind}")
+    lo, hi, lo_open, whole = _KIND_RANGE[kind]
+    expected = {POSITIVE: "a finite positive number", NON_NEGATIVE: "a finite non-negative number",
+                FINITE: "a finite number"}.get(kind, f"a {kind}")
+    v = check_number(where, value, lo, hi, lo_open=lo_open, error=PlantFileError, expected=expected)
+    if whole and v != int(v):
+        raise PlantFileError(f"{where} = {quote(value)}; expected {expected}")
     if plausible and key in PLAUSIBLE:
         lo, hi, why = PLAUSIBLE[key]
         if not lo <= v <= hi:

@@ -65,6 +65,7 @@ import numpy as np
 
 from ..textsafe import quote
 from ..errors import GeometryWarning, PlantFileError, SceneError
+from ..options import check_number
 from .schema import KIND
 
 __all__ = ["Uncertain", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "resolve_entry", "uncertainty_model",
@@ -118,12 +119,6 @@ class Uncertain:
     def as_dict(self) -> dict[str, Any]:
         return {"dist": self.dist, "low": self.low, "high": self.high, "nominal": self.nominal,
                 "sigma": self.sigma if self.dist == "normal" else None, "source": self.source}
-
-
-def _number(origin: str, where: str, value: Any, err: type[ValueError]) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise err(f"{origin}: {where} = {quote(value)}; expected a finite number")
-    return float(value)
 
 
 def _flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -180,7 +175,7 @@ def parse_entries(table: Any, origin: str, err: type[ValueError] = PlantFileErro
         for r in required:
             if r not in entry:
                 raise err(f"{origin}: {where}: missing {quote(r)}; dist = {quote(dist)} needs {', '.join(required)}")
-        nums = {k: _number(origin, f"{where}.{k}", v, err) for k, v in entry.items() if k not in ("dist", "source")}
+        nums = {k: check_number(f"{origin}: {where}.{k}", v, error=err) for k, v in entry.items() if k not in ("dist", "source")}
         if dist == "uniform":
             if ("relative" in nums) == ("low" in nums or "high" in nums):
                 raise err(f"{origin}: {where}: expected either relative = r or low and high for dist = 'uniform'")
@@ -244,7 +239,7 @@ def _parse_correlation(raw: Any, entries: Mapping[str, Any], origin: str, err) -
         if (not isinstance(matrix, list) or len(matrix) != n
                 or not all(isinstance(row, list) and len(row) == n for row in matrix)):
             raise err(f"{origin}: {where}.matrix = {quote(matrix)}; expected a square {n} x {n} array (one row per key)")
-        m = np.array([[_number(origin, f"{where}.matrix[{i}][{j}]", x, err) for j, x in enumerate(row)]
+        m = np.array([[check_number(f"{origin}: {where}.matrix[{i}][{j}]", x, error=err) for j, x in enumerate(row)]
                       for i, row in enumerate(matrix)])
         for i in range(n):
             if abs(m[i, i] - 1.0) > SYMMETRY_TOLERANCE:

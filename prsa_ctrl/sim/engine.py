@@ -45,7 +45,7 @@ from ..drive.measurement import PositionLoop, SpeedMeasurement, measurement_for
 from ..drive.motion import MotionProfile
 from ..drive.pid import PID, pid_law
 from ..errors import SimulationError
-from ..options import SETPOINT_RAD_S
+from ..options import SETPOINT_RAD_S, check_number
 from ..results import freeze
 from ..plant.equilibrium import operating_point
 from ..plant.model import PlantModel, plant_model
@@ -295,14 +295,6 @@ def simulate(plant: Plant, **kwargs: Any) -> "control.TimeResponseData":
     return run(plant, **kwargs).to_response()
 
 
-def _check_number(name: str, v: Any, lo: float, hi: float, unit: str, lo_open: bool = True) -> float:
-    ok = is_number(v) and math.isfinite(float(v)) and (v > lo if lo_open else v >= lo) and v <= hi
-    if not ok:
-        lo_s = f"> {lo:g}" if lo_open else f">= {lo:g}"
-        raise ValueError(f"{name} = {v!r}; expected a finite number {lo_s} and <= {hi:g} {unit}".rstrip())
-    return float(v)
-
-
 def run(
     plant: Plant,
     *,
@@ -412,8 +404,8 @@ def run(
         raise ValueError(f"controller = {controller!r}; expected a PID or None")
     if not isinstance(discrete, bool):
         raise ValueError(f"discrete = {discrete!r}; expected True or False")
-    duration = _check_number("duration", duration, 0.0, 1e6, "s")
-    feedforward_torque = _check_number("feedforward_torque", feedforward_torque, -1e6, 1e6, "N m", lo_open=False)
+    duration = check_number("duration", duration, 0.0, 1e6, unit="s", lo_open=True)
+    feedforward_torque = check_number("feedforward_torque", feedforward_torque, -1e6, 1e6, unit="N m")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed = {seed!r}; expected an integer >= 0")
     if position is not None or motion is not None:

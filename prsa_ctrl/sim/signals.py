@@ -10,7 +10,6 @@ the tuner's scene checks and the figures read.
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,10 @@ from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+
+from ..options import is_number
+from ..tablefile import read_table
+from ..textsafe import quote
 
 __all__ = ["PiecewiseLinear", "Profile", "NormalisedProfile", "normalise_profile", "is_number"]
 
@@ -54,7 +57,9 @@ class PiecewiseLinear:
     def from_csv(cls, path: "str | Path", column: str = "axial_load_n", *, max_rows: int = 1_000_000) -> "PiecewiseLinear":
         """A measured trace from a CSV file with a header: ``time_s`` and ``column``.
 
-        Times must start at 0 and increase strictly; values must be finite. The trace is used
+        Read by :func:`prsa_ctrl.tablefile.read_table` (its rule for byte-order marks, ``#``
+        comments, the header, the size and finite numbers). Times must start at 0 and
+        increase strictly. The trace is used
         as a piecewise-linear profile (at most one point per controller sample in a sampled
         run: resample faster traces).
 
@@ -64,54 +69,34 @@ class PiecewiseLinear:
         column : str
             Header of the value column (default ``axial_load_n``, N).
         max_rows : int
-            Largest number of rows read.
+            Most data rows accepted (the file size is bounded before reading, at
+            ``tablefile.ROW_BYTES_MAX`` bytes a row).
 
         Raises
         ------
         ValueError
-            One line naming the file, the row (1 = first data row) and the column.
+            One line naming the file, the line and the value.
         """
         p = Path(path)
-        try:
-            with p.open(newline="") as fh:
-                reader = csv.reader(fh)
-                header = [h.strip() for h in next(reader, [])]
-                if "time_s" not in header or column not in header:
-                    raise ValueError(f"{p}: header {header}; expected columns 'time_s' and {column!r}")
-                it, iv = header.index("time_s"), header.index(column)
-                pts: list[tuple[float, float]] = []
-                for row_no, row in enumerate(reader, start=1):
-                    if not row or all(not c.strip() for c in row):
-                        continue
-                    if row_no > max_rows:
-                        raise ValueError(f"{p}: more than {max_rows} rows; expected a shorter trace")
-                    try:
-                        t, v = float(row[it]), float(row[iv])
-                    except (IndexError, ValueError):
-                        raise ValueError(f"{p}: row {row_no}: {row!r}; expected numbers in 'time_s' and {column!r}") \
-                            from None
-                    if not (math.isfinite(t) and math.isfinite(v)):
-                        raise ValueError(f"{p}: row {row_no}: time_s = {t!r}, {column} = {v!r}; expected finite numbers")
-                    if pts and t <= pts[-1][0]:
-                        raise ValueError(f"{p}: row {row_no}: time_s = {t!r} after {pts[-1][0]!r}; expected increasing times")
-                    pts.append((t, v))
-        except OSError as exc:
-            raise ValueError(f"{p}: cannot read ({exc.strerror}); expected a readable CSV file") from None
-        except UnicodeDecodeError:
-            raise ValueError(f"{p}: not a text file; expected a CSV file") from None
+        table = read_table(p, max_rows=max_rows, name=str(p), columns=("time_s", column))
+        if "time_s" not in table.columns or column not in table.columns:
+            raise ValueError(f"{p} line {table.header_line}: header {quote(','.join(table.header))}; expected columns "
+                             f"'time_s' and {quote(column)}")
+        ts, vs = table.columns["time_s"], table.columns[column]
+        pts: list[tuple[float, float]] = []
+        for k, line in enumerate(table.lines):
+            t = float(ts[k])
+            if pts and t <= pts[-1][0]:
+                raise ValueError(f"{p} line {line}: time_s = {t!r} after {pts[-1][0]!r}; expected increasing times")
+            pts.append((t, float(vs[k])))
         if len(pts) < 2:
             raise ValueError(f"{p}: {len(pts)} data rows; expected at least 2")
         if pts[0][0] != 0.0:
-            raise ValueError(f"{p}: row 1: time_s = {pts[0][0]!r}; expected the trace to start at 0")
+            raise ValueError(f"{p} line {table.lines[0]}: time_s = {pts[0][0]!r}; expected the trace to start at 0")
         return cls(tuple(pts))
 
 
 Profile = float | Sequence[tuple[float, float]] | PiecewiseLinear
-
-
-def is_number(v: Any) -> bool:
-    """True for a real number (int or float, NumPy ones too), False for bools and anything else."""
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
 @dataclass(frozen=True)

@@ -493,72 +493,41 @@ def read_trace_csv(path: Path, column: str, where: str, scale: float = 1.0,
         a file above ``MAX_TRACE_BYTES`` or ``MAX_PROFILE_ROWS`` rows (checked before and while
         reading: memory stays bounded).
     """
-    import csv
+    from ..tablefile import read_table
 
     name = path.name
     try:
-        size = path.stat().st_size
-        if not path.is_file():
-            raise SceneError(f"{where}: {quote(str(path))} is not a regular file; expected a CSV file")
-        if size > MAX_TRACE_BYTES:
-            raise SceneError(f"{where}: {name} has {size} bytes; expected at most {MAX_TRACE_BYTES} bytes "
-                             f"({MAX_PROFILE_ROWS} rows): resample the trace")
-        fh = path.open(encoding="utf-8-sig", newline="")  # utf-8-sig: a byte-order mark (Excel) is dropped
-    except FileNotFoundError:
-        raise SceneError(f"{where}: file {quote(str(path))} not found; expected a CSV file next to the scene") from None
+        exists, regular = path.exists(), path.is_file()
     except OSError as exc:
         raise SceneError(f"{where}: {quote(str(path))} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
+    if not exists:
+        raise SceneError(f"{where}: file {quote(str(path))} not found; expected a CSV file next to the scene")
+    if not regular:
+        raise SceneError(f"{where}: {quote(str(path))} is not a regular file; expected a CSV file")
+    table = read_table(path, max_rows=MAX_PROFILE_ROWS, max_bytes=MAX_TRACE_BYTES, name=f"{where}: {name}",
+                       columns=("time_s", column), error=SceneError, keep_text=True)
+    if "time_s" not in table.columns or column not in table.columns:
+        raise SceneError(f"{where}: {name} line {table.header_line}: header {quote(','.join(table.header))}; expected "
+                         f"columns 'time_s' and {quote(column)}")
     lo_ok = (lambda v: v >= 0.0, "loads >= 0 N (compressive)") if column == "axial_load_n" else (
         lambda v: 0.0 < v <= SETPOINT_MAX_RPM, f"nut speeds in (0, {SETPOINT_MAX_RPM:g}] rpm")
+    ts, vs = table.columns["time_s"], table.columns[column]
+    t_typed, v_typed = table.typed["time_s"], table.typed[column]
     pts: list[tuple[float, float]] = []
-    typed: list[tuple[int, str]] = []
-    header = None
-    it = iv = 0
-    try:
-        with fh:
-            for j, row in enumerate(csv.reader(fh), start=1):
-                if j > MAX_PROFILE_ROWS + 200:
-                    raise SceneError(f"{where}: {name} has more than {MAX_PROFILE_ROWS + 200} lines; expected at most "
-                                     f"{MAX_PROFILE_ROWS} rows: resample the trace")
-                if header is None:
-                    if not row or row[0].lstrip().startswith("#") or all(not c.strip() for c in row):
-                        continue
-                    header = [h.strip() for h in row]
-                    if "time_s" not in header or column not in header:
-                        raise SceneError(f"{where}: {name} line {j}: header {quote(','.join(header))}; expected columns "
-                                         f"'time_s' and {quote(column)}")
-                    it, iv = header.index("time_s"), header.index(column)
-                    continue
-                if not row or all(not c.strip() for c in row):
-                    continue
-                try:
-                    t, v = float(row[it]), float(row[iv])
-                except (IndexError, ValueError):
-                    raise SceneError(f"{where}: {name} line {j}: {quote(','.join(row))}; expected numbers in 'time_s' and "
-                                     f"{quote(column)}") from None
-                if not (math.isfinite(t) and math.isfinite(v)):
-                    raise SceneError(f"{where}: {name} line {j}: time_s = {row[it].strip()}, {column} = "
-                                     f"{row[iv].strip()}; expected finite numbers")
-                if not lo_ok[0](v):
-                    raise SceneError(f"{where}: {name} line {j}: {column} = {row[iv].strip()}; expected {lo_ok[1]}")
-                if not pts and t != 0.0:
-                    raise SceneError(f"{where}: {name} line {j}: time_s = {row[it].strip()}; expected the trace to "
-                                     "start at 0")
-                if pts and t <= pts[-1][0]:
-                    raise SceneError(f"{where}: {name} line {j}: time_s = {row[it].strip()} after {pts[-1][0]:g}; "
-                                     "expected strictly increasing times")
-                pts.append((t, v * scale))
-                typed.append((j, row[iv].strip()))
-    except UnicodeDecodeError as exc:
-        raise SceneError(f"{where}: {quote(str(path))} cannot be read ({exc.__class__.__name__}); expected a UTF-8 CSV file") from None
-    except csv.Error as exc:
-        raise SceneError(f"{where}: {name} cannot be parsed as CSV ({exc}); expected comma-separated rows") from None
-    if header is None:
-        raise SceneError(f"{where}: {name} has no header; expected a row 'time_s,{column}'")
+    for k, j in enumerate(table.lines):
+        t, v = float(ts[k]), float(vs[k])
+        if not lo_ok[0](v):
+            raise SceneError(f"{where}: {name} line {j}: {column} = {v_typed[k]}; expected {lo_ok[1]}")
+        if not pts and t != 0.0:
+            raise SceneError(f"{where}: {name} line {j}: time_s = {t_typed[k]}; expected the trace to start at 0")
+        if pts and t <= pts[-1][0]:
+            raise SceneError(f"{where}: {name} line {j}: time_s = {t_typed[k]} after {pts[-1][0]:g}; "
+                             "expected strictly increasing times")
+        pts.append((t, v * scale))
     if len(pts) < 2:
         raise SceneError(f"{where}: {name} has {len(pts)} data rows; expected at least 2")
     if lines_out is not None:
-        lines_out.extend(typed)
+        lines_out.extend((int(j), v_typed[k]) for k, j in enumerate(table.lines))
     return tuple(pts)
 
 

@@ -4,9 +4,8 @@
 from __future__ import annotations
 
 import math
-import numbers
 
-from ..options import PEAK_BOUND_RANGE
+from ..options import PEAK_BOUND_RANGE, check_number, is_number
 
 __all__ = ["STABILITY", "TAIL_RTOL", "MS_RTOL", "CONT_RTOL", "KKT_TOL"]  # the rest is the tuner's own machinery, shared between its modules
 
@@ -72,18 +71,15 @@ LOW_DECADES = 8
 
 def checked_number(name: str, value, *, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = True,
             hi_open: bool = True, allow_inf: bool = False, expected: str | None = None) -> float:
-    """``value`` as a float, or ValueError naming ``name`` and the expected range."""
+    """``value`` as a float, or ValueError naming ``name`` and the expected range
+    (:func:`prsa_ctrl.options.check_number` with the tuner's defaults: open bounds; ``allow_inf``:
+    +inf accepted too, as "no bound")."""
     exp = expected or (
         f"a finite number in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
     )
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{name} = {value!r}; expected {exp}")
-    v = float(value)
-    if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
-        raise ValueError(f"{name} = {value!r}; expected {exp}")
-    if (v < lo or (lo_open and v == lo)) or (v > hi or (hi_open and v == hi and not math.isinf(v))):
-        raise ValueError(f"{name} = {value!r}; expected {exp}")
-    return v
+    if allow_inf and is_number(value) and float(value) == math.inf and hi == math.inf:
+        return math.inf
+    return check_number(name, value, lo, hi, lo_open=lo_open, hi_open=hi_open, expected=exp, typed=repr(value))
 
 def gain_limit(name: str, value) -> float:
     """Upper gain bound: None or inf for none, else a positive number."""
@@ -92,9 +88,8 @@ def gain_limit(name: str, value) -> float:
     return checked_number(name, value, lo=0.0, allow_inf=True, expected="a positive number, inf or None (no bound)")
 
 def int_steps(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 10 <= value <= MAX_STEPS:
-        raise ValueError(f"{name} = {value!r}; expected an integer in [10, {MAX_STEPS}] (samples)")
-    return int(value)
+    return check_number(name, value, 10, MAX_STEPS, integer=True, typed=repr(value),
+                        expected=f"an integer in [10, {MAX_STEPS}] (samples)")
 
 def check_mks(mks_max) -> float | None:
     """``mks_max`` as a float, None for no bound, or a ValueError naming it."""

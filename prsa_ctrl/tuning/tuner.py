@@ -55,6 +55,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 from ..drive.pid import PID
+from ..errors import NoStabilisingGains
 from ..sim.metrics import Margins
 from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES
 from ..results import freeze, is_converged, json_safe
@@ -766,12 +767,12 @@ class Tuner(NLPBuilder, OptimalityChecks):
                      "kd = 0)" if self._boundary is not None and self._boundary.size else "on the scan")
             if not stable.size:
                 # Relaxing the bounds cannot help here: no gain found stabilises the loop at all.
-                raise ValueError(
+                raise NoStabilisingGains(
                     f"no stabilising {self.controller.upper()} gains found {where}, whatever the bounds ({bounds}): "
                     "relaxing them does not help; the plant needs another controller structure (or is "
                     "reverse-acting: negate it)")
             least = float(np.min(sc["ms"][stable]))
-            raise ValueError(
+            raise NoStabilisingGains(
                 f"no stabilising {self.controller.upper()} gains meet {bounds} {where}; {stable.size} stabilising "
                 f"gains were found, the least Ms among them {least:.4g}: relax the constraints"
                 + (f" (Ms above {least:.4g})" if least > ms_max else ""))

@@ -308,3 +308,34 @@ def test_bode_axes_in_hz_by_default_rad_s_on_request():
         assert g.noise_fig.xaxis[0].axis_label == "frequency (rad/s)"
     finally:
         g.close()
+
+
+def test_an_uploaded_scene_sets_every_widget_and_the_select_names_it():
+    """Issue 33 (newcomer): after an upload the scene select shows the uploaded file (was: the
+    last built-in name) and the fidelity and Mt widgets show the uploaded scene's values (was:
+    the fidelity widget kept its value and overrode the scene's); choosing a built-in again
+    drops the upload from the list."""
+    from bokeh.document import Document
+
+    from prsa_ctrl.app.page import AppPage
+    from prsa_ctrl.studies.scenefile import locate_scene
+
+    text = locate_scene("paper-load-step")[0].read_text(encoding="utf-8")
+    text = text.replace('fidelity = "auto"', 'fidelity = "rigid"').replace("ms_max = 1.4", "ms_max = 1.4\nmt_max = 1.25")
+    assert 'fidelity = "rigid"' in text and "mt_max = 1.25" in text
+    page = AppPage(Document(), attach=False)
+    try:
+        assert page.fidelity.value == "auto" and page.mt_on.active == []
+        page.after_switch("scene", page.session.upload("scene", "my-step.toml", text.encode("utf-8")))
+        assert page.scene_select.value == "file: my-step.toml"
+        assert page.scene_select.options[-1] == "file: my-step.toml"
+        assert page.session.scene_label == "my-step.toml"  # the display did not switch the scene back
+        assert page.fidelity.value == "rigid" and page._read().fidelity == "rigid"  # what the next tune runs with
+        assert page.mt_on.active == [0] and page.mt.value == 1.25 and page._read().mt_max == 1.25
+        page.scene_select.value = "paper-load-step"  # the user picks a built-in again
+        assert page.session.scene_label == "paper-load-step" and page.fidelity.value == "auto"
+        assert "file: my-step.toml" not in page.scene_select.options
+        page.scene_select.value = "file: nothing.toml"  # a client's text outside the list
+        assert page.scene_select.value == "paper-load-step" and "expected one of the built-in scenes" in page.error.text
+    finally:
+        page._destroyed(None)

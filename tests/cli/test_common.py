@@ -143,3 +143,50 @@ def test_an_interrupted_command_does_not_leave_sigterm_ignored():
     finally:
         signal.signal(signal.SIGINT, old_int)
         signal.signal(signal.SIGTERM, old_term)
+
+
+# --- failures classified by type and origin, never by message ------------------------------------
+
+def _raised(fn):
+    try:
+        fn()
+    except BaseException as exc:  # noqa: BLE001
+        return exc
+    raise AssertionError("did not raise")
+
+
+def test_our_own_value_error_is_shown_even_when_it_says_nan_or_overflow():
+    from prsa_ctrl.options import check_number
+
+    exc = _raised(lambda: check_number("load", float("nan")))
+    assert common.describe_failure(exc, "tuning") == (EXIT_NUMERICAL, "numerical failure: load = nan; expected a finite number")
+    exc = _raised(lambda: check_number("gain", "overflow"))
+    assert common.describe_failure(exc, "tuning")[1] == "numerical failure: gain = 'overflow'; expected a finite number"
+
+
+def test_foreign_errors_name_the_step_and_the_library_not_its_message():
+    import numpy as np
+    import scipy.linalg
+
+    exc = _raised(lambda: scipy.linalg.solve(np.array([[np.nan]]), np.array([1.0])))
+    assert common.raised_in(exc).startswith("numpy.")  # scipy's input check, raised in numpy
+    code, line = common.describe_failure(exc, "tuning")
+    assert code == EXIT_NUMERICAL and line.startswith("numerical failure: tuning failed in numpy (ValueError); check")
+    assert "nan" not in line.lower()
+    exc = _raised(lambda: np.linalg.inv(np.zeros((2, 2))))
+    assert common.describe_failure(exc, "tuning")[1].startswith(
+        "numerical failure: tuning produced non-finite numbers (LinAlgError)")
+    exc = _raised(lambda: 1.0 / 0.0)
+    assert "(ZeroDivisionError)" in common.describe_failure(exc, "tuning")[1]
+
+
+def test_memory_input_and_unknown_errors_by_type():
+    from prsa_ctrl.errors import SceneError
+
+    assert common.describe_failure(MemoryError(), "x")[0] == common.EXIT_BAD_INPUT
+    assert common.describe_failure(SceneError("s.toml: bad"), "x") == (common.EXIT_BAD_INPUT, "error: s.toml: bad")
+    line = common.describe_failure(_raised(lambda: {}["k"]), "x")[1]
+    assert line == "numerical failure: x failed (KeyError); rerun with --verbose for details"
+    # the words alone classify nothing: an unknown error saying "overflow" is still unknown
+    assert common.describe_failure(KeyError("overflow"), "x")[1].endswith("failed (KeyError); rerun with --verbose for details")
+    assert common.status_says_interrupted({"status": "User_Requested_Stop"}) is False  # no dict walk

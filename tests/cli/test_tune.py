@@ -928,18 +928,6 @@ def test_interrupt_swallowed_by_a_solver_still_exits_130(tmp_path, capsys, monke
     assert keep.read_text() == "old"
 
 
-def test_user_requested_stop_status_counts_as_interrupt(capsys, monkeypatch):
-    import prsa_ctrl.studies.autotune as autotune
-
-    class Rep:
-        def as_dict(self):
-            return {"tuning": {"runs": [{"status": "User_Requested_Stop", "iterations": 3}]}}
-
-    monkeypatch.setattr(autotune, "tune_actuator", lambda *a, **k: Rep())
-    assert main([]) == 130
-    assert capsys.readouterr().err.strip() == "prsa-tune: interrupted (Ctrl-C); no output written"
-
-
 # --- one real run: effective scene in the header, JSON like any user file -------------------------
 
 def test_mt_max_and_effective_scene_in_header_and_json_mode(tmp_path, capsys):

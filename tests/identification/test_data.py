@@ -62,8 +62,8 @@ def test_mapping_current_and_constant_load(tmp_path):
         (lambda c: c["time_s"].__setitem__(57, c["time_s"][56]), r"'time_s' line 59: .* duplicated"),
         (lambda c: c["time_s"].__setitem__(57, c["time_s"][55]), r"'time_s' line 59: .* backwards"),
         (lambda c: c["time_s"].__setitem__(slice(100, None), c["time_s"][100:] + 0.3 * TS), r"'time_s' line 102: interval"),
-        (lambda c: c["torque_command_n_m"].__setitem__(10, np.nan), r"'torque_command_n_m' line 12: nan"),
-        (lambda c: c["nut_angle_rad"].__setitem__(3, np.inf), r"'nut_angle_rad' line 5: inf"),
+        (lambda c: c["torque_command_n_m"].__setitem__(10, np.nan), r"line 12: torque_command_n_m = 'nan'; expected a finite number"),
+        (lambda c: c["nut_angle_rad"].__setitem__(3, np.inf), r"line 5: nut_angle_rad = 'inf'; expected a finite number"),
         (lambda c: c["torque_command_n_m"].__setitem__(slice(None), 0.2), r"'torque_command_n_m' lines 2\.\.201: constant"),
     ],
 )
@@ -92,7 +92,7 @@ def test_structural_errors(tmp_path):
         load_record(p)
     p = tmp_path / "text.csv"
     p.write_text("time_s,torque_command_n_m,nut_angle_rad,axial_load_n\n0,abc,0,1\n")
-    with pytest.raises(DataError, match=r"'torque_command_n_m' line 2: 'abc' is not a number"):
+    with pytest.raises(DataError, match=r" line 2: torque_command_n_m = 'abc'; expected a finite number"):
         load_record(p)
     with pytest.raises(DataError, match="not found"):
         load_record(tmp_path / "missing.csv")

@@ -85,7 +85,7 @@ def test_polar_and_cartesian_files_round_trip(tmp_path):
     ("frequency_hz,magnitude_db\n1,2\n", "magnitude_db,phase_deg"),
     ("frequency_hz,magnitude_db,phase_deg,real,imag\n1,2,3,4,5\n", "one pair"),
     ("frequency_hz,gain_db,phase_deg\n1,2,3\n", "unknown column 'gain_db'"),
-    ("frequency_hz,real,imag\n1,2,3\n2,2,nan\n", "column 'imag' line 3"),
+    ("frequency_hz,real,imag\n1,2,3\n2,2,nan\n", "line 3: imag = 'nan'; expected a finite number"),
     ("frequency_hz,real,imag\n1,2,3\n1,2,3\n3,1,1\n4,1,1\n5,1,1\n6,1,1\n", "line 3: 1.0 Hz after 1.0 Hz"),
     ("frequency_hz,real,imag\n-1,2,3\n", "line 2: -1.0 Hz"),
     ("frequency_hz,real,imag,coherence\n" + "".join(f"{i},1,1,0.5\n" for i in range(1, 9)), "0 frequency points left"),

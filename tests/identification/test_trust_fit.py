@@ -446,7 +446,7 @@ def test_cli_frf_operating_point_checked(flag, value, tmp_path, capsys, monkeypa
 
 
 def test_huge_log_refused_before_reading(tmp_path, monkeypatch):
-    import prsa_ctrl.identification.data as FD
+    import prsa_ctrl.tablefile as tablefile
     from prsa_ctrl.identification.data import DataError, load_frf, load_record
 
     big = tmp_path / "big.csv"
@@ -456,7 +456,7 @@ def test_huge_log_refused_before_reading(tmp_path, monkeypatch):
     def no_reading(*a, **k):
         raise AssertionError("the file was read")
 
-    monkeypatch.setattr(FD.csv, "reader", no_reading)
+    monkeypatch.setattr(tablefile.csv, "reader", no_reading)  # the one CSV reader's
     for load in (load_record, load_frf):
         with pytest.raises(DataError, match=r"2147483648 bytes; expected at most"):
             load(big)

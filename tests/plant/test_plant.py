@@ -92,7 +92,7 @@ def _set(section, key, value):
     [
         (lambda d: d.replace("[cage]", 'colour_rgb = { value = 1, source = "x" }\n[cage]'), r"unknown key roller\.colour_rgb"),
         (lambda d: d.replace("[cage]", "[gearbox]\n[cage]"), r"unknown section 'gearbox'"),
-        (_set("screw", "pitch_diameter_mm", "-14.0"), r"screw\.pitch_diameter_mm = -14\.0; expected a positive"),
+        (_set("screw", "pitch_diameter_mm", "-14.0"), r"screw\.pitch_diameter_mm = -14\.0; expected a finite positive number"),
         (_set("nut", "inertia_kg_m2", "nan"), r"nut\.inertia_kg_m2 = nan; expected a finite"),
         (_set("contact", "exponent", "inf"), r"contact\.exponent = inf; expected a finite"),
         (_set("nut", "pitch_diameter_mm", "12.0"), r"nut\.pitch_diameter_mm = 12\.0 must exceed screw\.pitch_diameter_mm"),
@@ -130,7 +130,7 @@ def test_overrides_copy_and_reject_unknown_keys(paper_plant):
     assert paper_plant.values["contact.stiffness_n_per_mm_e"] == 1e5
     with pytest.raises(PlantFileError, match=r"unknown parameter 'contact.stifness'; allowed: screw\.pitch_diameter_mm"):
         paper_plant.with_params({"contact.stifness": 1.0})
-    with pytest.raises(PlantFileError, match=r"contact\.damping_n_s_per_mm = -1; expected a non-negative"):
+    with pytest.raises(PlantFileError, match=r"contact\.damping_n_s_per_mm = -1; expected a finite non-negative number"):
         paper_plant.with_params({"contact.damping_n_s_per_mm": -1})
 
 
