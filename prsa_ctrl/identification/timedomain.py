@@ -50,7 +50,7 @@ from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
 from .compliant import (COMPLIANT_F_DROP, COMPLIANT_G_MAX, COMPLIANT_RELAXED_STEPS, COMPLIANT_X0_RTOL,
-                        compliant_reference, compliant_scales)
+                        compliant_reference, compliant_scales, seed_from_frf)
 from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
@@ -310,6 +310,9 @@ def fit_plant(
         # (no cross-validation: the Stribeck stage's plateaus need the records it was given)
         return validate_fit(res, records, validate, int(cd["shift_samples"]), fidelity, None, check_interrupt,
                             closed_loops=closed_loops)
+    seeded = None
+    if fidelity == "compliant" and records and frf and plant.screw_driven:  # start from the FRF's axial mode
+        plant, seeded = seed_from_frf(plant, frf, command_logged)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
                        delay_samples=shift if delay_samples in (None, "find") else delay_samples,
@@ -345,6 +348,8 @@ def fit_plant(
                                  "1 (a computed command acts one sample later) or command_logged = 'applied'")
         res = with_command_delay(fit_at(shift, plant), shift, command_logged,
                                  "given" if delay_samples is not None else "the base plant's")
+    if seeded:
+        res.warnings.append(seeded)
     if not validation:
         return res
 

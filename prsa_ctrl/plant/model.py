@@ -592,7 +592,7 @@ def _screw_driven(plant: Plant, x: ca.SX, u: ca.SX):
     ``-F`` on the shaft, torque ``-a F`` on the rotor. The carriage position is
     ``a th + x_roller - delta_screw`` (as for the inverted screw's translating member). Thread
     friction: the same Stribeck/Karnopp law as the inverted screw on the normal force of ``|F|``
-    (smoothed within 1 % of the rated load: :func:`prsa_ctrl.plant.nutloss.smooth_abs`).
+    (smoothed within 5 % of the rated load: :func:`prsa_ctrl.plant.nutloss.smooth_abs`).
     At steady state ``F`` = the load, and the static stiffness from the motor to the carriage
     is ``1 / (1/k_shaft + 1/k_nut + 1/k_bearing)`` (:meth:`Plant.axial_stiffness_n_per_m`).
     """
@@ -608,7 +608,7 @@ def _screw_driven(plant: Plant, x: ca.SX, u: ca.SX):
     f_n, f_s = plant.normal_force_factor()
     t_visc = _viscous(plant, w)
     t_net = tau - a * f_h - t_visc
-    # |F| smoothed over 1 % of the rated load (plant.nutloss: the kink at F = 0 stalls a fit)
+    # |F| smoothed over 5 % of the rated load (plant.nutloss: the kink at F = 0 stalls a fit)
     t_fric = _nut_friction(plant, w, smooth_abs(f_h, nut_loss_band_n(plant)) * (f_n + f_s), t_net, j_rot)
     xdot = ca.vertcat(w, (t_net - t_fric) / j_rot, v_sh, (-f_h - k_b * u_sh - c_b * v_sh) / m_sh, d_delta,
                       (f_h - load) / m_c, _drive(plant, u[0], tau))
