@@ -43,6 +43,7 @@ def test_other_models_get_no_reference():
     assert compliant_reference(q, plant_model(q, "rigid").state_names, np.arange(5.0), np.ones(5), np.zeros(5)) == {}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["rs", "fa"])
 def test_seed_from_frf_puts_the_plants_mode_at_the_measured_one(which, tmp_path):
     """The independent generators' datasheet plants put the first axial mode 45 % (roller screw)
