@@ -49,6 +49,8 @@ from scipy.sparse.linalg import splu
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
+from .compliant import (COMPLIANT_F_DROP, COMPLIANT_G_MAX, COMPLIANT_RELAXED_STEPS, COMPLIANT_X0_RTOL,
+                        compliant_reference, compliant_scales, seed_from_frf)
 from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
@@ -308,6 +310,9 @@ def fit_plant(
         # (no cross-validation: the Stribeck stage's plateaus need the records it was given)
         return validate_fit(res, records, validate, int(cd["shift_samples"]), fidelity, None, check_interrupt,
                             closed_loops=closed_loops)
+    seeded = None
+    if fidelity == "compliant" and records and frf and plant.screw_driven:  # start from the FRF's axial mode
+        plant, seeded = seed_from_frf(plant, frf, command_logged)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
                        delay_samples=shift if delay_samples in (None, "find") else delay_samples,
@@ -343,6 +348,8 @@ def fit_plant(
                                  "1 (a computed command acts one sample later) or command_logged = 'applied'")
         res = with_command_delay(fit_at(shift, plant), shift, command_logged,
                                  "given" if delay_samples is not None else "the base plant's")
+    if seeded:
+        res.warnings.append(seeded)
     if not validation:
         return res
 
@@ -536,7 +543,11 @@ class _Problem:
         sc[i_th] = max(w_scale * ts, 1e-6)
         sc[i_w] = 0.1 * w_scale
         sc[i_tau] = 0.1 * plant.torque_limit
+        for k, v in compliant_scales(plant, names, w_scale).items():  # (compliant screw-driven model)
+            sc[names.index(k)] = v
         self.S = sc
+        #: initial-state directions kept in a step (:func:`condense`; compliant: :data:`COMPLIANT_X0_RTOL`)
+        self.x0_rtol = COMPLIANT_X0_RTOL if nx > 3 else None
         uu, hh, xr0, xrs = [], [], [], []
         for sg in segs:
             rec, ref = records[sg.rec], refs[sg.rec]
@@ -546,6 +557,8 @@ class _Problem:
             hh.append(np.diff(rec.time_s)[ks])
             full = np.zeros((nx, rec.n))
             full[[i_th, i_w, i_tau]] = ref
+            for k, v in compliant_reference(plant, names, rec.time_s, ref[1], rec.axial_load_n).items():
+                full[names.index(k)] = v
             xr0.append(full[:, sg.k0])
             st = [full[:, ks] + (m + c) / nsub * (full[:, ks + 1] - full[:, ks]) for m in range(nsub) for c in _RADAU_C]
             xrs.append(np.stack(st, axis=1).reshape(nx, ns * sg.n, order="F"))
@@ -719,6 +732,7 @@ class _Problem:
         s = np.array(s0, float)
         status, it = "maximum iterations", 0
         free_steps = 3
+        relaxed = COMPLIANT_RELAXED_STEPS  # (compliant fits only, :data:`COMPLIANT_G_MAX`)
         # Warm-up: ``warm`` steps on the states alone (parameters held) bring the trajectories
         # close to the data before the parameters move.
         warm = 0 if fixed else int(warm)
@@ -734,7 +748,7 @@ class _Problem:
                 status = "stalled"  # the constraint residual no longer falls: give this attempt up early
                 break
             f_val = 0.5 * sum(float(r @ r) for r in self.residuals(V, X0))
-            js, rv, backs = condense(lin)
+            js, rv, backs = condense(lin, self.x0_rtol)
             se = None
             if fixed or npar == 0 or it <= warm:
                 d_s = np.zeros(npar)
@@ -762,6 +776,11 @@ class _Problem:
                 g1, f1 = self._merit_terms(V1, X1, s1)
                 if np.isfinite(g1) and (g1 < (1 - 1e-4 * alpha) * g_norm
                                         or (g1 <= max(g_norm, 1e-8) and f1 <= f_val * (1 + 1e-9) + 1e-12)):
+                    accepted = True
+                    break
+                if (alpha == 1.0 and relaxed > 0 and self.x0_rtol is not None and np.isfinite(g1)
+                        and g1 <= COMPLIANT_G_MAX and f1 < (1 - COMPLIANT_F_DROP) * f_val):
+                    relaxed -= 1  # a full step that cuts the objective: the next steps restore the equations
                     accepted = True
                     break
                 alpha *= 0.5
@@ -890,7 +909,7 @@ class _Problem:
         V, X0, s = sol["V"], sol["X0"], sol["s"]
         nx, nseg, npar = self.nx, len(self.segs), self.npar
         _, lin = self.linearise(V, X0, s)
-        js, r, _ = condense(lin)
+        js, r, _ = condense(lin, self.x0_rtol)
         lens = [len(item[0]) for item in lin]
         n_rows = len(r)
         n_cols = npar + nx * nseg

@@ -126,7 +126,8 @@ from dataclasses import dataclass, field
 import casadi as ca
 
 from .plantfile import Plant
-from .schema import BREAKAWAY_KEY, SCREW_DRIVEN, VISCOUS_OFFSET_KEY
+from .nutloss import NUT_LOSS_KEY, nut_loss_band_n, nut_loss_on_whole_force, smooth_abs
+from .schema import BREAKAWAY_KEY, VISCOUS_OFFSET_KEY
 
 __all__ = ["FIDELITIES", "PlantModel", "state_derivative", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
            "ParametricModel", "parametric_family", "register_member",
@@ -429,27 +430,6 @@ def _linear_axis_friction(plant: Plant, omega: ca.SX):
     return visc, 0.5 * (v["friction.coulomb_positive_n"] - v["friction.coulomb_negative_n"])
 
 
-NUT_LOSS_KEY = "axis.nut_loss_on_whole_force"
-
-
-def nut_loss_on_whole_force(plant: Plant) -> bool:
-    """Whether the rigid model puts the nut's load-dependent loss on the whole force through the
-    nut, ``F_s = F_load + m a w'`` (external load plus the carriage's inertial force; ``m`` =
-    ``axis.moving_mass_kg``): ``axis.nut_loss_on_whole_force = 1``, the default of ball and
-    roller screws. A nut's thread friction grows with the force its flanks carry (Varanasi &
-    Nayfeh, J. Dyn. Sys. Meas. Control 126(2) 388-396, 2004, model the thread friction on the
-    nut's contact force so); the compliant screw-driven model (:func:`_screw_driven`) has this law
-    by construction and the rigid one with it is its stiff limit. ``0``: the loss on the external
-    load only, the catalogue sizing rule that adds the acceleration torque without efficiency
-    (e.g. THK, "Ball Screw: Calculating the Driving Torque"); the inverted roller screw (the
-    source paper's rigid model) always has it.
-    """
-    if plant.mechanism not in SCREW_DRIVEN:
-        return False
-    flag = plant.values.get(NUT_LOSS_KEY, 1)
-    return not (isinstance(flag, (int, float)) and flag == 0)
-
-
 def _nut_force_rigid(plant: Plant, omega, load, t_net, j_eq):
     """The force through the nut ``F_s = F_load + m a w'`` (N) of the rigid screw-driven axis
     whose sliding loss acts on it (:func:`nut_loss_on_whole_force`), in closed form.
@@ -611,7 +591,8 @@ def _screw_driven(plant: Plant, x: ca.SX, u: ca.SX):
     compression ``delta = a th + u - x_C`` (state ``delta_screw``): ``+F`` on the carriage,
     ``-F`` on the shaft, torque ``-a F`` on the rotor. The carriage position is
     ``a th + x_roller - delta_screw`` (as for the inverted screw's translating member). Thread
-    friction: the same Stribeck/Karnopp law as the inverted screw on the normal force of ``|F|``.
+    friction: the same Stribeck/Karnopp law as the inverted screw on the normal force of ``|F|``
+    (smoothed within 5 % of the rated load: :func:`prsa_ctrl.plant.nutloss.smooth_abs`).
     At steady state ``F`` = the load, and the static stiffness from the motor to the carriage
     is ``1 / (1/k_shaft + 1/k_nut + 1/k_bearing)`` (:meth:`Plant.axial_stiffness_n_per_m`).
     """
@@ -627,7 +608,8 @@ def _screw_driven(plant: Plant, x: ca.SX, u: ca.SX):
     f_n, f_s = plant.normal_force_factor()
     t_visc = _viscous(plant, w)
     t_net = tau - a * f_h - t_visc
-    t_fric = _nut_friction(plant, w, ca.fabs(f_h) * (f_n + f_s), t_net, j_rot)
+    # |F| smoothed over 5 % of the rated load (plant.nutloss: the kink at F = 0 stalls a fit)
+    t_fric = _nut_friction(plant, w, smooth_abs(f_h, nut_loss_band_n(plant)) * (f_n + f_s), t_net, j_rot)
     xdot = ca.vertcat(w, (t_net - t_fric) / j_rot, v_sh, (-f_h - k_b * u_sh - c_b * v_sh) / m_sh, d_delta,
                       (f_h - load) / m_c, _drive(plant, u[0], tau))
     y = _kinematic_outputs(plant, w, w * plant.cage_ratio, v_c, tau) + [f_h, k_b * u_sh + c_b * v_sh]
