@@ -49,7 +49,7 @@ Coordinates. ``axis = "linear"`` (the default) is a log in load coordinates: pos
 mm, um), the command as a force on the load in N (or a unit with a gain in N per unit).
 ``axis = "rotary"`` is a log in motor coordinates: ``[position]`` the motor (screw) angle in
 rad | deg | rev, ``[speed]`` in rad/s | rpm, ``[command]`` the torque command in ``N m`` (or
-A | V with ``gain`` in N m per unit), ``[load]`` the axial load on the nut in N | kN; such a log
+A | V | % of the rated torque with ``gain`` in N m per unit: rated torque / 100 for %), ``[load]`` the axial load on the nut in N | kN; such a log
 has no ``[controller]``, ``[reference]`` or ``[test_signal]`` (the motor-coordinate fit,
 :func:`prsa_ctrl.identification.timedomain.fit_plant`, runs open loop from the logged torque
 over short multiple-shooting segments). A screw-driven plant works in motor coordinates: a log
@@ -125,7 +125,8 @@ AXES = ("linear", "rotary")
 MOTOR_CONVENTION = {"as-computed": "computed", "as-applied": "applied"}
 _ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0, "rev": 2.0 * math.pi}
 _ANGULAR_SPEED_UNITS = {"rad/s": 1.0, "rpm": RAD_S_PER_RPM}
-_TORQUE_COMMAND_UNITS = ("N m", "A", "V")
+#: ``%`` is percent of the rated torque (drive recorders log it so): ``gain`` is N m per %, rated/100.
+_TORQUE_COMMAND_UNITS = ("N m", "A", "V", "%")
 #: Sections a log in motor coordinates may have (section -> (required, allowed units)).
 _ROTARY_SIGNALS = {"time": (True, _TIME_UNITS), "position": (True, _ANGLE_UNITS),
                    "command": (True, _TORQUE_COMMAND_UNITS), "speed": (False, _ANGULAR_SPEED_UNITS),

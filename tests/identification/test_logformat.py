@@ -722,6 +722,24 @@ def test_motor_record_is_the_lead_conversion(tmp_path):
     np.testing.assert_array_equal(via.nut_angle_rad, got.nut_angle_rad)
 
 
+def test_a_torque_in_percent_of_rated_is_converted_with_its_gain(tmp_path):
+    """Drive recorders log the torque command in % of the rated torque: ``unit = "%"`` with
+    ``gain`` = rated torque / 100 N m per % gives N m (against numpy on the written file); without
+    a gain it is refused naming the unit."""
+    base, rec, a = _write_logs(tmp_path, "ballscrew-32x10", duration_s=0.2)
+    rated = 4.5
+    raw = np.loadtxt(tmp_path / "motor.csv", delimiter=",", skiprows=1)
+    raw[:, 2] = 100.0 * raw[:, 2] / rated
+    np.savetxt(tmp_path / "pct.csv", raw, delimiter=",", header="t_ms,angle_deg,torque,fz", comments="", fmt="%.17g")
+    (tmp_path / "pct.toml").write_text(MOTOR_TOML.replace('unit = "N m"', f'unit = "%"\ngain = {rated / 100!r}'))
+    got, _ = load_motor_record(tmp_path / "pct.csv", load_log_format(tmp_path / "pct.toml"), base)
+    np.testing.assert_allclose(got.torque_command_n_m, raw[:, 2] * (rated / 100), rtol=1e-15, atol=0)
+    np.testing.assert_allclose(got.torque_command_n_m, rec.torque_command_n_m, rtol=1e-13, atol=1e-15)
+    (tmp_path / "nogain.toml").write_text(MOTOR_TOML.replace('unit = "N m"', 'unit = "%"'))
+    with pytest.raises(LogFormatError, match=r"\[command\] unit = '%'.*needs gain \(N m per command unit"):
+        load_log_format(tmp_path / "nogain.toml")
+
+
 @pytest.mark.parametrize("name", ["ballscrew-32x10", "rollerscrew-30x5"])
 def test_fits_in_both_coordinates_agree(tmp_path, capsys, name):
     """prsa-fit on the motor- and the load-coordinate log of one run: the same fitted values and
