@@ -87,7 +87,7 @@ def motor_records(args, plant) -> tuple[list, list, str, dict]:
     from ..identification.logformat import MOTOR_CONVENTION, load_log_format, load_motor_record
 
     for flag, given in (("--columns", args.columns), ("--torque-constant", args.torque_constant),
-                        ("--load", args.load), ("--frf", args.frf)):
+                        ("--load", args.load)):  # (an --frf file beside described logs is its own input)
         if given:
             raise UsageError(f"{flag} with --log-format {args.log_format}; expected the log description to say "
                              "which column holds what, in which unit")

@@ -820,6 +820,23 @@ def test_bad_descriptions_one_line_exit_2_nothing_written(tmp_path, capsys, case
     assert not out.exists()
 
 
+def test_an_frf_file_may_go_beside_described_logs(tmp_path):
+    """``--frf`` names its own file (frequency, magnitude, phase): it is not a column of the
+    described logs, so it is accepted beside ``--log-format`` (was refused 'expected the log
+    description to say which column holds what'), and the records are the description's."""
+    import argparse
+
+    from prsa_ctrl.cli.axis import motor_records
+
+    base, rec, _ = _write_logs(tmp_path, "ballscrew-32x10", duration_s=0.1)
+    args = argparse.Namespace(columns=None, torque_constant=None, load=None, frf=[str(tmp_path / "bode.csv")],
+                              log_format=str(tmp_path / "motor.toml"), command_logged=None,
+                              data=[str(tmp_path / "motor.csv")], validate=[])
+    records, validate, logged, _ = motor_records(args, base)
+    assert (len(records), validate, logged) == (1, [], "applied")
+    np.testing.assert_allclose(records[0].torque_command_n_m, rec.torque_command_n_m, rtol=1e-14, atol=1e-16)
+
+
 def test_a_linear_axis_plant_refuses_a_motor_log(tmp_path):
     """A linear axis works in load coordinates: a motor-coordinate log is refused for it (and by
     the linear-axis reader), one line naming why."""
