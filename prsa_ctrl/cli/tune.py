@@ -331,7 +331,7 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
         if move or getattr(scene, "is_profile", False):
             raise UsageError(f"--design-to-spec does not apply to the scene {scene.name}; expected a load-step scene "
                              "with a [spec] section")
-        if not (getattr(scene, "robust", None) or {}).get("spec"):
+        if not scene.sections.spec_bounds:
             raise UsageError(f"--design-to-spec: the scene {scene.name} has no [spec] section; expected the bounds "
                              "to design to (e.g. [spec] peak_drop_rad_s = 12.0)")
         if args.monte_carlo == 0:
@@ -623,7 +623,7 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
 
     scene = rep.scene
     opts = scene_options(scene)
-    has_robust = bool((getattr(scene, "robust", None) or {}).get("robust"))
+    has_robust = scene.sections.robust is not None and bool(scene.sections.robust.given)
     robust_rep = None
     if args.robust or has_robust:
         from ..studies.scenerobust import tune_robust_actuator
@@ -651,7 +651,7 @@ def _robust_and_monte_carlo(run: Run, args, plant, rep):
                          workers=args.workers or default_workers(), quiet=args.quiet)
     if robust_rep is not None:
         others = {k: v for k, v in designs.items() if k not in ("nominal design", "robust design")}
-        target = ((getattr(scene, "robust", None) or {}).get("spec_yield") or {}).get("yield")
+        target = scene.sections.yield_target
         robust_rep = robust_rep.with_recommendation(mc, others=others, target=target)
     return robust_rep, mc
 
@@ -669,7 +669,7 @@ def _design_to_spec(run: Run, args, plant, rep):
     from ..studies.scenerobust import tune_robust_actuator
 
     scene = rep.scene
-    if not (getattr(scene, "robust", None) or {}).get("spec"):
+    if not scene.sections.spec_bounds:
         raise SceneError(f"{scene.origin}: --design-to-spec needs a [spec] section; expected the bounds to design to")
     opts = scene_options(scene)
     n = args.monte_carlo or opts["samples"] or 200

@@ -58,7 +58,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -67,7 +67,7 @@ from ..textsafe import quote
 from ..errors import GeometryWarning, PlantFileError, SceneError
 from .schema import KIND
 
-__all__ = ["Uncertain", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "resolve_entry", "uncertainty_model",
+__all__ = ["Uncertain", "Uncertainty", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "resolve_entry", "uncertainty_model",
            "plant_uncertainty", "check_plant_uncertainty", "CORRELATION_KEY", "PSD_TOLERANCE",
            "correlation_entry", "restrict_correlation", "correlation_toml", "carry_correlation", "inner_truncation"]
 
@@ -479,28 +479,62 @@ def plant_uncertainty(plant) -> UncertaintyModel:
     return check_plant_uncertainty(plant)
 
 
-def uncertainty_model(plant, scene=None, extra: Mapping[str, Any] | None = None) -> UncertaintyModel:
-    """Plant uncertainty, overridden/extended by the scene's ``[uncertainty]`` (what the scene
-    attaches to the actuator) and by ``extra`` (API callers), key by key. A scene with
-    ``[robust] plant_uncertainty = false`` uses its own section alone.
+@dataclass(frozen=True)
+class Uncertainty:
+    """What a study adds to the plant's uncertainty (a scene's ``[uncertainty]`` table and its
+    ``[robust] plant_uncertainty`` switch), typed: the plant layer reads this, never a scene.
+
+    Attributes
+    ----------
+    entries : Mapping
+        Parsed entries (:func:`parse_entries`), ``key -> entry`` plus ``"correlation"`` blocks;
+        empty when the study adds none.
+    origin : str
+        Where the entries came from (a file name), for messages.
+    plant_uncertainty : bool
+        False: the plant file's own ``[uncertainty]`` is dropped and ``entries`` used alone.
+    """
+
+    entries: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    origin: str = "<scene>"
+    plant_uncertainty: bool = True
+
+
+def uncertainty_model(plant, section: Uncertainty | None = None,
+                      extra: Mapping[str, Any] | None = None) -> UncertaintyModel:
+    """Plant uncertainty, overridden/extended by a study's ``section`` (what a scene attaches to
+    the actuator: ``scene.sections.plant_overrides``) and by ``extra`` (API callers), key by key.
+    A section with ``plant_uncertainty = False`` (a scene's ``[robust] plant_uncertainty =
+    false``) uses its own entries alone.
+
+    Parameters
+    ----------
+    plant : Plant
+    section : Uncertainty, optional
+    extra : Mapping, optional
+        ``[uncertainty]``-style entries.
 
     Raises
     ------
     PlantFileError, SceneError
         Naming the file and the key of the bad entry.
+    TypeError
+        ``section`` is not an :class:`Uncertainty` (a scene is no longer read here).
     """
+    if section is not None and not isinstance(section, Uncertainty):
+        raise TypeError(f"uncertainty_model: section is a {type(section).__name__}; expected an Uncertainty "
+                        "(a scene's: scene.sections.plant_overrides)")
     entries = parse_entries(getattr(plant, "uncertainty", {}) or {}, plant.origin, PlantFileError)
     model = _build(entries, plant, plant.origin, PlantFileError)
-    if scene is not None and not (getattr(scene, "robust", None) or {}).get("robust", {}).get("plant_uncertainty", True):
+    if section is not None and not section.plant_uncertainty:
         entries, model = {}, UncertaintyModel(())
     merged: dict[str, Any] = dict(entries)
     notes: list[str] = []
-    if scene is not None:
-        raw = (getattr(scene, "robust", None) or {}).get("uncertainty", {})
-        s_entries = parse_entries(raw, scene.origin, SceneError)
+    if section is not None:
+        s_entries = parse_entries(dict(section.entries), section.origin, SceneError)
         if s_entries:
-            merged = _override(merged, s_entries, scene.origin, notes)
-            model = _build(merged, plant, scene.origin, SceneError, notes)
+            merged = _override(merged, s_entries, section.origin, notes)
+            model = _build(merged, plant, section.origin, SceneError, notes)
     if extra:
         merged = _override(merged, parse_entries(extra, "<extra>", ValueError), "<extra>", notes)
         model = _build(merged, plant, "<extra>", ValueError, notes)
