@@ -1,7 +1,7 @@
 """A scene's study sections, typed and frozen: ``[spec]`` (:class:`Spec`), ``[robust]``
 (:class:`Robust`) and ``[uncertainty]`` (:class:`~prsa_ctrl.plant.uncertainty.Uncertainty`),
 parsed once from the scene file (:meth:`Sections.parse`, validated by
-:func:`~prsa_ctrl.plant.uncertainty.parse_scene_sections`) and read by attribute.
+:func:`parse_scene_sections`) and read by attribute.
 
 The robust tuning, the Monte-Carlo and design-to-spec studies and the CLI read these objects
 (``scene.sections.robust.setpoints_rpm``); the plant layer receives only the
@@ -10,19 +10,132 @@ The robust tuning, the Monte-Carlo and design-to-spec studies and the CLI read t
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from types import MappingProxyType
 from typing import Any, Mapping
 
-from ..plant.uncertainty import Uncertainty, parse_scene_sections
+from ..errors import SceneError
+from ..plant.uncertainty import Uncertainty, parse_entries
+from ..results import FrozenDict
+from ..textsafe import quote
 
-__all__ = ["Spec", "Robust", "Sections", "Uncertainty"]
+__all__ = ["Spec", "Robust", "Sections", "Uncertainty", "parse_scene_sections", "SPEC_BOUNDS"]
+
+
+#: Spec bounds a scene may state: metric -> what it bounds (all upper bounds, worst over steps).
+SPEC_BOUNDS: Mapping[str, str] = {
+    "peak_drop_rad_s": "largest speed drop after the step, rad/s",
+    "recovery_time_s": "time to re-enter the 5 % band, s",
+    "ie": "integral of the error, rad",
+    "iae": "integral of |error|, rad",
+    "itae": "integral of t |error|, rad s",
+    "ise": "integral of error^2, rad^2/s",
+    "overshoot_rad_s": "rise above the setpoint after the low point, rad/s",
+    "peak_torque_n_m": "largest |motor torque| after the step, N m",
+    "steady_state_error_rad_s": "|mean error| over the last 10 % of the record, rad/s",
+    "ms": "peak sensitivity of the sample's linearised sampled loop",
+    "mt": "peak complementary sensitivity of the sample's linearised sampled loop",
+}
+
+#: ``[robust]`` keys -> (type, check, expected).
+_ROBUST_KEYS: Mapping[str, tuple[type, Any, str]] = {
+    "aggregate": (str, lambda v: v in ("worst", "mean"), "'worst' or 'mean'"),
+    "setpoints_rpm": (list, lambda v: 1 <= len(v) <= 16 and all(_pos(x) for x in v), "1 to 16 positive speeds in rpm"),
+    "final_loads_n": (list, lambda v: 1 <= len(v) <= 16 and all(_nonneg(x) for x in v), "1 to 16 loads >= 0 N"),
+    "vertices": (bool, lambda v: True, "true or false"),
+    "samples": (int, lambda v: 0 <= v <= 256, "an integer 0..256 (random scenario models)"),
+    "seed": (int, lambda v: 0 <= v < 2**63, "an integer >= 0"),
+    "monte_carlo": (int, lambda v: 0 <= v <= 1_000_000, "an integer 0..1000000 (samples)"),
+    "max_scenarios": (int, lambda v: 1 <= v <= 256, "an integer 1..256"),
+    "plant_uncertainty": (bool, lambda v: True, "true or false (include the plant file's [uncertainty])"),
+}
+
+
+def _pos(x: Any) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+
+def _nonneg(x: Any) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) and x >= 0
+
+
+def parse_scene_sections(doc: Mapping[str, Any], origin: str) -> dict[str, dict[str, Any]]:
+    """Validate a scene's ``[spec]``, ``[robust]`` and ``[uncertainty]`` sections.
+
+    ``[spec]``: upper bounds (``SPEC_BOUNDS``), e.g. ``peak_drop_rad_s = 5.0``, and
+    ``no_saturation = true``; ``yield = 0.95`` (optional) is the target probability of meeting
+    them, returned apart as ``{"spec_yield": {"yield": 0.95}}``. ``[robust]``: ``aggregate`` ("worst"/"mean" over scenario models),
+    the operating range ``setpoints_rpm`` and ``final_loads_n``, ``vertices``, ``samples``,
+    ``seed``, ``monte_carlo`` (samples), ``max_scenarios``. ``[uncertainty]``: as in plant files.
+
+    Returns
+    -------
+    dict
+        ``{"spec": {...}, "robust": {...}, "uncertainty": {...}}`` (only the sections present).
+
+    Raises
+    ------
+    SceneError
+        Naming the file, the key and what was expected.
+
+    Examples
+    --------
+    >>> parse_scene_sections({"spec": {"peak_drop_rad_s": 5}}, "s.toml")["spec"]
+    {'peak_drop_rad_s': 5.0}
+    """
+    out: dict[str, dict[str, Any]] = {}
+    if "spec" in doc:
+        table = doc["spec"]
+        if not isinstance(table, Mapping):
+            raise SceneError(f"{origin}: [spec] = {quote(table)}; expected a table of bounds")
+        spec: dict[str, Any] = {}
+        for k, v in table.items():
+            if k == "yield":  # the target probability of meeting the bounds (not a bound itself)
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1:
+                    raise SceneError(f"{origin}: spec.yield = {quote(v)}; expected a target probability in (0, 1), "
+                                     "e.g. 0.95")
+                out["spec_yield"] = {"yield": float(v)}
+                continue
+            if k == "no_saturation":
+                if not isinstance(v, bool):
+                    raise SceneError(f"{origin}: spec.no_saturation = {quote(v)}; expected true or false")
+                spec[k] = v
+                continue
+            if k not in SPEC_BOUNDS:
+                raise SceneError(f"{origin}: unknown key spec.{k}; expected one of "
+                                 f"{', '.join(f'spec.{b}' for b in (*SPEC_BOUNDS, 'no_saturation', 'yield'))}")
+            if not _pos(v):
+                raise SceneError(f"{origin}: spec.{k} = {quote(v)}; expected a positive upper bound ({SPEC_BOUNDS[k]})")
+            if k in ("ms", "mt") and not v > 1.0 - (k == "mt") * 0.5:
+                raise SceneError(f"{origin}: spec.{k} = {quote(v)}; expected a bound > {1.0 if k == 'ms' else 0.5:g}")
+            spec[k] = float(v)
+        if "spec_yield" in out and not spec:  # (was taken for a scene without [spec] by --design-to-spec)
+            raise SceneError(f"{origin}: spec.yield = {quote(table['yield'])} and no bound in [spec]; expected the "
+                             "bounds the yield counts (e.g. spec.peak_drop_rad_s = 12.0)")
+        out["spec"] = spec
+    if "robust" in doc:
+        table = doc["robust"]
+        if not isinstance(table, Mapping):
+            raise SceneError(f"{origin}: [robust] = {quote(table)}; expected a table")
+        rob: dict[str, Any] = {}
+        for k, v in table.items():
+            if k not in _ROBUST_KEYS:
+                raise SceneError(f"{origin}: unknown key robust.{k}; expected one of "
+                                 f"{', '.join(f'robust.{r}' for r in _ROBUST_KEYS)}")
+            typ, check, expected = _ROBUST_KEYS[k]
+            if not isinstance(v, typ) or (typ is int and isinstance(v, bool)) or not check(v):
+                raise SceneError(f"{origin}: robust.{k} = {quote(v)}; expected {expected}")
+            rob[k] = [float(x) for x in v] if typ is list else v
+        out["robust"] = rob
+    if "uncertainty" in doc:
+        out["uncertainty"] = parse_entries(doc["uncertainty"], origin, SceneError)
+    return out
 
 
 @dataclass(frozen=True)
 class Spec:
     """A scene's ``[spec]``: the upper bounds a design must meet (units in
-    :data:`prsa_ctrl.plant.uncertainty.SPEC_BOUNDS`), ``no_saturation`` and the target yield.
+    :data:`SPEC_BOUNDS`), ``no_saturation`` and the target yield.
 
     Attributes
     ----------
@@ -36,7 +149,7 @@ class Spec:
     yield_target: float | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "bounds", MappingProxyType(dict(self.bounds)))
+        object.__setattr__(self, "bounds", FrozenDict(self.bounds))
 
     def as_dict(self) -> dict[str, Any]:
         """The bounds as a plain dict (the report's and the studies' ``spec``)."""
@@ -111,7 +224,7 @@ class Sections:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | "Sections" | None, origin: str = "<scene>") -> "Sections":
-        """From the validated dict of :func:`~prsa_ctrl.plant.uncertainty.parse_scene_sections`
+        """From the validated dict of :func:`parse_scene_sections`
         (``{"spec", "spec_yield", "robust", "uncertainty"}``); a :class:`Sections` is returned as is."""
         if isinstance(d, Sections):
             return d
@@ -148,7 +261,7 @@ class Sections:
 
     def as_dict(self) -> dict[str, Any]:
         """The validated dict shape of
-        :func:`~prsa_ctrl.plant.uncertainty.parse_scene_sections` (what ``Scene.robust`` was)."""
+        :func:`parse_scene_sections` (what ``Scene.robust`` was)."""
         out: dict[str, Any] = {}
         if self.spec is not None:
             if self.spec.yield_target is not None:

@@ -20,7 +20,8 @@ from prsa_ctrl import PlantFileError, SceneError
 from prsa_ctrl.cli.fit import main as fit_main
 from prsa_ctrl.plant import load_plant
 from prsa_ctrl.plant.plantfile import Plant, builtin_plants, load_plant
-from prsa_ctrl.plant.uncertainty import (CORRELATION_KEY, PSD_TOLERANCE, carry_correlation, correlation_entry, correlation_toml, parse_entries, parse_scene_sections, uncertainty_model)
+from prsa_ctrl.plant.uncertainty import (CORRELATION_KEY, PSD_TOLERANCE, carry_correlation, correlation_entry, correlation_toml, parse_entries, uncertainty_model)
+from prsa_ctrl.studies.scenesections import parse_scene_sections
 from prsa_ctrl.studies.scene import _from_doc, load_scene
 
 ROOT = Path(__file__).resolve().parents[2]

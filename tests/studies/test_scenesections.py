@@ -6,9 +6,9 @@ import pytest
 
 from prsa_ctrl.errors import SceneError
 from prsa_ctrl.plant.plantfile import load_plant
-from prsa_ctrl.plant.uncertainty import Uncertainty, parse_scene_sections, uncertainty_model
+from prsa_ctrl.plant.uncertainty import Uncertainty, uncertainty_model
 from prsa_ctrl.studies.scene import load_scene
-from prsa_ctrl.studies.scenesections import Robust, Sections, Spec
+from prsa_ctrl.studies.scenesections import Robust, Sections, Spec, parse_scene_sections
 
 
 def test_robust_scene_sections_are_typed_and_frozen():
@@ -65,3 +65,13 @@ def test_uncertainty_model_reads_no_scene():
 def test_bad_section_is_named():
     with pytest.raises(SceneError, match="robust.seed"):
         Sections.parse({"robust": {"seed": -1}}, "s.toml")
+
+
+def test_a_scene_with_sections_pickles_for_the_process_pools():
+    import pickle
+
+    scene = load_scene("robust-load-step")
+    back = pickle.loads(pickle.dumps(scene))
+    assert back.sections == scene.sections
+    assert back.robust == scene.robust
+    assert dict(back.sections.spec.bounds) == dict(scene.sections.spec.bounds)

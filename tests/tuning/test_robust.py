@@ -438,7 +438,7 @@ def test_target_yield_not_reached_names_the_limit_and_by_how_much():
 
 @pytest.mark.parametrize("bad", [0, 1, 1.5, -0.1, True, "0.95"])
 def test_spec_yield_is_a_probability(bad):
-    from prsa_ctrl.plant.uncertainty import parse_scene_sections
+    from prsa_ctrl.studies.scenesections import parse_scene_sections
 
     with pytest.raises(SceneError, match=r"s.toml: spec.yield = .*expected a target probability in \(0, 1\)"):
         parse_scene_sections({"spec": {"yield": bad, "ms": 1.5}}, "s.toml")
