@@ -18,7 +18,7 @@ from ..plant.uncertainty import UncertaintyModel, apply, uncertainty_model
 from .scenesections import Robust
 from ..tuning.loops import LoopModel
 from ..tuning.robust import RobustTuning, Scenario, tune_scenario_loops
-from ..tuning.scene_loops import step_loops
+from ..tuning.actuatorloops import step_loops
 from .sceneloops import loop_spec
 
 __all__ = ["operating_points", "scenarios", "scenario_loops", "tune_robust_actuator"]
