@@ -143,7 +143,7 @@ def test_no_matplotlib_outside_plots_in_studies_and_tuning():
 
     root = pathlib.Path(prsa_ctrl.__file__).parent
     for rel in ("studies/autotune.py", "studies/montecarlo.py", "studies/responses.py", "studies/paper.py",
-                "tuning/filtered.py", "tuning/robust.py", "tuning/scene_loops.py"):
+                "tuning/filtered.py", "tuning/robust.py", "tuning/actuatorloops.py"):
         text = (root / rel).read_text()
         assert "import matplotlib" not in text and 'module("matplotlib' not in text, rel
         assert "from ..io" not in text and "import _predict" not in text, rel

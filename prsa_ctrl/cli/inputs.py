@@ -14,6 +14,7 @@ from ..errors import SceneError
 from ..plant.plantfile import Plant, load_plant
 from ..studies.scene import Scene, check_against_plant, load_scene, require_speed_scene
 from ..studies.scenefilters import parse_filter_flag
+from ..studies.scenekinds import problem
 from ..studies.scenefile import SETPOINT_MAX_RPM, parse_load_step  # noqa: F401 (parse_load_step re-exported)
 from .common import Run, UsageError, number, path_text
 
@@ -82,23 +83,10 @@ def load_and_override(args, run: Run, plot: bool = False) -> tuple[Plant, Scene,
     typed: dict[str, str] = {}
     overrides: list[str] = []
     raw = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in run.argv if a.startswith("--") and "=" in a}
-    if scene.is_profile:
-        for flag in ("--robust", "--monte-carlo", "--scheduler"):
-            v = getattr(args, flag[2:].replace("-", "_"), None)
-            if v:
-                raise UsageError(f"{flag}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
-                                  "load-step scene (the robust and Monte-Carlo studies run load steps)")
-        estimator = getattr(args, "estimator", None)
-        if estimator not in (None, "none"):
-            raise UsageError(f"--estimator {raw.get('--estimator', estimator)}: scene {scene.name} is a duty cycle "
-                              f"({scene.profile_source}); expected --estimator none (the Kalman-filter loop is tuned and "
-                              "verified on load steps only, not on a duty-cycle record)")
-        for flag, v in (("--load-step", args.load_step), ("--step-time", getattr(args, "step_time", None)),
-                        ("--setpoint-rpm", args.setpoint_rpm if scene.setpoint_profile is not None else None)):
-            if v is not None:
-                raise UsageError(f"{flag} {quote(raw.get(flag, v))}: scene {scene.name} is a duty cycle ({scene.profile_source}); "
-                                  f"expected its profile to set the {'load' if flag != '--setpoint-rpm' else 'setpoint'} "
-                                  "and events (edit the scene file to change them)")
+    given = {flag: getattr(args, flag[2:].replace("-", "_"), None)
+             for flag in ("--robust", "--monte-carlo", "--scheduler", "--estimator", "--load-step", "--step-time",
+                          "--setpoint-rpm")}
+    problem(scene).check_overrides(given, raw)  # what the scene's kind does not take, as typed
     if args.load_step is not None:
         initial, finals = args.load_step
         if plot:

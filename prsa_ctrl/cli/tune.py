@@ -1,16 +1,17 @@
 """``prsa-tune``: tune a scene's loop, verify it on the nonlinear simulator, report, export.
 
-One path for every scene (:func:`main`): parse the flags, load the plant and the scene, check
-them and the output paths, tune and verify, write the outputs (``--json``, ``--export``,
-``--plots``, all or none), print the report. Each step dispatches on the scene's kind:
+One path for every scene (:func:`main`): parse the flags, load the plant and the scene, build
+the scene's problem from the registry of kinds (:mod:`prsa_ctrl.studies.scenekinds`: load step,
+duty cycle, move), check it and the output paths, tune (``problem.tune``), write the report's
+outputs (``--json``: ``report.as_dict()``, ``--export``: ``report.export_target()``,
+``--plots``: the figures writer of the kind), all or none, and print ``report.format()``:
 
-* a speed-loop scene (load steps or a duty cycle, :class:`~prsa_ctrl.studies.scene.Scene`):
-  the speed PI/PID (:func:`prsa_ctrl.studies.autotune.tune_actuator`), compared with baselines,
-  with the robust study and the Monte-Carlo yield when asked;
-* a move scene (``[move]`` section, :class:`~prsa_ctrl.studies.movescene.MoveScene`): the
-  position loop over the speed loop, tuned sequentially and jointly and verified
-  (:func:`prsa_ctrl.studies.move.tune_move`); flags that do not apply to it
-  (:data:`MOVE_FLAGS` lists those that do) are refused in one line.
+* a speed-loop scene (load steps, a Kalman filter or a duty cycle): the speed PI/PID
+  (:func:`prsa_ctrl.studies.autotune.tune_actuator`), compared with baselines, with the robust
+  study and the Monte-Carlo yield when asked;
+* a move scene (``[move]`` section): the position loop over the speed loop, tuned sequentially
+  and jointly and verified (:func:`prsa_ctrl.studies.move.tune_move`); flags that do not apply to
+  it (:data:`MOVE_FLAGS` lists those that do) are refused in one line.
 
 Exit codes and one-line errors as every command (:mod:`prsa_ctrl.cli.common`): 0 ok, 2 bad
 input, 3 numerical failure (also when the best speed-loop design is flagged, unless
@@ -36,15 +37,14 @@ import os  # noqa: E402
 import re  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any, Sequence  # noqa: E402
+from typing import Sequence  # noqa: E402
 
 from .._lazy import module  # noqa: E402
 from ..errors import GeometryWarning  # noqa: E402
-from ..io.output import OutputError, Transaction, check_directory, check_distinct, check_writable, json_safe  # noqa: E402
+from ..io.output import OutputError, Transaction, check_directory, check_distinct, check_writable  # noqa: E402
 from ..options import (CONTROLLERS, DEFAULT_FREQUENCY_UNIT, ESTIMATORS, FREQUENCY_UNITS, MS_MAX_DEFAULT, OBJECTIVES,  # noqa: E402
                        PEAK_BOUND_RANGE)
 from ..plant.plantfile import load_plant  # noqa: E402
-from ..studies.movescene import MoveScene  # noqa: E402
 from ..studies.scene import load_scene  # noqa: E402
 from ..studies.scenefile import is_move_scene  # noqa: E402
 from .common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError,  # noqa: E402
@@ -52,7 +52,8 @@ from .common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NUMERICAL, EXIT_OK, 
                      report_failure, show_notes, staged, write_json_atomic)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, parse_load_step, scene_flags  # noqa: E402
 from .plot import build_plot_parser, plot_main  # noqa: E402
-from .report import format_friction_ff, format_move_report, format_report, format_robust  # noqa: E402
+from ..studies.scenekinds import TuneOptions, problem  # noqa: E402
+from ..studies.scenereport import format_report  # noqa: E402
 
 #: The figures modules (matplotlib) are imported when a figure is drawn.
 loop_plots = module("prsa_ctrl.plots.loop")
@@ -184,42 +185,39 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         warnings.simplefilter("always")
         plant, scene, overrides = _load(args, run)
         inputs = input_files(args, scene)
-        _check_outputs(args, scene, inputs)
+        _check_outputs(args, run, scene, inputs)
         notes.extend(caught)
     run.check()
-    move = isinstance(scene, MoveScene)
-    if not move and args.tune_filter is not None:
-        from ..studies.scenetunefilter import check_tune_filter
-
-        check_tune_filter(scene, args.tune_filter)
+    prob = problem(scene)
+    prob.check(_options(run, args))
     native: list[str] = []
-    what = (f"tuning the cascade of {scene.name}" if move else
-            f"tuning {plant.name} on the {scene.name} duty cycle" if scene.is_profile else
-            f"tuning {plant.name} at {scene.setpoint_rpm:g} rpm, {scene.initial_load:g} N -> "
-            f"{', '.join(f'{f:g}' for f in scene.final_loads)} N")
-    if not move:
+    what = prob.what(plant)
+    if prob.announces:
         progress(run, args.verbose, f"{what}: linearise, tune, verify ...")
     try:
         with warnings.catch_warnings(record=True) as caught, native_output(run, native):
             warnings.simplefilter("always")
-            result = _tune(run, args, plant, scene)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", GeometryWarning)
+                report = prob.tune(plant, _options(run, args), _coordinates(plant))
             notes.extend(caught)
         run.check()
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - translated into one line at this boundary
         return report_failure(run, exc, what, args.verbose)
-    if not move:
-        result["rep"].timing_s["process"] = time.perf_counter() - _T_START
+    if report.timing_s is not None:
+        report.timing_s["process"] = time.perf_counter() - _T_START
         progress(run, args.verbose, "writing outputs")
-    if args.export is not None and not move:  # before any output is written: all or nothing
-        result["export"] = _export_choice(result["rep"], result["robust"])
-        if result["export"][0] is None:
-            run.say(f"{run.prog}: --export {args.export}: {result['export'][1]['why']}; nothing written")
-            return EXIT_NUMERICAL if result["robust"] is not None else EXIT_BAD_INPUT
+    target = None
+    if args.export is not None:  # before any output is written: all or nothing
+        target = report.export_target()
+        if target.design is None:
+            run.say(f"{run.prog}: --export {args.export}: {target.choice['why']}; nothing written")
+            return EXIT_NUMERICAL if getattr(report, "robust", None) is not None else EXIT_BAD_INPUT
     outputs = Transaction(inputs)  # all outputs or none (issue 20, hostile 4 and 17)
     try:
-        plot_files = _write_outputs(run, args, plant, scene, result, inputs, outputs)
+        plot_files = _write_outputs(run, args, plant, report, target, inputs, outputs)
     except OutputError:
         raise
     except KeyboardInterrupt:
@@ -231,14 +229,28 @@ def _tune_body(run: Run, argv: list[str]) -> int:
     finally:
         outputs.abort()  # takes back what was not committed (nothing after the commit)
     if not args.quiet:
-        _print_report(args, plant, scene, overrides, result, plot_files)
+        echo(report.format(overrides))
+        for line in report.file_lines(json=args.json, export=args.export, target=target,
+                                      plots=plot_files if args.plots is not None else None):
+            echo(line)
     show_notes(run, notes, native, args.verbose, args.quiet)
-    rep = result.get("rep")
-    if rep is not None and rep.status != "ok" and not args.accept_unconverged:
-        run.say(f"{run.prog}: the best design is flagged ({rep.status}); its numbers are reported above but "
+    if report.status != "ok" and not args.accept_unconverged:
+        run.say(f"{run.prog}: the best design is flagged ({report.status}); its numbers are reported above but "
                 "are not a trustworthy design (use --accept-unconverged to exit 0)")
         return EXIT_NUMERICAL
     return EXIT_OK
+
+
+def _options(run: Run, args) -> TuneOptions:
+    """The study flags as the registry's options, with the run's progress and interrupt checks."""
+
+    def checkpoint(obj) -> None:  # a Ctrl-C a solver swallowed (IPOPT's User_Requested_Stop) raises here
+        run.check()
+
+    return TuneOptions(workers=args.workers, tune_filter=args.tune_filter, robust=args.robust,
+                       design_to_spec=bool(getattr(args, "design_to_spec", False)), monte_carlo=args.monte_carlo,
+                       seed=args.seed, scheduler=args.scheduler, quiet=args.quiet, friction_ff=args.friction_ff,
+                       progress=lambda text: progress(run, args.verbose, text), checkpoint=checkpoint)
 
 
 # --- the steps, each for both kinds of scene -----------------------------------------------------
@@ -276,10 +288,11 @@ def _refused_flag(args, run: Run) -> str | None:
     return None
 
 
-def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
-    """Every output path and export option checked before the expensive work (the order of the
-    checks, which decides the message when several fail, is each scene kind's own)."""
-    move = isinstance(scene, MoveScene)
+def _check_outputs(args, run: Run, scene, inputs: Sequence[str]) -> None:
+    """The study flags the scene's kind refuses, then every output path and export option,
+    checked before the expensive work (the order of the checks, which decides the message when
+    several fail, is each scene kind's own: :data:`_OUTPUT_CHECKS`)."""
+    prob = problem(scene)
 
     def suffix() -> None:
         if args.export is not None and os.path.splitext(args.export)[1].lower() not in EXPORT_SUFFIXES:
@@ -300,10 +313,7 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
             from ..io.codegen import check_code_export
 
             check_code_export(args.export, inputs, "--export")
-        if not move and scene.feedforward:
-            raise UsageError(f"--export {args.export!r} with --feedforward: the drive export does not describe the "
-                             "Kalman filter's load-torque feed-forward (kff > 0); expected --export without "
-                             "--feedforward (or no --export)")
+        prob.check_export(args.export)
 
     def drive_options() -> None:
         # issue 24: drive units, parameter sets
@@ -319,42 +329,17 @@ def _check_outputs(args, scene, inputs: Sequence[str]) -> None:
         if args.plots is not None:
             check_directory(args.plots, "--plots")
 
-    def friction_ff() -> None:
-        if args.friction_ff and not move:
-            raise UsageError(f"--friction-ff does not apply to the speed-loop scene {scene.name}; expected a move "
-                             "scene (the feed-forward acts from a motion profile's speed), e.g. --scene "
-                             "paper-slow-reversal")
+    steps = {"suffix": suffix, "distinct": distinct, "json": json_path, "export": export, "drive": drive_options,
+             "plots": plots, "scheduler": lambda: _check_scheduler(args, scene)}
+    prob.check_options(_options(run, args))
+    for step in _OUTPUT_CHECKS[prob.name]:
+        steps[step]()
 
-    def design_to_spec() -> None:
-        if not getattr(args, "design_to_spec", False):
-            return
-        if move or getattr(scene, "is_profile", False):
-            raise UsageError(f"--design-to-spec does not apply to the scene {scene.name}; expected a load-step scene "
-                             "with a [spec] section")
-        if not (getattr(scene, "robust", None) or {}).get("spec"):
-            raise UsageError(f"--design-to-spec: the scene {scene.name} has no [spec] section; expected the bounds "
-                             "to design to (e.g. [spec] peak_drop_rad_s = 12.0)")
-        if args.monte_carlo == 0:
-            raise UsageError("--design-to-spec with --monte-carlo 0; expected a sample count of the final check >= 1")
-        from ..studies.designspec import SAMPLES_MAX
-        from ..studies.montecarlo import scene_options
 
-        # the final check's sample count, refused here rather than by the study after the robust tuning (was exit 3)
-        if args.monte_carlo is not None and args.monte_carlo > SAMPLES_MAX:
-            raise UsageError(f"--design-to-spec with --monte-carlo {args.monte_carlo}; expected a sample count of the "
-                             f"final check in 1..{SAMPLES_MAX}")
-        n_scene = scene_options(scene)["samples"]
-        if args.monte_carlo is None and n_scene > SAMPLES_MAX:
-            raise UsageError(f"--design-to-spec: the scene {scene.name} has [robust] monte_carlo = {n_scene}; expected "
-                             f"a sample count of the final check in 1..{SAMPLES_MAX} (or --monte-carlo N)")
-
-    if move:
-        steps = (design_to_spec, suffix, distinct, json_path, export, drive_options, plots)
-    else:
-        steps = (friction_ff, design_to_spec, json_path, lambda: _check_scheduler(args, scene), suffix, export,
-                 drive_options, plots, distinct)
-    for step in steps:
-        step()
+#: The order of the output checks of each scene kind (it decides the message when several fail).
+_OUTPUT_CHECKS = {"load-step": ("json", "scheduler", "suffix", "export", "drive", "plots", "distinct"),
+                  "duty-cycle": ("json", "scheduler", "suffix", "export", "drive", "plots", "distinct"),
+                  "move": ("suffix", "distinct", "json", "export", "drive", "plots")}
 
 
 def _check_scheduler(args, scene) -> None:
@@ -376,60 +361,34 @@ def _check_scheduler(args, scene) -> None:
         _probe_scheduler(args.scheduler, *address)
 
 
-def _tune(run: Run, args, plant, scene) -> dict:
-    """Tune and verify: ``{"designs": [sequential, joint]}`` for a move scene, else ``{"rep":
-    ActuatorTuning, "robust": RobustTuning or None, "mc": MonteCarloReport or None}``."""
-    with warnings.catch_warnings():
-        if isinstance(scene, MoveScene):
-            warnings.simplefilter("ignore")  # as the cascade always ran: no notes
-            from ..studies.move import tune_move
-
-            designs = tune_move(plant, scene, lambda text: progress(run, args.verbose, text))
-            if not args.friction_ff:
-                return {"designs": designs}
-            from ..studies.move import friction_feedforward_effect  # issue 24: friction feed-forward
-
-            progress(run, args.verbose, "verifying the joint design with the friction feed-forward ...")
-            return {"designs": designs, "friction_ff": friction_feedforward_effect(designs[1], plant, scene)}
-        warnings.simplefilter("ignore", GeometryWarning)
-        from ..studies.autotune import tune_actuator
-
-        ft = None
-        if args.tune_filter is not None:  # issue 24: a filter tuned with the gains joins the scene's
-            from ..studies.scenetunefilter import tune_scene_filter
-
-            progress(run, args.verbose, f"tuning a {args.tune_filter} with the gains ...")
-            ft = tune_scene_filter(plant, scene, args.tune_filter)
-            scene = ft.scene
-            run.check()
-        rep = tune_actuator(plant, scene, workers=args.workers)
-        run.check()  # a Ctrl-C a solver swallowed (IPOPT's User_Requested_Stop) raises here
-        if getattr(args, "design_to_spec", False):
-            robust_rep, mc, dts = _design_to_spec(run, args, plant, rep)
-            return {"rep": rep, "robust": robust_rep, "mc": mc, "filter_tuning": ft, "design_to_spec": dts}
-        robust_rep, mc = _robust_and_monte_carlo(run, args, plant, rep)
-    return {"rep": rep, "robust": robust_rep, "mc": mc, "filter_tuning": ft}
-
-
-def _write_outputs(run: Run, args, plant, scene, result: dict, inputs: Sequence[str], outputs) -> list[Path]:
+def _write_outputs(run: Run, args, plant, report, target, inputs: Sequence[str], outputs) -> list[Path]:
     """Stage ``--plots``, ``--json`` and ``--export`` in the run's transaction and commit them."""
-    move = isinstance(scene, MoveScene)
     plot_files: list[Path] = []
     if args.plots is not None:
-        if move:
-            progress(run, args.verbose, "writing the figures ...")
-            designs = result["designs"]
-            plot_files = staged(run, lambda staging: move_plots.write_move_plots(plant, scene, designs, staging),
-                                args.plots, inputs, outputs)
-        else:
-            plot_files = _publish_report_plots(run, result["rep"], args.plots, inputs, outputs, args.frequency_unit)
+        plot_files = _FIGURES[report.kind](run, args, plant, report, inputs, outputs)
     if args.json is not None:
         run.check()
-        write_json_atomic(args.json, _json_report(scene, plant, result), inputs, transaction=outputs)
+        write_json_atomic(args.json, report.as_dict(), inputs, transaction=outputs)
     if args.export is not None:
-        _stage_export(args, plant, scene, result, outputs)
+        _stage_export(args, target, outputs)
     commit(run, outputs)
     return plot_files
+
+
+def _speed_figures(run: Run, args, plant, report, inputs, outputs) -> list[Path]:
+    """The standard plots of a speed-loop report (:func:`prsa_ctrl.plots.loop.write_standard_plots`)."""
+    return _publish_report_plots(run, report.rep, args.plots, inputs, outputs, args.frequency_unit)
+
+
+def _move_figures(run: Run, args, plant, report, inputs, outputs) -> list[Path]:
+    """The figures of a move report (:func:`prsa_ctrl.plots.move.write_move_plots`)."""
+    progress(run, args.verbose, "writing the figures ...")
+    return staged(run, lambda staging: move_plots.write_move_plots(plant, report.scene, list(report.designs), staging),
+                  args.plots, inputs, outputs)
+
+
+#: The figures writer of each scene kind (the plots layer is above the registry's).
+_FIGURES = {"load-step": _speed_figures, "duty-cycle": _speed_figures, "move": _move_figures}
 
 
 def _coordinates(plant) -> str:
@@ -442,57 +401,25 @@ def _coordinates(plant) -> str:
     return MOTOR_COORDINATES
 
 
-def _json_report(scene, plant, result: dict) -> dict:
-    """The ``--json`` report of either kind of scene."""
-    if isinstance(scene, MoveScene):
-        seq, joint = result["designs"]
-        out = {"plant": plant.name, "scene": scene.name, "sequential": seq.as_dict(), "joint": joint.as_dict()}
-        if "friction_ff" in result:
-            out["friction_feedforward"] = {k: v for k, v in result["friction_ff"].items() if k != "design"}
-        return json_safe(out)
-    rep, robust_rep, mc = result["rep"], result["robust"], result["mc"]
-    data = rep.as_dict()
-    data["coordinates"] = _coordinates(plant)
-    data["timing_s"] = dict(rep.timing_s)
-    _add_setpoint_weight(data, rep.scene)
-    if robust_rep is not None:
-        data["robust"] = robust_rep.as_dict()
-        data["recommended"] = data["robust"]["recommended"]
-    if mc is not None:
-        data["monte_carlo"] = mc.as_dict()
-    if result.get("design_to_spec") is not None:
-        data["design_to_spec"] = result["design_to_spec"].as_dict()
-    if result.get("filter_tuning") is not None:
-        data["filter_tuning"] = json_safe(result["filter_tuning"].as_dict())
-    return data
-
-
-def _stage_export(args, plant, scene, result: dict, outputs) -> None:
-    """Stage ``--export``: the speed loop's chosen design, or a move scene's joint cascade, as a
-    drive file (JSON/TOML, with ``--motor``/``--export-template`` terms) or as code (C, ST)."""
+def _stage_export(args, target, outputs) -> None:
+    """Stage ``--export``: the report's export target (a speed loop's chosen design or a move's
+    joint cascade) as a drive file (JSON/TOML, with ``--motor``/``--export-template`` terms) or
+    as code (C, ST, PLCopen XML)."""
     from ..io.export import dumps, export_cascade, export_controller
 
     fmt = os.path.splitext(args.export)[1].lower().lstrip(".")
-    filters: tuple = ()  # issue 24: the scene's loop filters (and a tuned one) go with the gains
-    if isinstance(scene, MoveScene):
-        design, b = result["designs"][1], None
-        if "friction_ff" in result:  # the joint design with the friction feed-forward in its position loop
-            design = result["friction_ff"]["design"]
-        filters = tuple(design.filters)  # issue 34: the move scene's fixed filters, tuned around
-    else:
-        design, b, plant = result["export"][0], _setpoint_weight(result["rep"].scene), result["rep"].plant
-        filters = result["rep"].scene.filters
+    design, plant, filters = target.design, target.plant, tuple(target.filters)  # issue 24/34: the loop filters
+    b = target.setpoint_weight
     if fmt in ("c", "st", "xml"):  # issue 24 (xml: issue 36): the discrete controller as code (prsa_ctrl.io.codegen)
         from ..io.codegen import stage_code_export
 
         kw = ({} if b is None else {"setpoint_weight": b}) | ({"filters": filters} if filters else {})
         stage_code_export(outputs, args.export, design, plant, real=args.export_real, **kw)
         return
-    if b is None:
-        exported = export_cascade(design, plant, fmt=fmt,
-                                  friction_table_speed_rad_s=scene.max_speed_m_s / plant.lead_per_rad)
+    if target.is_cascade:
+        exported = export_cascade(design, plant, fmt=fmt, friction_table_speed_rad_s=target.friction_table_speed_rad_s)
     else:
-        exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=result["export"][1],
+        exported = export_controller(design, plant, fmt=fmt, setpoint_weight=b, design=dict(target.choice),
                                      **({"filters": filters} if filters else {}))
     if args.motor is not None or args.export_template is not None or args.rated_torque is not None:
         from ..io.driveparams import cli_export_data
@@ -500,38 +427,6 @@ def _stage_export(args, plant, scene, result: dict, outputs) -> None:
         exported = cli_export_data(args, exported, design, plant, filters=filters)
     text = dumps(exported, fmt)
     outputs.stage(args.export, lambda tmp: tmp.write_text(text, encoding="utf-8"), "--export")
-
-
-def _print_report(args, plant, scene, overrides: Sequence[str], result: dict, plot_files: list[Path]) -> None:
-    """The text report and the lines naming the files written."""
-    if isinstance(scene, MoveScene):
-        echo(format_move_report(plant, scene, result["designs"], "prsa-tune"))
-        if "friction_ff" in result:
-            echo(format_friction_ff(result["friction_ff"], scene.fidelity))
-        if args.json is not None:
-            echo(f"JSON report: {args.json}")
-        if args.export is not None:
-            echo(f"drive export: {args.export}")
-        if plot_files:
-            echo(f"plots: {', '.join(str(p) for p in plot_files)}")
-        return
-    echo(format_report(result["rep"], overrides))
-    if result.get("filter_tuning") is not None:
-        echo("\n".join(result["filter_tuning"].lines()))
-    if result["robust"] is not None:
-        echo(format_robust(result["robust"]))
-    if result["mc"] is not None:
-        from ..studies.montecarlo import format_report as format_mc
-
-        echo(format_mc(result["mc"]))
-    if args.json is not None:
-        echo(f"JSON report: {args.json}")
-    if args.plots is not None:
-        echo(f"plots: {', '.join(str(p) for p in plot_files)}")
-    if args.export is not None:
-        export_design = result["export"][1]
-        echo(f"drive export: {args.export} holds the design {export_design['name']!r}, "
-             f"{export_design['chosen_by']}")
 
 
 #: Seconds the up-front check of a ``--scheduler`` address may take in all (connection, Dask
@@ -581,160 +476,6 @@ def _probe_scheduler(text: str, host: str, port: int) -> None:
         raise UsageError(f"--scheduler {text!r}: not a Dask scheduler / no answer at {host}:{port} within "
                           f"{timeout:g} s: {exc}; expected the address of a running Dask scheduler (dask "
                           "scheduler --host HOST --port PORT), or 'local'") from None
-
-
-def _setpoint_weight(scene) -> float:
-    """The 2-DOF setpoint weight b the design runs with (1 unless a duty cycle's setpoint
-    profile sets ``[tuning] setpoint_weight``)."""
-    return float(getattr(scene, "setpoint_weight", 1.0)) if getattr(scene, "setpoint_profile", None) is not None else 1.0
-
-
-def _add_setpoint_weight(data: dict, scene) -> None:
-    """Put b into every ``gains`` block of the JSON report (the controller law is
-    ``u = kp (b r - y) + I``; b = 1 for load-step scenes)."""
-    b = _setpoint_weight(scene)
-
-    def walk(obj, depth: int = 0) -> None:
-        if depth > 6:
-            return
-        if isinstance(obj, dict):
-            for k, v in obj.items():
-                if k == "gains" and isinstance(v, dict) and "kp" in v:
-                    v.setdefault("b", b)
-                else:
-                    walk(v, depth + 1)
-        elif isinstance(obj, list):
-            for v in obj:
-                walk(v, depth + 1)
-
-    walk(data)
-    units = data.get("units")
-    if isinstance(units, dict):
-        units.setdefault("b", "dimensionless (2-DOF setpoint weight: u = kp (b r - y) + I)")
-
-
-def _robust_and_monte_carlo(run: Run, args, plant, rep):
-    """The robust design (``--robust`` or a scene ``[robust]`` section) and the Monte-Carlo
-    verification (``--monte-carlo N`` or the scene's setting) of the report's designs."""
-    from ..studies.montecarlo import run_monte_carlo, scene_options
-    from ..studies.autotune import default_workers
-
-    scene = rep.scene
-    opts = scene_options(scene)
-    has_robust = bool((getattr(scene, "robust", None) or {}).get("robust"))
-    robust_rep = None
-    if args.robust or has_robust:
-        from ..studies.scenerobust import tune_robust_actuator
-
-        progress(run, args.verbose, "robust tuning over the scenario models ...")
-        robust_rep = tune_robust_actuator(plant, scene)
-        run.check()
-    n = args.monte_carlo if args.monte_carlo is not None else opts["samples"]
-    if not n:
-        return robust_rep, None
-    designs = {rep.best.name: rep.best.pid}
-    if robust_rep is not None:
-        designs = {"nominal design": robust_rep.nominal, "robust design": robust_rep.robust}
-        _add_design(designs, rep.best.name, rep.best.pid)
-        # every design the run tuned: the recommendation ranks them all on the same samples
-        for c in getattr(rep, "candidates", ()) or ():
-            if c.pid.kff == 0:
-                _add_design(designs, c.name, c.pid)
-    for b in rep.baselines:
-        _add_design(designs, b.name, b.pid)
-    seed = args.seed if args.seed is not None else opts["seed"]
-    progress(run, args.verbose, f"Monte Carlo: {n} samples of {len(designs)} designs ...")
-    # Like the verification: in parallel on the machine's cores unless --workers says otherwise.
-    mc = run_monte_carlo(plant, scene, designs, n, seed=seed, scheduler=args.scheduler,
-                         workers=args.workers or default_workers(), quiet=args.quiet)
-    if robust_rep is not None:
-        others = {k: v for k, v in designs.items() if k not in ("nominal design", "robust design")}
-        target = ((getattr(scene, "robust", None) or {}).get("spec_yield") or {}).get("yield")
-        robust_rep = robust_rep.with_recommendation(mc, others=others, target=target)
-    return robust_rep, mc
-
-
-def _design_to_spec(run: Run, args, plant, rep):
-    """``--design-to-spec``: the robust study, then :func:`prsa_ctrl.studies.designspec.design_to_spec`
-    over its family plus the run's designs; the chosen design is the study's recommendation and
-    the Monte-Carlo report is the chosen design's on fresh samples."""
-    from dataclasses import replace
-
-    from ..errors import SceneError
-    from ..studies.autotune import default_workers
-    from ..studies.designspec import design_to_spec
-    from ..studies.montecarlo import scene_options
-    from ..studies.scenerobust import tune_robust_actuator
-
-    scene = rep.scene
-    if not (getattr(scene, "robust", None) or {}).get("spec"):
-        raise SceneError(f"{scene.origin}: --design-to-spec needs a [spec] section; expected the bounds to design to")
-    opts = scene_options(scene)
-    n = args.monte_carlo or opts["samples"] or 200
-    seed = args.seed if args.seed is not None else opts["seed"]
-    progress(run, args.verbose, "robust tuning over the scenario models ...")
-    rr = tune_robust_actuator(plant, scene)
-    run.check()
-    extra = {"nominal design": rr.nominal, "robust design": rr.robust}
-    for d in (rep.best, *(getattr(rep, "candidates", ()) or ()), *rep.baselines):
-        _add_design(extra, d.name, d.pid)
-    n_search = min(64, n)
-    progress(run, args.verbose, f"design to the spec: proposals on {n_search} common samples, the chosen one on "
-                                f"{n} fresh samples ...")
-    dts = design_to_spec(plant, scene, n_search=n_search, n_final=n, seed=seed, extra=extra,
-                         workers=args.workers or default_workers(), quiet=args.quiet)
-    s = dts.search
-    d = dts.decide or s  # the decision among the (near-)maximal designs on more samples, where it ran
-    nd = d["rows"][0]["samples"] if dts.decide and d.get("rows") else n_search
-    basis = (f"design to the spec: {len(dts.designs)} designs screened on {n_search} common Monte-Carlo samples "
-             f"(seed {dts.search_seed})" + (f", the {len(d['rows'])} of (near-)maximal yield decided on {nd} samples "
-                                            "of the same seed" if dts.decide else "")
-             + f"; yield on {n} fresh samples (seed {dts.final_seed})")
-    rec = {"basis": basis, "table": s.get("rows", []), "rule": s.get("rule", ""),
-           **{k: d[k] for k in ("target", "reached", "limit") if k in d}}
-    if dts.decide:
-        rec["decide_table"] = d.get("rows", [])
-    fy = dts.final_yield
-    if fy is None:
-        rec.update(design=None, name=None, why=s.get("why", "no design chosen"))
-    else:
-        lo, hi = fy.ci95
-        rec.update(design=dts.chosen, name=dts.chosen, gains=dts.pid.as_dict(), **{"yield": fy.yield_},
-                   passed=fy.passed, samples=fy.n, yield_ci95=list(fy.ci95),
-                   why=(f"on the {'decision' if dts.decide else 'search'} samples: {d['why']}; on {fy.n} fresh samples: "
-                        f"yield {100 * fy.yield_:.1f} % "
-                        f"({fy.passed}/{fy.n}), 95 % CI [{100 * lo:.1f}, {100 * hi:.1f}] %"))
-    rr = replace(rr, others=dict(dts.designs), recommended=rec)
-    return rr, dts.final, dts
-
-
-def _add_design(designs: dict, name: str, pid) -> None:
-    """Add a design to verify unless one with the same gains is there already (one name per
-    design: the robust study's nominal design is the tuned design when their gains agree)."""
-    key = (pid.kp, pid.ki, pid.kd, pid.tf, pid.kff)
-    if name in designs or any((p.kp, p.ki, p.kd, p.tf, p.kff) == key for p in designs.values()):
-        return
-    designs[name] = pid
-
-
-def _export_choice(rep, robust_rep) -> tuple[Any, dict]:
-    """The design ``--export`` writes and how it was chosen: the robust study's recommended
-    design (:meth:`prsa_ctrl.tuning.robust.RobustTuning.recommend`) when there is one, else the
-    tuned design; ``(None, {"why": ...})`` when there is none to export."""
-    if robust_rep is not None:
-        r = robust_rep.recommended or robust_rep.recommend()
-        if r.get("design") is None:
-            return None, {"why": f"no design recommended ({r['why']})"}
-        d = {"name": r.get("name") or f"{r['design']} design", "chosen_by": "recommended by the robust study",
-             "why": r["why"],
-             "basis": r["basis"]}
-        if r.get("yield") is not None:
-            d["yield"] = r["yield"]
-        return robust_rep.design(r["design"]), d
-    if rep.best.pid.kff != 0:
-        return None, {"why": "the best design feeds the Kalman filter's load estimate forward (kff > 0), which the "
-                             "drive export does not describe"}
-    return rep.best.pid, {"name": rep.best.name, "chosen_by": "the tuned design (no robust study)"}
 
 
 def _publish_report_plots(run: Run, rep, directory: str, inputs: Sequence[str], outputs=None,

@@ -579,14 +579,14 @@ def _filter_value(prm: Mapping[str, Any], torque_filters: list) -> float | None:
 def _rounding_margins(params: list, pid: PID, plant: "Plant", lfs: Any, motor: MotorData | None) -> dict | None:
     """The speed loop's margins with the exact and with the rounded gains, when rounding to an
     integer type changed a speed-loop gain (None otherwise). Linear sampled loop of the plant
-    (rigid), with the export's filters (:func:`prsa_ctrl.tuning.scene_loops.step_loops`)."""
+    (rigid), with the export's filters (:func:`prsa_ctrl.tuning.actuatorloops.step_loops`)."""
     rounded = [p for p in params if "rounding" in p and p["quantity"] in ("speed_kp", "speed_ki", "speed_tn")]
     if not rounded:
         return None
     vals = read_parameter_set({"parameter": params}, motor)
     kp = vals.get("speed_kp", float(pid.kp))
     ki = vals["speed_ki"] if "speed_ki" in vals else (kp / vals["speed_tn"] if "speed_tn" in vals else float(pid.ki))
-    from ..tuning.scene_loops import step_loops
+    from ..tuning.actuatorloops import step_loops
 
     lp = step_loops(plant, setpoint_rad_s=10.0, initial_load_n=0.0, final_loads_n=[1.0], fidelity="rigid",
                     horizon_s=0.02, filters=list(lfs))[0]

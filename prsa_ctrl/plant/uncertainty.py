@@ -58,7 +58,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -68,7 +68,7 @@ from ..errors import GeometryWarning, PlantFileError, SceneError
 from ..options import check_number
 from .schema import KIND
 
-__all__ = ["Uncertain", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "resolve_entry", "uncertainty_model",
+__all__ = ["Uncertain", "Uncertainty", "UncertaintyModel", "Correlation", "DISTRIBUTIONS", "parse_entries", "resolve_entry", "uncertainty_model",
            "plant_uncertainty", "check_plant_uncertainty", "CORRELATION_KEY", "PSD_TOLERANCE",
            "correlation_entry", "restrict_correlation", "correlation_toml", "carry_correlation", "inner_truncation"]
 
@@ -474,28 +474,62 @@ def plant_uncertainty(plant) -> UncertaintyModel:
     return check_plant_uncertainty(plant)
 
 
-def uncertainty_model(plant, scene=None, extra: Mapping[str, Any] | None = None) -> UncertaintyModel:
-    """Plant uncertainty, overridden/extended by the scene's ``[uncertainty]`` (what the scene
-    attaches to the actuator) and by ``extra`` (API callers), key by key. A scene with
-    ``[robust] plant_uncertainty = false`` uses its own section alone.
+@dataclass(frozen=True)
+class Uncertainty:
+    """What a study adds to the plant's uncertainty (a scene's ``[uncertainty]`` table and its
+    ``[robust] plant_uncertainty`` switch), typed: the plant layer reads this, never a scene.
+
+    Attributes
+    ----------
+    entries : Mapping
+        Parsed entries (:func:`parse_entries`), ``key -> entry`` plus ``"correlation"`` blocks;
+        empty when the study adds none.
+    origin : str
+        Where the entries came from (a file name), for messages.
+    plant_uncertainty : bool
+        False: the plant file's own ``[uncertainty]`` is dropped and ``entries`` used alone.
+    """
+
+    entries: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    origin: str = "<scene>"
+    plant_uncertainty: bool = True
+
+
+def uncertainty_model(plant, section: Uncertainty | None = None,
+                      extra: Mapping[str, Any] | None = None) -> UncertaintyModel:
+    """Plant uncertainty, overridden/extended by a study's ``section`` (what a scene attaches to
+    the actuator: ``scene.sections.plant_overrides``) and by ``extra`` (API callers), key by key.
+    A section with ``plant_uncertainty = False`` (a scene's ``[robust] plant_uncertainty =
+    false``) uses its own entries alone.
+
+    Parameters
+    ----------
+    plant : Plant
+    section : Uncertainty, optional
+    extra : Mapping, optional
+        ``[uncertainty]``-style entries.
 
     Raises
     ------
     PlantFileError, SceneError
         Naming the file and the key of the bad entry.
+    TypeError
+        ``section`` is not an :class:`Uncertainty` (a scene is no longer read here).
     """
+    if section is not None and not isinstance(section, Uncertainty):
+        raise TypeError(f"uncertainty_model: section is a {type(section).__name__}; expected an Uncertainty "
+                        "(a scene's: scene.sections.plant_overrides)")
     entries = parse_entries(getattr(plant, "uncertainty", {}) or {}, plant.origin, PlantFileError)
     model = _build(entries, plant, plant.origin, PlantFileError)
-    if scene is not None and not (getattr(scene, "robust", None) or {}).get("robust", {}).get("plant_uncertainty", True):
+    if section is not None and not section.plant_uncertainty:
         entries, model = {}, UncertaintyModel(())
     merged: dict[str, Any] = dict(entries)
     notes: list[str] = []
-    if scene is not None:
-        raw = (getattr(scene, "robust", None) or {}).get("uncertainty", {})
-        s_entries = parse_entries(raw, scene.origin, SceneError)
+    if section is not None:
+        s_entries = parse_entries(dict(section.entries), section.origin, SceneError)
         if s_entries:
-            merged = _override(merged, s_entries, scene.origin, notes)
-            model = _build(merged, plant, scene.origin, SceneError, notes)
+            merged = _override(merged, s_entries, section.origin, notes)
+            model = _build(merged, plant, section.origin, SceneError, notes)
     if extra:
         merged = _override(merged, parse_entries(extra, "<extra>", ValueError), "<extra>", notes)
         model = _build(merged, plant, "<extra>", ValueError, notes)
@@ -682,115 +716,3 @@ def describe(model: UncertaintyModel) -> list[str]:
 
 def keys_of(models: Sequence[UncertaintyModel]) -> list[str]:
     return sorted({k for m in models for k in m.keys})
-
-
-# --- scene sections: [spec], [robust], [uncertainty] ------------------------------------------
-
-#: Spec bounds a scene may state: metric -> what it bounds (all upper bounds, worst over steps).
-SPEC_BOUNDS: Mapping[str, str] = {
-    "peak_drop_rad_s": "largest speed drop after the step, rad/s",
-    "recovery_time_s": "time to re-enter the 5 % band, s",
-    "ie": "integral of the error, rad",
-    "iae": "integral of |error|, rad",
-    "itae": "integral of t |error|, rad s",
-    "ise": "integral of error^2, rad^2/s",
-    "overshoot_rad_s": "rise above the setpoint after the low point, rad/s",
-    "peak_torque_n_m": "largest |motor torque| after the step, N m",
-    "steady_state_error_rad_s": "|mean error| over the last 10 % of the record, rad/s",
-    "ms": "peak sensitivity of the sample's linearised sampled loop",
-    "mt": "peak complementary sensitivity of the sample's linearised sampled loop",
-}
-
-#: ``[robust]`` keys -> (type, check, expected).
-_ROBUST_KEYS: Mapping[str, tuple[type, Any, str]] = {
-    "aggregate": (str, lambda v: v in ("worst", "mean"), "'worst' or 'mean'"),
-    "setpoints_rpm": (list, lambda v: 1 <= len(v) <= 16 and all(_pos(x) for x in v), "1 to 16 positive speeds in rpm"),
-    "final_loads_n": (list, lambda v: 1 <= len(v) <= 16 and all(_nonneg(x) for x in v), "1 to 16 loads >= 0 N"),
-    "vertices": (bool, lambda v: True, "true or false"),
-    "samples": (int, lambda v: 0 <= v <= 256, "an integer 0..256 (random scenario models)"),
-    "seed": (int, lambda v: 0 <= v < 2**63, "an integer >= 0"),
-    "monte_carlo": (int, lambda v: 0 <= v <= 1_000_000, "an integer 0..1000000 (samples)"),
-    "max_scenarios": (int, lambda v: 1 <= v <= 256, "an integer 1..256"),
-    "plant_uncertainty": (bool, lambda v: True, "true or false (include the plant file's [uncertainty])"),
-}
-
-
-def _pos(x: Any) -> bool:
-    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) and x > 0
-
-
-def _nonneg(x: Any) -> bool:
-    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) and x >= 0
-
-
-def parse_scene_sections(doc: Mapping[str, Any], origin: str) -> dict[str, dict[str, Any]]:
-    """Validate a scene's ``[spec]``, ``[robust]`` and ``[uncertainty]`` sections.
-
-    ``[spec]``: upper bounds (``SPEC_BOUNDS``), e.g. ``peak_drop_rad_s = 5.0``, and
-    ``no_saturation = true``; ``yield = 0.95`` (optional) is the target probability of meeting
-    them, returned apart as ``{"spec_yield": {"yield": 0.95}}``. ``[robust]``: ``aggregate`` ("worst"/"mean" over scenario models),
-    the operating range ``setpoints_rpm`` and ``final_loads_n``, ``vertices``, ``samples``,
-    ``seed``, ``monte_carlo`` (samples), ``max_scenarios``. ``[uncertainty]``: as in plant files.
-
-    Returns
-    -------
-    dict
-        ``{"spec": {...}, "robust": {...}, "uncertainty": {...}}`` (only the sections present).
-
-    Raises
-    ------
-    SceneError
-        Naming the file, the key and what was expected.
-
-    Examples
-    --------
-    >>> parse_scene_sections({"spec": {"peak_drop_rad_s": 5}}, "s.toml")["spec"]
-    {'peak_drop_rad_s': 5.0}
-    """
-    out: dict[str, dict[str, Any]] = {}
-    if "spec" in doc:
-        table = doc["spec"]
-        if not isinstance(table, Mapping):
-            raise SceneError(f"{origin}: [spec] = {quote(table)}; expected a table of bounds")
-        spec: dict[str, Any] = {}
-        for k, v in table.items():
-            if k == "yield":  # the target probability of meeting the bounds (not a bound itself)
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1:
-                    raise SceneError(f"{origin}: spec.yield = {quote(v)}; expected a target probability in (0, 1), "
-                                     "e.g. 0.95")
-                out["spec_yield"] = {"yield": float(v)}
-                continue
-            if k == "no_saturation":
-                if not isinstance(v, bool):
-                    raise SceneError(f"{origin}: spec.no_saturation = {quote(v)}; expected true or false")
-                spec[k] = v
-                continue
-            if k not in SPEC_BOUNDS:
-                raise SceneError(f"{origin}: unknown key spec.{k}; expected one of "
-                                 f"{', '.join(f'spec.{b}' for b in (*SPEC_BOUNDS, 'no_saturation', 'yield'))}")
-            if not _pos(v):
-                raise SceneError(f"{origin}: spec.{k} = {quote(v)}; expected a positive upper bound ({SPEC_BOUNDS[k]})")
-            if k in ("ms", "mt") and not v > 1.0 - (k == "mt") * 0.5:
-                raise SceneError(f"{origin}: spec.{k} = {quote(v)}; expected a bound > {1.0 if k == 'ms' else 0.5:g}")
-            spec[k] = float(v)
-        if "spec_yield" in out and not spec:  # (was taken for a scene without [spec] by --design-to-spec)
-            raise SceneError(f"{origin}: spec.yield = {quote(table['yield'])} and no bound in [spec]; expected the "
-                             "bounds the yield counts (e.g. spec.peak_drop_rad_s = 12.0)")
-        out["spec"] = spec
-    if "robust" in doc:
-        table = doc["robust"]
-        if not isinstance(table, Mapping):
-            raise SceneError(f"{origin}: [robust] = {quote(table)}; expected a table")
-        rob: dict[str, Any] = {}
-        for k, v in table.items():
-            if k not in _ROBUST_KEYS:
-                raise SceneError(f"{origin}: unknown key robust.{k}; expected one of "
-                                 f"{', '.join(f'robust.{r}' for r in _ROBUST_KEYS)}")
-            typ, check, expected = _ROBUST_KEYS[k]
-            if not isinstance(v, typ) or (typ is int and isinstance(v, bool)) or not check(v):
-                raise SceneError(f"{origin}: robust.{k} = {quote(v)}; expected {expected}")
-            rob[k] = [float(x) for x in v] if typ is list else v
-        out["robust"] = rob
-    if "uncertainty" in doc:
-        out["uncertainty"] = parse_entries(doc["uncertainty"], origin, SceneError)
-    return out

@@ -39,7 +39,7 @@ from .scenefilters import filter_rows
 from .sceneloops import LoopSpec, actuator_loops, duty_record, linear_fidelity, loop_spec
 
 
-__all__ = ["Design", "ActuatorTuning", "tune_actuator", "actuator_loops", "baseline_designs", "duty_record",
+__all__ = ["Design", "ActuatorTuning", "tune_actuator", "resolve_scene", "actuator_loops", "baseline_designs", "duty_record",
            "setpoint_prefilter", "predict", "predict_all", "verify", "verify_all", "checked", "health_flags", "prediction_warnings",
            "integral_warning", "checked_all", "verify_settings", "fast_verify_settings", "default_workers", "linear_fidelity",
            "FAST_VERIFY", "PREDICTION_TOLERANCE"]
@@ -707,7 +707,22 @@ def _best(designs: list[Design]) -> Design:
     return min(healthy or designs, key=lambda d: d.objective_verified)
 
 
-def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> ActuatorTuning:
+def resolve_scene(plant: Plant, scene: Scene) -> tuple[Scene, str, LoopSpec]:
+    """What a tuning run reads, fixed once: the scene with its fidelity resolved
+    (:func:`~prsa_ctrl.studies.scene.choose_fidelity`), the reason for that fidelity, and the
+    run's numbers and sampled records (:func:`~prsa_ctrl.studies.sceneloops.loop_spec`).
+
+    Returns
+    -------
+    tuple
+        ``(scene, fidelity_reason, spec)``.
+    """
+    scene, fidelity_reason = choose_fidelity(scene)
+    return scene, fidelity_reason, loop_spec(plant, scene)
+
+
+def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
+                  resolved: tuple[Scene, str, LoopSpec] | None = None) -> ActuatorTuning:
     """Tune, verify and compare (see module docstring).
 
     Parameters
@@ -717,6 +732,9 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     workers : int, optional
         Verification processes (default: up to 4 where the machine has the cores;
         ``PRSA_WORKERS=1`` forces serial runs).
+    resolved : tuple, optional
+        :func:`resolve_scene` of this plant and scene, when the caller has resolved it already
+        (a scene kind's ``resolve``); default: resolved here.
 
     1. Linearise at each load step's mid load and build the sampled loop models.
     2. Tune at the scene's Ms bound, plus ``candidates - 1`` more robust alternatives.
@@ -737,8 +755,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None) -> Act
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     # Read the scene once: everything below reads the spec, the tuning layer gets its numbers.
-    scene, fidelity_reason = choose_fidelity(scene)
-    spec = loop_spec(plant, scene)
+    scene, fidelity_reason, spec = resolve_scene(plant, scene) if resolved is None else resolved
     loops = actuator_loops(plant, spec)
     # Baselines use the drive's standard speed measurement; with an estimator in the scene the
     # PI tuned without it is a baseline too (the reference for what the estimator buys).

@@ -174,11 +174,10 @@ def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed
         raise ValueError(f"{2 * len(levels)} tuned + {n_grid} grid + {len(extra)} given designs; expected at most "
                          f"{MAX_PROPOSALS}")
     t0 = time.perf_counter()
-    unc = uncertainty_model(plant, scene)
+    unc = uncertainty_model(plant, scene.sections.plant_overrides)
     scens = scenarios(plant, scene, unc=unc)
     loops = scenario_loops(plant, scene, scens)
-    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
-    aggregate = rob.get("aggregate", "worst")
+    aggregate = scene.sections.robust.aggregate if scene.sections.robust is not None else "worst"
     designs: dict = {}
     skipped: list = []
     for m in sorted(set(float(x) for x in levels)):
@@ -198,8 +197,8 @@ def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed
     for name, pid in extra.items():
         if not any(_same(pid, p) for p in designs.values()) and getattr(pid, "kff", 0) == 0:
             designs[name] = pid
-    spec = dict((getattr(scene, "robust", None) or {}).get("spec", {}))
-    target = ((getattr(scene, "robust", None) or {}).get("spec_yield") or {}).get("yield")
+    spec = scene.sections.spec_bounds
+    target = scene.sections.yield_target
     t1 = time.perf_counter()
     grid_info = None
     if grid and designs:
@@ -280,7 +279,7 @@ def linear_yield_grid(plant, scene, designs: Sequence, spec: dict, *, seed: int,
     empty = {"designs": {}, "proposed": [], "linear_yield": {}, "points": 0, "samples": n, "best_linear_yield": 0.0}
     if not pis or picks == 0:
         return empty
-    unc = uncertainty_model(plant, scene) if unc is None else unc
+    unc = uncertainty_model(plant, scene.sections.plant_overrides) if unc is None else unc
     ops = operating_points(scene)
     kps = np.geomspace(0.5 * min(d.kp for d in pis), 2.0 * max(d.kp for d in pis), size)
     rats = np.geomspace(0.5 * min(d.ki / d.kp for d in pis), 2.0 * max(d.ki / d.kp for d in pis), size)

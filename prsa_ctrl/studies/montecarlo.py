@@ -544,8 +544,8 @@ def run_monte_carlo(
     if _is_client(scheduler):
         workers = len(scheduler.scheduler_info().get("workers", {})) or 1
     workers = workers or (1 if backend == "serial" else (os.cpu_count() or 1))
-    spec = dict((getattr(scene, "robust", None) or {}).get("spec", {}) if spec is None else spec)
-    unc = uncertainty_model(plant, scene) if unc is None else unc
+    spec = dict(scene.sections.spec_bounds if spec is None else spec)
+    unc = uncertainty_model(plant, scene.sections.plant_overrides) if unc is None else unc
     design_tuples = _as_design_tuples(designs)
     ops = tuple(operating_points(scene))
     if path is not None and path not in PATHS:
@@ -731,8 +731,8 @@ def scene_options(scene) -> dict[str, int]:
     >>> scene_options(load_scene("robust-load-step"))
     {'samples': 1000, 'seed': 1}
     """
-    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
-    return {"samples": int(rob.get("monte_carlo", 0)), "seed": int(rob.get("seed", 0))}
+    rob = scene.sections.robust
+    return {"samples": int(rob.monte_carlo), "seed": int(rob.seed)} if rob is not None else {"samples": 0, "seed": 0}
 
 
 # --- replay, figures ----------------------------------------------------------------------------
@@ -744,9 +744,9 @@ def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "a
     the batched path where it applies, as the run's default, whose samples are independent
     of the batch they run in, so the replay is exact; a run that had to refine its substeps
     or fall back replays with ``path="per-sample"`` within the stated accuracy)."""
-    unc = uncertainty_model(plant, scene)
+    unc = uncertainty_model(plant, scene.sections.plant_overrides)
     ops = tuple(operating_points(scene))
-    spec = dict((scene.robust or {}).get("spec", {}))
+    spec = scene.sections.spec_bounds
     designs = (("replay", pid, "none"),)
     if path is not None and path not in PATHS:
         raise ValueError(f"path = {path!r}; expected one of {', '.join(PATHS)}")

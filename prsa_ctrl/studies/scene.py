@@ -49,6 +49,7 @@ from ..options import (AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, MS_MAX_D
                        RIGID_RELATIVE_ERROR)
 from ..drive.filters import LoopFilter
 from .movescene import MoveScene, parse_move_scene
+from .scenesections import Robust, Sections
 from .scenefilters import check_filters_against_plant, parse_filters, scene_filters
 from .scenefile import (DEFAULT_SCENE, LOAD_CHANGE_TIME_RANGE_S, MAX_LOAD_LEVELS, MAX_RECORD_SAMPLES, MIN_LOAD_STEP_N,
                         POST_EVENT_SAMPLES, PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes,
@@ -190,9 +191,9 @@ class Scene:
     feedforward: bool = False
     load_change_time_s: float = 1.0
     origin: str = "<scene>"
-    #: Validated ``[spec]``, ``[robust]`` and ``[uncertainty]`` sections (see
-    #: :func:`prsa_ctrl.plant.uncertainty.parse_scene_sections`); empty when the file has none.
-    robust: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    #: Typed ``[spec]``, ``[robust]``, ``[uncertainty]`` (:class:`~prsa_ctrl.studies.scenesections.Sections`,
+    #: parsed once; a dict of ``parse_scene_sections`` is converted); falsy when the file has none.
+    sections: Sections = field(default_factory=Sections, compare=False, hash=False)
     load_profile: tuple[tuple[float, float], ...] | None = None
     setpoint_profile: tuple[tuple[float, float], ...] | None = None
     goal: str = "auto"
@@ -210,6 +211,8 @@ class Scene:
 
     def __post_init__(self) -> None:
         o = self.origin
+        if not isinstance(self.sections, Sections):
+            object.__setattr__(self, "sections", Sections.from_dict(self.sections, o))
 
         def bad(key: str, value: Any, expected: str) -> SceneError:
             return SceneError(f"{o}: {key} = {quote(value)}; expected {expected}")
@@ -328,7 +331,7 @@ class Scene:
             raise bad("setpoint_weight", self.setpoint_weight, "a setpoint weight b in [0, 1]")
         if not 0.0 < finite("setpoint_share", self.setpoint_share) < 1.0:
             raise bad("setpoint_share", self.setpoint_share, "a weight in (0, 1) of the setpoint objective in the mix")
-        if self.robust:
+        if self.sections:
             raise SceneError(f"{self.origin}: [spec]/[robust]/[uncertainty] with a duty cycle; expected them in a load-step "
                              "scene (the robust and Monte-Carlo studies run load steps)")
         if self.objective == "ie":
@@ -338,6 +341,11 @@ class Scene:
             raise bad("discrete", self.discrete, "true on a duty cycle (the tuner's profile model is the sampled drive)")
         if self.estimator != "none":
             raise bad("estimator", self.estimator, "none on a duty cycle (the Kalman-filter loop takes load steps only)")
+
+    @property
+    def robust(self) -> dict[str, Any]:
+        """Deprecated: the typed :attr:`sections` as the dict of ``parse_scene_sections`` (a copy)."""
+        return self.sections.as_dict()
 
     @property
     def is_profile(self) -> bool:
@@ -376,7 +384,9 @@ class Scene:
         return replace(self, **changes)
 
     def as_dict(self) -> dict[str, Any]:
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "trace_lines"}
+        d = {("robust" if f.name == "sections" else f.name): getattr(self, f.name)
+             for f in fields(self) if f.name != "trace_lines"}
+        d["robust"] = self.sections.as_dict()
         d["final_loads"] = list(self.final_loads)
         d["outputs"] = list(self.outputs)
         d["setpoint_rpm"] = self.setpoint_rpm
@@ -590,9 +600,7 @@ def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
         if old in kw:
             kw[new] = conv(kw.pop(old))
     if {"spec", "robust", "uncertainty"} & set(doc):
-        from ..plant.uncertainty import parse_scene_sections
-
-        kw["robust"] = parse_scene_sections(doc, origin)
+        kw["sections"] = Sections.parse(doc, origin)
     return Scene(**kw)
 
 
@@ -835,7 +843,7 @@ def _check_robust_against_plant(scene: Scene, plant: Any, rpm_min: float) -> Non
     slowest setpoint, the uncertainty model valid (:func:`prsa_ctrl.plant.uncertainty.uncertainty_model`,
     which also checks supports jointly), and at every corner of the supports of the keys that
     set the capacity the loads still held (e.g. an uncertain torque limit 0.3..3 N m)."""
-    sections = getattr(scene, "robust", None) or {}
+    sections = scene.sections
     if not sections:
         return
     import itertools
@@ -843,15 +851,15 @@ def _check_robust_against_plant(scene: Scene, plant: Any, rpm_min: float) -> Non
     from ..plant.uncertainty import uncertainty_model
 
     o = scene.origin
-    rob = sections.get("robust", {})
-    rpms = list(rob.get("setpoints_rpm", [])) or [scene.setpoint_rpm]
-    loads = list(rob.get("final_loads_n", [])) or list(scene.final_loads)
-    for v in rob.get("setpoints_rpm", []):
+    rob = sections.robust or Robust()
+    rpms = list(rob.setpoints_rpm) or [scene.setpoint_rpm]
+    loads = list(rob.final_loads_n) or list(scene.final_loads)
+    for v in rob.setpoints_rpm:
         if not rpm_min <= v <= SETPOINT_MAX_RPM:
             raise SceneError(f"{o}: robust.setpoints_rpm: {v:g} rpm; expected nut speeds in [{rpm_min:.3g}, "
                              f"{SETPOINT_MAX_RPM:g}] rpm for {plant.name} (below, the friction is on the steep part "
                              "of its Stribeck curve; above, beyond roller-screw speed ratings)")
-    for f in rob.get("final_loads_n", []):
+    for f in rob.final_loads_n:
         if abs(f - scene.initial_load) < MIN_LOAD_STEP_N:
             raise SceneError(f"{o}: robust.final_loads_n: {f:g} N is a step of {abs(f - scene.initial_load):.3g} N from "
                              f"operating.initial_load_n = {scene.initial_load:g} N; expected a load step of at least "
@@ -859,11 +867,11 @@ def _check_robust_against_plant(scene: Scene, plant: Any, rpm_min: float) -> Non
     slowest = min(rpms) * math.pi / 30.0
     top = max([*loads, scene.initial_load])
     cap = holding_capacity_n(plant, slowest)
-    if "final_loads_n" in rob and max(loads) > cap:
+    if rob.final_loads_n and max(loads) > cap:
         raise SceneError(f"{o}: robust.final_loads_n: {max(loads):g} N out of range for {plant.name}: at {min(rpms):g} "
                          f"rpm the motor holds at most {cap:.0f} N (drive.torque_limit_n_m = {plant.torque_limit:g} N m); "
                          f"expected loads up to {cap:.0f} N")
-    model = uncertainty_model(plant, scene)
+    model = uncertainty_model(plant, sections.plant_overrides)
     entries = [e for e in model.entries if e.key in _CAPACITY_KEYS]
     for ends in itertools.product((0, 1), repeat=len(entries)):
         values = dict(plant.values)

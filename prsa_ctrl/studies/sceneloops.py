@@ -2,7 +2,7 @@
 numbers and the duty cycle's sampled records) and the scene's loop models.
 
 A :class:`~prsa_ctrl.studies.scene.Scene` is a studies-level object; the loop builders of
-:mod:`prsa_ctrl.tuning.scene_loops` take numbers and arrays only. :func:`loop_spec` reads the
+:mod:`prsa_ctrl.tuning.actuatorloops` take numbers and arrays only. :func:`loop_spec` reads the
 scene once, :func:`actuator_loops` hands its numbers to the builders. The verification,
 prediction and health checks of :mod:`prsa_ctrl.studies.autotune` read the same spec.
 """
@@ -17,7 +17,7 @@ from ..plant.equilibrium import operating_point
 from ..plant.plantfile import Plant
 from ..sim.signals import PiecewiseLinear, normalise_profile
 from ..tuning.loops import LoopModel
-from ..tuning.scene_loops import profile_loops, step_loops
+from ..tuning.actuatorloops import profile_loops, step_loops
 
 __all__ = ["LoopSpec", "loop_spec", "linear_fidelity", "duty_record", "actuator_loops"]
 

@@ -15,9 +15,10 @@ import numpy as np
 from ..textsafe import quote
 from ..errors import SceneError
 from ..plant.uncertainty import UncertaintyModel, apply, uncertainty_model
+from .scenesections import Robust
 from ..tuning.loops import LoopModel
 from ..tuning.robust import RobustTuning, Scenario, tune_scenario_loops
-from ..tuning.scene_loops import step_loops
+from ..tuning.actuatorloops import step_loops
 from .sceneloops import loop_spec
 
 __all__ = ["operating_points", "scenarios", "scenario_loops", "tune_robust_actuator"]
@@ -33,9 +34,9 @@ def operating_points(scene) -> list[tuple[float, float]]:
     if getattr(scene, "is_profile", False):
         raise SceneError(f"{scene.origin}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
                          "load-step scene (the robust and Monte-Carlo studies run load steps)")
-    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
-    sps = [v * math.pi / 30.0 for v in rob.get("setpoints_rpm", [])] or [scene.setpoint_rad_s]
-    loads = rob.get("final_loads_n") or list(scene.final_loads)
+    rob = scene.sections.robust or Robust()
+    sps = [v * math.pi / 30.0 for v in rob.setpoints_rpm] or [scene.setpoint_rad_s]
+    loads = list(rob.final_loads_n) or list(scene.final_loads)
     for f in loads:
         if f == scene.initial_load:
             raise SceneError(f"{scene.origin}: robust.final_loads_n contains {f:g}; expected loads different "
@@ -62,12 +63,13 @@ def scenarios(plant, scene, *, unc: UncertaintyModel | None = None, vertices: bo
     max_scenarios : int, optional
         Bound checked before any model is built (default ``[robust] max_scenarios`` or 64).
     """
-    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
-    unc = uncertainty_model(plant, scene) if unc is None else unc
-    vertices = rob.get("vertices", True) if vertices is None else vertices
-    samples = rob.get("samples", 0) if samples is None else samples
-    seed = rob.get("seed", 0) if seed is None else seed
-    max_scenarios = rob.get("max_scenarios", MAX_SCENARIOS) if max_scenarios is None else max_scenarios
+    rob = scene.sections.robust or Robust()
+    unc = uncertainty_model(plant, scene.sections.plant_overrides) if unc is None else unc
+    vertices = rob.vertices if vertices is None else vertices
+    samples = rob.samples if samples is None else samples
+    seed = rob.seed if seed is None else seed
+    if max_scenarios is None:
+        max_scenarios = MAX_SCENARIOS if rob.max_scenarios is None else rob.max_scenarios
     points: list[tuple[str, str, dict]] = [("nominal", "nominal", {})]
     if vertices and len(unc):
         if 2 ** len(unc) > max_scenarios:
@@ -132,15 +134,14 @@ def tune_robust_actuator(plant, scene, *, scens: Sequence[Scenario] | None = Non
     RobustTuning
         Both designs, the comparison (per-scenario Ms and objective) and timings (s).
     """
-    rob = (getattr(scene, "robust", None) or {}).get("robust", {})
-    aggregate = aggregate or rob.get("aggregate", "worst")
+    aggregate = aggregate or (scene.sections.robust or Robust()).aggregate
     if aggregate not in ("worst", "mean"):
         raise ValueError(f"aggregate = {quote(aggregate)}; expected 'worst' or 'mean'")
-    unc = uncertainty_model(plant, scene)
+    unc = uncertainty_model(plant, scene.sections.plant_overrides)
     scens = list(scens) if scens is not None else scenarios(plant, scene, unc=unc)
     t0 = time.perf_counter()
     loops = scenario_loops(plant, scene, scens)
-    spec = (getattr(scene, "robust", None) or {}).get("spec", {})
+    spec = scene.sections.spec_bounds
     ms_max, ms_source = ((spec["ms"], "[spec] ms") if "ms" in spec else (scene.ms_max, "[tuning] ms_max"))
     mt_max, mt_source = ((spec["mt"], "[spec] mt") if "mt" in spec else (scene.mt_max, "[tuning] mt_max"))
     rt = tune_scenario_loops(loops, scens, unc=unc, objective=scene.objective, controller=scene.controller,

@@ -20,7 +20,7 @@ from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from ..plant.plantfile import Plant
 from ..tuning.filtered import FilteredDesign, loop_builder, tune_filtered
-from ..tuning.scene_loops import derivative_filter_s
+from ..tuning.actuatorloops import derivative_filter_s
 from ..tuning.tuner import Tuner
 from .paper import default_pid
 from .scene import Scene, choose_fidelity

@@ -396,16 +396,16 @@ def test_percent_differences_never_print_minus_zero():
 
 
 def test_json_gains_carry_the_setpoint_weight(tmp_path):
-    from prsa_ctrl.cli.tune import _add_setpoint_weight
+    from prsa_ctrl.studies.scenekinds import add_setpoint_weight
     from prsa_ctrl.studies.scene import load_scene
 
     data = {"gains": {"kp": 0.1, "ki": 10.0}, "units": {"kp": "N m s/rad"},
             "best": {"gains": {"kp": 0.1, "ki": 10.0}}, "baselines": [{"gains": {"kp": 0.2, "ki": 1.0}}]}
-    _add_setpoint_weight(data, load_scene(_duty_scene(tmp_path)))
+    add_setpoint_weight(data, load_scene(_duty_scene(tmp_path)))
     assert data["gains"]["b"] == data["best"]["gains"]["b"] == data["baselines"][0]["gains"]["b"] == 0.5
     assert "b" in data["units"]
     data = {"gains": {"kp": 0.1, "ki": 10.0}}
-    _add_setpoint_weight(data, load_scene("paper-load-step"))
+    add_setpoint_weight(data, load_scene("paper-load-step"))
     assert data["gains"]["b"] == 1.0
 
 
@@ -809,12 +809,12 @@ def test_a_baseline_not_beaten_says_why_in_the_table():
 
 
 def test_one_name_per_design_in_the_monte_carlo():
-    from prsa_ctrl.cli.tune import _add_design
+    from prsa_ctrl.studies.scenekinds import add_design
     from prsa_ctrl.drive.pid import PID
 
     designs = {"nominal design": PID(0.08, 14.0), "robust design": PID(0.04, 4.0)}
-    _add_design(designs, "tuned (Ms <= 1.4)", PID(0.08, 14.0))
-    _add_design(designs, "SIMC", PID(0.13, 23.0))
+    add_design(designs, "tuned (Ms <= 1.4)", PID(0.08, 14.0))
+    add_design(designs, "SIMC", PID(0.13, 23.0))
     assert list(designs) == ["nominal design", "robust design", "SIMC"]
 
 

@@ -8,7 +8,7 @@ from scipy.stats import chi2
 
 from prsa_ctrl import PID, load_plant
 from prsa_ctrl.drive.estimator import design_kf
-from prsa_ctrl.tuning.scene_loops import kf_drive_loop
+from prsa_ctrl.tuning.actuatorloops import kf_drive_loop
 from prsa_ctrl.plant.linear import linear_core
 from prsa_ctrl.plant.model import plant_model
 from prsa_ctrl.sim.integrators import SimSettings

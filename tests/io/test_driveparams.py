@@ -496,7 +496,7 @@ def test_integer_typed_gains_report_rounding_and_the_margin_change(plant):
     change of the speed loop's margins (exact vs rounded gains on the same loop model, computed
     here independently); a declared UINT is never written unrounded."""
     from prsa_ctrl.io.driveparams import MotorData
-    from prsa_ctrl.tuning.scene_loops import step_loops
+    from prsa_ctrl.tuning.actuatorloops import step_loops
 
     tpl = {"template": {"name": "ep"}, "parameter": [
         {"index": "0x8014:03", "name": "Kp", "quantity": "speed_kp", "unit": "0.1 mA/(rad/s)", "datatype": "UDINT",

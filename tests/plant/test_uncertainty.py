@@ -20,7 +20,8 @@ from prsa_ctrl import PlantFileError, SceneError
 from prsa_ctrl.cli.fit import main as fit_main
 from prsa_ctrl.plant import load_plant
 from prsa_ctrl.plant.plantfile import Plant, builtin_plants, load_plant
-from prsa_ctrl.plant.uncertainty import (CORRELATION_KEY, PSD_TOLERANCE, carry_correlation, correlation_entry, correlation_toml, parse_entries, parse_scene_sections, uncertainty_model)
+from prsa_ctrl.plant.uncertainty import (CORRELATION_KEY, PSD_TOLERANCE, carry_correlation, correlation_entry, correlation_toml, parse_entries, uncertainty_model)
+from prsa_ctrl.studies.scenesections import parse_scene_sections
 from prsa_ctrl.studies.scene import _from_doc, load_scene
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -46,7 +47,7 @@ def test_builtin_plants_document_their_uncertainty(name):
 
 def test_robust_scene_adds_its_uncertainty_to_the_plants():
     p, s = load_plant(), load_scene("robust-load-step")
-    unc = uncertainty_model(p, s)
+    unc = uncertainty_model(p, s.sections.plant_overrides)
     e = {x.key: x for x in unc.entries}
     j = p.values["nut.inertia_kg_m2"]
     assert e["nut.inertia_kg_m2"].low == pytest.approx(0.5 * j) and e["nut.inertia_kg_m2"].high == pytest.approx(1.5 * j)
@@ -57,7 +58,7 @@ def test_robust_scene_adds_its_uncertainty_to_the_plants():
 @given(seed=st.integers(0, 2**32), index=st.integers(0, 10**6))
 @settings(max_examples=40)
 def test_samples_stay_in_the_support_and_are_reproducible(seed, index):
-    unc = uncertainty_model(load_plant(), load_scene("robust-load-step"))
+    unc = uncertainty_model(load_plant(), load_scene("robust-load-step").sections.plant_overrides)
     a = unc.sample(np.random.default_rng([seed, index]))
     b = unc.sample(np.random.default_rng([seed, index]))
     assert a == b
@@ -130,7 +131,7 @@ def test_bad_scene_uncertainty_names_key_and_file(bad):
     doc["uncertainty"] = {key: entry}
     with pytest.raises(SceneError) as exc:
         s = _from_doc(doc, "bad-scene.toml")
-        uncertainty_model(load_plant(), s)
+        uncertainty_model(load_plant(), s.sections.plant_overrides)
     assert str(exc.value).startswith("bad-scene.toml: ") and key in str(exc.value)
 
 
@@ -388,7 +389,7 @@ def test_scene_override_cuts_the_plants_block_and_names_the_keys():
     plant = _plant(_correlated([[1.0, 0.3, -0.6], [0.3, 1.0, 0.2], [-0.6, 0.2, 1.0]], [J, ETA, K]))
     doc = copy.deepcopy(_SCENE)
     doc["robust"]["plant_uncertainty"] = True  # the scene overrides J and BW
-    m = uncertainty_model(plant, _from_doc(doc, "scene.toml"))
+    m = uncertainty_model(plant, _from_doc(doc, "scene.toml").sections.plant_overrides)
     assert [c.keys for c in m.correlations] == [(ETA, K)]
     assert m.correlations[0].matrix == ((1.0, 0.2), (0.2, 1.0))
     assert len(m.notes) == 1 and "'nut.inertia_kg_m2'" in m.notes[0] and "scene.toml" in m.notes[0]
@@ -396,7 +397,7 @@ def test_scene_override_cuts_the_plants_block_and_names_the_keys():
     assert "correlation_note" in d[J] and "correlation" not in d[J] and d[ETA]["correlation"]["with"] == {K: 0.2}
     # the scene's own block over its own keys
     doc["uncertainty"]["correlation"] = {"keys": [J, BW], "matrix": [[1.0, -0.5], [-0.5, 1.0]], "source": "estimate: s"}
-    m2 = uncertainty_model(plant, _from_doc(doc, "scene.toml"))
+    m2 = uncertainty_model(plant, _from_doc(doc, "scene.toml").sections.plant_overrides)
     assert sorted(c.keys for c in m2.correlations) == sorted([(ETA, K), (J, BW)])
     cols = _draws(m2, 3000, 5)
     ents = {e.key: e for e in m2.entries}
@@ -406,7 +407,7 @@ def test_scene_override_cuts_the_plants_block_and_names_the_keys():
     assert abs(np.corrcoef(s[J], s[ETA])[0, 1]) < 5 / math.sqrt(3000)
     # the scene's uncertainty alone
     doc["robust"]["plant_uncertainty"] = False
-    m3 = uncertainty_model(plant, _from_doc(doc, "scene.toml"))
+    m3 = uncertainty_model(plant, _from_doc(doc, "scene.toml").sections.plant_overrides)
     assert [c.keys for c in m3.correlations] == [(J, BW)] and not m3.notes
 
 

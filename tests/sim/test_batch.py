@@ -28,7 +28,7 @@ def family():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", GeometryWarning)
         plant = load_plant()
-    unc = uncertainty_model(plant, load_scene(KEYS_SCENE))
+    unc = uncertainty_model(plant, load_scene(KEYS_SCENE).sections.plant_overrides)
     fam = parametric_family(plant, "compliant", unc.keys)
     rng = np.random.default_rng(5)
     values = [unc.sample(rng) for _ in range(4)]

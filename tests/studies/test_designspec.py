@@ -45,7 +45,7 @@ def test_linear_yield_grid_agrees_with_an_independent_linear_check(roller16k):
     g = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, seed=seed, n=n, size=5, picks=3)
     assert g["points"] == 25 and g["samples"] == n and 1 <= len(g["designs"]) <= 3
     assert max(g["linear_yield"].values()) == g["best_linear_yield"]
-    unc, ops = uncertainty_model(plant, scene), operating_points(scene)
+    unc, ops = uncertainty_model(plant, scene.sections.plant_overrides), operating_points(scene)
     for name, pid in g["designs"].items():
         assert pid.kd == 0 and 0.15 <= pid.kp <= 1.3  # inside the grid's span: half the smallest .. twice the largest
         passed = unsure = 0
@@ -169,7 +169,7 @@ def test_design_to_spec_chooses_by_the_rule_and_reports_fresh_samples(roller):
     fy = r.final_yield
     assert (fy.passed, fy.n, fy.ci95) == (ref.passed, ref.n, ref.ci95) and r.final_seed == 4
     # ... whose samples are not the search's
-    unc, ops = uncertainty_model(plant, scene), tuple(operating_points(scene))
+    unc, ops = uncertainty_model(plant, scene.sections.plant_overrides), tuple(operating_points(scene))
     for i in range(4):
         assert draw_sample(unc, ops, 3, i)[0] != draw_sample(unc, ops, 4, i)[0]
     text = r.format("iae")

@@ -71,7 +71,7 @@ def test_batched_chunk_equals_the_per_sample_run_of_the_same_scheme(paper_both):
 
     _, _, scene = paper_both
     p = load_plant()
-    unc = uncertainty_model(p, scene)
+    unc = uncertainty_model(p, scene.sections.plant_overrides)
     settings = mcbatch.batch_settings(scene.accuracy)
     assert settings.jacobian_every == settings.substeps // 4 > 1
     job = Job("same-scheme", plant_doc(p), scene, (("paper", default_pid(p), "none"),), unc,
@@ -123,7 +123,7 @@ def test_check_samples_are_the_extremes_and_seeded(setup):
     from prsa_ctrl.studies import mcbatch
 
     p, s = setup
-    unc = uncertainty_model(p, s)
+    unc = uncertainty_model(p, s.sections.plant_overrides)
     ops = [(1.0, 1500.0)]
     a = mcbatch.check_indices(unc, ops, 4, 200)
     assert a == mcbatch.check_indices(unc, ops, 4, 200) and len(set(a)) == len(a) <= 1 + 2 * len(unc.keys)
@@ -143,7 +143,7 @@ def test_check_ignores_parameters_the_model_does_not_read(setup):
     from prsa_ctrl.studies import mcbatch
 
     p, s = setup[0], load_scene("paper-load-step")  # the plant's own five uncertain values
-    unc = uncertainty_model(p, s)
+    unc = uncertainty_model(p, s.sections.plant_overrides)
     fam = parametric_family(p, "compliant", unc.keys)
     acting = mcbatch.acting_keys(fam)
     assert "contact.stiffness_n_per_mm_e" in acting and "nut.inertia_kg_m2" in acting

@@ -63,7 +63,7 @@ def test_wilson_matches_the_textbook_value():
 
 def test_sample_depends_only_on_seed_and_index(setup):
     p, s = setup
-    unc = uncertainty_model(p, s)
+    unc = uncertainty_model(p, s.sections.plant_overrides)
     ops = [(1.0, 1500.0)]
     a = mc.draw_sample(unc, ops, 3, 17)
     assert a == mc.draw_sample(unc, ops, 3, 17)
@@ -351,7 +351,7 @@ def test_monte_carlo_draws_the_fitted_uncertainty(fitted):
     truncated at the interval (to 5 standard errors), keys drawn with the fit's correlation."""
     d, plant, fit = fitted
     scene = load_scene(d / "scene.toml")
-    unc = uncertainty_model(plant, scene)
+    unc = uncertainty_model(plant, scene.sections.plant_overrides)
     n = 4000
     draws = [draw_sample(unc, [(0.05, 40.0)], 7, i)[0] for i in range(n)]
     cols = {k: np.array([s[k] for s in draws]) for k in PARAMETERS}
@@ -399,7 +399,7 @@ def test_monte_carlo_runs_and_reports_yield(fitted):
     assert y.failures == 0 and 0 <= y.passed <= 6 and y.yield_ == y.passed / 6
     assert y.ci95 == pytest.approx(_wilson(y.passed, 6), abs=1e-12)
     per = mc.as_dict(include_samples=True)["per_sample"]
-    unc = uncertainty_model(plant, scene)
+    unc = uncertainty_model(plant, scene.sections.plant_overrides)
     for j, i in enumerate(per["index"]):
         want = draw_sample(unc, mc.operating_points, 3, i)[0]
         assert {k: per["parameters"][k][j] for k in want} == pytest.approx(want, rel=1e-15)
@@ -506,7 +506,7 @@ def test_friction_at_50_mm_s_drawn_jointly_matches_the_fits_interval(fitted):  #
     most of it; the independent draws are far wider and leave it."""
     d, plant, fit = fitted
     scene = load_scene(d / "scene.toml")
-    unc = uncertainty_model(plant, scene)
+    unc = uncertainty_model(plant, scene.sections.plant_overrides)
     ind = dataclasses.replace(unc, correlations=())
     par = fit["parameters"]
     r = np.array(plant.uncertainty["correlation"]["matrix"])

@@ -23,7 +23,7 @@ def test_scenarios_are_nominal_vertices_and_samples():
     sc = scenarios(p, s)
     kinds = [x.kind for x in sc]
     assert kinds == ["nominal"] + ["vertex"] * 4 + ["sample"] * 3
-    unc = uncertainty_model(p, s)
+    unc = uncertainty_model(p, s.sections.plant_overrides)
     lo = {e.key: e.low for e in unc.entries}
     hi = {e.key: e.high for e in unc.entries}
     assert {tuple(sorted(v.values.items())) for v in sc if v.kind == "vertex"} == {
@@ -42,7 +42,7 @@ def test_scenario_bound_is_checked_before_any_model_is_built():
 
 def test_operating_range_crosses_setpoints_and_loads():
     s = load_scene("robust-load-step")
-    s2 = s.replace(robust={**s.robust, "robust": {**s.robust["robust"], "setpoints_rpm": [150.0, 300.0],
+    s2 = s.replace(sections={**s.robust, "robust": {**s.robust["robust"], "setpoints_rpm": [150.0, 300.0],
                                                    "final_loads_n": [1000.0, 2000.0]}})
     ops = operating_points(s2)
     assert len(ops) == 4 and ops[0] == (pytest.approx(150 * math.pi / 30), 1000.0)
@@ -438,7 +438,7 @@ def test_target_yield_not_reached_names_the_limit_and_by_how_much():
 
 @pytest.mark.parametrize("bad", [0, 1, 1.5, -0.1, True, "0.95"])
 def test_spec_yield_is_a_probability(bad):
-    from prsa_ctrl.plant.uncertainty import parse_scene_sections
+    from prsa_ctrl.studies.scenesections import parse_scene_sections
 
     with pytest.raises(SceneError, match=r"s.toml: spec.yield = .*expected a target probability in \(0, 1\)"):
         parse_scene_sections({"spec": {"yield": bad, "ms": 1.5}}, "s.toml")

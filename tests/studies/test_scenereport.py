@@ -1,4 +1,4 @@
-"""prsa_ctrl.cli.report: reports an engineer acts on (issue 24, item 5): setpoint-step metrics (overshoot %, 10-90 %
+"""prsa_ctrl.studies.scenereport (was prsa_ctrl.cli.report): reports an engineer acts on (issue 24, item 5): setpoint-step metrics (overshoot %, 10-90 %
 rise time, 2 % settling time) against an independent computation on a known second-order
 response; setpoint steps found in a duty-cycle profile (ramps are not steps); no percentage
 between a value at numerical zero and a real one; crossover in Hz; one name per design."""
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from prsa_ctrl.cli.report import _setpoint_table, diff_text
+from prsa_ctrl.studies.scenereport import _setpoint_table, diff_text
 from prsa_ctrl.sim.metrics import profile_metrics, setpoint_step_metrics
 
 ZETA, WN = 0.4, 100.0  # a known underdamped second-order loop
