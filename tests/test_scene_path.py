@@ -81,10 +81,10 @@ def _scene_reads(run, classes=(Scene, LoopSpec, MoveScene)):
 
 
 #: Below the studies, the modules that still read a scene at run time (each entry goes when
-#: its reader takes the scene's numbers instead: the scene registry of issue 33): the plant
-#: layer's uncertainty model reads ``scene.robust`` by duck typing; the move scene's cascade
-#: model takes the MoveScene itself.
-STILL_READ = {("plant/uncertainty.py", "uncertainty_model")}
+#: its reader takes the scene's numbers instead: the scene registry of issue 33): the move
+#: scene's cascade model takes the MoveScene itself. (The plant layer's uncertainty model read
+#: ``scene.robust`` by duck typing until the scene's sections became types.)
+STILL_READ: set = set()
 MOVE_STILL_READ = {("tuning/cascade.py", "__init__")}
 
 
