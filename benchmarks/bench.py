@@ -32,6 +32,12 @@ prsa-ctrl installed: ``pip install -e '.[test]'``) writes ``bench.json`` and ``w
   file: median wall and CPU time with their spread and the load average;
 - **targets**: issue 10's speed targets against these medians (``bench.json["targets"]``).
 
+``python benchmarks/bench.py --acceptance [--repeats N]`` runs only issue 35's five targets
+(:func:`acceptance`: the two 1000-sample Monte Carlos with their measured error, the yield-driven
+design as a user runs it, work-precision against scipy, the cold CLI ratio in pairs, the tuner),
+each ``N`` times (default 3; the cold CLI and the tuner at least 5), and prints one table: target,
+median, min..max, CPU, goal, PASS/FAIL (``acceptance.json``); about 8 minutes on an idle 2-core machine.
+
 Every time is the median of ``repeats`` runs (default 3; ``--fast``: 1) after a warm-up run,
 never the best run; ratios are measured in the same run on the same machine; no target is
 asserted here.
@@ -65,7 +71,7 @@ from prsa_ctrl.cli.common import EXIT_BAD_INPUT, Parser, UsageError, one_line, w
 from prsa_ctrl.identification.synthetic import fit_record
 from prsa_ctrl.studies.accuracy import fidelity_ladder, timed, work_precision
 
-__all__ = ["tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark", "batched_monte_carlo_benchmark",
+__all__ = ["acceptance", "format_acceptance", "tuning_benchmark", "cold_cli_benchmark", "monte_carlo_benchmark", "batched_monte_carlo_benchmark",
            "robust_tuning_benchmark",
            "fit_benchmark", "axis_fit_benchmark", "targets", "main", "work_precision", "fidelity_ladder"]
 
@@ -591,6 +597,123 @@ def cold_cli_benchmark(repeats: int = 3) -> dict:
 
 
 
+#: Issue 35's acceptance targets (``--acceptance``): key -> (what, target, unit; "<=" or ">=").
+ACCEPTANCE = {
+    "mc_paper": ("Monte Carlo, 1000 compliant verifications of paper-load-step, 2 processes", 1.5, "s", "<="),
+    "mc_robust": ("Monte Carlo, 1000 verifications of robust-load-step (its [spec]: Ms per sample), 2 processes",
+                  1.5, "s", "<="),
+    "design_to_spec": ("prsa-tune --design-to-spec, 3-key roller-screw scene, --monte-carlo 200 --workers 2", 20.0, "s",
+                       "<="),
+    "work_precision": ("work-precision at <= 1e-6 rad/s: best scipy solve_ivp / prsa-ctrl", 30.0, "x", ">="),
+    "cold_ratio": ("cold prsa-tune --load-step 500:1500 / import control, casadi (pairs A B)", 1.3, "", "<="),
+    "tuner": ("tuner: actuator_loops + tune_loops + verify, paper scene", 0.4, "s", "<="),
+}
+
+
+def _spread(values) -> dict:
+    v = [float(x) for x in values]
+    return {"median": float(np.median(v)), "min": min(v), "max": max(v), "runs": v}
+
+
+def _cpu_now() -> float:
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def acceptance(repeats: int = 3, workers: int = 2, fast: bool = False) -> dict:
+    """Issue 35's five targets (:data:`ACCEPTANCE`), each ``repeats`` times after a warm-up
+    (the cold CLI and the tuner at least 5): median, min..max and whether the median meets the
+    target; ratios from pairs run side by side. The CPU time (this process and its children)
+    is reported beside every wall time. ``fast``: tiny sizes (16 Monte-Carlo samples, an
+    8-sample design to the spec, the tiny work-precision): the code paths, not the figures."""
+    import resource
+    import tempfile
+
+    from prsa_ctrl.studies.montecarlo import METRICS
+
+    rows: dict = {}
+    n_mc = 16 if fast else 1000
+    for key, scene_name in (("mc_paper", "paper-load-step"), ("mc_robust", "robust-load-step")):
+        plant, sc = load_plant(), load_scene(scene_name)
+        pid = default_pid(plant)
+        run_monte_carlo(plant, sc, {"paper": pid}, 4, seed=0, quiet=True, workers=workers)  # compile, not timed
+        wall, cpu, errs = [], [], []
+        for _ in range(repeats):
+            t, c = time.perf_counter(), _cpu_now()
+            r = run_monte_carlo(plant, sc, {"paper": pid}, n_mc, seed=0, quiet=True, workers=workers)
+            wall.append(time.perf_counter() - t)
+            cpu.append(_cpu_now() - c)
+            errs.append(r.integration.get("relative"))
+        ms = r.samples["metrics"][:, 0, METRICS.index("ms")]
+        acc = r.integration.get("accuracy")
+        ok_err = all(e is not None and e <= acc for e in errs)
+        rows[key] = {**_spread(wall), "cpu": _spread(cpu), "n": n_mc, "path": r.integration.get("path"),
+                     "measured_error": max((e for e in errs if e is not None), default=None), "accuracy": acc,
+                     "error_within_accuracy": ok_err, "ms_per_sample": bool(np.isfinite(ms).any())}
+    # The yield-driven design, as a user runs it (a new process each run).
+    spec_scenes = Path(__file__).resolve().parent.parent / "tests" / "spec_scenes.py"
+    ns: dict = {}
+    exec(compile(spec_scenes.read_text(encoding="utf-8"), str(spec_scenes), "exec"), ns)  # the tests' scene text
+    with tempfile.TemporaryDirectory() as tmp:
+        scene_path, out_json = Path(tmp) / "rs30.toml", Path(tmp) / "dts.json"
+        scene_path.write_text(ns["ROLLER_SPEC_SCENE"], encoding="utf-8")
+        cmd = [sys.executable, "-m", "prsa_ctrl.cli.tune", "--plant", "rollerscrew-30x5", "--scene", str(scene_path),
+               "--design-to-spec", "--monte-carlo", "8" if fast else "200", "--workers", str(workers), "--quiet",
+               "--json", str(out_json)]
+        wall, cpu, chosen = [], [], []
+        for _ in range(1 if fast else repeats):
+            r0, t = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
+            subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+            wall.append(time.perf_counter() - t)
+            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
+            import json
+
+            d = json.loads(out_json.read_text(encoding="utf-8"))["design_to_spec"]
+            chosen.append({"chosen": d["chosen"], "passed": d["passed"], "samples": d["samples"],
+                           "yield_ci95": d["yield_ci95"], "timing_s": d["timing_s"]})
+        rows["design_to_spec"] = {**_spread(wall), "cpu": _spread(cpu), "results": chosen}
+    wp = work_precision(fast=fast, budget_s=1.0 if fast else 60.0, repeats=repeats, tiny=fast)
+    b = wp["best_time_s"]
+    ratio = b["scipy"] / b["prsa-ctrl"] if math.isfinite(b["scipy"]) and math.isfinite(b["prsa-ctrl"]) else math.nan
+    rows["work_precision"] = {"median": ratio, "min": ratio, "max": ratio, "runs": [ratio],
+                              "best_time_s": b, "note": "each method's time the median of its runs"}
+    cb = cold_cli_benchmark(1 if fast else max(5, repeats))
+    rows["cold_ratio"] = {"median": cb["ratio"], "min": cb["ratio_min_max"][0], "max": cb["ratio_min_max"][1],
+                          "cpu_ratio": cb["cpu_ratio"], "cold_cli": cb}
+    tb = tuning_benchmark(n_grid=2, fast=fast, repeats=max(5, repeats))
+    rows["tuner"] = {"median": tb["ours"]["time_s"], "min": tb["ours"]["time_min_max_s"][0],
+                     "max": tb["ours"]["time_min_max_s"][1], "cpu_median": tb["ours"]["cpu_s"], "iae": tb["ours"]["iae"]}
+    for key, (what, target, unit, op) in ACCEPTANCE.items():
+        r = rows[key]
+        met = r["median"] <= target if op == "<=" else r["median"] >= target
+        if key.startswith("mc_"):
+            met = met and r["error_within_accuracy"]
+        r.update(what=what, target=target, unit=unit, op=op, met=bool(met) if math.isfinite(r["median"]) else False)
+    return {"rows": rows, "repeats": repeats, "workers": workers, "fast": fast,
+            "load_average_1_5_15": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+
+
+def format_acceptance(acc: dict) -> str:
+    """The acceptance table: target, median, min..max, CPU, pass/fail."""
+    lines = [f"{'target':<44} {'median':>9} {'min..max':>17} {'CPU':>8}  {'goal':>9}  result"]
+    for key, r in acc["rows"].items():
+        u = r["unit"]
+        cpu = r.get("cpu", {}).get("median", r.get("cpu_median", r.get("cpu_ratio")))
+        if not math.isfinite(r["median"]):  # (--fast: no run of a method within 1e-6 rad/s)
+            lines.append(f"{key:<44} {'-':>9} {'-':>17} {'':>8}  {r['op']}{r['target']:>6g}{u:1}  FAIL (no value)")
+            continue
+        lines.append(f"{key:<44} {r['median']:>8.3g}{u:1} {r['min']:>8.3g}..{r['max']:<7.3g} "
+                     f"{'' if cpu is None else format(cpu, '8.3g'):>8}  {r['op']}{r['target']:>6g}{u:1}  "
+                     f"{'PASS' if r['met'] else 'FAIL'}")
+        if key.startswith("mc_"):
+            lines.append(f"{'':<44} measured error {r['measured_error']!s:.6} of the deviation (accuracy "
+                         f"{r['accuracy']}), Ms per sample: {r['ms_per_sample']}")
+    lines.append("(CPU: this process and its children, median; for cold_ratio the CPU ratio. Load average "
+                 f"{acc['load_average_1_5_15']})")
+    return "\n".join(lines)
+
+
 def _plot(wp: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
@@ -641,6 +764,8 @@ def _main(argv=None) -> int:
     ap.add_argument("--out", default="bench-results", help="folder for bench.json and the figure (created if missing)")
     ap.add_argument("--fast", action="store_true", help="every section at tiny sizes (~30 s; the figures mean nothing: "
                     "a check that the file runs)")
+    ap.add_argument("--acceptance", action="store_true", help="only issue 35's five targets, each --repeats times "
+                    "(default 3), as a table with the spread and pass/fail; writes acceptance.json (~8 min idle)")
     ap.add_argument("--skip", nargs="*", default=[], choices=["work", "fidelity", "tuning", "cli", "montecarlo", "batch", "robust", "fit",
                                                                  "axisfit"])
     ap.add_argument("--samples", type=int, default=None, help="Monte-Carlo samples per run (default 1000; 4 with --fast)")
@@ -671,6 +796,15 @@ def _main(argv=None) -> int:
                     "repeats": repeats, "statistic": "median", "fast": bool(args.fast)}
     if args.fast:
         print("--fast: every section at tiny sizes; the figures below mean nothing")
+    if args.acceptance:
+        from prsa_ctrl.io.output import json_safe
+
+        result["acceptance"] = acc = acceptance(repeats=repeats if args.repeats is not None else 3,
+                                                workers=args.workers, fast=args.fast)
+        print(format_acceptance(acc))
+        write_json_atomic(args.out / "acceptance.json", json_safe(result))
+        print(f"results: {args.out / 'acceptance.json'}")
+        return 0
     if "work" not in args.skip:
         result["work_precision"] = wp = work_precision(fast=args.fast, budget_s=1.0 if args.fast else 60.0,
                                                     repeats=repeats, tiny=args.fast)

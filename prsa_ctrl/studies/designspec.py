@@ -127,7 +127,7 @@ class DesignToSpec:
 def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed: int = 0,
                    ms_levels: Sequence[float] | None = None, extra: dict | None = None,
                    workers: int | None = None, quiet: bool = True, n_decide: int | None = None,
-                   grid: bool = True) -> DesignToSpec:
+                   grid: bool = True, robust=None) -> DesignToSpec:
     """The design that meets the scene's ``[spec]`` most often over its ``[uncertainty]``.
 
     Parameters
@@ -151,6 +151,15 @@ def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed
         seed; default ``3 n_search``; at most 100000; a value <= ``n_search`` skips it).
     grid : bool
         Propose the best gains of the linear-yield grid (:func:`linear_yield_grid`) too.
+    robust : RobustTuning, optional
+        A robust study of the same plant and scene
+        (:func:`prsa_ctrl.studies.scenerobust.tune_robust_actuator`): its scenarios, scenario
+        loop models and uncertainty model are reused (not rebuilt), and so are its tuners
+        (:func:`prsa_ctrl.tuning.generic.tune_loops` keeps the recent ones).
+
+    With ``workers`` > 1 the proposals' tunings run in that many forked processes (each Ms
+    level in one; the same gains as serially: a tuner's result does not depend on what it
+    solved before), and so do the Monte-Carlo runs.
 
     Returns
     -------
@@ -174,22 +183,22 @@ def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed
         raise ValueError(f"{2 * len(levels)} tuned + {n_grid} grid + {len(extra)} given designs; expected at most "
                          f"{MAX_PROPOSALS}")
     t0 = time.perf_counter()
-    unc = uncertainty_model(plant, scene.sections.plant_overrides)
-    scens = scenarios(plant, scene, unc=unc)
-    loops = scenario_loops(plant, scene, scens)
+    if robust is not None and getattr(robust, "loops", None):
+        unc, scens, loops = robust.uncertainty, list(robust.scenarios), list(robust.loops)
+    else:
+        unc = uncertainty_model(plant, scene.sections.plant_overrides)
+        scens = scenarios(plant, scene, unc=unc)
+        loops = scenario_loops(plant, scene, scens)
     aggregate = scene.sections.robust.aggregate if scene.sections.robust is not None else "worst"
     designs: dict = {}
     skipped: list = []
-    for m in sorted(set(float(x) for x in levels)):
-        try:
-            rt = tune_scenario_loops(loops, scens, unc=unc, objective=scene.objective, controller=scene.controller,
-                                     ms_max=m, mt_max=scene.mt_max, aggregate=aggregate)
-        except (ValueError, RuntimeError) as e:  # a bound no gains meet: say so, go on
-            skipped.append((f"tunings at Ms <= {m:g}", str(e).splitlines()[0]))
+    tune_args = (loops, scens, unc, scene.objective, scene.controller, scene.mt_max, aggregate)
+    for m, out in _tune_levels(tune_args, sorted(set(float(x) for x in levels)), workers or 1):
+        if isinstance(out, str):  # a bound no gains meet: say so, go on
+            skipped.append((f"tunings at Ms <= {m:g}", out))
             continue
-        for k, pid in (("nominal", rt.nominal), ("robust", rt.robust)):
+        for k, pid, status in out:
             name = f"{k} (Ms <= {m:g})"
-            status = rt.results[k].status
             if not is_ok(status):
                 skipped.append((name, status))
             elif not any(_same(pid, p) for p in designs.values()):
@@ -202,7 +211,8 @@ def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed
     t1 = time.perf_counter()
     grid_info = None
     if grid and designs:
-        grid_info = linear_yield_grid(plant, scene, list(designs.values()), spec, seed=seed, n=n_search, unc=unc)
+        grid_info = linear_yield_grid(plant, scene, list(designs.values()), spec, seed=seed, n=n_search, unc=unc,
+                                      workers=workers or 1)
         for name, pid in grid_info["designs"].items():
             if not any(_same(pid, p) for p in designs.values()):
                 designs[name] = pid
@@ -236,12 +246,48 @@ def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed
                         decide, grid_info)
 
 
+#: The arguments of the proposals' tunings, set before the worker processes fork (they inherit
+#: it: the loop models hold closures, which do not pickle).
+_LEVEL_ARGS: list = []
+
+
+def _tune_level(m: float):
+    """``(m, [(kind, PID, status)])`` of the nominal and robust tunings at Ms <= ``m``, or ``(m,
+    why)`` where no gains meet the bound (:data:`_LEVEL_ARGS` holds the rest)."""
+    loops, scens, unc, objective, controller, mt_max, aggregate = _LEVEL_ARGS[0]
+    try:
+        rt = tune_scenario_loops(loops, scens, unc=unc, objective=objective, controller=controller, ms_max=m,
+                                 mt_max=mt_max, aggregate=aggregate)
+    except (ValueError, RuntimeError) as e:
+        return m, str(e).splitlines()[0]
+    return m, [(k, pid, rt.results[k].status) for k, pid in (("nominal", rt.nominal), ("robust", rt.robust))]
+
+
+def _tune_levels(args: tuple, levels: list, workers: int) -> list:
+    """:func:`_tune_level` of every level, in order: in up to ``workers`` forked processes (where
+    the platform forks and there are two levels or more), else serially."""
+    import multiprocessing
+
+    _LEVEL_ARGS[:] = [args]
+    try:
+        if workers <= 1 or len(levels) < 2 or "fork" not in multiprocessing.get_all_start_methods():
+            return [_tune_level(m) for m in levels]
+        from concurrent.futures import ProcessPoolExecutor
+
+        # One level at a time to whichever process is free.
+        with ProcessPoolExecutor(max_workers=min(workers, len(levels)),
+                                 mp_context=multiprocessing.get_context("fork")) as pool:
+            return list(pool.map(_tune_level, levels))
+    finally:
+        _LEVEL_ARGS.clear()
+
+
 def _same(a, b) -> bool:
     return all(getattr(a, k) == getattr(b, k) for k in ("kp", "ki", "kd", "tf", "kff"))
 
 
 def linear_yield_grid(plant, scene, designs: Sequence, spec: dict, *, seed: int, n: int, unc=None,
-                      size: int = GRID_SIZE, picks: int = GRID_PICKS) -> dict[str, Any]:
+                      size: int = GRID_SIZE, picks: int = GRID_PICKS, workers: int = 1) -> dict[str, Any]:
     """Gains scored by their *linear* yield on the Monte-Carlo samples ``0..n-1`` of ``seed``.
 
     Each sample's plant and operating point (:func:`prsa_ctrl.studies.mcjob.draw_sample`, the
@@ -258,7 +304,8 @@ def linear_yield_grid(plant, scene, designs: Sequence, spec: dict, *, seed: int,
     Proposed (at most ``picks``): among the gains of maximal linear yield, the one of the lowest
     median objective, the one with the most room (lowest 90th percentile over the samples of
     the largest metric/bound ratio) and the one of the highest linear yield next to it
-    (``size`` and ``picks`` bounded: 2..40 and 0..8).
+    (``size`` and ``picks`` bounded: 2..40 and 0..8). ``workers``: processes that share the
+    samples (the same numbers as one).
 
     Returns
     -------
@@ -267,10 +314,6 @@ def linear_yield_grid(plant, scene, designs: Sequence, spec: dict, *, seed: int,
         ``points``, ``samples`` and ``best_linear_yield``.
     """
     from ..drive.pid import PID
-    from ..plant.uncertainty import apply
-    from ..sim.metrics import DEFAULT_BAND
-    from .mcjob import draw_sample
-    from .sceneloops import actuator_loops
     from .scenerobust import operating_points
 
     if not (2 <= size <= 40 and 0 <= picks <= 8 and 1 <= n <= 100_000):
@@ -286,38 +329,7 @@ def linear_yield_grid(plant, scene, designs: Sequence, spec: dict, *, seed: int,
     tf = pis[0].tf
     G = np.array([(kp, kp * r, 0.0) for kp in kps for r in rats])
     bounds = {k: float(spec[k]) for k in ("peak_drop_rad_s", "recovery_time_s", "ms") if k in spec}
-    ratio = np.zeros((n, len(G)))
-    obj = np.zeros((n, len(G)))
-    for i in range(n):
-        values, op, _ = draw_sample(unc, ops, seed, i)
-        p_i = apply(plant, values) if values else plant
-        sc = scene.replace(setpoint_rad_s=ops[op][0], final_loads=(ops[op][1],))
-        lp = actuator_loops(p_i, sc, estimator="none")[0]
-        gi = G[:, : lp.n_gains] if lp.n_gains <= 3 else np.pad(G, ((0, 0), (0, lp.n_gains - 3)))
-        a = lp.A0[None] + np.einsum("bi,ijk->bjk", gi, np.stack(lp.A))
-        if lp.continuous is None and lp.nyquist is not None:
-            stable = np.max(np.abs(np.linalg.eigvals(a)), axis=1) < 1.0
-        else:
-            stable = np.array([lp.is_stable(g) for g in gi])
-        x = np.zeros((len(G), lp.A0.shape[0]))
-        e = np.empty((len(G), lp.n_steps))
-        for k in range(lp.n_steps):
-            e[:, k] = x @ lp.Ce
-            x = np.einsum("bjk,bk->bj", a, x) + lp._input(k)
-        sgn = np.where(e.max(axis=1) >= -e.min(axis=1), 1.0, -1.0)
-        drop = np.max(e * sgn[:, None], axis=1)
-        outside = np.abs(e) > DEFAULT_BAND * drop[:, None]
-        last = np.where(outside.any(axis=1), lp.n_steps - 1 - np.argmax(outside[:, ::-1], axis=1), -1)
-        rec = np.where(last < 0, 0.0, np.where(last == lp.n_steps - 1, np.inf, (last + 1) * lp.h))
-        n0, ln, d0, ld = lp.parts()
-        L = (n0[None] + gi @ ln) / (d0[None] + gi @ ld)
-        ms = np.max(np.abs(1.0 / (1.0 + L)), axis=1)
-        r = np.zeros(len(G))
-        for key, v in (("peak_drop_rad_s", drop), ("recovery_time_s", rec), ("ms", ms)):
-            if key in bounds:
-                r = np.maximum(r, v / bounds[key])
-        ratio[i] = np.where(stable & np.isfinite(r), r, np.inf)
-        obj[i] = np.where(stable, _horizon_objective(e, lp.h, scene.objective), np.inf)
+    ratio, obj = _grid_scores((plant, scene, unc, ops, seed, G, bounds), n, workers)
     passed = np.sum(ratio <= 1.0, axis=0)
     top = int(passed.max())
     out = dict(empty, points=len(G), best_linear_yield=top / n)
@@ -338,6 +350,84 @@ def linear_yield_grid(plant, scene, designs: Sequence, spec: dict, *, seed: int,
         designs_out[name], lin[name] = PID(kp, ki, 0.0, tf), float(passed[idx] / n)
     out.update(designs=designs_out, proposed=list(designs_out), linear_yield=lin)
     return out
+
+
+#: The linear-yield grid's arguments, set before its worker processes fork (they inherit it).
+_GRID_ARGS: list = []
+
+
+def _grid_scores(args: tuple, n: int, workers: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(ratio, obj)``, shape ``(n, points)``, of :func:`linear_yield_grid` (see there): samples
+    ``0..n-1`` in up to ``workers`` forked processes (contiguous blocks; where the platform forks
+    and there are 16 samples or more), else serially. The same numbers either way."""
+    import multiprocessing
+
+    workers = min(workers, n // 8)
+    _GRID_ARGS[:] = [args]
+    try:
+        if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+            parts = [_grid_block((0, n))]
+        else:
+            from concurrent.futures import ProcessPoolExecutor
+
+            edges = np.linspace(0, n, workers + 1).round().astype(int)
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("fork")) as pool:
+                parts = list(pool.map(_grid_block, [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]))
+    finally:
+        _GRID_ARGS.clear()
+    return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
+
+
+def _grid_block(span: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(ratio, obj)`` of the samples ``span[0]..span[1]-1`` (:data:`_GRID_ARGS` holds the rest)."""
+    from ..plant.uncertainty import apply
+    from ..sim.metrics import DEFAULT_BAND
+    from .mcjob import draw_sample
+    from .sceneloops import actuator_loops
+
+    plant, scene, unc, ops, seed, G, bounds = _GRID_ARGS[0]
+    lo, hi = span
+    ratio = np.zeros((hi - lo, len(G)))
+    obj = np.zeros((hi - lo, len(G)))
+    for i in range(lo, hi):
+        values, op, _ = draw_sample(unc, ops, seed, i)
+        p_i = apply(plant, values) if values else plant
+        sc = scene.replace(setpoint_rad_s=ops[op][0], final_loads=(ops[op][1],))
+        lp = actuator_loops(p_i, sc, estimator="none")[0]
+        gi = G[:, : lp.n_gains] if lp.n_gains <= 3 else np.pad(G, ((0, 0), (0, lp.n_gains - 3)))
+        a = lp.A0[None] + np.einsum("bi,ijk->bjk", gi, np.stack(lp.A))
+        if lp.continuous is None and lp.nyquist is not None:
+            stable = np.max(np.abs(np.linalg.eigvals(a)), axis=1) < 1.0
+        else:
+            stable = np.array([lp.is_stable(g) for g in gi])
+        x = np.zeros((len(G), lp.A0.shape[0], 1))
+        e = np.empty((len(G), lp.n_steps))
+        ce = np.asarray(lp.Ce, float)
+        for k in range(lp.n_steps):
+            e[:, k] = x[:, :, 0] @ ce
+            x = np.matmul(a, x)
+            x[:, :, 0] += lp._input(k)
+        sgn = np.where(e.max(axis=1) >= -e.min(axis=1), 1.0, -1.0)
+        drop = np.max(e * sgn[:, None], axis=1)
+        outside = np.abs(e) > DEFAULT_BAND * drop[:, None]
+        last = np.where(outside.any(axis=1), lp.n_steps - 1 - np.argmax(outside[:, ::-1], axis=1), -1)
+        rec = np.where(last < 0, 0.0, np.where(last == lp.n_steps - 1, np.inf, (last + 1) * lp.h))
+        n0, ln, d0, ld = lp.parts()
+        # Term by term (a float (points x gains) @ complex (gains x freqs) product went through
+        # a complex GEMM: 31 ms a sample of CPU on the 2-core machine, against about 1 ms).
+        num, den = np.broadcast_to(n0, (len(G), n0.size)).copy(), np.broadcast_to(d0, (len(G), d0.size)).copy()
+        for k in range(gi.shape[1]):
+            num += gi[:, k, None] * ln[k]
+            den += gi[:, k, None] * ld[k]
+        L = num / den
+        ms = np.max(np.abs(1.0 / (1.0 + L)), axis=1)
+        r = np.zeros(len(G))
+        for key, v in (("peak_drop_rad_s", drop), ("recovery_time_s", rec), ("ms", ms)):
+            if key in bounds:
+                r = np.maximum(r, v / bounds[key])
+        ratio[i - lo] = np.where(stable & np.isfinite(r), r, np.inf)
+        obj[i - lo] = np.where(stable, _horizon_objective(e, lp.h, scene.objective), np.inf)
+    return ratio, obj
 
 
 def _horizon_objective(e, h: float, kind: str):

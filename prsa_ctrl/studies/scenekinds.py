@@ -510,7 +510,7 @@ def _design_to_spec(plant, rep, options: TuneOptions):
     options.progress(f"design to the spec: proposals on {n_search} common samples, the chosen one on "
                      f"{n} fresh samples ...")
     dts = design_to_spec(plant, scene, n_search=n_search, n_final=n, seed=seed, extra=extra,
-                         workers=options.workers or default_workers(), quiet=options.quiet)
+                         workers=options.workers or default_workers(), quiet=options.quiet, robust=rr)
     s = dts.search
     d = dts.decide or s  # the decision among the (near-)maximal designs on more samples, where it ran
     nd = d["rows"][0]["samples"] if dts.decide and d.get("rows") else n_search

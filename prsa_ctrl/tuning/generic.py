@@ -19,10 +19,12 @@ from .tuner import Tuner, TuningResult
 __all__ = ["tune_loops", "tune_pid", "MAX_ORDER"]
 
 
-# The Tuner of the last tune_loops call (strong references to its loops, compared by identity,
-# so an id can never be reused): a performance memo only, since a Tuner's result does not depend
-# on what it solved before.
+# The Tuners of the last tune_loops calls, most recent first (strong references to their loops,
+# compared by identity, so an id can never be reused): a performance memo only, since a Tuner's
+# result does not depend on what it solved before. More than one: the robust tunings alternate
+# the nominal and the all-scenario loops at each Ms level (the design to the spec tunes six).
 _RECENT: list = []
+_RECENT_MAX = 4
 
 def tune_loops(
     loops: Sequence[LoopModel],
@@ -69,13 +71,14 @@ def tune_loops(
         w_key = object()  # never equal: the Tuner below reports the bad weights
     key = (objective, controller, w_key, worst_case)
     tuner = None
-    if _RECENT:
-        old_loops, old_key, old = _RECENT[0]
+    for k, (old_loops, old_key, old) in enumerate(_RECENT):
         if old_key == key and len(old_loops) == len(loops) and all(a is b for a, b in zip(old_loops, loops)):
             tuner = old
+            del _RECENT[k]
+            break
     if tuner is None:
         tuner = Tuner(loops, objective=objective, controller=controller, weights=weights, worst_case=worst_case)
-        _RECENT[:] = [(loops, key, tuner)]
+    _RECENT[:] = [(loops, key, tuner), *_RECENT[: _RECENT_MAX - 1]]
     return tuner.tune(ms_max=ms_max, mt_max=mt_max, max_noise_gain=max_noise_gain,
                       kp_max=kp_max, ki_max=ki_max, kd_max=kd_max, mks_max=mks_max)
 

@@ -64,6 +64,42 @@ def test_linear_yield_grid_agrees_with_an_independent_linear_check(roller16k):
         assert abs(passed / n - g["linear_yield"][name]) <= unsure / n + 1e-12, (name, passed, unsure)
 
 
+
+def test_linear_yield_grid_is_the_same_on_two_processes(roller16k):
+    """The grid's samples shared between two forked processes (contiguous blocks) give the same
+    linear yields, proposals and best yield as one process: each sample is scored alone."""
+    from prsa_ctrl.studies.designspec import linear_yield_grid
+    from prsa_ctrl.studies.paper import default_pid
+
+    plant, scene = roller16k
+    spec = dict(scene.robust["spec"])
+    kw = dict(seed=7, n=16, size=4, picks=3)
+    one = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, workers=1, **kw)
+    two = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, workers=2, **kw)
+    assert one["proposed"] and one["linear_yield"] == two["linear_yield"] and one["proposed"] == two["proposed"]
+    assert one["best_linear_yield"] == two["best_linear_yield"] and one["designs"] == two["designs"]
+
+
+def test_proposals_tuned_in_two_processes_equal_the_serial_ones(roller):
+    """The Ms levels' nominal and robust tunings in forked processes: the same gains and
+    statuses as tuned one after another in this process (a tuner's result does not depend on
+    what it solved before), in the levels' order."""
+    from prsa_ctrl.plant.uncertainty import uncertainty_model
+    from prsa_ctrl.studies import designspec
+    from prsa_ctrl.studies.scenerobust import scenario_loops, scenarios
+
+    plant, scene = roller
+    unc = uncertainty_model(plant, scene)
+    scens = scenarios(plant, scene, unc=unc)
+    args = (scenario_loops(plant, scene, scens), scens, unc, scene.objective, scene.controller, scene.mt_max, "worst")
+    serial = designspec._tune_levels(args, [1.3, 1.6], 1)
+    forked = designspec._tune_levels(args, [1.3, 1.6], 2)
+    assert [m for m, _ in forked] == [1.3, 1.6]
+    for (m, a), (_, b) in zip(serial, forked):
+        assert not isinstance(a, str), a
+        assert [(k, p.gains, st) for k, p, st in a] == [(k, p.gains, st) for k, p, st in b], m
+
+
 def test_design_to_spec_decides_among_the_near_max_designs_on_more_samples(roller16k):
     """A smaller case (one Ms level, 6 screen, 12 decision and 6 fresh samples): the grid's
     proposals are evaluated; the decision runs only designs of (near-)maximal screen yield, on
