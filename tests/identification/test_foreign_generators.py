@@ -666,3 +666,67 @@ def test_judge_generator_is_deterministic_and_its_base_plant_is_nominal(tmp_path
         assert f"motor_inertia_kg_m2 = {{ value = {0.9 * c.mech.j_motor:.6g}" in text  # -10 %
         assert abs(float(text.split("efficiency = { value = ")[1].split(",")[0]) - c.mech.eta) == pytest.approx(0.02)
         assert "command_delay_samples" not in text
+
+
+# prsa-fit on the judge's cases: time-domain logs (rigid fidelity, as the docs' first command),
+# the FRF with the structure the data choose, and on the two-mass axes --fidelity compliant and
+# --fidelity rigid. The rule is the issue's, never today's numbers.
+JUDGE_KINDS = {name: (("logs", "frf", "frf-compliant", "frf-rigid") if c.two_mass else ("logs", "frf"))
+               for name, c in gj.CASES.items()}
+
+# Runs that violate the rule on main 1dddb38 (measured; the report's table): findings, not
+# tolerances. strict: a fix makes them XPASS and fails the run until the mark is removed.
+JUDGE_XFAIL = {
+    ("roller-rigid-d1-applied-si", "logs"):
+        "exit 0 with the truth outside the inertia's 95 % interval: 1.07773e-3 (CI 1.07641..1.07905e-3) against "
+        "1.08035e-3 kg m^2 (-0.24 %, 3.9 standard errors; efficiency 0.829835, CI 0.829722..0.829948, truth 0.83)",
+    ("ball-rigid-d1-computed-nonsi", "logs"):
+        "exit 0 with the truth outside the inertia's 95 % interval: 2.91687e-3 (CI 2.91622..2.91753e-3) against "
+        "2.92018e-3 kg m^2 (-0.11 %, 10 standard errors)",
+    ("ball-2mass-d1-computed-si", "logs"):
+        "exit 0, 'the plant explains the data', from a rigid fit of a two-mass axis whose 132.3 Hz mode is inside "
+        "the multisine's band: the written plant's axial mode is the base stiffness's 152.5 Hz (+15 %); the "
+        "multisine replays at 39.6 x its noise floor and passes on fit % >= 50 (86.3 %); no 'second mass' diagnosis",
+}
+
+
+def _judge_command(name, kind, tmp_path):
+    """prsa-fit arguments of one judge run, on data of seed $PRSA_FOREIGN_SEED (default 0)."""
+    seed = int(os.environ.get("PRSA_FOREIGN_SEED", "0"))
+    exps = gj.EXPERIMENTS if kind == "logs" else ()
+    s = gj.generate(tmp_path / "data", name, seed=seed, experiments=exps)
+    t = s["truth"]
+    out, js = tmp_path / "fitted.toml", tmp_path / "report.json"
+    if kind == "logs":
+        logs = [s["logs"][n] for n in gj.EXPERIMENTS]
+        how = ["--log-format", s["log_format"]] if s["log_format"] else ["--command-logged", t["command_logged"]]
+        args = [*logs, *how, "--plant", s["base"], "--out", out, "--json", js]
+    else:
+        args = ["--frf", s["frf"], "--frf-speed", t["frf_speed_rad_s"], "--frf-load", t["frf_load_n"],
+                "--command-logged", t["command_logged"], "--plant", s["base"], "--out", out, "--json", js]
+        if kind != "frf":
+            args += ["--fidelity", kind.split("-")[1]]
+    return args, out, js, t
+
+
+def _judge_params():
+    for name, kinds in JUDGE_KINDS.items():
+        for kind in kinds:
+            reason = JUDGE_XFAIL.get((name, kind))
+            marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+            yield pytest.param(name, kind, marks=marks, id=f"{name}--{kind}")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(PRSA_FIT is None, reason="the prsa-fit console script is not installed")
+@pytest.mark.parametrize("name,kind", list(_judge_params()))
+def test_prsa_fit_acceptance_on_the_judges_cases(name, kind, tmp_path):
+    # exit 0 with a file whose total inertia is within 3 % with the truth inside its 95 %
+    # interval, the delay exact, the current loop within 25 %, the mode within 5 % where the
+    # data hold one; or exit 3 with no file and a one-line diagnosis. Never exit 0 with the
+    # inertia outside its interval.
+    args, out, js, truth = _judge_command(name, kind, tmp_path)
+    proc = _run(args, tmp_path)
+    fails, row = _acceptance(proc, out, js, truth, mode_expected=truth["two_mass"])
+    _record(f"judge:{name}--{kind}", args, row, fails)
+    assert not fails, f"{name} {kind}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
