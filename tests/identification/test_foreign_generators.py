@@ -674,8 +674,8 @@ def test_judge_generator_is_deterministic_and_its_base_plant_is_nominal(tmp_path
 JUDGE_KINDS = {name: (("logs", "frf", "frf-compliant", "frf-rigid") if c.two_mass else ("logs", "frf"))
                for name, c in gj.CASES.items()}
 
-# Runs that violate the rule on main 1dddb38 (measured; the report's table): findings, not
-# tolerances. strict: a fix makes them XPASS and fails the run until the mark is removed.
+# Runs that violate the rule on main 1dddb38 at seed 0 (measured; the report's table): findings,
+# not tolerances. strict: a fix makes them XPASS and fails the run until the mark is removed.
 JUDGE_XFAIL = {
     ("roller-rigid-d1-applied-si", "logs"):
         "exit 0 with the truth outside the inertia's 95 % interval: 1.07773e-3 (CI 1.07641..1.07905e-3) against "
@@ -714,9 +714,13 @@ def _judge_command(name, kind, tmp_path):
 
 
 def _judge_params():
+    # the marks were measured on seed 0 (the default); on another seed the rule is asserted bare
+    # (seed 1 measured: roller-rigid-d1-applied-si logs accepted, -0.045 % inside its interval;
+    # ball-rigid-d1-computed-nonsi logs exit 3 'delay', accepted)
+    seed0 = os.environ.get("PRSA_FOREIGN_SEED", "0") == "0"
     for name, kinds in JUDGE_KINDS.items():
         for kind in kinds:
-            reason = JUDGE_XFAIL.get((name, kind))
+            reason = JUDGE_XFAIL.get((name, kind)) if seed0 else None
             marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
             yield pytest.param(name, kind, marks=marks, id=f"{name}--{kind}")
 
