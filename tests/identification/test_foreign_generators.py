@@ -541,3 +541,200 @@ def test_the_acceptance_oracle_refuses_what_the_issue_refuses(tmp_path, rs_set):
     fails = _acceptance(ok, out, js, truth, mode_expected=True)[0]
     assert any("current loop" in f for f in fails) and any("command_delay_samples" in f for f in fails)
     assert any("axial mode" in f for f in fails)  # the base's mode (catalogue stiffness) is not the truth's
+
+
+# ---------------------------------------------------------------------------------------------
+# (c) the judge's generator (foreign/gen_judge.py): written without reading the fitting code, the
+# plant model or the generators above; its own checks here, then prsa-fit's acceptance on it.
+
+from foreign import gen_judge as gj  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def judge_roller_rigid_loadsteps():
+    return gj.run(gj.CASES["roller-rigid-d1-applied-si"], "loadsteps", seed=0)
+
+
+def test_judge_load_step_plateaus_hold_the_torque_balance_with_the_loss_on_the_nut_force(judge_roller_rigid_loadsteps):
+    # At constant forward speed the applied command averages to T_c + b w + a F / eta on every
+    # load plateau (the Stribeck term is gone at 30 rad/s): written out here from the case's numbers.
+    log, m = judge_roller_rigid_loadsteps, gj.ROLLER
+    a = m.lead_m / (2 * math.pi)
+    n = log["time_s"].size
+    for i, force in enumerate(m.steps):
+        i0, i1 = i * (n // 4) + int(0.6 * (n // 4)), (i + 1) * (n // 4)
+        tq = log["applied_n_m"][i0:i1]
+        batches = np.array_split(tq, 10)
+        se = np.std([b.mean() for b in batches], ddof=1) / math.sqrt(10)
+        expected = m.t_coulomb + m.viscous * 30.0 + a * force / m.eta
+        assert abs(tq.mean() - expected) < 4 * se + 2e-3, (force, tq.mean(), expected, se)
+        # the loss on the load alone (eta = 1) is far outside that tolerance at load
+        if force > 0:
+            assert abs(tq.mean() - (m.t_coulomb + m.viscous * 30.0 + a * force)) > 20 * (4 * se + 2e-3)
+    # the speed is held at the reference on the last plateau (the loop is stable)
+    assert np.mean(np.diff(log["true_angle_rad"][-400:])) / m.ts == pytest.approx(30.0, rel=2e-3)
+
+
+def test_judge_applied_log_is_the_computed_log_one_sample_later(judge_roller_rigid_loadsteps):
+    log = judge_roller_rigid_loadsteps
+    assert np.array_equal(log["applied_n_m"][1:], log["computed_n_m"][:-1])
+    for name, case in gj.CASES.items():
+        t = gj.truth(case)
+        assert t["drive.command_delay_samples"] == case.delay - 1
+        assert t["delay_logged_to_action_samples"] == (case.delay if case.logged == "computed" else case.delay - 1)
+
+
+def test_judge_quantised_angle_is_whole_counts_and_the_staircase_breaks_away_from_rest():
+    case = gj.CASES["roller-rigid-d1-applied-si"]
+    log = gj.run(case, "staircase", seed=0)
+    q = 2 * math.pi / case.mech.counts
+    counts = log["angle_rad"] / q
+    assert np.max(np.abs(counts - np.round(counts))) < 1e-6
+    moved = int(np.argmax(np.abs(log["true_angle_rad"] - log["true_angle_rad"][0]) > 20 * q))
+    assert moved > 0
+    # the drive had to exceed the standstill (Stribeck) level, above the Coulomb level, to move
+    assert np.max(log["applied_n_m"][: moved + 1]) > case.mech.t_coulomb
+    assert np.max(np.abs(log["applied_n_m"][: moved + 1])) < case.mech.torque_limit
+
+
+@pytest.mark.parametrize("name", ["ball-2mass-d1-computed-si", "roller-2mass-d2-computed-nonsi"])
+def test_judge_frf_asymptote_mode_and_anti_resonance_from_formulas(name):
+    case = gj.CASES[name]
+    m, t = case.mech, gj.truth(case)
+    a = m.lead_m / (2 * math.pi)
+    jms = m.j_motor + m.j_screw
+    # low frequency: 1 / (J_lf s + b), J_lf = J_ms + m a^2 / eta (the loss on the whole nut force)
+    f = np.array([1.0, 2.0])
+    h = gj.frf(case, f)
+    j_lf = jms + m.mass * a * a / m.eta
+    assert np.abs(h) * np.hypot(j_lf * 2 * math.pi * f, m.viscous) == pytest.approx([1.0, 1.0], abs=2e-3)
+    # phase lag to first order: delay + hold + backward difference + current loop
+    w = 2 * math.pi * f
+    lag = w * ((t["delay_logged_to_action_samples"] + 1.0) * m.ts + 1.0 / (2 * math.pi * m.f_current))
+    assert np.angle(h) == pytest.approx(-math.pi / 2 + np.arctan(m.viscous / (j_lf * w)) - lag, abs=2e-3)
+    # peak and notch of a nearly undamped copy sit on the formulas
+    from dataclasses import replace
+
+    light = gj.Case(replace(m, zeta=1e-4), True, case.delay, case.logged, case.units)
+    fg = np.linspace(60.0, 260.0, 40001)
+    mag = np.abs(gj.frf(light, fg))
+    f_mode = math.sqrt(m.k_axial * (a * a / (m.eta * jms) + 1.0 / m.mass)) / (2 * math.pi)
+    f_anti = math.sqrt(m.k_axial / m.mass) / (2 * math.pi)
+    assert fg[np.argmax(mag)] == pytest.approx(f_mode, rel=2e-3)
+    assert fg[np.argmin(mag)] == pytest.approx(f_anti, rel=2e-3)
+    assert t["first_mode_hz"] == pytest.approx(f_mode, rel=1e-12)
+    assert t["anti_resonance_hz"] == pytest.approx(f_anti, rel=1e-12)
+    assert t["reflected_inertia_kg_m2"] == pytest.approx(jms + m.mass * a * a, rel=1e-12)
+
+
+def test_judge_non_si_log_reads_through_its_description_as_the_si_log(tmp_path):
+    # the ms / deg / % of rated torque / kN log, read by the toolkit's described-log reader (the
+    # user's path), is the simulated run in SI
+    from prsa_ctrl.identification import load_log_format, load_motor_record
+    from prsa_ctrl.plant import load_plant
+
+    name = "ball-rigid-d1-computed-nonsi"
+    case = gj.CASES[name]
+    log = gj.run(case, "loadsteps", seed=0)
+    path = tmp_path / "loadsteps.csv"
+    gj.write_log(case, log, path)
+    (tmp_path / "base.toml").write_text(gj.base_plant_text(case))
+    (tmp_path / "log.toml").write_text(gj.LOG_FORMAT_NONSI.format(gain=case.mech.rated_torque / 100.0, logged="as-computed"))
+    header = path.read_text().splitlines()[0]
+    assert header == "t_ms,motor_pos_deg,torque_pct_rated,load_kN"
+    rec, conv = load_motor_record(path, load_log_format(tmp_path / "log.toml"), load_plant(str(tmp_path / "base.toml")))
+    assert conv == "computed"
+    assert rec.time_s == pytest.approx(log["time_s"], abs=1e-12)
+    assert rec.nut_angle_rad == pytest.approx(log["angle_rad"], rel=1e-9, abs=1e-12)  # 10 digits of deg
+    assert rec.torque_command_n_m == pytest.approx(log["computed_n_m"], rel=1e-8, abs=1e-10)
+    assert rec.axial_load_n == pytest.approx(log["load_n"], rel=1e-8, abs=1e-6)
+
+
+def test_judge_generator_is_deterministic_and_its_base_plant_is_nominal(tmp_path):
+    from prsa_ctrl.plant import load_plant
+
+    case = gj.CASES["roller-rigid-d1-applied-si"]
+    one, two = gj.run(case, "multisine", 0), gj.run(case, "multisine", 0)
+    assert np.array_equal(one["angle_rad"], two["angle_rad"]) and np.array_equal(one["applied_n_m"], two["applied_n_m"])
+    assert not np.array_equal(one["applied_n_m"], gj.run(case, "multisine", 1)["applied_n_m"])
+    for name, c in gj.CASES.items():
+        p = tmp_path / f"{name}.toml"
+        p.write_text(gj.base_plant_text(c))
+        plant = load_plant(str(p))
+        assert plant is not None
+        text = p.read_text()
+        assert f"motor_inertia_kg_m2 = {{ value = {0.9 * c.mech.j_motor:.6g}" in text  # -10 %
+        assert abs(float(text.split("efficiency = { value = ")[1].split(",")[0]) - c.mech.eta) == pytest.approx(0.02)
+        assert "command_delay_samples" not in text
+
+
+# prsa-fit on the judge's cases: time-domain logs (rigid fidelity, as the docs' first command),
+# the FRF with the structure the data choose, and on the two-mass axes --fidelity compliant and
+# --fidelity rigid. The rule is the issue's, never today's numbers.
+JUDGE_KINDS = {name: (("logs", "frf", "frf-compliant", "frf-rigid") if c.two_mass else ("logs", "frf"))
+               for name, c in gj.CASES.items()}
+
+# Runs that violate the rule on main 1dddb38 at seed 0 (measured; the report's table): findings,
+# not tolerances. strict: a fix makes them XPASS and fails the run until the mark is removed.
+JUDGE_XFAIL = {
+    ("roller-rigid-d1-applied-si", "logs"):
+        "exit 0 with the truth outside the inertia's 95 % interval: 1.07773e-3 (CI 1.07641..1.07905e-3) against "
+        "1.08035e-3 kg m^2 (-0.24 %, 3.9 standard errors; efficiency 0.829835, CI 0.829722..0.829948, truth 0.83)",
+    ("ball-rigid-d1-computed-nonsi", "logs"):
+        "exit 0 with the truth outside the inertia's 95 % interval: 2.91687e-3 (CI 2.91622..2.91753e-3) against "
+        "2.92018e-3 kg m^2 (-0.11 %, 10 standard errors)",
+    ("ball-2mass-d1-computed-si", "logs"):
+        "exit 0, 'the plant explains the data', from a rigid fit of a two-mass axis whose 132.3 Hz mode is inside "
+        "the multisine's band: the written plant's axial mode is the base stiffness's 152.5 Hz (+15 %); the "
+        "multisine replays at 39.6 x its noise floor and passes on fit % >= 50 (86.3 %); no 'second mass' diagnosis",
+    ("roller-2mass-d1-applied-si", "logs"):
+        "exit 0, 'the plant explains the data', from a rigid fit of a two-mass axis (mode 161.3 Hz): the written "
+        "plant's axial mode is the base stiffness's 135.1 Hz (-16 %); multisine and load steps replay at 14.2 and "
+        "13.5 x their noise floors and pass on fit % >= 50 (90.5 %, 88.0 %); no 'second mass' diagnosis",
+}
+
+
+def _judge_command(name, kind, tmp_path):
+    """prsa-fit arguments of one judge run, on data of seed $PRSA_FOREIGN_SEED (default 0)."""
+    seed = int(os.environ.get("PRSA_FOREIGN_SEED", "0"))
+    exps = gj.EXPERIMENTS if kind == "logs" else ()
+    s = gj.generate(tmp_path / "data", name, seed=seed, experiments=exps)
+    t = s["truth"]
+    out, js = tmp_path / "fitted.toml", tmp_path / "report.json"
+    if kind == "logs":
+        logs = [s["logs"][n] for n in gj.EXPERIMENTS]
+        how = ["--log-format", s["log_format"]] if s["log_format"] else ["--command-logged", t["command_logged"]]
+        args = [*logs, *how, "--plant", s["base"], "--out", out, "--json", js]
+    else:
+        args = ["--frf", s["frf"], "--frf-speed", t["frf_speed_rad_s"], "--frf-load", t["frf_load_n"],
+                "--command-logged", t["command_logged"], "--plant", s["base"], "--out", out, "--json", js]
+        if kind != "frf":
+            args += ["--fidelity", kind.split("-")[1]]
+    return args, out, js, t
+
+
+def _judge_params():
+    # the marks were measured on seed 0 (the default); on another seed the rule is asserted bare
+    # (seed 1 measured: roller-rigid-d1-applied-si logs accepted, -0.045 % inside its interval;
+    # ball-rigid-d1-computed-nonsi logs exit 3 'delay', accepted)
+    seed0 = os.environ.get("PRSA_FOREIGN_SEED", "0") == "0"
+    for name, kinds in JUDGE_KINDS.items():
+        for kind in kinds:
+            reason = JUDGE_XFAIL.get((name, kind)) if seed0 else None
+            marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+            yield pytest.param(name, kind, marks=marks, id=f"{name}--{kind}")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(PRSA_FIT is None, reason="the prsa-fit console script is not installed")
+@pytest.mark.parametrize("name,kind", list(_judge_params()))
+def test_prsa_fit_acceptance_on_the_judges_cases(name, kind, tmp_path):
+    # exit 0 with a file whose total inertia is within 3 % with the truth inside its 95 %
+    # interval, the delay exact, the current loop within 25 %, the mode within 5 % where the
+    # data hold one; or exit 3 with no file and a one-line diagnosis. Never exit 0 with the
+    # inertia outside its interval.
+    args, out, js, truth = _judge_command(name, kind, tmp_path)
+    proc = _run(args, tmp_path)
+    fails, row = _acceptance(proc, out, js, truth, mode_expected=truth["two_mass"])
+    _record(f"judge:{name}--{kind}", args, row, fails)
+    assert not fails, f"{name} {kind}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
