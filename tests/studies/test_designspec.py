@@ -89,7 +89,7 @@ def test_proposals_tuned_in_two_processes_equal_the_serial_ones(roller):
     from prsa_ctrl.studies.scenerobust import scenario_loops, scenarios
 
     plant, scene = roller
-    unc = uncertainty_model(plant, scene)
+    unc = uncertainty_model(plant, scene.sections.plant_overrides)
     scens = scenarios(plant, scene, unc=unc)
     args = (scenario_loops(plant, scene, scens), scens, unc, scene.objective, scene.controller, scene.mt_max, "worst")
     serial = designspec._tune_levels(args, [1.3, 1.6], 1)
