@@ -102,10 +102,15 @@ _UNITS = {"axis.mass_kg": "kg", "friction.viscous_positive_n_s_per_m": "N s/m",
 DEFAULTS: Mapping[str, tuple[float, str]] = {k: plant_schema.DEFAULTS[k] for k in PARAMETERS[1:]}
 #: Coordinates of a linear axis, as reports and files state them.
 COORDINATES = "load (position m, force N)"
-_SECTIONS = {"axis": ("mass_kg",), "friction": ("coulomb_positive_n", "coulomb_negative_n", "viscous_positive_n_s_per_m",
+_SECTIONS = {"axis": ("mass_kg", "load_mass_kg", "load_stiffness_n_per_um", "axial_damping_ratio"), "friction": ("coulomb_positive_n", "coulomb_negative_n", "viscous_positive_n_s_per_m",
                                                  "viscous_negative_n_s_per_m"),
              "drive": ("gain_n_per_unit", "force_limit_n", "command_unit"),
              "sensor": ("sample_time_s", "encoder_resolution_m")}
+
+
+#: The keys of a two-mass linear axis (:data:`prsa_ctrl.plant.schema.LINEAR_AXIS_SCHEMA`): written
+#: only when ``axis.load_mass_kg`` > 0 (a rigid axis's file stays as it was).
+_TWO_MASS_KEYS = ("axis.load_mass_kg", "axis.load_stiffness_n_per_um", "axis.axial_damping_ratio")
 
 
 @dataclass(frozen=True)
@@ -212,6 +217,10 @@ def axis_plant_toml(plant: LinearAxisPlant) -> str:
             v = plant.values.get(full, math.inf)
             if math.isinf(v):
                 continue  # the default (no limit) is what a missing key means
+            if full in _TWO_MASS_KEYS and not plant.values.get("axis.load_mass_kg", 0.0) > 0:
+                continue  # a rigid axis: no second mass, its spring and damping mean nothing
+            if full in _TWO_MASS_KEYS[1:] and full not in plant.sources:
+                continue
             table[k] = {"value": v, "source": plant.sources[full]}
         doc[sec] = table
     if plant.uncertainty:

@@ -23,6 +23,20 @@ fitting it that much better (:func:`_per_log_evidence`: a log whose misfit the s
 change must not hide the log that shows the delay) -- or left out for lack of current-loop lag;
 otherwise a warning names the shifts that fit alike (and the keys whose values move beyond
 their 95 % intervals between them) or that failed.
+
+The ratio is an effect size, and a misfit the model structure leaves on every shift alike
+dilutes it: on the ball-screw logs of tests/identification/foreign (true shift 2) 99 % of the
+objective is deterministic misfit (the same logs without any noise: 5.616e8 against 5.671e8 with
+it), and shift 3 fits 3.6 to 13 % worse on every log, 3.1e7 in all -- about six times the whole
+objective the noise contributes, yet far below the factor 1.5. So a shift is also refuted by a
+statistical test (:func:`segment_test`): the multiple-shooting segments have free initial
+states, so each segment is its own experiment, and the per-segment objective differences
+between the shift and the best are tested for a zero mean (paired t over the segments of all
+logs, one-sided, at :data:`DELAY_TEST_LEVEL` family-wise over the other shifts, Bonferroni).
+Misfit makes single logs prefer shifts for reasons other than the delay (there the load steps
+prefer shorter shifts at every step: 1 over 2 with t = -5.7), so the test refutes a shift only
+where no log's own test prefers it at the same level and no log fits it
+:data:`DELAY_OBJECTIVE_RATIO` times better: otherwise the delay stays undecided.
 """
 
 from __future__ import annotations
@@ -35,7 +49,8 @@ from ..errors import FitError
 from ..plant.plantfile import Plant
 from .common import FitResult
 
-__all__ = ["CONVENTIONS", "DEFAULT_CONVENTION", "DELAY_OBJECTIVE_RATIO", "MAX_SHIFT", "plant_shift",
+__all__ = ["CONVENTIONS", "DEFAULT_CONVENTION", "DELAY_OBJECTIVE_RATIO", "DELAY_TEST_LEVEL", "MAX_SHIFT", "plant_shift",
+           "segment_test", "MIN_TEST_SEGMENTS",
            "search_delay", "with_command_delay", "SEARCH_SEGMENT_S", "SEARCH_SEGMENT_SAMPLES", "search_segment_s",
            "find_delay", "refit_found", "check_convention"]
 
@@ -50,6 +65,12 @@ DEFAULT_CONVENTION = "applied"
 #: residual RMS at least 22 % larger. Measured on the foreign logs of the tests: the neighbour of
 #: the true shift fits 10 to 200 times worse.
 DELAY_OBJECTIVE_RATIO = 1.5
+#: Level of the paired segment test (:func:`segment_test`) that refutes a shift, family-wise
+#: over the other fitted shifts (Bonferroni: each comparison at this level divided by their
+#: number), one-sided.
+DELAY_TEST_LEVEL = 0.01
+#: Fewest segments (of the logs together) on which the paired test is made.
+MIN_TEST_SEGMENTS = 10
 #: Largest shift searched or accepted, samples.
 MAX_SHIFT = 10
 #: The search leaves out shifts that leave less than this fraction of a sample of current-loop lag.
@@ -160,14 +181,87 @@ def _per_log_evidence(per_log: dict, best: int) -> tuple[dict[int, list[str]], d
     return evidence, against
 
 
-def _decided_shift(good: dict, per_log: dict) -> int | None:
+def segment_test(seg_s: dict, seg_b: dict, logs=None) -> dict | None:
+    """The paired test of two fits' per-segment objectives (``solver["objective_per_segment"]``:
+    ``{log: [objective of each segment]}``, the same segments in both): the differences
+    ``d_g = f_g(s) - f_g(b)`` over the segments of ``logs`` (default all) and the t statistic of
+    their mean, ``mean(d) / (sd(d) / sqrt(G))`` with ``G - 1`` degrees of freedom (positive: ``s``
+    fits worse). The segments are independent experiments of the fit (each has its own fitted
+    initial state), the objective being the segment's half sum of squared residuals.
+
+    Returns
+    -------
+    dict or None
+        ``{"t", "segments", "p_one_sided", "ratio"}`` (``p`` of ``t`` or larger when the two fit
+        alike; ``ratio`` the summed objectives' ``f(s) / f(b)``), or ``None`` when the segments do
+        not pair up, are fewer than :data:`MIN_TEST_SEGMENTS`, or all differ alike (no spread).
+    """
+    import numpy as np
+    from scipy import stats
+
+    logs = [n for n in seg_b if n in seg_s] if logs is None else list(logs)
+    if not logs or any(n not in seg_s or n not in seg_b or len(seg_s[n]) != len(seg_b[n]) for n in logs):
+        return None
+    a = np.concatenate([np.asarray(seg_s[n], float) for n in logs])
+    b = np.concatenate([np.asarray(seg_b[n], float) for n in logs])
+    g = a.size
+    if g < MIN_TEST_SEGMENTS or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or b.sum() <= 0:
+        return None
+    d = a - b
+    sd = float(np.std(d, ddof=1))
+    mean = float(np.mean(d))
+    if not sd > 1e-12 * max(float(np.mean(np.abs(b))), 1e-300):
+        return None  # every segment differs alike (or not at all): no spread to test against
+    t = mean / (sd / math.sqrt(g))
+    return {"t": float(t), "segments": int(g), "p_one_sided": float(stats.t.sf(t, g - 1)),
+            "ratio": float(a.sum() / b.sum())}
+
+
+def _critical_t(segments: int, comparisons: int) -> float:
+    """One-sided critical t of the paired test at :data:`DELAY_TEST_LEVEL` / ``comparisons``."""
+    from scipy import stats
+
+    return float(stats.t.isf(DELAY_TEST_LEVEL / max(comparisons, 1), max(segments - 1, 1)))
+
+
+def _tested(per_seg: dict, best: int, against: dict) -> dict[int, dict]:
+    """Per fitted shift ``s`` other than ``best``: the paired segment test of ``s`` against
+    ``best`` (:func:`segment_test`) over all logs, each log's own, the critical t and whether it
+    refutes ``s`` (``"refutes"``): the pooled t at least critical, no log's own t at most minus
+    its critical value (a log that prefers ``s``), and no log fitting ``s`` the ratio better
+    (``against``)."""
+    ref = per_seg.get(best) or {}
+    others = [s for s in per_seg if s != best]
+    out = {}
+    for s in others:
+        pooled = segment_test(per_seg[s] or {}, ref)
+        if pooled is None:
+            continue
+        crit = _critical_t(pooled["segments"], len(others))
+        logs = {}
+        for n in ref:
+            one = segment_test(per_seg[s] or {}, ref, [n])
+            if one is not None:
+                logs[n] = {**one, "critical_t": _critical_t(one["segments"], len(others))}
+        prefer = [n.replace("\\", "/").rsplit("/", 1)[-1] for n, v in logs.items() if v["t"] <= -v["critical_t"]]
+        out[s] = {**pooled, "critical_t": crit, "logs_preferring_it": prefer,
+                  "refutes": bool(pooled["t"] >= crit and pooled["ratio"] > 1.0 and not prefer and not against.get(s)),
+                  "per_log": {n.replace("\\", "/").rsplit("/", 1)[-1]: {"t": v["t"], "segments": v["segments"],
+                                                                       "ratio": v["ratio"]} for n, v in logs.items()}}
+    return out
+
+
+def _decided_shift(good: dict, per_log: dict, per_seg: dict | None = None) -> int | None:
     """The one fitted shift that every other fitted shift fits worse by the ratio, all logs
-    together or on a log of its own (and on no log better by the ratio), else ``None``."""
+    together or on a log of its own (and on no log better by the ratio), or that the paired
+    segment test refutes (:func:`_tested`), else ``None``."""
+    per_seg = per_seg or {}
     for c in sorted(good, key=lambda s: good[s].solver["objective"]):
         f_c = good[c].solver["objective"]
         evidence, against = _per_log_evidence(per_log, c)
-        if all(not against.get(s) and (good[s].solver["objective"] >= DELAY_OBJECTIVE_RATIO * f_c or s in evidence)
-               for s in good if s != c):
+        tests = _tested(per_seg, c, against) if c in per_seg else {}
+        if all((not against.get(s) and (good[s].solver["objective"] >= DELAY_OBJECTIVE_RATIO * f_c or s in evidence))
+               or tests.get(s, {}).get("refutes") for s in good if s != c):
             return c
     return None
 
@@ -256,14 +350,19 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
                        f"{max(starts.values())} starts): "
                        + "; ".join(f"{s}: {e}" for s, e in errors.items()))
     per_log = {s: r.solver.get("objective_per_record") or {} for s, r in good.items()}
-    best = _decided_shift(good, per_log)
+    per_seg = {s: r.solver.get("objective_per_segment") for s, r in good.items()
+               if r.solver.get("objective_per_segment")}
+    best = _decided_shift(good, per_log, per_seg)
     if best is None:  # none decided: the best of all logs together
         best = min(good, key=lambda s: good[s].solver["objective"])
     res = good[best]
     f_best = res.solver["objective"]
     evidence, against = _per_log_evidence(per_log, best)
+    tests = _tested(per_seg, best, against) if best in per_seg else {}
+    by_test = sorted(s for s, v in tests.items() if v["refutes"] and s not in evidence
+                     and good[s].solver["objective"] < DELAY_OBJECTIVE_RATIO * f_best)
     close = [s for s in good if s != best and good[s].solver["objective"] < DELAY_OBJECTIVE_RATIO * f_best
-             and s not in evidence]
+             and s not in evidence and s not in by_test]
     # a log that fits another shift better by the ratio contradicts the pooled decision
     contra = sorted(s for s in good if s != best and against.get(s))
     failed = sorted(s for s, r in fits.items() if r is None)
@@ -296,6 +395,18 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
             f"shift {s} against {best}: {', '.join(evidence[s])}" for s in sorted(evidence))
             + f" (objective at least {DELAY_OBJECTIVE_RATIO:g} x the best's on that log; the other logs fit both "
             "shifts alike)")
+    if by_test:
+        warns.append("the command delay is decided by the paired segment test: " + "; ".join(
+            f"shift {s} against {best}: t = {tests[s]['t']:.3g} over {tests[s]['segments']} segments (critical "
+            f"{tests[s]['critical_t']:.3g}), objective {tests[s]['ratio']:.4g} x the best's" for s in by_test)
+            + f" (level {DELAY_TEST_LEVEL:g} over the {len(tests)} other shift(s); no log prefers "
+            f"{'them' if len(by_test) > 1 else 'it'})")
+    undecided_tests = {s: v for s, v in tests.items() if s in close and v["logs_preferring_it"]}
+    if undecided_tests:
+        warns.append("the paired segment test cannot decide the command delay either: " + "; ".join(
+            f"{', '.join(v['logs_preferring_it'])} prefer{'' if len(v['logs_preferring_it']) > 1 else 's'} shift {s} "
+            f"to {best} (the model's misfit, not the delay, can make a log prefer a shift)"
+            for s, v in sorted(undecided_tests.items())))
     retried = {s: n for s, n in starts.items() if n > 1 and fits[s] is not None}
     if retried:
         warns.append("the fit at shift " + ", ".join(f"{s} converged from start {n}" for s, n in retried.items())
@@ -310,12 +421,19 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
                               "objective_per_log": {str(s): {n: float(v) for n, v in per_log[s].items()}
                                                     for s in sorted(per_log)},
                               "decided_by_logs": {str(s): v for s, v in sorted(evidence.items())},
+                              "segment_test": {str(s): v for s, v in sorted(tests.items())},
+                              "decided_by_test": [int(s) for s in by_test],
+                              "test_level": DELAY_TEST_LEVEL,
                               "decided": not close and not failed and not contra,
                               "ratio_tolerance": DELAY_OBJECTIVE_RATIO,
                               "rule": f"decided when every other shift of {min_shift}..{max_shift} was fitted with an "
                                       f"objective at least {DELAY_OBJECTIVE_RATIO:g} x the best's (all logs together, or "
                                       "on one log with no log fitting it that much better) or left out for lack "
-                                      "of current-loop lag; a shift whose fit failed from every start leaves it undecided"}
+                                      "of current-loop lag, or refuted by the paired segment test (one-sided t on the "
+                                      "per-segment objective differences of all logs at level "
+                                      f"{DELAY_TEST_LEVEL:g} / the number of other shifts, with no log's own test "
+                                      "preferring it and no log fitting it the ratio better); a shift whose fit failed "
+                                      "from every start leaves it undecided"}
     out = FitResult(res.plant, res.parameters, res.reflected_inertia_kg_m2, res.correlation, res.keys,
                     res.fit_percent, warns, solver, res.traces, res.delay, res.not_identified,
                     res.covariance)

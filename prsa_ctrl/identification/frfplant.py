@@ -26,8 +26,10 @@ current loop and delay):
     m_rollers``, ``contact.stiffness_n_per_mm_e`` such that the compliant model's first axial
     mode at the measurement's load is at ``f_r``.
 ``linear-axis`` (load coordinates: force in N, speed in m/s)
-    ``axis.mass_kg = J``. Its plant carries no compliance (:mod:`prsa_ctrl.plant.model`): a
-    two-mass fit's mode is reported, and the written plant says in a warning that it is rigid.
+    ``axis.mass_kg = J``; two-mass: also ``axis.load_mass_kg = J_l``,
+    ``axis.load_stiffness_n_per_um = k = J_l (2 pi f_a)^2`` (1e-6 of N/m) and
+    ``axis.axial_damping_ratio = zeta``. The toolkit's linear-axis model is rigid
+    (:mod:`prsa_ctrl.plant.model`: it uses ``axis.mass_kg``): a warning says so.
 
 Every mechanism: ``drive.current_loop_bandwidth_hz = f_c`` and the delay ``T`` as
 ``drive.command_delay_samples`` whole samples, the rest lumped into the current-loop lag
@@ -96,6 +98,7 @@ KEY_UNITS = {
     "axis.motor_inertia_kg_m2": "kg m^2", "nut.inertia_kg_m2": "kg m^2", "axis.moving_mass_kg": "kg",
     "axis.nut_stiffness_n_per_um": "N/um", "axis.axial_damping_ratio": "-", "screw.mass_kg": "kg",
     "contact.stiffness_n_per_mm_e": "N/mm^e", "axis.mass_kg": "kg", "drive.current_loop_bandwidth_hz": "Hz",
+    "axis.load_mass_kg": "kg", "axis.load_stiffness_n_per_um": "N/um",
     "drive.command_delay_s": "s",
 }
 
@@ -304,8 +307,12 @@ def _direct_closed(plant: Plant, structure: str, v: Mapping[str, float]) -> dict
     """The closed-form part of :func:`_direct`."""
     vals, a2 = plant.values, plant.lead_per_rad**2
     out = {}
-    if plant.mechanism == "linear-axis":
+    if plant.mechanism == "linear-axis":  # load coordinates: kg m^2 per rad^2 = kg, N m/rad = N/m
         out["axis.mass_kg"] = v["total_inertia_kg_m2"]
+        if structure == "two-mass":
+            out["axis.load_mass_kg"] = v["load_inertia_kg_m2"]
+            out["axis.load_stiffness_n_per_um"] = v["stiffness_n_m_per_rad"] * 1e-6
+            out["axis.axial_damping_ratio"] = v["damping_ratio"]
     elif plant.screw_driven:
         js = vals["axis.screw_inertia_kg_m2"]
         if structure == "rigid":
@@ -424,9 +431,11 @@ def plant_keys_of(plant: Plant, fit: FrfModelFit, *, speed_rad_s: float, load_n:
             warns.append(f"{k} = {direct[k]:.4g} from the fitted inertias is not > 0: the base plant's other "
                          "inertias (screw, cage, rollers) exceed what the response shows on that side; check them")
     elif structure == "two-mass" and plant.mechanism == "linear-axis":
-        warns.append(f"the response shows an axial mode at {v0['resonance_hz']:.4g} Hz (anti-resonance "
-                     f"{v0['antiresonance_hz']:.4g} Hz) that a linear-axis plant cannot carry (it has no compliance "
-                     "keys): the plant file gets the total mass only; the mode's values are in the report")
+        warns.append(f"the response shows a mode at {v0['resonance_hz']:.4g} Hz (anti-resonance "
+                     f"{v0['antiresonance_hz']:.4g} Hz): written as axis.load_mass_kg, axis.load_stiffness_n_per_um "
+                     "(anti-resonance^2 x load mass) and axis.axial_damping_ratio; the toolkit's linear-axis model "
+                     "is rigid (the simulation and the tuners use axis.mass_kg, the whole mass), so the mode is the "
+                     "plant file's record of the axis, not yet a part of its loop model")
     cov = grads @ cov_t @ grads.T
     from scipy.stats import t as student_t
 

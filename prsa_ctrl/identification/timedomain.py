@@ -480,6 +480,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
         "iterations_all_attempts": spent + sol["iterations"],
         "objective": sol["objective"],
         "objective_per_record": dict(sol["objective_per_record"]),
+        "objective_per_segment": dict(sol["objective_per_segment"]),
         "residual_std": float(sigma),
         "residual_unit": fit_run.residual_unit,
         "residuals": int(n_res),
@@ -817,16 +818,22 @@ class _Problem:
         self._final = (V, X0, s)
         out = {"V": V, "X0": X0, "s": s, "status": status, "iterations": it, "objective": f_val,
                "converged_at_kink": bool(self.at_kink),
-               "objective_per_record": self.objective_per_record(V, X0)}
+               "objective_per_record": self.objective_per_record(V, X0),
+               "objective_per_segment": self.objective_per_record(V, X0, per_segment=True)}
         out["fit_percent"], out["traces"] = self._fit_percent(self.thetas(V, X0))
         return out
 
-    def objective_per_record(self, V, X0) -> dict[str, float]:
-        """Half the sum of squared weighted residuals of each record's segments (the objective's share)."""
-        out: dict[str, float] = {}
+    def objective_per_record(self, V, X0, per_segment: bool = False) -> dict:
+        """Half the sum of squared weighted residuals of each record's segments (the objective's
+        share); ``per_segment``: each record's list of its segments' shares, in time order (the
+        delay search's paired test, :func:`prsa_ctrl.identification.delay.segment_test`)."""
+        out: dict = {}
         for sg, e in zip(self.segs, self.residuals(V, X0)):
             name = self.records[sg.rec].name
-            out[name] = out.get(name, 0.0) + 0.5 * float(e @ e)
+            if per_segment:
+                out.setdefault(name, []).append(0.5 * float(e @ e))
+            else:
+                out[name] = out.get(name, 0.0) + 0.5 * float(e @ e)
         return out
 
     def simulate(self, sol, plant: Plant) -> dict:

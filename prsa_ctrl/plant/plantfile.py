@@ -289,6 +289,14 @@ def _check_screw_axis(v: Mapping[str, float], o: str) -> None:
             f"{v['screw.pitch_diameter_mm']:g}; expected the thread root inside the pitch circle")
 
 
+def _check_linear_axis(v: Mapping[str, float], o: str) -> None:
+    """Cross-check of a linear axis: the mass beyond its spring is a part of the whole moving mass."""
+    if v["axis.load_mass_kg"] >= v["axis.mass_kg"]:
+        raise PlantFileError(
+            f"{o}: axis.load_mass_kg = {v['axis.load_mass_kg']:g} kg is not below axis.mass_kg = {v['axis.mass_kg']:g} kg; "
+            "expected the load side's part of the whole moving mass (0: a rigid axis)")
+
+
 def _parse(doc: Mapping[str, Any], origin: str):
     """Validate a parsed plant document; return name, description, mechanism, values, sources
     and the keys defaulted."""
@@ -312,6 +320,8 @@ def _parse(doc: Mapping[str, Any], origin: str):
     defaulted = _fill_defaults(values, sources, mechanism, origin)
     if mechanism in SCREW_DRIVEN:
         _check_screw_axis(values, origin)
+    if mechanism == "linear-axis":
+        _check_linear_axis(values, origin)
     ordered = {k: values[k] for k in keys_of(mechanism)}
     return name.strip(), description, mechanism, mech_src, ordered, {k: sources[k] for k in ordered}, defaulted
 
@@ -498,6 +508,8 @@ class Plant:
             sources = {k: srcs[k] for k in values}
         if self.screw_driven:
             _check_screw_axis(values, f"{self.name} override")
+        if self.mechanism == "linear-axis":
+            _check_linear_axis(values, f"{self.name} override")
         return Plant(
             name=name or f"{self.name}*",
             values=values,

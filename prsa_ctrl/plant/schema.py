@@ -191,6 +191,9 @@ PLAUSIBLE: Mapping[str, tuple[float, float, str]] = {
     "screw.youngs_modulus_gpa": (50.0, 400.0, "steels ~200 to 210 GPa"),
     # linear axes
     "axis.mass_kg": (1e-3, 1e5, "a moving slide of grams to a machine table of tonnes"),
+    "axis.load_mass_kg": (0.0, 1e5, "the part of axis.mass_kg beyond the axis's first spring (0: rigid)"),
+    "axis.load_stiffness_n_per_um": (1e-3, 1e5, "a payload's mount, a belt or a coupling: ~0.01 N/um to a rigid "
+                                     "bolted table of ~1000 N/um"),
     "drive.gain_n_per_unit": (1e-6, 1e6, "force per command unit: N/V of a drive, 1 for a command in N"),
     "drive.force_limit_n": (1e-3, 1e7, "peak force of the drive at the load"),
     "sensor.encoder_resolution_m": (1e-10, 1e-2, "linear scales and encoders at the load: 1 nm to 10 mm"),
@@ -235,7 +238,11 @@ SCREW_AXIS_SCHEMA: Mapping[str, Mapping[str, str]] = {
 #: Keys of a ``linear-axis`` plant (load coordinates; the file format of
 #: :mod:`prsa_ctrl.identification.axis`), besides the rotary core it maps onto.
 LINEAR_AXIS_SCHEMA: Mapping[str, Mapping[str, str]] = {
-    "axis": {"mass_kg": POSITIVE},
+    # axis.mass_kg is the whole moving mass; a two-mass axis (a payload on a spring, the FRF
+    # fit's two-mass structure) puts axis.load_mass_kg of it beyond axis.load_stiffness_n_per_um
+    # with the modal damping axis.axial_damping_ratio (0 kg: rigid, the other two unused)
+    "axis": {"mass_kg": POSITIVE, "load_mass_kg": NON_NEGATIVE, "load_stiffness_n_per_um": POSITIVE,
+             "axial_damping_ratio": FRACTION},
     "friction": {
         "coulomb_positive_n": NON_NEGATIVE,
         "coulomb_negative_n": NON_NEGATIVE,
@@ -461,7 +468,11 @@ DEFAULTS: Mapping[str, tuple[Union[float, Rule], Union[str, Mapping[str, str]]]]
                                         "the carriage's inertial force included (Varanasi & Nayfeh, J. Dyn. Sys. Meas. "
                                         "Control 126(2) 2004; the stiff limit of the compliant screw-driven model); 0 "
                                         "puts it on the external load only (prsa_ctrl.plant.model.nut_loss_on_whole_force)"),
-    "axis.axial_damping_ratio": (0.03, "default: typical modal damping of the axial mode of a screw feed drive (1 to 5 %)"),
+    "axis.axial_damping_ratio": (0.03, {"linear-axis": "default: typical modal damping of a feed axis's first mode (1 to "
+                                                       "5 %); not used while axis.load_mass_kg = 0 (rigid)",
+                                        "*": "default: typical modal damping of the axial mode of a screw feed drive (1 to 5 %)"}),
+    "axis.load_mass_kg": (0.0, "default: rigid, the whole axis.mass_kg moves as one body"),
+    "axis.load_stiffness_n_per_um": (100.0, "default: not used while axis.load_mass_kg = 0 (rigid)"),
 }
 
 #: Unit of each key (for :func:`prsa_ctrl.plant.describe.describe_plant`), from its name.

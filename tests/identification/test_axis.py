@@ -115,6 +115,35 @@ def test_a_coulomb_interval_reaching_zero_is_written_inside_the_range(tmp_path):
     assert back.uncertainty["friction.coulomb_negative_n"]["truncate"] == 1.234567
 
 
+def test_a_two_mass_axis_file_round_trips_and_a_rigid_one_stays_as_it_was(tmp_path):
+    """The two-mass keys of a linear axis (the FRF fit's mode: axis.load_mass_kg,
+    axis.load_stiffness_n_per_um, axis.axial_damping_ratio) are written with their sources and
+    read back; a rigid axis (load mass 0, the default) writes none of them."""
+    import tomllib
+
+    from prsa_ctrl.identification.axis import AxisPlantError, axis_plant_toml
+
+    base = load_axis_plant(EXAMPLE / "plant.toml")
+    rigid = tomllib.loads(axis_plant_toml(base))
+    assert set(rigid["axis"]) == {"mass_kg"}
+    assert base.values["axis.load_mass_kg"] == 0.0
+    two = {"axis.load_mass_kg": 0.3 * base.values["axis.mass_kg"], "axis.load_stiffness_n_per_um": 2.5,
+           "axis.axial_damping_ratio": 0.04}
+    plant = base.with_values(two, {k: f"fit: two-mass FRF ({k})" for k in two})
+    p = tmp_path / "two.toml"
+    p.write_text(axis_plant_toml(plant))
+    back = load_axis_plant(p)
+    for k, v in two.items():
+        assert back.values[k] == pytest.approx(v, rel=1e-12) and back.sources[k] == f"fit: two-mass FRF ({k})"
+    assert back.to_plant().values["axis.load_stiffness_n_per_um"] == pytest.approx(2.5)
+    bad = tmp_path / "bad.toml"
+    bad.write_text(p.read_text().replace(f"load_mass_kg = {{ value = {two['axis.load_mass_kg']!r}",
+                                         f"load_mass_kg = {{ value = {2 * base.values['axis.mass_kg']!r}"))
+    assert bad.read_text() != p.read_text()
+    with pytest.raises(AxisPlantError, match="axis.load_mass_kg = .* is not below axis.mass_kg"):
+        load_axis_plant(bad)
+
+
 def test_the_screw_fit_entries_never_cross_the_range():
     """The motor-coordinate fit's entries (identification.common) round inward too."""
     from prsa_ctrl.identification.common import _uncertainty_entries

@@ -10,7 +10,7 @@ import pytest
 from prsa_ctrl import GeometryWarning, load_plant
 from prsa_ctrl.errors import FitError
 from prsa_ctrl.identification.common import FitResult
-from prsa_ctrl.identification.delay import DELAY_OBJECTIVE_RATIO, search_delay
+from prsa_ctrl.identification.delay import DELAY_OBJECTIVE_RATIO, DELAY_TEST_LEVEL, search_delay, segment_test
 
 BW = "drive.current_loop_bandwidth_hz"
 KEYS = ("nut.inertia_kg_m2", BW)
@@ -190,3 +190,108 @@ def test_ball_screw_logs_refute_every_shorter_delay(how, tmp_path):
     f = {int(k): v for k, v in search["objective"].items()}
     for shorter in range(search["range"][0], true_shift):
         assert f[shorter] >= DELAY_OBJECTIVE_RATIO * f[true_shift] or str(shorter) in search["decided_by_logs"], shorter
+    # and the longer shift (within 1.5 x on every log: 1.04..1.13 on seed 0) by the paired segment
+    # test: every log fits it worse, t over the 150 segments well past the critical value
+    longer = true_shift + 1
+    assert search["decided"] is True, search["segment_test"]
+    assert longer in search["decided_by_test"], search["segment_test"]
+    st = search["segment_test"][str(longer)]
+    assert st["t"] >= st["critical_t"] and st["logs_preferring_it"] == []
+    assert all(v["ratio"] > 1.0 for v in st["per_log"].values())
+
+
+def _fake_segments(plant, per_seg):
+    """fit_at whose result carries per-segment objectives: ``per_seg[shift] = {log: [objective per segment]}``."""
+
+    def fit_at(shift, start):
+        segs = {n: [float(x) for x in v] for n, v in per_seg[shift].items()}
+        r = _result(plant, sum(sum(v) for v in segs.values()), 100.0)
+        r.solver["objective_per_record"] = {n: sum(v) for n, v in segs.items()}
+        r.solver["objective_per_segment"] = segs
+        return r
+
+    return fit_at
+
+
+def _segments(seed, n, level, spread):
+    rng = np.random.default_rng(seed)
+    return level * (1.0 + spread * rng.standard_normal(n))
+
+
+def test_segment_test_is_the_paired_t_of_the_segment_differences():
+    from scipy import stats
+
+    b = {"a.csv": [1.0, 2.0, 3.0, 4.0, 5.0, 6.0], "b.csv": [2.0, 2.0, 2.0, 2.0, 2.0, 2.0]}
+    s = {"a.csv": [1.1, 2.3, 3.0, 4.2, 5.1, 6.4], "b.csv": [2.1, 2.0, 2.2, 2.05, 1.9, 2.3]}
+    out = segment_test(s, b)
+    d = np.concatenate([np.subtract(s[n], b[n]) for n in ("a.csv", "b.csv")])
+    ref = stats.ttest_1samp(d, 0.0, alternative="greater")  # an independent computation of the same test
+    assert out["segments"] == 12
+    assert out["t"] == pytest.approx(float(ref.statistic), rel=1e-12)
+    assert out["p_one_sided"] == pytest.approx(float(ref.pvalue), rel=1e-9)
+    assert out["ratio"] == pytest.approx(sum(map(sum, s.values())) / sum(map(sum, b.values())))
+    assert segment_test(b, s)["t"] == pytest.approx(-out["t"])  # symmetric
+    # one log only
+    assert segment_test(s, b, ["a.csv"]) is None  # 6 segments: fewer than MIN_TEST_SEGMENTS
+    # segments that do not pair up, or no spread of the differences: no test
+    assert segment_test({"a.csv": [1.0] * 11}, {"a.csv": [1.0] * 12}) is None
+    assert segment_test({"a.csv": [2.0] * 12}, {"a.csv": [1.0] * 12}) is None
+
+
+def test_a_consistently_worse_longer_shift_is_refuted_by_the_segment_test(plant):
+    # Shift 3 fits 5 % worse than 2 on every segment of every log (with a 2 % segment-to-segment
+    # spread): far inside the ratio 1.5, but 150 paired segments refute it; 0 and 1 are refuted by
+    # the ratio. The delay is decided at 2, and the report says by which test.
+    base = {n: _segments(i, 50, lv, 0.3) for i, (n, lv) in enumerate((("m.csv", 6e5), ("l.csv", 1.6e6), ("s.csv", 9e6)))}
+    per = {2: base,
+           3: {n: v * 1.05 * (1 + 0.02 * np.random.default_rng(10 + i).standard_normal(v.size))
+               for i, (n, v) in enumerate(base.items())},
+           0: {n: v * 3.0 for n, v in base.items()},
+           1: {n: v * 2.0 for n, v in base.items()}}
+    shift, res = search_delay(_fake_segments(plant, per), plant, KEYS, 1.25e-4, 3)
+    ds = res.solver["delay_search"]
+    assert shift == 2 and ds["decided"] is True
+    assert ds["decided_by_test"] == [3]
+    t3 = ds["segment_test"]["3"]
+    assert t3["refutes"] and t3["t"] > t3["critical_t"] > 2.0 and t3["segments"] == 150
+    assert ds["test_level"] == DELAY_TEST_LEVEL
+    assert any("paired segment test" in w and "shift 3 against 2" in w for w in res.warnings)
+    # without the per-segment objectives (the ratio rule alone) the same fits stay undecided
+    bare = _fake_segments(plant, per)
+
+    def no_segments(shift, start):
+        r = bare(shift, start)
+        del r.solver["objective_per_segment"]
+        return r
+
+    shift, res = search_delay(no_segments, plant, KEYS, 1.25e-4, 3)
+    assert shift == 2 and res.solver["delay_search"]["decided"] is False
+
+
+def test_differences_within_the_segment_noise_leave_the_delay_undecided(plant):
+    # shift 3's segments differ from 2's by noise of zero mean (the two fit alike): not refuted
+    base = {"m.csv": _segments(1, 60, 1e6, 0.3), "l.csv": _segments(2, 60, 2e6, 0.3)}
+    noise = np.random.default_rng(3)
+    per = {2: base, 3: {n: v * (1 + 0.05 * noise.standard_normal(v.size)) for n, v in base.items()},
+           1: {n: v * 2.0 for n, v in base.items()}}
+    per[3] = {n: v * (sum(base[n]) / sum(v)) * 1.0001 for n, v in per[3].items()}  # the sum a hair worse
+    shift, res = search_delay(_fake_segments(plant, per), plant, KEYS, 1.25e-4, 3, min_shift=1)
+    ds = res.solver["delay_search"]
+    assert shift == 2 and ds["decided"] is False
+    assert abs(ds["segment_test"]["3"]["t"]) < ds["segment_test"]["3"]["critical_t"]
+    assert not ds["segment_test"]["3"]["refutes"]
+
+
+def test_a_log_whose_own_test_prefers_the_other_shift_leaves_it_undecided(plant):
+    # pooled, shift 3 is worse (the big log); but the small log's segments prefer 3 significantly:
+    # the model's misfit, not the delay, may drive either, so the test does not decide
+    base = {"m.csv": _segments(4, 50, 1e6, 0.2), "l.csv": _segments(5, 50, 4e6, 0.2)}
+    per = {2: base, 3: {"m.csv": base["m.csv"] * 0.9, "l.csv": base["l.csv"] * 1.08},
+           1: {n: v * 2.0 for n, v in base.items()}}
+    shift, res = search_delay(_fake_segments(plant, per), plant, KEYS, 1.25e-4, 3, min_shift=1)
+    ds = res.solver["delay_search"]
+    t3 = ds["segment_test"]["3"]
+    assert t3["t"] > t3["critical_t"]  # the pooled test alone would refute it
+    assert t3["logs_preferring_it"] == ["m.csv"] and not t3["refutes"]
+    assert shift == 2 and ds["decided"] is False
+    assert any("cannot decide the command delay either" in w and "m.csv" in w for w in res.warnings)

@@ -137,9 +137,20 @@ def test_response_of_an_independent_two_mass_axis(mech):
         assert lo <= x <= hi and v[name]["value"] == pytest.approx(x, rel=0.01), name
     assert res.reflected_inertia_kg_m2["value"] == pytest.approx(jm + jl, rel=0.01)
     pv = res.plant.values
-    if mech == "linear-axis":
+    if mech == "linear-axis":  # load coordinates: kg, N/m; its mode written like the screws' (and said to be unused)
         assert pv["axis.mass_kg"] == pytest.approx(jm + jl, rel=0.01)
-        assert any("cannot carry" in w for w in res.warnings)
+        truth_keys = {"axis.load_mass_kg": jl, "axis.load_stiffness_n_per_um": k * 1e-6, "axis.axial_damping_ratio": 0.04}
+        for key, x in truth_keys.items():
+            lo, hi = res.parameters[key]["ci95"]
+            assert lo <= x <= hi, (key, x, lo, hi)
+            assert pv[key] == pytest.approx(x, rel=0.1 if key == "axis.axial_damping_ratio" else 0.02), key
+            assert res.plant.sources[key].startswith("fit"), res.plant.sources[key]
+        # the written plant's two-mass formula has the response's mode and anti-resonance
+        kk, ml = pv["axis.load_stiffness_n_per_um"] * 1e6, pv["axis.load_mass_kg"]
+        assert math.sqrt(kk / ml) / TWO_PI == pytest.approx(fa, rel=0.01)
+        assert math.sqrt(kk * (1 / (pv["axis.mass_kg"] - ml) + 1 / ml)) / TWO_PI == pytest.approx(f_r, rel=0.01)
+        assert any("axis.load_stiffness_n_per_um" in w and "rigid" in w for w in res.warnings)
+        _written_round_trip(res, base)
         return
     if base.screw_driven:
         assert pv["axis.motor_inertia_kg_m2"] == pytest.approx(jm - base.values["axis.screw_inertia_kg_m2"], rel=0.02)
@@ -152,6 +163,22 @@ def test_response_of_an_independent_two_mass_axis(mech):
     else:
         assert pv["nut.inertia_kg_m2"] == pytest.approx(jm - base.cage_inertia_kg_m2 * base.cage_ratio**2, rel=0.02)
     assert first_mode_hz(res.plant, speed_rad_s=30.0, load_n=load) == pytest.approx(f_r, rel=0.01)
+
+
+def _written_round_trip(res, base):
+    """The fitted plant as prsa-fit writes it (into the base file's text) loads with the fitted
+    two-mass keys, their sources and intervals; a load mass not below the whole mass is refused."""
+    from prsa_ctrl.identification.calibrate import fitted_plant_text
+    from prsa_ctrl.plant.plantfile import Plant, PlantFileError
+
+    text = fitted_plant_text(res, base, Path(base.origin).read_text(), "fitted", "two-mass.csv")
+    back = Plant.from_dict(tomllib.loads(text), origin="fitted")
+    for key in ("axis.mass_kg", "axis.load_mass_kg", "axis.load_stiffness_n_per_um", "axis.axial_damping_ratio"):
+        assert back.values[key] == pytest.approx(res.plant.values[key], rel=1e-6), key
+        assert back.sources[key] == res.plant.sources[key]
+        assert key not in back.defaulted
+    with pytest.raises(PlantFileError, match="axis.load_mass_kg = .* is not below axis.mass_kg"):
+        back.with_params({"axis.load_mass_kg": back.values["axis.mass_kg"]})
 
 
 def test_rigid_refused_on_a_response_with_a_mode():

@@ -72,6 +72,10 @@ def test_objective_per_record_adds_up_to_the_objective(sim):
     assert set(per) == {"a", "b"}
     assert sum(per.values()) == pytest.approx(res.solver["objective"], rel=1e-9)
     assert all(math.isfinite(v) and v > 0 for v in per.values())
+    # the delay search's paired test: each record's segments, in time order, add up to its share
+    segs = res.solver["objective_per_segment"]
+    assert {k: sum(v) for k, v in segs.items()} == {k: pytest.approx(v, rel=1e-9) for k, v in per.items()}
+    assert sum(len(v) for v in segs.values()) == res.solver["segments"]
     alone = td.fit_plant([a], truth, keys=["nut.inertia_kg_m2"], delay_samples=0, validation=False)
     assert alone.solver["objective_per_record"] == {"a": pytest.approx(alone.solver["objective"], rel=1e-9)}
 

@@ -118,6 +118,17 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
     d = diagnosis({"independent": ringing}, [record], {"decided": True}, _R())
     f_hz = float(d.split(" of ")[-1].split(" Hz")[0])
     assert d.startswith("second mass") and abs(f_hz - 180.0) < 0.03 * 180.0  # Welch bins of 4000/2048 Hz
+    assert "current-loop" not in d  # the bandwidth was identified (or not fitted): nothing to say
+    fp = float(d.split(" of ")[-1].split(" Hz")[0])
+
+    class _Kept(_R):  # the bandwidth kept at its base value: the diagnosis says what the resonance hides
+        not_identified = {"drive.current_loop_bandwidth_hz": "95 % CI wider than +/- 50 %"}
+        plant = truth.with_params({"drive.current_loop_bandwidth_hz": 800.0})
+
+    d = diagnosis({"independent": ringing}, [record], {"decided": True}, _Kept())
+    assert d.startswith("second mass") and "kept at 800 Hz" in d
+    lag = float(d.split(" Hz is ")[-1].split(" deg")[0])
+    assert lag == pytest.approx(math.degrees(math.atan(fp / 800.0)), abs=0.06)
     d = diagnosis({"independent": ringing}, [record], {"decided": False, "objective": {"0": 1.0, "1": None}}, _R())
     assert d.startswith("delay") and "1: failed" in d
     drift = dict(ringing, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)))
