@@ -10,8 +10,9 @@ import pytest
 
 from prsa_ctrl import GeometryWarning, load_plant
 from prsa_ctrl.identification.data import design_excitation, record_from_arrays
-from prsa_ctrl.identification.validation import (FIT_MIN_PERCENT, NOISE_FACTOR, WRITTEN_TOLERANCE_POINTS, diagnosis,
-                                                 explained, noise_floor, replay_records, verdict, whiteness)
+from prsa_ctrl.identification.validation import (FIT_MIN_PERCENT, NOISE_FACTOR, RESONANCE_SHARE,
+                                                 WRITTEN_TOLERANCE_POINTS, diagnosis, explained, noise_floor,
+                                                 replay_records, resonance, verdict, whiteness)
 
 from independent_actuator import simulate_independent  # noqa: E402
 
@@ -104,6 +105,39 @@ def test_whiteness_at_the_stated_lags():
     out = whiteness(ar)
     assert not out["white"] and out["acf"][1] == pytest.approx(0.9, abs=0.02)
     assert out["band"] == pytest.approx(1.96 / math.sqrt(len(w)))
+
+
+def _with_residual(e, extra):
+    """The replay entry ``e`` with ``extra`` (rad/s) added to the measured speed, its metrics
+    recomputed (fit % as :func:`prsa_ctrl.identification.common.fit_percent` defines it)."""
+    from prsa_ctrl.identification.common import fit_percent
+
+    meas = e["measured"] + extra
+    k = e["skip_samples"]
+    out = {k2: v for k2, v in e.items() if k2 != "resonance"}
+    out.update(measured=meas, fit_percent=float(fit_percent(meas[k:], e["model"][k:])),
+               error_rms_rad_s=float(np.sqrt(np.mean((meas[k:] - e["model"][k:]) ** 2))))
+    return out
+
+
+@pytest.mark.parametrize("f_hz", [107.0, 180.0])
+def test_a_resonance_in_the_residual_is_not_explained_at_a_high_fit(truth, record, f_hz):
+    """A rigid plant on a two-mass axis replays most of the motion (fit above 50 %) and leaves the
+    mode: the log is not explained (the verdict says 'a resonance'), whereas a residual of the
+    same size without a dominant frequency (white) is explained at the same fit %."""
+    e = replay_records(truth, [record], shift=0)["independent"]
+    t = e["time_s"]
+    amp = 12.0 * e["noise_floor_rad_s"]
+    ring = _with_residual(e, amp * np.sin(2 * math.pi * f_hz * t))
+    white = _with_residual(e, amp * math.sqrt(0.5) * np.random.default_rng(3).standard_normal(t.size))
+    for x in (ring, white):  # the premise: high fit, far above the noise allowance
+        assert x["fit_percent"] >= FIT_MIN_PERCENT and x["error_rms_rad_s"] > NOISE_FACTOR * x["noise_floor_rad_s"]
+    fp, share = resonance(ring)
+    assert share >= RESONANCE_SHARE and abs(fp - f_hz) < 0.03 * f_hz
+    assert resonance(white)[1] < RESONANCE_SHARE
+    assert not explained(ring) and explained(white)
+    ok, reasons = verdict({"independent": ring}, {}, None)
+    assert not ok and "a resonance" in reasons[0] and f"{fp:.4g} Hz" in reasons[0]
 
 
 def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
