@@ -162,8 +162,32 @@ class CascadeModel:
             lam = np.concatenate([lam + 2j * math.pi * k / self.tp for k in range(-rate, rate + 1)])
         self.omega = np.unique(np.concatenate([np.geomspace(1.0, nyq * 0.999, n_grid),
                                                resonance_points(lam, 1.0, nyq * 0.999)]))
+        #: Gain-free responses of the recent frequency grids (:meth:`_cached`), read-only.
         self._resp_cache: dict = {}
         self._build_casadi()
+
+    #: Grids of at least this many frequencies have their gain-free responses kept (the dense
+    #: grids :meth:`ms` evaluates at every call), at most ``_CACHE_MAX`` of them.
+    _CACHE_MIN, _CACHE_MAX = 64, 8
+
+    def _cached(self, kind: str, w: NDArray[np.float64], compute) -> dict:
+        """``compute(w)`` (a dict of arrays, functions of ``w`` and the model alone, never of the
+        gains), kept for grids of ``_CACHE_MIN`` or more frequencies: :meth:`ms` evaluates the same
+        dense grid at every gain, and the responses are the same numbers whichever the gains. The
+        arrays are read-only; the dict is a copy. At most ``_CACHE_MAX`` grids (the oldest dropped)."""
+        if w.size < self._CACHE_MIN:
+            return compute(w)
+        key = (kind, w.shape, w.tobytes())
+        hit = self._resp_cache.get(key)
+        if hit is None:
+            hit = compute(w)
+            for v in hit.values():
+                if isinstance(v, np.ndarray):
+                    v.setflags(write=False)
+            while len(self._resp_cache) >= self._CACHE_MAX:
+                self._resp_cache.pop(next(iter(self._resp_cache)))
+            self._resp_cache[key] = hit
+        return dict(hit)
 
     # frequency responses (numeric, gain-free parts)
     def parts(self, omega: NDArray[np.float64]) -> dict[str, NDArray[np.complex128]]:
@@ -173,7 +197,9 @@ class CascadeModel:
         speed and position laws per unit gain, ``dp`` = ``z^-(N d)`` the position loop's own
         computation delay (``d = position_delay_samples`` position samples of ``N`` speed samples;
         it multiplies ``C_p`` wherever ``C_p`` appears)."""
-        w = np.asarray(omega, float)
+        return self._cached("parts", np.asarray(omega, float), self._parts)
+
+    def _parts(self, w: NDArray[np.float64]) -> dict[str, NDArray[np.complex128]]:
         zi = np.exp(-1j * w * self.ts)
         z = 1 / zi
         n = self.n
@@ -239,9 +265,11 @@ class CascadeModel:
         ``z_p^-d`` (the position loop's own computation delay of d position samples) and, per
         alias (shape (N, n)), ``r`` = W G, ``cs_i``, ``Gp``, ``h`` = ``(1 - z_k^-N)/(N (1 - z_k^-1))``
         (the hold of the speed reference and the sampling of the position)."""
-        w = np.asarray(omega, float)
+        return self._cached("lifted", np.asarray(omega, float), self._lifted_parts)
+
+    def _lifted_parts(self, w: NDArray[np.float64]) -> dict:
         wk, z = self.aliases(w)
-        P = self.parts(wk.ravel())
+        P = self._parts(wk.ravel())
         sh = wk.shape
         WG, csi, Gp = (P["W"] * P["G"]).reshape(sh), P["cs_i"].reshape(sh), P["Gp"].reshape(sh)
         zp = np.exp(1j * w * self.tp)

@@ -871,3 +871,20 @@ def test_move_scene_filter_beyond_nyquist_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "corner_hz = 2500.0" in err and "Traceback" not in err
     assert not (tmp_path / "d.toml").exists()
+
+
+@pytest.mark.parametrize("rate", [1, 2])
+def test_kept_responses_give_the_peaks_of_a_fresh_computation(plant, scene, rate):
+    """``CascadeModel`` keeps the gain-free responses of its dense grids (``ms`` evaluates the same
+    20000 frequencies at every gain): the peaks at other gains after the first call are the same
+    numbers, bit for bit, as a model that keeps nothing, and the kept arrays cannot be written."""
+    sc = dataclasses.replace(scene, position_rate=rate)
+    cm, bare = CascadeModel(plant, sc), CascadeModel(plant, sc)
+    bare._CACHE_MIN = 10**9  # keeps nothing
+    for g in ([0.08, 7.0, 60.0, 0.0, 1.0, 1.0], [0.05, 11.0, 25.0, 3.0, 1.0, 0.0], [0.12, 4.0, 90.0, 0.0, 0.5, 1.0]):
+        assert cm.ms(g) == bare.ms(g)
+    assert cm._resp_cache and not bare._resp_cache
+    kept = next(iter(cm._resp_cache.values()))
+    with pytest.raises(ValueError, match="read-only"):
+        next(v for v in kept.values() if isinstance(v, np.ndarray))[0] = 0
+    assert len(cm._resp_cache) <= cm._CACHE_MAX
