@@ -344,8 +344,8 @@ class CascadeModel:
         (``n_dense`` points to the Nyquist frequency of the point's rate, plus the constraint
         grid) and a golden section search around each grid maximum; with their frequencies
         (rad/s)."""
-        out = {}
         grids: dict = {}
+        brackets = {}
         for name in BREAKING_POINTS:
             nyq = math.pi / (self.ts if (name == "speed_open" or self.rate == 1) else self.tp)
             if nyq not in grids:
@@ -356,20 +356,35 @@ class CascadeModel:
             w, sens = grids[nyq]
             s = sens[name]
             i = int(np.argmax(s))
-            lo, hi = w[max(i - 1, 0)], w[min(i + 1, w.size - 1)]
-            f = lambda x: float(self.sensitivity(g, np.array([x]), (name,))[name][0])  # noqa: E731
-            gr = (math.sqrt(5) - 1) / 2
-            a_, b_ = lo, hi
-            for _ in range(60):
-                c_, d_ = b_ - gr * (b_ - a_), a_ + gr * (b_ - a_)
-                if f(c_) > f(d_):
-                    b_ = d_
+            brackets[name] = [w[max(i - 1, 0)], w[min(i + 1, w.size - 1)], s[i], w[i]]
+        # The golden section searches of the four points in lockstep: one sensitivity call per
+        # step evaluates every point's two trial frequencies (each value is the point's own at
+        # its own frequency: the searches are those of one point at a time).
+        names = list(brackets)
+
+        def f(xs):
+            sens = self.sensitivity(g, np.asarray(xs, float), names)
+            return [float(sens[n][j]) for j, n in enumerate(n for n in names for _ in range(len(xs) // len(names)))]
+
+        gr = (math.sqrt(5) - 1) / 2
+        for _ in range(60):
+            trial = []
+            for n in names:
+                a_, b_ = brackets[n][:2]
+                trial += [b_ - gr * (b_ - a_), a_ + gr * (b_ - a_)]
+            fx = f(trial)
+            for k, n in enumerate(names):
+                c_, d_ = trial[2 * k], trial[2 * k + 1]
+                if fx[2 * k] > fx[2 * k + 1]:
+                    brackets[n][1] = d_
                 else:
-                    a_ = c_
-            wm = 0.5 * (a_ + b_)
-            best = max((s[i], w[i]), (f(wm), wm))
-            out[name] = float(best[0])
-            out[f"w_{name}"] = float(best[1])
+                    brackets[n][0] = c_
+        wms = [0.5 * (brackets[n][0] + brackets[n][1]) for n in names]
+        out = {}
+        for n, wm, fm in zip(names, wms, f(wms)):
+            best = max((brackets[n][2], brackets[n][3]), (fm, wm))
+            out[n] = float(best[0])
+            out[f"w_{n}"] = float(best[1])
         return out
 
     def crossover(self, g, loop: str = "speed_open") -> float:
