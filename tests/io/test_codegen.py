@@ -836,7 +836,7 @@ def test_setpoint_weight_against_the_prefiltered_run(plant, b, tmp_path):
 
 # --- prsa-tune --export PATH.c / PATH.st --------------------------------------------------------
 
-def test_cli_export_c_writes_source_and_header(tmp_path, capsys):
+def test_cli_export_c_writes_source_and_header(tmp_path, capsys, shared_tuning):
     from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "speed.c"
@@ -853,7 +853,7 @@ def test_cli_export_c_writes_source_and_header(tmp_path, capsys):
         assert res.returncode == 0, res.stderr
 
 
-def test_cli_export_st_float(tmp_path, matiec):
+def test_cli_export_st_float(tmp_path, matiec, shared_tuning):
     from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "Speed.st"
@@ -880,7 +880,7 @@ def test_cli_export_bad_suffix_and_header_onto_an_input(tmp_path, capsys):
     assert plant.read_text() == before and not (tmp_path / "mine.c").exists()
 
 
-def test_cli_move_scene_export_st(tmp_path, matiec):
+def test_cli_move_scene_export_st(tmp_path, matiec, shared_tuning):
     """The cascade of the move scene as a function block (position loop with feed-forward)."""
     from prsa_ctrl.cli.tune import main
 
