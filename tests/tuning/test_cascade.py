@@ -876,13 +876,13 @@ def test_move_scene_filter_beyond_nyquist_refused(tmp_path, capsys):
 @pytest.mark.parametrize("rate", [1, 2])
 def test_kept_responses_give_the_peaks_of_a_fresh_computation(plant, scene, rate):
     """``CascadeModel`` keeps the gain-free responses of its dense grids (``ms`` evaluates the same
-    20000 frequencies at every gain): the peaks at other gains after the first call are the same
+    frequencies, 20000 by default, at every gain): the peaks at other gains after the first call are the same
     numbers, bit for bit, as a model that keeps nothing, and the kept arrays cannot be written."""
     sc = dataclasses.replace(scene, position_rate=rate)
     cm, bare = CascadeModel(plant, sc), CascadeModel(plant, sc)
     bare._CACHE_MIN = 10**9  # keeps nothing
     for g in ([0.08, 7.0, 60.0, 0.0, 1.0, 1.0], [0.05, 11.0, 25.0, 3.0, 1.0, 0.0], [0.12, 4.0, 90.0, 0.0, 0.5, 1.0]):
-        assert cm.ms(g) == bare.ms(g)
+        assert cm.ms(g, n_dense=2000) == bare.ms(g, n_dense=2000)  # a dense grid of 2000 (kept from 64)
     assert cm._resp_cache and not bare._resp_cache
     kept = next(iter(cm._resp_cache.values()))
     with pytest.raises(ValueError, match="read-only"):
@@ -928,4 +928,4 @@ def test_peaks_searched_in_lockstep_are_those_searched_one_at_a_time(plant, scen
     bit, as the searches run one point and one frequency at a time."""
     cm = CascadeModel(plant, dataclasses.replace(scene, position_rate=rate))
     for g in ([0.08, 7.0, 60.0, 0.0, 1.0, 1.0], [0.05, 11.0, 25.0, 3.0, 1.0, 0.0]):
-        assert cm.ms(g) == _peaks_one_point_at_a_time(cm, g)
+        assert cm.ms(g, n_dense=2000) == _peaks_one_point_at_a_time(cm, g, n_dense=2000)
