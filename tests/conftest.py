@@ -7,6 +7,7 @@ os.environ.setdefault("HYPOTHESIS_STORAGE_DIRECTORY", os.path.join(tempfile.gett
 import matplotlib
 import pytest
 from hypothesis import settings
+from shared_runs import share_tunings, tuned_once
 
 # Deterministic property tests that leave no example database in the working directory.
 settings.register_profile("prsa", database=None, derandomize=True, deadline=None)
@@ -57,11 +58,12 @@ def stand_in(monkeypatch):
 @pytest.fixture(scope="session")
 def paper_report():
     """``tune_actuator`` on the paper plant and the default scene (one full tune and verification),
-    made once per session and shared by the tests that assert on it (results are frozen)."""
+    made once per session and shared by the tests that assert on it (results are frozen); the
+    same run as ``shared_tuning``'s of the default plant and scene."""
     from prsa_ctrl import load_plant, load_scene
     from prsa_ctrl.studies.autotune import tune_actuator
 
-    return tune_actuator(load_plant(), load_scene())
+    return tuned_once(tune_actuator, load_plant(), load_scene(), workers=None)
 
 
 @pytest.fixture(scope="session")
@@ -69,7 +71,8 @@ def default_cli_run(tmp_path_factory):
     """One ``prsa-tune --load-step 500:1500`` run (in-process, the paper plant and default scene: the
     README's command) with every output: a JSON report, plots and an export whose file name is 245
     characters long (NAME_MAX is 255).
-    Made once per session and shared by the tests that assert on its text and files: ``code``,
+    Its tuning is ``shared_tuning``'s. Made once per session and shared by the tests that assert
+    on its text and files: ``code``,
     ``out`` and ``err`` (the printed text), ``folder``, ``json``, ``plots``, ``export`` (paths)."""
     import contextlib
     import io
@@ -81,7 +84,8 @@ def default_cli_run(tmp_path_factory):
     run = SimpleNamespace(folder=folder, json=folder / "j.json", plots=folder / "pl",
                           export=folder / ("x" * 245 + ".toml"))
     out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), pytest.MonkeyPatch.context() as mp:
+        share_tunings(mp)
         run.code = main(["--load-step", "500:1500", "--json", str(run.json), "--plots", str(run.plots),
                          "--export", str(run.export)])
     run.out, run.err = out.getvalue(), err.getvalue()
@@ -112,3 +116,18 @@ def emps_fit(tmp_path_factory):
                          "--out", str(run.toml), "--json", str(run.json)])
     run.out, run.err = out.getvalue(), err.getvalue()
     return run
+
+
+@pytest.fixture
+def shared_tuning(monkeypatch):
+    """``prsa_ctrl.studies.autotune.tune_actuator`` and ``prsa_ctrl.studies.move.tune_move``
+    computed once per session for each value of their arguments (plant, scene, workers: compared
+    by their pickled bytes, so an option that changes the plant or the scene tunes afresh;
+    ``paper_report`` is the same run), for the tests that only read what a command prints and
+    writes from the tuning (exports, reports): each run after the first gets the first run's
+    result (frozen designs and reports) with its warnings and progress lines again, the rest of
+    the command runs as it is. Not for tests of the tuner's paths, of its determinism, of the
+    solvers' printed lines (``--verbose``) or of patched internals. Returns the list of calls, ``(key, hit)``."""
+    calls: list = []
+    share_tunings(monkeypatch, calls)
+    return calls

@@ -162,8 +162,32 @@ class CascadeModel:
             lam = np.concatenate([lam + 2j * math.pi * k / self.tp for k in range(-rate, rate + 1)])
         self.omega = np.unique(np.concatenate([np.geomspace(1.0, nyq * 0.999, n_grid),
                                                resonance_points(lam, 1.0, nyq * 0.999)]))
+        #: Gain-free responses of the recent frequency grids (:meth:`_cached`), read-only.
         self._resp_cache: dict = {}
         self._build_casadi()
+
+    #: Grids of at least this many frequencies have their gain-free responses kept (the dense
+    #: grids :meth:`ms` evaluates at every call), at most ``_CACHE_MAX`` of them.
+    _CACHE_MIN, _CACHE_MAX = 64, 8
+
+    def _cached(self, kind: str, w: NDArray[np.float64], compute) -> dict:
+        """``compute(w)`` (a dict of arrays, functions of ``w`` and the model alone, never of the
+        gains), kept for grids of ``_CACHE_MIN`` or more frequencies: :meth:`ms` evaluates the same
+        dense grid at every gain, and the responses are the same numbers whichever the gains. The
+        arrays are read-only; the dict is a copy. At most ``_CACHE_MAX`` grids (the oldest dropped)."""
+        if w.size < self._CACHE_MIN:
+            return compute(w)
+        key = (kind, w.shape, w.tobytes())
+        hit = self._resp_cache.get(key)
+        if hit is None:
+            hit = compute(w)
+            for v in hit.values():
+                if isinstance(v, np.ndarray):
+                    v.setflags(write=False)
+            while len(self._resp_cache) >= self._CACHE_MAX:
+                self._resp_cache.pop(next(iter(self._resp_cache)))
+            self._resp_cache[key] = hit
+        return dict(hit)
 
     # frequency responses (numeric, gain-free parts)
     def parts(self, omega: NDArray[np.float64]) -> dict[str, NDArray[np.complex128]]:
@@ -173,7 +197,9 @@ class CascadeModel:
         speed and position laws per unit gain, ``dp`` = ``z^-(N d)`` the position loop's own
         computation delay (``d = position_delay_samples`` position samples of ``N`` speed samples;
         it multiplies ``C_p`` wherever ``C_p`` appears)."""
-        w = np.asarray(omega, float)
+        return self._cached("parts", np.asarray(omega, float), self._parts)
+
+    def _parts(self, w: NDArray[np.float64]) -> dict[str, NDArray[np.complex128]]:
         zi = np.exp(-1j * w * self.ts)
         z = 1 / zi
         n = self.n
@@ -239,9 +265,11 @@ class CascadeModel:
         ``z_p^-d`` (the position loop's own computation delay of d position samples) and, per
         alias (shape (N, n)), ``r`` = W G, ``cs_i``, ``Gp``, ``h`` = ``(1 - z_k^-N)/(N (1 - z_k^-1))``
         (the hold of the speed reference and the sampling of the position)."""
-        w = np.asarray(omega, float)
+        return self._cached("lifted", np.asarray(omega, float), self._lifted_parts)
+
+    def _lifted_parts(self, w: NDArray[np.float64]) -> dict:
         wk, z = self.aliases(w)
-        P = self.parts(wk.ravel())
+        P = self._parts(wk.ravel())
         sh = wk.shape
         WG, csi, Gp = (P["W"] * P["G"]).reshape(sh), P["cs_i"].reshape(sh), P["Gp"].reshape(sh)
         zp = np.exp(1j * w * self.tp)
@@ -316,8 +344,8 @@ class CascadeModel:
         (``n_dense`` points to the Nyquist frequency of the point's rate, plus the constraint
         grid) and a golden section search around each grid maximum; with their frequencies
         (rad/s)."""
-        out = {}
         grids: dict = {}
+        brackets = {}
         for name in BREAKING_POINTS:
             nyq = math.pi / (self.ts if (name == "speed_open" or self.rate == 1) else self.tp)
             if nyq not in grids:
@@ -328,20 +356,35 @@ class CascadeModel:
             w, sens = grids[nyq]
             s = sens[name]
             i = int(np.argmax(s))
-            lo, hi = w[max(i - 1, 0)], w[min(i + 1, w.size - 1)]
-            f = lambda x: float(self.sensitivity(g, np.array([x]), (name,))[name][0])  # noqa: E731
-            gr = (math.sqrt(5) - 1) / 2
-            a_, b_ = lo, hi
-            for _ in range(60):
-                c_, d_ = b_ - gr * (b_ - a_), a_ + gr * (b_ - a_)
-                if f(c_) > f(d_):
-                    b_ = d_
+            brackets[name] = [w[max(i - 1, 0)], w[min(i + 1, w.size - 1)], s[i], w[i]]
+        # The golden section searches of the four points in lockstep: one sensitivity call per
+        # step evaluates every point's two trial frequencies (each value is the point's own at
+        # its own frequency: the searches are those of one point at a time).
+        names = list(brackets)
+
+        def f(xs):
+            sens = self.sensitivity(g, np.asarray(xs, float), names)
+            return [float(sens[n][j]) for j, n in enumerate(n for n in names for _ in range(len(xs) // len(names)))]
+
+        gr = (math.sqrt(5) - 1) / 2
+        for _ in range(60):
+            trial = []
+            for n in names:
+                a_, b_ = brackets[n][:2]
+                trial += [b_ - gr * (b_ - a_), a_ + gr * (b_ - a_)]
+            fx = f(trial)
+            for k, n in enumerate(names):
+                c_, d_ = trial[2 * k], trial[2 * k + 1]
+                if fx[2 * k] > fx[2 * k + 1]:
+                    brackets[n][1] = d_
                 else:
-                    a_ = c_
-            wm = 0.5 * (a_ + b_)
-            best = max((s[i], w[i]), (f(wm), wm))
-            out[name] = float(best[0])
-            out[f"w_{name}"] = float(best[1])
+                    brackets[n][0] = c_
+        wms = [0.5 * (brackets[n][0] + brackets[n][1]) for n in names]
+        out = {}
+        for n, wm, fm in zip(names, wms, f(wms)):
+            best = max((brackets[n][2], brackets[n][3]), (fm, wm))
+            out[n] = float(best[0])
+            out[f"w_{n}"] = float(best[1])
         return out
 
     def crossover(self, g, loop: str = "speed_open") -> float:

@@ -13,7 +13,6 @@ import json
 import math
 import os
 import queue
-import shutil
 import subprocess
 import sys
 import threading
@@ -27,81 +26,7 @@ pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip inst
 
 from prsa_ctrl import PID, load_plant, load_scene  # noqa: E402
 
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--no-first-run", "--disable-sync"]
-TIMEOUT_MS = 60_000
 SHOTS = Path(__file__).resolve().parents[2] / "docs" / "app"
-
-
-def _chromium() -> str | None:
-    for name in ("chromium", "chromium-browser"):
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
-
-
-def _need_browser():
-    """Playwright's sync API and Chromium's path, or a one-line skip (a failure under CI=true)."""
-    missing = []
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        sync_playwright = None
-        missing.append("playwright (pip install '.[app,test]')")
-    exe = _chromium()
-    if exe is None:
-        missing.append("chromium (apt-get install chromium)")
-    if missing:
-        line = "browser tests skipped: missing " + " and ".join(missing)
-        if os.environ.get("CI") == "true":
-            pytest.fail(line.replace("skipped", "cannot run under CI=true"), pytrace=False)
-        pytest.skip(line)
-    return sync_playwright, exe
-
-
-@pytest.fixture(scope="module")
-def app_url(tmp_path_factory):
-    log = open(tmp_path_factory.mktemp("app") / "server.log", "w+")  # the server's log, read on failure only
-    proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.app.cli", "--no-browser"], stdout=subprocess.PIPE,
-                            stderr=log, text=True, cwd=str(tmp_path_factory.getbasetemp()))
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: lines.put(proc.stdout.readline()), daemon=True).start()
-    try:
-        first = lines.get(timeout=120)
-        log.seek(0)
-        assert first.startswith("prsa-app: serving http://127.0.0.1:"), (first, log.read())
-        yield first.split()[2]
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        proc.stdout.close()
-        log.close()
-
-
-@pytest.fixture(scope="module")
-def app_browser():
-    sync_playwright, exe = _need_browser()
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
-
-
-@pytest.fixture
-def app_page(app_browser, app_url):
-    ctx = app_browser.new_context(viewport={"width": 1500, "height": 1300}, accept_downloads=True)
-    pg = ctx.new_page()
-    pg.set_default_timeout(TIMEOUT_MS)
-    pg.goto(app_url)
-    pg.locator('[data-k="opt-ms"]').wait_for()
-    pg.locator('[data-k="status"]').wait_for()
-    yield pg
-    ctx.close()
 
 
 def _text(pg, key: str) -> str:
@@ -363,7 +288,7 @@ def test_upload_above_the_limit_is_one_line_and_sends_nothing(app_page, megabyte
     assert _text(page, "opt-kp") == kp
 
 
-def test_sigterm_stops_like_ctrl_c_and_removes_the_uploads(app_browser, tmp_path):
+def test_sigterm_stops_like_ctrl_c_and_removes_the_uploads(open_page, tmp_path):
     """SIGTERM: exit 0, one line, the uploaded files' temporary folder gone (today's main dies
     by the signal and leaves it)."""
     import signal
@@ -378,10 +303,7 @@ def test_sigterm_stops_like_ctrl_c_and_removes_the_uploads(app_browser, tmp_path
         lines: queue.Queue = queue.Queue()
         threading.Thread(target=lambda: lines.put(proc.stdout.readline()), daemon=True).start()
         url = lines.get(timeout=120).split()[2]
-        ctx = app_browser.new_context(viewport={"width": 1500, "height": 1300})
-        pg = ctx.new_page()
-        pg.set_default_timeout(TIMEOUT_MS)
-        pg.goto(url)
+        ctx, pg = open_page(url)
         pg.locator('[data-k="opt-ms"]').wait_for()
         pg.locator(".prsa-plant-upload input[type=file]").set_input_files(
             files=[{"name": "copy.toml", "mimeType": "application/toml",

@@ -18,7 +18,7 @@ import pytest
 pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip install '.[app]')")
 
 from prsa_ctrl import load_plant, load_scene  # noqa: E402
-from test_app_browser import _shot, _text, _tuned, app_browser, app_page, app_url  # noqa: E402,F401
+from test_app_browser import _shot, _text, _tuned  # noqa: E402
 
 BAD_LOG = "time_s,torque_command_n_m\n0,0.1\n0.00025,0.1\n0.0005,0.1\n"
 CAL_TAB = "Calibration (fit a drive log)"

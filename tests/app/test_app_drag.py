@@ -12,8 +12,7 @@ import pytest
 
 pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip install '.[app]')")
 
-from test_app_browser import (_independent_margins, _shot, _text, _tuned, app_browser, app_page,  # noqa: E402,F401
-                              app_url)
+from test_app_browser import _independent_margins, _shot, _text, _tuned  # noqa: E402
 
 
 def _press(page, start):

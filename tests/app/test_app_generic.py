@@ -19,7 +19,7 @@ pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip inst
 from prsa_ctrl.app.generic import (GenericSettings, TuneProcess, generic_code, parse_transfer_function,  # noqa: E402
                                    tune_generic)
 from prsa_ctrl.app.session import AppInputError, Cancelled  # noqa: E402
-from test_app_browser import _shot, _text, app_browser, app_page, app_url  # noqa: E402,F401
+from test_app_browser import _shot, _text  # noqa: E402
 
 KI_BRUTE_FORCE = 13.739  # issue 25: the optimum of the problem with a true Mks <= 10
 

@@ -1,5 +1,5 @@
 """prsa-app's page admission (:mod:`prsa_ctrl.app.gate`) against an in-process Bokeh server, in a
-real browser (Playwright + Debian's Chromium, as ``test_app_browser``).
+real browser (Playwright + Debian's Chromium: ``fresh_open_page`` of tests/app/conftest.py, a browser per test).
 
 A session build is held on purpose (``AppSession.__init__`` waits on an event the test sets),
 so "the event loop answers while a session is being built" is a fact of the test's order, not
@@ -19,36 +19,7 @@ import pytest
 
 pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip install '.[app]')")
 
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--no-first-run", "--disable-sync"]
-TIMEOUT_MS = 60_000
-
-
-def _need_browser():
-    """Playwright's sync API and Chromium's path, or a one-line skip (a failure under CI=true),
-    as in test_app_browser."""
-    import os
-    import shutil
-
-    missing = []
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        sync_playwright = None
-        missing.append("playwright (pip install '.[app,test]')")
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        missing.append("chromium (apt-get install chromium)")
-    if missing:
-        line = "browser tests skipped: missing " + " and ".join(missing)
-        if os.environ.get("CI") == "true":
-            pytest.fail(line.replace("skipped", "cannot run under CI=true"), pytrace=False)
-        pytest.skip(line)
-    return sync_playwright, exe
-
-
-def _text(pg, key: str) -> str:
-    return pg.locator(f'[data-k="{key}"]').inner_text().strip()
+from test_app_browser import _text  # noqa: E402
 
 
 class _Served:
@@ -93,15 +64,6 @@ class _Served:
 
 
 @pytest.fixture
-def browser():
-    sync_playwright, exe = _need_browser()
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
-
-
-@pytest.fixture
 def held(monkeypatch):
     """``AppSession.__init__`` held until ``release`` is set (``entered`` tells one is held)."""
     from prsa_ctrl.app.session import AppSession
@@ -121,15 +83,7 @@ def held(monkeypatch):
     release.set()
 
 
-def _open(browser, url: str):
-    ctx = browser.new_context(viewport={"width": 1500, "height": 1300})
-    pg = ctx.new_page()
-    pg.set_default_timeout(TIMEOUT_MS)
-    pg.goto(url, timeout=TIMEOUT_MS)
-    return ctx, pg
-
-
-def test_a_page_in_preparation_blocks_neither_the_loop_nor_the_open_pages(browser, held):
+def test_a_page_in_preparation_blocks_neither_the_loop_nor_the_open_pages(fresh_open_page, held):
     """While a new page's session is being built (held): a static file and another page load
     are answered, and the page already open re-tunes after a slider step. Today's main builds
     the session inside Bokeh's make_document, on the event loop: all three wait."""
@@ -138,11 +92,11 @@ def test_a_page_in_preparation_blocks_neither_the_loop_nor_the_open_pages(browse
     _, hold, entered, release = held
     served = _Served(application())
     try:
-        ctx_a, a = _open(browser, served.url)
+        ctx_a, a = fresh_open_page(served.url)
         a.locator('[data-k="opt-ms"]').wait_for()
         a.locator('[data-k="status"]').wait_for()
         hold()
-        ctx_b, b = _open(browser, served.url)  # its session build is now held
+        ctx_b, b = fresh_open_page(served.url)  # its session build is now held
         assert entered.wait(timeout=120), "the second page never started its session build"
         with urllib.request.urlopen(served.url + "static/js/bokeh.min.js", timeout=60) as r:
             assert r.status == 200 and len(r.read()) > 100_000
@@ -163,7 +117,7 @@ def test_a_page_in_preparation_blocks_neither_the_loop_nor_the_open_pages(browse
         served.stop()
 
 
-def test_caps_refuse_with_one_line_and_a_closed_page_frees_its_place_and_memory(browser, held):
+def test_caps_refuse_with_one_line_and_a_closed_page_frees_its_place_and_memory(fresh_open_page, held):
     from bokeh.application import Application
     from bokeh.application.handlers.function import FunctionHandler
 
@@ -174,17 +128,17 @@ def test_caps_refuse_with_one_line_and_a_closed_page_frees_its_place_and_memory(
     served = _Served(Application(FunctionHandler(gate)), unused_ms=500, check_ms=300)
     try:
         hold()
-        ctx_b, b = _open(browser, served.url)
+        ctx_b, b = fresh_open_page(served.url)
         assert entered.wait(timeout=120)
-        ctx_c, c = _open(browser, served.url)  # one page is in preparation: the limit
+        ctx_c, c = fresh_open_page(served.url)  # one page is in preparation: the limit
         c.locator('[data-k="refused"]').wait_for()
         assert _text(c, "refused") == ("prsa-app: busy: 1 pages are being prepared (at most 1 at a time); reload this "
                                        "page in a few seconds")
         release.set()
         b.locator('[data-k="opt-ms"]').wait_for()
-        ctx_d, d = _open(browser, served.url)
+        ctx_d, d = fresh_open_page(served.url)
         d.locator('[data-k="opt-ms"]').wait_for()
-        ctx_e, e = _open(browser, served.url)  # two pages live: the limit
+        ctx_e, e = fresh_open_page(served.url)  # two pages live: the limit
         e.locator('[data-k="refused"]').wait_for()
         assert _text(e, "refused") == (f"prsa-app: 2 pages are open (at most 2); close one (its session ends "
                                        f"{UNUSED_SESSION_S} s later) and reload this page")

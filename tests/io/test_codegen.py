@@ -27,6 +27,7 @@ from prsa_ctrl.studies.movescene import load_move_scene
 from prsa_ctrl.io.codegen import (DriveLaw, ReferenceLaw, c_code, drive_law, export_code, max_relative_difference,
                                replay_inputs, st_code)
 from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch
+from prsa_ctrl.drive.friction import FrictionFeedforward
 from prsa_ctrl.drive.measurement import PositionLoop
 from prsa_ctrl.studies.scene import load_scene
 from prsa_ctrl.sim.engine import run
@@ -835,7 +836,7 @@ def test_setpoint_weight_against_the_prefiltered_run(plant, b, tmp_path):
 
 # --- prsa-tune --export PATH.c / PATH.st --------------------------------------------------------
 
-def test_cli_export_c_writes_source_and_header(tmp_path, capsys):
+def test_cli_export_c_writes_source_and_header(tmp_path, capsys, shared_tuning):
     from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "speed.c"
@@ -852,7 +853,7 @@ def test_cli_export_c_writes_source_and_header(tmp_path, capsys):
         assert res.returncode == 0, res.stderr
 
 
-def test_cli_export_st_float(tmp_path, matiec):
+def test_cli_export_st_float(tmp_path, matiec, shared_tuning):
     from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "Speed.st"
@@ -879,7 +880,7 @@ def test_cli_export_bad_suffix_and_header_onto_an_input(tmp_path, capsys):
     assert plant.read_text() == before and not (tmp_path / "mine.c").exists()
 
 
-def test_cli_move_scene_export_st(tmp_path, matiec):
+def test_cli_move_scene_export_st(tmp_path, matiec, shared_tuning):
     """The cascade of the move scene as a function block (position loop with feed-forward)."""
     from prsa_ctrl.cli.tune import main
 
@@ -1035,3 +1036,52 @@ def test_c_states_never_subnormal_at_rest(plant, real, kd, tmp_path):
         w = dt(a * w)
         seen += 0 < abs(w) < np.finfo(dt).tiny
     assert seen > 0
+
+
+# ---- the friction feed-forward in the generated code (issue 24, item 4; was test_drive2_friction_code) ----
+# C (compiled with the system compiler) and Structured Text (compiled by matiec's iec2c) reproduce the
+# simulator's torque command on a recorded run of paper-slow-reversal with the feed-forward on.
+
+#: The speed PI of the friction feed-forward run (paper-slow-reversal).
+REVERSAL_PID = PID(0.0771, 7.07)
+
+
+@pytest.fixture(scope="module")
+def reversal(paper_plant):
+    sc = load_move_scene("paper-slow-reversal")
+    pos = PositionLoop(kv=102.7, kvff=1.0, kaff=1.0, friction=FrictionFeedforward.from_plant(paper_plant, 1500.0))
+    r = simulate_move(paper_plant, sc, REVERSAL_PID, pos)
+    return drive_law(REVERSAL_PID, paper_plant, position=pos), replay_inputs(r, paper_plant, sc.motion(), pos), r
+
+
+def test_reference_law_with_friction(reversal, paper_plant):
+    law, inp, r = reversal
+    assert law.position.friction is not None
+    u = ReferenceLaw(law).run(inp)
+    assert max_relative_difference(u, inp["torque_command"]) <= REL
+    # the feed-forward matters on this run: without it the law gives another command
+    bare = dataclasses.replace(law, position=dataclasses.replace(law.position, friction=None))
+    assert max_relative_difference(ReferenceLaw(bare).run(inp), inp["torque_command"]) > 1e-2
+
+
+@needs_cc
+def test_c_with_friction_reproduces_the_simulator(reversal, tmp_path):
+    law, inp, _ = reversal
+    h, c = c_code(law, name="fr")
+    assert "#include <math.h>" in c and "fr_friction_(p, vel_ref / p->lead)" in c
+    u = _run_c(_build(law, tmp_path, "double"), law, inp)
+    assert max_relative_difference(u, inp["torque_command"]) <= REL
+
+
+def test_structured_text_with_friction_reproduces_the_simulator(reversal, matiec, tmp_path):
+    law, inp, _ = reversal
+    text = st_code(law, name="FrCtrl")
+    assert "EXP(-(t_FrX * t_FrX))" in text
+    u = _run_st(_build_st(matiec, law, tmp_path, "double", name="FrCtrl"), law, inp)
+    assert max_relative_difference(u, inp["torque_command"]) <= REL
+
+
+def test_code_without_friction_has_no_exp(paper_plant):
+    law = drive_law(REVERSAL_PID, paper_plant, position=PositionLoop(kv=102.7))
+    h, c = c_code(law)
+    assert "friction" not in c and "EXP" not in st_code(law)

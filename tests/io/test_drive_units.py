@@ -103,7 +103,7 @@ def test_template_values_in_their_units(name, expected):
         assert got[idx] == pytest.approx(v, rel=1e-14), (name, idx)
 
 
-def test_cli_rated_torque_and_peak_back_emf(tmp_path):
+def test_cli_rated_torque_and_peak_back_emf(tmp_path, shared_tuning):
     from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "u.json"

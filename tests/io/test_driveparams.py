@@ -297,7 +297,7 @@ def test_float32_storage_effect_is_small_but_not_zero(plant, speed_run):
 
 # --- prsa-tune --motor / --export-template ---------------------------------------------------
 
-def test_cli_export_template_and_motor(tmp_path, capsys):
+def test_cli_export_template_and_motor(tmp_path, capsys, shared_tuning):
     from prsa_ctrl.cli.tune import main
 
     out = tmp_path / "ax.toml"

@@ -29,10 +29,13 @@ def move_xml_export(tmp_path_factory):
     """``prsa-tune --scene paper-move --quiet --export Axis.xml`` (in-process), run once for the
     module: the iec2c compile and the TC6 schema validation read the same file (each ran the
     same command, tuning the move scene from scratch)."""
+    from shared_runs import share_tunings
     from prsa_ctrl.cli.tune import main
 
     out = tmp_path_factory.mktemp("plcopen-cli") / "Axis.xml"
-    assert main(["--scene", "paper-move", "--quiet", "--export", str(out)]) == 0
+    with pytest.MonkeyPatch.context() as mp:
+        share_tunings(mp)  # the move scene's tuning: tests/conftest.py's shared_tuning
+        assert main(["--scene", "paper-move", "--quiet", "--export", str(out)]) == 0
     return out
 
 

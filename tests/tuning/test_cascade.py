@@ -871,3 +871,61 @@ def test_move_scene_filter_beyond_nyquist_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "corner_hz = 2500.0" in err and "Traceback" not in err
     assert not (tmp_path / "d.toml").exists()
+
+
+@pytest.mark.parametrize("rate", [1, 2])
+def test_kept_responses_give_the_peaks_of_a_fresh_computation(plant, scene, rate):
+    """``CascadeModel`` keeps the gain-free responses of its dense grids (``ms`` evaluates the same
+    frequencies, 20000 by default, at every gain): the peaks at other gains after the first call are the same
+    numbers, bit for bit, as a model that keeps nothing, and the kept arrays cannot be written."""
+    sc = dataclasses.replace(scene, position_rate=rate)
+    cm, bare = CascadeModel(plant, sc), CascadeModel(plant, sc)
+    bare._CACHE_MIN = 10**9  # keeps nothing
+    for g in ([0.08, 7.0, 60.0, 0.0, 1.0, 1.0], [0.05, 11.0, 25.0, 3.0, 1.0, 0.0], [0.12, 4.0, 90.0, 0.0, 0.5, 1.0]):
+        assert cm.ms(g, n_dense=2000) == bare.ms(g, n_dense=2000)  # a dense grid of 2000 (kept from 64)
+    assert cm._resp_cache and not bare._resp_cache
+    kept = next(iter(cm._resp_cache.values()))
+    with pytest.raises(ValueError, match="read-only"):
+        next(v for v in kept.values() if isinstance(v, np.ndarray))[0] = 0
+    assert len(cm._resp_cache) <= cm._CACHE_MAX
+
+
+def _peaks_one_point_at_a_time(cm, g, n_dense=20000):
+    """``CascadeModel.ms`` as it was written before its golden section searches ran in lockstep:
+    each breaking point's search alone, one frequency per sensitivity call."""
+    out, grids = {}, {}
+    for name in BREAKING_POINTS:
+        nyq = math.pi / (cm.ts if (name == "speed_open" or cm.rate == 1) else cm.tp)
+        if nyq not in grids:
+            w = np.unique(np.concatenate([np.geomspace(1e-2, nyq * 0.99999, n_dense), cm.omega[cm.omega < nyq]]))
+            grids[nyq] = (w, cm.sensitivity(g, w, [k for k in BREAKING_POINTS if cm.rate == 1 or
+                                                   (k == "speed_open") == (nyq == math.pi / cm.ts)]))
+        w, sens = grids[nyq]
+        s = sens[name]
+        i = int(np.argmax(s))
+        a_, b_ = w[max(i - 1, 0)], w[min(i + 1, w.size - 1)]
+
+        def f(x):
+            return float(cm.sensitivity(g, np.array([x]), (name,))[name][0])
+
+        gr = (math.sqrt(5) - 1) / 2
+        for _ in range(60):
+            c_, d_ = b_ - gr * (b_ - a_), a_ + gr * (b_ - a_)
+            if f(c_) > f(d_):
+                b_ = d_
+            else:
+                a_ = c_
+        wm = 0.5 * (a_ + b_)
+        best = max((s[i], w[i]), (f(wm), wm))
+        out[name], out[f"w_{name}"] = float(best[0]), float(best[1])
+    return out
+
+
+@pytest.mark.parametrize("rate", [1, 2])
+def test_peaks_searched_in_lockstep_are_those_searched_one_at_a_time(plant, scene, rate):
+    """``ms`` runs the four breaking points' golden section searches in lockstep (one
+    sensitivity call per step): the peaks and their frequencies are the same numbers, bit for
+    bit, as the searches run one point and one frequency at a time."""
+    cm = CascadeModel(plant, dataclasses.replace(scene, position_rate=rate))
+    for g in ([0.08, 7.0, 60.0, 0.0, 1.0, 1.0], [0.05, 11.0, 25.0, 3.0, 1.0, 0.0]):
+        assert cm.ms(g, n_dense=2000) == _peaks_one_point_at_a_time(cm, g, n_dense=2000)
