@@ -54,7 +54,9 @@ def share_tunings(mp, calls=None):
     import prsa_ctrl.studies.move as move
 
     real_tune, real_move = autotune.tune_actuator, move.tune_move
-    mp.setattr(autotune, "tune_actuator", lambda plant, scene, workers=None: tuned_once(
+    # ``resolved`` (a scene kind's resolve_scene(plant, scene)) is a function of the plant and the
+    # scene alone: the shared run resolves them itself, so calls with and without it share one run
+    mp.setattr(autotune, "tune_actuator", lambda plant, scene, workers=None, resolved=None: tuned_once(
         real_tune, plant, scene, workers=workers, calls=calls))
     mp.setattr(move, "tune_move", lambda plant, scene, progress=None: tuned_once(
         real_move, plant, scene, calls=calls, progress=progress))
