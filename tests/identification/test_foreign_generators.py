@@ -683,14 +683,11 @@ JUDGE_XFAIL = {
     ("ball-rigid-d1-computed-nonsi", "logs"):
         "exit 0 with the truth outside the inertia's 95 % interval: 2.91687e-3 (CI 2.91622..2.91753e-3) against "
         "2.92018e-3 kg m^2 (-0.11 %, 10 standard errors)",
-    ("ball-2mass-d1-computed-si", "logs"):
-        "exit 0, 'the plant explains the data', from a rigid fit of a two-mass axis whose 132.3 Hz mode is inside "
-        "the multisine's band: the written plant's axial mode is the base stiffness's 152.5 Hz (+15 %); the "
-        "multisine replays at 39.6 x its noise floor and passes on fit % >= 50 (86.3 %); no 'second mass' diagnosis",
-    ("roller-2mass-d1-applied-si", "logs"):
-        "exit 0, 'the plant explains the data', from a rigid fit of a two-mass axis (mode 161.3 Hz): the written "
-        "plant's axial mode is the base stiffness's 135.1 Hz (-16 %); multisine and load steps replay at 14.2 and "
-        "13.5 x their noise floors and pass on fit % >= 50 (90.5 %, 88.0 %); no 'second mass' diagnosis",
+    # ball-2mass-d1-computed-si and roller-2mass-d1-applied-si logs (exit 0 with a rigid plant of a
+    # two-mass axis at fit >= 50 %) were marked here until the verdict refused a residual that is a
+    # resonance (validation.RESONANCE_SHARE): the ball case now ends exit 3 'second mass' (rerun);
+    # the roller case's written plant left 86 % / 75 % of its multisine / load-step residual at the
+    # mode (replayed, not refitted: its run takes 20 min)
 }
 
 
