@@ -134,8 +134,10 @@ def test_a_100000_entry_value_gives_a_short_error(tmp_path, capsys):
 def _warn_then(code):
     def body(run, argv):
         warnings.warn("overflow encountered in divide", RuntimeWarning)
-        if code:
-            raise ValueError("bad input")
+        if code:  # the toolkit's own error type: failures are classified by type and origin (issue 33)
+            from prsa_ctrl.errors import SceneError
+
+            raise SceneError("bad input")
         return EXIT_OK
     return body
 
