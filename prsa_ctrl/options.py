@@ -32,6 +32,8 @@ __all__ = [
     "rad_s_to_rpm",
     "FREQUENCY_UNITS",
     "DEFAULT_FREQUENCY_UNIT",
+    "MOTOR_COORDINATES",
+    "LOAD_COORDINATES",
 ]
 
 #: The paper's operating speed, rpm (paper text: "300 rpm").
@@ -45,6 +47,11 @@ RAD_S_PER_RPM = 2.0 * math.pi / 60.0
 #: operating point, an excitation design): roller-screw catalogues rate nut speeds up to ~5000
 #: rpm (d n limits of the rolling contacts); the contact models are not validated beyond.
 SPEED_MAX_RPM = 6000.0
+
+#: The coordinates a screw-driven plant's numbers are in (reports and JSON say them).
+MOTOR_COORDINATES = "motor (angle rad, torque N m)"
+#: The coordinates of a linear axis (and of a log described in load coordinates).
+LOAD_COORDINATES = "load (position m, force N)"
 
 #: Units of the frequency axes of the Bode and sensitivity figures -> factor from rad/s
 #: (:mod:`prsa_ctrl.plots.loop`; ``prsa-plot`` and ``prsa-tune --plots``: ``--frequency-unit``).

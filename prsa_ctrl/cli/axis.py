@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from ..identification.calibrate import MOTOR_COORDINATES  # re-exported (coordinates of every plant but a linear axis)
+from ..options import MOTOR_COORDINATES  # re-exported (coordinates of every plant but a linear axis)
 from .common import Parser, Run, UsageError, echo, flag_value, progress
 
 __all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]

@@ -101,7 +101,7 @@ _UNITS = {"axis.mass_kg": "kg", "friction.viscous_positive_n_s_per_m": "N s/m",
 #: :data:`prsa_ctrl.plant.schema.REQUIRED`).
 DEFAULTS: Mapping[str, tuple[float, str]] = {k: plant_schema.DEFAULTS[k] for k in PARAMETERS[1:]}
 #: Coordinates of a linear axis, as reports and files state them.
-COORDINATES = "load (position m, force N)"
+from ..options import LOAD_COORDINATES as COORDINATES  # noqa: E402 - defined once, re-exported here
 _SECTIONS = {"axis": ("mass_kg", "load_mass_kg", "load_stiffness_n_per_um", "axial_damping_ratio"), "friction": ("coulomb_positive_n", "coulomb_negative_n", "viscous_positive_n_s_per_m",
                                                  "viscous_negative_n_s_per_m"),
              "drive": ("gain_n_per_unit", "force_limit_n", "command_unit"),

@@ -33,7 +33,7 @@ __all__ = ["MOTOR_COORDINATES", "Calibrated", "calibrate_logs", "fitted_plant_te
            "mat_log_refusal", "linear_axis_refusal", "written_keys", "fitted_description", "structure_lines"]
 
 #: Coordinates of a screw-driven plant file and of the logs it is fitted to, as reports state them.
-MOTOR_COORDINATES = "motor (angle rad, torque N m)"
+from ..options import MOTOR_COORDINATES  # noqa: E402 - defined once, re-exported here
 
 
 def fitted_description(base, result, fitted_from: str) -> str:
