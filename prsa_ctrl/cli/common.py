@@ -490,9 +490,17 @@ def show_notes(run: Run, notes: list[warnings.WarningMessage], native: list[str]
 
 
 def progress(run: Run, verbose: bool, text: str) -> None:
-    """A progress line on stderr (``--verbose`` only)."""
-    if verbose:
+    """A progress line on stderr (``--verbose`` only); while the solvers' output is captured
+    (:func:`native_output`) it goes to the terminal's stderr directly, not among the solver
+    lines (was shown again as ``prog: solver: prog: ...``)."""
+    if not verbose:
+        return
+    if run.err_fd == 2:
         echo(f"{run.prog}: {text}", file=sys.stderr, flush=True)
+        return
+    line = printable(f"{run.prog}: {text}", limit=MESSAGE_CHARS_MAX)
+    with contextlib.suppress(OSError):
+        os.write(run.err_fd, (line + "\n").encode("utf-8", "replace"))
 
 
 def echo(text: Any, file: Any = None, flush: bool = False) -> None:

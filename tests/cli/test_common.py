@@ -190,3 +190,19 @@ def test_memory_input_and_unknown_errors_by_type():
     # the words alone classify nothing: an unknown error saying "overflow" is still unknown
     assert common.describe_failure(KeyError("overflow"), "x")[1].endswith("failed (KeyError); rerun with --verbose for details")
     assert common.status_says_interrupted({"status": "User_Requested_Stop"}) is False  # no dict walk
+
+
+def test_a_progress_line_during_captured_solver_output_reaches_the_terminal_once():
+    """``--verbose`` progress said while the solvers' output is captured goes to the terminal's
+    stderr, not among the captured solver lines (was shown again as 'prog: solver: prog: ...')."""
+    code = ("from prsa_ctrl.cli.common import Run, native_output, progress\n"
+            "run, lines = Run('prog'), []\n"
+            "with native_output(run, lines):\n"
+            "    progress(run, True, 'step one')\n"
+            "    print('solver says hi')\n"
+            "print('captured:', lines)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stderr.splitlines() == ["prog: step one"]
+    captured = out.stdout.strip().splitlines()[-1]
+    assert "solver says hi" in captured and "step one" not in captured
