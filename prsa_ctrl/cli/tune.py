@@ -242,15 +242,12 @@ def _tune_body(run: Run, argv: list[str]) -> int:
 
 
 def _options(run: Run, args) -> TuneOptions:
-    """The study flags as the registry's options, with the run's progress and interrupt checks."""
-
-    def checkpoint(obj) -> None:  # a Ctrl-C a solver swallowed (IPOPT's User_Requested_Stop) raises here
-        run.check()
-
+    """The study flags as the registry's options, with the run's progress and interrupt checks
+    (``run.check``: a Ctrl-C a solver swallowed, IPOPT's User_Requested_Stop, raises there)."""
     return TuneOptions(workers=args.workers, tune_filter=args.tune_filter, robust=args.robust,
                        design_to_spec=bool(getattr(args, "design_to_spec", False)), monte_carlo=args.monte_carlo,
                        seed=args.seed, scheduler=args.scheduler, quiet=args.quiet, friction_ff=args.friction_ff,
-                       progress=lambda text: progress(run, args.verbose, text), checkpoint=checkpoint)
+                       progress=lambda text: progress(run, args.verbose, text), checkpoint=run.check)
 
 
 # --- the steps, each for both kinds of scene -----------------------------------------------------

@@ -38,7 +38,7 @@ def _quiet(_text: str) -> None:
     return None
 
 
-def _nothing(_obj: Any = None) -> None:
+def _nothing(*_args: Any) -> None:
     return None
 
 
@@ -65,8 +65,8 @@ class TuneOptions:
     progress : callable
         Called with a progress line (str).
     checkpoint : callable
-        Called with an intermediate result (dict) or None between the stages; raises to stop
-        the run (e.g. ``KeyboardInterrupt`` on a solver stopped by the user).
+        Called without arguments between the stages; raises to stop the run (e.g.
+        ``KeyboardInterrupt`` after a solver the user stopped returned).
     """
 
     workers: int | None = None
@@ -79,7 +79,7 @@ class TuneOptions:
     quiet: bool = False
     friction_ff: bool = False
     progress: Callable[[str], None] = field(default=_quiet, compare=False)
-    checkpoint: Callable[[Any], None] = field(default=_nothing, compare=False)
+    checkpoint: Callable[[], None] = field(default=_nothing, compare=False)
 
 
 @dataclass(frozen=True)
@@ -384,9 +384,9 @@ class LoadStep:
             options.progress(f"tuning a {options.tune_filter} with the gains ...")
             ft = tune_scene_filter(plant, self.scene, options.tune_filter)
             prob = replace(self, scene=ft.scene)
-            options.checkpoint(None)
+            options.checkpoint()
         rep = tune_actuator(plant, prob.scene, workers=options.workers, resolved=prob.resolve(plant))
-        options.checkpoint(rep.as_dict())
+        options.checkpoint()
         if options.design_to_spec:
             robust_rep, mc, dts = _design_to_spec(plant, rep, options)
             return SpeedReport(self.name, rep, robust_rep, mc, ft, dts, coordinates)
@@ -460,7 +460,7 @@ def _robust_and_monte_carlo(plant, rep, options: TuneOptions):
 
         options.progress("robust tuning over the scenario models ...")
         robust_rep = tune_robust_actuator(plant, scene)
-        options.checkpoint(None)
+        options.checkpoint()
     n = options.monte_carlo if options.monte_carlo is not None else opts["samples"]
     if not n:
         return robust_rep, None
@@ -502,7 +502,7 @@ def _design_to_spec(plant, rep, options: TuneOptions):
     seed = options.seed if options.seed is not None else opts["seed"]
     options.progress("robust tuning over the scenario models ...")
     rr = tune_robust_actuator(plant, scene)
-    options.checkpoint(None)
+    options.checkpoint()
     extra = {"nominal design": rr.nominal, "robust design": rr.robust}
     for d in (rep.best, *(getattr(rep, "candidates", ()) or ()), *rep.baselines):
         add_design(extra, d.name, d.pid)

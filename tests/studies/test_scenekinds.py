@@ -74,7 +74,7 @@ def test_reports_of_each_kind_own_json_text_and_export():
 
 def test_options_are_frozen_with_quiet_defaults():
     o = TuneOptions()
-    assert o.progress("x") is None and o.checkpoint({}) is None
+    assert o.progress("x") is None and o.checkpoint() is None
     with pytest.raises(dataclasses.FrozenInstanceError):
         o.robust = True
 
