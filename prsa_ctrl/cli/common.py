@@ -210,8 +210,15 @@ class Run:
             if self.reported:
                 return False
             self.reported = True
+        self.write_err(line)
+        return True
+
+    def write_err(self, line: str) -> None:
+        """Write one line to the terminal's stderr, control characters escaped and the length
+        bounded (:func:`prsa_ctrl.textsafe.printable`): to :attr:`err_fd` directly even while the
+        solvers' output is captured (:func:`native_output`), through ``sys.stderr`` where that is
+        not a real file (pytest capture, StringIO)."""
         line = printable(line, limit=MESSAGE_CHARS_MAX)
-        data = (line + "\n").encode("utf-8", "replace")
         try:
             sys.stderr.flush()
             sys.stderr.fileno()
@@ -219,10 +226,10 @@ class Run:
         except Exception:  # noqa: BLE001 - not a real file (pytest capture, StringIO)
             real = False
         if real:
-            os.write(self.err_fd, data)  # the terminal's stderr even while solver output is captured
+            with contextlib.suppress(OSError):
+                os.write(self.err_fd, (line + "\n").encode("utf-8", "replace"))
         else:
             print(line, file=sys.stderr)
-        return True
 
     def interrupt_line(self) -> str:
         if self.written:
@@ -493,14 +500,8 @@ def progress(run: Run, verbose: bool, text: str) -> None:
     """A progress line on stderr (``--verbose`` only); while the solvers' output is captured
     (:func:`native_output`) it goes to the terminal's stderr directly, not among the solver
     lines (was shown again as ``prog: solver: prog: ...``)."""
-    if not verbose:
-        return
-    if run.err_fd == 2:
-        echo(f"{run.prog}: {text}", file=sys.stderr, flush=True)
-        return
-    line = printable(f"{run.prog}: {text}", limit=MESSAGE_CHARS_MAX)
-    with contextlib.suppress(OSError):
-        os.write(run.err_fd, (line + "\n").encode("utf-8", "replace"))
+    if verbose:
+        run.write_err(f"{run.prog}: {text}")
 
 
 def echo(text: Any, file: Any = None, flush: bool = False) -> None:

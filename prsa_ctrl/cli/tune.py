@@ -185,11 +185,11 @@ def _tune_body(run: Run, argv: list[str]) -> int:
         warnings.simplefilter("always")
         plant, scene, overrides = _load(args, run)
         inputs = input_files(args, scene)
-        _check_outputs(args, run, scene, inputs)
+        prob, options = problem(scene), _options(run, args)  # built once per run
+        _check_outputs(args, prob, options, scene, inputs)
         notes.extend(caught)
     run.check()
-    prob = problem(scene)
-    prob.check(_options(run, args))
+    prob.check(options)
     native: list[str] = []
     what = prob.what(plant)
     if prob.announces:
@@ -199,7 +199,7 @@ def _tune_body(run: Run, argv: list[str]) -> int:
             warnings.simplefilter("always")
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", GeometryWarning)
-                report = prob.tune(plant, _options(run, args), _coordinates(plant))
+                report = prob.tune(plant, options, _coordinates(plant))
             notes.extend(caught)
         run.check()
     except KeyboardInterrupt:
@@ -285,11 +285,10 @@ def _refused_flag(args, run: Run) -> str | None:
     return None
 
 
-def _check_outputs(args, run: Run, scene, inputs: Sequence[str]) -> None:
-    """The study flags the scene's kind refuses, then every output path and export option,
-    checked before the expensive work (the order of the checks, which decides the message when
-    several fail, is each scene kind's own: :data:`_OUTPUT_CHECKS`)."""
-    prob = problem(scene)
+def _check_outputs(args, prob, options: TuneOptions, scene, inputs: Sequence[str]) -> None:
+    """The study flags the scene's kind (``prob``) refuses, then every output path and export
+    option, checked before the expensive work (the order of the checks, which decides the message
+    when several fail, is each scene kind's own: :data:`_OUTPUT_CHECKS`)."""
 
     def suffix() -> None:
         if args.export is not None and os.path.splitext(args.export)[1].lower() not in EXPORT_SUFFIXES:
@@ -328,7 +327,7 @@ def _check_outputs(args, run: Run, scene, inputs: Sequence[str]) -> None:
 
     steps = {"suffix": suffix, "distinct": distinct, "json": json_path, "export": export, "drive": drive_options,
              "plots": plots, "scheduler": lambda: _check_scheduler(args, scene)}
-    prob.check_options(_options(run, args))
+    prob.check_options(options)
     for step in _OUTPUT_CHECKS[prob.name]:
         steps[step]()
 
