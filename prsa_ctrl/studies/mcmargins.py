@@ -12,13 +12,13 @@ Jacobians, the zero-order-hold discretisation and the loop model
 - the Jacobians of the parametric family (:func:`prsa_ctrl.plant.model.parametric_family`) at
   them: one CasADi function of ``(x, u, theta)``, built once per family and mapped over the batch;
 - the zero-order hold: a stacked matrix exponential (:func:`expm_stack`, Higham's scaling and
-  squaring with the degree-13 Pade approximant, as :func:`scipy.linalg.expm`);
+  squaring with the degree-13 Pade approximant, as ``scipy.linalg.expm``);
 - the loop: the nominal loop model is the template (its gain matrices and its controller rows
   do not depend on the plant); each sample's plant block replaces the template's;
-- the peaks: the same dense grid as :meth:`LoopModel._peak_grid` (600 log-spaced points, the
+- the peaks: the same dense grid as ``LoopModel._peak_grid`` (600 log-spaced points, the
   model's grid with the discrete plant's resonance points, the low-frequency extension while
   ``|L| < 100``, the points around every closed-loop pole) and the same polish
-  (:func:`prsa_ctrl.tuning.loops.zoom_max` on the up to six highest local maxima within 1 % of
+  (``prsa_ctrl.tuning.loops.zoom_max`` on the up to six highest local maxima within 1 % of
   the top), with the plant's transfer evaluated in its modal form.
 
 A sample this cannot take (steady state not found, an ill-conditioned modal basis, a
@@ -55,7 +55,7 @@ _COEF13 = 1.2573361865339437e19
 def expm_stack(a: NDArray[np.float64]) -> NDArray[np.float64]:
     """Matrix exponentials of a stack ``a`` (``(b, n, n)``), vectorised over the stack: scaling
     and squaring with the degree-13 Pade approximant, the scaling chosen per matrix as
-    :func:`scipy.linalg.expm` chooses it (Al-Mohy and Higham 2009: from ``||A^k||^(1/k)``,
+    ``scipy.linalg.expm`` chooses it (Al-Mohy and Higham 2009: from ``||A^k||^(1/k)``,
     k = 6, 8, 10, not from ``||A||``, plus the truncation-error correction on ``|A|^27``), so a
     stiff, non-normal matrix (a contact stiffness) is not over-scaled.
 
@@ -238,7 +238,7 @@ def _rows_sorted_unique(w: NDArray[np.float64]) -> tuple[NDArray[np.float64], ND
 
 
 def _polish(resp: _Response, w, L, count, mag_of) -> NDArray[np.float64]:
-    """Per row, as :func:`prsa_ctrl.tuning.loops._polished_peak` then ``sensitivity_peaks``:
+    """Per row, as ``prsa_ctrl.tuning.loops._polished_peak`` then ``sensitivity_peaks``:
     the grid's top, raised to the polished peak of the up to six highest local maxima within
     1 % of it where that is higher."""
     s, m = w.shape
