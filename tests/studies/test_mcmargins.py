@@ -142,3 +142,30 @@ def test_batched_margins_do_not_depend_on_the_batch(robust):
     r = mc.replay_sample(plant, scene, pid, 4, 7)
     assert r["metrics"]["ms"] == one.samples["metrics"][7, 0, i_ms]
     assert r["metrics"]["mt"] == one.samples["metrics"][7, 0, i_ms + 1]
+
+
+@pytest.mark.parametrize("case", ["rigid", "command delay 2"])
+def test_batched_margins_on_a_rigid_scene_and_a_delayed_drive(robust, monkeypatch, case):
+    """The rigid loop (another family) and a drive with 2 samples of command delay (a delay
+    line in the loop's state, the plant's command column moved): batched, nothing left to the
+    per-sample path, Ms/Mt as the per-sample loop models give them."""
+    plant, _, _ = robust
+    scene = load_scene("robust-load-step")
+    if case == "rigid":
+        scene = scene.replace(fidelity="rigid")
+    else:
+        plant = plant.with_params({"drive.command_delay_samples": 2})
+    pid = _pid(load_plant())
+    kw = dict(seed=1, backend="serial", quiet=True)
+    left = {}
+    real = mcbatch._margins_batched
+    monkeypatch.setattr(mcbatch, "_margins_batched", lambda *a: left.update(real(*a)) or {})
+    bat = mc.run_monte_carlo(plant, scene, {"paper": pid}, 6, **kw)
+    assert bat.integration["path"] == "batched" and not left
+    monkeypatch.setattr(mcbatch, "_margins_batched",
+                        lambda job, plant, scene, draws, rows, out: {r: set(range(len(job.designs))) for r in rows})
+    per = mc.run_monte_carlo(plant, scene, {"paper": pid}, 6, **kw)
+    i_ms = mc.METRICS.index("ms")
+    mb, mp = bat.samples["metrics"][:, 0, i_ms:i_ms + 2], per.samples["metrics"][:, 0, i_ms:i_ms + 2]
+    assert np.all(np.isfinite(mb))
+    np.testing.assert_allclose(mb, mp, rtol=RTOL)
