@@ -193,7 +193,7 @@ def _margins_batched(job: Job, plant, scene, draws, rows: list[int], out: np.nda
                                 plant.command_delay_samples)
                 scale = float(np.max(np.abs(template.A0)))
                 if lp["A0"].shape[1:] != template.A0.shape or not np.allclose(
-                        lp["A0"][-1], template.A0, rtol=1e-7, atol=1e-12 * scale):
+                        lp["A0"][-1], template.A0, rtol=1e-6, atol=1e-9 * scale):
                     lp = None
             if lp is None:
                 for q in todo:
