@@ -190,14 +190,16 @@ def loop_batch(template, a: NDArray, b: NDArray, angle_index: int, command_delay
 
 def _modal(lp: dict):
     """Eigenvalues ``lam`` (s, n) and residues ``res`` (s, n) of ``inc_x (zI - ad)^-1 bu``, and
-    whether each sample's modal basis is well conditioned."""
-    lam, vec = np.linalg.eig(lp["ad"])
+    whether each sample's discrete plant is finite and its modal basis well conditioned."""
+    fin = (np.all(np.isfinite(lp["ad"]), axis=(1, 2)) & np.all(np.isfinite(lp["bu"]), axis=1)
+           & np.all(np.isfinite(lp["inc_x"]), axis=1) & np.isfinite(lp["inc_u"]))
+    lam, vec = np.linalg.eig(np.where(fin[:, None, None], lp["ad"], 0.0))
     with np.errstate(all="ignore"):
         cond = np.linalg.cond(vec)
-        ok = np.isfinite(cond) & (cond <= MODAL_COND_MAX)
+        ok = fin & np.isfinite(cond) & (cond <= MODAL_COND_MAX)
         vsafe = np.where(ok[:, None, None], vec, np.eye(vec.shape[1]))
-        right = np.linalg.solve(vsafe, lp["bu"][..., None].astype(complex))[..., 0]
-        left = np.einsum("sj,sjk->sk", lp["inc_x"].astype(complex), vsafe)
+        right = np.linalg.solve(vsafe, np.where(ok[:, None], lp["bu"], 0.0)[..., None].astype(complex))[..., 0]
+        left = np.einsum("sj,sjk->sk", np.where(ok[:, None], lp["inc_x"], 0.0).astype(complex), vsafe)
     return lam, left * right, ok
 
 

@@ -169,3 +169,24 @@ def test_batched_margins_on_a_rigid_scene_and_a_delayed_drive(robust, monkeypatc
     mb, mp = bat.samples["metrics"][:, 0, i_ms:i_ms + 2], per.samples["metrics"][:, 0, i_ms:i_ms + 2]
     assert np.all(np.isfinite(mb))
     np.testing.assert_allclose(mb, mp, rtol=RTOL)
+
+
+def test_a_non_finite_sample_is_flagged_not_raised(robust):
+    """A sample whose linearisation is not finite (a failed steady state) is flagged for the
+    per-sample path; the others' numbers do not change."""
+    plant, scene, unc = robust
+    f1 = scene.final_loads[0]
+    fam = parametric_family(plant, "compliant", unc.keys)
+    thetas = np.array([[draw_sample(unc, ((scene.setpoint_rad_s, f1),), 0, i)[0].get(k, plant.values[k])
+                        for k in fam.keys] for i in range(3)])
+    a, b, _, ok = mcmargins.linearise_batch(fam, thetas, scene.setpoint_rad_s, 0.5 * (scene.initial_load + f1))
+    template = actuator_loops(plant, scene.replace(final_loads=(f1,)), estimator="none")[0]
+    args = (fam.index("theta_nut"), plant.command_delay_samples)
+    clean = mcmargins.sensitivity_peaks_batch(template, mcmargins.loop_batch(template, a, b, *args), _pid(plant).gains,
+                                              plant.speed_filter_s, plant.command_delay_samples)
+    a[1, 2, 3] = np.nan
+    ms, mt, good = mcmargins.sensitivity_peaks_batch(template, mcmargins.loop_batch(template, a, b, *args),
+                                                     _pid(plant).gains, plant.speed_filter_s,
+                                                     plant.command_delay_samples)
+    assert clean[2].all() and good.tolist() == [True, False, True]
+    assert ms[[0, 2]].tolist() == clean[0][[0, 2]].tolist() and mt[[0, 2]].tolist() == clean[1][[0, 2]].tolist()
