@@ -135,21 +135,84 @@ def evaluate_batch(job: Job, indices: Sequence[int]) -> list:
                     redo.add(r)
     rows = []
     margins = "ms" in job.spec or "mt" in job.spec
+    left: dict[int, set[int]] = {}  # sample row -> designs whose margins the per-sample path computes
+    if margins:
+        left = _margins_batched(job, plant, scene, draws, [r for r in range(len(indices)) if r not in redo], out)
     for r, i in enumerate(indices):
         if r in redo:
             rows.append(evaluate(job, i))
             continue
         values, op, _ = draws[r]
         if margins:
-            _margins(job, plant, scene, values, op, i, out[r])
+            if left.get(r):
+                _margins(job, plant, scene, values, op, i, out[r], left[r])
         else:
             out[r, :, 10:12] = math.nan
         rows.append((i, values, op, out[r], [None] * nd))
     return rows
 
 
-def _margins(job: Job, plant, scene, values, op: int, index: int, out: np.ndarray) -> None:
-    """Ms and Mt of every design on sample ``index`` (as ``prsa_ctrl.studies.mcjob.evaluate``), into ``out``."""
+#: Keys that set the drive loop's own constants (sample time, filters, delay): a sample that
+#: varies them has its own loop structure, so its margins are the per-sample path's.
+_LOOP_KEYS = ("sensor.", "drive.command_delay_samples")
+
+
+def _margins_batched(job: Job, plant, scene, draws, rows: list[int], out: np.ndarray) -> dict[int, set[int]]:
+    """Ms and Mt of the designs on the samples ``rows`` batched (:mod:`prsa_ctrl.studies.mcmargins`),
+    into ``out``; returns, per row, the designs left to the per-sample path (:func:`_margins`):
+    a Kalman-filter design, a sample whose batched operating point, Jacobians or modal form
+    failed, or every one where the nominal loop built batched differs from ``drive_loop``'s."""
+    from ..plant.model import parametric_family
+    from .mcmargins import linearise_batch, loop_batch, sensitivity_peaks_batch
+    from .sceneloops import linear_fidelity
+
+    nd = len(job.designs)
+    want = {r: {j for j in range(nd) if np.all(np.isfinite(out[r, j, :10]))} for r in rows}
+    want = {r: js for r, js in want.items() if js}
+    lin = linear_fidelity(scene)
+    fam = parametric_family(plant, lin, job.unc.keys) if lin in ("rigid", "compliant") else None
+    if (fam is None or not set(job.unc.keys) <= set(fam.keys) or getattr(scene, "filters", ())
+            or any(k.startswith(_LOOP_KEYS) for k in job.unc.keys)):
+        return want
+    left: dict[int, set[int]] = {}
+    nominal = np.array([fam.theta_of(plant)], dtype=float)
+    for op_k in sorted({draws[r][1] for r in want}):
+        sel = [r for r in want if draws[r][1] == op_k]
+        sp, f1 = job.ops[op_k]
+        sc = scene.replace(setpoint_rad_s=sp, final_loads=(f1,))
+        thetas = np.array([[draws[r][0].get(k, plant.values[k]) for k in fam.keys] for r in sel], dtype=float)
+        a, b, c, ok = linearise_batch(fam, np.vstack([thetas, nominal]), sp, 0.5 * (scene.initial_load + f1))
+        for j, (_, pid, est) in enumerate(job.designs):
+            todo = [q for q, r in enumerate(sel) if j in want[r]]
+            if not todo:
+                continue
+            template = actuator_loops(plant, sc, estimator="none")[0] if (est or scene.estimator) == "none" else None
+            lp = None
+            if template is not None and ok[-1]:
+                lp = loop_batch(template, a[todo + [len(sel)]], b[todo + [len(sel)]], fam.index("theta_nut"),
+                                plant.command_delay_samples)
+                scale = float(np.max(np.abs(template.A0)))
+                if lp["A0"].shape[1:] != template.A0.shape or not np.allclose(
+                        lp["A0"][-1], template.A0, rtol=1e-6, atol=1e-9 * scale):
+                    lp = None
+            if lp is None:
+                for q in todo:
+                    left.setdefault(sel[q], set()).add(j)
+                continue
+            ms, mt, good = sensitivity_peaks_batch(template, lp, pid.gains, plant.speed_filter_s,
+                                                   plant.command_delay_samples)
+            for t, q in enumerate(todo):
+                r = sel[q]
+                if good[t] and ok[q]:
+                    out[r, j, 10], out[r, j, 11] = ms[t], mt[t]
+                else:
+                    left.setdefault(r, set()).add(j)
+    return left
+
+
+def _margins(job: Job, plant, scene, values, op: int, index: int, out: np.ndarray, designs=None) -> None:
+    """Ms and Mt of every design (or of the ``designs``' indices) on sample ``index`` (as
+    ``prsa_ctrl.studies.mcjob.evaluate``), into ``out``."""
     sp, f1 = job.ops[op]
     p_i = apply(plant, values, name=f"{plant.name} sample {index}") if values else plant
     if values:
@@ -157,7 +220,7 @@ def _margins(job: Job, plant, scene, values, op: int, index: int, out: np.ndarra
     sc = scene.replace(setpoint_rad_s=sp, final_loads=(f1,))
     loop = None
     for j, (_, pid, est) in enumerate(job.designs):
-        if not np.all(np.isfinite(out[j, :10])):
+        if not np.all(np.isfinite(out[j, :10])) or (designs is not None and j not in designs):
             continue
         if loop is None:
             loop = actuator_loops(p_i, sc, estimator=est)[0]
