@@ -32,7 +32,7 @@ import scipy.signal
 from numpy.typing import NDArray
 
 from ..errors import DataError
-from ..options import check_number
+from ..options import check_number, rad_s_to_rpm
 from ..tablefile import read_table
 
 __all__ = [
@@ -67,7 +67,7 @@ MAX_SAMPLES = 2_000_000
 #: Largest data file read (bytes), checked before reading: ``MAX_SAMPLES`` rows of up to 256
 #: bytes (a record written with 17 significant digits takes about 120 bytes a row).
 MAX_FILE_BYTES = 256 * MAX_SAMPLES
-_RPM = 60.0 / (2.0 * math.pi)
+_RPM = rad_s_to_rpm(1.0)  # rpm per rad/s
 
 
 @dataclass(frozen=True, eq=False)

@@ -56,7 +56,7 @@ from typing import TYPE_CHECKING, Any, Iterable
 import numpy as np
 
 from ..drive.pid import PID
-from ..options import check_number
+from ..options import RAD_S_PER_RPM, check_number
 from ..drive.filters import Filter, FirstOrderLowPass
 
 if TYPE_CHECKING:
@@ -77,7 +77,7 @@ DISCRETISATIONS = {
     "tustin": ("s = (2/Ts) (z - 1)/(z + 1)", (2.0, -2.0), (1.0, 1.0)),
 }
 
-_RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
+_RPM = RAD_S_PER_RPM  # rad/s per rpm
 
 
 def _pid_s_polynomials(pid: PID) -> tuple[list[float], list[float]]:

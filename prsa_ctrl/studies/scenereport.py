@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Callable, Sequence
 
-from ..options import rad_s_to_rpm
+from ..options import RAD_S_PER_RPM, rad_s_to_rpm
 from ..sim.metrics import metric_resolution, relative_difference
 from ..textsafe import printable
 from .scenefilters import describe_filters
@@ -204,7 +204,7 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         "Drive terms: "
         + (f"sample time {rep.plant.sample_time_s * 1e3:.4g} ms, " if sc.discrete else "continuous controller, ")
         + (f"integral time Ti = kp/ki = {b.pid.kp / b.pid.ki * 1e3:.4g} ms, " if b.pid.ki > 0 else "no integral action, ")
-        + f"kp = {b.pid.kp * 2 * math.pi / 60:.4g} N m/rpm",
+        + f"kp = {b.pid.kp * RAD_S_PER_RPM:.4g} N m/rpm",
         *(f"Filter: {line}" for line in describe_filters(sc.filters, rep.plant.sample_time_s)),
         f"Status: {rep.status}",
         "",
