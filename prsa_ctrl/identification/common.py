@@ -251,6 +251,13 @@ class FitResult:
             return "ok"
         return f"flagged: the fitted plant does not explain the data ({v.get('diagnosis', 'no diagnosis')})"
 
+    @property
+    def ok(self) -> bool:
+        """Whether the result may be reported as good (:func:`prsa_ctrl.results.is_ok` of its status)."""
+        from ..results import is_ok
+
+        return is_ok(self.status)
+
     def as_dict(self) -> dict:
         """JSON-ready report (stable keys: ``status``, ``parameters``, ``reflected_inertia_kg_m2``,
         ``fit_percent``, ``warnings``, ``solver``, plus ``correlation``, ``covariance`` (keys,
