@@ -138,6 +138,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--traces", metavar="T.csv", help="with --validate: measured and simulated position and force "
                    "per sample")
     p.add_argument("--plots", metavar="DIR", help="overlay figures (PNG) of each replay")
+    p.add_argument("--verbose", action="store_true", help="a progress line on stderr when the work starts")
     return p
 
 
@@ -158,7 +159,7 @@ def run(argv: Sequence[str], verbose: bool = False, check=None, parsed=None) -> 
         args = _parser().parse_args(list(argv))
         if parsed is not None:
             parsed(args)
-        progress(Run("prsa-fit"), verbose, "validating" if args.validate else "fitting")
+        progress(Run("prsa-fit"), verbose or args.verbose, "validating" if args.validate else "fitting")
         if args.validate:
             return _validate(args)
         return _fit(args)

@@ -232,35 +232,29 @@ def _body(run: Run, argv: list[str]) -> int:
     if wants_axis_mode(argv) and not motor:
         made: list = []  # what the run is about to write, known once its arguments are parsed
         try:
-            return _axis_run([a for a in argv if a != "--verbose"], verbose="--verbose" in argv, check=run.check,
-                             parsed=lambda args: made.append(_new_outputs(args)))
+            return _axis_run(argv, check=run.check, parsed=lambda args: made.append(_new_outputs(args)))
         except KeyboardInterrupt:
             if made:
                 _take_back(made[0]())  # the linear-axis path writes its files one by one
             raise
-    mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
-    if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
-        from ..identification.calibrate import mat_log_refusal
-
-        echo(f"prsa-fit: error: {mat_log_refusal(mat)}", file=sys.stderr)
-        return 2
-    verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
     created: list = []  # files and directories this run made, taken back when it is interrupted
+    parsed: list = []  # the parsed arguments (argv is read once, by the parser)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            code = _main(argv, created, run)
+            code = _main(argv, created, run, parsed)
     except BaseException as exc:
         _take_back(created)  # all or nothing
         if run.interrupted:  # also when a library turned the KeyboardInterrupt into an error
             raise KeyboardInterrupt from None  # invoke: one line, exit 130
-        if verbose and isinstance(exc, Exception):  # the numerical failure's cause, before invoke's one line
+        if parsed and parsed[0].verbose and isinstance(exc, Exception):  # the cause, before invoke's one line
             _print_chain(exc)
         raise
     seen = set()
     for w in caught:
         text = " ".join(str(w.message).split())
-        if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose):
+        if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text
+                            and not (parsed and parsed[0].verbose)):
             continue
         seen.add(text)
         echo(f"prsa-fit: note: {text}", file=sys.stderr)
@@ -350,7 +344,7 @@ def _check_frf_point(plant, speed: float, load: float, args) -> None:
         raise UsageError(f"{flag} {_typed(args, flag, value)}: {bad[1]}")
 
 
-def _main(argv: Sequence[str], created: list | None = None, run: Run | None = None) -> int:
+def _main(argv: Sequence[str], created: list | None = None, run: Run | None = None, parsed: list | None = None) -> int:
     from ..identification.data import DataError, load_frf, load_record, parse_columns
     from ..io.output import OutputError
 
@@ -358,6 +352,13 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
 
     try:
         args = build_parser().parse_args(argv)
+        if parsed is not None:
+            parsed.append(args)
+        mat = next((p for p in (*args.data, *args.validate) if p.lower().endswith(".mat")), None)
+        if mat is not None and args.log_format is None:  # a MATLAB log has no fixed columns: a description says
+            from ..identification.calibrate import mat_log_refusal
+
+            raise UsageError(mat_log_refusal(mat))
         if args.design:
             if args.data:
                 raise UsageError(f"--design with data files {' '.join(args.data)}; expected one or the other")

@@ -311,3 +311,18 @@ def test_a_rotary_description_or_a_screw_plant_is_the_motor_mode(tmp_path):
     assert not motor_log_mode(["L.csv", "--log-format", str(linear)])
     assert motor_log_mode(["L.csv", "--log-format", str(linear), "--plant", "ballscrew-32x10"])
     assert not motor_log_mode(["L.csv", "--log-format", str(rotary), "--validate", "X.csv"])
+
+
+def test_a_mat_log_without_a_description_is_refused_after_parsing(tmp_path, capsys):
+    """A .mat data file (or validation record) without --log-format: one line, exit 2, nothing
+    written; an output path that happens to end in .mat is not a log (was refused as one)."""
+    from prsa_ctrl.cli.fit import main
+
+    for argv in (["LOG.mat", "--out", str(tmp_path / "o.toml")],
+                 ["A.csv", "--validate", "B.MAT", "--out", str(tmp_path / "o.toml")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1
+        assert "a MATLAB .mat log is read through a log description" in err[0]
+    assert main(["--design", "chirp", "--out", str(tmp_path / "x.mat"), "--duration", "0.1"]) == 0
+    assert (tmp_path / "x.mat").exists()
