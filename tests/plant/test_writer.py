@@ -259,3 +259,27 @@ def test_the_export_writes_through_the_one_writer():
     d = {"format": "x", "speed": {"kp": 0.1, "name": "µ"}}
     assert export.dumps(d, "toml") == "# x (TOML)\n" + "\n".join(writer.data_lines(d)) + "\n"
     assert export.toml_value([1, "µ"]) == writer.data_value([1, "µ"])
+
+
+def test_tomlkit_and_the_float_rule_live_in_the_writer_only():
+    """One TOML writer: no other module imports tomlkit or formats a TOML float itself."""
+    import ast
+    from pathlib import Path
+
+    import prsa_ctrl
+
+    root = Path(prsa_ctrl.__file__).parent
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel == "plant/writer.py":
+            continue
+        text = path.read_text(encoding="utf-8")
+        for node in ast.walk(ast.parse(text)):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(n.split(".")[0] == "tomlkit" for n in names):
+                found.append(f"{rel}: imports tomlkit")
+        if 'for c in ".en"' in text or "for c in '.en'" in text:
+            found.append(f"{rel}: a TOML float rule")
+    assert found == []
