@@ -36,13 +36,40 @@ __all__ = [
     "LOAD_COORDINATES",
 ]
 
+
+def rpm_to_rad_s(rpm: float) -> float:
+    """Convert a speed in rpm to rad/s: the toolkit's one definition of the rpm factor (2 pi / 60;
+    :data:`RAD_S_PER_RPM` is this of 1 rpm).
+
+    Parameters
+    ----------
+    rpm : float, rpm
+
+    Examples
+    --------
+    >>> round(rpm_to_rad_s(300.0), 4)
+    31.4159
+    """
+    return rpm * 2.0 * math.pi / 60.0
+
+
+def rad_s_to_rpm(rad_s: float) -> float:
+    """Convert a speed in rad/s to rpm (the inverse of :func:`rpm_to_rad_s`).
+
+    Parameters
+    ----------
+    rad_s : float, rad/s
+    """
+    return rad_s * 60.0 / (2.0 * math.pi)
+
+
 #: The paper's operating speed, rpm (paper text: "300 rpm").
 SETPOINT_RPM = 300.0
 #: The same in rad/s (31.4159...).
-SETPOINT_RAD_S = SETPOINT_RPM * 2.0 * math.pi / 60.0
+SETPOINT_RAD_S = rpm_to_rad_s(SETPOINT_RPM)
 
 #: One rpm in rad/s (gains "per rpm" multiply the SI gain by this).
-RAD_S_PER_RPM = 2.0 * math.pi / 60.0
+RAD_S_PER_RPM = rpm_to_rad_s(1.0)
 #: Highest nut speed the toolkit accepts, rpm (the tuner's limit: a scene's setpoint, an FRF's
 #: operating point, an excitation design): roller-screw catalogues rate nut speeds up to ~5000
 #: rpm (d n limits of the rolling contacts); the contact models are not validated beyond.
@@ -267,28 +294,3 @@ def check_peak_bound(name: str, value, *, optional: bool = False) -> float | Non
         return check_number(name, value, lo, hi, lo_open=True, hi_open=True)
     except ValueError:
         raise ValueError(f"{name} = {value!r}; expected {expected}") from None
-
-
-def rpm_to_rad_s(rpm: float) -> float:
-    """Convert a speed in rpm to rad/s.
-
-    Parameters
-    ----------
-    rpm : float, rpm
-
-    Examples
-    --------
-    >>> round(rpm_to_rad_s(300.0), 4)
-    31.4159
-    """
-    return rpm * 2.0 * math.pi / 60.0
-
-
-def rad_s_to_rpm(rad_s: float) -> float:
-    """Convert a speed in rad/s to rpm.
-
-    Parameters
-    ----------
-    rad_s : float, rad/s
-    """
-    return rad_s * 60.0 / (2.0 * math.pi)

@@ -151,11 +151,9 @@ def _number_validators() -> set[str]:
     return found
 
 
-#: Validators still written apart: the scene modules (being rewritten as types by another
-#: branch), and checks of several values at once whose messages name more than one value.
-NOT_YET = {"studies/scenefilters.py:_number", "identification/data.py:_validate", "identification/data.py:design_excitation",
-           "identification/data.py:frf_from_arrays", "identification/logfile.py:scalar",
-           "identification/logformat.py:_check_controller", "cli/pid.py:_coefficients"}
+#: Validators still written apart: none (the last seven, in scenefilters, data, logfile, logformat and
+#: cli/pid, call :func:`options.check_number` since h9-rules).
+NOT_YET: set[str] = set()
 
 
 def test_no_private_number_validator_left_beside_check_number():
@@ -163,3 +161,53 @@ def test_no_private_number_validator_left_beside_check_number():
     (15 on main at 1dddb38) call :func:`prsa_ctrl.options.check_number`; the list of those
     left is exact (an entry fixed must leave it)."""
     assert _number_validators() == NOT_YET
+
+
+def _code_text(path) -> str:
+    """A module's code without its comments and plain strings (docstrings, messages); f-strings
+    kept (their expressions are code)."""
+    import io
+    import tokenize
+
+    toks = tokenize.generate_tokens(io.StringIO(path.read_text(encoding="utf-8")).readline)
+    return " ".join(t.string for t in toks if t.type != tokenize.COMMENT and not (
+        t.type == tokenize.STRING and "f" not in t.string.split(t.string.lstrip("rRbBuUfF")[:1])[0].lower()))
+
+
+_PI = r"(math|np)\s*\.\s*pi"
+#: The rpm factor written out (2 pi / 60, pi / 30, their inverses), whatever the spacing.
+_RPM_FACTOR = re.compile(rf"\bpi\s*/\s*30\b|\b30(\.0)?\s*/\s*{_PI}|2(\.0)?\s*\*\s*{_PI}\s*/\s*60\b|"
+                         rf"\b60(\.0)?\s*/\s*\(\s*2(\.0)?\s*\*\s*{_PI}\s*\)|\bpi\s*/\s*60\b")
+
+
+def test_the_rpm_factor_the_speed_limit_and_the_peak_range_are_defined_once():
+    """Outside options (:func:`options.rpm_to_rad_s`, :data:`options.SPEED_MAX_RPM`,
+    :data:`options.PEAK_BOUND_RANGE`) no module's code writes 2 pi / 60 (or pi / 30, or an
+    inverse), 6000 rpm or the (1, 10) Ms range again."""
+    import ast
+
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE).as_posix()
+        if rel == "options.py":
+            continue
+        if _RPM_FACTOR.search(_code_text(path)):
+            found.append(f"{rel}: rpm factor")
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Constant) and type(node.value) in (int, float) and node.value == 6000:
+                found.append(f"{rel}:{node.lineno}: 6000")
+            if (isinstance(node, ast.Tuple) and len(node.elts) == 2
+                    and all(isinstance(e, ast.Constant) and type(e.value) in (int, float) for e in node.elts)
+                    and [e.value for e in node.elts] == [1, 10]):
+                found.append(f"{rel}:{node.lineno}: (1, 10)")
+    assert found == []
+
+
+@pytest.mark.parametrize("rpm", [1.0, 7.0, 13.0, 300.0, 2999.5, 6000.0, 1e-3, 123456.789])
+def test_the_rpm_conversions_give_the_bits_of_the_forms_they_replaced(rpm):
+    """``v * pi / 30`` and ``v * 30 / pi`` (the inline forms replaced) round to the same float as
+    the conversions (2v is exact, so 2v pi / 60 and v pi / 30 are the same real number); a
+    product with the rounded factor would not (7 rpm differs in the last bit)."""
+    assert options.rpm_to_rad_s(rpm) == rpm * math.pi / 30.0
+    assert options.rad_s_to_rpm(rpm) == rpm * 30.0 / math.pi
+    assert options.RAD_S_PER_RPM == math.pi / 30.0

@@ -10,9 +10,12 @@ import pytest
 
 from prsa_ctrl.drive.filters import LoopFilter, Notch
 from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.identification.axis import AxisFit
+from prsa_ctrl.identification.common import FitResult
 from prsa_ctrl.results import STATUSES, is_converged, is_ok, status_head
 from prsa_ctrl.studies import autotune, montecarlo, responses
 from prsa_ctrl.studies.autotune import ActuatorTuning, Design, actuator_loops, checked, predict, verify
+from prsa_ctrl.studies.axistune import AxisRetuning
 from prsa_ctrl.studies.montecarlo import DesignYield, MonteCarloReport
 from prsa_ctrl.studies.scene import load_scene
 from prsa_ctrl.tuning.filtered import FilteredDesign
@@ -49,7 +52,8 @@ def test_predict_returns_a_new_design(small):
     assert p.objective_predicted == pytest.approx(d.objective_predicted, rel=0, abs=0)
 
 
-@pytest.mark.parametrize("cls", [Design, ActuatorTuning, FilteredDesign, RobustTuning, MonteCarloReport, DesignYield])
+@pytest.mark.parametrize("cls", [Design, ActuatorTuning, FilteredDesign, RobustTuning, MonteCarloReport, DesignYield,
+                                 FitResult, AxisFit, AxisRetuning])
 def test_results_are_frozen_with_status_warnings_and_as_dict(cls):
     assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen
     names = {f.name for f in dataclasses.fields(cls)} | {n for n, _ in inspect.getmembers(cls)}

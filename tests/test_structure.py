@@ -15,7 +15,7 @@ import prsa_ctrl
 PKG = Path(prsa_ctrl.__file__).parent
 AREA = sorted(PKG.rglob("*.py"))
 #: Layers, lowest first: a module may import from its own layer or below (docs/development/layout.md).
-LAYERS = [("errors", "options", "results", "_lazy", "textsafe", "tomlfile", "tablefile"), ("plant",), ("drive",), ("sim",), ("tuning",),
+LAYERS = [("errors", "options", "results", "_lazy", "textsafe", "tomlfile", "tablefile", "reporttext"), ("plant",), ("drive",), ("sim",), ("tuning",),
           ("identification",), ("studies",), ("io",), ("plots",), ("cli",), ("app",)]
 RANK = {name: i for i, names in enumerate(LAYERS) for name in names}
 #: Where the whole drive/sim/identification area may discretise with expm / write the Radau tableau.

@@ -33,21 +33,30 @@ from pathlib import Path
 from typing import Sequence
 
 from ..options import MOTOR_COORDINATES  # re-exported (coordinates of every plant but a linear axis)
-from .common import Parser, Run, UsageError, echo, flag_value, progress
+from .common import Parser, Run, UsageError, echo, progress
 
 __all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]
 
 
+def _mode_flags(argv: Sequence[str]) -> argparse.Namespace:
+    """The flags that choose ``prsa-fit``'s mode, read by argparse before the mode's own parser
+    (``--log-format``, ``--plant``, ``--validate``; their exact names, every other argument left
+    to that parser, which reports any error): ``None`` when not given, ``""`` for a flag given
+    without its value."""
+    p = Parser(add_help=False, allow_abbrev=False)
+    p.add_argument("--log-format", nargs="?", const="")
+    p.add_argument("--plant", nargs="?", const="")
+    p.add_argument("--validate", nargs="*")
+    try:
+        return p.parse_known_args(list(argv))[0]
+    except UsageError:  # the mode's own parser reports it
+        return argparse.Namespace(log_format=None, plant=None, validate=None)
+
+
 def wants_axis_mode(argv: Sequence[str]) -> bool:
     """True when the arguments ask for a described log (``--log-format``) or validate a plant file."""
-    for i, a in enumerate(argv):
-        if a == "--log-format" or a.startswith("--log-format="):
-            return True
-        if a == "--validate" and i + 1 < len(argv) and argv[i + 1].lower().endswith(".toml"):
-            return True
-        if a.startswith("--validate=") and a.lower().endswith(".toml"):
-            return True
-    return False
+    m = _mode_flags(argv)
+    return m.log_format is not None or bool(m.validate and m.validate[0].lower().endswith(".toml"))
 
 
 def motor_log_mode(argv: Sequence[str]) -> bool:
@@ -60,14 +69,14 @@ def motor_log_mode(argv: Sequence[str]) -> bool:
 
     from ..plant.plantfile import load_plant
 
-    fmt = flag_value(argv, "--log-format")
-    if fmt is None or "--validate" in argv or any(a.startswith("--validate=") for a in argv):
+    m = _mode_flags(argv)
+    fmt, plant = m.log_format, m.plant
+    if not fmt or m.validate is not None:
         return False
     try:
         if tomllib.loads(Path(fmt).read_text(encoding="utf-8-sig")).get("axis", "linear") == "rotary":
             return True
-        plant = flag_value(argv, "--plant")
-        if plant is None:
+        if not plant:
             return False
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -129,16 +138,18 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--traces", metavar="T.csv", help="with --validate: measured and simulated position and force "
                    "per sample")
     p.add_argument("--plots", metavar="DIR", help="overlay figures (PNG) of each replay")
+    p.add_argument("--verbose", action="store_true", help="a progress line on stderr when the work starts")
     return p
 
 
-def run(argv: Sequence[str], verbose: bool = False, check=None) -> int:
+def run(argv: Sequence[str], verbose: bool = False, check=None, parsed=None) -> int:
     """Entry point for the described-log modes; returns the exit code (Ctrl-C raises
     ``KeyboardInterrupt``: :func:`prsa_ctrl.cli.fit.main` runs in
     :func:`prsa_ctrl.cli.common.invoke`, which turns it into one line and exit 130).
     ``verbose``: a progress line on stderr when the work starts; ``check``: called before an
     error is reported (:meth:`prsa_ctrl.cli.common.Run.check`: an error that follows a Ctrl-C,
-    e.g. a library that swallowed the ``KeyboardInterrupt``, is the interrupt)."""
+    e.g. a library that swallowed the ``KeyboardInterrupt``, is the interrupt); ``parsed``: called
+    with the parsed arguments before any work (``prsa-fit`` notes the outputs it may take back)."""
     from ..identification.axis import AxisFitError, AxisPlantError
     from ..errors import SimulationError
     from ..identification.logformat import LogFormatError
@@ -146,7 +157,9 @@ def run(argv: Sequence[str], verbose: bool = False, check=None) -> int:
 
     try:
         args = _parser().parse_args(list(argv))
-        progress(Run("prsa-fit"), verbose, "validating" if args.validate else "fitting")
+        if parsed is not None:
+            parsed(args)
+        progress(Run("prsa-fit"), verbose or args.verbose, "validating" if args.validate else "fitting")
         if args.validate:
             return _validate(args)
         return _fit(args)

@@ -52,7 +52,7 @@ __all__ = ["report_failure", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXI
            "EXIT_BROKEN_PIPE", "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
            "Run", "guard", "native_output", "invoke", "invoke_inner", "describe_failure", "raised_in", "one_line",
            "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic", "flag_value",
-           "echo"]
+           "KeepTyped", "typed_text", "echo"]
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
 #: Exit code after SIGTERM (128 + 15): handled like Ctrl-C (workers stopped, one line, nothing written).
@@ -448,8 +448,9 @@ def describe_failure(exc: BaseException, what: str) -> tuple[int, str]:
 
 
 def flag_value(argv, flag: str) -> str | None:
-    """The value of ``flag`` as the user typed it (``--flag V`` or ``--flag=V``; the last one, as
-    argparse takes it), or None when ``argv`` does not give it."""
+    """Deprecated (argv read by hand; the commands read it once, through argparse, and a flag
+    declared with ``action=KeepTyped`` keeps its text: :func:`typed_text`). The value of ``flag``
+    as typed in ``argv`` (``--flag V`` or ``--flag=V``, the last one), or None."""
     found = None
     for i, a in enumerate(argv):
         if a == flag and i + 1 < len(argv):
@@ -457,6 +458,34 @@ def flag_value(argv, flag: str) -> str | None:
         elif a.startswith(flag + "="):
             found = a[len(flag) + 1:]
     return found
+
+
+class KeepTyped(argparse.Action):
+    """Store a flag's value and keep the text as the user typed it (for messages that quote it
+    beside a converted value): ``p.add_argument("--offset", action=KeepTyped, type=conv)``;
+    :func:`typed_text` gives the text back (argv is read once, by argparse). The converter runs
+    here, and its errors read as argparse's own."""
+
+    def __init__(self, option_strings, dest, type=None, **kwargs):  # noqa: A002 -- argparse's name
+        self.convert = type
+        super().__init__(option_strings, dest, **kwargs)  # no type: argparse hands over the text
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        try:
+            value = self.convert(values) if self.convert is not None else values
+        except argparse.ArgumentTypeError as exc:
+            raise argparse.ArgumentError(self, str(exc)) from None
+        except (TypeError, ValueError):
+            name = getattr(self.convert, "__name__", repr(self.convert))
+            raise argparse.ArgumentError(self, f"invalid {name} value: {values!r}") from None
+        setattr(namespace, self.dest, value)
+        namespace.typed_text = {**(getattr(namespace, "typed_text", None) or {}), self.dest: values}
+
+
+def typed_text(args: argparse.Namespace, dest: str) -> str | None:
+    """The text as typed of a :class:`KeepTyped` flag (its ``dest``: ``"frf_speed"``), or None
+    when the command line did not give it (the value is then the default)."""
+    return (getattr(args, "typed_text", None) or {}).get(dest)
 
 
 def one_line(exc: BaseException) -> str:

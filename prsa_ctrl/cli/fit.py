@@ -52,7 +52,7 @@ from typing import Sequence
 from ..errors import GeometryWarning, PlantFileError
 from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, SPEED_MAX_RPM, rad_s_to_rpm, rpm_to_rad_s
 from ..identification.calibrate import MOTOR_COORDINATES
-from .common import Run, Parser, UsageError, echo, flag_value, invoke, number, progress
+from .common import KeepTyped, Run, Parser, UsageError, echo, invoke, number, progress, typed_text
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
 
@@ -85,9 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "input-output method: the speed reference, given back by the drive's PI speed loop described "
                    "here, kp in N m s/rad, ki in N m/rad, the speed filter's time constant in s, default 0) and fit it "
                    "as --frf does, instead of the time-domain fit; --command-logged says how the log holds the command")
-    p.add_argument("--frf-speed", type=_finite("--frf-speed"), default=30.0, metavar="RAD_S",
+    p.add_argument("--frf-speed", action=KeepTyped, type=_finite("--frf-speed"), default=30.0, metavar="RAD_S",
                    help="nut speed during the FRF measurement, rad/s (default 30)")
-    p.add_argument("--frf-load", type=_finite("--frf-load"), default=None, metavar="N",
+    p.add_argument("--frf-load", action=KeepTyped, type=_finite("--frf-load"), default=None, metavar="N",
                    help="axial load during the FRF measurement, N (default --load, else 0)")
     p.add_argument("--coherence-min", type=_finite("--coherence-min"), default=0.8, metavar="C",
                    help="FRF points with a lower coherence are dropped (default 0.8)")
@@ -109,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="torque constant for a current_a column, N m/A")
     p.add_argument("--load", type=_finite("--load"), metavar="N", help="constant axial load, N, "
                    "for files without a load column")
-    p.add_argument("--fidelity", default="rigid", choices=("rigid", "compliant"), help="model fidelity (default rigid; "
+    p.add_argument("--fidelity", default=None, choices=("rigid", "compliant"), help="model fidelity (default rigid; "
                    "--frf without DATA.csv: not given, the structure the response needs, rigid or two-mass (compliant); "
                    "rigid is refused, with the reason, for a response that shows an axial mode)")
     p.add_argument("--segment", type=_positive("--segment"), default=0.1, metavar="S",
@@ -129,10 +129,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sample-time", type=_positive("--sample-time"), default=2.5e-4, metavar="S", help="sample time, s")
     p.add_argument("--f-min", type=_positive("--f-min"), default=1.0, metavar="HZ", help="lowest frequency, Hz")
     p.add_argument("--f-max", type=_positive("--f-max"), default=200.0, metavar="HZ", help="highest frequency, Hz")
-    p.add_argument("--amplitude", type=_positive("--amplitude"), default=20.0, metavar="RAD_S",
+    p.add_argument("--amplitude", action=KeepTyped, type=_positive("--amplitude"), default=20.0, metavar="RAD_S",
                    help="peak excursion of the speed setpoint, rad/s (|offset| + amplitude at most "
                    f"{DESIGN_MAX_SPEED_RAD_S:.4g} rad/s = {SPEED_MAX_RPM:g} rpm)")
-    p.add_argument("--offset", type=_finite("--offset"), default=30.0, metavar="RAD_S",
+    p.add_argument("--offset", action=KeepTyped, type=_finite("--offset"), default=30.0, metavar="RAD_S",
                    help="mean of the speed setpoint, rad/s")
     p.add_argument("--uncertainty-from-fit", action="store_true", help="write the fit's own intervals as the fitted "
                    "keys' [uncertainty] entries (default: keep the base plant's entries, replaced only where one is "
@@ -181,13 +181,14 @@ def _base_text(plant_arg: str | None) -> tuple[str, str | None]:
     return src.read_bytes().decode("utf-8"), (str(src) if isinstance(src, Path) else None)
 
 
-def _typed(argv: Sequence[str], flag: str, value: float) -> str:
-    """A flag's value as the user typed it, else the default."""
-    found = flag_value(argv, flag)
+def _typed(args, flag: str, value: float) -> str:
+    """A flag's value as the user typed it (a :class:`~prsa_ctrl.cli.common.KeepTyped` flag of
+    the parsed arguments), else the default."""
+    found = typed_text(args, flag[2:].replace("-", "_"))
     return found if found is not None else f"{value:g} (default)"
 
 
-def _design(args, argv: Sequence[str]) -> int:
+def _design(args) -> int:
     import numpy as np
 
     from ..identification.data import design_excitation
@@ -197,8 +198,8 @@ def _design(args, argv: Sequence[str]) -> int:
                           "excitation CSV named by --out)")
     peak = abs(args.offset) + args.amplitude
     if peak > DESIGN_MAX_SPEED_RAD_S:
-        raise UsageError(f"--amplitude {_typed(argv, '--amplitude', args.amplitude)} with --offset "
-                          f"{_typed(argv, '--offset', args.offset)}: the setpoint reaches "
+        raise UsageError(f"--amplitude {_typed(args, '--amplitude', args.amplitude)} with --offset "
+                          f"{_typed(args, '--offset', args.offset)}: the setpoint reaches "
                           f"{peak:.6g} rad/s ({rad_s_to_rpm(peak):.6g} rpm); expected |offset| + amplitude <= "
                           f"{DESIGN_MAX_SPEED_RAD_S:.6g} rad/s ({SPEED_MAX_RPM:g} rpm, the tuner's speed limit)")
     t, v = design_excitation(args.design, duration_s=args.duration, sample_time_s=args.sample_time,
@@ -229,49 +230,45 @@ def _body(run: Run, argv: list[str]) -> int:
 
     motor = motor_log_mode(argv)  # described logs fitted in motor coordinates (a screw-driven plant)
     if wants_axis_mode(argv) and not motor:
-        made = _new_outputs(argv)
+        made: list = []  # what the run is about to write, known once its arguments are parsed
         try:
-            return _axis_run([a for a in argv if a != "--verbose"], verbose="--verbose" in argv, check=run.check)
+            return _axis_run(argv, check=run.check, parsed=lambda args: made.append(_new_outputs(args)))
         except KeyboardInterrupt:
-            _take_back(made())  # the linear-axis path writes its files one by one
+            if made:
+                _take_back(made[0]())  # the linear-axis path writes its files one by one
             raise
-    mat = next((a for a in argv if not a.startswith("-") and a.lower().endswith(".mat")), None)
-    if mat is not None and not motor:  # a MATLAB log has no fixed columns: only a log description says what it holds
-        from ..identification.calibrate import mat_log_refusal
-
-        echo(f"prsa-fit: error: {mat_log_refusal(mat)}", file=sys.stderr)
-        return 2
-    verbose = any(a.startswith("--v") and "--verbose".startswith(a) for a in argv)  # argparse takes prefixes
     created: list = []  # files and directories this run made, taken back when it is interrupted
+    parsed: list = []  # the parsed arguments (argv is read once, by the parser)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            code = _main(argv, created, run)
+            code = _main(argv, created, run, parsed)
     except BaseException as exc:
         _take_back(created)  # all or nothing
         if run.interrupted:  # also when a library turned the KeyboardInterrupt into an error
             raise KeyboardInterrupt from None  # invoke: one line, exit 130
-        if verbose and isinstance(exc, Exception):  # the numerical failure's cause, before invoke's one line
+        if parsed and parsed[0].verbose and isinstance(exc, Exception):  # the cause, before invoke's one line
             _print_chain(exc)
         raise
     seen = set()
     for w in caught:
         text = " ".join(str(w.message).split())
-        if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text and not verbose):
+        if text in seen or (issubclass(w.category, GeometryWarning) and "(built-in)" in text
+                            and not (parsed and parsed[0].verbose)):
             continue
         seen.add(text)
         echo(f"prsa-fit: note: {text}", file=sys.stderr)
     return code
 
 
-def _new_outputs(argv: Sequence[str]):
-    """What this run is about to write (``--out``, ``--json``, ``--traces``, the ``--plots``
-    folder and its figures): a function returning, after the run, the files and folders that
-    did not exist before it (for :func:`_take_back`)."""
+def _new_outputs(args):
+    """What this run is about to write (the parsed ``--out``, ``--json``, ``--traces``, the
+    ``--plots`` folder and its figures): a function returning, after the run, the files and
+    folders that did not exist before it (for :func:`_take_back`)."""
     import os
 
-    files = [v for v in (flag_value(argv, f) for f in ("--out", "--json", "--traces")) if v]
-    plots = flag_value(argv, "--plots")
+    files = [v for v in (getattr(args, k, None) for k in ("out", "json", "traces")) if v]
+    plots = getattr(args, "plots", None)
     existed = {p for p in files if os.path.lexists(p)}
     plots_had = set(os.listdir(plots)) if plots and os.path.isdir(plots) else None
 
@@ -336,7 +333,7 @@ def _probe_plots(directory: str, names: Sequence[str], inputs: Sequence[str]) ->
         _probe_output(str(d / name) if d.is_dir() else str(anc / name), inputs, "--plots")
 
 
-def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> None:
+def _check_frf_point(plant, speed: float, load: float, args) -> None:
     """The FRF operating point (``--frf-speed``, ``--frf-load``) checked before the fit, the
     flag named (:func:`prsa_ctrl.identification.common.frf_operating_point_error`)."""
     from ..identification.common import frf_operating_point_error
@@ -344,10 +341,10 @@ def _check_frf_point(plant, speed: float, load: float, argv: Sequence[str]) -> N
     bad = frf_operating_point_error(plant, speed, load)
     if bad:
         flag, value = ("--frf-speed", speed) if bad[0] == "speed" else ("--frf-load", load)
-        raise UsageError(f"{flag} {_typed(argv, flag, value)}: {bad[1]}")
+        raise UsageError(f"{flag} {_typed(args, flag, value)}: {bad[1]}")
 
 
-def _main(argv: Sequence[str], created: list | None = None, run: Run | None = None) -> int:
+def _main(argv: Sequence[str], created: list | None = None, run: Run | None = None, parsed: list | None = None) -> int:
     from ..identification.data import DataError, load_frf, load_record, parse_columns
     from ..io.output import OutputError
 
@@ -355,10 +352,17 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
 
     try:
         args = build_parser().parse_args(argv)
+        if parsed is not None:
+            parsed.append(args)
+        mat = next((p for p in (*args.data, *args.validate) if p.lower().endswith(".mat")), None)
+        if mat is not None and args.log_format is None:  # a MATLAB log has no fixed columns: a description says
+            from ..identification.calibrate import mat_log_refusal
+
+            raise UsageError(mat_log_refusal(mat))
         if args.design:
             if args.data:
                 raise UsageError(f"--design with data files {' '.join(args.data)}; expected one or the other")
-            return _design(args, argv)
+            return _design(args)
         if not args.data and not args.frf:
             raise UsageError("no data file; expected prsa-fit DATA.csv [...] [--frf FRF.csv] --out PLANT.toml "
                               "(or --design)")
@@ -391,7 +395,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                       description="check")
         frf_load = args.frf_load if args.frf_load is not None else (args.load or 0.0)
         if args.frf:
-            _check_frf_point(plant, args.frf_speed, frf_load, argv)
+            _check_frf_point(plant, args.frf_speed, frf_load, args)
         inputs = [*args.data, *args.validate, *args.frf] + ([base_path] if base_path else []) + \
             ([args.log_format] if args.log_format else [])
         outs = {"--out": args.out}
@@ -430,7 +434,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
                 for f in args.frf]
         if args.frf_from_logs is not None:
-            records, frfs = [], frfs + _frfs_from_logs(args, argv, records)
+            records, frfs = [], frfs + _frfs_from_logs(args, records)
     except (UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
         echo(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
@@ -447,9 +451,9 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
     try:
         run.record = True  # Ctrl-C recorded while CasADi runs, raised at the fit's iterations (run.check)
         if not records and frfs:  # FRF only: the structure the data choose (issue 32)
-            result, choice = _fit_frf_only(args, argv, plant, frfs, keys)
+            result, choice = _fit_frf_only(args, plant, frfs, keys)
         if choice is None or result is None:
-            result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity, validate=validate,
+            result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity or "rigid", validate=validate,
                                segment_s=args.segment,
                                delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
                                command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep",
@@ -521,7 +525,7 @@ def _closed_loops(args) -> dict:
     return out
 
 
-def _frfs_from_logs(args, argv: Sequence[str], records) -> list:
+def _frfs_from_logs(args, records) -> list:
     """``--frf-from-logs KP,KI[,TAU_S]``: the frequency response of each DATA.csv log
     (:func:`prsa_ctrl.identification.closedloop.frf_from_logs`)."""
     import numpy as np
@@ -530,7 +534,7 @@ def _frfs_from_logs(args, argv: Sequence[str], records) -> list:
     from ..identification.data import DataError
 
     text = args.frf_from_logs
-    typed = repr(flag_value(argv, "--frf-from-logs") or text)
+    typed = repr(text)  # a text flag: the value is the text as typed
     parts = [x.strip() for x in text.split(",")]
     try:
         nums = [float(x) for x in parts]
@@ -559,12 +563,7 @@ def _frfs_from_logs(args, argv: Sequence[str], records) -> list:
     return out
 
 
-def _fidelity_given(argv: Sequence[str]) -> bool:
-    """Whether ``--fidelity`` was typed (argparse takes unambiguous prefixes: ``--fid`` on)."""
-    return any(len(a.split("=")[0]) >= 5 and "--fidelity".startswith(a.split("=")[0]) for a in argv)
-
-
-def _fit_frf_only(args, argv: Sequence[str], plant, frfs, keys):
+def _fit_frf_only(args, plant, frfs, keys):
     """The FRF-only fit (issue 32): the rigid and the two-mass model fitted to the responses,
     the structure the data choose (``--fidelity`` not given), refused with the reason when
     ``--fidelity rigid`` meets a response with an axial mode, mapped onto the mechanism's keys
@@ -576,12 +575,12 @@ def _fit_frf_only(args, argv: Sequence[str], plant, frfs, keys):
     from ..identification.twomass import choose_structure
     from ..identification.common import frf_sample_time
 
-    fidelity = args.fidelity if _fidelity_given(argv) else None
+    fidelity = args.fidelity  # None: not given (the parser's default; rigid elsewhere)
     if keys is None:
         return fit_frf_structure(frfs, plant, fidelity=fidelity, command_logged=args.command_logged or "applied",
                                  uncertainty="fit" if args.uncertainty_from_fit else "keep")
     choice = choose_structure(frfs, sample_time_s=frf_sample_time(frfs[0], plant))
-    if choice.structure == "two-mass" and args.fidelity == "rigid":
+    if choice.structure == "two-mass" and (args.fidelity or "rigid") == "rigid":
         raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")
     return None, choice
 

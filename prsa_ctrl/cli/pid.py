@@ -61,16 +61,12 @@ def _coefficients(flag: str, text: str) -> np.ndarray:
     parts = [p for p in re.split(r"[\s,]+", text.strip()) if p]
     if not parts:
         raise UsageError(f"{flag} {text!r}: expected coefficients, highest power of s first (e.g. {flag} 4 1)")
-    out = []
-    for p in parts:
-        try:
-            v = float(p)
-        except ValueError:
-            raise UsageError(f"{flag} {p!r}: expected a number (coefficients, highest power of s first)") from None
-        if not math.isfinite(v):
-            raise UsageError(f"{flag} {p!r}: expected a finite number")
-        out.append(v)
-    return np.array(out)
+    conv = number(flag, what="a finite number", not_a_number="a number (coefficients, highest power of s first)",
+                  quoted=True)  # the flags' converter: decided by options.check_number, the text as typed
+    try:
+        return np.array([conv(p) for p in parts])
+    except argparse.ArgumentTypeError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _poly_text(c) -> str:

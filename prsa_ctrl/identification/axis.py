@@ -562,6 +562,13 @@ class AxisFit:
     #: The least-squares solver's own verdict (``"converged"``: a fit that did not raises).
     solver_status: str = "converged"
 
+    @property
+    def ok(self) -> bool:
+        """Whether the result may be reported as good (:func:`prsa_ctrl.results.is_ok` of its status)."""
+        from ..results import is_ok
+
+        return is_ok(self.status)
+
     def as_dict(self) -> dict:
         """JSON-ready report: ``status`` (:data:`prsa_ctrl.results.STATUSES`: ``"ok"``, or
         ``"flagged: ..."`` naming the failed checks, :func:`axis_fit_status`), the solver's

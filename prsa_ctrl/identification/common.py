@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linprog
 from scipy.signal import lfilter
 
-from ..options import SPEED_MAX_RPM, rpm_to_rad_s
+from ..options import SPEED_MAX_RPM, rad_s_to_rpm, rpm_to_rad_s
 from ..errors import PlantFileError
 from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
@@ -251,6 +251,13 @@ class FitResult:
             return "ok"
         return f"flagged: the fitted plant does not explain the data ({v.get('diagnosis', 'no diagnosis')})"
 
+    @property
+    def ok(self) -> bool:
+        """Whether the result may be reported as good (:func:`prsa_ctrl.results.is_ok` of its status)."""
+        from ..results import is_ok
+
+        return is_ok(self.status)
+
     def as_dict(self) -> dict:
         """JSON-ready report (stable keys: ``status``, ``parameters``, ``reflected_inertia_kg_m2``,
         ``fit_percent``, ``warnings``, ``solver``, plus ``correlation``, ``covariance`` (keys,
@@ -399,7 +406,7 @@ SAMPLE_TIME_RTOL = 0.01
 #: Unit slips the torque-balance check recognises: the factor by which the apparent inertia
 #: (:func:`_apparent_inertia`) divides the plant's, and what it means for which column.
 _UNIT_SLIPS = (
-    (60.0 / (2 * math.pi), "speed in rpm"), (180.0 / math.pi, "speed in deg/s"), (1.0 / (2 * math.pi), "speed in rev/s"),
+    (rad_s_to_rpm(1.0), "speed in rpm"), (180.0 / math.pi, "speed in deg/s"), (1.0 / (2 * math.pi), "speed in rev/s"),
     (1e-3, "torque in mN m"),
 )
 #: The apparent inertia names a unit slip when it is within this factor of the plant's reflected

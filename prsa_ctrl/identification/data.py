@@ -32,7 +32,7 @@ import scipy.signal
 from numpy.typing import NDArray
 
 from ..errors import DataError
-from ..options import check_number
+from ..options import check_number, rad_s_to_rpm
 from ..tablefile import read_table
 
 __all__ = [
@@ -67,7 +67,7 @@ MAX_SAMPLES = 2_000_000
 #: Largest data file read (bytes), checked before reading: ``MAX_SAMPLES`` rows of up to 256
 #: bytes (a record written with 17 significant digits takes about 120 bytes a row).
 MAX_FILE_BYTES = 256 * MAX_SAMPLES
-_RPM = 60.0 / (2.0 * math.pi)
+_RPM = rad_s_to_rpm(1.0)  # rpm per rad/s
 
 
 @dataclass(frozen=True, eq=False)
@@ -261,8 +261,7 @@ def record_from_arrays(
 
 def _validate(name, arrays, headers, line_of, k_t, load_n, min_samples, sampling_tol, row_word="line") -> Record:
     k_t = check_number("torque constant (N m/A)", k_t, 0.0, lo_open=True, optional=True, error=DataError)
-    if load_n is not None and (isinstance(load_n, bool) or not math.isfinite(load_n)):
-        raise DataError(f"load = {load_n!r}; expected a finite axial load in N")
+    load_n = check_number("load", load_n, unit="N", optional=True, error=DataError, expected="a finite axial load in N")
     if "time_s" not in arrays:
         raise DataError(f"{name}: missing required column 'time_s'; expected it (or a mapping --columns time_s=HEADER)")
     if "torque_command_n_m" not in arrays:
@@ -290,7 +289,7 @@ def _validate(name, arrays, headers, line_of, k_t, load_n, min_samples, sampling
     for std, a in arrays.items():
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:
-            raise DataError(f"{name}: column {headers[std]!r} {row_word} {line_of[bad[0]]}: {float(a[bad[0]])!r}; expected a finite number")
+            check_number(f"{name} {row_word} {line_of[bad[0]]}: {headers[std]}", float(a[bad[0]]), error=DataError)
     t = arrays["time_s"]
     dt = np.diff(t)
     bad = np.flatnonzero(dt <= 0)
@@ -397,8 +396,7 @@ def design_excitation(
     f_min_hz = check_number("minimum frequency (Hz)", f_min_hz, 0.0, lo_open=True, optional=True, error=DataError)
     f_max_hz = check_number("maximum frequency (Hz)", f_max_hz, 0.0, lo_open=True, optional=True, error=DataError)
     amplitude = check_number("amplitude", amplitude, 0.0, lo_open=True, optional=True, error=DataError)
-    if not math.isfinite(offset):
-        raise ValueError(f"offset = {offset!r}; expected a finite number")
+    offset = check_number("offset", offset, error=DataError)
     n = int(round(duration_s / sample_time_s))
     if not MIN_SAMPLES <= n <= MAX_SAMPLES:
         raise ValueError(f"duration {duration_s:g} s at {sample_time_s:g} s gives {n} samples; expected {MIN_SAMPLES}..{MAX_SAMPLES}")
@@ -528,11 +526,9 @@ def frf_from_arrays(
     rows = list(row_of) if row_of is not None else list(range(len(f)))
     if f.ndim != 1 or g.shape != f.shape:
         raise DataError(f"{name}: response has shape {g.shape}; expected {f.shape} like frequency_hz")
-    for what, val in (("speed (rad/s)", speed_rad_s), ("load (N)", load_n), ("coherence threshold", coherence_min)):
-        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
-            raise DataError(f"{name}: {what} = {val!r}; expected a finite number")
-    if not 0.0 <= coherence_min < 1.0:
-        raise DataError(f"{name}: coherence threshold {coherence_min!r}; expected 0 <= c < 1")
+    speed_rad_s = check_number(f"{name}: speed (rad/s)", speed_rad_s, error=DataError)
+    load_n = check_number(f"{name}: load (N)", load_n, error=DataError)
+    coherence_min = check_number(f"{name}: coherence threshold", coherence_min, 0.0, 1.0, hi_open=True, error=DataError)
     bad = np.flatnonzero(~np.isfinite(f) | ~np.isfinite(g))
     if bad.size:
         raise DataError(f"{name}: {row_word} {rows[bad[0]]}: not a finite number; expected finite frequency and response")

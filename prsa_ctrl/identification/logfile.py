@@ -32,6 +32,7 @@ import numpy as np
 import scipy.io
 
 from ..errors import LogFormatError
+from ..options import check_number
 from ..tablefile import read_table
 from .data import MAX_FILE_BYTES, MAX_SAMPLES
 
@@ -360,23 +361,18 @@ class LogFile:
         return v.astype(float)
 
     def scalar(self, key: str, value: Any, fmt_path: str) -> tuple[float, str]:
-        """A number given in the description, or the name of a scalar variable of the file."""
-        if isinstance(value, str):
-            if self.fmt != "mat":
-                raise LogFormatError(f"{fmt_path}: {key} = {value!r}: variable names work for .mat files only; "
-                                     "expected a number")
+        """A number given in the description (> 0), or the name of a scalar variable of a .mat file
+        (:func:`prsa_ctrl.options.check_number` checks either)."""
+        if isinstance(value, str) and self.fmt == "mat":
             if value not in self.data:
                 raise LogFormatError(f"{self.path}: {key} names variable {value!r}, not in the file; it has {self.names()}")
             v = self.data[value]
             if v.size != 1:
                 raise LogFormatError(f"{self.path}: variable {value!r} ({key}) has shape {v.shape}; expected a scalar")
-            x, src = float(v.ravel()[0]), f"{Path(self.path).name}: {value}"
-        elif isinstance(value, (int, float)) and not isinstance(value, bool):
-            x, src = float(value), Path(fmt_path).name
-        else:
-            raise LogFormatError(f"{fmt_path}: {key} = {value!r}; expected a number or a variable name")
-        if not math.isfinite(x) or x <= 0:
-            raise LogFormatError(f"{self.path if isinstance(value, str) else fmt_path}: {key} = {x!r}"
-                                 f"{' (variable ' + repr(value) + ')' if isinstance(value, str) else ''}; expected a "
-                                 "finite number > 0")
-        return x, src
+            x = float(v.ravel()[0])
+            return (check_number(f"{self.path}: {key}", x, 0.0, lo_open=True, error=LogFormatError,
+                                 typed=f"{x!r} (variable {value!r})"), f"{Path(self.path).name}: {value}")
+        expected = ("a finite number > 0 or a variable name" if self.fmt == "mat" else
+                    "a finite number > 0" + (" (variable names work for .mat files only)" if isinstance(value, str) else ""))
+        return (check_number(f"{fmt_path}: {key}", value, 0.0, lo_open=True, error=LogFormatError, expected=expected),
+                Path(fmt_path).name)

@@ -90,7 +90,7 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from ..options import RAD_S_PER_RPM
+from ..options import RAD_S_PER_RPM, check_number
 from ..tomlfile import read_toml
 from ..errors import LogFormatError
 from .data import MAX_SAMPLES, MIN_SAMPLES, Record, record_from_arrays
@@ -263,9 +263,7 @@ class AxisLog:
             if bad.size:
                 raise ValueError(f"AxisLog {self.name!r}: {k}[{bad[0]}] = {float(np.asarray(a)[bad[0]])!r}; expected finite values")
         for k in ("gain_n_per_unit", "sample_time_s"):
-            v = getattr(self, k)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not (math.isfinite(v) and v > 0):
-                raise ValueError(f"AxisLog {self.name!r}: {k} = {v!r}; expected a finite number > 0")
+            check_number(f"AxisLog {self.name!r}: {k}", getattr(self, k), 0.0, lo_open=True)
 
     @property
     def n(self) -> int:
@@ -388,16 +386,12 @@ def load_log_format(path: str | Path) -> LogFormat:
         raise _err(name, f"[test_signal] unit = {ts['unit']!r}", f"expected the command's unit {cmd['unit']!r} (it "
                    "is added to the controller output)")
     res = doc["position"].get("resolution")
-    if res is not None and not _is_positive_number(res):
-        raise _err(name, f"[position] resolution = {res!r}", "expected a number > 0 (position unit)")
+    if res is not None:  # an absent key: no resolution given
+        check_number(f"{name}: [position] resolution", res, 0.0, lo_open=True, unit="(position unit)", error=LogFormatError)
     ctl = doc.get("controller")
     if ctl is not None:
         _check_controller(name, ctl, has_reference="reference" in doc)
     return LogFormat(path=name, doc=doc)
-
-
-def _is_positive_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
 
 
 def _check_controller(name: str, ctl: Any, has_reference: bool) -> None:
@@ -414,22 +408,19 @@ def _check_controller(name: str, ctl: Any, has_reference: bool) -> None:
     need = ["kp", "kv", "saturation", "sample_time_s"] + (["ki"] if st.endswith("pi") else [])
     for k in need:
         if k not in ctl:
-            raise _err(name, f"[controller] {k}", "missing; expected a number" + (" or a variable name"
-                                                                                  if k in ("kp", "kv", "ki") else ""))
+            raise _err(name, f"[controller] {k}", "missing; expected the key (a number"
+                       + (" or a variable name)" if k in ("kp", "kv", "ki") else ")"))
     if "ki" in ctl and not st.endswith("pi"):
         raise _err(name, "[controller] ki", f"given for structure {st!r}; expected position-p/velocity-pi")
     for k in ("saturation", "sample_time_s"):
-        if not _is_positive_number(ctl[k]):
-            raise _err(name, f"[controller] {k} = {ctl[k]!r}", "expected a number > 0")
+        check_number(f"{name}: [controller] {k}", ctl[k], 0.0, lo_open=True, error=LogFormatError)
     ve = ctl.get("velocity_estimate", "average2-difference")
     if ve not in VELOCITY_ESTIMATES:
         raise _err(name, f"[controller] velocity_estimate = {ve!r}", f"expected one of {', '.join(VELOCITY_ESTIMATES)}")
-    d = ctl.get("command_delay_samples", 0)
-    if isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= 10:
-        raise _err(name, f"[controller] command_delay_samples = {d!r}", "expected an integer 0..10")
-    tol = ctl.get("check_tolerance", 0.03)
-    if not _is_positive_number(tol) or tol >= 1:
-        raise _err(name, f"[controller] check_tolerance = {tol!r}", "expected a number in (0, 1)")
+    check_number(f"{name}: [controller] command_delay_samples", ctl.get("command_delay_samples", 0), 0, 10,
+                 integer=True, error=LogFormatError)
+    check_number(f"{name}: [controller] check_tolerance", ctl.get("check_tolerance", 0.03), 0.0, 1.0, lo_open=True,
+                 hi_open=True, error=LogFormatError)
 
 
 # --- the data ----------------------------------------------------------------------------------

@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
 from ..drive.pid import PID
-from ..options import check_number
+from ..options import RAD_S_PER_RPM, check_number
 from ..textsafe import quote
 from ..tomlfile import read_toml
 
@@ -57,7 +57,7 @@ __all__ = ["MotorData", "MOTOR_PLAUSIBLE", "MOTOR_TORQUE_CONSISTENCY", "BACK_EMF
            "builtin_templates", "load_template", "citation_problems", "fill_template", "read_parameter_set",
            "controller_from_parameter_set", "dumps_parameter_set"]
 
-_RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
+_RPM = RAD_S_PER_RPM  # rad/s per rpm
 
 
 #: Plausible motor data (inclusive bounds, in the key's unit): from miniature servo motors

@@ -56,7 +56,7 @@ from typing import TYPE_CHECKING, Any, Iterable
 import numpy as np
 
 from ..drive.pid import PID
-from ..options import check_number
+from ..options import RAD_S_PER_RPM, check_number
 from ..drive.filters import Filter, FirstOrderLowPass
 
 if TYPE_CHECKING:
@@ -77,7 +77,7 @@ DISCRETISATIONS = {
     "tustin": ("s = (2/Ts) (z - 1)/(z + 1)", (2.0, -2.0), (1.0, 1.0)),
 }
 
-_RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
+_RPM = RAD_S_PER_RPM  # rad/s per rpm
 
 
 def _pid_s_polynomials(pid: PID) -> tuple[list[float], list[float]]:
@@ -625,12 +625,6 @@ def export_cascade(design: "CascadeDesign", plant: "Plant", *, fmt: str,
 
 # --- writers -----------------------------------------------------------------------------------
 
-def _toml_key(k: str) -> str:
-    if not isinstance(k, str):
-        raise ValueError(f"key {k!r}; expected a string")
-    return k if k and all(c.isalnum() and c.isascii() or c in "_-" for c in k) else toml_string(k)
-
-
 def toml_string(s: str, ascii_only: bool = True, where: str = "value") -> str:
     r"""``s`` as a TOML basic string that ``tomllib`` reads back as exactly ``s``
     (:func:`prsa_ctrl.plant.writer.toml_string`, the package's one TOML string writer: quotes,
@@ -653,7 +647,8 @@ def toml_string(s: str, ascii_only: bool = True, where: str = "value") -> str:
 def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
     """A TOML value: bool, integer, finite float (all digits, ``repr``), string
     (:func:`toml_string`: ASCII with ``\\uXXXX``/``\\UXXXXXXXX`` escapes unless ``ascii_only`` is
-    false), or a list of those.
+    false), or a list of those (:func:`prsa_ctrl.plant.writer.data_value`: the package's one
+    TOML writer).
 
     Raises
     ------
@@ -663,46 +658,16 @@ def toml_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
     >>> toml_value([1, 2.5, "x"]), toml_value(True), toml_value("µ", ascii_only=False)
     ('[1, 2.5, "x"]', 'true', '"µ"')
     """
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        f = float(v)
-        if not math.isfinite(f):
-            raise ValueError(f"{where} = {f!r}; expected a finite number (TOML export)")
-        r = repr(f)
-        return r if any(c in r for c in ".en") else r + ".0"
-    if isinstance(v, str):
-        return toml_string(v, ascii_only, where)
-    if isinstance(v, (list, tuple)) and not any(isinstance(x, dict) for x in v):
-        return "[" + ", ".join(toml_value(x, where, ascii_only=ascii_only) for x in v) + "]"
-    raise ValueError(f"{where} = {v!r}; expected a number, string, bool or list of those (TOML has no null)")
+    from ..plant.writer import data_value
 
-
-
-def _toml_table(d: dict, path: list[str], lines: list[str]) -> None:
-    tables = []
-    for k, v in d.items():
-        if isinstance(v, dict) or (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
-            tables.append((k, v))
-        else:
-            lines.append(f"{_toml_key(k)} = {toml_value(v, '.'.join(path + [k]))}")
-    for k, v in tables:
-        sub = path + [_toml_key(k)]
-        if isinstance(v, dict):
-            lines.extend(["", f"[{'.'.join(sub)}]"])
-            _toml_table(v, sub, lines)
-        else:
-            for item in v:
-                lines.extend(["", f"[[{'.'.join(sub)}]]"])
-                _toml_table(item, sub, lines)
+    return data_value(v, where, ascii_only=ascii_only)
 
 
 def dumps(data: dict, fmt: str) -> str:
     """The export ``data`` as JSON or TOML text.
 
-    TOML is written by hand (scalars, lists of scalars, tables, arrays of tables) so that
+    TOML is written by :func:`prsa_ctrl.plant.writer.data_lines` (scalars, lists of scalars,
+    tables, arrays of tables) so that
     ``tomllib.loads(dumps(d, "toml")) == d`` for any export dict; floats keep all digits
     (``repr``).
 
@@ -733,6 +698,7 @@ def dumps(data: dict, fmt: str) -> str:
             raise ValueError(f"export data: {exc}; expected finite numbers") from None
     from .codetext import inert_text
 
-    lines = [f"# {inert_text(data.get('format', 'prsa-ctrl export'), 80)} (TOML)"]
-    _toml_table(data, [], lines)
+    from ..plant.writer import data_lines  # the package's one TOML writer
+
+    lines = [f"# {inert_text(data.get('format', 'prsa-ctrl export'), 80)} (TOML)", *data_lines(data)]
     return "\n".join(lines) + "\n"

@@ -34,7 +34,7 @@ from typing import Any, Mapping, Sequence
 from ..errors import PlantFileError
 from ..textsafe import printable, unicode_text
 
-__all__ = ["plant_toml", "document_toml", "fitted_document", "toml_string", "inline_value", "FRESH_NOTE", "NO_TOMLKIT_NOTE", "UNCERTAINTY_COMMENT"]
+__all__ = ["plant_toml", "document_toml", "fitted_document", "toml_string", "inline_value", "data_value", "data_lines", "FRESH_NOTE", "NO_TOMLKIT_NOTE", "UNCERTAINTY_COMMENT"]
 
 #: The header line of a file written afresh although a base file was given.
 FRESH_NOTE = ("Written by prsa-fit: the base plant file's TOML spelling could not be kept line by line, so its "
@@ -87,6 +87,12 @@ def toml_string(s: str, where: str = "value", *, ascii_only: bool = False) -> st
     return "".join(out) + '"'
 
 
+def _float_text(f: float) -> str:
+    """A finite float with all its digits (``repr``), always read back as a float (``1.0``, not ``1``)."""
+    r = repr(f)
+    return r if any(c in r for c in ".en") else r + ".0"
+
+
 def _key(k: str) -> str:
     return k if _BARE_KEY.match(k) else toml_string(k, "key")
 
@@ -103,8 +109,7 @@ def _value(v: Any, where: str) -> str:
             return "nan"
         if math.isinf(f):
             return "inf" if f > 0 else "-inf"
-        r = repr(f)
-        return r if any(c in r for c in ".en") else r + ".0"
+        return _float_text(f)
     if isinstance(v, str):
         return toml_string(v, where)
     if isinstance(v, Mapping):
@@ -124,6 +129,64 @@ def inline_value(v: Any, where: str = "value") -> str:
     '{ keys = ["a", "b"], matrix = [[1.0, 0.5], [0.5, 1.0]], source = "fit" }'
     """
     return _value(_plain(v), where)
+
+
+def data_value(v: Any, where: str = "value", *, ascii_only: bool = True) -> str:
+    """A TOML value of a data file (a drive export): bool, integer, finite float (all digits,
+    ``repr``), string (:func:`toml_string`: ASCII with ``\\uXXXX``/``\\UXXXXXXXX`` escapes unless
+    ``ascii_only`` is false), or a list of those (:func:`prsa_ctrl.io.export.toml_value`).
+
+    Raises
+    ------
+    ValueError
+        A non-finite number, None or another type, naming ``where``.
+
+    >>> data_value([1, 2.5, "x"]), data_value(True), data_value("µ", ascii_only=False)
+    ('[1, 2.5, "x"]', 'true', '"µ"')
+    """
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int) or (type(v).__module__ == "numpy" and hasattr(v, "dtype") and v.dtype.kind in "iu"):
+        return str(int(v))
+    if isinstance(v, float) or (type(v).__module__ == "numpy" and hasattr(v, "dtype") and v.dtype.kind == "f"):
+        f = float(v)
+        if not math.isfinite(f):
+            raise ValueError(f"{where} = {f!r}; expected a finite number (TOML export)")
+        return _float_text(f)
+    if isinstance(v, str):
+        return toml_string(v, where, ascii_only=ascii_only)
+    if isinstance(v, (list, tuple)) and not any(isinstance(x, dict) for x in v):
+        return "[" + ", ".join(data_value(x, where, ascii_only=ascii_only) for x in v) + "]"
+    raise ValueError(f"{where} = {v!r}; expected a number, string, bool or list of those (TOML has no null)")
+
+
+def _data_key(k: str) -> str:
+    if not isinstance(k, str):
+        raise ValueError(f"key {k!r}; expected a string")
+    return k if _BARE_KEY.match(k) else toml_string(k, ascii_only=True)  # a data file's keys in ASCII
+
+
+def data_lines(d: Mapping[str, Any], path: Sequence[str] = ()) -> list[str]:
+    """A data file's tables as TOML lines: a table's values first (:func:`data_value`), then its
+    sub-tables (``[a.b]``) and arrays of tables (``[[a.c]]``), each after a blank line; so that
+    :mod:`tomllib` reads back exactly ``d`` (:func:`prsa_ctrl.io.export.dumps`)."""
+    lines: list[str] = []
+    tables = []
+    for k, v in d.items():
+        if isinstance(v, dict) or (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
+            tables.append((k, v))
+        else:
+            lines.append(f"{_data_key(k)} = {data_value(v, '.'.join([*path, k]))}")
+    for k, v in tables:
+        sub = [*path, _data_key(k)]
+        if isinstance(v, dict):
+            lines.extend(["", f"[{'.'.join(sub)}]"])
+            lines.extend(data_lines(v, sub))
+        else:
+            for item in v:
+                lines.extend(["", f"[[{'.'.join(sub)}]]"])
+                lines.extend(data_lines(item, sub))
+    return lines
 
 
 def _equal(a: Any, b: Any) -> bool:

@@ -47,6 +47,7 @@ from ..identification.logformat import VELOCITY_ESTIMATES, AxisLog, ControllerSp
 from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from ..plant.plantfile import Plant
+from ..results import check_status
 from ..tuning.generic import tune_loops
 from ..tuning.loops import LoopModel
 from ..tuning.tuner import TuningResult
@@ -251,6 +252,13 @@ class AxisRetuning:
     measured_following_rms_m: float = math.nan
     measured_following_peak_m: float = math.nan
 
+    @property
+    def ok(self) -> bool:
+        """Whether the result may be reported as good (:func:`prsa_ctrl.results.is_ok` of its status)."""
+        from ..results import is_ok
+
+        return is_ok(self.status)
+
     def as_dict(self) -> dict:
         return {"running": self.running.as_dict(), "tuned": self.tuned.as_dict(), "saturation": self.saturation,
                 "status": self.status, "warnings": list(self.warnings), "tuner_status": self.tuning.status,
@@ -295,8 +303,10 @@ def retune_axis(axis: LinearAxisPlant, log: AxisLog, *, ms_max: float | None = N
     Returns
     -------
     AxisRetuning
-        ``status`` is ``"ok"`` when the tuner's result is proven optimal and the tuned design
-        stays within the controller's saturation on the replay; otherwise it says what failed.
+        ``status`` (:data:`prsa_ctrl.results.STATUSES`) is ``"ok"`` when the tuner's result is
+        proven optimal and the tuned design stays within the controller's saturation on the
+        replay; the tuner's status (``"not converged: ..."``, ``"not proven optimal: ..."``) when
+        it is not; ``"flagged: the tuned design saturates ..."`` when the design would saturate.
     """
     c = _controller(log)
     plant = axis.to_plant()
@@ -310,13 +320,13 @@ def retune_axis(axis: LinearAxisPlant, log: AxisLog, *, ms_max: float | None = N
     d0 = _design("gains that ran", running, lps, axis, log, x0)
     d1 = _design("tuned", tuned, lps, axis, log, x0)
     warnings = list(res.warnings)
-    status = "ok"
-    if not res.converged:
-        status = f"tuner: {res.status}"
+    status = "ok" if res.converged else res.status  # the tuner's own status when it failed (the vocabulary's)
     if d1.command_peak > c.saturation:
         warnings.append(f"the tuned design's controller output peaks at {d1.command_peak:.3g} on the logged trajectory, "
                         f"beyond the saturation {c.saturation:g} (its predicted following error assumes no saturation)")
-        status = "saturates" if status == "ok" else status
+        if status == "ok":
+            status = "flagged: the tuned design saturates the controller output on the logged trajectory"
+    check_status(status)
     em = log.reference_m - log.position_m
     return AxisRetuning(d0, d1, res, float(c.saturation), status, tuple(warnings),
                         float(np.sqrt(np.mean(em ** 2))), float(np.max(np.abs(em))))

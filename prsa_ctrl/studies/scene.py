@@ -46,7 +46,7 @@ from typing import Any, Mapping
 from ..textsafe import quote
 from ..errors import SceneError
 from ..options import (AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE,
-                       RIGID_RELATIVE_ERROR)
+                       RAD_S_PER_RPM, RIGID_RELATIVE_ERROR, SETPOINT_RAD_S, rad_s_to_rpm, rpm_to_rad_s)
 from ..drive.filters import LoopFilter
 from .movescene import MoveScene, parse_move_scene
 from .scenesections import Robust, Sections
@@ -171,7 +171,7 @@ class Scene:
     """
 
     name: str = "custom"
-    setpoint_rad_s: float = 300.0 * math.pi / 30.0
+    setpoint_rad_s: float = SETPOINT_RAD_S
     initial_load: float = 500.0
     final_loads: tuple[float, ...] = (1500.0,)
     step_time: float = 0.2
@@ -373,7 +373,7 @@ class Scene:
 
     @property
     def setpoint_rpm(self) -> float:
-        return self.setpoint_rad_s * 30.0 / math.pi
+        return rad_s_to_rpm(self.setpoint_rad_s)
 
     def replace(self, **changes: Any) -> "Scene":
         """Copy with some fields changed (validated again); unknown names are an error."""
@@ -584,7 +584,7 @@ def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
                 raise SceneError(f"{origin}: {section}.{key} = {quote(val)}; expected a {typ.__name__}")
             kw[key] = val
     mapping = {
-        "setpoint_rpm": ("setpoint_rad_s", lambda v: v * math.pi / 30.0),
+        "setpoint_rpm": ("setpoint_rad_s", rpm_to_rad_s),
         "initial_load_n": ("initial_load", float),
         "final_loads_n": ("final_loads", lambda v: tuple(v)),
         "step_time_s": ("step_time", float),
@@ -606,7 +606,7 @@ def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
 
 def _duty_from_doc(kw: dict, origin: str, base: Any) -> None:
     """Turn the duty-cycle keys of ``[operating]`` into profile fields (in place)."""
-    rpm_scale = math.pi / 30.0
+    rpm_scale = RAD_S_PER_RPM
     sources = []
     for what, rows_key, csv_key, column, scale, field_name in (
             ("load", "load_profile_n", "load_trace_csv", "axial_load_n", 1.0, "load_profile"),
@@ -715,7 +715,7 @@ def holding_capacity_n(plant: Any, setpoint_rad_s: float) -> float:
     Examples
     --------
     >>> from prsa_ctrl import load_plant
-    >>> round(holding_capacity_n(load_plant(), 300 * math.pi / 30))
+    >>> round(holding_capacity_n(load_plant(), rpm_to_rad_s(300)))
     7949
     """
     v = plant.values
@@ -755,7 +755,7 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
     ts = plant.sample_time_s
     check_filters_against_plant(scene.filters, scene.filter_labels, ts, plant.name)
     rpm = scene.setpoint_rpm
-    rpm_min = STICTION_MARGIN * plant.values["friction.stribeck_velocity_m_s"] / plant.lead_per_rad * 30.0 / math.pi
+    rpm_min = rad_s_to_rpm(STICTION_MARGIN * plant.values["friction.stribeck_velocity_m_s"] / plant.lead_per_rad)
     if not rpm_min <= rpm <= SETPOINT_MAX_RPM:
         raise SceneError(
             f"{label('setpoint_rad_s', f'{rpm:.6g}')}: expected a nut speed in [{rpm_min:.3g}, {SETPOINT_MAX_RPM:g}] rpm "
@@ -768,7 +768,7 @@ def check_against_plant(scene: Scene, plant: Any, typed: Mapping[str, str] | Non
     if quantum > slowest:
         raise SceneError(
             f"{plant.origin}: sensor.encoder_counts_per_rev = {plant.encoder_counts}: one count per controller sample is "
-            f"{quantum:.4g} rad/s ({quantum * 30 / math.pi:.4g} rpm), more than the setpoint {slowest * 30 / math.pi:.6g} "
+            f"{quantum:.4g} rad/s ({rad_s_to_rpm(quantum):.4g} rpm), more than the setpoint {rad_s_to_rpm(slowest):.6g} "
             f"rpm of {scene.origin}: the drive could not measure the speed it controls; expected a finer encoder "
             f"(at least {math.ceil(2 * math.pi / (slowest * ts))} counts per revolution at sensor.sample_time_s = {ts:g} s)")
     if scene.is_profile:
@@ -864,7 +864,7 @@ def _check_robust_against_plant(scene: Scene, plant: Any, rpm_min: float) -> Non
             raise SceneError(f"{o}: robust.final_loads_n: {f:g} N is a step of {abs(f - scene.initial_load):.3g} N from "
                              f"operating.initial_load_n = {scene.initial_load:g} N; expected a load step of at least "
                              f"{MIN_LOAD_STEP_N:g} N")
-    slowest = min(rpms) * math.pi / 30.0
+    slowest = rpm_to_rad_s(min(rpms))
     top = max([*loads, scene.initial_load])
     cap = holding_capacity_n(plant, slowest)
     if rob.final_loads_n and max(loads) > cap:
@@ -877,7 +877,7 @@ def _check_robust_against_plant(scene: Scene, plant: Any, rpm_min: float) -> Non
         values = dict(plant.values)
         values.update({e.key: (e.low, e.high)[k] for e, k in zip(entries, ends)})
         at = ", ".join(f"{e.key} = {values[e.key]:g}" for e in entries)
-        low_rpm = STICTION_MARGIN * values["friction.stribeck_velocity_m_s"] / plant.lead_per_rad * 30.0 / math.pi
+        low_rpm = rad_s_to_rpm(STICTION_MARGIN * values["friction.stribeck_velocity_m_s"] / plant.lead_per_rad)
         if min(rpms) < low_rpm:
             raise SceneError(f"{o}: [uncertainty] {at} (a corner of the supports): the slowest setpoint {min(rpms):g} rpm "
                              f"is in the stiction band (below {low_rpm:.3g} rpm); expected a narrower "
@@ -899,7 +899,7 @@ def _check_profile_against_plant(scene: Scene, plant: Any, label, rpm_min: float
     ts = plant.sample_time_s
     o = scene.origin
     sp = scene.setpoint_profile or ((0.0, scene.setpoint_rad_s),)
-    rpms = [v * 30.0 / math.pi for _, v in sp]
+    rpms = [rad_s_to_rpm(v) for _, v in sp]
     lo_rpm, hi_rpm = min(rpms), max(rpms)
     if scene.setpoint_profile is not None and not rpm_min <= lo_rpm <= hi_rpm <= SETPOINT_MAX_RPM:
         bad_i = next(i for i, r in enumerate(rpms) if not rpm_min <= r <= SETPOINT_MAX_RPM)
@@ -921,10 +921,10 @@ def _check_profile_against_plant(scene: Scene, plant: Any, label, rpm_min: float
         at = _trace_point(scene, "load_profile", loads.index(max(loads)))
         if at:
             raise SceneError(
-                f"{o}: operating.load_trace_csv: {at}; out of range for {plant.name}: at {slowest * 30 / math.pi:.6g} "
+                f"{o}: operating.load_trace_csv: {at}; out of range for {plant.name}: at {rad_s_to_rpm(slowest):.6g} "
                 f"rpm the motor holds at most {cap:.0f} N (drive.torque_limit_n_m = {plant.torque_limit:g} N m)")
         raise SceneError(
-            f"{o}: {key} reaches {max(loads):g} N; out of range for {plant.name}: at {slowest * 30 / math.pi:.6g} rpm the "
+            f"{o}: {key} reaches {max(loads):g} N; out of range for {plant.name}: at {rad_s_to_rpm(slowest):.6g} rpm the "
             f"motor holds at most {cap:.0f} N (drive.torque_limit_n_m = {plant.torque_limit:g} N m)")
     before, after = PRE_EVENT_SAMPLES * ts, POST_EVENT_SAMPLES * ts
     if scene.step_time < before * (1 - 1e-9):

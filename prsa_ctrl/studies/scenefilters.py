@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from typing import Any, Mapping
 
+from ..options import check_number
 from ..textsafe import quote
 from ..drive.filters import NYQUIST_MARGIN, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
 from ..errors import SceneError
@@ -42,12 +43,6 @@ FILTER_KEYS = {"notch": ("path", "centre_hz", "width_hz", "depth_db"),
 #: At most this many filters in one loop (:func:`prsa_ctrl.drive.filters.loop_filters`).
 MAX_SCENE_FILTERS = 8
 _REQUIRED = {"notch": ("path", "centre_hz", "width_hz"), "lowpass": ("path", "corner_hz")}
-
-
-def _number(name: str, value: Any, shown: str, where: str, sep: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise SceneError(f"{where}{sep}{name} = {shown}; expected a finite number")
-    return float(value)
 
 
 def filter_entry(kind: str, values: Mapping[str, Any], where: str, sep: str = ".",
@@ -92,7 +87,8 @@ def filter_entry(kind: str, values: Mapping[str, Any], where: str, sep: str = ".
     if path not in FILTER_PATHS:
         raise SceneError(f"{where}{sep}path = {shown('path')}; expected \"speed\" (the measured speed) or \"torque\" "
                          "(the torque command)")
-    nums = {k: _number(k, v, shown(k), where, sep) for k, v in values.items() if k != "path"}
+    nums = {k: check_number(f"{where}{sep}{k}", v, typed=shown(k), error=SceneError)
+            for k, v in values.items() if k != "path"}
     freq = "centre_hz" if kind == "notch" else "corner_hz"
     if not nums[freq] > 0:
         raise SceneError(f"{where}{sep}{freq} = {shown(freq)}; expected a frequency > 0 Hz")

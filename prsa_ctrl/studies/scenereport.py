@@ -7,7 +7,8 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Callable, Sequence
 
-from ..options import rad_s_to_rpm
+from ..options import RAD_S_PER_RPM, rad_s_to_rpm
+from ..reporttext import fmt, fmt_margin, format_robust, table  # re-exported (their one home)
 from ..sim.metrics import metric_resolution, relative_difference
 from ..textsafe import printable
 from .scenefilters import describe_filters
@@ -19,35 +20,6 @@ if TYPE_CHECKING:
 
 __all__ = ["format_report", "format_robust", "format_move_report", "fmt", "fmt_margin", "table", "scene_header",
            "pct_text", "diff_text", "beaten_text", "format_friction_ff"]
-
-
-def fmt(v) -> str:
-    """A table cell: ``-`` for None, yes/no, ``never`` for infinity, 4 significant digits."""
-    if v is None:
-        return "-"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        if math.isinf(v):
-            return "never"
-        return f"{v:.4g}"
-    return str(v)
-
-
-def fmt_margin(v: float) -> str:
-    """A margin: ``none`` (undefined), ``inf`` or 4 significant digits."""
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "none"
-    return "inf" if math.isinf(v) else f"{v:.4g}"
-
-
-def table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
-    """A plain-text table with a header rule, cells through :func:`fmt`."""
-    cells = [list(header)] + [[fmt(c) for c in r] for r in rows]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in cells]
-    lines.insert(1, "  ".join("-" * w for w in widths))
-    return "\n".join(lines)
 
 
 def scene_header(sc, overrides: Sequence[str] = ()) -> str:
@@ -204,7 +176,7 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         "Drive terms: "
         + (f"sample time {rep.plant.sample_time_s * 1e3:.4g} ms, " if sc.discrete else "continuous controller, ")
         + (f"integral time Ti = kp/ki = {b.pid.kp / b.pid.ki * 1e3:.4g} ms, " if b.pid.ki > 0 else "no integral action, ")
-        + f"kp = {b.pid.kp * 2 * math.pi / 60:.4g} N m/rpm",
+        + f"kp = {b.pid.kp * RAD_S_PER_RPM:.4g} N m/rpm",
         *(f"Filter: {line}" for line in describe_filters(sc.filters, rep.plant.sample_time_s)),
         f"Status: {rep.status}",
         "",
@@ -259,42 +231,6 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
     for w in rep.warnings:
         out.append(f"warning: {w}")
     return "\n".join(out)
-
-
-def format_robust(rr) -> str:
-    """Nominal against robust design on the same scenario models."""
-    comp = rr.comparison
-    obj = comp["objective"].upper()
-    out = [f"Robust tuning over {len(rr.scenarios)} scenario models ({comp.get('aggregate', 'worst')} {obj}; "
-           f"Ms bound {comp['ms_max']:g} on every model"
-           + (", the scene's [spec] ms: the bound the designs are judged by" if comp.get("ms_source") == "[spec] ms"
-              else "") + ")"]
-    rows = []
-    for name, pid in (("nominal", rr.nominal), ("robust", rr.robust)):
-        d = comp["designs"][name]
-        bad = "unstable" if not d["all_stable"] else None
-        rows.append([name, pid.kp, pid.ki, bad or d["max_ms"], d["ms_violations"], bad or d["worst_objective"],
-                     bad or d["mean_objective"]])
-    out.append(table(["design", "kp", "ki", "max Ms", "models over the Ms bound", f"worst {obj}", f"mean {obj}"], rows))
-    unstable = {name: sum(1 for p in comp["designs"][name]["per_scenario"] if not p["stable"])
-                for name in ("nominal", "robust")}
-    for name, k in unstable.items():
-        if k:
-            out.append(f"{name}: closed loop unstable on {k} of {len(rr.scenarios)} scenario models")
-    r = rr.recommended or rr.recommend()
-    if r.get("table"):
-        from ..tuning.robust import format_yield_table
-
-        out.append(f"Designs against the scene's [spec] on the same {r['table'][0]['samples']} Monte-Carlo samples "
-                   f"(* recommended: {r['rule']}):")
-        out.append(format_yield_table(r, comp["objective"]))
-        if r.get("decide_table"):
-            out.append(f"The designs of (near-)maximal yield again, on {r['decide_table'][0]['samples']} samples of the "
-                       "same seed (the decision; * recommended):")
-            out.append(format_yield_table({**r, "table": r["decide_table"]}, comp["objective"]))
-    name = r.get("name") or (r["design"] + " design" if r.get("design") else None)
-    out.append(f"recommended: {name or 'none'} ({r['why']})")
-    return "\n".join(out) + "\n"
 
 
 def format_move_report(plant: "Plant", scene: "MoveScene", designs: "list[CascadeDesign]", prog: str = "prsa-tune") -> str:

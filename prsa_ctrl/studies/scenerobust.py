@@ -6,12 +6,12 @@ read from the scene's ``[uncertainty]`` and ``[robust]`` sections; the tuning it
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Sequence
 
 import numpy as np
 
+from ..options import rad_s_to_rpm, rpm_to_rad_s
 from ..textsafe import quote
 from ..errors import SceneError
 from ..plant.uncertainty import UncertaintyModel, apply, uncertainty_model
@@ -35,7 +35,7 @@ def operating_points(scene) -> list[tuple[float, float]]:
         raise SceneError(f"{scene.origin}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
                          "load-step scene (the robust and Monte-Carlo studies run load steps)")
     rob = scene.sections.robust or Robust()
-    sps = [v * math.pi / 30.0 for v in rob.setpoints_rpm] or [scene.setpoint_rad_s]
+    sps = [rpm_to_rad_s(v) for v in rob.setpoints_rpm] or [scene.setpoint_rad_s]
     loads = list(rob.final_loads_n) or list(scene.final_loads)
     for f in loads:
         if f == scene.initial_load:
@@ -87,7 +87,7 @@ def scenarios(plant, scene, *, unc: UncertaintyModel | None = None, vertices: bo
     out = []
     for name, kind, vals in points:
         for sp, f1 in ops:
-            label = f"{name} @ {sp * 30 / math.pi:g} rpm, {f1:g} N" if len(ops) > 1 else name
+            label = f"{name} @ {rad_s_to_rpm(sp):g} rpm, {f1:g} N" if len(ops) > 1 else name
             out.append(Scenario(label, kind, dict(vals), float(sp), float(f1)))
     return out
 

@@ -21,6 +21,7 @@ import numpy as np
 from .._lazy import module
 from ..options import MS_MAX_DEFAULT
 from ..plant.uncertainty import UncertaintyModel
+from ..reporttext import SPEC_LABEL, format_robust, format_yield_table  # format_yield_table re-exported
 from ..results import is_converged, is_ok, json_safe
 from .loops import LoopModel
 from .tuner import TuningResult
@@ -211,23 +212,13 @@ class RobustTuning:
         return rec
 
     def format(self) -> str:
-        c = self.comparison
-        lines = [f"{len(self.scenarios)} scenario models; objective {c['objective'].upper()}, Ms <= {c['ms_max']:g}",
-                 f"{'design':<10} {'kp':>9} {'ki':>9} {'max Ms':>7} {'Ms viol.':>8} {'worst':>10} {'mean':>10}"]
-        for name, d in c["designs"].items():
-            lines.append(f"{name:<10} {d['gains']['kp']:9.4g} {d['gains']['ki']:9.4g} {d['max_ms']:7.3f} "
-                         f"{d['ms_violations']:8d} {d['worst_objective']:10.4g} {d['mean_objective']:10.4g}")
-        r = self.recommended or self.recommend()
-        lines.append(f"recommended: {r['design'] + ' design' if r.get('design') else 'none'} ({r['why']})")
-        return "\n".join(lines)
+        """The robust study's report, the text ``prsa-tune --robust`` prints
+        (:func:`prsa_ctrl.reporttext.format_robust`, its one home)."""
+        return format_robust(self)
 
 
 #: z of a two-sided 95 % interval (the Wilson intervals' and the paired comparison's).
 _Z95 = 1.959963984540054
-
-#: Spec item -> short label in the yield table.
-_SPEC_LABEL = {"peak_drop_rad_s": "peak drop", "recovery_time_s": "recovery", "ms": "Ms", "mt": "Mt",
-               "no_saturation": "saturation", "finite": "unfinished run"}
 
 
 def _spec_failures(metrics: np.ndarray, spec: dict, names: Sequence[str]) -> dict[str, np.ndarray]:
@@ -347,7 +338,7 @@ def rank_by_yield(monte_carlo, objective: str, lin: dict | None = None,
         why += f"; {best.n - best.passed} of {best.n} samples still fail the spec"
         f = fails[best.name]
         if f:
-            why += " (" + ", ".join(f"{_SPEC_LABEL.get(k, k)} {v}" for k, v in f.items() if v) + ")"
+            why += " (" + ", ".join(f"{SPEC_LABEL.get(k, k)} {v}" for k, v in f.items() if v) + ")"
     out = {"rows": rows, "recommended": best.name, "basis": basis, "rule": rule, "why": why}
     if target is not None:
         out["target"] = float(target)
@@ -380,7 +371,7 @@ def _limit(samples: dict, name: str, spec: dict, target: float, ok) -> dict[str,
     lim: dict[str, Any] = {"design": name, "item": item, "fails": k, "samples": len(m),
                            "yield_without_it": float(np.mean(~others))}
     q = 100 * target
-    label = _SPEC_LABEL.get(item, item)
+    label = SPEC_LABEL.get(item, item)
     if item in ("finite", "no_saturation"):
         what = "runs that did not finish" if item == "finite" else "saturated runs"
         lim["text"] = f"{label} ({what}: {k} of {len(m)} samples on {name})"
@@ -396,25 +387,6 @@ def _limit(samples: dict, name: str, spec: dict, target: float, ok) -> dict[str,
 def _obj_text(d, obj_p50) -> str:
     v = obj_p50(d)
     return f"{v:.4g}" if math.isfinite(v) else "not finite"
-
-
-def format_yield_table(rec: dict[str, Any], objective: str) -> str:
-    """The recommendation's table: design, yield with its Wilson 95 % interval, median objective
-    and how often each spec item fails (one line per design, ``*`` the recommended one)."""
-    rows = rec.get("table") or []
-    if not rows:
-        return ""
-    w = max(len(r["name"]) for r in rows)
-    lines = [f"  {'design':<{w}}  {'yield (95 % interval)':<28} {'median ' + objective.upper():>11}  fails (samples)"]
-    for r in rows:
-        lo, hi = r["yield_ci95"]
-        y = f"{100 * r['yield']:.1f} % ({r['passed']}/{r['samples']}) [{100 * lo:.1f}, {100 * hi:.1f}]"
-        o = f"{r['objective_p50']:.4g}" if math.isfinite(r["objective_p50"]) else "-"
-        f = r["fails"]
-        ftxt = "-" if f is None else (", ".join(f"{_SPEC_LABEL.get(k, k)} {v}" for k, v in f.items() if v) or "none")
-        mark = "*" if r["name"] == rec.get("name") else " "
-        lines.append(f"{mark} {r['name']:<{w}}  {y:<28} {o:>11}  {ftxt}")
-    return "\n".join(lines)
 
 
 def tune_scenario_loops(loops: Sequence[LoopModel], scens: Sequence[Scenario], *, unc: UncertaintyModel,

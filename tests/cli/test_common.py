@@ -206,3 +206,41 @@ def test_a_progress_line_during_captured_solver_output_reaches_the_terminal_once
     assert out.stderr.splitlines() == ["prog: step one"]
     captured = out.stdout.strip().splitlines()[-1]
     assert "solver says hi" in captured and "step one" not in captured
+
+
+# --- argv read once: a flag that keeps its text as typed -----------------------------------------
+
+def _typed_parser():
+    p = common.Parser(prog="t")
+    p.add_argument("--offset", action=common.KeepTyped, type=common.number("--offset", 0.0, 10.0, "rad/s", "a speed"),
+                   default=3.0)
+    p.add_argument("--count", action=common.KeepTyped, type=int, default=1)
+    return p
+
+
+@pytest.mark.parametrize("argv, value, typed", [
+    ([], 3.0, None),  # the default: no text
+    (["--offset", "1e0"], 1.0, "1e0"),
+    (["--offset=0002.50"], 2.5, "0002.50"),
+    (["--offset", "1", "--offset", " 4"], 4.0, " 4"),  # the last one, as argparse takes it
+    (["--off", "5"], 5.0, "5"),  # argparse's prefixes: the same flag
+])
+def test_keep_typed_stores_the_value_and_the_text(argv, value, typed):
+    args = _typed_parser().parse_args(argv)
+    assert args.offset == value
+    assert common.typed_text(args, "offset") == typed
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--offset", "11"], "--offset 11 rad/s: expected a speed in [0, 10] rad/s"),
+    (["--offset", "x"], "--offset 'x': expected a speed in [0, 10] rad/s"),
+    (["--count", "2.5"], "argument --count: invalid int value: '2.5'"),
+])
+def test_keep_typed_errors_read_as_argparse_own(argv, message):
+    plain = common.Parser(prog="t")  # the same flags without the action: the same one line
+    plain.add_argument("--offset", type=common.number("--offset", 0.0, 10.0, "rad/s", "a speed"), default=3.0)
+    plain.add_argument("--count", type=int, default=1)
+    for p in (_typed_parser(), plain):
+        with pytest.raises(common.UsageError) as exc:
+            p.parse_args(argv)
+        assert str(exc.value) == message

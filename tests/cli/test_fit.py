@@ -5,6 +5,7 @@ item; an empty [uncertainty] correlation array is refused with a message whose b
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import signal
@@ -269,8 +270,7 @@ def test_linear_axis_take_back_removes_only_what_the_run_made(tmp_path):
     old_out.write_text("old\n")
     plots.mkdir()
     (plots / "mine.png").write_text("user's\n")
-    made = _new_outputs(["LOG.mat", "--out", str(old_out), "--json", str(tmp_path / "f.json"),
-                         "--plots", str(plots)])
+    made = _new_outputs(argparse.Namespace(out=str(old_out), json=str(tmp_path / "f.json"), plots=str(plots)))
     (tmp_path / "f.json").write_text("{}\n")
     (plots / "replay-1-x.png").write_text("png\n")
     _take_back(made())
@@ -278,9 +278,51 @@ def test_linear_axis_take_back_removes_only_what_the_run_made(tmp_path):
     assert old_out.read_text() == "old\n" and sorted(os.listdir(plots)) == ["mine.png"]
 
     new_plots = tmp_path / "new"
-    made = _new_outputs(["LOG.mat", "--out", str(tmp_path / "g.toml"), "--plots", str(new_plots)])
+    made = _new_outputs(argparse.Namespace(out=str(tmp_path / "g.toml"), plots=str(new_plots)))
     new_plots.mkdir()
     (new_plots / "replay-1-x.png").write_text("png\n")
     (tmp_path / "g.toml").write_text("new\n")
     _take_back(made())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.toml", "plots"]
+
+
+@pytest.mark.parametrize("argv, axis, motor", [
+    (["LOG.csv", "--out", "o.toml"], False, False),
+    (["LOG.csv", "--log-format", "F.toml", "--out", "o.toml"], True, False),  # F.toml unreadable: linear-axis path
+    (["LOG.csv", "--log-format"], True, False),  # given without its value: the axis parser says so
+    (["--validate", "AXIS.toml", "LOG.csv"], True, False),
+    (["--validate", "OTHER.csv", "LOG.csv", "--out", "o.toml"], False, False),
+    (["--out", "--log-format", "LOG.csv"], True, False),
+])
+def test_the_mode_is_read_by_argparse(argv, axis, motor):
+    from prsa_ctrl.cli.axis import motor_log_mode, wants_axis_mode
+
+    assert wants_axis_mode(argv) is axis
+    assert motor_log_mode(argv) is motor
+
+
+def test_a_rotary_description_or_a_screw_plant_is_the_motor_mode(tmp_path):
+    from prsa_ctrl.cli.axis import motor_log_mode
+
+    rotary, linear = tmp_path / "r.toml", tmp_path / "l.toml"
+    rotary.write_text('axis = "rotary"\n')
+    linear.write_text('axis = "linear"\n')
+    assert motor_log_mode(["L.csv", f"--log-format={rotary}"])
+    assert not motor_log_mode(["L.csv", "--log-format", str(linear)])
+    assert motor_log_mode(["L.csv", "--log-format", str(linear), "--plant", "ballscrew-32x10"])
+    assert not motor_log_mode(["L.csv", "--log-format", str(rotary), "--validate", "X.csv"])
+
+
+def test_a_mat_log_without_a_description_is_refused_after_parsing(tmp_path, capsys):
+    """A .mat data file (or validation record) without --log-format: one line, exit 2, nothing
+    written; an output path that happens to end in .mat is not a log (was refused as one)."""
+    from prsa_ctrl.cli.fit import main
+
+    for argv in (["LOG.mat", "--out", str(tmp_path / "o.toml")],
+                 ["A.csv", "--validate", "B.MAT", "--out", str(tmp_path / "o.toml")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1
+        assert "a MATLAB .mat log is read through a log description" in err[0]
+    assert main(["--design", "chirp", "--out", str(tmp_path / "x.mat"), "--duration", "0.1"]) == 0
+    assert (tmp_path / "x.mat").exists()

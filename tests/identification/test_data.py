@@ -119,7 +119,7 @@ def test_any_non_finite_cell_is_located(row, col, bad):
     with pytest.raises(DataError) as exc:
         record_from_arrays("arr", cols["time_s"], cols["torque_command_n_m"], nut_angle_rad=cols["nut_angle_rad"],
                            axial_load_n=cols["axial_load_n"])
-    assert f"'{col}' row {row}:" in str(exc.value)
+    assert str(exc.value) == f"arr row {row}: {col} = {bad!r}; expected a finite number"
 
 
 @settings(max_examples=30, deadline=None)
@@ -169,3 +169,34 @@ def test_a_torque_constant_without_a_current_column_is_refused(tmp_path):
     cols["current_a"] = cols.pop("torque_command_n_m") / 0.05
     rec = load_record(_write(tmp_path / "i.csv", cols), torque_constant_n_m_per_a=0.05)
     np.testing.assert_allclose(rec.torque_command_n_m, cols["current_a"] * 0.05)
+
+
+# --- scalar arguments: checked by options.check_number (one line, the value as given) -----------
+
+@pytest.mark.parametrize("load, shown", [(True, "True"), ("500", "'500'"), (float("nan"), "nan"), ([1.0], "[1.0]")])
+def test_a_bad_constant_load_is_one_line_naming_it(tmp_path, load, shown):
+    cols = {k: v for k, v in _arrays().items() if k != "axial_load_n"}
+    path = _write(tmp_path / "noload.csv", cols)
+    with pytest.raises(DataError) as exc:  # a string was a TypeError from math.isfinite before
+        load_record(path, load_n=load)
+    assert str(exc.value) == f"load = {shown}; expected a finite axial load in N"
+
+
+@pytest.mark.parametrize("kw, expected", [
+    ({"speed_rad_s": float("inf")}, "demo: speed (rad/s) = inf; expected a finite number"),
+    ({"load_n": "0"}, "demo: load (N) = '0'; expected a finite number"),
+    ({"coherence_min": 1.0}, "demo: coherence threshold = 1.0; expected a finite number >= 0 and < 1"),
+    ({"coherence_min": -0.1}, "demo: coherence threshold = -0.1; expected a finite number >= 0 and < 1"),
+])
+def test_bad_operating_point_of_a_frequency_response_is_named(kw, expected):
+    from prsa_ctrl.identification.data import frf_from_arrays
+
+    f = np.geomspace(1, 300, 20)
+    with pytest.raises(DataError) as exc:
+        frf_from_arrays("demo", f, 1 / (2.4e-4 * 2j * np.pi * f), **kw)
+    assert str(exc.value) == expected
+
+
+def test_a_non_finite_excitation_offset_is_refused():
+    with pytest.raises(DataError, match=r"^offset = nan; expected a finite number$"):
+        design_excitation("steps", offset=float("nan"))

@@ -855,3 +855,46 @@ def test_a_linear_axis_plant_refuses_a_motor_log(tmp_path):
         load_motor_record(tmp_path / "motor.csv", load_log_format(tmp_path / "motor.toml"), plant)
     with pytest.raises(LogFormatError, match="axis = 'rotary'"):
         load_axis_log(tmp_path / "motor.csv", load_log_format(tmp_path / "motor.toml"))
+
+
+# --- the numbers of a description: checked by options.check_number (one line, the value as typed) --
+
+@pytest.mark.parametrize("line, value, expected", [
+    ("saturation = 10.0", "saturation = 0", "[controller] saturation = 0; expected a finite number > 0"),
+    ("saturation = 10.0", "saturation = true", "[controller] saturation = True; expected a finite number > 0"),
+    ("saturation = 10.0", 'saturation = "10"', "[controller] saturation = '10'; expected a finite number > 0"),
+    ("sample_time_s = 0.001", "sample_time_s = nan", "[controller] sample_time_s = nan; expected a finite number > 0"),
+    ("sample_time_s = 0.001", "sample_time_s = 0.001\ncommand_delay_samples = 11",
+     "[controller] command_delay_samples = 11; expected an integer >= 0 and <= 10"),
+    ("sample_time_s = 0.001", "sample_time_s = 0.001\ncommand_delay_samples = 1.0",
+     "[controller] command_delay_samples = 1.0; expected an integer >= 0 and <= 10"),
+    ("sample_time_s = 0.001", "sample_time_s = 0.001\ncheck_tolerance = 1",
+     "[controller] check_tolerance = 1; expected a finite number > 0 and < 1"),
+    ('name = "qm"\nunit = "m"', 'name = "qm"\nunit = "m"\nresolution = -1e-6',
+     "[position] resolution = -1e-06; expected a finite number > 0 (position unit)"),
+])
+def test_a_bad_number_in_a_description_is_named_with_its_value_and_range(files, line, value, expected):
+    d, mat, fmt, _ = files
+    text = GOOD.replace(line, value, 1)
+    assert text != GOOD
+    fmt.write_text(text)
+    with pytest.raises(LogFormatError) as info:
+        load_log_format(fmt)
+    assert str(info.value) == f"{fmt}: {expected}"
+
+
+def test_a_variable_name_in_a_csv_description_is_refused_as_typed(files):
+    csv, fmt = _csv_files(files)
+    fmt.write_text(fmt.read_text().replace("gain = 35.0", 'gain = "gtau"'))
+    with pytest.raises(LogFormatError) as info:
+        load_axis_log(csv, load_log_format(fmt))
+    assert str(info.value) == (f"{fmt}: [command] gain = 'gtau'; expected a finite number > 0 "
+                               "(variable names work for .mat files only)")
+
+
+def test_a_non_positive_scalar_variable_is_named_with_the_variable(files):
+    d, mat, fmt, _ = files
+    scipy.io.savemat(mat, {**_mat_vars(files), "gtau": np.array([[-2.0]])})
+    with pytest.raises(LogFormatError) as info:
+        load_axis_log(mat, load_log_format(fmt))
+    assert str(info.value) == f"{mat}: [command] gain = -2.0 (variable 'gtau'); expected a finite number > 0"

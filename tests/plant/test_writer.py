@@ -224,3 +224,62 @@ def test_without_tomlkit_the_file_is_written_afresh_saying_why(monkeypatch):
     want = {"name": "b", "nut": {"inertia_kg_m2": {"value": 2.0e-4, "source": "c"}}}
     text = document_toml(want, 'name = "b"  # the base\n')
     assert text.startswith(f"# {NO_TOMLKIT_NOTE}\n") and tomllib.loads(text) == want
+
+
+# --- data files (drive exports): the same writer, strict values -------------------------------------
+
+def test_data_lines_read_back_exactly_and_keys_stay_ascii():
+    import tomllib
+
+    from prsa_ctrl.plant.writer import data_lines
+
+    doc = {"a": 1, "µ key": [0.1, 2.0, "\u202e"], "t": {"x y": True, "n": 2**70}, "arr": [{"k": "v"}, {"k": "w"}]}
+    text = "\n".join(data_lines(doc)) + "\n"
+    assert tomllib.loads(text) == doc
+    assert text.isascii()
+
+
+@pytest.mark.parametrize("value, message", [
+    (float("nan"), "t.v = nan; expected a finite number (TOML export)"),
+    (None, "t.v = None; expected a number, string, bool or list of those (TOML has no null)"),
+    ([1.0, float("inf")], "t.v = inf; expected a finite number (TOML export)"),
+])
+def test_data_values_refuse_what_toml_cannot_hold(value, message):
+    from prsa_ctrl.plant.writer import data_lines
+
+    with pytest.raises(ValueError) as exc:
+        data_lines({"t": {"v": value}})
+    assert str(exc.value) == message
+
+
+def test_the_export_writes_through_the_one_writer():
+    from prsa_ctrl.io import export
+    from prsa_ctrl.plant import writer
+
+    d = {"format": "x", "speed": {"kp": 0.1, "name": "µ"}}
+    assert export.dumps(d, "toml") == "# x (TOML)\n" + "\n".join(writer.data_lines(d)) + "\n"
+    assert export.toml_value([1, "µ"]) == writer.data_value([1, "µ"])
+
+
+def test_tomlkit_and_the_float_rule_live_in_the_writer_only():
+    """One TOML writer: no other module imports tomlkit or formats a TOML float itself."""
+    import ast
+    from pathlib import Path
+
+    import prsa_ctrl
+
+    root = Path(prsa_ctrl.__file__).parent
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel == "plant/writer.py":
+            continue
+        text = path.read_text(encoding="utf-8")
+        for node in ast.walk(ast.parse(text)):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(n.split(".")[0] == "tomlkit" for n in names):
+                found.append(f"{rel}: imports tomlkit")
+        if 'for c in ".en"' in text or "for c in '.en'" in text:
+            found.append(f"{rel}: a TOML float rule")
+    assert found == []

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
+from prsa_ctrl.results import is_ok, status_head
 from prsa_ctrl.identification.axis import LinearAxisPlant, load_axis_plant, simulate_axis
 from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec, load_axis_log, load_log_format
 from prsa_ctrl.studies.axistune import AxisGains, axis_loop, axis_loops, retune_axis
@@ -128,6 +129,7 @@ def test_retuned_at_the_running_ms_checked_independently():
     axis, log = _axis(), _log()
     res = retune_axis(axis, log)
     assert res.status == "ok", (res.status, res.warnings)
+    assert res.ok
     assert res.tuning.converged
     ms0 = _ms_independent(AxisGains(KP, KV), axis)
     ms1 = _ms_independent(res.tuned.gains, axis)
@@ -151,7 +153,11 @@ def test_a_tuned_design_that_would_saturate_is_flagged():
     axis, log = _axis(), _log()
     tight = dataclasses.replace(log, controller=dataclasses.replace(log.controller, saturation=1.0))
     res = retune_axis(axis, tight)
-    assert res.status == "saturates" and any("beyond the saturation 1" in w for w in res.warnings)
+    assert res.status == "flagged: the tuned design saturates the controller output on the logged trajectory"
+    assert any("beyond the saturation 1" in w for w in res.warnings)
+    assert status_head(res.status) == "flagged"  # the vocabulary's
+    assert not is_ok(res.status)
+    assert not res.ok
 
 
 def test_bad_arguments_name_themselves():
@@ -249,3 +255,4 @@ def test_the_cascade_tuner_takes_a_linear_axis(tmp_path):
         assert d.verified is not None and math.isfinite(d.verified.rms_following_error_m)
         assert d.verified.peak_torque_n_m < plant.values["drive.force_limit_n"]  # N in load coordinates
     assert "coordinates: load (position m, force N)" in format_move_report(plant, scene, designs)
+

@@ -301,3 +301,14 @@ def test_filter_json_and_report_lines(tmp_path, capsys, monkeypatch):
     assert row["path"] == "speed" and row["depth_db"] == -20.0
     [line] = describe_filters([lf], TS)
     assert line.startswith("notch on the speed measurement: centre 300 Hz, width 60 Hz (Q 5), depth -20 dB")
+
+
+@pytest.mark.parametrize("value, typed, shown", [(True, None, "True"), ("100", None, "'100'"), (float("inf"), None, "inf"),
+                                                 (float("nan"), {"centre_hz": "nan"}, "nan")])
+def test_a_filter_number_is_checked_by_the_one_validator(value, typed, shown):
+    """Every number of an entry goes through options.check_number: the entry, the key and the
+    value as typed (the flag's text when there is one)."""
+    with pytest.raises(SceneError) as exc:
+        filter_entry("notch", {"path": "speed", "centre_hz": value, "width_hz": 10.0}, "s.toml: filters.notch[1]",
+                     typed=typed)
+    assert str(exc.value) == f"s.toml: filters.notch[1].centre_hz = {shown}; expected a finite number"
