@@ -36,6 +36,7 @@ from ..errors import GeometryWarning, PlantFileError, SceneError
 from ..options import FIDELITIES as _FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE, RAD_S_PER_RPM
 from ..plant.plantfile import Plant, builtin_plants, load_plant
 from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
+from ..studies.scenekinds import problem
 from ..tuning.tuner import Tuner
 
 __all__ = ["AppInputError", "Settings", "View", "AppSession", "Calibration", "FIDELITIES", "LANDSCAPE_POINTS",
@@ -762,7 +763,7 @@ def _load_scene(name_or_path, label: str | None = None) -> tuple[Scene, str, lis
             scene = load_scene(name_or_path)
         except SceneError as exc:
             raise AppInputError(one_line(exc)) from None
-    if scene.is_profile:
+    if not problem(scene).takes("app"):
         raise AppInputError(f"scene {text!r} is a duty cycle ({scene.profile_source}); expected a load-step scene "
                             f"(tune it with prsa-tune --scene {text})")
     return scene, text, _notes(caught)
