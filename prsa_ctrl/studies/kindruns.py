@@ -64,6 +64,11 @@ class StepRuns:
         """Whether the problem takes a study (a name of :data:`STEP_STUDIES`)."""
         return study in self.studies
 
+    @property
+    def described(self) -> str:
+        """What the scene is, for messages (``"a load-step scene"``)."""
+        return "a load-step scene"
+
     def records(self, plant) -> tuple:
         """The sampled records the runs read besides the spec's numbers (load steps: none)."""
         return ()
@@ -182,8 +187,12 @@ class ProfileRuns(StepRuns):
     def accepts(cls, scene: Any) -> bool:
         return isinstance(scene, Scene) and scene.is_profile
 
+    @property
+    def described(self) -> str:
+        return f"a duty cycle ({self.scene.profile_source})"
+
     def records(self, plant) -> tuple:
-        """:func:`~prsa_ctrl.studies.sceneloops.duty_record` of every case."""
+        """:func:`duty_record` of every case."""
         return tuple(duty_record(plant, self.scene, case) for case in self.scene.cases)
 
     def loop_models(self, plant, spec, estimator: str) -> list:

@@ -606,7 +606,15 @@ class Move:
 
     name: ClassVar[str] = "move"
     announces: ClassVar[bool] = False
+    #: The speed-loop studies a move takes (:data:`~prsa_ctrl.studies.kindruns.STEP_STUDIES`): none.
+    studies: ClassVar[frozenset] = frozenset()
+    #: What the scene is, for messages.
+    described: ClassVar[str] = "a move (cascade) scene"
     scene: MoveScene
+
+    def takes(self, study: str) -> bool:
+        """Whether the problem takes a study (a move takes none of the speed loop's)."""
+        return study in self.studies
 
     @classmethod
     def accepts(cls, scene: Any) -> bool:

@@ -87,3 +87,10 @@ def test_the_duty_records_are_sampled_at_the_plant_period(paper_plant):
     spec = loop_spec(paper_plant, load_scene("duty-ramp"))
     for rec in spec.records:
         assert np.allclose(np.diff(rec["t"]), paper_plant.sample_time_s)
+
+
+def test_every_kind_says_what_it_is_and_a_move_takes_no_speed_study():
+    move = problem(load_move_scene("paper-move"))
+    assert move.described == "a move (cascade) scene" and not any(move.takes(s) for s in STEP_STUDIES)
+    assert problem(load_scene("duty-ramp")).described.startswith("a duty cycle (")
+    assert problem(load_scene()).described == "a load-step scene"
