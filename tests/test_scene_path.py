@@ -188,16 +188,21 @@ def test_building_the_loops_hands_the_tuning_layer_no_scene(paper_plant):
 
 def test_the_spec_reads_the_scene_once_and_as_the_scene_says(paper_plant):
     """Every field of the spec is the scene's value (the duty cycle's records are
-    ``duty_record``'s), and a spec is its own spec."""
-    for scene in (load_scene().replace(fidelity="multi-roller"), load_scene("duty-ramp")):
+    ``duty_record``'s, the problem is the scene's kind), and only a scene has a spec (issue 33:
+    no function takes a scene or its spec)."""
+    from prsa_ctrl.studies.kindruns import ProfileRuns, StepRuns
+
+    for scene, kind in ((load_scene().replace(fidelity="multi-roller"), StepRuns), (load_scene("duty-ramp"), ProfileRuns)):
         spec = loop_spec(paper_plant, scene)
-        assert loop_spec(paper_plant, spec) is spec
+        with pytest.raises(TypeError, match="expected a prsa_ctrl Scene"):
+            loop_spec(paper_plant, spec)
+        assert type(spec.problem) is kind and spec.problem.scene is scene
         for f in dataclasses.fields(LoopSpec):
-            if f.name in ("records", "linear_fidelity", "steady_torque_n_m"):
+            if f.name in ("records", "linear_fidelity", "steady_torque_n_m", "problem"):
                 continue
             want = getattr(scene, f.name)
             assert getattr(spec, f.name) == (tuple(want) if isinstance(want, list) else want), f.name
-        assert spec.linear_fidelity == linear_fidelity(scene) == linear_fidelity(spec)
+        assert spec.linear_fidelity == linear_fidelity(scene)
         assert spec.linear_fidelity == ("compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity)
         if scene.is_profile:
             for case, rec in zip(spec.cases, spec.records):
@@ -210,10 +215,15 @@ def test_the_spec_reads_the_scene_once_and_as_the_scene_says(paper_plant):
         assert math.isfinite(spec.steady_torque_n_m) and spec.steady_torque_n_m > 0
 
 
-def test_a_spec_with_an_unresolved_fidelity_is_refused(paper_plant):
+def test_the_public_stages_take_a_scene_not_its_spec(paper_plant):
+    """Issue 33: the spec is the pipeline's own; ``verify`` and the batched stages refuse it
+    (they resolve the scene's fidelity themselves)."""
     spec = loop_spec(paper_plant, load_scene().replace(fidelity="auto"))
-    with pytest.raises(ValueError, match="fidelity 'auto'"):
-        verify(Design("x", PID(0.08, 14.0), None), paper_plant, spec)
+    d = Design("x", PID(0.08, 14.0), None)
+    with pytest.raises(TypeError, match="expected a prsa_ctrl Scene"):
+        verify(d, paper_plant, spec)
+    with pytest.raises(TypeError, match="expected a prsa_ctrl Scene"):
+        verify_all([d], paper_plant, spec, workers=1)
 
 
 def test_the_batched_stages_equal_the_one_design_functions(paper_plant):
@@ -223,14 +233,13 @@ def test_the_batched_stages_equal_the_one_design_functions(paper_plant):
     loops = actuator_loops(paper_plant, scene)
     pids = [PID(0.085, 14.7), PID(0.05, 5.0), PID(0.06, 0.0)]  # the last is P-only (own start point)
     designs = [Design(f"d{i}", p, loops[0].margins(p.gains)) for i, p in enumerate(pids)]
-    spec = loop_spec(paper_plant, scene)
-    batch = predict_all(designs, loops, paper_plant, spec)
+    batch = predict_all(designs, loops, paper_plant, scene)
     one = [predict(d, loops, paper_plant, scene) for d in designs]
     for a, b in zip(batch, one):
         assert a.objective_predicted == b.objective_predicted and a.predicted == b.predicted
         assert a.predicted_start_speed == b.predicted_start_speed
     assert batch[2].predicted_start_speed < scene.setpoint_rad_s  # P-only settles below the setpoint
-    vb = checked_all(verify_all(batch, paper_plant, spec, workers=1), paper_plant, spec)
+    vb = checked_all(verify_all(batch, paper_plant, scene, workers=1), paper_plant, scene)
     vo = [checked(verify(d, paper_plant, scene), paper_plant, scene) for d in one]
     for a, b in zip(vb, vo):
         assert a.objective_verified == b.objective_verified and a.verified == b.verified

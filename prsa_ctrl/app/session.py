@@ -36,6 +36,7 @@ from ..errors import GeometryWarning, PlantFileError, SceneError
 from ..options import FIDELITIES as _FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE, RAD_S_PER_RPM
 from ..plant.plantfile import Plant, builtin_plants, load_plant
 from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
+from ..studies.scenekinds import problem
 from ..tuning.tuner import Tuner
 
 __all__ = ["AppInputError", "Settings", "View", "AppSession", "Calibration", "FIDELITIES", "LANDSCAPE_POINTS",
@@ -751,19 +752,15 @@ def _load_plant(name_or_path, label: str | None = None) -> tuple[Plant, str, lis
 
 
 def _load_scene(name_or_path, label: str | None = None) -> tuple[Scene, str, list[str]]:
-    from ..studies.scenefile import is_move_scene
-
     text = label or (str(name_or_path) if name_or_path is not None else "paper-load-step")
-    if is_move_scene(name_or_path):
-        raise AppInputError(f"scene {text!r} is a move (cascade) scene; expected a load-step scene (tune it with "
-                            f"prsa-tune --scene {text})")
     with thread_warnings() as caught:
         try:
             scene = load_scene(name_or_path)
         except SceneError as exc:
             raise AppInputError(one_line(exc)) from None
-    if scene.is_profile:
-        raise AppInputError(f"scene {text!r} is a duty cycle ({scene.profile_source}); expected a load-step scene "
+    prob = problem(scene)
+    if not prob.takes("app"):  # a duty cycle or a move: tuned by prsa-tune
+        raise AppInputError(f"scene {text!r} is {prob.described}; expected a load-step scene "
                             f"(tune it with prsa-tune --scene {text})")
     return scene, text, _notes(caught)
 

@@ -128,7 +128,7 @@ def load_and_override(args, run: Run, plot: bool = False) -> tuple[Plant, Scene,
 def _cross_check_message(exc: SceneError, typed: dict[str, str], scene, changes: dict) -> str:
     """A scene field rejected after overrides: say it with the flags as typed."""
     msg = str(exc)
-    if msg.startswith("command line: duration") and ("duration" in typed or "step_time" in typed) and not scene.is_profile:
+    if msg.startswith("command line: duration") and ("duration" in typed or "step_time" in typed) and problem(scene).takes("step-time"):
         who = " and ".join(typed[k] for k in ("step_time", "duration") if k in typed)
         st = changes.get("step_time", scene.step_time)
         du = changes.get("duration", scene.duration)

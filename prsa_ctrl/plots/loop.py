@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import matplotlib
 import matplotlib.pyplot as plt
@@ -26,6 +26,7 @@ import numpy as np
 from .._lazy import module
 from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, rad_s_to_rpm
 from ..sim.metrics import margins_from_response
+from ..studies.scenekinds import problem
 from ..studies.responses import (FigureData, Landscape, binding_level, design_responses, duty_input, landscape,
                                  objective_value, report_responses, stable_design_responses)
 
@@ -373,7 +374,7 @@ def duty_cycle_plot(design, scene, k: int = 0, torque_limit: float | None = None
     design : Design
         Verified and predicted (:func:`prsa_ctrl.studies.autotune.verify`, :func:`~prsa_ctrl.studies.autotune.predict`).
     scene : Scene
-        A duty-cycle scene (``scene.is_profile``).
+        A duty-cycle scene (:class:`~prsa_ctrl.studies.scenekinds.DutyCycle`).
     k : int
         Record to show (index into ``scene.cases``).
     torque_limit : float, N m, optional
@@ -528,7 +529,7 @@ def duty_cycle_pairs_plot(pairs: Sequence[tuple], scene, k: int | None = None, a
         Baseline and its equal-Ms tuned comparison (``ActuatorTuning.comparisons``), verified
         on the duty cycle.
     scene : Scene
-        A duty-cycle scene (``scene.is_profile``).
+        A duty-cycle scene (:class:`~prsa_ctrl.studies.scenekinds.DutyCycle`).
     k : int or None
         Record (index into ``scene.cases``); ``None``: the binding record of each tuned design.
 
@@ -700,10 +701,7 @@ def step_response_plot(time, nonlinear, linear_time=None, linear=None, setpoint=
 
 
 def _mid_load_text(scene, k: int) -> str:
-    if getattr(scene, "is_profile", False):
-        return f"{rad_s_to_rpm(scene.setpoint_rad_s):.0f} rpm, {scene.initial_load:g} N (start of the {scene.name} duty cycle)"
-    f0, f1 = scene.initial_load, scene.final_loads[k]
-    return f"{rad_s_to_rpm(scene.setpoint_rad_s):.0f} rpm, {0.5 * (f0 + f1):g} N (mid load of {f0:g} -> {f1:g} N)"
+    return problem(scene).operating_text(k)
 
 
 def _save_all(figs: dict, directory: Path) -> list[Path]:
@@ -733,11 +731,24 @@ def _frequency_figures(data: FigureData, unit: str = DEFAULT_FREQUENCY_UNIT) -> 
 
 def _time_figures(data: FigureData, k: int | None) -> dict:
     """The verified design's duty-cycle records, or its load step(s) (``k``: level, None all)."""
+    return _panel(data, "time_figures")(data, k)
+
+
+def _step_time_figures(data: FigureData, k: int | None) -> dict:
+    return {"load_step": load_step_plot(data.design, data.scene, k=k, torque_limit=data.plant.torque_limit)[0]}
+
+
+def _duty_time_figures(data: FigureData, k: int | None) -> dict:
     sc, d = data.scene, data.design
-    if sc.is_profile:
-        return {"duty_cycle" + ("" if len(sc.cases) == 1 else "_" + case.split()[0]):
-                duty_cycle_plot(d, sc, i, torque_limit=data.plant.torque_limit)[0] for i, case in enumerate(sc.cases)}
-    return {"load_step": load_step_plot(d, sc, k=k, torque_limit=data.plant.torque_limit)[0]}
+    return {"duty_cycle" + ("" if len(sc.cases) == 1 else "_" + case.split()[0]):
+            duty_cycle_plot(d, sc, i, torque_limit=data.plant.torque_limit)[0] for i, case in enumerate(sc.cases)}
+
+
+def _baselines_figure(data: FigureData) -> object:
+    """The baselines against the tuned designs at equal Ms (the pairs), or all on one axis."""
+    pairs, sc = list(data.pairs), data.scene
+    return (_panel(data, "pairs")(pairs, sc)[0] if pairs
+            else _panel(data, "comparison")([data.design, *data.baselines], sc, k=data.level)[0])
 
 
 def draw_report_figures(data: FigureData, frequency_unit: str = DEFAULT_FREQUENCY_UNIT) -> dict:
@@ -749,13 +760,7 @@ def draw_report_figures(data: FigureData, frequency_unit: str = DEFAULT_FREQUENC
     figs["landscape"] = tuning_landscape(data.landscape, sc.objective, sc.ms_max, best.pid,
                                          [(b.name, b.pid) for b in data.baselines], mt_max=sc.mt_max)[0]
     figs.update(_time_figures(data, None if len(sc.final_loads) > 1 else 0))
-    pairs = list(data.pairs)
-    if sc.is_profile:
-        figs["baselines"] = (duty_cycle_pairs_plot(pairs, sc)[0] if pairs
-                             else duty_cycle_comparison([best, *data.baselines], sc, k=data.level)[0])
-    else:
-        figs["baselines"] = (baseline_pairs_plot(pairs, sc)[0] if pairs
-                             else load_step_comparison([best, *data.baselines], sc, k=data.level)[0])
+    figs["baselines"] = _baselines_figure(data)
     if data.contact is not None:
         c = data.contact
         fig, axs = contact_force_plot(c.time_s, c.outputs, static=c.static_n)
@@ -867,3 +872,22 @@ def write_design_plots(plant, scene, pid, directory: Path, frequency_unit: str =
     """
     _unit_factor(frequency_unit)  # before any work
     return _save_all(draw_design_figures(stable_design_responses(plant, scene, pid), frequency_unit), directory)
+
+
+class _Panels(NamedTuple):
+    """A scene kind's time-response figures (:attr:`~prsa_ctrl.studies.kindruns.StepRuns.plot_panels`),
+    by the names of this module's functions (looked up when drawn)."""
+
+    time_figures: str  #: (FigureData, level or None) -> {name: Figure}
+    pairs: str  #: the baselines against their equal-Ms tuned designs
+    comparison: str  #: every design on one axis
+
+
+#: Figure set per kind (``problem(scene).plot_panels``): load steps or a duty cycle's records.
+PANELS = {"load-step": _Panels("_step_time_figures", "baseline_pairs_plot", "load_step_comparison"),
+          "duty-cycle": _Panels("_duty_time_figures", "duty_cycle_pairs_plot", "duty_cycle_comparison")}
+
+
+def _panel(data: FigureData, role: str) -> Callable:
+    """The function drawing ``role`` (a field of :class:`_Panels`) for the kind of ``data.scene``."""
+    return globals()[getattr(PANELS[problem(data.scene).plot_panels], role)]

@@ -2,14 +2,19 @@
 verify the best candidates and the baselines on the nonlinear simulator, and report predicted
 against verified metrics.
 
-A duty-cycle scene (:attr:`Scene.is_profile`) is tuned on its actual profile: the sampled loop
+A duty-cycle scene (:class:`~prsa_ctrl.studies.scenekinds.DutyCycle`) is tuned on its actual profile: the sampled loop
 model takes the load as its mean over every controller sample and the setpoint as the
 controller reads it at every sample (:func:`prsa_ctrl.tuning.builders.drive_loop`), and the
 verification runs the nonlinear simulator on the same profile. A 2-DOF setpoint weight
 ``b != 1`` is verified as the equivalent 1-DOF loop behind the reference prefilter
 ``F(z) = (b kp (1 - z^-1) + Ts ki z^-1) / (kp (1 - z^-1) + Ts ki z^-1)`` (identical while the
 torque is not saturated; the simulator's back-calculation anti-windup then acts on the
-prefiltered error)."""
+prefiltered error).
+
+The public functions (:func:`predict`, :func:`verify`, :func:`checked`, ...) take a
+:class:`~prsa_ctrl.studies.scene.Scene`; :func:`tune_actuator` reads it once into the internal
+:class:`~prsa_ctrl.studies.sceneloops.LoopSpec` and runs its stages on that. What differs
+between the kinds is asked of the spec's problem (:mod:`prsa_ctrl.studies.kindruns`)."""
 
 from __future__ import annotations
 
@@ -22,20 +27,19 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..drive.estimator import design_kf
 from ..drive.pid import PID
 from ..options import PEAK_BOUND_RANGE, RAD_S_PER_RPM
 from ..plant.plantfile import Plant
 from ..results import is_ok
-from ..sim.metrics import LoadStepMetrics, Margins, ProfileMetrics, load_step_metrics, profile_metrics, relative_difference
+from ..sim.metrics import LoadStepMetrics, Margins, ProfileMetrics, relative_difference
 from ..sim.integrators import SimSettings
-from ..sim.signals import PiecewiseLinear
-from ..sim.engine import fast_settings, initial_state, run
+from ..sim.engine import fast_settings
 from ..tuning.loops import LoopModel
 from ..tuning.tuner import Tuner
 from .paper import default_pid
 from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
 from .scenefilters import filter_rows
+from .kindruns import setpoint_prefilter, speed_kind
 from .sceneloops import LoopSpec, actuator_loops, duty_record, linear_fidelity, loop_spec
 
 
@@ -202,52 +206,7 @@ class ActuatorTuning:
         }
 
 
-def _aggregate(values: list[float], scene: Scene | LoopSpec) -> float:
-    if scene.aggregate == "worst":
-        return float(max(values))
-    if scene.is_profile and scene.goal == "mix":
-        return float((1.0 - scene.setpoint_share) * values[0] + scene.setpoint_share * values[1])
-    return float(np.sum(values))
-
-
-def setpoint_prefilter(r: np.ndarray, pid: PID, ts: float, b: float) -> np.ndarray:
-    """Reference prefilter that makes the 1-DOF sampled PI(D) act like the 2-DOF law
-    ``u = kp (b r - y) + I``, ``I += Ts ki (r - y)`` (derivative on the measurement):
-    ``F(z) = (b kp (1 - z^-1) + Ts ki z^-1) / (kp (1 - z^-1) + Ts ki z^-1)``, unity at DC.
-
-    Parameters
-    ----------
-    r : array, rad/s
-        Setpoint read at each sample (from a steady start, ``r[0]`` held before).
-    pid : PID
-    ts : float, s
-    b : float
-        Setpoint weight in [0, 1].
-
-    Returns
-    -------
-    array, rad/s
-        The prefiltered setpoint, sample by sample.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> rf = setpoint_prefilter(np.r_[0.0, np.ones(400)], PID(0.1, 10.0), 2.5e-4, 0.5)
-    >>> float(rf[1]), round(float(rf[-1]), 3)
-    (0.5, 1.0)
-    """
-    r = np.asarray(r, float)
-    if b == 1.0 or pid.kp <= 0:
-        return r.copy()
-    kp, kit = pid.kp, ts * pid.ki
-    rf = np.empty_like(r)
-    rf[0] = r[0]
-    for k in range(1, r.size):
-        rf[k] = b * r[k] + ((kit - kp * b) * r[k - 1] - (kit - kp) * rf[k - 1]) / kp
-    return rf
-
-
-def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene | LoopSpec) -> Design:
+def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene) -> Design:
     """The design with its linear load-step (or duty-cycle) metrics, on the same footing as
     the verification (a new :class:`Design`; the argument is left as it is).
 
@@ -257,8 +216,7 @@ def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene |
     loops : list of LoopModel
         The scene's loop models (:func:`actuator_loops`), one per load level or record.
     plant : Plant
-    scene : Scene or LoopSpec
-        The scene, or its spec (:func:`~prsa_ctrl.studies.sceneloops.loop_spec`).
+    scene : Scene
 
     Returns
     -------
@@ -270,7 +228,7 @@ def predict(design: Design, loops: list[LoopModel], plant: Plant, scene: Scene |
     return predict_all([design], loops, plant, scene)[0]
 
 
-def predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, scene: Scene | LoopSpec) -> list[Design]:
+def predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, scene: Scene) -> list[Design]:
     """:func:`predict` of several designs on the same loop models: the linear runs and metrics
     of every design, then their objectives (new designs, in the same order).
 
@@ -280,44 +238,29 @@ def predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, sce
     loops : list of LoopModel
         The scene's loop models (:func:`actuator_loops`), one per load level or record.
     plant : Plant
-    scene : Scene or LoopSpec
+    scene : Scene
 
     Returns
     -------
     list of Design
     """
-    spec = loop_spec(plant, scene)
-    # The linear runs of every design (the loop models), then their metrics, then the objectives.
-    w0, tau_ss = spec.setpoint_rad_s, spec.steady_torque_n_m
+    return _predict_all(designs, loops, plant, loop_spec(plant, scene))
+
+
+def _predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, spec: LoopSpec) -> list[Design]:
+    """:func:`predict_all` on the scene's spec: the linear runs of every design (the loop
+    models), then their metrics (the problem's), then the objectives."""
+    prob = spec.problem
     traj = [[lp.trajectory(d.pid.gains) for lp in loops] for d in designs]
-    starts = []  # (speed rad/s, torque N m) before the step
-    for d in designs:
-        if spec.is_profile or d.pid.ki != 0:
-            starts.append((w0, tau_ss))
-        else:  # P-only: the loop settles below the setpoint before the step too
-            op, _ = initial_state(plant, spec.linear_fidelity, w0, spec.initial_load, d.pid, 0.0, 0,
-                                  observer_ff=d.estimator == "kf")
-            starts.append((op.omega_nut, op.torque))
-    metrics = []
-    for trs, (w_pre, tau0) in zip(traj, starts):
-        if spec.is_profile:
-            metrics.append([profile_metrics(rec["t"][: lp.n_steps], rec["setpoint_at"][: lp.n_steps] - tr["error"],
-                                            rec["setpoint_at"][: lp.n_steps], tau0 + tr["motor_torque"],
-                                            plant.torque_limit, rec["load_steps"], rec["breaks"])
-                            for rec, lp, tr in zip(spec.records, loops, trs)])
-            continue
-        metrics.append([load_step_metrics(spec.step_time + lp.h * np.arange(-1, lp.n_steps),
-                                          w_pre + np.concatenate([[0.0], -tr["error"]]), w0, spec.step_time,
-                                          tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))]),
-                                          plant.torque_limit, direction=1 if f1 >= spec.initial_load else -1)
-                        for f1, lp, tr in zip(spec.final_loads, loops, trs)])
+    starts = [prob.start(plant, spec, d) for d in designs]  # (speed rad/s, torque N m) before the event
+    metrics = [prob.predicted_metrics(plant, spec, loops, trs, st) for trs, st in zip(traj, starts)]
     return [replace(d, predicted=tuple(m), predicted_error=tuple(tr["error"] for tr in trs), predicted_h=loops[0].h,
                     predicted_start_speed=w_pre,
-                    objective_predicted=_aggregate([getattr(x, spec.objective) for x in m], spec))
+                    objective_predicted=prob.aggregate([getattr(x, spec.objective) for x in m], spec))
             for d, m, trs, (w_pre, _) in zip(designs, metrics, traj, starts)]
 
 
-def health_flags(design: Design, plant: Plant, scene: Scene | LoopSpec) -> list[str]:
+def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
     """Health checks of a verified design: what its nonlinear runs did that the report must
     not hide. A flagged design is never the best and never beats a baseline.
 
@@ -345,11 +288,12 @@ def health_flags(design: Design, plant: Plant, scene: Scene | LoopSpec) -> list[
         One sentence per failed check (empty when healthy).
     """
     # The report's one definition of the gap: (predicted - verified) / |verified|.
-    return _flags(design, plant, scene, relative_difference(design.objective_predicted, design.objective_verified))
+    return _flags(design, plant, loop_spec(plant, scene),
+                  relative_difference(design.objective_predicted, design.objective_verified))
 
 
-def _flags(design: Design, plant: Plant, scene: Scene | LoopSpec, diff: float | None) -> list[str]:
-    """:func:`health_flags` with the relative prediction gap ``diff`` given."""
+def _flags(design: Design, plant: Plant, scene: LoopSpec, diff: float | None) -> list[str]:
+    """:func:`health_flags` on the scene's spec with the relative prediction gap ``diff`` given."""
     flags = []
     if not design.tuner_status.startswith("optimal"):
         flags.append(f"the tuner did not converge ({design.tuner_status})")
@@ -378,7 +322,7 @@ def _flags(design: Design, plant: Plant, scene: Scene | LoopSpec, diff: float | 
     return flags
 
 
-def integral_warning(design: Design, scene: Scene | LoopSpec) -> str | None:
+def integral_warning(design: Design, scene: Scene) -> str | None:
     """A warning (not a flag) when a duty-cycle record cannot inform the integral gain: the
     integral time ``Ti = kp / ki`` is longer than the record (or ``ki = 0``), so the
     objective barely depends on ``ki`` and the tuner's value is arbitrary. Typical for
@@ -389,26 +333,13 @@ def integral_warning(design: Design, scene: Scene | LoopSpec) -> str | None:
     It is a warning rather than a health flag: the design does what its objective asks and the
     nonlinear verification agrees with the prediction (flags mark designs whose verified runs
     contradict the design); what is missing is information in the scene, which the message
-    says how to add.
+    says how to add. Asked of the scene's problem (load steps always inform ``ki``).
 
     Returns
     -------
     str or None
     """
-    if not scene.is_profile or scene.controller not in ("pi", "pid"):
-        return None
-    kp, ki = design.pid.kp, design.pid.ki
-    record = scene.duration
-    ti = kp / ki if ki > 0 else math.inf
-    if ti <= record:
-        return None
-    ti_text = f"Ti = {ti:.3g} s" if math.isfinite(ti) else "ki = 0"
-    if scene.goal == "setpoint":
-        return (f"the setpoint-only goal does not inform the integral gain ({ti_text} > record {record:g} s): the "
-                "objective hardly changes with ki, so this design holds a load change only slowly; use goal = "
-                "\"mix\" with a load profile (or a load-step scene) to tune ki for load rejection")
-    return (f"the integral time is longer than the record ({ti_text} > {record:g} s): the record does not show the "
-            "integral's effect and does not inform ki; lengthen the record or add load changes")
+    return speed_kind(scene).integral_warning(design)
 
 
 #: The fixed-step settings :func:`verify_settings` offers where their measured error is inside
@@ -436,12 +367,17 @@ def verify_settings(scene: Scene, plant: Plant | None = None, pid: PID | None = 
     differs from a 1e-10 reference by ~1e-3 rad/s on the paper step (0.03 % of the peak drop),
     at half the cost of 1e-8.
     """
-    tol = min(max(1e-4 * scene.accuracy, 1e-10), 1e-5)
-    adaptive = SimSettings(rtol=tol, atol=tol)
+    adaptive = _adaptive_settings(scene.accuracy)
     if plant is None:
         return adaptive
     fast, _ = fast_verify_settings(scene, plant, pid)
     return fast or adaptive
+
+
+def _adaptive_settings(accuracy: float) -> SimSettings:
+    """The adaptive integrator at ``1e-4 x accuracy`` (clipped to [1e-10, 1e-5])."""
+    tol = min(max(1e-4 * accuracy, 1e-10), 1e-5)
+    return SimSettings(rtol=tol, atol=tol)
 
 
 def fast_verify_settings(scene: Scene, plant: Plant, pid: PID | None = None) -> tuple[SimSettings | None, dict]:
@@ -449,7 +385,7 @@ def fast_verify_settings(scene: Scene, plant: Plant, pid: PID | None = None) -> 
     the scene's accuracy, else ``None``; with the measurement (``relative`` error, or a
     ``reason`` where the fast path does not apply: continuous or duty-cycle scenes)."""
     scene, _ = choose_fidelity(scene)
-    if not scene.discrete or scene.is_profile:
+    if not scene.discrete or not speed_kind(scene).takes("fast-verify"):
         return None, {"reason": "fixed-step fast path: sampled load-step scenes only"}
     pre = min(scene.step_time, _PRE_SAMPLES * plant.sample_time_s)
     kw = dict(setpoint=scene.setpoint_rad_s, load=[(0.0, scene.initial_load), (pre, scene.final_loads[0])],
@@ -458,7 +394,7 @@ def fast_verify_settings(scene: Scene, plant: Plant, pid: PID | None = None) -> 
     return fast_settings(plant, scene.accuracy, FAST_VERIFY, reference=SimSettings(rtol=1e-9, atol=1e-9), **kw)
 
 
-def verify(design: Design, plant: Plant, scene: Scene | LoopSpec, seed: int = 0,
+def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0,
            settings: SimSettings | None = None) -> Design:
     """Nonlinear load-step runs of a design (one per final load; a duty cycle: one per record).
 
@@ -469,9 +405,8 @@ def verify(design: Design, plant: Plant, scene: Scene | LoopSpec, seed: int = 0,
     ----------
     design : Design
     plant : Plant
-    scene : Scene or LoopSpec
-        The scene, or the spec (:func:`~prsa_ctrl.studies.sceneloops.loop_spec`) of a scene
-        whose fidelity is resolved (:func:`~prsa_ctrl.studies.scene.choose_fidelity`).
+    scene : Scene
+        Its fidelity is resolved here (:func:`~prsa_ctrl.studies.scene.choose_fidelity`).
     seed : int
         Seed of the per-roller errors (multi-roller fidelity).
     settings : SimSettings, optional
@@ -488,105 +423,59 @@ def verify(design: Design, plant: Plant, scene: Scene | LoopSpec, seed: int = 0,
     return _with_runs([design], _simulate([design], plant, spec, seed, settings), plant, spec)[0]
 
 
-def _verification_spec(plant: Plant, scene: Scene | LoopSpec) -> LoopSpec:
-    """The spec the verification reads: a scene's with its fidelity resolved."""
-    if not isinstance(scene, LoopSpec):
-        scene, _ = choose_fidelity(scene)
-    elif scene.fidelity == "auto":
-        raise ValueError("scene: a LoopSpec with fidelity 'auto'; expected the spec of a scene whose fidelity is "
-                         "resolved (prsa_ctrl.studies.choose_fidelity)")
-    return loop_spec(plant, scene)
+def _verification_spec(plant: Plant, scene: Scene) -> LoopSpec:
+    """The spec the verification reads: the scene's with its fidelity resolved."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene = {type(scene).__name__}; expected a prsa_ctrl Scene (prsa_ctrl.load_scene)")
+    return loop_spec(plant, choose_fidelity(scene)[0])
 
 
 def _simulate(designs: list[Design], plant: Plant, spec: LoopSpec, seed: int = 0,
               settings: SimSettings | None = None) -> list[tuple]:
     """The nonlinear runs of :func:`verify`, for every design: ``(runs, estimation)`` with one
-    ``(time s, {output: array})`` per level and the Kalman filter's speed RMS errors (rad/s).
-
-    A load-step scene: one run per final load, starting ``_PRE_SAMPLES`` samples before the step
-    in equilibrium. A duty cycle: one sampled run per record, over the whole record, with the
-    scene's profiles (a setpoint weight ``b != 1`` through :func:`setpoint_prefilter`).
-    """
-    settings = verify_settings(spec) if settings is None else settings
-    ts = plant.sample_time_s
-    out = []
-    for design in designs:
-        runs, estimation = [], []
-        if spec.is_profile:
-            for case, rec in zip(spec.cases, spec.records):
-                setpoint = rec["setpoint"]
-                if case == "setpoint profile" and spec.setpoint_weight != 1.0:
-                    rf = setpoint_prefilter(rec["setpoint_at"], design.pid, ts, spec.setpoint_weight)
-                    n_pts = int(np.searchsorted(rec["t"], spec.duration - 1e-9 * ts))  # points before the end
-                    setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
-                r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=spec.duration,
-                        controller=design.pid, fidelity=spec.fidelity, settings=settings, seed=seed,
-                        filters=spec.filters or None)
-                t = np.asarray(r.time)
-                y = dict(zip(r.output_labels, np.asarray(r.outputs)))
-                y["setpoint"] = rec["setpoint_at"][: t.size]
-                runs.append((t, y))
-            out.append((runs, estimation))
-            continue
-        pre = min(spec.step_time, _PRE_SAMPLES * ts) if spec.discrete else min(spec.step_time, 1e-3)
-        offset = spec.step_time - pre
-        for f1 in spec.final_loads:
-            kw = dict(setpoint=spec.setpoint_rad_s, load=[(0.0, spec.initial_load), (pre, f1)],
-                      duration=pre + spec.duration - spec.step_time, controller=design.pid,
-                      fidelity=spec.fidelity, settings=settings, seed=seed, filters=spec.filters or None)
-            measurement = "encoder"
-            kf = None
-            if design.estimator == "kf":
-                measurement, kf = "kf", design_kf(plant, spec.load_change_time_s)
-            r = run(plant, discrete=spec.discrete, measurement=measurement, kf=kf, **kw)
-            if design.estimator == "kf":
-                w = r.output("nut_speed")
-                estimation.append({
-                    "kf_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_measured") - w) ** 2))),
-                    "fd_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_fd") - w) ** 2))),
-                })
-            t = np.asarray(r.time) + offset
-            runs.append((t, dict(zip(r.output_labels, np.asarray(r.outputs)))))
-        out.append((runs, estimation))
-    return out
+    ``(time s, {output: array})`` per level and the Kalman filter's speed RMS errors (rad/s)
+    (the problem's runs: load steps from ``_PRE_SAMPLES`` samples before the step, or the duty
+    cycle's records)."""
+    if spec.fidelity == "auto":
+        raise ValueError("scene: a LoopSpec with fidelity 'auto'; expected the spec of a scene whose fidelity is "
+                         "resolved (prsa_ctrl.studies.choose_fidelity)")
+    settings = _adaptive_settings(spec.accuracy) if settings is None else settings
+    return [spec.problem.simulate(design, plant, spec, settings, seed, _PRE_SAMPLES) for design in designs]
 
 
 def _with_runs(designs: list[Design], simulated: list[tuple], plant: Plant, spec: LoopSpec) -> list[Design]:
     """The designs with their verified runs (:func:`_simulate`), the metrics of every run, then
     the objectives (new designs)."""
-    metrics = []
-    for runs, _ in simulated:
-        if spec.is_profile:
-            metrics.append([profile_metrics(t, y["nut_speed"], y["setpoint"], y["motor_torque"], plant.torque_limit,
-                                            rec["load_steps"], rec["breaks"])
-                            for (t, y), rec in zip(runs, spec.records)])
-        else:
-            metrics.append([load_step_metrics(t, y["nut_speed"], spec.setpoint_rad_s, spec.step_time, y["motor_torque"],
-                                              plant.torque_limit, direction=1 if f1 >= spec.initial_load else -1)
-                            for (t, y), f1 in zip(runs, spec.final_loads)])
+    prob = spec.problem
+    metrics = [prob.verified_metrics(plant, spec, runs) for runs, _ in simulated]
     return [replace(d, verified=tuple(m), verified_runs=tuple(runs), estimation=tuple(estimation),
-                    objective_verified=_aggregate([getattr(x, spec.objective) for x in m], spec))
+                    objective_verified=prob.aggregate([getattr(x, spec.objective) for x in m], spec))
             for d, m, (runs, estimation) in zip(designs, metrics, simulated)]
 
 
-def checked(design: Design, plant: Plant, scene: Scene | LoopSpec) -> Design:
+def checked(design: Design, plant: Plant, scene: Scene) -> Design:
     """The verified design with its health ``flags`` (:func:`health_flags`) and its
     ``warnings`` (:func:`prediction_warnings`), as a new design."""
     return checked_all([design], plant, scene)[0]
 
 
-def checked_all(designs: list[Design], plant: Plant, scene: Scene | LoopSpec) -> list[Design]:
+def checked_all(designs: list[Design], plant: Plant, scene: Scene) -> list[Design]:
     """:func:`checked` of several verified designs (new designs, in the same order): the gap
     between predicted and verified objective of each, then its flags and warnings."""
+    return _checked_all(designs, plant, loop_spec(plant, scene))
+
+
+def _checked_all(designs: list[Design], plant: Plant, spec: LoopSpec) -> list[Design]:
+    """:func:`checked_all` on the scene's spec."""
     diffs = [relative_difference(d.objective_predicted, d.objective_verified) for d in designs]
     out = []
     for d, diff in zip(designs, diffs):
-        d = replace(d, flags=tuple(_flags(d, plant, scene, diff)))
-        out.append(replace(d, warnings=tuple(_warnings(d, scene, diff))))
+        d = replace(d, flags=tuple(_flags(d, plant, spec, diff)))
+        out.append(replace(d, warnings=tuple(_warnings(d, spec.objective, diff))))
     return out
 
 
-def prediction_warnings(design: Design, scene: Scene | LoopSpec) -> list[str]:
+def prediction_warnings(design: Design, scene: Scene) -> list[str]:
     """A warning when the verified objective differs from the predicted one by more than
     ``PREDICTION_TOLERANCE`` (relative) but the gap is not already a health flag.
 
@@ -595,15 +484,15 @@ def prediction_warnings(design: Design, scene: Scene | LoopSpec) -> list[str]:
     list of str
         Empty, or one sentence (without the design's name).
     """
-    return _warnings(design, scene, relative_difference(design.objective_predicted, design.objective_verified))
+    return _warnings(design, scene.objective, relative_difference(design.objective_predicted, design.objective_verified))
 
 
-def _warnings(design: Design, scene: Scene | LoopSpec, diff: float | None) -> list[str]:
-    """:func:`prediction_warnings` with the relative prediction gap ``diff`` given."""
+def _warnings(design: Design, objective: str, diff: float | None) -> list[str]:
+    """:func:`prediction_warnings` with the scene's objective and the relative prediction gap ``diff`` given."""
     departed = any("departs from the linear prediction" in f for f in design.flags)  # said once, as a flag
     if departed or not design.objective_verified > 0 or diff is None or not abs(diff) > PREDICTION_TOLERANCE:
         return []
-    return [f"predicted {scene.objective.upper()} {design.objective_predicted:.4g} differs from verified "
+    return [f"predicted {objective.upper()} {design.objective_predicted:.4g} differs from verified "
             f"{design.objective_verified:.4g}: difference {100 * diff:+.1f} %"]
 
 
@@ -621,7 +510,7 @@ def default_workers() -> int:
     return int(os.environ.get("PRSA_WORKERS", "0")) or min(os.cpu_count() or 1, 4)
 
 
-def verify_all(designs: list[Design], plant: Plant, scene: Scene | LoopSpec, workers: int | None = None) -> list[Design]:
+def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int | None = None) -> list[Design]:
     """:func:`verify` of several designs, in parallel worker processes where the machine has
     cores; the verified designs in the same order (the arguments are not changed).
 
@@ -630,7 +519,13 @@ def verify_all(designs: list[Design], plant: Plant, scene: Scene | LoopSpec, wor
     """
     if not designs:
         return []
-    spec = _verification_spec(plant, scene)
+    return _verify_all(designs, plant, _verification_spec(plant, scene), workers)
+
+
+def _verify_all(designs: list[Design], plant: Plant, spec: LoopSpec, workers: int | None = None) -> list[Design]:
+    """:func:`verify_all` on the spec of a scene whose fidelity is resolved."""
+    if not designs:
+        return []
     simulated = _simulate_all(designs, plant, spec, default_workers() if workers is None else workers)
     return _with_runs(designs, simulated, plant, spec)
 
@@ -651,7 +546,7 @@ def _simulate_all(designs: list[Design], plant: Plant, spec: LoopSpec, workers: 
         _POOL_JOB = None
 
 
-def baseline_designs(plant: Plant, scene: Scene | LoopSpec, loops: list[LoopModel]) -> list[Design]:
+def baseline_designs(plant: Plant, scene: Scene, loops: list[LoopModel]) -> list[Design]:
     """Reference designs every report carries.
 
     Parameters
@@ -670,7 +565,12 @@ def baseline_designs(plant: Plant, scene: Scene | LoopSpec, loops: list[LoopMode
       corner at a quarter of the crossover.
     - ``rule of thumb``: crossover a decade below the current loop (see ``paper.default_pid``).
     """
-    lp = loops[0]
+    return _baselines(plant, loop_spec(plant, scene), loops)
+
+
+def _baselines(plant: Plant, spec: LoopSpec, loops: list[LoopModel]) -> list[Design]:
+    """:func:`baseline_designs` on the scene's spec."""
+    scene, lp = spec, loops[0]
     ref = default_pid(plant)
     designs = []
     ki_small = ref.ki / 10.0
@@ -679,7 +579,7 @@ def baseline_designs(plant: Plant, scene: Scene | LoopSpec, loops: list[LoopMode
         g = (kp, ki_small, 0.0)
         if not all(l.is_stable(g) for l in loops) or lp.peak_sensitivity(g) > 2.0:
             continue
-        val = _aggregate([l.objective(g, scene.objective) for l in loops], scene)
+        val = spec.problem.aggregate([l.objective(g, spec.objective) for l in loops], spec)
         if best is None or val < best[1]:
             best = (kp, val)
     if best is not None:
@@ -756,16 +656,17 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
     t0 = time.perf_counter()
     # Read the scene once: everything below reads the spec, the tuning layer gets its numbers.
     scene, fidelity_reason, spec = resolve_scene(plant, scene) if resolved is None else resolved
-    loops = actuator_loops(plant, spec)
+    loops = spec.loop_models(plant)
     # Baselines use the drive's standard speed measurement; with an estimator in the scene the
     # PI tuned without it is a baseline too (the reference for what the estimator buys).
-    plain = loops if spec.estimator == "none" else actuator_loops(plant, spec, estimator="none")
+    plain = loops if spec.estimator == "none" else spec.loop_models(plant, estimator="none")
     timing["linearize"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
     common = dict(objective=spec.objective, controller=spec.controller, worst_case=spec.aggregate == "worst")
-    if spec.is_profile and spec.goal == "mix":
-        common["weights"] = [1.0 - spec.setpoint_share, spec.setpoint_share]
+    weights = spec.problem.tuner_weights(spec)
+    if weights is not None:
+        common["weights"] = weights
     tuner = Tuner(loops, **common)  # one scan grid and NLP for every Ms level
     runs: list[dict] = []
     suffix = (" + KF" if spec.estimator == "kf" else "") + (" + load FF" if spec.feedforward else "")
@@ -781,7 +682,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
                               tuner_status=res.status))
         return out
 
-    baselines = baseline_designs(plant, spec, plain)
+    baselines = _baselines(plant, spec, plain)
     if spec.estimator != "none":
         res = Tuner(plain, **common).tune(ms_max=spec.ms_max, mt_max=spec.mt_max, mks_max=spec.mks_max)
         baselines.insert(0, Design(f"tuned PI alone (Ms <= {spec.ms_max:.3g})", res.pid, res.margins[0]))
@@ -792,11 +693,11 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
     hedges = [1 + (spec.ms_max - 1) * f for f in (0.85, 0.7, 0.55, 0.4)]
     ms_levels += hedges[: max(0, spec.candidates - len(ms_levels))]
     candidates = tuned(ms_levels)
-    candidates, baselines = predict_all(candidates, loops, plant, spec), predict_all(baselines, plain, plant, spec)
+    candidates, baselines = _predict_all(candidates, loops, plant, spec), _predict_all(baselines, plain, plant, spec)
     timing["tune"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    done = checked_all(verify_all(candidates + baselines, plant, spec, workers), plant, spec)
+    done = _checked_all(_verify_all(candidates + baselines, plant, spec, workers), plant, spec)
     candidates, baselines = done[: len(candidates)], done[len(candidates):]
     timing["verify"] = time.perf_counter() - t2
     best = _best(candidates)
@@ -811,11 +712,11 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
     # compared with the design at the range's top: still "equal or better Ms")
     unsettled = [b for b in baselines if ours_for[id(b)] is None]
     extra = dict(zip((id(b) for b in unsettled),
-                     predict_all(tuned([min(b.margins.ms, PEAK_BOUND_RANGE[1] * (1 - 1e-9)) for b in unsettled]),
+                     _predict_all(tuned([min(b.margins.ms, PEAK_BOUND_RANGE[1] * (1 - 1e-9)) for b in unsettled]),
                                  loops, plant, spec)))
     t4 = time.perf_counter()
     timing["tune"] += t4 - t3
-    extra = dict(zip(extra, checked_all(verify_all(list(extra.values()), plant, spec, workers), plant, spec)))
+    extra = dict(zip(extra, _checked_all(_verify_all(list(extra.values()), plant, spec, workers), plant, spec)))
     timing["verify"] += time.perf_counter() - t4
     comparisons = []
     for b in baselines:
@@ -843,7 +744,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
     for d in candidates + baselines + list(extra.values()):
         for f in d.flags:
             warnings_out.append(f"{d.name}: {f}")
-    w_int = integral_warning(best, spec)
+    w_int = spec.problem.integral_warning(best)
     if w_int:
         warnings_out.append(f"{best.name}: {w_int}")
     for c in comparisons:

@@ -28,6 +28,7 @@ from ..plant.uncertainty import apply
 from .autotune import actuator_loops
 from .mcjob import METRICS, Job, draw_sample, evaluate, plant_doc, prepared
 from .scene import choose_fidelity
+from .kindruns import speed_kind
 
 __all__ = ["batch_plan", "batch_settings", "batched", "check_indices", "acting_keys", "evaluate_batch", "BATCH_CHECK_SAMPLES",
            "BATCH_REFINEMENTS", "BATCH_SIZE"]
@@ -62,7 +63,7 @@ def batch_plan(plant, scene, unc, designs, spec) -> str | None:
     from ..sim.batch import batch_supported
 
     sc, _ = choose_fidelity(scene)
-    if not sc.discrete or sc.is_profile:
+    if not sc.discrete or not speed_kind(sc).takes("batched"):
         return "batched path: sampled load-step scenes only"
     if getattr(sc, "filters", ()):
         return "batched path: scenes without loop filters"

@@ -25,6 +25,7 @@ from ..sim.signals import PiecewiseLinear, normalise_profile
 from ..sim.engine import simulate
 from .autotune import ActuatorTuning, Design, actuator_loops, linear_fidelity, predict, verify
 from .scene import Scene, choose_fidelity
+from .kindruns import speed_kind
 
 control = module("control")
 
@@ -334,7 +335,7 @@ def report_responses(report: ActuatorTuning) -> FigureData:
     lp = report.loops[kb] if len(report.loops) > kb else report.loops[0]
     g = best.pid.gains
     contact = None
-    if sc.fidelity in ("compliant", "multi-roller") and not sc.is_profile:
+    if sc.fidelity in ("compliant", "multi-roller") and speed_kind(sc).takes("contact-run"):
         contact = _contact_run(plant, sc, best.pid, kb)
     land = landscape(list(report.loops), sc.objective, [best.pid, *(b.pid for b in report.baselines)],
                      aggregate=sc.aggregate)

@@ -27,6 +27,7 @@ from typing import Any, Callable, ClassVar, Mapping, Sequence
 from ..errors import SceneError, UsageError
 from ..textsafe import quote
 from ..results import json_safe
+from .kindruns import ProfileRuns, StepRuns
 from .movescene import MoveScene
 from .scene import Scene
 
@@ -268,9 +269,10 @@ class SpeedReport:
 
 
 @dataclass(frozen=True)
-class LoadStep:
+class LoadStep(StepRuns):
     """A speed-loop problem on load steps (``[operating] final_loads_n``), with the drive's
-    speed measurement or a Kalman filter (``[estimator]``).
+    speed measurement or a Kalman filter (``[estimator]``). What its runs do (loop models,
+    linear and nonlinear runs, metrics, the studies it takes) is :class:`~prsa_ctrl.studies.kindruns.StepRuns`'.
 
     Attributes
     ----------
@@ -281,11 +283,6 @@ class LoadStep:
     #: Whether a command announces "linearise, tune, verify" before the run.
     announces: ClassVar[bool] = True
     scene: Scene
-
-    @classmethod
-    def accepts(cls, scene: Any) -> bool:
-        """Whether a loaded scene is a problem of this kind."""
-        return isinstance(scene, Scene) and not scene.is_profile
 
     def __post_init__(self) -> None:
         if not type(self).accepts(self.scene):
@@ -395,9 +392,10 @@ class LoadStep:
 
 
 @dataclass(frozen=True)
-class DutyCycle(LoadStep):
+class DutyCycle(ProfileRuns, LoadStep):
     """A speed-loop problem on a duty cycle: a load and/or setpoint profile (``load_profile_n``,
-    ``setpoint_profile_rpm``, a CSV trace); tuned on the whole record, no robust study.
+    ``setpoint_profile_rpm``, a CSV trace); tuned on the whole record, no robust study. What its
+    runs do is :class:`~prsa_ctrl.studies.kindruns.ProfileRuns`'.
 
     Attributes
     ----------
@@ -405,10 +403,6 @@ class DutyCycle(LoadStep):
     """
 
     name: ClassVar[str] = "duty-cycle"
-
-    @classmethod
-    def accepts(cls, scene: Any) -> bool:
-        return isinstance(scene, Scene) and scene.is_profile
 
     def what(self, plant) -> str:
         return f"tuning {plant.name} on the {self.scene.name} duty cycle"
@@ -612,7 +606,15 @@ class Move:
 
     name: ClassVar[str] = "move"
     announces: ClassVar[bool] = False
+    #: The speed-loop studies a move takes (:data:`~prsa_ctrl.studies.kindruns.STEP_STUDIES`): none.
+    studies: ClassVar[frozenset] = frozenset()
+    #: What the scene is, for messages.
+    described: ClassVar[str] = "a move (cascade) scene"
     scene: MoveScene
+
+    def takes(self, study: str) -> bool:
+        """Whether the problem takes a study (a move takes none of the speed loop's)."""
+        return study in self.studies
 
     @classmethod
     def accepts(cls, scene: Any) -> bool:

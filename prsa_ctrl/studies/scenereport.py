@@ -11,6 +11,7 @@ from ..options import RAD_S_PER_RPM, rad_s_to_rpm
 from ..reporttext import fmt, fmt_margin, format_robust, table  # re-exported (their one home)
 from ..sim.metrics import metric_resolution, relative_difference
 from ..textsafe import printable
+from .kindruns import speed_kind
 from .scenefilters import describe_filters
 
 if TYPE_CHECKING:
@@ -18,25 +19,16 @@ if TYPE_CHECKING:
     from .movescene import MoveScene
     from ..tuning.cascade import CascadeDesign
 
-__all__ = ["format_report", "format_robust", "format_move_report", "fmt", "fmt_margin", "table", "scene_header",
+__all__ = ["profile_tables", "format_report", "format_robust", "format_move_report", "fmt", "fmt_margin", "table", "scene_header",
            "pct_text", "diff_text", "beaten_text", "format_friction_ff"]
 
 
 def scene_header(sc, overrides: Sequence[str] = ()) -> str:
     """One line saying what a speed-loop scene asks (``overrides``: the flags that changed it)."""
-    loads = ", ".join(f"{f:g}" for f in sc.final_loads)
     bounds = f"Ms <= {sc.ms_max:g}" + (f", Mt <= {sc.mt_max:g}" if sc.mt_max is not None else "") + (
         f", Mks <= {sc.mks_max:g} N m s/rad" if sc.mks_max is not None else "")
     name = f"scene {printable(sc.name)}" + (f" with {printable(' '.join(overrides))}" if overrides else "")
-    if sc.is_profile:
-        goal = {"load": "load rejection", "setpoint": "setpoint tracking",
-                "mix": f"mix, setpoint share {sc.setpoint_share:g}"}[sc.goal]
-        b = f", setpoint weight b = {sc.setpoint_weight:g}" if sc.setpoint_profile is not None else ""
-        return (f"{name}: duty cycle ({sc.profile_source}) from {sc.setpoint_rpm:g} rpm, {sc.initial_load:g} N, "
-                f"record to {sc.duration:g} s; {sc.objective.upper()} over the record ({goal}{b}), "
-                f"{sc.controller.upper()}, {bounds}")
-    return (f"{name}: {sc.setpoint_rpm:g} rpm, {sc.initial_load:g} N -> {loads} N at {sc.step_time:g} s, "
-            f"record to {sc.duration:g} s; {sc.objective.upper()}, {sc.controller.upper()}, {bounds}")
+    return speed_kind(sc).header(name, bounds)
 
 
 def pct_text(diff: float) -> str:
@@ -101,7 +93,7 @@ def beaten_text(c: dict, obj: str) -> str:
     return "no"
 
 
-def _profile_tables(rep) -> list[str]:
+def profile_tables(rep) -> list[str]:
     """Predicted against verified metrics of each duty-cycle record, then its load steps."""
     sc, b = rep.scene, rep.best
     out = []
@@ -194,8 +186,7 @@ def format_report(rep, overrides: Sequence[str] = ()) -> str:
         ("peak torque (N m)", "peak_torque_n_m"),
         ("torque saturated", "saturated"),
     ]
-    if sc.is_profile:
-        out.extend(_profile_tables(rep))
+    out.extend(_RECORD_TABLES.get(speed_kind(sc).name, _no_tables)(rep))
     for k, f1 in enumerate(sc.final_loads):
         pm, vm = b.predicted[k], b.verified[k]
         res = _resolutions(rep, vm.peak_drop_rad_s, sc.duration - sc.step_time)
@@ -329,3 +320,11 @@ def format_friction_ff(effect: dict, fidelity: str) -> str:
         lines.append(f"  {'':10s} joint design verified ({fidelity}): following error {what} {a[key] * 1e6:.3f} um "
                      f"without, {b[key] * 1e6:.3f} um with{change}")
     return "\n".join(lines)
+
+
+def _no_tables(rep) -> list[str]:
+    return []
+
+
+#: The tables of a kind's records besides the load steps' (kind name -> tables of a report).
+_RECORD_TABLES = {"duty-cycle": profile_tables}

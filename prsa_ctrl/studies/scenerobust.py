@@ -19,6 +19,7 @@ from .scenesections import Robust
 from ..tuning.loops import LoopModel
 from ..tuning.robust import RobustTuning, Scenario, tune_scenario_loops
 from ..tuning.actuatorloops import step_loops
+from .kindruns import speed_kind
 from .sceneloops import loop_spec
 
 __all__ = ["operating_points", "scenarios", "scenario_loops", "tune_robust_actuator"]
@@ -31,7 +32,7 @@ def operating_points(scene) -> list[tuple[float, float]]:
     """The scene's operating range: (setpoint rad/s, final load N) for every setpoint in
     ``[robust] setpoints_rpm`` (default the scene's) and every final load in
     ``[robust] final_loads_n`` (default the scene's)."""
-    if getattr(scene, "is_profile", False):
+    if not speed_kind(scene).takes("robust"):
         raise SceneError(f"{scene.origin}: scene {scene.name} is a duty cycle ({scene.profile_source}); expected a "
                          "load-step scene (the robust and Monte-Carlo studies run load steps)")
     rob = scene.sections.robust or Robust()

@@ -25,7 +25,8 @@ from ..tuning.tuner import Tuner
 from .paper import default_pid
 from .scene import Scene, choose_fidelity
 from .scenefilters import FILTER_PATHS, filter_rows
-from .sceneloops import actuator_loops, loop_spec
+from .kindruns import speed_kind
+from .sceneloops import loop_spec
 
 __all__ = ["TUNED_FILTERS", "SceneFilterTuning", "check_tune_filter", "tune_scene_filter"]
 
@@ -109,7 +110,7 @@ def check_tune_filter(scene, kind: str) -> None:
     """
     if kind not in TUNED_FILTERS:
         raise SceneError(f"--tune-filter {kind}: expected one of {', '.join(TUNED_FILTERS)}")
-    if scene.is_profile:
+    if not speed_kind(scene).takes("tune-filter"):
         raise SceneError(f"--tune-filter {kind}: scene {scene.name} is a duty cycle; expected a load-step scene (the "
                          "filter tuner's objective is the load step)")
     if scene.estimator != "none" or not scene.discrete:
@@ -149,7 +150,7 @@ def tune_scene_filter(plant: Plant, scene: Scene, kind: str) -> SceneFilterTunin
     f0 = spec.initial_load
     objective = [builder(0.5 * (f0 + f1), f1 - f0, f"step to {f1:g} N") for f1 in spec.final_loads]
     constraint = [builder(load, f1 - f0, f"{load:g} N") for f1 in spec.final_loads for load in (f0, f1)]
-    start = Tuner(actuator_loops(plant, spec), objective=spec.objective, controller="pi").tune(ms_max=spec.ms_max).pid
+    start = Tuner(spec.loop_models(plant), objective=spec.objective, controller="pi").tune(ms_max=spec.ms_max).pid
     if not (start.kp > 0 and start.ki > 0 and math.isfinite(start.kp) and math.isfinite(start.ki)):
         start = default_pid(plant)
     common = dict(ts=ts, ms_max=spec.ms_max, max_noise_gain=spec.mks_max)

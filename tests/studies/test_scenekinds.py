@@ -57,7 +57,7 @@ def test_resolve_fixes_fidelity_and_records_once():
     plant = load_plant()
     scene, reason, spec = problem(load_scene("duty-ramp")).resolve(plant)
     assert scene.fidelity != "auto" and reason
-    assert spec.is_profile and len(spec.records) == len(scene.cases)
+    assert spec.problem.name == "duty-cycle" and len(spec.records) == len(scene.cases)
     assert spec.fidelity == scene.fidelity
     scene, _, spec = problem(load_scene("paper-table3")).resolve(plant)
     assert spec.records == () and spec.final_loads == (1000.0, 1500.0, 2000.0)

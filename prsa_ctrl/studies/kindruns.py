@@ -1,0 +1,408 @@
+"""What differs between the two speed-loop kinds of :mod:`prsa_ctrl.studies.scenekinds` when a
+problem is tuned, predicted, verified and reported: load steps (:class:`StepRuns`, the base of
+``LoadStep``) or a duty cycle's records (:class:`ProfileRuns`, the base of ``DutyCycle``).
+
+The pipeline (:mod:`prsa_ctrl.studies.sceneloops`, :mod:`prsa_ctrl.studies.autotune`, the
+report, the plots, the app) asks the problem (``spec.problem`` or
+:func:`~prsa_ctrl.studies.scenekinds.problem`) instead of branching on the kind: the loop
+models, the records, how the per-record objectives aggregate, the linear and the nonlinear runs
+and their metrics, the warnings only one kind gives, and which studies the kind takes.
+
+Every method reads the problem's scene (``self.scene``) or the resolved numbers of its
+:class:`~prsa_ctrl.studies.sceneloops.LoopSpec` (``spec``); SI units throughout (rad/s, N, N m, s).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ..drive.pid import PID
+from ..options import rad_s_to_rpm
+from ..plant.plantfile import Plant
+from ..sim.signals import PiecewiseLinear, normalise_profile
+from .scene import Scene
+
+__all__ = ["StepRuns", "ProfileRuns", "STEP_STUDIES", "speed_kind", "duty_record", "setpoint_prefilter"]
+
+#: What a load-step problem takes beyond tuning and a duty cycle does not: the robust study and
+#: Monte Carlo (they run load steps), a filter tuned with the gains (its objective is the load
+#: step), the fixed-step fast verification and the batched Monte-Carlo path (they measure on one
+#: load step), the compliant model's contact-force run of the figures, a ``--step-time`` (the
+#: duty cycle's events are its profile's) and the browser app's session (it tunes load steps).
+STEP_STUDIES = frozenset({"robust", "monte-carlo", "tune-filter", "fast-verify", "batched", "contact-run", "step-time",
+                          "app"})
+
+
+@dataclass(frozen=True)
+class StepRuns:
+    """Load steps: one loop model, linear run and verified run per final load (``[operating]
+    final_loads_n``), each starting in equilibrium before the step.
+
+    Attributes
+    ----------
+    scene : Scene
+    """
+
+    #: The registry name of the kind (:data:`prsa_ctrl.studies.scenekinds.KINDS`).
+    name: ClassVar[str] = "load-step"
+    scene: Any
+
+    @classmethod
+    def accepts(cls, scene: Any) -> bool:
+        """Whether a loaded scene is a problem of this kind."""
+        return isinstance(scene, Scene) and not scene.is_profile
+    #: The studies this kind takes beyond tuning (see :data:`STEP_STUDIES`).
+    studies: ClassVar[frozenset] = STEP_STUDIES
+    #: The figures of a report (:mod:`prsa_ctrl.plots.loop`): a kind's time responses.
+    plot_panels: ClassVar[str] = "load-step"
+
+    def takes(self, study: str) -> bool:
+        """Whether the problem takes a study (a name of :data:`STEP_STUDIES`)."""
+        return study in self.studies
+
+    @property
+    def described(self) -> str:
+        """What the scene is, for messages (``"a load-step scene"``)."""
+        return "a load-step scene"
+
+    def records(self, plant) -> tuple:
+        """The sampled records the runs read besides the spec's numbers (load steps: none)."""
+        return ()
+
+    def loop_models(self, plant, spec, estimator: str) -> list:
+        """One loop model per final load, linearised at the mid load of the step
+        (:func:`prsa_ctrl.tuning.actuatorloops.step_loops`)."""
+        from ..tuning.actuatorloops import step_loops
+
+        return step_loops(plant, setpoint_rad_s=spec.setpoint_rad_s, initial_load_n=spec.initial_load,
+                          final_loads_n=spec.final_loads, fidelity=spec.linear_fidelity,
+                          horizon_s=spec.duration - spec.step_time, discrete=spec.discrete,
+                          kf_load_change_time_s=spec.load_change_time_s if estimator == "kf" else None,
+                          feedforward=spec.feedforward, filters=spec.filters)
+
+    def aggregate(self, values: list[float], spec) -> float:
+        """The objective over the records: the worst or the sum (``[tuning] aggregate``)."""
+        if spec.aggregate == "worst":
+            return float(max(values))
+        return float(np.sum(values))
+
+    def tuner_weights(self, spec) -> list[float] | None:
+        """Weights of the records in the tuner's objective (None: the aggregate's own)."""
+        return None
+
+    def start(self, plant, spec, design) -> tuple[float, float]:
+        """``(speed rad/s, torque N m)`` before the event: the setpoint and the steady torque, or,
+        for a P-only design, where the loop settles below the setpoint."""
+        if design.pid.ki != 0:
+            return spec.setpoint_rad_s, spec.steady_torque_n_m
+        from ..sim.engine import initial_state
+
+        op, _ = initial_state(plant, spec.linear_fidelity, spec.setpoint_rad_s, spec.initial_load, design.pid, 0.0, 0,
+                              observer_ff=design.estimator == "kf")
+        return op.omega_nut, op.torque
+
+    def predicted_metrics(self, plant, spec, loops, trajectories, start) -> list:
+        """The metrics of one design's linear runs (one per loop model)."""
+        from ..sim.metrics import load_step_metrics
+
+        w_pre, tau0 = start
+        return [load_step_metrics(spec.step_time + lp.h * np.arange(-1, lp.n_steps),
+                                  w_pre + np.concatenate([[0.0], -tr["error"]]), spec.setpoint_rad_s, spec.step_time,
+                                  tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))]),
+                                  plant.torque_limit, direction=1 if f1 >= spec.initial_load else -1)
+                for f1, lp, tr in zip(spec.final_loads, loops, trajectories)]
+
+    def simulate(self, design, plant, spec, settings, seed: int, pre_samples: int) -> tuple[list, list]:
+        """The nonlinear runs of one design: one per final load, starting ``pre_samples``
+        controller samples before the step in equilibrium; ``(runs, estimation)`` with one
+        ``(time s, {output: array})`` per step and the Kalman filter's speed RMS errors (rad/s)."""
+        from ..drive.estimator import design_kf
+        from ..sim.engine import run
+
+        ts = plant.sample_time_s
+        runs, estimation = [], []
+        pre = min(spec.step_time, pre_samples * ts) if spec.discrete else min(spec.step_time, 1e-3)
+        offset = spec.step_time - pre
+        for f1 in spec.final_loads:
+            kw = dict(setpoint=spec.setpoint_rad_s, load=[(0.0, spec.initial_load), (pre, f1)],
+                      duration=pre + spec.duration - spec.step_time, controller=design.pid,
+                      fidelity=spec.fidelity, settings=settings, seed=seed, filters=spec.filters or None)
+            measurement = "encoder"
+            kf = None
+            if design.estimator == "kf":
+                measurement, kf = "kf", design_kf(plant, spec.load_change_time_s)
+            r = run(plant, discrete=spec.discrete, measurement=measurement, kf=kf, **kw)
+            if design.estimator == "kf":
+                w = r.output("nut_speed")
+                estimation.append({
+                    "kf_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_measured") - w) ** 2))),
+                    "fd_speed_rms_rad_s": float(np.sqrt(np.mean((r.output("speed_fd") - w) ** 2))),
+                })
+            t = np.asarray(r.time) + offset
+            runs.append((t, dict(zip(r.output_labels, np.asarray(r.outputs)))))
+        return runs, estimation
+
+    def verified_metrics(self, plant, spec, runs) -> list:
+        """The metrics of one design's nonlinear runs (:meth:`simulate`)."""
+        from ..sim.metrics import load_step_metrics
+
+        return [load_step_metrics(t, y["nut_speed"], spec.setpoint_rad_s, spec.step_time, y["motor_torque"],
+                                  plant.torque_limit, direction=1 if f1 >= spec.initial_load else -1)
+                for (t, y), f1 in zip(runs, spec.final_loads)]
+
+    def integral_warning(self, design) -> str | None:
+        """A warning when the records cannot inform the integral gain (load steps always can)."""
+        return None
+
+    def header(self, name: str, bounds: str) -> str:
+        """The report's one line saying what the scene asks (``name``: the scene as named, with the
+        overriding flags; ``bounds``: the sensitivity bounds)."""
+        sc = self.scene
+        loads = ", ".join(f"{f:g}" for f in sc.final_loads)
+        return (f"{name}: {sc.setpoint_rpm:g} rpm, {sc.initial_load:g} N -> {loads} N at {sc.step_time:g} s, "
+                f"record to {sc.duration:g} s; {sc.objective.upper()}, {sc.controller.upper()}, {bounds}")
+
+    def operating_text(self, k: int) -> str:
+        """Where the figures' loop response is linearised, for their titles (``k``: the level)."""
+        sc = self.scene
+        f0, f1 = sc.initial_load, sc.final_loads[k]
+        return f"{rad_s_to_rpm(sc.setpoint_rad_s):.0f} rpm, {0.5 * (f0 + f1):g} N (mid load of {f0:g} -> {f1:g} N)"
+
+
+
+@dataclass(frozen=True)
+class ProfileRuns(StepRuns):
+    """A duty cycle: one loop model, linear run and verified run per record (``scene.cases``:
+    the load and/or setpoint profile), over the whole record from a steady start."""
+
+    name: ClassVar[str] = "duty-cycle"
+    studies: ClassVar[frozenset] = frozenset()
+    plot_panels: ClassVar[str] = "duty-cycle"
+
+    @classmethod
+    def accepts(cls, scene: Any) -> bool:
+        return isinstance(scene, Scene) and scene.is_profile
+
+    @property
+    def described(self) -> str:
+        return f"a duty cycle ({self.scene.profile_source})"
+
+    def records(self, plant) -> tuple:
+        """:func:`duty_record` of every case."""
+        return tuple(duty_record(plant, self.scene, case) for case in self.scene.cases)
+
+    def loop_models(self, plant, spec, estimator: str) -> list:
+        """One sampled loop model per record, linearised at the middle of its range
+        (:func:`prsa_ctrl.tuning.actuatorloops.profile_loops`; the duty cycle takes no estimator)."""
+        from ..tuning.actuatorloops import profile_loops
+
+        return profile_loops(plant, [(case, rec["w_lin"], rec["f_lin"], rec["load_sequence"], rec["setpoint_sequence"])
+                                     for case, rec in zip(spec.cases, spec.records)],
+                             fidelity=spec.linear_fidelity, horizon_s=spec.duration,
+                             setpoint_weight=spec.setpoint_weight, filters=spec.filters)
+
+    def aggregate(self, values: list[float], spec) -> float:
+        """The worst, the goal "mix"'s weighted sum of the load and setpoint records, or the sum."""
+        if spec.aggregate == "worst":
+            return float(max(values))
+        if spec.goal == "mix":
+            return float((1.0 - spec.setpoint_share) * values[0] + spec.setpoint_share * values[1])
+        return float(np.sum(values))
+
+    def tuner_weights(self, spec) -> list[float] | None:
+        return [1.0 - spec.setpoint_share, spec.setpoint_share] if spec.goal == "mix" else None
+
+    def start(self, plant, spec, design) -> tuple[float, float]:
+        """The record starts at the setpoint with the steady torque (any design)."""
+        return spec.setpoint_rad_s, spec.steady_torque_n_m
+
+    def predicted_metrics(self, plant, spec, loops, trajectories, start) -> list:
+        from ..sim.metrics import profile_metrics
+
+        _, tau0 = start
+        return [profile_metrics(rec["t"][: lp.n_steps], rec["setpoint_at"][: lp.n_steps] - tr["error"],
+                                rec["setpoint_at"][: lp.n_steps], tau0 + tr["motor_torque"],
+                                plant.torque_limit, rec["load_steps"], rec["breaks"])
+                for rec, lp, tr in zip(spec.records, loops, trajectories)]
+
+    def simulate(self, design, plant, spec, settings, seed: int, pre_samples: int) -> tuple[list, list]:
+        """One sampled run per record, over the whole record, with the scene's profiles (a setpoint
+        weight ``b != 1`` through :func:`setpoint_prefilter`)."""
+        from ..sim.engine import run
+
+        ts = plant.sample_time_s
+        runs = []
+        for case, rec in zip(spec.cases, spec.records):
+            setpoint = rec["setpoint"]
+            if case == "setpoint profile" and spec.setpoint_weight != 1.0:
+                rf = setpoint_prefilter(rec["setpoint_at"], design.pid, ts, spec.setpoint_weight)
+                n_pts = int(np.searchsorted(rec["t"], spec.duration - 1e-9 * ts))  # points before the end
+                setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
+            r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=spec.duration,
+                    controller=design.pid, fidelity=spec.fidelity, settings=settings, seed=seed,
+                    filters=spec.filters or None)
+            t = np.asarray(r.time)
+            y = dict(zip(r.output_labels, np.asarray(r.outputs)))
+            y["setpoint"] = rec["setpoint_at"][: t.size]
+            runs.append((t, y))
+        return runs, []
+
+    def verified_metrics(self, plant, spec, runs) -> list:
+        from ..sim.metrics import profile_metrics
+
+        return [profile_metrics(t, y["nut_speed"], y["setpoint"], y["motor_torque"], plant.torque_limit,
+                                rec["load_steps"], rec["breaks"])
+                for (t, y), rec in zip(runs, spec.records)]
+
+    def integral_warning(self, design) -> str | None:
+        """A warning (not a flag) when the record cannot inform the integral gain: the integral
+        time ``Ti = kp / ki`` is longer than the record (or ``ki = 0``), so the objective barely
+        depends on ``ki`` and the tuner's value is arbitrary (see
+        :func:`prsa_ctrl.studies.autotune.integral_warning`)."""
+        sc = self.scene
+        if sc.controller not in ("pi", "pid"):
+            return None
+        kp, ki = design.pid.kp, design.pid.ki
+        record = sc.duration
+        ti = kp / ki if ki > 0 else math.inf
+        if ti <= record:
+            return None
+        ti_text = f"Ti = {ti:.3g} s" if math.isfinite(ti) else "ki = 0"
+        if sc.goal == "setpoint":
+            return (f"the setpoint-only goal does not inform the integral gain ({ti_text} > record {record:g} s): the "
+                    "objective hardly changes with ki, so this design holds a load change only slowly; use goal = "
+                    "\"mix\" with a load profile (or a load-step scene) to tune ki for load rejection")
+        return (f"the integral time is longer than the record ({ti_text} > {record:g} s): the record does not show the "
+                "integral's effect and does not inform ki; lengthen the record or add load changes")
+
+    def header(self, name: str, bounds: str) -> str:
+        sc = self.scene
+        goal = {"load": "load rejection", "setpoint": "setpoint tracking",
+                "mix": f"mix, setpoint share {sc.setpoint_share:g}"}[sc.goal]
+        b = f", setpoint weight b = {sc.setpoint_weight:g}" if sc.setpoint_profile is not None else ""
+        return (f"{name}: duty cycle ({sc.profile_source}) from {sc.setpoint_rpm:g} rpm, {sc.initial_load:g} N, "
+                f"record to {sc.duration:g} s; {sc.objective.upper()} over the record ({goal}{b}), "
+                f"{sc.controller.upper()}, {bounds}")
+
+    def operating_text(self, k: int) -> str:
+        sc = self.scene
+        return f"{rad_s_to_rpm(sc.setpoint_rad_s):.0f} rpm, {sc.initial_load:g} N (start of the {sc.name} duty cycle)"
+
+
+def speed_kind(scene: Scene) -> StepRuns:
+    """The runs of a speed-loop scene's kind: :class:`ProfileRuns` of a duty cycle, else
+    :class:`StepRuns` (the base of :class:`~prsa_ctrl.studies.scenekinds.DutyCycle` and
+    :class:`~prsa_ctrl.studies.scenekinds.LoadStep`, whose :func:`~prsa_ctrl.studies.scenekinds.problem`
+    adds the studies and the report).
+
+    Raises
+    ------
+    TypeError
+        Not a speed-loop :class:`~prsa_ctrl.studies.scene.Scene`.
+    """
+    for kind in (ProfileRuns, StepRuns):
+        if kind.accepts(scene):
+            return kind(scene)
+    raise TypeError(f"scene = {type(scene).__name__}; expected a prsa_ctrl Scene (prsa_ctrl.load_scene)")
+
+
+def setpoint_prefilter(r: np.ndarray, pid: PID, ts: float, b: float) -> np.ndarray:
+    """Reference prefilter that makes the 1-DOF sampled PI(D) act like the 2-DOF law
+    ``u = kp (b r - y) + I``, ``I += Ts ki (r - y)`` (derivative on the measurement):
+    ``F(z) = (b kp (1 - z^-1) + Ts ki z^-1) / (kp (1 - z^-1) + Ts ki z^-1)``, unity at DC.
+
+    Parameters
+    ----------
+    r : array, rad/s
+        Setpoint read at each sample (from a steady start, ``r[0]`` held before).
+    pid : PID
+    ts : float, s
+    b : float
+        Setpoint weight in [0, 1].
+
+    Returns
+    -------
+    array, rad/s
+        The prefiltered setpoint, sample by sample.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rf = setpoint_prefilter(np.r_[0.0, np.ones(400)], PID(0.1, 10.0), 2.5e-4, 0.5)
+    >>> float(rf[1]), round(float(rf[-1]), 3)
+    (0.5, 1.0)
+    """
+    r = np.asarray(r, float)
+    if b == 1.0 or pid.kp <= 0:
+        return r.copy()
+    kp, kit = pid.kp, ts * pid.ki
+    rf = np.empty_like(r)
+    rf[0] = r[0]
+    for k in range(1, r.size):
+        rf[k] = b * r[k] + ((kit - kp * b) * r[k - 1] - (kit - kp) * rf[k - 1]) / kp
+    return rf
+
+
+def _n_samples(plant: Plant, scene) -> int:
+    return max(10, int(round(scene.duration / plant.sample_time_s)))
+
+
+def duty_record(plant: Plant, scene, case: str) -> dict:
+    """One record of a duty-cycle scene, as the loop model and the verification see it.
+
+    Parameters
+    ----------
+    plant : Plant
+    scene : Scene
+        A duty-cycle scene (:class:`~prsa_ctrl.studies.scenekinds.DutyCycle`).
+    case : {"load profile", "setpoint profile"}
+        One of ``scene.cases``.
+
+    Returns
+    -------
+    dict
+        ``load`` and ``setpoint`` (simulator profiles, N and rad/s), ``load_sequence`` (mean
+        load deviation over each controller sample, N, or None), ``setpoint_sequence``
+        (setpoint deviation the controller reads at each sample, rad/s, or None), ``t``
+        (sample times, s), ``setpoint_at`` (setpoint at them, rad/s), ``load_steps`` ((time s,
+        signed size N) of each load step), ``breaks`` (every change, s) and the linearisation
+        point ``w_lin`` (rad/s), ``f_lin`` (N): the middle of the profile's range.
+    """
+    ts = plant.sample_time_s
+    n = _n_samples(plant, scene)
+    t = ts * np.arange(n + 1)
+    w0, f0 = scene.setpoint_rad_s, scene.initial_load
+    out: dict = {"t": t, "load_sequence": None, "setpoint_sequence": None, "load_steps": [], "breaks": [],
+                 "load": f0, "setpoint": w0, "w_lin": w0, "f_lin": f0}
+    if case == "load profile":
+        pts = scene.load_profile
+        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
+        # Exact mean over each sample interval: integral of the piecewise-linear load.
+        edges = ts * np.arange(n + 1)
+        seg_len = np.append(np.diff(prof.t), np.inf)
+        lens = np.clip(edges[:, None] - prof.t[None, :], 0.0, seg_len[None, :])
+        integral = lens @ prof.v + (lens * lens) @ prof.s / 2.0
+        out["load_sequence"] = np.diff(integral) / ts - f0
+        out["load"] = PiecewiseLinear(pts)
+        out["load_steps"] = [(float(tk), float(prof.v[i] - prof.at(tk - 1e-9)))
+                             for i, tk in enumerate(prof.t) if prof.jump[i]]
+        out["breaks"] = [float(x) for x in prof.t[1:]]
+        vals = [v for _, v in pts]
+        out["f_lin"] = 0.5 * (min(vals) + max(vals))
+        out["setpoint_at"] = np.full(n + 1, w0)
+    else:
+        pts = scene.setpoint_profile
+        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
+        r = prof.at(t)
+        out["setpoint_sequence"] = r - w0
+        out["setpoint_sequence"][0] = 0.0
+        out["setpoint"] = PiecewiseLinear(pts)
+        out["breaks"] = [float(x) for x in prof.t[1:]]
+        vals = [v for _, v in pts]
+        out["w_lin"] = 0.5 * (min(vals) + max(vals))
+        out["setpoint_at"] = r
+    return out

@@ -1,0 +1,96 @@
+"""What differs between the speed-loop kinds (issue 33): asked of the kind, not branched on."""
+
+import ast
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import prsa_ctrl
+from prsa_ctrl.drive.pid import PID
+from prsa_ctrl.studies.kindruns import STEP_STUDIES, ProfileRuns, StepRuns, speed_kind
+from prsa_ctrl.studies.movescene import load_move_scene
+from prsa_ctrl.studies.scene import load_scene
+from prsa_ctrl.studies.scenekinds import DutyCycle, LoadStep, problem
+from prsa_ctrl.studies.sceneloops import loop_spec
+
+PKG = Path(prsa_ctrl.__file__).parent
+
+
+def test_speed_kind_is_the_registry_kind_of_a_speed_scene():
+    assert type(speed_kind(load_scene())) is StepRuns
+    assert type(speed_kind(load_scene("duty-ramp"))) is ProfileRuns
+    # the registry's problems are the same kinds with the studies and the report added
+    assert isinstance(problem(load_scene()), StepRuns) and isinstance(problem(load_scene("duty-ramp")), ProfileRuns)
+    assert speed_kind(load_scene()).name == LoadStep.name and speed_kind(load_scene("duty-ramp")).name == DutyCycle.name
+
+
+def test_speed_kind_refuses_a_move_scene():
+    with pytest.raises(TypeError, match="expected a prsa_ctrl Scene"):
+        speed_kind(load_move_scene("paper-move"))
+
+
+def test_a_duty_cycle_takes_no_load_step_study():
+    step, duty = speed_kind(load_scene()), speed_kind(load_scene("duty-ramp"))
+    assert all(step.takes(s) for s in STEP_STUDIES)
+    assert not any(duty.takes(s) for s in STEP_STUDIES)
+
+
+def test_aggregate_mix_weighs_the_records_by_the_setpoint_share(paper_plant):
+    sc = load_scene("duty-ramp").replace(goal="mix", setpoint_profile=((0.0, 31.4), (0.05, 40.0)), setpoint_share=0.25)
+    spec = loop_spec(paper_plant, sc)
+    assert spec.problem.aggregate([4.0, 8.0], spec) == pytest.approx(0.75 * 4.0 + 0.25 * 8.0)
+    assert spec.problem.tuner_weights(spec) == [0.75, 0.25]
+    worst = loop_spec(paper_plant, sc.replace(aggregate="worst"))
+    assert worst.problem.aggregate([4.0, 8.0], worst) == 8.0
+
+
+def test_load_steps_sum_and_take_no_tuner_weights(paper_plant):
+    spec = loop_spec(paper_plant, load_scene("paper-table3").replace(aggregate="sum"))
+    assert spec.problem.aggregate([1.0, 2.0, 4.0], spec) == 7.0
+    assert spec.problem.tuner_weights(spec) is None and spec.records == ()
+
+
+def test_a_p_only_design_starts_below_the_setpoint_on_load_steps_only(paper_plant):
+    p_only = type("D", (), {"pid": PID(0.06, 0.0), "estimator": "none"})()
+    step = loop_spec(paper_plant, load_scene().replace(fidelity="rigid"))
+    w, _ = step.problem.start(paper_plant, step, p_only)
+    assert w < step.setpoint_rad_s
+    duty = loop_spec(paper_plant, load_scene("duty-ramp").replace(fidelity="rigid"))
+    assert duty.problem.start(paper_plant, duty, p_only) == (duty.setpoint_rad_s, duty.steady_torque_n_m)
+
+
+def test_the_integral_warning_is_the_duty_cycles_only():
+    slow = type("D", (), {"pid": PID(0.08, 1e-3)})()
+    assert speed_kind(load_scene()).integral_warning(slow) is None
+    assert "longer than the record" in speed_kind(load_scene("duty-ramp")).integral_warning(slow)
+
+
+def test_headers_say_each_kind():
+    assert " -> 1500 N at " in speed_kind(load_scene()).header("scene x", "Ms <= 1.4")
+    assert ": duty cycle (" in speed_kind(load_scene("duty-ramp")).header("scene x", "Ms <= 1.4")
+
+
+def _reads_is_profile(path: Path) -> bool:
+    return any(isinstance(n, ast.Attribute) and n.attr == "is_profile"
+               for n in ast.walk(ast.parse(path.read_text(encoding="utf-8"))))
+
+
+def test_no_module_outside_the_registry_branches_on_the_duty_cycle():
+    """``Scene.is_profile`` is read by the registry (``kindruns``' ``accepts``) and by the
+    scene's own validation only (issue 33)."""
+    readers = {p.relative_to(PKG).as_posix() for p in PKG.rglob("*.py") if _reads_is_profile(p)}
+    assert readers == {"studies/kindruns.py", "studies/scene.py"}
+
+
+def test_the_duty_records_are_sampled_at_the_plant_period(paper_plant):
+    spec = loop_spec(paper_plant, load_scene("duty-ramp"))
+    for rec in spec.records:
+        assert np.allclose(np.diff(rec["t"]), paper_plant.sample_time_s)
+
+
+def test_every_kind_says_what_it_is_and_a_move_takes_no_speed_study():
+    move = problem(load_move_scene("paper-move"))
+    assert move.described == "a move (cascade) scene" and not any(move.takes(s) for s in STEP_STUDIES)
+    assert problem(load_scene("duty-ramp")).described.startswith("a duty cycle (")
+    assert problem(load_scene()).described == "a load-step scene"
