@@ -157,6 +157,25 @@ def test_the_loop_of_a_two_mass_axis_is_the_independent_two_mass_loop():
     np.testing.assert_allclose(lp.error(g.tuner_gains), e, rtol=1e-8, atol=1e-12)
 
 
+def test_retuning_a_two_mass_axis_replays_the_two_mass_axis():
+    """retune_axis on an axis with a load mass: both designs are replayed through the two-mass axis
+    (the running gains' following error is that of its two-mass replay, not of the rigid one)."""
+    two = {"axis.load_mass_kg": ML, "axis.load_stiffness_n_per_um": K2 * 1e-6, "axis.axial_damping_ratio": ZETA2}
+    axis = _axis().with_values(two, {k: "test" for k in two})
+    log = _log()
+    res = retune_axis(axis, log)
+    x0 = (float(log.position_m[0]), 0.0)
+    c = dataclasses.replace(log.controller, saturation=math.inf)
+    tr2 = simulate_axis(axis.theta, dataclasses.replace(log, controller=c), force_limit_n=math.inf, x0=x0,
+                        second_mass=axis.second_mass)
+    tr1 = simulate_axis(axis.theta, dataclasses.replace(log, controller=c), force_limit_n=math.inf, x0=x0)
+    rms2, rms1 = (float(np.sqrt(np.mean((log.reference_m - t.position_m) ** 2))) for t in (tr2, tr1))
+    assert res.running.following_rms_m == pytest.approx(rms2, rel=1e-12)
+    assert abs(rms2 - rms1) > 1e-6 * rms1  # the mode moves the following error little (8e-5), far beyond 1e-12
+    assert res.running.ms == pytest.approx(max(lp.margins(res.running.gains.tuner_gains).ms
+                                               for lp in axis_loops(axis.to_plant(), log)), rel=1e-12)
+
+
 def test_loop_error_is_the_independent_closed_loop_over_the_reference():
     """The profile loop's error sequence against the difference equations simulated here
     (averaged two-sample velocity estimate, the command applied in its sample, Coulomb friction
