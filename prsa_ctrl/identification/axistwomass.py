@@ -15,8 +15,8 @@ x_l'`` lies in ``[-Fc-, Fc+]``); ``F_load`` the log's external force, on the loa
 Between two samples the forces are constant (zero-order hold), so each phase (moving in +x,
 in -x, stuck) is a linear ODE with a constant input: it is integrated exactly by the matrix
 exponential of the phase's augmented system. A phase ends where the motor side's speed reaches
-zero (moving) or the net force leaves the stick band (stuck); that instant is found by bisection
-on the exact solution to ``BISECTION_STEPS`` halvings of the sample (one crossing per sample
+zero (moving) or the net force leaves the stick band (stuck); that instant is found on the exact
+solution (regula falsi, Illinois, within a bracket) to ``2^-BISECTION_STEPS`` of the sample (one crossing per sample
 and phase is assumed: true while the axial mode is slower than half the sample rate, which a
 fit at the controller's rate needs anyway). At most ``MAX_PHASES`` phases per sample (bounded
 work; a stick-slip chatter faster than that is cut short and stays in the last phase).
@@ -97,6 +97,46 @@ class TwoMassStepper:
             return self._phase_at_rest(z) != 0
         return s * z[1] <= 0.0
 
+    def _excess(self, s: int, z: np.ndarray, edge: int) -> float:
+        """How far phase ``s`` has ended at ``z`` (> 0 ended, <= 0 not): the speed against the
+        direction of motion (m/s), or the net force beyond the stick band's ``edge`` (N)."""
+        if s != 0:
+            return -s * float(z[1])
+        f = self.net_force(z)
+        return f - self.fc[1] if edge > 0 else -f - self.fc[-1]
+
+    def _phase_end(self, s: int, z: np.ndarray, left: float, z_end: np.ndarray) -> float:
+        """The time (s) at which phase ``s`` started at ``z`` ends within ``left`` (it has ended at
+        ``left``, state ``z_end``): bisection until the phase is under way (a start from rest), then
+        the Illinois variant of regula falsi on the exact solution, the bracket kept; to
+        ``2^-BISECTION_STEPS`` of the sample or ``4 BISECTION_STEPS`` evaluations (bounded)."""
+        edge = 0 if s != 0 else self._phase_at_rest(z_end)
+        lo, hi = 0.0, left
+        g_lo, g_hi = self._excess(s, z, edge), self._excess(s, z_end, edge)
+        side = 0
+        tol = left * 2.0 ** -BISECTION_STEPS
+        for _ in range(4 * BISECTION_STEPS):
+            if hi - lo <= tol:
+                break
+            if g_lo < 0.0 < g_hi:
+                mid = hi - g_hi * (hi - lo) / (g_hi - g_lo)
+                if not lo < mid < hi:
+                    mid = 0.5 * (lo + hi)
+            else:  # the start sits on the edge (from rest): halve until the phase is under way
+                mid = 0.5 * (lo + hi)
+            g = self._excess(s, self._advance(s, z, mid), edge)
+            if g > 0.0 or (g == 0.0 and g_lo < 0.0):
+                hi, g_hi = mid, g
+                if side == 1:
+                    g_lo *= 0.5  # Illinois: the stale end's value halved
+                side = 1
+            else:
+                lo, g_lo = mid, g
+                if side == -1:
+                    g_hi *= 0.5
+                side = -1
+        return hi
+
     def step(self, state: tuple[float, float, float, float], f_drive: float, f_load: float):
         """Move from ``state = (x_m m, v_m m/s, d m, v_l m/s)`` over one sample; returns the new state."""
         z = np.array([*state, f_drive, f_load, 1.0])
@@ -109,13 +149,7 @@ class TwoMassStepper:
             if not self._ended(s, z1):
                 z = z1
                 break
-            lo, hi = 0.0, left  # the phase holds at lo and has ended at hi
-            for _ in range(BISECTION_STEPS):
-                mid = 0.5 * (lo + hi)
-                if self._ended(s, self._advance(s, z, mid)):
-                    hi = mid
-                else:
-                    lo = mid
+            hi = self._phase_end(s, z, left, z1)
             z = self._advance(s, z, hi)
             left -= hi
             if s != 0:
