@@ -131,7 +131,9 @@ def fit_figures(result: FitResult, frequency_unit: str = DEFAULT_FREQUENCY_UNIT,
                 _verdict_caption(fig, validation)
             figs[f"{stem}-fit"] = fig
         else:
-            figs[f"{stem}-bode"] = _bode_figure(name, tr, result.fit_percent.get(name, float("nan")), frequency_unit)
+            figs[f"{stem}-bode"] = _bode_figure(name, tr, result.fit_percent.get(name, float("nan")), frequency_unit,
+                                                gain_unit="m/s per N" if getattr(result.plant, "mechanism", None)
+                                                == "linear-axis" else "rad/s per N m")
     for name, tr in log_traces(result, records).items():
         figs[f"{stems[name]}-frf"] = _bode_figure(name, {**tr, "title": f"{name}: the log's response (H1 from the "
                                                                         "logged command) beside the written plant's"},
@@ -162,11 +164,13 @@ def _phase_on(g, pm_deg):
     return np.degrees(np.angle(g * np.exp(-1j * np.radians(pm_deg)))) + pm_deg
 
 
-def _bode_figure(name: str, tr: dict, fit_pct: float, unit: str = DEFAULT_FREQUENCY_UNIT):
+def _bode_figure(name: str, tr: dict, fit_pct: float, unit: str = DEFAULT_FREQUENCY_UNIT,
+                 gain_unit: str = "rad/s per N m"):
     """Bode overlay of a frequency response: the data (points) beside the fitted models (lines:
     the written plant's and, from an FRF-only fit, the rigid and the two-mass models), frequency
     in ``unit``, the residual of the written model (log magnitude in dB, phase in degrees) and,
-    when the data carry one, the coherence below."""
+    when the data carry one, the coherence below; ``gain_unit`` names the response's unit (a
+    linear axis's, in load coordinates: m/s per N)."""
     x = np.asarray(tr["frequency_hz"], float) * _unit_factor(unit)
     gm, gf = np.asarray(tr["measured"]), np.asarray(tr["model"])
     coh = tr.get("coherence")
@@ -181,7 +185,7 @@ def _bode_figure(name: str, tr: dict, fit_pct: float, unit: str = DEFAULT_FREQUE
         style = dict(lw=1.4, ls="-") if written else dict(lw=0.9, ls="--")
         ax1.semilogx(x, 20 * np.log10(np.abs(g)), color=f"C{i}", label=_plain(label), **style)
         ax2.semilogx(x, _phase_on(g, pm), color=f"C{i}", **style)
-    ax1.set_ylabel("|G| (dB re 1 rad/s per N m)")
+    ax1.set_ylabel(f"|G| (dB re 1 {gain_unit})")  # a linear axis (load coordinates): m/s per N
     chosen = tr.get("chosen")
     ax1.set_title(_plain(tr.get("title") or f"{name}: fit {fit_pct:.1f} %" + (f" (structure: {chosen})" if chosen
                                                                                else "")), fontsize=10)

@@ -157,6 +157,19 @@ def test_response_of_an_independent_two_mass_axis(mech):
         assert mode["antiresonance_hz"] == pytest.approx(fa, rel=0.01)
         assert any("axis.load_stiffness_n_per_um" in w and "compliant model is then this two-mass axis" in w
                    for w in res.warnings)
+        # its Bode overlay is labelled in load coordinates (was rad/s per N m)
+        import matplotlib.pyplot as plt
+
+        from prsa_ctrl.plots.fit import fit_figures
+
+        figs = fit_figures(res)
+        try:
+            (fig,) = figs.values()
+            assert fig.axes[0].get_ylabel() == "|G| (dB re 1 m/s per N)"
+            assert "frequency (Hz)" in [a.get_xlabel() for a in fig.axes]
+        finally:
+            for f_ in figs.values():
+                plt.close(f_)
         _written_round_trip(res, base)
         return
     if base.screw_driven:
