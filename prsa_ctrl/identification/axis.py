@@ -471,10 +471,15 @@ class AxisReplay:
     errors_percent: Mapping[str, float]
     fit_percent: Mapping[str, float]
     reference_m: NDArray[np.float64] | None = None
+    #: ``(m_l kg, k N/m, zeta)`` when the plant replayed is a two-mass axis (None: rigid).
+    second_mass: tuple[float, float, float] | None = None
 
     def report(self) -> dict:
-        return {"log": self.name, "replay": "closed loop from the reference" if self.closed_loop else
-                "open loop from the logged command", "samples": int(self.time_s.size),
+        how = "closed loop from the reference" if self.closed_loop else "open loop from the logged command"
+        if self.second_mass is not None:
+            how += (f", two-mass axis ({self.second_mass[0]:.6g} kg beyond {self.second_mass[1] * 1e-6:.6g} N/um, "
+                    f"damping {self.second_mass[2]:.3g})")
+        return {"log": self.name, "replay": how, "samples": int(self.time_s.size),
                 "errors_percent": dict(self.errors_percent), "fit_percent": dict(self.fit_percent),
                 "metric": f"100*||y - y_sim||/||y|| from sample {METRIC_SKIP_SAMPLES} on; position vs the logged "
                           "position, velocity vs the logged speed (or the position low-passed at fs/10, zero phase, "
@@ -503,7 +508,7 @@ def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
     closed = log.controller is not None and log.reference_m is not None
     return AxisReplay(log.name, closed, log.time_s, log.position_m, tr.position_m, vm, tr.velocity_m_s, fm, fs,
                       {k: relative_error(*p) for k, p in pairs.items()}, {k: _fit_percent(*p) for k, p in pairs.items()},
-                      log.reference_m)
+                      log.reference_m, plant.second_mass)
 
 
 # --- calibration ------------------------------------------------------------------------------------

@@ -135,6 +135,8 @@ def test_a_two_mass_base_is_fitted_on_its_two_mass_replay():
         assert two.plant.theta[j] == pytest.approx(x, rel=1e-4)
     assert two.plant.second_mass == pytest.approx((ML, K, ZETA))
     assert "two-mass axis" in two.plant.description
-    assert replay_axis(two.plant, log).errors_percent["position"] < 1e-6
+    rep = replay_axis(two.plant, log)
+    assert rep.errors_percent["position"] < 1e-6
+    assert rep.report()["replay"] == f"closed loop from the reference, two-mass axis (30 kg beyond {K * 1e-6:g} N/um, damping 0.05)"
     rigid = fit_linear_axis([log], _base(False), check_delay=False)
     assert replay_axis(rigid.plant, log).errors_percent["force"] > 1e3 * replay_axis(two.plant, log).errors_percent["force"]
