@@ -137,7 +137,8 @@ def _parser() -> argparse.ArgumentParser:
                    "of the fit and replay it afterwards")
     p.add_argument("--traces", metavar="T.csv", help="with --validate: measured and simulated position and force "
                    "per sample")
-    p.add_argument("--plots", metavar="DIR", help="overlay figures (PNG) of each replay")
+    p.add_argument("--plots", metavar="DIR", help="overlay figures (PNG) of each replay and of its frequency "
+                   "response beside the log's (Hz)")
     p.add_argument("--verbose", action="store_true", help="a progress line on stderr when the work starts")
     return p
 
@@ -416,25 +417,31 @@ def _validate(args) -> int:
 
 
 def _plots(directory: str, replays, inputs) -> list[str]:
-    """Overlay figures (:func:`prsa_ctrl.plots.fit.axis_replay_figure`: tracking error, velocity,
-    force, measured vs replayed, and the velocity residual), one PNG per replay."""
+    """Overlay figures, per replay: ``replay-*.png`` (:func:`prsa_ctrl.plots.fit.axis_replay_figure`:
+    tracking error, velocity, force, measured vs replayed, and the velocity residual) and
+    ``response-*.png`` (:func:`prsa_ctrl.plots.fit.axis_response_figure`: the log's frequency
+    response beside the replay's on a Hz axis, their residual and the coherence; not for a log
+    under 256 samples)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
     from ..io.output import make_directory, write_file
-    from ..plots.fit import axis_replay_figure
+    from ..plots.fit import axis_replay_figure, axis_response_figure
 
     make_directory(directory, "--plots")
     out = []
     for i, r in enumerate(replays):
-        fig = axis_replay_figure(r)
         stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(r.name).name)
-        path = Path(directory) / f"replay-{i + 1}-{stem}.png"
-        try:
-            write_file(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=110), inputs, "--plots")
-        finally:
-            plt.close(fig)
-        out.append(str(path))
+        for kind, make in (("replay", axis_replay_figure), ("response", axis_response_figure)):
+            fig = make(r)
+            if fig is None:
+                continue
+            path = Path(directory) / f"{kind}-{i + 1}-{stem}.png"
+            try:
+                write_file(path, lambda tmp, fig=fig: fig.savefig(tmp, format="png", dpi=110), inputs, "--plots")
+            finally:
+                plt.close(fig)
+            out.append(str(path))
     return out

@@ -387,7 +387,8 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         if args.delay_samples is not None and not 0 <= args.delay_samples <= 10:
             raise UsageError(f"--delay-samples {args.delay_samples}: expected 0..10")
         plant = load_plant(args.plant)
-        if plant.mechanism == "linear-axis":  # load coordinates: fitted from a described log, not these records
+        if plant.mechanism == "linear-axis" and (args.data or args.log_format or args.frf_from_logs is not None):
+            # load coordinates: fitted from a described log, not these records (its measured FRF, --frf alone, is)
             raise UsageError(linear_axis_refusal(args.plant))
         base_text, base_path = _base_text(args.plant)
         # the fitted plant file can be written for any spelling of the base (checked before the fit)

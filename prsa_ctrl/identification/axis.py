@@ -13,6 +13,12 @@ sensor offset) is the same model with ``Fc+ = Fc + offset`` and ``Fc- = Fc - off
 and ``Fv-`` are the viscous coefficients per direction (N s/m). No Stribeck term: the fit would
 need constant-speed phases near zero speed to inform it (see :func:`fit_linear_axis`).
 
+A two-mass axis (``axis.load_mass_kg`` > 0, :attr:`LinearAxisPlant.second_mass`) is the motor
+side ``M - m_l`` (the friction above, the logged position) carrying the load mass ``m_l`` through a
+spring-damper, the external load on the load mass (:mod:`prsa_ctrl.identification.axistwomass`:
+the same model as :mod:`prsa_ctrl.plant.linearaxis`); the fit holds its second mass and fits ``M``
+and the friction on its replay.
+
 Between two controller samples the drive force is constant (zero-order hold), so the motion is
 a linear ODE per direction of motion: it is integrated exactly (exponential solution, the
 zero-speed crossing time in closed form, then stick or reversal in the rest of the sample). No
@@ -128,6 +134,16 @@ class LinearAxisPlant:
     def theta(self) -> NDArray[np.float64]:
         """The fitted parameters :data:`PARAMETERS` as a vector."""
         return np.array([self.values[k] for k in PARAMETERS])
+
+    @property
+    def second_mass(self) -> tuple[float, float, float] | None:
+        """``(m_l kg, k N/m, zeta)`` of a two-mass axis (``axis.load_mass_kg`` > 0: the replay and
+        the fit's model, :func:`simulate_axis`), None for a rigid one."""
+        ml = float(self.values.get("axis.load_mass_kg", 0.0))
+        if not ml > 0:
+            return None
+        k, z = (float(self.values.get(key, plant_schema.DEFAULTS[key][0])) for key in _TWO_MASS_KEYS[1:])
+        return ml, k * 1e6, z
 
     def with_values(self, values: Mapping[str, float], sources: Mapping[str, str]) -> "LinearAxisPlant":
         v, s = dict(self.values), dict(self.sources)
@@ -288,7 +304,8 @@ class _Trace:
 
 def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = None,
                   force_limit_n: float = math.inf, closed_loop: bool | None = None,
-                  x0: tuple[float, float] | None = None) -> _Trace:
+                  x0: tuple[float, float] | None = None,
+                  second_mass: tuple[float, float, float] | None = None) -> _Trace:
     """Replay a log through the axis model.
 
     Parameters
@@ -307,6 +324,11 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
     x0 : (float, float), optional
         Initial position m and speed m/s (default: the first logged position, at rest). The
         controller's past positions are taken on that motion (``q(k-1) = x0 - v0 dt``).
+    second_mass : (float, float, float), optional
+        ``(m_l kg, k N/m, zeta)``: the two-mass axis (:class:`LinearAxisPlant.second_mass`,
+        :mod:`prsa_ctrl.identification.axistwomass`) whose motor side (``M - m_l``, the friction,
+        the logged position) carries the load mass through a spring-damper, starting relaxed at
+        the motor side's speed; the external load acts on the load mass. Default: one rigid mass.
 
     Returns
     -------
@@ -330,14 +352,25 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
     cmd = np.empty(n)
     x, v = (float(log.position_m[0]), 0.0) if x0 is None else (float(x0[0]), float(x0[1]))
     flim = force_limit_n
+    if second_mass is None:
+        def step(x, v, fd, fe):
+            return _step(x, v, fd + fe, m, fvp, fvn, fcp, fcn, h)
+    else:
+        from .axistwomass import TwoMassStepper
+
+        two = TwoMassStepper((m, fvp, fvn, fcp, fcn), *second_mass, h)
+        inner = [0.0, v]  # the spring's compression (m) and the load mass's speed (m/s)
+
+        def step(x, v, fd, fe):
+            x, v, inner[0], inner[1] = two.step((x, v, inner[0], inner[1]), fd, fe)
+            return x, v
     if not closed:
         d = 0 if c is None else c.command_delay_samples
         shift = d if log.command_logged == "as-computed" else 0
         applied = (np.r_[np.zeros(shift), log.command[:n - shift]] if shift else log.command).tolist()
         for k in range(n):
             q[k], vs[k] = x, v
-            f = min(max(g * applied[k], -flim), flim) + ext[k]
-            x, v = _step(x, v, f, m, fvp, fvn, fcp, fcn, h)
+            x, v = step(x, v, min(max(g * applied[k], -flim), flim), ext[k])
         return _finite(_Trace(q, vs, log.command.copy()), log)
     kp, kv, ki, sat = c.kp, c.kv, c.ki, c.saturation
     avg = c.velocity_estimate == "average2-difference"
@@ -367,8 +400,7 @@ def simulate_axis(theta: Sequence[float], log: AxisLog, *, gain: float | None = 
         else:
             ua = u
         cmd[k] = u + test[k]
-        f = min(max(g * (ua + test[k]), -flim), flim) + ext[k]
-        x, v = _step(x, v, f, m, fvp, fvn, fcp, fcn, h)
+        x, v = step(x, v, min(max(g * (ua + test[k]), -flim), flim), ext[k])
     if d and log.command_logged == "as-applied":
         tst = np.asarray(test)
         cmd = np.r_[tst[:d], cmd[:n - d] - tst[:n - d] + tst[d:]]
@@ -439,10 +471,15 @@ class AxisReplay:
     errors_percent: Mapping[str, float]
     fit_percent: Mapping[str, float]
     reference_m: NDArray[np.float64] | None = None
+    #: ``(m_l kg, k N/m, zeta)`` when the plant replayed is a two-mass axis (None: rigid).
+    second_mass: tuple[float, float, float] | None = None
 
     def report(self) -> dict:
-        return {"log": self.name, "replay": "closed loop from the reference" if self.closed_loop else
-                "open loop from the logged command", "samples": int(self.time_s.size),
+        how = "closed loop from the reference" if self.closed_loop else "open loop from the logged command"
+        if self.second_mass is not None:
+            how += (f", two-mass axis ({self.second_mass[0]:.6g} kg beyond {self.second_mass[1] * 1e-6:.6g} N/um, "
+                    f"damping {self.second_mass[2]:.3g})")
+        return {"log": self.name, "replay": how, "samples": int(self.time_s.size),
                 "errors_percent": dict(self.errors_percent), "fit_percent": dict(self.fit_percent),
                 "metric": f"100*||y - y_sim||/||y|| from sample {METRIC_SKIP_SAMPLES} on; position vs the logged "
                           "position, velocity vs the logged speed (or the position low-passed at fs/10, zero phase, "
@@ -465,13 +502,13 @@ def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
     gain = log.gain_n_per_unit
     vm = measured_velocity(log)
     tr = simulate_axis(theta, log, gain=gain, force_limit_n=plant.values.get("drive.force_limit_n", math.inf),
-                       x0=(float(log.position_m[0]), float(vm[0])))
+                       x0=(float(log.position_m[0]), float(vm[0])), second_mass=plant.second_mass)
     fm, fs = gain * log.command, gain * tr.command
     pairs = {"position": (log.position_m, tr.position_m), "velocity": (vm, tr.velocity_m_s), "force": (fm, fs)}
     closed = log.controller is not None and log.reference_m is not None
     return AxisReplay(log.name, closed, log.time_s, log.position_m, tr.position_m, vm, tr.velocity_m_s, fm, fs,
                       {k: relative_error(*p) for k, p in pairs.items()}, {k: _fit_percent(*p) for k, p in pairs.items()},
-                      log.reference_m)
+                      log.reference_m, plant.second_mass)
 
 
 # --- calibration ------------------------------------------------------------------------------------
@@ -644,16 +681,17 @@ def _starts(logs: Sequence[AxisLog]) -> list[tuple[float, float]]:
     return [(float(lg.position_m[0]), float(measured_velocity(lg)[0])) for lg in logs]
 
 
-def _channels(theta, logs: Sequence[AxisLog], flim: float, starts, skip: int = METRIC_SKIP_SAMPLES):
-    """Position (m) and force (N) errors of each log's replay from sample ``skip`` on."""
+def _channels(theta, logs: Sequence[AxisLog], flim: float, starts, skip: int = METRIC_SKIP_SAMPLES, second=None):
+    """Position (m) and force (N) errors of each log's replay from sample ``skip`` on (``second``:
+    the two-mass axis's second mass, :func:`simulate_axis`)."""
     out = []
     for lg, x0 in zip(logs, starts):
-        tr = simulate_axis(theta, lg, force_limit_n=flim, x0=x0)
+        tr = simulate_axis(theta, lg, force_limit_n=flim, x0=x0, second_mass=second)
         out.append((tr.position_m[skip:] - lg.position_m[skip:], lg.gain_n_per_unit * (tr.command[skip:] - lg.command[skip:])))
     return out
 
 
-def _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts, strict: bool = True):
+def _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts, strict: bool = True, second=None):
     """Least-squares output-error fit of the parameters ``free`` (the others stay at ``theta0``),
     position and force errors weighted by ``sig`` (m, N). Raises AxisFitError when it does not
     converge within ``max_evaluations`` residual evaluations (each Jacobian adds one replay per free
@@ -663,7 +701,7 @@ def _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts
     def resid(x):
         th = theta0.copy()
         th[free] = x
-        ch = _channels(th, logs, flim, starts)
+        ch = _channels(th, logs, flim, starts, second=second)
         return np.concatenate([np.concatenate([c[0] for c in ch]) / sig[0], np.concatenate([c[1] for c in ch]) / sig[1]])
 
     scale = np.maximum(np.abs(theta0[free]), 1e-3 * max(abs(theta0[0]), 1.0))
@@ -715,7 +753,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
        position and force errors (``scipy.optimize.least_squares``, trust region, at most
        ``max_evaluations`` residual evaluations, each Jacobian by forward differences: at most
        ``max_evaluations * 6`` replays of each log). Logs without a described controller are
-       replayed open loop from the logged command.
+       replayed open loop from the logged command. A two-mass base (``axis.load_mass_kg`` > 0, e.g.
+       from ``prsa-fit --frf``) is replayed as the two-mass axis (:attr:`LinearAxisPlant.second_mass`),
+       its load mass, stiffness and damping held at the base's values and ``M`` kept above the load mass.
     3. 95 % intervals from the sandwich covariance with a batch-means long-run variance and
        Student's t (:func:`_batch_covariance`): the residuals of a real axis are correlated over many samples,
        and intervals that treat them as white would be far too narrow.
@@ -772,13 +812,18 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     flim = base.values.get("drive.force_limit_n", math.inf)
 
     starts = _starts(logs)
-    ch0 = _channels(theta0, logs, flim, starts)
+    second = base.second_mass  # a two-mass axis: its second mass held, M and the friction fitted on its replay
+    if second is not None and not theta0[0] > second[0] * (1 + 1e-3):
+        warnings.append(f"inverse-dynamic mass start {theta0[0]:.6g} kg is not above the load mass {second[0]:.6g} kg; "
+                        f"started from {2 * second[0]:.6g} kg")
+        theta0[0] = 2 * second[0]
+    ch0 = _channels(theta0, logs, flim, starts, second=second)
     sig = (math.sqrt(np.mean(np.concatenate([c[0] for c in ch0]) ** 2)) or 1e-12,
            math.sqrt(np.mean(np.concatenate([c[1] for c in ch0]) ** 2)) or 1e-12)
     free = np.flatnonzero(informed)
-    lb = np.where(free == 0, 1e-6 * theta0[0], 0.0)
+    lb = np.where(free == 0, 1e-6 * theta0[0] if second is None else second[0] * (1 + 1e-3), 0.0)
     x0 = np.clip(theta0[free], lb, None)
-    sol = _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts)
+    sol = _output_error(logs, theta0, free, x0, lb, sig, flim, max_evaluations, starts, second=second)
     delays = {}
     d0 = logs[0].controller.command_delay_samples if logs[0].controller is not None else None
     if check_delay and d0 is not None and all(lg.controller is not None for lg in logs):
@@ -788,7 +833,7 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
                 alt = [dataclasses.replace(lg, controller=dataclasses.replace(lg.controller, command_delay_samples=d))
                        for lg in logs]
                 alt_sol = _output_error(alt, theta0, free, sol.x, lb, sig, flim, DELAY_CHECK_EVALUATIONS, starts,
-                                        strict=False)
+                                        strict=False, second=second)
                 delays[d] = float(alt_sol.cost)
         best = min(delays, key=delays.get)
         if best != d0 and delays[best] < (1.0 - DELAY_MARGIN) * delays[d0]:
@@ -805,7 +850,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     cov[np.ix_(free, free)] = cov_free
     at_bound = [PARAMETERS[j] for j, x in zip(free, sol.x) if x <= lb[list(free).index(j)] * (1 + 1e-9) + 1e-12]
     for k in at_bound:
-        warnings.append(f"{k} ended at its bound (0): the data do not support that friction term")
+        warnings.append(f"{k} ended at its bound (the load mass {second[0]:.6g} kg of the two-mass axis): the motor "
+                        "side has no mass left; check axis.load_mass_kg" if k == PARAMETERS[0] else
+                        f"{k} ended at its bound (0): the data do not support that friction term")
     names = ", ".join(Path(lg.name).name for lg in logs)
     params, values, sources, unc = {}, {}, {}, {}
     for j, k in enumerate(PARAMETERS):
@@ -829,7 +876,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     # the base's entries on keys the fit leaves alone are kept, its correlation blocks restricted to them
     kept = {k: e for k, e in base.uncertainty.items() if k not in unc and k not in {PARAMETERS[j] for j in free}}
     unc = carry_correlation({**kept, **unc}, base.uncertainty, corr, warnings)
-    what = f"linear axis calibrated by prsa-fit from {names} (closed-loop output error)"
+    what = f"linear axis calibrated by prsa-fit from {names} (closed-loop output error" + (
+        f"; two-mass axis, its second mass held at the base's {second[0]:.6g} kg, {second[1] * 1e-6:.6g} N/um)"
+        if second is not None else ")")
     fitted = LinearAxisPlant(name=name, values={**base.values, **values}, sources={**base.sources, **sources},
                              description=f"{base.description}; {what}" if base.description else what,
                              command_unit=base.command_unit, uncertainty=unc)

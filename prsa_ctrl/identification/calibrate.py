@@ -249,7 +249,8 @@ def mat_log_refusal(path: str) -> str:
 def linear_axis_refusal(base: str | None) -> str:
     """The one line refusing a ``linear-axis`` base plant for records in motor coordinates."""
     return (f"--plant {base}: mechanism = \"linear-axis\" (load coordinates: m, N); expected a screw-driven plant "
-            "for records in motor coordinates (a linear axis is fitted from its log with --log-format FORMAT.toml)")
+            "for records in motor coordinates (a linear axis is fitted from its log with --log-format FORMAT.toml, "
+            "or from its measured frequency response in m/s per N with --frf alone)")
 
 
 def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name: str,

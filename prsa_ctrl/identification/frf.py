@@ -50,9 +50,23 @@ class _Linear:
         x = ca.SX.sym("x", len(names))
         u = ca.SX.sym("u", 2)
         xdot = f(x, u, p)
-        # a linear axis's compliant model is its rigid one (it carries no compliance)
-        self.rigid = fidelity == "rigid" or "x_roller" not in names
+        # a rigid linear axis's compliant model is its rigid one (it carries no compliance)
+        self.rigid = fidelity == "rigid" or "delta_screw" not in names
         self.screw_driven = "x_roller" in names and "omega_cage" not in names
+        self.two_mass_axis = not self.rigid and "x_roller" not in names  # the two-mass linear axis
+        if self.two_mass_axis:
+            # steady state at speed w0 and load f0: both masses at w0; the spring's compression and
+            # the drive force z make both accelerations zero (affine in z away from the stick band)
+            i_d, i_v = names.index("delta_screw"), names.index("v_screw")
+            z = ca.SX.sym("z", 2)
+            xs = [0] * len(names)
+            xs[i_w], xs[i_v], xs[i_d], xs[i_tau] = w0, w0, z[0], z[1]
+            x_op = ca.vertcat(*xs)
+            r = f(x_op, ca.vertcat(z[1], f0), p)[[i_w, i_v]]
+            z0 = -ca.solve(ca.substitute(ca.jacobian(r, z), z, ca.DM.zeros(2)), ca.substitute(r, z, ca.DM.zeros(2)))
+            sub = lambda e: ca.substitute(e, ca.vertcat(x, u), ca.vertcat(ca.substitute(x_op, z, z0), z0[1], f0))  # noqa: E731
+            self._rigid = ca.Function("lin", [w0, f0, p], [sub(ca.jacobian(xdot, x)), sub(ca.jacobian(xdot, u[0]))])
+            return
         if self.rigid:
             x_free = ca.vertcat(*[0 if i != i_w else w0 for i in range(len(names))])
             acc0 = ca.substitute(xdot[i_w], ca.vertcat(x, u), ca.vertcat(x_free, 0, f0))
@@ -114,7 +128,7 @@ class _Linear:
 
     def __call__(self, speed: float, load: float, pv):
         pv = np.asarray(pv, float)
-        if self.rigid:
+        if self.rigid or self.two_mass_axis:
             a, b = self._rigid(speed, load, pv)
             return np.asarray(a, float), np.asarray(b, float)
         if not self.screw_driven and abs(load) < 1e-9 * self.plant.rated_load_n:
@@ -282,7 +296,8 @@ def axial_mode(plant: Plant, *, speed_rad_s: float = 30.0, load_n: float = 800.0
     if lin.rigid:
         raise ValueError(f"{plant.name}: mechanism = {plant.mechanism!r} carries no axial compliance (its compliant "
                          "model is the rigid one); expected a screw mechanism (inverted-roller-screw, roller-screw, "
-                         "ball-screw), or fit a two-mass model to the response (prsa_ctrl.identification.twomass)")
+                         "ball-screw) or a linear axis with axis.load_mass_kg > 0, or fit a two-mass model to the "
+                         "response (prsa_ctrl.identification.twomass)")
     a, b = lin(speed_rad_s, load_n, np.zeros(0))
     nx = a.shape[0]
     ev = np.linalg.eigvals(a)
@@ -319,8 +334,10 @@ def axial_mode(plant: Plant, *, speed_rad_s: float = 30.0, load_n: float = 800.0
 def _axial_ratio(plant: Plant) -> float:
     """The translating mass through the lead over the rotating inertia at the motor: the screw
     over the nut (inverted roller screw), the carriage over the rotor with the screw
-    (screw-driven)."""
+    (screw-driven), the load mass over the motor side (a two-mass linear axis)."""
     v, a2 = plant.values, plant.lead_per_rad**2
+    if plant.mechanism == "linear-axis":  # the load mass over the motor side's
+        return float(v["axis.load_mass_kg"] / (v["axis.mass_kg"] - v["axis.load_mass_kg"]))
     if plant.screw_driven:
         return float(v["axis.moving_mass_kg"] * a2 / (v["axis.motor_inertia_kg_m2"] + v["axis.screw_inertia_kg_m2"]))
     return float(v["screw.mass_kg"] * a2 / v["nut.inertia_kg_m2"])

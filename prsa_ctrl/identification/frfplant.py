@@ -28,8 +28,8 @@ current loop and delay):
 ``linear-axis`` (load coordinates: force in N, speed in m/s)
     ``axis.mass_kg = J``; two-mass: also ``axis.load_mass_kg = J_l``,
     ``axis.load_stiffness_n_per_um = k = J_l (2 pi f_a)^2`` (1e-6 of N/m) and
-    ``axis.axial_damping_ratio = zeta``. The toolkit's linear-axis model is rigid
-    (:mod:`prsa_ctrl.plant.model`: it uses ``axis.mass_kg``): a warning says so.
+    ``axis.axial_damping_ratio = zeta``: the plant's compliant model is then exactly this
+    two-mass axis (:mod:`prsa_ctrl.plant.linearaxis`), so the mapping is written as it is.
 
 Every mechanism: ``drive.current_loop_bandwidth_hz = f_c`` and the delay ``T`` as
 ``drive.command_delay_samples`` whole samples, the rest lumped into the current-loop lag
@@ -433,9 +433,9 @@ def plant_keys_of(plant: Plant, fit: FrfModelFit, *, speed_rad_s: float, load_n:
     elif structure == "two-mass" and plant.mechanism == "linear-axis":
         warns.append(f"the response shows a mode at {v0['resonance_hz']:.4g} Hz (anti-resonance "
                      f"{v0['antiresonance_hz']:.4g} Hz): written as axis.load_mass_kg, axis.load_stiffness_n_per_um "
-                     "(anti-resonance^2 x load mass) and axis.axial_damping_ratio; the toolkit's linear-axis model "
-                     "is rigid (the simulation and the tuners use axis.mass_kg, the whole mass), so the mode is the "
-                     "plant file's record of the axis, not yet a part of its loop model")
+                     "(anti-resonance^2 x load mass) and axis.axial_damping_ratio: the plant's compliant model is "
+                     "then this two-mass axis (simulation, linearisation, prsa-axis and the time-domain fit's "
+                     "replay); its rigid model keeps the whole mass axis.mass_kg as one body")
     cov = grads @ cov_t @ grads.T
     from scipy.stats import t as student_t
 

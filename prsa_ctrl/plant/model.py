@@ -41,9 +41,9 @@ axis); the inputs are always the torque command (N m) and the axial load (N).
     inverted design's per-roller contacts). The roller-screw's carrier and roller speeds are
     outputs of its rigid kinematics; a ball screw's are 0 (the ball train is not modelled).
 ``linear-axis`` (load coordinates: 1 m of travel per radian, force in N as torque in N m)
-    ``rigid`` and ``compliant`` are both the rigid mass with direction-dependent Coulomb and
-    viscous friction (:func:`_linear_axis_friction`): a plain axis description carries no
-    compliance. ``multi-roller``: not available.
+    ``rigid``: one mass with direction-dependent Coulomb and viscous friction
+    (:func:`_linear_axis_friction`); ``compliant``: the same, or the two-mass axis of
+    :mod:`prsa_ctrl.plant.linearaxis` when ``axis.load_mass_kg`` > 0. ``multi-roller``: not available.
 
 Axial kinematics of the inverted design (derivation)
 ----------------------------------------------------
@@ -128,6 +128,7 @@ import casadi as ca
 from .plantfile import Plant
 from .nutloss import NUT_LOSS_KEY, nut_loss_band_n, nut_loss_on_whole_force, smooth_abs
 from .schema import BREAKAWAY_KEY, VISCOUS_OFFSET_KEY
+from .linearaxis import TWO_MASS_AXIS_STATES, is_two_mass_axis, two_mass_axis
 
 __all__ = ["FIDELITIES", "PlantModel", "state_derivative", "RollerErrors", "plant_model", "INPUTS", "stribeck_coefficient",
            "ParametricModel", "parametric_family", "register_member",
@@ -201,7 +202,7 @@ def _state_names(plant: Plant, fidelity: str) -> tuple[str, ...]:
     if fidelity == "compliant" and plant.screw_driven:
         return _SCREW_DRIVEN_STATES
     if fidelity == "compliant" and plant.mechanism == "linear-axis":
-        return _STATES["rigid"]
+        return TWO_MASS_AXIS_STATES if is_two_mass_axis(plant) else _STATES["rigid"]
     return _STATES[fidelity]
 
 
@@ -474,6 +475,16 @@ def _rigid(plant: Plant, x: ca.SX, u: ca.SX):
     return xdot, y, [stored, tau * omega, load * a * omega, dissipated]
 
 
+def _two_mass_linear(plant: Plant, x: ca.SX, u: ca.SX):
+    """The two-mass linear axis (:func:`prsa_ctrl.plant.linearaxis.two_mass_axis`) with this model's laws."""
+    f_n, f_s = plant.normal_force_factor()
+
+    def friction(p, w):
+        visc, offset = _linear_axis_friction(p, w)
+        return visc, offset, lambda t_net, m: _nut_friction(p, w, ca.fabs(u[1]) * (f_n + f_s), t_net, m)
+    return two_mass_axis(plant, x, u, friction, _drive, _kinematic_outputs)
+
+
 @dataclass
 class _Contacts:
     """Thread-contact totals of the compliant models: axial forces on the roller assembly
@@ -716,6 +727,8 @@ def _build(plant: Plant, fidelity: str, seed: int = 0, roller_axial: str = "scre
 def _state_scales(plant: Plant, names: tuple[str, ...]) -> "dict | None":
     """Typical deflections of a screw-driven axis's compliant model: the rated load over each
     spring's stiffness (m); ``None`` for the other models (the simulator's defaults hold)."""
+    if names == TWO_MASS_AXIS_STATES:  # the spring under the drive's force limit
+        return {"delta_screw": float(plant.torque_limit) / (float(plant.values["axis.load_stiffness_n_per_um"]) * 1e6)}
     if not (plant.screw_driven and "delta_screw" in names):
         return None
     k_h, _, k_b, _, _ = (float(z) for z in screw_axis_springs(plant))
@@ -733,6 +746,8 @@ def state_derivative(plant: Plant, fidelity: str, x: ca.SX, u: ca.SX, roller_axi
         return _screw_driven(plant, x, u)
     if fidelity == "compliant" and plant.mechanism != "linear-axis":
         return _compliant(plant, x, u, roller_axial)
+    if fidelity == "compliant" and is_two_mass_axis(plant):
+        return _two_mass_linear(plant, x, u)
     if fidelity in ("rigid", "compliant"):
         return _rigid(plant, x, u)
     raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid' or 'compliant'")

@@ -29,6 +29,7 @@ from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS
 plt = module("matplotlib.pyplot")
 
 __all__ = ["fit_figures", "figure_names", "fit_views", "log_response", "log_traces", "axis_replay_figure",
+           "axis_response_figure",
            "VIEW_MAX_POINTS"]
 
 #: Largest number of samples per replay trace in :func:`fit_views` (longer ones are taken at an
@@ -130,7 +131,9 @@ def fit_figures(result: FitResult, frequency_unit: str = DEFAULT_FREQUENCY_UNIT,
                 _verdict_caption(fig, validation)
             figs[f"{stem}-fit"] = fig
         else:
-            figs[f"{stem}-bode"] = _bode_figure(name, tr, result.fit_percent.get(name, float("nan")), frequency_unit)
+            figs[f"{stem}-bode"] = _bode_figure(name, tr, result.fit_percent.get(name, float("nan")), frequency_unit,
+                                                gain_unit="m/s per N" if getattr(result.plant, "mechanism", None)
+                                                == "linear-axis" else "rad/s per N m")
     for name, tr in log_traces(result, records).items():
         figs[f"{stems[name]}-frf"] = _bode_figure(name, {**tr, "title": f"{name}: the log's response (H1 from the "
                                                                         "logged command) beside the written plant's"},
@@ -161,11 +164,13 @@ def _phase_on(g, pm_deg):
     return np.degrees(np.angle(g * np.exp(-1j * np.radians(pm_deg)))) + pm_deg
 
 
-def _bode_figure(name: str, tr: dict, fit_pct: float, unit: str = DEFAULT_FREQUENCY_UNIT):
+def _bode_figure(name: str, tr: dict, fit_pct: float, unit: str = DEFAULT_FREQUENCY_UNIT,
+                 gain_unit: str = "rad/s per N m"):
     """Bode overlay of a frequency response: the data (points) beside the fitted models (lines:
     the written plant's and, from an FRF-only fit, the rigid and the two-mass models), frequency
     in ``unit``, the residual of the written model (log magnitude in dB, phase in degrees) and,
-    when the data carry one, the coherence below."""
+    when the data carry one, the coherence below; ``gain_unit`` names the response's unit (a
+    linear axis's, in load coordinates: m/s per N)."""
     x = np.asarray(tr["frequency_hz"], float) * _unit_factor(unit)
     gm, gf = np.asarray(tr["measured"]), np.asarray(tr["model"])
     coh = tr.get("coherence")
@@ -180,7 +185,7 @@ def _bode_figure(name: str, tr: dict, fit_pct: float, unit: str = DEFAULT_FREQUE
         style = dict(lw=1.4, ls="-") if written else dict(lw=0.9, ls="--")
         ax1.semilogx(x, 20 * np.log10(np.abs(g)), color=f"C{i}", label=_plain(label), **style)
         ax2.semilogx(x, _phase_on(g, pm), color=f"C{i}", **style)
-    ax1.set_ylabel("|G| (dB re 1 rad/s per N m)")
+    ax1.set_ylabel(f"|G| (dB re 1 {gain_unit})")  # a linear axis (load coordinates): m/s per N
     chosen = tr.get("chosen")
     ax1.set_title(_plain(tr.get("title") or f"{name}: fit {fit_pct:.1f} %" + (f" (structure: {chosen})" if chosen
                                                                                else "")), fontsize=10)
@@ -305,33 +310,85 @@ def log_response(record, nperseg: int | None = None, power_floor: float = 1e-3):
     (frequency_hz, response, coherence) : ndarrays (Hz, (rad/s)/(N m) complex, 0..1), or None
         for a log too short (under 256 samples) or without command power.
     """
-    from scipy.signal import csd, welch
-
     # the command of sample k beside the speed (angle_k - angle_k-1) / Ts (sample 0 has none): the
     # pairing of the sampled model response (command held over a sample, backward difference)
-    u = np.asarray(record.torque_command_n_m, float)[1:]
-    y = np.asarray(record.speed_rad_s, float)
+    out = _h1([(np.asarray(record.torque_command_n_m, float)[1:], np.asarray(record.speed_rad_s, float))],
+              float(record.sample_time_s), nperseg, power_floor)
+    return None if out is None else (out[0], out[1][0], out[2][0])
+
+
+def _h1(pairs, ts: float, nperseg: int | None, power_floor: float):
+    """H1 estimates ``S_uy / S_uu`` and coherences of the input/output ``pairs`` (Welch as
+    :func:`log_response`) on the bins the first pair's input excites; None when it excites none
+    (or a log is under 256 samples or not finite)."""
+    from scipy.signal import csd, welch
+
+    u, y = pairs[0]
     n = len(u)
-    if n < 256 or not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+    if n < 256 or not all(np.all(np.isfinite(a)) for pr in pairs for a in pr):
         return None
-    ts = float(record.sample_time_s)
     if nperseg is None:
         nperseg = int(min(4096, max(256, 2 ** int(math.floor(math.log2(max(n // 2, 1)))))))
     nperseg = int(min(nperseg, n))
     kw = dict(fs=1.0 / ts, window="hann", nperseg=nperseg, noverlap=nperseg // 2, detrend="linear")
-    f, p_uu = welch(u, **kw)
-    _, p_yy = welch(y, **kw)
-    _, p_uy = csd(u, y, **kw)
+    spectra = [(welch(a, **kw)[1], welch(b, **kw)[1], csd(a, b, **kw)[1]) for a, b in pairs]
+    f = welch(u, **kw)[0]
+    p_uu, p_yy, _ = spectra[0]
     top = float(np.max(p_uu[1:])) if len(p_uu) > 1 else 0.0
     if not top > 0:
         return None
-    keep = (np.arange(len(f)) >= 2) & (f <= 0.45 / ts) & (p_uu > power_floor * top) & (p_yy > 0)
+    keep = (np.arange(len(f)) >= 2) & (f <= 0.45 / ts) & (p_uu > power_floor * top)
+    for q_uu, q_yy, _ in spectra:
+        keep &= (q_uu > 0) & (q_yy > 0)
     if np.count_nonzero(keep) < 2:
         return None
-    g = p_uy[keep] / p_uu[keep]
-    coh = np.clip(np.abs(p_uy[keep]) ** 2 / (p_uu[keep] * p_yy[keep]), 0.0, 1.0)
-    ok = np.isfinite(g) & (g != 0)
-    return f[keep][ok], g[ok], coh[ok]
+    gs = [q_uy[keep] / q_uu[keep] for q_uu, _, q_uy in spectra]
+    cohs = [np.clip(np.abs(q_uy[keep]) ** 2 / (q_uu[keep] * q_yy[keep]), 0.0, 1.0) for q_uu, q_yy, q_uy in spectra]
+    ok = np.logical_and.reduce([np.isfinite(g) & (g != 0) for g in gs])
+    if np.count_nonzero(ok) < 2:
+        return None
+    return f[keep][ok], [g[ok] for g in gs], [c[ok] for c in cohs]
+
+
+def axis_response_figure(replay, nperseg: int | None = None):
+    """The frequency response of a linear-axis log beside its replay's
+    (:class:`~prsa_ctrl.identification.axis.AxisReplay`), on a Hz axis: force -> velocity (m/s
+    per N), the H1 estimate of the measured force and velocity beside the same estimate of the
+    replayed ones (one estimator, the bins the measured force excites; in a closed loop it is
+    not the plant's own response, but data and replay pass through the same loop), the residual
+    ``data / replay`` in dB and degrees, and the data's coherence. None for a log under 256
+    samples or without force power."""
+    ts = float(np.median(np.diff(np.asarray(replay.time_s, float))))
+    out = _h1([(np.asarray(replay.force_measured, float), np.asarray(replay.velocity_measured, float)),
+               (np.asarray(replay.force_simulated, float), np.asarray(replay.velocity_simulated, float))],
+              ts, nperseg, 1e-3)
+    if out is None:
+        return None
+    f, (gm, gs), (coh, _) = out
+    how = "closed-loop replay" if replay.closed_loop else "open-loop replay"
+    fig, ax = plt.subplots(4, 1, sharex=True, figsize=(9, 8.5), height_ratios=(1.2, 1, 0.8, 0.6))
+    ax[0].semilogx(f, 20 * np.log10(np.abs(gm)), ".", ms=3, label="data (H1 of the log)")
+    ax[0].semilogx(f, 20 * np.log10(np.abs(gs)), "-", label=f"{how} (same estimator)")
+    ax[0].set_ylabel("|G| (dB re 1 m/s per N)")
+    ax[0].legend(loc="lower left", fontsize=8)
+    ax[1].semilogx(f, np.degrees(np.unwrap(np.angle(gm))), ".", ms=3)
+    ax[1].semilogx(f, np.degrees(np.unwrap(np.angle(gs))), "-")
+    ax[1].set_ylabel("phase (deg)")
+    d = np.log(gm / gs)
+    ax[2].semilogx(f, 20 / np.log(10) * d.real, color="C3", label="magnitude (dB)")
+    ax[2].semilogx(f, np.degrees(d.imag), color="C4", label="phase (deg)")
+    ax[2].axhline(0.0, color="0.3", lw=0.5)
+    ax[2].set_ylabel("residual data/replay")
+    ax[2].legend(loc="upper left", fontsize=8)
+    ax[3].semilogx(f, coh, color="C2")
+    ax[3].set_ylim(0.0, 1.05)
+    ax[3].set_ylabel("coherence")
+    ax[3].set_xlabel("frequency (Hz)")
+    for a in ax:
+        a.grid(True, which="both", alpha=0.3)
+    fig.suptitle(_plain(f"{PurePath(replay.name).name}: force -> velocity, data beside the {how}"), fontsize=10)
+    fig.tight_layout()
+    return fig
 
 
 def _floats(a) -> list:

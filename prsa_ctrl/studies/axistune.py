@@ -16,7 +16,8 @@ is built here, :func:`axis_loop`). Position P over velocity P is therefore ``kp 
 ``kv = kp_tuner``.
 
 Loop model (:func:`axis_loop`): the plant linearised by the toolkit
-(:func:`prsa_ctrl.plant.linear.linear_core`, rigid fidelity, at a speed of ``+speed`` or
+(:func:`prsa_ctrl.plant.linear.linear_core`, rigid fidelity, or the compliant one, the two-mass
+axis of :mod:`prsa_ctrl.plant.linearaxis`, when the plant has a load mass; at a speed of ``+speed`` or
 ``-speed`` so that a direction's viscous friction is the slope; the plant's current-loop lag is
 part of it), held over each sample (zero-order hold), the velocity estimate and the position error
 exactly as above. Robustness: ``Ms = max |1 / (1 + L)|`` with the loop broken at the drive input,
@@ -45,6 +46,7 @@ from ..drive.sampled import freq_grid, ss_response, zoh
 from ..identification.axis import LinearAxisPlant, simulate_axis
 from ..identification.logformat import VELOCITY_ESTIMATES, AxisLog, ControllerSpec
 from ..plant.linear import linear_core
+from ..plant.linearaxis import is_two_mass_axis, two_mass_axis_parameters
 from ..plant.model import plant_model
 from ..plant.plantfile import Plant
 from ..results import check_status
@@ -124,11 +126,17 @@ def axis_loop(plant: Plant, *, gain_n_per_unit: float, sample_time_s: float,
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
             raise ValueError(f"{arg} = {v!r}; expected a positive finite number")
     ts, g = float(sample_time_s), float(gain_n_per_unit)
-    a, b, _, _, _ = linear_core(plant, direction * LINEARISATION_SPEED_M_S, 0.0, "rigid")
-    names = plant_model(plant, "rigid").state_names
-    ad, bd = zoh(a, b, ts)
+    fidelity = "compliant" if is_two_mass_axis(plant) else "rigid"  # the two-mass axis where the plant has one
+    a, b, _, _, _ = linear_core(plant, direction * LINEARISATION_SPEED_M_S, 0.0, fidelity)
+    names = plant_model(plant, fidelity).state_names
+    i_w = names.index("omega_nut")
+    # friction acts on the motor side (the whole mass of a rigid axis): a force column there, N
+    friction_col = np.zeros(a.shape[0])
+    friction_col[i_w] = -1.0 / (two_mass_axis_parameters(plant)[0] if fidelity == "compliant"
+                                else float(plant.values["axis.mass_kg"]))
+    ad, bd = zoh(a, np.column_stack([b, friction_col]), ts)
     n = ad.shape[0]
-    i_th = names.index("theta_nut")  # load position, m (1 m per rad)
+    i_th = names.index("theta_nut")  # position of the motor side (the encoder's; a rigid axis's load), m
     i_q1, i_q2, i_r = n, n + 1, n + 2
     N = n + 3
     E = np.eye(N)
@@ -163,7 +171,7 @@ def axis_loop(plant: Plant, *, gain_n_per_unit: float, sample_time_s: float,
             load = np.where(vr > 0, v["friction.coulomb_positive_n"], 0.0) \
                 - np.where(vr < 0, v["friction.coulomb_negative_n"], 0.0)
             load[-1] = 0.0  # held after the horizon: the axis at rest, where Coulomb friction is no load
-            profile[:, :n] = load[:, None] * bl[None, :]
+            profile[:, :n] = load[:, None] * bd[:, 2][None, :]
         k = int(np.argmax(np.abs(r)))
         bdv[i_r] = r[k]
     nyq = math.pi / ts
@@ -275,7 +283,8 @@ def _design(label: str, gains: AxisGains, loops: Sequence[LoopModel], axis: Line
     m = margins[worst]
     # saturation lifted: the peak command is what the design demands (flagged beyond the limit)
     c = dataclasses.replace(log.controller, kp=gains.kp, kv=gains.kv, saturation=math.inf)
-    tr = simulate_axis(axis.theta, dataclasses.replace(log, controller=c), force_limit_n=math.inf, x0=x0)
+    tr = simulate_axis(axis.theta, dataclasses.replace(log, controller=c), force_limit_n=math.inf, x0=x0,
+                       second_mass=axis.second_mass)
     e = log.reference_m - tr.position_m
     ise = float(sum(lp.true_objective(g, "ise")[0] for lp in loops))
     return AxisDesign(label, gains, float(m.ms), min(float(x.gm_db) for x in margins),

@@ -604,3 +604,18 @@ def test_a_tiny_viscous_term_replays_as_none():
     for fv in (1e-13, 1e-9):
         x = simulate_axis((4.0, fv, 0.0, 1e-3, 0.0), log, x0=(0.0, 0.0)).position_m
         assert np.max(np.abs(x - ref)) < 1e-9 * np.max(np.abs(ref)) + 1e-3 * fv
+
+
+def test_validate_plots_the_replay_and_the_frequency_response_beside_the_logs(logdir, capsys):
+    """prsa-fit --validate PLANT LOG --plots DIR (linear axis): per log the replay overlay and the
+    frequency-response overlay (the log's beside the replay's, Hz axis), both PNG files named."""
+    rc, out, _, cap = _run(logdir, 30.0, "plots", capsys)
+    assert rc == 0, cap.err
+    figs = logdir / "figs-validate"
+    rc = main(["--validate", str(out), str(logdir / "log.csv"), "--log-format", str(logdir / "fmt.toml"),
+               "--plots", str(figs)])
+    text = capsys.readouterr()
+    assert rc == 0, text.err
+    names = sorted(p.name for p in figs.iterdir())
+    assert names == ["replay-1-log.csv.png", "response-1-log.csv.png"], names
+    assert all((figs / n).stat().st_size > 10_000 and str(figs / n) in text.out for n in names)
