@@ -353,11 +353,12 @@ def fit_plant(
     if not validation:
         return res
 
-    def refit(recs: Sequence[Record], start: Plant) -> FitResult:
+    def refit(recs: Sequence[Record], start: Plant, attempt: int = 0) -> FitResult:
         return _fit_records(recs, start, frf=(), keys=res.keys, fidelity=fidelity, validate=(), segment_s=segment_s,
                             delay_samples=shift, substeps=substeps, max_iter=max_iter, tol=tol,
                             min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                            uncertainty=uncertainty, check_interrupt=check_interrupt, max_attempts=1)
+                            uncertainty=uncertainty, check_interrupt=check_interrupt, max_attempts=1,
+                            first_attempt=attempt)
 
     from .validation import validate_fit
 
@@ -367,7 +368,7 @@ def fit_plant(
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
                  min_speed_rad_s, keep_unidentified, uncertainty="keep", check_interrupt=None,
-                 max_attempts=3) -> FitResult:
+                 max_attempts=3, first_attempt=0) -> FitResult:
     """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
@@ -409,7 +410,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     # warm-up first: without it, parameter steps taken while the trajectories are still far
     # from the data can lead the iteration into a stall (a 4 s record took 33 wasted
     # iterations before the warm-up attempt converged in 9).
-    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))[:max_attempts]
+    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))[first_attempt:first_attempt + max_attempts]
     spent = 0
     for i, (box, warm) in enumerate(attempts):
         try:
