@@ -62,7 +62,7 @@ from ..plant.plantfile import Plant
 from .common import fit_percent, symbolic_rhs
 from .data import Record
 
-__all__ = ["OBSERVER_HZ", "FIT_MIN_PERCENT", "NOISE_FACTOR", "RESONANCE_SHARE", "resonance", "WRITTEN_TOLERANCE_POINTS", "ACF_LAGS", "SKIP_S",
+__all__ = ["OBSERVER_HZ", "FIT_MIN_PERCENT", "NOISE_FACTOR", "RESONANCE_SHARE", "FIT_FAILURE", "refusal", "resonance", "WRITTEN_TOLERANCE_POINTS", "ACF_LAGS", "SKIP_S",
            "REPLAY_MODE", "replay_records", "noise_floor", "whiteness", "explained", "verdict", "diagnosis",
            "validate_fit", "ClosedLoop", "closed_loop_of", "closed_loop_replay", "CLOSED_LOOP_MODE"]
 
@@ -75,6 +75,9 @@ NOISE_FACTOR = 3.0
 #: Above the noise allowance, a residual holding this share of its power within +/- 15 % of one
 #: frequency above 10 Hz is a resonance the model lacks: the log is not explained, whatever its fit %.
 RESONANCE_SHARE = 1.0 / 3.0
+#: How :func:`diagnosis` begins when the fit could not be validated because a fit failed (no
+#: evidence about the physics); :func:`refusal` then says "could not be validated".
+FIT_FAILURE = "fit failure, not missing physics"
 #: The written plant may replay a log this many fit-% points worse than the free fit, no more.
 WRITTEN_TOLERANCE_POINTS = 2.0
 #: Lags (samples) of the reported residual autocorrelation.
@@ -482,7 +485,7 @@ def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | Non
     if failed and not bad:
         n, why = next(iter(failed.items()))
         why = why.split("; remedy")[0][:200]
-        return (f"fit failure, not missing physics: the cross-validation fit on the logs other than {n} did not "
+        return (f"{FIT_FAILURE}: the cross-validation fit on the logs other than {n} did not "
                 f"converge ({why}); the written plant explains every log, so the data give no evidence of "
                 "missing physics; rerun with --no-cross-validation to accept it unvalidated, or give more or longer logs")
     if not bad:
@@ -493,6 +496,14 @@ def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | Non
             "reversals and load changes (Stribeck keys, friction.torque_offset_n_m, a load-dependent loss)"
             + (f" (besides, the cross-validation fit without {', '.join(failed)} did not converge: a failure of the "
                "fit, not evidence about the physics)" if failed else ""))
+
+
+def refusal(diag: str) -> str:
+    """The verdict's words for a fit that does not pass, with its :func:`diagnosis`: a fit that
+    failed is not a plant that does not explain the data."""
+    if diag.startswith(FIT_FAILURE):
+        return f"the fitted plant could not be validated: {diag}"
+    return f"the fitted plant does not explain the data; most likely missing physics: {diag}"
 
 
 def _entry_report(e: dict) -> dict:
@@ -639,6 +650,6 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
     }
     if not passes:
         warns.append(f"validation failed: {reasons[0]}" + (f" (and {len(reasons) - 1} more)" if len(reasons) > 1 else "")
-                     + f"; most likely missing physics: {diag}")
+                     + ("; " + diag if diag.startswith(FIT_FAILURE) else f"; most likely missing physics: {diag}"))
     return dataclasses.replace(result, plant=plant, parameters=params, fit_percent=fit_pct, warnings=warns,
                                solver=solver, traces=traces)

@@ -12,7 +12,7 @@ from prsa_ctrl import GeometryWarning, load_plant
 from prsa_ctrl.identification.data import design_excitation, record_from_arrays
 from prsa_ctrl.identification.validation import (FIT_MIN_PERCENT, NOISE_FACTOR, RESONANCE_SHARE,
                                                  WRITTEN_TOLERANCE_POINTS, diagnosis, explained, noise_floor,
-                                                 replay_records, resonance, verdict, whiteness)
+                                                 refusal, replay_records, resonance, verdict, whiteness)
 
 from independent_actuator import simulate_independent  # noqa: E402
 
@@ -213,6 +213,8 @@ def test_a_cross_validation_fit_that_failed_is_a_failure_of_the_fit_not_physics(
     loo = {"independent": stalled}
     d = diagnosis({"independent": good}, [record], {"decided": True}, _R(), loo)
     assert d.startswith("fit failure, not missing physics") and "stalled" in d, d
+    assert refusal(d).startswith("the fitted plant could not be validated: fit failure")
+    assert "missing physics: friction" in refusal(diagnosis({"independent": good}, [record], {"decided": True}, _R()))
     assert not any(w in d.lower() for w in ("friction", "delay", "unit", "resonance", "second mass")), d
     assert diagnosis({"independent": good}, [record], {"decided": True}, _R()).startswith("friction model")
     t = record.time_s[1:]
