@@ -205,7 +205,9 @@ def not_explained_line(result, force: bool = False) -> str | None:
     v = result.solver.get("validation")
     if v is None or v["passes"]:
         return None
-    return (f"the fitted plant does not explain the data; most likely missing physics: {v['diagnosis']}"
+    from .validation import refusal
+
+    return (refusal(v["diagnosis"])
             + (" (--force: the plant file was written all the same)" if force else
                " (no plant file written; --force writes it)"))
 

@@ -19,9 +19,11 @@ warm-up steps, then bounded parameter steps).
 
 Confidence: the sensitivity of the residuals to the parameters (segment initial states
 projected out) follows from the collocation equations by the implicit-function theorem. The
-covariance is a sandwich with a prewhitened Newey-West (HAC) estimate of the score covariance
-(coloured residuals: quantisation, the speed loop, model error), which equals the classic
-``s^2 (J^T J)^-1`` for white residuals; it gives 95 % intervals (normal approximation), the
+covariance (:mod:`prsa_ctrl.identification.covariance`) is a sandwich with a prewhitened
+Newey-West (HAC) estimate of the score covariance (coloured residuals: quantisation, the speed
+loop, model error), which equals the classic ``s^2 (J^T J)^-1`` for white residuals, plus, with
+three logs or more, the spread of the delete-one-log estimates beyond what their noise explains
+(model error that pulls each log its own way); it gives 95 % intervals (normal approximation), the
 correlation matrix and identifiability warnings. Identifiability is decided on the singular
 values of the column-scaled parameter Jacobian (:data:`RANK_RTOL`, far above round-off): along
 a direction the data do not inform, the intervals span what the physical ranges allow and the
@@ -353,11 +355,12 @@ def fit_plant(
     if not validation:
         return res
 
-    def refit(recs: Sequence[Record], start: Plant) -> FitResult:
+    def refit(recs: Sequence[Record], start: Plant, attempt: int = 0) -> FitResult:
         return _fit_records(recs, start, frf=(), keys=res.keys, fidelity=fidelity, validate=(), segment_s=segment_s,
                             delay_samples=shift, substeps=substeps, max_iter=max_iter, tol=tol,
                             min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                            uncertainty=uncertainty, check_interrupt=check_interrupt, max_attempts=1)
+                            uncertainty=uncertainty, check_interrupt=check_interrupt, max_attempts=1,
+                            first_attempt=attempt)
 
     from .validation import validate_fit
 
@@ -367,7 +370,7 @@ def fit_plant(
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
                  min_speed_rad_s, keep_unidentified, uncertainty="keep", check_interrupt=None,
-                 max_attempts=3) -> FitResult:
+                 max_attempts=3, first_attempt=0) -> FitResult:
     """The output-error fit of :func:`fit_plant` on time-domain ``records``."""
     if not records:
         raise ValueError("records = []; expected at least one data record")
@@ -409,7 +412,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     # warm-up first: without it, parameter steps taken while the trajectories are still far
     # from the data can lead the iteration into a stall (a 4 s record took 33 wasted
     # iterations before the warm-up attempt converged in 9).
-    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))[:max_attempts]
+    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))[first_attempt:first_attempt + max_attempts]
     spent = 0
     for i, (box, warm) in enumerate(attempts):
         try:
@@ -902,71 +905,34 @@ class _Problem:
         return out, traces
 
     def covariance(self, sol):
-        """Covariance of the scaled parameters (HAC sandwich), residual std, residual count, columns, info.
+        """Covariance of the scaled parameters, residual std, residual count, columns, info.
 
-        The residuals of a real fit are not white: quantisation and the speed loop colour the
-        noise, and any model error is smooth in time. The covariance is therefore the sandwich
-        ``A^-1 Omega A^-1`` (``A = J^T J`` of the condensed Jacobian, segment initial states
-        projected out) with ``Omega`` the Newey-West (Bartlett-kernel) long-run covariance of the
-        scores ``J_k r_k`` summed within each segment (segments have free initial states, so they
-        are independent); the bandwidth is the Newey-West rule or the lag where the pooled
-        residual autocorrelation falls below its ``2/sqrt(N)`` band, whichever is larger (bounded
-        by a quarter segment). With white residuals it equals the classic ``s^2 A^-1``.
+        The sandwich ``A^-1 Omega A^-1`` (``A = J^T J`` of the condensed Jacobian, segment
+        initial states projected out) with ``Omega`` the prewhitened Newey-West long-run
+        covariance of the scores within segments (:func:`~prsa_ctrl.identification.covariance.hac_omega`;
+        the classic ``s^2 A^-1`` for white residuals), plus, with three logs or more whose
+        delete-one-log estimates disagree beyond their noise, that excess
+        (:func:`~prsa_ctrl.identification.covariance.between_log_inflation`: model error, which
+        no residual-based covariance sees). The rule is in :mod:`prsa_ctrl.identification.covariance`.
         """
+        from .covariance import fit_covariance
+
         V, X0, s = sol["V"], sol["X0"], sol["s"]
         nx, nseg, npar = self.nx, len(self.segs), self.npar
         _, lin = self.linearise(V, X0, s)
         js, r, _ = condense(lin, self.x0_rtol)
-        lens = [len(item[0]) for item in lin]
         n_rows = len(r)
         n_cols = npar + nx * nseg
         dof = max(n_rows - n_cols, 1)
         s2 = float(r @ r) / dof
         cn = np.linalg.norm(js, axis=0)
         cn[cn == 0] = 1.0
-        jn = js / cn
-        a_inv, null, ratios = info_split(jn)
-        bounds = np.cumsum([0] + lens)
-        parts = [slice(int(bounds[i]), int(bounds[i + 1])) for i in range(len(lens))]
-        # Pooled residual autocorrelation within segments, lags 1..max_lag.
-        n_min = min(lens)
-        max_lag = max(1, min(n_min // 4, 200))
-        den = float(r @ r)
-        acf = np.array([sum(float(r[p][l:] @ r[p][:-l]) for p in parts if len(r[p]) > l) / den
-                        for l in range(1, max_lag + 1)]) if den > 0 else np.zeros(max_lag)
-        band = 2.0 / math.sqrt(max(n_rows, 1))
-        below = np.flatnonzero(np.abs(acf) < band)
-        lag_acf = int(below[0]) if below.size else max_lag  # lags before the first one inside the band
-        lag_nw = int(4 * (float(np.mean(lens)) / 100.0) ** (2.0 / 9.0))
-        L = int(min(max(lag_nw, lag_acf), max_lag))
-        # Prewhitened HAC (Andrews & Monahan, Econometrica 60(4) 1992): a VAR(1) on the scores
-        # takes out the bulk of the colour, Bartlett-kernel Newey-West on what is left, recoloured.
-        gs = [jn[p] * r[p][:, None] for p in parts]
-        s_lag = sum(g[1:].T @ g[:-1] for g in gs if len(g) > 1)
-        s_0 = sum(g[:-1].T @ g[:-1] for g in gs if len(g) > 1)
-        a_var = s_lag @ np.linalg.pinv(s_0, rcond=1e-12)
-        u_, sv, vt = np.linalg.svd(a_var)  # keep it away from a unit root (their adjustment)
-        a_var = (u_ * np.minimum(sv, 0.97)) @ vt
-        omega = np.zeros((npar, npar))
-        for g in gs:
-            e = g.copy()
-            e[1:] -= g[:-1] @ a_var.T
-            omega += e.T @ e
-            for l in range(1, min(L, len(e) - 1) + 1):
-                c = e[l:].T @ e[:-l]
-                omega += (1.0 - l / (L + 1.0)) * (c + c.T)
-        recolour = np.linalg.inv(np.eye(npar) - a_var)
-        omega = recolour @ omega @ recolour.T
-        omega *= n_rows / dof
-        cov_hac = a_inv @ omega @ a_inv
-        cov = cov_hac / np.outer(cn, cn)
+        cov_n, _, null, ratios, info = fit_covariance(js / cn, r, [len(item[0]) for item in lin],
+                                                      [sg.rec for sg in self.segs], dof)
+        cov = cov_n / np.outer(cn, cn)
         unit_sigma = self.sigma0 if self.use_angle else self.sigma0 / self.ts
-        info = {"covariance": "prewhitened (VAR(1)) Newey-West HAC sandwich over segments",
-                "hac_bandwidth_samples": L, "residual_acf_band_lag": lag_acf,
-                "residual_autocorrelation_lag1": float(acf[0]) if len(acf) else 0.0,
-                "ci_widening_vs_white": float(np.sqrt(np.max(np.diag(cov_hac) / np.maximum(s2 * np.diag(a_inv), 1e-300)))),
-                "singular_value_ratios": [float(x) for x in ratios], "rank_tolerance": RANK_RTOL,
-                "uninformed_directions": int(null.shape[1])}
+        info.update({"singular_value_ratios": [float(x) for x in ratios], "rank_tolerance": RANK_RTOL,
+                     "uninformed_directions": int(null.shape[1])})
         self.null_scaled = null / cn[:, None]  # uninformed directions in the scaled parameters
         return cov, math.sqrt(s2) * unit_sigma, n_rows, n_cols, info
 

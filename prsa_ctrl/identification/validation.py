@@ -62,7 +62,7 @@ from ..plant.plantfile import Plant
 from .common import fit_percent, symbolic_rhs
 from .data import Record
 
-__all__ = ["OBSERVER_HZ", "FIT_MIN_PERCENT", "NOISE_FACTOR", "RESONANCE_SHARE", "resonance", "WRITTEN_TOLERANCE_POINTS", "ACF_LAGS", "SKIP_S",
+__all__ = ["OBSERVER_HZ", "FIT_MIN_PERCENT", "NOISE_FACTOR", "RESONANCE_SHARE", "FIT_FAILURE", "refusal", "resonance", "WRITTEN_TOLERANCE_POINTS", "ACF_LAGS", "SKIP_S",
            "REPLAY_MODE", "replay_records", "noise_floor", "whiteness", "explained", "verdict", "diagnosis",
            "validate_fit", "ClosedLoop", "closed_loop_of", "closed_loop_replay", "CLOSED_LOOP_MODE"]
 
@@ -75,6 +75,9 @@ NOISE_FACTOR = 3.0
 #: Above the noise allowance, a residual holding this share of its power within +/- 15 % of one
 #: frequency above 10 Hz is a resonance the model lacks: the log is not explained, whatever its fit %.
 RESONANCE_SHARE = 1.0 / 3.0
+#: How :func:`diagnosis` begins when the fit could not be validated because a fit failed (no
+#: evidence about the physics); :func:`refusal` then says "could not be validated".
+FIT_FAILURE = "fit failure, not missing physics"
 #: The written plant may replay a log this many fit-% points worse than the free fit, no more.
 WRITTEN_TOLERANCE_POINTS = 2.0
 #: Lags (samples) of the reported residual autocorrelation.
@@ -427,12 +430,25 @@ def _current_loop_hidden(result, fp: float) -> str:
             f"at {fp:.4g} Hz is {lag:.1f} deg, small beside the up to 180 deg of the resonance the model lacks")
 
 
-def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | None, result) -> str:
+def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | None, result,
+              loo: dict | None = None) -> str:
     """One line naming the most likely missing physics of a fit whose written plant does not
-    explain the data: wrong units or coordinates (every log replayed below 0 %, or the inertia at
-    a bound of its range), the delay (the delay search undecided or failed), a second mass
-    (a resonance: one spectral peak above 10 Hz holding a third or more of the residual power),
-    else the friction model (the residual largest where the speed is low or the load changes)."""
+    explain the data, tested in this order:
+
+    1. wrong units or coordinates: every log replayed below 0 %, or the inertia at a bound of
+       its range;
+    2. a second mass: a log the written plant does not explain whose replay residual is a
+       resonance (one spectral peak above 10 Hz holding :data:`RESONANCE_SHARE` or more of the
+       residual power). Tested before the delay: a rigid model of a two-mass axis misfits
+       every candidate delay, so an undecided delay search is then a consequence of the
+       missing mode, not its cause;
+    3. the delay: the delay search undecided or failed;
+    4. a failure of the fit, not of the physics: a cross-validation refit (``loo``: ``{name:
+       replay entry or {"failed": reason}}``) that did not converge from any of its starts while
+       the written plant explains every log: nothing in the data is then evidence of missing
+       physics;
+    5. else the friction model (the residual largest where the speed is low or the load changes).
+    """
     bad = {n: e for n, e in written.items() if not explained(e)}
     fits = [e["fit_percent"] for e in written.values()]
     j_key = next((k for k in result.keys if k.endswith("inertia_kg_m2")), None)
@@ -441,26 +457,53 @@ def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | Non
         return ("wrong units or coordinates: " + ("the inertia ends at a bound of its range" if at_bound else
                 "no log is replayed better than its mean") + " (check the torque unit, --torque-constant, the angle "
                 "unit and --log-format)")
+    by_name = {r.name: r for r in records}
+
+    def peak_of(logs: dict):
+        peaks = []
+        for n, e in logs.items():
+            if not e.get("finite") or n not in by_name:
+                continue
+            res = e["measured"] - e["model"]
+            fp, share = _peak(res[e["skip_samples"]:], by_name[n].sample_time_s)
+            peaks.append((share, fp, n))
+        return max(peaks) if peaks else None
+
+    def second_mass(share, fp, n):
+        return (f"second mass: {100 * share:.0f} % of the replay residual of {n} lies within 15 % of {fp:.4g} Hz, "
+                "a resonance the rigid model lacks (fit --fidelity compliant, or an FRF with the axial mode)"
+                + _current_loop_hidden(result, fp))
+
+    top = peak_of(bad)
+    if top is not None and top[0] >= RESONANCE_SHARE:
+        return second_mass(*top)
     if delay_search is not None and not delay_search.get("decided", True):
         return ("delay: the delay search could not decide the command delay (" + ", ".join(
             f"{s}: {'failed' if v is None else f'{v:.4g}'}" for s, v in delay_search.get("objective", {}).items())
             + "); give --delay-samples or --command-logged as the drive logs it")
-    by_name = {r.name: r for r in records}
-    peaks = []
-    for n, e in (bad or written).items():
-        if not e.get("finite") or n not in by_name:
-            continue
-        res = e["measured"] - e["model"]
-        fp, share = _peak(res[e["skip_samples"]:], by_name[n].sample_time_s)
-        peaks.append((share, fp, n))
-    if peaks:
-        share, fp, n = max(peaks)
-        if share >= RESONANCE_SHARE:
-            return (f"second mass: {100 * share:.0f} % of the replay residual of {n} lies within 15 % of {fp:.4g} Hz, "
-                    "a resonance the rigid model lacks (fit --fidelity compliant, or an FRF with the axial mode)"
-                    + _current_loop_hidden(result, fp))
+    failed = {n: e["failed"] for n, e in (loo or {}).items() if "failed" in e}
+    if failed and not bad:
+        n, why = next(iter(failed.items()))
+        why = why.split("; remedy")[0][:200]
+        return (f"{FIT_FAILURE}: the cross-validation fit on the logs other than {n} did not "
+                f"converge ({why}); the written plant explains every log, so the data give no evidence of "
+                "missing physics; rerun with --no-cross-validation to accept it unvalidated, or give more or longer logs")
+    if not bad:
+        top = peak_of(written)
+        if top is not None and top[0] >= RESONANCE_SHARE:
+            return second_mass(*top)
     return ("friction model: the replay residual is not a resonance and the delay is decided; look at standstill, "
-            "reversals and load changes (Stribeck keys, friction.torque_offset_n_m, a load-dependent loss)")
+            "reversals and load changes (Stribeck keys, friction.torque_offset_n_m, a load-dependent loss)"
+            + (f" (besides, the cross-validation fit without {', '.join(failed)} did not converge: a failure of the "
+               "fit, not evidence about the physics)" if failed else ""))
+
+
+def refusal(diag: str) -> str:
+    """The verdict's words for a fit that does not pass, with its :func:`diagnosis`: a fit that
+    failed is not a plant that does not explain the data."""
+    if diag.startswith(FIT_FAILURE):
+        return f"the fitted plant could not be validated: {diag}"
+    return f"the fitted plant does not explain the data; most likely missing physics: {diag}"
 
 
 def _entry_report(e: dict) -> dict:
@@ -486,12 +529,14 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
        :data:`WRITTEN_TOLERANCE_POINTS` worse, the free values are written instead (their
        sources and a warning say why): a written plant is never worse on the user's logs than
        the free fit beyond that tolerance.
-    3. With ``refit`` (``(records, start plant) -> FitResult`` at the same delay) and more than
-       one record: leave-one-out cross-validation, each record replayed by the plant fitted on
-       the others (one Gauss-Newton attempt started from the fitted plant; a fit that fails
-       there is retried from the ``base`` plant; one that fails from both fails the
-       cross-validation: a plant the other logs cannot reproduce is not validated on the one
-       left out).
+    3. With ``refit`` (``(records, start plant, attempt) -> FitResult`` at the same delay, one
+       Gauss-Newton attempt of the time-domain fit's list, 0 the cautious trust region after a
+       state-only warm-up, 2 the bold one) and more than one record: leave-one-out
+       cross-validation, each record replayed by the plant fitted on the others (started from
+       the fitted plant; a fit that fails there is retried from the ``base`` plant, then from the
+       fitted plant with bolder steps; one that fails from every start fails the
+       cross-validation, and the diagnosis names it a failure of the fit, not missing physics,
+       when the written plant explains every log).
     4. :func:`verdict` (and a delay search that did not decide the delay: no pass either) and,
        when it is no, :func:`diagnosis`; all in ``solver["validation"]``
        (``passes``, ``reasons``, ``diagnosis``, per log the metrics and residual whiteness, the
@@ -540,12 +585,16 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
     if refit is not None and len(records) > 1:
         loo = {}
         start = free_plant if free_plant is not None else plant
+        # a failed fit is retried: from the base plant, then from the fitted plant with a bolder
+        # trust region; a fit that fails from every start is a failure of the fit, not of the physics
+        starts = [(start, 0, "the fitted plant"), *(() if base is None else ((base, 0, "the base plant"),)),
+                  (start, 2, "the fitted plant, bolder steps")]
         for i, rec in enumerate(records):
             others = [r for j, r in enumerate(records) if j != i]
             errors = []
-            for st in (start, *(() if base is None else (base,))):  # a failed fit is retried from the base plant
+            for st, attempt, _ in starts:
                 try:
-                    r_i = refit(others, st)
+                    r_i = refit(others, st, attempt)
                 except (FitError, ValueError) as exc:
                     errors.append(str(exc)[:300])
                     continue
@@ -555,7 +604,8 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
                 loo[rec.name] = e
                 break
             else:
-                loo[rec.name] = {"failed": f"from {len(errors)} starts (the fitted plant, the base plant): {errors[-1]}"}
+                loo[rec.name] = {"failed": f"from {len(errors)} starts ({', '.join(w for *_, w in starts)}): "
+                                           f"{errors[-1]}"}
     passes, reasons = verdict(written, free, loo)
     search = (result.solver.get("command_delay") or {}).get("search")
     if search is not None and not search.get("decided", True):
@@ -566,7 +616,7 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
             f"{s_}: {'failed' if v is None else f'{v:.4g}'}" for s_, v in search.get("objective", {}).items())
             + f"; tolerance: a factor {search.get('ratio_tolerance')}); give --delay-samples N if you know it")
     diag = None if passes else diagnosis(written, recs_all, (result.solver.get("command_delay") or {}).get("search"),
-                                         result)
+                                         result, loo)
     fit_pct = dict(result.fit_percent)
     traces = {n: dict(t) for n, t in result.traces.items()}
     for n, e in written.items():
@@ -600,6 +650,6 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
     }
     if not passes:
         warns.append(f"validation failed: {reasons[0]}" + (f" (and {len(reasons) - 1} more)" if len(reasons) > 1 else "")
-                     + f"; most likely missing physics: {diag}")
+                     + ("; " + diag if diag.startswith(FIT_FAILURE) else f"; most likely missing physics: {diag}"))
     return dataclasses.replace(result, plant=plant, parameters=params, fit_percent=fit_pct, warnings=warns,
                                solver=solver, traces=traces)

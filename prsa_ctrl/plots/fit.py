@@ -144,7 +144,8 @@ def fit_figures(result: FitResult, frequency_unit: str = DEFAULT_FREQUENCY_UNIT,
 def _verdict_caption(fig, validation: dict) -> None:
     """The fit's verdict under the figure (the validation's, wrapped)."""
     text = ("validation: the plant explains the data" if validation["passes"] else
-            f"validation: NOT validated; most likely missing physics: {validation['diagnosis']}")
+            f"validation: NOT validated; {validation['diagnosis']}" if validation["diagnosis"].startswith("fit failure")
+            else f"validation: NOT validated; most likely missing physics: {validation['diagnosis']}")
     fig.text(0.01, 0.005, _plain("\n".join(textwrap.wrap(text, 130)[:3])), fontsize=7, va="bottom",
              color="0.2" if validation["passes"] else "C3")
 

@@ -375,6 +375,9 @@ def test_cli_fit_writes_plant_and_report_and_tune_uses_it(csv_files, tmp_path):
     assert src.startswith("fit: ") and "multisine.csv" in src and "(95 % CI " in src
     report = json.loads(rep.read_text())
     assert set(report) >= {"parameters", "reflected_inertia_kg_m2", "fit_percent", "warnings", "solver"}
+    spread = report["solver"]["between_logs"]  # three logs: the delete-one-log test of the covariance ran
+    assert spread["logs"] == 3 and len(spread["heterogeneity_ratio"]) == len(spread["inflated"]) == len(DEFAULT_KEYS)
+    assert spread["threshold"] == pytest.approx(2.9957322735539895)
     for k in DEFAULT_KEYS:
         assert set(report["parameters"][k]) == {"value", "ci95", "unit", "kept_base"}
         assert report["parameters"][k]["kept_base"] is False  # three experiments inform every key

@@ -683,6 +683,13 @@ JUDGE_XFAIL = {
     ("ball-rigid-d1-computed-nonsi", "logs"):
         "exit 0 with the truth outside the inertia's 95 % interval: 2.91687e-3 (CI 2.91622..2.91753e-3) against "
         "2.92018e-3 kg m^2 (-0.11 %, 10 standard errors)",
+    # Both: a bias common to the three logs, which no covariance can show (h9-interval, measured on
+    # the final fits' Jacobians): the delete-one-log spread (identification/covariance.py) is within
+    # the logs' noise (ratios 0.03..1.3 against the heterogeneity threshold 3.0), and the segment-wise
+    # score covariance equals the HAC one. On the ball case with the generator's process torque noise
+    # off: -0.089 %; and its load-cell noise off too: -0.078 %; Stribeck off: -0.089 %; the nut loss
+    # nearly off (eta 0.995): -0.011 %, truth inside; 3 Radau steps per sample instead of 1: -0.089 %
+    # (the same to 1e-7). The bias sits in the load-dependent nut loss path, not in the integration.
     # ball-2mass-d1-computed-si and roller-2mass-d1-applied-si logs (exit 0 with a rigid plant of a
     # two-mass axis at fit >= 50 %) were marked here until the verdict refused a residual that is a
     # resonance (validation.RESONANCE_SHARE): both now end exit 3 'second mass' with no file (rerun:
