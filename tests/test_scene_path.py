@@ -81,11 +81,10 @@ def _scene_reads(run, classes=(Scene, LoopSpec, MoveScene)):
 
 
 #: Below the studies, the modules that still read a scene at run time (each entry goes when
-#: its reader takes the scene's numbers instead: the scene registry of issue 33): the move
-#: scene's cascade model takes the MoveScene itself. (The plant layer's uncertainty model read
-#: ``scene.robust`` by duck typing until the scene's sections became types.)
+#: its reader takes the scene's numbers instead: the scene registry of issue 33). (The plant
+#: layer's uncertainty model read ``scene.robust`` by duck typing until the scene's sections
+#: became types; the cascade model read the MoveScene until it took a CascadeSpec.)
 STILL_READ: set = set()
-MOVE_STILL_READ = {("tuning/cascade.py", "__init__")}
 
 
 def test_a_tune_reads_no_scene_below_the_studies(paper_plant):
@@ -125,16 +124,40 @@ def test_the_trace_sees_a_read_below_the_studies(paper_plant):
     assert out == scene.setpoint_rpm and reads == {("tuning/loops.py", "peek")}
 
 
-def test_the_move_cascade_is_the_one_move_reader_left(paper_plant):
-    """The move scene's cascade model (tuning/cascade.py) still takes the MoveScene: the only
-    exception, seen at run time; building the model reads nothing else below studies/."""
+def test_the_move_cascade_reads_no_scene(paper_plant):
+    """The move scene's cascade (tuning/cascade.py) takes the scene's numbers
+    (``MoveScene.cascade_spec``): building the model and tuning the sequential design read
+    nothing of the MoveScene below studies/, seen at run time."""
     from prsa_ctrl.studies.movescene import load_move_scene
-    from prsa_ctrl.tuning.cascade import CascadeModel
+    from prsa_ctrl.tuning.cascade import CascadeModel, sequential_design
+
+    spec = load_move_scene("paper-move").cascade_spec()
+
+    def work():
+        model = CascadeModel(paper_plant, spec, fidelity="rigid", n_grid=40)
+        return model, sequential_design(paper_plant, spec, model)
+
+    reads, (model, seq) = _scene_reads(work)
+    assert seq.method == "sequential"
+    assert reads == STILL_READ
+
+
+def test_the_move_cascade_receives_no_scene(paper_plant):
+    """A whole move tune (``studies.move.tune_move``'s linear part): no tuning function is
+    entered with a MoveScene argument."""
+    from prsa_ctrl.studies.movescene import MoveScene, load_move_scene
+    from prsa_ctrl.tuning import cascade
 
     scene = load_move_scene("paper-move")
-    reads, model = _scene_reads(lambda: CascadeModel(paper_plant, scene, fidelity="rigid", n_grid=40))
-    assert model is not None
-    assert reads == MOVE_STILL_READ
+
+    def run():
+        spec = scene.cascade_spec()
+        cm = cascade.CascadeModel(paper_plant, spec, fidelity="rigid", n_grid=40)
+        return cascade.sequential_design(paper_plant, spec, cm)
+
+    hits, seq = _tuning_frames_that_receive((MoveScene,), run)
+    assert seq.method == "sequential"
+    assert hits == set()
 
 
 def _tuning_frames_that_receive(kinds: tuple, run):

@@ -11,7 +11,8 @@ outputs (``--json``: ``report.as_dict()``, ``--export``: ``report.export_target(
   study and the Monte-Carlo yield when asked;
 * a move scene (``[move]`` section): the position loop over the speed loop, tuned sequentially
   and jointly and verified (:func:`prsa_ctrl.studies.move.tune_move`); flags that do not apply to
-  it (:data:`MOVE_FLAGS` lists those that do) are refused in one line.
+  it (:data:`~prsa_ctrl.studies.scenekinds.MOVE_FLAGS` lists those that do) are refused in one line
+  by the kind (:meth:`~prsa_ctrl.studies.scenekinds.Move.refuse_flags`).
 
 Exit codes and one-line errors as every command (:mod:`prsa_ctrl.cli.common`): 0 ok, 2 bad
 input, 3 numerical failure (also when the best speed-loop design is flagged, unless
@@ -44,15 +45,12 @@ from ..errors import GeometryWarning  # noqa: E402
 from ..io.output import OutputError, Transaction, check_directory, check_distinct, check_writable  # noqa: E402
 from ..options import (CONTROLLERS, DEFAULT_FREQUENCY_UNIT, ESTIMATORS, FREQUENCY_UNITS, MS_MAX_DEFAULT, OBJECTIVES,  # noqa: E402
                        PEAK_BOUND_RANGE)
-from ..plant.plantfile import load_plant  # noqa: E402
-from ..studies.scene import load_scene  # noqa: E402
-from ..studies.scenefile import is_move_scene  # noqa: E402
 from .common import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError,  # noqa: E402
                      commit, describe_failure, echo, integer, invoke, native_output, number, path_text, progress,
                      report_failure, show_notes, staged, write_json_atomic)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, parse_load_step, scene_flags  # noqa: E402
 from .plot import build_plot_parser, plot_main  # noqa: E402
-from ..studies.scenekinds import TuneOptions, problem  # noqa: E402
+from ..studies.scenekinds import MOVE_FLAGS, TuneOptions, file_kind, problem  # noqa: E402
 from ..studies.scenereport import format_report  # noqa: E402
 
 #: The figures modules (matplotlib) are imported when a figure is drawn.
@@ -64,9 +62,6 @@ __all__ = ["main", "plot_main", "parse_load_step", "write_json_atomic", "format_
            "WORKERS_MAX", "SCHEDULER_CONNECT_TIMEOUT_S"]
 
 WORKERS_MAX = 64
-#: ``prsa-tune`` options a move scene honours; every other option given is refused (exit 2).
-MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real", "export_template", "motor",
-              "rated_torque", "friction_ff")
 #: Suffixes ``--export`` takes (drive file as JSON or TOML, code as C or Structured Text).
 EXPORT_SUFFIXES = (".json", ".toml", ".c", ".st", ".xml")
 
@@ -253,36 +248,28 @@ def _options(run: Run, args) -> TuneOptions:
 # --- the steps, each for both kinds of scene -----------------------------------------------------
 
 def _load(args, run: Run):
-    """Plant and scene (with the command-line overrides of a speed-loop scene), checked against
-    each other, and the overriding flags as typed."""
-    if not is_move_scene(args.scene):
-        return load_and_override(args, run)
-    from ..studies.move import check_move_against_plant
-
-    refused = _refused_flag(args, run)
-    scene = load_scene(args.scene)
-    if refused:
-        raise UsageError(f"{refused} does not apply to a move scene ({scene.name}); expected only --plant, --json, "
-                         "--export, --plots, --quiet and --verbose")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a move scene's run shows no plant notes
-        plant = load_plant(args.plant)
-    check_move_against_plant(scene, plant)
-    return plant, scene, []
+    """Plant and scene, loaded by the scene file's kind (:func:`~prsa_ctrl.studies.scenekinds.file_kind`:
+    a speed-loop scene with the command-line overrides, :func:`~prsa_ctrl.cli.inputs.load_and_override`;
+    a move refuses the options it does not honour), checked against each other, and the
+    overriding flags as typed."""
+    return file_kind(args.scene).load(args.scene, args.plant, _given_flags(args, run),
+                                      lambda: load_and_override(args, run))
 
 
-def _refused_flag(args, run: Run) -> str | None:
-    """The first ``prsa-tune`` option given that a move scene does not honour, as typed."""
+def _given_flags(args, run: Run) -> list[tuple[str, str]]:
+    """Every ``prsa-tune`` option given (not at its default), in the parser's order:
+    (argparse destination, the flag with its value as typed)."""
     raw = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in run.argv if a.startswith("--") and "=" in a}
+    given = []
     for action in build_parser()._actions:
-        if not action.option_strings or action.dest in MOVE_FLAGS or action.dest == "help":
+        if not action.option_strings or action.dest == "help":
             continue
         value = getattr(args, action.dest, action.default)
         if value is None or value is False or value == action.default:
             continue
         flag = action.option_strings[-1]
-        return flag if value is True else f"{flag} {raw.get(flag, value)}"
-    return None
+        given.append((action.dest, flag if value is True else f"{flag} {raw.get(flag, value)}"))
+    return given
 
 
 def _check_outputs(args, prob, options: TuneOptions, scene, inputs: Sequence[str]) -> None:

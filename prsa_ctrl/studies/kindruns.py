@@ -16,15 +16,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from ..drive.pid import PID
 from ..options import rad_s_to_rpm
 from ..plant.plantfile import Plant
 from ..sim.signals import PiecewiseLinear, normalise_profile
 from .scene import Scene
+
+if TYPE_CHECKING:
+    from ..drive.pid import PID  # CasADi: an annotation only (a bad flag is refused before CasADi loads)
 
 __all__ = ["StepRuns", "ProfileRuns", "STEP_STUDIES", "speed_kind", "duty_record", "setpoint_prefilter"]
 
@@ -332,6 +334,7 @@ def setpoint_prefilter(r: np.ndarray, pid: PID, ts: float, b: float) -> np.ndarr
     Examples
     --------
     >>> import numpy as np
+    >>> from prsa_ctrl.drive.pid import PID
     >>> rf = setpoint_prefilter(np.r_[0.0, np.ones(400)], PID(0.1, 10.0), 2.5e-4, 0.5)
     >>> float(rf[1]), round(float(rf[-1]), 3)
     (0.5, 1.0)

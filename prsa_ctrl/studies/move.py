@@ -327,11 +327,12 @@ def tune_move(plant: "Plant", scene: MoveScene, progress: Callable[[str], None] 
     """
     say = progress or (lambda text: None)
     say(f"move scene {scene.name}: linearising the cascade at {scene.max_speed_m_s * 1e3:g} mm/s")
-    cm = cascade.CascadeModel(plant, scene)
+    spec = scene.cascade_spec()
+    cm = cascade.CascadeModel(plant, spec)
     say("sequential design (speed PI alone, then the position gain) ...")
-    seq = cascade.sequential_design(plant, scene, cm)
+    seq = cascade.sequential_design(plant, spec, cm)
     say("joint design (one NLP over all gains) ...")
-    joint = cascade.tune_cascade(plant, scene, baseline=seq, cm=cm)
+    joint = cascade.tune_cascade(plant, spec, baseline=seq, cm=cm)
     verified = []
     for d in (seq, joint):
         say(f"verifying the {d.method} design on the nonlinear {scene.fidelity} model ...")

@@ -19,6 +19,7 @@ from typing import Any, Mapping
 from ..textsafe import quote
 from ..drive.motion import PROFILE_KINDS, MotionProfile, out_and_back, plan
 from ..errors import SceneError
+from ..tuning.cascadespec import CascadeSpec
 from ..options import (KV_UNITS, MS_MAX_DEFAULT, PEAK_BOUND_RANGE, POSITION_DELAY_MAX, POSITION_RATE_MAX,
                        check_peak_bound, parse_kv)
 from .scenefile import locate_scene, read_scene_doc
@@ -173,6 +174,19 @@ class MoveScene:
     @property
     def duration_s(self) -> float:
         return self.hold_step_s + self.hold_duration_s if self.hold_step_n else self.move_end_s + self.hold_delay_s
+
+    def cascade_spec(self) -> CascadeSpec:
+        """The numbers the cascade model and its tuners use (:mod:`prsa_ctrl.tuning.cascade`):
+        the tuning layer reads no scene."""
+        return CascadeSpec(
+            origin=self.origin, motion=self.motion(),
+            cruise_speed_m_s=self.max_speed_m_s * math.copysign(1.0, self.distance_m), load_at_s=self.load_at_s,
+            initial_load_n=self.initial_load_n, load_n=self.load_n, hold_step_n=self.hold_step_n,
+            measured=self.measured, position_rate=self.position_rate,
+            position_delay_samples=self.position_delay_samples, fidelity=self.fidelity, ms_max=self.ms_max,
+            position_controller=self.position_controller, weight_following=self.weight_following,
+            weight_holding=self.weight_holding, bandwidth_ratio=self.bandwidth_ratio,
+            kv_max_per_s=self.kv_max_per_s, filters=tuple(self.filters or ()))
 
     def loads(self) -> list[tuple[float, float]]:
         """Load steps ``(time s, N)`` of the run."""

@@ -31,8 +31,14 @@ from .kindruns import ProfileRuns, StepRuns
 from .movescene import MoveScene
 from .scene import Scene
 
-__all__ = ["KINDS", "kind_of", "problem", "LoadStep", "DutyCycle", "Move", "TuneOptions", "SpeedReport",
+__all__ = ["KINDS", "kind_of", "problem", "file_kind", "MOVE_FLAGS", "LoadStep", "DutyCycle", "Move", "TuneOptions", "SpeedReport",
            "MoveReport", "ExportTarget", "add_design", "add_setpoint_weight", "setpoint_weight", "export_choice"]
+
+
+#: ``prsa-tune`` options (argparse destinations) a move scene honours; every other option given is
+#: refused (:meth:`Move.refuse_flags`, exit 2).
+MOVE_FLAGS = ("plant", "scene", "json", "export", "plots", "quiet", "verbose", "export_real", "export_template", "motor",
+              "rated_torque", "friction_ff")
 
 
 def _quiet(_text: str) -> None:
@@ -282,7 +288,23 @@ class LoadStep(StepRuns):
     name: ClassVar[str] = "load-step"
     #: Whether a command announces "linearise, tune, verify" before the run.
     announces: ClassVar[bool] = True
+    #: The command's options the kind honours (argparse destinations); None: every one (the
+    #: overrides it does not take are refused once the scene is loaded, :meth:`check_overrides`).
+    flags: ClassVar[tuple[str, ...] | None] = None
     scene: Scene
+
+    @classmethod
+    def load(cls, scene_ref, plant_ref, given: Sequence[tuple[str, str]], override: Callable[[], Any]):
+        """Plant and scene for a command: a speed-loop scene takes the command's overrides, so
+        the command's own loader does it (``override()``: ``prsa_ctrl.cli.inputs.load_and_override``,
+        plant first, then the scene, the overrides and the check against the plant).
+
+        Returns
+        -------
+        (Plant, Scene, list of str)
+            With the overriding flags as typed.
+        """
+        return override()
 
     def __post_init__(self) -> None:
         if not type(self).accepts(self.scene):
@@ -610,7 +632,58 @@ class Move:
     studies: ClassVar[frozenset] = frozenset()
     #: What the scene is, for messages.
     described: ClassVar[str] = "a move (cascade) scene"
+    #: The command's options the kind honours (argparse destinations, :data:`MOVE_FLAGS`).
+    flags: ClassVar[tuple[str, ...] | None] = MOVE_FLAGS
     scene: MoveScene
+
+    @classmethod
+    def refuse_flags(cls, given: Sequence[tuple[str, str]], name: str) -> None:
+        """Refuse the first option given that a move does not honour (not in :attr:`flags`).
+
+        Parameters
+        ----------
+        given : sequence of (str, str)
+            Every option given, in the command's order: (argparse destination, the flag and
+            its value as typed, e.g. ``"--seed 3"``).
+        name : str
+            The scene's name, for the message.
+
+        Raises
+        ------
+        UsageError
+            One line naming the flag as typed and the flags a move takes.
+        """
+        for dest, text in given:
+            if dest not in cls.flags:
+                raise UsageError(f"{text} does not apply to a move scene ({name}); expected only --plant, --json, "
+                                 "--export, --plots, --quiet and --verbose")
+
+    @classmethod
+    def load(cls, scene_ref, plant_ref, given: Sequence[tuple[str, str]], override: Callable[[], Any] = _nothing):
+        """Plant and move scene for a command: the scene (its own errors first), the options it
+        does not honour refused (:meth:`refuse_flags`), the plant (without notes: a move's run
+        shows none), the move checked against it
+        (:func:`~prsa_ctrl.studies.move.check_move_against_plant`). A move takes no override
+        (``override`` is not called).
+
+        Returns
+        -------
+        (Plant, MoveScene, list)
+            No overriding flags.
+        """
+        import warnings
+
+        from ..plant.plantfile import load_plant
+        from .move import check_move_against_plant
+        from .scene import load_scene
+
+        scene = load_scene(scene_ref)
+        cls.refuse_flags(given, scene.name)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a move scene's run shows no plant notes
+            plant = load_plant(plant_ref)
+        check_move_against_plant(scene, plant)
+        return plant, scene, []
 
     def takes(self, study: str) -> bool:
         """Whether the problem takes a study (a move takes none of the speed loop's)."""
@@ -636,11 +709,11 @@ class Move:
 
     def check_options(self, options: TuneOptions) -> None:
         """Nothing to refuse here: the flags a move does not honour (the robust studies, a filter
-        to tune, ...) are refused as typed by the command (``MOVE_FLAGS`` of :mod:`prsa_ctrl.cli.tune`)."""
+        to tune, ...) are refused as typed when it is loaded (:meth:`refuse_flags`)."""
 
     def check_overrides(self, given: Mapping[str, Any], typed: Mapping[str, str]) -> None:
-        """Nothing: a move scene takes no override (the command refuses every flag outside
-        ``MOVE_FLAGS``)."""
+        """Nothing: a move scene takes no override (every flag outside :data:`MOVE_FLAGS` is
+        refused when it is loaded, :meth:`refuse_flags`)."""
 
     def check_export(self, path: str) -> None:
         """Every cascade can be exported."""
@@ -684,6 +757,22 @@ def kind_of(scene: Any) -> str:
         if kind.accepts(scene):
             return name
     raise TypeError(f"scene = {type(scene).__name__}; expected a Scene or a MoveScene (prsa_ctrl.load_scene)")
+
+
+def file_kind(name_or_path) -> type:
+    """The kind a scene file declares, before it is loaded (what a command's loader needs):
+    :class:`Move` for a ``[move]`` section, else :class:`LoadStep`, whose loader serves both
+    speed-loop kinds (a duty cycle is told apart once loaded, :func:`problem`). A missing or
+    unreadable file answers :class:`LoadStep`, whose loader reports it.
+
+    Parameters
+    ----------
+    name_or_path : str, Path or None
+        A built-in scene name or a file (None: the default scene).
+    """
+    from .scenefile import is_move_scene
+
+    return Move if is_move_scene(name_or_path) else LoadStep
 
 
 def problem(scene: Any):

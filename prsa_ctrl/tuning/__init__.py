@@ -8,6 +8,7 @@ _EXPORTS = {
     "CONT_RTOL": "settings",
     "CascadeDesign": "cascade",
     "CascadeModel": "cascade",
+    "CascadeSpec": "cascadespec",
     "FilterBounds": "filtered",
     "FilteredDesign": "filtered",
     "KKT_TOL": "settings",

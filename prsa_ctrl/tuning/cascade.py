@@ -1,9 +1,9 @@
 """The position loop over the speed loop: the linear model of the sampled cascade and its tuners.
 
-The move scene a cascade is tuned for (:class:`~prsa_ctrl.studies.movescene.MoveScene`) is read
-by :mod:`prsa_ctrl.studies.movescene`; the nonlinear runs, metrics, verification and the
-comparison of both designs are in :mod:`prsa_ctrl.studies.move`, the drive export in
-:func:`prsa_ctrl.io.export.export_cascade`, the figures in :mod:`prsa_ctrl.plots.move`.
+A cascade is tuned for a move's numbers (:class:`~prsa_ctrl.tuning.cascadespec.CascadeSpec`, built
+by :meth:`prsa_ctrl.studies.movescene.MoveScene.cascade_spec`); the nonlinear runs, metrics,
+verification and the comparison of both designs are in :mod:`prsa_ctrl.studies.move`, the drive
+export in :func:`prsa_ctrl.io.export.export_cascade`, the figures in :mod:`prsa_ctrl.plots.move`.
 
 Linear model of the sampled cascade (:class:`CascadeModel`)
     The plant linearised at the move's cruise speed and held load
@@ -66,14 +66,13 @@ from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from .loops import resonance_points
 from .builders import drive_loop
+from .cascadespec import CascadeSpec
 from .generic import tune_loops
 
 if TYPE_CHECKING:
     from ..plant.plantfile import Plant
-# A move scene (prsa_ctrl.studies.movescene.MoveScene) and its verified metrics
-# (prsa_ctrl.studies.move.MoveMetrics) live a layer up: named in annotations only, never imported.
 
-__all__ = ["CascadeModel", "CascadeDesign", "tune_cascade", "sequential_design", "kv_ceiling", "CASCADE_GAINS",
+__all__ = ["CascadeModel", "CascadeSpec", "CascadeDesign", "tune_cascade", "sequential_design", "kv_ceiling", "CASCADE_GAINS",
            "MS_EXCESS_RTOL", "BREAKING_POINTS"]
 
 #: The loop-breaking points whose Ms the tuning bounds (:meth:`CascadeModel.loops`): the speed
@@ -103,9 +102,10 @@ class CascadeModel:
     Parameters
     ----------
     plant : Plant
-    scene : MoveScene
+    spec : CascadeSpec
+        The move's numbers.
     fidelity : {"rigid", "compliant"}, optional
-        Linearised model (default: the scene's).
+        Linearised model (default: the spec's).
     n_grid : int
         Frequencies of the Ms constraints (log-spaced to the Nyquist frequency, plus the
         plant's resonances).
@@ -113,43 +113,43 @@ class CascadeModel:
     Notes
     -----
     Gains ``g = [kp, ki, kv, kip, kvff, kaff]`` (:data:`CASCADE_GAINS`). The position loop
-    runs every ``scene.position_rate`` speed-loop samples (``tp`` = its sample time, s).
+    runs every ``spec.position_rate`` speed-loop samples (``tp`` = its sample time, s).
     """
 
-    def __init__(self, plant: "Plant", scene: MoveScene, fidelity: str | None = None, n_grid: int = 300) -> None:
-        rate = scene.position_rate
+    def __init__(self, plant: "Plant", spec: CascadeSpec, fidelity: str | None = None, n_grid: int = 300) -> None:
+        rate = spec.position_rate
         if isinstance(rate, bool) or not isinstance(rate, int) or not 1 <= rate <= POSITION_RATE_MAX:
-            raise ValueError(f"{scene.origin}: move.position_rate = {rate!r}; expected an integer number of speed-loop "
+            raise ValueError(f"{spec.origin}: move.position_rate = {rate!r}; expected an integer number of speed-loop "
                              f"samples in [1, {POSITION_RATE_MAX}]")
         self.rate = rate
-        delay = getattr(scene, "position_delay_samples", 0)
+        delay = spec.position_delay_samples
         if isinstance(delay, bool) or not isinstance(delay, int) or not 0 <= delay <= POSITION_DELAY_MAX:
-            raise ValueError(f"{scene.origin}: move.position_delay_samples = {delay!r}; expected an integer number of "
+            raise ValueError(f"{spec.origin}: move.position_delay_samples = {delay!r}; expected an integer number of "
                              f"position-loop samples in [0, {POSITION_DELAY_MAX}]")
         #: The position loop's computation delay, in position-loop samples.
         self.delay = delay
-        self.plant, self.scene = plant, scene
+        self.plant, self.spec = plant, spec
         #: The drive's fixed loop filters (the scene's ``[filters]``), as the simulator runs them:
         #: speed-measurement biquads on the filtered speed the PI reads, torque-command biquads on
         #: the PI's command (feed-forward included) before the delay.
-        self.filters = tuple(loop_filters(tuple(getattr(scene, "filters", ()) or ()), plant.sample_time_s))
+        self.filters = tuple(loop_filters(tuple(spec.filters), plant.sample_time_s))
         self.biquads = tuple((lf.place, lf.biquad(plant.sample_time_s)) for lf in self.filters)
-        fid = fidelity or scene.fidelity
+        fid = fidelity or spec.fidelity
         model = plant_model(plant, fid)
         self.a_lead = a = plant.lead_per_rad
         self.inertia = plant.reflected_inertia_kg_m2
         self.ts = ts = plant.sample_time_s
         #: Position-loop sample time, s.
         self.tp = rate * ts
-        w_cruise = scene.max_speed_m_s / a * math.copysign(1.0, scene.distance_m)
-        self.w_lin, self.load_lin = w_cruise, scene.load_n
-        A, B, _, _, _ = linear_core(plant, w_cruise, scene.load_n, fid)
+        w_cruise = spec.cruise_speed_m_s / a
+        self.w_lin, self.load_lin = w_cruise, spec.load_n
+        A, B, _, _, _ = linear_core(plant, w_cruise, spec.load_n, fid)
         n = A.shape[0]
         Ad, Bd = zoh(A, B, ts)
         self.Ad, self.bu, self.bd = Ad, Bd[:, 0], Bd[:, 1]
         self.n = n
         self.c_th = np.eye(n)[model.index("theta_nut")]
-        if scene.measured == "nut_angle":
+        if spec.measured == "nut_angle":
             self.c_pos = self.c_th.copy()
         else:
             self.c_pos = self.c_th.copy()
@@ -523,9 +523,9 @@ class CascadeModel:
         the move's load step, from the scene's start to 0.05 s after its end) and ``"hold"``
         (the hold step at rest, 0.1 s). Loads are deviations from the linearisation load. A
         multi-rate loop has a fifth row: 1 at the position-loop samples (0, N, 2N, ...)."""
-        sc, a, ts = self.scene, self.a_lead, self.ts
+        sc, a, ts = self.spec, self.a_lead, self.ts
         if kind == "move":
-            m = sc.motion()
+            m = sc.motion
             t = np.arange(0.0, m.end_time + 0.05, ts)
             p, v, acc = m.at(t)
             load = np.where(t >= sc.load_at_s, sc.load_n - sc.initial_load_n, 0.0) if sc.load_n != sc.initial_load_n \
@@ -633,18 +633,18 @@ def _linear_summary(cm: CascadeModel, g) -> dict:
 
 
 def _design(cm: CascadeModel, method: str, g, objective: float, notes=None, solver=None) -> CascadeDesign:
-    sc = cm.scene
+    sc = cm.spec
     speed = PID(float(g[0]), float(g[1]))
     pos = PositionLoop(kv=float(g[2]), ki=float(g[3]), kvff=float(g[4]), kaff=float(g[5]), measured=sc.measured,
-                       rate=sc.position_rate, delay=getattr(sc, "position_delay_samples", 0))
+                       rate=sc.position_rate, delay=sc.position_delay_samples)
     cross = {"speed_open": cm.crossover(g, "speed_open"), "position": cm.crossover(g, "position")}
     return CascadeDesign(method, speed, pos, cm.ms(g), cross, _linear_summary(cm, g), float(objective),
                          notes=tuple(notes or ()), solver=dict(solver or {}), filters=cm.filters)
 
 
-def kv_ceiling(scene: MoveScene, kv_max: "float | str | None" = None) -> float:
+def kv_ceiling(spec: CascadeSpec, kv_max: "float | str | None" = None) -> float:
     """The position-gain ceiling of a tuning, 1/s: ``kv_max`` (a float in 1/s or a string with
-    its unit, ``"3 (m/min)/mm"``, :func:`prsa_ctrl.options.parse_kv`) or else the scene's
+    its unit, ``"3 (m/min)/mm"``, :func:`prsa_ctrl.options.parse_kv`) or else the spec's
     ``kv_max_per_s``; ``inf`` without either.
 
     Raises
@@ -652,7 +652,7 @@ def kv_ceiling(scene: MoveScene, kv_max: "float | str | None" = None) -> float:
     ValueError
         One line naming the value as given and what was expected.
     """
-    v = kv_max if kv_max is not None else scene.kv_max_per_s
+    v = kv_max if kv_max is not None else spec.kv_max_per_s
     if v is None:
         return math.inf
     if isinstance(v, str):
@@ -663,27 +663,27 @@ def kv_ceiling(scene: MoveScene, kv_max: "float | str | None" = None) -> float:
     return float(v)
 
 
-def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None = None,
+def sequential_design(plant: "Plant", spec: CascadeSpec, cm: CascadeModel | None = None,
                       ratios=(5.0, 6.0, 7.0, 8.0, 9.0, 10.0), *, kv_max: "float | str | None" = None) -> CascadeDesign:
-    """The rule-of-thumb baseline (module docstring): speed PI tuned alone at ``scene.ms_max``
+    """The rule-of-thumb baseline (module docstring): speed PI tuned alone at ``spec.ms_max``
     (:func:`prsa_ctrl.tuning.generic.tune_loops`, IAE of the load step on the drive loop), position P
     at ``crossover / ratio`` for the smallest ``ratio`` in ``ratios`` that keeps every Ms within
     the bound, ``kvff = kaff = 1``; the position gain at most ``kv_max`` (:func:`kv_ceiling`:
-    1/s or a string with its unit; default the scene's ``kv_max_per_s``).
+    1/s or a string with its unit; default the spec's ``kv_max_per_s``).
 
     Returns
     -------
     CascadeDesign
     """
-    kv_cap = kv_ceiling(scene, kv_max)
-    cm = cm or CascadeModel(plant, scene)
-    model = plant_model(plant, scene.fidelity)
-    a_, b_, c_, _, _ = linear_core(plant, cm.w_lin, scene.load_n, scene.fidelity)
-    step = scene.hold_step_n or max(abs(scene.load_n), 100.0)
+    kv_cap = kv_ceiling(spec, kv_max)
+    cm = cm or CascadeModel(plant, spec)
+    model = plant_model(plant, spec.fidelity)
+    a_, b_, c_, _, _ = linear_core(plant, cm.w_lin, spec.load_n, spec.fidelity)
+    step = spec.hold_step_n or max(abs(spec.load_n), 100.0)
     lp = drive_loop(a_, b_, c_[model.output_names.index("nut_speed")], model.index("theta_nut"), ts=plant.sample_time_s,
                     speed_filter=plant.speed_filter_s, tf=DERIVATIVE_FILTER_SAMPLES * plant.sample_time_s, horizon=0.1, step=step,
                     command_delay_samples=plant.command_delay_samples, **({"filters": cm.filters} if cm.filters else {}))
-    ms_max = scene.ms_max
+    ms_max = spec.ms_max
 
     def worst(g) -> float:
         pk = cm.ms(g)
@@ -736,7 +736,7 @@ def sequential_design(plant: "Plant", scene: MoveScene, cm: CascadeModel | None 
     if ms_speed < ms_max:
         notes.append(f"the speed loop tuned alone at Ms {ms_max:g} gives Ms > {ms_max:g} once the position loop is "
                      f"closed (any ratio in {min(ratios):g}..{max(ratios):g}): re-tuned at Ms {ms_speed:.4g} for equal Ms")
-    return _design(cm, "sequential", g, scene.weight_following + scene.weight_holding, notes,
+    return _design(cm, "sequential", g, spec.weight_following + spec.weight_holding, notes,
                    {"speed_tuner_status": res.status, "ratio": ratio, "speed_ms_bound": ms_speed})
 
 
@@ -867,7 +867,7 @@ def _multirate_constraints(cm: CascadeModel, g, g0, omega: NDArray[np.float64], 
     return cons
 
 
-def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | None = None,
+def tune_cascade(plant: "Plant", spec: CascadeSpec, *, baseline: CascadeDesign | None = None,
                  cm: CascadeModel | None = None, max_rounds: int = 8, max_iter: int = 300,
                  kv_max: "float | str | None" = None) -> CascadeDesign:
     """Joint tuning of the whole cascade in one NLP (module docstring), started from the
@@ -876,7 +876,8 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
     Parameters
     ----------
     plant : Plant
-    scene : MoveScene
+    spec : CascadeSpec
+        The move's numbers (:meth:`prsa_ctrl.studies.movescene.MoveScene.cascade_spec`).
     baseline : CascadeDesign, optional
         The start and the normalisation (default :func:`sequential_design`).
     max_rounds : int
@@ -885,18 +886,18 @@ def tune_cascade(plant: "Plant", scene: MoveScene, *, baseline: CascadeDesign | 
         Ipopt iteration budget per solve.
     kv_max : float (1/s) or str, optional
         Ceiling on the position gain ``Kv``, a bound of the NLP (:func:`kv_ceiling`; a string
-        with its unit, ``"3 (m/min)/mm"``; default the scene's ``kv_max_per_s``, else none).
+        with its unit, ``"3 (m/min)/mm"``; default the spec's ``kv_max_per_s``, else none).
 
     Returns
     -------
     CascadeDesign
         With the verified (dense-grid, refined) Ms at all breaking points.
     """
-    kv_cap = kv_ceiling(scene, kv_max)
-    cm = cm or CascadeModel(plant, scene)
-    baseline = baseline or sequential_design(plant, scene, cm, kv_max=kv_max)
+    kv_cap = kv_ceiling(spec, kv_max)
+    cm = cm or CascadeModel(plant, spec)
+    baseline = baseline or sequential_design(plant, spec, cm, kv_max=kv_max)
     g0 = np.asarray(baseline.gains, float)
-    sc = scene
+    sc = spec
     rm, rh = cm.inputs("move"), cm.inputs("hold")
     e_f0, e_h0 = max(baseline.linear["ms_following"], 1e-300), max(baseline.linear["ms_holding"], 1e-300)
     # Scaled decision variables: gains relative to the baseline's (kip relative to kv^2/10).

@@ -209,7 +209,7 @@ def test_cascade_model_carries_the_delay(plant):
     models = {}
     for n in (0, 2):
         p = plant.with_params({KEY: n})
-        cm = CascadeModel(p, sc)
+        cm = CascadeModel(p, sc.cascade_spec())
         model = plant_model(p, "rigid")
         a, b, c, _, _ = linear_core(p, cm.w_lin, sc.load_n, "rigid")
         lp = drive_loop(a, b, c[model.output_names.index("nut_speed")], model.index("theta_nut"), ts=p.sample_time_s,

@@ -6,12 +6,12 @@ import dataclasses
 
 import pytest
 
-from prsa_ctrl.errors import SceneError
+from prsa_ctrl.errors import SceneError, UsageError
 from prsa_ctrl.plant.plantfile import load_plant
 from prsa_ctrl.studies.movescene import MoveScene
 from prsa_ctrl.studies.scene import Scene, builtin_scenes, load_scene
-from prsa_ctrl.studies.scenekinds import (KINDS, DutyCycle, LoadStep, Move, MoveReport, SpeedReport, TuneOptions,
-                                          kind_of, problem)
+from prsa_ctrl.studies.scenekinds import (KINDS, MOVE_FLAGS, DutyCycle, LoadStep, Move, MoveReport, SpeedReport,
+                                          TuneOptions, file_kind, kind_of, problem)
 
 EXPECTED = {"paper-load-step": "load-step", "paper-table3": "load-step", "robust-load-step": "load-step",
             "paper-heavy-slide": "load-step", "duty-ramp": "duty-cycle", "duty-trace": "duty-cycle",
@@ -82,3 +82,39 @@ def test_options_are_frozen_with_quiet_defaults():
 def test_scene_types_are_the_registry_inputs():
     assert isinstance(load_scene("paper-move"), MoveScene)
     assert isinstance(load_scene("duty-ramp"), Scene)
+
+
+def test_file_kind_reads_the_sections_before_loading():
+    assert file_kind("paper-move") is Move
+    assert file_kind("paper-load-step") is LoadStep
+    assert file_kind("duty-ramp") is LoadStep  # both speed-loop kinds load alike; told apart once loaded
+    assert file_kind("no-such-scene") is LoadStep  # its loader reports the missing file
+
+
+def test_a_move_refuses_the_first_flag_it_does_not_honour_as_typed():
+    given = [("plant", "--plant paper"), ("seed", "--seed 3"), ("robust", "--robust")]
+    with pytest.raises(UsageError) as exc:
+        Move.refuse_flags(given, "paper-move")
+    assert str(exc.value) == ("--seed 3 does not apply to a move scene (paper-move); expected only --plant, --json, "
+                              "--export, --plots, --quiet and --verbose")
+    Move.refuse_flags([(dest, f"--{dest}") for dest in MOVE_FLAGS], "paper-move")  # every honoured flag passes
+    assert LoadStep.flags is None and DutyCycle.flags is None and Move.flags == MOVE_FLAGS
+
+
+def test_a_move_loads_scene_first_then_refuses_then_the_plant(tmp_path):
+    """The order of a move's checks decides the message when several fail: a broken scene
+    file before a refused flag, a refused flag before a missing plant."""
+    never = pytest.fail
+    with pytest.raises(UsageError, match="--seed 3 does not apply"):
+        Move.load("paper-move", str(tmp_path / "no-plant.toml"), [("seed", "--seed 3")], never)
+    bad = tmp_path / "bad-move.toml"
+    bad.write_text("[move]\nprofile = 'trapezoidal'\n", encoding="utf-8")
+    with pytest.raises(SceneError, match="bad-move.toml"):
+        Move.load(str(bad), None, [("seed", "--seed 3")], never)
+    plant, scene, typed = Move.load("paper-move", None, [("plant", "--plant paper")], never)
+    assert isinstance(scene, MoveScene) and typed == [] and plant.name
+
+
+def test_a_speed_loop_scene_is_loaded_by_the_command_overrides():
+    sentinel = object()
+    assert LoadStep.load("paper-load-step", None, [("seed", "--seed 3")], lambda: sentinel) is sentinel

@@ -241,7 +241,7 @@ def test_linear_cascade_matches_the_drive_loop_model(plant, scene):
     from prsa_ctrl.tuning.builders import drive_loop
 
     sc = dataclasses.replace(scene, fidelity="rigid")
-    cm = CascadeModel(plant, sc)
+    cm = CascadeModel(plant, sc.cascade_spec())
     model = plant_model(plant, "rigid")
     a, b, c, _, _ = linear_core(plant, cm.w_lin, sc.load_n, "rigid")
     lp = drive_loop(a, b, c[model.output_names.index("nut_speed")], model.index("theta_nut"), ts=plant.sample_time_s,
@@ -260,7 +260,7 @@ def test_linear_model_time_response_matches_its_frequency_response(plant, scene)
     transfer functions (what its Ms constraints see) are the same system: the steady error of
     the P cascade at constant speed without feed-forward is v/kv in both."""
     sc = dataclasses.replace(scene, fidelity="rigid", load_n=0.0, hold_step_n=100.0)
-    cm = CascadeModel(plant, sc)
+    cm = CascadeModel(plant, sc.cascade_spec())
     g = [PI.kp, PI.ki, 50.0, 0.0, 0.0, 0.0]
     e = cm.error(g, "move")
     m = sc.motion()
@@ -273,9 +273,9 @@ def test_linear_model_time_response_matches_its_frequency_response(plant, scene)
 @pytest.fixture(scope="module")
 def designs(plant, scene):
     sc = dataclasses.replace(scene, fidelity="rigid")
-    cm = CascadeModel(plant, sc)
-    seq = sequential_design(plant, sc, cm)
-    joint = tune_cascade(plant, sc, baseline=seq, cm=cm)
+    cm = CascadeModel(plant, sc.cascade_spec())
+    seq = sequential_design(plant, sc.cascade_spec(), cm)
+    joint = tune_cascade(plant, sc.cascade_spec(), baseline=seq, cm=cm)
     seq, joint = (verify_design(d, plant, sc) for d in (seq, joint))
     return sc, cm, seq, joint
 
@@ -420,7 +420,7 @@ def test_screw_side_error_shows_the_thread_deflection(plant, scene):
 def test_bandwidth_ratio_option(plant, designs):
     sc, cm, seq, joint = designs
     sc5 = dataclasses.replace(sc, bandwidth_ratio=5.0)
-    d = tune_cascade(plant, sc5, baseline=seq, cm=cm)
+    d = tune_cascade(plant, sc5.cascade_spec(), baseline=seq, cm=cm)
     assert d.method == "joint"
     assert d.speed.kp / plant.reflected_inertia_kg_m2 >= 5.0 * d.position.kv * (1 - 1e-6)
     assert joint.speed.kp / plant.reflected_inertia_kg_m2 < 5.0 * joint.position.kv  # the option is active
@@ -579,7 +579,7 @@ def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate,
     if filtered:
         f, labels = _two_filters()
         sc = dataclasses.replace(sc, filters=f, filter_labels=labels)
-    cm = CascadeModel(plant, sc)
+    cm = CascadeModel(plant, sc.cascade_spec())
     ts = plant.sample_time_s
     bqs = [(lf.place, tuple(getattr(lf.biquad(ts), k) for k in ("b0", "b1", "b2", "a1", "a2"))) for lf in sc.filters]
     assert len(bqs) == (2 if filtered else 0)
@@ -605,11 +605,11 @@ def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate,
         y = _simulate_multirate(plant, cm, g, n_rate, 700.0, "position", samples, bqs, p_delay)
         zp = np.exp(1j * 700.0 * tp)
         got = y[(samples // n_rate - 1) * n_rate] / zp ** (samples // n_rate - 1)
-        nodelay = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0))
+        nodelay = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0).cascade_spec())
         assert abs(got - 1 / (1 + nodelay.position_loop(g, np.array([700.0]))[0])) > 1e-3 * abs(got)
     if n_rate > 1 and not p_delay:
         # The model's peaks are those sensitivities' maxima: the slow loop sees more than the fast one.
-        fast = CascadeModel(plant, dataclasses.replace(sc, position_rate=1)).ms(g)
+        fast = CascadeModel(plant, dataclasses.replace(sc, position_rate=1).cascade_spec()).ms(g)
         slow = cm.ms(g)
         assert slow["speed_open"] == pytest.approx(fast["speed_open"], rel=1e-12)
         assert slow["position"] > fast["position"]
@@ -620,14 +620,14 @@ def test_multirate_time_model_is_the_simulated_law(plant, scene):
     linearised: the steady following error at constant speed without feed-forward is v/kv, and a
     slower position loop shifts the error it gives over the move (it is not the rate-1 model)."""
     sc = dataclasses.replace(scene, fidelity="rigid", load_n=0.0, hold_step_n=100.0, position_rate=2)
-    cm = CascadeModel(plant, sc)
+    cm = CascadeModel(plant, sc.cascade_spec())
     g = [PI.kp, PI.ki, 50.0, 0.0, 0.0, 0.0]
     e = cm.error(g, "move")
     m = sc.motion()
     t = np.arange(e.size) * cm.ts
     cruise = (t > m.t0[0] + 0.15) & (t < m.t0[0] + 0.25)
     assert np.mean(e[cruise]) == pytest.approx(sc.max_speed_m_s / 50.0, rel=0.01)
-    e1 = CascadeModel(plant, dataclasses.replace(sc, position_rate=1)).error(g, "move")
+    e1 = CascadeModel(plant, dataclasses.replace(sc, position_rate=1).cascade_spec()).error(g, "move")
     assert np.max(np.abs(e - e1)) > 1e-3 * np.max(np.abs(e1))
     # Against the nonlinear simulator's rigid run of the same gains: the error through the move
     # agrees to the friction's linearisation (a few per cent of the peak).
@@ -644,13 +644,13 @@ def test_position_delay_time_model_is_the_simulated_law(plant, scene, n_rate, p_
     undelayed model differs from the delayed run by more than that)."""
     sc = dataclasses.replace(scene, fidelity="rigid", load_n=0.0, hold_step_n=100.0, position_rate=n_rate,
                              position_delay_samples=p_delay)
-    cm = CascadeModel(plant, sc)
+    cm = CascadeModel(plant, sc.cascade_spec())
     g = [PI.kp, PI.ki, 50.0, 0.0, 0.0, 0.0]
     e = cm.error(g, "move")
     r = simulate_move(plant, sc, PID(PI.kp, PI.ki), PositionLoop(kv=50.0, kvff=0.0, kaff=0.0, rate=n_rate,
                                                                  delay=p_delay))
     e_nl = _err_m(r, plant)[:e.size]
-    e0 = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0)).error(g, "move")
+    e0 = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0).cascade_spec()).error(g, "move")
     assert np.max(np.abs(e_nl - e)) < 0.05 * np.max(np.abs(e))
     assert np.max(np.abs(e_nl - e0)) > 4 * np.max(np.abs(e_nl - e))
 
@@ -701,7 +701,7 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
     ts = plant.sample_time_s
     sc = load_move_scene(f)
     assert [lf.place for lf in sc.filters] == ["torque_command", "speed_measurement"]
-    cm = CascadeModel(plant, sc)
+    cm = CascadeModel(plant, sc.cascade_spec())
     for name in ("sequential", "joint"):
         d = data[name]
         assert [x["place"] for x in d["filters"]] == ["torque_command", "speed_measurement"]
@@ -764,8 +764,8 @@ def test_cli_cascade_with_the_position_loops_own_delay(tmp_path, capsys, plant):
     rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "drive.st")])
     assert rc == 0 and capsys.readouterr().err == ""
     data = json.loads((tmp_path / "c.json").read_text())
-    cm = CascadeModel(plant, sc)
-    cm0 = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0))
+    cm = CascadeModel(plant, sc.cascade_spec())
+    cm0 = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0).cascade_spec())
     for name in ("sequential", "joint"):
         d = data[name]
         assert d["position"]["rate"] == 2 and d["position"]["delay_samples"] == 1
@@ -834,15 +834,15 @@ def test_kv_max_units_and_the_python_api(plant, scene):
 
     assert parse_kv("3 (m/min)/mm") == pytest.approx(50.0, rel=1e-15)
     assert parse_kv("2.5 1/s") == 2.5 and parse_kv(" 1  (m/min) / mm ") == pytest.approx(1000 / 60)
-    assert kv_ceiling(scene) == math.inf and kv_ceiling(scene, 30.0) == 30.0
-    assert kv_ceiling(dataclasses.replace(scene, kv_max_per_s=20.0)) == 20.0
-    assert kv_ceiling(scene, "2 (m/min)/mm") == pytest.approx(100 / 3)
+    assert kv_ceiling(scene.cascade_spec()) == math.inf and kv_ceiling(scene.cascade_spec(), 30.0) == 30.0
+    assert kv_ceiling(dataclasses.replace(scene, kv_max_per_s=20.0).cascade_spec()) == 20.0
+    assert kv_ceiling(scene.cascade_spec(), "2 (m/min)/mm") == pytest.approx(100 / 3)
     for bad in (0.0, -1.0, math.inf, math.nan, True, "2 mm"):
         with pytest.raises(ValueError, match="kv_max = "):
-            kv_ceiling(scene, bad)
+            kv_ceiling(scene.cascade_spec(), bad)
     # the ceiling bounds the sequential rule too (it picks crossover/10 = 39 1/s without it)
     sc = dataclasses.replace(scene, fidelity="rigid", position_rate=2)
-    seq = sequential_design(plant, sc, kv_max="1.2 (m/min)/mm")
+    seq = sequential_design(plant, sc.cascade_spec(), kv_max="1.2 (m/min)/mm")
     assert seq.position.kv == pytest.approx(20.0) and any("ceiling" in n for n in seq.notes)
     assert seq.position.rate == 2 and seq.ms <= sc.ms_max * (1 + 1e-5)
 
@@ -879,7 +879,7 @@ def test_kept_responses_give_the_peaks_of_a_fresh_computation(plant, scene, rate
     frequencies, 20000 by default, at every gain): the peaks at other gains after the first call are the same
     numbers, bit for bit, as a model that keeps nothing, and the kept arrays cannot be written."""
     sc = dataclasses.replace(scene, position_rate=rate)
-    cm, bare = CascadeModel(plant, sc), CascadeModel(plant, sc)
+    cm, bare = CascadeModel(plant, sc.cascade_spec()), CascadeModel(plant, sc.cascade_spec())
     bare._CACHE_MIN = 10**9  # keeps nothing
     for g in ([0.08, 7.0, 60.0, 0.0, 1.0, 1.0], [0.05, 11.0, 25.0, 3.0, 1.0, 0.0], [0.12, 4.0, 90.0, 0.0, 0.5, 1.0]):
         assert cm.ms(g, n_dense=2000) == bare.ms(g, n_dense=2000)  # a dense grid of 2000 (kept from 64)
@@ -926,6 +926,6 @@ def test_peaks_searched_in_lockstep_are_those_searched_one_at_a_time(plant, scen
     """``ms`` runs the four breaking points' golden section searches in lockstep (one
     sensitivity call per step): the peaks and their frequencies are the same numbers, bit for
     bit, as the searches run one point and one frequency at a time."""
-    cm = CascadeModel(plant, dataclasses.replace(scene, position_rate=rate))
+    cm = CascadeModel(plant, dataclasses.replace(scene, position_rate=rate).cascade_spec())
     for g in ([0.08, 7.0, 60.0, 0.0, 1.0, 1.0], [0.05, 11.0, 25.0, 3.0, 1.0, 0.0]):
         assert cm.ms(g, n_dense=2000) == _peaks_one_point_at_a_time(cm, g, n_dense=2000)
