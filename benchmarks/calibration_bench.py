@@ -111,7 +111,7 @@ def run_case(args: list[str], work: Path, tag: str) -> dict:
                        capture_output=True, text=True, env={**os.environ, "MPLBACKEND": "Agg"})
     wall = time.perf_counter() - t0
     c1 = os.times()
-    lines = [ln for ln in (p.stderr + p.stdout).splitlines() if ln.strip()]
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()] or [ln for ln in p.stdout.splitlines() if ln.strip()]
     return {"exit": p.returncode, "wall_s": wall,
             "cpu_s": (c1.children_user - c0.children_user) + (c1.children_system - c0.children_system),
             "load_before": list(load0), "load_after": list(os.getloadavg()),
