@@ -100,3 +100,36 @@ def test_bench_acceptance_fast_prints_every_target_and_writes_its_json(tmp_path)
         assert isinstance(r["met"], bool) and f"{key} " in p.stdout
     assert rows["mc_robust"]["ms_per_sample"] is True and rows["mc_paper"]["path"] == "batched"
     assert rows["design_to_spec"]["results"][0]["samples"] == 8
+
+
+def test_calibration_bench_says_when_the_foreign_axis_data_are_absent(tmp_path):
+    """A clean clone (CI) has no ../shared/data: the calibration benchmark says where it looked,
+    writes {"skipped": ...} and exits 0; a bad --out is refused before any work."""
+    empty = tmp_path / "nothing"
+    empty.mkdir()
+    p = _run("calibration_bench.py", tmp_path, "--data", str(empty))
+    assert p.returncode == 0, (p.stdout[-2000:], p.stderr[-2000:])
+    assert "skipped: foreign-axis data not found in " + str(empty) in p.stdout and "--data DIR" in p.stdout
+    data = json.loads((tmp_path / "out" / "calibration.json").read_text(encoding="utf-8"))
+    assert data["fast"] is True and str(empty) in data["skipped"]
+    (tmp_path / "file").write_text("x")
+    p = subprocess.run([sys.executable, str(BENCH / "calibration_bench.py"), "--fast", "--out", str(tmp_path / "file")],
+                       cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and p.stderr.startswith("calibration_bench: error: --out ") and (tmp_path / "file").read_text() == "x"
+
+
+@pytest.mark.slow
+def test_calibration_bench_fast_times_the_foreign_axis_fits(tmp_path):
+    """With the foreign-axis data beside the checkout (or $PRSA_FOREIGN_AXIS): --fast runs the FRF
+    fit and a tiny rigid log fit once each and writes their times (no time asserted)."""
+    spec = importlib.util.spec_from_file_location("calibration_bench", BENCH / "calibration_bench.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    data, where = mod.find_data(None)
+    if data is None:
+        pytest.skip(where)
+    p = _run("calibration_bench.py", tmp_path)
+    assert p.returncode == 0 and "Traceback" not in p.stderr, (p.stdout[-2000:], p.stderr[-2000:])
+    res = json.loads((tmp_path / "out" / "calibration.json").read_text(encoding="utf-8"))
+    assert set(res) >= {"frf", "rigid_logs"} and res["frf"]["runs"][0]["exit"] == 0
+    assert all(r["wall_s"] > 0 and r["cpu_s"] >= 0 for s in ("frf", "rigid_logs") for r in res[s]["runs"])

@@ -127,20 +127,20 @@ def test_toolkit_round_trip(base, case):
 def test_reversals_left_out_and_segments_cut_there(base):
     """The staircase reverses faster than one sample: the sign change alone marks it, and no
     segment spans a reversal."""
-    import prsa_ctrl.identification.timedomain as fit_mod
     from prsa_ctrl.identification.common import default_min_speed
+    from prsa_ctrl.identification.shooting import reference_trajectory, shooting_segments
 
     truth = base.with_params(PERTURBED["issue"])
     rec = toolkit_record(truth, "staircase")
-    ref = fit_mod._reference(rec, base)
-    segs, left = fit_mod._segments([rec], 400, [ref], default_min_speed(base))
+    ref = reference_trajectory(rec, base)
+    segs, left = shooting_segments([rec], 400, [ref], default_min_speed(base))
     v = rec.speed_rad_s
     for sg in segs:
         seg_v = v[sg.k0:sg.k0 + sg.n]
         assert np.all(seg_v > 0) or np.all(seg_v < 0)
         assert np.min(np.abs(seg_v)) > 0.5 * default_min_speed(base)
     assert 0 < left < 0.3 * (rec.n - 1)
-    segs0, left0 = fit_mod._segments([rec], 400, [ref], 0.0)
+    segs0, left0 = shooting_segments([rec], 400, [ref], 0.0)
     assert left0 == 0 and sum(sg.n for sg in segs0) == rec.n - 1
     with pytest.raises(ValueError, match="min_speed_rad_s = -1"):
         fit_plant([rec], base, min_speed_rad_s=-1.0)

@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 
+from prsa_ctrl.identification import gaussnewton as gn
 from prsa_ctrl.identification import timedomain as td
 from prsa_ctrl.identification.common import FitResult
 from prsa_ctrl.identification.synthetic import fit_record
@@ -82,13 +83,13 @@ def test_objective_per_record_adds_up_to_the_objective(sim):
 
 def test_a_stuck_line_search_is_a_solution_only_at_a_tiny_defect_and_step():
     se = np.array([1e-3, 2e-2])
-    ok = td._converged_at_kink(4e-7, np.array([1e-5, -1e-4]), se, 1e-8)
+    ok = gn.converged_at_kink(4e-7, np.array([1e-5, -1e-4]), se, 1e-8)
     assert ok is True
     # the defect above the tolerance, or a step the linearisation still asks for: not a solution
-    assert td._converged_at_kink(2 * td.KINK_CONSTRAINT_TOL, np.array([1e-5, -1e-4]), se, 1e-8) is False
-    assert td._converged_at_kink(4e-7, np.array([2e-4, 0.0]), se, 1e-8) is False  # 0.2 standard errors
-    assert td._converged_at_kink(float("nan"), np.zeros(2), se, 1e-8) is False
-    assert td._converged_at_kink(4e-7, np.zeros(0), None, 1e-8) is True  # states only
+    assert gn.converged_at_kink(2 * gn.KINK_CONSTRAINT_TOL, np.array([1e-5, -1e-4]), se, 1e-8) is False
+    assert gn.converged_at_kink(4e-7, np.array([2e-4, 0.0]), se, 1e-8) is False  # 0.2 standard errors
+    assert gn.converged_at_kink(float("nan"), np.zeros(2), se, 1e-8) is False
+    assert gn.converged_at_kink(4e-7, np.zeros(0), None, 1e-8) is True  # states only
 
 
 def test_a_fit_whose_line_search_cannot_improve_a_converged_point_reports_it(sim, monkeypatch):
@@ -108,11 +109,46 @@ def test_a_fit_whose_line_search_cannot_improve_a_converged_point_reports_it(sim
         return (g, f) if g > 1e-7 else (10.0 * g + 1.0, 10.0 * f + 1.0)  # finite, never better
 
     monkeypatch.setattr(td._Problem, "_merit_terms", refuse)
+    monkeypatch.setattr(td, "FIRST_ORDER_WINDOW", 10**6)  # the kink rule alone (the stall rule has its own test)
     out = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
     assert out.solver["converged_at_kink"] is True
     assert out.parameters["nut.inertia_kg_m2"]["value"] == pytest.approx(
         res.parameters["nut.inertia_kg_m2"]["value"], rel=1e-6)
-    monkeypatch.setattr(td, "KINK_CONSTRAINT_TOL", 0.0)
+    # with the kink rule and the first-order rule of a stall both off (no defect within their
+    # reach), the same run fails as before
+    monkeypatch.setattr(gn, "KINK_CONSTRAINT_TOL", 0.0)
+    monkeypatch.setattr(gn, "FIRST_ORDER_G_MAX", 0.0)
     state["n"] = 0
     with pytest.raises(td.FitError, match="line search failed"):
         td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+
+
+def test_a_stall_at_a_first_order_point_converges_and_one_elsewhere_fails(sim, monkeypatch):
+    """The rule of a stall (prsa_ctrl.identification.gaussnewton): a fit whose line search stops at
+    the optimum (every trial point with a defect below 1e-7 refused, the kink rule off) converges,
+    says so and reports what a full convergence reports; a fit whose iteration budget ends one
+    parameter step after a start 25 % off fails, and its message gives the step still asked for."""
+    rec, truth = sim
+    keys = ("nut.inertia_kg_m2",)
+    ref = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+    assert ref.solver["stall"] is None
+    orig = td._Problem._merit_terms
+
+    def refuse(self, V, X0, s):
+        g, f = orig(self, V, X0, s)
+        return (g, f) if g > 1e-7 else (10.0 * g + 1.0, 10.0 * f + 1.0)  # finite, never better
+
+    monkeypatch.setattr(td._Problem, "_merit_terms", refuse)
+    monkeypatch.setattr(td, "converged_at_kink", lambda *a: False)
+    out = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+    stall = out.solver["stall"]
+    assert stall["status"] in ("line search failed", "stalled at a first-order point")
+    assert out.solver["converged_at_kink"] is False and out.solver["status"] == "converged"
+    assert stall["step_standard_errors"] <= gn.FIRST_ORDER_TOL and stall["constraint_residual"] <= gn.FIRST_ORDER_G_MAX
+    v, v_ref = out.parameters[keys[0]], ref.parameters[keys[0]]
+    half = 0.5 * (v_ref["ci95"][1] - v_ref["ci95"][0])
+    assert abs(v["value"] - v_ref["value"]) <= 0.1 * half
+    monkeypatch.undo()
+    start = truth.with_params({keys[0]: 1.25 * truth.values[keys[0]]})
+    with pytest.raises(td.FitError, match=r"stopped 'maximum iterations' where the step still asked for is .* standard errors"):
+        td.fit_plant([rec], start, keys=keys, delay_samples=0, validation=False, max_iter=1)

@@ -1,0 +1,77 @@
+"""prsa_ctrl.identification.gaussnewton: the convergence rule of a stalled Gauss-Newton
+iteration (a first-order point within the noise converges, any other point does not), on a
+synthetic linear least-squares problem whose optimum and standard errors are known exactly."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import lsq_linear
+
+from prsa_ctrl.identification import gaussnewton as gn
+
+
+def _problem(seed=0, n=400):
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((n, 3)) * np.array([1.0, 30.0, 0.01])  # badly scaled columns
+    y = a @ np.array([1.0, -2.0, 50.0]) + 0.3 * rng.standard_normal(n)
+    x_opt = np.linalg.lstsq(a, y, rcond=None)[0]
+    dof = n - 3
+    s2 = float((a @ x_opt - y) @ (a @ x_opt - y)) / dof
+    cov = s2 * np.linalg.inv(a.T @ a)
+    return a, y, x_opt, cov, dof
+
+
+def se_scale(cov):
+    return float(np.sqrt(np.max(np.diag(cov))))
+
+
+def s2_opt(a, y, x_opt, dof):
+    return float((a @ x_opt - y) @ (a @ x_opt - y)) / dof
+
+
+def _stall_at(x, a, y, dof, lo=None, hi=None):
+    """The rule's inputs at an iterate x: the residual, the (bounded) Gauss-Newton step, its length."""
+    r = a @ x - y
+    lo = np.full(3, -np.inf) if lo is None else lo
+    hi = np.full(3, np.inf) if hi is None else hi
+    d = lsq_linear(a, -r, bounds=(lo - x, hi - x), method="bvls").x
+    return d, gn.noise_decrement(a, r, d, dof)
+
+
+def test_the_decrement_is_the_remaining_step_in_joint_standard_errors():
+    a, y, x_opt, cov, dof = _problem()
+    for k, frac in ((0, 0.05), (1, 0.5), (2, 3.0)):
+        x = x_opt.copy()
+        x[k] += frac * math.sqrt(cov[k, k])
+        d, m = _stall_at(x, a, y, dof)
+        assert d == pytest.approx(x_opt - x, abs=1e-9 * se_scale(cov))  # linear: the step back to the optimum
+        s2_x = float((a @ x - y) @ (a @ x - y)) / dof  # the residual variance at the iterate
+        assert m * m == pytest.approx(d @ (a.T @ a) @ d / s2_x, rel=1e-9)  # d' C^-1 d, C = s2 (A'A)^-1
+        assert frac * math.sqrt(1 - 1e-2) <= m * math.sqrt(s2_x / s2_opt(a, y, x_opt, dof))
+    assert gn.noise_decrement(a, a @ x_opt - y, np.zeros(3), dof) == 0.0
+    assert gn.noise_decrement(a[:, :0], a @ x_opt - y, np.zeros(0), dof) == 0.0
+
+
+def test_a_stall_at_a_first_order_point_is_accepted_and_one_elsewhere_refused():
+    a, y, x_opt, cov, dof = _problem(seed=1)
+    se = np.sqrt(np.diag(cov))
+    _, m_opt = _stall_at(x_opt, a, y, dof)
+    assert gn.first_order_point(1e-9, m_opt)
+    _, m_near = _stall_at(x_opt + 0.03 * se, a, y, dof)  # 0.03 standard errors each: within the noise
+    assert m_near < gn.FIRST_ORDER_TOL and gn.first_order_point(1e-9, m_near)
+    _, m_far = _stall_at(x_opt + np.array([0.0, 0.5, 0.0]) * se, a, y, dof)  # half a standard error off
+    assert m_far > gn.FIRST_ORDER_TOL and not gn.first_order_point(1e-9, m_far)
+    # a first-order point of the bounded problem: held at a bound its gradient pushes against
+    lo, hi = np.full(3, -np.inf), np.full(3, np.inf)
+    hi[1] = x_opt[1] - 5 * se[1]
+    x_b = x_opt.copy()
+    x_b[1] = hi[1]
+    x_b[[0, 2]] = lsq_linear(a, y, bounds=(lo, hi), method="bvls").x[[0, 2]]
+    d, m_b = _stall_at(x_b, a, y, dof, lo, hi)
+    assert abs(d[1]) < 1e-12 and gn.first_order_point(1e-9, m_b)
+    _, m_free = _stall_at(x_b, a, y, dof)  # the same point without the bound is far from optimal
+    assert not gn.first_order_point(1e-9, m_free)
+    # the equations out of the linearisation's reach, or no number: refused
+    assert not gn.first_order_point(10 * gn.FIRST_ORDER_G_MAX, m_opt)
+    assert not gn.first_order_point(float("nan"), m_opt) and not gn.first_order_point(1e-9, float("nan"))
