@@ -5,11 +5,14 @@ fitted values with their 95 % intervals and the fit's warnings, the three views 
 as written against the log, the log's frequency response beside the written plant's on a Hz axis
 with the coherence, and the residuals), and on the user's confirmation make the fitted plant the
 app's plant and re-tune. A fit whose plant does not explain the log is shown as refused, with
-prsa-fit's diagnosis: no plant to use or download.
+prsa-fit's diagnosis: no plant to use or download. A measured frequency response uploaded beside
+the log is fitted as ``prsa-fit --frf`` does (:func:`prsa_ctrl.identification.calibrate.calibrate_frf`):
+the structure the data chose, why, and the mode with its intervals (``fit-structure``), the Bode view;
+a response the command refuses (exit 3) is shown as refused with its line.
 
 Elements the browser tests read carry ``data-k`` attributes (``fit-state``, ``fit-verdict``,
 ``fit-views``, ``fit-<key>-value``, ``fit-<key>-ci``, ``fit-warning``), the widgets CSS classes
-``prsa-log-upload``, ``prsa-fit-use``, ``prsa-fit-discard``, ``prsa-fit-download``, the figures
+``prsa-log-upload``, ``prsa-frf-upload``, ``prsa-fit-use``, ``prsa-fit-discard``, ``prsa-fit-download``, the figures
 ``prsa-fit-replay``, ``prsa-fit-residual``, ``prsa-fit-frf-mag``, ``prsa-fit-frf-phase``,
 ``prsa-fit-coherence``, and their data sources the names ``prsa-fit-replay``,
 ``prsa-fit-frf``, ``prsa-fit-frf-models``.
@@ -153,6 +156,10 @@ class FitPanel:
         self.upload, self.too_large = upload_input(".csv", "Calibrate from a drive log (prsa-fit LOG --plant <this "
                                                    "plant>)", "prsa-log-upload")
         self.too_large.on_change("data", lambda attr, old, new: self._too_large())
+        self.frf_upload, self.frf_too_large = upload_input(
+            ".csv", "or from a measured frequency response (prsa-fit --frf FRF.csv --plant <this plant>: frequency_hz, "
+            "magnitude_db, phase_deg or real, imag, optional coherence)", "prsa-frf-upload")
+        self.frf_too_large.on_change("data", lambda attr, old, new: self._too_large(self.frf_too_large, "frf"))
         self.use = Button(label="Use the fitted plant", disabled=True, button_type="success",
                           css_classes=["prsa-fit-use"])
         self.discard = Button(label="Cancel / discard", disabled=True, css_classes=["prsa-fit-discard"])
@@ -165,21 +172,23 @@ class FitPanel:
         self.views: FitViews | None = None
         self._views_box = column(sizing_mode="stretch_width")
         #: the calibration tab's content (:class:`prsa_ctrl.app.page.AppPage` puts it in its tab)
-        self.layout = row(column(self.upload, row(self.use, self.discard), self.download, width=330),
+        self.layout = row(column(self.upload, self.frf_upload, row(self.use, self.discard), self.download, width=330),
                           column(self.out, self._views_box, sizing_mode="stretch_width"), sizing_mode="stretch_width")
         # value and filename arrive in one patch, value first: read both once the patch is applied
         self.upload.on_change("value", lambda attr, old, new: page.doc.add_next_tick_callback(self._start))
+        self.frf_upload.on_change("value", lambda attr, old, new: page.doc.add_next_tick_callback(
+            partial(self._start, "frf")))
         self.use.on_click(self._use)
         self.discard.on_click(self._discard)
 
-    def _too_large(self) -> None:
-        line = too_large_line(self.too_large, "uploaded-log.csv")
+    def _too_large(self, src: ColumnDataSource | None = None, kind: str = "log") -> None:
+        line = too_large_line(self.too_large if src is None else src, f"uploaded-{kind}.csv")
         if line is not None:
             self.page.show_error(line)
 
-    def _start(self) -> None:
+    def _start(self, kind: str = "log") -> None:
         try:
-            got = uploaded_file(self.upload, "uploaded-log.csv")
+            got = uploaded_file(self.frf_upload if kind == "frf" else self.upload, f"uploaded-{kind}.csv")
         except AppInputError as exc:
             self.page.show_error(str(exc))
             return
@@ -194,13 +203,16 @@ class FitPanel:
         base = self.page.session.plant_label
         self.out.text = (f"<div data-k='fit-state' data-state='running'><b>Calibration</b>: fitting "
                          f"<b>{html.escape(base)}</b> to {html.escape(name)} ({len(content)} bytes) in the background "
-                         f"(prsa-fit's fit in a worker thread: Gauss-Newton on the whole log, no intermediate progress; "
-                         f"seconds)</div>{_BAR}")
-        self._pool.submit(self._work, self._seq, name, content)
+                         f"<span data-k='fit-kind' data-kind='{kind}'></span>"
+                         + ("(prsa-fit --frf in a worker thread: the rigid and the two-mass model fitted to the "
+                            "response, the structure the data choose; seconds)" if kind == "frf" else
+                            "(prsa-fit's fit in a worker thread: Gauss-Newton on the whole log, no intermediate progress; "
+                            "seconds)") + f"</div>{_BAR}")
+        self._pool.submit(self._work, self._seq, name, content, kind)
 
-    def _work(self, seq: int, name: str, content: bytes) -> None:
+    def _work(self, seq: int, name: str, content: bytes, kind: str = "log") -> None:
         try:
-            cal = self.page.session.calibrate(name, content, cancelled=lambda: seq != self._seq)
+            cal = self.page.session.calibrate(name, content, cancelled=lambda: seq != self._seq, kind=kind)
         except Cancelled:
             return
         except AppInputError as exc:
@@ -392,6 +404,10 @@ def _verdict_html(cal: Calibration) -> str:
     if cal.refused is not None:
         return (f"<div data-k='fit-verdict' data-verdict='refused' style='color:#b00;font-weight:bold'>Refused: "
                 f"{html.escape(cal.refused)}. No plant file was written; the app's plant is unchanged.</div>")
+    if v is None and cal.report.get("frf_structure"):  # prsa-fit --frf alone: exit 0, no log to replay
+        return ("<div data-k='fit-verdict' data-verdict='not-validated'>Fitted to the measured frequency response "
+                "(no replay validation: that needs a drive log); the structure the data chose:</div>"
+                + _structure_html(cal.report["frf_structure"]))
     if v is None:
         return ("<div data-k='fit-verdict' data-verdict='not-validated'>Not validated: prsa-fit replayed no log "
                 "through the written plant.</div>")
@@ -405,9 +421,21 @@ def _verdict_html(cal: Calibration) -> str:
             f"explains the log ({pct}).</div>")
 
 
+def _structure_html(st: dict) -> str:
+    """The structure a frequency response chose, why, and the two-mass model's axial mode and
+    anti-resonance with their 95 % intervals (``prsa-fit``'s ``structure:`` lines)."""
+    lines = st.get("lines") or []
+    return (f"<div data-k='fit-structure' data-structure='{html.escape(str(st.get('structure')))}' "
+            "style='font-size:12px;white-space:pre-wrap'>" + "<br>".join(html.escape(x) for x in lines) + "</div>")
+
+
 def _report_html(cal: Calibration, state: str) -> str:
     """The verdict, the fitted values with their 95 % intervals, fit %, warnings and notes."""
     rep = cal.report
+    if not rep.get("parameters"):  # a refused frequency-response fit: prsa-fit's exit 3 line, nothing fitted
+        return (f"<div data-k='fit-state' data-state='refused' data-file=''><b>Calibration</b> of "
+                f"<b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit --frf): refused</div>"
+                + _verdict_html(cal))
     rows = []
     for key, v in rep["parameters"].items():
         lo, hi = v["ci95"]

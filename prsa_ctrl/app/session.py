@@ -265,7 +265,7 @@ class AppSession:
     # ---- calibration from a drive log ---------------------------------------------------
 
     def calibrate(self, filename: str, content: bytes, cancelled: Callable[[], bool] | None = None,
-                  poll_s: float = 0.1) -> "Calibration":
+                  poll_s: float = 0.1, kind: str = "log") -> "Calibration":
         """Fit the session's plant to an uploaded drive log: what ``prsa-fit LOG --plant BASE --out
         LOG-fitted.toml --json LOG-fit.json`` does, as a library call in this thread
         (:func:`prsa_ctrl.identification.calibrate.calibrate_logs`: the same checks, fit, warnings,
@@ -281,6 +281,13 @@ class AppSession:
         A fit whose plant does not explain the log (prsa-fit's exit 3 with its report) returns
         a :class:`Calibration` with ``refused`` set (the diagnosis) and no plant file.
 
+        ``kind="frf"``: the upload is a measured frequency response, fitted as ``prsa-fit --frf
+        FRF.csv --plant BASE`` does (:func:`prsa_ctrl.identification.calibrate.calibrate_frf`: the
+        rigid and the two-mass model, the structure the data choose, the report's
+        ``frf_structure``); a refused fit (prsa-fit's exit 3: the rigid model refused, no model
+        explains the response, an implausible inertia or delay) returns a :class:`Calibration`
+        with ``refused`` set, an empty ``report`` and no plant file.
+
         Raises
         ------
         AppInputError
@@ -292,11 +299,13 @@ class AppSession:
         import time
 
         from ..errors import DataError, FitError
-        from ..identification.calibrate import calibrate_logs
+        from ..identification.calibrate import calibrate_frf, calibrate_logs
         from ..io.output import json_safe, write_text
         from ..textsafe import MESSAGE_CHARS_MAX, printable
 
-        name = upload_name(filename, "uploaded-log.csv")
+        if kind not in ("log", "frf"):
+            raise ValueError(f"kind = {kind!r}; expected 'log' or 'frf'")
+        name = upload_name(filename, f"uploaded-{kind}.csv")
         folder = self._folder("log")
         path = folder / name
         path.write_bytes(content)
@@ -328,9 +337,21 @@ class AppSession:
         with thread_warnings() as caught:  # this call's warnings only (another session may be calibrating)
             try:
                 check()
-                got = calibrate_logs([str(path)], base, name=Path(out).stem, labels=[name], check_interrupt=check)
+                if kind == "frf":  # prsa-fit --frf (no iteration hook: a cancel discards the result)
+                    got = calibrate_frf([str(path)], base, name=Path(out).stem, labels=[name])
+                    state["last"] = -math.inf  # the cancel pressed meanwhile is seen now
+                    check()
+                else:
+                    got = calibrate_logs([str(path)], base, name=Path(out).stem, labels=[name], check_interrupt=check)
             except Cancelled:
                 raise
+            except FitError as exc:
+                if state["cancelled"]:
+                    raise Cancelled("calibration cancelled") from None
+                if kind != "frf":
+                    raise AppInputError(named(str(exc))) from None
+                return Calibration(log_name=name, base_label=base_label, plant_path="", file_name="", report={},
+                                   lines=(named(str(exc)),), refused=named(str(exc)))
             except (DataError, PlantFileError, FitError, ValueError) as exc:
                 if state["cancelled"]:  # a fit that failed because it was stopped
                     raise Cancelled("calibration cancelled") from None

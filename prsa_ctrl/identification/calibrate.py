@@ -11,7 +11,9 @@ and writing its files, for the command and for the browser app alike:
 * :func:`result_lines`: the report's text lines (values with 95 % intervals, fit %, warnings,
   coordinates, validation);
 * :func:`calibrate_logs`: all of it from log files and a base plant, with ``prsa-fit``'s
-  defaults (the app's calibration: :meth:`prsa_ctrl.app.session.AppSession.calibrate`).
+  defaults (the app's calibration: :meth:`prsa_ctrl.app.session.AppSession.calibrate`);
+* :func:`calibrate_frf`: the same from measured frequency responses (``prsa-fit --frf``: the
+  structure the data choose, rigid or two-mass).
 
 Nothing here writes a file or prints: the caller writes the text atomically
 (:func:`prsa_ctrl.io.output.write_text`) and shows the lines.
@@ -30,7 +32,7 @@ from ..textsafe import printable
 
 __all__ = ["MOTOR_COORDINATES", "Calibrated", "calibrate_logs", "fitted_plant_text", "fit_report", "result_lines",
            "validation_lines", "not_explained_line",
-           "mat_log_refusal", "linear_axis_refusal", "written_keys", "fitted_description", "structure_lines"]
+           "mat_log_refusal", "linear_axis_refusal", "calibrate_frf", "written_keys", "fitted_description", "structure_lines"]
 
 #: Coordinates of a screw-driven plant file and of the logs it is fitted to, as reports state them.
 from ..options import MOTOR_COORDINATES  # noqa: E402 - defined once, re-exported here
@@ -326,3 +328,88 @@ def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name
                                                   origin=name)
     return Calibrated(result, text, fit_report(result, coordinates), tuple(result_lines(result, coordinates)), failure,
                       tuple(records))
+
+
+#: ``prsa-fit --frf-speed``'s default: the nut speed of a measured response (rad/s).
+FRF_SPEED_DEFAULT_RAD_S = 30.0
+#: ``prsa-fit --coherence-min``'s default: response points below this coherence are dropped.
+FRF_COHERENCE_MIN_DEFAULT = 0.8
+
+
+def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name: str,
+                  labels: Sequence[str] | None = None, speed_rad_s: float = FRF_SPEED_DEFAULT_RAD_S,
+                  load_n: float = 0.0, coherence_min: float = FRF_COHERENCE_MIN_DEFAULT) -> Calibrated:
+    """Fit a base plant to measured frequency responses with ``prsa-fit``'s defaults:
+    ``prsa-fit --frf FRF.csv... [--plant BASE] --out NAME.toml --json REPORT.json``.
+
+    The same checks and messages as the command: the operating point (``--frf-speed``,
+    ``--frf-load``) checked against the plant, the fitted file's text checked before the fit, the
+    responses read (:func:`prsa_ctrl.identification.data.load_frf`), the rigid and the two-mass
+    model fitted and the structure the data choose
+    (:func:`prsa_ctrl.identification.frfplant.fit_frf_structure`, ``--fidelity`` not given). A
+    ``linear-axis`` base is fitted (its response in (m/s)/N), as the command does with ``--frf``
+    alone.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        The responses (CSV: ``frequency_hz`` and ``magnitude_db, phase_deg`` or ``real, imag``,
+        optionally ``coherence``).
+    base : str, optional
+        Built-in plant name or plant file path (default: the default plant).
+    name : str
+        The fitted plant's name.
+    labels : sequence of str, optional
+        How the results name each response (default: the path as given).
+    speed_rad_s : float, rad/s
+        Nut speed during the measurement (``--frf-speed``).
+    load_n : float, N
+        Axial load during the measurement (``--frf-load``).
+    coherence_min : float
+        Points below this coherence are dropped (``--coherence-min``, 0 <= C < 1).
+
+    Returns
+    -------
+    Calibrated
+        ``report`` also holds ``frf_structure``: ``{"structure", "reason", "lines"}`` (the
+        structure the data chose, why, and the two-mass model's mode and anti-resonance with
+        their 95 % intervals, :func:`structure_lines`).
+
+    Raises
+    ------
+    DataError, PlantFileError, ValueError
+        Bad input (``prsa-fit``'s exit 2).
+    FitError
+        The fit did not converge or its plant is refused (``prsa-fit``'s exit 3, no plant file).
+    """
+    from dataclasses import replace
+
+    from ..plant.plantfile import load_plant, plant_file_path
+    from .common import FITTABLE, frf_operating_point_error
+    from .data import load_frf
+    from .frfplant import fit_frf_structure
+
+    paths = [str(p) for p in paths]
+    labels = list(paths) if labels is None else [str(x) for x in labels]
+    if len(labels) != len(paths) or not paths:
+        raise ValueError(f"labels: {len(labels)} for {len(paths)} responses; expected one per response, at least one")
+    if not 0 <= coherence_min < 1:
+        raise ValueError(f"coherence_min = {coherence_min!r}: expected 0 <= C < 1")
+    plant = load_plant(base)
+    base_text = plant_file_path(base).read_bytes().decode("utf-8")
+    plant.to_toml(base_text, name=name, keys=[k for k in FITTABLE if k in plant.values], description="check")
+    bad = frf_operating_point_error(plant, speed_rad_s, load_n)
+    if bad:
+        flag, value = ("--frf-speed", speed_rad_s) if bad[0] == "speed" else ("--frf-load", load_n)
+        raise ValueError(f"{flag} {value!r}: {bad[1]}")
+    frfs = []
+    for path, label in zip(paths, labels):
+        fr = load_frf(path, speed_rad_s=speed_rad_s, load_n=load_n, coherence_min=coherence_min)
+        frfs.append(replace(fr, name=label, warnings=tuple(w.replace(path, label) for w in fr.warnings)))
+    result, choice = fit_frf_structure(frfs, plant, fidelity=None)
+    failure = not_explained_line(result)
+    text = None if failure else fitted_plant_text(result, plant, base_text, name, ", ".join(Path(x).name for x in labels),
+                                                  origin=name)
+    report = {**fit_report(result, {}, choice), "frf_structure": {"structure": choice.structure, "reason": choice.reason,
+                                                                  "lines": structure_lines(choice)}}
+    return Calibrated(result, text, report, tuple(result_lines(result, {}, choice)), failure, ())

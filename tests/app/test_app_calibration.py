@@ -222,6 +222,46 @@ def test_refused_fit_is_shown_as_refused_with_its_views(app_page, resonant_log, 
     _shot(page, "app-calibration-refused.png")
 
 
+def test_uploaded_frf_is_fitted_as_prsa_fit_frf_and_a_refused_one_offers_no_plant(app_page, tmp_path, capsys):
+    """A measured frequency response uploaded in the tab: the command's values and the structure
+    the data chose, the Bode view in Hz with the coherence, a plant to use; the same response in
+    the wrong unit (x 1000) is refused as the command refuses it, with no plant to use."""
+    import json
+
+    from prsa_ctrl.cli.fit import main as fit_main
+    from test_session import _rigid_frf
+
+    page = app_page
+    good, bad = tmp_path / "bode.csv", tmp_path / "bode-x1000.csv"
+    _rigid_frf(good)
+    _rigid_frf(bad, scale=1000.0)
+    assert fit_main(["--frf", str(good), "--out", str(tmp_path / "o.toml"), "--json", str(tmp_path / "r.json")]) == 0
+    want = json.loads((tmp_path / "r.json").read_text())
+    page.get_by_text(CAL_TAB).click()
+    page.locator(".prsa-frf-upload input[type=file]").set_input_files(str(good))
+    page.locator("[data-k='fit-state'][data-state='done']").wait_for()
+    assert page.locator("[data-k='fit-structure']").get_attribute("data-structure") == "rigid"
+    assert page.locator("[data-k='fit-verdict']").get_attribute("data-verdict") == "not-validated"
+    for key, v in want["parameters"].items():
+        assert _text(page, f"fit-{key}-value") == f"{v['value']:.6g}"
+        assert _text(page, f"fit-{key}-ci") == f"{v['ci95'][0]:.6g} .. {v['ci95'][1]:.6g}"
+    page.locator(".prsa-fit-frf-mag").wait_for()
+    page.locator(".prsa-fit-coherence").wait_for()
+    assert page.locator("[data-k='fit-views-frf']").get_attribute("data-unit") == "Hz"
+    assert page.locator("[data-k='fit-views-frf']").get_attribute("data-models") == "3"
+    assert not page.locator(".prsa-fit-use button").is_disabled()
+    _shot(page, "app-calibration-frf.png")
+    capsys.readouterr()
+    assert fit_main(["--frf", str(bad), "--out", str(tmp_path / "b.toml")]) == 3
+    err = capsys.readouterr().err
+    page.locator(".prsa-frf-upload input[type=file]").set_input_files(str(bad))
+    page.locator("[data-k='fit-state'][data-state='refused']").wait_for()
+    text = page.locator("[data-k='fit-verdict']").inner_text()
+    assert text.startswith("Refused: no plant written: the response's inertia")
+    assert " ".join(err.split("prsa-fit: ", 1)[1].split()).replace(str(bad), bad.name) in " ".join(text.split())
+    assert page.locator(".prsa-fit-use button").is_disabled() and page.locator(".prsa-fit-download button").is_disabled()
+
+
 # ---- the session, without a browser ---------------------------------------------------------
 
 
