@@ -55,10 +55,13 @@ else
 fi
 echo "fresh environment $venv:"
 "$venv/bin/python" -m pip list --format=freeze 2>/dev/null \
-  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|tomlkit|dask|distributed|pytest|hypothesis|bokeh|playwright|sphinx)==' \
+  | grep -iE '^(numpy|scipy|casadi|control|matplotlib|filterpy|tomlkit|dask|distributed|pytest|pytest-xdist|hypothesis|bokeh|playwright|sphinx)==' \
   | tr '\n' ' '
 echo
 export MPLBACKEND=Agg
 # The tests import the installed (non-editable) package, so a file missing from the package data
 # fails here as it would for a user (`python -m pytest` would put the checkout first on sys.path).
-"$venv/bin/pytest" -q "$@"
+# One pytest-xdist worker per core (-n auto), each test file on one worker (--dist loadfile: a module's
+# shared run is made once); tests write only into their own tmp_path and serve on free loopback ports.
+# `bash scripts/fresh-test.sh -n 0` runs the suite in one process.
+"$venv/bin/pytest" -q -n auto --dist loadfile "$@"

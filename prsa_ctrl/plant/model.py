@@ -90,7 +90,7 @@ Before this derivation the model held the rollers axially with the nut (``delta_
 and put the helix in the screw-roller contact (``delta_S = x_R + (a/c) th_P - x_S``, ``c`` the
 cage ratio), so the whole load torque flowed nut -> traction -> cage -> screw thread.
 ``_build(..., roller_axial="nut")`` keeps that assumption for comparison only
-(``tests/plant/test_physics.py`` measures the difference).
+(``tests/plant/test_model.py`` measures the difference).
 
 Thread friction: Stribeck curve with Karnopp stiction
 -----------------------------------------------------

@@ -1,5 +1,5 @@
 """An independent drive simulator that writes logs as a real servo drive would (numpy/scipy only:
-nothing of prsa_ctrl). The foreign-log tests (test_foreign_logs.py) fit its logs.
+nothing of prsa_ctrl). The foreign-log tests (the foreign-log section of test_delay.py) fit its logs.
 
 The axis, in motor coordinates (rad, N m), an axial load ``F`` (N) acting through the lead
 ``a`` (m/rad)::

@@ -17,7 +17,7 @@ from prsa_ctrl.io.output import json_safe
 from prsa_ctrl.plant.plantfile import load_plant
 from prsa_ctrl.results import check_status, status_head
 
-from test_foreign_logs import one_seed_fit  # noqa: E402
+from test_delay import one_seed_fit  # noqa: E402
 
 
 def _result(validation=None) -> FitResult:
@@ -60,7 +60,7 @@ def test_as_dict_carries_the_status_and_report_is_its_alias():
 # ``FitResult.covariance`` (file units of the keys) is the matrix the intervals come from, and
 # ``FitResult.joint_distance2`` is the squared Mahalanobis distance, checked here against a numpy
 # computation written in the test. The 20-seed coverage of the ellipsoid is the slow study in
-# test_foreign_logs.py (``-m slow``); this file fits one short seed.
+# test_delay.py (its foreign-log section, ``-m slow``); this file fits one short seed.
 # ------------------------------------------------------------------------------------------------
 
 Z95 = 1.959963984540054
@@ -75,7 +75,7 @@ def base():
 
 @pytest.fixture(scope="module")
 def fitted(base):
-    """The one-seed fit of test_foreign_logs.py (one fit per session): (result, truth)."""
+    """The one-seed fit of test_delay.py's foreign-log section (one fit per session): (result, truth)."""
     _, res, truth = one_seed_fit(base)
     return res, truth
 
