@@ -1,6 +1,6 @@
 """The 95 % interval of a fit's total reflected inertia (kg m^2) from every fitted key it depends on.
 
-The total at the motor, :attr:`prsa_ctrl.plant.plantfile.Plant.reflected_inertia_kg_m2`, is a sum
+The total at the motor, ``prsa_ctrl.plant.plantfile.Plant.reflected_inertia_kg_m2``, is a sum
 of the rotating inertia and of the translating masses times the lead squared (``J = J_m + J_s +
 m a^2`` on a ball or roller screw). When the fit estimates only the rotating inertia the
 total's interval is that key's shifted by the fixed rest. When it also estimates a key of the
@@ -76,3 +76,4 @@ def reflected_interval(fitted: Plant, j_key: str, keys: Sequence[str], params: M
     r = np.asarray(corr, float)[np.ix_(used, used)]
     width = math.sqrt(max(float(s @ r @ s), 0.0))
     return [j - width, j + width]
+

@@ -61,3 +61,4 @@ def test_total_inertia_interval_with_only_the_motor_inertia_fitted_is_its_shifte
     extra = base.reflected_inertia_kg_m2 - v[JM]
     assert reflected["value"] == pytest.approx(values[0] + extra, rel=1e-12)
     assert reflected["ci95"] == pytest.approx([c + extra for c in params[JM]["ci95"]], rel=1e-12)
+
