@@ -33,6 +33,7 @@ from ..plant.plantfile import Plant
 from ..plant.schema import BREAKAWAY_KEY, KIND, PLAUSIBLE, SCHEMA
 from ..plant.uncertainty import carry_correlation, correlation_entry, inner_truncation, plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
+from .inertia_total import reflected_interval
 
 __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", "DEFAULT_KEYS", "FRF_KEYS",
            "FRF_KEYS_COMPLIANT", "RANK_RTOL", "NULL_LOADING", "UNCERTAINTY_MODES", "SAMPLE_TIME_RTOL",
@@ -726,13 +727,8 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
         fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
                        description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc,
                        mechanism=fitted.mechanism, defaulted=fitted.defaulted, mechanism_source=fitted.mechanism_source)
-    j_key = inertia_key(plant)
-    extra = plant.reflected_inertia_kg_m2 - plant.values[j_key]
-    j_ref = fitted.reflected_inertia_kg_m2
-    if j_key in plant_keys:
-        ci = [c + extra for c in params[j_key]["ci95"]]
-    else:
-        ci = [j_ref, j_ref]
+    j_ref = fitted.reflected_inertia_kg_m2  # its interval from every fitted key it depends on (a mass too)
+    ci = reflected_interval(fitted, inertia_key(plant), keys, params, corr)
     reflected = {"value": float(j_ref), "ci95": ci, "unit": "kg m^2"}
     delay = None
     if DELAY_KEY in keys:

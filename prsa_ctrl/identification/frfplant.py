@@ -55,6 +55,7 @@ from .common import FitResult
 from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure
 
 __all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "apparent_inertia", "held_key_spread", "HELD_DEFAULT",
+           "held_key_sd", "with_held",
            "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND",
            "INERTIA_RATIO_MAX", "DELAY_SAMPLES_MAX", "LOW_PHASE_TOL_DEG"]
 
@@ -287,6 +288,8 @@ def _with_held(reflected: dict, spread: Sequence[dict]) -> dict:
 
 
 _Z95 = 1.959963984540054
+#: Public names of the held keys' spread (also used by the time-domain fit: its held moving mass).
+held_key_sd, with_held = _held_sd, _with_held
 
 
 def _direct(plant: Plant, structure: str, v: Mapping[str, float], op: tuple[float, float] | None = None) -> dict:

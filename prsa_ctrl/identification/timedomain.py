@@ -60,6 +60,8 @@ from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay,
                     search_segment_s, with_command_delay)
 from .frf import fit_frf, frf_fit_percent, frf_response
 from .friction_map import STRIBECK_KEYS, stribeck_rounds
+from .frfplant import with_held
+from .heldmass import held_mass_spread
 
 __all__ = ["fit_plant", "fit_percent", "search_segment_s", "SEARCH_SEGMENT_S", "MAX_INTERVALS", "STALL_ITERATIONS", "STEP_SE_FRACTION", "MIN_SEGMENT"]
 
@@ -383,6 +385,9 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
                                                               names, warns, ts, keep_unidentified,
                                                               fit_run.null_scaled * scales[:, None],
                                                               np.array(cov_info["singular_value_ratios"]), uncertainty)
+    held = held_mass_spread(plant, fitted, keys) if reflected["ci95"][1] > reflected["ci95"][0] else []
+    if held:  # the held moving mass's share of the total (nut loss on the whole force)
+        reflected = with_held(reflected, held)
     fit_pct = dict(sol["fit_percent"])
     traces = dict(sol["traces"])
     if simulate:
