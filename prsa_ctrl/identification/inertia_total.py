@@ -18,6 +18,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from ..errors import PlantFileError
 from ..plant.plantfile import Plant
 
 __all__ = ["reflected_interval"]
@@ -25,13 +26,19 @@ __all__ = ["reflected_interval"]
 
 def _gradient(plant: Plant, key: str) -> float:
     """``d J / d key`` of the plant's total reflected inertia (kg m^2 per the key's file unit),
-    by a forward difference (``J`` is linear in every inertia and mass key, so exact to round-off)."""
+    by a one-sided difference (``J`` is linear in every inertia and mass key, so exact to
+    round-off): forward, or backward where the step up leaves the plant file's cross-checks (a
+    fitted drag that raised the breakaway to itself: a step up in the drag puts it above)."""
     v = float(plant.values[key])
     h = 1e-6 * max(abs(v), 1e-9)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        up = plant.with_params({key: v + h}).reflected_inertia_kg_m2
-    return (float(up) - float(plant.reflected_inertia_kg_m2)) / h
+        try:
+            moved = plant.with_params({key: v + h}).reflected_inertia_kg_m2
+        except PlantFileError:
+            h = -h
+            moved = plant.with_params({key: v + h}).reflected_inertia_kg_m2
+    return (float(moved) - float(plant.reflected_inertia_kg_m2)) / h
 
 
 def reflected_interval(fitted: Plant, j_key: str, keys: Sequence[str], params: Mapping[str, dict],
