@@ -61,7 +61,10 @@ echo
 export MPLBACKEND=Agg
 # The tests import the installed (non-editable) package, so a file missing from the package data
 # fails here as it would for a user (`python -m pytest` would put the checkout first on sys.path).
-# One pytest-xdist worker per core (-n auto), each test file on one worker (--dist loadfile: a module's
+# One pytest-xdist worker per usable core, at most 4, each test file on one worker (--dist loadfile: a module's
 # shared run is made once); tests write only into their own tmp_path and serve on free loopback ports.
 # `bash scripts/fresh-test.sh -n 0` runs the suite in one process.
-"$venv/bin/pytest" -q -n auto --dist loadfile "$@"
+# At most 4 workers (each may start its own process pools and browsers: memory grows with them),
+# one per usable core below that; PRSA_TEST_WORKERS overrides.
+workers="${PRSA_TEST_WORKERS:-$("$venv/bin/python" -c 'import os; print(max(1, min(4, len(os.sched_getaffinity(0)))))')}"
+"$venv/bin/pytest" -q -n "$workers" --dist loadfile "$@"
