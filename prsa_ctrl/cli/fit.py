@@ -51,7 +51,7 @@ from typing import Sequence
 
 from ..errors import GeometryWarning, PlantFileError
 from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, SPEED_MAX_RPM, rad_s_to_rpm, rpm_to_rad_s
-from ..identification.calibrate import MOTOR_COORDINATES
+from ..identification.calibrate import FRF_COHERENCE_MIN_DEFAULT, FRF_SPEED_DEFAULT_RAD_S, MOTOR_COORDINATES
 from .common import KeepTyped, Run, Parser, UsageError, echo, invoke, number, progress, typed_text
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
@@ -85,12 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "input-output method: the speed reference, given back by the drive's PI speed loop described "
                    "here, kp in N m s/rad, ki in N m/rad, the speed filter's time constant in s, default 0) and fit it "
                    "as --frf does, instead of the time-domain fit; --command-logged says how the log holds the command")
-    p.add_argument("--frf-speed", action=KeepTyped, type=_finite("--frf-speed"), default=30.0, metavar="RAD_S",
-                   help="nut speed during the FRF measurement, rad/s (default 30)")
+    p.add_argument("--frf-speed", action=KeepTyped, type=_finite("--frf-speed"), default=FRF_SPEED_DEFAULT_RAD_S,
+                   metavar="RAD_S", help=f"nut speed during the FRF measurement, rad/s (default {FRF_SPEED_DEFAULT_RAD_S:g})")
     p.add_argument("--frf-load", action=KeepTyped, type=_finite("--frf-load"), default=None, metavar="N",
                    help="axial load during the FRF measurement, N (default --load, else 0)")
-    p.add_argument("--coherence-min", type=_finite("--coherence-min"), default=0.8, metavar="C",
-                   help="FRF points with a lower coherence are dropped (default 0.8)")
+    p.add_argument("--coherence-min", type=_finite("--coherence-min"), default=FRF_COHERENCE_MIN_DEFAULT,
+                   metavar="C", help=f"FRF points with a lower coherence are dropped (default {FRF_COHERENCE_MIN_DEFAULT:g})")
     p.add_argument("--plots", metavar="DIR", help="write residual, overlay and Bode figures (PNG) into DIR "
                    "(created if missing)")
     p.add_argument("--frequency-unit", choices=tuple(FREQUENCY_UNITS), default=DEFAULT_FREQUENCY_UNIT,

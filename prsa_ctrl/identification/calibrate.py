@@ -296,6 +296,7 @@ def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name
     """
     from dataclasses import replace
 
+    from ..options import check_number
     from ..plant.plantfile import load_plant, plant_file_path
     from .common import FITTABLE
     from .data import load_record
@@ -384,6 +385,7 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
     """
     from dataclasses import replace
 
+    from ..options import check_number
     from ..plant.plantfile import load_plant, plant_file_path
     from .common import FITTABLE, frf_operating_point_error
     from .data import load_frf
@@ -393,8 +395,7 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
     labels = list(paths) if labels is None else [str(x) for x in labels]
     if len(labels) != len(paths) or not paths:
         raise ValueError(f"labels: {len(labels)} for {len(paths)} responses; expected one per response, at least one")
-    if not 0 <= coherence_min < 1:
-        raise ValueError(f"coherence_min = {coherence_min!r}: expected 0 <= C < 1")
+    coherence_min = check_number("coherence_min", coherence_min, 0.0, 1.0, hi_open=True)
     plant = load_plant(base)
     base_text = plant_file_path(base).read_bytes().decode("utf-8")
     plant.to_toml(base_text, name=name, keys=[k for k in FITTABLE if k in plant.values], description="check")

@@ -199,7 +199,7 @@ def _match_apparent(plant: Plant, key: str, value: float, held: Mapping[str, flo
     return x
 
 
-def _held_sd(plant: Plant, key: str) -> tuple[float, str]:
+def held_key_sd(plant: Plant, key: str) -> tuple[float, str]:
     """Standard deviation (file units) of a held key: from the base plant's ``[uncertainty]``
     entry (the distribution's own, by quadrature of its inverse CDF) when it has one, else
     :data:`HELD_DEFAULT`'s uniform; and its source."""
@@ -251,7 +251,7 @@ def held_key_spread(plant: Plant, fitted_keys: Sequence[str], structure: str, *,
             continue  # the two-mass fit sets the load side itself
         if key == ("screw.mass_kg" if plant.screw_driven else "axis.moving_mass_kg"):
             continue  # derived in this mechanism (the translating member is the other key)
-        sd, src = _held_sd(plant, key)
+        sd, src = held_key_sd(plant, key)
         if not sd > 0:
             continue
         h = 0.05 * sd
@@ -270,7 +270,7 @@ def held_key_spread(plant: Plant, fitted_keys: Sequence[str], structure: str, *,
     return out
 
 
-def _with_held(reflected: dict, spread: Sequence[dict]) -> dict:
+def with_held(reflected: dict, spread: Sequence[dict]) -> dict:
     """The reflected inertia's 95 % interval widened by the held keys' spread: variances added
     (the fit's from its interval, ``(hi - lo) / (2 x 1.96)``), normal quantile."""
     j = float(reflected["value"])
@@ -288,8 +288,6 @@ def _with_held(reflected: dict, spread: Sequence[dict]) -> dict:
 
 
 _Z95 = 1.959963984540054
-#: Public names of the held keys' spread (also used by the time-domain fit: its held moving mass).
-held_key_sd, with_held = _held_sd, _with_held
 
 
 def _direct(plant: Plant, structure: str, v: Mapping[str, float], op: tuple[float, float] | None = None) -> dict:
@@ -634,7 +632,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
                  "apparent_inertia_note": ("the response's low-frequency inertia is the one the motor feels at the "
                                            "operating point (the nut loss on the whole force included), not the "
                                            "reflected inertia")}
-    reflected = _with_held(reflected, spread)
+    reflected = with_held(reflected, spread)
     fit_pct, traces = {}, {}
     for fr in frf:
         g = fit.response(fr.frequency_hz)
@@ -714,7 +712,7 @@ def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: Stru
         traces[name] = {**tr, "models": models, "chosen": "two-mass"}
     warns = [w for w in direct.warnings if "its interval counts only the mode" not in w]
     spread = held_key_spread(res.plant, res.keys, "two-mass", speed_rad_s=frf[0].speed_rad_s, load_n=frf[0].load_n)
-    reflected = _with_held(_reflected(res), spread)
+    reflected = with_held(_reflected(res), spread)
     res = _widen_adjusted(res, spread, start, names, uncertainty)
     return dataclasses.replace(res, warnings=[*warns, *[w for w in res.warnings if w not in warns]], solver=solver,
                                traces=traces, reflected_inertia_kg_m2=reflected)

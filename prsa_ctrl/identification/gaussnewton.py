@@ -139,7 +139,7 @@ def first_order_point(g_norm: float, decrement: float) -> bool:
 
 
 #: Largest constraint residual (scaled states) at which a fit whose line search can no longer
-#: reduce it counts as converged (:func:`_converged_at_kink`). The model's friction has kinks
+#: reduce it counts as converged (:func:`converged_at_kink`). The model's friction has kinks
 #: (``|F|`` of the nut force, ``sign(omega)``): where the solution puts a collocation stage on
 #: one, Newton steps flip between the two sides and the residual stops falling, measured at
 #: 4e-8..4e-7 on the ball-screw logs of tests/identification/foreign (0.02 s segments). A defect
