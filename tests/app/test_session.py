@@ -176,3 +176,30 @@ def test_two_mass_response_shows_the_chosen_structure_and_the_mode_with_interval
         assert "data-structure='two-mass'" in html_ and "axial mode" in html_ and "anti-resonance" in html_
     finally:
         s.close()
+
+
+def test_every_view_status_is_in_the_one_vocabulary():
+    """The optimum carries the tuner's status, a hand design and a baseline say they are not
+    tuned (``unverified: ...``), an unstable loop is ``flagged: ...`` and verification leaves it
+    unsimulated; each status belongs to :data:`prsa_ctrl.results.STATUSES`."""
+    from prsa_ctrl.app.session import BASELINE_STATUS, MANUAL_STATUS, UNSTABLE_STATUS, AppSession, View
+    from prsa_ctrl.results import status_head
+
+    s = AppSession()
+    try:
+        st = s.default_settings()
+        opt = s.tuned(st)
+        assert status_head(opt.status) == "optimal"
+        man = s.manual(st, 0.05, 5.0)
+        assert man.status == MANUAL_STATUS and status_head(man.status) == "unverified"
+        base = s.baselines(st)
+        assert base and {b.status for b in base} <= {BASELINE_STATUS, UNSTABLE_STATUS}
+        assert status_head(BASELINE_STATUS) == "unverified"
+        bad = s.manual(st, 5.0, 5000.0)  # far beyond the stable region
+        assert bad.status == UNSTABLE_STATUS and status_head(bad.status) == "flagged" and not bad.t
+        [checked] = s.verify(st, [bad])
+        assert checked.design.flags == ("the loop is unstable: not simulated",)
+        with pytest.raises(ValueError, match="status = 'manual'; expected a str starting with one of"):
+            View(man.design, man.omega, man.loop, man.t, man.speed, "manual", man.noise_gain)
+    finally:
+        s.close()
