@@ -77,6 +77,9 @@ def test_frf_upload_is_prsa_fit_frf_and_its_plant_is_used(tmp_path, capsys):
         np.testing.assert_allclose(fr["coherence"], fw["coherence"], rtol=1e-12)
         html_ = _report_html(cal, "done")
         assert "data-k='fit-structure' data-structure='rigid'" in html_ and "data-verdict='not-validated'" in html_
+        # the fit's status in the one vocabulary, as prsa-fit's JSON has it (an FRF fit is not replayed)
+        assert want["status"].startswith("unverified: ")
+        assert f"<span data-k='fit-status'>{want['status']}</span>" in html_
         views = FitViews()
         views.show(cal.report["views"])
         assert views.mag.visible and views.coherence.visible and not views.replay.visible
