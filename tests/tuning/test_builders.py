@@ -57,8 +57,8 @@ class _HandLoop:
     at the previous sample goes down the delay line (the oldest drives the plant over the
     sample, plus an input disturbance ``d``) and the filter predicts with the stored command."""
 
-    def __init__(self, kf: KFDesign, gains, n_delay: int):
-        self.kf, self.gains, self.n_delay = kf, gains, n_delay
+    def __init__(self, kf: KFDesign, gains, n_delay: int, weight: float = 1.0):
+        self.kf, self.gains, self.n_delay, self.weight = kf, gains, n_delay, weight
         self.ad, bd = _zoh(A, B)
         self.bu, self.bl = bd[:, 0], bd[:, 1]
         # Layout: x(3), kf prior(4), I, d, w_prev, u_pend, speed biquad(4), torque biquad(4), delay line.
@@ -71,7 +71,7 @@ class _HandLoop:
         line, u_pend = self.split(s)[8], self.split(s)[5]
         return line[0] if self.n_delay else u_pend
 
-    def step(self, s, load: float, d: float):
+    def step(self, s, load: float, d: float, ref: float = 0.0):
         kp, ki, kd, kff = self.gains
         x, m, integral, deriv_old, w_prev, u_pend, mb_s, mb_t, line = self.split(np.asarray(s, float))
         K = self.kf.K.ravel()
@@ -82,8 +82,8 @@ class _HandLoop:
         mb_s = np.array([w_raw, mb_s[0], w_meas, mb_s[2]])
         beta = math.exp(-TS / TF)
         deriv = beta * deriv_old + (1 - beta) * (w_meas - w_prev) / TS
-        e = 0.0 - w_meas
-        u = kp * e + integral - kd * deriv + kff * tl_hat
+        e = ref - w_meas
+        u = kp * (self.weight * ref - w_meas) + integral - kd * deriv + kff * tl_hat
         bq = TORQUE_BQ
         u_f = bq.b0 * u + bq.b1 * mb_t[0] + bq.b2 * mb_t[1] - bq.a1 * mb_t[2] - bq.a2 * mb_t[3]
         mb_t = np.array([u, mb_t[0], u_f, mb_t[2]])
@@ -162,6 +162,24 @@ def test_kf_loop_without_feedforward_has_three_gains_and_ignores_kff():
         speed.append(s[0])
         s = hand.step(s, STEP, 0.0)
     np.testing.assert_allclose(lp.error(GAINS[:3]), -np.asarray(speed), rtol=0, atol=1e-9 * np.max(np.abs(speed)))
+
+
+def test_kf_duty_cycle_loop_follows_the_hand_written_law():
+    """A load profile (mean load per sample) and a setpoint profile with a 2-DOF weight: the
+    loop's error ``r - speed`` against the hand-written law fed the same sequences."""
+    n = int(round(0.02 / TS))
+    k = np.arange(n)
+    load = 150.0 * np.sin(2 * np.pi * k / 37.0) + 80.0 * (k > 20)  # N
+    ref = np.concatenate([[0.0], 3.0 * (np.arange(1, n + 1) > 10) - 1.5 * (np.arange(1, n + 1) > 50)])  # rad/s
+    lp = drive_loop(A, B, C_SPEED, ANGLE, ts=TS, tf=TF, horizon=0.02, load_sequence=load, setpoint_sequence=ref,
+                    setpoint_weight=0.6, filters=(("speed_measurement", SPEED_BQ), ("torque_command", TORQUE_BQ)),
+                    command_delay_samples=1, measurement=KalmanEstimate(_kf(), True))
+    hand = _HandLoop(_kf(), GAINS, 1, weight=0.6)
+    s, err = np.zeros(hand.size), []
+    for j in range(n):
+        err.append(ref[j] - s[0])
+        s = hand.step(s, load[j], 0.0, ref[j])
+    np.testing.assert_allclose(lp.error(GAINS), err, rtol=0, atol=1e-9 * np.max(np.abs(err)))
 
 
 def test_the_command_delay_changes_the_kf_loop():
