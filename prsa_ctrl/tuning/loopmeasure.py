@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 
 from ..drive.sampled import freq_grid, ss_response
 from .loops import resonance_points
+from .settings import checked_number
 
 if TYPE_CHECKING:
     from ..drive.estimator import KFDesign
@@ -72,13 +73,21 @@ class LoopMeasurement:
         """Default constraint grid, rad/s."""
         raise NotImplementedError
 
-    def response(self, w, plant, n_dl: int, pid_parts, f_speed, f_torque):
+    def response(self, w, plant, n_dl: int, pid_parts, filt):
         """``(L parts, D parts or None)`` at ``w`` (rad/s): the loop broken at the plant input,
-        ``L = sum g_i L_i / (1 + sum g_i D_i)``, one part per tuned gain."""
+        ``L = sum g_i L_i / (1 + sum g_i D_i)``, one part per tuned gain.
+
+        ``plant`` is ``(ad, bu, c_angle, inc_u, ts)``: the sampled plant the loop carries, the row
+        of the angle (or of its increment) and the command's direct part of the increment;
+        ``n_dl`` the command delay (samples); ``pid_parts(zi)`` the PID's parts
+        (:func:`prsa_ctrl.drive.sampled.pid_frequency_parts`); ``filt(w)`` the loop filters'
+        responses ``(all, speed-measurement ones or None, torque-command ones or None)``."""
         raise NotImplementedError
 
-    def noise(self, w, zi, pid_parts, f_speed):
-        """The controller per unit gain from encoder noise to command, or ``None``."""
+    def noise(self, w, ts: float, pid_parts, filt):
+        """The controller per unit gain from a speed-measurement noise to the command (the
+        :attr:`~prsa_ctrl.tuning.loops.LoopModel.noise` of the loop), or ``None`` when the
+        block has no such path."""
         return None
 
 
@@ -92,6 +101,10 @@ class EncoderDifference(LoopMeasurement):
     keeps_angle = False
     n_states = 1
     keeps_previous_speed = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "speed_filter_s", checked_number(
+            "speed_filter_s", self.speed_filter_s, lo=0.0, expected="a positive finite time constant in s"))
 
     def alpha(self, ts: float) -> float:
         """The low-pass's pole ``exp(-Ts / speed_filter_s)``."""
@@ -147,6 +160,10 @@ class KalmanEstimate(LoopMeasurement):
     n_states = 4
 
     def __post_init__(self) -> None:
+        from ..drive.estimator import KFDesign
+
+        if not isinstance(self.kf, KFDesign):
+            raise ValueError(f"kf = {self.kf!r}; expected a KFDesign (prsa_ctrl.drive.estimator.design_kf)")
         if not isinstance(self.feedforward, bool):
             raise ValueError(f"feedforward = {self.feedforward!r}; expected True or False")
 

@@ -202,6 +202,15 @@ def test_kalman_block_refuses_a_filter_designed_at_another_sample_time():
         drive_loop(A, B, C_SPEED, ANGLE, ts=2 * TS, tf=TF, horizon=0.02, step=STEP, measurement=KalmanEstimate(kf))
 
 
+def test_blocks_refuse_what_they_cannot_use():
+    with pytest.raises(ValueError, match="kf = 'kf'; expected a KFDesign"):
+        KalmanEstimate("kf")
+    with pytest.raises(ValueError, match="feedforward = 1; expected True or False"):
+        KalmanEstimate(_kf(), 1)
+    with pytest.raises(ValueError, match="speed_filter_s = -0.001; expected a positive finite time constant"):
+        EncoderDifference(-1e-3)
+
+
 def test_encoder_block_is_the_default_measurement():
     plain = drive_loop(A, B, C_SPEED, ANGLE, ts=TS, speed_filter=1e-3, tf=TF, horizon=0.02, step=STEP)
     block = drive_loop(A, B, C_SPEED, ANGLE, ts=TS, tf=TF, horizon=0.02, step=STEP,
