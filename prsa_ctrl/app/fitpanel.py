@@ -452,7 +452,8 @@ def _report_html(cal: Calibration, state: str) -> str:
     notes = "".join(f"<li>note: {html.escape(n)}</li>" for n in cal.notes)
     if state == "refused":
         return (f"<div data-k='fit-state' data-state='refused' data-file=''><b>Calibration</b> of "
-                f"<b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, solver "
+                f"<b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, status "
+                f"<span data-k='fit-status'>{html.escape(str(rep.get('status', '')))}</span>; solver "
                 f"{html.escape(str(rep['solver'].get('status', '')))}): refused, fit {fits}</div>" + _verdict_html(cal)
                 + "<div style='font-size:12px'>The values the refused fit found (not written, not for tuning):</div>"
                 "<table style='font-size:12px;color:#777'><tr><th style='text-align:left'>key</th><th>value</th>"
@@ -461,7 +462,8 @@ def _report_html(cal: Calibration, state: str) -> str:
     head = ("in use: the app now tunes this plant (Actuator tab)" if state == "used" else
             "press <i>Use the fitted plant</i> to tune it, or discard it")
     return (f"<div data-k='fit-state' data-state='{state}' data-file='{html.escape(cal.file_name)}'><b>Calibration</b> "
-            f"of <b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, solver "
+            f"of <b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, status "
+            f"<span data-k='fit-status'>{html.escape(str(rep.get('status', '')))}</span>; solver "
             f"{html.escape(str(rep['solver'].get('status', '')))}): fit {fits}; {head}. Fitted plant file: "
             f"{html.escape(cal.file_name)}</div>" + _verdict_html(cal)
             + "<table style='font-size:12px'><tr><th style='text-align:left'>key</th><th>value</th><th>95 % CI</th>"

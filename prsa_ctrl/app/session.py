@@ -35,6 +35,7 @@ from ..drive.pid import PID
 from ..errors import GeometryWarning, PlantFileError, SceneError
 from ..options import FIDELITIES as _FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE, RAD_S_PER_RPM
 from ..plant.plantfile import Plant, builtin_plants, load_plant
+from ..results import check_status
 from ..studies.scene import Scene, builtin_scenes, check_against_plant, load_scene
 from ..studies.scenekinds import problem
 from ..tuning.tuner import Tuner
@@ -99,6 +100,14 @@ class Settings:
     mks_max: float | None = None
 
 
+#: Statuses of the views that are not the tuner's (:data:`prsa_ctrl.results.STATUSES`): a design
+#: set by hand, a baseline rule's design (neither tuned nor yet simulated), and any design whose
+#: linear loop is unstable on some load level (never simulated).
+MANUAL_STATUS = "unverified: gains set by hand (not tuned)"
+BASELINE_STATUS = "unverified: a baseline rule's gains (not tuned)"
+UNSTABLE_STATUS = "flagged: the loop is unstable (linear model, some load level)"
+
+
 @dataclass
 class View:
     """One design as the page shows it.
@@ -116,7 +125,9 @@ class View:
     speed : list of arrays, rad/s
         Predicted nut speed per load level.
     status : str
-        The tuner's status (``"manual"`` for a design set by hand).
+        In the package's vocabulary (:data:`prsa_ctrl.results.STATUSES`): the tuner's status for
+        the optimum, :data:`MANUAL_STATUS` for a design set by hand, :data:`BASELINE_STATUS` for
+        a baseline, :data:`UNSTABLE_STATUS` for any of them whose loop is unstable.
     noise_gain : float, N m s/rad
         The controller's high-frequency gain ``kp + kd/tf``.
     mks : float or None, N m s/rad
@@ -131,6 +142,9 @@ class View:
     status: str
     noise_gain: float
     mks: float | None = None
+
+    def __post_init__(self) -> None:
+        check_status(self.status)
 
     @property
     def pid(self) -> PID:
@@ -467,7 +481,7 @@ class AppSession:
             lp = self.loops(scene)[0]
             pid = PID(float(kp), float(ki), float(kd), tf=lp.tf)
             d = Design("manual", pid, lp.margins(pid.gains))  # not tuned: no tuner status to flag
-            return self._view(d, scene, "manual")
+            return self._view(d, scene, MANUAL_STATUS)
 
     def baselines(self, s: Settings) -> list[View]:
         """The report's baseline designs (paper Kp sweep, SIMC, PM 60 deg, rule of thumb)."""
@@ -476,7 +490,7 @@ class AppSession:
         with self._lock:
             if key not in self._baselines:
                 loops = self.loops(scene)
-                self._baselines[key] = [self._view(d, scene, "baseline")
+                self._baselines[key] = [self._view(d, scene, BASELINE_STATUS)
                                         for d in baseline_designs(self.plant, scene, loops)]
             return self._baselines[key]
 
@@ -498,7 +512,7 @@ class AppSession:
                 ts.append(scene.step_time + l.h * np.arange(-1, l.n_steps))
                 speeds.append(d.predicted_start_speed + np.concatenate([[0.0], -np.asarray(err)]))
         return View(design=d, omega=np.asarray(pk["omega"]), loop=np.asarray(pk["L"]), t=ts, speed=speeds,
-                    status=status if stable else "unstable", noise_gain=d.pid.kp + d.pid.kd / d.pid.tf,
+                    status=status if stable else UNSTABLE_STATUS, noise_gain=d.pid.kp + d.pid.kd / d.pid.tf,
                     mks=lp.noise_peak(d.pid.gains)["mks"] if lp.noise is not None else None)
 
     # ---- landscape ----------------------------------------------------------------------
@@ -559,7 +573,7 @@ class AppSession:
             if progress is not None:
                 progress(i, len(views), v.design.name)
             d = replace(v.design, verified=(), verified_runs=(), flags=())
-            if v.status == "unstable":
+            if v.status == UNSTABLE_STATUS:
                 d = replace(d, flags=("the loop is unstable: not simulated",))
             else:
                 d = checked(verify(d, self.plant, scene), self.plant, scene)

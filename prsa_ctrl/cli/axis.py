@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ..options import MOTOR_COORDINATES  # re-exported (coordinates of every plant but a linear axis)
+from ..reporttext import axis_fit_lines, axis_validation_lines
 from .common import Parser, Run, UsageError, echo, progress
 
 __all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]
@@ -305,7 +306,7 @@ def _merge_base(base, plant_path: str, vals: dict, srcs: dict):
 
 
 def _fit(args) -> int:
-    from ..identification.axis import COORDINATES, axis_plant_toml, fit_linear_axis, replay_axis
+    from ..identification.axis import axis_plant_toml, fit_linear_axis, replay_axis
 
     if args.traces:
         raise UsageError(f"--traces {args.traces!r} without --validate; expected it with --validate PLANT.toml LOG")
@@ -334,7 +335,7 @@ def _fit(args) -> int:
             held.append(lg.window(cut, lg.n))
     result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)
     text = axis_plant_toml(result.plant)
-    report = result.report()
+    report = result.as_dict()
     report["warnings"] = [*base_notes, *report["warnings"]]
     from ..identification.friction_map import axis_friction_map  # issue 21: friction curve with Stribeck (report)
 
@@ -346,37 +347,16 @@ def _fit(args) -> int:
     if held:
         report["holdout"] = {"fraction": args.holdout, "note": "fitted on the first part of each log, replayed on the "
                              "rest (closed loop from the reference, starting from the logged position at rest)",
-                             "replay": [replay_axis(result.plant, h).report() for h in held]}
+                             "replay": [replay_axis(result.plant, h).as_dict() for h in held]}
     files = {args.out: ("--out", text)}
     if args.json:
         files[args.json] = ("--json", _json(report))
     plots = _plots(args.plots, result.replays, inputs) if args.plots else []
     _write(files, inputs)
-    for k, v in result.equivalent.items():
-        lo, hi = v["ci95"]
-        echo(f"{k} = {v['value']:.6g} {v['unit']} (95 % CI {lo:.6g}..{hi:.6g})")
-    for r in result.replays:
-        _print_replay(r.report())
-    for h in report.get("holdout", {}).get("replay", []):
-        _print_replay(h, prefix="held out: ")
-    for log_name, fmap in report["friction_map"].items():
-        pars = fmap.get("parameters", {})
-        echo(f"friction map of {log_name} (report; the replay model stays Coulomb + viscous): "
-             + ", ".join(f"{k} = {v['value']:.4g} {v['unit']} (95 % CI {v['ci95'][0]:.4g}..{v['ci95'][1]:.4g})"
-                          for k, v in pars.items() if v["value"] is not None)
-             + f"; Stribeck {fmap.get('stribeck')}" + (f"; {fmap['error']}" if "error" in fmap else ""))
-    for w in report["warnings"]:
-        echo(f"warning: {w}")
-    echo(f"coordinates: {COORDINATES}")
+    for line in axis_fit_lines(report):
+        echo(line)
     echo(f"wrote {args.out}" + (f" and {args.json}" if args.json else "") + (f"; plots: {', '.join(plots)}" if plots else ""))
     return 0
-
-
-def _print_replay(rep: dict, prefix: str = "") -> None:
-    e, f = rep["errors_percent"], rep["fit_percent"]
-    echo(f"{prefix}{rep['log']}: replay errors position {e['position']:.4g} %, velocity {e['velocity']:.4g} %, "
-         f"force {e['force']:.4g} % (fit {f['position']:.3f} / {f['velocity']:.3f} / {f['force']:.3f} %; "
-         f"{rep['replay']})")
 
 
 def _validate(args) -> int:
@@ -400,17 +380,13 @@ def _validate(args) -> int:
     files = {}
     if args.json:
         files[args.json] = ("--json", _json({"plant": plant_path, "mechanism": "linear-axis", "coordinates": COORDINATES,
-                                                 "replay": [r.report() for r in replays]}))
+                                                 "replay": [r.as_dict() for r in replays]}))
     if args.traces:
         files[args.traces] = ("--traces", replays[0].traces_csv())
     plots = _plots(args.plots, replays, inputs) if args.plots else []
     _write(files, inputs)
-    for r in replays:
-        _print_replay(r.report())
-        if not r.closed_loop:
-            echo(f"note: {r.name} has no controller description: replayed open loop from the logged command (an "
-                 "integrating axis drifts)")
-    echo(f"coordinates: {COORDINATES}")
+    for line in axis_validation_lines([(r.as_dict(), r.closed_loop) for r in replays], COORDINATES):
+        echo(line)
     if files or plots:
         echo("wrote " + ", ".join([*files, *plots]))
     return 0

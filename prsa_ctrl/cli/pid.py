@@ -35,6 +35,7 @@ import numpy as np
 from ..errors import PlantTextError
 from ..io.output import Transaction, check_writable, json_safe
 from ..options import CONTROLLERS, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE
+from ..reporttext import format_pid_report
 from ..tuning.plant_text import parse_plant_text, quote_plant_text
 from .common import (EXIT_NUMERICAL, EXIT_OK, Parser, Run, UsageError, commit, echo, invoke, native_output, number,
                      path_text, progress, report_failure, show_notes, write_json_atomic)
@@ -397,54 +398,6 @@ def result_data(args, num: list, den: list, shown: str, res, sign: float = 1.0) 
             "objective_sampled", "objective_pade", "delay_pade_change", "delay_model", "filter_search", "first_order", "polished",
             "wall_s", "horizon")},
     }
-
-
-def _g(x, unit: str = "") -> str:
-    if x is None:
-        return "none"
-    if isinstance(x, float) and not math.isfinite(x):
-        return "inf"
-    return f"{x:.6g}" + (f" {unit}" if unit else "")
-
-
-def format_pid_report(data: dict) -> str:
-    """The text report of ``prsa-pid`` from :func:`result_data`."""
-    pl, c, st, ob, mg = data["plant"], data["controller"], data["standard"], data["objective"], data["margins"]
-    opt = data["options"]
-    lines = [f"plant       P(s) = {pl['text']}" + (f" * exp(-{pl['delay_s']:g} s)" if pl["delay_s"] else ""),
-             f"            num {pl['num']}  den {pl['den']}  (load: {pl['load']})",
-             f"problem     min {ob['kind'].upper()}  s.t.  Ms <= {opt['ms_max']:g}"
-             + (f", Mt <= {opt['mt_max']:g}" if opt["mt_max"] is not None else "")
-             + (f", Mks <= {opt['mks_max']:g}" if opt["mks_max"] is not None else "")
-             + (f", kp + kd/tf <= {opt['max_noise_gain']:g}" if opt["max_noise_gain"] is not None else ""),
-             f"controller  {opt['controller'].upper()}, derivative {c['derivative']}"
-             + (f", filter order {c['filter_order']}" if c["filter_order"] else ", no measurement filter"),
-             f"  parallel  kp = {_g(c['kp'])}   ki = {_g(c['ki'])} 1/s   kd = {_g(c['kd'])} s",
-             f"  standard  K = {_g(st['K'])}   Ti = {_g(st['Ti_s'], 's')}   Td = {_g(st['Td_s'], 's')}"
-             + (f"   N = {_g(st['N'])}" if "N" in st else "")]
-    if c["tf_s"] is not None:
-        lines.append(f"  derivative filter  tf = {_g(c['tf_s'], 's')}  (kd s/(tf s + 1))")
-    if c["filter_order"]:
-        search = (data.get("stats") or {}).get("filter_search") or {}
-        rng = search.get("range_s")
-        how = "given" if opt["filter_tf_s"] is not None else (
-            f"optimised over Tf in [{rng[0]:.4g}, {rng[1]:.4g}] s" if rng else "optimised")
-        lines.append(f"  measurement filter F = " + ("1/(Tf s + 1)" if c["filter_order"] == 1 else
-                                                      "1/(Tf^2 s^2/2 + Tf s + 1)")
-                     + f", Tf = {_g(c['filter_tf_s'], 's')} ({how})")
-    if data["setpoint"]:
-        sp = data["setpoint"]
-        lines.append(f"  setpoint weights b = {sp['b']:.4g}, c = {sp['c']:.4g}: setpoint-step IAE {sp['iae']:.6g} "
-                     f"(b = c = 1: {sp['iae_unweighted']:.6g}), overshoot {100 * sp['overshoot']:.3g} %")
-    lines += [f"objective   {ob['kind'].upper()} = {_g(ob['value'])}",
-              f"            {ob['evaluation']}",
-              f"peaks       Ms = {_g(data['ms'])}   Mt = {_g(data['mt'])}   Mks = {_g(data['mks'])}  (true peaks"
-              + (", exact delay)" if pl["delay_s"] else ")"),
-              f"margins     GM = {_g(mg['gm_db'], 'dB') if math.isfinite(mg['gm_db']) else 'inf (no phase crossover)'}   PM = {_g(mg['pm_deg'], 'deg')}   crossover "
-              f"{_g(mg['wc_rad_s'], 'rad/s')} = {_g(mg['wc_hz'], 'Hz')}",
-              f"status      {data['status']}"]
-    lines += [f"warning     {w}" for w in data["warnings"]]
-    return "\n".join(lines)
 
 
 if __name__ == "__main__":  # pragma: no cover

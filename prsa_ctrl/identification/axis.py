@@ -474,7 +474,8 @@ class AxisReplay:
     #: ``(m_l kg, k N/m, zeta)`` when the plant replayed is a two-mass axis (None: rigid).
     second_mass: tuple[float, float, float] | None = None
 
-    def report(self) -> dict:
+    def as_dict(self) -> dict:
+        """JSON-ready replay: the log, how it was replayed, samples, errors and fit (%)."""
         how = "closed loop from the reference" if self.closed_loop else "open loop from the logged command"
         if self.second_mass is not None:
             how += (f", two-mass axis ({self.second_mass[0]:.6g} kg beyond {self.second_mass[1] * 1e-6:.6g} N/um, "
@@ -484,6 +485,8 @@ class AxisReplay:
                 "metric": f"100*||y - y_sim||/||y|| from sample {METRIC_SKIP_SAMPLES} on; position vs the logged "
                           "position, velocity vs the logged speed (or the position low-passed at fs/10, zero phase, "
                           "central differences), force = drive gain x command"}
+
+    report = as_dict  # its former name
 
     def traces_csv(self) -> str:
         rows = ["time_s,position_measured,position_simulated,force_measured,force_simulated"]
@@ -627,7 +630,7 @@ class AxisFit:
                 "equivalent": {k: dict(v) for k, v in self.equivalent.items()},
                 "inverse_dynamic_start": dict(self.start),
                 **self._covariance_report(),
-                "replay": [r.report() for r in self.replays], "warnings": list(self.warnings)}
+                "replay": [r.as_dict() for r in self.replays], "warnings": list(self.warnings)}
 
     report = as_dict  # its former name
 

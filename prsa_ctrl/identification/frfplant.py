@@ -655,7 +655,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         "residuals": fit.n_residuals,
         "fidelity": "compliant" if fit.structure == "two-mass" else "rigid",
         "covariance": "classic (residual variance x inverse Gauss-Newton matrix), delta method for the plant keys",
-        "structure": choice.report(),
+        "structure": choice.as_dict(),
         "frf_model": {k: dict(v) for k, v in fit.values.items()},
     }
     result = FitResult(fitted, params, reflected, corr, tuple(keys), fit_pct, warns, solver, traces, delay, {}, None)

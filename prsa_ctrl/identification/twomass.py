@@ -270,11 +270,13 @@ class FrfModelFit:
     def value(self, name: str) -> float:
         return float(self.values[name]["value"])
 
-    def report(self) -> dict:
+    def as_dict(self) -> dict:
         """JSON-ready summary."""
         return {"structure": self.structure, "values": self.values, "residual_std": self.residual_std,
                 "n_residuals": self.n_residuals, "fit_percent": self.fit_percent, "evaluations": self.nfev,
                 "sample_time_s": self.sample_time_s, "warnings": list(self.warnings)}
+
+    report = as_dict  # its former name
 
 
 def _arrays(frf) -> tuple:
@@ -603,10 +605,13 @@ class StructureChoice:
     def chosen(self) -> FrfModelFit:
         return self.two_mass if self.structure == "two-mass" else self.rigid
 
-    def report(self) -> dict:
+    def as_dict(self) -> dict:
+        """JSON-ready choice: the structure, why, the F-test and both fits."""
         return {"structure": self.structure, "reason": self.reason, "f_statistic": self.f_statistic,
                 "p_value": self.p_value, "effect_over_noise": self.effect, "in_band": self.in_band,
-                "rigid": self.rigid.report(), "two_mass": None if self.two_mass is None else self.two_mass.report()}
+                "rigid": self.rigid.as_dict(), "two_mass": None if self.two_mass is None else self.two_mass.as_dict()}
+
+    report = as_dict  # its former name
 
 
 def choose_structure(frf, *, sample_time_s: float = 0.0, current_loop_bandwidth_hz: float | None = None,

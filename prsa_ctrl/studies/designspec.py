@@ -32,7 +32,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..results import is_ok, json_safe
-from ..tuning.robust import format_yield_table, rank_by_yield, tune_scenario_loops
+from ..reporttext import format_design_to_spec
+from ..tuning.robust import rank_by_yield, tune_scenario_loops
 from ..plant.uncertainty import uncertainty_model
 from .scenerobust import scenario_loops, scenarios
 
@@ -92,37 +93,8 @@ class DesignToSpec:
             "skipped": [{"design": n, "why": w} for n, w in self.skipped], "timing_s": self.timing_s})
 
     def format(self, objective: str) -> str:
-        s = self.search
-        n = s["rows"][0]["samples"] if s.get("rows") else 0
-        lines = [f"Design to the spec: {len(self.designs)} designs on the same {n} search samples (seed "
-                 f"{self.search_seed}); * chosen: {s.get('rule', '')}", format_yield_table(
-                     {"table": s.get("rows"), "name": self.chosen}, objective)]
-        lines += [f"  not evaluated: {n_} ({w})" for n_, w in self.skipped]
-        if self.grid:
-            g = self.grid
-            lines.append(f"  linear-yield grid: {g['points']} gains on the {g['samples']} search samples' own linear "
-                         f"models, best linear yield {100 * g['best_linear_yield']:.1f} %; proposed: "
-                         + ", ".join(g["proposed"]))
-        d = self.decide
-        if d:
-            nd = d["rows"][0]["samples"] if d.get("rows") else 0
-            lines.append(f"Decision among the {len(d.get('rows', []))} designs of (near-)maximal screen yield on "
-                         f"{nd} samples of the same seed {self.search_seed} (* chosen):")
-            lines.append(format_yield_table({"table": d.get("rows"), "name": self.chosen}, objective))
-        fy = self.final_yield
-        if fy is None:
-            lines.append(f"chosen: none ({s.get('why', '')})")
-        else:
-            lo, hi = fy.ci95
-            lines.append(f"chosen: {self.chosen}: yield {100 * fy.yield_:.1f} % ({fy.passed}/{fy.n}), 95 % CI "
-                         f"[{100 * lo:.1f}, {100 * hi:.1f}] % on {fy.n} fresh samples (seed {self.final_seed}, not "
-                         "used by the search)")
-            lim = (self.decide or s).get("limit")
-            if lim:
-                lines.append(f"the target yield {100 * (self.decide or s)['target']:.1f} % is not reached on the "
-                             f"{'decision' if self.decide else 'search'} samples: the limit is {lim['text']}")
-        return "\n".join(lines)
-
+        """The design-to-spec report (:func:`prsa_ctrl.reporttext.format_design_to_spec`, its one home)."""
+        return format_design_to_spec(self, objective)
 
 def design_to_spec(plant, scene, *, n_search: int = 40, n_final: int = 200, seed: int = 0,
                    ms_levels: Sequence[float] | None = None, extra: dict | None = None,

@@ -32,6 +32,7 @@ from ..drive.pid import PID
 from ..errors import GeometryWarning, MonteCarloInterrupted, SimulationError
 from ..plant.model import register_member
 from ..plant.uncertainty import apply, uncertainty_model
+from ..reporttext import format_monte_carlo
 from ..results import is_ok, json_safe
 from .autotune import FAST_VERIFY, fast_verify_settings, verify_settings
 from .mcjob import METRICS, Job, draw_sample, evaluate, plant_doc, prepared
@@ -281,6 +282,11 @@ class MonteCarloReport:
                                            for j, name in enumerate(s["design_names"])}}
         return json_safe(d)
 
+    def format(self) -> str:
+        """The plain-text summary ``prsa-tune --monte-carlo`` prints
+        (:func:`prsa_ctrl.reporttext.format_monte_carlo`, its one home)."""
+        return format_monte_carlo(self)
+
 
 def _json_list(a) -> list:
     return [None if not math.isfinite(float(x)) else float(x) for x in a]
@@ -360,45 +366,8 @@ def _build_report(job: _Job, plant, scene, rows: list, n: int, backend: str, wor
         integration)
 
 
-def format_report(report: MonteCarloReport) -> str:
-    """Plain-text summary: yield with its Wilson 95 % interval, percentiles and the worst sample
-    of each design."""
-    head = (f"Monte Carlo: {report.n_done}/{report.n} samples, seed {report.seed}, backend {report.backend} "
-            f"({report.workers} worker{'s' if report.workers != 1 else ''}), {report.wall_time_s:.1f} s"
-            + ("" if report.complete else "  ** INTERRUPTED: partial results **"))
-    lines = [head]
-    spec = ", ".join(f"{k} <= {v:g}" if k != "no_saturation" else f"no_saturation = {str(v).lower()}"
-                     for k, v in report.spec.items())
-    lines.append(f"spec: {spec or '(none: yield counts finished simulations)'}")
-    ig = report.integration or {}
-    if ig.get("integrator"):
-        what = f"{ig.get('path', 'per-sample')} {ig['integrator']}" + (
-            f", {ig['substeps']} steps per controller sample" if ig.get("substeps") else "")
-        if ig.get("relative") is not None:
-            where = (f"on {len(ig['check_samples'])} check samples against the adaptive reference"
-                     if ig.get("check_samples") is not None else "at the one-off check points")
-            what += f"; measured error {ig['relative']:.2g} of the deviation {where}, accuracy {ig['accuracy']:g}"
-        elif ig.get("reason"):
-            what += f" ({ig['reason']})"
-        lines.append(f"integration: {what}")
-    joint = [k for k, e in report.uncertainty.items() if "correlation" in e]  # prsa_ctrl.plant.uncertainty
-    if joint:
-        lines.append(f"drawn jointly (Gaussian copula of the [uncertainty] correlation): {', '.join(joint)}")
-    lines += [f"note: {n}" for n in dict.fromkeys(e["correlation_note"] for e in report.uncertainty.values()
-                                                 if "correlation_note" in e)]
-    for d in report.designs:
-        lo, hi = d.ci95
-        lines.append(f"  {d.name}: yield {100 * d.yield_:.1f} % ({d.passed}/{d.n}), 95 % CI [{100 * lo:.1f}, "
-                     f"{100 * hi:.1f}] %" + (f", {d.failures} simulation failures" if d.failures else ""))
-        for met in ("peak_drop_rad_s", "recovery_time_s", "iae", "peak_torque_n_m", "ms"):
-            if met in d.percentiles:
-                p = d.percentiles[met]
-                lines.append(f"    {met:<17} p5 {p['p5']:.4g}  p50 {p['p50']:.4g}  p95 {p['p95']:.4g}  max {p['max']:.4g}")
-        if d.worst_index is not None:
-            vals = ", ".join(f"{k} = {v:.4g}" for k, v in d.worst_values.items())
-            lines.append(f"    worst sample #{d.worst_index}: {vals}")
-            lines.append(f"    replay: {d.replay}")
-    return "\n".join(lines)
+#: The Monte-Carlo report's text (:func:`prsa_ctrl.reporttext.format_monte_carlo`, its one home).
+format_report = format_monte_carlo
 
 
 # --- progress ------------------------------------------------------------------------------------

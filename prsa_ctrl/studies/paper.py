@@ -16,6 +16,7 @@ import numpy as np
 from ..drive.pid import PID
 from ..options import SETPOINT_RAD_S
 from ..plant.plantfile import Plant
+from ..reporttext import format_rows  # its one home; re-exported here
 from ..sim.metrics import load_step_metrics
 from ..sim.engine import simulate
 
@@ -209,31 +210,6 @@ def load_step_study(
             )
         )
     return rows
-
-
-def format_rows(rows: Sequence[dict[str, object]], floatfmt: str = "{:.4g}") -> str:
-    """Plain-text table of dict rows (same keys in every row).
-
-    Parameters
-    ----------
-    rows : sequence of dict
-    floatfmt : str
-        Format of float cells.
-
-    Examples
-    --------
-    >>> print(format_rows([{"a": 1.23456, "b": "x"}]))
-    a      b
-    1.235  x
-    """
-    if not rows:
-        return ""
-    keys = list(rows[0])
-    cells = [[k for k in keys]] + [
-        [floatfmt.format(r[k]) if isinstance(r[k], float) else str(r[k]) for k in keys] for r in rows
-    ]
-    widths = [max(len(c[i]) for c in cells) for i in range(len(keys))]
-    return "\n".join("  ".join(c[i].ljust(widths[i]) for i in range(len(keys))).rstrip() for c in cells)
 
 
 @dataclass(frozen=True)

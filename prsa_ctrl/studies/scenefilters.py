@@ -124,7 +124,7 @@ def scene_filters(scene: Any) -> tuple[tuple[LoopFilter, ...], tuple[str, ...]]:
     Raises
     ------
     SceneError
-        Filters that are not filters, with the Kalman-filter estimator or a continuous loop.
+        Filters that are not filters, or filters on a continuous loop.
     """
     try:
         filters = loop_filters(scene.filters)
@@ -134,9 +134,6 @@ def scene_filters(scene: Any) -> tuple[tuple[LoopFilter, ...], tuple[str, ...]]:
     if len(labels) != len(filters):
         labels = tuple(f"{scene.origin}: filters[{i}] at {quote(lf.filter.characteristic_hz)} Hz"
                        for i, lf in enumerate(filters, start=1))
-    if filters and scene.estimator != "none":
-        raise SceneError(f"{scene.origin}: estimator = {quote(scene.estimator)} with filters; expected estimator none "
-                         "(the Kalman-filter loop has no loop filters)")
     if filters and not scene.discrete:
         raise SceneError(f"{scene.origin}: discrete = false with filters; expected discrete = true (the filters "
                          "run as biquads at the drive's sample time)")

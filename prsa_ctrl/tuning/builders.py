@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from ..drive.sampled import first_order_hold, freq_grid, pid_frequency_parts, pid_rows, ss_response, zoh
 from .settings import CONT_RTOL, MAX_STEPS, checked_number, int_steps
 from .loops import LoopModel, plant_roots, resonance_points, richardson
+from .loopmeasure import EncoderDifference, LoopMeasurement
 
 __all__ = ["continuous_loop", "drive_loop"]  # the rest is the tuner's own machinery, shared between its modules
 
@@ -480,7 +481,7 @@ def drive_loop(
     angle_index: int,
     *,
     ts: float,
-    speed_filter: float,
+    speed_filter: float | None = None,
     tf: float,
     horizon: float,
     step: float | None = None,
@@ -492,8 +493,10 @@ def drive_loop(
     setpoint_weight: float = 1.0,
     filters: Sequence = (),
     command_delay_samples: int = 0,
+    measurement: LoopMeasurement | None = None,
 ) -> LoopModel:
-    """Loop model of the sampled drive (see module docstring) around a continuous linear plant.
+    """Loop model of the sampled drive (see module docstring) around a continuous linear plant:
+    the one builder of the sampled speed loop, with a pluggable speed measurement.
 
     Parameters
     ----------
@@ -504,12 +507,14 @@ def drive_loop(
         Row picking the nut speed (rad/s), the performance output.
     angle_index : int
         Index of the nut-angle state. The angle itself drifts (a pure integrator that nothing
-        feeds back on), so the loop keeps only its increment over the last sample, which is
-        what the backward-difference speed estimate uses.
+        feeds back on): with the encoder's difference the loop keeps only its increment over
+        the last sample; with the Kalman filter only the error of the filter's angle estimate.
     ts : float, s
         Controller sample time.
     speed_filter : float, s
-        First-order speed-filter time constant.
+        First-order speed-filter time constant of the encoder's difference (the default
+        measurement, :class:`~prsa_ctrl.tuning.loopmeasure.EncoderDifference`); leave it out
+        with a ``measurement``.
     tf : float, s
         Derivative filter time constant.
     horizon : float, s
@@ -518,7 +523,8 @@ def drive_loop(
         Load step size (a step loop; leave it out for a duty-cycle loop).
     omega : array, rad/s, optional
         Constraint grid; by default 500 log-spaced points from 0.1 rad/s to the Nyquist
-        frequency ``pi/ts``, plus points at and around the sampled plant's resonances.
+        frequency ``pi/ts`` (with the encoder's difference, plus points at and around the
+        sampled plant's resonances).
     load_sequence : array, N, optional
         Duty cycle: the load's deviation from its t = 0 value averaged over each sample
         interval ``[k Ts, (k + 1) Ts)``, one per sample of the horizon (``round(horizon/ts)``).
@@ -533,7 +539,7 @@ def drive_loop(
         ``u = kp (b r - y) + I``, ``I += Ts ki (r - y)`` (1: the plain PID).
     filters : sequence of LoopFilter or (place, DiscreteBiquad) pairs
         Loop filters run as the sampled simulator runs them: ``speed_measurement`` biquads on
-        the filtered speed before the PID, ``torque_command`` biquads on the PID's command
+        the measured speed before the PID, ``torque_command`` biquads on the PID's command
         before the computation delay (each with 4 states, direct form I). A ``LoopFilter`` is
         discretised at ``ts``.
     command_delay_samples : int
@@ -541,6 +547,11 @@ def drive_loop(
         ``drive.command_delay_samples``): the command computed at sample ``k`` acts from
         ``k + 1 + n``, a line of ``n`` states after the others; the loop's frequency response
         carries the extra ``z^-n = e^{-j w n Ts}``.
+    measurement : LoopMeasurement, optional
+        The speed measurement block (:mod:`prsa_ctrl.tuning.loopmeasure`): by default the
+        encoder's filtered difference with ``speed_filter``;
+        :class:`~prsa_ctrl.tuning.loopmeasure.KalmanEstimate` for the Kalman filter (with its
+        load feed-forward gain ``kff`` as a fourth gain when asked).
 
     Returns
     -------
@@ -559,7 +570,18 @@ def drive_loop(
     (True, 'stable')
     """
     ts = checked_number("ts", ts, lo=0.0, expected="a positive finite sample time in s")
-    speed_filter = checked_number("speed_filter", speed_filter, lo=0.0, expected="a positive finite time constant in s")
+    if measurement is None:
+        if speed_filter is None:
+            raise ValueError("speed_filter = None; expected the speed-filter time constant in s (or a measurement block)")
+        speed_filter = checked_number("speed_filter", speed_filter, lo=0.0,
+                                      expected="a positive finite time constant in s")
+        measurement = EncoderDifference(speed_filter)
+    elif not isinstance(measurement, LoopMeasurement):
+        raise ValueError(f"measurement = {measurement!r}; expected a LoopMeasurement block (prsa_ctrl.tuning.loopmeasure)")
+    elif speed_filter is not None:
+        raise ValueError(f"speed_filter = {speed_filter!r} with measurement {type(measurement).__name__}; expected "
+                         "one of them (the block carries its own filtering)")
+    meas = measurement
     tf = checked_number("tf", tf, lo=0.0, expected="a positive finite time constant in s")
     horizon = checked_number("horizon", horizon, lo=0.0, expected="a positive finite time in s")
     duty = load_sequence is not None or setpoint_sequence is not None
@@ -591,26 +613,39 @@ def drive_loop(
     n_dl = int(command_delay_samples)
     fl = _loop_biquads(filters, ts)
     ad_full, bd_full = zoh(np.asarray(a, float), np.asarray(b, float), ts)
-    rest = [i for i in range(ad_full.shape[0]) if i != angle_index]
-    ad = ad_full[np.ix_(rest, rest)]
-    bu, bdist = bd_full[rest, 0], bd_full[rest, 1]
-    inc_x, inc_u, inc_d = ad_full[angle_index, rest], bd_full[angle_index, 0], bd_full[angle_index, 1]
-    n = len(rest)
-    c_w = np.asarray(c_speed, float).ravel()[rest]
-    alpha = math.exp(-ts / speed_filter)
+    if meas.keeps_angle:  # the whole plant; the drift of the angle is removed at the end
+        ad, bu, bdist = ad_full, bd_full[:, 0], bd_full[:, 1]
+        n = ad.shape[0]
+        c_w = np.asarray(c_speed, float).ravel()
+        i_th = angle_index
+        i_m = n  # the block's states
+        c_ang, inc_u, inc_d = np.eye(n)[angle_index], 0.0, 0.0
+    else:  # the plant without the angle, then the angle's increment over the last sample
+        rest = [i for i in range(ad_full.shape[0]) if i != angle_index]
+        ad = ad_full[np.ix_(rest, rest)]
+        bu, bdist = bd_full[rest, 0], bd_full[rest, 1]
+        c_ang, inc_u, inc_d = ad_full[angle_index, rest], bd_full[angle_index, 0], bd_full[angle_index, 1]
+        n = len(rest)
+        c_w = np.asarray(c_speed, float).ravel()[rest]
+        i_th = n
+        i_m = n + 1
     beta = math.exp(-ts / tf)
-    # X = [x (without the angle), angle increment over the last sample, w_f, dfilt, I, u_pending]
-    i_th, i_wf, i_d, i_i, i_u = n, n + 1, n + 2, n + 3, n + 4
-    i_r = n + 5  # reference (setpoint deviation) state of a setpoint duty cycle
-    i_f = n + 5 + (seq_r is not None)  # 4 states per loop filter: x1, x2, y1, y2
+    speed_filters = any(place == "speed_measurement" for place, _ in fl)
+    has_prev = not meas.keeps_previous_speed and not speed_filters  # a state for the previous measured speed
+    # X = [plant part, measurement states, dfilt, I, (w_prev), u_pending, (r), filters, delay line]
+    i_d = i_m + meas.n_states
+    i_i = i_d + 1
+    i_wp = i_i + 1
+    i_u = i_i + 1 + has_prev
+    i_r = i_u + 1  # reference (setpoint deviation) state of a setpoint duty cycle
+    i_f = i_u + 1 + (seq_r is not None)  # 4 states per loop filter: x1, x2, y1, y2
     i_dl = i_f + 4 * len(fl)  # the command delay line: n_dl states, the last one drives the plant
     N = i_dl + n_dl
     i_act = i_dl + n_dl - 1 if n_dl else i_u  # the command acting on the plant over this sample
     E = np.eye(N)
-    w_m = E[i_th] / ts  # backward-difference speed
-    w_f_new = alpha * E[i_wf] + (1 - alpha) * w_m
+    meas_rows, w_meas, w_prev, load_row = meas.rows(E, i_th, i_m, i_u, ts)
     filt_rows: dict[int, NDArray] = {}  # state index -> its next-value row (gain-free filters)
-    w_pid, w_pid_prev = w_f_new, E[i_wf]
+    w_pid, w_pid_prev = w_meas, (w_prev if meas.keeps_previous_speed else E[i_wp])
     for j, (place, bq) in enumerate(fl):
         if place == "speed_measurement":
             k = i_f + 4 * j
@@ -622,20 +657,28 @@ def drive_loop(
     A0 = np.zeros((N, N))
     A0[:n, :n] = ad
     A0[:n, i_act] = bu
-    A0[i_th, :n] = inc_x
-    A0[i_th, i_act] = inc_u
+    if not meas.keeps_angle:
+        A0[i_th, :n] = c_ang
+        A0[i_th, i_act] = inc_u
     for j in range(n_dl):
         A0[i_dl + j, i_u if j == 0 else i_dl + j - 1] = 1.0
-    A0[i_wf] = w_f_new
+    for k, row in meas_rows.items():
+        A0[k] = row
     A0[i_d] = d_new
     A0[i_i, i_i] = 1.0
-    A0[i_u, i_i] = 1.0  # u = kp e + I - kd d
+    if has_prev:
+        A0[i_wp] = w_meas
+    A0[i_u, i_i] = 1.0  # u = kp e + I - kd d (+ kff * load estimate)
     a_kp, a_ki, a_kd = pid_rows(N, i_u, i_i, e_meas, d_new, ts, ref=E[i_r] if seq_r is not None else None,
-                                 weight=b_w)
+                                weight=b_w)
     for k, row in filt_rows.items():
         A0[k] = row
     mats = (A0, a_kp, a_ki, a_kd)
-    cmd = [m[i_u].copy() for m in mats]  # the PID's command, one row per (gain-free, kp, ki, kd) part
+    if meas.feedforward:
+        a_ff = np.zeros((N, N))
+        a_ff[i_u] = load_row
+        mats += (a_ff,)
+    cmd = [m[i_u].copy() for m in mats]  # the PID's command, one row per (gain-free, kp, ki, kd[, kff]) part
     for j, (place, bq) in enumerate(fl):
         if place == "torque_command":
             k = i_f + 4 * j
@@ -650,7 +693,8 @@ def drive_loop(
         m[i_u] = part
     bdv = np.zeros(N)
     bdv[:n] = bdist * step
-    bdv[i_th] = inc_d * step
+    if not meas.keeps_angle:
+        bdv[i_th] = inc_d * step
     ce = np.zeros(N)
     ce[:n] = -c_w
     profile = None
@@ -659,41 +703,73 @@ def drive_loop(
         profile = np.zeros((n_steps, N))
         if seq_d is not None:
             profile[:, :n] = seq_d[:, None] * bdist[None, :]
-            profile[:, i_th] = seq_d * inc_d
             big = float(seq_d[np.argmax(np.abs(seq_d))])
-            bdv[:n], bdv[i_th] = bdist * big, inc_d * big
+            bdv[:n] = bdist * big
+            if not meas.keeps_angle:
+                profile[:, i_th] = seq_d * inc_d
+                bdv[i_th] = inc_d * big
         if seq_r is not None:
             profile[:, i_r] = seq_r[1:]
             ce[i_r] = 1.0
             bdv[i_r] = float(seq_r[np.argmax(np.abs(seq_r))])
+    if meas.keeps_angle:
+        extra = {}
+        for k, r in (outputs or {}).items():
+            row = np.zeros(N)
+            row[:n] = np.asarray(r, float).ravel()
+            extra[k] = row
+        mats, bdv, ce, extra, profile = _without_drift(mats, bdv, ce, extra, profile, angle_index, i_m)
+    else:
+        extra = {
+            k: np.concatenate([np.asarray(r, float).ravel()[rest], np.zeros(N - n)]) for k, r in (outputs or {}).items()
+        }
     nyq = math.pi / ts
     if omega is None:
-        lam = np.linalg.eigvals(ad) if n else np.array([], complex)
-        lam = lam[np.abs(lam) > 1e-300]
-        cont = np.log(lam.astype(complex)) / ts  # continuous-equivalent poles
-        omega = np.unique(np.concatenate([freq_grid(1e-1, nyq * 0.999, 500), resonance_points(cont, 1e-1, nyq * 0.999)]))
+        omega = meas.grid(ad, ts)
+    plant = (ad, bu, c_ang, inc_u, ts)
+
+    def filt(w):  # all filters, the speed ones, the torque ones (None: no such filter)
+        return (_filters_response(fl, w),
+                _filters_response([f for f in fl if f[0] == "speed_measurement"], w) if speed_filters else None,
+                _filters_response([f for f in fl if f[0] == "torque_command"], w)
+                if any(f[0] == "torque_command" for f in fl) else None)
+
+    def parts(zi):
+        return pid_frequency_parts(zi, ts, beta)
+
     def response(w):
-        w = np.asarray(w, float)
-        zi = np.exp(-1j * w * ts)
-        # Torque command -> angle increment: z^-1 (inc_x (zI - Ad)^-1 bu + inc_u).
-        p_inc = zi * (ss_response(ad, bu[:, None], inc_x[None, :], w, lambda x: np.exp(1j * x * ts)) + inc_u)
-        meas = (1 - alpha) / (1 - alpha * zi) / ts
-        f_loop = _filters_response(fl, w)
-        base = zi ** (1 + n_dl) * meas * p_inc * f_loop  # computation and command delay, filters, speed, plant
-        return None, np.vstack([base * c for c in pid_frequency_parts(zi, ts, beta)]), None, None
+        L_, D_ = meas.response(w, plant, n_dl, parts, filt)
+        return None, L_, None, D_
 
     def noise(w):
-        w = np.asarray(w, float)
-        zi = np.exp(-1j * w * ts)
-        f_all = (1 - alpha) / (1 - alpha * zi) * _filters_response(fl, w)
-        return np.vstack([f_all * c for c in pid_frequency_parts(zi, ts, beta)])
+        return meas.noise(w, ts, parts, filt)
 
-    L = response(omega)[1]
-    extra = {
-        k: np.concatenate([np.asarray(r, float).ravel()[rest], np.zeros(N - n)]) for k, r in (outputs or {}).items()
-    }
-    return LoopModel(A0, (a_kp, a_ki, a_kd), bdv, ce, ts, n_steps, omega, L, tf, name=name, outputs=extra,
-                     response=response, nyquist=nyq, profile=profile, noise=noise)
+    _, L, _, D = response(omega)
+    has_noise = meas.noise(omega[:1], ts, parts, filt) is not None
+    return LoopModel(mats[0], tuple(mats[1:]), bdv, ce, ts, n_steps, omega, L, tf, name=name, outputs=extra,
+                     response=response, nyquist=nyq, profile=profile, noise=noise if has_noise else None,
+                     **({"N0": None, "D0": None, "D": D} if D is not None else {}))
+
+
+def _without_drift(mats, bdv, ce, extra, profile, angle_index: int, i_est: int):
+    """The loop in coordinates without the common drift of the angle and its estimate: the
+    estimate (state ``i_est``) is replaced by its error ``estimate - angle``, then the angle is
+    deleted (refused if anything depends on the absolute angle)."""
+    N = bdv.size
+    M = np.eye(N)
+    M[i_est, angle_index] = -1.0
+    Mi = np.linalg.inv(M)
+    keep = [i for i in range(N) if i != angle_index]
+    out = []
+    for A_ in mats:
+        At = M @ A_ @ Mi
+        col = np.delete(At[:, angle_index], angle_index)
+        if np.max(np.abs(col)) > 1e-9 * max(1.0, np.max(np.abs(At))):
+            raise ArithmeticError("the loop depends on the absolute angle; expected only angle differences")
+        out.append(At[np.ix_(keep, keep)])
+    if profile is not None:
+        profile = (profile @ M.T)[:, keep]
+    return (tuple(out), (M @ bdv)[keep], (ce @ Mi)[keep], {k: (r @ Mi)[keep] for k, r in extra.items()}, profile)
 
 def _loop_biquads(filters, ts: float) -> list:
     """``[(place, DiscreteBiquad)]`` from LoopFilter items or ``(place, DiscreteBiquad)`` pairs."""

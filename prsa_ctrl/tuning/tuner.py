@@ -727,7 +727,8 @@ class Tuner(NLPBuilder, OptimalityChecks):
             (:meth:`LoopModel.noise_peak`; loop units: control signal per measured-output unit,
             e.g. N m s/rad), the loop as tuned including every filter on the noise path;
             enforced like Ms (grid rows, then the true peak verified and its frequency added
-            until it holds). Needs loops with a noise path (``continuous_loop``, ``drive_loop``).
+            until it holds). Needs loops with a noise path (``continuous_loop``, ``drive_loop`` with the
+            encoder's speed measurement).
 
         Returns
         -------
@@ -737,7 +738,8 @@ class Tuner(NLPBuilder, OptimalityChecks):
         ms_max, mt_max, noise = check_bounds(ms_max, mt_max, max_noise_gain)
         mks_max = check_mks(mks_max)
         if mks_max is not None and any(lp.noise is None or lp.response is None for lp in self.loops):
-            raise ValueError("mks_max given for loops without a noise path; expected continuous_loop or drive_loop models")
+            raise ValueError("mks_max given for loops without a noise path; expected continuous_loop or drive_loop models "
+                             "with the encoder's speed measurement (the Kalman-filter measurement has none)")
         ng = self.loops[0].n_gains
         hi = [gain_limit("kp_max", kp_max), gain_limit("ki_max", ki_max),
               gain_limit("kd_max", kd_max) if self.use_d else 0.0, 1.0][:ng]

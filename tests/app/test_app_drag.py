@@ -13,6 +13,7 @@ import pytest
 pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip install '.[app]')")
 
 from test_app_browser import _independent_margins, _shot, _text, _tuned  # noqa: E402
+from prsa_ctrl.app.session import MANUAL_STATUS, UNSTABLE_STATUS  # noqa: E402
 
 
 def _press(page, start):
@@ -54,8 +55,8 @@ def test_drag_on_the_landscape_sets_the_manual_design_with_true_margins(app_page
     # the optimum is kept beside it (not re-tuned by the drag) with its own prediction
     r = _tuned(1.4)
     assert _text(page, "opt-kp") == f"{r.pid.kp:.6g}" and _text(page, "opt-ms") == f"{r.ms:.4f}"
-    assert _text(page, "man-status") in ("manual", "unstable")
-    if _text(page, "man-status") == "manual":
+    assert _text(page, "man-status") in (MANUAL_STATUS, UNSTABLE_STATUS)
+    if _text(page, "man-status") == MANUAL_STATUS:
         assert _text(page, "man-pred") != "-" and _text(page, "man-pred") != _text(page, "opt-pred")
     _shot(page, "app-drag.png")
 
@@ -92,7 +93,7 @@ def test_session_manual_design_has_the_loops_true_margins():
             m = v.design.margins
             assert m.ms == pytest.approx(ref["ms"], abs=2e-4) and m.mt == pytest.approx(ref["mt"], abs=2e-4)
             assert m.gm_db == pytest.approx(ref["gm"], abs=0.02) and m.pm_deg == pytest.approx(ref["pm"], abs=0.05)
-            assert v.status == "manual" and v.t and v.design.objective_predicted > 0
+            assert v.status == MANUAL_STATUS and v.t and v.design.objective_predicted > 0
     finally:
         s.close()
 

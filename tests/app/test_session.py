@@ -77,6 +77,9 @@ def test_frf_upload_is_prsa_fit_frf_and_its_plant_is_used(tmp_path, capsys):
         np.testing.assert_allclose(fr["coherence"], fw["coherence"], rtol=1e-12)
         html_ = _report_html(cal, "done")
         assert "data-k='fit-structure' data-structure='rigid'" in html_ and "data-verdict='not-validated'" in html_
+        # the fit's status in the one vocabulary, as prsa-fit's JSON has it (an FRF fit is not replayed)
+        assert want["status"].startswith("unverified: ")
+        assert f"<span data-k='fit-status'>{want['status']}</span>" in html_
         views = FitViews()
         views.show(cal.report["views"])
         assert views.mag.visible and views.coherence.visible and not views.replay.visible
@@ -174,5 +177,32 @@ def test_two_mass_response_shows_the_chosen_structure_and_the_mode_with_interval
             assert got["value"] == pytest.approx(truth, rel=0.01)
         html_ = _report_html(cal, "done") if cal.refused is None else _report_html(cal, "refused")
         assert "data-structure='two-mass'" in html_ and "axial mode" in html_ and "anti-resonance" in html_
+    finally:
+        s.close()
+
+
+def test_every_view_status_is_in_the_one_vocabulary():
+    """The optimum carries the tuner's status, a hand design and a baseline say they are not
+    tuned (``unverified: ...``), an unstable loop is ``flagged: ...`` and verification leaves it
+    unsimulated; each status belongs to :data:`prsa_ctrl.results.STATUSES`."""
+    from prsa_ctrl.app.session import BASELINE_STATUS, MANUAL_STATUS, UNSTABLE_STATUS, AppSession, View
+    from prsa_ctrl.results import status_head
+
+    s = AppSession()
+    try:
+        st = s.default_settings()
+        opt = s.tuned(st)
+        assert status_head(opt.status) == "optimal"
+        man = s.manual(st, 0.05, 5.0)
+        assert man.status == MANUAL_STATUS and status_head(man.status) == "unverified"
+        base = s.baselines(st)
+        assert base and {b.status for b in base} <= {BASELINE_STATUS, UNSTABLE_STATUS}
+        assert status_head(BASELINE_STATUS) == "unverified"
+        bad = s.manual(st, 5.0, 5000.0)  # far beyond the stable region
+        assert bad.status == UNSTABLE_STATUS and status_head(bad.status) == "flagged" and not bad.t
+        [checked] = s.verify(st, [bad])
+        assert checked.design.flags == ("the loop is unstable: not simulated",)
+        with pytest.raises(ValueError, match="status = 'manual'; expected a str starting with one of"):
+            View(man.design, man.omega, man.loop, man.t, man.speed, "manual", man.noise_gain)
     finally:
         s.close()

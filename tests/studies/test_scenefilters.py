@@ -174,10 +174,6 @@ def test_a_filter_at_the_margin_is_accepted(tmp_path):
 
 def test_filters_are_refused_where_the_loop_has_none(tmp_path, capsys, stand_in):
     path = _scene_file(tmp_path, '[[filters.lowpass]]\npath = "speed"\ncorner_hz = 300.0\n')
-    for extra in (["--estimator", "kf"],):
-        rc = main(["--scene", str(path), "--quiet", *extra])
-        err = capsys.readouterr().err.strip().splitlines()
-        assert rc == 2 and len(err) == 1 and "estimator" in err[0] and "filters" in err[0], err
     with pytest.raises(SceneError, match="discrete = false with filters"):
         load_scene(str(path)).replace(discrete=False)
     with pytest.raises(SceneError, match="filters"):
@@ -185,6 +181,22 @@ def test_filters_are_refused_where_the_loop_has_none(tmp_path, capsys, stand_in)
     with pytest.raises(SceneError, match="filters.notch = "):
         parse_filters({"notch": {"path": "torque"}}, "x.toml")
     assert not stand_in
+
+
+def test_a_kalman_filter_scene_keeps_its_filters_in_its_loop_models(tmp_path):
+    """The Kalman-filter loop takes the scene's filters (it used to refuse them): two biquads of
+    4 states each, less the stored previous speed (the speed biquad's memory holds it), and a
+    different load-step response than without them."""
+    path = _scene_file(tmp_path, '[[filters.lowpass]]\npath = "speed"\ncorner_hz = 300.0\n'
+                                 '[[filters.notch]]\npath = "torque"\ncentre_hz = 900.0\nwidth_hz = 300.0\n')
+    sc = load_scene(str(path)).replace(estimator="kf")
+    check_against_plant(sc, PAPER)
+    with_f = actuator_loops(PAPER, sc)
+    without = actuator_loops(PAPER, sc.replace(filters=(), filter_labels=()))
+    assert [lp.A0.shape[0] - lp0.A0.shape[0] for lp, lp0 in zip(with_f, without)] == [7] * len(without)
+    gains = (0.05, 5.0, 0.0)
+    e1, e0 = with_f[0].error(gains), without[0].error(gains)
+    assert np.max(np.abs(e1 - e0)) > 0.01 * np.max(np.abs(e0))
 
 
 def test_nyquist_is_the_plants(tmp_path):
