@@ -150,24 +150,36 @@ class RodasSegment:
     def __call__(self, x0, p) -> dict:
         z0 = np.asarray(x0, dtype=float).ravel()
         pp = np.asarray(p, dtype=float).ravel()
+        # The chunk is called through a buffer of this call's own arrays (no conversion to and
+        # from CasADi matrices per chunk): the parameters and settings repeated per attempt (column-
+        # major, one attempt per row here), the carried state, and the states and landings out.
+        n = CHUNK_ATTEMPTS
         st = np.concatenate([[0.0, min(1e-6, 1.0 / self.n_out)], z0])
-        cols, calls, accepted = [], 0, 0
+        p_rep, cfg_rep = np.tile(pp, (n, 1)), np.tile(self.cfg, (n, 1))
+        sts, hit = np.zeros((n, st.size)), np.zeros(n)
+        buf, evaluate = self.chunk.buffer()
+        buf.set_arg(0, memoryview(st))
+        buf.set_arg(1, memoryview(p_rep))
+        buf.set_arg(2, memoryview(cfg_rep))
+        buf.set_res(0, memoryview(sts))
+        buf.set_res(1, memoryview(hit))
+        rows, calls, accepted = [], 0, 0
         while st[0] < 1.0 - 1e-12:
-            if calls * CHUNK_ATTEMPTS >= self.max_attempts:
+            if calls * n >= self.max_attempts:
                 raise RuntimeError(f"RODAS4: more than {self.max_attempts} step attempts in one segment "
                                    f"(at {st[0]:.6g} of it); raise SimSettings.max_steps or loosen rtol/atol")
-            sts, hit = self.chunk(st, pp, self.cfg)
-            sts, hit = np.asarray(sts), np.asarray(hit).ravel() > 0.5
+            tau0 = st[0]
+            evaluate()
             calls += 1
-            cols.append(sts[:, hit])
-            accepted += int(np.count_nonzero(np.diff(np.concatenate([[st[0]], sts[0]])) > 0))
-            st = sts[:, -1]
+            rows.append(sts[hit > 0.5])  # (a copy)
+            taus = sts[:, 0]
+            accepted += int(np.count_nonzero(np.diff(taus, prepend=tau0) > 0))
+            st[:] = sts[-1]  # the next chunk starts where this one ended (st is the buffer's input)
             if not (st[1] >= _H_MIN and np.all(np.isfinite(st))):
                 raise RuntimeError(f"RODAS4: step size {st[1]:.3g} of the segment at {st[0]:.6g} of it "
                                    "(below 1e-13 or not finite): the state is not finite or the model too stiff")
-        xs = np.hstack(cols)
+        xs = np.vstack(rows).T
         if xs.shape[1] != self.n_out or abs(xs[0, -1] - 1.0) > 1e-12:
             raise RuntimeError(f"RODAS4: {xs.shape[1]} output points reached; expected {self.n_out}")
-        self.stats = {"attempts": calls * CHUNK_ATTEMPTS, "accepted": accepted, "calls": calls,
-                      "h_last": float(st[1])}
+        self.stats = {"attempts": calls * n, "accepted": accepted, "calls": calls, "h_last": float(st[1])}
         return {"xf": xs[2:]}
