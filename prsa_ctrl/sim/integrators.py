@@ -56,15 +56,15 @@ class SimSettings:
         integrators. ``"rodas"`` (continuous runs only, ``discrete=False``) is the adaptive
         RODAS4 Rosenbrock method of :mod:`prsa_ctrl.sim.rosenbrock`: L-stable, error controlled by
         ``rtol``/``atol`` like CVODES's, its steps chained in one CasADi function (compiled with
-        ``jit``) instead of one callback per right-hand side. ``"radau"`` is a fixed-step, linearly implicit Radau IIA integrator written
-        in CasADi SX (``substeps`` steps of ``stages`` stages per controller sample, each with
-        ``newton`` simplified Newton iterations on the exact Jacobian at the step start): one
-        sample is a plain expression, so a whole chunk of samples runs as one ``mapaccum``'d
-        function without integrator restarts. Its error is not controlled by ``rtol``/``atol``
-        (they are unused); it is measured against a tight CVODES reference
-        (:func:`~prsa_ctrl.sim.engine.fixed_step_error`) and the fast path is only chosen where that error is inside
-        the scene's accuracy (see ``README``). In continuous mode it takes ``substeps`` steps per
-        output interval.
+        ``jit``) instead of one callback per right-hand side. ``"radau"`` is a fixed-step,
+        linearly implicit Radau IIA integrator written in CasADi SX (``substeps`` steps of ``stages`` stages per
+        controller sample, each with ``newton`` simplified Newton iterations on the exact Jacobian at the step
+        start): one sample is a plain expression, so a whole chunk of samples runs as one ``mapaccum``'d
+        function without integrator restarts. Its error is not controlled by ``rtol``/``atol`` (they are
+        unused); it is measured against a tight CVODES reference
+        (:func:`~prsa_ctrl.sim.engine.fixed_step_error`) and the fast path is only chosen where that error is
+        inside the scene's accuracy (see ``README``). In continuous mode it takes ``substeps`` steps per output
+        interval.
     rtol, atol : float
         Relative and absolute tolerances (adaptive integrators).
     max_steps : int
@@ -99,11 +99,11 @@ class SimSettings:
         ``"cvodes"``/``"idas"``: evaluate the model's right-hand side and its Jacobian as C code
         compiled once per model into a per-user cache (``$PRSA_CTRL_CACHE``, else
         ``$XDG_CACHE_HOME/prsa-ctrl`` or ``~/.cache/prsa-ctrl``; keyed by the hash of the
-        generated code); ``"rodas"``: its chained steps, once per model structure. ``"radau"``: compile the whole per-sample law of the sampled loop
-        (plant steps, measurement, PID) the same way, once per law (a few seconds of ``cc -O1``
-        the first time; all members of a parametric family share it, see
-        :func:`prsa_ctrl.plant.model.register_member`). Same equations, same tolerances; without a C
-        compiler the run falls back to CasADi's interpreter with a warning.
+        generated code); ``"rodas"``: its chained steps, once per model structure. ``"radau"``:
+        compile the whole per-sample law of the sampled loop (plant steps, measurement, PID) the same way, once
+        per law (a few seconds of ``cc -O1`` the first time; all members of a parametric family share it, see
+        :func:`prsa_ctrl.plant.model.register_member`). Same equations, same tolerances; without a C compiler
+        the run falls back to CasADi's interpreter with a warning.
     """
 
     integrator: str = "cvodes"
@@ -547,8 +547,8 @@ def continuous_integrator(built: Built, settings: SimSettings, n_out: int) -> ca
     equally spaced outputs: ``(x0 = scaled state, p = the segment's parameters) -> xf``
     (one column per output). SUNDIALS' ``settings.integrator``; for ``"radau"``,
     ``settings.substeps`` fixed steps per output interval chained by ``mapaccum``; for ``"rodas"``,
-    a :class:`~prsa_ctrl.sim.rosenbrock.RodasSegment` (adaptive RODAS4 steps in chained chunks). Built once
-    per ``(settings, n_out)`` and kept in ``built.continuous``.
+    a :class:`~prsa_ctrl.sim.rosenbrock.RodasSegment` (adaptive RODAS4 steps in chained chunks).
+    Built once per ``(settings, n_out)`` and kept in ``built.continuous``.
     """
     key = (settings, n_out)
     if key not in built.continuous:

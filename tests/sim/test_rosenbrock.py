@@ -130,3 +130,15 @@ def test_jit_runs_the_same_steps_as_compiled_code_from_the_per_user_cache(tmp_pa
     assert len(list((tmp_path / "jit").glob("rodas_chunk_*.so"))) == 1
     # the same equations and step control; compiled arithmetic may round differently
     np.testing.assert_allclose(jit.outputs, plain.outputs, rtol=1e-9, atol=1e-9)
+
+
+def test_ramped_setpoint_and_load_match_a_tight_cvodes_run():
+    # The ramps' slopes make the right-hand side depend on time (the step's dF/dt term).
+    from prsa_ctrl.sim.signals import PiecewiseLinear
+
+    kw = dict(setpoint=PiecewiseLinear([(0, W300), (0.01, W300), (0.03, 20.0)]),
+              load=PiecewiseLinear([(0, 500.0), (0.005, 500.0), (0.02, 1500.0)]), duration=0.04,
+              controller=PID(0.0849, 14.67), dt=1e-4, fidelity="compliant")
+    ref = run(PLANT, settings=SimSettings(rtol=1e-12, atol=1e-12), **kw).output("nut_speed")
+    w = run(PLANT, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8), **kw).output("nut_speed")
+    assert np.max(np.abs(w - ref)) < 1e-7  # measured 2.0e-8
