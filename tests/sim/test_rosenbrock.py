@@ -142,3 +142,14 @@ def test_ramped_setpoint_and_load_match_a_tight_cvodes_run():
     ref = run(PLANT, settings=SimSettings(rtol=1e-12, atol=1e-12), **kw).output("nut_speed")
     w = run(PLANT, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8), **kw).output("nut_speed")
     assert np.max(np.abs(w - ref)) < 1e-7  # measured 2.0e-8
+
+
+def test_a_solution_that_blows_up_ends_in_one_runtime_error_not_nan():
+    # dz/dtau = 10 z^2, z(0) = 1 reaches infinity at tau = 0.1: the steps shrink below 1e-13 of
+    # the segment or the state stops being finite, and the segment says so.
+    z, p, t = ca.SX.sym("z", 1), ca.SX.sym("p", 1), ca.SX.sym("t")
+    f = ca.Function("f", [z, p, t], [10.0 * z ** 2])
+    chunk = rodas_attempt(f, 1, 1, lu_kernels).mapaccum("c", CHUNK_ATTEMPTS, [0], [0])
+    seg = RodasSegment(chunk, 1, 10, 1e-8, 1e-8, 10**5)
+    with pytest.raises(RuntimeError, match="RODAS4: step size .* at 0.1 of it"):
+        seg(x0=[1.0], p=[0.0])
