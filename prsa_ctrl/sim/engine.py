@@ -431,6 +431,9 @@ def run(
                              "the drive's sampled loop)")
     else:
         filters = ()
+    if discrete and settings.integrator == "rodas":
+        raise ValueError("settings.integrator = 'rodas' with discrete = True; expected 'cvodes', 'idas' or 'radau' "
+                         "(RODAS4 integrates the continuous loop only)")
     if discrete:
         ts = plant.sample_time_s
         n_points = math.floor(duration / ts + 1e-9) + 1

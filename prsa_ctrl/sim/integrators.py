@@ -33,10 +33,10 @@ from ..drive.pid import pid_law
 from ..plant.model import PlantModel
 
 __all__ = ["SimSettings", "INTEGRATORS", "RADAU_STAGES", "Built", "build", "continuous_integrator",
-           "sample_integrator", "accumulated", "radau_tableau", "radau_step", "compiled", "jit_cache_dir",
+           "sample_integrator", "accumulated", "radau_tableau", "radau_step", "lu_kernels", "compiled", "jit_cache_dir",
            "state_scale", "plant_rates"]
 
-INTEGRATORS = ("cvodes", "idas", "radau")
+INTEGRATORS = ("cvodes", "idas", "radau", "rodas")
 #: Stages of the fixed-step ``"radau"`` integrator (Radau IIA: 1 = implicit Euler, order 1;
 #: 2 = order 3; 3 = order 5; all L-stable and stiffly accurate).
 RADAU_STAGES = (1, 2, 3)
@@ -51,21 +51,25 @@ class SimSettings:
 
     Parameters
     ----------
-    integrator : {"cvodes", "idas", "radau"}
+    integrator : {"cvodes", "idas", "radau", "rodas"}
         ``"cvodes"`` (default, the reference) and ``"idas"`` are SUNDIALS' adaptive implicit
-        integrators. ``"radau"`` is a fixed-step, linearly implicit Radau IIA integrator written
-        in CasADi SX (``substeps`` steps of ``stages`` stages per controller sample, each with
-        ``newton`` simplified Newton iterations on the exact Jacobian at the step start): one
-        sample is a plain expression, so a whole chunk of samples runs as one ``mapaccum``'d
-        function without integrator restarts. Its error is not controlled by ``rtol``/``atol``
-        (they are unused); it is measured against a tight CVODES reference
-        (:func:`~prsa_ctrl.sim.engine.fixed_step_error`) and the fast path is only chosen where that error is inside
-        the scene's accuracy (see ``README``). In continuous mode it takes ``substeps`` steps per
-        output interval.
+        integrators. ``"rodas"`` (continuous runs only, ``discrete=False``) is the adaptive
+        RODAS4 Rosenbrock method of :mod:`prsa_ctrl.sim.rosenbrock`: L-stable, error controlled by
+        ``rtol``/``atol`` like CVODES's, its steps chained in one CasADi function (compiled with
+        ``jit``) instead of one callback per right-hand side. ``"radau"`` is a fixed-step,
+        linearly implicit Radau IIA integrator written in CasADi SX (``substeps`` steps of ``stages`` stages per
+        controller sample, each with ``newton`` simplified Newton iterations on the exact Jacobian at the step
+        start): one sample is a plain expression, so a whole chunk of samples runs as one ``mapaccum``'d
+        function without integrator restarts. Its error is not controlled by ``rtol``/``atol`` (they are
+        unused); it is measured against a tight CVODES reference
+        (:func:`~prsa_ctrl.sim.engine.fixed_step_error`) and the fast path is only chosen where that error is
+        inside the scene's accuracy (see ``README``). In continuous mode it takes ``substeps`` steps per output
+        interval.
     rtol, atol : float
         Relative and absolute tolerances (adaptive integrators).
     max_steps : int
-        Step budget per output interval; exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
+        Step budget per output interval (``"rodas"``: step attempts per output point, summed over
+        a segment); exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
     max_wall_s : float
         Wall-time budget of one run, s, checked between integration chunks (at most
         :data:`~prsa_ctrl.sim.engine.CHUNK_S` of simulated time each); exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
@@ -95,11 +99,11 @@ class SimSettings:
         ``"cvodes"``/``"idas"``: evaluate the model's right-hand side and its Jacobian as C code
         compiled once per model into a per-user cache (``$PRSA_CTRL_CACHE``, else
         ``$XDG_CACHE_HOME/prsa-ctrl`` or ``~/.cache/prsa-ctrl``; keyed by the hash of the
-        generated code). ``"radau"``: compile the whole per-sample law of the sampled loop
-        (plant steps, measurement, PID) the same way, once per law (a few seconds of ``cc -O1``
-        the first time; all members of a parametric family share it, see
-        :func:`prsa_ctrl.plant.model.register_member`). Same equations, same tolerances; without a C
-        compiler the run falls back to CasADi's interpreter with a warning.
+        generated code); ``"rodas"``: its chained steps, once per model structure. ``"radau"``:
+        compile the whole per-sample law of the sampled loop (plant steps, measurement, PID) the same way, once
+        per law (a few seconds of ``cc -O1`` the first time; all members of a parametric family share it, see
+        :func:`prsa_ctrl.plant.model.register_member`). Same equations, same tolerances; without a C compiler
+        the run falls back to CasADi's interpreter with a warning.
     """
 
     integrator: str = "cvodes"
@@ -355,7 +359,7 @@ def radau_tableau(stages: int) -> tuple[NDArray[np.float64], NDArray[np.float64]
 _LU_KERNELS: dict[str, tuple[ca.Function, ca.Function]] = {}
 
 
-def _lu_kernels(sp: ca.Sparsity) -> tuple[ca.Function, ca.Function]:
+def lu_kernels(sp: ca.Sparsity) -> tuple[ca.Function, ca.Function]:
     """``factor(M) -> lu`` and ``solve(lu, b) -> M^-1 b`` for square matrices of sparsity ``sp``:
     Gaussian elimination in the given order (no pivoting) on the structural nonzeros only.
 
@@ -446,7 +450,7 @@ def radau_step(f: ca.Function, nz: int, npar: int, settings: SimSettings, span: 
     j_sym = ca.SX.sym("j", jac.sparsity_out(0))
     iter_mat = ca.Function("radau_iteration_matrix", [j_sym],
                            [ca.SX.eye(s * nz) - h * ca.kron(ca.SX(ca.DM(a_mat)), j_sym)])
-    factor, solve = _lu_kernels(iter_mat.sparsity_out(0))
+    factor, solve = lu_kernels(iter_mat.sparsity_out(0))
     x0 = ca.SX.sym("x0", nz)
     tau0 = ca.SX.sym("tau0")
     x = x0
@@ -541,9 +545,10 @@ def _ode_dae(z: ca.SX, par: ca.SX, tau: ca.SX, ode: ca.SX, settings: SimSettings
 def continuous_integrator(built: Built, settings: SimSettings, n_out: int) -> ca.Function:
     """The continuous loop's integrator over one segment (normalised time 0..1) with ``n_out``
     equally spaced outputs: ``(x0 = scaled state, p = the segment's parameters) -> xf``
-    (one column per output). SUNDIALS' ``settings.integrator`` or, for ``"radau"``,
-    ``settings.substeps`` fixed steps per output interval chained by ``mapaccum``. Built once
-    per ``(settings, n_out)`` and kept in ``built.continuous``.
+    (one column per output). SUNDIALS' ``settings.integrator``; for ``"radau"``,
+    ``settings.substeps`` fixed steps per output interval chained by ``mapaccum``; for ``"rodas"``,
+    a :class:`~prsa_ctrl.sim.rosenbrock.RodasSegment` (adaptive RODAS4 steps in chained chunks).
+    Built once per ``(settings, n_out)`` and kept in ``built.continuous``.
     """
     key = (settings, n_out)
     if key not in built.continuous:
@@ -560,6 +565,17 @@ def continuous_integrator(built: Built, settings: SimSettings, n_out: int) -> ca
             taus = ca.DM(np.arange(n_out) / n_out).T
             xf = chain(x0, ca.repmat(pm, 1, n_out), taus)
             built.continuous[key] = ca.Function("segment", [x0, pm], [xf], ["x0", "p"], ["xf"])
+        elif settings.integrator == "rodas":
+            from .rosenbrock import CHUNK_ATTEMPTS, RodasSegment, rodas_attempt
+
+            ckey = ("rodas chunk", settings.jit)
+            if ckey not in built.continuous:  # one function per model (n_out and tolerances are inputs)
+                f = ca.Function("rhs_scaled", [z, par, tau], [built.rhs(z, par, tau)])
+                chunk = rodas_attempt(f, len(built.scale), _NP, lu_kernels).mapaccum("rodas_chunk", CHUNK_ATTEMPTS,
+                                                                                     [0], [0])
+                built.continuous[ckey] = (compiled(chunk, jacobian=False) if settings.jit else None) or chunk
+            built.continuous[key] = RodasSegment(built.continuous[ckey], len(built.scale), n_out, settings.rtol,
+                                                 settings.atol, settings.max_steps * n_out)
         else:
             dae = _ode_dae(z, par, tau, built.rhs(z, par, tau), settings)
             grid = list(np.linspace(0.0, 1.0, n_out + 1)[1:])
@@ -571,6 +587,9 @@ def sample_integrator(built: Built, settings: SimSettings) -> ca.Function:
     """Plant-only integrator with the command held: ``(x0 = scaled plant state (+ energy),
     p = [torque N m, load N at the start, load slope N/s, interval s]) -> xf``. Built once per
     settings and kept in ``built.sampled``."""
+    if settings.integrator == "rodas":
+        raise ValueError("integrator = 'rodas' in the sampled loop; expected 'cvodes', 'idas' or 'radau' "
+                         "(RODAS4 integrates the continuous loop only: discrete=False)")
     key = (settings, "plant")
     if key not in built.sampled:
         model, scale = built.model, built.plant_scale

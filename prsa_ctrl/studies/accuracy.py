@@ -27,6 +27,10 @@ control = module("control")  # python-control, imported when its runs start
 __all__ = ["work_precision", "fidelity_ladder", "timed"]
 
 
+#: Tolerances (rtol = atol, on the scaled states) of every method's runs in the full work-precision table.
+TOLERANCES = (1e-4, 1e-6, 3e-7, 1e-7, 3e-8, 1e-8, 1e-10)
+
+
 class _OverBudget(Exception):
     pass
 
@@ -55,7 +59,8 @@ def _reference_pid(plant):
 
 
 
-def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repeats: int = 3, tiny: bool = False) -> dict:
+def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repeats: int = 3, tiny: bool = False,
+                   ab_rounds: int = 0) -> dict:
     """Time (s) and max nut-speed error (rad/s) per method and setting; see module docstring.
 
     Parameters
@@ -71,11 +76,18 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
     tiny : bool
         Every method once at one tolerance (1e-8) on the compliant model over a 7 ms horizon:
         the code paths of a run, not its figures (``benchmarks/bench.py --fast``).
+    ab_rounds : int
+        After the table, re-run its cheapest prsa-ctrl and scipy rows within 1e-6 rad/s back to
+        back this many rounds (``repeats`` runs each per round) in process CPU time: ``"ab_cpu"``
+        of the result, each round's ratio and their median, min and max (None when 0 or a side
+        has no row within the target).
     """
     plant = plant or load_plant()
     pid = _reference_pid(plant)
     ref_w, load, duration = _scene_inputs(fast, tiny)
     dt = 1e-4
+    if isinstance(ab_rounds, bool) or not isinstance(ab_rounds, int) or not 0 <= ab_rounds <= 100:
+        raise ValueError(f"ab_rounds = {ab_rounds!r}; expected an integer in [0, 100]")
     grid = np.arange(0.0, duration + 0.5 * dt, dt)
 
     def ours(fidelity, integ, tol, n=repeats, jit=False):
@@ -93,18 +105,21 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
     _, w_ref = ours("compliant", "cvodes", 1e-12, 1)
     rows = []
 
-    def record(method, setting, fidelity, elapsed, w, finished=True):
+    def record(method, setting, fidelity, elapsed, w, finished=True, **how):
         err = float(np.max(np.abs(w - w_ref))) if finished else math.nan
         rows.append({"method": method, "setting": setting, "fidelity": fidelity, "time_s": elapsed,
-                     "max_error_rad_s": err, "finished": finished})
+                     "max_error_rad_s": err, "finished": finished, **how})
 
-    tols = (1e-8,) if tiny else (1e-4, 1e-6, 1e-8) if fast else (1e-4, 1e-6, 1e-8, 1e-10)
+    # One grid for every method, dense around the 1e-6 rad/s target so that each method's cheapest
+    # run within it is found to within a factor of about 3 in tolerance.
+    tols = (1e-8,) if tiny else (1e-4, 1e-6, 1e-8) if fast else TOLERANCES
     for fidelity in ("compliant",) if tiny else ("rigid", "compliant"):
-        for integ in ("cvodes", "idas"):
+        for integ in ("cvodes", "idas", "rodas"):
             for jit in (False, True):  # the same integrator on compiled model code (SimSettings.jit)
                 for tol in tols:
                     el, w = ours(fidelity, integ, tol, jit=jit)
-                    record(f"prsa-ctrl {integ}" + (" jit" if jit else ""), f"tol {tol:g}", fidelity, el, w)
+                    record(f"prsa-ctrl {integ}" + (" jit" if jit else ""), f"tol {tol:g}", fidelity, el, w,
+                           run=("ours", integ, tol, jit))
 
     # The same closed-loop equations for scipy and python-control (scaled states).
     model = plant_model(plant, "compliant")
@@ -165,7 +180,8 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
     for method in ("LSODA", "Radau", "BDF"):
         for tol in tols:
             el, w = scipy_run(method, tol)
-            record(f"scipy {method}", f"tol {tol:g}", "compliant", el, w if w is not None else w_ref, w is not None)
+            record(f"scipy {method}", f"tol {tol:g}", "compliant", el, w if w is not None else w_ref, w is not None,
+                   run=("scipy", method, tol))
 
     def control_run(method, tol):
         el, w, _ = timed(lambda: _finished(control_once(method, tol)), repeats)
@@ -207,6 +223,48 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
 
     target = 1e-6
     ours_t = best_time("prsa-ctrl", target)
+
+    def best_row(prefix):
+        ok = [r for r in rows if r["method"].startswith(prefix) and r["finished"] and r["fidelity"] == "compliant"
+              and r["max_error_rad_s"] <= target]
+        return min(ok, key=lambda r: r["time_s"]) if ok else None
+
+    def cpu_once(how):
+        """CPU time (s) of one run of a table row's setting and its error (rad/s)."""
+        c0 = time.process_time()
+        if how[0] == "ours":
+            s = SimSettings(integrator=how[1], rtol=how[2], atol=how[2], max_steps=200000, jit=how[3])
+            r = simulate(plant, setpoint=ref_w, load=load, duration=duration, controller=pid, fidelity="compliant",
+                         dt=dt, settings=s)
+            w = np.interp(grid, r.time, r.outputs[0])
+        else:
+            w = scipy_once(how[1], how[2])
+        return time.process_time() - c0, float(np.max(np.abs(w - w_ref))) if w is not None else math.nan
+
+    ab = None
+    pair = best_row("prsa-ctrl"), best_row("scipy")
+    if ab_rounds > 0 and all(pair):
+        # The two best rows of the table re-run back to back, round by round, in process CPU time (a
+        # busy machine stretches wall times; each round's ratio is measured under the same load).
+        rounds = []
+        for _ in range(ab_rounds):
+            times = {}
+            for name, row in zip(("prsa-ctrl", "scipy"), pair):
+                runs = [cpu_once(row["run"]) for _ in range(max(1, repeats))]
+                times[name] = float(np.median([t for t, _ in runs]))
+                errs = [e for _, e in runs]
+                times[name + " error_rad_s"] = max(errs) if all(map(math.isfinite, errs)) else math.nan
+            # a round counts only if both sides stayed within the target (a scipy run over its
+            # wall budget returns no trajectory: its error is NaN)
+            valid = all(times[k + " error_rad_s"] <= target for k in ("prsa-ctrl", "scipy"))
+            times["ratio"] = times["scipy"] / times["prsa-ctrl"] if valid else math.nan
+            rounds.append(times)
+        ratios = [r["ratio"] for r in rounds if math.isfinite(r["ratio"])] or [math.nan]
+        ab = {"prsa-ctrl": f"{pair[0]['method']} {pair[0]['setting']}",
+              "scipy": f"{pair[1]['method']} {pair[1]['setting']}",
+              "clock": "process CPU time, median of `repeats` runs per round", "rounds": rounds,
+              "ratio_median": float(np.median(ratios)), "ratio_min": min(ratios), "ratio_max": max(ratios),
+              "rounds_within_target": sum(math.isfinite(r["ratio"]) for r in rounds)}
     return {
         "scene": {"plant": plant.name, "pid": pid.as_dict(), "load": load, "duration_s": duration, "dt_s": dt},
         "rows": rows,
@@ -214,11 +272,14 @@ def work_precision(plant=None, fast: bool = False, budget_s: float = 60.0, repea
         "best_time_s": {
             "prsa-ctrl": ours_t,
             "prsa-ctrl (interpreted, no jit)": min(
-                [r["time_s"] for r in rows if r["method"] in ("prsa-ctrl cvodes", "prsa-ctrl idas") and r["finished"]
+                [r["time_s"] for r in rows if r["method"] in ("prsa-ctrl cvodes", "prsa-ctrl idas", "prsa-ctrl rodas")
+                 and r["finished"]
                  and r["fidelity"] == "compliant" and r["max_error_rad_s"] <= target] or [math.inf]),
+            "prsa-ctrl (SUNDIALS: cvodes, idas)": min(best_time(f"prsa-ctrl {m}", target) for m in ("cvodes", "idas")),
             "scipy": min(best_time(f"scipy {m}", target) for m in ("LSODA", "Radau", "BDF")),
             "python-control": min(best_time(f"python-control {m}", target) for m in ("RK45", "LSODA")),
         },
+        "ab_cpu": ab,
         "budget_s": budget_s,
         "repeats": repeats,
     }

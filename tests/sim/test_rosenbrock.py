@@ -1,0 +1,155 @@
+"""The adaptive RODAS4 integrator of the continuous loop (SimSettings(integrator="rodas")): its
+tableau's order conditions, its error on a stiff linear system against the exact solution, on the
+paper load step against a tight CVODES run (error controlled by the tolerance), its step budget,
+and its refusal of the sampled loop."""
+
+import casadi as ca
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from prsa_ctrl import PID, load_plant
+from prsa_ctrl.errors import SimulationError
+from prsa_ctrl.sim.engine import run
+from prsa_ctrl.sim.integrators import SimSettings, build, continuous_integrator, lu_kernels
+from prsa_ctrl.plant.model import plant_model
+from prsa_ctrl.sim.rosenbrock import CHUNK_ATTEMPTS, RODAS4, RodasSegment, rodas_attempt
+
+PLANT = load_plant()
+W300 = 31.41592653589793
+#: The paper load step, continuous controller (the work-precision benchmark's problem, shorter).
+STEP = dict(setpoint=W300, load=[(0.0, 500.0), (0.002, 1500.0)], duration=0.02, controller=PID(0.0849, 14.67),
+            dt=1e-4)
+
+
+def _full(values, n=6):
+    m = np.zeros((n, n))
+    m[np.tril_indices(n, -1)] = values
+    return m
+
+
+def test_the_tableau_is_stiffly_accurate():
+    # The last two stages sit at the step's end, stage 6 starts from stage 5's result and the
+    # solution is stage 6's: the error estimate is the last stage alone.
+    alpha = np.asarray(RODAS4["alpha"])
+    assert alpha[-1] == alpha[-2] == 1.0
+    a = _full(RODAS4["a"])
+    # Stiffly accurate: stage 6's input equals stage 5's output and the solution is stage 6's output.
+    assert np.allclose(a[5, :5], RODAS4["m"][:5]) and np.allclose(a[4, :4], RODAS4["m"][:4])
+    assert RODAS4["e"] == (0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def _linear_segment(a_mat, n_out, tol, max_attempts=10**6):
+    nz = a_mat.shape[0]
+    z, p, t = ca.SX.sym("z", nz), ca.SX.sym("p", 1), ca.SX.sym("t")
+    f = ca.Function("f", [z, p, t], [ca.DM(a_mat) @ z + p[0] * t])
+    chunk = rodas_attempt(f, nz, 1, lu_kernels).mapaccum("c", CHUNK_ATTEMPTS, [0], [0])
+    return RodasSegment(chunk, nz, n_out, tol, tol, max_attempts)
+
+
+def test_a_stiff_oscillator_matches_the_exact_solution_within_the_tolerance():
+    # A lightly damped mode near the imaginary axis (damping 0.03) and a stiff real one: the
+    # eigenvalues on which BDF orders 3-5 are not stable, in normalised time over one segment.
+    w, zeta, fast = 40.0, 0.03, -1e6
+    a_mat = np.array([[0.0, 1.0, 0.0], [-w * w, -2 * zeta * w, 0.0], [0.0, 0.0, fast]])
+    z0 = np.array([1.0, 0.0, 1.0])
+    n_out = 50
+    exact = np.column_stack([expm(a_mat * (k / n_out)) @ z0 for k in range(1, n_out + 1)])
+    errs = []
+    for tol in (1e-6, 1e-8):
+        seg = _linear_segment(a_mat, n_out, tol)
+        xs = seg(x0=z0, p=[0.0])["xf"]
+        assert xs.shape == (3, n_out) and np.all(np.isfinite(xs))
+        errs.append(float(np.max(np.abs(xs - exact))))
+        assert seg.stats["accepted"] >= n_out
+    # Measured 8.7e-5 and 9.1e-7 (global error over 3 periods of the oscillator).
+    assert errs[0] < 3e-4 and errs[1] < 3e-6
+    assert errs[1] < errs[0] / 30  # the error follows the tolerance
+
+
+def test_a_forced_system_takes_the_time_derivative_into_account():
+    # dz/dt = -z + t, z(0) = 0: z = t - 1 + exp(-t).
+    seg = _linear_segment(np.array([[-1.0]]), 10, 1e-9)
+    xs = seg(x0=[0.0], p=[1.0])["xf"][0]
+    t = np.arange(1, 11) / 10
+    assert np.max(np.abs(xs - (t - 1 + np.exp(-t)))) < 1e-9  # measured 6.6e-11
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return run(PLANT, fidelity="compliant", settings=SimSettings(rtol=1e-12, atol=1e-12), **STEP)
+
+
+@pytest.mark.parametrize("tol", [1e-6, 1e-8])
+def test_the_paper_load_step_matches_a_tight_cvodes_run(reference, tol):
+    r = run(PLANT, fidelity="compliant", settings=SimSettings(integrator="rodas", rtol=tol, atol=tol), **STEP)
+    assert np.array_equal(r.time, reference.time)
+    w, w_ref = r.output("nut_speed"), reference.output("nut_speed")
+    drop = W300 - w_ref.min()
+    assert drop > 2.0
+    err = float(np.max(np.abs(w - w_ref)))
+    # The nut speed is scaled by 100 rad/s, so tol bounds its local error at 100 tol rad/s; the
+    # global error measured here: 1.37e-6 rad/s (tol 1e-6) and 1.5e-8 rad/s (tol 1e-8).
+    assert err < 5 * tol
+    assert np.allclose(r.states[:, -1], reference.states[:, -1], rtol=1e-4, atol=1e-6)
+
+
+def test_tighter_tolerances_take_more_steps_and_land_on_every_output():
+    model = plant_model(PLANT, "compliant")
+    built = build(model, False)
+    steps = []
+    for tol in (1e-5, 1e-8):
+        s = SimSettings(integrator="rodas", rtol=tol, atol=tol)
+        run(PLANT, fidelity="compliant", settings=s, **STEP)
+        seg = continuous_integrator(built, s, 180)
+        assert isinstance(seg, RodasSegment) and seg.n_out == 180
+        steps.append(seg.stats["accepted"])
+    assert 180 <= steps[0] < steps[1]
+
+
+def test_the_step_budget_is_enforced():
+    with pytest.raises(SimulationError, match="step attempts"):
+        run(PLANT, fidelity="compliant", settings=SimSettings(integrator="rodas", rtol=1e-10, atol=1e-10,
+                                                                max_steps=10), **STEP)
+
+
+def test_the_sampled_loop_refuses_rodas():
+    with pytest.raises(ValueError, match="'rodas' with discrete = True"):
+        run(PLANT, fidelity="rigid", discrete=True, settings=SimSettings(integrator="rodas"),
+            setpoint=W300, load=500.0, duration=0.01, controller=PID(0.0849, 14.67))
+
+
+def test_jit_runs_the_same_steps_as_compiled_code_from_the_per_user_cache(tmp_path, monkeypatch):
+    import prsa_ctrl.sim.integrators as S
+
+    monkeypatch.setenv("PRSA_CTRL_CACHE", str(tmp_path))
+    monkeypatch.setattr(S, "_COMPILED", {})
+    kw = dict(STEP, duration=0.01, fidelity="rigid")
+    plain = run(PLANT, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8), **kw)
+    jit = run(PLANT, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8, jit=True), **kw)
+    assert len(list((tmp_path / "jit").glob("rodas_chunk_*.so"))) == 1
+    # the same equations and step control; compiled arithmetic may round differently
+    np.testing.assert_allclose(jit.outputs, plain.outputs, rtol=1e-9, atol=1e-9)
+
+
+def test_ramped_setpoint_and_load_match_a_tight_cvodes_run():
+    # The ramps' slopes make the right-hand side depend on time (the step's dF/dt term).
+    from prsa_ctrl.sim.signals import PiecewiseLinear
+
+    kw = dict(setpoint=PiecewiseLinear([(0, W300), (0.01, W300), (0.03, 20.0)]),
+              load=PiecewiseLinear([(0, 500.0), (0.005, 500.0), (0.02, 1500.0)]), duration=0.04,
+              controller=PID(0.0849, 14.67), dt=1e-4, fidelity="compliant")
+    ref = run(PLANT, settings=SimSettings(rtol=1e-12, atol=1e-12), **kw).output("nut_speed")
+    w = run(PLANT, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8), **kw).output("nut_speed")
+    assert np.max(np.abs(w - ref)) < 1e-7  # measured 2.0e-8
+
+
+def test_a_solution_that_blows_up_ends_in_one_runtime_error_not_nan():
+    # dz/dtau = 10 z^2, z(0) = 1 reaches infinity at tau = 0.1: the steps shrink below 1e-13 of
+    # the segment or the state stops being finite, and the segment says so.
+    z, p, t = ca.SX.sym("z", 1), ca.SX.sym("p", 1), ca.SX.sym("t")
+    f = ca.Function("f", [z, p, t], [10.0 * z ** 2])
+    chunk = rodas_attempt(f, 1, 1, lu_kernels).mapaccum("c", CHUNK_ATTEMPTS, [0], [0])
+    seg = RodasSegment(chunk, 1, 10, 1e-8, 1e-8, 10**5)
+    with pytest.raises(RuntimeError, match="RODAS4: step size .* at 0.1 of it"):
+        seg(x0=[1.0], p=[0.0])
