@@ -126,7 +126,7 @@ class ExportTarget:
 def setpoint_weight(scene: Scene) -> float:
     """The 2-DOF setpoint weight b the design runs with (1 unless a duty cycle's setpoint
     profile sets ``[tuning] setpoint_weight``)."""
-    return float(scene.setpoint_weight) if scene.setpoint_profile is not None else 1.0
+    return scene.design_setpoint_weight
 
 
 def add_setpoint_weight(data: dict, scene: Scene) -> None:
