@@ -54,10 +54,14 @@ class StepRuns:
     name: ClassVar[str] = "load-step"
     scene: Any
 
+    #: The scene type of the kind (built by :func:`~prsa_ctrl.studies.scene.load_scene` or
+    #: ``scene_type(**fields)``).
+    scene_type: ClassVar[type] = LoadStepScene
+
     @classmethod
     def accepts(cls, scene: Any) -> bool:
-        """Whether a loaded scene is a problem of this kind."""
-        return isinstance(scene, LoadStepScene)
+        """Whether a loaded scene is a problem of this kind (an instance of its :attr:`scene_type`)."""
+        return isinstance(scene, cls.scene_type)
     #: The studies this kind takes beyond tuning (see :data:`STEP_STUDIES`).
     studies: ClassVar[frozenset] = STEP_STUDIES
     #: The figures of a report (:mod:`prsa_ctrl.plots.loop`): a kind's time responses.
@@ -192,9 +196,7 @@ class ProfileRuns(StepRuns):
     studies: ClassVar[frozenset] = frozenset()
     plot_panels: ClassVar[str] = "duty-cycle"
 
-    @classmethod
-    def accepts(cls, scene: Any) -> bool:
-        return isinstance(scene, DutyCycleScene)
+    scene_type: ClassVar[type] = DutyCycleScene
 
     @property
     def described(self) -> str:

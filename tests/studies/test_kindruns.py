@@ -84,13 +84,21 @@ def _tests_scene_type(path: Path) -> bool:
 
 
 def test_no_module_outside_the_registry_branches_on_the_duty_cycle():
-    """The speed-loop scene types are told apart by the registry alone (``kindruns``'
-    ``accepts``): ``is_profile`` is gone, and no other module asks a scene's type (issue 33)."""
-    from prsa_ctrl.studies.scene import Scene
+    """The speed-loop scene types are told apart by the registry alone (each kind's
+    ``scene_type``, its ``accepts``): ``is_profile`` is gone, and no module names a speed-loop
+    scene type in an ``isinstance`` (issue 33)."""
+    from prsa_ctrl.studies.dutyscene import DutyCycleScene
+    from prsa_ctrl.studies.movescene import MoveScene
+    from prsa_ctrl.studies.scene import LoadStepScene, Scene
+    from prsa_ctrl.studies.scenekinds import KINDS
 
     assert not hasattr(Scene, "is_profile") and not hasattr(load_scene("duty-ramp"), "is_profile")
     readers = {p.relative_to(PKG).as_posix() for p in PKG.rglob("*.py") if _tests_scene_type(p)}
-    assert readers == {"studies/kindruns.py"}
+    assert readers == set()
+    assert {k: v.scene_type for k, v in KINDS.items()} == {"load-step": LoadStepScene, "duty-cycle": DutyCycleScene,
+                                                            "move": MoveScene}
+    assert [k for k, v in KINDS.items() if v.accepts(load_scene("duty-ramp"))] == ["duty-cycle"]
+    assert [k for k, v in KINDS.items() if v.accepts(load_scene())] == ["load-step"]
 
 
 def test_the_duty_records_are_sampled_at_the_plant_period(paper_plant):
