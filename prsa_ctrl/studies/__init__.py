@@ -29,7 +29,6 @@ _EXPORTS = {
     "Landscape": "responses",
     "LoadStepRow": "paper",
     "LoadStepScene": "scene",
-    "LoopSpec": "sceneloops",
     "MAX_LOAD_LEVELS": "scenefile",
     "MAX_RECORD_SAMPLES": "scenefile",
     "MAX_SCENE_FILTERS": "scenefilters",
@@ -135,4 +134,17 @@ _EXPORTS = {
     "work_precision": "accuracy",
 }
 
-__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
+_lazy_getattr, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
+
+
+def __getattr__(name: str):
+    if name == "LoopSpec":  # deprecated (warns on every read; not in __all__)
+        import warnings
+
+        from .sceneloops import LoopSpec
+
+        warnings.warn("prsa_ctrl.studies.LoopSpec is deprecated: the tuning pipeline's internal spec (public functions "
+                      "take a Scene; the scene's kind resolves it: prsa_ctrl.studies.scenekinds)",
+                      DeprecationWarning, stacklevel=2)
+        return LoopSpec
+    return _lazy_getattr(name)

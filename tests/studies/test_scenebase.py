@@ -77,3 +77,4 @@ def test_robust_is_deprecated_and_still_the_sections_dict():
     with pytest.warns(DeprecationWarning, match="Scene.robust is deprecated"):
         old = s.robust
     assert old == s.sections.as_dict() and old["spec"]["peak_drop_rad_s"] == 10.0
+
