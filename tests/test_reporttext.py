@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
+import prsa_ctrl.cli as cli
 from prsa_ctrl import reporttext
 from prsa_ctrl.cli import report as cli_report
 from prsa_ctrl.drive.pid import PID
@@ -44,8 +47,11 @@ def test_the_robust_report_reads_as_written():
 
 def test_the_old_names_are_the_one_home_s():
     assert scenereport.format_robust is reporttext.format_robust
-    assert cli_report.format_robust is reporttext.format_robust
-    assert scenereport.table is cli_report.table is reporttext.table
+    assert cli.format_robust is reporttext.format_robust
+    assert scenereport.table is cli.table is reporttext.table
+    with pytest.warns(DeprecationWarning, match="prsa_ctrl.cli.report is deprecated; import table from "
+                                                "prsa_ctrl.studies.scenereport"):
+        assert cli_report.table is reporttext.table
     assert robust.format_yield_table is reporttext.format_yield_table
 
 

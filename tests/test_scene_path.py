@@ -18,7 +18,7 @@ from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.studies import autotune
 from prsa_ctrl.studies.autotune import Design, checked, checked_all, predict, predict_all, verify, verify_all
 from prsa_ctrl.studies.movescene import MoveScene
-from prsa_ctrl.studies.scene import Scene, load_scene
+from prsa_ctrl.studies.scene import DutyCycleScene, Scene, load_scene
 from prsa_ctrl.studies.sceneloops import LoopSpec, actuator_loops, duty_record, linear_fidelity, loop_spec
 from prsa_ctrl.studies.scenerobust import scenario_loops, scenarios
 
@@ -227,7 +227,7 @@ def test_the_spec_reads_the_scene_once_and_as_the_scene_says(paper_plant):
             assert getattr(spec, f.name) == (tuple(want) if isinstance(want, list) else want), f.name
         assert spec.linear_fidelity == linear_fidelity(scene)
         assert spec.linear_fidelity == ("compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity)
-        if scene.is_profile:
+        if isinstance(scene, DutyCycleScene):
             for case, rec in zip(spec.cases, spec.records):
                 ref = duty_record(paper_plant, scene, case)
                 assert rec.keys() == ref.keys()

@@ -90,7 +90,7 @@ def test_error_lines_escape_a_file_name_and_a_value(tmp_path, capsys):
 
 
 def test_report_header_escapes_plant_and_scene_names(tmp_path):
-    from prsa_ctrl.cli.report import scene_header
+    from prsa_ctrl.studies.scenereport import scene_header
     from prsa_ctrl.studies.scene import load_scene
 
     f = tmp_path / "s.toml"

@@ -51,7 +51,7 @@ from ..textsafe import MESSAGE_CHARS_MAX, printable
 __all__ = ["report_failure", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
            "EXIT_BROKEN_PIPE", "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
            "Run", "guard", "native_output", "invoke", "invoke_inner", "describe_failure", "raised_in", "one_line",
-           "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic", "flag_value",
+           "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic",
            "KeepTyped", "typed_text", "echo"]
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED = 0, 2, 3, 130
@@ -447,19 +447,6 @@ def describe_failure(exc: BaseException, what: str) -> tuple[int, str]:
     return EXIT_NUMERICAL, f"numerical failure: {what} failed ({type(exc).__name__}); rerun with --verbose for details"
 
 
-def flag_value(argv, flag: str) -> str | None:
-    """Deprecated (argv read by hand; the commands read it once, through argparse, and a flag
-    declared with ``action=KeepTyped`` keeps its text: :func:`typed_text`). The value of ``flag``
-    as typed in ``argv`` (``--flag V`` or ``--flag=V``, the last one), or None."""
-    found = None
-    for i, a in enumerate(argv):
-        if a == flag and i + 1 < len(argv):
-            found = argv[i + 1]
-        elif a.startswith(flag + "="):
-            found = a[len(flag) + 1:]
-    return found
-
-
 class KeepTyped(argparse.Action):
     """Store a flag's value and keep the text as the user typed it (for messages that quote it
     beside a converted value): ``p.add_argument("--offset", action=KeepTyped, type=conv)``;
@@ -493,10 +480,12 @@ def one_line(exc: BaseException) -> str:
 
 
 def status_says_interrupted(obj: Any) -> bool:
-    """Kept for compatibility; always False. A Ctrl-C that a solver turned into a status
-    (IPOPT's ``User_Requested_Stop``) is known by type, not read back from a result: the
-    command's signal handler records it and :meth:`Run.check` raises ``KeyboardInterrupt``
-    after the solver returns (was: a walk of the result's dicts to depth 6 for the word)."""
+    """Deprecated (warns); always False. A Ctrl-C that a solver turned into a status (IPOPT's
+    ``User_Requested_Stop``) is known by type, not read back from a result: the command's
+    signal handler records it and :meth:`Run.check` raises ``KeyboardInterrupt`` after the
+    solver returns (was: a walk of the result's dicts to depth 6 for the word)."""
+    warnings.warn("status_says_interrupted is deprecated and always False: an interruption is known by type "
+                  "(Run.check raises KeyboardInterrupt)", DeprecationWarning, stacklevel=2)
     return False
 
 

@@ -20,7 +20,7 @@ from ..studies.scene import choose_fidelity
 from .common import (EXIT_OK, Parser, Run, UsageError, commit, echo, invoke, native_output, number, path_text, progress,
                      report_failure, show_notes, staged)
 from .inputs import VALUE_FLAGS, input_files, load_and_override, scene_flags
-from .report import fmt_margin, scene_header
+from ..studies.scenereport import fmt_margin, scene_header
 
 #: The figures module and pyplot (matplotlib) are imported when a figure is drawn.
 loop_plots = module("prsa_ctrl.plots.loop")

@@ -15,6 +15,7 @@ _EXPORTS = {
     "CONTACT_RUN_S": "responses",
     "ContactRun": "responses",
     "DEFAULT_SCENE": "scenefile",
+    "DutyCycleScene": "dutyscene",
     "Design": "autotune",
     "DesignToSpec": "designspec",
     "DesignYield": "montecarlo",
@@ -22,12 +23,12 @@ _EXPORTS = {
     "FILTER_KEYS": "scenefilters",
     "FILTER_PATHS": "scenefilters",
     "FigureData": "responses",
-    "GOALS": "scene",
+    "GOALS": "dutyscene",
     "GainRun": "paper",
     "LOAD_CHANGE_TIME_RANGE_S": "scenefile",
     "Landscape": "responses",
     "LoadStepRow": "paper",
-    "LoopSpec": "sceneloops",
+    "LoadStepScene": "scene",
     "MAX_LOAD_LEVELS": "scenefile",
     "MAX_RECORD_SAMPLES": "scenefile",
     "MAX_SCENE_FILTERS": "scenefilters",
@@ -37,7 +38,7 @@ _EXPORTS = {
     "MonteCarloReport": "montecarlo",
     "MoveMetrics": "move",
     "MoveScene": "movescene",
-    "OUTPUTS": "scene",
+    "OUTPUTS": "scenebase",
     "PAPER_TABLE2": "paper",
     "PAPER_TABLE3": "paper",
     "PAPER_TABLE4": "paper",
@@ -82,7 +83,7 @@ _EXPORTS = {
     "format_rows": "paper",
     "gain_study": "paper",
     "health_flags": "autotune",
-    "holding_capacity_n": "scene",
+    "holding_capacity_n": "scenebase",
     "hunting": "move",
     "integral_warning": "autotune",
     "is_move_scene": "scenefile",
@@ -104,9 +105,9 @@ _EXPORTS = {
     "predict": "autotune",
     "predict_all": "autotune",
     "prediction_warnings": "autotune",
-    "profile_rows": "scene",
+    "profile_rows": "dutyscene",
     "read_scene_doc": "scenefile",
-    "read_trace_csv": "scene",
+    "read_trace_csv": "dutyscene",
     "replay_sample": "montecarlo",
     "report_responses": "responses",
     "require_speed_scene": "scene",
@@ -133,4 +134,17 @@ _EXPORTS = {
     "work_precision": "accuracy",
 }
 
-__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
+_lazy_getattr, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
+
+
+def __getattr__(name: str):
+    if name == "LoopSpec":  # deprecated (warns on every read; not in __all__)
+        import warnings
+
+        from .sceneloops import LoopSpec
+
+        warnings.warn("prsa_ctrl.studies.LoopSpec is deprecated: the tuning pipeline's internal spec (public functions "
+                      "take a Scene; the scene's kind resolves it: prsa_ctrl.studies.scenekinds)",
+                      DeprecationWarning, stacklevel=2)
+        return LoopSpec
+    return _lazy_getattr(name)

@@ -23,7 +23,8 @@ import numpy as np
 from ..options import rad_s_to_rpm
 from ..plant.plantfile import Plant
 from ..sim.signals import PiecewiseLinear, normalise_profile
-from .scene import Scene
+from .dutyscene import DutyCycleScene
+from .scene import LoadStepScene, Scene
 
 if TYPE_CHECKING:
     from ..drive.pid import PID  # CasADi: an annotation only (a bad flag is refused before CasADi loads)
@@ -53,10 +54,14 @@ class StepRuns:
     name: ClassVar[str] = "load-step"
     scene: Any
 
+    #: The scene type of the kind (built by :func:`~prsa_ctrl.studies.scene.load_scene` or
+    #: ``scene_type(**fields)``).
+    scene_type: ClassVar[type] = LoadStepScene
+
     @classmethod
     def accepts(cls, scene: Any) -> bool:
-        """Whether a loaded scene is a problem of this kind."""
-        return isinstance(scene, Scene) and not scene.is_profile
+        """Whether a loaded scene is a problem of this kind (an instance of its :attr:`scene_type`)."""
+        return isinstance(scene, cls.scene_type)
     #: The studies this kind takes beyond tuning (see :data:`STEP_STUDIES`).
     studies: ClassVar[frozenset] = STEP_STUDIES
     #: The figures of a report (:mod:`prsa_ctrl.plots.loop`): a kind's time responses.
@@ -74,6 +79,12 @@ class StepRuns:
     def records(self, plant) -> tuple:
         """The sampled records the runs read besides the spec's numbers (load steps: none)."""
         return ()
+
+    def tuning_fields(self) -> dict:
+        """The duty-cycle numbers of the :class:`~prsa_ctrl.studies.sceneloops.LoopSpec`: a load
+        step tunes load rejection with the setpoint weight b = 1 (``goal`` and ``setpoint_share``
+        unread)."""
+        return {"setpoint_weight": 1.0, "goal": "auto", "setpoint_share": 0.5}
 
     def loop_models(self, plant, spec, estimator: str) -> list:
         """One loop model per final load, linearised at the mid load of the step
@@ -185,9 +196,7 @@ class ProfileRuns(StepRuns):
     studies: ClassVar[frozenset] = frozenset()
     plot_panels: ClassVar[str] = "duty-cycle"
 
-    @classmethod
-    def accepts(cls, scene: Any) -> bool:
-        return isinstance(scene, Scene) and scene.is_profile
+    scene_type: ClassVar[type] = DutyCycleScene
 
     @property
     def described(self) -> str:
@@ -196,6 +205,11 @@ class ProfileRuns(StepRuns):
     def records(self, plant) -> tuple:
         """:func:`duty_record` of every case."""
         return tuple(duty_record(plant, self.scene, case) for case in self.scene.cases)
+
+    def tuning_fields(self) -> dict:
+        """The scene's goal, setpoint weight b and setpoint share."""
+        sc = self.scene
+        return {"setpoint_weight": sc.setpoint_weight, "goal": sc.goal, "setpoint_share": sc.setpoint_share}
 
     def loop_models(self, plant, spec, estimator: str) -> list:
         """One sampled loop model per record, linearised at the middle of its range

@@ -126,7 +126,7 @@ class ExportTarget:
 def setpoint_weight(scene: Scene) -> float:
     """The 2-DOF setpoint weight b the design runs with (1 unless a duty cycle's setpoint
     profile sets ``[tuning] setpoint_weight``)."""
-    return float(scene.setpoint_weight) if scene.setpoint_profile is not None else 1.0
+    return scene.design_setpoint_weight
 
 
 def add_setpoint_weight(data: dict, scene: Scene) -> None:
@@ -689,9 +689,13 @@ class Move:
         """Whether the problem takes a study (a move takes none of the speed loop's)."""
         return study in self.studies
 
+    #: The scene type of the kind.
+    scene_type: ClassVar[type] = MoveScene
+
     @classmethod
     def accepts(cls, scene: Any) -> bool:
-        return isinstance(scene, MoveScene)
+        """Whether a loaded scene is a move (an instance of :attr:`scene_type`)."""
+        return isinstance(scene, cls.scene_type)
 
     def __post_init__(self) -> None:
         if not type(self).accepts(self.scene):
@@ -740,7 +744,8 @@ class Move:
                               friction_feedforward_effect(designs[1], plant, self.scene))
 
 
-#: The registry: kind name -> problem type (each with ``accepts(scene)``, ``resolve(plant)``, ``tune``).
+#: The registry: kind name -> problem type (each with its ``scene_type``, ``accepts(scene)``, ``resolve(plant)``,
+#: ``tune``).
 KINDS: Mapping[str, type] = {"load-step": LoadStep, "duty-cycle": DutyCycle, "move": Move}
 
 

@@ -214,8 +214,10 @@ def test_session_takes_only_builtin_names_or_its_own_uploads(tmp_path):
 @pytest.mark.parametrize("trace", ["/etc/passwd", "../../../../etc/passwd", "trace.csv"])
 @pytest.mark.parametrize("key", ["load_trace_csv", "setpoint_trace_csv"])
 def test_uploaded_scene_naming_a_trace_is_refused_before_any_read(tmp_path, monkeypatch, trace, key):
-    import prsa_ctrl.studies.scene as scene_mod
+    import prsa_ctrl.studies.dutyscene as scene_mod  # the CSV reader of the duty-cycle type
+    from prsa_ctrl.app.session import builtin_names
 
+    builtin_names()  # the page's built-in names (cached) read the built-in duty-trace.csv: before the reader is patched
     # a valid trace where a relative name would resolve: still refused, and never opened
     (tmp_path / "trace.csv").write_text("time_s,axial_load_n\n0,500\n1,500\n")
     monkeypatch.chdir(tmp_path)

@@ -189,7 +189,6 @@ def test_memory_input_and_unknown_errors_by_type():
     assert line == "numerical failure: x failed (KeyError); rerun with --verbose for details"
     # the words alone classify nothing: an unknown error saying "overflow" is still unknown
     assert common.describe_failure(KeyError("overflow"), "x")[1].endswith("failed (KeyError); rerun with --verbose for details")
-    assert common.status_says_interrupted({"status": "User_Requested_Stop"}) is False  # no dict walk
 
 
 def test_a_progress_line_during_captured_solver_output_reaches_the_terminal_once():
@@ -244,3 +243,13 @@ def test_keep_typed_errors_read_as_argparse_own(argv, message):
         with pytest.raises(common.UsageError) as exc:
             p.parse_args(argv)
         assert str(exc.value) == message
+
+
+def test_status_says_interrupted_is_deprecated_and_walks_no_result():
+    with pytest.warns(DeprecationWarning, match="status_says_interrupted is deprecated"):
+        assert common.status_says_interrupted({"status": "User_Requested_Stop"}) is False  # no dict walk
+
+
+def test_flag_value_is_gone():
+    """argv is read once, through argparse (``KeepTyped``): the hand reader of argv went."""
+    assert not hasattr(common, "flag_value")

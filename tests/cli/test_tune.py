@@ -26,7 +26,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from prsa_ctrl import PID, SceneError, SimulationError, load_plant, load_scene
-from prsa_ctrl.cli.report import format_friction_ff
+from prsa_ctrl.studies.scenereport import format_friction_ff
 from prsa_ctrl.cli.tune import main, main as tune_main, plot_main
 from prsa_ctrl.drive.friction import FrictionFeedforward
 from prsa_ctrl.drive.measurement import PositionLoop
@@ -392,7 +392,7 @@ def test_kalman_filter_on_a_duty_cycle_names_the_real_reason(capsys, tmp_path, s
 
 
 def test_percent_differences_never_print_minus_zero():
-    from prsa_ctrl.cli.report import diff_text as _diff_text, pct_text as _pct_text
+    from prsa_ctrl.studies.scenereport import diff_text as _diff_text, pct_text as _pct_text
 
     assert _diff_text(0.99999, 1.0) == "0.0 %" and _diff_text(1.00001, 1.0) == "0.0 %"
     assert _pct_text(-0.04) == "0.0 %" and _pct_text(-0.0) == "0.0 %" and _pct_text(-0.06) == "-0.1 %" and _pct_text(2.0) == "+2.0 %"
@@ -777,7 +777,7 @@ def test_encoder_in_bits_from_the_console_entry(tmp_path):
 # --- section 4: the report ------------------------------------------------------------------------
 
 def test_differences_are_percentages_only_above_the_resolution():
-    from prsa_ctrl.cli.report import diff_text as _diff_text
+    from prsa_ctrl.studies.scenereport import diff_text as _diff_text
 
     assert _diff_text(1.4e-14, 1.4e-4, res=0.0365) == "-0.00014 abs."
     # issue 24: even with no resolution given, a value at numerical zero against a real one is no percentage
@@ -790,7 +790,7 @@ def test_differences_are_percentages_only_above_the_resolution():
 def test_table_and_flag_use_one_definition_of_the_difference(paper_report):
     import dataclasses
 
-    from prsa_ctrl.cli.report import diff_text as _diff_text
+    from prsa_ctrl.studies.scenereport import diff_text as _diff_text
     from prsa_ctrl.studies.autotune import health_flags
 
     rep = paper_report
@@ -801,7 +801,7 @@ def test_table_and_flag_use_one_definition_of_the_difference(paper_report):
 
 
 def test_a_baseline_not_beaten_says_why_in_the_table():
-    from prsa_ctrl.cli.report import beaten_text as _beaten_text
+    from prsa_ctrl.studies.scenereport import beaten_text as _beaten_text
 
     base = {"beaten": False, "tuned_flags": [], "tuned_ms": 1.4, "baseline_ms": 1.5,
             "tuned_objective_verified": 0.01, "baseline_objective_verified": 0.02}

@@ -52,7 +52,7 @@ def test_robust_scene_adds_its_uncertainty_to_the_plants():
     j = p.values["nut.inertia_kg_m2"]
     assert e["nut.inertia_kg_m2"].low == pytest.approx(0.5 * j) and e["nut.inertia_kg_m2"].high == pytest.approx(1.5 * j)
     assert (e["drive.current_loop_bandwidth_hz"].low, e["drive.current_loop_bandwidth_hz"].high) == (500.0, 1500.0)
-    assert s.robust["spec"]["peak_drop_rad_s"] > 0 and s.robust["spec"]["no_saturation"] is True
+    assert s.sections.as_dict()["spec"]["peak_drop_rad_s"] > 0 and s.sections.as_dict()["spec"]["no_saturation"] is True
 
 
 @given(seed=st.integers(0, 2**32), index=st.integers(0, 10**6))

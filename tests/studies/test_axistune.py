@@ -275,7 +275,7 @@ def test_emps_retuned_at_equal_robustness():
 def test_the_toolkits_speed_loop_tuner_takes_a_linear_axis():
     """The speed-loop autotuner on a linear axis in load coordinates (m/s, N): a baseline rule far
     beyond the tuner's Ms range (a heavy axis) no longer stops it; the report names the coordinates."""
-    from prsa_ctrl.cli.report import format_report
+    from prsa_ctrl.studies.scenereport import format_report
     from prsa_ctrl.studies.autotune import tune_actuator
     from prsa_ctrl.studies.scene import load_scene
 
@@ -319,7 +319,7 @@ weight_holding = 1.0
 def test_the_cascade_tuner_takes_a_linear_axis(tmp_path):
     """The toolkit's cascade (speed PI + position P with feed-forward, the simulator's sampled law)
     tuned and verified on a linear axis in load coordinates; the report names the coordinates."""
-    from prsa_ctrl.cli.report import format_move_report
+    from prsa_ctrl.studies.scenereport import format_move_report
     from prsa_ctrl.studies.move import tune_move
     from prsa_ctrl.studies.movescene import load_move_scene
 

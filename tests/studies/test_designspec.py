@@ -40,7 +40,7 @@ def test_linear_yield_grid_agrees_with_an_independent_linear_check(roller16k):
     from prsa_ctrl.studies.scenerobust import operating_points
 
     plant, scene = roller16k
-    spec = dict(scene.robust["spec"])
+    spec = dict(scene.sections.as_dict()["spec"])
     n, seed = 6, 5
     g = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, seed=seed, n=n, size=5, picks=3)
     assert g["points"] == 25 and g["samples"] == n and 1 <= len(g["designs"]) <= 3
@@ -72,7 +72,7 @@ def test_linear_yield_grid_is_the_same_on_two_processes(roller16k):
     from prsa_ctrl.studies.paper import default_pid
 
     plant, scene = roller16k
-    spec = dict(scene.robust["spec"])
+    spec = dict(scene.sections.as_dict()["spec"])
     kw = dict(seed=7, n=16, size=4, picks=3)
     one = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, workers=1, **kw)
     two = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, workers=2, **kw)
@@ -149,7 +149,7 @@ def _acceptance(plant, scene, *, expect_95: bool):
         for row in rows:
             assert fy.yield_ >= row["yield"] - half(row["passed"], row["samples"]) - half(fy.passed, fy.n) - 1e-12, row
     ref = run_monte_carlo(plant, scene, {"x": r.pid}, 200, seed=1, workers=2, quiet=True,
-                          spec=dict(scene.robust["spec"])).designs[0]
+                          spec=dict(scene.sections.as_dict()["spec"])).designs[0]
     assert (ref.passed, ref.n) == (fy.passed, fy.n)
     text = r.format("iae")
     assert f"* {r.chosen}" in text and f"({fy.passed}/200)" in text

@@ -71,16 +71,34 @@ def test_headers_say_each_kind():
     assert ": duty cycle (" in speed_kind(load_scene("duty-ramp")).header("scene x", "Ms <= 1.4")
 
 
-def _reads_is_profile(path: Path) -> bool:
-    return any(isinstance(n, ast.Attribute) and n.attr == "is_profile"
-               for n in ast.walk(ast.parse(path.read_text(encoding="utf-8"))))
+def _tests_scene_type(path: Path) -> bool:
+    """Whether a module reads ``is_profile`` or asks ``isinstance(x, LoadStepScene/DutyCycleScene)``."""
+    for n in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(n, ast.Attribute) and n.attr == "is_profile":
+            return True
+        if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "isinstance" and len(n.args) == 2:
+            if {getattr(x, "id", getattr(x, "attr", None)) for x in ast.walk(n.args[1])} & {"LoadStepScene",
+                                                                                           "DutyCycleScene"}:
+                return True
+    return False
 
 
 def test_no_module_outside_the_registry_branches_on_the_duty_cycle():
-    """``Scene.is_profile`` is read by the registry (``kindruns``' ``accepts``) and by the
-    scene's own validation only (issue 33)."""
-    readers = {p.relative_to(PKG).as_posix() for p in PKG.rglob("*.py") if _reads_is_profile(p)}
-    assert readers == {"studies/kindruns.py", "studies/scene.py"}
+    """The speed-loop scene types are told apart by the registry alone (each kind's
+    ``scene_type``, its ``accepts``): ``is_profile`` is gone, and no module names a speed-loop
+    scene type in an ``isinstance`` (issue 33)."""
+    from prsa_ctrl.studies.dutyscene import DutyCycleScene
+    from prsa_ctrl.studies.movescene import MoveScene
+    from prsa_ctrl.studies.scene import LoadStepScene, Scene
+    from prsa_ctrl.studies.scenekinds import KINDS
+
+    assert not hasattr(Scene, "is_profile") and not hasattr(load_scene("duty-ramp"), "is_profile")
+    readers = {p.relative_to(PKG).as_posix() for p in PKG.rglob("*.py") if _tests_scene_type(p)}
+    assert readers == set()
+    assert {k: v.scene_type for k, v in KINDS.items()} == {"load-step": LoadStepScene, "duty-cycle": DutyCycleScene,
+                                                            "move": MoveScene}
+    assert [k for k, v in KINDS.items() if v.accepts(load_scene("duty-ramp"))] == ["duty-cycle"]
+    assert [k for k, v in KINDS.items() if v.accepts(load_scene())] == ["load-step"]
 
 
 def test_the_duty_records_are_sampled_at_the_plant_period(paper_plant):

@@ -72,7 +72,7 @@ def test_sample_depends_only_on_seed_and_index(setup):
 
 def test_report_yield_is_recomputed_from_the_samples(serial, setup):
     p, s = setup
-    spec = s.robust["spec"]
+    spec = s.sections.as_dict()["spec"]
     assert serial.complete and serial.n_done == N
     m = serial.samples["metrics"]
     assert m.shape == (N, 2, len(mc.METRICS))

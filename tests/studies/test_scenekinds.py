@@ -9,7 +9,7 @@ import pytest
 from prsa_ctrl.errors import SceneError, UsageError
 from prsa_ctrl.plant.plantfile import load_plant
 from prsa_ctrl.studies.movescene import MoveScene
-from prsa_ctrl.studies.scene import Scene, builtin_scenes, load_scene
+from prsa_ctrl.studies.scene import DutyCycleScene, Scene, builtin_scenes, load_scene
 from prsa_ctrl.studies.scenekinds import (KINDS, MOVE_FLAGS, DutyCycle, LoadStep, Move, MoveReport, SpeedReport,
                                           TuneOptions, file_kind, kind_of, problem)
 
@@ -178,7 +178,7 @@ def test_profile_rows_ramp_and_step_flag():
 
 def test_duty_ramp_scene_reads_as_its_file_says():
     s = load_scene("duty-ramp")
-    assert s.is_profile and s.goal == "load" and s.cases == ["load profile"]
+    assert isinstance(s, DutyCycleScene) and s.goal == "load" and s.cases == ["load profile"]
     assert s.initial_load == 500.0 and s.final_loads == () and s.step_time == 0.02
     assert s.load_profile[3:6] == ((0.1, 2000.0), (0.1, 1000.0), (0.13, 1000.0))
     trace = load_scene("duty-trace")
@@ -460,7 +460,7 @@ def test_csv_trace_values_named_by_file_line_and_column(tmp_path, paper_plant):
 
 
 def test_csv_trace_size_refused_before_reading(tmp_path, monkeypatch):
-    import prsa_ctrl.studies.scene as scene_mod
+    import prsa_ctrl.studies.dutyscene as scene_mod  # the limits live with the duty-cycle type
 
     rows = "".join(f"{i * 1e-3:.3f},500\n" for i in range(60))
     path = _trace_scene(tmp_path, "time_s,axial_load_n\n" + rows)

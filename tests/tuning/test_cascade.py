@@ -472,7 +472,7 @@ def test_cli_move_scene_plots_quiet_json_export(tmp_path, capsys):
 
 
 def test_text_report_names_every_bound_and_the_position_integral(plant, designs):
-    from prsa_ctrl.cli.report import format_move_report
+    from prsa_ctrl.studies.scenereport import format_move_report
 
     sc, cm, seq, joint = designs
     pi = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0))
@@ -848,7 +848,7 @@ def test_kv_max_units_and_the_python_api(plant, scene):
 
 
 def test_report_names_the_rate_the_ceiling_and_the_filters(plant, designs):
-    from prsa_ctrl.cli.report import format_move_report
+    from prsa_ctrl.studies.scenereport import format_move_report
 
     sc, cm, seq, joint = designs
     f, labels = _two_filters()

@@ -42,7 +42,7 @@ def test_scenario_bound_is_checked_before_any_model_is_built():
 
 def test_operating_range_crosses_setpoints_and_loads():
     s = load_scene("robust-load-step")
-    s2 = s.replace(sections={**s.robust, "robust": {**s.robust["robust"], "setpoints_rpm": [150.0, 300.0],
+    s2 = s.replace(sections={**s.sections.as_dict(), "robust": {**s.sections.as_dict()["robust"], "setpoints_rpm": [150.0, 300.0],
                                                    "final_loads_n": [1000.0, 2000.0]}})
     ops = operating_points(s2)
     assert len(ops) == 4 and ops[0] == (pytest.approx(150 * math.pi / 30), 1000.0)
