@@ -112,8 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fidelity", default=None, choices=("rigid", "compliant"), help="model fidelity (default rigid; "
                    "--frf without DATA.csv: not given, the structure the response needs, rigid or two-mass (compliant); "
                    "rigid is refused, with the reason, for a response that shows an axial mode)")
-    p.add_argument("--segment", type=_positive("--segment"), default=0.1, metavar="S",
-                   help="multiple-shooting segment length, s (default 0.1)")
+    p.add_argument("--segment", type=_positive("--segment"), default=None, metavar="S",
+                   help="multiple-shooting segment length, s (default 0.1; 0.05 with --fidelity compliant)")
     p.add_argument("--delay-samples", type=int, default=None, metavar="N", help="samples between a logged command and "
                    "the sample the current loop receives it from (default: found by the fit from time-domain records; "
                    "FRF only: the base plant's drive.command_delay_samples, plus 1 with --command-logged computed)")

@@ -49,7 +49,7 @@ from scipy.sparse.linalg import splu
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
-from .compliant import (COMPLIANT_F_DROP, COMPLIANT_G_MAX, COMPLIANT_RELAXED_STEPS, COMPLIANT_X0_RTOL,
+from .compliant import (COMPLIANT_F_DROP, COMPLIANT_SEGMENT_S, COMPLIANT_G_MAX, COMPLIANT_RELAXED_STEPS, COMPLIANT_X0_RTOL,
                         compliant_reference, compliant_scales, seed_from_frf)
 from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
@@ -63,13 +63,15 @@ from .friction_map import STRIBECK_KEYS, stribeck_rounds
 from .frfplant import with_held
 from .heldmass import held_mass_spread
 
-__all__ = ["fit_plant", "fit_percent", "search_segment_s", "SEARCH_SEGMENT_S", "MAX_INTERVALS", "STALL_ITERATIONS", "STEP_SE_FRACTION", "MIN_SEGMENT"]
+__all__ = ["fit_plant", "fit_percent", "SEGMENT_S", "search_segment_s", "SEARCH_SEGMENT_S", "MAX_INTERVALS", "STALL_ITERATIONS", "STEP_SE_FRACTION", "MIN_SEGMENT"]
 
 # 3-stage Radau IIA (order 5, :func:`prsa_ctrl.sim.integrators.radau_tableau`): stage times and
 # coefficients of one collocation step; the last stage is the step end.
 _A3, _C3 = radau_tableau(3)
 _RADAU_A = tuple(tuple(row) for row in _A3.tolist())
 _RADAU_C = tuple(_C3.tolist())
+#: Default multiple-shooting segment of a rigid fit, s (a compliant one's: :data:`~prsa_ctrl.identification.compliant.COMPLIANT_SEGMENT_S`).
+SEGMENT_S = 0.1
 #: Budget of one fit: total sample intervals of all records.
 MAX_INTERVALS = 200_000
 #: A Gauss-Newton attempt whose constraint residual fell by less than 10 % over this many
@@ -91,7 +93,7 @@ def fit_plant(
     keys: Sequence[str] | None = None,
     fidelity: str = "rigid",
     validate: Sequence[Record] = (),
-    segment_s: float = 0.1,
+    segment_s: float | None = None,
     delay_samples: int | str | None = None,
     command_logged: str = DEFAULT_CONVENTION,
     max_delay_samples: int = 4,
@@ -147,8 +149,10 @@ def fit_plant(
         Model fidelity.
     validate : sequence of Record
         Records not fitted; their fit % is reported (only the segments' initial states are fitted).
-    segment_s : float, s
-        Length of a multiple-shooting segment.
+    segment_s : float, s, optional
+        Length of a multiple-shooting segment; default :data:`SEGMENT_S` (0.1 s), for
+        ``fidelity="compliant"`` :data:`~prsa_ctrl.identification.compliant.COMPLIANT_SEGMENT_S`
+        (0.05 s: the compliant fit's equations are less linear over a segment).
     substeps : int
         Radau IIA steps per sample interval (more resolve fast friction transitions at speed
         reversals better; cost grows in proportion).
@@ -218,6 +222,8 @@ def fit_plant(
         The solver did not converge (status and remedy in the message).
     """
     plant = load_plant() if plant is None else plant
+    if segment_s is None:
+        segment_s = COMPLIANT_SEGMENT_S if fidelity == "compliant" else SEGMENT_S
     keys = None if keys is None else tuple(keys)
     if keys is None or keys:  # the mechanism's keys before the data checks (no keys: refused below)
         check_keys(default_keys(plant) if keys is None else keys, fidelity, plant)

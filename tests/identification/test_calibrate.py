@@ -30,3 +30,26 @@ def test_a_log_named_with_line_feeds_cannot_forge_a_report_line():
         "  verdict: NOT validated: log.csv\\n  verdict: the plant explains the data\\n\\x1b[31m is not explained"]
     assert "fit 12.00 % on log.csv\\n  verdict: the plant explains the data\\n\\x1b[31m" in lines
     assert all("\n" not in x for x in validation_lines(_validation(FORGED, passes=True)))
+
+
+def test_the_axial_mode_a_compliant_fit_started_from_is_written():
+    """The compliant time-domain fit starts from the two-mass fit of a measured response
+    (compliant.seed_from_frf) and fits and validates that plant; the file wrote only the fitted
+    keys, so it kept the datasheet's mass, stiffness and damping, not the plant validated (foreign
+    feed axis: 700 N/um and damping 0.03 written, 694.5 N/um and 0.0388 fitted and validated)."""
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.identification.calibrate import written_keys
+    from prsa_ctrl.identification.compliant import SEED_KEYS
+
+    base = load_plant("ballscrew-32x10")
+    seeded = base.with_params({"axis.moving_mass_kg": 0.9 * base.values["axis.moving_mass_kg"],
+                               "axis.nut_stiffness_n_per_um": 1.1 * base.values["axis.nut_stiffness_n_per_um"]},
+                              name=base.name)
+    fitted = seeded.with_params({"axis.motor_inertia_kg_m2": 1.05 * base.values["axis.motor_inertia_kg_m2"]}, name=base.name)
+    keys, _ = written_keys(base, SimpleNamespace(plant_keys=("axis.motor_inertia_kg_m2",), plant=fitted))
+    assert keys[0] == "axis.motor_inertia_kg_m2"
+    assert {"axis.moving_mass_kg", "axis.nut_stiffness_n_per_um"} <= set(keys)
+    assert "axis.axial_damping_ratio" not in keys  # not changed: the base's stays
+    unseeded = base.with_params({"axis.motor_inertia_kg_m2": 1.05 * base.values["axis.motor_inertia_kg_m2"]}, name=base.name)
+    keys, _ = written_keys(base, SimpleNamespace(plant_keys=("axis.motor_inertia_kg_m2",), plant=unseeded))
+    assert not set(SEED_KEYS) & set(keys)

@@ -152,3 +152,26 @@ def test_a_stall_at_a_first_order_point_converges_and_one_elsewhere_fails(sim, m
     start = truth.with_params({keys[0]: 1.25 * truth.values[keys[0]]})
     with pytest.raises(td.FitError, match=r"stopped 'maximum iterations' where the step still asked for is .* standard errors"):
         td.fit_plant([rec], start, keys=keys, delay_samples=0, validation=False, max_iter=1)
+
+
+@pytest.mark.parametrize("fidelity, expected", [("rigid", td.SEGMENT_S), ("compliant", 0.05)])
+def test_the_default_segment_depends_on_the_fidelity(sim, monkeypatch, fidelity, expected):
+    """Without segment_s the fit's segments are 0.1 s, a compliant fit's 0.05 s
+    (prsa_ctrl.identification.compliant.COMPLIANT_SEGMENT_S: the compliant equations are less
+    linear over a segment); a given length is kept."""
+    from prsa_ctrl.identification.compliant import COMPLIANT_SEGMENT_S
+
+    rec, truth = sim
+    seen = []
+
+    def fake(records, plant, *, segment_s, **kw):
+        seen.append(segment_s)
+        raise td.FitError("stop")
+
+    monkeypatch.setattr(td, "_fit_records", fake)
+    with pytest.raises(td.FitError):
+        td.fit_plant([rec], truth, fidelity=fidelity, delay_samples=0, validation=False)
+    assert seen == [expected] and COMPLIANT_SEGMENT_S == 0.05 and td.SEGMENT_S == 0.1
+    with pytest.raises(td.FitError):
+        td.fit_plant([rec], truth, fidelity=fidelity, delay_samples=0, validation=False, segment_s=0.02)
+    assert seen[-1] == 0.02
