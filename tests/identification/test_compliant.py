@@ -124,11 +124,11 @@ def test_compliant_fit_of_the_foreign_feed_axis_logs_meets_the_acceptance_or_say
 def test_a_compliant_fit_with_process_noise_converges_on_its_default_segments():
     """COMPLIANT_SEGMENT_S: a two-mass log whose axial force carries white noise the log does not
     record (30 N per sample on the carriage: process noise, which an output-error model does not
-    have) -- on 0.1 s segments the compliant fit stalls (the collocation defects stand in for the
-    noise and the Gauss-Newton steps cycle), on the default 0.05 s it converges at a first-order
-    point with every true value inside its 95 % interval."""
+    have) -- on the default 0.05 s segments the compliant fit converges at a first-order point with
+    every true value inside its 95 % interval. (On 0.1 s segments it stalled when measured, the
+    collocation defects standing in for the noise; that is the optimiser's path on one processor,
+    so it is not asserted.)"""
     from prsa_ctrl.drive.pid import PID
-    from prsa_ctrl.errors import FitError
     from prsa_ctrl.identification.compliant import COMPLIANT_SEGMENT_S
     from prsa_ctrl.identification.data import record_from_arrays
     from prsa_ctrl.identification.timedomain import fit_plant
@@ -151,9 +151,8 @@ def test_a_compliant_fit_with_process_noise_converges_on_its_default_segments():
     keys = ("axis.motor_inertia_kg_m2", "friction.efficiency", "drive.current_loop_bandwidth_hz",
             "friction.no_load_torque_n_m")
     res = fit_plant([rec], p, keys=keys, fidelity="compliant", delay_samples=0, validation=False)
-    assert res.solver["segment_s"] == COMPLIANT_SEGMENT_S and res.solver["status"] == "converged"
+    assert res.solver["segment_s"] == COMPLIANT_SEGMENT_S
+    assert res.solver["status"] == "converged"
     for k in keys:
         lo, hi = res.parameters[k]["ci95"]
         assert lo <= truth.values[k] <= hi, (k, res.parameters[k], truth.values[k])
-    with pytest.raises(FitError, match="did not converge"):
-        fit_plant([rec], p, keys=keys, fidelity="compliant", delay_samples=0, validation=False, segment_s=0.1)
