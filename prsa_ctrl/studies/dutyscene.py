@@ -206,8 +206,6 @@ class DutyCycleScene(Scene):
                       "cancels between its events)")
         if not self.discrete:
             raise bad("discrete", self.discrete, "true on a duty cycle (the tuner's profile model is the sampled drive)")
-        if self.estimator != "none":
-            raise bad("estimator", self.estimator, "none on a duty cycle (the Kalman-filter loop takes load steps only)")
 
     def check_events(self, bad, finite) -> None:
         """The record ends after the profiles' last point."""
