@@ -51,7 +51,7 @@ from .scenebase import Scene, holding_capacity_n
 from .scenefile import MAX_RECORD_SAMPLES, POST_EVENT_SAMPLES, PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM
 
 __all__ = ["DutyCycleScene", "GOALS", "MAX_PROFILE_ROWS", "MAX_TRACE_BYTES", "profile_rows", "read_trace_csv",
-           "duty_fields", "PROFILE_KEYS"]
+           "duty_fields", "PROFILE_KEYS", "PROFILE_SOURCES", "refuse_other_kind_keys"]
 
 #: What a duty-cycle scene tunes for (see the module docstring).
 GOALS = ("load", "setpoint", "mix")
@@ -60,9 +60,56 @@ MAX_PROFILE_ROWS = 40_000
 #: Largest CSV trace file, bytes (40 000 rows of up to ~400 characters; a larger file is refused
 #: before it is read).
 MAX_TRACE_BYTES = 16 * 1024 * 1024
-#: The ``[tuning]`` keys only a duty cycle reads (a load-step scene takes ``goal = "load"`` and
-#: ``setpoint_weight = 1`` and ignores ``setpoint_share``, as before the split).
+#: The ``[tuning]`` keys only a duty cycle reads: a load-step scene file that sets one is refused
+#: (:func:`refuse_other_kind_keys`; before the split a load step echoed them in its report and
+#: used none of them).
 PROFILE_KEYS = ("goal", "setpoint_weight", "setpoint_share")
+#: The ``[operating]`` keys that make a scene file a duty cycle (a load or setpoint profile).
+PROFILE_SOURCES = ("load_profile_n", "load_trace_csv", "setpoint_profile_rpm", "setpoint_trace_csv")
+#: What a duty-cycle file may not set, ``(where, key, why)``: load-step keys and sections (a
+#: load profile also sets the initial load; a setpoint profile alone keeps ``initial_load_n``,
+#: the constant load it runs at).
+_STEP_ONLY = (("operating", "final_loads_n", "the loads come from the load profile (a setpoint profile alone runs at "
+               "the constant initial_load_n)"),
+              ("operating", "step_time_s", "the events are the profiles' changes"),
+              ("operating", "initial_load_n", "the load profile's first row is the initial load"),
+              (None, "spec", "the robust and Monte-Carlo studies run load steps"),
+              (None, "robust", "the robust and Monte-Carlo studies run load steps"),
+              (None, "uncertainty", "the robust and Monte-Carlo studies run load steps"))
+
+
+def refuse_other_kind_keys(doc: Mapping[str, Any], origin: str) -> None:
+    """Refuse a scene file key that the file's kind does not take, rather than drop it: the duty
+    cycle's ``[tuning]`` keys (:data:`PROFILE_KEYS`) in a load-step file, the load-step keys and
+    the ``[spec]``/``[robust]``/``[uncertainty]`` sections in a duty-cycle file (``[operating]
+    initial_load_n`` only with a load profile).
+
+    Raises
+    ------
+    SceneError
+        One line naming the key as written in the file, the kind that takes it and this file's kind.
+    """
+    op = doc.get("operating", {})
+    op = op if isinstance(op, Mapping) else {}
+    tuning = doc.get("tuning", {})
+    tuning = tuning if isinstance(tuning, Mapping) else {}
+    given = [k for k in PROFILE_SOURCES if k in op]
+    if not given:
+        for key in PROFILE_KEYS:
+            if key in tuning:
+                raise SceneError(
+                    f"{origin}: tuning.{key} = {quote(tuning[key])}: a duty-cycle key (taken by a scene with a load or "
+                    f"setpoint profile: operating.{', operating.'.join(PROFILE_SOURCES)}); this scene is a load step "
+                    f"(no load or setpoint profile); expected no tuning.{key} here")
+        return
+    kind = f"this scene is a duty cycle (operating.{', operating.'.join(given)})"
+    has_load = "load_profile_n" in op or "load_trace_csv" in op
+    for section, key, why in _STEP_ONLY:
+        if section is None and key in doc:
+            raise SceneError(f"{origin}: [{key}]: a load-step section ({why}); {kind}; expected no [{key}] here")
+        if section is not None and key in op and (key != "initial_load_n" or has_load):
+            raise SceneError(f"{origin}: {section}.{key} = {quote(op[key])}: a load-step key; {kind}: {why}; "
+                             f"expected no {section}.{key} here")
 
 
 @dataclass(frozen=True)
@@ -159,8 +206,6 @@ class DutyCycleScene(Scene):
                       "cancels between its events)")
         if not self.discrete:
             raise bad("discrete", self.discrete, "true on a duty cycle (the tuner's profile model is the sampled drive)")
-        if self.estimator != "none":
-            raise bad("estimator", self.estimator, "none on a duty cycle (the Kalman-filter loop takes load steps only)")
 
     def check_events(self, bad, finite) -> None:
         """The record ends after the profiles' last point."""

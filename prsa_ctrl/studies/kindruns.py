@@ -213,13 +213,16 @@ class ProfileRuns(StepRuns):
 
     def loop_models(self, plant, spec, estimator: str) -> list:
         """One sampled loop model per record, linearised at the middle of its range
-        (:func:`prsa_ctrl.tuning.actuatorloops.profile_loops`; the duty cycle takes no estimator)."""
+        (:func:`prsa_ctrl.tuning.actuatorloops.profile_loops`), the speed measured by the encoder's
+        difference or (``estimator = "kf"``) the Kalman filter."""
         from ..tuning.actuatorloops import profile_loops
 
         return profile_loops(plant, [(case, rec["w_lin"], rec["f_lin"], rec["load_sequence"], rec["setpoint_sequence"])
                                      for case, rec in zip(spec.cases, spec.records)],
                              fidelity=spec.linear_fidelity, horizon_s=spec.duration,
-                             setpoint_weight=spec.setpoint_weight, filters=spec.filters)
+                             setpoint_weight=spec.setpoint_weight, filters=spec.filters,
+                             kf_load_change_time_s=spec.load_change_time_s if estimator == "kf" else None,
+                             feedforward=spec.feedforward)
 
     def aggregate(self, values: list[float], spec) -> float:
         """The worst, the goal "mix"'s weighted sum of the load and setpoint records, or the sum."""
@@ -247,11 +250,14 @@ class ProfileRuns(StepRuns):
 
     def simulate(self, design, plant, spec, settings, seed: int, pre_samples: int) -> tuple[list, list]:
         """One sampled run per record, over the whole record, with the scene's profiles (a setpoint
-        weight ``b != 1`` through :func:`setpoint_prefilter`)."""
+        weight ``b != 1`` through :func:`setpoint_prefilter`); ``(runs, estimation)`` as
+        :meth:`StepRuns.simulate` (the Kalman filter's speed RMS errors, rad/s, per record)."""
+        from ..drive.estimator import design_kf
         from ..sim.engine import run
 
         ts = plant.sample_time_s
-        runs = []
+        runs, estimation = [], []
+        kf = design_kf(plant, spec.load_change_time_s) if design.estimator == "kf" else None
         for case, rec in zip(spec.cases, spec.records):
             setpoint = rec["setpoint"]
             if case == "setpoint profile" and spec.setpoint_weight != 1.0:
@@ -260,12 +266,16 @@ class ProfileRuns(StepRuns):
                 setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
             r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=spec.duration,
                     controller=design.pid, fidelity=spec.fidelity, settings=settings, seed=seed,
-                    filters=spec.filters or None)
+                    filters=spec.filters or None, measurement="encoder" if kf is None else "kf", kf=kf)
             t = np.asarray(r.time)
             y = dict(zip(r.output_labels, np.asarray(r.outputs)))
+            if kf is not None:
+                w = y["nut_speed"]
+                estimation.append({"kf_speed_rms_rad_s": float(np.sqrt(np.mean((y["speed_measured"] - w) ** 2))),
+                                   "fd_speed_rms_rad_s": float(np.sqrt(np.mean((y["speed_fd"] - w) ** 2)))})
             y["setpoint"] = rec["setpoint_at"][: t.size]
             runs.append((t, y))
-        return runs, []
+        return runs, estimation
 
     def verified_metrics(self, plant, spec, runs) -> list:
         from ..sim.metrics import profile_metrics

@@ -35,7 +35,7 @@ from .scenefile import (DEFAULT_SCENE, MAX_LOAD_LEVELS, MAX_RECORD_SAMPLES, MIN_
                         PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes, is_move_scene,
                         locate_scene, read_scene_doc)
 from .dutyscene import (GOALS, MAX_PROFILE_ROWS, MAX_TRACE_BYTES, PROFILE_KEYS, DutyCycleScene, duty_fields,
-                        profile_rows, read_trace_csv)
+                        profile_rows, read_trace_csv, refuse_other_kind_keys)
 
 __all__ = ["Scene", "LoadStepScene", "DutyCycleScene", "load_scene", "builtin_scenes", "choose_fidelity",
            "DEFAULT_SCENE", "OUTPUTS", "RIGID_RELATIVE_ERROR", "check_against_plant", "holding_capacity_n",
@@ -82,11 +82,13 @@ class LoadStepScene(Scene):
     :class:`~prsa_ctrl.studies.scenebase.Scene`'s). Several final loads are tuned jointly
     (``aggregate``); the design's 2-DOF setpoint weight is 1.
 
-    ``goal``, ``setpoint_weight`` and ``setpoint_share``, the duty cycle's ``[tuning]`` keys, are
-    taken when given (from a file or ``Scene(**fields)``) and checked, as init-only values:
-    ``goal`` "auto" or "load", ``setpoint_weight`` 1; ``setpoint_share`` is not read. They are
-    not fields of a load step (its class keeps their defaults, which ``dataclasses.replace``
-    reads); the design's weight is :attr:`design_setpoint_weight`.
+    ``goal``, ``setpoint_weight`` and ``setpoint_share`` are the duty cycle's ``[tuning]`` keys: a
+    load-step scene file that sets one is refused (one line naming the key,
+    :func:`~prsa_ctrl.studies.dutyscene.refuse_other_kind_keys`). ``Scene(**fields)`` takes them
+    as init-only values and checks them: ``goal`` "auto" or "load", ``setpoint_weight`` 1,
+    ``setpoint_share`` its default 0.5 (a load step has no setpoint record to weigh). They are not
+    fields of a load step (its class keeps their defaults, which ``dataclasses.replace`` reads);
+    the design's weight is :attr:`design_setpoint_weight`.
     """
 
     goal: InitVar[str] = "auto"
@@ -105,6 +107,9 @@ class LoadStepScene(Scene):
         if setpoint_weight != 1.0:
             raise SceneError(f"{self.origin}: setpoint_weight = {quote(setpoint_weight)}; expected 1 without a "
                              "setpoint profile")
+        if setpoint_share != 0.5:
+            raise SceneError(f"{self.origin}: setpoint_share = {quote(setpoint_share)}; expected none on a load step (the "
+                             "weight of the setpoint record in a duty cycle's goal = 'mix')")
         super().__post_init__()
 
     def check_events(self, bad, finite) -> None:
@@ -145,6 +150,7 @@ def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
     if unknown:
         raise SceneError(f"{origin}: unknown section {quote(unknown[0])}; expected one of "
                          f"{', '.join([*_SECTIONS, 'spec', 'robust', 'uncertainty', 'filters'])}")
+    refuse_other_kind_keys(doc, origin)
     kw: dict[str, Any] = {"origin": origin}
     if "filters" in doc:
         kw["filters"], kw["filter_labels"] = parse_filters(doc["filters"], origin)

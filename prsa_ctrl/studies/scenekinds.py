@@ -11,9 +11,10 @@ Each kind is a frozen problem type built from a loaded scene (:func:`problem`):
 * the report (:class:`SpeedReport`, :class:`MoveReport`) owns its JSON (:meth:`as_dict`), its
   text (:meth:`format`) and what its drive export holds (:meth:`export_target`).
 
-A Kalman-filter scene (``[estimator] kind = "kf"``) is a :class:`LoadStep`: the problem (load
-steps, the speed PI/PID, the same verification and report) is the same; only the speed
-measurement of the loop models differs, an option of the loop builder, not a kind of problem.
+A Kalman-filter scene (``[estimator] kind = "kf"``) is a :class:`LoadStep` or a
+:class:`DutyCycle`: the problem (the records, the speed PI/PID, the same verification and
+report) is the same; only the speed measurement of the loop models and of the verified runs
+differs, a measurement block of the one loop builder, not a kind of problem.
 
 ``prsa-tune`` parses its flags, loads the scene, builds its problem here, tunes, and prints
 or writes the report: it does not branch on the kind.
@@ -434,8 +435,8 @@ class DutyCycle(ProfileRuns, LoadStep):
                          "with a [spec] section")
 
     def check_overrides(self, given: Mapping[str, Any], typed: Mapping[str, str]) -> None:
-        """Refuse the robust and Monte-Carlo studies, the Kalman filter and the flags that set load
-        steps or (with a setpoint profile) the setpoint: the profile sets them.
+        """Refuse the robust and Monte-Carlo studies and the flags that set load steps or (with a
+        setpoint profile) the setpoint: the profile sets them (the Kalman filter is taken).
 
         Raises
         ------
@@ -447,11 +448,6 @@ class DutyCycle(ProfileRuns, LoadStep):
             if given.get(flag):
                 raise UsageError(f"{flag}: scene {sc.name} is a duty cycle ({sc.profile_source}); expected a "
                                  "load-step scene (the robust and Monte-Carlo studies run load steps)")
-        estimator = given.get("--estimator")
-        if estimator not in (None, "none"):
-            raise UsageError(f"--estimator {typed.get('--estimator', estimator)}: scene {sc.name} is a duty cycle "
-                             f"({sc.profile_source}); expected --estimator none (the Kalman-filter loop is tuned and "
-                             "verified on load steps only, not on a duty-cycle record)")
         for flag, v in (("--load-step", given.get("--load-step")), ("--step-time", given.get("--step-time")),
                         ("--setpoint-rpm", given.get("--setpoint-rpm") if sc.setpoint_profile is not None else None)):
             if v is not None:

@@ -113,9 +113,19 @@ def check_tune_filter(scene, kind: str) -> None:
     if not speed_kind(scene).takes("tune-filter"):
         raise SceneError(f"--tune-filter {kind}: scene {scene.name} is a duty cycle; expected a load-step scene (the "
                          "filter tuner's objective is the load step)")
-    if scene.estimator != "none" or not scene.discrete:
-        raise SceneError(f"--tune-filter {kind}: expected a sampled loop without the Kalman filter (estimator none, "
-                         "discrete = true)")
+    if scene.estimator != "none":
+        # The NLP's Ms/Mks rows take 1 + L = 1 + F(z) (kp, ki).G with G gain-free: the encoder
+        # loop's response has no denominator part. The Kalman filter's loop with a filter F on
+        # either path is F g.N / (1 + F g.D), D != 0 (LoopModel.parts; held by
+        # tests/studies/test_scenetunefilter.py).
+        raise SceneError(f"--tune-filter {kind} with estimator {scene.estimator}: the filter tuner's Ms/Mks constraints "
+                         "assume a loop response linear in the gains, L = F(z) (kp, ki).G, with no denominator part; with "
+                         "the Kalman filter (driven by the drive's own command) the loop is F (kp, ki).N / (1 + F (kp, "
+                         "ki).D) on either path; expected estimator none (or give the filter with --filter: the gains are tuned "
+                         "with the Kalman filter and the filter fixed)")
+    if not scene.discrete:
+        raise SceneError(f"--tune-filter {kind}: expected a sampled loop (discrete = true; the filters run at the "
+                         "sample time)")
 
 
 def tune_scene_filter(plant: Plant, scene: Scene, kind: str) -> SceneFilterTuning:

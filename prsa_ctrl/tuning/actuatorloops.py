@@ -121,7 +121,8 @@ def step_loops(plant: Plant, *, setpoint_rad_s: float, initial_load_n: float, fi
 
 
 def profile_loops(plant: Plant, records: Sequence[tuple], *, fidelity: str, horizon_s: float,
-                  setpoint_weight: float = 1.0, filters: Sequence = ()) -> list[LoopModel]:
+                  setpoint_weight: float = 1.0, filters: Sequence = (), kf_load_change_time_s: float | None = None,
+                  feedforward: bool = False) -> list[LoopModel]:
     """One sampled loop model per duty-cycle record, linearised at the middle of its range.
 
     Parameters
@@ -139,11 +140,22 @@ def profile_loops(plant: Plant, records: Sequence[tuple], *, fidelity: str, hori
         2-DOF setpoint weight b.
     filters : sequence of LoopFilter
         The drive's speed-measurement and torque-command filters.
+    kf_load_change_time_s : float, s, optional
+        With a value: the speed is measured by the Kalman filter designed for this load-change
+        time scale (:func:`prsa_ctrl.drive.estimator.design_kf`), the measurement block of the one
+        sampled builder (:class:`~prsa_ctrl.tuning.loopmeasure.KalmanEstimate`); else the
+        encoder's filtered difference.
+    feedforward : bool
+        With the Kalman filter: tune the load feed-forward gain as a fourth gain.
 
     Returns
     -------
     list of LoopModel
     """
+    if kf_load_change_time_s is None:
+        meas = {"speed_filter": plant.speed_filter_s}
+    else:
+        meas = {"measurement": KalmanEstimate(design_kf(plant, kf_load_change_time_s), feedforward)}
     model = plant_model(plant, fidelity)
     i_speed = model.output_names.index("nut_speed")
     i_torque = model.output_names.index("motor_torque")
@@ -151,11 +163,12 @@ def profile_loops(plant: Plant, records: Sequence[tuple], *, fidelity: str, hori
     loops = []
     for (name, _, _, load_sequence, setpoint_sequence), (a, b, c) in zip(records, cores):
         loops.append(drive_loop(
-            a, b, c[i_speed], model.index("theta_nut"), ts=plant.sample_time_s, speed_filter=plant.speed_filter_s,
-            tf=derivative_filter_s(plant), horizon=horizon_s, name=name,
+            a, b, c[i_speed], model.index("theta_nut"), ts=plant.sample_time_s,
+            tf=derivative_filter_s(plant), horizon=horizon_s, name=name + (" (KF)" if "measurement" in meas else ""),
             outputs={"nut_speed": c[i_speed], "motor_torque": c[i_torque]},
             load_sequence=load_sequence, setpoint_sequence=setpoint_sequence,
-            setpoint_weight=setpoint_weight, filters=filters, command_delay_samples=plant.command_delay_samples))
+            setpoint_weight=setpoint_weight, filters=filters, command_delay_samples=plant.command_delay_samples,
+            **meas))
     return loops
 
 

@@ -384,11 +384,14 @@ def _duty_scene(tmp_path):
     return str(f)
 
 
-def test_kalman_filter_on_a_duty_cycle_names_the_real_reason(capsys, tmp_path, stand_in):
-    rc = main(["--scene", _duty_scene(tmp_path), "--estimator", "kf"])
-    line = _outcome(capsys, rc, stand_in)
-    assert "--estimator kf" in line and "Kalman-filter loop" in line and "load steps only" in line
-    assert "expected its profile to set" not in line
+def test_kalman_filter_on_a_duty_cycle_reaches_the_tuner(capsys, tmp_path, stand_in):
+    # The duty cycle takes the Kalman filter (from the flag or [estimator] kind): no refusal
+    # before the tuner (was refused, "load steps only", before the KF became a measurement
+    # block of the one sampled builder).
+    path = _duty_scene(tmp_path)
+    assert "stand-in" in _outcome(capsys, main(["--scene", path, "--estimator", "kf"]), stand_in)
+    Path(path).write_text(Path(path).read_text() + '[estimator]\nkind = "kf"\nfeedforward = true\n')
+    assert "stand-in" in _outcome(capsys, main(["--scene", path]), stand_in)
 
 
 def test_percent_differences_never_print_minus_zero():

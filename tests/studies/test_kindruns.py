@@ -112,3 +112,35 @@ def test_every_kind_says_what_it_is_and_a_move_takes_no_speed_study():
     assert move.described == "a move (cascade) scene" and not any(move.takes(s) for s in STEP_STUDIES)
     assert problem(load_scene("duty-ramp")).described.startswith("a duty cycle (")
     assert problem(load_scene()).described == "a load-step scene"
+
+
+def test_a_duty_cycle_tunes_and_verifies_through_the_kalman_filter(paper_plant):
+    """A mix duty cycle (load and setpoint profiles, b = 0.5) with the Kalman filter and its load
+    feed-forward: the loop models measure through the filter, the verified runs do too, and the
+    linear prediction agrees with the nonlinear verification."""
+    from prsa_ctrl.studies.autotune import tune_actuator
+    from prsa_ctrl.studies.dutyscene import profile_rows
+    from prsa_ctrl.studies.scene import Scene
+
+    scene = Scene(load_profile=profile_rows([[0, 500], [0.005, 500], [0.015, 1500, "step"]], "x"),
+                  setpoint_profile=profile_rows([[0, 30.0], [0.005, 30.0], [0.008, 33.0, "step"]], "x"),
+                  duration=0.04, setpoint_weight=0.5, setpoint_share=0.25, candidates=1, fidelity="rigid",
+                  accuracy=0.05, estimator="kf", feedforward=True)
+    spec = loop_spec(paper_plant, scene)
+    kf_loops, plain = spec.loop_models(paper_plant), spec.loop_models(paper_plant, estimator="none")
+    assert [lp.name for lp in kf_loops] == ["load profile (KF)", "setpoint profile (KF)"]
+    gains = (0.1, 20.0, 0.0)
+    for a, b in zip(kf_loops, plain):
+        ea, eb = a.error(gains), b.error(gains)
+        assert np.max(np.abs(ea - eb)) > 1e-2 * np.max(np.abs(eb))
+    rep = tune_actuator(paper_plant, scene, workers=1)
+    best = rep.best
+    assert best.estimator == "kf"
+    assert best.pid.kff > 0
+    assert len(best.verified) == 2 and len(best.estimation) == 2
+    for e in best.estimation:  # the verified runs measured through the filter
+        assert e["kf_speed_rms_rad_s"] < e["fd_speed_rms_rad_s"]
+    assert best.objective_verified == pytest.approx(0.75 * best.verified[0].iae + 0.25 * best.verified[1].iae,
+                                                    rel=1e-12)
+    assert best.objective_verified == pytest.approx(best.objective_predicted, rel=0.02)
+    assert any(b.name.startswith("tuned PI alone") for b in rep.baselines)

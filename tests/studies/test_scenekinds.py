@@ -192,7 +192,7 @@ def test_duty_ramp_scene_reads_as_its_file_says():
         ("load_profile_n = [[0, 500], [0.1, 500, 'stp']]", r"row 2 = \[0\.1, 500, 'stp'\]; expected \[t_s, value\]"),
         ("load_profile_n = [[0, 500], [0.1, 600], [0.1, 700, 'step']]", r"row 3 .*expected strictly increasing times"),
         ("load_profile_n = [[0.01, 500], [0.1, 600]]", r"row 1 = \[0\.01, 500\]; expected \[0, value\]"),
-        ("load_profile_n = [[0, 500], [0.1, 600]]\ninitial_load_n = 500.0", r"initial_load_n with a load profile"),
+        ("load_profile_n = [[0, 500], [0.1, 600]]\ninitial_load_n = 500.0", r"operating\.initial_load_n = 500\.0: a load-step key; this scene is a duty cycle"),
         ("load_profile_n = [[0, 500], [0.1, -600]]", r"load_profile = -600\.0; expected values >= 0"),
         ("load_profile_n = [[0, 500], [0.1, 500]]", r"expected a profile that changes"),
         ("load_profile_n = [[0, 500], [0.1, 600]]\nload_trace_csv = 'x.csv'", r"both given; expected one load profile"),

@@ -9,7 +9,7 @@ import pytest
 
 from prsa_ctrl import PID, load_plant
 from prsa_ctrl.cli.tune import main
-from prsa_ctrl.drive.filters import LoopFilter, Notch
+from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch
 from prsa_ctrl.errors import SceneError
 from prsa_ctrl.studies import scenetunefilter as stf
 from prsa_ctrl.studies.scene import load_scene
@@ -79,6 +79,34 @@ def test_tune_filter_is_refused_where_it_does_not_apply(capsys, stand_in):
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and "--tune-filter" in err[0], err
     assert not stand_in
+
+
+def test_tune_filter_with_the_kalman_filter_is_refused_with_its_reason():
+    with pytest.raises(SceneError, match=r"--tune-filter notch with estimator kf: .*no denominator part") as err:
+        stf.check_tune_filter(load_scene().replace(estimator="kf"), "notch")
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("lf", [LoopFilter(Notch(300.0, 120.0, -20.0), "torque_command"),
+                                LoopFilter(FirstOrderLowPass(400.0), "speed_measurement")])
+def test_the_kalman_loop_response_has_the_denominator_the_filter_tuner_leaves_out(lf):
+    """The reason of the refusal, held: the encoder loop with a filter F is F (g.N) (no
+    denominator part, what the filter tuner's constraints assume); the Kalman loop is
+    F (g.N) / (1 + F g.D), and leaving the denominator out is off by more than 1 %."""
+    import numpy as np
+
+    from prsa_ctrl.tuning.actuatorloops import step_loops
+
+    kw = dict(setpoint_rad_s=31.4, initial_load_n=500.0, final_loads_n=(1500.0,), fidelity="rigid", horizon_s=0.3)
+    g = np.array([0.1, 20.0, 0.0])
+    for kf, off in ((None, False), (1.0, True)):
+        rest = step_loops(PAPER, kf_load_change_time_s=kf, **kw)[0]
+        _, ln, d0, ld = rest.parts()
+        f = lf.biquad(PAPER.sample_time_s).frequency_response(rest.omega)
+        big_l = step_loops(PAPER, kf_load_change_time_s=kf, filters=(lf,), **kw)[0].loop_response(g)
+        np.testing.assert_allclose(big_l, f * (g @ ln) / (d0 + f * (g @ ld)), rtol=1e-9)
+        miss = np.max(np.abs(big_l - f * (g @ ln)) / np.abs(big_l))
+        assert bool(miss > 1e-2) == off, miss
 
 
 @pytest.mark.slow
