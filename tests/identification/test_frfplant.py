@@ -71,7 +71,8 @@ def _noisy(g, rel, seed):
 #: identification.twomass, each a scipy expm in drive.sampled.zoh, under the least squares' numeric Jacobian),
 #: the screws' 2.5 s each. Its keys (mass, load mass, stiffness, damping within their intervals, the written
 #: plant's mode and anti-resonance) are checked in the default suite by
-#: test_response_of_an_independent_two_mass_axis[linear-axis], the sampled path by the three screws here.
+#: test_response_of_an_independent_two_mass_axis[linear-axis], its sampled compliant fit (the mode within
+#: its interval, the written plant's mode) by test_cli_compliant_frf_for_every_mechanism[linear-axis].
 _OWN = [pytest.param(m, marks=pytest.mark.slow) if m == "linear-axis" else m for m in BASES]
 
 
