@@ -67,6 +67,4 @@ export MPLBACKEND=Agg
 # At most 4 workers (each may start its own process pools and browsers: memory grows with them),
 # one per usable core below that; PRSA_TEST_WORKERS overrides.
 workers="${PRSA_TEST_WORKERS:-$("$venv/bin/python" -c 'import os; print(max(1, min(4, len(os.sched_getaffinity(0)))))')}"
-# --no-loadscope-reorder: the files go out in the order collected, the costliest first (tests/conftest.py's
-# COSTLY_FILES_CPU_S), not by their number of tests (xdist's default, which sends the long few-test files last).
-"$venv/bin/pytest" -q -n "$workers" --dist loadfile --no-loadscope-reorder "$@"
+"$venv/bin/pytest" -q -n "$workers" --dist loadfile "$@"

@@ -16,34 +16,6 @@ settings.load_profile("prsa")
 matplotlib.use("Agg")
 os.environ.setdefault("PRSA_FAST", "1")
 
-#: CPU seconds of the costliest test files of the default suite (each file's per-test CPU, self and
-#: children, summed, one process, measured on 00e0782 less the tests since marked slow). The README's
-#: command (scripts/fresh-test.sh) hands whole files to its workers (``--dist loadfile``) in the order
-#: collected (``--no-loadscope-reorder``: xdist would otherwise order files by their number of tests,
-#: which puts these few-test, long files last, where one worker runs them alone while the other idles).
-#: They are collected first, longest first; every other file keeps its place after them. A stale value
-#: changes only the order, never what a test checks.
-COSTLY_FILES_CPU_S = {
-    "tests/tuning/test_generic.py": 152.0,
-    "tests/test_notebooks.py": 71.0,
-    "tests/identification/test_frfplant.py": 71.0,
-    "tests/app/test_app_browser.py": 50.0,
-    "tests/identification/test_delay.py": 37.0,
-    "tests/cli/test_tune.py": 34.0,
-    "tests/test_docs.py": 32.0,
-    "tests/app/test_app_calibration.py": 31.0,  # (4 of its 14 tests measured)
-    "tests/test_benchmarks.py": 30.0,
-    "tests/app/test_session.py": 28.0,
-    "tests/tuning/test_robust.py": 28.0,
-    "tests/tuning/test_cascade.py": 21.0,
-}
-
-
-def pytest_collection_modifyitems(config, items):
-    """The costliest files first (:data:`COSTLY_FILES_CPU_S`), longest first; a stable sort, so each
-    file's tests stay together and in their order."""
-    items.sort(key=lambda item: -COSTLY_FILES_CPU_S.get(item.nodeid.split("::", 1)[0], 0.0))
-
 
 @pytest.fixture(scope="session")
 def paper_plant():
