@@ -7,8 +7,10 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from prsa_ctrl import options
+from prsa_ctrl.errors import DataError
 
 PACKAGE = Path(options.__file__).parent
 
@@ -71,10 +73,6 @@ def test_peak_bound_range_written_once_outside_the_scene_modules():
 
 
 # --- the one number validator ----------------------------------------------------------------
-
-import pytest  # noqa: E402
-
-from prsa_ctrl.errors import DataError  # noqa: E402
 
 
 @pytest.mark.parametrize("value, kw, message", [

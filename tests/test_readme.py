@@ -143,7 +143,7 @@ def test_readme_commands_are_accepted_by_their_parsers():
     written, and every examples/ path it names exists. (The blocks that run the commands are the
     slow test below; what each command does is asserted in the default suite by the command's
     own tests: the default run with --load-step 500:1500 and every output in tests/conftest.py's
-    default_cli_run, prsa-plot in tests/plots/test_plots.py, duty-ramp in
+    default_cli_run, prsa-plot in tests/cli/test_plot.py, duty-ramp in
     tests/studies/test_scenekinds.py, this prsa-pid case in tests/cli/test_pid.py (pi-mks), the EMPS
     fit and --show-plant in tests/identification/test_axis.py.)"""
     import importlib

@@ -15,7 +15,7 @@ from prsa_ctrl.identification.axis import LinearAxisPlant, fit_linear_axis, repl
 from prsa_ctrl.identification.axistwomass import TwoMassStepper
 from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec
 
-from test_emps import _profile  # noqa: E402  (tests/identification is on sys.path)
+from axis_generator import profile  # tests/identification is on sys.path
 
 THETA = (90.0, 160.0, 230.0, 18.0, 24.0)  # M kg, Fv+ Fv- N s/m, Fc+ Fc- N
 ML, K, ZETA = 30.0, 1.5e6, 0.05  # load mass kg, N/m, modal damping (mode ~43 Hz, anti-resonance ~36 Hz)
@@ -105,7 +105,7 @@ def test_the_stepper_refuses_a_load_mass_not_below_the_axis_mass():
 
 def _closed_loop_log(seed=3, n=3000):
     rng = np.random.default_rng(seed)
-    ref = _profile(rng, n)
+    ref = profile(rng, n)
     ctrl = ControllerSpec(structure="position-p/velocity-p", kp=60.0, kv=900.0, ki=0.0,
                           velocity_estimate="average2-difference", saturation=400.0, sample_time_s=H,
                           command_delay_samples=0, check_tolerance=0.03, sources={})

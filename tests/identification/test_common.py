@@ -17,7 +17,7 @@ from prsa_ctrl.io.output import json_safe
 from prsa_ctrl.plant.plantfile import load_plant
 from prsa_ctrl.results import check_status, status_head
 
-from test_delay import one_seed_fit  # noqa: E402
+from test_delay import one_seed_fit
 
 
 def _result(validation=None) -> FitResult:

@@ -3,6 +3,7 @@
 import json
 import math
 import tomllib
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,11 +12,14 @@ import pytest
 from prsa_ctrl import load_plant
 from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.errors import FitError
-from prsa_ctrl.identification.common import DEFAULT_KEYS
+from prsa_ctrl.identification.common import DEFAULT_KEYS, default_keys, inertia_key
+from prsa_ctrl.identification.data import FrfRecord, design_excitation, record_from_arrays
+from prsa_ctrl.identification.frf import fit_frf, frf_response
 from prsa_ctrl.identification.timedomain import fit_plant
-from prsa_ctrl.identification.data import design_excitation, record_from_arrays
+from prsa_ctrl.plant import Plant
+from prsa_ctrl.sim.engine import run
 
-from independent_actuator import simulate_independent  # noqa: E402
+from independent_actuator import simulate_independent
 
 TS = 2.5e-4
 DURATION = 0.3  # s per experiment (1200 samples at 4 kHz)
@@ -510,13 +514,6 @@ def test_buffered_evaluation_matches_casadi_and_checks_sizes():
 # within its 95 % interval and finds the delay. A linear-axis plant is refused by the rotary fit
 # with a pointer to its own fit. The FRF fit writes a fitted delay into the plant.
 
-import warnings  # noqa: E402
-from prsa_ctrl.identification.common import default_keys, inertia_key  # noqa: E402
-from prsa_ctrl.identification.frf import fit_frf, frf_response  # noqa: E402
-from prsa_ctrl.identification.data import FrfRecord  # noqa: E402
-from prsa_ctrl.plant import Plant, load_plant  # noqa: E402
-from prsa_ctrl.sim.engine import run  # noqa: E402
-
 DELAY = "drive.command_delay_samples"
 BW = "drive.current_loop_bandwidth_hz"
 
@@ -651,8 +648,6 @@ def test_frf_delay_written_to_the_plant():
 # Issue 20 (calibration): identifiability that does not hinge on round-off, honest intervals,
 # duplicate records, unit and sample-time checks, hostile inputs of prsa-fit, overlay figures
 # without shooting-join spikes, and the user's [uncertainty] kept.
-
-import warnings  # noqa: E402
 
 TRUTH = PERTURBED["issue"]
 

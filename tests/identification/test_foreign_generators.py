@@ -31,6 +31,7 @@ import pytest
 from foreign import _axis
 from foreign import gen_ballscrew as bs
 from foreign import gen_feedaxis_load as fa
+from foreign import gen_judge as gj
 from foreign import gen_rollerscrew as rs
 
 # ---------------------------------------------------------------------------------------------
@@ -546,8 +547,6 @@ def test_the_acceptance_oracle_refuses_what_the_issue_refuses(tmp_path, rs_set):
 # ---------------------------------------------------------------------------------------------
 # (c) the judge's generator (foreign/gen_judge.py): written without reading the fitting code, the
 # plant model or the generators above; its own checks here, then prsa-fit's acceptance on it.
-
-from foreign import gen_judge as gj  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -23,8 +23,8 @@ from prsa_ctrl.identification.timedomain import fit_plant
 from prsa_ctrl.plant import load_plant, steady_torque
 from prsa_ctrl.plant.plantfile import plant_file_path
 
-import foreign_generator as fg  # noqa: E402  (tests/identification is on sys.path)
-from test_delay import _axis, _truth as _td_truth  # noqa: E402  (the generator's axis in plant keys)
+import foreign_generator as fg  # (tests/identification is on sys.path)
+from test_delay import _axis, _truth as _td_truth  # (the generator's axis in plant keys)
 
 STATIC, VS, TS0 = STRIBECK_KEYS
 Z95 = 1.959963984540054

@@ -17,7 +17,7 @@ from prsa_ctrl.cli.fit import main
 from prsa_ctrl.identification.logformat import (LogFormatError, load_axis_log, load_log_format, load_motor_record, motor_record)
 from prsa_ctrl.plant import load_plant
 
-from test_fit import _load, _log, _truth  # noqa: E402  (tests/identification on sys.path)
+from test_fit import _load, _log, _truth  # (tests/identification on sys.path)
 
 
 KP, KV, GAIN, H = 160.0, 240.0, 35.0, 1e-3

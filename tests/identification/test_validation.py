@@ -10,11 +10,13 @@ import pytest
 
 from prsa_ctrl import GeometryWarning, load_plant
 from prsa_ctrl.identification.data import design_excitation, record_from_arrays
+from prsa_ctrl.identification.logformat import ControllerSpec
 from prsa_ctrl.identification.validation import (FIT_MIN_PERCENT, NOISE_FACTOR, RESONANCE_SHARE,
                                                  WRITTEN_TOLERANCE_POINTS, diagnosis, explained, noise_floor,
                                                  refusal, replay_records, resonance, verdict, whiteness)
+from prsa_ctrl.identification.validation import CLOSED_LOOP_MODE, ClosedLoop, closed_loop_replay
 
-from independent_actuator import simulate_independent  # noqa: E402
+from independent_actuator import simulate_independent
 
 TS = 2.5e-4
 TRUTH = {"nut.inertia_kg_m2": 1.5e-4, "friction.efficiency": 0.88, "friction.no_load_torque_n_m": 0.03,
@@ -334,10 +336,6 @@ def test_an_undecided_delay_is_not_validated(truth, record):
 # a rigid ball-screw axis in numpy (RK4, the nut loss on the whole force through the nut solved by
 # fixed-point iteration, tanh-smoothed friction sign), under the position-P / velocity-PI law of
 # prsa_ctrl.identification.logformat, the command computed at k acting from k + 1.
-
-from prsa_ctrl.identification.data import record_from_arrays  # noqa: E402
-from prsa_ctrl.identification.logformat import ControllerSpec  # noqa: E402
-from prsa_ctrl.identification.validation import CLOSED_LOOP_MODE, ClosedLoop, closed_loop_replay, explained  # noqa: E402
 
 KP, KV, KI = 50.0, 2.5e5, 30.0  # 1/s, N/(m/s), 1/s: ~40 Hz velocity loop on ~1000 kg reflected
 

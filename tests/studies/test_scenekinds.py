@@ -3,8 +3,14 @@ is, that dispatch goes through the registry, and what each problem type and repo
 The behaviour of each kind's run is pinned by the CLI tests (tests/cli/test_tune.py)."""
 
 import dataclasses
+import json
+import math
+from pathlib import Path
 
+import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from prsa_ctrl.errors import SceneError, UsageError
 from prsa_ctrl.plant.plantfile import load_plant
@@ -12,6 +18,15 @@ from prsa_ctrl.studies.movescene import MoveScene
 from prsa_ctrl.studies.scene import DutyCycleScene, Scene, builtin_scenes, load_scene
 from prsa_ctrl.studies.scenekinds import (KINDS, MOVE_FLAGS, DutyCycle, LoadStep, Move, MoveReport, SpeedReport,
                                           TuneOptions, file_kind, kind_of, problem)
+from prsa_ctrl import PID
+from prsa_ctrl.cli.tune import main
+from prsa_ctrl.plant.linear import linear_core
+from prsa_ctrl.plant.model import plant_model
+from prsa_ctrl.studies.autotune import (Design, actuator_loops, duty_record, predict, setpoint_prefilter, tune_actuator,
+                                        verify)
+from prsa_ctrl.studies.scene import check_against_plant, profile_rows
+from prsa_ctrl.tuning.builders import drive_loop
+from prsa_ctrl.tuning.tuner import Tuner
 
 EXPECTED = {"paper-load-step": "load-step", "paper-table3": "load-step", "robust-load-step": "load-step",
             "paper-heavy-slide": "load-step", "duty-ramp": "duty-cycle", "duty-trace": "duty-cycle",
@@ -123,21 +138,6 @@ def test_a_speed_loop_scene_is_loaded_by_the_command_overrides():
 # ---- folded from test_duty.py:
 # Duty cycles: load/setpoint profiles in scenes, the tuner's profile loop model, the 2-DOF
 # setpoint weight, and the two built-in duty-cycle scenes tuned and verified end to end.
-
-import json  # noqa: E402
-import math  # noqa: E402
-from pathlib import Path  # noqa: E402
-import numpy as np  # noqa: E402
-from hypothesis import given  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-from prsa_ctrl import PID, SceneError  # noqa: E402
-from prsa_ctrl.studies.autotune import Design, actuator_loops, predict, duty_record, setpoint_prefilter, tune_actuator, verify  # noqa: E402
-from prsa_ctrl.cli.tune import main  # noqa: E402
-from prsa_ctrl.plant.linear import linear_core  # noqa: E402
-from prsa_ctrl.plant.model import plant_model  # noqa: E402
-from prsa_ctrl.studies.scene import Scene, check_against_plant, load_scene, profile_rows  # noqa: E402
-from prsa_ctrl.tuning.tuner import Tuner  # noqa: E402
-from prsa_ctrl.tuning.builders import drive_loop  # noqa: E402
 
 SCENE_DIR = Path(__file__).resolve().parents[2] / "tuning"
 

@@ -12,6 +12,8 @@ from prsa_ctrl.studies.scene import load_scene
 from prsa_ctrl.studies.scenerobust import operating_points, scenarios, tune_robust_actuator
 from prsa_ctrl.tuning.robust import tune_robust
 
+from spec_scenes import ROLLER_SPEC_SCENE, check_rule as _check_rule
+
 
 @pytest.fixture(scope="module")
 def robust_run():
@@ -275,8 +277,6 @@ def test_generic_plant_list_inputs(bad, match):
 
 
 # --- issue 34 (1): the recommendation ranks every design the run evaluated by its yield --------
-
-from spec_scenes import ROLLER_SPEC_SCENE, check_rule as _check_rule  # noqa: E402
 
 
 def _fake_mc(passes: dict, n: int = 200, iae: dict | None = None, seed: int = 0):

@@ -1,209 +1,32 @@
+"""prsa_ctrl.plots.fit: the fit's figures and views draw the result's own arrays (the replay of
+the plant as written, its residual, the frequency responses beside the fitted models, the
+coherence) on a Hz axis (rad/s on request), with the verdict; log_response checked against the
+true plant's response; the linear axis's replay and response overlays."""
+
 import json
 import math
+import warnings
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 
-from prsa_ctrl import load_plant, linearize
-from prsa_ctrl.studies.autotune import Design, actuator_loops, predict, verify
-from prsa_ctrl.cli.plot import plot_main
-from prsa_ctrl.drive.pid import PID
-from prsa_ctrl.studies.paper import gain_study
-from prsa_ctrl.plots.loop import (baseline_pairs_plot, binding_level, bode_loop, bode_plant, contact_force_plot,
-                             gain_study_plot, load_step_comparison, load_step_plot, sensitivity_plot,
-                             step_response_plot, tuning_landscape)
-from prsa_ctrl.studies.scene import load_scene
+from prsa_ctrl.identification.axis import AxisReplay
 from prsa_ctrl.identification.common import FitResult
-import matplotlib.pyplot as plt
-
-
-@pytest.fixture(scope="module")
-def setup():
-    plant = load_plant()
-    scene = load_scene().replace(duration=0.3)
-    loops = actuator_loops(plant, scene)
-    designs = []
-    for name, pid in (("tuned (Ms <= 1.4)", PID(0.085, 14.7)), ("b", PID(0.127, 15.9))):
-        d = predict(Design(name, pid, loops[0].margins(pid.gains)), loops, plant, scene)
-        designs.append(verify(d, plant, scene))
-    return plant, scene, loops, designs
-
-
-@pytest.fixture(scope="module")
-def multi():
-    """One design verified on two load levels, ITAE objective."""
-    plant = load_plant()
-    scene = load_scene().replace(duration=0.28, final_loads=(1000.0, 2500.0), objective="itae")
-    loops = actuator_loops(plant, scene)
-    pid = PID(0.085, 14.7)
-    d = predict(Design("tuned (Ms <= 1.4)", pid, loops[0].margins(pid.gains)), loops, plant, scene)
-    return plant, scene, loops, verify(d, plant, scene)
-
-
-def _labels(ax):
-    return [line.get_label() for line in ax.get_lines()]
-
-
-def _overlaps_line(text, line) -> bool:
-    """Whether any vertex of ``line`` lies inside the drawn box of ``text`` (display pixels)."""
-    fig = text.figure
-    fig.canvas.draw()
-    box = text.get_window_extent()
-    xy = line.get_transform().transform(np.column_stack(line.get_data()))
-    inside = (xy[:, 0] >= box.x0) & (xy[:, 0] <= box.x1) & (xy[:, 1] >= box.y0) & (xy[:, 1] <= box.y1)
-    return bool(inside.any())
-
-
-def test_bode_plant_has_two_paths_operating_point_and_nyquist(setup):
-    plant, scene, *_ = setup
-    fig, axs = bode_plant(linearize(plant, scene.setpoint_rad_s, 500.0), sample_time_s=plant.sample_time_s)
-    assert len(axs) == 2 and len([l for l in _labels(axs[0]) if l.startswith("nut speed")]) == 2
-    assert "dB" in axs[0].get_ylabel() and "Hz" in axs[1].get_xlabel()  # issue 33: Hz by default (tests/plots/test_loop.py)
-    assert "300 rpm, 500 N" in axs[0].get_title()  # operating point in the title
-    nyq = [l for l in axs[0].get_lines() if l.get_label().startswith("Nyquist")]
-    assert len(nyq) == 1 and nyq[0].get_xdata()[0] == pytest.approx(0.5 / plant.sample_time_s)  # 1/(2 Ts) Hz
-
-
-def test_loop_plots_mark_margins_without_overlap(setup):
-    plant, scene, loops, designs = setup
-    lp, d = loops[0], designs[0]
-    L = lp.loop_response(d.pid.gains)
-    fig, axs = bode_loop(lp.omega, L, d.margins, operating_point="300 rpm, 1000 N", sample_time_s=plant.sample_time_s)
-    texts = {t.get_text().split()[0]: t for a in axs for t in a.texts}
-    assert {"PM", "GM"} <= set(texts) and "300 rpm, 1000 N" in axs[0].get_title()
-    curve_mag, curve_phase = axs[0].get_lines()[0], axs[1].get_lines()[0]
-    assert not _overlaps_line(texts["PM"], curve_phase)  # the label sits off the curve
-    assert not _overlaps_line(texts["GM"], curve_mag)
-
-
-def test_sensitivity_plot_absolute_with_bounds_on_the_same_scale(setup):
-    _, scene, loops, designs = setup
-    lp = loops[0]
-    L = lp.loop_response(designs[0].pid.gains)
-    fig, (ax,) = sensitivity_plot(lp.omega, L, scene.ms_max, mt_max=1.3)
-    labels = _labels(ax)
-    ms = np.max(np.abs(1 / (1 + L)))
-    assert any(l.startswith(f"|S|: Ms = {ms:.3f}") for l in labels) and any(l.startswith("|T|: Mt = ") for l in labels)
-    bounds = {l.get_label(): l.get_ydata()[0] for l in ax.get_lines() if "bound" in l.get_label()}
-    assert bounds == {"Ms bound 1.4": 1.4, "Mt bound 1.3": 1.3}  # absolute, same scale as |S|
-    assert ax.get_yscale() == "log" and ax.get_ylim()[1] > max(ms, 1.4) and not ax.texts
-
-
-def test_load_step_plot_has_torque_panel_and_fitted_range(setup):
-    plant, scene, _, designs = setup
-    fig, (ax, at) = load_step_plot(designs[0], scene, torque_limit=plant.torque_limit)
-    assert {"verified (nonlinear)", "predicted (linear)"} <= set(_labels(ax))
-    assert any(l.startswith("motor torque") for l in _labels(at)) and "N m" in at.get_ylabel()
-    assert "IAE" in ax.texts[-1].get_text()
-    t, _ = designs[0].verified_runs[0]
-    lo, hi = ax.get_xlim()
-    assert t[0] <= lo and hi <= t[-1]  # never wider than the data
-    assert not _overlaps_line(ax.texts[-1], ax.get_lines()[0])  # metrics box off the response
-
-
-def test_load_step_plot_shows_every_level_and_highlights_the_binding_one(multi):
-    plant, scene, _, d = multi
-    kb = binding_level(d, scene)
-    assert kb == int(np.argmax([m.itae for m in d.verified])) == 1  # the larger step binds
-    fig, (ax, at) = load_step_plot(d, scene, k=None)
-    verified = [l for l in ax.get_lines() if l.get_label().startswith("verified")]
-    assert len(verified) == 2
-    bind = [l for l in verified if "(binding)" in l.get_label()]
-    assert len(bind) == 1 and "2500 N" in bind[0].get_label()
-    assert bind[0].get_linewidth() > max(l.get_linewidth() for l in verified if l is not bind[0])
-    assert "ITAE" in ax.texts[-1].get_text() and "2500 N" in ax.get_title()
-
-
-def test_comparison_labels_name_the_objective_without_doubled_brackets(setup, multi):
-    _, scene, _, designs = setup
-    fig, (ax,) = load_step_comparison(designs, scene)
-    labels = [l for l in _labels(ax) if "IAE" in l]
-    assert len(labels) == 2 and labels[0].startswith("tuned (Ms <= 1.4): Ms ")
-    assert not any(") (" in l or "((" in l for l in labels)
-    _, sc2, _, d2 = multi
-    fig, (ax,) = load_step_comparison([d2], sc2, k=1)
-    assert "ITAE" in _labels(ax)[0] and "IAE " not in _labels(ax)[0].replace("ITAE", "")
-
-
-def test_baseline_pairs_plot_draws_each_baseline_with_its_equal_ms_design(setup):
-    _, scene, _, designs = setup
-    a, b = designs
-    fig, axs = baseline_pairs_plot([(b, a), (a, b)], scene)
-    assert len(axs) == 2
-    for ax, (base, ours) in zip(axs, [(b, a), (a, b)]):
-        names = [l.split(":")[0] for l in _labels(ax) if ":" in l]
-        assert names == [base.name, ours.name] and f": Ms {base.margins.ms:.2f}, load" in ax.get_title()
-        assert ") (" not in ax.get_title()
-
-
-def test_landscape_marks_optimum_baselines_and_bounds(setup):
-    _, scene, loops, designs = setup
-    fig, (ax,) = tuning_landscape(loops[0], "iae", 1.4, designs[0].pid, [("b", designs[1].pid)], n=8)
-    labels = _labels(ax)
-    assert "optimum" in labels and "b" in labels and any("Ms = 1.4" in l for l in labels)
-    assert not any("Mt" in l for l in labels)
-    assert ax.get_xscale() == "log" and "kp" in ax.get_xlabel()
-    assert any(p.get_hatch() == "//" for p in ax.patches)  # unstable background, no white strip
-    fig, (ax,) = tuning_landscape(loops, "iae", 1.4, designs[0].pid, n=8, mt_max=1.3, aggregate="worst")
-    assert any("Mt = 1.3" in l for l in _labels(ax))
-
-
-def test_gain_contact_and_step_plots(setup):
-    plant, *_ = setup
-    runs = gain_study(plant, "kp", (0.5, 1.0), duration=0.22)
-    assert runs[1].metrics.peak_drop_rad_s < runs[0].metrics.peak_drop_rad_s  # paper trend: higher Kp, smaller drop
-    fig, (ax,) = gain_study_plot([(r.label, r.time, r.speed) for r in runs], 31.4, "Effect of kp")
-    assert len(ax.get_lines()) == 3  # two runs and the setpoint
-    t = np.linspace(0, 1, 11)
-    fig, (ax, ad) = contact_force_plot(t, {"contact_force_nut": 3 * t, "contact_force_screw": 2 * t}, static=(3.0, 2.0))
-    labels = _labels(ax)
-    assert labels[:2] == ["nut-roller", "screw-roller"] and "N" in ax.get_ylabel()
-    assert {l.get_linestyle() for l in ax.get_lines()[:2]} == {"-", "--"}  # distinguishable
-    assert [l.get_ydata()[0] for l in ax.get_lines()[2:]] == [3.0, 2.0]  # static means
-    assert np.allclose(ad.get_lines()[0].get_ydata(), t)  # nut minus screw
-    fig, (ax,) = step_response_plot(t, t, t, t, setpoint=1.0)
-    assert _labels(ax) == ["nonlinear", "linear", "setpoint"]
-
-
-def test_functions_draw_into_given_axes(setup):
-    import matplotlib.pyplot as plt
-
-    _, scene, _, designs = setup
-    fig, ax = plt.subplots()
-    f2, (a2,) = load_step_plot(designs[0], scene, ax=ax)
-    assert f2 is fig and a2 is ax
-    t = np.linspace(0, 1, 11)
-    f3, (a3,) = contact_force_plot(t, {"contact_force_nut": t, "contact_force_screw": t}, ax=ax)
-    assert a3 is ax
+from prsa_ctrl.identification.frf import frf_response
+from prsa_ctrl.identification.synthetic import fit_record
+from prsa_ctrl.plots.fit import (axis_replay_figure, axis_response_figure, figure_names, fit_figures, fit_views,
+                                 log_response)
 
 
 @pytest.fixture(autouse=True)
 def _close_figures():
-    import matplotlib.pyplot as plt
-
     yield
     plt.close("all")
 
 
-def test_prsa_plot_command(tmp_path, capsys):
-    rc = plot_main(["--kp", "0.085", "--ki", "14.7", "--out", str(tmp_path)])
-    assert rc == 0
-    names = {p.stem for p in tmp_path.glob("*.png")}
-    assert names == {"plant_bode", "loop_bode", "sensitivity", "load_step", "setpoint_step"}
-    out = capsys.readouterr().out
-    assert "Margins: Ms 1.4" in out and "crossover" in out
-    # Unstable gains are plotted with a warning (frequency plots only), not refused.
-    assert plot_main(["--kp", "50", "--ki", "1", "--out", str(tmp_path / "x")]) == 0
-    assert "UNSTABLE" in capsys.readouterr().out
-    assert {p.stem for p in (tmp_path / "x").glob("*.png")} == {"plant_bode", "loop_bode", "sensitivity"}
-
-
 def test_bode_figure_shows_data_models_and_residual():
-    import matplotlib.pyplot as plt
-
-    from prsa_ctrl.identification.common import FitResult
-    from prsa_ctrl.plots.fit import fit_figures
-
     f = np.geomspace(5, 1500, 80)
     g = 1 / (1j * 2 * np.pi * f * 4e-3)
     g_data = g * np.exp(0.01 * np.sin(np.arange(80)))
@@ -225,11 +48,6 @@ def test_bode_figure_shows_data_models_and_residual():
     finally:
         plt.close(fig)
 
-
-# ---- prsa_ctrl.plots.fit: the fit's figures and views draw the result's own arrays (the replay
-# of the plant as written, its residual, the frequency responses beside the fitted models, the
-# coherence) on a Hz axis (rad/s on request), with the verdict; log_response checked against the
-# true plant's response.
 
 CLOSED = "plant as written, closed-loop replay from the reference"
 
@@ -271,8 +89,6 @@ def _frf_trace(coherence=True):
 
 
 def test_record_figure_is_the_replay_its_residual_and_the_verdict():
-    from prsa_ctrl.plots.fit import fit_figures
-
     tr = _record_trace()
     res = _fit_result({"a.csv": tr}, {"validation": _validation(False)}, {"a.csv": 31.5})
     fig = fit_figures(res)["a-fit"]
@@ -302,8 +118,6 @@ def test_record_figure_is_the_replay_its_residual_and_the_verdict():
 
 @pytest.mark.parametrize("unit, factor", [("Hz", 1.0), ("rad/s", 2 * math.pi)])
 def test_bode_figure_data_models_residual_and_coherence_in_the_unit(unit, factor):
-    from prsa_ctrl.plots.fit import fit_figures
-
     tr = _frf_trace()
     fig = fit_figures(_fit_result({"b.csv": tr}, fit_percent={"b.csv": 98.0}), frequency_unit=unit)["b-bode"]
     try:
@@ -331,15 +145,11 @@ def test_bode_figure_data_models_residual_and_coherence_in_the_unit(unit, factor
 
 
 def test_fit_figures_refuse_an_unknown_frequency_unit():
-    from prsa_ctrl.plots.fit import fit_figures
-
     with pytest.raises(ValueError, match=r"frequency unit 'kHz'; expected one of Hz, rad/s"):
         fit_figures(_fit_result({"b.csv": _frf_trace()}), frequency_unit="kHz")
 
 
 def test_fit_views_are_the_results_arrays():
-    from prsa_ctrl.plots.fit import fit_views
-
     tr, fr = _record_trace(n=4501), _frf_trace()
     tr["simulated"]["model"][6] = np.nan  # no NaN reaches a reader: None
     res = _fit_result({"a.csv": tr, "b.csv": fr}, {"validation": _validation(False)}, {"a.csv": 31.5, "b.csv": 97.0})
@@ -383,12 +193,6 @@ def test_log_response_is_the_true_plants_response():
     """The H1 estimate of a simulated closed-loop log (the toolkit's sampled simulator, truth
     known) against the true plant's sampled response: where the coherence is high they agree;
     the comparison sees a one-sample delay (so a pairing off by a sample would fail)."""
-    import warnings
-
-    from prsa_ctrl.identification.frf import frf_response
-    from prsa_ctrl.identification.synthetic import fit_record
-    from prsa_ctrl.plots.fit import log_response
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rec, truth = fit_record(1.0, seed=1)
@@ -411,12 +215,6 @@ def test_log_response_is_the_true_plants_response():
 def test_record_response_figure_is_the_logs_h1_beside_the_written_plant():
     """fit_figures(..., records=...): each record's -frf figure draws log_response's estimate and
     the written plant's response (computed here independently), coherence below, axis in Hz."""
-    import warnings
-
-    from prsa_ctrl.identification.frf import frf_response
-    from prsa_ctrl.identification.synthetic import fit_record
-    from prsa_ctrl.plots.fit import fit_figures, log_response
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rec, truth = fit_record(0.5, seed=2)
@@ -425,8 +223,6 @@ def test_record_response_figure_is_the_logs_h1_beside_the_written_plant():
                     traces={rec.name: _record_trace(n=rec.n - 1)})
     figs = fit_figures(res, records=[rec])
     assert sorted(figs) == ["sim-0-fit", "sim-0-frf"]  # stems of "sim-0.5s", as figure_names says
-    from prsa_ctrl.plots.fit import figure_names
-
     assert figure_names([rec.name], log_responses=True) == ["sim-0-fit", "sim-0-frf"]
     f, g, coh = log_response(rec)
     model = frf_response(truth, f, speed_rad_s=float(np.mean(rec.speed_rad_s)),
@@ -445,8 +241,6 @@ def test_record_response_figure_is_the_logs_h1_beside_the_written_plant():
 def test_fit_figures_show_a_file_name_as_typed(tmp_path):
     """Text from the user's file names is data: a '$...$' in a log's name and in the diagnosis is
     drawn as it is, not parsed as mathtext (an invalid expression would fail the save)."""
-    from prsa_ctrl.plots.fit import fit_figures
-
     name = r"a$\frac$b.csv"
     v = {**_validation(False), "diagnosis": f"second mass: 80 % of the replay residual of {name}"}
     v["written_plant"] = {name: v["written_plant"]["a.csv"]}
@@ -468,9 +262,6 @@ def test_axis_replay_figure_names_its_replay_and_draws_the_residual(closed):
     """The linear-axis overlay (prsa-fit --log-format ... --plots): measured against replayed
     position error, velocity and force, the replay named (closed loop from the reference or
     open loop from the command), and the velocity residual below."""
-    from prsa_ctrl.identification.axis import AxisReplay
-    from prsa_ctrl.plots.fit import axis_replay_figure
-
     t = np.linspace(0, 1, 501)
     ref = 0.01 * np.sin(2 * np.pi * t)
     pm, ps = ref - 1e-5 * np.cos(9 * t), ref - 1.2e-5 * np.cos(9 * t)
@@ -499,11 +290,6 @@ def test_axis_response_figure_puts_the_logs_response_beside_the_replays_on_a_hz_
     """The linear-axis frequency-response overlay: force -> velocity of the log (H1) against the
     known response of the filter that made it (written here), beside the replay's through the same
     estimator, their residual in dB, the coherence; None for a log too short to estimate."""
-    from scipy.signal import lfilter
-
-    from prsa_ctrl.identification.axis import AxisReplay
-    from prsa_ctrl.plots.fit import axis_response_figure
-
     rng = np.random.default_rng(4)
     n, h = 8192, 1e-3
     t = np.arange(n) * h
