@@ -20,6 +20,8 @@ callback per step. Measured on the paper load step in ``docs/benchmarks.md``.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import casadi as ca
 import numpy as np
 
@@ -147,7 +149,10 @@ class RodasSegment:
         self.max_attempts = int(max_attempts)
         self.stats: dict = {}
 
-    def __call__(self, x0, p) -> dict:
+    def __call__(self, x0, p, check: "Callable[[float, np.ndarray], None] | None" = None) -> dict:
+        """Integrate from ``x0`` (scaled states) with the segment's parameters ``p``; ``check(tau, z)``,
+        when given, is called before every chunk after the first with the segment fraction reached and
+        the scaled state there, and may raise to stop the run (the simulator's wall-time budget)."""
         z0 = np.asarray(x0, dtype=float).ravel()
         pp = np.asarray(p, dtype=float).ravel()
         # The chunk is called through a buffer of this call's own arrays (no conversion to and
@@ -168,6 +173,8 @@ class RodasSegment:
             if calls * n >= self.max_attempts:
                 raise RuntimeError(f"RODAS4: more than {self.max_attempts} step attempts in one segment "
                                    f"(at {st[0]:.6g} of it); raise SimSettings.max_steps or loosen rtol/atol")
+            if check is not None and calls:
+                check(float(st[0]), st[2:].copy())
             tau0 = st[0]
             evaluate()
             calls += 1

@@ -153,3 +153,20 @@ def test_a_solution_that_blows_up_ends_in_one_runtime_error_not_nan():
     seg = RodasSegment(chunk, 1, 10, 1e-8, 1e-8, 10**5)
     with pytest.raises(RuntimeError, match="RODAS4: step size .* at 0.1 of it"):
         seg(x0=[1.0], p=[0.0])
+
+
+def test_the_wall_time_budget_stops_a_rodas_segment_inside_it():
+    # One long segment (2 ms to 20 ms after the load step) of ~40 chunks at tol 1e-8: the budget is
+    # checked between the chunks, so a fake clock that ticks 1 s per reading stops the run inside
+    # the segment at the first reading past max_wall_s, with the budget's own message.
+    ticks = []
+
+    def clock():
+        ticks.append(len(ticks))
+        return float(ticks[-1])
+
+    s = SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8, max_wall_s=4.5, clock=clock)
+    with pytest.raises(SimulationError, match=r"^run stopped at t = (\S+) s: wall-time budget") as err:
+        run(PLANT, fidelity="compliant", settings=s, **STEP)
+    t_stop = float(err.value.args[0].split("t = ")[1].split(" s")[0])
+    assert 0.002 < t_stop < 0.02 and len(ticks) == 6  # the start, then 5 checks: stopped at the first over 4.5 s
