@@ -182,9 +182,13 @@ class RodasSegment:
             taus = sts[:, 0]
             accepted += int(np.count_nonzero(np.diff(taus, prepend=tau0) > 0))
             st[:] = sts[-1]  # the next chunk starts where this one ended (st is the buffer's input)
-            if not (st[1] >= _H_MIN and np.all(np.isfinite(st))):
-                raise RuntimeError(f"RODAS4: step size {st[1]:.3g} of the segment at {st[0]:.6g} of it "
-                                   "(below 1e-13 or not finite): the state is not finite or the model too stiff")
+            if not np.all(np.isfinite(st)):
+                raise RuntimeError(f"RODAS4: the state stopped being finite at {st[0]:.6g} of the segment (step size "
+                                   f"{st[1]:.3g} of it): the solution blows up")
+            if not st[1] >= _H_MIN:
+                raise RuntimeError(f"RODAS4: step size {st[1]:.3g} of the segment at {st[0]:.6g} of it (below 1e-13): "
+                                   f"rtol = {self.cfg[1]:g}, atol = {self.cfg[2]:g} below what double precision "
+                                   "resolves, the solution blowing up or the model too stiff")
         xs = np.vstack(rows).T
         if xs.shape[1] != self.n_out or abs(xs[0, -1] - 1.0) > 1e-12:
             raise RuntimeError(f"RODAS4: {xs.shape[1]} output points reached; expected {self.n_out}")

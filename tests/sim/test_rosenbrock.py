@@ -281,3 +281,36 @@ def test_the_error_estimate_sets_steps_that_follow_the_tolerance_on_a_smooth_sys
         steps[tol] = seg.stats["accepted"]
         assert err < 0.1 * tol, (tol, err)
     assert 10 <= steps[1e-6] < steps[1e-8] < steps[1e-10] < 10 * steps[1e-6], steps
+
+
+def test_a_tolerance_below_double_precision_ends_in_one_error_naming_it():
+    # rtol = atol = 1e-300 is accepted by SimSettings (a tolerance in (0, 1)) but no step meets it:
+    # the steps shrink below 1e-13 of the segment within the first chunks and the error names the
+    # tolerances (CVODES says "CV_TOO_MUCH_ACC").
+    s = SimSettings(integrator="rodas", rtol=1e-300, atol=1e-300)
+    with pytest.raises(SimulationError, match=r"RODAS4: step size .* rtol = 1e-300, atol = 1e-300 below what double"):
+        run(PLANT, fidelity="compliant", settings=s, **STEP)
+
+
+def test_a_loose_tolerance_still_lands_on_every_output_with_finite_values():
+    # rtol = atol = 0.5 (the largest steps the controller allows, capped by the output points).
+    ref = run(PLANT, fidelity="compliant", settings=SimSettings(rtol=1e-12, atol=1e-12), **STEP)
+    r = run(PLANT, fidelity="compliant", settings=SimSettings(integrator="rodas", rtol=0.5, atol=0.5), **STEP)
+    assert np.array_equal(r.time, ref.time) and np.all(np.isfinite(r.outputs))
+    assert np.max(np.abs(r.output("nut_speed") - ref.output("nut_speed"))) < 0.5 * (W300 - ref.output("nut_speed").min())
+
+
+def test_jit_without_a_working_compiler_falls_back_to_the_same_steps_with_a_warning(tmp_path, monkeypatch):
+    import prsa_ctrl.sim.integrators as S
+
+    monkeypatch.setenv("PRSA_CTRL_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    monkeypatch.setattr(S, "_COMPILED", {})
+    # (a plant no other test here compiles: a model's compiled chunk is kept for the process)
+    kw = dict(STEP, duration=0.01, fidelity="rigid")
+    plant = load_plant("rollerscrew-30x5")
+    plain = run(plant, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8, max_steps=20003), **kw)
+    with pytest.warns(UserWarning, match="no-such-cc.* failed .*using CasADi's interpreter"):
+        jit = run(plant, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8, max_steps=20003, jit=True), **kw)
+    assert not list((tmp_path / "jit").glob("*.so"))
+    assert np.array_equal(jit.outputs, plain.outputs)  # the interpreter: the same arithmetic
