@@ -102,7 +102,9 @@ def rodas_attempt(f: ca.Function, nz: int, npar: int, lu_kernels) -> ca.Function
     z_err = sum(RODAS4["e"][j] * k[j] for j in range(_STAGES) if RODAS4["e"][j])
     weight = atol + rtol * ca.fmax(ca.fabs(z), ca.fabs(z1))
     err0 = ca.sqrt(ca.sumsqr(z_err / weight) / nz)
-    finite = ca.logic_and(err0 == err0, ca.sumsqr(z1) == ca.sumsqr(z1))  # NaN compares unequal
+    # NaN and inf compare false with inf (``x == x`` would not do: CasADi simplifies it to 1, and
+    # fmax(NaN, 1e-10) is 1e-10, so a step with a NaN stage would be accepted)
+    finite = ca.logic_and(err0 < ca.inf, ca.sumsqr(z1) < ca.inf)
     err = ca.if_else(finite, ca.fmax(err0, 1e-10), 1e10)
     ok = ca.logic_and(ca.logic_and(err <= 1.0, finite), active)
     fac = ca.fmin(6.0, ca.fmax(0.2, 0.9 * err ** -0.25))

@@ -314,3 +314,27 @@ def test_jit_without_a_working_compiler_falls_back_to_the_same_steps_with_a_warn
         jit = run(plant, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8, max_steps=20003, jit=True), **kw)
     assert not list((tmp_path / "jit").glob("*.so"))
     assert np.array_equal(jit.outputs, plain.outputs)  # the interpreter: the same arithmetic
+
+
+def test_a_non_finite_start_ends_in_one_error_after_the_first_chunk_not_nan_outputs():
+    seg = _linear_segment(np.array([[-1.0]]), 10, 1e-8)
+    with pytest.raises(RuntimeError, match="RODAS4: the state stopped being finite at 0 of the segment"):
+        seg(x0=[np.nan], p=[0.0])
+    assert seg.stats == {}  # no output of the failed call
+
+
+def test_a_step_whose_stages_leave_the_domain_is_rejected_not_taken_with_nan():
+    # z' = -1e6 z (+ 1e-30 log(z + 0.5): defined for z > -0.5 only; the solution decays to 0 inside
+    # it). One step of h = 1 from z = 1: the L-stable stages overshoot below -0.5 (stage 2 is
+    # -0.544 z), so the right-hand side is NaN there; the step must be rejected with a shorter step
+    # proposed and z kept (was: NaN compared as "finite" and the step accepted with a NaN state).
+    z, p, t = ca.SX.sym("z", 1), ca.SX.sym("p", 1), ca.SX.sym("t")
+    f = ca.Function("f", [z, p, t], [-1e6 * z + 1e-30 * ca.log(z + 0.5)])
+    att = rodas_attempt(f, 1, 1, lu_kernels)
+    st1, hit = att([0.0, 1.0, 1.0], [0.0], [1.0, 1e-6, 1e-6])
+    st1 = np.asarray(st1).ravel()
+    assert st1[0] == 0.0 and st1[2] == 1.0 and 0 < st1[1] < 1.0 and float(hit) == 0.0, st1
+    # and a segment from there gets through on shorter steps, finite
+    seg = RodasSegment(att.mapaccum("c", CHUNK_ATTEMPTS, [0], [0]), 1, 4, 1e-6, 1e-6, 10**5)
+    xs = seg(x0=[1.0], p=[0.0])["xf"]
+    assert np.all(np.isfinite(xs)) and np.all(np.abs(xs) < 1e-6)
