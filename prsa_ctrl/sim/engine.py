@@ -51,6 +51,7 @@ from ..plant.equilibrium import operating_point
 from ..plant.model import PlantModel, plant_model
 from ..plant.plantfile import Plant
 from .integrators import Built, SimSettings, accumulated, build, continuous_integrator, sample_integrator
+from .rosenbrock import RodasSegment
 from .signals import NormalisedProfile, Profile, is_number, normalise_profile
 
 if TYPE_CHECKING:  # annotations only
@@ -557,7 +558,13 @@ def _run_continuous(built, settings, budget, sp, ld, duration, dt, gains, ff, x0
         par = [float(sp.at(t0)), float(ld.at(t0)), *gains, ff, t1 - t0, float(sp.slope_at(t0)),
                float(ld.slope_at(t0))]
         try:
-            zf = np.asarray(integ(x0=z, p=par)["xf"])
+            if isinstance(integ, RodasSegment):  # its chunks check the wall-time budget inside the segment
+                zf = integ(x0=z, p=par, check=lambda tau, zz, a=t0, b=t1: budget.check(a + (b - a) * tau, names,
+                                                                                         zz * scale))["xf"]
+            else:
+                zf = np.asarray(integ(x0=z, p=par)["xf"])
+        except SimulationError:  # the budget's own message (raised by a RODAS4 segment's check)
+            raise
         except RuntimeError as exc:
             raise _fail(exc, t0, t1, names, z * scale) from None
         times.append(t0 + (t1 - t0) * np.arange(1, n_out + 1) / n_out)

@@ -72,7 +72,8 @@ class SimSettings:
         a segment); exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
     max_wall_s : float
         Wall-time budget of one run, s, checked between integration chunks (at most
-        :data:`~prsa_ctrl.sim.engine.CHUNK_S` of simulated time each); exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
+        :data:`~prsa_ctrl.sim.engine.CHUNK_S` of simulated time each; ``"rodas"`` also between its
+        chained step attempts); exceeding it raises :class:`~prsa_ctrl.errors.SimulationError`.
     energy_tol : float
         With ``energy=True`` the run audits itself: an energy-balance residual above this
         (relative, see :func:`~prsa_ctrl.sim.engine.energy_balance`) means the integration is not trustworthy and

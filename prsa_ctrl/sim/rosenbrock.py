@@ -20,6 +20,8 @@ callback per step. Measured on the paper load step in ``docs/benchmarks.md``.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import casadi as ca
 import numpy as np
 
@@ -100,7 +102,9 @@ def rodas_attempt(f: ca.Function, nz: int, npar: int, lu_kernels) -> ca.Function
     z_err = sum(RODAS4["e"][j] * k[j] for j in range(_STAGES) if RODAS4["e"][j])
     weight = atol + rtol * ca.fmax(ca.fabs(z), ca.fabs(z1))
     err0 = ca.sqrt(ca.sumsqr(z_err / weight) / nz)
-    finite = ca.logic_and(err0 == err0, ca.sumsqr(z1) == ca.sumsqr(z1))  # NaN compares unequal
+    # NaN and inf compare false with inf (``x == x`` would not do: CasADi simplifies it to 1, and
+    # fmax(NaN, 1e-10) is 1e-10, so a step with a NaN stage would be accepted)
+    finite = ca.logic_and(err0 < ca.inf, ca.sumsqr(z1) < ca.inf)
     err = ca.if_else(finite, ca.fmax(err0, 1e-10), 1e10)
     ok = ca.logic_and(ca.logic_and(err <= 1.0, finite), active)
     fac = ca.fmin(6.0, ca.fmax(0.2, 0.9 * err ** -0.25))
@@ -147,7 +151,10 @@ class RodasSegment:
         self.max_attempts = int(max_attempts)
         self.stats: dict = {}
 
-    def __call__(self, x0, p) -> dict:
+    def __call__(self, x0, p, check: "Callable[[float, np.ndarray], None] | None" = None) -> dict:
+        """Integrate from ``x0`` (scaled states) with the segment's parameters ``p``; ``check(tau, z)``,
+        when given, is called before every chunk after the first with the segment fraction reached and
+        the scaled state there, and may raise to stop the run (the simulator's wall-time budget)."""
         z0 = np.asarray(x0, dtype=float).ravel()
         pp = np.asarray(p, dtype=float).ravel()
         # The chunk is called through a buffer of this call's own arrays (no conversion to and
@@ -168,6 +175,8 @@ class RodasSegment:
             if calls * n >= self.max_attempts:
                 raise RuntimeError(f"RODAS4: more than {self.max_attempts} step attempts in one segment "
                                    f"(at {st[0]:.6g} of it); raise SimSettings.max_steps or loosen rtol/atol")
+            if check is not None and calls:
+                check(float(st[0]), st[2:].copy())
             tau0 = st[0]
             evaluate()
             calls += 1
@@ -175,9 +184,13 @@ class RodasSegment:
             taus = sts[:, 0]
             accepted += int(np.count_nonzero(np.diff(taus, prepend=tau0) > 0))
             st[:] = sts[-1]  # the next chunk starts where this one ended (st is the buffer's input)
-            if not (st[1] >= _H_MIN and np.all(np.isfinite(st))):
-                raise RuntimeError(f"RODAS4: step size {st[1]:.3g} of the segment at {st[0]:.6g} of it "
-                                   "(below 1e-13 or not finite): the state is not finite or the model too stiff")
+            if not np.all(np.isfinite(st)):
+                raise RuntimeError(f"RODAS4: the state stopped being finite at {st[0]:.6g} of the segment (step size "
+                                   f"{st[1]:.3g} of it): the solution blows up")
+            if not st[1] >= _H_MIN:
+                raise RuntimeError(f"RODAS4: step size {st[1]:.3g} of the segment at {st[0]:.6g} of it (below 1e-13): "
+                                   f"rtol = {self.cfg[1]:g}, atol = {self.cfg[2]:g} below what double precision "
+                                   "resolves, the solution blowing up or the model too stiff")
         xs = np.vstack(rows).T
         if xs.shape[1] != self.n_out or abs(xs[0, -1] - 1.0) > 1e-12:
             raise RuntimeError(f"RODAS4: {xs.shape[1]} output points reached; expected {self.n_out}")
