@@ -438,11 +438,12 @@ def _report_html(cal: Calibration, state: str) -> str:
                 + _verdict_html(cal))
     rows = []
     for key, v in rep["parameters"].items():
-        lo, hi = v["ci95"]
         kept = v.get("kept_base")
         shown = f"{v['written']:.6g} (base value kept: not identifiable)" if kept else f"{v['value']:.6g}"
+        ci = (html.escape(v.get("note", "held, not fitted")) if v.get("ci95") is None else
+              f"{v['ci95'][0]:.6g} .. {v['ci95'][1]:.6g}")
         rows.append(f"<tr><td>{html.escape(key)}</td><td data-k='fit-{key}-value'>{shown}</td>"
-                    f"<td data-k='fit-{key}-ci'>{lo:.6g} .. {hi:.6g}</td><td>{html.escape(v['unit'])}</td></tr>")
+                    f"<td data-k='fit-{key}-ci'>{ci}</td><td>{html.escape(v['unit'])}</td></tr>")
     j = rep["reflected_inertia_kg_m2"]
     rows.append(f"<tr><td>reflected inertia</td><td data-k='fit-reflected-value'>{j['value']:.6g}</td>"
                 f"<td>{j['ci95'][0]:.6g} .. {j['ci95'][1]:.6g}</td><td>kg m^2</td></tr>")
