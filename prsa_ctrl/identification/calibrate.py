@@ -269,7 +269,7 @@ def linear_axis_refusal(base: str | None) -> str:
 
 def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name: str,
                    labels: Sequence[str] | None = None,
-                   check_interrupt: Callable[[], None] | None = None) -> Calibrated:
+                   check_interrupt: Callable[[], None] | None = None, log_format: str | None = None) -> Calibrated:
     """Fit a base plant to drive logs with ``prsa-fit``'s defaults and compose its outputs.
 
     The same steps, checks and messages as ``prsa-fit LOG... [--plant BASE] --out NAME.toml
@@ -292,6 +292,11 @@ def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name
     check_interrupt : callable, optional
         Called at every iteration and after every simulation of the fit; an exception it raises
         ends the fit (the caller's cancellation).
+    log_format : str, optional
+        A log description (``--log-format``): the logs (CSV or ``.mat``) are read through it in
+        the plant's motor coordinates (a log in load coordinates converted with the lead,
+        :func:`prsa_ctrl.identification.logformat.load_motor_record`), the command convention is
+        its ``[command] logged``.
 
     Returns
     -------
@@ -317,23 +322,31 @@ def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name
     if len(labels) != len(paths):
         raise ValueError(f"labels: {len(labels)} for {len(paths)} logs; expected one per log")
     mat = next((p for p in paths if p.lower().endswith(".mat")), None)
-    if mat is not None:
+    if mat is not None and log_format is None:
         raise DataError(mat_log_refusal(mat))
     plant = load_plant(base)
     if plant.mechanism == "linear-axis":
         raise PlantFileError(linear_axis_refusal(base))
     base_text = plant_file_path(base).read_bytes().decode("utf-8")  # CR LF kept for the writer
     plant.to_toml(base_text, name=name, keys=[k for k in FITTABLE if k in plant.values], description="check")
-    records = []
+    records, logged, coordinates = [], "applied", {label: MOTOR_COORDINATES for label in labels}
+    if log_format is not None:
+        from .logformat import MOTOR_CONVENTION, load_log_format, load_motor_record
+
+        fmt = load_log_format(log_format)
+        logged = MOTOR_CONVENTION[fmt.doc["command"].get("logged", "as-computed")]
+        if fmt.doc.get("axis", "linear") == "linear":
+            how = (f"load (position m, force N), converted with the lead {plant.lead_per_rad:.9g} m/rad: angle = "
+                   "position / lead, torque = force x lead")
+            coordinates = {label: how for label in labels}
     for path, label in zip(paths, labels):
-        rec = load_record(path)
+        rec = load_record(path) if log_format is None else load_motor_record(path, fmt, plant)[0]
         records.append(replace(rec, name=label, warnings=tuple(w.replace(path, label) for w in rec.warnings)))
     result = fit_plant(records, plant, fidelity="rigid", validate=[], segment_s=0.1, delay_samples="find",
-                       command_logged="applied", uncertainty="keep", check_interrupt=check_interrupt,
+                       command_logged=logged, uncertainty="keep", check_interrupt=check_interrupt,
                        cross_validate=True, closed_loops={})
     if check_interrupt is not None:
         check_interrupt()
-    coordinates = {label: MOTOR_COORDINATES for label in labels}
     failure = not_explained_line(result)
     text = None if failure else fitted_plant_text(result, plant, base_text, name, ", ".join(Path(x).name for x in labels),
                                                   origin=name)
