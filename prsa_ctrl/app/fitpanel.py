@@ -12,7 +12,8 @@ a response the command refuses (exit 3) is shown as refused with its line.
 
 Elements the browser tests read carry ``data-k`` attributes (``fit-state``, ``fit-verdict``,
 ``fit-views``, ``fit-<key>-value``, ``fit-<key>-ci``, ``fit-warning``), the widgets CSS classes
-``prsa-log-upload``, ``prsa-frf-upload``, ``prsa-fit-use``, ``prsa-fit-discard``, ``prsa-fit-download``, the figures
+``prsa-log-upload``, ``prsa-format-upload`` (a log description the next log is read through: a ``.mat``
+log, a linear axis), ``prsa-frf-upload``, ``prsa-fit-use``, ``prsa-fit-discard``, ``prsa-fit-download``, the figures
 ``prsa-fit-replay``, ``prsa-fit-residual``, ``prsa-fit-frf-mag``, ``prsa-fit-frf-phase``,
 ``prsa-fit-coherence``, and their data sources the names ``prsa-fit-replay``,
 ``prsa-fit-frf``, ``prsa-fit-frf-models``.
@@ -153,9 +154,17 @@ class FitPanel:
         self.calibration: Calibration | None = None
         self._seq = 0
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="prsa-app-fit")
-        self.upload, self.too_large = upload_input(".csv", "Calibrate from a drive log (prsa-fit LOG --plant <this "
-                                                   "plant>)", "prsa-log-upload")
+        self.upload, self.too_large = upload_input(".csv,.mat", "Calibrate from a drive log (prsa-fit LOG --plant <this "
+                                                   "plant>; a .mat log or a linear axis with its description below)",
+                                                   "prsa-log-upload")
         self.too_large.on_change("data", lambda attr, old, new: self._too_large())
+        #: the log description (name, bytes) the next log is read through (prsa-fit --log-format), or None
+        self.log_format: tuple[str, bytes] | None = None
+        self.fmt_upload, self.fmt_too_large = upload_input(
+            ".toml", "log description for the next log (prsa-fit --log-format FORMAT.toml: a .mat log, a linear "
+            "axis in load coordinates)", "prsa-format-upload")
+        self.fmt_too_large.on_change("data", lambda attr, old, new: self._too_large(self.fmt_too_large, "format"))
+        self.fmt_upload.on_change("value", lambda attr, old, new: page.doc.add_next_tick_callback(self._format))
         self.frf_upload, self.frf_too_large = upload_input(
             ".csv", "or from a measured frequency response (prsa-fit --frf FRF.csv --plant <this plant>: frequency_hz, "
             "magnitude_db, phase_deg or real, imag, optional coherence)", "prsa-frf-upload")
@@ -172,7 +181,8 @@ class FitPanel:
         self.views: FitViews | None = None
         self._views_box = column(sizing_mode="stretch_width")
         #: the calibration tab's content (:class:`prsa_ctrl.app.page.AppPage` puts it in its tab)
-        self.layout = row(column(self.upload, self.frf_upload, row(self.use, self.discard), self.download, width=330),
+        self.layout = row(column(self.fmt_upload, self.upload, self.frf_upload, row(self.use, self.discard), self.download,
+                                 width=330),
                           column(self.out, self._views_box, sizing_mode="stretch_width"), sizing_mode="stretch_width")
         # value and filename arrive in one patch, value first: read both once the patch is applied
         self.upload.on_change("value", lambda attr, old, new: page.doc.add_next_tick_callback(self._start))
@@ -185,6 +195,18 @@ class FitPanel:
         line = too_large_line(self.too_large if src is None else src, f"uploaded-{kind}.csv")
         if line is not None:
             self.page.show_error(line)
+
+    def _format(self) -> None:
+        """Keep the uploaded log description for the next log (nothing is fitted yet)."""
+        try:
+            got = uploaded_file(self.fmt_upload, "log-format.toml")
+        except AppInputError as exc:
+            self.page.show_error(str(exc))
+            return
+        if got is not None:
+            self.log_format = got
+            self.out.text = (f"<div data-k='fit-format' data-name='{html.escape(got[0])}'>Log description "
+                             f"{html.escape(got[0])} ({len(got[1])} bytes): the next log is read through it</div>")
 
     def _start(self, kind: str = "log") -> None:
         try:
@@ -208,11 +230,12 @@ class FitPanel:
                             "response, the structure the data choose; seconds)" if kind == "frf" else
                             "(prsa-fit's fit in a worker thread: Gauss-Newton on the whole log, no intermediate progress; "
                             "seconds)") + f"</div>{_BAR}")
-        self._pool.submit(self._work, self._seq, name, content, kind)
+        self._pool.submit(self._work, self._seq, name, content, kind, self.log_format if kind == "log" else None)
 
-    def _work(self, seq: int, name: str, content: bytes, kind: str = "log") -> None:
+    def _work(self, seq: int, name: str, content: bytes, kind: str = "log", log_format=None) -> None:
         try:
-            cal = self.page.session.calibrate(name, content, cancelled=lambda: seq != self._seq, kind=kind)
+            cal = self.page.session.calibrate(name, content, cancelled=lambda: seq != self._seq, kind=kind,
+                                              log_format=log_format)
         except Cancelled:
             return
         except AppInputError as exc:
@@ -243,7 +266,7 @@ class FitPanel:
             self.files.data = {"name": [], "text": []}
             self.out.text = _report_html(cal, "refused")
         else:
-            self.use.disabled = self.download.disabled = False
+            self.use.disabled, self.download.disabled = not cal.usable, False
             self.files.data = {"name": [cal.file_name], "text": [cal.plant_text]}
             self.out.text = _report_html(cal, "done")
         self._show_views(cal.report.get("views"))
@@ -408,6 +431,11 @@ def _verdict_html(cal: Calibration) -> str:
         return ("<div data-k='fit-verdict' data-verdict='not-validated'>Fitted to the measured frequency response "
                 "(no replay validation: that needs a drive log); the structure the data chose:</div>"
                 + _structure_html(cal.report["frf_structure"]))
+    if v is None and cal.report.get("mechanism") == "linear-axis":  # prsa-fit --log-format: each log replayed
+        return ("<div data-k='fit-verdict' data-verdict='replayed'>" + "<br>".join(
+            html.escape(f"{r['log']}: {r['replay']}, fit position {r['fit_percent']['position']:.3f} %, velocity "
+                        f"{r['fit_percent']['velocity']:.3f} %, force {r['fit_percent']['force']:.3f} %")
+            for r in cal.report.get("replay", [])) + "</div>")
     if v is None:
         return ("<div data-k='fit-verdict' data-verdict='not-validated'>Not validated: prsa-fit replayed no log "
                 "through the written plant.</div>")
@@ -438,14 +466,16 @@ def _report_html(cal: Calibration, state: str) -> str:
                 + _verdict_html(cal))
     rows = []
     for key, v in rep["parameters"].items():
-        lo, hi = v["ci95"]
         kept = v.get("kept_base")
         shown = f"{v['written']:.6g} (base value kept: not identifiable)" if kept else f"{v['value']:.6g}"
+        ci = (html.escape(v.get("note", "held, not fitted")) if v.get("ci95") is None else
+              f"{v['ci95'][0]:.6g} .. {v['ci95'][1]:.6g}")
         rows.append(f"<tr><td>{html.escape(key)}</td><td data-k='fit-{key}-value'>{shown}</td>"
-                    f"<td data-k='fit-{key}-ci'>{lo:.6g} .. {hi:.6g}</td><td>{html.escape(v['unit'])}</td></tr>")
-    j = rep["reflected_inertia_kg_m2"]
-    rows.append(f"<tr><td>reflected inertia</td><td data-k='fit-reflected-value'>{j['value']:.6g}</td>"
-                f"<td>{j['ci95'][0]:.6g} .. {j['ci95'][1]:.6g}</td><td>kg m^2</td></tr>")
+                    f"<td data-k='fit-{key}-ci'>{ci}</td><td>{html.escape(v['unit'])}</td></tr>")
+    j = rep.get("reflected_inertia_kg_m2")  # (a linear axis: its mass is among the parameters)
+    if j is not None:
+        rows.append(f"<tr><td>reflected inertia</td><td data-k='fit-reflected-value'>{j['value']:.6g}</td>"
+                    f"<td>{j['ci95'][0]:.6g} .. {j['ci95'][1]:.6g}</td><td>kg m^2</td></tr>")
     fits = "; ".join(f"{pct:.2f} % on {html.escape(f)}" if pct is not None else f"n/a on {html.escape(f)}"
                      for f, pct in rep["fit_percent"].items())
     warns = "".join(f"<li data-k='fit-warning'>warning: {html.escape(w)}</li>" for w in rep["warnings"])
@@ -454,17 +484,19 @@ def _report_html(cal: Calibration, state: str) -> str:
         return (f"<div data-k='fit-state' data-state='refused' data-file=''><b>Calibration</b> of "
                 f"<b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, status "
                 f"<span data-k='fit-status'>{html.escape(str(rep.get('status', '')))}</span>; solver "
-                f"{html.escape(str(rep['solver'].get('status', '')))}): refused, fit {fits}</div>" + _verdict_html(cal)
+                f"{html.escape(str(rep.get('solver', {}).get('status', '')))}): refused, fit {fits}</div>" + _verdict_html(cal)
                 + "<div style='font-size:12px'>The values the refused fit found (not written, not for tuning):</div>"
                 "<table style='font-size:12px;color:#777'><tr><th style='text-align:left'>key</th><th>value</th>"
                 "<th>95 % CI</th><th>unit</th></tr>" + "".join(rows) + "</table>"
                 + (f"<ul style='font-size:12px;margin:2px 0'>{warns}{notes}</ul>" if warns or notes else ""))
     head = ("in use: the app now tunes this plant (Actuator tab)" if state == "used" else
-            "press <i>Use the fitted plant</i> to tune it, or discard it")
+            "press <i>Use the fitted plant</i> to tune it, or discard it" if cal.usable else
+            "a linear-axis plant (load coordinates, replayed closed loop from the log's reference): download it, "
+            "prsa-axis tunes it; the app tunes screw-driven actuators")
     return (f"<div data-k='fit-state' data-state='{state}' data-file='{html.escape(cal.file_name)}'><b>Calibration</b> "
             f"of <b>{html.escape(cal.base_label)}</b> from {html.escape(cal.log_name)} (prsa-fit, status "
             f"<span data-k='fit-status'>{html.escape(str(rep.get('status', '')))}</span>; solver "
-            f"{html.escape(str(rep['solver'].get('status', '')))}): fit {fits}; {head}. Fitted plant file: "
+            f"{html.escape(str(rep.get('solver', {}).get('status', '')))}): fit {fits}; {head}. Fitted plant file: "
             f"{html.escape(cal.file_name)}</div>" + _verdict_html(cal)
             + "<table style='font-size:12px'><tr><th style='text-align:left'>key</th><th>value</th><th>95 % CI</th>"
             "<th>unit</th></tr>" + "".join(rows) + "</table>"

@@ -279,7 +279,7 @@ class AppSession:
     # ---- calibration from a drive log ---------------------------------------------------
 
     def calibrate(self, filename: str, content: bytes, cancelled: Callable[[], bool] | None = None,
-                  poll_s: float = 0.1, kind: str = "log") -> "Calibration":
+                  poll_s: float = 0.1, kind: str = "log", log_format: tuple[str, bytes] | None = None) -> "Calibration":
         """Fit the session's plant to an uploaded drive log: what ``prsa-fit LOG --plant BASE --out
         LOG-fitted.toml --json LOG-fit.json`` does, as a library call in this thread
         (:func:`prsa_ctrl.identification.calibrate.calibrate_logs`: the same checks, fit, warnings,
@@ -302,6 +302,12 @@ class AppSession:
         explains the response, an implausible inertia or delay) returns a :class:`Calibration`
         with ``refused`` set, an empty ``report`` and no plant file.
 
+        ``log_format=(file name, bytes)``: a log description (``prsa-fit --log-format``) the log (CSV
+        or MATLAB ``.mat``) is read through
+        (:func:`prsa_ctrl.identification.calibrate_axis.calibrate_described`): in load coordinates
+        a ``linear-axis`` plant fitted from the log alone, to download (``usable`` False: the app
+        tunes screw-driven actuators), in motor coordinates the session's plant.
+
         Raises
         ------
         AppInputError
@@ -312,8 +318,9 @@ class AppSession:
         """
         import time
 
-        from ..errors import DataError, FitError
+        from ..errors import AxisFitError, DataError, FitError
         from ..identification.calibrate import calibrate_frf, calibrate_logs
+        from ..identification.calibrate_axis import calibrate_described
         from ..io.output import json_safe, write_text
         from ..textsafe import MESSAGE_CHARS_MAX, printable
 
@@ -323,6 +330,13 @@ class AppSession:
         folder = self._folder("log")
         path = folder / name
         path.write_bytes(content)
+        fmt_path = None
+        if log_format is not None:  # beside the log, under its uploaded name
+            if kind != "log" or upload_name(log_format[0], "log-format.toml") == name:
+                raise AppInputError(f"{name}: a log description with a {kind} named like it; expected a drive log "
+                                    "and its description under another name")
+            fmt_path = folder / upload_name(log_format[0], "log-format.toml")
+            fmt_path.write_bytes(log_format[1])
         stem = Path(name).stem or "log"
         out = f"{stem}-fitted.toml"
         base, base_label = self.plant_source, self.plant_label
@@ -344,6 +358,7 @@ class AppSession:
             the files named as uploaded."""
             text = printable(text, limit=MESSAGE_CHARS_MAX) if one_line else text
             for p, shown in ((str(path), name), (str(folder / out), out),
+                             *([(str(fmt_path), fmt_path.name)] if fmt_path is not None else []),
                              *([(base, base_label)] if base is not None else [])):
                 text = text.replace(p, shown)
             return " ".join(text.split())
@@ -355,11 +370,14 @@ class AppSession:
                     got = calibrate_frf([str(path)], base, name=Path(out).stem, labels=[name])
                     state["last"] = -math.inf  # the cancel pressed meanwhile is seen now
                     check()
+                elif fmt_path is not None:
+                    got = calibrate_described([str(path)], str(fmt_path), base, name=Path(out).stem, labels=[name],
+                                              check_interrupt=check)
                 else:
                     got = calibrate_logs([str(path)], base, name=Path(out).stem, labels=[name], check_interrupt=check)
             except Cancelled:
                 raise
-            except FitError as exc:
+            except (FitError, AxisFitError) as exc:
                 if state["cancelled"]:
                     raise Cancelled("calibration cancelled") from None
                 if kind != "frf":
@@ -387,7 +405,9 @@ class AppSession:
         from ..plots.fit import fit_views
 
         # as prsa-fit --json writes it, with the fit's three views (replay, FRF in Hz, residuals)
-        report = json.loads(json.dumps(json_safe({**got.report, "views": fit_views(got.result, got.records)})))
+        linear = got.report.get("mechanism") == "linear-axis"  # (its replays are in the report, not views)
+        report = json.loads(json.dumps(json_safe({**got.report, "views": {} if linear else
+                                                  fit_views(got.result, got.records)})))
         lines = tuple(named(x, False) for line in got.lines
                       for x in printable(line, multiline=True).splitlines() if x.strip())
         if got.failure is not None:  # the fit ran and its plant does not explain the log: a verdict, no plant file
@@ -395,8 +415,9 @@ class AppSession:
             return Calibration(log_name=name, base_label=base_label, plant_path="", file_name="", report=report,
                                lines=lines, notes=tuple(notes), refused=refused)
         write_text(folder / out, got.plant_text, inputs=[path], flag="--out")
-        return Calibration(log_name=name, base_label=base_label, plant_path=str(folder / out), file_name=out,
-                           report=report, notes=tuple(notes), lines=lines)
+        return Calibration(log_name=name, base_label="a linear axis built from the log" if linear else base_label,
+                           plant_path=str(folder / out), file_name=out, report=report, notes=tuple(notes), lines=lines,
+                           usable=not linear)
 
     def use_calibration(self, cal: "Calibration") -> list[str]:
         """Make the fitted plant the session's plant (checked against the scene; its file name
@@ -404,6 +425,9 @@ class AppSession:
         plant: AppInputError with its line."""
         if cal.refused is not None:
             raise AppInputError(f"{cal.log_name}: the fit is refused, no plant to use ({cal.refused})")
+        if not cal.usable:
+            raise AppInputError(f"{cal.file_name}: a linear-axis plant; expected a screw-driven plant to tune here "
+                                "(download it: prsa-axis tunes a linear axis)")
         return self.set_plant(cal.plant_path, label=cal.file_name)
 
     def scene_for(self, s: Settings) -> Scene:
@@ -888,6 +912,8 @@ class Calibration:
         When prsa-fit refused the fitted plant (exit 3: it does not explain the log), its one
         line with the diagnosis; ``plant_path`` and ``file_name`` are then empty (no plant
         file is written) and ``report`` says why (``solver.validation``, ``views``).
+    usable : bool
+        Whether the app can tune the fitted plant (False for a linear axis: download only).
     """
 
     log_name: str
@@ -898,6 +924,7 @@ class Calibration:
     lines: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
     refused: str | None = None
+    usable: bool = True
 
     @property
     def plant_text(self) -> str:

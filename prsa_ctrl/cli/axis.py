@@ -26,14 +26,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import re
 import sys
 from pathlib import Path
 from typing import Sequence
 
 from ..options import MOTOR_COORDINATES  # re-exported (coordinates of every plant but a linear axis)
-from ..reporttext import axis_fit_lines, axis_validation_lines
+from ..reporttext import axis_validation_lines
 from .common import Parser, Run, UsageError, echo, progress
 
 __all__ = ["wants_axis_mode", "run", "motor_log_mode", "motor_records", "MOTOR_COORDINATES"]
@@ -219,94 +218,16 @@ def _json(obj) -> str:
 
 
 def _base_plant(args, logs):
-    """The base plant: ``--plant`` (a linear-axis plant file) or one built from what the logs say,
-    with the schema's defaults (:data:`prsa_ctrl.plant.schema.DEFAULTS`) for every other key; the
-    drive gain, sample time, force limit and encoder resolution of the logs fill the built plant and
-    are checked against a ``--plant`` file (:func:`_merge_base`). Returns ``(plant, warnings)``."""
-    import numpy as np
+    """The base plant: ``--plant`` (a linear-axis plant file) or one built from what the logs say
+    (:func:`prsa_ctrl.identification.calibrate_axis.axis_base_plant`, the app's too). Returns
+    ``(plant, warnings)``."""
+    from ..identification.calibrate_axis import axis_base_plant
 
-    from ..identification.axis import LinearAxisPlant, load_axis_plant, logged_force_peak
-
-    lg = logs[0]
-    fmt_name = Path(args.log_format).name
-    log_name = Path(lg.name).name
-    for other in logs[1:]:
-        if not math.isclose(other.gain_n_per_unit, lg.gain_n_per_unit, rel_tol=1e-9):
-            raise UsageError(f"{other.name}: drive gain {other.gain_n_per_unit:g} differs from {lg.name}'s "
-                              f"{lg.gain_n_per_unit:g}; expected logs of one axis")
-    vals, srcs = {}, {}
-    vals["drive.gain_n_per_unit"] = lg.gain_n_per_unit
-    srcs["drive.gain_n_per_unit"] = f"log: {lg.sources.get('gain', fmt_name)}"
-    vals["sensor.sample_time_s"], srcs["sensor.sample_time_s"] = lg.sample_time_s, f"log: {fmt_name}"
-    if lg.controller is not None and math.isfinite(lg.controller.saturation):
-        vals["drive.force_limit_n"] = lg.controller.saturation * lg.gain_n_per_unit
-        srcs["drive.force_limit_n"] = f"log: {fmt_name} [controller] saturation x drive gain"
-    if lg.resolution_m is not None:
-        vals["sensor.encoder_resolution_m"] = lg.resolution_m
-        srcs["sensor.encoder_resolution_m"] = f"log: {fmt_name} [position] resolution"
-    if args.plant:
-        base, notes = _merge_base(load_axis_plant(args.plant), args.plant, vals, srcs)
-        flim = base.values.get("drive.force_limit_n", math.inf)
-        peak, where = logged_force_peak(logs)
-        if flim < peak * (1.0 - 1e-9):  # the replay would clip the force the log says the drive applied
-            raise UsageError(f"--plant {args.plant}: drive.force_limit_n = {flim:.6g} N is below the largest logged "
-                              f"force {peak:.6g} N (drive gain x command) in {where}; expected a force limit >= the "
-                              "logged forces (the drive applied them)")
-        return base, notes
-    if "drive.force_limit_n" not in vals:
-        peak = max(float(np.max(np.abs(g.gain_n_per_unit * g.command))) for g in logs)
-        vals["drive.force_limit_n"] = max(peak, 1e-3)
-        srcs["drive.force_limit_n"] = (f"estimate: largest force in {log_name} (no controller saturation described; "
-                                       "give the drive's limit with --plant)")
-    if "sensor.encoder_resolution_m" not in vals:
-        steps = np.abs(np.diff(lg.position_m))
-        steps = steps[steps > 0]
-        res = float(steps.min()) if steps.size else 0.0
-        vals["sensor.encoder_resolution_m"] = min(max(res, 1e-10), 1e-2)
-        srcs["sensor.encoder_resolution_m"] = (f"estimate: smallest position step in {log_name}" if 1e-10 <= res <= 1e-2
-                                               else f"estimate: {log_name} holds no plausible position step; the "
-                                                    "finest resolution the schema accepts (not used by the fit)")
-    vals["axis.mass_kg"], srcs["axis.mass_kg"] = 1.0, "default: placeholder, replaced by the fit"
-    doc: dict = {"name": "base", "mechanism": "linear-axis", "coordinates": "load"}
-    for k, v in vals.items():
-        sec, key = k.split(".")
-        doc.setdefault(sec, {})[key] = {"value": float(v), "source": srcs[k]}
-    doc["drive"]["command_unit"] = lg.command_unit
-    return LinearAxisPlant.from_dict(doc, origin=f"base plant of {log_name}"), []
-
-
-#: Keys the log states and a --plant base also gives: a disagreement is refused (the log's value is
-#: a fact of the record: the drive gain converts every logged command to force, the sample time is
-#: the controller's) or warned about and the base's value kept (the drive's force limit can exceed
-#: the controller's saturation, which the replay applies anyway; the encoder resolution is not fitted).
-_LOG_FACTS = ("drive.gain_n_per_unit", "sensor.sample_time_s")
-_BASE_KEPT = ("drive.force_limit_n", "sensor.encoder_resolution_m")
-_UNITS = {"drive.gain_n_per_unit": "N per command unit", "sensor.sample_time_s": "s", "drive.force_limit_n": "N",
-          "sensor.encoder_resolution_m": "m"}
-
-
-def _merge_base(base, plant_path: str, vals: dict, srcs: dict):
-    """The ``--plant`` base with what the logs say: every base value, description and
-    ``[uncertainty]`` entry is kept; a log value that disagrees with the base (relative tolerance
-    1e-6) is refused for :data:`_LOG_FACTS` and kept from the base, with a warning, for
-    :data:`_BASE_KEPT`. Returns ``(plant, warnings)``."""
-    notes = []
-    for k, v in vals.items():
-        b = base.values.get(k)
-        if b is None or math.isclose(b, v, rel_tol=1e-6):
-            continue
-        unit = _UNITS[k]
-        if k in _LOG_FACTS:
-            raise UsageError(f"--plant {plant_path}: {k} = {b:.6g} {unit} disagrees with {v:.6g} {unit} from the log "
-                             f"({srcs[k]}); expected the same value (correct the base or the log description)")
-        notes.append(f"{k}: kept {b:.6g} {unit} of --plant {plant_path}, not {v:.6g} {unit} from the log ({srcs[k]}): "
-                     "the base states the axis (the fit and the replays clip the drive force at it; the replayed "
-                     "controller still clips its output at its own saturation)")
-    return base, notes
+    return axis_base_plant(logs, args.log_format, args.plant)
 
 
 def _fit(args) -> int:
-    from ..identification.axis import axis_plant_toml, fit_linear_axis, replay_axis
+    from ..identification.axis import axis_plant_toml, fit_linear_axis
 
     if args.traces:
         raise UsageError(f"--traces {args.traces!r} without --validate; expected it with --validate PLANT.toml LOG")
@@ -334,26 +255,16 @@ def _fit(args) -> int:
             fit_logs.append(lg.window(0, cut))
             held.append(lg.window(cut, lg.n))
     result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)
-    text = axis_plant_toml(result.plant)
-    report = result.as_dict()
-    report["warnings"] = [*base_notes, *report["warnings"]]
-    from ..identification.friction_map import axis_friction_map  # issue 21: friction curve with Stribeck (report)
+    from ..identification.calibrate_axis import axis_outputs  # the app's composer too
 
-    axis_plant = result.plant.to_plant()
-    report["friction_map"] = {Path(lg.name).name: axis_friction_map(lg.name, lg.time_s, lg.position_m,
-                                                                    lg.gain_n_per_unit * lg.command, axis_plant)
-                              for lg in fit_logs}
-    report["warnings"] += [w for fmap in report["friction_map"].values() for w in fmap.get("warnings", [])]
-    if held:
-        report["holdout"] = {"fraction": args.holdout, "note": "fitted on the first part of each log, replayed on the "
-                             "rest (closed loop from the reference, starting from the logged position at rest)",
-                             "replay": [replay_axis(result.plant, h).as_dict() for h in held]}
+    text = axis_plant_toml(result.plant)
+    report, lines = axis_outputs(result, fit_logs, base_notes, held, args.holdout)
     files = {args.out: ("--out", text)}
     if args.json:
-        files[args.json] = ("--json", _json(report))
+        files[args.json] = ("--json", _json({k: v for k, v in report.items() if k != "fit_percent"}))
     plots = _plots(args.plots, result.replays, inputs) if args.plots else []
     _write(files, inputs)
-    for line in axis_fit_lines(report):
+    for line in lines:
         echo(line)
     echo(f"wrote {args.out}" + (f" and {args.json}" if args.json else "") + (f"; plots: {', '.join(plots)}" if plots else ""))
     return 0

@@ -4,7 +4,7 @@
 [--frequency-unit Hz|rad/s]
 [--plant BASE] [--fit KEY,...] [--fidelity rigid|compliant] [--validate OTHER.csv ...]
 [--columns name=header,...] [--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N]
-[--coherence-min C] [--delay-samples N] [--command-logged applied|computed] [--verbose]``
+[--frf-sample-time S] [--coherence-min C] [--delay-samples N] [--command-logged applied|computed] [--verbose]``
 
 The command delay: by default the fit of time-domain records searches the whole-sample delay
 between the logged command and its action (:func:`prsa_ctrl.identification.delay.search_delay`)
@@ -89,6 +89,11 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="RAD_S", help=f"nut speed during the FRF measurement, rad/s (default {FRF_SPEED_DEFAULT_RAD_S:g})")
     p.add_argument("--frf-load", action=KeepTyped, type=_finite("--frf-load"), default=None, metavar="N",
                    help="axial load during the FRF measurement, N (default --load, else 0)")
+    p.add_argument("--frf-sample-time", type=number("--frf-sample-time", 0.0, what="a finite time >= 0 s",
+                                                    quoted=True, not_a_number="a time in s"), default=None,
+                   metavar="S", help="sample time of the drive that measured the --frf responses, s (default the "
+                   "plant's sensor.sample_time_s: command held over a sample, speed the backward difference of the "
+                   "angle); 0: a continuous-time response (e.g. computed from a model)")
     p.add_argument("--coherence-min", type=_finite("--coherence-min"), default=FRF_COHERENCE_MIN_DEFAULT,
                    metavar="C", help=f"FRF points with a lower coherence are dropped (default {FRF_COHERENCE_MIN_DEFAULT:g})")
     p.add_argument("--plots", metavar="DIR", help="write residual, overlay and Bode figures (PNG) into DIR "
@@ -336,12 +341,14 @@ def _probe_plots(directory: str, names: Sequence[str], inputs: Sequence[str]) ->
 def _check_frf_point(plant, speed: float, load: float, args) -> None:
     """The FRF operating point (``--frf-speed``, ``--frf-load``) checked before the fit, the
     flag named (:func:`prsa_ctrl.identification.common.frf_operating_point_error`)."""
-    from ..identification.common import frf_operating_point_error
+    from ..identification.calibrate import frf_point_check
 
-    bad = frf_operating_point_error(plant, speed, load)
-    if bad:
-        flag, value = ("--frf-speed", speed) if bad[0] == "speed" else ("--frf-load", load)
-        raise UsageError(f"{flag} {_typed(args, flag, value)}: {bad[1]}")
+    frf_point_check(plant, speed, load, _typed_point(args, speed, load))
+
+
+def _typed_point(args, speed: float, load: float) -> dict:
+    """``--frf-speed`` and ``--frf-load`` as typed (for the operating point's messages)."""
+    return {"--frf-speed": _typed(args, "--frf-speed", speed), "--frf-load": _typed(args, "--frf-load", load)}
 
 
 def _main(argv: Sequence[str], created: list | None = None, run: Run | None = None, parsed: list | None = None) -> int:
@@ -432,28 +439,43 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
             coordinates = {f: MOTOR_COORDINATES for f in (*args.data, *args.validate)}
         if args.validate and not args.data:
             raise UsageError("--validate without DATA.csv; expected time-domain records to fit first")
-        frfs = [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load, coherence_min=args.coherence_min)
-                for f in args.frf]
+        # the FRF-only fit (--frf alone, or --frf-from-logs) without --fit: identification.calibrate.calibrate_frf
+        # reads the --frf files, fits and composes the outputs (the app's calibration calls it too)
+        frf_only = keys is None and (not args.data or args.frf_from_logs is not None)
+        frfs = [] if frf_only else [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load,
+                                             coherence_min=args.coherence_min, sample_time_s=args.frf_sample_time)
+                                    for f in args.frf]
         if args.frf_from_logs is not None:
             records, frfs = [], frfs + _frfs_from_logs(args, records)
     except (UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
         echo(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # e.g. an input path that is a symlink loop
-        echo(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
-             "expected readable files", file=sys.stderr)
+        _echo_unreadable(exc)
         return 2
     from ..errors import FitError
     from ..identification.timedomain import fit_plant
 
     run = Run("prsa-fit") if run is None else run
     progress(run, args.verbose, f"fitting {len(records)} record(s)")
-    choice = result = None
+    choice = result = cal = None
+    fitted_from = ", ".join(Path(f).name for f in [*args.data, *([] if args.data else args.frf)])
     try:
         run.record = True  # Ctrl-C recorded while CasADi runs, raised at the fit's iterations (run.check)
-        if not records and frfs:  # FRF only: the structure the data choose (issue 32)
+        if frf_only:  # FRF only: the structure the data choose (issue 32), the library's one path
+            from ..identification.calibrate import calibrate_frf
+
+            cal = calibrate_frf(args.frf, args.plant, name=Path(args.out).stem, speed_rad_s=args.frf_speed,
+                                load_n=frf_load, coherence_min=args.coherence_min, fidelity=args.fidelity,
+                                sample_time_s=args.frf_sample_time,
+                                command_logged=args.command_logged or "applied",
+                                uncertainty="fit" if args.uncertainty_from_fit else "keep", force=args.force,
+                                origin=args.out, typed=_typed_point(args, args.frf_speed, frf_load), extra=frfs,
+                                fitted_from=fitted_from, coordinates=coordinates)
+            result, choice = cal.result, cal.choice
+        elif not records and frfs:  # --fit KEY,...: the structure checked, then the keys' own fit
             result, choice = _fit_frf_only(args, plant, frfs, keys)
-        if choice is None or result is None:
+        if result is None:
             result = fit_plant(records, plant, frf=frfs, keys=keys, fidelity=args.fidelity or "rigid", validate=validate,
                                segment_s=args.segment,
                                delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
@@ -470,16 +492,18 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         run.check()
         echo(f"prsa-fit: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a --frf file read by calibrate_frf (e.g. a symlink loop)
+        _echo_unreadable(exc)
+        return 2
     finally:
         run.record = False
     run.check()  # a Ctrl-C in a step of the fit without an iteration check: nothing written
     from ..identification.calibrate import fit_report, fitted_plant_text, not_explained_line, result_lines
 
-    fitted_from = ", ".join(Path(f).name for f in [*args.data, *([] if args.data else args.frf)])
     validation = result.solver.get("validation")
     failed = validation is not None and not validation["passes"]
-    text = fitted_plant_text(result, plant, base_text, Path(args.out).stem, fitted_from, force=args.force,
-                             origin=args.out)
+    text = cal.plant_text if cal is not None else fitted_plant_text(result, plant, base_text, Path(args.out).stem,
+                                                                    fitted_from, force=args.force, origin=args.out)
     files = {args.out: ("--out", text)} if not failed or args.force else {}
     if args.json:
         from ..io.output import json_safe
@@ -496,7 +520,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         echo(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
              file=sys.stderr)
         return 2
-    for line in result_lines(result, coordinates, choice):
+    for line in (cal.lines if cal is not None else result_lines(result, coordinates, choice)):
         echo(line)
     written = [p for p, _ in ((args.out, 0),) if p in files] + ([args.json] if args.json else [])
     echo(("wrote " + " and ".join(written)) if written else "wrote no file")
@@ -506,6 +530,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         echo(f"prsa-fit: {not_explained_line(result, args.force)}", file=sys.stderr)
         return 3
     return 0
+
+
+def _echo_unreadable(exc: OSError) -> None:
+    echo(f"prsa-fit: error: {getattr(exc, 'filename', None) or ''}: cannot be read ({exc.strerror or exc}); "
+         "expected readable files", file=sys.stderr)
 
 
 def _closed_loops(args) -> dict:
@@ -565,21 +594,15 @@ def _frfs_from_logs(args, records) -> list:
 
 
 def _fit_frf_only(args, plant, frfs, keys):
-    """The FRF-only fit (issue 32): the rigid and the two-mass model fitted to the responses,
-    the structure the data choose (``--fidelity`` not given), refused with the reason when
-    ``--fidelity rigid`` meets a response with an axial mode, mapped onto the mechanism's keys
-    (:func:`prsa_ctrl.identification.frfplant.fit_frf_structure`). With ``--fit KEY,...`` the
-    keys' own fit (:func:`prsa_ctrl.identification.frf.fit_frf`) runs after the same structure
-    check. Returns ``(result or None, choice)``."""
+    """``--frf`` with ``--fit KEY,...`` (no DATA.csv): the structure the data choose checked first,
+    refused with the reason when ``--fidelity rigid`` (the default here) meets a response with an
+    axial mode; the keys' own fit (:func:`prsa_ctrl.identification.frf.fit_frf`) runs after it.
+    Without ``--fit`` the FRF-only path is :func:`prsa_ctrl.identification.calibrate.calibrate_frf`.
+    Returns ``(None, choice)``."""
     from ..errors import FitError
-    from ..identification.frfplant import fit_frf_structure
     from ..identification.twomass import choose_structure
     from ..identification.common import frf_sample_time
 
-    fidelity = args.fidelity  # None: not given (the parser's default; rigid elsewhere)
-    if keys is None:
-        return fit_frf_structure(frfs, plant, fidelity=fidelity, command_logged=args.command_logged or "applied",
-                                 uncertainty="fit" if args.uncertainty_from_fit else "keep")
     choice = choose_structure(frfs, sample_time_s=frf_sample_time(frfs[0], plant))
     if choice.structure == "two-mass" and (args.fidelity or "rigid") == "rigid":
         raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")

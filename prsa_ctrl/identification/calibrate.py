@@ -32,7 +32,7 @@ from ..textsafe import printable
 
 __all__ = ["MOTOR_COORDINATES", "Calibrated", "calibrate_logs", "fitted_plant_text", "fit_report", "result_lines",
            "validation_lines", "not_explained_line",
-           "mat_log_refusal", "linear_axis_refusal", "calibrate_frf", "written_keys", "fitted_description", "structure_lines"]
+           "mat_log_refusal", "linear_axis_refusal", "calibrate_frf", "frf_point_check", "written_keys", "fitted_description", "structure_lines"]
 
 #: Coordinates of a screw-driven plant file and of the logs it is fitted to, as reports state them.
 from ..options import MOTOR_COORDINATES  # noqa: E402 - defined once, re-exported here
@@ -122,6 +122,10 @@ def fit_report(result, coordinates: Mapping[str, str], choice=None) -> dict:
 
 
 def _ci_text(v: Mapping[str, Any], fmt: str = ".4g") -> str:
+    """A value with its 95 % interval; one held (at a bound of the fit, or given) with its note
+    instead: no interval."""
+    if v.get("ci95") is None:
+        return f"{v['value']:{fmt}} ({v.get('note', 'held, not fitted')})"
     return f"{v['value']:{fmt}} (95 % CI {v['ci95'][0]:{fmt}}..{v['ci95'][1]:{fmt}})"
 
 
@@ -170,8 +174,11 @@ def result_lines(result, coordinates: Mapping[str, str], choice=None) -> list[st
 
     out = []
     for k, v in result.parameters.items():
-        lo, hi = v["ci95"]
         u = unit_text(v["unit"])
+        if v.get("ci95") is None:  # held at a bound of the fit: no interval
+            out.append(f"{k} = {v['value']:.6g}{u} ({v.get('note', 'held, not fitted')})")
+            continue
+        lo, hi = v["ci95"]
         line = f"{k} = {v['value']:.6g}{u} (95 % CI {lo:.6g}..{hi:.6g})"
         if v.get("kept_base"):
             line += f"; not identifiable, the plant keeps the base value {v['written']:.6g}{u}"
@@ -239,6 +246,8 @@ class Calibrated:
     records : tuple of Record
         The logs as read (named by their labels): the fit's views
         (:func:`prsa_ctrl.plots.fit.fit_views`) replay them.
+    choice : StructureChoice or None
+        :func:`calibrate_frf`: the structure the responses chose.
     """
 
     result: Any
@@ -247,6 +256,7 @@ class Calibrated:
     lines: tuple[str, ...]
     failure: str | None = None
     records: tuple = ()
+    choice: Any = None
 
 
 def mat_log_refusal(path: str) -> str:
@@ -264,7 +274,7 @@ def linear_axis_refusal(base: str | None) -> str:
 
 def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name: str,
                    labels: Sequence[str] | None = None,
-                   check_interrupt: Callable[[], None] | None = None) -> Calibrated:
+                   check_interrupt: Callable[[], None] | None = None, log_format: str | None = None) -> Calibrated:
     """Fit a base plant to drive logs with ``prsa-fit``'s defaults and compose its outputs.
 
     The same steps, checks and messages as ``prsa-fit LOG... [--plant BASE] --out NAME.toml
@@ -287,6 +297,11 @@ def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name
     check_interrupt : callable, optional
         Called at every iteration and after every simulation of the fit; an exception it raises
         ends the fit (the caller's cancellation).
+    log_format : str, optional
+        A log description (``--log-format``): the logs (CSV or ``.mat``) are read through it in
+        the plant's motor coordinates (a log in load coordinates converted with the lead,
+        :func:`prsa_ctrl.identification.logformat.load_motor_record`), the command convention is
+        its ``[command] logged``.
 
     Returns
     -------
@@ -312,23 +327,31 @@ def calibrate_logs(paths: Sequence[str | Path], base: str | None = None, *, name
     if len(labels) != len(paths):
         raise ValueError(f"labels: {len(labels)} for {len(paths)} logs; expected one per log")
     mat = next((p for p in paths if p.lower().endswith(".mat")), None)
-    if mat is not None:
+    if mat is not None and log_format is None:
         raise DataError(mat_log_refusal(mat))
     plant = load_plant(base)
     if plant.mechanism == "linear-axis":
         raise PlantFileError(linear_axis_refusal(base))
     base_text = plant_file_path(base).read_bytes().decode("utf-8")  # CR LF kept for the writer
     plant.to_toml(base_text, name=name, keys=[k for k in FITTABLE if k in plant.values], description="check")
-    records = []
+    records, logged, coordinates = [], "applied", {label: MOTOR_COORDINATES for label in labels}
+    if log_format is not None:
+        from .logformat import MOTOR_CONVENTION, load_log_format, load_motor_record
+
+        fmt = load_log_format(log_format)
+        logged = MOTOR_CONVENTION[fmt.doc["command"].get("logged", "as-computed")]
+        if fmt.doc.get("axis", "linear") == "linear":
+            how = (f"load (position m, force N), converted with the lead {plant.lead_per_rad:.9g} m/rad: angle = "
+                   "position / lead, torque = force x lead")
+            coordinates = {label: how for label in labels}
     for path, label in zip(paths, labels):
-        rec = load_record(path)
+        rec = load_record(path) if log_format is None else load_motor_record(path, fmt, plant)[0]
         records.append(replace(rec, name=label, warnings=tuple(w.replace(path, label) for w in rec.warnings)))
     result = fit_plant(records, plant, fidelity="rigid", validate=[], segment_s=0.1, delay_samples="find",
-                       command_logged="applied", uncertainty="keep", check_interrupt=check_interrupt,
+                       command_logged=logged, uncertainty="keep", check_interrupt=check_interrupt,
                        cross_validate=True, closed_loops={})
     if check_interrupt is not None:
         check_interrupt()
-    coordinates = {label: MOTOR_COORDINATES for label in labels}
     failure = not_explained_line(result)
     text = None if failure else fitted_plant_text(result, plant, base_text, name, ", ".join(Path(x).name for x in labels),
                                                   origin=name)
@@ -342,9 +365,27 @@ FRF_SPEED_DEFAULT_RAD_S = 30.0
 FRF_COHERENCE_MIN_DEFAULT = 0.8
 
 
+def frf_point_check(plant, speed_rad_s: float, load_n: float, typed: Mapping[str, str] | None = None) -> None:
+    """Refuse a measurement's operating point the plant cannot be linearised at: ValueError,
+    one line naming the flag (``--frf-speed`` or ``--frf-load``) and its value as typed
+    (``typed[flag]``; else the number's repr)
+    (:func:`prsa_ctrl.identification.common.frf_operating_point_error`)."""
+    from .common import frf_operating_point_error
+
+    bad = frf_operating_point_error(plant, speed_rad_s, load_n)
+    if bad:
+        flag, value = ("--frf-speed", speed_rad_s) if bad[0] == "speed" else ("--frf-load", load_n)
+        raise ValueError(f"{flag} {(typed or {}).get(flag, repr(value))}: {bad[1]}")
+
+
 def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name: str,
                   labels: Sequence[str] | None = None, speed_rad_s: float = FRF_SPEED_DEFAULT_RAD_S,
-                  load_n: float = 0.0, coherence_min: float = FRF_COHERENCE_MIN_DEFAULT) -> Calibrated:
+                  load_n: float = 0.0, coherence_min: float = FRF_COHERENCE_MIN_DEFAULT,
+                  sample_time_s: float | None = None,
+                  fidelity: str | None = None, command_logged: str = "applied", uncertainty: str = "keep",
+                  force: bool = False, origin: str | None = None, typed: Mapping[str, str] | None = None,
+                  extra: Sequence = (), fitted_from: str | None = None,
+                  coordinates: Mapping[str, str] | None = None) -> Calibrated:
     """Fit a base plant to measured frequency responses with ``prsa-fit``'s defaults:
     ``prsa-fit --frf FRF.csv... [--plant BASE] --out NAME.toml --json REPORT.json``.
 
@@ -373,11 +414,32 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
         Axial load during the measurement (``--frf-load``).
     coherence_min : float
         Points below this coherence are dropped (``--coherence-min``, 0 <= C < 1).
+    sample_time_s : float, s, optional
+        Sample time of the drive that measured the responses (``--frf-sample-time``; None: the
+        plant's; 0: continuous-time responses).
+    fidelity : {None, "rigid", "compliant"}
+        ``--fidelity`` (None: the structure the data choose).
+    command_logged : {"applied", "computed"}
+        ``--command-logged``.
+    uncertainty : {"keep", "fit"}
+        The written keys' ``[uncertainty]`` entries (``fit``: ``--uncertainty-from-fit``).
+    force : bool
+        ``--force`` (the plant file's header says when it was not validated).
+    origin : str, optional
+        How a failed check of the fitted file names it (default ``name``; ``prsa-fit``: ``--out``).
+    typed : mapping, optional
+        ``{flag: value as typed}`` for the messages (``prsa-fit``'s ``--frf-speed``, ``--frf-load``).
+    extra : sequence of FrfRecord
+        Responses already made (``prsa-fit --frf-from-logs``), fitted after the files'.
+    fitted_from : str, optional
+        What the description names (default: the files' names).
+    coordinates : mapping, optional
+        ``{log: coordinates}`` the report and lines state (default none: responses only).
 
     Returns
     -------
     Calibrated
-        ``report`` also holds ``frf_structure``: ``{"structure", "reason", "lines"}`` (the
+        ``choice`` the structure the data chose; ``report`` also holds ``frf_structure``: ``{"structure", "reason", "lines"}`` (the
         structure the data chose, why, and the two-mass model's mode and anti-resonance with
         their 95 % intervals, :func:`structure_lines`).
 
@@ -392,30 +454,34 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
 
     from ..options import check_number
     from ..plant.plantfile import load_plant, plant_file_path
-    from .common import FITTABLE, frf_operating_point_error
+    from .common import FITTABLE
     from .data import load_frf
     from .frfplant import fit_frf_structure
 
     paths = [str(p) for p in paths]
     labels = list(paths) if labels is None else [str(x) for x in labels]
-    if len(labels) != len(paths) or not paths:
+    if len(labels) != len(paths) or not (paths or extra):
         raise ValueError(f"labels: {len(labels)} for {len(paths)} responses; expected one per response, at least one")
     coherence_min = check_number("coherence_min", coherence_min, 0.0, 1.0, hi_open=True)
     plant = load_plant(base)
     base_text = plant_file_path(base).read_bytes().decode("utf-8")
     plant.to_toml(base_text, name=name, keys=[k for k in FITTABLE if k in plant.values], description="check")
-    bad = frf_operating_point_error(plant, speed_rad_s, load_n)
-    if bad:
-        flag, value = ("--frf-speed", speed_rad_s) if bad[0] == "speed" else ("--frf-load", load_n)
-        raise ValueError(f"{flag} {value!r}: {bad[1]}")
+    if paths:
+        frf_point_check(plant, speed_rad_s, load_n, typed)
     frfs = []
     for path, label in zip(paths, labels):
-        fr = load_frf(path, speed_rad_s=speed_rad_s, load_n=load_n, coherence_min=coherence_min)
+        fr = load_frf(path, speed_rad_s=speed_rad_s, load_n=load_n, coherence_min=coherence_min,
+                      sample_time_s=sample_time_s)
         frfs.append(replace(fr, name=label, warnings=tuple(w.replace(path, label) for w in fr.warnings)))
-    result, choice = fit_frf_structure(frfs, plant, fidelity=None)
-    failure = not_explained_line(result)
-    text = None if failure else fitted_plant_text(result, plant, base_text, name, ", ".join(Path(x).name for x in labels),
-                                                  origin=name)
-    report = {**fit_report(result, {}, choice), "frf_structure": {"structure": choice.structure, "reason": choice.reason,
-                                                                  "lines": structure_lines(choice)}}
-    return Calibrated(result, text, report, tuple(result_lines(result, {}, choice)), failure, ())
+    frfs += list(extra)
+    result, choice = fit_frf_structure(frfs, plant, fidelity=fidelity, command_logged=command_logged,
+                                       uncertainty=uncertainty)
+    failure = not_explained_line(result, force)
+    coordinates = dict(coordinates or {})
+    fitted_from = ", ".join(Path(x).name for x in labels) if fitted_from is None else fitted_from
+    text = None if failure and not force else fitted_plant_text(result, plant, base_text, name, fitted_from, force=force,
+                                                                origin=name if origin is None else origin)
+    report = {**fit_report(result, coordinates, choice), "frf_structure": {"structure": choice.structure,
+                                                                           "reason": choice.reason,
+                                                                           "lines": structure_lines(choice)}}
+    return Calibrated(result, text, report, tuple(result_lines(result, coordinates, choice)), failure, (), choice)

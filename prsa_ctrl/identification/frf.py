@@ -512,6 +512,8 @@ def fit_frf(
     params, corr, fitted, reflected, delay, reasons = finish_fit(plant, keys, values, cov, lo * scales, hi * scales, names_txt,
                                                               warns, ts_fit, keep_unidentified, null, ratios,
                                                               uncertainty)
+    if i_d is not None and values[i_d] <= lo[i_d] * scales[i_d] + 1e-9 * ts_fit:
+        _delay_at_zero(params, delay, warns)
     if "contact.stiffness_n_per_mm_e" in keys:
         warns += _mode_warnings(fitted, frf, math.sqrt(s2) / np.sqrt(np.mean(np.concatenate(weights) ** 2)))
     fit_pct, traces = {}, {}
@@ -537,6 +539,22 @@ def fit_frf(
 
 
 BW_KEY = "drive.current_loop_bandwidth_hz"
+
+
+def _delay_at_zero(params: dict, delay: dict | None, warns: list) -> None:
+    """A fitted continuous delay that ended at its lower bound 0 reported as held there (in place):
+    no interval (:data:`prsa_ctrl.identification.twomass.AT_BOUND_NOTE`), the bracket warning
+    replaced by the reason (the bound is not a bracket to move: a command cannot act before it is
+    given; the model holds every lag a drive's measurement has)."""
+    from .twomass import AT_BOUND_NOTE
+
+    for e in (params[DELAY_KEY], delay):
+        if e is not None:
+            e.update(value=0.0, ci95=None, at_bound="lower", note=AT_BOUND_NOTE)
+    warns[:] = [w for w in warns if not (w.startswith(f"{DELAY_KEY} = ") and "is at its bound [0" in w)]
+    warns.append(f"{DELAY_KEY} = 0 s, {AT_BOUND_NOTE}: the response lags its command no more than the model's "
+                 "current loop and sampling do (a delay cannot be negative: a command does not act before it is "
+                 "given); the other intervals hold it at 0")
 
 
 def write_delay(fitted: Plant, delay: dict, ts: float, command_logged: str, warns: list) -> tuple[Plant, dict]:

@@ -508,6 +508,16 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     choice = choose_structure(frf, sample_time_s=ts, current_loop_bandwidth_hz=fix_fc)
     speed, load = frf[0].speed_rad_s, frf[0].load_n
     warns = [w for fr in frf for w in fr.warnings]
+    fc_why = (f"the responses end at {f_top:.4g} Hz, below 1/{CURRENT_LOOP_BAND:g} of it, where the current loop's lag "
+              "cannot be told from the delay (held there in the fit; measure up to the current loop to fit it)")
+    fc_fit = (choice.two_mass if fidelity == "compliant" and choice.two_mass is not None else choice.chosen).values[
+        "current_loop_bandwidth_hz"]
+    if fix_fc is None and fc_fit.get("at_bound"):  # not identified: the base value held, and the fit made again
+        fix_fc = fc_base
+        fc_why = (f"the fit's current loop ran to its bound {fc_fit['value']:.4g} Hz ({fc_fit['note']}; unbounded "
+                  f"{fc_fit['unbounded_value']:.4g} Hz), so the base value is held and the responses fitted again "
+                  "with it")
+        choice = choose_structure(frf, sample_time_s=ts, current_loop_bandwidth_hz=fix_fc)
     if fidelity == "rigid" and choice.structure == "two-mass":
         raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")
     if fidelity == "compliant" and choice.structure == "rigid":
@@ -540,9 +550,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     values, ci, cov, keys, map_warns = plant_keys_of(plant, fit, speed_rad_s=speed, load_n=load)
     warns += map_warns
     if fix_fc is not None:
-        warns.append(f"drive.current_loop_bandwidth_hz kept at the base value {fc_base:.6g} Hz: the responses end at "
-                     f"{f_top:.4g} Hz, below 1/{CURRENT_LOOP_BAND:g} of it, where the current loop's lag cannot be "
-                     "told from the delay (held there in the fit; measure up to the current loop to fit it)")
+        warns.append(f"drive.current_loop_bandwidth_hz kept at the base value {fc_base:.6g} Hz: {fc_why}")
         i = keys.index("drive.current_loop_bandwidth_hz")
         keep = [j for j in range(len(keys)) if j != i]
         cov = cov[np.ix_(keep, keep)]
@@ -566,13 +574,18 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     d = fit.values["delay_s"]
     ts_w = ts if ts > 0 else plant.sample_time_s
     delay = {"value": d["value"], "ci95": d["ci95"], "unit": "s", "samples": d["value"] / ts_w}
+    if d.get("at_bound"):
+        delay.update(at_bound=d["at_bound"], note=d["note"], unbounded_value=d["unbounded_value"])
     offset = {"applied": 0, "computed": 1}.get(command_logged)
     if offset is None:
         raise ValueError(f"command_logged = {command_logged!r}; expected 'applied' or 'computed'")
-    delay_to_write = not (d["ci95"][0] <= offset * ts_w <= d["ci95"][1] or d["value"] < offset * ts_w)
+    in_ci = d["ci95"] is not None and d["ci95"][0] <= offset * ts_w <= d["ci95"][1]
+    delay_to_write = not (in_ci or d["value"] <= offset * ts_w)  # (a delay held at its bound 0 is none)
     overrides = dict(values)
     if not delay_to_write:  # no delay beyond the computation delay the log's convention implies
-        delay["plant_file"] = (f"the fitted delay {d['value']:.4g} s (95 % CI {d['ci95'][0]:.4g}..{d['ci95'][1]:.4g}) "
+        how = (f"95 % CI {d['ci95'][0]:.4g}..{d['ci95'][1]:.4g}" if d["ci95"] is not None else
+               f"{d['note']}, the unbounded fit {d['unbounded_value']:.4g} s" if d.get("at_bound") else "held")
+        delay["plant_file"] = (f"the fitted delay {d['value']:.4g} s ({how}) "
                                f"is no longer than the {offset} sample(s) a command logged as {command_logged} "
                                "implies: drive.command_delay_samples = 0, the current loop as fitted")
         delay["written"] = {"drive.command_delay_samples": 0,

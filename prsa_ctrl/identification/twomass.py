@@ -29,6 +29,16 @@ and the peak of the response divided by the rigid fit, the damping from a bounde
 Levenberg-Marquardt. 95 % intervals come from the Jacobian at the optimum and the residual
 variance (delta method for derived values, Student t quantile).
 
+Two entries are bounded (:func:`_solve_bounded`, an active set around Levenberg-Marquardt):
+the delay ``T >= 0`` and the current loop ``f_c <= CURRENT_LOOP_MAX_FACTOR x`` the highest
+frequency. The delay cannot be negative: the models hold the whole lag a drive's measurement
+has (the current loop, and in the sampled form the command held over a sample and the speed's
+backward difference), so a lead left over means the response is not what the model assumes
+(a continuous-time response read as sampled at the drive's rate, a speed estimated otherwise,
+a phase shifted by the analyser), not a command acting before it is given. A solve that ends
+beyond a bound is solved again with that entry held at the bound; the entry is then reported
+``at_bound`` with :data:`AT_BOUND_NOTE` and no interval (the others' intervals hold it there).
+
 :func:`choose_structure` fits both and lets the data decide (:class:`StructureChoice`): the
 two-mass model is needed when it explains the response significantly better (F-test of the
 nested models at ``STRUCTURE_ALPHA``) and substantially better (at most ``STRUCTURE_RSS_RATIO``
@@ -50,7 +60,7 @@ from ..errors import FitError
 
 __all__ = ["physical_values", "FrfModelFit", "StructureChoice", "fit_frf_model", "choose_structure", "model_response",
            "two_mass_response", "STRUCTURES", "STRUCTURE_ALPHA", "STRUCTURE_EFFECT", "STRUCTURE_RSS_RATIO",
-           "STRUCTURE_ZETA_MAX", "MAX_NFEV"]
+           "STRUCTURE_ZETA_MAX", "MAX_NFEV", "CURRENT_LOOP_MAX_FACTOR", "AT_BOUND_NOTE"]
 
 #: The parametric structures.
 STRUCTURES = ("rigid", "two-mass")
@@ -70,6 +80,13 @@ STRUCTURE_ZETA_MAX = 0.3
 #: Budget of model evaluations per least-squares solve (the model is a closed form: each costs
 #: microseconds per point).
 MAX_NFEV = 4000
+#: Upper bound of a fitted current loop, as a multiple of the response's highest frequency. Above
+#: it the lag changes the phase at the top frequency by under 3 deg (``arctan(1/20)``) and the
+#: magnitude by 0.1 %, as a delay of ``1 / (2 pi f_c)`` does: the data cannot tell the current loop
+#: from the delay, and an unbounded fit runs off to 1e8 Hz with a zero-width interval.
+CURRENT_LOOP_MAX_FACTOR = 20.0
+#: How a value held at a bound of the fit is reported (its ``note``; its ``ci95`` is None).
+AT_BOUND_NOTE = "at its bound: not identified by these data"
 
 _Z95 = 1.959963984540054
 _TWO_PI = 2.0 * math.pi
@@ -248,6 +265,9 @@ class FrfModelFit:
     sample_time_s : float
         0 for the continuous model, else the sampled one's sample time.
     warnings : list of str
+    held : tuple of str
+        Values held, not fitted: given by the caller (``"fixed": True``) or ended at a bound
+        (``"at_bound"``, :data:`AT_BOUND_NOTE`); their ``ci95`` is None.
     """
 
     structure: str
@@ -262,6 +282,7 @@ class FrfModelFit:
     sample_time_s: float
     b_scale: float
     warnings: list = field(default_factory=list)
+    held: tuple = ()
 
     def response(self, frequency_hz) -> NDArray[np.complex128]:
         """The fitted model's response at ``frequency_hz`` (Hz), (rad/s)/(N m)."""
@@ -274,7 +295,7 @@ class FrfModelFit:
         """JSON-ready summary."""
         return {"structure": self.structure, "values": self.values, "residual_std": self.residual_std,
                 "n_residuals": self.n_residuals, "fit_percent": self.fit_percent, "evaluations": self.nfev,
-                "sample_time_s": self.sample_time_s, "warnings": list(self.warnings)}
+                "sample_time_s": self.sample_time_s, "held": list(self.held), "warnings": list(self.warnings)}
 
     report = as_dict  # its former name
 
@@ -372,6 +393,55 @@ def _solve(structure, theta0, f, g, w, ts, b_scale, max_nfev, fixed=()):
     return sol, resid, free
 
 
+def _solve_bounded(structure, theta0, f, g, w, ts, b_scale, max_nfev, fixed=()):
+    """:func:`_solve` with the delay bounded below by 0 and the current loop above by
+    :data:`CURRENT_LOOP_MAX_FACTOR` times the highest frequency (module docstring): a solve that
+    ends beyond a bound is solved again from its end with that entry held at the bound; a held
+    entry whose cost falls when it moves off the bound into the feasible side is released
+    (first-order check). At most four solves. Returns ``(sol, resid, free, at_bound)``,
+    ``at_bound``: ``{index: ("lower" | "upper", unbounded value)}`` (``sol.nfev`` the total)."""
+    names = _THETA[structure]
+    i_fc, i_td = names.index("ln_current_loop_hz"), names.index("delay_s")
+    bound = {i_td: ("lower", 0.0), i_fc: ("upper", math.log(CURRENT_LOOP_MAX_FACTOR * float(np.max(f))))}
+    held = set(fixed)
+    th = np.asarray(theta0, float).copy()
+    for i, (side, b) in bound.items():
+        if i not in held:
+            th[i] = max(th[i], b) if side == "lower" else min(th[i], b)
+    at: dict = {}
+    nfev = 0
+    for _ in range(4):
+        sol, resid, free = _solve(structure, th, f, g, w, ts, b_scale, max_nfev, tuple(held))
+        nfev += int(sol.nfev)
+        x = np.asarray(sol.x, float)
+        beyond = {i: (side, b) for i, (side, b) in bound.items()
+                  if i not in held and (x[i] < b if side == "lower" else x[i] > b)}
+        released = []
+        for i in list(at):  # first-order check: does the cost fall off the bound, on the feasible side?
+            side, b = bound[i]
+            step = 1e-6 * max(abs(b), 1.0) * (1.0 if side == "lower" else -1.0)
+            xp = x.copy()
+            xp[i] += step
+            r0, r1 = resid(x), resid(xp)
+            if float(r1 @ r1) < float(r0 @ r0) * (1.0 - 1e-12):
+                released.append(i)
+        if not beyond and not released:
+            break
+        th = x.copy()
+        for i, (side, b) in beyond.items():
+            th[i] = b
+            held.add(i)
+            at[i] = (side, float(x[i]))
+        for i in released:
+            held.discard(i)
+            at.pop(i)
+    else:
+        raise FitError(f"{structure} FRF fit: the bounds of the delay and the current loop did not settle in four "
+                       "solves; remedy: check the response's units ((rad/s)/(N m)) and its phase")
+    sol.nfev = nfev
+    return sol, resid, free, at
+
+
 def _jacobian(resid, theta: NDArray[np.float64]) -> NDArray[np.float64]:
     """Central-difference Jacobian of the residual (steps relative to each entry's scale)."""
     cols = []
@@ -395,7 +465,7 @@ def _fit_percent(g, gm) -> float:
     return float(100.0 * (1.0 - err / ref)) if ref > 1e-6 * math.sqrt(len(lm)) else float("nan")
 
 
-def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None) -> FrfModelFit:
+def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None, at_bound=None) -> FrfModelFit:
     from scipy.stats import t as student_t
 
     theta = np.asarray(sol.x, float)
@@ -444,18 +514,44 @@ def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None) -> FrfModelF
     with np.errstate(all="ignore"):
         gm = model_response(structure, vals, f, ts)
     fmax = float(np.max(f))
+    names = _THETA[structure]
+    at_bound = dict(at_bound or {})
+    held_names = []
+    for i in range(npar):
+        if i in free:
+            continue
+        name = {"ln_current_loop_hz": "current_loop_bandwidth_hz", "delay_s": "delay_s"}[names[i]]
+        held_names.append(name)
+        e = out[name]
+        e["ci95"] = None  # held: no interval (a zero-width one would pretend a precision the data do not give)
+        if i in at_bound:
+            side, x_free = at_bound[i]
+            e["at_bound"] = side
+            e["note"] = AT_BOUND_NOTE
+            if name == "delay_s":
+                e["unbounded_value"] = float(x_free)
+                warns.append(f"delay_s = 0 s, {AT_BOUND_NOTE} (the unbounded fit wanted {x_free:.4g} s, a lead: the "
+                             "response lags its command less than the model's current loop"
+                             + (f" and one sample of {ts:g} s (command held, speed differenced)" if ts > 0 else "")
+                             + " do; a continuous-time response read as sampled at the drive's rate, or a speed not "
+                             "the backward difference of the sampled angle, does that: give its own sample time, 0 for a "
+                             "continuous one, prsa-fit --frf-sample-time); the other intervals hold it at 0")
+            else:
+                e["unbounded_value"] = _exp(x_free)
+                warns.append(f"current_loop_bandwidth_hz = {e['value']:.4g} Hz, {AT_BOUND_NOTE} (the unbounded fit "
+                             f"ran to {_exp(x_free):.4g} Hz; the bound is {CURRENT_LOOP_MAX_FACTOR:g} x the highest "
+                             f"frequency {fmax:.4g} Hz, above which its lag is a delay's): measure up to the "
+                             "current-loop bandwidth or hold it (the other intervals hold it there)")
+        else:
+            e["fixed"] = True
+            e["note"] = "held, not fitted"
     fc = out["current_loop_bandwidth_hz"]
-    if len(free) < npar:
-        fc["fixed"] = True
-    elif fc["value"] > 5.0 * fmax or fc["ci95"][1] > 20.0 * fc["value"]:
+    if "current_loop_bandwidth_hz" not in held_names and (fc["value"] > 5.0 * fmax or fc["ci95"][1] > 20.0 * fc["value"]):
         warns.append(f"current_loop_bandwidth_hz = {fc['value']:.4g} Hz is not identified by a response that ends at "
                      f"{fmax:.4g} Hz (95 % CI {fc['ci95'][0]:.4g}..{fc['ci95'][1]:.4g} Hz): measure up to the "
                      "current-loop bandwidth")
-    if out["delay_s"]["ci95"][1] < 0:
-        warns.append(f"delay_s = {out['delay_s']['value']:.4g} s < 0 (95 % CI entirely negative): a response that "
-                     "leads its command; check the sign convention and the current-loop model")
     return FrfModelFit(structure, out, theta, cov, float(math.sqrt(s2)), rss, n, _fit_percent(g, gm),
-                       int(sol.nfev), float(ts), float(b_scale), warns)
+                       int(sol.nfev), float(ts), float(b_scale), warns, tuple(held_names))
 
 
 def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.0,
@@ -514,12 +610,12 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
         g_rel = g * (1j * om * j0)
         fc, td, _ = _lag_delay_start(f, g_rel, w, fc_grid if fixed_fc is None else [fixed_fc])
         theta0 = np.array([math.log(j0), math.log(fc), td, 0.0])
-        sol, resid, free = _solve("rigid", theta0, f, g, w, sample_time_s, b_scale, max_nfev,
-                                  () if fixed_fc is None else (1,))
+        sol, resid, free, at = _solve_bounded("rigid", theta0, f, g, w, sample_time_s, b_scale, max_nfev,
+                                              () if fixed_fc is None else (1,))
         if not sol.success:
             raise FitError(f"rigid FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
                            f"{sol.nfev} evaluations; remedy: check the response's units ((rad/s)/(N m))")
-        return _finish("rigid", sol, resid, f, g, w, sample_time_s, b_scale, free)
+        return _finish("rigid", sol, resid, f, g, w, sample_time_s, b_scale, free, at)
     rig = _rigid if _rigid is not None else fit_frf_model(frf, "rigid", sample_time_s=sample_time_s, max_nfev=max_nfev,
                                                           current_loop_bandwidth_hz=fixed_fc)
     # the mode shows as a notch (anti-resonance) then a peak (resonance) of the response over the rigid fit
@@ -560,15 +656,15 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
     starts.sort(key=lambda t: t[0])
     best = None
     for _, th in starts[:2]:  # the two best grid points, each solved: the better optimum is kept
-        sol, resid, free = _solve("two-mass", th, f, g, w, sample_time_s, b_scale, max_nfev,
-                                  () if fixed_fc is None else (4,))
+        sol, resid, free, at = _solve_bounded("two-mass", th, f, g, w, sample_time_s, b_scale, max_nfev,
+                                              () if fixed_fc is None else (4,))
         if np.all(np.isfinite(sol.fun)) and (best is None or sol.cost < best[0].cost):
-            best = (sol, resid, free)
-    sol, resid, free = best
+            best = (sol, resid, free, at)
+    sol, resid, free, at = best
     if not sol.success:
         raise FitError(f"two-mass FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
                        f"{sol.nfev} evaluations; remedy: check the response's units ((rad/s)/(N m))")
-    return _finish("two-mass", sol, resid, f, g, w, sample_time_s, b_scale, free)
+    return _finish("two-mass", sol, resid, f, g, w, sample_time_s, b_scale, free, at)
 
 
 @dataclass(frozen=True, eq=False)
@@ -644,7 +740,7 @@ def choose_structure(frf, *, sample_time_s: float = 0.0, current_loop_bandwidth_
                                f"the two-mass fit failed ({exc})")
     n = rig.n_residuals
     extra = 3  # anti-resonance, inertia ratio, damping
-    dof = max(n - len(two.theta) + (current_loop_bandwidth_hz is not None), 1)
+    dof = max(n - len(two.theta) + len(two.held), 1)
     f_stat = max((rig.rss - two.rss) / extra, 0.0) / max(two.rss / dof, 1e-300)
     p = float(f_dist.sf(f_stat, extra, dof))
     fa, fr = two.value("antiresonance_hz"), two.value("resonance_hz")

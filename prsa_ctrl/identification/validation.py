@@ -464,6 +464,9 @@ def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | Non
        the written plant explains every log: nothing in the data is then evidence of missing
        physics;
     5. else the friction model (the residual largest where the speed is low or the load changes).
+
+    The residual's peak is :func:`resonance`'s (each entry's ``time_s`` gives its sample time), the
+    one the verdict judged; ``records`` is not read (the entries carry their times; kept for callers).
     """
     bad = {n: e for n, e in written.items() if not explained(e)}
     fits = [e["fit_percent"] for e in written.values()]
@@ -473,16 +476,9 @@ def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | Non
         return ("wrong units or coordinates: " + ("the inertia ends at a bound of its range" if at_bound else
                 "no log is replayed better than its mean") + " (check the torque unit, --torque-constant, the angle "
                 "unit and --log-format)")
-    by_name = {r.name: r for r in records}
-
     def peak_of(logs: dict):
-        peaks = []
-        for n, e in logs.items():
-            if not e.get("finite") or n not in by_name:
-                continue
-            res = e["measured"] - e["model"]
-            fp, share = _peak(res[e["skip_samples"]:], by_name[n].sample_time_s)
-            peaks.append((share, fp, n))
+        # the verdict's own peak (resonance(): each entry's sample time from its time_s, kept in the entry)
+        peaks = [(*reversed(resonance(e)), n) for n, e in logs.items() if e.get("finite")]
         return max(peaks) if peaks else None
 
     def second_mass(share, fp, n):

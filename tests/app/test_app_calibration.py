@@ -591,3 +591,31 @@ def test_thread_warnings_wrapped_by_another_wrapper_does_not_loop(monkeypatch):
     assert [str(w.message) for w in caught] == ["in the block"]
     with pytest.raises(UserWarning, match="outside"):
         warnings.warn("outside", UserWarning)
+
+
+def test_a_mat_log_of_a_linear_axis_uploaded_with_its_description(app_page, tmp_path, capsys):
+    """The EMPS .mat record uploaded after its description (the format upload): the tab shows the
+    command's values (prsa-fit DATA_EMPS.mat --log-format log.toml), the closed-loop replay as the
+    verdict, a plant to download and none to use (a linear axis: prsa-axis tunes it)."""
+    import json
+
+    from prsa_ctrl.cli.fit import main as fit_main
+    from test_session import _emps
+
+    data, fmt = _emps()
+    assert fit_main([str(data), "--log-format", str(fmt), "--out", str(tmp_path / "o.toml"), "--json",
+                     str(tmp_path / "r.json")]) == 0
+    want = json.loads((tmp_path / "r.json").read_text())
+    page = app_page
+    page.get_by_text(CAL_TAB).click()
+    page.locator(".prsa-format-upload input[type=file]").set_input_files(str(fmt))
+    page.locator("[data-k='fit-format'][data-name='log.toml']").wait_for()
+    page.locator(".prsa-log-upload input[type=file]").set_input_files(str(data))
+    page.locator("[data-k='fit-state'][data-state='done']").wait_for()
+    assert page.locator("[data-k='fit-verdict']").get_attribute("data-verdict") == "replayed"
+    assert "closed loop from the reference" in page.locator("[data-k='fit-verdict']").inner_text()
+    for key, v in want["parameters"].items():
+        assert _text(page, f"fit-{key}-value") == f"{v['value']:.6g}"
+    assert page.locator(".prsa-fit-use button").is_disabled()
+    assert not page.locator(".prsa-fit-download button").is_disabled()
+    _shot(page, "app-calibration-mat.png")

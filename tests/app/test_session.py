@@ -206,3 +206,55 @@ def test_every_view_status_is_in_the_one_vocabulary():
             View(man.design, man.omega, man.loop, man.t, man.speed, "manual", man.noise_gain)
     finally:
         s.close()
+
+
+# ---- a described log (.mat, linear axis): prsa-fit LOG --log-format FORMAT.toml ----------------
+
+def _emps():
+    """The EMPS record and its description (examples/emps), or a skip."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    data = next((p for p in (root.parent / "shared" / "data" / "emps" / "DATA_EMPS.mat",
+                             root / "examples" / "emps" / "DATA_EMPS.mat") if p.is_file()), None)
+    fmt = root / "examples" / "emps" / "log.toml"
+    if data is None or not fmt.is_file():
+        pytest.skip("EMPS data or its description absent (../shared/data/emps/, examples/emps/)")
+    return data, fmt
+
+
+def test_a_mat_log_of_a_linear_axis_is_fitted_through_its_description(tmp_path, capsys):
+    """The EMPS .mat record uploaded with its description: the session's calibration writes what
+    ``prsa-fit DATA_EMPS.mat --log-format log.toml`` writes (the plant file byte for byte but its
+    name), its lines (files named as uploaded), a linear-axis plant to download, not to tune here;
+    without the description the .mat log is refused with the command's line."""
+    from prsa_ctrl.app.fitpanel import _report_html
+    from prsa_ctrl.app.session import AppInputError, AppSession
+    from prsa_ctrl.identification.calibrate import mat_log_refusal
+
+    data, fmt = _emps()
+    code, out, _ = _cli([str(data), "--log-format", str(fmt), "--out", str(tmp_path / "DATA_EMPS-fitted.toml"),
+                         "--json", str(tmp_path / "r.json")], capsys)
+    assert code == 0
+    want = json.loads((tmp_path / "r.json").read_text())
+    s = AppSession()
+    try:
+        cal = s.calibrate("DATA_EMPS.mat", data.read_bytes(), log_format=("log.toml", fmt.read_bytes()))
+        assert cal.refused is None and not cal.usable and cal.file_name == "DATA_EMPS-fitted.toml"
+        assert cal.plant_text == (tmp_path / "DATA_EMPS-fitted.toml").read_text()
+        assert list(cal.lines) == [" ".join(x.replace(str(data), "DATA_EMPS.mat").split()) for x in out.splitlines()
+                                   if not x.startswith("wrote ")]
+        for key, v in want["parameters"].items():
+            assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
+        html_ = _report_html(cal, "done")
+        assert "data-verdict='replayed'" in html_ and "download it, prsa-axis tunes it" in html_
+        with pytest.raises(AppInputError, match="a linear-axis plant; expected a screw-driven plant"):
+            s.use_calibration(cal)
+        assert s.plant.name == "paper-iprsm"
+        with pytest.raises(AppInputError) as e:
+            s.calibrate("DATA_EMPS.mat", data.read_bytes())
+        assert str(e.value) == mat_log_refusal("DATA_EMPS.mat")
+        with pytest.raises(AppInputError, match=r"^log\.toml: .*expected"):  # a bad description: its one line
+            s.calibrate("DATA_EMPS.mat", data.read_bytes(), log_format=("log.toml", b"format = 3\n"))
+    finally:
+        s.close()

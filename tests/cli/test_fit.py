@@ -337,6 +337,35 @@ def test_a_mat_log_without_a_description_is_refused_after_parsing(tmp_path, caps
     assert (tmp_path / "x.mat").exists()
 
 
+def test_frf_alone_is_calibrate_frf(tmp_path, capsys, monkeypatch):
+    """prsa-fit --frf alone runs the library's one FRF path (identification.calibrate.calibrate_frf,
+    the app's too): its plant text is the file written, its lines the lines printed; an operating
+    point the plant refuses is named as typed, by the library's check."""
+    import prsa_ctrl.identification.calibrate as cal_mod
+    from prsa_ctrl.identification.data import frf_from_arrays
+    from prsa_ctrl.identification.frf import frf_response
+
+    p = load_plant()
+    f = np.geomspace(5, 1000, 60)
+    frf_from_arrays("syn", f, frf_response(p, f, speed_rad_s=30.0)).to_csv(tmp_path / "bode.csv")
+    calls = []
+    real = cal_mod.calibrate_frf
+
+    def spy(*a, **k):
+        calls.append(real(*a, **k))
+        return calls[-1]
+
+    monkeypatch.setattr(cal_mod, "calibrate_frf", spy)
+    out = tmp_path / "fitted.toml"
+    capsys.readouterr()
+    assert main(["--frf", str(tmp_path / "bode.csv"), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    (got,) = calls
+    assert got.plant_text == out.read_text() and printed[:-1] == list(got.lines) and printed[-1] == f"wrote {out}"
+    assert main(["--frf", str(tmp_path / "bode.csv"), "--frf-speed", "1e9", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --frf-speed 1e9: ")
+
+
 # --- figures and views (--plots, --frequency-unit, --json's views) ----------------------------
 
 

@@ -432,3 +432,79 @@ def test_held_key_spread_takes_the_base_plants_uncertainty_entry():
     # a fitted key is not held
     assert "friction.efficiency" not in {e["key"] for e in held_key_spread(
         base, ["axis.motor_inertia_kg_m2", "friction.efficiency"], "rigid", speed_rad_s=30.0, load_n=800.0)}
+
+
+def _continuous_two_mass(f, jm, jl, fa, zeta, fc):
+    """Motor speed / torque command of a continuous-time two-mass axis with a first-order current
+    loop and no delay, in closed form written here: ``(J_l s^2 + c s + k) / (J_m s (J_l s^2 + c s +
+    k) + J_l s (c s + k)) / (1 + s / w_c)``, ``k = J_l (2 pi f_a)^2``, modal damping ``zeta``."""
+    s = 1j * TWO_PI * np.asarray(f, float)
+    k = jl * (TWO_PI * fa) ** 2
+    c = 2 * zeta * math.sqrt(k * jm * jl / (jm + jl))
+    n = jl * s * s + c * s + k
+    return n / (jm * s * n + jl * s * (c * s + k)) / (1 + s / (TWO_PI * fc))
+
+
+def _at_bound_and_delays(x, found):
+    """Every dict of a JSON report holding ``at_bound``, and every delay value (s), walked."""
+    if isinstance(x, dict):
+        if "at_bound" in x:
+            found["bound"].append(x)
+        for k, v in x.items():
+            if k in ("delay_s", "drive.command_delay_s") and isinstance(v, dict) and "value" in v:
+                found["delay"].append(v["value"])
+            _at_bound_and_delays(v, found)
+    elif isinstance(x, list):
+        for v in x:
+            _at_bound_and_delays(v, found)
+    return found
+
+
+def test_a_continuous_response_holds_the_base_current_loop_and_no_negative_delay(tmp_path, capsys):
+    """A continuous-time two-mass response (no sampling, 1100 Hz current loop, no delay) read as
+    the drive's sampled one at the plant's 125 us: prsa-fit --frf reported a current loop of 3.8e8 Hz
+    (95 % CI 3.8e8..3.8e8) and a delay of -8.4 us. Now nothing reported is a negative delay, what
+    ends at a bound says 'at its bound: not identified by these data' with no interval, and the
+    plant file holds the base current loop with its source (a warning says why). Declared
+    continuous (--frf-sample-time 0) the same response gives the truth within its intervals."""
+    from prsa_ctrl.cli.fit import main
+    from prsa_ctrl.identification.twomass import AT_BOUND_NOTE
+
+    base = _plant("ballscrew-32x10")
+    j0 = base.reflected_inertia_kg_m2
+    jm, jl, fa, zeta, fc = 0.7 * j0, 0.4 * j0, 80.0, 0.04, 1100.0
+    f = np.geomspace(3.0, 1500.0, 220)
+    rng = np.random.default_rng(9)
+    g = _continuous_two_mass(f, jm, jl, fa, zeta, fc) * np.exp(0.01 * (rng.standard_normal(220)
+                                                                        + 1j * rng.standard_normal(220)))
+    csv = tmp_path / "axis.csv"
+    frf_from_arrays("two-mass", f, g).to_csv(csv)
+    out, rep = tmp_path / "axis-fitted.toml", tmp_path / "r.json"
+    capsys.readouterr()
+    assert main(["--frf", str(csv), "--plant", "ballscrew-32x10", "--out", str(out), "--json", str(rep)]) == 0
+    text = capsys.readouterr().out
+    r = json.loads(rep.read_text())
+    found = _at_bound_and_delays(r, {"bound": [], "delay": []})
+    assert found["delay"] and min(found["delay"]) >= 0.0, found["delay"]
+    assert found["bound"] and all(e["ci95"] is None and e["note"] == AT_BOUND_NOTE for e in found["bound"])
+    assert "e+08" not in text and "e+12" not in text
+    fc_key = "drive.current_loop_bandwidth_hz"
+    doc = tomllib.loads(out.read_text())
+    written = doc["drive"]["current_loop_bandwidth_hz"]
+    assert written["value"] == base.values[fc_key] and written["source"] == base.sources[fc_key]
+    assert fc_key not in r["parameters"]
+    assert any(w.startswith(f"{fc_key} kept at the base value {base.values[fc_key]:g} Hz: the fit's current loop ran to "
+                            "its bound") for w in r["warnings"])
+    assert f"delay 0 ({AT_BOUND_NOTE}) s" in text and "current loop 2000 (held, not fitted) Hz" in text
+    assert load_plant(out).values["drive.command_delay_samples"] == 0
+    # declared continuous: the current loop, the mode and the inertia hold the truth
+    assert main(["--frf", str(csv), "--plant", "ballscrew-32x10", "--frf-sample-time", "0", "--out", str(out),
+                 "--json", str(rep)]) == 0
+    r = json.loads(rep.read_text())
+    p = r["parameters"][fc_key]
+    assert p["ci95"][0] <= fc <= p["ci95"][1] and p["value"] == pytest.approx(fc, rel=0.01)
+    j = r["reflected_inertia_kg_m2"]
+    assert j["ci95"][0] <= jm + jl <= j["ci95"][1]
+    m = r["frf_axial_mode_hz"]
+    assert m["ci95"][0] <= fa * math.sqrt((jm + jl) / jm) <= m["ci95"][1]
+    assert not _at_bound_and_delays(r["solver"]["structure"]["two_mass"], {"bound": [], "delay": []})["bound"]

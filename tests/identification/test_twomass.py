@@ -159,3 +159,55 @@ def test_bad_arguments():
         fit_frf_model((F[:5], np.ones(5, complex)), "two-mass")
     with pytest.raises(ValueError, match="non-finite or non-positive"):
         fit_frf_model((np.r_[-1.0, F[1:]], np.ones(len(F), complex)), "rigid")
+
+
+# a continuous-time two-mass response (the equations of motion above: no sampling, no delay, a
+# 1100 Hz current loop), as h9-appaxis wrote it (issue 32's "3.8e8 Hz and -8.4 us" case)
+CONT = dict(jm=1.76e-3, jl=1.006e-3, fa=80.0, zeta=0.04, fc=1100.0)
+F_CONT = np.geomspace(3.0, 1500.0, 220)
+
+
+def _continuous_response(seed=9):
+    t = CONT
+    k = t["jl"] * (TWO_PI * t["fa"]) ** 2
+    c = 2 * t["zeta"] * math.sqrt(k * t["jm"] * t["jl"] / (t["jm"] + t["jl"]))
+    g = _eom_response(F_CONT, t["jm"], t["jl"], k, c, 0.0, t["fc"], 0.0)
+    return _noisy(g, 0.01, np.random.default_rng(seed))
+
+
+def test_a_continuous_response_fitted_as_sampled_ends_at_the_bounds_and_says_so():
+    """Read as the drive's sampled response (125 us: the model then lags one sample more than the
+    data), the unbounded fit took the current loop to 3.8e8 Hz with a zero-width interval and the
+    delay to -8.4 us. The delay is bounded at 0 (a command does not act before it is given) and the
+    current loop at 20 x the top frequency: both end there, reported 'at its bound: not identified
+    by these data' with no interval. Fitted as what it is (continuous), nothing is at a bound and
+    the intervals hold the truth of the equations of motion."""
+    from prsa_ctrl.identification.twomass import AT_BOUND_NOTE, CURRENT_LOOP_MAX_FACTOR
+
+    g = _continuous_response()
+    ch = choose_structure((F_CONT, g), sample_time_s=1.25e-4)
+    assert ch.structure == "two-mass", ch.reason
+    for fit in (ch.rigid, ch.two_mass):
+        d, fc = fit.values["delay_s"], fit.values["current_loop_bandwidth_hz"]
+        assert d["value"] >= 0.0
+        if d.get("at_bound"):
+            assert d["at_bound"] == "lower" and d["value"] == 0.0 and d["ci95"] is None and d["note"] == AT_BOUND_NOTE
+            assert d["unbounded_value"] < 0 and "delay_s" in fit.held
+        assert fc["value"] <= CURRENT_LOOP_MAX_FACTOR * F_CONT[-1] * (1 + 1e-12)
+    two = ch.two_mass.values
+    assert two["delay_s"]["at_bound"] == "lower" and two["delay_s"]["unbounded_value"] < 0
+    assert two["current_loop_bandwidth_hz"]["at_bound"] == "upper" and two["current_loop_bandwidth_hz"]["ci95"] is None
+    assert two["current_loop_bandwidth_hz"]["value"] == pytest.approx(CURRENT_LOOP_MAX_FACTOR * F_CONT[-1])
+    assert any(AT_BOUND_NOTE in w and w.startswith("delay_s = 0 s") for w in ch.two_mass.warnings)
+    # fitted as continuous, the truth is recovered with intervals that hold it
+    ch0 = choose_structure((F_CONT, g), sample_time_s=0.0)
+    v = ch0.two_mass.values
+    assert ch0.structure == "two-mass" and not ch0.two_mass.held
+    t = CONT
+    truth = {"current_loop_bandwidth_hz": t["fc"], "antiresonance_hz": t["fa"],
+             "resonance_hz": t["fa"] * math.sqrt((t["jm"] + t["jl"]) / t["jm"]),
+             "total_inertia_kg_m2": t["jm"] + t["jl"], "delay_s": 0.0}
+    for k, x in truth.items():
+        lo, hi = v[k]["ci95"]
+        assert lo <= x <= hi, (k, x, v[k])
+    assert v["current_loop_bandwidth_hz"]["value"] == pytest.approx(t["fc"], rel=0.02)

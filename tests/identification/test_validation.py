@@ -149,7 +149,8 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
 
     t = record.time_s[1:]
     meas = record.speed_rad_s
-    ringing = {"finite": True, "measured": meas, "model": meas - 0.5 * np.sin(2 * math.pi * 180.0 * t),
+    # an entry as the replay makes it: with its times (the diagnosis reads the verdict's resonance())
+    ringing = {"finite": True, "time_s": t, "measured": meas, "model": meas - 0.5 * np.sin(2 * math.pi * 180.0 * t),
                "skip_samples": 80, "fit_percent": 10.0, "error_rms_rad_s": 0.35, "noise_floor_rad_s": 0.01}
     d = diagnosis({"independent": ringing}, [record], {"decided": True}, _R())
     f_hz = float(d.split(" of ")[-1].split(" Hz")[0])
@@ -165,12 +166,16 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
     assert d.startswith("second mass") and "kept at 800 Hz" in d
     lag = float(d.split(" Hz is ")[-1].split(" deg")[0])
     assert lag == pytest.approx(math.degrees(math.atan(fp / 800.0)), abs=0.06)
+    assert float(f"{ringing['resonance'][0]:.4g}") == fp  # the verdict's peak, kept in the entry, is the one named
+    # one peak for the verdict and the diagnosis: the one resonance() keeps in the entry is the one named
+    assert "123 Hz" in diagnosis({"independent": dict(ringing, resonance=(123.0, 0.9))}, [], {"decided": True}, _R())
     drift = dict(ringing, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)))
+    drift.pop("resonance")  # a new residual: its own peak
     undecided = {"decided": False, "objective": {"0": 1.0, "1": None}}
     d = diagnosis({"independent": drift}, [record], undecided, _R())
     assert d.startswith("delay") and "1: failed" in d
     assert diagnosis({"independent": drift}, [record], {"decided": True}, _R()).startswith("friction model")
-    negative = dict(ringing, fit_percent=-40.0)
+    negative = dict(drift, fit_percent=-40.0)
     assert diagnosis({"independent": negative}, [record], None, _R()).startswith("wrong units or coordinates")
 
 
@@ -206,7 +211,7 @@ def test_a_cross_validation_fit_that_failed_is_a_failure_of_the_fit_not_physics(
         not_identified = {}
 
     meas = record.speed_rad_s
-    good = {"finite": True, "measured": meas, "model": meas + 0.001 * np.random.default_rng(0).standard_normal(meas.size),
+    good = {"finite": True, "time_s": record.time_s[1:], "measured": meas, "model": meas + 0.001 * np.random.default_rng(0).standard_normal(meas.size),
             "skip_samples": 80, "fit_percent": 99.0, "error_rms_rad_s": 0.001, "noise_floor_rad_s": 0.01}
     assert explained(good)
     stalled = {"failed": "from 3 starts (the fitted plant, the base plant, the fitted plant, bolder steps): fit did not "
@@ -221,6 +226,7 @@ def test_a_cross_validation_fit_that_failed_is_a_failure_of_the_fit_not_physics(
     assert diagnosis({"independent": good}, [record], {"decided": True}, _R()).startswith("friction model")
     t = record.time_s[1:]
     drift = dict(good, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)), fit_percent=10.0, error_rms_rad_s=0.5)
+    drift.pop("resonance", None)  # a new residual: its own peak
     d = diagnosis({"independent": drift}, [record], {"decided": True}, _R(), loo)
     assert d.startswith("friction model") and "did not converge" in d and "not evidence about the physics" in d
 
