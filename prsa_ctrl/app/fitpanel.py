@@ -164,7 +164,7 @@ class FitPanel:
             ".toml", "log description for the next log (prsa-fit --log-format FORMAT.toml: a .mat log, a linear "
             "axis in load coordinates)", "prsa-format-upload")
         self.fmt_too_large.on_change("data", lambda attr, old, new: self._too_large(self.fmt_too_large, "format"))
-        self.fmt_upload.on_change("value", lambda attr, old, new: page.doc.add_next_tick_callback(self._format))
+        self.fmt_upload.on_change("value", lambda attr, old, new: page.doc.add_next_tick_callback(self._take_log_format))
         self.frf_upload, self.frf_too_large = upload_input(
             ".csv", "or from a measured frequency response (prsa-fit --frf FRF.csv --plant <this plant>: frequency_hz, "
             "magnitude_db, phase_deg or real, imag, optional coherence)", "prsa-frf-upload")
@@ -196,7 +196,7 @@ class FitPanel:
         if line is not None:
             self.page.show_error(line)
 
-    def _format(self) -> None:
+    def _take_log_format(self) -> None:
         """Keep the uploaded log description for the next log (nothing is fitted yet)."""
         try:
             got = uploaded_file(self.fmt_upload, "log-format.toml")
