@@ -32,7 +32,8 @@ see the README's calibration section.
 
 Inputs are checked against the plant before the fit (:func:`_checked_inputs`): duplicate data,
 the sample time, a unit slip in the torque balance, FRF points above the drive's Nyquist
-frequency. The overlay figures show one continuous simulation of the fitted plant.
+frequency. The overlay figures show one continuous simulation of the fitted plant (with the
+validation: its replay of the plant as written, :mod:`prsa_ctrl.identification.validation`).
 """
 
 from __future__ import annotations
@@ -264,7 +265,11 @@ def fit_plant(
                        keep_unidentified=keep_unidentified, uncertainty=uncertainty, command_logged=command_logged)
 
     # the states of the last fit at each shift: the start of the next fit at that shift (the
-    # found shift's refit after the search's fit, the cross-validation refits after the fit)
+    # found shift's refit after the search's fit, the cross-validation refits after the fit).
+    # With the validation the fit runs no continuous simulation for the figures: the
+    # validation's replay of the plant as written is their "simulated" trace (a record whose
+    # replay is not finite shows the shooting segments' trace alone; measured on the foreign
+    # feed axis's three rigid logs: 5 s of CPU, whose trace the replay replaced)
     solved: dict[int, dict] = {}
 
     def fit_at(d: int, start: Plant) -> FitResult:
@@ -272,7 +277,8 @@ def fit_plant(
         return _fit_records(records, start, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
                             segment_s=segment_s, delay_samples=d, substeps=substeps, max_iter=max_iter,
                             tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                            uncertainty=uncertainty, check_interrupt=check_interrupt, states_out=solved[d])
+                            uncertainty=uncertainty, check_interrupt=check_interrupt, states_out=solved[d],
+                            simulate=not validation)
 
     if delay_samples == "find":
         if not records:
@@ -287,7 +293,7 @@ def fit_plant(
                                      segment_s=seg_s, delay_samples=d, substeps=substeps, max_iter=max_iter,
                                      tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
                                      uncertainty=uncertainty, check_interrupt=check_interrupt,
-                                     simulate=seg_s == segment_s, base=base,
+                                     simulate=seg_s == segment_s and not validation, base=base,
                                      states=solved.get(d) if warm else None, states_out=out)
                 solved[d] = out
                 return res_d
@@ -423,8 +429,23 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     kept = [k for k in keys if params[k].get("kept_base")]
     s_written = np.array([plant.values[k] / sc if k in kept else sv for k, sv, sc in zip(keys, s_opt, scales)])
     written_pct = None
+    wsol = None
     if kept:  # the plant as written (base values for the kept keys) on the fitted records
-        wsol = fit_run.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
+        # Its states start from the free fit's: the two plants differ only in keys the data do
+        # not inform. From the data reference instead, a segment's initial state could settle in
+        # the friction law's stick band and stall there (the ball-screw logs of
+        # tests/identification/foreign at seed 1, the cross-validation fit without
+        # loadsteps.csv: its free fit converged, this check stalled at a defect of 1.1e-4 in the
+        # first interval of a segment starting at 0.06 rad/s, and the refit was counted failed).
+        # A check that still fails is reported, not a failure of the fit: the validation's
+        # replay of the plant as written judges that plant.
+        try:
+            wsol = fit_run.solve(s_written, s_written, s_written, max_iter, tol, fixed=True, init=(sol["V"], sol["X0"]))
+        except FitError as exc:
+            warns.append(f"the plant as written, with {', '.join(kept)} at the base value{'s' if len(kept) > 1 else ''}, "
+                         f"was not followed on the fit's segments ({str(exc)[:200]}); its replay in the validation "
+                         "says how far it is from the data")
+    if wsol is not None:
         written_pct = dict(wsol["fit_percent"])
         worse = [f"{n} {written_pct[n]:.2f} % (free fit {fit_pct[n]:.2f} %)" for n in written_pct
                  if written_pct[n] < fit_pct[n] - 1.0]
