@@ -32,7 +32,8 @@ see the README's calibration section.
 
 Inputs are checked against the plant before the fit (:func:`_checked_inputs`): duplicate data,
 the sample time, a unit slip in the torque balance, FRF points above the drive's Nyquist
-frequency. The overlay figures show one continuous simulation of the fitted plant.
+frequency. The overlay figures show one continuous simulation of the fitted plant (with the
+validation: its replay of the plant as written, :mod:`prsa_ctrl.identification.validation`).
 """
 
 from __future__ import annotations
@@ -43,8 +44,7 @@ from typing import Callable, Sequence
 import casadi as ca
 import numpy as np
 from scipy.optimize import lsq_linear
-from scipy.sparse import coo_matrix, csr_matrix
-from scipy.sparse.linalg import splu
+from scipy.sparse import csr_matrix
 
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
@@ -62,6 +62,8 @@ from .frf import fit_frf, frf_fit_percent, frf_response
 from .friction_map import STRIBECK_KEYS, stribeck_rounds
 from .frfplant import with_held
 from .heldmass import held_mass_spread
+from .warmstart import initial_states, states_of
+from .bidiagonal import solve_segments
 
 __all__ = ["fit_plant", "fit_percent", "SEGMENT_S", "search_segment_s", "SEARCH_SEGMENT_S", "MAX_INTERVALS", "STALL_ITERATIONS", "STEP_SE_FRACTION", "MIN_SEGMENT"]
 
@@ -268,11 +270,21 @@ def fit_plant(
                        delay_samples=shift if delay_samples in (None, "find") else delay_samples,
                        keep_unidentified=keep_unidentified, uncertainty=uncertainty, command_logged=command_logged)
 
+    # the states of the last fit at each shift: the start of the next fit at that shift (the
+    # found shift's refit after the search's fit, the cross-validation refits after the fit).
+    # With the validation the fit runs no continuous simulation for the figures: the
+    # validation's replay of the plant as written is their "simulated" trace (a record whose
+    # replay is not finite shows the shooting segments' trace alone; measured on the foreign
+    # feed axis's three rigid logs: 5 s of CPU, whose trace the replay replaced)
+    solved: dict[int, dict] = {}
+
     def fit_at(d: int, start: Plant) -> FitResult:
+        solved[d] = {}
         return _fit_records(records, start, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
                             segment_s=segment_s, delay_samples=d, substeps=substeps, max_iter=max_iter,
                             tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                            uncertainty=uncertainty, check_interrupt=check_interrupt)
+                            uncertainty=uncertainty, check_interrupt=check_interrupt, states_out=solved[d],
+                            simulate=not validation)
 
     if delay_samples == "find":
         if not records:
@@ -280,12 +292,17 @@ def fit_plant(
         ts = records[0].sample_time_s
         fit_keys = default_keys(plant) if keys is None else tuple(keys)
 
-        def fit_on(seg_s: float) -> Callable[[int, Plant], FitResult]:
-            def fit(d: int, start: Plant) -> FitResult:
-                return _fit_records(records, start, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
-                                    segment_s=seg_s, delay_samples=d, substeps=substeps, max_iter=max_iter,
-                                    tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
-                                    uncertainty=uncertainty, check_interrupt=check_interrupt, simulate=seg_s == segment_s)
+        def fit_on(seg_s: float) -> Callable[..., FitResult]:
+            def fit(d: int, start: Plant, base: Plant | None = None, warm: bool = False) -> FitResult:
+                out: dict = {}
+                res_d = _fit_records(records, start, frf=frf, keys=keys, fidelity=fidelity, validate=validate,
+                                     segment_s=seg_s, delay_samples=d, substeps=substeps, max_iter=max_iter,
+                                     tol=tol, min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
+                                     uncertainty=uncertainty, check_interrupt=check_interrupt,
+                                     simulate=seg_s == segment_s and not validation, base=base,
+                                     states=solved.get(d) if warm else None, states_out=out)
+                solved[d] = out
+                return res_d
             return fit
 
         shift, res = find_delay(fit_on, plant, fit_keys, ts, segment_s, max_delay_samples, command_logged)
@@ -304,11 +321,15 @@ def fit_plant(
         return res
 
     def refit(recs: Sequence[Record], start: Plant, attempt: int = 0) -> FitResult:
+        # the first start (the fitted plant, attempt 0) takes the fit's own states on the logs
+        # it keeps: the cross-validation refit starts at the all-logs optimum; the retries
+        # (the base plant, bolder steps) start from the reference as before
+        warm = solved.get(shift) if attempt == 0 and start is not plant else None
         return _fit_records(recs, start, frf=(), keys=res.keys, fidelity=fidelity, validate=(), segment_s=segment_s,
                             delay_samples=shift, substeps=substeps, max_iter=max_iter, tol=tol,
                             min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
                             uncertainty=uncertainty, check_interrupt=check_interrupt, max_attempts=1,
-                            first_attempt=attempt, simulate=False)
+                            first_attempt=attempt, simulate=False, states=warm, states_solved=True)
 
     from .validation import validate_fit
 
@@ -318,11 +339,24 @@ def fit_plant(
 
 def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, delay_samples, substeps, max_iter, tol,
                  min_speed_rad_s, keep_unidentified, uncertainty="keep", check_interrupt=None,
-                 max_attempts=3, first_attempt=0, simulate=True) -> FitResult:
+                 max_attempts=3, first_attempt=0, simulate=True, base=None, states=None, states_out=None,
+                 states_solved=False) -> FitResult:
     """The output-error fit of :func:`fit_plant` on time-domain ``records``; ``simulate`` False
     skips the figures' continuous simulation of the fitted records (a fit whose traces nobody
     shows: the delay search's on its short segments, a cross-validation refit; measured on the
-    foreign feed axis's three rigid logs: 5 of the 6 simulations, a quarter of the run)."""
+    foreign feed axis's three rigid logs: 5 of the 6 simulations, a quarter of the run).
+
+    ``plant`` gives the start of the fitted keys; ``base`` (default ``plant``) everything else: the
+    bounds, the values of the keys not fitted, and the value and source a key the data do not
+    inform keeps (a fit started from another fit's values writes no start value as a base
+    value). ``states``: the start of the first attempt's states, another fit's solution
+    (:func:`~prsa_ctrl.identification.warmstart.states_of`; later attempts start from the
+    reference); ``states_solved``: they solve these segments' equations already (a fit on the
+    same segments), so the first attempt takes no state-only warm-up steps (states from other
+    segments have jumps at the other fit's joins: measured on the foreign feed axis, the refit
+    on 0.1 s segments from the search's 0.02 s states without the warm-up failed twice and
+    converged on the third attempt); ``states_out``, a dict, receives this fit's."""
+    start, plant = plant, (plant if base is None else base)
     if not records:
         raise ValueError("records = []; expected at least one data record")
     keys = default_keys(plant) if keys is None else tuple(keys)
@@ -350,7 +384,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     if total > MAX_INTERVALS:
         raise ValueError(f"records hold {total} sample intervals; expected at most {MAX_INTERVALS} (shorten them)")
     bounds = [key_bounds(plant, k, ts) for k in keys]
-    s0 = np.array([plant.values[k] / b[2] for k, b in zip(keys, bounds)])
+    s0 = np.array([start.values[k] / b[2] for k, b in zip(keys, bounds)])
     lo = np.array([b[0] / b[2] for b in bounds])
     hi = np.array([b[1] / b[2] for b in bounds])
     s0 = np.clip(s0, lo, hi)
@@ -365,15 +399,21 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     # iterations before the warm-up attempt converged in 9).
     attempts = ((0.3, 3), (0.3, 0), (1.0, 3))[first_attempt:first_attempt + max_attempts]
     spent = 0
+    init = initial_states(fit_run, states)
     for i, (box, warm) in enumerate(attempts):
         try:
-            sol = fit_run.solve(s0, lo, hi, max_iter, tol, fixed=False, box=box, warm=warm)
+            first = i == 0 and init is not None
+            sol = fit_run.solve(s0, lo, hi, max_iter, tol, fixed=False, box=box,
+                                warm=0 if first and states_solved else warm, init=init if first else None)
             break
         except FitError:
             spent += fit_run.last_iterations
             if i == len(attempts) - 1:
                 raise
     s_opt = sol["s"]
+    if states_out is not None:
+        states_out.clear()
+        states_out.update(states_of(fit_run, sol["V"], sol["X0"]))
     cov_s, sigma, n_res, jac_cols, cov_info = fit_run.covariance(sol)
     values = s_opt * scales
     cov = cov_s * np.outer(scales, scales)
@@ -401,8 +441,23 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     kept = [k for k in keys if params[k].get("kept_base")]
     s_written = np.array([plant.values[k] / sc if k in kept else sv for k, sv, sc in zip(keys, s_opt, scales)])
     written_pct = None
+    wsol = None
     if kept:  # the plant as written (base values for the kept keys) on the fitted records
-        wsol = fit_run.solve(s_written, s_written, s_written, max_iter, tol, fixed=True)
+        # Its states start from the free fit's: the two plants differ only in keys the data do
+        # not inform. From the data reference instead, a segment's initial state could settle in
+        # the friction law's stick band and stall there (the ball-screw logs of
+        # tests/identification/foreign at seed 1, the cross-validation fit without
+        # loadsteps.csv: its free fit converged, this check stalled at a defect of 1.1e-4 in the
+        # first interval of a segment starting at 0.06 rad/s, and the refit was counted failed).
+        # A check that still fails is reported, not a failure of the fit: the validation's
+        # replay of the plant as written judges that plant.
+        try:
+            wsol = fit_run.solve(s_written, s_written, s_written, max_iter, tol, fixed=True, init=(sol["V"], sol["X0"]))
+        except FitError as exc:
+            warns.append(f"the plant as written, with {', '.join(kept)} at the base value{'s' if len(kept) > 1 else ''}, "
+                         f"was not followed on the fit's segments ({str(exc)[:200]}); its replay in the validation "
+                         "says how far it is from the data")
+    if wsol is not None:
         written_pct = dict(wsol["fit_percent"])
         worse = [f"{n} {written_pct[n]:.2f} % (free fit {fit_pct[n]:.2f} %)" for n in written_pct
                  if written_pct[n] < fit_pct[n] - 1.0]
@@ -554,8 +609,8 @@ class _Problem:
         # Segment bookkeeping: first interval and sample offsets.
         self.first = np.cumsum([0] + [sg.n for sg in segs[:-1]])
         n3 = ns * nx
-        # Sparse pattern of one segment's block-bidiagonal equations (same for all lengths n).
-        self._patterns = {}
+        # each segment's residual rows against its states (fixed by the data: made once, :meth:`_a_matrices`)
+        self._a_made = {}
         self.n3 = n3
 
     # --- evaluation -----------------------------------------------------------------------
@@ -598,7 +653,13 @@ class _Problem:
         return out
 
     def _a_matrices(self, g):
-        """d(residual)/d(V of the segment) (sparse) and d(residual)/d(X0 of the segment) (dense)."""
+        """d(residual)/d(V of the segment) (sparse) and d(residual)/d(X0 of the segment) (dense);
+        constant, made at the first call."""
+        if g not in self._a_made:
+            self._a_made[g] = self._make_a_matrices(g)
+        return self._a_made[g]
+
+    def _make_a_matrices(self, g):
         sg = self.segs[g]
         nx, n3, n = self.nx, self.n3, sg.n
         col_end = np.arange(n) * n3 + (self.ns - 1) * nx + self.i_th  # end-stage angle of each interval
@@ -637,35 +698,19 @@ class _Problem:
         jxs = jxs * self.S[None, None, :]
         jp = jp * self.scales[None, None, :]
         resid = self.residuals(V, X0)
+        # every segment's block-bidiagonal equations at once (:mod:`.bidiagonal`): right-hand
+        # sides [residual, parameter columns, initial-state columns (first interval only)]
+        rhs = np.zeros((M, n3, 1 + npar + nx))
+        rhs[:, :, 0] = res.T
+        rhs[:, :, 1:1 + npar] = np.moveaxis(jp, 1, 0)
+        jxs_m = np.moveaxis(jxs, 1, 0)
+        rhs[self.first, :, 1 + npar:] = jxs_m[self.first]
+        zz = solve_segments(np.moveaxis(jk, 1, 0), jxs_m, rhs, self.first, [sg.n for sg in self.segs],
+                            slice((self.ns - 1) * nx, self.ns * nx))
         out = []
         for g, sg in enumerate(self.segs):
             m0, n = self.first[g], sg.n
-            sl = slice(m0, m0 + n)
-            # Block-bidiagonal equations of the segment.
-            ii, jj = np.meshgrid(np.arange(n3), np.arange(n3), indexing="ij")
-            rows = [(np.arange(n)[:, None, None] * n3 + ii[None]).ravel()]
-            cols = [(np.arange(n)[:, None, None] * n3 + jj[None]).ravel()]
-            vals = [np.moveaxis(jk[:, sl, :], 1, 0).ravel()]
-            if n > 1:
-                ia, ib = np.meshgrid(np.arange(n3), np.arange(nx), indexing="ij")
-                rows.append((np.arange(1, n)[:, None, None] * n3 + ia[None]).ravel())
-                cols.append((np.arange(n - 1)[:, None, None] * n3 + (self.ns - 1) * nx + ib[None]).ravel())
-                vals.append(np.moveaxis(jxs[:, m0 + 1:m0 + n, :], 1, 0).ravel())
-            gv = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                            shape=(n * n3, n * n3)).tocsc()
-            g_res = res[:, sl].T.ravel()
-            g_s = np.moveaxis(jp[:, sl, :], 1, 0).reshape(n * n3, npar)
-            g_x0 = np.zeros((n * n3, nx))
-            g_x0[:n3] = jxs[:, m0, :]
-            try:
-                lu = splu(gv)
-                z = lu.solve(np.column_stack([g_res, g_s, g_x0]))
-            except RuntimeError as exc:
-                raise FitError(f"collocation equations singular in segment {g} ({exc}); remedy: shorter "
-                               "segments or a closer base plant (--plant)") from None
-            if not np.all(np.isfinite(z)):
-                raise FitError(f"collocation equations singular in segment {g}; remedy: shorter segments "
-                               "or a closer base plant (--plant)")
+            z = zz[m0:m0 + n].reshape(n * n3, 1 + npar + nx)
             a_v, a_x = self._a_matrices(g)
             r_lin = resid[g] - a_v @ z[:, 0]
             j_s = -(a_v @ z[:, 1:1 + npar])
@@ -684,11 +729,13 @@ class _Problem:
             return float("inf"), float("inf")
         return (g, f) if np.isfinite(g) and np.isfinite(f) else (float("inf"), float("inf"))
 
-    def solve(self, s0, lo, hi, max_iter, tol, fixed, box=0.3, warm=3):
+    def solve(self, s0, lo, hi, max_iter, tol, fixed, box=0.3, warm=3, init=None):
+        """The Gauss-Newton iteration from parameters ``s0`` and states ``init`` (scaled ``(V,
+        X0)``, :func:`~prsa_ctrl.identification.warmstart.initial_states`; default the reference)."""
         nx, nseg, npar = self.nx, len(self.segs), self.npar
         self.at_kink, self.stall = False, None
-        V = np.zeros(self.n3 * self.M)
-        X0 = np.zeros(nx * nseg)
+        V = np.zeros(self.n3 * self.M) if init is None else np.array(init[0], float)
+        X0 = np.zeros(nx * nseg) if init is None else np.array(init[1], float)
         s = np.array(s0, float)
         status, it = "maximum iterations", 0
         free_steps = 3

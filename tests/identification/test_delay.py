@@ -510,3 +510,38 @@ def test_cli_writes_the_found_delay(base, tmp_path, capsys):
     assert main([str(csv), "--out", str(bad), "--command-logged", "sometimes"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--command-logged" in err and not bad.exists()
+
+
+def test_the_found_shift_is_refitted_once_from_the_search_values_on_the_base(plant):
+    # The refit at the found shift starts from the search's values of the keys it identified,
+    # with the base plant as its base (a key the data do not inform keeps the base's value, not
+    # the search's) and the search's states; it is not done a second time when a key ends up not
+    # identified. A refit that fails from there is done again from the base plant, cold.
+    from prsa_ctrl.identification.delay import refit_found
+
+    search = _result(plant.with_params({"nut.inertia_kg_m2": 1e-3, BW: 700.0}), 5.0, 700.0)
+    search.solver["delay_search"] = {"objective": {"1": 5.0}}
+    search.parameters[BW]["kept_base"] = True  # the search did not identify the bandwidth
+    calls = []
+
+    def fit_at(shift, start, base=None, warm=False):
+        calls.append((shift, start, base, warm))
+        if fail and len(calls) == 1:
+            raise FitError("stalled")
+        out = _result(start if base is None else base, 4.0, 900.0)
+        out.parameters[BW]["kept_base"] = True
+        return out
+
+    fail = False
+    out = refit_found(fit_at, search, 1, plant)
+    assert len(calls) == 1
+    shift, start, base, warm = calls[0]
+    assert shift == 1 and base is plant and warm is True
+    assert start.values["nut.inertia_kg_m2"] == 1e-3  # the search's identified value
+    assert start.values[BW] == plant.values[BW]  # not the search's unidentified one
+    assert out.solver["delay_search"]["objective"] == {"1": 5.0}
+    calls.clear()
+    fail = True
+    out = refit_found(fit_at, search, 1, plant)
+    assert [(s, st is plant, b, w) for s, st, b, w in calls] == [(1, False, plant, True), (1, True, None, False)]
+    assert out.solver["objective"] == 4.0

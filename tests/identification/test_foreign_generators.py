@@ -508,6 +508,24 @@ def test_prsa_fit_acceptance_on_foreign_sets(case, tmp_path):
     assert not fails, f"{case}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(PRSA_FIT is None, reason="the prsa-fit console script is not installed")
+def test_the_seed_1_ball_screw_logs_are_cross_validated_not_a_fit_failure(tmp_path, monkeypatch):
+    # The ball-screw logs at seed 1 ended exit 3 "fit failure, not missing physics": the
+    # cross-validation fit without loadsteps.csv converged, but its check of the plant as
+    # written (drag and viscous kept) started from the data reference and stalled in a segment
+    # starting in the stick band. The check now starts from the free fit's states.
+    monkeypatch.setenv("PRSA_FOREIGN_SEED", "1")
+    args, out, js, truth = _command("ballscrew-logs-applied", tmp_path)
+    proc = _run(args, tmp_path)
+    fails, row = _acceptance(proc, out, js, truth, mode_expected=False)
+    assert not fails, "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
+    assert "fit failure" not in proc.stderr
+    if proc.returncode == 0:  # every left-out log was refitted (none failed)
+        cv = json.loads(Path(js).read_text())["solver"]["validation"]["cross_validation"]
+        assert all("failed" not in e for e in cv.values())
+
+
 def test_the_acceptance_oracle_refuses_what_the_issue_refuses(tmp_path, rs_set):
     # The checker of (b) bites: a crash reported as exit 3, a file left behind, an exit 0 whose
     # interval misses the truth, a wrong delay or current loop are each a failure; a refusal that

@@ -75,3 +75,38 @@ def test_a_stall_at_a_first_order_point_is_accepted_and_one_elsewhere_refused():
     # the equations out of the linearisation's reach, or no number: refused
     assert not gn.first_order_point(10 * gn.FIRST_ORDER_G_MAX, m_opt)
     assert not gn.first_order_point(float("nan"), m_opt) and not gn.first_order_point(1e-9, float("nan"))
+
+
+def test_a_buffered_function_reused_gives_each_call_its_own_outputs_and_threads_their_own_buffer():
+    # The buffer is made once per thread and reused: a second call with other inputs must not
+    # see the first call's inputs, nor overwrite the arrays the first call returned.
+    import threading
+
+    import casadi as ca
+
+    from prsa_ctrl.identification.gaussnewton import Buffered
+
+    x, p = ca.SX.sym("x", 2), ca.SX.sym("p")
+    e = ca.vertcat(p * x[0] ** 2, ca.sin(x[1]))
+    f = ca.Function("f", [x, p], [e]).map("fm", "serial", 3, [1], [])
+    b = Buffered(f)
+    xa = np.array([[1.0, 2.0, 3.0], [0.1, 0.2, 0.3]])
+    xb = np.array([[-4.0, 5.0, 0.5], [1.1, -0.7, 2.0]])
+    (ra,) = b(xa, 2.0)
+    ra_copy = ra.copy()
+    (rb,) = b(xb, -3.0)
+    assert np.array_equal(ra, ra_copy)  # the first result is untouched by the second call
+    assert np.array_equal(rb.reshape(2, 3, order="F"), np.asarray(f(xb, -3.0)))
+    assert np.array_equal(b(xa, 2.0)[0], ra_copy)
+    got = {}
+
+    def other(k, xs, pv):
+        for _ in range(50):
+            got[k] = b(xs, pv)[0]
+
+    ts = [threading.Thread(target=other, args=(k, xs, pv)) for k, (xs, pv) in enumerate(((xa, 2.0), (xb, -3.0)))]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    assert np.array_equal(got[0], ra_copy) and np.array_equal(got[1], rb)

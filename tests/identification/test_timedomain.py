@@ -175,3 +175,63 @@ def test_the_default_segment_depends_on_the_fidelity(sim, monkeypatch, fidelity,
     with pytest.raises(td.FitError):
         td.fit_plant([rec], truth, fidelity=fidelity, delay_samples=0, validation=False, segment_s=0.02)
     assert seen[-1] == 0.02
+
+
+def _with_a_kept_key(monkeypatch, key):
+    """finish_fit as the fit calls it, with ``key`` reported not identified (kept at the base value)."""
+    orig = td.finish_fit
+
+    def kept(plant, keys, *a, **kw):
+        out = orig(plant, keys, *a, **kw)
+        out[0][key]["kept_base"] = True
+        return out
+
+    monkeypatch.setattr(td, "finish_fit", kept)
+
+
+def test_the_plant_as_written_is_checked_from_the_free_fits_states(sim, monkeypatch):
+    # With a key kept at its base value, the plant as written is run on the fit's segments; that
+    # states-only solve starts from the free fit's states (the plants differ only in the kept
+    # key), not from the data reference (where, on the ball-screw logs at seed 1, a segment's
+    # start settled in the stick band and the check stalled: the cross-validation fit failed).
+    rec, truth = sim
+    keys = ("nut.inertia_kg_m2", "friction.viscous_n_m_s_per_rad")
+    _with_a_kept_key(monkeypatch, keys[1])
+    calls = []
+    orig = td._Problem.solve
+
+    def spy(self, *a, **kw):
+        out = orig(self, *a, **kw)
+        calls.append((kw.get("fixed"), kw.get("init"), out))
+        return out
+
+    monkeypatch.setattr(td._Problem, "solve", spy)
+    start = truth.with_params({keys[1]: 2.0 * truth.values[keys[1]]})  # the written value differs from the free one
+    res = td.fit_plant([rec], start, keys=keys, delay_samples=0, validation=False)
+    free = [c for c in calls if not c[0]]
+    fixed = [c for c in calls if c[0]]
+    assert len(free) == 1 and len(fixed) == 1
+    init = fixed[0][1]
+    assert init is not None
+    assert np.array_equal(init[0], free[0][2]["V"]) and np.array_equal(init[1], free[0][2]["X0"])
+    assert fixed[0][2]["status"] == "converged" and "fit_percent_written" in res.solver
+
+
+def test_a_written_plant_check_that_fails_is_reported_not_a_failed_fit(sim, monkeypatch):
+    rec, truth = sim
+    keys = ("nut.inertia_kg_m2", "friction.viscous_n_m_s_per_rad")
+    ref = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+    _with_a_kept_key(monkeypatch, keys[1])
+    orig = td._Problem.solve
+
+    def stall_when_fixed(self, *a, **kw):
+        if kw.get("fixed"):
+            raise td.FitError("fit did not converge: Gauss-Newton status 'stalled' after 18 iterations")
+        return orig(self, *a, **kw)
+
+    monkeypatch.setattr(td._Problem, "solve", stall_when_fixed)
+    res = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
+    assert "fit_percent_written" not in res.solver
+    assert any("was not followed on the fit's segments" in w and "stalled" in w for w in res.warnings)
+    # the free fit itself is the one without the check
+    assert res.parameters[keys[0]]["value"] == pytest.approx(ref.parameters[keys[0]]["value"], rel=1e-12)
