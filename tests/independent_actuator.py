@@ -92,3 +92,46 @@ def simulate_independent(
         "nut_angle_rad": ang,
         "axial_load_n": np.asarray(load_n, float) + load_cell_noise_n * rng.standard_normal(n),
     }
+
+
+def multisine_load_step_record(truth, sample_time_s: float = 2.5e-4, *, inertia_factor: float = 1.0,
+                               name: str = "independent", seed: int = 1):
+    """The identification tests' independent log of ``truth`` (a prsa_ctrl ``Plant``): 0.4 s of a
+    5..150 Hz speed multisine (20 rad/s around 30 rad/s) under axial-load steps 200 -> 1500 -> 300
+    -> 2500 N, simulated by :func:`simulate_independent` (``inertia_factor`` times the truth's
+    reflected inertia, efficiency 0.88, drag 0.03 N m, viscous 1.5e-4 N m s/rad, current loop
+    1200 Hz, noise ``seed``), named ``name``. Only the excitation's design and the record
+    container are prsa_ctrl's; the dynamics are this module's."""
+    from prsa_ctrl.identification.data import design_excitation, record_from_arrays
+
+    ts = sample_time_s
+    n = int(round(0.4 / ts))
+    t = np.arange(n) * ts
+    _, sp = design_excitation("multisine", duration_s=n * ts, sample_time_s=ts, f_min_hz=5, f_max_hz=150,
+                              amplitude=20, offset=30)
+    load = np.select([t < 0.1, t < 0.2, t < 0.3], [200.0, 1500.0, 300.0], 2500.0)
+    d = simulate_independent(
+        inertia_kg_m2=inertia_factor * truth.reflected_inertia_kg_m2, lead_m=truth.lead_m, efficiency=0.88,
+        no_load_torque_n_m=0.03, viscous_n_m_s_per_rad=1.5e-4, current_loop_bandwidth_hz=1200.0,
+        torque_limit_n_m=truth.torque_limit, setpoint_rad_s=sp, load_n=load, sample_time_s=ts, seed=seed)
+    return record_from_arrays(name, d["time_s"], d["torque_command_n_m"], nut_angle_rad=d["nut_angle_rad"],
+                              axial_load_n=d["axial_load_n"])
+
+
+def two_mass_eom_response(f_hz, jm, jl, k, c, b=0.0, fc_hz=math.inf, delay_s=0.0):
+    """Motor speed / torque command ((rad/s)/(N m)) of two inertias ``jm``, ``jl`` (kg m^2) on a
+    spring ``k`` (N m/rad) and damper ``c`` (N m s/rad), viscous ``b`` on the motor side, a
+    first-order current loop ``fc_hz`` and a delay: ``[Jm s + b + Z, -Z; -Z, Jl s + Z] [wm, wl] =
+    [tau, 0]`` with ``Z = c + k / s``, solved at each frequency (not prsa_ctrl's closed form)."""
+    out = []
+    for fi in np.asarray(f_hz, float):
+        s = 1j * 2 * math.pi * fi
+        z = c + k / s
+        w = np.linalg.solve(np.array([[jm * s + b + z, -z], [-z, jl * s + z]]), np.array([1.0, 0.0]))
+        out.append(w[0] / (1 + s / (2 * math.pi * fc_hz)) * np.exp(-s * delay_s))
+    return np.array(out)
+
+
+def modal_damper(k, jm, jl, zeta):
+    """The damper (N m s/rad) that gives the two-mass mode the damping ratio ``zeta``."""
+    return 2 * zeta * math.sqrt(k * jm * jl / (jm + jl))

@@ -12,6 +12,8 @@ import warnings
 import numpy as np
 import pytest
 
+from independent_actuator import modal_damper, two_mass_eom_response
+
 pytest.importorskip("bokeh", reason="prsa-app tests need the app extra (pip install '.[app]')")
 
 TWO_PI = 2 * math.pi
@@ -126,15 +128,8 @@ def test_refused_frf_fit_is_the_commands_exit_3_line_and_no_plant(tmp_path, caps
 
 def _two_mass(f, jm, jl, k, zeta, fc):
     """Motor speed / torque command of two inertias on a spring (modal damping ``zeta``) and a
-    first-order current loop, from the 2 x 2 equations of motion at each frequency."""
-    c = 2 * zeta * math.sqrt(k * jm * jl / (jm + jl))
-    out = []
-    for fi in f:
-        s = 1j * TWO_PI * fi
-        z = c + k / s
-        w = np.linalg.solve(np.array([[jm * s + z, -z], [-z, jl * s + z]]), np.array([1.0, 0.0]))
-        out.append(w[0] / (1 + s / (TWO_PI * fc)))
-    return np.array(out)
+    first-order current loop, from the equations of motion (tests/independent_actuator.py)."""
+    return two_mass_eom_response(f, jm, jl, k, modal_damper(k, jm, jl, zeta), fc_hz=fc)
 
 
 def test_two_mass_response_shows_the_chosen_structure_and_the_mode_with_intervals(tmp_path, capsys):

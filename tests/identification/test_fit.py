@@ -19,7 +19,7 @@ from prsa_ctrl.identification.timedomain import fit_plant
 from prsa_ctrl.plant import Plant
 from prsa_ctrl.sim.engine import run
 
-from independent_actuator import simulate_independent
+from independent_actuator import multisine_load_step_record
 
 TS = 2.5e-4
 DURATION = 0.3  # s per experiment (1200 samples at 4 kHz)
@@ -176,17 +176,7 @@ def test_coloured_noise_widens_the_intervals(base):
 
 def test_independent_generator_is_fitted(base):
     truth = base.with_params(PERTURBED["issue"])
-    n = int(round(0.4 / TS))
-    t = np.arange(n) * TS
-    _, sp = design_excitation("multisine", duration_s=n * TS, sample_time_s=TS, f_min_hz=5, f_max_hz=150,
-                              amplitude=20, offset=30)
-    load = np.select([t < 0.1, t < 0.2, t < 0.3], [200.0, 1500.0, 300.0], 2500.0)
-    d = simulate_independent(
-        inertia_kg_m2=truth.reflected_inertia_kg_m2, lead_m=truth.lead_m, efficiency=0.88, no_load_torque_n_m=0.03,
-        viscous_n_m_s_per_rad=1.5e-4, current_loop_bandwidth_hz=1200.0, torque_limit_n_m=truth.torque_limit,
-        setpoint_rad_s=sp, load_n=load, sample_time_s=TS, seed=1)
-    rec = record_from_arrays("independent", d["time_s"], d["torque_command_n_m"], nut_angle_rad=d["nut_angle_rad"],
-                             axial_load_n=d["axial_load_n"])
+    rec = multisine_load_step_record(truth, TS)
     result = fit_plant([rec], base)
     _check_accuracy(result, truth)
     assert abs(result.parameters["friction.no_load_torque_n_m"]["value"] - 0.03) < 0.005
@@ -828,32 +818,13 @@ def test_frf_points_above_nyquist_dropped_with_a_note(base, truth):
 # --- item 6: overlay figures without shooting-join spikes ---------------------------------------------
 
 
-def _independent_record(truth):
-    from independent_actuator import simulate_independent
-
-    from prsa_ctrl.identification.data import design_excitation, record_from_arrays
-
-    ts = 2.5e-4
-    n = int(round(0.4 / ts))
-    t = np.arange(n) * ts
-    _, sp = design_excitation("multisine", duration_s=n * ts, sample_time_s=ts, f_min_hz=5, f_max_hz=150,
-                              amplitude=20, offset=30)
-    load = np.select([t < 0.1, t < 0.2, t < 0.3], [200.0, 1500.0, 300.0], 2500.0)
-    d = simulate_independent(
-        inertia_kg_m2=truth.reflected_inertia_kg_m2, lead_m=truth.lead_m, efficiency=0.88, no_load_torque_n_m=0.03,
-        viscous_n_m_s_per_rad=1.5e-4, current_loop_bandwidth_hz=1200.0, torque_limit_n_m=truth.torque_limit,
-        setpoint_rad_s=sp, load_n=load, sample_time_s=ts, seed=1)
-    return record_from_arrays("independent", d["time_s"], d["torque_command_n_m"], nut_angle_rad=d["nut_angle_rad"],
-                              axial_load_n=d["axial_load_n"])
-
-
 def test_overlay_shows_one_continuous_simulation(base, truth):
     """On b18c321 the overlay drew the shooting segments: at a join the model jumped by 2.5 rad/s
     (the measured speed never changes by more than 1.4 rad/s in a sample) and the residual panel
     showed 2.3 rad/s there."""
     from prsa_ctrl.plots.fit import fit_figures
 
-    rec = _independent_record(truth)
+    rec = multisine_load_step_record(truth, TS)
     result = fit_plant([rec], base)
     fig = fit_figures(result)["independent-fit"]
     ax1, ax2 = fig.axes[:2]

@@ -19,6 +19,8 @@ from prsa_ctrl.identification.data import frf_from_arrays
 from prsa_ctrl.identification.frf import axial_mode, frf_response
 from prsa_ctrl.identification.frfplant import first_mode_hz, fit_frf_structure
 
+from independent_actuator import modal_damper, two_mass_eom_response
+
 TWO_PI = 2 * math.pi
 ROOT = Path(__file__).resolve().parents[2]
 LOAD = 800.0
@@ -105,17 +107,10 @@ def test_response_of_the_plants_own_linearisation(mech):
             assert res.plant.values[k] == pytest.approx(truth.values[k], rel=0.05), k
 
 
-def _two_mass(f, jm, jl, k, zeta, fc, ts=0.0):
+def _two_mass(f, jm, jl, k, zeta, fc):
     """Motor speed / torque command of two inertias on a spring (modal damping ``zeta``) and a
-    first-order current loop, from the 2 x 2 equations of motion at each frequency."""
-    c = 2 * zeta * math.sqrt(k * jm * jl / (jm + jl))
-    out = []
-    for fi in f:
-        s = 1j * TWO_PI * fi
-        z = c + k / s
-        w = np.linalg.solve(np.array([[jm * s + z, -z], [-z, jl * s + z]]), np.array([1.0, 0.0]))
-        out.append(w[0] / (1 + s / (TWO_PI * fc)))
-    return np.array(out)
+    first-order current loop, from the equations of motion (tests/independent_actuator.py)."""
+    return two_mass_eom_response(f, jm, jl, k, modal_damper(k, jm, jl, zeta), fc_hz=fc)
 
 
 @pytest.mark.parametrize("mech", list(BASES))

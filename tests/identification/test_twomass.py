@@ -15,21 +15,16 @@ import pytest
 from prsa_ctrl.errors import FitError
 from prsa_ctrl.identification.twomass import choose_structure, fit_frf_model, two_mass_response
 
+from independent_actuator import two_mass_eom_response
+
 TWO_PI = 2 * math.pi
 
 
 def _eom_response(f, jm, jl, k, c, b, fc, td):
-    """Motor speed / torque command of two inertias on a spring and damper, solved from
-    ``[Jm s + b + Z, -Z; -Z, Jl s + Z] [wm, wl] = [tau, 0]`` with ``Z = c + k / s``, a first-order
-    current loop and a delay."""
-    out = []
-    for fi in np.asarray(f, float):
-        s = 1j * TWO_PI * fi
-        z = c + k / s
-        m = np.array([[jm * s + b + z, -z], [-z, jl * s + z]])
-        w = np.linalg.solve(m, np.array([1.0, 0.0]))
-        out.append(w[0] / (1 + s / (TWO_PI * fc)) * np.exp(-s * td))
-    return np.array(out)
+    """Motor speed / torque command of two inertias on a spring and damper with viscous ``b``, a
+    first-order current loop and a delay, solved from the equations of motion
+    (tests/independent_actuator.py)."""
+    return two_mass_eom_response(f, jm, jl, k, c, b, fc, td)
 
 
 # a ball-screw-like axis: 3.3e-3 kg m^2 at the motor, 350 kg through 10 mm lead, 124 N/um

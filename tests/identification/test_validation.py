@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from prsa_ctrl import GeometryWarning, load_plant
-from prsa_ctrl.identification.data import design_excitation, record_from_arrays
+from prsa_ctrl.identification.data import record_from_arrays
 from prsa_ctrl.identification.logformat import ControllerSpec
 from prsa_ctrl.identification.validation import (FIT_MIN_PERCENT, NOISE_FACTOR, RESONANCE_SHARE,
                                                  WRITTEN_TOLERANCE_POINTS, diagnosis, explained, noise_floor,
                                                  refusal, replay_records, resonance, verdict, whiteness)
 from prsa_ctrl.identification.validation import CLOSED_LOOP_MODE, ClosedLoop, closed_loop_replay
 
-from independent_actuator import simulate_independent
+from independent_actuator import multisine_load_step_record
 
 TS = 2.5e-4
 TRUTH = {"nut.inertia_kg_m2": 1.5e-4, "friction.efficiency": 0.88, "friction.no_load_torque_n_m": 0.03,
@@ -32,17 +32,7 @@ def truth():
 
 @pytest.fixture(scope="module")
 def record(truth):
-    n = int(round(0.4 / TS))
-    t = np.arange(n) * TS
-    _, sp = design_excitation("multisine", duration_s=n * TS, sample_time_s=TS, f_min_hz=5, f_max_hz=150,
-                              amplitude=20, offset=30)
-    load = np.select([t < 0.1, t < 0.2, t < 0.3], [200.0, 1500.0, 300.0], 2500.0)
-    d = simulate_independent(
-        inertia_kg_m2=truth.reflected_inertia_kg_m2, lead_m=truth.lead_m, efficiency=0.88, no_load_torque_n_m=0.03,
-        viscous_n_m_s_per_rad=1.5e-4, current_loop_bandwidth_hz=1200.0, torque_limit_n_m=truth.torque_limit,
-        setpoint_rad_s=sp, load_n=load, sample_time_s=TS, seed=1)
-    return record_from_arrays("independent", d["time_s"], d["torque_command_n_m"], nut_angle_rad=d["nut_angle_rad"],
-                              axial_load_n=d["axial_load_n"])
+    return multisine_load_step_record(truth, TS)
 
 
 def test_the_true_plant_replays_its_log_and_is_explained(truth, record):
@@ -269,20 +259,6 @@ def test_a_failed_cross_validation_fit_is_retried_from_other_starts(truth, recor
     assert v["diagnosis"].startswith("fit failure, not missing physics")
 
 
-def _independent_record(truth, inertia_factor=1.0, name="independent", seed=1):
-    n = int(round(0.4 / TS))
-    t = np.arange(n) * TS
-    _, sp = design_excitation("multisine", duration_s=n * TS, sample_time_s=TS, f_min_hz=5, f_max_hz=150,
-                              amplitude=20, offset=30)
-    load = np.select([t < 0.1, t < 0.2, t < 0.3], [200.0, 1500.0, 300.0], 2500.0)
-    d = simulate_independent(
-        inertia_kg_m2=inertia_factor * truth.reflected_inertia_kg_m2, lead_m=truth.lead_m, efficiency=0.88,
-        no_load_torque_n_m=0.03, viscous_n_m_s_per_rad=1.5e-4, current_loop_bandwidth_hz=1200.0,
-        torque_limit_n_m=truth.torque_limit, setpoint_rad_s=sp, load_n=load, sample_time_s=TS, seed=seed)
-    return record_from_arrays(name, d["time_s"], d["torque_command_n_m"], nut_angle_rad=d["nut_angle_rad"],
-                              axial_load_n=d["axial_load_n"])
-
-
 def test_cli_exit_3_without_a_plant_file_unless_forced(truth, tmp_path, capsys):
     """A log the fitted plant cannot explain (--validate: the same axis with 4x the inertia):
     exit 3, the per-log lines, one diagnosis line, no plant file; --force writes it with a header
@@ -291,8 +267,8 @@ def test_cli_exit_3_without_a_plant_file_unless_forced(truth, tmp_path, capsys):
 
     fitted = tmp_path / "fitted.csv"
     other = tmp_path / "heavy.csv"
-    _independent_record(truth).to_csv(fitted)
-    _independent_record(truth, 4.0, "heavy", seed=2).to_csv(other)
+    multisine_load_step_record(truth, TS).to_csv(fitted)
+    multisine_load_step_record(truth, TS, inertia_factor=4.0, name="heavy", seed=2).to_csv(other)
     out, js = tmp_path / "plant.toml", tmp_path / "report.json"
     code = main([str(fitted), "--validate", str(other), "--out", str(out), "--json", str(js), "--delay-samples", "0"])
     cap = capsys.readouterr()

@@ -15,6 +15,8 @@ from prsa_ctrl.plant.linearaxis import is_two_mass_axis
 from prsa_ctrl.plant.model import plant_model
 from prsa_ctrl.plant.plantfile import Plant
 
+from independent_actuator import modal_damper, two_mass_eom_response
+
 TWO_PI = 2 * math.pi
 M, ML, K_UM, ZETA, FC = 120.0, 45.0, 3.0, 0.04, 800.0  # kg, kg, N/um, -, Hz
 
@@ -39,16 +41,10 @@ def _axis(load_mass: float = ML) -> Plant:
 
 def _independent(f_hz, b):
     """Motor speed / force command (m/s per N) of two masses on a spring-damper, viscous ``b`` on the
-    motor side, a first-order current loop: the 2 x 2 equations of motion solved at each frequency."""
+    motor side, a first-order current loop: the 2 x 2 equations of motion solved at each frequency
+    (tests/independent_actuator.py, in load coordinates: masses in kg, stiffness in N/m)."""
     mm, k = M - ML, K_UM * 1e6
-    c = 2 * ZETA * math.sqrt(k * mm * ML / M)
-    out = []
-    for f in f_hz:
-        s = 1j * TWO_PI * f
-        z = c + k / s
-        v = np.linalg.solve(np.array([[mm * s + b + z, -z], [-z, ML * s + z]]), np.array([1.0, 0.0]))
-        out.append(v[0] / (1 + s / (TWO_PI * FC)))
-    return np.array(out)
+    return two_mass_eom_response(f_hz, mm, ML, k, modal_damper(k, mm, ML, ZETA), b, FC)
 
 
 def test_the_compliant_model_of_a_linear_axis_with_a_load_mass_is_the_two_mass_axis():
