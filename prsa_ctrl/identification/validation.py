@@ -446,8 +446,7 @@ def _current_loop_hidden(result, fp: float) -> str:
             f"at {fp:.4g} Hz is {lag:.1f} deg, small beside the up to 180 deg of the resonance the model lacks")
 
 
-def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | None, result,
-              loo: dict | None = None) -> str:
+def diagnosis(written: dict, delay_search: dict | None, result, loo: dict | None = None) -> str:
     """One line naming the most likely missing physics of a fit whose written plant does not
     explain the data, tested in this order:
 
@@ -466,7 +465,7 @@ def diagnosis(written: dict, records: Sequence[Record], delay_search: dict | Non
     5. else the friction model (the residual largest where the speed is low or the load changes).
 
     The residual's peak is :func:`resonance`'s (each entry's ``time_s`` gives its sample time), the
-    one the verdict judged; ``records`` is not read (the entries carry their times; kept for callers).
+    one the verdict judged.
     """
     bad = {n: e for n, e in written.items() if not explained(e)}
     fits = [e["fit_percent"] for e in written.values()]
@@ -627,8 +626,7 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
         reasons.append("the command delay is not decided by the data (objective per delay: " + ", ".join(
             f"{s_}: {'failed' if v is None else f'{v:.4g}'}" for s_, v in search.get("objective", {}).items())
             + f"; tolerance: a factor {search.get('ratio_tolerance')}); give --delay-samples N if you know it")
-    diag = None if passes else diagnosis(written, recs_all, (result.solver.get("command_delay") or {}).get("search"),
-                                         result, loo)
+    diag = None if passes else diagnosis(written, (result.solver.get("command_delay") or {}).get("search"), result, loo)
     fit_pct = dict(result.fit_percent)
     traces = {n: dict(t) for n, t in result.traces.items()}
     for n, e in written.items():

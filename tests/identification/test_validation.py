@@ -142,7 +142,7 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
     # an entry as the replay makes it: with its times (the diagnosis reads the verdict's resonance())
     ringing = {"finite": True, "time_s": t, "measured": meas, "model": meas - 0.5 * np.sin(2 * math.pi * 180.0 * t),
                "skip_samples": 80, "fit_percent": 10.0, "error_rms_rad_s": 0.35, "noise_floor_rad_s": 0.01}
-    d = diagnosis({"independent": ringing}, [record], {"decided": True}, _R())
+    d = diagnosis({"independent": ringing}, {"decided": True}, _R())
     f_hz = float(d.split(" of ")[-1].split(" Hz")[0])
     assert d.startswith("second mass") and abs(f_hz - 180.0) < 0.03 * 180.0  # Welch bins of 4000/2048 Hz
     assert "current-loop" not in d  # the bandwidth was identified (or not fitted): nothing to say
@@ -152,21 +152,21 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
         not_identified = {"drive.current_loop_bandwidth_hz": "95 % CI wider than +/- 50 %"}
         plant = truth.with_params({"drive.current_loop_bandwidth_hz": 800.0})
 
-    d = diagnosis({"independent": ringing}, [record], {"decided": True}, _Kept())
+    d = diagnosis({"independent": ringing}, {"decided": True}, _Kept())
     assert d.startswith("second mass") and "kept at 800 Hz" in d
     lag = float(d.split(" Hz is ")[-1].split(" deg")[0])
     assert lag == pytest.approx(math.degrees(math.atan(fp / 800.0)), abs=0.06)
     assert float(f"{ringing['resonance'][0]:.4g}") == fp  # the verdict's peak, kept in the entry, is the one named
     # one peak for the verdict and the diagnosis: the one resonance() keeps in the entry is the one named
-    assert "123 Hz" in diagnosis({"independent": dict(ringing, resonance=(123.0, 0.9))}, [], {"decided": True}, _R())
+    assert "123 Hz" in diagnosis({"independent": dict(ringing, resonance=(123.0, 0.9))}, {"decided": True}, _R())
     drift = dict(ringing, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)))
     drift.pop("resonance")  # a new residual: its own peak
     undecided = {"decided": False, "objective": {"0": 1.0, "1": None}}
-    d = diagnosis({"independent": drift}, [record], undecided, _R())
+    d = diagnosis({"independent": drift}, undecided, _R())
     assert d.startswith("delay") and "1: failed" in d
-    assert diagnosis({"independent": drift}, [record], {"decided": True}, _R()).startswith("friction model")
+    assert diagnosis({"independent": drift}, {"decided": True}, _R()).startswith("friction model")
     negative = dict(drift, fit_percent=-40.0)
-    assert diagnosis({"independent": negative}, [record], None, _R()).startswith("wrong units or coordinates")
+    assert diagnosis({"independent": negative}, None, _R()).startswith("wrong units or coordinates")
 
 
 def test_a_resonance_is_named_before_an_undecided_delay(record):
@@ -184,11 +184,11 @@ def test_a_resonance_is_named_before_an_undecided_delay(record):
                "skip_samples": 80, "fit_percent": 60.0, "error_rms_rad_s": 0.35, "noise_floor_rad_s": 0.01}
     undecided = {"decided": False, "objective": {"1": 7.1e4, "2": 7.0e4, "3": None}}
     assert not explained(ringing)
-    d = diagnosis({"independent": ringing}, [record], undecided, _R())
+    d = diagnosis({"independent": ringing}, undecided, _R())
     assert d.startswith("second mass") and "160" in d.split(" Hz")[0][-6:], d
     drift = dict(ringing, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)))
     drift.pop("resonance", None)
-    assert diagnosis({"independent": drift}, [record], undecided, _R()).startswith("delay")
+    assert diagnosis({"independent": drift}, undecided, _R()).startswith("delay")
 
 
 def test_a_cross_validation_fit_that_failed_is_a_failure_of_the_fit_not_physics(record):
@@ -208,16 +208,16 @@ def test_a_cross_validation_fit_that_failed_is_a_failure_of_the_fit_not_physics(
                          "converge: Gauss-Newton status 'stalled' after 19 iterations (constraint residual 1.92); "
                          "remedy: check the data (units, that the command drives this actuator, sample time)"}
     loo = {"independent": stalled}
-    d = diagnosis({"independent": good}, [record], {"decided": True}, _R(), loo)
+    d = diagnosis({"independent": good}, {"decided": True}, _R(), loo)
     assert d.startswith("fit failure, not missing physics") and "stalled" in d, d
     assert refusal(d).startswith("the fitted plant could not be validated: fit failure")
-    assert "missing physics: friction" in refusal(diagnosis({"independent": good}, [record], {"decided": True}, _R()))
+    assert "missing physics: friction" in refusal(diagnosis({"independent": good}, {"decided": True}, _R()))
     assert not any(w in d.lower() for w in ("friction", "delay", "unit", "resonance", "second mass")), d
-    assert diagnosis({"independent": good}, [record], {"decided": True}, _R()).startswith("friction model")
+    assert diagnosis({"independent": good}, {"decided": True}, _R()).startswith("friction model")
     t = record.time_s[1:]
     drift = dict(good, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)), fit_percent=10.0, error_rms_rad_s=0.5)
     drift.pop("resonance", None)  # a new residual: its own peak
-    d = diagnosis({"independent": drift}, [record], {"decided": True}, _R(), loo)
+    d = diagnosis({"independent": drift}, {"decided": True}, _R(), loo)
     assert d.startswith("friction model") and "did not converge" in d and "not evidence about the physics" in d
 
 
