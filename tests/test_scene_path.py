@@ -1,5 +1,5 @@
 """Issue 22: a scene's path from ``tune_actuator`` to the report. The scene is a studies-level
-object: it is read once (``prsa_ctrl.studies.sceneloops.loop_spec``) and the tuning layer gets
+object: its kind resolves it once (``ResolvedProblem``, ``prsa_ctrl.studies.kindruns``) and the tuning layer gets
 numbers and arrays only, so that no tuning module imports the studies, takes a ``scene``
 parameter or reads a scene's attributes (checked at run time: every attribute read of a scene
 object during a tune is traced to the module that made it)."""
@@ -19,7 +19,8 @@ from prsa_ctrl.studies import autotune
 from prsa_ctrl.studies.autotune import Design, checked, checked_all, predict, predict_all, verify, verify_all
 from prsa_ctrl.studies.movescene import MoveScene
 from prsa_ctrl.studies.scene import DutyCycleScene, Scene, load_scene
-from prsa_ctrl.studies.sceneloops import LoopSpec, actuator_loops, duty_record, linear_fidelity, loop_spec
+from prsa_ctrl.studies.kindruns import ResolvedProblem
+from prsa_ctrl.studies.sceneloops import actuator_loops, duty_record, linear_fidelity, loop_spec
 from prsa_ctrl.studies.scenerobust import scenario_loops, scenarios
 
 PKG = Path(prsa_ctrl.__file__).parent
@@ -48,7 +49,7 @@ def test_no_tuning_module_imports_the_studies(path):
 ABOVE = ("studies/", "io/", "plots/", "cli/", "app/")
 
 
-def _scene_reads(run, classes=(Scene, LoopSpec, MoveScene)):
+def _scene_reads(run, classes=(Scene, ResolvedProblem, MoveScene)):
     """Run ``run()`` with every attribute read of a scene object recorded: the set of
     (module, function) of prsa_ctrl below the studies layer that read one (directly, by
     ``getattr`` duck typing, or through anything that holds the object)."""
@@ -204,31 +205,34 @@ def test_building_the_loops_hands_the_tuning_layer_no_scene(paper_plant):
         loops.append(scenario_loops(paper_plant, robust, scenarios(paper_plant, robust)[:2]))
         return loops
 
-    hits, loops = _tuning_frames_that_receive((Scene, LoopSpec), build)
+    hits, loops = _tuning_frames_that_receive((Scene, ResolvedProblem), build)
     assert hits == set()
     assert [len(x) for x in loops] == [len(step.final_loads), len(kf.final_loads), len(duty.cases), 2]
 
 
-def test_the_spec_reads_the_scene_once_and_as_the_scene_says(paper_plant):
-    """Every field of the spec is the scene's value (the duty cycle's records are
-    ``duty_record``'s, the problem is the scene's kind), and only a scene has a spec (issue 33:
-    no function takes a scene or its spec)."""
+def test_the_resolved_problem_reads_the_scene_once_and_copies_none_of_its_fields(paper_plant):
+    """Issue 33: the resolved problem is the kind's problem on the scene as run plus what the plant
+    fixes (the duty cycle's records are ``duty_record``'s, the linearisation fidelity, the steady
+    torque): no field mirrors a scene field (``LoopSpec`` is gone), and only a scene resolves
+    (no function takes a scene or its resolved problem)."""
+    from prsa_ctrl.studies.dutyscene import DutyCycleScene as Duty
     from prsa_ctrl.studies.kindruns import ProfileRuns, StepRuns
+    from prsa_ctrl.studies.scene import LoadStepScene
 
+    own = {f.name for f in dataclasses.fields(ResolvedProblem)}
+    assert own == {"problem", "fidelity_reason", "linear_fidelity", "records", "steady_torque_n_m"}
+    for scene_type in (LoadStepScene, Duty):
+        assert not own & {f.name for f in dataclasses.fields(scene_type)}, scene_type
     for scene, kind in ((load_scene().replace(fidelity="multi-roller"), StepRuns), (load_scene("duty-ramp"), ProfileRuns)):
         spec = loop_spec(paper_plant, scene)
         with pytest.raises(TypeError, match="expected a prsa_ctrl Scene"):
             loop_spec(paper_plant, spec)
-        assert type(spec.problem) is kind and spec.problem.scene is scene
-        for f in dataclasses.fields(LoopSpec):
-            if f.name in ("records", "linear_fidelity", "steady_torque_n_m", "problem"):
-                continue
-            want = getattr(scene, f.name)
-            assert getattr(spec, f.name) == (tuple(want) if isinstance(want, list) else want), f.name
+        assert type(spec.problem) is kind and spec.problem.scene is scene and spec.scene is scene
+        assert spec.fidelity_reason == ""  # loop_spec keeps the scene's fidelity as it is
         assert spec.linear_fidelity == linear_fidelity(scene)
         assert spec.linear_fidelity == ("compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity)
         if isinstance(scene, DutyCycleScene):
-            for case, rec in zip(spec.cases, spec.records):
+            for case, rec in zip(scene.cases, spec.records):
                 ref = duty_record(paper_plant, scene, case)
                 assert rec.keys() == ref.keys()
                 for k in ("t", "setpoint_at"):
@@ -236,6 +240,22 @@ def test_the_spec_reads_the_scene_once_and_as_the_scene_says(paper_plant):
         else:
             assert spec.records == ()
         assert math.isfinite(spec.steady_torque_n_m) and spec.steady_torque_n_m > 0
+
+
+def test_resolving_chooses_the_fidelity_once_and_says_why(paper_plant):
+    """``resolve(plant)`` fixes ``fidelity = "auto"`` (``choose_fidelity``) in the problem's scene
+    and keeps the reason; the scene it was asked of is left as it is."""
+    from prsa_ctrl.studies.kindruns import speed_kind
+    from prsa_ctrl.studies.scene import choose_fidelity
+
+    scene = load_scene().replace(fidelity="auto")
+    res = speed_kind(scene).resolve(paper_plant)
+    want, why = choose_fidelity(scene)
+    assert res.scene == want and res.scene.fidelity != "auto" and res.fidelity_reason == why
+    assert scene.fidelity == "auto" and res.linear_fidelity == linear_fidelity(want)
+    set_by_file = load_scene().replace(fidelity="rigid")
+    res = speed_kind(set_by_file).resolve(paper_plant)
+    assert res.scene is set_by_file and res.fidelity_reason == "rigid (set by the scene)"
 
 
 def test_the_public_stages_take_a_scene_not_its_spec(paper_plant):

@@ -45,6 +45,7 @@ _EXPORTS = {
     "POSITION_SENSORS": "movescene",
     "POST_EVENT_SAMPLES": "scenefile",
     "PREDICTION_TOLERANCE": "autotune",
+    "ResolvedProblem": "kindruns",
     "PRE_EVENT_SAMPLES": "scenefile",
     "RIGID_RELATIVE_ERROR": "scene",
     "SETPOINT_MAX_RPM": "scenefile",
@@ -134,17 +135,4 @@ _EXPORTS = {
     "work_precision": "accuracy",
 }
 
-_lazy_getattr, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
-
-
-def __getattr__(name: str):
-    if name == "LoopSpec":  # deprecated (warns on every read; not in __all__)
-        import warnings
-
-        from .sceneloops import LoopSpec
-
-        warnings.warn("prsa_ctrl.studies.LoopSpec is deprecated: the tuning pipeline's internal spec (public functions "
-                      "take a Scene; the scene's kind resolves it: prsa_ctrl.studies.scenekinds)",
-                      DeprecationWarning, stacklevel=2)
-        return LoopSpec
-    return _lazy_getattr(name)
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

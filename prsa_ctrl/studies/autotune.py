@@ -12,9 +12,10 @@ torque is not saturated; the simulator's back-calculation anti-windup then acts 
 prefiltered error).
 
 The public functions (:func:`predict`, :func:`verify`, :func:`checked`, ...) take a
-:class:`~prsa_ctrl.studies.scene.Scene`; :func:`tune_actuator` reads it once into the internal
-:class:`~prsa_ctrl.studies.sceneloops.LoopSpec` and runs its stages on that. What differs
-between the kinds is asked of the spec's problem (:mod:`prsa_ctrl.studies.kindruns`)."""
+:class:`~prsa_ctrl.studies.scene.Scene`; :func:`tune_actuator` has the scene's kind resolve it
+once against the plant (:class:`~prsa_ctrl.studies.kindruns.ResolvedProblem`) and runs its
+stages on that. What differs between the kinds is asked of the problem
+(:mod:`prsa_ctrl.studies.kindruns`)."""
 
 from __future__ import annotations
 
@@ -39,8 +40,8 @@ from ..tuning.tuner import Tuner
 from .paper import default_pid
 from .scene import PRE_EVENT_SAMPLES, Scene, choose_fidelity
 from .scenefilters import filter_rows
-from .kindruns import setpoint_prefilter, speed_kind
-from .sceneloops import LoopSpec, actuator_loops, duty_record, linear_fidelity, loop_spec
+from .kindruns import ResolvedProblem, setpoint_prefilter, speed_kind
+from .sceneloops import actuator_loops, duty_record, linear_fidelity, loop_spec
 
 
 __all__ = ["Design", "ActuatorTuning", "tune_actuator", "resolve_scene", "actuator_loops", "baseline_designs", "duty_record",
@@ -247,8 +248,8 @@ def predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, sce
     return _predict_all(designs, loops, plant, loop_spec(plant, scene))
 
 
-def _predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, spec: LoopSpec) -> list[Design]:
-    """:func:`predict_all` on the scene's spec: the linear runs of every design (the loop
+def _predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, spec: ResolvedProblem) -> list[Design]:
+    """:func:`predict_all` on the resolved problem: the linear runs of every design (the loop
     models), then their metrics (the problem's), then the objectives."""
     prob = spec.problem
     traj = [[lp.trajectory(d.pid.gains) for lp in loops] for d in designs]
@@ -256,7 +257,7 @@ def _predict_all(designs: list[Design], loops: list[LoopModel], plant: Plant, sp
     metrics = [prob.predicted_metrics(plant, spec, loops, trs, st) for trs, st in zip(traj, starts)]
     return [replace(d, predicted=tuple(m), predicted_error=tuple(tr["error"] for tr in trs), predicted_h=loops[0].h,
                     predicted_start_speed=w_pre,
-                    objective_predicted=prob.aggregate([getattr(x, spec.objective) for x in m], spec))
+                    objective_predicted=prob.aggregate([getattr(x, spec.scene.objective) for x in m], spec))
             for d, m, trs, (w_pre, _) in zip(designs, metrics, traj, starts)]
 
 
@@ -292,8 +293,9 @@ def health_flags(design: Design, plant: Plant, scene: Scene) -> list[str]:
                   relative_difference(design.objective_predicted, design.objective_verified))
 
 
-def _flags(design: Design, plant: Plant, scene: LoopSpec, diff: float | None) -> list[str]:
-    """:func:`health_flags` on the scene's spec with the relative prediction gap ``diff`` given."""
+def _flags(design: Design, plant: Plant, spec: ResolvedProblem, diff: float | None) -> list[str]:
+    """:func:`health_flags` on the resolved problem with the relative prediction gap ``diff`` given."""
+    scene = spec.scene
     flags = []
     if not design.tuner_status.startswith("optimal"):
         flags.append(f"the tuner did not converge ({design.tuner_status})")
@@ -423,33 +425,33 @@ def verify(design: Design, plant: Plant, scene: Scene, seed: int = 0,
     return _with_runs([design], _simulate([design], plant, spec, seed, settings), plant, spec)[0]
 
 
-def _verification_spec(plant: Plant, scene: Scene) -> LoopSpec:
-    """The spec the verification reads: the scene's with its fidelity resolved."""
+def _verification_spec(plant: Plant, scene: Scene) -> ResolvedProblem:
+    """The problem the verification reads: the scene's, its fidelity resolved."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene = {type(scene).__name__}; expected a prsa_ctrl Scene (prsa_ctrl.load_scene)")
-    return loop_spec(plant, choose_fidelity(scene)[0])
+    return speed_kind(scene).resolve(plant)
 
 
-def _simulate(designs: list[Design], plant: Plant, spec: LoopSpec, seed: int = 0,
+def _simulate(designs: list[Design], plant: Plant, spec: ResolvedProblem, seed: int = 0,
               settings: SimSettings | None = None) -> list[tuple]:
     """The nonlinear runs of :func:`verify`, for every design: ``(runs, estimation)`` with one
     ``(time s, {output: array})`` per level and the Kalman filter's speed RMS errors (rad/s)
     (the problem's runs: load steps from ``_PRE_SAMPLES`` samples before the step, or the duty
     cycle's records)."""
-    if spec.fidelity == "auto":
-        raise ValueError("scene: a LoopSpec with fidelity 'auto'; expected the spec of a scene whose fidelity is "
-                         "resolved (prsa_ctrl.studies.choose_fidelity)")
-    settings = _adaptive_settings(spec.accuracy) if settings is None else settings
+    if spec.scene.fidelity == "auto":
+        raise ValueError("scene: a problem with fidelity 'auto'; expected a problem whose fidelity is resolved "
+                         "(its kind's resolve(plant))")
+    settings = _adaptive_settings(spec.scene.accuracy) if settings is None else settings
     return [spec.problem.simulate(design, plant, spec, settings, seed, _PRE_SAMPLES) for design in designs]
 
 
-def _with_runs(designs: list[Design], simulated: list[tuple], plant: Plant, spec: LoopSpec) -> list[Design]:
+def _with_runs(designs: list[Design], simulated: list[tuple], plant: Plant, spec: ResolvedProblem) -> list[Design]:
     """The designs with their verified runs (:func:`_simulate`), the metrics of every run, then
     the objectives (new designs)."""
     prob = spec.problem
     metrics = [prob.verified_metrics(plant, spec, runs) for runs, _ in simulated]
     return [replace(d, verified=tuple(m), verified_runs=tuple(runs), estimation=tuple(estimation),
-                    objective_verified=prob.aggregate([getattr(x, spec.objective) for x in m], spec))
+                    objective_verified=prob.aggregate([getattr(x, spec.scene.objective) for x in m], spec))
             for d, m, (runs, estimation) in zip(designs, metrics, simulated)]
 
 
@@ -465,13 +467,13 @@ def checked_all(designs: list[Design], plant: Plant, scene: Scene) -> list[Desig
     return _checked_all(designs, plant, loop_spec(plant, scene))
 
 
-def _checked_all(designs: list[Design], plant: Plant, spec: LoopSpec) -> list[Design]:
-    """:func:`checked_all` on the scene's spec."""
+def _checked_all(designs: list[Design], plant: Plant, spec: ResolvedProblem) -> list[Design]:
+    """:func:`checked_all` on the resolved problem."""
     diffs = [relative_difference(d.objective_predicted, d.objective_verified) for d in designs]
     out = []
     for d, diff in zip(designs, diffs):
         d = replace(d, flags=tuple(_flags(d, plant, spec, diff)))
-        out.append(replace(d, warnings=tuple(_warnings(d, spec.objective, diff))))
+        out.append(replace(d, warnings=tuple(_warnings(d, spec.scene.objective, diff))))
     return out
 
 
@@ -522,15 +524,15 @@ def verify_all(designs: list[Design], plant: Plant, scene: Scene, workers: int |
     return _verify_all(designs, plant, _verification_spec(plant, scene), workers)
 
 
-def _verify_all(designs: list[Design], plant: Plant, spec: LoopSpec, workers: int | None = None) -> list[Design]:
-    """:func:`verify_all` on the spec of a scene whose fidelity is resolved."""
+def _verify_all(designs: list[Design], plant: Plant, spec: ResolvedProblem, workers: int | None = None) -> list[Design]:
+    """:func:`verify_all` on a problem whose fidelity is resolved."""
     if not designs:
         return []
     simulated = _simulate_all(designs, plant, spec, default_workers() if workers is None else workers)
     return _with_runs(designs, simulated, plant, spec)
 
 
-def _simulate_all(designs: list[Design], plant: Plant, spec: LoopSpec, workers: int) -> list[tuple]:
+def _simulate_all(designs: list[Design], plant: Plant, spec: ResolvedProblem, workers: int) -> list[tuple]:
     """:func:`_simulate` of every design: in this process, or the first here (it builds and
     caches the integrators) and the others in forked workers where there are cores."""
     global _POOL_JOB
@@ -568,9 +570,9 @@ def baseline_designs(plant: Plant, scene: Scene, loops: list[LoopModel]) -> list
     return _baselines(plant, loop_spec(plant, scene), loops)
 
 
-def _baselines(plant: Plant, spec: LoopSpec, loops: list[LoopModel]) -> list[Design]:
-    """:func:`baseline_designs` on the scene's spec."""
-    scene, lp = spec, loops[0]
+def _baselines(plant: Plant, spec: ResolvedProblem, loops: list[LoopModel]) -> list[Design]:
+    """:func:`baseline_designs` on the resolved problem."""
+    scene, lp = spec.scene, loops[0]
     ref = default_pid(plant)
     designs = []
     ki_small = ref.ki / 10.0
@@ -579,7 +581,7 @@ def _baselines(plant: Plant, spec: LoopSpec, loops: list[LoopModel]) -> list[Des
         g = (kp, ki_small, 0.0)
         if not all(l.is_stable(g) for l in loops) or lp.peak_sensitivity(g) > 2.0:
             continue
-        val = spec.problem.aggregate([l.objective(g, spec.objective) for l in loops], spec)
+        val = spec.problem.aggregate([l.objective(g, scene.objective) for l in loops], spec)
         if best is None or val < best[1]:
             best = (kp, val)
     if best is not None:
@@ -607,22 +609,23 @@ def _best(designs: list[Design]) -> Design:
     return min(healthy or designs, key=lambda d: d.objective_verified)
 
 
-def resolve_scene(plant: Plant, scene: Scene) -> tuple[Scene, str, LoopSpec]:
+def resolve_scene(plant: Plant, scene: Scene) -> tuple[Scene, str, ResolvedProblem]:
     """What a tuning run reads, fixed once: the scene with its fidelity resolved
     (:func:`~prsa_ctrl.studies.scene.choose_fidelity`), the reason for that fidelity, and the
-    run's numbers and sampled records (:func:`~prsa_ctrl.studies.sceneloops.loop_spec`).
+    resolved problem (the scene's kind's :meth:`~prsa_ctrl.studies.kindruns.StepRuns.resolve`).
 
     Returns
     -------
     tuple
-        ``(scene, fidelity_reason, spec)``.
+        ``(scene, fidelity_reason, problem)``: ``problem.scene`` and ``problem.fidelity_reason``
+        are the first two.
     """
-    scene, fidelity_reason = choose_fidelity(scene)
-    return scene, fidelity_reason, loop_spec(plant, scene)
+    res = speed_kind(scene).resolve(plant)
+    return res.scene, res.fidelity_reason, res
 
 
 def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
-                  resolved: tuple[Scene, str, LoopSpec] | None = None) -> ActuatorTuning:
+                  resolved: ResolvedProblem | None = None) -> ActuatorTuning:
     """Tune, verify and compare (see module docstring).
 
     Parameters
@@ -632,9 +635,9 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
     workers : int, optional
         Verification processes (default: up to 4 where the machine has the cores;
         ``PRSA_WORKERS=1`` forces serial runs).
-    resolved : tuple, optional
-        :func:`resolve_scene` of this plant and scene, when the caller has resolved it already
-        (a scene kind's ``resolve``); default: resolved here.
+    resolved : ResolvedProblem, optional
+        The scene's problem resolved against this plant (its kind's ``resolve(plant)``), when the
+        caller has resolved it already; default: resolved here.
 
     1. Linearise at each load step's mid load and build the sampled loop models.
     2. Tune at the scene's Ms bound, plus ``candidates - 1`` more robust alternatives.
@@ -654,44 +657,46 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
         raise TypeError(f"scene = {scene!r}; expected a prsa_ctrl Scene (e.g. prsa_ctrl.load_scene(...))")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
-    # Read the scene once: everything below reads the spec, the tuning layer gets its numbers.
-    scene, fidelity_reason, spec = resolve_scene(plant, scene) if resolved is None else resolved
+    # Resolve the scene once: everything below reads the resolved problem (its scene as run and
+    # what the plant fixed), the tuning layer gets its numbers.
+    spec = speed_kind(scene).resolve(plant) if resolved is None else resolved
+    scene, fidelity_reason = spec.scene, spec.fidelity_reason
     loops = spec.loop_models(plant)
     # Baselines use the drive's standard speed measurement; with an estimator in the scene the
     # PI tuned without it is a baseline too (the reference for what the estimator buys).
-    plain = loops if spec.estimator == "none" else spec.loop_models(plant, estimator="none")
+    plain = loops if scene.estimator == "none" else spec.loop_models(plant, estimator="none")
     timing["linearize"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    common = dict(objective=spec.objective, controller=spec.controller, worst_case=spec.aggregate == "worst")
+    common = dict(objective=scene.objective, controller=scene.controller, worst_case=scene.aggregate == "worst")
     weights = spec.problem.tuner_weights(spec)
     if weights is not None:
         common["weights"] = weights
     tuner = Tuner(loops, **common)  # one scan grid and NLP for every Ms level
     runs: list[dict] = []
-    suffix = (" + KF" if spec.estimator == "kf" else "") + (" + load FF" if spec.feedforward else "")
+    suffix = (" + KF" if scene.estimator == "kf" else "") + (" + load FF" if scene.feedforward else "")
 
     def tuned(ms_levels: list[float]) -> list[Design]:
         """Tuned designs at these Ms bounds, predicted."""
         out = []
         for ms in ms_levels:
-            res = tuner.tune(ms_max=ms, mt_max=spec.mt_max, mks_max=spec.mks_max)
+            res = tuner.tune(ms_max=ms, mt_max=scene.mt_max, mks_max=scene.mks_max)
             runs.append({"ms_max": ms, "result": res.status,
                          **{k: res.stats[k] for k in ("status", "iterations", "wall_time_s")}})
-            out.append(Design(f"tuned (Ms <= {ms:.3g})" + suffix, res.pid, res.margins[0], estimator=spec.estimator,
+            out.append(Design(f"tuned (Ms <= {ms:.3g})" + suffix, res.pid, res.margins[0], estimator=scene.estimator,
                               tuner_status=res.status))
         return out
 
     baselines = _baselines(plant, spec, plain)
-    if spec.estimator != "none":
-        res = Tuner(plain, **common).tune(ms_max=spec.ms_max, mt_max=spec.mt_max, mks_max=spec.mks_max)
-        baselines.insert(0, Design(f"tuned PI alone (Ms <= {spec.ms_max:.3g})", res.pid, res.margins[0]))
+    if scene.estimator != "none":
+        res = Tuner(plain, **common).tune(ms_max=scene.ms_max, mt_max=scene.mt_max, mks_max=scene.mks_max)
+        baselines.insert(0, Design(f"tuned PI alone (Ms <= {scene.ms_max:.3g})", res.pid, res.margins[0]))
     # Candidates: the design at the scene's Ms bound, designs at the Ms of every baseline that
     # is more robust (they double as its equal-Ms comparison), then more robust alternatives
-    # until there are ``spec.candidates``.
-    ms_levels = [spec.ms_max] + sorted({b.margins.ms for b in baselines if b.margins.ms < spec.ms_max}, reverse=True)
-    hedges = [1 + (spec.ms_max - 1) * f for f in (0.85, 0.7, 0.55, 0.4)]
-    ms_levels += hedges[: max(0, spec.candidates - len(ms_levels))]
+    # until there are ``scene.candidates``.
+    ms_levels = [scene.ms_max] + sorted({b.margins.ms for b in baselines if b.margins.ms < scene.ms_max}, reverse=True)
+    hedges = [1 + (scene.ms_max - 1) * f for f in (0.85, 0.7, 0.55, 0.4)]
+    ms_levels += hedges[: max(0, scene.candidates - len(ms_levels))]
     candidates = tuned(ms_levels)
     candidates, baselines = _predict_all(candidates, loops, plant, spec), _predict_all(baselines, plain, plant, spec)
     timing["tune"] = time.perf_counter() - t1
@@ -737,7 +742,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
             }
         )
     # Equal-Ms designs within the scene's bound are candidates too.
-    best = _best([best, *[d for d in extra.values() if d.margins.ms <= spec.ms_max]])
+    best = _best([best, *[d for d in extra.values() if d.margins.ms <= scene.ms_max]])
     timing["total"] = time.perf_counter() - t0
 
     warnings_out = [f"{d.name}: {w}" for d in candidates + baselines + list(extra.values()) for w in d.warnings]
@@ -751,15 +756,15 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
         if not c["beaten"]:
             mt_note = ""
             b_mt = next((b.margins.mt for b in baselines if b.name == c["baseline"]), math.nan)
-            if spec.mt_max is not None and b_mt > spec.mt_max:
-                mt_note = (f" (the comparison design also keeps Mt <= {spec.mt_max:g}; the baseline reaches "
+            if scene.mt_max is not None and b_mt > scene.mt_max:
+                mt_note = (f" (the comparison design also keeps Mt <= {scene.mt_max:g}; the baseline reaches "
                            f"Mt {b_mt:.3g})")
             warnings_out.append(f"baseline {c['baseline']!r} is not beaten at equal or better Ms{mt_note}")
     return ActuatorTuning(
         plant=plant,
         scene=scene,
         best=best,
-        candidates=tuple(candidates + [d for d in extra.values() if d.margins.ms <= spec.ms_max]),
+        candidates=tuple(candidates + [d for d in extra.values() if d.margins.ms <= scene.ms_max]),
         baselines=tuple(baselines),
         comparisons=tuple(comparisons),
         timing_s=timing,
@@ -767,5 +772,5 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
         warnings=tuple(warnings_out),
         loops=tuple(loops),
         fidelity_reason=fidelity_reason,
-        comparison_designs=tuple(d for d in extra.values() if d.margins.ms > spec.ms_max),
+        comparison_designs=tuple(d for d in extra.values() if d.margins.ms > scene.ms_max),
     )

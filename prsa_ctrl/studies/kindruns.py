@@ -8,14 +8,17 @@ report, the plots, the app) asks the problem (``spec.problem`` or
 models, the records, how the per-record objectives aggregate, the linear and the nonlinear runs
 and their metrics, the warnings only one kind gives, and which studies the kind takes.
 
-Every method reads the problem's scene (``self.scene``) or the resolved numbers of its
-:class:`~prsa_ctrl.studies.sceneloops.LoopSpec` (``spec``); SI units throughout (rad/s, N, N m, s).
+A problem is resolved against a plant once (:meth:`StepRuns.resolve`): the frozen
+:class:`ResolvedProblem` holds the problem (its scene with the fidelity fixed) and only what is
+derived from the plant (the fidelity the loop models are linearised at, the duty cycle's sampled
+records, the steady torque); the scene's own numbers are read from the scene, not copied. The
+methods that run take it as ``spec``; SI units throughout (rad/s, N, N m, s).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -24,12 +27,13 @@ from ..options import rad_s_to_rpm
 from ..plant.plantfile import Plant
 from ..sim.signals import PiecewiseLinear, normalise_profile
 from .dutyscene import DutyCycleScene
-from .scene import LoadStepScene, Scene
+from .scene import LoadStepScene, Scene, choose_fidelity
 
 if TYPE_CHECKING:
     from ..drive.pid import PID  # CasADi: an annotation only (a bad flag is refused before CasADi loads)
 
-__all__ = ["StepRuns", "ProfileRuns", "STEP_STUDIES", "speed_kind", "duty_record", "setpoint_prefilter"]
+__all__ = ["StepRuns", "ProfileRuns", "ResolvedProblem", "STEP_STUDIES", "speed_kind", "duty_record",
+           "setpoint_prefilter", "linear_fidelity"]
 
 #: What a load-step problem takes beyond tuning and a duty cycle does not: the robust study and
 #: Monte Carlo (they run load steps), a filter tuned with the gains (its objective is the load
@@ -38,6 +42,62 @@ __all__ = ["StepRuns", "ProfileRuns", "STEP_STUDIES", "speed_kind", "duty_record
 #: duty cycle's events are its profile's) and the browser app's session (it tunes load steps).
 STEP_STUDIES = frozenset({"robust", "monte-carlo", "tune-filter", "fast-verify", "batched", "contact-run", "step-time",
                           "app"})
+
+
+def linear_fidelity(scene: Scene) -> str:
+    """The fidelity the loop models are linearised at: the scene's, except that the
+    multi-roller model (periodic in the cage angle) is replaced by the compliant model, its
+    mean behaviour (and ``"auto"``, not yet resolved, reads as compliant).
+
+    Parameters
+    ----------
+    scene : Scene
+
+    Returns
+    -------
+    str
+    """
+    return "compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity
+
+
+@dataclass(frozen=True)
+class ResolvedProblem:
+    """A speed-loop problem resolved against a plant, once (frozen; :meth:`StepRuns.resolve`):
+    the problem of the scene's kind, its scene as run, and what the plant fixes. The scene's own
+    numbers (setpoint, loads, times, bounds, estimator, filters, ...) are read from
+    :attr:`scene`; nothing here repeats them.
+
+    Attributes
+    ----------
+    problem : StepRuns
+        The kind's problem (:class:`StepRuns` or :class:`ProfileRuns`); its ``scene`` is the
+        scene as run (fidelity resolved where :meth:`StepRuns.resolve` chose it).
+    fidelity_reason : str
+        Why the verification runs at this fidelity (empty where it was not chosen).
+    linear_fidelity : str
+        The fidelity the loop models are linearised at (:func:`linear_fidelity`).
+    records : tuple of dict
+        The problem's sampled records (a duty cycle: :func:`duty_record` per case; load steps:
+        none), at the plant's sample time.
+    steady_torque_n_m : float, N m
+        Motor torque holding the setpoint at the initial load (at :attr:`linear_fidelity`).
+    """
+
+    problem: Any = field(repr=False)
+    fidelity_reason: str
+    linear_fidelity: str
+    records: tuple = field(repr=False)
+    steady_torque_n_m: float
+
+    @property
+    def scene(self) -> Scene:
+        """The scene as run (the problem's)."""
+        return self.problem.scene
+
+    def loop_models(self, plant: Plant, estimator: str | None = None) -> list:
+        """The problem's loop models (one per final load or record), the speed measured as the
+        scene says or as ``estimator`` (``"none"``, ``"kf"``) says."""
+        return self.problem.loop_models(plant, self, self.scene.estimator if estimator is None else estimator)
 
 
 @dataclass(frozen=True)
@@ -77,29 +137,51 @@ class StepRuns:
         return "a load-step scene"
 
     def records(self, plant) -> tuple:
-        """The sampled records the runs read besides the spec's numbers (load steps: none)."""
+        """The sampled records the runs read besides the scene's numbers (load steps: none)."""
         return ()
 
-    def tuning_fields(self) -> dict:
-        """The duty-cycle numbers of the :class:`~prsa_ctrl.studies.sceneloops.LoopSpec`: a load
-        step tunes load rejection with the setpoint weight b = 1 (``goal`` and ``setpoint_share``
-        unread)."""
-        return {"setpoint_weight": 1.0, "goal": "auto", "setpoint_share": 0.5}
+    def resolve(self, plant: Plant, choose: bool = True) -> ResolvedProblem:
+        """The problem resolved against ``plant``, once: the fidelity (``choose``:
+        :func:`~prsa_ctrl.studies.scene.choose_fidelity` fixes ``"auto"`` and says why; False:
+        the scene's as it is, which the loop models read as compliant), the linearisation
+        fidelity, the sampled records and the steady torque.
+
+        Parameters
+        ----------
+        plant : Plant
+            Its sample time sets the duty cycle's records.
+        choose : bool
+
+        Returns
+        -------
+        ResolvedProblem
+        """
+        from ..plant.equilibrium import operating_point  # CasADi: a bad flag is refused before it loads
+
+        prob, reason = self, ""
+        if choose:
+            scene, reason = choose_fidelity(self.scene)
+            prob = self if scene is self.scene else type(self)(scene)
+        sc = prob.scene
+        lin = linear_fidelity(sc)
+        return ResolvedProblem(problem=prob, fidelity_reason=reason, linear_fidelity=lin, records=prob.records(plant),
+                               steady_torque_n_m=operating_point(plant, sc.setpoint_rad_s, sc.initial_load, lin).torque)
 
     def loop_models(self, plant, spec, estimator: str) -> list:
         """One loop model per final load, linearised at the mid load of the step
         (:func:`prsa_ctrl.tuning.actuatorloops.step_loops`)."""
         from ..tuning.actuatorloops import step_loops
 
-        return step_loops(plant, setpoint_rad_s=spec.setpoint_rad_s, initial_load_n=spec.initial_load,
-                          final_loads_n=spec.final_loads, fidelity=spec.linear_fidelity,
-                          horizon_s=spec.duration - spec.step_time, discrete=spec.discrete,
-                          kf_load_change_time_s=spec.load_change_time_s if estimator == "kf" else None,
-                          feedforward=spec.feedforward, filters=spec.filters)
+        sc = spec.scene
+        return step_loops(plant, setpoint_rad_s=sc.setpoint_rad_s, initial_load_n=sc.initial_load,
+                          final_loads_n=tuple(sc.final_loads), fidelity=spec.linear_fidelity,
+                          horizon_s=sc.duration - sc.step_time, discrete=sc.discrete,
+                          kf_load_change_time_s=sc.load_change_time_s if estimator == "kf" else None,
+                          feedforward=sc.feedforward, filters=tuple(sc.filters))
 
     def aggregate(self, values: list[float], spec) -> float:
         """The objective over the records: the worst or the sum (``[tuning] aggregate``)."""
-        if spec.aggregate == "worst":
+        if spec.scene.aggregate == "worst":
             return float(max(values))
         return float(np.sum(values))
 
@@ -110,11 +192,12 @@ class StepRuns:
     def start(self, plant, spec, design) -> tuple[float, float]:
         """``(speed rad/s, torque N m)`` before the event: the setpoint and the steady torque, or,
         for a P-only design, where the loop settles below the setpoint."""
+        sc = spec.scene
         if design.pid.ki != 0:
-            return spec.setpoint_rad_s, spec.steady_torque_n_m
+            return sc.setpoint_rad_s, spec.steady_torque_n_m
         from ..sim.engine import initial_state
 
-        op, _ = initial_state(plant, spec.linear_fidelity, spec.setpoint_rad_s, spec.initial_load, design.pid, 0.0, 0,
+        op, _ = initial_state(plant, spec.linear_fidelity, sc.setpoint_rad_s, sc.initial_load, design.pid, 0.0, 0,
                               observer_ff=design.estimator == "kf")
         return op.omega_nut, op.torque
 
@@ -123,11 +206,12 @@ class StepRuns:
         from ..sim.metrics import load_step_metrics
 
         w_pre, tau0 = start
-        return [load_step_metrics(spec.step_time + lp.h * np.arange(-1, lp.n_steps),
-                                  w_pre + np.concatenate([[0.0], -tr["error"]]), spec.setpoint_rad_s, spec.step_time,
+        sc = spec.scene
+        return [load_step_metrics(sc.step_time + lp.h * np.arange(-1, lp.n_steps),
+                                  w_pre + np.concatenate([[0.0], -tr["error"]]), sc.setpoint_rad_s, sc.step_time,
                                   tau0 + np.concatenate([[0.0], tr.get("motor_torque", np.zeros(lp.n_steps))]),
-                                  plant.torque_limit, direction=1 if f1 >= spec.initial_load else -1)
-                for f1, lp, tr in zip(spec.final_loads, loops, trajectories)]
+                                  plant.torque_limit, direction=1 if f1 >= sc.initial_load else -1)
+                for f1, lp, tr in zip(sc.final_loads, loops, trajectories)]
 
     def simulate(self, design, plant, spec, settings, seed: int, pre_samples: int) -> tuple[list, list]:
         """The nonlinear runs of one design: one per final load, starting ``pre_samples``
@@ -137,18 +221,19 @@ class StepRuns:
         from ..sim.engine import run
 
         ts = plant.sample_time_s
+        sc = spec.scene
         runs, estimation = [], []
-        pre = min(spec.step_time, pre_samples * ts) if spec.discrete else min(spec.step_time, 1e-3)
-        offset = spec.step_time - pre
-        for f1 in spec.final_loads:
-            kw = dict(setpoint=spec.setpoint_rad_s, load=[(0.0, spec.initial_load), (pre, f1)],
-                      duration=pre + spec.duration - spec.step_time, controller=design.pid,
-                      fidelity=spec.fidelity, settings=settings, seed=seed, filters=spec.filters or None)
+        pre = min(sc.step_time, pre_samples * ts) if sc.discrete else min(sc.step_time, 1e-3)
+        offset = sc.step_time - pre
+        for f1 in sc.final_loads:
+            kw = dict(setpoint=sc.setpoint_rad_s, load=[(0.0, sc.initial_load), (pre, f1)],
+                      duration=pre + sc.duration - sc.step_time, controller=design.pid,
+                      fidelity=sc.fidelity, settings=settings, seed=seed, filters=tuple(sc.filters) or None)
             measurement = "encoder"
             kf = None
             if design.estimator == "kf":
-                measurement, kf = "kf", design_kf(plant, spec.load_change_time_s)
-            r = run(plant, discrete=spec.discrete, measurement=measurement, kf=kf, **kw)
+                measurement, kf = "kf", design_kf(plant, sc.load_change_time_s)
+            r = run(plant, discrete=sc.discrete, measurement=measurement, kf=kf, **kw)
             if design.estimator == "kf":
                 w = r.output("nut_speed")
                 estimation.append({
@@ -163,9 +248,10 @@ class StepRuns:
         """The metrics of one design's nonlinear runs (:meth:`simulate`)."""
         from ..sim.metrics import load_step_metrics
 
-        return [load_step_metrics(t, y["nut_speed"], spec.setpoint_rad_s, spec.step_time, y["motor_torque"],
-                                  plant.torque_limit, direction=1 if f1 >= spec.initial_load else -1)
-                for (t, y), f1 in zip(runs, spec.final_loads)]
+        sc = spec.scene
+        return [load_step_metrics(t, y["nut_speed"], sc.setpoint_rad_s, sc.step_time, y["motor_torque"],
+                                  plant.torque_limit, direction=1 if f1 >= sc.initial_load else -1)
+                for (t, y), f1 in zip(runs, sc.final_loads)]
 
     def integral_warning(self, design) -> str | None:
         """A warning when the records cannot inform the integral gain (load steps always can)."""
@@ -206,38 +292,36 @@ class ProfileRuns(StepRuns):
         """:func:`duty_record` of every case."""
         return tuple(duty_record(plant, self.scene, case) for case in self.scene.cases)
 
-    def tuning_fields(self) -> dict:
-        """The scene's goal, setpoint weight b and setpoint share."""
-        sc = self.scene
-        return {"setpoint_weight": sc.setpoint_weight, "goal": sc.goal, "setpoint_share": sc.setpoint_share}
-
     def loop_models(self, plant, spec, estimator: str) -> list:
         """One sampled loop model per record, linearised at the middle of its range
         (:func:`prsa_ctrl.tuning.actuatorloops.profile_loops`), the speed measured by the encoder's
         difference or (``estimator = "kf"``) the Kalman filter."""
         from ..tuning.actuatorloops import profile_loops
 
+        sc = spec.scene
         return profile_loops(plant, [(case, rec["w_lin"], rec["f_lin"], rec["load_sequence"], rec["setpoint_sequence"])
-                                     for case, rec in zip(spec.cases, spec.records)],
-                             fidelity=spec.linear_fidelity, horizon_s=spec.duration,
-                             setpoint_weight=spec.setpoint_weight, filters=spec.filters,
-                             kf_load_change_time_s=spec.load_change_time_s if estimator == "kf" else None,
-                             feedforward=spec.feedforward)
+                                     for case, rec in zip(sc.cases, spec.records)],
+                             fidelity=spec.linear_fidelity, horizon_s=sc.duration,
+                             setpoint_weight=sc.setpoint_weight, filters=tuple(sc.filters),
+                             kf_load_change_time_s=sc.load_change_time_s if estimator == "kf" else None,
+                             feedforward=sc.feedforward)
 
     def aggregate(self, values: list[float], spec) -> float:
         """The worst, the goal "mix"'s weighted sum of the load and setpoint records, or the sum."""
-        if spec.aggregate == "worst":
+        sc = spec.scene
+        if sc.aggregate == "worst":
             return float(max(values))
-        if spec.goal == "mix":
-            return float((1.0 - spec.setpoint_share) * values[0] + spec.setpoint_share * values[1])
+        if sc.goal == "mix":
+            return float((1.0 - sc.setpoint_share) * values[0] + sc.setpoint_share * values[1])
         return float(np.sum(values))
 
     def tuner_weights(self, spec) -> list[float] | None:
-        return [1.0 - spec.setpoint_share, spec.setpoint_share] if spec.goal == "mix" else None
+        sc = spec.scene
+        return [1.0 - sc.setpoint_share, sc.setpoint_share] if sc.goal == "mix" else None
 
     def start(self, plant, spec, design) -> tuple[float, float]:
         """The record starts at the setpoint with the steady torque (any design)."""
-        return spec.setpoint_rad_s, spec.steady_torque_n_m
+        return spec.scene.setpoint_rad_s, spec.steady_torque_n_m
 
     def predicted_metrics(self, plant, spec, loops, trajectories, start) -> list:
         from ..sim.metrics import profile_metrics
@@ -256,17 +340,18 @@ class ProfileRuns(StepRuns):
         from ..sim.engine import run
 
         ts = plant.sample_time_s
+        sc = spec.scene
         runs, estimation = [], []
-        kf = design_kf(plant, spec.load_change_time_s) if design.estimator == "kf" else None
-        for case, rec in zip(spec.cases, spec.records):
+        kf = design_kf(plant, sc.load_change_time_s) if design.estimator == "kf" else None
+        for case, rec in zip(sc.cases, spec.records):
             setpoint = rec["setpoint"]
-            if case == "setpoint profile" and spec.setpoint_weight != 1.0:
-                rf = setpoint_prefilter(rec["setpoint_at"], design.pid, ts, spec.setpoint_weight)
-                n_pts = int(np.searchsorted(rec["t"], spec.duration - 1e-9 * ts))  # points before the end
+            if case == "setpoint profile" and sc.setpoint_weight != 1.0:
+                rf = setpoint_prefilter(rec["setpoint_at"], design.pid, ts, sc.setpoint_weight)
+                n_pts = int(np.searchsorted(rec["t"], sc.duration - 1e-9 * ts))  # points before the end
                 setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
-            r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=spec.duration,
-                    controller=design.pid, fidelity=spec.fidelity, settings=settings, seed=seed,
-                    filters=spec.filters or None, measurement="encoder" if kf is None else "kf", kf=kf)
+            r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=sc.duration,
+                    controller=design.pid, fidelity=sc.fidelity, settings=settings, seed=seed,
+                    filters=tuple(sc.filters) or None, measurement="encoder" if kf is None else "kf", kf=kf)
             t = np.asarray(r.time)
             y = dict(zip(r.output_labels, np.asarray(r.outputs)))
             if kf is not None:

@@ -4,8 +4,10 @@
 Each kind is a frozen problem type built from a loaded scene (:func:`problem`):
 
 * :meth:`resolve` fixes what the run reads once (the fidelity, the duty cycle's sampled
-  records, the operating points: a :class:`~prsa_ctrl.studies.sceneloops.LoopSpec` for the
-  speed-loop kinds, the scene itself for a move, whose fidelity is written in the file);
+  records, the operating points): the frozen
+  :class:`~prsa_ctrl.studies.kindruns.ResolvedProblem` of a speed-loop kind (the problem on its
+  scene as run and what the plant fixes, no copy of the scene's numbers), the scene itself for a
+  move, whose fidelity is written in the file;
 * :meth:`tune` tunes and verifies it, with the studies a caller asks for
   (:class:`TuneOptions`), and returns the kind's report;
 * the report (:class:`SpeedReport`, :class:`MoveReport`) owns its JSON (:meth:`as_dict`), its
@@ -317,13 +319,6 @@ class LoadStep(StepRuns):
         sc = self.scene
         return (f"tuning {plant.name} at {sc.setpoint_rpm:g} rpm, {sc.initial_load:g} N -> "
                 f"{', '.join(f'{f:g}' for f in sc.final_loads)} N")
-
-    def resolve(self, plant):
-        """The fidelity resolved and the numbers the run reads, fixed once
-        (:func:`prsa_ctrl.studies.autotune.resolve_scene`): ``(scene, fidelity reason, LoopSpec)``."""
-        from .autotune import resolve_scene
-
-        return resolve_scene(plant, self.scene)
 
     def check_options(self, options: TuneOptions) -> None:
         """Refuse the study options the problem does not take, before any work.

@@ -96,18 +96,19 @@ def scenarios(plant, scene, *, unc: UncertaintyModel | None = None, vertices: bo
 def scenario_loops(plant, scene, scens: Sequence[Scenario]) -> list[LoopModel]:
     """One loop model per scenario (linearised at the scenario's mid load and setpoint)."""
     spec = loop_spec(plant, scene)
-    horizon = spec.duration - spec.step_time
-    kf_time = spec.load_change_time_s if spec.estimator == "kf" else None
+    sc = spec.scene
+    horizon = sc.duration - sc.step_time
+    kf_time = sc.load_change_time_s if sc.estimator == "kf" else None
     cache: dict = {}
     loops: list[LoopModel] = []
     for s in scens:
         key = tuple(sorted(s.values.items()))
         if key not in cache:
             cache[key] = apply(plant, s.values) if s.values else plant
-        loops += step_loops(cache[key], setpoint_rad_s=s.setpoint_rad_s, initial_load_n=spec.initial_load,
+        loops += step_loops(cache[key], setpoint_rad_s=s.setpoint_rad_s, initial_load_n=sc.initial_load,
                             final_loads_n=(s.final_load,), fidelity=spec.linear_fidelity, horizon_s=horizon,
-                            discrete=spec.discrete, kf_load_change_time_s=kf_time, feedforward=spec.feedforward,
-                            filters=spec.filters)
+                            discrete=sc.discrete, kf_load_change_time_s=kf_time, feedforward=sc.feedforward,
+                            filters=tuple(sc.filters))
     return loops
 
 

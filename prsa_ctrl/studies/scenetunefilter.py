@@ -147,23 +147,24 @@ def tune_scene_filter(plant: Plant, scene: Scene, kind: str) -> SceneFilterTunin
     tuned_kind, path = TUNED_FILTERS[kind]
     resolved, _ = choose_fidelity(scene)
     spec = loop_spec(plant, resolved)
+    sc = spec.scene
     model = plant_model(plant, spec.linear_fidelity)
     i_speed = model.output_names.index("nut_speed")
     ts = plant.sample_time_s
 
     def builder(load: float, step: float, name: str):
-        a, b, c, _, _ = linear_core(plant, spec.setpoint_rad_s, load, spec.linear_fidelity)
+        a, b, c, _, _ = linear_core(plant, sc.setpoint_rad_s, load, spec.linear_fidelity)
         return loop_builder(a, b, c[i_speed], model.index("theta_nut"), ts=ts, speed_filter=plant.speed_filter_s,
-                            tf=derivative_filter_s(plant), horizon=spec.duration - spec.step_time, step=step,
-                            fixed=spec.filters, name=name)
+                            tf=derivative_filter_s(plant), horizon=sc.duration - sc.step_time, step=step,
+                            fixed=tuple(sc.filters), name=name)
 
-    f0 = spec.initial_load
-    objective = [builder(0.5 * (f0 + f1), f1 - f0, f"step to {f1:g} N") for f1 in spec.final_loads]
-    constraint = [builder(load, f1 - f0, f"{load:g} N") for f1 in spec.final_loads for load in (f0, f1)]
-    start = Tuner(spec.loop_models(plant), objective=spec.objective, controller="pi").tune(ms_max=spec.ms_max).pid
+    f0 = sc.initial_load
+    objective = [builder(0.5 * (f0 + f1), f1 - f0, f"step to {f1:g} N") for f1 in sc.final_loads]
+    constraint = [builder(load, f1 - f0, f"{load:g} N") for f1 in sc.final_loads for load in (f0, f1)]
+    start = Tuner(spec.loop_models(plant), objective=sc.objective, controller="pi").tune(ms_max=sc.ms_max).pid
     if not (start.kp > 0 and start.ki > 0 and math.isfinite(start.kp) and math.isfinite(start.ki)):
         start = default_pid(plant)
-    common = dict(ts=ts, ms_max=spec.ms_max, max_noise_gain=spec.mks_max)
+    common = dict(ts=ts, ms_max=sc.ms_max, max_noise_gain=sc.mks_max)
     ref = tune_filtered(objective, constraint, kind=None, start_gains=(start.kp, start.ki), **common)
     des = tune_filtered(objective, constraint, kind=tuned_kind, place=FILTER_PATHS[path],
                         start_gains=(ref.pid.kp, ref.pid.ki), reference=ref, **common)

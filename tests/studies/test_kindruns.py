@@ -55,9 +55,9 @@ def test_a_p_only_design_starts_below_the_setpoint_on_load_steps_only(paper_plan
     p_only = type("D", (), {"pid": PID(0.06, 0.0), "estimator": "none"})()
     step = loop_spec(paper_plant, load_scene().replace(fidelity="rigid"))
     w, _ = step.problem.start(paper_plant, step, p_only)
-    assert w < step.setpoint_rad_s
+    assert w < step.scene.setpoint_rad_s
     duty = loop_spec(paper_plant, load_scene("duty-ramp").replace(fidelity="rigid"))
-    assert duty.problem.start(paper_plant, duty, p_only) == (duty.setpoint_rad_s, duty.steady_torque_n_m)
+    assert duty.problem.start(paper_plant, duty, p_only) == (duty.scene.setpoint_rad_s, duty.steady_torque_n_m)
 
 
 def test_the_integral_warning_is_the_duty_cycles_only():

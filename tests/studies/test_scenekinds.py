@@ -70,12 +70,14 @@ def test_kind_of_refuses_what_is_not_a_scene():
 
 def test_resolve_fixes_fidelity_and_records_once():
     plant = load_plant()
-    scene, reason, spec = problem(load_scene("duty-ramp")).resolve(plant)
-    assert scene.fidelity != "auto" and reason
-    assert spec.problem.name == "duty-cycle" and len(spec.records) == len(scene.cases)
-    assert spec.fidelity == scene.fidelity
-    scene, _, spec = problem(load_scene("paper-table3")).resolve(plant)
-    assert spec.records == () and spec.final_loads == (1000.0, 1500.0, 2000.0)
+    spec = problem(load_scene("duty-ramp")).resolve(plant)
+    scene = spec.scene
+    assert scene.fidelity != "auto" and spec.fidelity_reason
+    assert spec.problem.name == "duty-cycle" and type(spec.problem) is DutyCycle
+    assert len(spec.records) == len(scene.cases)
+    spec = problem(load_scene("paper-table3")).resolve(plant)
+    assert spec.records == () and spec.scene.final_loads == (1000.0, 1500.0, 2000.0)
+    assert type(spec.problem) is LoadStep
     move = load_scene("paper-move")
     assert problem(move).resolve(plant) is move
 
@@ -521,3 +523,4 @@ def test_setpoint_only_duty_cycle_reports_the_integral_warning(tmp_path, capsys)
     assert ti > 0.2
     (w,) = [w for w in data["warnings"] if "does not inform the integral gain" in w]
     assert f"Ti = {ti:.3g} s > record 0.2 s" in w and w in text
+
