@@ -42,7 +42,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, ClassVar, Mapping
 
 from ..errors import SceneError
 from ..options import RAD_S_PER_RPM, rad_s_to_rpm
@@ -150,10 +150,30 @@ class DutyCycleScene(Scene):
     profile_source: str = ""
     trace_lines: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False, repr=False)
 
+    #: The registry name of the kind (:data:`prsa_ctrl.studies.scenekinds.KINDS`) and what marks its files.
+    kind_name: ClassVar[str] = "duty-cycle"
+    marks: ClassVar[str] = f"a load or setpoint profile in [operating] ({', '.join(PROFILE_SOURCES)})"
+
     @classmethod
     def describes(cls, given: Mapping[str, Any]) -> bool:
         """A load or a setpoint profile given."""
         return given.get("load_profile") is not None or given.get("setpoint_profile") is not None
+
+    @classmethod
+    def claims(cls, doc: Mapping[str, Any]) -> bool:
+        """A file with a profile key in ``[operating]`` (:data:`PROFILE_SOURCES`)."""
+        op = doc.get("operating")
+        return isinstance(op, Mapping) and any(k in op for k in PROFILE_SOURCES)
+
+    @classmethod
+    def refuse_foreign(cls, doc: Mapping[str, Any], origin: str) -> None:
+        """A load-step key or section is refused by name (:func:`refuse_other_kind_keys`)."""
+        refuse_other_kind_keys(doc, origin)
+
+    @classmethod
+    def own_fields(cls, kw: dict, origin: str, base: Any) -> None:
+        """The profiles and CSV traces of ``[operating]`` as profile fields (:func:`duty_fields`)."""
+        duty_fields(kw, origin, base)
 
     def check_kind(self, bad, finite) -> None:
         """Validate the profiles and the duty cycle's tuning keys; derive ``initial_load``,

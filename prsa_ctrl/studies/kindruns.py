@@ -122,6 +122,12 @@ class StepRuns:
     def accepts(cls, scene: Any) -> bool:
         """Whether a loaded scene is a problem of this kind (an instance of its :attr:`scene_type`)."""
         return isinstance(scene, cls.scene_type)
+
+    @classmethod
+    def claims(cls, doc: Any) -> bool:
+        """Whether a parsed scene file (its TOML document) is of this kind (its :attr:`scene_type`'s
+        ``claims``, which :func:`~prsa_ctrl.studies.scene.parse_scene` asks)."""
+        return cls.scene_type.claims(doc)
     #: The studies this kind takes beyond tuning (see :data:`STEP_STUDIES`).
     studies: ClassVar[frozenset] = STEP_STUDIES
     #: The figures of a report (:mod:`prsa_ctrl.plots.loop`): a kind's time responses.

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, ClassVar, Mapping
 
 from ..textsafe import quote
 from ..drive.motion import PROFILE_KINDS, MotionProfile, out_and_back, plan
@@ -156,6 +156,21 @@ class MoveScene:
                                 self.jerk_m_s3, dwell_s=self.return_dwell_s).shifted(self.start_s)
         return plan(self.profile, self.distance_m, self.max_speed_m_s, self.acceleration_m_s2,
                     self.jerk_m_s3).shifted(self.start_s)
+
+    #: The registry name of the kind (:data:`prsa_ctrl.studies.scenekinds.KINDS`) and what marks its files.
+    kind_name: ClassVar[str] = "move"
+    marks: ClassVar[str] = "a [move] table"
+
+    @classmethod
+    def claims(cls, doc: Mapping[str, Any]) -> bool:
+        """A file with a ``[move]`` table."""
+        return "move" in doc
+
+    @classmethod
+    def from_doc(cls, doc: Mapping[str, Any], origin: str, base: Any = None) -> "MoveScene":
+        """The move a claimed file describes (:func:`parse_move_scene`; ``base`` is unused: a move
+        reads no CSV trace)."""
+        return parse_move_scene(doc, origin)
 
     @property
     def move_end_s(self) -> float:

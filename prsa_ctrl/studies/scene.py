@@ -22,57 +22,26 @@ from __future__ import annotations
 import math
 from dataclasses import InitVar, dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 from ..textsafe import quote
 from ..errors import SceneError
 from ..options import RIGID_RELATIVE_ERROR, rad_s_to_rpm, rpm_to_rad_s
-from .movescene import MoveScene, parse_move_scene
+from .movescene import MoveScene
 from .scenebase import OUTPUTS, Scene, holding_capacity_n, scene_type
 from .scenesections import Robust, Sections
 from .scenefilters import check_filters_against_plant, parse_filters
 from .scenefile import (DEFAULT_SCENE, MAX_LOAD_LEVELS, MAX_RECORD_SAMPLES, MIN_LOAD_STEP_N, POST_EVENT_SAMPLES,
                         PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes, is_move_scene,
                         locate_scene, read_scene_doc)
-from .dutyscene import (GOALS, MAX_PROFILE_ROWS, MAX_TRACE_BYTES, PROFILE_KEYS, DutyCycleScene, duty_fields,
+from .dutyscene import (GOALS, MAX_PROFILE_ROWS, MAX_TRACE_BYTES, PROFILE_KEYS, PROFILE_SOURCES, DutyCycleScene,
                         profile_rows, read_trace_csv, refuse_other_kind_keys)
 
 __all__ = ["Scene", "LoadStepScene", "DutyCycleScene", "load_scene", "builtin_scenes", "choose_fidelity",
            "DEFAULT_SCENE", "OUTPUTS", "RIGID_RELATIVE_ERROR", "check_against_plant", "holding_capacity_n",
            "SETPOINT_MAX_RPM", "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES", "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS",
            "MIN_LOAD_STEP_N", "GOALS", "MAX_PROFILE_ROWS", "MAX_TRACE_BYTES", "read_trace_csv", "profile_rows",
-           "is_move_scene", "require_speed_scene"]
-
-
-_SECTIONS: Mapping[str, Mapping[str, type | tuple]] = {
-    "operating": {
-        "setpoint_rpm": float,
-        "initial_load_n": float,
-        "final_loads_n": list,
-        "step_time_s": float,
-        "duration_s": float,
-        "load_profile_n": list,
-        "load_trace_csv": str,
-        "setpoint_profile_rpm": list,
-        "setpoint_trace_csv": str,
-    },
-    "tuning": {
-        "objective": str,
-        "controller": str,
-        "ms_max": float,
-        "mt_max": float,
-        "mks_max": float,
-        "aggregate": str,
-        "candidates": int,
-        "goal": str,
-        "setpoint_weight": float,
-        "setpoint_share": float,
-    },
-    "verify": {"fidelity": str, "discrete": bool, "accuracy": float},
-    "estimator": {"kind": str, "feedforward": bool, "load_change_time_s": float},
-    "outputs": {"needed": list},
-}
-
+           "is_move_scene", "require_speed_scene", "parse_scene", "SCENE_TYPES"]
 
 
 @dataclass(frozen=True)
@@ -95,10 +64,35 @@ class LoadStepScene(Scene):
     setpoint_weight: InitVar[float] = 1.0
     setpoint_share: InitVar[float] = 0.5
 
+    #: The registry name of the kind (:data:`prsa_ctrl.studies.scenekinds.KINDS`) and what marks its files.
+    kind_name: ClassVar[str] = "load-step"
+    marks: ClassVar[str] = "no [move] table and no load or setpoint profile in [operating]"
+
     @classmethod
     def describes(cls, given: Mapping[str, Any]) -> bool:
         """No profile given."""
         return given.get("load_profile") is None and given.get("setpoint_profile") is None
+
+    @classmethod
+    def claims(cls, doc: Mapping[str, Any]) -> bool:
+        """A file with neither a ``[move]`` table nor a profile key in ``[operating]`` (an empty
+        file is the default load step)."""
+        op = doc.get("operating")
+        return "move" not in doc and not (isinstance(op, Mapping) and any(k in op for k in PROFILE_SOURCES))
+
+    @classmethod
+    def refuse_foreign(cls, doc: Mapping[str, Any], origin: str) -> None:
+        """A duty cycle's ``[tuning]`` key is refused by name
+        (:func:`~prsa_ctrl.studies.dutyscene.refuse_other_kind_keys`)."""
+        refuse_other_kind_keys(doc, origin)
+
+    @classmethod
+    def own_fields(cls, kw: dict, origin: str, base: Any) -> None:
+        """``operating.final_loads_n`` (N) and ``step_time_s`` (s) as ``final_loads`` and ``step_time``."""
+        if "final_loads_n" in kw:
+            kw["final_loads"] = tuple(kw.pop("final_loads_n"))
+        if "step_time_s" in kw:
+            kw["step_time"] = float(kw.pop("step_time_s"))
 
     def __post_init__(self, goal: str, setpoint_weight: float, setpoint_share: float) -> None:
         if goal not in ("auto", "load"):
@@ -145,76 +139,59 @@ class LoadStepScene(Scene):
 
 
 
-def _from_doc(doc: Mapping[str, Any], origin: str, base: Any = None) -> Scene:
-    unknown = sorted(set(doc) - set(_SECTIONS) - {"name", "description", "spec", "robust", "uncertainty", "filters"})
-    if unknown:
-        raise SceneError(f"{origin}: unknown section {quote(unknown[0])}; expected one of "
-                         f"{', '.join([*_SECTIONS, 'spec', 'robust', 'uncertainty', 'filters'])}")
-    refuse_other_kind_keys(doc, origin)
-    kw: dict[str, Any] = {"origin": origin}
-    if "filters" in doc:
-        kw["filters"], kw["filter_labels"] = parse_filters(doc["filters"], origin)
-    if "name" in doc:
-        if not isinstance(doc["name"], str):
-            raise SceneError(f"{origin}: name = {quote(doc['name'])}; expected a string")
-        kw["name"] = doc["name"]
-    for section, keys in _SECTIONS.items():
-        table = doc.get(section, {})
-        if not isinstance(table, Mapping):
-            raise SceneError(f"{origin}: [{section}] must be a table")
-        extra = sorted(set(table) - set(keys))
-        if extra:
-            raise SceneError(
-                f"{origin}: unknown key {section}.{extra[0]}; expected one of "
-                f"{', '.join(f'{section}.{k}' for k in keys)}"
-            )
-        for key, typ in keys.items():
-            if key not in table:
-                continue
-            val = table[key]
-            ok = isinstance(val, typ) and not (typ in (float, int) and isinstance(val, bool))
-            if typ is float and isinstance(val, int) and not isinstance(val, bool):
-                val, ok = float(val), True
-            if not ok:
-                raise SceneError(f"{origin}: {section}.{key} = {quote(val)}; expected a {typ.__name__}")
-            kw[key] = val
-    mapping = {
-        "setpoint_rpm": ("setpoint_rad_s", rpm_to_rad_s),
-        "initial_load_n": ("initial_load", float),
-        "final_loads_n": ("final_loads", lambda v: tuple(v)),
-        "step_time_s": ("step_time", float),
-        "duration_s": ("duration", float),
-        "needed": ("outputs", lambda v: tuple(v)),
-        "kind": ("estimator", str),
-    }
-    duty_fields(kw, origin, base)
-    rpm = kw.get("setpoint_rpm")
-    if rpm is not None and not (math.isfinite(rpm) and 0 < rpm <= SETPOINT_MAX_RPM):
-        raise SceneError(f"{origin}: operating.setpoint_rpm = {quote(rpm)}; expected a nut speed in (0, {SETPOINT_MAX_RPM:g}] rpm")
-    for old, (new, conv) in mapping.items():
-        if old in kw:
-            kw[new] = conv(kw.pop(old))
-    if {"spec", "robust", "uncertainty"} & set(doc):
-        kw["sections"] = Sections.parse(doc, origin)
-    return Scene(**kw)
+#: The scene types a file is read into, one per kind of the registry, in its order (the
+#: ``scene_type`` of each of :data:`prsa_ctrl.studies.scenekinds.KINDS`): each says which files
+#: are its own (``claims``) and reads them (``from_doc``).
+SCENE_TYPES: tuple[type, ...] = (LoadStepScene, DutyCycleScene, MoveScene)
 
 
+def parse_scene(doc: Mapping[str, Any], origin: str, base: Any = None,
+                types: Sequence[type] = SCENE_TYPES) -> Scene | MoveScene:
+    """The scene a parsed scene file describes: each scene type is asked whether the document is
+    its own (``claims``) and the one that claims it reads it (``from_doc``).
 
-def load_scene(name_or_path: str | Path | None = None) -> Scene | MoveScene:
-    """Load a scene by built-in name (default ``"paper-load-step"``) or path: a speed-loop
-    scene (:class:`Scene`), or a move scene (:class:`~prsa_ctrl.studies.move.MoveScene`) for a
-    file with a ``[move]`` section (:func:`~prsa_ctrl.studies.scenefile.is_move_scene`).
+    Parameters
+    ----------
+    doc : mapping
+        The parsed TOML document.
+    origin : str
+        The file as the messages name it.
+    base : path-like, optional
+        The folder relative CSV traces are read from.
+    types : sequence of type, optional
+        The scene types asked (default :data:`SCENE_TYPES`).
 
     Raises
     ------
     SceneError
-        For a missing, unreadable or invalid file (the message names the file and key).
+        No type or several claim the document (one line naming the file and what marks each
+        kind), or the claiming type's own error (the file and the key).
+    """
+    claimed = [t for t in types if t.claims(doc)]
+    if len(claimed) == 1:
+        return claimed[0].from_doc(doc, origin, base)
+    def marks(kinds: Sequence[type]) -> str:
+        return "; ".join(f"a {t.kind_name} scene has {t.marks}" for t in kinds)
+
+    if not claimed:
+        raise SceneError(f"{origin}: no scene kind reads this file; expected one of: {marks(types or SCENE_TYPES)}")
+    raise SceneError(f"{origin}: read as {len(claimed)} kinds of scene ({', '.join(t.kind_name for t in claimed)}); "
+                     f"expected one: {marks(claimed)}")
+
+
+def load_scene(name_or_path: str | Path | None = None) -> Scene | MoveScene:
+    """Load a scene by built-in name (default ``"paper-load-step"``) or path: a load step or a
+    duty cycle (:class:`Scene`), or a move (:class:`~prsa_ctrl.studies.movescene.MoveScene`),
+    whichever scene type claims the file (:func:`parse_scene`).
+
+    Raises
+    ------
+    SceneError
+        For a missing, unreadable or invalid file, or one no kind or several kinds claim (the
+        message names the file and key).
     """
     reader, origin, base = locate_scene(name_or_path)
-    doc = read_scene_doc(reader, origin)
-    if "move" in doc:  # a position-cascade scene
-        return parse_move_scene(doc, origin)
-    return _from_doc(doc, origin, base)
+    return parse_scene(read_scene_doc(reader, origin), origin, base)
 
 
 def require_speed_scene(scene: Scene | MoveScene) -> Scene:

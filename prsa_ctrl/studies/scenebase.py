@@ -5,7 +5,10 @@ profile).
 
 Each type validates its own fields (:meth:`Scene.check_events`, :meth:`Scene.check_kind`) and
 checks itself against a plant (:meth:`Scene.check_plant`); the base validates the sections they
-share (setpoint, objective, robustness bounds, verification, estimator, filters). Calling
+share (setpoint, objective, robustness bounds, verification, estimator, filters). Each type says
+which scene files are its own (:meth:`Scene.claims`, asked by
+:func:`~prsa_ctrl.studies.scene.parse_scene`) and reads its own keys of one
+(:meth:`Scene.own_fields`); :meth:`Scene.from_doc` reads the sections they share. Calling
 ``Scene(...)`` builds the type the fields describe (``load_profile`` or ``setpoint_profile``
 given: a duty cycle, else load steps): each type says which fields are its own
 (:meth:`Scene.describes`), so the base names no kind.
@@ -19,14 +22,14 @@ from typing import Any, Callable, ClassVar, Mapping
 
 from ..errors import SceneError
 from ..options import (AGGREGATES, CONTROLLERS, ESTIMATORS, FIDELITIES, MS_MAX_DEFAULT, OBJECTIVES, PEAK_BOUND_RANGE,
-                       SETPOINT_RAD_S, rad_s_to_rpm)
+                       SETPOINT_RAD_S, rad_s_to_rpm, rpm_to_rad_s)
 from ..textsafe import quote
 from ..drive.filters import LoopFilter
-from .scenefile import LOAD_CHANGE_TIME_RANGE_S
-from .scenefilters import scene_filters
+from .scenefile import LOAD_CHANGE_TIME_RANGE_S, SETPOINT_MAX_RPM
+from .scenefilters import parse_filters, scene_filters
 from .scenesections import Sections
 
-__all__ = ["Scene", "OUTPUTS", "holding_capacity_n", "field_checks", "scene_type"]
+__all__ = ["Scene", "OUTPUTS", "SCENE_FILE_KEYS", "holding_capacity_n", "field_checks", "scene_type"]
 
 #: Outputs a scene may ask for; ``nut_speed`` and ``motor_torque`` are always computed.
 OUTPUTS = (
@@ -43,6 +46,48 @@ OUTPUTS = (
 _HEAD = ("name", "setpoint_rad_s", "initial_load", "final_loads", "step_time", "duration", "objective", "controller",
          "ms_max", "mt_max", "mks_max", "aggregate", "candidates", "fidelity", "discrete", "accuracy", "outputs",
          "estimator", "feedforward", "load_change_time_s", "origin")
+
+
+#: The tables and keys of a speed-loop scene file with their TOML types (both kinds': each
+#: refuses the other's by name first, :meth:`Scene.refuse_foreign`), besides ``name``,
+#: ``description``, ``[filters]`` and the ``[spec]``/``[robust]``/``[uncertainty]`` sections.
+SCENE_FILE_KEYS: Mapping[str, Mapping[str, type | tuple]] = {
+    "operating": {
+        "setpoint_rpm": float,
+        "initial_load_n": float,
+        "final_loads_n": list,
+        "step_time_s": float,
+        "duration_s": float,
+        "load_profile_n": list,
+        "load_trace_csv": str,
+        "setpoint_profile_rpm": list,
+        "setpoint_trace_csv": str,
+    },
+    "tuning": {
+        "objective": str,
+        "controller": str,
+        "ms_max": float,
+        "mt_max": float,
+        "mks_max": float,
+        "aggregate": str,
+        "candidates": int,
+        "goal": str,
+        "setpoint_weight": float,
+        "setpoint_share": float,
+    },
+    "verify": {"fidelity": str, "discrete": bool, "accuracy": float},
+    "estimator": {"kind": str, "feedforward": bool, "load_change_time_s": float},
+    "outputs": {"needed": list},
+}
+
+#: File keys both kinds read -> (field, conversion); each kind converts its own (:meth:`Scene.own_fields`).
+_SHARED_KEYS: Mapping[str, tuple[str, Callable[[Any], Any]]] = {
+    "setpoint_rpm": ("setpoint_rad_s", rpm_to_rad_s),
+    "initial_load_n": ("initial_load", float),
+    "duration_s": ("duration", float),
+    "needed": ("outputs", lambda v: tuple(v)),
+    "kind": ("estimator", str),
+}
 
 
 def field_checks(origin: str) -> tuple[Callable[[str, Any, str], SceneError], Callable[[str, Any], float]]:
@@ -196,6 +241,86 @@ class Scene:
     def describes(cls, given: Mapping[str, Any]) -> bool:
         """Whether constructor fields ``given`` describe a scene of this type (each type's own)."""
         raise NotImplementedError
+
+    # --- reading a scene file -------------------------------------------------------------------------
+
+    @classmethod
+    def claims(cls, doc: Mapping[str, Any]) -> bool:
+        """Whether a parsed scene file (its TOML document) is a scene of this type."""
+        raise NotImplementedError
+
+    @classmethod
+    def refuse_foreign(cls, doc: Mapping[str, Any], origin: str) -> None:
+        """Refuse, by name, a key of the file that the other speed-loop kind takes."""
+        raise NotImplementedError
+
+    @classmethod
+    def own_fields(cls, kw: dict, origin: str, base: Any) -> None:
+        """Turn this type's own keys of ``[operating]`` (read and type-checked into ``kw`` under
+        their file names) into its fields, in place (``base``: the folder CSV traces are read from)."""
+        raise NotImplementedError
+
+    @classmethod
+    def from_doc(cls, doc: Mapping[str, Any], origin: str, base: Any = None) -> "Scene":
+        """The scene of this type a claimed file describes (:meth:`claims`): the sections both
+        kinds share, then the type's own keys (:meth:`own_fields`), validated on construction.
+
+        Parameters
+        ----------
+        doc : mapping
+            The parsed TOML document.
+        origin : str
+            The file as the messages name it.
+        base : path-like, optional
+            The folder relative CSV traces are read from.
+
+        Raises
+        ------
+        SceneError
+            One line naming the file, the key as written and what was expected.
+        """
+        keys_of = SCENE_FILE_KEYS
+        unknown = sorted(set(doc) - set(keys_of) - {"name", "description", "spec", "robust", "uncertainty", "filters"})
+        if unknown:
+            raise SceneError(f"{origin}: unknown section {quote(unknown[0])}; expected one of "
+                             f"{', '.join([*keys_of, 'spec', 'robust', 'uncertainty', 'filters'])}")
+        cls.refuse_foreign(doc, origin)
+        kw: dict[str, Any] = {"origin": origin}
+        if "filters" in doc:
+            kw["filters"], kw["filter_labels"] = parse_filters(doc["filters"], origin)
+        if "name" in doc:
+            if not isinstance(doc["name"], str):
+                raise SceneError(f"{origin}: name = {quote(doc['name'])}; expected a string")
+            kw["name"] = doc["name"]
+        for section, keys in keys_of.items():
+            table = doc.get(section, {})
+            if not isinstance(table, Mapping):
+                raise SceneError(f"{origin}: [{section}] must be a table")
+            extra = sorted(set(table) - set(keys))
+            if extra:
+                raise SceneError(f"{origin}: unknown key {section}.{extra[0]}; expected one of "
+                                 f"{', '.join(f'{section}.{k}' for k in keys)}")
+            for key, typ in keys.items():
+                if key not in table:
+                    continue
+                val = table[key]
+                ok = isinstance(val, typ) and not (typ in (float, int) and isinstance(val, bool))
+                if typ is float and isinstance(val, int) and not isinstance(val, bool):
+                    val, ok = float(val), True
+                if not ok:
+                    raise SceneError(f"{origin}: {section}.{key} = {quote(val)}; expected a {typ.__name__}")
+                kw[key] = val
+        cls.own_fields(kw, origin, base)
+        rpm = kw.get("setpoint_rpm")
+        if rpm is not None and not (math.isfinite(rpm) and 0 < rpm <= SETPOINT_MAX_RPM):
+            raise SceneError(f"{origin}: operating.setpoint_rpm = {quote(rpm)}; expected a nut speed in (0, "
+                             f"{SETPOINT_MAX_RPM:g}] rpm")
+        for old, (new, conv) in _SHARED_KEYS.items():
+            if old in kw:
+                kw[new] = conv(kw.pop(old))
+        if {"spec", "robust", "uncertainty"} & set(doc):
+            kw["sections"] = Sections.parse(doc, origin)
+        return cls(**kw)
 
 
     def __post_init__(self) -> None:

@@ -688,6 +688,11 @@ class Move:
         """Whether a loaded scene is a move (an instance of :attr:`scene_type`)."""
         return isinstance(scene, cls.scene_type)
 
+    @classmethod
+    def claims(cls, doc: Any) -> bool:
+        """Whether a parsed scene file is a move (its :attr:`scene_type`'s ``claims``)."""
+        return cls.scene_type.claims(doc)
+
     def __post_init__(self) -> None:
         if not type(self).accepts(self.scene):
             raise SceneError(f"{getattr(self.scene, 'origin', '<scene>')}: not a move scene; expected "
@@ -756,19 +761,27 @@ def kind_of(scene: Any) -> str:
 
 
 def file_kind(name_or_path) -> type:
-    """The kind a scene file declares, before it is loaded (what a command's loader needs):
-    :class:`Move` for a ``[move]`` section, else :class:`LoadStep`, whose loader serves both
-    speed-loop kinds (a duty cycle is told apart once loaded, :func:`problem`). A missing or
-    unreadable file answers :class:`LoadStep`, whose loader reports it.
+    """The kind a scene file declares, before it is loaded (what a command's loader needs): the
+    one kind of :data:`KINDS` that claims the parsed file (``claims``), where that is
+    :class:`Move`; else :class:`LoadStep`, whose loader serves both speed-loop kinds (a duty cycle
+    is told apart once loaded, :func:`problem`) and reports a missing, unreadable, unclaimed or
+    ambiguous file.
 
     Parameters
     ----------
     name_or_path : str, Path or None
         A built-in scene name or a file (None: the default scene).
     """
-    from .scenefile import is_move_scene
+    from .scenefile import locate_scene, read_scene_doc
 
-    return Move if is_move_scene(name_or_path) else LoadStep
+    if name_or_path is None:
+        return LoadStep
+    try:
+        doc = read_scene_doc(*locate_scene(name_or_path)[:2])
+    except SceneError:
+        return LoadStep
+    claimed = [kind for kind in KINDS.values() if kind.claims(doc)]
+    return claimed[0] if claimed == [Move] else LoadStep
 
 
 def problem(scene: Any):

@@ -22,7 +22,7 @@ from prsa_ctrl.plant import load_plant
 from prsa_ctrl.plant.plantfile import Plant, builtin_plants, load_plant
 from prsa_ctrl.plant.uncertainty import (CORRELATION_KEY, PSD_TOLERANCE, carry_correlation, correlation_entry, correlation_toml, parse_entries, uncertainty_model)
 from prsa_ctrl.studies.scenesections import parse_scene_sections
-from prsa_ctrl.studies.scene import _from_doc, load_scene
+from prsa_ctrl.studies.scene import load_scene, parse_scene
 
 ROOT = Path(__file__).resolve().parents[2]
 _DOC = tomllib.loads((ROOT / "plants" / "paper-iprsm.toml").read_text())
@@ -130,7 +130,7 @@ def test_bad_scene_uncertainty_names_key_and_file(bad):
     doc = copy.deepcopy(_SCENE)
     doc["uncertainty"] = {key: entry}
     with pytest.raises(SceneError) as exc:
-        s = _from_doc(doc, "bad-scene.toml")
+        s = parse_scene(doc, "bad-scene.toml")
         uncertainty_model(load_plant(), s.sections.plant_overrides)
     assert str(exc.value).startswith("bad-scene.toml: ") and key in str(exc.value)
 
@@ -153,7 +153,7 @@ def test_bad_spec_or_robust_entry_names_key_and_file(section, key, value):
     doc = copy.deepcopy(_SCENE)
     doc[section][key] = value
     with pytest.raises(SceneError) as exc:
-        _from_doc(doc, "bad-scene.toml")
+        parse_scene(doc, "bad-scene.toml")
     msg = str(exc.value)
     assert msg.startswith("bad-scene.toml: ") and f"{section}.{key}" in msg
 
@@ -164,11 +164,11 @@ def test_a_spec_yield_without_a_bound_is_refused_naming_it():
     doc = copy.deepcopy(_SCENE)
     doc["spec"] = {"yield": 0.9}
     with pytest.raises(SceneError) as exc:
-        _from_doc(doc, "bad-scene.toml")
+        parse_scene(doc, "bad-scene.toml")
     assert str(exc.value) == ("bad-scene.toml: spec.yield = 0.9 and no bound in [spec]; expected the bounds the "
                               "yield counts (e.g. spec.peak_drop_rad_s = 12.0)")
     doc["spec"] = {"yield": 0.9, "no_saturation": True}  # a bound, the yield counts it
-    assert _from_doc(doc, "ok.toml") is not None
+    assert parse_scene(doc, "ok.toml") is not None
 
 
 def test_scene_sections_round_trip():
@@ -389,7 +389,7 @@ def test_scene_override_cuts_the_plants_block_and_names_the_keys():
     plant = _plant(_correlated([[1.0, 0.3, -0.6], [0.3, 1.0, 0.2], [-0.6, 0.2, 1.0]], [J, ETA, K]))
     doc = copy.deepcopy(_SCENE)
     doc["robust"]["plant_uncertainty"] = True  # the scene overrides J and BW
-    m = uncertainty_model(plant, _from_doc(doc, "scene.toml").sections.plant_overrides)
+    m = uncertainty_model(plant, parse_scene(doc, "scene.toml").sections.plant_overrides)
     assert [c.keys for c in m.correlations] == [(ETA, K)]
     assert m.correlations[0].matrix == ((1.0, 0.2), (0.2, 1.0))
     assert len(m.notes) == 1 and "'nut.inertia_kg_m2'" in m.notes[0] and "scene.toml" in m.notes[0]
@@ -397,7 +397,7 @@ def test_scene_override_cuts_the_plants_block_and_names_the_keys():
     assert "correlation_note" in d[J] and "correlation" not in d[J] and d[ETA]["correlation"]["with"] == {K: 0.2}
     # the scene's own block over its own keys
     doc["uncertainty"]["correlation"] = {"keys": [J, BW], "matrix": [[1.0, -0.5], [-0.5, 1.0]], "source": "estimate: s"}
-    m2 = uncertainty_model(plant, _from_doc(doc, "scene.toml").sections.plant_overrides)
+    m2 = uncertainty_model(plant, parse_scene(doc, "scene.toml").sections.plant_overrides)
     assert sorted(c.keys for c in m2.correlations) == sorted([(ETA, K), (J, BW)])
     cols = _draws(m2, 3000, 5)
     ents = {e.key: e for e in m2.entries}
@@ -407,7 +407,7 @@ def test_scene_override_cuts_the_plants_block_and_names_the_keys():
     assert abs(np.corrcoef(s[J], s[ETA])[0, 1]) < 5 / math.sqrt(3000)
     # the scene's uncertainty alone
     doc["robust"]["plant_uncertainty"] = False
-    m3 = uncertainty_model(plant, _from_doc(doc, "scene.toml").sections.plant_overrides)
+    m3 = uncertainty_model(plant, parse_scene(doc, "scene.toml").sections.plant_overrides)
     assert [c.keys for c in m3.correlations] == [(J, BW)] and not m3.notes
 
 

@@ -213,3 +213,70 @@ def test_any_scene_number_is_refused_in_one_line_or_runs(tmp_path_factory, capsy
         assert len(stand_in) == 1
         load_scene(path)  # accepted by the scene loader too
     stand_in.clear()
+
+
+# --- which kind reads a file: each scene type claims its own documents (issue 33) -------------------
+
+_MOVE = '[move]\nprofile = "trapezoidal"\ndistance_mm = 10.0\nmax_speed_mm_s = 30.0\nacceleration_m_s2 = 1.0\n'
+_LOAD_PROFILE = "[operating]\nload_profile_n = [[0.0, 500.0], [0.1, 500.0], [0.1, 900.0, \"step\"]]\nduration_s = 0.3\n"
+
+
+@pytest.mark.parametrize("doc, claimant", [
+    ({}, "LoadStepScene"),
+    ({"operating": {"final_loads_n": [1500.0]}}, "LoadStepScene"),
+    ({"operating": {"setpoint_trace_csv": "t.csv"}}, "DutyCycleScene"),
+    ({"operating": {"load_profile_n": []}}, "DutyCycleScene"),
+    ({"move": {}}, "MoveScene"),
+    ({"move": {}, "operating": {"final_loads_n": [1.0]}}, "MoveScene"),
+    ({"operating": 3}, "LoadStepScene"),  # not a table: the load step reads it and says so
+])
+def test_exactly_one_scene_type_claims_each_kind_of_document(doc, claimant):
+    from prsa_ctrl.studies.scene import SCENE_TYPES
+
+    assert [t.__name__ for t in SCENE_TYPES if t.claims(doc)] == [claimant]
+
+
+def test_the_scene_types_are_the_registrys_in_its_order():
+    from prsa_ctrl.studies.scene import SCENE_TYPES
+    from prsa_ctrl.studies.scenekinds import KINDS
+
+    assert SCENE_TYPES == tuple(k.scene_type for k in KINDS.values())
+    assert [t.kind_name for t in SCENE_TYPES] == list(KINDS)
+
+
+def test_every_builtin_scene_is_read_by_the_type_that_claims_it():
+    from prsa_ctrl.studies.scene import SCENE_TYPES
+    from prsa_ctrl.studies.scenefile import locate_scene, read_scene_doc
+
+    for name in builtin_scenes():
+        doc = read_scene_doc(*locate_scene(name)[:2])
+        claimed = [t for t in SCENE_TYPES if t.claims(doc)]
+        assert len(claimed) == 1 and type(load_scene(name)) is claimed[0], name
+
+
+def test_a_document_two_kinds_claim_is_refused_naming_both(tmp_path):
+    path = tmp_path / "both.toml"
+    path.write_text(_MOVE + _LOAD_PROFILE)
+    with pytest.raises(SceneError) as err:
+        load_scene(path)
+    text = str(err.value)
+    assert "\n" not in text and text.startswith(f"{path}: read as 2 kinds of scene (duty-cycle, move); expected one")
+    assert "load_profile_n" in text and "[move] table" in text
+
+
+def test_a_document_no_kind_claims_is_refused_naming_what_each_kind_has():
+    from prsa_ctrl.studies.movescene import MoveScene
+    from prsa_ctrl.studies.scene import parse_scene
+
+    with pytest.raises(SceneError, match=r"^x\.toml: no scene kind reads this file; expected one of: a move scene has "
+                                         r"a \[move\] table$"):
+        parse_scene({"operating": {"final_loads_n": [900.0]}}, "x.toml", types=(MoveScene,))
+
+
+def test_an_ambiguous_scene_file_exits_2_in_one_line_before_any_run(tmp_path, capsys, stand_in):
+    path = tmp_path / "both.toml"
+    path.write_text(_MOVE + _LOAD_PROFILE)
+    assert main(["--scene", str(path)]) == 2
+    line = _one_line(capsys)
+    assert line.startswith(f"prsa-tune: error: {path}: read as 2 kinds of scene (duty-cycle, move)"), line
+    assert not stand_in

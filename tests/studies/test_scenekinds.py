@@ -524,3 +524,19 @@ def test_setpoint_only_duty_cycle_reports_the_integral_warning(tmp_path, capsys)
     (w,) = [w for w in data["warnings"] if "does not inform the integral gain" in w]
     assert f"Ti = {ti:.3g} s > record 0.2 s" in w and w in text
 
+
+def test_each_kind_claims_its_own_documents_and_file_kind_asks_them(tmp_path):
+    """Issue 33: the registry asks each kind whether a parsed file is its own (``claims``); a
+    command's loader is the move's only for a file the move alone claims."""
+    from prsa_ctrl.studies.scenekinds import file_kind
+
+    docs = {"load-step": {"operating": {"final_loads_n": [1500.0]}},
+            "duty-cycle": {"operating": {"load_profile_n": [[0.0, 1.0]]}}, "move": {"move": {}}}
+    for name, doc in docs.items():
+        assert [k for k, kind in KINDS.items() if kind.claims(doc)] == [name]
+    assert file_kind("paper-move") is Move and file_kind("paper-slow-reversal") is Move
+    assert file_kind("duty-ramp") is LoadStep and file_kind("paper-load-step") is LoadStep and file_kind(None) is LoadStep
+    both = tmp_path / "both.toml"
+    both.write_text('[move]\nprofile = "trapezoidal"\n[operating]\nsetpoint_trace_csv = "t.csv"\n')
+    assert file_kind(both) is LoadStep  # its loader reports the ambiguity (one line, exit 2)
+    assert file_kind(tmp_path / "missing.toml") is LoadStep
