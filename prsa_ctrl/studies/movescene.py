@@ -356,7 +356,7 @@ def load_move_scene(name_or_path: "str | Path") -> MoveScene:
         raise SceneError(f"scene {quote(str(name_or_path))} not found; expected a built-in name or a readable "
                          ".toml file") from None
     doc = read_scene_doc(reader, origin)
-    if "move" not in doc:
+    if not MoveScene.claims(doc):
         raise SceneError(f"{origin}: no [move] section; expected a move scene")
-    return parse_move_scene(doc, origin)
+    return MoveScene.from_doc(doc, origin)
 

@@ -29,8 +29,8 @@ from ..errors import SceneError
 from ..options import RIGID_RELATIVE_ERROR, rad_s_to_rpm, rpm_to_rad_s
 from .movescene import MoveScene
 from .scenebase import OUTPUTS, Scene, holding_capacity_n, scene_type
-from .scenesections import Robust, Sections
-from .scenefilters import check_filters_against_plant, parse_filters
+from .scenesections import Robust
+from .scenefilters import check_filters_against_plant
 from .scenefile import (DEFAULT_SCENE, MAX_LOAD_LEVELS, MAX_RECORD_SAMPLES, MIN_LOAD_STEP_N, POST_EVENT_SAMPLES,
                         PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes, is_move_scene,
                         locate_scene, read_scene_doc)
