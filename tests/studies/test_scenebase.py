@@ -78,3 +78,28 @@ def test_robust_is_deprecated_and_still_the_sections_dict():
         old = s.robust
     assert old == s.sections.as_dict() and old["spec"]["peak_drop_rad_s"] == 10.0
 
+
+
+_SHARED = {"tuning": {"objective": "ise", "ms_max": 1.5}, "verify": {"fidelity": "rigid", "accuracy": 0.05},
+           "outputs": {"needed": ["nut_speed", "motor_torque"]}, "name": "shared"}
+
+
+def test_both_kinds_read_the_shared_sections_of_a_file_alike():
+    """``Scene.from_doc`` reads the sections both kinds share; each type then reads its own
+    ``[operating]`` keys (``own_fields``): load steps in N and s, a profile in (s, N) rows."""
+    step = LoadStepScene.from_doc({**_SHARED, "operating": {"final_loads_n": [900, 1200], "step_time_s": 0.1}}, "a.toml")
+    duty = DutyCycleScene.from_doc({**_SHARED, "operating": {"load_profile_n": [[0.0, 500.0], [0.05, 800.0]],
+                                                              "duration_s": 0.2}}, "b.toml")
+    assert type(step) is LoadStepScene and type(duty) is DutyCycleScene
+    for sc in (step, duty):
+        assert (sc.name, sc.objective, sc.ms_max, sc.fidelity, sc.accuracy) == ("shared", "ise", 1.5, "rigid", 0.05)
+    assert step.final_loads == (900.0, 1200.0) and step.step_time == 0.1 and step.origin == "a.toml"
+    assert duty.load_profile == ((0.0, 500.0), (0.05, 800.0)) and duty.duration == 0.2 and duty.final_loads == ()
+
+
+def test_each_kind_refuses_the_other_kinds_keys_by_name_when_reading_a_file():
+    with pytest.raises(SceneError, match=r"^a\.toml: tuning\.goal = 'mix': a duty-cycle key"):
+        LoadStepScene.from_doc({"tuning": {"goal": "mix"}}, "a.toml")
+    with pytest.raises(SceneError, match=r"^b\.toml: operating\.final_loads_n = \[1000\]: a load-step key"):
+        DutyCycleScene.from_doc({"operating": {"load_profile_n": [[0.0, 500.0], [0.05, 800.0]],
+                                               "final_loads_n": [1000]}}, "b.toml")
