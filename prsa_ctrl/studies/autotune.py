@@ -625,7 +625,7 @@ def resolve_scene(plant: Plant, scene: Scene) -> tuple[Scene, str, ResolvedProbl
 
 
 def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
-                  resolved: ResolvedProblem | None = None) -> ActuatorTuning:
+                  resolved: ResolvedProblem | tuple | None = None) -> ActuatorTuning:
     """Tune, verify and compare (see module docstring).
 
     Parameters
@@ -636,8 +636,9 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
         Verification processes (default: up to 4 where the machine has the cores;
         ``PRSA_WORKERS=1`` forces serial runs).
     resolved : ResolvedProblem, optional
-        The scene's problem resolved against this plant (its kind's ``resolve(plant)``), when the
-        caller has resolved it already; default: resolved here.
+        The scene's problem resolved against this plant (its kind's ``resolve(plant)``, or the
+        tuple of :func:`resolve_scene`), when the caller has resolved it already; default:
+        resolved here.
 
     1. Linearise at each load step's mid load and build the sampled loop models.
     2. Tune at the scene's Ms bound, plus ``candidates - 1`` more robust alternatives.
@@ -660,6 +661,7 @@ def tune_actuator(plant: Plant, scene: Scene, workers: int | None = None,
     # Resolve the scene once: everything below reads the resolved problem (its scene as run and
     # what the plant fixed), the tuning layer gets its numbers.
     spec = speed_kind(scene).resolve(plant) if resolved is None else resolved
+    spec = spec[2] if isinstance(spec, tuple) else spec  # resolve_scene's (scene, reason, problem)
     scene, fidelity_reason = spec.scene, spec.fidelity_reason
     loops = spec.loop_models(plant)
     # Baselines use the drive's standard speed measurement; with an estimator in the scene the

@@ -92,6 +92,23 @@ def test_continuous_scene_is_tuned_and_verified():
     assert rep.best.objective_verified == pytest.approx(rep.best.objective_predicted, rel=0.05)
 
 
+def test_a_resolved_problem_given_is_the_one_tuned_in_either_form():
+    """``tune_actuator(resolved=...)`` runs on the problem given (the kind's ``resolve(plant)`` or
+    ``resolve_scene``'s tuple) instead of resolving the scene again: a scene resolved at a
+    fidelity other than the one ``fidelity = "auto"`` would choose is tuned and verified at it."""
+    from prsa_ctrl.studies.autotune import resolve_scene
+    from prsa_ctrl.studies.kindruns import speed_kind
+
+    plant = load_plant()
+    auto = load_scene().replace(step_time=0.01, duration=0.05, candidates=1, accuracy=0.001)  # auto: compliant
+    rigid = auto.replace(fidelity="rigid")
+    resolved = speed_kind(rigid).resolve(plant)
+    assert resolve_scene(plant, rigid) == (rigid, resolved.fidelity_reason, resolved)
+    rep = tune_actuator(plant, auto, workers=1, resolved=resolve_scene(plant, rigid))
+    assert rep.scene == rigid and rep.fidelity_reason == "rigid (set by the scene)"
+    assert rep.as_dict()["verification"]["fidelity"] == "rigid (set by the scene)"
+
+
 def test_paper_kp_sweep_trend(report):
     """The paper's manual design (small Ki) recovers slowly: large IAE, never within band."""
     paper = next(d for d in report.baselines if "paper" in d.name)
