@@ -1,7 +1,7 @@
 """``prsa-tune --tune-filter notch|lowpass``: a filter tuned with the gains on a scene's loops.
 
 The filter's parameters come from :func:`prsa_ctrl.tuning.filtered.tune_filtered` (the speed PI
-and the filter in one NLP, Ms and the scene's Mks bound on the loops linearised at the initial,
+and the filter in one NLP, Ms and the scene's Mt and Mks bounds on the loops linearised at the initial,
 mid and final loads of each step, judged against the gains alone under the same bounds: kept only
 if it lowers the objective by at least 1 % and, for a notch, is at least 3 dB deep near the mode).
 A kept filter joins the scene's filters; the scene is then tuned, predicted and verified as any
@@ -96,8 +96,8 @@ class SceneFilterTuning:
         if self.kept:
             return [f"Filter tuned with the gains ({self.kind} on {where}): {d.status}; IAE to infinity "
                     f"{d.objective:.4g} rad against {r.objective:.4g} rad with the gains alone "
-                    f"({100 * (1 - d.objective / r.objective):.1f} % lower), Ms {d.ms:.3f}, Mks {d.mks:.3g} N m s/rad; "
-                    "kept (in the filters above)"]
+                    f"({100 * (1 - d.objective / r.objective):.1f} % lower), Ms {d.ms:.3f}"
+                    + (f", Mks {d.mks:.3g} N m s/rad" if d.mks is not None else "") + "; kept (in the filters above)"]
         return [f"Filter tuned with the gains ({self.kind} on {where}): {d.status}; not kept, the scene "
                 "is tuned without it"]
 
@@ -170,7 +170,7 @@ def tune_scene_filter(plant: Plant, scene: Scene, kind: str) -> SceneFilterTunin
     start = Tuner(spec.loop_models(plant), objective=spec.objective, controller="pi").tune(ms_max=spec.ms_max).pid
     if not (start.kp > 0 and start.ki > 0 and math.isfinite(start.kp) and math.isfinite(start.ki)):
         start = default_pid(plant)
-    common = dict(ts=ts, ms_max=spec.ms_max, max_noise_gain=spec.mks_max,
+    common = dict(ts=ts, ms_max=spec.ms_max, mt_max=spec.mt_max, max_noise_gain=spec.mks_max,
                   start_kff=min(max(start.kff, 0.0), 1.0) if spec.feedforward else 0.0)
     ref = tune_filtered(objective, constraint, kind=None, start_gains=(start.kp, start.ki), **common)
     des = tune_filtered(objective, constraint, kind=tuned_kind, place=FILTER_PATHS[path],

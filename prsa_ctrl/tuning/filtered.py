@@ -11,6 +11,7 @@ exactly as the simulator's per-sample law does), and verifies the result the sam
 - **Ms**: ``|1 + L| >= 1/Ms`` on every constraint loop's grid, then the true peak
   (:meth:`LoopModel.peaks`) of the loop *with the tuned filter*; a violated bound adds its
   frequency to the NLP and solves again (like :class:`prsa_ctrl.tuning.tuner.Tuner`);
+- **Mt** (optional): ``|T| = |L/(1 + L)| <= Mt`` the same way;
 - **Mks** (optional): the noise gain ``Mks = max |C F S|`` from a speed-measurement noise
   (rad/s, on the raw encoder difference) to the torque command (N m), ``F`` every filter on the
   path (the drive's speed filter and the loop filters), ``S = 1/(1 + L)``, up to Nyquist
@@ -304,6 +305,10 @@ def _basis(build: Callable, place: str | None, ts: float) -> _Basis:
     return _Basis(a0, ai, ident, zero, filtered_gains(ident, zero))
 
 
+def _within(pk: dict, ms_max: float, mt_max: float | None) -> bool:
+    return pk["ms"] <= ms_max and (mt_max is None or pk["mt"] <= mt_max)
+
+
 def _design_loops(build: Callable, kind: str | None, place: str | None, theta, ts: float) -> LoopModel:
     if kind is None:
         return build(None)
@@ -321,7 +326,7 @@ def _cabs2(a):
 
 def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence, gains, tuned: Sequence[int],
                      w: NDArray[np.float64], ts: float, *, inv_ms2: float, mks: float | None = None,
-                     g_start: NDArray[np.float64]):
+                     g_start: NDArray[np.float64], mt: float | None = None):
     """The filter tuner's frequency rows (CasADi, each ``>= 0`` where the bound holds) at ``w``
     (rad/s) of the loop ``rest`` (its identity-biquad build) with one more biquad.
 
@@ -334,7 +339,8 @@ def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence,
     ``1 + L = num / den``, ``num = Dc (D0 + N0) + sum P_i g_i (L_i + D_i)``,
     ``den = Dc D0 + sum P_i g_i D_i``,
 
-    so ``|S| <= Ms`` is ``|num|^2 - |den|^2 / Ms^2 >= 0`` (the encoder's loop, ``N0 = 0``,
+    so ``|S| <= Ms`` is ``|num|^2 - |den|^2 / Ms^2 >= 0`` and, as ``T = L/(1 + L) = (num - den) /
+    num``, ``|T| <= Mt`` is ``Mt^2 |num|^2 - |num - den|^2 >= 0`` (the encoder's loop, ``N0 = 0``,
     ``D0 = 1``, ``D = 0``: ``|Dc + Nc g.L|^2 - |Dc|^2/Ms^2``; the Kalman filter's: ``D != 0``,
     and with its feed-forward on a speed-path filter, the ``kff`` part is not filtered). With
     ``mks`` (loops without a denominator part only), the row
@@ -357,6 +363,8 @@ def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence,
     inv_ms2 : float
         ``1 / Ms^2``.
     mks : float, optional, N m s/rad
+    mt : float, optional
+        The Mt bound (its rows follow the Ms rows).
     g_start : array
         Start gains (row scaling only: each row is divided by its size at the start without
         the biquad).
@@ -364,7 +372,8 @@ def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence,
     Returns
     -------
     casadi.SX
-        ``w.size`` Ms rows, then ``w.size`` Mks rows with ``mks``.
+        ``w.size`` Ms rows, then ``w.size`` Mt rows with ``mt``, then ``w.size`` Mks rows with
+        ``mks``.
     """
     n0, lr, d0, dr = rest.parts_at(w)
     idx = list(tuned)
@@ -392,6 +401,9 @@ def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence,
         l0 = gs @ G  # start point without the tuned filter (row scaling only)
         sc = 1.0 / (np.abs(1 + l0) ** 2 + 1.0)
         rows = [(ww - inv_ms2 * dd) * ca.DM(sc)]
+        if mt is not None:  # T = Nc g.L / (Dc + Nc g.L)
+            sc_t = 1.0 / (mt**2 * np.abs(1 + l0) ** 2 + np.abs(l0) ** 2)
+            rows.append((mt**2 * ww - (ng_re * ng_re + ng_im * ng_im)) * ca.DM(sc_t))
         if mks is not None:
             K = np.asarray(rest.noise(w)[idx], complex)
             k_re, k_im = ca.DM(K.real.T) @ gv, ca.DM(K.imag.T) @ gv
@@ -430,7 +442,11 @@ def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence,
     num0 = d0 + n0 + gs @ (lr + dr)[idx]
     den0 = d0 + gs @ dr[idx]
     sc = 1.0 / (np.abs(num0) ** 2 + np.abs(den0) ** 2)
-    return (_cabs2(num) - inv_ms2 * _cabs2(den)) * ca.DM(sc)
+    rows = [(_cabs2(num) - inv_ms2 * _cabs2(den)) * ca.DM(sc)]
+    if mt is not None:
+        sc_t = 1.0 / (mt**2 * np.abs(num0) ** 2 + np.abs(num0 - den0) ** 2)
+        rows.append((mt**2 * _cabs2(num) - _cabs2((num[0] - den[0], num[1] - den[1]))) * ca.DM(sc_t))
+    return ca.vertcat(*rows)
 
 
 def tune_filtered(
@@ -447,6 +463,7 @@ def tune_filtered(
     max_noise_gain: float | None = None,
     reference: FilteredDesign | None = None,
     start_kff: float = 0.0,
+    mt_max: float | None = None,
 ) -> FilteredDesign:
     """Tune the speed PI (kp, ki) and, with ``kind``, one filter's parameters in one NLP.
 
@@ -465,6 +482,8 @@ def tune_filtered(
     place : {"torque_command", "speed_measurement"}
     start_gains : (kp, ki)
         Start point (N m s/rad, N m/rad), e.g. the gains-only optimum.
+    mt_max : float, optional
+        Bound on the true Mt of every loop, in (1, 10) (rows and verification as Ms).
     start_kff : float
         Start of the load feed-forward gain ``kff`` in [0, 1] (loops of the Kalman filter with
         its feed-forward, which carry it as a fourth gain; then tuned with kp and ki). Loops
@@ -504,6 +523,8 @@ def tune_filtered(
     if place not in PLACES:
         raise ValueError(f"place = {place!r}; expected one of {', '.join(PLACES)}")
     check_peak_bound("ms_max", ms_max)
+    if mt_max is not None:
+        check_peak_bound("mt_max", mt_max)
     if max_noise_gain is not None and not (isinstance(max_noise_gain, (int, float)) and math.isfinite(max_noise_gain)
                                            and max_noise_gain > 0):
         raise ValueError(f"max_noise_gain = {max_noise_gain!r}; expected a positive finite number (N m s/rad) or None")
@@ -560,13 +581,14 @@ def tune_filtered(
     for _ in range(30):
         lps = [_design_loops(b, kind, place, th0, ts) for b in builders]
         gg = full(g0[0], g0[1], start_kff)
-        ok = all(lp.stability(gg) == "stable" and lp.peaks(gg)["ms"] <= ms_max
+        ok = all(lp.stability(gg) == "stable" and _within(lp.peaks(gg), ms_max, mt_max)
                  and (max_noise_gain is None or lp.noise_peak(gg)["mks"] <= max_noise_gain) for lp in lps)
         if ok:
             break
         g0 = g0 * np.array([0.7, 0.49])  # kp s, ki s^2: the PI corner keeps its place below crossover
     else:
         raise ValueError(f"start_gains = {tuple(start_gains)!r}: no scaled-down start meets Ms <= {ms_max:g}"
+                         + (f", Mt <= {mt_max:g}" if mt_max is not None else "")
                          + (f", Mks <= {max_noise_gain:g}" if max_noise_gain is not None else "")
                          + "; expected stabilising start gains")
 
@@ -634,9 +656,9 @@ def tune_filtered(
         objs.append(ca.sum2(ca.DM(lp.h * w).T * smooth_abs(e, eps[jl])))
     f_obj = sum(objs) / j_ref
 
-    def freq_cons(bs: _Basis, w: NDArray, inv_ms2: float, mks: float | None):
+    def freq_cons(bs: _Basis, w: NDArray, inv_ms2: float, mks: float | None, mt: float | None):
         return sensitivity_rows(bs.lp_rest, bs.on_filter, coef, g, tuned, w, ts, inv_ms2=inv_ms2, mks=mks,
-                                g_start=g_start)
+                                g_start=g_start, mt=mt)
 
     # Seed the added frequencies with the start's true peaks (the optimum's are usually near).
     extra_w: list[list[float]] = [[lp.peaks(g_start)["w_ms"]] for lp in lps]
@@ -644,7 +666,7 @@ def tune_filtered(
     ms_eff = ms_max * (1 - 1e-5)
     mks_eff = max_noise_gain * (1 - 1e-5) if max_noise_gain is not None else None
     stats: dict = {"rounds": 0, "iterations": 0, "added_frequencies_rad_s": extra_w, "phases": []}
-    eff = {"ms": ms_eff, "mks": mks_eff}
+    eff = {"ms": ms_eff, "mks": mks_eff, "mt": mt_max * (1 - 1e-5) if mt_max is not None else None}
 
     def solve(x0, lo, up):
         """Rounds of solve, verify, add the violating frequency; (status, best or None)."""
@@ -653,7 +675,7 @@ def tune_filtered(
             cons = []
             for bs, ew, dw in zip(bases, extra_w, dense):
                 w = np.unique(np.concatenate([bs.lp_rest.omega[::3], dw, np.asarray(ew, float)]))
-                cons.append(freq_cons(bs, w, eff["ms"] ** -2, eff["mks"]))
+                cons.append(freq_cons(bs, w, eff["ms"] ** -2, eff["mks"], eff["mt"]))
             solver = ca.nlpsol("filtertune", "ipopt", {"x": v, "f": f_obj, "g": ca.vertcat(*cons)},
                                {"print_time": False, "error_on_fail": False,
                                 "ipopt": {"print_level": 0, "sb": "yes", "max_iter": _IPOPT_MAX_ITER, "tol": 1e-8,
@@ -682,6 +704,12 @@ def tune_filtered(
                         eff["ms"] *= (ms_max / pk["ms"]) * (1 - 1e-6)
                     else:
                         extra_w[j].append(pk["w_ms"])
+                if mt_max is not None and pk["mt"] > mt_max:
+                    viol = True
+                    if any(abs(pk["w_mt"] / w - 1) < 1e-7 for w in extra_w[j]):
+                        eff["mt"] *= (mt_max / pk["mt"]) * (1 - 1e-6)
+                    else:
+                        extra_w[j].append(pk["w_mt"])
                 if max_noise_gain is not None and nk["mks"] > max_noise_gain:
                     viol = True
                     if any(abs(nk["w_mks"] / w - 1) < 1e-7 for w in extra_w[j]):
@@ -739,7 +767,7 @@ def tune_filtered(
         try:
             reference = tune_filtered(objective_builders, constraint_builders, ts=ts, kind=None, place=place,
                                       start_gains=start_gains, ms_max=ms_max, max_noise_gain=max_noise_gain,
-                                      start_kff=start_kff)
+                                      start_kff=start_kff, mt_max=mt_max)
         except ValueError:  # no verified gains-alone design: the filter is judged on its own
             reference = None
     modes = [dominant_resonance_hz(bs.lp_rest) for bs in bases]

@@ -100,10 +100,11 @@ def test_the_kalman_filter_scene_hands_its_own_loops_to_the_filter_tuner(monkeyp
     real = stf.loop_builder
     monkeypatch.setattr(stf, "loop_builder", lambda *a, **kw: built.append((a, kw)) or real(*a, **kw))
     fixed = LoopFilter(FirstOrderLowPass(900.0), "speed_measurement")
-    scene = load_scene().replace(fidelity="rigid", estimator="kf", feedforward=feedforward, filters=(fixed,))
+    scene = load_scene().replace(fidelity="rigid", estimator="kf", feedforward=feedforward, filters=(fixed,),
+                                 mt_max=1.3)
     delayed = PAPER.with_params({"drive.command_delay_samples": 2})
     stf.tune_scene_filter(delayed, scene, "notch")
-    assert [c["kind"] for c in calls] == [None, "notch"]
+    assert [c["kind"] for c in calls] == [None, "notch"] and calls[0]["mt_max"] == calls[1]["mt_max"] == 1.3
     assert (calls[0]["start_kff"] > 0.0) == feedforward and calls[0]["start_kff"] <= 1.0
     a, kw = built[0]
     assert isinstance(kw["measurement"], KalmanEstimate) and kw["measurement"].feedforward is feedforward
@@ -152,3 +153,37 @@ def test_tune_filter_notch_on_the_heavy_slide_is_kept_and_verified(tmp_path):
     assert 200.0 < ft["filter"]["centre_hz"] < 300.0 and ft["filter"]["depth_db"] <= -3.0
     assert [r["centre_hz"] for r in rep["filters"]] == [ft["filter"]["centre_hz"]]
     assert rep["status"] == "ok" and math.isfinite(rep["verified"]["iae"])
+
+
+def test_a_kept_filter_on_the_kalman_loop_reports_no_noise_gain():
+    kept = FilteredDesign(PID(0.12, 28.8, kff=0.48), LoopFilter(FirstOrderLowPass(378.0), "speed_measurement"),
+                          0.0071, 1.4, None, "optimal")
+    alone = FilteredDesign(PID(0.12, 47.3, kff=0.19), None, 0.0087, 1.4, None, "optimal")
+    ft = stf.SceneFilterTuning("lowpass", "speed", kept, alone, load_scene(), PAPER.sample_time_s)
+    (line,) = ft.lines()
+    assert "kept" in line and "Ms 1.400" in line and "Mks" not in line
+    d = ft.as_dict()
+    json.dumps(d)
+    assert d["mks"] is None and d["gains_with_filter"]["kff"] == 0.48
+
+
+@pytest.mark.slow
+def test_tune_filter_with_the_kalman_filter_verifies_as_the_encoder_loop_does(tmp_path):
+    """The paper step with --tune-filter lowpass, the encoder's measurement and the Kalman filter
+    with its feed-forward: each run's predicted peak drop and IE are within 5 % of the
+    nonlinear verification (the tolerance of tests/studies/test_autotune.py), the Kalman run
+    reports no noise gain and its filter tuning holds Ms <= 1.4. (Not the IAE: the verified IAE
+    carries the quantised encoder's noise over the 0.3 s record, which the linear prediction
+    has not; with the Kalman filter's feed-forward the IAE is small, so that noise weighs:
+    -4.8 % without a filter on main a77ba55, -8.4 % with the tuned low-pass.)"""
+    reports = {}
+    for name, extra in (("encoder", []), ("kf", ["--estimator", "kf", "--feedforward"])):
+        out = tmp_path / f"{name}.json"
+        assert main(["--tune-filter", "lowpass", *extra, "--json", str(out), "--quiet", "--workers", "1"]) == 0
+        reports[name] = json.loads(out.read_text())
+    for name, rep in reports.items():
+        assert rep["status"] == "ok", name
+        for key in ("peak_drop_rad_s", "ie"):
+            assert rep["predicted"][key] == pytest.approx(rep["verified"][key], rel=0.05), (name, key)
+    ft = reports["kf"]["filter_tuning"]
+    assert ft["mks"] is None and ft["ms"] <= 1.4 and ft["status"] != "" and ft["gains_with_filter"]["kff"] >= 0.0
