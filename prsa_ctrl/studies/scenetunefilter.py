@@ -1,7 +1,7 @@
 """``prsa-tune --tune-filter notch|lowpass``: a filter tuned with the gains on a scene's loops.
 
 The filter's parameters come from :func:`prsa_ctrl.tuning.filtered.tune_filtered` (the speed PI
-and the filter in one NLP, Ms and the scene's Mks bound on the loops linearised at the initial,
+and the filter in one NLP, Ms and the scene's Mt and Mks bounds on the loops linearised at the initial,
 mid and final loads of each step, judged against the gains alone under the same bounds: kept only
 if it lowers the objective by at least 1 % and, for a notch, is at least 3 dB deep near the mode).
 A kept filter joins the scene's filters; the scene is then tuned, predicted and verified as any
@@ -21,6 +21,8 @@ from ..plant.model import plant_model
 from ..plant.plantfile import Plant
 from ..tuning.filtered import FilteredDesign, loop_builder, tune_filtered
 from ..tuning.actuatorloops import derivative_filter_s
+from ..tuning.loopmeasure import KalmanEstimate
+from ..drive.estimator import design_kf
 from ..tuning.tuner import Tuner
 from .paper import default_pid
 from .scene import Scene, choose_fidelity
@@ -94,8 +96,8 @@ class SceneFilterTuning:
         if self.kept:
             return [f"Filter tuned with the gains ({self.kind} on {where}): {d.status}; IAE to infinity "
                     f"{d.objective:.4g} rad against {r.objective:.4g} rad with the gains alone "
-                    f"({100 * (1 - d.objective / r.objective):.1f} % lower), Ms {d.ms:.3f}, Mks {d.mks:.3g} N m s/rad; "
-                    "kept (in the filters above)"]
+                    f"({100 * (1 - d.objective / r.objective):.1f} % lower), Ms {d.ms:.3f}"
+                    + (f", Mks {d.mks:.3g} N m s/rad" if d.mks is not None else "") + "; kept (in the filters above)"]
         return [f"Filter tuned with the gains ({self.kind} on {where}): {d.status}; not kept, the scene "
                 "is tuned without it"]
 
@@ -106,23 +108,20 @@ def check_tune_filter(scene, kind: str) -> None:
     Raises
     ------
     SceneError
-        An unknown kind, a duty cycle, the Kalman filter or a continuous loop.
+        An unknown kind, a duty cycle, a continuous loop, or the Kalman filter with ``mks_max``
+        (its loop has no path for the encoder's speed noise that Mks bounds).
     """
     if kind not in TUNED_FILTERS:
         raise SceneError(f"--tune-filter {kind}: expected one of {', '.join(TUNED_FILTERS)}")
     if not speed_kind(scene).takes("tune-filter"):
         raise SceneError(f"--tune-filter {kind}: scene {scene.name} is a duty cycle; expected a load-step scene (the "
                          "filter tuner's objective is the load step)")
-    if scene.estimator != "none":
-        # The NLP's Ms/Mks rows take 1 + L = 1 + F(z) (kp, ki).G with G gain-free: the encoder
-        # loop's response has no denominator part. The Kalman filter's loop with a filter F on
-        # either path is F g.N / (1 + F g.D), D != 0 (LoopModel.parts; held by
-        # tests/studies/test_scenetunefilter.py).
-        raise SceneError(f"--tune-filter {kind} with estimator {scene.estimator}: the filter tuner's Ms/Mks constraints "
-                         "assume a loop response linear in the gains, L = F(z) (kp, ki).G, with no denominator part; with "
-                         "the Kalman filter (driven by the drive's own command) the loop is F (kp, ki).N / (1 + F (kp, "
-                         "ki).D) on either path; expected estimator none (or give the filter with --filter: the gains are tuned "
-                         "with the Kalman filter and the filter fixed)")
+    if scene.estimator != "none" and scene.mks_max is not None:
+        # The filter tuner's Mks is max |C F S| from a noise on the encoder's speed difference;
+        # the Kalman filter's loop has no such path (its LoopModel.noise is None).
+        raise SceneError(f"--tune-filter {kind} with estimator {scene.estimator} and mks_max = {scene.mks_max:g}: the "
+                         "filter tuner's noise gain max |C F S| is that of a noise on the encoder's speed difference, "
+                         "which the Kalman filter's loop has no path for; expected no mks_max (or estimator none)")
     if not scene.discrete:
         raise SceneError(f"--tune-filter {kind}: expected a sampled loop (discrete = true; the filters run at the "
                          "sample time)")
@@ -135,7 +134,11 @@ def tune_scene_filter(plant: Plant, scene: Scene, kind: str) -> SceneFilterTunin
     ----------
     plant : Plant
     scene : Scene
-        A sampled load-step scene without the Kalman filter; its own filters stay fixed.
+        A sampled load-step scene; its own filters stay fixed. With the Kalman filter
+        (``estimator = "kf"``) the loops measure the speed with it (and tune its load
+        feed-forward gain with the PI when the scene feeds the load forward); the filter tuner's
+        Ms rows then carry the loop's denominator part
+        (:func:`prsa_ctrl.tuning.filtered.sensitivity_rows`).
     kind : {"notch", "lowpass", "lowpass2"}
         A notch on the torque command, or a first- / second-order low-pass on the measured speed.
 
@@ -151,12 +154,16 @@ def tune_scene_filter(plant: Plant, scene: Scene, kind: str) -> SceneFilterTunin
     model = plant_model(plant, spec.linear_fidelity)
     i_speed = model.output_names.index("nut_speed")
     ts = plant.sample_time_s
+    if sc.estimator == "kf":
+        meas = {"measurement": KalmanEstimate(design_kf(plant, sc.load_change_time_s), sc.feedforward)}
+    else:
+        meas = {"speed_filter": plant.speed_filter_s}
 
     def builder(load: float, step: float, name: str):
         a, b, c, _, _ = linear_core(plant, sc.setpoint_rad_s, load, spec.linear_fidelity)
-        return loop_builder(a, b, c[i_speed], model.index("theta_nut"), ts=ts, speed_filter=plant.speed_filter_s,
-                            tf=derivative_filter_s(plant), horizon=sc.duration - sc.step_time, step=step,
-                            fixed=tuple(sc.filters), name=name)
+        return loop_builder(a, b, c[i_speed], model.index("theta_nut"), ts=ts, tf=derivative_filter_s(plant),
+                            horizon=sc.duration - sc.step_time, step=step, fixed=tuple(sc.filters), name=name,
+                            command_delay_samples=plant.command_delay_samples, **meas)
 
     f0 = sc.initial_load
     objective = [builder(0.5 * (f0 + f1), f1 - f0, f"step to {f1:g} N") for f1 in sc.final_loads]
@@ -164,7 +171,8 @@ def tune_scene_filter(plant: Plant, scene: Scene, kind: str) -> SceneFilterTunin
     start = Tuner(spec.loop_models(plant), objective=sc.objective, controller="pi").tune(ms_max=sc.ms_max).pid
     if not (start.kp > 0 and start.ki > 0 and math.isfinite(start.kp) and math.isfinite(start.ki)):
         start = default_pid(plant)
-    common = dict(ts=ts, ms_max=sc.ms_max, max_noise_gain=sc.mks_max)
+    common = dict(ts=ts, ms_max=sc.ms_max, mt_max=sc.mt_max, max_noise_gain=sc.mks_max,
+                  start_kff=min(max(start.kff, 0.0), 1.0) if sc.feedforward else 0.0)
     ref = tune_filtered(objective, constraint, kind=None, start_gains=(start.kp, start.ki), **common)
     des = tune_filtered(objective, constraint, kind=tuned_kind, place=FILTER_PATHS[path],
                         start_gains=(ref.pid.kp, ref.pid.ki), reference=ref, **common)

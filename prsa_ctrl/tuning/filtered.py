@@ -11,6 +11,7 @@ exactly as the simulator's per-sample law does), and verifies the result the sam
 - **Ms**: ``|1 + L| >= 1/Ms`` on every constraint loop's grid, then the true peak
   (:meth:`LoopModel.peaks`) of the loop *with the tuned filter*; a violated bound adds its
   frequency to the NLP and solves again (like :class:`prsa_ctrl.tuning.tuner.Tuner`);
+- **Mt** (optional): ``|T| = |L/(1 + L)| <= Mt`` the same way;
 - **Mks** (optional): the noise gain ``Mks = max |C F S|`` from a speed-measurement noise
   (rad/s, on the raw encoder difference) to the torque command (N m), ``F`` every filter on the
   path (the drive's speed filter and the loop filters), ``S = 1/(1 + L)``, up to Nyquist
@@ -26,8 +27,13 @@ the coefficients the export writes) is a CasADi expression of the filter's param
 loop model's matrices are affine in the biquad's coefficients for fixed gains (one tuned
 filter), so ``A(g, c) = A0(c) + sum g_i A_i(c)`` is assembled from :func:`drive_loop` evaluated
 at the coefficient basis (the loop is written once, in :func:`drive_loop`), and its frequency
-response is ``L = F_c(z) L_rest``. :func:`tune_filtered` with ``kind=None`` solves the same
-problem with the gains alone.
+response is ``L = F_c(z) L_rest`` with the encoder's measurement. With the Kalman filter's
+(:class:`~prsa_ctrl.tuning.loopmeasure.KalmanEstimate`) the loop has a denominator part,
+``L = F_c g.N / (1 + F_c g.D)``, and with its load feed-forward a fourth gain ``kff`` (tuned with
+kp and ki; a speed-path filter does not act on its part): the Ms rows
+(:func:`sensitivity_rows`) are exact for both, which gain parts the filter multiplies is read
+off the loop itself (:func:`filtered_gains`), and the Kalman loop has no noise path (no Mks).
+:func:`tune_filtered` with ``kind=None`` solves the same problem with the gains alone.
 """
 
 from __future__ import annotations
@@ -47,10 +53,12 @@ from ..results import is_converged, status_head
 from ..drive.filters import PLACES, DiscreteBiquad, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass
 from .loops import LoopModel
 from .builders import drive_loop
+from .loopmeasure import LoopMeasurement
 # Private helpers of the tuner's NLP, until tuning/tuner.py makes them public (h-tuner25).
 from .objectives import smooth_abs, two_rate_error
 
-__all__ = ["TUNABLE", "FilteredDesign", "tune_filtered", "FilterBounds", "loop_builder", "dominant_resonance_hz"]
+__all__ = ["TUNABLE", "FilteredDesign", "tune_filtered", "FilterBounds", "loop_builder", "dominant_resonance_hz",
+           "sensitivity_rows", "filtered_gains"]
 
 #: Filters whose parameters the NLP tunes, and their parameters.
 TUNABLE = {"notch": ("centre_hz", "width_hz", "depth_db"), "lowpass1": ("corner_hz",),
@@ -109,8 +117,9 @@ class FilteredDesign:
         Sum of the objective loops' IAE to infinity (rad, of the nut speed).
     ms : float
         Largest true Ms over the constraint loops (with the filter).
-    mks : float
-        Largest true noise gain ``max |C F S|`` (N m per rad/s) over the constraint loops.
+    mks : float or None
+        Largest true noise gain ``max |C F S|`` (N m per rad/s) over the constraint loops (None:
+        loops without a noise path, the Kalman filter's).
     status : str
         ``"optimal"``: a converged ipopt solve whose verified bounds hold and, with a filter,
         a filter that earns its place (:func:`tune_filtered`); ``"no <kind> helps: <why>"``:
@@ -131,7 +140,7 @@ class FilteredDesign:
     filter: LoopFilter | None
     objective: float
     ms: float
-    mks: float
+    mks: float | None
     status: str
     stats: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
@@ -216,15 +225,25 @@ def _resonance_band(lp: LoopModel) -> NDArray[np.float64]:
     return np.unique(pts[(pts > lp.omega[0]) & (pts < 0.999 * lp.nyquist)])
 
 
-def loop_builder(a, b, c_speed, angle_index: int, *, ts: float, speed_filter: float, tf: float, horizon: float,
-                 step: float, fixed: Sequence[LoopFilter] = (), name: str = "drive",
-                 command_delay_samples: int = 0) -> Callable:
+def loop_builder(a, b, c_speed, angle_index: int, *, ts: float, speed_filter: float | None = None, tf: float,
+                 horizon: float, step: float, fixed: Sequence[LoopFilter] = (), name: str = "drive",
+                 command_delay_samples: int = 0, measurement: LoopMeasurement | None = None) -> Callable:
     """``biquad or None -> LoopModel``: :func:`prsa_ctrl.tuning.builders.drive_loop` of a linearised
-    plant with the ``fixed`` filters and, when given, one more ``(place, DiscreteBiquad)``."""
+    plant with the ``fixed`` filters and, when given, one more ``(place, DiscreteBiquad)``.
+
+    The speed is measured by the encoder's filtered difference (``speed_filter``, s) or by the
+    ``measurement`` block (:mod:`prsa_ctrl.tuning.loopmeasure`, e.g. the Kalman filter's
+    :class:`~prsa_ctrl.tuning.loopmeasure.KalmanEstimate`, whose loop response has a
+    denominator part and, with its feed-forward, a fourth gain ``kff``); give one of them."""
+    meas = {"speed_filter": speed_filter} if measurement is None else {"measurement": measurement}
+    if measurement is not None and speed_filter is not None:
+        raise ValueError(f"speed_filter = {speed_filter!r} with measurement {type(measurement).__name__}; expected "
+                         "one of them (the block carries its own filtering)")
+
     def build(extra=None) -> LoopModel:
         fl = list(fixed) + ([extra] if extra is not None else [])
-        return drive_loop(a, b, c_speed, angle_index, ts=ts, speed_filter=speed_filter, tf=tf, horizon=horizon,
-                          step=step, name=name, filters=fl, command_delay_samples=command_delay_samples)
+        return drive_loop(a, b, c_speed, angle_index, ts=ts, tf=tf, horizon=horizon, step=step, name=name,
+                          filters=fl, command_delay_samples=command_delay_samples, **meas)
     return build
 
 
@@ -236,12 +255,43 @@ class _Basis:
     A: list  # per gain: [c-free, per coefficient]
     lp_rest: LoopModel  # the loop with an identity biquad: L_rest, noise_rest
     lp: LoopModel
+    #: Per gain: whether the tuned biquad multiplies its parts of the loop response (``L_i``,
+    #: ``D_i``): every gain's with the encoder; not the Kalman filter's feed-forward gain's
+    #: with a filter on the measured speed (the load estimate does not pass it).
+    on_filter: tuple = ()
+
+
+def filtered_gains(rest: LoopModel, zero: LoopModel) -> tuple[bool, ...]:
+    """Per gain, whether the tuned biquad multiplies its loop-response parts ``L_i``, ``D_i``.
+
+    ``rest`` and ``zero`` are the loop built with the identity and with the zero biquad in the
+    tuned place: the parts the biquad multiplies vanish with the zero biquad, the others are
+    the identity biquad's (checked at three frequencies; anything else is a loop the rows of
+    :func:`sensitivity_rows` do not describe: ``ArithmeticError``)."""
+    w = rest.omega[[0, rest.omega.size // 2, -1]]
+    n0r, lr, d0r, dr = rest.parts_at(w)
+    n0z, lz, d0z, dz = zero.parts_at(w)
+    if not (np.allclose(n0z, n0r, rtol=1e-9, atol=0) and np.allclose(d0z, d0r, rtol=1e-9, atol=0)):
+        raise ArithmeticError("the tuned filter changes the loop's gain-free response parts; expected it on a "
+                              "gain's path only")
+    out = []
+    for j in range(rest.n_gains):
+        scale = max(np.max(np.abs(lr[j])), np.max(np.abs(dr[j])), 1e-300)
+        if max(np.max(np.abs(lz[j])), np.max(np.abs(dz[j]))) <= 1e-12 * scale:
+            out.append(True)
+        elif np.allclose(lz[j], lr[j], rtol=1e-9, atol=1e-12 * scale) and np.allclose(dz[j], dr[j], rtol=1e-9,
+                                                                                       atol=1e-12 * scale):
+            out.append(False)
+        else:
+            raise ArithmeticError(f"gain {j}'s loop response is neither multiplied by the tuned filter nor free of "
+                                  "it; expected one of them")
+    return tuple(out)
 
 
 def _basis(build: Callable, place: str | None, ts: float) -> _Basis:
     ident = build((place, DiscreteBiquad(1.0, 0.0, 0.0, 0.0, 0.0, ts))) if place else build(None)
     if place is None:
-        return _Basis([ident.A0], [[a] for a in ident.A], ident, ident)
+        return _Basis([ident.A0], [[a] for a in ident.A], ident, ident, (True,) * ident.n_gains)  # no biquad
     zero = build((place, DiscreteBiquad(0.0, 0.0, 0.0, 0.0, 0.0, ts)))
     a0 = [zero.A0]
     ai = [[m] for m in zero.A]
@@ -252,13 +302,151 @@ def _basis(build: Callable, place: str | None, ts: float) -> _Basis:
         a0.append(lj.A0 - zero.A0)
         for i, m in enumerate(lj.A):
             ai[i].append(m - zero.A[i])
-    return _Basis(a0, ai, ident, zero)
+    return _Basis(a0, ai, ident, zero, filtered_gains(ident, zero))
+
+
+def _within(pk: dict, ms_max: float, mt_max: float | None) -> bool:
+    return pk["ms"] <= ms_max and (mt_max is None or pk["mt"] <= mt_max)
 
 
 def _design_loops(build: Callable, kind: str | None, place: str | None, theta, ts: float) -> LoopModel:
     if kind is None:
         return build(None)
     return build(LoopFilter(_filter_of(kind, theta), place))
+
+
+def _cmul(a, b):
+    """``a b`` of complex columns held as ``(re, im)`` pairs (CasADi or NumPy)."""
+    return a[0] * b[0] - a[1] * b[1], a[0] * b[1] + a[1] * b[0]
+
+
+def _cabs2(a):
+    return a[0] * a[0] + a[1] * a[1]
+
+
+def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence, gains, tuned: Sequence[int],
+                     w: NDArray[np.float64], ts: float, *, inv_ms2: float, mks: float | None = None,
+                     g_start: NDArray[np.float64], mt: float | None = None):
+    """The filter tuner's frequency rows (CasADi, each ``>= 0`` where the bound holds) at ``w``
+    (rad/s) of the loop ``rest`` (its identity-biquad build) with one more biquad.
+
+    The biquad ``F = Nc/Dc``, ``Nc = b0 + b1 z^-1 + b2 z^-2``, ``Dc = 1 + a1 z^-1 + a2 z^-2``
+    (``coef`` = ``[b0, b1, b2, a1, a2]``, CasADi expressions; empty: no biquad), multiplies the
+    response parts ``L_i``, ``D_i`` of each gain ``i`` with ``on_filter[i]``. With ``P_i = Nc``
+    there and ``Dc`` elsewhere, the loop ``L = (N0 + sum g_i F_i L_i) / (D0 + sum g_i F_i D_i)``
+    (:class:`~prsa_ctrl.tuning.loops.LoopModel`) has, exactly,
+
+    ``1 + L = num / den``, ``num = Dc (D0 + N0) + sum P_i g_i (L_i + D_i)``,
+    ``den = Dc D0 + sum P_i g_i D_i``,
+
+    so ``|S| <= Ms`` is ``|num|^2 - |den|^2 / Ms^2 >= 0`` and, as ``T = L/(1 + L) = (num - den) /
+    num``, ``|T| <= Mt`` is ``Mt^2 |num|^2 - |num - den|^2 >= 0`` (the encoder's loop, ``N0 = 0``,
+    ``D0 = 1``, ``D = 0``: ``|Dc + Nc g.L|^2 - |Dc|^2/Ms^2``; the Kalman filter's: ``D != 0``,
+    and with its feed-forward on a speed-path filter, the ``kff`` part is not filtered). With
+    ``mks`` (loops without a denominator part only), the row
+    ``Mks^2 |num|^2 - |Nc g.K|^2 >= 0`` bounds ``|C F S|`` (``K`` = ``rest.noise``).
+
+    Parameters
+    ----------
+    rest : LoopModel
+        The loop with an identity biquad in the tuned place (needs ``response``).
+    on_filter : sequence of bool
+        Per gain of ``rest``.
+    coef : sequence
+        The biquad's 5 coefficients (CasADi), or empty.
+    gains : casadi.SX
+        The loop's gain vector (``rest.n_gains`` entries).
+    tuned : sequence of int
+        Indices of the gains that are not zero.
+    w : array, rad/s
+    ts : float, s
+    inv_ms2 : float
+        ``1 / Ms^2``.
+    mks : float, optional, N m s/rad
+    mt : float, optional
+        The Mt bound (its rows follow the Ms rows).
+    g_start : array
+        Start gains (row scaling only: each row is divided by its size at the start without
+        the biquad).
+
+    Returns
+    -------
+    casadi.SX
+        ``w.size`` Ms rows, then ``w.size`` Mt rows with ``mt``, then ``w.size`` Mks rows with
+        ``mks``.
+    """
+    n0, lr, d0, dr = rest.parts_at(w)
+    idx = list(tuned)
+    zi = np.exp(-1j * w * ts)
+    if len(coef):
+        n_re = coef[0] + coef[1] * ca.DM(zi.real) + coef[2] * ca.DM((zi * zi).real)
+        n_im = coef[1] * ca.DM(zi.imag) + coef[2] * ca.DM((zi * zi).imag)
+        d_re = 1.0 + coef[3] * ca.DM(zi.real) + coef[4] * ca.DM((zi * zi).real)
+        d_im = coef[3] * ca.DM(zi.imag) + coef[4] * ca.DM((zi * zi).imag)
+    else:
+        n_re, n_im, d_re, d_im = ca.DM.ones(w.size), ca.DM.zeros(w.size), ca.DM.ones(w.size), ca.DM.zeros(w.size)
+    gv = ca.vertcat(*[gains[i] for i in idx])
+    gs = np.asarray(g_start, float)[idx]
+    plain = (not np.any(dr[idx]) and np.all(d0 == 1.0) and not np.any(n0)
+             and all(on_filter[i] for i in idx))
+    if plain:  # the encoder's loop: 1 + L = (Dc + Nc g.L) / Dc
+        G = np.asarray(lr[idx], complex)
+        g_re = ca.DM(G.real.T) @ gv
+        g_im = ca.DM(G.imag.T) @ gv
+        ng_re, ng_im = n_re * g_re - n_im * g_im, n_re * g_im + n_im * g_re
+        s_re, s_im = d_re + ng_re, d_im + ng_im
+        ww = s_re * s_re + s_im * s_im
+        dd = d_re * d_re + d_im * d_im
+        # row scale at the start point: 1/(|1 + L0|^2 + 1) in units of |D|^2
+        l0 = gs @ G  # start point without the tuned filter (row scaling only)
+        sc = 1.0 / (np.abs(1 + l0) ** 2 + 1.0)
+        rows = [(ww - inv_ms2 * dd) * ca.DM(sc)]
+        if mt is not None:  # T = Nc g.L / (Dc + Nc g.L)
+            sc_t = 1.0 / (mt**2 * np.abs(1 + l0) ** 2 + np.abs(l0) ** 2)
+            rows.append((mt**2 * ww - (ng_re * ng_re + ng_im * ng_im)) * ca.DM(sc_t))
+        if mks is not None:
+            K = np.asarray(rest.noise(w)[idx], complex)
+            k_re, k_im = ca.DM(K.real.T) @ gv, ca.DM(K.imag.T) @ gv
+            nk_re, nk_im = n_re * k_re - n_im * k_im, n_re * k_im + n_im * k_re
+            k0 = np.abs(gs @ K) ** 2
+            sc2 = 1.0 / (mks**2 * np.abs(1 + l0) ** 2 + k0 + 1e-300)
+            rows.append((mks**2 * ww - (nk_re * nk_re + nk_im * nk_im)) * ca.DM(sc2))
+        return ca.vertcat(*rows)
+    if mks is not None:
+        raise ValueError("mks rows for a loop with a denominator part; expected the encoder's loop (the Kalman "
+                         "filter's has no noise path)")
+    nc, dc = (n_re, n_im), (d_re, d_im)
+
+    def dm(x):
+        return ca.DM(x.real), ca.DM(x.imag)
+
+    def wsum(parts, on: bool):
+        """``P sum g_i parts_i`` over the tuned gains on (``P = Nc``) or off (``Dc``) the filter."""
+        sel = [k for k, i in enumerate(idx) if bool(on_filter[i]) == on]
+        if not sel:
+            return None
+        P = np.asarray(parts[[idx[k] for k in sel]], complex)
+        gsel = ca.vertcat(*[gv[k] for k in sel])
+        return _cmul(nc if on else dc, (ca.DM(P.real.T) @ gsel, ca.DM(P.imag.T) @ gsel))
+
+    def total(first, parts):
+        out = first
+        for term in (wsum(parts, True), wsum(parts, False)):
+            if term is not None:
+                out = (out[0] + term[0], out[1] + term[1])
+        return out
+
+    num = total(_cmul(dc, dm(d0 + n0)), lr + dr)
+    den = total(_cmul(dc, dm(d0)), dr)
+    # row scale at the start point without the biquad: 1/(|num0|^2 + |den0|^2)
+    num0 = d0 + n0 + gs @ (lr + dr)[idx]
+    den0 = d0 + gs @ dr[idx]
+    sc = 1.0 / (np.abs(num0) ** 2 + np.abs(den0) ** 2)
+    rows = [(_cabs2(num) - inv_ms2 * _cabs2(den)) * ca.DM(sc)]
+    if mt is not None:
+        sc_t = 1.0 / (mt**2 * np.abs(num0) ** 2 + np.abs(num0 - den0) ** 2)
+        rows.append((mt**2 * _cabs2(num) - _cabs2((num[0] - den[0], num[1] - den[1]))) * ca.DM(sc_t))
+    return ca.vertcat(*rows)
 
 
 def tune_filtered(
@@ -274,6 +462,8 @@ def tune_filtered(
     ms_max: float = MS_MAX_DEFAULT,
     max_noise_gain: float | None = None,
     reference: FilteredDesign | None = None,
+    start_kff: float = 0.0,
+    mt_max: float | None = None,
 ) -> FilteredDesign:
     """Tune the speed PI (kp, ki) and, with ``kind``, one filter's parameters in one NLP.
 
@@ -292,6 +482,12 @@ def tune_filtered(
     place : {"torque_command", "speed_measurement"}
     start_gains : (kp, ki)
         Start point (N m s/rad, N m/rad), e.g. the gains-only optimum.
+    mt_max : float, optional
+        Bound on the true Mt of every loop, in (1, 10) (rows and verification as Ms).
+    start_kff : float
+        Start of the load feed-forward gain ``kff`` in [0, 1] (loops of the Kalman filter with
+        its feed-forward, which carry it as a fourth gain; then tuned with kp and ki). Loops
+        without it take 0 only.
     start_filter : sequence of float, optional
         Start parameters (``TUNABLE[kind]``: Hz, Hz, dB); default: notch at the dominant
         resonance of the first loop, width 0.3 x centre, -20 dB; low-pass corner at 0.25 x
@@ -301,7 +497,9 @@ def tune_filtered(
     ms_max : float
         Bound on the true Ms of every loop, in (1, 10).
     max_noise_gain : float, optional
-        Bound on the true ``Mks = max |C F S|`` (N m per rad/s) of every loop.
+        Bound on the true ``Mks = max |C F S|`` (N m per rad/s) of every loop; needs loops with
+        a noise path (the encoder's measurement; the Kalman filter's loops have none, and their
+        design reports ``mks`` None).
     reference : FilteredDesign, optional
         The gains-alone design of the same loops and bounds (``kind=None``), to judge the
         filter against; computed here when not given.
@@ -325,18 +523,37 @@ def tune_filtered(
     if place not in PLACES:
         raise ValueError(f"place = {place!r}; expected one of {', '.join(PLACES)}")
     check_peak_bound("ms_max", ms_max)
+    if mt_max is not None:
+        check_peak_bound("mt_max", mt_max)
     if max_noise_gain is not None and not (isinstance(max_noise_gain, (int, float)) and math.isfinite(max_noise_gain)
                                            and max_noise_gain > 0):
         raise ValueError(f"max_noise_gain = {max_noise_gain!r}; expected a positive finite number (N m s/rad) or None")
     g0 = np.asarray(start_gains, float)[:2]
     if g0.shape != (2,) or not np.all(np.isfinite(g0)) or np.any(g0 <= 0):
         raise ValueError(f"start_gains = {start_gains!r}; expected (kp, ki) > 0")
+    if isinstance(start_kff, bool) or not isinstance(start_kff, (int, float)) or not 0.0 <= start_kff <= 1.0:
+        raise ValueError(f"start_kff = {start_kff!r}; expected a load feed-forward gain in [0, 1]")
     builders = list(objective_builders) + list(constraint_builders)
     n_obj = len(objective_builders)
     if n_obj == 0:
         raise ValueError("objective_builders is empty; expected at least one loop")
     pl = place if kind is not None else None
     bases = [_basis(b, pl, ts) for b in builders]
+    n_g = bases[0].lp_rest.n_gains
+    if any(bs.lp_rest.n_gains != n_g for bs in bases):
+        raise ValueError("loops with and without the load feed-forward gain; expected the same gains in every loop")
+    ff = n_g == 4  # the Kalman filter's load feed-forward: kff tuned with kp and ki
+    if not ff and start_kff != 0.0:
+        raise ValueError(f"start_kff = {start_kff!r} for loops without a feed-forward gain; expected 0")
+    tuned = (0, 1, 3) if ff else (0, 1)
+    has_noise = all(bs.lp_rest.noise is not None for bs in bases)
+    if max_noise_gain is not None and not has_noise:
+        raise ValueError(f"max_noise_gain = {max_noise_gain!r} for loops without a noise path (the Kalman filter's "
+                         "measurement); expected None")
+
+    def full(kp_, ki_, kff_=0.0):
+        """The loops' gain vector (kp, ki, kd = 0[, kff])."""
+        return np.array([kp_, ki_, 0.0, kff_] if ff else [kp_, ki_, 0.0], float)
     nyq_hz = 0.5 / ts
     if kind is not None:
         names = TUNABLE[kind]
@@ -363,22 +580,23 @@ def tune_filtered(
     # (and Mks) with the start filter (kp by 0.7, ki by 0.49, at most 30 times).
     for _ in range(30):
         lps = [_design_loops(b, kind, place, th0, ts) for b in builders]
-        gg = np.r_[g0, 0.0]
-        ok = all(lp.stability(gg) == "stable" and lp.peaks(gg)["ms"] <= ms_max
+        gg = full(g0[0], g0[1], start_kff)
+        ok = all(lp.stability(gg) == "stable" and _within(lp.peaks(gg), ms_max, mt_max)
                  and (max_noise_gain is None or lp.noise_peak(gg)["mks"] <= max_noise_gain) for lp in lps)
         if ok:
             break
         g0 = g0 * np.array([0.7, 0.49])  # kp s, ki s^2: the PI corner keeps its place below crossover
     else:
         raise ValueError(f"start_gains = {tuple(start_gains)!r}: no scaled-down start meets Ms <= {ms_max:g}"
+                         + (f", Mt <= {mt_max:g}" if mt_max is not None else "")
                          + (f", Mks <= {max_noise_gain:g}" if max_noise_gain is not None else "")
                          + "; expected stabilising start gains")
 
     # ---- decision variables: v = [kp/kp0, ki/ki0, log(f/f0), (log(width ratio), depth/20)]
     nth = len(names)
-    v = ca.SX.sym("v", 2 + nth)
+    v = ca.SX.sym("v", 2 + nth + ff)  # kff (the feed-forward loops) last
     kp, ki = v[0] * g0[0], v[1] * g0[1]
-    g = ca.vertcat(kp, ki, 0.0)
+    g = ca.vertcat(kp, ki, 0.0, v[2 + nth]) if ff else ca.vertcat(kp, ki, 0.0)
     if kind is not None:
         f0 = th0[0] * ca.exp(v[2])
         theta = [f0]
@@ -394,7 +612,7 @@ def tune_filtered(
             out.append(math.log(th[0] / th0[0]))
             if kind == "notch":
                 out += [math.log((th[1] / th[0]) / (th0[1] / th0[0])), th[2] / 20.0]
-        return out
+        return out + ([gains[3]] if ff else [])
 
     def theta_of(x):
         if kind is None:
@@ -413,6 +631,9 @@ def tune_filtered(
             r0 = th0[1] / th0[0]
             lbx += [math.log(bounds.width_ratio[0] / r0), bounds.depth_db[0] / 20.0]
             ubx += [math.log(bounds.width_ratio[1] / r0), bounds.depth_db[1] / 20.0]
+    if ff:  # kff in [0, 1], as the gains-only tuner
+        lbx.append(0.0)
+        ubx.append(1.0)
 
     def a_cl(bs: _Basis):
         def aff(mats):
@@ -420,12 +641,13 @@ def tune_filtered(
             for j, cj in enumerate(coef):
                 m = m + cj * ca.DM(mats[1 + j])
             return m
-        return aff(bs.A0) + sum(g[i] * aff(bs.A[i]) for i in range(2))
+        return aff(bs.A0) + sum(g[i] * aff(bs.A[i]) for i in tuned)
 
     # ---- objective (two-rate IAE over the horizon, as the gains-only Tuner)
     start_loops = lps
-    eps = [1e-3 * max(float(np.max(np.abs(lp.error(np.r_[g0, 0.0])))), 1e-300) for lp in start_loops[:n_obj]]
-    j_ref = max(sum(lp.objective(np.r_[g0, 0.0], "iae") for lp in start_loops[:n_obj]), 1e-300)
+    g_start = full(g0[0], g0[1], start_kff)
+    eps = [1e-3 * max(float(np.max(np.abs(lp.error(g_start)))), 1e-300) for lp in start_loops[:n_obj]]
+    j_ref = max(sum(lp.objective(g_start, "iae") for lp in start_loops[:n_obj]), 1e-300)
     objs = []
     for jl in range(n_obj):
         bs, lp = bases[jl], start_loops[jl]
@@ -434,44 +656,17 @@ def tune_filtered(
         objs.append(ca.sum2(ca.DM(lp.h * w).T * smooth_abs(e, eps[jl])))
     f_obj = sum(objs) / j_ref
 
-    def freq_cons(bs: _Basis, w: NDArray, inv_ms2: float, mks: float | None):
-        """Rows >= 0: |D + N G|^2 - |D|^2/Ms^2 and Mks^2 |D + N G|^2 - |N K|^2 (scaled)."""
-        _, lr, _, _ = bs.lp_rest.parts_at(w)
-        G = np.asarray(lr[:2], complex)  # per kp, ki
-        zi = np.exp(-1j * w * ts)
-        if kind is not None:
-            n_re = coef[0] + coef[1] * ca.DM(zi.real) + coef[2] * ca.DM((zi * zi).real)
-            n_im = coef[1] * ca.DM(zi.imag) + coef[2] * ca.DM((zi * zi).imag)
-            d_re = 1.0 + coef[3] * ca.DM(zi.real) + coef[4] * ca.DM((zi * zi).real)
-            d_im = coef[3] * ca.DM(zi.imag) + coef[4] * ca.DM((zi * zi).imag)
-        else:
-            n_re, n_im, d_re, d_im = ca.DM.ones(w.size), ca.DM.zeros(w.size), ca.DM.ones(w.size), ca.DM.zeros(w.size)
-        g_re = ca.DM(G.real.T) @ g[:2]
-        g_im = ca.DM(G.imag.T) @ g[:2]
-        ng_re, ng_im = n_re * g_re - n_im * g_im, n_re * g_im + n_im * g_re
-        s_re, s_im = d_re + ng_re, d_im + ng_im
-        ww = s_re * s_re + s_im * s_im
-        dd = d_re * d_re + d_im * d_im
-        # row scale at the start point: 1/(|1 + L0|^2 + 1) in units of |D|^2
-        l0 = g0 @ G  # start point without the tuned filter (row scaling only)
-        sc = 1.0 / (np.abs(1 + l0) ** 2 + 1.0)
-        rows = [(ww - inv_ms2 * dd) * ca.DM(sc)]
-        if mks is not None:
-            K = np.asarray(bs.lp_rest.noise(w)[:2], complex)
-            k_re, k_im = ca.DM(K.real.T) @ g[:2], ca.DM(K.imag.T) @ g[:2]
-            nk_re, nk_im = n_re * k_re - n_im * k_im, n_re * k_im + n_im * k_re
-            k0 = np.abs(np.r_[g0] @ K) ** 2
-            sc2 = 1.0 / (mks**2 * np.abs(1 + l0) ** 2 + k0 + 1e-300)
-            rows.append((mks**2 * ww - (nk_re * nk_re + nk_im * nk_im)) * ca.DM(sc2))
-        return ca.vertcat(*rows)
+    def freq_cons(bs: _Basis, w: NDArray, inv_ms2: float, mks: float | None, mt: float | None):
+        return sensitivity_rows(bs.lp_rest, bs.on_filter, coef, g, tuned, w, ts, inv_ms2=inv_ms2, mks=mks,
+                                g_start=g_start, mt=mt)
 
     # Seed the added frequencies with the start's true peaks (the optimum's are usually near).
-    extra_w: list[list[float]] = [[lp.peaks(np.r_[g0, 0.0])["w_ms"]] for lp in lps]
+    extra_w: list[list[float]] = [[lp.peaks(g_start)["w_ms"]] for lp in lps]
     dense = [_resonance_band(bs.lp_rest) for bs in bases]
     ms_eff = ms_max * (1 - 1e-5)
     mks_eff = max_noise_gain * (1 - 1e-5) if max_noise_gain is not None else None
     stats: dict = {"rounds": 0, "iterations": 0, "added_frequencies_rad_s": extra_w, "phases": []}
-    eff = {"ms": ms_eff, "mks": mks_eff}
+    eff = {"ms": ms_eff, "mks": mks_eff, "mt": mt_max * (1 - 1e-5) if mt_max is not None else None}
 
     def solve(x0, lo, up):
         """Rounds of solve, verify, add the violating frequency; (status, best or None)."""
@@ -480,7 +675,7 @@ def tune_filtered(
             cons = []
             for bs, ew, dw in zip(bases, extra_w, dense):
                 w = np.unique(np.concatenate([bs.lp_rest.omega[::3], dw, np.asarray(ew, float)]))
-                cons.append(freq_cons(bs, w, eff["ms"] ** -2, eff["mks"]))
+                cons.append(freq_cons(bs, w, eff["ms"] ** -2, eff["mks"], eff["mt"]))
             solver = ca.nlpsol("filtertune", "ipopt", {"x": v, "f": f_obj, "g": ca.vertcat(*cons)},
                                {"print_time": False, "error_on_fail": False,
                                 "ipopt": {"print_level": 0, "sb": "yes", "max_iter": _IPOPT_MAX_ITER, "tol": 1e-8,
@@ -494,13 +689,13 @@ def tune_filtered(
                 return "not converged: non-finite solver output", None
             # ipopt may step a hair past a bound (bound_relax_factor)
             xs = np.minimum(np.maximum(xs, np.asarray(lo, float)), np.asarray([u if u != ca.inf else np.inf for u in up]))
-            gains = np.array([xs[0] * g0[0], xs[1] * g0[1], 0.0])
+            gains = full(xs[0] * g0[0], xs[1] * g0[1], xs[2 + nth] if ff else 0.0)
             th = theta_of(xs)
             loops = [_design_loops(b, kind, place, th, ts) for b in builders]
             if any(lp.stability(gains) != "stable" for lp in loops):
                 return "not converged: unstable closed loop at the solver's point", None
             pks = [lp.peaks(gains) for lp in loops]
-            nks = [lp.noise_peak(gains) for lp in loops]
+            nks = [lp.noise_peak(gains) if has_noise else {"mks": None, "w_mks": None} for lp in loops]
             viol = False
             for j, (pk, nk) in enumerate(zip(pks, nks)):
                 if pk["ms"] > ms_max:
@@ -509,6 +704,12 @@ def tune_filtered(
                         eff["ms"] *= (ms_max / pk["ms"]) * (1 - 1e-6)
                     else:
                         extra_w[j].append(pk["w_ms"])
+                if mt_max is not None and pk["mt"] > mt_max:
+                    viol = True
+                    if any(abs(pk["w_mt"] / w - 1) < 1e-7 for w in extra_w[j]):
+                        eff["mt"] *= (mt_max / pk["mt"]) * (1 - 1e-6)
+                    else:
+                        extra_w[j].append(pk["w_mt"])
                 if max_noise_gain is not None and nk["mks"] > max_noise_gain:
                     viol = True
                     if any(abs(nk["w_mks"] / w - 1) < 1e-7 for w in extra_w[j]):
@@ -526,10 +727,11 @@ def tune_filtered(
     # Phase 1 (with a filter): the gains alone with the filter held at its start, so that phase 2
     # (everything free) starts where the filter already pays (from the gains-only start, a deep
     # notch costs phase at crossover before the gains can rise: a local optimum at 0 dB).
-    x_start = x_of(g0, th0)
+    x_start = x_of(g_start, th0)
     results = []
     if kind is not None:
-        status1, r1 = solve(x_start, lbx[:2] + x_start[2:], ubx[:2] + x_start[2:])
+        held = x_start[2:2 + nth]
+        status1, r1 = solve(x_start, lbx[:2] + held + lbx[2 + nth:], ubx[:2] + held + ubx[2 + nth:])
         stats["phases"].append(status1)
         if r1 is not None:
             results.append((status1, r1))
@@ -552,16 +754,20 @@ def tune_filtered(
     stats["w_ms_rad_s"] = [pk["w_ms"] for pk in pks]
     stats["w_mks_rad_s"] = [nk["w_mks"] for nk in nks]
     stats["per_loop_ms"] = [pk["ms"] for pk in pks]
+    stats["per_loop_mt"] = [pk["mt"] for pk in pks]
+    stats["mt"] = max(stats["per_loop_mt"])
     stats["per_loop_mks"] = [nk["mks"] for nk in nks]
-    pid = PID(float(gains[0]), float(gains[1]), tf=float(loops[0].tf))
+    pid = PID(float(gains[0]), float(gains[1]), tf=float(loops[0].tf), kff=float(gains[3]) if ff else 0.0)
     design = FilteredDesign(pid, lf, float(obj), float(max(pk["ms"] for pk in pks)),
-                            float(max(nk["mks"] for nk in nks)), status, stats, _status_warnings(status))
+                            float(max(nk["mks"] for nk in nks)) if has_noise else None, status, stats,
+                            _status_warnings(status))
     if kind is None:
         return design
     if reference is None:
         try:
             reference = tune_filtered(objective_builders, constraint_builders, ts=ts, kind=None, place=place,
-                                      start_gains=start_gains, ms_max=ms_max, max_noise_gain=max_noise_gain)
+                                      start_gains=start_gains, ms_max=ms_max, max_noise_gain=max_noise_gain,
+                                      start_kff=start_kff, mt_max=mt_max)
         except ValueError:  # no verified gains-alone design: the filter is judged on its own
             reference = None
     modes = [dominant_resonance_hz(bs.lp_rest) for bs in bases]

@@ -4,16 +4,23 @@ the tuner (issue 12)."""
 import math
 import tomllib
 import warnings
+from dataclasses import replace
 
+import casadi as ca
 import numpy as np
 import pytest
+from scipy.optimize import minimize_scalar
+
+import hand_loop as hl  # tests/tuning is on sys.path
 
 from prsa_ctrl import PID, load_plant, run
-from prsa_ctrl.drive.filters import FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass, loop_filters
+from prsa_ctrl.drive.filters import (DiscreteBiquad, FirstOrderLowPass, LoopFilter, Notch, SecondOrderLowPass,
+                                     loop_filters)
 from prsa_ctrl.io.export import dumps, export_controller
 from prsa_ctrl.plant.linear import linear_core
 from prsa_ctrl.plant.model import plant_model
-from prsa_ctrl.tuning.filtered import loop_builder, tune_filtered
+from prsa_ctrl.tuning.filtered import filtered_gains, loop_builder, sensitivity_rows, tune_filtered
+from prsa_ctrl.tuning.loopmeasure import KalmanEstimate
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -321,3 +328,116 @@ def test_notch_that_cannot_reach_the_mode_is_not_labelled_optimal(mode163):
 
 
 # --- item 6: SIGTERM during a Monte-Carlo process pool -------------------------------------------
+
+
+# ---- the Kalman filter's loop: F g.N / (1 + F g.D), tuned with the filter (issue 33) ----------
+
+def _kf_builder(feedforward: bool, fixed=()):
+    """The toy plant of tests/tuning/hand_loop.py with the Kalman filter as its measurement and
+    one sample of command delay."""
+    return loop_builder(hl.A, hl.B, hl.C_SPEED, hl.ANGLE, ts=hl.TS, tf=hl.TF, horizon=0.02, step=hl.STEP,
+                        fixed=fixed, command_delay_samples=1, measurement=KalmanEstimate(hl.toy_kf(), feedforward))
+
+
+def _hand_s(gains, place, bq, w, kf=None):
+    """``S`` at the plant input of the hand-written law with ``bq`` on ``place`` (the identity
+    biquad on the other path)."""
+    on_speed = place == "speed_measurement"
+    hand = hl.HandLoop(kf or hl.toy_kf(), gains, 1, speed_bq=bq if on_speed else hl.IDENTITY_BQ,
+                       torque_bq=hl.IDENTITY_BQ if on_speed else bq)
+    return hand.sensitivity(w)
+
+
+def _rows_at(rest, on, gains, w, bq, inv_ms2, mt=None):
+    coef, gv = ca.SX.sym("c", 5), ca.SX.sym("g", rest.n_gains)
+    tuned = [i for i in range(rest.n_gains) if i != 2]
+    rows = sensitivity_rows(rest, on, [coef[i] for i in range(5)], gv, tuned, w, hl.TS, inv_ms2=inv_ms2,
+                            g_start=np.asarray(gains, float), mt=mt)
+    f = ca.Function("rows", [coef, gv], [rows])
+    return np.asarray(f([bq.b0, bq.b1, bq.b2, bq.a1, bq.a2], gains)).ravel()
+
+
+@pytest.mark.parametrize("place", ["torque_command", "speed_measurement"])
+@pytest.mark.parametrize("feedforward", [False, True])
+def test_the_ms_rows_are_exact_on_the_kalman_loop_and_dropping_its_denominator_is_not(place, feedforward):
+    """The filter tuner's Ms row ``|num|^2 - |den|^2/Ms^2`` (sensitivity_rows) gives
+    ``|1 + L|^2 = r0 / (r0 - r1)`` (rows at 1/Ms^2 = 0 and 1), against the hand-written
+    per-sample law with the filter in place, to 1e-8, and its Mt row changes sign at the hand
+    law's ``|T|`` (within 1e-6); the same rows on the loop with its denominator part dropped
+    (the filter tuner before issue 33) are off by more than 1 %."""
+    bld = _kf_builder(feedforward)
+    rest = bld((place, hl.IDENTITY_BQ))
+    on = filtered_gains(rest, bld((place, DiscreteBiquad(0.0, 0.0, 0.0, 0.0, 0.0, hl.TS))))
+    # the law: a speed-path filter acts on the speed estimate, not on the load estimate kff multiplies
+    assert on == ((True, True, True, False) if feedforward and place == "speed_measurement" else (True,) * rest.n_gains)
+    gains = (0.3, 15.0, 0.0, 0.4)[:rest.n_gains]
+    bq = DiscreteBiquad(0.45, -0.2, 0.15, -0.5, 0.1, hl.TS)
+    w = np.array([5.0, 60.0, 700.0, 3000.0, 9000.0])  # rad/s, below Nyquist (12566)
+    s_hand = _hand_s((0.3, 15.0, 0.0, 0.4 if feedforward else 0.0), place, bq, w)
+    r0, r1 = _rows_at(rest, on, gains, w, bq, 0.0), _rows_at(rest, on, gains, w, bq, 1.0)
+    np.testing.assert_allclose(r0 / (r0 - r1), 1.0 / np.abs(s_hand) ** 2, rtol=1e-8)
+    t_hand = np.abs(1.0 - s_hand)
+    assert np.sum(t_hand > 1.0 + 1e-3) >= 2  # 5 and 60 rad/s: rows that bounds in (1, 10) meet
+    for k, t in enumerate(t_hand):
+        if t > 1.0 + 1e-3:  # bounds are > 1: where |T| <= 1 no Mt row is active
+            assert _rows_at(rest, on, gains, w, bq, 1.0, mt=t * (1 + 1e-6))[w.size + k] > 0
+            assert _rows_at(rest, on, gains, w, bq, 1.0, mt=t * (1 - 1e-6))[w.size + k] < 0
+    n0, ln, d0, _ = rest.parts_at(w)
+    no_den = replace(rest, D=None, response=lambda wv: (None, rest.parts_at(wv)[1], None, None))
+    q0, q1 = _rows_at(no_den, on, gains, w, bq, 0.0), _rows_at(no_den, on, gains, w, bq, 1.0)
+    assert np.max(np.abs(q0 / (q0 - q1) * np.abs(s_hand) ** 2 - 1.0)) > 1e-2
+
+
+def _peak(f, w):
+    """Largest ``f`` over the sweep ``w``, polished by a bounded scalar search between the grid
+    neighbours of the largest sample (scipy, xatol 1e-12 of the frequency)."""
+    v = f(w)
+    k = int(np.argmax(v))
+    lo, hi = w[max(k - 1, 0)], w[min(k + 1, w.size - 1)]
+    r = minimize_scalar(lambda x: -f(np.array([x]))[0], bounds=(lo, hi), method="bounded",
+                        options={"xatol": 1e-12 * hi})
+    return max(float(v[k]), -float(r.fun))
+
+
+@pytest.mark.parametrize("kind,place,mt_max", [("lowpass1", "speed_measurement", None),
+                                               ("notch", "torque_command", 1.3)])
+def test_a_kalman_filter_loop_tuned_with_its_filter_claims_the_hand_loops_ms_and_mt(kind, place, mt_max):
+    """tune_filtered on the Kalman filter's loop (feed-forward, command delay, a fixed filter on
+    the other path): the claimed Ms and Mt of the design it returns are those of a frequency
+    sweep of the hand-written per-sample law with the design's gains (kp, ki, kff) and filter,
+    to 1e-6; the design holds Ms <= 1.6 (and Mt <= 1.3 where bounded) and reports no noise gain
+    (no such path)."""
+    other = "torque_command" if place == "speed_measurement" else "speed_measurement"
+    fixed_bq = hl.TORQUE_BQ if place == "speed_measurement" else hl.SPEED_BQ
+    d = tune_filtered([_kf_builder(True, fixed=((other, fixed_bq),))], ts=hl.TS, kind=kind, place=place,
+                      start_gains=(0.1, 5.0), start_kff=0.2, ms_max=1.6, mt_max=mt_max,
+                      start_filter=(800.0,) if kind == "lowpass1" else (600.0, 200.0, -10.0))
+    assert d.mks is None and d.ms <= 1.6 and (mt_max is None or d.stats["mt"] <= mt_max)
+    bq = d.filter.biquad(hl.TS) if d.filter is not None else hl.IDENTITY_BQ
+    bqs = {place: bq, other: fixed_bq}
+    hand = hl.HandLoop(hl.toy_kf(), (d.pid.kp, d.pid.ki, 0.0, d.pid.kff), 1, speed_bq=bqs["speed_measurement"],
+                       torque_bq=bqs["torque_command"])
+    w = np.logspace(-1, math.log10(0.999 * math.pi / hl.TS), 3000)
+    assert _peak(lambda wv: np.abs(hand.sensitivity(wv)), w) == pytest.approx(d.ms, rel=1e-6)
+    assert _peak(lambda wv: np.abs(1.0 - hand.sensitivity(wv)), w) == pytest.approx(d.stats["mt"], rel=1e-6)
+
+
+@pytest.mark.parametrize("place", ["torque_command", "speed_measurement"])
+def test_the_rows_on_the_encoder_loop_are_its_built_loops(place):
+    """The encoder's loop (no denominator part, the rows' plain form): ``|1 + L|^2`` from the Ms
+    rows and the sign change of the Mt rows at ``|T|`` against the loop built with the filter."""
+    bld = loop_builder(hl.A, hl.B, hl.C_SPEED, hl.ANGLE, ts=hl.TS, speed_filter=1e-3, tf=hl.TF, horizon=0.02,
+                       step=hl.STEP, command_delay_samples=1)
+    rest = bld((place, hl.IDENTITY_BQ))
+    on = filtered_gains(rest, bld((place, DiscreteBiquad(0.0, 0.0, 0.0, 0.0, 0.0, hl.TS))))
+    assert on == (True, True, True)
+    gains, bq = (0.3, 15.0, 0.0), DiscreteBiquad(0.45, -0.2, 0.15, -0.5, 0.1, hl.TS)
+    w = np.array([5.0, 60.0, 700.0, 3000.0, 9000.0])
+    big_l = bld((place, bq)).loop_response(gains, w)
+    r0, r1 = _rows_at(rest, on, gains, w, bq, 0.0), _rows_at(rest, on, gains, w, bq, 1.0)
+    np.testing.assert_allclose(r0 / (r0 - r1), np.abs(1.0 + big_l) ** 2, rtol=1e-8)
+    t = np.abs(big_l / (1.0 + big_l))
+    assert np.sum(t > 1.0 + 1e-3) >= 1
+    for k in np.flatnonzero(t > 1.0 + 1e-3):
+        assert _rows_at(rest, on, gains, w, bq, 1.0, mt=t[k] * (1 + 1e-6))[w.size + k] > 0
+        assert _rows_at(rest, on, gains, w, bq, 1.0, mt=t[k] * (1 - 1e-6))[w.size + k] < 0
