@@ -368,3 +368,62 @@ def test_a_linear_axis_calibration_shows_the_clis_overlay_figures(tmp_path):
     assert panel.root.visible and panel.replay.visible and panel.mag.visible and panel.coherence.visible
     assert panel.replay.yaxis.axis_label == "speed (m/s)" and "m/s per N" in panel.mag.yaxis.axis_label
     assert len(panel.replay_src.data["t"]) == len(rp["time_s"]) and len(panel.frf_src.data["f"]) == len(fr["frequency_hz"])
+
+
+_MOTOR_FORMAT = b"""axis = "rotary"
+[time]
+name = "t_ms"
+unit = "ms"
+[position]
+name = "angle_deg"
+unit = "deg"
+[command]
+name = "torque"
+unit = "N m"
+logged = "as-applied"
+[load]
+name = "fz"
+unit = "N"
+"""
+
+
+def test_a_log_in_motor_coordinates_uploaded_with_its_description_fits_the_sessions_plant(tmp_path, capsys,
+                                                                                          monkeypatch):
+    """The rotary path of ``calibrate_described``: a log in motor coordinates (ms, deg, N m; the
+    independent simulator's multisine under load steps of the default plant) uploaded with its
+    description (``axis = "rotary"``) fits the session's screw-driven plant as ``prsa-fit LOG
+    --log-format F --plant paper-iprsm`` does: the same plant file byte for byte but its name,
+    the same values, lines (files named as uploaded) and verdict; the plant is usable and, once
+    used, is the session's; the views are the screw fit's (the replay in rad/s, not m/s)."""
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.app.session import AppSession
+    from independent_actuator import multisine_load_step_record
+
+    rec = multisine_load_step_record(load_plant(), name="motor")
+    csv = tmp_path / "motor.csv"
+    np.savetxt(csv, np.column_stack([rec.time_s * 1e3, np.degrees(rec.nut_angle_rad), rec.torque_command_n_m,
+                                     rec.axial_load_n]), delimiter=",", header="t_ms,angle_deg,torque,fz",
+               comments="", fmt="%.17g")
+    fmt = tmp_path / "motor.toml"
+    fmt.write_bytes(_MOTOR_FORMAT)
+    monkeypatch.chdir(tmp_path)  # the command names the files as given: as uploaded here
+    code, out, _ = _cli(["motor.csv", "--log-format", "motor.toml", "--plant", "paper-iprsm", "--out",
+                         "motor-fitted.toml", "--json", "r.json"], capsys)
+    assert code == 0
+    want = json.loads((tmp_path / "r.json").read_text())
+    s = AppSession()
+    try:
+        assert s.plant.name == "paper-iprsm"
+        cal = s.calibrate("motor.csv", csv.read_bytes(), log_format=("motor.toml", _MOTOR_FORMAT))
+        assert cal.refused is None and cal.usable and cal.file_name == "motor-fitted.toml"
+        assert cal.plant_text == (tmp_path / "motor-fitted.toml").read_text()
+        assert list(cal.lines) == [" ".join(x.split()) for x in out.splitlines() if not x.startswith("wrote ")]
+        for key, v in want["parameters"].items():
+            assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
+        assert cal.report["solver"]["validation"]["passes"] is True
+        views = cal.report["views"]
+        assert "unit" not in views and set(views["replay"]) == {"motor.csv"}
+        s.use_calibration(cal)
+        assert s.plant.name == "motor-fitted"
+    finally:
+        s.close()
