@@ -141,7 +141,8 @@ def _base(log):
 #: The two-mass keys: the truth inside their 95 % intervals. The friction keys are held to 5 % of the
 #: truth instead: their intervals under-cover on this generator (measured over 9 seeds at 2 N of
 #: disturbance: Fv-/Fc- outside in 5 of 9, the total mass in 1 of 9, the load mass, stiffness and
-#: damping in none): its stick band at reversals is a 40-substep approximation the exact model does
+#: damping in none; the two-log fit of seeds 4 and 12 has the damping outside, 0.0464..0.0496 against
+#: 0.05): its stick band at reversals is a 40-substep approximation the exact model does
 #: not share, and the friction terms absorb it.
 TWO_MASS_KEYS = ("axis.mass_kg", "axis.load_mass_kg", "axis.load_stiffness_n_per_um", "axis.axial_damping_ratio")
 
@@ -234,14 +235,19 @@ def described(tmp_path_factory):
     root = tmp_path_factory.mktemp("axis2m")
     (root / "log.toml").write_text(CSV_FORMAT)
     _write_csv(root / "good.csv", two_mass_log(4))
+    _write_csv(root / "other.csv", two_mass_log(12))
     _write_csv(root / "three.csv", two_mass_log(4, third=(30.0, 8.0e6)))
     return root
 
 
 def test_prsa_fit_compliant_writes_a_validated_two_mass_plant(described, tmp_path, capsys):
+    """Two logs (two seeds): the fit, each log replayed by the written plant and, left out, by the
+    plant fitted on the other; mass, load mass and stiffness within 1 % of the truth, the damping
+    within 10 % (its interval on these two logs, 0.0464..0.0496, misses the truth 0.05: see
+    TWO_MASS_KEYS)."""
     out, js = tmp_path / "fit.toml", tmp_path / "fit.json"
-    code = fit_main([str(described / "good.csv"), "--log-format", str(described / "log.toml"), "--fidelity",
-                     "compliant", "--out", str(out), "--json", str(js)])
+    code = fit_main([str(described / "good.csv"), str(described / "other.csv"), "--log-format",
+                     str(described / "log.toml"), "--fidelity", "compliant", "--out", str(out), "--json", str(js)])
     text = capsys.readouterr()
     assert code == 0, text.err
     plant = load_axis_plant(out)
@@ -254,7 +260,9 @@ def test_prsa_fit_compliant_writes_a_validated_two_mass_plant(described, tmp_pat
 
     rep = json.loads(js.read_text())
     assert rep["structure"] == "two-mass" and rep["validation"]["passes"] is True
-    assert "validated:" in text.out and "mode_hz" in text.out
+    assert set(rep["validation"]["cross_validation"]) == {str(described / "good.csv"), str(described / "other.csv")}
+    assert rep["parameters"]["axis.axial_damping_ratio"]["value"] == pytest.approx(TRUTH["zeta"], rel=0.1)
+    assert "validated:" in text.out and "mode_hz" in text.out and text.out.count("left out: ") == 2
 
 
 @pytest.mark.slow  # two fits of the three-mass log (about 9 s of CPU each)
