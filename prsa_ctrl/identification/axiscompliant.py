@@ -440,9 +440,17 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
         raise AxisFitError(f"inverse-dynamic mass estimate {theta0[0]:.6g} kg <= 0; expected a log with accelerations "
                            "that the command explains (check the drive gain and the command's sign)")
     theta0[1:] = np.maximum(theta0[1:], 0.0)
+    mirrored = {}
     for j in np.flatnonzero(~informed):
-        warnings.append(f"{PARAMETERS[j]}: the logs never move the axis in that direction; kept the base value "
-                        f"{base_theta[j]:.6g}")
+        other = {1: 2, 2: 1, 3: 4, 4: 3}[int(j)]
+        if informed[other]:  # held at the other direction's start (the replay still moves a little this way:
+            theta0[j] = theta0[other]  # dither, overshoot; a friction-free direction would run away there)
+            mirrored[int(j)] = PARAMETERS[other]
+            warnings.append(f"{PARAMETERS[j]}: the logs barely move the axis in that direction; held at the other "
+                            f"direction's start {theta0[j]:.6g} (not fitted)")
+        else:
+            warnings.append(f"{PARAMETERS[j]}: the logs never move the axis in that direction; kept the base value "
+                            f"{base_theta[j]:.6g}")
     second, start_from, frf_fit = second_mass_start(logs, base, frf)
     if frf_fit is not None:  # the response's low-frequency asymptote: the total mass, unbiased by the mode
         theta0[0] = frf_fit.value("total_inertia_kg_m2")  # (inverse dynamics on a two-mass axis sees less of it)
@@ -458,8 +466,8 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
 
     def solve(fit_logs, fit_starts, start):
         lo, hi = lb.copy(), ub.copy()
-        lo[~free] = start[~free] - 1e-12 * (1 + abs(start[~free]))
-        hi[~free] = start[~free] + 1e-12 * (1 + abs(start[~free]))
+        lo[~free] = np.maximum(start[~free] - 1e-12 * (1 + abs(start[~free])), lb[~free])  # held (never below 0)
+        hi[~free] = np.maximum(start[~free], lb[~free]) + 1e-12 * (1 + abs(start[~free]))
         return _solve(fit_logs, np.clip(start, lb, ub), lo, hi, flim, fit_starts, sig, skip, max_evaluations)
 
     sol = solve(logs, starts, x0)
@@ -482,6 +490,7 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
     T[0, 5] = 1.0
     T[6, 6] = 1e-6
     p = T @ x
+    p[1:5] = np.maximum(p[1:5], 0.0)  # a friction term at its bound 0 may sit a rounding below it
     cov = T @ cov_x @ T.T
     names = ", ".join(Path(lg.name).name for lg in logs)
     params, values, sources, unc = {}, {}, {}, {}
@@ -492,8 +501,9 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
         lo, hi = v - z * sd, v + z * sd
         entry = {"value": v, "ci95": [lo, hi], "std": sd, "unit": _UNITS[k], "start": float(x0p[j])}
         if j < 5 and not informed[j]:
-            entry["kept_base"] = True
-            sources[k] = base.sources[k]
+            entry["kept_base"] = j not in mirrored
+            sources[k] = (f"held at the start of {mirrored[j]} (inverse dynamics on {names}): the logs barely move "
+                          "the axis in this direction" if j in mirrored else base.sources[k])
         else:
             sources[k] = f"fit: {names} (95 % CI {lo:.6g}..{hi:.6g}; closed-loop output error, two-mass axis)"
             e = normal_entry(v, z * sd / _Z95, k in ("axis.mass_kg", "axis.load_mass_kg",
