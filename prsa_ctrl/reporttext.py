@@ -19,7 +19,7 @@ from typing import Any, Sequence
 
 __all__ = ["fmt", "fmt_margin", "table", "format_robust", "format_yield_table", "SPEC_LABEL", "format_monte_carlo",
            "format_design_to_spec", "format_pid_report", "format_rows", "axis_replay_line", "axis_fit_lines",
-           "axis_validation_lines"]
+           "axis_validation_lines", "axis_verdict_lines"]
 
 #: Spec item -> short label in the yield table (and the recommendation's reasons).
 SPEC_LABEL = {"peak_drop_rad_s": "peak drop", "recovery_time_s": "recovery", "ms": "Ms", "mt": "Mt",
@@ -288,6 +288,23 @@ def axis_fit_lines(report: dict[str, Any]) -> list[str]:
                      + f"; Stribeck {fmap.get('stribeck')}" + (f"; {fmap['error']}" if "error" in fmap else ""))
     lines += [f"warning: {w}" for w in report["warnings"]]
     lines.append(f"coordinates: {report['coordinates']}")
+    return lines
+
+
+def axis_verdict_lines(validation: dict[str, Any]) -> list[str]:
+    """The two-mass linear-axis fit's validation text
+    (:func:`prsa_ctrl.identification.axiscompliant.fit_two_mass_axis`'s ``validation``): the
+    verdict, then per log (and per log left out) its replay fit %, error and noise floor (m/s)."""
+    def row(name: str, e: dict[str, Any], what: str) -> str:
+        if "failed" in e:
+            return f"{what}{name}: the fit on the other logs failed ({e['failed']})"
+        ratio = e["error_rms_m_s"] / max(e["noise_floor_m_s"], 1e-300)
+        return (f"{what}{name}: replayed at {e['fit_percent']:.2f} % (error {e['error_rms_m_s']:.3g} m/s, {ratio:.3g} x "
+                f"its noise floor {e['noise_floor_m_s']:.3g} m/s){'' if e['explained'] else ': not explained'}")
+    head = ("validated: the plant as written explains every log (closed-loop replay from the reference)"
+            if validation["passes"] else f"not validated: {validation['reasons'][0]}")
+    lines = [head, *(row(n, e, "replay of ") for n, e in validation["written_plant"].items())]
+    lines += [row(n, e, "left out: ") for n, e in (validation.get("cross_validation") or {}).items()]
     return lines
 
 

@@ -363,6 +363,10 @@ class FitViews:
     def show(self, views: dict | None) -> None:
         """Draw ``views`` (None or without data: hide the views)."""
         views = views if isinstance(views, dict) else {}
+        linear = views.get("unit") == "m/s"  # a linear axis (load coordinates): speed m/s, force N
+        self.replay.yaxis.axis_label = "speed (m/s)" if linear else "nut speed (rad/s)"
+        self.residual.yaxis.axis_label = "residual (m/s)" if linear else "residual (rad/s)"
+        self.mag.yaxis.axis_label = "|G| (dB re 1 m/s per N)" if linear else "|G| (dB re 1 rad/s per N m)"
         replay = next(iter((views.get("replay") or {}).items()), None)
         frf = next(iter((views.get("frf") or {}).items()), None)
         self.root.visible = replay is not None or frf is not None
@@ -403,8 +407,8 @@ class FitViews:
                 "phase": [_nums(fr["models"][k]["phase_deg"]) for k in labels],
                 "label": labels, "color": [colors.get(k, _MODEL_COLORS[2]) for k in labels],
                 "width": [2.0 if fr["models"][k]["written"] else 1.2 for k in labels]}
-            self.mag.title.text = f"{name}: frequency response, data beside the fitted model" + (
-                "s" if len(labels) > 1 else "")
+            self.mag.title.text = (f"{name}: frequency response{' force -> speed' if linear else ''}, data beside "
+                                   "the fitted model" + ("s" if len(labels) > 1 else ""))
             parts.append(f"<span data-k='fit-views-frf' data-n='{n}' data-unit='Hz' "
                          f"data-models='{len(labels)}'>frequency response of {html.escape(name)} ({n} points, Hz): "
                          f"{html.escape(fr['source'])}</span>")

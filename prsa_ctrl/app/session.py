@@ -402,11 +402,11 @@ class AppSession:
                 continue
             seen.add(text)
             notes.append(text)
-        from ..plots.fit import fit_views
+        from ..plots.fit import axis_views, fit_views
 
         # as prsa-fit --json writes it, with the fit's three views (replay, FRF in Hz, residuals)
-        linear = got.report.get("mechanism") == "linear-axis"  # (its replays are in the report, not views)
-        report = json.loads(json.dumps(json_safe({**got.report, "views": {} if linear else
+        linear = got.report.get("mechanism") == "linear-axis"  # (its views: prsa-fit --plots's, as data)
+        report = json.loads(json.dumps(json_safe({**got.report, "views": axis_views(got.result) if linear else
                                                   fit_views(got.result, got.records)})))
         lines = tuple(named(x, False) for line in got.lines
                       for x in printable(line, multiline=True).splitlines() if x.strip())

@@ -139,6 +139,14 @@ def _parser() -> argparse.ArgumentParser:
                    "per sample")
     p.add_argument("--plots", metavar="DIR", help="overlay figures (PNG) of each replay and of its frequency "
                    "response beside the log's (Hz)")
+    p.add_argument("--fidelity", choices=("rigid", "compliant"), default="rigid", help="rigid: one moving mass "
+                   "(default); compliant: the two-mass axis (motor side, load mass, stiffness, damping) fitted on the "
+                   "closed-loop replay and validated: exit 3 and no plant file when it does not explain the logs")
+    p.add_argument("--frf", metavar="FRF.csv", help="with --fidelity compliant: a measured frequency response force -> "
+                   "speed ((m/s)/N) whose two-mass fit starts the second mass (default: the logs' own, through their "
+                   "test signal)")
+    p.add_argument("--force", action="store_true", help="with --fidelity compliant: write the plant file even when it "
+                   "does not explain the logs (its header says so; the exit code stays 3)")
     p.add_argument("--verbose", action="store_true", help="a progress line on stderr when the work starts")
     return p
 
@@ -231,13 +239,17 @@ def _fit(args) -> int:
 
     if args.traces:
         raise UsageError(f"--traces {args.traces!r} without --validate; expected it with --validate PLANT.toml LOG")
+    for flag, given in (("--frf", args.frf), ("--force", args.force)):
+        if given and args.fidelity != "compliant":
+            raise UsageError(f"{flag} with --fidelity {args.fidelity}; expected it with --fidelity compliant (the "
+                             "two-mass fit, started from the response and validated)")
     if not args.data:
         raise UsageError("no log; expected prsa-fit LOG... --log-format FORMAT.toml --out FITTED.toml")
     if not args.out:
         raise UsageError("no --out; expected --out FITTED.toml for the fitted plant")
     if not args.log_format:
         raise UsageError(f"--log-format {args.log_format!r}: expected a log description FORMAT.toml to fit with")
-    inputs = [*args.data, args.log_format or "", *([args.plant] if args.plant else [])]
+    inputs = [*args.data, args.log_format or "", *([args.plant] if args.plant else []), *([args.frf] if args.frf else [])]
     _check({"--out": args.out, "--json": args.json}, inputs, args.plots)
     fmt, logs = _load_logs(args, args.data)
     base, base_notes = _base_plant(args, logs)
@@ -254,20 +266,43 @@ def _fit(args) -> int:
                                  f"fraction that leaves at least {MIN_SAMPLES} samples in each part")
             fit_logs.append(lg.window(0, cut))
             held.append(lg.window(cut, lg.n))
-    result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)
+    compliant = args.fidelity == "compliant"
+    if compliant:
+        from ..identification.axiscompliant import fit_two_mass_axis, refusal_line
+
+        result = fit_two_mass_axis(fit_logs, base, frf=_axis_frf(args.frf) if args.frf else None,
+                                   name=Path(args.out).stem)
+        failure = refusal_line(result)
+    else:
+        result, failure = fit_linear_axis(fit_logs, base, name=Path(args.out).stem), None
     from ..identification.calibrate_axis import axis_outputs  # the app's composer too
 
-    text = axis_plant_toml(result.plant)
+    header = (f"prsa-fit --force: NOT VALIDATED, this plant does not explain the data it was fitted to: "
+              f"{result.validation['diagnosis']}", str(result.validation["reasons"][0])) if failure else ()
+    text = axis_plant_toml(result.plant, header=header)
     report, lines = axis_outputs(result, fit_logs, base_notes, held, args.holdout)
-    files = {args.out: ("--out", text)}
+    files = {args.out: ("--out", text)} if not failure or args.force else {}
     if args.json:
         files[args.json] = ("--json", _json({k: v for k, v in report.items() if k != "fit_percent"}))
     plots = _plots(args.plots, result.replays, inputs) if args.plots else []
     _write(files, inputs)
     for line in lines:
         echo(line)
-    echo(f"wrote {args.out}" + (f" and {args.json}" if args.json else "") + (f"; plots: {', '.join(plots)}" if plots else ""))
+    written = [*files, *plots]
+    echo(("wrote " + ", ".join(written)) if written else "wrote no file")
+    if failure:
+        echo(f"prsa-fit: {failure} " + ("(--force: the plant file was written all the same)" if args.force else
+                                        "(no plant file written; --force writes it)"), file=sys.stderr)
+        return 3
     return 0
+
+
+def _axis_frf(path: str):
+    """``--frf`` of a linear axis: the response force -> speed ((m/s)/N: the file's (rad/s)/(N m)
+    columns at 1 m per rad, :func:`prsa_ctrl.identification.data.load_frf`)."""
+    from ..identification.data import load_frf
+
+    return load_frf(path, speed_rad_s=0.0, load_n=0.0)
 
 
 def _validate(args) -> int:
@@ -277,8 +312,9 @@ def _validate(args) -> int:
     paths = [*paths, *args.data]
     if args.out:
         raise UsageError(f"--out {args.out!r} with --validate; expected --json/--traces/--plots for a validation")
-    if args.holdout or args.plant:
-        raise UsageError("--holdout/--plant with --validate; expected them only when fitting")
+    if args.holdout or args.plant or args.frf or args.force or args.fidelity != "rigid":
+        raise UsageError("--holdout/--plant/--frf/--force/--fidelity with --validate; expected them only when fitting "
+                         "(the plant file says whether it is a two-mass axis)")
     if not paths:
         raise UsageError(f"--validate {plant_path}: no log; expected --validate PLANT.toml LOG...")
     if args.traces and len(paths) > 1:

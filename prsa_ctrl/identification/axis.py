@@ -85,7 +85,8 @@ stats = module("scipy.stats")  # only the fit's intervals need it (a slow import
 __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "axis_fit_status", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
-           "idim_estimate", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES"]
+           "idim_estimate", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES",
+           "batch_covariance", "t95", "normal_entry"]
 
 MECHANISM = "linear-axis"
 _Z95 = 1.959963984540054
@@ -214,9 +215,10 @@ def load_axis_plant(path: str | Path) -> LinearAxisPlant:
     return LinearAxisPlant.from_dict(doc, origin=str(path))
 
 
-def axis_plant_toml(plant: LinearAxisPlant) -> str:
+def axis_plant_toml(plant: LinearAxisPlant, header: Sequence[str] = ()) -> str:
     """The plant as a TOML file (every value with its source; ``[uncertainty]`` when there is
-    one), written by the package's one plant-file writer (:func:`prsa_ctrl.plant.writer.document_toml`)."""
+    one; ``header``: comment lines put first), written by the package's one plant-file writer
+    (:func:`prsa_ctrl.plant.writer.document_toml`)."""
     from ..plant.writer import document_toml
 
     doc: dict[str, Any] = {"name": plant.name}
@@ -243,7 +245,7 @@ def axis_plant_toml(plant: LinearAxisPlant) -> str:
         doc["uncertainty"] = {k: (e if k == CORRELATION_KEY else  # numbers of an entry as floats
                                   {a: b if isinstance(b, str) else float(b) for a, b in e.items()})
                               for k, e in plant.uncertainty.items()}
-    return document_toml(doc, comments={"coordinates": "position m, force N"})
+    return document_toml(doc, header=header, comments={"coordinates": "position m, force N"})
 
 
 # --- simulation ----------------------------------------------------------------------------------
@@ -549,18 +551,18 @@ def idim_estimate(logs: Sequence[AxisLog], min_speed_fraction: float = 0.05) -> 
     return th, informed
 
 
-#: Contiguous blocks of the batch-means covariance (:func:`_batch_covariance`).
+#: Contiguous blocks of the batch-means covariance (:func:`batch_covariance`).
 COVARIANCE_BLOCKS = 10
 
 
-def _batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int, blocks: int = COVARIANCE_BLOCKS):
+def batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int, blocks: int = COVARIANCE_BLOCKS):
     """Parameter covariance of a least-squares fit whose residuals are correlated in time.
 
     Sandwich ``A^-1 B A^-1`` with ``A = J'J`` and ``B`` the batch-means (cluster) long-run
     variance of the scores ``J' r``: the record is cut into ``blocks`` contiguous pieces, each
     piece's summed score is one draw, ``B = G/(G-1) sum_g S_g S_g'``. The residual rows are
     channel-major (``n_time`` rows per channel). Intervals then use Student's t with ``G - 1``
-    degrees of freedom (:func:`_t95`), since ``B`` rests on ``G`` draws only.
+    degrees of freedom (:func:`t95`), since ``B`` rests on ``G`` draws only.
 
     Returns
     -------
@@ -577,7 +579,7 @@ def _batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: in
     return Ainv @ B @ Ainv, g
 
 
-def _t95(dof: int) -> float:
+def t95(dof: int) -> float:
     """Two-sided 95 % quantile of Student's t with ``dof`` degrees of freedom."""
     return float(stats.t.ppf(0.975, dof))
 
@@ -732,7 +734,7 @@ def _check_force_limit(flim: float, logs: Sequence[AxisLog], what: str) -> None:
                          f"(drive gain x command) in {where}; expected a force limit >= the logged forces")
 
 
-def _normal_entry(value: float, sigma: float, positive: bool, source: str) -> dict | None:
+def normal_entry(value: float, sigma: float, positive: bool, source: str) -> dict | None:
     """The ``[uncertainty]`` entry of a fitted key: a normal of standard deviation ``sigma`` (a
     normal whose +-1.96 sigma is the fit's 95 % interval) truncated at 1.96 sigma, or closer where
     the key's physical range ends (mass > 0, friction >= 0) without ever crossing it
@@ -760,7 +762,7 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
        from ``prsa-fit --frf``) is replayed as the two-mass axis (:attr:`LinearAxisPlant.second_mass`),
        its load mass, stiffness and damping held at the base's values and ``M`` kept above the load mass.
     3. 95 % intervals from the sandwich covariance with a batch-means long-run variance and
-       Student's t (:func:`_batch_covariance`): the residuals of a real axis are correlated over many samples,
+       Student's t (:func:`batch_covariance`): the residuals of a real axis are correlated over many samples,
        and intervals that treat them as white would be far too narrow.
 
     Parameters
@@ -847,8 +849,8 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     theta[free] = sol.x
     n_time = sum(lg.n - skip for lg in logs)
     # residual rows: [positions of all logs; forces of all logs] -> channel-major with n_time rows each
-    cov_free, L = _batch_covariance(sol.jac, sol.fun, n_time)
-    z = _t95(L - 1)
+    cov_free, L = batch_covariance(sol.jac, sol.fun, n_time)
+    z = t95(L - 1)
     cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
     cov[np.ix_(free, free)] = cov_free
     at_bound = [PARAMETERS[j] for j, x in zip(free, sol.x) if x <= lb[list(free).index(j)] * (1 + 1e-9) + 1e-12]
@@ -868,7 +870,7 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
             sources[k] = base.sources[k]
         else:
             sources[k] = f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g}; closed-loop output error)"
-            entry_k = _normal_entry(v, z * sd / _Z95, j == 0, f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})")
+            entry_k = normal_entry(v, z * sd / _Z95, j == 0, f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})")
             if entry_k is not None:
                 unc[k] = entry_k
         params[k] = entry

@@ -76,6 +76,11 @@ def axis_base_plant(logs: Sequence, log_format: str, plant_path: str | None = No
     if lg.controller is not None and math.isfinite(lg.controller.saturation):
         vals["drive.force_limit_n"] = lg.controller.saturation * lg.gain_n_per_unit
         srcs["drive.force_limit_n"] = f"log: {fmt_name} [controller] saturation x drive gain"
+        peak, where = logged_force_peak(logs)
+        if peak > vals["drive.force_limit_n"]:  # a test signal added after the controller's saturation
+            vals["drive.force_limit_n"] = peak
+            srcs["drive.force_limit_n"] = (f"log: the largest logged force, in {Path(where).name} (above {fmt_name}'s "
+                                           "[controller] saturation x drive gain: the test signal is added after it)")
     if lg.resolution_m is not None:
         vals["sensor.encoder_resolution_m"] = lg.resolution_m
         srcs["sensor.encoder_resolution_m"] = f"log: {fmt_name} [position] resolution"
@@ -207,7 +212,7 @@ def axis_outputs(result, logs: Sequence, notes: Sequence[str] = (), held: Sequen
     ``fit_percent`` the replay's velocity fit % (the app's table; ``prsa-fit``'s JSON leaves it out).
     The lines: the equivalent values with 95 % intervals, each replay, the friction maps, the
     warnings and the coordinates, each made printable."""
-    from ..reporttext import axis_fit_lines
+    from ..reporttext import axis_fit_lines, axis_verdict_lines
     from ..textsafe import printable
     from .axis import replay_axis
     from .friction_map import axis_friction_map
@@ -224,5 +229,7 @@ def axis_outputs(result, logs: Sequence, notes: Sequence[str] = (), held: Sequen
                              "rest (closed loop from the reference, starting from the logged position at rest)",
                              "replay": [replay_axis(result.plant, h).as_dict() for h in held]}
     lines = [printable(x) for x in axis_fit_lines(report)]  # before fit_percent: the JSON's report leaves it out
+    if report.get("validation"):  # the two-mass fit's verdict (identification.axiscompliant)
+        lines += [printable(x) for x in axis_verdict_lines(report["validation"])]
     report["fit_percent"] = {r["log"]: r["fit_percent"]["velocity"] for r in report["replay"]}
     return report, lines

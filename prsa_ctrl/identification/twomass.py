@@ -507,7 +507,7 @@ def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None, at_bound=Non
             grad[i] = ((math.log(vp) - math.log(vm)) if positive else (vp - vm)) / (2 * h)
         sd = float(math.sqrt(max(grad @ cov @ grad, 0.0)))
         if positive:
-            ci = [v * math.exp(-q * sd), v * math.exp(q * sd)]
+            ci = [v * _exp(-q * sd), v * _exp(q * sd)]  # (clipped: a value the data barely inform)
         else:
             ci = [v - q * sd, v + q * sd]
         out[name] = {"value": float(v), "ci95": [float(ci[0]), float(ci[1])], "unit": UNITS[name]}

@@ -29,7 +29,7 @@ from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS
 plt = module("matplotlib.pyplot")
 
 __all__ = ["fit_figures", "figure_names", "fit_views", "log_response", "log_traces", "axis_replay_figure",
-           "axis_response_figure",
+           "axis_response_figure", "axis_views",
            "VIEW_MAX_POINTS"]
 
 #: Largest number of samples per replay trace in :func:`fit_views` (longer ones are taken at an
@@ -535,3 +535,55 @@ def fit_views(result: FitResult, records: Sequence = (), max_points: int = VIEW_
             frf[name] = _frf_view(tr["frequency_hz"], tr["measured"], [(tr["model_label"], tr["model"], True)],
                                   tr["coherence"], LOG_RESPONSE_TEXT)
     return {"verdict": verdict, "replay": replay, "frf": frf}
+
+
+def axis_views(result, max_points: int = VIEW_MAX_POINTS) -> dict:
+    """A linear-axis fit's three views as JSON-ready data, in :func:`fit_views`'s layout (the
+    app's calibration panel draws them): what ``prsa-fit LOG --log-format F --plots DIR`` draws
+    (:func:`axis_replay_figure`, :func:`axis_response_figure`), from the same replays.
+
+    ``result`` is an :class:`~prsa_ctrl.identification.axis.AxisFit` or a
+    :class:`~prsa_ctrl.identification.axiscompliant.TwoMassAxisFit` (its ``replays``, and the
+    two-mass fit's ``validation`` as the verdict). Per log: ``replay`` the measured speed beside
+    the plant's replay (closed loop from the reference when the log describes its controller) and
+    the residual, ``*_rad_s`` keys holding m/s (``"unit": "m/s"``, load coordinates); ``frf`` the
+    force -> speed response of the log (H1) beside the replay's through the same estimator (one
+    estimator, the bins the measured force excites, a Hz axis), its residual and the coherence.
+    Every number finite or None.
+    """
+    if not (isinstance(max_points, int) and max_points >= 2):
+        raise ValueError(f"max_points = {max_points!r}; expected an integer >= 2")
+    validation = getattr(result, "validation", None) or None
+    written = (validation or {}).get("written_plant", {})
+    verdict = {"validated": None if validation is None else bool(validation["passes"]),
+               "diagnosis": None if validation is None else validation.get("diagnosis"),
+               "reasons": [] if validation is None else list(validation.get("reasons") or []),
+               "replay": None if validation is None else validation.get("replay")}
+    replay, frf = {}, {}
+    for r in result.replays:
+        name = PurePath(r.name).name
+        how = "closed-loop replay from the reference" if r.closed_loop else "open-loop replay from the logged command"
+        t = np.asarray(r.time_s, float)
+        meas, mod = np.asarray(r.velocity_measured, float), np.asarray(r.velocity_simulated, float)
+        every = max(1, math.ceil(len(t) / max_points))
+        idx = np.arange(0, len(t), every)
+        e = written.get(r.name)
+        pct = r.fit_percent.get("velocity")
+        replay[name] = {"label": f"plant as written, {how}", "mode": "closed-loop" if r.closed_loop else "open-loop",
+                        "every": every, "unit": "m/s", "time_s": _floats(t[idx]), "measured_rad_s": _floats(meas[idx]),
+                        "model_rad_s": _floats(mod[idx]), "residual_rad_s": _floats((meas - mod)[idx]),
+                        "fit_percent": None if pct is None or not math.isfinite(pct) else float(pct),
+                        "explained": None if e is None else bool(e["explained"]),
+                        "error_rms_rad_s": None if e is None else e["error_rms_m_s"],
+                        "noise_floor_rad_s": None if e is None else e["noise_floor_m_s"], "whiteness": None}
+        ts = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        out = _h1([(np.asarray(r.force_measured, float), meas), (np.asarray(r.force_simulated, float), mod)],
+                  ts, None, 1e-3) if ts > 0 else None
+        if out is not None:
+            f, (gm, gs), (coh, _) = out
+            view = _frf_view(f, gm, [(f"{how} (same estimator)", gs, True)], coh,
+                             "H1 estimate force -> speed of the log (Welch, Hann, 50 % overlap) beside the same "
+                             "estimate of the replay: in a closed loop not the plant's own response, but data and "
+                             "replay pass through the same loop")
+            frf[name] = {**view, "unit": "(m/s)/N"}
+    return {"verdict": verdict, "replay": replay, "frf": frf, "unit": "m/s"}

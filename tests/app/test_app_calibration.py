@@ -596,7 +596,8 @@ def test_thread_warnings_wrapped_by_another_wrapper_does_not_loop(monkeypatch):
 def test_a_mat_log_of_a_linear_axis_uploaded_with_its_description(app_page, tmp_path, capsys):
     """The EMPS .mat record uploaded after its description (the format upload): the tab shows the
     command's values (prsa-fit DATA_EMPS.mat --log-format log.toml), the closed-loop replay as the
-    verdict, a plant to download and none to use (a linear axis: prsa-axis tunes it)."""
+    verdict and as a figure beside the log's response (Hz), a plant to download and none to use (a
+    linear axis: prsa-axis tunes it)."""
     import json
 
     from prsa_ctrl.cli.fit import main as fit_main
@@ -618,4 +619,8 @@ def test_a_mat_log_of_a_linear_axis_uploaded_with_its_description(app_page, tmp_
         assert _text(page, f"fit-{key}-value") == f"{v['value']:.6g}"
     assert page.locator(".prsa-fit-use button").is_disabled()
     assert not page.locator(".prsa-fit-download button").is_disabled()
+    # the CLI's overlay figures (prsa-fit --plots) drawn: the closed-loop replay and the response in Hz
+    assert page.locator("[data-k='fit-views-replay']").get_attribute("data-mode") == "closed-loop"
+    assert page.locator("[data-k='fit-views-frf']").get_attribute("data-unit") == "Hz"
+    assert page.locator(".prsa-fit-replay").is_visible() and page.locator(".prsa-fit-frf-mag").is_visible()
     _shot(page, "app-calibration-mat.png")

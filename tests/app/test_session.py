@@ -253,3 +253,177 @@ def test_a_mat_log_of_a_linear_axis_is_fitted_through_its_description(tmp_path, 
             s.calibrate("DATA_EMPS.mat", data.read_bytes(), log_format=("log.toml", b"format = 3\n"))
     finally:
         s.close()
+
+
+_AXIS_FORMAT = b"""format = "csv"
+[time]
+name = "t_s"
+unit = "s"
+[position]
+name = "x_mm"
+unit = "mm"
+[reference]
+name = "r_mm"
+unit = "mm"
+[command]
+name = "u_V"
+unit = "V"
+gain = 30.0
+[test_signal]
+name = "d_V"
+unit = "V"
+[controller]
+structure = "position-p/velocity-p"
+kp = 150.0
+kv = 250.0
+saturation = 10.0
+sample_time_s = 0.001
+check_tolerance = 1e-6
+"""
+
+
+def _axis_csv(n=2500, seed=5) -> bytes:
+    """A closed-loop log of one 80 kg mass with viscous (180 N s/m) and Coulomb (20 N) friction,
+    written here (explicit Euler on 20 substeps, its own controller with the two-sample average),
+    with a random binary test signal at the drive input."""
+    rng = np.random.default_rng(seed)
+    h, sub = 1e-3, 20
+    r = 0.05 * (1 - np.cos(2 * math.pi * np.arange(n) * h / 1.25))  # 0 .. 0.1 m and back, twice
+    d = 0.5 * np.repeat(rng.choice([-1.0, 1.0], n // 5 + 1), 5)[:n]
+    x = v = qprev = qfprev = 0.0
+    rows = ["t_s,x_mm,r_mm,u_V,d_V"]
+    for k in range(n):
+        q = 5e-8 * math.floor(x / 5e-8 + 0.5)
+        qf = 0.5 * (q + qprev)
+        dq = (qf - qfprev) / h
+        qprev, qfprev = q, qf
+        u = min(10.0, max(-10.0, 250.0 * (150.0 * (r[k] - q) - dq)))
+        rows.append(f"{k * h:.6f},{q * 1e3:.9f},{r[k] * 1e3:.9f},{float(u + d[k])!r},{float(d[k])!r}")
+        f = 30.0 * (u + d[k])
+        for _ in range(sub):
+            a = (f - 180.0 * v - 20.0 * math.copysign(1.0, v) * (v != 0)) / 80.0
+            if v == 0 and abs(f) <= 20.0:
+                a = 0.0
+            vn = v + a * h / sub
+            x += 0.5 * (v + vn) * h / sub
+            v = 0.0 if v != 0 and vn * v < 0 else vn
+    return ("\n".join(rows) + "\n").encode()
+
+
+def test_a_linear_axis_calibration_shows_the_clis_overlay_figures(tmp_path):
+    """The app's linear-axis calibration carries the views of ``prsa-fit LOG --log-format F --plots
+    DIR`` as data (:func:`prsa_ctrl.plots.fit.axis_views`): the closed-loop replay of the plant as
+    written beside the measured speed and its residual, the log's force -> speed response (Hz)
+    beside the replay's through the same estimator, with its residual and coherence -- the very
+    numbers the CLI's figures plot (read back from them) -- and the panel draws them in m/s."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from prsa_ctrl.app.fitpanel import FitViews
+    from prsa_ctrl.app.session import AppSession
+    from prsa_ctrl.identification.axis import replay_axis
+    from prsa_ctrl.identification.calibrate_axis import calibrate_described
+    from prsa_ctrl.plots.fit import axis_replay_figure, axis_response_figure
+
+    (tmp_path / "axis.csv").write_bytes(_axis_csv())
+    (tmp_path / "log.toml").write_bytes(_AXIS_FORMAT)
+    s = AppSession()
+    try:
+        cal = s.calibrate("axis.csv", _axis_csv(), log_format=("log.toml", _AXIS_FORMAT))
+    finally:
+        s.close()
+    assert cal.refused is None and not cal.usable
+    views = cal.report["views"]
+    assert set(views["replay"]) == {"axis.csv"} and set(views["frf"]) == {"axis.csv"} and views["unit"] == "m/s"
+    rp, fr = views["replay"]["axis.csv"], views["frf"]["axis.csv"]
+    assert rp["mode"] == "closed-loop" and "closed-loop replay from the reference" in rp["label"]
+    # the CLI's figures of the same fit (prsa-fit --plots draws these from its replays)
+    got = calibrate_described([str(tmp_path / "axis.csv")], str(tmp_path / "log.toml"), name="axis-fitted",
+                              labels=["axis.csv"])
+    replay = got.result.replays[0]
+    assert replay_axis(got.result.plant, got.records[0]).velocity_simulated == pytest.approx(replay.velocity_simulated)
+    fig = axis_replay_figure(replay)
+    vel = fig.axes[1]
+    t = vel.lines[0].get_xdata()
+    every = rp["every"]
+    assert rp["time_s"] == pytest.approx(list(t[::every]))
+    assert rp["measured_rad_s"] == pytest.approx(list(vel.lines[0].get_ydata()[::every]))
+    assert rp["model_rad_s"] == pytest.approx(list(vel.lines[1].get_ydata()[::every]))
+    assert rp["residual_rad_s"] == pytest.approx(list(fig.axes[3].lines[0].get_ydata()[::every]))
+    plt.close(fig)
+    fig = axis_response_figure(replay)
+    mag = fig.axes[0]
+    assert fr["frequency_hz"] == pytest.approx(list(mag.lines[0].get_xdata()))
+    assert fr["measured"]["magnitude_db"] == pytest.approx(list(mag.lines[0].get_ydata()))
+    (model,) = fr["models"].values()
+    assert model["written"] and model["magnitude_db"] == pytest.approx(list(mag.lines[1].get_ydata()))
+    assert fr["residual"]["magnitude_db"] == pytest.approx(list(fig.axes[2].lines[0].get_ydata()))
+    assert fr["coherence"] == pytest.approx(list(fig.axes[3].lines[0].get_ydata()))
+    plt.close(fig)
+    assert max(fr["frequency_hz"]) < 0.5 / 1e-3  # a Hz axis below the Nyquist frequency of the 1 kHz log
+    panel = FitViews()
+    panel.show(views)
+    assert panel.root.visible and panel.replay.visible and panel.mag.visible and panel.coherence.visible
+    assert panel.replay.yaxis.axis_label == "speed (m/s)" and "m/s per N" in panel.mag.yaxis.axis_label
+    assert len(panel.replay_src.data["t"]) == len(rp["time_s"]) and len(panel.frf_src.data["f"]) == len(fr["frequency_hz"])
+
+
+_MOTOR_FORMAT = b"""axis = "rotary"
+[time]
+name = "t_ms"
+unit = "ms"
+[position]
+name = "angle_deg"
+unit = "deg"
+[command]
+name = "torque"
+unit = "N m"
+logged = "as-applied"
+[load]
+name = "fz"
+unit = "N"
+"""
+
+
+def test_a_log_in_motor_coordinates_uploaded_with_its_description_fits_the_sessions_plant(tmp_path, capsys,
+                                                                                          monkeypatch):
+    """The rotary path of ``calibrate_described``: a log in motor coordinates (ms, deg, N m; the
+    independent simulator's multisine under load steps of the default plant) uploaded with its
+    description (``axis = "rotary"``) fits the session's screw-driven plant as ``prsa-fit LOG
+    --log-format F --plant paper-iprsm`` does: the same plant file byte for byte but its name,
+    the same values, lines (files named as uploaded) and verdict; the plant is usable and, once
+    used, is the session's; the views are the screw fit's (the replay in rad/s, not m/s)."""
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.app.session import AppSession
+    from independent_actuator import multisine_load_step_record
+
+    rec = multisine_load_step_record(load_plant(), name="motor")
+    csv = tmp_path / "motor.csv"
+    np.savetxt(csv, np.column_stack([rec.time_s * 1e3, np.degrees(rec.nut_angle_rad), rec.torque_command_n_m,
+                                     rec.axial_load_n]), delimiter=",", header="t_ms,angle_deg,torque,fz",
+               comments="", fmt="%.17g")
+    fmt = tmp_path / "motor.toml"
+    fmt.write_bytes(_MOTOR_FORMAT)
+    monkeypatch.chdir(tmp_path)  # the command names the files as given: as uploaded here
+    code, out, _ = _cli(["motor.csv", "--log-format", "motor.toml", "--plant", "paper-iprsm", "--out",
+                         "motor-fitted.toml", "--json", "r.json"], capsys)
+    assert code == 0
+    want = json.loads((tmp_path / "r.json").read_text())
+    s = AppSession()
+    try:
+        assert s.plant.name == "paper-iprsm"
+        cal = s.calibrate("motor.csv", csv.read_bytes(), log_format=("motor.toml", _MOTOR_FORMAT))
+        assert cal.refused is None and cal.usable and cal.file_name == "motor-fitted.toml"
+        assert cal.plant_text == (tmp_path / "motor-fitted.toml").read_text()
+        assert list(cal.lines) == [" ".join(x.split()) for x in out.splitlines() if not x.startswith("wrote ")]
+        for key, v in want["parameters"].items():
+            assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
+        assert cal.report["solver"]["validation"]["passes"] is True
+        views = cal.report["views"]
+        assert "unit" not in views and set(views["replay"]) == {"motor.csv"}
+        s.use_calibration(cal)
+        assert s.plant.name == "motor-fitted"
+    finally:
+        s.close()

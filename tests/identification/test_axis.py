@@ -116,14 +116,14 @@ def test_a_coulomb_interval_reaching_zero_is_written_inside_the_range(tmp_path):
     inward (was round(trunc, 6), here 1.234568 sigma: a support from -1e-07 N, file refused)."""
     import tomllib
 
-    from prsa_ctrl.identification.axis import _normal_entry, axis_plant_toml
+    from prsa_ctrl.identification.axis import normal_entry, axis_plant_toml
 
     value, sigma = 1.2345679, 1.0
     assert value - round(value / sigma * (1 - 1e-9), 6) * sigma < 0  # what the old rule wrote
-    entry = _normal_entry(value, sigma, False, "fit: test")
+    entry = normal_entry(value, sigma, False, "fit: test")
     assert entry["truncate"] == 1.234567 and value - entry["truncate"] * sigma >= 0
-    assert _normal_entry(value, 0.0, False, "fit: test") is None
-    assert _normal_entry(0.05, 1.0, False, "fit: test") is None  # < 0.1 sigma above the bound
+    assert normal_entry(value, 0.0, False, "fit: test") is None
+    assert normal_entry(0.05, 1.0, False, "fit: test") is None  # < 0.1 sigma above the bound
     base = load_axis_plant(EXAMPLE / "plant.toml")
     plant = dataclasses.replace(base, values={**base.values, "friction.coulomb_negative_n": value},
                                 uncertainty={"friction.coulomb_negative_n": entry})
