@@ -29,8 +29,11 @@ def test_the_search_fits_short_segments_and_the_result_the_asked_ones(sim, monke
     rec, truth = sim
     calls = []
 
+    checks = []  # check of the plant as written: only on the asked segments (the search's are refitted)
+
     def fake(records, plant, *, segment_s, delay_samples, keys, **kw):
         calls.append((delay_samples, segment_s))
+        checks.append(kw.get("check_written", True))
         keys = td.default_keys(plant) if keys is None else keys
         f = {1: 10.0, 2: 1.0, 3: 30.0}.get(delay_samples, 50.0)  # shift 2 the best by far
         params = {k: {"value": plant.values[k], "ci95": [0.5 * plant.values[k], 1.5 * plant.values[k]], "unit": ""}
@@ -46,14 +49,17 @@ def test_the_search_fits_short_segments_and_the_result_the_asked_ones(sim, monke
     ts = rec.sample_time_s
     assert search and all(seg == td.search_segment_s(0.1, ts) < 0.1 for _, seg in search)
     assert calls[-1] == (2, 0.1)  # the fit at the found shift on the asked segments
+    assert checks == [False] * len(search) + [True]
     cd = res.solver["command_delay"]
     assert cd["shift_samples"] == 2 and cd["search"]["decided"] is True
     assert cd["search"]["segment_s"] == td.search_segment_s(0.1, ts)
     assert res.solver["segment_s"] == 0.1
     # segments no longer than the search's: no second fit
     calls.clear()
+    checks.clear()
     td.fit_plant([rec], truth, delay_samples="find", max_delay_samples=3, segment_s=0.01, validation=False)
     assert all(seg == 0.01 for _, seg in calls) and len(calls) == len({d for d, _ in calls})
+    assert checks and all(checks)
 
 
 def test_objective_per_record_adds_up_to_the_objective(sim):
