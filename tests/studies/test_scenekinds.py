@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from prsa_ctrl.errors import SceneError, UsageError
@@ -287,6 +287,10 @@ def test_profile_loop_is_the_sum_of_shifted_step_responses(paper_plant):
 def test_per_sample_load_is_the_exact_mean_of_the_profile(rows):
     """The loop model's load input over each sample is the profile's exact mean there, so the
     impulse the plant receives is exact for ramps and for steps between samples."""
+    # a profile that never leaves its initial 500 N is no duty cycle (the scene refuses it, one
+    # line); Hypothesis draws such a one from the constants of the modules it has seen imported,
+    # so which examples run depends on what the session imported before
+    assume(any(f != 500.0 for _, f, _ in rows))
     plant_ts = 2.5e-4
     t, table = 0.0, [[0.0, 500.0]]
     for dt, f, is_step in rows:
