@@ -514,9 +514,10 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         "current_loop_bandwidth_hz"]
     if fix_fc is None and fc_fit.get("at_bound"):  # not identified: the base value held, and the fit made again
         fix_fc = fc_base
-        fc_why = (f"the fit's current loop ran to its bound {fc_fit['value']:.4g} Hz ({fc_fit['note']}; unbounded "
-                  f"{fc_fit['unbounded_value']:.4g} Hz), so the base value is held and the responses fitted again "
-                  "with it")
+        # not the unbounded fit's end: past the bound the lag is a delay's, the cost flat, and where the
+        # solver stops there (1e7 or 4e8 Hz) is its path, not the data
+        fc_why = (f"the fit's current loop ran to its bound {fc_fit['value']:.4g} Hz ({fc_fit['note']}; unbounded it "
+                  "runs on past it), so the base value is held and the responses fitted again with it")
         choice = choose_structure(frf, sample_time_s=ts, current_loop_bandwidth_hz=fix_fc)
     if fidelity == "rigid" and choice.structure == "two-mass":
         raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")

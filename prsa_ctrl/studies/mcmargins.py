@@ -11,8 +11,8 @@ Jacobians, the zero-order-hold discretisation and the loop model
   (the same damped Newton solve);
 - the Jacobians of the parametric family (:func:`prsa_ctrl.plant.model.parametric_family`) at
   them: one CasADi function of ``(x, u, theta)``, built once per family and mapped over the batch;
-- the zero-order hold: a stacked matrix exponential (:func:`expm_stack`, Higham's scaling and
-  squaring with the degree-13 Pade approximant, as ``scipy.linalg.expm``);
+- the zero-order hold: a stacked matrix exponential (:func:`prsa_ctrl.drive.sampled.expm_stack`,
+  Higham's scaling and squaring with the degree-13 Pade approximant, as ``scipy.linalg.expm``);
 - the loop: the nominal loop model is the template (its gain matrices and its controller rows
   do not depend on the plant); each sample's plant block replaces the template's;
 - the peaks: the same dense grid as ``LoopModel._peak_grid`` (600 log-spaced points, the
@@ -34,6 +34,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from ..drive.sampled import expm_stack
 from ..tuning.loops import resonance_points, zoom_max
 from ..tuning.settings import LOW_DECADES, UNIT_TOL
 
@@ -43,69 +44,6 @@ __all__ = ["expm_stack", "linearise_batch", "loop_batch", "sensitivity_peaks_bat
 #: for the modal frequency response; above it the sample goes to the per-sample path. At 1e8
 #: the modal sum loses at most about 8 of 16 digits (paper plant: ~1e5).
 MODAL_COND_MAX = 1e8
-
-_PADE13 = (64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0, 129060195264000.0,
-           10559470521600.0, 670442572800.0, 33522128640.0, 1323241920.0, 40840800.0, 960960.0, 16380.0, 182.0, 1.0)
-#: Scaling bound of the degree-13 approximant and the constant of its truncation-error term
-#: (as scipy.linalg.expm's selection, Al-Mohy and Higham 2009).
-_THETA13 = 4.25
-_COEF13 = 1.2573361865339437e19
-
-
-def expm_stack(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Matrix exponentials of a stack ``a`` (``(b, n, n)``), vectorised over the stack: scaling
-    and squaring with the degree-13 Pade approximant, the scaling chosen per matrix as
-    ``scipy.linalg.expm`` chooses it (Al-Mohy and Higham 2009: from ``||A^k||^(1/k)``,
-    k = 6, 8, 10, not from ``||A||``, plus the truncation-error correction on ``|A|^27``), so a
-    stiff, non-normal matrix (a contact stiffness) is not over-scaled.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> e = expm_stack(np.array([[[0.0, 1.0], [-1.0, 0.0]]]))   # a rotation by 1 rad
-    >>> np.allclose(e[0], [[np.cos(1), np.sin(1)], [-np.sin(1), np.cos(1)]])
-    True
-    """
-    a = np.asarray(a, float)
-    b, n, _ = a.shape
-    if b == 0:
-        return a.copy()
-    c = _PADE13
-    x2 = a @ a
-    x4 = x2 @ x2
-    x6 = x4 @ x2
-
-    def d(m, k):  # ||m||^(1/k), the largest absolute row sum
-        return np.abs(m).sum(axis=2).max(axis=1) ** (1.0 / k)
-
-    d6, d8, d10 = d(x6, 6), d(x4 @ x4, 8), d(x6 @ x4, 10)
-    eta = np.minimum(np.maximum(d6, d8), np.maximum(d8, d10))
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        s = np.maximum(np.ceil(np.log2(eta / _THETA13)), 0.0)
-        s = np.where(np.isfinite(s), s, 0.0)
-        abs_a = np.abs(a) * (2.0 ** -s)[:, None, None]
-        v1 = abs_a.sum(axis=2)  # |A| 1, scaled
-        norm_a = v1.max(axis=1)
-        v = v1[..., None]
-        for _ in range(26):
-            v = abs_a @ v
-        lm = np.ceil(np.log2(v[..., 0].max(axis=1) / norm_a / _COEF13) / 26.0)
-        s = s + np.where(np.isfinite(lm), np.maximum(lm, 0.0), 0.0)
-    s = s.astype(int)
-    f = 2.0 ** -s
-    x = a * f[:, None, None]
-    x2 = x2 * (f * f)[:, None, None]
-    x4 = x4 * (f ** 4)[:, None, None]
-    x6 = x6 * (f ** 6)[:, None, None]
-    eye = np.eye(n)[None]
-    u = x @ (x6 @ (c[13] * x6 + c[11] * x4 + c[9] * x2) + c[7] * x6 + c[5] * x4 + c[3] * x2 + c[1] * eye)
-    v = x6 @ (c[12] * x6 + c[10] * x4 + c[8] * x2) + c[6] * x6 + c[4] * x4 + c[2] * x2 + c[0] * eye
-    r = np.linalg.solve(v - u, v + u)
-    for k in range(int(s.max())):
-        sel = s > k
-        r[sel] = r[sel] @ r[sel]
-    return r
-
 
 def _jacobian_function(fam):
     """``(x, u, theta) -> (df/dx, df/du, dh/dx)`` of the family, built once per family."""

@@ -69,16 +69,7 @@ def _noisy(g, rel, seed):
     return g * np.exp(rel * (rng.standard_normal(len(g)) + 1j * rng.standard_normal(len(g))))
 
 
-#: The linear axis's case is -m slow: its sampled two-mass fit spent 34 s CPU (5,660 sampled responses of
-#: identification.twomass, each a scipy expm in drive.sampled.zoh, under the least squares' numeric Jacobian),
-#: the screws' 2.5 s each. Its keys (mass, load mass, stiffness, damping within their intervals, the written
-#: plant's mode and anti-resonance) are checked in the default suite by
-#: test_response_of_an_independent_two_mass_axis[linear-axis], its sampled compliant fit (the mode within
-#: its interval, the written plant's mode) by test_cli_compliant_frf_for_every_mechanism[linear-axis].
-_OWN = [pytest.param(m, marks=pytest.mark.slow) if m == "linear-axis" else m for m in BASES]
-
-
-@pytest.mark.parametrize("mech", _OWN)
+@pytest.mark.parametrize("mech", list(BASES))
 def test_response_of_the_plants_own_linearisation(mech):
     """The plant's own compliant model (sampled as the drive measures it) with 1 % noise: the
     written plant has the truth's total inertia and first axial mode and current loop."""
