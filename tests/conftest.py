@@ -3,6 +3,13 @@ import tempfile
 
 # Hypothesis keeps its caches outside the working tree (set before it is imported).
 os.environ.setdefault("HYPOTHESIS_STORAGE_DIRECTORY", os.path.join(tempfile.gettempdir(), "prsa-ctrl-hypothesis"))
+# One OpenBLAS thread: the suite runs one pytest-xdist worker per core, and the toolkit's
+# matrices are small (a ZOH's expm of 5..12 states), where OpenBLAS's extra threads only spin:
+# the two-mass FRF fit of tests/app/test_session.py took 7.0 s of CPU with the default threads
+# and 0.83 s with one, same result. Read when scipy's OpenBLAS loads (after this line; numpy's
+# is loaded by pytest's plugins before it) and by every process a test starts (notebook kernels,
+# the app server, Sphinx, the command-line runs).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import matplotlib
 import pytest

@@ -123,6 +123,24 @@ def fresh_open_page():
             ctx.close()
 
 
+@pytest.fixture(scope="module")
+def shared_app_page(browser, app_url):
+    """One page of the served app for the module's hostile-input tests (a refused select value or
+    upload: each waits for its own one-line error by its text, and none changes the plant or
+    the design). A page costs about 4.3 s of CPU (Chromium 2.9 s, the server 1.4 s; 4 pages
+    measured at load 26), most of test_app_browser's; seven such tests had a page each. (The
+    upload above the limit keeps a page of its own: its page must still read a later upload, and
+    a refused 25 MB file never reaches the server, so an earlier test's identical upload would
+    look unchanged to it.)"""
+    open_, made = _page_opener(browser)
+    _, pg = open_(app_url)
+    pg.locator('[data-k="opt-ms"]').wait_for()
+    pg.locator('[data-k="status"]').wait_for()
+    yield pg
+    for ctx in made:
+        ctx.close()
+
+
 @pytest.fixture
 def app_page(open_page, app_url):
     """A new page of the served app (its own browser context: a new session), ready."""

@@ -210,7 +210,7 @@ def typed(value) -> str:
 
 
 @pytest.mark.parametrize("title, kind", [("Plant (built-in)", "plant"), ("Scene (built-in)", "scene")])
-def test_select_set_to_a_server_path_is_refused_and_reverts(app_page, tmp_path, title, kind):
+def test_select_set_to_a_server_path_is_refused_and_reverts(shared_app_page, tmp_path, title, kind):
     """A client that sets a select's value to a path (here a valid plant or scene file, so a
     server that read it would switch to it) gets one line and the select back; the page keeps
     its plant and design."""
@@ -218,17 +218,17 @@ def test_select_set_to_a_server_path_is_refused_and_reverts(app_page, tmp_path, 
     from prsa_ctrl.plant.plantfile import plant_file_path
     from prsa_ctrl.studies.scenefile import locate_scene
 
-    page = app_page
+    page = shared_app_page
     kp = _text(page, "opt-kp")
     src = plant_file_path("iprsm-60") if kind == "plant" else locate_scene("paper-table3")[0]
     path = tmp_path / f"elsewhere-{kind}.toml"
     path.write_text(src.read_text())
     for value in (str(path), "/etc/passwd"):
         page.evaluate(_SET_SELECT_JS, [title, value])
-        page.locator('[data-k="error"]', has_text=typed(value)).wait_for()
         names = builtin_names()[kind == "scene"]
-        assert _text(page, "error") == (f"error: {kind} select value {typed(value)}: expected one of the built-in {kind}s "
-                                        f"({', '.join(names)})")
+        line = f"error: {kind} select value {typed(value)}: expected one of the built-in {kind}s ({', '.join(names)})"
+        page.locator('[data-k="error"]', has_text=line).wait_for()  # (the shared page: this value's line)
+        assert _text(page, "error") == line
         page.wait_for_function("([t, v]) => { const d = Bokeh.documents[0]; const ms = d._all_models ? "
                                "[...d._all_models.values()] : [...d.all_models]; return ms.find(m => m.type == "
                                "'Select' && m.title == t).value == v; }",
@@ -239,14 +239,15 @@ def test_select_set_to_a_server_path_is_refused_and_reverts(app_page, tmp_path, 
 
 
 @pytest.mark.parametrize("trace", ["/etc/passwd", "../../../../../../etc/passwd"])
-def test_uploaded_scene_with_a_server_trace_is_refused_on_the_page(app_page, trace):
-    page = app_page
+def test_uploaded_scene_with_a_server_trace_is_refused_on_the_page(shared_app_page, trace):
+    page = shared_app_page
     text = f'[operating]\nload_trace_csv = "{trace}"\n'
     page.locator(".prsa-scene-upload input[type=file]").set_input_files(
         files=[{"name": "hostile.toml", "mimeType": "application/toml", "buffer": text.encode()}])
-    page.locator('[data-k="error"]').wait_for()
-    assert _text(page, "error") == (f"error: hostile.toml: operating.load_trace_csv = {trace!r}: an uploaded scene "
-                                    "cannot read files on the server; expected a load-step scene without a CSV trace")
+    line = (f"error: hostile.toml: operating.load_trace_csv = {trace!r}: an uploaded scene "
+            "cannot read files on the server; expected a load-step scene without a CSV trace")
+    page.locator('[data-k="error"]', has_text=line).wait_for()  # (the shared page: this upload's line)
+    assert _text(page, "error") == line
     assert "root:" not in page.content()
 
 
@@ -262,12 +263,12 @@ _SET_UPLOAD_JS = """([cls, value, name]) => {
 
 @pytest.mark.parametrize("cls, name", [("prsa-plant-upload", "p.toml"), ("prsa-scene-upload", "s.toml"),
                                        ("prsa-log-upload", "log.csv")])
-def test_upload_that_is_not_base64_is_one_line_on_the_page(app_page, cls, name):
-    page = app_page
+def test_upload_that_is_not_base64_is_one_line_on_the_page(shared_app_page, cls, name):
+    page = shared_app_page
     page.evaluate(_SET_UPLOAD_JS, [cls, "this is not base64 ~~~", name])
-    page.locator('[data-k="error"]').wait_for()
-    assert _text(page, "error") == (f"error: {name}: the upload is not base64 text; expected the file's bytes as "
-                                    "base64 (as a browser sends a file)")
+    line = f"error: {name}: the upload is not base64 text; expected the file's bytes as base64 (as a browser sends a file)"
+    page.locator('[data-k="error"]', has_text=line).wait_for()  # (the shared page: this upload's line)
+    assert _text(page, "error") == line
     assert page.locator('[data-k="opt-ms"]').count() == 1
 
 
