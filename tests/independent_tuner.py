@@ -123,8 +123,12 @@ def max_ki(num, den, kp, ms, mt=None, mks=None, kd=0.0, tf=0.0, filt=None, delay
     p = loop_parts(num, den, delay) if p is None else p
 
     def ok(ki):
-        m = peaks(p, controller(kp, ki, kd, tf, filt))
-        good = m[0] <= ms and (mt is None or m[1] <= mt) and (mks is None or m[2] <= mks)
+        # the peaks of :func:`peaks` (the same arithmetic), each computed only where it is bounded
+        c = controller(kp, ki, kd, tf, filt)
+        L = p * c
+        S = 1 / (1 + L)
+        good = (float(np.max(np.abs(S))) <= ms and (mt is None or float(np.max(np.abs(L * S))) <= mt)
+                and (mks is None or float(np.max(np.abs(c * S))) <= mks))
         return good and (stable_delayed(num, den, kp, ki, kd, tf, filt, delay) if delay > 0
                          else stable(num, den, kp, ki, kd, tf, filt))
 
