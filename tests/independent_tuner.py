@@ -15,11 +15,14 @@ never a silently wrong reference.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.optimize import minimize_scalar
 
 #: Dense grid (rad/s) for the peaks: 12000 points over 9 decades plus the high-frequency limit.
 W = np.logspace(-4, 5, 12000)
+_S_W = 1j * W
 
 #: Relative slack of the feasibility re-check on :data:`W`. The SLSQP oracles meet their bounds
 #: on a coarser solve grid (3000-4000 points over 6 decades, log spacing 3.5e-3 to 4.6e-3); a
@@ -52,10 +55,21 @@ def loop_parts(num, den, delay=0.0, w=W):
     return np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * delay)
 
 
+@functools.lru_cache(maxsize=16)
+def _loop_parts_on_w(num: tuple, den: tuple, delay: float):
+    """:func:`loop_parts` on :data:`W`, computed once per plant and delay instead of in each of the
+    bisections' stability checks (the same array, read only)."""
+    p = loop_parts(list(num), list(den), delay)
+    p.flags.writeable = False
+    return p
+
+
 def controller(kp, ki, kd=0.0, tf=0.0, filt=None, w=W):
     """C(jw) F(jw): PID kp + ki/s + kd s/(1 + tf s) times the filter ``filt = (order, Tf)``."""
-    s = 1j * w
-    c = kp + ki / s + kd * s / (1 + tf * s)
+    s = _S_W if w is W else 1j * w
+    c = kp + ki / s
+    if kd != 0.0:  # (kd = 0: the derivative term is exactly 0; the bisections call this ~10^4 times)
+        c = c + kd * s / (1 + tf * s)
     if filt is not None:
         order, t = filt
         c = c / ((t * s + 1) if order == 1 else (t * t * s * s / 2 + t * s + 1))
@@ -94,7 +108,8 @@ def stable_delayed(num, den, kp, ki, kd=0.0, tf=0.0, filt=None, delay=0.0, w=W):
     if not (ki > 0 and np.polyval(num, 0.0) / np.polyval(den, 0.0) > 0
             and np.all(np.roots(np.trim_zeros(np.asarray(den, float), "f")).real < 0)):
         raise OracleFailure("stable_delayed: needs ki > 0, P(0) > 0 and a stable plant")
-    L = loop_parts(num, den, delay, w) * controller(kp, ki, kd, tf, filt, w=w)
+    p = _loop_parts_on_w(tuple(num), tuple(den), delay) if w is W else loop_parts(num, den, delay, w)
+    L = p * controller(kp, ki, kd, tf, filt, w=w)
     if not abs(L[-1]) < 1e-2:
         raise OracleFailure(f"stable_delayed: |L| = {abs(L[-1]):.3g} at the grid's top: extend the grid")
     ph = np.unwrap(np.angle(1 + L))
@@ -108,8 +123,12 @@ def max_ki(num, den, kp, ms, mt=None, mks=None, kd=0.0, tf=0.0, filt=None, delay
     p = loop_parts(num, den, delay) if p is None else p
 
     def ok(ki):
-        m = peaks(p, controller(kp, ki, kd, tf, filt))
-        good = m[0] <= ms and (mt is None or m[1] <= mt) and (mks is None or m[2] <= mks)
+        # the peaks of :func:`peaks` (the same arithmetic), each computed only where it is bounded
+        c = controller(kp, ki, kd, tf, filt)
+        L = p * c
+        S = 1 / (1 + L)
+        good = (float(np.max(np.abs(S))) <= ms and (mt is None or float(np.max(np.abs(L * S))) <= mt)
+                and (mks is None or float(np.max(np.abs(c * S))) <= mks))
         return good and (stable_delayed(num, den, kp, ki, kd, tf, filt, delay) if delay > 0
                          else stable(num, den, kp, ki, kd, tf, filt))
 

@@ -30,13 +30,19 @@ _W_PEAK = np.logspace(-3, 3, 20000)
 _W_ARG = np.linspace(0.0, 400.0, 80001)
 
 
-def _loop(kp, ki, delay, w):
-    s = 1j * w
-    return (kp + ki / s) * np.exp(-s * delay) / (s - 1.0)
+@functools.lru_cache(maxsize=8)
+def _grid_parts(delay, which):
+    """``(s, e^{-s L}, s (s - 1), (s + 1)^2)`` on the peak (``which = "peak"``) or the argument
+    grid, computed once per delay instead of in each of the bisections' feasibility checks (the
+    same arrays, so the same results)."""
+    s = 1j * (_W_PEAK if which == "peak" else _W_ARG)
+    return s, np.exp(-s * delay), s * (s - 1.0), (s + 1.0) ** 2
 
 
-def _ms(kp, ki, delay, w=_W_PEAK):
-    return float(np.max(1.0 / np.abs(1.0 + _loop(kp, ki, delay, w))))
+def _ms(kp, ki, delay):
+    """Peak of ``|1 / (1 + L)|``, ``L = (kp + ki/s) e^{-L s}/(s - 1)``, on ``_W_PEAK``."""
+    s, e_delay, _, _ = _grid_parts(delay, "peak")
+    return float(np.max(1.0 / np.abs(1.0 + (kp + ki / s) * e_delay / (s - 1.0))))
 
 
 def _rhp_roots(kp, ki, delay):
@@ -44,14 +50,15 @@ def _rhp_roots(kp, ki, delay):
     (the exact delay) by the argument principle on ``g = f / (s + 1)^2`` (analytic in the right
     half plane, -> 1 there): ``Z = -(change of arg g along the imaginary axis) / (2 pi)``, the
     two halves of the axis conjugate. Beyond 400 rad/s ``|g - 1| < 0.02`` (no winding left)."""
-    s = 1j * _W_ARG
-    g = (s * (s - 1.0) + (kp * s + ki) * np.exp(-s * delay)) / (s + 1.0) ** 2
+    s, e_delay, s_sm1, sp1_sq = _grid_parts(delay, "arg")
+    g = (s_sm1 + (kp * s + ki) * e_delay) / sp1_sq
     ph = np.unwrap(np.angle(g))
     return int(round(-2.0 * (ph[-1] - ph[0]) / (2.0 * math.pi)))
 
 
 def _feasible(kp, ki, delay, ms_max):
-    return _rhp_roots(kp, ki, delay) == 0 and _ms(kp, ki, delay) <= ms_max
+    # (the cheaper peak first: both must hold, so the order does not change the answer)
+    return _ms(kp, ki, delay) <= ms_max and _rhp_roots(kp, ki, delay) == 0
 
 
 def _max_ki(kp, delay, ms_max, hi=20.0):
