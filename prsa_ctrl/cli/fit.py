@@ -502,8 +502,12 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
 
     validation = result.solver.get("validation")
     failed = validation is not None and not validation["passes"]
-    text = cal.plant_text if cal is not None else fitted_plant_text(result, plant, base_text, Path(args.out).stem,
-                                                                    fitted_from, force=args.force, origin=args.out)
+    try:
+        text = cal.plant_text if cal is not None else fitted_plant_text(result, plant, base_text, Path(args.out).stem,
+                                                                        fitted_from, force=args.force, origin=args.out)
+    except FitError as exc:  # the fitted file would not load: the tool's fault, not the user's input
+        echo(f"prsa-fit: {exc}", file=sys.stderr)
+        return 3
     files = {args.out: ("--out", text)} if not failed or args.force else {}
     if args.json:
         from ..io.output import json_safe

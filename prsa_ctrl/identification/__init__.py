@@ -57,7 +57,7 @@ _EXPORTS = {
     "STEP_SE_FRACTION": "timedomain",
     "STRUCTURES": "logformat",
     "TORQUE_OVER_LIMIT": "common",
-    "UNCERTAINTY_MODES": "common",
+    "UNCERTAINTY_MODES": "fituncertainty",
     "UNIT_PLANT_FACTOR": "common",
     "UNIT_SLIP_FACTOR": "common",
     "VELOCITY_ESTIMATES": "logformat",

@@ -78,6 +78,7 @@ from ..plant import schema as plant_schema
 from ..tomlfile import read_toml
 from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry,
                                  inner_truncation)
+from .fituncertainty import outside_note
 from .logformat import AxisLog
 
 stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
@@ -871,6 +872,10 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
         else:
             sources[k] = f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g}; closed-loop output error)"
             entry_k = normal_entry(v, z * sd / _Z95, j == 0, f"fit: {names} (95 % CI {v - z * sd:.6g}..{v + z * sd:.6g})")
+            typed = base.uncertainty.get(k)
+            if isinstance(typed, dict) and "low" in typed and "high" in typed and not typed["low"] <= v <= typed["high"]:
+                warnings.append(outside_note(k, v, (v - z * sd, v + z * sd), typed, "the fit's entry is written instead"
+                                             if entry_k is not None else "no [uncertainty] entry written for it"))
             if entry_k is not None:
                 unc[k] = entry_k
         params[k] = entry

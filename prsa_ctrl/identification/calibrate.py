@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from ..errors import DataError, GeometryWarning, PlantFileError
+from ..errors import DataError, FitError, GeometryWarning, PlantFileError
 from ..textsafe import printable
 
 __all__ = ["MOTOR_COORDINATES", "Calibrated", "calibrate_logs", "fitted_plant_text", "fit_report", "result_lines",
@@ -58,7 +58,9 @@ def written_keys(base, result) -> tuple[list[str], list[str]]:
     from ..plant.uncertainty import CORRELATION_KEY
 
     base_unc = dict(base.uncertainty or {})
-    unc_keys = [k for k in [*result.plant_keys, CORRELATION_KEY] if result.plant.uncertainty.get(k) != base_unc.get(k)]
+    fitted_unc = dict(result.plant.uncertainty or {})  # (an entry that no longer held a written value: replaced or gone)
+    unc_keys = [k for k in dict.fromkeys([*result.plant_keys, *base_unc, *fitted_unc, CORRELATION_KEY])
+                if fitted_unc.get(k) != base_unc.get(k)]
     # the command delay (found, given or written from a fitted FRF delay) is written when it is not the base's
     delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz",
                               "friction.no_load_breakaway_torque_n_m", *SEED_KEYS)  # (a given one raised to a fitted drag)
@@ -88,6 +90,12 @@ def fitted_plant_text(result, base, base_text: str, name: str, fitted_from: str,
         header says so, with the diagnosis.
     origin : str
         How a failed check names the file.
+
+    Raises
+    ------
+    FitError
+        When the text would not load (a fault of the fit's composition, not of the user's input:
+        ``prsa-fit`` exits 3 and writes nothing).
     """
     import tomllib
 
@@ -103,7 +111,11 @@ def fitted_plant_text(result, base, base_text: str, name: str, fitted_from: str,
                                 uncertainty_keys=unc_keys, header=header)
     with warnings.catch_warnings():  # its geometry notes are the base plant's, given when it loaded
         warnings.simplefilter("ignore", GeometryWarning)
-        Plant.from_dict(tomllib.loads(text), origin=origin)  # what is written must load (with its [uncertainty])
+        try:  # what is written must load (with its [uncertainty])
+            Plant.from_dict(tomllib.loads(text), origin=origin)
+        except PlantFileError as exc:  # the tool's own fault, never the user's input (not exit 2)
+            raise FitError(f"the fitted plant's file would not load, so none is written ({exc}); a fault of "
+                           "prsa-fit, not of the input: please report it") from exc
     return text
 
 

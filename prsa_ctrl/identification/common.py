@@ -33,6 +33,7 @@ from ..plant.plantfile import Plant
 from ..plant.schema import BREAKAWAY_KEY, KIND, PLAUSIBLE, SCHEMA
 from ..plant.uncertainty import carry_correlation, correlation_entry, inner_truncation, plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
+from .fituncertainty import UNCERTAINTY_MODES, hold_written_values, uncertainty_choice
 from .inertia_total import reflected_interval
 
 __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", "DEFAULT_KEYS", "FRF_KEYS",
@@ -610,7 +611,8 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
     largest: a key's interval spans how far those directions move it within the physical
     ranges (:func:`_null_extent`) plus the covariance's interval. With ``keep_unidentified``
     the keys not identified keep the base plant's value, source and ``[uncertainty]`` entry;
-    ``uncertainty`` says what the fitted keys' entries become (:func:`_uncertainty_choice`)."""
+    ``uncertainty`` says what the fitted keys' entries become
+    (:func:`~prsa_ctrl.identification.fituncertainty.uncertainty_choice`)."""
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
@@ -712,7 +714,7 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
                                        [_physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)])
                                         for k in plant_keys])
         for k in plant_keys:
-            choice, note = _uncertainty_choice(fitted, k, base_unc.get(k), fit_unc.get(k), params[k]["ci95"],
+            choice, note = uncertainty_choice(fitted, k, base_unc.get(k), fit_unc.get(k), params[k]["ci95"],
                                                _physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)]),
                                                uncertainty)
             if choice is not None:
@@ -727,6 +729,9 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
         fitted = Plant(name=fitted.name, values=fitted.values, sources=srcs, origin=fitted.origin,
                        description=f"{plant.name} fitted by prsa-fit to {names}", uncertainty=unc,
                        mechanism=fitted.mechanism, defaulted=fitted.defaulted, mechanism_source=fitted.mechanism_source)
+        if BREAKAWAY_KEY in overrides and BREAKAWAY_KEY not in plant_keys:  # raised to the drag: its entry must hold it
+            fitted, notes = hold_written_values(fitted, [BREAKAWAY_KEY], {}, {})
+            warns.extend(notes)
     j_ref = fitted.reflected_inertia_kg_m2  # its interval from every fitted key it depends on (a mass too)
     ci = reflected_interval(fitted, inertia_key(plant), keys, params, corr)
     reflected = {"value": float(j_ref), "ci95": ci, "unit": "kg m^2"}
@@ -855,46 +860,6 @@ def _delay_block(fitted: Plant, keys, values, cov, ts: float) -> dict:
     }
 
 
-#: What a fit writes into the fitted plant's ``[uncertainty]`` for a fitted key: ``"keep"`` the
-#: base plant's own entry (the user's assumption) unless it is narrower than the fit's 95 %
-#: interval or does not hold the fitted value (then the fit's entry), and no entry where the base
-#: has none; ``"fit"`` the fit's entry (:func:`_uncertainty_entries`) for every fitted key.
-UNCERTAINTY_MODES = ("keep", "fit")
-
-
-def _entry_support(fitted: Plant, key: str, entry) -> tuple[float, float] | None:
-    """Support ``(low, high)`` of a base ``[uncertainty]`` entry around the fitted plant's value
-    (None when it is not valid there, e.g. absolute bounds that exclude the fitted value)."""
-    try:
-        p = Plant(name=fitted.name, values=fitted.values, sources=fitted.sources, uncertainty={key: entry})
-        (u,) = plant_uncertainty(p).entries
-    except (PlantFileError, ValueError):
-        return None
-    return float(u.low), float(u.high)
-
-
-def _uncertainty_choice(fitted: Plant, key: str, base_entry, fit_entry, ci95, rng, mode: str):
-    """The ``[uncertainty]`` entry written for a fitted key and a note (or None) saying why it
-    is not the user's: see :data:`UNCERTAINTY_MODES`. Never narrower than the fit's 95 %
-    interval (clipped to the key's physical range ``rng``)."""
-    if base_entry is None and mode == "keep":
-        return None, None  # the user assumed no spread there; the fit's own entry only when asked ("fit")
-    if base_entry is None or mode == "fit":
-        if fit_entry is None:
-            return None, (f"{key}: no [uncertainty] entry written (its interval is degenerate or leaves the "
-                          "physical range)")
-        return fit_entry, None
-    support = _entry_support(fitted, key, base_entry)
-    lo_ci, hi_ci = max(ci95[0], rng[0]), min(ci95[1], rng[1])
-    if support is not None and support[1] - support[0] >= (hi_ci - lo_ci) * (1 - 1e-9):
-        return base_entry, None
-    why = ("does not hold the fitted value" if support is None else
-           f"({support[0]:.6g}..{support[1]:.6g}) is narrower than the fit's 95 % interval {lo_ci:.6g}..{hi_ci:.6g}")
-    if fit_entry is None:
-        return base_entry, f"{key}: the base plant's [uncertainty] entry {why}; kept (the fit's interval is degenerate)"
-    return fit_entry, f"{key}: the base plant's [uncertainty] entry {why}: the fit's entry is written instead"
-
-
 def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=None) -> dict:
     """``[uncertainty]`` entries of the fitted keys: a normal distribution with the fit's standard
     deviation, truncated at the 95 % interval (1.96 sigma) or closer where the key's physical
@@ -967,12 +932,6 @@ def uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=
     """The fit's own ``[uncertainty]`` entries of the fitted keys (what :func:`finish_fit` writes
     with ``uncertainty="fit"``)."""
     return _uncertainty_entries(fitted, params, names, std, ranges)
-
-
-def uncertainty_choice(fitted: Plant, key: str, base_entry, fit_entry, ci95, rng, mode: str):
-    """The ``[uncertainty]`` entry a fitted key gets (the base's or the fit's) and the note
-    saying why, as :func:`finish_fit` chooses it."""
-    return _uncertainty_choice(fitted, key, base_entry, fit_entry, ci95, rng, mode)
 
 
 def fit_percent(measured: NDArray[np.float64], model: NDArray[np.float64]) -> float:

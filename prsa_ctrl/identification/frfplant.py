@@ -483,7 +483,8 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     FitError
         A fit did not converge, or the rigid model was asked for a response with a mode.
     """
-    from .common import checked_inputs, frf_sample_time, uncertainty_choice, uncertainty_entries
+    from .common import checked_inputs, frf_sample_time, uncertainty_entries
+    from .fituncertainty import uncertainty_choice
     from .frf import frf_fit_percent, write_delay
 
     frf = list(frf)
@@ -738,7 +739,8 @@ def _widen_adjusted(res: FitResult, spread: Sequence[dict], start: Plant, names:
     import dataclasses
 
     from ..plant.schema import PLAUSIBLE
-    from .common import uncertainty_choice, uncertainty_entries
+    from .common import uncertainty_entries
+    from .fituncertainty import uncertainty_choice
 
     if not spread or spread[0]["adjusted_key"] not in res.parameters or spread[0]["adjusted_key"] not in res.keys:
         return res

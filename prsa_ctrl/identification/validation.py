@@ -59,9 +59,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..plant.plantfile import Plant
-from .common import fit_percent, symbolic_rhs
+from .common import fit_percent, symbolic_rhs, uncertainty_entries
 from .compliant import compliant_reference
 from .data import Record
+from .fituncertainty import hold_written_values
 
 __all__ = ["OBSERVER_HZ", "FIT_MIN_PERCENT", "NOISE_FACTOR", "RESONANCE_SHARE", "FIT_FAILURE", "refusal", "resonance", "WRITTEN_TOLERANCE_POINTS", "ACF_LAGS", "SKIP_S",
            "REPLAY_MODE", "replay_records", "noise_floor", "whiteness", "explained", "verdict", "diagnosis",
@@ -627,6 +628,12 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
             f"{s_}: {'failed' if v is None else f'{v:.4g}'}" for s_, v in search.get("objective", {}).items())
             + f"; tolerance: a factor {search.get('ratio_tolerance')}); give --delay-samples N if you know it")
     diag = None if passes else diagnosis(written, (result.solver.get("command_delay") or {}).get("search"), result, loo)
+    # every [uncertainty] entry must hold the value written (a user's absolute bounds may not: the
+    # data contradict them): the fit's own entry where the written value is the fitted one, else none
+    own = {k: params[k] for k in result.keys if k in plant.values and plant.values[k] == params[k]["value"]}
+    sds = [(v["ci95"][1] - v["ci95"][0]) / (2 * 1.959963984540054) for v in own.values()]
+    plant, notes = hold_written_values(plant, None, own, uncertainty_entries(plant, own, ", ".join(r.name for r in records), sds))
+    warns.extend(notes)
     fit_pct = dict(result.fit_percent)
     traces = {n: dict(t) for n, t in result.traces.items()}
     for n, e in written.items():

@@ -799,3 +799,23 @@ def test_a_test_signal_at_the_drive_input_is_replayed(tmp_path):
     without = replay_axis(truth, dataclasses.replace(log, test_signal=None)).errors_percent
     assert with_pulses["force"] < 0.5 and with_pulses["velocity"] < 0.5
     assert without["force"] > 10 * with_pulses["force"]
+
+
+@needs_data
+def test_a_fitted_mass_outside_the_users_bounds_is_named_and_written_with_the_fits_entry(emps_log, tmp_path):
+    """A base whose [uncertainty] bounds for the mass (98..110 kg around its 100 kg) exclude what
+    the EMPS data say (95.1 kg published): one warning names the key, its interval and the bounds
+    as typed; the written file carries the fit's entry and loads."""
+    base = load_axis_plant(EXAMPLE / "plant.toml")
+    typed = {"dist": "uniform", "low": 98, "high": 110, "source": "assumption: too sure"}
+    base = dataclasses.replace(base, uncertainty={"axis.mass_kg": typed})
+    fit = fit_linear_axis([emps_log], base, check_delay=False)
+    m = fit.plant.values["axis.mass_kg"]
+    assert not 98 <= m <= 110  # the premise: the data contradict the stated range
+    (line,) = [w for w in fit.warnings if w.startswith("axis.mass_kg = ")]
+    assert "outside the base plant's [uncertainty] entry (uniform low = 98, high = 110)" in line
+    path = tmp_path / "fitted.toml"
+    path.write_text(axis_plant_toml(fit.plant), encoding="utf-8")
+    back = load_axis_plant(path)
+    entry = back.uncertainty["axis.mass_kg"]
+    assert entry["source"].startswith("fit: ") and entry["truncate"] * entry["sigma"] > 0

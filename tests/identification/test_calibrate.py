@@ -53,3 +53,41 @@ def test_the_axial_mode_a_compliant_fit_started_from_is_written():
     unseeded = base.with_params({"axis.motor_inertia_kg_m2": 1.05 * base.values["axis.motor_inertia_kg_m2"]}, name=base.name)
     keys, _ = written_keys(base, SimpleNamespace(plant_keys=("axis.motor_inertia_kg_m2",), plant=unseeded))
     assert not set(SEED_KEYS) & set(keys)
+
+
+def test_an_frf_current_loop_outside_the_users_bounds_is_written_with_the_fits_entry(tmp_path):
+    """prsa-fit --frf: a drive whose current loop (300 Hz) lies outside the paper plant's
+    absolute [uncertainty] bounds (700..1400 Hz): the fitted value is written with the fit's
+    entry, one line names the key, its interval and the bounds as typed, and the text loads."""
+    import tomllib
+    import warnings
+
+    import numpy as np
+
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.identification.calibrate import calibrate_frf
+    from prsa_ctrl.identification.data import frf_from_arrays
+    from prsa_ctrl.identification.frf import frf_response
+    from prsa_ctrl.plant.plantfile import Plant
+    from prsa_ctrl.plant.uncertainty import plant_uncertainty
+
+    bw = "drive.current_loop_bandwidth_hz"
+    base = load_plant()
+    typed = base.uncertainty[bw]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        truth = base.with_params({bw: 300.0})
+    f = np.geomspace(5, 1000, 60)
+    rng = np.random.default_rng(3)
+    g = frf_response(truth, f, speed_rad_s=30.0) * np.exp(0.01 * (rng.standard_normal(60) + 1j * rng.standard_normal(60)))
+    frf_from_arrays("syn", f, g, coherence=np.full(60, 0.97)).to_csv(tmp_path / "bode.csv")
+    cal = calibrate_frf([tmp_path / "bode.csv"], name="fitted")
+    written = cal.result.plant.values[bw]
+    assert not typed["low"] <= written <= typed["high"]  # the premise: the data contradict the user's range
+    lines = [ln for ln in cal.lines if f"{bw} = " in ln and "outside the base plant's [uncertainty]" in ln]
+    assert len(lines) == 1 and f"low = {typed['low']!r}, high = {typed['high']!r}" in lines[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        back = Plant.from_dict(tomllib.loads(cal.plant_text), origin="fitted.toml")
+    (u,) = [u for u in plant_uncertainty(back).entries if u.key == bw]
+    assert u.low <= back.values[bw] <= u.high and back.uncertainty[bw]["source"].startswith("fit: ")
