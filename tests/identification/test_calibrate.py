@@ -53,3 +53,31 @@ def test_the_axial_mode_a_compliant_fit_started_from_is_written():
     unseeded = base.with_params({"axis.motor_inertia_kg_m2": 1.05 * base.values["axis.motor_inertia_kg_m2"]}, name=base.name)
     keys, _ = written_keys(base, SimpleNamespace(plant_keys=("axis.motor_inertia_kg_m2",), plant=unseeded))
     assert not set(SEED_KEYS) & set(keys)
+
+
+def test_a_compliant_fits_written_mode_is_the_written_files_at_the_stated_point():
+    """The mode a compliant fit reports (``axial_mode_hz``, the 'axial mode of the written plant'
+    line) is the written file's own compliant model linearised at the stated speed and load, and
+    the point is in the report; a rigid fit quotes none (its stiffness is the datasheet's)."""
+    import warnings
+
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.identification.calibrate import fit_report, mode_line, written_mode
+    from prsa_ctrl.identification.frf import axial_mode
+    from prsa_ctrl.plant.plantfile import plant_file_path
+
+    text = plant_file_path("ballscrew-32x10").read_text()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plant = load_plant("ballscrew-32x10")
+    compliant = SimpleNamespace(solver={"fidelity": "compliant"})
+    m = written_mode(compliant, text, 30.0, -800.0)
+    assert m["value"] == axial_mode(plant, speed_rad_s=30.0, load_n=-800.0)["resonance_hz"]
+    assert (m["speed_rad_s"], m["load_n"]) == (30.0, -800.0)
+    # the nut loss on the whole force: the same file at +800 N has its mode elsewhere
+    assert abs(written_mode(compliant, text, 30.0, 800.0)["value"] / m["value"] - 1) > 0.01
+    assert "30 rad/s, -800 N" in mode_line(m) and f"{m['value']:.5g} Hz" in mode_line(m)
+    assert written_mode(SimpleNamespace(solver={"fidelity": "rigid"}), text, 30.0, 0.0) is None
+    assert written_mode(compliant, None, 30.0, 0.0) is None  # no file written: no mode of it
+    result = SimpleNamespace(as_dict=lambda: {"parameters": {}})
+    assert fit_report(result, {}, mode=m)["axial_mode_hz"] == m
