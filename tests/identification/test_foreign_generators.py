@@ -501,9 +501,20 @@ def _command(case, tmp_path):
     return args, out, js, truth
 
 
+# Runs of CASES that violate the rule at seed 0 (measured; findings, not tolerances), as JUDGE_XFAIL.
+FOREIGN_XFAIL: dict[str, str] = {}
+
+
+def _foreign_params():
+    seed0 = os.environ.get("PRSA_FOREIGN_SEED", "0") == "0"
+    for case in sorted(CASES):
+        reason = FOREIGN_XFAIL.get(case) if seed0 else None
+        yield pytest.param(case, marks=[pytest.mark.xfail(strict=True, reason=reason)] if reason else [], id=case)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(PRSA_FIT is None, reason="the prsa-fit console script is not installed")
-@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("case", list(_foreign_params()))
 def test_prsa_fit_acceptance_on_foreign_sets(case, tmp_path):
     args, out, js, truth = _command(case, tmp_path)
     proc = _run(args, tmp_path)
