@@ -526,7 +526,9 @@ def _mode_misplaced(result, share: float, fp: float, n: str) -> str:
     ("the rigid model lacks it, fit --fidelity compliant") named the flag already given."""
     plant = getattr(result, "plant", None)
     fitted = set(getattr(result, "keys", ()) or ())
-    placed = [k for k in MODE_KEYS if plant is not None and k in plant.values and k not in fitted]
+    screw = plant is not None and getattr(plant, "screw_driven", False)
+    placed = [k for k in MODE_KEYS if plant is not None and k in plant.values and k not in fitted
+              and k.startswith("axis.") == screw]
     where = ""
     if plant is not None and getattr(plant, "screw_driven", False):
         try:
@@ -534,11 +536,12 @@ def _mode_misplaced(result, share: float, fp: float, n: str) -> str:
                      "no nut loss)")
         except (ValueError, KeyError, ZeroDivisionError):
             where = ""
-    srcs = {plant.sources.get(k, "") for k in placed} if plant is not None else set()
-    seeded = any(str(x).startswith("two-mass fit of") for x in srcs)
-    held = (f"; {', '.join(placed)} held at " + ("the measured response's two-mass fit" if seeded else
-            "the base plant's values (not fitted: give the measured frequency response beside the logs, --frf FRF.csv, "
-            "so the fit starts from its mode, or fit them with --fit)")) if placed else ""
+    seeded = [k for k in placed if str(plant.sources.get(k, "")).startswith("two-mass fit of")]
+    base = [k for k in placed if k not in seeded]
+    held = ((f"; {', '.join(seeded)} from the measured response's two-mass fit" if seeded else "")
+            + (f"; {', '.join(base)} held at the base plant's values (not fitted: give the measured frequency "
+               "response beside the logs, --frf FRF.csv, so the fit starts from its mode, or fit them with --fit)"
+               if base else ""))
     return (f"axial mode: {100 * share:.0f} % of the replay residual of {n} lies within 15 % of {fp:.4g} Hz, a "
             f"resonance the compliant model does not place there{where}{held}" + _current_loop_hidden(result, fp))
 
