@@ -739,6 +739,16 @@ JUDGE_XFAIL = {
     # resonance (validation.RESONANCE_SHARE): both now end exit 3 'second mass' with no file (rerun:
     # 65 % of the ball case's load-step residual within 15 % of 132.8 Hz, 86 % of the roller case's
     # multisine residual within 15 % of 150.4 Hz)
+    # logs-compliant (h11-twomass, measured on a loaded machine, CPU user+sys of prsa-fit): both roller
+    # cases end exit 3 with a diagnosis naming the mode, no file (accepted by the rule, not exit 0):
+    # the compliant fit holds the base plant's mode keys (series mode 134.9 Hz, truth 161.3 Hz at 2000 N)
+    # and 95-96 % of the multisine's residual lies within 15 % of 150.4 Hz. d1-applied: J 1.07629e-3
+    # (CI 1.06145..1.09114e-3, truth 1.08035e-3 inside), shift 0 exact, 152 s CPU; d2-computed-nonsi: shift 1
+    # against the true 2 (objective 1.2515e7 vs 1.3574e7) with the current loop at 336 Hz (truth 700):
+    # the misplaced mode, not the delay, 182 s CPU. With --frf bode.csv beside the d1 logs the seed wrote
+    # the moving mass (411 kg) and damping but not the nut stiffness, and the fit ends exit 3 the same way
+    # (131 s CPU). ball-2mass-d1-computed-si: not measured (the 3600 s subprocess timeout at load ~30
+    # after 259 s CPU).
 }
 
 
