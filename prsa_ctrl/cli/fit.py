@@ -86,9 +86,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "here, kp in N m s/rad, ki in N m/rad, the speed filter's time constant in s, default 0) and fit it "
                    "as --frf does, instead of the time-domain fit; --command-logged says how the log holds the command")
     p.add_argument("--frf-speed", action=KeepTyped, type=_finite("--frf-speed"), default=FRF_SPEED_DEFAULT_RAD_S,
-                   metavar="RAD_S", help=f"nut speed during the FRF measurement, rad/s (default {FRF_SPEED_DEFAULT_RAD_S:g})")
+                   metavar="RAD_S", help=f"nut speed during the FRF measurement, rad/s (default {FRF_SPEED_DEFAULT_RAD_S:g}); also the "
+                   "speed a compliant fit's axial mode is reported at")
     p.add_argument("--frf-load", action=KeepTyped, type=_finite("--frf-load"), default=None, metavar="N",
-                   help="axial load during the FRF measurement, N (default --load, else 0)")
+                   help="axial load during the FRF measurement, N (default --load, else 0); also the load a compliant "
+                   "fit's axial mode is reported at (the mode moves with the nut force)")
     p.add_argument("--frf-sample-time", type=number("--frf-sample-time", 0.0, what="a finite time >= 0 s",
                                                     quoted=True, not_a_number="a time in s"), default=None,
                    metavar="S", help="sample time of the drive that measured the --frf responses, s (default the "
@@ -498,7 +500,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
     finally:
         run.record = False
     run.check()  # a Ctrl-C in a step of the fit without an iteration check: nothing written
-    from ..identification.calibrate import fit_report, fitted_plant_text, not_explained_line, result_lines
+    from ..identification.calibrate import fit_report, fitted_plant_text, not_explained_line, result_lines, written_mode
 
     validation = result.solver.get("validation")
     failed = validation is not None and not validation["passes"]
@@ -509,11 +511,15 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         echo(f"prsa-fit: {exc}", file=sys.stderr)
         return 3
     files = {args.out: ("--out", text)} if not failed or args.force else {}
+    # a compliant plant's mode is stated at the FRF's operating point (--frf-speed, --frf-load): it moves with the nut force
+    point = (frfs[0].speed_rad_s, frfs[0].load_n) if frfs else (args.frf_speed, frf_load)
+    mode = None if cal is not None or args.out not in files else written_mode(result, text, *point)
     if args.json:
         from ..io.output import json_safe
         from ..plots.fit import fit_views
 
-        report = {**fit_report(result, coordinates, choice), "views": fit_views(result, [*records, *validate])}
+        report = {**(cal.report if cal is not None else fit_report(result, coordinates, choice, point=point, mode=mode)),
+                  "views": fit_views(result, [*records, *validate])}
         files[args.json] = ("--json", json.dumps(json_safe(report), indent=2) + "\n")
     try:
         if args.plots is not None:
@@ -524,7 +530,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         echo(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
              file=sys.stderr)
         return 2
-    for line in (cal.lines if cal is not None else result_lines(result, coordinates, choice)):
+    for line in (cal.lines if cal is not None else result_lines(result, coordinates, choice, point=point, mode=mode)):
         echo(line)
     written = [p for p, _ in ((args.out, 0),) if p in files] + ([args.json] if args.json else [])
     echo(("wrote " + " and ".join(written)) if written else "wrote no file")

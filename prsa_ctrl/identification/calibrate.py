@@ -32,7 +32,8 @@ from ..textsafe import printable
 
 __all__ = ["MOTOR_COORDINATES", "Calibrated", "calibrate_logs", "fitted_plant_text", "fit_report", "result_lines",
            "validation_lines", "not_explained_line",
-           "mat_log_refusal", "linear_axis_refusal", "calibrate_frf", "frf_point_check", "written_keys", "fitted_description", "structure_lines"]
+           "mat_log_refusal", "linear_axis_refusal", "calibrate_frf", "frf_point_check", "written_keys", "fitted_description", "structure_lines",
+           "written_mode", "mode_line"]
 
 #: Coordinates of a screw-driven plant file and of the logs it is fitted to, as reports state them.
 from ..options import MOTOR_COORDINATES  # noqa: E402 - defined once, re-exported here
@@ -119,17 +120,64 @@ def fitted_plant_text(result, base, base_text: str, name: str, fitted_from: str,
     return text
 
 
-def fit_report(result, coordinates: Mapping[str, str], choice=None) -> dict:
+def written_mode(result, plant_text: str | None, speed_rad_s: float, load_n: float) -> dict | None:
+    """The first axial mode of the plant file a compliant fit writes, at an operating point: its
+    compliant model linearised at ``speed_rad_s`` (rad/s) and ``load_n`` (N)
+    (:func:`prsa_ctrl.identification.frf.axial_mode`), as the report states it: ``value`` (Hz),
+    ``antiresonance_hz``, ``damping_ratio``, ``speed_rad_s``, ``load_n``.
+
+    The point is part of the number: with the nut loss on the whole transmitted force the
+    motor-side inertia of the mode depends on the nut force (the foreign feed axis's FRF-fitted
+    plant: 106.68 Hz at 0 N, 107.94 Hz at 800 N, 105.40 Hz at -800 N; its anti-resonance 94.64 Hz
+    at every load). ``None`` for a rigid fit (its plant's stiffness is the datasheet's, not
+    fitted), a plant without the text, a mechanism without an axial mode, or no oscillatory mode
+    at the point."""
+    if plant_text is None or result.solver.get("fidelity") != "compliant":
+        return None
+    import tomllib
+
+    from ..plant.plantfile import Plant
+    from .frf import axial_mode
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the base plant's geometry notes were given when it loaded
+        plant = Plant.from_dict(tomllib.loads(plant_text), origin="written")
+        try:
+            m = axial_mode(plant, speed_rad_s=float(speed_rad_s), load_n=float(load_n))
+        except ValueError:
+            return None
+    anti = m["antiresonance_hz"]
+    return {"value": m["resonance_hz"], "unit": "Hz", "antiresonance_hz": anti if math.isfinite(anti) else None,
+            "damping_ratio": m["damping_ratio"], "speed_rad_s": float(speed_rad_s), "load_n": float(load_n),
+            "of": "the written plant's compliant model linearised at this operating point"}
+
+
+def mode_line(mode: Mapping[str, Any]) -> str:
+    """The report's line of :func:`written_mode`: the mode with the point it is computed at."""
+    anti = mode.get("antiresonance_hz")
+    return (f"axial mode of the written plant {mode['value']:.5g} Hz"
+            + (f", anti-resonance {anti:.5g} Hz" if anti is not None else "")
+            + f" (its compliant model at {mode['speed_rad_s']:g} rad/s, {mode['load_n']:g} N; the mode moves with the "
+            "nut force)")
+
+
+def fit_report(result, coordinates: Mapping[str, str], choice=None, *, point: tuple[float, float] | None = None,
+               mode: Mapping[str, Any] | None = None) -> dict:
     """The JSON report: :meth:`FitResult.as_dict` and ``coordinates`` (the plant's and each log's);
     with a frequency-response structure ``choice`` that chose the two-mass model, also
-    ``frf_axial_mode_hz`` and ``frf_antiresonance_hz`` (value and 95 % interval, Hz): the mode the
-    response shows at its operating point (the written plant's ``--show-plant`` mode is the series
-    formula's, without the load or the nut loss)."""
+    ``frf_axial_mode_hz`` and ``frf_antiresonance_hz`` (value and 95 % interval, Hz; with
+    ``point`` = (speed rad/s, load N) the response's operating point, as ``speed_rad_s`` and
+    ``load_n``): the mode the response shows there; with ``mode`` (:func:`written_mode`) the
+    written plant's mode at its stated point as ``axial_mode_hz`` (the written plant's
+    ``--show-plant`` mode is the series formula's, without the load or the nut loss)."""
     report = {**result.as_dict(), "coordinates": {"plant": MOTOR_COORDINATES, "logs": dict(coordinates)}}
     if choice is not None and choice.structure == "two-mass" and choice.two_mass is not None:
         v = choice.two_mass.values
-        report["frf_axial_mode_hz"] = dict(v["resonance_hz"])
-        report["frf_antiresonance_hz"] = dict(v["antiresonance_hz"])
+        at = {} if point is None else {"speed_rad_s": float(point[0]), "load_n": float(point[1])}
+        report["frf_axial_mode_hz"] = {**v["resonance_hz"], **at}
+        report["frf_antiresonance_hz"] = {**v["antiresonance_hz"], **at}
+    if mode is not None:
+        report["axial_mode_hz"] = dict(mode)
     return report
 
 
@@ -141,14 +189,16 @@ def _ci_text(v: Mapping[str, Any], fmt: str = ".4g") -> str:
     return f"{v['value']:{fmt}} (95 % CI {v['ci95'][0]:{fmt}}..{v['ci95'][1]:{fmt}})"
 
 
-def structure_lines(choice) -> list[str]:
-    """The structure an FRF chose, why, and the two-mass model's mode with intervals."""
+def structure_lines(choice, point: tuple[float, float] | None = None) -> list[str]:
+    """The structure an FRF chose, why, and the two-mass model's mode with intervals, at the
+    response's operating ``point`` (speed rad/s, load N) when given."""
     out = [f"structure: {choice.structure} ({choice.reason})"]
     two = choice.two_mass
     if two is not None and choice.structure == "two-mass":
         v = two.values
-        out.append(f"  axial mode {_ci_text(v['resonance_hz'])} Hz, anti-resonance {_ci_text(v['antiresonance_hz'])} Hz, "
-                   f"damping ratio {_ci_text(v['damping_ratio'], '.3g')}")
+        at = "" if point is None else f" at the response's operating point {point[0]:g} rad/s, {point[1]:g} N"
+        out.append(f"  axial mode {_ci_text(v['resonance_hz'])} Hz, anti-resonance {_ci_text(v['antiresonance_hz'])} Hz"
+                   f"{at}, damping ratio {_ci_text(v['damping_ratio'], '.3g')}")
         out.append(f"  total inertia {_ci_text(v['total_inertia_kg_m2'])} kg m^2 = motor side "
                    f"{_ci_text(v['motor_inertia_kg_m2'])} + load side {_ci_text(v['load_inertia_kg_m2'])}; stiffness "
                    f"{_ci_text(v['stiffness_n_m_per_rad'])} N m/rad; current loop "
@@ -176,10 +226,13 @@ def validation_lines(v: Mapping[str, Any]) -> list[str]:
     return [printable(x) for x in out]  # one line each: a log named with a line feed cannot forge a line
 
 
-def result_lines(result, coordinates: Mapping[str, str], choice=None) -> list[str]:
+def result_lines(result, coordinates: Mapping[str, str], choice=None, *, point: tuple[float, float] | None = None,
+                 mode: Mapping[str, Any] | None = None) -> list[str]:
     """The fit's report as text lines (what ``prsa-fit`` prints before ``wrote ...``): values with
     95 % intervals, the command delay and friction map when found, the reflected inertia, the
-    FRF structure (``choice``), fit % per record, warnings, coordinates, validation. One line
+    FRF structure (``choice``, its mode at the response's operating ``point``), the written
+    plant's axial mode at its point (``mode``, :func:`written_mode`), fit % per record, warnings,
+    coordinates, validation. One line
     each: the logs' names and the warnings made printable (:func:`prsa_ctrl.textsafe.printable`:
     a line feed in a file name is ``\\n``, not a line of its own)."""
     from .common import unit_text
@@ -213,7 +266,9 @@ def result_lines(result, coordinates: Mapping[str, str], choice=None) -> list[st
     j = result.reflected_inertia_kg_m2
     out.append(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
     if choice is not None:
-        out += structure_lines(choice)
+        out += structure_lines(choice, point)
+    if mode is not None:
+        out.append(mode_line(mode))
     for f, pct in result.fit_percent.items():
         out.append(f"fit {pct:.2f} % on {f}" if math.isfinite(pct) else
                    f"fit n/a on {f} (the measured response does not vary: a normalised fit is not defined)")
@@ -493,7 +548,10 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
     fitted_from = ", ".join(Path(x).name for x in labels) if fitted_from is None else fitted_from
     text = None if failure and not force else fitted_plant_text(result, plant, base_text, name, fitted_from, force=force,
                                                                 origin=name if origin is None else origin)
-    report = {**fit_report(result, coordinates, choice), "frf_structure": {"structure": choice.structure,
-                                                                           "reason": choice.reason,
-                                                                           "lines": structure_lines(choice)}}
-    return Calibrated(result, text, report, tuple(result_lines(result, coordinates, choice)), failure, (), choice)
+    point = (frfs[0].speed_rad_s, frfs[0].load_n)  # the plant keys are mapped at the first response's point
+    mode = written_mode(result, text, *point)
+    report = {**fit_report(result, coordinates, choice, point=point, mode=mode),
+              "frf_structure": {"structure": choice.structure, "reason": choice.reason,
+                                "lines": structure_lines(choice, point)}}
+    return Calibrated(result, text, report, tuple(result_lines(result, coordinates, choice, point=point, mode=mode)),
+                      failure, (), choice)

@@ -199,7 +199,9 @@ def describe_plant(plant: Plant) -> str:
         v = plant.values
         lines.append(f"axial stiffness at the stroke position {v['axis.stroke_position_mm']:g} mm: "
                      f"{plant.axial_stiffness_n_per_m() * 1e-6:.4g} N/um, axial mode {plant.axial_mode_hz():.4g} Hz "
-                     f"({'fixed-fixed' if v['axis.fixed_ends'] == 2 else 'fixed-free'})")
+                     f"({'fixed-fixed' if v['axis.fixed_ends'] == 2 else 'fixed-free'}; the series formula "
+                     "sqrt(k (1/m + a^2/J)) / 2 pi at no load and without the nut loss: the mode at an operating "
+                     "point, which moves with the nut force, is prsa-fit's 'axial mode of the written plant')")
     used = used_keys(plant)
     order = list(dict.fromkeys(k.split(".")[0] for k in used))  # each section once (a screw axis adds screw keys)
     used = tuple(sorted(used, key=lambda k: order.index(k.split(".")[0])))  # stable: file order inside a section

@@ -172,6 +172,9 @@ def test_two_mass_response_shows_the_chosen_structure_and_the_mode_with_interval
             assert got["value"] == pytest.approx(truth, rel=0.01)
         html_ = _report_html(cal, "done") if cal.refused is None else _report_html(cal, "refused")
         assert "data-structure='two-mass'" in html_ and "axial mode" in html_ and "anti-resonance" in html_
+        # the mode is quoted with the point it holds at (the command's default 30 rad/s, 0 N)
+        assert "operating point 30 rad/s, 0 N" in html_
+        assert cal.report["frf_axial_mode_hz"]["load_n"] == want["frf_axial_mode_hz"]["load_n"] == 0.0
     finally:
         s.close()
 

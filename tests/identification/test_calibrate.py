@@ -91,3 +91,31 @@ def test_an_frf_current_loop_outside_the_users_bounds_is_written_with_the_fits_e
         back = Plant.from_dict(tomllib.loads(cal.plant_text), origin="fitted.toml")
     (u,) = [u for u in plant_uncertainty(back).entries if u.key == bw]
     assert u.low <= back.values[bw] <= u.high and back.uncertainty[bw]["source"].startswith("fit: ")
+
+
+def test_a_compliant_fits_written_mode_is_the_written_files_at_the_stated_point():
+    """The mode a compliant fit reports (``axial_mode_hz``, the 'axial mode of the written plant'
+    line) is the written file's own compliant model linearised at the stated speed and load, and
+    the point is in the report; a rigid fit quotes none (its stiffness is the datasheet's)."""
+    import warnings
+
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.identification.calibrate import fit_report, mode_line, written_mode
+    from prsa_ctrl.identification.frf import axial_mode
+    from prsa_ctrl.plant.plantfile import plant_file_path
+
+    text = plant_file_path("ballscrew-32x10").read_text()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plant = load_plant("ballscrew-32x10")
+    compliant = SimpleNamespace(solver={"fidelity": "compliant"})
+    m = written_mode(compliant, text, 30.0, -800.0)
+    assert m["value"] == axial_mode(plant, speed_rad_s=30.0, load_n=-800.0)["resonance_hz"]
+    assert (m["speed_rad_s"], m["load_n"]) == (30.0, -800.0)
+    # the nut loss on the whole force: the same file at +800 N has its mode elsewhere
+    assert abs(written_mode(compliant, text, 30.0, 800.0)["value"] / m["value"] - 1) > 0.01
+    assert "30 rad/s, -800 N" in mode_line(m) and f"{m['value']:.5g} Hz" in mode_line(m)
+    assert written_mode(SimpleNamespace(solver={"fidelity": "rigid"}), text, 30.0, 0.0) is None
+    assert written_mode(compliant, None, 30.0, 0.0) is None  # no file written: no mode of it
+    result = SimpleNamespace(as_dict=lambda: {"parameters": {}})
+    assert fit_report(result, {}, mode=m)["axial_mode_hz"] == m

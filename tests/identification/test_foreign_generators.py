@@ -453,6 +453,7 @@ def _record(name, args, row, fails):
 CASES = {
     # name: (set, how the command is built, mode expected in the data)
     "rollerscrew-logs": ("rs", "logs", False),
+    "rollerscrew-logs-compliant": ("rs", "logs-compliant", True),
     "rollerscrew-frf-rigid": ("rs", "frf", False),
     "rollerscrew-frf-compliant": ("rs", "frf-compliant", True),
     "ballscrew-logs-applied": ("bs-applied", "logs", False),
@@ -460,6 +461,7 @@ CASES = {
     "ballscrew-frf-applied": ("bs-applied", "frf", False),
     "ballscrew-frf-computed": ("bs-computed", "frf", False),
     "feedaxis-logs": ("fa", "logs", False),
+    "feedaxis-logs-compliant": ("fa", "logs-compliant", True),
     "feedaxis-frf-rigid": ("fa", "frf", False),
     "feedaxis-frf-compliant": ("fa", "frf-compliant", True),
 }
@@ -485,10 +487,12 @@ def _command(case, tmp_path):
         logs = [s["logs"][how][n] for n in ("multisine", "loadsteps", "staircase")]
         frf = s["frf"][how]
         described = []
-    if kind == "logs":
+    if kind.startswith("logs"):
         # a described log says how the command is logged; plain SI logs take the flag
         flag = [] if described else ["--command-logged", how]
         args = [*logs, *described, *flag, "--plant", s["base"], "--out", out, "--json", js]
+        if kind == "logs-compliant":  # the mode reported at the truth's point (it moves with the nut force)
+            args += ["--fidelity", "compliant", "--frf-speed", truth["frf_speed_rad_s"], "--frf-load", truth["frf_load_n"]]
     else:
         args = ["--frf", frf, "--frf-speed", truth["frf_speed_rad_s"], "--frf-load", truth["frf_load_n"],
                 "--command-logged", how, "--plant", s["base"], "--out", out, "--json", js]
@@ -497,9 +501,20 @@ def _command(case, tmp_path):
     return args, out, js, truth
 
 
+# Runs of CASES that violate the rule at seed 0 (measured; findings, not tolerances), as JUDGE_XFAIL.
+FOREIGN_XFAIL: dict[str, str] = {}
+
+
+def _foreign_params():
+    seed0 = os.environ.get("PRSA_FOREIGN_SEED", "0") == "0"
+    for case in sorted(CASES):
+        reason = FOREIGN_XFAIL.get(case) if seed0 else None
+        yield pytest.param(case, marks=[pytest.mark.xfail(strict=True, reason=reason)] if reason else [], id=case)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(PRSA_FIT is None, reason="the prsa-fit console script is not installed")
-@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("case", list(_foreign_params()))
 def test_prsa_fit_acceptance_on_foreign_sets(case, tmp_path):
     args, out, js, truth = _command(case, tmp_path)
     proc = _run(args, tmp_path)
@@ -686,9 +701,11 @@ def test_judge_generator_is_deterministic_and_its_base_plant_is_nominal(tmp_path
 
 
 # prsa-fit on the judge's cases: time-domain logs (rigid fidelity, as the docs' first command),
-# the FRF with the structure the data choose, and on the two-mass axes --fidelity compliant and
-# --fidelity rigid. The rule is the issue's, never today's numbers.
-JUDGE_KINDS = {name: (("logs", "frf", "frf-compliant", "frf-rigid") if c.two_mass else ("logs", "frf"))
+# the FRF with the structure the data choose, and on the two-mass axes the same logs with
+# --fidelity compliant (logs-compliant: the compliant time-domain fit on its 0.05 s segments, the
+# delay searched, no FRF beside the logs) and the FRF with --fidelity compliant and --fidelity
+# rigid. The rule is the issue's, never today's numbers.
+JUDGE_KINDS = {name: (("logs", "logs-compliant", "frf", "frf-compliant", "frf-rigid") if c.two_mass else ("logs", "frf"))
                for name, c in gj.CASES.items()}
 
 # Runs that violate the rule on main 1dddb38 at seed 0 (measured; the report's table): findings,
@@ -722,20 +739,32 @@ JUDGE_XFAIL = {
     # resonance (validation.RESONANCE_SHARE): both now end exit 3 'second mass' with no file (rerun:
     # 65 % of the ball case's load-step residual within 15 % of 132.8 Hz, 86 % of the roller case's
     # multisine residual within 15 % of 150.4 Hz)
+    # logs-compliant (h11-twomass, measured on a loaded machine, CPU user+sys of prsa-fit): both roller
+    # cases end exit 3 with a diagnosis naming the mode, no file (accepted by the rule, not exit 0):
+    # the compliant fit holds the base plant's mode keys (series mode 134.9 Hz, truth 161.3 Hz at 2000 N)
+    # and 95-96 % of the multisine's residual lies within 15 % of 150.4 Hz. d1-applied: J 1.07629e-3
+    # (CI 1.06145..1.09114e-3, truth 1.08035e-3 inside), shift 0 exact, 152 s CPU; d2-computed-nonsi: shift 1
+    # against the true 2 (objective 1.2515e7 vs 1.3574e7) with the current loop at 336 Hz (truth 700):
+    # the misplaced mode, not the delay, 182 s CPU. With --frf bode.csv beside the d1 logs the seed wrote
+    # the moving mass (411 kg) and damping but not the nut stiffness, and the fit ends exit 3 the same way
+    # (131 s CPU). ball-2mass-d1-computed-si: not measured (the 3600 s subprocess timeout at load ~30
+    # after 259 s CPU).
 }
 
 
 def _judge_command(name, kind, tmp_path):
     """prsa-fit arguments of one judge run, on data of seed $PRSA_FOREIGN_SEED (default 0)."""
     seed = int(os.environ.get("PRSA_FOREIGN_SEED", "0"))
-    exps = gj.EXPERIMENTS if kind == "logs" else ()
+    exps = gj.EXPERIMENTS if kind.startswith("logs") else ()
     s = gj.generate(tmp_path / "data", name, seed=seed, experiments=exps)
     t = s["truth"]
     out, js = tmp_path / "fitted.toml", tmp_path / "report.json"
-    if kind == "logs":
+    if kind.startswith("logs"):
         logs = [s["logs"][n] for n in gj.EXPERIMENTS]
         how = ["--log-format", s["log_format"]] if s["log_format"] else ["--command-logged", t["command_logged"]]
         args = [*logs, *how, "--plant", s["base"], "--out", out, "--json", js]
+        if kind == "logs-compliant":  # the mode reported at the truth's point (it moves with the nut force)
+            args += ["--fidelity", "compliant", "--frf-speed", t["frf_speed_rad_s"], "--frf-load", t["frf_load_n"]]
     else:
         args = ["--frf", s["frf"], "--frf-speed", t["frf_speed_rad_s"], "--frf-load", t["frf_load_n"],
                 "--command-logged", t["command_logged"], "--plant", s["base"], "--out", out, "--json", js]

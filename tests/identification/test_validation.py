@@ -154,6 +154,17 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
 
     d = diagnosis({"independent": ringing}, {"decided": True}, _Kept())
     assert d.startswith("second mass") and "kept at 800 Hz" in d
+
+    screw = load_plant("ballscrew-32x10")
+
+    class _Compliant(_R):  # a compliant fit: the model has a mode, not where the data have it
+        solver = {"fidelity": "compliant"}
+        plant = screw
+
+    dc = diagnosis({"independent": ringing}, {"decided": True}, _Compliant())
+    assert dc.startswith("axial mode") and f"{f_hz:.4g} Hz" in dc and "--fidelity compliant" not in dc
+    assert f"at {screw.axial_mode_hz():.4g} Hz by the series formula" in dc
+    assert "axis.nut_stiffness_n_per_um" in dc and "base plant's values" in dc and "--frf" in dc
     lag = float(d.split(" Hz is ")[-1].split(" deg")[0])
     assert lag == pytest.approx(math.degrees(math.atan(fp / 800.0)), abs=0.06)
     assert float(f"{ringing['resonance'][0]:.4g}") == fp  # the verdict's peak, kept in the entry, is the one named
