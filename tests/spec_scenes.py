@@ -77,7 +77,8 @@ def roller_16k_plant() -> str:
 
     text = plant_file_path("rollerscrew-30x5").read_text("utf-8")
     old = 'sample_time_s = { value = 2.5e-4, source = "assumption: 4 kHz speed loop of a servo drive" }'
-    assert old in text and 'name = "rollerscrew-30x5"' in text
+    assert old in text
+    assert 'name = "rollerscrew-30x5"' in text
     return text.replace(old, 'sample_time_s = { value = 6.25e-5, source = "assumption: 16 kHz speed loop of a '
                              'current servo drive (62.5 us)" }').replace('name = "rollerscrew-30x5"',
                                                                          'name = "rollerscrew-30x5-16k"')
@@ -141,7 +142,8 @@ def check_rule(rec):
 
     rows = {r["name"]: r for r in rec["table"]}
     if rec["name"] is None:  # none recommended: only when no design meets the spec on any sample
-        assert all(r["passed"] == 0 for r in rows.values()) and rec["design"] is None
+        assert all(r["passed"] == 0 for r in rows.values())
+        assert rec["design"] is None
         return
     me = rows[rec["name"]]
     h = lambda r: (lambda lo, hi: (hi - lo) / 2)(*wilson_interval(r["passed"], r["samples"]))  # noqa: E731

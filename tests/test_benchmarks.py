@@ -46,8 +46,11 @@ def test_bench_fast_runs_every_section_and_writes_its_json(tmp_path):
     assert data["robust_tuning"]["scenarios"] >= 5
     # the batched Monte Carlo ran both paths on the same samples and quoted its measured error
     bm = data["batched_monte_carlo"]
-    assert bm["n"] == 16 and len(bm["median_s"]) == 3 and bm["batched_identical_across_backends"] is True
-    assert bm["integration"]["path"] == "batched" and bm["integration"]["relative"] is not None
+    assert bm["n"] == 16
+    assert len(bm["median_s"]) == 3
+    assert bm["batched_identical_across_backends"] is True
+    assert bm["integration"]["path"] == "batched"
+    assert bm["integration"]["relative"] is not None
 
 
 def test_bench_refuses_a_bad_out_before_any_work(tmp_path):
@@ -55,7 +58,9 @@ def test_bench_refuses_a_bad_out_before_any_work(tmp_path):
     p = subprocess.run([sys.executable, str(BENCH / "bench.py"), "--fast", "--out", str(tmp_path / "file")],
                        cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=300)
     lines = p.stderr.strip().splitlines()
-    assert p.returncode == 2 and len(lines) == 1 and lines[0].startswith("bench: error: "), p.stderr
+    assert p.returncode == 2, p.stderr
+    assert len(lines) == 1, p.stderr
+    assert lines[0].startswith("bench: error: "), p.stderr
     assert (tmp_path / "file").read_text() == "x"
 
 
@@ -79,7 +84,8 @@ def test_app_bench_fast_completes_and_writes_its_json(tmp_path):
     p = _run("app_bench.py", tmp_path)
     assert p.returncode == 0, (p.returncode, p.stdout[-3000:], p.stderr[-3000:])
     data = json.loads((tmp_path / "out" / "app_bench.json").read_text(encoding="utf-8"))
-    assert data["fast"] is True and data["repeats"] == 1
+    assert data["fast"] is True
+    assert data["repeats"] == 1
     assert set(data["median_s"]) == {"start_s", "slider_s", "drag_s", "generic_open_s", "generic_bound_s"}
     assert all(len(v) >= 1 for v in data["runs_s"].values())
 
@@ -97,8 +103,10 @@ def test_bench_acceptance_fast_prints_every_target_and_writes_its_json(tmp_path)
     for key, r in rows.items():
         # (a value that could not be measured, e.g. no tiny run within 1e-6 rad/s, is null and fails)
         assert (r["median"] is None and r["met"] is False) or r["min"] <= r["median"] <= r["max"], (key, r)
-        assert isinstance(r["met"], bool) and f"{key} " in p.stdout
-    assert rows["mc_robust"]["ms_per_sample"] is True and rows["mc_paper"]["path"] == "batched"
+        assert isinstance(r["met"], bool)
+        assert f"{key} " in p.stdout
+    assert rows["mc_robust"]["ms_per_sample"] is True
+    assert rows["mc_paper"]["path"] == "batched"
     assert rows["design_to_spec"]["results"][0]["samples"] == 8
 
 
@@ -109,13 +117,17 @@ def test_calibration_bench_says_when_the_foreign_axis_data_are_absent(tmp_path):
     empty.mkdir()
     p = _run("calibration_bench.py", tmp_path, "--data", str(empty))
     assert p.returncode == 0, (p.stdout[-2000:], p.stderr[-2000:])
-    assert "skipped: foreign-axis data not found in " + str(empty) in p.stdout and "--data DIR" in p.stdout
+    assert "skipped: foreign-axis data not found in " + str(empty) in p.stdout
+    assert "--data DIR" in p.stdout
     data = json.loads((tmp_path / "out" / "calibration.json").read_text(encoding="utf-8"))
-    assert data["fast"] is True and str(empty) in data["skipped"]
+    assert data["fast"] is True
+    assert str(empty) in data["skipped"]
     (tmp_path / "file").write_text("x")
     p = subprocess.run([sys.executable, str(BENCH / "calibration_bench.py"), "--fast", "--out", str(tmp_path / "file")],
                        cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=300)
-    assert p.returncode == 2 and p.stderr.startswith("calibration_bench: error: --out ") and (tmp_path / "file").read_text() == "x"
+    assert p.returncode == 2
+    assert p.stderr.startswith("calibration_bench: error: --out ")
+    assert (tmp_path / "file").read_text() == "x"
 
 
 @pytest.mark.slow
@@ -129,7 +141,9 @@ def test_calibration_bench_fast_times_the_foreign_axis_fits(tmp_path):
     if data is None:
         pytest.skip(where)
     p = _run("calibration_bench.py", tmp_path)
-    assert p.returncode == 0 and "Traceback" not in p.stderr, (p.stdout[-2000:], p.stderr[-2000:])
+    assert p.returncode == 0, (p.stdout[-2000:], p.stderr[-2000:])
+    assert "Traceback" not in p.stderr, (p.stdout[-2000:], p.stderr[-2000:])
     res = json.loads((tmp_path / "out" / "calibration.json").read_text(encoding="utf-8"))
-    assert set(res) >= {"frf", "rigid_logs"} and res["frf"]["runs"][0]["exit"] == 0
+    assert set(res) >= {"frf", "rigid_logs"}
+    assert res["frf"]["runs"][0]["exit"] == 0
     assert all(r["wall_s"] > 0 and r["cpu_s"] >= 0 for s in ("frf", "rigid_logs") for r in res[s]["runs"])

@@ -48,7 +48,8 @@ def test_unbroken_oracle_finds_the_optimum_feasible_and_stable(monkeypatch):
     assert len(results) == len(STARTS)
     assert any(r.success and np.array_equal(r.x, [kp, ki, kd]) for r in results)
     assert ki == pytest.approx(KI_OPT, rel=1e-3)
-    assert ms <= 1.4 * (1 + ref.FEAS_RTOL) and ref.stable(*P3, kp, ki, kd)
+    assert ms <= 1.4 * (1 + ref.FEAS_RTOL)
+    assert ref.stable(*P3, kp, ki, kd)
 
 
 # The failure: from one start SLSQP stops with "Inequality constraints incompatible" at
@@ -69,8 +70,10 @@ def test_ideal_pid_oracle_rejects_a_broken_start(monkeypatch, name, which):
     calls = _break_minimize(monkeypatch, lambda x0: _result(x, ok, msg), which)
     (kp, ki, kd), (ms, _) = ref.best_ideal_pid(*P3, 1.4, None, STARTS)
     assert len(calls) == len(STARTS)  # the oracle went through the broken optimiser
-    assert ki == pytest.approx(KI_OPT, rel=1e-3) and ki < 1899.0
-    assert ms <= 1.4 * (1 + ref.FEAS_RTOL) and ref.stable(*P3, kp, ki, kd)
+    assert ki == pytest.approx(KI_OPT, rel=1e-3)
+    assert ki < 1899.0
+    assert ms <= 1.4 * (1 + ref.FEAS_RTOL)
+    assert ref.stable(*P3, kp, ki, kd)
 
 
 def test_ideal_pid_oracle_rejects_an_unstable_point_inside_the_bounds(monkeypatch):
@@ -129,9 +132,11 @@ def test_pi_oracle_keeps_the_grid_point_when_the_refinement_is_worse(monkeypatch
     worse = lambda f, bounds, **k: OptimizeResult(x=bounds[0], fun=f(bounds[0]), success=True, message="")  # noqa: E731
     monkeypatch.setattr(ref, "minimize_scalar", worse)
     kp2, ki2 = ref.best_pi(num, den, ms, mt, mks, kp_hi=kp_hi, n=40)
-    assert ki2 <= ki and ki2 >= ki * (1 - 0.05)  # the grid's best, not the edge
+    assert ki2 <= ki
+    assert ki2 >= ki * (1 - 0.05)  # the grid's best, not the edge
     kps = np.linspace(kp_hi / 40, kp_hi, 40)
-    assert kp2 in kps and ki2 == max(ref.max_ki(num, den, k, ms, mt, mks) for k in kps)
+    assert kp2 in kps
+    assert ki2 == max(ref.max_ki(num, den, k, ms, mt, mks) for k in kps)
     failed = lambda f, bounds, **k: OptimizeResult(x=bounds[0], fun=0.0, success=False, message="maxiter")  # noqa: E731
     monkeypatch.setattr(ref, "minimize_scalar", failed)
     with pytest.raises(ref.OracleFailure, match="best_pi.*maxiter"):

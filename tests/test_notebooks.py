@@ -78,7 +78,8 @@ def test_problems_catch_the_faults_of_a_broken_notebook():
 
 def test_notebooks_are_collected_from_the_folder():
     names = [p.name[:2] for p in NOTEBOOKS]
-    assert {"01", "02", "03", "04", "05", "09"} <= set(names) and names == sorted(names)
+    assert {"01", "02", "03", "04", "05", "09"} <= set(names)
+    assert names == sorted(names)
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
@@ -89,10 +90,12 @@ def test_notebook_committed_without_outputs_with_title_and_narrow_warning_filter
             assert not cell.get("outputs"), f"{path.name} has outputs"
             assert cell.get("execution_count") is None
     first = "".join(nb["cells"][0]["source"])
-    assert nb["cells"][0]["cell_type"] == "markdown" and first.startswith("# "), f"{path.name} has no title"
+    assert nb["cells"][0]["cell_type"] == "markdown", f"{path.name} has no title"
+    assert first.startswith("# "), f"{path.name} has no title"
     code = "\n".join("".join(c["source"]) for c in nb["cells"] if c["cell_type"] == "code")
     # Silence only the documented geometry note, never every warning.
-    assert 'simplefilter("ignore")' not in code and "filterwarnings(\"ignore\")" not in code, path.name
+    assert 'simplefilter("ignore")' not in code, path.name
+    assert "filterwarnings(\"ignore\")" not in code, path.name
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)

@@ -108,9 +108,11 @@ def test_check_number_bounds_are_exact_at_the_edge():
 
 def test_check_number_returns_float_or_int_and_passes_none_when_optional():
     v = options.check_number("x", np.float32(0.5))
-    assert type(v) is float and v == 0.5
+    assert type(v) is float
+    assert v == 0.5
     n = options.check_number("n", np.int64(7), 1, 10, integer=True)
-    assert type(n) is int and n == 7
+    assert type(n) is int
+    assert n == 7
     assert options.check_number("x", None, optional=True) is None
     with pytest.raises(ValueError, match="x = None; expected a finite number"):
         options.check_number("x", None)

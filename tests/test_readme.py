@@ -46,7 +46,8 @@ def test_readme_holds_no_editing_leftovers():
 def test_readme_does_not_deny_what_scene_files_do():
     """Scene files describe ramps and traces (the duty-cycle section); no sentence may deny it."""
     text = " ".join(README.read_text(encoding="utf-8").split())
-    assert "load_profile_n" in text and "load_trace_csv" in text
+    assert "load_profile_n" in text
+    assert "load_trace_csv" in text
     assert "scene files do not describe" not in text.lower()
 
 
@@ -57,7 +58,8 @@ def test_readme_export_example_is_what_the_export_writes():
     assert len(toml_blocks) == 1, "the README shows one drive-export example"
     at, shown_text = toml_blocks[0]
     snippet = [body for start, body in _blocks(text, "python") if start < at][-1]
-    assert "export_controller" in snippet and "print(dumps(" in snippet
+    assert "export_controller" in snippet
+    assert "print(dumps(" in snippet
     out = io.StringIO()
     with warnings.catch_warnings(), contextlib.redirect_stdout(out):
         warnings.simplefilter("ignore")
@@ -122,7 +124,8 @@ def _script(name):
 
 def _check_install(words):
     """``pip install .`` or ``pip install ".[extra,...]"``, every extra defined in pyproject.toml."""
-    assert words[:2] == ["pip", "install"] and len(words) == 3, f"unexpected install command {words}"
+    assert words[:2] == ["pip", "install"], f"unexpected install command {words}"
+    assert len(words) == 3, f"unexpected install command {words}"
     target = words[2]
     assert target == "." or (target.startswith(".[") and target.endswith("]")), target
     unknown = set(target[2:-1].split(",")) - _extras() if target != "." else set()
@@ -185,7 +188,8 @@ def test_readme_shell_block_runs_or_is_checked(block, tmp_path):
             assert (ROOT / "scripts" / "fresh-test.sh").is_file()
             assert "bash scripts/fresh-test.sh" in (ROOT / ".ci" / "run").read_text()
         elif words[0] == "sphinx-build":
-            assert words[1:-1] == _DOCS_BUILD and not words[-1].startswith(("docs", ".")), words
+            assert words[1:-1] == _DOCS_BUILD, words
+            assert not words[-1].startswith(("docs", ".")), words
             spec = importlib.util.spec_from_file_location("_test_docs", ROOT / "tests" / "test_docs.py")
             docs_test = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(docs_test)

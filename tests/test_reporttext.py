@@ -62,7 +62,8 @@ def test_the_moved_formatters_keep_their_old_names():
     assert montecarlo.format_report is reporttext.format_monte_carlo
     assert paper.format_rows is reporttext.format_rows
     assert pid.format_pid_report is reporttext.format_pid_report
-    assert montecarlo.MonteCarloReport.format.__doc__ and designspec.DesignToSpec.format.__doc__
+    assert montecarlo.MonteCarloReport.format.__doc__
+    assert designspec.DesignToSpec.format.__doc__
 
 
 def test_no_report_formatter_outside_its_home():
@@ -115,7 +116,8 @@ def test_the_linear_axis_fit_reads_as_written():
 
 def test_the_linear_axis_validation_says_which_replay_ran_open_loop():
     lines = reporttext.axis_validation_lines([(_replay("a.mat"), True), (_replay("b.csv", False), False)], "xy")
-    assert lines[1].startswith("b.csv: replay errors") and lines[-1] == "coordinates: xy"
+    assert lines[1].startswith("b.csv: replay errors")
+    assert lines[-1] == "coordinates: xy"
     assert lines[2] == ("note: b.csv has no controller description: replayed open loop from the logged command (an "
                         "integrating axis drifts)")
     assert len(lines) == 4

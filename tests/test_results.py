@@ -36,32 +36,45 @@ def test_verify_returns_a_new_design_and_leaves_its_argument(small):
     plant, scene, _, d = small
     before = dataclasses.asdict(d)
     v = verify(d, plant, scene)
-    assert v is not d and d.verified == () and d.verified_runs == () and math.isnan(d.objective_verified)
-    assert dataclasses.asdict(d).keys() == before.keys() and d.status == "unverified"
-    assert len(v.verified) == len(scene.final_loads) and v.objective_verified > 0
-    assert v.status == "ok" and v.ok and v.pid == d.pid and v.predicted == d.predicted
+    assert v is not d
+    assert d.verified == ()
+    assert d.verified_runs == ()
+    assert math.isnan(d.objective_verified)
+    assert dataclasses.asdict(d).keys() == before.keys()
+    assert d.status == "unverified"
+    assert len(v.verified) == len(scene.final_loads)
+    assert v.objective_verified > 0
+    assert v.status == "ok"
+    assert v.ok
+    assert v.pid == d.pid
+    assert v.predicted == d.predicted
     c = checked(v, plant, scene)
-    assert c is not v and c.flags == () and v.flags == ()
+    assert c is not v
+    assert c.flags == ()
+    assert v.flags == ()
 
 
 def test_predict_returns_a_new_design(small):
     plant, scene, loops, d = small
     bare = Design("x", d.pid, d.margins)
     p = predict(bare, loops, plant, scene)
-    assert bare.predicted == () and math.isnan(bare.objective_predicted)
+    assert bare.predicted == ()
+    assert math.isnan(bare.objective_predicted)
     assert p.objective_predicted == pytest.approx(d.objective_predicted, rel=0, abs=0)
 
 
 @pytest.mark.parametrize("cls", [Design, ActuatorTuning, FilteredDesign, RobustTuning, MonteCarloReport, DesignYield,
                                  FitResult, AxisFit, AxisRetuning])
 def test_results_are_frozen_with_status_warnings_and_as_dict(cls):
-    assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen
+    assert dataclasses.is_dataclass(cls)
+    assert cls.__dataclass_params__.frozen
     names = {f.name for f in dataclasses.fields(cls)} | {n for n, _ in inspect.getmembers(cls)}
     if cls is not DesignYield:
         assert {"status", "warnings", "as_dict"} <= names, cls
         # converged / ok are derived from status (properties), never stored beside it
         fields = {f.name for f in dataclasses.fields(cls)}
-        assert "converged" not in fields and "ok" not in fields
+        assert "converged" not in fields
+        assert "ok" not in fields
         assert isinstance(getattr(cls, "ok"), property)
 
 
@@ -71,11 +84,15 @@ def test_frozen_design_rejects_assignment(small):
 
 
 def test_status_vocabulary():
-    assert status_head("optimal") == "optimal" and is_converged("optimal (acceptable level)")
+    assert status_head("optimal") == "optimal"
+    assert is_converged("optimal (acceptable level)")
     assert status_head("not proven optimal: residual 3e-2 > 1e-3") == "not proven optimal"
-    assert not is_converged("not proven optimal: residual") and not is_ok("not converged: x")
+    assert not is_converged("not proven optimal: residual")
+    assert not is_ok("not converged: x")
     assert status_head("no lowpass1 helps: the objective is not 1 % below") == "no <kind> helps"
-    assert is_ok("ok") and not is_ok("flagged: the nut reverses") and status_head("interrupted: 2 of 5 samples")
+    assert is_ok("ok")
+    assert not is_ok("flagged: the nut reverses")
+    assert status_head("interrupted: 2 of 5 samples")
     for bad in ("fine", "optimalish", "", "flagged nut"):
         with pytest.raises(ValueError, match="status = "):
             status_head(bad)
@@ -85,14 +102,21 @@ def test_status_vocabulary():
 def test_filtered_design_status_and_filter_as_dict():
     pid = PID(0.1, 10.0)
     lf = LoopFilter(Notch(300.0, 90.0, -20.0), "torque_command")
-    assert lf.as_dict(2.5e-4) == lf.to_dict(2.5e-4) and lf.as_dict()["kind"] == "notch"  # to_dict: deprecated alias
+    assert lf.as_dict(2.5e-4) == lf.to_dict(2.5e-4)
+    assert lf.as_dict()["kind"] == "notch"  # to_dict: deprecated alias
     good = FilteredDesign(pid, lf, 0.01, 1.4, 0.1, "optimal")
-    assert good.converged and good.ok and good.as_dict()["filter"] == lf.as_dict() and good.as_dict()["warnings"] == []
+    assert good.converged
+    assert good.ok
+    assert good.as_dict()["filter"] == lf.as_dict()
+    assert good.as_dict()["warnings"] == []
     bad = FilteredDesign(pid, None, 0.01, 1.4, 0.1, "not converged: ipopt failed", warnings=("x",))
-    assert not bad.converged and not bad.ok and bad.as_dict()["warnings"] == ["x"]
+    assert not bad.converged
+    assert not bad.ok
+    assert bad.as_dict()["warnings"] == ["x"]
     rejected = FilteredDesign(pid, None, 0.01, 1.4, 0.1, "no notch helps: too shallow",
                               {"reference_status": "optimal"})
-    assert rejected.converged and rejected.ok
+    assert rejected.converged
+    assert rejected.ok
 
 
 def test_robust_recommendation_returns_a_new_study():
@@ -100,17 +124,24 @@ def test_robust_recommendation_returns_a_new_study():
         "nominal": {"ms_violations": 2, "worst_objective": 0.03}, "robust": {"ms_violations": 0, "worst_objective": 0.08}}}
     rt = RobustTuning(PID(0.085, 14.7), PID(0.045, 6.8), (object(),) * 3, comp, {}, None)
     rec = rt.recommend(None)
-    assert rt.recommended == {} and rec["design"] == "robust"
+    assert rt.recommended == {}
+    assert rec["design"] == "robust"
     rt2 = rt.with_recommendation(None)
-    assert rt2 is not rt and rt2.recommended == rec and rt.recommended == {}
-    assert rt.status == "optimal" and rt.warnings == ()
+    assert rt2 is not rt
+    assert rt2.recommended == rec
+    assert rt.recommended == {}
+    assert rt.status == "optimal"
+    assert rt.warnings == ()
 
 
 def test_monte_carlo_report_status():
     y = DesignYield("a", {}, 1, 2, 0.5, (0.1, 0.9), {}, None, {}, {}, 1, "")
     full = MonteCarloReport(2, 2, 0, "serial", 1, True, {}, {}, [], (y,), 0.0)
     part = dataclasses.replace(full, n=5, complete=False)
-    assert full.status == "ok" and full.ok and part.status == "interrupted: 2 of 5 samples" and not part.ok
+    assert full.status == "ok"
+    assert full.ok
+    assert part.status == "interrupted: 2 of 5 samples"
+    assert not part.ok
     assert full.warnings == ("a: 1 of 2 samples failed to simulate",)
 
 
@@ -122,7 +153,9 @@ def test_figures_only_draw(small, monkeypatch):
 
     plant, scene, loops, d = small
     data = responses.design_responses(plant, scene, d.pid, loops=loops)
-    assert data.design.verified and data.setpoint_step is not None and data.stability == "stable"
+    assert data.design.verified
+    assert data.setpoint_step is not None
+    assert data.stability == "stable"
 
     def boom(*a, **k):
         raise AssertionError("a figure computed")
@@ -152,8 +185,10 @@ def test_no_matplotlib_outside_plots_in_studies_and_tuning():
     for rel in ("studies/autotune.py", "studies/montecarlo.py", "studies/responses.py", "studies/paper.py",
                 "tuning/filtered.py", "tuning/robust.py", "tuning/actuatorloops.py"):
         text = (root / rel).read_text()
-        assert "import matplotlib" not in text and 'module("matplotlib' not in text, rel
-        assert "from ..io" not in text and "import _predict" not in text, rel
+        assert "import matplotlib" not in text, rel
+        assert 'module("matplotlib' not in text, rel
+        assert "from ..io" not in text, rel
+        assert "import _predict" not in text, rel
         assert len(text.splitlines()) < 1000, rel
 
 
@@ -169,7 +204,9 @@ def test_report_pairs_come_from_the_report(small):
     rep = ActuatorTuning(plant, scene, v, (v,), (b,), (comp,), {}, {}, (), tuple(loops), "",
                          comparison_designs=(above,))
     (pair,) = rep.comparison_pairs()
-    assert pair[0] is b and pair[1].pid == above.pid and pair[1].verified_runs
+    assert pair[0] is b
+    assert pair[1].pid == above.pid
+    assert pair[1].verified_runs
     assert np.isfinite(rep.best.objective_verified)
 
 
@@ -187,7 +224,9 @@ def test_report_figures_only_draw(small, monkeypatch):
     comp = {"baseline": "base", "tuned": v.name, "tuned_gains": v.pid.as_dict()}
     rep = ActuatorTuning(plant, scene, v, (v,), (b,), (comp,), {}, {}, (), tuple(loops), "")
     data = responses.report_responses(rep)
-    assert data.landscape is not None and data.landscape.objective.shape == (40, 40) and len(data.pairs) == 1
+    assert data.landscape is not None
+    assert data.landscape.objective.shape == (40, 40)
+    assert len(data.pairs) == 1
 
     def boom(*a, **k):
         raise AssertionError("a figure computed")
@@ -239,12 +278,15 @@ def test_plant_uncertainty_values_and_sources_are_read_only_and_pickle(paper_pla
     import pickle
 
     p = paper_plant
-    assert isinstance(p.uncertainty, dict) and p.uncertainty  # still a dict to everything that reads it
+    assert isinstance(p.uncertainty, dict)
+    assert p.uncertainty  # still a dict to everything that reads it
     for what, m in (("uncertainty", p.uncertainty), ("values", p.values), ("sources", p.sources),
                     ("an uncertainty entry", next(iter(p.uncertainty.values())))):
         _assert_read_only(m, what)
     q = pickle.loads(pickle.dumps(p))  # plain pickle: a process pool with spawn (was: cannot pickle mappingproxy)
-    assert q.uncertainty == p.uncertainty and q.values == p.values and q.sources == p.sources
+    assert q.uncertainty == p.uncertainty
+    assert q.values == p.values
+    assert q.sources == p.sources
     _assert_read_only(q.uncertainty, "unpickled uncertainty")
     assert p.with_params({"nut.inertia_kg_m2": 3e-4}).uncertainty == p.uncertainty
     mutable = dict(p.uncertainty)  # a copy is the user's to change
@@ -260,7 +302,8 @@ def test_simrun_arrays_and_info_are_read_only_also_after_pickling(paper_plant):
     r = run(paper_plant, duration=0.01, controller=PID(0.085, 14.7), fidelity="rigid", energy=True)
     for what in ("time", "outputs", "states", "inputs"):
         a = getattr(r, what)
-        assert isinstance(a, np.ndarray) and not a.flags.writeable, what
+        assert isinstance(a, np.ndarray), what
+        assert not a.flags.writeable, what
         _assert_read_only(a, what)
     assert not r.output("nut_speed").flags.writeable  # a row of a read-only array is read-only
     _assert_read_only(r.info, "info")
@@ -268,7 +311,8 @@ def test_simrun_arrays_and_info_are_read_only_also_after_pickling(paper_plant):
     assert all(not v.flags.writeable for v in r.energy.values() if isinstance(v, np.ndarray))
     s = pickle.loads(pickle.dumps(r))
     assert all(not getattr(s, n).flags.writeable for n in ("time", "outputs", "states", "inputs"))
-    assert np.array_equal(s.outputs, r.outputs) and s.info == r.info
+    assert np.array_equal(s.outputs, r.outputs)
+    assert s.info == r.info
     _assert_read_only(s.info, "unpickled info")
     assert s.to_response() is not None
 
@@ -279,7 +323,8 @@ def test_tuning_result_containers_are_read_only_and_pickle(small):
     import pickle
 
     res = _tuning_result(small)
-    assert res.per_loop == list(res.per_loop) and len(res.margins) == 1  # equal to plain lists
+    assert res.per_loop == list(res.per_loop)
+    assert len(res.margins) == 1  # equal to plain lists
     for what in ("per_loop", "margins", "stats"):
         _assert_read_only(getattr(res, what), what)
     nested = [v for v in res.stats.values() if isinstance(v, (dict, list))]
@@ -288,7 +333,9 @@ def test_tuning_result_containers_are_read_only_and_pickle(small):
         _assert_read_only(v, "a nested stats entry")
     json.dumps(res.as_dict(), allow_nan=False)
     for twin in (pickle.loads(pickle.dumps(res)), copy.deepcopy(res)):
-        assert twin.pid == res.pid and twin.per_loop == res.per_loop and twin.stats == res.stats
+        assert twin.pid == res.pid
+        assert twin.per_loop == res.per_loop
+        assert twin.stats == res.stats
         _assert_read_only(twin.stats, "copied stats")
         _assert_read_only(twin.per_loop, "copied per_loop")
     assert dataclasses.asdict(res)["per_loop"] == list(res.per_loop)

@@ -104,7 +104,8 @@ def test_a_tune_reads_no_scene_below_the_studies(paper_plant):
         return rep, loops
 
     reads, (rep, loops) = _scene_reads(work)
-    assert rep.best.verified is not None and [len(x) for x in loops] == [len(kf.final_loads), len(duty.cases), 2]
+    assert rep.best.verified is not None
+    assert [len(x) for x in loops] == [len(kf.final_loads), len(duty.cases), 2]
     assert reads == STILL_READ
 
 
@@ -122,7 +123,8 @@ def test_the_trace_sees_a_read_below_the_studies(paper_plant):
         return ns["peek"](scene)
 
     reads, out = _scene_reads(work)
-    assert out == scene.setpoint_rpm and reads == {("tuning/loops.py", "peek")}
+    assert out == scene.setpoint_rpm
+    assert reads == {("tuning/loops.py", "peek")}
 
 
 def test_the_move_cascade_reads_no_scene(paper_plant):
@@ -227,7 +229,9 @@ def test_the_resolved_problem_reads_the_scene_once_and_copies_none_of_its_fields
         spec = loop_spec(paper_plant, scene)
         with pytest.raises(TypeError, match="expected a prsa_ctrl Scene"):
             loop_spec(paper_plant, spec)
-        assert type(spec.problem) is kind and spec.problem.scene is scene and spec.scene is scene
+        assert type(spec.problem) is kind
+        assert spec.problem.scene is scene
+        assert spec.scene is scene
         assert spec.fidelity_reason == ""  # loop_spec keeps the scene's fidelity as it is
         assert spec.linear_fidelity == linear_fidelity(scene)
         assert spec.linear_fidelity == ("compliant" if scene.fidelity in ("multi-roller", "auto") else scene.fidelity)
@@ -239,7 +243,8 @@ def test_the_resolved_problem_reads_the_scene_once_and_copies_none_of_its_fields
                     np.testing.assert_array_equal(rec[k], ref[k])
         else:
             assert spec.records == ()
-        assert math.isfinite(spec.steady_torque_n_m) and spec.steady_torque_n_m > 0
+        assert math.isfinite(spec.steady_torque_n_m)
+        assert spec.steady_torque_n_m > 0
 
 
 def test_resolving_chooses_the_fidelity_once_and_says_why(paper_plant):
@@ -251,11 +256,15 @@ def test_resolving_chooses_the_fidelity_once_and_says_why(paper_plant):
     scene = load_scene().replace(fidelity="auto")
     res = speed_kind(scene).resolve(paper_plant)
     want, why = choose_fidelity(scene)
-    assert res.scene == want and res.scene.fidelity != "auto" and res.fidelity_reason == why
-    assert scene.fidelity == "auto" and res.linear_fidelity == linear_fidelity(want)
+    assert res.scene == want
+    assert res.scene.fidelity != "auto"
+    assert res.fidelity_reason == why
+    assert scene.fidelity == "auto"
+    assert res.linear_fidelity == linear_fidelity(want)
     set_by_file = load_scene().replace(fidelity="rigid")
     res = speed_kind(set_by_file).resolve(paper_plant)
-    assert res.scene is set_by_file and res.fidelity_reason == "rigid (set by the scene)"
+    assert res.scene is set_by_file
+    assert res.fidelity_reason == "rigid (set by the scene)"
 
 
 def test_the_public_stages_take_a_scene_not_its_spec(paper_plant):
@@ -279,14 +288,18 @@ def test_the_batched_stages_equal_the_one_design_functions(paper_plant):
     batch = predict_all(designs, loops, paper_plant, scene)
     one = [predict(d, loops, paper_plant, scene) for d in designs]
     for a, b in zip(batch, one):
-        assert a.objective_predicted == b.objective_predicted and a.predicted == b.predicted
+        assert a.objective_predicted == b.objective_predicted
+        assert a.predicted == b.predicted
         assert a.predicted_start_speed == b.predicted_start_speed
     assert batch[2].predicted_start_speed < scene.setpoint_rad_s  # P-only settles below the setpoint
     vb = checked_all(verify_all(batch, paper_plant, scene, workers=1), paper_plant, scene)
     vo = [checked(verify(d, paper_plant, scene), paper_plant, scene) for d in one]
     for a, b in zip(vb, vo):
-        assert a.objective_verified == b.objective_verified and a.verified == b.verified
-        assert a.flags == b.flags and a.warnings == b.warnings and a.status == b.status
+        assert a.objective_verified == b.objective_verified
+        assert a.verified == b.verified
+        assert a.flags == b.flags
+        assert a.warnings == b.warnings
+        assert a.status == b.status
 
 
 def test_public_names_still_resolve():
@@ -294,8 +307,11 @@ def test_public_names_still_resolve():
     import prsa_ctrl.tuning as tuning
 
     assert studies.actuator_loops is actuator_loops is autotune.actuator_loops
-    assert studies.duty_record is duty_record and studies.linear_fidelity is linear_fidelity
+    assert studies.duty_record is duty_record
+    assert studies.linear_fidelity is linear_fidelity
     assert prsa_ctrl.tune_robust_actuator is studies.tune_robust_actuator
     for gone in ("actuator_loops", "duty_record", "linear_fidelity", "tune_robust_actuator", "scenarios"):
         assert not hasattr(tuning, gone), gone
-    assert callable(tuning.step_loops) and callable(tuning.profile_loops) and callable(tuning.tune_scenario_loops)
+    assert callable(tuning.step_loops)
+    assert callable(tuning.profile_loops)
+    assert callable(tuning.tune_scenario_loops)

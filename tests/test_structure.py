@@ -78,9 +78,11 @@ def test_fit_exceptions_live_in_errors_and_stay_importable():
     import prsa_ctrl.errors as errors
     import prsa_ctrl.identification as ident
 
-    assert ident.FitError is errors.FitError and ident.DataError is errors.DataError
+    assert ident.FitError is errors.FitError
+    assert ident.DataError is errors.DataError
     assert prsa_ctrl.FitError is errors.FitError
-    assert issubclass(errors.DataError, ValueError) and issubclass(errors.FitError, RuntimeError)
+    assert issubclass(errors.DataError, ValueError)
+    assert issubclass(errors.FitError, RuntimeError)
     assert {"FitError", "DataError"} <= set(errors.__all__)
 
 
@@ -89,8 +91,10 @@ def test_one_definition_of_the_record_length_limits():
     import prsa_ctrl.identification.logformat as logformat
 
     src = (PKG / "identification" / "logformat.py").read_text(encoding="utf-8")
-    assert "MIN_SAMPLES =" not in src and "MAX_SAMPLES =" not in src
-    assert logformat.MIN_SAMPLES is data.MIN_SAMPLES and logformat.MAX_SAMPLES is data.MAX_SAMPLES
+    assert "MIN_SAMPLES =" not in src
+    assert "MAX_SAMPLES =" not in src
+    assert logformat.MIN_SAMPLES is data.MIN_SAMPLES
+    assert logformat.MAX_SAMPLES is data.MAX_SAMPLES
 
 
 def test_public_names_of_the_split_resolve():
@@ -238,7 +242,9 @@ def test_cli_modules_do_not_import_each_other_in_a_circle():
     edges = {}
     for path in (SRC_PKG / "cli").glob("*.py"):
         edges[path.stem] = {mod.split(".")[-1] for mod, _ in _imports_resolved(path) if mod.startswith("prsa_ctrl.cli.")}
-    assert "tune" not in edges["common"] and "tune" not in edges["plot"] and "tune" not in edges["report"]
+    assert "tune" not in edges["common"]
+    assert "tune" not in edges["plot"]
+    assert "tune" not in edges["report"]
     assert not any("tune" in v for k, v in edges.items() if k != "tune"), edges
 
 
@@ -248,8 +254,11 @@ def test_one_loader_for_both_kinds_of_scene():
     from prsa_ctrl.studies.scenefile import is_move_scene
 
     move, speed = load_scene("paper-move"), load_scene("paper-load-step")
-    assert isinstance(move, MoveScene) and isinstance(speed, Scene)
-    assert is_move_scene("paper-move") and not is_move_scene("paper-load-step") and not is_move_scene("nope")
+    assert isinstance(move, MoveScene)
+    assert isinstance(speed, Scene)
+    assert is_move_scene("paper-move")
+    assert not is_move_scene("paper-load-step")
+    assert not is_move_scene("nope")
     assert require_speed_scene(speed) is speed
     with pytest.raises(SceneError, match="a move scene"):
         require_speed_scene(move)
@@ -259,7 +268,8 @@ def test_prsa_tune_has_one_main_and_no_second_one_for_moves():
     import prsa_ctrl.cli.tune as tune
     import prsa_ctrl.tuning.cascade as cascade
 
-    assert not hasattr(cascade, "main_move") and not hasattr(tune, "main_move")
+    assert not hasattr(cascade, "main_move")
+    assert not hasattr(tune, "main_move")
     assert tune.MOVE_FLAGS[:2] == ("plant", "scene")
 
 
@@ -271,3 +281,25 @@ def test_bad_flags_are_refused_before_casadi_is_imported(argv, tmp_path):
             "except SystemExit as e:\n    print('exit', e.code, 'casadi' in sys.modules)\n")
     p = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert p.stdout.strip() == "exit 2 False", (p.stdout, p.stderr[-500:])
+
+
+def _and_chain_asserts(root: Path) -> list[str]:
+    """``file:line`` of every ``assert a and b`` under *root* (one claim per assert: the failing
+    clause is the one pytest reports)."""
+    out = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Assert) and isinstance(node.test, ast.BoolOp) and isinstance(node.test.op, ast.And):
+                out.append(f"{path.relative_to(root.parent)}:{node.lineno}")
+    return out
+
+
+def test_every_assert_of_the_suite_makes_one_claim():
+    # issue 33: an `and` chain hides which clause failed; write one assert per claim
+    assert _and_chain_asserts(Path(__file__).parent) == []
+
+
+def test_the_one_claim_rule_sees_an_and_chain(tmp_path):
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "test_x.py").write_text("def test_x():\n    assert 1 and (2 or 3)\n    assert 1\n")
+    assert _and_chain_asserts(tmp_path / "tests") == ["tests/test_x.py:2"]

@@ -22,10 +22,12 @@ def _write(tmp_path, text, name="t.csv", encoding="utf-8"):
 def test_header_columns_lines_and_text_as_typed(tmp_path):
     p = _write(tmp_path, "\ufeff# logged 2026\n\n a , b ,c\n1,2.5,x\n# pause\n 3 ,-4e-3,y\n")
     t = read_table(p, max_rows=10, columns=("a", "b", "zz"), keep_text=True)
-    assert t.header == ("a", "b", "c") and t.header_line == 3
+    assert t.header == ("a", "b", "c")
+    assert t.header_line == 3
     assert set(t.columns) == {"a", "b"}  # the asked columns present; 'c' (text) is not converted
     np.testing.assert_array_equal(t.columns["b"], [2.5, -4e-3])
-    assert list(t.lines) == [4, 6] and t.n == 2
+    assert list(t.lines) == [4, 6]
+    assert t.n == 2
     assert t.typed["a"] == ("1", "3")
 
 

@@ -36,8 +36,12 @@ def _terminal_safe(text: str, multiline: bool) -> bool:
 def test_printable_escapes_every_control_character_and_keeps_the_rest():
     every = "".join(chr(i) for i in range(0x20)) + "\x7f" + "".join(chr(i) for i in range(0x80, 0xA0))
     out = printable(every + "ok é µ 中")
-    assert _terminal_safe(out, multiline=False) and out.endswith("ok é µ 中")
-    assert out.startswith("\\x00\\x01") and "\\x1b" in out and "\\x9b" in out and "\\n" in out
+    assert _terminal_safe(out, multiline=False)
+    assert out.endswith("ok é µ 中")
+    assert out.startswith("\\x00\\x01")
+    assert "\\x1b" in out
+    assert "\\x9b" in out
+    assert "\\n" in out
     assert printable("a\nb\tc", multiline=True) == "a\nb\tc"
     assert printable("a\nb\tc\x1b") == "a\\nb\\tc\\x1b"
     assert printable("\u202eevil\u2066") == "\\u202eevil\\u2066"
@@ -47,17 +51,24 @@ def test_printable_escapes_every_control_character_and_keeps_the_rest():
 def test_printable_bounds_the_length_keeping_both_ends():
     text = "start " + "x" * 100_000 + " end"
     out = printable(text, limit=300)
-    assert len(out) <= 300 and out.startswith("start ") and out.endswith(" end") and "100010 characters" in out
+    assert len(out) <= 300
+    assert out.startswith("start ")
+    assert out.endswith(" end")
+    assert "100010 characters" in out
 
 
 def test_quote_is_repr_when_short_and_a_bounded_excerpt_otherwise():
     for v in ("a'b", 1.5, [1, 2], {"a": 1}, None, 10 ** 30):
         assert quote(v) == repr(v)
     q = quote([1500.0] * 100_000)
-    assert len(q) < 300 and q.startswith("[1500.0, 1500.0") and "100000 entries" in q
-    assert "401 digits" in quote(10 ** 400) and len(quote(10 ** 400)) < 100
+    assert len(q) < 300
+    assert q.startswith("[1500.0, 1500.0")
+    assert "100000 entries" in q
+    assert "401 digits" in quote(10 ** 400)
+    assert len(quote(10 ** 400)) < 100
     huge = quote(10 ** 5000)  # beyond the digit limit of str(int)
-    assert "integer of about 500" in huge and len(huge) < 60
+    assert "integer of about 500" in huge
+    assert len(huge) < 60
 
 
 # --- the commands ---------------------------------------------------------------------------------
@@ -71,7 +82,9 @@ def test_show_plant_escapes_name_and_description(tmp_path, capsys):
     out = capsys.readouterr().out
     assert _terminal_safe(out, multiline=True), repr(out[:300])
     first = out.splitlines()[0]
-    assert first.startswith("plant \\x1b]0;pwned\\x07\\x1b[2J") and "\\u202eevil" in first and "Inverted" in first
+    assert first.startswith("plant \\x1b]0;pwned\\x07\\x1b[2J")
+    assert "\\u202eevil" in first
+    assert "Inverted" in first
 
 
 def test_error_lines_escape_a_file_name_and_a_value(tmp_path, capsys):
@@ -80,13 +93,17 @@ def test_error_lines_escape_a_file_name_and_a_value(tmp_path, capsys):
     capsys.readouterr()
     assert tune_main(["--show-plant", str(bad)]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and _terminal_safe(err.rstrip("\n"), multiline=False), repr(err)
-    assert "p\\x1b]0;pwned\\x07" in err and "invalid TOML" in err
+    assert err.count("\n") == 1, repr(err)
+    assert _terminal_safe(err.rstrip("\n"), multiline=False), repr(err)
+    assert "p\\x1b]0;pwned\\x07" in err
+    assert "invalid TOML" in err
     scene = tmp_path / "s.toml"
     scene.write_text(SCENE.replace('objective = "iae"', f"objective = {_toml(EVIL)}"), encoding="utf-8")
     assert tune_main(["--scene", str(scene)]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and _terminal_safe(err.rstrip("\n"), multiline=False) and "objective" in err, repr(err)
+    assert err.count("\n") == 1, repr(err)
+    assert _terminal_safe(err.rstrip("\n"), multiline=False), repr(err)
+    assert "objective" in err, repr(err)
 
 
 def test_report_header_escapes_plant_and_scene_names(tmp_path):
@@ -96,7 +113,8 @@ def test_report_header_escapes_plant_and_scene_names(tmp_path):
     f = tmp_path / "s.toml"
     f.write_text(SCENE.replace('name = "paper-load-step"', f"name = {_toml(EVIL)}"), encoding="utf-8")
     head = scene_header(load_scene(str(f)))
-    assert _terminal_safe(head, multiline=False) and "\\x1b]0;pwned" in head
+    assert _terminal_safe(head, multiline=False)
+    assert "\\x1b]0;pwned" in head
 
 
 def test_prsa_fit_error_line_escapes_the_file_name(tmp_path, capsys):
@@ -107,7 +125,9 @@ def test_prsa_fit_error_line_escapes_the_file_name(tmp_path, capsys):
     capsys.readouterr()
     rc = fit_main([str(log), "--plant", "paper-iprsm", "--out", str(tmp_path / "o.toml")])
     err = capsys.readouterr().err
-    assert rc == EXIT_BAD_INPUT and err.count("\n") == 1 and _terminal_safe(err.rstrip("\n"), False), repr(err)
+    assert rc == EXIT_BAD_INPUT, repr(err)
+    assert err.count("\n") == 1, repr(err)
+    assert _terminal_safe(err.rstrip("\n"), False), repr(err)
     assert not (tmp_path / "o.toml").exists()
 
 
@@ -116,7 +136,9 @@ def test_echo_keeps_report_lines_and_makes_stderr_one_bounded_line(capsys):
     echo("note\nsecond" + "y" * 10_000, file=sys.stderr)
     cap = capsys.readouterr()
     assert cap.out == "line 1\n\\x1b[2Jline 2\n"
-    assert cap.err.count("\n") == 1 and cap.err.startswith("note\\nsecond") and len(cap.err) <= MESSAGE_CHARS_MAX + 1
+    assert cap.err.count("\n") == 1
+    assert cap.err.startswith("note\\nsecond")
+    assert len(cap.err) <= MESSAGE_CHARS_MAX + 1
 
 
 def test_a_100000_entry_value_gives_a_short_error(tmp_path, capsys):
@@ -125,8 +147,10 @@ def test_a_100000_entry_value_gives_a_short_error(tmp_path, capsys):
     capsys.readouterr()
     assert tune_main(["--scene", str(f)]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and len(err) < 600, len(err)  # was 800,097 characters
-    assert "operating.final_loads_n = [1500.0, 1500.0" in err and "100000 entries" in err
+    assert err.count("\n") == 1, len(err)
+    assert len(err) < 600, len(err)  # was 800,097 characters
+    assert "operating.final_loads_n = [1500.0, 1500.0" in err
+    assert "100000 entries" in err
 
 
 # --- warnings at the command boundary -------------------------------------------------------------
@@ -149,7 +173,9 @@ def test_a_stray_warning_is_a_note_after_success_and_nothing_before_an_error(cap
     assert err == "prog: note: RuntimeWarning: overflow encountered in divide\n"
     assert invoke_inner(Run("prog"), [], _warn_then(True)) != EXIT_OK
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "RuntimeWarning" not in err and "bad input" in err
+    assert err.count("\n") == 1
+    assert "RuntimeWarning" not in err
+    assert "bad input" in err
     with warnings.catch_warnings(record=True) as outer:  # the caller's filters are left alone
         warnings.simplefilter("always")
         warnings.warn("outside", UserWarning)
@@ -164,7 +190,8 @@ def test_prsa_pid_prints_no_warning_before_its_one_line(argv, tmp_path):
     p = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=tmp_path,
                        timeout=120, env=env)
     assert p.returncode == EXIT_BAD_INPUT, p.stderr
-    assert len(p.stderr.splitlines()) == 1 and p.stderr.startswith("prsa-pid: error: --plant"), p.stderr
+    assert len(p.stderr.splitlines()) == 1, p.stderr
+    assert p.stderr.startswith("prsa-pid: error: --plant"), p.stderr
 
 
 def _toml(text: str) -> str:

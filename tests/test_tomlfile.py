@@ -94,10 +94,15 @@ def test_bad_toml_numbers_and_nesting_are_bad_input(case, tmp_path, capsys):
         prog = "prsa-fit"
     err = capsys.readouterr().err.strip()
     assert rc == 2, err
-    assert len(err.splitlines()) == 1 and err.startswith(f"{prog}: error: "), err
-    assert str(f) in err and key in err, err
-    assert "Overflow" not in err and "Recursion" not in err and len(err) < 400, err
-    assert not (tmp_path / "out.json").exists() and not (tmp_path / "out.toml").exists()
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith(f"{prog}: error: "), err
+    assert str(f) in err, err
+    assert key in err, err
+    assert "Overflow" not in err, err
+    assert "Recursion" not in err, err
+    assert len(err) < 400, err
+    assert not (tmp_path / "out.json").exists()
+    assert not (tmp_path / "out.toml").exists()
 
 
 def test_read_toml_bounds_nesting_below_the_parsers_limit():

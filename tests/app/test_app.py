@@ -44,7 +44,8 @@ def test_bad_flags_and_files_one_line_exit_2(argv, expected, capsys):
     assert main(argv) == 2
     out = capsys.readouterr()
     assert out.out == ""
-    assert out.err.startswith(expected) and out.err.count("\n") == 1, out.err
+    assert out.err.startswith(expected), out.err
+    assert out.err.count("\n") == 1, out.err
 
 
 def test_port_in_use_is_one_line_exit_2(capsys):
@@ -56,7 +57,8 @@ def test_port_in_use_is_one_line_exit_2(capsys):
         port = s.getsockname()[1]
         assert main(["--port", str(port), "--no-browser"]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"prsa-app: error: --port {port}: cannot listen on 127.0.0.1") and err.count("\n") == 1
+    assert err.startswith(f"prsa-app: error: --port {port}: cannot listen on 127.0.0.1")
+    assert err.count("\n") == 1
 
 
 def test_core_commands_do_not_import_the_app_stack():
@@ -74,9 +76,11 @@ def test_bounds_retune_on_one_tuner_to_the_fresh_tuners_result(session):
         v = session.tuned(replace(s0, **bounds))
         ref = _fresh(**bounds)
         assert session.tuner(session.scene_for(replace(s0, **bounds))) is tuner  # reused, not rebuilt
-        assert v.pid.gains == ref.pid.gains and v.status == ref.status
+        assert v.pid.gains == ref.pid.gains
+        assert v.status == ref.status
         assert v.design.margins.ms == pytest.approx(ref.ms, rel=1e-12)
-    assert v.noise_gain <= 0.09 * (1 + 1e-6) and v.pid.kp < _fresh(ms_max=1.6).pid.kp  # the bound is active
+    assert v.noise_gain <= 0.09 * (1 + 1e-6)
+    assert v.pid.kp < _fresh(ms_max=1.6).pid.kp  # the bound is active
     assert first.pid.gains == _fresh(ms_max=s0.ms_max).pid.gains
 
 
@@ -102,7 +106,8 @@ def test_uploaded_plant_is_named_as_uploaded_and_leaves_the_session_intact(tmp_p
         from prsa_ctrl.plant.plantfile import plant_file_path
 
         s.upload("plant", "copy.toml", plant_file_path("iprsm-60").read_text().encode())
-        assert s.plant.name == load_plant("iprsm-60").name and s.plant_label == "copy.toml"
+        assert s.plant.name == load_plant("iprsm-60").name
+        assert s.plant_label == "copy.toml"
     finally:
         s.close()
 
@@ -127,7 +132,8 @@ def test_document_builds_and_the_notebook_entry_returns_the_application():
     doc = Document()
     page = make_document(doc)
     try:
-        assert len(doc.roots) == 1 and doc.title.startswith("prsa-app")
+        assert len(doc.roots) == 1
+        assert doc.title.startswith("prsa-app")
         assert page.settings == Settings(objective="iae", controller="pi", ms_max=1.4, mt_max=None,
                                          load_step="500:1500", fidelity="auto")
     finally:
@@ -152,8 +158,11 @@ def test_robust_study_cancel_keeps_the_finished_samples(session, replay):
     out = robust_study(session, s0, {"optimum": opt.pid}, 40, progress=lambda *a: calls.append(a),
                        cancelled=lambda: len(calls) >= 2)
     mc = out["monte_carlo"]
-    assert calls[0] == ("robust tuning", 0, 40) and calls[1][0] == "Monte Carlo"
-    assert mc["complete"] is False and mc["samples"] == 40 and 0 < mc["samples_done"] < 40
+    assert calls[0] == ("robust tuning", 0, 40)
+    assert calls[1][0] == "Monte Carlo"
+    assert mc["complete"] is False
+    assert mc["samples"] == 40
+    assert 0 < mc["samples_done"] < 40
     assert [d["name"] for d in mc["designs"]] == ["optimum", "robust"]
     assert all(d["samples"] == mc["samples_done"] for d in mc["designs"])
     assert out["comparison"]["robust"]["max_ms"] <= s0.ms_max * (1 + 1e-3)  # robust holds Ms on every scenario
@@ -172,7 +181,8 @@ def test_show_in_a_notebook_serves_the_app_from_the_kernel():
     nbclient.NotebookClient(nb, timeout=120, kernel_name="python3").execute()
     outs = nb.cells[0].outputs
     html_out = [o["data"]["text/html"] for o in outs if "text/html" in o.get("data", {})]
-    assert len(html_out) == 1 and "/autoload.js?bokeh-autoload-element=" in html_out[0]
+    assert len(html_out) == 1
+    assert "/autoload.js?bokeh-autoload-element=" in html_out[0]
     assert outs[-1]["data"]["text/plain"] == "'Application'"
 
 
@@ -230,7 +240,8 @@ def test_uploaded_scene_naming_a_trace_is_refused_before_any_read(tmp_path, monk
             s.upload("scene", "hostile.toml", f'[operating]\n{key} = "{trace}"\n'.encode())
         assert str(info.value) == (f"hostile.toml: operating.{key} = {trace!r}: an uploaded scene cannot read files "
                                    "on the server; expected a load-step scene without a CSV trace")
-        assert reads == [] and s.scene_label == "paper-load-step"
+        assert reads == []
+        assert s.scene_label == "paper-load-step"
     finally:
         s.close()
 
@@ -291,20 +302,23 @@ def test_bode_axes_in_hz_by_default_rad_s_on_request():
     page = AppPage(Document(), attach=False)
     try:
         figs = (page.mag, page.phase, page.st)
-        assert page.axes.unit == "Hz" and [f.xaxis[0].axis_label for f in figs] == ["frequency (Hz)"] * 3
+        assert page.axes.unit == "Hz"
+        assert [f.xaxis[0].axis_label for f in figs] == ["frequency (Hz)"] * 3
         assert {r.glyph.x for f in figs for r in f.renderers if hasattr(r.glyph, "x")} == {"f"}
         w = np.geomspace(1, 1e4, 7)
         page.freq["opt"].data = page.axes.data({"w": w, "db": w, "deg": w, "s": w, "t": w})
         np.testing.assert_allclose(page.freq["opt"].data["f"], w / (2 * np.pi), rtol=1e-15)
         page.freq_unit.active = 1  # rad/s
-        assert page.axes.unit == "rad/s" and page.mag.xaxis[0].axis_label == "frequency (rad/s)"
+        assert page.axes.unit == "rad/s"
+        assert page.mag.xaxis[0].axis_label == "frequency (rad/s)"
         np.testing.assert_array_equal(page.freq["opt"].data["f"], w)
         np.testing.assert_array_equal(page.freq["opt"].data["w"], w)  # SI kept
     finally:
         page.close(wait=True)
     g = GenericPanel(Document())
     try:
-        assert g.axes.unit == "Hz" and g.noise_fig.xaxis[0].axis_label == "frequency (Hz)"
+        assert g.axes.unit == "Hz"
+        assert g.noise_fig.xaxis[0].axis_label == "frequency (Hz)"
         assert {r.glyph.x for r in g.mag.renderers} == {"f"}
         g.freq_unit.active = 1
         assert g.noise_fig.xaxis[0].axis_label == "frequency (rad/s)"
@@ -324,20 +338,27 @@ def test_an_uploaded_scene_sets_every_widget_and_the_select_names_it():
 
     text = locate_scene("paper-load-step")[0].read_text(encoding="utf-8")
     text = text.replace('fidelity = "auto"', 'fidelity = "rigid"').replace("ms_max = 1.4", "ms_max = 1.4\nmt_max = 1.25")
-    assert 'fidelity = "rigid"' in text and "mt_max = 1.25" in text
+    assert 'fidelity = "rigid"' in text
+    assert "mt_max = 1.25" in text
     page = AppPage(Document(), attach=False)
     try:
-        assert page.fidelity.value == "auto" and page.mt_on.active == []
+        assert page.fidelity.value == "auto"
+        assert page.mt_on.active == []
         page.after_switch("scene", page.session.upload("scene", "my-step.toml", text.encode("utf-8")))
         assert page.scene_select.value == "file: my-step.toml"
         assert page.scene_select.options[-1] == "file: my-step.toml"
         assert page.session.scene_label == "my-step.toml"  # the display did not switch the scene back
-        assert page.fidelity.value == "rigid" and page._read().fidelity == "rigid"  # what the next tune runs with
-        assert page.mt_on.active == [0] and page.mt.value == 1.25 and page._read().mt_max == 1.25
+        assert page.fidelity.value == "rigid"
+        assert page._read().fidelity == "rigid"  # what the next tune runs with
+        assert page.mt_on.active == [0]
+        assert page.mt.value == 1.25
+        assert page._read().mt_max == 1.25
         page.scene_select.value = "paper-load-step"  # the user picks a built-in again
-        assert page.session.scene_label == "paper-load-step" and page.fidelity.value == "auto"
+        assert page.session.scene_label == "paper-load-step"
+        assert page.fidelity.value == "auto"
         assert "file: my-step.toml" not in page.scene_select.options
         page.scene_select.value = "file: nothing.toml"  # a client's text outside the list
-        assert page.scene_select.value == "paper-load-step" and "expected one of the built-in scenes" in page.error.text
+        assert page.scene_select.value == "paper-load-step"
+        assert "expected one of the built-in scenes" in page.error.text
     finally:
         page._destroyed(None)

@@ -182,7 +182,8 @@ def test_calibration_tab_shows_the_replay_the_frf_in_hz_and_the_residuals(app_pa
                 ".prsa-fit-coherence"):
         page.locator(css).wait_for()  # visible
     rv = page.locator("[data-k='fit-views-replay']")
-    assert rv.get_attribute("data-mode") == "prediction-error" and int(rv.get_attribute("data-n")) == len(rep["time_s"])
+    assert rv.get_attribute("data-mode") == "prediction-error"
+    assert int(rv.get_attribute("data-n")) == len(rep["time_s"])
     assert page.locator("[data-k='fit-views-frf']").get_attribute("data-unit") == "Hz"
     got = _source(page, "prsa-fit-replay")
     np.testing.assert_allclose(got["t"], rep["time_s"], rtol=1e-12)
@@ -216,11 +217,13 @@ def test_refused_fit_is_shown_as_refused_with_its_views(app_page, resonant_log, 
     verdict = page.locator("[data-k='fit-verdict']")
     assert verdict.get_attribute("data-verdict") == "refused"
     text = verdict.inner_text()
-    assert text.startswith("Refused: the fitted plant does not explain the data") and "second mass" in text
+    assert text.startswith("Refused: the fitted plant does not explain the data")
+    assert "second mass" in text
     diag = err.split("most likely missing physics: ", 1)[1].split(" (no plant file written", 1)[0]
     assert diag in text  # prsa-fit's own diagnosis
     assert "Validated" not in page.locator(".prsa-fit-out").inner_text()
-    assert page.locator(".prsa-fit-use button").is_disabled() and page.locator(".prsa-fit-download button").is_disabled()
+    assert page.locator(".prsa-fit-use button").is_disabled()
+    assert page.locator(".prsa-fit-download button").is_disabled()
     page.locator(".prsa-fit-replay").wait_for()
     page.locator(".prsa-fit-frf-mag").wait_for()
     _shot(page, "app-calibration-refused.png")
@@ -263,7 +266,8 @@ def test_uploaded_frf_is_fitted_as_prsa_fit_frf_and_a_refused_one_offers_no_plan
     text = page.locator("[data-k='fit-verdict']").inner_text()
     assert text.startswith("Refused: no plant written: the response's inertia")
     assert " ".join(err.split("prsa-fit: ", 1)[1].split()).replace(str(bad), bad.name) in " ".join(text.split())
-    assert page.locator(".prsa-fit-use button").is_disabled() and page.locator(".prsa-fit-download button").is_disabled()
+    assert page.locator(".prsa-fit-use button").is_disabled()
+    assert page.locator(".prsa-fit-download button").is_disabled()
 
 
 # ---- the session, without a browser ---------------------------------------------------------
@@ -279,23 +283,28 @@ def test_session_calibrate_is_prsa_fit_and_use_retunes(log):
     try:
         cal = s.calibrate("axis-log.csv", path.read_bytes())
         assert s.plant.name == "paper-iprsm"  # nothing changes before use_calibration
-        assert cal.file_name == "axis-log-fitted.toml" and cal.base_label == "paper-iprsm"
+        assert cal.file_name == "axis-log-fitted.toml"
+        assert cal.base_label == "paper-iprsm"
         for key, v in res.parameters.items():
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-9)
             assert cal.report["parameters"][key]["ci95"] == pytest.approx(v["ci95"], rel=1e-9)
         assert cal.report["warnings"] == list(res.warnings)
         assert list(cal.report["fit_percent"]) == ["axis-log.csv"]  # named as uploaded
-        assert cal.refused is None and cal.report["views"]["verdict"]["validated"] is True
+        assert cal.refused is None
+        assert cal.report["views"]["verdict"]["validated"] is True
         (want,) = _views_of(res, path)["replay"].values()
         got = cal.report["views"]["replay"]["axis-log.csv"]
-        assert got["label"] == want["label"] and got["every"] == want["every"] and got["explained"] is True
+        assert got["label"] == want["label"]
+        assert got["every"] == want["every"]
+        assert got["explained"] is True
         import numpy as np
 
         np.testing.assert_allclose(got["model_rad_s"], want["model_rad_s"], rtol=1e-6, atol=1e-6)
         assert any(line.startswith("fit ") and line.endswith(" % on axis-log.csv") for line in cal.lines)
         # the written file: prsa-fit's (its name from --out, the log named as uploaded), the fitted values
         doc = tomllib.loads(cal.plant_text)
-        assert doc["name"] == "axis-log-fitted" and "prsa-app-" not in cal.plant_text
+        assert doc["name"] == "axis-log-fitted"
+        assert "prsa-app-" not in cal.plant_text
         assert "calibrated by prsa-fit from axis-log.csv" in doc["description"]
         for key in res.plant_keys:
             section, sub = key.split(".")
@@ -310,7 +319,8 @@ def test_session_calibrate_is_prsa_fit_and_use_retunes(log):
         from prsa_ctrl.plant.plantfile import load_plant
 
         ref = _tuned_on(load_plant(cal.plant_path))
-        assert v.pid.kp == pytest.approx(ref.pid.kp, rel=1e-9) and v.pid.ki == pytest.approx(ref.pid.ki, rel=1e-9)
+        assert v.pid.kp == pytest.approx(ref.pid.kp, rel=1e-9)
+        assert v.pid.ki == pytest.approx(ref.pid.ki, rel=1e-9)
         cli, _ = s.code(st)
         assert "--plant axis-log-fitted.toml" in cli
     finally:
@@ -347,32 +357,43 @@ def test_session_refused_calibration_has_the_verdict_the_views_and_no_plant(reso
     s = AppSession()
     try:
         cal = s.calibrate("resonant-log.csv", resonant_log.read_bytes())
-        assert cal.refused.startswith("the fitted plant does not explain the data; most likely missing physics: "
-                                      "second mass") and "--force" not in cal.refused
-        assert cal.file_name == "" and cal.plant_path == ""
+        assert (cal.refused.startswith("the fitted plant does not explain the data; most likely missing physics: "
+                                      "second mass"))
+        assert "--force" not in cal.refused
+        assert cal.file_name == ""
+        assert cal.plant_path == ""
         with pytest.raises(ValueError, match="no fitted plant file"):
             cal.plant_text
         with pytest.raises(AppInputError, match="the fit is refused, no plant to use"):
             s.use_calibration(cal)
         assert s.plant.name == "paper-iprsm"
         v = cal.report["solver"]["validation"]
-        assert v["passes"] is False and cal.report["views"]["verdict"]["validated"] is False
+        assert v["passes"] is False
+        assert cal.report["views"]["verdict"]["validated"] is False
         r = cal.report["views"]["replay"]["resonant-log.csv"]
-        assert r["explained"] is False and r["mode"] == "prediction-error"
+        assert r["explained"] is False
+        assert r["mode"] == "prediction-error"
         page_html = _report_html(cal, "refused")
-        assert "data-verdict='refused'" in page_html and "Validated" not in page_html
-        assert "data-state='refused'" in page_html and v["diagnosis"].split(":")[0] in page_html
+        assert "data-verdict='refused'" in page_html
+        assert "Validated" not in page_html
+        assert "data-state='refused'" in page_html
+        assert v["diagnosis"].split(":")[0] in page_html
         views = FitViews()
         views.show(cal.report["views"])
-        assert views.root.visible and views.replay.visible and views.mag.visible and views.coherence.visible
+        assert views.root.visible
+        assert views.replay.visible
+        assert views.mag.visible
+        assert views.coherence.visible
         np.testing.assert_array_equal(views.replay_src.data["model"], _none_nan(r["model_rad_s"]))
         np.testing.assert_array_equal(views.replay_src.data["residual"], _none_nan(r["residual_rad_s"]))
         fr = cal.report["views"]["frf"]["resonant-log.csv"]
         np.testing.assert_array_equal(views.frf_src.data["f"], fr["frequency_hz"])
         np.testing.assert_array_equal(views.frf_src.data["coherence"], _none_nan(fr["coherence"]))
-        assert views.mag.xaxis[0].axis_label == "frequency (Hz)" and views.mag.x_scale.__class__.__name__ == "LogScale"
+        assert views.mag.xaxis[0].axis_label == "frequency (Hz)"
+        assert views.mag.x_scale.__class__.__name__ == "LogScale"
         views.show(None)
-        assert not views.root.visible and views.replay_src.data["t"] == []
+        assert not views.root.visible
+        assert views.replay_src.data["t"] == []
         # the page: the calibration tab builds its figures at the first fit, not with the page
         from bokeh.document import Document
 
@@ -381,15 +402,22 @@ def test_session_refused_calibration_has_the_verdict_the_views_and_no_plant(reso
         page = AppPage(Document(), session=s, attach=False)
         try:
             assert [t.title for t in page.tabs.tabs][-1] == "Calibration (fit a drive log)"
-            assert page.fit.views is None and page.fit._views_box.children == []
+            assert page.fit.views is None
+            assert page.fit._views_box.children == []
             page.fit._done(page.fit._seq, cal)
-            assert page.fit.views is not None and page.fit._views_box.children == [page.fit.views.root]
-            assert page.fit.use.disabled and page.fit.download.disabled and not page.fit.discard.disabled
-            assert "data-state='refused'" in page.fit.out.text and page.fit.files.data["name"] == []
+            assert page.fit.views is not None
+            assert page.fit._views_box.children == [page.fit.views.root]
+            assert page.fit.use.disabled
+            assert page.fit.download.disabled
+            assert not page.fit.discard.disabled
+            assert "data-state='refused'" in page.fit.out.text
+            assert page.fit.files.data["name"] == []
             page.fit._use()  # nothing to use: the plant stays
-            assert s.plant.name == "paper-iprsm" and "data-state='refused'" in page.fit.out.text
+            assert s.plant.name == "paper-iprsm"
+            assert "data-state='refused'" in page.fit.out.text
             page.fit._discard()
-            assert not page.fit.views.root.visible and page.fit.out.text == ""
+            assert not page.fit.views.root.visible
+            assert page.fit.out.text == ""
         finally:
             page.close(wait=True)
     finally:
@@ -405,7 +433,8 @@ def test_session_calibration_cancel_ends_the_command(log):
         polls = []
         with pytest.raises(Cancelled):
             s.calibrate("axis-log.csv", path.read_bytes(), cancelled=lambda: polls.append(1) or len(polls) >= 2)
-        assert len(polls) == 2 and s.plant.name == "paper-iprsm"
+        assert len(polls) == 2
+        assert s.plant.name == "paper-iprsm"
     finally:
         s.close()
 
@@ -516,7 +545,8 @@ def test_two_sessions_calibrating_at_once_keep_their_own_notes(log):
                 done.set()
 
     try:
-        assert sa.upload("plant", "plant-a.toml", base) and sb.upload("plant", "plant-b.toml", base)
+        assert sa.upload("plant", "plant-a.toml", base)
+        assert sb.upload("plant", "plant-b.toml", base)
         tb = threading.Thread(target=run, args=("b", sb, poll_b))
         ta = threading.Thread(target=run, args=("a", sa, poll_a, a_done))
         ta.start()
@@ -527,7 +557,8 @@ def test_two_sessions_calibrating_at_once_keep_their_own_notes(log):
         assert "another thread" not in notes_a + notes_b, notes_a  # was one of A's notes
         assert "plant-a.toml: geometry does not close" in notes_a, notes_a
         assert "plant-b.toml: geometry does not close" in notes_b, notes_b  # was lost (A's exit reset B's recording)
-        assert "plant-b" not in notes_a and "plant-a" not in notes_b
+        assert "plant-b" not in notes_a
+        assert "plant-a" not in notes_b
     finally:
         sa.close()
         sb.close()
@@ -626,5 +657,6 @@ def test_a_mat_log_of_a_linear_axis_uploaded_with_its_description(app_page, tmp_
     # the CLI's overlay figures (prsa-fit --plots) drawn: the closed-loop replay and the response in Hz
     assert page.locator("[data-k='fit-views-replay']").get_attribute("data-mode") == "closed-loop"
     assert page.locator("[data-k='fit-views-frf']").get_attribute("data-unit") == "Hz"
-    assert page.locator(".prsa-fit-replay").is_visible() and page.locator(".prsa-fit-frf-mag").is_visible()
+    assert page.locator(".prsa-fit-replay").is_visible()
+    assert page.locator(".prsa-fit-frf-mag").is_visible()
     _shot(page, "app-calibration-mat.png")

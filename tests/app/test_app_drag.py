@@ -51,13 +51,16 @@ def test_drag_on_the_landscape_sets_the_manual_design_with_true_margins(app_page
     assert float(_text(page, "man-mt")) == pytest.approx(ref["mt"], abs=1e-3)
     assert float(_text(page, "man-gm")) == pytest.approx(ref["gm"], abs=0.02)
     assert float(_text(page, "man-pm")) == pytest.approx(ref["pm"], abs=0.05)
-    assert kp > 0 and ki > 0
+    assert kp > 0
+    assert ki > 0
     # the optimum is kept beside it (not re-tuned by the drag) with its own prediction
     r = _tuned(1.4)
-    assert _text(page, "opt-kp") == f"{r.pid.kp:.6g}" and _text(page, "opt-ms") == f"{r.ms:.4f}"
+    assert _text(page, "opt-kp") == f"{r.pid.kp:.6g}"
+    assert _text(page, "opt-ms") == f"{r.ms:.4f}"
     assert _text(page, "man-status") in (MANUAL_STATUS, UNSTABLE_STATUS)
     if _text(page, "man-status") == MANUAL_STATUS:
-        assert _text(page, "man-pred") != "-" and _text(page, "man-pred") != _text(page, "opt-pred")
+        assert _text(page, "man-pred") != "-"
+        assert _text(page, "man-pred") != _text(page, "opt-pred")
     _shot(page, "app-drag.png")
 
 
@@ -91,9 +94,13 @@ def test_session_manual_design_has_the_loops_true_margins():
             v = s.manual(st, kp, ki)
             ref = _independent_margins(kp, ki)
             m = v.design.margins
-            assert m.ms == pytest.approx(ref["ms"], abs=2e-4) and m.mt == pytest.approx(ref["mt"], abs=2e-4)
-            assert m.gm_db == pytest.approx(ref["gm"], abs=0.02) and m.pm_deg == pytest.approx(ref["pm"], abs=0.05)
-            assert v.status == MANUAL_STATUS and v.t and v.design.objective_predicted > 0
+            assert m.ms == pytest.approx(ref["ms"], abs=2e-4)
+            assert m.mt == pytest.approx(ref["mt"], abs=2e-4)
+            assert m.gm_db == pytest.approx(ref["gm"], abs=0.02)
+            assert m.pm_deg == pytest.approx(ref["pm"], abs=0.05)
+            assert v.status == MANUAL_STATUS
+            assert v.t
+            assert v.design.objective_predicted > 0
     finally:
         s.close()
 
@@ -131,7 +138,9 @@ def test_page_drag_events_coalesce_to_the_last_position():
         gate.set()
         page._tune_pool.submit(lambda: None).result()
         assert calls == [(0.1, 20.0)]
-        assert page.man.pid.kp == 0.1 and page.man.pid.ki == 20.0 and page.opt is opt
+        assert page.man.pid.kp == 0.1
+        assert page.man.pid.ki == 20.0
+        assert page.opt is opt
         assert 'data-drag="end"' in page.status.text
         assert "data-k='man-kp' style='padding:2px 6px'>0.1<" in page.readout.text
     finally:

@@ -75,7 +75,8 @@ def test_generic_tuner_reaches_the_brute_force_optimum_with_true_mks(app_page):
     assert float(_text(page, "g-mks")) == pytest.approx(ref["mks"], rel=1e-4)
     assert float(_text(page, "g-ms")) == pytest.approx(ref["ms"], abs=1e-4)
     assert float(_text(page, "g-mt")) == pytest.approx(ref["mt"], abs=1e-4)
-    assert ref["mt"] <= 1.2 * (1 + 1e-4) and ref["mks"] <= 10 * (1 + 1e-4)
+    assert ref["mt"] <= 1.2 * (1 + 1e-4)
+    assert ref["mks"] <= 10 * (1 + 1e-4)
     code = _text(page, "g-code")
     assert "tune_pid(plant, objective='ie', controller='pi', ms_max=1.2, mt_max=1.2, mks_max=10.0" in code
     _shot(page, "app-generic.png")
@@ -116,7 +117,8 @@ def test_generic_change_supersedes_a_long_tuning(app_page):
     ref = tune_generic(GenericSettings(plant="1/(s+1)^2", delay_s=0.2)).result
     assert (_text(page, "g-kp"), _text(page, "g-ki"), _text(page, "g-kd")) == \
         (f"{ref.pid.kp:.6g}", f"{ref.pid.ki:.6g}", f"{ref.pid.kd:.6g}")
-    assert _text(page, "g-filter") == "none" and _text(page, "g-ms") == f"{ref.ms:.5f}"
+    assert _text(page, "g-filter") == "none"
+    assert _text(page, "g-ms") == f"{ref.ms:.5f}"
 
 
 # ---- without a browser ----------------------------------------------------------------------
@@ -133,7 +135,8 @@ def test_generic_change_supersedes_a_long_tuning(app_page):
 ])
 def test_parser_known_cases(text, num, den):
     n, d = parse_transfer_function(text)
-    assert n == pytest.approx(num, rel=1e-12) and d == pytest.approx(den, rel=1e-12)
+    assert n == pytest.approx(num, rel=1e-12)
+    assert d == pytest.approx(den, rel=1e-12)
 
 
 @pytest.mark.parametrize("text, message", [
@@ -165,7 +168,8 @@ def test_tune_generic_is_tune_pid_with_the_options_and_true_peaks():
     gs = GenericSettings(plant="1/(4s+1)", objective="ie", ms_max=1.2, mt_max=1.2, mks_max=10.0)
     v = tune_generic(gs)
     ref = tune_pid(control.tf([1], [4, 1]), objective="ie", controller="pi", ms_max=1.2, mt_max=1.2, mks_max=10.0)
-    assert v.result.pid.ki == pytest.approx(ref.pid.ki, rel=1e-9) and v.result.pid.kp == pytest.approx(ref.pid.kp, rel=1e-9)
+    assert v.result.pid.ki == pytest.approx(ref.pid.ki, rel=1e-9)
+    assert v.result.pid.kp == pytest.approx(ref.pid.kp, rel=1e-9)
     assert v.result.pid.ki == pytest.approx(KI_BRUTE_FORCE, rel=1e-3)
     assert v.result.mks == pytest.approx(10.0, rel=1e-3)
     pk = _pi_peaks(v.result.pid.kp, v.result.pid.ki)
@@ -183,7 +187,8 @@ def test_tune_generic_exact_delay_margins_are_those_of_the_delay():
     v = tune_generic(gs)
     r = v.result
     pk = _pi_peaks(r.pid.kp, r.pid.ki, tau=1.0, delay=1.0)
-    assert r.ms == pytest.approx(pk["ms"], rel=1e-5) and r.ms <= 1.4 * (1 + 1e-5)
+    assert r.ms == pytest.approx(pk["ms"], rel=1e-5)
+    assert r.ms <= 1.4 * (1 + 1e-5)
     s = 1j * v.omega
     want = np.exp(-s) / (s + 1) * (r.pid.kp + r.pid.ki / s)
     assert np.allclose(v.loop, want, rtol=1e-9, atol=0)

@@ -99,7 +99,8 @@ def test_a_page_in_preparation_blocks_neither_the_loop_nor_the_open_pages(fresh_
         ctx_b, b = fresh_open_page(served.url)  # its session build is now held
         assert entered.wait(timeout=120), "the second page never started its session build"
         with urllib.request.urlopen(served.url + "static/js/bokeh.min.js", timeout=60) as r:
-            assert r.status == 200 and len(r.read()) > 100_000
+            assert r.status == 200
+            assert len(r.read()) > 100_000
         with urllib.request.urlopen(served.url, timeout=60) as r:
             assert r.status == 200
         handle = a.locator(".prsa-ms .noUi-handle")
@@ -107,7 +108,8 @@ def test_a_page_in_preparation_blocks_neither_the_loop_nor_the_open_pages(fresh_
         a.keyboard.press("ArrowRight")
         a.locator('[data-k="bound-ms"]', has_text="1.45").wait_for()
         a.locator('[data-k="status"]').wait_for()
-        assert b.locator('[data-k="loading"]').count() == 1 and b.locator('[data-k="opt-ms"]').count() == 0
+        assert b.locator('[data-k="loading"]').count() == 1
+        assert b.locator('[data-k="opt-ms"]').count() == 0
         release.set()
         b.locator('[data-k="opt-ms"]').wait_for()
         ctx_a.close()
@@ -143,7 +145,8 @@ def test_caps_refuse_with_one_line_and_a_closed_page_frees_its_place_and_memory(
         assert _text(e, "refused") == (f"prsa-app: 2 pages are open (at most 2); close one (its session ends "
                                        f"{UNUSED_SESSION_S} s later) and reload this page")
         assert gate.counts() == (0, 2)
-        assert len(made) == 2 and all(r() is not None for r in made)  # the sessions of b and d
+        assert len(made) == 2
+        assert all(r() is not None for r in made)  # the sessions of b and d
         gone = list(made)
         ctx_b.close()
         ctx_d.close()

@@ -61,7 +61,8 @@ def test_frf_upload_is_prsa_fit_frf_and_its_plant_is_used(tmp_path, capsys):
     s = AppSession()
     try:
         cal = s.calibrate("bode.csv", csv.read_bytes(), kind="frf")
-        assert cal.refused is None and cal.file_name == "bode-fitted.toml"
+        assert cal.refused is None
+        assert cal.file_name == "bode-fitted.toml"
         # the command's file and lines, the response named as uploaded (not by the server's path)
         assert cal.plant_text == (tmp_path / "bode-fitted.toml").read_text().replace(str(csv), "bode.csv")
         assert str(tmp_path) not in cal.plant_text
@@ -71,20 +72,25 @@ def test_frf_upload_is_prsa_fit_frf_and_its_plant_is_used(tmp_path, capsys):
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
             assert cal.report["parameters"][key]["ci95"] == pytest.approx(v["ci95"], rel=1e-12)
         st = cal.report["frf_structure"]
-        assert st["structure"] == "rigid" and any(x.startswith(f"structure: rigid ({st['reason']}") for x in out.splitlines())
+        assert st["structure"] == "rigid"
+        assert any(x.startswith(f"structure: rigid ({st['reason']}") for x in out.splitlines())
         (fr,) = cal.report["views"]["frf"].values()
         (fw,) = want["views"]["frf"].values()
-        assert list(fr["models"]) == list(fw["models"]) and len(fr["models"]) == 3  # rigid, two-mass, written
+        assert list(fr["models"]) == list(fw["models"])
+        assert len(fr["models"]) == 3  # rigid, two-mass, written
         np.testing.assert_allclose(fr["frequency_hz"], fw["frequency_hz"], rtol=1e-12)
         np.testing.assert_allclose(fr["coherence"], fw["coherence"], rtol=1e-12)
         html_ = _report_html(cal, "done")
-        assert "data-k='fit-structure' data-structure='rigid'" in html_ and "data-verdict='not-validated'" in html_
+        assert "data-k='fit-structure' data-structure='rigid'" in html_
+        assert "data-verdict='not-validated'" in html_
         # the fit's status in the one vocabulary, as prsa-fit's JSON has it (an FRF fit is not replayed)
         assert want["status"].startswith("unverified: ")
         assert f"<span data-k='fit-status'>{want['status']}</span>" in html_
         views = FitViews()
         views.show(cal.report["views"])
-        assert views.mag.visible and views.coherence.visible and not views.replay.visible
+        assert views.mag.visible
+        assert views.coherence.visible
+        assert not views.replay.visible
         assert views.frf_src.data["f"] == pytest.approx(fw["frequency_hz"], rel=1e-12)
         s.use_calibration(cal)
         assert s.plant_label == "bode-fitted.toml"
@@ -103,18 +109,21 @@ def test_refused_frf_fit_is_the_commands_exit_3_line_and_no_plant(tmp_path, caps
     csv = tmp_path / "bad.csv"
     _rigid_frf(csv, scale=1000.0)
     code, _, err = _cli(["--frf", str(csv), "--out", str(tmp_path / "bad-fitted.toml")], capsys)
-    assert code == 3 and not (tmp_path / "bad-fitted.toml").exists()
+    assert code == 3
+    assert not (tmp_path / "bad-fitted.toml").exists()
     s = AppSession()
     try:
         cal = s.calibrate("bad.csv", csv.read_bytes(), kind="frf")
         assert cal.refused == " ".join(err.strip().removeprefix("prsa-fit: ").split())
-        assert cal.refused.startswith("no plant written: the response's inertia") and cal.file_name == ""
+        assert cal.refused.startswith("no plant written: the response's inertia")
+        assert cal.file_name == ""
         with pytest.raises(AppInputError, match="no plant to use"):
             s.use_calibration(cal)
         with pytest.raises(ValueError):
             cal.plant_text
         html_ = _report_html(cal, "refused")
-        assert "data-verdict='refused'" in html_ and "data-state='refused' data-file=''" in html_
+        assert "data-verdict='refused'" in html_
+        assert "data-state='refused' data-file=''" in html_
         assert s.plant.name == "paper-iprsm"
         # a bad file is prsa-fit's exit-2 line, named as uploaded
         with pytest.raises(AppInputError, match=r"^x<b>\.csv: header frequency_hz, magnitude_db; expected frequency_hz "
@@ -171,7 +180,9 @@ def test_two_mass_response_shows_the_chosen_structure_and_the_mode_with_interval
             # interval: mode 100.29 Hz against 99.59..100.09, anti-resonance 80.00 against 80.09..80.46)
             assert got["value"] == pytest.approx(truth, rel=0.01)
         html_ = _report_html(cal, "done") if cal.refused is None else _report_html(cal, "refused")
-        assert "data-structure='two-mass'" in html_ and "axial mode" in html_ and "anti-resonance" in html_
+        assert "data-structure='two-mass'" in html_
+        assert "axial mode" in html_
+        assert "anti-resonance" in html_
         # the mode is quoted with the point it holds at (the command's default 30 rad/s, 0 N)
         assert "operating point 30 rad/s, 0 N" in html_
         assert cal.report["frf_axial_mode_hz"]["load_n"] == want["frf_axial_mode_hz"]["load_n"] == 0.0
@@ -192,12 +203,16 @@ def test_every_view_status_is_in_the_one_vocabulary():
         opt = s.tuned(st)
         assert status_head(opt.status) == "optimal"
         man = s.manual(st, 0.05, 5.0)
-        assert man.status == MANUAL_STATUS and status_head(man.status) == "unverified"
+        assert man.status == MANUAL_STATUS
+        assert status_head(man.status) == "unverified"
         base = s.baselines(st)
-        assert base and {b.status for b in base} <= {BASELINE_STATUS, UNSTABLE_STATUS}
+        assert base
+        assert {b.status for b in base} <= {BASELINE_STATUS, UNSTABLE_STATUS}
         assert status_head(BASELINE_STATUS) == "unverified"
         bad = s.manual(st, 5.0, 5000.0)  # far beyond the stable region
-        assert bad.status == UNSTABLE_STATUS and status_head(bad.status) == "flagged" and not bad.t
+        assert bad.status == UNSTABLE_STATUS
+        assert status_head(bad.status) == "flagged"
+        assert not bad.t
         [checked] = s.verify(st, [bad])
         assert checked.design.flags == ("the loop is unstable: not simulated",)
         with pytest.raises(ValueError, match="status = 'manual'; expected a str starting with one of"):
@@ -238,14 +253,17 @@ def test_a_mat_log_of_a_linear_axis_is_fitted_through_its_description(tmp_path, 
     s = AppSession()
     try:
         cal = s.calibrate("DATA_EMPS.mat", data.read_bytes(), log_format=("log.toml", fmt.read_bytes()))
-        assert cal.refused is None and not cal.usable and cal.file_name == "DATA_EMPS-fitted.toml"
+        assert cal.refused is None
+        assert not cal.usable
+        assert cal.file_name == "DATA_EMPS-fitted.toml"
         assert cal.plant_text == (tmp_path / "DATA_EMPS-fitted.toml").read_text()
         assert list(cal.lines) == [" ".join(x.replace(str(data), "DATA_EMPS.mat").split()) for x in out.splitlines()
                                    if not x.startswith("wrote ")]
         for key, v in want["parameters"].items():
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
         html_ = _report_html(cal, "done")
-        assert "data-verdict='replayed'" in html_ and "download it, prsa-axis tunes it" in html_
+        assert "data-verdict='replayed'" in html_
+        assert "download it, prsa-axis tunes it" in html_
         with pytest.raises(AppInputError, match="a linear-axis plant; expected a screw-driven plant"):
             s.use_calibration(cal)
         assert s.plant.name == "paper-iprsm"
@@ -337,11 +355,15 @@ def test_a_linear_axis_calibration_shows_the_clis_overlay_figures(tmp_path):
         cal = s.calibrate("axis.csv", _axis_csv(), log_format=("log.toml", _AXIS_FORMAT))
     finally:
         s.close()
-    assert cal.refused is None and not cal.usable
+    assert cal.refused is None
+    assert not cal.usable
     views = cal.report["views"]
-    assert set(views["replay"]) == {"axis.csv"} and set(views["frf"]) == {"axis.csv"} and views["unit"] == "m/s"
+    assert set(views["replay"]) == {"axis.csv"}
+    assert set(views["frf"]) == {"axis.csv"}
+    assert views["unit"] == "m/s"
     rp, fr = views["replay"]["axis.csv"], views["frf"]["axis.csv"]
-    assert rp["mode"] == "closed-loop" and "closed-loop replay from the reference" in rp["label"]
+    assert rp["mode"] == "closed-loop"
+    assert "closed-loop replay from the reference" in rp["label"]
     # the CLI's figures of the same fit (prsa-fit --plots draws these from its replays)
     got = calibrate_described([str(tmp_path / "axis.csv")], str(tmp_path / "log.toml"), name="axis-fitted",
                               labels=["axis.csv"])
@@ -361,16 +383,22 @@ def test_a_linear_axis_calibration_shows_the_clis_overlay_figures(tmp_path):
     assert fr["frequency_hz"] == pytest.approx(list(mag.lines[0].get_xdata()))
     assert fr["measured"]["magnitude_db"] == pytest.approx(list(mag.lines[0].get_ydata()))
     (model,) = fr["models"].values()
-    assert model["written"] and model["magnitude_db"] == pytest.approx(list(mag.lines[1].get_ydata()))
+    assert model["written"]
+    assert model["magnitude_db"] == pytest.approx(list(mag.lines[1].get_ydata()))
     assert fr["residual"]["magnitude_db"] == pytest.approx(list(fig.axes[2].lines[0].get_ydata()))
     assert fr["coherence"] == pytest.approx(list(fig.axes[3].lines[0].get_ydata()))
     plt.close(fig)
     assert max(fr["frequency_hz"]) < 0.5 / 1e-3  # a Hz axis below the Nyquist frequency of the 1 kHz log
     panel = FitViews()
     panel.show(views)
-    assert panel.root.visible and panel.replay.visible and panel.mag.visible and panel.coherence.visible
-    assert panel.replay.yaxis.axis_label == "speed (m/s)" and "m/s per N" in panel.mag.yaxis.axis_label
-    assert len(panel.replay_src.data["t"]) == len(rp["time_s"]) and len(panel.frf_src.data["f"]) == len(fr["frequency_hz"])
+    assert panel.root.visible
+    assert panel.replay.visible
+    assert panel.mag.visible
+    assert panel.coherence.visible
+    assert panel.replay.yaxis.axis_label == "speed (m/s)"
+    assert "m/s per N" in panel.mag.yaxis.axis_label
+    assert len(panel.replay_src.data["t"]) == len(rp["time_s"])
+    assert len(panel.frf_src.data["f"]) == len(fr["frequency_hz"])
 
 
 _MOTOR_FORMAT = b"""axis = "rotary"
@@ -418,14 +446,17 @@ def test_a_log_in_motor_coordinates_uploaded_with_its_description_fits_the_sessi
     try:
         assert s.plant.name == "paper-iprsm"
         cal = s.calibrate("motor.csv", csv.read_bytes(), log_format=("motor.toml", _MOTOR_FORMAT))
-        assert cal.refused is None and cal.usable and cal.file_name == "motor-fitted.toml"
+        assert cal.refused is None
+        assert cal.usable
+        assert cal.file_name == "motor-fitted.toml"
         assert cal.plant_text == (tmp_path / "motor-fitted.toml").read_text()
         assert list(cal.lines) == [" ".join(x.split()) for x in out.splitlines() if not x.startswith("wrote ")]
         for key, v in want["parameters"].items():
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
         assert cal.report["solver"]["validation"]["passes"] is True
         views = cal.report["views"]
-        assert "unit" not in views and set(views["replay"]) == {"motor.csv"}
+        assert "unit" not in views
+        assert set(views["replay"]) == {"motor.csv"}
         s.use_calibration(cal)
         assert s.plant.name == "motor-fitted"
     finally:

@@ -171,7 +171,8 @@ def test_foreign_errors_name_the_step_and_the_library_not_its_message():
     exc = _raised(lambda: scipy.linalg.solve(np.array([[np.nan]]), np.array([1.0])))
     assert common.raised_in(exc).startswith("numpy.")  # scipy's input check, raised in numpy
     code, line = common.describe_failure(exc, "tuning")
-    assert code == EXIT_NUMERICAL and line.startswith("numerical failure: tuning failed in numpy (ValueError); check")
+    assert code == EXIT_NUMERICAL
+    assert line.startswith("numerical failure: tuning failed in numpy (ValueError); check")
     assert "nan" not in line.lower()
     exc = _raised(lambda: np.linalg.inv(np.zeros((2, 2))))
     assert common.describe_failure(exc, "tuning")[1].startswith(
@@ -204,7 +205,8 @@ def test_a_progress_line_during_captured_solver_output_reaches_the_terminal_once
     assert out.returncode == 0, out.stderr
     assert out.stderr.splitlines() == ["prog: step one"]
     captured = out.stdout.strip().splitlines()[-1]
-    assert "solver says hi" in captured and "step one" not in captured
+    assert "solver says hi" in captured
+    assert "step one" not in captured
 
 
 # --- argv read once: a flag that keeps its text as typed -----------------------------------------

@@ -47,7 +47,9 @@ def test_fit_list_refused(tmp_path, capsys, value, words):
     out = tmp_path / "o.toml"
     code = main([str(log), "--fit", value, "--out", str(out)])
     err = capsys.readouterr().err.strip()
-    assert code == 2 and "\n" not in err and not out.exists(), err
+    assert code == 2, err
+    assert "\n" not in err, err
+    assert not out.exists(), err
     for w in words:
         assert w in err, err
 
@@ -60,7 +62,9 @@ def test_empty_correlation_message_braces():
     with pytest.raises(PlantFileError) as exc:
         Plant.from_dict(doc, origin="p.toml")
     msg = str(exc.value)
-    assert "correlation" in msg and "}}" not in msg and "} or an array" in msg
+    assert "correlation" in msg
+    assert "}}" not in msg
+    assert "} or an array" in msg
 
 
 # ------------------------------------------------------------------------------------------------
@@ -92,15 +96,18 @@ def test_a_linear_axis_plant_as_the_base_of_a_screw_fit_is_bad_input(record, tmp
     base = ROOT / "examples" / "emps" / "plant.toml"
     out = tmp_path / "fitted.toml"
     code, err = _run(capsys, [str(record), "--plant", str(base), "--out", str(out)])
-    assert code == 2 and err.count("\n") == 1, err
-    assert f"--plant {base}: mechanism = \"linear-axis\"" in err and "--log-format" in err
+    assert code == 2, err
+    assert err.count("\n") == 1, err
+    assert f"--plant {base}: mechanism = \"linear-axis\"" in err
+    assert "--log-format" in err
     assert not out.exists()
 
 
 def test_a_torque_constant_without_a_current_column_is_bad_input(record, tmp_path, capsys):
     out = tmp_path / "fitted.toml"
     code, err = _run(capsys, [str(record), "--torque-constant", "0.5", "--out", str(out)])
-    assert code == 2 and err.count("\n") == 1, err
+    assert code == 2, err
+    assert err.count("\n") == 1, err
     assert f"{record}: a torque constant of 0.5 N m/A (--torque-constant) was given" in err
     assert not out.exists()
 
@@ -153,7 +160,8 @@ def _interrupt_after_start(args, cwd):
         seen.append(line.rstrip("\n"))
         if line.startswith("prsa-fit: fitting"):
             break
-    assert seen and seen[-1].startswith("prsa-fit: fitting"), seen
+    assert seen, seen
+    assert seen[-1].startswith("prsa-fit: fitting"), seen
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=120)
     return p.returncode, seen + err.splitlines()
@@ -198,7 +206,8 @@ def test_recorded_interrupt_is_raised_by_check_not_by_the_handler():
     run.record = True
     try:
         run.on_sigint(signal.SIGINT, None)  # inside CasADi: must not raise there
-        assert run.interrupted and run.timer is not None  # the watchdog is armed all the same
+        assert run.interrupted
+        assert run.timer is not None  # the watchdog is armed all the same
         with pytest.raises(KeyboardInterrupt):
             run.check()
     finally:
@@ -284,7 +293,8 @@ def test_linear_axis_take_back_removes_only_what_the_run_made(tmp_path):
     (plots / "replay-1-x.png").write_text("png\n")
     _take_back(made())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.toml", "plots"]
-    assert old_out.read_text() == "old\n" and sorted(os.listdir(plots)) == ["mine.png"]
+    assert old_out.read_text() == "old\n"
+    assert sorted(os.listdir(plots)) == ["mine.png"]
 
     new_plots = tmp_path / "new"
     made = _new_outputs(argparse.Namespace(out=str(tmp_path / "g.toml"), plots=str(new_plots)))
@@ -361,7 +371,9 @@ def test_frf_alone_is_calibrate_frf(tmp_path, capsys, monkeypatch):
     assert main(["--frf", str(tmp_path / "bode.csv"), "--out", str(out)]) == 0
     printed = capsys.readouterr().out.splitlines()
     (got,) = calls
-    assert got.plant_text == out.read_text() and printed[:-1] == list(got.lines) and printed[-1] == f"wrote {out}"
+    assert got.plant_text == out.read_text()
+    assert printed[:-1] == list(got.lines)
+    assert printed[-1] == f"wrote {out}"
     assert main(["--frf", str(tmp_path / "bode.csv"), "--frf-speed", "1e9", "--out", str(out)]) == 2
     assert capsys.readouterr().err.startswith("prsa-fit: error: --frf-speed 1e9: ")
 
@@ -399,9 +411,11 @@ def test_frf_fit_figures_in_the_unit_asked_and_views_with_coherence(tmp_path, mo
     rep, figs = tmp_path / "r.json", tmp_path / "figs"
     assert main(["--frf", str(csv), "--out", str(tmp_path / "o.toml"), "--json", str(rep), "--plots", str(figs),
                  "--frequency-unit", "rad/s"]) == 0
-    assert units == ["rad/s"] and (figs / "syn-bode.png").stat().st_size > 10_000
+    assert units == ["rad/s"]
+    assert (figs / "syn-bode.png").stat().st_size > 10_000
     views = json.loads(rep.read_text())["views"]
-    assert views["replay"] == {} and views["verdict"]["validated"] is None  # an FRF fit has no time-domain replay
+    assert views["replay"] == {}
+    assert views["verdict"]["validated"] is None  # an FRF fit has no time-domain replay
     (v,) = views["frf"].values()
     raw = np.genfromtxt(csv, delimiter=",", names=True)
     keep = raw["coherence"] >= 0.8
@@ -409,7 +423,8 @@ def test_frf_fit_figures_in_the_unit_asked_and_views_with_coherence(tmp_path, mo
     np.testing.assert_allclose(v["coherence"], raw["coherence"][keep], rtol=1e-15)
     np.testing.assert_allclose(v["measured"]["magnitude_db"], raw["magnitude_db"][keep], rtol=1e-12, atol=1e-12)
     labels = list(v["models"])
-    assert labels[0].startswith("rigid (") and v["models"][labels[-1]]["written"] is True
+    assert labels[0].startswith("rigid (")
+    assert v["models"][labels[-1]]["written"] is True
     assert not any(m["written"] for m in list(v["models"].values())[:-1])
     capsys.readouterr()
 
@@ -420,8 +435,12 @@ def test_frequency_unit_refused_with_one_line(tmp_path, capsys):
     out = tmp_path / "o.toml"
     assert main(["--frf", str(csv), "--out", str(out), "--plots", str(tmp_path / "f"), "--frequency-unit", "kHz"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--frequency-unit" in err[0] and "'kHz'" in err[0] and "rad/s" in err[0]
-    assert not out.exists() and not (tmp_path / "f").exists()
+    assert len(err) == 1
+    assert "--frequency-unit" in err[0]
+    assert "'kHz'" in err[0]
+    assert "rad/s" in err[0]
+    assert not out.exists()
+    assert not (tmp_path / "f").exists()
 
 
 def test_time_domain_views_are_the_replay_of_the_written_plant(tmp_path, capsys):
@@ -444,7 +463,8 @@ def test_time_domain_views_are_the_replay_of_the_written_plant(tmp_path, capsys)
     assert sorted(q.name for q in figs.iterdir()) == ["log1-fit.png", "log1-frf.png", "log2-fit.png", "log2-frf.png"]
     report = json.loads(rep.read_text())
     views = report["views"]
-    assert views["verdict"]["validated"] is True and views["verdict"]["diagnosis"] is None
+    assert views["verdict"]["validated"] is True
+    assert views["verdict"]["diagnosis"] is None
     assert views["verdict"]["replay"] == REPLAY_MODE
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -453,20 +473,26 @@ def test_time_domain_views_are_the_replay_of_the_written_plant(tmp_path, capsys)
     for path in paths:
         name = str(path)
         r = views["replay"][name]
-        assert r["mode"] == "prediction-error" and "prediction-error replay" in r["label"]
-        assert r["explained"] is True and r["fit_percent"] == report["fit_percent"][name]
+        assert r["mode"] == "prediction-error"
+        assert "prediction-error replay" in r["label"]
+        assert r["explained"] is True
+        assert r["fit_percent"] == report["fit_percent"][name]
         rec = load_record(path)
         again = replay_records(plant, [rec], shift)[name]  # the written file, replayed independently
         idx = np.arange(0, len(again["time_s"]), r["every"])
-        assert len(r["time_s"]) <= 2000 and r["every"] == -(-len(again["time_s"]) // 2000)
+        assert len(r["time_s"]) <= 2000
+        assert r["every"] == -(-len(again["time_s"]) // 2000)
         np.testing.assert_allclose(r["time_s"], again["time_s"][idx], rtol=1e-15)
         np.testing.assert_allclose(r["measured_rad_s"], again["measured"][idx], rtol=1e-15)
         np.testing.assert_allclose(r["model_rad_s"], again["model"][idx], rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(r["residual_rad_s"], (again["measured"] - again["model"])[idx], atol=1e-9)
         f = views["frf"][name]
-        assert "H1 estimate" in f["source"] and len(f["frequency_hz"]) >= 20
+        assert "H1 estimate" in f["source"]
+        assert len(f["frequency_hz"]) >= 20
         ((label, m),) = f["models"].items()
-        assert m["written"] is True and label.startswith("plant as written") and f["fit_percent"] is None
+        assert m["written"] is True
+        assert label.startswith("plant as written")
+        assert f["fit_percent"] is None
         fq = np.asarray(f["frequency_hz"])
         g = frf_response(plant, fq, speed_rad_s=float(np.mean(rec.speed_rad_s)), load_n=float(np.mean(rec.axial_load_n)),
                          sample_time_s=rec.sample_time_s, delay_samples=shift)  # independently, from the file
@@ -496,8 +522,10 @@ def test_a_fitted_value_outside_the_users_uncertainty_is_evidence_not_bad_input(
     out = tmp_path / "x.toml"
     assert main([str(csv), "--out", str(out)]) == 3
     cap = capsys.readouterr()
-    assert not out.exists() and "does not contain the nominal value" not in cap.err + cap.out
-    assert "Traceback" not in cap.err and "no plant file written" in cap.err
+    assert not out.exists()
+    assert "does not contain the nominal value" not in cap.err + cap.out
+    assert "Traceback" not in cap.err
+    assert "no plant file written" in cap.err
     assert main([str(csv), "--out", str(out), "--force"]) == 3
     cap = capsys.readouterr()
     base, fitted = load_plant(), load_plant(str(out))  # loads, with its [uncertainty]

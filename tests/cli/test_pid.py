@@ -138,12 +138,15 @@ def case_run():
 @pytest.mark.parametrize("name", list(CASES))
 def test_json_round_trips_to_the_true_peaks(name, tmp_path, capsys, case_run):
     code, d, text = case_run(name, tmp_path, capsys)
-    assert code == 0 and d["status"] == "optimal" and d["converged"]
+    assert code == 0
+    assert d["status"] == "optimal"
+    assert d["converged"]
     ref = independent_peaks(d)
     for key in ("ms", "mt"):
         assert d[key] == pytest.approx(ref[key], rel=1e-4), key
     if name == "ideal":
-        assert d["mks"] is None and "Mks = inf" in text  # |C S| grows as kd w: infinite, JSON null
+        assert d["mks"] is None
+        assert "Mks = inf" in text  # |C S| grows as kd w: infinite, JSON null
     else:
         assert d["mks"] == pytest.approx(ref["mks"], rel=1e-4)
     m = d["margins"]
@@ -153,7 +156,8 @@ def test_json_round_trips_to_the_true_peaks(name, tmp_path, capsys, case_run):
     if math.isfinite(ref["gm"]):
         assert m["gm_db"] == pytest.approx(ref["gm"], abs=1e-2)
     else:
-        assert m["gm_db"] is None and "GM = inf" in text
+        assert m["gm_db"] is None
+        assert "GM = inf" in text
     # the bounds hold on the independent peaks
     opt = d["options"]
     assert ref["ms"] <= opt["ms_max"] * (1 + 1e-6)
@@ -164,7 +168,9 @@ def test_json_round_trips_to_the_true_peaks(name, tmp_path, capsys, case_run):
     assert st["K"] == c["kp"]
     assert st["Ti_s"] == pytest.approx(c["kp"] / c["ki"], rel=1e-12)
     assert st["Td_s"] == pytest.approx(c["kd"] / c["kp"], rel=1e-12, abs=0.0)
-    assert f"kp = {c['kp']:.6g}" in text and f"Ms = {d['ms']:.6g}" in text and "status      optimal" in text
+    assert f"kp = {c['kp']:.6g}" in text
+    assert f"Ms = {d['ms']:.6g}" in text
+    assert "status      optimal" in text
 
 
 def test_the_issue_mks_case_matches_the_brute_force(tmp_path, capsys, case_run):
@@ -176,7 +182,9 @@ def test_the_issue_mks_case_matches_the_brute_force(tmp_path, capsys, case_run):
 def test_reverse_acting_plant_gets_negative_gains(tmp_path, capsys, case_run):
     _, d, text = case_run("reverse", tmp_path, capsys)
     c = d["controller"]
-    assert c["kp"] < 0 and c["ki"] < 0 and any("tuned as -P" in w for w in d["warnings"])
+    assert c["kp"] < 0
+    assert c["ki"] < 0
+    assert any("tuned as -P" in w for w in d["warnings"])
     # -P with the negated gains is the same loop: the positive plant's design is its mirror image
     _, d2, _ = _run(tmp_path, ["--num", "2", "--den", "1", "3", "3", "1", "--objective", "ie", "--mt-max", "1.3"],
                     capsys)
@@ -187,24 +195,35 @@ def test_reverse_acting_plant_gets_negative_gains(tmp_path, capsys, case_run):
 def test_unstable_plant_keeps_positive_gains(tmp_path, capsys, case_run):
     _, d, _ = case_run("unstable", tmp_path, capsys)
     c = d["controller"]
-    assert c["kp"] > 0 and c["ki"] > 0 and not any("tuned as -P" in w for w in d["warnings"])
+    assert c["kp"] > 0
+    assert c["ki"] > 0
+    assert not any("tuned as -P" in w for w in d["warnings"])
     assert d["margins"]["gm_db"] < 0  # a lower gain margin: the loop tolerates a gain decrease of that much
 
 
 def test_filtered_design_reports_filters_and_weights(tmp_path, capsys, case_run):
     _, d, text = case_run("filter2", tmp_path, capsys)
     c = d["controller"]
-    assert c["filter_order"] == 2 and c["filter_tf_s"] == 0.2 and c["derivative"] == "filtered" and c["tf_s"] > 0
-    assert 0 <= c["b"] <= 1 and 0 <= c["c"] <= 1 and d["setpoint"]["iae"] <= d["setpoint"]["iae_unweighted"]
-    assert "Tf = 0.2 s (given)" in text and "setpoint weights b =" in text
+    assert c["filter_order"] == 2
+    assert c["filter_tf_s"] == 0.2
+    assert c["derivative"] == "filtered"
+    assert c["tf_s"] > 0
+    assert 0 <= c["b"] <= 1
+    assert 0 <= c["c"] <= 1
+    assert d["setpoint"]["iae"] <= d["setpoint"]["iae_unweighted"]
+    assert "Tf = 0.2 s (given)" in text
+    assert "setpoint weights b =" in text
     assert d["standard"]["N"] == pytest.approx(d["standard"]["Td_s"] / c["tf_s"], rel=1e-12)
 
 
 def test_delay_report_says_exact(tmp_path, capsys, case_run):
     _, d, text = case_run("delay", tmp_path, capsys)
-    assert d["plant"]["delay_s"] == 1.0 and d["margins"]["delay"] == "exact"
-    assert d["controller"]["tf_s"] == 0.05 and d["options"]["tf_s"] == 0.05  # --tf is the derivative filter
-    assert "exact delay" in d["objective"]["evaluation"] and "exp(-1 s)" in text
+    assert d["plant"]["delay_s"] == 1.0
+    assert d["margins"]["delay"] == "exact"
+    assert d["controller"]["tf_s"] == 0.05
+    assert d["options"]["tf_s"] == 0.05  # --tf is the derivative filter
+    assert "exact delay" in d["objective"]["evaluation"]
+    assert "exp(-1 s)" in text
 
 
 # --- the plant text ---------------------------------------------------------------------------------
@@ -279,8 +298,11 @@ def test_bad_input_is_one_line_exit_2(argv, named, capsys, monkeypatch):
     assert pid_main(argv) == 2
     cap = capsys.readouterr()
     lines = cap.err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("prsa-pid: error: ") and named in lines[0], cap.err
-    assert cap.out == "" and "Traceback" not in cap.err
+    assert len(lines) == 1, cap.err
+    assert lines[0].startswith("prsa-pid: error: "), cap.err
+    assert named in lines[0], cap.err
+    assert cap.out == ""
+    assert "Traceback" not in cap.err
 
 
 def test_unwritable_output_is_refused_before_any_heavy_import(tmp_path):
@@ -301,7 +323,9 @@ def test_tiny_delay_and_the_law_are_stated(tmp_path, capsys, case_run):
     exact simulation is out of reach), and ``controller.law`` is the law the code implements
     (the measurement filter on y only; tests/tuning/test_generic.py simulates it)."""
     code, d, text = case_run("tiny-delay", tmp_path, capsys)
-    assert code == 0 and d["converged"]
-    assert "Pade model of order" in d["objective"]["evaluation"] and d["stats"]["delay_model"]["objective"] == "pade"
+    assert code == 0
+    assert d["converged"]
+    assert "Pade model of order" in d["objective"]["evaluation"]
+    assert d["stats"]["delay_model"]["objective"] == "pade"
     assert d["controller"]["law"].startswith("u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s) (c r - y_f), y_f = F(s) y")
     assert "Pade model of order" in text

@@ -75,7 +75,8 @@ def test_friction_ff_refused_on_a_speed_scene(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main(["--friction-ff", "--json", "r.json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--friction-ff does not apply to the speed-loop scene paper-load-step" in err[0]
+    assert len(err) == 1
+    assert "--friction-ff does not apply to the speed-loop scene paper-load-step" in err[0]
     assert not list(tmp_path.iterdir())
 
 
@@ -93,7 +94,9 @@ def test_report_lines_and_export_of_a_fixed_design(paper_plant):
                             "toml"))
     fr = d["position_controller"]["friction_feedforward"]
     table = np.array(fr["table_speed_rad_s_torque_n_m"])
-    assert table[0, 0] == pytest.approx(-w_max) and table[-1, 0] == pytest.approx(w_max) and len(table) == 21
+    assert table[0, 0] == pytest.approx(-w_max)
+    assert table[-1, 0] == pytest.approx(w_max)
+    assert len(table) == 21
     for w, tau in table:
         c, s_, v = (fr["coulomb_positive_n_m"], fr["stribeck_positive_n_m"], fr["viscous_positive_n_m_s_per_rad"]) \
             if w > 0 else (fr["coulomb_negative_n_m"], fr["stribeck_negative_n_m"], fr["viscous_negative_n_m_s_per_rad"])
@@ -136,11 +139,15 @@ STICTION_RPM = 5 * 1e-4 / (2e-3 / (2 * math.pi)) * 30 / math.pi  # screw slower 
 def _outcome(capsys, rc, calls, prog="prsa-tune"):
     cap = capsys.readouterr()
     lines = cap.err.strip().splitlines()
-    assert "Traceback" not in cap.err and len(lines) == 1, cap.err
+    assert "Traceback" not in cap.err, cap.err
+    assert len(lines) == 1, cap.err
     if rc == 2:
-        assert lines[0].startswith(f"{prog}: error: ") and not calls, (lines, calls)
+        assert lines[0].startswith(f"{prog}: error: "), (lines, calls)
+        assert not calls, (lines, calls)
     else:
-        assert rc == 3 and len(calls) == 1 and "stand-in" in lines[0], (rc, lines)
+        assert rc == 3, (rc, lines)
+        assert len(calls) == 1, (rc, lines)
+        assert "stand-in" in lines[0], (rc, lines)
     calls.clear()
     return lines[0]
 
@@ -189,7 +196,8 @@ def test_same_bad_load_same_exit_code_in_both_tools(capsys, stand_in, text):
     tune_line = _outcome(capsys, 2, stand_in)
     assert plot_main(["--kp", "0.085", "--load-step", text]) == 2
     plot_line = _outcome(capsys, 2, stand_in, "prsa-plot")
-    assert repr(text) in tune_line and repr(text) in plot_line
+    assert repr(text) in tune_line
+    assert repr(text) in plot_line
     assert "ZeroDivision" not in tune_line + plot_line
 
 
@@ -223,7 +231,8 @@ def test_numeric_flags_refused_in_the_users_unit_or_run(capsys, stand_in, flag, 
     if rc == 2:
         assert f"{flag} {text}" in line, line  # the value as typed, after the flag
         if flag == "--setpoint-rpm":
-            assert "rad/s" not in line and "setpoint = " not in line
+            assert "rad/s" not in line
+            assert "setpoint = " not in line
             assert "rpm" in line
 
 
@@ -282,14 +291,18 @@ def test_internal_messages_are_translated_at_the_boundary(capsys, monkeypatch, e
     assert main(["--load-step", "500:1500"]) == code
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and hidden not in lines[0] and "Traceback" not in err
-    assert "paper-iprsm" in lines[0] and "500 N -> 1500 N" in lines[0]
+    assert len(lines) == 1
+    assert hidden not in lines[0]
+    assert "Traceback" not in err
+    assert "paper-iprsm" in lines[0]
+    assert "500 N -> 1500 N" in lines[0]
 
 
 def test_geometry_note_never_precedes_an_error(capsys, stand_in):
     assert main(["--load-step", "500:abc"]) == 2
     err = capsys.readouterr().err
-    assert "note:" not in err and len(err.strip().splitlines()) == 1
+    assert "note:" not in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_help_describes_every_option(capsys):
@@ -301,7 +314,8 @@ def test_help_describes_every_option(capsys):
     assert plot_main(["--help"]) == 0
     text = capsys.readouterr().out
     assert "default: ./prsa-plots" in re.sub(r"\s+", " ", text).replace("prsa- plots", "prsa-plots")
-    assert "--plots DIR" in text and "Exit codes" in text
+    assert "--plots DIR" in text
+    assert "Exit codes" in text
 
 
 # --- move scenes (prsa_ctrl.tuning.cascade.main_move) and duty-cycle details -----------------------------
@@ -347,11 +361,13 @@ def _move_file(tmp_path, **edits):
 def test_move_scene_beyond_the_plant_is_refused_before_tuning(capsys, tmp_path, cascade_stand_in, key, value, match):
     rc = main(["--scene", _move_file(tmp_path, **{key: value})])
     line = _outcome(capsys, rc, cascade_stand_in)
-    assert rc == 2 and re.search(match, line), line
+    assert rc == 2, line
+    assert re.search(match, line), line
 
 
 def test_paper_move_reaches_the_tuner(capsys, cascade_stand_in):
-    assert main(["--scene", "paper-move"]) == 3 and len(cascade_stand_in) == 1
+    assert main(["--scene", "paper-move"]) == 3
+    assert len(cascade_stand_in) == 1
     capsys.readouterr()
 
 
@@ -373,7 +389,8 @@ def test_move_scene_outputs_must_differ(capsys, tmp_path, cascade_stand_in):
     assert "name the same path" in _outcome(capsys, rc, cascade_stand_in)
     rc = main(["--scene", "paper-move", "--plots", str(tmp_path / "p"), "--json", str(tmp_path / "p")])
     assert "name the same path" in _outcome(capsys, rc, cascade_stand_in)
-    assert not (tmp_path / "x.toml").exists() and not (tmp_path / "p").exists()
+    assert not (tmp_path / "x.toml").exists()
+    assert not (tmp_path / "p").exists()
 
 
 def _duty_scene(tmp_path):
@@ -397,8 +414,12 @@ def test_kalman_filter_on_a_duty_cycle_reaches_the_tuner(capsys, tmp_path, stand
 def test_percent_differences_never_print_minus_zero():
     from prsa_ctrl.studies.scenereport import diff_text as _diff_text, pct_text as _pct_text
 
-    assert _diff_text(0.99999, 1.0) == "0.0 %" and _diff_text(1.00001, 1.0) == "0.0 %"
-    assert _pct_text(-0.04) == "0.0 %" and _pct_text(-0.0) == "0.0 %" and _pct_text(-0.06) == "-0.1 %" and _pct_text(2.0) == "+2.0 %"
+    assert _diff_text(0.99999, 1.0) == "0.0 %"
+    assert _diff_text(1.00001, 1.0) == "0.0 %"
+    assert _pct_text(-0.04) == "0.0 %"
+    assert _pct_text(-0.0) == "0.0 %"
+    assert _pct_text(-0.06) == "-0.1 %"
+    assert _pct_text(2.0) == "+2.0 %"
 
 
 def test_json_gains_carry_the_setpoint_weight(tmp_path):
@@ -451,7 +472,8 @@ def _script(code, cwd, timeout=300):
 def _one_error(proc, *needles):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
-    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert len(lines) == 1, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr, proc.stderr[-2000:]
     for n in needles:
         assert n in lines[0], (n, lines[0])
     return lines[0]
@@ -496,7 +518,8 @@ def test_the_built_in_plant_file_itself_is_refused_before_any_work(tmp_path, sta
 
     path = Path(str(plant_file_path("paper-iprsm")))
     before = path.read_bytes()
-    assert main(["--json", str(path)]) == 2 and not stand_in
+    assert main(["--json", str(path)]) == 2
+    assert not stand_in
     assert "package's own files" in capsys.readouterr().err
     assert path.read_bytes() == before
 
@@ -506,7 +529,8 @@ def test_the_built_in_plant_file_itself_is_refused_before_any_work(tmp_path, sta
 def test_a_245_character_export_name_is_written_with_the_other_outputs(default_cli_run):
     run = default_cli_run
     assert run.code == 0, run.err[-2000:]
-    assert run.export.name == "x" * 245 + ".toml" and run.export.is_file()
+    assert run.export.name == "x" * 245 + ".toml"
+    assert run.export.is_file()
     assert json.loads(run.json.read_text())["status"] == "ok"
     assert len(list(run.plots.iterdir())) >= 2
     assert not [f for f in run.folder.rglob("*") if ".prsa-tmp-" in f.name]
@@ -528,9 +552,11 @@ def test_symlink_loop_outputs_are_refused_in_one_line_before_any_work(tmp_path, 
         arg = str(tmp_path / "a") + (".toml" if flag == "--export" else "")
         if flag == "--export":
             (tmp_path / "a.toml").symlink_to(tmp_path / "a.toml")
-        assert main([flag, arg]) == 2 and not stand_in
+        assert main([flag, arg]) == 2
+        assert not stand_in
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "symlink loop" in err[0], err
+        assert len(err) == 1, err
+        assert "symlink loop" in err[0], err
 
 
 def test_a_failing_output_leaves_every_other_output_as_it_was(tmp_path, monkeypatch):
@@ -544,7 +570,8 @@ def test_a_failing_output_leaves_every_other_output_as_it_was(tmp_path, monkeypa
             tr.make_directory(tmp_path / "figs")
             tr.stage(tmp_path / "figs" / "b.png", lambda tmp: (_ for _ in ()).throw(RuntimeError("render failed")))
             tr.commit()
-    assert (tmp_path / "a.json").read_text() == "old a" and sorted(os.listdir(tmp_path)) == ["a.json"]
+    assert (tmp_path / "a.json").read_text() == "old a"
+    assert sorted(os.listdir(tmp_path)) == ["a.json"]
 
 
 # --- hostile 14: --scheduler checked and connected before the tuning ----------------------------
@@ -557,8 +584,11 @@ def test_a_failing_output_leaves_every_other_output_as_it_was(tmp_path, monkeypa
 def test_bad_scheduler_addresses_stop_before_the_tuning(address, needle, stand_in, capsys):
     rc = main(["--scene", "robust-load-step", "--monte-carlo", "2", "--scheduler", address])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and not stand_in, (rc, err)
-    assert len(err) == 1 and err[0].startswith(f"prsa-tune: error: --scheduler {address!r}") and needle in err[0], err
+    assert rc == 2, (rc, err)
+    assert not stand_in, (rc, err)
+    assert len(err) == 1, err
+    assert err[0].startswith(f"prsa-tune: error: --scheduler {address!r}"), err
+    assert needle in err[0], err
 
 
 def test_unreachable_scheduler_is_exit_2_from_the_console_entry(tmp_path):
@@ -588,9 +618,11 @@ def _robust_scene(tmp_path, edit, extra=""):
 ])
 def test_scene_values_out_of_range_name_file_and_key_before_the_tuning(tmp_path, edit, needles, stand_in, capsys):
     path = _robust_scene(tmp_path, edit)
-    assert main(["--scene", str(path), "--monte-carlo", "0"]) == 2 and not stand_in
+    assert main(["--scene", str(path), "--monte-carlo", "0"]) == 2
+    assert not stand_in
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(path) in err[0], err
+    assert len(err) == 1, err
+    assert str(path) in err[0], err
     for n in needles:
         assert n in err[0], (n, err[0])
 
@@ -602,10 +634,14 @@ def test_jointly_invalid_uncertainty_names_the_scene_and_both_keys(tmp_path, sta
                          "friction.static" = { dist = "uniform", low = 0.26, high = 0.34, source = "assumption: t" }
                          "friction.dynamic" = { dist = "uniform", low = 0.2, high = 0.3, source = "assumption: t" }
                          '''))
-    assert main(["--scene", str(path), "--monte-carlo", "0"]) == 2 and not stand_in
+    assert main(["--scene", str(path), "--monte-carlo", "0"]) == 2
+    assert not stand_in
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"prsa-tune: error: {path}:"), err
-    assert "friction.static" in err[0] and "friction.dynamic" in err[0] and "built-in" not in err[0], err
+    assert len(err) == 1, err
+    assert err[0].startswith(f"prsa-tune: error: {path}:"), err
+    assert "friction.static" in err[0], err
+    assert "friction.dynamic" in err[0], err
+    assert "built-in" not in err[0], err
 
 
 # --- hostile 17: Ctrl-C at any point: exit 130, one true line, outputs all old or all new ---------
@@ -630,13 +666,19 @@ def test_ctrl_c_while_the_outputs_are_renamed_leaves_all_old_or_all_new(tmp_path
     (tmp_path / "e.json").write_text("old e")
     p = _script(_INTERRUPT_AT_FIRST_RENAME, tmp_path)
     lines = p.stderr.strip().splitlines()
-    assert p.returncode == 130 and len(lines) == 1 and "Traceback" not in p.stderr, (p.returncode, p.stderr[-2000:])
+    assert p.returncode == 130, (p.returncode, p.stderr[-2000:])
+    assert len(lines) == 1, (p.returncode, p.stderr[-2000:])
+    assert "Traceback" not in p.stderr, (p.returncode, p.stderr[-2000:])
     j, e = (tmp_path / "j.json").read_text(), (tmp_path / "e.json").read_text()
     if j == "old j" or e == "old e":
-        assert (j, e) == ("old j", "old e") and "no output written" in lines[0], (j[:20], e[:20], lines)
+        assert (j, e) == ("old j", "old e"), (j[:20], e[:20], lines)
+        assert "no output written" in lines[0], (j[:20], e[:20], lines)
     else:
-        assert json.loads(j)["status"] == "ok" and "kp" in json.dumps(json.loads(e))
-        assert "no output written" not in lines[0] and "j.json" in lines[0] and "e.json" in lines[0], lines
+        assert json.loads(j)["status"] == "ok"
+        assert "kp" in json.dumps(json.loads(e))
+        assert "no output written" not in lines[0], lines
+        assert "j.json" in lines[0], lines
+        assert "e.json" in lines[0], lines
 
 
 _INTERRUPT_AFTER_THE_COMMAND = """
@@ -657,8 +699,11 @@ raise SystemExit(main())
 def test_ctrl_c_after_the_command_finished_is_exit_130_with_one_line(tmp_path):
     p = _script(_INTERRUPT_AFTER_THE_COMMAND, tmp_path)
     lines = p.stderr.strip().splitlines()
-    assert p.returncode == 130 and len(lines) == 1 and "Traceback" not in p.stderr, (p.returncode, p.stderr[-2000:])
-    assert "interrupted (Ctrl-C)" in lines[0] and "j.json" in lines[0], lines
+    assert p.returncode == 130, (p.returncode, p.stderr[-2000:])
+    assert len(lines) == 1, (p.returncode, p.stderr[-2000:])
+    assert "Traceback" not in p.stderr, (p.returncode, p.stderr[-2000:])
+    assert "interrupted (Ctrl-C)" in lines[0], lines
+    assert "j.json" in lines[0], lines
     assert json.loads((tmp_path / "j.json").read_text())["status"] == "ok"
 
 
@@ -698,7 +743,9 @@ def test_bench_out_is_checked_in_one_line(tmp_path, monkeypatch, capsys, out):
     assert bench.main(["--out", out, "--fast"]) == 2
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in err and "bench: error: --out" in lines[0], err
+    assert len(lines) == 1, err
+    assert "Traceback" not in err, err
+    assert "bench: error: --out" in lines[0], err
 
 
 @pytest.mark.parametrize("args, needle", [(["--repeats", "0"], "--repeats 0"), (["--repeats", "21"], "--repeats 21"),
@@ -707,7 +754,8 @@ def test_bench_bad_counts_are_refused_before_any_benchmark(tmp_path, monkeypatch
     bench = _bench_without_benchmarks(monkeypatch)
     assert bench.main([*args, "--out", str(tmp_path / "b")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and needle in err[0], err
+    assert len(err) == 1, err
+    assert needle in err[0], err
     assert not (tmp_path / "b").exists()
 
 
@@ -722,7 +770,8 @@ def test_plant_and_scene_files_with_a_byte_order_mark_load(tmp_path, stand_in, c
     scene.write_bytes(b"\xef\xbb\xbf" + (SCENES / "paper-load-step.toml").read_bytes())
     assert load_plant(plant).values == load_plant("paper-iprsm").values
     assert load_scene(scene).final_loads == load_scene("paper-load-step").final_loads
-    assert main(["--plant", str(plant), "--scene", str(scene)]) == 3 and len(stand_in) == 1  # reached the tuner
+    assert main(["--plant", str(plant), "--scene", str(scene)]) == 3
+    assert len(stand_in) == 1  # reached the tuner
     assert "stand-in" in capsys.readouterr().err
 
 
@@ -747,9 +796,11 @@ def _plant_text(key, value):
 def test_plant_unit_mistakes_stop_in_one_line_naming_the_key(tmp_path, key, value, needles, stand_in, capsys):
     path = tmp_path / "p.toml"
     path.write_text(_plant_text(key, value))
-    assert main(["--plant", str(path)]) == 2 and not stand_in
+    assert main(["--plant", str(path)]) == 2
+    assert not stand_in
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(path) in err[0], err
+    assert len(err) == 1, err
+    assert str(path) in err[0], err
     for n in needles:
         assert n in err[0], (n, err[0])
 
@@ -767,9 +818,11 @@ def test_the_built_in_plants_pass_the_cross_checks():
 def test_an_encoder_too_coarse_for_the_setpoint_names_the_encoder(tmp_path, stand_in, capsys):
     path = tmp_path / "p.toml"
     path.write_text(_plant_text("sensor.encoder_counts_per_rev", "100"))  # plausible, but 2400 rpm per count and sample
-    assert main(["--plant", str(path)]) == 2 and not stand_in
+    assert main(["--plant", str(path)]) == 2
+    assert not stand_in
     err = capsys.readouterr().err.strip()
-    assert "sensor.encoder_counts_per_rev = 100" in err and "at least 800 counts" in err, err
+    assert "sensor.encoder_counts_per_rev = 100" in err, err
+    assert "at least 800 counts" in err, err
 
 
 def test_encoder_in_bits_from_the_console_entry(tmp_path):
@@ -800,7 +853,8 @@ def test_table_and_flag_use_one_definition_of_the_difference(paper_report):
     v = rep.best.objective_verified
     d = dataclasses.replace(rep.best, objective_predicted=v * 1e-3)  # a prediction 1000x too small (Design is frozen)
     flag = next(f for f in health_flags(d, rep.plant, rep.scene) if "departs from the linear prediction" in f)
-    assert "-99.9 %" in flag and _diff_text(d.objective_predicted, v) == "-99.9 %", flag
+    assert "-99.9 %" in flag, flag
+    assert _diff_text(d.objective_predicted, v) == "-99.9 %", flag
 
 
 def test_a_baseline_not_beaten_says_why_in_the_table():
@@ -827,7 +881,8 @@ def test_one_name_per_design_in_the_monte_carlo():
 def test_the_plain_report_has_no_percentage_of_a_value_at_numerical_zero(default_cli_run):
     assert default_cli_run.code == 0, default_cli_run.err[-2000:]
     row = next(l for l in default_cli_run.out.splitlines() if l.startswith("steady-state error"))
-    assert row.rstrip().endswith("abs.") and "%" not in row, row
+    assert row.rstrip().endswith("abs."), row
+    assert "%" not in row, row
     assert "difference = (predicted - verified) / |verified|" in default_cli_run.out
 
 
@@ -853,7 +908,9 @@ def loops():
 def test_bad_mks_flag_is_one_line_exit_2(text, capsys):
     assert main(["--mks-max", text]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--mks-max" in err[0] and "noise-sensitivity bound" in err[0]
+    assert len(err) == 1
+    assert "--mks-max" in err[0]
+    assert "noise-sensitivity bound" in err[0]
 
 
 def test_prsa_tune_mks_max_bounds_the_true_mks(tmp_path, loops, capsys):
@@ -884,9 +941,11 @@ def test_app_mks_bound_and_code(loops):
     try:
         st = replace(s.default_settings(), mks_max=MKS)
         v = s.tuned(st)
-        assert v.mks is not None and MKS * (1 - 1e-3) <= v.mks <= MKS
+        assert v.mks is not None
+        assert MKS * (1 - 1e-3) <= v.mks <= MKS
         cli, py = s.code(st)
-        assert f"--mks-max {MKS:g}" in cli and f"mks_max={MKS!r}" in py
+        assert f"--mks-max {MKS:g}" in cli
+        assert f"mks_max={MKS!r}" in py
         with pytest.raises(AppInputError, match="Mks bound"):
             s.tuned(replace(st, mks_max=-1.0))
     finally:
@@ -911,7 +970,9 @@ def test_ctrl_c_during_the_run_exits_130_with_one_line(tmp_path):
     stdout, rest = proc.communicate(timeout=120)  # safety net only
     assert proc.returncode == 130
     assert rest.strip().splitlines() == ["prsa-tune: interrupted (Ctrl-C); no output written"], rest
-    assert stdout == "" and not out.exists() and list(tmp_path.iterdir()) == []
+    assert stdout == ""
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_interrupt_swallowed_by_a_solver_still_exits_130(tmp_path, capsys, monkeypatch):
@@ -947,7 +1008,8 @@ def test_mt_max_and_effective_scene_in_header_and_json_mode(tmp_path, capsys):
     cap = capsys.readouterr()
     head = cap.out.splitlines()[0]
     assert "scene paper-load-step with --load-step 500:1200 --mt-max 1.3" in head
-    assert "500 N -> 1200 N" in head and "Mt <= 1.3" in head
+    assert "500 N -> 1200 N" in head
+    assert "Mt <= 1.3" in head
     assert "note:" not in cap.err  # the built-in plant's geometry note only with --verbose
     assert stat.S_IMODE(out.stat().st_mode) == 0o644
     d = json.loads(out.read_text())
@@ -975,7 +1037,8 @@ def test_solver_chatter_becomes_one_note_or_nothing(tmp_path, capfd, monkeypatch
     monkeypatch.setattr(autotune, "tune_actuator", chatty)
     assert main(["--load-step", "500:1500"]) == 3
     out, err = capfd.readouterr()
-    assert "CasADi" not in err and "****" not in out
+    assert "CasADi" not in err
+    assert "****" not in out
     assert err.strip().splitlines() == ["prsa-tune: numerical failure: integration failed at t = 0.2 s from state [...]; "
                                         "remedy: tighten the tolerance"]
 
@@ -1035,18 +1098,23 @@ def test_report_json_and_export_name_the_recommended_design(tmp_path, capsys):
     assert code == 0
     d = json.loads(out.read_text())
     ylds = {x["name"]: x for x in d["monte_carlo"]["designs"]}
-    assert {"nominal design", "robust design"} <= set(ylds) and len(ylds) > 2  # baselines ranked too
+    assert {"nominal design", "robust design"} <= set(ylds)
+    assert len(ylds) > 2  # baselines ranked too
     rec = d["recommended"]
     assert rec == d["robust"]["recommended"]
     me = ylds[rec["name"]]
-    assert rec["yield"] == me["yield"] and rec["passed"] == me["passed"] and rec["gains"]["kp"] == me["gains"]["kp"]
+    assert rec["yield"] == me["yield"]
+    assert rec["passed"] == me["passed"]
+    assert rec["gains"]["kp"] == me["gains"]["kp"]
     h = lambda k: (lambda lo, hi: (hi - lo) / 2)(*wilson_interval(k, 24))  # noqa: E731
     assert all((y["passed"] - me["passed"]) / 24 <= h(y["passed"]) + h(me["passed"]) + 1e-12 for y in ylds.values())
-    assert f"recommended: {rec['name']} (" in text and f"* {rec['name']}" in text
+    assert f"recommended: {rec['name']} (" in text
+    assert f"* {rec['name']}" in text
     import tomllib
 
     t = tomllib.loads(exp.read_text())
-    assert t["design"]["name"] == rec["name"] and t["design"]["yield"] == me["yield"]
+    assert t["design"]["name"] == rec["name"]
+    assert t["design"]["yield"] == me["yield"]
     assert t["speed_controller"]["continuous"]["kp_n_m_s_per_rad"] == me["gains"]["kp"]
     assert f"drive export: {exp} holds the design '{rec['name']}', recommended by the robust study" in text
 
@@ -1064,10 +1132,13 @@ def test_unstable_scenario_is_reported_and_the_json_is_written(tmp_path, capsys)
     d = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"non-finite {c} in the JSON"))
     per = d["robust"]["comparison"]["designs"]["nominal"]["per_scenario"]
     bad = [p for p in per if not p["stable"]]
-    assert bad and all(p["ms"] is None for p in bad)
+    assert bad
+    assert all(p["ms"] is None for p in bad)
     assert "nominal: closed loop unstable on" in text
     rec = d["recommended"]
-    assert rec["design"] == "robust" and rec["yield"] is None and "not checked" in rec["why"]
+    assert rec["design"] == "robust"
+    assert rec["yield"] is None
+    assert "not checked" in rec["why"]
     e = json.loads(exp.read_text())
     assert e["design"]["name"] == "robust design"
     assert e["speed_controller"]["continuous"]["kp_n_m_s_per_rad"] == d["robust"]["robust_gains"]["kp"]
@@ -1077,7 +1148,10 @@ def test_export_with_load_feedforward_is_refused_up_front(tmp_path, capsys):
     exp = tmp_path / "ff.toml"
     code = tune_main(["--scene", "paper-load-step", "--estimator", "kf", "--feedforward", "--export", str(exp)])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "--export" in err[0] and "--feedforward" in err[0]
+    assert code == 2
+    assert len(err) == 1
+    assert "--export" in err[0]
+    assert "--feedforward" in err[0]
     assert not exp.exists()
 
 
@@ -1089,7 +1163,10 @@ def test_monte_carlo_replay_on_a_duty_scene_is_one_line(capsys):
 
     code = mc_main(["--scene", "duty-trace", "--seed", "0", "--index", "0", "--kp", "0.05", "--ki", "5"])
     err = [l for l in capsys.readouterr().err.splitlines() if l.startswith("error")]
-    assert code == 2 and len(err) == 1 and "duty cycle" in err[0] and "load-step scene" in err[0]
+    assert code == 2
+    assert len(err) == 1
+    assert "duty cycle" in err[0]
+    assert "load-step scene" in err[0]
     with pytest.raises(SceneError, match="is a duty cycle"):
         operating_points(load_scene("duty-trace"))
 
@@ -1149,5 +1226,6 @@ def test_sigterm_in_a_monte_carlo_pool_stops_the_workers_and_says_so(tmp_path):
         os.kill(p, signal.SIGKILL)
     assert not alive
     lines = [l for l in err.read_text().splitlines() if l.strip()]
-    assert code == 143 and lines[-1] == "prsa-tune: interrupted (SIGTERM); no output written"
+    assert code == 143
+    assert lines[-1] == "prsa-tune: interrupted (SIGTERM); no output written"
     assert not (tmp_path / "r.json").exists()

@@ -93,7 +93,8 @@ def test_feedforward_cuts_the_verified_drop_by_30_percent_at_the_same_ms():
     ff = kf_drive_loop(a, b, cs, m.index("theta_nut"), kf, tf=1e-3, horizon=0.3, step=1000.0, feedforward=True)
     pi = tune_loops([plain], ms_max=1.4).pid
     res = tune_loops([ff], ms_max=1.4)
-    assert res.ms <= 1.4 and res.pid.kff > 0
+    assert res.ms <= 1.4
+    assert res.pid.kff > 0
     load = [(0.0, 500.0), (0.002, 1500.0)]
     from prsa_ctrl.sim.engine import run
 

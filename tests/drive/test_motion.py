@@ -19,8 +19,11 @@ def _check_move(m: MotionProfile, d: float, v: float, a: float, j: float | None)
     # Ends exactly where asked, at rest; never exceeds a limit; starts at rest.
     p, vv, aa = m.at([0.0, m.end_time, m.end_time + 1.0])
     assert p[1] == pytest.approx(d, rel=1e-12, abs=1e-18)
-    assert p[2] == p[1] and vv[1] == vv[2] == 0.0 and aa[1] == 0.0
-    assert vv[0] == 0.0 and p[0] == 0.0
+    assert p[2] == p[1]
+    assert vv[1] == vv[2] == 0.0
+    assert aa[1] == 0.0
+    assert vv[0] == 0.0
+    assert p[0] == 0.0
     lim = m.limits()
     assert lim["speed_m_s"] <= v * (1 + 1e-9)
     assert lim["acceleration_m_s2"] <= a * (1 + 1e-9)
@@ -81,9 +84,11 @@ def test_out_and_back_reverses_and_returns():
     p, v, _ = m.at(t)
     assert abs(m.final_position) < 1e-18
     assert np.max(p) == pytest.approx(0.002, rel=1e-9)
-    assert np.min(v) < -0.02 and np.max(v) > 0.02  # both directions
+    assert np.min(v) < -0.02
+    assert np.max(v) > 0.02  # both directions
     dwell = (t > 0.01 + m.duration / 2 - 0.02) & (t < 0.01 + m.duration / 2 + 0.02)
-    assert np.all(v[dwell] == 0.0) and np.all(p[dwell] == pytest.approx(0.002, rel=1e-12))
+    assert np.all(v[dwell] == 0.0)
+    assert np.all(p[dwell] == pytest.approx(0.002, rel=1e-12))
     assert np.all(p[t < 0.01] == 0.0)
 
 

@@ -23,7 +23,8 @@ def test_zoh_double_integrator_is_exact():
 def test_zoh_first_order_lag_any_stiffness(tau):
     """``e^{-Ts/tau}`` exactly, also far below the sample time (no step-size limit, no NaN)."""
     ad, bd = zoh([[-1.0 / tau]], [[1.0 / tau]], TS)
-    assert np.all(np.isfinite(ad)) and np.all(np.isfinite(bd))
+    assert np.all(np.isfinite(ad))
+    assert np.all(np.isfinite(bd))
     assert ad[0, 0] == pytest.approx(math.exp(-TS / tau), rel=1e-12, abs=1e-300)
     assert bd[0, 0] == pytest.approx(1.0 - math.exp(-TS / tau), rel=1e-12)
 
@@ -118,7 +119,8 @@ def test_expm_stack_keeps_a_stiff_triangular_matrix_exact():
     e = expm_stack(np.stack([up, up.T]))
     off = c * (math.exp(mu) - math.exp(lam)) / (mu - lam)
     for got in (e[0], e[1].T):
-        assert got[0, 0] == math.exp(lam) and got[1, 0] == 0.0
+        assert got[0, 0] == math.exp(lam)
+        assert got[1, 0] == 0.0
         assert got[1, 1] == pytest.approx(math.exp(mu), rel=1e-14)
         assert got[0, 1] == pytest.approx(off, rel=1e-13)
 
@@ -195,4 +197,5 @@ def test_ss_response_continuous_and_empty():
 def test_freq_grid_is_log_spaced():
     g = freq_grid(0.1, 1e3, 5)
     np.testing.assert_allclose(np.diff(np.log10(g)), 1.0, rtol=1e-12)
-    assert g[0] == pytest.approx(0.1) and g[-1] == pytest.approx(1e3)
+    assert g[0] == pytest.approx(0.1)
+    assert g[-1] == pytest.approx(1e3)

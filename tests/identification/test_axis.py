@@ -69,7 +69,8 @@ def emps_log():
 def test_logged_force_peak_is_the_largest_gain_times_command(emps_log):
     peak, where = logged_force_peak([emps_log])
     assert peak == pytest.approx(float(np.max(np.abs(emps_log.gain_n_per_unit * emps_log.command))), rel=0, abs=0)
-    assert 150.0 < peak < 155.0 and where == emps_log.name  # the EMPS record peaks at 152.05 N
+    assert 150.0 < peak < 155.0
+    assert where == emps_log.name  # the EMPS record peaks at 152.05 N
 
 
 @needs_data
@@ -91,8 +92,10 @@ def test_prsa_fit_refuses_a_base_force_limit_below_the_logged_forces(tmp_path, c
     err = capsys.readouterr().err.strip()
     assert code == 2, err
     assert len(err.splitlines()) == 1
-    assert f"--plant {base}" in err and f"drive.force_limit_n = {limit:g} N" in err
-    assert "152.05 N" in err and "DATA_EMPS.mat" in err
+    assert f"--plant {base}" in err
+    assert f"drive.force_limit_n = {limit:g} N" in err
+    assert "152.05 N" in err
+    assert "DATA_EMPS.mat" in err
     assert not out.exists()
 
 
@@ -121,7 +124,8 @@ def test_a_coulomb_interval_reaching_zero_is_written_inside_the_range(tmp_path):
     value, sigma = 1.2345679, 1.0
     assert value - round(value / sigma * (1 - 1e-9), 6) * sigma < 0  # what the old rule wrote
     entry = normal_entry(value, sigma, False, "fit: test")
-    assert entry["truncate"] == 1.234567 and value - entry["truncate"] * sigma >= 0
+    assert entry["truncate"] == 1.234567
+    assert value - entry["truncate"] * sigma >= 0
     assert normal_entry(value, 0.0, False, "fit: test") is None
     assert normal_entry(0.05, 1.0, False, "fit: test") is None  # < 0.1 sigma above the bound
     base = load_axis_plant(EXAMPLE / "plant.toml")
@@ -153,7 +157,8 @@ def test_a_two_mass_axis_file_round_trips_and_a_rigid_one_stays_as_it_was(tmp_pa
     p.write_text(axis_plant_toml(plant))
     back = load_axis_plant(p)
     for k, v in two.items():
-        assert back.values[k] == pytest.approx(v, rel=1e-12) and back.sources[k] == f"fit: two-mass FRF ({k})"
+        assert back.values[k] == pytest.approx(v, rel=1e-12)
+        assert back.sources[k] == f"fit: two-mass FRF ({k})"
     assert back.to_plant().values["axis.load_stiffness_n_per_um"] == pytest.approx(2.5)
     bad = tmp_path / "bad.toml"
     bad.write_text(p.read_text().replace(f"load_mass_kg = {{ value = {two['axis.load_mass_kg']!r}",
@@ -176,7 +181,9 @@ def test_the_screw_fit_entries_never_cross_the_range():
     out = _uncertainty_entries(fitted, {key: {"value": value, "ci95": [value - 1.96 * sd, value + 1.96 * sd]}},
                                "t.csv", [sd])
     e = out[key]
-    assert e["dist"] == "normal" and value - e["truncate"] * e["sigma"] >= 0 and e["truncate"] == 1.234567
+    assert e["dist"] == "normal"
+    assert value - e["truncate"] * e["sigma"] >= 0
+    assert e["truncate"] == 1.234567
     fitted.with_params({key: value - e["truncate"] * e["sigma"]})  # the support's end is a valid plant
 
 
@@ -194,7 +201,8 @@ def test_refitting_with_the_own_fitted_plant_as_base_is_written(tmp_path, capsys
     assert code == 0, captured.err
     a, b = (tomllib.loads(p.read_text()) for p in (first, second))
     corr = b["uncertainty"]["correlation"]
-    assert isinstance(corr, dict) and sorted(corr["keys"]) == sorted(a["uncertainty"]["correlation"]["keys"])
+    assert isinstance(corr, dict)
+    assert sorted(corr["keys"]) == sorted(a["uncertainty"]["correlation"]["keys"])
     assert corr["matrix"] == a["uncertainty"]["correlation"]["matrix"]  # the same data, the same fit
     assert b["axis"]["mass_kg"]["value"] == a["axis"]["mass_kg"]["value"]
     assert "the new correlation block holds them" in captured.out
@@ -220,7 +228,9 @@ def test_axis_fit_status_is_in_the_vocabulary_and_names_what_failed():
     assert axis_fit_status([good], []) == "ok"
     flagged = axis_fit_status([good, bad], ["friction.coulomb_positive_n"])
     assert status_head(flagged) == "flagged"
-    assert "b.csv" in flagged and "friction.coulomb_positive_n" in flagged and "a.csv" not in flagged
+    assert "b.csv" in flagged
+    assert "friction.coulomb_positive_n" in flagged
+    assert "a.csv" not in flagged
 
 
 @needs_data
@@ -290,7 +300,9 @@ def test_base_values_and_uncertainty_kept_and_covariance_reported(logdir, capsys
     assert doc["drive"]["force_limit_n"] == {"value": 500.0, "source": "my base limit"}  # base kept ...
     rep = json.loads(js.read_text())
     warn = [w for w in rep["warnings"] if w.startswith("drive.force_limit_n")]
-    assert len(warn) == 1 and "500" in warn[0] and "300" in warn[0]  # ... with a warning naming both (10 V x 30 N/V)
+    assert len(warn) == 1
+    assert "500" in warn[0]
+    assert "300" in warn[0]  # ... with a warning naming both (10 V x 30 N/V)
     assert "warning: drive.force_limit_n" in cap.out
     unc = doc["uncertainty"]
     assert unc["drive.gain_n_per_unit"] == {"dist": "uniform", "relative": 0.05, "source": "amplifier tolerance"}
@@ -298,7 +310,8 @@ def test_base_values_and_uncertainty_kept_and_covariance_reported(logdir, capsys
     # covariance: the matrix the intervals come from
     cov = rep["covariance"]
     c = np.array(cov["matrix"])
-    assert cov["keys"] == list(rep["parameters"]) and len(cov["units"]) == len(cov["keys"])
+    assert cov["keys"] == list(rep["parameters"])
+    assert len(cov["units"]) == len(cov["keys"])
     assert np.allclose(c, c.T)
     for i, k in enumerate(cov["keys"]):
         p = rep["parameters"][k]
@@ -309,7 +322,8 @@ def test_base_values_and_uncertainty_kept_and_covariance_reported(logdir, capsys
     sub = c[np.ix_(idx, idx)]
     ref = sub / np.sqrt(np.outer(np.diag(sub), np.diag(sub)))
     r = np.array(rep["correlation"]["matrix"])
-    assert np.allclose(r, ref, atol=1e-12) and np.allclose(np.diag(r), 1.0)
+    assert np.allclose(r, ref, atol=1e-12)
+    assert np.allclose(np.diag(r), 1.0)
     assert np.max(np.abs(ref - np.eye(len(keys)))) > 0.05  # the check is not vacuous
     block = unc["correlation"]
     pos = [keys.index(k) for k in block["keys"]]
@@ -320,8 +334,12 @@ def test_base_gain_disagreeing_with_the_log_is_refused(logdir, capsys):
     rc, out, js, cap = _run(logdir, 31.0, "bad", capsys)
     assert rc == 2
     line = cap.err.strip()
-    assert "\n" not in line and "drive.gain_n_per_unit" in line and "31" in line and "30" in line
-    assert not out.exists() and not js.exists()
+    assert "\n" not in line
+    assert "drive.gain_n_per_unit" in line
+    assert "31" in line
+    assert "30" in line
+    assert not out.exists()
+    assert not js.exists()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -475,7 +493,8 @@ def test_generator_log_is_quantised_and_reproduced_by_the_controller():
     t, qm, u, r = generate(3, duration_s=1.5)
     steps = np.diff(qm)
     assert np.allclose(np.round(steps / RES) * RES, steps, rtol=0, atol=1e-12)
-    assert np.max(np.diff(qm)) > 0 > np.min(np.diff(qm)) and np.ptp(qm) > 1e-2
+    assert np.max(np.diff(qm)) > 0 > np.min(np.diff(qm))
+    assert np.ptp(qm) > 1e-2
     qf = 0.5 * (qm + np.r_[qm[0], qm[:-1]])
     dq = np.diff(np.r_[qf[0], qf]) / H
     np.testing.assert_allclose(u, np.clip(KV * (KP * (r - qm) - dq), -SAT, SAT), rtol=0, atol=1e-9)
@@ -533,12 +552,14 @@ def test_the_axis_defaults_are_the_schemas():
 @needs_emps_mat
 def test_fitted_file_is_a_toolkit_plant_file(fitted, capsys):
     out, rep = fitted
-    assert rep["coordinates"] == "load (position m, force N)" and rep["mechanism"] == "linear-axis"
+    assert rep["coordinates"] == "load (position m, force N)"
+    assert rep["mechanism"] == "linear-axis"
     axis = load_axis_plant(out)
     plant = load_plant(out)
     assert plant.mechanism == "linear-axis"
     for k, v in axis.values.items():  # the same values and sources through both readers
-        assert plant.values[k] == v and plant.sources[k] == axis.sources[k]
+        assert plant.values[k] == v
+        assert plant.sources[k] == axis.sources[k]
     assert plant.values["axis.mass_kg"] == pytest.approx(rep["equivalent"]["mass_kg"]["value"], rel=1e-12)
     assert plant.sources["friction.efficiency"].startswith("derived:")
     assert dict(axis.to_plant().values) == dict(plant.values)
@@ -548,7 +569,8 @@ def test_fitted_file_is_a_toolkit_plant_file(fitted, capsys):
     capsys.readouterr()
     assert tune_main(["--show-plant", str(out)]) == 0
     shown = capsys.readouterr().out
-    assert "coordinates: load (position m, force N)" in shown and "fit: DATA_EMPS.mat" in shown
+    assert "coordinates: load (position m, force N)" in shown
+    assert "fit: DATA_EMPS.mat" in shown
 
 
 @needs_emps_mat
@@ -568,7 +590,8 @@ def test_fitted_plant_linearises_and_simulates(fitted):
     r = run(plant, setpoint=0.05, load=0.0, duration=0.3, controller=PID(4000.0, 40000.0), fidelity="rigid",
             discrete=True)
     speed = r.states[r.state_labels.index("omega_nut")]
-    assert np.all(np.isfinite(speed)) and abs(speed[-1] - 0.05) < 0.005  # m/s
+    assert np.all(np.isfinite(speed))
+    assert abs(speed[-1] - 0.05) < 0.005  # m/s
 
 
 @needs_emps_mat
@@ -579,7 +602,8 @@ def test_validate_json_names_the_coordinates(fitted, tmp_path, capsys):
     assert fit_main(["--validate", str(out), str(EMPS_MAT), "--log-format", str(EXAMPLE / "log.toml"), "--json", str(rj)]) == 0
     assert "coordinates: load (position m, force N)" in capsys.readouterr().out
     rep = json.loads(rj.read_text())
-    assert rep["coordinates"] == "load (position m, force N)" and rep["mechanism"] == "linear-axis"
+    assert rep["coordinates"] == "load (position m, force N)"
+    assert rep["mechanism"] == "linear-axis"
 
 
 def test_a_fit_without_a_controller_writes_a_loadable_plant(tmp_path, capsys):
@@ -678,7 +702,8 @@ def test_plant_file_round_trip_and_minimal_file(tmp_path):
     q = tmp_path / "again.toml"
     q.write_text(axis_plant_toml(plant))
     again = load_axis_plant(q)
-    assert dict(again.values) == dict(plant.values) and dict(again.sources) == dict(plant.sources)
+    assert dict(again.values) == dict(plant.values)
+    assert dict(again.sources) == dict(plant.sources)
 
 
 @needs_data
@@ -731,7 +756,8 @@ def test_held_back_replay_no_worse_than_the_published_model(tmp_path, capsys):
     mine = held["errors_percent"]
     for k in ("position", "velocity", "force"):
         assert mine[k] <= ref[k], (k, mine, ref)
-    assert ref["force"] == pytest.approx(4.705, abs=0.005) and mine["force"] == pytest.approx(3.778, abs=0.01)
+    assert ref["force"] == pytest.approx(4.705, abs=0.005)
+    assert mine["force"] == pytest.approx(3.778, abs=0.01)
 
 
 @needs_data
@@ -776,7 +802,8 @@ def test_a_log_described_one_sample_off_is_detected():
     log = AxisLog("syn", t, qm, u, "V", gen.GAIN, gen.H, reference_m=r, controller=wrong)
     fit = fit_linear_axis([log], gen.placeholder_base())
     costs = fit.delay_costs
-    assert set(costs) == {0, 1, 2} and min(costs, key=costs.get) == 0
+    assert set(costs) == {0, 1, 2}
+    assert min(costs, key=costs.get) == 0
     assert any("command delay of 0 samples fits better than the described 1" in w for w in fit.warnings)
     right = fit_linear_axis([dataclasses.replace(log, controller=dataclasses.replace(wrong, command_delay_samples=0))],
                             gen.placeholder_base())
@@ -793,11 +820,13 @@ def test_a_test_signal_at_the_drive_input_is_replayed(tmp_path):
     savemat(mat, {"t": t[:, None], "qm": qm[:, None], "qg": r[:, None], "vir": u[:, None],
                            "pulses_N": pulses[:, None], "gtau": gen.GAIN, "kp": gen.KP, "kv": gen.KV})
     log = load_axis_log(mat, load_log_format(EXAMPLE / "log.toml"))
-    assert log.test_signal is not None and log.test_signal.max() == 2.0
+    assert log.test_signal is not None
+    assert log.test_signal.max() == 2.0
     truth = gen.placeholder_base().with_values(dict(zip(PARAMETERS, gen.TRUTH)), {k: "test: truth" for k in PARAMETERS})
     with_pulses = replay_axis(truth, log).errors_percent
     without = replay_axis(truth, dataclasses.replace(log, test_signal=None)).errors_percent
-    assert with_pulses["force"] < 0.5 and with_pulses["velocity"] < 0.5
+    assert with_pulses["force"] < 0.5
+    assert with_pulses["velocity"] < 0.5
     assert without["force"] > 10 * with_pulses["force"]
 
 
@@ -818,4 +847,5 @@ def test_a_fitted_mass_outside_the_users_bounds_is_named_and_written_with_the_fi
     path.write_text(axis_plant_toml(fit.plant), encoding="utf-8")
     back = load_axis_plant(path)
     entry = back.uncertainty["axis.mass_kg"]
-    assert entry["source"].startswith("fit: ") and entry["truncate"] * entry["sigma"] > 0
+    assert entry["source"].startswith("fit: ")
+    assert entry["truncate"] * entry["sigma"] > 0

@@ -37,12 +37,14 @@ def test_a_described_mat_log_of_a_linear_axis_is_the_commands_fit(tmp_path, caps
     assert json.loads(json.dumps({k: v for k, v in got.report.items() if k != "fit_percent"}, default=str)) == want
     # the replay the report's fit % is, and a plant that loads as the linear axis it is
     (r,) = want["replay"]
-    assert got.report["fit_percent"] == {r["log"]: r["fit_percent"]["velocity"]} and r["fit_percent"]["velocity"] > 99
+    assert got.report["fit_percent"] == {r["log"]: r["fit_percent"]["velocity"]}
+    assert r["fit_percent"]["velocity"] > 99
     p = load_axis_plant(out)
     assert p.values["axis.mass_kg"] == pytest.approx(want["parameters"]["axis.mass_kg"]["value"], rel=1e-12)
     # labels name the log in the results (the app names it as uploaded)
     named = calibrate_described([str(DATA)], str(FORMAT), name="x", labels=["upload.mat"])
-    assert [r["log"] for r in named.report["replay"]] == ["upload.mat"] and str(DATA) not in " ".join(named.lines)
+    assert [r["log"] for r in named.report["replay"]] == ["upload.mat"]
+    assert str(DATA) not in " ".join(named.lines)
 
 
 @needs_data
@@ -51,7 +53,8 @@ def test_the_built_base_refuses_a_plant_whose_log_facts_disagree(tmp_path):
 
     logs = [load_axis_log(DATA, load_log_format(FORMAT))]
     base, notes = axis_base_plant(logs, str(FORMAT))
-    assert base.values["drive.gain_n_per_unit"] == logs[0].gain_n_per_unit and notes == []
+    assert base.values["drive.gain_n_per_unit"] == logs[0].gain_n_per_unit
+    assert notes == []
     plant = (EXAMPLE / "plant.toml").read_text().replace("sample_time_s = { value = 0.001", "sample_time_s = { value = 0.002")
     (tmp_path / "p.toml").write_text(plant)
     if "0.002" not in plant:

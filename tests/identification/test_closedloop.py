@@ -148,9 +148,11 @@ def test_cli_frf_from_logs(log, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "structure: rigid" in text
     j = json.loads(rep.read_text())["reflected_inertia_kg_m2"]
-    assert abs(j["value"] / J - 1) < 0.03 and j["ci95"][0] <= J <= j["ci95"][1]
+    assert abs(j["value"] / J - 1) < 0.03
+    assert j["ci95"][0] <= J <= j["ci95"][1]
     for bad in ("1.0", "a,b", f"{KP},{KI},nan"):
         assert main([str(csv), "--frf-from-logs", bad, "--out", str(tmp_path / "x.toml")]) == 2
         err = capsys.readouterr().err.strip()
-        assert len(err.splitlines()) == 1 and repr(bad) in err
+        assert len(err.splitlines()) == 1
+        assert repr(bad) in err
     assert not (tmp_path / "x.toml").exists()

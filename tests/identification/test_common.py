@@ -49,7 +49,8 @@ def test_flagged_status_names_the_diagnosis():
 def test_as_dict_carries_the_status_and_report_is_its_alias():
     res = _result({"passes": True})
     d = res.as_dict()
-    assert d["status"] == "ok" and d["solver"]["status"] == "converged"
+    assert d["status"] == "ok"
+    assert d["solver"]["status"] == "converged"
     assert res.report() == d
 
 

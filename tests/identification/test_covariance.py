@@ -82,7 +82,8 @@ def test_logs_pulled_apart_by_model_error_widen_the_interval():
     for bias, floor in ((0.1, 0.75), (0.4, 0.75)):
         cov, cov_white, widen = _coverage(range(40), bias_sd=bias)
         assert cov_white < 0.6, cov_white  # the premise: the residuals do not see the bias
-        assert cov >= floor and cov >= cov_white + 0.25, (bias, cov, cov_white)
+        assert cov >= floor, (bias, cov, cov_white)
+        assert cov >= cov_white + 0.25, (bias, cov, cov_white)
         assert widen > 3.0, widen
 
 
@@ -97,9 +98,12 @@ def test_the_between_log_term_needs_three_logs_and_heterogeneity():
     lens = [N] * (LOGS * SEGS)
     two = np.repeat([0, 1, 1], SEGS)
     extra, info = between_log_inflation(x / cn, r, lens, two)
-    assert MIN_LOGS_FOR_SPREAD == 3 and not np.any(extra) and info["logs"] == 2
+    assert MIN_LOGS_FOR_SPREAD == 3
+    assert not np.any(extra)
+    assert info["logs"] == 2
     extra, info = between_log_inflation(x / cn, r, lens, np.repeat(np.arange(LOGS), SEGS))
-    assert info["threshold"] == pytest.approx(5.991464547107979 / 2) and HETEROGENEITY_LEVEL == 0.05
+    assert info["threshold"] == pytest.approx(5.991464547107979 / 2)
+    assert HETEROGENEITY_LEVEL == 0.05
     assert info["t_factor"] == pytest.approx((4.302652729911275 / Z95) ** 2)
     assert np.all(np.linalg.eigvalsh(extra) >= -1e-12 * max(1.0, np.max(np.abs(extra))))
     hit = np.array(info["inflated"])

@@ -38,7 +38,8 @@ def _write(path, cols, header=None):
 def test_standard_file_round_trip(tmp_path):
     cols = _arrays()
     rec = load_record(_write(tmp_path / "d.csv", cols))
-    assert rec.n == 200 and rec.sample_time_s == pytest.approx(TS)
+    assert rec.n == 200
+    assert rec.sample_time_s == pytest.approx(TS)
     np.testing.assert_allclose(rec.nut_angle_rad, cols["nut_angle_rad"])
     np.testing.assert_allclose(rec.speed_rad_s, np.diff(cols["nut_angle_rad"]) / TS)
     assert rec.warnings == ()
@@ -73,7 +74,8 @@ def test_bad_data_names_file_column_and_row(tmp_path, mutate, pattern):
     path = _write(tmp_path / "bad.csv", cols)
     with pytest.raises(DataError, match=pattern) as exc:
         load_record(path)
-    assert str(path) in str(exc.value) and "\n" not in str(exc.value)
+    assert str(path) in str(exc.value)
+    assert "\n" not in str(exc.value)
 
 
 def test_structural_errors(tmp_path):
@@ -128,13 +130,15 @@ def test_valid_sampling_is_accepted(n, ts, jitter):
     rng = np.random.default_rng(n)
     t = np.arange(n) * ts + jitter * ts * rng.uniform(-0.5, 0.5, n)
     rec = record_from_arrays("ok", t, np.sin(np.arange(n)), nut_angle_rad=np.cos(np.arange(n) / 7), axial_load_n=100.0)
-    assert rec.n == n and rec.sample_time_s == pytest.approx(ts, rel=0.02)
+    assert rec.n == n
+    assert rec.sample_time_s == pytest.approx(ts, rel=0.02)
 
 
 @pytest.mark.parametrize("kind", ["multisine", "chirp", "steps"])
 def test_design_excitation(kind):
     t, v = design_excitation(kind, duration_s=1.0, sample_time_s=1e-3, f_min_hz=2, f_max_hz=100, amplitude=10, offset=20)
-    assert len(t) == 1000 and np.all(np.isfinite(v))
+    assert len(t) == 1000
+    assert np.all(np.isfinite(v))
     if kind == "steps":
         assert v.max() > 0 > v.min()  # through both directions
     else:

@@ -56,8 +56,10 @@ def test_a_failed_fit_is_not_evidence_for_another_shift(plant):
     fit_at = _fake(plant, {0: 50.0, 1: 1.0, 2: 40.0, 3: 90.0, 4: 95.0}, {0: 99, 1: 99}, calls)
     shift, res = search_delay(fit_at, plant, KEYS, 2.5e-4, 4)
     ds = res.solver["delay_search"]
-    assert shift == 2 and ds["decided"] is False
-    assert ds["objective"]["1"] is None and ds["objective"]["0"] is None
+    assert shift == 2
+    assert ds["decided"] is False
+    assert ds["objective"]["1"] is None
+    assert ds["objective"]["0"] is None
     assert int(ds["starts"]["1"]) >= 3  # retried from other starts
     assert len([c for c in calls if c[0] == 1]) == int(ds["starts"]["1"])
     assert any("failed at shifts 0, 1" in w and "no evidence" in w for w in res.warnings)
@@ -67,24 +69,29 @@ def test_a_retried_fit_counts_and_the_search_decides(plant):
     fit_at = _fake(plant, {0: 50.0, 1: 1.0, 2: 40.0, 3: 90.0, 4: 95.0}, {1: 1})
     shift, res = search_delay(fit_at, plant, KEYS, 2.5e-4, 4)
     ds = res.solver["delay_search"]
-    assert shift == 1 and ds["decided"] is True and ds["starts"]["1"] == 2
+    assert shift == 1
+    assert ds["decided"] is True
+    assert ds["starts"]["1"] == 2
     assert any("converged from start 2" in w for w in res.warnings)
 
 
 def test_close_objectives_leave_the_delay_undecided(plant):
     fit_at = _fake(plant, {0: 1.0, 1: 0.99 * DELAY_OBJECTIVE_RATIO, 2: 40.0, 3: 90.0, 4: 95.0})
     shift, res = search_delay(fit_at, plant, KEYS, 2.5e-4, 4)
-    assert shift == 0 and res.solver["delay_search"]["decided"] is False
+    assert shift == 0
+    assert res.solver["delay_search"]["decided"] is False
     fit_at = _fake(plant, {0: 1.0, 1: 1.01 * DELAY_OBJECTIVE_RATIO, 2: 40.0, 3: 90.0, 4: 95.0})
     shift, res = search_delay(fit_at, plant, KEYS, 2.5e-4, 4)
-    assert shift == 0 and res.solver["delay_search"]["decided"] is True
+    assert shift == 0
+    assert res.solver["delay_search"]["decided"] is True
 
 
 def test_a_computed_command_is_searched_from_one_sample(plant):
     calls = []
     fit_at = _fake(plant, {0: 0.5, 1: 1.0, 2: 40.0, 3: 90.0, 4: 95.0}, calls=calls)
     shift, res = search_delay(fit_at, plant, KEYS, 2.5e-4, 4, min_shift=1)
-    assert shift == 1 and all(c[0] >= 1 for c in calls)
+    assert shift == 1
+    assert all(c[0] >= 1 for c in calls)
     assert res.solver["delay_search"]["range"] == [1, 4]
     with pytest.raises(ValueError, match="min_shift"):
         search_delay(fit_at, plant, KEYS, 2.5e-4, 2, min_shift=3)
@@ -122,7 +129,8 @@ def test_a_log_that_shows_the_delay_decides_it(plant):
     per = {s: _BS[s] for s in (0, 1, 2, 3)}
     shift, res = search_delay(_fake_logs(plant, per), plant, KEYS, 1.25e-4, 3)
     ds = res.solver["delay_search"]
-    assert shift == 2 and ds["decided"] is True
+    assert shift == 2
+    assert ds["decided"] is True
     assert ds["decided_by_logs"]["1"] == ["multisine.csv"]
     assert ds["objective_per_log"]["2"]["multisine.csv"] == pytest.approx(3.063)
     assert any("decided by the logs where it shows" in w and "multisine.csv" in w for w in res.warnings)
@@ -131,7 +139,8 @@ def test_a_log_that_shows_the_delay_decides_it(plant):
     per[2]["staircase.csv"] = 48.0
     assert sum(per[2].values()) > sum(per[1].values())
     shift, res = search_delay(_fake_logs(plant, per), plant, KEYS, 1.25e-4, 3)
-    assert shift == 2 and res.solver["delay_search"]["decided"] is True
+    assert shift == 2
+    assert res.solver["delay_search"]["decided"] is True
 
 
 def test_a_log_that_contradicts_leaves_the_delay_undecided(plant):
@@ -145,7 +154,8 @@ def test_a_log_that_contradicts_leaves_the_delay_undecided(plant):
     # no log shows it: undecided as before (the pooled ratio alone)
     per = {s: {"a.csv": v, "b.csv": v} for s, v in {0: 30.0, 1: 1.2, 2: 1.0, 3: 30.0}.items()}
     shift, res = search_delay(_fake_logs(plant, per), plant, KEYS, 1.25e-4, 3)
-    assert shift == 2 and res.solver["delay_search"]["decided"] is False
+    assert shift == 2
+    assert res.solver["delay_search"]["decided"] is False
     assert res.solver["delay_search"]["decided_by_logs"] == {"0": ["a.csv", "b.csv"], "3": ["a.csv", "b.csv"]}
 
 
@@ -159,7 +169,8 @@ def test_a_failed_shift_still_leaves_it_undecided_with_a_log_that_shows_it(plant
         return ok(shift, start)
 
     shift, res = search_delay(fit_at, plant, KEYS, 1.25e-4, 3)
-    assert shift == 2 and res.solver["delay_search"]["decided"] is False
+    assert shift == 2
+    assert res.solver["delay_search"]["decided"] is False
 
 
 @pytest.mark.slow
@@ -200,7 +211,8 @@ def test_ball_screw_logs_refute_every_shorter_delay(how, tmp_path):
     assert search["decided"] is True, search["segment_test"]
     assert longer in search["decided_by_test"], search["segment_test"]
     st = search["segment_test"][str(longer)]
-    assert st["t"] >= st["critical_t"] and st["logs_preferring_it"] == []
+    assert st["t"] >= st["critical_t"]
+    assert st["logs_preferring_it"] == []
     assert all(v["ratio"] > 1.0 for v in st["per_log"].values())
 
 
@@ -254,10 +266,13 @@ def test_a_consistently_worse_longer_shift_is_refuted_by_the_segment_test(plant)
            1: {n: v * 2.0 for n, v in base.items()}}
     shift, res = search_delay(_fake_segments(plant, per), plant, KEYS, 1.25e-4, 3)
     ds = res.solver["delay_search"]
-    assert shift == 2 and ds["decided"] is True
+    assert shift == 2
+    assert ds["decided"] is True
     assert ds["decided_by_test"] == [3]
     t3 = ds["segment_test"]["3"]
-    assert t3["refutes"] and t3["t"] > t3["critical_t"] > 2.0 and t3["segments"] == 150
+    assert t3["refutes"]
+    assert t3["t"] > t3["critical_t"] > 2.0
+    assert t3["segments"] == 150
     assert ds["test_level"] == DELAY_TEST_LEVEL
     assert any("paired segment test" in w and "shift 3 against 2" in w for w in res.warnings)
     # without the per-segment objectives (the ratio rule alone) the same fits stay undecided
@@ -269,7 +284,8 @@ def test_a_consistently_worse_longer_shift_is_refuted_by_the_segment_test(plant)
         return r
 
     shift, res = search_delay(no_segments, plant, KEYS, 1.25e-4, 3)
-    assert shift == 2 and res.solver["delay_search"]["decided"] is False
+    assert shift == 2
+    assert res.solver["delay_search"]["decided"] is False
 
 
 def test_differences_within_the_segment_noise_leave_the_delay_undecided(plant):
@@ -281,7 +297,8 @@ def test_differences_within_the_segment_noise_leave_the_delay_undecided(plant):
     per[3] = {n: v * (sum(base[n]) / sum(v)) * 1.0001 for n, v in per[3].items()}  # the sum a hair worse
     shift, res = search_delay(_fake_segments(plant, per), plant, KEYS, 1.25e-4, 3, min_shift=1)
     ds = res.solver["delay_search"]
-    assert shift == 2 and ds["decided"] is False
+    assert shift == 2
+    assert ds["decided"] is False
     assert abs(ds["segment_test"]["3"]["t"]) < ds["segment_test"]["3"]["critical_t"]
     assert not ds["segment_test"]["3"]["refutes"]
 
@@ -296,8 +313,10 @@ def test_a_log_whose_own_test_prefers_the_other_shift_leaves_it_undecided(plant)
     ds = res.solver["delay_search"]
     t3 = ds["segment_test"]["3"]
     assert t3["t"] > t3["critical_t"]  # the pooled test alone would refute it
-    assert t3["logs_preferring_it"] == ["m.csv"] and not t3["refutes"]
-    assert shift == 2 and ds["decided"] is False
+    assert t3["logs_preferring_it"] == ["m.csv"]
+    assert not t3["refutes"]
+    assert shift == 2
+    assert ds["decided"] is False
     assert any("cannot decide the command delay either" in w and "m.csv" in w for w in res.warnings)
 
 
@@ -334,9 +353,13 @@ def test_one_log_that_shows_the_delay_decides_it_when_the_others_only_scatter(pl
 
     crit_alone = float(stats.t.isf(DELAY_TEST_LEVEL / (2 * 3), 59))  # 2 other shifts x 3 logs
     assert t2["per_log"]["m.csv"]["critical_t_alone"] == pytest.approx(crit_alone)
-    assert t2["per_log"]["m.csv"]["t"] > crit_alone and t2["logs_refuting_it"] == ["m.csv"]
-    assert t2["refutes"] and t2["logs_preferring_it"] == []
-    assert shift == 1 and ds["decided"] is True and ds["decided_by_test"] == [2]
+    assert t2["per_log"]["m.csv"]["t"] > crit_alone
+    assert t2["logs_refuting_it"] == ["m.csv"]
+    assert t2["refutes"]
+    assert t2["logs_preferring_it"] == []
+    assert shift == 1
+    assert ds["decided"] is True
+    assert ds["decided_by_test"] == [2]
     assert any("m.csv alone t = " in w and "shift 2 against 1" in w for w in res.warnings)
 
 
@@ -345,8 +368,11 @@ def test_one_log_refuting_a_shift_another_log_prefers_leaves_it_undecided(plant)
     shift, res = search_delay(_fake_segments(plant, per), plant, KEYS, 1.25e-4, 2, min_shift=0)
     ds = res.solver["delay_search"]
     t2 = ds["segment_test"]["2"]
-    assert t2["logs_refuting_it"] == ["m.csv"] and t2["logs_preferring_it"] == ["s.csv"]
-    assert not t2["refutes"] and shift == 1 and ds["decided"] is False
+    assert t2["logs_refuting_it"] == ["m.csv"]
+    assert t2["logs_preferring_it"] == ["s.csv"]
+    assert not t2["refutes"]
+    assert shift == 1
+    assert ds["decided"] is False
 
 
 @pytest.mark.slow
@@ -378,11 +404,13 @@ def test_the_judges_ball_screw_logs_with_two_samples_of_delay_decide_their_shift
     assert cd["drive_command_delay_samples"] == truth["drive.command_delay_samples"]
     assert search["decided"] is True, search["segment_test"]
     f = {int(k): v for k, v in search["objective"].items()}
-    assert all(v is not None for v in f.values()) and min(f, key=f.get) == 1
+    assert all(v is not None for v in f.values())
+    assert min(f, key=f.get) == 1
     assert "2" in {str(x) for x in search["decided_by_test"]} or f[2] >= DELAY_OBJECTIVE_RATIO * f[1]
     jt = truth["reflected_inertia_kg_m2"]
     lo, hi = res.reflected_inertia_kg_m2["ci95"]
-    assert abs(res.reflected_inertia_kg_m2["value"] / jt - 1) < 0.03 and lo <= jt <= hi
+    assert abs(res.reflected_inertia_kg_m2["value"] / jt - 1) < 0.03
+    assert lo <= jt <= hi
     fc = res.plant.values[BW]
     assert abs(fc / truth[BW] - 1) < 0.25
 
@@ -478,7 +506,9 @@ def test_one_seed_all_three_logs(base):
     ax, res, truth = one_seed_fit(base)
     cd = res.solver["command_delay"]
     assert res.solver["status"] == "converged"
-    assert cd["shift_samples"] == 1 and cd["search"]["decided"] and res.plant.values[DELAY] == 1
+    assert cd["shift_samples"] == 1
+    assert cd["search"]["decided"]
+    assert res.plant.values[DELAY] == 1
     assert res.plant.sources[DELAY].startswith("fit: found")
     obj = cd["search"]["objective"]
     assert obj["0"] > 10 * obj["1"]  # the delay-free hypothesis fits far worse
@@ -507,7 +537,8 @@ def test_command_logged_as_computed_is_detected(base):
     obj = res.solver["command_delay"]["search"]["objective"]
     assert obj["0"] > 10 * obj["1"]
     res_c = fit_plant(rec, base, keys=keys, delay_samples=1, command_logged="computed")
-    assert res_c.plant.values[DELAY] == 0 and abs(res_c.parameters[BW]["value"] / 1100.0 - 1) < 0.10
+    assert res_c.plant.values[DELAY] == 0
+    assert abs(res_c.parameters[BW]["value"] / 1100.0 - 1) < 0.10
 
 
 def test_computed_with_too_short_a_delay_refused(base):
@@ -586,7 +617,8 @@ def test_cli_writes_the_found_delay(base, tmp_path, capsys):
     out = tmp_path / "fit.toml"
     assert main([str(csv), "--out", str(out), "--command-logged", "computed"]) == 0
     text = capsys.readouterr().out
-    assert "command delay: 2 sample(s)" in text and "drive.command_delay_samples = 1" in text
+    assert "command delay: 2 sample(s)" in text
+    assert "drive.command_delay_samples = 1" in text
     doc = tomllib.loads(out.read_text())
     assert doc["drive"]["command_delay_samples"]["value"] == 1
     fitted = load_plant(out)
@@ -595,7 +627,9 @@ def test_cli_writes_the_found_delay(base, tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     assert main([str(csv), "--out", str(bad), "--command-logged", "sometimes"]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "--command-logged" in err and not bad.exists()
+    assert len(err.splitlines()) == 1
+    assert "--command-logged" in err
+    assert not bad.exists()
 
 
 def test_the_found_shift_is_refitted_once_from_the_search_values_on_the_base(plant):
@@ -622,7 +656,9 @@ def test_the_found_shift_is_refitted_once_from_the_search_values_on_the_base(pla
     out = refit_found(fit_at, search, 1, plant)
     assert len(calls) == 1
     shift, start, base, warm = calls[0]
-    assert shift == 1 and base is plant and warm is True
+    assert shift == 1
+    assert base is plant
+    assert warm is True
     assert start.values["nut.inertia_kg_m2"] == 1e-3  # the search's identified value
     assert start.values[BW] == plant.values[BW]  # not the search's unidentified one
     assert out.solver["delay_search"]["objective"] == {"1": 5.0}

@@ -125,7 +125,9 @@ def test_toolkit_round_trip(base, case):
     assert any("left out" in w for w in result.warnings)
     assert all(f > 95.0 for f in result.fit_percent.values())
     corr = result.correlation
-    assert corr.shape == (5, 5) and np.allclose(np.diag(corr), 1.0) and np.allclose(corr, corr.T)
+    assert corr.shape == (5, 5)
+    assert np.allclose(np.diag(corr), 1.0)
+    assert np.allclose(corr, corr.T)
 
 
 def test_reversals_left_out_and_segments_cut_there(base):
@@ -145,7 +147,8 @@ def test_reversals_left_out_and_segments_cut_there(base):
         assert np.min(np.abs(seg_v)) > 0.5 * default_min_speed(base)
     assert 0 < left < 0.3 * (rec.n - 1)
     segs0, left0 = shooting_segments([rec], 400, [ref], 0.0)
-    assert left0 == 0 and sum(sg.n for sg in segs0) == rec.n - 1
+    assert left0 == 0
+    assert sum(sg.n for sg in segs0) == rec.n - 1
     with pytest.raises(ValueError, match="min_speed_rad_s = -1"):
         fit_plant([rec], base, min_speed_rad_s=-1.0)
 
@@ -198,19 +201,23 @@ def test_constant_load_leaves_efficiency_unidentified(base):
     assert abs(result.parameters["nut.inertia_kg_m2"]["value"] / 1.5e-4 - 1) < 0.03
     # Review finding 2: what the data cannot inform keeps the base value and source; the report says why.
     p = result.parameters
-    assert p["friction.efficiency"]["kept_base"] and "friction.efficiency" in result.kept_base
+    assert p["friction.efficiency"]["kept_base"]
+    assert "friction.efficiency" in result.kept_base
     assert any(w in p["friction.efficiency"]["reason"] for w in ("physical range", "bound", "correlated"))
-    assert not p["nut.inertia_kg_m2"]["kept_base"] and "nut.inertia_kg_m2" in result.plant_keys
+    assert not p["nut.inertia_kg_m2"]["kept_base"]
+    assert "nut.inertia_kg_m2" in result.plant_keys
     for k in result.kept_base:
         assert result.plant.values[k] == base.values[k] == p[k]["written"]
-        assert result.plant.sources[k] == base.sources[k] and k not in result.plant_keys
+        assert result.plant.sources[k] == base.sources[k]
+        assert k not in result.plant_keys
         assert result.plant.uncertainty.get(k) == base.uncertainty.get(k)  # the base's entry, not the fit's
     assert result.plant.values["nut.inertia_kg_m2"] == p["nut.inertia_kg_m2"]["value"]
     # the written plant's own fit % is reported beside the free fit's
     assert set(result.solver["fit_percent_written"]) == set(result.fit_percent)
     # without the option every fitted value is written (the old behaviour, for studies)
     raw = fit_plant([toolkit_record(truth, "multisine")], base, keep_unidentified=False)
-    assert not raw.kept_base and raw.plant.values["friction.efficiency"] == raw.parameters["friction.efficiency"]["value"]
+    assert not raw.kept_base
+    assert raw.plant.values["friction.efficiency"] == raw.parameters["friction.efficiency"]["value"]
 
 
 def test_uncertainty_entries_stay_in_the_physical_range(base):
@@ -227,7 +234,8 @@ def test_uncertainty_entries_stay_in_the_physical_range(base):
         (entry,) = _uncertainty_entries(base, params, "x.csv", [sd], [rng]).values()
         top = entry["high"] if entry["dist"] == "uniform" else value + entry["truncate"] * entry["sigma"]
         bottom = entry["low"] if entry["dist"] == "uniform" else value - entry["truncate"] * entry["sigma"]
-        assert rng[0] <= bottom and top <= rng[1] * (1 + 1e-12), (value, sd, entry)
+        assert rng[0] <= bottom, (value, sd, entry)
+        assert top <= rng[1] * (1 + 1e-12), (value, sd, entry)
 
 
 def test_cli_keeps_unidentified_keys_at_base_and_prints_clean(base, tmp_path, capsys):
@@ -256,21 +264,27 @@ def test_cli_keeps_unidentified_keys_at_base_and_prints_clean(base, tmp_path, ca
     for u in plant_uncertainty(load_plant(out)).entries:
         if u.source.startswith("fit:"):
             lo, hi, _ = PLAUSIBLE[u.key]
-            assert lo <= u.low and u.high <= hi
+            assert lo <= u.low
+            assert u.high <= hi
     assert doc["nut"]["inertia_kg_m2"]["source"].startswith("fit: ")
     # finding 5: a fitted description, no dangling unit dash
-    assert "ms.csv" in doc["description"] and "prsa-fit" in doc["description"]
-    assert " - (95 % CI" not in cap.out and "friction.efficiency = " in cap.out
+    assert "ms.csv" in doc["description"]
+    assert "prsa-fit" in doc["description"]
+    assert " - (95 % CI" not in cap.out
+    assert "friction.efficiency = " in cap.out
     assert "not identifiable, the plant keeps the base value 0.85" in cap.out
     # finding 3: no Python warning format on stderr; the built-in geometry note only with --verbose
-    assert "GeometryWarning" not in cap.err and "plant = cls(" not in cap.err and "geometry" not in cap.err
+    assert "GeometryWarning" not in cap.err
+    assert "plant = cls(" not in cap.err
+    assert "geometry" not in cap.err
     # (the log's delay given: an inertia-only fit of this record does not decide it by the search's
     # factor 1.5, and an undecided delay is not validated -- exit 3 -- since prsa-fit's validation)
     assert main([str(csv), "--out", str(tmp_path / "v.toml"), "--verbose", "--fit", "nut.inertia_kg_m2",
                  "--delay-samples", "0"]) == 0
     err = capsys.readouterr().err.splitlines()
     # --verbose: the notes and the progress line that says the fit has started (Ctrl-C tests wait for it)
-    assert err and all(line.startswith(("prsa-fit: note: ", "prsa-fit: fitting ")) for line in err)
+    assert err
+    assert all(line.startswith(("prsa-fit: note: ", "prsa-fit: fitting ")) for line in err)
     assert sum(line.startswith("prsa-fit: fitting ") for line in err) == 1
     assert any("geometry does not close" in line for line in err)
 
@@ -288,7 +302,8 @@ def test_cli_same_path_and_design_bounds_refused_before_work(csv_files, tmp_path
                  [paths[0], "--out", str(same), "--plots", str(same)]):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
-        assert len(err.splitlines()) == 1 and "name the same path" in err, err
+        assert len(err.splitlines()) == 1, err
+        assert "name the same path" in err, err
     assert not same.exists()
     exc = tmp_path / "exc.csv"
     for argv, text in ((["--amplitude", "1e9"], "--amplitude 1e9 with --offset 30 (default): the setpoint reaches"),
@@ -297,9 +312,11 @@ def test_cli_same_path_and_design_bounds_refused_before_work(csv_files, tmp_path
                        (["--duration", "-1"], "prsa-fit: error: --duration '-1': expected a finite number > 0")):
         assert main(["--design", "chirp", "--out", str(exc), *argv]) == 2
         err = capsys.readouterr().err.strip()
-        assert len(err.splitlines()) == 1 and text in err, err
+        assert len(err.splitlines()) == 1, err
+        assert text in err, err
         assert "--duration: --duration" not in err
-    assert not exc.exists() and not (tmp_path / "j.json").exists()
+    assert not exc.exists()
+    assert not (tmp_path / "j.json").exists()
     assert main(["--design", "chirp", "--out", str(exc), "--amplitude", "590", "--offset", "-38", "--duration", "0.1"]) == 0
 
 
@@ -312,7 +329,8 @@ def test_validation_record_and_fixed_keys(base):
     assert set(result.parameters) == {"nut.inertia_kg_m2", "friction.efficiency", "drive.current_loop_bandwidth_hz",
                                       "friction.no_load_torque_n_m"}
     assert result.plant.values["friction.viscous_n_m_s_per_rad"] == base.values["friction.viscous_n_m_s_per_rad"]
-    assert set(result.fit_percent) == {"A", "B"} and result.fit_percent["B"] > 90.0
+    assert set(result.fit_percent) == {"A", "B"}
+    assert result.fit_percent["B"] > 90.0
 
 
 def test_bad_arguments_and_non_convergence(base):
@@ -366,11 +384,14 @@ def test_cli_fit_writes_plant_and_report_and_tune_uses_it(csv_files, tmp_path):
     doc = tomllib.loads(out.read_text())
     assert doc["name"] == "my-actuator"
     src = doc["nut"]["inertia_kg_m2"]["source"]
-    assert src.startswith("fit: ") and "multisine.csv" in src and "(95 % CI " in src
+    assert src.startswith("fit: ")
+    assert "multisine.csv" in src
+    assert "(95 % CI " in src
     report = json.loads(rep.read_text())
     assert set(report) >= {"parameters", "reflected_inertia_kg_m2", "fit_percent", "warnings", "solver"}
     spread = report["solver"]["between_logs"]  # three logs: the delete-one-log test of the covariance ran
-    assert spread["logs"] == 3 and len(spread["heterogeneity_ratio"]) == len(spread["inflated"]) == len(DEFAULT_KEYS)
+    assert spread["logs"] == 3
+    assert len(spread["heterogeneity_ratio"]) == len(spread["inflated"]) == len(DEFAULT_KEYS)
     assert spread["threshold"] == pytest.approx(2.9957322735539895)
     for k in DEFAULT_KEYS:
         assert set(report["parameters"][k]) == {"value", "ci95", "unit", "kept_base"}
@@ -385,8 +406,10 @@ def test_cli_fit_writes_plant_and_report_and_tune_uses_it(csv_files, tmp_path):
     unc = {u.key: u for u in plant_uncertainty(load_plant(out)).entries}
     for k in DEFAULT_KEYS:
         lo, hi = report["parameters"][k]["ci95"]
-        assert unc[k].source.startswith("fit: ") and unc[k].dist in ("normal", "uniform")
-        assert unc[k].low >= lo * (1 - 1e-9) - 1e-15 and unc[k].high <= hi * (1 + 1e-9) + 1e-15
+        assert unc[k].source.startswith("fit: ")
+        assert unc[k].dist in ("normal", "uniform")
+        assert unc[k].low >= lo * (1 - 1e-9) - 1e-15
+        assert unc[k].high <= hi * (1 + 1e-9) + 1e-15
     assert unc["nut.inertia_kg_m2"].dist == "normal"
     assert math.isclose(unc["nut.inertia_kg_m2"].low, report["parameters"]["nut.inertia_kg_m2"]["ci95"][0], rel_tol=1e-6)
     assert unc["contact.stiffness_n_per_mm_e"].source.startswith("assumption:")
@@ -410,12 +433,16 @@ def test_cli_bad_input_exit_2_nothing_written(csv_files, tmp_path, capsys):
     out = tmp_path / "o.toml"
     assert main([str(bad), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and str(bad) in err and "torque_command_n_m" in err and "line 6" in err
+    assert len(err.splitlines()) == 1
+    assert str(bad) in err
+    assert "torque_command_n_m" in err
+    assert "line 6" in err
     assert main([paths[0], "--out", str(out), "--fit", "nut.inertia_kg_m2,bogus"]) == 2
     assert "bogus" in capsys.readouterr().err
     assert main([paths[0], "--out", paths[0]]) == 2  # never overwrite an input
     assert main([paths[0], "--out", str(tmp_path / "missing-dir" / "o.toml")]) == 2
-    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["bad.csv"]
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["bad.csv"]
 
 
 def test_cli_non_convergence_exit_3(csv_files, tmp_path, monkeypatch, capsys):
@@ -427,7 +454,8 @@ def test_cli_non_convergence_exit_3(csv_files, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(fit_mod, "fit_plant", lambda *a, **k: real(*a, **{**k, "max_iter": 1}))
     out = tmp_path / "o.toml"
     assert main([paths[0], "--out", str(out)]) == 3
-    assert "ipopt" not in (err := capsys.readouterr().err) and "remedy" in err
+    assert "ipopt" not in (err := capsys.readouterr().err)
+    assert "remedy" in err
     assert not out.exists()
 
 
@@ -456,7 +484,8 @@ def test_plant_toml_adds_an_uncertainty_section_when_the_base_has_none(base):
     model = check_plant_uncertainty(Plant.from_dict(doc, origin="mine.toml"))
     (entry,) = [e for e in model.entries if e.key == "nut.inertia_kg_m2"]
     lo, hi = res.parameters["nut.inertia_kg_m2"]["ci95"]
-    assert math.isclose(entry.low, lo, rel_tol=1e-9) and math.isclose(entry.high, hi, rel_tol=1e-9)
+    assert math.isclose(entry.low, lo, rel_tol=1e-9)
+    assert math.isclose(entry.high, hi, rel_tol=1e-9)
     # with the base's section: the fitted key's assumption is replaced, the others are kept as written
     full = plant_toml(text, res.plant, "mine", res.keys)
     unc_lines = [ln for ln in full[full.index("[uncertainty]"):].splitlines() if "=" in ln]
@@ -475,7 +504,8 @@ def test_long_record_converges_in_the_first_attempt():
     assert rec.n == 4001
     res = fit_plant([rec])
     assert res.solver["status"] == "converged"
-    assert res.solver["attempts"] == 1 and res.solver["iterations_all_attempts"] <= 12
+    assert res.solver["attempts"] == 1
+    assert res.solver["iterations_all_attempts"] <= 12
     for k, v in FIT_TRUTH.items():
         assert abs(res.parameters[k]["value"] / v - 1) < 1e-3, k
 
@@ -567,7 +597,8 @@ def test_fit_round_trip(name):
     res = fit_plant([rec], base, delay_samples="find")
     assert res.keys == default_keys(base)
     assert res.plant.mechanism == base.mechanism
-    assert res.solver["command_delay"]["shift_samples"] == 1 and res.plant.values[DELAY] == 1
+    assert res.solver["command_delay"]["shift_samples"] == 1
+    assert res.plant.values[DELAY] == 1
     for k in res.keys:
         lo, hi = res.parameters[k]["ci95"]
         assert lo <= values[k] <= hi, (name, k, values[k], res.parameters[k])
@@ -587,7 +618,8 @@ def test_ball_screw_round_trip_with_the_whole_force_nut_loss():
         warnings.simplefilter("ignore")
         truth = base.with_params(values)
     res = fit_plant([_log(truth)], base, delay_samples="find", cross_validate=False)
-    assert res.solver["command_delay"]["shift_samples"] == 1 and res.solver["command_delay"]["search"]["decided"]
+    assert res.solver["command_delay"]["shift_samples"] == 1
+    assert res.solver["command_delay"]["search"]["decided"]
     for k in res.keys:
         assert res.parameters[k]["value"] == pytest.approx(values[k], rel=1e-3), k
     assert res.solver["validation"]["passes"]
@@ -656,7 +688,8 @@ def _check_constant_load(result, base):
     p = result.parameters
     for k in ("friction.efficiency", "friction.no_load_torque_n_m"):
         assert p[k]["kept_base"], (k, p[k])
-        assert "combination" in p[k]["reason"] and "1e-06" in p[k]["reason"], p[k]["reason"]
+        assert "combination" in p[k]["reason"], p[k]["reason"]
+        assert "1e-06" in p[k]["reason"], p[k]["reason"]
         lo, hi = p[k]["ci95"]
         assert lo <= TRUTH[k] <= hi, (k, p[k])  # the honest interval holds the truth
         assert result.plant.values[k] == base.values[k]
@@ -703,8 +736,10 @@ def test_info_split_tolerance_is_stated_and_scale_free():
         jj = j * (1 + noise * rng.standard_normal(j.shape))
         jn = jj / np.linalg.norm(jj, axis=0)
         a_inv, null, ratios = info_split(jn)
-        assert null.shape == (4, 1) and abs(abs(null[2, 0]) - abs(null[3, 0])) < 1e-6
-        assert np.all(np.isfinite(a_inv)) and np.max(np.abs(a_inv)) < 1e3
+        assert null.shape == (4, 1)
+        assert abs(abs(null[2, 0]) - abs(null[3, 0])) < 1e-6
+        assert np.all(np.isfinite(a_inv))
+        assert np.max(np.abs(a_inv)) < 1e3
     assert 1e-8 < RANK_RTOL < 1e-3
     j[:, 3] = j[:, 2] + 1e-2 * rng.standard_normal(200)  # weakly but truly informed: kept
     _, null, _ = info_split(j / np.linalg.norm(j, axis=0))
@@ -725,7 +760,8 @@ def test_duplicate_record_used_once_with_a_warning(base, truth, multisine):
     assert any("copy.csv holds the same data as multisine-0" in w and "once" in w for w in two.warnings)
     # a validation record that is a fitted one is no validation: said, not counted
     val = fit_plant([multisine], base, keys=("nut.inertia_kg_m2",), validate=[copy])
-    assert "copy.csv" not in val.fit_percent and any("copy.csv" in w and "not a validation" in w for w in val.warnings)
+    assert "copy.csv" not in val.fit_percent
+    assert any("copy.csv" in w and "not a validation" in w for w in val.warnings)
 
 
 def test_duplicate_frf_used_once(base, truth):
@@ -776,7 +812,10 @@ def test_cli_rpm_speed_without_angle_exit_2_one_line(multisine, tmp_path, capsys
     out = tmp_path / "o.toml"
     assert main([str(csv), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "nut_speed_rad_s" in err[0] and "rpm" in err[0] and "Traceback" not in err[0]
+    assert len(err) == 1
+    assert "nut_speed_rad_s" in err[0]
+    assert "rpm" in err[0]
+    assert "Traceback" not in err[0]
     assert not out.exists()
 
 
@@ -795,7 +834,9 @@ def test_sample_time_compared_with_the_plant(base, multisine, tmp_path, capsys):
     fast.to_csv(csv)
     assert main([str(csv), "--out", str(tmp_path / "o.toml")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "time_s" in err[0] and "1 %" in err[0]
+    assert len(err) == 1
+    assert "time_s" in err[0]
+    assert "1 %" in err[0]
     assert list(tmp_path.iterdir()) == [csv]
 
 
@@ -830,8 +871,10 @@ def test_overlay_shows_one_continuous_simulation(base, truth):
     ax1, ax2 = fig.axes[:2]
     meas, model = (np.asarray(line.get_ydata(), float) for line in ax1.lines[:2])
     t = np.asarray(ax1.lines[1].get_xdata(), float)
-    assert np.all(np.isfinite(model)) and np.all(np.isfinite(t))  # one run, no segment breaks
-    assert t[0] <= rec.time_s[1] + 1e-12 and t[-1] == pytest.approx(rec.time_s[-1])  # the whole record
+    assert np.all(np.isfinite(model))
+    assert np.all(np.isfinite(t))  # one run, no segment breaks
+    assert t[0] <= rec.time_s[1] + 1e-12
+    assert t[-1] == pytest.approx(rec.time_s[-1])  # the whole record
     step_model, step_meas = np.max(np.abs(np.diff(model))), np.max(np.abs(np.diff(meas)))
     assert step_model <= 1.2 * step_meas, (step_model, step_meas)
     resid = np.asarray(ax2.lines[0].get_ydata(), float)
@@ -840,7 +883,8 @@ def test_overlay_shows_one_continuous_simulation(base, truth):
     # the label names the run drawn: one replay of the plant as written (prediction-error form here:
     # no controller is described), not the shooting segments
     label = ax1.get_legend().get_texts()[1].get_text()
-    assert "plant as written" in label and "replay" in label, label
+    assert "plant as written" in label, label
+    assert "replay" in label, label
 
 
 # --- item 7: the user's [uncertainty] kept ----------------------------------------------------------------
@@ -864,7 +908,8 @@ def test_fitted_plant_keeps_the_users_uncertainty(base, three_records):
     model = {u.key: u for u in plant_uncertainty(res.plant).entries}
     j = model["nut.inertia_kg_m2"]
     lo, hi = res.parameters["nut.inertia_kg_m2"]["ci95"]
-    assert j.high - j.low >= hi - lo and j.high - j.low > 0.5 * res.plant.values["nut.inertia_kg_m2"]
+    assert j.high - j.low >= hi - lo
+    assert j.high - j.low > 0.5 * res.plant.values["nut.inertia_kg_m2"]
     # asked for, the fit's own entries
     own = fit_plant(three_records, base, uncertainty="fit")
     assert own.plant.uncertainty["nut.inertia_kg_m2"]["source"].startswith("fit: ")
@@ -941,7 +986,9 @@ def test_ctrl_c_exit_130_one_line_nothing_left(one_csv, tmp_path, capsys, monkey
     monkeypatch.setattr(F, "fit_plant", interrupted)
     assert _run([one_csv, "--out", str(out)]) == 130
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "interrupted" in err[0] and "Traceback" not in err[0]
+    assert len(err) == 1
+    assert "interrupted" in err[0]
+    assert "Traceback" not in err[0]
     monkeypatch.undo()
     monkeypatch.setattr(P, "fit_figures", interrupted)  # Ctrl-C while the figures are drawn
     assert _run([one_csv, "--out", str(out), "--plots", str(plots), "--fit", "nut.inertia_kg_m2"]) == 130
@@ -995,7 +1042,8 @@ def test_plant_toml_keeps_layout_where_it_can(base):
     text = _variants(plant_file_path().read_text())["trailing-comment"]
     p = base.with_params({"nut.inertia_kg_m2": 1.6e-4})
     out = plant_toml(text, p, "x", ["nut.inertia_kg_m2"])
-    assert "# measured 2024" in out and "Written by prsa-fit" not in out
+    assert "# measured 2024" in out
+    assert "Written by prsa-fit" not in out
     # dotted keys are kept too since the writer edits the TOML document (tomlkit; was: written afresh)
     dotted = plant_toml(_variants(plant_file_path().read_text())["dotted"], p, "x", ["nut.inertia_kg_m2"])
     assert "Written by prsa-fit" not in dotted
@@ -1029,8 +1077,11 @@ def test_cli_bad_output_paths_refused_before_the_fit(one_csv, tmp_path, capsys, 
     argv[argv.index(which) + 1] = str(bad)
     assert _run(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and which in err[0] and "Traceback" not in err[0], err
-    assert not (work / "pl").exists() and not (work / "o.toml").exists()
+    assert len(err) == 1, err
+    assert which in err[0], err
+    assert "Traceback" not in err[0], err
+    assert not (work / "pl").exists()
+    assert not (work / "o.toml").exists()
 
 
 @pytest.mark.parametrize("flag,value", [("--frf-speed", "0"), ("--frf-speed", "1e6"), ("--frf-load", "1e9")])
@@ -1044,7 +1095,8 @@ def test_cli_frf_operating_point_checked(flag, value, tmp_path, capsys, monkeypa
     frf_from_arrays("frf", f, frf_response(truth, f, load_n=800.0)).to_csv(csv)
     assert _run(["--frf", str(csv), "--frf-load", "800", "--out", str(tmp_path / "o.toml"), flag, value]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and f"{flag} {value}" in err[0], err
+    assert len(err) == 1, err
+    assert f"{flag} {value}" in err[0], err
 
 
 def test_huge_log_refused_before_reading(tmp_path, monkeypatch):
@@ -1074,7 +1126,10 @@ def test_constant_frf_gives_no_absurd_fit_percent(tmp_path, capsys):
     # plant (was: exit 0 with "fit n/a"); one line, never an absurd number
     assert _run(["--frf", str(csv), "--out", str(tmp_path / "o.toml")]) == 3
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "no plant written" in err and "e+" not in err and "e17" not in err
+    assert len(err.splitlines()) == 1
+    assert "no plant written" in err
+    assert "e+" not in err
+    assert "e17" not in err
     assert not (tmp_path / "o.toml").exists()
 
 

@@ -32,7 +32,8 @@ def test_the_paper_plants_bandwidth_entry_has_absolute_bounds():
     # the premise of the bug: an entry that does not move with the value
     p = _plant({BW: 85.3479})
     entry = p.uncertainty[BW]
-    assert {"low", "high"} <= set(entry) and not entry["low"] <= 85.3479 <= entry["high"]
+    assert {"low", "high"} <= set(entry)
+    assert not entry["low"] <= 85.3479 <= entry["high"]
     assert entry_support(p, BW, entry) is None
     assert entry_support(_plant(), BW, entry) == (entry["low"], entry["high"])
 
@@ -46,16 +47,19 @@ def test_a_written_value_outside_the_support_gets_the_fits_entry_or_none():
     assert held.uncertainty[BW] == fit_entry
     (note,) = notes  # one line: the key, the value with its interval, the support as typed
     assert note.startswith(f"{BW} = 85.3479 (95 % CI 40..130) is outside the base plant's [uncertainty] entry")
-    assert f"low = {typed['low']!r}, high = {typed['high']!r}" in note and "\n" not in note
+    assert f"low = {typed['low']!r}, high = {typed['high']!r}" in note
+    assert "\n" not in note
     assert plant_uncertainty(held).entries  # loads: every support holds its value
     # the fit has no entry for it (a kept key, a degenerate interval): no entry rather than a false one
     dropped, notes = hold_written_values(p, [BW], {}, {})
-    assert BW not in dropped.uncertainty and "no [uncertainty] entry written" in notes[0]
+    assert BW not in dropped.uncertainty
+    assert "no [uncertainty] entry written" in notes[0]
     assert {u.key for u in plant_uncertainty(dropped).entries} == set(p.uncertainty) - {BW}
     # the entries that hold their values are left alone, and so is a plant without a conflict
     assert {k: v for k, v in dropped.uncertainty.items()} == {k: v for k, v in p.uncertainty.items() if k != BW}
     same, none = hold_written_values(_plant(), None, {}, {})
-    assert none == [] and same.uncertainty == _plant().uncertainty
+    assert none == []
+    assert same.uncertainty == _plant().uncertainty
 
 
 def test_uncertainty_choice_never_keeps_an_entry_that_misses_the_value():
@@ -63,10 +67,12 @@ def test_uncertainty_choice_never_keeps_an_entry_that_misses_the_value():
     bounds missed the fitted value (a file that does not load)."""
     p = _plant({BW: 85.3479})
     entry, note = uncertainty_choice(p, BW, p.uncertainty[BW], None, [85.0, 85.7], (10.0, 1e4), "keep")
-    assert entry is None and note.startswith(f"{BW} = 85.3479 (95 % CI 85..85.7) is outside")
+    assert entry is None
+    assert note.startswith(f"{BW} = 85.3479 (95 % CI 85..85.7) is outside")
     fit_entry = {"dist": "uniform", "low": 80.0, "high": 90.0, "source": "fit"}
     entry, note = uncertainty_choice(p, BW, p.uncertainty[BW], fit_entry, [80.0, 90.0], (10.0, 1e4), "keep")
-    assert entry is fit_entry and "the fit's entry is written instead" in note
+    assert entry is fit_entry
+    assert "the fit's entry is written instead" in note
 
 
 def test_a_fit_outside_the_users_support_writes_a_file_that_loads(tmp_path):
@@ -80,9 +86,12 @@ def test_a_fit_outside_the_users_support_writes_a_file_that_loads(tmp_path):
     res = fit_plant([rec], base, keys=[J])
     value = res.plant.values[J]
     ci = res.parameters[J]["ci95"]
-    assert ci[0] <= FIT_TRUTH[J] <= ci[1] and ci[1] < lo  # the data contradict the stated range
+    assert ci[0] <= FIT_TRUTH[J] <= ci[1]
+    assert ci[1] < lo  # the data contradict the stated range
     notes = [w for w in res.warnings if w.startswith(f"{J} = ") and "outside the base plant's" in w]
-    assert len(notes) == 1 and f"{value:.6g}" in notes[0] and "low = 0.00018, high = 0.00024" in notes[0]
+    assert len(notes) == 1
+    assert f"{value:.6g}" in notes[0]
+    assert "low = 0.00018, high = 0.00024" in notes[0]
     entry = res.plant.uncertainty[J]
     assert entry["source"].startswith("fit: ")
     text = fitted_plant_text(res, base, plant_file_path().read_text(encoding="utf-8"), "fitted", rec.name)
@@ -91,5 +100,6 @@ def test_a_fit_outside_the_users_support_writes_a_file_that_loads(tmp_path):
     back = load_plant(str(path))
     assert back.values[J] == pytest.approx(value, rel=1e-12)
     (u,) = [u for u in plant_uncertainty(back).entries if u.key == J]
-    assert u.low <= value <= u.high and u.low <= FIT_TRUTH[J] <= u.high
+    assert u.low <= value <= u.high
+    assert u.low <= FIT_TRUTH[J] <= u.high
     assert tomllib.loads(text)["uncertainty"][J]["source"].startswith("fit: ")

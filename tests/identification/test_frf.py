@@ -68,17 +68,20 @@ def test_polar_and_cartesian_files_round_trip(tmp_path):
     g = 1.0 / (2.4e-4 * 2j * np.pi * f + 1e-4) * np.exp(-2j * np.pi * f * 2.5e-4)
     coh = np.linspace(0.99, 0.5, 30)
     rec = frf_from_arrays("x", f, g, coherence=coh, speed_rad_s=20.0, load_n=500.0)
-    assert rec.dropped == int(np.sum(coh < 0.8)) and rec.n == 30 - rec.dropped
+    assert rec.dropped == int(np.sum(coh < 0.8))
+    assert rec.n == 30 - rec.dropped
     assert any("coherence below 0.8 dropped" in w for w in rec.warnings)
     rec.to_csv(tmp_path / "polar.csv")
     back = load_frf(tmp_path / "polar.csv", speed_rad_s=20.0, load_n=500.0, coherence_min=0.0)
     np.testing.assert_allclose(back.response, rec.response, rtol=1e-12)
-    assert back.speed_rad_s == 20.0 and back.load_n == 500.0
+    assert back.speed_rad_s == 20.0
+    assert back.load_n == 500.0
     lines = ["# drive export", "frequency_hz,real,imag"] + [f"{float(a)!r},{float(b.real)!r},{float(b.imag)!r}" for a, b in zip(f, g)]
     (tmp_path / "cart.csv").write_text("\n".join(lines) + "\n")
     cart = load_frf(tmp_path / "cart.csv")
     np.testing.assert_allclose(cart.response, g, rtol=1e-15)
-    assert cart.coherence is None and cart.dropped == 0
+    assert cart.coherence is None
+    assert cart.dropped == 0
 
 
 @pytest.mark.parametrize("text, match", [
@@ -96,7 +99,8 @@ def test_bad_frf_files_one_line(tmp_path, text, match):
     p.write_text(text)
     with pytest.raises(DataError, match=match) as err:
         load_frf(p)
-    assert str(p) in str(err.value) and "\n" not in str(err.value)
+    assert str(p) in str(err.value)
+    assert "\n" not in str(err.value)
 
 
 def test_nyquist_checked():
@@ -213,9 +217,11 @@ def test_frf_from_a_logged_periodic_record(base, measured):
                              axial_load_n=r.inputs[1])
     fr = frf_from_record(rec, PERIOD_S, f_max_hz=600.0)
     ref = measured["issue"]
-    assert fr.n == ref.n and np.allclose(fr.frequency_hz, ref.frequency_hz)
+    assert fr.n == ref.n
+    assert np.allclose(fr.frequency_hz, ref.frequency_hz)
     assert np.median(np.abs(fr.response / ref.response - 1)) < 0.01
-    assert abs(fr.speed_rad_s - 30.0) < 0.5 and fr.load_n == 800.0
+    assert abs(fr.speed_rad_s - 30.0) < 0.5
+    assert fr.load_n == 800.0
     with pytest.raises(DataError, match="fewer than 3 periods"):
         frf_from_record(rec, 1.0)
 
@@ -228,7 +234,9 @@ def test_cli_frf_bad_input_exit_2_nothing_written(tmp_path, capsys):
     out = tmp_path / "o.toml"
     assert main(["--frf", str(bad), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and str(bad) in err and "line 3" in err
+    assert len(err.splitlines()) == 1
+    assert str(bad) in err
+    assert "line 3" in err
     assert main(["--frf", str(bad), "--out", str(out), "--coherence-min", "1.5"]) == 2
     assert "--coherence-min" in capsys.readouterr().err
     assert main(["--frf", str(bad), "--validate", str(bad), "--out", str(out)]) == 2
@@ -305,13 +313,15 @@ def test_delay_recovered_from_a_sweep_to_the_current_loop(base):
     res = fit_frf([_noisy(truth, f, 1, delay_s=TRUE_DELAY_S)], base,
                   keys=["nut.inertia_kg_m2", "drive.current_loop_bandwidth_hz", DELAY_KEY])
     d = res.parameters[DELAY_KEY]
-    assert d["unit"] == "s" and abs(d["value"] / TRUE_DELAY_S - 1) < 0.05
+    assert d["unit"] == "s"
+    assert abs(d["value"] / TRUE_DELAY_S - 1) < 0.05
     assert _covers(res, DELAY_KEY, TRUE_DELAY_S)
     for k, v in TRUTH_RIGID.items():
         assert _covers(res, k, v), k
     # Not a plant key: the fitted plant is unchanged there; the delay block maps it to the
     # first-order equivalent current loop, whose interval covers the true equivalent.
-    assert DELAY_KEY not in res.plant.values and res.plant_keys == ("nut.inertia_kg_m2", "drive.current_loop_bandwidth_hz")
+    assert DELAY_KEY not in res.plant.values
+    assert res.plant_keys == ("nut.inertia_kg_m2", "drive.current_loop_bandwidth_hz")
     eq = res.delay["equivalent_current_loop_bandwidth_hz"]
     f_eq = 1 / (2 * math.pi * (1 / (2 * math.pi * 1200.0) + TRUE_DELAY_S))
     assert eq["ci95"][0] <= f_eq <= eq["ci95"][1]
@@ -371,7 +381,8 @@ def test_one_sample_computation_delay_found_in_a_simulated_drive_log(base):
     res = fit_frf([fr], base.with_params({"drive.current_loop_bandwidth_hz": 1200.0}),
                   keys=["nut.inertia_kg_m2", DELAY_KEY])
     d = res.parameters[DELAY_KEY]
-    assert abs(d["value"] / TS - 1) < 0.05 and d["ci95"][0] <= TS <= d["ci95"][1], d
+    assert abs(d["value"] / TS - 1) < 0.05, d
+    assert d["ci95"][0] <= TS <= d["ci95"][1], d
     assert abs(res.reflected_inertia_kg_m2["value"] / truth.reflected_inertia_kg_m2 - 1) < 0.02
 
 
@@ -386,11 +397,14 @@ def test_axial_mode_is_invisible_on_the_builtin_plants(base):
         warnings.simplefilter("ignore")
         for name in ("paper-iprsm", "iprsm-60", "iprsm-90"):
             m = axial_mode(load_plant(name))
-            assert m["reflected_axial_inertia_ratio"] < 0.01 and m["resonance_hz"] > 1000.0, (name, m)
+            assert m["reflected_axial_inertia_ratio"] < 0.01, (name, m)
+            assert m["resonance_hz"] > 1000.0, (name, m)
     m = axial_mode(base)
-    assert m["resonance_hz"] > 0.5 / TS and m["max_effect_db"] < 0.1
+    assert m["resonance_hz"] > 0.5 / TS
+    assert m["max_effect_db"] < 0.1
     h = axial_mode(base.with_params(HEAVY))
-    assert 100 < h["antiresonance_hz"] < h["resonance_hz"] < 200 and h["max_effect_db"] > 10
+    assert 100 < h["antiresonance_hz"] < h["resonance_hz"] < 200
+    assert h["max_effect_db"] > 10
 
 
 def test_stiffness_recovered_when_the_sweep_covers_the_mode(heavy):
@@ -398,9 +412,11 @@ def test_stiffness_recovered_when_the_sweep_covers_the_mode(heavy):
     f = np.arange(4.0, 1000.0, 4.0)
     # one seed; the coverage study below (PRSA_SLOW=1, 3 % noise) measured 19/20 intervals covering the truth
     res = fit_frf([_noisy(truth, f, 0, fidelity="compliant")], heavy, fidelity="compliant")
-    assert res.keys == FRF_KEYS_COMPLIANT and res.solver["fidelity"] == "compliant"
+    assert res.keys == FRF_KEYS_COMPLIANT
+    assert res.solver["fidelity"] == "compliant"
     k = res.parameters[K_KEY]
-    assert abs(k["value"] / TRUE_K - 1) < 0.02 and _covers(res, K_KEY, TRUE_K), k
+    assert abs(k["value"] / TRUE_K - 1) < 0.02, k
+    assert _covers(res, K_KEY, TRUE_K), k
     for key, v in TRUTH_RIGID.items():
         assert _covers(res, key, v), key
     # (issue 20: the note that the base [uncertainty] entry 5e4..2e5 no longer holds the fitted value is no
@@ -421,7 +437,8 @@ def test_stiffness_warnings_name_the_key(base, heavy):
     res = fit_frf([_noisy(truth, np.arange(8.0, 1600.0, 16.0), 4, fidelity="compliant", name="paper")], base,
                   fidelity="compliant")
     mine = [w for w in res.warnings if w.startswith(K_KEY)]
-    assert mine and any("not identifiable" in w or "ends at" in w or "reflected axial mass" in w for w in mine), mine
+    assert mine, mine
+    assert any("not identifiable" in w or "ends at" in w or "reflected axial mass" in w for w in mine), mine
 
 
 # --- bad inputs ---------------------------------------------------------------------------------
@@ -457,7 +474,8 @@ def test_cli_delay_and_compliant(base, heavy, tmp_path, capsys):
                  "--json", str(rep)]) == 0
     report = json.loads(rep.read_text())
     d = report["parameters"][DELAY_KEY]
-    assert set(d) == {"value", "ci95", "unit"} and d["ci95"][0] <= TRUE_DELAY_S <= d["ci95"][1]
+    assert set(d) == {"value", "ci95", "unit"}
+    assert d["ci95"][0] <= TRUE_DELAY_S <= d["ci95"][1]
     assert set(report) >= {"parameters", "reflected_inertia_kg_m2", "fit_percent", "warnings", "solver", "delay"}
     text = out.read_text()
     doc = tomllib.loads(text)
@@ -477,11 +495,14 @@ def test_cli_delay_and_compliant(base, heavy, tmp_path, capsys):
                    + "".join(f"{i * TS!r},{0.1 + 0.01 * (i % 7)},{0.01 * i},100\n" for i in range(200)))
     assert main([str(csv), "--fit", DELAY_KEY, "--out", str(tmp_path / "x.toml")]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and DELAY_KEY in err
+    assert len(err.splitlines()) == 1
+    assert DELAY_KEY in err
     assert main(["--frf", str(path), "--fidelity", "compliant", "--out", str(tmp_path / "y.toml")]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "load_n = 0.0" in err
-    assert not (tmp_path / "x.toml").exists() and not (tmp_path / "y.toml").exists()
+    assert len(err.splitlines()) == 1
+    assert "load_n = 0.0" in err
+    assert not (tmp_path / "x.toml").exists()
+    assert not (tmp_path / "y.toml").exists()
 
 
 # --- coverage (slow) ----------------------------------------------------------------------------
@@ -499,4 +520,5 @@ def test_delay_and_stiffness_intervals_cover_the_truth_in_20_seeds(base, heavy):
     hits_k = sum(_covers(fit_frf([_noisy(truth_k, fk, s, fidelity="compliant", noise=0.03)], heavy,
                                  fidelity="compliant"), K_KEY, TRUE_K) for s in range(20))
     print(f"coverage: delay {hits_d}/20, stiffness {hits_k}/20")
-    assert hits_d >= 18 and hits_k >= 18
+    assert hits_d >= 18
+    assert hits_k >= 18

@@ -92,7 +92,8 @@ def test_response_of_the_plants_own_linearisation(mech):
     if mech == "linear-axis":  # the two-mass keys of the truth, the masses within their intervals
         for k in ("axis.mass_kg", "axis.load_mass_kg", "axis.load_stiffness_n_per_um"):
             lo, hi = res.parameters[k]["ci95"]
-            assert lo <= truth.values[k] <= hi and res.plant.values[k] == pytest.approx(truth.values[k], rel=0.02), k
+            assert lo <= truth.values[k] <= hi, k
+            assert res.plant.values[k] == pytest.approx(truth.values[k], rel=0.02), k
     if truth.screw_driven:
         for k in ("axis.motor_inertia_kg_m2", "axis.moving_mass_kg"):
             assert res.plant.values[k] == pytest.approx(truth.values[k], rel=0.05), k
@@ -131,7 +132,8 @@ def test_response_of_an_independent_two_mass_axis(mech):
     for name, x in (("resonance_hz", f_r), ("antiresonance_hz", fa), ("total_inertia_kg_m2", jm + jl),
                     ("motor_inertia_kg_m2", jm)):
         lo, hi = v[name]["ci95"]
-        assert lo <= x <= hi and v[name]["value"] == pytest.approx(x, rel=0.01), name
+        assert lo <= x <= hi, name
+        assert v[name]["value"] == pytest.approx(x, rel=0.01), name
     assert res.reflected_inertia_kg_m2["value"] == pytest.approx(jm + jl, rel=0.01)
     pv = res.plant.values
     if mech == "linear-axis":  # load coordinates: kg, N/m; its mode written like the screws' (and said to be unused)
@@ -239,17 +241,21 @@ def test_cli_foreign_axis_bode(tmp_path, capsys):
     out = tmp_path / "fa.toml"
     assert main(["--frf", bode, "--plant", plant, "--fidelity", "rigid", "--out", str(out)]) == 3
     err = capsys.readouterr().err
-    assert "rigid model refused" in err and "--fidelity compliant" in err and not out.exists()
+    assert "rigid model refused" in err
+    assert "--fidelity compliant" in err
+    assert not out.exists()
     rep = tmp_path / "r.json"
     assert main(["--frf", bode, "--plant", plant, "--fidelity", "compliant", "--out", str(out), "--json", str(rep),
                  "--plots", str(tmp_path / "figs")]) == 0
     text = capsys.readouterr().out
-    assert "structure: two-mass" in text and "axial mode " in text
+    assert "structure: two-mass" in text
+    assert "axial mode " in text
     r = json.loads(rep.read_text())
     a = 0.01 / TWO_PI
     j_true = 2.3e-3 + 9.6973e-4 + 350 * a * a
     j = r["reflected_inertia_kg_m2"]
-    assert abs(j["value"] / j_true - 1) < 0.03 and j["ci95"][0] <= j_true <= j["ci95"][1]
+    assert abs(j["value"] / j_true - 1) < 0.03
+    assert j["ci95"][0] <= j_true <= j["ci95"][1]
     m = r["solver"]["frf_model"]
     fa = math.sqrt(123.7e6 / 350) / TWO_PI
     f_r = fa * math.sqrt(j_true / (2.3e-3 + 9.6973e-4))
@@ -306,7 +312,8 @@ def test_cli_compliant_frf_for_every_mechanism(mech, tmp_path, capsys):
         other = axial_mode(written, speed_rad_s=speed, load_n=-load)["resonance_hz"]
         assert abs(other / rep_mode["value"] - 1) > 10 * 2e-4
     assert f"at the response's operating point {speed:g} rad/s, {load:g} N" in cap.out
-    assert f"axial mode of the written plant {rep_mode['value']:.5g} Hz" in cap.out and f"{speed:g} rad/s, {load:g} N" in cap.out
+    assert f"axial mode of the written plant {rep_mode['value']:.5g} Hz" in cap.out
+    assert f"{speed:g} rad/s, {load:g} N" in cap.out
 
 
 def test_cli_verbose_shows_the_cause_of_a_numerical_failure(tmp_path, capsys, monkeypatch):
@@ -330,7 +337,9 @@ def test_cli_verbose_shows_the_cause_of_a_numerical_failure(tmp_path, capsys, mo
     assert "KeyError" not in plain
     assert main(["--frf", str(path), "--plant", "ballscrew-32x10", "--out", str(tmp_path / "o.toml"), "--verbose"]) == 3
     err = capsys.readouterr().err
-    assert "RuntimeError: mapping failed" in err and "KeyError: 'omega_cage'" in err and "test_frfplant.py" in err
+    assert "RuntimeError: mapping failed" in err
+    assert "KeyError: 'omega_cage'" in err
+    assert "test_frfplant.py" in err
     assert not (tmp_path / "o.toml").exists()
 
 
@@ -485,24 +494,30 @@ def test_a_continuous_response_holds_the_base_current_loop_and_no_negative_delay
     text = capsys.readouterr().out
     r = json.loads(rep.read_text())
     found = _at_bound_and_delays(r, {"bound": [], "delay": []})
-    assert found["delay"] and min(found["delay"]) >= 0.0, found["delay"]
-    assert found["bound"] and all(e["ci95"] is None and e["note"] == AT_BOUND_NOTE for e in found["bound"])
-    assert "e+08" not in text and "e+12" not in text
+    assert found["delay"], found["delay"]
+    assert min(found["delay"]) >= 0.0, found["delay"]
+    assert found["bound"]
+    assert all(e["ci95"] is None and e["note"] == AT_BOUND_NOTE for e in found["bound"])
+    assert "e+08" not in text
+    assert "e+12" not in text
     fc_key = "drive.current_loop_bandwidth_hz"
     doc = tomllib.loads(out.read_text())
     written = doc["drive"]["current_loop_bandwidth_hz"]
-    assert written["value"] == base.values[fc_key] and written["source"] == base.sources[fc_key]
+    assert written["value"] == base.values[fc_key]
+    assert written["source"] == base.sources[fc_key]
     assert fc_key not in r["parameters"]
     assert any(w.startswith(f"{fc_key} kept at the base value {base.values[fc_key]:g} Hz: the fit's current loop ran to "
                             "its bound") for w in r["warnings"])
-    assert f"delay 0 ({AT_BOUND_NOTE}) s" in text and "current loop 2000 (held, not fitted) Hz" in text
+    assert f"delay 0 ({AT_BOUND_NOTE}) s" in text
+    assert "current loop 2000 (held, not fitted) Hz" in text
     assert load_plant(out).values["drive.command_delay_samples"] == 0
     # declared continuous: the current loop, the mode and the inertia hold the truth
     assert main(["--frf", str(csv), "--plant", "ballscrew-32x10", "--frf-sample-time", "0", "--out", str(out),
                  "--json", str(rep)]) == 0
     r = json.loads(rep.read_text())
     p = r["parameters"][fc_key]
-    assert p["ci95"][0] <= fc <= p["ci95"][1] and p["value"] == pytest.approx(fc, rel=0.01)
+    assert p["ci95"][0] <= fc <= p["ci95"][1]
+    assert p["value"] == pytest.approx(fc, rel=0.01)
     j = r["reflected_inertia_kg_m2"]
     assert j["ci95"][0] <= jm + jl <= j["ci95"][1]
     m = r["frf_axial_mode_hz"]

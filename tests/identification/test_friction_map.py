@@ -150,7 +150,8 @@ def test_stribeck_keys_of_the_foreign_low_speed_staircase(base, low):
     for k, v, s in zip(fm.keys, fm.values, sd):
         assert abs(v - truth[k]) <= Z95 * s, (k, v, truth[k], s)
         assert s < 0.01 * truth[k]  # and informative
-    assert fm.in_stribeck_region >= 8 and fm.null.shape[1] == 0
+    assert fm.in_stribeck_region >= 8
+    assert fm.null.shape[1] == 0
 
 
 def test_fit_plant_stribeck_keys_from_plateaus(base, low):
@@ -160,11 +161,15 @@ def test_fit_plant_stribeck_keys_from_plateaus(base, low):
     truth = _stribeck_truth(base, ax)
     for k in STRIBECK_KEYS:
         p = res.parameters[k]
-        assert not p["kept_base"] and p["ci95"][0] <= truth[k] <= p["ci95"][1]
-        assert res.plant.values[k] == p["value"] and res.plant.sources[k].startswith("fit: low-speed-0 (95 % CI")
+        assert not p["kept_base"]
+        assert p["ci95"][0] <= truth[k] <= p["ci95"][1]
+        assert res.plant.values[k] == p["value"]
+        assert res.plant.sources[k].startswith("fit: low-speed-0 (95 % CI")
     fmap = res.solver["friction_map"]
-    assert "conditional on the base plant's friction keys" in fmap["intervals"] and fmap["rounds"] == 1
-    assert len(fmap["plateaus"]) == 22 and json.dumps(res.report())
+    assert "conditional on the base plant's friction keys" in fmap["intervals"]
+    assert fmap["rounds"] == 1
+    assert len(fmap["plateaus"]) == 22
+    assert json.dumps(res.report())
 
 
 def test_logs_without_low_speed_plateaus_leave_stribeck_not_identified(base, low):
@@ -175,12 +180,17 @@ def test_logs_without_low_speed_plateaus_leave_stribeck_not_identified(base, low
     res = fit_plant([stair], plant, keys=STRIBECK_KEYS)
     for k in STRIBECK_KEYS:
         p = res.parameters[k]
-        assert p["kept_base"] and res.plant.values[k] == plant.values[k] and res.plant.sources[k] == plant.sources[k]
-        assert "no plateau below 3 Stribeck speeds" in p["reason"] and "low-speed staircase" in p["reason"]
+        assert p["kept_base"]
+        assert res.plant.values[k] == plant.values[k]
+        assert res.plant.sources[k] == plant.sources[k]
+        assert "no plateau below 3 Stribeck speeds" in p["reason"]
+        assert "low-speed staircase" in p["reason"]
     lo, hi = res.parameters[VS]["ci95"]
-    assert lo <= 1e-7 * 1.0001 and hi >= 1.0 * 0.9999  # the plausible range of the Stribeck velocity
+    assert lo <= 1e-7 * 1.0001
+    assert hi >= 1.0 * 0.9999  # the plausible range of the Stribeck velocity
     lo, hi = res.parameters[STATIC]["ci95"]
-    assert lo <= plant.values["friction.dynamic"] + 1e-12 and hi >= 1.0 - 1e-12
+    assert lo <= plant.values["friction.dynamic"] + 1e-12
+    assert hi >= 1.0 - 1e-12
     assert sum("not identified, kept at the base values" in w for w in res.warnings) == 1
 
 
@@ -205,7 +215,9 @@ def test_hostile_records_give_one_line(base, low, case):
         assert res.parameters[STATIC]["kept_base"] or res.parameters[TS0]["kept_base"]
     else:
         assert all(res.parameters[k]["kept_base"] for k in STRIBECK_KEYS)
-        assert len(notes) == 1 and "plateau" in notes[0] and "\n" not in notes[0]
+        assert len(notes) == 1
+        assert "plateau" in notes[0]
+        assert "\n" not in notes[0]
 
 
 # --- the whole pipeline: time-domain keys and Stribeck keys from the foreign logs ------------------
@@ -227,7 +239,8 @@ def test_pipeline_default_seed_truth_inside(base):
         lo, hi = res.parameters[k]["ci95"]
         assert lo <= v <= hi, (k, res.parameters[k], v)
     fmap = res.solver["friction_map"]
-    assert fmap["intervals"].startswith("unconditional") and fmap["rounds"] == 2
+    assert fmap["intervals"].startswith("unconditional")
+    assert fmap["rounds"] == 2
     assert res.solver["command_delay"]["shift_samples"] == 1
 
 
@@ -310,7 +323,8 @@ def test_plateaus_in_load_units_and_no_warning_on_a_good_fit(axis_plant):  # noq
         assert {"speed_m_s", "force_n", "friction_n", "se_n"} <= set(pl)
         assert not {"speed_rad_s", "motor_torque_n_m", "friction_n_m", "se_n_m"} & set(pl)
     assert m["chi2_reduced"] == pytest.approx(_chi2(m), rel=1e-6)
-    assert m["chi2_reduced"] < 4 and m["warnings"] == []
+    assert m["chi2_reduced"] < 4
+    assert m["warnings"] == []
 
 
 def test_a_bad_curve_fit_warns_above_four(axis_plant):  # noqa: F811
@@ -319,8 +333,11 @@ def test_a_bad_curve_fit_warns_above_four(axis_plant):  # noqa: F811
     force = force + 6.0 * (np.abs(v) > 0.035)  # the two fastest plateaus off the friction law by 6 N
     m = axis_friction_map("bumpy", t, pos, force, axis_plant)
     chi2 = _chi2(m)
-    assert m["chi2_reduced"] == pytest.approx(chi2, rel=1e-6) and chi2 > 4
-    assert len(m["warnings"]) == 1 and f"{chi2:.3g}" in m["warnings"][0] and "bumpy" in m["warnings"][0]
+    assert m["chi2_reduced"] == pytest.approx(chi2, rel=1e-6)
+    assert chi2 > 4
+    assert len(m["warnings"]) == 1
+    assert f"{chi2:.3g}" in m["warnings"][0]
+    assert "bumpy" in m["warnings"][0]
 
 
 def test_emps_fit_json_carries_the_friction_map_warning(emps_fit):
@@ -330,8 +347,10 @@ def test_emps_fit_json_carries_the_friction_map_warning(emps_fit):
 
     rep = json.loads(js.read_text())
     fmap = rep["friction_map"]["DATA_EMPS.mat"]
-    assert fmap["chi2_reduced"] == pytest.approx(_chi2(fmap), rel=1e-6) and fmap["chi2_reduced"] > 4  # 6.96
-    assert fmap["warnings"] and fmap["warnings"][0] in rep["warnings"]
+    assert fmap["chi2_reduced"] == pytest.approx(_chi2(fmap), rel=1e-6)
+    assert fmap["chi2_reduced"] > 4  # 6.96
+    assert fmap["warnings"]
+    assert fmap["warnings"][0] in rep["warnings"]
     assert f"warning: {fmap['warnings'][0]}" in emps_fit.out
 
 
@@ -391,10 +410,12 @@ def _record(seed, ts=1e-3):
 def test_hand_made_stribeck_curve_inside_intervals(axis_plant):
     t, pos, force = _record(0)
     m = axis_friction_map("hand", t, pos, force, axis_plant)
-    assert m["stribeck"] == "identified" and len(m["plateaus"]) == 14
+    assert m["stribeck"] == "identified"
+    assert len(m["plateaus"]) == 14
     for k, want in TRUTH.items():
         p = m["parameters"][k]
-        assert p["identified"] and p["ci95"][0] <= want <= p["ci95"][1], (k, p, want)
+        assert p["identified"], (k, p, want)
+        assert p["ci95"][0] <= want <= p["ci95"][1], (k, p, want)
         assert p["ci95"][1] - p["ci95"][0] < 0.5 * want
 
 
@@ -413,7 +434,9 @@ def test_one_direction_gives_one_line(axis_plant):
     t, pos, force = _record(0)
     half = len(t) // 2
     m = axis_friction_map("half", t[:half], pos[:half], force[:half], axis_plant)
-    assert m["stribeck"] == "not identified" and "in -x" in m["error"] and "\n" not in m["error"]
+    assert m["stribeck"] == "not identified"
+    assert "in -x" in m["error"]
+    assert "\n" not in m["error"]
 
 
 def test_emps_fit_json_friction_map(emps_fit):
@@ -425,9 +448,11 @@ def test_emps_fit_json_friction_map(emps_fit):
     assert fmap["stribeck"].startswith("not identified")
     p = fmap["parameters"]
     for k in ("coulomb_positive_n", "coulomb_negative_n", "viscous_positive_n_s_per_m", "viscous_negative_n_s_per_m"):
-        assert p[k]["identified"] and p[k]["ci95"][0] < p[k]["value"] < p[k]["ci95"][1]
+        assert p[k]["identified"]
+        assert p[k]["ci95"][0] < p[k]["value"] < p[k]["ci95"][1]
     for k in ("stribeck_excess_n", "stribeck_velocity_m_s"):
-        assert not p[k]["identified"] and p[k]["value"] is None
+        assert not p[k]["identified"]
+        assert p[k]["value"] is None
     # the plateau means against the raw record (force = gain x controller output), numpy only
     from scipy.io import loadmat
 
@@ -482,13 +507,16 @@ def test_prsa_fit_stribeck_keys(base, tmp_path, capsys):
     assert main([data, "--plant", plant, "--fit", KEYS, "--out", str(out), "--json", str(js)]) == 0
     text = capsys.readouterr().out
     for k in KEYS.split(","):
-        assert f"{k} = " in text and "(95 % CI " in text
-    assert "friction map: 22 steady-speed plateau(s)" in text and "conditional on the base plant" in text
+        assert f"{k} = " in text
+        assert "(95 % CI " in text
+    assert "friction map: 22 steady-speed plateau(s)" in text
+    assert "conditional on the base plant" in text
     report = json.loads(js.read_text())
     doc = tomllib.loads(out.read_text())
     for k in KEYS.split(","):
         p = report["parameters"][k]
-        assert p["kept_base"] is False and p["ci95"][0] < p["value"] < p["ci95"][1]
+        assert p["kept_base"] is False
+        assert p["ci95"][0] < p["value"] < p["ci95"][1]
         section, sub = k.split(".")
         assert doc[section][sub]["value"] == pytest.approx(p["value"], rel=1e-12)
         assert doc[section][sub]["source"].startswith(f"fit: {data} (95 % CI")
@@ -506,11 +534,15 @@ def test_prsa_fit_without_low_speed_plateaus(base, tmp_path, capsys):
     assert main([data, "--fit", KEYS, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     notes = [line for line in text.splitlines() if line.startswith("warning: ") and "not identified" in line]
-    assert len(notes) == 1 and "no plateau below 3 Stribeck speeds" in notes[0] and "low-speed staircase" in notes[0]
+    assert len(notes) == 1
+    assert "no plateau below 3 Stribeck speeds" in notes[0]
+    assert "low-speed staircase" in notes[0]
     for k in KEYS.split(","):
-        assert f"{k} = " in text and "not identifiable, the plant keeps the base value" in text
+        assert f"{k} = " in text
+        assert "not identifiable, the plant keeps the base value" in text
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fitted = load_plant(out)
     for k in KEYS.split(","):
-        assert fitted.values[k] == base.values[k] and not fitted.sources[k].startswith("fit:")
+        assert fitted.values[k] == base.values[k]
+        assert not fitted.sources[k].startswith("fit:")

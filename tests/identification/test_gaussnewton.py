@@ -59,9 +59,11 @@ def test_a_stall_at_a_first_order_point_is_accepted_and_one_elsewhere_refused():
     _, m_opt = _stall_at(x_opt, a, y, dof)
     assert gn.first_order_point(1e-9, m_opt)
     _, m_near = _stall_at(x_opt + 0.03 * se, a, y, dof)  # 0.03 standard errors each: within the noise
-    assert m_near < gn.FIRST_ORDER_TOL and gn.first_order_point(1e-9, m_near)
+    assert m_near < gn.FIRST_ORDER_TOL
+    assert gn.first_order_point(1e-9, m_near)
     _, m_far = _stall_at(x_opt + np.array([0.0, 0.5, 0.0]) * se, a, y, dof)  # half a standard error off
-    assert m_far > gn.FIRST_ORDER_TOL and not gn.first_order_point(1e-9, m_far)
+    assert m_far > gn.FIRST_ORDER_TOL
+    assert not gn.first_order_point(1e-9, m_far)
     # a first-order point of the bounded problem: held at a bound its gradient pushes against
     lo, hi = np.full(3, -np.inf), np.full(3, np.inf)
     hi[1] = x_opt[1] - 5 * se[1]
@@ -69,12 +71,14 @@ def test_a_stall_at_a_first_order_point_is_accepted_and_one_elsewhere_refused():
     x_b[1] = hi[1]
     x_b[[0, 2]] = lsq_linear(a, y, bounds=(lo, hi), method="bvls").x[[0, 2]]
     d, m_b = _stall_at(x_b, a, y, dof, lo, hi)
-    assert abs(d[1]) < 1e-12 and gn.first_order_point(1e-9, m_b)
+    assert abs(d[1]) < 1e-12
+    assert gn.first_order_point(1e-9, m_b)
     _, m_free = _stall_at(x_b, a, y, dof)  # the same point without the bound is far from optimal
     assert not gn.first_order_point(1e-9, m_free)
     # the equations out of the linearisation's reach, or no number: refused
     assert not gn.first_order_point(10 * gn.FIRST_ORDER_G_MAX, m_opt)
-    assert not gn.first_order_point(float("nan"), m_opt) and not gn.first_order_point(1e-9, float("nan"))
+    assert not gn.first_order_point(float("nan"), m_opt)
+    assert not gn.first_order_point(1e-9, float("nan"))
 
 
 def test_a_buffered_function_reused_gives_each_call_its_own_outputs_and_threads_their_own_buffer():
@@ -109,4 +113,5 @@ def test_a_buffered_function_reused_gives_each_call_its_own_outputs_and_threads_
         t.start()
     for t in ts:
         t.join()
-    assert np.array_equal(got[0], ra_copy) and np.array_equal(got[1], rb)
+    assert np.array_equal(got[0], ra_copy)
+    assert np.array_equal(got[1], rb)

@@ -40,13 +40,15 @@ def test_total_inertia_interval_with_the_moving_mass_fitted():
     rho = -0.99
     params, corr, fitted, reflected, _, reasons = _finish(base, (JM, MASS, ETA), values, sd,
                                                           [[1, rho, 0], [rho, 1, 0], [0, 0, 1]])
-    assert not reasons and all(not params[k]["kept_base"] for k in (JM, MASS, ETA))
+    assert not reasons
+    assert all(not params[k]["kept_base"] for k in (JM, MASS, ETA))
     j = values[0] + v["axis.screw_inertia_kg_m2"] + values[1] * a2  # independent: J = J_m + J_s + m a^2
     assert reflected["value"] == pytest.approx(j, rel=1e-12)
     half = Z95 * math.sqrt(sd[0] ** 2 + (a2 * sd[1]) ** 2 + 2 * rho * sd[0] * a2 * sd[1])
     lo, hi = reflected["ci95"]
     assert lo < j < hi
-    assert (hi - j) == pytest.approx(half, rel=1e-5) and (j - lo) == pytest.approx(half, rel=1e-5)
+    assert (hi - j) == pytest.approx(half, rel=1e-5)
+    assert (j - lo) == pytest.approx(half, rel=1e-5)
     # the motor inertia's interval alone shifted by the base's rest (the old interval) misses it
     old = [c + base.reflected_inertia_kg_m2 - v[JM] for c in params[JM]["ci95"]]
     assert not old[0] <= j <= old[1]

@@ -86,8 +86,10 @@ def _run(capsys, argv):
 def test_good_description_loads_in_si(files):
     d, mat, fmt, (t, qm, qg, vir) = files
     log = load_axis_log(mat, load_log_format(fmt))
-    assert log.n == t.size and log.gain_n_per_unit == GAIN
-    assert log.controller.kp == KP and log.controller.kv == KV
+    assert log.n == t.size
+    assert log.gain_n_per_unit == GAIN
+    assert log.controller.kp == KP
+    assert log.controller.kv == KV
     assert log.test_signal is None  # optional, absent
     np.testing.assert_allclose(log.force_n, GAIN * vir)
     assert log.sources["controller.kp"] == "log.mat: kp"
@@ -130,10 +132,12 @@ def test_bad_description_is_one_line_exit_2_nothing_written(files, capsys, old, 
     out, js = d / "fitted.toml", d / "fit.json"
     code, stdout, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(out), "--json", str(js)])
     assert code == 2
-    assert err.count("\n") == 1 and err.startswith("prsa-fit: error: ")
+    assert err.count("\n") == 1
+    assert err.startswith("prsa-fit: error: ")
     assert expect in err
     assert (str(fmt) in err) or (str(mat) in err)
-    assert not out.exists() and not js.exists()
+    assert not out.exists()
+    assert not js.exists()
 
 
 def test_reproduction_error_names_the_shift_when_the_log_is_one_sample_late(files, capsys):
@@ -148,15 +152,22 @@ def test_reproduction_error_names_the_shift_when_the_log_is_one_sample_late(file
 def test_missing_files_and_wrong_plant_mechanism(files, capsys, tmp_path):
     d, mat, fmt, _ = files
     code, _, err = _run(capsys, [str(mat), "--log-format", str(d / "nope.toml"), "--out", str(d / "o.toml")])
-    assert code == 2 and "nope.toml" in err and err.count("\n") == 1
+    assert code == 2
+    assert "nope.toml" in err
+    assert err.count("\n") == 1
     code, _, err = _run(capsys, [str(d / "nope.mat"), "--log-format", str(fmt), "--out", str(d / "o.toml")])
-    assert code == 2 and "nope.mat" in err and "not found" in err
+    assert code == 2
+    assert "nope.mat" in err
+    assert "not found" in err
     iprsm = tmp_path / "iprsm.toml"
     iprsm.write_text('name = "x"\n[screw]\n')
     code, _, err = _run(capsys, ["--validate", str(iprsm), str(mat), "--log-format", str(fmt), "--traces",
                                  str(d / "t.csv")])
-    assert code == 2 and "mechanism" in err and str(iprsm) in err
-    assert not (d / "t.csv").exists() and not (d / "o.toml").exists()
+    assert code == 2
+    assert "mechanism" in err
+    assert str(iprsm) in err
+    assert not (d / "t.csv").exists()
+    assert not (d / "o.toml").exists()
 
 
 def test_validate_needs_a_log_format_and_refuses_fit_flags(files, capsys):
@@ -167,19 +178,27 @@ def test_validate_needs_a_log_format_and_refuses_fit_flags(files, capsys):
                      '[sensor]\nsample_time_s = { value = 0.001, source = "t" }\n'
                      'encoder_resolution_m = { value = 1e-6, source = "t" }\n')
     code, _, err = _run(capsys, ["--validate", str(plant), str(mat)])
-    assert code == 2 and "--log-format" in err and str(mat) in err
+    assert code == 2
+    assert "--log-format" in err
+    assert str(mat) in err
     code, _, err = _run(capsys, ["--validate", str(plant), str(mat), "--log-format", str(fmt), "--out", str(d / "x.toml")])
-    assert code == 2 and "--out" in err and not (d / "x.toml").exists()
+    assert code == 2
+    assert "--out" in err
+    assert not (d / "x.toml").exists()
     code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "x.toml"), "--traces", "t.csv"])
-    assert code == 2 and "--traces" in err
+    assert code == 2
+    assert "--traces" in err
 
 
 def test_output_path_checked_before_the_fit(files, capsys):
     d, mat, fmt, _ = files
     code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "no" / "dir" / "x.toml")])
-    assert code == 2 and "--out" in err and "does not exist" in err
+    assert code == 2
+    assert "--out" in err
+    assert "does not exist" in err
     code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(mat)])
-    assert code == 2 and "input file" in err
+    assert code == 2
+    assert "input file" in err
 
 
 def test_a_loose_tolerance_still_refuses_a_log_that_fits_better_shifted(files):
@@ -215,7 +234,9 @@ def test_validate_a_standard_csv_without_a_description_runs_open_loop(tmp_path, 
     rep = json.loads(rj.read_text())["replay"][0]
     assert rep["replay"] == "open loop from the logged command"
     e = rep["errors_percent"]
-    assert e["position"] < 1e-9 and e["velocity"] < 1e-9 and e["force"] == 0.0
+    assert e["position"] < 1e-9
+    assert e["velocity"] < 1e-9
+    assert e["force"] == 0.0
     assert "open loop" in out
 
 
@@ -227,7 +248,8 @@ def test_as_applied_log_with_a_delay_is_reconstructed_with_the_shift(files):
     text = GOOD.replace('gain = "gtau"', 'gain = "gtau"\nlogged = "as-applied"') + "command_delay_samples = 1\n"
     fmt.write_text(text)
     log = load_axis_log(mat, load_log_format(fmt))
-    assert log.command_logged == "as-applied" and log.controller.command_delay_samples == 1
+    assert log.command_logged == "as-applied"
+    assert log.controller.command_delay_samples == 1
 
 
 def test_a_pi_velocity_loop_is_reconstructed(files):
@@ -260,7 +282,9 @@ def test_a_mat_log_without_a_log_description_is_one_line(tmp_path, capsys):
     out = tmp_path / "fitted.toml"
     assert main([str(log), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--log-format" in err[0] and "record.mat" in err[0]
+    assert len(err) == 1
+    assert "--log-format" in err[0]
+    assert "record.mat" in err[0]
     assert not out.exists()
 
 
@@ -324,7 +348,8 @@ def test_a_named_variable_that_is_not_real_numbers_says_what_it_is(files, capsys
     scipy.io.savemat(mat, _mat_vars(files, qm=qm[:, None] * (1 + 1j) if isinstance(value, str) and value == "complex"
                                     else value))
     code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "fitted.toml")])
-    assert code == 2 and err.count("\n") == 1
+    assert code == 2
+    assert err.count("\n") == 1
     assert f"{mat}: variable 'qm' ([position] name) {what}; expected a real numeric vector" in err
     assert not (d / "fitted.toml").exists()
 
@@ -337,8 +362,10 @@ def test_an_empty_or_cut_mat_file_is_bad_input(files, capsys):
                          (whole[:len(whole) // 2], "runs past the end of the file")):
         mat.write_bytes(data)
         code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "fitted.toml")])
-        assert code == 2 and err.count("\n") == 1, err
-        assert err.startswith(f"prsa-fit: error: {mat}: cannot be read as a MATLAB .mat file") and expect in err
+        assert code == 2, err
+        assert err.count("\n") == 1, err
+        assert err.startswith(f"prsa-fit: error: {mat}: cannot be read as a MATLAB .mat file")
+        assert expect in err
 
 
 def test_a_v4_and_an_uncompressed_mat_file_still_load(files):
@@ -347,7 +374,8 @@ def test_a_v4_and_an_uncompressed_mat_file_still_load(files):
         scipy.io.savemat(mat, _mat_vars(files, junk=np.zeros((300, 300))), **kw)
         log = load_axis_log(mat, load_log_format(fmt))
         np.testing.assert_array_equal(log.position_m, qm)
-        assert log.gain_n_per_unit == GAIN and log.controller.kv == KV
+        assert log.gain_n_per_unit == GAIN
+        assert log.controller.kv == KV
 
 
 def _csv_files(files, extra_header="", extra_cells=""):
@@ -371,7 +399,8 @@ def test_a_duplicate_named_csv_column_is_refused(files, capsys):
     """Was: the last of two 'qm' columns used, silently."""
     csv, fmt = _csv_files(files, ",qm", ",0")
     code, _, err = _run(capsys, [str(csv), "--log-format", str(fmt), "--out", str(csv.parent / "fitted.toml")])
-    assert code == 2 and err.count("\n") == 1
+    assert code == 2
+    assert err.count("\n") == 1
     assert f"{csv}: column 'qm' ([position] name) appears twice in the header (columns 2 and 5, line 1)" in err
 
 
@@ -415,7 +444,8 @@ def test_optional_is_a_boolean_of_an_optional_section(files, capsys, old, new, e
     d, mat, fmt, _ = files
     fmt.write_text(GOOD.replace(old, new))
     code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--out", str(d / "fitted.toml")])
-    assert code == 2 and err.count("\n") == 1
+    assert code == 2
+    assert err.count("\n") == 1
     assert f"{fmt}: {expect}" in err
 
 
@@ -449,7 +479,8 @@ def test_a_holdout_that_leaves_too_few_samples_names_the_flag_and_the_log(files,
     """Was: "window 360:400 of 400 samples; expected at least 50 samples inside" (no flag, no log)."""
     d, mat, fmt, _ = files
     code, _, err = _run(capsys, [str(mat), "--log-format", str(fmt), "--holdout", "0.1", "--out", str(d / "f.toml")])
-    assert code == 2 and err.count("\n") == 1
+    assert code == 2
+    assert err.count("\n") == 1
     assert (f"--holdout 0.1: {mat} has 400 samples, which leaves 40 held out and 360 to fit; expected a fraction that "
             "leaves at least 50 samples in each part") in err
     assert not (d / "f.toml").exists()
@@ -474,7 +505,8 @@ def test_a_missing_variable_lists_the_first_50_names_of_a_large_file(files, fmt_
     with pytest.raises(LogFormatError) as info:
         load_axis_log(mat, load_log_format(fmt))
     msg = str(info.value)
-    assert "names variable 'qm', not in the file; it has v0, v1," in msg and msg.endswith("v49, ... (86 in all)")
+    assert "names variable 'qm', not in the file; it has v0, v1," in msg
+    assert msg.endswith("v49, ... (86 in all)")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -507,8 +539,13 @@ def test_load_in_kN_declared_is_refused_before_the_fit(logs, capsys):
     assert 1e3 * peak_kn > 2 * rated > peak_kn  # the log itself is plausible, its kN reading is not
     code, err, out = _fit(d, LOAD_TOML.replace('unit = "N"\n', 'unit = "kN"\n', 2).replace(
         '[command]\nname = "f_n"\nunit = "kN"', '[command]\nname = "f_n"\nunit = "N"'), d / "load.csv", capsys)
-    assert code == 2 and "\n" not in err and not out.exists()
-    assert "[load] column 'fz'" in err and "kN" in err and f"{peak_kn:.6g} kN" in err and f"{rated:.6g} N" in err
+    assert code == 2
+    assert "\n" not in err
+    assert not out.exists()
+    assert "[load] column 'fz'" in err
+    assert "kN" in err
+    assert f"{peak_kn:.6g} kN" in err
+    assert f"{rated:.6g} N" in err
     with pytest.raises(LogFormatError, match="rated_load_n"):
         load_motor_record(d / "load.csv", load_log_format(d / "f.toml"), base)
     # the same log with its load in N passes the check (prsa-fit on it, exit 0, is
@@ -524,9 +561,14 @@ def test_position_in_m_declared_as_mm_names_the_description(logs, capsys):
     raw[:, 1] *= 1e-3  # the log now holds metres; its description still says mm
     np.savetxt(d / "load-m.csv", raw, delimiter=",", header="t,x_mm,f_n,fz", comments="", fmt="%.17g")
     code, err, out = _fit(d, LOAD_TOML, d / "load-m.csv", capsys)
-    assert code == 2 and "\n" not in err and not out.exists()
-    assert "[position] column 'x_mm' (mm)" in err and "[command] column 'f_n' (N)" in err and "f.toml" in err
-    assert "torque_command_n_m" not in err and "nut_angle_rad" not in err
+    assert code == 2
+    assert "\n" not in err
+    assert not out.exists()
+    assert "[position] column 'x_mm' (mm)" in err
+    assert "[command] column 'f_n' (N)" in err
+    assert "f.toml" in err
+    assert "torque_command_n_m" not in err
+    assert "nut_angle_rad" not in err
 
 
 # ------------------------------------------------------------------------------------------------
@@ -598,16 +640,22 @@ def test_bad_emps_description_is_one_line_exit_2_nothing_written(tmp_path, capsy
     out, js = tmp_path / "F.toml", tmp_path / "FIT.json"
     code, stdout, err = _run_fit(capsys, [DATA, "--log-format", fmt, "--out", out, "--json", js])
     assert code == 2, (case, err, stdout)
-    assert err.count("\n") == 1 and err.startswith("prsa-fit: error: ") and "Traceback" not in err
+    assert err.count("\n") == 1
+    assert err.startswith("prsa-fit: error: ")
+    assert "Traceback" not in err
     assert expect in err, err
     assert str(fmt) in err or str(DATA) in err
-    assert not out.exists() and not js.exists()
+    assert not out.exists()
+    assert not js.exists()
     # the same with --validate: the replay's outputs are not written either
     plant = EXAMPLE / "reference-model.toml"
     traces, rj = tmp_path / "T.csv", tmp_path / "R.json"
     code, _, err = _run_fit(capsys, ["--validate", plant, DATA, "--log-format", fmt, "--traces", traces, "--json", rj])
-    assert code == 2 and err.count("\n") == 1 and expect in err
-    assert not traces.exists() and not rj.exists()
+    assert code == 2
+    assert err.count("\n") == 1
+    assert expect in err
+    assert not traces.exists()
+    assert not rj.exists()
 
 
 def test_position_unit_without_a_controller_is_checked_by_its_speed(tmp_path, capsys):
@@ -624,9 +672,11 @@ def test_position_unit_without_a_controller_is_checked_by_its_speed(tmp_path, ca
     fmt.write_text(body.format(u="m"))
     out = tmp_path / "F.toml"
     code, _, err = _run_fit(capsys, [path, "--log-format", fmt, "--out", out])
-    assert code == 2 and err.count("\n") == 1
+    assert code == 2
+    assert err.count("\n") == 1
     assert "[position] 'x' (unit 'm'): moves 300 m/s between two samples of 0.001 s; expected at most 50 m/s" in err
-    assert str(path) in err and not out.exists()
+    assert str(path) in err
+    assert not out.exists()
     from prsa_ctrl.identification.logformat import load_axis_log, load_log_format
 
     fmt.write_text(body.format(u="mm"))
@@ -816,7 +866,8 @@ def test_bad_descriptions_one_line_exit_2_nothing_written(tmp_path, capsys, case
                  "--out", str(out), *extra])
     err = capsys.readouterr().err.strip()
     assert code == 2, err
-    assert len(err.splitlines()) == 1 and match in err, err
+    assert len(err.splitlines()) == 1, err
+    assert match in err, err
     assert not out.exists()
 
 

@@ -47,19 +47,23 @@ def test_the_search_fits_short_segments_and_the_result_the_asked_ones(sim, monke
     res = td.fit_plant([rec], truth, delay_samples="find", max_delay_samples=3, segment_s=0.1, validation=False)
     search = [c for c in calls[:-1]]
     ts = rec.sample_time_s
-    assert search and all(seg == td.search_segment_s(0.1, ts) < 0.1 for _, seg in search)
+    assert search
+    assert all(seg == td.search_segment_s(0.1, ts) < 0.1 for _, seg in search)
     assert calls[-1] == (2, 0.1)  # the fit at the found shift on the asked segments
     assert checks == [False] * len(search) + [True]
     cd = res.solver["command_delay"]
-    assert cd["shift_samples"] == 2 and cd["search"]["decided"] is True
+    assert cd["shift_samples"] == 2
+    assert cd["search"]["decided"] is True
     assert cd["search"]["segment_s"] == td.search_segment_s(0.1, ts)
     assert res.solver["segment_s"] == 0.1
     # segments no longer than the search's: no second fit
     calls.clear()
     checks.clear()
     td.fit_plant([rec], truth, delay_samples="find", max_delay_samples=3, segment_s=0.01, validation=False)
-    assert all(seg == 0.01 for _, seg in calls) and len(calls) == len({d for d, _ in calls})
-    assert checks and all(checks)
+    assert all(seg == 0.01 for _, seg in calls)
+    assert len(calls) == len({d for d, _ in calls})
+    assert checks
+    assert all(checks)
 
 
 def test_objective_per_record_adds_up_to_the_objective(sim):
@@ -149,8 +153,10 @@ def test_a_stall_at_a_first_order_point_converges_and_one_elsewhere_fails(sim, m
     out = td.fit_plant([rec], truth, keys=keys, delay_samples=0, validation=False)
     stall = out.solver["stall"]
     assert stall["status"] in ("line search failed", "stalled at a first-order point")
-    assert out.solver["converged_at_kink"] is False and out.solver["status"] == "converged"
-    assert stall["step_standard_errors"] <= gn.FIRST_ORDER_TOL and stall["constraint_residual"] <= gn.FIRST_ORDER_G_MAX
+    assert out.solver["converged_at_kink"] is False
+    assert out.solver["status"] == "converged"
+    assert stall["step_standard_errors"] <= gn.FIRST_ORDER_TOL
+    assert stall["constraint_residual"] <= gn.FIRST_ORDER_G_MAX
     v, v_ref = out.parameters[keys[0]], ref.parameters[keys[0]]
     half = 0.5 * (v_ref["ci95"][1] - v_ref["ci95"][0])
     assert abs(v["value"] - v_ref["value"]) <= 0.1 * half
@@ -177,7 +183,9 @@ def test_the_default_segment_depends_on_the_fidelity(sim, monkeypatch, fidelity,
     monkeypatch.setattr(td, "_fit_records", fake)
     with pytest.raises(td.FitError):
         td.fit_plant([rec], truth, fidelity=fidelity, delay_samples=0, validation=False)
-    assert seen == [expected] and COMPLIANT_SEGMENT_S == 0.05 and td.SEGMENT_S == 0.1
+    assert seen == [expected]
+    assert COMPLIANT_SEGMENT_S == 0.05
+    assert td.SEGMENT_S == 0.1
     with pytest.raises(td.FitError):
         td.fit_plant([rec], truth, fidelity=fidelity, delay_samples=0, validation=False, segment_s=0.02)
     assert seen[-1] == 0.02
@@ -216,11 +224,14 @@ def test_the_plant_as_written_is_checked_from_the_free_fits_states(sim, monkeypa
     res = td.fit_plant([rec], start, keys=keys, delay_samples=0, validation=False)
     free = [c for c in calls if not c[0]]
     fixed = [c for c in calls if c[0]]
-    assert len(free) == 1 and len(fixed) == 1
+    assert len(free) == 1
+    assert len(fixed) == 1
     init = fixed[0][1]
     assert init is not None
-    assert np.array_equal(init[0], free[0][2]["V"]) and np.array_equal(init[1], free[0][2]["X0"])
-    assert fixed[0][2]["status"] == "converged" and "fit_percent_written" in res.solver
+    assert np.array_equal(init[0], free[0][2]["V"])
+    assert np.array_equal(init[1], free[0][2]["X0"])
+    assert fixed[0][2]["status"] == "converged"
+    assert "fit_percent_written" in res.solver
 
 
 def test_a_written_plant_check_that_fails_is_reported_not_a_failed_fit(sim, monkeypatch):

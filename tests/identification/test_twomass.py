@@ -123,7 +123,8 @@ def test_two_mass_fit_recovers_the_truth_and_says_why():
     assert v["resonance_hz"]["value"] == pytest.approx(fr, rel=0.005)
     assert v["antiresonance_hz"]["value"] == pytest.approx(fa, rel=0.005)
     assert v["current_loop_bandwidth_hz"]["value"] == pytest.approx(t["fc"], rel=0.1)
-    assert f"{v['resonance_hz']['value']:.4g} Hz" in ch.reason and "rigid model cannot produce" in ch.reason
+    assert f"{v['resonance_hz']['value']:.4g} Hz" in ch.reason
+    assert "rigid model cannot produce" in ch.reason
     # the rigid model is far worse on this response
     assert ch.rigid.fit_percent < ch.two_mass.fit_percent - 10
 
@@ -176,7 +177,8 @@ def test_coherence_weights_the_points():
     fit_u = fit_frf_model((F, g), "two-mass")
     err_w = abs(fit_w.value("total_inertia_kg_m2") / j - 1)
     err_u = abs(fit_u.value("total_inertia_kg_m2") / j - 1)
-    assert err_w < 0.003 and err_w < err_u
+    assert err_w < 0.003
+    assert err_w < err_u
     lo, hi = fit_w.values["total_inertia_kg_m2"]["ci95"]
     assert lo <= j <= hi
 
@@ -220,18 +222,25 @@ def test_a_continuous_response_fitted_as_sampled_ends_at_the_bounds_and_says_so(
         d, fc = fit.values["delay_s"], fit.values["current_loop_bandwidth_hz"]
         assert d["value"] >= 0.0
         if d.get("at_bound"):
-            assert d["at_bound"] == "lower" and d["value"] == 0.0 and d["ci95"] is None and d["note"] == AT_BOUND_NOTE
-            assert d["unbounded_value"] < 0 and "delay_s" in fit.held
+            assert d["at_bound"] == "lower"
+            assert d["value"] == 0.0
+            assert d["ci95"] is None
+            assert d["note"] == AT_BOUND_NOTE
+            assert d["unbounded_value"] < 0
+            assert "delay_s" in fit.held
         assert fc["value"] <= CURRENT_LOOP_MAX_FACTOR * F_CONT[-1] * (1 + 1e-12)
     two = ch.two_mass.values
-    assert two["delay_s"]["at_bound"] == "lower" and two["delay_s"]["unbounded_value"] < 0
-    assert two["current_loop_bandwidth_hz"]["at_bound"] == "upper" and two["current_loop_bandwidth_hz"]["ci95"] is None
+    assert two["delay_s"]["at_bound"] == "lower"
+    assert two["delay_s"]["unbounded_value"] < 0
+    assert two["current_loop_bandwidth_hz"]["at_bound"] == "upper"
+    assert two["current_loop_bandwidth_hz"]["ci95"] is None
     assert two["current_loop_bandwidth_hz"]["value"] == pytest.approx(CURRENT_LOOP_MAX_FACTOR * F_CONT[-1])
     assert any(AT_BOUND_NOTE in w and w.startswith("delay_s = 0 s") for w in ch.two_mass.warnings)
     # fitted as continuous, the truth is recovered with intervals that hold it
     ch0 = choose_structure((F_CONT, g), sample_time_s=0.0)
     v = ch0.two_mass.values
-    assert ch0.structure == "two-mass" and not ch0.two_mass.held
+    assert ch0.structure == "two-mass"
+    assert not ch0.two_mass.held
     t = CONT
     truth = {"current_loop_bandwidth_hz": t["fc"], "antiresonance_hz": t["fa"],
              "resonance_hz": t["fa"] * math.sqrt((t["jm"] + t["jl"]) / t["jm"]),

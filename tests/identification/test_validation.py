@@ -37,7 +37,8 @@ def record(truth):
 
 def test_the_true_plant_replays_its_log_and_is_explained(truth, record):
     e = replay_records(truth, [record], shift=0)["independent"]
-    assert e["finite"] and explained(e)
+    assert e["finite"]
+    assert explained(e)
     assert e["fit_percent"] > 95.0
     assert "prediction-error" in e["replay"]
 
@@ -46,10 +47,12 @@ def test_a_wrong_inertia_is_not_explained(truth, record):
     wrong = truth.with_params({"nut.inertia_kg_m2": 4 * TRUTH["nut.inertia_kg_m2"]})
     good = replay_records(truth, [record], shift=0)["independent"]
     bad = replay_records(wrong, [record], shift=0)["independent"]
-    assert bad["fit_percent"] < FIT_MIN_PERCENT and bad["error_rms_rad_s"] > NOISE_FACTOR * bad["noise_floor_rad_s"]
+    assert bad["fit_percent"] < FIT_MIN_PERCENT
+    assert bad["error_rms_rad_s"] > NOISE_FACTOR * bad["noise_floor_rad_s"]
     assert not explained(bad)
     ok, reasons = verdict({"independent": bad}, {}, None)
-    assert not ok and "independent" in reasons[0]
+    assert not ok
+    assert "independent" in reasons[0]
     assert verdict({"independent": good}, {}, None)[0]
 
 
@@ -68,7 +71,8 @@ def test_the_written_plant_may_not_be_worse_than_the_free_fit(truth, record):
     good = replay_records(truth, [record], shift=0)["independent"]
     worse = dict(good, fit_percent=good["fit_percent"] - 2 * WRITTEN_TOLERANCE_POINTS)
     ok, reasons = verdict({"independent": worse}, {"independent": good}, None)
-    assert not ok and "free fit" in reasons[0]
+    assert not ok
+    assert "free fit" in reasons[0]
     ok, _ = verdict({"independent": good}, {"independent": good}, {"independent": {"failed": "did not converge"}})
     assert not ok  # a cross-validation fit that failed is no pass either
 
@@ -95,7 +99,8 @@ def test_whiteness_at_the_stated_lags():
     for k in range(1, len(w)):
         ar[k] = 0.9 * ar[k - 1] + w[k]
     out = whiteness(ar)
-    assert not out["white"] and out["acf"][1] == pytest.approx(0.9, abs=0.02)
+    assert not out["white"]
+    assert out["acf"][1] == pytest.approx(0.9, abs=0.02)
     assert out["band"] == pytest.approx(1.96 / math.sqrt(len(w)))
 
 
@@ -123,13 +128,18 @@ def test_a_resonance_in_the_residual_is_not_explained_at_a_high_fit(truth, recor
     ring = _with_residual(e, amp * np.sin(2 * math.pi * f_hz * t))
     white = _with_residual(e, amp * math.sqrt(0.5) * np.random.default_rng(3).standard_normal(t.size))
     for x in (ring, white):  # the premise: high fit, far above the noise allowance
-        assert x["fit_percent"] >= FIT_MIN_PERCENT and x["error_rms_rad_s"] > NOISE_FACTOR * x["noise_floor_rad_s"]
+        assert x["fit_percent"] >= FIT_MIN_PERCENT
+        assert x["error_rms_rad_s"] > NOISE_FACTOR * x["noise_floor_rad_s"]
     fp, share = resonance(ring)
-    assert share >= RESONANCE_SHARE and abs(fp - f_hz) < 0.03 * f_hz
+    assert share >= RESONANCE_SHARE
+    assert abs(fp - f_hz) < 0.03 * f_hz
     assert resonance(white)[1] < RESONANCE_SHARE
-    assert not explained(ring) and explained(white)
+    assert not explained(ring)
+    assert explained(white)
     ok, reasons = verdict({"independent": ring}, {}, None)
-    assert not ok and "a resonance" in reasons[0] and f"{fp:.4g} Hz" in reasons[0]
+    assert not ok
+    assert "a resonance" in reasons[0]
+    assert f"{fp:.4g} Hz" in reasons[0]
 
 
 def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
@@ -144,7 +154,8 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
                "skip_samples": 80, "fit_percent": 10.0, "error_rms_rad_s": 0.35, "noise_floor_rad_s": 0.01}
     d = diagnosis({"independent": ringing}, {"decided": True}, _R())
     f_hz = float(d.split(" of ")[-1].split(" Hz")[0])
-    assert d.startswith("second mass") and abs(f_hz - 180.0) < 0.03 * 180.0  # Welch bins of 4000/2048 Hz
+    assert d.startswith("second mass")
+    assert abs(f_hz - 180.0) < 0.03 * 180.0  # Welch bins of 4000/2048 Hz
     assert "current-loop" not in d  # the bandwidth was identified (or not fitted): nothing to say
     fp = float(d.split(" of ")[-1].split(" Hz")[0])
 
@@ -153,7 +164,8 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
         plant = truth.with_params({"drive.current_loop_bandwidth_hz": 800.0})
 
     d = diagnosis({"independent": ringing}, {"decided": True}, _Kept())
-    assert d.startswith("second mass") and "kept at 800 Hz" in d
+    assert d.startswith("second mass")
+    assert "kept at 800 Hz" in d
 
     screw = load_plant("ballscrew-32x10")
 
@@ -162,9 +174,13 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
         plant = screw
 
     dc = diagnosis({"independent": ringing}, {"decided": True}, _Compliant())
-    assert dc.startswith("axial mode") and f"{f_hz:.4g} Hz" in dc and "--fidelity compliant" not in dc
+    assert dc.startswith("axial mode")
+    assert f"{f_hz:.4g} Hz" in dc
+    assert "--fidelity compliant" not in dc
     assert f"at {screw.axial_mode_hz():.4g} Hz by the series formula" in dc
-    assert "axis.nut_stiffness_n_per_um" in dc and "base plant's values" in dc and "--frf" in dc
+    assert "axis.nut_stiffness_n_per_um" in dc
+    assert "base plant's values" in dc
+    assert "--frf" in dc
     lag = float(d.split(" Hz is ")[-1].split(" deg")[0])
     assert lag == pytest.approx(math.degrees(math.atan(fp / 800.0)), abs=0.06)
     assert float(f"{ringing['resonance'][0]:.4g}") == fp  # the verdict's peak, kept in the entry, is the one named
@@ -174,7 +190,8 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
     drift.pop("resonance")  # a new residual: its own peak
     undecided = {"decided": False, "objective": {"0": 1.0, "1": None}}
     d = diagnosis({"independent": drift}, undecided, _R())
-    assert d.startswith("delay") and "1: failed" in d
+    assert d.startswith("delay")
+    assert "1: failed" in d
     assert diagnosis({"independent": drift}, {"decided": True}, _R()).startswith("friction model")
     negative = dict(drift, fit_percent=-40.0)
     assert diagnosis({"independent": negative}, None, _R()).startswith("wrong units or coordinates")
@@ -196,7 +213,8 @@ def test_a_resonance_is_named_before_an_undecided_delay(record):
     undecided = {"decided": False, "objective": {"1": 7.1e4, "2": 7.0e4, "3": None}}
     assert not explained(ringing)
     d = diagnosis({"independent": ringing}, undecided, _R())
-    assert d.startswith("second mass") and "160" in d.split(" Hz")[0][-6:], d
+    assert d.startswith("second mass"), d
+    assert "160" in d.split(" Hz")[0][-6:], d
     drift = dict(ringing, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)))
     drift.pop("resonance", None)
     assert diagnosis({"independent": drift}, undecided, _R()).startswith("delay")
@@ -220,7 +238,8 @@ def test_a_cross_validation_fit_that_failed_is_a_failure_of_the_fit_not_physics(
                          "remedy: check the data (units, that the command drives this actuator, sample time)"}
     loo = {"independent": stalled}
     d = diagnosis({"independent": good}, {"decided": True}, _R(), loo)
-    assert d.startswith("fit failure, not missing physics") and "stalled" in d, d
+    assert d.startswith("fit failure, not missing physics"), d
+    assert "stalled" in d, d
     assert refusal(d).startswith("the fitted plant could not be validated: fit failure")
     assert "missing physics: friction" in refusal(diagnosis({"independent": good}, {"decided": True}, _R()))
     assert not any(w in d.lower() for w in ("friction", "delay", "unit", "resonance", "second mass")), d
@@ -229,7 +248,9 @@ def test_a_cross_validation_fit_that_failed_is_a_failure_of_the_fit_not_physics(
     drift = dict(good, model=meas - 0.5 * np.sign(np.sin(2 * math.pi * 2.0 * t)), fit_percent=10.0, error_rms_rad_s=0.5)
     drift.pop("resonance", None)  # a new residual: its own peak
     d = diagnosis({"independent": drift}, {"decided": True}, _R(), loo)
-    assert d.startswith("friction model") and "did not converge" in d and "not evidence about the physics" in d
+    assert d.startswith("friction model")
+    assert "did not converge" in d
+    assert "not evidence about the physics" in d
 
 
 def test_a_failed_cross_validation_fit_is_retried_from_other_starts(truth, record):
@@ -265,7 +286,8 @@ def test_a_failed_cross_validation_fit_is_retried_from_other_starts(truth, recor
         raise FitError("fit did not converge: Gauss-Newton status 'stalled' after 19 iterations")
 
     v = validate_fit(res, [record, other], [], 0, "rigid", never, base=truth).solver["validation"]
-    assert calls == [0, 0, 2] * 2 and not v["passes"]
+    assert calls == [0, 0, 2] * 2
+    assert not v["passes"]
     assert "from 3 starts" in v["cross_validation"]["other"]["failed"]
     assert v["diagnosis"].startswith("fit failure, not missing physics")
 
@@ -284,26 +306,33 @@ def test_cli_exit_3_without_a_plant_file_unless_forced(truth, tmp_path, capsys):
     code = main([str(fitted), "--validate", str(other), "--out", str(out), "--json", str(js), "--delay-samples", "0"])
     cap = capsys.readouterr()
     assert code == 3, cap.err
-    assert not out.exists() and js.exists(), cap.err
+    assert not out.exists(), cap.err
+    assert js.exists(), cap.err
     last = cap.err.strip().splitlines()[-1]
     assert last.startswith("prsa-fit: the fitted plant does not explain the data; most likely missing physics: ")
     assert "no plant file written" in last
-    assert "heavy.csv (plant as written)" in cap.out and "NOT explained" in cap.out
+    assert "heavy.csv (plant as written)" in cap.out
+    assert "NOT explained" in cap.out
     import json
 
     v = json.loads(js.read_text())["solver"]["validation"]
-    assert v["passes"] is False and v["diagnosis"] and not v["written_plant"][str(other)]["explained"]
+    assert v["passes"] is False
+    assert v["diagnosis"]
+    assert not v["written_plant"][str(other)]["explained"]
     assert v["written_plant"][str(fitted)]["explained"]
     code = main([str(fitted), "--validate", str(other), "--out", str(out), "--delay-samples", "0", "--force"])
     cap = capsys.readouterr()
-    assert code == 3 and out.exists()
+    assert code == 3
+    assert out.exists()
     assert out.read_text().startswith("# prsa-fit --force: NOT VALIDATED")
     assert load_plant(str(out)).name == "plant"
     out.unlink()
     code = main([str(fitted), "--out", str(out), "--delay-samples", "0"])
     cap = capsys.readouterr()
-    assert code == 0 and out.exists(), cap.err
-    assert "NOT VALIDATED" not in out.read_text() and "verdict: the plant explains the data" in cap.out
+    assert code == 0, cap.err
+    assert out.exists(), cap.err
+    assert "NOT VALIDATED" not in out.read_text()
+    assert "verdict: the plant explains the data" in cap.out
 
 
 def test_an_undecided_delay_is_not_validated(truth, record):
@@ -318,7 +347,9 @@ def test_an_undecided_delay_is_not_validated(truth, record):
                          {"command_delay": {"search": search}}, {}, None, {}, None)
 
     v = validate_fit(result(False), [record], [], 0, "rigid").solver["validation"]
-    assert not v["passes"] and v["diagnosis"].startswith("delay") and "2: failed" in v["diagnosis"]
+    assert not v["passes"]
+    assert v["diagnosis"].startswith("delay")
+    assert "2: failed" in v["diagnosis"]
     assert v["written_plant"]["independent"]["explained"]
     assert validate_fit(result(True), [record], [], 0, "rigid").solver["validation"]["passes"]
 
@@ -400,8 +431,10 @@ def setup():
 def test_the_true_plant_replays_the_closed_loop(setup):
     base, rec, cl = setup
     e = closed_loop_replay(base, rec, cl, shift=1)
-    assert e["replay"] == CLOSED_LOOP_MODE and e["finite"]
-    assert e["fit_percent"] > 95.0 and explained(e)
+    assert e["replay"] == CLOSED_LOOP_MODE
+    assert e["finite"]
+    assert e["fit_percent"] > 95.0
+    assert explained(e)
 
 
 def test_a_wrong_plant_replays_the_closed_loop_worse(setup):
@@ -467,7 +500,8 @@ def test_cli_validates_a_described_log_in_closed_loop(setup, tmp_path, capsys):
     cap = capsys.readouterr()
     assert code == 0, cap.err
     v = json.loads(js.read_text())["solver"]["validation"]
-    assert v["replay_per_log"][str(log)] == CLOSED_LOOP_MODE and v["passes"]
+    assert v["replay_per_log"][str(log)] == CLOSED_LOOP_MODE
+    assert v["passes"]
     assert v["written_plant"][str(log)]["fit_percent"] > 95.0
     assert "closed-loop replay from the reference" in cap.out
 
@@ -492,8 +526,10 @@ def test_a_compliant_plant_replays_its_own_log_from_the_quasi_static_state(monke
                              axial_load_n=r.inputs[1])
     assert abs(rec.speed_rad_s[0] - 30.0) < 0.1  # the log starts at speed
     e = replay_records(p, [rec], shift=0, fidelity="compliant")["two-mass"]
-    assert e["finite"] and explained(e)
+    assert e["finite"]
+    assert explained(e)
     assert e["error_rms_rad_s"] < 1.5 * e["noise_floor_rad_s"]
     monkeypatch.setattr(va, "compliant_reference", lambda *a, **k: {})  # every state but speed and torque at zero
     zero = replay_records(p, [rec], shift=0, fidelity="compliant")["two-mass"]
-    assert not explained(zero) and zero["error_rms_rad_s"] > 30 * zero["noise_floor_rad_s"]
+    assert not explained(zero)
+    assert zero["error_rms_rad_s"] > 30 * zero["noise_floor_rad_s"]

@@ -56,9 +56,11 @@ def test_states_round_trip_and_reach_other_segments_and_a_subset(two):
     assert cover.any()
     np.testing.assert_allclose(got[0][:, :, cover], k_b[:, :, cover], rtol=1e-12, atol=1e-12)
     # a state the first fit left out (NaN) starts from the reference: no NaN enters a start
-    assert np.all(np.isfinite(Vq)) and np.all(np.isfinite(X0q))
+    assert np.all(np.isfinite(Vq))
+    assert np.all(np.isfinite(X0q))
     # nothing to carry: no warm start
-    assert initial_states(q, {}) is None and initial_states(q, {"other": st["a"]}) is None
+    assert initial_states(q, {}) is None
+    assert initial_states(q, {"other": st["a"]}) is None
 
 
 def test_a_refit_on_a_subset_from_the_fits_states_reaches_the_same_optimum_in_fewer_iterations(two):

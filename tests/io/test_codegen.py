@@ -96,7 +96,8 @@ def test_position_delay_is_in_the_law_and_the_run(move_delay, plant):
     """The delayed run differs from the undelayed law's replay (the delay matters on this run),
     and the law carries it."""
     law, inp, _ = move_delay
-    assert law.position.delay == 2 and law.position.rate == 2
+    assert law.position.delay == 2
+    assert law.position.rate == 2
     nodelay = dataclasses.replace(law, position=dataclasses.replace(law.position, delay=0))
     assert max_relative_difference(ReferenceLaw(nodelay).run(inp), inp["torque_command"]) > 1e3 * REL
 
@@ -106,9 +107,11 @@ def test_recorded_runs_exercise_the_law(load_step, move):
     and saturates nothing, the filters are active."""
     _, inp, _ = load_step
     u = inp["torque_command"]
-    assert np.ptp(u) > 0.3 and len(u) == 1201
+    assert np.ptp(u) > 0.3
+    assert len(u) == 1201
     _, inp, r = move
-    assert np.ptp(inp["count"]) > 5e5 and np.max(np.abs(inp["acc_ref_m_s2"])) == pytest.approx(0.5)
+    assert np.ptp(inp["count"]) > 5e5
+    assert np.max(np.abs(inp["acc_ref_m_s2"])) == pytest.approx(0.5)
     assert np.ptp(r.output("torque_feedforward")) > 0.1
 
 
@@ -445,8 +448,11 @@ def test_every_st_export_compiles_with_iec2c_and_equals_the_c(variant, real, pla
     seq = _hostile(law)
     u_st, f_st = _drive(st, seq)
     u_c, f_c = _drive(c, seq)
-    assert np.all(np.isfinite(u_c)) and np.ptp(u_c) > 0.05
-    assert f_c[999] == 0 and f_c[1000] == 1 and f_c[-1] == 1
+    assert np.all(np.isfinite(u_c))
+    assert np.ptp(u_c) > 0.05
+    assert f_c[999] == 0
+    assert f_c[1000] == 1
+    assert f_c[-1] == 1
     np.testing.assert_array_equal(f_st, f_c)
     np.testing.assert_array_equal(u_st, u_c)
     # init again at sample 2500 (after the NaN): the same in both, the fault word cleared
@@ -454,7 +460,8 @@ def test_every_st_export_compiles_with_iec2c_and_equals_the_c(variant, real, pla
     u_st3, f_st3 = _drive(st, dict(seq, k_change=2500, which=3))
     np.testing.assert_array_equal(u_st3, u_c3)
     np.testing.assert_array_equal(f_st3, f_c3)
-    assert f_c3[2499] == 1 and not f_c3[2500:].any()
+    assert f_c3[2499] == 1
+    assert not f_c3[2500:].any()
     # single-turn counts (20 bits): the same run, counts modulo 2^20, in both
     single = dict(seq, count=seq["count"] % 2**20, pc=seq["pc"] % 2**20, modulus=2**20, cp=seq["cp"] % 2**20,
                   pc0=seq["pc0"] % 2**20)
@@ -498,7 +505,9 @@ def test_st_literals_and_names_are_iec(load_step):
     law, _, _ = load_step
     from prsa_ctrl.io.codegen import IEC_RESERVED, iec_real
 
-    assert iec_real(1e-07) == "1.0E-7" and iec_real(5e-05) == "5.0E-5" and float(iec_real(1 / 3)) == 1 / 3
+    assert iec_real(1e-07) == "1.0E-7"
+    assert iec_real(5e-05) == "5.0E-5"
+    assert float(iec_real(1 / 3)) == 1 / 3
     for real in ("double", "float"):
         text = st_code(law, name="SpeedCtrl", real=real)
         code = re.sub(r"\(\*.*?\*\)", " ", text, flags=re.S)
@@ -542,11 +551,14 @@ def test_c_compiles_strictly_everywhere(variant, plant, tmp_path):
                 assert res.returncode == 0, f"{cc} -std={std} {src.name}: {res.stderr}"
     text = srcs[1].read_text()
     code = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
-    assert "int64" not in code and "double" not in code and "expf(" in code.replace("tanf(", "expf(")
+    assert "int64" not in code
+    assert "double" not in code
+    assert "expf(" in code.replace("tanf(", "expf(")
     static_object = r"\bstatic\b[^;(){}]*[;=\[{]"  # a static object, not a function
     assert len(re.findall(static_object, "static int x;\nstatic float z[3];\nstatic int f(int a)\n{")) == 2
     statics = re.findall(static_object, code)
-    assert not statics and len(re.findall(r"\bstatic\b", code)) >= 3, statics
+    assert not statics, statics
+    assert len(re.findall(r"\bstatic\b", code)) >= 3, statics
     (tmp_path / "unity.c").write_text('#include "u_double.c"\n#include "u_float.c"\n')
     res = subprocess.run([CC, "-std=c99", *STRICT, "-c", str(tmp_path / "unity.c"), "-o", str(tmp_path / "u.o")],
                          capture_output=True, text=True, timeout=120)
@@ -562,7 +574,8 @@ def test_c_compiles_strictly_everywhere(variant, plant, tmp_path):
         res = subprocess.run([CPPCHECK, "--enable=warning,style,performance,portability", "--std=c99", "--quiet",
                               "--error-exitcode=1", "--inline-suppr", *map(str, srcs)],
                              capture_output=True, text=True, timeout=300)
-        assert res.returncode == 0 and not res.stderr.strip(), res.stderr
+        assert res.returncode == 0, res.stderr
+        assert not res.stderr.strip(), res.stderr
 
 
 @pytest.fixture(scope="module")
@@ -590,9 +603,15 @@ def test_c_nan_input_sets_the_fault_and_holds_a_finite_command(load_step, pid_li
     bad["r1"][600] = np.nan
     bad["r1"][601] = np.inf
     u, f, integ = _drive(pid_lib[real], bad, True)
-    assert not f0.any() and np.all(f[:600] == 0) and np.all(f[600:] == 1)
-    assert np.all(np.isfinite(u)) and np.all(np.isfinite(integ))
-    assert u[600] == u[599] and u[601] == u[599] and integ[600] == integ[599] and integ[601] == integ[599]
+    assert not f0.any()
+    assert np.all(f[:600] == 0)
+    assert np.all(f[600:] == 1)
+    assert np.all(np.isfinite(u))
+    assert np.all(np.isfinite(integ))
+    assert u[600] == u[599]
+    assert u[601] == u[599]
+    assert integ[600] == integ[599]
+    assert integ[601] == integ[599]
     np.testing.assert_array_equal(u[:600], clean[:600])
     assert np.max(np.abs(u[1000:] - clean[1000:])) < 1e-3 * np.ptp(clean)
 
@@ -637,7 +656,9 @@ def test_c_anti_windup_and_runtime_limits(plant, tmp_path):
     lib = _build(law, tmp_path, "double")
     u, _, integ = _drive(lib, seq, True)
     tmax = law.torque_limit_n_m
-    assert np.max(np.abs(u)) == tmax and np.max(integ) <= tmax * (1 + 1e-12) and np.max(integ) > 0.99 * tmax
+    assert np.max(np.abs(u)) == tmax
+    assert np.max(integ) <= tmax * (1 + 1e-12)
+    assert np.max(integ) > 0.99 * tmax
     ref = ReferenceLaw(law)
     ref.init(0, 0.0, 0.0, 0.0)
     np.testing.assert_allclose(u, [ref.step(0, r) for r in seq["r1"]], rtol=0, atol=1e-12)
@@ -645,7 +666,8 @@ def test_c_anti_windup_and_runtime_limits(plant, tmp_path):
     assert np.max(wound) > 5 * tmax
     u2, _ = _drive(lib, dict(seq, k_change=300, which=2, factor=0.5))
     np.testing.assert_array_equal(u2[:301], u[:301])
-    assert np.max(np.abs(u2[302:])) == 0.5 * tmax and np.max(np.abs(u[302:1200])) == tmax
+    assert np.max(np.abs(u2[302:])) == 0.5 * tmax
+    assert np.max(np.abs(u[302:1200])) == tmax
 
 
 @needs_cc
@@ -661,15 +683,22 @@ def test_c_enable_hold_reinit_and_bad_limits(load_step, tmp_path):
     hold = np.zeros_like(en)
     hold[600:700] = 1
     u, f, integ = _drive(lib, dict(seq, enable=en, hold=hold), True)
-    assert np.all(u[300:400] == 0.0) and np.all(integ[300:400] == 0.0) and not f.any()
+    assert np.all(u[300:400] == 0.0)
+    assert np.all(integ[300:400] == 0.0)
+    assert not f.any()
     r_nan = np.array(seq["r1"], float)
     r_nan[350] = np.nan  # a fault while disabled: the output stays 0 N m
     u_n, f_n = _drive(lib, dict(seq, r1=r_nan, enable=en, hold=hold))
-    assert np.all(u_n[300:400] == 0.0) and f_n[349] == 0 and f_n[350] == 1
-    assert np.all(integ[600:700] == integ[599]) and integ[701] != integ[699]
-    assert np.all(np.isfinite(u)) and np.max(np.abs(u[400:])) <= law.torque_limit_n_m
+    assert np.all(u_n[300:400] == 0.0)
+    assert f_n[349] == 0
+    assert f_n[350] == 1
+    assert np.all(integ[600:700] == integ[599])
+    assert integ[701] != integ[699]
+    assert np.all(np.isfinite(u))
+    assert np.max(np.abs(u[400:])) <= law.torque_limit_n_m
     u_bad, f_bad = _drive(lib, dict(seq, k_change=500, which=2, factor=-1.0))
-    assert np.all(f_bad[500:] == 4) and np.all(u_bad[500:] == u_bad[499])
+    assert np.all(f_bad[500:] == 4)
+    assert np.all(u_bad[500:] == u_bad[499])
     # re-init in the middle of a run (after a NaN set the fault): from there the outputs are those
     # of a fresh run started at that sample with the same initial values, and the fault is cleared
     seq_nan = dict(seq, r1=np.array(seq["r1"], float))
@@ -678,7 +707,9 @@ def test_c_enable_hold_reinit_and_bad_limits(load_step, tmp_path):
     u1, f1 = _drive(lib, dict(seq_nan, k_change=k, which=3))
     fresh = {key: (val[k:] if isinstance(val, np.ndarray) else val) for key, val in seq.items()}
     u_fresh, f_fresh = _drive(lib, fresh)
-    assert f1[k - 1] == 1 and not f1[k:].any() and not f_fresh.any()
+    assert f1[k - 1] == 1
+    assert not f1[k:].any()
+    assert not f_fresh.any()
     np.testing.assert_array_equal(u1[k:], u_fresh)
 
 
@@ -737,18 +768,22 @@ def test_c_parameters_computed_from_physical_values(plant, tmp_path):
     pos = PositionLoop(kv=60.0, ki=50.0, kvff=1.0, kaff=0.8, measured="screw_position", rate=3)
     law = drive_law(SPEED_PID, plant, filters=filters, position=pos)
     rc, worst, bad = _probe(law, law, tmp_path / "same")
-    assert rc == 0 and worst < 1e-13 and bad < 0
+    assert rc == 0
+    assert worst < 1e-13
+    assert bad < 0
     new = (LoopFilter(Notch(900.0, 300.0, -20.0), "torque_command"), filters[1])
     target = drive_law(PID(0.1, 14.7, kd=2e-5, tf=5e-4), plant, filters=new, position=pos)
     spec = target.torque_filter_specs[0]
     change = "ph.kp = 0.1;\n" + "\n".join(f"    ph.tf[0].num[{k}] = {spec.num[k]!r}; ph.tf[0].den[{k}] = {spec.den[k]!r};"
                                           for k in range(3)) + f"\n    ph.tf[0].prewarp_hz = {spec.prewarp_hz!r};"
     rc, worst, _ = _probe(law, target, tmp_path / "retuned", change)
-    assert rc == 0 and worst < 1e-13
+    assert rc == 0
+    assert worst < 1e-13
     rc, worst, _ = _probe(law, law, tmp_path / "moved", change)
     assert worst > 1e-3  # the probe sees the change
     rc, worst, _ = _probe(law, law, tmp_path / "float", real="float")
-    assert rc == 0 and worst < 1e-5
+    assert rc == 0
+    assert worst < 1e-5
 
 
 # --- export_code and bad input -------------------------------------------------------------------
@@ -756,7 +791,8 @@ def test_c_parameters_computed_from_physical_values(plant, tmp_path):
 def test_export_code_writes_by_suffix(plant, tmp_path):
     files = export_code(SPEED_PID, plant, tmp_path / "drive.c", filters=FILTERS)
     assert [f.name for f in files] == ["drive.c", "drive.h"]
-    assert '#include "drive.h"' in files[0].read_text() and "drive_step(" in files[1].read_text()
+    assert '#include "drive.h"' in files[0].read_text()
+    assert "drive_step(" in files[1].read_text()
     files = export_code(SPEED_PID, plant, tmp_path / "Speed Loop.st", real="float")
     assert files[0].read_text().startswith("FUNCTION_BLOCK prsa_ctrl")
 
@@ -766,9 +802,11 @@ def test_export_code_of_a_cascade_design(plant, tmp_path):
 
     d = CascadeDesign("joint", MOVE_PID, PositionLoop(kv=102.7, kvff=1.0, kaff=1.0), {}, {}, {}, 0.0)
     law = drive_law(d, plant)
-    assert law.position is not None and law.position.kv == 102.7
+    assert law.position is not None
+    assert law.position.kv == 102.7
     text = export_code(d, plant, tmp_path / "cascade.st")[0].read_text()
-    assert "PosRef" in text and "P_KAFF_J" in text
+    assert "PosRef" in text
+    assert "P_KAFF_J" in text
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -817,7 +855,8 @@ def test_setpoint_weight_against_the_prefiltered_run(plant, b, tmp_path):
     r = run(plant, setpoint=PiecewiseLinear(tuple(zip(t.tolist(), rf.tolist()))), load=500.0, duration=n * ts,
             controller=pid, fidelity="rigid", discrete=True)
     inp = {k: (v[:n] if isinstance(v, np.ndarray) else v) for k, v in replay_inputs(r, plant).items()}
-    assert np.max(np.abs(inp["speed_ref_rad_s"] - rf)) < 1e-9 and np.max(np.abs(rf - r_raw)) > 1.0
+    assert np.max(np.abs(inp["speed_ref_rad_s"] - rf)) < 1e-9
+    assert np.max(np.abs(rf - r_raw)) > 1.0
     inp["speed_ref_rad_s"] = r_raw
     inp["init"]["integral0_n_m"] -= pid.kp * (b - 1) * r_raw[0]
     law = drive_law(pid, plant, setpoint_weight=b)
@@ -841,12 +880,14 @@ def test_cli_export_c_writes_source_and_header(tmp_path, capsys, shared_tuning):
 
     out = tmp_path / "speed.c"
     assert main(["--quiet", "--export", str(out), "--json", str(tmp_path / "r.json")]) == 0
-    assert out.exists() and (tmp_path / "speed.h").exists()
+    assert out.exists()
+    assert (tmp_path / "speed.h").exists()
     import json
 
     best = json.loads((tmp_path / "r.json").read_text())["best"]
     kp = float(re.search(r"p->kp = \(speed_real\)([0-9.E+-]+);", out.read_text()).group(1))
-    assert kp == best["gains"]["kp"] and best["gains"]["b"] == 1.0
+    assert kp == best["gains"]["kp"]
+    assert best["gains"]["b"] == 1.0
     if CC is not None:
         res = subprocess.run([CC, "-std=c99", *STRICT, "-c", str(out), "-o",
                               str(tmp_path / "speed.o")], capture_output=True, text=True, timeout=120)
@@ -859,7 +900,8 @@ def test_cli_export_st_float(tmp_path, matiec, shared_tuning):
     out = tmp_path / "Speed.st"
     assert main(["--quiet", "--export", str(out), "--export-real", "float"]) == 0
     text = out.read_text()
-    assert text.startswith("FUNCTION_BLOCK Speed") and "LREAL" not in text
+    assert text.startswith("FUNCTION_BLOCK Speed")
+    assert "LREAL" not in text
     iec2c(matiec, text, tmp_path / "iec")
 
 
@@ -868,7 +910,8 @@ def test_cli_export_bad_suffix_and_header_onto_an_input(tmp_path, capsys):
 
     assert main(["--export", str(tmp_path / "x.cpp")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "expected a path ending in .json, .toml, .c, .st or .xml" in err[0]
+    assert len(err) == 1
+    assert "expected a path ending in .json, .toml, .c, .st or .xml" in err[0]
     plant = tmp_path / "mine.h"  # a plant file whose name the header of --export mine.c would take
     from prsa_ctrl.plant.plantfile import plant_file_path
 
@@ -876,8 +919,11 @@ def test_cli_export_bad_suffix_and_header_onto_an_input(tmp_path, capsys):
     before = plant.read_text()
     assert main(["--plant", str(plant), "--export", str(tmp_path / "mine.c")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "mine.h" in err[0] and "--export (header)" in err[0]
-    assert plant.read_text() == before and not (tmp_path / "mine.c").exists()
+    assert len(err) == 1
+    assert "mine.h" in err[0]
+    assert "--export (header)" in err[0]
+    assert plant.read_text() == before
+    assert not (tmp_path / "mine.c").exists()
 
 
 def test_cli_move_scene_export_st(tmp_path, matiec, shared_tuning):
@@ -934,21 +980,25 @@ def test_hostile_plant_names_stay_in_comments(plant, hostile, tmp_path):
     for real in ("double", "float"):
         hb, cb = c_code(bad, name="ax", real=real)
         hg, cg = c_code(good, name="ax", real=real)
-        assert _strip_c_comments(hb) == _strip_c_comments(hg) and _strip_c_comments(cb) == _strip_c_comments(cg)
+        assert _strip_c_comments(hb) == _strip_c_comments(hg)
+        assert _strip_c_comments(cb) == _strip_c_comments(cg)
         for text in (hb, cb):
             assert all(ord(ch) < 128 and (ch >= " " or ch == "\n") for ch in text)
             assert text.count("/*") == text.count("*/")  # no comment opened or closed inside one
-            assert "asm" not in _strip_c_comments(text) and "??/" not in text
+            assert "asm" not in _strip_c_comments(text)
+            assert "??/" not in text
         sb, sg = st_code(bad, name="Ax", real=real), st_code(good, name="Ax", real=real)
         assert _strip_st_comments(sb) == _strip_st_comments(sg)
-        assert sb.count("(*") == sb.count("*)") and all(ord(ch) < 128 for ch in sb)
+        assert sb.count("(*") == sb.count("*)")
+        assert all(ord(ch) < 128 for ch in sb)
     if CC is not None:
         src = _write_c(bad, tmp_path, "ax", "double")
         res = subprocess.run([CC, "-std=c99", *STRICT, "-c", str(src), "-o", str(tmp_path / "ax.o")],
                              capture_output=True, text=True, timeout=120)
         assert res.returncode == 0, res.stderr
         syms = subprocess.run(["nm", str(tmp_path / "ax.o")], capture_output=True, text=True).stdout
-        assert "asm" not in syms and "id" not in re.findall(r"\b\w+\b", syms)
+        assert "asm" not in syms
+        assert "id" not in re.findall(r"\b\w+\b", syms)
 
 
 def test_hostile_plant_name_st_compiles(plant, matiec, tmp_path):
@@ -962,8 +1012,10 @@ def test_inert_text_and_code_names():
     from prsa_ctrl.io.codetext import inert_text, is_code_name
 
     assert inert_text("Axis 3 */ x /* y") == "Axis 3 \\u{2a}\\u{2f} x \\u{2f}\\u{2a} y"
-    assert inert_text("a--b") == "a-\\u{2d}b" and inert_text("\U0001F600") == "\\u{1f600}"
-    assert inert_text("x" * 300).endswith("...") and len(inert_text("x" * 300)) == 203
+    assert inert_text("a--b") == "a-\\u{2d}b"
+    assert inert_text("\U0001F600") == "\\u{1f600}"
+    assert inert_text("x" * 300).endswith("...")
+    assert len(inert_text("x" * 300)) == 203
     assert [is_code_name(n) for n in ("Axis", "PID", "integral", "a__b", "_x", "x_", "Ax_1")] == [
         True, False, False, False, False, False, True]
 
@@ -1029,7 +1081,8 @@ def test_c_states_never_subnormal_at_rest(plant, real, kd, tmp_path):
                           "-lm"], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     bad, zero = map(int, subprocess.run([str(exe)], capture_output=True, text=True, timeout=60).stdout.split())
-    assert bad == 0 and zero == 1
+    assert bad == 0
+    assert zero == 1
     dt = np.float64 if real == "double" else np.float32
     a, w, seen = dt(law.speed_filter_a), dt(1.0), 0
     for _ in range(4000):  # the unflushed recursion: w = a w (count constant)
@@ -1068,7 +1121,8 @@ def test_reference_law_with_friction(reversal, paper_plant):
 def test_c_with_friction_reproduces_the_simulator(reversal, tmp_path):
     law, inp, _ = reversal
     h, c = c_code(law, name="fr")
-    assert "#include <math.h>" in c and "fr_friction_(p, vel_ref / p->lead)" in c
+    assert "#include <math.h>" in c
+    assert "fr_friction_(p, vel_ref / p->lead)" in c
     u = _run_c(_build(law, tmp_path, "double"), law, inp)
     assert max_relative_difference(u, inp["torque_command"]) <= REL
 
@@ -1084,4 +1138,5 @@ def test_structured_text_with_friction_reproduces_the_simulator(reversal, matiec
 def test_code_without_friction_has_no_exp(paper_plant):
     law = drive_law(REVERSAL_PID, paper_plant, position=PositionLoop(kv=102.7))
     h, c = c_code(law)
-    assert "friction" not in c and "EXP" not in st_code(law)
+    assert "friction" not in c
+    assert "EXP" not in st_code(law)

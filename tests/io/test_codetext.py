@@ -89,7 +89,8 @@ def test_c_and_st_commit_the_same_moves_in_the_same_order(variant, paper_plant):
     assert c_moves == st_moves
     ns, nt = len(law.speed_biquads), len(law.torque_biquads)
     table = state_moves(ns, nt, None if law.position is None else law.position.delay, law.delay_samples)
-    assert len(table) == len(c_moves) and [x == ENABLE_GATE for x in table] == [x == "GATE" for x in c_moves]
+    assert len(table) == len(c_moves)
+    assert [x == ENABLE_GATE for x in table] == [x == "GATE" for x in c_moves]
     assert any(isinstance(line, list) and len(line) == 4 for line in c_moves) == bool(ns + nt)
 
 
@@ -97,7 +98,8 @@ def test_the_table_is_what_each_law_needs():
     """Filters shift four slots each, the position loop moves its four states and a pair per delay
     sample, the torque delay decides what the output takes."""
     plain = state_moves(0, 0, None, 1)
-    assert plain[0] == (("S.w_filt", "T.wf"),) and plain.count(ENABLE_GATE) == 1
+    assert plain[0] == (("S.w_filt", "T.wf"),)
+    assert plain.count(ENABLE_GATE) == 1
     assert plain[-2] == (("S.u_out", "S.u_pending"),)
     assert state_moves(0, 0, None, 0)[-2] == (("S.u_out", "T.uf"),)
     full = state_moves(2, 3, 2, 1)

@@ -163,8 +163,10 @@ def test_templates_state_their_sources():
     assert {f"{b}:0{s}" for b in ("0x3163", "0x3183", "0x31A3", "0x31C3") for s in range(1, 6)} <= set(ax)
     assert [k for k, p in ax.items() if not p["confirmed"]] == ["0x60B2"] + [f"{b}:03" for b in (
         "0x3163", "0x3183", "0x31A3", "0x31C3")]  # issue 36: the rest cited on the vendor's object pages
-    assert "AMP8000" in ax["0x60B2"]["confirmed_for"] and "AX8000 assumed identical" in ax["0x60B2"]["confirmed_for"]
-    assert ax["0x60B2"]["datatype"] == "INT16" and ax["0x6072"]["datatype"] == "UINT16"
+    assert "AMP8000" in ax["0x60B2"]["confirmed_for"]
+    assert "AX8000 assumed identical" in ax["0x60B2"]["confirmed_for"]
+    assert ax["0x60B2"]["datatype"] == "INT16"
+    assert ax["0x6072"]["datatype"] == "UINT16"
     # SINAMICS S210: the five entries read in the S210 parameter list (firmware V5.1; p1441/p1460/p1462
     # also in the RT V6.1 list): unit, data type and range as the list gives them; S120 not confirmed
     si = idx["siemens-sinamics"]
@@ -176,13 +178,16 @@ def test_templates_state_their_sources():
         "p1441": ("ms", "FloatingPoint32", 0.0, 50.0), "p1520": ("N m", "FloatingPoint32", -1e6, 2e7),
         "p1521": ("N m", "FloatingPoint32", -2e7, 1e6)}
     tpl = load_template("siemens-sinamics")["template"]
-    assert "NOT confirmed" in tpl["s120_note"] and "CO: Torque limit upper/motoring" in tpl["s120_note"]
+    assert "NOT confirmed" in tpl["s120_note"]
+    assert "CO: Torque limit upper/motoring" in tpl["s120_note"]
     assert tpl["speed_pi_form_confirmed"] is False  # the list gives no formula
     cia = idx["cia402"]
     assert set(cia) == {"0x6072", "0x60B2", "0x60F9:01", "0x60F9:02", "0x60FB:01"}
     # per mille of 0x6076: read in Beckhoff's implementation only, so not claimed for the profile
-    assert not cia["0x6072"]["confirmed"] and "AX8000" in cia["0x6072"]["confirmed_for"]
-    assert not cia["0x60B2"]["confirmed"] and "AMP8000" in cia["0x60B2"]["confirmed_for"]
+    assert not cia["0x6072"]["confirmed"]
+    assert "AX8000" in cia["0x6072"]["confirmed_for"]
+    assert not cia["0x60B2"]["confirmed"]
+    assert "AMP8000" in cia["0x60B2"]["confirmed_for"]
     assert all(cia[k]["manufacturer_specific"] and not cia[k]["confirmed"] for k in ("0x60F9:01", "0x60F9:02",
                                                                                       "0x60FB:01"))
     assert "0x30A2" in cia["0x60F9:01"]["alternative"]
@@ -202,7 +207,8 @@ def test_a_confirmed_claim_without_a_citation_is_caught(plant):
              "confirmed": False, "source": "NOT confirmed"}]}
 
     bare = tpl()
-    assert len(citation_problems(bare)) == 1 and citation_problems(bare)[0].startswith("'p1': confirmed = true")
+    assert len(citation_problems(bare)) == 1
+    assert citation_problems(bare)[0].startswith("'p1': confirmed = true")
     assert "p1, p2" in fill_template(bare, SPEED, plant)["export"]["not_confirmed"]
     assert citation_problems(tpl(document="the list manual")) != []  # no edition or version
     for ok in (tpl(document="List Manual, edition 06/2020"), tpl(source="see https://example.invalid/p1"),
@@ -236,7 +242,8 @@ def test_inconsistent_duplicate_is_refused(plant):
 def test_speed_only_design_leaves_position_parameters_out(plant):
     out = fill_template("beckhoff-ax8000", SPEED, plant)
     kv = next(p for p in out["parameter"] if p["index"] == "0x30C0:01")
-    assert kv["applies"] is False and "value" not in kv
+    assert kv["applies"] is False
+    assert "value" not in kv
 
 
 # --- motor data and drive units --------------------------------------------------------------
@@ -273,13 +280,15 @@ def test_drive_units_numbers():
     s, p = d["speed"], d["position"]
     assert s["kp_a_per_rad_s"] == SPEED.kp / 0.9
     assert s["kp_a_per_rpm"] == pytest.approx(SPEED.kp / 0.9 * 2 * math.pi / 60, rel=1e-15)
-    assert s["tn_s"] == SPEED.kp / SPEED.ki and s["tn_ms"] == pytest.approx(1e3 * SPEED.kp / SPEED.ki, rel=1e-15)
+    assert s["tn_s"] == SPEED.kp / SPEED.ki
+    assert s["tn_ms"] == pytest.approx(1e3 * SPEED.kp / SPEED.ki, rel=1e-15)
     assert s["kp_rated_torque_per_rad_s"] == SPEED.kp / 3.0
     assert s["kp_pu"] == pytest.approx(SPEED.kp * 3000 * 2 * math.pi / 60 / 3.0, rel=1e-15)
     assert s["kp_a_per_electrical_rad_s"] == pytest.approx(SPEED.kp / 0.9 / 5, rel=1e-15)
     assert p["kv_m_min_per_mm"] == pytest.approx(0.06 * 102.7, rel=1e-15)
     assert p["current_per_acceleration_a_s2_per_rad"] == pytest.approx(2.0e-4 / 0.9, rel=1e-15)
-    assert "parallel" in s["convention"] and "Tn = kp/ki" in s["convention"]
+    assert "parallel" in s["convention"]
+    assert "Tn = kp/ki" in s["convention"]
     assert "kp_a_per_rad_s" not in drive_units(SPEED)["speed"]
 
 
@@ -308,8 +317,10 @@ def test_cli_export_template_and_motor(tmp_path, capsys, shared_tuning):
     gains = json.loads((tmp_path / "r.json").read_text())["best"]["gains"]
     d = tomllib.loads(out.read_text())
     vals = read_parameter_set(d)
-    assert vals["speed_kp"] == gains["kp"] and vals["speed_tn"] == pytest.approx(gains["kp"] / gains["ki"], rel=1e-15)
-    assert d["template"]["name"] == "beckhoff-ax8000" and d["motor"]["torque_constant_n_m_per_a"] == 0.9
+    assert vals["speed_kp"] == gains["kp"]
+    assert vals["speed_tn"] == pytest.approx(gains["kp"] / gains["ki"], rel=1e-15)
+    assert d["template"]["name"] == "beckhoff-ax8000"
+    assert d["motor"]["torque_constant_n_m_per_a"] == 0.9
     units = tmp_path / "units.json"
     assert main(["--quiet", "--export", str(units), "--motor", "torque_constant_n_m_per_a=0.9"]) == 0
     du = json.loads(units.read_text())["drive_units"]["speed"]
@@ -328,7 +339,8 @@ def test_cli_bad_template_or_motor_one_line(argv, match, tmp_path, capsys, monke
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and match in err[0]
+    assert len(err) == 1
+    assert match in err[0]
     assert not list(tmp_path.iterdir())
 
 
@@ -354,7 +366,9 @@ def test_motor_values_outside_plausible_ranges_are_named_as_typed(text, typed, e
     with pytest.raises(ValueError) as info:
         parse_motor(text)
     msg = str(info.value)
-    assert msg.startswith(f"motor {text!r}: ") and typed in msg and expected in msg, msg
+    assert msg.startswith(f"motor {text!r}: "), msg
+    assert typed in msg, msg
+    assert expected in msg, msg
 
 
 def test_motor_bounds_are_the_torque_constant_through_each_back_emf_convention():
@@ -400,7 +414,9 @@ def test_prsa_tune_refuses_implausible_motor_before_tuning(tmp_path, capsys):
         capsys.readouterr()
         assert main(["--motor", text, "--export", str(out)]) == 2
         err = capsys.readouterr().err
-        assert err.startswith(f"prsa-tune: error: --motor {text!r}: ") and what in err and err.count("\n") == 1, err
+        assert err.startswith(f"prsa-tune: error: --motor {text!r}: "), err
+        assert what in err, err
+        assert err.count("\n") == 1, err
         assert err.count(text) == 1  # named once
     assert main(["--motor", "torque_constant_n_m_per_a=0.9,rated_current_a=4", "--rated-torque", "30",
                  "--export", str(out)]) == 2
@@ -421,8 +437,10 @@ def test_hostile_text_in_a_template_and_plant_round_trips(plant, tmp_path):
                    encoding="utf-8")
     filled = fill_template(tpl, PID(0.085, 14.7), plant.with_params({}, name=nasty))
     back = tomllib.loads(dumps_parameter_set(filled))
-    assert back["template"]["name"] == nasty and back["export"]["plant"] == nasty
-    assert back["parameter"][0]["source"] == nasty and back["parameter"][0]["index"] == nasty
+    assert back["template"]["name"] == nasty
+    assert back["export"]["plant"] == nasty
+    assert back["parameter"][0]["source"] == nasty
+    assert back["parameter"][0]["index"] == nasty
 
 
 def test_cli_hostile_plant_name_gives_a_parseable_toml(tmp_path):
@@ -468,17 +486,22 @@ def test_ax8000_filters_limits_and_feedforward(plant):
     assert v["0x3163:01"]["value"] == pytest.approx(1200.0, rel=1e-12)
     assert v["0x3163:02"]["value"] == pytest.approx(300.0 / (2 * 1200.0), rel=1e-12)  # denominator: width/(2 f0)
     assert v["0x3163:04"]["value"] == pytest.approx(0.1 * 300.0 / (2 * 1200.0), rel=1e-12)  # numerator: -20 dB
-    assert v["0x3183:01"]["value"] == pytest.approx(1500.0, rel=1e-12) and v["0x3183:02"]["value"] == pytest.approx(0.7)
-    assert not v["0x3183:03"]["applies"] and not v["0x31A3:01"]["applies"]
+    assert v["0x3183:01"]["value"] == pytest.approx(1500.0, rel=1e-12)
+    assert v["0x3183:02"]["value"] == pytest.approx(0.7)
+    assert not v["0x3183:03"]["applies"]
+    assert not v["0x31A3:01"]["applies"]
     lim = v["0x6072"]
-    assert lim["value"] == 2308 and lim["rounding"]["exact_value"] == pytest.approx(3000.0 / 1.3, rel=1e-14)
+    assert lim["value"] == 2308
+    assert lim["rounding"]["exact_value"] == pytest.approx(3000.0 / 1.3, rel=1e-14)
     assert lim["rounding"]["error"] == pytest.approx(2308 - 3000.0 / 1.3, rel=1e-12)
     assert lim["rounding"]["error_si"] == pytest.approx((2308 - 3000.0 / 1.3) * 1.3 / 1000.0, rel=1e-12)
-    assert v["0x60B2"]["value"] == 9 and isinstance(v["0x60B2"]["value"], int)  # 0.0123 N m = 9.46 per mille
+    assert v["0x60B2"]["value"] == 9
+    assert isinstance(v["0x60B2"]["value"], int)  # 0.0123 N m = 9.46 per mille
     back = tomllib.loads(dumps_parameter_set(out))
     assert {p["index"]: p.get("value") for p in back["parameter"]}["0x6072"] == 2308
     bare = {p["index"]: p for p in fill_template("beckhoff-ax8000", SPEED, plant)["parameter"]}
-    assert not bare["0x6072"]["applies"] and "rated torque" in bare["0x6072"]["missing"]
+    assert not bare["0x6072"]["applies"]
+    assert "rated torque" in bare["0x6072"]["missing"]
     # 3 N m over a rated 0.01 N m (plausible, above the motor check's 1e-4 N m floor) is 300000 per mille > 65535
     with pytest.raises(ValueError, match=r"0x6072 .* expected a value that rounds into \[0, 65535\]"):
         fill_template("beckhoff-ax8000", SPEED, plant, MotorData(None, rated_torque_n_m=1e-2))
@@ -511,7 +534,8 @@ def test_integer_typed_gains_report_rounding_and_the_margin_change(plant):
         fill_template({**tpl, "parameter": tpl["parameter"][2:]}, PID(1e6, 14.7), plant, MotorData(kt))
     out = fill_template({**tpl, "parameter": tpl["parameter"][:2]}, pid, plant, MotorData(kt))
     kp_p, tn_p = out["parameter"]
-    assert kp_p["value"] == round(0.085 / kt * 1e4) == 2297 and tn_p["value"] == round(0.085 / 14.7 * 1e5) == 578
+    assert kp_p["value"] == round(0.085 / kt * 1e4) == 2297
+    assert tn_p["value"] == round(0.085 / 14.7 * 1e5) == 578
     assert kp_p["rounding"]["error"] == pytest.approx(2297 - 0.085 / kt * 1e4, rel=1e-12)
     kp_r, tn_r = 2297 / 1e4 * kt, 578 / 1e5
     lp = step_loops(plant, setpoint_rad_s=10.0, initial_load_n=0.0, final_loads_n=[1.0], fidelity="rigid",
@@ -520,11 +544,13 @@ def test_integer_typed_gains_report_rounding_and_the_margin_change(plant):
     rm = out["rounding_margins"]
     assert rm["rounded_gains"]["kp_n_m_s_per_rad"] == pytest.approx(kp_r, rel=1e-14)
     assert rm["change"]["pm_deg"] == pytest.approx(m1.pm_deg - m0.pm_deg, abs=1e-9)
-    assert rm["change"]["ms"] == pytest.approx(m1.ms - m0.ms, abs=1e-12) and rm["change"]["ms"] != 0.0
+    assert rm["change"]["ms"] == pytest.approx(m1.ms - m0.ms, abs=1e-12)
+    assert rm["change"]["ms"] != 0.0
     back = tomllib.loads(dumps_parameter_set(out))
     assert read_parameter_set(back, MotorData(kt))["speed_kp"] == pytest.approx(kp_r, rel=1e-14)
     one = fill_template({**tpl, "parameter": tpl["parameter"][2:]}, PID(57.608, 14.7), plant)
-    assert one["parameter"][0]["value"] == 58 and one["parameter"][0]["rounding"]["error"] == pytest.approx(0.392)
+    assert one["parameter"][0]["value"] == 58
+    assert one["parameter"][0]["rounding"]["error"] == pytest.approx(0.392)
     assert "rounding_margins" in one
 
 
@@ -590,7 +616,8 @@ def _check(name, tmp_path, paper_plant, recorded, has_position):
     if has_position:
         assert err["move"] <= REL
     err = _file_round_trip(tmp_path, name + "-amps", _current_copy(name), paper_plant, recorded, TEST_MOTOR)
-    assert err["speed"] <= REL and err.get("move", 0.0) <= REL
+    assert err["speed"] <= REL
+    assert err.get("move", 0.0) <= REL
 
 
 def test_round_trip_generic(tmp_path, paper_plant, recorded):
@@ -616,7 +643,8 @@ def test_per_unit_copy_round_trips(tmp_path, paper_plant, recorded):
         if p["quantity"] == "speed_kp":
             p["unit"] = "% rated torque/rpm"
     err = _file_round_trip(tmp_path, "pu", doc, paper_plant, recorded, MotorData(None, rated_torque_n_m=3.0))
-    assert err["speed"] <= REL and err["move"] <= REL
+    assert err["speed"] <= REL
+    assert err["move"] <= REL
 
 
 def test_round_trip_is_not_vacuous(tmp_path, paper_plant, recorded):
@@ -685,7 +713,8 @@ def test_current_based_and_per_unit_gains_by_hand():
     assert s["kp_pu"] == pytest.approx(0.085 * 314.159265358979 / 3.0, rel=1e-13)
     assert s["kp_a_per_electrical_rad_s"] == pytest.approx(0.0188888888889, rel=1e-11)
     assert s["tn_ms"] == pytest.approx(5.78231292517, rel=1e-11)                   # 1000 x 0.085 / 14.7
-    assert "parallel" in s["convention"] and "series" in s["convention"]
+    assert "parallel" in s["convention"]
+    assert "series" in s["convention"]
 
 
 def test_rated_torque_alone_gives_per_unit_gains_only():
@@ -743,7 +772,8 @@ def test_cli_rated_torque_and_peak_back_emf(tmp_path, shared_tuning):
     out2 = tmp_path / "u2.toml"
     assert main(["--quiet", "--export", str(out2), "--rated-torque", "3"]) == 0
     sp = tomllib.loads(out2.read_text())["drive_units"]["speed"]
-    assert "kp_percent_rated_torque_per_rpm" in sp and "kp_a_per_rpm" not in sp
+    assert "kp_percent_rated_torque_per_rpm" in sp
+    assert "kp_a_per_rpm" not in sp
 
 
 @pytest.mark.parametrize("argv, match", [
@@ -760,7 +790,8 @@ def test_cli_bad_drive_unit_flags_one_line(argv, match, tmp_path, capsys, monkey
     monkeypatch.chdir(tmp_path)
     assert main(argv + ["--export", "x.json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and match in err[0], err
+    assert len(err) == 1, err
+    assert match in err[0], err
     assert not list(tmp_path.iterdir())
 
 

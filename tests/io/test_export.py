@@ -73,7 +73,8 @@ def test_setpoint_weight_round_trip_against_the_prefiltered_run(b):
     r = run(PLANT, setpoint=PiecewiseLinear(tuple(zip(t.tolist(), rf.tolist()))), load=500.0,
             duration=n * TS, controller=pid, fidelity="rigid", discrete=True)
     u_sim = r.output("torque_command")[:n]
-    assert np.max(np.abs(u_sim)) < PLANT.torque_limit and np.ptp(u_sim) > 0.1  # moved by the step, unsaturated
+    assert np.max(np.abs(u_sim)) < PLANT.torque_limit
+    assert np.ptp(u_sim) > 0.1  # moved by the step, unsaturated
     assert np.allclose(r.inputs[0][: u_sim.size], rf[: u_sim.size], rtol=0, atol=1e-9)
     for fmt in ("toml", "json"):
         d = export_controller(pid, PLANT, fmt=fmt, setpoint_weight=b)
@@ -195,7 +196,8 @@ def test_vendor_and_per_unit_forms():
     assert v["tn_s"] == pytest.approx(0.085 / 14.7, rel=1e-15)
     assert v["tv_s"] == pytest.approx(1e-5 / 0.085, rel=1e-15)
     assert v["kp_n_m_per_rpm"] == pytest.approx(0.085 * 2 * math.pi / 60, rel=1e-15)
-    assert v["kv_per_s"] is None and "position loop" in v["note"]
+    assert v["kv_per_s"] is None
+    assert "position loop" in v["note"]
     w_r = 3000.0 * 2 * math.pi / 60
     assert pu["kp_pu"] == pytest.approx(0.085 * w_r / 3.0, rel=1e-15)
     assert pu["ki_pu_per_s"] == pytest.approx(14.7 * w_r / 3.0, rel=1e-15)
@@ -203,15 +205,19 @@ def test_vendor_and_per_unit_forms():
     assert law["beta"] == math.exp(-TS / 5e-4)
     assert law["anti_windup_gain_per_s"] == pytest.approx(14.7 / 0.085, rel=1e-15)
     assert law["computation_delay_samples"] == 1
-    assert d["sample_time_s"] == TS and d["plant"] == PLANT.name and d["prsa_ctrl_version"]
+    assert d["sample_time_s"] == TS
+    assert d["plant"] == PLANT.name
+    assert d["prsa_ctrl_version"]
     m = d["speed_measurement"]
     a = math.exp(-TS / PLANT.speed_filter_s)
-    assert m["a"] == a and m["biquad"]["a1"] == pytest.approx(-a, rel=1e-15)
+    assert m["a"] == a
+    assert m["biquad"]["a1"] == pytest.approx(-a, rel=1e-15)
     assert m["biquad"]["b0"] == pytest.approx(1 - a, rel=1e-15)
     # the P controller has no reset time: null in JSON, absent in TOML (no null there)
     assert export_controller(PID(0.085), PLANT, fmt="json")["speed_controller"]["vendor"]["tn_s"] is None
     t = export_controller(PID(0.085), PLANT, fmt="toml")["speed_controller"]["vendor"]
-    assert "tn_s" not in t and "kv_per_s" not in t
+    assert "tn_s" not in t
+    assert "kv_per_s" not in t
 
 
 def test_text_round_trips_and_filters():
@@ -280,9 +286,12 @@ def test_hostile_plant_name_round_trips_in_toml_and_json(name):
                                  plant, fmt=fmt)):
             text = dumps(d, fmt)
             back = tomllib.loads(text) if fmt == "toml" else json.loads(text)
-            assert back == d and back["plant"] == name
+            assert back == d
+            assert back["plant"] == name
             if fmt == "toml":  # ASCII only, and one line per scalar: nothing of the name begins a line
-                assert all(ord(c) < 128 for c in text) and "\nx = 1" not in text and "\n[table]" not in text
+                assert all(ord(c) < 128 for c in text)
+                assert "\nx = 1" not in text
+                assert "\n[table]" not in text
 
 
 def test_toml_strings_refuse_lone_surrogates_and_keep_non_ascii_when_asked():
@@ -321,10 +330,13 @@ def test_every_export_states_its_assumptions(tmp_path):
               tomllib.loads(dumps_parameter_set(fill_template("generic", PID(0.085, 14.7), plant)))]
     for d in tables:
         a = d["assumptions"]
-        assert a["loop_period_s"] == TS and a["current_loop_bandwidth_hz"] == 2345.0
+        assert a["loop_period_s"] == TS
+        assert a["current_loop_bandwidth_hz"] == 2345.0
         assert a["reflected_inertia_kg_m2"] == plant.reflected_inertia_kg_m2
-        assert a["command_delay_samples"] == 3 and a["command_delay_s"] == pytest.approx(3 * TS, rel=1e-15)
-        assert a["encoder_counts_per_rev"] == plant.encoder_counts and "re-export" in a["if_rates_differ"]
+        assert a["command_delay_samples"] == 3
+        assert a["command_delay_s"] == pytest.approx(3 * TS, rel=1e-15)
+        assert a["encoder_counts_per_rev"] == plant.encoder_counts
+        assert "re-export" in a["if_rates_differ"]
         assert a["sources"]["drive.current_loop_bandwidth_hz"] == plant.sources["drive.current_loop_bandwidth_hz"]
     assert [f.split(":")[-1].strip() for f in tables[0]["assumptions"]["filters"]] == [
         "Tustin prewarped at 1200 Hz", "zero-order hold (step invariant)"]

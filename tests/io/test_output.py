@@ -26,7 +26,8 @@ def test_symlink_is_written_through_and_stays_a_link(tmp_path):
     link = tmp_path / "link.json"
     link.symlink_to(target)
     write_text(link, "new\n")
-    assert link.is_symlink() and target.read_text() == "new\n"
+    assert link.is_symlink()
+    assert target.read_text() == "new\n"
     assert _no_temporaries(tmp_path)
 
 
@@ -55,14 +56,16 @@ def test_failed_or_interrupted_write_keeps_old_file_and_leaves_no_temporary(tmp_
 
     with pytest.raises(type(exc)):
         write_file(f, producer)
-    assert f.read_text() == "previous\n" and _no_temporaries(tmp_path)
+    assert f.read_text() == "previous\n"
+    assert _no_temporaries(tmp_path)
     assert output.live_temporaries() == []
 
 
 def test_temporary_has_a_recognisable_name_in_the_target_directory(tmp_path):
     seen = []
     write_file(tmp_path / "r.json", lambda tmp: (seen.append(tmp), tmp.write_text("{}")))
-    assert seen[0].parent == tmp_path and seen[0].name.startswith(".r.json" + output.TEMP_MARK)
+    assert seen[0].parent == tmp_path
+    assert seen[0].name.startswith(".r.json" + output.TEMP_MARK)
 
 
 @pytest.mark.parametrize(
@@ -122,12 +125,14 @@ def test_any_path_text_is_written_or_refused_with_one_line(tmp_path_factory, nam
         try:
             p = write_text(name, "v")
         except OutputError as exc:
-            assert "\n" not in str(exc) and repr(name) in str(exc)
+            assert "\n" not in str(exc)
+            assert repr(name) in str(exc)
         else:
             assert p.read_text() == "v"
     finally:
         os.chdir(cwd)
-    assert keep.read_text() == "k" and _no_temporaries(d)
+    assert keep.read_text() == "k"
+    assert _no_temporaries(d)
 
 
 # --- through the command line: refused before any expensive work ----------------------------------
@@ -145,7 +150,9 @@ def no_tuning(monkeypatch):
 def _one_error_line(capsys, prog="prsa-tune"):
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: ") and "Traceback" not in err, err
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"{prog}: error: "), err
+    assert "Traceback" not in err, err
     return lines[0]
 
 
@@ -155,7 +162,8 @@ def test_json_onto_the_plant_file_is_refused_and_the_plant_kept(tmp_path, capsys
     before = plant.read_bytes()
     assert main(["--plant", str(plant), "--json", str(plant)]) == 2
     assert "input file of this run" in _one_error_line(capsys)
-    assert plant.read_bytes() == before and not no_tuning
+    assert plant.read_bytes() == before
+    assert not no_tuning
 
 
 @pytest.mark.parametrize("flag, make", [
@@ -170,7 +178,8 @@ def test_bad_output_paths_exit_2_before_the_work(tmp_path, capsys, no_tuning, fl
     (tmp_path / "file").write_text("x")
     assert main([flag, make(tmp_path)]) == 2
     _one_error_line(capsys)
-    assert not no_tuning and (tmp_path / "file").read_text() == "x"
+    assert not no_tuning
+    assert (tmp_path / "file").read_text() == "x"
 
 
 def test_prsa_plot_leaves_no_directory_behind_on_failure(tmp_path, capsys, monkeypatch):

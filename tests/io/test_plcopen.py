@@ -46,14 +46,17 @@ def test_structure_as_tc6(paper_plant):
     assert root.tag == f"{{{TC6_NAMESPACE}}}project"
     assert root.find("p:fileHeader", NS).get("creationDateTime") == "2026-01-02T03:04:05+00:00"
     pou = root.find("p:types/p:pous/p:pou", NS)
-    assert pou.get("name") == "Axis" and pou.get("pouType") == "functionBlock"
+    assert pou.get("name") == "Axis"
+    assert pou.get("pouType") == "functionBlock"
     names = [v.get("name") for v in pou.findall("p:interface/p:inputVars/p:variable", NS)]
-    assert names[:4] == ["Reset", "Enable", "Hold", "EncCount"] and "P_KP" in names
+    assert names[:4] == ["Reset", "Enable", "Hold", "EncCount"]
+    assert "P_KP" in names
     kp = pou.find("p:interface/p:inputVars/p:variable[@name='P_KP']", NS)
     assert list(kp.find("p:type", NS))[0].tag == f"{{{TC6_NAMESPACE}}}LREAL"
     assert float(kp.find("p:initialValue/p:simpleValue", NS).get("value")) == law.kp
     doc = pou.find("p:documentation/x:p", NS).text
-    assert "current-loop bandwidth" in doc and "if the drive's rates differ" in doc
+    assert "current-loop bandwidth" in doc
+    assert "if the drive's rates differ" in doc
     assert all(ord(c) < 128 for c in text)
     # the ST rebuilt from the XML is the .st export without its comments
     import re
@@ -88,7 +91,8 @@ def test_hostile_plant_name_in_xml(hostile, paper_plant, matiec, tmp_path):
     root = ET.fromstring(text)
     assert len(root.findall("p:types/p:pous/p:pou", NS)) == 1
     doc = root.find("p:types/p:pous/p:pou/p:documentation/x:p", NS).text
-    assert inert_text(hostile) in doc and (hostile == inert_text(hostile) or hostile not in doc)
+    assert inert_text(hostile) in doc
+    assert hostile == inert_text(hostile) or hostile not in doc
     iec2c(matiec, st_from_plcopen(text), tmp_path / "iec")
 
 
@@ -102,7 +106,8 @@ def test_bad_xml_is_refused():
 def test_export_code_and_cli_write_xml(paper_plant, tmp_path, matiec, move_xml_export):
     f = export_code(SPEED_PID, paper_plant, tmp_path / "Speed.xml", real="float")
     assert [p.name for p in f] == ["Speed.xml"]
-    assert "<REAL/>" in f[0].read_text() and "<LREAL/>" not in f[0].read_text()
+    assert "<REAL/>" in f[0].read_text()
+    assert "<LREAL/>" not in f[0].read_text()
     iec2c(matiec, st_from_plcopen(move_xml_export.read_text()), tmp_path / "iec")
 
 

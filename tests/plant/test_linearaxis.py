@@ -49,7 +49,8 @@ def _independent(f_hz, b):
 
 def test_the_compliant_model_of_a_linear_axis_with_a_load_mass_is_the_two_mass_axis():
     p = _axis()
-    assert is_two_mass_axis(p) and not is_two_mass_axis(_axis(0.0))
+    assert is_two_mass_axis(p)
+    assert not is_two_mass_axis(_axis(0.0))
     assert plant_model(p, "compliant").state_names == ("theta_nut", "omega_nut", "delta_screw", "v_screw", "tau_motor")
     assert plant_model(p, "rigid").state_names == ("theta_nut", "omega_nut", "tau_motor")
     assert plant_model(_axis(0.0), "compliant").state_names == ("theta_nut", "omega_nut", "tau_motor")
@@ -76,7 +77,8 @@ def test_the_compliant_model_of_a_linear_axis_with_a_load_mass_is_the_two_mass_a
     zs = eigvals(np.block([[a, b[:, :1]], [cm[None, :], np.zeros((1, 1))]]),
                  np.block([[np.eye(n), np.zeros((n, 1))], [np.zeros((1, n + 1))]]))
     zs = [z for z in zs if np.isfinite(z) and z.imag > 1e-3 * abs(z)]
-    assert len(zs) == 1 and abs(zs[0]) / TWO_PI == pytest.approx(f_anti, rel=1e-9)
+    assert len(zs) == 1
+    assert abs(zs[0]) / TWO_PI == pytest.approx(f_anti, rel=1e-9)
 
 
 def test_the_load_acts_on_the_load_mass_and_the_spring_carries_it():
@@ -88,8 +90,10 @@ def test_the_load_acts_on_the_load_mass_and_the_spring_carries_it():
     tau = 20.0 + 150.0 * v + load
     x = np.array([0.0, v, load / (K_UM * 1e6), v, tau])
     xdot = np.asarray(m.f(x, [tau, load]), float).ravel()
-    assert xdot[0] == pytest.approx(v) and xdot[2] == pytest.approx(0.0, abs=1e-15)
-    assert xdot[1] == pytest.approx(0.0, abs=1e-9) and xdot[3] == pytest.approx(0.0, abs=1e-9)
+    assert xdot[0] == pytest.approx(v)
+    assert xdot[2] == pytest.approx(0.0, abs=1e-15)
+    assert xdot[1] == pytest.approx(0.0, abs=1e-9)
+    assert xdot[3] == pytest.approx(0.0, abs=1e-9)
     # power balance: the stored energy's rate is the motor power less the load's and the dissipation
     xt = np.array([0.0, 0.07, 3e-5, 0.02, 150.0])
     stored, p_motor, p_load, p_diss = (float(z) for z in np.asarray(m.power(xt, [150.0, 30.0]), float).ravel())
@@ -117,6 +121,7 @@ def test_the_simulator_runs_the_two_mass_axis_with_its_energy_balanced():
     kw = dict(setpoint=0.05, load=[(0, 0.0), (0.05, 80.0)], duration=0.2, controller=PID(3000.0, 30000.0), energy=True)
     two, rigid = run(p, fidelity="compliant", **kw), run(p, fidelity="rigid", **kw)
     bal = energy_balance(two)
-    assert abs(bal["relative_residual"]) < 1e-6 and bal["work_load_j"] > 0.1
+    assert abs(bal["relative_residual"]) < 1e-6
+    assert bal["work_load_j"] > 0.1
     w2, w1 = (np.asarray(r.to_response().outputs[0]) for r in (two, rigid))
     assert abs(w2.min() - w1.min()) > 1e-2 * (0.05 - w1.min())

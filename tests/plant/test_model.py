@@ -70,8 +70,10 @@ def test_nut_speed_close_to_compliant_and_energy_closes(runs):
 
 def test_errors_are_seeded_and_zero_mean():
     a, b, c = RollerErrors.draw(PLANT, 1), RollerErrors.draw(PLANT, 1), RollerErrors.draw(PLANT, 2)
-    assert a == b and a != c
-    assert abs(np.mean(a.position_nut)) < 1e-15 and np.std(a.position_nut) > 0
+    assert a == b
+    assert a != c
+    assert abs(np.mean(a.position_nut)) < 1e-15
+    assert np.std(a.position_nut) > 0
     assert plant_model(PLANT, "multi-roller", 1) is plant_model(PLANT, "multi-roller", 1)
 
 
@@ -108,11 +110,13 @@ def _generator_plant(base, r=1.4, w_s=0.25, t0=0.025, eta=0.86, b=1.5e-4, t_off=
 
 
 def test_default_is_no_excess_and_follows_the_no_load_torque(base):
-    assert base.values[KEY] == base.values["friction.no_load_torque_n_m"] and not base.given(KEY)
+    assert base.values[KEY] == base.values["friction.no_load_torque_n_m"]
+    assert not base.given(KEY)
     assert base.sources[KEY].startswith("default: no breakaway excess")
     assert drag_breakaway_excess(base) is None
     moved = base.with_params({"friction.no_load_torque_n_m": 0.05})
-    assert moved.values[KEY] == 0.05 and drag_breakaway_excess(moved) is None
+    assert moved.values[KEY] == 0.05
+    assert drag_breakaway_excess(moved) is None
     # a given value equal to the no-load torque is the same law, to the bit
     same = base.with_params({KEY: base.values["friction.no_load_torque_n_m"]})
     m0, m1 = plant_model(base, "rigid"), plant_model(same, "rigid")
@@ -149,7 +153,8 @@ def test_breakaway_holds_below_and_moves_above(base):
     for frac, moves in ((0.98, False), (1.02, True)):
         tau = a * load + 0.006 + frac * breakaway
         acc = float(m.f([0.0, 0.0, tau], [tau, load])[1])
-        assert (acc > 0) == moves and (moves or acc == 0.0)
+        assert (acc > 0) == moves
+        assert moves or acc == 0.0
 
 
 def test_feedforward_carries_the_drag_excess(base):
@@ -174,14 +179,16 @@ def test_a_fit_of_the_drag_above_a_given_breakaway_raises_it(base):
     warns = []
     params, _, fitted, *_ = finish_fit(given, keys, np.array([0.03]), np.array([[1e-8]]), np.array([0.0]),
                                        np.array([1.0]), "log", warns)
-    assert fitted.values[KEY] == 0.03 and any("raised to it" in w for w in warns)
+    assert fitted.values[KEY] == 0.03
+    assert any("raised to it" in w for w in warns)
 
 
 def test_direction_dependent_viscous(base):
     """friction.viscous_offset_n_m_s_per_rad: b + b_o forward, b - b_o backward, in the model's steady
     torque and the feed-forward; 0 (default) is the old law; |b_o| <= b is checked."""
     key = "friction.viscous_offset_n_m_s_per_rad"
-    assert base.values[key] == 0.0 and not base.given(key)
+    assert base.values[key] == 0.0
+    assert not base.given(key)
     b, b_o = 4e-4, 1.5e-4
     p = base.with_params({"friction.viscous_n_m_s_per_rad": b, key: b_o})
     q = base.with_params({"friction.viscous_n_m_s_per_rad": b})
@@ -246,7 +253,8 @@ def test_efficiency_curve_is_monotone_from_static_to_dynamic():
     speeds = [0.01, 0.05, 0.2, 0.5, 1.0, 3.0, W300]
     eta = [_implied_efficiency(PLANT, w) for w in speeds]
     assert all(b >= a - 1e-12 for a, b in zip(eta, eta[1:]))
-    assert eta[0] < 0.83 and eta[-1] == pytest.approx(0.85, rel=1e-9)
+    assert eta[0] < 0.83
+    assert eta[-1] == pytest.approx(0.85, rel=1e-9)
 
 
 def _hold(fidelity, frac, load=1500.0, t_end=0.2):
@@ -267,9 +275,11 @@ def _hold(fidelity, frac, load=1500.0, t_end=0.2):
 def test_stiction_holds_below_breakaway_and_releases_above_symmetrically(fidelity):
     for frac in (0.9, -0.9):
         theta, omega = _hold(fidelity, frac)
-        assert abs(theta) < 1e-9 and abs(omega) < 1e-9, (frac, theta, omega)
+        assert abs(theta) < 1e-9, (frac, theta, omega)
+        assert abs(omega) < 1e-9, (frac, theta, omega)
     up, down = _hold(fidelity, 1.1), _hold(fidelity, -1.1)
-    assert up[1] > 1.0 and down[1] < -1.0  # broke away, in the direction of the net torque
+    assert up[1] > 1.0
+    assert down[1] < -1.0  # broke away, in the direction of the net torque
     assert up[0] == pytest.approx(-down[0], rel=1e-3)  # reversal symmetric
 
 
@@ -313,7 +323,8 @@ def test_energy_balance_closes_through_a_speed_reversal(fidelity):
     r = run(PLANT, setpoint=[(0.0, 0.05), (0.05, -0.05)], load=500.0, duration=0.3,
             controller=PID(0.085, 14.7), fidelity=fidelity, energy=True)
     w = np.asarray(r.outputs[list(r.output_labels).index("nut_speed")])
-    assert w[0] == pytest.approx(0.05, rel=1e-6) and w[-1] == pytest.approx(-0.05, rel=1e-3)
+    assert w[0] == pytest.approx(0.05, rel=1e-6)
+    assert w[-1] == pytest.approx(-0.05, rel=1e-3)
     e = energy_balance(r)
     assert e["work_dissipated_j"] > 0
     assert e["relative_residual"] < 1e-4, e
@@ -424,10 +435,12 @@ def test_operating_point_is_bounded_for_any_speed_and_load(omega, load):
     try:
         op = operating_point(PLANT, omega, load, "compliant")
     except (ValueError, SimulationError) as exc:
-        assert str(exc) and "\n" not in str(exc)
+        assert str(exc)
+        assert "\n" not in str(exc)
         return
     assert 1 <= op.newton_iterations <= MAX_NEWTON_ITER
-    assert abs(op.torque) < PLANT.torque_limit and np.all(np.isfinite(op.x))
+    assert abs(op.torque) < PLANT.torque_limit
+    assert np.all(np.isfinite(op.x))
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -439,7 +452,8 @@ def test_multi_roller_with_coarse_tolerances_converges_or_says_why(seed):
     try:
         op = operating_point(p, W300, 500.0, "multi-roller", seed)
     except SimulationError as exc:
-        assert "tolerance.roller_position_std_um" in str(exc) and "Newton" in str(exc)
+        assert "tolerance.roller_position_std_um" in str(exc)
+        assert "Newton" in str(exc)
         return
     assert op.newton_iterations <= MAX_NEWTON_ITER
 
@@ -465,7 +479,8 @@ def test_member_model_is_the_direct_build(fidelity):
     p = _member(VALUES)
     m = M.plant_model(p, fidelity)
     direct = M._build(apply(PLANT, VALUES), fidelity)
-    assert m.family is not None and set(m.family.keys) == set(KEYS)
+    assert m.family is not None
+    assert set(m.family.keys) == set(KEYS)
     assert m.theta == tuple(VALUES[k] for k in m.family.keys)
     for x, u in M._test_points(m.state_names, 4):
         for a, b in ((m.f, direct.f), (m.h, direct.h), (m.power, direct.power)):
@@ -477,7 +492,8 @@ def test_keys_used_as_numbers_are_not_parameters():
     # the flank angle enters through math.cos: it cannot be a parameter, and a member
     # differing in it gets its own, direct model; sensor keys are never parameters
     fam = M.parametric_family(PLANT, "compliant", ("thread.flank_angle_deg", "nut.inertia_kg_m2", "sensor.sample_time_s"))
-    assert fam is not None and fam.keys == ("nut.inertia_kg_m2",)
+    assert fam is not None
+    assert fam.keys == ("nut.inertia_kg_m2",)
     p = _member({"thread.flank_angle_deg": PLANT.values["thread.flank_angle_deg"] + 1.0},
                 ("thread.flank_angle_deg", "nut.inertia_kg_m2", "sensor.sample_time_s"))
     assert M.plant_model(p, "compliant").family is None
@@ -494,7 +510,8 @@ def test_member_run_shares_one_law_and_matches_the_direct_run():
     built_a = _BUILT[M.plant_model(a, "compliant")][("member", False)]
     built_b = _BUILT[M.plant_model(b, "compliant")][("member", False)]
     assert built_a.sampled is built_b.sampled  # one set of functions for the family
-    assert ra.states.shape == direct.states.shape and ra.state_labels == direct.state_labels
+    assert ra.states.shape == direct.states.shape
+    assert ra.state_labels == direct.state_labels
     np.testing.assert_allclose(ra.outputs, direct.outputs, rtol=1e-9, atol=1e-9)
     assert not np.allclose(ra.output("nut_speed"), rb.output("nut_speed"))  # the parameters act
 
@@ -509,7 +526,8 @@ def test_monte_carlo_quotes_its_integrator_and_agrees_with_the_reference():
     fast = mc.run_monte_carlo(PLANT, scene, {"fast": pid}, 3, seed=5, quiet=True, spec={}, path="per-sample")
     batched = mc.run_monte_carlo(PLANT, scene, {"fast": pid}, 3, seed=5, quiet=True, spec={})
     ref = mc.run_monte_carlo(PLANT, scene, {"fast": pid}, 3, seed=5, quiet=True, spec={}, integrator="reference")
-    assert fast.integration["integrator"] == "radau" and ref.integration["integrator"] == "cvodes"
+    assert fast.integration["integrator"] == "radau"
+    assert ref.integration["integrator"] == "cvodes"
     assert fast.integration["relative"] <= 0.5 * scene.accuracy
     assert fast.as_dict()["integration"]["check_points"] == 7  # nominal, 2 corners, 2 x 2 single ends
     k = mc.METRICS.index("peak_drop_rad_s")
@@ -518,7 +536,9 @@ def test_monte_carlo_quotes_its_integrator_and_agrees_with_the_reference():
     assert "--integrator fast" in fast.designs[0].replay
     # the batched default checks its own samples against the adaptive reference
     ig = batched.integration
-    assert ig["path"] == "batched" and ig["check_samples"] and set(ig["check_samples"]) <= {0, 1, 2}
+    assert ig["path"] == "batched"
+    assert ig["check_samples"]
+    assert set(ig["check_samples"]) <= {0, 1, 2}
     assert 0 < ig["relative"] <= 0.5 * scene.accuracy
     drop_b = batched.samples["metrics"][:, 0, k]
     assert np.all(np.abs(drop_b - drop_r) <= scene.accuracy * drop_r)

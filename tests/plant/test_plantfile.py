@@ -44,7 +44,8 @@ def _set(doc: str, section: str, key: str, value: str) -> str:
 def _one_line(capsys) -> str:
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in err, err
+    assert len(lines) == 1, err
+    assert "Traceback" not in err, err
     return lines[0]
 
 
@@ -66,8 +67,12 @@ def test_absurd_plant_values_name_key_value_range_and_file(tmp_path, capsys, sta
     assert main(["--plant", str(path), "--json", str(json_out)]) == 2
     line = _one_line(capsys)
     lo, hi, _ = PLAUSIBLE[f"{section}.{key}"]
-    assert str(path) in line and f"{section}.{key} = " in line and f"[{lo:g}, {hi:g}]" in line, line
-    assert "ms_max" not in line and not stand_in and json_out.read_text() == "old"
+    assert str(path) in line, line
+    assert f"{section}.{key} = " in line, line
+    assert f"[{lo:g}, {hi:g}]" in line, line
+    assert "ms_max" not in line
+    assert not stand_in
+    assert json_out.read_text() == "old"
 
 
 @settings(max_examples=80, suppress_health_check=_HC)
@@ -85,7 +90,8 @@ def test_any_plant_value_is_accepted_in_range_or_refused_by_key(tmp_path_factory
         load_plant(path)
     except PlantFileError as exc:
         msg = str(exc)
-        assert "\n" not in msg and str(path) in msg
+        assert "\n" not in msg
+        assert str(path) in msg
         if not lo <= float(text) <= hi:
             assert f"{key} = " in msg, msg  # out of range: this key is named
     else:
@@ -99,7 +105,8 @@ def test_every_builtin_plant_is_plausible():
         p = load_plant(name)
         for key, (lo, hi, why) in PLAUSIBLE.items():
             if key in p.values:  # issue 21: the keys of the plant's mechanism
-                assert lo <= p.values[key] <= hi and why
+                assert lo <= p.values[key] <= hi
+                assert why
 
 
 
@@ -144,9 +151,12 @@ def test_default_plant_is_paper_and_matches_table1():
     assert (v["screw.pitch_diameter_mm"], v["nut.pitch_diameter_mm"], v["roller.pitch_diameter_mm"]) == (14.0, 21.6, 3.6)
     assert (v["screw.lead_mm"], v["nut.lead_mm"], v["roller.lead_mm"]) == (2.0, 2.0, 0.5)
     assert (v["screw.starts"], v["nut.starts"], v["roller.starts"], v["roller.count"]) == (4, 4, 1, 10)
-    assert v["contact.stiffness_n_per_mm_e"] == 1e5 and v["contact.exponent"] == 1.5
-    assert v["contact.damping_n_s_per_mm"] == 50 and v["contact.penetration_mm"] == 0.2
-    assert v["friction.static"] == 0.3 and v["friction.dynamic"] == 0.25
+    assert v["contact.stiffness_n_per_mm_e"] == 1e5
+    assert v["contact.exponent"] == 1.5
+    assert v["contact.damping_n_s_per_mm"] == 50
+    assert v["contact.penetration_mm"] == 0.2
+    assert v["friction.static"] == 0.3
+    assert v["friction.dynamic"] == 0.25
     # SI conversion of K: N/mm^1.5 -> N/m^1.5 multiplies by 1000^1.5.
     assert p.contact_stiffness_si == pytest.approx(1e5 * 1000**1.5, rel=1e-15)
 
@@ -158,9 +168,11 @@ def test_every_parameter_has_a_source(name):
     for key, src in p.sources.items():
         if p.mechanism == "inverted-roller-screw" and key == "friction.no_load_breakaway_torque_n_m":
             # the keys newer than these complete files: documented defaults
-            assert not p.given(key) and src.startswith("default: no breakaway excess"), key
+            assert not p.given(key), key
+            assert src.startswith("default: no breakaway excess"), key
         elif p.mechanism == "inverted-roller-screw" and key == "friction.viscous_offset_n_m_s_per_rad":
-            assert not p.given(key) and src.startswith("default: symmetric viscous friction"), key
+            assert not p.given(key), key
+            assert src.startswith("default: symmetric viscous friction"), key
         elif name == "paper-iprsm":
             assert src.startswith(("paper", "assumption: ")), key
         elif p.mechanism == "inverted-roller-screw":
@@ -281,7 +293,8 @@ def test_validation_either_accepts_or_raises_plant_file_error(key, value):
         return
     v = p.values[f"{section}.{sub}"]
     # (a signed key, friction.torque_offset_n_m, may be negative: the schema's kind "finite")
-    assert math.isfinite(v) and (v >= 0 or KIND[f"{section}.{sub}"] == FINITE)
+    assert math.isfinite(v)
+    assert v >= 0 or KIND[f"{section}.{sub}"] == FINITE
     assert np.isfinite(p.slip_arm_m)
 
 
@@ -393,8 +406,9 @@ def _model_inertia(p, torques=(0.0, 1.0), load=0.0):
 @pytest.mark.parametrize("name", SCREW_PLANTS)
 def test_reflected_inertia_and_lead_of_screw_driven_axes(plants, name):
     p = plants[name]
-    assert p.screw_driven and p.mechanism == name.split("-")[0].replace("ballscrew", "ball-screw").replace(
-        "rollerscrew", "roller-screw")
+    assert p.screw_driven
+    assert (p.mechanism == name.split("-")[0].replace("ballscrew", "ball-screw").replace(
+        "rollerscrew", "roller-screw"))
     j = _inertia_from_geometry(p)
     assert p.reflected_inertia_kg_m2 == pytest.approx(j, rel=1e-12)
     # with the nut loss on the external load only (axis.nut_loss_on_whole_force = 0) the model's
@@ -442,7 +456,8 @@ def test_inverted_roller_screw_keeps_the_nut_loss_on_the_external_load(plants):
 
 def test_linear_axis_is_its_mass_in_load_coordinates(plants):
     p = plants["emps"]
-    assert p.mechanism == "linear-axis" and p.lead_per_rad == pytest.approx(1.0, rel=1e-15)
+    assert p.mechanism == "linear-axis"
+    assert p.lead_per_rad == pytest.approx(1.0, rel=1e-15)
     assert _model_inertia(p) == pytest.approx(p.values["axis.mass_kg"], rel=1e-9)
     # direction-dependent friction (identification/axis.py's law): F = Fc+ + Fv+ v, v > 0;
     # F = -Fc- + Fv- v, v < 0; written here as the holding force at constant speed, no load
@@ -552,7 +567,8 @@ def test_axial_mode_moves_with_the_stroke_position(plants, name):
     if base.values["axis.fixed_ends"] == 1:  # fixed-free: softer the farther the nut from the bearing
         assert found[0] > found[1] > found[2]
     else:  # fixed-fixed: softest at mid-span, symmetric
-        assert found[1] < found[0] and found[1] < found[2]
+        assert found[1] < found[0]
+        assert found[1] < found[2]
     assert max(found) / min(found) > 1.15  # the stroke matters (1.20 for the ball screw, 10 % to 90 %)
 
 
@@ -575,7 +591,8 @@ def test_load_step_tune_and_verify(plants, name):
     assert best.tuner_status == "optimal"
     assert best.margins.ms <= scene.ms_max * (1 + 1e-3)
     assert rep.scene.fidelity == "compliant"  # verified on the model with the axial spring
-    assert not best.flags and not best.verified[0].saturated
+    assert not best.flags
+    assert not best.verified[0].saturated
     # the linear prediction and the nonlinear verification agree
     assert best.objective_verified == pytest.approx(best.objective_predicted, rel=0.05)
     assert best.verified[0].peak_drop_rad_s == pytest.approx(best.predicted[0].peak_drop_rad_s, rel=0.05)
@@ -589,11 +606,15 @@ def test_monte_carlo_with_the_stroke_position_uncertain(plants):
     scene = load_scene().replace(step_time=0.02, duration=0.08)
     rep = mc.run_monte_carlo(p, scene, {"tuned": PID(1.32, 261.5, tf=5e-4)}, 4, seed=3, backend="serial", quiet=True)
     x = rep.samples["values"]["axis.stroke_position_mm"]
-    assert len(set(np.round(x, 6))) == 4 and np.all((x >= 50.0) & (x <= 950.0))
+    assert len(set(np.round(x, 6))) == 4
+    assert np.all((x >= 50.0) & (x <= 950.0))
     d = rep.designs[0]
-    assert rep.complete and d.failures == 0 and d.passed == d.n == 4  # no spec: every simulation finished
+    assert rep.complete
+    assert d.failures == 0
+    assert d.passed == d.n == 4  # no spec: every simulation finished
     peaks = rep.samples["metrics"][:, 0, 0]
-    assert np.all(np.isfinite(peaks)) and np.all(peaks > 0)
+    assert np.all(np.isfinite(peaks))
+    assert np.all(peaks > 0)
     # each sample's plant has its own axial mode (the stroke reaches the model)
     modes = [p.with_params({"axis.stroke_position_mm": float(xi),
                             "axis.moving_mass_kg": float(m)}).axial_mode_hz()
@@ -620,13 +641,17 @@ def plant():
 
 
 def test_default_source_and_show(plant):
-    assert plant.values[KEY] == 0 and plant.command_delay_samples == 0  # the paper plant gives it
+    assert plant.values[KEY] == 0
+    assert plant.command_delay_samples == 0  # the paper plant gives it
     assert plant.sources[KEY].startswith("assumption:")
     ball = load_plant("ballscrew-32x10")  # a catalogue plant that leaves it out
-    assert ball.values[KEY] == 0 and not ball.given(KEY)
-    assert ball.sources[KEY].startswith("default:") and "computation delay" in ball.sources[KEY]
+    assert ball.values[KEY] == 0
+    assert not ball.given(KEY)
+    assert ball.sources[KEY].startswith("default:")
+    assert "computation delay" in ball.sources[KEY]
     line = next(ln for ln in describe_plant(ball).splitlines() if KEY in ln)
-    assert " 0 samples" in line and "default" in line
+    assert " 0 samples" in line
+    assert "default" in line
     assert plant.with_params({KEY: 2}).command_delay_samples == 2
 
 
@@ -780,7 +805,8 @@ def test_export_states_the_delay(plant):
 
     for n in (0, 2):
         out = export_controller(PID(0.05, 2.0), plant.with_params({KEY: n}), fmt="json")
-        assert out["command_delay_samples"] == n and "drive.command_delay_samples" in out["command_delay_note"]
+        assert out["command_delay_samples"] == n
+        assert "drive.command_delay_samples" in out["command_delay_note"]
 
 
 def test_cascade_model_carries_the_delay(plant):
@@ -808,4 +834,5 @@ def test_cascade_model_carries_the_delay(plant):
         models[n] = cm
     assert models[2].nX == models[0].nX + 2
     e0, e2 = models[0].error(g, "move"), models[2].error(g, "move")
-    assert np.all(np.isfinite(e2)) and np.max(np.abs(e2 - e0)) > 1e-3 * np.max(np.abs(e0))
+    assert np.all(np.isfinite(e2))
+    assert np.max(np.abs(e2 - e0)) > 1e-3 * np.max(np.abs(e0))

@@ -101,7 +101,8 @@ def test_existing_files_are_unchanged_and_fully_given():
 
 def test_minimal_ball_screw_file_loads_with_defaults(tmp_path):
     p = load_plant(_write(tmp_path, MINIMAL_BALL))
-    assert p.mechanism == "ball-screw" and p.screw_driven
+    assert p.mechanism == "ball-screw"
+    assert p.screw_driven
     assert {k for k in p.values if p.given(k)} == set(REQUIRED["ball-screw"])
     v = p.values
     assert v["screw.pitch_diameter_mm"] == pytest.approx(32.0)  # 3.2 x lead
@@ -112,7 +113,8 @@ def test_minimal_ball_screw_file_loads_with_defaults(tmp_path):
     q = p.with_params({"axis.bearing_span_mm": 500.0})
     assert q.values["axis.stroke_position_mm"] == 250.0
     assert q.values["axis.screw_inertia_kg_m2"] == pytest.approx(v["axis.screw_inertia_kg_m2"] * 500.0 / v["axis.bearing_span_mm"])
-    assert q.given("axis.bearing_span_mm") and not q.given("axis.stroke_position_mm")
+    assert q.given("axis.bearing_span_mm")
+    assert not q.given("axis.stroke_position_mm")
 
 
 @pytest.mark.parametrize(
@@ -157,18 +159,24 @@ def test_describe_plant_lists_every_value_with_unit_and_source(tmp_path):
     for key in used_keys(p):  # the keys the mechanism uses (issue 33: no roller keys for a ball screw)
         row = next(ln for ln in lines if ln.strip().startswith(key + " "))
         tag = "given" if p.given(key) else ("derived" if p.sources[key].startswith("derived") else "default")
-        assert f" {tag} " in row and p.sources[key] in row
+        assert f" {tag} " in row
+        assert p.sources[key] in row
     row = next(ln for ln in lines if ln.strip().startswith("axis.moving_mass_kg "))
-    assert " kg " in row and "150" in row
+    assert " kg " in row
+    assert "150" in row
 
 
 def test_show_plant_flag_prints_and_exits_zero(tmp_path, capsys):
     assert tune_main(["--show-plant", str(_write(tmp_path, MINIMAL_BALL))]) == 0
     out = capsys.readouterr().out
-    assert "mechanism: ball-screw" in out and "axis.stroke_position_mm" in out and "default: nut at mid-span" in out
+    assert "mechanism: ball-screw" in out
+    assert "axis.stroke_position_mm" in out
+    assert "default: nut at mid-span" in out
     assert tune_main(["--show-plant", "paper-iprsm"]) == 0
     out = capsys.readouterr().out
-    assert "geometry note: geometry does not close" in out and "paper Table 1" in out
+    assert "geometry note: geometry does not close" in out
+    assert "paper Table 1" in out
     assert tune_main(["--show-plant", str(tmp_path / "nope.toml")]) == 2
     err = capsys.readouterr().err
-    assert "nope.toml' not found" in err and "Traceback" not in err
+    assert "nope.toml' not found" in err
+    assert "Traceback" not in err

@@ -41,7 +41,8 @@ def test_builtin_plants_document_their_uncertainty(name):
     unc = uncertainty_model(p)
     assert len(unc) >= 2
     for e in unc.entries:
-        assert e.source and e.low <= e.nominal <= e.high
+        assert e.source
+        assert e.low <= e.nominal <= e.high
         assert e.source.split(":")[0] in ("paper", "assumption", "estimate", "fit") or e.source.startswith("paper")
 
 
@@ -50,9 +51,11 @@ def test_robust_scene_adds_its_uncertainty_to_the_plants():
     unc = uncertainty_model(p, s.sections.plant_overrides)
     e = {x.key: x for x in unc.entries}
     j = p.values["nut.inertia_kg_m2"]
-    assert e["nut.inertia_kg_m2"].low == pytest.approx(0.5 * j) and e["nut.inertia_kg_m2"].high == pytest.approx(1.5 * j)
+    assert e["nut.inertia_kg_m2"].low == pytest.approx(0.5 * j)
+    assert e["nut.inertia_kg_m2"].high == pytest.approx(1.5 * j)
     assert (e["drive.current_loop_bandwidth_hz"].low, e["drive.current_loop_bandwidth_hz"].high) == (500.0, 1500.0)
-    assert s.sections.as_dict()["spec"]["peak_drop_rad_s"] > 0 and s.sections.as_dict()["spec"]["no_saturation"] is True
+    assert s.sections.as_dict()["spec"]["peak_drop_rad_s"] > 0
+    assert s.sections.as_dict()["spec"]["no_saturation"] is True
 
 
 @given(seed=st.integers(0, 2**32), index=st.integers(0, 10**6))
@@ -79,7 +82,9 @@ def test_distributions_have_the_stated_shape():
     # log-uniform: the log is uniform, so its median is the log-midpoint (1000 Hz)
     assert abs(np.median(bw) - math.log(1000.0)) < 0.05
     eta = np.array([x["friction.efficiency"] for x in xs])
-    assert abs(eta.mean() - 0.85) < 0.002 and eta.min() >= 0.81 and eta.max() <= 0.89
+    assert abs(eta.mean() - 0.85) < 0.002
+    assert eta.min() >= 0.81
+    assert eta.max() <= 0.89
     assert 0.015 < eta.std() < 0.02  # truncation at 2 sigma shrinks the std to 0.88 sigma
     assert len(unc.vertices()) == 8
 
@@ -120,7 +125,9 @@ def test_bad_plant_uncertainty_names_key_and_file(bad):
     with pytest.raises(PlantFileError) as exc:
         _plant_with({key: entry})
     msg = str(exc.value)
-    assert msg.startswith("bad-plant.toml: ") and key in msg and "\n" not in msg
+    assert msg.startswith("bad-plant.toml: ")
+    assert key in msg
+    assert "\n" not in msg
 
 
 @given(_bad_entries)
@@ -132,7 +139,8 @@ def test_bad_scene_uncertainty_names_key_and_file(bad):
     with pytest.raises(SceneError) as exc:
         s = parse_scene(doc, "bad-scene.toml")
         uncertainty_model(load_plant(), s.sections.plant_overrides)
-    assert str(exc.value).startswith("bad-scene.toml: ") and key in str(exc.value)
+    assert str(exc.value).startswith("bad-scene.toml: ")
+    assert key in str(exc.value)
 
 
 @pytest.mark.parametrize("section, key, value", [
@@ -155,7 +163,8 @@ def test_bad_spec_or_robust_entry_names_key_and_file(section, key, value):
     with pytest.raises(SceneError) as exc:
         parse_scene(doc, "bad-scene.toml")
     msg = str(exc.value)
-    assert msg.startswith("bad-scene.toml: ") and f"{section}.{key}" in msg
+    assert msg.startswith("bad-scene.toml: ")
+    assert f"{section}.{key}" in msg
 
 
 def test_a_spec_yield_without_a_bound_is_refused_naming_it():
@@ -174,7 +183,8 @@ def test_a_spec_yield_without_a_bound_is_refused_naming_it():
 def test_scene_sections_round_trip():
     out = parse_scene_sections(_SCENE, "x.toml")
     assert set(out) == {"spec", "robust", "uncertainty"}
-    assert out["robust"]["monte_carlo"] == 1000 and out["robust"]["aggregate"] == "worst"
+    assert out["robust"]["monte_carlo"] == 1000
+    assert out["robust"]["aggregate"] == "worst"
 
 
 def test_plants_without_uncertainty_still_load_and_overrides_keep_it():
@@ -241,14 +251,16 @@ def test_copula_has_the_written_correlation_and_keeps_every_marginal():
     (1 - r^2)/sqrt(n), 5 of them), each marginal is scipy's distribution (KS test and mean within
     5 standard errors), nothing leaves its support, the key outside the block stays independent."""
     model = uncertainty_model(_plant(_correlated()))
-    assert len(model.correlations) == 1 and model.correlations[0].keys == tuple(BLOCK_KEYS)
+    assert len(model.correlations) == 1
+    assert model.correlations[0].keys == tuple(BLOCK_KEYS)
     n = 5000
     cols = _draws(model, n, 20261124)
     ents = {e.key: e for e in model.entries}
     scores = {}
     for k, x in cols.items():
         e, ref = ents[k], _reference_dist(ents[k])
-        assert e.low <= x.min() and x.max() <= e.high, k
+        assert e.low <= x.min(), k
+        assert x.max() <= e.high, k
         assert stats.kstest(x, ref.cdf).pvalue > 1e-4, k
         assert abs(x.mean() - ref.mean()) < 5 * ref.std() / math.sqrt(n), k
         scores[k] = stats.norm.ppf(np.clip(ref.cdf(x), 1e-15, 1 - 1e-15))
@@ -324,7 +336,8 @@ def test_singular_correlation_is_accepted_and_drawn():
 
 def test_vertices_stay_the_box_corners():
     plain, corr = (uncertainty_model(_plant(t)) for t in (copy.deepcopy(ENTRIES), _correlated()))
-    assert corr.vertices() == plain.vertices() and len(corr.vertices()) == 2 ** 5
+    assert corr.vertices() == plain.vertices()
+    assert len(corr.vertices()) == 2 ** 5
 
 
 _BASE_LINE = '"friction.viscous_n_m_s_per_rad" = { dist = "normal", relative_sigma = 0.2, truncate = 2.0, source = "estimate: t" }'
@@ -367,8 +380,11 @@ def test_bad_correlation_is_refused_in_one_line_exit_2(line, token, tmp_path, ca
     err = capsys.readouterr().err
     assert code == 2, err
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in err, err
-    assert str(bad) in lines[0] and "uncertainty.correlation" in lines[0] and token in lines[0], lines[0]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err, err
+    assert str(bad) in lines[0], lines[0]
+    assert "uncertainty.correlation" in lines[0], lines[0]
+    assert token in lines[0], lines[0]
 
 
 def test_a_good_correlation_line_loads(tmp_path):
@@ -379,7 +395,8 @@ def test_a_good_correlation_line_loads(tmp_path):
                     + f'correlation = {{ keys = {_PAIR}, matrix = [[1, -0.87], [-0.87, 1]], source = "estimate: t" }}\n')
     m = uncertainty_model(load_plant(good))
     assert m.correlations[0].matrix == ((1.0, -0.87), (-0.87, 1.0))
-    assert "correlation" in m.as_dict()[J] and m.as_dict()[J]["correlation"]["with"] == {ETA: -0.87}
+    assert "correlation" in m.as_dict()[J]
+    assert m.as_dict()[J]["correlation"]["with"] == {ETA: -0.87}
 
 
 def test_scene_override_cuts_the_plants_block_and_names_the_keys():
@@ -392,9 +409,13 @@ def test_scene_override_cuts_the_plants_block_and_names_the_keys():
     m = uncertainty_model(plant, parse_scene(doc, "scene.toml").sections.plant_overrides)
     assert [c.keys for c in m.correlations] == [(ETA, K)]
     assert m.correlations[0].matrix == ((1.0, 0.2), (0.2, 1.0))
-    assert len(m.notes) == 1 and "'nut.inertia_kg_m2'" in m.notes[0] and "scene.toml" in m.notes[0]
+    assert len(m.notes) == 1
+    assert "'nut.inertia_kg_m2'" in m.notes[0]
+    assert "scene.toml" in m.notes[0]
     d = m.as_dict()
-    assert "correlation_note" in d[J] and "correlation" not in d[J] and d[ETA]["correlation"]["with"] == {K: 0.2}
+    assert "correlation_note" in d[J]
+    assert "correlation" not in d[J]
+    assert d[ETA]["correlation"]["with"] == {K: 0.2}
     # the scene's own block over its own keys
     doc["uncertainty"]["correlation"] = {"keys": [J, BW], "matrix": [[1.0, -0.5], [-0.5, 1.0]], "source": "estimate: s"}
     m2 = uncertainty_model(plant, parse_scene(doc, "scene.toml").sections.plant_overrides)
@@ -408,12 +429,14 @@ def test_scene_override_cuts_the_plants_block_and_names_the_keys():
     # the scene's uncertainty alone
     doc["robust"]["plant_uncertainty"] = False
     m3 = uncertainty_model(plant, parse_scene(doc, "scene.toml").sections.plant_overrides)
-    assert [c.keys for c in m3.correlations] == [(J, BW)] and not m3.notes
+    assert [c.keys for c in m3.correlations] == [(J, BW)]
+    assert not m3.notes
 
 
 def test_parsed_table_parses_again_to_itself():
     e = parse_entries(_correlated(), "x.toml")
-    assert parse_entries(e, "x.toml") == e and e[CORRELATION_KEY][0]["keys"] == BLOCK_KEYS
+    assert parse_entries(e, "x.toml") == e
+    assert e[CORRELATION_KEY][0]["keys"] == BLOCK_KEYS
 
 
 def test_writers_round_trip_every_digit():
@@ -426,7 +449,8 @@ def test_writers_round_trip_every_digit():
     sd = np.sqrt(np.diag(cov))
     assert np.allclose(np.array(blk["matrix"]), cov / np.outer(sd, sd), rtol=0, atol=1e-14)
     r = np.array(blk["matrix"])
-    assert np.all(r == r.T) and np.all(np.diag(r) == 1.0)
+    assert np.all(r == r.T)
+    assert np.all(np.diag(r) == 1.0)
     for blocks in ([blk], [blk, {"keys": [K, "friction.static"], "matrix": [[1.0, 0.1 + 0.2], [0.1 + 0.2, 1.0]],
                                  "source": "estimate: \"quoted\" µ"}]):
         back = tomllib.loads("correlation = " + correlation_toml(blocks))["correlation"]
@@ -480,7 +504,8 @@ def test_any_valid_correlation_is_accepted_and_sampled_inside_the_supports(seed,
         a, b = model.sample(r1), model.sample(r2)
         assert a == b
         for k, x in a.items():
-            assert math.isfinite(x) and ents[k].low <= x <= ents[k].high
+            assert math.isfinite(x)
+            assert ents[k].low <= x <= ents[k].high
 
 
 def test_carry_correlation_a_refit_block_replaces_the_base_block_over_its_keys():
@@ -520,7 +545,8 @@ def test_inner_truncation_rounds_inward_where_rounding_to_nearest_crossed():
     value, sigma = 1.2345679, 1.0
     assert value - round(value / sigma * (1 - 1e-9), 6) * sigma < 0  # the old rule: past the bound
     t = inner_truncation(value, sigma, 0.0)
-    assert t == 1.234567 and value - t * sigma >= 0
+    assert t == 1.234567
+    assert value - t * sigma >= 0
     assert inner_truncation(0.9, 0.1, 0.0, 1.0) == 1.0  # the upper bound of a fraction too
     assert inner_truncation(5.0, 1.0, 0.0) == 1.959963984540054  # the 95 % limit when it fits
     with pytest.raises(ValueError, match="sigma > 0"):
@@ -546,7 +572,8 @@ def test_rotary_fit_writes_the_covariance_correlation(csv_files, tmp_path):  # n
     cov = report["covariance"]
     fitted = [k for k, v in report["parameters"].items() if not v["kept_base"] and k in doc["uncertainty"]
               and doc["uncertainty"][k]["source"].startswith("fit: ")]
-    assert corr["keys"] == fitted and len(fitted) >= 4
+    assert corr["keys"] == fitted
+    assert len(fitted) >= 4
     idx = [cov["keys"].index(k) for k in fitted]
     c = np.array(cov["matrix"])[np.ix_(idx, idx)]
     sd = np.sqrt(np.diag(c))

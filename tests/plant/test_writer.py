@@ -54,7 +54,8 @@ def test_base_layout_and_comments_kept_only_the_key_changes(name):
         if k != key and p.given(k):
             assert (q.values[k], q.sources[k]) == (p.values[k], p.sources[k]), k
     comments = [ln for ln in base.splitlines() if ln.lstrip().startswith("#")]
-    assert comments and all(c in text.splitlines() for c in comments)  # every comment line kept
+    assert comments
+    assert all(c in text.splitlines() for c in comments)  # every comment line kept
     assert FRESH_NOTE not in text
     # only the lines of the name, the description and the key differ
     changed = [ln for ln in text.splitlines() if ln not in base.splitlines()]
@@ -91,14 +92,17 @@ def test_other_toml_spellings_of_a_key_are_edited_in_place():
     want = {**doc, "nut": {**doc["nut"], "inertia_kg_m2": {"value": 1.5e-4, "source": "fit"}}}
     text = document_toml(want, base)
     assert tomllib.loads(text) == want
-    assert "# the nut" in text and "# kept" in text and "inertia_kg_m2.value = 0.00015" in text
+    assert "# the nut" in text
+    assert "# kept" in text
+    assert "inertia_kg_m2.value = 0.00015" in text
 
 
 def test_sub_table_spelling_is_edited_in_place():
     base = 'name = "b"\n\n[nut.inertia_kg_m2]  # a table of its own\nvalue = 2.0e-4\nsource = "catalogue"\n'
     want = {"name": "b", "nut": {"inertia_kg_m2": {"value": 3e-4, "source": "fit"}}}
     text = document_toml(want, base)
-    assert tomllib.loads(text) == want and "# a table of its own" in text
+    assert tomllib.loads(text) == want
+    assert "# a table of its own" in text
 
 
 def test_user_text_is_escaped_and_reads_back_exactly():
@@ -107,16 +111,20 @@ def test_user_text_is_escaped_and_reads_back_exactly():
     for bad in ("\x1b", "\x07", "\r", "\u202e", "\x7f", "\x85"):
         assert bad not in text
     q = _load(text)
-    assert q.name == HOSTILE and q.description == HOSTILE
+    assert q.name == HOSTILE
+    assert q.description == HOSTILE
     fresh = p.to_toml(name=HOSTILE)
-    assert "\x1b" not in fresh and _load(fresh).name == HOSTILE
+    assert "\x1b" not in fresh
+    assert _load(fresh).name == HOSTILE
 
 
 def test_header_lines_are_one_printable_comment_line_each():
     p = _plant("paper-iprsm")
     text = p.to_toml(plant_file_path().read_text(encoding="utf-8"), header=("not validated: " + HOSTILE, "second"))
     lines = text.splitlines()
-    assert lines[0].startswith("# not validated: ev") and "\\x1b" in lines[0] and "\\n" in lines[0]
+    assert lines[0].startswith("# not validated: ev")
+    assert "\\x1b" in lines[0]
+    assert "\\n" in lines[0]
     assert lines[1] == "# second"
     assert _load(text).name == p.name
 
@@ -146,7 +154,8 @@ def test_a_log_file_name_that_is_not_utf8_is_written_as_its_byte_in_sources_and_
     assert back.sources[key] == "fit: r\\xff.csv (95 % CI)"
     assert back.uncertainty[key]["source"] == "fit: r\\xff.csv (95 % CI)"
     assert back.description == "calibrated from r\\xff.csv and a\\ud800"
-    assert back.values[key] == p.values[key] and back.name == "fitted"
+    assert back.values[key] == p.values[key]
+    assert back.name == "fitted"
 
 
 def test_uncertainty_entries_replaced_removed_and_section_added():
@@ -165,14 +174,16 @@ def test_uncertainty_entries_replaced_removed_and_section_added():
     bare = 'name = "b"\n\n[nut]\ninertia_kg_m2 = { value = 2.0e-4, source = "c" }\n'
     want = {"name": "b", "nut": {"inertia_kg_m2": {"value": 2.0e-4, "source": "c"}}, "uncertainty": {key: entry}}
     text = document_toml(want, bare)
-    assert tomllib.loads(text) == want and "# What the fit leaves uncertain" in text
+    assert tomllib.loads(text) == want
+    assert "# What the fit leaves uncertain" in text
 
 
 def test_numbers_keep_every_digit_and_their_type():
     doc = {"name": "n", "s": {"a": {"value": 0.1 + 0.2, "source": "x"}, "b": {"value": 3, "source": "y"},
                               "c": {"value": float("inf"), "source": "z"}, "d": {"value": 1e-300, "source": "w"}}}
     back = tomllib.loads(document_toml(doc))
-    assert back == doc and isinstance(back["s"]["b"]["value"], int)
+    assert back == doc
+    assert isinstance(back["s"]["b"]["value"], int)
 
 
 def test_a_base_it_cannot_keep_is_written_afresh_with_a_note():
@@ -193,11 +204,13 @@ def test_an_edit_that_fails_falls_back_to_a_fresh_file(monkeypatch):
     monkeypatch.setattr(W, "_edited", broken)
     want = {"name": "b", "nut": {"inertia_kg_m2": {"value": 2.0e-4, "source": "c"}}}
     text = document_toml(want, 'name = "b"  # the base\n')
-    assert text.startswith(f"# {FRESH_NOTE}\n") and tomllib.loads(text) == want
+    assert text.startswith(f"# {FRESH_NOTE}\n")
+    assert tomllib.loads(text) == want
 
     monkeypatch.setattr(W, "_edited", lambda base_text, want: 'name = "wrong"\n')  # an edit that reads back wrong
     text = document_toml(want, 'name = "b"\n')
-    assert text.startswith(f"# {FRESH_NOTE}\n") and tomllib.loads(text) == want
+    assert text.startswith(f"# {FRESH_NOTE}\n")
+    assert tomllib.loads(text) == want
 
 
 def test_none_is_refused_naming_the_key():
@@ -223,7 +236,8 @@ def test_without_tomlkit_the_file_is_written_afresh_saying_why(monkeypatch):
     monkeypatch.setitem(sys.modules, "tomlkit", None)  # import tomlkit raises ImportError
     want = {"name": "b", "nut": {"inertia_kg_m2": {"value": 2.0e-4, "source": "c"}}}
     text = document_toml(want, 'name = "b"  # the base\n')
-    assert text.startswith(f"# {NO_TOMLKIT_NOTE}\n") and tomllib.loads(text) == want
+    assert text.startswith(f"# {NO_TOMLKIT_NOTE}\n")
+    assert tomllib.loads(text) == want
 
 
 # --- data files (drive exports): the same writer, strict values -------------------------------------

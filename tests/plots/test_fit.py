@@ -41,7 +41,8 @@ def test_bode_figure_shows_data_models_and_residual():
         ax_mag, ax_ph, ax_res = fig.axes[:3]
         labels = [ln.get_label() for ln in ax_mag.get_lines()]
         assert labels == ["measured", "rigid (75.0 %)", "two-mass (98.0 %)", "fitted plant as written"]
-        assert ax_res.get_xlabel() == "frequency (Hz)" and ax_mag.get_xscale() == "log"
+        assert ax_res.get_xlabel() == "frequency (Hz)"
+        assert ax_mag.get_xscale() == "log"
         res_db = ax_res.get_lines()[0].get_ydata()
         assert np.allclose(res_db, 20 / np.log(10) * 0.01 * np.sin(np.arange(80)), atol=1e-9)
         assert "structure: two-mass" in ax_mag.get_title()
@@ -100,17 +101,22 @@ def test_record_figure_is_the_replay_its_residual_and_the_verdict():
         np.testing.assert_array_equal(model.get_ydata(), tr["simulated"]["model"])  # not the segments
         np.testing.assert_array_equal(model.get_xdata(), tr["time_s"])
         np.testing.assert_array_equal(ax2.get_lines()[0].get_ydata(), tr["simulated"]["measured"] - tr["simulated"]["model"])
-        assert ax2.get_ylabel() == "residual (rad/s)" and ax2.get_xlabel() == "time (s)"
-        assert "replay fit 31.5 %" in ax1.get_title() and "NOT explained" in ax1.get_title()
+        assert ax2.get_ylabel() == "residual (rad/s)"
+        assert ax2.get_xlabel() == "time (s)"
+        assert "replay fit 31.5 %" in ax1.get_title()
+        assert "NOT explained" in ax1.get_title()
         assert "20 x noise floor" in ax1.get_title()  # 2.0 / 0.1
-        assert "lag 1 +0.73" in ax2.get_title() and "not white" in ax2.get_title()
+        assert "lag 1 +0.73" in ax2.get_title()
+        assert "not white" in ax2.get_title()
         caption = " ".join(t.get_text() for t in fig.texts)
-        assert "NOT validated" in caption and "second mass" in caption  # a refusal, never "good"
+        assert "NOT validated" in caption
+        assert "second mass" in caption  # a refusal, never "good"
     finally:
         plt.close(fig)
     fig = fit_figures(_fit_result({"a.csv": tr}, {"validation": _validation(True)}, {"a.csv": 99.0}))["a-fit"]
     try:
-        assert "explained" in fig.axes[0].get_title() and "NOT" not in fig.axes[0].get_title()
+        assert "explained" in fig.axes[0].get_title()
+        assert "NOT" not in fig.axes[0].get_title()
         assert "the plant explains the data" in " ".join(t.get_text() for t in fig.texts)
     finally:
         plt.close(fig)
@@ -131,7 +137,8 @@ def test_bode_figure_data_models_residual_and_coherence_in_the_unit(unit, factor
             np.testing.assert_allclose(ln.get_ydata(), 20 * np.log10(np.abs(g)), rtol=1e-12)
         np.testing.assert_allclose(ax_ph.get_lines()[0].get_ydata(), np.degrees(np.unwrap(np.angle(tr["measured"]))))
         np.testing.assert_array_equal(ax_coh.get_lines()[0].get_ydata(), tr["coherence"])
-        assert ax_coh.get_ylabel() == "coherence" and ax_coh.get_xlabel() == f"frequency ({unit})"
+        assert ax_coh.get_ylabel() == "coherence"
+        assert ax_coh.get_xlabel() == f"frequency ({unit})"
         assert ax_mag.get_xscale() == "log"
         np.testing.assert_allclose(ax_res.get_lines()[0].get_ydata(), 20 / np.log(10) * 0.01 * np.sin(np.arange(80)),
                                    atol=1e-9)
@@ -158,15 +165,21 @@ def test_fit_views_are_the_results_arrays():
     assert v["verdict"] == {"validated": False, "diagnosis": _validation(False)["diagnosis"],
                             "reasons": _validation(False)["reasons"], "replay": "closed loop"}
     r = v["replay"]["a.csv"]
-    assert r["every"] == 3 and r["mode"] == "closed-loop" and r["label"] == CLOSED  # ceil(4501 / 2000)
+    assert r["every"] == 3
+    assert r["mode"] == "closed-loop"
+    assert r["label"] == CLOSED  # ceil(4501 / 2000)
     idx = np.arange(0, 4501, 3)
     sim = tr["simulated"]
     for key, a in (("time_s", sim["time_s"]), ("measured_rad_s", sim["measured"]), ("model_rad_s", sim["model"]),
                    ("residual_rad_s", sim["measured"] - sim["model"])):
         got = np.array([np.nan if x is None else x for x in r[key]])
         np.testing.assert_array_equal(got, a[idx])
-    assert r["model_rad_s"][2] is None and r["residual_rad_s"][2] is None and r["model_rad_s"][1] is not None
-    assert r["explained"] is False and r["fit_percent"] == 31.5 and r["whiteness"]["acf"][1] == 0.734
+    assert r["model_rad_s"][2] is None
+    assert r["residual_rad_s"][2] is None
+    assert r["model_rad_s"][1] is not None
+    assert r["explained"] is False
+    assert r["fit_percent"] == 31.5
+    assert r["whiteness"]["acf"][1] == 0.734
     f = v["frf"]["b.csv"]
     np.testing.assert_array_equal(f["frequency_hz"], fr["frequency_hz"])
     np.testing.assert_allclose(f["measured"]["magnitude_db"], 20 * np.log10(np.abs(fr["measured"])), rtol=1e-12)
@@ -176,14 +189,17 @@ def test_fit_views_are_the_results_arrays():
                                20 * np.log10(np.abs(fr["models"]["rigid (75.0 %)"])), rtol=1e-12)
     np.testing.assert_allclose(f["residual"]["magnitude_db"], 20 / np.log(10) * 0.01 * np.sin(np.arange(80)), atol=1e-9)
     np.testing.assert_array_equal(f["coherence"], fr["coherence"])
-    assert f["chosen"] == "two-mass" and f["fit_percent"] == 97.0
+    assert f["chosen"] == "two-mass"
+    assert f["fit_percent"] == 97.0
     # phases on the written model's branch: the data's own angle, within half a turn of the model
     ph, ref = np.radians(f["measured"]["phase_deg"]), np.radians(f["models"]["fitted plant as written"]["phase_deg"])
     np.testing.assert_allclose(np.exp(1j * ph), fr["measured"] / np.abs(fr["measured"]), atol=1e-12)
     np.testing.assert_allclose(np.exp(1j * ref), fr["model"] / np.abs(fr["model"]), atol=1e-12)
-    assert np.all(np.abs(ph - ref) <= np.pi + 1e-12) and np.all(np.abs(np.diff(ref)) < np.pi)
+    assert np.all(np.abs(ph - ref) <= np.pi + 1e-12)
+    assert np.all(np.abs(np.diff(ref)) < np.pi)
     short = fit_views(_fit_result({"a.csv": _record_trace(n=300)}))
-    assert short["replay"]["a.csv"]["every"] == 1 and len(short["replay"]["a.csv"]["time_s"]) == 300
+    assert short["replay"]["a.csv"]["every"] == 1
+    assert len(short["replay"]["a.csv"]["time_s"]) == 300
     assert short["verdict"]["validated"] is None  # no validation ran: not "validated"
     with pytest.raises(ValueError, match="max_points = 1; expected an integer >= 2"):
         fit_views(res, max_points=1)
@@ -197,7 +213,9 @@ def test_log_response_is_the_true_plants_response():
         warnings.simplefilter("ignore")
         rec, truth = fit_record(1.0, seed=1)
     f, g, coh = log_response(rec)
-    assert np.all((coh >= 0) & (coh <= 1)) and f[0] > 0 and f[-1] <= 0.45 / rec.sample_time_s
+    assert np.all((coh >= 0) & (coh <= 1))
+    assert f[0] > 0
+    assert f[-1] <= 0.45 / rec.sample_time_s
     good = coh > 0.9
     assert np.count_nonzero(good) >= 20
     kw = dict(speed_rad_s=float(np.mean(rec.speed_rad_s)), load_n=float(np.mean(rec.axial_load_n)),
@@ -234,7 +252,8 @@ def test_record_response_figure_is_the_logs_h1_beside_the_written_plant():
     np.testing.assert_allclose(line.get_ydata(), 20 * np.log10(np.abs(model)), rtol=1e-9)
     assert line.get_label().startswith("plant as written (linearised at")
     np.testing.assert_array_equal(ax_coh.get_lines()[0].get_ydata(), coh)
-    assert ax_coh.get_xlabel() == "frequency (Hz)" and "the log's response" in ax_mag.get_title()
+    assert ax_coh.get_xlabel() == "frequency (Hz)"
+    assert "the log's response" in ax_mag.get_title()
     assert fit_figures(res).keys() == {"sim-0-fit"}  # no records given: no response figure
 
 
@@ -281,7 +300,9 @@ def test_axis_replay_figure_names_its_replay_and_draws_the_residual(closed):
         np.testing.assert_allclose(ax[3].get_lines()[0].get_ydata(), vm - vs)
         assert ax[3].get_ylabel() == "velocity residual, m/s"
         title = fig._suptitle.get_text()
-        assert how in title and "a\\$b.mat" in title and "velocity 2 %" in title
+        assert how in title
+        assert "a\\$b.mat" in title
+        assert "velocity 2 %" in title
     finally:
         plt.close(fig)
 
@@ -304,7 +325,8 @@ def test_axis_response_figure_puts_the_logs_response_beside_the_replays_on_a_hz_
     fig = axis_response_figure(r)
     try:
         ax = fig.axes
-        assert ax[-1].get_xlabel() == "frequency (Hz)" and ax[0].get_xscale() == "log"
+        assert ax[-1].get_xlabel() == "frequency (Hz)"
+        assert ax[0].get_xscale() == "log"
         f, mag_data = ax[0].get_lines()[0].get_xdata(), ax[0].get_lines()[0].get_ydata()
         mag_replay = ax[0].get_lines()[1].get_ydata()
         zi = np.exp(-2j * np.pi * f * h)
@@ -313,9 +335,11 @@ def test_axis_response_figure_puts_the_logs_response_beside_the_replays_on_a_hz_
         # H1 with a Hann window on a noise-free filter: leakage bias up to ~0.25 dB at the lowest bins,
         # far below the 0.9 vs 0.8 filters' difference (up to 5.6 dB, which swapped lines would show)
         for mag, truth in ((mag_data, truth_m), (mag_replay, truth_s)):
-            assert np.max(np.abs(mag - truth)) < 0.5 and np.median(np.abs(mag - truth)) < 0.02  # dB
+            assert np.max(np.abs(mag - truth)) < 0.5
+            assert np.median(np.abs(mag - truth)) < 0.02  # dB
         assert np.max(np.abs(truth_m - truth_s)) > 5.0
-        assert f.max() <= 0.45 / h and f.min() > 0
+        assert f.max() <= 0.45 / h
+        assert f.min() > 0
         np.testing.assert_allclose(ax[2].get_lines()[0].get_ydata(), mag_data - mag_replay, atol=1e-9)
         assert np.all(ax[3].get_lines()[0].get_ydata() > 0.99)  # noise-free: coherent
         assert "data beside the closed-loop replay" in fig._suptitle.get_text()

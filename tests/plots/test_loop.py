@@ -73,7 +73,8 @@ def test_hz_is_the_default_everywhere():
     fig, axs = bode_plant(plant)
     assert axs[1].get_xlabel() == "frequency (Hz)"
     x = np.asarray(axs[0].get_lines()[0].get_xdata())
-    assert x[0] == pytest.approx(0.1 / (2 * math.pi)) and x[-1] == pytest.approx(1e5 / (2 * math.pi))
+    assert x[0] == pytest.approx(0.1 / (2 * math.pi))
+    assert x[-1] == pytest.approx(1e5 / (2 * math.pi))
 
 
 def test_an_unknown_unit_is_refused_naming_it():
@@ -148,11 +149,14 @@ def _overlaps_line(text, line) -> bool:
 def test_bode_plant_has_two_paths_operating_point_and_nyquist(setup):
     plant, scene, *_ = setup
     fig, axs = bode_plant(linearize(plant, scene.setpoint_rad_s, 500.0), sample_time_s=plant.sample_time_s)
-    assert len(axs) == 2 and len([l for l in _labels(axs[0]) if l.startswith("nut speed")]) == 2
-    assert "dB" in axs[0].get_ylabel() and "Hz" in axs[1].get_xlabel()  # issue 33: Hz by default (tests/plots/test_loop.py)
+    assert len(axs) == 2
+    assert len([l for l in _labels(axs[0]) if l.startswith("nut speed")]) == 2
+    assert "dB" in axs[0].get_ylabel()
+    assert "Hz" in axs[1].get_xlabel()  # issue 33: Hz by default (tests/plots/test_loop.py)
     assert "300 rpm, 500 N" in axs[0].get_title()  # operating point in the title
     nyq = [l for l in axs[0].get_lines() if l.get_label().startswith("Nyquist")]
-    assert len(nyq) == 1 and nyq[0].get_xdata()[0] == pytest.approx(0.5 / plant.sample_time_s)  # 1/(2 Ts) Hz
+    assert len(nyq) == 1
+    assert nyq[0].get_xdata()[0] == pytest.approx(0.5 / plant.sample_time_s)  # 1/(2 Ts) Hz
 
 
 def test_loop_plots_mark_margins_without_overlap(setup):
@@ -161,7 +165,8 @@ def test_loop_plots_mark_margins_without_overlap(setup):
     L = lp.loop_response(d.pid.gains)
     fig, axs = bode_loop(lp.omega, L, d.margins, operating_point="300 rpm, 1000 N", sample_time_s=plant.sample_time_s)
     texts = {t.get_text().split()[0]: t for a in axs for t in a.texts}
-    assert {"PM", "GM"} <= set(texts) and "300 rpm, 1000 N" in axs[0].get_title()
+    assert {"PM", "GM"} <= set(texts)
+    assert "300 rpm, 1000 N" in axs[0].get_title()
     curve_mag, curve_phase = axs[0].get_lines()[0], axs[1].get_lines()[0]
     assert not _overlaps_line(texts["PM"], curve_phase)  # the label sits off the curve
     assert not _overlaps_line(texts["GM"], curve_mag)
@@ -174,21 +179,26 @@ def test_sensitivity_plot_absolute_with_bounds_on_the_same_scale(setup):
     fig, (ax,) = sensitivity_plot(lp.omega, L, scene.ms_max, mt_max=1.3)
     labels = _labels(ax)
     ms = np.max(np.abs(1 / (1 + L)))
-    assert any(l.startswith(f"|S|: Ms = {ms:.3f}") for l in labels) and any(l.startswith("|T|: Mt = ") for l in labels)
+    assert any(l.startswith(f"|S|: Ms = {ms:.3f}") for l in labels)
+    assert any(l.startswith("|T|: Mt = ") for l in labels)
     bounds = {l.get_label(): l.get_ydata()[0] for l in ax.get_lines() if "bound" in l.get_label()}
     assert bounds == {"Ms bound 1.4": 1.4, "Mt bound 1.3": 1.3}  # absolute, same scale as |S|
-    assert ax.get_yscale() == "log" and ax.get_ylim()[1] > max(ms, 1.4) and not ax.texts
+    assert ax.get_yscale() == "log"
+    assert ax.get_ylim()[1] > max(ms, 1.4)
+    assert not ax.texts
 
 
 def test_load_step_plot_has_torque_panel_and_fitted_range(setup):
     plant, scene, _, designs = setup
     fig, (ax, at) = load_step_plot(designs[0], scene, torque_limit=plant.torque_limit)
     assert {"verified (nonlinear)", "predicted (linear)"} <= set(_labels(ax))
-    assert any(l.startswith("motor torque") for l in _labels(at)) and "N m" in at.get_ylabel()
+    assert any(l.startswith("motor torque") for l in _labels(at))
+    assert "N m" in at.get_ylabel()
     assert "IAE" in ax.texts[-1].get_text()
     t, _ = designs[0].verified_runs[0]
     lo, hi = ax.get_xlim()
-    assert t[0] <= lo and hi <= t[-1]  # never wider than the data
+    assert t[0] <= lo
+    assert hi <= t[-1]  # never wider than the data
     assert not _overlaps_line(ax.texts[-1], ax.get_lines()[0])  # metrics box off the response
 
 
@@ -200,20 +210,24 @@ def test_load_step_plot_shows_every_level_and_highlights_the_binding_one(multi):
     verified = [l for l in ax.get_lines() if l.get_label().startswith("verified")]
     assert len(verified) == 2
     bind = [l for l in verified if "(binding)" in l.get_label()]
-    assert len(bind) == 1 and "2500 N" in bind[0].get_label()
+    assert len(bind) == 1
+    assert "2500 N" in bind[0].get_label()
     assert bind[0].get_linewidth() > max(l.get_linewidth() for l in verified if l is not bind[0])
-    assert "ITAE" in ax.texts[-1].get_text() and "2500 N" in ax.get_title()
+    assert "ITAE" in ax.texts[-1].get_text()
+    assert "2500 N" in ax.get_title()
 
 
 def test_comparison_labels_name_the_objective_without_doubled_brackets(setup, multi):
     _, scene, _, designs = setup
     fig, (ax,) = load_step_comparison(designs, scene)
     labels = [l for l in _labels(ax) if "IAE" in l]
-    assert len(labels) == 2 and labels[0].startswith("tuned (Ms <= 1.4): Ms ")
+    assert len(labels) == 2
+    assert labels[0].startswith("tuned (Ms <= 1.4): Ms ")
     assert not any(") (" in l or "((" in l for l in labels)
     _, sc2, _, d2 = multi
     fig, (ax,) = load_step_comparison([d2], sc2, k=1)
-    assert "ITAE" in _labels(ax)[0] and "IAE " not in _labels(ax)[0].replace("ITAE", "")
+    assert "ITAE" in _labels(ax)[0]
+    assert "IAE " not in _labels(ax)[0].replace("ITAE", "")
 
 
 def test_baseline_pairs_plot_draws_each_baseline_with_its_equal_ms_design(setup):
@@ -223,7 +237,8 @@ def test_baseline_pairs_plot_draws_each_baseline_with_its_equal_ms_design(setup)
     assert len(axs) == 2
     for ax, (base, ours) in zip(axs, [(b, a), (a, b)]):
         names = [l.split(":")[0] for l in _labels(ax) if ":" in l]
-        assert names == [base.name, ours.name] and f": Ms {base.margins.ms:.2f}, load" in ax.get_title()
+        assert names == [base.name, ours.name]
+        assert f": Ms {base.margins.ms:.2f}, load" in ax.get_title()
         assert ") (" not in ax.get_title()
 
 
@@ -231,9 +246,12 @@ def test_landscape_marks_optimum_baselines_and_bounds(setup):
     _, scene, loops, designs = setup
     fig, (ax,) = tuning_landscape(loops[0], "iae", 1.4, designs[0].pid, [("b", designs[1].pid)], n=8)
     labels = _labels(ax)
-    assert "optimum" in labels and "b" in labels and any("Ms = 1.4" in l for l in labels)
+    assert "optimum" in labels
+    assert "b" in labels
+    assert any("Ms = 1.4" in l for l in labels)
     assert not any("Mt" in l for l in labels)
-    assert ax.get_xscale() == "log" and "kp" in ax.get_xlabel()
+    assert ax.get_xscale() == "log"
+    assert "kp" in ax.get_xlabel()
     assert any(p.get_hatch() == "//" for p in ax.patches)  # unstable background, no white strip
     fig, (ax,) = tuning_landscape(loops, "iae", 1.4, designs[0].pid, n=8, mt_max=1.3, aggregate="worst")
     assert any("Mt = 1.3" in l for l in _labels(ax))
@@ -248,7 +266,8 @@ def test_gain_contact_and_step_plots(setup):
     t = np.linspace(0, 1, 11)
     fig, (ax, ad) = contact_force_plot(t, {"contact_force_nut": 3 * t, "contact_force_screw": 2 * t}, static=(3.0, 2.0))
     labels = _labels(ax)
-    assert labels[:2] == ["nut-roller", "screw-roller"] and "N" in ax.get_ylabel()
+    assert labels[:2] == ["nut-roller", "screw-roller"]
+    assert "N" in ax.get_ylabel()
     assert {l.get_linestyle() for l in ax.get_lines()[:2]} == {"-", "--"}  # distinguishable
     assert [l.get_ydata()[0] for l in ax.get_lines()[2:]] == [3.0, 2.0]  # static means
     assert np.allclose(ad.get_lines()[0].get_ydata(), t)  # nut minus screw
@@ -260,7 +279,8 @@ def test_functions_draw_into_given_axes(setup):
     _, scene, _, designs = setup
     fig, ax = plt.subplots()
     f2, (a2,) = load_step_plot(designs[0], scene, ax=ax)
-    assert f2 is fig and a2 is ax
+    assert f2 is fig
+    assert a2 is ax
     t = np.linspace(0, 1, 11)
     f3, (a3,) = contact_force_plot(t, {"contact_force_nut": t, "contact_force_screw": t}, ax=ax)
     assert a3 is ax

@@ -70,7 +70,8 @@ def test_batched_run_equals_the_per_sample_runs(family):
     plant, unc, fam, values, thetas = family
     pre, dur = 0.002, 0.03
     br = simulate_batch(fam, thetas, PID_PAPER, W0, 500.0, 1500.0, pre, dur, FIXED)
-    assert br.ok.all() and br.nut_speed.shape == (len(values), br.time.size)
+    assert br.ok.all()
+    assert br.nut_speed.shape == (len(values), br.time.size)
     for i, v in enumerate(values):
         r = run(_member(plant, unc, v), setpoint=W0, load=[(0.0, 500.0), (pre, 1500.0)], duration=dur,
                 controller=PID_PAPER, fidelity="compliant", discrete=True, settings=FIXED)
@@ -121,7 +122,8 @@ def test_compiled_run_with_a_command_delay_equals_the_numpy_law(family):
     interp = SimSettings(integrator="radau", stages=2, substeps=4, jacobian_every=2)
     a = simulate_batch(fam, th, PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.02, jit)
     b = simulate_batch(fam, th, PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.02, interp)
-    assert a.ok.all() and b.ok.all()
+    assert a.ok.all()
+    assert b.ok.all()
     drop = np.max(np.abs(b.nut_speed - b.nut_speed[:, :1]))
     assert np.max(np.abs(a.nut_speed - b.nut_speed)) <= 1e-9 * drop
     assert np.max(np.abs(a.motor_torque - b.motor_torque)) <= 1e-9
@@ -177,7 +179,8 @@ def test_compiled_lanes_equal_the_mapped_casadi_step(family):
         pytest.skip("no C compiler")
     a = simulate_batch(fam, th, PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.02, jit)
     b = simulate_batch(fam, th, PID_PAPER, W0, 500.0, 1500.0, 0.002, 0.02, FIXED)
-    assert a.ok.all() and b.ok.all()
+    assert a.ok.all()
+    assert b.ok.all()
     drop = np.max(np.abs(b.nut_speed - b.nut_speed[:, :1]))
     assert np.max(np.abs(a.nut_speed - b.nut_speed)) <= 1e-9 * drop
     assert np.max(np.abs(a.motor_torque - b.motor_torque)) <= 1e-9

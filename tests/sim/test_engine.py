@@ -42,7 +42,9 @@ def test_energy_balance_closes(paper_plant, fidelity, discrete):
     r = simulate(paper_plant, load=STEP, duration=0.3, controller=default_pid(paper_plant),
                  fidelity=fidelity, discrete=discrete, energy=True)
     e = energy_balance(r)
-    assert e["work_load_j"] > 0 and e["work_dissipated_j"] > 0 and e["work_motor_j"] > e["work_load_j"]
+    assert e["work_load_j"] > 0
+    assert e["work_dissipated_j"] > 0
+    assert e["work_motor_j"] > e["work_load_j"]
     assert e["relative_residual"] < 1e-4, e
 
 
@@ -80,7 +82,8 @@ def test_table3_scenario_drops_grow_near_linearly(paper_plant):
         f_n, f_s = paper_plant.normal_force_factor()
         assert r.force_nut_mean == pytest.approx(r.final_load * f_n, rel=0.01)
         assert r.force_screw_mean == pytest.approx(r.final_load * f_s, rel=0.01)
-        assert r.force_nut_range > 0 and r.force_screw_range > 0
+        assert r.force_nut_range > 0
+        assert r.force_screw_range > 0
 
 
 def test_load_step_is_a_step_not_a_ramp(paper_plant):
@@ -90,7 +93,9 @@ def test_load_step_is_a_step_not_a_ramp(paper_plant):
                  controller=pid, fidelity="rigid")
     load = np.asarray(r.inputs[1])
     jump = np.flatnonzero(np.diff(load))
-    assert len(jump) == 1 and load[jump[0]] == 500.0 and load[jump[0] + 1] == 1500.0
+    assert len(jump) == 1
+    assert load[jump[0]] == 500.0
+    assert load[jump[0] + 1] == 1500.0
     t = r.time
     assert np.any(np.isclose(t, 0.10005, atol=1e-12))  # the segment boundary is an output point
     w = _out(r, "nut_speed")
@@ -207,7 +212,8 @@ def test_off_grid_load_step_acts_within_one_sample(paper_plant, t_step):
     ev = r.info["events"]
     assert ev == [{"input": "axial_load", "time_s": t_step, "acts_at_s": t_step}]
     load = r.inputs[1]
-    assert np.all(load[r.time < t_step - 1e-12] == 500.0) and np.all(load[r.time >= t_step] == 1500.0)
+    assert np.all(load[r.time < t_step - 1e-12] == 500.0)
+    assert np.all(load[r.time >= t_step] == 1500.0)
 
 
 def test_off_grid_setpoint_step_is_read_at_the_next_sample(paper_plant):
@@ -222,7 +228,8 @@ def test_off_grid_setpoint_step_is_read_at_the_next_sample(paper_plant):
     # The command responds at that sample (the PID sees the new error) and is applied one
     # sample later (computation delay).
     u = r.output("torque_command")
-    assert u[k] == pytest.approx(u[0], abs=1e-3) and u[k + 1] > u[0] + 0.05
+    assert u[k] == pytest.approx(u[0], abs=1e-3)
+    assert u[k + 1] > u[0] + 0.05
 
 
 def _verify_step(plant, f0, f1):
@@ -240,10 +247,13 @@ def test_load_decrease_metrics_are_signed(paper_plant):
     500 -> 1500 N drop (near-linear loop), and the integral error is negative."""
     up = _verify_step(paper_plant, 500.0, 1500.0)
     down = _verify_step(paper_plant, 1500.0, 500.0)
-    assert up.peak_deviation_rad_s < -1.0 and down.peak_deviation_rad_s > 1.0
+    assert up.peak_deviation_rad_s < -1.0
+    assert down.peak_deviation_rad_s > 1.0
     assert down.peak_drop_rad_s == pytest.approx(up.peak_drop_rad_s, rel=0.1)
-    assert down.ie < 0 < up.ie and down.iae == pytest.approx(up.iae, rel=0.1)
-    assert down.direction == -1 and up.direction == 1
+    assert down.ie < 0 < up.ie
+    assert down.iae == pytest.approx(up.iae, rel=0.1)
+    assert down.direction == -1
+    assert up.direction == 1
     assert down.recovery_time_s == pytest.approx(up.recovery_time_s, rel=0.2)
 
 
@@ -275,9 +285,11 @@ def test_simulate_is_run_as_time_response(paper_plant):
     r = run(paper_plant, **kw)
     resp = simulate(paper_plant, **kw)
     np.testing.assert_array_equal(resp.outputs, r.outputs)
-    assert list(resp.output_labels) == list(r.output_labels) and resp.info["events"] == r.info["events"]
+    assert list(resp.output_labels) == list(r.output_labels)
+    assert resp.info["events"] == r.info["events"]
     assert energy_balance(resp) == energy_balance(r)
-    assert type(resp).__name__ == "SimResponse" and "energy" in type(resp).__annotations__
+    assert type(resp).__name__ == "SimResponse"
+    assert "energy" in type(resp).__annotations__
     assert "plant" in inspect.signature(simulate).parameters
 
 
@@ -365,7 +377,8 @@ def test_zero_load_start_is_a_steady_state(paper_plant):
     r = run(paper_plant, load=[(0.0, 0.0), (0.01, 1500.0)], duration=0.03, controller=PID(0.085, 14.7),
             discrete=True, energy=True)
     w = r.output("nut_speed")
-    assert np.max(np.abs(w[r.time < 0.01] - w[0])) < 0.01 and w.min() < w[0] - 1.0
+    assert np.max(np.abs(w[r.time < 0.01] - w[0])) < 0.01
+    assert w.min() < w[0] - 1.0
 
 
 # ---- folded from test_stress.py:
@@ -393,9 +406,12 @@ def _check(run, tol):
         r = run()
     except SimulationError as exc:
         msg = str(exc)
-        assert msg.startswith("integration failed between t = ") and "remedy: " in msg and "\n" not in msg, msg
+        assert msg.startswith("integration failed between t = "), msg
+        assert "remedy: " in msg, msg
+        assert "\n" not in msg, msg
         return "error"
-    assert np.all(np.isfinite(r.outputs)) and np.all(np.isfinite(r.states))
+    assert np.all(np.isfinite(r.outputs))
+    assert np.all(np.isfinite(r.states))
     e = energy_balance(r)
     if tol <= 1e-6:
         assert e["relative_residual"] < 1e-4, e

@@ -59,8 +59,10 @@ def test_reversal_through_stiction(fidelity):
     ref = run(PLANT, fidelity=fidelity, settings=REF, **REVERSAL).output("nut_speed")
     r = run(PLANT, fidelity=fidelity, settings=FAST, energy=True, **REVERSAL)
     w = r.output("nut_speed")
-    assert np.all(np.isfinite(r.states)) and np.all(np.isfinite(r.outputs))
-    assert ref[-1] == pytest.approx(-1.0, abs=0.01) and w[-1] == pytest.approx(-1.0, abs=0.01)
+    assert np.all(np.isfinite(r.states))
+    assert np.all(np.isfinite(r.outputs))
+    assert ref[-1] == pytest.approx(-1.0, abs=0.01)
+    assert w[-1] == pytest.approx(-1.0, abs=0.01)
     assert np.max(np.abs(w - ref)) <= ACCURACY * 2.0  # 1 % of the 2 rad/s reversal
     assert energy_balance(r)["relative_residual"] < 1e-4
 
@@ -71,14 +73,16 @@ def test_stiction_holds_the_nut_at_rest_as_in_the_reference(fidelity):
     w = run(PLANT, fidelity=fidelity, settings=FAST, **STICK).output("nut_speed")
     assert np.all(np.isfinite(w))
     stuck = np.abs(ref) < 1e-9
-    assert stuck[-100:].all() and np.all(np.abs(w[-100:]) < 1e-9)  # stuck at exactly zero speed
+    assert stuck[-100:].all()
+    assert np.all(np.abs(w[-100:]) < 1e-9)  # stuck at exactly zero speed
     assert np.max(np.abs(w - ref)) <= ACCURACY * 0.05
 
 
 def test_fixed_step_runs_are_deterministic():
     a = run(PLANT, fidelity="compliant", settings=FAST, **STEP)
     b = run(PLANT, fidelity="compliant", settings=SimSettings(integrator="radau"), **STEP)
-    assert np.array_equal(a.outputs, b.outputs) and np.array_equal(a.states, b.states)
+    assert np.array_equal(a.outputs, b.outputs)
+    assert np.array_equal(a.states, b.states)
     assert a.info["integrator"] == "radau"
 
 
@@ -86,17 +90,20 @@ def test_continuous_mode_fixed_step_is_close_to_the_reference():
     kw = dict(STEP, discrete=False, dt=1e-4, duration=0.02)
     ref = run(PLANT, fidelity="compliant", settings=REF, **kw).output("nut_speed")
     w = run(PLANT, fidelity="compliant", settings=FAST, **kw).output("nut_speed")
-    assert np.all(np.isfinite(w)) and w.shape == ref.shape
+    assert np.all(np.isfinite(w))
+    assert w.shape == ref.shape
     assert np.max(np.abs(w - ref)) <= ACCURACY * (W300 - ref.min())
 
 
 def test_fast_settings_chooses_by_measured_error():
     chosen, m = fast_settings(PLANT, ACCURACY, fidelity="rigid", **STEP)
-    assert chosen == FAST and m["relative"] < 0.5 * ACCURACY
+    assert chosen == FAST
+    assert m["relative"] < 0.5 * ACCURACY
     # an implicit Euler step with one substep is too coarse for a 0.1 % accuracy
     coarse = SimSettings(integrator="radau", stages=1, substeps=1)
     chosen, m = fast_settings(PLANT, 0.001, coarse, fidelity="compliant", **STEP)
-    assert chosen is None and m["relative"] > 0.0005
+    assert chosen is None
+    assert m["relative"] > 0.0005
     assert fixed_step_error(PLANT, FAST, fidelity="rigid", **STEP)["max_error_rad_s"] >= 0.0
     with pytest.raises(ValueError, match="accuracy = 2"):
         fast_settings(PLANT, 2, fidelity="rigid", **STEP)
@@ -136,7 +143,8 @@ def test_jit_runs_the_same_equations_from_a_per_user_cache(tmp_path, monkeypatch
     monkeypatch.setattr(S, "_COMPILED", {})
     mtime = libs[0].stat().st_mtime_ns
     again = run(PLANT, settings=SimSettings(rtol=1e-8, atol=1e-8, jit=True, max_steps=20001), **kw)
-    assert libs[0].stat().st_mtime_ns == mtime and np.array_equal(again.outputs, jit.outputs)
+    assert libs[0].stat().st_mtime_ns == mtime
+    assert np.array_equal(again.outputs, jit.outputs)
 
 
 def test_jit_without_a_compiler_falls_back_with_a_note(tmp_path, monkeypatch):

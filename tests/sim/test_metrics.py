@@ -35,7 +35,8 @@ def test_known_shapes():
     assert m.recovery_time_s == pytest.approx(math.log(20.0), abs=1e-3)
     assert m.steady_state_error_rad_s == pytest.approx(0.0, abs=1e-6)
     assert m.overshoot_rad_s == 0.0
-    assert math.isnan(m.peak_torque_n_m) and not m.saturated
+    assert math.isnan(m.peak_torque_n_m)
+    assert not m.saturated
 
 
 def test_drop_time_overshoot_torque_and_saturation():
@@ -84,7 +85,8 @@ def test_metrics_scale_with_amplitude(a, tau, w):
     assert m2.ie == pytest.approx(a * m1.ie, rel=1e-9, abs=1e-12)
     assert m2.ise == pytest.approx(a * a * m1.ise, rel=1e-9)
     assert m2.recovery_time_s == pytest.approx(m1.recovery_time_s)
-    assert m1.iae >= abs(m1.ie) - 1e-12 and m1.ise >= 0
+    assert m1.iae >= abs(m1.ie) - 1e-12
+    assert m1.ise >= 0
 
 
 def test_margins_match_known_loop():
@@ -103,5 +105,7 @@ def test_margins_match_known_loop():
 def test_margins_without_crossings_are_infinite():
     w = np.logspace(-2, 2, 100)
     m = margins_from_response(w, 0.1 / (1j * w + 1))
-    assert math.isinf(m.gm_db) and math.isinf(m.pm_deg) and math.isnan(m.wc_rad_s)
+    assert math.isinf(m.gm_db)
+    assert math.isinf(m.pm_deg)
+    assert math.isnan(m.wc_rad_s)
     assert m.as_dict()["gm_db"] is None

@@ -35,7 +35,8 @@ def test_the_tableau_is_stiffly_accurate():
     assert alpha[-1] == alpha[-2] == 1.0
     a = _full(RODAS4["a"])
     # Stiffly accurate: stage 6's input equals stage 5's output and the solution is stage 6's output.
-    assert np.allclose(a[5, :5], RODAS4["m"][:5]) and np.allclose(a[4, :4], RODAS4["m"][:4])
+    assert np.allclose(a[5, :5], RODAS4["m"][:5])
+    assert np.allclose(a[4, :4], RODAS4["m"][:4])
     assert RODAS4["e"] == (0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
@@ -59,11 +60,13 @@ def test_a_stiff_oscillator_matches_the_exact_solution_within_the_tolerance():
     for tol in (1e-6, 1e-8):
         seg = _linear_segment(a_mat, n_out, tol)
         xs = seg(x0=z0, p=[0.0])["xf"]
-        assert xs.shape == (3, n_out) and np.all(np.isfinite(xs))
+        assert xs.shape == (3, n_out)
+        assert np.all(np.isfinite(xs))
         errs.append(float(np.max(np.abs(xs - exact))))
         assert seg.stats["accepted"] >= n_out
     # Measured 8.7e-5 and 9.1e-7 (global error over 3 periods of the oscillator).
-    assert errs[0] < 3e-4 and errs[1] < 3e-6
+    assert errs[0] < 3e-4
+    assert errs[1] < 3e-6
     assert errs[1] < errs[0] / 30  # the error follows the tolerance
 
 
@@ -102,7 +105,8 @@ def test_tighter_tolerances_take_more_steps_and_land_on_every_output():
         s = SimSettings(integrator="rodas", rtol=tol, atol=tol)
         run(PLANT, fidelity="compliant", settings=s, **STEP)
         seg = continuous_integrator(built, s, 180)
-        assert isinstance(seg, RodasSegment) and seg.n_out == 180
+        assert isinstance(seg, RodasSegment)
+        assert seg.n_out == 180
         steps.append(seg.stats["accepted"])
     assert 180 <= steps[0] < steps[1]
 
@@ -169,7 +173,8 @@ def test_the_wall_time_budget_stops_a_rodas_segment_inside_it():
     with pytest.raises(SimulationError, match=r"^run stopped at t = (\S+) s: wall-time budget") as err:
         run(PLANT, fidelity="compliant", settings=s, **STEP)
     t_stop = float(err.value.args[0].split("t = ")[1].split(" s")[0])
-    assert 0.002 < t_stop < 0.02 and len(ticks) == 6  # the start, then 5 checks: stopped at the first over 4.5 s
+    assert 0.002 < t_stop < 0.02
+    assert len(ticks) == 6  # the start, then 5 checks: stopped at the first over 4.5 s
 
 
 def _one_step(f, nz, npar):
@@ -220,7 +225,8 @@ def test_the_step_is_a_stable_and_stiffly_damped_on_the_left_half_plane():
         assert r(0.0, y) <= 1.0 + 1e-12
         for x in (-1e-3, -1.0, -1e2, -1e5):
             assert r(x * max(y, 1.0), y) <= 1.0 + 1e-12
-    assert r(-1e8, 0.0) < 1e-6 and r(0.0, 1e8) < 1e-6  # measured 8.8e-8 both
+    assert r(-1e8, 0.0) < 1e-6
+    assert r(0.0, 1e8) < 1e-6  # measured 8.8e-8 both
 
 
 #: Plants and inputs the paper load step does not exercise: other screws (stiffness, lead, limits),
@@ -249,7 +255,8 @@ def test_other_plants_and_inputs_match_a_tight_cvodes_run_within_the_tolerance(c
     plant = load_plant(name)
     ref = run(plant, settings=SimSettings(rtol=1e-12, atol=1e-12, max_steps=10**6), **kw)
     r = run(plant, settings=SimSettings(integrator="rodas", rtol=1e-8, atol=1e-8), **kw)
-    assert np.array_equal(r.time, ref.time) and np.all(np.isfinite(r.states))
+    assert np.array_equal(r.time, ref.time)
+    assert np.all(np.isfinite(r.states))
     scale = np.r_[state_scale(plant_model(plant, kw["fidelity"])), 100.0, plant.torque_limit, 100.0]
     assert scale.size == r.states.shape[0]
     if case == "saturating":  # the run does saturate
@@ -296,7 +303,8 @@ def test_a_loose_tolerance_still_lands_on_every_output_with_finite_values():
     # rtol = atol = 0.5 (the largest steps the controller allows, capped by the output points).
     ref = run(PLANT, fidelity="compliant", settings=SimSettings(rtol=1e-12, atol=1e-12), **STEP)
     r = run(PLANT, fidelity="compliant", settings=SimSettings(integrator="rodas", rtol=0.5, atol=0.5), **STEP)
-    assert np.array_equal(r.time, ref.time) and np.all(np.isfinite(r.outputs))
+    assert np.array_equal(r.time, ref.time)
+    assert np.all(np.isfinite(r.outputs))
     assert np.max(np.abs(r.output("nut_speed") - ref.output("nut_speed"))) < 0.5 * (W300 - ref.output("nut_speed").min())
 
 
@@ -333,8 +341,12 @@ def test_a_step_whose_stages_leave_the_domain_is_rejected_not_taken_with_nan():
     att = rodas_attempt(f, 1, 1, lu_kernels)
     st1, hit = att([0.0, 1.0, 1.0], [0.0], [1.0, 1e-6, 1e-6])
     st1 = np.asarray(st1).ravel()
-    assert st1[0] == 0.0 and st1[2] == 1.0 and 0 < st1[1] < 1.0 and float(hit) == 0.0, st1
+    assert st1[0] == 0.0, st1
+    assert st1[2] == 1.0, st1
+    assert 0 < st1[1] < 1.0, st1
+    assert float(hit) == 0.0, st1
     # and a segment from there gets through on shorter steps, finite
     seg = RodasSegment(att.mapaccum("c", CHUNK_ATTEMPTS, [0], [0]), 1, 4, 1e-6, 1e-6, 10**5)
     xs = seg(x0=[1.0], p=[0.0])["xf"]
-    assert np.all(np.isfinite(xs)) and np.all(np.abs(xs) < 1e-6)
+    assert np.all(np.isfinite(xs))
+    assert np.all(np.abs(xs) < 1e-6)

@@ -21,9 +21,13 @@ def report(paper_report):
 def test_verified_best_respects_ms_and_beats_every_baseline(report):
     b = report.best
     assert b.margins.ms <= report.scene.ms_max
-    assert b.pid.kd == 0.0 and b.pid.kp > 0 and b.pid.ki > 0
+    assert b.pid.kd == 0.0
+    assert b.pid.kp > 0
+    assert b.pid.ki > 0
     names = [d.name for d in report.baselines]
-    assert any("paper" in n for n in names) and any("SIMC" in n for n in names) and any("PM 60" in n for n in names)
+    assert any("paper" in n for n in names)
+    assert any("SIMC" in n for n in names)
+    assert any("PM 60" in n for n in names)
     for c in report.comparisons:
         assert c["tuned_ms"] <= c["baseline_ms"] * (1 + 1e-9)
         assert c["tuned_objective_verified"] < c["baseline_objective_verified"], c
@@ -36,7 +40,8 @@ def test_prediction_matches_verification_within_10_percent(report):
     p, v = b.predicted[0], b.verified[0]
     assert abs(p.iae / v.iae - 1) < 0.10
     assert abs(p.peak_drop_rad_s / v.peak_drop_rad_s - 1) < 0.05
-    assert not v.saturated and v.recovery_time_s < 0.1
+    assert not v.saturated
+    assert v.recovery_time_s < 0.1
 
 
 def _independent_iae(report, pid):
@@ -79,7 +84,9 @@ def test_off_grid_step_time_is_verified_on_time():
 def test_load_decrease_is_tuned_and_verified_signed():
     rep = tune_actuator(load_plant(), load_scene().replace(initial_load=1500.0, final_loads=(500.0,), candidates=1))
     p, v = rep.best.predicted[0], rep.best.verified[0]
-    assert v.direction == -1 and v.peak_deviation_rad_s > 1.0 and v.ie < 0
+    assert v.direction == -1
+    assert v.peak_deviation_rad_s > 1.0
+    assert v.ie < 0
     assert v.peak_deviation_rad_s == pytest.approx(p.peak_deviation_rad_s, rel=0.05)
     assert rep.best.objective_verified == pytest.approx(rep.best.objective_predicted, rel=PREDICTION_TOLERANCE)
 
@@ -105,7 +112,8 @@ def test_a_resolved_problem_given_is_the_one_tuned_in_either_form():
     resolved = speed_kind(rigid).resolve(plant)
     assert resolve_scene(plant, rigid) == (rigid, resolved.fidelity_reason, resolved)
     rep = tune_actuator(plant, auto, workers=1, resolved=resolve_scene(plant, rigid))
-    assert rep.scene == rigid and rep.fidelity_reason == "rigid (set by the scene)"
+    assert rep.scene == rigid
+    assert rep.fidelity_reason == "rigid (set by the scene)"
     assert rep.as_dict()["verification"]["fidelity"] == "rigid (set by the scene)"
 
 
@@ -120,7 +128,9 @@ def test_cli_writes_json_report_and_plots(default_cli_run):
     out, plots, tmp_path = default_cli_run.json, default_cli_run.plots, default_cli_run.folder
     assert default_cli_run.code == 0
     text = default_cli_run.out
-    assert "Tuned PI" in text and "Baselines" in text and "Run time" in text
+    assert "Tuned PI" in text
+    assert "Baselines" in text
+    assert "Run time" in text
     d = json.loads(out.read_text())
     for key in ("plant", "scene", "gains", "predicted", "verified", "margins", "baselines", "timing_s"):
         assert key in d
@@ -136,7 +146,8 @@ def test_cli_writes_json_report_and_plots(default_cli_run):
     assert {p.stem for p in pngs} >= {"plant_bode", "loop_bode", "sensitivity", "load_step", "baselines", "landscape", "contact_forces"}
     for p in pngs:
         data = p.read_bytes()
-        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+        assert data[:8] == b"\x89PNG\r\n\x1a\n"
+        assert len(data) > 10_000
         assert p.with_suffix(".svg").read_text().lstrip().startswith("<?xml")
 
 
@@ -196,16 +207,19 @@ def test_cli_estimator_and_feedforward(tmp_path, capsys):
     rc = main(["--estimator", "kf", "--feedforward", "--duration", "0.3", "--json", str(out)])
     assert rc == 0
     text = capsys.readouterr().out
-    assert "load feed-forward gain kff" in text and "Speed estimation" in text
+    assert "load feed-forward gain kff" in text
+    assert "Speed estimation" in text
     d = json.loads(out.read_text())
-    assert d["estimator"]["kind"] == "kf" and d["estimator"]["feedforward"] is True
+    assert d["estimator"]["kind"] == "kf"
+    assert d["estimator"]["feedforward"] is True
     assert len(d["estimator"]["estimation"]) == 1  # one entry per final load
     est = d["estimator"]["estimation"][0]
     # The filter's speed is closer to the true nut speed than the drive's difference.
     assert 0 < est["kf_speed_rms_rad_s"] < est["fd_speed_rms_rad_s"]
     pi_alone = next(b for b in d["baselines"] if b["name"].startswith("tuned PI alone"))
     # Load feed-forward at the same Ms bound: the verified peak drop falls by at least 30 %.
-    assert d["margins"]["ms"] <= 1.4 and pi_alone["margins"]["ms"] <= 1.4 + 1e-9
+    assert d["margins"]["ms"] <= 1.4
+    assert pi_alone["margins"]["ms"] <= 1.4 + 1e-9
     assert d["verified"]["peak_drop_rad_s"] < 0.7 * pi_alone["verified"]["peak_drop_rad_s"]
     assert d["gains"]["kff"] > 0
 
@@ -217,15 +231,20 @@ def test_a_design_whose_verified_run_misbehaves_is_flagged_and_never_wins():
     plant = load_plant().with_params({"sensor.sample_time_s": 0.01})
     rep = tune_actuator(plant, load_scene().replace(candidates=1))
     assert rep.status.startswith("flagged: ")
-    assert any("reverses" in f for f in rep.best.flags) and any("never recovers" in f for f in rep.best.flags)
-    assert not any(c["beaten"] for c in rep.comparisons) and not rep.beats_all_baselines
+    assert any("reverses" in f for f in rep.best.flags)
+    assert any("never recovers" in f for f in rep.best.flags)
+    assert not any(c["beaten"] for c in rep.comparisons)
+    assert not rep.beats_all_baselines
     d = rep.as_dict()
-    assert d["status"] == rep.status and d["best"]["flags"] == list(rep.best.flags)
+    assert d["status"] == rep.status
+    assert d["best"]["flags"] == list(rep.best.flags)
     assert any("reverses" in w for w in rep.warnings)
 
 
 def test_healthy_report_has_status_ok(report):
-    assert report.status == "ok" and report.best.healthy and report.as_dict()["status"] == "ok"
+    assert report.status == "ok"
+    assert report.best.healthy
+    assert report.as_dict()["status"] == "ok"
     # The paper's manual design never settles into the band: flagged, so it can be beaten but
     # could never be the best.
     paper = next(d for d in report.baselines if "paper" in d.name)
@@ -240,10 +259,12 @@ def test_cli_exports_drive_gains(tmp_path, capsys):
     exported = tomllib.loads(out.read_text())
     gains = json.loads(js.read_text())["gains"]
     text = json.dumps(exported)
-    assert str(gains["kp"])[:6] in text and str(gains["ki"])[:6] in text
+    assert str(gains["kp"])[:6] in text
+    assert str(gains["ki"])[:6] in text
     assert main(["--export", str(tmp_path / "drive.txt")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "expected a path ending in .json, .toml, .c, .st or .xml" in err[0]
+    assert len(err) == 1
+    assert "expected a path ending in .json, .toml, .c, .st or .xml" in err[0]
     assert not (tmp_path / "drive.txt").exists()
 
 
@@ -261,7 +282,8 @@ def test_cli_flagged_best_exits_3_unless_accepted(tmp_path, capsys):
     argv = ["--plant", str(plant), "--duration", "1.2", "--json", str(js)]
     assert main(argv) == 3
     captured = capsys.readouterr()
-    assert "Status: flagged" in captured.out and "--accept-unconverged" in captured.err
+    assert "Status: flagged" in captured.out
+    assert "--accept-unconverged" in captured.err
     assert json.loads(js.read_text())["status"].startswith("flagged: ")
     assert main(argv + ["--accept-unconverged", "--quiet"]) == 0
 
@@ -276,16 +298,20 @@ def test_cli_robust_scene_with_monte_carlo(tmp_path, capsys):
     d = json.loads(js.read_text())
     assert d["robust"]["comparison"]["designs"]["robust"]["ms_violations"] == 0
     mc = d["monte_carlo"]
-    assert mc["complete"] and mc["samples"] == 6 and mc["seed"] == 3
+    assert mc["complete"]
+    assert mc["samples"] == 6
+    assert mc["seed"] == 3
     names = [x["name"] for x in mc["designs"]]
     assert names[:2] == ["nominal design", "robust design"]
     for x in mc["designs"]:
         lo, hi = x["yield_ci95"]
-        assert 0 <= lo <= x["yield"] <= hi <= 1 and x["passed"] == round(x["yield"] * 6)
+        assert 0 <= lo <= x["yield"] <= hi <= 1
+        assert x["passed"] == round(x["yield"] * 6)
     first = [x["passed"] for x in mc["designs"]]
     assert main(argv) == 0
     assert [x["passed"] for x in json.loads(js.read_text())["monte_carlo"]["designs"]] == first
     assert main(["--monte-carlo", "-1"]) == 2
     assert main(["--scheduler", "local"]) == 2  # a scheduler without samples to run
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(line.startswith("prsa-tune: ") for line in err)
+    assert len(err) == 2
+    assert all(line.startswith("prsa-tune: ") for line in err)

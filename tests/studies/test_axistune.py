@@ -284,7 +284,8 @@ def test_the_toolkits_speed_loop_tuner_takes_a_linear_axis():
                                  duration=0.1, candidates=1)
     rep = tune_actuator(plant, scene, workers=1)
     best = rep.best
-    assert best.tuner_status == "optimal" and best.margins.ms <= scene.ms_max * (1 + 1e-3)
+    assert best.tuner_status == "optimal"
+    assert best.margins.ms <= scene.ms_max * (1 + 1e-3)
     assert best.objective_verified == pytest.approx(best.objective_predicted, rel=0.05)
     assert any(b.margins.ms > 10 for b in rep.baselines)  # the case that used to raise
     assert "coordinates: load (position m, force N)" in format_report(rep)
@@ -329,7 +330,8 @@ def test_the_cascade_tuner_takes_a_linear_axis(tmp_path):
     designs = tune_move(plant, scene)
     for d in designs:
         assert d.ms <= 1.4 * (1 + 1e-3)
-        assert d.verified is not None and math.isfinite(d.verified.rms_following_error_m)
+        assert d.verified is not None
+        assert math.isfinite(d.verified.rms_following_error_m)
         assert d.verified.peak_torque_n_m < plant.values["drive.force_limit_n"]  # N in load coordinates
     assert "coordinates: load (position m, force N)" in format_move_report(plant, scene, designs)
 

@@ -161,8 +161,10 @@ def test_prsa_tune_refuses_before_tuning(server, short_timeouts, stand_in, capsy
     address = f"tcp://127.0.0.1:{server.port}"
     rc = main(["--scene", "robust-load-step", "--monte-carlo", "2", "--scheduler", address])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and not stand_in, (rc, err)
-    assert len(err) == 1 and "Traceback" not in err[0], err
+    assert rc == 2, (rc, err)
+    assert not stand_in, (rc, err)
+    assert len(err) == 1, err
+    assert "Traceback" not in err[0], err
     assert err[0].startswith(f"prsa-tune: error: --scheduler {address!r}: not a Dask scheduler / no answer at "
                              f"127.0.0.1:{server.port} within 0.5 s: "), err[0]
     assert re.search(EXPECT[server.kind], err[0]), err[0]
@@ -174,8 +176,11 @@ def test_prsa_tune_refuses_an_http_server_before_tuning(http_server, short_timeo
     address = f"tcp://127.0.0.1:{http_server}"
     rc = main(["--scene", "robust-load-step", "--monte-carlo", "2", "--scheduler", address])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and not stand_in and len(err) == 1, (rc, err)
-    assert f"--scheduler {address!r}: not a Dask scheduler / no answer" in err[0] and "no answer (a Dask" in err[0]
+    assert rc == 2, (rc, err)
+    assert not stand_in, (rc, err)
+    assert len(err) == 1, (rc, err)
+    assert f"--scheduler {address!r}: not a Dask scheduler / no answer" in err[0]
+    assert "no answer (a Dask" in err[0]
 
 
 def test_run_monte_carlo_refuses_before_any_work(server, short_timeouts, monkeypatch, paper_plant):

@@ -43,11 +43,14 @@ def test_linear_yield_grid_agrees_with_an_independent_linear_check(roller16k):
     spec = dict(scene.sections.as_dict()["spec"])
     n, seed = 6, 5
     g = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, seed=seed, n=n, size=5, picks=3)
-    assert g["points"] == 25 and g["samples"] == n and 1 <= len(g["designs"]) <= 3
+    assert g["points"] == 25
+    assert g["samples"] == n
+    assert 1 <= len(g["designs"]) <= 3
     assert max(g["linear_yield"].values()) == g["best_linear_yield"]
     unc, ops = uncertainty_model(plant, scene.sections.plant_overrides), operating_points(scene)
     for name, pid in g["designs"].items():
-        assert pid.kd == 0 and 0.15 <= pid.kp <= 1.3  # inside the grid's span: half the smallest .. twice the largest
+        assert pid.kd == 0
+        assert 0.15 <= pid.kp <= 1.3  # inside the grid's span: half the smallest .. twice the largest
         passed = unsure = 0
         for i in range(n):
             values, op, _ = draw_sample(unc, ops, seed, i)
@@ -76,8 +79,11 @@ def test_linear_yield_grid_is_the_same_on_two_processes(roller16k):
     kw = dict(seed=7, n=16, size=4, picks=3)
     one = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, workers=1, **kw)
     two = linear_yield_grid(plant, scene, [default_pid(plant), PID(0.3, 50.0)], spec, workers=2, **kw)
-    assert one["proposed"] and one["linear_yield"] == two["linear_yield"] and one["proposed"] == two["proposed"]
-    assert one["best_linear_yield"] == two["best_linear_yield"] and one["designs"] == two["designs"]
+    assert one["proposed"]
+    assert one["linear_yield"] == two["linear_yield"]
+    assert one["proposed"] == two["proposed"]
+    assert one["best_linear_yield"] == two["best_linear_yield"]
+    assert one["designs"] == two["designs"]
 
 
 def test_proposals_tuned_in_two_processes_equal_the_serial_ones(roller):
@@ -111,22 +117,30 @@ def test_design_to_spec_decides_among_the_near_max_designs_on_more_samples(rolle
     plant, scene = roller16k
     r = design_to_spec(plant, scene, n_search=6, n_decide=12, n_final=6, seed=2, ms_levels=(1.5,),
                        extra={"rule of thumb": default_pid(plant)})
-    assert r.grid is not None and r.grid["proposed"] and set(r.grid["proposed"]) <= set(r.designs)
+    assert r.grid is not None
+    assert r.grid["proposed"]
+    assert set(r.grid["proposed"]) <= set(r.designs)
     assert {row["name"] for row in r.search["rows"]} == set(r.designs)
     assert r.chosen is not None
     near = {row["name"] for row in r.search["rows"] if row["near_max"] and row["passed"] > 0}
     if r.decide is None:
-        assert len(near) == 1 and r.chosen in near
+        assert len(near) == 1
+        assert r.chosen in near
     else:
         rows = r.decide["rows"]
-        assert {x["name"] for x in rows} <= near and 2 <= len(rows) <= MAX_FINALISTS
-        assert all(x["samples"] == 12 for x in rows) and r.chosen == r.decide["recommended"]
+        assert {x["name"] for x in rows} <= near
+        assert 2 <= len(rows) <= MAX_FINALISTS
+        assert all(x["samples"] == 12 for x in rows)
+        assert r.chosen == r.decide["recommended"]
         _check_rule({**r.decide, "table": rows, "name": r.chosen, "design": r.chosen})
-    assert r.final_yield.n == 6 and r.final_seed == 3
+    assert r.final_yield.n == 6
+    assert r.final_seed == 3
     text = r.format("iae")
-    assert "linear-yield grid" in text and f"chosen: {r.chosen}" in text
+    assert "linear-yield grid" in text
+    assert f"chosen: {r.chosen}" in text
     off = design_to_spec(plant, scene, n_search=4, n_decide=4, n_final=4, seed=2, ms_levels=(1.5,), grid=False)
-    assert off.grid is None and off.decide is None
+    assert off.grid is None
+    assert off.decide is None
     assert not any(k.startswith("linear-yield grid") for k in off.designs)
 
 
@@ -152,7 +166,8 @@ def _acceptance(plant, scene, *, expect_95: bool):
                           spec=dict(scene.sections.as_dict()["spec"])).designs[0]
     assert (ref.passed, ref.n) == (fy.passed, fy.n)
     text = r.format("iae")
-    assert f"* {r.chosen}" in text and f"({fy.passed}/200)" in text
+    assert f"* {r.chosen}" in text
+    assert f"({fy.passed}/200)" in text
     if expect_95:
         assert fy.yield_ >= 0.95, text
     return r
@@ -193,23 +208,27 @@ def test_design_to_spec_chooses_by_the_rule_and_reports_fresh_samples(roller):
     extra = {"rule of thumb": PID(0.6361989083357843, 79.94711266598183)}
     r = design_to_spec(plant, scene, n_search=4, n_final=4, seed=3, ms_levels=(1.4, 1.5), extra=extra)
     # nominal and robust at two Ms bounds, plus the given design (unless a duplicate)
-    assert set(r.designs) >= {"rule of thumb"} and len(r.designs) >= 3
+    assert set(r.designs) >= {"rule of thumb"}
+    assert len(r.designs) >= 3
     names = {row["name"] for row in r.search["rows"]}
     assert names == set(r.designs)
     if r.chosen is None:
-        assert all(row["passed"] == 0 for row in r.search["rows"]) and r.final is None
+        assert all(row["passed"] == 0 for row in r.search["rows"])
+        assert r.final is None
         return
     _check_rule({**r.search, "table": r.search["rows"], "name": r.chosen, "design": r.chosen})
     # the reported yield is an independent Monte Carlo's of the chosen gains on seed + 1 ...
     ref = run_monte_carlo(plant, scene, {"x": r.pid}, 4, seed=4, workers=1, quiet=True).designs[0]
     fy = r.final_yield
-    assert (fy.passed, fy.n, fy.ci95) == (ref.passed, ref.n, ref.ci95) and r.final_seed == 4
+    assert (fy.passed, fy.n, fy.ci95) == (ref.passed, ref.n, ref.ci95)
+    assert r.final_seed == 4
     # ... whose samples are not the search's
     unc, ops = uncertainty_model(plant, scene.sections.plant_overrides), tuple(operating_points(scene))
     for i in range(4):
         assert draw_sample(unc, ops, 3, i)[0] != draw_sample(unc, ops, 4, i)[0]
     text = r.format("iae")
-    assert f"* {r.chosen}" in text and "fresh samples (seed 4, not used by the search)" in text
+    assert f"* {r.chosen}" in text
+    assert "fresh samples (seed 4, not used by the search)" in text
 
 
 @pytest.mark.parametrize("kw, match", [({"n_search": 0}, "n_search = 0"), ({"n_final": True}, "n_final = True"),
@@ -236,7 +255,9 @@ def test_cli_design_to_spec_refusals_are_one_line_exit_2(argv, match, capsys):
 
     code = tune_main(argv)
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and match in err[0], err
+    assert code == 2, err
+    assert len(err) == 1, err
+    assert match in err[0], err
 
 
 def test_cli_design_to_spec_refuses_a_scene_sample_count_beyond_the_study_before_any_work(tmp_path, capsys, monkeypatch):
@@ -255,9 +276,10 @@ def test_cli_design_to_spec_refuses_a_scene_sample_count_beyond_the_study_before
     monkeypatch.setattr(scenerobust, "tune_robust_actuator", lambda *a, **k: pytest.fail("the study started"))
     code = tune_main(["--scene", str(path), "--design-to-spec"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and err == ["prsa-tune: error: --design-to-spec: the scene robust-load-step has [robust] "
+    assert code == 2, err
+    assert (err == ["prsa-tune: error: --design-to-spec: the scene robust-load-step has [robust] "
                                  "monte_carlo = 500000; expected a sample count of the final check in 1..100000 "
-                                 "(or --monte-carlo N)"], err
+                                 "(or --monte-carlo N)"]), err
 
 
 @pytest.mark.slow
@@ -278,7 +300,9 @@ def test_cli_design_to_spec_exports_the_chosen_design(roller, tmp_path, capsys):
     assert code == 0, text
     d = json.loads(out.read_text())
     dts, rec = d["design_to_spec"], d["recommended"]
-    assert rec["name"] == dts["chosen"] and rec["passed"] == dts["passed"] and rec["samples"] == 8
+    assert rec["name"] == dts["chosen"]
+    assert rec["passed"] == dts["passed"]
+    assert rec["samples"] == 8
     assert dts["final_seed"] != dts["search_seed"]
     assert [x["name"] for x in d["monte_carlo"]["designs"]] == [dts["chosen"]]
     _check_rule({**dts["search"], "table": dts["search"]["rows"], "name": dts["chosen"], "design": dts["chosen"]})

@@ -21,8 +21,10 @@ def test_speed_kind_is_the_registry_kind_of_a_speed_scene():
     assert type(speed_kind(load_scene())) is StepRuns
     assert type(speed_kind(load_scene("duty-ramp"))) is ProfileRuns
     # the registry's problems are the same kinds with the studies and the report added
-    assert isinstance(problem(load_scene()), StepRuns) and isinstance(problem(load_scene("duty-ramp")), ProfileRuns)
-    assert speed_kind(load_scene()).name == LoadStep.name and speed_kind(load_scene("duty-ramp")).name == DutyCycle.name
+    assert isinstance(problem(load_scene()), StepRuns)
+    assert isinstance(problem(load_scene("duty-ramp")), ProfileRuns)
+    assert speed_kind(load_scene()).name == LoadStep.name
+    assert speed_kind(load_scene("duty-ramp")).name == DutyCycle.name
 
 
 def test_speed_kind_refuses_a_move_scene():
@@ -48,7 +50,8 @@ def test_aggregate_mix_weighs_the_records_by_the_setpoint_share(paper_plant):
 def test_load_steps_sum_and_take_no_tuner_weights(paper_plant):
     spec = loop_spec(paper_plant, load_scene("paper-table3").replace(aggregate="sum"))
     assert spec.problem.aggregate([1.0, 2.0, 4.0], spec) == 7.0
-    assert spec.problem.tuner_weights(spec) is None and spec.records == ()
+    assert spec.problem.tuner_weights(spec) is None
+    assert spec.records == ()
 
 
 def test_a_p_only_design_starts_below_the_setpoint_on_load_steps_only(paper_plant):
@@ -92,7 +95,8 @@ def test_no_module_outside_the_registry_branches_on_the_duty_cycle():
     from prsa_ctrl.studies.scene import LoadStepScene, Scene
     from prsa_ctrl.studies.scenekinds import KINDS
 
-    assert not hasattr(Scene, "is_profile") and not hasattr(load_scene("duty-ramp"), "is_profile")
+    assert not hasattr(Scene, "is_profile")
+    assert not hasattr(load_scene("duty-ramp"), "is_profile")
     readers = {p.relative_to(PKG).as_posix() for p in PKG.rglob("*.py") if _tests_scene_type(p)}
     assert readers == set()
     assert {k: v.scene_type for k, v in KINDS.items()} == {"load-step": LoadStepScene, "duty-cycle": DutyCycleScene,
@@ -109,7 +113,8 @@ def test_the_duty_records_are_sampled_at_the_plant_period(paper_plant):
 
 def test_every_kind_says_what_it_is_and_a_move_takes_no_speed_study():
     move = problem(load_move_scene("paper-move"))
-    assert move.described == "a move (cascade) scene" and not any(move.takes(s) for s in STEP_STUDIES)
+    assert move.described == "a move (cascade) scene"
+    assert not any(move.takes(s) for s in STEP_STUDIES)
     assert problem(load_scene("duty-ramp")).described.startswith("a duty cycle (")
     assert problem(load_scene()).described == "a load-step scene"
 
@@ -137,7 +142,8 @@ def test_a_duty_cycle_tunes_and_verifies_through_the_kalman_filter(paper_plant):
     best = rep.best
     assert best.estimator == "kf"
     assert best.pid.kff > 0
-    assert len(best.verified) == 2 and len(best.estimation) == 2
+    assert len(best.verified) == 2
+    assert len(best.estimation) == 2
     for e in best.estimation:  # the verified runs measured through the filter
         assert e["kf_speed_rms_rad_s"] < e["fd_speed_rms_rad_s"]
     assert best.objective_verified == pytest.approx(0.75 * best.verified[0].iae + 0.25 * best.verified[1].iae,

@@ -35,13 +35,15 @@ def test_batched_monte_carlo_equals_the_per_sample_path(paper_both):
     the reference, so their metrics agree within the bounds that accuracy gives (the speed
     metrics within ``accuracy x drop``, the integrals within that times the record's length)."""
     batched, per_sample, scene = paper_both
-    assert batched.integration["path"] == "batched" and per_sample.integration["path"] == "per-sample"
+    assert batched.integration["path"] == "batched"
+    assert per_sample.integration["path"] == "per-sample"
     # same seeds, same samples
     assert np.array_equal(batched.samples["index"], per_sample.samples["index"])
     for k in batched.samples["values"]:
         assert np.array_equal(batched.samples["values"][k], per_sample.samples["values"][k])
     mb, mp = batched.samples["metrics"][:, 0, :10], per_sample.samples["metrics"][:, 0, :10]
-    assert np.all(np.isfinite(mb)) and np.ptp(mb[:, 0]) > 0.1  # 20 different, finished samples
+    assert np.all(np.isfinite(mb))
+    assert np.ptp(mb[:, 0]) > 0.1  # 20 different, finished samples
     drop = mp[:, mc.METRICS.index("peak_drop_rad_s")]
     acc, span = scene.accuracy, scene.duration - scene.step_time
     sse = np.abs(mp[:, mc.METRICS.index("steady_state_error_rad_s")])
@@ -80,7 +82,8 @@ def test_batched_chunk_equals_the_per_sample_run_of_the_same_scheme(paper_both):
     got = mcbatch.evaluate_batch(job, idx)
     ref = [evaluate(replace(job, batched=False), i) for i in idx]
     for g, r in zip(got, ref):
-        assert g[0] == r[0] and g[1] == r[1]
+        assert g[0] == r[0]
+        assert g[1] == r[1]
         mb, mp = g[3][0, :10], r[3][0, :10]
         drop = mp[mc.METRICS.index("peak_drop_rad_s")]
         assert drop > 1.0
@@ -96,14 +99,18 @@ def test_batched_chunk_equals_the_per_sample_run_of_the_same_scheme(paper_both):
 def test_batched_monte_carlo_quotes_its_measured_error(paper_both):
     batched, _, scene = paper_both
     ig = batched.integration
-    assert ig["path"] == "batched" and ig["integrator"] == "radau" and ig["substeps"] == 8
+    assert ig["path"] == "batched"
+    assert ig["integrator"] == "radau"
+    assert ig["substeps"] == 8
     assert ig["jacobian_every"] == 2
-    assert 3 <= len(ig["checks"]) <= 11 and sorted(c["index"] for c in ig["checks"]) == ig["check_samples"]
+    assert 3 <= len(ig["checks"]) <= 11
+    assert sorted(c["index"] for c in ig["checks"]) == ig["check_samples"]
     assert ig["relative"] == max(c["relative"] for c in ig["checks"]) <= 0.5 * scene.accuracy
     assert ig["relative"] > 0  # measured, not assumed
     assert ig["reference"]["integrator"] == "cvodes"
     line = [x for x in mc.format_report(batched).splitlines() if x.startswith("integration: ")]
-    assert line and f"measured error {ig['relative']:.2g} of the deviation on {len(ig['checks'])} check samples" in line[0]
+    assert line
+    assert f"measured error {ig['relative']:.2g} of the deviation on {len(ig['checks'])} check samples" in line[0]
 
 
 def test_batched_check_that_fails_falls_back_to_the_per_sample_reference(setup, monkeypatch):
@@ -114,9 +121,12 @@ def test_batched_check_that_fails_falls_back_to_the_per_sample_reference(setup, 
     monkeypatch.setattr(mcbatch, "BATCH_REFINEMENTS", 1)
     rep = mc.run_monte_carlo(p, s, {"fast": FAST}, 3, seed=1, backend="serial", quiet=True, spec={})
     ig = rep.integration
-    assert ig["path"] == "per-sample" and ig["integrator"] == "cvodes"
-    assert "batched check failed" in ig["reason"] and ig["batched_relative"] > 0.5 * s.accuracy
-    assert rep.complete and np.all(np.isfinite(rep.samples["metrics"][:, 0, :10]))
+    assert ig["path"] == "per-sample"
+    assert ig["integrator"] == "cvodes"
+    assert "batched check failed" in ig["reason"]
+    assert ig["batched_relative"] > 0.5 * s.accuracy
+    assert rep.complete
+    assert np.all(np.isfinite(rep.samples["metrics"][:, 0, :10]))
 
 
 def test_check_samples_are_the_extremes_and_seeded(setup):
@@ -126,13 +136,15 @@ def test_check_samples_are_the_extremes_and_seeded(setup):
     unc = uncertainty_model(p, s.sections.plant_overrides)
     ops = [(1.0, 1500.0)]
     a = mcbatch.check_indices(unc, ops, 4, 200)
-    assert a == mcbatch.check_indices(unc, ops, 4, 200) and len(set(a)) == len(a) <= 1 + 2 * len(unc.keys)
+    assert a == mcbatch.check_indices(unc, ops, 4, 200)
+    assert len(set(a)) == len(a) <= 1 + 2 * len(unc.keys)
     assert mcbatch.check_indices(unc, ops, 4, 1) == [0]
     vals = [mc.draw_sample(unc, ops, 4, i)[0] for i in range(200)]
     score = np.zeros(200)
     for k in unc.keys:
         col = np.array([v[k] for v in vals])
-        assert int(np.argmin(col)) in a and int(np.argmax(col)) in a  # every parameter's two ends
+        assert int(np.argmin(col)) in a
+        assert int(np.argmax(col)) in a  # every parameter's two ends
         score += np.abs(np.argsort(np.argsort(col)) / 199 - 0.5)
     assert int(np.argmax(score)) in a  # and the most extreme sample overall
     assert len(mcbatch.check_indices(unc, ops, 4, 200, k=2)) == 2
@@ -146,7 +158,8 @@ def test_check_ignores_parameters_the_model_does_not_read(setup):
     unc = uncertainty_model(p, s.sections.plant_overrides)
     fam = parametric_family(p, "compliant", unc.keys)
     acting = mcbatch.acting_keys(fam)
-    assert "contact.stiffness_n_per_mm_e" in acting and "nut.inertia_kg_m2" in acting
+    assert "contact.stiffness_n_per_mm_e" in acting
+    assert "nut.inertia_kg_m2" in acting
     assert "tolerance.roller_position_std_um" not in acting  # multi-roller only
     a = mcbatch.check_indices(unc, [(1.0, 1500.0)], 4, 200, keys=acting)
     assert len(a) <= 1 + 2 * len(acting) < 1 + 2 * len(unc.keys)

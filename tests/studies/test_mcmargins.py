@@ -86,8 +86,10 @@ def test_batched_margins_equal_each_samples_loop_model(robust):
                 assert ms[i] == mt[i] == np.inf
                 continue
             want = loop.sensitivity_peaks(gains)
-            assert ms[i] == pytest.approx(want[0], rel=RTOL) and mt[i] == pytest.approx(want[1], rel=RTOL)
-    assert stable_seen[True] >= 20 and stable_seen[False] >= 1  # both branches checked
+            assert ms[i] == pytest.approx(want[0], rel=RTOL)
+            assert mt[i] == pytest.approx(want[1], rel=RTOL)
+    assert stable_seen[True] >= 20
+    assert stable_seen[False] >= 1  # both branches checked
 
 
 def test_batched_monte_carlo_margins_equal_the_per_sample_path(robust):
@@ -99,12 +101,14 @@ def test_batched_monte_carlo_margins_equal_the_per_sample_path(robust):
     kw = dict(seed=11, backend="serial", quiet=True)
     bat = mc.run_monte_carlo(plant, scene, {"paper": pid}, 10, **kw)
     per = mc.run_monte_carlo(plant, scene, {"paper": pid}, 10, integrator="fast", path="per-sample", **kw)
-    assert bat.integration["path"] == "batched" and per.integration["path"] == "per-sample"
+    assert bat.integration["path"] == "batched"
+    assert per.integration["path"] == "per-sample"
     for k in bat.samples["values"]:
         assert np.array_equal(bat.samples["values"][k], per.samples["values"][k])
     i_ms = mc.METRICS.index("ms")
     mb, mp = bat.samples["metrics"][:, 0, i_ms:i_ms + 2], per.samples["metrics"][:, 0, i_ms:i_ms + 2]
-    assert np.all(np.isfinite(mb)) and np.ptp(mb[:, 0]) > 0.05
+    assert np.all(np.isfinite(mb))
+    assert np.ptp(mb[:, 0]) > 0.05
     np.testing.assert_allclose(mb, mp, rtol=RTOL)
 
 
@@ -161,7 +165,8 @@ def test_batched_margins_on_a_rigid_scene_and_a_delayed_drive(robust, monkeypatc
     real = mcbatch._margins_batched
     monkeypatch.setattr(mcbatch, "_margins_batched", lambda *a: left.update(real(*a)) or {})
     bat = mc.run_monte_carlo(plant, scene, {"paper": pid}, 6, **kw)
-    assert bat.integration["path"] == "batched" and not left
+    assert bat.integration["path"] == "batched"
+    assert not left
     monkeypatch.setattr(mcbatch, "_margins_batched",
                         lambda job, plant, scene, draws, rows, out: {r: set(range(len(job.designs))) for r in rows})
     per = mc.run_monte_carlo(plant, scene, {"paper": pid}, 6, **kw)
@@ -188,5 +193,7 @@ def test_a_non_finite_sample_is_flagged_not_raised(robust):
     ms, mt, good = mcmargins.sensitivity_peaks_batch(template, mcmargins.loop_batch(template, a, b, *args),
                                                      _pid(plant).gains, plant.speed_filter_s,
                                                      plant.command_delay_samples)
-    assert clean[2].all() and good.tolist() == [True, False, True]
-    assert ms[[0, 2]].tolist() == clean[0][[0, 2]].tolist() and mt[[0, 2]].tolist() == clean[1][[0, 2]].tolist()
+    assert clean[2].all()
+    assert good.tolist() == [True, False, True]
+    assert ms[[0, 2]].tolist() == clean[0][[0, 2]].tolist()
+    assert mt[[0, 2]].tolist() == clean[1][[0, 2]].tolist()

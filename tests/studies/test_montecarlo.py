@@ -67,13 +67,15 @@ def test_sample_depends_only_on_seed_and_index(setup):
     ops = [(1.0, 1500.0)]
     a = mc.draw_sample(unc, ops, 3, 17)
     assert a == mc.draw_sample(unc, ops, 3, 17)
-    assert a != mc.draw_sample(unc, ops, 3, 18) and a != mc.draw_sample(unc, ops, 4, 17)
+    assert a != mc.draw_sample(unc, ops, 3, 18)
+    assert a != mc.draw_sample(unc, ops, 4, 17)
 
 
 def test_report_yield_is_recomputed_from_the_samples(serial, setup):
     p, s = setup
     spec = s.sections.as_dict()["spec"]
-    assert serial.complete and serial.n_done == N
+    assert serial.complete
+    assert serial.n_done == N
     m = serial.samples["metrics"]
     assert m.shape == (N, 2, len(mc.METRICS))
     for j, d in enumerate(serial.designs):
@@ -81,16 +83,21 @@ def test_report_yield_is_recomputed_from_the_samples(serial, setup):
         col = {k: rows[:, mc.METRICS.index(k)] for k in mc.METRICS}
         ok = ((col["peak_drop_rad_s"] <= spec["peak_drop_rad_s"]) & (col["recovery_time_s"] <= spec["recovery_time_s"])
               & (col["ms"] <= spec["ms"]) & (col["saturated"] == 0))
-        assert d.passed == int(ok.sum()) and d.yield_ == pytest.approx(ok.mean())
+        assert d.passed == int(ok.sum())
+        assert d.yield_ == pytest.approx(ok.mean())
         assert d.ci95 == mc.wilson_interval(d.passed, N)
         assert d.percentiles["peak_drop_rad_s"]["max"] == pytest.approx(col["peak_drop_rad_s"].max())
     # the slower design drops further and is more robust
-    assert np.all(m[:, 1, 0] > m[:, 0, 0]) and np.all(m[:, 1, mc.METRICS.index("ms")] < m[:, 0, mc.METRICS.index("ms")])
+    assert np.all(m[:, 1, 0] > m[:, 0, 0])
+    assert np.all(m[:, 1, mc.METRICS.index("ms")] < m[:, 0, mc.METRICS.index("ms")])
     text = mc.format_report(serial)
-    assert "yield" in text and "95 % CI" in text and "replay: python -m prsa_ctrl.cli.montecarlo" in text
+    assert "yield" in text
+    assert "95 % CI" in text
+    assert "replay: python -m prsa_ctrl.cli.montecarlo" in text
     d = serial.as_dict(include_samples=True)
     json.dumps(d, allow_nan=False)
-    assert d["complete"] is True and d["designs"][0]["yield_ci95"][0] <= d["designs"][0]["yield"]
+    assert d["complete"] is True
+    assert d["designs"][0]["yield_ci95"][0] <= d["designs"][0]["yield"]
 
 
 def test_worst_sample_replays_exactly(serial, setup):
@@ -101,7 +108,8 @@ def test_worst_sample_replays_exactly(serial, setup):
     assert rep["parameters"] == d.worst_values
     assert np.array_equal(np.array([rep["metrics"][k] for k in mc.METRICS]), row, equal_nan=True)
     # the command line names the same sample and gains
-    assert f"--seed {serial.seed} --index {d.worst_index}" in d.replay and repr(FAST.kp) in d.replay
+    assert f"--seed {serial.seed} --index {d.worst_index}" in d.replay
+    assert repr(FAST.kp) in d.replay
 
 
 def test_process_pool_gives_bit_identical_results(serial, setup):
@@ -135,11 +143,15 @@ def test_dask_local_cluster_gives_bit_identical_results(serial, setup):
         with distributed.Client(cluster) as client:
             reused = mc.run_monte_carlo(p, s, {"fast": FAST, "slow": SLOW}, N, seed=7, scheduler=client, chunk=2,
                                         quiet=True)
-            assert client.status == "running" and client.submit(sum, [1, 2]).result() == 3
+            assert client.status == "running"
+            assert client.submit(sum, [1, 2]).result() == 3
     busy.close()
-    assert reused.backend == "dask" and reused.workers == 2 and reused.complete
+    assert reused.backend == "dask"
+    assert reused.workers == 2
+    assert reused.complete
     assert np.array_equal(reused.samples["metrics"], serial.samples["metrics"], equal_nan=True)
-    assert das.backend == "dask" and das.complete
+    assert das.backend == "dask"
+    assert das.complete
     assert np.array_equal(das.samples["metrics"], serial.samples["metrics"], equal_nan=True)
     assert das.samples["values"].keys() == serial.samples["values"].keys()
     for k in das.samples["values"]:
@@ -159,7 +171,9 @@ def test_ctrl_c_returns_partial_results_marked_incomplete(setup):
         mc.run_monte_carlo(p, s, {"fast": FAST}, 5, seed=1, chunk=1, progress=interrupt)
     rep = exc.value.report
     assert isinstance(exc.value, KeyboardInterrupt)
-    assert rep.complete is False and rep.n_done == 2 and rep.n == 5
+    assert rep.complete is False
+    assert rep.n_done == 2
+    assert rep.n == 5
     assert rep.as_dict()["complete"] is False
     assert "INTERRUPTED" in mc.format_report(rep)
 
@@ -247,14 +261,16 @@ def test_progress_bar_draws_when_asked(capsys):
     bar.update(4)
     bar.close()
     err = capsys.readouterr().err
-    assert "4/4" in err and err.endswith("\n")
+    assert "4/4" in err
+    assert err.endswith("\n")
 
 
 def test_figures(serial, tmp_path):
     from prsa_ctrl.plots.montecarlo import plot_report  # moved out of studies: figures live in plots/
 
     fig = plot_report(serial, tmp_path / "mc.png")
-    assert (tmp_path / "mc.png").stat().st_size > 0 and len(fig.axes) == 3
+    assert (tmp_path / "mc.png").stat().st_size > 0
+    assert len(fig.axes) == 3
 
 
 def test_replay_command_line(serial, capsys):
@@ -262,8 +278,9 @@ def test_replay_command_line(serial, capsys):
     args = d.replay.split()[3:]
     assert mc_main(args) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["index"] == d.worst_index and math.isclose(out["metrics"]["peak_drop_rad_s"],
-                                                           d.worst_metrics["peak_drop_rad_s"], rel_tol=0, abs_tol=0)
+    assert out["index"] == d.worst_index
+    assert (math.isclose(out["metrics"]["peak_drop_rad_s"],
+                                                           d.worst_metrics["peak_drop_rad_s"], rel_tol=0, abs_tol=0))
     assert mc_main(["--seed", "1", "--index", "0", "--kp", "-1", "--ki", "1"]) == 2
     assert "kp = -1" in capsys.readouterr().err
 
@@ -338,7 +355,8 @@ def test_fitted_uncertainty_is_the_fits_intervals(fitted):
     for k in PARAMETERS:
         e = plant.uncertainty[k]
         lo, hi = fit["parameters"][k]["ci95"]
-        assert e["dist"] == "normal" and e["truncate"] == pytest.approx(Z95, rel=1e-12)
+        assert e["dist"] == "normal"
+        assert e["truncate"] == pytest.approx(Z95, rel=1e-12)
         assert plant.values[k] == pytest.approx(fit["parameters"][k]["value"], rel=1e-12)
         assert plant.values[k] - Z95 * e["sigma"] == pytest.approx(lo, rel=1e-9)
         assert plant.values[k] + Z95 * e["sigma"] == pytest.approx(hi, rel=1e-9)
@@ -360,8 +378,10 @@ def test_monte_carlo_draws_the_fitted_uncertainty(fitted):
         lo, hi = fit["parameters"][k]["ci95"]
         sig = (hi - lo) / (2 * Z95)
         ref = truncnorm(-Z95, Z95, loc=v, scale=sig)
-        assert lo - 1e-9 * abs(v) <= x.min() and x.max() <= hi + 1e-9 * abs(v), k
-        assert x.min() < lo + 0.05 * (hi - lo) and x.max() > hi - 0.05 * (hi - lo), k  # reaches both ends
+        assert lo - 1e-9 * abs(v) <= x.min(), k
+        assert x.max() <= hi + 1e-9 * abs(v), k
+        assert x.min() < lo + 0.05 * (hi - lo), k
+        assert x.max() > hi - 0.05 * (hi - lo), k  # reaches both ends
         se_mean = ref.std() / math.sqrt(n)
         assert abs(x.mean() - ref.mean()) < 5 * se_mean, k
         # standard error of a sample std of n normal-ish draws: ~ std / sqrt(2 n)
@@ -394,9 +414,13 @@ def test_monte_carlo_runs_and_reports_yield(fitted):
     scene = load_scene(d / "scene.toml")
     rep = tune_actuator(plant, scene, workers=1)
     mc = run_monte_carlo(plant, scene, [rep.best], 6, seed=3, backend="serial", progress=False, quiet=True)
-    assert mc.ok and mc.n_done == 6 and not mc.warnings
+    assert mc.ok
+    assert mc.n_done == 6
+    assert not mc.warnings
     y = mc.designs[0]
-    assert y.failures == 0 and 0 <= y.passed <= 6 and y.yield_ == y.passed / 6
+    assert y.failures == 0
+    assert 0 <= y.passed <= 6
+    assert y.yield_ == y.passed / 6
     assert y.ci95 == pytest.approx(_wilson(y.passed, 6), abs=1e-12)
     per = mc.as_dict(include_samples=True)["per_sample"]
     unc = uncertainty_model(plant, scene.sections.plant_overrides)
@@ -409,7 +433,8 @@ def test_monte_carlo_runs_and_reports_yield(fitted):
     peak = np.array(per["metrics"][y.name]["peak_torque_n_m"])
     assert np.ptp(peak) > 0
     again = run_monte_carlo(plant, scene, [rep.best], 6, seed=3, backend="serial", progress=False, quiet=True)
-    assert again.designs[0].passed == y.passed and again.designs[0].percentiles == y.percentiles
+    assert again.designs[0].passed == y.passed
+    assert again.designs[0].percentiles == y.percentiles
 
 
 @needs_data
@@ -422,14 +447,17 @@ def test_prsa_tune_monte_carlo_on_the_fitted_file(fitted, capsys):
                       "--seed", "1", "--workers", "1", "--json", str(js)])
     text = capsys.readouterr().out
     assert code == 0, text
-    assert "Monte Carlo: 6/6 samples, seed 1" in text and "coordinates: load (position m, force N)" in text
+    assert "Monte Carlo: 6/6 samples, seed 1" in text
+    assert "coordinates: load (position m, force N)" in text
     rep = json.loads(js.read_text())
     assert rep["coordinates"].startswith("load (position m, force N)")
     mc = rep["monte_carlo"]
-    assert mc["samples_done"] == 6 and mc["complete"]
+    assert mc["samples_done"] == 6
+    assert mc["complete"]
     assert set(mc["uncertainty"]) == set(PARAMETERS)
     for k, e in mc["uncertainty"].items():
-        assert e["source"].startswith("fit: DATA_EMPS.mat") and e["nominal"] == pytest.approx(plant.values[k])
+        assert e["source"].startswith("fit: DATA_EMPS.mat")
+        assert e["nominal"] == pytest.approx(plant.values[k])
     for dy in mc["designs"]:
         assert dy["simulation_failures"] == 0
         assert dy["yield"] == dy["passed"] / 6
@@ -467,11 +495,15 @@ def test_fit_writes_the_correlation_of_its_covariance(fitted):  # noqa: F811
     equivalent (g' S R S g = std^2, computed by the fit from its covariance)."""
     _, plant, fit = fitted
     corr = plant.uncertainty["correlation"]
-    assert corr["keys"] == list(PARAMETERS) and corr["source"].startswith("fit: DATA_EMPS.mat")
+    assert corr["keys"] == list(PARAMETERS)
+    assert corr["source"].startswith("fit: DATA_EMPS.mat")
     r = np.array(corr["matrix"])
-    assert np.all(r == r.T) and np.all(np.diag(r) == 1.0) and np.linalg.eigvalsh(r).min() > 0
+    assert np.all(r == r.T)
+    assert np.all(np.diag(r) == 1.0)
+    assert np.linalg.eigvalsh(r).min() > 0
     i = {k: j for j, k in enumerate(PARAMETERS)}
-    assert r[i[FVP], i[FCP]] < -0.8 and r[i[FVN], i[FCN]] < -0.8
+    assert r[i[FVP], i[FCP]] < -0.8
+    assert r[i[FVN], i[FCN]] < -0.8
     sd = np.array([fit["parameters"][k]["std"] for k in PARAMETERS])
     c = np.outer(sd, sd) * r
     vs = 1e-3  # the equivalents' small speed (axis.SMALL_SPEED_M_S), written out
@@ -525,7 +557,8 @@ def test_friction_at_50_mm_s_drawn_jointly_matches_the_fits_interval(fitted):  #
         assert abs(joint.std(ddof=1) / ref - 1) < 5 / math.sqrt(2 * N_DRAWS), (direction, joint.std(), ref)
         inside = np.mean(np.abs(joint - val) <= half)
         inside_alone = np.mean(np.abs(alone - val) <= half)
-        assert inside >= 0.95 and inside_alone < 0.9, (inside, inside_alone)
+        assert inside >= 0.95, (inside, inside_alone)
+        assert inside_alone < 0.9, (inside, inside_alone)
         lo, hi = np.percentile(joint, [2.5, 97.5])
         assert 0.75 * half < (hi - lo) / 2 <= half
         assert alone.std() > 1.5 * joint.std()
@@ -544,7 +577,8 @@ def test_prsa_tune_monte_carlo_8_on_the_correlated_fit(fitted, capsys):  # noqa:
     assert "Monte Carlo: 8/8 samples, seed 2" in text
     assert f"drawn jointly (Gaussian copula of the [uncertainty] correlation): {', '.join(sorted(PARAMETERS))}" in text
     mc = json.loads(js.read_text())["monte_carlo"]
-    assert mc["samples_done"] == 8 and mc["complete"]
+    assert mc["samples_done"] == 8
+    assert mc["complete"]
     corr = plant.uncertainty["correlation"]
     for a, k in enumerate(corr["keys"]):
         want = {o: corr["matrix"][a][b] for b, o in enumerate(corr["keys"]) if b != a}

@@ -12,9 +12,12 @@ def _doc(name):
 
 
 def test_a_move_claims_the_files_with_a_move_table_only():
-    assert MoveScene.claims(_doc("paper-move")) and MoveScene.claims(_doc("paper-slow-reversal"))
-    assert not MoveScene.claims(_doc("paper-load-step")) and not MoveScene.claims(_doc("duty-ramp"))
-    assert MoveScene.claims({"move": {}}) and not MoveScene.claims({})
+    assert MoveScene.claims(_doc("paper-move"))
+    assert MoveScene.claims(_doc("paper-slow-reversal"))
+    assert not MoveScene.claims(_doc("paper-load-step"))
+    assert not MoveScene.claims(_doc("duty-ramp"))
+    assert MoveScene.claims({"move": {}})
+    assert not MoveScene.claims({})
 
 
 def test_a_move_reads_its_file_as_parse_move_scene_does():

@@ -23,7 +23,9 @@ def test_paper_scene_is_the_papers_step():
     assert s.name == "paper-load-step"
     assert s.setpoint_rad_s == pytest.approx(300 * math.pi / 30)
     assert (s.initial_load, s.final_loads, s.step_time) == (500.0, (1500.0,), 0.2)
-    assert s.controller == "pi" and s.discrete and s.fidelity == "auto"
+    assert s.controller == "pi"
+    assert s.discrete
+    assert s.fidelity == "auto"
     # Speeds to 1 % need the compliant model (the rigid one is ~3.5 % off the drop).
     assert choose_fidelity(s)[0].fidelity == "compliant"
 
@@ -40,7 +42,8 @@ def test_paper_scene_is_the_papers_step():
 )
 def test_choose_fidelity_picks_the_cheapest_that_delivers(changes, expected):
     scene, reason = choose_fidelity(Scene().replace(**changes))
-    assert scene.fidelity == expected and reason.startswith(expected)
+    assert scene.fidelity == expected
+    assert reason.startswith(expected)
 
 
 @pytest.mark.parametrize(
@@ -112,7 +115,9 @@ def test_event_timing_and_record_size_are_checked_before_any_run(step, after):
     try:
         check_against_plant(scene, PLANT)
     except SceneError as exc:
-        assert not ok and "\n" not in str(exc) and "controller samples" in str(exc)
+        assert not ok
+        assert "\n" not in str(exc)
+        assert "controller samples" in str(exc)
     else:
         assert ok
 
@@ -135,7 +140,8 @@ def test_loads_beyond_the_holding_capacity_are_refused(loads, rpm):
         if bad_load and rpm >= 15.0:
             assert f"holds at most {cap:.0f} N" in msg
     else:
-        assert max(loads) <= cap and rpm >= 14.99
+        assert max(loads) <= cap
+        assert rpm >= 14.99
 
 
 def test_scene_step_at_zero_is_refused_by_the_api():
@@ -172,7 +178,8 @@ def _scene_set(doc: str, key: str, value: str) -> str:
 def _one_line(capsys) -> str:
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in err, err
+    assert len(lines) == 1, err
+    assert "Traceback" not in err, err
     return lines[0]
 
 
@@ -190,7 +197,8 @@ def test_bad_scene_values_exit_2_at_load_time(tmp_path, capsys, stand_in, edit, 
     path.write_text(edit(SCENE))
     assert main(["--scene", str(path)]) == 2
     line = _one_line(capsys)
-    assert re.search(match, line) and str(path) in line, line
+    assert re.search(match, line), line
+    assert str(path) in line, line
     assert not stand_in
 
 
@@ -208,7 +216,9 @@ def test_any_scene_number_is_refused_in_one_line_or_runs(tmp_path_factory, capsy
     line = _one_line(capsys)
     assert rc in (2, 3)
     if rc == 2:
-        assert line.startswith("prsa-tune: error: ") and str(path) in line and not stand_in
+        assert line.startswith("prsa-tune: error: ")
+        assert str(path) in line
+        assert not stand_in
     else:
         assert len(stand_in) == 1
         load_scene(path)  # accepted by the scene loader too
@@ -251,7 +261,8 @@ def test_every_builtin_scene_is_read_by_the_type_that_claims_it():
     for name in builtin_scenes():
         doc = read_scene_doc(*locate_scene(name)[:2])
         claimed = [t for t in SCENE_TYPES if t.claims(doc)]
-        assert len(claimed) == 1 and type(load_scene(name)) is claimed[0], name
+        assert len(claimed) == 1, name
+        assert type(load_scene(name)) is claimed[0], name
 
 
 def test_a_document_two_kinds_claim_is_refused_naming_both(tmp_path):
@@ -260,8 +271,10 @@ def test_a_document_two_kinds_claim_is_refused_naming_both(tmp_path):
     with pytest.raises(SceneError) as err:
         load_scene(path)
     text = str(err.value)
-    assert "\n" not in text and text.startswith(f"{path}: read as 2 kinds of scene (duty-cycle, move); expected one")
-    assert "load_profile_n" in text and "[move] table" in text
+    assert "\n" not in text
+    assert text.startswith(f"{path}: read as 2 kinds of scene (duty-cycle, move); expected one")
+    assert "load_profile_n" in text
+    assert "[move] table" in text
 
 
 def test_a_document_no_kind_claims_is_refused_naming_what_each_kind_has():

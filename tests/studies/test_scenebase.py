@@ -19,7 +19,8 @@ def test_scene_builds_the_type_its_fields_describe():
     assert type(Scene()) is LoadStepScene
     assert type(Scene(load_profile=RAMP, duration=0.1)) is DutyCycleScene
     assert type(Scene(setpoint_profile=((0.0, 30.0), (0.02, 30.0), (0.03, 40.0)), duration=0.1)) is DutyCycleScene
-    assert isinstance(Scene(), Scene) and isinstance(Scene(load_profile=RAMP, duration=0.1), Scene)
+    assert isinstance(Scene(), Scene)
+    assert isinstance(Scene(load_profile=RAMP, duration=0.1), Scene)
 
 
 def test_every_built_in_speed_scene_is_one_of_the_two_types():
@@ -68,15 +69,20 @@ def test_a_duty_cycle_without_a_profile_is_refused():
 def test_both_types_report_one_layout():
     step, duty = load_scene().as_dict(), load_scene("duty-ramp").as_dict()
     assert list(step) == list(duty)
-    assert step["load_profile"] is None and step["goal"] == "auto" and step["final_loads"] == [1500.0]
-    assert duty["final_loads"] == [] and duty["goal"] == "load" and duty["load_profile"][0] == [0.0, 500.0]
+    assert step["load_profile"] is None
+    assert step["goal"] == "auto"
+    assert step["final_loads"] == [1500.0]
+    assert duty["final_loads"] == []
+    assert duty["goal"] == "load"
+    assert duty["load_profile"][0] == [0.0, 500.0]
 
 
 def test_robust_is_deprecated_and_still_the_sections_dict():
     s = load_scene("robust-load-step")
     with pytest.warns(DeprecationWarning, match="Scene.robust is deprecated"):
         old = s.robust
-    assert old == s.sections.as_dict() and old["spec"]["peak_drop_rad_s"] == 10.0
+    assert old == s.sections.as_dict()
+    assert old["spec"]["peak_drop_rad_s"] == 10.0
 
 
 
@@ -90,11 +96,16 @@ def test_both_kinds_read_the_shared_sections_of_a_file_alike():
     step = LoadStepScene.from_doc({**_SHARED, "operating": {"final_loads_n": [900, 1200], "step_time_s": 0.1}}, "a.toml")
     duty = DutyCycleScene.from_doc({**_SHARED, "operating": {"load_profile_n": [[0.0, 500.0], [0.05, 800.0]],
                                                               "duration_s": 0.2}}, "b.toml")
-    assert type(step) is LoadStepScene and type(duty) is DutyCycleScene
+    assert type(step) is LoadStepScene
+    assert type(duty) is DutyCycleScene
     for sc in (step, duty):
         assert (sc.name, sc.objective, sc.ms_max, sc.fidelity, sc.accuracy) == ("shared", "ise", 1.5, "rigid", 0.05)
-    assert step.final_loads == (900.0, 1200.0) and step.step_time == 0.1 and step.origin == "a.toml"
-    assert duty.load_profile == ((0.0, 500.0), (0.05, 800.0)) and duty.duration == 0.2 and duty.final_loads == ()
+    assert step.final_loads == (900.0, 1200.0)
+    assert step.step_time == 0.1
+    assert step.origin == "a.toml"
+    assert duty.load_profile == ((0.0, 500.0), (0.05, 800.0))
+    assert duty.duration == 0.2
+    assert duty.final_loads == ()
 
 
 def test_each_kind_refuses_the_other_kinds_keys_by_name_when_reading_a_file():

@@ -86,7 +86,8 @@ damping = 0.5
     lp2 = filter_entry("lowpass", {"path": "speed", "corner_hz": 100.0, "order": 2}, "x").filter
     assert lp2 == SecondOrderLowPass(100.0, 1 / math.sqrt(2))
     # a scene without filters reports as it always did (no key)
-    assert "filters" not in load_scene().as_dict() and "filters" in sc.as_dict()
+    assert "filters" not in load_scene().as_dict()
+    assert "filters" in sc.as_dict()
 
 
 BAD_ENTRIES = [
@@ -112,8 +113,12 @@ def test_bad_filter_entries_get_one_line_and_exit_2(tmp_path, capsys, stand_in, 
     path = _scene_file(tmp_path, text + "\n")
     rc = main(["--scene", str(path), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and "Traceback" not in err[0], err
-    assert str(path) in err[0] and key in err[0] and (f"= {value}" in err[0] if value else True), err[0]
+    assert rc == 2, err
+    assert len(err) == 1, err
+    assert "Traceback" not in err[0], err
+    assert str(path) in err[0], err[0]
+    assert key in err[0], err[0]
+    assert f"= {value}" in err[0] if value else True, err[0]
     assert not stand_in  # refused before any tuning
 
 
@@ -132,8 +137,11 @@ def test_bad_filter_entries_get_one_line_and_exit_2(tmp_path, capsys, stand_in, 
 def test_bad_filter_flags_get_one_line_and_exit_2(capsys, stand_in, flag, key):
     rc = main(["--filter", flag, "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and err[0].startswith("prsa-tune: error: --filter"), err
-    assert key in err[0] and not stand_in, err[0]
+    assert rc == 2, err
+    assert len(err) == 1, err
+    assert err[0].startswith("prsa-tune: error: --filter"), err
+    assert key in err[0], err[0]
+    assert not stand_in, err[0]
 
 
 @pytest.mark.parametrize("flag, typed", [
@@ -147,7 +155,9 @@ def test_a_filter_within_the_margin_of_nyquist_is_refused_before_tuning(capsys, 
     margin (1 %: at most 1980 Hz), exit 2, before any tuning."""
     rc = main(["--filter", flag, "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and "Traceback" not in err[0], err
+    assert rc == 2, err
+    assert len(err) == 1, err
+    assert "Traceback" not in err[0], err
     assert f"--filter {flag!r}: {typed}; expected a frequency below the Nyquist frequency 2000 Hz" in err[0], err[0]
     assert "by at least 1% of it (at most 1980 Hz)" in err[0], err[0]
     assert not stand_in
@@ -289,7 +299,8 @@ def test_heavy_slide_scene_end_to_end_is_the_python_path(tmp_path):
         assert rep["verified"][k] == pytest.approx(v, rel=1e-12, abs=1e-15), k
     [row] = rep["filters"]
     bq = NOTCH.biquad(TS)
-    assert row["path"] == "torque" and row["centre_hz"] == NOTCH.filter.centre_hz
+    assert row["path"] == "torque"
+    assert row["centre_hz"] == NOTCH.filter.centre_hz
     assert [row["biquad"][k] for k in ("b0", "b1", "b2", "a1", "a2")] == [bq.b0, bq.b1, bq.b2, bq.a1, bq.a2]
     exported = tomllib.loads(exp.read_text())
     assert "notch" in json.dumps(exported)
@@ -310,7 +321,8 @@ def test_filter_json_and_report_lines(tmp_path, capsys, monkeypatch):
     want = [n[0] / d[0], n[1] / d[0], n[2] / d[0], d[1] / d[0], d[2] / d[0]]
     got = [row["biquad"][k] for k in ("b0", "b1", "b2", "a1", "a2")]
     assert got == pytest.approx(want, rel=1e-12)
-    assert row["path"] == "speed" and row["depth_db"] == -20.0
+    assert row["path"] == "speed"
+    assert row["depth_db"] == -20.0
     [line] = describe_filters([lf], TS)
     assert line.startswith("notch on the speed measurement: centre 300 Hz, width 60 Hz (Q 5), depth -20 dB")
 

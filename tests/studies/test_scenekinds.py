@@ -72,11 +72,14 @@ def test_resolve_fixes_fidelity_and_records_once():
     plant = load_plant()
     spec = problem(load_scene("duty-ramp")).resolve(plant)
     scene = spec.scene
-    assert scene.fidelity != "auto" and spec.fidelity_reason
-    assert spec.problem.name == "duty-cycle" and type(spec.problem) is DutyCycle
+    assert scene.fidelity != "auto"
+    assert spec.fidelity_reason
+    assert spec.problem.name == "duty-cycle"
+    assert type(spec.problem) is DutyCycle
     assert len(spec.records) == len(scene.cases)
     spec = problem(load_scene("paper-table3")).resolve(plant)
-    assert spec.records == () and spec.scene.final_loads == (1000.0, 1500.0, 2000.0)
+    assert spec.records == ()
+    assert spec.scene.final_loads == (1000.0, 1500.0, 2000.0)
     assert type(spec.problem) is LoadStep
     move = load_scene("paper-move")
     assert problem(move).resolve(plant) is move
@@ -86,12 +89,14 @@ def test_reports_of_each_kind_own_json_text_and_export():
     for report in (SpeedReport, MoveReport):
         for method in ("as_dict", "format", "export_target", "file_lines"):
             assert callable(getattr(report, method)), (report, method)
-    assert MoveReport.status == "ok" and MoveReport.timing_s is None
+    assert MoveReport.status == "ok"
+    assert MoveReport.timing_s is None
 
 
 def test_options_are_frozen_with_quiet_defaults():
     o = TuneOptions()
-    assert o.progress("x") is None and o.checkpoint() is None
+    assert o.progress("x") is None
+    assert o.checkpoint() is None
     with pytest.raises(dataclasses.FrozenInstanceError):
         o.robust = True
 
@@ -115,7 +120,9 @@ def test_a_move_refuses_the_first_flag_it_does_not_honour_as_typed():
     assert str(exc.value) == ("--seed 3 does not apply to a move scene (paper-move); expected only --plant, --json, "
                               "--export, --plots, --quiet and --verbose")
     Move.refuse_flags([(dest, f"--{dest}") for dest in MOVE_FLAGS], "paper-move")  # every honoured flag passes
-    assert LoadStep.flags is None and DutyCycle.flags is None and Move.flags == MOVE_FLAGS
+    assert LoadStep.flags is None
+    assert DutyCycle.flags is None
+    assert Move.flags == MOVE_FLAGS
 
 
 def test_a_move_loads_scene_first_then_refuses_then_the_plant(tmp_path):
@@ -129,7 +136,9 @@ def test_a_move_loads_scene_first_then_refuses_then_the_plant(tmp_path):
     with pytest.raises(SceneError, match="bad-move.toml"):
         Move.load(str(bad), None, [("seed", "--seed 3")], never)
     plant, scene, typed = Move.load("paper-move", None, [("plant", "--plant paper")], never)
-    assert isinstance(scene, MoveScene) and typed == [] and plant.name
+    assert isinstance(scene, MoveScene)
+    assert typed == []
+    assert plant.name
 
 
 def test_a_speed_loop_scene_is_loaded_by_the_command_overrides():
@@ -180,11 +189,16 @@ def test_profile_rows_ramp_and_step_flag():
 
 def test_duty_ramp_scene_reads_as_its_file_says():
     s = load_scene("duty-ramp")
-    assert isinstance(s, DutyCycleScene) and s.goal == "load" and s.cases == ["load profile"]
-    assert s.initial_load == 500.0 and s.final_loads == () and s.step_time == 0.02
+    assert isinstance(s, DutyCycleScene)
+    assert s.goal == "load"
+    assert s.cases == ["load profile"]
+    assert s.initial_load == 500.0
+    assert s.final_loads == ()
+    assert s.step_time == 0.02
     assert s.load_profile[3:6] == ((0.1, 2000.0), (0.1, 1000.0), (0.13, 1000.0))
     trace = load_scene("duty-trace")
-    assert len(trace.load_profile) == 251 and trace.load_profile[0] == (0.0, 800.0)
+    assert len(trace.load_profile) == 251
+    assert trace.load_profile[0] == (0.0, 800.0)
     assert "duty-trace.csv (251 rows)" in trace.profile_source
 
 
@@ -315,7 +329,8 @@ def test_tuner_optimises_the_profile_not_a_step(paper_plant):
     step = drive_loop(*args, step=1000.0, horizon=0.05, **kw)
     on_profile = Tuner([prof], objective="iae").tune(ms_max=1.4)
     on_step = Tuner([step], objective="iae").tune(ms_max=1.4)
-    assert on_profile.status == "optimal" and on_profile.ms <= 1.4
+    assert on_profile.status == "optimal"
+    assert on_profile.ms <= 1.4
     assert prof.objective(on_profile.pid.gains, "iae") < prof.objective(on_step.pid.gains, "iae") * (1 - 1e-4)
 
 
@@ -373,12 +388,15 @@ def test_duty_scenes_tuned_and_verified_end_to_end(tmp_path, capsys, monkeypatch
         (pairs,) = drawn
         assert [b.name for b, _ in pairs] == [c["baseline"] for c in data["comparisons"]]
         for (b, d), c in zip(pairs, data["comparisons"]):
-            assert d.margins.ms <= b.margins.ms * (1 + 1e-6) and d.pid.as_dict() == c["tuned_gains"]
+            assert d.margins.ms <= b.margins.ms * (1 + 1e-6)
+            assert d.pid.as_dict() == c["tuned_gains"]
         assert (tmp_path / "figs" / "baselines.png").stat().st_size > 10_000
     assert f"scene {name} with --mt-max 1.3: duty cycle" in text
     assert "Duty cycle, load profile" in text
-    assert data["status"] == "ok" and data["objective"] == "iae"
-    assert data["margins"]["ms"] <= 1.4 * (1 + 1e-9) and data["margins"]["mt"] <= 1.3 * (1 + 1e-9)
+    assert data["status"] == "ok"
+    assert data["objective"] == "iae"
+    assert data["margins"]["ms"] <= 1.4 * (1 + 1e-9)
+    assert data["margins"]["mt"] <= 1.3 * (1 + 1e-9)
     p, v = data["predicted"], data["verified"]
     # The verified (nonlinear) IAE over the whole profile is what the linear model predicted.
     assert v["iae"] == pytest.approx(p["iae"], rel=0.02)
@@ -409,7 +427,8 @@ def test_duty_scenes_tuned_and_verified_end_to_end(tmp_path, capsys, monkeypatch
 def test_duty_scene_refuses_step_flags(capsys, argv, expected):
     assert main(["--scene", "duty-ramp", *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and expected in err[0], err
+    assert len(err) == 1, err
+    assert expected in err[0], err
 
 
 def test_mix_goal_weights_two_records(paper_plant):
@@ -417,7 +436,8 @@ def test_mix_goal_weights_two_records(paper_plant):
                   setpoint_profile=profile_rows([[0, 30.0], [0.005, 30.0], [0.008, 33.0, "step"]], "x"),
                   duration=0.04, setpoint_weight=0.5, setpoint_share=0.25, candidates=1, fidelity="rigid",
                   accuracy=0.05)
-    assert scene.goal == "mix" and scene.cases == ["load profile", "setpoint profile"]
+    assert scene.goal == "mix"
+    assert scene.cases == ["load profile", "setpoint profile"]
     rep = tune_actuator(paper_plant, scene, workers=1)
     b = rep.best
     assert len(b.verified) == 2
@@ -427,9 +447,11 @@ def test_mix_goal_weights_two_records(paper_plant):
     from prsa_ctrl.plots.loop import duty_cycle_comparison, duty_cycle_plot
 
     fig, axs = duty_cycle_plot(b, rep.scene, k=1, torque_limit=paper_plant.torque_limit)
-    assert axs[0].get_ylabel() == "setpoint (rpm)" and max(axs[0].lines[0].get_ydata()) == pytest.approx(33.0 * 30 / math.pi)
+    assert axs[0].get_ylabel() == "setpoint (rpm)"
+    assert max(axs[0].lines[0].get_ydata()) == pytest.approx(33.0 * 30 / math.pi)
     labels = [t.get_text() for t in axs[1].get_legend().get_texts()]
-    assert labels[0].startswith("verified (nonlinear): IAE") and labels[1].startswith("predicted (linear): IAE")
+    assert labels[0].startswith("verified (nonlinear): IAE")
+    assert labels[1].startswith("predicted (linear): IAE")
     fig, (ax,) = duty_cycle_comparison([b, *rep.baselines], rep.scene, k=0)
     assert len(ax.lines) == 1 + len(rep.baselines) + 1  # designs + zero line
 
@@ -508,7 +530,8 @@ def test_setpoint_goal_warns_that_it_does_not_inform_the_integral(paper_plant):
     loops = actuator_loops(paper_plant, sp)
     slow, fast = PID(0.107, 0.053), PID(0.085, 14.7)  # Ti 2 s (the reviewer's design) and 5.8 ms
     msg = integral_warning(Design("t", slow, loops[0].margins(slow.gains)), sp)
-    assert msg and "setpoint-only goal does not inform the integral gain (Ti = 2.02 s > record 0.2 s)" in msg
+    assert msg
+    assert "setpoint-only goal does not inform the integral gain (Ti = 2.02 s > record 0.2 s)" in msg
     assert "goal = \"mix\"" in msg
     assert integral_warning(Design("t", fast, loops[0].margins(fast.gains)), sp) is None
     ld = load_scene("duty-ramp")
@@ -522,11 +545,13 @@ def test_setpoint_only_duty_cycle_reports_the_integral_warning(tmp_path, capsys)
                      '[0.05, 300.0], [0.06, 400.0]]\nduration_s = 0.2\n[tuning]\nobjective = "iae"\ncontroller = "pi"\n'
                      'ms_max = 1.4\n[verify]\nfidelity = "rigid"\ndiscrete = true\naccuracy = 0.05\n')
     rc, text, data = _tune_cli(tmp_path, capsys, "--scene", str(scene))
-    assert rc == 0 and data["status"] == "ok"  # a warning, not a flag: the design does what its goal asks
+    assert rc == 0
+    assert data["status"] == "ok"  # a warning, not a flag: the design does what its goal asks
     ti = data["gains"]["kp"] / data["gains"]["ki"]
     assert ti > 0.2
     (w,) = [w for w in data["warnings"] if "does not inform the integral gain" in w]
-    assert f"Ti = {ti:.3g} s > record 0.2 s" in w and w in text
+    assert f"Ti = {ti:.3g} s > record 0.2 s" in w
+    assert w in text
 
 
 def test_each_kind_claims_its_own_documents_and_file_kind_asks_them(tmp_path):
@@ -538,8 +563,11 @@ def test_each_kind_claims_its_own_documents_and_file_kind_asks_them(tmp_path):
             "duty-cycle": {"operating": {"load_profile_n": [[0.0, 1.0]]}}, "move": {"move": {}}}
     for name, doc in docs.items():
         assert [k for k, kind in KINDS.items() if kind.claims(doc)] == [name]
-    assert file_kind("paper-move") is Move and file_kind("paper-slow-reversal") is Move
-    assert file_kind("duty-ramp") is LoadStep and file_kind("paper-load-step") is LoadStep and file_kind(None) is LoadStep
+    assert file_kind("paper-move") is Move
+    assert file_kind("paper-slow-reversal") is Move
+    assert file_kind("duty-ramp") is LoadStep
+    assert file_kind("paper-load-step") is LoadStep
+    assert file_kind(None) is LoadStep
     both = tmp_path / "both.toml"
     both.write_text('[move]\nprofile = "trapezoidal"\n[operating]\nsetpoint_trace_csv = "t.csv"\n')
     assert file_kind(both) is LoadStep  # its loader reports the ambiguity (one line, exit 2)

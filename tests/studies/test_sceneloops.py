@@ -24,7 +24,9 @@ def test_loop_spec_is_the_kinds_resolution_without_choosing_the_fidelity(paper_p
     scene = load_scene().replace(fidelity="auto")
     spec = loop_spec(paper_plant, scene)
     ref = speed_kind(scene).resolve(paper_plant, choose=False)
-    assert spec == ref and spec.scene is scene and spec.scene.fidelity == "auto"
+    assert spec == ref
+    assert spec.scene is scene
+    assert spec.scene.fidelity == "auto"
     assert spec.linear_fidelity == "compliant"
 
 
@@ -32,6 +34,7 @@ def test_actuator_loops_are_the_resolved_problems_loop_models(paper_plant):
     scene = load_scene("paper-table3").replace(fidelity="rigid")
     loops = actuator_loops(paper_plant, scene)
     again = loop_spec(paper_plant, scene).loop_models(paper_plant)
-    assert [lp.name for lp in loops] == [lp.name for lp in again] and len(loops) == len(scene.final_loads)
+    assert [lp.name for lp in loops] == [lp.name for lp in again]
+    assert len(loops) == len(scene.final_loads)
     for a, b in zip(loops, again):
         assert (a.error((0.08, 14.0, 0.0)) == b.error((0.08, 14.0, 0.0))).all()

@@ -56,7 +56,9 @@ def test_second_order_step_against_independent_values(w0, dw):
 def test_never_settled_and_no_overshoot():
     t = np.linspace(0.0, 0.1, 1001)
     m = setpoint_step_metrics(t, 1 - np.exp(-t / 1.0), 0.0, 0.0, 1.0)  # far too slow for the window
-    assert m.rise_time_s == math.inf and m.settling_time_s == math.inf and m.overshoot_percent == 0.0
+    assert m.rise_time_s == math.inf
+    assert m.settling_time_s == math.inf
+    assert m.overshoot_percent == 0.0
     assert m.as_dict()["settling_time_s"] is None
     with pytest.raises(ValueError, match="expected a setpoint step"):
         setpoint_step_metrics(t, t, 0.0, 1.0, 1.0)
@@ -83,14 +85,17 @@ def test_profile_finds_setpoint_steps_not_ramps():
     assert m.as_dict()["setpoint_steps"][0]["time_s"] == pytest.approx(0.1)
     # the report's table carries the verified numbers and a difference where both exist
     text = "\n".join(_setpoint_table(m, m, lambda name: ts))
-    assert "+50 rpm" in text and f"{sp.rise_time_s:.4g}" in text and "0.0 %" in text
+    assert "+50 rpm" in text
+    assert f"{sp.rise_time_s:.4g}" in text
+    assert "0.0 %" in text
 
 
 @pytest.mark.parametrize("p, v, res", [(1.4e-14, 1.4e-4, 0.0), (-1.4e-14, 1.4e-4, 0.0), (1.4e-4, 1e-15, 0.0),
                                        (1.776e-15, 3.829e-06, 0.0365)])
 def test_no_percentage_against_numerical_zero(p, v, res):
     text = diff_text(p, v, res)
-    assert "%" not in text and text.endswith("abs.")
+    assert "%" not in text
+    assert text.endswith("abs.")
     assert float(text.split()[0]) == pytest.approx(p - v, rel=1e-2)
 
 
@@ -112,7 +117,11 @@ def test_cli_report_of_a_setpoint_duty_cycle(tmp_path, capsys):
                  '[verify]\nfidelity = "rigid"\ndiscrete = true\n')
     assert main(["--scene", str(f)]) == 0
     out = capsys.readouterr().out
-    assert "Setpoint steps in the profile" in out and "settling 2 % (s)" in out and "+100 rpm" in out
+    assert "Setpoint steps in the profile" in out
+    assert "settling 2 % (s)" in out
+    assert "+100 rpm" in out
     m = re.search(r"crossover ([0-9.e+-]+) rad/s \(([0-9.e+-]+) Hz\)", out)
-    assert m and float(m.group(2)) == pytest.approx(float(m.group(1)) / (2 * math.pi), rel=1e-3)
-    assert "compared with" in out and "tuned (Ms <=" in out
+    assert m
+    assert float(m.group(2)) == pytest.approx(float(m.group(1)) / (2 * math.pi), rel=1e-3)
+    assert "compared with" in out
+    assert "tuned (Ms <=" in out

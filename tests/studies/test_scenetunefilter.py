@@ -46,27 +46,36 @@ def test_a_tuned_filter_joins_the_scene_only_when_kept(monkeypatch, kept):
     ft = stf.tune_scene_filter(PAPER, scene, "notch")
     # the gains alone first, then the notch on the torque command from the gains-alone optimum,
     # judged against it; the loops: one objective per step, the initial and final loads as constraints
-    assert [c["kind"] for c in calls] == [None, "notch"] and calls[1]["place"] == "torque_command"
-    assert calls[1]["start"] == (0.02, 2.0) and calls[1]["ref"] is not None
-    assert calls[0]["n_obj"] == 2 and calls[0]["n_con"] == 4
-    assert calls[0]["ms_max"] == 1.4 and calls[0]["max_noise_gain"] == 0.05
+    assert [c["kind"] for c in calls] == [None, "notch"]
+    assert calls[1]["place"] == "torque_command"
+    assert calls[1]["start"] == (0.02, 2.0)
+    assert calls[1]["ref"] is not None
+    assert calls[0]["n_obj"] == 2
+    assert calls[0]["n_con"] == 4
+    assert calls[0]["ms_max"] == 1.4
+    assert calls[0]["max_noise_gain"] == 0.05
     assert ft.kept is kept
     d = ft.as_dict()
     json.dumps(d)
     if kept:
         assert ft.scene.filters == (*scene.filters, LoopFilter(Notch(300.0, 60.0, -30.0), "torque_command"))
-        assert d["filter"]["centre_hz"] == 300.0 and d["relative_improvement"] == pytest.approx(0.5)
+        assert d["filter"]["centre_hz"] == 300.0
+        assert d["relative_improvement"] == pytest.approx(0.5)
         assert "kept" in ft.lines()[0]
     else:
-        assert ft.scene is scene and d["filter"] is None and d["rejected_filter"]["depth_db"] == -1.2
-        assert ft.status.startswith("no notch helps") and "not kept" in ft.lines()[0]
+        assert ft.scene is scene
+        assert d["filter"] is None
+        assert d["rejected_filter"]["depth_db"] == -1.2
+        assert ft.status.startswith("no notch helps")
+        assert "not kept" in ft.lines()[0]
 
 
 def test_a_lowpass_goes_on_the_measured_speed(monkeypatch):
     calls = []
     monkeypatch.setattr(stf, "tune_filtered", _fake_tuner(False, calls))
     stf.tune_scene_filter(PAPER, load_scene().replace(fidelity="rigid"), "lowpass")
-    assert calls[1]["kind"] == "lowpass1" and calls[1]["place"] == "speed_measurement"
+    assert calls[1]["kind"] == "lowpass1"
+    assert calls[1]["place"] == "speed_measurement"
 
 
 def test_tune_filter_is_refused_where_it_does_not_apply(capsys, stand_in):
@@ -78,7 +87,9 @@ def test_tune_filter_is_refused_where_it_does_not_apply(capsys, stand_in):
                  ["--tune-filter", "notch", "--scene", "duty-ramp"], ["--tune-filter", "bandstop"]):
         rc = main([*argv, "--quiet"])
         err = capsys.readouterr().err.strip().splitlines()
-        assert rc == 2 and len(err) == 1 and "--tune-filter" in err[0], err
+        assert rc == 2, err
+        assert len(err) == 1, err
+        assert "--tune-filter" in err[0], err
     assert not stand_in
 
 
@@ -104,13 +115,19 @@ def test_the_kalman_filter_scene_hands_its_own_loops_to_the_filter_tuner(monkeyp
                                  mt_max=1.3)
     delayed = PAPER.with_params({"drive.command_delay_samples": 2})
     stf.tune_scene_filter(delayed, scene, "notch")
-    assert [c["kind"] for c in calls] == [None, "notch"] and calls[0]["mt_max"] == calls[1]["mt_max"] == 1.3
-    assert (calls[0]["start_kff"] > 0.0) == feedforward and calls[0]["start_kff"] <= 1.0
+    assert [c["kind"] for c in calls] == [None, "notch"]
+    assert calls[0]["mt_max"] == calls[1]["mt_max"] == 1.3
+    assert (calls[0]["start_kff"] > 0.0) == feedforward
+    assert calls[0]["start_kff"] <= 1.0
     a, kw = built[0]
-    assert isinstance(kw["measurement"], KalmanEstimate) and kw["measurement"].feedforward is feedforward
-    assert "speed_filter" not in kw and kw["fixed"] == (fixed,) and kw["command_delay_samples"] == 2
+    assert isinstance(kw["measurement"], KalmanEstimate)
+    assert kw["measurement"].feedforward is feedforward
+    assert "speed_filter" not in kw
+    assert kw["fixed"] == (fixed,)
+    assert kw["command_delay_samples"] == 2
     lp = real(*a, **kw)()
-    assert lp.n_gains == (4 if feedforward else 3) and lp.parts()[3].any()  # the denominator part
+    assert lp.n_gains == (4 if feedforward else 3)
+    assert lp.parts()[3].any()  # the denominator part
 
 
 @pytest.mark.parametrize("lf", [LoopFilter(Notch(300.0, 120.0, -20.0), "torque_command"),
@@ -149,10 +166,14 @@ def test_tune_filter_notch_on_the_heavy_slide_is_kept_and_verified(tmp_path):
                  "--quiet", "--workers", "1"]) == 0
     rep = json.loads(out.read_text())
     ft = rep["filter_tuning"]
-    assert ft["kept"] and ft["status"] == "optimal" and ft["relative_improvement"] >= 0.01
-    assert 200.0 < ft["filter"]["centre_hz"] < 300.0 and ft["filter"]["depth_db"] <= -3.0
+    assert ft["kept"]
+    assert ft["status"] == "optimal"
+    assert ft["relative_improvement"] >= 0.01
+    assert 200.0 < ft["filter"]["centre_hz"] < 300.0
+    assert ft["filter"]["depth_db"] <= -3.0
     assert [r["centre_hz"] for r in rep["filters"]] == [ft["filter"]["centre_hz"]]
-    assert rep["status"] == "ok" and math.isfinite(rep["verified"]["iae"])
+    assert rep["status"] == "ok"
+    assert math.isfinite(rep["verified"]["iae"])
 
 
 def test_a_kept_filter_on_the_kalman_loop_reports_no_noise_gain():
@@ -161,10 +182,13 @@ def test_a_kept_filter_on_the_kalman_loop_reports_no_noise_gain():
     alone = FilteredDesign(PID(0.12, 47.3, kff=0.19), None, 0.0087, 1.4, None, "optimal")
     ft = stf.SceneFilterTuning("lowpass", "speed", kept, alone, load_scene(), PAPER.sample_time_s)
     (line,) = ft.lines()
-    assert "kept" in line and "Ms 1.400" in line and "Mks" not in line
+    assert "kept" in line
+    assert "Ms 1.400" in line
+    assert "Mks" not in line
     d = ft.as_dict()
     json.dumps(d)
-    assert d["mks"] is None and d["gains_with_filter"]["kff"] == 0.48
+    assert d["mks"] is None
+    assert d["gains_with_filter"]["kff"] == 0.48
 
 
 @pytest.mark.slow
@@ -186,4 +210,7 @@ def test_tune_filter_with_the_kalman_filter_verifies_as_the_encoder_loop_does(tm
         for key in ("peak_drop_rad_s", "ie"):
             assert rep["predicted"][key] == pytest.approx(rep["verified"][key], rel=0.05), (name, key)
     ft = reports["kf"]["filter_tuning"]
-    assert ft["mks"] is None and ft["ms"] <= 1.4 and ft["status"] != "" and ft["gains_with_filter"]["kff"] >= 0.0
+    assert ft["mks"] is None
+    assert ft["ms"] <= 1.4
+    assert ft["status"] != ""
+    assert ft["gains_with_filter"]["kff"] >= 0.0

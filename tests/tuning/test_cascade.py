@@ -42,13 +42,16 @@ def _err_m(r, plant):
 
 
 def test_paper_move_scene(scene):
-    assert is_move_scene("paper-move") and not is_move_scene("paper-load-step") and not is_move_scene(None)
+    assert is_move_scene("paper-move")
+    assert not is_move_scene("paper-load-step")
+    assert not is_move_scene(None)
     assert (scene.distance_m, scene.max_speed_m_s, scene.load_n) == (0.01, 0.03, 1500.0)
     m = scene.motion()
     # The load appears in the middle of the move and is held; the hold step comes after the move.
     assert scene.load_at_s == pytest.approx(0.5 * (m.t0[0] + m.end_time))
     assert scene.loads() == [(0.0, 0.0), (scene.load_at_s, 1500.0), (scene.hold_step_s, 3000.0)]
-    assert m.final_position == pytest.approx(0.01, rel=1e-12) and scene.hold_step_s > m.end_time
+    assert m.final_position == pytest.approx(0.01, rel=1e-12)
+    assert scene.hold_step_s > m.end_time
     assert POSITION_SENSORS == ("nut_angle", "screw_position")
 
 
@@ -72,7 +75,8 @@ def test_move_scene_errors_name_file_and_key(tmp_path, edit, match):
     f.write_text(text)
     with pytest.raises(SceneError, match=match) as exc:
         load_move_scene(f)
-    assert str(f) in str(exc.value) and "\n" not in str(exc.value)
+    assert str(f) in str(exc.value)
+    assert "\n" not in str(exc.value)
 
 
 def test_move_scene_structure_errors(tmp_path):
@@ -173,7 +177,8 @@ def test_slower_position_rate_holds_the_reference(plant):
     w = r.output("speed_reference")
     k = np.arange(w.size)
     changes = np.flatnonzero(np.diff(w) != 0) + 1
-    assert changes.size > 10 and np.all(k[changes] % 4 == 0)
+    assert changes.size > 10
+    assert np.all(k[changes] % 4 == 0)
 
 
 def test_reversal_through_stiction_without_hunting(plant):
@@ -185,13 +190,15 @@ def test_reversal_through_stiction_without_hunting(plant):
             position=PositionLoop(kv=40.0, kvff=1.0, kaff=1.0), motion=m)
     w = r.output("nut_speed")
     band = stick_band_rad_s(plant)
-    assert np.max(w) > 20.0 and np.min(w) < -20.0
+    assert np.max(w) > 20.0
+    assert np.min(w) < -20.0
     end = r.time > m.end_time + 0.05
     e = _err_m(r, plant)
     assert np.max(np.abs(e[end])) < 2e-6
     assert abs(w[end][-1]) < abs(w[end][0]) / 3  # creeping in, decaying
     h = hunting(r.time[end], e[end], w[end], window_m=2e-6, stick_band_rad_s=band)
-    assert not h["oscillating"] and h["reversals"] == 0
+    assert not h["oscillating"]
+    assert h["reversals"] == 0
 
 
 def test_position_pi_hunts_against_stiction(plant):
@@ -205,8 +212,10 @@ def test_position_pi_hunts_against_stiction(plant):
         tail = r.time > 0.8
         out[kip] = hunting(r.time[tail], _err_m(r, plant)[tail], r.output("nut_speed")[tail], window_m=2e-6,
                            stick_band_rad_s=stick_band_rad_s(plant))
-    assert not out[0.0]["oscillating"] and out[0.0]["reversals"] == 0
-    assert out[2000.0]["oscillating"] and out[2000.0]["reversals"] >= 5
+    assert not out[0.0]["oscillating"]
+    assert out[0.0]["reversals"] == 0
+    assert out[2000.0]["oscillating"]
+    assert out[2000.0]["reversals"] >= 5
     assert 0.1 < out[2000.0]["period_s"] < 0.4
 
 
@@ -215,7 +224,9 @@ def test_hunting_detector_on_synthetic_records():
     w = 5.0 * np.sin(2 * np.pi * 5 * t)
     e = 1e-6 * np.cos(2 * np.pi * 5 * t)
     h = hunting(t, e, w, window_m=2e-6, stick_band_rad_s=0.003)
-    assert h["oscillating"] and h["reversals"] == 9 and h["period_s"] == pytest.approx(0.2, rel=0.01)
+    assert h["oscillating"]
+    assert h["reversals"] == 9
+    assert h["period_s"] == pytest.approx(0.2, rel=0.01)
     decaying = hunting(t, e * np.exp(-20 * t), w * (t < 0.15), window_m=2e-6, stick_band_rad_s=0.003)
     assert not decaying["oscillating"]
 
@@ -228,8 +239,10 @@ def test_metrics_of_a_move(plant, scene):
     t = r.time
     assert mm.peak_following_error_m == pytest.approx(np.max(np.abs(e[(t >= sc.start_s) & (t < sc.hold_step_s)])))
     assert mm.holding_deviation_m == pytest.approx(np.max(np.abs(e[t >= sc.hold_step_s])))
-    assert mm.holding_deviation_m > 0 and mm.peak_torque_n_m < plant.torque_limit
-    assert math.isfinite(mm.settling_time_s) and mm.final_error_m == pytest.approx(e[-1])
+    assert mm.holding_deviation_m > 0
+    assert mm.peak_torque_n_m < plant.torque_limit
+    assert math.isfinite(mm.settling_time_s)
+    assert mm.final_error_m == pytest.approx(e[-1])
     assert not mm.hunting["oscillating"]
 
 
@@ -288,7 +301,8 @@ def test_joint_beats_sequential_at_equal_ms(designs):
         for k in BREAKING_POINTS:
             assert d.ms_points[k] <= sc.ms_max * (1 + 1e-5)
             assert again[k] == pytest.approx(d.ms_points[k], rel=1e-4)
-        assert d.ms == max(d.ms_points[k] for k in BREAKING_POINTS) and d.status == "ok"
+        assert d.ms == max(d.ms_points[k] for k in BREAKING_POINTS)
+        assert d.status == "ok"
         assert cm.spectral_radius(d.gains) < 1
     assert joint.method == "joint"
     assert joint.objective < seq.objective
@@ -329,7 +343,8 @@ def test_position_export_reproduces_the_simulated_law(plant, designs):
         d = export_cascade(joint, plant, fmt=fmt)
         d = tomllib.loads(dumps(d, "toml")) if fmt == "toml" else __import__("json").loads(dumps(d, "json"))
         pc = d["position_controller"]
-        assert pc["kv_per_s"] == joint.position.kv and pc["sample_time_s"] == plant.sample_time_s
+        assert pc["kv_per_s"] == joint.position.kv
+        assert pc["sample_time_s"] == plant.sample_time_s
         assert "absent" not in d["speed_controller"]["vendor"]["note"]
         r = simulate_move(plant, sc, joint.speed, joint.position, duration=0.3, loads=sc.loads()[:2])
         _, v_ref, acc_ref = sc.motion().at(r.time)
@@ -362,7 +377,8 @@ def test_position_export_with_a_delay_reproduces_the_simulated_law(plant, design
     design = dataclasses.replace(joint, position=pos)
     pc = tomllib.loads(dumps(export_cascade(design, plant, fmt="toml"), "toml"))["position_controller"]
     n_rate = round(pc["sample_time_s"] / plant.sample_time_s)
-    assert (n_rate, pc["delay_samples"]) == (2, 2) and pc["delay_s"] == pytest.approx(4 * plant.sample_time_s)
+    assert (n_rate, pc["delay_samples"]) == (2, 2)
+    assert pc["delay_s"] == pytest.approx(4 * plant.sample_time_s)
     r = simulate_move(plant, sc, joint.speed, pos, duration=0.3, loads=sc.loads()[:2])
     _, v_ref, acc_ref = sc.motion().at(r.time)
     k = np.arange(0, r.time.size, n_rate)  # the position-loop samples
@@ -384,7 +400,9 @@ def test_cli_move_scene_bad_flags_exit_2(tmp_path, capsys):
 
     assert main(["--scene", "paper-move", "--export", str(tmp_path / "drive.txt")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--export" in err and "drive.txt" in err
+    assert err.count("\n") == 1
+    assert "--export" in err
+    assert "drive.txt" in err
     assert main(["--scene", "paper-move", "--setpoint-rpm", "100.0"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("prsa-tune: error: --setpoint-rpm 100.0 does not apply to a move scene")
@@ -398,7 +416,8 @@ def test_speed_loop_scene_loader_points_to_the_move_scene():
     from prsa_ctrl.studies.scene import load_scene, require_speed_scene
 
     sc = load_scene("paper-move")
-    assert isinstance(sc, MoveScene) and sc == load_move_scene("paper-move")
+    assert isinstance(sc, MoveScene)
+    assert sc == load_move_scene("paper-move")
     with pytest.raises(SceneError, match=r"paper-move\.toml \(built-in\): a move scene"):
         require_speed_scene(sc)
 
@@ -438,7 +457,10 @@ def test_gains_are_projected_onto_the_nlp_bounds():
     x, g = _gains_from_solution([0.5, 2.0, 1e3 + 1e-9, 1.5 + 2e-9, -9.2e-9], lbx, ubx, [0, 1, 2, 4, 5],
                                 [0.08, 10.0, 40.0, 160.0, 1.0, 1.0])
     assert list(x) == [0.5, 2.0, 1e3, 1.5, 0.0]
-    assert g[5] == 0.0 and g[4] == 1.5 and g[2] == 4e4 and g[3] == 0.0
+    assert g[5] == 0.0
+    assert g[4] == 1.5
+    assert g[2] == 4e4
+    assert g[3] == 0.0
     PositionLoop(kv=g[2], ki=g[3], kvff=g[4], kaff=g[5])  # no error
 
 
@@ -460,7 +482,9 @@ def test_cli_move_scene_plots_quiet_json_export(tmp_path, capsys):
     rc = main(["--scene", str(f), "--quiet", "--plots", str(out), "--json", str(tmp_path / "c.json"),
                "--export", str(tmp_path / "d.toml")])
     cap = capsys.readouterr()
-    assert rc == 0 and cap.out == "" and cap.err == ""
+    assert rc == 0
+    assert cap.out == ""
+    assert cap.err == ""
     assert sorted(p.name for p in out.iterdir()) == ["hold.png", "hold.svg", "move.png", "move.svg"]
     assert all(p.stat().st_size > 1000 for p in out.iterdir())
     data = json.loads((tmp_path / "c.json").read_text())
@@ -468,7 +492,8 @@ def test_cli_move_scene_plots_quiet_json_export(tmp_path, capsys):
         assert max(data[name]["ms"][k] for k in BREAKING_POINTS) <= 1.4 * (1 + 1e-5)
     pc = tomllib.loads((tmp_path / "d.toml").read_text())["position_controller"]
     assert pc["kv_per_s"] == data["joint"]["position"]["kv_per_s"]
-    assert "kaff" not in pc["law"]["tau_ff"] and "acceleration_feedforward" not in pc["law"]["tau_ff"]
+    assert "kaff" not in pc["law"]["tau_ff"]
+    assert "acceleration_feedforward" not in pc["law"]["tau_ff"]
 
 
 def test_text_report_names_every_bound_and_the_position_integral(plant, designs):
@@ -478,7 +503,8 @@ def test_text_report_names_every_bound_and_the_position_integral(plant, designs)
     pi = dataclasses.replace(joint, position=dataclasses.replace(joint.position, ki=800.0))
     text = format_move_report(plant, dataclasses.replace(sc, position_controller="pi"), [seq, pi])
     assert "speed loop (position loop closed / opened), position loop, torque command" in text
-    assert f"torque command {pi.ms_points['torque']:.3f}" in text and "ki 800 1/s^2" in text
+    assert f"torque command {pi.ms_points['torque']:.3f}" in text
+    assert "ki 800 1/s^2" in text
     lin, ver = joint.linear["holding_deviation_m"], joint.verified.holding_deviation_m
     assert f"holding deviation {lin * 1e6:.3f} um ({lin / ver:.2g} x the verified)" in text
     assert "ki 800" not in format_move_report(plant, sc, [seq, joint])
@@ -584,7 +610,8 @@ def test_multirate_model_matches_an_independent_simulation(plant, scene, n_rate,
     bqs = [(lf.place, tuple(getattr(lf.biquad(ts), k) for k in ("b0", "b1", "b2", "a1", "a2"))) for lf in sc.filters]
     assert len(bqs) == (2 if filtered else 0)
     g = [PI.kp, PI.ki, 70.0, 2000.0, 1.0, 1.0]  # a position PI, so that its slow integral is checked too
-    assert cm.delay == p_delay and cm.spectral_radius(g) < 0.995
+    assert cm.delay == p_delay
+    assert cm.spectral_radius(g) < 0.995
     samples = 4200 - 4200 % n_rate
     tp = n_rate * plant.sample_time_s
     for omega in (150.0, 700.0, 0.8 * math.pi / tp):
@@ -660,7 +687,8 @@ def test_position_delay_memory_and_arguments():
     p = PositionLoop(kv=10.0, delay=2)
     assert p.memory_names[4:] == ("pending_speed_reference_1", "pending_torque_feedforward_1",
                                   "pending_speed_reference_2", "pending_torque_feedforward_2")
-    assert p.initial() == [0.0] * 8 and PositionLoop(kv=10.0).memory_names[4:] == ()
+    assert p.initial() == [0.0] * 8
+    assert PositionLoop(kv=10.0).memory_names[4:] == ()
     assert p.key() != PositionLoop(kv=10.0).key()
     for bad in (-1, 9, 1.0, True):
         with pytest.raises(ValueError, match=f"delay = {bad!r}"):
@@ -696,7 +724,8 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
     # library's exports of the design the JSON reports (a second run for the TOML tuned the same
     # scene again; the CLI's TOML of a move scene: test_cli_move_scene_plots_quiet_json_export)
     rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "drive.st")])
-    assert rc == 0 and capsys.readouterr().err == ""
+    assert rc == 0
+    assert capsys.readouterr().err == ""
     data = json.loads((tmp_path / "c.json").read_text())
     ts = plant.sample_time_s
     sc = load_move_scene(f)
@@ -705,9 +734,11 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
     for name in ("sequential", "joint"):
         d = data[name]
         assert [x["place"] for x in d["filters"]] == ["torque_command", "speed_measurement"]
-        assert d["position"]["rate"] == 2 and d["position"]["kv_per_s"] <= 4 * 1000 / 60 * (1 + 1e-9)
+        assert d["position"]["rate"] == 2
+        assert d["position"]["kv_per_s"] <= 4 * 1000 / 60 * (1 + 1e-9)
         assert max(d["ms"][k] for k in BREAKING_POINTS) <= 1.4 * (1 + 1e-5)
-        assert d["verified"] is not None and d["verified"]["settling_time_s"] is not None
+        assert d["verified"] is not None
+        assert d["verified"]["settling_time_s"] is not None
         g = [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], d["position"]["ki_per_s2"],
              d["position"]["kvff"], d["position"]["kaff"]]
         assert cm.spectral_radius(g) < 1
@@ -727,10 +758,12 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
 
     design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
                                    d["position"]["kvff"], d["position"]["kaff"]], 0.0)
-    assert design.position.rate == 2 and len(design.filters) == 2
+    assert design.position.rate == 2
+    assert len(design.filters) == 2
     exported = tomllib.loads(_dumps(export_cascade(design, plant, fmt="toml"), "toml"))
     pc = exported["position_controller"]
-    assert pc["sample_time_s"] == 2 * ts and pc["kv_m_min_per_mm"] == pytest.approx(4.0, rel=1e-6)
+    assert pc["sample_time_s"] == 2 * ts
+    assert pc["kv_m_min_per_mm"] == pytest.approx(4.0, rel=1e-6)
     assert len(exported["filters"]) == 2
     assert json.loads(_dumps(export_cascade(design, plant, fmt="json"), "json"))["position_controller"][
         "sample_time_s"] == 2 * ts
@@ -758,19 +791,23 @@ def test_cli_cascade_with_the_position_loops_own_delay(tmp_path, capsys, plant):
     f = _short_move(tmp_path, "delay.toml", [("position_rate", "2 \nposition_delay_samples = 1"),
                                               ("hold_delay_s", "0.08")])
     sc = load_move_scene(f)
-    assert sc.position_rate == 2 and sc.position_delay_samples == 1
+    assert sc.position_rate == 2
+    assert sc.position_delay_samples == 1
     # one prsa-tune run (the CLI's code path for the ST); the TOML, JSON and C below are the
     # library's exports of the design the JSON reports (a second run tuned the same scene again)
     rc = main(["--scene", str(f), "--quiet", "--json", str(tmp_path / "c.json"), "--export", str(tmp_path / "drive.st")])
-    assert rc == 0 and capsys.readouterr().err == ""
+    assert rc == 0
+    assert capsys.readouterr().err == ""
     data = json.loads((tmp_path / "c.json").read_text())
     cm = CascadeModel(plant, sc.cascade_spec())
     cm0 = CascadeModel(plant, dataclasses.replace(sc, position_delay_samples=0).cascade_spec())
     for name in ("sequential", "joint"):
         d = data[name]
-        assert d["position"]["rate"] == 2 and d["position"]["delay_samples"] == 1
+        assert d["position"]["rate"] == 2
+        assert d["position"]["delay_samples"] == 1
         assert max(d["ms"][k] for k in BREAKING_POINTS) <= 1.4 * (1 + 1e-5)
-        assert d["verified"] is not None and d["verified"]["settling_time_s"] is not None
+        assert d["verified"] is not None
+        assert d["verified"]["settling_time_s"] is not None
         g = [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], d["position"]["ki_per_s2"],
              d["position"]["kvff"], d["position"]["kaff"]]
         again, undelayed = cm.ms(g, n_dense=12007), cm0.ms(g, n_dense=12007)
@@ -785,7 +822,9 @@ def test_cli_cascade_with_the_position_loops_own_delay(tmp_path, capsys, plant):
                                    d["position"]["kvff"], d["position"]["kaff"]], 0.0)
     assert design.position.delay == 1
     pc = tomllib.loads(dumps(export_cascade(design, plant, fmt="toml"), "toml"))["position_controller"]
-    assert pc["delay_samples"] == 1 and pc["delay_s"] == pytest.approx(2 * ts) and pc["sample_time_s"] == 2 * ts
+    assert pc["delay_samples"] == 1
+    assert pc["delay_s"] == pytest.approx(2 * ts)
+    assert pc["sample_time_s"] == 2 * ts
     assert "applied from sample k + 1 on" in pc["discretisation"]
     assert json.loads(dumps(export_cascade(design, plant, fmt="json"), "json"))["position_controller"][
         "delay_samples"] == 1
@@ -793,8 +832,10 @@ def test_cli_cascade_with_the_position_loops_own_delay(tmp_path, capsys, plant):
     st = (tmp_path / "drive.st").read_text()
     for code in (c, st):
         assert "its outputs applied 1 position-loop sample(s) after they are computed" in code
-    assert "w_ref = pw1; tau_p = pt1;" in c and "s->pend_w1 = pw1;" in c
-    assert "t_WRef := t_PendW1; t_TauP := t_PendT1;" in st and "s_PendW1 := t_PendW1;" in st
+    assert "w_ref = pw1; tau_p = pt1;" in c
+    assert "s->pend_w1 = pw1;" in c
+    assert "t_WRef := t_PendW1; t_TauP := t_PendT1;" in st
+    assert "s_PendW1 := t_PendW1;" in st
 
 
 @pytest.mark.parametrize("value", ["5", "-1", "1.5", "true"])
@@ -804,7 +845,10 @@ def test_position_delay_refused_in_one_line(tmp_path, capsys, value):
     f = _short_move(tmp_path, "bad.toml", [("position_rate", f"1\nposition_delay_samples = {value}")])
     assert main(["--scene", str(f), "--export", str(tmp_path / "d.toml")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "position_delay_samples" in err and value in err.lower() and "Traceback" not in err
+    assert err.count("\n") == 1
+    assert "position_delay_samples" in err
+    assert value in err.lower()
+    assert "Traceback" not in err
     assert not (tmp_path / "d.toml").exists()
 
 
@@ -824,7 +868,9 @@ def test_kv_max_refused_in_one_line(tmp_path, capsys, line, match):
     assert "\n" not in str(exc.value)
     assert main(["--scene", str(f), "--export", str(tmp_path / "d.toml")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "kv_max" in err and "Traceback" not in err
+    assert err.count("\n") == 1
+    assert "kv_max" in err
+    assert "Traceback" not in err
     assert not (tmp_path / "d.toml").exists()
 
 
@@ -833,8 +879,10 @@ def test_kv_max_units_and_the_python_api(plant, scene):
     from prsa_ctrl.tuning.cascade import kv_ceiling
 
     assert parse_kv("3 (m/min)/mm") == pytest.approx(50.0, rel=1e-15)
-    assert parse_kv("2.5 1/s") == 2.5 and parse_kv(" 1  (m/min) / mm ") == pytest.approx(1000 / 60)
-    assert kv_ceiling(scene.cascade_spec()) == math.inf and kv_ceiling(scene.cascade_spec(), 30.0) == 30.0
+    assert parse_kv("2.5 1/s") == 2.5
+    assert parse_kv(" 1  (m/min) / mm ") == pytest.approx(1000 / 60)
+    assert kv_ceiling(scene.cascade_spec()) == math.inf
+    assert kv_ceiling(scene.cascade_spec(), 30.0) == 30.0
     assert kv_ceiling(dataclasses.replace(scene, kv_max_per_s=20.0).cascade_spec()) == 20.0
     assert kv_ceiling(scene.cascade_spec(), "2 (m/min)/mm") == pytest.approx(100 / 3)
     for bad in (0.0, -1.0, math.inf, math.nan, True, "2 mm"):
@@ -843,8 +891,10 @@ def test_kv_max_units_and_the_python_api(plant, scene):
     # the ceiling bounds the sequential rule too (it picks crossover/10 = 39 1/s without it)
     sc = dataclasses.replace(scene, fidelity="rigid", position_rate=2)
     seq = sequential_design(plant, sc.cascade_spec(), kv_max="1.2 (m/min)/mm")
-    assert seq.position.kv == pytest.approx(20.0) and any("ceiling" in n for n in seq.notes)
-    assert seq.position.rate == 2 and seq.ms <= sc.ms_max * (1 + 1e-5)
+    assert seq.position.kv == pytest.approx(20.0)
+    assert any("ceiling" in n for n in seq.notes)
+    assert seq.position.rate == 2
+    assert seq.ms <= sc.ms_max * (1 + 1e-5)
 
 
 def test_report_names_the_rate_the_ceiling_and_the_filters(plant, designs):
@@ -856,10 +906,14 @@ def test_report_names_the_rate_the_ceiling_and_the_filters(plant, designs):
                                                          filter_labels=labels), [seq, joint])
     ts_us = plant.sample_time_s * 1e6
     assert f"position loop every 2 speed-loop samples (Tp = {2 * ts_us:g} us over Ts = {ts_us:g} us)" in text
-    assert "kv_max = 50 1/s (3 (m/min)/mm)" in text and f"joint {joint.position.kv * 0.06:.4g} (m/min)/mm" in text
-    assert "at 1200 Hz on the torque command" in text and "at 900 Hz on the speed measurement" in text
+    assert "kv_max = 50 1/s (3 (m/min)/mm)" in text
+    assert f"joint {joint.position.kv * 0.06:.4g} (m/min)/mm" in text
+    assert "at 1200 Hz on the torque command" in text
+    assert "at 900 Hz on the speed measurement" in text
     plain = format_move_report(plant, sc, [seq, joint])
-    assert "speed-loop samples" not in plain and "kv_max" not in plain and "filters" not in plain
+    assert "speed-loop samples" not in plain
+    assert "kv_max" not in plain
+    assert "filters" not in plain
 
 
 def test_move_scene_filter_beyond_nyquist_refused(tmp_path, capsys):
@@ -869,7 +923,9 @@ def test_move_scene_filter_beyond_nyquist_refused(tmp_path, capsys):
     f.write_text(f.read_text() + '\n[[filters.lowpass]]\npath = "speed"\ncorner_hz = 2500.0\n')
     assert main(["--scene", str(f), "--export", str(tmp_path / "d.toml")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "corner_hz = 2500.0" in err and "Traceback" not in err
+    assert err.count("\n") == 1
+    assert "corner_hz = 2500.0" in err
+    assert "Traceback" not in err
     assert not (tmp_path / "d.toml").exists()
 
 
@@ -883,7 +939,8 @@ def test_kept_responses_give_the_peaks_of_a_fresh_computation(plant, scene, rate
     bare._CACHE_MIN = 10**9  # keeps nothing
     for g in ([0.08, 7.0, 60.0, 0.0, 1.0, 1.0], [0.05, 11.0, 25.0, 3.0, 1.0, 0.0], [0.12, 4.0, 90.0, 0.0, 0.5, 1.0]):
         assert cm.ms(g, n_dense=2000) == bare.ms(g, n_dense=2000)  # a dense grid of 2000 (kept from 64)
-    assert cm._resp_cache and not bare._resp_cache
+    assert cm._resp_cache
+    assert not bare._resp_cache
     kept = next(iter(cm._resp_cache.values()))
     with pytest.raises(ValueError, match="read-only"):
         next(v for v in kept.values() if isinstance(v, np.ndarray))[0] = 0

@@ -69,7 +69,8 @@ def test_simulator_runs_each_filter_as_its_biquad():
     assert np.max(np.abs(u_f[:-1] - y["torque_command"][1:])) < 1e-9
     # without filters the run is the one it always was (same law, no filter rows)
     r0 = _step_run(PAPER, PID(0.085, 14.7), None, fidelity="rigid", duration=0.03)
-    assert "speed_unfiltered" not in r0.output_labels and r.info["filters"][1]["kind"] == "notch"
+    assert "speed_unfiltered" not in r0.output_labels
+    assert r.info["filters"][1]["kind"] == "notch"
 
 
 def test_notch_at_the_mode_removes_it_from_the_command():
@@ -152,11 +153,13 @@ def test_tuned_notch_beats_gains_alone_at_equal_ms_and_mks():
     from prsa_ctrl.tuning.filtered import loop_builder as _lb  # noqa: F401 (the builder protocol)
     g = tune_filtered([bld], ts=TS, kind=None, start_gains=(0.02, 2.6), max_noise_gain=0.05)
     n = tune_filtered([bld], ts=TS, kind="notch", start_gains=(g.pid.kp, g.pid.ki), max_noise_gain=0.05)
-    assert g.converged and n.converged
+    assert g.converged
+    assert n.converged
     assert n.objective < 0.7 * g.objective
     for d in (g, n):
         lp = bld(d.filter)
-        assert lp.peaks(d.pid.gains)["ms"] <= 1.4 and abs(lp.peaks(d.pid.gains)["ms"] - d.ms) < 1e-9
+        assert lp.peaks(d.pid.gains)["ms"] <= 1.4
+        assert abs(lp.peaks(d.pid.gains)["ms"] - d.ms) < 1e-9
         assert lp.noise_peak(d.pid.gains)["mks"] <= 0.05
     assert 150.0 < n.filter.filter.centre_hz < 350.0  # at the contact mode
 
@@ -221,7 +224,8 @@ def test_bad_tuning_inputs_rejected_with_one_line():
         args.update(kw)
         with pytest.raises(ValueError, match=match):
             tune_filtered([bld], **args)
-    assert loop_filters(None) == () and loop_filters(Notch(300.0, 100.0))[0].place == "torque_command"
+    assert loop_filters(None) == ()
+    assert loop_filters(Notch(300.0, 100.0))[0].place == "torque_command"
 
 
 @pytest.mark.slow  # slow evidence: the README case
@@ -230,8 +234,13 @@ def test_readme_case_three_loops():
     blds = [lambda f=None, L=L: _heavy_loop(f, horizon=0.3, load=L) for L in (1000.0, 500.0, 1500.0)]
     g = tune_filtered(blds[:1], blds[1:], ts=TS, kind=None, start_gains=(0.0217, 2.6), max_noise_gain=0.05)
     n = tune_filtered(blds[:1], blds[1:], ts=TS, kind="notch", start_gains=(g.pid.kp, g.pid.ki), max_noise_gain=0.05)
-    assert g.converged and n.converged and n.objective < 0.35 * g.objective
-    assert n.ms <= 1.4 and n.mks <= 0.05 and g.ms <= 1.4 and g.mks <= 0.05
+    assert g.converged
+    assert n.converged
+    assert n.objective < 0.35 * g.objective
+    assert n.ms <= 1.4
+    assert n.mks <= 0.05
+    assert g.ms <= 1.4
+    assert g.mks <= 0.05
 
 
 # ------------------------------------------------------------------------------------------------
@@ -262,7 +271,8 @@ def mode163():
     osc = lam[(lam.imag > 2 * math.pi * 50) & (lam.imag < 2 * math.pi * 2000)]
     assert osc.size == 1
     f_mode, zeta = abs(osc[0]) / (2 * math.pi), -osc[0].real / abs(osc[0])
-    assert abs(f_mode - 163.0) < 1.0 and abs(zeta - 0.0005) < 0.0001
+    assert abs(f_mode - 163.0) < 1.0
+    assert abs(zeta - 0.0005) < 0.0001
     m = plant_model(p, "compliant")
     bld = loop_builder(a, b, c[m.output_names.index("nut_speed")], m.index("theta_nut"), ts=p.sample_time_s,
                        speed_filter=p.speed_filter_s, tf=1e-3, horizon=0.05, step=1000.0)
@@ -287,7 +297,9 @@ def test_notch_started_at_the_mode_acts_on_it_and_pays(mode163):
 
     ts, f_mode, bld, ref = mode163
     n = tune_filtered([bld], ts=ts, kind="notch", start_gains=(ref.pid.kp, ref.pid.ki), reference=ref)
-    assert n.status == "optimal" and n.converged and n.filter is not None
+    assert n.status == "optimal"
+    assert n.converged
+    assert n.filter is not None
     f = n.filter.filter
     # acts on the mode: centre within 1.5x of it, a real depth, >= 3 dB less loop gain at the mode
     assert abs(math.log(f.centre_hz / f_mode)) < math.log(1.5)
@@ -297,7 +309,8 @@ def test_notch_started_at_the_mode_acts_on_it_and_pays(mode163):
     # true loop quantities of the returned design, recomputed
     lp = bld(n.filter)
     g = n.pid.gains
-    assert lp.stability(g) == "stable" and lp.peaks(g)["ms"] <= 1.4
+    assert lp.stability(g) == "stable"
+    assert lp.peaks(g)["ms"] <= 1.4
     assert abs(lp.objective_to_infinity(g, "iae")[0] - n.objective) <= 1e-9 * n.objective
     # and it pays: well below anything the gains alone reach within the same Ms bound
     assert n.objective < 0.5 * _gains_alone_grid_best(bld(None))
@@ -315,9 +328,14 @@ def test_notch_that_cannot_reach_the_mode_is_not_labelled_optimal(mode163):
     assert n.status != "optimal"
     if n.filter is not None:  # a kept notch must act on the mode
         f = n.filter.filter
-        assert f.depth_db <= -3.0 and abs(math.log(f.centre_hz / f_mode)) < math.log(1.5)
-    assert n.status.startswith("no notch helps: ") and "away from the mode" in n.status
-    assert n.filter is None and n.pid == ref.pid and n.objective == ref.objective and n.converged
+        assert f.depth_db <= -3.0
+        assert abs(math.log(f.centre_hz / f_mode)) < math.log(1.5)
+    assert n.status.startswith("no notch helps: ")
+    assert "away from the mode" in n.status
+    assert n.filter is None
+    assert n.pid == ref.pid
+    assert n.objective == ref.objective
+    assert n.converged
     assert n.stats["rejected_filter"]["kind"] == "notch"
 
 
@@ -412,7 +430,9 @@ def test_a_kalman_filter_loop_tuned_with_its_filter_claims_the_hand_loops_ms_and
     d = tune_filtered([_kf_builder(True, fixed=((other, fixed_bq),))], ts=hl.TS, kind=kind, place=place,
                       start_gains=(0.1, 5.0), start_kff=0.2, ms_max=1.6, mt_max=mt_max,
                       start_filter=(800.0,) if kind == "lowpass1" else (600.0, 200.0, -10.0))
-    assert d.mks is None and d.ms <= 1.6 and (mt_max is None or d.stats["mt"] <= mt_max)
+    assert d.mks is None
+    assert d.ms <= 1.6
+    assert mt_max is None or d.stats["mt"] <= mt_max
     bq = d.filter.biquad(hl.TS) if d.filter is not None else hl.IDENTITY_BQ
     bqs = {place: bq, other: fixed_bq}
     hand = hl.HandLoop(hl.toy_kf(), (d.pid.kp, d.pid.ki, 0.0, d.pid.kff), 1, speed_bq=bqs["speed_measurement"],

@@ -125,7 +125,8 @@ def test_no_stabilising_pi_says_relaxing_does_not_help():
         tune_pid(control.tf([1.0], [1.0, -1.0]), objective="ie", ms_max=2.0, delay=2.0)
     msg = str(err.value)
     assert msg.startswith("no stabilising PI gains found")
-    assert "relaxing them does not help" in msg and "relax the constraints" not in msg
+    assert "relaxing them does not help" in msg
+    assert "relax the constraints" not in msg
     # The reference agrees: no stabilising PI on a coarse (kp, ki) grid.
     assert not any(_rhp_roots(kp, ki, 2.0) == 0 for kp in np.linspace(0.2, 6.0, 30)
                    for ki in (1e-4, 1e-2, 0.1, 0.5))
@@ -294,7 +295,8 @@ def test_filter_search_span_is_stated_once():
     words = {3: "three", 4: "four", 5: "five", 6: "six"}[_FILTER_DECADES]
     doc = " ".join(tune_pid.__doc__.split())
     guide = " ".join((Path(__file__).parents[2] / "docs" / "guides" / "generic-tuner.md").read_text().split())
-    assert f"{words} decades" in doc and f"{words} decades" in guide
+    assert f"{words} decades" in doc
+    assert f"{words} decades" in guide
     # the search's span, wherever the docstring and the guide describe the Tf search
     for text in (doc, guide):
         for w in ("three", "four", "five"):
@@ -606,7 +608,9 @@ def test_no_better_feasible_point_near_a_reported_optimum(case):
 def test_servo_class_is_reported_optimal(case):
     _, plant, ctrl, obj, ms_max, _ = case
     r = tune_pid(plant, objective=obj, controller=ctrl, ms_max=ms_max)
-    assert r.status == "optimal" and r.converged and r.stats["first_order"]["ok"]
+    assert r.status == "optimal"
+    assert r.converged
+    assert r.stats["first_order"]["ok"]
     assert r.stats["first_order"]["residual"] <= 2e-3
 
 
@@ -761,7 +765,10 @@ def test_interior_minimum_is_found_and_proven():
     calls = []
     res, hor = _optimal_filter(_solver(lambda t: 1.0 + (math.log(t / t_opt)) ** 2, calls), 7.0, T_REF)
     fs = res.stats["filter_search"]
-    assert hor == 7.0 and res.converged and fs["first_order_ok"] and not fs["at_bound"]
+    assert hor == 7.0
+    assert res.converged
+    assert fs["first_order_ok"]
+    assert not fs["at_bound"]
     # Optimal for the problem searched, which the status names (issue 34: never "optimal" alone).
     assert res.status == f"optimal (over Tf in [{LO:.4g}, {T_REF:.4g}] s, the filter's search range)"
     assert math.log(fs["tf_s"] / t_opt) == pytest.approx(0.0, abs=3e-3)  # Brent's 2e-3 in log Tf
@@ -775,14 +782,16 @@ def test_kink_minimum_counts_as_a_minimum():
     t_k = 0.002
     res, _ = _optimal_filter(_solver(lambda t: 1.0 + 0.1 * abs(math.log(t / t_k)), []), 1.0, T_REF)
     fs = res.stats["filter_search"]
-    assert fs["first_order_ok"] and res.status.startswith("optimal (over Tf in [")
+    assert fs["first_order_ok"]
+    assert res.status.startswith("optimal (over Tf in [")
     assert math.log(fs["tf_s"] / t_k) == pytest.approx(0.0, abs=3e-3)
 
 
 def test_a_filter_that_only_costs_ends_at_the_small_end_with_a_warning():
     res, _ = _optimal_filter(_solver(lambda t: 1.0 + t, []), 1.0, T_REF)
     fs = res.stats["filter_search"]
-    assert fs["at_bound"] and fs["tf_s"] == pytest.approx(LO, rel=1e-9)
+    assert fs["at_bound"]
+    assert fs["tf_s"] == pytest.approx(LO, rel=1e-9)
     # The end of the range is where the objective is least: optimal over the range, and the
     # status says that it keeps improving beyond its lower end.
     assert res.status == (f"optimal (over Tf in [{LO:.4g}, {T_REF:.4g}] s, the filter's search range (at its lower "
@@ -796,8 +805,11 @@ def test_ie_improving_with_tf_names_the_range_and_points_to_iae():
     over the range, its status names the range and its upper end, and a warning points to IAE."""
     res, _ = _optimal_filter(_solver(lambda t: 1.0 / (1.0 + t), []), 1.0, T_REF)
     fs = res.stats["filter_search"]
-    assert fs["at_bound"] and fs["tf_s"] == pytest.approx(T_REF, rel=1e-9)
-    assert "over Tf in [" in res.status and "upper end" in res.status and res.converged
+    assert fs["at_bound"]
+    assert fs["tf_s"] == pytest.approx(T_REF, rel=1e-9)
+    assert "over Tf in [" in res.status
+    assert "upper end" in res.status
+    assert res.converged
     assert any("IAE gives a bounded problem" in w for w in res.warnings)
     assert "search range" in fs["problem"]
 
@@ -809,7 +821,8 @@ def test_infeasible_and_unconverged_points_count_as_infinite():
                     unconverged=lambda t: t < 3e-3)
     res, _ = _optimal_filter(solve, 1.0, T_REF)
     fs = res.stats["filter_search"]
-    assert res.converged and math.log(fs["tf_s"] / 0.01) == pytest.approx(0.0, abs=3e-3)
+    assert res.converged
+    assert math.log(fs["tf_s"] / 0.01) == pytest.approx(0.0, abs=3e-3)
 
 
 def test_no_feasible_filter_is_one_value_error():
@@ -834,8 +847,10 @@ def test_a_remaining_descent_is_reported_not_optimal():
     res, _ = _optimal_filter(_solver(dipped, []), 1.0, T_REF)
     fs = res.stats["filter_search"]
     assert fs["tf_s"] == pytest.approx(math.exp(x_best), rel=1e-12)  # same path to the same point
-    assert fs["slope_up"] < 0 and not fs["first_order_ok"]
-    assert res.status.startswith("not proven optimal") and not res.converged
+    assert fs["slope_up"] < 0
+    assert not fs["first_order_ok"]
+    assert res.status.startswith("not proven optimal")
+    assert not res.converged
     assert any("not proven optimal" in w for w in res.warnings)
 
 
@@ -853,8 +868,10 @@ def test_a_very_fast_filter_tunes_without_numerical_noise():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         r = tune_pid(control.tf([1], [1, 3, 3, 1]), controller="pid", filter_order=2, filter_tf=1e-4, mks_max=5.0)
-    assert r.status == "optimal" and r.filter["tf_s"] == 1e-4
-    assert r.ms <= 1.4 and r.mks <= 5.0
+    assert r.status == "optimal"
+    assert r.filter["tf_s"] == 1e-4
+    assert r.ms <= 1.4
+    assert r.mks <= 5.0
 
 
 def test_nothing_stabilising_at_any_tf_does_not_ask_to_relax():
@@ -865,7 +882,8 @@ def test_nothing_stabilising_at_any_tf_does_not_ask_to_relax():
 
     with pytest.raises(ValueError) as err:
         _optimal_filter(solve, 1.0, T_REF)
-    assert str(err.value).startswith(msg) and "relax the constraints" not in str(err.value)
+    assert str(err.value).startswith(msg)
+    assert "relax the constraints" not in str(err.value)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -888,7 +906,8 @@ def test_exact_delay_agrees_with_pade6_model(objective):
     (a 6th-order Pade's phase error is below 1e-9 rad up to 2 rad/s, where the design lives)."""
     r = tune_pid(P0, objective=objective, delay=1.0)
     rp = tune_pid(_pade6(), objective=objective)
-    assert r.status == "optimal" and rp.status == "optimal"
+    assert r.status == "optimal"
+    assert rp.status == "optimal"
     assert abs(r.ms - rp.ms) <= 1e-4
     assert abs(r.pid.ki - rp.pid.ki) <= 1e-4 * rp.pid.ki
 
@@ -969,7 +988,9 @@ def _check_true_peaks(r, den, order, ms, mt, mks):
     assert r.ms == pytest.approx(pk[0], rel=1e-4)
     assert r.mt == pytest.approx(pk[1], rel=1e-4)
     assert r.mks == pytest.approx(pk[2], rel=1e-4)
-    assert r.ms <= ms and (mt is None or r.mt <= mt) and r.mks <= mks
+    assert r.ms <= ms
+    assert mt is None or r.mt <= mt
+    assert r.mks <= mks
     assert r.mks >= mks * (1 - 1e-3)  # the noise bound is what limits the design
 
 
@@ -994,7 +1015,9 @@ def test_optimised_filter_matches_reference(den, order, ms, mt, mks, t):
     Tf free as well."""
     r = tune_pid(control.tf([1], den), objective="ie", controller="pid", ideal=True, ms_max=ms, mt_max=mt,
                  mks_max=mks, filter_order=order)
-    assert r.converged and r.status.startswith("optimal (over Tf in [") and r.stats["filter_search"]["first_order_ok"]
+    assert r.converged
+    assert r.status.startswith("optimal (over Tf in [")
+    assert r.stats["filter_search"]["first_order_ok"]
     assert not r.stats["filter_search"]["at_bound"]
     _check_true_peaks(r, den, order, ms, mt, mks)
     kp, ki, kd, t_ref = ref.best_filtered_pid([1], den, order, ms, mt, mks, STARTS)
@@ -1061,11 +1084,15 @@ def test_ideal_pid_matches_reference(den, ms, mt):
     # True peaks of the ideal law (independent grid), within the bounds.
     pk = ref.peaks(ref.loop_parts([1], den), ref.controller(r.pid.kp, r.pid.ki, r.pid.kd))
     # (the reference grid's top is within 1e-4 of the polished peak, and never above it)
-    assert r.ms == pytest.approx(pk[0], rel=1e-4) and r.mt == pytest.approx(pk[1], rel=1e-4)
-    assert r.ms >= pk[0] * (1 - 1e-12) and r.mt >= pk[1] * (1 - 1e-12)
-    assert r.ms <= ms and (mt is None or r.mt <= mt)
+    assert r.ms == pytest.approx(pk[0], rel=1e-4)
+    assert r.mt == pytest.approx(pk[1], rel=1e-4)
+    assert r.ms >= pk[0] * (1 - 1e-12)
+    assert r.mt >= pk[1] * (1 - 1e-12)
+    assert r.ms <= ms
+    assert mt is None or r.mt <= mt
     # |C S| grows as kd omega: an unfiltered ideal PID has no finite noise sensitivity.
-    assert r.mks == math.inf and any("ideal derivative" in w for w in r.warnings)
+    assert r.mks == math.inf
+    assert any("ideal derivative" in w for w in r.warnings)
     (kp, ki, kd), _ = ref.best_ideal_pid([1], den, ms, mt, IDEAL_STARTS)
     assert r.objective == pytest.approx(1.0 / ki, rel=5e-3)
     assert r.pid.ki == pytest.approx(ki, rel=1e-3)
@@ -1092,7 +1119,8 @@ def test_issue_case_reference_value():
     kp, ki = ref.best_pi([1], [4, 1], 1.2, 1.2, 10.0, kp_hi=20.0)
     assert ki == pytest.approx(13.739, abs=5e-4)
     ms, mt, mks = ref.peaks(ref.loop_parts([1], [4, 1]), ref.controller(kp, ki))
-    assert mt <= 1.2 + 1e-9 and mks <= 10.0 + 1e-9
+    assert mt <= 1.2 + 1e-9
+    assert mks <= 10.0 + 1e-9
 
 
 @pytest.mark.parametrize("num, den, ms, mt, mks, kp_hi", MKS_CASES, ids=[str(c[:2]) for c in MKS_CASES])
@@ -1104,9 +1132,11 @@ def test_mks_bound_matches_brute_force(num, den, ms, mt, mks, kp_hi):
     ms_r, mt_r, mks_r = ref.peaks(p, ref.controller(r.pid.kp, r.pid.ki))
     assert r.mks == pytest.approx(mks_r, rel=1e-4)
     assert mks * (1 - 1e-3) <= r.mks <= mks
-    assert r.ms <= ms and ms_r <= ms * (1 + 1e-6)
+    assert r.ms <= ms
+    assert ms_r <= ms * (1 + 1e-6)
     if mt is not None:
-        assert r.mt <= mt and mt_r <= mt * (1 + 1e-6)
+        assert r.mt <= mt
+        assert mt_r <= mt * (1 + 1e-6)
     # The objective (IE = 1/ki) within 0.5 % of the brute-force optimum (and not better than it
     # beyond the brute force's own resolution).
     _, ki_bf = ref.best_pi(num, den, ms, mt, mks, kp_hi=kp_hi)
@@ -1261,17 +1291,22 @@ def test_ideal_pid_against_brute_force(num, den, ms, mt, kp_hi, kd_hi):
     kp, ki, kd = r.pid.kp, r.pid.ki, r.pid.kd
     # The reported peaks are the true peaks of the ideal law, and within the bounds.
     t_ms, t_mt = _true_peaks(num, den, kp, ki, kd)
-    assert r.ms == pytest.approx(t_ms, rel=1e-6) and r.mt == pytest.approx(t_mt, rel=1e-6)
-    assert t_ms <= ms * (1 + 1e-9) and (mt is None or t_mt <= mt * (1 + 1e-9))
+    assert r.ms == pytest.approx(t_ms, rel=1e-6)
+    assert r.mt == pytest.approx(t_mt, rel=1e-6)
+    assert t_ms <= ms * (1 + 1e-9)
+    assert mt is None or t_mt <= mt * (1 + 1e-9)
     assert ref.stable(num, den, kp, ki, kd)
     assert r.objective == pytest.approx(1.0 / ki, rel=1e-12)  # IE of a unit load step: 1/ki
-    assert 0 < kp < kp_hi and 0 < kd < kd_hi
+    assert 0 < kp < kp_hi
+    assert 0 < kd < kd_hi
     # The brute force: its kd grid never beats the tuner by more than its frequency grid's
     # slack, and refined it lands on the tuner's optimum, from above (a relaxation) by at most
     # 3e-4 (measured: 2e-5 to 6e-5), at the same kd (within 1e-2; measured up to 2.7e-3).
     grid_ki, (bki, bkd), bracket = _brute_force(num, den, ms, mt, kp_hi, kd_hi)
-    assert grid_ki <= bki and 0.9 * ki <= grid_ki
-    assert ki <= bki * (1 + 1e-6) and bki <= ki * (1 + 3e-4)
+    assert grid_ki <= bki
+    assert 0.9 * ki <= grid_ki
+    assert ki <= bki * (1 + 1e-6)
+    assert bki <= ki * (1 + 3e-4)
     assert bkd == pytest.approx(kd, rel=1e-2)  # ki is flat in kd at the top: kd is known less well
     assert bracket[0] < bkd < bracket[1]
 
@@ -1301,14 +1336,17 @@ def test_beats_matlab_pidtune_at_the_same_ms():
     assert res.objective < ie_matlab
     assert res.objective == pytest.approx(1 / res.pid.ki, rel=1e-9)  # IE to infinity, exact
     assert res.stats["status"] == "Solve_Succeeded"
-    assert res.status == "optimal" and res.converged and not res.warnings
+    assert res.status == "optimal"
+    assert res.converged
+    assert not res.warnings
     assert res.ms == pytest.approx(_ms_dense(P3_TF, res.pid), rel=1e-4)  # the reported Ms is the true one
 
 
 def test_pid_improves_on_pi_at_equal_ms():
     pi = tune_pid(P3_TF, objective="iae", ms_max=1.4, n_steps=800)
     pid = tune_pid(P3_TF, objective="iae", ms_max=1.4, controller="pid", n_steps=800)
-    assert pid.pid.kd > 0 and pid.ms <= 1.4
+    assert pid.pid.kd > 0
+    assert pid.ms <= 1.4
     assert pid.objective < pi.objective
 
 
@@ -1367,10 +1405,13 @@ def test_pure_integrator_gets_the_stated_default_bound():
     """1/s: robustness alone never limits the gains, so the default design bounds the
     controller's high-frequency gain (10/|P(j w0)| = 10 at w0 = 1 rad/s) and says so."""
     r = tune_pid(control.tf([1.0], [1.0, 0.0]))
-    assert r.status == "optimal" and r.pid.kp == pytest.approx(10.0, rel=1e-5) and r.ms <= 1.4 * (1 + 1e-9)
+    assert r.status == "optimal"
+    assert r.pid.kp == pytest.approx(10.0, rel=1e-5)
+    assert r.ms <= 1.4 * (1 + 1e-9)
     assert "default noise-gain bound max_noise_gain = 10/|P(j w0)| = 10 at w0 = 1 rad/s" in r.warnings[0]
     explicit = tune_pid(control.tf([1.0], [1.0, 0.0]), max_noise_gain=3.0, horizon=10.0, tf=0.01)
-    assert explicit.pid.kp == pytest.approx(3.0, rel=1e-5) and not explicit.warnings[:1] == r.warnings[:1]
+    assert explicit.pid.kp == pytest.approx(3.0, rel=1e-5)
+    assert not explicit.warnings[:1] == r.warnings[:1]
 
 
 def test_discrete_and_mimo_plants_are_rejected():
@@ -1393,7 +1434,8 @@ def test_pi_weight_b_matches_independent_search():
     num, den = [1.0], [4.0, 1.0]
     r = tune_pid(control.tf(num, den), objective="iae", ms_max=1.2, mt_max=1.2, mks_max=10.0, setpoint_weights=True)
     sp = r.setpoint
-    assert sp["c"] == 0.0 and "setpoint step" in sp["goal"]
+    assert sp["c"] == 0.0
+    assert "setpoint step" in sp["goal"]
     p = r.pid
     f = lambda b: ref.setpoint_iae(num, den, p.kp, p.ki, 0.0, p.tf, b, 0.0, t_end=20.0, n=8001)[0]
     best = minimize_scalar(f, bounds=(0.0, 1.0), method="bounded", options={"xatol": 1e-6})
@@ -1406,7 +1448,9 @@ def test_pi_weight_b_matches_independent_search():
     assert sp["iae_unweighted"] == pytest.approx(f(1.0), rel=1e-4)
     # The weights leave the feedback loop alone: same gains and peaks as without them.
     r0 = tune_pid(control.tf(num, den), objective="iae", ms_max=1.2, mt_max=1.2, mks_max=10.0)
-    assert (r0.pid.kp, r0.pid.ki, r0.pid.kd) == (p.kp, p.ki, p.kd) and r0.ms == r.ms and r0.mks == r.mks
+    assert (r0.pid.kp, r0.pid.ki, r0.pid.kd) == (p.kp, p.ki, p.kd)
+    assert r0.ms == r.ms
+    assert r0.mks == r.mks
     assert r0.setpoint is None
 
 
@@ -1419,7 +1463,8 @@ def test_pid_weights_b_c_match_independent_search():
     # (with maxfev 120 it stopped unconverged; 152 evaluations measured)
     best = minimize(f, [0.5, 0.5], method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-8, "maxfev": 600})
     assert best.success, best.message  # the reference checks itself: converged, within the box
-    assert 0.0 <= best.x[0] <= 1.0 and 0.0 <= best.x[1] <= 1.0
+    assert 0.0 <= best.x[0] <= 1.0
+    assert 0.0 <= best.x[1] <= 1.0
     assert sp["iae"] <= best.fun * (1 + 1e-4)  # no worse than the independent search
     assert sp["iae"] == pytest.approx(f([sp["b"], sp["c"]]), rel=1e-4)
     assert sp["iae"] < sp["iae_unweighted"]
@@ -1495,7 +1540,8 @@ def test_resonance_true_ms_is_reported_and_at_the_bound(resonant_ie):
     """A grid-only Ms (the old tuner) gives a true Ms of 1.438 here and fails both checks."""
     r = resonant_ie
     ms_true, mt_true = true_peaks(RESONANT, r.pid)
-    assert r.status == "optimal" and r.converged
+    assert r.status == "optimal"
+    assert r.converged
     assert ms_true <= 1.4 * (1 + 1e-9)
     assert ms_true >= 1.4 * (1 - 1e-3)  # the active bound holds to 0.1 %
     assert r.ms == pytest.approx(ms_true, rel=1e-7)
@@ -1514,8 +1560,10 @@ def test_mt_bound_is_the_true_mt():
     p3 = 1 / (s + 1) ** 3
     r = tune_pid(p3, objective="iae", ms_max=2.0, mt_max=1.1, n_steps=800)
     ms_true, mt_true = true_peaks(p3, r.pid)
-    assert mt_true <= 1.1 * (1 + 1e-9) and mt_true >= 1.1 * (1 - 1e-3)
-    assert r.mt == pytest.approx(mt_true, rel=1e-7) and r.ms == pytest.approx(ms_true, rel=1e-7)
+    assert mt_true <= 1.1 * (1 + 1e-9)
+    assert mt_true >= 1.1 * (1 - 1e-3)
+    assert r.mt == pytest.approx(mt_true, rel=1e-7)
+    assert r.ms == pytest.approx(ms_true, rel=1e-7)
 
 
 def test_sampled_loop_peak_matches_a_dense_search():
@@ -1540,7 +1588,8 @@ def test_default_bounds_work_and_kp_max_does_not_change_the_optimum():
     rs = [tune_pid(P2, ms_max=1.4, kp_max=k) for k in (None, 10.0, 1e4)]
     for r in rs:
         assert r.status == "optimal"
-        assert r.ms <= 1.4 and r.ms >= 1.4 * (1 - 1e-3)
+        assert r.ms <= 1.4
+        assert r.ms >= 1.4 * (1 - 1e-3)
     for r in rs[1:]:
         assert r.pid.kp == pytest.approx(rs[0].pid.kp, rel=1e-5)
         assert r.pid.ki == pytest.approx(rs[0].pid.ki, rel=1e-5)
@@ -1554,14 +1603,17 @@ def test_open_loop_unstable_plants_are_tuned():
     assert np.all(closed_loop_poles(p, r.pid).real < 0)
     assert true_peaks(p, r.pid)[0] <= 1.4 * (1 + 1e-9)
     r1 = tune_pid(1 / (s - 1), max_noise_gain=10.0)
-    assert r1.status == "optimal" and r1.pid.kp <= 10.0 * (1 + 1e-9)
+    assert r1.status == "optimal"
+    assert r1.pid.kp <= 10.0 * (1 + 1e-9)
     assert np.all(closed_loop_poles(1 / (s - 1), r1.pid).real < 0)
     # Default arguments: robustness alone does not bound the gains of 1/(s-1) (Ms -> 1 as they
     # grow), so the default design bounds the controller's high-frequency gain at
     # 10/|P(j w0)| (w0 = 1 rad/s, the unstable pole) and says so.
     r2 = tune_pid(1 / (s - 1))
-    assert r2.status == "optimal" and np.all(closed_loop_poles(1 / (s - 1), r2.pid).real < 0)
-    assert r2.pid.kp <= 10.0 * np.sqrt(2.0) * (1 + 1e-9) and r2.pid.kp > 1.0
+    assert r2.status == "optimal"
+    assert np.all(closed_loop_poles(1 / (s - 1), r2.pid).real < 0)
+    assert r2.pid.kp <= 10.0 * np.sqrt(2.0) * (1 + 1e-9)
+    assert r2.pid.kp > 1.0
     assert "default noise-gain bound" in r2.warnings[0]
     assert true_peaks(1 / (s - 1), r2.pid)[0] <= 1.4 * (1 + 1e-9)
 
@@ -1573,7 +1625,9 @@ def test_lags_with_delay_from_microseconds_to_hours_scale_exactly():
     for T in (1e-6, 1e4):
         n, d = control.pade(0.1 * T, 3)
         r = tune_pid(control.tf(n, d) / (T * s + 1))
-        assert r.status == "optimal" and r.ms <= 1.4 and r.ms >= 1.4 * (1 - 1e-3)
+        assert r.status == "optimal"
+        assert r.ms <= 1.4
+        assert r.ms >= 1.4 * (1 - 1e-3)
         out.append((r.pid.kp, r.pid.ki * T, r.objective / T))
     assert out[0] == pytest.approx(out[1], rel=1e-3)
 
@@ -1605,7 +1659,8 @@ def test_reused_tuner_equals_a_fresh_one():
     second = t.tune(ms_max=1.3, kp_max=50.0)
     fresh = Tuner([lp], objective="iae").tune(ms_max=1.3, kp_max=50.0)
     again = t.tune(ms_max=1.6)
-    assert second.pid == fresh.pid and second.objective == fresh.objective
+    assert second.pid == fresh.pid
+    assert second.objective == fresh.objective
     assert again.pid == first.pid
     assert first.pid.kp > second.pid.kp
     # tune_loops is a thin wrapper: the same numbers
@@ -1623,7 +1678,8 @@ def test_multi_loop_true_ms_holds_on_every_plant_and_a_reused_tuner_equals_a_fre
     first = t.tune(ms_max=1.5)
     second = t.tune(ms_max=1.3)
     fresh = Tuner(loops, objective="iae", worst_case=True).tune(ms_max=1.3)
-    assert second.pid == fresh.pid and second.objective == fresh.objective
+    assert second.pid == fresh.pid
+    assert second.objective == fresh.objective
     for r, bound in ((first, 1.5), (second, 1.3)):
         assert r.converged
         for p in plants:
@@ -1646,7 +1702,8 @@ def test_peaks_and_crossover_below_the_model_grid_are_found():
     ms, mt = true_peaks(plant, pid, w_lo=1e-7, w_hi=1e3)
     assert ms > 100  # a sharp low-frequency resonance
     m = lp.margins(pid.gains)
-    assert m.ms == pytest.approx(ms, rel=1e-6) and m.mt == pytest.approx(mt, rel=1e-6)
+    assert m.ms == pytest.approx(ms, rel=1e-6)
+    assert m.mt == pytest.approx(mt, rel=1e-6)
     # a crossover below the grid: a PI on 1/(s+1)^2 with tiny gains crosses at ~ ki rad/s
     plant2 = 1 / (s + 1) ** 2
     lp2 = continuous_loop(plant2, tf=0.1, horizon=40.0, n_steps=800)
@@ -1708,7 +1765,8 @@ def _drive_ss(with_angle: bool):
 def test_continuous_drive_loop_is_tunable_without_the_angle_state():
     lp = continuous_loop(_drive_ss(False), tf=1e-3, horizon=0.1, n_steps=1000, step=1.0)
     r = tune_loops([lp], ms_max=1.4)
-    assert r.status == "optimal" and lp.stability(r.pid.gains) == "stable"
+    assert r.status == "optimal"
+    assert lp.stability(r.pid.gains) == "stable"
     assert 1.4 * (1 - 1e-3) <= r.ms <= 1.4
     with_angle = continuous_loop(_drive_ss(True), tf=1e-3, horizon=0.1, n_steps=1000, step=1.0)
     assert with_angle.stability(r.pid.gains) == "marginal"
@@ -1761,7 +1819,9 @@ def test_issue14_inertia_plant_converges_at_the_bound_and_beats_a_grid():
     n, d = control.pade(0.375e-3, 3)
     p = 1 / (2e-3 * s) * 1 / (s / (2 * math.pi * 1000) + 1) * control.tf(n, d)
     r = tune_pid(p, ms_max=1.4)
-    assert r.status == "optimal" and r.converged and not r.warnings
+    assert r.status == "optimal"
+    assert r.converged
+    assert not r.warnings
     ms_true = true_peaks(p, r.pid, 1.0, 1e6)[0]
     assert 1.4 * (1 - 1e-3) <= ms_true <= 1.4 * (1 + 1e-9)
     # A plain 21 x 25 grid around the result on the same loop model, keeping Ms <= 1.4.
@@ -1773,7 +1833,8 @@ def test_issue14_inertia_plant_converges_at_the_bound_and_beats_a_grid():
     vals = sorted((lp.objective_continuous(g, "iae")[0], g) for g in ok)
     # the best grid point whose true Ms (independent dense search) honours the bound
     best = next(v for v, g in vals if true_peaks(p, control_pid(g, r.pid.tf), 1.0, 1e6)[0] <= 1.4)
-    assert len(vals) > 50 and math.isfinite(best)
+    assert len(vals) > 50
+    assert math.isfinite(best)
     assert r.objective <= best * (1 + 1e-9)
     assert r.objective == pytest.approx(lp.objective_continuous(r.pid.gains, "iae")[0], rel=1e-9)
 
@@ -1785,6 +1846,8 @@ def test_unconverged_solve_says_so(monkeypatch):
     r = Tuner([lp], objective="iae").tune(ms_max=1.4)
     assert not r.converged
     # issue 20: "optimal" is decided by the first-order check on the true problem, not ipopt's exit
-    assert r.status.startswith("not proven optimal: ") and "Maximum_Iterations_Exceeded" in r.status
-    assert r.warnings and "not proven optimal" in r.warnings[0]
+    assert r.status.startswith("not proven optimal: ")
+    assert "Maximum_Iterations_Exceeded" in r.status
+    assert r.warnings
+    assert "not proven optimal" in r.warnings[0]
     assert r.ms <= 1.4  # still a verified point

@@ -70,11 +70,14 @@ def test_gramian_fallback_runs_once_and_bounded(monkeypatch):
     z = np.array([0.7, -0.2])
     ref = _closed_form(a, c)
     assert g(z) == pytest.approx(float(z @ ref @ z), rel=1e-10)
-    assert len(seen) == 1 and seen[0] <= loops.GRAMIAN_DOUBLINGS
+    assert len(seen) == 1
+    assert seen[0] <= loops.GRAMIAN_DOUBLINGS
     # block_sum: one Gramian for the whole sum (it was one series of up to 2^22 steps per block)
     seen.clear()
     val, tail = loops.block_sum(a, c, z, 0, 0.0, 1e-3, "iae", 1e-6)
-    assert len(seen) == 1 and math.isfinite(val) and tail <= 1e-6 * val
+    assert len(seen) == 1
+    assert math.isfinite(val)
+    assert tail <= 1e-6 * val
     # and the IAE equals a direct sum of |c a^k z| (the tail past 2e6 samples is < 1e-30)
     x, direct = z.copy(), 0.0
     for _ in range(200_000):

@@ -50,4 +50,5 @@ def test_nnls_simple_cases():
     a = np.vstack([g, [1e3, 1e3]])
     b = np.array([0.0, 0.0, 1e3])
     x = nnls(a, b)
-    assert np.allclose(x, [0.5, 0.5]) and np.linalg.norm(g @ x) < 1e-12
+    assert np.allclose(x, [0.5, 0.5])
+    assert np.linalg.norm(g @ x) < 1e-12

@@ -110,7 +110,8 @@ def test_refusals_are_one_line_with_where_and_what(text, message):
     with pytest.raises(PlantTextError, match=message) as info:
         _parse(text)
     msg = str(info.value)
-    assert "\n" not in msg and repr(text) not in msg  # the caller names the text
+    assert "\n" not in msg
+    assert repr(text) not in msg  # the caller names the text
     assert msg.endswith(EXPECTED)
     assert isinstance(info.value, ValueError)
 
@@ -121,7 +122,8 @@ def test_implicit_products_that_stay_are_the_documented_ones():
     for text, num, den in (("1/(4 s+1)", [0.25], [1, 0.25]), ("2 (s+1)/(s+2)", [2, 2], [1, 2]),
                            ("1/((s+1) (s+2))", [1], [1, 3, 2]), ("(s+1)2/(s+2)", [2, 2], [1, 2])):
         n, d = _parse(text)
-        assert n == pytest.approx(num) and d == pytest.approx(den)
+        assert n == pytest.approx(num)
+        assert d == pytest.approx(den)
 
 
 def test_prsa_pid_names_the_text_and_the_position(capsys):
@@ -129,14 +131,16 @@ def test_prsa_pid_names_the_text_and_the_position(capsys):
 
     assert pid_main(["--plant", "1/(1..2s+1)"]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("prsa-pid: error: --plant '1/(1..2s+1)': number '1..2' at position 4") and err.count("\n") == 1
+    assert err.startswith("prsa-pid: error: --plant '1/(1..2s+1)': number '1..2' at position 4")
+    assert err.count("\n") == 1
 
 
 def test_limits_are_the_documented_ones():
     assert (MAX_DEPTH, MAX_POWER) == (20, 30)
     assert _parse("(" * 20 + "s" + ")" * 20 + "/(s+1)")[0] == pytest.approx([1, 0])
     n, d = _parse("1/(s+1)^30")
-    assert d == pytest.approx(np.poly(-np.ones(30)), rel=1e-12) and n == pytest.approx([1.0])
+    assert d == pytest.approx(np.poly(-np.ones(30)), rel=1e-12)
+    assert n == pytest.approx([1.0])
 
 
 def test_length_limit_is_the_callers():

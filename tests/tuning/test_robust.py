@@ -47,7 +47,8 @@ def test_operating_range_crosses_setpoints_and_loads():
     s2 = s.replace(sections={**s.sections.as_dict(), "robust": {**s.sections.as_dict()["robust"], "setpoints_rpm": [150.0, 300.0],
                                                    "final_loads_n": [1000.0, 2000.0]}})
     ops = operating_points(s2)
-    assert len(ops) == 4 and ops[0] == (pytest.approx(150 * math.pi / 30), 1000.0)
+    assert len(ops) == 4
+    assert ops[0] == (pytest.approx(150 * math.pi / 30), 1000.0)
 
 
 def test_robust_design_meets_ms_on_every_scenario_and_nominal_does_not(robust_run):
@@ -60,10 +61,14 @@ def test_robust_design_meets_ms_on_every_scenario_and_nominal_does_not(robust_ru
         assert lp.is_stable(r.robust.gains)
         assert lp.margins(r.robust.gains).ms <= c["ms_max"] * (1 + 1e-9)
     # The scene's [spec] states Ms <= 1.5: the robust study tunes to it (not [tuning] ms_max 1.4) and says so.
-    assert c["ms_max"] == 1.5 and c["ms_source"] == "[spec] ms" and load_scene("robust-load-step").ms_max == 1.4
-    assert rob["ms_violations"] == 0 and rob["all_stable"]
+    assert c["ms_max"] == 1.5
+    assert c["ms_source"] == "[spec] ms"
+    assert load_scene("robust-load-step").ms_max == 1.4
+    assert rob["ms_violations"] == 0
+    assert rob["all_stable"]
     # The nominal design is fragile on this scene: it breaks the bound at some corners.
-    assert nom["ms_violations"] >= 1 and nom["max_ms"] > 1.6
+    assert nom["ms_violations"] >= 1
+    assert nom["max_ms"] > 1.6
     # ... and it meets it on the nominal scenario, where it was tuned.
     nominal_ms = [p["ms"] for p, s in zip(nom["per_scenario"], r.scenarios) if s.kind == "nominal"]
     assert max(nominal_ms) <= c["ms_max"] * (1 + 1e-6)
@@ -91,7 +96,8 @@ def test_generic_plant_array_like_systune(default_robust):
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     r, _, _ = default_robust("iae", "worst")
-    assert len(r.margins) == 3 and all(m.ms <= 1.6 * (1 + 1e-9) for m in r.margins)
+    assert len(r.margins) == 3
+    assert all(m.ms <= 1.6 * (1 + 1e-9) for m in r.margins)
     from prsa_ctrl.tuning.generic import tune_pid
 
     single = tune_pid(plants[0], objective="iae", ms_max=1.6, n_steps=400)
@@ -177,7 +183,8 @@ def test_mapped_per_loop_objective_is_the_expanded_one(monkeypatch, default_robu
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     fast, used, _ = default_robust(objective, aggregate)
-    assert used and all(used)
+    assert used
+    assert all(used)
     monkeypatch.setattr(T.Tuner, "_mapped_objectives", lambda self, g, eps: None)
     slow = tune_robust(plants, objective=objective, aggregate=aggregate, **_THREE)
     np.testing.assert_allclose(fast.pid.gains, slow.pid.gains, rtol=1e-6)
@@ -195,14 +202,17 @@ def test_coarse_constraint_grid_reaches_the_full_grid_design(monkeypatch, defaul
 
     plants = [control.tf([k], [1, 3, 3, 1]) for k in (0.5, 1.0, 2.0)]
     coarse, _, rows = default_robust(objective, aggregate)
-    assert rows and all(n <= settings.MULTI_ROWS + 40 < n_all for n, n_all in rows)
+    assert rows
+    assert all(n <= settings.MULTI_ROWS + 40 < n_all for n, n_all in rows)
     monkeypatch.setattr(T.Tuner, "_grid_rows", lambda self, jl: np.arange(self.loops[jl].omega.size))
     full = tune_robust(plants, objective=objective, aggregate=aggregate, **_THREE)
-    assert coarse.converged and full.converged
+    assert coarse.converged
+    assert full.converged
     for r in (coarse, full):
         for p, m in zip(plants, r.margins):
             lp = builders.continuous_loop(control.ss(p), tf=r.pid.tf, horizon=10.0)
-            assert lp.margins(r.pid.gains).ms <= 1.6 * (1 + 1e-9) and m.ms <= 1.6 * (1 + 1e-9)
+            assert lp.margins(r.pid.gains).ms <= 1.6 * (1 + 1e-9)
+            assert m.ms <= 1.6 * (1 + 1e-9)
     assert coarse.objective <= full.objective * (1 + 1e-4)
 
 
@@ -226,7 +236,8 @@ def test_lower_bound_ranking_keeps_the_exact_top(monkeypatch):
         if worst:
             assert evaluated < int(np.sum(~np.isnan(ref._scan_data()["obj"])))  # it did skip work
             k = T.RANK_TOP
-            assert full.size > top.size >= k and np.array_equal(top[:k], full[:k])
+            assert full.size > top.size >= k
+            assert np.array_equal(top[:k], full[:k])
         else:
             assert np.array_equal(top, full)
 
@@ -332,18 +343,23 @@ def test_recommendation_is_the_issue_tables_best_design_not_the_better_of_two():
     others = {"PM 60 deg": PID(0.37, 34.0), "rule of thumb": PID(0.64, 80.0)}
     rt = _study().with_recommendation(mc, others=others)
     rec = rt.recommended
-    assert rec["design"] == "rule of thumb" and rec["name"] == "rule of thumb"
-    assert rec["passed"] == 195 and rec["yield"] == 0.975
-    assert rt.design(rec["design"]) is others["rule of thumb"] and rec["gains"]["kp"] == 0.64
+    assert rec["design"] == "rule of thumb"
+    assert rec["name"] == "rule of thumb"
+    assert rec["passed"] == 195
+    assert rec["yield"] == 0.975
+    assert rt.design(rec["design"]) is others["rule of thumb"]
+    assert rec["gains"]["kp"] == 0.64
     _check_rule(rec)
     rows = {r["name"]: r for r in rec["table"]}
     # 68 failing samples of the nominal design split by the seeded permutation into drop / Ms
     order = np.random.default_rng(0).permutation(200)[132:]
     assert rows["nominal design"]["fails"] == {"finite": 0, "peak_drop_rad_s": int(np.sum(order % 2 == 1)),
                                                "ms": int(np.sum(order % 2 == 0)), "no_saturation": 0}
-    assert not rows["nominal design"]["near_max"] and rows["rule of thumb"]["near_max"]
+    assert not rows["nominal design"]["near_max"]
+    assert rows["rule of thumb"]["near_max"]
     text = format_yield_table(rec, "iae")
-    assert "* rule of thumb" in text and "97.5 % (195/200) [94.3, 98.9]" in text
+    assert "* rule of thumb" in text
+    assert "97.5 % (195/200) [94.3, 98.9]" in text
     assert "highest yield: rule of thumb 97.5 % (195/200)" in rec["why"]
 
 
@@ -361,7 +377,8 @@ def test_near_maximal_yield_goes_to_the_lower_objective_only_within_the_interval
 
 def test_no_design_meets_the_spec_recommends_none():
     rec = _study().recommend(_fake_mc({"nominal design": 0, "robust design": 0, "x": 0}))
-    assert rec["design"] is None and "no design meets the spec on any sample" in rec["why"]
+    assert rec["design"] is None
+    assert "no design meets the spec on any sample" in rec["why"]
 
 
 def _roller_run(tmp_path):
@@ -389,10 +406,12 @@ def test_roller_screw_scene_recommendation_holds_on_the_monte_carlo_table(tmp_pa
     mc = run_monte_carlo(plant, scene, designs, 6, seed=1, workers=1, quiet=True)
     rec = rt.with_recommendation(mc, others=others).recommended
     print(format_yield_table(rec, "iae"), rec["why"])
-    assert rt.comparison["ms_max"] == 1.5 and rt.comparison["ms_source"] == "[spec] ms"
+    assert rt.comparison["ms_max"] == 1.5
+    assert rt.comparison["ms_source"] == "[spec] ms"
     _check_rule(rec)
     y = {d.name: d for d in mc.designs}
-    assert rec["passed"] == y[rec["name"]].passed and rec["samples"] == 6
+    assert rec["passed"] == y[rec["name"]].passed
+    assert rec["samples"] == 6
     assert {r["name"] for r in rec["table"]} == set(designs)
 
 
@@ -419,7 +438,8 @@ def test_roller_screw_cli_recommends_and_exports_by_the_rule(tmp_path, capsys):
     assert {r["name"] for r in rec["table"]} == set(mc)
     _check_rule(rec)
     assert rec["passed"] == mc[rec["name"]]["passed"]
-    assert "* " + rec["name"] in text and f"recommended: {rec['name']}" in text
+    assert "* " + rec["name"] in text
+    assert f"recommended: {rec['name']}" in text
     t = tomllib.loads(exp.read_text())
     assert t["design"]["name"] == rec["name"]
     assert t["speed_controller"]["continuous"]["kp_n_m_s_per_rad"] == mc[rec["name"]]["gains"]["kp"]
@@ -434,16 +454,21 @@ def test_target_yield_not_reached_names_the_limit_and_by_how_much():
 
     mc = _fake_mc({"nominal design": 132, "robust design": 10, "PM 60 deg": 178})
     rec = _study().recommend(mc, target=0.95)
-    assert rec["name"] == "PM 60 deg" and rec["reached"] is False and rec["target"] == 0.95
+    assert rec["name"] == "PM 60 deg"
+    assert rec["reached"] is False
+    assert rec["target"] == 0.95
     lim = rec["limit"]
     m = mc.samples["metrics"][:, 2, :]
     drop, ms = m[:, METRICS.index("peak_drop_rad_s")], m[:, METRICS.index("ms")]
     k_drop, k_ms = int(np.sum(drop > 12)), int(np.sum(ms > 1.5))
     item, col, bound = ("peak_drop_rad_s", drop, 12.0) if k_drop >= k_ms else ("ms", ms, 1.5)
-    assert lim["item"] == item and lim["fails"] == max(k_drop, k_ms)
-    assert lim["value"] == np.sort(col)[math.ceil(0.95 * 200) - 1] and lim["value"] > bound
+    assert lim["item"] == item
+    assert lim["fails"] == max(k_drop, k_ms)
+    assert lim["value"] == np.sort(col)[math.ceil(0.95 * 200) - 1]
+    assert lim["value"] > bound
     assert lim["yield_without_it"] == pytest.approx(1 - min(k_drop, k_ms) / 200)
-    assert "no design reaches the target yield 95.0 %" in rec["why"] and lim["text"] in rec["why"]
+    assert "no design reaches the target yield 95.0 %" in rec["why"]
+    assert lim["text"] in rec["why"]
     assert _study().recommend(mc, target=0.85)["reached"] is True
     assert "limit" not in _study().recommend(mc, target=0.85)
 
@@ -455,7 +480,8 @@ def test_spec_yield_is_a_probability(bad):
     with pytest.raises(SceneError, match=r"s.toml: spec.yield = .*expected a target probability in \(0, 1\)"):
         parse_scene_sections({"spec": {"yield": bad, "ms": 1.5}}, "s.toml")
     ok = parse_scene_sections({"spec": {"yield": 0.95, "ms": 1.5}}, "s.toml")
-    assert ok["spec"] == {"ms": 1.5} and ok["spec_yield"] == {"yield": 0.95}
+    assert ok["spec"] == {"ms": 1.5}
+    assert ok["spec_yield"] == {"yield": 0.95}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -488,15 +514,23 @@ def test_recommend_ranks_by_the_yield_against_the_spec():
                             for name, k in (("nominal design", k_nom), ("robust design", k_rob))]
 
     r = rt.recommend(MC(132, 10))
-    assert r["design"] == "nominal" and r["yield"] == 0.66 and r["passed"] == 132 and r["samples"] == 200
-    assert "66.0 % (132/200)" in r["why"] and "5.0 % (10/200)" in r["why"]
+    assert r["design"] == "nominal"
+    assert r["yield"] == 0.66
+    assert r["passed"] == 132
+    assert r["samples"] == 200
+    assert "66.0 % (132/200)" in r["why"]
+    assert "5.0 % (10/200)" in r["why"]
     # Frozen study: recommend() leaves it as it is; with_recommendation() returns a copy that keeps it.
-    assert rt.recommended == {} and rt.with_recommendation(MC(132, 10)).recommended == r
+    assert rt.recommended == {}
+    assert rt.with_recommendation(MC(132, 10)).recommended == r
     assert rt.recommend(MC(10, 132))["design"] == "robust"
     none = rt.recommend(MC(0, 0))
-    assert none["design"] is None and "no design meets the spec on any sample" in none["why"]
+    assert none["design"] is None
+    assert "no design meets the spec on any sample" in none["why"]
     lin = rt.recommend(None)
-    assert lin["design"] == "robust" and lin["yield"] is None and "not checked" in lin["why"]
+    assert lin["design"] == "robust"
+    assert lin["yield"] is None
+    assert "not checked" in lin["why"]
 
 
 # --- item 7: the Monte-Carlo replay on a duty scene ----------------------------------------------

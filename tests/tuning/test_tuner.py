@@ -40,13 +40,15 @@ def _stable_exact(kp, ki, delay=0.2):
 def test_boundary_points_cover_the_stabilising_window():
     tuner = Tuner([_loop()], objective="ie")
     pts = tuner.boundary_points()
-    assert pts.shape[1] == 3 and np.all(pts[:, 2] == 0.0)
+    assert pts.shape[1] == 3
+    assert np.all(pts[:, 2] == 0.0)
     small = pts[pts[:, 1] < 0.02]
     stable = [p for p in small if _stable_exact(p[0], p[1])]
     assert stable, "no stabilising point among the boundary points"
     # Independent: the window of kp at small ki is about (1, 7); the points sample it.
     kps = sorted(p[0] for p in stable)
-    assert kps[0] < 1.3 and kps[-1] > 4.0
+    assert kps[0] < 1.3
+    assert kps[-1] > 4.0
 
 
 def test_blind_scan_rescued_by_the_boundary():
@@ -57,8 +59,10 @@ def test_blind_scan_rescued_by_the_boundary():
     assert not any(lp.stability(g) == "stable" for g in blind.scan_grid)
     res = blind.tune(ms_max=2.0)
     ref = Tuner([_loop()], objective="ie").tune(ms_max=2.0)
-    assert res.converged and ref.converged, (res.status, ref.status)
-    assert res.ms <= 2.0 and _stable_exact(res.pid.kp, res.pid.ki)
+    assert res.converged, (res.status, ref.status)
+    assert ref.converged, (res.status, ref.status)
+    assert res.ms <= 2.0
+    assert _stable_exact(res.pid.kp, res.pid.ki)
     assert abs(res.pid.ki / ref.pid.ki - 1.0) < 1e-3
 
 
