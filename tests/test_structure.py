@@ -59,7 +59,7 @@ def test_zero_order_hold_and_radau_tableau_written_once():
     for path in AREA:
         src = path.read_text(encoding="utf-8")
         uses_expm = any("expm" in names or module.endswith("expm") for _, module, names in _imports(path))
-        # the home writes the exponential itself (expm_stack: scipy's expm costs ms per 6 x 6 under OpenBLAS threads)
+        # the home also writes the Monte Carlo's batched exponential (expm_stack)
         assert (uses_expm or "def expm_stack(" in src) == (path == ZOH_HOME), f"{path.relative_to(PKG)}: expm"
         assert ("sqrt(6" in src) == (path == RADAU_HOME), f"{path.relative_to(PKG)}: Radau IIA coefficients"
 

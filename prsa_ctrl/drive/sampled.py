@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import expm
 
 __all__ = ["expm_stack", "zoh", "pid_rows", "pid_frequency_parts", "ss_response", "freq_grid", "first_order_hold"]
 
@@ -35,11 +36,14 @@ def expm_stack(a: NDArray[np.float64]) -> NDArray[np.float64]:
     k = 6, 8, 10, not from ``||A||``, plus the truncation-error correction on ``|A|^27``), so a
     stiff, non-normal matrix (a contact stiffness) is not over-scaled.
 
-    It is the exponential of every zero-order hold here (:func:`zoh`, :func:`first_order_hold`)
-    rather than ``scipy.linalg.expm``, whose degree-13 step solves its Pade system through
-    LAPACK ``getrs`` with a matrix right-hand side: OpenBLAS runs that on all its threads even
-    for a 6 x 6 matrix, about 5 ms of CPU per call instead of 10 us on a loaded 2-core machine
-    (OpenMathLib/OpenBLAS#4387). The stacked solve here goes through NumPy, which does not.
+    It is the Monte Carlo's batched exponential (:mod:`prsa_ctrl.studies.mcmargins`). The single
+    zero-order holds (:func:`zoh`, :func:`first_order_hold`) keep ``scipy.linalg.expm``: on a
+    badly scaled hold block (entries from 1e-20 to 1e33: the servo 2.2e-4 kg m^2 PID case of
+    ``tests/tuning/test_generic.py``) this stack's result differed from scipy's by 2.6e-6 of its
+    largest entry, enough to move the tuner's IAE by 30 %. scipy's degree-13 step solves its Pade
+    system through LAPACK ``getrs`` with a matrix right-hand side, which OpenBLAS runs on all its
+    threads even for a 6 x 6 matrix (about 5 ms of CPU per call instead of 10 us on a loaded
+    2-core machine, OpenMathLib/OpenBLAS#4387): ``OPENBLAS_NUM_THREADS=1`` removes that cost.
     Agreement with ``scipy.linalg.expm``: ``tests/drive/test_sampled.py``.
 
     Parameters
@@ -136,7 +140,7 @@ def _exp_sinch(x: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def zoh(a: ArrayLike, b: ArrayLike, ts: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Exact zero-order-hold discretisation of ``dx/dt = A x + B u`` by the matrix exponential
-    (:func:`expm_stack`).
+    (``scipy.linalg.expm``; not :func:`expm_stack`, see there).
 
     ``exp([[A, B], [0, 0]] Ts) = [[Ad, Bd], [0, I]]``: the input is held over the sample, and
     stiff modes are exact too (``e^{lambda Ts} -> 0``, no step-size limit).
@@ -168,7 +172,7 @@ def zoh(a: ArrayLike, b: ArrayLike, ts: float) -> tuple[NDArray[np.float64], NDA
     blk = np.zeros((n + m, n + m))
     blk[:n, :n] = a * ts
     blk[:n, n:] = b * ts
-    e = expm_stack(blk[None])[0]
+    e = expm(blk)
     return e[:n, :n], e[:n, n:]
 
 
@@ -333,6 +337,6 @@ def first_order_hold(a: ArrayLike, h: float) -> tuple[NDArray[np.float64], NDArr
     n = a.shape[0]
     big = np.zeros((3 * n, 3 * n))
     big[:n, :n], big[:n, n : 2 * n], big[n : 2 * n, 2 * n :] = a * h, np.eye(n) * h, np.eye(n) * h
-    e = expm_stack(big[None])[0]
+    e = expm(big)
     phi, psi0, psi1 = e[:n, :n], e[:n, n : 2 * n], e[:n, 2 * n :] / h  # psi1 = int e^{Ar}(h - r) dr / h
     return phi, psi0 - psi1, psi1

@@ -77,40 +77,6 @@ def test_sampled_rigid_response_is_the_toolkits():
     assert np.max(np.abs(g / g0 - 1)) < 1e-6
 
 
-@pytest.mark.parametrize("ts", [1e-3, 2.5e-4])
-@pytest.mark.parametrize("fc", [900.0, math.inf])
-@pytest.mark.parametrize("rigid", [False, True])
-def test_sampled_response_equals_the_one_by_scipys_matrix_exponential(monkeypatch, ts, fc, rigid):
-    """The sampled response (its zero-order hold by drive.sampled.expm_stack since h11-suiteid) is the
-    one with the hold by ``scipy.linalg.expm`` (what it was before, 25x slower under OpenBLAS threads),
-    to 1e-9 of its magnitude at every frequency; 1e-8 with no current loop, where a 1e9 rad/s lag
-    stands in (18 squarings: against the closed-form hold of tests/drive/test_sampled.py scipy's
-    response is off by 1.4e-9 and this one by 3.3e-9; the stand-in lag itself moves it by 3e-6
-    at 500 Hz)."""
-    from scipy.linalg import expm
-
-    import prsa_ctrl.drive.sampled as sampled
-
-    t = TRUTH
-    kw = dict(motor_inertia_kg_m2=t["jm"], load_inertia_kg_m2=0.0 if rigid else t["jl"], stiffness_n_m_per_rad=t["k"],
-              damping_n_m_s_per_rad=_damper(t), viscous_n_m_s_per_rad=t["b"], current_loop_bandwidth_hz=fc,
-              delay_s=t["td"], sample_time_s=ts)
-    f = np.geomspace(1.0, 0.45 / ts, 120)
-    g = two_mass_response(f, **kw)
-
-    def scipy_zoh(a, b, h):
-        a, b = np.asarray(a, float), np.asarray(b, float)
-        n, m = a.shape[0], b.shape[1]
-        blk = np.zeros((n + m, n + m))
-        blk[:n, :n], blk[:n, n:] = a * h, b * h
-        e = expm(blk)
-        return e[:n, :n], e[:n, n:]
-
-    monkeypatch.setattr(sampled, "zoh", scipy_zoh)
-    g_ref = two_mass_response(f, **kw)
-    assert np.max(np.abs(g / g_ref - 1.0)) < (1e-9 if math.isfinite(fc) or rigid else 1e-8)
-
-
 def test_two_mass_fit_recovers_the_truth_and_says_why():
     t = TRUTH
     rng = np.random.default_rng(7)
