@@ -86,7 +86,7 @@ stats = module("scipy.stats")  # only the fit's intervals need it (a slow import
 __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "axis_fit_status", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
-           "idim_estimate", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES",
+           "idim_estimate", "start_estimate", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES",
            "batch_covariance", "t95", "normal_entry"]
 
 MECHANISM = "linear-axis"
@@ -536,6 +536,23 @@ def _idim_rows(log: AxisLog, min_speed_fraction: float):
     return A[keep], f[keep]
 
 
+def start_estimate(logs: Sequence[AxisLog], base: LinearAxisPlant) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The fit's start: the inverse-dynamic estimate (:func:`idim_estimate`) where the logs inform
+    it, the base plant's values (``base.theta``, SI) elsewhere; and which were informed.
+
+    Raises
+    ------
+    AxisFitError
+        A mass estimate <= 0 kg (the command does not explain the logged accelerations).
+    """
+    theta0, informed = idim_estimate(logs)
+    theta0 = np.where(informed, theta0, base.theta)
+    if theta0[0] <= 0:
+        raise AxisFitError(f"inverse-dynamic mass estimate {theta0[0]:.6g} kg <= 0; expected a log with accelerations "
+                           "that the command explains (check the drive gain and the command's sign)")
+    return theta0, informed
+
+
 def idim_estimate(logs: Sequence[AxisLog], min_speed_fraction: float = 0.05) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Inverse-dynamic least-squares estimate of :data:`PARAMETERS` (the starting point of the
     output-error fit) and which of them the data inform (a direction of motion the logs never
@@ -800,13 +817,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
         raise ValueError(f"max_evaluations = {max_evaluations!r}; expected an integer >= 1 (residual evaluations of "
                          "the output-error fit)")
     _check_force_limit(base.values.get("drive.force_limit_n", math.inf), logs, f"base plant {base.name!r}")
-    theta0, informed = idim_estimate(logs)
+    theta0, informed = start_estimate(logs, base)
     base_theta = base.theta
-    theta0 = np.where(informed, theta0, base_theta)
     warnings = []
-    if theta0[0] <= 0:
-        raise AxisFitError(f"inverse-dynamic mass estimate {theta0[0]:.6g} kg <= 0; expected a log with accelerations "
-                           "that the command explains (check the drive gain and the command's sign)")
     for j in range(1, 5):
         if informed[j] and theta0[j] < 0:
             warnings.append(f"inverse-dynamic start of {PARAMETERS[j]} = {theta0[j]:.6g} < 0; started from 0")

@@ -8,7 +8,7 @@ modal damping ratio ``zeta``), replayed closed loop from the reference with the 
 (:func:`prsa_ctrl.identification.axis.simulate_axis`).
 
 1. **Starts that do not depend on luck.** Mass and friction from inverse-dynamic least squares
-   (:func:`prsa_ctrl.identification.axis.idim_estimate`); the second mass from a two-mass fit of a
+   (:func:`prsa_ctrl.identification.axis.start_estimate`); the second mass from a two-mass fit of a
    frequency response (:func:`prsa_ctrl.identification.twomass.fit_frf_model`, force -> speed in
    load coordinates: (m/s)/N is (rad/s)/(N m) at 1 m per rad): a measured one when given
    (``frf``), else the one the logs give (:func:`axis_frf`: the indirect closed-loop estimate
@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import AxisFitError
-from .axis import (METRIC_SKIP_SAMPLES, PARAMETERS, AxisReplay, LinearAxisPlant, batch_covariance, idim_estimate,
+from .axis import (METRIC_SKIP_SAMPLES, PARAMETERS, AxisReplay, LinearAxisPlant, batch_covariance, start_estimate,
                    logged_force_peak, normal_entry, replay_axis, simulate_axis, t95)
 from .logformat import AxisLog
 
@@ -432,13 +432,9 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
     if flim < peak * (1.0 - 1e-9):
         raise ValueError(f"base plant {base.name!r}: drive.force_limit_n = {flim:.6g} N is below the largest logged "
                          f"force {peak:.6g} N in {where}; expected a force limit >= the logged forces")
-    theta0, informed = idim_estimate(logs)
+    theta0, informed = start_estimate(logs, base)
     base_theta = base.theta
-    theta0 = np.where(informed, theta0, base_theta)
     warnings = []
-    if theta0[0] <= 0:
-        raise AxisFitError(f"inverse-dynamic mass estimate {theta0[0]:.6g} kg <= 0; expected a log with accelerations "
-                           "that the command explains (check the drive gain and the command's sign)")
     theta0[1:] = np.maximum(theta0[1:], 0.0)
     mirrored = {}
     for j in np.flatnonzero(~informed):
