@@ -197,32 +197,8 @@ def test_no_start_for_the_second_mass_is_a_fit_error_naming_the_remedies():
         fit_two_mass_axis([_log(3, dither_v=0.0)], _base(_log(3, dither_v=0.0)))
 
 
-CSV_FORMAT = """format = "csv"
-[time]
-name = "time_ms"
-unit = "ms"
-[position]
-name = "pos_mm"
-unit = "mm"
-resolution = 5e-5
-[reference]
-name = "ref_mm"
-unit = "mm"
-[command]
-name = "u_V"
-unit = "V"
-gain = 30.0
-[test_signal]
-name = "dither_V"
-unit = "V"
-[controller]
-structure = "position-p/velocity-p"
-kp = 150.0
-kv = 250.0
-saturation = 10.0
-sample_time_s = 0.001
-check_tolerance = 1e-6
-"""
+# the EMPS-like description of axis_generator, plus the column of the drive's test signal
+CSV_FORMAT = gen.CSV_FORMAT.replace("[controller]", '[test_signal]\nname = "dither_V"\nunit = "V"\n[controller]')
 
 
 def _write_csv(path, log_arrays):
