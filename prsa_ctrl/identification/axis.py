@@ -86,7 +86,7 @@ stats = module("scipy.stats")  # only the fit's intervals need it (a slow import
 __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "axis_fit_status", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
-           "idim_estimate", "start_estimate", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES",
+           "idim_estimate", "start_estimate", "check_force_limit", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES",
            "batch_covariance", "t95", "normal_entry"]
 
 MECHANISM = "linear-axis"
@@ -742,7 +742,7 @@ def logged_force_peak(logs: Sequence[AxisLog]) -> tuple[float, str]:
     return max(peaks, key=lambda p: p[0]) if peaks else (0.0, "")
 
 
-def _check_force_limit(flim: float, logs: Sequence[AxisLog], what: str) -> None:
+def check_force_limit(flim: float, logs: Sequence[AxisLog], what: str) -> None:
     """Refuse a drive force limit (N) below the force a log holds: the replay clips the drive force
     at the limit in every sample, while the log says the drive applied more (force = gain x
     command), so the fit would explain the log with a force the drive never saturated at."""
@@ -816,7 +816,7 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     if isinstance(max_evaluations, bool) or not isinstance(max_evaluations, (int, np.integer)) or max_evaluations < 1:
         raise ValueError(f"max_evaluations = {max_evaluations!r}; expected an integer >= 1 (residual evaluations of "
                          "the output-error fit)")
-    _check_force_limit(base.values.get("drive.force_limit_n", math.inf), logs, f"base plant {base.name!r}")
+    check_force_limit(base.values.get("drive.force_limit_n", math.inf), logs, f"base plant {base.name!r}")
     theta0, informed = start_estimate(logs, base)
     base_theta = base.theta
     warnings = []

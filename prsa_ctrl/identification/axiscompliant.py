@@ -45,8 +45,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import AxisFitError
-from .axis import (METRIC_SKIP_SAMPLES, PARAMETERS, AxisReplay, LinearAxisPlant, batch_covariance, start_estimate,
-                   logged_force_peak, normal_entry, replay_axis, simulate_axis, t95)
+from .axis import (METRIC_SKIP_SAMPLES, PARAMETERS, AxisReplay, LinearAxisPlant, batch_covariance, check_force_limit,
+                   normal_entry, replay_axis, simulate_axis, start_estimate, t95)
 from .logformat import AxisLog
 
 __all__ = ["TWO_MASS_PARAMETERS", "TwoMassAxisFit", "fit_two_mass_axis", "axis_frf", "second_mass_start",
@@ -428,10 +428,7 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
             raise ValueError(f"{lg.name}: no controller or reference in its description; expected a closed-loop log "
                              "([controller] and [reference]) for the two-mass fit, which replays the closed loop")
     flim = base.values.get("drive.force_limit_n", math.inf)
-    peak, where = logged_force_peak(logs)
-    if flim < peak * (1.0 - 1e-9):
-        raise ValueError(f"base plant {base.name!r}: drive.force_limit_n = {flim:.6g} N is below the largest logged "
-                         f"force {peak:.6g} N in {where}; expected a force limit >= the logged forces")
+    check_force_limit(flim, logs, f"base plant {base.name!r}")
     theta0, informed = start_estimate(logs, base)
     base_theta = base.theta
     warnings = []

@@ -60,7 +60,7 @@ def axis_base_plant(logs: Sequence, log_format: str, plant_path: str | None = No
     """
     import numpy as np
 
-    from .axis import LinearAxisPlant, load_axis_plant, logged_force_peak
+    from .axis import LinearAxisPlant, check_force_limit, load_axis_plant, logged_force_peak
 
     lg = logs[0]
     fmt_name = Path(log_format).name
@@ -86,12 +86,7 @@ def axis_base_plant(logs: Sequence, log_format: str, plant_path: str | None = No
         srcs["sensor.encoder_resolution_m"] = f"log: {fmt_name} [position] resolution"
     if plant_path:
         base, notes = _merge_base(load_axis_plant(plant_path), plant_path, vals, srcs)
-        flim = base.values.get("drive.force_limit_n", math.inf)
-        peak, where = logged_force_peak(logs)
-        if flim < peak * (1.0 - 1e-9):  # the replay would clip the force the log says the drive applied
-            raise ValueError(f"--plant {plant_path}: drive.force_limit_n = {flim:.6g} N is below the largest logged "
-                             f"force {peak:.6g} N (drive gain x command) in {where}; expected a force limit >= the "
-                             "logged forces (the drive applied them)")
+        check_force_limit(base.values.get("drive.force_limit_n", math.inf), logs, f"--plant {plant_path}")
         return base, notes
     if "drive.force_limit_n" not in vals:
         peak = max(float(np.max(np.abs(g.gain_n_per_unit * g.command))) for g in logs)
