@@ -16,6 +16,7 @@ _EXPORTS = {
     "ContactRun": "responses",
     "DEFAULT_SCENE": "scenefile",
     "DutyCycleScene": "dutyscene",
+    "DutyRecord": "kindruns",
     "Design": "autotune",
     "DesignToSpec": "designspec",
     "DesignYield": "montecarlo",

@@ -32,7 +32,7 @@ from .scene import LoadStepScene, Scene, choose_fidelity
 if TYPE_CHECKING:
     from ..drive.pid import PID  # CasADi: an annotation only (a bad flag is refused before CasADi loads)
 
-__all__ = ["StepRuns", "ProfileRuns", "ResolvedProblem", "STEP_STUDIES", "speed_kind", "duty_record",
+__all__ = ["StepRuns", "ProfileRuns", "ResolvedProblem", "STEP_STUDIES", "speed_kind", "duty_record", "DutyRecord",
            "setpoint_prefilter", "linear_fidelity"]
 
 #: What a load-step problem takes beyond tuning and a duty cycle does not: the robust study and
@@ -76,7 +76,7 @@ class ResolvedProblem:
         Why the verification runs at this fidelity (empty where it was not chosen).
     linear_fidelity : str
         The fidelity the loop models are linearised at (:func:`linear_fidelity`).
-    records : tuple of dict
+    records : tuple of DutyRecord
         The problem's sampled records (a duty cycle: :func:`duty_record` per case; load steps:
         none), at the plant's sample time.
     steady_torque_n_m : float, N m
@@ -305,8 +305,9 @@ class ProfileRuns(StepRuns):
         from ..tuning.actuatorloops import profile_loops
 
         sc = spec.scene
-        return profile_loops(plant, [(case, rec["w_lin"], rec["f_lin"], rec["load_sequence"], rec["setpoint_sequence"])
-                                     for case, rec in zip(sc.cases, spec.records)],
+        return profile_loops(plant, [(rec.case, rec.w_lin_rad_s, rec.f_lin_n, rec.load_sequence_n,
+                                      rec.setpoint_sequence_rad_s)
+                                     for rec in spec.records],
                              fidelity=spec.linear_fidelity, horizon_s=sc.duration,
                              setpoint_weight=sc.setpoint_weight, filters=tuple(sc.filters),
                              kf_load_change_time_s=sc.load_change_time_s if estimator == "kf" else None,
@@ -333,9 +334,9 @@ class ProfileRuns(StepRuns):
         from ..sim.metrics import profile_metrics
 
         _, tau0 = start
-        return [profile_metrics(rec["t"][: lp.n_steps], rec["setpoint_at"][: lp.n_steps] - tr["error"],
-                                rec["setpoint_at"][: lp.n_steps], tau0 + tr["motor_torque"],
-                                plant.torque_limit, rec["load_steps"], rec["breaks"])
+        return [profile_metrics(rec.time_s[: lp.n_steps], rec.setpoint_at_rad_s[: lp.n_steps] - tr["error"],
+                                rec.setpoint_at_rad_s[: lp.n_steps], tau0 + tr["motor_torque"],
+                                plant.torque_limit, rec.load_steps, rec.breaks_s)
                 for rec, lp, tr in zip(spec.records, loops, trajectories)]
 
     def simulate(self, design, plant, spec, settings, seed: int, pre_samples: int) -> tuple[list, list]:
@@ -349,13 +350,13 @@ class ProfileRuns(StepRuns):
         sc = spec.scene
         runs, estimation = [], []
         kf = design_kf(plant, sc.load_change_time_s) if design.estimator == "kf" else None
-        for case, rec in zip(sc.cases, spec.records):
-            setpoint = rec["setpoint"]
-            if case == "setpoint profile" and sc.setpoint_weight != 1.0:
-                rf = setpoint_prefilter(rec["setpoint_at"], design.pid, ts, sc.setpoint_weight)
-                n_pts = int(np.searchsorted(rec["t"], sc.duration - 1e-9 * ts))  # points before the end
-                setpoint = PiecewiseLinear(tuple(zip(rec["t"][:n_pts].tolist(), rf[:n_pts].tolist())))
-            r = run(plant, discrete=True, setpoint=setpoint, load=rec["load"], duration=sc.duration,
+        for rec in spec.records:
+            setpoint = rec.setpoint_rad_s
+            if rec.case == "setpoint profile" and sc.setpoint_weight != 1.0:
+                rf = setpoint_prefilter(rec.setpoint_at_rad_s, design.pid, ts, sc.setpoint_weight)
+                n_pts = int(np.searchsorted(rec.time_s, sc.duration - 1e-9 * ts))  # points before the end
+                setpoint = PiecewiseLinear(tuple(zip(rec.time_s[:n_pts].tolist(), rf[:n_pts].tolist())))
+            r = run(plant, discrete=True, setpoint=setpoint, load=rec.load_n, duration=sc.duration,
                     controller=design.pid, fidelity=sc.fidelity, settings=settings, seed=seed,
                     filters=tuple(sc.filters) or None, measurement="encoder" if kf is None else "kf", kf=kf)
             t = np.asarray(r.time)
@@ -364,7 +365,7 @@ class ProfileRuns(StepRuns):
                 w = y["nut_speed"]
                 estimation.append({"kf_speed_rms_rad_s": float(np.sqrt(np.mean((y["speed_measured"] - w) ** 2))),
                                    "fd_speed_rms_rad_s": float(np.sqrt(np.mean((y["speed_fd"] - w) ** 2)))})
-            y["setpoint"] = rec["setpoint_at"][: t.size]
+            y["setpoint"] = rec.setpoint_at_rad_s[: t.size]
             runs.append((t, y))
         return runs, estimation
 
@@ -372,7 +373,7 @@ class ProfileRuns(StepRuns):
         from ..sim.metrics import profile_metrics
 
         return [profile_metrics(t, y["nut_speed"], y["setpoint"], y["motor_torque"], plant.torque_limit,
-                                rec["load_steps"], rec["breaks"])
+                                rec.load_steps, rec.breaks_s)
                 for (t, y), rec in zip(runs, spec.records)]
 
     def integral_warning(self, design) -> str | None:
@@ -469,12 +470,123 @@ def _n_samples(plant: Plant, scene) -> int:
     return max(10, int(round(scene.duration / plant.sample_time_s)))
 
 
-def duty_record(plant: Plant, scene, case: str) -> dict:
+#: The cases of a duty cycle (``scene.cases``): which profile a record follows.
+DUTY_CASES = ("load profile", "setpoint profile")
+
+
+def _frozen_array(name: str, value, size: int | None = None) -> np.ndarray:
+    """A read-only float copy of a 1-D finite array (``size``: its required length)."""
+    try:
+        a = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"DutyRecord {name} = {value!r}; expected a 1-D array of numbers") from None
+    if a.ndim != 1 or (size is not None and a.size != size):
+        want = f"{size} samples" if size is not None else "a 1-D array"
+        raise ValueError(f"DutyRecord {name} has shape {a.shape}; expected {want}")
+    if not np.all(np.isfinite(a)):
+        i = int(np.flatnonzero(~np.isfinite(a))[0])
+        raise ValueError(f"DutyRecord {name}[{i}] = {float(a[i])!r}; expected finite numbers")
+    a.flags.writeable = False
+    return a
+
+
+def _finite(name: str, value) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"DutyRecord {name} = {value!r}; expected a number") from None
+    if not math.isfinite(x):
+        raise ValueError(f"DutyRecord {name} = {value!r}; expected a finite number")
+    return x
+
+
+@dataclass(frozen=True, eq=False)
+class DutyRecord:
+    """One record of a duty-cycle scene, as the loop model and the verification see it
+    (:func:`duty_record`), sampled at the plant's sample time; frozen, its arrays read-only, SI
+    units. Checked when built: a known case, finite values, the sample arrays' lengths, and the
+    one profile the case follows (a load profile has a load sequence and no setpoint sequence, a
+    setpoint profile the other way round); a bad field raises ``ValueError`` naming it.
+
+    Attributes
+    ----------
+    case : {"load profile", "setpoint profile"}
+        Which of the scene's profiles the record follows (one of ``scene.cases``).
+    time_s : array, s
+        The controller's sample times ``0, Ts, ..., n Ts`` (``n + 1`` values, increasing).
+    setpoint_at_rad_s : array, rad/s
+        The setpoint at :attr:`time_s` (the initial setpoint throughout for a load profile).
+    load_n : float or PiecewiseLinear, N
+        The simulator's axial load: the scene's load profile, or the constant initial load.
+    setpoint_rad_s : float or PiecewiseLinear, rad/s
+        The simulator's setpoint: the scene's setpoint profile, or the constant setpoint.
+    load_sequence_n : array, N, or None
+        A load profile: the mean load deviation from the initial load over each controller
+        sample (``n`` values, the exact mean of the piecewise-linear profile); else None.
+    setpoint_sequence_rad_s : array, rad/s, or None
+        A setpoint profile: the setpoint deviation the controller reads at each sample (``n + 1``
+        values, the first 0); else None.
+    load_steps : tuple of (time s, signed size N)
+        Each step of the load profile.
+    breaks_s : tuple of float, s
+        Every change of the profile after its first point.
+    w_lin_rad_s : float, rad/s
+        Where the loop model is linearised: the middle of the setpoint profile's range (the
+        setpoint for a load profile).
+    f_lin_n : float, N
+        Likewise for the load: the middle of the load profile's range (the initial load for a
+        setpoint profile).
+    """
+
+    case: str
+    time_s: np.ndarray = field(repr=False)
+    setpoint_at_rad_s: np.ndarray = field(repr=False)
+    load_n: Any = field(repr=False)
+    setpoint_rad_s: Any = field(repr=False)
+    load_sequence_n: np.ndarray | None = field(repr=False)
+    setpoint_sequence_rad_s: np.ndarray | None = field(repr=False)
+    load_steps: tuple = ()
+    breaks_s: tuple = ()
+    w_lin_rad_s: float = 0.0
+    f_lin_n: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.case not in DUTY_CASES:
+            raise ValueError(f"DutyRecord case = {self.case!r}; expected one of {', '.join(map(repr, DUTY_CASES))}")
+        t = _frozen_array("time_s", self.time_s)
+        if t.size < 2 or t[0] != 0.0 or np.any(np.diff(t) <= 0.0):
+            raise ValueError(f"DutyRecord time_s runs {t[:3].tolist()}...; expected increasing sample times from 0 s")
+        set_ = object.__setattr__
+        set_(self, "time_s", t)
+        set_(self, "setpoint_at_rad_s", _frozen_array("setpoint_at_rad_s", self.setpoint_at_rad_s, t.size))
+        load_case = self.case == "load profile"
+        for name, size, needed in (("load_sequence_n", t.size - 1, load_case),
+                                   ("setpoint_sequence_rad_s", t.size, not load_case)):
+            value = getattr(self, name)
+            if needed and value is None:
+                raise ValueError(f"DutyRecord {name} = None; expected {size} samples for a {self.case}")
+            if not needed and value is not None:
+                raise ValueError(f"DutyRecord {name} given for a {self.case}; expected None")
+            if value is not None:
+                set_(self, name, _frozen_array(name, value, size))
+        for name in ("load_n", "setpoint_rad_s"):
+            value = getattr(self, name)
+            if not isinstance(value, PiecewiseLinear):
+                set_(self, name, _finite(name, value))
+        set_(self, "load_steps", tuple((_finite("load_steps time", tk), _finite("load_steps size", df))
+                                       for tk, df in self.load_steps))
+        set_(self, "breaks_s", tuple(_finite("breaks_s", x) for x in self.breaks_s))
+        set_(self, "w_lin_rad_s", _finite("w_lin_rad_s", self.w_lin_rad_s))
+        set_(self, "f_lin_n", _finite("f_lin_n", self.f_lin_n))
+
+
+def duty_record(plant: Plant, scene, case: str) -> DutyRecord:
     """One record of a duty-cycle scene, as the loop model and the verification see it.
 
     Parameters
     ----------
     plant : Plant
+        Its sample time (s) sets the record's samples.
     scene : Scene
         A duty-cycle scene (:class:`~prsa_ctrl.studies.scenekinds.DutyCycle`).
     case : {"load profile", "setpoint profile"}
@@ -482,20 +594,15 @@ def duty_record(plant: Plant, scene, case: str) -> dict:
 
     Returns
     -------
-    dict
-        ``load`` and ``setpoint`` (simulator profiles, N and rad/s), ``load_sequence`` (mean
-        load deviation over each controller sample, N, or None), ``setpoint_sequence``
-        (setpoint deviation the controller reads at each sample, rad/s, or None), ``t``
-        (sample times, s), ``setpoint_at`` (setpoint at them, rad/s), ``load_steps`` ((time s,
-        signed size N) of each load step), ``breaks`` (every change, s) and the linearisation
-        point ``w_lin`` (rad/s), ``f_lin`` (N): the middle of the profile's range.
+    DutyRecord
+        The simulator's profiles, the sequences the sampled loop model reads, the sample times and
+        the setpoint at them, the load steps and breaks, and the linearisation point (the middle
+        of the profile's range), in SI units.
     """
     ts = plant.sample_time_s
     n = _n_samples(plant, scene)
     t = ts * np.arange(n + 1)
     w0, f0 = scene.setpoint_rad_s, scene.initial_load
-    out: dict = {"t": t, "load_sequence": None, "setpoint_sequence": None, "load_steps": [], "breaks": [],
-                 "load": f0, "setpoint": w0, "w_lin": w0, "f_lin": f0}
     if case == "load profile":
         pts = scene.load_profile
         prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "load", "N")
@@ -504,23 +611,23 @@ def duty_record(plant: Plant, scene, case: str) -> dict:
         seg_len = np.append(np.diff(prof.t), np.inf)
         lens = np.clip(edges[:, None] - prof.t[None, :], 0.0, seg_len[None, :])
         integral = lens @ prof.v + (lens * lens) @ prof.s / 2.0
-        out["load_sequence"] = np.diff(integral) / ts - f0
-        out["load"] = PiecewiseLinear(pts)
-        out["load_steps"] = [(float(tk), float(prof.v[i] - prof.at(tk - 1e-9)))
-                             for i, tk in enumerate(prof.t) if prof.jump[i]]
-        out["breaks"] = [float(x) for x in prof.t[1:]]
         vals = [v for _, v in pts]
-        out["f_lin"] = 0.5 * (min(vals) + max(vals))
-        out["setpoint_at"] = np.full(n + 1, w0)
-    else:
-        pts = scene.setpoint_profile
-        prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
-        r = prof.at(t)
-        out["setpoint_sequence"] = r - w0
-        out["setpoint_sequence"][0] = 0.0
-        out["setpoint"] = PiecewiseLinear(pts)
-        out["breaks"] = [float(x) for x in prof.t[1:]]
-        vals = [v for _, v in pts]
-        out["w_lin"] = 0.5 * (min(vals) + max(vals))
-        out["setpoint_at"] = r
-    return out
+        return DutyRecord(case=case, time_s=t, setpoint_at_rad_s=np.full(n + 1, w0), load_n=PiecewiseLinear(pts),
+                          setpoint_rad_s=w0, load_sequence_n=np.diff(integral) / ts - f0,
+                          setpoint_sequence_rad_s=None,
+                          load_steps=[(float(tk), float(prof.v[i] - prof.at(tk - 1e-9)))
+                                      for i, tk in enumerate(prof.t) if prof.jump[i]],
+                          breaks_s=[float(x) for x in prof.t[1:]], w_lin_rad_s=w0,
+                          f_lin_n=0.5 * (min(vals) + max(vals)))
+    if case != "setpoint profile":
+        raise ValueError(f"case = {case!r}; expected one of {', '.join(map(repr, DUTY_CASES))}")
+    pts = scene.setpoint_profile
+    prof = normalise_profile(PiecewiseLinear(pts), scene.duration + 1.0, "setpoint", "rad/s")
+    r = prof.at(t)
+    deviation = r - w0
+    deviation[0] = 0.0
+    vals = [v for _, v in pts]
+    return DutyRecord(case=case, time_s=t, setpoint_at_rad_s=r, load_n=f0, setpoint_rad_s=PiecewiseLinear(pts),
+                      load_sequence_n=None, setpoint_sequence_rad_s=deviation,
+                      breaks_s=[float(x) for x in prof.t[1:]], w_lin_rad_s=0.5 * (min(vals) + max(vals)),
+                      f_lin_n=f0)

@@ -1,6 +1,7 @@
 """What differs between the speed-loop kinds (issue 33): asked of the kind, not branched on."""
 
 import ast
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 
 import prsa_ctrl
 from prsa_ctrl.drive.pid import PID
-from prsa_ctrl.studies.kindruns import STEP_STUDIES, ProfileRuns, StepRuns, speed_kind
+from prsa_ctrl.studies.kindruns import STEP_STUDIES, DutyRecord, ProfileRuns, StepRuns, duty_record, speed_kind
 from prsa_ctrl.studies.movescene import load_move_scene
 from prsa_ctrl.studies.scene import load_scene
 from prsa_ctrl.studies.scenekinds import DutyCycle, LoadStep, problem
@@ -108,7 +109,66 @@ def test_no_module_outside_the_registry_branches_on_the_duty_cycle():
 def test_the_duty_records_are_sampled_at_the_plant_period(paper_plant):
     spec = loop_spec(paper_plant, load_scene("duty-ramp"))
     for rec in spec.records:
-        assert np.allclose(np.diff(rec["t"]), paper_plant.sample_time_s)
+        assert np.allclose(np.diff(rec.time_s), paper_plant.sample_time_s)
+
+
+def test_a_duty_record_is_typed_frozen_and_read_by_attribute(paper_plant):
+    """The duty-ramp file's own numbers: steps of -1000 N at 0.10 s and +1500 N at 0.13 s, changes
+    at 0.02, 0.07, 0.10, 0.13 and 0.17 s, loads 500..2500 N (linearised at 1500 N), 300 rpm."""
+    scene = load_scene("duty-ramp")
+    rec = duty_record(paper_plant, scene, "load profile")
+    assert type(rec) is DutyRecord
+    assert rec.case == "load profile"
+    np.testing.assert_allclose(rec.load_steps, ((0.10, -1000.0), (0.13, 1500.0)), rtol=1e-12)
+    assert rec.breaks_s == pytest.approx((0.02, 0.07, 0.10, 0.13, 0.17))
+    assert rec.f_lin_n == 1500.0
+    assert rec.w_lin_rad_s == pytest.approx(300.0 * np.pi / 30.0, rel=1e-15)
+    assert rec.setpoint_sequence_rad_s is None
+    assert rec.load_sequence_n.size == rec.time_s.size - 1
+    assert np.all(rec.setpoint_at_rad_s == rec.w_lin_rad_s)
+    with pytest.raises(TypeError):
+        rec["t"]  # noqa: B018 - a record is read by attribute, not indexed
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        rec.f_lin_n = 0.0
+    for arr in (rec.time_s, rec.setpoint_at_rad_s, rec.load_sequence_n):
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] = 1.0
+
+
+def test_a_setpoint_record_reads_the_profile_at_each_sample(paper_plant):
+    sc = load_scene("duty-ramp").replace(goal="mix", setpoint_profile=((0.0, 31.4), (0.05, 40.0)))
+    rec = duty_record(paper_plant, sc, "setpoint profile")
+    t = rec.time_s
+    by_hand = np.where(t < 0.05, 31.4 + (40.0 - 31.4) * t / 0.05, 40.0)
+    np.testing.assert_allclose(rec.setpoint_at_rad_s, by_hand, rtol=1e-12)
+    assert rec.setpoint_sequence_rad_s[0] == 0.0
+    np.testing.assert_allclose(rec.setpoint_sequence_rad_s[1:], by_hand[1:] - 31.4, rtol=1e-12, atol=1e-12)
+    assert rec.load_sequence_n is None
+    assert rec.load_n == sc.initial_load
+    assert rec.w_lin_rad_s == pytest.approx(0.5 * (31.4 + 40.0))
+    assert rec.load_steps == ()
+    with pytest.raises(ValueError, match="case = 'bogus'"):
+        duty_record(paper_plant, sc, "bogus")
+
+
+@pytest.mark.parametrize(("change", "match"), [
+    ({"case": "load"}, "case = 'load'; expected one of"),
+    ({"load_sequence_n": np.zeros(3)}, r"load_sequence_n has shape \(3,\); expected 4 samples"),
+    ({"load_sequence_n": None}, "load_sequence_n = None; expected 4 samples for a load profile"),
+    ({"setpoint_sequence_rad_s": np.zeros(5)}, "setpoint_sequence_rad_s given for a load profile; expected None"),
+    ({"setpoint_at_rad_s": [1.0, 1.0, np.nan, 1.0, 1.0]}, r"setpoint_at_rad_s\[2\] = nan; expected finite numbers"),
+    ({"time_s": [0.0, 1.0, 1.0, 2.0, 3.0]}, "time_s runs .*expected increasing sample times from 0 s"),
+    ({"f_lin_n": float("inf")}, "f_lin_n = inf; expected a finite number"),
+    ({"load_n": "heavy"}, "load_n = 'heavy'; expected a number"),
+    ({"breaks_s": (0.1, None)}, "breaks_s = None; expected a number"),
+])
+def test_a_duty_record_refuses_what_it_cannot_be(change, match):
+    good = dict(case="load profile", time_s=np.arange(5) * 0.1, setpoint_at_rad_s=np.ones(5), load_n=500.0,
+                setpoint_rad_s=1.0, load_sequence_n=np.zeros(4), setpoint_sequence_rad_s=None, load_steps=((0.1, 5.0),),
+                breaks_s=(0.1,), w_lin_rad_s=1.0, f_lin_n=500.0)
+    DutyRecord(**good)
+    with pytest.raises(ValueError, match=match):
+        DutyRecord(**{**good, **change})
 
 
 def test_every_kind_says_what_it_is_and_a_move_takes_no_speed_study():

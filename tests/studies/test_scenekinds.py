@@ -317,8 +317,9 @@ def test_per_sample_load_is_the_exact_mean_of_the_profile(rows):
     exact = 0.0
     for (t0, v0), (t1, v1) in zip(pts, pts[1:]):
         exact += 0.5 * (v0 + v1) * (t1 - t0)
-    exact += pts[-1][1] * (plant_ts * rec["load_sequence"].size - pts[-1][0]) - 500.0 * plant_ts * rec["load_sequence"].size
-    assert np.sum(rec["load_sequence"]) * plant_ts == pytest.approx(exact, rel=1e-9, abs=1e-9)
+    n = rec.load_sequence_n.size
+    exact += pts[-1][1] * (plant_ts * n - pts[-1][0]) - 500.0 * plant_ts * n
+    assert np.sum(rec.load_sequence_n) * plant_ts == pytest.approx(exact, rel=1e-9, abs=1e-9)
 
 
 def test_tuner_optimises_the_profile_not_a_step(paper_plant):
