@@ -251,14 +251,10 @@ def test_cli_modules_do_not_import_each_other_in_a_circle():
 def test_one_loader_for_both_kinds_of_scene():
     from prsa_ctrl.studies.movescene import MoveScene
     from prsa_ctrl.studies.scene import Scene, load_scene, require_speed_scene
-    from prsa_ctrl.studies.scenefile import is_move_scene
 
     move, speed = load_scene("paper-move"), load_scene("paper-load-step")
     assert isinstance(move, MoveScene)
     assert isinstance(speed, Scene)
-    assert is_move_scene("paper-move")
-    assert not is_move_scene("paper-load-step")
-    assert not is_move_scene("nope")
     assert require_speed_scene(speed) is speed
     with pytest.raises(SceneError, match="a move scene"):
         require_speed_scene(move)

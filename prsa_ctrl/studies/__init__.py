@@ -88,7 +88,6 @@ _EXPORTS = {
     "holding_capacity_n": "scenebase",
     "hunting": "move",
     "integral_warning": "autotune",
-    "is_move_scene": "scenefile",
     "kinematics_table": "paper",
     "landscape": "responses",
     "linear_fidelity": "sceneloops",

@@ -160,6 +160,11 @@ class MoveScene:
     #: The registry name of the kind (:data:`prsa_ctrl.studies.scenekinds.KINDS`) and what marks its files.
     kind_name: ClassVar[str] = "move"
     marks: ClassVar[str] = "a [move] table"
+    #: Not a speed-loop scene; where one is needed (:func:`~prsa_ctrl.studies.scene.require_speed_scene`)
+    #: it is refused with this text, after the file's name.
+    speed_loop: ClassVar[bool] = False
+    speed_loop_refusal: ClassVar[str] = ("a move scene ([move] section, position cascade); expected a speed-loop scene "
+                                         "here (prsa-tune --scene tunes move scenes)")
 
     @classmethod
     def claims(cls, doc: Mapping[str, Any]) -> bool:

@@ -32,8 +32,8 @@ from .scenebase import OUTPUTS, Scene, holding_capacity_n, scene_type
 from .scenesections import Robust
 from .scenefilters import check_filters_against_plant
 from .scenefile import (DEFAULT_SCENE, MAX_LOAD_LEVELS, MAX_RECORD_SAMPLES, MIN_LOAD_STEP_N, POST_EVENT_SAMPLES,
-                        PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes, is_move_scene,
-                        locate_scene, read_scene_doc)
+                        PRE_EVENT_SAMPLES, SETPOINT_MAX_RPM, STICTION_MARGIN, builtin_scenes, locate_scene,
+                        read_scene_doc)
 from .dutyscene import (GOALS, MAX_PROFILE_ROWS, MAX_TRACE_BYTES, PROFILE_KEYS, PROFILE_SOURCES, DutyCycleScene,
                         profile_rows, read_trace_csv, refuse_other_kind_keys)
 
@@ -41,7 +41,7 @@ __all__ = ["Scene", "LoadStepScene", "DutyCycleScene", "load_scene", "builtin_sc
            "DEFAULT_SCENE", "OUTPUTS", "RIGID_RELATIVE_ERROR", "check_against_plant", "holding_capacity_n",
            "SETPOINT_MAX_RPM", "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES", "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS",
            "MIN_LOAD_STEP_N", "GOALS", "MAX_PROFILE_ROWS", "MAX_TRACE_BYTES", "read_trace_csv", "profile_rows",
-           "is_move_scene", "require_speed_scene", "parse_scene", "SCENE_TYPES"]
+           "require_speed_scene", "parse_scene", "SCENE_TYPES"]
 
 
 @dataclass(frozen=True)
@@ -195,17 +195,22 @@ def load_scene(name_or_path: str | Path | None = None) -> Scene | MoveScene:
 
 
 def require_speed_scene(scene: Scene | MoveScene) -> Scene:
-    """``scene`` if it is a speed-loop scene; a move scene is refused where a load step or duty
-    cycle is needed (``prsa-plot``, the Monte-Carlo study).
+    """``scene`` if it is a speed-loop scene; a scene of another kind (a move) is refused where a
+    load step or duty cycle is needed (``prsa-plot``, the Monte-Carlo study), in the words of its
+    type (its ``speed_loop`` and ``speed_loop_refusal``).
 
     Raises
     ------
     SceneError
         One line naming the file.
+    TypeError
+        Not a scene (no ``speed_loop``).
     """
-    if isinstance(scene, MoveScene):
-        raise SceneError(f"{scene.origin}: a move scene ([move] section, position cascade); expected a speed-loop "
-                         "scene here (prsa-tune --scene tunes move scenes)")
+    speed_loop = getattr(type(scene), "speed_loop", None)
+    if speed_loop is None:
+        raise TypeError(f"scene = {type(scene).__name__}; expected a prsa_ctrl scene (prsa_ctrl.load_scene)")
+    if not speed_loop:
+        raise SceneError(f"{scene.origin}: {scene.speed_loop_refusal}")
     return scene
 
 

@@ -229,6 +229,9 @@ class Scene:
 
     #: The scene types (subclasses), for ``Scene(**fields)``: each says which fields describe it.
     _types: ClassVar[list] = []
+    #: A speed-loop scene (load steps or a duty cycle): what
+    #: :func:`~prsa_ctrl.studies.scene.require_speed_scene` asks of a scene's type.
+    speed_loop: ClassVar[bool] = True
 
     def __init_subclass__(cls, **kw: Any) -> None:
         super().__init_subclass__(**kw)

@@ -3,8 +3,8 @@ against (speed-loop scenes in :mod:`prsa_ctrl.studies.scene`, move scenes in
 :mod:`prsa_ctrl.studies.move`).
 
 A scene is named by a built-in name (``paper-load-step``: ``tuning/paper-load-step.toml`` of the
-package) or a path (anything ending in ``.toml`` or containing ``/``). A file with a ``[move]``
-section is a move scene (:func:`is_move_scene`).
+package) or a path (anything ending in ``.toml`` or containing ``/``). Which kind of scene a file
+is, the scene types say (:func:`prsa_ctrl.studies.scene.parse_scene`, ``SCENE_TYPES``).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from ..plant.plantfile import builtin_root
 
 __all__ = ["parse_load_step", "DEFAULT_SCENE", "SETPOINT_MAX_RPM", "STICTION_MARGIN", "PRE_EVENT_SAMPLES", "POST_EVENT_SAMPLES",
            "MAX_RECORD_SAMPLES", "MAX_LOAD_LEVELS", "MIN_LOAD_STEP_N", "LOAD_CHANGE_TIME_RANGE_S",
-           "builtin_scenes", "scene_root", "locate_scene", "read_scene_doc", "is_move_scene"]
+           "builtin_scenes", "scene_root", "locate_scene", "read_scene_doc"]
 
 DEFAULT_SCENE = "paper-load-step"
 
@@ -107,18 +107,6 @@ def read_scene_doc(reader: Any, origin: str) -> dict:
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"{origin}: cannot be read ({exc.__class__.__name__}); expected a UTF-8 TOML file") from None
     return read_toml(text, origin, SceneError)
-
-
-def is_move_scene(name_or_path: str | Path | None) -> bool:
-    """Whether the scene (built-in name or path) is a move scene (has a ``[move]`` section).
-    Unreadable or missing files answer False (the scene loader reports them)."""
-    if name_or_path is None:
-        return False
-    try:
-        doc = read_scene_doc(*locate_scene(name_or_path)[:2])
-    except SceneError:
-        return False
-    return isinstance(doc, dict) and "move" in doc
 
 
 def parse_load_step(text: str) -> tuple[float, tuple[float, ...]]:

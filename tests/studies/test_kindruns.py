@@ -76,21 +76,22 @@ def test_headers_say_each_kind():
 
 
 def _tests_scene_type(path: Path) -> bool:
-    """Whether a module reads ``is_profile`` or asks ``isinstance(x, LoadStepScene/DutyCycleScene)``."""
+    """Whether a module reads ``is_profile`` or asks ``isinstance(x, LoadStepScene/DutyCycleScene/MoveScene)``."""
     for n in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(n, ast.Attribute) and n.attr == "is_profile":
             return True
         if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "isinstance" and len(n.args) == 2:
             if {getattr(x, "id", getattr(x, "attr", None)) for x in ast.walk(n.args[1])} & {"LoadStepScene",
-                                                                                           "DutyCycleScene"}:
+                                                                                           "DutyCycleScene",
+                                                                                           "MoveScene"}:
                 return True
     return False
 
 
 def test_no_module_outside_the_registry_branches_on_the_duty_cycle():
     """The speed-loop scene types are told apart by the registry alone (each kind's
-    ``scene_type``, its ``accepts``): ``is_profile`` is gone, and no module names a speed-loop
-    scene type in an ``isinstance`` (issue 33)."""
+    ``scene_type``, its ``accepts``): ``is_profile`` is gone, and no module names a scene type in
+    an ``isinstance`` (issue 33; a move says it is no speed loop by its ``speed_loop``)."""
     from prsa_ctrl.studies.dutyscene import DutyCycleScene
     from prsa_ctrl.studies.movescene import MoveScene
     from prsa_ctrl.studies.scene import LoadStepScene, Scene

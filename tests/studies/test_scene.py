@@ -265,6 +265,35 @@ def test_every_builtin_scene_is_read_by_the_type_that_claims_it():
         assert type(load_scene(name)) is claimed[0], name
 
 
+def test_the_registry_says_which_scenes_are_moves_and_which_are_speed_loops():
+    """What ``scenefile.is_move_scene`` answered (it is gone): the scene type that claims a file.
+    The move files are told by their text (a ``[move]`` table), independently of the types."""
+    import prsa_ctrl.studies as studies
+    from prsa_ctrl.studies.scene import SCENE_TYPES, require_speed_scene
+    from prsa_ctrl.studies.scenefile import locate_scene
+
+    assert not hasattr(studies, "is_move_scene")
+    by_text = {n for n in builtin_scenes()
+               if re.search(r"^\[move\]", locate_scene(n)[0].read_text(encoding="utf-8"), re.M)}
+    assert "paper-move" in by_text
+    assert {n for n in builtin_scenes() if load_scene(n).kind_name == "move"} == by_text
+    assert load_scene(None).kind_name == "load-step"
+    assert [t.speed_loop for t in SCENE_TYPES] == [True, True, False]
+    for name in builtin_scenes():
+        scene = load_scene(name)
+        if name in by_text:
+            with pytest.raises(SceneError) as err:
+                require_speed_scene(scene)
+            assert str(err.value) == (f"{name}.toml (built-in): a move scene ([move] section, position cascade); "
+                                      "expected a speed-loop scene here (prsa-tune --scene tunes move scenes)")
+        else:
+            assert require_speed_scene(scene) is scene
+    with pytest.raises(TypeError, match="scene = dict; expected a prsa_ctrl scene"):
+        require_speed_scene({"move": {}})
+    with pytest.raises(SceneError):
+        load_scene("nope")
+
+
 def test_a_document_two_kinds_claim_is_refused_naming_both(tmp_path):
     path = tmp_path / "both.toml"
     path.write_text(_MOVE + _LOAD_PROFILE)

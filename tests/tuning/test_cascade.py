@@ -14,7 +14,6 @@ from prsa_ctrl import PID
 from prsa_ctrl.io.export import export_cascade
 from prsa_ctrl.studies.move import hunting, move_metrics, simulate_move, verify_design
 from prsa_ctrl.studies.movescene import load_move_scene
-from prsa_ctrl.studies.scenefile import is_move_scene
 from prsa_ctrl.tuning.cascade import BREAKING_POINTS, CascadeModel, sequential_design, tune_cascade
 from prsa_ctrl.errors import SceneError
 from prsa_ctrl.io.export import dumps
@@ -42,9 +41,6 @@ def _err_m(r, plant):
 
 
 def test_paper_move_scene(scene):
-    assert is_move_scene("paper-move")
-    assert not is_move_scene("paper-load-step")
-    assert not is_move_scene(None)
     assert (scene.distance_m, scene.max_speed_m_s, scene.load_n) == (0.01, 0.03, 1500.0)
     m = scene.motion()
     # The load appears in the middle of the move and is held; the hold step comes after the move.
