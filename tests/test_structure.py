@@ -55,6 +55,49 @@ def test_no_private_name_imported_across_modules(path):
             assert not private, f"{path.relative_to(PKG)} imports {private} from {'.' * level}{module}"
 
 
+TESTS = Path(__file__).resolve().parent
+#: Private names a test may still import, as "tests/<file>: prsa_ctrl.<module>.<name>" (none:
+#: a test uses the public name, or tests an internal through the public function that calls it).
+PRIVATE_IMPORTS_ALLOWED: frozenset = frozenset()
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def _private_imports(path: Path):
+    """``(line, "prsa_ctrl.module.name")`` of every import of a private name or module of the
+    package in ``path``, however it is written (``from``, ``import``, aliased, inside a function)."""
+    for node in ast.walk(_tree(path)):
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").split(".")[0] == "prsa_ctrl":
+            in_private = any(_private(x) for x in node.module.split("."))
+            for a in node.names:
+                if in_private or _private(a.name):
+                    yield node.lineno, f"{node.module}.{a.name}"
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                parts = a.name.split(".")
+                if parts[0] == "prsa_ctrl" and any(_private(x) for x in parts):
+                    yield node.lineno, a.name
+
+
+def test_no_test_imports_a_private_name_of_the_package():
+    """Issue 33: the tests use public names (22 private imports in 12 files before)."""
+    found = [f"{p.relative_to(TESTS.parent)}:{line}: {name}" for p in sorted(TESTS.rglob("*.py"))
+             for line, name in _private_imports(p)
+             if f"{p.relative_to(TESTS.parent)}: {name}" not in PRIVATE_IMPORTS_ALLOWED]
+    assert found == []
+
+
+def test_the_private_import_rule_sees_every_form(tmp_path):
+    src = tmp_path / "t.py"
+    src.write_text("from prsa_ctrl.x import a, _b\nimport prsa_ctrl._lazy\nfrom prsa_ctrl._lazy import f\n"
+                   "import prsa_ctrl.tuning.loops as loops\nfrom other import _z\n"
+                   "def g():\n    from prsa_ctrl.y import (c,\n        _d as e)\n    from prsa_ctrl import __version__\n")
+    assert [n for _, n in _private_imports(src)] == ["prsa_ctrl.x._b", "prsa_ctrl._lazy", "prsa_ctrl._lazy.f",
+                                                       "prsa_ctrl.y._d"]
+
+
 def test_zero_order_hold_and_radau_tableau_written_once():
     for path in AREA:
         src = path.read_text(encoding="utf-8")

@@ -14,7 +14,7 @@ from typing import Sequence
 
 from ..textsafe import MESSAGE_CHARS_MAX, printable
 
-__all__ = ["main", "build_parser", "serve"]
+__all__ = ["main", "build_parser", "serve", "free_port"]
 
 PROG = "prsa-app"
 #: The interpreter's thread switch interval while serving, s (Python's default: 0.005).
@@ -67,7 +67,7 @@ def serve(plant: str | None = None, scene: str | None = None, port: int = 0):
     app = application(plant, scene, warm=True)
     attempts = 20 if port == 0 else 1  # a free port can be taken between the probe and the bind
     for i in range(attempts):
-        p = port or _free_port()
+        p = port or free_port()
         try:
             _probe(p)  # tornado leaks its socket when the bind fails
             server = Server({"/": app}, address="127.0.0.1", port=p, num_procs=1,
@@ -91,8 +91,13 @@ def _probe(port: int) -> None:
         s.bind(("127.0.0.1", port))
 
 
-def _free_port() -> int:
-    """A port the OS reports free on 127.0.0.1."""
+def free_port() -> int:
+    """A TCP port the OS reports free on 127.0.0.1 (free when asked; another process may take it).
+
+    Returns
+    -------
+    int
+    """
     import socket
 
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

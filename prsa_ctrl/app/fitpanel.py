@@ -33,7 +33,8 @@ from bokeh.plotting import figure
 
 from .session import AppInputError, Calibration, Cancelled, one_line, upload_name
 
-__all__ = ["FitPanel", "uploaded_file", "upload_input", "too_large_line", "MAX_UPLOAD_BYTES", "SIZE_CHECK_JS"]
+__all__ = ["FitPanel", "uploaded_file", "upload_input", "too_large_line", "MAX_UPLOAD_BYTES", "SIZE_CHECK_JS",
+           "report_html"]
 
 
 #: Largest file the page takes (bytes). Bokeh's websocket takes messages up to 20 MB, and a
@@ -264,11 +265,11 @@ class FitPanel:
         if cal.refused is not None:  # no plant file: nothing to use or download
             self.use.disabled = self.download.disabled = True
             self.files.data = {"name": [], "text": []}
-            self.out.text = _report_html(cal, "refused")
+            self.out.text = report_html(cal, "refused")
         else:
             self.use.disabled, self.download.disabled = not cal.usable, False
             self.files.data = {"name": [cal.file_name], "text": [cal.plant_text]}
-            self.out.text = _report_html(cal, "done")
+            self.out.text = report_html(cal, "done")
         self._show_views(cal.report.get("views"))
 
     def _show_views(self, views: dict | None) -> None:
@@ -290,7 +291,7 @@ class FitPanel:
             self.page.show_error(str(exc))
             return
         self.use.disabled = True
-        self.out.text = _report_html(cal, "used")
+        self.out.text = report_html(cal, "used")
         self.page.after_switch("plant", notes)
 
     def _discard(self) -> None:
@@ -461,8 +462,22 @@ def _structure_html(st: dict) -> str:
             "style='font-size:12px;white-space:pre-wrap'>" + "<br>".join(html.escape(x) for x in lines) + "</div>")
 
 
-def _report_html(cal: Calibration, state: str) -> str:
-    """The verdict, the fitted values with their 95 % intervals, fit %, warnings and notes."""
+def report_html(cal: Calibration, state: str) -> str:
+    """The calibration tab's report: the verdict, the fitted values with their 95 % intervals,
+    fit %, warnings and notes, as HTML (every text from the data escaped).
+
+    Parameters
+    ----------
+    cal : Calibration
+        The session's calibration (:meth:`prsa_ctrl.app.session.AppSession.calibrate`).
+    state : {"done", "used", "refused"}
+        Fitted and not yet used, the session's plant now, or refused.
+
+    Returns
+    -------
+    str
+        The HTML; its ``data-k`` attributes name the parts (``fit-state``, ``fit-verdict``, ...).
+    """
     rep = cal.report
     if not rep.get("parameters"):  # a refused frequency-response fit: prsa-fit's exit 3 line, nothing fitted
         return (f"<div data-k='fit-state' data-state='refused' data-file=''><b>Calibration</b> of "

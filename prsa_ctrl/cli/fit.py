@@ -54,7 +54,7 @@ from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, SPEED_MAX_RPM, ra
 from ..identification.calibrate import FRF_COHERENCE_MIN_DEFAULT, FRF_SPEED_DEFAULT_RAD_S, MOTOR_COORDINATES
 from .common import KeepTyped, Run, Parser, UsageError, echo, invoke, number, progress, typed_text
 
-__all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S"]
+__all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S", "new_outputs", "take_back"]
 
 #: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
 #: speed range the tuner accepts (:data:`prsa_ctrl.studies.scene.SETPOINT_MAX_RPM`, 6000 rpm).
@@ -239,10 +239,10 @@ def _body(run: Run, argv: list[str]) -> int:
     if wants_axis_mode(argv) and not motor:
         made: list = []  # what the run is about to write, known once its arguments are parsed
         try:
-            return _axis_run(argv, check=run.check, parsed=lambda args: made.append(_new_outputs(args)))
+            return _axis_run(argv, check=run.check, parsed=lambda args: made.append(new_outputs(args)))
         except KeyboardInterrupt:
             if made:
-                _take_back(made[0]())  # the linear-axis path writes its files one by one
+                take_back(made[0]())  # the linear-axis path writes its files one by one
             raise
     created: list = []  # files and directories this run made, taken back when it is interrupted
     parsed: list = []  # the parsed arguments (argv is read once, by the parser)
@@ -251,7 +251,7 @@ def _body(run: Run, argv: list[str]) -> int:
             warnings.simplefilter("always")
             code = _main(argv, created, run, parsed)
     except BaseException as exc:
-        _take_back(created)  # all or nothing
+        take_back(created)  # all or nothing
         if run.interrupted:  # also when a library turned the KeyboardInterrupt into an error
             raise KeyboardInterrupt from None  # invoke: one line, exit 130
         if parsed and parsed[0].verbose and isinstance(exc, Exception):  # the cause, before invoke's one line
@@ -268,10 +268,22 @@ def _body(run: Run, argv: list[str]) -> int:
     return code
 
 
-def _new_outputs(args):
+def new_outputs(args):
     """What this run is about to write (the parsed ``--out``, ``--json``, ``--traces``, the
     ``--plots`` folder and its figures): a function returning, after the run, the files and
-    folders that did not exist before it (for :func:`_take_back`)."""
+    folders that did not exist before it (for :func:`take_back`).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments (``out``, ``json``, ``traces``, ``plots``; any may be missing).
+
+    Returns
+    -------
+    callable
+        ``made() -> list of Path``: what the run created, files then new figures (and the
+        ``--plots`` folder when the run made it).
+    """
     import os
 
     files = [v for v in (getattr(args, k, None) for k in ("out", "json", "traces")) if v]
@@ -290,8 +302,15 @@ def _new_outputs(args):
     return made
 
 
-def _take_back(created: list) -> None:
-    """Remove what a failed or interrupted run wrote: its files, then its (then empty) directories."""
+def take_back(created: list) -> None:
+    """Remove what a failed or interrupted run wrote: its files, then its (then empty)
+    directories, and the atomic writes' temporaries; ``created`` is emptied.
+
+    Parameters
+    ----------
+    created : list of Path
+        What the run created (:func:`new_outputs`); nothing else is touched.
+    """
     from ..io.output import cleanup_temporaries, remove_created
 
     cleanup_temporaries()
@@ -526,7 +545,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
             plot_paths = _write_plots(result, args.plots, inputs, created, args.frequency_unit, [*records, *validate])
         _write_outputs(files, inputs, created)
     except (OutputError, OSError) as exc:  # all or nothing: the figures of this run are taken back
-        _take_back(created)
+        take_back(created)
         echo(f"prsa-fit: error: {exc if isinstance(exc, OutputError) else f'writing the outputs failed ({exc})'}",
              file=sys.stderr)
         return 2

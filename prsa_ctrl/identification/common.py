@@ -26,21 +26,21 @@ from scipy.optimize import linprog
 from scipy.signal import lfilter
 
 from ..options import SPEED_MAX_RPM, rad_s_to_rpm, rpm_to_rad_s
-from ..errors import PlantFileError
 from ..plant import model as model_equations
 from ..plant.model import stick_band_rad_s
 from ..plant.plantfile import Plant
-from ..plant.schema import BREAKAWAY_KEY, KIND, PLAUSIBLE, SCHEMA
-from ..plant.uncertainty import carry_correlation, correlation_entry, inner_truncation, plant_uncertainty
+from ..plant.schema import BREAKAWAY_KEY, PLAUSIBLE, SCHEMA
+from ..plant.uncertainty import carry_correlation, correlation_entry, plant_uncertainty
 from .data import MIN_FRF_POINTS, FrfRecord, Record
-from .fituncertainty import UNCERTAINTY_MODES, hold_written_values, uncertainty_choice
+from .fituncertainty import (UNCERTAINTY_MODES, Z95, hold_written_values, physical_range, uncertainty_choice,
+                             uncertainty_entries)
 from .inertia_total import reflected_interval
 
 __all__ = ["FitResult", "FITTABLE", "DELAY_KEY", "PSEUDO_KEYS", "CONTACT_KEYS", "DEFAULT_KEYS", "FRF_KEYS",
            "FRF_KEYS_COMPLIANT", "RANK_RTOL", "NULL_LOADING", "UNCERTAINTY_MODES", "SAMPLE_TIME_RTOL",
            "UNIT_SLIP_FACTOR", "UNIT_PLANT_FACTOR", "FRF_SPEED_MAX_RAD_S", "FRF_LOAD_MAX_RATED", "TORQUE_OVER_LIMIT",
            "symbolic_rhs", "key_bounds", "motor_torque", "check_keys", "inertia_key", "default_keys", "default_min_speed", "frf_operating_point_error",
-           "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text", "uncertainty_entries",
+           "checked_inputs", "frf_sample_time", "finish_fit", "info_split", "unit_text", "uncertainty_entries", "check_units",
            "uncertainty_choice", "fit_percent"]
 
 #: Plant keys the fit can estimate: unit and meaning (bounds and scales: :func:`key_bounds`).
@@ -95,7 +95,7 @@ FRF_KEYS = ("nut.inertia_kg_m2", "drive.current_loop_bandwidth_hz")
 FRF_KEYS_COMPLIANT = FRF_KEYS + ("contact.stiffness_n_per_mm_e",)
 
 
-_Z95 = 1.959963984540054
+_Z95 = Z95
 
 
 #: Above this correlation the data cannot separate two fitted keys (warning; a key this
@@ -510,9 +510,23 @@ def _apparent_inertia(rec: Record, plant: Plant) -> float | None:
     return 1.0 / float(beta[0]) if r2 >= 0.5 else None
 
 
-def _check_units(rec: Record, plant: Plant) -> None:
+def check_units(rec: Record, plant: Plant) -> None:
     """Refuse a record whose torque balance shows a unit slip (:func:`_apparent_inertia` against
-    the plant's reflected inertia, :data:`_UNIT_SLIPS`) or an inertia no fit of this plant can reach."""
+    the plant's reflected inertia, :data:`_UNIT_SLIPS`) or an inertia no fit of this plant can reach.
+
+    Parameters
+    ----------
+    rec : Record
+        The record in SI units (N m, rad, rad/s).
+    plant : Plant
+        The base plant (its torque limit, N m, and reflected inertia, kg m^2).
+
+    Raises
+    ------
+    ValueError
+        One line naming the record and the column: a torque command beyond the torque limit, a
+        unit slip (rpm, mN m, deg, ...), or an inertia beyond a factor 20 of the plant's.
+    """
     peak = float(np.max(np.abs(rec.torque_command_n_m)))
     if peak > TORQUE_OVER_LIMIT * plant.torque_limit:
         raise ValueError(f"{rec.name}: column torque_command_n_m reaches {peak:.6g}, {peak / plant.torque_limit:.3g} x "
@@ -562,7 +576,7 @@ def frf_operating_point_error(plant: Plant, speed_rad_s: float, load_n: float) -
 def checked_inputs(records, validate, frf, plant):
     """Inputs of a fit after the checks that need the plant: duplicate data used once (with a
     warning), each record's sample time equal to the plant's within :data:`SAMPLE_TIME_RTOL`,
-    no unit slip in the torque balance (:func:`_check_units`), FRF points at or above the
+    no unit slip in the torque balance (:func:`check_units`), FRF points at or above the
     drive's Nyquist frequency dropped (a warning each; too few left: ValueError), each response's
     operating point within :data:`FRF_SPEED_MAX_RAD_S` and :data:`FRF_LOAD_MAX_RATED`."""
     records = _dedupe(records)
@@ -577,7 +591,7 @@ def checked_inputs(records, validate, frf, plant):
             raise ValueError(f"{rec.name}: column time_s gives a sample time of {rec.sample_time_s:.6g} s; expected the "
                              f"plant's sensor.sample_time_s {ts_pl:.6g} s within {100 * SAMPLE_TIME_RTOL:g} % (time in "
                              "another unit? a log at another rate than the drive's loop? or give the drive's plant)")
-        _check_units(rec, plant)
+        check_units(rec, plant)
     out = []
     for fr in frf:
         bad = frf_operating_point_error(plant, fr.speed_rad_s, fr.load_n)
@@ -619,7 +633,7 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
     corr = np.nan_to_num(corr)
     ts = plant.sample_time_s if ts is None else ts
     null = np.zeros((len(keys), 0)) if null is None else np.asarray(null, float)
-    ranges = [_physical_range(plant, k, lo[i], hi[i]) if k not in PSEUDO_KEYS else (lo[i], hi[i])
+    ranges = [physical_range(plant, k, lo[i], hi[i]) if k not in PSEUDO_KEYS else (lo[i], hi[i])
               for i, k in enumerate(keys)]
     ext_lo, ext_hi = _null_extent(values, null, [r[0] for r in ranges], [r[1] for r in ranges])
     params, overrides, reasons, in_null = {}, {}, {}, set()
@@ -641,7 +655,7 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
             warns.append(f"{k} = {values[i]:.4g}{u} is at its bound [{lo[i]:.4g}, {hi[i]:.4g}]: its interval "
                          "is not reliable" + ("; move the bracket with delay_samples (--delay-samples)"
                                               if k == DELAY_KEY else ""))
-        reason = _not_identified(k, float(values[i]), float(width), _physical_range(plant, k, lo[i], hi[i]), floor)
+        reason = _not_identified(k, float(values[i]), float(width), physical_range(plant, k, lo[i], hi[i]), floor)
         mates = _null_mates(keys, null / np.array([max(r[1] - r[0], 1e-300) for r in ranges])[:, None], i)
         if mates is not None:  # moves along an uninformed direction: the data do not set it
             in_null.add(k)
@@ -709,13 +723,13 @@ def finish_fit(plant, keys, values, cov, lo, hi, names, warns, ts=None, keep_uni
             srcs[k] = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g})"
         base_unc = dict(getattr(plant, "uncertainty", None) or {})
         unc = {k: v for k, v in base_unc.items() if k not in plant_keys}
-        fit_unc = _uncertainty_entries(fitted, {k: params[k] for k in plant_keys}, names,
+        fit_unc = uncertainty_entries(fitted, {k: params[k] for k in plant_keys}, names,
                                        [std[keys.index(k)] for k in plant_keys],
-                                       [_physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)])
+                                       [physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)])
                                         for k in plant_keys])
         for k in plant_keys:
             choice, note = uncertainty_choice(fitted, k, base_unc.get(k), fit_unc.get(k), params[k]["ci95"],
-                                               _physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)]),
+                                               physical_range(plant, k, lo[keys.index(k)], hi[keys.index(k)]),
                                                uncertainty)
             if choice is not None:
                 unc[k] = choice
@@ -811,14 +825,6 @@ def unit_text(unit: str) -> str:
     return "" if unit in ("-", "") else f" {unit}"
 
 
-def _physical_range(plant: Plant, key: str, lo: float, hi: float) -> tuple[float, float]:
-    """Where a fitted key can physically lie, file units: the fit's bounds ``lo..hi``
-    (:func:`key_bounds`, e.g. the no-load torque below half the motor's torque limit) within the
-    plausible range of :data:`prsa_ctrl.plant.plantfile.PLAUSIBLE`."""
-    p_lo, p_hi, _ = PLAUSIBLE.get(key, (-math.inf, math.inf, ""))
-    return max(float(lo), float(p_lo)), min(float(hi), float(p_hi))
-
-
 def _not_identified(key: str, value: float, half_width: float, rng: tuple[float, float], floor: float) -> str | None:
     """Why the data cannot inform ``key`` (None when they can): its 95 % interval (``value +/-
     half_width``) is wider than the physical range ``rng``, wider than +/- 50 % of the value
@@ -860,47 +866,6 @@ def _delay_block(fitted: Plant, keys, values, cov, ts: float) -> dict:
     }
 
 
-def _uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=None) -> dict:
-    """``[uncertainty]`` entries of the fitted keys: a normal distribution with the fit's standard
-    deviation, truncated at the 95 % interval (1.96 sigma) or closer where the key's physical
-    range or the plant's cross-checks end; a key at a bound of its range (e.g. no-load torque 0)
-    gets a uniform distribution from that bound to its interval's far end. Keys whose interval
-    is degenerate or invalid are left out (the fit's warnings say why). ``ranges``: each key's
-    physical range (:func:`_physical_range`); no entry reaches beyond it."""
-    out = {}
-    ranges = ranges if ranges is not None else [(-math.inf, math.inf)] * len(params)
-    for (k, v), sd, (r_lo, r_hi) in zip(params.items(), std, ranges):
-        value = v["value"]
-        lo_ci, hi_ci = v["ci95"]
-        if not (np.isfinite(sd) and sd > 0):
-            continue
-        kind = KIND[k]
-        floor = 0.0 if kind in ("positive", "non-negative", "fraction in (0, 1]") else -math.inf
-        ceil = 1.0 if kind == "fraction in (0, 1]" else math.inf
-        floor, ceil = max(floor, r_lo), min(ceil, r_hi)
-        if not floor <= value <= ceil:
-            continue
-        src = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g}; sigma from the fit's covariance)"
-        # never past the range (rounded to 6 decimals inward, checked as the plant-file reader computes it)
-        trunc = inner_truncation(value, float(sd), floor, ceil, limit=_Z95, open_floor=kind in ("positive", "fraction in (0, 1]"))
-        if trunc >= 0.1:
-            entry = {"dist": "normal", "sigma": float(sd), "truncate": float(trunc), "source": src}
-            ends = (value - entry["truncate"] * sd, value + entry["truncate"] * sd)
-        elif kind == "non-negative" and value - floor < 0.1 * sd:
-            entry = {"dist": "uniform", "low": float(floor), "high": float(min(max(hi_ci, value + sd), ceil)),
-                     "source": src}
-            ends = (entry["low"], entry["high"])
-        else:
-            continue
-        try:
-            for e in ends:
-                fitted.with_params({k: e})
-        except PlantFileError:
-            continue
-        out[k] = entry
-    return out
-
-
 def frf_sample_time(fr: FrfRecord, plant: Plant) -> float:
     return plant.sample_time_s if fr.sample_time_s is None else fr.sample_time_s
 
@@ -926,12 +891,6 @@ _REMEDY_KEY = {
     "axis.nut_stiffness_n_per_um": "measure a frequency response through the axial mode",
     "axis.axial_damping_ratio": "measure the axial mode's peak with a fine frequency resolution",
 }
-
-
-def uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=None) -> dict:
-    """The fit's own ``[uncertainty]`` entries of the fitted keys (what :func:`finish_fit` writes
-    with ``uncertainty="fit"``)."""
-    return _uncertainty_entries(fitted, params, names, std, ranges)
 
 
 def fit_percent(measured: NDArray[np.float64], model: NDArray[np.float64]) -> float:

@@ -13,14 +13,22 @@ decision (exit 3 without ``--force`` when the plant does not explain the data), 
 
 from __future__ import annotations
 
+import math
 import warnings
 from typing import Any, Mapping, Sequence
 
+import numpy as np
+
 from ..errors import GeometryWarning, PlantFileError
 from ..plant.plantfile import Plant
-from ..plant.uncertainty import CORRELATION_KEY, carry_correlation, plant_uncertainty
+from ..plant.schema import KIND, PLAUSIBLE
+from ..plant.uncertainty import CORRELATION_KEY, carry_correlation, inner_truncation, plant_uncertainty
 
-__all__ = ["UNCERTAINTY_MODES", "entry_support", "outside_note", "uncertainty_choice", "hold_written_values"]
+__all__ = ["UNCERTAINTY_MODES", "entry_support", "outside_note", "uncertainty_choice", "hold_written_values",
+           "Z95", "physical_range", "uncertainty_entries"]
+
+#: The two-sided 95 % quantile of the normal distribution: a fit's 95 % interval is +/- Z95 sigma.
+Z95 = 1.959963984540054
 
 #: What a fit writes into the fitted plant's ``[uncertainty]`` for a fitted key: ``"keep"`` the
 #: base plant's own entry (the user's assumption) unless it is narrower than the fit's 95 %
@@ -103,7 +111,7 @@ def hold_written_values(plant: Plant, keys: Sequence[str] | None, params: Mappin
         Per key its ``ci95`` (file units) where the written value is the fitted one.
     fit_entries : mapping
         The fit's own entries of the keys (e.g.
-        :func:`prsa_ctrl.identification.common.uncertainty_entries`).
+        :func:`uncertainty_entries`).
     """
     import dataclasses
 
@@ -126,3 +134,88 @@ def hold_written_values(plant: Plant, keys: Sequence[str] | None, params: Mappin
         return plant, notes
     unc = carry_correlation(unc, base, None, notes)
     return dataclasses.replace(plant, uncertainty=unc), notes
+
+
+def physical_range(plant: Plant, key: str, lo: float, hi: float) -> tuple[float, float]:
+    """Where a fitted key can physically lie, file units: the fit's bounds ``lo..hi``
+    (:func:`~prsa_ctrl.identification.common.key_bounds`, e.g. the no-load torque below half the motor's torque limit) within the
+    plausible range of :data:`prsa_ctrl.plant.plantfile.PLAUSIBLE`.
+
+    Parameters
+    ----------
+    plant : Plant
+    key : str
+        A plant-file key (``"friction.no_load_torque_n_m"``).
+    lo, hi : float
+        The fit's bounds of the key, file units.
+
+    Returns
+    -------
+    (float, float)
+        The range, file units.
+    """
+    p_lo, p_hi, _ = PLAUSIBLE.get(key, (-math.inf, math.inf, ""))
+    return max(float(lo), float(p_lo)), min(float(hi), float(p_hi))
+
+
+
+
+def uncertainty_entries(fitted: Plant, params: Mapping, names: str, std, ranges=None) -> dict:
+    """The fit's own ``[uncertainty]`` entries of the fitted keys (what :func:`~prsa_ctrl.identification.common.finish_fit` writes
+    with ``uncertainty="fit"``): a normal distribution with the fit's standard deviation,
+    truncated at the 95 % interval (1.96 sigma) or closer where the key's physical range or the
+    plant's cross-checks end; a key at a bound of its range (e.g. no-load torque 0) gets a
+    uniform distribution from that bound to its interval's far end. Keys whose interval is
+    degenerate or invalid are left out (the fit's warnings say why).
+
+    Parameters
+    ----------
+    fitted : Plant
+        The fitted plant (each entry's ends are checked against its cross-checks).
+    params : mapping
+        Key -> ``{"value": v, "ci95": [lo, hi], ...}``, file units.
+    names : str
+        The records the fit read, for each entry's ``source``.
+    std : sequence of float
+        Each key's standard deviation, file units.
+    ranges : sequence of (float, float), optional
+        Each key's physical range, file units (:func:`physical_range`); no entry reaches beyond it.
+
+    Returns
+    -------
+    dict
+        Key -> ``[uncertainty]`` entry (``dist``, ``sigma`` and ``truncate`` or ``low`` and ``high``,
+        ``source``).
+    """
+    out = {}
+    ranges = ranges if ranges is not None else [(-math.inf, math.inf)] * len(params)
+    for (k, v), sd, (r_lo, r_hi) in zip(params.items(), std, ranges):
+        value = v["value"]
+        lo_ci, hi_ci = v["ci95"]
+        if not (np.isfinite(sd) and sd > 0):
+            continue
+        kind = KIND[k]
+        floor = 0.0 if kind in ("positive", "non-negative", "fraction in (0, 1]") else -math.inf
+        ceil = 1.0 if kind == "fraction in (0, 1]" else math.inf
+        floor, ceil = max(floor, r_lo), min(ceil, r_hi)
+        if not floor <= value <= ceil:
+            continue
+        src = f"fit: {names} (95 % CI {lo_ci:.6g}..{hi_ci:.6g}; sigma from the fit's covariance)"
+        # never past the range (rounded to 6 decimals inward, checked as the plant-file reader computes it)
+        trunc = inner_truncation(value, float(sd), floor, ceil, limit=Z95, open_floor=kind in ("positive", "fraction in (0, 1]"))
+        if trunc >= 0.1:
+            entry = {"dist": "normal", "sigma": float(sd), "truncate": float(trunc), "source": src}
+            ends = (value - entry["truncate"] * sd, value + entry["truncate"] * sd)
+        elif kind == "non-negative" and value - floor < 0.1 * sd:
+            entry = {"dist": "uniform", "low": float(floor), "high": float(min(max(hi_ci, value + sd), ceil)),
+                     "source": src}
+            ends = (entry["low"], entry["high"])
+        else:
+            continue
+        try:
+            for e in ends:
+                fitted.with_params({k: e})
+        except PlantFileError:
+            continue
+        out[k] = entry
+    return out

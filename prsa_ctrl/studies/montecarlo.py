@@ -44,7 +44,7 @@ distributed = module("dask.distributed")
 
 __all__ = ["MonteCarloReport", "DesignYield", "MonteCarloInterrupted", "run_monte_carlo", "format_report",
            "wilson_interval", "draw_sample", "replay_sample", "scene_options", "verification_settings", "local_cluster",
-           "METRICS", "BACKENDS"]
+           "METRICS", "BACKENDS", "sample_passes"]
 
 #: Execution backends.
 BACKENDS = ("serial", "process", "dask")
@@ -292,8 +292,24 @@ def _json_list(a) -> list:
     return [None if not math.isfinite(float(x)) else float(x) for x in a]
 
 
-def _passes(metrics: np.ndarray, spec: Mapping[str, Any], torque_limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pass flags and severity (largest value/bound ratio, > 1 fails) of rows (samples x METRICS)."""
+def sample_passes(metrics: np.ndarray, spec: Mapping[str, Any], torque_limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pass flags and severity of Monte-Carlo samples against a yield spec.
+
+    Parameters
+    ----------
+    metrics : ndarray
+        Rows of samples, columns :data:`METRICS` (SI units).
+    spec : mapping
+        Metric name -> upper bound (its unit), and ``no_saturation`` (bool).
+    torque_limit : float, N m
+        The motor's torque limit (the severity of a saturated sample).
+
+    Returns
+    -------
+    (ndarray of bool, ndarray of float)
+        Whether each sample passes, and its severity: the largest value/bound ratio (> 1 fails;
+        inf for a non-finite metric or a saturated sample).
+    """
     ok = np.all(np.isfinite(metrics[:, :10]), axis=1)
     sev = np.where(ok, 0.0, np.inf)
     for k, bound in spec.items():
@@ -335,7 +351,7 @@ def _build_report(job: _Job, plant, scene, rows: list, n: int, backend: str, wor
     out = []
     for j, (name, pid, _) in enumerate(job.designs):
         m = metrics[:, j, :]
-        ok, sev = _passes(m, job.spec, plant.torque_limit) if len(rows) else (np.zeros(0, bool), np.zeros(0))
+        ok, sev = sample_passes(m, job.spec, plant.torque_limit) if len(rows) else (np.zeros(0, bool), np.zeros(0))
         if not job.spec and len(rows):
             sev = m[:, METRICS.index(scene.objective)]
         k = int(ok.sum())
@@ -729,7 +745,7 @@ def replay_sample(plant, scene, pid, seed: int, index: int, integrator: str = "a
         job = _Job("replay-" + uuid.uuid4().hex, _plant_doc(plant), scene, designs, unc, ops, spec, int(seed),
                    settings)
     i, values, op, m, err = _run_chunk(job, [index])[0]
-    ok, sev = _passes(m, job.spec, plant.torque_limit)
+    ok, sev = sample_passes(m, job.spec, plant.torque_limit)
     return {"index": i, "parameters": values, "operating_point": job.ops[op],
             "metrics": dict(zip(METRICS, map(float, m[0]))), "passes_spec": bool(ok[0]), "error": err[0]}
 

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from .movescene import MoveScene
     from ..tuning.cascade import CascadeDesign
 
-__all__ = ["profile_tables", "format_report", "format_robust", "format_move_report", "fmt", "fmt_margin", "table", "scene_header",
+__all__ = ["setpoint_table", "profile_tables", "format_report", "format_robust", "format_move_report", "fmt", "fmt_margin", "table", "scene_header",
            "pct_text", "diff_text", "beaten_text", "format_friction_ff"]
 
 
@@ -120,14 +120,27 @@ def profile_tables(rep) -> list[str]:
             out.append(table(["step at", "load", "predicted peak (rad/s)", "verified peak (rad/s)",
                                "recovery (s)", "IAE to next change (rad)"], rows))
         if vm.setpoint_steps:
-            out.extend(_setpoint_table(pm, vm, res))
+            out.extend(setpoint_table(pm, vm, res))
         out.append("")
     return out
 
 
-def _setpoint_table(pm, vm, res: Callable[[str], float]) -> list[str]:
+def setpoint_table(pm, vm, res: Callable[[str], float]) -> list[str]:
     """Setpoint steps of a duty-cycle record: overshoot (%), 10-90 % rise and 2 % settling time,
-    predicted (linear) against verified (nonlinear)."""
+    predicted (linear) against verified (nonlinear).
+
+    Parameters
+    ----------
+    pm, vm : ProfileMetrics
+        The predicted and the verified metrics of the record (:func:`prsa_ctrl.sim.metrics.profile_metrics`).
+    res : callable
+        Metric name -> its resolution (s for times), below which a difference is absolute.
+
+    Returns
+    -------
+    list of str
+        The table's lines (a title, then one row per step and quantity).
+    """
     rows = []
     pred = dict(zip(pm.setpoint_step_times_s, pm.setpoint_steps))
     for t_s, v in zip(vm.setpoint_step_times_s, vm.setpoint_steps):

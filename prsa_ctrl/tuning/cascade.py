@@ -66,6 +66,7 @@ from ..plant.linear import linear_core
 from ..plant.model import plant_model
 from .loops import resonance_points
 from .builders import drive_loop
+from .cascadems import abs2, cplx_mul, multirate_constraints
 from .cascadespec import CascadeSpec
 from .generic import tune_loops
 
@@ -73,6 +74,7 @@ if TYPE_CHECKING:
     from ..plant.plantfile import Plant
 
 __all__ = ["CascadeModel", "CascadeSpec", "CascadeDesign", "tune_cascade", "sequential_design", "kv_ceiling", "CASCADE_GAINS",
+           "cascade_design", "gains_from_solution",
            "MS_EXCESS_RTOL", "BREAKING_POINTS"]
 
 #: The loop-breaking points whose Ms the tuning bounds (:meth:`CascadeModel.loops`): the speed
@@ -86,14 +88,6 @@ MS_EXCESS_RTOL = 1e-5
 #: Gains of a cascade design, in this order: speed kp (N m s/rad), ki (N m/rad); position kv
 #: (1/s), kip (1/s^2); velocity and acceleration feed-forward (dimensionless).
 CASCADE_GAINS = ("kp", "ki", "kv", "kip", "kvff", "kaff")
-
-
-def _cplx_mul(a, b):
-    return (a[0] * b[0] - a[1] * b[1], a[0] * b[1] + a[1] * b[0])
-
-
-def _abs2(a):
-    return a[0] ** 2 + a[1] ** 2
 
 
 class CascadeModel:
@@ -632,7 +626,27 @@ def _linear_summary(cm: CascadeModel, g) -> dict:
             "ms_holding": float(np.mean(eh**2))}
 
 
-def _design(cm: CascadeModel, method: str, g, objective: float, notes=None, solver=None) -> CascadeDesign:
+def cascade_design(cm: CascadeModel, method: str, g, objective: float, notes=None, solver=None) -> CascadeDesign:
+    """The design of the cascade ``cm`` at the gains ``g``: its controllers, true Ms at each
+    breaking point, crossovers and linear metrics (what the tuners return).
+
+    Parameters
+    ----------
+    cm : CascadeModel
+    method : str
+        How the gains were found (``"joint"``, ``"sequential"``, ...).
+    g : sequence of float
+        The six gains of :data:`CASCADE_GAINS` (N m s/rad, N m/rad, 1/s, 1/s^2, -, -).
+    objective : float
+        The tuner's objective at ``g``.
+    notes : sequence of str, optional
+    solver : dict, optional
+        The solver's report.
+
+    Returns
+    -------
+    CascadeDesign
+    """
     sc = cm.spec
     speed = PID(float(g[0]), float(g[1]))
     pos = PositionLoop(kv=float(g[2]), ki=float(g[3]), kvff=float(g[4]), kaff=float(g[5]), measured=sc.measured,
@@ -736,16 +750,16 @@ def sequential_design(plant: "Plant", spec: CascadeSpec, cm: CascadeModel | None
     if ms_speed < ms_max:
         notes.append(f"the speed loop tuned alone at Ms {ms_max:g} gives Ms > {ms_max:g} once the position loop is "
                      f"closed (any ratio in {min(ratios):g}..{max(ratios):g}): re-tuned at Ms {ms_speed:.4g} for equal Ms")
-    return _design(cm, "sequential", g, spec.weight_following + spec.weight_holding, notes,
+    return cascade_design(cm, "sequential", g, spec.weight_following + spec.weight_holding, notes,
                    {"speed_tuner_status": res.status, "ratio": ratio, "speed_ms_bound": ms_speed})
 
 
-def _gains_from_solution(x, lbx, ubx, free, scale) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def gains_from_solution(x, lbx, ubx, free, scale) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The scaled NLP solution projected onto its bounds, and the six gains it gives
     (:data:`CASCADE_GAINS`). Ipopt may end a hair outside its bounds (``kaff = -9e-9`` for a
     1 um move), which :class:`~prsa_ctrl.drive.measurement.PositionLoop` rightly refuses.
 
-    >>> x, g = _gains_from_solution([1.0, 1.0, 1.0, 1.0, -9e-9], [1e-3] * 3 + [0.0] * 2, [1e3] * 3 + [1.5] * 2,
+    >>> x, g = gains_from_solution([1.0, 1.0, 1.0, 1.0, -9e-9], [1e-3] * 3 + [0.0] * 2, [1e3] * 3 + [1.5] * 2,
     ...                             [0, 1, 2, 4, 5], [0.08, 10.0, 40.0, 160.0, 1.0, 1.0])
     >>> float(g[5]), float(g[2])
     (0.0, 40.0)
@@ -755,116 +769,6 @@ def _gains_from_solution(x, lbx, ubx, free, scale) -> tuple[NDArray[np.float64],
     for k, i in enumerate(free):
         gv[i] = x[k] * scale[i]
     return x, gv
-
-
-def _cm_const(v) -> tuple:
-    return (ca.DM(np.real(v)), ca.DM(np.imag(v)))
-
-
-def _cadd(*xs) -> tuple:
-    return (sum(x[0] for x in xs), sum(x[1] for x in xs))
-
-
-def _cscale(a, k) -> tuple:
-    return (a[0] * k, a[1] * k)
-
-
-def _cmatmul(X, Y) -> list:
-    n, m, p = len(X), len(Y), len(Y[0])
-    return [[_cadd(*[_cplx_mul(X[i][k], Y[k][j]) for k in range(m)]) for j in range(p)] for i in range(n)]
-
-
-def _psd_conditions(M, mu_c2, norm) -> list:
-    """Conditions ``e_k(H) >= 0`` (k = 1..N) for ``H = (M^H M - mu_c2 I)/norm`` to be positive
-    semi-definite, i.e. ``sigma_min(M)^2 >= mu_c2``: the coefficients of ``det(lambda I + H)``
-    (elementary symmetric functions of its real eigenvalues), from the power sums ``tr H^j``
-    by Newton's identities. ``M`` a list of lists of (re, im) columns over the frequencies."""
-    N = len(M)
-    MH = [[(M[j][i][0], -M[j][i][1]) for j in range(N)] for i in range(N)]
-    H = _cmatmul(MH, M)
-    H = [[_cscale(_cadd(H[i][j], ((-mu_c2 if i == j else 0.0), 0.0)), 1.0 / norm) for j in range(N)]
-         for i in range(N)]
-    powers, Hk = [], H
-    for k in range(N):
-        if k:
-            Hk = _cmatmul(Hk, H)
-        powers.append(sum(Hk[i][i][0] for i in range(N)))
-    e = [1.0]
-    for k in range(1, N + 1):
-        e.append(sum((-1) ** (i - 1) * e[k - i] * powers[i - 1] for i in range(1, k + 1)) / k)
-    return e[1:]
-
-
-def _multirate_constraints(cm: CascadeModel, g, g0, omega: NDArray[np.float64], m2: float) -> list:
-    """The Ms constraints of a multi-rate cascade (``position_rate = N > 1``) at the
-    position-loop frequencies ``omega`` (rad/s), each >= 0 where the bound ``m2 = Ms^2`` holds:
-
-    * speed loop opened, ``m2 |1 + W G C_s|^2 - 1`` at each of the N aliases (the whole
-      speed-loop frequency range);
-    * position loop, ``m2 |D + C_p sum_k h_k n_k prod_{j != k} d_j|^2 - |D|^2`` (the alias sum of
-      :meth:`CascadeModel.position_loop` over the common denominator ``D = prod d_k``);
-    * torque and speed loop closed: the lifted return difference ``M`` has ``sigma_min(M)^2 >=
-      1/m2`` (:func:`_psd_conditions`; the speed_closed one scaled by ``|1 + b^T a|^2``),
-      normalised per frequency by the baseline ``g0``'s ``|M|_F^2`` (a positive constant).
-    """
-    N = cm.rate
-    Lp = cm.lifted_parts(omega)
-    kp, ki, kv, kip = g[0], g[1], g[2], g[3]
-    mu = 1.0 / m2
-    cons = []
-    # speed loop opened, at every alias
-    cs_k, r_k, d_k, n_k = [], [], [], []
-    for k in range(N):
-        csi = _cm_const(Lp["cs_i"][k])
-        cs = (kp + ki * csi[0], ki * csi[1])
-        r = _cplx_mul(_cm_const(Lp["r"][k]), cs)
-        cons.append(m2 * _abs2((1 + r[0], r[1])) - 1)
-        cs_k.append(cs)
-        d_k.append((1 + r[0], r[1]))
-        n_k.append(_cplx_mul(_cm_const(Lp["Gp"][k] * Lp["h"][k]), cs))
-    # position loop at its own sample time (alias sum over a common denominator)
-    cpi = _cm_const(Lp["cp_i"])
-    cp = _cplx_mul((kv + kip * cpi[0], kip * cpi[1]), _cm_const(Lp["dp"]))
-    D = d_k[0]
-    for k in range(1, N):
-        D = _cplx_mul(D, d_k[k])
-    num = (0.0, 0.0)
-    for k in range(N):
-        t = n_k[k]
-        for j in range(N):
-            if j != k:
-                t = _cplx_mul(t, d_k[j])
-        num = _cadd(num, t)
-    one_l = _cadd(D, _cplx_mul(cp, num))
-    cons.append(m2 * _abs2(one_l) - _abs2(D))
-    # lifted matrices
-    A = [[_cm_const(Lp["A"][:, i, j]) for j in range(N)] for i in range(N)]
-    B = [[_cadd(((kp if i == j else 0.0), 0.0), _cscale(_cm_const(Lp["Lc"][:, i, j]), ki)) for j in range(N)]
-         for i in range(N)]
-    a = [_cadd(*B[i]) for i in range(N)]
-    b = [_cplx_mul(cp, _cm_const(Lp["c"][:, j])) for j in range(N)]
-    eye = [[((1.0 if i == j else 0.0), 0.0) for j in range(N)] for i in range(N)]
-    BA, AB = _cmatmul(B, A), _cmatmul(A, B)
-    Mt = [[_cadd(eye[i][j], BA[i][j], _cplx_mul(a[i], b[j])) for j in range(N)] for i in range(N)]
-    c1 = _cadd((1.0, 0.0), *[_cplx_mul(b[j], a[j]) for j in range(N)])
-    Aa = [_cadd(*[_cplx_mul(A[i][j], a[j]) for j in range(N)]) for i in range(N)]
-    bB = [_cadd(*[_cplx_mul(b[i], B[i][j]) for i in range(N)]) for j in range(N)]
-    P = [[_cadd(_cplx_mul(c1, _cadd(eye[i][j], AB[i][j])), _cscale(_cplx_mul(Aa[i], bB[j]), -1.0)) for j in range(N)]
-         for i in range(N)]
-    # per-frequency normalisation from the baseline (positive constants; feasibility unchanged)
-    Md = cm.return_differences(g0, omega)
-    ft = np.maximum(np.sum(np.abs(Md["torque"]) ** 2, axis=(1, 2)) / N, 1e-12)
-    cons += _psd_conditions(Mt, mu, ca.DM(ft))
-    c1_abs2 = _abs2(c1)
-    Pn = [[P[i][j] for j in range(N)] for i in range(N)]
-    H_sc = _psd_conditions(Pn, mu * c1_abs2, 1.0)
-    # normalise the speed_closed conditions by the baseline's value of |c1|^2 |M|_F^2 (k-th power)
-    B0 = float(g0[0]) * np.eye(N)[None] + float(g0[1]) * Lp["Lc"]
-    b0 = ((float(g0[2]) + float(g0[3]) * Lp["cp_i"]) * Lp["dp"])[:, None] * Lp["c"]
-    c0 = np.maximum(np.abs(1 + np.einsum("wi,wi->w", b0, B0 @ np.ones(N))) ** 2, 1e-12)
-    fs = np.maximum(np.sum(np.abs(Md["speed_closed"]) ** 2, axis=(1, 2)) / N, 1e-12) * c0
-    cons += [h / ca.DM(fs ** (k + 1)) for k, h in enumerate(H_sc)]
-    return cons
 
 
 def tune_cascade(plant: "Plant", spec: CascadeSpec, *, baseline: CascadeDesign | None = None,
@@ -922,21 +826,21 @@ def tune_cascade(plant: "Plant", spec: CascadeSpec, *, baseline: CascadeDesign |
     for rnd in range(max_rounds):
         m2 = sc.ms_max ** 2 * (1 - 1e-4)
         if cm.rate > 1:
-            cons = _multirate_constraints(cm, g, g0, np.array(omegas), m2)
+            cons = multirate_constraints(cm, g, g0, np.array(omegas), m2)
         else:
             P = cm.parts(np.array(omegas))
             def c(v):
                 return (ca.DM(v.real), ca.DM(v.imag))
             G, Gp, W, csi, cpi, dp = (c(P[k]) for k in ("G", "Gp", "W", "cs_i", "cp_i", "dp"))
             cs = (g[0] + g[1] * csi[0], g[1] * csi[1])
-            cp = _cplx_mul((g[2] + g[3] * cpi[0], g[3] * cpi[1]), dp)
-            q = _cplx_mul(_cplx_mul(Gp, cs), cp)
-            r = _cplx_mul(_cplx_mul(W, G), cs)
+            cp = cplx_mul((g[2] + g[3] * cpi[0], g[3] * cpi[1]), dp)
+            q = cplx_mul(cplx_mul(Gp, cs), cp)
+            r = cplx_mul(cplx_mul(W, G), cs)
             one_q = (1 + q[0], q[1])
             one_r = (1 + r[0], r[1])
             d = (1 + q[0] + r[0], q[1] + r[1])
-            cons = [m2 * _abs2(d) - _abs2(one_q), m2 * _abs2(one_r) - 1, m2 * _abs2(d) - _abs2(one_r),
-                    m2 * _abs2(d) - 1]
+            cons = [m2 * abs2(d) - abs2(one_q), m2 * abs2(one_r) - 1, m2 * abs2(d) - abs2(one_r),
+                    m2 * abs2(d) - 1]
         lbg = [0.0] * sum(int(ci.numel()) for ci in cons)
         if sc.bandwidth_ratio is not None:
             cons.append(g[0] / cm.inertia - sc.bandwidth_ratio * g[2])
@@ -957,7 +861,7 @@ def tune_cascade(plant: "Plant", spec: CascadeSpec, *, baseline: CascadeDesign |
                                                     "ipopt.tol": 1e-8})
         sol = solver(x0=x, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ca.inf)
         st = solver.stats()
-        x, gv = _gains_from_solution(sol["x"], lbx, ubx, free, scale)
+        x, gv = gains_from_solution(sol["x"], lbx, ubx, free, scale)
         solver_info = {"status": st["return_status"], "iterations": int(st["iter_count"]), "rounds": rnd + 1,
                        "grid_points": len(omegas)}
         pk = cm.ms(gv)
@@ -975,9 +879,9 @@ def tune_cascade(plant: "Plant", spec: CascadeSpec, *, baseline: CascadeDesign |
                      f"{'' if stable else ', unstable'}; frequencies added")
     if best is None:
         notes.append("joint solve did not verify within the Ms bound; the baseline is returned")
-        return _design(cm, "joint (failed: baseline)", g0, sc.weight_following + sc.weight_holding, notes, solver_info)
+        return cascade_design(cm, "joint (failed: baseline)", g0, sc.weight_following + sc.weight_holding, notes, solver_info)
     if best[2] >= kv_cap * (1 - 1e-6):
         notes.append(f"position gain at its ceiling kv_max = {kv_cap:.6g} 1/s ({kv_cap * 0.06:.4g} (m/min)/mm)")
     lin = _linear_summary(cm, best)
     obj = sc.weight_following * lin["ms_following"] / e_f0 + sc.weight_holding * lin["ms_holding"] / e_h0
-    return _design(cm, "joint", best, obj, notes, solver_info)
+    return cascade_design(cm, "joint", best, obj, notes, solver_info)

@@ -16,7 +16,7 @@ from .loops import LoopModel, block_sum, plant_roots
 from .builders import PADE_PHASE_TOL, check_structure, continuous_loop
 from .tuner import Tuner, TuningResult
 
-__all__ = ["tune_loops", "tune_pid", "MAX_ORDER"]
+__all__ = ["tune_loops", "tune_pid", "MAX_ORDER", "FILTER_DECADES", "optimal_filter"]
 
 
 # The Tuners of the last tune_loops calls, most recent first (strong references to their loops,
@@ -174,7 +174,7 @@ def tune_pid(
     filter_tf : float, s, optional
         The filter's time constant; by default (None) a decision variable: the objective's
         optimum over ``Tf`` in ``[10^-4 t_ref, t_ref]`` with ``t_ref = 1 / w135`` (``horizon /
-        100`` where the phase stays above -135 deg; ``_FILTER_DECADES`` = four decades; a
+        100`` where the phase stays above -135 deg; ``FILTER_DECADES`` = four decades; a
         log scan then a bounded Brent search, each point a full tuning), reported in
         ``result.filter``. The result is optimal for that range only, and its status says so
         (``"optimal (over Tf in [a, b] s, the filter's search range)"``, and where the best Tf
@@ -329,7 +329,7 @@ def tune_pid(
         return res, hor
 
     if filter_order and filter_tf is None:
-        res, horizon = _optimal_filter(solve, horizon, 1.0 / (w135 if w135 is not None else 100.0 / horizon))
+        res, horizon = optimal_filter(solve, horizon, 1.0 / (w135 if w135 is not None else 100.0 / horizon))
     else:
         res, horizon = solve(filter_tf, horizon)
     if filter_order or ideal or delay:
@@ -347,20 +347,34 @@ def tune_pid(
     return res
 
 #: The filter time constant's search range (tune_pid, ``filter_tf=None``): these decades below 1/w135.
-_FILTER_DECADES = 4
+FILTER_DECADES = 4
 
 #: Log-scan points over that range before the bounded Brent search.
 _FILTER_SCAN = 7
 
-def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[TuningResult, float]:
+def optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[TuningResult, float]:
     """The measurement filter's time constant as a decision variable: the tuned objective (each
     value a full tuning by ``solve(Tf, horizon)``) scanned on ``_FILTER_SCAN`` log points over
-    ``[t_ref 10^-_FILTER_DECADES, t_ref]``, then minimised by a bounded Brent search (log Tf,
+    ``[t_ref 10^-FILTER_DECADES, t_ref]``, then minimised by a bounded Brent search (log Tf,
     2e-3 absolute, at most 20 evaluations) between the best point's neighbours. Its own
     first-order check: neither one-sided slope of the objective in log Tf (steps of +-0.02,
     relative to the objective) may fall below ``-KKT_TOL`` (no descent direction; a kink where
     the active peak changes is a minimum too), except outwards at an end of the range; else
-    the status says so. Results not proven optimal or infeasible count as infinite."""
+    the status says so. Results not proven optimal or infeasible count as infinite.
+
+    Parameters
+    ----------
+    solve : callable
+        ``solve(tf_s, horizon_s) -> TuningResult``: one tuning at the filter time constant.
+    horizon : float, s
+    t_ref : float, s
+        Top of the search range (``1/w135``).
+
+    Returns
+    -------
+    (TuningResult, float)
+        The best tuning and its filter time constant, s.
+    """
     from scipy.optimize import minimize_scalar
 
     cache: dict = {}
@@ -377,7 +391,7 @@ def _optimal_filter(solve: Callable, horizon: float, t_ref: float) -> tuple[Tuni
                 cache[key] = (math.inf, None, None)
         return cache[key][0]
 
-    lo_all, hi_all = math.log(t_ref) - _FILTER_DECADES * math.log(10.0), math.log(t_ref)
+    lo_all, hi_all = math.log(t_ref) - FILTER_DECADES * math.log(10.0), math.log(t_ref)
     grid = np.linspace(lo_all, hi_all, _FILTER_SCAN)
     vals = np.array([value(x) for x in grid])
     if not np.any(np.isfinite(vals)):

@@ -351,7 +351,7 @@ def test_session_refused_calibration_has_the_verdict_the_views_and_no_plant(reso
     views draw the report's arrays and the verdict is a refusal."""
     import numpy as np
 
-    from prsa_ctrl.app.fitpanel import FitViews, _report_html
+    from prsa_ctrl.app.fitpanel import FitViews, report_html
     from prsa_ctrl.app.session import AppInputError, AppSession
 
     s = AppSession()
@@ -373,7 +373,7 @@ def test_session_refused_calibration_has_the_verdict_the_views_and_no_plant(reso
         r = cal.report["views"]["replay"]["resonant-log.csv"]
         assert r["explained"] is False
         assert r["mode"] == "prediction-error"
-        page_html = _report_html(cal, "refused")
+        page_html = report_html(cal, "refused")
         assert "data-verdict='refused'" in page_html
         assert "Validated" not in page_html
         assert "data-state='refused'" in page_html

@@ -26,9 +26,9 @@ class _Served:
     """A Bokeh server for ``app`` on a free loopback port, run on its own thread."""
 
     def __init__(self, app, unused_ms: int = 15_000, check_ms: int = 17_000) -> None:
-        from prsa_ctrl.app.cli import _free_port
+        from prsa_ctrl.app.cli import free_port
 
-        self.port = _free_port()
+        self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}/"
         got: queue.Queue = queue.Queue()
 

@@ -49,7 +49,7 @@ def test_frf_upload_is_prsa_fit_frf_and_its_plant_is_used(tmp_path, capsys):
     """The session's FRF calibration writes the command's plant file byte for byte, prints its
     lines, reports its values and the structure the data chose, and draws the response (data
     beside the rigid and two-mass models, Hz, coherence); the fitted plant is then the session's."""
-    from prsa_ctrl.app.fitpanel import FitViews, _report_html
+    from prsa_ctrl.app.fitpanel import FitViews, report_html
     from prsa_ctrl.app.session import AppSession
 
     csv = tmp_path / "bode.csv"
@@ -80,7 +80,7 @@ def test_frf_upload_is_prsa_fit_frf_and_its_plant_is_used(tmp_path, capsys):
         assert len(fr["models"]) == 3  # rigid, two-mass, written
         np.testing.assert_allclose(fr["frequency_hz"], fw["frequency_hz"], rtol=1e-12)
         np.testing.assert_allclose(fr["coherence"], fw["coherence"], rtol=1e-12)
-        html_ = _report_html(cal, "done")
+        html_ = report_html(cal, "done")
         assert "data-k='fit-structure' data-structure='rigid'" in html_
         assert "data-verdict='not-validated'" in html_
         # the fit's status in the one vocabulary, as prsa-fit's JSON has it (an FRF fit is not replayed)
@@ -103,7 +103,7 @@ def test_frf_upload_is_prsa_fit_frf_and_its_plant_is_used(tmp_path, capsys):
 def test_refused_frf_fit_is_the_commands_exit_3_line_and_no_plant(tmp_path, capsys):
     """A response in the wrong unit (x 1000): prsa-fit exits 3 and writes nothing; the session
     returns a refused calibration with the same line, no plant to use; the tab shows it refused."""
-    from prsa_ctrl.app.fitpanel import _report_html
+    from prsa_ctrl.app.fitpanel import report_html
     from prsa_ctrl.app.session import AppInputError, AppSession
 
     csv = tmp_path / "bad.csv"
@@ -121,7 +121,7 @@ def test_refused_frf_fit_is_the_commands_exit_3_line_and_no_plant(tmp_path, caps
             s.use_calibration(cal)
         with pytest.raises(ValueError):
             cal.plant_text
-        html_ = _report_html(cal, "refused")
+        html_ = report_html(cal, "refused")
         assert "data-verdict='refused'" in html_
         assert "data-state='refused' data-file=''" in html_
         assert s.plant.name == "paper-iprsm"
@@ -145,7 +145,7 @@ def test_two_mass_response_shows_the_chosen_structure_and_the_mode_with_interval
     """A two-mass ball-screw axis written here (mode 107 Hz at the motor): the data choose the
     two-mass structure, the report's mode and anti-resonance intervals hold the truth, and the
     tab shows the structure line with the mode."""
-    from prsa_ctrl.app.fitpanel import _report_html
+    from prsa_ctrl.app.fitpanel import report_html
     from prsa_ctrl.app.session import AppSession
 
     s = AppSession()
@@ -179,7 +179,7 @@ def test_two_mass_response_shows_the_chosen_structure_and_the_mode_with_interval
             # 125 us (as a drive's measurement is): within 1 % (the truth sits 0.1-0.2 % outside the
             # interval: mode 100.29 Hz against 99.59..100.09, anti-resonance 80.00 against 80.09..80.46)
             assert got["value"] == pytest.approx(truth, rel=0.01)
-        html_ = _report_html(cal, "done") if cal.refused is None else _report_html(cal, "refused")
+        html_ = report_html(cal, "done") if cal.refused is None else report_html(cal, "refused")
         assert "data-structure='two-mass'" in html_
         assert "axial mode" in html_
         assert "anti-resonance" in html_
@@ -241,7 +241,7 @@ def test_a_mat_log_of_a_linear_axis_is_fitted_through_its_description(tmp_path, 
     ``prsa-fit DATA_EMPS.mat --log-format log.toml`` writes (the plant file byte for byte but its
     name), its lines (files named as uploaded), a linear-axis plant to download, not to tune here;
     without the description the .mat log is refused with the command's line."""
-    from prsa_ctrl.app.fitpanel import _report_html
+    from prsa_ctrl.app.fitpanel import report_html
     from prsa_ctrl.app.session import AppInputError, AppSession
     from prsa_ctrl.identification.calibrate import mat_log_refusal
 
@@ -261,7 +261,7 @@ def test_a_mat_log_of_a_linear_axis_is_fitted_through_its_description(tmp_path, 
                                    if not x.startswith("wrote ")]
         for key, v in want["parameters"].items():
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
-        html_ = _report_html(cal, "done")
+        html_ = report_html(cal, "done")
         assert "data-verdict='replayed'" in html_
         assert "download it, prsa-axis tunes it" in html_
         with pytest.raises(AppInputError, match="a linear-axis plant; expected a screw-driven plant"):

@@ -282,26 +282,26 @@ def test_ctrl_c_in_the_interpreters_shutdown_after_a_complete_run_is_no_death_by
 def test_linear_axis_take_back_removes_only_what_the_run_made(tmp_path):
     """The linear-axis path writes its files one by one: an interrupt between them takes back
     the new files and the new --plots figures (and the folder if the run made it), nothing else."""
-    from prsa_ctrl.cli.fit import _new_outputs, _take_back
+    from prsa_ctrl.cli.fit import new_outputs, take_back
 
     old_out, plots = tmp_path / "f.toml", tmp_path / "plots"
     old_out.write_text("old\n")
     plots.mkdir()
     (plots / "mine.png").write_text("user's\n")
-    made = _new_outputs(argparse.Namespace(out=str(old_out), json=str(tmp_path / "f.json"), plots=str(plots)))
+    made = new_outputs(argparse.Namespace(out=str(old_out), json=str(tmp_path / "f.json"), plots=str(plots)))
     (tmp_path / "f.json").write_text("{}\n")
     (plots / "replay-1-x.png").write_text("png\n")
-    _take_back(made())
+    take_back(made())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.toml", "plots"]
     assert old_out.read_text() == "old\n"
     assert sorted(os.listdir(plots)) == ["mine.png"]
 
     new_plots = tmp_path / "new"
-    made = _new_outputs(argparse.Namespace(out=str(tmp_path / "g.toml"), plots=str(new_plots)))
+    made = new_outputs(argparse.Namespace(out=str(tmp_path / "g.toml"), plots=str(new_plots)))
     new_plots.mkdir()
     (new_plots / "replay-1-x.png").write_text("png\n")
     (tmp_path / "g.toml").write_text("new\n")
-    _take_back(made())
+    take_back(made())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.toml", "plots"]
 
 

@@ -170,7 +170,7 @@ def test_a_two_mass_axis_file_round_trips_and_a_rigid_one_stays_as_it_was(tmp_pa
 
 def test_the_screw_fit_entries_never_cross_the_range():
     """The motor-coordinate fit's entries (identification.common) round inward too."""
-    from prsa_ctrl.identification.common import _uncertainty_entries
+    from prsa_ctrl.identification.fituncertainty import uncertainty_entries
     from prsa_ctrl.plant.plantfile import load_plant
 
     plant = load_plant("paper-iprsm")
@@ -178,7 +178,7 @@ def test_the_screw_fit_entries_never_cross_the_range():
     value, sd = 1.2345679e-4, 1e-4
     assert value - round(value / sd * (1 - 1e-9), 6) * sd < 0  # what the old rule wrote
     fitted = plant.with_params({key: value})
-    out = _uncertainty_entries(fitted, {key: {"value": value, "ci95": [value - 1.96 * sd, value + 1.96 * sd]}},
+    out = uncertainty_entries(fitted, {key: {"value": value, "ci95": [value - 1.96 * sd, value + 1.96 * sd]}},
                                "t.csv", [sd])
     e = out[key]
     assert e["dist"] == "normal"

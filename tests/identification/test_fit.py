@@ -223,15 +223,16 @@ def test_constant_load_leaves_efficiency_unidentified(base):
 def test_uncertainty_entries_stay_in_the_physical_range(base):
     """Review finding 2: an interval reaching past the key's physical range (no-load torque up
     to 3.6 N m on a 3 N m motor) never becomes a wider [uncertainty] entry."""
-    from prsa_ctrl.identification.common import _physical_range, _uncertainty_entries, key_bounds
+    from prsa_ctrl.identification.common import key_bounds
+    from prsa_ctrl.identification.fituncertainty import physical_range, uncertainty_entries
 
     k = "friction.no_load_torque_n_m"
     lo, hi, _ = key_bounds(base, k, TS)
-    rng = _physical_range(base, k, lo, hi)
+    rng = physical_range(base, k, lo, hi)
     assert rng == (0.0, 0.5 * base.torque_limit)
     for value, sd in ((0.1, 1.8), (0.0005, 0.02), (0.3, 0.1)):
         params = {k: {"value": value, "ci95": [value - 1.96 * sd, value + 1.96 * sd], "unit": "N m"}}
-        (entry,) = _uncertainty_entries(base, params, "x.csv", [sd], [rng]).values()
+        (entry,) = uncertainty_entries(base, params, "x.csv", [sd], [rng]).values()
         top = entry["high"] if entry["dist"] == "uniform" else value + entry["truncate"] * entry["sigma"]
         bottom = entry["low"] if entry["dist"] == "uniform" else value - entry["truncate"] * entry["sigma"]
         assert rng[0] <= bottom, (value, sd, entry)
@@ -470,11 +471,11 @@ def test_cli_design(tmp_path):
 
 
 def test_plant_toml_adds_an_uncertainty_section_when_the_base_has_none(base):
-    from prsa_ctrl.cli.fit import _base_text, plant_toml
-    from prsa_ctrl.plant.plantfile import Plant
+    from prsa_ctrl.cli.fit import plant_toml
+    from prsa_ctrl.plant.plantfile import Plant, plant_file_path
     from prsa_ctrl.plant.uncertainty import check_plant_uncertainty
 
-    text, _ = _base_text(None)
+    text = plant_file_path(None).read_bytes().decode("utf-8")
     no_unc = text[:text.index("[uncertainty]")]
     truth = base.with_params(PERTURBED["issue"])
     res = fit_plant([toolkit_record(truth, "multisine")], base, keys=["nut.inertia_kg_m2"], uncertainty="fit")
@@ -791,17 +792,17 @@ def _speed_only(rec, factor=1.0, name="speed.csv"):
 @pytest.mark.parametrize("case", list(PERTURBED))
 @pytest.mark.parametrize("kind", ["multisine", "load-steps", "staircase"])
 def test_torque_balance_finds_rpm_and_passes_rad_s(base, case, kind):
-    from prsa_ctrl.identification.common import _check_units
+    from prsa_ctrl.identification.common import check_units
 
     rec = toolkit_record(base.with_params(PERTURBED[case]), kind)
-    _check_units(rec, base)
-    _check_units(_speed_only(rec), base)  # SI speed: accepted
+    check_units(rec, base)
+    check_units(_speed_only(rec), base)  # SI speed: accepted
     with pytest.raises(ValueError, match=r"column nut_speed_rad_s looks like speed in rpm"):
-        _check_units(_speed_only(rec, 60 / (2 * math.pi)), base)
+        check_units(_speed_only(rec, 60 / (2 * math.pi)), base)
     with pytest.raises(ValueError, match=r"column torque_command_n_m reaches .* torque limit"):
         from dataclasses import replace
 
-        _check_units(replace(rec, torque_command_n_m=rec.torque_command_n_m * 1e3), base)
+        check_units(replace(rec, torque_command_n_m=rec.torque_command_n_m * 1e3), base)
 
 
 def test_cli_rpm_speed_without_angle_exit_2_one_line(multisine, tmp_path, capsys):

@@ -505,11 +505,12 @@ def test_member_run_shares_one_law_and_matches_the_direct_run():
     a, b = _member(VALUES), _member({**VALUES, "nut.inertia_kg_m2": 1.1e-4})
     ra, rb = run(a, **kw), run(b, **kw)
     direct = run(apply(PLANT, VALUES), **kw)
-    from prsa_ctrl.sim.integrators import _BUILT
+    from prsa_ctrl.sim.integrators import build
 
-    built_a = _BUILT[M.plant_model(a, "compliant")][("member", False)]
-    built_b = _BUILT[M.plant_model(b, "compliant")][("member", False)]
+    built_a = build(M.plant_model(a, "compliant"), False, shared=True)  # the runs' cached functions
+    built_b = build(M.plant_model(b, "compliant"), False, shared=True)
     assert built_a.sampled is built_b.sampled  # one set of functions for the family
+    assert len(built_a.sampled) > 0  # the runs filled the family's functions (only a shared run does)
     assert ra.states.shape == direct.states.shape
     assert ra.state_labels == direct.state_labels
     np.testing.assert_allclose(ra.outputs, direct.outputs, rtol=1e-9, atol=1e-9)

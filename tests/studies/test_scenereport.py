@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from prsa_ctrl.studies.scenereport import _setpoint_table, diff_text
+from prsa_ctrl.studies.scenereport import setpoint_table, diff_text
 from prsa_ctrl.sim.metrics import profile_metrics, setpoint_step_metrics
 
 ZETA, WN = 0.4, 100.0  # a known underdamped second-order loop
@@ -84,7 +84,7 @@ def test_profile_finds_setpoint_steps_not_ramps():
     assert sp.overshoot_percent == 0.0
     assert m.as_dict()["setpoint_steps"][0]["time_s"] == pytest.approx(0.1)
     # the report's table carries the verified numbers and a difference where both exist
-    text = "\n".join(_setpoint_table(m, m, lambda name: ts))
+    text = "\n".join(setpoint_table(m, m, lambda name: ts))
     assert "+50 rpm" in text
     assert f"{sp.rise_time_s:.4g}" in text
     assert "0.0 %" in text

@@ -447,10 +447,10 @@ def test_bandwidth_ratio_option(plant, designs):
 def test_gains_are_projected_onto_the_nlp_bounds():
     """Ipopt's result may sit a hair outside a bound (kaff = -9e-9 for a 1 um move): the design
     is built from the projected gains, which PositionLoop accepts."""
-    from prsa_ctrl.tuning.cascade import _gains_from_solution
+    from prsa_ctrl.tuning.cascade import gains_from_solution
 
     lbx, ubx = [1e-3, 1e-3, 1e-3, 0.0, 0.0], [1e3, 1e3, 1e3, 1.5, 1.5]
-    x, g = _gains_from_solution([0.5, 2.0, 1e3 + 1e-9, 1.5 + 2e-9, -9.2e-9], lbx, ubx, [0, 1, 2, 4, 5],
+    x, g = gains_from_solution([0.5, 2.0, 1e3 + 1e-9, 1.5 + 2e-9, -9.2e-9], lbx, ubx, [0, 1, 2, 4, 5],
                                 [0.08, 10.0, 40.0, 160.0, 1.0, 1.0])
     assert list(x) == [0.5, 2.0, 1e3, 1.5, 0.0]
     assert g[5] == 0.0
@@ -750,9 +750,9 @@ def test_cli_cascade_at_the_drive_rates_with_a_kv_ceiling(tmp_path, capsys, plan
     from prsa_ctrl.io.export import dumps as _dumps
 
     d = data["joint"]
-    from prsa_ctrl.tuning.cascade import _design
+    from prsa_ctrl.tuning.cascade import cascade_design
 
-    design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
+    design = cascade_design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
                                    d["position"]["kvff"], d["position"]["kaff"]], 0.0)
     assert design.position.rate == 2
     assert len(design.filters) == 2
@@ -811,10 +811,10 @@ def test_cli_cascade_with_the_position_loops_own_delay(tmp_path, capsys, plant):
             assert again[k] == pytest.approx(d["ms"][k], rel=1e-4)
         assert undelayed["position"] < again["position"] * (1 - 1e-3)  # the delay costs margin: it is modelled
     ts = plant.sample_time_s
-    from prsa_ctrl.tuning.cascade import _design
+    from prsa_ctrl.tuning.cascade import cascade_design
 
     d = data["joint"]
-    design = _design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
+    design = cascade_design(cm, "joint", [d["speed"]["kp"], d["speed"]["ki"], d["position"]["kv_per_s"], 0.0,
                                    d["position"]["kvff"], d["position"]["kaff"]], 0.0)
     assert design.position.delay == 1
     pc = tomllib.loads(dumps(export_cascade(design, plant, fmt="toml"), "toml"))["position_controller"]

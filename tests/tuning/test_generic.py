@@ -18,7 +18,7 @@ import prsa_ctrl.tuning.tuner as tuner
 from prsa_ctrl.drive.pid import PID
 from prsa_ctrl.tuning import continuous_loop, tune_pid
 from prsa_ctrl.tuning.builders import continuous_loop, drive_loop
-from prsa_ctrl.tuning.generic import _FILTER_DECADES, _optimal_filter, tune_loops, tune_pid
+from prsa_ctrl.tuning.generic import FILTER_DECADES, optimal_filter, tune_loops, tune_pid
 from prsa_ctrl.tuning.tuner import Tuner, TuningResult
 
 import independent_tuner as ref
@@ -290,9 +290,9 @@ def test_filter_search_span_is_stated_once():
     said five decades while the code searched four)."""
     from pathlib import Path
 
-    from prsa_ctrl.tuning.generic import _FILTER_DECADES
+    from prsa_ctrl.tuning.generic import FILTER_DECADES
 
-    words = {3: "three", 4: "four", 5: "five", 6: "six"}[_FILTER_DECADES]
+    words = {3: "three", 4: "four", 5: "five", 6: "six"}[FILTER_DECADES]
     doc = " ".join(tune_pid.__doc__.split())
     guide = " ".join((Path(__file__).parents[2] / "docs" / "guides" / "generic-tuner.md").read_text().split())
     assert f"{words} decades" in doc
@@ -739,7 +739,7 @@ def test_a_non_finite_objective_is_never_reported(monkeypatch):
 # ------------------------------------------------------------------------------------------------
 # Fast companions of the slow Tf-optimised filter tests (tests/tuning/test_generic.py, each
 # ~30-60 s because every Tf point is a full tuning): the search over the measurement filter's time
-# constant (``generic._optimal_filter``: log scan, bounded Brent search, its own first-order check,
+# constant (``generic.optimal_filter``: log scan, bounded Brent search, its own first-order check,
 # the end-of-range warning, infeasible points) run on stand-in tunings whose objective is a known
 # function of Tf, so that the answer is known exactly.
 # ------------------------------------------------------------------------------------------------
@@ -757,13 +757,13 @@ def _solver(f, calls, bad=lambda t: False, unconverged=lambda t: False):
 
 
 T_REF = 1.0
-LO = T_REF * 10.0 ** -_FILTER_DECADES
+LO = T_REF * 10.0 ** -FILTER_DECADES
 
 
 def test_interior_minimum_is_found_and_proven():
     t_opt = 0.0123
     calls = []
-    res, hor = _optimal_filter(_solver(lambda t: 1.0 + (math.log(t / t_opt)) ** 2, calls), 7.0, T_REF)
+    res, hor = optimal_filter(_solver(lambda t: 1.0 + (math.log(t / t_opt)) ** 2, calls), 7.0, T_REF)
     fs = res.stats["filter_search"]
     assert hor == 7.0
     assert res.converged
@@ -780,7 +780,7 @@ def test_interior_minimum_is_found_and_proven():
 def test_kink_minimum_counts_as_a_minimum():
     """Where the active peak changes, the objective has a kink: no descent direction either way."""
     t_k = 0.002
-    res, _ = _optimal_filter(_solver(lambda t: 1.0 + 0.1 * abs(math.log(t / t_k)), []), 1.0, T_REF)
+    res, _ = optimal_filter(_solver(lambda t: 1.0 + 0.1 * abs(math.log(t / t_k)), []), 1.0, T_REF)
     fs = res.stats["filter_search"]
     assert fs["first_order_ok"]
     assert res.status.startswith("optimal (over Tf in [")
@@ -788,7 +788,7 @@ def test_kink_minimum_counts_as_a_minimum():
 
 
 def test_a_filter_that_only_costs_ends_at_the_small_end_with_a_warning():
-    res, _ = _optimal_filter(_solver(lambda t: 1.0 + t, []), 1.0, T_REF)
+    res, _ = optimal_filter(_solver(lambda t: 1.0 + t, []), 1.0, T_REF)
     fs = res.stats["filter_search"]
     assert fs["at_bound"]
     assert fs["tf_s"] == pytest.approx(LO, rel=1e-9)
@@ -803,7 +803,7 @@ def test_ie_improving_with_tf_names_the_range_and_points_to_iae():
     """IE with a free filter can improve without end as Tf grows (issue 34: ki 0.630 reported
     "optimal" on e^(-s)/(s+1) while ki 1.051 is feasible at Tf = 71 s): the result is the best
     over the range, its status names the range and its upper end, and a warning points to IAE."""
-    res, _ = _optimal_filter(_solver(lambda t: 1.0 / (1.0 + t), []), 1.0, T_REF)
+    res, _ = optimal_filter(_solver(lambda t: 1.0 / (1.0 + t), []), 1.0, T_REF)
     fs = res.stats["filter_search"]
     assert fs["at_bound"]
     assert fs["tf_s"] == pytest.approx(T_REF, rel=1e-9)
@@ -819,7 +819,7 @@ def test_infeasible_and_unconverged_points_count_as_infinite():
     calls = []
     solve = _solver(lambda t: 1.0 + (math.log(t / 0.01)) ** 2, calls, bad=lambda t: not 1e-3 <= t <= 1e-1,
                     unconverged=lambda t: t < 3e-3)
-    res, _ = _optimal_filter(solve, 1.0, T_REF)
+    res, _ = optimal_filter(solve, 1.0, T_REF)
     fs = res.stats["filter_search"]
     assert res.converged
     assert math.log(fs["tf_s"] / 0.01) == pytest.approx(0.0, abs=3e-3)
@@ -827,7 +827,7 @@ def test_infeasible_and_unconverged_points_count_as_infinite():
 
 def test_no_feasible_filter_is_one_value_error():
     with pytest.raises(ValueError, match="no filter time constant"):
-        _optimal_filter(_solver(lambda t: 1.0, [], bad=lambda t: True), 1.0, T_REF)
+        optimal_filter(_solver(lambda t: 1.0, [], bad=lambda t: True), 1.0, T_REF)
 
 
 def test_a_remaining_descent_is_reported_not_optimal():
@@ -836,7 +836,7 @@ def test_a_remaining_descent_is_reported_not_optimal():
     the result is flagged, not called optimal."""
     smooth = lambda t: 1.0 + (math.log(t / 0.05)) ** 2  # noqa: E731
     calls = []
-    first, _ = _optimal_filter(_solver(smooth, calls), 1.0, T_REF)
+    first, _ = optimal_filter(_solver(smooth, calls), 1.0, T_REF)
     x_best = math.log(first.stats["filter_search"]["tf_s"])
     centre, half = x_best + 0.02, 0.004
     assert all(abs(math.log(t) - centre) > half for t in calls[:-2])  # the search itself never went there
@@ -844,7 +844,7 @@ def test_a_remaining_descent_is_reported_not_optimal():
     def dipped(t):
         return smooth(t) - 0.01 * max(0.0, 1.0 - abs(math.log(t) - centre) / half)
 
-    res, _ = _optimal_filter(_solver(dipped, []), 1.0, T_REF)
+    res, _ = optimal_filter(_solver(dipped, []), 1.0, T_REF)
     fs = res.stats["filter_search"]
     assert fs["tf_s"] == pytest.approx(math.exp(x_best), rel=1e-12)  # same path to the same point
     assert fs["slope_up"] < 0
@@ -881,7 +881,7 @@ def test_nothing_stabilising_at_any_tf_does_not_ask_to_relax():
         raise ValueError(msg)
 
     with pytest.raises(ValueError) as err:
-        _optimal_filter(solve, 1.0, T_REF)
+        optimal_filter(solve, 1.0, T_REF)
     assert str(err.value).startswith(msg)
     assert "relax the constraints" not in str(err.value)
 

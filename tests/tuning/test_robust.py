@@ -299,7 +299,7 @@ def _fake_mc(passes: dict, n: int = 200, iae: dict | None = None, seed: int = 0)
     (the first ones of a seeded permutation shared by all designs, so a design with more passes
     passes a superset -- common random numbers); a failing sample breaks the peak drop (odd
     samples) or Ms (even)."""
-    from prsa_ctrl.studies.montecarlo import METRICS, DesignYield, MonteCarloReport, _passes, wilson_interval
+    from prsa_ctrl.studies.montecarlo import METRICS, DesignYield, MonteCarloReport, sample_passes, wilson_interval
 
     spec = {"peak_drop_rad_s": 12.0, "ms": 1.5, "no_saturation": True}
     order = np.random.default_rng(seed).permutation(n)
@@ -313,7 +313,7 @@ def _fake_mc(passes: dict, n: int = 200, iae: dict | None = None, seed: int = 0)
         bad = order[k:]
         m[bad[bad % 2 == 1], METRICS.index("peak_drop_rad_s")] = 13.0
         m[bad[bad % 2 == 0], METRICS.index("ms")] = 1.8
-        ok = _passes(m, spec, 12.0)[0]
+        ok = sample_passes(m, spec, 12.0)[0]
         assert int(ok.sum()) == k
         pct = {"iae": {"p5": m[0, METRICS.index("iae")], "p50": m[0, METRICS.index("iae")]}}
         designs.append(DesignYield(name, {"kp": 1.0 + j, "ki": 1.0, "kd": 0.0, "tf": 0.0, "kff": 0.0}, k, n, k / n,
