@@ -108,20 +108,13 @@ def check_tune_filter(scene, kind: str) -> None:
     Raises
     ------
     SceneError
-        An unknown kind, a duty cycle, a continuous loop, or the Kalman filter with ``mks_max``
-        (its loop has no path for the encoder's speed noise that Mks bounds).
+        An unknown kind, a duty cycle or a continuous loop.
     """
     if kind not in TUNED_FILTERS:
         raise SceneError(f"--tune-filter {kind}: expected one of {', '.join(TUNED_FILTERS)}")
     if not speed_kind(scene).takes("tune-filter"):
         raise SceneError(f"--tune-filter {kind}: scene {scene.name} is a duty cycle; expected a load-step scene (the "
                          "filter tuner's objective is the load step)")
-    if scene.estimator != "none" and scene.mks_max is not None:
-        # The filter tuner's Mks is max |C F S| from a noise on the encoder's speed difference;
-        # the Kalman filter's loop has no such path (its LoopModel.noise is None).
-        raise SceneError(f"--tune-filter {kind} with estimator {scene.estimator} and mks_max = {scene.mks_max:g}: the "
-                         "filter tuner's noise gain max |C F S| is that of a noise on the encoder's speed difference, "
-                         "which the Kalman filter's loop has no path for; expected no mks_max (or estimator none)")
     if not scene.discrete:
         raise SceneError(f"--tune-filter {kind}: expected a sampled loop (discrete = true; the filters run at the "
                          "sample time)")

@@ -13,7 +13,8 @@ exactly as the simulator's per-sample law does), and verifies the result the sam
   frequency to the NLP and solves again (like :class:`prsa_ctrl.tuning.tuner.Tuner`);
 - **Mt** (optional): ``|T| = |L/(1 + L)| <= Mt`` the same way;
 - **Mks** (optional): the noise gain ``Mks = max |C F S|`` from a speed-measurement noise
-  (rad/s, on the raw encoder difference) to the torque command (N m), ``F`` every filter on the
+  (rad/s, on the raw encoder difference; the Kalman filter's loop: the angle noise it updates
+  with, as that difference reads it) to the torque command (N m), ``F`` every filter on the
   path (the drive's speed filter and the loop filters), ``S = 1/(1 + L)``, up to Nyquist
   (:meth:`LoopModel.noise_peak`); verified and refined the same way. (The gains-only
   :class:`~prsa_ctrl.tuning.tuner.Tuner`'s ``max_noise_gain`` is the controller's high-frequency
@@ -31,8 +32,8 @@ response is ``L = F_c(z) L_rest`` with the encoder's measurement. With the Kalma
 (:class:`~prsa_ctrl.tuning.loopmeasure.KalmanEstimate`) the loop has a denominator part,
 ``L = F_c g.N / (1 + F_c g.D)``, and with its load feed-forward a fourth gain ``kff`` (tuned with
 kp and ki; a speed-path filter does not act on its part): the Ms rows
-(:func:`sensitivity_rows`) are exact for both, which gain parts the filter multiplies is read
-off the loop itself (:func:`filtered_gains`), and the Kalman loop has no noise path (no Mks).
+(:func:`sensitivity_rows`) are exact for both, and so are its Mt and Mks rows; which gain parts the
+filter multiplies is read off the loop itself (:func:`filtered_gains`).
 :func:`tune_filtered` with ``kind=None`` solves the same problem with the gains alone.
 """
 
@@ -119,7 +120,7 @@ class FilteredDesign:
         Largest true Ms over the constraint loops (with the filter).
     mks : float or None
         Largest true noise gain ``max |C F S|`` (N m per rad/s) over the constraint loops (None:
-        loops without a noise path, the Kalman filter's).
+        loops without a noise path).
     status : str
         ``"optimal"``: a converged ipopt solve whose verified bounds hold and, with a filter,
         a filter that earns its place (:func:`tune_filtered`); ``"no <kind> helps: <why>"``:
@@ -343,8 +344,9 @@ def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence,
     num``, ``|T| <= Mt`` is ``Mt^2 |num|^2 - |num - den|^2 >= 0`` (the encoder's loop, ``N0 = 0``,
     ``D0 = 1``, ``D = 0``: ``|Dc + Nc g.L|^2 - |Dc|^2/Ms^2``; the Kalman filter's: ``D != 0``,
     and with its feed-forward on a speed-path filter, the ``kff`` part is not filtered). With
-    ``mks`` (loops without a denominator part only), the row
-    ``Mks^2 |num|^2 - |Nc g.K|^2 >= 0`` bounds ``|C F S|`` (``K`` = ``rest.noise``).
+    ``mks``, as ``C F S = sum g_i F_i K_i / (D0 + N0 + sum g_i F_i (L_i + D_i)) = sum P_i g_i K_i /
+    num`` (``K`` = ``rest.noise``, filtered as ``L``), the row ``Mks^2 |num|^2 - |sum P_i g_i K_i|^2
+    >= 0`` bounds ``|C F S|`` (the encoder's loop: ``Mks^2 |num|^2 - |Nc g.K|^2``).
 
     Parameters
     ----------
@@ -412,9 +414,6 @@ def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence,
             sc2 = 1.0 / (mks**2 * np.abs(1 + l0) ** 2 + k0 + 1e-300)
             rows.append((mks**2 * ww - (nk_re * nk_re + nk_im * nk_im)) * ca.DM(sc2))
         return ca.vertcat(*rows)
-    if mks is not None:
-        raise ValueError("mks rows for a loop with a denominator part; expected the encoder's loop (the Kalman "
-                         "filter's has no noise path)")
     nc, dc = (n_re, n_im), (d_re, d_im)
 
     def dm(x):
@@ -446,6 +445,12 @@ def sensitivity_rows(rest: LoopModel, on_filter: Sequence[bool], coef: Sequence,
     if mt is not None:
         sc_t = 1.0 / (mt**2 * np.abs(num0) ** 2 + np.abs(num0 - den0) ** 2)
         rows.append((mt**2 * _cabs2(num) - _cabs2((num[0] - den[0], num[1] - den[1]))) * ca.DM(sc_t))
+    if mks is not None:
+        K = np.asarray(rest.noise(w), complex)
+        k0 = np.abs(gs @ K[idx]) ** 2
+        sc_k = 1.0 / (mks**2 * np.abs(num0) ** 2 + k0 + 1e-300)
+        rows.append((mks**2 * _cabs2(num) - _cabs2(total((ca.DM.zeros(w.size), ca.DM.zeros(w.size)), K)))
+                    * ca.DM(sc_k))
     return ca.vertcat(*rows)
 
 
@@ -498,8 +503,8 @@ def tune_filtered(
         Bound on the true Ms of every loop, in (1, 10).
     max_noise_gain : float, optional
         Bound on the true ``Mks = max |C F S|`` (N m per rad/s) of every loop; needs loops with
-        a noise path (the encoder's measurement; the Kalman filter's loops have none, and their
-        design reports ``mks`` None).
+        a noise path (the encoder's measurement or the Kalman filter's,
+        :meth:`~prsa_ctrl.tuning.loops.LoopModel.noise_response`).
     reference : FilteredDesign, optional
         The gains-alone design of the same loops and bounds (``kind=None``), to judge the
         filter against; computed here when not given.
@@ -548,8 +553,7 @@ def tune_filtered(
     tuned = (0, 1, 3) if ff else (0, 1)
     has_noise = all(bs.lp_rest.noise is not None for bs in bases)
     if max_noise_gain is not None and not has_noise:
-        raise ValueError(f"max_noise_gain = {max_noise_gain!r} for loops without a noise path (the Kalman filter's "
-                         "measurement); expected None")
+        raise ValueError(f"max_noise_gain = {max_noise_gain!r} for loops without a noise path; expected None")
 
     def full(kp_, ki_, kff_=0.0):
         """The loops' gain vector (kp, ki, kd = 0[, kff])."""
@@ -577,15 +581,18 @@ def tune_filtered(
         names, th0 = (), np.zeros(0)
 
     # A feasible start: the given gains scaled down until every loop is stable within Ms
-    # (and Mks) with the start filter (kp by 0.7, ki by 0.49, at most 30 times).
+    # (and Mks) with the start filter (kp by 0.7, ki by 0.49, at most 30 times; with an Mks bound
+    # the load feed-forward gain by 0.7 too: its path from the encoder noise does not scale with kp).
+    kff0 = start_kff
     for _ in range(30):
         lps = [_design_loops(b, kind, place, th0, ts) for b in builders]
-        gg = full(g0[0], g0[1], start_kff)
+        gg = full(g0[0], g0[1], kff0)
         ok = all(lp.stability(gg) == "stable" and _within(lp.peaks(gg), ms_max, mt_max)
                  and (max_noise_gain is None or lp.noise_peak(gg)["mks"] <= max_noise_gain) for lp in lps)
         if ok:
             break
         g0 = g0 * np.array([0.7, 0.49])  # kp s, ki s^2: the PI corner keeps its place below crossover
+        kff0 = kff0 * 0.7 if max_noise_gain is not None else kff0
     else:
         raise ValueError(f"start_gains = {tuple(start_gains)!r}: no scaled-down start meets Ms <= {ms_max:g}"
                          + (f", Mt <= {mt_max:g}" if mt_max is not None else "")
@@ -645,7 +652,7 @@ def tune_filtered(
 
     # ---- objective (two-rate IAE over the horizon, as the gains-only Tuner)
     start_loops = lps
-    g_start = full(g0[0], g0[1], start_kff)
+    g_start = full(g0[0], g0[1], kff0)
     eps = [1e-3 * max(float(np.max(np.abs(lp.error(g_start)))), 1e-300) for lp in start_loops[:n_obj]]
     j_ref = max(sum(lp.objective(g_start, "iae") for lp in start_loops[:n_obj]), 1e-300)
     objs = []

@@ -180,37 +180,56 @@ class KalmanEstimate(LoopMeasurement):
     def grid(self, ad, ts):
         return freq_grid(1e-1, math.pi / ts * 0.999, 500)
 
-    def response(self, w, plant, n_dl, pid_parts, filt):
-        ad, bu, c_th, _, ts = plant
+    def estimates(self, w, ts: float) -> tuple:
+        """``(h_wt, h_wu, h_lt, h_lu)`` at ``w`` (rad/s): the filter's posterior speed (rad/s) and
+        load-torque (N m) estimates per unit angle it updates with (rad) and per unit command it
+        predicts with (N m, the command stored one sample earlier: ``z^-1`` included)."""
         kf = self.kf
         K = kf.K.ravel()
         w = np.atleast_1d(np.asarray(w, dtype=float))
-        zi = np.exp(-1j * w * ts)
-        zd = zi if not n_dl else zi ** (1 + n_dl)  # computation and command delay to the plant
-
-        def z_of(x):
-            return np.exp(1j * x * ts)
-
-        p_th = ss_response(ad, bu[:, None], c_th[None, :], w, z_of)  # applied torque -> angle
         ikh = np.eye(4) - np.outer(K, kf.H.ravel())
         a_kf = kf.F @ ikh
         b_th, b_u = kf.F @ K, kf.G.ravel()
 
         def kf_tf(row, b_in, d_in):
-            return ss_response(a_kf, b_in[:, None], (row @ ikh)[None, :], w, z_of) + d_in
+            return ss_response(a_kf, b_in[:, None], (row @ ikh)[None, :], w, lambda x: np.exp(1j * x * ts)) + d_in
 
-        # Posterior speed and load estimates per unit angle and per unit command the filter
-        # predicts with (the command stored one sample earlier: z^-1).
-        h_wt, h_wu = kf_tf(np.eye(4)[1], b_th, K[1]), kf_tf(np.eye(4)[1], b_u, 0.0)
-        h_lt, h_lu = kf_tf(np.eye(4)[3], b_th, K[3]), kf_tf(np.eye(4)[3], b_u, 0.0)
+        return (kf_tf(np.eye(4)[1], b_th, K[1]), kf_tf(np.eye(4)[1], b_u, 0.0),
+                kf_tf(np.eye(4)[3], b_th, K[3]), kf_tf(np.eye(4)[3], b_u, 0.0))
+
+    def _parts(self, w, ts, pid_parts, filt, to_angle, to_cmd):
+        """Per gain: the command through the speed and load estimates of the angle (``to_angle``
+        multiplies each estimate's response by the path to the angle) and of the command the
+        filter predicts with (``to_cmd``): the ``L`` and ``D`` parts."""
+        h_wt, h_wu, h_lt, h_lu = self.estimates(w, ts)
+        zi = np.exp(-1j * w * ts)
         f_speed, f_torque = filt(w)[1:]
-        Lg = [ci * h_wt * p_th * zd for ci in pid_parts(zi)]
-        Dg = [ci * h_wu * zi for ci in pid_parts(zi)]
+        Lg = [to_angle(ci * h_wt) for ci in pid_parts(zi)]
+        Dg = [to_cmd(ci * h_wu) for ci in pid_parts(zi)]
         if f_speed is not None:  # the speed filters act on the estimate, the torque filters on the command
             Lg, Dg = [x * f_speed for x in Lg], [x * f_speed for x in Dg]
         if self.feedforward:  # u += kff * load estimate (not through the speed filters)
-            Lg.append(-h_lt * p_th * zd)
-            Dg.append(-h_lu * zi)
+            Lg.append(to_angle(-h_lt))
+            Dg.append(to_cmd(-h_lu))
         if f_torque is not None:
             Lg, Dg = [x * f_torque for x in Lg], [x * f_torque for x in Dg]
         return np.vstack(Lg), np.vstack(Dg)
+
+    def response(self, w, plant, n_dl, pid_parts, filt):
+        ad, bu, c_th, _, ts = plant
+        w = np.atleast_1d(np.asarray(w, dtype=float))
+        zi = np.exp(-1j * w * ts)
+        zd = zi if not n_dl else zi ** (1 + n_dl)  # computation and command delay to the plant
+        p_th = ss_response(ad, bu[:, None], c_th[None, :], w, lambda x: np.exp(1j * x * ts))  # torque -> angle
+        return self._parts(w, ts, pid_parts, filt, lambda x: x * p_th * zd, lambda x: x * zi)
+
+    def noise(self, w, ts, pid_parts, filt):
+        """Per gain, the command (N m) per unit speed noise (rad/s) as the encoder's backward
+        difference reads it: an angle noise ``n`` (rad) the filter updates with, expressed as the
+        difference speed ``(1 - z^-1) n / Ts`` it would give, the noise input of
+        :class:`EncoderDifference` (so Mks bounds the same encoder noise with either block).
+        With the loop's denominator part: ``C F S = g.K / (1 + g.D + g.N)``
+        (:meth:`~prsa_ctrl.tuning.loops.LoopModel.noise_response`)."""
+        w = np.atleast_1d(np.asarray(w, dtype=float))
+        per_speed = ts / (1.0 - np.exp(-1j * w * ts))  # rad per rad/s of difference speed
+        return self._parts(w, ts, pid_parts, filt, lambda x: x * per_speed, lambda x: x * per_speed)[0]

@@ -199,11 +199,17 @@ class LoopModel:
         control signal (plant-input units; a drive loop: the torque command, N m); ``F`` is
         every filter on the path (a drive loop: its speed filter and loop filters; a continuous
         loop: its measurement filter, if any) and ``S = 1/(1 + L)``. Needs ``noise``
-        (:func:`drive_loop` and :func:`continuous_loop` set it)."""
+        (:func:`drive_loop` and :func:`continuous_loop` set it). A loop with a denominator part
+        (the Kalman filter's, ``L = g.N / (1 + g.D)``): ``C F S = g.K / (1 + g.D + g.N)``, the
+        command's response to the noise with the filter's own feedback of the command
+        (:meth:`~prsa_ctrl.tuning.loopmeasure.KalmanEstimate.noise`)."""
         if self.noise is None:
             raise ValueError(f"loop {self.name!r} has no noise-gain response; expected a drive_loop or continuous_loop model")
         w = np.atleast_1d(np.asarray(omega, float))
         g = self.gvec(gains)
+        if self.D is not None:
+            n0, ln, d0, ld = self.parts_at(w)
+            return (g @ np.asarray(self.noise(w), complex)) / (d0 + g @ ld + n0 + g @ ln)
         return (g @ np.asarray(self.noise(w), complex)) / (1.0 + self.loop_response(g, w))
 
     def noise_peak(self, gains: Sequence[float]) -> dict:

@@ -183,14 +183,16 @@ class NLPBuilder:
                 nn = ca.vertcat(n_re * n_re + n_im * n_im, (sn_re * sn_re + sn_im * sn_im).T)
                 cons_t.append((ww - inv_mt2 * nn) * norm_t)
             if has_mks:
-                # |C F S| <= Mks: |N + D|^2 - |D|^2 |g K|^2 / Mks^2 >= 0, K the noise path per gain.
+                # |C F S| <= Mks: |N + D|^2 - |D|^2 |g K|^2 / Mks^2 >= 0, K the noise path per gain
+                # (a loop with a denominator part, the Kalman filter's: C F S = g.K / (N + D), so
+                # |N + D|^2 - |g K|^2 / Mks^2 >= 0; LoopModel.noise_response).
                 kg = np.asarray(lp.noise(lp.omega[rows[jl]]), complex)
                 k_re, k_im = ca.mtimes(ca.DM(kg.real.T), g), ca.mtimes(ca.DM(kg.imag.T), g)
                 q_kr, q_ki = q[4 + 4 * ng : 4 + 5 * ng, :], q[4 + 5 * ng : 4 + 6 * ng, :]
                 sk_re, sk_im = ca.mtimes(gt, q_kr), ca.mtimes(gt, q_ki)
                 kk = ca.vertcat(k_re * k_re + k_im * k_im, (sk_re * sk_re + sk_im * sk_im).T)
                 norm_k = p[off + n_sl * ns + 2 * n_c : off + n_sl * ns + 3 * n_c]
-                cons_k.append((ww - inv_mks2 * dd * kk) * norm_k)
+                cons_k.append((ww - inv_mks2 * (kk if lp.D is not None else dd * kk)) * norm_k)
         cons = []
         for jl in range(nl):
             cons.append(cons_s[jl])
@@ -263,7 +265,8 @@ class NLPBuilder:
                 rows_w = lp.omega[self._grid_rows(jl)]
                 kv = np.concatenate([g0 @ np.asarray(lp.noise(rows_w), complex),
                                      (blk[:, 4 + 4 * ng : 4 + 5 * ng] + 1j * blk[:, 4 + 5 * ng :]) @ g0])
-                out.append(1.0 / np.maximum(wv + np.abs(dv) ** 2 * np.abs(kv) ** 2 * inv_mks2, 1e-300))
+                dk = 1.0 if lp.D is not None else np.abs(dv) ** 2  # the row's |D|^2 factor (above)
+                out.append(1.0 / np.maximum(wv + dk * np.abs(kv) ** 2 * inv_mks2, 1e-300))
         if mks:
             out.append(np.array([inv_mks2]))
         return np.concatenate(out)

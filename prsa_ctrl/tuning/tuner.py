@@ -382,7 +382,9 @@ class Tuner(NLPBuilder, OptimalityChecks):
                 gg = grid[s : s + 1000]
                 with np.errstate(all="ignore"):
                     L = (pn0 + gg @ pln) / (pd0 + gg @ pld)
-                    if key == "mks":
+                    if key == "mks" and lp.D is not None:  # C F S = g.K / (D0 + g.D + N0 + g.N)
+                        m = np.abs((gg[:, : kn.shape[0]] @ kn) / (pd0 + gg @ pld + pn0 + gg @ pln))
+                    elif key == "mks":
                         m = np.abs((gg[:, : kn.shape[0]] @ kn) / (1 + L))
                     else:
                         m = 1 / np.abs(1 + L) if key == "ms" else np.abs(L / (1 + L))
@@ -738,8 +740,7 @@ class Tuner(NLPBuilder, OptimalityChecks):
         ms_max, mt_max, noise = check_bounds(ms_max, mt_max, max_noise_gain)
         mks_max = check_mks(mks_max)
         if mks_max is not None and any(lp.noise is None or lp.response is None for lp in self.loops):
-            raise ValueError("mks_max given for loops without a noise path; expected continuous_loop or drive_loop models "
-                             "with the encoder's speed measurement (the Kalman-filter measurement has none)")
+            raise ValueError("mks_max given for loops without a noise path; expected continuous_loop or drive_loop models")
         ng = self.loops[0].n_gains
         hi = [gain_limit("kp_max", kp_max), gain_limit("ki_max", ki_max),
               gain_limit("kd_max", kd_max) if self.use_d else 0.0, 1.0][:ng]

@@ -58,7 +58,8 @@ class HandLoop:
     filter updates with the angle, the speed biquad filters its speed, the PID (plus kff times
     the load estimate) computes the command, the torque biquad filters it, the command stored
     at the previous sample goes down the delay line (the oldest drives the plant over the
-    sample, plus an input disturbance ``d``) and the filter predicts with the stored command."""
+    sample, plus an input disturbance ``d``) and the filter predicts with the stored command; an
+    angle noise ``n`` (rad) adds to the angle the filter updates with."""
 
     def __init__(self, kf: KFDesign, gains, n_delay: int, weight: float = 1.0, speed_bq: DiscreteBiquad = SPEED_BQ,
                  torque_bq: DiscreteBiquad = TORQUE_BQ):
@@ -76,11 +77,11 @@ class HandLoop:
         line, u_pend = self.split(s)[8], self.split(s)[5]
         return line[0] if self.n_delay else u_pend
 
-    def step(self, s, load: float, d: float, ref: float = 0.0):
+    def step(self, s, load: float, d: float, ref: float = 0.0, n: float = 0.0):
         kp, ki, kd, kff = self.gains
         x, m, integral, deriv_old, w_prev, u_pend, mb_s, mb_t, line = self.split(np.asarray(s, float))
         K = self.kf.K.ravel()
-        post = m + K * (x[ANGLE] - m[0])
+        post = m + K * (x[ANGLE] + n - m[0])
         w_raw, tl_hat = post[1], post[3]
         bq = self.speed_bq
         w_meas = bq.b0 * w_raw + bq.b1 * mb_s[0] + bq.b2 * mb_s[1] - bq.a1 * mb_s[2] - bq.a2 * mb_s[3]
@@ -111,3 +112,17 @@ class HandLoop:
         c_app = np.array([self.applied(e) for e in np.eye(self.size)])
         eye = np.eye(self.size)
         return np.array([1.0 + c_app @ np.linalg.solve(np.exp(1j * wi * TS) * eye - a, b_d) for wi in np.atleast_1d(w)])
+
+    def noise_gain(self, w):
+        """``|C F S|`` at ``w`` (rad/s): the filtered command's response (N m) to an angle noise
+        the filter updates with, per rad/s of the speed the encoder's backward difference reads
+        from that noise, ``(1 - z^-1) n / Ts``."""
+        a, _, _ = self.matrices()
+        b_n = self.step(np.zeros(self.size), 0.0, 0.0, n=1.0)
+        c_cmd = np.eye(self.size)[10]  # the filtered command, stored for the next sample
+        eye = np.eye(self.size)
+        out = []
+        for wi in np.atleast_1d(w):
+            z = np.exp(1j * wi * TS)
+            out.append(abs(c_cmd @ np.linalg.solve(z * eye - a, b_n)) * TS / abs(1.0 - 1.0 / z))
+        return np.array(out)

@@ -366,11 +366,11 @@ def _hand_s(gains, place, bq, w, kf=None):
     return hand.sensitivity(w)
 
 
-def _rows_at(rest, on, gains, w, bq, inv_ms2, mt=None):
+def _rows_at(rest, on, gains, w, bq, inv_ms2, mt=None, mks=None):
     coef, gv = ca.SX.sym("c", 5), ca.SX.sym("g", rest.n_gains)
     tuned = [i for i in range(rest.n_gains) if i != 2]
     rows = sensitivity_rows(rest, on, [coef[i] for i in range(5)], gv, tuned, w, hl.TS, inv_ms2=inv_ms2,
-                            g_start=np.asarray(gains, float), mt=mt)
+                            g_start=np.asarray(gains, float), mt=mt, mks=mks)
     f = ca.Function("rows", [coef, gv], [rows])
     return np.asarray(f([bq.b0, bq.b1, bq.b2, bq.a1, bq.a2], gains)).ravel()
 
@@ -406,6 +406,41 @@ def test_the_ms_rows_are_exact_on_the_kalman_loop_and_dropping_its_denominator_i
     assert np.max(np.abs(q0 / (q0 - q1) * np.abs(s_hand) ** 2 - 1.0)) > 1e-2
 
 
+@pytest.mark.parametrize("place", ["torque_command", "speed_measurement"])
+@pytest.mark.parametrize("feedforward", [False, True])
+def test_the_mks_rows_are_exact_on_the_kalman_loop_and_the_encoder_form_is_not(place, feedforward):
+    """The Kalman loop's noise gain ``|C F S|`` (LoopModel.noise_response of the loop built with
+    the filter) is the hand-written law's (an angle noise the filter updates with, per rad/s of
+    the encoder difference it gives) to 1e-8, and the filter tuner's Mks row changes sign at it
+    (within 1e-6). Deliberately broken: the encoder loop's form ``g.K / (1 + L)`` on the same
+    parts, and the rows with the loop's denominator part dropped, are off by more than 1 %."""
+    bld = _kf_builder(feedforward)
+    rest = bld((place, hl.IDENTITY_BQ))
+    on = filtered_gains(rest, bld((place, DiscreteBiquad(0.0, 0.0, 0.0, 0.0, 0.0, hl.TS))))
+    gains = (0.3, 15.0, 0.0, 0.4)[:rest.n_gains]
+    bq = DiscreteBiquad(0.45, -0.2, 0.15, -0.5, 0.1, hl.TS)
+    w = np.array([5.0, 60.0, 700.0, 3000.0, 9000.0])  # rad/s, below Nyquist (12566)
+    on_speed = place == "speed_measurement"
+    hand = hl.HandLoop(hl.toy_kf(), (0.3, 15.0, 0.0, 0.4 if feedforward else 0.0), 1,
+                       speed_bq=bq if on_speed else hl.IDENTITY_BQ, torque_bq=hl.IDENTITY_BQ if on_speed else bq)
+    k_hand = hand.noise_gain(w)
+    loop = bld((place, bq))
+    np.testing.assert_allclose(np.abs(loop.noise_response(gains, w)), k_hand, rtol=1e-8)
+
+    def crosses_within(lp, rel):
+        """Per frequency: whether the Mks row is >= 0 at the hand value x (1 + rel), < 0 at x (1 - rel)."""
+        return [bool(_rows_at(lp, on, gains, w, bq, 1.0, mks=kh * (1 + rel))[w.size + k] > 0
+                     and _rows_at(lp, on, gains, w, bq, 1.0, mks=kh * (1 - rel))[w.size + k] < 0)
+                for k, kh in enumerate(k_hand)]
+
+    assert crosses_within(rest, 1e-6) == [True] * w.size
+    g = loop.gvec(gains)
+    encoder_form = np.abs(g @ loop.noise(w) / (1.0 + loop.loop_response(g, w)))
+    assert np.max(np.abs(encoder_form / k_hand - 1.0)) > 1e-2
+    no_den = replace(rest, D=None, response=lambda wv: (None, rest.parts_at(wv)[1], None, None))
+    assert not all(crosses_within(no_den, 1e-2))
+
+
 def _peak(f, w):
     """Largest ``f`` over the sweep ``w``, polished by a bounded scalar search between the grid
     neighbours of the largest sample (scipy, xatol 1e-12 of the frequency)."""
@@ -417,22 +452,23 @@ def _peak(f, w):
     return max(float(v[k]), -float(r.fun))
 
 
-@pytest.mark.parametrize("kind,place,mt_max", [("lowpass1", "speed_measurement", None),
-                                               ("notch", "torque_command", 1.3)])
-def test_a_kalman_filter_loop_tuned_with_its_filter_claims_the_hand_loops_ms_and_mt(kind, place, mt_max):
+@pytest.mark.parametrize("kind,place,mt_max,mks_max", [("lowpass1", "speed_measurement", None, None),
+                                                       ("notch", "torque_command", 1.3, None),
+                                                       ("lowpass1", "speed_measurement", None, 0.3)])
+def test_a_kalman_filter_loop_tuned_with_its_filter_claims_the_hand_loops_ms_mt_and_mks(kind, place, mt_max, mks_max):
     """tune_filtered on the Kalman filter's loop (feed-forward, command delay, a fixed filter on
-    the other path): the claimed Ms and Mt of the design it returns are those of a frequency
+    the other path): the claimed Ms, Mt and Mks of the design it returns are those of a frequency
     sweep of the hand-written per-sample law with the design's gains (kp, ki, kff) and filter,
-    to 1e-6; the design holds Ms <= 1.6 (and Mt <= 1.3 where bounded) and reports no noise gain
-    (no such path)."""
+    to 1e-6; the design holds Ms <= 1.6 (and Mt <= 1.3, Mks <= 0.3 N m s/rad where bounded: the
+    unbounded design's Mks is 0.63)."""
     other = "torque_command" if place == "speed_measurement" else "speed_measurement"
     fixed_bq = hl.TORQUE_BQ if place == "speed_measurement" else hl.SPEED_BQ
     d = tune_filtered([_kf_builder(True, fixed=((other, fixed_bq),))], ts=hl.TS, kind=kind, place=place,
-                      start_gains=(0.1, 5.0), start_kff=0.2, ms_max=1.6, mt_max=mt_max,
+                      start_gains=(0.1, 5.0), start_kff=0.2, ms_max=1.6, mt_max=mt_max, max_noise_gain=mks_max,
                       start_filter=(800.0,) if kind == "lowpass1" else (600.0, 200.0, -10.0))
-    assert d.mks is None
     assert d.ms <= 1.6
     assert mt_max is None or d.stats["mt"] <= mt_max
+    assert mks_max is None or d.mks <= mks_max
     bq = d.filter.biquad(hl.TS) if d.filter is not None else hl.IDENTITY_BQ
     bqs = {place: bq, other: fixed_bq}
     hand = hl.HandLoop(hl.toy_kf(), (d.pid.kp, d.pid.ki, 0.0, d.pid.kff), 1, speed_bq=bqs["speed_measurement"],
@@ -440,6 +476,7 @@ def test_a_kalman_filter_loop_tuned_with_its_filter_claims_the_hand_loops_ms_and
     w = np.logspace(-1, math.log10(0.999 * math.pi / hl.TS), 3000)
     assert _peak(lambda wv: np.abs(hand.sensitivity(wv)), w) == pytest.approx(d.ms, rel=1e-6)
     assert _peak(lambda wv: np.abs(1.0 - hand.sensitivity(wv)), w) == pytest.approx(d.stats["mt"], rel=1e-6)
+    assert _peak(hand.noise_gain, w) == pytest.approx(d.mks, rel=1e-6)
 
 
 @pytest.mark.parametrize("place", ["torque_command", "speed_measurement"])
