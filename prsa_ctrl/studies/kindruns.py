@@ -32,7 +32,7 @@ from .scene import LoadStepScene, Scene, choose_fidelity
 if TYPE_CHECKING:
     from ..drive.pid import PID  # CasADi: an annotation only (a bad flag is refused before CasADi loads)
 
-__all__ = ["StepRuns", "ProfileRuns", "ResolvedProblem", "STEP_STUDIES", "speed_kind", "duty_record", "DutyRecord",
+__all__ = ["StepRuns", "ProfileRuns", "ResolvedProblem", "STEP_STUDIES", "speed_kind", "duty_record", "DutyRecord", "DUTY_CASES",
            "setpoint_prefilter", "linear_fidelity"]
 
 #: What a load-step problem takes beyond tuning and a duty cycle does not: the robust study and
