@@ -33,6 +33,7 @@ from foreign import gen_ballscrew as bs
 from foreign import gen_feedaxis_load as fa
 from foreign import gen_judge as gj
 from foreign import gen_rollerscrew as rs
+from foreign import gen_third as g3
 
 # ---------------------------------------------------------------------------------------------
 # (a) the generators
@@ -799,4 +800,69 @@ def test_prsa_fit_acceptance_on_the_judges_cases(name, kind, tmp_path):
     proc = _run(args, tmp_path)
     fails, row = _acceptance(proc, out, js, truth, mode_expected=truth["two_mass"])
     _record(f"judge:{name}--{kind}", args, row, fails)
+    assert not fails, f"{name} {kind}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
+
+
+# ------------------------------------------------------------------------------------------------
+# The third generator (foreign/gen_third.py, h13-gen3): three bodies (rotor, coupling, screw,
+# carriage), the axial stiffness moving with the nut along a screw held at the motor end, cogging,
+# the power-screw law of the nut loss, a discrete PI speed loop. Its kinds: the three logs rigid
+# (logs) and --fidelity compliant (logs-compliant, the mode reported at the FRF's point), the FRF
+# with the structure the data choose (frf) and --fidelity compliant (frf-compliant). The rule is
+# _acceptance, the judge's. Every case's data hold the first axial mode (the logs' torque dither
+# and the FRF excite it).
+THIRD_KINDS = ("logs", "logs-compliant", "frf", "frf-compliant")
+
+# Runs that violate the rule on main aca0656 at seed 0 (measured once each; the h13-gen3 report's
+# table): findings, not tolerances. strict: a fix makes them XPASS.
+THIRD_XFAIL = {}
+
+
+def _third_command(name, kind, tmp_path):
+    """prsa-fit arguments of one gen_third run, on data of seed $PRSA_FOREIGN_SEED (default 0)."""
+    seed = int(os.environ.get("PRSA_FOREIGN_SEED", "0"))
+    logs_kind = kind.startswith("logs")
+    s = g3.generate(tmp_path / "data", name, seed=seed, experiments=g3.EXPERIMENTS if logs_kind else (),
+                    frf=not logs_kind)
+    t = s["truth"]
+    out, js = tmp_path / "fitted.toml", tmp_path / "report.json"
+    if logs_kind:
+        logs = [s["logs"][n] for n in g3.EXPERIMENTS]
+        how = ["--log-format", s["log_format"]] if s["log_format"] else ["--command-logged", t["command_logged"]]
+        args = [*logs, *how, "--plant", s["base"], "--out", out, "--json", js]
+        if kind == "logs-compliant":
+            args += ["--fidelity", "compliant", "--frf-speed", t["frf_speed_rad_s"], "--frf-load", t["frf_load_n"]]
+    else:
+        args = ["--frf", s["frf"], "--frf-speed", t["frf_speed_rad_s"], "--frf-load", t["frf_load_n"],
+                "--command-logged", t["command_logged"], "--plant", s["base"], "--out", out, "--json", js]
+        if kind == "frf-compliant":
+            args += ["--fidelity", "compliant"]
+    return args, out, js, t
+
+
+def _third_params():
+    seed0 = os.environ.get("PRSA_FOREIGN_SEED", "0") == "0"
+    for name in g3.CASES:
+        for kind in THIRD_KINDS:
+            reason = THIRD_XFAIL.get((name, kind)) if seed0 else None
+            marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+            yield pytest.param(name, kind, marks=marks, id=f"{name}--{kind}")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(PRSA_FIT is None, reason="the prsa-fit console script is not installed")
+@pytest.mark.parametrize("name,kind", list(_third_params()))
+def test_prsa_fit_acceptance_on_the_third_generator(name, kind, tmp_path):
+    # the judge's rule (_acceptance) on gen_third's data: exit 0 with the total inertia within
+    # 3 % and the truth inside its 95 % interval, the delay exact, the current loop within 25 %,
+    # the first axial mode within 5 %; or exit 3 with no file and a one-line diagnosis
+    import resource
+
+    args, out, js, truth = _third_command(name, kind, tmp_path)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    proc = _run(args, tmp_path)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    fails, row = _acceptance(proc, out, js, truth, mode_expected=truth["two_mass"])
+    row["cpu_s"] = round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1)
+    _record(f"third:{name}--{kind}", args, row, fails)
     assert not fails, f"{name} {kind}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
