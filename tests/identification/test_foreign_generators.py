@@ -813,9 +813,22 @@ def test_prsa_fit_acceptance_on_the_judges_cases(name, kind, tmp_path):
 # and the FRF excite it).
 THIRD_KINDS = ("logs", "logs-compliant", "frf", "frf-compliant")
 
-# Runs that violate the rule on main aca0656 at seed 0 (measured once each; the h13-gen3 report's
-# table): findings, not tolerances. strict: a fix makes them XPASS.
-THIRD_XFAIL = {}
+# Runs that violate the rule on main aca0656 at seed 0 (measured once each, one prsa-fit at a time,
+# CPU user+sys of prsa-fit; the h13-gen3 report's table): findings, not tolerances. strict: a fix
+# makes them XPASS and fails the run until the mark is removed. Truths: roller-39x10 total
+# inertia 4.31284e-3 kg m^2, current loop 1000 Hz, command delay 2 samples (logged as applied),
+# first axial mode 135.02 Hz at 10 rad/s, 4000 N, nut 0.60 m from the fixed bearing; the
+# coupling mode at 711 Hz is in the response too.
+THIRD_XFAIL = {
+    ("roller-39x10", "frf"): (
+        "exit 0, two-mass chosen, fit 60.5 %: total inertia 4.09834e-3 (-4.97 %; CI 3.87578..4.32090e-3 holds "
+        "the truth, but 3 % allowed), current loop 745.9 Hz (-25.4 %), drive.command_delay_samples 1 against 2 "
+        "(fitted drive.command_delay_s 0.281 ms, CI 0.239..0.323), mode 134.46 Hz (-0.4 %, within 5 %); 1.7 s CPU"),
+    ("roller-39x10", "frf-compliant"): (
+        "exit 0 with the truth outside the inertia's interval: total inertia 5.53141e-3 (+28.3 %; CI "
+        "4.44618..6.61664e-3), axis.moving_mass_kg 999 (truth 500), current loop 85.9 Hz (truth 1000), mode "
+        "117.14 Hz (-13.2 %), delay 2 exact, fit 50.8 %; 1.6 s CPU"),
+}
 
 
 def _third_command(name, kind, tmp_path):
@@ -864,5 +877,15 @@ def test_prsa_fit_acceptance_on_the_third_generator(name, kind, tmp_path):
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     fails, row = _acceptance(proc, out, js, truth, mode_expected=truth["two_mass"])
     row["cpu_s"] = round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1)
+    if os.environ.get("PRSA_FOREIGN_TABLE"):  # the report's table: what the run said beyond the rule's fields
+        row["stderr_tail"] = proc.stderr[-3000:]
+        row["stdout_tail"] = proc.stdout[-3000:]
+        if Path(js).exists():
+            rep = json.loads(Path(js).read_text())
+            row["json_status"] = rep.get("status")
+            row["json_inertia"] = rep.get("reflected_inertia_kg_m2")
+            row["json_command_delay"] = {k: v for k, v in (rep.get("solver", {}).get("command_delay") or {}).items()
+                                         if k in ("shift_samples", "drive_command_delay_samples", "decided", "how")}
+            row["json_modes"] = {k: rep.get(k) for k in ("frf_axial_mode_hz", "axial_mode_hz") if k in rep}
     _record(f"third:{name}--{kind}", args, row, fails)
     assert not fails, f"{name} {kind}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"

@@ -343,7 +343,7 @@ def _ramp_steps(t, times, levels, ramp_s):
 
 
 def _multisine(t, f_lo, f_hi, n_lines, rms, rng_phase):
-    """Schroeder-free random-phase multisine on log-spaced lines, scaled to ``rms``."""
+    """Random-phase multisine on log-spaced lines (0.1 Hz grid), scaled to ``rms``."""
     f = np.unique(np.round(np.geomspace(f_lo, f_hi, n_lines), 1))
     ph = rng_phase.uniform(0.0, TWO_PI, len(f))
     x = np.sin(TWO_PI * f[:, None] * t[None, :] + ph[:, None]).sum(axis=0)
@@ -446,8 +446,8 @@ def linearised_modes_hz(c: Case, w: float, f_load: float, x_m: float, eps: float
         yp[i] += sc
         ym[i] -= sc
         jac[:, i] = (np.array(_rhs(c, cst, yp, cmd, f_load, 0.0)) - np.array(_rhs(c, cst, ym, cmd, f_load, 0.0))) / (2 * sc)
-    # the angles are not absolute states of the dynamics: replace (th_m, th_s, q) by the two
-    # spring deflections; eigenvalues of the full Jacobian hold the same oscillatory pairs
+    # the rigid-body angle gives a zero eigenvalue and the current loop a real one: the
+    # oscillatory pairs (positive imaginary part) are the two modes
     ev = np.linalg.eigvals(jac)
     osc = ev[ev.imag > 1.0]
     order = np.argsort(np.abs(osc))
