@@ -819,6 +819,17 @@ THIRD_KINDS = ("logs", "logs-compliant", "frf", "frf-compliant")
 # inertia 4.31284e-3 kg m^2, current loop 1000 Hz, command delay 2 samples (logged as applied),
 # first axial mode 135.02 Hz at 10 rad/s, 4000 N, nut 0.60 m from the fixed bearing; the
 # coupling mode at 711 Hz is in the response too.
+# Accepted on aca0656 (exit 3, no file), by the rule's words only: ball-40x16 frf and frf-compliant
+# end "rigid FRF fit did not converge ... 4000 evaluations; remedy: check the response's units"
+# (a solver failure; the units are right); ball-40x16 logs end "second mass: 86 % of the replay
+# residual of loadsteps.csv within 15 % of 23.44 Hz" (the 6-per-rev cogging at 25 rad/s is 23.9 Hz;
+# the axial mode is 118 Hz), 53 s CPU; roller-39x10 logs "second mass ... 144 Hz" (right), 86 s.
+# Not measured: both logs-compliant runs, stopped at 20 min of wall time (load ~14, ~5 min CPU).
+# Diagnostics (h13-gen3, not marks): with the coupling 100x stiffer (its mode above Nyquist) both
+# FRFs pass the rule (ball -0.73 %, CI holds the truth, 797 Hz, delay 1, mode 118.28 vs 118.35 Hz;
+# roller -0.79 %, 1001 Hz, delay 2, mode 135.85 vs 135.88 Hz): the second, higher mode is what
+# breaks the FRF path. Without cogging the ball logs end exit 3 "second mass ... 121.1 Hz" (right)
+# in 9.5 s CPU, the free fit's inertia +0.23 % with the truth inside its interval.
 THIRD_XFAIL = {
     ("roller-39x10", "frf"): (
         "exit 0, two-mass chosen, fit 60.5 %: total inertia 4.09834e-3 (-4.97 %; CI 3.87578..4.32090e-3 holds "
