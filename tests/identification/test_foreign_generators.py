@@ -33,6 +33,7 @@ from foreign import gen_ballscrew as bs
 from foreign import gen_feedaxis_load as fa
 from foreign import gen_judge as gj
 from foreign import gen_rollerscrew as rs
+from foreign import gen_third as g3
 
 # ---------------------------------------------------------------------------------------------
 # (a) the generators
@@ -799,4 +800,103 @@ def test_prsa_fit_acceptance_on_the_judges_cases(name, kind, tmp_path):
     proc = _run(args, tmp_path)
     fails, row = _acceptance(proc, out, js, truth, mode_expected=truth["two_mass"])
     _record(f"judge:{name}--{kind}", args, row, fails)
+    assert not fails, f"{name} {kind}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
+
+
+# ------------------------------------------------------------------------------------------------
+# The third generator (foreign/gen_third.py, h13-gen3): three bodies (rotor, coupling, screw,
+# carriage), the axial stiffness moving with the nut along a screw held at the motor end, cogging,
+# the power-screw law of the nut loss, a discrete PI speed loop. Its kinds: the three logs rigid
+# (logs) and --fidelity compliant (logs-compliant, the mode reported at the FRF's point), the FRF
+# with the structure the data choose (frf) and --fidelity compliant (frf-compliant). The rule is
+# _acceptance, the judge's. Every case's data hold the first axial mode (the logs' torque dither
+# and the FRF excite it).
+THIRD_KINDS = ("logs", "logs-compliant", "frf", "frf-compliant")
+
+# Runs that violate the rule on main aca0656 at seed 0 (measured once each, one prsa-fit at a time,
+# CPU user+sys of prsa-fit; the h13-gen3 report's table): findings, not tolerances. strict: a fix
+# makes them XPASS and fails the run until the mark is removed. Truths: roller-39x10 total
+# inertia 4.31284e-3 kg m^2, current loop 1000 Hz, command delay 2 samples (logged as applied),
+# first axial mode 135.02 Hz at 10 rad/s, 4000 N, nut 0.60 m from the fixed bearing; the
+# coupling mode at 711 Hz is in the response too.
+# Accepted on aca0656 (exit 3, no file), by the rule's words only: ball-40x16 frf and frf-compliant
+# end "rigid FRF fit did not converge ... 4000 evaluations; remedy: check the response's units"
+# (a solver failure; the units are right); ball-40x16 logs end "second mass: 86 % of the replay
+# residual of loadsteps.csv within 15 % of 23.44 Hz" (the 6-per-rev cogging at 25 rad/s is 23.9 Hz;
+# the axial mode is 118 Hz), 53 s CPU; roller-39x10 logs "second mass ... 144 Hz" (right), 86 s.
+# Not measured: both logs-compliant runs, stopped at 20 min of wall time (load ~14, ~5 min CPU).
+# Diagnostics (h13-gen3, not marks): with the coupling 100x stiffer (its mode above Nyquist) both
+# FRFs pass the rule (ball -0.73 %, CI holds the truth, 797 Hz, delay 1, mode 118.28 vs 118.35 Hz;
+# roller -0.79 %, 1001 Hz, delay 2, mode 135.85 vs 135.88 Hz): the second, higher mode is what
+# breaks the FRF path. Without cogging the ball logs end exit 3 "second mass ... 121.1 Hz" (right)
+# in 9.5 s CPU, the free fit's inertia +0.23 % with the truth inside its interval.
+THIRD_XFAIL = {
+    ("roller-39x10", "frf"): (
+        "exit 0, two-mass chosen, fit 60.5 %: total inertia 4.09834e-3 (-4.97 %; CI 3.87578..4.32090e-3 holds "
+        "the truth, but 3 % allowed), current loop 745.9 Hz (-25.4 %), drive.command_delay_samples 1 against 2 "
+        "(fitted drive.command_delay_s 0.281 ms, CI 0.239..0.323), mode 134.46 Hz (-0.4 %, within 5 %); 1.7 s CPU"),
+    ("roller-39x10", "frf-compliant"): (
+        "exit 0 with the truth outside the inertia's interval: total inertia 5.53141e-3 (+28.3 %; CI "
+        "4.44618..6.61664e-3), axis.moving_mass_kg 999 (truth 500), current loop 85.9 Hz (truth 1000), mode "
+        "117.14 Hz (-13.2 %), delay 2 exact, fit 50.8 %; 1.6 s CPU"),
+}
+
+
+def _third_command(name, kind, tmp_path):
+    """prsa-fit arguments of one gen_third run, on data of seed $PRSA_FOREIGN_SEED (default 0)."""
+    seed = int(os.environ.get("PRSA_FOREIGN_SEED", "0"))
+    logs_kind = kind.startswith("logs")
+    s = g3.generate(tmp_path / "data", name, seed=seed, experiments=g3.EXPERIMENTS if logs_kind else (),
+                    frf=not logs_kind)
+    t = s["truth"]
+    out, js = tmp_path / "fitted.toml", tmp_path / "report.json"
+    if logs_kind:
+        logs = [s["logs"][n] for n in g3.EXPERIMENTS]
+        how = ["--log-format", s["log_format"]] if s["log_format"] else ["--command-logged", t["command_logged"]]
+        args = [*logs, *how, "--plant", s["base"], "--out", out, "--json", js]
+        if kind == "logs-compliant":
+            args += ["--fidelity", "compliant", "--frf-speed", t["frf_speed_rad_s"], "--frf-load", t["frf_load_n"]]
+    else:
+        args = ["--frf", s["frf"], "--frf-speed", t["frf_speed_rad_s"], "--frf-load", t["frf_load_n"],
+                "--command-logged", t["command_logged"], "--plant", s["base"], "--out", out, "--json", js]
+        if kind == "frf-compliant":
+            args += ["--fidelity", "compliant"]
+    return args, out, js, t
+
+
+def _third_params():
+    seed0 = os.environ.get("PRSA_FOREIGN_SEED", "0") == "0"
+    for name in g3.CASES:
+        for kind in THIRD_KINDS:
+            reason = THIRD_XFAIL.get((name, kind)) if seed0 else None
+            marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+            yield pytest.param(name, kind, marks=marks, id=f"{name}--{kind}")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(PRSA_FIT is None, reason="the prsa-fit console script is not installed")
+@pytest.mark.parametrize("name,kind", list(_third_params()))
+def test_prsa_fit_acceptance_on_the_third_generator(name, kind, tmp_path):
+    # the judge's rule (_acceptance) on gen_third's data: exit 0 with the total inertia within
+    # 3 % and the truth inside its 95 % interval, the delay exact, the current loop within 25 %,
+    # the first axial mode within 5 %; or exit 3 with no file and a one-line diagnosis
+    import resource
+
+    args, out, js, truth = _third_command(name, kind, tmp_path)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    proc = _run(args, tmp_path)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    fails, row = _acceptance(proc, out, js, truth, mode_expected=truth["two_mass"])
+    row["cpu_s"] = round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1)
+    if os.environ.get("PRSA_FOREIGN_TABLE"):  # the report's table: what the run said beyond the rule's fields
+        row["stderr_tail"] = proc.stderr[-3000:]
+        row["stdout_tail"] = proc.stdout[-3000:]
+        if Path(js).exists():
+            rep = json.loads(Path(js).read_text())
+            row["json_status"] = rep.get("status")
+            row["json_inertia"] = rep.get("reflected_inertia_kg_m2")
+            row["json_command_delay"] = {k: v for k, v in (rep.get("solver", {}).get("command_delay") or {}).items()
+                                         if k in ("shift_samples", "drive_command_delay_samples", "decided", "how")}
+            row["json_modes"] = {k: rep.get(k) for k in ("frf_axial_mode_hz", "axial_mode_hz") if k in rep}
+    _record(f"third:{name}--{kind}", args, row, fails)
     assert not fails, f"{name} {kind}: " + "; ".join(fails) + f"\nstderr: {proc.stderr.strip()[-600:]}"
