@@ -3,6 +3,8 @@ one line naming the file and the key, column or variable, exit 2, and nothing is
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import tomllib
@@ -790,19 +792,43 @@ def test_a_torque_in_percent_of_rated_is_converted_with_its_gain(tmp_path):
         load_log_format(tmp_path / "nogain.toml")
 
 
+@pytest.fixture(scope="module")
+def coordinate_fits(tmp_path_factory):
+    """``get(name) -> (folder, base, lead a, {which: (exit code, printed text)})``: prsa-fit on the
+    motor- and the load-coordinate log of one 0.6 s run of the plant ``name`` (the logs, fits and
+    JSON in the folder), each made once per module. test_fits_in_both_coordinates_agree asserts
+    their agreement; test_plain_csv_and_rotary_description_give_the_same_fit compares the ball
+    screw's motor fit with the plain CSV's (each test ran that motor fit itself)."""
+    made: dict = {}
+
+    def get(name):
+        if name not in made:
+            d = tmp_path_factory.mktemp(f"coordinates-{name}")
+            base, _, a = _write_logs(d, name, duration_s=0.6)
+            runs = {}
+            for which in ("motor", "load"):
+                buf = io.StringIO()
+                with contextlib.redirect_stdout(buf):
+                    code = main([str(d / f"{which}.csv"), "--log-format", str(d / f"{which}.toml"), "--plant", name,
+                                 "--out", str(d / f"{which}-fit.toml"), "--json", str(d / f"{which}.json")])
+                runs[which] = (code, buf.getvalue())
+            made[name] = (d, base, a, runs)
+        return made[name]
+
+    return get
+
+
 @pytest.mark.parametrize("name", ["ballscrew-32x10", "rollerscrew-30x5"])
-def test_fits_in_both_coordinates_agree(tmp_path, capsys, name):
+def test_fits_in_both_coordinates_agree(coordinate_fits, name):
     """prsa-fit on the motor- and the load-coordinate log of one run: the same fitted values and
     intervals to 1e-10 (the logs differ by the round-off of deg/mm and the lead, ~1e-16 relative;
     measured: 4e-14 for the ball screw), the same delay, the coordinates said in the output and
     the JSON, and the written plant loads as the same mechanism. The agreement does not depend on
     the log's length: 0.6 s of the run, as the plain-CSV test below (was 1 s)."""
-    base, _, a = _write_logs(tmp_path, name, duration_s=0.6)
+    tmp_path, base, a, runs = coordinate_fits(name)
     out = {}
     for which in ("motor", "load"):
-        code = main([str(tmp_path / f"{which}.csv"), "--log-format", str(tmp_path / f"{which}.toml"), "--plant", name,
-                     "--out", str(tmp_path / f"{which}-fit.toml"), "--json", str(tmp_path / f"{which}.json")])
-        text = capsys.readouterr().out
+        code, text = runs[which]
         assert code == 0, text
         assert "coordinates: motor (angle rad, torque N m)" in text
         out[which] = (json.loads((tmp_path / f"{which}.json").read_text()), text)
@@ -826,21 +852,22 @@ def test_fits_in_both_coordinates_agree(tmp_path, capsys, name):
         assert "mechanism" in tomllib.loads((tmp_path / f"{which}-fit.toml").read_text())
 
 
-def test_plain_csv_and_rotary_description_give_the_same_fit(tmp_path, capsys):
+def test_plain_csv_and_rotary_description_give_the_same_fit(coordinate_fits, tmp_path, capsys):
     """The rotary description only renames and converts units: the standard-column CSV of the
-    same data fits to the same numbers (and its output states the coordinates too)."""
-    base, rec, _ = _write_logs(tmp_path, "ballscrew-32x10", duration_s=0.6)
+    same data fits to the same numbers (and its output states the coordinates too). The rotary
+    fit is the module's ball-screw motor-coordinate fit (coordinate_fits)."""
+    logs, _, _, runs = coordinate_fits("ballscrew-32x10")
     std = tmp_path / "std.csv"
-    raw = np.loadtxt(tmp_path / "motor.csv", delimiter=",", skiprows=1)
+    raw = np.loadtxt(logs / "motor.csv", delimiter=",", skiprows=1)
     np.savetxt(std, np.column_stack([raw[:, 0] * 1e-3, np.radians(raw[:, 1]), raw[:, 2], raw[:, 3]]), delimiter=",",
                header="time_s,nut_angle_rad,torque_command_n_m,axial_load_n", comments="", fmt="%.17g")
     assert main([str(std), "--plant", "ballscrew-32x10", "--out", str(tmp_path / "a.toml"), "--json",
                  str(tmp_path / "a.json")]) == 0
     ta = capsys.readouterr().out
-    assert main([str(tmp_path / "motor.csv"), "--log-format", str(tmp_path / "motor.toml"), "--plant",
-                 "ballscrew-32x10", "--out", str(tmp_path / "b.toml"), "--json", str(tmp_path / "b.json")]) == 0
+    code, text = runs["motor"]
+    assert code == 0, text
     assert "coordinates: motor (angle rad, torque N m)" in ta
-    ja, jb = (json.loads((tmp_path / f"{x}.json").read_text()) for x in "ab")
+    ja, jb = json.loads((tmp_path / "a.json").read_text()), json.loads((logs / "motor.json").read_text())
     for k in ja["parameters"]:
         assert jb["parameters"][k]["value"] == pytest.approx(ja["parameters"][k]["value"], rel=1e-10), k
 

