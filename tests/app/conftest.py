@@ -1,5 +1,5 @@
 """The browser tests' server and browser: ``python -m prsa_ctrl.app.cli --no-browser`` started
-once per module (``app_url``), Debian's Chromium driven by Playwright once per module
+once per session (``app_url``), Debian's Chromium driven by Playwright once per module
 (``browser``), and a fresh page per test (``app_page``: of the served app; ``open_page``: of any
 URL). Without Chromium or Playwright the browser tests skip with one line, except under
 ``CI=true`` where they fail.
@@ -44,10 +44,13 @@ def need_browser():
     return sync_playwright, exe
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def app_url(tmp_path_factory):
     """The URL of ``prsa-app`` served by its command (a subprocess, free port, printed), started
-    once for the module's page tests; its log is read on failure only."""
+    once for the page tests of every module (of a pytest-xdist worker): each page is a session of
+    its own (a browser context of its own, closed after its test), so the modules share nothing
+    but the server process, its start and its imports (it was started once per module, four
+    times); its log is read on failure only."""
     log = open(tmp_path_factory.mktemp("app") / "server.log", "w+")
     proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.app.cli", "--no-browser"], stdout=subprocess.PIPE,
                             stderr=log, text=True, cwd=str(tmp_path_factory.getbasetemp()))
