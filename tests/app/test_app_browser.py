@@ -147,8 +147,8 @@ def test_bad_plant_upload_shows_the_clis_one_line(app_page, tmp_path, monkeypatc
     _shot(page, "app-bad-upload.png")
 
 
-def test_export_downloads_load_with_the_toolkits_readers(app_page):
-    page = app_page
+def test_export_downloads_load_with_the_toolkits_readers(shared_app_page):
+    page = shared_app_page
     from prsa_ctrl.io.export import dumps, export_controller
 
     r = _tuned(1.4)
@@ -165,8 +165,8 @@ def test_export_downloads_load_with_the_toolkits_readers(app_page):
     assert report["design"]["margins"]["ms"] == pytest.approx(r.ms, rel=1e-12)
 
 
-def test_copy_as_code_runs_to_the_shown_gains(app_page):
-    page = app_page
+def test_copy_as_code_runs_to_the_shown_gains(shared_app_page):
+    page = shared_app_page
     code = _text(page, "code-py")
     cli = _text(page, "code-cli")
     assert cli.startswith("prsa-tune --plant paper-iprsm --scene paper-load-step --load-step 500:1500")
@@ -333,10 +333,10 @@ def _browser_source(pg, name):
                        " return o; }", name)
 
 
-def test_bode_axes_in_hz_with_rad_s_on_request(app_page):
+def test_bode_axes_in_hz_with_rad_s_on_request(shared_app_page):
     """Issue 33: the optimum's Bode data in the browser are drawn against Hz (w / 2 pi of the
     rad/s the page computed), and against rad/s after one click."""
-    page = app_page
+    page = shared_app_page
     d = _browser_source(page, "prsa-freq-opt")
     w, f = np.asarray(d["w"], float), np.asarray(d["f"], float)
     assert w.size > 10
