@@ -115,6 +115,16 @@ def open_page(browser):
         ctx.close()
 
 
+@pytest.fixture(scope="module")
+def module_open_page(browser):
+    """``open_page`` whose pages stay open for the module (a page shared by several of its tests,
+    made by a module-scoped fixture of the test file: e.g. test_app_calibration's ``fitted_page``)."""
+    open_, made = _page_opener(browser)
+    yield open_
+    for ctx in made:
+        ctx.close()
+
+
 @pytest.fixture
 def fresh_open_page():
     """``open_page`` in a browser of the test's own (test_gate: its pages' sessions are counted
