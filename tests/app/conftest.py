@@ -140,11 +140,11 @@ def fresh_open_page():
 def shared_app_page(browser, app_url):
     """One page of the served app for the module's hostile-input tests (a refused select value or
     upload: each waits for its own one-line error by its text, and none changes the plant or
-    the design) and for the tests that read the page's first design as it is (its copied code,
-    its downloads, its Bode data: the Bode unit, which that test switches to rad/s after reading
-    it in Hz, is read by no other test). A page costs about 4.3 s of CPU (Chromium 2.9 s, the
-    server 1.4 s; 4 pages measured at load 26), most of test_app_browser's; ten such tests had a
-    page each. (The
+    the design; a refused plant upload among them) and for the tests that read the page's first
+    design as it is (its copied code, its downloads, its Bode data: the Bode unit, which that test
+    switches to rad/s after reading it in Hz, is read by no other test). A page costs about 4.3 s
+    of CPU (Chromium 2.9 s, the server 1.4 s; 4 pages measured at load 26), most of
+    test_app_browser's; eleven such tests had a page each. (The
     upload above the limit keeps a page of its own: its page must still read a later upload, and
     a refused 25 MB file never reaches the server, so an earlier test's identical upload would
     look unchanged to it.)"""

@@ -126,8 +126,8 @@ def test_verification_overlays_the_prediction_with_health(app_page):
     _shot(page, "app-verified.png")
 
 
-def test_bad_plant_upload_shows_the_clis_one_line(app_page, tmp_path, monkeypatch, capsys):
-    page = app_page
+def test_bad_plant_upload_shows_the_clis_one_line(shared_app_page, tmp_path, monkeypatch, capsys):
+    page = shared_app_page
     from prsa_ctrl.cli.tune import main as tune_main
 
     from prsa_ctrl.plant.plantfile import plant_file_path
@@ -142,8 +142,9 @@ def test_bad_plant_upload_shows_the_clis_one_line(app_page, tmp_path, monkeypatc
     assert cli_line.startswith("prsa-tune: error: my-actuator.toml")
     page.locator(".prsa-plant-upload input[type=file]").set_input_files(
         files=[{"name": "my-actuator.toml", "mimeType": "application/toml", "buffer": bad.encode()}])
-    page.locator('[data-k="error"]').wait_for()
-    assert _text(page, "error") == cli_line.removeprefix("prsa-tune: ")
+    line = cli_line.removeprefix("prsa-tune: ")
+    page.locator('[data-k="error"]', has_text=line).wait_for()  # (the shared page: this upload's line)
+    assert _text(page, "error") == line
     _shot(page, "app-bad-upload.png")
 
 
