@@ -1,5 +1,5 @@
 """The browser tests' server and browser: ``python -m prsa_ctrl.app.cli --no-browser`` started
-once per module (``app_url``), Debian's Chromium driven by Playwright once per module
+once per session (``app_url``), Debian's Chromium driven by Playwright once per module
 (``browser``), and a fresh page per test (``app_page``: of the served app; ``open_page``: of any
 URL). Without Chromium or Playwright the browser tests skip with one line, except under
 ``CI=true`` where they fail.
@@ -44,10 +44,13 @@ def need_browser():
     return sync_playwright, exe
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def app_url(tmp_path_factory):
     """The URL of ``prsa-app`` served by its command (a subprocess, free port, printed), started
-    once for the module's page tests; its log is read on failure only."""
+    once for the page tests of every module (of a pytest-xdist worker): each page is a session of
+    its own (a browser context of its own, closed after its test), so the modules share nothing
+    but the server process, its start and its imports (it was started once per module, four
+    times); its log is read on failure only."""
     log = open(tmp_path_factory.mktemp("app") / "server.log", "w+")
     proc = subprocess.Popen([sys.executable, "-m", "prsa_ctrl.app.cli", "--no-browser"], stdout=subprocess.PIPE,
                             stderr=log, text=True, cwd=str(tmp_path_factory.getbasetemp()))
@@ -112,6 +115,16 @@ def open_page(browser):
         ctx.close()
 
 
+@pytest.fixture(scope="module")
+def module_open_page(browser):
+    """``open_page`` whose pages stay open for the module (a page shared by several of its tests,
+    made by a module-scoped fixture of the test file: e.g. test_app_calibration's ``fitted_page``)."""
+    open_, made = _page_opener(browser)
+    yield open_
+    for ctx in made:
+        ctx.close()
+
+
 @pytest.fixture
 def fresh_open_page():
     """``open_page`` in a browser of the test's own (test_gate: its pages' sessions are counted
@@ -127,13 +140,16 @@ def fresh_open_page():
 def shared_app_page(browser, app_url):
     """One page of the served app for the module's hostile-input tests (a refused select value or
     upload: each waits for its own one-line error by its text, and none changes the plant or
-    the design). A page costs about 4.3 s of CPU (Chromium 2.9 s, the server 1.4 s; 4 pages
-    measured at load 26), most of test_app_browser's; seven such tests had a page each. (The
+    the design; a refused plant upload among them) and for the tests that read the page's first
+    design as it is (its copied code, its downloads, its Bode data: the Bode unit, which that test
+    switches to rad/s after reading it in Hz, is read by no other test). A page costs about 4.3 s
+    of CPU (Chromium 2.9 s, the server 1.4 s; 4 pages measured at load 26), most of
+    test_app_browser's; eleven such tests had a page each. (The
     upload above the limit keeps a page of its own: its page must still read a later upload, and
     a refused 25 MB file never reaches the server, so an earlier test's identical upload would
     look unchanged to it.)"""
     open_, made = _page_opener(browser)
-    _, pg = open_(app_url)
+    _, pg = open_(app_url, accept_downloads=True)
     pg.locator('[data-k="opt-ms"]').wait_for()
     pg.locator('[data-k="status"]').wait_for()
     yield pg

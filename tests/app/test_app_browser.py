@@ -126,8 +126,8 @@ def test_verification_overlays_the_prediction_with_health(app_page):
     _shot(page, "app-verified.png")
 
 
-def test_bad_plant_upload_shows_the_clis_one_line(app_page, tmp_path, monkeypatch, capsys):
-    page = app_page
+def test_bad_plant_upload_shows_the_clis_one_line(shared_app_page, tmp_path, monkeypatch, capsys):
+    page = shared_app_page
     from prsa_ctrl.cli.tune import main as tune_main
 
     from prsa_ctrl.plant.plantfile import plant_file_path
@@ -142,13 +142,14 @@ def test_bad_plant_upload_shows_the_clis_one_line(app_page, tmp_path, monkeypatc
     assert cli_line.startswith("prsa-tune: error: my-actuator.toml")
     page.locator(".prsa-plant-upload input[type=file]").set_input_files(
         files=[{"name": "my-actuator.toml", "mimeType": "application/toml", "buffer": bad.encode()}])
-    page.locator('[data-k="error"]').wait_for()
-    assert _text(page, "error") == cli_line.removeprefix("prsa-tune: ")
+    line = cli_line.removeprefix("prsa-tune: ")
+    page.locator('[data-k="error"]', has_text=line).wait_for()  # (the shared page: this upload's line)
+    assert _text(page, "error") == line
     _shot(page, "app-bad-upload.png")
 
 
-def test_export_downloads_load_with_the_toolkits_readers(app_page):
-    page = app_page
+def test_export_downloads_load_with_the_toolkits_readers(shared_app_page):
+    page = shared_app_page
     from prsa_ctrl.io.export import dumps, export_controller
 
     r = _tuned(1.4)
@@ -165,8 +166,8 @@ def test_export_downloads_load_with_the_toolkits_readers(app_page):
     assert report["design"]["margins"]["ms"] == pytest.approx(r.ms, rel=1e-12)
 
 
-def test_copy_as_code_runs_to_the_shown_gains(app_page):
-    page = app_page
+def test_copy_as_code_runs_to_the_shown_gains(shared_app_page):
+    page = shared_app_page
     code = _text(page, "code-py")
     cli = _text(page, "code-cli")
     assert cli.startswith("prsa-tune --plant paper-iprsm --scene paper-load-step --load-step 500:1500")
@@ -333,10 +334,10 @@ def _browser_source(pg, name):
                        " return o; }", name)
 
 
-def test_bode_axes_in_hz_with_rad_s_on_request(app_page):
+def test_bode_axes_in_hz_with_rad_s_on_request(shared_app_page):
     """Issue 33: the optimum's Bode data in the browser are drawn against Hz (w / 2 pi of the
     rad/s the page computed), and against rad/s after one click."""
-    page = app_page
+    page = shared_app_page
     d = _browser_source(page, "prsa-freq-opt")
     w, f = np.asarray(d["w"], float), np.asarray(d["f"], float)
     assert w.size > 10

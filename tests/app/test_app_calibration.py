@@ -71,6 +71,22 @@ def resonant_log(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def fitted_page(module_open_page, app_url, log):
+    """One page of the served app with the module's log uploaded in the calibration tab and its
+    fit done (running, then done), nothing used yet: shared by the test of the fit's values and
+    its use and the test of its views, which made the same upload and the same fit on a page
+    each. The views are read in either order (the use changes neither them nor their data)."""
+    _, page = module_open_page(app_url, accept_downloads=True)
+    page.locator('[data-k="opt-ms"]').wait_for()
+    page.locator('[data-k="status"]').wait_for()
+    page.get_by_text(CAL_TAB).click()
+    page.locator(".prsa-log-upload input[type=file]").set_input_files(str(log[0]))
+    page.locator("[data-k='fit-state'][data-state='running']").wait_for()
+    page.locator("[data-k='fit-state'][data-state='done']").wait_for()
+    return page
+
+
 def _views_of(res, path):
     """What the tab must show: :func:`prsa_ctrl.plots.fit.fit_views` of the test's own fit."""
     from prsa_ctrl.identification.data import load_record
@@ -106,15 +122,12 @@ def _cli_line(tmp_path, monkeypatch, capsys, name: str, text: str) -> str:
     return line
 
 
-def test_uploaded_log_fits_and_the_fitted_plant_is_tuned_on_confirmation(app_page, log):
-    page = app_page
+def test_uploaded_log_fits_and_the_fitted_plant_is_tuned_on_confirmation(fitted_page, log):
+    page = fitted_page  # the log uploaded in the calibration tab, its fit done
     path, truth, res = log
     r0 = _tuned(1.4)
-    assert _text(page, "opt-kp") == f"{r0.pid.kp:.6g}"
     page.get_by_text(CAL_TAB).click()
-    page.locator(".prsa-log-upload input[type=file]").set_input_files(str(path))
-    page.locator("[data-k='fit-state'][data-state='running']").wait_for()
-    page.locator("[data-k='fit-state'][data-state='done']").wait_for()
+    assert page.locator("[data-k='fit-state']").get_attribute("data-state") == "done"
     assert page.locator("[data-k='fit-verdict']").get_attribute("data-verdict") == "validated"
     for key, v in res.parameters.items():
         assert _text(page, f"fit-{key}-value") == f"{v['value']:.6g}"
@@ -164,20 +177,18 @@ def _source(page, name):
     return data
 
 
-def test_calibration_tab_shows_the_replay_the_frf_in_hz_and_the_residuals(app_page, log):
+def test_calibration_tab_shows_the_replay_the_frf_in_hz_and_the_residuals(fitted_page, log):
     """After a fit the tab draws the replay of the written plant against the log, its residual,
     and the log's frequency response beside the written plant's (Hz), the data the browser holds
     being the fit's (fit_views of the test's own fit of the same file)."""
     import numpy as np
 
-    page = app_page
+    page = fitted_page  # the log uploaded in the calibration tab, its fit done
     path, truth, res = log
     want = _views_of(res, path)
     (name, rep), = want["replay"].items()
     (_, frf), = want["frf"].items()
     page.get_by_text(CAL_TAB).click()
-    page.locator(".prsa-log-upload input[type=file]").set_input_files(str(path))
-    page.locator("[data-k='fit-state'][data-state='done']").wait_for()
     for css in (".prsa-fit-replay", ".prsa-fit-residual", ".prsa-fit-frf-mag", ".prsa-fit-frf-phase",
                 ".prsa-fit-coherence"):
         page.locator(css).wait_for()  # visible

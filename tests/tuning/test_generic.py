@@ -900,11 +900,19 @@ def _pade6():
     return P0 * control.tf(num, den)
 
 
+@functools.lru_cache(maxsize=2)
+def _exact_delay_tuning(objective):
+    """``tune_pid(P0, objective=objective, delay=1.0, ms_max=1.4)`` (e^-s/(1 + s) with its exact
+    delay, at the default Ms bound), tuned once per objective for the tests that read it (a frozen
+    TuningResult): the IAE tuning was made three times, the IE tuning twice."""
+    return tune_pid(P0, objective=objective, delay=1.0, ms_max=1.4)
+
+
 @pytest.mark.parametrize("objective", ["ie", "iae"])
 def test_exact_delay_agrees_with_pade6_model(objective):
     """e^-s/(1 + s): the exact delay and the 6th-order Pade model agree within 1e-4 on Ms and ki
     (a 6th-order Pade's phase error is below 1e-9 rad up to 2 rad/s, where the design lives)."""
-    r = tune_pid(P0, objective=objective, delay=1.0)
+    r = _exact_delay_tuning(objective)  # the default Ms bound, 1.4, as the Pade model's below
     rp = tune_pid(_pade6(), objective=objective)
     assert r.status == "optimal"
     assert rp.status == "optimal"
@@ -913,7 +921,7 @@ def test_exact_delay_agrees_with_pade6_model(objective):
 
 
 def test_ie_optimum_matches_brute_force_with_exact_delay():
-    r = tune_pid(P0, objective="ie", delay=1.0, ms_max=1.4)
+    r = _exact_delay_tuning("ie")  # Ms <= 1.4
     kp, ki = ref.best_pi([1.0], [1.0, 1.0], 1.4, delay=1.0, kp_hi=2.0)
     assert r.pid.ki == pytest.approx(ki, rel=1e-4)
     pk = ref.peaks(ref.loop_parts([1.0], [1.0, 1.0], 1.0), ref.controller(r.pid.kp, r.pid.ki))
@@ -923,7 +931,7 @@ def test_ie_optimum_matches_brute_force_with_exact_delay():
 def test_reported_iae_is_that_of_the_exact_delay():
     """The reported IAE is the exact delayed loop's (method-of-steps reference to 1e-5), not the
     Pade stand-in's (which is 0.35 % higher at these gains)."""
-    r = tune_pid(P0, objective="iae", delay=1.0)
+    r = _exact_delay_tuning("iae")
     exact = ref.delayed_pi_iae(r.pid.kp, r.pid.ki, 1.0, 1.0, 80.0)
     assert r.objective == pytest.approx(exact, rel=2e-5)
     assert r.stats["objective_pade"] > r.objective * 1.001
@@ -931,7 +939,7 @@ def test_reported_iae_is_that_of_the_exact_delay():
 
 
 def test_margins_on_the_exact_delay():
-    r = tune_pid(P0, objective="iae", delay=1.0)
+    r = _exact_delay_tuning("iae")
     pm, gm = ref.margins_exact([1.0], [1.0, 1.0], r.pid.kp, r.pid.ki, 1.0)
     m = r.margins[0]
     assert m.pm_deg == pytest.approx(pm, abs=0.01)
@@ -1355,8 +1363,15 @@ def test_noise_gain_bound_limits_gains():
     assert res.pid.kp <= 0.3 * (1 + 1e-6)
 
 
+@functools.lru_cache(maxsize=1)
+def _mt_bounded_tuning():
+    """``tune_pid(1/(s+1)^3, objective="iae", ms_max=2.0, mt_max=1.1, n_steps=800)``, tuned once for
+    the two tests of its Mt bound (a frozen TuningResult; it was tuned in each)."""
+    return tune_pid(P3_TF, objective="iae", ms_max=2.0, mt_max=1.1, n_steps=800)
+
+
 def test_mt_bound_is_respected():
-    res = tune_pid(P3_TF, objective="iae", ms_max=2.0, mt_max=1.1, n_steps=800)
+    res = _mt_bounded_tuning()
     assert max(m.mt for m in res.margins) <= 1.1
 
 
@@ -1557,8 +1572,8 @@ def test_resonance_objective_is_the_objective_of_the_gains(resonant_ie):
 
 
 def test_mt_bound_is_the_true_mt():
-    p3 = 1 / (s + 1) ** 3
-    r = tune_pid(p3, objective="iae", ms_max=2.0, mt_max=1.1, n_steps=800)
+    p3 = 1 / (s + 1) ** 3  # P3_TF
+    r = _mt_bounded_tuning()
     ms_true, mt_true = true_peaks(p3, r.pid)
     assert mt_true <= 1.1 * (1 + 1e-9)
     assert mt_true >= 1.1 * (1 - 1e-3)
