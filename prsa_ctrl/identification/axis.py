@@ -621,6 +621,13 @@ class AxisFit:
     delay_costs: Mapping[int, float] = field(default_factory=dict)
     #: The least-squares solver's own verdict (``"converged"``: a fit that did not raises).
     solver_status: str = "converged"
+    #: The validation (:func:`prsa_ctrl.identification.axisvalidation.validate_axis`; empty: not validated).
+    validation: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def passes(self) -> bool:
+        """Whether the fit was validated and its plant explains the logs."""
+        return bool(self.validation.get("passes"))
 
     @property
     def ok(self) -> bool:
@@ -650,7 +657,8 @@ class AxisFit:
                 "equivalent": {k: dict(v) for k, v in self.equivalent.items()},
                 "inverse_dynamic_start": dict(self.start),
                 **self._covariance_report(),
-                "replay": [r.as_dict() for r in self.replays], "warnings": list(self.warnings)}
+                "replay": [r.as_dict() for r in self.replays],
+                **({"validation": dict(self.validation)} if self.validation else {}), "warnings": list(self.warnings)}
 
     report = as_dict  # its former name
 
@@ -767,7 +775,7 @@ def normal_entry(value: float, sigma: float, positive: bool, source: str) -> dic
 
 
 def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evaluations: int = 60,
-                    name: str = "fitted", check_delay: bool = True) -> AxisFit:
+                    name: str = "fitted", check_delay: bool = True, validate: bool = True) -> AxisFit:
     """Calibrate a linear axis on closed-loop logs.
 
     1. Inverse-dynamic least squares (:func:`idim_estimate`) gives the start.
@@ -798,6 +806,11 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     check_delay : bool
         Also fit with the command delay one sample shorter and longer than described and warn
         when one of them lowers the cost by more than :data:`DELAY_MARGIN`.
+    validate : bool
+        Validate the fitted plant on the logs
+        (:func:`prsa_ctrl.identification.axisvalidation.validate_axis`; with more than one log each
+        left out is replayed by the plant fitted on the others): ``validation["passes"]`` False and
+        the status flagged when it does not explain them.
 
     Returns
     -------
@@ -906,9 +919,24 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
                              description=f"{base.description}; {what}" if base.description else what,
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
+    validation = {}
+    if validate:
+        from .axisvalidation import validate_axis
+
+        def refit(others):
+            return fit_linear_axis(others, base, max_evaluations=max_evaluations, name=name, check_delay=False,
+                                   validate=False).plant
+        validation = validate_axis(fitted, logs, replays, replay_axis, METRIC_SKIP_SAMPLES, refit=refit)
+        if not validation["passes"]:
+            warnings.append(f"validation failed: {validation['reasons'][0]}" + (
+                f" (and {len(validation['reasons']) - 1} more)" if len(validation["reasons"]) > 1 else "")
+                + f"; most likely missing physics: {validation['diagnosis']}")
+    status = axis_fit_status(replays, at_bound)
+    if validation and not validation["passes"]:
+        status = ("flagged: " if status == "ok" else status + "; ") + f"validation failed: {validation['reasons'][0]}"
     return AxisFit(fitted, params, _equivalents(theta, cov, z), dict(zip(PARAMETERS, map(float, theta0))), replays,
-                   cov, L, axis_fit_status(replays, at_bound), int(sol.nfev), warnings, float(sol.cost), str(sol.message),
-                   delays)
+                   cov, L, status, int(sol.nfev), warnings, float(sol.cost), str(sol.message),
+                   delays, validation=validation)
 
 
 def axis_fit_status(replays: Sequence[AxisReplay], at_bound: Sequence[str]) -> str:
