@@ -87,7 +87,7 @@ __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant
            "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
            "idim_estimate", "start_estimate", "check_force_limit", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES",
-           "batch_covariance", "t95", "normal_entry"]
+           "score_covariance", "batch_covariance", "t95", "normal_entry"]
 
 MECHANISM = "linear-axis"
 _Z95 = 1.959963984540054
@@ -569,6 +569,33 @@ def idim_estimate(logs: Sequence[AxisLog], min_speed_fraction: float = 0.05) -> 
     return th, informed
 
 
+def score_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int) -> tuple[NDArray[np.float64], int]:
+    """Parameter covariance of a least-squares fit whose residuals are correlated in time.
+
+    Sandwich ``A^-1 Omega A^-1`` with ``A = J'J`` and ``Omega`` the long-run covariance of the
+    per-sample scores (``J' r`` summed over the channels; the residual rows are channel-major,
+    ``n_time`` rows per channel): VAR(1)-prewhitened Newey-West with a Bartlett kernel, recoloured
+    (:func:`prsa_ctrl.identification.covariance.hac_omega`, the screw path's). The closed-loop replay
+    residual of an axis is correlated over hundreds of samples (a position the stick band holds off
+    its reference for a whole rest: lag-1 autocorrelation 0.9998 on the tests' generators), which
+    the former batch means over 10 blocks of a 3000-sample log did not see: the friction intervals
+    missed the truth in 5-7 of 20 seeds (the standard deviation of the z-scores 2.0-4.8; with this
+    covariance 0.6-1.3, 0-2 of 20 outside; tests/identification/test_axiscompliant.py).
+
+    Returns
+    -------
+    (ndarray, int)
+        Covariance and the Newey-West bandwidth used (samples).
+    """
+    from .covariance import hac_omega
+
+    p = J.shape[1]
+    s = (np.asarray(J) * np.asarray(r)[:, None]).reshape(-1, n_time, p).sum(axis=0)  # per-time scores
+    omega, info = hac_omega(s, np.ones(n_time), [n_time])
+    Ainv = np.linalg.pinv(np.asarray(J).T @ np.asarray(J))
+    return Ainv @ omega @ Ainv, int(info["hac_bandwidth_samples"])
+
+
 #: Contiguous blocks of the batch-means covariance (:func:`batch_covariance`).
 COVARIANCE_BLOCKS = 10
 
@@ -581,6 +608,9 @@ def batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int
     piece's summed score is one draw, ``B = G/(G-1) sum_g S_g S_g'``. The residual rows are
     channel-major (``n_time`` rows per channel). Intervals then use Student's t with ``G - 1``
     degrees of freedom (:func:`t95`), since ``B`` rests on ``G`` draws only.
+
+    The two-mass fit's (:mod:`prsa_ctrl.identification.axiscompliant`); the rigid fit's is
+    :func:`score_covariance`.
 
     Returns
     -------
@@ -612,7 +642,7 @@ class AxisFit:
     start: Mapping[str, float]
     replays: Sequence[AxisReplay]
     covariance: NDArray[np.float64]
-    blocks: int
+    blocks: int  # the covariance's Newey-West bandwidth, samples (:func:`score_covariance`)
     status: str
     iterations: int
     warnings: Sequence[str]
@@ -650,9 +680,9 @@ class AxisFit:
                                         "lower is better"},
                 "method": "output error of the closed-loop replay from the reference (position and force, each "
                           "weighted by its residual RMS at the inverse-dynamic start), started from inverse-dynamic "
-                          "least squares; 95 % intervals from the sandwich covariance with a batch-means long-run "
-                          f"variance of the scores ({self.blocks} contiguous blocks, Student's t with "
-                          f"{self.blocks - 1} degrees of freedom: the residuals are correlated in time)",
+                          "least squares; 95 % intervals from the sandwich covariance with a prewhitened Newey-West "
+                          f"long-run variance of the scores (bandwidth {self.blocks} samples: the residuals are "
+                          "correlated in time), normal quantile",
                 "parameters": {k: dict(v) for k, v in self.parameters.items()},
                 "equivalent": {k: dict(v) for k, v in self.equivalent.items()},
                 "inverse_dynamic_start": dict(self.start),
@@ -674,7 +704,7 @@ class AxisFit:
         return {"covariance": {"keys": list(PARAMETERS), "units": [_UNITS[k] for k in PARAMETERS],
                                "matrix": cov.tolist(),
                                "note": "entry (i, j) in units[i] x units[j]; 95 % interval = value +- t x sqrt(diagonal) "
-                                       f"(Student's t with {self.blocks - 1} degrees of freedom)"},
+                                       "(normal quantile 1.96)"},
                 "correlation": {"keys": [PARAMETERS[j] for j in idx], "matrix": corr.tolist()}}
 
 
@@ -787,8 +817,8 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
        replayed open loop from the logged command. A two-mass base (``axis.load_mass_kg`` > 0, e.g.
        from ``prsa-fit --frf``) is replayed as the two-mass axis (:attr:`LinearAxisPlant.second_mass`),
        its load mass, stiffness and damping held at the base's values and ``M`` kept above the load mass.
-    3. 95 % intervals from the sandwich covariance with a batch-means long-run variance and
-       Student's t (:func:`batch_covariance`): the residuals of a real axis are correlated over many samples,
+    3. 95 % intervals from the sandwich covariance with a prewhitened Newey-West long-run variance
+       of the scores (:func:`score_covariance`): the residuals of a real axis are correlated over many samples,
        and intervals that treat them as white would be far too narrow.
 
     Parameters
@@ -876,8 +906,8 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     theta[free] = sol.x
     n_time = sum(lg.n - skip for lg in logs)
     # residual rows: [positions of all logs; forces of all logs] -> channel-major with n_time rows each
-    cov_free, L = batch_covariance(sol.jac, sol.fun, n_time)
-    z = t95(L - 1)
+    cov_free, L = score_covariance(sol.jac, sol.fun, n_time)
+    z = _Z95
     cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
     cov[np.ix_(free, free)] = cov_free
     at_bound = [PARAMETERS[j] for j, x in zip(free, sol.x) if x <= lb[list(free).index(j)] * (1 + 1e-9) + 1e-12]
@@ -892,7 +922,8 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
         v = float(theta[j])
         entry = {"value": v, "ci95": [v - z * sd, v + z * sd], "std": sd, "unit": _UNITS[k],
                  "start": float(theta0[j])}
-        if not informed[j]:
+        if not informed[j]:  # kept, not fitted: no interval (was a zero-width one)
+            entry.update(ci95=None, std=None, note="kept at the base value, not fitted: no interval")
             entry["kept_base"] = True
             sources[k] = base.sources[k]
         else:

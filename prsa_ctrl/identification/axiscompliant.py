@@ -408,7 +408,8 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
         v = float(p[j])
         lo, hi = v - z * sd, v + z * sd
         entry = {"value": v, "ci95": [lo, hi], "std": sd, "unit": _UNITS[k], "start": float(x0p[j])}
-        if j < 5 and not informed[j]:
+        if j < 5 and not informed[j]:  # held, not fitted: no interval (was a zero-width one that excluded the truth)
+            entry.update(ci95=None, std=None, note="held, not fitted: no interval")
             entry["kept_base"] = j not in mirrored
             sources[k] = (f"held at the start of {mirrored[j]} (inverse dynamics on {names}): the logs barely move "
                           "the axis in this direction" if j in mirrored else base.sources[k])

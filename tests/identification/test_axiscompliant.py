@@ -140,11 +140,20 @@ def _base(log):
 
 
 #: The two-mass keys: the truth inside their 95 % intervals. The friction keys are held to 5 % of the
-#: truth instead: their intervals under-cover on this generator (measured over 9 seeds at 2 N of
-#: disturbance: Fv-/Fc- outside in 5 of 9, the total mass in 1 of 9, the load mass, stiffness and
-#: damping in none; the two-log fit of seeds 4 and 12 has the damping outside, 0.0464..0.0496 against
-#: 0.05): its stick band at reversals is a 40-substep approximation the exact model does
-#: not share, and the friction terms absorb it.
+#: truth instead: their intervals under-cover on this generator. Measured over 21 single-log seeds
+#: (1-4, 6-10, 14-25; h13-axis, with the rigid fit's prewhitened Newey-West covariance,
+#: axis.score_covariance, in place of the batch means; the fit keeps the batch means: the Newey-West
+#: one left the friction z-scores where they were and narrowed the load mass's interval of
+#: test_the_second_mass_starts_from_a_measured_frf_when_the_logs_have_no_test_signal below the truth):
+#: 3 did not converge within 40 evaluations; in 4 the logs barely move the axis in -x and Fv-/Fc- are
+#: held at the +x start, which was reported with a zero-width "interval" (now none: held, not fitted);
+#: of the other 14, Fv- and Fc- are outside in 5 each, always Fv- high and Fc- low (z +2.0..+2.6 and
+#: -2.2..-4.3): a bias of the Coulomb/viscous split, not a covariance blind to correlation (the
+#: z-scores barely moved from the former batch means', seed 1 Fv- +2.05 -> +2.58); it has the same
+#: sign without the disturbance (seed 1, noise 0: Fv- +0.26 %, Fc- -0.16 %, z +3.4/-3.4), so the
+#: generator's 40-substep stick at reversals, which the exact model does not share, is part of it
+#: and the disturbance amplifies it (noise 2 N: +3.6 %, -1.8 %). The two-log fit of seeds 4 and 12
+#: has the damping outside, 0.0464..0.0496 against 0.05.
 TWO_MASS_KEYS = ("axis.mass_kg", "axis.load_mass_kg", "axis.load_stiffness_n_per_um", "axis.axial_damping_ratio")
 
 
