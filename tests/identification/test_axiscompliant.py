@@ -141,9 +141,9 @@ def _base(log):
 
 #: The two-mass keys: the truth inside their 95 % intervals. The friction keys are held to 5 % of the
 #: truth instead: their intervals under-cover on this generator. Measured over 21 single-log seeds
-#: (1-4, 6-10, 14-25; h13-axis, with the rigid fit's prewhitened Newey-West covariance,
-#: axis.score_covariance, in place of the batch means; the fit keeps the batch means: the Newey-West
-#: one left the friction z-scores where they were and narrowed the load mass's interval of
+#: (1-4, 6-10, 14-25; h13-axis, with a prewhitened Newey-West covariance in place of the batch means;
+#: the fit keeps the batch means: the Newey-West one left the friction z-scores where they were and
+#: narrowed the load mass's interval of
 #: test_the_second_mass_starts_from_a_measured_frf_when_the_logs_have_no_test_signal below the truth):
 #: 3 did not converge within 40 evaluations; in 4 the logs barely move the axis in -x and Fv-/Fc- are
 #: held at the +x start, which was reported with a zero-width "interval" (now none: held, not fitted);

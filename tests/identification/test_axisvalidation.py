@@ -212,8 +212,9 @@ def test_interval_coverage_over_20_seeds_with_an_unlogged_disturbance():
     key's truth inside in >= 18 of 20 seeds, mean z within 3 / sqrt(20) of 0 (the rule of
     test_axis.test_coverage_over_20_seeds). Measured with the former batch means over 10 blocks:
     inside per key 15/15/13/14/13, the z-scores' standard deviation 2.1-4.8 (a covariance blind to
-    the long correlation); with the prewhitened Newey-West covariance (axis.score_covariance):
-    18/19/20/19/19, mean z 0.16/0.19/0.41/-0.24/-0.47, sd z 1.33/0.72/0.64/0.83/0.79."""
+    the long correlation); Newey-West alone 18/19/20/19/19; the covariance that holds both
+    (axis.score_covariance) 19/20/20/20/20, mean z 0.13/0.19/0.41/-0.22/-0.47, sd z
+    1.27/0.72/0.64/0.79/0.78 (and on test_axis's 4 kHz exact generator 20/20/20/20/20)."""
     ins, zs = [], []
     for seed in range(1, 21):
         fit, inside, z = _fit_seed(seed)
