@@ -71,17 +71,15 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.signal import butter, filtfilt
 
-from .._lazy import module
 from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
 from ..tomlfile import read_toml
 from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry,
                                  inner_truncation)
+from .covariance import COVARIANCE_BLOCKS, batch_covariance, score_covariance, t95  # noqa: F401 - re-exported
 from .fituncertainty import outside_note
 from .logformat import AxisLog
-
-stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
 
 __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "axis_fit_status", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "COORDINATES",
@@ -569,75 +567,6 @@ def idim_estimate(logs: Sequence[AxisLog], min_speed_fraction: float = 0.05) -> 
     return th, informed
 
 
-def score_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int) -> tuple[NDArray[np.float64], int]:
-    """Parameter covariance of the linear-axis fit, whose residuals are correlated in time.
-
-    Two long-run variances of the per-sample scores (``J' r`` summed over the channels; the
-    residual rows are channel-major, ``n_time`` rows per channel) in the sandwich ``A^-1 Omega
-    A^-1`` (``A = J'J``): the batch means over :data:`COVARIANCE_BLOCKS` blocks
-    (:func:`batch_covariance`) and a VAR(1)-prewhitened Newey-West
-    (:func:`prsa_ctrl.identification.covariance.hac_omega`, the screw path's), each blind where the
-    other is not; the covariance is the smallest that holds both, ``C_nw + [C_batch - C_nw]_+``
-    (the positive part of the difference), and the intervals use Student's t with the blocks'
-    degrees of freedom (:func:`t95`). Measured over 20 seeds each (truth inside per key): logs with
-    a 2 N unlogged disturbance, whose replay residual a stick band holds for a whole rest (lag-1
-    autocorrelation 0.9998), batch means alone 15/15/13/14/13 (z-score sd 2.1-4.8), Newey-West alone
-    18/19/20/19/19; the 4 kHz exact generator of tests/identification/test_axis.py, batch means alone
-    20/19/18/19/18, Newey-West alone 20/18/17/18/17.
-
-    Returns
-    -------
-    (ndarray, int)
-        Covariance and the number of blocks (Student's t with one fewer degrees of freedom).
-    """
-    from .covariance import hac_omega
-
-    p = J.shape[1]
-    s = (np.asarray(J) * np.asarray(r)[:, None]).reshape(-1, n_time, p).sum(axis=0)  # per-time scores
-    omega, _ = hac_omega(s, np.ones(n_time), [n_time])
-    Ainv = np.linalg.pinv(np.asarray(J).T @ np.asarray(J))
-    c_nw = Ainv @ omega @ Ainv
-    c_batch, g = batch_covariance(J, r, n_time)
-    w, v = np.linalg.eigh(0.5 * ((c_batch - c_nw) + (c_batch - c_nw).T))
-    return c_nw + (v * np.clip(w, 0.0, None)) @ v.T, g
-
-
-#: Contiguous blocks of the batch-means covariance (:func:`batch_covariance`).
-COVARIANCE_BLOCKS = 10
-
-
-def batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int, blocks: int = COVARIANCE_BLOCKS):
-    """Parameter covariance of a least-squares fit whose residuals are correlated in time.
-
-    Sandwich ``A^-1 B A^-1`` with ``A = J'J`` and ``B`` the batch-means (cluster) long-run
-    variance of the scores ``J' r``: the record is cut into ``blocks`` contiguous pieces, each
-    piece's summed score is one draw, ``B = G/(G-1) sum_g S_g S_g'``. The residual rows are
-    channel-major (``n_time`` rows per channel). Intervals then use Student's t with ``G - 1``
-    degrees of freedom (:func:`t95`), since ``B`` rests on ``G`` draws only.
-
-    The two-mass fit's (:mod:`prsa_ctrl.identification.axiscompliant`); the rigid fit's is
-    :func:`score_covariance`.
-
-    Returns
-    -------
-    (ndarray, int)
-        Covariance and the number of blocks used.
-    """
-    p = J.shape[1]
-    s = (J * r[:, None]).reshape(-1, n_time, p).sum(axis=0)  # per-time scores, summed over channels
-    g = int(min(blocks, max(2, n_time // 50)))
-    edges = np.linspace(0, n_time, g + 1).astype(int)
-    S = np.array([s[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
-    B = g / (g - 1.0) * (S.T @ S)
-    Ainv = np.linalg.pinv(J.T @ J)
-    return Ainv @ B @ Ainv, g
-
-
-def t95(dof: int) -> float:
-    """Two-sided 95 % quantile of Student's t with ``dof`` degrees of freedom."""
-    return float(stats.t.ppf(0.975, dof))
-
-
 @dataclass(frozen=True)
 class AxisFit:
     """Result of :func:`fit_linear_axis`."""
@@ -648,7 +577,7 @@ class AxisFit:
     start: Mapping[str, float]
     replays: Sequence[AxisReplay]
     covariance: NDArray[np.float64]
-    blocks: int  # the batch means' blocks of the covariance (:func:`score_covariance`)
+    blocks: int  # the batch means' blocks of the covariance (covariance.score_covariance)
     status: str
     iterations: int
     warnings: Sequence[str]
@@ -825,7 +754,7 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
        from ``prsa-fit --frf``) is replayed as the two-mass axis (:attr:`LinearAxisPlant.second_mass`),
        its load mass, stiffness and damping held at the base's values and ``M`` kept above the load mass.
     3. 95 % intervals from the sandwich covariance that holds both a batch-means and a prewhitened
-       Newey-West long-run variance of the scores, Student's t (:func:`score_covariance`): the residuals
+       Newey-West long-run variance of the scores, Student's t (:func:`prsa_ctrl.identification.covariance.score_covariance`): the residuals
        of a real axis are correlated over many samples,
        and intervals that treat them as white would be far too narrow.
 

@@ -18,7 +18,7 @@ modal damping ratio ``zeta``), replayed closed loop from the reference with the 
    force errors of every log's replay, each weighted by its RMS at the start (as the rigid fit,
    :func:`prsa_ctrl.identification.axis.fit_linear_axis`), bounded trust region, a bound on the
    replays. 95 % intervals from the sandwich covariance with a batch-means long-run variance
-   (:func:`prsa_ctrl.identification.axis.batch_covariance`) and Student's t; derived values (the
+   (:func:`prsa_ctrl.identification.covariance.batch_covariance`) and Student's t; derived values (the
    total mass, the anti-resonance, the mode) by the delta method.
 3. **Validation** (:func:`prsa_ctrl.identification.axisvalidation.validate_axis`, the rigid fit's
    too): each log's closed-loop replay of the plant **as written** is explained when nothing in its
@@ -41,8 +41,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import AxisFitError
-from .axis import (METRIC_SKIP_SAMPLES, PARAMETERS, AxisReplay, LinearAxisPlant, batch_covariance, check_force_limit,
-                   normal_entry, replay_axis, simulate_axis, start_estimate, t95)
+from .axis import (METRIC_SKIP_SAMPLES, PARAMETERS, AxisReplay, LinearAxisPlant, check_force_limit, normal_entry,
+                   replay_axis, simulate_axis, start_estimate)
+from .covariance import batch_covariance, t95
 from .axisvalidation import diagnosis, refusal_line, validate_axis
 from .logformat import AxisLog
 
