@@ -428,7 +428,7 @@ def _nums(values) -> list:
 
 def _verdict_html(cal: Calibration) -> str:
     """The verdict: refused (prsa-fit's line with the diagnosis), validated or not validated."""
-    v = (cal.report.get("solver") or {}).get("validation")
+    v = (cal.report.get("solver") or {}).get("validation") or cal.report.get("validation")  # (a linear axis's: top level)
     if cal.refused is not None:
         return (f"<div data-k='fit-verdict' data-verdict='refused' style='color:#b00;font-weight:bold'>Refused: "
                 f"{html.escape(cal.refused)}. No plant file was written; the app's plant is unchanged.</div>")
@@ -444,14 +444,17 @@ def _verdict_html(cal: Calibration) -> str:
     if v is None:
         return ("<div data-k='fit-verdict' data-verdict='not-validated'>Not validated: prsa-fit replayed no log "
                 "through the written plant.</div>")
-    pct = "; ".join(f"{html.escape(n)} replayed at {e['fit_percent']:.1f} % ({e['error_rms_rad_s']:.3g} rad/s, "
-                    f"{e['error_rms_rad_s'] / max(e['noise_floor_rad_s'], 1e-300):.3g} x its noise floor)"
-                    for n, e in (v.get("written_plant") or {}).items() if e.get("finite"))
+    unit = "m/s" if cal.report.get("mechanism") == "linear-axis" else "rad/s"  # (a linear axis's entries: m/s)
+    u = unit.replace("/", "_")
+    pct = "; ".join(f"{html.escape(n)} replayed at {e['fit_percent']:.1f} % ({e[f'error_rms_{u}']:.3g} {unit}, "
+                    f"{e[f'error_rms_{u}'] / max(e[f'noise_floor_{u}'], 1e-300):.3g} x its noise floor)"
+                    for n, e in (v.get("written_plant") or {}).items() if e.get("finite", "residual_peak_hz" in e))
     if not v.get("passes"):  # exit 0 with a failed validation does not happen; never shown as good
         return (f"<div data-k='fit-verdict' data-verdict='refused' style='color:#b00;font-weight:bold'>Not validated: "
                 f"{html.escape('; '.join(v.get('reasons') or []))}</div>")
+    how = f" ({html.escape(v['replay'])})" if v.get("replay") else ""  # (a linear axis's validation says its replay)
     return (f"<div data-k='fit-verdict' data-verdict='validated' style='color:#060'>Validated: the plant as written "
-            f"explains the log ({pct}).</div>")
+            f"explains the log ({pct}){how}.</div>")
 
 
 def _structure_html(st: dict) -> str:

@@ -19,7 +19,8 @@ a ``.toml`` plant, except for a fit in motor coordinates (:func:`motor_log_mode`
 description says ``axis = "rotary"`` or ``--plant`` names a screw-driven plant): that one is the
 plant fit of :func:`prsa_ctrl.cli.fit.main` on the described logs (:func:`motor_records`), a log in
 load coordinates converted with the plant's lead. Exit codes: 0 success, 2 bad input (one line naming the value, nothing
-written), 3 the fit did not converge.
+written), 3 the fit did not converge or its plant does not explain the logs (validation,
+:mod:`prsa_ctrl.identification.axisvalidation`: no plant file unless ``--force``).
 """
 
 from __future__ import annotations
@@ -141,12 +142,12 @@ def _parser() -> argparse.ArgumentParser:
                    "response beside the log's (Hz)")
     p.add_argument("--fidelity", choices=("rigid", "compliant"), default="rigid", help="rigid: one moving mass "
                    "(default); compliant: the two-mass axis (motor side, load mass, stiffness, damping) fitted on the "
-                   "closed-loop replay and validated: exit 3 and no plant file when it does not explain the logs")
+                   "closed-loop replay; either is validated: exit 3 and no plant file when it does not explain the logs")
     p.add_argument("--frf", metavar="FRF.csv", help="with --fidelity compliant: a measured frequency response force -> "
                    "speed ((m/s)/N) whose two-mass fit starts the second mass (default: the logs' own, through their "
                    "test signal)")
-    p.add_argument("--force", action="store_true", help="with --fidelity compliant: write the plant file even when it "
-                   "does not explain the logs (its header says so; the exit code stays 3)")
+    p.add_argument("--force", action="store_true", help="write the plant file even when it does not explain the logs "
+                   "(its header says so; the exit code stays 3)")
     p.add_argument("--verbose", action="store_true", help="a progress line on stderr when the work starts")
     return p
 
@@ -239,10 +240,9 @@ def _fit(args) -> int:
 
     if args.traces:
         raise UsageError(f"--traces {args.traces!r} without --validate; expected it with --validate PLANT.toml LOG")
-    for flag, given in (("--frf", args.frf), ("--force", args.force)):
-        if given and args.fidelity != "compliant":
-            raise UsageError(f"{flag} with --fidelity {args.fidelity}; expected it with --fidelity compliant (the "
-                             "two-mass fit, started from the response and validated)")
+    if args.frf and args.fidelity != "compliant":
+        raise UsageError(f"--frf with --fidelity {args.fidelity}; expected it with --fidelity compliant (the "
+                         "two-mass fit, started from the response)")
     if not args.data:
         raise UsageError("no log; expected prsa-fit LOG... --log-format FORMAT.toml --out FITTED.toml")
     if not args.out:
@@ -266,15 +266,16 @@ def _fit(args) -> int:
                                  f"fraction that leaves at least {MIN_SAMPLES} samples in each part")
             fit_logs.append(lg.window(0, cut))
             held.append(lg.window(cut, lg.n))
-    compliant = args.fidelity == "compliant"
-    if compliant:
-        from ..identification.axiscompliant import fit_two_mass_axis, refusal_line
+    from ..identification.axisvalidation import refusal_line
+
+    if args.fidelity == "compliant":
+        from ..identification.axiscompliant import fit_two_mass_axis
 
         result = fit_two_mass_axis(fit_logs, base, frf=_axis_frf(args.frf) if args.frf else None,
                                    name=Path(args.out).stem)
-        failure = refusal_line(result)
     else:
-        result, failure = fit_linear_axis(fit_logs, base, name=Path(args.out).stem), None
+        result = fit_linear_axis(fit_logs, base, name=Path(args.out).stem)
+    failure = refusal_line(result)
     from ..identification.calibrate_axis import axis_outputs  # the app's composer too
 
     header = (f"prsa-fit --force: NOT VALIDATED, this plant does not explain the data it was fitted to: "

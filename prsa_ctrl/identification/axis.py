@@ -71,23 +71,21 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.signal import butter, filtfilt
 
-from .._lazy import module
 from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
 from ..plant.plantfile import Plant
 from ..plant import schema as plant_schema
 from ..tomlfile import read_toml
 from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry,
                                  inner_truncation)
+from .covariance import COVARIANCE_BLOCKS, batch_covariance, score_covariance, t95  # noqa: F401 - re-exported
 from .fituncertainty import outside_note
 from .logformat import AxisLog
-
-stats = module("scipy.stats")  # only the fit's intervals need it (a slow import)
 
 __all__ = ["AxisPlantError", "AxisFitError", "LinearAxisPlant", "load_axis_plant", "axis_plant_toml", "axis_fit_status", "DEFAULTS", "PARAMETERS", "simulate_axis",
            "COORDINATES",
            "AxisReplay", "replay_axis", "AxisFit", "fit_linear_axis", "measured_velocity", "relative_error",
            "idim_estimate", "start_estimate", "check_force_limit", "logged_force_peak", "MECHANISM", "SMALL_SPEED_M_S", "METRIC_SKIP_SAMPLES",
-           "batch_covariance", "t95", "normal_entry"]
+           "score_covariance", "batch_covariance", "t95", "normal_entry"]
 
 MECHANISM = "linear-axis"
 _Z95 = 1.959963984540054
@@ -569,39 +567,6 @@ def idim_estimate(logs: Sequence[AxisLog], min_speed_fraction: float = 0.05) -> 
     return th, informed
 
 
-#: Contiguous blocks of the batch-means covariance (:func:`batch_covariance`).
-COVARIANCE_BLOCKS = 10
-
-
-def batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int, blocks: int = COVARIANCE_BLOCKS):
-    """Parameter covariance of a least-squares fit whose residuals are correlated in time.
-
-    Sandwich ``A^-1 B A^-1`` with ``A = J'J`` and ``B`` the batch-means (cluster) long-run
-    variance of the scores ``J' r``: the record is cut into ``blocks`` contiguous pieces, each
-    piece's summed score is one draw, ``B = G/(G-1) sum_g S_g S_g'``. The residual rows are
-    channel-major (``n_time`` rows per channel). Intervals then use Student's t with ``G - 1``
-    degrees of freedom (:func:`t95`), since ``B`` rests on ``G`` draws only.
-
-    Returns
-    -------
-    (ndarray, int)
-        Covariance and the number of blocks used.
-    """
-    p = J.shape[1]
-    s = (J * r[:, None]).reshape(-1, n_time, p).sum(axis=0)  # per-time scores, summed over channels
-    g = int(min(blocks, max(2, n_time // 50)))
-    edges = np.linspace(0, n_time, g + 1).astype(int)
-    S = np.array([s[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
-    B = g / (g - 1.0) * (S.T @ S)
-    Ainv = np.linalg.pinv(J.T @ J)
-    return Ainv @ B @ Ainv, g
-
-
-def t95(dof: int) -> float:
-    """Two-sided 95 % quantile of Student's t with ``dof`` degrees of freedom."""
-    return float(stats.t.ppf(0.975, dof))
-
-
 @dataclass(frozen=True)
 class AxisFit:
     """Result of :func:`fit_linear_axis`."""
@@ -612,7 +577,7 @@ class AxisFit:
     start: Mapping[str, float]
     replays: Sequence[AxisReplay]
     covariance: NDArray[np.float64]
-    blocks: int
+    blocks: int  # the batch means' blocks of the covariance (covariance.score_covariance)
     status: str
     iterations: int
     warnings: Sequence[str]
@@ -621,6 +586,13 @@ class AxisFit:
     delay_costs: Mapping[int, float] = field(default_factory=dict)
     #: The least-squares solver's own verdict (``"converged"``: a fit that did not raises).
     solver_status: str = "converged"
+    #: The validation (:func:`prsa_ctrl.identification.axisvalidation.validate_axis`; empty: not validated).
+    validation: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def passes(self) -> bool:
+        """Whether the fit was validated and its plant explains the logs."""
+        return bool(self.validation.get("passes"))
 
     @property
     def ok(self) -> bool:
@@ -643,14 +615,16 @@ class AxisFit:
                                         "lower is better"},
                 "method": "output error of the closed-loop replay from the reference (position and force, each "
                           "weighted by its residual RMS at the inverse-dynamic start), started from inverse-dynamic "
-                          "least squares; 95 % intervals from the sandwich covariance with a batch-means long-run "
-                          f"variance of the scores ({self.blocks} contiguous blocks, Student's t with "
-                          f"{self.blocks - 1} degrees of freedom: the residuals are correlated in time)",
+                          "least squares; 95 % intervals from the sandwich covariance that holds both a batch-means "
+                          f"({self.blocks} contiguous blocks) and a prewhitened Newey-West long-run variance of the "
+                          f"scores (the residuals are correlated in time), Student's t with {self.blocks - 1} degrees "
+                          "of freedom",
                 "parameters": {k: dict(v) for k, v in self.parameters.items()},
                 "equivalent": {k: dict(v) for k, v in self.equivalent.items()},
                 "inverse_dynamic_start": dict(self.start),
                 **self._covariance_report(),
-                "replay": [r.as_dict() for r in self.replays], "warnings": list(self.warnings)}
+                "replay": [r.as_dict() for r in self.replays],
+                **({"validation": dict(self.validation)} if self.validation else {}), "warnings": list(self.warnings)}
 
     report = as_dict  # its former name
 
@@ -767,7 +741,7 @@ def normal_entry(value: float, sigma: float, positive: bool, source: str) -> dic
 
 
 def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evaluations: int = 60,
-                    name: str = "fitted", check_delay: bool = True) -> AxisFit:
+                    name: str = "fitted", check_delay: bool = True, validate: bool = True) -> AxisFit:
     """Calibrate a linear axis on closed-loop logs.
 
     1. Inverse-dynamic least squares (:func:`idim_estimate`) gives the start.
@@ -779,8 +753,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
        replayed open loop from the logged command. A two-mass base (``axis.load_mass_kg`` > 0, e.g.
        from ``prsa-fit --frf``) is replayed as the two-mass axis (:attr:`LinearAxisPlant.second_mass`),
        its load mass, stiffness and damping held at the base's values and ``M`` kept above the load mass.
-    3. 95 % intervals from the sandwich covariance with a batch-means long-run variance and
-       Student's t (:func:`batch_covariance`): the residuals of a real axis are correlated over many samples,
+    3. 95 % intervals from the sandwich covariance that holds both a batch-means and a prewhitened
+       Newey-West long-run variance of the scores, Student's t (:func:`prsa_ctrl.identification.covariance.score_covariance`): the residuals
+       of a real axis are correlated over many samples,
        and intervals that treat them as white would be far too narrow.
 
     Parameters
@@ -798,6 +773,11 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     check_delay : bool
         Also fit with the command delay one sample shorter and longer than described and warn
         when one of them lowers the cost by more than :data:`DELAY_MARGIN`.
+    validate : bool
+        Validate the fitted plant on the logs
+        (:func:`prsa_ctrl.identification.axisvalidation.validate_axis`; with more than one log each
+        left out is replayed by the plant fitted on the others): ``validation["passes"]`` False and
+        the status flagged when it does not explain them.
 
     Returns
     -------
@@ -863,7 +843,7 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
     theta[free] = sol.x
     n_time = sum(lg.n - skip for lg in logs)
     # residual rows: [positions of all logs; forces of all logs] -> channel-major with n_time rows each
-    cov_free, L = batch_covariance(sol.jac, sol.fun, n_time)
+    cov_free, L = score_covariance(sol.jac, sol.fun, n_time)
     z = t95(L - 1)
     cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
     cov[np.ix_(free, free)] = cov_free
@@ -879,7 +859,8 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
         v = float(theta[j])
         entry = {"value": v, "ci95": [v - z * sd, v + z * sd], "std": sd, "unit": _UNITS[k],
                  "start": float(theta0[j])}
-        if not informed[j]:
+        if not informed[j]:  # kept, not fitted: no interval (was a zero-width one)
+            entry.update(ci95=None, std=None, note="kept at the base value, not fitted: no interval")
             entry["kept_base"] = True
             sources[k] = base.sources[k]
         else:
@@ -906,9 +887,24 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
                              description=f"{base.description}; {what}" if base.description else what,
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
+    validation = {}
+    if validate:
+        from .axisvalidation import validate_axis
+
+        def refit(others):
+            return fit_linear_axis(others, base, max_evaluations=max_evaluations, name=name, check_delay=False,
+                                   validate=False).plant
+        validation = validate_axis(fitted, logs, replays, replay_axis, METRIC_SKIP_SAMPLES, refit=refit)
+        if not validation["passes"]:
+            warnings.append(f"validation failed: {validation['reasons'][0]}" + (
+                f" (and {len(validation['reasons']) - 1} more)" if len(validation["reasons"]) > 1 else "")
+                + f"; most likely missing physics: {validation['diagnosis']}")
+    status = axis_fit_status(replays, at_bound)
+    if validation and not validation["passes"]:
+        status = ("flagged: " if status == "ok" else status + "; ") + f"validation failed: {validation['reasons'][0]}"
     return AxisFit(fitted, params, _equivalents(theta, cov, z), dict(zip(PARAMETERS, map(float, theta0))), replays,
-                   cov, L, axis_fit_status(replays, at_bound), int(sol.nfev), warnings, float(sol.cost), str(sol.message),
-                   delays)
+                   cov, L, status, int(sol.nfev), warnings, float(sol.cost), str(sol.message),
+                   delays, validation=validation)
 
 
 def axis_fit_status(replays: Sequence[AxisReplay], at_bound: Sequence[str]) -> str:

@@ -18,20 +18,16 @@ modal damping ratio ``zeta``), replayed closed loop from the reference with the 
    force errors of every log's replay, each weighted by its RMS at the start (as the rigid fit,
    :func:`prsa_ctrl.identification.axis.fit_linear_axis`), bounded trust region, a bound on the
    replays. 95 % intervals from the sandwich covariance with a batch-means long-run variance
-   (:func:`prsa_ctrl.identification.axis.batch_covariance`) and Student's t; derived values (the
+   (:func:`prsa_ctrl.identification.covariance.batch_covariance`) and Student's t; derived values (the
    total mass, the anti-resonance, the mode) by the delta method.
-3. **Validation** with the screw path's rule
-   (:func:`prsa_ctrl.identification.validation.explained`): each log's closed-loop replay of the
-   plant **as written**, on the one-sample speed (m/s) from sample
-   :data:`~prsa_ctrl.identification.axis.METRIC_SKIP_SAMPLES` on, is explained when its error is
-   within :data:`~prsa_ctrl.identification.validation.NOISE_FACTOR` x its noise floor (the
-   position's third difference, :func:`prsa_ctrl.identification.validation.noise_floor`), or its fit
-   % reaches :data:`~prsa_ctrl.identification.validation.FIT_MIN_PERCENT` with no resonance in the
-   residual; with more than one log each log left out is replayed by the plant fitted on the
-   others (leave-one-out). Every fitted key is written as fitted (there is no "free fit" apart from
-   the written plant: the written plant *is* the free fit). A fit that does not pass has a
-   :func:`diagnosis` naming the most likely missing physics; ``prsa-fit`` then ends with exit 3 and
-   no plant file unless ``--force``.
+3. **Validation** (:func:`prsa_ctrl.identification.axisvalidation.validate_axis`, the rigid fit's
+   too): each log's closed-loop replay of the plant **as written** is explained when nothing in its
+   residual is what the model should have explained (a share predicted by the excitation, a
+   resonance above the noise floor, a force periodic in the position) and its error is within the
+   screw path's allowance; with more than one log each log left out is replayed by the plant fitted
+   on the others (leave-one-out). Every fitted key is written as fitted (the written plant *is* the
+   free fit). A fit that does not pass has a diagnosis naming the most likely missing physics;
+   ``prsa-fit`` then ends with exit 3 and no plant file unless ``--force``.
 """
 
 from __future__ import annotations
@@ -45,8 +41,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import AxisFitError
-from .axis import (METRIC_SKIP_SAMPLES, PARAMETERS, AxisReplay, LinearAxisPlant, batch_covariance, check_force_limit,
-                   normal_entry, replay_axis, simulate_axis, start_estimate, t95)
+from .axis import (METRIC_SKIP_SAMPLES, PARAMETERS, AxisReplay, LinearAxisPlant, check_force_limit, normal_entry,
+                   replay_axis, simulate_axis, start_estimate)
+from .covariance import batch_covariance, t95
+from .axisvalidation import diagnosis, refusal_line, validate_axis
 from .logformat import AxisLog
 
 __all__ = ["TWO_MASS_PARAMETERS", "TwoMassAxisFit", "fit_two_mass_axis", "axis_frf", "second_mass_start",
@@ -262,88 +260,6 @@ def _solve(logs, x0, lb, ub, flim, starts, sig, skip, max_evaluations):
                          diff_step=1e-6, method="trf", max_nfev=max_evaluations, xtol=1e-10, ftol=1e-10, gtol=1e-10)
 
 
-def _speed_entry(replay: AxisReplay, position_m, sample_time_s: float) -> dict:
-    """The validation entry of one replay (:func:`prsa_ctrl.identification.validation.explained`'s
-    keys; the speed in m/s under its ``_rad_s`` names, the rule's): the one-sample speed of the
-    log and of the replay, from sample :data:`METRIC_SKIP_SAMPLES` on."""
-    from types import SimpleNamespace
-
-    from .common import fit_percent
-    from .validation import noise_floor
-
-    h = float(sample_time_s)
-    meas = np.diff(np.asarray(replay.position_measured, float)) / h
-    model = np.diff(np.asarray(replay.position_simulated, float)) / h
-    skip = METRIC_SKIP_SAMPLES
-    finite = bool(np.all(np.isfinite(model)))
-    floor = noise_floor(SimpleNamespace(nut_angle_rad=np.asarray(position_m, float), sample_time_s=h))
-    e = {"finite": finite, "time_s": np.asarray(replay.time_s, float)[1:], "measured": meas, "model": model,
-         "skip_samples": skip, "noise_floor_rad_s": floor}
-    if not finite:
-        return {**e, "fit_percent": -math.inf, "error_rms_rad_s": math.inf}
-    a, b = meas[skip:], model[skip:]
-    return {**e, "fit_percent": fit_percent(a, b), "error_rms_rad_s": float(np.sqrt(np.mean((a - b) ** 2)))}
-
-
-def _entry_report(e: dict) -> dict:
-    from .validation import explained, resonance
-
-    out = {"fit_percent": e["fit_percent"], "error_rms_m_s": e["error_rms_rad_s"],
-           "noise_floor_m_s": e["noise_floor_rad_s"], "skip_samples": e["skip_samples"], "explained": explained(e)}
-    if e["finite"]:
-        out["residual_peak_hz"], out["residual_peak_share"] = resonance(e)
-    return out
-
-
-def _reasons(written: Mapping[str, dict], loo: Mapping[str, dict] | None) -> list[str]:
-    from .validation import FIT_MIN_PERCENT, NOISE_FACTOR, RESONANCE_SHARE, explained, resonance
-
-    def why(e):
-        ratio = e["error_rms_rad_s"] / max(e["noise_floor_rad_s"], 1e-300)
-        fp, share = resonance(e) if e["finite"] else (0.0, 0.0)
-        return (f"{e['fit_percent']:.1f} % (error {e['error_rms_rad_s']:.3g} m/s, {ratio:.3g} x its noise floor "
-                f"{e['noise_floor_rad_s']:.3g} m/s" + (f"; {100 * share:.0f} % of the residual within 15 % of {fp:.4g} "
-                                                       "Hz, a resonance" if share >= RESONANCE_SHARE else "") + ")")
-    out = [f"{n}: the written plant replays it at {why(e)}; expected <= {NOISE_FACTOR:g} x the floor, or >= "
-           f"{FIT_MIN_PERCENT:g} % with no resonance in the residual" for n, e in written.items() if not explained(e)]
-    for n, e in (loo or {}).items():
-        if "failed" in e:
-            out.append(f"{n}: the fit on the other logs failed ({e['failed']})")
-        elif not explained(e):
-            out.append(f"{n}: left out, the plant fitted on the other logs replays it at {why(e)}")
-    return out
-
-
-def diagnosis(written: Mapping[str, dict], fit: Mapping[str, float], loo: Mapping[str, dict] | None = None) -> str:
-    """One line naming the most likely missing physics of a two-mass fit whose written plant does
-    not explain the logs (the screw path's order,
-    :func:`prsa_ctrl.identification.validation.diagnosis`): wrong units or coordinates (no log
-    replayed better than its mean); a further mode (a residual that is a resonance: the one
-    mode fitted, ``fit["mode_hz"]``, is not the only one, or it sits where the start put it and
-    not where the data have it); a failure of the fit (a cross-validation fit that failed while
-    every log is explained); else the friction model."""
-    from .validation import FIT_FAILURE, RESONANCE_SHARE, explained, resonance
-
-    bad = {n: e for n, e in written.items() if not explained(e)}
-    if written and max(e["fit_percent"] for e in written.values()) < 0.0:
-        return ("wrong units or coordinates: no log is replayed better than its mean (check the command's gain and "
-                "unit, the position unit and the controller in --log-format)")
-    peaks = sorted(((*reversed(resonance(e)), n) for n, e in (bad or written).items() if e["finite"]), reverse=True)
-    if peaks and peaks[0][0] >= RESONANCE_SHARE:
-        share, fp, n = peaks[0]
-        return (f"a further mode: {100 * share:.0f} % of the replay residual of {n} lies within 15 % of {fp:.4g} Hz, "
-                f"a resonance the two-mass model (mode {fit.get('mode_hz', math.nan):.4g} Hz) does not reproduce (a third "
-                "mass, or a second mass the start missed: give --frf with the axial mode)")
-    failed = {n: e["failed"] for n, e in (loo or {}).items() if "failed" in e}
-    if failed and not bad:
-        n, why = next(iter(failed.items()))
-        return (f"{FIT_FAILURE}: the fit on the logs other than {n} did not converge ({why[:200]}); the written plant "
-                "explains every log, so the data give no evidence of missing physics")
-    return ("friction model: the replay residual is not a resonance; look at standstill, reversals and load changes "
-            "(the model is Coulomb + viscous per direction), or the command delay ([controller] "
-            "command_delay_samples)")
-
-
 def _derived(p: NDArray[np.float64], cov: NDArray[np.float64], z: float) -> dict:
     """Derived values with 95 % intervals (delta method, numerical gradient) of the reported vector
     ``p`` (:data:`TWO_MASS_PARAMETERS` order; stiffness in N/um)."""
@@ -493,7 +409,8 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
         v = float(p[j])
         lo, hi = v - z * sd, v + z * sd
         entry = {"value": v, "ci95": [lo, hi], "std": sd, "unit": _UNITS[k], "start": float(x0p[j])}
-        if j < 5 and not informed[j]:
+        if j < 5 and not informed[j]:  # held, not fitted: no interval (was a zero-width one that excluded the truth)
+            entry.update(ci95=None, std=None, note="held, not fitted: no interval")
             entry["kept_base"] = j not in mirrored
             sources[k] = (f"held at the start of {mirrored[j]} (inverse dynamics on {names}): the logs barely move "
                           "the axis in this direction" if j in mirrored else base.sources[k])
@@ -516,7 +433,9 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
     derived = _derived(p, cov, z)
-    validation = _validate(fitted, logs, replays, x, solve, derived, cross_validate)
+    validation = validate_axis(fitted, logs, replays, replay_axis, skip,
+                               refit=_refit(fitted, solve, x) if cross_validate else None,
+                               mode_hz=derived["mode_hz"]["value"])
     flags = [] if validation["passes"] else [f"validation failed: {validation['reasons'][0]}"]
     flags += [f"{k} ended at a bound" for k, e in params.items() if e.get("at_bound")]
     status = "flagged: " + "; ".join(flags) if flags else "ok"
@@ -528,44 +447,14 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
                           float(sol.cost), str(sol.message), start_from, validation, frf_fit)
 
 
-def _validate(fitted: LinearAxisPlant, logs, replays, x, solve, derived, cross_validate: bool) -> dict:
-    """The validation (module docstring, 3.) of a fitted plant; ``solve(logs, starts, x0)`` refits."""
-    from .validation import FIT_MIN_PERCENT, NOISE_FACTOR, explained
-
-    written = {r.name: _speed_entry(r, lg.position_m, lg.sample_time_s) for r, lg in zip(replays, logs)}
-    loo = None
-    if cross_validate and len(logs) > 1:
-        loo = {}
-        for i, lg in enumerate(logs):
-            others = [o for j, o in enumerate(logs) if j != i]
-            sol = solve(others, [(float(o.position_m[0]), 0.0) for o in others], x)
-            if sol.status <= 0:
-                loo[lg.name] = {"failed": f"did not converge: {sol.message}"}
-                continue
-            theta, second = _theta(sol.x)
-            plant = fitted.with_values({**dict(zip(PARAMETERS, map(float, theta))), "axis.load_mass_kg": second[0],
-                                        "axis.load_stiffness_n_per_um": second[1] * 1e-6,
-                                        "axis.axial_damping_ratio": second[2]}, {})
-            loo[lg.name] = _speed_entry(replay_axis(plant, lg), lg.position_m, lg.sample_time_s)
-    reasons = _reasons(written, loo)
-    passes = not reasons
-    return {"passes": passes, "reasons": reasons,
-            "diagnosis": None if passes else diagnosis(written, {"mode_hz": derived["mode_hz"]["value"]}, loo),
-            "replay": "closed-loop replay from the reference with the log's described controller (the plant as written)",
-            "written_plant": {n: _entry_report(e) for n, e in written.items()},
-            "cross_validation": None if loo is None else {
-                n: ({"failed": e["failed"]} if "failed" in e else _entry_report(e)) for n, e in loo.items()},
-            "rule": (f"every log explained by the written plant (one-sample speed replay error <= {NOISE_FACTOR:g} x the "
-                     f"log's noise floor, or fit >= {FIT_MIN_PERCENT:g} % with no resonance in the residual), and with "
-                     "more than one log each left-out log explained by the plant fitted on the others; the written "
-                     "plant is the fit (every fitted key written)"),
-            "explained": {n: explained(e) for n, e in written.items()}}
-
-
-def refusal_line(fit: TwoMassAxisFit) -> str | None:
-    """The one line of a fit whose validation failed (None when it passed)."""
-    if fit.passes:
-        return None
-    from .validation import refusal
-
-    return refusal(fit.validation["diagnosis"])
+def _refit(fitted: LinearAxisPlant, solve, x):
+    """The cross-validation's refit: the two-mass fit on other logs, started at ``x``."""
+    def refit(others):
+        sol = solve(others, [(float(o.position_m[0]), 0.0) for o in others], x)
+        if sol.status <= 0:
+            raise AxisFitError(f"did not converge: {sol.message}")
+        theta, second = _theta(sol.x)
+        return fitted.with_values({**dict(zip(PARAMETERS, map(float, theta))), "axis.load_mass_kg": second[0],
+                                   "axis.load_stiffness_n_per_um": second[1] * 1e-6,
+                                   "axis.axial_damping_ratio": second[2]}, {})
+    return refit

@@ -7,7 +7,8 @@ logs as drives and test benches write them (CSV or MATLAB ``.mat``, :mod:`prsa_c
 * :func:`calibrate_described`: the whole calibration, for the browser app: a description in load
   coordinates (``axis = "linear"``) fits a ``linear-axis`` plant
   (:func:`prsa_ctrl.identification.axis.fit_linear_axis`, closed-loop replay from the reference
-  where the description gives the controller); one in motor coordinates (``axis = "rotary"``)
+  where the description gives the controller; the two-mass axis when the data choose it,
+  :func:`choose_structure`), validated (no plant text when it does not explain the logs); one in motor coordinates (``axis = "rotary"``)
   fits the screw-driven base as ``prsa-fit LOG --log-format F --plant BASE`` does
   (:func:`prsa_ctrl.identification.calibrate.calibrate_logs` with the description).
 
@@ -20,7 +21,7 @@ import math
 from pathlib import Path
 from typing import Callable, Sequence
 
-__all__ = ["axis_base_plant", "calibrate_described", "axis_outputs", "LOG_FACTS", "BASE_KEPT"]
+__all__ = ["axis_base_plant", "calibrate_described", "choose_structure", "axis_outputs", "LOG_FACTS", "BASE_KEPT"]
 
 #: Keys the log states and a base plant also gives: a disagreement is refused (the log's value is
 #: a fact of the record: the drive gain converts every logged command to force, the sample time is
@@ -132,7 +133,7 @@ def _merge_base(base, plant_path: str, vals: dict, srcs: dict):
 
 def calibrate_described(paths: Sequence[str | Path], log_format: str | Path, base: str | None = None, *, name: str,
                         labels: Sequence[str] | None = None,
-                        check_interrupt: Callable[[], None] | None = None):
+                        check_interrupt: Callable[[], None] | None = None, fidelity: str = "auto"):
     """Fit a plant to described logs (CSV or ``.mat``) and compose its outputs.
 
     A description in load coordinates (``axis = "linear"``, the default) fits a ``linear-axis``
@@ -158,13 +159,19 @@ def calibrate_described(paths: Sequence[str | Path], log_format: str | Path, bas
         How the results name each log (default: the path as given).
     check_interrupt : callable, optional
         Motor coordinates: called at the fit's iterations (the caller's cancellation).
+    fidelity : str
+        Load coordinates: ``"rigid"`` (``prsa-fit``'s default), ``"compliant"`` (``--fidelity
+        compliant``: the two-mass axis) or ``"auto"`` (the app's: the data choose,
+        :func:`choose_structure`).
 
     Returns
     -------
     Calibrated
         Load coordinates: ``result`` the :class:`~prsa_ctrl.identification.axis.AxisFit`,
         ``report`` ``prsa-fit --json``'s (with ``mechanism`` ``"linear-axis"`` and, per log,
-        ``fit_percent`` the replay's velocity fit %), ``lines`` its text lines.
+        ``fit_percent`` the replay's velocity fit %), ``lines`` its text lines; ``failure``
+        prsa-fit's exit-3 line and ``plant_text`` None when the validation says the plant does not
+        explain the logs (:mod:`prsa_ctrl.identification.axisvalidation`).
 
     Raises
     ------
@@ -186,16 +193,64 @@ def calibrate_described(paths: Sequence[str | Path], log_format: str | Path, bas
                               log_format=str(log_format))
     from dataclasses import replace
 
-    from .axis import axis_plant_toml, fit_linear_axis
+    from .axis import axis_plant_toml
 
     logs = []
     for path, label in zip(paths, labels):
         lg = load_axis_log(path, fmt)
         logs.append(replace(lg, name=label))
+    from .axisvalidation import refusal_line
+
+    if fidelity not in ("rigid", "compliant", "auto"):
+        raise ValueError(f"fidelity = {fidelity!r}; expected 'rigid', 'compliant' or 'auto'")
     base_plant, notes = axis_base_plant(logs, str(log_format))
-    result = fit_linear_axis(logs, base_plant, name=name)
+    result, choice = choose_structure(logs, base_plant, name, fidelity)
     report, lines = axis_outputs(result, logs, notes)
-    return Calibrated(result, axis_plant_toml(result.plant), report, tuple(lines), None, tuple(logs))
+    if choice is not None:
+        report["structure_choice"] = choice
+        lines = [choice, *lines]
+    failure = refusal_line(result)  # prsa-fit's exit 3: no plant file
+    return Calibrated(result, None if failure else axis_plant_toml(result.plant), report, tuple(lines),
+                      None if failure is None else f"{failure} (no plant file written; --force writes it)", tuple(logs))
+
+
+#: The diagnoses of a rigid fit whose residual is a response the rigid model lacks (a mode):
+#: :func:`choose_structure` then fits the two-mass axis.
+_MASS_MISSING = ("second mass", "unmodelled dynamics")
+
+
+def choose_structure(logs: Sequence, base, name: str, fidelity: str = "auto"):
+    """The linear-axis fit the data choose: ``(fit, line)``.
+
+    ``"rigid"``: :func:`prsa_ctrl.identification.axis.fit_linear_axis`; ``"compliant"``:
+    :func:`prsa_ctrl.identification.axiscompliant.fit_two_mass_axis` (``prsa-fit --fidelity
+    compliant``); ``"auto"``: the rigid fit, and when its validation refuses it naming a response
+    the rigid model lacks (a second mass: the residual the excitation predicts,
+    :mod:`prsa_ctrl.identification.axisvalidation`), the two-mass fit too, taken when it explains the
+    logs. ``line`` says what was chosen and why (None when the rigid fit was not refused, or a
+    fidelity was asked for). Errors as the fits'.
+    """
+    from ..errors import AxisFitError
+    from .axis import fit_linear_axis
+    from .axiscompliant import fit_two_mass_axis
+
+    if fidelity == "compliant":
+        return fit_two_mass_axis(logs, base, name=name), None
+    rigid = fit_linear_axis(logs, base, name=name)
+    diag = rigid.validation.get("diagnosis") or ""
+    if fidelity == "rigid" or rigid.passes or not diag.startswith(_MASS_MISSING):
+        return rigid, None
+    said = f"structure: the rigid fit does not explain the logs ({diag.split(':')[0]})"
+    try:
+        two = fit_two_mass_axis(logs, base, name=name)
+    except (AxisFitError, ValueError) as exc:
+        return rigid, f"{said}; the two-mass fit (prsa-fit --fidelity compliant) failed: {exc}"
+    if not two.passes:
+        return rigid, (f"{said}; the two-mass fit (prsa-fit --fidelity compliant) does not explain them either "
+                       f"({two.validation.get('diagnosis')}): the rigid fit's verdict stands")
+    mode = two.equivalent["mode_hz"]
+    return two, (f"{said}; the two-mass fit (prsa-fit --fidelity compliant) does: chosen, its axial mode "
+                 f"{mode['value']:.4g} Hz (95 % CI {mode['ci95'][0]:.4g}..{mode['ci95'][1]:.4g})")
 
 
 def axis_outputs(result, logs: Sequence, notes: Sequence[str] = (), held: Sequence = (),
@@ -224,7 +279,7 @@ def axis_outputs(result, logs: Sequence, notes: Sequence[str] = (), held: Sequen
                              "rest (closed loop from the reference, starting from the logged position at rest)",
                              "replay": [replay_axis(result.plant, h).as_dict() for h in held]}
     lines = [printable(x) for x in axis_fit_lines(report)]  # before fit_percent: the JSON's report leaves it out
-    if report.get("validation"):  # the two-mass fit's verdict (identification.axiscompliant)
+    if report.get("validation"):  # the verdict (identification.axisvalidation)
         lines += [printable(x) for x in axis_verdict_lines(report["validation"])]
     report["fit_percent"] = {r["log"]: r["fit_percent"]["velocity"] for r in report["replay"]}
     return report, lines

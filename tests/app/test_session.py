@@ -262,7 +262,7 @@ def test_a_mat_log_of_a_linear_axis_is_fitted_through_its_description(tmp_path, 
         for key, v in want["parameters"].items():
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
         html_ = report_html(cal, "done")
-        assert "data-verdict='replayed'" in html_
+        assert "data-verdict='validated'" in html_  # the linear axis's validation (was: 'replayed', no verdict)
         assert "download it, prsa-axis tunes it" in html_
         with pytest.raises(AppInputError, match="a linear-axis plant; expected a screw-driven plant"):
             s.use_calibration(cal)
@@ -329,6 +329,82 @@ def _axis_csv(n=2500, seed=5) -> bytes:
             x += 0.5 * (v + vn) * h / sub
             v = 0.0 if v != 0 and vn * v < 0 else vn
     return ("\n".join(rows) + "\n").encode()
+
+
+def _two_mass_csv(n=3000, seed=4) -> bytes:
+    """A closed-loop log of a 30 kg motor side carrying 50 kg through a spring (3.16 N/um, damping
+    ratio 0.05 of the mode) with viscous (150 N s/m) and Coulomb (15 N) friction on the motor side,
+    written here (semi-implicit Euler on 40 substeps), in _AXIS_FORMAT's columns; the profile of
+    _axis_csv's controller and test signal."""
+    rng = np.random.default_rng(seed)
+    h, sub = 1e-3, 40
+    hs = h / sub
+    mm, ml, k = 30.0, 50.0, 3.16e6
+    c = 2 * 0.05 * math.sqrt(k * mm * ml / (mm + ml))
+    r = 0.05 * (1 - np.cos(2 * math.pi * np.arange(n) * h / 1.5))
+    d = 0.5 * np.repeat(rng.choice([-1.0, 1.0], n // 5 + 1), 5)[:n]
+    x = v = xl = vl = qprev = qfprev = 0.0
+    rows = ["t_s,x_mm,r_mm,u_V,d_V"]
+    for i in range(n):
+        q = 5e-8 * math.floor(x / 5e-8 + 0.5)
+        qf = 0.5 * (q + qprev)
+        dq = (qf - qfprev) / h
+        qprev, qfprev = q, qf
+        u = min(10.0, max(-10.0, 250.0 * (150.0 * (r[i] - q) - dq)))
+        rows.append(f"{i * h:.6f},{q * 1e3:.9f},{r[i] * 1e3:.9f},{float(u + d[i])!r},{float(d[i])!r}")
+        f = 30.0 * (u + d[i])
+        for _ in range(sub):
+            spring = k * (x - xl) + c * (v - vl)
+            net = f - spring
+            if v == 0 and abs(net) <= 15.0:
+                a = 0.0
+            else:
+                a = (net - 150.0 * v - 15.0 * math.copysign(1.0, v if v != 0 else net)) / mm
+            vn = v + a * hs
+            v = 0.0 if v != 0 and vn * v < 0 else vn
+            x += v * hs
+            vl += spring / ml * hs
+            xl += vl * hs
+    return ("\n".join(rows) + "\n").encode()
+
+
+def test_the_apps_linear_axis_calibration_chooses_the_two_mass_axis_when_the_data_do(tmp_path):
+    """A two-mass log uploaded with its description: the rigid fit's validation refuses it (a
+    second mass); the app then fits the two-mass axis as ``prsa-fit --fidelity compliant`` does and
+    takes it because it explains the log, saying so in the first line; the plant file is a two-mass
+    axis near the truth (80 kg in all, 50 kg beyond the spring). A rigid log keeps the rigid fit, no
+    structure line."""
+    import tomllib
+
+    from prsa_ctrl.app.fitpanel import report_html
+    from prsa_ctrl.app.session import AppSession
+    from prsa_ctrl.identification.calibrate_axis import calibrate_described
+
+    (tmp_path / "two.csv").write_bytes(_two_mass_csv())
+    (tmp_path / "log.toml").write_bytes(_AXIS_FORMAT)
+    rigid = calibrate_described([str(tmp_path / "two.csv")], str(tmp_path / "log.toml"), name="x", fidelity="rigid")
+    assert rigid.failure is not None
+    assert "second mass" in rigid.failure
+    assert rigid.plant_text is None
+    s = AppSession()
+    try:
+        cal = s.calibrate("two.csv", _two_mass_csv(), log_format=("log.toml", _AXIS_FORMAT))
+        plain = s.calibrate("axis.csv", _axis_csv(), log_format=("log.toml", _AXIS_FORMAT))
+        texts = cal.plant_text, plain.plant_text  # (the session's folder goes with it)
+    finally:
+        s.close()
+    assert cal.refused is None
+    assert cal.lines[0].startswith("structure: the rigid fit does not explain the logs (second mass)")
+    assert "the two-mass fit (prsa-fit --fidelity compliant) does: chosen" in cal.lines[0]
+    assert cal.report["structure"] == "two-mass"
+    assert cal.report["validation"]["passes"] is True
+    doc = tomllib.loads(texts[0])
+    assert doc["axis"]["mass_kg"]["value"] == pytest.approx(80.0, rel=0.02)
+    assert doc["axis"]["load_mass_kg"]["value"] == pytest.approx(50.0, rel=0.05)
+    assert "data-verdict='validated'" in report_html(cal, "done")
+    assert plain.refused is None
+    assert "structure_choice" not in plain.report
+    assert "load_mass_kg" not in texts[1]
 
 
 def test_a_linear_axis_calibration_shows_the_clis_overlay_figures(tmp_path):

@@ -140,11 +140,20 @@ def _base(log):
 
 
 #: The two-mass keys: the truth inside their 95 % intervals. The friction keys are held to 5 % of the
-#: truth instead: their intervals under-cover on this generator (measured over 9 seeds at 2 N of
-#: disturbance: Fv-/Fc- outside in 5 of 9, the total mass in 1 of 9, the load mass, stiffness and
-#: damping in none; the two-log fit of seeds 4 and 12 has the damping outside, 0.0464..0.0496 against
-#: 0.05): its stick band at reversals is a 40-substep approximation the exact model does
-#: not share, and the friction terms absorb it.
+#: truth instead: their intervals under-cover on this generator. Measured over 21 single-log seeds
+#: (1-4, 6-10, 14-25; h13-axis, with a prewhitened Newey-West covariance in place of the batch means;
+#: the fit keeps the batch means: the Newey-West one left the friction z-scores where they were and
+#: narrowed the load mass's interval of
+#: test_the_second_mass_starts_from_a_measured_frf_when_the_logs_have_no_test_signal below the truth):
+#: 3 did not converge within 40 evaluations; in 4 the logs barely move the axis in -x and Fv-/Fc- are
+#: held at the +x start, which was reported with a zero-width "interval" (now none: held, not fitted);
+#: of the other 14, Fv- and Fc- are outside in 5 each, always Fv- high and Fc- low (z +2.0..+2.6 and
+#: -2.2..-4.3): a bias of the Coulomb/viscous split, not a covariance blind to correlation (the
+#: z-scores barely moved from the former batch means', seed 1 Fv- +2.05 -> +2.58); it has the same
+#: sign without the disturbance (seed 1, noise 0: Fv- +0.26 %, Fc- -0.16 %, z +3.4/-3.4), so the
+#: generator's 40-substep stick at reversals, which the exact model does not share, is part of it
+#: and the disturbance amplifies it (noise 2 N: +3.6 %, -1.8 %). The two-log fit of seeds 4 and 12
+#: has the damping outside, 0.0464..0.0496 against 0.05.
 TWO_MASS_KEYS = ("axis.mass_kg", "axis.load_mass_kg", "axis.load_stiffness_n_per_um", "axis.axial_damping_ratio")
 
 
@@ -246,17 +255,15 @@ def test_prsa_fit_compliant_writes_a_validated_two_mass_plant(described, tmp_pat
     assert text.out.count("left out: ") == 2
 
 
-@pytest.mark.slow  # two fits of the three-mass log (about 9 s of CPU each)
-def test_prsa_fit_compliant_refuses_a_plant_that_does_not_explain_the_log(described, tmp_path, capsys, monkeypatch):
-    """A third mass (30 kg on 8 N/um beyond the load mass) the model has not. At the rule's noise
-    allowance (3 x the floor) the closed-loop replay of this log passes (measured: 1.7 x its floor,
-    fit 99.6 %: the speed loop hides the third mode); at an allowance of 1 x the floor the same
-    residual is a resonance (58 % of its power near 112 Hz) and the log is not explained: exit 3,
-    one line naming a further mode, no plant file; --force writes it with a header that says so.
-    (The plumbing of the refusal, on a real misfit; the allowance is the test's, not the tool's.)"""
-    import prsa_ctrl.identification.validation as validation
-
-    monkeypatch.setattr(validation, "NOISE_FACTOR", 1.0)
+@pytest.mark.slow  # two fits of the three-mass log (about 10 s of CPU each)
+def test_prsa_fit_compliant_refuses_a_plant_that_does_not_explain_the_log(described, tmp_path, capsys):
+    """A third mass (30 kg on 8 N/um beyond the load mass) the model has not, under the rule as users
+    get it (prsa_ctrl.identification.axisvalidation). The closed-loop replay is at 1.7 x the log's
+    noise floor and fits 99.6 % (the speed loop hides the third mode: the screw path's rule alone
+    passed it), but 58 % of the residual lies near 112 Hz, above the floor, and 38 % of it is
+    predicted by the test signal and the reference: exit 3, one line naming a further mode, no plant
+    file; --force writes it with a header that says so. The same seed without the third mass fits
+    (test_prsa_fit_compliant_writes_a_validated_two_mass_plant: good.csv)."""
     out = tmp_path / "fit.toml"
     args = [str(described / "three.csv"), "--log-format", str(described / "log.toml"), "--fidelity", "compliant",
             "--out", str(out)]
@@ -273,9 +280,10 @@ def test_prsa_fit_compliant_refuses_a_plant_that_does_not_explain_the_log(descri
     assert load_axis_plant(out).second_mass is not None
 
 
-def test_frf_and_force_need_the_compliant_fit(described, tmp_path, capsys):
-    for extra in (["--force"], ["--frf", str(described / "log.toml")]):
-        code = fit_main([str(described / "good.csv"), "--log-format", str(described / "log.toml"), "--out",
-                         str(tmp_path / "x.toml"), *extra])
-        assert code == 2
-        assert "expected it with --fidelity compliant" in capsys.readouterr().err
+def test_frf_needs_the_compliant_fit(described, tmp_path, capsys):
+    """--frf starts the second mass: refused with the rigid fit (--force is for either fit since the
+    rigid fit is validated too: tests/identification/test_axisvalidation.py)."""
+    code = fit_main([str(described / "good.csv"), "--log-format", str(described / "log.toml"), "--out",
+                     str(tmp_path / "x.toml"), "--frf", str(described / "log.toml")])
+    assert code == 2
+    assert "expected it with --fidelity compliant" in capsys.readouterr().err
