@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from ..plant.model import screw_axis_springs
 from ..plant.plantfile import Plant
 
-__all__ = ["COMPLIANT_STATES", "COMPLIANT_SEGMENT_S", "COMPLIANT_X0_RTOL", "COMPLIANT_G_MAX", "COMPLIANT_F_DROP", "COMPLIANT_RELAXED_STEPS", "SEED_KEYS", "seed_from_frf", "compliant_reference", "compliant_scales"]
+__all__ = ["COMPLIANT_STATES", "COMPLIANT_SEGMENT_S", "COMPLIANT_X0_RTOL", "COMPLIANT_G_MAX", "COMPLIANT_F_DROP", "COMPLIANT_RELAXED_STEPS", "SEED_KEYS", "seed_keys", "seed_from_frf", "compliant_reference", "compliant_scales"]
 
 #: Singular-value ratio below which a segment's initial-state direction is held at the
 #: reference in a Gauss-Newton step of a compliant fit
@@ -135,11 +135,25 @@ def compliant_scales(plant: Plant, names: Sequence[str], w_scale_rad_s: float) -
     return {"x_roller": f / k_b, "v_roller": f / k_b * w_mode, "delta_screw": f / k_h, "v_screw": v}
 
 
-#: Keys of a compliant screw-driven plant that a two-mass fit of a measured frequency response
-#: sets before the time-domain fit (:func:`seed_from_frf`): what the logs' time-domain fit does
-#: not fit by default but the axial mode needs (the mass on the far side of the spring, the
-#: spring, its damping).
-SEED_KEYS = ("axis.moving_mass_kg", "axis.nut_stiffness_n_per_um", "axis.axial_damping_ratio")
+#: Keys of a compliant screw plant that a two-mass fit of a measured frequency response sets
+#: before the time-domain fit (:func:`seed_from_frf`): the axial mode's (the rotating inertia on
+#: the motor's side of the spring, the mass on the far side, the spring, its damping), of which
+#: the time-domain fit fits the first by default and holds the others unless it frees them. A
+#: screw-driven axis (ball, roller screw): the rotor, the carriage, the nut (and the bearings when
+#: the nut alone cannot place the mode: :func:`prsa_ctrl.identification.frfplant.fit_frf_structure`),
+#: the damping; an inverted roller screw: the nut, the translating screw and the thread contacts.
+SEED_KEYS = ("axis.motor_inertia_kg_m2", "axis.moving_mass_kg", "axis.nut_stiffness_n_per_um",
+             "axis.bearing_stiffness_n_per_um", "axis.axial_damping_ratio",
+             "nut.inertia_kg_m2", "screw.mass_kg", "contact.stiffness_n_per_mm_e")
+
+
+def seed_keys(plant: Plant) -> tuple[str, ...]:
+    """The :data:`SEED_KEYS` of ``plant``'s mechanism (``()`` for a linear axis)."""
+    if plant.screw_driven:
+        return SEED_KEYS[:5]
+    if plant.mechanism == "inverted-roller-screw":
+        return SEED_KEYS[5:]
+    return ()
 
 
 def seed_from_frf(plant: Plant, frf, command_logged: str) -> tuple[Plant, str]:
@@ -161,9 +175,10 @@ def seed_from_frf(plant: Plant, frf, command_logged: str) -> tuple[Plant, str]:
         res, _ = fit_frf_structure(frf, plant, fidelity="compliant", command_logged=command_logged)
     except (FitError, ValueError) as exc:
         return plant, f"the compliant fit starts from the base plant's axial mode: the two-mass fit of {names} failed ({exc})"
-    keys = [k for k in SEED_KEYS if k in res.plant_keys and k in plant.values]
+    keys = [k for k in seed_keys(plant) if k in plant.values and (
+        k in res.plant_keys or res.plant.values[k] != plant.values[k])]  # (the bearings: mapped, not refitted)
     if not keys:
-        return plant, f"the compliant fit starts from the base plant's axial mode: the two-mass fit of {names} wrote none of {', '.join(SEED_KEYS)}"
+        return plant, f"the compliant fit starts from the base plant's axial mode: the two-mass fit of {names} wrote none of {', '.join(seed_keys(plant))}"
     seeded = plant.with_params({k: float(res.plant.values[k]) for k in keys}, name=plant.name)
     sources = dict(seeded.sources)
     for k in keys:

@@ -50,7 +50,8 @@ from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
 from .compliant import (COMPLIANT_F_DROP, COMPLIANT_SEGMENT_S, COMPLIANT_G_MAX, COMPLIANT_RELAXED_STEPS, COMPLIANT_X0_RTOL,
-                        compliant_reference, compliant_scales, seed_from_frf)
+                        compliant_reference, compliant_scales, seed_from_frf,
+                        seed_keys)
 from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
@@ -263,7 +264,7 @@ def fit_plant(
         return validate_fit(res, records, validate, int(cd["shift_samples"]), fidelity, None, check_interrupt,
                             closed_loops=closed_loops)
     seeded = None
-    if fidelity == "compliant" and records and frf and plant.screw_driven:  # start from the FRF's axial mode
+    if fidelity == "compliant" and records and frf and seed_keys(plant):  # start from the FRF's axial mode
         plant, seeded = seed_from_frf(plant, frf, command_logged)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
