@@ -272,7 +272,7 @@ def fit_plant(
         return validate_fit(res, records, validate, int(cd["shift_samples"]), fidelity, None, check_interrupt,
                             closed_loops=closed_loops)
     seeded = None
-    if fidelity == "compliant":  # start from a response's axial mode, and fit the mode from there
+    if fidelity == "compliant":  # start from a response's axial mode
         plant, keys, seeded = compliant_start(plant, records, frf, keys, command_logged, speed_loop)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
@@ -335,7 +335,9 @@ def fit_plant(
         # it keeps: the cross-validation refit starts at the all-logs optimum; the retries
         # (the base plant, bolder steps) start from the reference as before
         warm = solved.get(shift) if attempt == 0 and start is not plant else None
-        return _fit_records(recs, start, frf=(), keys=res.keys, fidelity=fidelity, validate=(), segment_s=segment_s,
+        # on the segments the fit converged on (the search's, when delay.refit_found kept its values)
+        return _fit_records(recs, start, frf=(), keys=res.keys, fidelity=fidelity, validate=(),
+                            segment_s=res.solver.get("segment_s") or segment_s,
                             delay_samples=shift, substeps=substeps, max_iter=max_iter, tol=tol,
                             min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
                             uncertainty=uncertainty, check_interrupt=check_interrupt, max_attempts=1,

@@ -102,7 +102,10 @@ def bounded_work(fit: Callable) -> Callable:
         except FitError as exc:
             if not budget.exhausted:
                 raise
-            why = ("it started from the axial mode of the measured response" if bound.arguments.get("frf") else
+            a = bound.arguments
+            why = ("it started from the axial mode of the measured response" if a.get("frf") else
+                   "it started from the logs' own response where that showed an axial mode (the described speed loop)"
+                   if a.get("speed_loop") is not None else
                    "the axial-mode keys were held at the base plant's values (no measured frequency response to "
                    "start them from: --frf FRF.csv), and a misplaced axial mode keeps a compliant fit iterating")
             last = " ".join(str(exc).split())
