@@ -195,8 +195,8 @@ def compliant_start(plant: Plant, records, frf, keys, command_logged: str, speed
     if not responses:
         return plant, keys, ("the axial-mode keys stay the base plant's (not fitted): no measured frequency response "
                              "(--frf FRF.csv) to start them from, and the logs' own needs the drive's speed loop "
-                             "described (closedloop.frf_from_logs); a compliant fit from a misplaced mode does not "
-                             "converge" if keys is None else None)
+                             "described (--speed-loop KP,KI[,TAU_S]: closedloop.frf_from_logs); a compliant fit from a "
+                             "misplaced mode does not converge" if keys is None else None)
     start, note = seed_from_frf(plant, responses, command_logged, need_mode=show_mode)
     held = [k for k in seed_keys(start) if k != inertia_key(start) and k not in (keys or ())]
     if start is not plant and held:

@@ -109,8 +109,9 @@ def bounded_work(fit: Callable) -> Callable:
                    "the axial-mode keys were held at the base plant's values (no measured frequency response to "
                    "start them from: --frf FRF.csv), and a misplaced axial mode keeps a compliant fit iterating")
             last = " ".join(str(exc).split())
-            raise WorkBudgetSpent(f"{budget.message()}; {why}; its last failure: "
-                                  f"{last[:300] + ('...' if len(last) > 300 else '')}") from exc
+            head = "the compliant fit stopped at its work bound"
+            last = "" if head in last else f"; its last failure: {last[:300] + ('...' if len(last) > 300 else '')}"
+            raise WorkBudgetSpent(f"{budget.message()}; {why}{last}") from exc
         finally:
             _BUDGET.reset(token)
         res.solver["work"] = {"passes": round(budget.passes, 2), "bound_passes": round(budget.limit / intervals, 2),

@@ -47,6 +47,7 @@ def test_a_compliant_run_is_bounded_and_says_why_it_stopped(monkeypatch):
     assert "work bound (25 of 25" in text
     assert "axial-mode keys were held at the base plant's values" in text
     assert "\n" not in text
+    assert text.count("work bound") == 1  # (the solves' own failures, each the bound, not repeated)
     assert isinstance(info.value, FitError)  # exit 3 in prsa-fit
     with pytest.raises(wb.WorkBudgetSpent, match="started from the axial mode of the measured response"):
         bounded(recs, frf=["bode"], fidelity="compliant", iterations=100)
