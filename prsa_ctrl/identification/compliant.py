@@ -173,8 +173,8 @@ def compliant_start(plant: Plant, records, frf, keys, command_logged: str, speed
     The response is ``frf`` (measured, ``--frf``) or, without one, the logs' own
     (:func:`prsa_ctrl.identification.closedloop.frf_from_logs`: joint input-output, the reference
     given back by ``speed_loop``, the drive's described speed loop), used only when it shows a mode
-    (the structure the data choose is the two-mass one). Without either the mode keys stay the
-    base plant's, and the note says why."""
+    (:func:`shows_mode`). Without either the mode keys stay the base plant's, and the note says
+    why."""
     if not (records and seed_keys(plant)):
         return plant, keys, None
     responses, show_mode = list(frf), False

@@ -114,6 +114,12 @@ def bounded_work(fit: Callable) -> Callable:
             raise WorkBudgetSpent(f"{budget.message()}; {why}{last}") from exc
         finally:
             _BUDGET.reset(token)
+        if budget.exhausted:  # a fit the bound stopped was counted failed (a delay candidate, a refit)
+            note = f"{budget.message()} before every fit of the run finished: those it stopped count as failed"
+            res.warnings.append(note)
+            v = res.solver.get("validation")
+            if isinstance(v, dict) and not v.get("passes", True):
+                v["diagnosis"] = f"{v.get('diagnosis', '')}; {note}"
         res.solver["work"] = {"passes": round(budget.passes, 2), "bound_passes": round(budget.limit / intervals, 2),
                               "sample_intervals": intervals,
                               "rule": "Gauss-Newton iterations x sample intervals linearised, over the logs' intervals"}

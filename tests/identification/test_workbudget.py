@@ -17,19 +17,27 @@ class _Rec:
         self.n = n
 
 
-def _fake(records, plant=None, *, frf=(), fidelity="rigid", validate=(), iterations=10, fail=False):
-    """Stands for fit_plant: ``iterations`` solves over all of the records, then a failure or a result."""
+def _fake(records, plant=None, *, frf=(), fidelity="rigid", validate=(), iterations=10, fail=False, caught=False):
+    """Stands for fit_plant: ``iterations`` solves over all of the records, then a failure or a
+    result (``caught``: a solve stopped by the bound counted failed, as the delay search does)."""
     n = sum(r.n - 1 for r in records)
-    for _ in range(iterations):
-        wb.spend(n)
+    try:
+        for _ in range(iterations):
+            wb.spend(n)
+    except wb.WorkBudgetSpent:
+        if not caught:
+            raise
     if fail:
         raise FitError("Gauss-Newton status 'stalled' after 21 iterations")
 
     class _Res:
         solver: dict = {}
+        warnings: list = []
 
     res = _Res()
-    res.solver = {}
+    res.solver, res.warnings = {}, []
+    if caught:
+        res.solver["validation"] = {"passes": False, "diagnosis": "delay: the delay search could not decide (2: failed)"}
     return res
 
 
@@ -51,6 +59,11 @@ def test_a_compliant_run_is_bounded_and_says_why_it_stopped(monkeypatch):
     assert isinstance(info.value, FitError)  # exit 3 in prsa-fit
     with pytest.raises(wb.WorkBudgetSpent, match="started from the axial mode of the measured response"):
         bounded(recs, frf=["bode"], fidelity="compliant", iterations=100)
+    # a run that goes on after a solve the bound stopped (counted failed) says so in its verdict
+    res = bounded(recs, fidelity="compliant", iterations=100, caught=True)
+    assert res.solver["validation"]["diagnosis"].startswith("delay: the delay search could not decide")
+    assert "stopped at its work bound" in res.solver["validation"]["diagnosis"]
+    assert any("work bound" in w for w in res.warnings)
     # a failure inside the bound is the fit's own, unchanged; the rigid fit is not bounded here
     with pytest.raises(FitError, match="^Gauss-Newton status 'stalled'"):
         bounded(recs, fidelity="compliant", iterations=5, fail=True)
