@@ -85,6 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "input-output method: the speed reference, given back by the drive's PI speed loop described "
                    "here, kp in N m s/rad, ki in N m/rad, the speed filter's time constant in s, default 0) and fit it "
                    "as --frf does, instead of the time-domain fit; --command-logged says how the log holds the command")
+    p.add_argument("--speed-loop", default=None, metavar="KP,KI[,TAU_S]",
+                   help="the drive's PI speed loop while logging DATA.csv (kp in N m s/rad, ki in N m/rad, the speed "
+                   "filter's time constant in s, default 0): a --fidelity compliant fit without --frf starts from the "
+                   "logs' own frequency response (joint input-output) where it shows an axial mode")
     p.add_argument("--frf-speed", action=KeepTyped, type=_finite("--frf-speed"), default=FRF_SPEED_DEFAULT_RAD_S,
                    metavar="RAD_S", help=f"nut speed during the FRF measurement, rad/s (default {FRF_SPEED_DEFAULT_RAD_S:g}); also the "
                    "speed a compliant fit's axial mode is reported at")
@@ -466,6 +470,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         frfs = [] if frf_only else [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load,
                                              coherence_min=args.coherence_min, sample_time_s=args.frf_sample_time)
                                     for f in args.frf]
+        speed_loop = _speed_loop(args, records)
         if args.frf_from_logs is not None:
             records, frfs = [], frfs + _frfs_from_logs(args, records)
     except (UsageError, argparse.ArgumentTypeError, DataError, PlantFileError, OutputError, ValueError) as exc:
@@ -502,7 +507,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                                delay_samples=args.delay_samples if args.delay_samples is not None or not records else "find",
                                command_logged=args.command_logged or "applied", uncertainty="fit" if args.uncertainty_from_fit else "keep",
                                check_interrupt=run.check, cross_validate=not args.no_cross_validation,
-                               closed_loops=closed_loops)
+                               closed_loops=closed_loops, speed_loop=speed_loop)
     except FitError as exc:
         run.check()  # a fit that failed after Ctrl-C was interrupted
         if args.verbose:  # where it was raised, and what caused it
@@ -584,6 +589,40 @@ def _closed_loops(args) -> dict:
     return out
 
 
+def _loop_numbers(flag: str, text: str) -> list[float]:
+    """``KP,KI[,TAU_S]`` of a speed-loop flag as typed, or one line naming it (UsageError)."""
+    parts = [x.strip() for x in text.split(",")]
+    try:
+        nums = [float(x) for x in parts]
+    except ValueError:
+        nums = []
+    if len(nums) not in (2, 3) or not all(math.isfinite(x) for x in nums):
+        raise UsageError(f"{flag} {text!r}: expected KP,KI[,TAU_S] (the speed PI's gains in N m s/rad and "
+                         "N m/rad, the speed filter's time constant in s), e.g. 1.0,100,2e-4")
+    return nums
+
+
+def _speed_loop(args, records):
+    """``--speed-loop KP,KI[,TAU_S]``: the described loop a compliant fit of the logs starts from
+    (:func:`prsa_ctrl.identification.compliant.compliant_start`); None without the flag."""
+    import numpy as np
+
+    from ..identification.closedloop import SpeedLoop
+
+    if args.speed_loop is None:
+        return None
+    typed = repr(args.speed_loop)
+    if args.fidelity != "compliant" or not records or args.frf_from_logs is not None:
+        raise UsageError(f"--speed-loop {typed}: expected it with DATA.csv and --fidelity compliant (without "
+                         "--frf-from-logs): it starts the compliant time-domain fit from the logs' response")
+    nums = _loop_numbers("--speed-loop", args.speed_loop)
+    try:
+        return SpeedLoop(nums[0], nums[1], float(np.median(np.diff(records[0].time_s))), nums[2] if len(nums) == 3 else 0.0,
+                         args.command_logged or "applied")
+    except ValueError as exc:
+        raise UsageError(f"--speed-loop {typed}: {exc}") from None
+
+
 def _frfs_from_logs(args, records) -> list:
     """``--frf-from-logs KP,KI[,TAU_S]``: the frequency response of each DATA.csv log
     (:func:`prsa_ctrl.identification.closedloop.frf_from_logs`)."""
@@ -594,14 +633,7 @@ def _frfs_from_logs(args, records) -> list:
 
     text = args.frf_from_logs
     typed = repr(text)  # a text flag: the value is the text as typed
-    parts = [x.strip() for x in text.split(",")]
-    try:
-        nums = [float(x) for x in parts]
-    except ValueError:
-        nums = []
-    if len(nums) not in (2, 3) or not all(math.isfinite(x) for x in nums):
-        raise UsageError(f"--frf-from-logs {typed}: expected KP,KI[,TAU_S] (the speed PI's gains in N m s/rad and "
-                         "N m/rad, the speed filter's time constant in s), e.g. 1.0,100,2e-4")
+    nums = _loop_numbers("--frf-from-logs", text)
     if not records:
         raise UsageError(f"--frf-from-logs {typed} without DATA.csv; expected closed-loop logs to estimate it from")
     out, why = [], []

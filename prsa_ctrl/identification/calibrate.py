@@ -51,10 +51,10 @@ def written_keys(base, result) -> tuple[list[str], list[str]]:
     """``(keys, uncertainty_keys)`` the fitted plant file rewrites: the fitted keys and the
     command delay, current-loop bandwidth or breakaway level that the fit changed from the
     base's, and the axial-mode keys a compliant fit started from a measured response
-    (:data:`~prsa_ctrl.identification.compliant.SEED_KEYS`: the plant fitted and validated has
+    (:func:`~prsa_ctrl.identification.compliant.seed_keys`: the plant fitted and validated has
     them; the file kept the base's); the ``[uncertainty]`` entries (and
     correlation) that differ from the base's."""
-    from .compliant import SEED_KEYS
+    from .compliant import seed_keys
 
     from ..plant.uncertainty import CORRELATION_KEY
 
@@ -64,7 +64,7 @@ def written_keys(base, result) -> tuple[list[str], list[str]]:
                 if fitted_unc.get(k) != base_unc.get(k)]
     # the command delay (found, given or written from a fitted FRF delay) is written when it is not the base's
     delay_keys = [k for k in ("drive.command_delay_samples", "drive.current_loop_bandwidth_hz",
-                              "friction.no_load_breakaway_torque_n_m", *SEED_KEYS)  # (a given one raised to a fitted drag)
+                              "friction.no_load_breakaway_torque_n_m", *seed_keys(base))  # (a given one raised to a fitted drag)
                   if k not in result.plant_keys and k in base.values and result.plant.values[k] != base.values[k]
                   and not (k == "friction.no_load_breakaway_torque_n_m" and k in result.plant.defaulted)]
     return [*result.plant_keys, *delay_keys], unc_keys

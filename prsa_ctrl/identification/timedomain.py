@@ -49,8 +49,9 @@ from scipy.sparse import csr_matrix
 from ..errors import FitError
 from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
+from .workbudget import WorkBudgetSpent, bounded_work, spend
 from .compliant import (COMPLIANT_F_DROP, COMPLIANT_SEGMENT_S, COMPLIANT_G_MAX, COMPLIANT_RELAXED_STEPS, COMPLIANT_X0_RTOL,
-                        compliant_reference, compliant_scales, seed_from_frf)
+                        compliant_reference, compliant_scales, compliant_start)
 from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
@@ -87,6 +88,9 @@ STEP_SE_FRACTION = 1e-3
 #: after the remaining step falls below :data:`~prsa_ctrl.identification.gaussnewton.FIRST_ORDER_TOL`
 #: (foreign multisine: 0.14, 0.012, 0.0017 standard errors, then the test).
 FIRST_ORDER_WINDOW = 5
+
+
+@bounded_work
 def fit_plant(
     records: Sequence[Record],
     plant: Plant | None = None,
@@ -109,6 +113,7 @@ def fit_plant(
     validation: bool = True,
     cross_validate: bool = True,
     closed_loops=None,
+    speed_loop=None,
 ) -> FitResult:
     """Fit plant parameters to measured time-domain records (output error through the model).
 
@@ -211,6 +216,10 @@ def fit_plant(
         of a log whose description gives the controller and the reference): the validation
         replays those records in closed loop from the reference instead of in prediction-error
         form.
+    speed_loop : SpeedLoop, optional
+        The drive's speed loop (:class:`prsa_ctrl.identification.closedloop.SpeedLoop`): a
+        compliant fit without ``frf`` starts from the logs' own response where it shows a mode
+        (:func:`prsa_ctrl.identification.compliant.compliant_start`).
 
     Returns
     -------
@@ -263,8 +272,8 @@ def fit_plant(
         return validate_fit(res, records, validate, int(cd["shift_samples"]), fidelity, None, check_interrupt,
                             closed_loops=closed_loops)
     seeded = None
-    if fidelity == "compliant" and records and frf and plant.screw_driven:  # start from the FRF's axial mode
-        plant, seeded = seed_from_frf(plant, frf, command_logged)
+    if fidelity == "compliant":  # start from a response's axial mode
+        plant, keys, seeded = compliant_start(plant, records, frf, keys, command_logged, speed_loop)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
                        delay_samples=shift if delay_samples in (None, "find") else delay_samples,
@@ -326,7 +335,9 @@ def fit_plant(
         # it keeps: the cross-validation refit starts at the all-logs optimum; the retries
         # (the base plant, bolder steps) start from the reference as before
         warm = solved.get(shift) if attempt == 0 and start is not plant else None
-        return _fit_records(recs, start, frf=(), keys=res.keys, fidelity=fidelity, validate=(), segment_s=segment_s,
+        # on the segments the fit converged on (the search's, when delay.refit_found kept its values)
+        return _fit_records(recs, start, frf=(), keys=res.keys, fidelity=fidelity, validate=(),
+                            segment_s=res.solver.get("segment_s") or segment_s,
                             delay_samples=shift, substeps=substeps, max_iter=max_iter, tol=tol,
                             min_speed_rad_s=min_speed_rad_s, keep_unidentified=keep_unidentified,
                             uncertainty=uncertainty, check_interrupt=check_interrupt, max_attempts=1,
@@ -410,6 +421,8 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
             sol = fit_run.solve(s0, lo, hi, max_iter, tol, fixed=False, box=box,
                                 warm=0 if first and states_solved else warm, init=init if first else None)
             break
+        except WorkBudgetSpent:
+            raise  # (the run's bound: no other attempt)
         except FitError:
             spent += fit_run.last_iterations
             if i == len(attempts) - 1:
@@ -752,6 +765,7 @@ class _Problem:
         first_order: list[bool] = []  # per parameter iteration: at a first-order point within the noise
         for it in range(1, int(max_iter) + warm + 1):
             self.check()
+            spend(self.M)  # the run's work bound (a compliant fit's: identification.workbudget)
             res, lin = self.linearise(V, X0, s)
             g_norm = float(np.max(np.abs(res)))
             g_hist.append(g_norm)

@@ -537,3 +537,43 @@ def test_a_fitted_value_outside_the_users_uncertainty_is_evidence_not_bad_input(
         (line,) = [ln for ln in cap.out.splitlines() if ln.startswith(f"warning: {k} = ") and "outside the base" in ln]
         assert f"low = {base.uncertainty[k]['low']!r}, high = {base.uncertainty[k]['high']!r}" in line
         assert fitted.uncertainty.get(k) != base.uncertainty[k]
+
+
+def test_speed_loop_reaches_the_compliant_fit_and_bad_values_are_one_line(record, tmp_path, capsys, monkeypatch):
+    """--speed-loop KP,KI[,TAU_S]: the described loop goes to fit_plant (the compliant fit's start
+    from the logs' own response, identification.compliant.compliant_start) with the logs' sample
+    time and the command convention; a value that is not KP,KI[,TAU_S], a loop whose PI inverse is
+    unstable, or the flag without --fidelity compliant are one line, exit 2, nothing written."""
+    import prsa_ctrl.identification.timedomain as td
+    from prsa_ctrl.errors import FitError
+
+    seen = {}
+
+    def fake(records, plant=None, **kw):
+        seen.update(kw)
+        raise FitError("stopped here by the test")
+
+    monkeypatch.setattr(td, "fit_plant", fake)
+    out = tmp_path / "fitted.toml"
+    base = [str(record), "--out", str(out), "--command-logged", "computed"]
+    code, err = _run(capsys, [*base, "--fidelity", "compliant", "--speed-loop", "0.5,40,2e-4"])
+    assert code == 3, err
+    loop = seen["speed_loop"]
+    assert (loop.kp_n_m_s_per_rad, loop.ki_n_m_per_rad, loop.speed_filter_time_constant_s) == (0.5, 40.0, 2e-4)
+    assert loop.sample_time_s == pytest.approx(2.5e-4)
+    assert loop.command_logged == "computed"
+    seen.clear()
+    code, err = _run(capsys, [*base, "--fidelity", "compliant"])
+    assert code == 3, err
+    assert seen["speed_loop"] is None
+    for bad, words in (("1.0", "expected KP,KI[,TAU_S]"), ("a,b", "expected KP,KI[,TAU_S]"),
+                       ("0.5,40,nan", "expected KP,KI[,TAU_S]"), ("0.001,40", "unstable")):
+        code, err = _run(capsys, [*base, "--fidelity", "compliant", "--speed-loop", bad])
+        assert code == 2, err
+        assert err.count("\n") == 1, err
+        assert f"--speed-loop {bad!r}" in err
+        assert words in err
+    code, err = _run(capsys, [*base, "--speed-loop", "0.5,40"])  # a rigid fit has no mode to start
+    assert code == 2, err
+    assert "--fidelity compliant" in err
+    assert not out.exists()
