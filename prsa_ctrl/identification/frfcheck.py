@@ -30,9 +30,9 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["resonances", "low_frequency_inertia", "unexplained_resonances", "failure_diagnosis", "units_line",
-           "unexplained_line",
-           "RESONANCE_NOISE", "RESONANCE_MIN_DB", "MODE_MATCH", "UNITS_RATIO"]
+__all__ = ["choose_structure_checked", "resonances", "low_frequency_inertia", "unexplained_resonances",
+           "failure_diagnosis", "units_line", "unexplained_line", "RESONANCE_NOISE", "RESONANCE_MIN_DB", "MODE_MATCH",
+           "UNITS_RATIO"]
 
 #: A maximum of ``ln(w |G|)`` is a resonance when its prominence is at least this many times the
 #: response's point-to-point noise (module docstring: noise maxima reach 6.2 x, modes 30 x and more).
@@ -176,3 +176,17 @@ def failure_diagnosis(frf, reflected_inertia: float, exc: BaseException) -> str:
     return (f"no plant written: the FRF fit's solver failed ({solver}); not the units ({units}) and no resonance "
             "beyond the models' (" + (f"one near {_named(found)}" if found else "none") + "): a failure of the solver "
             "on this response; remedy: rerun with --verbose and report it with the response")
+
+
+def choose_structure_checked(frf, reflected_inertia: float, *, sample_time_s: float = 0.0,
+                             current_loop_bandwidth_hz: float | None = None):
+    """:func:`prsa_ctrl.identification.twomass.choose_structure`, a solver failure re-raised as
+    :func:`failure_diagnosis`'s line (FitError, the solver's as its cause); ``reflected_inertia``
+    (kg m^2) the base plant's, for the units check."""
+    from ..errors import FitError
+    from .twomass import choose_structure
+
+    try:
+        return choose_structure(frf, sample_time_s=sample_time_s, current_loop_bandwidth_hz=current_loop_bandwidth_hz)
+    except FitError as exc:
+        raise FitError(failure_diagnosis(frf, reflected_inertia, exc)) from exc

@@ -52,8 +52,8 @@ import numpy as np
 from ..errors import FitError
 from ..plant.plantfile import Plant
 from .common import FitResult
-from .frfcheck import failure_diagnosis, units_line, unexplained_line, unexplained_resonances
-from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure
+from .frfcheck import choose_structure_checked, units_line, unexplained_line, unexplained_resonances
+from .twomass import StructureChoice, FrfModelFit, physical_values
 
 __all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "apparent_inertia", "held_key_spread", "HELD_DEFAULT",
            "held_key_sd", "with_held",
@@ -689,12 +689,10 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
 
 
 def _choose(frf, plant: Plant, ts: float, fix_fc: float | None) -> StructureChoice:
-    """:func:`choose_structure`, its solver's failure diagnosed from the data
+    """:func:`~prsa_ctrl.identification.twomass.choose_structure`, its solver's failure diagnosed from the data
     (:func:`prsa_ctrl.identification.frfcheck.failure_diagnosis`: units, resonances, or the solver)."""
-    try:
-        return choose_structure(frf, sample_time_s=ts, current_loop_bandwidth_hz=fix_fc)
-    except FitError as exc:
-        raise FitError(failure_diagnosis(frf, plant.reflected_inertia_kg_m2, exc)) from exc
+    return choose_structure_checked(frf, plant.reflected_inertia_kg_m2, sample_time_s=ts,
+                                    current_loop_bandwidth_hz=fix_fc)
 
 
 def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: StructureChoice, keys, ts: float,
