@@ -542,8 +542,8 @@ def _position_periodic(entry: dict | None, share: float, fp: float, n: str) -> s
             f"{100 * pm['time_share']:.0f} % (speed {lo:.3g}..{hi:.3g} rad/s)")
     if pm["verdict"] == "periodic":
         return (f"position-periodic torque: {100 * share:.0f} % of the replay residual of {n} lies within 15 % of "
-                f"{fp:.4g} Hz and {nums}: a torque ripple of {pm['cycles_per_rev']:.1f} per revolution (cogging, a "
-                "pitch error) that the plant's models lack, not a mode")
+                f"{fp:.4g} Hz and {nums}: a torque ripple of {pm['cycles_per_rev']:.1f} per revolution, cogging or "
+                "the screw's lead deviation, that the plant's models lack, not a mode")
     return (f"second mass or position-periodic torque: {100 * share:.0f} % of the replay residual of {n} lies within "
             f"15 % of {fp:.4g} Hz, {pm['cycles_per_rev']:.2f} cycles per revolution at its speed, and {nums}: its "
             "speed varies too little to tell a mode from a torque ripple (cogging); the logs at other speeds decide "
