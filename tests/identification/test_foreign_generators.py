@@ -839,11 +839,11 @@ THIRD_XFAIL: dict[tuple[str, str], str] = {
     # roller-39x10 frf and frf-compliant were marked here (exit 0: -4.97 % inertia, 745.9 Hz, delay 1
     # against 2; compliant +28.3 % with the truth outside its interval, moving mass 999 kg, mode 117.14 Hz)
     # until the FRF path refused a response with a resonance its model lacks (identification/frfcheck.py,
-    # h13-frfdiag): both now end exit 3, no file, "the response shows a resonance above the first axial
-    # mode near 134.3 Hz that the two-mass fit does not explain, near 754.4 Hz (11.6 dB, 30.4 x the
-    # noise)"; the ball-40x16 FRFs end exit 3 naming "2 resonances, near 117.2 Hz (30.6 dB, 106 x the
-    # noise) and 951.2 Hz (18.5 dB, 63.9 x the noise)" and the units check passed, no longer "check the
-    # response's units"
+    # h13-frfdiag): both now end exit 3, no file, before any fit, "the response shows 2 resonances, near
+    # 134.3 Hz (24.8 dB, 64.9 x the noise) and 754.4 Hz (11.6 dB, 30.4 x the noise) ... the units are right
+    # (... 1.15 x the base plant's ...)", 1.1 s CPU; the ball-40x16 FRFs the same, "117.2 Hz (30.6 dB, 106 x
+    # the noise) and 951.2 Hz (18.5 dB, 63.9 x)", units 1.12 x, 1.1 s CPU (was 4.8 s and "check the
+    # response's units")
 }
 
 

@@ -99,7 +99,9 @@ def test_fit_refuses_a_response_with_a_second_mode_and_names_it_not_the_units():
         msg = str(info.value)
         assert msg.startswith("no plant written: ")
         assert f"{second:.4g} Hz" in msg
-        assert "units" not in msg.replace("the units are right", "")
+        assert "units check passed" in msg
+        assert "check the response's units" not in msg
+        assert "units check failed" not in msg
 
 
 def test_two_mass_response_is_not_refused():
@@ -112,6 +114,26 @@ def test_two_mass_response_is_not_refused():
     res, choice = fit_frf_structure([fr], base, refine=False)
     assert choice.structure == "two-mass"
     assert unexplained_resonances([fr], choice.chosen) == []
+
+
+def test_a_converged_fit_lacking_the_responses_mode_is_refused_with_its_frequency():
+    """One resonance, the rigid model fitted to it (as --fidelity compliant's fallback or a failed
+    two-mass fit leaves it): the resonance is unexplained, and the line names it and the values the
+    fit bent."""
+    from prsa_ctrl.identification.frfcheck import unexplained_line
+    from prsa_ctrl.identification.twomass import fit_frf_model
+
+    base = _base()
+    j = base.reflected_inertia_kg_m2
+    f = np.geomspace(4.0, 1700.0, 160)
+    fr = frf_from_arrays("t", f, _noisy(_chain(f, [0.6 * j, 0.4 * j], [0.4 * j * (TWO_PI * 100.0) ** 2]), 0.01, 2))
+    rigid = fit_frf_model([fr], "rigid")
+    (r,) = unexplained_resonances([fr], rigid)
+    line = unexplained_line([fr], rigid, [r])
+    assert f"{r['frequency_hz']:.4g} Hz" in line
+    assert "the rigid model holds none" in line
+    two = fit_frf_model([fr], "two-mass")
+    assert unexplained_resonances([fr], two) == []
 
 
 def test_failure_diagnosis_blames_the_units_only_when_their_check_fails():
