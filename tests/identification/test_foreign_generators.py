@@ -828,7 +828,9 @@ THIRD_KINDS = ("logs", "logs-compliant", "frf", "frf-compliant")
 # second mass: 55 % of the replay residual of multisine.csv lies within 15 % of 121.1 Hz"; without cogging
 # "second mass: 74 % ... multisine.csv ... 121.1 Hz" as before); ball-40x16 logs ended before "second mass: 86 % of the replay
 # residual of loadsteps.csv within 15 % of 23.44 Hz" (the 6-per-rev cogging at 25 rad/s is 23.9 Hz;
-# the axial mode is 118 Hz), 53 s CPU; roller-39x10 logs "second mass ... 144 Hz" (right), 86 s.
+# the axial mode is 118 Hz), 53 s CPU; roller-39x10 logs "second mass ... 144 Hz" (right), 86 s (h13-frfdiag,
+# re-diagnosed: "second mass: 46 % ... multisine.csv ... 144 Hz ...; besides, position-periodic torque: 46 %
+# ... loadsteps.csv ... 21.97 Hz ... 6.00 cycles per revolution explains 49 % ..., one of time 17 %").
 # Not measured: both logs-compliant runs, stopped at 20 min of wall time (load ~14, ~5 min CPU).
 # Diagnostics (h13-gen3, not marks): with the coupling 100x stiffer (its mode above Nyquist) both
 # FRFs pass the rule (ball -0.73 %, CI holds the truth, 797 Hz, delay 1, mode 118.28 vs 118.35 Hz;
