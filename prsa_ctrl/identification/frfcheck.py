@@ -18,9 +18,9 @@ magnitude is flat or falling, the sampled forms too), and rises to a peak at eac
 anti-resonance. A maximum counts when its prominence is at least :data:`RESONANCE_NOISE` times
 the response's point-to-point noise (the robust spread of the differences of ``ln(w |G|)``
 between neighbouring frequencies, over sqrt 2) **and** at least :data:`RESONANCE_MIN_DB`.
-Measured on the 12 foreign FRFs of tests/identification/test_foreign_generators.py (seed 0): the
-axial modes stand 95..142 x the noise and 19..31 dB high, the coupling modes of gen_third 30 and
-64 x and 12 and 19 dB; the largest noise maximum 6.2 x and 2.4 dB.
+Measured on the 12 foreign FRFs of tests/identification/test_foreign_generators.py at seeds 0, 1
+and 2: the axial modes stand 57..142 x the noise and 19..33 dB high, the coupling modes of
+gen_third 25..64 x and 11..19 dB; the largest noise maximum 6.8 x and 2.4 dB.
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ __all__ = ["choose_structure_checked", "resonances", "low_frequency_inertia", "u
            "UNITS_RATIO"]
 
 #: A maximum of ``ln(w |G|)`` is a resonance when its prominence is at least this many times the
-#: response's point-to-point noise (module docstring: noise maxima reach 6.2 x, modes 30 x and more).
+#: response's point-to-point noise (module docstring: noise maxima reach 6.8 x, modes 25 x and more).
 RESONANCE_NOISE = 15.0
-#: ... and at least this high (dB): noise maxima reach 2.4 dB, the weakest coupling mode 12 dB.
+#: ... and at least this high (dB): noise maxima reach 2.4 dB, the weakest coupling mode 11 dB.
 RESONANCE_MIN_DB = 4.0
 #: A resonance of the data is the fitted model's mode when their frequencies agree within this
 #: fraction (the peak of ``w |G|`` sits near, not at, the modal frequency: damping, the grid).
