@@ -661,10 +661,10 @@ def _fit_frf_only(args, plant, frfs, keys):
     Without ``--fit`` the FRF-only path is :func:`prsa_ctrl.identification.calibrate.calibrate_frf`.
     Returns ``(None, choice)``."""
     from ..errors import FitError
-    from ..identification.twomass import choose_structure
+    from ..identification.frfcheck import choose_structure_checked
     from ..identification.common import frf_sample_time
 
-    choice = choose_structure(frfs, sample_time_s=frf_sample_time(frfs[0], plant))
+    choice = choose_structure_checked(frfs, plant.reflected_inertia_kg_m2, sample_time_s=frf_sample_time(frfs[0], plant))
     if choice.structure == "two-mass" and (args.fidelity or "rigid") == "rigid":
         raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")
     return None, choice

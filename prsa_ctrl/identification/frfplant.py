@@ -53,7 +53,8 @@ import numpy as np
 from ..errors import FitError
 from ..plant.plantfile import Plant
 from .common import FitResult
-from .twomass import StructureChoice, FrfModelFit, physical_values, choose_structure
+from .frfcheck import choose_structure_checked, units_line, unexplained_line, unexplained_resonances
+from .twomass import StructureChoice, FrfModelFit, physical_values
 
 __all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "apparent_inertia", "held_key_spread", "HELD_DEFAULT",
            "held_key_sd", "with_held",
@@ -540,7 +541,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     f_top = max(float(np.max(fr.frequency_hz)) for fr in frf)
     fc_base = plant.values["drive.current_loop_bandwidth_hz"]
     fix_fc = fc_base if f_top < fc_base / CURRENT_LOOP_BAND else None
-    choice = choose_structure(frf, sample_time_s=ts, current_loop_bandwidth_hz=fix_fc)
+    choice = _choose(frf, plant, ts, fix_fc)
     speed, load = frf[0].speed_rad_s, frf[0].load_n
     warns = [w for fr in frf for w in fr.warnings]
     fc_why = (f"the responses end at {f_top:.4g} Hz, below 1/{CURRENT_LOOP_BAND:g} of it, where the current loop's lag "
@@ -553,7 +554,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         # solver stops there (1e7 or 4e8 Hz) is its path, not the data
         fc_why = (f"the fit's current loop ran to its bound {fc_fit['value']:.4g} Hz ({fc_fit['note']}; unbounded it "
                   "runs on past it), so the base value is held and the responses fitted again with it")
-        choice = choose_structure(frf, sample_time_s=ts, current_loop_bandwidth_hz=fix_fc)
+        choice = _choose(frf, plant, ts, fix_fc)
     if fidelity == "rigid" and choice.structure == "two-mass":
         raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")
     if fidelity == "compliant" and choice.structure == "rigid":
@@ -574,14 +575,21 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
                        f"loop (more than {DELAY_SAMPLES_MAX}, the plant file's plausible drive delay); expected a "
                        "response of torque command -> motor speed of this drive (check the sample time and that the "
                        "phase is not shifted)")
+    finite = all(math.isfinite(v["value"]) for v in fit.values.values())
+    extra = unexplained_resonances(frf, fit) if finite else []
+    if extra:  # a mode the model lacks, named before the fit % it spoils (not the units: their check is above)
+        raise FitError(unexplained_line(frf, fit, extra, ts if ts > 0 else plant.sample_time_s))
     best = max((x.fit_percent for x in (choice.rigid, choice.two_mass) if x is not None and math.isfinite(x.fit_percent)),
                default=float("nan"))
-    if not best >= FRF_FIT_MIN or not all(math.isfinite(v["value"]) for v in fit.values.values()):
+    if not best >= FRF_FIT_MIN or not finite:
+        units_ok, units = units_line(frf, j_base)
         raise FitError(f"no plant written: neither the rigid nor the two-mass model explains the response (best fit "
                        + (f"{best:.1f} %" if math.isfinite(best) else "n/a: the response does not vary")
                        + f", expected at least {FRF_FIT_MIN:g} %); expected torque command (N m) -> motor speed "
-                       "(rad/s), falling as 1/(J w) at low frequency with a phase near -90 deg: check the units, the "
-                       "sign and that the columns are magnitude_db and phase_deg (or real, imag)")
+                       "(rad/s), falling as 1/(J w) at low frequency with a phase near -90 deg: "
+                       + ("check the units, the sign and that the columns are magnitude_db and phase_deg (or real, "
+                          "imag)" if not units_ok else f"{units}; check the sign and that the columns are magnitude_db "
+                          "and phase_deg (or real, imag)"))
     warns += list(fit.warnings)
     values, ci, cov, keys, map_warns = plant_keys_of(plant, fit, speed_rad_s=speed, load_n=load)
     warns += map_warns
@@ -712,6 +720,13 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     if refine and fit.structure == "two-mass" and skey is not None and skey in keys:
         result = _refine(result, start, frf, fit, choice, keys, ts_w, command_logged, uncertainty, names)
     return result, choice
+
+
+def _choose(frf, plant: Plant, ts: float, fix_fc: float | None) -> StructureChoice:
+    """:func:`~prsa_ctrl.identification.twomass.choose_structure`, its solver's failure diagnosed from the data
+    (:func:`prsa_ctrl.identification.frfcheck.failure_diagnosis`: units, resonances, or the solver)."""
+    return choose_structure_checked(frf, plant.reflected_inertia_kg_m2, sample_time_s=ts,
+                                    current_loop_bandwidth_hz=fix_fc)
 
 
 def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: StructureChoice, keys, ts: float,

@@ -482,6 +482,20 @@ def diagnosis(written: dict, delay_search: dict | None, result, loo: dict | None
         return max(peaks) if peaks else None
 
     def second_mass(share, fp, n):
+        # the top peak named as what it is (a mode, or a torque periodic in the motor angle), and the other kind
+        # where another log's residual holds it: both are named
+        periodic = _position_periodic(written.get(n), share, fp, n)
+        first = periodic or mode_text(share, fp, n)
+        for s2, f2, m in sorted(((*reversed(resonance(e)), m) for m, e in bad.items() if m != n and e.get("finite")),
+                                reverse=True):
+            if s2 < RESONANCE_SHARE:
+                break
+            other = _position_periodic(written.get(m), s2, f2, m)
+            if bool(other) != bool(periodic) and not (other or "").startswith("second mass or"):
+                return first + "; besides, " + (other or mode_text(s2, f2, m))
+        return first
+
+    def mode_text(share, fp, n):
         if (getattr(result, "solver", None) or {}).get("fidelity") == "compliant":  # the model has the mode: not where the data have it
             return _mode_misplaced(result, share, fp, n)
         return (f"second mass: {100 * share:.0f} % of the replay residual of {n} lies within 15 % of {fp:.4g} Hz, "
@@ -510,6 +524,30 @@ def diagnosis(written: dict, delay_search: dict | None, result, loo: dict | None
             "reversals and load changes (Stribeck keys, friction.torque_offset_n_m, a load-dependent loss)"
             + (f" (besides, the cross-validation fit without {', '.join(failed)} did not converge: a failure of the "
                "fit, not evidence about the physics)" if failed else ""))
+
+
+def _position_periodic(entry: dict | None, share: float, fp: float, n: str) -> str:
+    """The diagnosis of a residual peak that follows the motor angle, not time
+    (:func:`prsa_ctrl.identification.periodic.periodic_or_mode`): a position-periodic torque
+    (cogging, a pitch error), or '' when the peak is a mode's (or the log cannot tell them apart:
+    then the words say so)."""
+    from .periodic import periodic_or_mode
+
+    pm = periodic_or_mode(entry, fp) if entry is not None and entry.get("finite") else None
+    if pm is None or pm["verdict"] == "mode":
+        return ""
+    lo, hi = pm["speed_range_rad_s"]
+    nums = (f"one sinusoid of the motor angle at {pm['cycles_per_rev']:.2f} cycles per revolution explains "
+            f"{100 * pm['angle_share']:.0f} % of it out of sample, one of time at {pm['time_hz']:.4g} Hz "
+            f"{100 * pm['time_share']:.0f} % (speed {lo:.3g}..{hi:.3g} rad/s)")
+    if pm["verdict"] == "periodic":
+        return (f"position-periodic torque: {100 * share:.0f} % of the replay residual of {n} lies within 15 % of "
+                f"{fp:.4g} Hz and {nums}: a torque ripple of {pm['cycles_per_rev']:.1f} per revolution, cogging or "
+                "the screw's lead deviation, that the plant's models lack, not a mode")
+    return (f"second mass or position-periodic torque: {100 * share:.0f} % of the replay residual of {n} lies within "
+            f"15 % of {fp:.4g} Hz, {pm['cycles_per_rev']:.2f} cycles per revolution at its speed, and {nums}: its "
+            "speed varies too little to tell a mode from a torque ripple (cogging); the logs at other speeds decide "
+            "(a staircase), or fit --fidelity compliant")
 
 
 #: Keys that place a screw-driven compliant plant's axial mode (its stiffness and the masses on
