@@ -61,17 +61,17 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+# A log fails when one period of the position explains PERIODIC_SHARE of its force residual (3.);
+# the out-of-sample split's blocks are CV_BLOCK samples (1., 3.): the position-periodic test's own.
+from .periodic import CV_BLOCK, PERIODIC_SHARE, cv_share
+
 __all__ = ["EXCITATION_SHARE", "PERIODIC_SHARE", "FIR_LAGS", "CV_BLOCK", "excitation_share", "periodic_share",
            "speed_entry", "explained", "reasons", "diagnosis", "validate_axis", "refusal_line", "entry_report"]
 
 #: A log fails when the excitation predicts this share of its replay residual (module docstring, 1.).
 EXCITATION_SHARE = 0.2
-#: A log fails when one period of the position explains this share of its force residual (3.).
-PERIODIC_SHARE = 0.2
 #: Lags (samples) of the excitation's FIR (1.): 40 ms at 1 kHz, a lightly damped 100 Hz mode's decay.
 FIR_LAGS = 40
-#: Blocks (samples) of the out-of-sample split (1., 3.).
-CV_BLOCK = 250
 #: At most this many spatial frequencies searched (3.).
 _MAX_PERIODS = 2000
 #: Singular values below this fraction of the largest are dropped from the out-of-sample least
@@ -79,25 +79,6 @@ _MAX_PERIODS = 2000
 #: one sinusoid span two dimensions -- carry no independent excitation, and their tiny singular
 #: values would turn noise into huge coefficients (measured: a share of -5.7e4 on a cosine reference).
 RCOND = 1e-6
-
-
-def _cv_share(y: NDArray[np.float64], X: NDArray[np.float64], block: int = CV_BLOCK) -> float:
-    """Out-of-sample share of ``y``'s power that ``X`` (with a constant) predicts: least squares on
-    alternate blocks of ``block`` samples, scored on the others and the other way round;
-    ``1 - SSE / SST`` over both (0 or below: predicts nothing)."""
-    n = len(y)
-    if n < 4 * block:
-        return 0.0
-    fold = (np.arange(n) // block) % 2
-    X = np.column_stack([np.ones(n), X])
-    sse = sst = 0.0
-    for f in (0, 1):
-        tr, te = fold == f, fold != f
-        b = np.linalg.lstsq(X[tr], y[tr], rcond=RCOND)[0]
-        e = y[te] - X[te] @ b
-        sse += float(e @ e)
-        sst += float(np.sum((y[te] - y[tr].mean()) ** 2))
-    return 1.0 - sse / sst if sst > 0 else 0.0
 
 
 def _lagged(s: NDArray[np.float64], lags: int) -> NDArray[np.float64]:
@@ -121,7 +102,7 @@ def excitation_share(residual: NDArray[np.float64], reference_m, test_signal, sa
             cols.append(_lagged((d - d.mean()) / np.std(d), FIR_LAGS))
     if not cols:
         return 0.0
-    return _cv_share(np.asarray(residual, float)[skip:], np.column_stack(cols)[skip:])
+    return cv_share(np.asarray(residual, float)[skip:], np.column_stack(cols)[skip:], rcond=RCOND)
 
 
 def _best_frequency(y: NDArray[np.float64], q: NDArray[np.float64], freqs: NDArray[np.float64]) -> tuple[float, float]:
@@ -162,7 +143,7 @@ def periodic_share(force_residual_n, position_m, sample_time_s: float, skip: int
     best, best_f = _best_frequency(y, q, np.arange(f_lo, f_hi, step))
     best_f = _best_frequency(y, q, best_f + step * np.linspace(-1.0, 1.0, 41))[1]  # refined within the grid step
     ph = 2 * math.pi * best_f * q
-    return _cv_share(y, np.column_stack([np.sin(ph), np.cos(ph)])), 1.0 / best_f
+    return cv_share(y, np.column_stack([np.sin(ph), np.cos(ph)]), rcond=RCOND), 1.0 / best_f
 
 
 def speed_entry(replay, log, skip: int) -> dict:

@@ -32,7 +32,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["periodic_or_mode", "PERIODIC_SHARE", "MARGIN", "CV_BLOCK"]
+__all__ = ["periodic_or_mode", "cv_share", "PERIODIC_SHARE", "MARGIN", "CV_BLOCK"]
 
 #: The angle's sinusoid must explain at least this share of the residual (out of sample) for a
 #: position-periodic torque (a fifth: far from chance, 0.02 on a mode's residual).
@@ -46,17 +46,24 @@ CV_BLOCK = 250
 _GRID = 241
 
 
-def _cv_share(y: NDArray[np.float64], x: NDArray[np.float64]) -> float:
-    """Out-of-sample share of ``y``'s power that the columns of ``x`` (and a constant) predict."""
+def cv_share(y: NDArray[np.float64], x: NDArray[np.float64], *, block: int = CV_BLOCK, rcond: float = 1e-9) -> float:
+    """Out-of-sample share of ``y``'s power that the columns of ``x`` (and a constant) predict.
+
+    Least squares on alternate blocks of ``block`` samples, scored on the others and the other way
+    round: ``1 - SSE / SST`` over both folds (0 or below: ``x`` predicts nothing; 0 when ``y`` has
+    fewer than ``4 block`` samples). Singular values of ``x`` below ``rcond`` times the largest are
+    dropped. The one out-of-sample share of the residual tests (this module's position-periodic
+    test and the linear axis's, :mod:`prsa_ctrl.identification.axisvalidation`).
+    """
     n = len(y)
-    if n < 4 * CV_BLOCK:
+    if n < 4 * block:
         return 0.0
-    fold = (np.arange(n) // CV_BLOCK) % 2
+    fold = (np.arange(n) // block) % 2
     a = np.column_stack([np.ones(n), x])
     sse = sst = 0.0
     for f in (0, 1):
         tr, te = fold == f, fold != f
-        b = np.linalg.lstsq(a[tr], y[tr], rcond=1e-9)[0]
+        b = np.linalg.lstsq(a[tr], y[tr], rcond=rcond)[0]
         e = y[te] - a[te] @ b
         sse += float(e @ e)
         sst += float(np.sum((y[te] - y[tr].mean()) ** 2))
@@ -67,7 +74,7 @@ def _best(y: NDArray[np.float64], phase_per_unit: NDArray[np.float64], grid) -> 
     best = (-math.inf, math.nan)
     for g in grid:
         ph = g * phase_per_unit
-        s = _cv_share(y, np.column_stack([np.sin(ph), np.cos(ph)]))
+        s = cv_share(y, np.column_stack([np.sin(ph), np.cos(ph)]))
         if s > best[0]:
             best = (s, float(g))
     return best
