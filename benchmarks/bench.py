@@ -495,7 +495,8 @@ def axis_fit_benchmark(repeats: int = 3, duration_s: float = 4.0, warm_up: bool 
                "median_cpu_s": float(np.median(cpu)), "wall_s": wall, "cpu_s": cpu, "evaluations": res.iterations,
                "status": res.status, "mass_kg": res.equivalent["mass_kg"]["value"]}
         if tru is not None:
-            row["truth_in_ci95"] = {k: bool(p["ci95"][0] <= t <= p["ci95"][1])
+            # a key held (the log does not inform it) has no interval: None, not a verdict
+            row["truth_in_ci95"] = {k: (None if p.get("ci95") is None else bool(p["ci95"][0] <= t <= p["ci95"][1]))
                                     for (k, p), t in zip(res.parameters.items(), tru)}
         out[key] = row
     out["load_average_after"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None

@@ -36,7 +36,7 @@ residual cannot hold is anything the log's **own excitation** or the **position*
    position's third difference, :func:`prsa_ctrl.identification.validation.noise_floor`), or a
    replay fit of at least :data:`~prsa_ctrl.identification.validation.FIT_MIN_PERCENT`.
 
-Why these thresholds (measured, one log of 3000 or 6000 samples at 1 kHz each, the tests'
+Why these thresholds (measured, one log of 3,000 or 6,000 samples at 1 kHz each, the tests'
 generators; the EMPS record): a right model leaves an excitation share of -0.06..0.01 and a
 periodic share of -0.04..0.03; the EMPS record, fitted rigid, 0.06 and 0.0002; a second mass the
 rigid model lacks 0.67, a third mass the two-mass model lacks 0.40 (at 1.7 x the noise floor,

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from ..options import rad_s_to_rpm
+from ..options import check_number, rad_s_to_rpm
 from ..plant.plantfile import Plant
 from ..sim.signals import PiecewiseLinear, normalise_profile
 from .dutyscene import DutyCycleScene
@@ -490,16 +490,6 @@ def _frozen_array(name: str, value, size: int | None = None) -> np.ndarray:
     return a
 
 
-def _finite(name: str, value) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"DutyRecord {name} = {value!r}; expected a number") from None
-    if not math.isfinite(x):
-        raise ValueError(f"DutyRecord {name} = {value!r}; expected a finite number")
-    return x
-
-
 @dataclass(frozen=True, eq=False)
 class DutyRecord:
     """One record of a duty-cycle scene, as the loop model and the verification see it
@@ -572,12 +562,12 @@ class DutyRecord:
         for name in ("load_n", "setpoint_rad_s"):
             value = getattr(self, name)
             if not isinstance(value, PiecewiseLinear):
-                set_(self, name, _finite(name, value))
-        set_(self, "load_steps", tuple((_finite("load_steps time", tk), _finite("load_steps size", df))
+                set_(self, name, check_number(f"DutyRecord {name}", value))
+        set_(self, "load_steps", tuple((check_number("DutyRecord load_steps time", tk), check_number("DutyRecord load_steps size", df))
                                        for tk, df in self.load_steps))
-        set_(self, "breaks_s", tuple(_finite("breaks_s", x) for x in self.breaks_s))
-        set_(self, "w_lin_rad_s", _finite("w_lin_rad_s", self.w_lin_rad_s))
-        set_(self, "f_lin_n", _finite("f_lin_n", self.f_lin_n))
+        set_(self, "breaks_s", tuple(check_number("DutyRecord breaks_s", x) for x in self.breaks_s))
+        set_(self, "w_lin_rad_s", check_number("DutyRecord w_lin_rad_s", self.w_lin_rad_s))
+        set_(self, "f_lin_n", check_number("DutyRecord f_lin_n", self.f_lin_n))
 
 
 def duty_record(plant: Plant, scene, case: str) -> DutyRecord:

@@ -160,8 +160,8 @@ def test_a_setpoint_record_reads_the_profile_at_each_sample(paper_plant):
     ({"setpoint_at_rad_s": [1.0, 1.0, np.nan, 1.0, 1.0]}, r"setpoint_at_rad_s\[2\] = nan; expected finite numbers"),
     ({"time_s": [0.0, 1.0, 1.0, 2.0, 3.0]}, "time_s runs .*expected increasing sample times from 0 s"),
     ({"f_lin_n": float("inf")}, "f_lin_n = inf; expected a finite number"),
-    ({"load_n": "heavy"}, "load_n = 'heavy'; expected a number"),
-    ({"breaks_s": (0.1, None)}, "breaks_s = None; expected a number"),
+    ({"load_n": "heavy"}, "load_n = 'heavy'; expected a finite number"),
+    ({"breaks_s": (0.1, None)}, "breaks_s = None; expected a finite number"),
 ])
 def test_a_duty_record_refuses_what_it_cannot_be(change, match):
     good = dict(case="load profile", time_s=np.arange(5) * 0.1, setpoint_at_rad_s=np.ones(5), load_n=500.0,
