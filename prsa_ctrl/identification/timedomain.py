@@ -55,7 +55,8 @@ from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINT
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
 from .shooting import MIN_SEGMENT, reference_trajectory, shooting_segments
-from .gaussnewton import FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, RIGID_HOLD_LOOP, RIGID_X0_RTOL, Buffered, condense, converged_at_kink, first_order_point, noise_decrement
+from .gaussnewton import (FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, PLATEAU_ITERATIONS, PLATEAU_RATIO, RIGID_HOLD_LOOP,
+                          RIGID_X0_RTOL, Buffered, condense, converged_at_kink, first_order_point, noise_decrement)
 from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay, plant_shift,
                     search_segment_s, with_command_delay)
 from .frf import fit_frf, frf_fit_percent, frf_response
@@ -772,8 +773,10 @@ class _Problem:
             # (the window opens after the first parameter step: the warm-up solves the equations with
             # the parameters held, ~1e-11, and was the stall's reference, so that a fit still closing
             # in was given up at iteration warm + 16 whatever its progress)
-            if (len(g_hist) > STALL_ITERATIONS + (warm + 1 if warm else 0) and g_norm > 1e-6
-                    and g_norm > 0.9 * g_hist[-1 - STALL_ITERATIONS]):
+            opened, recent = (warm + 1 if warm else 0), g_hist[-PLATEAU_ITERATIONS:]
+            plateau = (self.x0_rtol is None and len(g_hist) >= PLATEAU_ITERATIONS + opened and g_norm > FIRST_ORDER_G_MAX
+                       and max(recent) <= PLATEAU_RATIO * min(recent))  # a rigid fit's: gaussnewton.PLATEAU_ITERATIONS
+            if len(g_hist) > STALL_ITERATIONS + opened and g_norm > 1e-6 and g_norm > 0.9 * g_hist[-1 - STALL_ITERATIONS]:
                 status = "stalled"  # the constraint residual no longer falls: give this attempt up early
                 break
             f_val = 0.5 * sum(float(r @ r) for r in self.residuals(V, X0))
@@ -793,7 +796,7 @@ class _Problem:
                 -(z[:, 0] + z[:, 1:1 + npar] @ d_s + z[:, 1 + npar:] @ d_x0[g * nx:(g + 1) * nx])
                 for g, (*_, z) in enumerate(lin)])
             alpha, accepted = 1.0, False
-            for _ in range(12):
+            for _ in range(0 if plateau else 12):  # a plateau: the full step at once (below)
                 V1, X1, s1 = V + alpha * step["V"], X0 + alpha * step["X0"], np.clip(s + alpha * d_s, lo, hi)
                 g1, f1 = self._merit_terms(V1, X1, s1)
                 if np.isfinite(g1) and (g1 < (1 - 1e-4 * alpha) * g_norm

@@ -307,3 +307,25 @@ def test_the_search_fit_at_a_fast_current_loop_converges_from_its_first_start(ro
     bw = res.parameters[BW]
     assert bw["value"] > 1.0e4  # the shift leaves almost no lag for the loop: it goes fast
     assert math.isfinite(res.solver["objective"])
+
+
+def test_a_rigid_fit_whose_defect_plateaus_takes_the_full_step(sim, monkeypatch):
+    """A line search that accepts only short steps lowering the objective while the largest
+    defect stays put (the foreign feed axis's first attempt: 0.0927 for 18 iterations, then
+    given up) takes the full Newton step at once (gaussnewton.PLATEAU_ITERATIONS), a
+    non-monotone step of the bounded budget the failed line search has: here every trial is
+    accepted and the defect never falls, so the budget runs out ('line search failed') before
+    the iteration budget, below the general stall test's 15 iterations."""
+    rec, truth = sim
+    orig = td._Problem.linearise
+
+    def plateau(self, V, X0, s):
+        res, lin = orig(self, V, X0, s)
+        return np.full_like(res, 0.05), lin  # the defect never falls (above FIRST_ORDER_G_MAX)
+
+    monkeypatch.setattr(td._Problem, "linearise", plateau)
+    monkeypatch.setattr(td._Problem, "_merit_terms", lambda self, V, X0, s: (0.05, 0.0))  # every trial accepted
+    assert gn.PLATEAU_ITERATIONS + 4 + 4 < td.STALL_ITERATIONS
+    with pytest.raises(td.FitError, match="status 'line search failed'"):
+        td.fit_plant([rec], truth, keys=("nut.inertia_kg_m2",), delay_samples=0, validation=False,
+                     max_iter=td.STALL_ITERATIONS - 4)
