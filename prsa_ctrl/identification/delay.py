@@ -566,7 +566,9 @@ def _on_base(fit: Callable[..., FitResult], plant: Plant) -> Callable[..., FitRe
 def refit_found(fit_at: Callable[..., FitResult], res: FitResult, shift: int, plant: Plant) -> FitResult:
     """The fit at the ``shift`` the search found, on the fit's own segments, started from the
     search's values and states (then from the base plant and the reference); the search's
-    record travels with it. A fit that fails from both keeps the search's own (its warning says
+    record travels with it, and so do its warnings on the delay and on a retried start (a fit
+    at a shift that converged only from another start: the user is told, issue 32's "say so";
+    they were dropped here). A fit that fails from both keeps the search's own (its warning says
     so).
 
     The first start is the search's values of the fitted keys with the base ``plant`` as the
@@ -589,7 +591,8 @@ def refit_found(fit_at: Callable[..., FitResult], res: FitResult, shift: int, pl
             continue
         solver = dict(out.solver)
         solver["delay_search"] = {**res.solver["delay_search"], "segment_s": res.solver.get("segment_s")}
-        warns = list(out.warnings) + [w for w in res.warnings if w not in out.warnings and "command delay" in w]
+        warns = list(out.warnings) + [w for w in res.warnings if w not in out.warnings
+                                      and ("command delay" in w or "converged from start" in w)]
         return dataclasses.replace(out, solver=solver, warnings=warns)
     return dataclasses.replace(res, warnings=list(res.warnings) + [
         f"the fit at the found shift {shift} on the asked segments failed from the search's values and the base "

@@ -727,3 +727,21 @@ def test_a_retry_start_is_never_written_as_the_base_value(plant, tmp_path, capsy
     assert f"{0.5 * plant.values[BW]:.6g}" not in line
     assert f"kept at the base value {0.5 * plant.values[BW]:.6g}" not in cap.out + cap.err
     assert f"converged from start 2 (the base plant with the current loop at {0.5 * plant.values[BW]:.6g} Hz)" in cap.out
+
+
+def test_the_refit_at_the_found_shift_keeps_the_searchs_retry_warning(plant):
+    """A shift whose search fit converged only from another start says so in the final report,
+    after the refit on the asked segments (the warning was dropped there)."""
+    from prsa_ctrl.identification.delay import refit_found
+
+    search = _result(plant, 5.0, 700.0)
+    search.solver["delay_search"] = {"objective": {"0": 5.0}}
+    search.warnings.extend(["the fit at shift 0 converged from start 2 (the base plant with the current loop at 500 Hz)",
+                            "a note of the search's own short segments"])
+
+    def fit_at(shift, start, base=None, warm=False):
+        return _result(start if base is None else base, 4.0, 900.0)
+
+    out = refit_found(fit_at, search, 0, plant)
+    assert any("converged from start 2" in w for w in out.warnings)
+    assert not any("short segments" in w for w in out.warnings)
