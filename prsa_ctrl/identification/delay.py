@@ -328,7 +328,10 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
     Parameters
     ----------
     fit_at : callable
-        ``(shift, start plant) -> FitResult``; raises :class:`FitError` when the fit fails.
+        ``(shift, start plant) -> FitResult``; raises :class:`FitError` when the fit fails. The
+        start gives only the start of the fitted keys: ``fit_at`` keeps ``plant`` as the base of
+        everything else (bounds, the keys not fitted, the value a key the data do not inform
+        keeps; :func:`find_delay` binds it so).
     plant : Plant
         Base plant (its bandwidth starts the first fit).
     keys : sequence of str
@@ -358,6 +361,7 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
     errors: dict[int, str] = {}
     starts: dict[int, int] = {}
     skipped: dict[int, str] = {}
+    won: dict[int, str] = {}  # the start each converged fit came from
     lag = None  # total lag (s) of the first converged fit: current loop + shift
     for shift in range(min_shift, max_shift + 1):
         start = plant
@@ -375,6 +379,8 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
             try:
                 fits[shift] = fit_at(shift, st)
                 errors.pop(shift, None)
+                won[shift] = ("the base plant" if st is plant else
+                              f"the base plant with the current loop at {st.values[_BW]:.6g} Hz")
                 break
             except FitError as exc:
                 fits[shift], errors[shift] = None, str(exc)
@@ -454,8 +460,10 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
             for s, v in sorted(undecided_tests.items())))
     retried = {s: n for s, n in starts.items() if n > 1 and fits[s] is not None}
     if retried:
-        warns.append("the fit at shift " + ", ".join(f"{s} converged from start {n}" for s, n in retried.items())
-                     + " (the first start failed: the fit was retried, the failure not counted against the delay)")
+        warns.append("the fit at shift " + ", ".join(f"{s} converged from start {n} ({won[s]})" for s, n in retried.items())
+                     + " (the first start failed: the fit was retried, the failure not counted against the delay; a "
+                     "start sets only where the fitted keys begin: a key the data do not inform keeps the base plant's "
+                     "value)")
     solver = dict(res.solver)
     solver["delay_search"] = {"objective": {str(s): (None if r is None else float(r.solver["objective"]))
                                             for s, r in sorted(fits.items())},
@@ -517,9 +525,9 @@ def find_delay(fit_on: Callable[[float], Callable[[int, Plant], FitResult]], pla
     """
     offset = CONVENTIONS[command_logged]  # a computed command acts at least one sample late
     top = max(max_delay_samples, offset)
-    fit_at = fit_on(segment_s)
+    fit_at = _on_base(fit_on(segment_s), plant)
     seg_search = search_segment_s(segment_s, ts)
-    fit_search = fit_on(seg_search) if seg_search != segment_s else fit_at
+    fit_search = _on_base(fit_on(seg_search), plant) if seg_search != segment_s else fit_at
     failure = short_failed = None
     shift, res = 0, None
     try:
@@ -543,10 +551,24 @@ def find_delay(fit_on: Callable[[float], Callable[[int, Plant], FitResult]], pla
     return shift, res
 
 
+def _on_base(fit: Callable[..., FitResult], plant: Plant) -> Callable[..., FitResult]:
+    """``fit`` (``(shift, start, base=None, warm=False) -> FitResult``) with the user's ``plant`` as
+    its base whatever the start: a search start (the bandwidth of the same total lag, a retry's
+    half or twice the base bandwidth) gives only the start of the fitted keys, never the value a
+    key the data do not inform keeps, nor the bounds. Before, the start was the fit's base: a
+    current loop the data did not inform was written, and reported "kept at the base value", at
+    the retry's 500 Hz of a 1000 Hz base plant."""
+    def fit_based(shift: int, start: Plant, base: Plant | None = None, warm: bool = False) -> FitResult:
+        return fit(shift, start, base=plant if base is None else base, warm=warm)
+    return fit_based
+
+
 def refit_found(fit_at: Callable[..., FitResult], res: FitResult, shift: int, plant: Plant) -> FitResult:
     """The fit at the ``shift`` the search found, on the fit's own segments, started from the
     search's values and states (then from the base plant and the reference); the search's
-    record travels with it. A fit that fails from both keeps the search's own (its warning says
+    record travels with it, and so do its warnings on the delay and on a retried start (a fit
+    at a shift that converged only from another start: the user is told, issue 32's "say so";
+    they were dropped here). A fit that fails from both keeps the search's own (its warning says
     so).
 
     The first start is the search's values of the fitted keys with the base ``plant`` as the
@@ -569,7 +591,8 @@ def refit_found(fit_at: Callable[..., FitResult], res: FitResult, shift: int, pl
             continue
         solver = dict(out.solver)
         solver["delay_search"] = {**res.solver["delay_search"], "segment_s": res.solver.get("segment_s")}
-        warns = list(out.warnings) + [w for w in res.warnings if w not in out.warnings and "command delay" in w]
+        warns = list(out.warnings) + [w for w in res.warnings if w not in out.warnings
+                                      and ("command delay" in w or "converged from start" in w)]
         return dataclasses.replace(out, solver=solver, warnings=warns)
     return dataclasses.replace(res, warnings=list(res.warnings) + [
         f"the fit at the found shift {shift} on the asked segments failed from the search's values and the base "

@@ -56,7 +56,8 @@ from .common import (DELAY_KEY, default_keys, fit_percent, RANK_RTOL, UNCERTAINT
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
 from .shooting import MIN_SEGMENT, reference_trajectory, shooting_segments
-from .gaussnewton import FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, Buffered, condense, converged_at_kink, first_order_point, noise_decrement
+from .gaussnewton import (FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, PLATEAU_ITERATIONS, PLATEAU_RATIO, RIGID_HOLD_LOOP,
+                          RIGID_X0_RTOL, Buffered, condense, converged_at_kink, first_order_point, noise_decrement)
 from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay, plant_shift,
                     search_segment_s, with_command_delay)
 from .frf import fit_frf, frf_fit_percent, frf_response
@@ -358,7 +359,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     shows: the delay search's on its short segments, a cross-validation refit; measured on the
     foreign feed axis's three rigid logs: 5 of the 6 simulations, a quarter of the run).
 
-    ``plant`` gives the start of the fitted keys; ``base`` (default ``plant``) everything else: the
+    ``plant`` gives the start of the fitted keys and their scales; ``base`` (default ``plant``) everything else: the
     bounds, the values of the keys not fitted, and the value and source a key the data do not
     inform keeps (a fit started from another fit's values writes no start value as a base
     value). ``states``: the start of the first attempt's states, another fit's solution
@@ -398,7 +399,9 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     total = sum(r.n - 1 for r in (*records, *validate))
     if total > MAX_INTERVALS:
         raise ValueError(f"records hold {total} sample intervals; expected at most {MAX_INTERVALS} (shorten them)")
-    bounds = [key_bounds(plant, k, ts) for k in keys]
+    # bounds from the base, scales (a step's trust region) from the start: a search start at a
+    # 10 kHz current loop on a 1 kHz base moves it by 3 kHz a step, not 300 Hz
+    bounds = [(*key_bounds(plant, k, ts)[:2], key_bounds(start, k, ts)[2]) for k in keys]
     s0 = np.array([start.values[k] / b[2] for k, b in zip(keys, bounds)])
     lo = np.array([b[0] / b[2] for b in bounds])
     hi = np.array([b[1] / b[2] for b in bounds])
@@ -412,11 +415,17 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     # warm-up first: without it, parameter steps taken while the trajectories are still far
     # from the data can lead the iteration into a stall (a 4 s record took 33 wasted
     # iterations before the warm-up attempt converged in 9).
-    attempts = ((0.3, 3), (0.3, 0), (1.0, 3))[first_attempt:first_attempt + max_attempts]
+    # A rigid fit started from a current loop that settles within a sample has a last resort:
+    # holding the initial-state directions the data barely reach (gaussnewton.RIGID_X0_RTOL), its
+    # optimum then constrained along them: so only after the others failed, and said so.
+    attempts = ((0.3, 3, None), (0.3, 0, None), (1.0, 3, None))[first_attempt:first_attempt + max_attempts]
+    fast = 2 * math.pi * start.values["drive.current_loop_bandwidth_hz"] * ts >= RIGID_HOLD_LOOP
+    attempts += ((0.3, 3, RIGID_X0_RTOL),) if len(attempts) == 3 and fit_run.x0_rtol is None and fast else ()
     spent = 0
     init = initial_states(fit_run, states)
-    for i, (box, warm) in enumerate(attempts):
+    for i, (box, warm, held) in enumerate(attempts):
         try:
+            fit_run.step_rtol = fit_run.x0_rtol if held is None else held
             first = i == 0 and init is not None
             sol = fit_run.solve(s0, lo, hi, max_iter, tol, fixed=False, box=box,
                                 warm=0 if first and states_solved else warm, init=init if first else None)
@@ -436,6 +445,10 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
     cov = cov_s * np.outer(scales, scales)
     names = ", ".join(r.name for r in records)
     warns = [w for rec in (*records, *validate, *frf) for w in rec.warnings]
+    if held is not None:
+        warns.append(f"the fit converged only with the initial-state directions that reach the data below {held:g} of "
+                     "the strongest held (the torque at a segment's start, when the current loop settles within a "
+                     "sample): its optimum is constrained along them (gaussnewton.RIGID_X0_RTOL)")
     if fit_run.left_out:
         total_int = sum(r.n - 1 for r in records)
         warns.append(f"{fit_run.left_out} of {total_int} sample intervals at |speed| < {min_speed_rad_s:.3g} rad/s "
@@ -506,6 +519,7 @@ def _fit_records(records, plant, *, frf, keys, fidelity, validate, segment_s, de
         "status": sol["status"],
         "iterations": sol["iterations"],
         "attempts": i + 1,
+        "initial_state_directions_held_below": held,
         "converged_at_kink": sol["converged_at_kink"],
         "stall": sol["stall"],
         "iterations_all_attempts": spent + sol["iterations"],
@@ -580,6 +594,7 @@ class _Problem:
         self.S = sc
         #: initial-state directions kept in a step (:func:`condense`; compliant: :data:`COMPLIANT_X0_RTOL`)
         self.x0_rtol = COMPLIANT_X0_RTOL if nx > 3 else None
+        self.step_rtol = self.x0_rtol  # a step's (the rigid fit's last attempt: RIGID_X0_RTOL)
         uu, hh, xr0, xrs = [], [], [], []
         for sg in segs:
             rec, ref = records[sg.rec], refs[sg.rec]
@@ -769,12 +784,17 @@ class _Problem:
             res, lin = self.linearise(V, X0, s)
             g_norm = float(np.max(np.abs(res)))
             g_hist.append(g_norm)
-            if (len(g_hist) > warm + STALL_ITERATIONS and g_norm > 1e-6
-                    and g_norm > 0.9 * g_hist[-1 - STALL_ITERATIONS]):
+            # (the window opens after the first parameter step: the warm-up solves the equations with
+            # the parameters held, ~1e-11, and was the stall's reference, so that a fit still closing
+            # in was given up at iteration warm + 16 whatever its progress)
+            opened, recent = (warm + 1 if warm else 0), g_hist[-PLATEAU_ITERATIONS:]
+            plateau = (self.x0_rtol is None and len(g_hist) >= PLATEAU_ITERATIONS + opened and g_norm > FIRST_ORDER_G_MAX
+                       and max(recent) <= PLATEAU_RATIO * min(recent))  # a rigid fit's: gaussnewton.PLATEAU_ITERATIONS
+            if len(g_hist) > STALL_ITERATIONS + opened and g_norm > 1e-6 and g_norm > 0.9 * g_hist[-1 - STALL_ITERATIONS]:
                 status = "stalled"  # the constraint residual no longer falls: give this attempt up early
                 break
             f_val = 0.5 * sum(float(r @ r) for r in self.residuals(V, X0))
-            js, rv, backs = condense(lin, self.x0_rtol)
+            js, rv, backs = condense(lin, self.step_rtol)
             se = None
             if fixed or npar == 0 or it <= warm:
                 d_s = np.zeros(npar)
@@ -790,7 +810,7 @@ class _Problem:
                 -(z[:, 0] + z[:, 1:1 + npar] @ d_s + z[:, 1 + npar:] @ d_x0[g * nx:(g + 1) * nx])
                 for g, (*_, z) in enumerate(lin)])
             alpha, accepted = 1.0, False
-            for _ in range(12):
+            for _ in range(0 if plateau else 12):  # a plateau: the full step at once (below)
                 V1, X1, s1 = V + alpha * step["V"], X0 + alpha * step["X0"], np.clip(s + alpha * d_s, lo, hi)
                 g1, f1 = self._merit_terms(V1, X1, s1)
                 if np.isfinite(g1) and (g1 < (1 - 1e-4 * alpha) * g_norm
@@ -828,7 +848,7 @@ class _Problem:
         if status not in ("converged", "diverged") and not fixed and npar and it > warm:
             # a stall: converged only at a first-order point within the noise (gaussnewton's rule)
             res, lin = self.linearise(V, X0, s)
-            js, rv, _ = condense(lin, self.x0_rtol)
+            js, rv, _ = condense(lin, self.step_rtol)
             g_norm = float(np.max(np.abs(res)))
             m = self._param_step(js, rv, s, lo, hi, box)[2]
             self.stall = {"status": status, "constraint_residual": g_norm, "step_standard_errors": m,

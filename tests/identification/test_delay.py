@@ -670,3 +670,81 @@ def test_the_found_shift_is_refitted_once_from_the_search_values_on_the_base(pla
     out = refit_found(fit_at, search, 1, plant)
     assert [(s, st is plant, b, w) for s, st, b, w in calls] == [(1, False, plant, True), (1, True, None, False)]
     assert out.solver["objective"] == 4.0
+
+
+def test_a_retry_start_is_never_written_as_the_base_value(plant, tmp_path, capsys, monkeypatch):
+    """A search start other than the base plant (here the retry at half the base current loop,
+    after the first start is made to fail) gives only the start of the fitted keys: the current
+    loop, which this slow multisine (5..30 Hz) does not inform beside the friction the fit holds
+    at the base's values (the truth's differ), is written and reported at the user's base value
+    with its source, never at the retry's 500 Hz (it was, and the validation then failed on the
+    plant with a 500 Hz loop)."""
+    import json
+    import tomllib
+
+    import prsa_ctrl.identification.timedomain as td
+    from prsa_ctrl.cli.fit import main
+    from prsa_ctrl.drive.pid import PID
+    from prsa_ctrl.identification.data import design_excitation
+    from prsa_ctrl.plant.plantfile import plant_file_path
+    from prsa_ctrl.sim.engine import run
+
+    truth = plant.with_params({"nut.inertia_kg_m2": 1.5e-4, "friction.efficiency": 0.88,
+                               "friction.no_load_torque_n_m": 0.03, "friction.viscous_n_m_s_per_rad": 1.5e-4,
+                               BW: 1200.0})
+    t, v = design_excitation("multisine", duration_s=0.3, sample_time_s=2.5e-3, f_min_hz=5, f_max_hz=30,
+                             amplitude=20, offset=30, seed=0)
+    r = run(truth, setpoint=list(zip(t.tolist(), v.tolist())), load=800.0, duration=0.3, controller=PID(0.05, 2.0),
+            fidelity="rigid", discrete=True)
+    q = 2 * math.pi / truth.encoder_counts
+    theta = r.states[r.state_labels.index("theta_nut")]
+    angle = np.floor((theta + 1e-5 * np.random.default_rng(0).standard_normal(theta.shape)) / q) * q
+    csv = tmp_path / "slow.csv"
+    record_from_arrays("slow", r.time, r.output("torque_command"), nut_angle_rad=angle,
+                       axial_load_n=r.inputs[1]).to_csv(csv)
+    fit_records, starts = td._fit_records, []
+
+    def first_start_fails(records, start, **kw):
+        starts.append(start.values[BW])
+        if len(starts) == 1:
+            raise FitError("fit did not converge (the test's failure of the first start)")
+        return fit_records(records, start, **kw)
+
+    monkeypatch.setattr(td, "_fit_records", first_start_fails)
+    out, rep = tmp_path / "o.toml", tmp_path / "o.json"
+    # --segment 0.02: the search's own fit is the result (no refit on longer segments)
+    code = main([str(csv), "--out", str(out), "--json", str(rep), "--fit", f"nut.inertia_kg_m2,{BW}",
+                 "--segment", "0.02", "--force"])
+    cap = capsys.readouterr()
+    assert code in (0, 3), cap.err
+    assert starts[:2] == [plant.values[BW], 0.5 * plant.values[BW]]  # the forced failure, then the retry
+    report = json.loads(rep.read_text())
+    assert report["solver"]["command_delay"]["search"]["starts"]["0"] == 2
+    assert report["parameters"][BW]["kept_base"]
+    assert report["parameters"][BW]["written"] == plant.values[BW]
+    doc = tomllib.loads(out.read_text())
+    base_doc = tomllib.loads(plant_file_path().read_text())
+    assert doc["drive"]["current_loop_bandwidth_hz"] == base_doc["drive"]["current_loop_bandwidth_hz"]
+    (line,) = [ln for ln in cap.out.splitlines() if ln.strip().startswith(f"{BW} = ")]
+    assert f"the plant keeps the base value {plant.values[BW]:.6g} Hz" in line
+    assert f"{0.5 * plant.values[BW]:.6g}" not in line
+    assert f"kept at the base value {0.5 * plant.values[BW]:.6g}" not in cap.out + cap.err
+    assert f"converged from start 2 (the base plant with the current loop at {0.5 * plant.values[BW]:.6g} Hz)" in cap.out
+
+
+def test_the_refit_at_the_found_shift_keeps_the_searchs_retry_warning(plant):
+    """A shift whose search fit converged only from another start says so in the final report,
+    after the refit on the asked segments (the warning was dropped there)."""
+    from prsa_ctrl.identification.delay import refit_found
+
+    search = _result(plant, 5.0, 700.0)
+    search.solver["delay_search"] = {"objective": {"0": 5.0}}
+    search.warnings.extend(["the fit at shift 0 converged from start 2 (the base plant with the current loop at 500 Hz)",
+                            "a note of the search's own short segments"])
+
+    def fit_at(shift, start, base=None, warm=False):
+        return _result(start if base is None else base, 4.0, 900.0)
+
+    out = refit_found(fit_at, search, 0, plant)
+    assert any("converged from start 2" in w for w in out.warnings)
+    assert not any("short segments" in w for w in out.warnings)

@@ -252,3 +252,80 @@ def test_a_written_plant_check_that_fails_is_reported_not_a_failed_fit(sim, monk
     assert any("was not followed on the fit's segments" in w and "stalled" in w for w in res.warnings)
     # the free fit itself is the one without the check
     assert res.parameters[keys[0]]["value"] == pytest.approx(ref.parameters[keys[0]]["value"], rel=1e-12)
+
+
+@pytest.fixture(scope="module")
+def roller_logs(tmp_path_factory):
+    """The foreign roller-screw logs (tests/identification/foreign/gen_rollerscrew.py, seed 0:
+    two-mass, two delays, filtered speed) in the base plant's motor coordinates, and that plant."""
+    from foreign import gen_rollerscrew as rs
+    from prsa_ctrl import load_plant
+    from prsa_ctrl.identification.logformat import load_log_format, load_motor_record
+
+    s = rs.generate(tmp_path_factory.mktemp("rs"), seed=0)
+    plant = load_plant(s["base"])
+    fmt = load_log_format(s["log_format"])
+    return [load_motor_record(s["logs"][n], fmt, plant)[0] for n in ("multisine", "loadsteps", "staircase")], plant
+
+
+def _fit_fast_loop(roller_logs, **kw):
+    """The delay search's fit at shift 3 on its 0.02 s segments, started (as the search starts
+    it) from the current loop of the same total lag as the fit at shift 1: 10 kHz."""
+    records, plant = roller_logs
+    start = plant.with_params({BW: 1.0e4})
+    return td._fit_records(records, start, frf=(), keys=None, fidelity="rigid", validate=(), segment_s=0.02,
+                           delay_samples=3, substeps=1, max_iter=50, tol=1e-8, min_speed_rad_s=None,
+                           keep_unidentified=True, simulate=False, check_written=False, base=plant, **kw)
+
+
+def test_a_current_loop_that_settles_within_a_sample_leaves_the_state_steps_short(roller_logs):
+    """At 10 kHz the initial torque of a segment reaches its angles 4e-7 as strongly as the
+    angle does: a step that kept that direction was so long that the collocation residual rose
+    to 112 and stalled there even with the parameters held; the rigid fit's last attempt holds
+    it (gaussnewton.RIGID_X0_RTOL)."""
+    from prsa_ctrl.identification.common import default_keys, key_bounds
+
+    records, plant = roller_logs
+    start = plant.with_params({BW: 1.0e4})
+    keys = default_keys(plant)
+    scales = np.array([key_bounds(start, k, records[0].sample_time_s)[2] for k in keys])
+    run = td._Problem(plant.with_params({BW: 1.0e4}), keys, scales, "rigid", records, records[0].sample_time_s, 0.02,
+                      3, 1, td.default_min_speed(plant))
+    s0 = np.array([start.values[k] for k in keys]) / scales
+    run.step_rtol = gn.RIGID_X0_RTOL
+    sol = run.solve(s0, s0, s0, 50, 1e-8, fixed=True)  # raises FitError when it stalls
+    assert sol["status"] == "converged"
+
+
+def test_the_search_fit_at_a_fast_current_loop_converges_from_its_first_start(roller_logs):
+    """The roller-screw logs' delay search failed at shift 3 from every start (4 starts x 3
+    attempts): besides the long state steps, the stall test compared the constraint residual
+    with the warm-up's (the equations solved with the parameters held, ~1e-11), so an attempt
+    still closing in was given up at iteration warm + 16. Now the first start converges."""
+    res = _fit_fast_loop(roller_logs)  # raises FitError when every attempt fails
+    assert res.solver["status"] == "converged"
+    bw = res.parameters[BW]
+    assert bw["value"] > 1.0e4  # the shift leaves almost no lag for the loop: it goes fast
+    assert math.isfinite(res.solver["objective"])
+
+
+def test_a_rigid_fit_whose_defect_plateaus_takes_the_full_step(sim, monkeypatch):
+    """A line search that accepts only short steps lowering the objective while the largest
+    defect stays put (the foreign feed axis's first attempt: 0.0927 for 18 iterations, then
+    given up) takes the full Newton step at once (gaussnewton.PLATEAU_ITERATIONS), a
+    non-monotone step of the bounded budget the failed line search has: here every trial is
+    accepted and the defect never falls, so the budget runs out ('line search failed') before
+    the iteration budget, below the general stall test's 15 iterations."""
+    rec, truth = sim
+    orig = td._Problem.linearise
+
+    def plateau(self, V, X0, s):
+        res, lin = orig(self, V, X0, s)
+        return np.full_like(res, 0.05), lin  # the defect never falls (above FIRST_ORDER_G_MAX)
+
+    monkeypatch.setattr(td._Problem, "linearise", plateau)
+    monkeypatch.setattr(td._Problem, "_merit_terms", lambda self, V, X0, s: (0.05, 0.0))  # every trial accepted
+    assert gn.PLATEAU_ITERATIONS + 4 + 4 < td.STALL_ITERATIONS
+    with pytest.raises(td.FitError, match="status 'line search failed'"):
+        td.fit_plant([rec], truth, keys=("nut.inertia_kg_m2",), delay_samples=0, validation=False,
+                     max_iter=td.STALL_ITERATIONS - 4)
