@@ -92,7 +92,7 @@ _EXPORTS = {
     "finish_fit": "common",
     "fit_frf": "frf",
     "fit_linear_axis": "axis",
-    "fit_percent": "timedomain",
+    "fit_percent": "common",
     "fit_plant": "timedomain",
     "fit_record": "synthetic",
     "frf_fit_percent": "frf",

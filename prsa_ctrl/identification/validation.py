@@ -21,7 +21,7 @@ replayed in closed loop from the reference instead (:func:`closed_loop_replay`),
 linear-axis mode replays its plant (:func:`prsa_ctrl.identification.axis.replay_axis`).
 
 Metrics per log, on the nut speed over each sample interval (one-sample angle difference), from
-sample :data:`SKIP_S` on: the replay fit % (:func:`~prsa_ctrl.identification.timedomain.fit_percent`),
+sample :data:`SKIP_S` on: the replay fit % (:func:`~prsa_ctrl.identification.common.fit_percent`),
 the replay error RMS and the log's own noise floor (:func:`noise_floor`).
 
 Verdict (:func:`verdict`). A log is explained when its replay error is within
