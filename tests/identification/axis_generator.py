@@ -107,6 +107,20 @@ check_tolerance = 1e-6
 """
 
 
+#: :data:`CSV_FORMAT` plus the column of the drive's test signal (``dither_V``), for logs written
+#: by :func:`write_dither_csv`.
+DITHER_CSV_FORMAT = CSV_FORMAT.replace("[controller]", '[test_signal]\nname = "dither_V"\nunit = "V"\n[controller]')
+
+
+def write_dither_csv(path, arrays):
+    """Write ``(time_s, position_m, reference_m, command_V, dither_V)`` as a CSV in the units of
+    :data:`DITHER_CSV_FORMAT` (ms, mm, V)."""
+    t, q, r, u, d = arrays
+    rows = ["time_ms,pos_mm,ref_mm,u_V,dither_V"]
+    rows += [f"{a * 1e3:.6f},{b * 1e3:.9f},{c * 1e3:.9f},{float(e)!r},{float(g)!r}" for a, b, c, e, g in zip(t, q, r, u, d)]
+    path.write_text("\n".join(rows) + "\n")
+
+
 def placeholder_base():
     """The linear-axis defaults with a placeholder mass of 1 kg: the base a fit of these logs starts from."""
     vals = {k: v for k, (v, _) in DEFAULTS.items()}

@@ -207,14 +207,8 @@ def test_no_start_for_the_second_mass_is_a_fit_error_naming_the_remedies():
 
 
 # the EMPS-like description of axis_generator, plus the column of the drive's test signal
-CSV_FORMAT = gen.CSV_FORMAT.replace("[controller]", '[test_signal]\nname = "dither_V"\nunit = "V"\n[controller]')
-
-
-def _write_csv(path, log_arrays):
-    t, q, r, u, d = log_arrays
-    rows = ["time_ms,pos_mm,ref_mm,u_V,dither_V"]
-    rows += [f"{a * 1e3:.6f},{b * 1e3:.9f},{c * 1e3:.9f},{float(e)!r},{float(g)!r}" for a, b, c, e, g in zip(t, q, r, u, d)]
-    path.write_text("\n".join(rows) + "\n")
+CSV_FORMAT = gen.DITHER_CSV_FORMAT
+_write_csv = gen.write_dither_csv
 
 
 @pytest.fixture(scope="module")

@@ -81,14 +81,8 @@ def axis_log(seed, n=6000, sub=40, cogging=None, second=None, noise_n=2.0, dithe
 
 
 # the generator's description (axis_generator's, mm and ms) plus the test signal's column
-CSV_FORMAT = gen.CSV_FORMAT.replace("[controller]", '[test_signal]\nname = "dither_V"\nunit = "V"\n[controller]')
-
-
-def _write(path, arrays):
-    t, q, r, u, d = arrays
-    rows = ["time_ms,pos_mm,ref_mm,u_V,dither_V"]
-    rows += [f"{a * 1e3:.6f},{b * 1e3:.9f},{c * 1e3:.9f},{float(e)!r},{float(g)!r}" for a, b, c, e, g in zip(t, q, r, u, d)]
-    path.write_text("\n".join(rows) + "\n")
+CSV_FORMAT = gen.DITHER_CSV_FORMAT
+_write = gen.write_dither_csv
 
 
 @pytest.fixture(scope="module")
