@@ -7,14 +7,9 @@ split from :mod:`prsa_ctrl.tuning.cascade`.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
-
-if TYPE_CHECKING:
-    from .cascade import CascadeModel
 
 __all__ = ["cplx_mul", "abs2", "psd_conditions", "multirate_constraints"]
 
@@ -67,7 +62,7 @@ def psd_conditions(M, mu_c2, norm) -> list:
     return e[1:]
 
 
-def multirate_constraints(cm: CascadeModel, g, g0, omega: NDArray[np.float64], m2: float) -> list:
+def multirate_constraints(cm, g, g0, omega: NDArray[np.float64], m2: float) -> list:
     """The Ms constraints of a multi-rate cascade (``position_rate = N > 1``) at the
     position-loop frequencies ``omega`` (rad/s), each >= 0 where the bound ``m2 = Ms^2`` holds:
 
@@ -78,6 +73,10 @@ def multirate_constraints(cm: CascadeModel, g, g0, omega: NDArray[np.float64], m
     * torque and speed loop closed: the lifted return difference ``M`` has ``sigma_min(M)^2 >=
       1/m2`` (:func:`psd_conditions`; the speed_closed one scaled by ``|1 + b^T a|^2``),
       normalised per frequency by the baseline ``g0``'s ``|M|_F^2`` (a positive constant).
+
+    ``cm`` is the cascade's :class:`~prsa_ctrl.tuning.cascade.CascadeModel`; this module reads
+    only its ``rate``, ``lifted_parts`` and ``return_differences``, and does not import
+    ``cascade`` (which imports it).
     """
     N = cm.rate
     Lp = cm.lifted_parts(omega)
