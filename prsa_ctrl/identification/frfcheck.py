@@ -94,13 +94,13 @@ def resonances(frf) -> list[dict]:
 
 def low_frequency_inertia(frf) -> float:
     """The response's inertia at low frequency, ``1 / (w |G|)`` (kg m^2, or kg for a linear
-    axis), the median over the lowest quarter of its points (at least 3): the asymptote of both
-    the rigid and the two-mass axis."""
-    vals = []
-    for f, g in _records(frf):
-        n = max(3, len(f) // 4)
-        vals.extend((1.0 / (2.0 * math.pi * f[:n] * np.abs(g[:n]))).tolist())
-    return float(np.median(vals)) if vals else float("nan")
+    axis), the median over the lowest quarter of each record's points (at least 3,
+    :func:`prsa_ctrl.identification.twomass.low_band_inertias`, the FRF fits' start): the
+    asymptote of both the rigid and the two-mass axis."""
+    from .twomass import low_band_inertias
+
+    vals = [low_band_inertias(f, g) for f, g in _records(frf)]
+    return float(np.median(np.concatenate(vals))) if vals else float("nan")
 
 
 def unexplained_resonances(frf, fit) -> list[dict]:

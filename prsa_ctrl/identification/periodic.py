@@ -14,10 +14,9 @@ speed), the out-of-sample share of the residual's power that one sinusoid **of t
 explains (``k`` cycles per revolution searched within the peak's +/- 15 % band at the log's
 median speed) against the share one sinusoid **of time** explains (the frequency searched in the
 same band). Each share is fitted on alternate blocks of :data:`CV_BLOCK` samples and scored on
-the others, and the other way round (``1 - SSE / SST``, the idea of the linear axis's
-``periodic_share``, :mod:`prsa_ctrl.identification.axisvalidation` on the h13-axis branch: the same
-out-of-sample share; there the period is searched over the whole travel against the force
-residual, here the cycles per revolution within the peak's band against the speed residual, and
+the others, and the other way round (``1 - SSE / SST``, :func:`cv_share`, which the linear axis's
+``periodic_share`` in :mod:`prsa_ctrl.identification.axisvalidation` scores with too; there the
+period is searched over the whole travel against the force residual, here the cycles per revolution within the peak's band against the speed residual, and
 compared with a sinusoid of time). Where the speed varies the two differ: the angle's sinusoid
 follows a periodic torque, time's a mode. Measured (the ball case): load steps at 24.7..25.1 rad/s,
 angle 0.852 at k = 6.000, time 0.787 at 23.83 Hz; the multisine's 121 Hz mode (15.6..24.1 rad/s),

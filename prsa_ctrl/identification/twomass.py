@@ -60,7 +60,7 @@ from ..errors import FitError
 
 __all__ = ["physical_values", "FrfModelFit", "StructureChoice", "fit_frf_model", "choose_structure", "model_response",
            "two_mass_response", "STRUCTURES", "STRUCTURE_ALPHA", "STRUCTURE_EFFECT", "STRUCTURE_RSS_RATIO",
-           "STRUCTURE_ZETA_MAX", "MAX_NFEV", "CURRENT_LOOP_MAX_FACTOR", "AT_BOUND_NOTE"]
+           "STRUCTURE_ZETA_MAX", "MAX_NFEV", "CURRENT_LOOP_MAX_FACTOR", "AT_BOUND_NOTE", "low_band_inertias"]
 
 #: The parametric structures.
 STRUCTURES = ("rigid", "two-mass")
@@ -326,6 +326,17 @@ def _arrays(frf) -> tuple:
         ws.append(w)
     f, g, w = np.concatenate(fs), np.concatenate(gs), np.concatenate(ws)
     return f, g, w / np.max(w)
+
+
+def low_band_inertias(frequency_hz: NDArray[np.float64], response: NDArray[np.complex128]) -> NDArray[np.float64]:
+    """The apparent inertia ``1 / (w |G|)`` (kg m^2; load coordinates: kg) over the lowest quarter
+    of a response's points (at least 3), ``frequency_hz`` sorted ascending: the low-frequency
+    asymptote ``|G| -> 1 / (J w)`` of both the rigid and the two-mass axis, whose median is the
+    start of the FRF fits and the units check's inertia
+    (:func:`prsa_ctrl.identification.frfcheck.low_frequency_inertia`)."""
+    f, g = np.asarray(frequency_hz, float), np.asarray(response, complex)
+    n = max(3, len(f) // 4)
+    return 1.0 / (_TWO_PI * f[:n] * np.abs(g[:n]))
 
 
 def _log_resid(gm: NDArray[np.complex128], g: NDArray[np.complex128], w: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -601,8 +612,7 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
         raise ValueError(f"{len(f)} frequency points for the {structure} model; expected at least {2 * npar}")
     om = _TWO_PI * f
     appar = 1.0 / (om * np.abs(g))  # apparent inertia: J at low frequency for both structures
-    n_low = max(3, len(f) // 4)
-    j0 = float(np.median(appar[:n_low]))
+    j0 = float(np.median(low_band_inertias(f, g)))
     b_scale = j0 * float(om[0])
     fmax = float(f[-1])
     fc_grid = np.geomspace(0.05 * fmax, 20.0 * fmax, 31)
