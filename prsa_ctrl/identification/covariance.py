@@ -229,12 +229,10 @@ def score_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int
     (ndarray, int)
         Covariance and the number of blocks (Student's t with one fewer degrees of freedom).
     """
-    p = J.shape[1]
-    s = (np.asarray(J) * np.asarray(r)[:, None]).reshape(-1, n_time, p).sum(axis=0)  # per-time scores
+    s, Ainv = _scores(J, r, n_time)
     omega, _ = hac_omega(s, np.ones(n_time), [n_time])
-    Ainv = np.linalg.pinv(np.asarray(J).T @ np.asarray(J))
     c_nw = Ainv @ omega @ Ainv
-    c_batch, g = batch_covariance(J, r, n_time)
+    c_batch, g = _batch(s, Ainv, n_time, COVARIANCE_BLOCKS)
     w, v = np.linalg.eigh(0.5 * ((c_batch - c_nw) + (c_batch - c_nw).T))
     return c_nw + (v * np.clip(w, 0.0, None)) @ v.T, g
 
@@ -260,13 +258,23 @@ def batch_covariance(J: NDArray[np.float64], r: NDArray[np.float64], n_time: int
     (ndarray, int)
         Covariance and the number of blocks used.
     """
-    p = J.shape[1]
-    s = (J * r[:, None]).reshape(-1, n_time, p).sum(axis=0)  # per-time scores, summed over channels
+    return _batch(*_scores(J, r, n_time), n_time, blocks)
+
+
+def _scores(J, r, n_time: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The per-time scores ``J' r`` summed over the channels (rows channel-major, ``n_time`` per
+    channel) and ``(J'J)^-1`` (pseudo-inverse): the parts both long-run variances share."""
+    J, r = np.asarray(J), np.asarray(r)
+    s = (J * r[:, None]).reshape(-1, n_time, J.shape[1]).sum(axis=0)
+    return s, np.linalg.pinv(J.T @ J)
+
+
+def _batch(s: NDArray[np.float64], Ainv: NDArray[np.float64], n_time: int, blocks: int):
+    """The batch-means sandwich of :func:`batch_covariance` from the per-time scores ``s``."""
     g = int(min(blocks, max(2, n_time // 50)))
     edges = np.linspace(0, n_time, g + 1).astype(int)
     S = np.array([s[a:b].sum(axis=0) for a, b in zip(edges[:-1], edges[1:])])
     B = g / (g - 1.0) * (S.T @ S)
-    Ainv = np.linalg.pinv(J.T @ J)
     return Ainv @ B @ Ainv, g
 
 
