@@ -56,8 +56,9 @@ from .common import (DELAY_KEY, default_keys, RANK_RTOL, UNCERTAINTY_MODES, FitR
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
 from .shooting import MIN_SEGMENT, reference_trajectory, shooting_segments
-from .gaussnewton import (FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, PLATEAU_ITERATIONS, PLATEAU_RATIO, RIGID_HOLD_LOOP,
-                          RIGID_X0_RTOL, Buffered, condense, converged_at_kink, first_order_point, noise_decrement)
+from .gaussnewton import (CONSTRAINT_TOL, FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, PLATEAU_ITERATIONS, PLATEAU_RATIO,
+                          RIGID_HOLD_LOOP, RIGID_X0_RTOL, Buffered, condense, converged_at_kink, feasible_full_step,
+                          first_order_point, noise_decrement)
 from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay, plant_shift,
                     search_segment_s, with_command_delay)
 from .frf import fit_frf, frf_fit_percent, frf_response
@@ -815,8 +816,11 @@ class _Problem(ProblemTraces):
                 V1, X1, s1 = V + alpha * step["V"], X0 + alpha * step["X0"], np.clip(s + alpha * d_s, lo, hi)
                 g1, f1 = self._merit_terms(V1, X1, s1)
                 if np.isfinite(g1) and (g1 < (1 - 1e-4 * alpha) * g_norm
-                                        or (g1 <= max(g_norm, 1e-8) and f1 <= f_val * (1 + 1e-9) + 1e-12)):
+                                        or (g1 <= max(g_norm, CONSTRAINT_TOL) and f1 <= f_val * (1 + 1e-9) + 1e-12)):
                     accepted = True
+                    break
+                if alpha == 1.0 and self.x0_rtol is None and feasible_full_step(g_norm, g1, f_val, f1):
+                    accepted = True  # from where the equations hold: no creep at 1e-8 (gaussnewton.feasible_full_step)
                     break
                 if (alpha == 1.0 and relaxed > 0 and self.x0_rtol is not None and np.isfinite(g1)
                         and g1 <= COMPLIANT_G_MAX and f1 < (1 - COMPLIANT_F_DROP) * f_val):
@@ -839,7 +843,7 @@ class _Problem(ProblemTraces):
                     break
             V, X0, s = V1, X1, s1
             small = bool(np.all(np.abs(alpha * d_s) < np.maximum(tol, STEP_SE_FRACTION * se))) if npar and se is not None else True
-            if it > warm and accepted and g1 < 1e-8 and small and float(np.max(np.abs(alpha * step["X0"]))) < 1e-3:
+            if it > warm and accepted and g1 < CONSTRAINT_TOL and small and float(np.max(np.abs(alpha * step["X0"]))) < 1e-3:
                 status = "converged"
                 g_norm, f_val = g1, f1
                 break
