@@ -56,7 +56,8 @@ from .common import FitResult
 __all__ = ["CONVENTIONS", "DEFAULT_CONVENTION", "DELAY_OBJECTIVE_RATIO", "DELAY_TEST_LEVEL", "MAX_SHIFT", "plant_shift",
            "segment_test", "MIN_TEST_SEGMENTS",
            "search_delay", "with_command_delay", "SEARCH_SEGMENT_S", "SEARCH_SEGMENT_SAMPLES", "search_segment_s",
-           "find_delay", "refit_found", "check_convention"]
+           "find_delay", "refit_found", "check_convention", "DELAY_STATUSES", "delay_status_head",
+           "undecided_by_rejection"]
 
 #: Logging conventions of the command -> samples between the logged sample and the sample from
 #: which the drive holds it (before the drive's own command delay): ``"applied"`` the command
@@ -77,6 +78,17 @@ DELAY_TEST_LEVEL = 0.01
 MIN_TEST_SEGMENTS = 10
 #: Largest shift searched or accepted, samples.
 MAX_SHIFT = 10
+#: The command delay's status (``solver["command_delay"]["status"]``, and the search's
+#: ``["search"]["status"]``): a status starts with exactly one of these heads; why follows the colon.
+DELAY_STATUSES = {
+    "decided": "the delay search decided the delay (every other shift fitted worse by the ratio, refuted by the "
+               "paired segment test or left out) with a model its validation did not reject",
+    "undecided": "the delay search did not decide it (why follows the colon): a shift fits alike, a log prefers "
+                 "another, a fit failed from every start, or the model the search judged with is rejected by its own "
+                 "validation (then the shifts cannot be told apart with it)",
+    "given": "the user gave the delay (--delay-samples)",
+    "base plant's": "the base plant's delay, not searched",
+}
 #: The search leaves out shifts that leave less than this fraction of a sample of current-loop lag.
 _MIN_LAG_SAMPLES = 0.05
 _BW = "drive.current_loop_bandwidth_hz"
@@ -135,12 +147,63 @@ def with_command_delay(result: FitResult, shift: int, command_logged: str, how: 
                       mechanism=with_delay.mechanism, defaulted=with_delay.defaulted,
                       mechanism_source=with_delay.mechanism_source)
     solver = dict(result.solver)
+    search = solver.pop("delay_search", None)
+    status = (search.get("status", "decided" if search.get("decided") else "undecided") if search is not None else
+              "given" if how.startswith("given") else "base plant's")
     solver["command_delay"] = {"shift_samples": int(shift), "command_logged": command_logged,
-                               "drive_command_delay_samples": int(n), "how": how,
-                               **({"search": solver.pop("delay_search")} if "delay_search" in solver else {})}
+                               "drive_command_delay_samples": int(n), "how": how, "status": status,
+                               **({"search": search} if search is not None else {})}
     return FitResult(plant, result.parameters, result.reflected_inertia_kg_m2, result.correlation, result.keys,
                      result.fit_percent, warns, solver, result.traces, result.delay,
                      result.not_identified, result.covariance)
+
+
+def delay_status_head(status: str) -> str:
+    """The :data:`DELAY_STATUSES` head a delay status belongs to (a ValueError for any other).
+
+    Examples
+    --------
+    >>> delay_status_head("undecided: shifts 1 and 2 fit alike")
+    'undecided'
+    """
+    for head in DELAY_STATUSES:
+        if status == head or status.startswith(head + ":"):
+            return head
+    raise ValueError(f"delay status = {status!r}; expected one of {', '.join(map(repr, DELAY_STATUSES))}")
+
+
+def _shift_list(shifts) -> str:
+    s = [str(x) for x in sorted(shifts)]
+    return s[0] if len(s) == 1 else ", ".join(s[:-1]) + " and " + s[-1]
+
+
+def undecided_by_rejection(command_delay: dict, why: str) -> tuple[dict, str] | None:
+    """The command delay's record (``solver["command_delay"]``) made undecided when the search
+    decided it with a model that the fit's validation rejects for missing physics (``why``, the
+    validation's diagnosis), and the warning that says so; ``None`` when the delay was not
+    searched or the search did not decide it.
+
+    Why: every shift's objective is the misfit of the same model, and a model that lacks a
+    second mass (or a friction law) misfits each shift differently for reasons that are not
+    the delay: the current loop absorbs a sample (the judge's roller-2mass-d2 logs: shift 1 with
+    the current loop at 330.6 Hz against the true 2 with 700 Hz, paired t = 9.04), or the
+    misfit prefers a shift (tests/identification/foreign's roller-screw logs: 1 decided, truth
+    2). The search's record keeps every objective it fitted (``objective``, the per-log and
+    segment tests), now read as what the rejected model prefers (``preferred_by_rejected_model``)."""
+    search = (command_delay or {}).get("search")
+    if search is None or not search.get("decided"):
+        return None
+    lo, hi = search.get("range", [command_delay["shift_samples"]] * 2)
+    shifts = range(int(lo), int(hi) + 1)
+    status = (f"undecided: the delays {_shift_list(shifts)} cannot be told apart with a model the data reject: "
+              f"{why}")
+    search = {**search, "decided": False, "status": status,
+              "preferred_by_rejected_model": int(command_delay["shift_samples"])}
+    table = ", ".join(f"{k}: {'failed' if v is None else f'{v:.4g}'}" for k, v in search.get("objective", {}).items())
+    warn = (f"the command delay is not decided: the delays {_shift_list(shifts)} (samples from the logged command to "
+            f"its action) cannot be told apart with a model the data reject (see the validation); the search's "
+            f"objective per delay ({table}) is that model's, and it preferred {command_delay['shift_samples']}")
+    return {**command_delay, "status": status, "search": search}, warn
 
 
 def _retry_starts(plant: Plant, first: Plant, keys) -> list[Plant]:
@@ -478,6 +541,7 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
                               "decided_by_test": [int(s) for s in by_test],
                               "test_level": DELAY_TEST_LEVEL,
                               "decided": not close and not failed and not contra,
+                              "status": _search_status(best, close, failed, contra, against),
                               "ratio_tolerance": DELAY_OBJECTIVE_RATIO,
                               "rule": f"decided when every other shift of {min_shift}..{max_shift} was fitted with an "
                                       f"objective at least {DELAY_OBJECTIVE_RATIO:g} x the best's (all logs together, or "
@@ -492,6 +556,20 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
                     res.fit_percent, warns, solver, res.traces, res.delay, res.not_identified,
                     res.covariance)
     return best, out
+
+
+def _search_status(best: int, close, failed, contra, against) -> str:
+    """The search's own status (:data:`DELAY_STATUSES`): ``"decided"``, or ``"undecided: <why>"``."""
+    why = []
+    if failed:
+        why.append(f"the fit failed at shift{'s' if len(failed) > 1 else ''} {_shift_list(failed)} from every start")
+    if close:
+        why.append(f"shift{'s' if len(close) > 1 else ''} {_shift_list(close)} fit{'' if len(close) > 1 else 's'} "
+                   f"within a factor {DELAY_OBJECTIVE_RATIO:g} of the best, {best}")
+    for s in contra:
+        why.append(f"{', '.join(against[s])} fit{'' if len(against[s]) > 1 else 's'} shift {s} at least "
+                   f"{DELAY_OBJECTIVE_RATIO:g} x better than {best}")
+    return "undecided: " + "; ".join(why) if why else "decided"
 
 
 #: The delay search fits on multiple-shooting segments no longer than this (s; at least

@@ -520,7 +520,7 @@ def diagnosis(written: dict, delay_search: dict | None, result, loo: dict | None
         top = peak_of(written)
         if top is not None and top[0] >= RESONANCE_SHARE:
             return second_mass(*top)
-    return ("friction model: the replay residual is not a resonance and the delay is decided; look at standstill, "
+    return ("friction model: the replay residual is not a resonance and the delay search singled out one delay; look at standstill, "
             "reversals and load changes (Stribeck keys, friction.torque_offset_n_m, a load-dependent loss)"
             + (f" (besides, the cross-validation fit without {', '.join(failed)} did not converge: a failure of the "
                "fit, not evidence about the physics)" if failed else ""))
@@ -633,6 +633,7 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
     import copy
 
     from ..errors import FitError, PlantFileError
+    from .delay import undecided_by_rejection
 
     recs_all = [*records, *validate]
     plant = result.plant
@@ -703,6 +704,15 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
             f"{s_}: {'failed' if v is None else f'{v:.4g}'}" for s_, v in search.get("objective", {}).items())
             + f"; tolerance: a factor {search.get('ratio_tolerance')}); give --delay-samples N if you know it")
     diag = None if passes else diagnosis(written, (result.solver.get("command_delay") or {}).get("search"), result, loo)
+    # a delay the search decided with the model this validation rejects for missing physics is undecided
+    rejected = None if passes or diag.startswith(FIT_FAILURE) else undecided_by_rejection(
+        result.solver.get("command_delay"), diag)
+    if rejected is not None:
+        warns = [w for w in warns if not w.startswith("the command delay is decided by")] + [rejected[1]]
+        key = "drive.command_delay_samples"
+        if key in plant.sources:  # a file written all the same (--force) says it too
+            plant = dataclasses.replace(plant, sources={**plant.sources, key: plant.sources[key] + (
+                "; not decided: preferred by a model the data reject")})
     # every [uncertainty] entry must hold the value written (a user's absolute bounds may not: the
     # data contradict them): the fit's own entry where the written value is the fitted one, else none
     own = {k: params[k] for k in result.keys if k in plant.values and plant.values[k] == params[k]["value"]}
@@ -720,6 +730,8 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
                                                 if e["replay"] == CLOSED_LOOP_MODE else
                                                 f"plant as written, prediction-error replay ({OBSERVER_HZ:g} Hz)")}
     solver = dict(result.solver)
+    if rejected is not None:
+        solver["command_delay"] = rejected[0]
     solver["fit_percent_segments"] = {n: result.fit_percent[n] for n in written if n in result.fit_percent}
     modes = sorted({e["replay"] for e in written.values()})
     solver["validation"] = {
@@ -733,7 +745,8 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
         "cross_validation": None if loo is None else {
             n: ({"failed": e["failed"]} if "failed" in e else {**_entry_report(e), "plant": e["plant"]})
             for n, e in loo.items()},
-        "rule": (f"the delay decided by the search (when searched); every log explained by the written plant (replay fit >= {FIT_MIN_PERCENT:g} % or replay error <= "
+        "rule": (f"the delay decided by the search (when searched; a delay the search decided with a model this "
+                 f"validation rejects for missing physics is reported undecided); every log explained by the written plant (replay fit >= {FIT_MIN_PERCENT:g} % or replay error <= "
                  f"{NOISE_FACTOR:g} x the log's noise floor), the written plant within {WRITTEN_TOLERANCE_POINTS:g} "
                  "fit-% points of the free fit on each log, and with more than one log each left-out log explained by "
                  "the plant fitted on the others; residual whiteness (lags "
