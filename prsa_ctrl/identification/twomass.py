@@ -625,7 +625,8 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
         (:func:`two_mass_response`'s ``upper_residual_rad_per_n_m``, the value
         ``upper_residual_rad_per_n_m``): a response cut below a mode the model lacks keeps that
         mode's tail ``R s``, which the current loop and the inertia would otherwise take up.
-        Solved from :data:`RESIDUAL_STARTS`, the best optimum kept.
+        Its starts :data:`RESIDUAL_STARTS` (with the damping grid's, two-mass) ranked by their
+        residual, the best two solved and the better optimum kept.
 
     Returns
     -------
@@ -662,9 +663,13 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
     if structure == "rigid":
         g_rel = g * (1j * om * j0)
         fc, td, _ = _lag_delay_start(f, g_rel, w, fc_grid if fixed_fc is None else [fixed_fc])
+        starts = [np.array([math.log(j0), math.log(fc), td, 0.0] + ([] if x_r is None else [x_r]))
+                  for x_r in (RESIDUAL_STARTS if upper_residual else (None,))]
+        if len(starts) > 1:  # the two best starts of the residual, each solved: the better optimum is kept
+            _, resid_start, _ = _solve("rigid", starts[0], f, g, w, sample_time_s, b_scale, 1)
+            starts = sorted(starts, key=lambda th: float(resid_start(th) @ resid_start(th)))[:2]
         best = None
-        for x_r in (RESIDUAL_STARTS if upper_residual else (None,)):
-            theta0 = np.array([math.log(j0), math.log(fc), td, 0.0] + ([] if x_r is None else [x_r]))
+        for theta0 in starts:
             got = _solve_bounded("rigid", theta0, f, g, w, sample_time_s, b_scale, max_nfev,
                                  () if fixed_fc is None else (1,))
             if best is None or (np.all(np.isfinite(got[0].fun)) and got[0].cost < best[0].cost):
@@ -709,17 +714,17 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
         th = np.array([math.log(jt0), math.log(fa0), math.log(r0), math.log(zeta), math.log(fc0), td0, b0])
         if resid_start is None:
             _, resid_start, _ = _solve("two-mass", th, f, g, w, sample_time_s, b_scale, 1)
-        r = resid_start(th)
-        starts.append((float(r @ r), th))
+        for x_r in (RESIDUAL_STARTS if upper_residual else (None,)):
+            th_r = th if x_r is None else np.append(th, x_r)
+            r = resid_start(th_r)
+            starts.append((float(r @ r), th_r))
     starts.sort(key=lambda t: t[0])
     best = None
     for _, th in starts[:2]:  # the two best grid points, each solved: the better optimum is kept
-        for x_r in (RESIDUAL_STARTS if upper_residual else (None,)):
-            th_r = th if x_r is None else np.append(th, x_r)
-            sol, resid, free, at = _solve_bounded("two-mass", th_r, f, g, w, sample_time_s, b_scale, max_nfev,
-                                                  () if fixed_fc is None else (4,))
-            if np.all(np.isfinite(sol.fun)) and (best is None or sol.cost < best[0].cost):
-                best = (sol, resid, free, at)
+        sol, resid, free, at = _solve_bounded("two-mass", th, f, g, w, sample_time_s, b_scale, max_nfev,
+                                              () if fixed_fc is None else (4,))
+        if np.all(np.isfinite(sol.fun)) and (best is None or sol.cost < best[0].cost):
+            best = (sol, resid, free, at)
     sol, resid, free, at = best
     if not sol.success:
         raise FitError(f"two-mass FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
