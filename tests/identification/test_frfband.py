@@ -151,3 +151,30 @@ def test_a_band_over_every_point_changes_nothing(tmp_path):
     assert plain.plant_text == banded.plant_text
     assert json.dumps(plain.report, sort_keys=True, default=str) == json.dumps(banded.report, sort_keys=True, default=str)
     assert plain.lines == banded.lines
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(g3.CASES))
+def test_the_band_fit_over_20_seeds(tmp_path, name):
+    """Seeds 0..19 of the third generator, the band each refusal names: the judge's rule every
+    time, and the interval of the mode the response shows (the two-mass model with the upper
+    residual) holds the three-body truth in at least 17 of 20 (binomial at p = 0.95: P(X <= 16)
+    = 1.6 %). Measured (h14-band): the rule 20 of 20 on both cases, the interval 20 of 20; the
+    inertia -0.78..-0.88 % (ball) and -1.21..-1.55 % (roller)."""
+    hits = 0
+    for seed in range(20):
+        s = g3.generate(tmp_path / str(seed), name, seed=seed, experiments=(), frf=True)
+        t = s["truth"]
+        _, lo, hi = _refusal_band(s)
+        cal = _cal(s, band=(lo, hi))
+        r = cal.result.reflected_inertia_kg_m2
+        jt = t["reflected_inertia_kg_m2"]
+        assert abs(r["value"] / jt - 1) < 0.03, (seed, r, jt)
+        assert r["ci95"][0] <= jt <= r["ci95"][1], (seed, r, jt)
+        pv = cal.result.plant.values
+        assert abs(pv["drive.current_loop_bandwidth_hz"] / t["drive.current_loop_bandwidth_hz"] - 1) <= 0.25, seed
+        assert pv["drive.command_delay_samples"] == t["drive.command_delay_samples"], seed
+        assert abs(cal.report["axial_mode_hz"]["value"] / t["first_mode_hz"] - 1) < 0.05, seed
+        fm = cal.report["frf_axial_mode_hz"]
+        hits += fm["ci95"][0] <= t["first_mode_hz"] <= fm["ci95"][1]
+    assert hits >= 17, hits
