@@ -7,8 +7,10 @@ in the band the loop uses, with the modes above it named, not modelled
 * The points inside ``[FMIN, FMAX]`` (Hz, both included) are fitted; the resonance check
   (:mod:`prsa_ctrl.identification.frfcheck`) runs on them, so a band that holds two resonances is
   refused as a whole response is.
-* The resonances of the whole response outside the band are listed in the report and in the
-  written keys' sources (frequency, and that the model omits them).
+* The resonances of the whole response above the band are listed in the report and in the
+  written keys' sources (frequency, and that the model omits them). A band that leaves a
+  resonance out below it is bad input: above a mode the response is the motor side's alone, and
+  the model's inertia would not be the axis's.
 * A resonance omitted **above** the band leaves its tail inside it: below its frequency a mode
   ``r s / (s^2 + w^2)`` of the collocated response is ``(r / w^2) s``, the "upper residual" of
   modal analysis. The models then carry that compliance ``R >= 0``
@@ -25,7 +27,8 @@ in the band the loop uses, with the modes above it named, not modelled
 * A band that covers every point of the responses changes nothing (the same records are fitted).
 
 Bad input (ValueError, one line naming the value as typed): a band that is not two numbers
-``FMIN,FMAX`` with ``0 <= FMIN < FMAX``, one that holds no point of the responses, or fewer points
+``FMIN,FMAX`` with ``0 <= FMIN < FMAX``, one that holds no point of the responses, one that leaves
+a resonance out below it, or fewer points
 than twice the parameters of the model it must fit (the fits' own minimum,
 :func:`prsa_ctrl.identification.twomass.fit_frf_model`).
 """
@@ -132,6 +135,12 @@ def apply_band(frf: Sequence, band: tuple[float, float], *, fidelity: str | None
                                        response=np.asarray(fr.response)[m], coherence=coh))
     omitted = [dict(r, side="above" if r["frequency_hz"] > hi else "below")
                for r in resonances(frf) if not lo <= r["frequency_hz"] <= hi]
+    below = [r for r in omitted if r["side"] == "below"]
+    if below:  # above a mode the response's low-frequency inertia is the motor side's, not the axis's
+        raise ValueError(f"{FLAG} {shown}: the response's resonance near {below[0]['frequency_hz']:.4g} Hz lies below "
+                         "the band: above a mode the response is the motor side's alone, so the model's inertia would "
+                         "not be the axis's; expected a band from the responses' lowest frequencies that holds the "
+                         "first resonance or ends below it")
     info = {"band_hz": [float(lo), float(hi)], "typed": shown, "points": n_in, "of": n_all,
             "omitted": omitted, "above": any(r["side"] == "above" for r in omitted)}
     return cut, info

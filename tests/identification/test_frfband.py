@@ -95,6 +95,7 @@ def test_the_band_fit_meets_the_judges_rule(third, name, fidelity):
     assert "omits the response's resonance near" in src
     assert f"in the band {lo:g}..{hi:g} Hz" in cal.plant_text
     # the current loop is held at the base value, and said why
+    assert any("not refitted to the band" in w for w in cal.result.warnings) == (cal.choice.structure == "two-mass")
     assert any(w.startswith("drive.current_loop_bandwidth_hz kept at the base value") and "not identified in the band"
                in w for w in cal.result.warnings)
     # the fit % is on the band's points only (a fit over the coupling mode would not reach it)
@@ -119,7 +120,8 @@ def test_bad_bands_are_bad_input(third):
             parse_band(text)
         assert repr(text) in str(ei.value)
         assert "\n" not in str(ei.value)
-    for band, words in (((5000.0, 6000.5), "no point of the responses"), ((100.0, 120.0), "expected at least 16")):
+    for band, words in (((5000.0, 6000.5), "no point of the responses"), ((100.0, 120.0), "expected at least 16"),
+                        ((200.0, 1700.0), "lies below the band")):
         typed = f"{band[0]:g},{band[1]:g}"
         with pytest.raises(ValueError, match=re.escape(words)) as ei:
             _cal(s, band=band, typed={"--frf-band": repr(typed)})
