@@ -45,7 +45,8 @@ __all__ = ["parse_band", "apply_band", "band_lines", "band_warnings", "source_no
 #: The flag that gives the band (as the messages name it).
 FLAG = "--frf-band"
 
-#: Fitted parameters of each model with the upper residual (twomass: rigid 4, two-mass 7, + 1).
+#: Fitted parameters of each model with the upper residual (twomass: rigid 4, two-mass 7, + 1); a
+#: band needs twice the two-mass model's points.
 _PARAMS = {"rigid": 5, "two-mass": 8}
 
 
@@ -74,8 +75,7 @@ def parse_band(text: str, flag: str = FLAG) -> tuple[float, float]:
     return vals[0], vals[1]
 
 
-def apply_band(frf: Sequence, band: tuple[float, float], *, fidelity: str | None = None,
-               typed: str | None = None) -> tuple[list, dict | None]:
+def apply_band(frf: Sequence, band: tuple[float, float], *, typed: str | None = None) -> tuple[list, dict | None]:
     """The responses cut to ``band`` (Hz) and what the cut leaves out.
 
     Parameters
@@ -83,9 +83,6 @@ def apply_band(frf: Sequence, band: tuple[float, float], *, fidelity: str | None
     frf : sequence of FrfRecord
     band : (float, float), Hz
         ``(fmin, fmax)``, both included.
-    fidelity : {None, "rigid", "compliant"}
-        The model the band must hold (its parameter count sets the points needed; None: the
-        two-mass model, which the structure test fits too).
     typed : str, optional
         The band as the user typed it (the messages name it).
 
@@ -118,14 +115,14 @@ def apply_band(frf: Sequence, band: tuple[float, float], *, fidelity: str | None
     n_in, n_all = int(sum(int(np.count_nonzero(m)) for m in inside)), len(f_all)
     if n_in == n_all:
         return frf, None
-    structure = "rigid" if fidelity == "rigid" else "two-mass"
-    need = 2 * _PARAMS[structure]
+    need = 2 * _PARAMS["two-mass"]  # (the structure test fits the two-mass model whatever the fidelity)
     if n_in == 0:
         raise ValueError(f"{FLAG} {shown}: no point of the responses lies in it (they span "
                          f"{float(np.min(f_all)):.4g}..{float(np.max(f_all)):.4g} Hz); expected a band inside the data")
     if n_in < need:
         raise ValueError(f"{FLAG} {shown}: {n_in} point(s) of the responses lie in it; expected at least {need} (twice "
-                         f"the {structure} model's {need // 2} parameters with the modes above the band)")
+                         f"the two-mass model's {need // 2} parameters with the modes above the band: the structure "
+                         "test fits it)")
     cut = []
     for fr, m in zip(frf, inside):
         if not np.any(m):

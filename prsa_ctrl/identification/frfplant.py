@@ -545,7 +545,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
                          "exists")
     from . import frfband
 
-    frf, band_info = (frf, None) if band is None else frfband.apply_band(frf, band, fidelity=fidelity, typed=band_typed)
+    frf, band_info = (frf, None) if band is None else frfband.apply_band(frf, band, typed=band_typed)
     upper = bool(band_info and band_info["above"])  # (a band that covers every point changes nothing)
     _check_low_phase(frf)
     f_top = max(float(np.max(fr.frequency_hz)) for fr in frf)
