@@ -4,7 +4,7 @@
 [--frequency-unit Hz|rad/s]
 [--plant BASE] [--fit KEY,...] [--fidelity rigid|compliant] [--validate OTHER.csv ...]
 [--columns name=header,...] [--torque-constant KT] [--load N] [--frf-speed RAD_S] [--frf-load N]
-[--frf-sample-time S] [--coherence-min C] [--delay-samples N] [--command-logged applied|computed] [--verbose]``
+[--frf-sample-time S] [--frf-band FMIN_HZ,FMAX_HZ] [--coherence-min C] [--delay-samples N] [--command-logged applied|computed] [--verbose]``
 
 The command delay: by default the fit of time-domain records searches the whole-sample delay
 between the logged command and its action (:func:`prsa_ctrl.identification.delay.search_delay`)
@@ -100,6 +100,11 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="S", help="sample time of the drive that measured the --frf responses, s (default the "
                    "plant's sensor.sample_time_s: command held over a sample, speed the backward difference of the "
                    "angle); 0: a continuous-time response (e.g. computed from a model)")
+    p.add_argument("--frf-band", default=None, metavar="FMIN_HZ,FMAX_HZ",
+                   help="fit the --frf responses (alone, without --fit) on the points in this band only: the reduced-order "
+                   "model of the band the loop uses; resonances outside it are named in the report and the plant's "
+                   "sources, the tail of those above it is fitted as an upper residual and the current loop held at "
+                   "the base value; fit %% and intervals are the band's")
     p.add_argument("--coherence-min", type=_finite("--coherence-min"), default=FRF_COHERENCE_MIN_DEFAULT,
                    metavar="C", help=f"FRF points with a lower coherence are dropped (default {FRF_COHERENCE_MIN_DEFAULT:g})")
     p.add_argument("--plots", metavar="DIR", help="write residual, overlay and Bode figures (PNG) into DIR "
@@ -400,6 +405,14 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                               "(or --design)")
         if not 0 <= args.coherence_min < 1:
             raise UsageError(f"--coherence-min {args.coherence_min!r}: expected 0 <= C < 1")
+        band = None
+        if args.frf_band is not None:
+            from ..identification.frfband import parse_band
+
+            band = parse_band(args.frf_band)
+            if not args.frf or args.data or args.fit is not None:
+                raise UsageError(f"--frf-band {args.frf_band!r}: expected it with --frf FRF.csv alone (no DATA.csv, no "
+                                 "--fit): it cuts the measured responses the structure is fitted to")
         from ..identification.calibrate import linear_axis_refusal
         from ..identification.common import FITTABLE
         from ..plant.plantfile import load_plant
@@ -496,8 +509,9 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                                 sample_time_s=args.frf_sample_time,
                                 command_logged=args.command_logged or "applied",
                                 uncertainty="fit" if args.uncertainty_from_fit else "keep", force=args.force,
-                                origin=args.out, typed=_typed_point(args, args.frf_speed, frf_load), extra=frfs,
-                                fitted_from=fitted_from, coordinates=coordinates)
+                                origin=args.out, typed={**_typed_point(args, args.frf_speed, frf_load),
+                                                        "--frf-band": repr(args.frf_band)}, extra=frfs,
+                                fitted_from=fitted_from, coordinates=coordinates, band=band)
             result, choice = cal.result, cal.choice
         elif not records and frfs:  # --fit KEY,...: the structure checked, then the keys' own fit
             result, choice = _fit_frf_only(args, plant, frfs, keys)

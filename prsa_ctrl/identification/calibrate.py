@@ -454,7 +454,7 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
                   fidelity: str | None = None, command_logged: str = "applied", uncertainty: str = "keep",
                   force: bool = False, origin: str | None = None, typed: Mapping[str, str] | None = None,
                   extra: Sequence = (), fitted_from: str | None = None,
-                  coordinates: Mapping[str, str] | None = None) -> Calibrated:
+                  coordinates: Mapping[str, str] | None = None, band: tuple[float, float] | None = None) -> Calibrated:
     """Fit a base plant to measured frequency responses with ``prsa-fit``'s defaults:
     ``prsa-fit --frf FRF.csv... [--plant BASE] --out NAME.toml --json REPORT.json``.
 
@@ -504,6 +504,10 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
         What the description names (default: the files' names).
     coordinates : mapping, optional
         ``{log: coordinates}`` the report and lines state (default none: responses only).
+    band : (float, float), Hz, optional
+        ``--frf-band``: fit the points in ``[fmin, fmax]`` only
+        (:mod:`prsa_ctrl.identification.frfband`; ``typed["--frf-band"]`` the band as typed);
+        the report's ``frf_band`` and lines name the band and the resonances the model omits.
 
     Returns
     -------
@@ -544,7 +548,7 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
         frfs.append(replace(fr, name=label, warnings=tuple(w.replace(path, label) for w in fr.warnings)))
     frfs += list(extra)
     result, choice = fit_frf_structure(frfs, plant, fidelity=fidelity, command_logged=command_logged,
-                                       uncertainty=uncertainty)
+                                       uncertainty=uncertainty, band=band, band_typed=(typed or {}).get("--frf-band"))
     failure = not_explained_line(result, force)
     coordinates = dict(coordinates or {})
     fitted_from = ", ".join(Path(x).name for x in labels) if fitted_from is None else fitted_from
@@ -552,8 +556,13 @@ def calibrate_frf(paths: Sequence[str | Path], base: str | None = None, *, name:
                                                                 origin=name if origin is None else origin)
     point = (frfs[0].speed_rad_s, frfs[0].load_n)  # the plant keys are mapped at the first response's point
     mode = written_mode(result, text, *point)
+    from .frfband import band_lines
+
+    band_info = result.solver.get("frf_band")
     report = {**fit_report(result, coordinates, choice, point=point, mode=mode),
               "frf_structure": {"structure": choice.structure, "reason": choice.reason,
                                 "lines": structure_lines(choice, point)}}
-    return Calibrated(result, text, report, tuple(result_lines(result, coordinates, choice, point=point, mode=mode)),
-                      failure, (), choice)
+    if band_info:
+        report["frf_band"] = dict(band_info)
+    lines = [*band_lines(band_info), *result_lines(result, coordinates, choice, point=point, mode=mode)]
+    return Calibrated(result, text, report, tuple(printable(x) for x in lines), failure, (), choice)

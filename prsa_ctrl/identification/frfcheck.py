@@ -30,7 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["choose_structure_checked", "resonances", "low_frequency_inertia", "unexplained_resonances",
+__all__ = ["choose_structure_checked", "suggested_band", "resonances", "low_frequency_inertia", "unexplained_resonances",
            "failure_diagnosis", "units_line", "unexplained_line", "RESONANCE_NOISE", "RESONANCE_MIN_DB", "MODE_MATCH",
            "UNITS_RATIO"]
 
@@ -150,13 +150,44 @@ def unexplained_line(frf, fit, found: Sequence[dict], sample_time_s: float = 0.0
             "out of the band")
 
 
-def _beyond_models(found: Sequence[dict], units: str, solver: str | None = None) -> str:
+def _down(x: float) -> float:
+    """``x`` > 0 rounded down to three significant digits."""
+    e = 10.0 ** (math.floor(math.log10(x)) - 2)
+    return math.floor(x / e * (1 + 1e-12)) * e
+
+
+def suggested_band(frf, found: Sequence[dict]) -> tuple[float, float]:
+    """The band (Hz) that keeps the lowest resonance of ``found`` and leaves out the next: from the
+    responses' lowest frequency up to the geometric mean of the two resonances, or the
+    anti-resonance between them (the lowest ``w |G|`` there: the next mode's notch) when that is
+    lower; three significant digits, rounded down (the lowest point stays inside)."""
+    f1, f2 = found[0]["frequency_hz"], found[1]["frequency_hz"]
+    top = math.sqrt(f1 * f2)
+    lows = []
+    for f, g in _records(frf):
+        between = (f > f1) & (f < f2)
+        if np.any(between):
+            y = np.log(f[between] * np.abs(g[between]))
+            top = min(top, float(f[between][int(np.argmin(y))]))
+        if len(f):
+            lows.append(float(f[0]))
+    lo = min(lows) if lows else 0.0
+    return (_down(lo) if lo > 0 else 0.0), _down(top)
+
+
+def _beyond_models(found: Sequence[dict], units: str, solver: str | None = None, frf=None) -> str:
+    band = ""
+    if frf is not None:
+        lo, hi = suggested_band(frf, found)
+        band = (f"; fit the model in the band below the mode above the first (from the data: up to the geometric "
+                f"mean of {found[0]['frequency_hz']:.4g} and {found[1]['frequency_hz']:.4g} Hz, or below the "
+                f"anti-resonance between them): --frf-band {lo:g},{hi:g}")
     return (f"no plant written: the response shows {len(found)} resonances, near {_named(found)}; the rigid model "
             "holds none and the two-mass model one (the first axial mode), so "
             + (f"the fit cannot follow the one above it and its solver stopped ({solver})" if solver else
                "a fit over the one above it would take it up in its current loop, delay and inertia (not fitted)")
             + f"; the units are right ({units}): a second mode (a coupling's, the motor's mount) is physics the "
-            "plant's models lack: fit the time-domain logs, or measure with that mode out of the band")
+            "plant's models lack" + (band or ": fit the time-domain logs, or measure with that mode out of the band"))
 
 
 def failure_diagnosis(frf, reflected_inertia: float, exc: BaseException) -> str:
@@ -177,20 +208,23 @@ def failure_diagnosis(frf, reflected_inertia: float, exc: BaseException) -> str:
         return (f"no plant written: {units}; expected the response in (rad/s)/(N m) at the motor (not deg/s, rpm or "
                 f"load coordinates) and a base plant of this axis (--plant); the fit: {solver}")
     if len(found) >= 2:
-        return _beyond_models(found, units, solver)
+        return _beyond_models(found, units, solver, frf)
     return (f"no plant written: the FRF fit's solver failed ({solver}); not the units ({units}) and no resonance "
             "beyond the models' (" + (f"one near {_named(found)}" if found else "none") + "): a failure of the solver "
             "on this response; remedy: rerun with --verbose and report it with the response")
 
 
 def choose_structure_checked(frf, reflected_inertia: float, *, sample_time_s: float = 0.0,
-                             current_loop_bandwidth_hz: float | None = None):
+                             current_loop_bandwidth_hz: float | None = None, upper_residual: bool = False):
     """:func:`prsa_ctrl.identification.twomass.choose_structure`, a solver failure re-raised as
     :func:`failure_diagnosis`'s line (FitError, the solver's as its cause); ``reflected_inertia``
     (kg m^2) the base plant's, for the units check. A response with two resonances or more (and
     units that pass their check) is refused before any fit: neither model holds more than one, so
     the fit's verdict is known (:func:`unexplained_resonances` would refuse it) and its solver's
-    budget (4000 evaluations on gen_third's ball 40x16, 4.8 s CPU) is spared."""
+    budget (4000 evaluations on gen_third's ball 40x16, 4.8 s CPU) is spared; the refusal names
+    the band that leaves the second out (:func:`suggested_band`, ``--frf-band``). ``upper_residual``:
+    the models carry the tail of modes above the band
+    (:func:`prsa_ctrl.identification.twomass.fit_frf_model`)."""
     from ..errors import FitError
     from .twomass import choose_structure
 
@@ -198,8 +232,9 @@ def choose_structure_checked(frf, reflected_inertia: float, *, sample_time_s: fl
     if len(found) >= 2:  # more modes than either model holds: refused before a fit that would take them up
         ok, units = units_line(frf, reflected_inertia)
         if ok:  # (else the caller's inertia check names the units)
-            raise FitError(_beyond_models(found, units))
+            raise FitError(_beyond_models(found, units, frf=frf))
     try:
-        return choose_structure(frf, sample_time_s=sample_time_s, current_loop_bandwidth_hz=current_loop_bandwidth_hz)
+        return choose_structure(frf, sample_time_s=sample_time_s, current_loop_bandwidth_hz=current_loop_bandwidth_hz,
+                                upper_residual=upper_residual)
     except FitError as exc:
         raise FitError(failure_diagnosis(frf, reflected_inertia, exc)) from exc

@@ -484,7 +484,8 @@ def plant_keys_of(plant: Plant, fit: FrfModelFit, *, speed_rad_s: float, load_n:
 
 
 def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command_logged: str = "applied",
-                      uncertainty: str = "keep", refine: bool = True) -> tuple[FitResult, StructureChoice]:
+                      uncertainty: str = "keep", refine: bool = True, band: tuple[float, float] | None = None,
+                      band_typed: str | None = None) -> tuple[FitResult, StructureChoice]:
     """Fit a measured frequency response with the structure the data choose and map it onto
     the plant's keys (module docstring).
 
@@ -508,6 +509,11 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     refine : bool
         For a two-mass response of a screw mechanism, fit the plant's own compliant model from the
         mapping (:func:`_refine`; default) instead of writing the mapping itself.
+    band : (float, float), Hz, optional
+        Fit the points inside ``[fmin, fmax]`` only (:mod:`prsa_ctrl.identification.frfband`:
+        the resonances outside it named, the tail of those above it fitted as an upper
+        residual and the current loop held at the base value); ``band_typed`` the band as the
+        user typed it (``--frf-band``), for the messages.
 
     Returns
     -------
@@ -537,15 +543,20 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         raise ValueError(f"load_n = {load0!r} for a compliant frequency response; expected the measurement's axial load "
                          "(> 0 N, --frf-load): without load the thread contacts sit in the backlash and no axial mode "
                          "exists")
+    from . import frfband
+
+    frf, band_info = (frf, None) if band is None else frfband.apply_band(frf, band, typed=band_typed)
+    upper = bool(band_info and band_info["above"])  # (a band that covers every point changes nothing)
     _check_low_phase(frf)
     f_top = max(float(np.max(fr.frequency_hz)) for fr in frf)
     fc_base = plant.values["drive.current_loop_bandwidth_hz"]
-    fix_fc = fc_base if f_top < fc_base / CURRENT_LOOP_BAND else None
-    choice = _choose(frf, plant, ts, fix_fc)
+    fix_fc = fc_base if f_top < fc_base / CURRENT_LOOP_BAND or upper else None
+    choice = _choose(frf, plant, ts, fix_fc, upper)
     speed, load = frf[0].speed_rad_s, frf[0].load_n
-    warns = [w for fr in frf for w in fr.warnings]
-    fc_why = (f"the responses end at {f_top:.4g} Hz, below 1/{CURRENT_LOOP_BAND:g} of it, where the current loop's lag "
-              "cannot be told from the delay (held there in the fit; measure up to the current loop to fit it)")
+    warns = [w for fr in frf for w in fr.warnings] + frfband.band_warnings(band_info)
+    fc_why = frfband.fc_reason(band_info, fc_base) if upper else (
+        f"the responses end at {f_top:.4g} Hz, below 1/{CURRENT_LOOP_BAND:g} of it, where the current loop's lag "
+        "cannot be told from the delay (held there in the fit; measure up to the current loop to fit it)")
     fc_fit = (choice.two_mass if fidelity == "compliant" and choice.two_mass is not None else choice.chosen).values[
         "current_loop_bandwidth_hz"]
     if fix_fc is None and fc_fit.get("at_bound"):  # not identified: the base value held, and the fit made again
@@ -554,7 +565,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         # solver stops there (1e7 or 4e8 Hz) is its path, not the data
         fc_why = (f"the fit's current loop ran to its bound {fc_fit['value']:.4g} Hz ({fc_fit['note']}; unbounded it "
                   "runs on past it), so the base value is held and the responses fitted again with it")
-        choice = _choose(frf, plant, ts, fix_fc)
+        choice = _choose(frf, plant, ts, fix_fc, upper)
     if fidelity == "rigid" and choice.structure == "two-mass":
         raise FitError(f"rigid model refused: {choice.reason}; fit it with --fidelity compliant (the two-mass axis)")
     if fidelity == "compliant" and choice.structure == "rigid":
@@ -614,7 +625,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         idx = [i for i, k in enumerate(values) if k in keys]
         cov = cov[np.ix_(idx, idx)]
         values = {k: values[k] for k in keys}
-    names = ", ".join(fr.name for fr in frf)
+    names = ", ".join(fr.name for fr in frf) + frfband.source_note(band_info)
     d = fit.values["delay_s"]
     ts_w = ts if ts > 0 else plant.sample_time_s
     delay = {"value": d["value"], "ci95": d["ci95"], "unit": "s", "samples": d["value"] / ts_w}
@@ -715,18 +726,24 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         "structure": choice.as_dict(),
         "frf_model": {k: dict(v) for k, v in fit.values.items()},
     }
+    if band_info:
+        solver["frf_band"] = dict(band_info)
     result = FitResult(fitted, params, reflected, corr, tuple(keys), fit_pct, warns, solver, traces, delay, {}, None)
     skey = _stiffness_key(plant)
-    if refine and fit.structure == "two-mass" and skey is not None and skey in keys:
+    if refine and fit.structure == "two-mass" and skey is not None and skey in keys and upper:
+        result.warnings.append("the plant's own compliant model is not refitted to the band (it has no upper residual "
+                               "for the modes above it, which its delay and inertia would take up): the two-mass "
+                               "model's mapping is written")
+    elif refine and fit.structure == "two-mass" and skey is not None and skey in keys:
         result = _refine(result, start, frf, fit, choice, keys, ts_w, command_logged, uncertainty, names)
     return result, choice
 
 
-def _choose(frf, plant: Plant, ts: float, fix_fc: float | None) -> StructureChoice:
+def _choose(frf, plant: Plant, ts: float, fix_fc: float | None, upper: bool = False) -> StructureChoice:
     """:func:`~prsa_ctrl.identification.twomass.choose_structure`, its solver's failure diagnosed from the data
     (:func:`prsa_ctrl.identification.frfcheck.failure_diagnosis`: units, resonances, or the solver)."""
     return choose_structure_checked(frf, plant.reflected_inertia_kg_m2, sample_time_s=ts,
-                                    current_loop_bandwidth_hz=fix_fc)
+                                    current_loop_bandwidth_hz=fix_fc, upper_residual=upper)
 
 
 def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: StructureChoice, keys, ts: float,

@@ -60,7 +60,8 @@ from ..errors import FitError
 
 __all__ = ["physical_values", "FrfModelFit", "StructureChoice", "fit_frf_model", "choose_structure", "model_response",
            "two_mass_response", "STRUCTURES", "STRUCTURE_ALPHA", "STRUCTURE_EFFECT", "STRUCTURE_RSS_RATIO",
-           "STRUCTURE_ZETA_MAX", "MAX_NFEV", "CURRENT_LOOP_MAX_FACTOR", "AT_BOUND_NOTE", "low_band_inertias"]
+           "STRUCTURE_ZETA_MAX", "MAX_NFEV", "CURRENT_LOOP_MAX_FACTOR", "AT_BOUND_NOTE", "low_band_inertias",
+           "RESIDUAL_REF_HZ"]
 
 #: The parametric structures.
 STRUCTURES = ("rigid", "two-mass")
@@ -98,6 +99,15 @@ _THETA = {
                  "ln_current_loop_hz", "delay_s", "viscous_scaled"),
 }
 
+#: The upper residual's fitted entry ``x`` (module docstring, :func:`fit_frf_model` with
+#: ``upper_residual``): ``R = x / (J (2 pi RESIDUAL_REF_HZ)^2)``, the share of the inertia's
+#: response that the modes above the band add at this frequency (Hz); its scale only.
+RESIDUAL_REF_HZ = 1000.0
+#: Starts of the upper residual's scaled entry (each solved, the best optimum kept): none, and the
+#: tails the modes of a coupling or a motor mount leave below them (measured on gen_third's
+#: responses cut between their two modes: 0.1..1).
+RESIDUAL_STARTS = (0.0, 0.3, 1.0, 3.0)
+
 #: Reported values: name -> unit.
 UNITS = {
     "total_inertia_kg_m2": "kg m^2",
@@ -111,13 +121,20 @@ UNITS = {
     "current_loop_bandwidth_hz": "Hz",
     "delay_s": "s",
     "viscous_n_m_s_per_rad": "N m s/rad",
+    "upper_residual_rad_per_n_m": "rad/(N m)",
 }
+
+
+def _names(structure: str, residual: bool) -> tuple:
+    """The fitted vector's entries (:data:`_THETA`, the upper residual's last when fitted)."""
+    return _THETA[structure] + (("residual_scaled",) if residual else ())
 
 
 def two_mass_response(frequency_hz, *, motor_inertia_kg_m2: float, load_inertia_kg_m2: float = 0.0,
                       stiffness_n_m_per_rad: float = math.inf, damping_n_m_s_per_rad: float = 0.0,
                       viscous_n_m_s_per_rad: float = 0.0, current_loop_bandwidth_hz: float = math.inf,
-                      delay_s: float = 0.0, sample_time_s: float = 0.0) -> NDArray[np.complex128]:
+                      delay_s: float = 0.0, sample_time_s: float = 0.0,
+                      upper_residual_rad_per_n_m: float = 0.0) -> NDArray[np.complex128]:
     """Frequency response torque command (N m) -> motor speed (rad/s) of a two-mass axis.
 
     Parameters
@@ -142,6 +159,11 @@ def two_mass_response(frequency_hz, *, motor_inertia_kg_m2: float, load_inertia_
         0: the continuous response; > 0: as a drive measures it, command held over a sample
         and speed the backward difference of the sampled angle (the delay then multiplies it
         as ``exp(-s T)``).
+    upper_residual_rad_per_n_m : float, rad/(N m)
+        The compliance ``R`` of modes above the measured band (their "upper residual": below its
+        frequency a mode ``r s / (s^2 + w^2)`` of the collocated response is ``(r / w^2) s``):
+        the motor angle gains ``R`` times the torque, the response ``R s`` ahead of the current
+        loop and the delay (0: none).
 
     Returns
     -------
@@ -158,6 +180,7 @@ def two_mass_response(frequency_hz, *, motor_inertia_kg_m2: float, load_inertia_
         float(damping_n_m_s_per_rad)
     b, fc, td, ts = float(viscous_n_m_s_per_rad), float(current_loop_bandwidth_hz), float(delay_s), float(sample_time_s)
     rigid = jl == 0.0 or math.isinf(k)
+    res = float(upper_residual_rad_per_n_m)
     if rigid:
         jm = jm + jl
     s = 1j * _TWO_PI * f
@@ -167,6 +190,8 @@ def two_mass_response(frequency_hz, *, motor_inertia_kg_m2: float, load_inertia_
         else:
             n = jl * s * s + c * s + k
             g = n / ((jm * s + b) * n + jl * s * (c * s + k))
+        if res:
+            g = g + res * s
         if math.isfinite(fc):
             g = g / (1.0 + s / (_TWO_PI * fc))
     else:
@@ -191,7 +216,8 @@ def two_mass_response(frequency_hz, *, motor_inertia_kg_m2: float, load_inertia_
         z = np.exp(s * ts)
         nx = a.shape[0]
         rhs = np.broadcast_to(gam[:, :1].astype(complex), (len(z), nx, 1))
-        th = np.linalg.solve(z[:, None, None] * np.eye(nx)[None] - phi[None], rhs)[:, 0, 0]
+        x = np.linalg.solve(z[:, None, None] * np.eye(nx)[None] - phi[None], rhs)[:, :, 0]
+        th = x[:, 0] + res * x[:, -1] if res else x[:, 0]  # (the angle gains R times the torque state)
         g = (1.0 - 1.0 / z) / ts * th
     if td:
         g = g * np.exp(-s * td)
@@ -206,7 +232,13 @@ def _exp(x: float) -> float:
 
 def physical_values(structure: str, theta: NDArray[np.float64], b_scale: float) -> dict:
     """The physical values of a fitted vector ``theta`` (SI; see the module docstring;
-    ``b_scale``: N m s/rad per unit of its scaled viscous entry, :attr:`FrfModelFit.b_scale`)."""
+    ``b_scale``: N m s/rad per unit of its scaled viscous entry, :attr:`FrfModelFit.b_scale`; one
+    entry more than :data:`_THETA` holds: the upper residual's, :data:`RESIDUAL_REF_HZ`)."""
+    if len(theta) == len(_THETA[structure]) + 1:
+        out = physical_values(structure, theta[:-1], b_scale)
+        out["upper_residual_rad_per_n_m"] = float(theta[-1]) / (out["total_inertia_kg_m2"]
+                                                                 * (_TWO_PI * RESIDUAL_REF_HZ) ** 2)
+        return out
     exp = _exp
     if structure == "rigid":
         j, lfc, td, bs = theta
@@ -233,7 +265,7 @@ def model_response(structure: str, values: Mapping[str, float], frequency_hz, sa
     v = {k: (x["value"] if isinstance(x, Mapping) else x) for k, x in values.items()}
     common = dict(viscous_n_m_s_per_rad=v["viscous_n_m_s_per_rad"],
                   current_loop_bandwidth_hz=v["current_loop_bandwidth_hz"], delay_s=v["delay_s"],
-                  sample_time_s=sample_time_s)
+                  sample_time_s=sample_time_s, upper_residual_rad_per_n_m=v.get("upper_residual_rad_per_n_m", 0.0))
     if structure == "rigid":
         return two_mass_response(frequency_hz, motor_inertia_kg_m2=v["total_inertia_kg_m2"], **common)
     return two_mass_response(frequency_hz, motor_inertia_kg_m2=v["motor_inertia_kg_m2"],
@@ -411,9 +443,11 @@ def _solve_bounded(structure, theta0, f, g, w, ts, b_scale, max_nfev, fixed=()):
     entry whose cost falls when it moves off the bound into the feasible side is released
     (first-order check). At most four solves. Returns ``(sol, resid, free, at_bound)``,
     ``at_bound``: ``{index: ("lower" | "upper", unbounded value)}`` (``sol.nfev`` the total)."""
-    names = _THETA[structure]
+    names = _names(structure, len(theta0) > len(_THETA[structure]))
     i_fc, i_td = names.index("ln_current_loop_hz"), names.index("delay_s")
     bound = {i_td: ("lower", 0.0), i_fc: ("upper", math.log(CURRENT_LOOP_MAX_FACTOR * float(np.max(f))))}
+    if "residual_scaled" in names:  # an upper residual is a compliance: >= 0
+        bound[names.index("residual_scaled")] = ("lower", 0.0)
     held = set(fixed)
     th = np.asarray(theta0, float).copy()
     for i, (side, b) in bound.items():
@@ -507,7 +541,7 @@ def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None, at_bound=Non
     warns = []
     for name, v in vals.items():
         # gradient of the value (of its logarithm for positive values) w.r.t. theta
-        positive = name not in ("delay_s", "viscous_n_m_s_per_rad")
+        positive = name not in ("delay_s", "viscous_n_m_s_per_rad", "upper_residual_rad_per_n_m")
         grad = np.zeros(npar)
         for i in range(npar):
             h = 1e-6 * max(abs(theta[i]), 1.0)
@@ -525,13 +559,14 @@ def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None, at_bound=Non
     with np.errstate(all="ignore"):
         gm = model_response(structure, vals, f, ts)
     fmax = float(np.max(f))
-    names = _THETA[structure]
+    names = _names(structure, len(theta) > len(_THETA[structure]))
     at_bound = dict(at_bound or {})
     held_names = []
     for i in range(npar):
         if i in free:
             continue
-        name = {"ln_current_loop_hz": "current_loop_bandwidth_hz", "delay_s": "delay_s"}[names[i]]
+        name = {"ln_current_loop_hz": "current_loop_bandwidth_hz", "delay_s": "delay_s",
+                "residual_scaled": "upper_residual_rad_per_n_m"}[names[i]]
         held_names.append(name)
         e = out[name]
         e["ci95"] = None  # held: no interval (a zero-width one would pretend a precision the data do not give)
@@ -539,7 +574,9 @@ def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None, at_bound=Non
             side, x_free = at_bound[i]
             e["at_bound"] = side
             e["note"] = AT_BOUND_NOTE
-            if name == "delay_s":
+            if name == "upper_residual_rad_per_n_m":
+                e["unbounded_value"] = float(x_free)  # (scaled: no compliance of modes above the band shows)
+            elif name == "delay_s":
                 e["unbounded_value"] = float(x_free)
                 warns.append(f"delay_s = 0 s, {AT_BOUND_NOTE} (the unbounded fit wanted {x_free:.4g} s, a lead: the "
                              "response lags its command less than the model's current loop"
@@ -567,7 +604,7 @@ def _finish(structure, sol, resid, f, g, w, ts, b_scale, free=None, at_bound=Non
 
 def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.0,
                   current_loop_bandwidth_hz: float | None = None, max_nfev: int = MAX_NFEV,
-                  _rigid: FrfModelFit | None = None) -> FrfModelFit:
+                  _rigid: FrfModelFit | None = None, upper_residual: bool = False) -> FrfModelFit:
     """Fit the rigid or the two-mass model to a frequency response (module docstring).
 
     Parameters
@@ -583,6 +620,13 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
         below the current loop cannot tell it from the delay).
     max_nfev : int
         Budget of model evaluations of the least-squares solve.
+    upper_residual : bool
+        Also fit the compliance ``R >= 0`` of modes above the measured band
+        (:func:`two_mass_response`'s ``upper_residual_rad_per_n_m``, the value
+        ``upper_residual_rad_per_n_m``): a response cut below a mode the model lacks keeps that
+        mode's tail ``R s``, which the current loop and the inertia would otherwise take up.
+        Its starts :data:`RESIDUAL_STARTS` (with the damping grid's, two-mass) ranked by their
+        residual, the best two solved and the better optimum kept.
 
     Returns
     -------
@@ -607,7 +651,7 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
     f, g, w = _arrays(frf)
     order = np.argsort(f)
     f, g, w = f[order], g[order], w[order]
-    npar = len(_THETA[structure])
+    npar = len(_names(structure, upper_residual))
     if len(f) < 2 * npar:
         raise ValueError(f"{len(f)} frequency points for the {structure} model; expected at least {2 * npar}")
     om = _TWO_PI * f
@@ -619,15 +663,24 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
     if structure == "rigid":
         g_rel = g * (1j * om * j0)
         fc, td, _ = _lag_delay_start(f, g_rel, w, fc_grid if fixed_fc is None else [fixed_fc])
-        theta0 = np.array([math.log(j0), math.log(fc), td, 0.0])
-        sol, resid, free, at = _solve_bounded("rigid", theta0, f, g, w, sample_time_s, b_scale, max_nfev,
-                                              () if fixed_fc is None else (1,))
+        starts = [np.array([math.log(j0), math.log(fc), td, 0.0] + ([] if x_r is None else [x_r]))
+                  for x_r in (RESIDUAL_STARTS if upper_residual else (None,))]
+        if len(starts) > 1:  # the two best starts of the residual, each solved: the better optimum is kept
+            _, resid_start, _ = _solve("rigid", starts[0], f, g, w, sample_time_s, b_scale, 1)
+            starts = sorted(starts, key=lambda th: float(resid_start(th) @ resid_start(th)))[:2]
+        best = None
+        for theta0 in starts:
+            got = _solve_bounded("rigid", theta0, f, g, w, sample_time_s, b_scale, max_nfev,
+                                 () if fixed_fc is None else (1,))
+            if best is None or (np.all(np.isfinite(got[0].fun)) and got[0].cost < best[0].cost):
+                best = got
+        sol, resid, free, at = best
         if not sol.success:
             raise FitError(f"rigid FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
                            f"{sol.nfev} evaluations; remedy: check the response's units ((rad/s)/(N m))")
         return _finish("rigid", sol, resid, f, g, w, sample_time_s, b_scale, free, at)
     rig = _rigid if _rigid is not None else fit_frf_model(frf, "rigid", sample_time_s=sample_time_s, max_nfev=max_nfev,
-                                                          current_loop_bandwidth_hz=fixed_fc)
+                                                          current_loop_bandwidth_hz=fixed_fc, upper_residual=upper_residual)
     # the mode shows as a notch (anti-resonance) then a peak (resonance) of the response over the rigid fit
     q = np.log(np.abs(g / rig.response(f)))
     qs = _median_filter(q, 5) if len(q) >= 5 else q
@@ -661,8 +714,10 @@ def fit_frf_model(frf, structure: str = "two-mass", *, sample_time_s: float = 0.
         th = np.array([math.log(jt0), math.log(fa0), math.log(r0), math.log(zeta), math.log(fc0), td0, b0])
         if resid_start is None:
             _, resid_start, _ = _solve("two-mass", th, f, g, w, sample_time_s, b_scale, 1)
-        r = resid_start(th)
-        starts.append((float(r @ r), th))
+        for x_r in (RESIDUAL_STARTS if upper_residual else (None,)):
+            th_r = th if x_r is None else np.append(th, x_r)
+            r = resid_start(th_r)
+            starts.append((float(r @ r), th_r))
     starts.sort(key=lambda t: t[0])
     best = None
     for _, th in starts[:2]:  # the two best grid points, each solved: the better optimum is kept
@@ -721,7 +776,7 @@ class StructureChoice:
 
 
 def choose_structure(frf, *, sample_time_s: float = 0.0, current_loop_bandwidth_hz: float | None = None,
-                     max_nfev: int = MAX_NFEV) -> StructureChoice:
+                     max_nfev: int = MAX_NFEV, upper_residual: bool = False) -> StructureChoice:
     """Fit the rigid and the two-mass model and let the data choose (module docstring).
 
     Parameters
@@ -732,6 +787,8 @@ def choose_structure(frf, *, sample_time_s: float = 0.0, current_loop_bandwidth_
     current_loop_bandwidth_hz : float, Hz, optional
         Held, not fitted (:func:`fit_frf_model`).
     max_nfev : int
+    upper_residual : bool
+        Both models with the upper residual of modes above the band (:func:`fit_frf_model`).
 
     Returns
     -------
@@ -740,11 +797,11 @@ def choose_structure(frf, *, sample_time_s: float = 0.0, current_loop_bandwidth_
     from scipy.stats import f as f_dist
 
     rig = fit_frf_model(frf, "rigid", sample_time_s=sample_time_s, max_nfev=max_nfev,
-                        current_loop_bandwidth_hz=current_loop_bandwidth_hz)
+                        current_loop_bandwidth_hz=current_loop_bandwidth_hz, upper_residual=upper_residual)
     f, g, _ = _arrays(frf)
     try:
         two = fit_frf_model(frf, "two-mass", sample_time_s=sample_time_s, max_nfev=max_nfev, _rigid=rig,
-                            current_loop_bandwidth_hz=current_loop_bandwidth_hz)
+                            current_loop_bandwidth_hz=current_loop_bandwidth_hz, upper_residual=upper_residual)
     except FitError as exc:
         return StructureChoice("rigid", rig, None, float("nan"), float("nan"), 0.0, False,
                                f"the two-mass fit failed ({exc})")

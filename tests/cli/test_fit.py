@@ -589,3 +589,48 @@ def test_speed_loop_reaches_the_compliant_fit_and_bad_values_are_one_line(record
     assert code == 2, err
     assert "--fidelity compliant" in err
     assert not out.exists()
+
+
+def _third_ball(tmp_path):
+    """gen_third's ball 40x16 response (tests/identification/foreign: an axial and a coupling mode)."""
+    sys.path.insert(0, str(Path(__file__).parents[1] / "identification"))
+    from foreign import gen_third as g3
+
+    s = g3.generate(tmp_path / "data", "ball-40x16", seed=0, experiments=(), frf=True)
+    t = s["truth"]
+    return s, ["--frf", str(s["frf"]), "--frf-speed", str(t["frf_speed_rad_s"]), "--frf-load", str(t["frf_load_n"]),
+               "--command-logged", t["command_logged"], "--plant", str(s["base"])]
+
+
+def test_frf_band_flag_from_the_refusal_to_a_plant(tmp_path, capsys):
+    """prsa-fit --frf on two resonances: exit 3 naming --frf-band; the flag as named: exit 0, the
+    band and the omitted mode in the lines and the JSON; bad bands: exit 2, one line, no file."""
+    import re
+
+    s, args = _third_ball(tmp_path)
+    out, js = tmp_path / "o.toml", tmp_path / "o.json"
+    assert main([*args, "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    m = re.search(r"(--frf-band [0-9.]+,[0-9.]+)$", err.strip())
+    assert m, err
+    assert not out.exists()
+    flag, band = m.group(1).split()
+    assert main([*args, flag, band, "--out", str(out), "--json", str(js)]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"band: {band.replace(',', '..')} Hz (")
+    assert "above the band: omitted by the model" in text
+    rep = json.loads(js.read_text())
+    assert rep["frf_band"]["band_hz"] == [float(x) for x in band.split(",")]
+    assert rep["frf_band"]["omitted"][0]["side"] == "above"
+    assert "in the band" in out.read_text()
+    before = out.read_bytes()
+    for bad in ("300,100", "5000,6000", "100,120", "x,300", "1,2,3"):
+        assert main([*args, "--frf-band", bad, "--out", str(out)]) == 2
+        cap = capsys.readouterr()
+        lines = cap.err.strip().splitlines()
+        assert len(lines) == 1, cap.err
+        assert lines[0].startswith(f"prsa-fit: error: --frf-band {bad!r}: "), lines
+        assert "Traceback" not in cap.err
+    assert out.read_bytes() == before  # no file clobbered
+    assert main([*args, "--frf-band", band, "--fit", "axis.motor_inertia_kg_m2", "--out", str(tmp_path / "p.toml")]) == 2
+    assert "expected it with --frf FRF.csv alone" in capsys.readouterr().err

@@ -153,3 +153,30 @@ def test_failure_diagnosis_blames_the_units_only_when_their_check_fails():
     line = failure_diagnosis([rigid], j, solver)
     assert "a failure of the solver" in line
     assert "units check passed" in line
+
+
+def test_the_suggested_band_keeps_the_first_mode_and_leaves_the_second_out():
+    """The band the refusal names (frfcheck.suggested_band) on the chain of three inertias: from
+    at most its lowest point, over the first mode and its anti-resonance, below the second mode's
+    notch; cut there, the response shows the first resonance alone."""
+    from prsa_ctrl.identification.frfcheck import suggested_band
+
+    base = _base()
+    f = np.geomspace(4.0, 1700.0, 160)
+    g = _three_body(base, f)
+    fr = frf_from_arrays("c", f, g)
+    found = resonances(fr)
+    lo, hi = suggested_band(fr, found)
+    assert lo <= f[0]
+    assert lo > 0.99 * f[0]
+    y = f * np.abs(g)
+    between = (f > found[0]["frequency_hz"]) & (f < found[1]["frequency_hz"])
+    notch = f[between][np.argmin(y[between])]  # the second mode's anti-resonance
+    assert 1.5 * found[0]["frequency_hz"] < hi <= notch
+    assert hi <= math.sqrt(found[0]["frequency_hz"] * found[1]["frequency_hz"])
+    m = (f >= lo) & (f <= hi)
+    (one,) = resonances(frf_from_arrays("cut", f[m], g[m]))
+    assert one["frequency_hz"] == found[0]["frequency_hz"]
+    # the refusal of the whole response names it as the flag to type
+    with pytest.raises(FitError, match=rf"--frf-band {lo:g},{hi:g}$"):
+        fit_frf_structure([fr], base)

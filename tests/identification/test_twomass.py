@@ -215,3 +215,95 @@ def test_a_continuous_response_fitted_as_sampled_ends_at_the_bounds_and_says_so(
         lo, hi = v[k]["ci95"]
         assert lo <= x <= hi, (k, x, v[k])
     assert v["current_loop_bandwidth_hz"]["value"] == pytest.approx(t["fc"], rel=0.02)
+
+
+def _judge_two_mass(name, seed):
+    """The judge's two-mass response (tests/identification/foreign/gen_judge.py: its own formula
+    with the nut loss on the whole force, ZOH and backward difference, 2 % magnitude and 0.02 rad
+    phase noise drawn as its bode.csv draws them) and its truth."""
+    from foreign import gen_judge as gj
+
+    from prsa_ctrl.identification.data import frf_from_arrays
+
+    case = gj.CASES[name]
+    f = gj.frf_band(case)
+    h = gj.frf(case, f)
+    rng = np.random.default_rng([seed, 99, list(gj.CASES).index(name)])
+    mag = np.abs(h) * (1.0 + 0.02 * rng.standard_normal(f.size))
+    ph = np.unwrap(np.angle(h)) + 0.02 * rng.standard_normal(f.size)
+    ts = case.mech.ts
+    return frf_from_arrays("bode", f, mag * np.exp(1j * ph), sample_time_s=ts), ts, gj.truth(case)
+
+
+_MODES = (("resonance_hz", "first_mode_hz"), ("antiresonance_hz", "anti_resonance_hz"))
+
+
+def test_mode_and_anti_resonance_intervals_hold_an_independent_axis_truth():
+    """One seed of the judge's two-mass ball screw: the mode and the anti-resonance the report
+    gives (delta method on the fit's covariance) hold the generator's formulas, with intervals
+    narrower than 1 % (the slow test counts the coverage over 20 seeds)."""
+    fr, ts, t = _judge_two_mass("ball-2mass-d1-computed-si", 0)
+    ch = choose_structure([fr], sample_time_s=ts)
+    assert ch.structure == "two-mass", ch.reason
+    for key, tkey in _MODES:
+        v = ch.two_mass.values[key]
+        lo, hi = v["ci95"]
+        assert lo <= t[tkey] <= hi, (key, v, t[tkey])
+        assert (hi - lo) / v["value"] < 0.01
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["ball-2mass-d1-computed-si", "roller-2mass-d2-computed-nonsi",
+                                  "roller-2mass-d1-applied-si"])
+def test_mode_and_anti_resonance_intervals_cover_over_20_seeds(name):
+    """Coverage of the 95 % intervals of the mode and the anti-resonance over seeds 0..19 of the
+    judge's response: at least 17 of 20 (binomial at p = 0.95: P(X <= 16) = 1.6 %). Measured
+    (h14-band): ball 20 and 19, roller d2 19 and 20, roller d1 18 and 18."""
+    hits = {key: 0 for key, _ in _MODES}
+    for seed in range(20):
+        fr, ts, t = _judge_two_mass(name, seed)
+        ch = choose_structure([fr], sample_time_s=ts)
+        assert ch.structure == "two-mass", (seed, ch.reason)
+        for key, tkey in _MODES:
+            lo, hi = ch.two_mass.values[key]["ci95"]
+            hits[key] += lo <= t[tkey] <= hi
+    for key, h in hits.items():
+        assert h >= 17, (name, key, hits)
+
+
+def _with_residual(f, j, b, r, fc, td):
+    """A rigid axis with the compliance ``r`` of a mode above the band (its tail ``r s``), a
+    current loop and a delay, written out here."""
+    s = 1j * TWO_PI * np.asarray(f, float)
+    return (1.0 / (j * s + b) + r * s) / (1.0 + s / (TWO_PI * fc)) * np.exp(-s * td)
+
+
+def test_upper_residual_is_the_tail_r_s_ahead_of_the_current_loop():
+    f = np.geomspace(5.0, 800.0, 50)
+    g = two_mass_response(f, motor_inertia_kg_m2=4e-3, viscous_n_m_s_per_rad=1e-3, current_loop_bandwidth_hz=900.0,
+                          delay_s=1e-4, upper_residual_rad_per_n_m=2e-6)
+    assert np.max(np.abs(g / _with_residual(f, 4e-3, 1e-3, 2e-6, 900.0, 1e-4) - 1)) < 1e-12
+    # the sampled form at low frequency tends to the continuous one (hold and difference: half a sample each)
+    ts = 1e-5
+    gs = two_mass_response(f[:10], motor_inertia_kg_m2=4e-3, viscous_n_m_s_per_rad=1e-3, current_loop_bandwidth_hz=900.0,
+                           upper_residual_rad_per_n_m=2e-6, sample_time_s=ts)
+    gc = _with_residual(f[:10], 4e-3, 1e-3, 2e-6, 900.0, ts)
+    assert np.max(np.abs(gs / gc - 1)) < 1e-3
+
+
+def test_the_upper_residual_is_fitted_with_an_interval_that_holds_it():
+    """A response with a mode's tail above it: fitted with the upper residual, the inertia, the
+    residual and the current loop hold their truths; without it, the current loop takes the tail
+    up (its interval misses the truth)."""
+    j, b, r, fc, td = 4e-3, 1e-3, 0.3 / (4e-3 * (TWO_PI * 1000.0) ** 2), 1200.0, 1e-4
+    f = np.geomspace(5.0, 1500.0, 200)
+    g = _noisy(_with_residual(f, j, b, r, fc, td), 0.01, np.random.default_rng(21))
+    fit = fit_frf_model((f, g), "rigid", upper_residual=True)
+    for key, x in (("total_inertia_kg_m2", j), ("upper_residual_rad_per_n_m", r), ("current_loop_bandwidth_hz", fc),
+                   ("delay_s", td)):
+        lo, hi = fit.values[key]["ci95"]
+        assert lo <= x <= hi, (key, fit.values[key], x)
+    plain = fit_frf_model((f, g), "rigid")
+    assert "upper_residual_rad_per_n_m" not in plain.values
+    lo, hi = plain.values["current_loop_bandwidth_hz"]["ci95"]
+    assert not lo <= fc <= hi
