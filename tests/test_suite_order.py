@@ -83,3 +83,17 @@ def test_the_costs_script_sums_a_junit_report_per_file(tmp_path):
     written = tmp_path / "costs.json"
     written.write_text(json.dumps(table))
     assert load_costs(written) == (table["files_s"], table["mean_per_test_s"])
+
+
+def test_the_costs_script_reads_per_test_cpu_lines_too(tmp_path):
+    spec = importlib.util.spec_from_file_location("suite_costs", ROOT / "scripts" / "suite-costs.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    lines = tmp_path / "cpu.jsonl"
+    lines.write_text('{"id": "tests/a.py::t[x::y]", "cpu": 1.0}\n{"id": "tests/b.py::t", "cpu": 4.0}\n'
+                     '{"id": "tests/a.py::u", "cpu": 0.5}\n\n')
+    table = mod.costs(lines, tmp_path)
+    assert table["files_s"] == {"tests/b.py": 4.0, "tests/a.py": 1.5}
+    assert list(table["files_s"]) == ["tests/b.py", "tests/a.py"]
+    assert table["mean_per_test_s"] == round(5.5 / 3, 4)
+    assert mod.main([str(tmp_path / "absent.jsonl")]) == 2
