@@ -15,6 +15,7 @@ import matplotlib
 import pytest
 from hypothesis import settings
 from shared_runs import share_tunings, tuned_once
+from suite_order import costliest_files_first, load_costs, wants_file_order
 
 # Deterministic property tests that leave no example database in the working directory.
 settings.register_profile("prsa", database=None, derandomize=True, deadline=None)
@@ -22,6 +23,21 @@ settings.load_profile("prsa")
 
 matplotlib.use("Agg")
 os.environ.setdefault("PRSA_FAST", "1")
+
+
+def pytest_configure(config):
+    """Under ``-n N --dist loadfile`` the workers' collection order is the queue's
+    (``tests/suite_order.py``: costliest file first), so pytest-xdist's reordering by number of
+    tests is turned off, unless ``--loadscope-reorder`` was typed."""
+    if wants_file_order(config):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(config, items):
+    """On a pytest-xdist worker, the test files in decreasing measured cost, each file's order
+    kept (``tests/suite_order.py``); a run in one process keeps pytest's order."""
+    if hasattr(config, "workerinput"):
+        items[:] = costliest_files_first(items, *load_costs())
 
 
 @pytest.fixture(scope="session")

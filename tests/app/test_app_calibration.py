@@ -71,6 +71,57 @@ def resonant_log(tmp_path_factory):
     return path
 
 
+#: The fits made by ``shared_fits`` in this module, by their arguments (pickled).
+_FITS: dict = {}
+
+
+@pytest.fixture
+def shared_fits(monkeypatch):
+    """``prsa_ctrl.identification.timedomain.fit_plant`` made once per module for each value of its
+    arguments (bound to its signature with the defaults, sequences as tuples, a rigid fit's
+    ``segment_s=None`` as the :data:`~prsa_ctrl.identification.timedomain.SEGMENT_S` it means,
+    compared by their pickled bytes; ``check_interrupt`` aside: the tests that use this fixture
+    never cancel), for the tests where prsa-fit and the session fit the resonant log (its refusal
+    costs about 7 s of CPU per fit; the served app's fit, in its own process, is not shared; the
+    test of the session's output against the command's, byte for byte, fits twice): a call after
+    the first gets a deep copy of the first call's result, the rest of the command or the session runs as it is. A call with
+    other arguments fits afresh, so a test comparing two paths still sees a difference in what they
+    ask of the fit. The fit's warnings (recorded in this thread,
+    :func:`prsa_ctrl.app.session.thread_warnings`) are said again at every call, where the caller's
+    filters or recorder take them. Returns the list of calls, ``True`` for each shared one."""
+    import copy
+    import inspect
+    import pickle
+    import warnings
+
+    import prsa_ctrl.identification.timedomain as timedomain
+    from prsa_ctrl.app.session import thread_warnings
+
+    real = timedomain.fit_plant
+    signature = inspect.signature(real)
+    calls: list = []
+
+    def shared(*args, **kwargs):
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        given = {k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in bound.arguments.items()
+                 if k != "check_interrupt"}
+        if given["segment_s"] is None and given["fidelity"] == "rigid":  # prsa-fit's default: the library's
+            given["segment_s"] = timedomain.SEGMENT_S
+        key = pickle.dumps(sorted(given.items()))
+        calls.append(key in _FITS)
+        if key not in _FITS:
+            with thread_warnings() as caught:  # every warning of this fit (its trial plants' geometry notes)
+                _FITS[key] = real(*args, **kwargs), [w.message for w in caught]
+        result, said = _FITS[key]
+        for message in said:  # said again, here, at every call: the caller's filters or recorder take them
+            warnings.warn(message, stacklevel=2)
+        return copy.deepcopy(result)
+
+    monkeypatch.setattr(timedomain, "fit_plant", shared)
+    return calls
+
+
 @pytest.fixture(scope="module")
 def fitted_page(module_open_page, app_url, log):
     """One page of the served app with the module's log uploaded in the calibration tab and its
@@ -211,7 +262,8 @@ def test_calibration_tab_shows_the_replay_the_frf_in_hz_and_the_residuals(fitted
     _shot(page, "app-calibration-views.png")
 
 
-def test_refused_fit_is_shown_as_refused_with_its_views(app_page, resonant_log, tmp_path, monkeypatch, capsys):
+def test_refused_fit_is_shown_as_refused_with_its_views(app_page, resonant_log, tmp_path, monkeypatch, capsys,
+                                                         shared_fits):
     """A log the rigid plant cannot explain: prsa-fit exits 3 with its diagnosis and no plant
     file; the tab says refused (never a good fit), offers no plant, and shows why."""
     from prsa_ctrl.cli.fit import main as fit_main
@@ -356,7 +408,7 @@ def test_session_bad_log_is_the_clis_line(tmp_path, monkeypatch, capsys):
         s.close()
 
 
-def test_session_refused_calibration_has_the_verdict_the_views_and_no_plant(resonant_log):
+def test_session_refused_calibration_has_the_verdict_the_views_and_no_plant(resonant_log, shared_fits):
     """prsa-fit's exit 3 after a fit whose plant does not explain the log: a Calibration marked
     refused (prsa-fit's line, its report with the views), no plant file to use; the tab's
     views draw the report's arrays and the verdict is a refusal."""

@@ -563,10 +563,20 @@ SEARCH_CASES = [
 ]
 
 
+@functools.lru_cache(maxsize=None)
+def _search_tuning(name):
+    """``tune_pid`` of the ``SEARCH_CASES`` case ``name`` (its plant, controller, objective and Ms
+    bound), tuned once per module (results are frozen): the four servo cases are read by
+    test_no_better_feasible_point_near_a_reported_optimum and test_servo_class_is_reported_optimal,
+    which tuned them each."""
+    _, plant, ctrl, obj, ms_max, _ = next(c for c in SEARCH_CASES if c[0] == name)
+    return tune_pid(plant, objective=obj, controller=ctrl, ms_max=ms_max)
+
+
 @pytest.mark.parametrize("case", SEARCH_CASES, ids=[c[0] for c in SEARCH_CASES])
 def test_no_better_feasible_point_near_a_reported_optimum(case):
     _, plant, ctrl, obj, ms_max, (w_lo, w_hi) = case
-    r = tune_pid(plant, objective=obj, controller=ctrl, ms_max=ms_max)
+    r = _search_tuning(case[0])
     kp, ki, kd, tf = _pid(r)
     w = np.logspace(math.log10(w_lo), math.log10(w_hi), 20_000)
     p = _plant_response(plant, w)
@@ -606,8 +616,7 @@ def test_no_better_feasible_point_near_a_reported_optimum(case):
 
 @pytest.mark.parametrize("case", SEARCH_CASES[:4], ids=[c[0] for c in SEARCH_CASES[:4]])
 def test_servo_class_is_reported_optimal(case):
-    _, plant, ctrl, obj, ms_max, _ = case
-    r = tune_pid(plant, objective=obj, controller=ctrl, ms_max=ms_max)
+    r = _search_tuning(case[0])
     assert r.status == "optimal"
     assert r.converged
     assert r.stats["first_order"]["ok"]
