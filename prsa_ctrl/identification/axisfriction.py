@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 
 from .periodic import CV_BLOCK
 
-__all__ = ["FRICTION_DEPARTURE", "SPEED_BINS", "POSITION_BINS", "LOWEST_SPEED_FRACTION", "MIN_BIN_SAMPLES",
+__all__ = ["FRICTION_DEPARTURE", "STRIBECK_SPEED_FRACTION", "SPEED_BINS", "POSITION_BINS", "LOWEST_SPEED_FRACTION", "MIN_BIN_SAMPLES",
            "measured_velocity", "filtered_position", "applied_force", "friction_departure", "friction_words", "friction_diagnosis"]
 
 #: A log fails when its friction departs from the fitted law by this share of the Coulomb level.
@@ -56,6 +56,8 @@ POSITION_BINS = 6
 #: The lowest binned speed, as a fraction of the log's peak speed (below it the filtered
 #: acceleration of a stop and the stick band decide the force, not the sliding law).
 LOWEST_SPEED_FRACTION = 0.01
+#: A departure is named a Stribeck rise when its largest excess lies below this fraction of the peak speed.
+STRIBECK_SPEED_FRACTION = 0.1
 #: Samples a bin needs in each half of the log.
 MIN_BIN_SAMPLES = 20
 #: Samples left out at each end (the zero-phase filter's transients).
@@ -144,7 +146,7 @@ def friction_departure(theta, log) -> dict:
     keep[:_END_SAMPLES] = keep[n - _END_SAMPLES:] = False
     fold = (np.arange(n) // CV_BLOCK) % 2
     vmax = float(np.max(np.abs(v[keep]))) if np.any(keep) else 0.0
-    empty = {"friction_departure": 0.0, "friction_by": "speed", "friction_speed_bins": [],
+    empty = {"friction_departure": 0.0, "friction_by": "speed", "friction_peak_speed_m_s": vmax, "friction_speed_bins": [],
              "friction_position_bins": [], "friction_high": None, "friction_low": None, "friction_level_n": 0.0}
     if not vmax > 0:
         return empty
@@ -163,6 +165,7 @@ def friction_departure(theta, log) -> dict:
     (s_sp, hi_sp, lo_sp), (s_q, hi_q, lo_q) = _spread(speed), _spread(position)
     by_speed = s_sp >= s_q
     return {"friction_departure": (s_sp if by_speed else s_q) / level, "friction_by": "speed" if by_speed else "position",
+            "friction_peak_speed_m_s": vmax,
             "friction_speed_bins": speed, "friction_position_bins": position,
             "friction_high": hi_sp if by_speed else hi_q, "friction_low": lo_sp if by_speed else lo_q,
             "friction_level_n": level}
@@ -186,16 +189,40 @@ def friction_words(e: dict) -> str | None:
             f"level {e['friction_level_n']:.3g} N by {by} ({', '.join(parts)})")
 
 
+def _beyond_a_line(bins: list[dict]) -> float:
+    """The spread (N) of the speed bins' excess left after one straight line in the speed per
+    direction (least squares over the bins, at each bin's geometric-mean speed): what no Coulomb +
+    viscous law explains."""
+    rest = []
+    for sgn in (1.0, -1.0):
+        b = [x for x in bins if x["from"] * sgn > 0]
+        if len(b) < 3:
+            rest += [x["excess_n"] for x in b]
+            continue
+        v = np.array([math.sqrt(x["from"] * x["to"]) for x in b])
+        y = np.array([x["excess_n"] for x in b])
+        coef = np.linalg.lstsq(np.column_stack([np.ones_like(v), v]), y, rcond=None)[0]
+        rest += list(y - coef[0] - coef[1] * v)
+    return max(rest + [0.0]) - min(rest + [0.0])
+
+
 def friction_diagnosis(e: dict, name: str) -> str:
     """The diagnosis line of a log whose friction-law test failed (:func:`friction_words`), naming
-    the law: a Stribeck rise (more friction than the law at the lowest speeds, less above), a
-    friction that changes along the travel, or one not linear in the speed."""
+    the law: a Stribeck rise (the largest excess over the law in a bin below
+    :data:`STRIBECK_SPEED_FRACTION` of the peak speed, any deficit at higher speeds), a friction
+    that changes along the travel, or one not linear in the speed (a law the fit got wrong, e.g. a
+    direction the logs barely move in, shows as that too)."""
     by, hi, lo = e["friction_by"], e["friction_high"], e["friction_low"]
     said = friction_words(e)
+    if by == "speed" and _beyond_a_line(e["friction_speed_bins"]) < FRICTION_DEPARTURE * e["friction_level_n"]:
+        return (f"friction as fitted: in {name} {said}; a Coulomb + viscous law per direction explains the force "
+                "balance, the fitted one does not (a direction the logs barely move in, a friction key held or at a "
+                "bound: see the warnings)")
     if by == "position":
         return (f"friction that changes along the travel: in {name} {said}; the model's friction is the same at every "
                 "position (a tight spot, a wiper or a varying preload; fit the travel where it is even, or model it)")
-    if hi is not None and (lo is None or abs(hi["to"]) <= abs(lo["from"])):
+    low = STRIBECK_SPEED_FRACTION * e["friction_peak_speed_m_s"] * (1 + 1e-9)
+    if hi is not None and abs(hi["to"]) <= low and (lo is None or abs(hi["to"]) <= abs(lo["from"])):
         return (f"Stribeck friction: in {name} {said}, a friction that rises toward standstill; the linear axis's "
                 "model is Coulomb + viscous per direction and has no Stribeck term (fit a log that stays above "
                 "that speed, or a model with one)")

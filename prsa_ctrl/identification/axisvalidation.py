@@ -226,7 +226,7 @@ def entry_report(e: dict) -> dict:
         out["periodic_share"], out["periodic_period_m"] = e["periodic_share"], e["periodic_period_m"]
         out["whiteness"] = whiteness((e["measured"] - e["model"])[e["skip_samples"]:])
     if "friction_departure" in e:
-        out.update({k: e[k] for k in ("friction_departure", "friction_by", "friction_level_n", "friction_high",
+        out.update({k: e[k] for k in ("friction_departure", "friction_by", "friction_level_n", "friction_peak_speed_m_s", "friction_high",
                                       "friction_low", "friction_speed_bins", "friction_position_bins")})
     return out
 

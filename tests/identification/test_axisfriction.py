@@ -76,3 +76,12 @@ def test_the_applied_force_moves_a_command_logged_as_computed_by_the_delay():
                       test_signal=test, controller=ctl)
     f = applied_force(delayed)  # the computed part two samples late, the test signal as the drive adds it
     assert f[10:] == pytest.approx(GAIN * (lg.command[8:-2] + test[10:]), abs=1e-9)
+
+
+def test_a_wrong_coulomb_viscous_split_is_named_as_the_fit_not_as_missing_physics():
+    """The force balance is Coulomb + viscous, the law tested has +x's Coulomb level 6 N low and its
+    viscous term 70 N s/m high (as a fit that held a direction or ended at a bound): the departure
+    is a straight line in the speed, which a Coulomb + viscous law explains, and is named so."""
+    e = friction_departure((80.0, 220.0, 220.0, 9.0, 25.0), _log())
+    assert e["friction_departure"] >= FRICTION_DEPARTURE
+    assert friction_diagnosis(e, "hand").startswith("friction as fitted: in hand")
