@@ -69,7 +69,6 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
-from scipy.signal import butter, filtfilt
 
 from ..errors import AxisFitError, AxisPlantError, PlantFileError, SimulationError
 from ..plant.plantfile import Plant
@@ -77,6 +76,7 @@ from ..plant import schema as plant_schema
 from ..tomlfile import read_toml
 from ..plant.uncertainty import (CORRELATION_KEY, carry_correlation, correlation_entry,
                                  inner_truncation)
+from .axisfriction import filtered_position, measured_velocity  # noqa: F401 - measured_velocity re-exported
 from .covariance import COVARIANCE_BLOCKS, batch_covariance, score_covariance, t95  # noqa: F401 - re-exported
 from .fituncertainty import outside_note
 from .logformat import AxisLog
@@ -422,20 +422,6 @@ def _finite(tr: _Trace, log: AxisLog) -> _Trace:
 # --- measured signals and errors -------------------------------------------------------------------
 
 
-def measured_velocity(log: AxisLog) -> NDArray[np.float64]:
-    """The log's speed, m/s: its speed signal when it has one, else the position through a
-    4th-order zero-phase Butterworth low-pass at a tenth of the sample rate (100 Hz at 1 kHz),
-    then central differences (the EMPS benchmark's own definition)."""
-    if log.speed_m_s is not None:
-        return log.speed_m_s
-    return np.gradient(_filtered_position(log), log.sample_time_s)
-
-
-def _filtered_position(log: AxisLog) -> NDArray[np.float64]:
-    b, a = butter(4, 0.2)  # cutoff fs/10 (normalised to Nyquist fs/2)
-    return filtfilt(b, a, log.position_m)
-
-
 def relative_error(y: NDArray[np.float64], y_sim: NDArray[np.float64], skip: int = METRIC_SKIP_SAMPLES) -> float:
     """``100 * ||y - y_sim|| / ||y||`` over the samples from ``skip`` on, %.
 
@@ -501,7 +487,7 @@ def replay_axis(plant: LinearAxisPlant, log: AxisLog) -> AxisReplay:
     """Replay ``log`` through ``plant`` (closed loop from the reference when the log describes its
     controller, the test signal added at the drive input; open loop from the logged command
     otherwise) and measure the errors. The replay starts at the first logged position with the
-    measured speed (:func:`measured_velocity`: the log's speed signal, else the derived one)."""
+    measured speed (:func:`~prsa_ctrl.identification.axisfriction.measured_velocity`: the log's speed signal, else the derived one)."""
     theta = plant.theta
     gain = log.gain_n_per_unit
     vm = measured_velocity(log)
@@ -523,7 +509,7 @@ def _idim_rows(log: AxisLog, min_speed_fraction: float):
     on the zero-phase filtered position; samples slower than ``min_speed_fraction`` of the peak
     speed and the 50 samples at each end are left out)."""
     h = log.sample_time_s
-    qf = _filtered_position(log)
+    qf = filtered_position(log)
     v = np.gradient(qf, h)
     a = np.gradient(v, h)
     f = log.gain_n_per_unit * log.command + (0.0 if log.load_n is None else log.load_n)

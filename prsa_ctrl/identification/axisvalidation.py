@@ -35,6 +35,14 @@ residual cannot hold is anything the log's **own excitation** or the **position*
    :data:`~prsa_ctrl.identification.validation.NOISE_FACTOR` x the floor the data show (the
    position's third difference, :func:`prsa_ctrl.identification.validation.noise_floor`), or a
    replay fit of at least :data:`~prsa_ctrl.identification.validation.FIT_MIN_PERCENT`.
+5. **A friction law the model lacks** (:mod:`prsa_ctrl.identification.axisfriction`): the
+   friction the force balance shows (drive force minus the inertial force), averaged by speed and
+   by position, in both halves of the log, against the fitted Coulomb + viscous law: a Stribeck
+   rise, a friction not linear in the speed, or one that changes along the travel. The log fails
+   when the spread of the departures reaches
+   :data:`~prsa_ctrl.identification.axisfriction.FRICTION_DEPARTURE` of the Coulomb level (the
+   closed-loop replay hides these: the loop corrects the speed error within a few samples and the
+   fit bends its friction terms toward the law it lacks).
 
 Why these thresholds (measured, one log of 3,000 or 6,000 samples at 1 kHz each, the tests'
 generators; the EMPS record): a right model leaves an excitation share of -0.06..0.01 and a
@@ -42,9 +50,7 @@ periodic share of -0.04..0.03; the EMPS record, fitted rigid, 0.06 and 0.0002; a
 rigid model lacks 0.67, a third mass the two-mass model lacks 0.40 (at 1.7 x the noise floor,
 where rule 4 alone passes it), a 50 N cogging force of 20 mm period 0.96. A fifth of the residual
 power predicted by something the model should have explained is far from chance and is a model
-error a tuner would inherit. The speed residual's dependence on the speed (a friction law the
-model lacks) is not tested: on the EMPS record a third of the force residual follows the speed
-(its friction is not Coulomb + viscous), and the published model has the same structure.
+error a tuner would inherit. The friction test's threshold (5.) is justified in its module.
 
 With more than one log each log left out is replayed by the plant fitted on the others
 (leave-one-out) under the same rule. A fit that does not pass has a one-line :func:`diagnosis`
@@ -64,8 +70,9 @@ from numpy.typing import NDArray
 # A log fails when one period of the position explains PERIODIC_SHARE of its force residual (3.);
 # the out-of-sample split's blocks are CV_BLOCK samples (1., 3.): the position-periodic test's own.
 from .periodic import CV_BLOCK, PERIODIC_SHARE, cv_share
+from .axisfriction import FRICTION_DEPARTURE, friction_departure, friction_diagnosis, friction_words
 
-__all__ = ["EXCITATION_SHARE", "PERIODIC_SHARE", "FIR_LAGS", "CV_BLOCK", "excitation_share", "periodic_share",
+__all__ = ["EXCITATION_SHARE", "PERIODIC_SHARE", "FRICTION_DEPARTURE", "FIR_LAGS", "CV_BLOCK", "excitation_share", "periodic_share",
            "speed_entry", "explained", "reasons", "diagnosis", "validate_axis", "refusal_line", "entry_report"]
 
 #: A log fails when the excitation predicts this share of its replay residual (module docstring, 1.).
@@ -190,6 +197,9 @@ def structure(e: dict) -> list[str]:
     if e.get("periodic_share", 0.0) >= PERIODIC_SHARE:
         out.append(f"{100 * e['periodic_share']:.0f} % of the force residual periodic in the position (period "
                    f"{1e3 * e['periodic_period_m']:.4g} mm)")
+    words = friction_words(e)
+    if words:
+        out.append(words)
     return out
 
 
@@ -215,6 +225,9 @@ def entry_report(e: dict) -> dict:
         out["excitation_share"] = e["excitation_share"]
         out["periodic_share"], out["periodic_period_m"] = e["periodic_share"], e["periodic_period_m"]
         out["whiteness"] = whiteness((e["measured"] - e["model"])[e["skip_samples"]:])
+    if "friction_departure" in e:
+        out.update({k: e[k] for k in ("friction_departure", "friction_by", "friction_level_n", "friction_peak_speed_m_s", "friction_high",
+                                      "friction_low", "friction_speed_bins", "friction_position_bins")})
     return out
 
 
@@ -244,7 +257,8 @@ def diagnosis(written: Mapping[str, dict], mode_hz: float | None, loo: Mapping[s
     explain the logs, tested in this order: wrong units or coordinates (no log replayed better than
     its mean); a response the model lacks (a residual the excitation predicts; a mode, named with
     its frequency, when that residual is a resonance: ``mode_hz`` None for a rigid plant, else its
-    fitted mode); a position-periodic force;
+    fitted mode); a position-periodic force; a friction law the model lacks (a Stribeck rise, a
+    friction not linear in the speed or changing along the travel: :mod:`.axisfriction`);
     a failure of the fit (a cross-validation fit that failed while every log is explained); else
     the friction model."""
     from .validation import FIT_FAILURE, RESONANCE_SHARE
@@ -275,6 +289,9 @@ def diagnosis(written: Mapping[str, dict], mode_hz: float | None, loo: Mapping[s
         return (f"position-periodic force: {100 * share:.0f} % of the force residual of {n} while it moves follows "
                 f"one period of {1e3 * period:.4g} mm of the position (cogging, a pitch error or a waviness; the model "
                 "has no force that depends on the position)")
+    fr = sorted(((e.get("friction_departure", 0.0), n) for n, e in judged), reverse=True)
+    if fr and fr[0][0] >= FRICTION_DEPARTURE:
+        return friction_diagnosis(dict(judged)[fr[0][1]], fr[0][1])
     failed = {n: e["failed"] for n, e in (loo or {}).items() if "failed" in e}
     if failed and not bad:
         n, why = next(iter(failed.items()))
@@ -315,14 +332,15 @@ def validate_axis(fitted, logs: Sequence, replays: Sequence, replay: Callable, s
     from ..errors import AxisFitError, SimulationError
     from .validation import FIT_MIN_PERCENT, NOISE_FACTOR
 
-    written = {r.name: speed_entry(r, lg, skip) for r, lg in zip(replays, logs)}
+    written = {r.name: {**speed_entry(r, lg, skip), **friction_departure(fitted.theta, lg)}
+               for r, lg in zip(replays, logs)}
     loo = None
     if refit is not None and len(logs) > 1:
         loo = {}
         for i, lg in enumerate(logs):
             try:
                 plant = refit([o for j, o in enumerate(logs) if j != i])
-                loo[lg.name] = speed_entry(replay(plant, lg), lg, skip)
+                loo[lg.name] = {**speed_entry(replay(plant, lg), lg, skip), **friction_departure(plant.theta, lg)}
             except (AxisFitError, SimulationError, ValueError) as exc:
                 loo[lg.name] = {"failed": str(exc)[:300]}
     why = reasons(written, loo)
@@ -336,7 +354,8 @@ def validate_axis(fitted, logs: Sequence, replays: Sequence, replay: Callable, s
             "rule": (f"every log explained by the written plant: nothing in its replay residual the model should have "
                      f"explained (< {100 * EXCITATION_SHARE:g} % of it predicted out of sample by the reference and test "
                      f"signal, lags 0..{FIR_LAGS} samples; < {100 * PERIODIC_SHARE:g} % of the force residual periodic "
-                     f"in the position), and a one-sample speed replay error <= {NOISE_FACTOR:g} x the log's noise floor or a "
+                     f"in the position; the force balance's friction within {100 * FRICTION_DEPARTURE:g} % of the "
+                     "Coulomb level of the fitted law at every speed and position, in both halves of the log), and a one-sample speed replay error <= {NOISE_FACTOR:g} x the log's noise floor or a "
                      f"fit >= {FIT_MIN_PERCENT:g} %; with more than one log each left-out log explained by the plant "
                      "fitted on the others; residual whiteness is reported, not tested (never white in closed loop)"),
             "explained": {n: explained(e) for n, e in written.items()}}

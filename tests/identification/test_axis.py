@@ -725,6 +725,12 @@ def test_emps_fit_and_validate_end_to_end(tmp_path, capsys, emps_fit):
     assert abs(eq["mass_kg"]["value"] / M_REF - 1) < 0.03
     assert abs(eq["viscous_n_s_per_m"]["value"] / FV_REF - 1) < 0.10
     assert eq["friction_positive_n"]["value"] > 0 > eq["friction_negative_n"]["value"]
+    # the friction-law test sees EMPS's friction is not Coulomb + viscous (about 3 N below the line at
+    # 3..6 mm/s, measured 0.19 of the Coulomb level) and lets it pass, as the published model has that law
+    from prsa_ctrl.identification.axisfriction import FRICTION_DEPARTURE
+
+    entry = next(iter(rep["validation"]["written_plant"].values()))
+    assert 0.1 < entry["friction_departure"] < FRICTION_DEPARTURE
     plant = load_axis_plant(out)
     assert plant.sources["axis.mass_kg"].startswith("fit: DATA_EMPS.mat")
     traces, rj = tmp_path / "T.csv", tmp_path / "R.json"

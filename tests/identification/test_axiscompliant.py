@@ -149,10 +149,23 @@ def _base(log):
 #: held at the +x start, which was reported with a zero-width "interval" (now none: held, not fitted);
 #: of the other 14, Fv- and Fc- are outside in 5 each, always Fv- high and Fc- low (z +2.0..+2.6 and
 #: -2.2..-4.3): a bias of the Coulomb/viscous split, not a covariance blind to correlation (the
-#: z-scores barely moved from the former batch means', seed 1 Fv- +2.05 -> +2.58); it has the same
-#: sign without the disturbance (seed 1, noise 0: Fv- +0.26 %, Fc- -0.16 %, z +3.4/-3.4), so the
-#: generator's 40-substep stick at reversals, which the exact model does not share, is part of it
-#: and the disturbance amplifies it (noise 2 N: +3.6 %, -1.8 %). The two-log fit of seeds 4 and 12
+#: z-scores barely moved from the former batch means', seed 1 Fv- +2.05 -> +2.58). Its two parts
+#: (h14-axisfric, seed 1, one fit each): without the disturbance (+0.26 % / -0.16 %) it is this
+#: generator's, which stops the motor side at the end of the substep in which its speed changes
+#: sign: 400 substeps halve it (+0.13 % / -0.08 %; the toolkit's stepper finds the instant). With
+#: the 2 N disturbance (Fv+ +2.3 %, Fv- +3.6 %, Fc+ -2.0 %, Fc- -1.8 %) 400 substeps change nothing
+#: (+2.4, +3.5, -2.1, -1.7 %); the disturbance acting only while the axis rests gives most of it
+#: (+1.4, +2.8, -1.4, -1.7 %), only while the reference moves less (+1.0, +0.9, -0.8, -0.2 %): at
+#: rest the disturbed axis creeps through the stick band where the replay, which has no
+#: disturbance, sticks; the fit lowers the Coulomb levels to creep alike and raises the viscous
+#: terms to keep the sliding force. Generator and model share the friction law; the bias is the
+#: output-error estimator's (a replay without the process noise that a stick band rectifies).
+#: Leaving out the rests from the cost (30 ms after the reference stops) does not remove it (seed 1
+#: Fc+ z -3.0 -> -2.9). Not fixed. Seeds 1-25 on h14-axisfric (one log each): 4 did not converge
+#: (5, 9, 10, 17); 2 are refused by the friction-law test (11, 14: -x held at +x's start, seed 14's
+#: written plant Fv+ 1560 N s/m against 150, which exit 0 wrote before); of the 21 converged, truth
+#: outside per key M 2, Fv+ 6, Fv- 8 (of 16 fitted), Fc+ 6, Fc- 7 (of 16), m_l 1, k 3, zeta 1. The
+#: two-log fit of seeds 4 and 12
 #: has the damping outside, 0.0464..0.0496 against 0.05.
 TWO_MASS_KEYS = ("axis.mass_kg", "axis.load_mass_kg", "axis.load_stiffness_n_per_um", "axis.axial_damping_ratio")
 

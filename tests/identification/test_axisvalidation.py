@@ -8,7 +8,10 @@ cogging force ``A sin(2 pi x / p)`` or a second mass on a lightly damped spring 
 is in the rigid model), integrated with the midpoint rule on 40 substeps per 1 kHz sample (not the
 toolkit's exact stepper); the position-P/velocity-P controller with the two-sample average, a random
 binary test signal at the drive input, an unlogged white force disturbance (2 N rms), the position
-quantised to 50 nm.
+quantised to 50 nm. Friction laws the model lacks, written here: a Stribeck rise
+``Fc + Fs exp(-(v/vs)^2)`` (breakaway ``Fc + Fs``), a Coulomb level that changes linearly along
+the travel; and a profile of slow moves (:func:`slow_profile`, 2..120 mm/s) such as a friction
+identification runs.
 """
 
 from __future__ import annotations
@@ -20,8 +23,8 @@ import pytest
 
 from prsa_ctrl.cli.fit import main as fit_main
 from prsa_ctrl.identification.axis import PARAMETERS, load_axis_plant
-from prsa_ctrl.identification.axisvalidation import (EXCITATION_SHARE, PERIODIC_SHARE, excitation_share,
-                                                     periodic_share)
+from prsa_ctrl.identification.axisvalidation import (EXCITATION_SHARE, FRICTION_DEPARTURE, PERIODIC_SHARE,
+                                                     excitation_share, periodic_share)
 
 import axis_generator as gen  # tests/identification is on sys.path (the reference profile, the CSV description)
 
@@ -29,12 +32,45 @@ H, GAIN, KP, KV, RES = 1e-3, 30.0, 150.0, 250.0, 5e-8
 TRUTH = (80.0, 150.0, 220.0, 15.0, 25.0)  # M kg, Fv+ Fv- N s/m, Fc+ Fc- N
 
 
-def axis_log(seed, n=6000, sub=40, cogging=None, second=None, noise_n=2.0, dither_v=0.5):
+def slow_profile(rng, n):
+    """Moves at speeds log-uniform in 2..120 mm/s (accelerations 0.5..2 m/s^2), each 0.2..0.6 s at its
+    speed (at most 0.1 m), in both directions within 0..0.2 m, with rests of 50..150 ms."""
+    r = np.zeros(n)
+    x, k = 0.0, 0
+    while k < n:
+        vmax, amax = math.exp(rng.uniform(math.log(0.002), math.log(0.12))), rng.uniform(0.5, 2.0)
+        dist = min(rng.uniform(0.2, 0.6) * vmax, 0.1)
+        up = x + dist <= 0.2 and (x - dist < 0 or rng.random() < 0.5)
+        ta = vmax / amax
+        if dist < vmax * ta:
+            ta = math.sqrt(dist / amax)
+            vmax = amax * ta
+        tc = (dist - vmax * ta) / vmax
+        total = 2 * ta + tc
+        tt = np.arange(int(total / H) + 1) * H
+        pos = np.where(tt < ta, 0.5 * amax * tt ** 2, np.where(tt < ta + tc, 0.5 * amax * ta ** 2 + vmax * (tt - ta),
+                                                                dist - 0.5 * amax * np.clip(total - tt, 0, None) ** 2))
+        seg = x + (pos if up else -pos)
+        take = min(seg.size, n - k)
+        r[k:k + take] = seg[:take]
+        k += take
+        x = seg[take - 1]
+        rest = int(rng.uniform(0.05, 0.15) / H)
+        r[k:k + rest] = x
+        k += rest
+    return r[:n]
+
+
+def axis_log(seed, n=6000, sub=40, cogging=None, second=None, noise_n=2.0, dither_v=0.5, stribeck=None,
+             coulomb_slope=0.0, slow=False):
     """``(time s, position m, reference m, command V, test signal V)`` of the closed loop;
-    ``cogging=(N, period m)``, ``second=(kg, N/m)`` (a mass on a spring beyond the axis, damping ratio 0.02)."""
+    ``cogging=(N, period m)``, ``second=(kg, N/m)`` (a mass on a spring beyond the axis, damping ratio 0.02),
+    ``stribeck=(Fs N, vs m/s)`` (both directions), ``coulomb_slope`` (the Coulomb levels times
+    ``1 + coulomb_slope (x / 0.2 m - 0.5)``), ``slow`` (:func:`slow_profile` in place of the random moves)."""
     rng = np.random.default_rng(seed)
-    m, fvp, fvn, fcp, fcn = TRUTH
-    r = gen.profile(rng, n)
+    m, fvp, fvn, fcp0, fcn0 = TRUTH
+    fs, vs = stribeck if stribeck is not None else (0.0, 1.0)
+    r = slow_profile(rng, n) if slow else gen.profile(rng, n)
     d = dither_v * np.repeat(rng.choice([-1.0, 1.0], size=n // 5 + 1), 5)[:n]
     disturbance = noise_n * rng.standard_normal(n)
     m2, k2 = second if second is not None else (1.0, 0.0)
@@ -48,12 +84,14 @@ def axis_log(seed, n=6000, sub=40, cogging=None, second=None, noise_n=2.0, dithe
         net = f - k2 * (x - x2) - c2 * (v - v2)
         if cogging is not None:
             net += cogging[0] * math.sin(2 * math.pi * x / cogging[1])
+        g = 1.0 + coulomb_slope * (x / 0.2 - 0.5)
+        fcp, fcn = g * fcp0, g * fcn0
         if v > 0:
-            a = (net - fcp - fvp * v) / m
+            a = (net - fcp - fs * math.exp(-(v / vs) ** 2) - fvp * v) / m
         elif v < 0:
-            a = (net + fcn - fvn * v) / m
-        else:  # at rest: sticks while the net force is inside the band
-            a = (net - fcp) / m if net > fcp else ((net + fcn) / m if net < -fcn else 0.0)
+            a = (net + fcn + fs * math.exp(-(v / vs) ** 2) - fvn * v) / m
+        else:  # at rest: sticks while the net force is inside the band (breakaway Fc + Fs)
+            a = (net - fcp - fs) / m if net > fcp + fs else ((net + fcn + fs) / m if net < -fcn - fs else 0.0)
         return a, (k2 * (x - x2) + c2 * (v - v2)) / m2
 
     for k in range(n):
@@ -144,6 +182,61 @@ def test_a_second_mass_the_rigid_model_lacks_is_refused(logs, tmp_path, capsys):
     assert "--fidelity compliant" in line
 
 
+@pytest.fixture(scope="module")
+def friction_logs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("axisfric")
+    (root / "log.toml").write_text(CSV_FORMAT)
+    _write(root / "slow.csv", axis_log(1, slow=True))
+    _write(root / "stribeck.csv", axis_log(1, slow=True, stribeck=(20.0, 0.005)))  # the same seed: same moves, noise
+    _write(root / "tight.csv", axis_log(2, coulomb_slope=1.2))  # logs["plain"] with a Coulomb level 0.4x..1.6x
+    return root
+
+
+def test_slow_moves_without_a_friction_law_the_model_lacks_fit_with_the_truth_inside(friction_logs, tmp_path, capsys):
+    """Moves at 2..120 mm/s, Coulomb + viscous friction: exit 0, every key's truth inside its interval,
+    the friction test far from its threshold (measured 0.065 on this seed; 0.06..0.10 on seeds 1-6)."""
+    import json
+
+    js = tmp_path / "slow.json"
+    code, out = _fit(friction_logs, tmp_path, "slow", "--json", str(js))
+    text = capsys.readouterr()
+    assert code == 0, text.err
+    rep = json.loads(js.read_text())
+    for k, true in zip(PARAMETERS, TRUTH):
+        lo, hi = rep["parameters"][k]["ci95"]
+        assert lo <= true <= hi, (k, true, lo, hi)
+    entry = next(iter(rep["validation"]["written_plant"].values()))
+    assert entry["friction_departure"] < FRICTION_DEPARTURE / 2
+    assert out.exists()
+
+
+def test_a_stribeck_rise_is_refused_naming_it(friction_logs, tmp_path, capsys):
+    """The same moves with a 20 N Stribeck rise at 5 mm/s (the closed-loop replay fits 99 %: the loop
+    corrects the speed error within a few samples, and the fit raises its Coulomb level to 29.5 N
+    against 20): exit 3, one line naming Stribeck friction and where, no plant file."""
+    code, out = _fit(friction_logs, tmp_path, "stribeck")
+    err = capsys.readouterr().err
+    assert code == 3
+    assert not out.exists()
+    lines = [x for x in err.splitlines() if x.startswith("prsa-fit:")]
+    assert len(lines) == 1, err
+    assert "most likely missing physics: Stribeck friction" in lines[0]
+    assert "mm/s" in lines[0]
+    assert "no plant file written" in lines[0]
+
+
+def test_a_friction_that_changes_along_the_travel_is_refused(friction_logs, tmp_path, capsys):
+    """logs["plain"] with its Coulomb levels 0.4x at one end of the travel and 1.6x at the other
+    (which test_the_logs_without_the_extra_physics_fit_with_the_truth_inside_the_intervals fits):
+    exit 3, the diagnosis names a friction that changes along the travel, no plant file."""
+    code, out = _fit(friction_logs, tmp_path, "tight")
+    err = capsys.readouterr().err
+    assert code == 3
+    assert not out.exists()
+    line = next(x for x in err.splitlines() if x.startswith("prsa-fit:"))
+    assert "most likely missing physics: friction that changes along the travel" in line
+
+
 def test_force_writes_the_refused_plant_with_a_header_that_says_so(logs, tmp_path, capsys):
     code, out = _fit(logs, tmp_path, "cogging", "--force")
     capsys.readouterr()
@@ -221,3 +314,30 @@ def test_interval_coverage_over_20_seeds_with_an_unlogged_disturbance():
           f"sd z {np.round(np.std(zs, axis=0, ddof=1), 3).tolist()}")
     assert np.all(counts >= 18), counts
     assert np.all(np.abs(mean_z) < 3 / math.sqrt(20)), mean_z
+
+
+@pytest.mark.slow  # 18 generator logs and fits (about 1.5 s of CPU each)
+def test_the_friction_tests_threshold_over_seeds():
+    """The measurements behind prsa_ctrl.identification.axisfriction.FRICTION_DEPARTURE, seeds 1-6:
+    the right model on slow moves (measured 0.057..0.101) and on the random moves (0.005..0.024) stays
+    below half of it; a 20 N Stribeck rise at 5 mm/s on slow moves (0.356..0.612) reaches it, and the
+    fitted plant is refused."""
+    from prsa_ctrl.identification.axis import fit_linear_axis
+    from prsa_ctrl.identification.calibrate_axis import axis_base_plant
+    from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec
+
+    def departure(seed, **kw):
+        t, q, r, u, d = axis_log(seed, **kw)
+        ctl = ControllerSpec("position-p/velocity-p", KP, KV, 0.0, "average2-difference", 10.0, H)
+        log = AxisLog(f"seed-{seed}", t, q, u, "V", GAIN, H, reference_m=r, test_signal=d, controller=ctl,
+                      resolution_m=RES)
+        fit = fit_linear_axis([log], axis_base_plant([log], "log.toml")[0], check_delay=False)
+        return fit, next(iter(fit.validation["written_plant"].values()))["friction_departure"]
+
+    for seed in range(1, 7):
+        for kw in ({}, {"slow": True}):
+            fit, dep = departure(seed, **kw)
+            assert dep < FRICTION_DEPARTURE / 2, (seed, kw, dep)
+        fit, dep = departure(seed, slow=True, stribeck=(20.0, 0.005))
+        assert dep >= FRICTION_DEPARTURE, (seed, dep)
+        assert not fit.passes

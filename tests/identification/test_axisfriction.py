@@ -1,0 +1,87 @@
+"""The linear axis's friction-law test (prsa_ctrl.identification.axisfriction) on force balances
+written here by hand: a slow sinusoidal motion ``x = A (1 - cos w t)`` (every speed from standstill
+to 126 mm/s, both directions), the drive force ``M a + F_f(v, x)`` logged as the command; the test
+against the law that made it finds nothing, against a law that lacks a term it finds that term
+where it is. The closed-loop cases (prsa-fit exits 3 naming it) are in test_axisvalidation.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from prsa_ctrl.identification.axisfriction import (FRICTION_DEPARTURE, applied_force, friction_departure,
+                                                   friction_diagnosis, friction_words)
+from prsa_ctrl.identification.logformat import AxisLog, ControllerSpec
+
+H, GAIN, A, W = 1e-3, 30.0, 0.1, 2 * math.pi * 0.2
+THETA = (80.0, 150.0, 220.0, 15.0, 25.0)  # M kg, Fv+ Fv- N s/m, Fc+ Fc- N
+
+
+def _log(stribeck=(0.0, 1.0), slope=0.0, n=20000):
+    t = np.arange(n) * H
+    x = A * (1 - np.cos(W * t))
+    v, a = A * W * np.sin(W * t), A * W * W * np.cos(W * t)
+    m, fvp, fvn, fcp, fcn = THETA
+    fs, vs = stribeck
+    g = 1.0 + slope * (x / (2 * A) - 0.5)
+    friction = np.where(v > 0, g * fcp + fvp * v, -g * fcn + fvn * v) + np.sign(v) * fs * np.exp(-(v / vs) ** 2)
+    return AxisLog("hand", t, x, (m * a + friction) / GAIN, "V", GAIN, H)
+
+
+def test_the_law_that_made_the_force_balance_departs_from_it_by_nothing():
+    e = friction_departure(THETA, _log())
+    assert e["friction_departure"] < 0.02, e["friction_departure"]
+    assert friction_words(e) is None
+    assert len(e["friction_speed_bins"]) == 12  # six speed bins in each direction, each with both halves
+    assert len(e["friction_position_bins"]) == 6
+
+
+def test_a_stribeck_rise_is_found_at_the_lowest_speeds_and_named():
+    """10 N at 5 mm/s beside a Coulomb level of 20 N: the lowest bins (1.26..2.4 mm/s) hold
+    10 exp(-(v/vs)^2), 8..9.5 N, in the direction of motion, in both directions."""
+    e = friction_departure(THETA, _log(stribeck=(10.0, 0.005)))
+    assert e["friction_by"] == "speed"
+    low = [b for b in e["friction_speed_bins"] if abs(b["from"]) < 0.0015]
+    assert len(low) == 2
+    for b in low:
+        assert 7.5 < b["excess_n"] < 10.0, b
+    assert e["friction_departure"] >= FRICTION_DEPARTURE
+    assert e["friction_departure"] == pytest.approx(e["friction_high"]["excess_n"] / 20.0, rel=1e-12)
+    assert friction_diagnosis(e, "hand").startswith("Stribeck friction: in hand")
+
+
+def test_a_coulomb_level_that_changes_along_the_travel_is_found_by_position():
+    """Coulomb 0.4x..1.6x over the 0.2 m travel (the law's mean level): the position bins' excess
+    runs from about -0.5 x 20 N to +0.5 x 20 N, and the diagnosis names the travel."""
+    e = friction_departure(THETA, _log(slope=1.2))
+    assert e["friction_by"] == "position"
+    ex = [b["excess_n"] for b in e["friction_position_bins"]]
+    assert ex == sorted(ex)  # more friction the further along the travel
+    assert 0.6 < e["friction_departure"] < 1.2
+    assert "changes along the travel" in friction_diagnosis(e, "hand")
+
+
+def test_the_applied_force_moves_a_command_logged_as_computed_by_the_delay():
+    """The controller's output acts two samples after it is logged; the test signal the drive adds
+    acts in the sample it is logged in."""
+    lg = _log(n=400)
+    ctl = ControllerSpec("position-p/velocity-p", 150.0, 250.0, 0.0, "average2-difference", 10.0, H,
+                         command_delay_samples=2)
+    test = np.zeros(400)
+    test[100] = 1.0
+    delayed = AxisLog("hand", lg.time_s, lg.position_m, lg.command + test, "V", GAIN, H, reference_m=lg.position_m,
+                      test_signal=test, controller=ctl)
+    f = applied_force(delayed)  # the computed part two samples late, the test signal as the drive adds it
+    assert f[10:] == pytest.approx(GAIN * (lg.command[8:-2] + test[10:]), abs=1e-9)
+
+
+def test_a_wrong_coulomb_viscous_split_is_named_as_the_fit_not_as_missing_physics():
+    """The force balance is Coulomb + viscous, the law tested has +x's Coulomb level 6 N low and its
+    viscous term 70 N s/m high (as a fit that held a direction or ended at a bound): the departure
+    is a straight line in the speed, which a Coulomb + viscous law explains, and is named so."""
+    e = friction_departure((80.0, 220.0, 220.0, 9.0, 25.0), _log())
+    assert e["friction_departure"] >= FRICTION_DEPARTURE
+    assert friction_diagnosis(e, "hand").startswith("friction as fitted: in hand")
