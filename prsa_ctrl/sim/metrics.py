@@ -560,12 +560,17 @@ class Margins:
 
 def _bisect(f, lo: NDArray, hi: NDArray, f_lo: NDArray, n: int = 60) -> NDArray:
     """Roots of ``f`` (array in, array out) bracketed by ``[lo, hi]`` (``f_lo``: its values at
-    ``lo``), vectorised over the brackets: ``n`` bisections."""
+    ``lo``), vectorised over the brackets: ``n`` bisections, fewer where a bisection leaves every
+    bracket as it was (the brackets are adjacent floating-point numbers: every further bisection
+    would evaluate ``f`` at the same points and change nothing, so the result is the same)."""
     lo, hi = lo.copy(), hi.copy()
     for _ in range(n):
         mid = 0.5 * (lo + hi)
         same = np.sign(f(mid)) == np.sign(f_lo)
-        lo, hi = np.where(same, mid, lo), np.where(same, hi, mid)
+        new_lo, new_hi = np.where(same, mid, lo), np.where(same, hi, mid)
+        if np.array_equal(new_lo, lo) and np.array_equal(new_hi, hi):
+            break
+        lo, hi = new_lo, new_hi
     return 0.5 * (lo + hi)
 
 

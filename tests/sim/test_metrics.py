@@ -109,3 +109,37 @@ def test_margins_without_crossings_are_infinite():
     assert math.isinf(m.pm_deg)
     assert math.isnan(m.wc_rad_s)
     assert m.as_dict()["gm_db"] is None
+
+
+def _sixty_bisections(f, lo, hi, f_lo):
+    """The reference: 60 bisections of every bracket, none skipped."""
+    lo, hi = lo.copy(), hi.copy()
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        same = np.sign(f(mid)) == np.sign(f_lo)
+        lo, hi = np.where(same, mid, lo), np.where(same, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+@pytest.mark.parametrize("w_lo, w_hi, n", [(1e-3, 1e3, 200), (1e-1, 1e4, 57), (0.5, 3.0, 9)])
+def test_exact_crossings_equal_sixty_full_bisections_bit_for_bit(w_lo, w_hi, n):
+    # The bisection stops once a step leaves every bracket unchanged: the result must be the
+    # number 60 full bisections give (crossings near w = 1 rad/s, where log w ~ 0 has the finest
+    # floating-point spacing, and far from it).
+    def loop(wv):
+        s = 1j * np.asarray(wv, float)
+        return 4.0 / (s + 1) ** 3 * np.exp(-0.05 * s)
+
+    w = np.logspace(math.log10(w_lo), math.log10(w_hi), n)
+    L = loop(w)
+    m = margins_from_response(w, L, response=loop)
+    x, lm, phase = np.log(w), np.log(np.abs(L)), np.unwrap(np.angle(L))
+    i = np.flatnonzero(np.sign(lm[:-1]) * np.sign(lm[1:]) < 0)
+    r = _sixty_bisections(lambda xs: np.log(np.abs(loop(np.exp(xs)))), x[i], x[i + 1], lm[i])
+    assert m.wc_rad_s == float(math.exp(r[0]))
+    k = np.floor((phase + math.pi) / (2 * math.pi))
+    j = np.flatnonzero(np.diff(k) != 0)
+    target = np.maximum(k[j], k[j + 1]) * 2 * math.pi - math.pi
+    rp = _sixty_bisections(lambda xs: phase[j] + np.angle(loop(np.exp(xs)) / L[j]) - target, x[j], x[j + 1],
+                           phase[j] - target)
+    assert m.gm_db == float(np.min(-20 * np.log10(np.abs(loop(np.exp(rp))))))
