@@ -426,10 +426,10 @@ def search_delay(fit_at: Callable[[int, Plant], FitResult], plant: Plant, keys, 
     failed = sorted(s for s, r in fits.items() if r is None and s not in stopped)
     warns = list(res.warnings)
     if stopped:
-        warns.append(f"the fit at shift{'s' if len(stopped) > 1 else ''} {', '.join(map(str, sorted(stopped)))} was "
-                     f"stopped by its work bound before it converged ({next(iter(stopped.values()))[:200]}): no "
-                     f"evidence for or against {'them' if len(stopped) > 1 else 'it'}; the delay is decided among the "
-                     f"shifts that converged ({', '.join(map(str, sorted(good)))})")
+        warns.append(f"the command delay is decided among the shifts that converged ({', '.join(map(str, sorted(good)))}): "
+                     f"the fit at shift{'s' if len(stopped) > 1 else ''} {', '.join(map(str, sorted(stopped)))} was "
+                     f"stopped by its work bound before it converged ({next(iter(stopped.values()))[:200]}), no "
+                     f"evidence for or against {'them' if len(stopped) > 1 else 'it'}")
     if failed:
         warns.append(f"the command delay is not decided: the fit failed at shift{'s' if len(failed) > 1 else ''} "
                      f"{', '.join(map(str, failed))} from every start ({'; '.join(f'{s}: {starts[s]} starts' for s in failed)}); "

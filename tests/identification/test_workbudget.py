@@ -150,7 +150,7 @@ def test_a_delay_candidate_stopped_by_its_bound_does_not_decide_against_one_that
     assert ds["objective"]["2"] is None
     assert calls.count(2) == 1  # stopped: no other start tried on a spent share
     assert any("shift 2 was stopped by its work bound" in w and "decided among the shifts that converged (1)" in w
-               for w in res.warnings)
+               for w in res.warnings)  # ("the command delay ...": the refit at the found shift keeps it)
     # the share: shift 2 stopped within a third of the run's work after shift 1's 10 passes
     assert res.solver["work"]["passes"] <= 10 + 100 / 3 + 30 + 1e-9
     # outside a bounded run the candidate bound is nothing: the same search runs unbounded
