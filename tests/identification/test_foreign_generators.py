@@ -781,11 +781,13 @@ JUDGE_XFAIL = {
     # exit 0, accepted: J 2.92017e-3 (CI 2.91273..2.92763e-3, truth 2.92018e-3), current loop 1119.9 Hz (1100),
     # the delay exact, mode 131.78 Hz (132.32); shift 2 stopped at its candidate's share of the bound (69 of 208
     # iterations over the logs: workbudget.candidate_bound) and named, the delay decided among the converged;
-    # 180 of 208 passes, 151.9 s CPU (was exit 3 'delay', 171 s). roller-2mass-d1-applied-si logs-compliant-frf:
-    # exit 0 with the same values as h13-modefit, 108.0 s CPU before the refit's cap (299 of 417 passes, 255 of
-    # them in the refit at the found shift failing from both starts; the search's fit is written).
-    # Not under the issue's 60 s: an iteration over 28 800 intervals costs about 0.5 s of CPU idle (CasADi's
-    # Jacobian blocks and their batched inverses, linear in the intervals), and these runs need 100-180.
+    # 180 of 208 passes; A/B back to back against a8f75f1 at load 2-4: 127.8 s CPU (a8f75f1: exit 3 'delay',
+    # 156.8 s). roller-2mass-d1-applied-si logs-compliant-frf: exit 0, values identical to a8f75f1's (J 1.07899e-3,
+    # CI 1.07278..1.08521e-3, 707.6 Hz, mode 162.08 Hz); 183 passes (was 299, 255 of them in the refit at the
+    # found shift failing from both starts, now capped at a third of the bound; the search's fit is written as
+    # before); A/B back to back: 55.6 s CPU (a8f75f1: 93.8 s). The ball case stays above the issue's 60 s: an
+    # iteration over its 28 800 intervals costs about 0.5 s of CPU (CasADi's Jacobian blocks and their batched
+    # inverses, linear in the intervals), and the run needs 180 of them.
 }
 
 
