@@ -52,6 +52,7 @@ import numpy as np
 
 from ..errors import FitError
 from ..plant.plantfile import Plant
+from ..plant.schema import axial_mode_keys
 from .common import FitResult
 from .frfcheck import choose_structure_checked, units_line, unexplained_line, unexplained_resonances
 from .twomass import StructureChoice, FrfModelFit, physical_values
@@ -119,11 +120,9 @@ def _check_low_phase(frf) -> None:
 
 
 def _stiffness_key(plant: Plant) -> str | None:
-    if plant.screw_driven:
-        return "axis.nut_stiffness_n_per_um"
-    if plant.mechanism == "inverted-roller-screw":
-        return "contact.stiffness_n_per_mm_e"
-    return None
+    """The spring a response's mode is matched by first (:data:`prsa_ctrl.plant.schema.AXIAL_MODE_KEYS`)."""
+    springs = axial_mode_keys(plant.mechanism, "springs")
+    return springs[0] if springs else None
 
 
 def first_mode_hz(plant: Plant, keys: Sequence[str] = (), values: Sequence[float] = (), *,
@@ -335,11 +334,6 @@ def _direct_closed(plant: Plant, structure: str, v: Mapping[str, float]) -> dict
     return out
 
 
-#: The series spring that the stiffness match scales with the nut when the nut alone cannot put
-#: the plant's mode at the response's (:func:`_match_stiffness`).
-BEARING_KEY = "axis.bearing_stiffness_n_per_um"
-
-
 def _match_stiffness(plant: Plant, direct: Mapping[str, float], target_hz: float, speed: float, load: float):
     """The stiffness keys' values that put the plant's first axial mode at ``target_hz`` (with
     the directly mapped inertias), and ``d ln K / d ln f`` of their common factor; ``None`` when no
@@ -351,12 +345,11 @@ def _match_stiffness(plant: Plant, direct: Mapping[str, float], target_hz: float
     axial 300 N/um: no nut stiffness up to 1e5 N/um reaches its 161 Hz) has the nut and the
     bearings scaled together by one factor (both catalogue springs, their ratio kept; the shaft's
     geometry is not a guess)."""
-    key = _stiffness_key(plant)
-    inert = [k for k in ("axis.motor_inertia_kg_m2", "axis.moving_mass_kg", "nut.inertia_kg_m2", "screw.mass_kg")
-             if k in direct]
-    found = _match_scaled(plant, inert, [direct[k] for k in inert], (key,), target_hz, speed, load)
-    if found is None and plant.screw_driven:
-        found = _match_scaled(plant, inert, [direct[k] for k in inert], (key, BEARING_KEY), target_hz, speed, load)
+    springs = axial_mode_keys(plant.mechanism, "springs")
+    inert = [k for k in axial_mode_keys(plant.mechanism, "inertias") if k in direct]
+    found = _match_scaled(plant, inert, [direct[k] for k in inert], springs[:1], target_hz, speed, load)
+    if found is None and len(springs) > 1:  # (the series spring scaled with the nut: the bearings)
+        found = _match_scaled(plant, inert, [direct[k] for k in inert], springs, target_hz, speed, load)
     return found
 
 
@@ -425,8 +418,7 @@ def plant_keys_of(plant: Plant, fit: FrfModelFit, *, speed_rad_s: float, load_n:
     values = dict(direct)
     skey = _stiffness_key(plant)
     if structure == "two-mass" and skey is not None:
-        bad = [k for k in ("axis.motor_inertia_kg_m2", "axis.moving_mass_kg", "nut.inertia_kg_m2", "screw.mass_kg")
-               if k in direct and not direct[k] > 0]
+        bad = [k for k in axial_mode_keys(plant.mechanism, "inertias") if k in direct and not direct[k] > 0]
         match = None
         if not bad:
             try:
@@ -760,7 +752,7 @@ def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: Stru
     from .frf import fit_frf
 
     # (the bearings, when scaled with the nut, keep the mapping's value: the response shows the series alone)
-    fkeys = [k for k in keys if k not in ("drive.current_loop_bandwidth_hz", BEARING_KEY)] + (
+    fkeys = [k for k in keys if k not in ("drive.current_loop_bandwidth_hz", *axial_mode_keys(start.mechanism, "springs")[1:])] + (
         ["drive.current_loop_bandwidth_hz"] if "drive.current_loop_bandwidth_hz" in keys else []) + [DELAY_KEY]
     try:
         start = _match_modes(start, fit, frf[0].speed_rad_s, frf[0].load_n)
@@ -884,9 +876,7 @@ def _match_modes(start: Plant, fit: FrfModelFit, speed: float, load: float) -> P
 
     from .twomass import model_response
 
-    skey = _stiffness_key(start)
-    keys = (("axis.motor_inertia_kg_m2", "axis.moving_mass_kg") if start.screw_driven else
-            ("nut.inertia_kg_m2", "screw.mass_kg")) + (skey,)
+    keys = axial_mode_keys(start.mechanism, "inertias") + axial_mode_keys(start.mechanism, "springs")[:1]
     fa, fr = fit.value("antiresonance_hz"), fit.value("resonance_hz")
     f0 = 0.1 * fa
     v = {k: x["value"] for k, x in fit.values.items()}

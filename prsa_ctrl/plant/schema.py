@@ -29,7 +29,7 @@ from typing import Any, Callable, Mapping, Union
 
 __all__ = ["SCHEMA", "PLAUSIBLE", "ALLOWED_KEYS", "POSITIVE", "NON_NEGATIVE", "POSITIVE_INTEGER", "NON_NEGATIVE_INTEGER",
            "FINITE", "FRACTION", "COMMAND_DELAY_KEY", "BREAKAWAY_KEY", "VISCOUS_OFFSET_KEY",
-           "MECHANISMS", "DEFAULT_MECHANISM", "SCREW_DRIVEN", "MOUNTINGS", "DEFAULT_MOUNTING", "SCREW_AXIS_SCHEMA",
+           "MECHANISMS", "DEFAULT_MECHANISM", "SCREW_DRIVEN", "AXIAL_MODE_KEYS", "axial_mode_keys", "MOUNTINGS", "DEFAULT_MOUNTING", "SCREW_AXIS_SCHEMA",
            "LINEAR_AXIS_SCHEMA", "LOOP_KEYS", "KIND", "REQUIRED", "DEFAULTS", "UNITS", "keys_of", "kind_of"]
 
 # Kinds of value: positive finite, non-negative finite, positive integer, non-negative integer, fraction in (0, 1].
@@ -211,6 +211,33 @@ MECHANISMS = ("inverted-roller-screw", "roller-screw", "ball-screw", "linear-axi
 DEFAULT_MECHANISM = "inverted-roller-screw"
 #: Mechanisms where the motor turns the screw and the nut (with the carriage) translates.
 SCREW_DRIVEN = ("roller-screw", "ball-screw")
+#: The keys that set each mechanism's first axial mode in its compliant model, by role:
+#: ``inertias`` the rotating inertia on the motor's side of the spring, then the mass (or inertia)
+#: on its far side; ``springs`` the spring a measured mode is matched by first (the least known of
+#: the series), then the one scaled together with it when it alone cannot place the mode;
+#: ``damping`` the mode's. The one table of them: a two-mass fit of a response writes these keys
+#: (:mod:`prsa_ctrl.identification.frfplant`) and the compliant time-domain fit starts from them
+#: (:func:`prsa_ctrl.identification.compliant.seed_keys`). A linear axis has no entry (no axial
+#: mode in its model).
+AXIAL_MODE_KEYS: Mapping[str, Mapping[str, tuple[str, ...]]] = {
+    "inverted-roller-screw": {"inertias": ("nut.inertia_kg_m2", "screw.mass_kg"),
+                              "springs": ("contact.stiffness_n_per_mm_e",), "damping": ()},
+    **{m: {"inertias": ("axis.motor_inertia_kg_m2", "axis.moving_mass_kg"),
+           "springs": ("axis.nut_stiffness_n_per_um", "axis.bearing_stiffness_n_per_um"),
+           "damping": ("axis.axial_damping_ratio",)} for m in SCREW_DRIVEN},
+}
+
+
+def axial_mode_keys(mechanism: str, role: str | None = None) -> tuple[str, ...]:
+    """The :data:`AXIAL_MODE_KEYS` of ``mechanism``: those of one ``role`` (``"inertias"``,
+    ``"springs"``, ``"damping"``), or all of them in that order; ``()`` for a mechanism without an
+    axial mode."""
+    roles = AXIAL_MODE_KEYS.get(mechanism, {})
+    if role is not None:
+        return tuple(roles.get(role, ()))
+    return tuple(k for r in ("inertias", "springs", "damping") for k in roles.get(r, ()))
+
+
 #: Axial mountings of a driven screw (top-level ``mounting = "..."``) -> number of axially fixed
 #: ends (the plant value ``axis.fixed_ends``): ``fixed-free`` (one end held axially, the other
 #: free or only radially supported: fixed-supported behaves the same axially) and

@@ -271,3 +271,58 @@ def test_the_logs_own_response_seeds_the_compliant_fit_where_the_loop_is_describ
     assert keys0 is None
     assert "no measured frequency response" in why
     assert "speed loop" in why
+
+
+@pytest.mark.parametrize("name", ["ballscrew-32x10", "rollerscrew-30x5", "paper-iprsm"])
+def test_the_axial_mode_keys_are_one_table_that_moves_each_mechanisms_mode(name):
+    """compliant.seed_keys and the FRF seed's spring read one table (plant.schema.AXIAL_MODE_KEYS),
+    and the table is the physics: a stiffer spring raises the plant's first axial mode, a heavier
+    inertia on either side lowers it (the compliant model linearised, not the table's word)."""
+    from prsa_ctrl.identification.compliant import seed_keys
+    from prsa_ctrl.identification.frfplant import first_mode_hz
+    from prsa_ctrl.plant.schema import axial_mode_keys, keys_of
+
+    p = load_plant(name)
+    assert seed_keys(p) == axial_mode_keys(p.mechanism)
+    assert set(seed_keys(p)) <= set(keys_of(p.mechanism))
+    f0 = first_mode_hz(p)
+    for k in axial_mode_keys(p.mechanism, "springs"):
+        assert first_mode_hz(p, (k,), (4.0 * p.values[k],)) > 1.01 * f0, k
+    near, far = axial_mode_keys(p.mechanism, "inertias")
+    assert first_mode_hz(p, (far,), (4.0 * p.values[far],)) < 0.99 * f0
+    # (the inverted screw's nut is far heavier than its translating screw: it barely moves the mode)
+    assert first_mode_hz(p, (near,), (4.0 * p.values[near],)) < f0
+
+
+def test_a_linear_axis_has_no_axial_mode_keys():
+    from prsa_ctrl.plant.schema import MECHANISMS, axial_mode_keys
+
+    assert axial_mode_keys("linear-axis") == ()
+    assert all(axial_mode_keys(m) for m in MECHANISMS if m != "linear-axis")
+
+
+def test_a_compliant_fit_with_nothing_to_place_its_mode_is_refused_before_any_work(monkeypatch):
+    """Default keys, logs, no measured response and no described speed loop: the mode keys would
+    stay the datasheet's (a misplaced mode keeps a compliant fit iterating to its work bound), so
+    fit_plant refuses at once, naming both flags; --fit keys, a response or a loop lift it."""
+    import prsa_ctrl.identification.timedomain as td
+    from prsa_ctrl.errors import FitError
+    from prsa_ctrl.identification.compliant import unplaced_mode
+    from prsa_ctrl.identification.data import record_from_arrays
+
+    p = load_plant("ballscrew-32x10")
+    t = np.arange(400) * p.sample_time_s
+    rec = record_from_arrays("log", t, 0.1 * np.sin(200 * t), nut_angle_rad=30.0 * t, axial_load_n=np.full(t.size, 500.0))
+    built = []
+    monkeypatch.setattr(td, "_Problem", lambda *a, **k: built.append(1))  # (no fit may start)
+    with pytest.raises(FitError) as info:
+        td.fit_plant([rec], p, fidelity="compliant", delay_samples="find")
+    text = str(info.value)
+    assert "no loop described: --speed-loop" in text
+    assert "--frf" in text
+    assert "axis.nut_stiffness_n_per_um" in text
+    assert built == []
+    assert unplaced_mode(p, [rec], [], ("axis.motor_inertia_kg_m2",)) is None  # --fit: the user's keys
+    assert unplaced_mode(p, [rec], ["bode"], None) is None
+    assert unplaced_mode(p, [rec], [], None, speed_loop=object()) is None
+    assert unplaced_mode(p, [], [], None) is None  # (an FRF-only fit has no logs to refuse)

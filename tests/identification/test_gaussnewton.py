@@ -132,3 +132,27 @@ def test_a_full_step_from_where_the_equations_hold_is_taken_within_the_restorabl
     assert not gn.feasible_full_step(2.1e-12, math.inf, 16883.672, 12412.517)
     # the bounds themselves are inclusive
     assert gn.feasible_full_step(gn.CONSTRAINT_TOL, gn.FIRST_ORDER_G_MAX, 1.0, 0.5)
+
+
+@pytest.mark.parametrize("count, chunk", [(10, 4), (8, 4), (3, 1024), (1, 1)])
+def test_a_chunked_map_equals_one_map_over_every_interval(count, chunk):
+    """gaussnewton.ChunkedMap: the chunks (the last one padded) give exactly the values of one
+    serial map over all intervals, every output; a wrong input size is refused."""
+    import casadi as ca
+
+    from prsa_ctrl.identification.gaussnewton import ChunkedMap
+
+    x = ca.SX.sym("x", 3)
+    p = ca.SX.sym("p", 2)
+    y = ca.vertcat(ca.sin(x[0]) * p[0], x[1] * x[2] + p[1], ca.exp(-x[2] ** 2))
+    f = ca.Function("f", [x, p], [y, ca.densify(ca.jacobian(y, x))])
+    rng = np.random.default_rng(1)
+    xs = rng.standard_normal((3, count))
+    ps = np.tile([0.7, -1.3], count)
+    want = [np.asarray(o).ravel(order="F") for o in f.map(count, "serial")(xs, ps.reshape(count, 2).T)]
+    got = ChunkedMap(f, count, chunk=chunk)(xs, ps)
+    assert len(got) == 2
+    for g, w in zip(got, want):
+        assert np.array_equal(g, w)
+    with pytest.raises(ValueError, match="expected"):
+        ChunkedMap(f, count, chunk=chunk)(xs[:, :-1] if count > 1 else xs[:2], ps)

@@ -171,6 +171,7 @@ def test_the_default_segment_depends_on_the_fidelity(sim, monkeypatch, fidelity,
     """Without segment_s the fit's segments are 0.1 s, a compliant fit's 0.05 s
     (prsa_ctrl.identification.compliant.COMPLIANT_SEGMENT_S: the compliant equations are less
     linear over a segment); a given length is kept."""
+    from prsa_ctrl.identification.common import default_keys
     from prsa_ctrl.identification.compliant import COMPLIANT_SEGMENT_S
 
     rec, truth = sim
@@ -181,13 +182,16 @@ def test_the_default_segment_depends_on_the_fidelity(sim, monkeypatch, fidelity,
         raise td.FitError("stop")
 
     monkeypatch.setattr(td, "_fit_records", fake)
+    # (the keys given: a compliant fit with the default keys and nothing to place its mode from is
+    # refused before it starts, compliant.unplaced_mode)
+    keys = default_keys(truth)
     with pytest.raises(td.FitError):
-        td.fit_plant([rec], truth, fidelity=fidelity, delay_samples=0, validation=False)
+        td.fit_plant([rec], truth, keys=keys, fidelity=fidelity, delay_samples=0, validation=False)
     assert seen == [expected]
     assert COMPLIANT_SEGMENT_S == 0.05
     assert td.SEGMENT_S == 0.1
     with pytest.raises(td.FitError):
-        td.fit_plant([rec], truth, fidelity=fidelity, delay_samples=0, validation=False, segment_s=0.02)
+        td.fit_plant([rec], truth, keys=keys, fidelity=fidelity, delay_samples=0, validation=False, segment_s=0.02)
     assert seen[-1] == 0.02
 
 
