@@ -19,6 +19,21 @@ TRUTH = (80.0, 150.0, 220.0, 15.0, 25.0)
 KP, KV, GAIN, H, RES = 150.0, 250.0, 30.0, 1e-3, 5e-8
 
 
+def trapezoid(dist, vmax, amax):
+    """The distance covered (m) at each sample of a move of ``dist`` m at speed ``vmax`` m/s and
+    acceleration ``amax`` m/s^2 (a triangle when ``dist`` is too short to reach ``vmax``), from 0 to
+    ``dist``."""
+    ta = vmax / amax
+    if dist < vmax * ta:
+        ta = math.sqrt(dist / amax)
+        vmax = amax * ta
+    tc = (dist - vmax * ta) / vmax
+    total = 2 * ta + tc
+    tt = np.arange(int(total / H) + 1) * H
+    return np.where(tt < ta, 0.5 * amax * tt ** 2, np.where(tt < ta + tc, 0.5 * amax * ta ** 2 + vmax * (tt - ta),
+                                                           dist - 0.5 * amax * np.clip(total - tt, 0, None) ** 2))
+
+
 def profile(rng, n):
     """Bang-bang acceleration moves between random positions in both directions, with rests."""
     r = np.zeros(n)
@@ -26,17 +41,7 @@ def profile(rng, n):
     while k < n:
         target = rng.uniform(0.0, 0.2)
         vmax, amax = rng.uniform(0.03, 0.12), rng.uniform(0.5, 2.0)
-        dist = abs(target - x)
-        ta = vmax / amax
-        if dist < vmax * ta:
-            ta = math.sqrt(dist / amax)
-            vmax = amax * ta
-        tc = (dist - vmax * ta) / vmax
-        total = 2 * ta + tc
-        tt = np.arange(int(total / H) + 1) * H
-        pos = np.where(tt < ta, 0.5 * amax * tt ** 2, np.where(tt < ta + tc, 0.5 * amax * ta ** 2 + vmax * (tt - ta),
-                                                                dist - 0.5 * amax * np.clip(total - tt, 0, None) ** 2))
-        seg = x + math.copysign(1.0, target - x) * pos
+        seg = x + math.copysign(1.0, target - x) * trapezoid(abs(target - x), vmax, amax)
         take = min(seg.size, n - k)
         r[k:k + take] = seg[:take]
         k += take

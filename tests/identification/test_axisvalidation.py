@@ -41,15 +41,7 @@ def slow_profile(rng, n):
         vmax, amax = math.exp(rng.uniform(math.log(0.002), math.log(0.12))), rng.uniform(0.5, 2.0)
         dist = min(rng.uniform(0.2, 0.6) * vmax, 0.1)
         up = x + dist <= 0.2 and (x - dist < 0 or rng.random() < 0.5)
-        ta = vmax / amax
-        if dist < vmax * ta:
-            ta = math.sqrt(dist / amax)
-            vmax = amax * ta
-        tc = (dist - vmax * ta) / vmax
-        total = 2 * ta + tc
-        tt = np.arange(int(total / H) + 1) * H
-        pos = np.where(tt < ta, 0.5 * amax * tt ** 2, np.where(tt < ta + tc, 0.5 * amax * ta ** 2 + vmax * (tt - ta),
-                                                                dist - 0.5 * amax * np.clip(total - tt, 0, None) ** 2))
+        pos = gen.trapezoid(dist, vmax, amax)
         seg = x + (pos if up else -pos)
         take = min(seg.size, n - k)
         r[k:k + take] = seg[:take]
