@@ -51,6 +51,7 @@ _COST = re.compile(r"work bound|iteration bound|bound on the (?:fit's )?work|eva
 _UNDECIDED = re.compile(r"undecided|could not decide|cannot decide|can't decide|not decided", re.I)
 _DECIDED = re.compile(r"\bdelay (?:is |was )?decided\b", re.I)
 _RESONANCE_WORDS = ("second mass", "two-mass", "resonance", "axial mode", " mode", "compliant", "stiffness")
+_ABOUT_THE_MODEL = re.compile(r"\b(?:written|fitted|base) (?:plant|model)'s mode\b|held at the base plant's values")
 _UNITS_RIGHT = re.compile(r"\b(?:units|coordinates) (?:are|is|look) right\b", re.I)
 
 
@@ -114,6 +115,8 @@ def parse_claims(line: str) -> list[Claim]:
             continue
         if "current-loop" in low or "current loop" in low:
             continue  # a note on what the misfit leaves unidentified, not a diagnosis
+        if _ABOUT_THE_MODEL.search(low):
+            continue  # a statement about the written or base plant, not about the data
         label = low.split(":", 1)[0] if ":" in low[:40] else ""
         if _UNITS_RIGHT.search(low) is None and re.search(r"\bunits?\b|\bcoordinates?\b", low):
             claims.append(Claim("units", c))
