@@ -174,6 +174,11 @@ def test_the_run_delay_read_from_a_report():
     assert run_delay(found) == 1
     assert run_delay({"solver": {"command_delay": {"drive_command_delay_samples": 0, "how": "given"}}}) is None
     assert run_delay({"solver": {"command_delay": {"drive_command_delay_samples": 1, "decided": False}}}) is None
+    # the search's own verdict (prsa-fit writes it under command_delay.search)
+    undecided = {"shift_samples": 1, "drive_command_delay_samples": 0, "how": "found by the delay search", "search": {"decided": False}}
+    assert run_delay({"solver": {"command_delay": undecided}}) is None
+    undecided["search"]["decided"] = True
+    assert run_delay({"solver": {"command_delay": undecided}}) == 0
     assert run_delay(None) is None
 
 

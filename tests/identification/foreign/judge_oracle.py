@@ -194,7 +194,8 @@ def judge_diagnosis(line: str, truth: dict, *, run_delay: int | None = None, cos
 def run_delay(report: dict | None):
     """The drive.command_delay_samples a run's JSON reports as found by its delay search, else None."""
     cd = ((report or {}).get("solver") or {}).get("command_delay") or {}
-    if cd.get("decided") is False or "given" in str(cd.get("how", "")):
+    decided = cd.get("decided", (cd.get("search") or {}).get("decided"))
+    if decided is False or "given" in str(cd.get("how", "")):
         return None
     d = cd.get("drive_command_delay_samples")
     return int(d) if isinstance(d, (int, float)) else None
@@ -266,7 +267,7 @@ def acceptance(proc, out, json_path, truth, *, mode_expected: bool, must_fit: bo
         lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
         diag = lines[-1] if lines else ""
         report = json.loads(Path(json_path).read_text()) if Path(json_path).exists() else None
-        row.update(diagnosis=diag, run_delay=run_delay(report))
+        row.update(diagnosis=diag, run_delay=run_delay(report), delay_truth=truth["drive.command_delay_samples"])
         if must_fit:
             fails.append(f"exit 3 on data of the model class the run asked for: {diag[-200:]!r}")
         else:
