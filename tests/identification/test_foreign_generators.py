@@ -338,6 +338,10 @@ COST_BOUND_ALLOWED: dict[str, str] = {
     "(true: cogging 6, 12) and 121.1 Hz (true: 118.0), and shift 3 stopped at the work bound (469 iterations)",
     "third:roller-39x10--logs-compliant": "exit 3, 179.0 s CPU (182.7 s; 13 min 6 s wall): the work bound "
     "(374 of 375 iterations) with the mode keys held at the base plant's values; no physics named",
+    "judge:ball-2mass-d1-computed-si--logs-compliant": "exit 3, 160.5 s CPU (166.8 s; 4 min wall): the work bound "
+    "(208 of 208 iterations) with the mode keys held at the base plant's values; no physics named",
+    "judge:ball-2mass-d1-computed-si--logs-compliant-frf": "exit 3, 159.1 s CPU (165.7 s; 4 min 22 s wall): 'delay: "
+    "could not decide (1: 1.27e+06, 2: failed)', shift 2 stopped at the work bound (208 iterations)",
 }
 
 
