@@ -763,7 +763,8 @@ THIRD_KINDS = ("logs", "logs-compliant", "frf", "frf-compliant")
 # the axial mode is 118 Hz), 53 s CPU; roller-39x10 logs "second mass ... 144 Hz" (right), 86 s (h13-frfdiag,
 # re-diagnosed: "second mass: 46 % ... multisine.csv ... 144 Hz ...; besides, position-periodic torque: 46 %
 # ... loadsteps.csv ... 21.97 Hz ... 6.00 cycles per revolution explains 49 % ..., one of time 17 %").
-# Not measured: both logs-compliant runs, stopped at 20 min of wall time (load ~14, ~5 min CPU).
+# Both logs-compliant runs (stopped at 20 min of wall time on aca0656): exit 3 at the work bound on a8f75f1
+# (h14-oracle, 141.8 and 179.0 s CPU), listed in COST_BOUND_ALLOWED.
 # Diagnostics (h13-gen3, not marks): with the coupling 100x stiffer (its mode above Nyquist) both
 # FRFs pass the rule (ball -0.73 %, CI holds the truth, 797 Hz, delay 1, mode 118.28 vs 118.35 Hz;
 # roller -0.79 %, 1001 Hz, delay 2, mode 135.85 vs 135.88 Hz): the second, higher mode is what
