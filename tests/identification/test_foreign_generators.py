@@ -342,6 +342,8 @@ COST_BOUND_ALLOWED: dict[str, str] = {
     "(208 of 208 iterations) with the mode keys held at the base plant's values; no physics named",
     "judge:ball-2mass-d1-computed-si--logs-compliant-frf": "exit 3, 159.1 s CPU (165.7 s; 4 min 22 s wall): 'delay: "
     "could not decide (1: 1.27e+06, 2: failed)', shift 2 stopped at the work bound (208 iterations)",
+    "rollerscrew-logs-compliant": "exit 3, 137.1 s CPU (140.1 s; 2 min 48 s wall): the work bound (417 of 417 "
+    "iterations) with the mode keys held at the base plant's values; no physics named",
 }
 
 
