@@ -165,6 +165,26 @@ def test_first_mode_formula_matches_the_simulators_linearisation_and_the_frf_pea
 
 
 @pytest.mark.parametrize("name", NAMES)
+def test_truth_lists_every_peak_and_notch_of_the_analytic_chain(name):
+    # the judge's oracle reads modes_hz and anti_resonances_hz: the peaks and notches of the chain
+    # written above (nut driving), nearly undamped, each within 0.3 % of one of them, two of each
+    c = dataclasses.replace(g3.CASES[name], zeta_axial=1e-4, zeta_coupling=1e-4, b_viscous=0.0)
+    t = g3.truth(name)
+    f = np.arange(40.0, 1500.0, 0.01)
+    mag = np.abs(_chain_frf(c, f)) * f  # times f: the integrator's slope off, peaks and notches stay
+    inner = mag[1:-1]
+    peaks = f[1:-1][(inner > mag[:-2]) & (inner > mag[2:])]
+    notches = f[1:-1][(inner < mag[:-2]) & (inner < mag[2:])]
+    assert peaks.size == 2
+    assert notches.size == 2
+    for fp in peaks:
+        assert min(abs(fp / m - 1.0) for m in t["modes_hz"]) < 3e-3, (fp, t["modes_hz"])
+    for fn in notches:
+        assert min(abs(fn / m - 1.0) for m in t["anti_resonances_hz"]) < 3e-3, (fn, t["anti_resonances_hz"])
+    assert t["periodic_orders_per_rev"] == (6, 12)  # cog6 and cog12 of the case
+
+
+@pytest.mark.parametrize("name", NAMES)
 def test_first_mode_moves_with_the_nut_position(name):
     # k(x) = 1 / (1/k_nut + 1/k_bearing + x / (E A)), here for a nut 0.1 m from the fixed bearing
     # and at the end of the span; the linearisation moves with it

@@ -346,12 +346,21 @@ def truth(case: Case):
         "frf_speed_rad_s": 30.0,
         "frf_load_n": m.f_load_ms,
         "speed_loop": {"kp": m.kp, "ki": m.ki, "tau_filter_s": m.tau_filter},
+        # for a judge of diagnoses: every resonance and anti-resonance of the axis (none when rigid),
+        # no position-periodic torque, and the units and coordinates given to prsa-fit are the logs' own
+        "modes_hz": (),
+        "anti_resonances_hz": (),
+        "periodic_orders_per_rev": (),
+        "units_right": True,
+        "coordinates_right": True,
     }
     if case.two_mass:
         t["axial_stiffness_n_per_m"] = m.k_axial
         t["first_mode_hz"] = math.sqrt(m.k_axial * (m.a ** 2 / (m.eta * m.j_ms) + 1.0 / m.mass)) / (2 * math.pi)
         t["first_mode_lossless_hz"] = math.sqrt(m.k_axial * (m.a ** 2 / m.j_ms + 1.0 / m.mass)) / (2 * math.pi)
         t["anti_resonance_hz"] = math.sqrt(m.k_axial / m.mass) / (2 * math.pi)
+        t["modes_hz"] = (t["first_mode_hz"], t["first_mode_lossless_hz"])
+        t["anti_resonances_hz"] = (t["anti_resonance_hz"],)
     return t
 
 

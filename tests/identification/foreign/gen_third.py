@@ -455,10 +455,31 @@ def linearised_modes_hz(c: Case, w: float, f_load: float, x_m: float, eps: float
     return np.abs(osc) / TWO_PI, -osc.real / np.abs(osc)
 
 
+def anti_resonance_formula_hz(c: Case, x_m: float, *, driving: bool = True):
+    """Undamped anti-resonances, Hz, of the torque -> motor speed response at nut position x_m:
+    the natural frequencies with the rotor held (the screw and the carriage on the coupling and
+    the axial spring), from the 2 x 2 block of ``mode_formula_hz``'s matrix. Ascending."""
+    k = stiffness(c, x_m)
+    g = c.a / c.eta_f if driving else c.a * c.eta_b
+    a22, a23 = (c.k_coupling + g * c.a * k) / c.j_screw, -g * k / c.j_screw
+    a32, a33 = -c.a * k / c.mass_kg, k / c.mass_kg
+    lam = np.roots([1.0, -(a22 + a33), a22 * a33 - a23 * a32])
+    return np.sqrt(np.sort(lam.real[lam.real > 1e-9])) / TWO_PI
+
+
 def truth(name: str) -> dict:
-    """The truth under the toolkit's keys, SI."""
+    """The truth under the toolkit's keys, SI.
+
+    For a judge of diagnoses: ``modes_hz`` every resonance of the three bodies at the FRF's nut
+    position, driving and back-driven (the logs' nut stays within 5 cm of it); ``anti_resonances_hz``
+    the same for the anti-resonances; ``periodic_orders_per_rev`` the cogging's orders;
+    ``units_right`` / ``coordinates_right``: the log description and the plant file given to
+    prsa-fit state the logs' true units and coordinates.
+    """
     c = CASES[name]
     modes = mode_formula_hz(c, c.frf_position_m, driving=c.frf_load * c.frf_speed > 0)
+    both = [mode_formula_hz(c, c.frf_position_m, driving=d) for d in (True, False)]
+    antis = [anti_resonance_formula_hz(c, c.frf_position_m, driving=d) for d in (True, False)]
     return {
         "case": name,
         "mechanism": c.mechanism,
@@ -471,6 +492,11 @@ def truth(name: str) -> dict:
         "command_logged": c.command_logged,
         "first_mode_hz": float(modes[0]),
         "second_mode_hz": float(modes[1]),  # the coupling's
+        "modes_hz": tuple(sorted(float(f) for fs in both for f in fs)),
+        "anti_resonances_hz": tuple(sorted(float(f) for fs in antis for f in fs)),
+        "periodic_orders_per_rev": (6, 12) if c.cog6 or c.cog12 else (),
+        "units_right": True,
+        "coordinates_right": True,
         "axial_stiffness_at_frf_n_per_um": stiffness(c, c.frf_position_m) * 1e-6,
         "frf_speed_rad_s": c.frf_speed,
         "frf_load_n": c.frf_load,
