@@ -180,3 +180,24 @@ def test_the_band_fit_over_20_seeds(tmp_path, name):
         fm = cal.report["frf_axial_mode_hz"]
         hits += fm["ci95"][0] <= t["first_mode_hz"] <= fm["ci95"][1]
     assert hits >= 17, hits
+
+
+@pytest.mark.parametrize("name", list(g3.CASES))
+def test_a_band_that_starts_at_the_first_mode_is_refused(third, name):
+    """A band from the first mode's peak (or just below it, above its anti-resonance) holds the
+    peak but not the trough below it: the response there is the motor side's alone, as above a
+    mode left out below the band (was: exit 0, 'no key identifiable' on the ball screw and the
+    delay and current loop written from the mode's upper side)."""
+    from prsa_ctrl.identification.frfcheck import resonances
+    from prsa_ctrl.identification.data import load_frf
+
+    s = third[name]
+    _, _, hi = _refusal_band(s)
+    first = resonances(load_frf(s["frf"]))[0]["frequency_hz"]
+    for lo in (first, 0.97 * first):
+        typed = f"{lo:g},{hi:g}"
+        with pytest.raises(ValueError, match="not the anti-resonance below it") as ei:
+            _cal(s, band=(lo, hi), typed={"--frf-band": repr(typed)})
+        msg = str(ei.value)
+        assert msg.startswith(f"--frf-band {typed!r}: ")
+        assert "\n" not in msg
