@@ -10,8 +10,8 @@ in the band the loop uses, with the modes above it named, not modelled
 * The resonances of the whole response above the band are listed in the report and in the
   written keys' sources (frequency, and that the model omits them). A band that leaves a
   resonance out below it is bad input: above a mode the response is the motor side's alone, and
-  the model's inertia would not be the axis's; so is a band that starts at a mode, above its
-  anti-resonance (the band's own points do not show the peak the whole response shows).
+  the model's inertia would not be the axis's; so is a band that holds a mode but starts above
+  its anti-resonance (the lowest point of ``w |G|`` below the mode's peak).
 * A resonance omitted **above** the band leaves its tail inside it: below its frequency a mode
   ``r s / (s^2 + w^2)`` of the collocated response is ``(r / w^2) s``, the "upper residual" of
   modal analysis. The models then carry that compliance ``R >= 0``
@@ -29,7 +29,7 @@ in the band the loop uses, with the modes above it named, not modelled
 
 Bad input (ValueError, one line naming the value as typed): a band that is not two numbers
 ``FMIN,FMAX`` with ``0 <= FMIN < FMAX``, one that holds no point of the responses, one that leaves
-a resonance out below it or starts at one (its peak inside, the anti-resonance below it not), or fewer points
+a resonance out below it or starts above the anti-resonance of one it holds, or fewer points
 than twice the parameters of the model it must fit (the fits' own minimum,
 :func:`prsa_ctrl.identification.twomass.fit_frf_model`).
 """
@@ -37,7 +37,6 @@ than twice the parameters of the model it must fit (the fits' own minimum,
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -103,7 +102,7 @@ def apply_band(frf: Sequence, band: tuple[float, float], *, typed: str | None = 
         needs (one line naming the band as typed).
     """
     from ..options import check_number
-    from .frfcheck import MODE_MATCH, resonances
+    from .frfcheck import resonances
 
     shown = _typed(band, typed)
     lo = check_number(FLAG, band[0], 0.0, typed=shown, expected="a band 0 <= FMIN < FMAX Hz")
@@ -141,20 +140,32 @@ def apply_band(frf: Sequence, band: tuple[float, float], *, typed: str | None = 
                          "the band: above a mode the response is the motor side's alone, so the model's inertia would "
                          "not be the axis's; expected a band from the responses' lowest frequencies that holds the "
                          "first resonance or ends below it")
-    # a peak inside the band that the band's own points do not show: the band starts at (or just
-    # below) the mode, above its anti-resonance, and the response there is the motor side's as well
-    shows = [r["frequency_hz"] for r in resonances(cut)]
-    for r in found:
-        f_r = r["frequency_hz"]
-        if lo <= f_r <= hi and not any(abs(math.log(f / f_r)) <= MODE_MATCH for f in shows):
+    # a mode inside the band needs the anti-resonance below it inside too (the trough of w |G|
+    # below the peak): a band that starts above it sees the motor side alone at its lowest points
+    inner = [r["frequency_hz"] for r in found if lo <= r["frequency_hz"] <= hi]
+    if inner:
+        f_r = inner[0]
+        troughs = [t for t in (_trough_below(fr, f_r) for fr in frf) if t is not None]
+        f_all_in = f_all[(f_all >= lo) & (f_all <= hi)]
+        if troughs and not np.any(f_all_in < min(troughs)):  # (the trough needs a point of the band below it)
             raise ValueError(f"{FLAG} {shown}: it holds the response's resonance near {f_r:.4g} Hz but not the "
-                             "anti-resonance below it (the band starts at the mode's rise): the response there is the "
-                             "motor side's alone, so the model's inertia would not be the axis's; expected a band that "
-                             "starts below the anti-resonance (from the responses' lowest frequencies) or ends below "
-                             "the resonance")
+                             f"anti-resonance below it (near {min(troughs):.4g} Hz): the response at the band's lowest "
+                             "points is the motor side's alone, so the model's inertia would not be the axis's; "
+                             "expected a band that starts below the anti-resonance (from the responses' lowest "
+                             "frequencies) or ends below the resonance")
     info = {"band_hz": [float(lo), float(hi)], "typed": shown, "points": n_in, "of": n_all,
             "omitted": omitted, "above": any(r["side"] == "above" for r in omitted)}
     return cut, info
+
+
+def _trough_below(fr, f_r: float) -> float | None:
+    """The frequency (Hz) of the lowest ``w |G|`` of the record ``fr`` below ``f_r`` Hz (the
+    anti-resonance below a collocated mode), or None with fewer than 2 points there."""
+    f = np.asarray(fr.frequency_hz, float)
+    m = f < f_r
+    if np.count_nonzero(m) < 2:
+        return None
+    return float(f[m][np.argmin(f[m] * np.abs(np.asarray(fr.response)[m]))])
 
 
 def omitted_text(info: Mapping) -> str:

@@ -184,17 +184,20 @@ def test_the_band_fit_over_20_seeds(tmp_path, name):
 
 @pytest.mark.parametrize("name", list(g3.CASES))
 def test_a_band_that_starts_at_the_first_mode_is_refused(third, name):
-    """A band from the first mode's peak (or just below it, above its anti-resonance) holds the
-    peak but not the trough below it: the response there is the motor side's alone, as above a
-    mode left out below the band (was: exit 0, 'no key identifiable' on the ball screw and the
-    delay and current loop written from the mode's upper side)."""
+    """A band from the first mode's peak, or from between it and its anti-resonance (two-mass
+    estimate from the truth, f sqrt(J_m / J)), holds the peak but not the trough below it: the
+    response at its lowest points is the motor side's alone, as above a mode left out below the
+    band (was: exit 0 from the peak, 'no key identifiable' on the ball screw and the delay and
+    current loop written from the mode's upper side; exit 3 from between, for another reason)."""
     from prsa_ctrl.identification.frfcheck import resonances
     from prsa_ctrl.identification.data import load_frf
 
     s = third[name]
     _, _, hi = _refusal_band(s)
     first = resonances(load_frf(s["frf"]))[0]["frequency_hz"]
-    for lo in (first, 0.97 * first):
+    t = s["truth"]
+    anti = t["first_mode_hz"] * math.sqrt(t["motor_side_inertia_kg_m2"] / t["reflected_inertia_kg_m2"])
+    for lo in (first, 0.97 * first, 0.5 * (anti + first)):  # (from between: was exit 3 for another reason)
         typed = f"{lo:g},{hi:g}"
         with pytest.raises(ValueError, match="not the anti-resonance below it") as ei:
             _cal(s, band=(lo, hi), typed={"--frf-band": repr(typed)})
