@@ -64,12 +64,12 @@ def parse_band(text: str, flag: str = FLAG) -> tuple[float, float]:
     if len(parts) != 2:
         raise ValueError(f"{flag} {text!r}: expected {want}")
     vals = []
-    for p in parts:
+    for p, which in zip(parts, ("FMIN", "FMAX")):
         try:
             x = float(p)
         except ValueError:
             raise ValueError(f"{flag} {text!r}: {p.strip()!r} is not a number; expected {want}") from None
-        vals.append(check_number(flag, x, 0.0, typed=repr(text), expected=want))
+        vals.append(check_number(f"{flag} {text!r}: {which}", x, 0.0, unit="Hz", typed=p.strip()))
     if not vals[0] < vals[1]:
         raise ValueError(f"{flag} {text!r}: FMIN {vals[0]:g} Hz is not below FMAX {vals[1]:g} Hz (an empty or inverted "
                          f"band); expected {want}")
