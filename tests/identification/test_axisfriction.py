@@ -85,3 +85,17 @@ def test_a_wrong_coulomb_viscous_split_is_named_as_the_fit_not_as_missing_physic
     e = friction_departure((80.0, 220.0, 220.0, 9.0, 25.0), _log())
     assert e["friction_departure"] >= FRICTION_DEPARTURE
     assert friction_diagnosis(e, "hand").startswith("friction as fitted: in hand")
+
+
+def test_a_log_at_rest_says_nothing():
+    """A log that holds its position (constant, or moving less than its encoder's quantum) shows no
+    sliding friction: the test finds nothing (was: the filter's round-off speeds, 1e-11 mm/s, binned
+    as motion and the holding force read as a 125 % departure, 'friction as fitted')."""
+    n = 5000
+    t = np.arange(n) * H
+    hold = np.full(n, 5.0 / GAIN)  # a holding force of 5 N, inside the static friction
+    for x, res in ((np.full(n, 0.1), None), (0.1 + 1e-9 * np.sin(t), 5e-8)):
+        log = AxisLog("rest", t, x, hold, "V", GAIN, H, resolution_m=res)
+        e = friction_departure(THETA, log)
+        assert e["friction_departure"] == 0.0, e
+        assert friction_words(e) is None
