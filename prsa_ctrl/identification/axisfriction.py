@@ -22,7 +22,9 @@ counts only where both halves of the log agree in sign (its smaller magnitude: t
 repeatability, out of sample), and only with :data:`MIN_BIN_SAMPLES` samples in each half. The
 **departure** is the spread of those bins (the largest excess minus the largest deficit, 0
 included) over the fitted Coulomb level (the mean of ``Fc+`` and ``Fc-``, at least a tenth of the
-law's mean friction force over the binned samples). A log fails at :data:`FRICTION_DEPARTURE`.
+law's mean friction force over the binned samples, and at least the rms of the force balance's
+departure from the law over them: an axis with almost no friction, an air bearing, is judged
+against the scatter of its force balance, not against a Coulomb level of a few mN). A log fails at :data:`FRICTION_DEPARTURE`.
 
 Why 0.3 (measured, one log of 6,000 samples at 1 kHz, the rigid fit; tests/identification/
 test_axisvalidation.py's independent generator with a 2 N rms unlogged disturbance): the right
@@ -166,7 +168,8 @@ def friction_departure(theta, log) -> dict:
     q_edges = np.linspace(float(q[moving].min()), float(q[moving].max()), POSITION_BINS + 1)
     q_edges[0] = np.nextafter(q_edges[0], -math.inf)  # the bins are open below: the travel's start included
     position = _bins(excess, q, q_edges, fold, moving)
-    level = max(0.5 * (fcp + fcn), 0.1 * float(np.mean(np.abs(law[moving]))), 1e-12)
+    level = max(0.5 * (fcp + fcn), 0.1 * float(np.mean(np.abs(law[moving]))),
+                float(np.sqrt(np.mean(excess[moving] ** 2))), 1e-12)  # (the last: the force balance's scatter)
     (s_sp, hi_sp, lo_sp), (s_q, hi_q, lo_q) = _spread(speed), _spread(position)
     by_speed = s_sp >= s_q
     return {"friction_departure": (s_sp if by_speed else s_q) / level, "friction_by": "speed" if by_speed else "position",
