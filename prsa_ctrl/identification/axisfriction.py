@@ -22,7 +22,9 @@ counts only where both halves of the log agree in sign (its smaller magnitude: t
 repeatability, out of sample), and only with :data:`MIN_BIN_SAMPLES` samples in each half. The
 **departure** is the spread of those bins (the largest excess minus the largest deficit, 0
 included) over the fitted Coulomb level (the mean of ``Fc+`` and ``Fc-``, at least a tenth of the
-law's mean friction force over the binned samples). A log fails at :data:`FRICTION_DEPARTURE`.
+law's mean friction force over the binned samples, and at least the rms of the force balance's
+departure from the law over them: an axis with almost no friction, an air bearing, is judged
+against the scatter of its force balance, not against a Coulomb level of a few mN). A log fails at :data:`FRICTION_DEPARTURE`.
 
 Why 0.3 (measured, one log of 6,000 samples at 1 kHz, the rigid fit; tests/identification/
 test_axisvalidation.py's independent generator with a 2 N rms unlogged disturbance): the right
@@ -44,7 +46,7 @@ from numpy.typing import NDArray
 
 from .periodic import CV_BLOCK
 
-__all__ = ["FRICTION_DEPARTURE", "STRIBECK_SPEED_FRACTION", "SPEED_BINS", "POSITION_BINS", "LOWEST_SPEED_FRACTION", "MIN_BIN_SAMPLES",
+__all__ = ["FRICTION_DEPARTURE", "STRIBECK_SPEED_FRACTION", "SPEED_BINS", "POSITION_BINS", "LOWEST_SPEED_FRACTION", "MIN_BIN_SAMPLES", "REST_TRAVEL_M",
            "measured_velocity", "filtered_position", "applied_force", "friction_departure", "friction_words", "friction_diagnosis"]
 
 #: A log fails when its friction departs from the fitted law by this share of the Coulomb level.
@@ -60,6 +62,9 @@ LOWEST_SPEED_FRACTION = 0.01
 STRIBECK_SPEED_FRACTION = 0.1
 #: Samples a bin needs in each half of the log.
 MIN_BIN_SAMPLES = 20
+#: A log whose position spans no more than its encoder's quantum (this, m, without one) is at
+#: rest: its filtered speed is round-off, and the force holding it is static friction.
+REST_TRAVEL_M = 1e-9
 #: Samples left out at each end (the zero-phase filter's transients).
 _END_SAMPLES = 50
 
@@ -128,7 +133,8 @@ def friction_departure(theta, log) -> dict:
     -------
     dict
         ``friction_departure`` (the larger of the speed and the position spread over the Coulomb
-        level, 0 when no bin has enough samples), ``friction_by`` ("speed" or "position"),
+        level, 0 when no bin has enough samples or the log is at rest, its travel within its
+        encoder's quantum or :data:`REST_TRAVEL_M`), ``friction_by`` ("speed" or "position"),
         ``friction_speed_bins`` and ``friction_position_bins`` (each bin's ``from``/``to`` in m/s,
         signed by direction, or m, ``excess_n``, ``halves_n``, ``samples``), ``friction_high`` and
         ``friction_low`` (the bins of the largest excess and deficit of the deciding spread, or
@@ -148,7 +154,9 @@ def friction_departure(theta, log) -> dict:
     vmax = float(np.max(np.abs(v[keep]))) if np.any(keep) else 0.0
     empty = {"friction_departure": 0.0, "friction_by": "speed", "friction_peak_speed_m_s": vmax, "friction_speed_bins": [],
              "friction_position_bins": [], "friction_high": None, "friction_low": None, "friction_level_n": 0.0}
-    if not vmax > 0:
+    q = np.asarray(log.position_m, float)
+    travel = float(np.ptp(q[keep])) if np.any(keep) else 0.0
+    if not vmax > 0 or travel <= (log.resolution_m or REST_TRAVEL_M):  # at rest: no sliding friction to see
         return empty
     v_lo = LOWEST_SPEED_FRACTION * vmax
     edges = np.geomspace(v_lo, vmax, SPEED_BINS + 1)
@@ -157,11 +165,11 @@ def friction_departure(theta, log) -> dict:
     moving = keep & (np.abs(v) > v_lo)
     if not np.any(moving):
         return empty
-    q = np.asarray(log.position_m, float)
     q_edges = np.linspace(float(q[moving].min()), float(q[moving].max()), POSITION_BINS + 1)
     q_edges[0] = np.nextafter(q_edges[0], -math.inf)  # the bins are open below: the travel's start included
     position = _bins(excess, q, q_edges, fold, moving)
-    level = max(0.5 * (fcp + fcn), 0.1 * float(np.mean(np.abs(law[moving]))), 1e-12)
+    level = max(0.5 * (fcp + fcn), 0.1 * float(np.mean(np.abs(law[moving]))),
+                float(np.sqrt(np.mean(excess[moving] ** 2))), 1e-12)  # (the last: the force balance's scatter)
     (s_sp, hi_sp, lo_sp), (s_q, hi_q, lo_q) = _spread(speed), _spread(position)
     by_speed = s_sp >= s_q
     return {"friction_departure": (s_sp if by_speed else s_q) / level, "friction_by": "speed" if by_speed else "position",

@@ -208,8 +208,11 @@ def unplaced_mode(plant: Plant, records, frf, keys, speed_loop=None) -> str | No
     converge: measured on the judge's two-mass ball screw
     (tests/identification/foreign/gen_judge.py, its datasheet mode 16 % off) it ran 17 minutes idle
     before it ended exit 3, and 2 min 40 s at the work bound (:mod:`.workbudget`). ``--fit`` keys
-    given explicitly fit from the base plant's mode all the same."""
+    given explicitly fit from the base plant's mode all the same, and a base plant whose mode keys a
+    measurement placed (a source ``fit: ...``, as ``prsa-fit --frf`` writes them) starts from them."""
     if not records or keys is not None or list(frf) or speed_loop is not None or not seed_keys(plant):
+        return None
+    if any(str(plant.sources.get(k, "")).startswith("fit:") for k in seed_keys(plant)[1:]):
         return None
     return ("the compliant fit needs its axial mode placed from a frequency response, and none was given: no loop "
             "described: --speed-loop KP,KI[,TAU_S] (the logs' own response through the drive's speed loop) or --frf "

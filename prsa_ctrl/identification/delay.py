@@ -138,11 +138,16 @@ def with_command_delay(result: FitResult, shift: int, command_logged: str, how: 
                      f"with the command logged as {command_logged} (base plant: {plant.command_delay_samples})"
                      + (f"; if the log holds the command as {other}, it is {n_other} (--command-logged {other})"
                         if n_other >= 0 else ""))
+    search = result.solver.get("delay_search")
+    undecided = search is not None and not search.get("status", "decided" if search.get("decided") else
+                                                      "undecided").startswith("decided")
     if plant.command_delay_samples != n or how.startswith("found"):
         with_delay = plant.with_params({"drive.command_delay_samples": n}, name=plant.name)
         sources = dict(with_delay.sources)
         sources["drive.command_delay_samples"] = (f"fit: {how}, {shift} sample(s) from the logged command (logged as "
-                                                  f"{command_logged}) to its action")
+                                                  f"{command_logged}) to its action"
+                                                  + ("; undecided: the search did not single it out (the report's "
+                                                     "command delay status says why)" if undecided else ""))
         plant = Plant(name=with_delay.name, values=with_delay.values, sources=sources, origin=with_delay.origin,
                       description=with_delay.description, uncertainty=with_delay.uncertainty,
                       mechanism=with_delay.mechanism, defaulted=with_delay.defaulted,

@@ -10,7 +10,8 @@ in the band the loop uses, with the modes above it named, not modelled
 * The resonances of the whole response above the band are listed in the report and in the
   written keys' sources (frequency, and that the model omits them). A band that leaves a
   resonance out below it is bad input: above a mode the response is the motor side's alone, and
-  the model's inertia would not be the axis's.
+  the model's inertia would not be the axis's; so is a band that holds a mode but starts above
+  its anti-resonance (the lowest point of ``w |G|`` below the mode's peak).
 * A resonance omitted **above** the band leaves its tail inside it: below its frequency a mode
   ``r s / (s^2 + w^2)`` of the collocated response is ``(r / w^2) s``, the "upper residual" of
   modal analysis. The models then carry that compliance ``R >= 0``
@@ -28,7 +29,7 @@ in the band the loop uses, with the modes above it named, not modelled
 
 Bad input (ValueError, one line naming the value as typed): a band that is not two numbers
 ``FMIN,FMAX`` with ``0 <= FMIN < FMAX``, one that holds no point of the responses, one that leaves
-a resonance out below it, or fewer points
+a resonance out below it or starts above the anti-resonance of one it holds, or fewer points
 than twice the parameters of the model it must fit (the fits' own minimum,
 :func:`prsa_ctrl.identification.twomass.fit_frf_model`).
 """
@@ -63,12 +64,12 @@ def parse_band(text: str, flag: str = FLAG) -> tuple[float, float]:
     if len(parts) != 2:
         raise ValueError(f"{flag} {text!r}: expected {want}")
     vals = []
-    for p in parts:
+    for p, which in zip(parts, ("FMIN", "FMAX")):
         try:
             x = float(p)
         except ValueError:
             raise ValueError(f"{flag} {text!r}: {p.strip()!r} is not a number; expected {want}") from None
-        vals.append(check_number(flag, x, 0.0, typed=repr(text), expected=want))
+        vals.append(check_number(f"{flag} {text!r}: {which}", x, 0.0, unit="Hz", typed=p.strip()))
     if not vals[0] < vals[1]:
         raise ValueError(f"{flag} {text!r}: FMIN {vals[0]:g} Hz is not below FMAX {vals[1]:g} Hz (an empty or inverted "
                          f"band); expected {want}")
@@ -130,17 +131,41 @@ def apply_band(frf: Sequence, band: tuple[float, float], *, typed: str | None = 
         coh = None if fr.coherence is None else np.asarray(fr.coherence)[m]
         cut.append(dataclasses.replace(fr, frequency_hz=np.asarray(fr.frequency_hz)[m],
                                        response=np.asarray(fr.response)[m], coherence=coh))
+    found = resonances(frf)
     omitted = [dict(r, side="above" if r["frequency_hz"] > hi else "below")
-               for r in resonances(frf) if not lo <= r["frequency_hz"] <= hi]
+               for r in found if not lo <= r["frequency_hz"] <= hi]
     below = [r for r in omitted if r["side"] == "below"]
     if below:  # above a mode the response's low-frequency inertia is the motor side's, not the axis's
         raise ValueError(f"{FLAG} {shown}: the response's resonance near {below[0]['frequency_hz']:.4g} Hz lies below "
                          "the band: above a mode the response is the motor side's alone, so the model's inertia would "
                          "not be the axis's; expected a band from the responses' lowest frequencies that holds the "
                          "first resonance or ends below it")
+    # a mode inside the band needs the anti-resonance below it inside too (the trough of w |G|
+    # below the peak): a band that starts above it sees the motor side alone at its lowest points
+    inner = [r["frequency_hz"] for r in found if lo <= r["frequency_hz"] <= hi]
+    if inner:
+        f_r = inner[0]
+        troughs = [t for t in (_trough_below(fr, f_r) for fr in frf) if t is not None]
+        f_all_in = f_all[(f_all >= lo) & (f_all <= hi)]
+        if troughs and not np.any(f_all_in < min(troughs)):  # (the trough needs a point of the band below it)
+            raise ValueError(f"{FLAG} {shown}: it holds the response's resonance near {f_r:.4g} Hz but not the "
+                             f"anti-resonance below it (near {min(troughs):.4g} Hz): the response at the band's lowest "
+                             "points is the motor side's alone, so the model's inertia would not be the axis's; "
+                             "expected a band that starts below the anti-resonance (from the responses' lowest "
+                             "frequencies) or ends below the resonance")
     info = {"band_hz": [float(lo), float(hi)], "typed": shown, "points": n_in, "of": n_all,
             "omitted": omitted, "above": any(r["side"] == "above" for r in omitted)}
     return cut, info
+
+
+def _trough_below(fr, f_r: float) -> float | None:
+    """The frequency (Hz) of the lowest ``w |G|`` of the record ``fr`` below ``f_r`` Hz (the
+    anti-resonance below a collocated mode), or None with fewer than 2 points there."""
+    f = np.asarray(fr.frequency_hz, float)
+    m = f < f_r
+    if np.count_nonzero(m) < 2:
+        return None
+    return float(f[m][np.argmin(f[m] * np.abs(np.asarray(fr.response)[m]))])
 
 
 def omitted_text(info: Mapping) -> str:

@@ -326,3 +326,22 @@ def test_a_compliant_fit_with_nothing_to_place_its_mode_is_refused_before_any_wo
     assert unplaced_mode(p, [rec], ["bode"], None) is None
     assert unplaced_mode(p, [rec], [], None, speed_loop=object()) is None
     assert unplaced_mode(p, [], [], None) is None  # (an FRF-only fit has no logs to refuse)
+
+
+def test_a_base_plant_whose_mode_a_measurement_placed_is_not_refused():
+    """The two-step workflow: prsa-fit --frf bode.csv --out p.toml writes the mode keys with 'fit: ...'
+    sources, then prsa-fit logs.csv --plant p.toml --fidelity compliant starts from them (was:
+    refused, saying the base plant's mode keys are its datasheet's)."""
+    import dataclasses
+
+    from prsa_ctrl.identification.compliant import seed_keys, unplaced_mode
+    from prsa_ctrl.identification.data import record_from_arrays
+
+    p = load_plant("ballscrew-32x10")
+    t = np.arange(400) * p.sample_time_s
+    rec = record_from_arrays("log", t, 0.1 * np.sin(200 * t), nut_angle_rad=30.0 * t, axial_load_n=np.full(t.size, 500.0))
+    assert unplaced_mode(p, [rec], [], None) is not None  # (the datasheet's mode: refused)
+    key = "axis.nut_stiffness_n_per_um"
+    assert key in seed_keys(p)
+    placed = dataclasses.replace(p, sources={**p.sources, key: "fit: bode.csv (two-mass model of the frequency response)"})
+    assert unplaced_mode(placed, [rec], [], None) is None

@@ -844,3 +844,18 @@ def test_the_two_mass_roller_screw_logs_leave_the_delay_undecided(tmp_path, caps
     assert cd["search"]["decided"] is False
     assert sum(v is not None for v in cd["search"]["objective"].values()) >= 2
     assert "command delay: undecided, fitted at" in text
+
+
+def test_a_written_undecided_delay_says_so_in_its_source(plant):
+    """--force writes a plant whose delay the search left undecided: its source says so, as the
+    report's status does (was: 'fit: found by the delay search, 0 sample(s) ...', as if decided;
+    only a delay made undecided by the validation's rejection said it)."""
+    from prsa_ctrl.identification.delay import delay_status_head, with_command_delay
+
+    key = "drive.command_delay_samples"
+    for ratio, head in ((0.99, "undecided"), (1.01, "decided")):
+        fit_at = _fake(plant, {0: 1.0, 1: ratio * DELAY_OBJECTIVE_RATIO, 2: 40.0, 3: 90.0, 4: 95.0})
+        shift, res = search_delay(fit_at, plant, KEYS, 2.5e-4, 4)
+        out = with_command_delay(res, shift, "applied", "found by the delay search")
+        assert delay_status_head(out.solver["command_delay"]["status"]) == head
+        assert ("undecided" in out.plant.sources[key]) is (head == "undecided"), out.plant.sources[key]
