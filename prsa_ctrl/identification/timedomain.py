@@ -56,7 +56,7 @@ from .common import (DELAY_KEY, default_keys, RANK_RTOL, UNCERTAINTY_MODES, FitR
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
 from .shooting import MIN_SEGMENT, reference_trajectory, shooting_segments
-from .gaussnewton import (CONSTRAINT_TOL, FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, PLATEAU_ITERATIONS, PLATEAU_RATIO,
+from .gaussnewton import (CONSTRAINT_TOL, FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, defect_plateau,
                           RIGID_HOLD_LOOP, RIGID_X0_RTOL, ChunkedMap, condense, converged_at_kink, feasible_full_step,
                           first_order_point, noise_decrement)
 from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay, plant_shift,
@@ -805,9 +805,8 @@ class _Problem(ProblemTraces):
             # (the window opens after the first parameter step: the warm-up solves the equations with
             # the parameters held, ~1e-11, and was the stall's reference, so that a fit still closing
             # in was given up at iteration warm + 16 whatever its progress)
-            opened, recent = (warm + 1 if warm else 0), g_hist[-PLATEAU_ITERATIONS:]
-            plateau = (self.x0_rtol is None and len(g_hist) >= PLATEAU_ITERATIONS + opened and g_norm > FIRST_ORDER_G_MAX
-                       and max(recent) <= PLATEAU_RATIO * min(recent))  # a rigid fit's: gaussnewton.PLATEAU_ITERATIONS
+            opened = warm + 1 if warm else 0
+            plateau = defect_plateau(g_hist, opened)  # rigid and compliant (gaussnewton.defect_plateau)
             if len(g_hist) > STALL_ITERATIONS + opened and g_norm > 1e-6 and g_norm > 0.9 * g_hist[-1 - STALL_ITERATIONS]:
                 status = "stalled"  # the constraint residual no longer falls: give this attempt up early
                 break
