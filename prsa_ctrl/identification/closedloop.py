@@ -41,7 +41,8 @@ from numpy.typing import NDArray
 from ..errors import DataError
 
 __all__ = ["SpeedLoop", "measured_speed", "reference_from_loop", "frf_closed_loop", "frf_from_logs", "frf_start_values",
-           "speed_loop_from_log", "speed_loop_from_logs", "REFERENCE_POWER_MIN", "REFERENCE_RMS_MIN", "LOOP_RESIDUAL_MAX"]
+           "speed_loop_from_log", "speed_loop_from_logs", "REFERENCE_POWER_MIN", "REFERENCE_RMS_MIN", "LOOP_RESIDUAL_MAX",
+           "LOOP_SAMPLES_MAX"]
 
 #: A reference whose RMS (linear trend removed) is below this fraction of ``max(|mean|, 1 rad/s)``
 #: does not excite the loop (a constant setpoint given back by the controller is constant to
@@ -58,6 +59,9 @@ REFERENCE_POWER_MIN = 1e-4
 #: 4e-10 to 8.2e-4, kp, ki and the filter's time constant within 0.1 % of the truth's; the other
 #: logging convention leaves 0.16 and more, a log whose reference moves (multisine, staircase) 0.77.
 LOOP_RESIDUAL_MAX = 1e-2
+#: The identification reads at most this many samples of a log (its start; the work of its 200
+#: least-squares fits bounded before it starts: about a second of CPU at this length).
+LOOP_SAMPLES_MAX = 100_000
 
 
 @dataclass(frozen=True)
@@ -304,7 +308,7 @@ def speed_loop_from_log(record, command_logged: str) -> tuple[SpeedLoop | None, 
     grid (0, then 0.005 apart to 0.995), refined by a bounded scalar search around the best. The
     reference itself is not needed: a load-step log at a constant speed (the usual screw logs) is
     such a log. Saturation, anti-windup or a reference that moves show as residual
-    (:data:`LOOP_RESIDUAL_MAX`).
+    (:data:`LOOP_RESIDUAL_MAX`). The first :data:`LOOP_SAMPLES_MAX` samples are read.
 
     Parameters
     ----------
@@ -324,13 +328,13 @@ def speed_loop_from_log(record, command_logged: str) -> tuple[SpeedLoop | None, 
 
     name = getattr(record, "name", "log")
     th = getattr(record, "nut_angle_rad", None)
-    u = np.asarray(record.torque_command_n_m, float)
+    u = np.asarray(record.torque_command_n_m, float)[:LOOP_SAMPLES_MAX]
     if th is None or len(u) < 512:
         return None, math.inf, f"{name}: no motor angle or fewer than 512 samples"
-    ts = float(np.median(np.diff(np.asarray(record.time_s, float))))
+    ts = float(np.median(np.diff(np.asarray(record.time_s, float)[:LOOP_SAMPLES_MAX])))
     if command_logged == "applied":
         u = np.r_[u[1:], u[-1]]
-    raw, _ = measured_speed(np.asarray(th, float), SpeedLoop(1.0, 0.0, ts))
+    raw, _ = measured_speed(np.asarray(th, float)[:LOOP_SAMPLES_MAX], SpeedLoop(1.0, 0.0, ts))
     k0 = max(8, len(u) // 50)
     du = np.diff(u)[k0:-1]
     scale = float(np.sqrt(np.mean(du ** 2)))
