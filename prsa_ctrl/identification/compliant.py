@@ -32,7 +32,7 @@ from .common import inertia_key
 from ..plant.plantfile import Plant
 from ..plant.schema import AXIAL_MODE_KEYS, axial_mode_keys
 
-__all__ = ["COMPLIANT_STATES", "COMPLIANT_SEGMENT_S", "COMPLIANT_X0_RTOL", "COMPLIANT_G_MAX", "COMPLIANT_F_DROP", "COMPLIANT_RELAXED_STEPS", "SEED_KEYS", "seed_keys", "compliant_start", "unplaced_mode", "shows_mode", "seed_from_frf", "compliant_reference", "compliant_scales"]
+__all__ = ["COMPLIANT_STATES", "COMPLIANT_SEGMENT_S", "COMPLIANT_X0_RTOL", "COMPLIANT_G_MAX", "COMPLIANT_F_DROP", "COMPLIANT_RELAXED_STEPS", "SEED_KEYS", "seed_keys", "compliant_start", "unplaced_mode", "placed_by_fit", "shows_mode", "seed_from_frf", "compliant_reference", "compliant_scales"]
 
 #: Singular-value ratio below which a segment's initial-state direction is held at the
 #: reference in a Gauss-Newton step of a compliant fit
@@ -169,11 +169,25 @@ def compliant_start(plant: Plant, records, frf, keys, command_logged: str, speed
     The response is ``frf`` (measured, ``--frf``) or, without one, the logs' own
     (:func:`prsa_ctrl.identification.closedloop.frf_from_logs`: joint input-output, the reference
     given back by ``speed_loop``, the drive's described speed loop), used only when it shows a mode
-    (:func:`shows_mode`). Without either the mode keys stay the base plant's, and the note says
-    why."""
+    (:func:`shows_mode`). Without a described loop (and with the default keys) the loop is the one
+    identified from a constant-reference log (:func:`prsa_ctrl.identification.closedloop.speed_loop_from_logs`,
+    trusted below its residual threshold), and a response through it that places no mode refuses
+    the fit (:class:`~prsa_ctrl.errors.FitError`, :func:`unplaced_mode`'s text and why). Without
+    any the mode keys stay the base plant's, and the note says why."""
     if not (records and seed_keys(plant)):
         return plant, keys, None
-    responses, show_mode = list(frf), False
+    responses, show_mode, identified = list(frf), False, None
+    if not responses and speed_loop is None and keys is None and placed_by_fit(plant):
+        return plant, keys, ("the axial-mode keys start from the base plant's, which a measurement placed (their "
+                             "sources: fit: ...)")
+    if not responses and speed_loop is None and keys is None:
+        from .closedloop import speed_loop_from_logs
+
+        speed_loop, identified = speed_loop_from_logs(records, command_logged)
+        if speed_loop is None:
+            from ..errors import FitError
+
+            raise FitError(_unplaced_text(plant) + f"; {identified}")
     if not responses and speed_loop is not None:
         from ..errors import DataError
         from .closedloop import frf_from_logs
@@ -185,8 +199,10 @@ def compliant_start(plant: Plant, records, frf, keys, command_logged: str, speed
             except (DataError, ValueError) as exc:
                 why.append(str(exc))
         if not responses:
-            return plant, keys, ("the axial-mode keys stay the base plant's: no log gives a frequency response "
-                                 f"({'; '.join(why)[:300]})")
+            why = f"no log gives a frequency response ({'; '.join(why)[:300]})"
+            if identified is not None:
+                _refuse_identified(plant, identified, why)
+            return plant, keys, f"the axial-mode keys stay the base plant's: {why}"
         show_mode = True
     if not responses:
         return plant, keys, ("the axial-mode keys stay the base plant's (not fitted): no measured frequency response "
@@ -194,13 +210,23 @@ def compliant_start(plant: Plant, records, frf, keys, command_logged: str, speed
                              "described (--speed-loop KP,KI[,TAU_S]: closedloop.frf_from_logs); a compliant fit from a "
                              "misplaced mode does not converge" if keys is None else None)
     start, note = seed_from_frf(plant, responses, command_logged, need_mode=show_mode)
+    if identified is not None:
+        if start is plant:
+            _refuse_identified(plant, identified, note)
+        note = f"{identified}; {note} (the joint input-output response through that loop)"
     held = [k for k in seed_keys(start) if k != inertia_key(start) and k not in (keys or ())]
     if start is not plant and held:
         note += f"; {', '.join(held)} keep the response's values (the logs inform them far less)"
     return start, keys, note
 
 
-def unplaced_mode(plant: Plant, records, frf, keys, speed_loop=None) -> str | None:
+def placed_by_fit(plant: Plant) -> bool:
+    """Whether a measurement placed the plant's axial mode: its mode keys other than the inertia
+    carry a source ``fit: ...`` (as ``prsa-fit --frf`` writes them)."""
+    return any(str(plant.sources.get(k, "")).startswith("fit:") for k in seed_keys(plant)[1:])
+
+
+def unplaced_mode(plant: Plant, records, frf, keys, speed_loop=None, command_logged: str | None = None) -> str | None:
     """Why a compliant time-domain fit is refused before it starts, or ``None``: records, the
     default keys (``keys`` None), and nothing to place the axial mode from: no measured response
     (``frf``) and no described speed loop (``speed_loop``) for the logs' own. The mode keys would
@@ -209,11 +235,33 @@ def unplaced_mode(plant: Plant, records, frf, keys, speed_loop=None) -> str | No
     (tests/identification/foreign/gen_judge.py, its datasheet mode 16 % off) it ran 17 minutes idle
     before it ended exit 3, and 2 min 40 s at the work bound (:mod:`.workbudget`). ``--fit`` keys
     given explicitly fit from the base plant's mode all the same, and a base plant whose mode keys a
-    measurement placed (a source ``fit: ...``, as ``prsa-fit --frf`` writes them) starts from them."""
+    measurement placed (a source ``fit: ...``, as ``prsa-fit --frf`` writes them) starts from them. A log
+    run at a constant speed reference gives the loop itself
+    (:func:`prsa_ctrl.identification.closedloop.speed_loop_from_logs`, ``command_logged`` as the logs
+    have it, None: either): then the start is :func:`compliant_start`'s."""
     if not records or keys is not None or list(frf) or speed_loop is not None or not seed_keys(plant):
         return None
-    if any(str(plant.sources.get(k, "")).startswith("fit:") for k in seed_keys(plant)[1:]):
+    if placed_by_fit(plant):
         return None
+    from .closedloop import speed_loop_from_logs
+
+    why = ""
+    for logged in (command_logged,) if command_logged else ("computed", "applied"):
+        loop, why = speed_loop_from_logs(records, logged)
+        if loop is not None:
+            return None
+    return _unplaced_text(plant) + f"; {why}"
+
+
+def _refuse_identified(plant: Plant, identified: str, why: str):
+    """The refusal of a compliant fit whose loop, identified from the logs, placed no mode."""
+    from ..errors import FitError
+
+    raise FitError(_unplaced_text(plant) + f"; the {identified[0].lower()}{identified[1:]}, and its response placed no "
+                   f"mode: {why}")
+
+
+def _unplaced_text(plant: Plant) -> str:
     return ("the compliant fit needs its axial mode placed from a frequency response, and none was given: no loop "
             "described: --speed-loop KP,KI[,TAU_S] (the logs' own response through the drive's speed loop) or --frf "
             f"FRF.csv (a measured one); the base plant's mode keys ({', '.join(seed_keys(plant)[1:])}) are its "

@@ -156,3 +156,60 @@ def test_cli_frf_from_logs(log, tmp_path, capsys):
         assert len(err.splitlines()) == 1
         assert repr(bad) in err
     assert not (tmp_path / "x.toml").exists()
+
+
+def _foreign_log(gen: str, kind: str):
+    """(Record, logged convention, (kp, ki, filter time constant s) of the generator) of one foreign
+    generator's log: the judge's roller screw (logged as applied) or the third generator's ball
+    screw (logged as computed; its filter ``w += Ts/(tau + Ts) (raw - w)`` has the pole
+    ``tau / (tau + Ts)``, the time constant of ``exp(-Ts / tau')``)."""
+    from foreign import gen_judge as gj
+    from foreign import gen_third as g3
+
+    from prsa_ctrl.identification.data import record_from_arrays
+
+    if gen == "judge":
+        case = gj.CASES["roller-2mass-d1-applied-si"]
+        r = gj.run(case, kind, 0)
+        m = case.mech
+        return (record_from_arrays(kind, r["time_s"], r["applied_n_m"], nut_angle_rad=r["angle_rad"],
+                                   axial_load_n=r["load_n"]), "applied", (m.kp, m.ki, m.tau_filter))
+    c = g3.CASES["ball-40x16"]
+    w, load, d, q0, npre = g3.experiment_inputs(c, kind)
+    r = g3.simulate(c, w, load, d, q0=q0, rng=np.random.default_rng(0), n_pre=npre)
+    t = np.arange(len(r["logged"])) * c.ts
+    tau = -c.ts / math.log(c.speed_filter_s / (c.speed_filter_s + c.ts))
+    return (record_from_arrays(kind, t, r["logged"], nut_angle_rad=r["angle"], axial_load_n=r["load"]),
+            c.command_logged, (c.kp, c.ki, tau))
+
+
+@pytest.mark.parametrize("gen", ["judge", "third"])
+def test_the_speed_loop_is_identified_from_a_constant_reference_log(gen):
+    """speed_loop_from_log on two foreign generators' load-step logs (the speed reference constant,
+    the load stepping; neither generator shares code with the toolkit): kp, ki and the speed
+    filter's time constant within 0.5 % of the generator's, far inside the threshold. The other
+    logging convention, and a log whose reference moves (the multisine), leave more than
+    LOOP_RESIDUAL_MAX of the command's changes unexplained: no loop, and the sentence says so."""
+    from prsa_ctrl.identification.closedloop import LOOP_RESIDUAL_MAX, speed_loop_from_log, speed_loop_from_logs
+
+    rec, logged, (kp, ki, tau) = _foreign_log(gen, "loadsteps")
+    loop, rel, text = speed_loop_from_log(rec, logged)
+    assert loop is not None, text
+    assert rel < 0.1 * LOOP_RESIDUAL_MAX
+    assert loop.kp_n_m_s_per_rad == pytest.approx(kp, rel=5e-3)
+    assert loop.ki_n_m_per_rad == pytest.approx(ki, rel=5e-3)
+    assert loop.speed_filter_time_constant_s == pytest.approx(tau, rel=5e-3)
+    assert loop.command_logged == logged
+    other = "computed" if logged == "applied" else "applied"
+    wrong, rel_w, text_w = speed_loop_from_log(rec, other)
+    assert wrong is None
+    assert rel_w > LOOP_RESIDUAL_MAX
+    assert "unexplained" in text_w
+    ms, _, _ = _foreign_log(gen, "multisine")
+    assert speed_loop_from_log(ms, logged)[0] is None
+    found, why = speed_loop_from_logs([ms, rec], logged)
+    assert found is not None
+    assert "constant-reference log loadsteps" in why
+    none, why = speed_loop_from_logs([ms], logged)
+    assert none is None
+    assert why.startswith("no log identifies the speed loop (multisine: ")

@@ -240,8 +240,11 @@ def test_the_logs_own_response_seeds_the_compliant_fit_where_the_loop_is_describ
     loop: closedloop.frf_from_logs) starts the compliant fit where it shows a mode: on the judge's
     two-mass logs the start's mode is within 5 % of the truth's (the roller screw's multisine reaches 150 Hz, its mode 161 Hz: the anti-resonance in
     the band places it). On a rigid axis, and without the loop, the keys stay the base's and the
-    note says why."""
+    note says why; without the loop and with no constant-reference log to identify it from (no
+    load-step log here) the fit is refused (h15-direct: the start stayed the base's before)."""
     from foreign import gen_judge as gj
+
+    from prsa_ctrl.errors import FitError
 
     from prsa_ctrl.identification import axial_mode
     from prsa_ctrl.identification.closedloop import SpeedLoop
@@ -266,11 +269,64 @@ def test_the_logs_own_response_seeds_the_compliant_fit_where_the_loop_is_describ
     else:
         assert start is base
         assert "shows none" in note
-    same, keys0, why = compliant_start(base, recs, [], None, t["command_logged"], None)
-    assert same is base
-    assert keys0 is None
-    assert "no measured frequency response" in why
-    assert "speed loop" in why
+    with pytest.raises(FitError) as info:
+        compliant_start(base, recs, [], None, t["command_logged"], None)
+    assert "no loop described: --speed-loop" in str(info.value)
+    assert "no log identifies the speed loop (" in str(info.value)
+    same, keys0, why = compliant_start(base, recs, [], ("axis.motor_inertia_kg_m2",), t["command_logged"], None)
+    assert same is base  # (--fit keys: no identification, the base's mode kept, no note)
+    assert why is None
+
+
+@pytest.mark.parametrize("name", ["ball-2mass-d1-computed-si", "roller-2mass-d1-applied-si"])
+def test_the_logs_alone_place_the_mode_through_the_speed_loop_their_load_step_log_gives(name, tmp_path):
+    """No measured response and no loop described: the judge's constant-speed load-step log gives
+    the speed loop (closedloop.speed_loop_from_logs), the joint input-output response of the other
+    logs through it starts the compliant fit, and the start's mode is within 5 % of the truth's
+    (measured from the files, seeds 0 and 1: +0.9 % ball, +1.1 / +1.4 % roller; the datasheet's
+    +15.9 % and -14.6 %). unplaced_mode lets it through; the note names the log and the loop."""
+    from foreign import gen_judge as gj
+
+    from prsa_ctrl.identification import axial_mode
+    from prsa_ctrl.identification.compliant import compliant_start, unplaced_mode
+    from prsa_ctrl.identification.data import load_record
+
+    s = gj.generate(tmp_path, name, seed=0)
+    t = s["truth"]
+    base = load_plant(str(s["base"]))
+    recs = [load_record(s["logs"][e]) for e in ("multisine", "loadsteps", "staircase")]
+    assert unplaced_mode(base, recs, [], None) is None
+    start, keys, note = compliant_start(base, recs, [], None, t["command_logged"], None)
+    assert keys is None
+    assert note.startswith("speed loop identified from the constant-reference log ")
+    assert "loadsteps.csv: kp " in note
+    mode = axial_mode(start, speed_rad_s=30.0, load_n=t["frf_load_n"])["resonance_hz"]
+    assert abs(mode / t["first_mode_hz"] - 1) < 0.05, note
+    assert abs(axial_mode(base, speed_rad_s=30.0, load_n=t["frf_load_n"])["resonance_hz"] / t["first_mode_hz"] - 1) > 0.1
+    assert start.sources["axis.nut_stiffness_n_per_um"].startswith("two-mass fit of")
+
+
+def test_a_loop_identified_from_the_logs_whose_response_places_no_mode_refuses_the_fit(tmp_path):
+    """The third generator's ball screw (tests/identification/foreign/gen_third.py): its load-step
+    log gives the speed loop, but the logs' response through it shows the axial mode and the
+    coupling's (116.7 and 978.5 Hz): no two-mass start, so the compliant fit is refused with
+    unplaced_mode's text, the identified loop and why (it started from the datasheet's mode
+    before, 9.7 % off)."""
+    from foreign import gen_third as g3
+
+    from prsa_ctrl.errors import FitError
+    from prsa_ctrl.identification.compliant import compliant_start
+    from prsa_ctrl.identification.data import load_record
+
+    s = g3.generate(tmp_path, "ball-40x16", seed=0, frf=False)
+    base = load_plant(str(s["base"]))
+    recs = [load_record(p) for p in s["logs"].values()]
+    with pytest.raises(FitError) as info:
+        compliant_start(base, recs, [], None, s["case"].command_logged, None)
+    text = str(info.value)
+    assert text.startswith("the compliant fit needs its axial mode placed from a frequency response")
+    assert "the speed loop identified from the constant-reference log " in text
+    assert "2 resonances" in text
 
 
 @pytest.mark.parametrize("name", ["ballscrew-32x10", "rollerscrew-30x5", "paper-iprsm"])
@@ -321,6 +377,7 @@ def test_a_compliant_fit_with_nothing_to_place_its_mode_is_refused_before_any_wo
     assert "no loop described: --speed-loop" in text
     assert "--frf" in text
     assert "axis.nut_stiffness_n_per_um" in text
+    assert "no log identifies the speed loop (log: no motor angle or fewer than 512 samples)" in text
     assert built == []
     assert unplaced_mode(p, [rec], [], ("axis.motor_inertia_kg_m2",)) is None  # --fit: the user's keys
     assert unplaced_mode(p, [rec], ["bode"], None) is None
