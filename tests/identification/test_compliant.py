@@ -402,3 +402,25 @@ def test_a_base_plant_whose_mode_a_measurement_placed_is_not_refused():
     assert key in seed_keys(p)
     placed = dataclasses.replace(p, sources={**p.sources, key: "fit: bode.csv (two-mass model of the frequency response)"})
     assert unplaced_mode(placed, [rec], [], None) is None
+
+
+def test_a_base_plant_whose_mode_a_measurement_placed_starts_the_fit_from_it():
+    """The same two-step workflow through the fit's start: with no log giving the speed loop,
+    compliant_start keeps the measured mode keys (it raised the refusal after h15-direct's loop
+    identification, though unplaced_mode let the run through)."""
+    import dataclasses
+
+    from prsa_ctrl.errors import FitError
+    from prsa_ctrl.identification.compliant import compliant_start
+    from prsa_ctrl.identification.data import record_from_arrays
+
+    p = load_plant("ballscrew-32x10")
+    t = np.arange(400) * p.sample_time_s
+    rec = record_from_arrays("log", t, 0.1 * np.sin(200 * t), nut_angle_rad=30.0 * t, axial_load_n=np.full(t.size, 500.0))
+    with pytest.raises(FitError, match="needs its axial mode placed"):
+        compliant_start(p, [rec], [], None, "applied")
+    key = "axis.nut_stiffness_n_per_um"
+    placed = dataclasses.replace(p, sources={**p.sources, key: "fit: bode.csv (two-mass model of the frequency response)"})
+    start, keys, note = compliant_start(placed, [rec], [], None, "applied")
+    assert start is placed
+    assert "a measurement placed" in note
