@@ -254,11 +254,21 @@ def unplaced_mode(plant: Plant, records, frf, keys, speed_loop=None, command_log
 
 
 def _refuse_identified(plant: Plant, identified: str, why: str):
-    """The refusal of a compliant fit whose loop, identified from the logs, placed no mode."""
+    """The refusal of a compliant fit whose loop, identified from the logs, placed no mode: what
+    was identified, why its response placed none (a band suggested for that response is named as
+    ``--frf``'s, the only input ``--frf-band`` takes), and the inputs that would."""
+    import re
+
     from ..errors import FitError
 
-    raise FitError(_unplaced_text(plant) + f"; the {identified[0].lower()}{identified[1:]}, and its response placed no "
-                   f"mode: {why}")
+    why = why.removeprefix("the compliant fit starts from the base plant's axial mode: ")
+    why = re.sub(r": --frf-band ([0-9.eE+-]+,[0-9.eE+-]+)\)$",
+                 r" (--frf-band \1 fits a measured response, --frf FRF.csv, in that band; the logs' own cannot be cut))",
+                 why)
+    raise FitError(f"the compliant fit needs its axial mode placed from a frequency response: the "
+                   f"{identified[0].lower()}{identified[1:]}, and the logs' response through it placed no mode: {why}; "
+                   f"give a measured response (--frf FRF.csv), or fit the base plant's mode keys "
+                   f"({', '.join(seed_keys(plant)[1:])}) from its datasheet's values with --fit KEYS")
 
 
 def _unplaced_text(plant: Plant) -> str:

@@ -327,6 +327,10 @@ def test_a_loop_identified_from_the_logs_whose_response_places_no_mode_refuses_t
     assert text.startswith("the compliant fit needs its axial mode placed from a frequency response")
     assert "the speed loop identified from the constant-reference log " in text
     assert "2 resonances" in text
+    # it does not say the loop was missing, nor offer the logs a flag of --frf's alone
+    assert "no loop described" not in text
+    assert "fits a measured response, --frf FRF.csv, in that band" in text
+    assert not text.rstrip(")").rstrip().endswith(("--frf-band 4.35,337", "337"))
 
 
 @pytest.mark.parametrize("name", ["ballscrew-32x10", "rollerscrew-30x5", "paper-iprsm"])
