@@ -265,10 +265,10 @@ def _refuse_identified(plant: Plant, identified: str, why: str):
     why = re.sub(r": --frf-band ([0-9.eE+-]+,[0-9.eE+-]+)\)$",
                  r" (--frf-band \1 fits a measured response, --frf FRF.csv, in that band; the logs' own cannot be cut))",
                  why)
-    raise FitError(f"the compliant fit needs its axial mode placed from a frequency response: the "
-                   f"{identified[0].lower()}{identified[1:]}, and the logs' response through it placed no mode: {why}; "
-                   f"give a measured response (--frf FRF.csv), or fit the base plant's mode keys "
-                   f"({', '.join(seed_keys(plant)[1:])}) from its datasheet's values with --fit KEYS")
+    raise FitError(f"the compliant fit needs its axial mode placed from a frequency response, and the logs' "
+                   f"response placed none; the {identified[0].lower()}{identified[1:]}; why its response placed no "
+                   f"mode: {why}; remedy: a measured response (--frf FRF.csv), or the base plant's mode keys "
+                   f"({', '.join(seed_keys(plant)[1:])}) fitted from its datasheet's values with --fit KEYS")
 
 
 def _unplaced_text(plant: Plant) -> str:
