@@ -238,7 +238,9 @@ def unplaced_mode(plant: Plant, records, frf, keys, speed_loop=None, command_log
     measurement placed (a source ``fit: ...``, as ``prsa-fit --frf`` writes them) starts from them. A log
     run at a constant speed reference gives the loop itself
     (:func:`prsa_ctrl.identification.closedloop.speed_loop_from_logs`, ``command_logged`` as the logs
-    have it, None: either): then the start is :func:`compliant_start`'s."""
+    have it, None: either): then the start is :func:`compliant_start`'s. :func:`compliant_start`
+    refuses the same runs itself, with the logs' convention, before any fit; the fit calls only it,
+    so the logs' loop is identified once per run (this answers the question without a start)."""
     if not records or keys is not None or list(frf) or speed_loop is not None or not seed_keys(plant):
         return None
     if placed_by_fit(plant):

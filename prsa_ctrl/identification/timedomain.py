@@ -51,7 +51,7 @@ from ..plant.plantfile import Plant, load_plant
 from ..sim.integrators import radau_tableau
 from .workbudget import WorkBudgetSpent, bounded_work, spend
 from .compliant import (COMPLIANT_F_DROP, COMPLIANT_SEGMENT_S, COMPLIANT_G_MAX, COMPLIANT_RELAXED_STEPS, COMPLIANT_X0_RTOL,
-                        compliant_reference, compliant_scales, compliant_start, unplaced_mode)
+                        compliant_reference, compliant_scales, compliant_start)
 from .common import (DELAY_KEY, default_keys, RANK_RTOL, UNCERTAINTY_MODES, FitResult, check_keys, checked_inputs,
                      default_min_speed, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord, Record
@@ -276,8 +276,6 @@ def fit_plant(
                             closed_loops=closed_loops)
     seeded = None
     if fidelity == "compliant":  # start from a response's axial mode (none to start from: refused before any work)
-        if (why := unplaced_mode(plant, records, frf, keys, speed_loop)) is not None:
-            raise FitError(why)
         plant, keys, seeded = compliant_start(plant, records, frf, keys, command_logged, speed_loop)
     if not records and frf:
         return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
