@@ -880,7 +880,9 @@ def fit_linear_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, max_evalu
         def refit(others):
             return fit_linear_axis(others, base, max_evaluations=max_evaluations, name=name, check_delay=False,
                                    validate=False).plant
-        validation = validate_axis(fitted, logs, replays, replay_axis, METRIC_SKIP_SAMPLES, refit=refit)
+        kept = [f"{PARAMETERS[j]} kept at the base value" for j in np.flatnonzero(~informed)]
+        validation = validate_axis(fitted, logs, replays, replay_axis, METRIC_SKIP_SAMPLES, refit=refit,
+                                   unidentified=kept + [f"{k} ended at its bound (0)" for k in at_bound])
         if not validation["passes"]:
             warnings.append(f"validation failed: {validation['reasons'][0]}" + (
                 f" (and {len(validation['reasons']) - 1} more)" if len(validation["reasons"]) > 1 else "")

@@ -433,9 +433,13 @@ def fit_two_mass_axis(logs: Sequence[AxisLog], base: LinearAxisPlant, *, frf=Non
                              command_unit=base.command_unit, uncertainty=unc)
     replays = [replay_axis(fitted, lg) for lg in logs]
     derived = _derived(p, cov, z)
+    unidentified = [f"{k} held at {mirrored[j]}'s start" if j in mirrored else f"{k} kept at the base value"
+                    for j, k in enumerate(PARAMETERS) if not informed[j]]
+    unidentified += [f"{k} ended at a bound of the fit ({params[k]['value']:.6g})" for k in PARAMETERS[1:]
+                     if params[k].get("at_bound")]
     validation = validate_axis(fitted, logs, replays, replay_axis, skip,
                                refit=_refit(fitted, solve, x) if cross_validate else None,
-                               mode_hz=derived["mode_hz"]["value"])
+                               mode_hz=derived["mode_hz"]["value"], unidentified=unidentified)
     flags = [] if validation["passes"] else [f"validation failed: {validation['reasons'][0]}"]
     flags += [f"{k} ended at a bound" for k, e in params.items() if e.get("at_bound")]
     status = "flagged: " + "; ".join(flags) if flags else "ok"

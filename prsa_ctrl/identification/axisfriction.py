@@ -40,6 +40,7 @@ Coulomb levels 0.4x..1.6x along the 0.2 m travel, on the random moves: 0.33..0.8
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -138,7 +139,9 @@ def friction_departure(theta, log) -> dict:
         ``friction_speed_bins`` and ``friction_position_bins`` (each bin's ``from``/``to`` in m/s,
         signed by direction, or m, ``excess_n``, ``halves_n``, ``samples``), ``friction_high`` and
         ``friction_low`` (the bins of the largest excess and deficit of the deciding spread, or
-        None), ``friction_level_n`` (the denominator, N).
+        None), ``friction_level_n`` (the denominator, N), ``friction_position_beyond_law_n`` (the
+        position bins' spread, N, once a Coulomb + viscous law per direction is refitted to the
+        force balance itself: the part of a position departure no such law explains).
     """
     m, fvp, fvn, fcp, fcn = (float(x) for x in theta)
     h = float(log.sample_time_s)
@@ -153,7 +156,8 @@ def friction_departure(theta, log) -> dict:
     fold = (np.arange(n) // CV_BLOCK) % 2
     vmax = float(np.max(np.abs(v[keep]))) if np.any(keep) else 0.0
     empty = {"friction_departure": 0.0, "friction_by": "speed", "friction_peak_speed_m_s": vmax, "friction_speed_bins": [],
-             "friction_position_bins": [], "friction_high": None, "friction_low": None, "friction_level_n": 0.0}
+             "friction_position_bins": [], "friction_high": None, "friction_low": None, "friction_level_n": 0.0,
+             "friction_position_beyond_law_n": 0.0}
     q = np.asarray(log.position_m, float)
     travel = float(np.ptp(q[keep])) if np.any(keep) else 0.0
     if not vmax > 0 or travel <= (log.resolution_m or REST_TRAVEL_M):  # at rest: no sliding friction to see
@@ -168,6 +172,7 @@ def friction_departure(theta, log) -> dict:
     q_edges = np.linspace(float(q[moving].min()), float(q[moving].max()), POSITION_BINS + 1)
     q_edges[0] = np.nextafter(q_edges[0], -math.inf)  # the bins are open below: the travel's start included
     position = _bins(excess, q, q_edges, fold, moving)
+    beyond = _spread(_bins(_line_removed(excess, v, moving), q, q_edges, fold, moving))[0]
     level = max(0.5 * (fcp + fcn), 0.1 * float(np.mean(np.abs(law[moving]))),
                 float(np.sqrt(np.mean(excess[moving] ** 2))), 1e-12)  # (the last: the force balance's scatter)
     (s_sp, hi_sp, lo_sp), (s_q, hi_q, lo_q) = _spread(speed), _spread(position)
@@ -176,7 +181,21 @@ def friction_departure(theta, log) -> dict:
             "friction_peak_speed_m_s": vmax,
             "friction_speed_bins": speed, "friction_position_bins": position,
             "friction_high": hi_sp if by_speed else hi_q, "friction_low": lo_sp if by_speed else lo_q,
-            "friction_level_n": level}
+            "friction_level_n": level, "friction_position_beyond_law_n": beyond}
+
+
+def _line_removed(excess: NDArray[np.float64], v: NDArray[np.float64], keep) -> NDArray[np.float64]:
+    """``excess`` less its least-squares line ``a + b |v|`` per direction over the ``keep`` samples
+    (a Coulomb + viscous law refitted to the force balance itself): what is left by position is a
+    friction that changes along the travel, not a law fitted wrong."""
+    out = np.array(excess, float)
+    for sgn in (1.0, -1.0):
+        k = keep & (sgn * v > 0)
+        if not np.any(k):
+            continue
+        a = np.column_stack([np.ones(np.count_nonzero(k)), np.abs(v[k])])
+        out[k] -= a @ np.linalg.lstsq(a, out[k], rcond=None)[0]
+    return out
 
 
 def _where(b: dict, by: str) -> str:
@@ -200,12 +219,11 @@ def friction_words(e: dict) -> str | None:
 def _beyond_a_line(bins: list[dict]) -> float:
     """The spread (N) of the speed bins' excess left after one straight line in the speed per
     direction (least squares over the bins, at each bin's geometric-mean speed): what no Coulomb +
-    viscous law explains."""
+    viscous law explains (a line passes through one or two bins exactly)."""
     rest = []
     for sgn in (1.0, -1.0):
         b = [x for x in bins if x["from"] * sgn > 0]
         if len(b) < 3:
-            rest += [x["excess_n"] for x in b]
             continue
         v = np.array([math.sqrt(x["from"] * x["to"]) for x in b])
         y = np.array([x["excess_n"] for x in b])
@@ -214,18 +232,49 @@ def _beyond_a_line(bins: list[dict]) -> float:
     return max(rest + [0.0]) - min(rest + [0.0])
 
 
-def friction_diagnosis(e: dict, name: str) -> str:
+def _law_explains(e: dict) -> bool:
+    """Whether a Coulomb + viscous law per direction, refitted to the force balance, leaves no
+    departure: by speed, one line per direction through the speed bins; by position, the bins of
+    the force balance less such a line (``friction_position_beyond_law_n``)."""
+    limit = FRICTION_DEPARTURE * e["friction_level_n"]
+    if e["friction_by"] == "speed":
+        return _beyond_a_line(e["friction_speed_bins"]) < limit
+    return e.get("friction_position_beyond_law_n", math.inf) < limit
+
+
+def _undetermined(e: dict, name: str) -> list[str]:
+    """What of the law the log leaves undetermined, from its force balance: a direction it moves in
+    in no speed bin, or in one only (Coulomb and viscous cannot be told apart at one speed)."""
+    out = []
+    for sgn, way in ((1.0, "+x"), (-1.0, "-x")):
+        b = [x for x in e["friction_speed_bins"] if x["from"] * sgn > 0]
+        if not b:
+            out.append(f"{name} barely moves the axis in {way}")
+        elif len(b) == 1:
+            out.append(f"in {way} {name} runs at one speed only ({_where(b[0], 'speed')}: Coulomb and viscous "
+                       "friction cannot be told apart there)")
+    return out
+
+
+def friction_diagnosis(e: dict, name: str, unidentified: Sequence[str] = ()) -> str:
     """The diagnosis line of a log whose friction-law test failed (:func:`friction_words`), naming
     the law: a Stribeck rise (the largest excess over the law in a bin below
     :data:`STRIBECK_SPEED_FRACTION` of the peak speed, any deficit at higher speeds), a friction
-    that changes along the travel, or one not linear in the speed (a law the fit got wrong, e.g. a
-    direction the logs barely move in, shows as that too)."""
+    that changes along the travel, or one not linear in the speed. When a Coulomb + viscous law per
+    direction refitted to the force balance explains it (by speed, or by position once the refitted
+    law is taken out), no such physics is missing: the fit's law is wrong, and the line says why
+    when it can -- the log barely moves the axis one way or runs at one speed only (from its
+    bins), and ``unidentified`` (the fit's own words: keys held or at a bound) -- with the remedy,
+    a log that moves the axis both ways over a range of speeds."""
     by, hi, lo = e["friction_by"], e["friction_high"], e["friction_low"]
     said = friction_words(e)
-    if by == "speed" and _beyond_a_line(e["friction_speed_bins"]) < FRICTION_DEPARTURE * e["friction_level_n"]:
-        return (f"friction as fitted: in {name} {said}; a Coulomb + viscous law per direction explains the force "
-                "balance, the fitted one does not (a direction the logs barely move in, a friction key held or at a "
-                "bound: see the warnings)")
+    if _law_explains(e):
+        why = [*_undetermined(e, name), *unidentified]
+        cause = (f"the logs do not determine it: {', '.join(why)}; remedy: a log that moves the axis both ways, over "
+                 "a range of speeds" if why else "the fit ended away from it (a local minimum of the replay error, or "
+                 "its bias under unlogged disturbances); remedy: more logs, or a base plant whose friction starts nearer")
+        return (f"friction as fitted, not missing physics: in {name} {said}; a Coulomb + viscous law per direction "
+                f"explains the force balance, the fitted one does not; {cause}")
     if by == "position":
         return (f"friction that changes along the travel: in {name} {said}; the model's friction is the same at every "
                 "position (a tight spot, a wiper or a varying preload; fit the travel where it is even, or model it)")

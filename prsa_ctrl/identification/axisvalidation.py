@@ -226,7 +226,8 @@ def entry_report(e: dict) -> dict:
         out["periodic_share"], out["periodic_period_m"] = e["periodic_share"], e["periodic_period_m"]
         out["whiteness"] = whiteness((e["measured"] - e["model"])[e["skip_samples"]:])
     if "friction_departure" in e:
-        out.update({k: e[k] for k in ("friction_departure", "friction_by", "friction_level_n", "friction_peak_speed_m_s", "friction_high",
+        out.update({k: e[k] for k in ("friction_departure", "friction_by", "friction_level_n", "friction_peak_speed_m_s",
+                                      "friction_position_beyond_law_n", "friction_high",
                                       "friction_low", "friction_speed_bins", "friction_position_bins")})
     return out
 
@@ -252,7 +253,8 @@ def reasons(written: Mapping[str, dict], loo: Mapping[str, dict] | None) -> list
     return out
 
 
-def diagnosis(written: Mapping[str, dict], mode_hz: float | None, loo: Mapping[str, dict] | None = None) -> str:
+def diagnosis(written: Mapping[str, dict], mode_hz: float | None, loo: Mapping[str, dict] | None = None,
+              unidentified: Sequence[str] = ()) -> str:
     """One line naming the most likely missing physics of a fit whose written plant does not
     explain the logs, tested in this order: wrong units or coordinates (no log replayed better than
     its mean); a response the model lacks (a residual the excitation predicts; a mode, named with
@@ -260,7 +262,8 @@ def diagnosis(written: Mapping[str, dict], mode_hz: float | None, loo: Mapping[s
     fitted mode); a position-periodic force; a friction law the model lacks (a Stribeck rise, a
     friction not linear in the speed or changing along the travel: :mod:`.axisfriction`);
     a failure of the fit (a cross-validation fit that failed while every log is explained); else
-    the friction model."""
+    the friction model. ``unidentified``: the fit's friction keys held or at a bound, as words (a
+    friction law the force balance shows but the fit missed names them)."""
     from .validation import FIT_FAILURE, RESONANCE_SHARE
 
     bad = {n: e for n, e in written.items() if not explained(e)}
@@ -291,7 +294,7 @@ def diagnosis(written: Mapping[str, dict], mode_hz: float | None, loo: Mapping[s
                 "has no force that depends on the position)")
     fr = sorted(((e.get("friction_departure", 0.0), n) for n, e in judged), reverse=True)
     if fr and fr[0][0] >= FRICTION_DEPARTURE:
-        return friction_diagnosis(dict(judged)[fr[0][1]], fr[0][1])
+        return friction_diagnosis(dict(judged)[fr[0][1]], fr[0][1], unidentified)
     failed = {n: e["failed"] for n, e in (loo or {}).items() if "failed" in e}
     if failed and not bad:
         n, why = next(iter(failed.items()))
@@ -303,7 +306,8 @@ def diagnosis(written: Mapping[str, dict], mode_hz: float | None, loo: Mapping[s
 
 
 def validate_axis(fitted, logs: Sequence, replays: Sequence, replay: Callable, skip: int,
-                  refit: Callable[[Sequence], Any] | None = None, mode_hz: float | None = None) -> dict:
+                  refit: Callable[[Sequence], Any] | None = None, mode_hz: float | None = None,
+                  unidentified: Sequence[str] = ()) -> dict:
     """The validation of a fitted linear axis (module docstring).
 
     Parameters
@@ -322,6 +326,9 @@ def validate_axis(fitted, logs: Sequence, replays: Sequence, replay: Callable, s
         fails): with more than one log, each log left out is replayed by the plant fitted on the others.
     mode_hz : float, optional
         The fitted axial mode, Hz (a two-mass plant; None: rigid).
+    unidentified : sequence of str, optional
+        The fit's friction keys the logs left undetermined (held, kept or at a bound), as words for
+        the diagnosis.
 
     Returns
     -------
@@ -346,7 +353,7 @@ def validate_axis(fitted, logs: Sequence, replays: Sequence, replay: Callable, s
     why = reasons(written, loo)
     passes = not why
     return {"passes": passes, "reasons": why,
-            "diagnosis": None if passes else diagnosis(written, mode_hz, loo),
+            "diagnosis": None if passes else diagnosis(written, mode_hz, loo, unidentified),
             "replay": "closed-loop replay from the reference with the log's described controller (the plant as written)",
             "written_plant": {n: entry_report(e) for n, e in written.items()},
             "cross_validation": None if loo is None else {

@@ -294,3 +294,20 @@ def test_frf_needs_the_compliant_fit(described, tmp_path, capsys):
                      str(tmp_path / "x.toml"), "--frf", str(described / "log.toml")])
     assert code == 2
     assert "expected it with --fidelity compliant" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # one two-mass fit that ends far off (about 8 s of CPU)
+def test_a_log_that_cannot_determine_the_friction_is_refused_naming_the_fit_and_the_remedy():
+    """Seed 14 (one log: +x at one speed, -x barely): the fit ends with Fc+ near 0 and Fv+ ten times the
+    truth (Fv-, Fc- held at +x's start) and is refused; the diagnosis names the fit's law, why the log
+    cannot determine it and the remedy (was: "friction that changes along the travel", which the
+    generator does not have)."""
+    log = _log(14)
+    fit = fit_two_mass_axis([log], _base(log))
+    assert not fit.passes
+    line = fit.validation["diagnosis"]
+    assert line.startswith("friction as fitted, not missing physics: in syn"), line
+    assert "along the travel" not in line
+    assert "syn barely moves the axis in -x" in line
+    assert "friction.coulomb_negative_n held at friction.coulomb_positive_n's start" in line
+    assert line.endswith("remedy: a log that moves the axis both ways, over a range of speeds")

@@ -84,7 +84,9 @@ def test_a_wrong_coulomb_viscous_split_is_named_as_the_fit_not_as_missing_physic
     is a straight line in the speed, which a Coulomb + viscous law explains, and is named so."""
     e = friction_departure((80.0, 220.0, 220.0, 9.0, 25.0), _log())
     assert e["friction_departure"] >= FRICTION_DEPARTURE
-    assert friction_diagnosis(e, "hand").startswith("friction as fitted: in hand")
+    line = friction_diagnosis(e, "hand")
+    assert line.startswith("friction as fitted, not missing physics: in hand")
+    assert "the fit ended away from it" in line  # the log moves both ways at every speed: nothing undetermined
 
 
 def test_a_log_at_rest_says_nothing():
@@ -118,3 +120,48 @@ def test_a_nearly_frictionless_law_is_judged_against_the_force_balance_scatter()
                       resolution_m=5e-8)
         e = friction_departure(theta, log)
         assert (e["friction_departure"] >= FRICTION_DEPARTURE) is fails, (rise, e["friction_departure"])
+
+
+def _one_way_log(n=4000, speed=0.05, accel=0.5):
+    """A single move in +x at ``speed`` m/s (ramps at ``accel`` m/s^2), then a rest: the force
+    balance of THETA's law; the log never moves the axis in -x."""
+    t = np.arange(n) * H
+    ta = speed / accel
+    v = np.clip(np.minimum(accel * t, accel * (3.0 - t)), 0.0, speed)  # up, cruise, down by 3 s
+    x = np.cumsum(v) * H
+    a = np.gradient(v, H)
+    m, fvp, _, fcp, _ = THETA
+    friction = np.where(v > 0, fcp + fvp * v, 0.0)
+    assert ta < 0.2
+    return AxisLog("oneway", t, x, (m * a + friction) / GAIN, "V", GAIN, H)
+
+
+def test_a_law_the_log_cannot_determine_is_named_as_the_fit_with_the_remedy():
+    """A log that runs one way at one speed (the two-mass fit's seed 14 of test_axiscompliant: +x at
+    32..70 mm/s, -x barely), tested against a wrong split of the same friction at that speed
+    (Coulomb 0, viscous 700 N s/m: 35 N at 50 mm/s against the force balance's 22.5 N): the
+    deficit is the same at every position and at the one speed, which a Coulomb + viscous law
+    explains. The diagnosis names the fit and why the log cannot determine it, and the remedy
+    (was: "friction that changes along the travel" or "a friction that is not linear in the
+    speed", physics the log does not show)."""
+    e = friction_departure((80.0, 700.0, 700.0, 0.0, 0.0), _one_way_log())
+    assert e["friction_departure"] >= FRICTION_DEPARTURE
+    assert e["friction_position_beyond_law_n"] < 0.1 * FRICTION_DEPARTURE * e["friction_level_n"]
+    line = friction_diagnosis(e, "oneway", ["friction.coulomb_positive_n ended at its bound (0)"])
+    assert line.startswith("friction as fitted, not missing physics: in oneway")
+    assert "along the travel" not in line
+    assert "not linear in the speed" not in line
+    assert "oneway barely moves the axis in -x" in line
+    assert "in +x oneway runs at one speed only" in line
+    assert "friction.coulomb_positive_n ended at its bound (0)" in line
+    assert line.endswith("remedy: a log that moves the axis both ways, over a range of speeds")
+
+
+def test_a_position_departure_a_refitted_law_leaves_is_still_the_travel():
+    """The Coulomb level 0.4x..1.6x along the travel, tested against the right law: once a
+    Coulomb + viscous law per direction is refitted to the force balance, the position bins still
+    spread by about the departure (the speed does not explain the position)."""
+    e = friction_departure(THETA, _log(slope=1.2))
+    assert e["friction_position_beyond_law_n"] > FRICTION_DEPARTURE * e["friction_level_n"]
+    assert friction_diagnosis(e, "hand", ["friction.coulomb_positive_n ended at its bound (0)"]).startswith(
+        "friction that changes along the travel")
