@@ -166,7 +166,19 @@ def _base(log):
 #: written plant Fv+ 1560 N s/m against 150, which exit 0 wrote before); of the 21 converged, truth
 #: outside per key M 2, Fv+ 6, Fv- 8 (of 16 fitted), Fc+ 6, Fc- 7 (of 16), m_l 1, k 3, zeta 1. The
 #: two-log fit of seeds 4 and 12
-#: has the damping outside, 0.0464..0.0496 against 0.05.
+#: has the damping outside, 0.0464..0.0496 against 0.05. On dbe3aa7 (h16-axispem) seed 11 passes
+#: instead (exit 0; Fv+ +47 %, Fc+ -39 %, truth outside; -x held); seed 14 is refused, its diagnosis now
+#: "friction as fitted, not missing physics" (test_a_log_that_cannot_determine_the_friction_...).
+#: A prediction-error form was measured and not kept (h16-axispem; scripts/axis-twomass-sweep.py
+#: measures this fit): the two-mass model driven open loop by the logged force, its motor side
+#: corrected by a 20 Hz fixed-gain observer, the one-step position innovations as the cost, started
+#: from this output error. Without the disturbance it is exact (every key's truth inside, friction
+#: within 0.01 % on seeds 1, 2, 7, 8, where this fit leaves Fv-/Fc- outside in 3 of 5). With it, on
+#: the 13 seeds both fit and pass, the median friction bias falls to about a third (Fv- +1.81 ->
+#: +0.91 %, Fc- -1.10 -> -0.35 %) but the truth stays outside as often (Fc- 5 of 12 either way): its
+#: intervals are narrower (the mass's +-0.06 % missed the truth by 0.05 % on seed 2, delay 1, failing
+#: the test below), seed 11 is refused naming "a further mode" the generator has not, and the fit
+#: costs 44-65 % more CPU.
 TWO_MASS_KEYS = ("axis.mass_kg", "axis.load_mass_kg", "axis.load_stiffness_n_per_um", "axis.axial_damping_ratio")
 
 
