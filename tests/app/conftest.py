@@ -145,9 +145,9 @@ def shared_app_page(browser, app_url):
     switches to rad/s after reading it in Hz, is read by no other test). A page costs about 4.3 s
     of CPU (Chromium 2.9 s, the server 1.4 s; 4 pages measured at load 26), most of
     test_app_browser's; eleven such tests had a page each. (The
-    upload above the limit keeps a page of its own: its page must still read a later upload, and
-    a refused 25 MB file never reaches the server, so an earlier test's identical upload would
-    look unchanged to it.)"""
+    uploads above the limit use it too: each then uploads a small file of its own name and bytes,
+    which the page must read; a refused 25 MB file never reaches the server, so an earlier
+    test's identical upload would look unchanged to it.)"""
     open_, made = _page_opener(browser)
     _, pg = open_(app_url, accept_downloads=True)
     pg.locator('[data-k="opt-ms"]').wait_for()

@@ -276,19 +276,24 @@ def test_upload_that_is_not_base64_is_one_line_on_the_page(shared_app_page, cls,
 
 
 @pytest.mark.parametrize("megabytes", [12, 25])  # above the app's limit; above Bokeh's 20 MB message limit
-def test_upload_above_the_limit_is_one_line_and_sends_nothing(app_page, megabytes):
-    page = app_page
+def test_upload_above_the_limit_is_one_line_and_sends_nothing(shared_app_page, megabytes):
+    """On the module's shared page (the refused uploads change neither the plant nor the design);
+    the later small upload's name and bytes are this case's own, so that the page reads an
+    upload it has not read before (a refused 25 MB file never reaches the server: the same small
+    file as the 12 MB case's would leave the server's upload value unchanged)."""
+    page = shared_app_page
     kp = _text(page, "opt-kp")
     page.locator(".prsa-plant-upload input[type=file]").set_input_files(
         files=[{"name": "big.toml", "mimeType": "application/toml", "buffer": b"#" * (megabytes * 1_000_000)}])
-    page.locator('[data-k="error"]').wait_for()
-    assert _text(page, "error") == (f"error: big.toml: {megabytes:.1f} MB; expected a file of at most 10 MB (the "
-                                    "app's upload limit)")
+    line = f"error: big.toml: {megabytes:.1f} MB; expected a file of at most 10 MB (the app's upload limit)"
+    page.locator('[data-k="error"]', has_text=line).wait_for()  # (the shared page: this upload's line)
+    assert _text(page, "error") == line
     assert page.evaluate("() => Bokeh.documents.length") == 1  # the connection held: no second document
     # the page still answers: a later small upload is read
+    small = f"small-{megabytes}.toml"
     page.locator(".prsa-plant-upload input[type=file]").set_input_files(
-        files=[{"name": "small.toml", "mimeType": "application/toml", "buffer": b"[nut\n"}])
-    page.locator('[data-k="error"]', has_text="small.toml: invalid TOML").wait_for()
+        files=[{"name": small, "mimeType": "application/toml", "buffer": f"[nut{megabytes}\n".encode()}])
+    page.locator('[data-k="error"]', has_text=f"{small}: invalid TOML").wait_for()
     assert _text(page, "opt-kp") == kp
 
 

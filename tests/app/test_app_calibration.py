@@ -691,20 +691,19 @@ def test_thread_warnings_wrapped_by_another_wrapper_does_not_loop(monkeypatch):
         warnings.warn("outside", UserWarning)
 
 
-def test_a_mat_log_of_a_linear_axis_uploaded_with_its_description(app_page, tmp_path, capsys):
+def test_a_mat_log_of_a_linear_axis_uploaded_with_its_description(app_page, emps_fit):
     """The EMPS .mat record uploaded after its description (the format upload): the tab shows the
-    command's values (prsa-fit DATA_EMPS.mat --log-format log.toml), the closed-loop replay as the
-    verdict and as a figure beside the log's response (Hz), a plant to download and none to use (a
-    linear axis: prsa-axis tunes it)."""
+    command's values (prsa-fit DATA_EMPS.mat --log-format log.toml: the session's ``emps_fit`` of
+    tests/conftest.py, one fit shared with the other tests of that command; this test ran its
+    own), the closed-loop replay as the verdict and as a figure beside the log's response (Hz), a
+    plant to download and none to use (a linear axis: prsa-axis tunes it)."""
     import json
+    from pathlib import Path
 
-    from prsa_ctrl.cli.fit import main as fit_main
-    from test_session import _emps
-
-    data, fmt = _emps()
-    assert fit_main([str(data), "--log-format", str(fmt), "--out", str(tmp_path / "o.toml"), "--json",
-                     str(tmp_path / "r.json")]) == 0
-    want = json.loads((tmp_path / "r.json").read_text())
+    example = Path(__file__).resolve().parents[2] / "examples" / "emps"  # the files emps_fit fitted
+    data, fmt = example / "DATA_EMPS.mat", example / "log.toml"
+    assert emps_fit.code == 0
+    want = json.loads(emps_fit.json.read_text())
     page = app_page
     page.get_by_text(CAL_TAB).click()
     page.locator(".prsa-format-upload input[type=file]").set_input_files(str(fmt))

@@ -47,6 +47,20 @@ def _pi_peaks(kp: float, ki: float, tau: float = 4.0, delay: float = 0.0) -> dic
 # ---- in the browser -------------------------------------------------------------------------
 
 
+@pytest.fixture(scope="module")
+def generic_page(module_open_page, app_url):
+    """One page of the served app, its generic tab open (the default plant tuned on opening), for
+    the tab's two fast browser tests (the tuned acceptance case and the refused inputs), which
+    opened a page each (a page costs about 4 s of CPU): each sets every field it reads and waits
+    for its own state (the tuned one by the settings' signature, the refused one by its error
+    lines), so either may run first."""
+    _, page = module_open_page(app_url)
+    page.locator('[data-k="opt-ms"]').wait_for()
+    page.locator('[data-k="status"]').wait_for()
+    _open_generic(page)
+    return page
+
+
 def _open_generic(page):
     page.get_by_text("Generic plant (transfer function)").click()
     page.locator("[data-k='g-state'][data-state='done']").wait_for()  # the default plant, tuned on opening
@@ -58,9 +72,8 @@ def _set(page, cls: str, value: str) -> None:
     box.press("Enter")
 
 
-def test_generic_tuner_reaches_the_brute_force_optimum_with_true_mks(app_page):
-    page = app_page
-    _open_generic(page)
+def test_generic_tuner_reaches_the_brute_force_optimum_with_true_mks(generic_page):
+    page = generic_page
     _set(page, "prsa-g-plant", "1/(4s+1)")
     _set(page, "prsa-g-ms", "1.2")
     _set(page, "prsa-g-mt", "1.2")
@@ -82,9 +95,8 @@ def test_generic_tuner_reaches_the_brute_force_optimum_with_true_mks(app_page):
     _shot(page, "app-generic.png")
 
 
-def test_generic_bad_plant_is_one_line(app_page):
-    page = app_page
-    _open_generic(page)
+def test_generic_bad_plant_is_one_line(generic_page):
+    page = generic_page
     _set(page, "prsa-g-plant", "exp(-s)/(s+1)")
     page.locator("[data-k='g-state'][data-state='error']").wait_for()
     assert _text(page, "g-error") == (

@@ -236,29 +236,34 @@ def _emps():
     return data, fmt
 
 
-def test_a_mat_log_of_a_linear_axis_is_fitted_through_its_description(tmp_path, capsys):
+def test_a_mat_log_of_a_linear_axis_is_fitted_through_its_description(emps_fit):
     """The EMPS .mat record uploaded with its description: the session's calibration writes what
     ``prsa-fit DATA_EMPS.mat --log-format log.toml`` writes (the plant file byte for byte but its
-    name), its lines (files named as uploaded), a linear-axis plant to download, not to tune here;
-    without the description the .mat log is refused with the command's line."""
+    name, which is its file's), its lines (files named as uploaded), a linear-axis plant to
+    download, not to tune here; without the description the .mat log is refused with the
+    command's line. The command's run is the session's ``emps_fit`` (tests/conftest.py: one fit
+    per session, shared with the identification and Monte Carlo tests; this test ran its own)."""
+    from pathlib import Path
+
     from prsa_ctrl.app.fitpanel import report_html
     from prsa_ctrl.app.session import AppInputError, AppSession
     from prsa_ctrl.identification.calibrate import mat_log_refusal
 
-    data, fmt = _emps()
-    code, out, _ = _cli([str(data), "--log-format", str(fmt), "--out", str(tmp_path / "DATA_EMPS-fitted.toml"),
-                         "--json", str(tmp_path / "r.json")], capsys)
-    assert code == 0
-    want = json.loads((tmp_path / "r.json").read_text())
+    example = Path(__file__).resolve().parents[2] / "examples" / "emps"  # the files emps_fit fitted
+    data, fmt = example / "DATA_EMPS.mat", example / "log.toml"
+    assert emps_fit.code == 0
+    want = json.loads(emps_fit.json.read_text())
+    command_text = emps_fit.toml.read_text()
+    assert command_text.count(f'name = "{emps_fit.toml.stem}"\n') == 1  # the command names the plant after --out
     s = AppSession()
     try:
         cal = s.calibrate("DATA_EMPS.mat", data.read_bytes(), log_format=("log.toml", fmt.read_bytes()))
         assert cal.refused is None
         assert not cal.usable
         assert cal.file_name == "DATA_EMPS-fitted.toml"
-        assert cal.plant_text == (tmp_path / "DATA_EMPS-fitted.toml").read_text()
-        assert list(cal.lines) == [" ".join(x.replace(str(data), "DATA_EMPS.mat").split()) for x in out.splitlines()
-                                   if not x.startswith("wrote ")]
+        assert cal.plant_text == command_text.replace(f'name = "{emps_fit.toml.stem}"\n', 'name = "DATA_EMPS-fitted"\n')
+        assert list(cal.lines) == [" ".join(x.replace(str(data), "DATA_EMPS.mat").split())
+                                   for x in emps_fit.out.splitlines() if not x.startswith("wrote ")]
         for key, v in want["parameters"].items():
             assert cal.report["parameters"][key]["value"] == pytest.approx(v["value"], rel=1e-12)
         html_ = report_html(cal, "done")

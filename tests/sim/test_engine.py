@@ -418,8 +418,9 @@ def _check(run, tol):
     return "ok"
 
 
-@settings(max_examples=14, suppress_health_check=[HealthCheck.too_slow])
-@given(
+#: The contact grid's cases: stiffness, exponent, damping and penetration of the thread contact,
+#: the PI (or none), the load after the step (times the rated load) and the tolerance.
+_CONTACT_CASES = dict(
     k=_log(1e3, 1e7),
     e=st.floats(1.0, 2.2),
     c=st.one_of(st.just(0.0), _log(1e-2, 500.0)),
@@ -429,7 +430,9 @@ def _check(run, tol):
     final=st.floats(0.0, 10.0),
     tol=st.sampled_from([1e-3, 1e-6, 1e-8, 1e-10]),
 )
-def test_compliant_contact_grid(k, e, c, d, kp, ki, final, tol):
+
+
+def _contact_case(k, e, c, d, kp, ki, final, tol):
     plant = PLANT.with_params({
         "contact.stiffness_n_per_mm_e": k, "contact.exponent": e,
         "contact.damping_n_s_per_mm": c, "contact.penetration_mm": d,
@@ -438,6 +441,22 @@ def test_compliant_contact_grid(k, e, c, d, kp, ki, final, tol):
     s = SimSettings(rtol=tol, atol=tol, max_wall_s=60.0, energy_tol=math.inf)
     _check(lambda: simulate(plant, load=[(0.0, 500.0), (0.005, final * plant.rated_load_n)], duration=0.02,
                             controller=pid, energy=True, settings=s), tol)
+
+
+@settings(max_examples=5, suppress_health_check=[HealthCheck.too_slow])
+@given(**_CONTACT_CASES)
+def test_compliant_contact_grid(k, e, c, d, kp, ki, final, tol):
+    """The stress property on 5 cases of the grid (the default suite's guard; the 14-case study
+    is test_compliant_contact_grid_study, marked slow)."""
+    _contact_case(k, e, c, d, kp, ki, final, tol)
+
+
+@pytest.mark.slow
+@settings(max_examples=14, suppress_health_check=[HealthCheck.too_slow])
+@given(**_CONTACT_CASES)
+def test_compliant_contact_grid_study(k, e, c, d, kp, ki, final, tol):
+    """The same property on 14 cases (the evidence study; the default suite runs 5)."""
+    _contact_case(k, e, c, d, kp, ki, final, tol)
 
 
 @settings(max_examples=6, suppress_health_check=[HealthCheck.too_slow])

@@ -268,9 +268,11 @@ def test_cli_exports_drive_gains(tmp_path, capsys):
     assert not (tmp_path / "drive.txt").exists()
 
 
-def test_cli_flagged_best_exits_3_unless_accepted(tmp_path, capsys):
+def test_cli_flagged_best_exits_3_unless_accepted(tmp_path, capsys, shared_tuning):
     """The 10 ms drive of the health check, through the CLI: the report is printed and the JSON
-    says what is wrong, but the exit code does not pretend success."""
+    says what is wrong, but the exit code does not pretend success. The command's two runs differ
+    in their exit options only: the second reads the first's tuning (``shared_tuning``; it tuned
+    the same plant and scene again)."""
     from prsa_ctrl.plant.plantfile import plant_file_path
 
     src = plant_file_path("paper-iprsm").read_text()

@@ -138,10 +138,6 @@ def test_design_to_spec_decides_among_the_near_max_designs_on_more_samples(rolle
     text = r.format("iae")
     assert "linear-yield grid" in text
     assert f"chosen: {r.chosen}" in text
-    off = design_to_spec(plant, scene, n_search=4, n_decide=4, n_final=4, seed=2, ms_levels=(1.5,), grid=False)
-    assert off.grid is None
-    assert off.decide is None
-    assert not any(k.startswith("linear-yield grid") for k in off.designs)
 
 
 def _acceptance(plant, scene, *, expect_95: bool):
@@ -198,15 +194,36 @@ def test_acceptance_ball_screw_cut(tmp_path):
     assert next(row for row in r.search["rows"] if row["name"] == "rule of thumb")["passed"] == 0
 
 
-def test_design_to_spec_chooses_by_the_rule_and_reports_fresh_samples(roller):
-    from prsa_ctrl.plant.uncertainty import uncertainty_model
+@pytest.fixture(scope="module")
+def no_grid(roller):
+    """One design to the spec without the linear-yield grid and without a decision round
+    (``n_decide`` = ``n_search``: 4 search and 4 fresh samples, two Ms levels and a given design),
+    shared by the test of the choice and the test of ``grid=False`` (each ran its own: the level
+    tunings cost most of a run)."""
     from prsa_ctrl.studies.designspec import design_to_spec
+
+    plant, scene = roller
+    extra = {"rule of thumb": PID(0.6361989083357843, 79.94711266598183)}
+    return design_to_spec(plant, scene, n_search=4, n_decide=4, n_final=4, seed=3, ms_levels=(1.4, 1.5), extra=extra,
+                          grid=False)
+
+
+def test_design_to_spec_without_the_grid_proposes_none_of_its_designs(no_grid):
+    assert no_grid.grid is None
+    assert not any(k.startswith("linear-yield grid") for k in no_grid.designs)
+
+
+def test_design_to_spec_decides_on_more_samples_only_when_asked_for_more_than_the_search(no_grid):
+    assert no_grid.decide is None
+
+
+def test_design_to_spec_chooses_by_the_rule_and_reports_fresh_samples(roller, no_grid):
+    from prsa_ctrl.plant.uncertainty import uncertainty_model
     from prsa_ctrl.studies.montecarlo import draw_sample, run_monte_carlo
     from prsa_ctrl.studies.scenerobust import operating_points
 
     plant, scene = roller
-    extra = {"rule of thumb": PID(0.6361989083357843, 79.94711266598183)}
-    r = design_to_spec(plant, scene, n_search=4, n_final=4, seed=3, ms_levels=(1.4, 1.5), extra=extra)
+    r = no_grid
     # nominal and robust at two Ms bounds, plus the given design (unless a duplicate)
     assert set(r.designs) >= {"rule of thumb"}
     assert len(r.designs) >= 3

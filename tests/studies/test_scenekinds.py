@@ -542,16 +542,17 @@ def test_setpoint_goal_warns_that_it_does_not_inform_the_integral(paper_plant):
 
 def test_setpoint_only_duty_cycle_reports_the_integral_warning(tmp_path, capsys):
     scene = tmp_path / "sp.toml"
+    # a 0.12 s record (was 0.2 s: the same Ti, 2.02 s, and the same warning; about a third less CPU)
     scene.write_text('name = "sp"\n[operating]\ninitial_load_n = 500.0\nsetpoint_profile_rpm = [[0.0, 300.0], '
-                     '[0.05, 300.0], [0.06, 400.0]]\nduration_s = 0.2\n[tuning]\nobjective = "iae"\ncontroller = "pi"\n'
+                     '[0.03, 300.0], [0.04, 400.0]]\nduration_s = 0.12\n[tuning]\nobjective = "iae"\ncontroller = "pi"\n'
                      'ms_max = 1.4\n[verify]\nfidelity = "rigid"\ndiscrete = true\naccuracy = 0.05\n')
     rc, text, data = _tune_cli(tmp_path, capsys, "--scene", str(scene))
     assert rc == 0
     assert data["status"] == "ok"  # a warning, not a flag: the design does what its goal asks
     ti = data["gains"]["kp"] / data["gains"]["ki"]
-    assert ti > 0.2
+    assert ti > 0.12
     (w,) = [w for w in data["warnings"] if "does not inform the integral gain" in w]
-    assert f"Ti = {ti:.3g} s > record 0.2 s" in w
+    assert f"Ti = {ti:.3g} s > record 0.12 s" in w
     assert w in text
 
 
