@@ -99,15 +99,23 @@ def test_prsa_fit_refuses_a_base_force_limit_below_the_logged_forces(tmp_path, c
     assert not out.exists()
 
 
-@needs_data
-def test_a_force_limit_above_the_logged_forces_fits_as_without_a_limit(emps_log, tmp_path):
-    """A limit the log never reaches must not change the fit (the drive applied every logged force)."""
+@pytest.fixture(scope="module")
+def limit_fits(emps_log, tmp_path_factory):
+    """``(a, b)``: the EMPS record fitted on the example's plant without a force limit and with
+    one just above the logged peak, made once per module: the force-limit test compares them,
+    test_axis_fit_as_dict_carries_the_status reads ``b`` (it fitted the example's plant afresh)."""
     peak, _ = logged_force_peak([emps_log])
-    base = load_axis_plant(_base_with_limit(tmp_path, 351.5065188248547))
+    base = load_axis_plant(_base_with_limit(tmp_path_factory.mktemp("limit"), 351.5065188248547))
     unlimited = dataclasses.replace(base, values={**base.values, "drive.force_limit_n": math.inf})
     just_above = dataclasses.replace(base, values={**base.values, "drive.force_limit_n": peak * 1.001})
-    a = fit_linear_axis([emps_log], unlimited, check_delay=False)
-    b = fit_linear_axis([emps_log], just_above, check_delay=False)
+    return fit_linear_axis([emps_log], unlimited, check_delay=False), fit_linear_axis([emps_log], just_above,
+                                                                                      check_delay=False)
+
+
+@needs_data
+def test_a_force_limit_above_the_logged_forces_fits_as_without_a_limit(limit_fits):
+    """A limit the log never reaches must not change the fit (the drive applied every logged force)."""
+    a, b = limit_fits
     for k, v in a.parameters.items():
         lo, hi = v["ci95"]
         assert abs(b.parameters[k]["value"] - v["value"]) < 0.01 * (hi - lo), k
@@ -188,13 +196,15 @@ def test_the_screw_fit_entries_never_cross_the_range():
 
 
 @needs_data
-def test_refitting_with_the_own_fitted_plant_as_base_is_written(tmp_path, capsys):
-    """Was: exit 2 after the whole fit, "'axis.mass_kg' appears twice (in two blocks)"."""
+def test_refitting_with_the_own_fitted_plant_as_base_is_written(emps_fit, tmp_path, capsys):
+    """Was: exit 2 after the whole fit, "'axis.mass_kg' appears twice (in two blocks)". The first
+    fit is the session's (tests/conftest.py's emps_fit: the README's command; this test ran its own
+    with the example's plant as --plant)."""
     import tomllib
 
     fmt = str(EXAMPLE / "log.toml")
-    first, second = tmp_path / "first.toml", tmp_path / "second.toml"
-    assert main([str(DATA), "--log-format", fmt, "--plant", str(EXAMPLE / "plant.toml"), "--out", str(first)]) == 0
+    assert emps_fit.code == 0, emps_fit.err
+    first, second = emps_fit.toml, tmp_path / "second.toml"
     capsys.readouterr()
     code = main([str(DATA), "--log-format", fmt, "--plant", str(first), "--out", str(second)])
     captured = capsys.readouterr()
@@ -234,10 +244,10 @@ def test_axis_fit_status_is_in_the_vocabulary_and_names_what_failed():
 
 
 @needs_data
-def test_axis_fit_as_dict_carries_the_status(emps_log):
+def test_axis_fit_as_dict_carries_the_status(limit_fits):
     from prsa_ctrl.results import check_status
 
-    fit = fit_linear_axis([emps_log], load_axis_plant(EXAMPLE / "plant.toml"), check_delay=False)
+    fit = limit_fits[1]  # the example's plant, its force limit just above the logged peak
     d = fit.as_dict()
     assert d["status"] == fit.status == check_status(fit.status)
     assert d["solver_status"] == "converged"
