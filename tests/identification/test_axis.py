@@ -514,10 +514,11 @@ def test_generator_log_is_quantised_and_reproduced_by_the_controller():
     np.testing.assert_allclose(u, np.clip(KV * (KP * (r - qm) - dq), -SAT, SAT), rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_truth_inside_the_intervals_two_seeds(seed):
     """Every key's truth within 3 standard errors (a wrong model or covariance gives 5..1000;
-    the 20-seed rate is the slow test)."""
+    the 20-seed rate is the slow test). Seed 0 in the default run, seed 1 with the slow studies
+    (the same claim on another seed: an evidence study)."""
     res, z, _ = _fit(seed)
     assert (res.status, res.solver_status) == ("ok", "converged")  # (status in the vocabulary since issue 33)
     assert max(abs(x) for x in z) < 3.0, z
@@ -680,7 +681,8 @@ def test_validate_plots_the_replay_and_the_frequency_response_beside_the_logs(lo
 
 # --- the closed-loop calibration on the independent generator's logs, and the EMPS case ----------
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+# seed 0 in the default run; seeds 1 and 2, the same claim on other logs, with the slow studies
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 def test_synthetic_closed_loop_log_recovered_within_its_intervals(tmp_path, seed):
     t, qm, r, u = gen.closed_loop_log(seed)
     path = tmp_path / "log.csv"
