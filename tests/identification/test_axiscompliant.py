@@ -227,8 +227,9 @@ def test_the_second_mass_starts_from_a_measured_frf_when_the_logs_have_no_test_s
 def test_no_start_for_the_second_mass_is_a_fit_error_naming_the_remedies():
     from prsa_ctrl.errors import AxisFitError
 
+    log = _log(3, dither_v=0.0)  # (simulated once: it was twice, for the logs and for the base)
     with pytest.raises(AxisFitError, match="no start for the second mass.*--frf"):
-        fit_two_mass_axis([_log(3, dither_v=0.0)], _base(_log(3, dither_v=0.0)))
+        fit_two_mass_axis([log], _base(log))
 
 
 # the EMPS-like description of axis_generator, plus the column of the drive's test signal
@@ -242,8 +243,7 @@ def described(tmp_path_factory):
     (root / "log.toml").write_text(CSV_FORMAT)
     _write_csv(root / "good.csv", two_mass_log(4))
     _write_csv(root / "other.csv", two_mass_log(12))
-    _write_csv(root / "three.csv", two_mass_log(4, third=(30.0, 8.0e6)))
-    return root
+    return root  # (three.csv, the three-mass log, is written by the slow test that reads it)
 
 
 def test_prsa_fit_compliant_writes_a_validated_two_mass_plant(described, tmp_path, capsys):
@@ -284,7 +284,8 @@ def test_prsa_fit_compliant_refuses_a_plant_that_does_not_explain_the_log(descri
     file; --force writes it with a header that says so. The same seed without the third mass fits
     (test_prsa_fit_compliant_writes_a_validated_two_mass_plant: good.csv)."""
     out = tmp_path / "fit.toml"
-    args = [str(described / "three.csv"), "--log-format", str(described / "log.toml"), "--fidelity", "compliant",
+    _write_csv(tmp_path / "three.csv", two_mass_log(4, third=(30.0, 8.0e6)))
+    args = [str(tmp_path / "three.csv"), "--log-format", str(described / "log.toml"), "--fidelity", "compliant",
             "--out", str(out)]
     code = fit_main(args)
     err = capsys.readouterr().err

@@ -21,16 +21,33 @@ needs_data = pytest.mark.skipif(DATA is None or not FORMAT.is_file(),
                                 reason="EMPS data or its description absent (../shared/data/emps/, examples/emps/)")
 
 
-@needs_data
-def test_a_described_mat_log_of_a_linear_axis_is_the_commands_fit(tmp_path, capsys):
+def _command_run(request, tmp_path):
+    """``(plant file, JSON report, printed lines but the "wrote" ones)`` of ``prsa-fit DATA
+    --log-format FORMAT --out ... --json ...``: the session's run of that command when it reads
+    these data (tests/conftest.py's emps_fit; this test ran its own), else one run here."""
+    import contextlib
+    import io
+
     from prsa_ctrl.cli.fit import main
+
+    if DATA == EXAMPLE / "DATA_EMPS.mat":
+        run = request.getfixturevalue("emps_fit")
+        assert run.code == 0, run.err
+        out, rep, text = run.toml, run.json, run.out
+    else:
+        out, rep, buf = tmp_path / "emps-fitted.toml", tmp_path / "r.json", io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            assert main([str(DATA), "--log-format", str(FORMAT), "--out", str(out), "--json", str(rep)]) == 0
+        text = buf.getvalue()
+    return out, rep, [x for x in text.splitlines() if not x.startswith("wrote ")]
+
+
+@needs_data
+def test_a_described_mat_log_of_a_linear_axis_is_the_commands_fit(request, tmp_path):
     from prsa_ctrl.identification.axis import load_axis_plant
 
-    out, rep = tmp_path / "emps-fitted.toml", tmp_path / "r.json"
-    capsys.readouterr()
-    assert main([str(DATA), "--log-format", str(FORMAT), "--out", str(out), "--json", str(rep)]) == 0
-    printed = [x for x in capsys.readouterr().out.splitlines() if not x.startswith("wrote ")]
-    got = calibrate_described([str(DATA)], str(FORMAT), name="emps-fitted")
+    out, rep, printed = _command_run(request, tmp_path)
+    got = calibrate_described([str(DATA)], str(FORMAT), name=out.stem)  # (the command names it after --out)
     assert got.plant_text == out.read_text()  # the same plant file, byte for byte
     assert list(got.lines) == printed
     want = json.loads(rep.read_text())

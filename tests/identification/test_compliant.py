@@ -234,16 +234,33 @@ def test_the_seed_puts_the_plants_mode_at_an_independent_two_mass_response_for_e
         assert abs(mode(broken) / f_true - 1) > 0.05, keys
 
 
+@pytest.fixture(scope="module")
+def judge_logs(tmp_path_factory):
+    """``get(name)``: the judge's case ``name`` generated at seed 0 (gen_judge.generate: on a
+    two-mass case its three logs, on a rigid one the multisine and the staircase), once per module
+    and case: the two tests of the logs' own response read the same logs (each generated them;
+    the generator runs each log from its own seed, so a log is the same whichever others are made)."""
+    from foreign import gen_judge as gj
+
+    made: dict = {}
+
+    def get(name):
+        if name not in made:
+            exps = gj.EXPERIMENTS if gj.CASES[name].two_mass else ("multisine", "staircase")
+            made[name] = gj.generate(tmp_path_factory.mktemp(name), name, seed=0, experiments=exps)
+        return made[name]
+
+    return get
+
+
 @pytest.mark.parametrize("name", ["ball-2mass-d1-computed-si", "roller-2mass-d1-applied-si", "roller-rigid-d1-applied-si"])
-def test_the_logs_own_response_seeds_the_compliant_fit_where_the_loop_is_described(name, tmp_path):
+def test_the_logs_own_response_seeds_the_compliant_fit_where_the_loop_is_described(name, judge_logs):
     """Without a measured response, the logs' own (joint input-output through the described speed
     loop: closedloop.frf_from_logs) starts the compliant fit where it shows a mode: on the judge's
     two-mass logs the start's mode is within 5 % of the truth's (the roller screw's multisine reaches 150 Hz, its mode 161 Hz: the anti-resonance in
     the band places it). On a rigid axis, and without the loop, the keys stay the base's and the
     note says why; without the loop and with no constant-reference log to identify it from (no
     load-step log here) the fit is refused (h15-direct: the start stayed the base's before)."""
-    from foreign import gen_judge as gj
-
     from prsa_ctrl.errors import FitError
 
     from prsa_ctrl.identification import axial_mode
@@ -251,7 +268,7 @@ def test_the_logs_own_response_seeds_the_compliant_fit_where_the_loop_is_describ
     from prsa_ctrl.identification.compliant import compliant_start
     from prsa_ctrl.identification.data import load_record
 
-    s = gj.generate(tmp_path, name, seed=0, experiments=("multisine", "staircase"))
+    s = judge_logs(name)
     t = s["truth"]
     base = load_plant(str(s["base"]))
     recs = [load_record(s["logs"][e]) for e in ("multisine", "staircase")]
@@ -279,19 +296,17 @@ def test_the_logs_own_response_seeds_the_compliant_fit_where_the_loop_is_describ
 
 
 @pytest.mark.parametrize("name", ["ball-2mass-d1-computed-si", "roller-2mass-d1-applied-si"])
-def test_the_logs_alone_place_the_mode_through_the_speed_loop_their_load_step_log_gives(name, tmp_path):
+def test_the_logs_alone_place_the_mode_through_the_speed_loop_their_load_step_log_gives(name, judge_logs):
     """No measured response and no loop described: the judge's constant-speed load-step log gives
     the speed loop (closedloop.speed_loop_from_logs), the joint input-output response of the other
     logs through it starts the compliant fit, and the start's mode is within 5 % of the truth's
     (measured from the files, seeds 0 and 1: +0.9 % ball, +1.1 / +1.4 % roller; the datasheet's
     +15.9 % and -14.6 %). unplaced_mode lets it through; the note names the log and the loop."""
-    from foreign import gen_judge as gj
-
     from prsa_ctrl.identification import axial_mode
     from prsa_ctrl.identification.compliant import compliant_start, unplaced_mode
     from prsa_ctrl.identification.data import load_record
 
-    s = gj.generate(tmp_path, name, seed=0)
+    s = judge_logs(name)
     t = s["truth"]
     base = load_plant(str(s["base"]))
     recs = [load_record(s["logs"][e]) for e in ("multisine", "loadsteps", "staircase")]

@@ -546,13 +546,15 @@ def test_computed_with_too_short_a_delay_refused(base):
     from prsa_ctrl.errors import FitError
 
     ax = _axis(base, transport_samples=0, bandwidth_hz=1100.0)
-    # 600 samples of the multisine (was 2000): the refusal is reached the same way (the fit from
-    # 1 sample on fails, the one at 0 samples converges) and its message is the same; the
-    # contradiction is in the first sample of delay, not in the record's length. The search
+    # 300 samples of the multisine (was 2000, then 600): the refusal is reached the same way (the
+    # fit from 1 sample on fails, the one at 0 samples converges) and its message is the same; the
+    # contradiction is in the first sample of delay, not in the record's length (300: 4.5 s of CPU,
+    # 600: 7.0 s; without the convention's check, delay.check_convention, the search's failure is
+    # raised instead and this test fails). The search
     # ends at 1 sample (max_delay_samples=1, was the default 4): from 1 sample on every fit
     # fails, so shifts 2..4 only added 18 more failing fits (12 s of this test's 15.5 s CPU)
     # before the same refusal with the same message ("from 1 samples on: the fit failed")
-    n = 600
+    n = 300
     sp, ld = fg.multisine(n, ax.sample_time_s, seed=6)
     rec = _records([fg.simulate(ax, sp, ld, seed=6, convention="applied")])
     with pytest.raises(FitError, match="--command-logged applied"):

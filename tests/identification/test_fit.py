@@ -37,8 +37,14 @@ PERTURBED = {
 }
 
 
+#: toolkit_record's runs in this module, by the plant's values, the kind, the seed and the name
+_RECORDS: dict = {}
+
+
 def toolkit_record(plant, kind, seed=0, name=None):
-    """One closed-loop experiment simulated by the toolkit (rigid, sampled PI at 4 kHz) as a Record.
+    """One closed-loop experiment simulated by the toolkit (rigid, sampled PI at 4 kHz) as a Record,
+    simulated once per module for each plant (its name and values), kind, seed and name (many
+    tests use the issue's multisine; no test changes a record, they make new ones).
 
     ``kind``: ``multisine`` (speed multisine at a constant 800 N), ``load-steps`` (constant speed,
     load steps 200/1500/300/2500 N), ``staircase`` (speed levels through both directions, 800 N).
@@ -46,6 +52,13 @@ def toolkit_record(plant, kind, seed=0, name=None):
     This is the one place that turns a simulation into measured data (switch here when the
     simulator's outputs change).
     """
+    key = (plant.name, tuple(sorted(plant.values.items())), kind, seed, name)
+    if key not in _RECORDS:
+        _RECORDS[key] = _simulated_record(plant, kind, seed, name)
+    return _RECORDS[key]
+
+
+def _simulated_record(plant, kind, seed, name):
     from prsa_ctrl.sim.engine import run
 
     if kind == "multisine":
@@ -178,10 +191,18 @@ def test_coloured_noise_widens_the_intervals(base):
         assert lo <= truth.values[k] <= hi
 
 
-def test_independent_generator_is_fitted(base):
+@pytest.fixture(scope="module")
+def independent_fit(base):
+    """``(record, fit)``: the independent generator's multisine with load steps of the issue's
+    plant, fitted on the built-in plant, made once per module: test_independent_generator_is_fitted
+    asserts the fit, test_overlay_shows_one_continuous_simulation its figure (each made both)."""
+    rec = multisine_load_step_record(base.with_params(PERTURBED["issue"]), TS)
+    return rec, fit_plant([rec], base)
+
+
+def test_independent_generator_is_fitted(base, independent_fit):
     truth = base.with_params(PERTURBED["issue"])
-    rec = multisine_load_step_record(truth, TS)
-    result = fit_plant([rec], base)
+    result = independent_fit[1]
     _check_accuracy(result, truth)
     assert abs(result.parameters["friction.no_load_torque_n_m"]["value"] - 0.03) < 0.005
     # Model error (other friction smoothing, noisy load input) makes the residual coloured: the
@@ -193,9 +214,17 @@ def test_independent_generator_is_fitted(base):
         assert lo <= truth.values[k] <= hi, k
 
 
-def test_constant_load_leaves_efficiency_unidentified(base):
+@pytest.fixture(scope="module")
+def multisine_fit(base, multisine):
+    """``fit_plant`` of the issue's constant-load multisine (seed 0) on the built-in plant with its
+    defaults, made once per module: test_constant_load_leaves_efficiency_unidentified and
+    test_constant_load_efficiency_unidentified_on_every_seed[0] assert on it (each fitted it)."""
+    return fit_plant([multisine], base)
+
+
+def test_constant_load_leaves_efficiency_unidentified(base, multisine, multisine_fit):
     truth = base.with_params(PERTURBED["issue"])
-    result = fit_plant([toolkit_record(truth, "multisine")], base)
+    result = multisine_fit
     text = " ".join(result.warnings)
     assert "friction.efficiency" in text
     # but the inertia and the current loop are still found
@@ -216,7 +245,7 @@ def test_constant_load_leaves_efficiency_unidentified(base):
     # the written plant's own fit % is reported beside the free fit's
     assert set(result.solver["fit_percent_written"]) == set(result.fit_percent)
     # without the option every fitted value is written (the old behaviour, for studies)
-    raw = fit_plant([toolkit_record(truth, "multisine")], base, keep_unidentified=False)
+    raw = fit_plant([multisine], base, keep_unidentified=False)
     assert not raw.kept_base
     assert raw.plant.values["friction.efficiency"] == raw.parameters["friction.efficiency"]["value"]
 
@@ -707,10 +736,12 @@ def _check_constant_load(result, base):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_constant_load_efficiency_unidentified_on_every_seed(base, truth, seed):
+def test_constant_load_efficiency_unidentified_on_every_seed(base, truth, seed, request):
     """Item 1 / hostile 5: the decision holds for every seed (on b18c321 seeds 1..3 wrote a
-    fitted efficiency with a CI of +/- 6e-6 that missed the truth)."""
-    result = fit_plant([toolkit_record(truth, "multisine", seed=seed)], base)
+    fitted efficiency with a CI of +/- 6e-6 that missed the truth). Seed 0 is the module's
+    shared fit (multisine_fit)."""
+    result = (request.getfixturevalue("multisine_fit") if seed == 0
+              else fit_plant([toolkit_record(truth, "multisine", seed=seed)], base))
     _check_constant_load(result, base)
 
 
@@ -863,14 +894,13 @@ def test_frf_points_above_nyquist_dropped_with_a_note(base, truth):
 # --- item 6: overlay figures without shooting-join spikes ---------------------------------------------
 
 
-def test_overlay_shows_one_continuous_simulation(base, truth):
+def test_overlay_shows_one_continuous_simulation(independent_fit):
     """On b18c321 the overlay drew the shooting segments: at a join the model jumped by 2.5 rad/s
     (the measured speed never changes by more than 1.4 rad/s in a sample) and the residual panel
     showed 2.3 rad/s there."""
     from prsa_ctrl.plots.fit import fit_figures
 
-    rec = multisine_load_step_record(truth, TS)
-    result = fit_plant([rec], base)
+    rec, result = independent_fit
     fig = fit_figures(result)["independent-fit"]
     ax1, ax2 = fig.axes[:2]
     meas, model = (np.asarray(line.get_ydata(), float) for line in ax1.lines[:2])
