@@ -54,7 +54,7 @@ from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, SPEED_MAX_RPM, ra
 from ..identification.calibrate import FRF_COHERENCE_MIN_DEFAULT, FRF_SPEED_DEFAULT_RAD_S, MOTOR_COORDINATES
 from .common import KeepTyped, Run, Parser, UsageError, echo, invoke, number, progress, typed_text
 
-__all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S", "new_outputs", "take_back"]
+__all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S", "new_outputs", "take_back", "FIT_VALUE_FLAGS"]
 
 #: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
 #: speed range the tuner accepts (:data:`prsa_ctrl.studies.scene.SETPOINT_MAX_RPM`, 6000 rpm).
@@ -236,7 +236,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``prsa-fit: note:`` line each (never Python's two-line format); the geometry note of a
     built-in plant only with ``--verbose``.
     """
-    return invoke("prsa-fit", argv, _body)
+    return invoke("prsa-fit", argv, _body, FIT_VALUE_FLAGS)
+
+
+#: Flags of ``prsa-fit`` (and its linear-axis mode) whose value may start with ``-``: a number, a
+#: list of numbers or of keys (:func:`prsa_ctrl.cli.common.attach_values` glues the value to its
+#: flag, so that ``--frf-band -1,300`` reaches the band's check and is refused naming '-1,300';
+#: argparse took it for a flag and said only "expected one argument"). Paths are not listed: a
+#: path flag followed by another flag keeps argparse's "expected one argument".
+FIT_VALUE_FLAGS = frozenset({
+    "--frf-band", "--frf-speed", "--frf-load", "--frf-sample-time", "--coherence-min", "--load", "--torque-constant",
+    "--segment", "--delay-samples", "--speed-loop", "--frf-from-logs", "--fit", "--columns", "--command-logged",
+    "--fidelity", "--duration", "--sample-time", "--f-min", "--f-max", "--amplitude", "--offset", "--holdout"})
 
 
 def _body(run: Run, argv: list[str]) -> int:
