@@ -132,7 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="multiple-shooting segment length, s (default 0.1; 0.05 with --fidelity compliant)")
     p.add_argument("--delay-samples", type=int, default=None, metavar="N", help="samples between a logged command and "
                    "the sample the current loop receives it from (default: found by the fit from time-domain records; "
-                   "FRF only: the base plant's drive.command_delay_samples, plus 1 with --command-logged computed)")
+                   "FRF only with --fit KEYS: the base plant's drive.command_delay_samples, plus 1 with --command-logged computed; "
+                   "refused with --frf alone, whose fit fits the delay)")
     p.add_argument("--log-format", metavar="FORMAT.toml", help="log description (prsa_ctrl.identification.logformat): "
                    "a log in motor (axis = \"rotary\") or load coordinates, the latter converted with the plant's lead")
     p.add_argument("--command-logged", choices=("applied", "computed"), default=None,
@@ -491,6 +492,10 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         # the FRF-only fit (--frf alone, or --frf-from-logs) without --fit: identification.calibrate.calibrate_frf
         # reads the --frf files, fits and composes the outputs (the app's calibration calls it too)
         frf_only = keys is None and (not args.data or args.frf_from_logs is not None)
+        if frf_only and args.delay_samples is not None:  # (was silently ignored: the report said "fitted")
+            raise UsageError(f"--delay-samples {args.delay_samples} with --frf alone: the frequency-response fit fits the "
+                             "command delay as a continuous time (reported with its interval); expected it with "
+                             "DATA.csv, or --fit KEYS without drive.command_delay_s to hold the delay at N")
         frfs = [] if frf_only else [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load,
                                              coherence_min=args.coherence_min, sample_time_s=args.frf_sample_time)
                                     for f in args.frf]

@@ -662,3 +662,17 @@ def test_a_value_flag_followed_by_a_flag_still_lacks_its_value(capsys):
     # the glue of a value to its flag stops at a long option: "--frf-band --out p.toml" is a missing band
     assert main(["--frf", "f.csv", "--frf-band", "--out", "p.toml"]) == 2
     assert capsys.readouterr().err.strip() == "prsa-fit: error: --frf-band expected one argument"
+
+
+def test_a_given_delay_with_an_frf_alone_is_refused_not_ignored(tmp_path, capsys):
+    # prsa-fit --frf F.csv --delay-samples N (no --fit): the structure's fit fits the delay itself and ignored N
+    # while the report said the delay was fitted; now one line naming the flag and what holds a delay, exit 2
+    frf = tmp_path / "f.csv"
+    frf.write_text("frequency_hz,magnitude,phase_deg\n1,1,0\n")
+    out = tmp_path / "p.toml"
+    assert main(["--frf", str(frf), "--delay-samples", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert err.startswith("prsa-fit: error: --delay-samples 2 with --frf alone: "), err
+    assert "--fit KEYS without drive.command_delay_s" in err
+    assert not out.exists()
