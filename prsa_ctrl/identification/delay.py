@@ -268,8 +268,10 @@ def frf_delay_record(delay: dict, plant: Plant, ts: float, command_logged: str, 
                           "sample_time_s": float(ts), "samples": value / ts,
                           "ci95_samples": None if ci is None else [float(ci[0]) / ts, float(ci[1]) / ts]}}
     if ci is None:
-        rec["status"] = (f"undecided: the fit holds the delay at its bound ({delay.get('note', 'held')}), "
-                         "no interval to decide the whole samples by")
+        side = f"{delay['at_bound']} " if isinstance(delay.get("at_bound"), str) else ""
+        rec["status"] = (f"undecided: the fit holds the delay at its {side}bound, {value:.4g} s "
+                         f"({delay.get('note', 'held')}): no interval, so the response decides no whole-sample count; "
+                         f"{n} written")
         return rec
     lo, hi = float(ci[0]) / ts - offset, float(ci[1]) / ts - offset
     if n - 0.5 <= lo and hi <= n + 0.5:

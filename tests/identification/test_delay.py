@@ -974,3 +974,27 @@ def test_a_failed_refit_at_the_found_shift_is_named_in_the_delay_record(plant, e
     validated = validate_fit(res, recs, [], 1, "rigid", lambda r, s, a=0: _with_plant(res, truth), base=truth)
     assert validated.solver["validation"]["passes"] is True
     assert validated.solver["command_delay"]["status"] == "decided"
+
+
+def test_an_frf_delay_is_decided_only_when_its_interval_stays_within_half_a_sample(plant):
+    """delay.frf_delay_record: the whole samples written (beyond the convention's offset) are
+    decided when both ends of the continuous delay's 95 % interval lie within half a sample of them;
+    an interval reaching past, or a delay held at its bound (no interval), leaves it undecided."""
+    from prsa_ctrl.identification.delay import delay_status_head, frf_delay_record
+
+    ts = 2.5e-4
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        one = plant.with_params({"drive.command_delay_samples": 1})
+    inside = frf_delay_record({"value": 2.0 * ts, "ci95": [1.52 * ts, 2.48 * ts]}, one, ts, "computed")
+    assert inside["status"] == "decided"
+    assert inside["shift_samples"] == 2
+    assert inside["continuous"]["ci95_samples"] == pytest.approx([1.52, 2.48])
+    past = frf_delay_record({"value": 2.0 * ts, "ci95": [1.52 * ts, 2.52 * ts]}, one, ts, "computed")
+    assert delay_status_head(past["status"]) == "undecided"
+    assert "nearest 1..2" in past["status"]
+    held = frf_delay_record({"value": 0.0, "ci95": None, "at_bound": "lower", "note": "at its bound"}, one, ts, "applied")
+    assert held["status"].startswith("undecided: the fit holds the delay at its lower bound, 0 s")
+    assert held["continuous"]["ci95_s"] is None
+    loop = frf_delay_record({"value": 2.0 * ts, "ci95": [1.9 * ts, 2.1 * ts]}, one, ts, "computed", loop_held=True)
+    assert "the current loop held, not fitted" in loop["how"]
