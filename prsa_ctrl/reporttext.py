@@ -278,6 +278,9 @@ def axis_fit_lines(report: dict[str, Any]) -> list[str]:
     for k, v in report["equivalent"].items():
         lo, hi = v["ci95"]
         lines.append(f"{k} = {v['value']:.6g} {v['unit']} (95 % CI {lo:.6g}..{hi:.6g})")
+    cd = report.get("command_delay")
+    if cd is not None:  # (identification.delay.axis_delay_record)
+        lines.append(f"command delay: {cd['drive_command_delay_samples']} sample(s) ({cd['how']}; {cd['status']})")
     lines += [axis_replay_line(r) for r in report["replay"]]
     lines += [axis_replay_line(h, prefix="held out: ") for h in report.get("holdout", {}).get("replay", [])]
     for log_name, fmap in report["friction_map"].items():

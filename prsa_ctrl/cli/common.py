@@ -155,20 +155,31 @@ def path_text(flag: str) -> Callable[[str], str]:
 def attach_values(argv: Sequence[str], value_flags: Iterable[str] = ()) -> list[str]:
     """``--load-step -5:10`` would read ``-5:10`` as an option; glue values to their flag so
     that such a value reaches the validator and is reported by name (``value_flags``: the flags
-    that take a value which may start with ``-``)."""
+    that take a value which may start with ``-``). A flag followed by a long option (``--x``) is
+    left alone: no value of theirs starts with ``--``, and argparse then says the value is missing.
+
+    >>> attach_values(["--frf-band", "-1,300", "--out", "p.toml"], {"--frf-band"})
+    ['--frf-band=-1,300', '--out', 'p.toml']
+    >>> attach_values(["--frf-band", "--out", "p.toml"], {"--frf-band"})
+    ['--frf-band', '--out', 'p.toml']
+    """
     value_flags = set(value_flags)
+    argv = list(argv)
     out: list[str] = []
-    it = iter(argv)
-    for a in it:
+    i = 0
+    while i < len(argv):
+        a = argv[i]
         if a.startswith("--") and a.partition("=")[2] == "--":
             raise UsageError(f"{a.partition('=')[0]} '--': expected a value")
-        if a in value_flags:
-            nxt = next(it, None)
-            if nxt == "--":  # argparse would drop it and hand the converter nothing
-                raise UsageError(f"{a} '--': expected a value")
-            out.append(a if nxt is None else f"{a}={nxt}")
+        nxt = argv[i + 1] if i + 1 < len(argv) else None
+        if a in value_flags and nxt == "--":  # argparse would drop it and hand the converter nothing
+            raise UsageError(f"{a} '--': expected a value")
+        if a in value_flags and nxt is not None and not nxt.startswith("--"):
+            out.append(f"{a}={nxt}")
+            i += 2
         else:
             out.append(a)
+            i += 1
     return out
 
 

@@ -54,7 +54,7 @@ from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, SPEED_MAX_RPM, ra
 from ..identification.calibrate import FRF_COHERENCE_MIN_DEFAULT, FRF_SPEED_DEFAULT_RAD_S, MOTOR_COORDINATES
 from .common import KeepTyped, Run, Parser, UsageError, echo, invoke, number, progress, typed_text
 
-__all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S", "new_outputs", "take_back"]
+__all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S", "new_outputs", "take_back", "FIT_VALUE_FLAGS"]
 
 #: Largest nut speed an excitation design may reach, rad/s: ``|offset| + amplitude`` within the
 #: speed range the tuner accepts (:data:`prsa_ctrl.studies.scene.SETPOINT_MAX_RPM`, 6000 rpm).
@@ -132,7 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="multiple-shooting segment length, s (default 0.1; 0.05 with --fidelity compliant)")
     p.add_argument("--delay-samples", type=int, default=None, metavar="N", help="samples between a logged command and "
                    "the sample the current loop receives it from (default: found by the fit from time-domain records; "
-                   "FRF only: the base plant's drive.command_delay_samples, plus 1 with --command-logged computed)")
+                   "FRF only with --fit KEYS: the base plant's drive.command_delay_samples, plus 1 with --command-logged computed; "
+                   "refused with --frf alone, whose fit fits the delay)")
     p.add_argument("--log-format", metavar="FORMAT.toml", help="log description (prsa_ctrl.identification.logformat): "
                    "a log in motor (axis = \"rotary\") or load coordinates, the latter converted with the plant's lead")
     p.add_argument("--command-logged", choices=("applied", "computed"), default=None,
@@ -236,7 +237,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``prsa-fit: note:`` line each (never Python's two-line format); the geometry note of a
     built-in plant only with ``--verbose``.
     """
-    return invoke("prsa-fit", argv, _body)
+    return invoke("prsa-fit", argv, _body, FIT_VALUE_FLAGS)
+
+
+#: Flags of ``prsa-fit`` (and its linear-axis mode) whose value may start with ``-``: a number, a
+#: list of numbers or of keys (:func:`prsa_ctrl.cli.common.attach_values` glues the value to its
+#: flag, so that ``--frf-band -1,300`` reaches the band's check and is refused naming '-1,300';
+#: argparse took it for a flag and said only "expected one argument"). Paths are not listed: a
+#: path flag followed by another flag keeps argparse's "expected one argument".
+FIT_VALUE_FLAGS = frozenset({
+    "--frf-band", "--frf-speed", "--frf-load", "--frf-sample-time", "--coherence-min", "--load", "--torque-constant",
+    "--segment", "--delay-samples", "--speed-loop", "--frf-from-logs", "--fit", "--columns", "--command-logged",
+    "--fidelity", "--duration", "--sample-time", "--f-min", "--f-max", "--amplitude", "--offset", "--holdout"})
 
 
 def _body(run: Run, argv: list[str]) -> int:
@@ -480,6 +492,10 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         # the FRF-only fit (--frf alone, or --frf-from-logs) without --fit: identification.calibrate.calibrate_frf
         # reads the --frf files, fits and composes the outputs (the app's calibration calls it too)
         frf_only = keys is None and (not args.data or args.frf_from_logs is not None)
+        if frf_only and args.delay_samples is not None:  # (was silently ignored: the report said "fitted")
+            raise UsageError(f"--delay-samples {args.delay_samples} with --frf alone: the frequency-response fit fits the "
+                             "command delay as a continuous time (reported with its interval); expected it with "
+                             "DATA.csv, or --fit KEYS without drive.command_delay_s to hold the delay at N")
         frfs = [] if frf_only else [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load,
                                              coherence_min=args.coherence_min, sample_time_s=args.frf_sample_time)
                                     for f in args.frf]

@@ -258,13 +258,15 @@ def result_lines(result, coordinates: Mapping[str, str], choice=None, *, point: 
     cd = result.solver.get("command_delay")
     if cd is not None:
         status = cd.get("status") or ("decided" if (cd.get("search") or {}).get("decided") else "undecided")
-        undecided = "search" in cd and status.startswith("undecided")
+        undecided = ("search" in cd or "continuous" in cd) and status.startswith("undecided")
         out.append(f"command delay: {'undecided, fitted at ' if undecided else ''}{cd['shift_samples']} sample(s) from "
                    f"the logged command (logged as {cd['command_logged']}) to its action, drive.command_delay_samples = "
                    f"{cd['drive_command_delay_samples']} ({cd['how']}"
-                   + ("" if "search" not in cd else
+                   + ((f", {status}" if "continuous" in cd else "") if "search" not in cd else
                       f", {status}; objective per delay " + ", ".join(f"{k}: {v:.6g}" if v is not None else f"{k}: failed"
-                                                                     for k, v in cd["search"]["objective"].items())) + ")")
+                                                                     for k, v in cd["search"]["objective"].items())
+                      + ("; the refit at it on the asked segments failed: the values written are the search's"
+                         if cd["search"].get("refit_failed") else "")) + ")")
     j = result.reflected_inertia_kg_m2
     out.append(f"reflected inertia = {j['value']:.6g} kg m^2 (95 % CI {j['ci95'][0]:.6g}..{j['ci95'][1]:.6g})")
     if choice is not None:

@@ -267,8 +267,13 @@ def axis_outputs(result, logs: Sequence, notes: Sequence[str] = (), held: Sequen
     from .axis import replay_axis
     from .friction_map import axis_friction_map
 
+    from .axis import DELAY_MARGIN
+    from .delay import axis_delay_record
+
     report = result.as_dict()
     report["warnings"] = [*notes, *report["warnings"]]
+    report["command_delay"] = axis_delay_record(
+        logs, (report.get("delay_check") or {}).get("cost_by_command_delay_samples"), DELAY_MARGIN)
     axis_plant = result.plant.to_plant()
     report["friction_map"] = {Path(lg.name).name: axis_friction_map(lg.name, lg.time_s, lg.position_m,
                                                                     lg.gain_n_per_unit * lg.command, axis_plant)

@@ -58,7 +58,7 @@ __all__ = ["CONVENTIONS", "DEFAULT_CONVENTION", "DELAY_OBJECTIVE_RATIO", "DELAY_
            "segment_test", "MIN_TEST_SEGMENTS",
            "search_delay", "with_command_delay", "SEARCH_SEGMENT_S", "SEARCH_SEGMENT_SAMPLES", "search_segment_s",
            "find_delay", "refit_found", "check_convention", "DELAY_STATUSES", "delay_status_head",
-           "undecided_by_rejection"]
+           "undecided_by_rejection", "frf_delay_record", "held_delay_record", "axis_delay_record"]
 
 #: Logging conventions of the command -> samples between the logged sample and the sample from
 #: which the drive holds it (before the drive's own command delay): ``"applied"`` the command
@@ -83,11 +83,17 @@ MAX_SHIFT = 10
 #: ``["search"]["status"]``): a status starts with exactly one of these heads; why follows the colon.
 DELAY_STATUSES = {
     "decided": "the delay search decided the delay (every other shift fitted worse by the ratio, refuted by the "
-               "paired segment test or left out) with a model its validation did not reject",
+               "paired segment test or left out) with a model its validation did not reject and could run on "
+               "(a refit at it on the asked segments that failed is named in the record, 'refit_failed': the "
+               "search's converged values at it are then the ones written and validated)",
     "undecided": "the delay search did not decide it (why follows the colon): a shift fits alike, a log prefers "
-                 "another, a fit failed from every start, or the model the search judged with is rejected by its own "
-                 "validation (then the shifts cannot be told apart with it)",
-    "given": "the user gave the delay (--delay-samples)",
+                 "another, a fit failed from every start, the model the search judged with is rejected by its own "
+                 "validation (then the shifts cannot be told apart with it), or a fit at the delay failed so that "
+                 "the validation could not run on that model (the comparison then rests on a model nothing checked)",
+    "given": "the user gave the delay (--delay-samples, or a linear-axis log description's [controller] "
+             "command_delay_samples)",
+    # (a frequency-response fit's delay is a continuous time fitted with the other keys: "decided" when its 95 %
+    # interval lies within half a sample of the whole samples written, frf_delay_record)
     "base plant's": "the base plant's delay, not searched",
 }
 #: The search leaves out shifts that leave less than this fraction of a sample of current-loop lag.
@@ -183,11 +189,18 @@ def _shift_list(shifts) -> str:
     return s[0] if len(s) == 1 else ", ".join(s[:-1]) + " and " + s[-1]
 
 
-def undecided_by_rejection(command_delay: dict, why: str) -> tuple[dict, str] | None:
+def undecided_by_rejection(command_delay: dict, why: str, failed: bool = False) -> tuple[dict, str] | None:
     """The command delay's record (``solver["command_delay"]``) made undecided when the search
     decided it with a model that the fit's validation rejects for missing physics (``why``, the
     validation's diagnosis), and the warning that says so; ``None`` when the delay was not
     searched or the search did not decide it.
+
+    ``failed``: the validation could not run because a fit at the delay failed (``why`` is the
+    diagnosis that begins :data:`prsa_ctrl.identification.validation.FIT_FAILURE`: a
+    cross-validation refit at this delay that converged from no start). The delay is then
+    undecided too, the fit at it having failed: the search compared the delays with a model
+    that nothing validated (the record's ``preferred_by_unvalidated_model``). Before, such a
+    run reported the delay "decided" beside a refusal that said the plant could not be validated.
 
     Why: every shift's objective is the misfit of the same model, and a model that lacks a
     second mass (or a friction law) misfits each shift differently for reasons that are not
@@ -201,15 +214,114 @@ def undecided_by_rejection(command_delay: dict, why: str) -> tuple[dict, str] | 
         return None
     lo, hi = search.get("range", [command_delay["shift_samples"]] * 2)
     shifts = range(int(lo), int(hi) + 1)
-    status = (f"undecided: the delays {_shift_list(shifts)} cannot be told apart with a model the data reject: "
-              f"{why}")
-    search = {**search, "decided": False, "status": status,
-              "preferred_by_rejected_model": int(command_delay["shift_samples"])}
+    shift = int(command_delay["shift_samples"])
+    if failed:
+        status = (f"undecided: the fit at it failed ({why}), so the delays {_shift_list(shifts)} were compared with a "
+                  "model that could not be validated")
+        how, key = "a model that could not be validated (a fit at the delay failed: see the validation)", \
+            "preferred_by_unvalidated_model"
+    else:
+        status = (f"undecided: the delays {_shift_list(shifts)} cannot be told apart with a model the data reject: "
+                  f"{why}")
+        how, key = "a model the data reject (see the validation)", "preferred_by_rejected_model"
+    search = {**search, "decided": False, "status": status, key: shift}
     table = ", ".join(f"{k}: {'failed' if v is None else f'{v:.4g}'}" for k, v in search.get("objective", {}).items())
     warn = (f"the command delay is not decided: the delays {_shift_list(shifts)} (samples from the logged command to "
-            f"its action) cannot be told apart with a model the data reject (see the validation); the search's "
-            f"objective per delay ({table}) is that model's, and it preferred {command_delay['shift_samples']}")
+            f"its action) cannot be told apart with {how}; the search's objective per delay ({table}) is that "
+            f"model's, and it preferred {shift}")
     return {**command_delay, "status": status, "search": search}, warn
+
+
+def frf_delay_record(delay: dict, plant: Plant, ts: float, command_logged: str, loop_held: bool = False) -> dict:
+    """The command delay's record (``solver["command_delay"]``, the :data:`DELAY_STATUSES`
+    vocabulary) of a frequency-response fit, whose delay is a continuous time ``T_d`` fitted
+    with the other keys (the phase's slope ``-w T_d``; ``delay``: ``FitResult.delay``, value
+    and 95 % interval in s) and written as whole samples (``plant.command_delay_samples``, beyond
+    the logging convention's ``CONVENTIONS[command_logged]``) with the rest as current-loop lag.
+
+    Its status: ``"decided"`` when every delay of the interval lies within half a sample of the
+    whole samples written (``n - 0.5 <= T_d / ts - offset <= n + 0.5`` at both ends); else
+    ``"undecided: ..."`` naming the interval in samples and the whole counts it holds, or that
+    the fit held the delay at its bound (no interval). ``ts``: the sample time the delay was
+    written with, s. ``loop_held``: the current-loop bandwidth was held, not fitted (an FRF band,
+    or keys without it): the delay's interval holds for that bandwidth, and ``how`` says so.
+
+    Examples
+    --------
+    >>> from prsa_ctrl import load_plant
+    >>> p = load_plant().with_params({"drive.command_delay_samples": 1})
+    >>> print(frf_delay_record({"value": 3.75e-4, "ci95": [3.25e-4, 4.25e-4]}, p, 2.5e-4, "applied")["status"])
+    undecided: the fitted delay's 95 % interval 1.3..1.7 samples (beyond the 0 of a command logged as applied) holds delays nearest 1..2, not within half a sample of the 1 written
+    >>> frf_delay_record({"value": 2.6e-4, "ci95": [2.2e-4, 3.0e-4]}, p, 2.5e-4, "applied")["status"]
+    'decided'
+    """
+    offset = _offset(command_logged)
+    n = int(plant.command_delay_samples)
+    value, ci = float(delay["value"]), delay.get("ci95")
+    x = value / ts - offset
+    rec = {"shift_samples": n + offset, "command_logged": command_logged, "drive_command_delay_samples": n,
+           "how": (f"fitted as a continuous time delay of the frequency response (the phase's slope): {value:.4g} s = "
+                   f"{value / ts:.3g} samples of {ts:g} s" + (f" (95 % CI {ci[0]:.4g}..{ci[1]:.4g} s)" if ci else "")
+                   + "; its whole samples written, the rest as current-loop lag"
+                   + ("; the current loop held, not fitted: the interval holds for its value" if loop_held else "")),
+           "continuous": {"value_s": value, "ci95_s": None if ci is None else [float(ci[0]), float(ci[1])],
+                          "sample_time_s": float(ts), "samples": value / ts,
+                          "ci95_samples": None if ci is None else [float(ci[0]) / ts, float(ci[1]) / ts]}}
+    if ci is None:
+        side = f"{delay['at_bound']} " if isinstance(delay.get("at_bound"), str) else ""
+        rec["status"] = (f"undecided: the fit holds the delay at its {side}bound, {value:.4g} s "
+                         f"({delay.get('note', 'held')}): no interval, so the response decides no whole-sample count; "
+                         f"{n} written")
+        return rec
+    lo, hi = float(ci[0]) / ts - offset, float(ci[1]) / ts - offset
+    if n - 0.5 <= lo and hi <= n + 0.5:
+        rec["status"] = "decided"
+        return rec
+    near = sorted({max(int(math.floor(v + 0.5)), 0) for v in (lo, hi)} | {max(int(math.floor(x + 0.5)), 0)})
+    counts = f"{near[0]}" if len(near) == 1 else f"{near[0]}..{near[-1]}"
+    rec["status"] = (f"undecided: the fitted delay's 95 % interval {lo + offset:.3g}..{hi + offset:.3g} samples (beyond the "
+                     f"{offset} of a command logged as {command_logged}) holds delays nearest {counts}, not within half "
+                     f"a sample of the {n} written")
+    return rec
+
+
+def held_delay_record(plant: Plant, shift: int, command_logged: str, given: bool) -> dict:
+    """The command delay's record of a fit that held the delay at ``shift`` samples (a
+    frequency-response fit whose keys leave the delay out): status ``"given"`` (``given``: the
+    user's ``--delay-samples``) or ``"base plant's"``; ``drive_command_delay_samples`` is the
+    plant's as written."""
+    return {"shift_samples": int(shift), "command_logged": command_logged,
+            "drive_command_delay_samples": int(plant.command_delay_samples),
+            "how": f"held at {int(shift)} sample(s) in the fit ({'given' if given else 'the base plant' + chr(39) + 's'}), "
+                   "not fitted (drive.command_delay_s is not among the fitted keys)",
+            "status": "given" if given else "base plant's"}
+
+
+def axis_delay_record(logs, costs: dict | None = None, margin: float = 0.05) -> dict:
+    """The command delay's record of a linear-axis fit (``prsa-fit --log-format``, the
+    :data:`DELAY_STATUSES` vocabulary): the delay is the log description's ``[controller]
+    command_delay_samples`` (``"given"``), which the fit does not search; ``costs`` (the fit's
+    ``delay_check``: ``{delay: cost}``, the described delay and its neighbours refitted briefly)
+    are shown, and a neighbour cheaper by more than ``margin`` (a fraction) is named. Logs without
+    a controller are replayed from the logged command with no delay: ``"undecided: ..."``."""
+    ctl = [getattr(lg, "controller", None) for lg in logs]
+    logged = {"as-computed": "computed", "as-applied": "applied"}.get(getattr(logs[0], "command_logged", ""), "applied")
+    if any(c is None for c in ctl):
+        return {"shift_samples": 0, "command_logged": logged, "drive_command_delay_samples": 0,
+                "how": "not described: the replay from the logged command takes it to act at once",
+                "status": "undecided: the log description gives no [controller] command_delay_samples and the "
+                          "linear-axis fit does not search the delay"}
+    ds = sorted({int(c.command_delay_samples) for c in ctl})
+    d0 = int(ctl[0].command_delay_samples)
+    costs = {int(k): float(v) for k, v in (costs or {}).items()}
+    better = sorted(d for d, v in costs.items() if d != d0 and d0 in costs and v < (1.0 - margin) * costs[d0])
+    how = (f"given by the log description ([controller] command_delay_samples = {', '.join(map(str, ds))})"
+           + ("; the fit's check, cost per delay " + ", ".join(f"{d}: {v:.6g}" for d, v in sorted(costs.items()))
+              if costs else "")
+           + (f"; delay {', '.join(map(str, better))} fits more than {100 * margin:g} % better than the described "
+              f"{d0}: check the description" if better else ""))
+    return {"shift_samples": d0, "command_logged": logged, "drive_command_delay_samples": d0, "how": how,
+            "status": "given", **({"fits_better": better} if better else {})}
 
 
 def _retry_starts(plant: Plant, first: Plant, keys) -> list[Plant]:
@@ -695,7 +807,10 @@ def refit_found(fit_at: Callable[..., FitResult], res: FitResult, shift: int, pl
         warns = list(out.warnings) + [w for w in res.warnings if w not in out.warnings
                                       and ("command delay" in w or "converged from start" in w)]
         return dataclasses.replace(out, solver=solver, warnings=warns)
-    return dataclasses.replace(res, warnings=list(res.warnings) + [
+    # the delay record names the failed refit (DELAY_STATUSES): the search's converged values at the shift are
+    # written, and the validation judges them; a validation that cannot run on them leaves the delay undecided
+    solver = {**res.solver, "delay_search": {**res.solver["delay_search"], "refit_failed": errors[-1][:300]}}
+    return dataclasses.replace(res, solver=solver, warnings=list(res.warnings) + [
         f"the fit at the found shift {shift} on the asked segments failed from the search's values and the base "
         f"plant ({errors[-1]}); the values are the search's, on its shorter segments"])
 

@@ -535,6 +535,11 @@ def fit_frf(
         "fidelity": fidelity,
         "covariance": "classic (residual variance x inverse Gauss-Newton matrix)",
     }
+    if delay is not None:  # (held: the caller states it, timedomain.fit_plant)
+        from .delay import frf_delay_record
+
+        solver["command_delay"] = frf_delay_record(delay, fitted, ts_fit, command_logged,
+                                                   loop_held="drive.current_loop_bandwidth_hz" not in keys)
     return FitResult(fitted, params, reflected, corr, keys, fit_pct, warns, solver, traces, delay, reasons, cov)
 
 

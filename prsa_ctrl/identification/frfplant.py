@@ -517,6 +517,7 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         A fit did not converge, or the rigid model was asked for a response with a mode.
     """
     from .common import checked_inputs, frf_sample_time, uncertainty_entries
+    from .delay import frf_delay_record
     from .fituncertainty import uncertainty_choice
     from .frf import frf_fit_percent, write_delay
 
@@ -718,6 +719,8 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         "structure": choice.as_dict(),
         "frf_model": {k: dict(v) for k, v in fit.values.items()},
     }
+    solver["command_delay"] = frf_delay_record(delay, fitted, ts_w, command_logged,
+                                               loop_held="drive.current_loop_bandwidth_hz" not in keys)
     if band_info:
         solver["frf_band"] = dict(band_info)
     result = FitResult(fitted, params, reflected, corr, tuple(keys), fit_pct, warns, solver, traces, delay, {}, None)

@@ -59,7 +59,7 @@ from .shooting import MIN_SEGMENT, reference_trajectory, shooting_segments
 from .gaussnewton import (CONSTRAINT_TOL, FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, defect_plateau,
                           RIGID_HOLD_LOOP, RIGID_X0_RTOL, ChunkedMap, condense, converged_at_kink, feasible_full_step,
                           first_order_point, noise_decrement)
-from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay, plant_shift,
+from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay, held_delay_record, plant_shift,
                     search_segment_s, with_command_delay)
 from .frf import fit_frf, frf_fit_percent, frf_response
 from .friction_map import STRIBECK_KEYS, stribeck_rounds
@@ -278,9 +278,13 @@ def fit_plant(
     if fidelity == "compliant":  # start from a response's axial mode (none to start from: refused before any work)
         plant, keys, seeded = compliant_start(plant, records, frf, keys, command_logged, speed_loop)
     if not records and frf:
-        return fit_frf(frf, plant, keys=keys, fidelity=fidelity,
-                       delay_samples=shift if delay_samples in (None, "find") else delay_samples,
-                       keep_unidentified=keep_unidentified, uncertainty=uncertainty, command_logged=command_logged)
+        held = shift if delay_samples in (None, "find") else delay_samples
+        res = fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=held,
+                      keep_unidentified=keep_unidentified, uncertainty=uncertainty, command_logged=command_logged)
+        if "command_delay" not in res.solver:  # the delay held, not fitted: the record says whose it is
+            res.solver["command_delay"] = held_delay_record(res.plant, held, command_logged,
+                                                            given=delay_samples not in (None, "find"))
+        return res
 
     # the states of the last fit at each shift: the start of the next fit at that shift (the
     # found shift's refit after the search's fit, the cross-validation refits after the fit).

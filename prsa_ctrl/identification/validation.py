@@ -705,14 +705,16 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
             + f"; tolerance: a factor {search.get('ratio_tolerance')}); give --delay-samples N if you know it")
     diag = None if passes else diagnosis(written, (result.solver.get("command_delay") or {}).get("search"), result, loo)
     # a delay the search decided with the model this validation rejects for missing physics is undecided
-    rejected = None if passes or diag.startswith(FIT_FAILURE) else undecided_by_rejection(
-        result.solver.get("command_delay"), diag)
+    # (and one decided with a model a fit failure left unvalidated: the fit at the delay failed)
+    failed_fit = not passes and diag.startswith(FIT_FAILURE)
+    rejected = None if passes else undecided_by_rejection(result.solver.get("command_delay"), diag, failed=failed_fit)
     if rejected is not None:
         warns = [w for w in warns if not w.startswith("the command delay is decided by")] + [rejected[1]]
         key = "drive.command_delay_samples"
         if key in plant.sources:  # a file written all the same (--force) says it too
             plant = dataclasses.replace(plant, sources={**plant.sources, key: plant.sources[key] + (
-                "; not decided: preferred by a model the data reject")})
+                "; not decided: preferred by a model that could not be validated (a fit at the delay failed)"
+                if failed_fit else "; not decided: preferred by a model the data reject")})
     # every [uncertainty] entry must hold the value written (a user's absolute bounds may not: the
     # data contradict them): the fit's own entry where the written value is the fitted one, else none
     own = {k: params[k] for k in result.keys if k in plant.values and plant.values[k] == params[k]["value"]}
@@ -746,7 +748,8 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
             n: ({"failed": e["failed"]} if "failed" in e else {**_entry_report(e), "plant": e["plant"]})
             for n, e in loo.items()},
         "rule": (f"the delay decided by the search (when searched; a delay the search decided with a model this "
-                 f"validation rejects for missing physics is reported undecided); every log explained by the written plant (replay fit >= {FIT_MIN_PERCENT:g} % or replay error <= "
+                 f"validation rejects for missing physics, or cannot run on because a fit at the delay failed, is "
+                 f"reported undecided); every log explained by the written plant (replay fit >= {FIT_MIN_PERCENT:g} % or replay error <= "
                  f"{NOISE_FACTOR:g} x the log's noise floor), the written plant within {WRITTEN_TOLERANCE_POINTS:g} "
                  "fit-% points of the free fit on each log, and with more than one log each left-out log explained by "
                  "the plant fitted on the others; residual whiteness (lags "

@@ -635,3 +635,44 @@ def test_frf_band_flag_from_the_refusal_to_a_plant(tmp_path, capsys):
     assert out.read_bytes() == before  # no file clobbered
     assert main([*args, "--frf-band", band, "--fit", "axis.motor_inertia_kg_m2", "--out", str(tmp_path / "p.toml")]) == 2
     assert "expected it with --frf FRF.csv alone" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, named", [
+    (["--frf-band", "-1,300"], "--frf-band '-1,300': "),
+    (["--frf-band=-1,300"], "--frf-band '-1,300': "),
+    (["--segment", "-1e-3"], "--segment '-1e-3': "),
+    (["--fit", "-x"], "--fit '-x': "),
+    (["--speed-loop", "-1,2"], "--speed-loop '-1,2': "),
+    (["--frf-speed", "-1e3"], "--frf-speed -1e3: "),  # (a negative speed is a direction: out of range)
+])
+def test_a_value_that_starts_with_a_minus_is_refused_by_name(tmp_path, capsys, argv, named):
+    # argparse takes "-1,300" (not its negative-number pattern) for a flag and said only "--frf-band
+    # expected one argument"; the value now reaches the flag's check: one line naming it as typed, exit 2
+    frf = tmp_path / "f.csv"
+    frf.write_text("frequency_hz,magnitude,phase_deg\n1,1,0\n")
+    out = tmp_path / "p.toml"
+    assert main(["--frf", str(frf), *argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert err.startswith(f"prsa-fit: error: {named}"), err
+    assert not out.exists()
+
+
+def test_a_value_flag_followed_by_a_flag_still_lacks_its_value(capsys):
+    # the glue of a value to its flag stops at a long option: "--frf-band --out p.toml" is a missing band
+    assert main(["--frf", "f.csv", "--frf-band", "--out", "p.toml"]) == 2
+    assert capsys.readouterr().err.strip() == "prsa-fit: error: --frf-band expected one argument"
+
+
+def test_a_given_delay_with_an_frf_alone_is_refused_not_ignored(tmp_path, capsys):
+    # prsa-fit --frf F.csv --delay-samples N (no --fit): the structure's fit fits the delay itself and ignored N
+    # while the report said the delay was fitted; now one line naming the flag and what holds a delay, exit 2
+    frf = tmp_path / "f.csv"
+    frf.write_text("frequency_hz,magnitude,phase_deg\n1,1,0\n")
+    out = tmp_path / "p.toml"
+    assert main(["--frf", str(frf), "--delay-samples", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert err.startswith("prsa-fit: error: --delay-samples 2 with --frf alone: "), err
+    assert "--fit KEYS without drive.command_delay_s" in err
+    assert not out.exists()

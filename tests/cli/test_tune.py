@@ -264,6 +264,11 @@ def test_minus_300_rpm_is_reported_in_rpm(capsys, stand_in):
     (["--dur", "1"], r"unrecognized arguments: --dur"),
     (["--duration=--"], r"--duration '--': expected a value"),
     (["--setpoint-rpm", "--"], r"--setpoint-rpm '--': expected a value"),
+    # a value argparse takes for a flag (not its negative-number pattern) reaches the check and is named
+    (["--rated-torque", "-1e3"], r"--rated-torque -1e3 N m: expected a torque"),
+    (["--seed", "-1e3"], r"--seed '-1e3': expected a seed"),
+    (["--monte-carlo", "-1e3"], r"--monte-carlo '-1e3': expected a sample count"),
+    (["--motor", "-x"], r"--motor '-x': "),
 ])
 def test_events_and_sizes_the_physics_cannot_serve_are_refused(capsys, stand_in, argv, match):
     assert main(argv) == 2

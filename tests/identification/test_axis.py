@@ -871,3 +871,47 @@ def test_a_fitted_mass_outside_the_users_bounds_is_named_and_written_with_the_fi
     entry = back.uncertainty["axis.mass_kg"]
     assert entry["source"].startswith("fit: ")
     assert entry["truncate"] * entry["sigma"] > 0
+
+
+def test_a_linear_axis_report_carries_the_described_delay_as_given(logdir, capsys):
+    """Issue 32 ("a report that is true"): the linear-axis fit's JSON and text state the command
+    delay in the delay vocabulary (they had no delay record): the log description's
+    [controller] command_delay_samples, "given", with the fit's check of its neighbours."""
+    from prsa_ctrl.identification.delay import delay_status_head
+
+    described = load_axis_log(logdir / "log.csv", load_log_format(logdir / "fmt.toml")).controller.command_delay_samples
+    rc, out, js, cap = _run(logdir, 30.0, "delay", capsys)
+    assert rc == 0, cap.err
+    cd = json.loads(js.read_text())["command_delay"]
+    assert delay_status_head(cd["status"]) == "given"
+    assert cd["drive_command_delay_samples"] == described
+    assert "[controller] command_delay_samples" in cd["how"]
+    assert f"{described + 1}: " in cd["how"]  # a neighbour the fit checked
+    line = next(ln for ln in cap.out.splitlines() if ln.startswith("command delay:"))
+    assert line.endswith("; given)")
+
+
+def test_a_linear_axis_log_without_a_controller_leaves_the_delay_undecided(tmp_path, capsys):
+    # no [controller]: the replay takes the logged force to act at once; nothing decided that, and the record says so
+    from prsa_ctrl.identification.delay import delay_status_head
+
+    n, h, m, f0 = 3000, 1e-3, 4.0, 2.0
+    t = np.arange(n) * h
+    f = f0 * np.sign(np.sin(2 * math.pi * 2.0 * t))
+    v, x = np.zeros(n), np.zeros(n)
+    for k in range(n - 1):  # a free mass, exact over each held sample
+        v[k + 1] = v[k] + f[k] / m * h
+        x[k + 1] = x[k] + v[k] * h + 0.5 * f[k] / m * h * h
+    path = tmp_path / "log.csv"
+    path.write_text("time_s,position_m,speed_m_s,force_n\n"
+                    + "".join(f"{a:.17g},{b:.17g},{c:.17g},{d:.17g}\n" for a, b, c, d in zip(t, x, v, f)))
+    fmt = tmp_path / "fmt.toml"
+    fmt.write_text('format = "csv"\n[time]\nname = "time_s"\nunit = "s"\n[position]\nname = "position_m"\nunit = "m"\n'
+                   '[speed]\nname = "speed_m_s"\nunit = "m/s"\n[command]\nname = "force_n"\nunit = "N"\n')
+    js = tmp_path / "F.json"
+    assert fit_main([str(path), "--log-format", str(fmt), "--out", str(tmp_path / "F.toml"), "--json", str(js)]) == 0
+    cd = json.loads(js.read_text())["command_delay"]
+    assert delay_status_head(cd["status"]) == "undecided"
+    assert "no [controller] command_delay_samples" in cd["status"]
+    assert cd["drive_command_delay_samples"] == 0
+    assert "command delay: 0 sample(s) (not described" in capsys.readouterr().out

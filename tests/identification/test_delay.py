@@ -861,3 +861,142 @@ def test_a_written_undecided_delay_says_so_in_its_source(plant):
         out = with_command_delay(res, shift, "applied", "found by the delay search")
         assert delay_status_head(out.solver["command_delay"]["status"]) == head
         assert ("undecided" in out.plant.sources[key]) is (head == "undecided"), out.plant.sources[key]
+
+
+def _searched(plant, shift=1, refit_failed=None):
+    """A fit whose delay search decided ``shift`` (the record as with_command_delay makes it)."""
+    from prsa_ctrl.identification.delay import with_command_delay
+
+    search = {"objective": {"0": 9.0, "1": 1.0, "2": 8.0}, "decided": True, "status": "decided", "range": [0, 2],
+              "ratio_tolerance": DELAY_OBJECTIVE_RATIO}
+    if refit_failed:
+        search["refit_failed"] = refit_failed
+    res = FitResult(plant, {}, {"value": 1.0, "ci95": [1.0, 1.0], "unit": "kg m^2"}, np.eye(0), (), {},
+                    ["the command delay is decided by the paired segment test: shift 0 against 1: ..."],
+                    {"delay_search": search}, {}, None, {}, None)
+    return with_command_delay(res, shift, "applied", "found by the delay search")
+
+
+@pytest.fixture(scope="module")
+def explained_pair(plant):
+    """Two logs of one plant (the independent generator's) that the plant explains, and the plant."""
+    import dataclasses
+
+    from independent_actuator import multisine_load_step_record
+
+    truth = plant.with_params({"nut.inertia_kg_m2": 1.5e-4, "friction.efficiency": 0.88,
+                               "friction.no_load_torque_n_m": 0.03, "friction.viscous_n_m_s_per_rad": 1.5e-4,
+                               BW: 1200.0, "drive.command_delay_samples": 1})
+    rec = multisine_load_step_record(truth, 2.5e-4)
+    return truth, [rec, dataclasses.replace(rec, name="again")]
+
+
+def test_a_delay_whose_validation_a_failed_fit_stopped_is_undecided(explained_pair):
+    """Issue 32 ("a report that is true"): the plant at the decided delay explains both logs, but
+    the cross-validation refit at that delay fails from every start, so the validation cannot run
+    ("fit failure, not missing physics"). The delay was decided with a model nothing validated:
+    its status is now undecided, naming the failed fit (it stayed "decided" beside that refusal)."""
+    from prsa_ctrl.errors import FitError
+    from prsa_ctrl.identification.delay import delay_status_head
+    from prsa_ctrl.identification.validation import FIT_FAILURE, validate_fit
+
+    truth, recs = explained_pair
+
+    def never(recs_, start, attempt=0):
+        raise FitError("fit did not converge: Gauss-Newton status 'stalled' after 19 iterations")
+
+    out = validate_fit(_searched(truth), recs, [], 1, "rigid", never, base=truth)
+    v = out.solver["validation"]
+    assert v["diagnosis"].startswith(FIT_FAILURE)
+    assert all(e["explained"] for e in v["written_plant"].values())
+    cd = out.as_dict()["solver"]["command_delay"]
+    assert delay_status_head(cd["status"]) == "undecided"
+    assert cd["status"].startswith(f"undecided: the fit at it failed ({FIT_FAILURE}")
+    assert cd["search"]["decided"] is False
+    assert cd["search"]["status"] == cd["status"]
+    assert cd["search"]["preferred_by_unvalidated_model"] == 1
+    assert "preferred_by_rejected_model" not in cd["search"]
+    assert "could not be validated" in out.plant.sources["drive.command_delay_samples"]
+    assert not any(w.startswith("the command delay is decided by") for w in out.warnings)
+    assert any(w.startswith("the command delay is not decided") and "could not be validated" in w for w in out.warnings)
+    assert _delay_line(out).startswith("command delay: undecided, fitted at 1 sample(s)")
+
+
+def test_a_delay_whose_validation_passes_stays_decided(explained_pair):
+    # the same logs and plant with a cross-validation refit that converges: decided, as before
+    from prsa_ctrl.identification.validation import validate_fit
+
+    truth, recs = explained_pair
+
+    def refit(recs_, start, attempt=0):
+        return _with_plant(_searched(truth), truth)
+
+    out = validate_fit(_searched(truth), recs, [], 1, "rigid", refit, base=truth)
+    assert out.solver["validation"]["passes"] is True
+    assert out.solver["command_delay"]["status"] == "decided"
+
+
+def _with_plant(res, plant):
+    import dataclasses
+
+    return dataclasses.replace(res, plant=plant)
+
+
+def test_a_failed_refit_at_the_found_shift_is_named_in_the_delay_record(plant, explained_pair):
+    """delay.refit_found: the refit on the asked segments fails from both starts, the search's
+    converged values at the shift are kept. The delay record says so ("refit_failed", and the
+    text line); the validation then judges those values: a plant it cannot validate (the
+    cross-validation refit fails too) leaves the delay undecided, one it passes keeps it decided."""
+    from prsa_ctrl.errors import FitError
+    from prsa_ctrl.identification.delay import delay_status_head, refit_found, with_command_delay
+    from prsa_ctrl.identification.validation import validate_fit
+
+    truth, recs = explained_pair
+    search = _result(truth, 5.0, 1200.0)
+    search.solver["delay_search"] = {"objective": {"0": 9.0, "1": 5.0}, "decided": True, "status": "decided",
+                                     "range": [0, 1], "ratio_tolerance": DELAY_OBJECTIVE_RATIO}
+
+    def fails(shift, start, base=None, warm=False):
+        raise FitError("the fit stopped at its candidate's work bound")
+
+    kept = refit_found(fails, search, 1, truth)
+    assert kept.solver["objective"] == 5.0  # the search's own fit
+    assert "work bound" in kept.solver["delay_search"]["refit_failed"]
+    res = with_command_delay(kept, 1, "applied", "found by the delay search")
+    cd = res.as_dict()["solver"]["command_delay"]
+    assert cd["status"] == "decided"
+    assert "work bound" in cd["search"]["refit_failed"]
+    assert "the refit at it on the asked segments failed" in _delay_line(res)
+
+    def never(recs_, start, attempt=0):
+        raise FitError("fit did not converge")
+
+    unvalidated = validate_fit(res, recs, [], 1, "rigid", never, base=truth)
+    assert delay_status_head(unvalidated.solver["command_delay"]["status"]) == "undecided"
+    validated = validate_fit(res, recs, [], 1, "rigid", lambda r, s, a=0: _with_plant(res, truth), base=truth)
+    assert validated.solver["validation"]["passes"] is True
+    assert validated.solver["command_delay"]["status"] == "decided"
+
+
+def test_an_frf_delay_is_decided_only_when_its_interval_stays_within_half_a_sample(plant):
+    """delay.frf_delay_record: the whole samples written (beyond the convention's offset) are
+    decided when both ends of the continuous delay's 95 % interval lie within half a sample of them;
+    an interval reaching past, or a delay held at its bound (no interval), leaves it undecided."""
+    from prsa_ctrl.identification.delay import delay_status_head, frf_delay_record
+
+    ts = 2.5e-4
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        one = plant.with_params({"drive.command_delay_samples": 1})
+    inside = frf_delay_record({"value": 2.0 * ts, "ci95": [1.52 * ts, 2.48 * ts]}, one, ts, "computed")
+    assert inside["status"] == "decided"
+    assert inside["shift_samples"] == 2
+    assert inside["continuous"]["ci95_samples"] == pytest.approx([1.52, 2.48])
+    past = frf_delay_record({"value": 2.0 * ts, "ci95": [1.52 * ts, 2.52 * ts]}, one, ts, "computed")
+    assert delay_status_head(past["status"]) == "undecided"
+    assert "nearest 1..2" in past["status"]
+    held = frf_delay_record({"value": 0.0, "ci95": None, "at_bound": "lower", "note": "at its bound"}, one, ts, "applied")
+    assert held["status"].startswith("undecided: the fit holds the delay at its lower bound, 0 s")
+    assert held["continuous"]["ci95_s"] is None
+    loop = frf_delay_record({"value": 2.0 * ts, "ci95": [1.9 * ts, 2.1 * ts]}, one, ts, "computed", loop_held=True)
+    assert "the current loop held, not fitted" in loop["how"]

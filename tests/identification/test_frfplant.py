@@ -552,3 +552,73 @@ def test_a_stiffer_series_than_the_shaft_and_bearings_allow_scales_the_bearings_
     assert any("scaled together" in w for w in res.warnings)
     keys, _ = written_keys(base, SimpleNamespace(plant_keys=res.plant_keys, plant=res.plant))
     assert {brg, nut} <= set(keys)
+
+
+def _late_response_json(tmp_path, capsys, f, rel, extra=(), logged="applied", base_delay=None):
+    """prsa-fit --frf on the roller-screw truth's response 2 samples late (noise ``rel``), the JSON report."""
+    from prsa_ctrl.cli.fit import main
+
+    base, truth = BASES["roller-screw"]
+    ts = truth.sample_time_s
+    g = frf_response(truth, f, fidelity="compliant", load_n=LOAD, delay_samples=2, sample_time_s=ts)
+    csv, base_toml, js = tmp_path / "late.csv", tmp_path / "base.toml", tmp_path / "r.json"
+    frf_from_arrays("late", f, _noisy(g, rel, 4), load_n=LOAD).to_csv(csv)
+    if base_delay is not None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            base = base.with_params({"drive.command_delay_samples": base_delay})
+    base_toml.write_text(base.to_toml())
+    code = main(["--frf", str(csv), "--frf-load", str(LOAD), "--plant", str(base_toml), "--command-logged", logged,
+                 *extra, "--out", str(tmp_path / "o.toml"), "--json", str(js)])
+    cap = capsys.readouterr()
+    return code, (json.loads(js.read_text()) if js.exists() else None), cap.out + cap.err, ts
+
+
+def test_an_frf_fit_reports_its_continuous_delay_decided(tmp_path, capsys):
+    """Issue 32 ("a report that is true"): prsa-fit --frf's JSON and text carry the command delay's
+    record in the delay vocabulary (it had none): the continuous delay fitted (2 samples, the
+    truth), its interval, the whole samples written, and "decided" when the interval lies within
+    half a sample of them."""
+    code, rep, text, ts = _late_response_json(tmp_path, capsys, np.geomspace(3.0, 0.4 / 2.5e-4, 200), 0.01)
+    assert code == 0
+    cd = rep["solver"]["command_delay"]
+    assert cd["status"] == "decided"
+    assert cd["shift_samples"] == 2
+    assert cd["drive_command_delay_samples"] == 2
+    lo, hi = cd["continuous"]["ci95_samples"]
+    assert lo >= 1.5
+    assert hi <= 2.5
+    assert cd["continuous"]["samples"] == pytest.approx(2.0, abs=0.05)
+    assert cd["continuous"]["value_s"] == rep["delay"]["value"]
+    line = next(ln for ln in text.splitlines() if ln.startswith("command delay:"))
+    assert line.startswith("command delay: 2 sample(s) from the logged command (logged as applied)")
+    assert line.endswith(", decided)")
+
+
+def test_an_frf_delay_the_response_does_not_pin_to_a_sample_is_undecided(tmp_path, capsys):
+    # the same response up to 40 Hz only (a 2-sample delay turns its phase by 11.5 deg there) with 10 % noise:
+    # the delay's interval holds more than one whole-sample count, so the record says undecided and why
+    from prsa_ctrl.identification.delay import delay_status_head
+
+    code, rep, text, ts = _late_response_json(tmp_path, capsys, np.geomspace(3.0, 40.0, 120), 0.10)
+    assert rep is not None, text
+    cd = rep["solver"]["command_delay"]
+    lo, hi = cd["continuous"]["ci95_samples"]
+    assert hi - lo > 1.0
+    assert delay_status_head(cd["status"]) == "undecided"
+    assert "95 % interval" in cd["status"]
+    assert "command delay: undecided, fitted at" in text
+
+
+def test_an_frf_fit_that_holds_the_delay_says_whose_it_is(tmp_path, capsys):
+    # prsa-fit --frf --fit KEYS without drive.command_delay_s: the delay is held at the base plant's, and the
+    # record says so ("base plant's"); with --delay-samples it is "given"
+    f = np.geomspace(3.0, 0.4 / 2.5e-4, 200)
+    keys = ["--fidelity", "compliant", "--fit", "axis.motor_inertia_kg_m2,drive.current_loop_bandwidth_hz,axis.nut_stiffness_n_per_um"]
+    code, rep, text, _ = _late_response_json(tmp_path, capsys, f, 0.01, keys, base_delay=2)
+    assert rep is not None, text
+    assert rep["solver"]["command_delay"]["status"] == "base plant's"
+    code, rep, text, _ = _late_response_json(tmp_path, capsys, f, 0.01, [*keys, "--delay-samples", "2"])
+    assert rep is not None, text
+    assert rep["solver"]["command_delay"]["status"] == "given"
+    assert rep["solver"]["command_delay"]["shift_samples"] == 2
