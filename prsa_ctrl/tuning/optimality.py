@@ -209,11 +209,12 @@ class OptimalityChecks:
         ``FD_STEP / 10``) under the top peak of |S| (and |T|, |C F S|) and every local one within
         10 % of its bound, each tracked in a bracket of +-0.3 in log frequency around where it
         was (differentiated in closed form at the peak's frequency,
-        :meth:`LoopModel.magnitude_gradient`), the noise bound and the gain bounds. The ipopt solve works on a stand-in (sampled loop, smoothed
-        ``|e|``, two-rate samples, the bound on fixed frequencies), whose optimum can miss the
-        true one's first-order conditions; this step closes that gap. Gains at 0 stay at 0.
-        Returns the polished gains if they are stable, within the true bounds (re-verified on
-        the full peak search) and better, else None. Bounded: 25 SLSQP iterations."""
+        :meth:`LoopModel.magnitude_gradient`), the noise bound and the gain bounds. The ipopt
+        solve works on a stand-in (sampled loop, smoothed ``|e|``, two-rate samples, the bound on
+        fixed frequencies), whose optimum can miss the true one's first-order conditions; this
+        step closes that gap. Gains at 0 stay at 0. Returns the polished gains (the best feasible
+        iterate, see ``POLISH_PATIENCE``) if they are stable, within the true bounds (re-verified
+        on the full peak search) and better, else None. Bounded: 25 SLSQP iterations."""
         from scipy.optimize import minimize
 
         loops, kind = self.loops, self.objective
@@ -357,9 +358,9 @@ class OptimalityChecks:
             yk = np.array(yk, float)
             v = value(yk)
             if v < best["v"]:
-                gain = best["v"] - v
-                best["y"], best["stall"] = yk, 0 if gain > POLISH_STALL_RTOL * abs(best["v"]) else best["stall"] + 1
-                best["v"] = v
+                # (a first feasible point after an infeasible start is an improvement, not a stall)
+                big = not math.isfinite(best["v"]) or best["v"] - v > POLISH_STALL_RTOL * abs(best["v"])
+                best["y"], best["v"], best["stall"] = yk, v, 0 if big else best["stall"] + 1
             elif best["y"] is not y0:  # (no patience counted before a first feasible improvement)
                 best["stall"] += 1
             if best["stall"] >= POLISH_PATIENCE:
