@@ -239,6 +239,43 @@ class LoopModel:
         Lv = self.loop_response(g, w)
         return 1 / np.abs(1 + Lv) if key == "ms" else np.abs(Lv / (1 + Lv))
 
+    def magnitude_gradient(self, gains: Sequence[float], key: str, omega: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Derivative of ``|S|`` (``key`` "ms"), ``|T|`` ("mt") or ``|C F S|`` ("mks") with respect to
+        the gains at the fixed frequencies ``omega`` (rad/s; needs ``response``, and ``noise`` for
+        "mks"), in closed form: with ``N = N0 + g.L`` and ``D = D0 + g.D`` (so ``L = N/D``), ``S =
+        D/(D + N)``, ``T = N/(D + N)`` and ``C F S = (g.K) M/(D + N)`` (``M = D``, or 1 for a loop
+        with a denominator part, as :meth:`noise_response`), and ``d|h| = Re(conj(h) dh)/|h|``.
+
+        At the frequency of a peak this is the derivative of the peak itself (Danskin's theorem:
+        the peak's frequency shift adds nothing to first order), which is what ``Tuner._polish``
+        uses instead of differencing the peak searches.
+
+        Returns
+        -------
+        (n_gains, n_omega) array
+            Per unit of each gain (loop units), magnitude units per gain unit.
+        """
+        if key not in ("ms", "mt", "mks"):
+            raise ValueError(f"key = {key!r}; expected 'ms', 'mt' or 'mks'")
+        g = self.gvec(gains)
+        w = np.atleast_1d(np.asarray(omega, float))
+        n0, ln, d0, ld = self.parts_at(w)
+        num, den = n0 + g @ ln, d0 + g @ ld
+        q = den + num
+        if key == "ms":
+            h, dh = den / q, (ld * num - den * ln) / q**2
+        elif key == "mt":
+            h, dh = num / q, (ln * den - num * ld) / q**2
+        else:
+            if self.noise is None:
+                raise ValueError(f"loop {self.name!r} has no noise-gain response; expected a drive_loop or continuous_loop model")
+            k = np.asarray(self.noise(w), complex)
+            gk = g @ k
+            m, dm = (np.ones_like(den), np.zeros_like(ld)) if self.D is not None else (den, ld)
+            h = gk * m / q
+            dh = (k * m + gk * dm) / q - gk * m * (ld + ln) / q**2
+        return np.real(np.conj(h) * dh) / np.abs(h)
+
     def margins(self, gains: Sequence[float], peaks: dict | None = None) -> Margins:
         """Ms, Mt (true peaks, see :meth:`peaks`; pass its result as ``peaks`` to reuse it),
         gain and phase margins and crossover."""
@@ -621,12 +658,13 @@ def block_sum(a: NDArray, ce: NDArray, z: NDArray, k: int, total: float, h: floa
     r = 0.5 * (1.0 + rho)
     q = r * r
     blk = 256
-    rows = np.empty((blk, n))
-    row = ce.astype(float).copy()
-    for j in range(blk):
-        rows[j] = row
-        row = row @ a
-    a_blk = np.linalg.matrix_power(a, blk)
+    # rows[j] = ce a^j, j < blk, by doubling (8 products of the rows so far with a^(2^i)
+    # instead of 256 vector-matrix products one by one; equal to rounding).
+    rows = np.asarray(ce, float).reshape(1, n)
+    a_blk = np.asarray(a, float)
+    while rows.shape[0] < blk:
+        rows = np.vstack([rows, rows @ a_blk])
+        a_blk = a_blk @ a_blk
     try:
         gram = _gramian(a / r, ce)
     except _TailBudgetError:  # a pole too near the unit circle to bound the tail: marginal

@@ -214,19 +214,24 @@ class NLPBuilder:
         # and CasADi's warning per evaluation (thousands in a warm-started re-solve) says nothing.
         base = {"print_time": False, "error_on_fail": False, "show_eval_warnings": False}
         # Expanding to SX costs ~0.5 s once per Tuner but makes each solve ~10x faster; mapped
-        # per-loop objectives are SX already (expanding would unroll the map).
+        # per-loop objectives are SX already (expanding would unroll the map); profile loops: below.
         # One loop (no warm re-solves): only ipopt's x, lam_g and stats are read, so CasADi's
         # post-solve recomputation of f, g, lam_x and lam_p (the function "nlp_grad", a reverse
         # sweep over the whole objective: about half of the build's time) is not built. The
         # warm re-solves of several loops start from lam_x: they keep it.
         post = {"no_nlp_grad": True, "calc_f": False, "calc_g": False, "calc_lam_x": False,
                 "calc_lam_p": False} if nl == 1 else {}
+        # A profile loop (a duty cycle, a logged trajectory) runs every sample at full rate: its
+        # SX expansion unrolls the whole horizon, and building the solvers on it grew with the
+        # samples (notebook 11's 6200-sample log: 4.0 s of a 4.9 s retune_axis, two solvers at
+        # 2 s each), more than the slower MX evaluation of its mapaccum costs over a solve.
+        expand = mapped is None and not any(lp.profile is not None for lp in loops)
         solver = ca.nlpsol("tuner", "ipopt", {"x": var, "p": p, "f": f, "g": ca.vertcat(*cons)},
-                           {**base, **post, "expand": mapped is None, "ipopt": ip})
+                           {**base, **post, "expand": expand, "ipopt": ip})
         warm = None
         if nl > 1:
             fun = ca.Function("tuner_nlp", [var, p], [f, ca.vertcat(*cons)], ["x", "p"], ["f", "g"])
-            if mapped is None:
+            if expand:
                 fun = fun.expand()
             # Re-solves after a verification round start from the previous solution and its
             # multipliers (a few constraint rows changed); built on first use.

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 import numpy as np
 from numpy.typing import NDArray
-from .settings import FD_STEP, KKT_TOL, MS_RTOL
+from .settings import FD_STEP, KKT_TOL, MS_RTOL, POLISH_FEAS_TOL, POLISH_PATIENCE, POLISH_STALL_RTOL
 from .loops import zoom_max
 from .objectives import combined, free_gains
 
@@ -204,15 +204,17 @@ class OptimalityChecks:
                 "gradient": [float(x) for x in (G @ np.full(G.shape[1], 1.0 / G.shape[1]))]}
 
     def _polish(self, gains, ms_max, mt_max, noise, hi, mks_max=None) -> NDArray | None:
-        """A local solve of the TRUE problem from ``gains`` (SLSQP in log gains, central
-        differences of ``FD_STEP / 10``): the reported objective (:meth:`LoopModel.
-        _smooth_objective`) under the top peak of |S| (and |T|) and every local one within 10 % of its bound,
-        each tracked in a bracket of +-0.3 in log frequency around where it was, the noise bound
-        and the gain bounds. The ipopt solve works on a stand-in (sampled loop, smoothed
-        ``|e|``, two-rate samples, the bound on fixed frequencies), whose optimum can miss the
-        true one's first-order conditions; this step closes that gap. Gains at 0 stay at 0.
-        Returns the polished gains if they are stable, within the true bounds (re-verified on
-        the full peak search) and better, else None. Bounded: 25 SLSQP iterations."""
+        """A local solve of the TRUE problem from ``gains`` (SLSQP in log gains): the reported
+        objective (:meth:`LoopModel._smooth_objective`, differentiated by central differences of
+        ``FD_STEP / 10``) under the top peak of |S| (and |T|, |C F S|) and every local one within
+        10 % of its bound, each tracked in a bracket of +-0.3 in log frequency around where it
+        was (differentiated in closed form at the peak's frequency,
+        :meth:`LoopModel.magnitude_gradient`), the noise bound and the gain bounds. The ipopt
+        solve works on a stand-in (sampled loop, smoothed ``|e|``, two-rate samples, the bound on
+        fixed frequencies), whose optimum can miss the true one's first-order conditions; this
+        step closes that gap. Gains at 0 stay at 0. Returns the polished gains (the best feasible
+        iterate, see ``POLISH_PATIENCE``) if they are stable, within the true bounds (re-verified
+        on the full peak search) and better, else None. Bounded: 25 SLSQP iterations."""
         from scipy.optimize import minimize
 
         loops, kind = self.loops, self.objective
@@ -242,25 +244,37 @@ class OptimalityChecks:
                     floor = min(0.9 * bound, pk0[key] * (1 - 1e-9))
                     tracked += [(lp, key, bound, math.log(w)) for _, w in lp.local_peaks(g0, key, floor)]
 
-        def peak_vals(g):
-            out = []
-            for lp, key, bound, lw in tracked:
-                f = (lambda Lv: 1 / np.abs(1 + Lv)) if key == "ms" else (lambda Lv: np.abs(Lv / (1 + Lv)))
-                if key == "mks":
-                    _, v = zoom_max(lambda xs: lp._magnitude(g, key, np.exp(xs)), np.array([lw - 0.3]), np.array([lw + 0.3]))
-                else:
-                    _, v = zoom_max(lambda xs: f(lp.loop_response(g, np.exp(xs))), np.array([lw - 0.3]), np.array([lw + 0.3]))
-                out.append(float(v[0]) / bound)
-            return np.array(out)
+        # Each point's values are computed once (SLSQP asks for the objective and the
+        # constraints at the same points, and the Jacobians of both at the same steps).
+        memo_obj: dict = {}
+        memo_peak: dict = {}
+
+        def peaks_at(y):
+            """Tracked peaks relative to their bounds and their frequencies (rad/s)."""
+            key_y = y[: len(idx)].tobytes()
+            if key_y not in memo_peak:
+                g = gains_of(y)
+                vals, ws = [], []
+                for lp, key, bound, lw in tracked:
+                    x, v = zoom_max(lambda xs, lp=lp, key=key: lp._magnitude(g, key, np.exp(xs)),
+                                    np.array([lw - 0.3]), np.array([lw + 0.3]))
+                    vals.append(float(v[0]) / bound)
+                    ws.append(math.exp(float(x[0])))
+                memo_peak[key_y] = (np.array(vals), ws)
+            return memo_peak[key_y]
 
         f_ref = [max(lp._smooth_objective(g0, kind), 1e-300) for lp in loops]
         nv = len(idx) + (1 if self.worst_case else 0)
 
         def objs(y):
-            g = gains_of(y)
-            if any(lp.stability(g) != "stable" for lp in loops):
-                return np.full(len(loops), 1e3)
-            return np.array([lp._smooth_objective(g, kind) / fr for lp, fr in zip(loops, f_ref)])
+            key_y = y[: len(idx)].tobytes()
+            if key_y not in memo_obj:
+                g = gains_of(y)
+                if any(lp.stability(g) != "stable" for lp in loops):
+                    memo_obj[key_y] = np.full(len(loops), 1e3)
+                else:
+                    memo_obj[key_y] = np.array([lp._smooth_objective(g, kind) / fr for lp, fr in zip(loops, f_ref)])
+            return memo_obj[key_y]
 
         w = self.weights
 
@@ -269,7 +283,7 @@ class OptimalityChecks:
 
         def cons(y):
             g = gains_of(y)
-            c = [1.0 - peak_vals(g)]
+            c = [1.0 - peaks_at(y)[0]]
             if self.worst_case:
                 c.append(y[-1] - objs(y))
             if noise is not None:  # a hair inside, as the ipopt solve
@@ -278,33 +292,100 @@ class OptimalityChecks:
 
         d = FD_STEP / 10
 
-        def jac(fn, vector):
-            def jf(y):
-                cols = []
-                for k in range(nv):
-                    e = np.zeros(nv)
-                    e[k] = d
-                    cols.append((np.atleast_1d(fn(y + e)) - np.atleast_1d(fn(y - e))) / (2 * d))
-                return np.array(cols).T if vector else np.array([c[0] for c in cols])
-            return jf
+        def obj_jac(y):
+            """d objs / d y by central differences of ``d`` (only the objective is differenced)."""
+            cols = []
+            for k in range(len(idx)):
+                e = np.zeros(nv)
+                e[k] = d
+                cols.append((objs(y + e) - objs(y - e)) / (2 * d))
+            return np.array(cols).T  # (loops, len(idx))
+
+        def fun_jac(y):
+            if self.worst_case:
+                out = np.zeros(nv)
+                out[-1] = 1.0
+                return out
+            return (np.asarray(w) * f_ref) @ obj_jac(y) / np.dot(w, f_ref)
+
+        def cons_jac(y):
+            """The peaks' rows in closed form (:meth:`LoopModel.magnitude_gradient` at each
+            tracked peak's frequency, per unit log gain), the worst-case rows from
+            :func:`obj_jac`, the noise row exactly (it is linear in the gains)."""
+            g = gains_of(y)
+            _, ws = peaks_at(y)
+            rows = []
+            for (lp, key, bound, _), wk in zip(tracked, ws):
+                row = np.zeros(nv)
+                row[: len(idx)] = -lp.magnitude_gradient(g, key, np.array([wk]))[idx, 0] * g[idx] / bound
+                rows.append(row)
+            if self.worst_case:
+                dj = obj_jac(y)
+                for j in range(len(loops)):
+                    row = np.zeros(nv)
+                    row[: len(idx)] = -dj[j]
+                    row[-1] = 1.0
+                    rows.append(row)
+            if noise is not None:
+                row = np.zeros(nv)
+                coef = np.zeros(ng)
+                coef[0], coef[2] = 1.0, 1.0 / loops[0].tf
+                row[: len(idx)] = -(coef[idx] * g[idx]) / noise
+                rows.append(row)
+            return np.array(rows).reshape(len(rows), nv)
+
+        def value(y):
+            """The polished measure at ``y`` (the worst loop's with ``worst_case``), inf where
+            ``y`` breaks a tracked peak or the noise bound by more than ``POLISH_FEAS_TOL``."""
+            c = 1.0 - peaks_at(y)[0]
+            if noise is not None:
+                g = gains_of(y)
+                c = np.append(c, 1.0 - 1e-7 - (g[0] + g[2] / loops[0].tf) / noise)
+            if c.size and not np.min(c) >= -POLISH_FEAS_TOL:
+                return math.inf
+            return float(np.max(objs(y))) if self.worst_case else fun(y)
 
         y0 = np.zeros(nv)
         if self.worst_case:
             y0[-1] = float(np.max(objs(y0)))
+        # The best feasible iterate is kept, and the solve stops once POLISH_PATIENCE iterations
+        # in a row have not lowered it by POLISH_STALL_RTOL (SLSQP's own ftol = 1e-12 test is
+        # below the objective's accuracy, so it wandered about the optimum to its iteration
+        # bound and returned its last iterate, not its best).
+        best = {"y": y0, "v": value(y0), "stall": 0}
+
+        def watch(yk):
+            yk = np.array(yk, float)
+            v = value(yk)
+            if v < best["v"]:
+                # (a first feasible point after an infeasible start is an improvement, not a stall)
+                big = not math.isfinite(best["v"]) or best["v"] - v > POLISH_STALL_RTOL * abs(best["v"])
+                best["y"], best["v"], best["stall"] = yk, v, 0 if big else best["stall"] + 1
+            elif best["y"] is not y0:  # (no patience counted before a first feasible improvement)
+                best["stall"] += 1
+            if best["stall"] >= POLISH_PATIENCE:
+                raise StopIteration
+
         # A local step (a factor e^0.25 per gain at most): the tracked peaks stay in their brackets.
         bounds = [(-0.25, min(0.25, math.log(hi[i] / g0[i])) if math.isfinite(hi[i]) else 0.25) for i in idx]
         if self.worst_case:
             bounds.append((0.0, None))
         with np.errstate(all="ignore"):
             try:
-                r = minimize(fun, y0, jac=jac(fun, False), method="SLSQP", bounds=bounds,
-                             constraints=[{"type": "ineq", "fun": cons, "jac": jac(cons, True)}],
+                r = minimize(fun, y0, jac=fun_jac, method="SLSQP", bounds=bounds, callback=watch,
+                             constraints=[{"type": "ineq", "fun": cons, "jac": cons_jac}],
                              options={"maxiter": 25, "ftol": 1e-12})
+                if np.all(np.isfinite(r.x)):
+                    watch_last = value(np.asarray(r.x, float))
+                    if watch_last < best["v"]:
+                        best["y"], best["v"] = np.asarray(r.x, float), watch_last
+            except StopIteration:  # SciPy releases that do not stop on it themselves
+                pass
             except (ValueError, np.linalg.LinAlgError, ArithmeticError):
                 return None
-        if not np.all(np.isfinite(r.x)):
+        if not math.isfinite(best["v"]) or best["y"] is y0:
             return None
-        g = gains_of(r.x)
+        g = gains_of(best["y"])
         g = np.minimum(g, np.where(np.isfinite(hi), hi, np.inf))
         if any(lp.stability(g) != "stable" for lp in loops):
             return None

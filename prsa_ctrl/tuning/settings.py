@@ -33,6 +33,18 @@ FD_STEP = 1e-3
 #: Local solves of the true problem after ipopt where the first-order check fails (``Tuner._polish``).
 POLISH_ROUNDS = 3
 
+#: That solve's stopping rule: once it has a feasible iterate better than its start, it stops
+#: when this many SLSQP iterations in a row have not lowered its best feasible value by
+#: ``POLISH_STALL_RTOL`` (relative; the objective's own accuracy is about 1e-10), and returns
+#: its best feasible iterate; "feasible" lets a tracked peak or the noise bound exceed its bound
+#: (which the polish tightens by 1e-5 relative) by ``POLISH_FEAS_TOL`` relative, half of that
+#: tightening (the result is re-verified on the true peaks and bounds all the same).
+POLISH_PATIENCE = 3
+
+POLISH_STALL_RTOL = 1e-10
+
+POLISH_FEAS_TOL = 5e-6
+
 #: Largest number of step halvings of that integration (each doubles the samples).
 CONT_HALVINGS = 6
 
