@@ -199,6 +199,8 @@ class Buffered:
 
     Inputs are taken in column-major order and checked for size; outputs are new flat
     column-major arrays of the outputs' nonzeros (dense outputs: every entry).
+    :meth:`evaluate` writes into arrays the caller gives (:class:`ChunkedMap`'s chunks: slices of
+    its whole outputs).
     """
 
     def __init__(self, fun):
@@ -221,16 +223,22 @@ class Buffered:
             if a.size != n:  # the buffer interface reads exactly n values: never hand it fewer
                 raise ValueError(f"{self.fun.name()}: input {i} has {a.size} values; expected {n}")
         outs = [np.empty(n) for n in self.n_out]
+        self.evaluate(flat, outs)
+        return outs
+
+    def evaluate(self, ins, outs) -> None:
+        """Evaluate on the contiguous float arrays ``ins`` into the contiguous float arrays
+        ``outs``, of exactly :attr:`n_in` and :attr:`n_out` values (the caller's check: the
+        buffer reads and writes that many)."""
         made = getattr(self._local, "buffer", None)
         if made is None:
             made = self._local.buffer = self.fun.buffer()  # (buffer, evaluate), this thread's
-        buf, evaluate = made
-        for i, a in enumerate(flat):
+        buf, run = made
+        for i, a in enumerate(ins):
             buf.set_arg(i, a)
         for i, o in enumerate(outs):
             buf.set_res(i, o)
-        evaluate()
-        return outs
+        run()
 
 
 #: Intervals per call of :class:`ChunkedMap`'s map. Why chunks: building a CasADi map over ``M``
@@ -244,8 +252,9 @@ MAP_CHUNK = 1024
 class ChunkedMap:
     """A CasADi function of one sample interval evaluated over ``count`` intervals, chunk by chunk
     of a serial map over :data:`MAP_CHUNK` of them (the last chunk padded with copies of the last
-    interval, whose outputs are dropped), straight from and into NumPy arrays as
-    :class:`Buffered`.
+    interval, whose outputs are dropped): :class:`Buffered` over that map, each chunk's inputs
+    and outputs slices of the whole arrays. With one chunk (``count`` at most ``chunk``) it is
+    :class:`Buffered` over a map of ``count`` intervals.
 
     Every input and output holds one column block per interval (column-major: interval ``m``'s
     values are the ``m``-th run of ``nnz`` values); each input is given for all ``count``
@@ -254,14 +263,12 @@ class ChunkedMap:
     """
 
     def __init__(self, fun, count: int, chunk: int = MAP_CHUNK):
-        import threading
-
         self.count = int(count)
         self.chunk = max(1, min(int(chunk), self.count))
-        self.fun = fun.map(self.chunk, "serial")
+        self.mapped = Buffered(fun.map(self.chunk, "serial"))
+        self.fun = self.mapped.fun
         self.w_in = [int(fun.nnz_in(i)) for i in range(fun.n_in())]
         self.w_out = [int(fun.nnz_out(i)) for i in range(fun.n_out())]
-        self._local = threading.local()
 
     def __call__(self, *args):
         if len(args) != len(self.w_in):
@@ -271,10 +278,6 @@ class ChunkedMap:
             if a.size != w * self.count:  # the buffer interface reads exactly the map's values: never fewer
                 raise ValueError(f"{self.fun.name()}: input {i} has {a.size} values; expected {w * self.count}")
         outs = [np.empty(w * self.count) for w in self.w_out]
-        made = getattr(self._local, "buffer", None)
-        if made is None:
-            made = self._local.buffer = self.fun.buffer()
-        buf, evaluate = made
         c = self.chunk
         for c0 in range(0, self.count, c):
             n = min(c, self.count - c0)
@@ -285,11 +288,7 @@ class ChunkedMap:
                 ins = [np.concatenate([a[c0 * w:(c0 + n) * w], np.tile(a[(c0 + n - 1) * w:(c0 + n) * w], c - n)])
                        for a, w in zip(flat, self.w_in)]
                 res = [np.empty(c * w) for w in self.w_out]
-            for i, a in enumerate(ins):
-                buf.set_arg(i, a)
-            for i, o in enumerate(res):
-                buf.set_res(i, o)
-            evaluate()
+            self.mapped.evaluate(ins, res)
             if n != c:
                 for o, r, w in zip(outs, res, self.w_out):
                     o[c0 * w:(c0 + n) * w] = r[:n * w]

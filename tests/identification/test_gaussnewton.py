@@ -181,6 +181,46 @@ def test_a_chunked_map_equals_one_map_over_every_interval(count, chunk):
 
 
 
+@pytest.mark.parametrize("count", [1, 5])
+def test_a_chunked_map_of_one_chunk_is_the_buffered_map_and_each_thread_has_its_own_buffer(count):
+    """gaussnewton.ChunkedMap evaluates through gaussnewton.Buffered: with one chunk its values are
+    Buffered's over the map of all intervals, bit for bit; threads calling one ChunkedMap each get
+    their own buffer (Buffered's), so neither sees the other's inputs."""
+    import threading
+
+    import casadi as ca
+
+    from prsa_ctrl.identification.gaussnewton import Buffered, ChunkedMap
+
+    x = ca.SX.sym("x", 2)
+    p = ca.SX.sym("p")
+    y = ca.vertcat(p * x[0] ** 2, ca.sin(x[1]))
+    f = ca.Function("f", [x, p], [y, ca.densify(ca.jacobian(y, x))])
+    rng = np.random.default_rng(2)
+    xa, xb = rng.standard_normal((2, count)), rng.standard_normal((2, count))
+    ps = np.full(count, 0.7)
+    whole = Buffered(f.map(count, "serial"))
+    cm = ChunkedMap(f, count, chunk=count)
+    for xs in (xa, xb):
+        for g, w in zip(cm(xs, ps), whole(xs, ps)):
+            assert np.array_equal(g, w)
+    want = {0: cm(xa, ps), 1: cm(xb, ps)}
+    got = {}
+
+    def other(k, xs):
+        for _ in range(50):
+            got[k] = cm(xs, ps)
+
+    ts = [threading.Thread(target=other, args=(k, xs)) for k, xs in enumerate((xa, xb))]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    for k in (0, 1):
+        for g, w in zip(got[k], want[k]):
+            assert np.array_equal(g, w)
+
+
 class _MallInfo2(__import__("ctypes").Structure):
     _fields_ = [(name, __import__("ctypes").c_size_t) for name in
                 ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
