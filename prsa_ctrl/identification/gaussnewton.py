@@ -95,7 +95,19 @@ def defect_plateau(g_hist, opened: int) -> bool:
     current loop 1119.3 against 1119.9 Hz (interval 1085..1155), every value well inside the
     other's interval; the whole run 125.9 -> 114.5 s of CPU, the same verdict. Not helped: the search's
     fit at shift 2 (a defect falling about 1 % an iteration, the full step raising the objective)
-    still ends at its candidate's work bound."""
+    still ends at its candidate's work bound.
+
+    Traced (h16-compcost): that shift-2 attempt creeps from its 12th iteration to its 53rd at a
+    defect of 0.0136 -> 0.0041, steps of 1/64..1/2, its objective rising 1.135e6 -> 1.166e6
+    (below shift 1's converged 1.287e6: the defects carry part of the fit); each full step leaves
+    a defect 2-5 times the current one and a higher objective. Two restorations of the full step
+    were tried and dropped: Newton on the collocation equations at fixed parameters and segment
+    starts reaches a defect of 3e-9 in three steps, but its objective is
+    6.1e9 (the iterate's trajectories hold only with their defects); with the segment starts
+    re-optimised (a state-only Gauss-Newton step) the defect rises every time. The attempt
+    stalls at iteration 53 and the second is stopped by the candidate's work bound, so the
+    delay is decided among the shifts that converged; a rule that ends these attempts sooner
+    can leave the shift 'failed from every start' and the delay undecided."""
     recent = list(g_hist)[-PLATEAU_ITERATIONS:]
     return bool(len(g_hist) >= PLATEAU_ITERATIONS + int(opened) and all(math.isfinite(g) for g in recent)
                 and recent[-1] > FIRST_ORDER_G_MAX and max(recent) <= PLATEAU_RATIO * min(recent))
