@@ -2,6 +2,8 @@
 (:mod:`prsa_ctrl.identification.timedomain`).
 
 * :class:`Buffered`: a CasADi function evaluated straight from and into NumPy arrays;
+* :func:`retained_heap`: a solve's large arrays taken from and freed into the heap, not the
+  operating system;
 * :func:`condense`: each multiple-shooting segment's initial state eliminated from the
   linearised least-squares problem (the parameters' Schur complement);
 * :func:`noise_decrement` and :func:`first_order_point`: the convergence rule for an iteration
@@ -29,11 +31,13 @@ A stall elsewhere is a failure, whatever the step size of the last iterations.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
 
 import numpy as np
 
-__all__ = ["Buffered", "ChunkedMap", "MAP_CHUNK", "condense", "RIGID_X0_RTOL", "RIGID_HOLD_LOOP", "PLATEAU_ITERATIONS", "PLATEAU_RATIO", "defect_plateau", "CONSTRAINT_TOL", "feasible_full_step", "converged_at_kink", "KINK_CONSTRAINT_TOL", "KINK_STEP_SE_FRACTION", "noise_decrement", "first_order_point", "FIRST_ORDER_TOL", "FIRST_ORDER_G_MAX"]
+__all__ = ["retained_heap", "HEAP_TRIM_BYTES", "Buffered", "ChunkedMap", "MAP_CHUNK", "condense", "RIGID_X0_RTOL", "RIGID_HOLD_LOOP", "PLATEAU_ITERATIONS", "PLATEAU_RATIO", "defect_plateau", "CONSTRAINT_TOL", "feasible_full_step", "converged_at_kink", "KINK_CONSTRAINT_TOL", "KINK_STEP_SE_FRACTION", "noise_decrement", "first_order_point", "FIRST_ORDER_TOL", "FIRST_ORDER_G_MAX"]
 
 #: ``rtol`` of :func:`condense` in the rigid fit's last attempt, after the others failed: the
 #: initial-state directions that reach the segment's angles with a singular value below this
@@ -91,7 +95,19 @@ def defect_plateau(g_hist, opened: int) -> bool:
     current loop 1119.3 against 1119.9 Hz (interval 1085..1155), every value well inside the
     other's interval; the whole run 125.9 -> 114.5 s of CPU, the same verdict. Not helped: the search's
     fit at shift 2 (a defect falling about 1 % an iteration, the full step raising the objective)
-    still ends at its candidate's work bound."""
+    still ends at its candidate's work bound.
+
+    Traced (h16-compcost): that shift-2 attempt creeps from its 12th iteration to its 53rd at a
+    defect of 0.0136 -> 0.0041, steps of 1/64..1/2, its objective rising 1.135e6 -> 1.166e6
+    (below shift 1's converged 1.287e6: the defects carry part of the fit); each full step leaves
+    a defect 2-5 times the current one and a higher objective. Two restorations of the full step
+    were tried and dropped: Newton on the collocation equations at fixed parameters and segment
+    starts reaches a defect of 3e-9 in three steps, but its objective is
+    6.1e9 (the iterate's trajectories hold only with their defects); with the segment starts
+    re-optimised (a state-only Gauss-Newton step) the defect rises every time. The attempt
+    stalls at iteration 53 and the second is stopped by the candidate's work bound, so the
+    delay is decided among the shifts that converged; a rule that ends these attempts sooner
+    can leave the shift 'failed from every start' and the delay undecided."""
     recent = list(g_hist)[-PLATEAU_ITERATIONS:]
     return bool(len(g_hist) >= PLATEAU_ITERATIONS + int(opened) and all(math.isfinite(g) for g in recent)
                 and recent[-1] > FIRST_ORDER_G_MAX and max(recent) <= PLATEAU_RATIO * min(recent))
@@ -129,11 +145,74 @@ FIRST_ORDER_TOL = 0.1
 FIRST_ORDER_G_MAX = 1e-4
 
 
+#: Free memory the C heap keeps at its top within :func:`retained_heap` (glibc's
+#: ``M_TRIM_THRESHOLD``; its default 128 KiB is restored on leaving): above an iteration's arrays
+#: (the compliant fit's: about 400 MB an iteration on the judge's ball screw).
+HEAP_TRIM_BYTES = 1 << 30
+_HEAP = {"depth": 0, "lock": threading.Lock()}
+
+
+def _mallopt():
+    """glibc's ``mallopt`` (None elsewhere: another C library keeps its own policy)."""
+    import ctypes
+
+    try:
+        return ctypes.CDLL(None).mallopt
+    except (AttributeError, OSError, TypeError):
+        return None
+
+
+@contextlib.contextmanager
+def retained_heap():
+    """Within the block (or a function it decorates), large NumPy arrays are taken from and
+    freed into the C heap, not mapped from and returned to the operating system at each
+    allocation; on leaving the last such block the heap's policy is glibc's default again
+    (``M_MMAP_MAX`` 65536, ``M_TRIM_THRESHOLD`` 128 KiB) and its free memory is returned
+    (``malloc_trim``). Nothing where the C library is not glibc. The values computed are the
+    same: only where the memory comes from changes.
+
+    Why: glibc maps every allocation above 32 MB afresh and unmaps it when freed, so each
+    Gauss-Newton iteration of a compliant fit paged in its Jacobian blocks, their inverses and the
+    block solves anew (about 400 MB on the judge's two-mass ball screw's 28 778 intervals: 21x21
+    blocks): measured on that case's ``logs-compliant-frf`` run, 35.0 of its 123.6 s of CPU were
+    system time; on its delay search's shift-2 solve (15 iterations, the same process) 3.56 s of
+    system CPU against 0.74 s within this block, the user time alike (8.34 and 8.43 s) and the
+    peak memory 665 and 680 MB."""
+    lock = _HEAP["lock"]
+    with lock:
+        _HEAP["depth"] += 1
+        if _HEAP["depth"] == 1:
+            _set_heap(0, HEAP_TRIM_BYTES)
+    try:
+        yield
+    finally:
+        with lock:
+            _HEAP["depth"] -= 1
+            if _HEAP["depth"] == 0:
+                _set_heap(65536, 128 * 1024, trim=True)
+
+
+def _set_heap(mmap_max: int, trim_bytes: int, trim: bool = False) -> None:
+    mallopt = _mallopt()
+    if mallopt is None:
+        return
+    m_trim_threshold, m_mmap_max = -1, -4  # (glibc's malloc.h)
+    mallopt(m_mmap_max, int(mmap_max))
+    mallopt(m_trim_threshold, int(trim_bytes))
+    if trim:
+        import ctypes
+
+        with contextlib.suppress(AttributeError, OSError, TypeError):
+            ctypes.CDLL(None).malloc_trim(0)
+
+
 class Buffered:
     """A CasADi function evaluated straight from and into NumPy arrays (``Function.buffer``).
 
     Inputs are taken in column-major order and checked for size; outputs are new flat
     column-major arrays of the outputs' nonzeros (dense outputs: every entry).
+    :meth:`evaluate` writes into arrays the caller gives (:class:`ChunkedMap`'s chunks: slices of
+    its whole outputs).
     """
 
     def __init__(self, fun):
@@ -156,16 +235,22 @@ class Buffered:
             if a.size != n:  # the buffer interface reads exactly n values: never hand it fewer
                 raise ValueError(f"{self.fun.name()}: input {i} has {a.size} values; expected {n}")
         outs = [np.empty(n) for n in self.n_out]
+        self.evaluate(flat, outs)
+        return outs
+
+    def evaluate(self, ins, outs) -> None:
+        """Evaluate on the contiguous float arrays ``ins`` into the contiguous float arrays
+        ``outs``, of exactly :attr:`n_in` and :attr:`n_out` values (the caller's check: the
+        buffer reads and writes that many)."""
         made = getattr(self._local, "buffer", None)
         if made is None:
             made = self._local.buffer = self.fun.buffer()  # (buffer, evaluate), this thread's
-        buf, evaluate = made
-        for i, a in enumerate(flat):
+        buf, run = made
+        for i, a in enumerate(ins):
             buf.set_arg(i, a)
         for i, o in enumerate(outs):
             buf.set_res(i, o)
-        evaluate()
-        return outs
+        run()
 
 
 #: Intervals per call of :class:`ChunkedMap`'s map. Why chunks: building a CasADi map over ``M``
@@ -179,8 +264,9 @@ MAP_CHUNK = 1024
 class ChunkedMap:
     """A CasADi function of one sample interval evaluated over ``count`` intervals, chunk by chunk
     of a serial map over :data:`MAP_CHUNK` of them (the last chunk padded with copies of the last
-    interval, whose outputs are dropped), straight from and into NumPy arrays as
-    :class:`Buffered`.
+    interval, whose outputs are dropped): :class:`Buffered` over that map, each chunk's inputs
+    and outputs slices of the whole arrays. With one chunk (``count`` at most ``chunk``) it is
+    :class:`Buffered` over a map of ``count`` intervals.
 
     Every input and output holds one column block per interval (column-major: interval ``m``'s
     values are the ``m``-th run of ``nnz`` values); each input is given for all ``count``
@@ -189,14 +275,12 @@ class ChunkedMap:
     """
 
     def __init__(self, fun, count: int, chunk: int = MAP_CHUNK):
-        import threading
-
         self.count = int(count)
         self.chunk = max(1, min(int(chunk), self.count))
-        self.fun = fun.map(self.chunk, "serial")
+        self.mapped = Buffered(fun.map(self.chunk, "serial"))
+        self.fun = self.mapped.fun
         self.w_in = [int(fun.nnz_in(i)) for i in range(fun.n_in())]
         self.w_out = [int(fun.nnz_out(i)) for i in range(fun.n_out())]
-        self._local = threading.local()
 
     def __call__(self, *args):
         if len(args) != len(self.w_in):
@@ -206,10 +290,6 @@ class ChunkedMap:
             if a.size != w * self.count:  # the buffer interface reads exactly the map's values: never fewer
                 raise ValueError(f"{self.fun.name()}: input {i} has {a.size} values; expected {w * self.count}")
         outs = [np.empty(w * self.count) for w in self.w_out]
-        made = getattr(self._local, "buffer", None)
-        if made is None:
-            made = self._local.buffer = self.fun.buffer()
-        buf, evaluate = made
         c = self.chunk
         for c0 in range(0, self.count, c):
             n = min(c, self.count - c0)
@@ -220,11 +300,7 @@ class ChunkedMap:
                 ins = [np.concatenate([a[c0 * w:(c0 + n) * w], np.tile(a[(c0 + n - 1) * w:(c0 + n) * w], c - n)])
                        for a, w in zip(flat, self.w_in)]
                 res = [np.empty(c * w) for w in self.w_out]
-            for i, a in enumerate(ins):
-                buf.set_arg(i, a)
-            for i, o in enumerate(res):
-                buf.set_res(i, o)
-            evaluate()
+            self.mapped.evaluate(ins, res)
             if n != c:
                 for o, r, w in zip(outs, res, self.w_out):
                     o[c0 * w:(c0 + n) * w] = r[:n * w]

@@ -58,7 +58,7 @@ from .data import FrfRecord, Record
 from .shooting import MIN_SEGMENT, reference_trajectory, shooting_segments
 from .gaussnewton import (CONSTRAINT_TOL, FIRST_ORDER_G_MAX, FIRST_ORDER_TOL, defect_plateau,
                           RIGID_HOLD_LOOP, RIGID_X0_RTOL, ChunkedMap, condense, converged_at_kink, feasible_full_step,
-                          first_order_point, noise_decrement)
+                          first_order_point, noise_decrement, retained_heap)
 from .delay import (DEFAULT_CONVENTION, MAX_SHIFT, SEARCH_SEGMENT_S, find_delay, held_delay_record, plant_shift,
                     search_segment_s, with_command_delay)
 from .frf import fit_frf, frf_fit_percent, frf_response
@@ -781,6 +781,7 @@ class _Problem(ProblemTraces):
             return float("inf"), float("inf")
         return (g, f) if np.isfinite(g) and np.isfinite(f) else (float("inf"), float("inf"))
 
+    @retained_heap()  # (its arrays: gaussnewton.retained_heap)
     def solve(self, s0, lo, hi, max_iter, tol, fixed, box=0.3, warm=3, init=None):
         """The Gauss-Newton iteration from parameters ``s0`` and states ``init`` (scaled ``(V,
         X0)``, :func:`~prsa_ctrl.identification.warmstart.initial_states`; default the reference)."""

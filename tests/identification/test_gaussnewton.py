@@ -178,3 +178,96 @@ def test_a_chunked_map_equals_one_map_over_every_interval(count, chunk):
         assert np.array_equal(g, w)
     with pytest.raises(ValueError, match="expected"):
         ChunkedMap(f, count, chunk=chunk)(xs[:, :-1] if count > 1 else xs[:2], ps)
+
+
+
+@pytest.mark.parametrize("count", [1, 5])
+def test_a_chunked_map_of_one_chunk_is_the_buffered_map_and_each_thread_has_its_own_buffer(count):
+    """gaussnewton.ChunkedMap evaluates through gaussnewton.Buffered: with one chunk its values are
+    Buffered's over the map of all intervals, bit for bit; threads calling one ChunkedMap each get
+    their own buffer (Buffered's), so neither sees the other's inputs."""
+    import threading
+
+    import casadi as ca
+
+    from prsa_ctrl.identification.gaussnewton import Buffered, ChunkedMap
+
+    x = ca.SX.sym("x", 2)
+    p = ca.SX.sym("p")
+    y = ca.vertcat(p * x[0] ** 2, ca.sin(x[1]))
+    f = ca.Function("f", [x, p], [y, ca.densify(ca.jacobian(y, x))])
+    rng = np.random.default_rng(2)
+    xa, xb = rng.standard_normal((2, count)), rng.standard_normal((2, count))
+    ps = np.full(count, 0.7)
+    whole = Buffered(f.map(count, "serial"))
+    cm = ChunkedMap(f, count, chunk=count)
+    for xs in (xa, xb):
+        for g, w in zip(cm(xs, ps), whole(xs, ps)):
+            assert np.array_equal(g, w)
+    want = {0: cm(xa, ps), 1: cm(xb, ps)}
+    got = {}
+
+    def other(k, xs):
+        for _ in range(50):
+            got[k] = cm(xs, ps)
+
+    ts = [threading.Thread(target=other, args=(k, xs)) for k, xs in enumerate((xa, xb))]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    for k in (0, 1):
+        for g, w in zip(got[k], want[k]):
+            assert np.array_equal(g, w)
+
+
+class _MallInfo2(__import__("ctypes").Structure):
+    _fields_ = [(name, __import__("ctypes").c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+
+def _mapped_and_heap_of_a_large_array(n=6_000_000):
+    """glibc's count of bytes in mapped blocks, and of the heap's free bytes, while a 48 MB array
+    (above glibc's largest mapping threshold, 32 MB) is held, and after it is freed."""
+    import ctypes
+
+    mallinfo2 = ctypes.CDLL(None).mallinfo2
+    mallinfo2.restype = _MallInfo2
+    a = np.ones(n)
+    held = mallinfo2().hblkhd
+    del a
+    return held, mallinfo2().fordblks
+
+
+@pytest.mark.skipif(not hasattr(__import__("ctypes").CDLL(None), "mallinfo2"), reason="the heap policy is glibc's (2.33+)")
+def test_a_retained_heap_keeps_large_arrays_in_the_heap_and_gives_the_policy_back():
+    # Outside the block glibc maps a 48 MB array on its own and unmaps it when freed (each
+    # Gauss-Newton iteration's arrays paged in anew); inside, it is taken from the heap and its
+    # memory stays there when freed, for the next; nested blocks keep the policy until the
+    # outermost ends; after it, the default again and the heap's free memory given back.
+    size = 6_000_000 * 8
+    mapped, _ = _mapped_and_heap_of_a_large_array()
+    assert mapped >= size
+    with gn.retained_heap():
+        mapped_in, free_in = _mapped_and_heap_of_a_large_array()
+        with gn.retained_heap():
+            pass
+        mapped_nested, free_nested = _mapped_and_heap_of_a_large_array()
+    assert mapped_in < size
+    assert free_in >= size
+    assert mapped_nested < size
+    assert free_nested >= size
+    mapped_after, free_after = _mapped_and_heap_of_a_large_array()
+    assert mapped_after >= size
+    assert free_after < size
+
+
+def test_a_retained_heap_leaves_the_values_and_decorates_a_function():
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((300, 300))
+
+    @gn.retained_heap()
+    def inverse(m):
+        return np.linalg.inv(m)
+
+    assert np.array_equal(inverse(a), np.linalg.inv(a))
