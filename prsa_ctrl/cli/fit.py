@@ -237,7 +237,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``prsa-fit: note:`` line each (never Python's two-line format); the geometry note of a
     built-in plant only with ``--verbose``.
     """
-    return invoke("prsa-fit", argv, _body, FIT_VALUE_FLAGS)
+    # (the parser accepts abbreviations: its long options let attach_values glue "--frf-b -1,300" too)
+    flags = [o for a in build_parser()._actions for o in a.option_strings if o.startswith("--")]
+    return invoke("prsa-fit", argv, _body, FIT_VALUE_FLAGS, flags)
 
 
 #: Flags of ``prsa-fit`` (and its linear-axis mode) whose value may start with ``-``: a number, a

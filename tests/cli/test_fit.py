@@ -658,6 +658,37 @@ def test_a_value_that_starts_with_a_minus_is_refused_by_name(tmp_path, capsys, a
     assert not out.exists()
 
 
+def test_an_abbreviated_value_flag_takes_a_value_that_starts_with_a_minus(tmp_path, capsys):
+    # prsa-fit accepts argparse's abbreviations (--frf-b for --frf-band): the glue of a value to its flag
+    # skipped them, so "--frf-b -1,300" still said only "--frf-band expected one argument"
+    frf = tmp_path / "f.csv"
+    frf.write_text("frequency_hz,magnitude,phase_deg\n1,1,0\n")
+    out = tmp_path / "p.toml"
+    assert main(["--frf", str(frf), "--frf-b", "-1,300", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --frf-band '-1,300': ")
+
+
+def test_an_ambiguous_abbreviation_is_left_to_argparse(capsys):
+    # --frf- is a prefix of five value flags: not glued, argparse names the ambiguity
+    assert main(["--frf", "f.csv", "--frf-", "-1,300", "--out", "p.toml"]) == 2
+    assert "ambiguous option: --frf-" in capsys.readouterr().err
+
+
+def test_arguments_after_the_separator_are_data_files_as_typed(tmp_path, capsys, monkeypatch):
+    # after "--" every argument is a positional DATA.csv: "-- --segment -x.csv" names two files, and the glue
+    # made them one file "--segment=-x.csv" that the user never typed
+    monkeypatch.chdir(tmp_path)
+    assert main(["--out", "p.toml", "--", "--segment", "-x.csv"]) == 2
+    assert capsys.readouterr().err.strip() == "prsa-fit: error: --segment: data file not found; expected a readable CSV file"
+
+
+def test_a_value_like_argument_after_the_separator_is_a_data_file(tmp_path, capsys, monkeypatch):
+    # "--x=--" after the separator is a file name, not a flag given '--'
+    monkeypatch.chdir(tmp_path)
+    assert main(["--out", "p.toml", "--", "--x=--"]) == 2
+    assert capsys.readouterr().err.strip() == "prsa-fit: error: --x=--: data file not found; expected a readable CSV file"
+
+
 def test_a_value_flag_followed_by_a_flag_still_lacks_its_value(capsys):
     # the glue of a value to its flag stops at a long option: "--frf-band --out p.toml" is a missing band
     assert main(["--frf", "f.csv", "--frf-band", "--out", "p.toml"]) == 2
