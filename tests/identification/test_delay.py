@@ -1000,3 +1000,23 @@ def test_an_frf_delay_is_decided_only_when_its_interval_stays_within_half_a_samp
     assert held["continuous"]["ci95_s"] is None
     loop = frf_delay_record({"value": 2.0 * ts, "ci95": [1.9 * ts, 2.1 * ts]}, one, ts, "computed", loop_held=True)
     assert "the current loop held, not fitted" in loop["how"]
+
+
+@pytest.mark.parametrize("ci", [[-math.inf, math.inf], [math.nan, math.nan], [2.0e-4, math.inf]])
+def test_an_frf_delay_with_an_unbounded_interval_is_undecided_not_a_crash(plant, ci):
+    """A continuous delay whose covariance gives no finite interval (finish_fit's width can be
+    non-finite): frf_delay_record took int(floor(inf)) and raised; it is now undecided, with no
+    interval in the record, and the record is valid JSON without NaN (the report's writer
+    refuses NaN and inf)."""
+    import json
+
+    from prsa_ctrl.identification.delay import delay_status_head, frf_delay_record
+
+    ts = 2.5e-4
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        one = plant.with_params({"drive.command_delay_samples": 1})
+    rec = frf_delay_record({"value": 2.4e-4, "ci95": ci}, one, ts, "applied")
+    assert delay_status_head(rec["status"]) == "undecided"
+    assert rec["continuous"]["ci95_s"] is None
+    assert json.loads(json.dumps(rec, allow_nan=False))["shift_samples"] == 1
