@@ -476,7 +476,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                                   log_responses=True))
             plot_paths = [str(Path(args.plots) / f"{stem}.png") for stem in stems]
             _probe_plots(args.plots, [f"{stem}.png" for stem in stems], inputs)
-        columns = parse_columns(args.columns) if args.columns else None
+        columns = parse_columns(args.columns) if args.columns is not None else None  # (an empty map is refused)
         opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
         coordinates = {}
         closed_loops = {}

@@ -689,6 +689,27 @@ def test_a_value_like_argument_after_the_separator_is_a_data_file(tmp_path, caps
     assert capsys.readouterr().err.strip() == "prsa-fit: error: --x=--: data file not found; expected a readable CSV file"
 
 
+def test_an_empty_columns_map_is_refused_not_ignored(tmp_path, capsys):
+    # --columns '' was read as no map at all (the run went on and failed later on an unrelated check)
+    data = tmp_path / "d.csv"
+    data.write_text("t,u,enc,w,f\n")
+    out = tmp_path / "p.toml"
+    assert main([str(data), "--columns", "", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --columns '': ")
+
+
+def test_a_zero_load_beside_a_log_description_is_refused(tmp_path, capsys):
+    # motor records from --log-format refuse --load (the description says which column holds the load); a load
+    # of 0 N was taken for no --load and ignored
+    data = tmp_path / "d.csv"
+    data.write_text("t,u,enc,w,f\n")
+    out = tmp_path / "p.toml"
+    fmt = tmp_path / "f.toml"
+    fmt.write_text("")  # (its content is read after these flags are checked)
+    assert main([str(data), "--log-format", str(fmt), "--plant", "paper-iprsm", "--load", "0", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --load with --log-format ")
+
+
 def test_a_value_flag_followed_by_a_flag_still_lacks_its_value(capsys):
     # the glue of a value to its flag stops at a long option: "--frf-band --out p.toml" is a missing band
     assert main(["--frf", "f.csv", "--frf-band", "--out", "p.toml"]) == 2
