@@ -284,10 +284,16 @@ def frf_delay_record(delay: dict, plant: Plant, ts: float, command_logged: str, 
     if n - 0.5 <= lo and hi <= n + 0.5:
         rec["status"] = "decided"
         return rec
+    # (the interval beyond the convention's offset: the frame of the whole counts named and written)
+    frame = f"{lo:.3g}..{hi:.3g} samples (beyond the {offset} of a command logged as {command_logged})"
+    if hi < -0.5:  # wholly shorter than the convention implies: no count of its own (the plant gets none)
+        rec["status"] = (f"undecided: the fitted delay's 95 % interval {frame} lies below the {offset} sample(s) a "
+                         f"command logged as {command_logged} implies (check how the command is logged), not within "
+                         f"half a sample of the {n} written")
+        return rec
     near = sorted({max(int(math.floor(v + 0.5)), 0) for v in (lo, hi)} | {max(int(math.floor(x + 0.5)), 0)})
     counts = f"{near[0]}" if len(near) == 1 else f"{near[0]}..{near[-1]}"
-    rec["status"] = (f"undecided: the fitted delay's 95 % interval {lo + offset:.3g}..{hi + offset:.3g} samples (beyond the "
-                     f"{offset} of a command logged as {command_logged}) holds delays nearest {counts}, not within half "
+    rec["status"] = (f"undecided: the fitted delay's 95 % interval {frame} holds delays nearest {counts}, not within half "
                      f"a sample of the {n} written")
     return rec
 
