@@ -495,9 +495,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         # reads the --frf files, fits and composes the outputs (the app's calibration calls it too)
         frf_only = keys is None and (not args.data or args.frf_from_logs is not None)
         if frf_only and args.delay_samples is not None:  # (was silently ignored: the report said "fitted")
-            raise UsageError(f"--delay-samples {args.delay_samples} with --frf alone: the frequency-response fit fits the "
-                             "command delay as a continuous time (reported with its interval); expected it with "
-                             "DATA.csv, or --fit KEYS without drive.command_delay_s to hold the delay at N")
+            mode = "--frf-from-logs" if args.frf_from_logs is not None else "--frf alone"
+            held = ("the fit of DATA.csv without --frf-from-logs" if args.frf_from_logs is not None else "DATA.csv")
+            raise UsageError(f"--delay-samples {args.delay_samples} with {mode}: the frequency-response fit fits the "
+                             f"command delay as a continuous time (reported with its interval); expected it with "
+                             f"{held}, or --fit KEYS without drive.command_delay_s to hold the delay at N")
         frfs = [] if frf_only else [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load,
                                              coherence_min=args.coherence_min, sample_time_s=args.frf_sample_time)
                                     for f in args.frf]

@@ -728,3 +728,14 @@ def test_a_given_delay_with_an_frf_alone_is_refused_not_ignored(tmp_path, capsys
     assert err.startswith("prsa-fit: error: --delay-samples 2 with --frf alone: "), err
     assert "--fit KEYS without drive.command_delay_s" in err
     assert not out.exists()
+
+
+def test_a_given_delay_with_the_logs_own_response_names_that_mode(tmp_path, capsys):
+    # prsa-fit LOG.csv --frf-from-logs KP,KI --delay-samples N is the same FRF-only fit, and the refusal said
+    # "with --frf alone ... expected it with DATA.csv" to a user who gave DATA.csv and no --frf
+    data = tmp_path / "d.csv"
+    data.write_text("time_s,torque_command_n_m,nut_angle_rad,nut_speed_rad_s,axial_load_n\n"
+                    + "".join(f"{k * 2.5e-4},{0.1 * (-1) ** k},{1e-3 * k * k},{8 * k},0\n" for k in range(60)))
+    out = tmp_path / "p.toml"
+    assert main([str(data), "--frf-from-logs", "1,100", "--delay-samples", "2", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --delay-samples 2 with --frf-from-logs: ")
