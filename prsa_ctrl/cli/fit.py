@@ -243,14 +243,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 #: Flags of ``prsa-fit`` (and its linear-axis mode) whose value may start with ``-``: a number, a
-#: list of numbers or of keys (:func:`prsa_ctrl.cli.common.attach_values` glues the value to its
+#: list of numbers or of keys, a choice (:func:`prsa_ctrl.cli.common.attach_values` glues the value to its
 #: flag, so that ``--frf-band -1,300`` reaches the band's check and is refused naming '-1,300';
 #: argparse took it for a flag and said only "expected one argument"). Paths are not listed: a
 #: path flag followed by another flag keeps argparse's "expected one argument".
 FIT_VALUE_FLAGS = frozenset({
     "--frf-band", "--frf-speed", "--frf-load", "--frf-sample-time", "--coherence-min", "--load", "--torque-constant",
     "--segment", "--delay-samples", "--speed-loop", "--frf-from-logs", "--fit", "--columns", "--command-logged",
-    "--fidelity", "--duration", "--sample-time", "--f-min", "--f-max", "--amplitude", "--offset", "--holdout"})
+    "--fidelity", "--duration", "--sample-time", "--f-min", "--f-max", "--amplitude", "--offset", "--holdout",
+    "--frequency-unit", "--design"})
 
 
 def _body(run: Run, argv: list[str]) -> int:

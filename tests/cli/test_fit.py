@@ -710,6 +710,15 @@ def test_a_zero_load_beside_a_log_description_is_refused(tmp_path, capsys):
     assert capsys.readouterr().err.startswith("prsa-fit: error: --load with --log-format ")
 
 
+@pytest.mark.parametrize("flag", ["--frequency-unit", "--design"])
+def test_a_choice_flag_given_a_value_that_starts_with_a_minus_names_it(capsys, flag):
+    # "--design -x" said only "--design expected one argument"
+    assert main(["x.csv", "--out", "p.toml", flag, "-x"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert "'-x'" in err, err
+
+
 def test_a_value_flag_followed_by_a_flag_still_lacks_its_value(capsys):
     # the glue of a value to its flag stops at a long option: "--frf-band --out p.toml" is a missing band
     assert main(["--frf", "f.csv", "--frf-band", "--out", "p.toml"]) == 2
