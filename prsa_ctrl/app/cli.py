@@ -40,6 +40,10 @@ def _port(text: str) -> int:
     return v
 
 
+#: Flags whose value may start with ``-``: glued to it, so that the value is refused by name.
+_VALUE_FLAGS = ("--plant", "--scene", "--port")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description="Interactive speed-loop tuning in the browser (serves on 127.0.0.1).")
     p.add_argument("--plant", help="built-in plant name or plant .toml file (default paper-iprsm)")
@@ -111,9 +115,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "-h" in argv or "--help" in argv:
         build_parser().print_help()
         return 0
-    try:
-        args = build_parser().parse_args(argv)
-    except _Usage as exc:
+    from ..cli.common import UsageError, attach_values
+
+    parser = build_parser()
+    try:  # a value that starts with '-' (--port -x) reaches its flag's check (:func:`prsa_ctrl.cli.common.attach_values`)
+        argv = attach_values(argv, _VALUE_FLAGS, [o for a in parser._actions for o in a.option_strings if o.startswith("--")])
+        args = parser.parse_args(argv)
+    except (_Usage, UsageError) as exc:
         print(printable(f"{PROG}: error: {' '.join(str(exc).split())}"), file=sys.stderr)
         return 2
     try:

@@ -98,7 +98,7 @@ def motor_records(args, plant) -> tuple[list, list, str, dict]:
 
     for flag, given in (("--columns", args.columns), ("--torque-constant", args.torque_constant),
                         ("--load", args.load)):  # (an --frf file beside described logs is its own input)
-        if given:
+        if given is not None:  # (a load of 0 N or an empty map is given too)
             raise UsageError(f"{flag} with --log-format {args.log_format}; expected the log description to say "
                              "which column holds what, in which unit")
     fmt = load_log_format(args.log_format)

@@ -152,29 +152,44 @@ def path_text(flag: str) -> Callable[[str], str]:
 
     return conv
 
-def attach_values(argv: Sequence[str], value_flags: Iterable[str] = ()) -> list[str]:
+def attach_values(argv: Sequence[str], value_flags: Iterable[str] = (), flags: Iterable[str] = ()) -> list[str]:
     """``--load-step -5:10`` would read ``-5:10`` as an option; glue values to their flag so
     that such a value reaches the validator and is reported by name (``value_flags``: the flags
     that take a value which may start with ``-``). A flag followed by a long option (``--x``) is
     left alone: no value of theirs starts with ``--``, and argparse then says the value is missing.
+    ``flags``: every long option of a parser that accepts abbreviations (prsa-fit); an
+    abbreviation that argparse resolves to a value flag (a prefix of that flag alone) is glued as
+    typed (``--frf-b=-1,300``, which argparse resolves the same). After a bare ``--`` every
+    argument is positional and is passed on as typed.
 
     >>> attach_values(["--frf-band", "-1,300", "--out", "p.toml"], {"--frf-band"})
     ['--frf-band=-1,300', '--out', 'p.toml']
     >>> attach_values(["--frf-band", "--out", "p.toml"], {"--frf-band"})
     ['--frf-band', '--out', 'p.toml']
+    >>> attach_values(["--frf-b", "-1,300", "--", "--frf-band", "-x.csv"], {"--frf-band"}, {"--frf", "--frf-band"})
+    ['--frf-b=-1,300', '--', '--frf-band', '-x.csv']
     """
     value_flags = set(value_flags)
+    flags = set(flags)
+    abbreviated = bool(flags)  # (parsers without abbreviations pass none: their prefixes stay unknown options)
+    flags |= value_flags
     argv = list(argv)
     out: list[str] = []
     i = 0
     while i < len(argv):
         a = argv[i]
+        if a == "--":  # the separator: the rest are positionals, as typed
+            out += argv[i:]
+            break
         if a.startswith("--") and a.partition("=")[2] == "--":
             raise UsageError(f"{a.partition('=')[0]} '--': expected a value")
         nxt = argv[i + 1] if i + 1 < len(argv) else None
-        if a in value_flags and nxt == "--":  # argparse would drop it and hand the converter nothing
+        takes = a in value_flags or (abbreviated and a.startswith("--") and a not in flags and "=" not in a
+                                     and len([f for f in flags if f.startswith(a)]) == 1
+                                     and any(f.startswith(a) for f in value_flags))
+        if takes and nxt == "--":  # argparse would drop it and hand the converter nothing
             raise UsageError(f"{a} '--': expected a value")
-        if a in value_flags and nxt is not None and not nxt.startswith("--"):
+        if takes and nxt is not None and not nxt.startswith("--"):
             out.append(f"{a}={nxt}")
             i += 2
         else:
@@ -545,7 +560,7 @@ def echo(text: Any, file: Any = None, flush: bool = False) -> None:
 
 
 def invoke(prog: str, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
-           value_flags: Iterable[str] = ()) -> int:
+           value_flags: Iterable[str] = (), flags: Iterable[str] = ()) -> int:
     """Common frame of the commands: Ctrl-C guard, one-line errors, exit codes.
 
     Parameters
@@ -558,10 +573,12 @@ def invoke(prog: str, argv: Sequence[str] | None, body: Callable[[Run, list[str]
         ``body(run, argv) -> exit code``.
     value_flags : iterable of str
         Flags whose value may start with ``-`` (:func:`attach_values`).
+    flags : iterable of str
+        Every long option of a parser that accepts abbreviations (:func:`attach_values`).
     """
     run = Run(prog)
     try:
-        code = invoke_inner(run, argv, body, value_flags)
+        code = invoke_inner(run, argv, body, value_flags, flags)
     except SystemExit:  # argparse's --help inside a body: its output may meet a closed pipe too
         if argv is None and _flush_stdout(run, EXIT_OK) == EXIT_BROKEN_PIPE:
             raise SystemExit(EXIT_BROKEN_PIPE) from None
@@ -607,7 +624,7 @@ def _pending_signals() -> set:
 
 
 def invoke_inner(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
-                 value_flags: Iterable[str] = ()) -> int:
+                 value_flags: Iterable[str] = (), flags: Iterable[str] = ()) -> int:
     """:func:`invoke` without the end of the process: the guarded body and its error lines.
 
     A Python warning the body does not collect itself (numpy's ``RuntimeWarning`` of a bad
@@ -616,7 +633,7 @@ def invoke_inner(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list
     all it prints; with ``--quiet`` (``run.quiet``) nothing. The warning filters are left as they are (``-W``/``PYTHONWARNINGS`` still
     decide what is shown)."""
     with warnings.catch_warnings(record=True) as stray:
-        code = _guarded(run, argv, body, value_flags)
+        code = _guarded(run, argv, body, value_flags, flags)
     if code == EXIT_OK and not run.quiet:
         for text in dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in stray):
             echo(f"{run.prog}: note: {text}", file=sys.stderr)
@@ -662,11 +679,11 @@ def _quiet_broken_pipe(run: Run) -> int:
 
 
 def _guarded(run: Run, argv: Sequence[str] | None, body: Callable[[Run, list[str]], int],
-             value_flags: Iterable[str] = ()) -> int:
+             value_flags: Iterable[str] = (), flags: Iterable[str] = ()) -> int:
     prog = run.prog
     with guard(run, process=argv is None):
         try:
-            run.argv = attach_values(list(sys.argv[1:] if argv is None else argv), value_flags)
+            run.argv = attach_values(list(sys.argv[1:] if argv is None else argv), value_flags, flags)
             return body(run, run.argv)
         except KeyboardInterrupt:
             cleanup_temporaries()

@@ -237,18 +237,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``prsa-fit: note:`` line each (never Python's two-line format); the geometry note of a
     built-in plant only with ``--verbose``.
     """
-    return invoke("prsa-fit", argv, _body, FIT_VALUE_FLAGS)
+    # (the parser accepts abbreviations: its long options let attach_values glue "--frf-b -1,300" too)
+    flags = [o for a in build_parser()._actions for o in a.option_strings if o.startswith("--")]
+    return invoke("prsa-fit", argv, _body, FIT_VALUE_FLAGS, flags)
 
 
 #: Flags of ``prsa-fit`` (and its linear-axis mode) whose value may start with ``-``: a number, a
-#: list of numbers or of keys (:func:`prsa_ctrl.cli.common.attach_values` glues the value to its
+#: list of numbers or of keys, a choice (:func:`prsa_ctrl.cli.common.attach_values` glues the value to its
 #: flag, so that ``--frf-band -1,300`` reaches the band's check and is refused naming '-1,300';
 #: argparse took it for a flag and said only "expected one argument"). Paths are not listed: a
 #: path flag followed by another flag keeps argparse's "expected one argument".
 FIT_VALUE_FLAGS = frozenset({
     "--frf-band", "--frf-speed", "--frf-load", "--frf-sample-time", "--coherence-min", "--load", "--torque-constant",
     "--segment", "--delay-samples", "--speed-loop", "--frf-from-logs", "--fit", "--columns", "--command-logged",
-    "--fidelity", "--duration", "--sample-time", "--f-min", "--f-max", "--amplitude", "--offset", "--holdout"})
+    "--fidelity", "--duration", "--sample-time", "--f-min", "--f-max", "--amplitude", "--offset", "--holdout",
+    "--frequency-unit", "--design"})
 
 
 def _body(run: Run, argv: list[str]) -> int:
@@ -474,7 +477,7 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
                                   log_responses=True))
             plot_paths = [str(Path(args.plots) / f"{stem}.png") for stem in stems]
             _probe_plots(args.plots, [f"{stem}.png" for stem in stems], inputs)
-        columns = parse_columns(args.columns) if args.columns else None
+        columns = parse_columns(args.columns) if args.columns is not None else None  # (an empty map is refused)
         opts = {"columns": columns, "torque_constant_n_m_per_a": args.torque_constant, "load_n": args.load}
         coordinates = {}
         closed_loops = {}
@@ -493,9 +496,11 @@ def _main(argv: Sequence[str], created: list | None = None, run: Run | None = No
         # reads the --frf files, fits and composes the outputs (the app's calibration calls it too)
         frf_only = keys is None and (not args.data or args.frf_from_logs is not None)
         if frf_only and args.delay_samples is not None:  # (was silently ignored: the report said "fitted")
-            raise UsageError(f"--delay-samples {args.delay_samples} with --frf alone: the frequency-response fit fits the "
-                             "command delay as a continuous time (reported with its interval); expected it with "
-                             "DATA.csv, or --fit KEYS without drive.command_delay_s to hold the delay at N")
+            mode = "--frf-from-logs" if args.frf_from_logs is not None else "--frf alone"
+            held = ("the fit of DATA.csv without --frf-from-logs" if args.frf_from_logs is not None else "DATA.csv")
+            raise UsageError(f"--delay-samples {args.delay_samples} with {mode}: the frequency-response fit fits the "
+                             f"command delay as a continuous time (reported with its interval); expected it with "
+                             f"{held}, or --fit KEYS without drive.command_delay_s to hold the delay at N")
         frfs = [] if frf_only else [load_frf(f, speed_rad_s=args.frf_speed, load_n=frf_load,
                                              coherence_min=args.coherence_min, sample_time_s=args.frf_sample_time)
                                     for f in args.frf]

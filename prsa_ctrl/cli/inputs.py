@@ -60,7 +60,9 @@ def scene_flags(p: argparse.ArgumentParser) -> None:
 
 #: Flags of ``prsa-tune`` and ``prsa-plot`` whose value may start with ``-`` (:func:`prsa_ctrl.cli.common.attach_values`).
 VALUE_FLAGS = {"--load-step", "--setpoint-rpm", "--step-time", "--duration", "--ms-max", "--mt-max", "--mks-max", "--kp",
-                "--ki", "--kd", "--workers", "--rated-torque", "--seed", "--monte-carlo", "--motor"}
+                "--ki", "--kd", "--workers", "--rated-torque", "--seed", "--monte-carlo", "--motor",
+                "--objective", "--controller", "--estimator", "--tune-filter", "--export-real", "--frequency-unit",
+                "--filter"}  # (the choices too: '--objective -x' is refused naming '-x', not as a missing value)
 
 
 def input_files(args, scene=None) -> list[str]:

@@ -50,7 +50,7 @@ PLANT_ORDER_MAX = 30
 _LIST_FLAGS = ("--num", "--den")
 #: Flags of one value that may start with ``-`` (reported by their converter, not as an option).
 _VALUE_FLAGS = ("--plant", "--delay", "--ms-max", "--mt-max", "--mks-max", "--max-noise-gain", "--filter-tf", "--tf",
-                "--json")
+                "--json", "--objective", "--controller", "--filter-order")
 
 _EXAMPLE = "'1/(4s+1)', '2(s+1)/(s^2+3s+1)' or '1/(s+1)^3'"
 #: Longest plant expression read (characters).

@@ -258,6 +258,9 @@ def frf_delay_record(delay: dict, plant: Plant, ts: float, command_logged: str, 
     offset = _offset(command_logged)
     n = int(plant.command_delay_samples)
     value, ci = float(delay["value"]), delay.get("ci95")
+    unbounded = ci is not None and not all(math.isfinite(float(c)) for c in ci)
+    if unbounded:  # (a covariance without a finite width: no interval, never NaN or inf in the record)
+        ci = None
     x = value / ts - offset
     rec = {"shift_samples": n + offset, "command_logged": command_logged, "drive_command_delay_samples": n,
            "how": (f"fitted as a continuous time delay of the frequency response (the phase's slope): {value:.4g} s = "
@@ -267,6 +270,10 @@ def frf_delay_record(delay: dict, plant: Plant, ts: float, command_logged: str, 
            "continuous": {"value_s": value, "ci95_s": None if ci is None else [float(ci[0]), float(ci[1])],
                           "sample_time_s": float(ts), "samples": value / ts,
                           "ci95_samples": None if ci is None else [float(ci[0]) / ts, float(ci[1]) / ts]}}
+    if unbounded:
+        rec["status"] = (f"undecided: the fitted delay {value:.4g} s has no finite 95 % interval (the response does "
+                         f"not bound it), so the response decides no whole-sample count; {n} written")
+        return rec
     if ci is None:
         side = f"{delay['at_bound']} " if isinstance(delay.get("at_bound"), str) else ""
         rec["status"] = (f"undecided: the fit holds the delay at its {side}bound, {value:.4g} s "
@@ -277,10 +284,16 @@ def frf_delay_record(delay: dict, plant: Plant, ts: float, command_logged: str, 
     if n - 0.5 <= lo and hi <= n + 0.5:
         rec["status"] = "decided"
         return rec
+    # (the interval beyond the convention's offset: the frame of the whole counts named and written)
+    frame = f"{lo:.3g}..{hi:.3g} samples (beyond the {offset} of a command logged as {command_logged})"
+    if hi < -0.5:  # wholly shorter than the convention implies: no count of its own (the plant gets none)
+        rec["status"] = (f"undecided: the fitted delay's 95 % interval {frame} lies below the {offset} sample(s) a "
+                         f"command logged as {command_logged} implies (check how the command is logged), not within "
+                         f"half a sample of the {n} written")
+        return rec
     near = sorted({max(int(math.floor(v + 0.5)), 0) for v in (lo, hi)} | {max(int(math.floor(x + 0.5)), 0)})
     counts = f"{near[0]}" if len(near) == 1 else f"{near[0]}..{near[-1]}"
-    rec["status"] = (f"undecided: the fitted delay's 95 % interval {lo + offset:.3g}..{hi + offset:.3g} samples (beyond the "
-                     f"{offset} of a command logged as {command_logged}) holds delays nearest {counts}, not within half "
+    rec["status"] = (f"undecided: the fitted delay's 95 % interval {frame} holds delays nearest {counts}, not within half "
                      f"a sample of the {n} written")
     return rec
 

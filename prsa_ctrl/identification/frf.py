@@ -370,6 +370,7 @@ def fit_frf(
     uncertainty: str = "keep",
     scan_stiffness: bool = True,
     command_logged: str = "applied",
+    scan_delay: bool = True,
 ) -> FitResult:
     """Fit plant parameters to measured frequency responses (torque command -> nut speed).
 
@@ -417,6 +418,11 @@ def fit_frf(
         Start a fitted contact stiffness from the best point of a scan of its range (default);
         False: from the plant's value (a start that already sits at the mode, e.g. the two-mass
         mapping of :func:`prsa_ctrl.identification.frfplant.fit_frf_structure`).
+    scan_delay : bool
+        With ``drive.command_delay_s`` fitted, start it from the best point of a scan of its
+        bracket in quarter samples (default: the wrapped phase is periodic in the delay, and one
+        start stopped in another period); False: from ``delay_samples`` + 0.25 (a start already in
+        the delay's period). A delay that ends at the bracket's top has no interval (undecided).
 
     Returns
     -------
@@ -491,6 +497,20 @@ def fit_frf(
                 best = (cost, sk)
         if best is not None:
             s0[i_k] = best[1]
+    if i_d is not None and scan_delay:  # bounded scan of the delay (quarter samples over its bracket): the wrapped phase is
+        # periodic in it, and from one start the fit stopped in another period (a 10-sample delay fitted 0.16)
+        best = None
+        for dv in np.arange(lo[i_d], hi[i_d] + 1e-9, 0.25 * ts_fit / scales[i_d]):
+            sv = s0.copy()
+            sv[i_d] = dv
+            try:
+                cost = float(np.sum(resid(sv) ** 2))
+            except (FitError, np.linalg.LinAlgError, ValueError):
+                continue
+            if math.isfinite(cost) and (best is None or cost < best[0]):
+                best = (cost, dv)
+        if best is not None:
+            s0[i_d] = best[1]
     sol = least_squares(resid, s0, bounds=(lo, hi), x_scale=1.0, max_nfev=max_nfev, method="trf")
     if not sol.success:
         raise FitError(f"FRF fit did not converge: least-squares status {sol.status} ({sol.message}) after "
@@ -514,6 +534,11 @@ def fit_frf(
                                                               uncertainty)
     if i_d is not None and values[i_d] <= lo[i_d] * scales[i_d] + 1e-9 * ts_fit:
         _delay_at_zero(params, delay, warns)
+    elif i_d is not None and values[i_d] >= hi[i_d] * scales[i_d] - 1e-6 * ts_fit:
+        for e in (params[DELAY_KEY], delay):  # the response may lag more: no interval around the bracket's end
+            if e is not None:
+                e.update(ci95=None, at_bound="upper", note=f"at the top of its bracket ({delay_samples} + 10 samples): "
+                         "the response may lag more; move the bracket with delay_samples (--delay-samples)")
     if "contact.stiffness_n_per_mm_e" in keys:
         warns += _mode_warnings(fitted, frf, math.sqrt(s2) / np.sqrt(np.mean(np.concatenate(weights) ** 2)))
     fit_pct, traces = {}, {}

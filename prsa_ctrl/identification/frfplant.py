@@ -765,7 +765,7 @@ def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: Stru
     try:
         res = fit_frf(frf, start.with_params({}, name=start.name), keys=fkeys, fidelity="compliant",
                       delay_samples=n0, command_logged=command_logged, uncertainty=uncertainty, scan_stiffness=False,
-                      max_nfev=400)
+                      max_nfev=400, scan_delay=False)  # (n0: the structure fit's delay, a start in its period)
     except (FitError, ValueError, np.linalg.LinAlgError) as exc:
         return dataclasses.replace(direct, warnings=[*direct.warnings, f"the plant's own compliant model could not be "
                                                      f"fitted from the two-mass start ({' '.join(str(exc).split())}): "

@@ -39,6 +39,11 @@ def _fresh(**bounds):
     (["--port", "70000"], "prsa-app: error: argument --port: --port 70000: expected an integer port in [0, 65535]"),
     (["--port", "x"], "prsa-app: error: argument --port: --port 'x': expected an integer port"),
     (["--bogus"], "prsa-app: error: unrecognized arguments: --bogus"),
+    # a value that starts with '-' reaches its flag's check, named as typed (was "--port: expected one argument")
+    (["--port", "-x"], "prsa-app: error: argument --port: --port '-x': expected an integer port"),
+    (["--po", "-x"], "prsa-app: error: argument --port: --port '-x': expected an integer port"),
+    (["--plant", "-x"], "prsa-app: error: unknown plant '-x'; expected a built-in name"),
+    (["--port", "--"], "prsa-app: error: --port '--': expected a value"),
 ])
 def test_bad_flags_and_files_one_line_exit_2(argv, expected, capsys):
     assert main(argv) == 2

@@ -658,6 +658,67 @@ def test_a_value_that_starts_with_a_minus_is_refused_by_name(tmp_path, capsys, a
     assert not out.exists()
 
 
+def test_an_abbreviated_value_flag_takes_a_value_that_starts_with_a_minus(tmp_path, capsys):
+    # prsa-fit accepts argparse's abbreviations (--frf-b for --frf-band): the glue of a value to its flag
+    # skipped them, so "--frf-b -1,300" still said only "--frf-band expected one argument"
+    frf = tmp_path / "f.csv"
+    frf.write_text("frequency_hz,magnitude,phase_deg\n1,1,0\n")
+    out = tmp_path / "p.toml"
+    assert main(["--frf", str(frf), "--frf-b", "-1,300", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --frf-band '-1,300': ")
+
+
+def test_an_ambiguous_abbreviation_is_left_to_argparse(capsys):
+    # --frf- is a prefix of five value flags: not glued, argparse names the ambiguity
+    assert main(["--frf", "f.csv", "--frf-", "-1,300", "--out", "p.toml"]) == 2
+    assert "ambiguous option: --frf-" in capsys.readouterr().err
+
+
+def test_arguments_after_the_separator_are_data_files_as_typed(tmp_path, capsys, monkeypatch):
+    # after "--" every argument is a positional DATA.csv: "-- --segment -x.csv" names two files, and the glue
+    # made them one file "--segment=-x.csv" that the user never typed
+    monkeypatch.chdir(tmp_path)
+    assert main(["--out", "p.toml", "--", "--segment", "-x.csv"]) == 2
+    assert capsys.readouterr().err.strip() == "prsa-fit: error: --segment: data file not found; expected a readable CSV file"
+
+
+def test_a_value_like_argument_after_the_separator_is_a_data_file(tmp_path, capsys, monkeypatch):
+    # "--x=--" after the separator is a file name, not a flag given '--'
+    monkeypatch.chdir(tmp_path)
+    assert main(["--out", "p.toml", "--", "--x=--"]) == 2
+    assert capsys.readouterr().err.strip() == "prsa-fit: error: --x=--: data file not found; expected a readable CSV file"
+
+
+def test_an_empty_columns_map_is_refused_not_ignored(tmp_path, capsys):
+    # --columns '' was read as no map at all (the run went on and failed later on an unrelated check)
+    data = tmp_path / "d.csv"
+    data.write_text("t,u,enc,w,f\n")
+    out = tmp_path / "p.toml"
+    assert main([str(data), "--columns", "", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --columns '': ")
+
+
+def test_a_zero_load_beside_a_log_description_is_refused(tmp_path, capsys):
+    # motor records from --log-format refuse --load (the description says which column holds the load); a load
+    # of 0 N was taken for no --load and ignored
+    data = tmp_path / "d.csv"
+    data.write_text("t,u,enc,w,f\n")
+    out = tmp_path / "p.toml"
+    fmt = tmp_path / "f.toml"
+    fmt.write_text("")  # (its content is read after these flags are checked)
+    assert main([str(data), "--log-format", str(fmt), "--plant", "paper-iprsm", "--load", "0", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --load with --log-format ")
+
+
+@pytest.mark.parametrize("flag", ["--frequency-unit", "--design"])
+def test_a_choice_flag_given_a_value_that_starts_with_a_minus_names_it(capsys, flag):
+    # "--design -x" said only "--design expected one argument"
+    assert main(["x.csv", "--out", "p.toml", flag, "-x"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert "'-x'" in err, err
+
+
 def test_a_value_flag_followed_by_a_flag_still_lacks_its_value(capsys):
     # the glue of a value to its flag stops at a long option: "--frf-band --out p.toml" is a missing band
     assert main(["--frf", "f.csv", "--frf-band", "--out", "p.toml"]) == 2
@@ -676,3 +737,14 @@ def test_a_given_delay_with_an_frf_alone_is_refused_not_ignored(tmp_path, capsys
     assert err.startswith("prsa-fit: error: --delay-samples 2 with --frf alone: "), err
     assert "--fit KEYS without drive.command_delay_s" in err
     assert not out.exists()
+
+
+def test_a_given_delay_with_the_logs_own_response_names_that_mode(tmp_path, capsys):
+    # prsa-fit LOG.csv --frf-from-logs KP,KI --delay-samples N is the same FRF-only fit, and the refusal said
+    # "with --frf alone ... expected it with DATA.csv" to a user who gave DATA.csv and no --frf
+    data = tmp_path / "d.csv"
+    data.write_text("time_s,torque_command_n_m,nut_angle_rad,nut_speed_rad_s,axial_load_n\n"
+                    + "".join(f"{k * 2.5e-4},{0.1 * (-1) ** k},{1e-3 * k * k},{8 * k},0\n" for k in range(60)))
+    out = tmp_path / "p.toml"
+    assert main([str(data), "--frf-from-logs", "1,100", "--delay-samples", "2", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("prsa-fit: error: --delay-samples 2 with --frf-from-logs: ")

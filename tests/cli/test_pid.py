@@ -329,3 +329,12 @@ def test_tiny_delay_and_the_law_are_stated(tmp_path, capsys, case_run):
     assert d["stats"]["delay_model"]["objective"] == "pade"
     assert d["controller"]["law"].startswith("u = kp (b r - y_f) + ki (r - y_f)/s + kd D(s) (c r - y_f), y_f = F(s) y")
     assert "Pade model of order" in text
+
+
+@pytest.mark.parametrize("flag", ["--objective", "--controller", "--filter-order"])
+def test_a_choice_flag_given_a_value_that_starts_with_a_minus_names_it(capsys, flag):
+    # "--objective -x" said only "argument --objective: expected one argument"
+    assert pid_main(["--plant", "1/(s+1)", flag, "-x"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert "'-x'" in err, err

@@ -1234,3 +1234,17 @@ def test_sigterm_in_a_monte_carlo_pool_stops_the_workers_and_says_so(tmp_path):
     assert code == 143
     assert lines[-1] == "prsa-tune: interrupted (SIGTERM); no output written"
     assert not (tmp_path / "r.json").exists()
+
+
+@pytest.mark.parametrize("tool, flag", [("prsa-tune", f) for f in ("--objective", "--controller", "--estimator",
+                                                                   "--tune-filter", "--export-real", "--frequency-unit",
+                                                                   "--filter")]
+                         + [("prsa-plot", f) for f in ("--frequency-unit", "--filter")])
+def test_a_choice_flag_given_a_value_that_starts_with_a_minus_names_it(capsys, tool, flag):
+    # "--objective -x" said only "argument --objective: expected one argument"
+    argv = [flag, "-x"]
+    rc = main(["--quiet", *argv]) if tool == "prsa-tune" else plot_main(["--kp", "1", *argv])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert "'-x'" in err, err

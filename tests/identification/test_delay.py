@@ -1000,3 +1000,45 @@ def test_an_frf_delay_is_decided_only_when_its_interval_stays_within_half_a_samp
     assert held["continuous"]["ci95_s"] is None
     loop = frf_delay_record({"value": 2.0 * ts, "ci95": [1.9 * ts, 2.1 * ts]}, one, ts, "computed", loop_held=True)
     assert "the current loop held, not fitted" in loop["how"]
+
+
+@pytest.mark.parametrize("ci", [[-math.inf, math.inf], [math.nan, math.nan], [2.0e-4, math.inf]])
+def test_an_frf_delay_with_an_unbounded_interval_is_undecided_not_a_crash(plant, ci):
+    """A continuous delay whose covariance gives no finite interval (finish_fit's width can be
+    non-finite): frf_delay_record took int(floor(inf)) and raised; it is now undecided, with no
+    interval in the record, and the record is valid JSON without NaN (the report's writer
+    refuses NaN and inf)."""
+    import json
+
+    from prsa_ctrl.identification.delay import delay_status_head, frf_delay_record
+
+    ts = 2.5e-4
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        one = plant.with_params({"drive.command_delay_samples": 1})
+    rec = frf_delay_record({"value": 2.4e-4, "ci95": ci}, one, ts, "applied")
+    assert delay_status_head(rec["status"]) == "undecided"
+    assert rec["continuous"]["ci95_s"] is None
+    assert json.loads(json.dumps(rec, allow_nan=False))["shift_samples"] == 1
+
+
+def test_an_frf_delays_undecided_interval_is_stated_in_the_frame_of_its_counts(plant):
+    """The undecided status names the interval beyond the logging convention's offset, the frame
+    of the whole counts it names: a computed command (offset 1) fitted at 1.52..2.52 samples in all
+    is 0.52..1.52 beyond it, nearest 1..2 (it printed 1.52..2.52 "beyond the 1" beside "nearest
+    1..2"). An interval below the convention's offset (0.35..0.45 samples in all, a command logged
+    as computed: written as no delay) says so; it read "holds delays nearest 0, not within half a
+    sample of the 0 written"."""
+    from prsa_ctrl.identification.delay import delay_status_head, frf_delay_record
+
+    ts = 2.5e-4
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        one = plant.with_params({"drive.command_delay_samples": 1})
+        none = plant.with_params({"drive.command_delay_samples": 0})
+    past = frf_delay_record({"value": 2.0 * ts, "ci95": [1.52 * ts, 2.52 * ts]}, one, ts, "computed")
+    assert "interval 0.52..1.52 samples (beyond the 1 of a command logged as computed)" in past["status"]
+    below = frf_delay_record({"value": 0.4 * ts, "ci95": [0.35 * ts, 0.45 * ts]}, none, ts, "computed")
+    assert delay_status_head(below["status"]) == "undecided"
+    assert "nearest" not in below["status"]
+    assert "below the 1 sample(s) a command logged as computed implies" in below["status"]

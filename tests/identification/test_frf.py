@@ -522,3 +522,24 @@ def test_delay_and_stiffness_intervals_cover_the_truth_in_20_seeds(base, heavy):
     print(f"coverage: delay {hits_d}/20, stiffness {hits_k}/20")
     assert hits_d >= 18
     assert hits_k >= 18
+
+
+def test_a_delay_at_the_top_of_its_bracket_is_found_and_one_beyond_it_is_not_decided():
+    """fit_frf's delay bracket is delay_samples .. delay_samples + 10 samples; the wrapped phase
+    residual is periodic in the delay, and from its one start (a quarter sample) the fit stopped in
+    another period: a true 10-sample delay fitted 0.155 samples, 12 fitted 1.04 with a 95 % interval
+    (0.43..1.64) that excluded the truth, fit 58 %, no warning of a bound. The delay is now started
+    from a scan of its bracket; a delay beyond the bracket ends at its top with no interval
+    (undecided), never a narrow interval around the bound."""
+    from prsa_ctrl.identification.delay import delay_status_head
+
+    plant = load_plant()
+    ts = plant.sample_time_s
+    f = np.geomspace(1.0, 400.0, 200)
+    keys = ("nut.inertia_kg_m2", DELAY_KEY)
+    at_top = fit_frf([frf_from_arrays("d10", f, frf_response(plant, f, delay_samples=10))], plant, keys=keys)
+    assert at_top.delay["value"] / ts == pytest.approx(10.0, abs=1e-3)
+    beyond = fit_frf([frf_from_arrays("d12", f, frf_response(plant, f, delay_samples=12))], plant, keys=keys)
+    assert beyond.delay["ci95"] is None
+    assert delay_status_head(beyond.solver["command_delay"]["status"]) == "undecided"
+    assert any("move the bracket with delay_samples" in w for w in beyond.warnings)
