@@ -228,3 +228,14 @@ def test_acceptance_reads_the_last_stderr_line_and_the_file_left_behind(tmp_path
 def test_the_truths_list_their_first_mode_among_the_modes(truth):
     assert any(abs(f / truth["first_mode_hz"] - 1.0) < 1e-12 for f in truth["modes_hz"])
     assert truth["units_right"] is True
+
+
+def test_an_frf_delay_the_run_calls_undecided_is_no_claim_of_the_run():
+    # an FRF fit's record has a status and no 'decided' key (delay.frf_delay_record)
+    frf = {"drive_command_delay_samples": 1, "status": "undecided: its 95 % interval 0.4..1.6 samples"}
+    assert run_delay({"solver": {"command_delay": frf}}) is None
+
+
+def test_an_frf_delay_the_run_decided_is_its_claim():
+    frf = {"drive_command_delay_samples": 1, "status": "decided"}
+    assert run_delay({"solver": {"command_delay": frf}}) == 1

@@ -192,10 +192,14 @@ def judge_diagnosis(line: str, truth: dict, *, run_delay: int | None = None, cos
 
 
 def run_delay(report: dict | None):
-    """The drive.command_delay_samples a run's JSON reports as found by its delay search, else None."""
+    """The drive.command_delay_samples a run's JSON reports as found by its delay search, else None
+    (a delay the run itself calls undecided, given or the base plant's is no claim of the run's)."""
     cd = ((report or {}).get("solver") or {}).get("command_delay") or {}
     decided = cd.get("decided", (cd.get("search") or {}).get("decided"))
     if decided is False or "given" in str(cd.get("how", "")):
+        return None
+    status = str(cd.get("status", (cd.get("search") or {}).get("status", "")))
+    if status and not status.startswith("decided"):
         return None
     d = cd.get("drive_command_delay_samples")
     return int(d) if isinstance(d, (int, float)) else None
