@@ -622,3 +622,26 @@ def test_an_frf_fit_that_holds_the_delay_says_whose_it_is(tmp_path, capsys):
     assert rep is not None, text
     assert rep["solver"]["command_delay"]["status"] == "given"
     assert rep["solver"]["command_delay"]["shift_samples"] == 2
+
+
+def test_a_delay_beyond_its_bracket_writes_no_plant_and_the_moved_bracket_finds_it(tmp_path, capsys):
+    """A response 12 samples late, fitted with the delay's default bracket (0 to 10 samples): the
+    delay ends at the bracket's top, so the whole samples written would be the bracket's, not the
+    response's (h16-hostile: exit 0, 10 samples written against a true 12, fit 86 %). Now exit 3,
+    no file, the remedy named; with the bracket moved (--delay-samples 5) the truth is written."""
+    from prsa_ctrl.cli.fit import main
+
+    plant = load_plant()
+    f = np.geomspace(1.0, 400.0, 200)
+    csv = tmp_path / "d12.csv"
+    frf_from_arrays("d12", f, frf_response(plant, f, delay_samples=12)).to_csv(csv)
+    out = tmp_path / "p.toml"
+    args = ["--frf", str(csv), "--fit", "nut.inertia_kg_m2,drive.command_delay_s", "--out", str(out)]
+    capsys.readouterr()
+    assert main(args) == 3
+    err = capsys.readouterr().err
+    assert "held at the top of its bracket" in err
+    assert "--delay-samples N" in err
+    assert not out.exists()
+    assert main(args + ["--delay-samples", "5"]) == 0
+    assert load_plant(out).values["drive.command_delay_samples"] == 12
