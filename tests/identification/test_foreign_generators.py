@@ -353,7 +353,7 @@ COST_BOUND_ALLOWED: dict[str, str] = {
     # 110.8 and 110.8 Hz' (one resonance counted in the multisine's and the staircase's response: a false claim).
     # Counted once (frfcheck.SAME_RESONANCE), the logs' response places the mode and the compliant fit runs: shift 1
     # stopped by its candidate's work bound, shift 0 fitted (current loop 361.7 Hz against 800, the delay one sample
-    # short: a wrong plant), refused 'axial mode: ... 111.3 Hz ...' (multisine 32.6 x its floor, 70 % at the mode;
+    # short: a wrong plant), refused 'axial mode: 86 % ... within 15 % of 107.4 Hz' (multisine 32.6 x its floor, 70 %;
     # loadsteps 6.7 x, 86 %) with 'the compliant fit stopped at its work bound (417 of 417 Gauss-Newton iterations)'
     # beside it: exit 3, no file, 136.1 s CPU (the mode bracket does not judge it: a shift was stopped).
     "feedaxis-logs-compliant": "the compliant fit at its work bound (417 iterations) beside a true axial-mode claim, 136 s",
