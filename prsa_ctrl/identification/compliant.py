@@ -32,7 +32,7 @@ from .common import inertia_key
 from ..plant.plantfile import Plant
 from ..plant.schema import AXIAL_MODE_KEYS, axial_mode_keys
 
-__all__ = ["COMPLIANT_STATES", "COMPLIANT_SEGMENT_S", "COMPLIANT_X0_RTOL", "COMPLIANT_G_MAX", "COMPLIANT_F_DROP", "COMPLIANT_RELAXED_STEPS", "SEED_KEYS", "seed_keys", "compliant_start", "unplaced_mode", "placed_by_fit", "shows_mode", "seed_from_frf", "compliant_reference", "compliant_scales"]
+__all__ = ["COMPLIANT_STATES", "COMPLIANT_SEGMENT_S", "COMPLIANT_X0_RTOL", "COMPLIANT_G_MAX", "COMPLIANT_F_DROP", "COMPLIANT_RELAXED_STEPS", "SEED_KEYS", "seed_keys", "compliant_start", "unplaced_mode", "placed_by_fit", "shows_mode", "seed_from_frf", "MEASURED_RESPONSE", "LOGS_RESPONSE", "compliant_reference", "compliant_scales"]
 
 #: Singular-value ratio below which a segment's initial-state direction is held at the
 #: reference in a Gauss-Newton step of a compliant fit
@@ -209,7 +209,8 @@ def compliant_start(plant: Plant, records, frf, keys, command_logged: str, speed
                              "(--frf FRF.csv) to start them from, and the logs' own needs the drive's speed loop "
                              "described (--speed-loop KP,KI[,TAU_S]: closedloop.frf_from_logs); a compliant fit from a "
                              "misplaced mode does not converge" if keys is None else None)
-    start, note = seed_from_frf(plant, responses, command_logged, need_mode=show_mode)
+    start, note = seed_from_frf(plant, responses, command_logged, need_mode=show_mode,
+                                origin=LOGS_RESPONSE if show_mode else MEASURED_RESPONSE)
     if identified is not None:
         if start is plant:
             _refuse_identified(plant, identified, note)
@@ -301,12 +302,21 @@ def shows_mode(choice, frf) -> bool:
     return lo < choice.two_mass.value("antiresonance_hz") < hi
 
 
-def seed_from_frf(plant: Plant, frf, command_logged: str, need_mode: bool = False) -> tuple[Plant, str]:
+#: What a seeded key's source names as the response its two-mass fit read (:func:`seed_from_frf`):
+#: a measured one (``--frf``) or the logs' own, through the drive's speed loop
+#: (:func:`prsa_ctrl.identification.closedloop.frf_from_logs`).
+MEASURED_RESPONSE = "the measured response"
+LOGS_RESPONSE = "the logs' own response"
+
+
+def seed_from_frf(plant: Plant, frf, command_logged: str, need_mode: bool = False,
+                  origin: str = MEASURED_RESPONSE) -> tuple[Plant, str]:
     """``plant`` with :data:`SEED_KEYS` from the two-mass fit of the frequency responses ``frf``
     (:func:`prsa_ctrl.identification.frfplant.fit_frf_structure`, ``fidelity="compliant"``), each
     with the FRF fit's source, and a sentence for the report; ``plant`` unchanged (and the reason)
     when that fit fails or writes none of them, or (``need_mode``) the structure the response
-    chooses is the rigid one.
+    chooses is the rigid one. ``origin`` (:data:`MEASURED_RESPONSE` or :data:`LOGS_RESPONSE`)
+    names the response in each seeded key's source: ``two-mass fit of <origin>, <names> ...``.
 
     The time-domain fit then starts from the FRF's axial mode instead of the datasheet's (the
     foreign generators' datasheet plants put the mode 24 % and 45 % too high: a time-domain fit
@@ -331,7 +341,8 @@ def seed_from_frf(plant: Plant, frf, command_logged: str, need_mode: bool = Fals
     seeded = plant.with_params({k: float(res.plant.values[k]) for k in keys}, name=plant.name)
     sources = dict(seeded.sources)
     for k in keys:
-        sources[k] = f"two-mass fit of {names} (start of the time-domain fit): {res.plant.sources.get(k, '')}".rstrip(": ")
+        sources[k] = (f"two-mass fit of {origin}, {names} (start of the time-domain fit): "
+                      f"{res.plant.sources.get(k, '')}").rstrip(": ")
     seeded = dataclasses.replace(seeded, sources=sources)
     vals = ", ".join(f"{k} = {seeded.values[k]:.5g}" for k in keys)
     return seeded, f"the compliant fit starts from the two-mass fit of {names}: {vals}"

@@ -73,7 +73,7 @@ def test_seed_from_frf_puts_the_plants_mode_at_the_measured_one(which, tmp_path)
     changed = [k for k in seed_keys(base) if seeded.values[k] != base.values[k]]
     assert "axis.nut_stiffness_n_per_um" in changed
     for k in changed:
-        assert seeded.sources[k].startswith("two-mass fit of")
+        assert seeded.sources[k].startswith("two-mass fit of the measured response, ")
     assert "starts from the two-mass fit" in note
 
 
@@ -283,6 +283,8 @@ def test_the_logs_own_response_seeds_the_compliant_fit_where_the_loop_is_describ
         assert abs(mode / t["first_mode_hz"] - 1) < 0.05, note
         assert abs(axial_mode(base, speed_rad_s=30.0, load_n=t["frf_load_n"])["resonance_hz"] / t["first_mode_hz"] - 1) > 0.1
         assert start.sources["axis.nut_stiffness_n_per_um"].startswith("two-mass fit of")
+        # the source names the response the fit read: the logs' own, not a measured one (h16-logsmode)
+        assert start.sources["axis.nut_stiffness_n_per_um"].startswith("two-mass fit of the logs' own response, ")
     else:
         assert start is base
         assert "shows none" in note

@@ -342,7 +342,22 @@ def _run(args, cwd, timeout=3600):
 # The judge's ball-2mass-d1-computed-si logs-compliant-frf, listed on a8f75f1 (exit 3, 159.1 s CPU: 'delay: could
 # not decide (1: 1.27e+06, 2: failed)', shift 2 stopped at the work bound), passes the rule after h14-compfit
 # (exit 0, 128.1 s CPU, J 2.92017e-3 in 2.91273..2.92762e-3, truth 2.92018e-3; mode 131.8 Hz): removed.
-COST_BOUND_ALLOWED: dict[str, str] = {}
+COST_BOUND_ALLOWED: dict[str, str] = {
+    # h16-logsmode (the mode bracket, identification/modebracket.py): on main this run ended exit 3 'axial mode: 38 %
+    # ...', a claim the trace found false for the judge's cases (their modes within 1-2 %). With the bracket the written
+    # plant explains every log (J 1.07891e-3, CI 1.07282..1.08501e-3, truth 1.08035e-3; shift 2, the delay exact), and
+    # the cross-validation fit without multisine.csv reached 'maximum iterations' after 53 iterations (constraint
+    # residual 6.5e-5) from all three starts: exit 3 'fit failure, not missing physics', no file, 104.2 s CPU.
+    "judge:roller-2mass-d2-computed-nonsi--logs-compliant-frf": "a cross-validation fit at its iteration bound, 104.2 s",
+    # h16-logsmode: on main this run was refused in about 1 s for 'two resonances ... up to the geometric mean of
+    # 110.8 and 110.8 Hz' (one resonance counted in the multisine's and the staircase's response: a false claim).
+    # Counted once (frfcheck.SAME_RESONANCE), the logs' response places the mode and the compliant fit runs: shift 1
+    # stopped by its candidate's work bound, shift 0 fitted (current loop 361.7 Hz against 800, the delay one sample
+    # short: a wrong plant), refused 'axial mode: 86 % ... within 15 % of 107.4 Hz' (multisine 32.6 x its floor, 70 %;
+    # loadsteps 6.7 x, 86 %) with 'the compliant fit stopped at its work bound (417 of 417 Gauss-Newton iterations)'
+    # beside it: exit 3, no file, 136.1 s CPU (the mode bracket does not judge it: a shift was stopped).
+    "feedaxis-logs-compliant": "the compliant fit at its work bound (417 iterations) beside a true axial-mode claim, 136 s",
+}
 
 
 def _record(name, args, row, fails, proc=None, js=None):

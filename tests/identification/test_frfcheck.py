@@ -180,3 +180,29 @@ def test_the_suggested_band_keeps_the_first_mode_and_leaves_the_second_out():
     # the refusal of the whole response names it as the flag to type
     with pytest.raises(FitError, match=rf"--frf-band {lo:g},{hi:g}$"):
         fit_frf_structure([fr], base)
+
+
+def test_one_resonance_seen_in_two_records_counts_once():
+    """The logs' own responses come one per log, all of the same axis: a mode each of them shows
+    is one resonance. On main the second generator's feed axis (multisine and staircase responses
+    both peaking at 110.8 Hz) was refused as showing two, "up to the geometric mean of 110.8 and
+    110.8 Hz". Two records of one two-mass axis (different noise, the second record's mode 2 %
+    lower, as a mode moves with the nut force) give one resonance, the more prominent peak; two
+    distinct modes in two records stay two; and two peaks within one record are never merged."""
+    from prsa_ctrl.identification.frfcheck import SAME_RESONANCE
+
+    base = _base()
+    j = base.reflected_inertia_kg_m2
+    f = np.geomspace(4.0, 1700.0, 160)
+    k = 0.4 * j * (TWO_PI * 100.0) ** 2
+    a = frf_from_arrays("a", f, _noisy(_chain(f, [0.6 * j, 0.4 * j], [k]), 0.01, 5))
+    b = frf_from_arrays("b", f, _noisy(_chain(f, [0.6 * j, 0.4 * j], [0.96 * k]), 0.01, 6))
+    alone = resonances(a)[0]["frequency_hz"], resonances(b)[0]["frequency_hz"]
+    assert abs(alone[0] / alone[1] - 1) <= SAME_RESONANCE
+    both = resonances([a, b])
+    assert len(both) == 1
+    top = max((resonances(a)[0], resonances(b)[0]), key=lambda r: r["height_db"])
+    assert both[0] == top
+    far = frf_from_arrays("far", f, _noisy(_chain(f, [0.6 * j, 0.4 * j], [9 * k]), 0.01, 7))  # mode 3 x higher
+    assert len(resonances([a, far])) == 2
+    assert len(resonances([frf_from_arrays("c", f, _three_body(base, f)), a])) == 2  # its two, a's merged with one

@@ -2,6 +2,7 @@
 of a log through a plant, its noise floor, whiteness, the verdict and the diagnosis. The logs
 come from the independent generator (tests/independent_actuator.py), not from the toolkit."""
 
+import dataclasses
 import math
 import warnings
 
@@ -195,6 +196,45 @@ def test_diagnosis_names_a_resonance_and_an_undecided_delay(truth, record):
     assert diagnosis({"independent": drift}, {"decided": True}, _R()).startswith("friction model")
     negative = dict(drift, fit_percent=-40.0)
     assert diagnosis({"independent": negative}, None, _R()).startswith("wrong units or coordinates")
+
+
+def test_the_axial_mode_diagnosis_names_the_response_its_mode_keys_came_from(record):
+    """A compliant fit whose mode keys the logs' own response placed (compliant.seed_from_frf with
+    compliant.LOGS_RESPONSE, the fit's start without --frf) is not told its keys came "from the
+    measured response's two-mass fit" (main's words, h16-logsmode): the source names the logs'
+    own response, and so does the diagnosis; a measured response's keys keep their words. Where
+    the mode bracket replayed the log better with the mode moved, the diagnosis says which way."""
+    from prsa_ctrl.identification.compliant import LOGS_RESPONSE, MEASURED_RESPONSE
+
+    screw = load_plant("ballscrew-32x10")
+    t = record.time_s[1:]
+    meas = record.speed_rad_s
+    ringing = {"finite": True, "time_s": t, "measured": meas, "model": meas - 0.5 * np.sin(2 * math.pi * 180.0 * t),
+               "skip_samples": 80, "fit_percent": 60.0, "error_rms_rad_s": 0.35, "noise_floor_rad_s": 0.01}
+
+    def result(origin):
+        srcs = dict(screw.sources)
+        for k in ("axis.nut_stiffness_n_per_um", "axis.moving_mass_kg"):
+            srcs[k] = f"two-mass fit of {origin}, multisine.csv (start of the time-domain fit): fit: x"
+
+        class _R:
+            keys = ("axis.motor_inertia_kg_m2",)
+            not_identified = {}
+            solver = {"fidelity": "compliant"}
+            plant = dataclasses.replace(screw, sources=srcs)
+        return _R()
+
+    d = diagnosis({"independent": dict(ringing)}, {"decided": True}, result(LOGS_RESPONSE))
+    assert d.startswith("axial mode")
+    assert "from the two-mass fit of the logs' own response" in d
+    assert "measured response" not in d
+    dm = diagnosis({"independent": dict(ringing)}, {"decided": True}, result(MEASURED_RESPONSE))
+    assert "from the measured response's two-mass fit" in dm
+    assert "logs' own response" not in dm
+    bracketed = dict(ringing, mode_bracket={"placed": False, "below": {"mode_hz": 150.0, "error_rms_rad_s": 0.2},
+                                            "above": {"mode_hz": 166.0, "error_rms_rad_s": 0.5}})
+    db = diagnosis({"independent": bracketed}, {"decided": True}, result(LOGS_RESPONSE))
+    assert "replayed better with the plant's mode moved 5 % lower" in db
 
 
 def test_a_resonance_is_named_before_an_undecided_delay(record):
