@@ -47,7 +47,15 @@ def _replayed(plant, rec, scale=1.0):
     return entries[rec.name]
 
 
-def test_a_placed_mode_explains_the_residual_at_it(ball):
+@pytest.fixture(scope="module")
+def placed(ball):
+    """The written plant's replay entry of the multisine, bracketed (one replay for the tests that
+    read it)."""
+    plant, rec = ball
+    return _replayed(plant, rec)
+
+
+def test_a_placed_mode_explains_the_residual_at_it(ball, placed):
     """The written plant of the judge's ball (mode +1.0 % from the generator's) replays the
     multisine at 98 % with 5.4 x its noise floor, 88 % of the residual within 15 % of 148 Hz (the
     top line of the multisine, 13 % above the mode): main refused it as "a resonance the
@@ -56,7 +64,7 @@ def test_a_placed_mode_explains_the_residual_at_it(ball):
     from prsa_ctrl.identification.validation import RESONANCE_SHARE, explained, resonance, verdict
 
     plant, rec = ball
-    e = _replayed(plant, rec)
+    e = placed
     fp, share = resonance(e)
     assert share >= RESONANCE_SHARE  # the share rule alone would refuse it
     b = e["mode_bracket"]
@@ -86,14 +94,12 @@ def test_a_misplaced_mode_is_refused(ball):
     assert "a resonance" in reasons[0]
 
 
-def test_the_bracket_moves_the_linearised_mode_by_its_width(ball):
+def test_the_bracket_moves_the_linearised_mode_by_its_width(placed):
     """The bracket's plants have the linearised mode (the model's, not the series formula) 5 %
     below and above the written one, at the log's operating point."""
     from prsa_ctrl.identification.modebracket import MODE_BRACKET
 
-    plant, rec = ball
-    e = _replayed(plant, rec)
-    b = e["mode_bracket"]
+    b = placed["mode_bracket"]
     assert b["below"]["mode_hz"] == pytest.approx(b["mode_hz"] * (1 - MODE_BRACKET), rel=1e-9)
     assert b["above"]["mode_hz"] == pytest.approx(b["mode_hz"] * (1 + MODE_BRACKET), rel=1e-9)
 
