@@ -621,14 +621,13 @@ def test_validate_json_names_the_coordinates(fitted, tmp_path, capsys):
     assert rep["mechanism"] == "linear-axis"
 
 
-def test_a_fit_without_a_controller_writes_a_loadable_plant(tmp_path, capsys):
-    """No --plant and no controller: the force limit is estimated from the log (and says so), so the
-    written file has every required key."""
-    n, h, m, f0 = 3000, 1e-3, 4.0, 2.0
+def _free_mass_log(tmp_path, f0):
+    """(log.csv, fmt.toml) of a free 4 kg mass pushed by +-f0 N (a 2 Hz square wave), 3 s at 1 ms,
+    exact over each held sample, with its log description (no [controller])."""
+    n, h, m = 3000, 1e-3, 4.0
     t = np.arange(n) * h
     f = f0 * np.sign(np.sin(2 * math.pi * 2.0 * t))
-    v = np.zeros(n)
-    x = np.zeros(n)
+    v, x = np.zeros(n), np.zeros(n)
     for k in range(n - 1):  # a free mass, exact over each held sample
         v[k + 1] = v[k] + f[k] / m * h
         x[k + 1] = x[k] + v[k] * h + 0.5 * f[k] / m * h * h
@@ -638,13 +637,21 @@ def test_a_fit_without_a_controller_writes_a_loadable_plant(tmp_path, capsys):
     fmt = tmp_path / "fmt.toml"
     fmt.write_text('format = "csv"\n[time]\nname = "time_s"\nunit = "s"\n[position]\nname = "position_m"\nunit = "m"\n'
                    '[speed]\nname = "speed_m_s"\nunit = "m/s"\n[command]\nname = "force_n"\nunit = "N"\n')
+    return path, fmt
+
+
+def test_a_fit_without_a_controller_writes_a_loadable_plant(tmp_path, capsys):
+    """No --plant and no controller: the force limit is estimated from the log (and says so), so the
+    written file has every required key."""
+    f0 = 2.0
+    path, fmt = _free_mass_log(tmp_path, f0)
     out = tmp_path / "F.toml"
     code = fit_main([str(path), "--log-format", str(fmt), "--out", str(out)])
     assert code == 0, capsys.readouterr().err
     plant = load_plant(out)
     assert plant.values["drive.force_limit_n"] == pytest.approx(f0, rel=1e-12)
     assert plant.sources["drive.force_limit_n"].startswith("estimate: largest force in log.csv")
-    assert plant.values["axis.mass_kg"] == pytest.approx(m, rel=1e-3)
+    assert plant.values["axis.mass_kg"] == pytest.approx(4.0, rel=1e-3)  # _free_mass_log's mass
 
 
 def test_a_tiny_viscous_term_replays_as_none():
@@ -895,19 +902,7 @@ def test_a_linear_axis_log_without_a_controller_leaves_the_delay_undecided(tmp_p
     # no [controller]: the replay takes the logged force to act at once; nothing decided that, and the record says so
     from prsa_ctrl.identification.delay import delay_status_head
 
-    n, h, m, f0 = 3000, 1e-3, 4.0, 2.0
-    t = np.arange(n) * h
-    f = f0 * np.sign(np.sin(2 * math.pi * 2.0 * t))
-    v, x = np.zeros(n), np.zeros(n)
-    for k in range(n - 1):  # a free mass, exact over each held sample
-        v[k + 1] = v[k] + f[k] / m * h
-        x[k + 1] = x[k] + v[k] * h + 0.5 * f[k] / m * h * h
-    path = tmp_path / "log.csv"
-    path.write_text("time_s,position_m,speed_m_s,force_n\n"
-                    + "".join(f"{a:.17g},{b:.17g},{c:.17g},{d:.17g}\n" for a, b, c, d in zip(t, x, v, f)))
-    fmt = tmp_path / "fmt.toml"
-    fmt.write_text('format = "csv"\n[time]\nname = "time_s"\nunit = "s"\n[position]\nname = "position_m"\nunit = "m"\n'
-                   '[speed]\nname = "speed_m_s"\nunit = "m/s"\n[command]\nname = "force_n"\nunit = "N"\n')
+    path, fmt = _free_mass_log(tmp_path, 2.0)
     js = tmp_path / "F.json"
     assert fit_main([str(path), "--log-format", str(fmt), "--out", str(tmp_path / "F.toml"), "--json", str(js)]) == 0
     cd = json.loads(js.read_text())["command_delay"]
