@@ -794,6 +794,8 @@ def _refine(direct: FitResult, start: Plant, frf, fit: FrfModelFit, choice: Stru
     solver = dict(res.solver)
     solver["structure"] = direct.solver["structure"]
     solver["frf_model"] = direct.solver["frf_model"]
+    if "frf_band" in direct.solver:  # (the band the two-mass fit read: the report's band and its lines)
+        solver["frf_band"] = direct.solver["frf_band"]
     solver["start"] = {k: v["value"] for k, v in direct.parameters.items()}
     solver["name"] = (f"{res.solver['name']}, the plant's compliant model from the two-mass fit's mapping "
                       "(Levenberg-Marquardt on the log response)")

@@ -130,9 +130,9 @@ def test_bad_bands_are_bad_input(third):
         assert str(ei.value).startswith(f"--frf-band {typed!r}: ")
 
 
-def test_a_band_over_every_point_changes_nothing(tmp_path):
-    """One resonance (an independent two-mass axis, tests/independent_actuator.py): a band that
-    covers every point gives the same plant file and report, bit for bit."""
+def _one_resonance_bode(tmp_path):
+    """The FRF file of an independent two-mass axis (tests/independent_actuator.py) with one
+    resonance, on the ball screw's base plant, continuous (sample time 0), 3..1500 Hz."""
     from prsa_ctrl import load_plant
     from prsa_ctrl.identification.data import frf_from_arrays
 
@@ -150,12 +150,29 @@ def test_a_band_over_every_point_changes_nothing(tmp_path):
     g = g * np.exp(0.01 * (rng.standard_normal(len(f)) + 1j * rng.standard_normal(len(f))))
     path = tmp_path / "bode.csv"
     frf_from_arrays("two-mass", f, g, sample_time_s=0.0).to_csv(path)
+    return path
+
+
+def test_a_band_over_every_point_changes_nothing(tmp_path):
+    """One resonance (an independent two-mass axis, tests/independent_actuator.py): a band that
+    covers every point gives the same plant file and report, bit for bit."""
+    path = _one_resonance_bode(tmp_path)
     plain = calibrate_frf([path], "ballscrew-32x10", name="fitted", sample_time_s=0.0)
     banded = calibrate_frf([path], "ballscrew-32x10", name="fitted", sample_time_s=0.0, band=(0.0, 2000.0))
     assert plain.plant_text == banded.plant_text
     assert json.dumps(plain.report, sort_keys=True, default=str) == json.dumps(banded.report, sort_keys=True, default=str)
     assert plain.lines == banded.lines
 
+
+
+def test_a_band_below_every_resonance_is_reported_after_the_compliant_refit(tmp_path):
+    """A band that leaves out only the points above 1000 Hz (no resonance above it, so the
+    plant's own compliant model is refitted to the two-mass mapping): the report and its lines
+    still name the band (the refit's solver dropped it, so neither did)."""
+    banded = calibrate_frf([_one_resonance_bode(tmp_path)], "ballscrew-32x10", name="fitted", sample_time_s=0.0,
+                           band=(0.0, 1000.0))
+    assert banded.report["frf_band"]["band_hz"] == [0.0, 1000.0]
+    assert any(line.startswith("band: 0..1000 Hz") for line in banded.lines)
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(g3.CASES))
