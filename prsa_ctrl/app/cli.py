@@ -115,11 +115,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "-h" in argv or "--help" in argv:
         build_parser().print_help()
         return 0
-    from ..cli.common import UsageError, attach_values
+    from ..cli.common import UsageError, attach_values, long_options
 
     parser = build_parser()
     try:  # a value that starts with '-' (--port -x) reaches its flag's check (:func:`prsa_ctrl.cli.common.attach_values`)
-        argv = attach_values(argv, _VALUE_FLAGS, [o for a in parser._actions for o in a.option_strings if o.startswith("--")])
+        argv = attach_values(argv, _VALUE_FLAGS, long_options(parser))
         args = parser.parse_args(argv)
     except (_Usage, UsageError) as exc:
         print(printable(f"{PROG}: error: {' '.join(str(exc).split())}"), file=sys.stderr)

@@ -49,7 +49,7 @@ from ..io.output import OutputError, Transaction, cleanup_temporaries, remove_cr
 from ..textsafe import MESSAGE_CHARS_MAX, printable
 
 __all__ = ["report_failure", "EXIT_OK", "EXIT_BAD_INPUT", "EXIT_NUMERICAL", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
-           "EXIT_BROKEN_PIPE", "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values",
+           "EXIT_BROKEN_PIPE", "INTERRUPT_GRACE_S", "UsageError", "Parser", "number", "integer", "path_text", "attach_values", "long_options",
            "Run", "guard", "native_output", "invoke", "invoke_inner", "describe_failure", "raised_in", "one_line",
            "status_says_interrupted", "show_notes", "progress", "commit", "staged", "write_json_atomic",
            "KeepTyped", "typed_text", "echo"]
@@ -152,6 +152,12 @@ def path_text(flag: str) -> Callable[[str], str]:
 
     return conv
 
+def long_options(parser: argparse.ArgumentParser) -> list[str]:
+    """Every long option (``--x``) of ``parser``: the ``flags`` :func:`attach_values` needs for a
+    parser that accepts abbreviations."""
+    return [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+
+
 def attach_values(argv: Sequence[str], value_flags: Iterable[str] = (), flags: Iterable[str] = ()) -> list[str]:
     """``--load-step -5:10`` would read ``-5:10`` as an option; glue values to their flag so
     that such a value reaches the validator and is reported by name (``value_flags``: the flags
@@ -184,9 +190,10 @@ def attach_values(argv: Sequence[str], value_flags: Iterable[str] = (), flags: I
         if a.startswith("--") and a.partition("=")[2] == "--":
             raise UsageError(f"{a.partition('=')[0]} '--': expected a value")
         nxt = argv[i + 1] if i + 1 < len(argv) else None
-        takes = a in value_flags or (abbreviated and a.startswith("--") and a not in flags and "=" not in a
-                                     and len([f for f in flags if f.startswith(a)]) == 1
-                                     and any(f.startswith(a) for f in value_flags))
+        # (an abbreviation: the one long option it is a prefix of, which argparse resolves it to)
+        prefix_of = ([f for f in flags if f.startswith(a)]
+                     if abbreviated and a.startswith("--") and a not in flags and "=" not in a else [])
+        takes = a in value_flags or (len(prefix_of) == 1 and prefix_of[0] in value_flags)
         if takes and nxt == "--":  # argparse would drop it and hand the converter nothing
             raise UsageError(f"{a} '--': expected a value")
         if takes and nxt is not None and not nxt.startswith("--"):

@@ -52,7 +52,7 @@ from typing import Sequence
 from ..errors import GeometryWarning, PlantFileError
 from ..options import DEFAULT_FREQUENCY_UNIT, FREQUENCY_UNITS, SPEED_MAX_RPM, rad_s_to_rpm, rpm_to_rad_s
 from ..identification.calibrate import FRF_COHERENCE_MIN_DEFAULT, FRF_SPEED_DEFAULT_RAD_S, MOTOR_COORDINATES
-from .common import KeepTyped, Run, Parser, UsageError, echo, invoke, number, progress, typed_text
+from .common import KeepTyped, Run, Parser, UsageError, echo, invoke, long_options, number, progress, typed_text
 
 __all__ = ["main", "build_parser", "plant_toml", "DESIGN_MAX_SPEED_RAD_S", "new_outputs", "take_back", "FIT_VALUE_FLAGS"]
 
@@ -238,8 +238,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     built-in plant only with ``--verbose``.
     """
     # (the parser accepts abbreviations: its long options let attach_values glue "--frf-b -1,300" too)
-    flags = [o for a in build_parser()._actions for o in a.option_strings if o.startswith("--")]
-    return invoke("prsa-fit", argv, _body, FIT_VALUE_FLAGS, flags)
+    return invoke("prsa-fit", argv, _body, FIT_VALUE_FLAGS, long_options(build_parser()))
 
 
 #: Flags of ``prsa-fit`` (and its linear-axis mode) whose value may start with ``-``: a number, a
