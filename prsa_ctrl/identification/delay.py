@@ -145,8 +145,9 @@ def with_command_delay(result: FitResult, shift: int, command_logged: str, how: 
                      + (f"; if the log holds the command as {other}, it is {n_other} (--command-logged {other})"
                         if n_other >= 0 else ""))
     search = result.solver.get("delay_search")
-    undecided = search is not None and not search.get("status", "decided" if search.get("decided") else
-                                                      "undecided").startswith("decided")
+    status = (search.get("status", "decided" if search.get("decided") else "undecided") if search is not None else
+              "given" if how.startswith("given") else "base plant's")
+    undecided = search is not None and not status.startswith("decided")
     if plant.command_delay_samples != n or how.startswith("found"):
         with_delay = plant.with_params({"drive.command_delay_samples": n}, name=plant.name)
         sources = dict(with_delay.sources)
@@ -159,9 +160,7 @@ def with_command_delay(result: FitResult, shift: int, command_logged: str, how: 
                       mechanism=with_delay.mechanism, defaulted=with_delay.defaulted,
                       mechanism_source=with_delay.mechanism_source)
     solver = dict(result.solver)
-    search = solver.pop("delay_search", None)
-    status = (search.get("status", "decided" if search.get("decided") else "undecided") if search is not None else
-              "given" if how.startswith("given") else "base plant's")
+    solver.pop("delay_search", None)  # (the record's search, ``search`` above)
     solver["command_delay"] = {"shift_samples": int(shift), "command_logged": command_logged,
                                "drive_command_delay_samples": int(n), "how": how, "status": status,
                                **({"search": search} if search is not None else {})}

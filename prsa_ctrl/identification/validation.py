@@ -783,7 +783,7 @@ def validate_fit(result, records: Sequence[Record], validate: Sequence[Record], 
         reasons.append("the command delay is not decided by the data (objective per delay: " + ", ".join(
             f"{s_}: {'failed' if v is None else f'{v:.4g}'}" for s_, v in search.get("objective", {}).items())
             + f"; tolerance: a factor {search.get('ratio_tolerance')}); give --delay-samples N if you know it")
-    diag = None if passes else diagnosis(written, (result.solver.get("command_delay") or {}).get("search"), result, loo)
+    diag = None if passes else diagnosis(written, search, result, loo)
     # a delay the search decided with the model this validation rejects for missing physics is undecided
     # (and one decided with a model a fit failure left unvalidated: the fit at the delay failed)
     failed_fit = not passes and diag.startswith(FIT_FAILURE)
