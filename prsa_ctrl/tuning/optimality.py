@@ -281,14 +281,19 @@ class OptimalityChecks:
         def fun(y):
             return y[-1] if self.worst_case else float(np.dot(w, objs(y) * f_ref) / np.dot(w, f_ref))
 
-        def cons(y):
+        def noise_margin(y):
+            """The noise bound's row (none without one), a hair inside, as the ipopt solve."""
+            if noise is None:
+                return np.zeros(0)
             g = gains_of(y)
+            return np.array([1.0 - 1e-7 - (g[0] + g[2] / loops[0].tf) / noise])
+
+        def cons(y):
             c = [1.0 - peaks_at(y)[0]]
             if self.worst_case:
                 c.append(y[-1] - objs(y))
-            if noise is not None:  # a hair inside, as the ipopt solve
-                c.append(np.array([1.0 - 1e-7 - (g[0] + g[2] / loops[0].tf) / noise]))
-            return np.concatenate(c) if c else np.zeros(0)
+            c.append(noise_margin(y))
+            return np.concatenate(c)
 
         d = FD_STEP / 10
 
@@ -337,10 +342,7 @@ class OptimalityChecks:
         def value(y):
             """The polished measure at ``y`` (the worst loop's with ``worst_case``), inf where
             ``y`` breaks a tracked peak or the noise bound by more than ``POLISH_FEAS_TOL``."""
-            c = 1.0 - peaks_at(y)[0]
-            if noise is not None:
-                g = gains_of(y)
-                c = np.append(c, 1.0 - 1e-7 - (g[0] + g[2] / loops[0].tf) / noise)
+            c = np.concatenate([1.0 - peaks_at(y)[0], noise_margin(y)])
             if c.size and not np.min(c) >= -POLISH_FEAS_TOL:
                 return math.inf
             return float(np.max(objs(y))) if self.worst_case else fun(y)
