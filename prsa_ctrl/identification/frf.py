@@ -24,7 +24,7 @@ from .common import (DELAY_KEY, FRF_KEYS, FRF_KEYS_COMPLIANT, PSEUDO_KEYS, UNCER
                      checked_inputs, finish_fit, frf_sample_time, info_split, key_bounds, symbolic_rhs)
 from .data import FrfRecord
 
-__all__ = ["fit_frf", "frf_response", "axial_mode", "frf_fit_percent", "FRF_SPREAD_MIN", "linearised", "write_delay"]
+__all__ = ["fit_frf", "frf_response", "axial_mode", "frf_fit_percent", "FRF_SPREAD_MIN", "linearised", "write_delay", "refuse_beyond_bracket"]
 
 def _plant_value(plant: Plant, key: str, delay_s: float = 0.0) -> float:
     """Initial value of a fitted key (the delay is no plant key: ``delay_s``)."""
@@ -356,6 +356,22 @@ def frf_fit_percent(measured, model) -> float:
     err = np.sqrt(np.sum((lm.real - lg.real) ** 2 + d**2))
     ref = np.sqrt(np.sum((lm.real - lm.real.mean()) ** 2 + (np.unwrap(lm.imag) - np.unwrap(lm.imag).mean()) ** 2))
     return float(100.0 * (1.0 - err / ref)) if ref > FRF_SPREAD_MIN * math.sqrt(len(lm)) else float("nan")
+
+
+def refuse_beyond_bracket(delay: dict | None, sample_time_s: float) -> None:
+    """Raise :class:`~prsa_ctrl.errors.FitError` when an FRF fit's command delay (``value`` in s)
+    ended at the top of its bracket (``at_bound == "upper"``): the response lags its command at
+    least that much, and the whole samples written would be the bracket's, not the response's
+    (a response 12 samples late fitted with the default bracket of 0 to 10 samples wrote 10 with
+    exit 0 and fit 86 %). A delay at the bracket's bottom (none beyond the computation delay) is
+    a finding, not a bound, and passes. (Only :func:`fit_frf`'s delay has a top: the two-mass
+    structure fit bounds it below alone.)"""
+    if not delay or delay.get("at_bound") != "upper":
+        return
+    raise FitError(f"no plant written: the command delay is held at the top of its bracket, {delay['value']:.4g} s "
+                   f"({delay['value'] / sample_time_s:.4g} samples of {sample_time_s:.4g} s): the response lags its "
+                   "command at least that much and the fit cannot say by how much more; expected a delay inside the "
+                   "bracket: move it with --delay-samples N (the bracket is N to N + 10 samples)")
 
 
 def fit_frf(

@@ -57,7 +57,7 @@ from .common import FitResult
 from .frfcheck import choose_structure_checked, units_line, unexplained_line, unexplained_resonances
 from .twomass import StructureChoice, FrfModelFit, physical_values
 
-__all__ = ["fit_frf_structure", "refuse_beyond_bracket", "plant_keys_of", "first_mode_hz", "apparent_inertia", "held_key_spread", "HELD_DEFAULT",
+__all__ = ["fit_frf_structure", "plant_keys_of", "first_mode_hz", "apparent_inertia", "held_key_spread", "HELD_DEFAULT",
            "held_key_sd", "with_held",
            "KEY_UNITS", "FRF_FIT_MIN", "CURRENT_LOOP_BAND",
            "INERTIA_RATIO_MAX", "DELAY_SAMPLES_MAX", "LOW_PHASE_TOL_DEG"]
@@ -475,21 +475,6 @@ def plant_keys_of(plant: Plant, fit: FrfModelFit, *, speed_rad_s: float, load_n:
     return values, ci, cov, keys, warns
 
 
-def refuse_beyond_bracket(delay: dict | None, sample_time_s: float) -> None:
-    """Raise :class:`~prsa_ctrl.errors.FitError` when an FRF fit's command delay (``value`` in s)
-    ended at the top of its bracket (``at_bound == "upper"``): the response lags its command at
-    least that much, and the whole samples written would be the bracket's, not the response's
-    (a response 12 samples late fitted with the default bracket of 0 to 10 samples wrote 10 with
-    exit 0 and fit 86 %). A delay at the bracket's bottom (none beyond the computation delay) is
-    a finding, not a bound, and passes."""
-    if not delay or delay.get("at_bound") != "upper":
-        return
-    raise FitError(f"no plant written: the command delay is held at the top of its bracket, {delay['value']:.4g} s "
-                   f"({delay['value'] / sample_time_s:.4g} samples of {sample_time_s:.4g} s): the response lags its "
-                   "command at least that much and the fit cannot say by how much more; expected a delay inside the "
-                   "bracket: move it with --delay-samples N (the bracket is N to N + 10 samples)")
-
-
 def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command_logged: str = "applied",
                       uncertainty: str = "keep", refine: bool = True, band: tuple[float, float] | None = None,
                       band_typed: str | None = None) -> tuple[FitResult, StructureChoice]:
@@ -636,7 +621,6 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
     names = ", ".join(fr.name for fr in frf) + frfband.source_note(band_info)
     d = fit.values["delay_s"]
     ts_w = ts if ts > 0 else plant.sample_time_s
-    refuse_beyond_bracket(d, ts_w)
     delay = {"value": d["value"], "ci95": d["ci95"], "unit": "s", "samples": d["value"] / ts_w}
     if d.get("at_bound"):
         delay.update(at_bound=d["at_bound"], note=d["note"], unbounded_value=d["unbounded_value"])

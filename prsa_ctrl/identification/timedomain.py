@@ -281,7 +281,7 @@ def fit_plant(
         held = shift if delay_samples in (None, "find") else delay_samples
         res = fit_frf(frf, plant, keys=keys, fidelity=fidelity, delay_samples=held,
                       keep_unidentified=keep_unidentified, uncertainty=uncertainty, command_logged=command_logged)
-        from .frfplant import refuse_beyond_bracket
+        from .frf import refuse_beyond_bracket
 
         ts_d = frf_sample_time(frf[0], plant)
         refuse_beyond_bracket(res.delay, ts_d if ts_d > 0 else plant.sample_time_s)
