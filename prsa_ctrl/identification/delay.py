@@ -316,8 +316,10 @@ def axis_delay_record(logs, costs: dict | None = None, margin: float = 0.05) -> 
     ``delay_check``: ``{delay: cost}``, the described delay and its neighbours refitted briefly)
     are shown, and a neighbour cheaper by more than ``margin`` (a fraction) is named. Logs without
     a controller are replayed from the logged command with no delay: ``"undecided: ..."``."""
+    from .logformat import MOTOR_CONVENTION
+
     ctl = [getattr(lg, "controller", None) for lg in logs]
-    logged = {"as-computed": "computed", "as-applied": "applied"}.get(getattr(logs[0], "command_logged", ""), "applied")
+    logged = MOTOR_CONVENTION.get(getattr(logs[0], "command_logged", ""), "applied")
     if any(c is None for c in ctl):
         return {"shift_samples": 0, "command_logged": logged, "drive_command_delay_samples": 0,
                 "how": "not described: the replay from the logged command takes it to act at once",
