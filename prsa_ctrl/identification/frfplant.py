@@ -725,12 +725,13 @@ def fit_frf_structure(frf, plant: Plant, *, fidelity: str | None = None, command
         solver["frf_band"] = dict(band_info)
     result = FitResult(fitted, params, reflected, corr, tuple(keys), fit_pct, warns, solver, traces, delay, {}, None)
     skey = _stiffness_key(plant)
-    if refine and fit.structure == "two-mass" and skey is not None and skey in keys and upper:
-        result.warnings.append("the plant's own compliant model is not refitted to the band (it has no upper residual "
-                               "for the modes above it, which its delay and inertia would take up): the two-mass "
-                               "model's mapping is written")
-    elif refine and fit.structure == "two-mass" and skey is not None and skey in keys:
-        result = _refine(result, start, frf, fit, choice, keys, ts_w, command_logged, uncertainty, names)
+    if refine and fit.structure == "two-mass" and skey is not None and skey in keys:
+        if upper:
+            result.warnings.append("the plant's own compliant model is not refitted to the band (it has no upper "
+                                   "residual for the modes above it, which its delay and inertia would take up): the "
+                                   "two-mass model's mapping is written")
+        else:
+            result = _refine(result, start, frf, fit, choice, keys, ts_w, command_logged, uncertainty, names)
     return result, choice
 
 
